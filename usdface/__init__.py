@@ -1,0 +1,22 @@
+"""usdface: personalized ARKit facial blendshapes from a phone capture, implanted into UsdSkel avatars.
+
+The stable Python API lives in :mod:`usdface.api` and is re-exported here lazily, so ``import usdface`` stays
+cheap and never fails because an optional dependency is missing.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+_API = {
+    "personalize_avatar", "fit_capture", "evaluate_capture", "compute_landmarks", "read_avatar",
+    "read_capture", "import_capture_folder", "check", "inspect_file",
+}
+
+
+def __getattr__(name):
+    if name in _API:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(name)

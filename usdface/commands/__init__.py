@@ -1,0 +1,1 @@
+"""One module per ``usdface`` sub-command (thin: parse arguments, call the API, print)."""
