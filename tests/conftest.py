@@ -1,0 +1,34 @@
+"""Shared fixtures. Tests that need the product owner's data (../shared) skip cleanly without it."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))
+SAMPLES = ROOT / "sample_assets"
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    """../shared (the product owner's data); skips the test when absent."""
+    if not (SHARED / "data").is_dir():
+        pytest.skip("../shared data not present")
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def bench(shared) -> Path:
+    """../shared/data/bench (dev1, dev2)."""
+    return shared / "data" / "bench"
+
+
+@pytest.fixture(scope="session")
+def samples() -> Path:
+    """The project's own generated sample assets."""
+    if not (SAMPLES / "avatar.usda").exists():
+        pytest.skip("sample_assets not generated yet")
+    return SAMPLES
