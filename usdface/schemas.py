@@ -1,0 +1,100 @@
+"""usdface's codeless USD schemas: registration with USD's plugin system.
+
+The schemas live in ``schemas/`` (``schema.usda`` is the source; ``generatedSchema.usda`` and
+``plugInfo.json`` are made from it by ``python -m pxr.Usd.usdGenSchema schemas/schema.usda schemas``). They
+are *codeless* applied API schemas, so no compiled code is needed; USD only has to be told where
+``plugInfo.json`` is, and that must happen **before the first stage or the schema registry is created** (the
+registry reads the plugins once). ``import usdface.io`` calls :func:`register`, so any code path that reads or
+writes USD through usdface has them.
+
+Schemas (attributes in the ``usdface:`` namespace; see ``docs/schemas.md``):
+
+* ``UsdFaceCaptureAPI``: capture metadata (device, units note, train/test counts, shape names, source digest);
+* ``UsdFaceLandmarksAPI``: a landmark layout's parameters and solver outcome (epsilon, alpha, solverStatus,
+  optimalityGap, count, symmetric, multicover, vertexIndices, mesh);
+* ``UsdFaceProvenanceAPI``: personalization provenance (version, command, method, parameters, input digests,
+  registration scale/residual, createdAt).
+
+Example::
+
+    import usdface.schemas
+    usdface.schemas.register()
+    from pxr import Usd
+    stage = Usd.Stage.CreateInMemory()
+    prim = stage.DefinePrim("/Face")
+    prim.ApplyAPI(usdface.schemas.LANDMARKS_API)
+    prim.GetAttribute("usdface:landmarks:epsilon").Get()   # 0.5 (the schema's fallback)
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+CAPTURE_API = "UsdFaceCaptureAPI"
+LANDMARKS_API = "UsdFaceLandmarksAPI"
+PROVENANCE_API = "UsdFaceProvenanceAPI"
+SCHEMA_NAMES = (CAPTURE_API, LANDMARKS_API, PROVENANCE_API)
+
+#: Environment variable that points at a schemas directory (overrides the built-in search).
+ENV_VAR = "USDFACE_SCHEMAS"
+
+_registered: Path | None = None
+
+
+def schema_dir() -> Path:
+    """The directory holding ``plugInfo.json`` + ``generatedSchema.usda``.
+
+    Searched in order: ``$USDFACE_SCHEMAS``; ``usdface/schemas/`` inside the installed package (a wheel's
+    package data); ``schemas/`` at the root of a source checkout (editable install).
+    """
+    here = Path(__file__).resolve().parent
+    candidates = []
+    if os.environ.get(ENV_VAR):
+        candidates.append(Path(os.environ[ENV_VAR]))
+    candidates += [here / "schemas", here.parent / "schemas"]
+    for c in candidates:
+        if (c / "plugInfo.json").is_file() and (c / "generatedSchema.usda").is_file():
+            return c
+    from .errors import InputFileError
+
+    raise InputFileError("usdface schemas not found (plugInfo.json + generatedSchema.usda)",
+                         path=", ".join(str(c) for c in candidates),
+                         fix=f"reinstall usdface, or set {ENV_VAR} to the repository's schemas/ directory")
+
+
+def register(strict: bool = False) -> Path:
+    """Register usdface's schemas with USD (idempotent). Returns the schemas directory.
+
+    Must run before the first ``Usd.Stage`` or ``Usd.SchemaRegistry`` is created in the process. If the schema
+    registry was already built without them, warns (``strict=False``; usdface then still works, but applied
+    schemas have no fallbacks) or raises :class:`usdface.errors.UsdFaceError` (``strict=True``).
+    """
+    global _registered
+    if _registered is not None:
+        return _registered
+    from pxr import Plug, Usd
+
+    directory = schema_dir()
+    Plug.Registry().RegisterPlugins(str(directory))
+    if Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(LANDMARKS_API) is None:
+        from .errors import UsdFaceError
+
+        error = UsdFaceError(
+            "USD's schema registry was created before usdface registered its schemas",
+            path=directory,
+            fix="import usdface.io (or call usdface.schemas.register()) before opening any USD stage")
+        if strict:
+            raise error
+        warnings.warn(str(error), stacklevel=2)
+        return directory
+    _registered = directory
+    return directory
+
+
+def is_registered() -> bool:
+    """True when the three usdface API schemas are known to USD's schema registry."""
+    from pxr import Usd
+
+    return all(Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(n) is not None for n in SCHEMA_NAMES)
