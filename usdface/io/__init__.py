@@ -1,6 +1,44 @@
 """File formats: the only package that knows USD, OBJ, JSON and CSV. Importing it registers usdface's USD
-schemas (:func:`usdface.schemas.register`), which must happen before the first USD stage is created."""
+schemas (:func:`usdface.schemas.register`), which must happen before the first USD stage is created.
+
+:func:`read_capture` reads a capture in either of its two forms: a capture folder (OBJ + JSON, see
+``docs/capture-format.md``) or a ``capture.usda``/``.usdc``/``.usd`` written by ``usdface capture import``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 from .. import schemas as _schemas
 
 _schemas.register()
+
+__all__ = ["read_capture", "USD_EXTENSIONS"]
+
+#: File extensions read as USD.
+USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def read_capture(path):
+    """Read a capture folder or a capture USD file into a :class:`usdface.model.Capture`.
+
+    Dispatches on the path: a directory -> :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``,
+    ``.usda``, ``.usdc`` file -> :func:`usdface.io.usd_capture.read_capture_usd`. Anything else raises
+    :class:`usdface.errors.InputFileError`.
+    """
+    from ..errors import InputFileError
+
+    path = Path(path)
+    if path.is_dir():
+        from .capture_folder import read_capture_folder
+
+        return read_capture_folder(path)
+    if path.suffix.lower() in USD_EXTENSIONS:
+        from .usd_capture import read_capture_usd
+
+        return read_capture_usd(path)
+    if not path.exists():
+        raise InputFileError("capture not found", path=path,
+                             fix="pass a capture folder or a capture .usda written by 'usdface capture import'")
+    raise InputFileError("not a capture folder or USD file", path=path,
+                         fix="pass a capture folder (neutral.obj, template/, train/, test/) or a capture .usda")
