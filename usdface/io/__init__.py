@@ -39,6 +39,6 @@ def read_capture(path):
         return read_capture_usd(path)
     if not path.exists():
         raise InputFileError("capture not found", path=path,
-                             fix="pass a capture folder or a capture .usda written by 'usdface capture import'")
+                             fix="pass a capture folder or a .usda written by 'usdface capture import'")
     raise InputFileError("not a capture folder or USD file", path=path,
-                         fix="pass a capture folder (neutral.obj, template/, train/, test/) or a capture .usda")
+                         fix="pass a capture folder (neutral.obj, template/, train/) or a capture .usda")

@@ -1,12 +1,13 @@
 """Wavefront OBJ meshes <-> numpy arrays, vertex order preserved exactly.
 
-Why not Open3D here (the project's default for mesh I/O): measured with open3d 0.20, ``read_triangle_mesh``
-loads OBJ through Assimp, which renumbers the vertices in order of first use by the faces (on the bench capture
-neutral, vertex 0 comes back as file vertex 292) and parses coordinates as float32; ``enable_post_processing=False``
-changes neither. ``write_triangle_mesh`` prints coordinates with 6 significant digits. Capture frames are matched
-to the neutral *by vertex index* and the folder -> USD round trip must be exact, so this module parses and writes
-the tiny subset of OBJ that meshes need (``v`` and ``f`` records) with numpy: float64 coordinates, file order,
-shortest exact decimal on write. Everything else in an OBJ (normals, UVs, groups, materials) is ignored.
+Why not Open3D here (the project's default for mesh I/O): measured with open3d 0.20,
+``read_triangle_mesh`` loads OBJ through Assimp, which renumbers the vertices in order of first use by the
+faces (on the bench capture neutral, vertex 0 comes back as file vertex 292) and parses coordinates as
+float32; ``enable_post_processing=False`` changes neither. ``write_triangle_mesh`` prints coordinates with 6
+significant digits. Capture frames are matched to the neutral *by vertex index* and the folder -> USD round
+trip must be exact, so this module parses and writes the tiny subset of OBJ that meshes need (``v`` and ``f``
+records) with numpy: float64 coordinates, file order, shortest exact decimal on write.
+Everything else in an OBJ (normals, UVs, groups, materials) is ignored.
 """
 
 from __future__ import annotations
@@ -97,14 +98,15 @@ def _face_records(lines: list[bytes], path: Path) -> tuple[np.ndarray, np.ndarra
 
 
 def _face_triangles(lines: list[bytes], all_lines: list[bytes], path: Path) -> np.ndarray:
-    """Face records (``a``, ``a/t``, ``a//n``, ``a/t/n``; negative = relative) -> fan triangles [t,3] 0-based."""
+    """Face records (``a``, ``a/t``, ``a//n``, ``a/t/n``; negative = relative) -> fan triangles [t,3]."""
     counts, idx = _face_records(lines, path)
     if counts.min() < 3:
         bad = int(np.argmin(counts))
         raise GeometryError(f"face {bad} has {int(counts[bad])} vertices; faces need at least 3", path=path,
                             fix="remove points/lines from the mesh or re-export it triangulated")
     if (idx == 0).any():
-        raise GeometryError("face index 0 (OBJ indices start at 1)", path=path, fix="repair or re-export the mesh")
+        raise GeometryError("face index 0 (OBJ indices start at 1)", path=path,
+                            fix="repair or re-export the mesh")
     if (idx < 0).any():
         owner = np.repeat(np.arange(len(counts)), counts)
         idx = np.where(idx < 0, _vertices_before_faces(all_lines)[owner] + idx, idx - 1)
@@ -137,14 +139,17 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     data = _read_bytes(path)
     if b"\0" in data[:4096]:
-        raise InputFileError("not a text OBJ file (binary content)", path=path, fix="pass a Wavefront .obj file")
+        raise InputFileError("not a text OBJ file (binary content)", path=path,
+                             fix="pass a Wavefront .obj file")
     lines = data.splitlines()
     v_lines = [ln for ln in lines if ln[:2] == b"v " or ln[:2] == b"v\t"]
     f_lines = [ln for ln in lines if ln[:2] == b"f " or ln[:2] == b"f\t"]
     if not v_lines:
-        raise GeometryError("mesh has no vertices", path=path, fix="check that the file is a non-empty OBJ mesh")
+        raise GeometryError("mesh has no vertices", path=path,
+                            fix="check that the file is a non-empty OBJ mesh")
     if not f_lines:
-        raise GeometryError("mesh has no faces", path=path, fix="export the mesh with its faces, not as points")
+        raise GeometryError("mesh has no faces", path=path,
+                            fix="export the mesh with its faces, not as points")
     points = _vertex_rows(v_lines, path)
     if not np.isfinite(points).all():
         bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])

@@ -1,0 +1,245 @@
+"""Capture folders (OBJ meshes + JSON weights) <-> :class:`usdface.model.Capture`.
+
+Folder layout (see ``docs/capture-format.md``)::
+
+    capture/
+      neutral.obj                  the person's neutral scan (capture topology, metres)
+      template/neutral.obj         the generic template rig on the same topology: its neutral ...
+      template/<shape>.obj         ... and one full target mesh per ARKit shape (not deltas)
+      train/<NNN>_<shape>.obj      training expressions: the person performing <shape> ...
+      train/<NNN>_<shape>.json     ... and the weights the phone reported: {"blendShapes": {name: w, ...}}
+      test/<NNN>.obj + .json       held-out test expressions, for evaluation only
+
+Shape names (template file stems and JSON keys) may use any of the three ARKit spellings and are mapped to the
+canonical name (:mod:`usdface.arkit`). ``Capture.names`` is the template's shape order: ARKit order for ARKit
+shapes, then unknown names (kept, with a warning) sorted. Missing shapes are allowed and listed in
+``capture.metadata["name_report"]["missing"]``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import ARKIT_NAMES, match_names
+from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from ..model import Capture, FaceRig, Frames
+from .mesh_io import read_obj, write_obj
+
+__all__ = ["read_capture_folder", "write_capture_folder", "read_weights_json", "order_names",
+           "ROLES"]
+
+#: Frame roles, in the order frames are stored.
+ROLES = ("train", "test")
+_ARKIT_INDEX = {n: i for i, n in enumerate(ARKIT_NAMES)}
+
+
+def order_names(names) -> list[str]:
+    """Canonical shape order: ARKit documentation order for ARKit names, then other names sorted."""
+    return sorted(names, key=lambda n: (0, _ARKIT_INDEX[n], "") if n in _ARKIT_INDEX else (1, 0, n))
+
+
+def read_weights_json(path) -> dict[str, float]:
+    """Read one frame's weights ``{"blendShapes": {name: weight}}`` -> {canonical name: weight}.
+
+    Any of the three ARKit spellings is accepted; unknown names are kept as they are. Raises InputFileError
+    (missing file, invalid JSON) or CaptureError (no ``blendShapes`` object, non-numeric or NaN/inf weights,
+    the same shape under two spellings), naming the file.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        raise InputFileError("weights file not found", path=path,
+                             fix="every frame .obj needs a .json of the same name with its weights") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"cannot read weights file ({exc})", path=path, fix="check the file") from None
+    except json.JSONDecodeError as exc:
+        raise InputFileError(f"invalid JSON ({exc.msg} at line {exc.lineno})", path=path,
+                             fix="write the weights as {\"blendShapes\": {\"jawOpen\": 0.8, ...}}") from None
+    shapes = data.get("blendShapes") if isinstance(data, dict) else None
+    if not isinstance(shapes, dict):
+        raise CaptureError("no \"blendShapes\" object in the weights JSON", path=path,
+                           fix="write the weights as {\"blendShapes\": {\"jawOpen\": 0.8, ...}}")
+    match = match_names(list(shapes))
+    if match.duplicates:
+        spellings = [n for n, c in zip(match.names, match.canonical, strict=True) if c in match.duplicates]
+        raise CaptureError(f"the same shape appears under several names: {', '.join(spellings)}", path=path,
+                           fix="keep one spelling per shape")
+    out = {}
+    for given, canonical in zip(match.names, match.canonical, strict=True):
+        w = shapes[given]
+        if isinstance(w, bool) or not isinstance(w, int | float) or not np.isfinite(w):
+            raise CaptureError(f"weight of {given!r} is not a finite number: {w!r}", path=path,
+                               fix="weights must be numbers in [0, 1]")
+        out[canonical] = float(w)
+    return out
+
+
+def _check_topology(points, triangles, ref_points, ref_triangles, path, what):
+    if points.shape != ref_points.shape:
+        raise GeometryError(f"{len(points)} vertices, but {what} has {len(ref_points)}", path=path,
+                            fix="capture meshes must share the neutral's topology (vertices, order)")
+    if not np.array_equal(triangles, ref_triangles):
+        raise GeometryError(f"faces differ from {what}'s", path=path,
+                            fix="every capture mesh must share the neutral's topology (same faces)")
+
+
+def _template(root: Path, neutral, triangles, report: dict) -> FaceRig:
+    tdir = root / "template"
+    tneutral_path = tdir / "neutral.obj"
+    if not tneutral_path.is_file():
+        raise CaptureError("missing template/neutral.obj", path=root,
+                           fix="add the template rig: template/neutral.obj + template/<shape>.obj")
+    tneutral, ttris = read_obj(tneutral_path)
+    _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj")
+    files = sorted(p for p in tdir.glob("*.obj") if p.stem != "neutral")
+    if not files:
+        raise CaptureError("template has no shapes", path=tdir,
+                           fix="add one template/<shape>.obj per ARKit shape")
+    match = match_names([p.stem for p in files])
+    if match.duplicates:
+        spellings = [p.name for p, c in zip(files, match.canonical, strict=True) if c in match.duplicates]
+        raise CaptureError(f"the same shape has several template files: {', '.join(spellings)}", path=tdir,
+                           fix="keep one file per shape")
+    if match.unknown:
+        warnings.warn(f"{tdir}: template shapes that are not ARKit names (kept as they are): "
+                      f"{', '.join(match.unknown)}", UserWarning, stacklevel=3)
+    report.update(inexact=match.inexact, unknown=match.unknown, missing=match.missing)
+    by_name = dict(zip(match.canonical, files, strict=True))
+    names = order_names(by_name)
+    targets = np.empty((len(names),) + tneutral.shape)
+    for k, name in enumerate(names):
+        pts, tris = read_obj(by_name[name])
+        _check_topology(pts, tris, tneutral, ttris, by_name[name], "template/neutral.obj")
+        targets[k] = pts
+    return FaceRig(tneutral, ttris, names, targets - tneutral, name="template")
+
+
+def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict) -> Frames:
+    points, weights, roles, labels, extra = [], [], [], [], {}
+    clipped, absent = [], set()
+    index = {n: k for k, n in enumerate(names)}
+    for role in ROLES:
+        folder = root / role
+        if not folder.is_dir():
+            continue
+        for obj in sorted(folder.glob("*.obj")):
+            pts, tris = read_obj(obj)
+            _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
+            w = read_weights_json(obj.with_suffix(".json"))
+            row = np.zeros(len(names))
+            for name, value in w.items():
+                if name in index:
+                    row[index[name]] = value
+                else:
+                    extra.setdefault(name, {})[len(points)] = value
+            absent.update(n for n in names if n not in w)
+            if row.min() < 0.0 or row.max() > 1.0:
+                clipped.append(obj.with_suffix(".json").name)
+                row = np.clip(row, 0.0, 1.0)
+            points.append(pts)
+            weights.append(row)
+            roles.append(role)
+            labels.append(obj.stem)
+    if not points:
+        raise CaptureError("no frames: train/ and test/ hold no .obj files", path=root,
+                           fix="add train/<NNN>_<shape>.obj + .json frames")
+    if clipped:
+        warnings.warn(f"{root}: weights outside [0, 1] clipped in {len(clipped)} frame(s): "
+                      f"{', '.join(clipped[:5])}{' ...' if len(clipped) > 5 else ''}",
+                      UserWarning, stacklevel=3)
+    if extra:
+        warnings.warn(f"{root}: frame weights for shapes the template lacks (kept in "
+                      f"metadata['extra_weights'], "
+                      f"not fitted): {', '.join(sorted(extra))}", UserWarning, stacklevel=3)
+        metadata["extra_weights"] = {n: np.array([v.get(f, 0.0) for f in range(len(points))])
+                                     for n, v in sorted(extra.items())}
+    metadata["weights_absent"] = sorted(absent, key=names.index)  # template shapes some JSON did not list (0)
+    metadata["weights_clipped"] = clipped
+    return Frames(np.stack(points), np.stack(weights), roles, labels)
+
+
+def read_capture_folder(path) -> Capture:
+    """Read a capture folder into a :class:`~usdface.model.Capture` (points in the files' units: metres).
+
+    ``capture.names`` = template shape order (canonical names), which is also the column order of
+    ``capture.frames.weights[F, K]``; frames are train then test, each sorted by file name, labelled by file
+    stem. ``capture.metadata`` holds ``name_report`` (inexact / unknown / missing names), ``counts`` and
+    ``source``.
+
+    Raises InputFileError (missing/unreadable files), CaptureError (layout, JSON, names) or GeometryError
+    (NaN/inf, empty, vertex count or faces differing from ``neutral.obj``), naming the offending file.
+    Weights outside [0, 1] are clipped with a warning.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise InputFileError("capture folder not found" if not root.exists() else "not a folder", path=root,
+                             fix="pass the capture folder (neutral.obj, template/, train/, test/)")
+    neutral_path = root / "neutral.obj"
+    if not neutral_path.is_file():
+        raise CaptureError("missing neutral.obj", path=root,
+                           fix="see docs/capture-format.md: neutral.obj, template/, train/, test/")
+    neutral, triangles = read_obj(neutral_path)
+    report: dict = {}
+    template = _template(root, neutral, triangles, report)
+    metadata: dict = {"source": str(root), "name_report": report, "units": "m"}
+    frames = _frames(root, neutral, triangles, template.names, metadata)
+    metadata["counts"] = {role: int(sum(r == role for r in frames.role)) for role in ROLES}
+    return Capture(neutral, triangles, template, frames, list(template.names), source=str(root),
+                   metadata=metadata)
+
+
+def _weights_json(names, row) -> str:
+    shapes = {n: float(w) for n, w in zip(names, row, strict=True)}
+    return json.dumps({"blendShapes": shapes}, indent=1) + "\n"
+
+
+def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
+    """Write ``capture`` as a capture folder (the layout :func:`read_capture_folder` reads).
+
+    Template shapes are written as full targets (``template.neutral + deltas``) named by ``capture.names``;
+    frames as ``<role>/<label>.obj`` + ``.json``. The folder is assembled next to the destination and renamed
+    into place, so a failure never leaves a half-written capture. Refuses an existing, non-empty destination
+    unless ``force``. Points and weights round-trip exactly; template deltas to float rounding of
+    ``(neutral + delta) - neutral``.
+    """
+    dest = Path(path)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not force:
+        raise OutputExistsError("output exists", path=dest, fix="choose a new folder or pass --force")
+    labels = [f"{r}/{lab}" for r, lab in zip(capture.frames.role, capture.frames.label, strict=True)]
+    if len(set(labels)) != len(labels):
+        raise CaptureError("two frames share a role and label (they would overwrite each other)", path=dest,
+                           fix="give every frame a unique label")
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the capture is an ordinary folder
+    try:
+        tris = capture.triangles
+        write_obj(tmp / "neutral.obj", capture.neutral, tris)
+        tpl = capture.template
+        write_obj(tmp / "template" / "neutral.obj", tpl.neutral, tpl.triangles)
+        for k, name in enumerate(tpl.names):
+            write_obj(tmp / "template" / f"{name}.obj", tpl.neutral + tpl.deltas[k], tpl.triangles)
+        fr = capture.frames
+        for f in range(len(fr)):
+            base = tmp / fr.role[f] / fr.label[f]
+            write_obj(base.with_suffix(".obj"), fr.points[f], tris)
+            base.with_suffix(".json").write_text(_weights_json(capture.names, fr.weights[f]))
+        if dest.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+            os.replace(dest, old / dest.name)
+            os.replace(tmp, dest)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, dest)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dest
