@@ -1,0 +1,187 @@
+"""Capture folders: bench captures read correctly, round trips are exact, bad input names file and fix."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+
+from usdface.arkit import ARKIT_NAMES, raw_name
+from usdface.errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from usdface.io import read_capture
+from usdface.io.capture_folder import read_capture_folder, write_capture_folder
+from usdface.model import Capture, FaceRig, Frames
+
+NAMES = ["eyeBlinkLeft", "jawOpen", "mouthSmileLeft"]
+
+
+def tiny_capture(n_side=4, names=NAMES, seed=0) -> Capture:
+    """A small synthetic capture: grid mesh, 3 shapes, 3 train + 2 test frames (exact float64 values)."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.linspace(0, 0.1, n_side), np.linspace(0, 0.1, n_side))
+    neutral = np.stack([u.ravel(), v.ravel(), 0.01 * rng.random(n_side * n_side)], axis=1)
+    q = np.arange(n_side * n_side).reshape(n_side, n_side)[:-1, :-1].ravel()
+    tris = np.concatenate([np.stack([q, q + 1, q + n_side], 1),
+                           np.stack([q + 1, q + n_side + 1, q + n_side], 1)])
+    template = FaceRig(neutral + 0.001, tris, names, 0.005 * rng.normal(size=(len(names), len(neutral), 3)),
+                       name="template")
+    dominant = np.arange(5) % len(names)
+    weights = np.clip(np.eye(len(names))[dominant] * 0.9 + 0.05 * rng.random((5, len(names))), 0, 1)
+    noise = 1e-4 * rng.normal(size=(5,) + neutral.shape)
+    points = neutral + np.einsum("fk,knc->fnc", weights, template.deltas) + noise
+    frames = Frames(points, weights, ["train"] * 3 + ["test"] * 2,
+                    [f"{i:03d}_{names[dominant[i]]}" for i in range(3)] + ["000", "001"])
+    return Capture(neutral, tris, template, frames, list(names))
+
+
+@pytest.fixture
+def folder(tmp_path):
+    return write_capture_folder(tiny_capture(), tmp_path / "cap")
+
+
+def test_round_trip_exact(folder):
+    cap = tiny_capture()
+    got = read_capture_folder(folder)
+    assert got.names == cap.names and got.template.names == cap.names
+    np.testing.assert_array_equal(got.neutral, cap.neutral)
+    np.testing.assert_array_equal(got.triangles, cap.triangles)
+    np.testing.assert_array_equal(got.frames.points, cap.frames.points)
+    np.testing.assert_array_equal(got.frames.weights, cap.frames.weights)
+    assert got.frames.role == cap.frames.role and got.frames.label == cap.frames.label
+    np.testing.assert_array_equal(got.template.neutral, cap.template.neutral)
+    np.testing.assert_allclose(got.template.deltas, cap.template.deltas, rtol=0, atol=1e-17)
+    assert read_capture(folder).names == cap.names  # dispatcher
+
+
+def test_write_refuses_existing_unless_force(folder):
+    with pytest.raises(OutputExistsError):
+        write_capture_folder(tiny_capture(seed=1), folder)
+    write_capture_folder(tiny_capture(seed=1), folder, force=True)
+    np.testing.assert_array_equal(read_capture_folder(folder).neutral, tiny_capture(seed=1).neutral)
+    assert [p.name for p in folder.parent.iterdir()] == ["cap"]  # no temp folders left
+
+
+def test_three_spellings_and_order(tmp_path):
+    cap = tiny_capture(names=["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"])
+    d = write_capture_folder(cap, tmp_path / "c")
+    (d / "template" / "eyeBlinkLeft.obj").rename(d / "template" / "eyeBlink_L.obj")
+    (d / "template" / "jawOpen.obj").rename(d / "template" / "JawOpen.obj")
+    js = d / "train" / "000_jawOpen.json"
+    w = json.loads(js.read_text())["blendShapes"]
+    spelt = {raw_name(k) if k == "mouthSmileLeft" else k[0].upper() + k[1:]: v for k, v in w.items()}
+    js.write_text(json.dumps({"blendShapes": spelt}))
+    got = read_capture_folder(d)
+    assert got.names == ["eyeBlinkLeft", "jawOpen", "mouthSmileLeft"]  # ARKit order
+    k = [cap.names.index(n) for n in got.names]
+    np.testing.assert_array_equal(got.frames.weights, cap.frames.weights[:, k])
+    np.testing.assert_allclose(got.template.deltas, cap.template.deltas[k], atol=1e-17)
+    report = got.metadata["name_report"]
+    assert ("eyeBlink_L", "eyeBlinkLeft", "spelling") in report["inexact"]
+    assert len(report["missing"]) == len(ARKIT_NAMES) - 3
+
+
+def test_unknown_shape_kept_with_warning(tmp_path):
+    cap = tiny_capture(names=["jawOpen", "myCustomShape"])
+    d = write_capture_folder(cap, tmp_path / "c")
+    with pytest.warns(UserWarning, match="myCustomShape"):
+        got = read_capture_folder(d)
+    assert got.names == ["jawOpen", "myCustomShape"]
+    assert got.metadata["name_report"]["unknown"] == ["myCustomShape"]
+
+
+def _expect(exc, d, words, filename):
+    with pytest.raises(exc) as info:
+        read_capture_folder(d)
+    msg = str(info.value)
+    assert words in msg and filename in msg and info.value.fix, msg
+
+
+def test_json_without_blendshapes(folder):
+    (folder / "train" / "001_jawOpen.json").write_text('{"weights": {"jawOpen": 1}}')
+    _expect(CaptureError, folder, "blendShapes", "001_jawOpen.json")
+
+
+def test_invalid_json_and_missing_json(folder):
+    (folder / "test" / "000.json").write_text("{not json")
+    _expect(InputFileError, folder, "invalid JSON", "000.json")
+    (folder / "test" / "000.json").unlink()
+    _expect(InputFileError, folder, "not found", "000.json")
+
+
+def test_duplicate_names_in_json(folder):
+    js = folder / "train" / "001_jawOpen.json"
+    js.write_text('{"blendShapes": {"eyeBlinkLeft": 0.2, "eyeBlink_L": 0.3}}')
+    _expect(CaptureError, folder, "several names", "001_jawOpen.json")
+
+
+def test_duplicate_template_files(folder):
+    shutil.copy(folder / "template" / "jawOpen.obj", folder / "template" / "JawOpen.obj")
+    _expect(CaptureError, folder, "several template files", "template")
+
+
+def test_nan_weight(folder):
+    (folder / "train" / "001_jawOpen.json").write_text('{"blendShapes": {"jawOpen": NaN}}')
+    _expect(CaptureError, folder, "finite", "001_jawOpen.json")
+
+
+def test_frame_vertex_count_differs(folder):
+    text = (folder / "test" / "001.obj").read_text().splitlines()
+    (folder / "test" / "001.obj").write_text("\n".join(text[:-3] + ["v 0 0 0"] + text[-3:]) + "\n")
+    _expect(GeometryError, folder, "vertices", "001.obj")
+
+
+def test_template_shape_topology_differs(folder):
+    p = folder / "template" / "jawOpen.obj"
+    lines = p.read_text().splitlines()
+    f = lines[-1].split()
+    lines[-1] = " ".join([f[0], f[2], f[1], f[3]])
+    p.write_text("\n".join(lines) + "\n")
+    _expect(GeometryError, folder, "faces differ", "jawOpen.obj")
+
+
+def test_nan_points(folder):
+    p = folder / "train" / "000_eyeBlinkLeft.obj"
+    lines = p.read_text().splitlines()
+    lines[0] = "v nan 0 0"
+    p.write_text("\n".join(lines) + "\n")
+    _expect(GeometryError, folder, "NaN", "000_eyeBlinkLeft.obj")
+
+
+def test_missing_layout(tmp_path, folder):
+    _expect(InputFileError, tmp_path / "nothing", "not found", "nothing")
+    (folder / "template" / "neutral.obj").unlink()
+    _expect(CaptureError, folder, "template/neutral.obj", "cap")
+    (folder / "neutral.obj").unlink()
+    _expect(CaptureError, folder, "neutral.obj", "cap")
+
+
+def test_weights_outside_unit_interval_clipped_with_warning(folder):
+    js = folder / "train" / "001_jawOpen.json"
+    js.write_text('{"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": -0.2}}')
+    with pytest.warns(UserWarning, match="clipped"):
+        got = read_capture_folder(folder)
+    row = got.frames.weights[got.frames.label.index("001_jawOpen")]
+    np.testing.assert_array_equal(row, [0.0, 1.0, 0.0])
+    assert got.metadata["weights_clipped"] == ["001_jawOpen.json"]
+
+
+@pytest.mark.parametrize("case", ["dev1", "dev2"])
+def test_bench_capture(bench, case):
+    """dev1 uses canonical names, dev2 raw names (eyeBlink_L): both map to the truth file's names/values."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clean capture imports without warnings
+        cap = read_capture_folder(bench / case / "capture")
+    truth = np.load(bench / case / "truth" / "capture_truth.npz")
+    assert cap.names == [str(n) for n in truth["names"]] and len(cap.names) == 51
+    assert cap.metadata["name_report"]["missing"] == ["tongueOut"]
+    assert cap.metadata["counts"] == {"train": 51, "test": 30}
+    assert cap.frames.points.shape == (81, 1203, 3) and cap.triangles.shape == (2318, 3)
+    # The OBJ files hold 7 decimals: the template deltas equal the truth's to that rounding.
+    np.testing.assert_allclose(cap.template.deltas, truth["template_deltas"], atol=2e-7)
+    # dev1's phone weights are the noise-free test weights up to the JSON's 6 decimals.
+    if case == "dev1":
+        np.testing.assert_allclose(cap.test.weights, truth["test_weights"], atol=1e-6)
+    assert cap.train.label[0] == "000_eyeBlinkLeft"

@@ -1,0 +1,106 @@
+"""OBJ reader/writer: exact, order-preserving round trips; bad files raise the right UsdFaceError."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from usdface.errors import GeometryError, InputFileError, UsdFaceError
+from usdface.io.mesh_io import read_obj, write_obj
+
+
+def test_reads_file_order_and_float64(tmp_path):
+    p = tmp_path / "m.obj"
+    p.write_text("# comment\nv 0.1 0 0\nv 0 0.2 0\nvn 0 0 1\nv 0 0 0.30000000000000004\n"
+                 "vt 0 0\nf 3/1/1 1/1/1 2/1/1\n")
+    points, tris = read_obj(p)
+    assert points.dtype == np.float64 and tris.dtype == np.int64
+    np.testing.assert_array_equal(points, [[0.1, 0, 0], [0, 0.2, 0], [0, 0, 0.30000000000000004]])
+    np.testing.assert_array_equal(tris, [[2, 0, 1]])
+
+
+def test_polygons_fan_triangulated_and_relative_indices(tmp_path):
+    p = tmp_path / "quad.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 2 0\nf 1 2 3 4 5\nf -3 -2 -1\n")
+    _, tris = read_obj(p)
+    np.testing.assert_array_equal(tris, [[0, 1, 2], [0, 2, 3], [0, 3, 4], [2, 3, 4]])
+
+
+def test_bench_obj_matches_independent_parse(bench):
+    p = bench / "dev1" / "capture" / "neutral.obj"
+    points, tris = read_obj(p)
+    lines = p.read_text().splitlines()
+    ref_v = np.array([[float(x) for x in ln.split()[1:4]] for ln in lines if ln.startswith("v ")])
+    ref_f = np.array([[int(x) - 1 for x in ln.split()[1:4]] for ln in lines if ln.startswith("f ")])
+    np.testing.assert_array_equal(points, ref_v)  # same order, same float64 values
+    np.testing.assert_array_equal(tris, ref_f)
+
+
+@pytest.mark.parametrize("text, error, words", [
+    ("", GeometryError, "no vertices"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", GeometryError, "no faces"),
+    ("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", GeometryError, "NaN"),
+    ("v 0 0 inf\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", GeometryError, "NaN"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", GeometryError, "out of range"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", GeometryError, "at least 3"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", GeometryError, "index 0"),
+    ("v 0 0 x\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", InputFileError, "not a number"),
+    ("v 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", InputFileError, "fewer than 3"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 a 3\n", InputFileError, "malformed face"),
+])
+def test_bad_obj(tmp_path, text, error, words):
+    p = tmp_path / "bad.obj"
+    p.write_text(text)
+    with pytest.raises(error) as info:
+        read_obj(p)
+    assert words in str(info.value) and str(p) in str(info.value) and info.value.fix
+
+
+def test_missing_and_directory(tmp_path):
+    with pytest.raises(InputFileError, match="not found"):
+        read_obj(tmp_path / "nope.obj")
+    with pytest.raises(InputFileError, match="directory"):
+        read_obj(tmp_path)
+
+
+def test_write_refuses_bad_arrays(tmp_path):
+    with pytest.raises(GeometryError):
+        write_obj(tmp_path / "a.obj", np.full((3, 3), np.nan), [[0, 1, 2]])
+    with pytest.raises(GeometryError):
+        write_obj(tmp_path / "a.obj", np.zeros((3, 3)), [[0, 1, 3]])
+    assert not (tmp_path / "a.obj").exists()
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(points=hnp.arrays(np.float64, st.tuples(st.integers(3, 30), st.just(3)), elements=finite),
+       data=st.data())
+def test_round_trip_exact(tmp_path, points, data):
+    n = len(points)
+    shape = st.tuples(st.integers(1, 20), st.just(3))
+    tris = data.draw(hnp.arrays(np.int64, shape, elements=st.integers(0, n - 1)))
+    p = write_obj(tmp_path / "rt.obj", points, tris)
+    got_p, got_t = read_obj(p)
+    np.testing.assert_array_equal(got_p, points)
+    np.testing.assert_array_equal(got_t, tris)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.one_of(
+    st.sampled_from([b"v 0 0 0", b"v 1 2", b"v 1e400 0 0", b"f 1 2 3", b"f 1/2/3 2//1 -1", b"f", b"v",
+                     b"f 1 2 3 4", b"vt 0 0", b"# x", b"f -9 1 2", b"\x00", b"v nan 0 0", b"f 0 0 0"]),
+    st.binary(max_size=20)), max_size=12))
+def test_fuzz_reader_raises_only_usdface_errors(tmp_path, lines):
+    p = tmp_path / "fuzz.obj"
+    p.write_bytes(b"\n".join(lines))
+    try:
+        points, tris = read_obj(p)
+    except UsdFaceError:
+        return
+    assert np.isfinite(points).all() and points.shape[1] == 3
+    assert tris.shape[1] == 3 and tris.min() >= 0 and tris.max() < len(points)
