@@ -1,0 +1,90 @@
+"""``usdface capture import DIR -o capture.usda`` and ``usdface capture select TAKE -o capture.usda``."""
+
+from __future__ import annotations
+
+import warnings
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "capture", help="import a capture folder or select frames from a take",
+        description="Capture tools: import a capture folder as capture.usda, or pick training frames from a "
+                    "continuous take (Menzel et al. 3.1).")
+    sub = parser.add_subparsers(dest="capture_command", metavar="ACTION", required=True)
+
+    imp = sub.add_parser(
+        "import", help="capture folder (OBJ + JSON) -> capture.usda",
+        description="Read a capture folder (neutral.obj, template/, train/, test/) and write it as a USD "
+                    "capture one can open and scrub (see docs/capture-format.md).")
+    imp.add_argument("source", help="capture folder (or a capture .usda to rewrite)")
+    imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
+    imp.add_argument("--force", action="store_true", help="overwrite an existing output")
+    imp.add_argument("--no-exact", dest="exact", action="store_false",
+                     help="store geometry as float32 only (half the size; not bit-exact)")
+    imp.set_defaults(func=run_import)
+
+    sel = sub.add_parser("select", help="continuous take -> capture.usda (frame selection, Menzel 3.1)",
+                         description="Pick training frames from a continuous take: for each shape the frame "
+                                     "where its weight exceeds the threshold and peaks over time; hold out a "
+                                     "test split; print a coverage table (see docs/takes.md).")
+    sel.add_argument("take", help="take: a USD take (time-sampled mesh + weights) or an OBJ-sequence folder "
+                                  "with a Live Link Face CSV")
+    sel.add_argument("-o", "--output", required=True, help="output capture .usda/.usdc (or a folder)")
+    sel.add_argument("--template", help="capture folder or capture.usda whose template rig to use "
+                                        "(default: the take's own template)")
+    sel.add_argument("--threshold", type=float, default=0.5, help="minimum peak weight (default 0.5)")
+    sel.add_argument("--per-shape", type=int, default=1, help="distinct peaks kept per shape (default 1)")
+    sel.add_argument("--test-every", type=int, default=0,
+                     help="hold out every K-th remaining peak frame as a test frame (default 0: none)")
+    sel.add_argument("--min-separation", type=float, default=0.5,
+                     help="seconds between two peaks of the same shape (default 0.5)")
+    sel.add_argument("--force", action="store_true", help="overwrite an existing output")
+    sel.set_defaults(func=run_select)
+
+
+def run_import(args) -> int:
+    from ..io import read_capture
+    from ..io.usd_capture import write_capture_usd
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        capture = read_capture(args.source)
+    for w in caught:
+        print(f"warning: {w.message}")
+    out = write_capture_usd(capture, args.output, force=args.force, exact=args.exact)
+    report = capture.metadata.get("name_report", {})
+    counts = capture.metadata.get("counts", {})
+    print(f"wrote {out}: {capture.neutral.shape[0]} vertices, {len(capture.names)} shapes, "
+          f"{counts.get('train', 0)} train + {counts.get('test', 0)} test frames")
+    if report.get("missing"):
+        print(f"missing shapes: {', '.join(report['missing'])}")
+    if report.get("inexact"):
+        print(f"renamed: {len(report['inexact'])} shape names mapped to canonical ARKit names "
+              f"(e.g. {report['inexact'][0][0]} -> {report['inexact'][0][1]})")
+    return 0
+
+
+def run_select(args) -> int:
+    from ..io.take import capture_from_take, read_take
+    from ..take_select import format_coverage, select_frames
+
+    take = read_take(args.take)
+    selection = select_frames(take.weights, take.names, threshold=args.threshold, per_shape=args.per_shape,
+                              test_every=args.test_every,
+                              min_separation=max(1, round(args.min_separation * take.fps)))
+    print(format_coverage(selection, take.times))
+    capture = capture_from_take(take, selection, template=args.template)
+    from pathlib import Path
+
+    out = Path(args.output)
+    if out.suffix.lower() in (".usda", ".usdc", ".usd"):
+        from ..io.usd_capture import write_capture_usd
+
+        write_capture_usd(capture, out, force=args.force)
+    else:
+        from ..io.capture_folder import write_capture_folder
+
+        write_capture_folder(capture, out, force=args.force)
+    counts = capture.metadata.get("counts", {})
+    print(f"wrote {out}: {counts.get('train', 0)} train + {counts.get('test', 0)} test frames")
+    return 0

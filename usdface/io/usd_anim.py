@@ -1,0 +1,72 @@
+"""Blend-shape weight animation as UsdSkel: a SkelAnimation with ``blendShapes`` tokens and time-sampled
+``blendShapeWeights``; and the reverse, reading such an animation back into arrays.
+
+Used by ``usdface anim import`` (Live Link Face CSV -> take.usda), by capture.usda (the template rig driven by
+the frames' weights) and by anyone who needs to drive an avatar with weights.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import CaptureError
+
+__all__ = ["author_skel_animation", "read_skel_animation"]
+
+
+def author_skel_animation(stage, prim_path, names, weights, time_codes_per_second: float = 24.0, *,
+                          times=None, set_stage_range: bool = True):
+    """Define a ``SkelAnimation`` at ``prim_path`` holding ``weights[F, K]`` for the channels ``names[K]``.
+
+    Frame ``f`` is authored at time code ``f`` (or ``times[f] * time_codes_per_second`` when ``times[F]`` in
+    seconds is given). With ``set_stage_range`` the stage's ``timeCodesPerSecond``, ``framesPerSecond`` and
+    start/end time codes are set to cover the animation. Weights are authored as float[] (the UsdSkel type).
+    Returns the ``UsdSkel.Animation``.
+    """
+    from pxr import Sdf, UsdSkel, Vt
+
+    weights = np.asarray(weights, dtype=np.float64)
+    names = [str(n) for n in names]
+    if weights.ndim != 2 or weights.shape[1] != len(names):
+        raise CaptureError(f"weights must be [frames, {len(names)}], got {weights.shape}", prim=prim_path,
+                           fix="pass one weight column per channel name")
+    if not np.isfinite(weights).all():
+        raise CaptureError("weights contain NaN or infinite values", prim=prim_path,
+                           fix="repair the weights before authoring the animation")
+    codes = (np.arange(len(weights), dtype=np.float64) if times is None
+             else np.asarray(times, dtype=np.float64) * float(time_codes_per_second))
+    anim = UsdSkel.Animation.Define(stage, Sdf.Path(str(prim_path)))
+    anim.CreateBlendShapesAttr(Vt.TokenArray(names))
+    attr = anim.CreateBlendShapeWeightsAttr()
+    w32 = weights.astype(np.float32)
+    for code, row in zip(codes.tolist(), w32, strict=True):
+        attr.Set(Vt.FloatArray.FromNumpy(row), code)
+    if set_stage_range and len(codes):
+        stage.SetTimeCodesPerSecond(float(time_codes_per_second))
+        stage.SetFramesPerSecond(float(time_codes_per_second))
+        stage.SetStartTimeCode(float(codes.min()))
+        stage.SetEndTimeCode(float(codes.max()))
+    return anim
+
+
+def read_skel_animation(prim) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Read a SkelAnimation prim -> (names[K], weights[F, K] float64, time_codes[F]) over its time samples."""
+    from pxr import UsdSkel
+
+    anim = UsdSkel.Animation(prim)
+    names = [str(n) for n in (anim.GetBlendShapesAttr().Get() or [])]
+    attr = anim.GetBlendShapeWeightsAttr()
+    codes = np.array(attr.GetTimeSamples(), dtype=np.float64)
+    if len(codes) == 0:
+        value = attr.Get()
+        rows = [np.asarray(value, dtype=np.float64)] if value is not None else []
+        codes = np.zeros(len(rows))
+    else:
+        rows = [np.asarray(attr.Get(c), dtype=np.float64) for c in codes.tolist()]
+    bad = [i for i, r in enumerate(rows) if r.shape != (len(names),)]
+    if bad:
+        raise CaptureError(f"blendShapeWeights at time code {codes[bad[0]]} has {rows[bad[0]].size} values "
+                           f"for {len(names)} blendShapes", path=prim.GetStage().GetRootLayer().identifier,
+                           prim=prim.GetPath(), fix="author one weight per blendShapes token at every time")
+    weights = np.stack(rows) if rows else np.zeros((0, len(names)))
+    return names, weights, codes

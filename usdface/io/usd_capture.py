@@ -1,0 +1,425 @@
+"""capture.usda <-> :class:`usdface.model.Capture`: a capture as a real USD asset one can open and scrub.
+
+Layout (documented in ``docs/capture-format.md``)::
+
+    /Capture                  Xform, defaultPrim, UsdFaceCaptureAPI (counts, shape names, device, digest)
+      Neutral                 Mesh: the person's neutral scan
+      Template                SkelRoot: the generic template rig as UsdSkel
+        Skel                  Skeleton (one root joint), skel:animationSource -> Anim
+          Anim                SkelAnimation: blendShapes = names, blendShapeWeights = frame weights
+        Mesh                  Mesh + SkelBindingAPI, skel:blendShapes / skel:blendShapeTargets
+          <shape>             BlendShape per shape (dense offsets)
+      Frames                  Mesh: points time-sampled, frame f at time code f;
+                              usdface:frames:weights (double[K], time-sampled), usdface:frames:names token[K],
+                              usdface:frames:role token[F], usdface:frames:label string[F]
+
+Stage: metersPerUnit 1, upAxis Y, time codes 0 .. F-1. The Template and Frames prims carry a display-only
+``xformOp:translate`` so the three heads sit side by side in a viewer; the reader reads local points.
+
+Exactness: USD geometry is float32 (``point3f[]``, ``vector3f[]``), the model float64. With ``exact=True``
+(default) every float32 geometry attribute gets a float64 twin (``double3[] usdface:points``,
+``double3[] usdface:offsets``) that the reader prefers while it still matches the float32 value; so
+folder -> usda -> model is bit-exact, and if someone edits the points in a DCC (the float32 values no longer
+match the twin) the edited points win, with a warning. ``exact=False`` halves the file; the model read back is
+then the float32-quantised capture (exactly).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from ..model import Capture, FaceRig, Frames
+from .capture_folder import ROLES
+
+__all__ = ["write_capture_usd", "read_capture_usd", "CAPTURE_PRIM", "DISPLAY_SPACING"]
+
+CAPTURE_PRIM = "/Capture"
+#: Display-only spacing (metres, along X) between Neutral, Template and Frames in a viewer.
+DISPLAY_SPACING = 0.3
+_EXACT = "usdface:points"
+_EXACT_OFFSETS = "usdface:offsets"
+_ROLE_COLOR = {"train": (0.35, 0.55, 0.85), "test": (0.9, 0.55, 0.25)}
+
+
+# ----------------------------------------------------------------------------------------------- writing
+def _check_output(path: Path, force: bool) -> None:
+    try:
+        from .layers import check_output_path
+    except ImportError:
+        if path.exists() and not force:
+            raise OutputExistsError("output exists", path=path,
+                                    fix="choose a new file name or pass --force") from None
+        return
+    check_output_path(path, force)
+
+
+def _save(stage, path: Path) -> None:
+    """Write the stage's root layer to ``path`` atomically (temp file in the same folder + rename)."""
+    try:
+        from .layers import atomic_save
+    except ImportError:
+        atomic_save = None
+    if atomic_save is not None:
+        atomic_save(stage.GetRootLayer(), path)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if not stage.GetRootLayer().Export(tmp):
+            raise InputFileError("USD could not write the file", path=path,
+                                 fix="check the folder is writable")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _topology(mesh, triangles) -> None:
+    from pxr import UsdGeom, Vt
+
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(triangles), 3, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(triangles.ravel(), np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+
+
+def _set_points(mesh, points, time=None, exact=True) -> None:
+    """Author float32 ``points`` and the exact float64 twin ``usdface:points`` (at ``time`` if given)."""
+    from pxr import Sdf, Usd, Vt
+
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)), t)
+    if not exact:
+        return
+    twin = mesh.GetPrim().CreateAttribute(_EXACT, Sdf.ValueTypeNames.Double3Array, custom=True)
+    twin.Set(Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float64)), t)
+
+
+def _valid_names(names) -> list[str]:
+    """Prim names for shapes (Tf-valid identifiers, unique)."""
+    from pxr import Tf
+
+    out, seen = [], set()
+    for n in names:
+        base = Tf.MakeValidIdentifier(n)
+        name, i = base, 1
+        while name in seen:
+            name, i = f"{base}_{i}", i + 1
+        seen.add(name)
+        out.append(name)
+    return out
+
+
+def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+    from .. import __version__, schemas
+    from .usd_anim import author_skel_animation
+
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    root = UsdGeom.Xform.Define(stage, CAPTURE_PRIM).GetPrim()
+    stage.SetDefaultPrim(root)
+    fr, names = capture.frames, list(capture.names)
+    counts = {r: int(sum(x == r for x in fr.role)) for r in ROLES}
+    root.ApplyAPI(schemas.CAPTURE_API)
+    meta = capture.metadata or {}
+    for attr, type_, value in (
+            ("usdface:capture:device", Sdf.ValueTypeNames.String, str(meta.get("device", ""))),
+            ("usdface:capture:unitsNote", Sdf.ValueTypeNames.String, str(meta.get("units_note", "metres"))),
+            ("usdface:capture:trainCount", Sdf.ValueTypeNames.Int, counts["train"]),
+            ("usdface:capture:testCount", Sdf.ValueTypeNames.Int, counts["test"]),
+            ("usdface:capture:shapeNames", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(names)),
+            ("usdface:capture:sourceDigest", Sdf.ValueTypeNames.String, str(meta.get("source_digest", "")))):
+        root.CreateAttribute(attr, type_).Set(value)
+    stage.GetRootLayer().customLayerData = {"usdface": {"format": "capture", "formatVersion": 1,
+                                                        "version": __version__,
+                                                        "source": str(capture.source or "")}}
+
+    neutral = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Neutral")
+    _topology(neutral, capture.triangles)
+    _set_points(neutral, capture.neutral, exact=exact)
+
+    # Template rig as UsdSkel, driven by the frames' weights so that scrubbing plays the generic rig.
+    tpl = capture.template
+    skel_root = UsdSkel.Root.Define(stage, f"{CAPTURE_PRIM}/Template")
+    UsdGeom.Xformable(skel_root).AddTranslateOp().Set(Gf.Vec3d(DISPLAY_SPACING, 0, 0))
+    skel = UsdSkel.Skeleton.Define(stage, f"{CAPTURE_PRIM}/Template/Skel")
+    skel.CreateJointsAttr(Vt.TokenArray(["root"]))
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
+    anim = author_skel_animation(stage, f"{CAPTURE_PRIM}/Template/Skel/Anim", tpl.names,
+                                 _columns(fr.weights, names, tpl.names), time_codes_per_second)
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+    mesh = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Template/Mesh")
+    _topology(mesh, tpl.triangles)
+    _set_points(mesh, tpl.neutral, exact=exact)
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    binding.CreateJointIndicesPrimvar(constant=True, elementSize=1).Set(Vt.IntArray([0]))
+    binding.CreateJointWeightsPrimvar(constant=True, elementSize=1).Set(Vt.FloatArray([1.0]))
+    binding.CreateGeomBindTransformAttr().Set(Gf.Matrix4d(1))
+    targets = []
+    for prim_name, delta in zip(_valid_names(tpl.names), tpl.deltas, strict=True):
+        shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(prim_name))
+        shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(delta.astype(np.float32)))
+        if exact:
+            shape.GetPrim().CreateAttribute(_EXACT_OFFSETS, Sdf.ValueTypeNames.Double3Array, custom=True).Set(
+                Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(delta)))
+        targets.append(shape.GetPath())  # prim names may differ from names; the channel tokens are the names
+    binding.CreateBlendShapesAttr(Vt.TokenArray(tpl.names))
+    binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+
+    # Frames: one time sample per frame.
+    frames = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Frames")
+    frames.AddTranslateOp().Set(Gf.Vec3d(-DISPLAY_SPACING, 0, 0))
+    _topology(frames, capture.triangles)
+    prim = frames.GetPrim()
+    prim.CreateAttribute("usdface:frames:names", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
+        Vt.TokenArray(names))
+    prim.CreateAttribute("usdface:frames:role", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
+        Vt.TokenArray(fr.role))
+    prim.CreateAttribute("usdface:frames:label", Sdf.ValueTypeNames.StringArray, custom=True).Set(
+        Vt.StringArray(fr.label))
+    w_attr = prim.CreateAttribute("usdface:frames:weights", Sdf.ValueTypeNames.DoubleArray, custom=True)
+    color = frames.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant)
+    for f in range(len(fr)):
+        _set_points(frames, fr.points[f], f, exact)
+        w_attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(fr.weights[f])), f)
+        color.Set(Vt.Vec3fArray([Gf.Vec3f(*_ROLE_COLOR.get(fr.role[f], (0.7, 0.7, 0.7)))]), f)
+    if len(fr) == 0:
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(0)
+    return stage
+
+
+def _columns(weights, names, wanted) -> np.ndarray:
+    index = {n: k for k, n in enumerate(names)}
+    out = np.zeros((len(weights), len(wanted)))
+    for j, n in enumerate(wanted):
+        if n in index:
+            out[:, j] = weights[:, index[n]]
+    return out
+
+
+def write_capture_usd(capture: Capture, path, force: bool = False, *,
+                      time_codes_per_second: float = 24.0, exact: bool = True) -> Path:
+    """Write ``capture`` as a capture USD file (``.usda`` text or ``.usdc`` binary, by extension).
+
+    Atomic (temp file + rename); refuses an existing ``path`` unless ``force`` (OutputExistsError).
+    ``read_capture_usd(write_capture_usd(c, p))`` equals ``c`` exactly (float64 twins, see the module doc);
+    with ``exact=False`` (no twins, half the size) it equals ``c`` with geometry rounded to float32. Weights
+    are always stored as double.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".usda", ".usdc", ".usd"):
+        raise InputFileError("output must be a .usda, .usdc or .usd file", path=path,
+                             fix="name the output capture.usda")
+    _check_output(path, force)
+    if capture.frames.points.shape[1:] != capture.neutral.shape:
+        raise GeometryError("frames and neutral have different vertex counts", path=path,
+                            fix="every frame must share the neutral's topology")
+    stage = _capture_stage(capture, time_codes_per_second, exact)
+    _save(stage, path)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------- reading
+def _points(prim, path, time=None) -> np.ndarray:
+    """float64 points of a Mesh: the exact twin while it matches the float32 ``points``, else ``points``."""
+    from pxr import Usd, UsdGeom
+
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    value = UsdGeom.Mesh(prim).GetPointsAttr().Get(t)
+    if value is None or len(value) == 0:
+        raise GeometryError("mesh has no points", path=path, prim=prim.GetPath(),
+                            fix="re-create the capture with 'usdface capture import'")
+    p32 = np.asarray(value, dtype=np.float32)
+    twin = prim.GetAttribute(_EXACT)
+    exact = twin.Get(t) if twin else None
+    if exact is not None and len(exact) == len(p32):
+        p64 = np.asarray(exact, dtype=np.float64)
+        if np.array_equal(p64.astype(np.float32), p32):
+            return _finite(p64, path, prim)
+        warnings.warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
+                      f"points", UserWarning, stacklevel=3)
+    return _finite(p32.astype(np.float64), path, prim)
+
+
+def _finite(a, path, prim):
+    if not np.isfinite(a).all():
+        raise GeometryError("NaN or infinite values", path=path, prim=prim.GetPath(),
+                            fix="repair the capture and import it again")
+    return a
+
+
+def _triangles(prim, path) -> np.ndarray:
+    from pxr import UsdGeom
+
+    mesh = UsdGeom.Mesh(prim)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    if counts.size == 0 or counts.min() < 3 or counts.sum() != idx.size:
+        raise GeometryError("invalid or empty faces (faceVertexCounts/faceVertexIndices)", path=path,
+                            prim=prim.GetPath(), fix="re-create the capture with 'usdface capture import'")
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    n_tri = counts - 2
+    face = np.repeat(np.arange(len(counts)), n_tri)
+    corner = np.arange(int(n_tri.sum())) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri) + 1
+    first = start[face]
+    return np.stack([idx[first], idx[first + corner], idx[first + corner + 1]], axis=1)
+
+
+def _child(stage, prim_path, path, kind):
+    prim = stage.GetPrimAtPath(prim_path)
+    if not prim or not prim.IsValid():
+        raise CaptureError(f"no {kind} prim", path=path, prim=prim_path,
+                           fix="write captures with 'usdface capture import' (see docs/capture-format.md)")
+    return prim
+
+
+def _template(stage, root, path, triangles, n) -> FaceRig:
+    from pxr import UsdSkel
+
+    mesh = _child(stage, root.AppendPath("Template/Mesh"), path, "template Mesh")
+    neutral = _points(mesh, path)
+    tris = _triangles(mesh, path)
+    if len(neutral) != n or not np.array_equal(tris, triangles):
+        raise GeometryError("template topology differs from the neutral's", path=path, prim=mesh.GetPath(),
+                            fix="the template must share the neutral's vertices and faces")
+    binding = UsdSkel.BindingAPI(mesh)
+    names = [str(t) for t in (binding.GetBlendShapesAttr().Get() or [])]
+    targets = binding.GetBlendShapeTargetsRel().GetTargets()
+    if len(names) != len(targets):
+        raise CaptureError(f"{len(names)} skel:blendShapes but {len(targets)} skel:blendShapeTargets",
+                           path=path, prim=mesh.GetPath(), fix="author one target per blend shape name")
+    if len(set(names)) != len(names):
+        raise CaptureError("duplicate skel:blendShapes names", path=path, prim=mesh.GetPath(),
+                           fix="give every blend shape a unique name")
+    deltas = np.zeros((len(names), n, 3))
+    for k, target in enumerate(targets):
+        shape = stage.GetPrimAtPath(target)
+        if not shape:
+            raise CaptureError("blend shape target not found", path=path, prim=target,
+                               fix="re-create the capture with 'usdface capture import'")
+        bs = UsdSkel.BlendShape(shape)
+        off32 = np.asarray(bs.GetOffsetsAttr().Get() or [], dtype=np.float32)
+        twin = shape.GetAttribute(_EXACT_OFFSETS)
+        exact = twin.Get() if twin else None
+        off = off32.astype(np.float64)
+        if exact is not None and len(exact) == len(off32):
+            e = np.asarray(exact, dtype=np.float64)
+            if np.array_equal(e.astype(np.float32), off32):
+                off = e
+        pi = bs.GetPointIndicesAttr().Get()
+        idx = np.arange(n) if not pi else np.asarray(pi, dtype=np.int64)
+        if len(idx) != len(off) or (len(idx) and (idx.min() < 0 or idx.max() >= n)):
+            raise CaptureError("offsets/pointIndices do not match the mesh", path=path, prim=target,
+                               fix="author one offset per point index, indices within the mesh")
+        deltas[k, idx] = _finite(off, path, shape)
+    return FaceRig(neutral, tris, names, deltas, name="template")
+
+
+def read_capture_usd(path) -> Capture:
+    """Read a capture USD file written by :func:`write_capture_usd` into a :class:`~usdface.model.Capture`.
+
+    Stage units are honoured (points scaled by ``metersPerUnit``; ``upAxis`` Z rotated to Y). Raises
+    InputFileError (missing/unreadable), CaptureError (layout: missing prims, inconsistent arrays) or
+    GeometryError (NaN/inf, vertex counts), naming file and prim.
+    """
+    from pxr import Sdf, Usd, UsdGeom
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError("capture file not found", path=path, fix="check the path")
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        stage = Usd.Stage.Open(layer) if layer else None
+    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
+        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
+                             fix="check that the file is a valid USD layer") from None
+    if stage is None:
+        raise InputFileError("USD cannot open the file", path=path,
+                             fix="check that the file is a valid USD layer")
+    root = stage.GetDefaultPrim() or stage.GetPrimAtPath(CAPTURE_PRIM)
+    if not root or not root.GetChild("Frames"):
+        raise CaptureError("not a usdface capture (no /Capture with Neutral, Template, Frames)", path=path,
+                           prim=root.GetPath() if root else None,
+                           fix="make capture files with 'usdface capture import DIR -o capture.usda'")
+    rp = root.GetPath()
+    neutral_prim = _child(stage, rp.AppendChild("Neutral"), path, "Neutral mesh")
+    neutral = _points(neutral_prim, path)
+    triangles = _triangles(neutral_prim, path)
+    if triangles.max() >= len(neutral):
+        raise GeometryError("face index out of range", path=path, prim=neutral_prim.GetPath(),
+                            fix="re-create the capture with 'usdface capture import'")
+    template = _template(stage, rp, path, triangles, len(neutral))
+
+    fprim = _child(stage, rp.AppendChild("Frames"), path, "Frames mesh")
+    if not np.array_equal(_triangles(fprim, path), triangles):
+        raise GeometryError("Frames topology differs from the neutral's", path=path, prim=fprim.GetPath(),
+                            fix="every frame must share the neutral's topology")
+
+    def get(name):
+        attr = fprim.GetAttribute(f"usdface:frames:{name}")
+        value = attr.Get() if attr else None
+        if value is None:
+            raise CaptureError(f"missing usdface:frames:{name}", path=path, prim=fprim.GetPath(),
+                               fix="re-create the capture with 'usdface capture import'")
+        return [str(v) for v in value]
+
+    names, role, label = get("names"), get("role"), get("label")
+    if len(role) != len(label):
+        raise CaptureError(f"{len(role)} roles but {len(label)} labels", path=path, prim=fprim.GetPath(),
+                           fix="author one role and one label per frame")
+    bad_roles = sorted(set(role) - set(ROLES))
+    if bad_roles:
+        raise CaptureError(f"unknown frame roles {bad_roles}", path=path, prim=fprim.GetPath(),
+                           fix="roles are 'train' or 'test'")
+    if sorted(names) != sorted(template.names):
+        raise CaptureError("usdface:frames:names differ from the template's blend shapes", path=path,
+                           prim=fprim.GetPath(), fix="weights columns must name the template's shapes")
+    w_attr = fprim.GetAttribute("usdface:frames:weights")
+    points, weights = [], []
+    for f in range(len(role)):
+        points.append(_points(fprim, path, f))
+        w = w_attr.Get(f) if w_attr else None
+        if w is None or len(w) != len(names):
+            raise CaptureError(f"frame {f}: weights missing or of the wrong length", path=path,
+                               prim=fprim.GetPath(), fix="author usdface:frames:weights, one value per name")
+        weights.append(_finite(np.asarray(w, dtype=np.float64), path, fprim))
+    if any(p.shape != neutral.shape for p in points):
+        raise GeometryError("a frame's vertex count differs from the neutral's", path=path,
+                            prim=fprim.GetPath(), fix="every frame must share the neutral's topology")
+    pts = np.stack(points) if points else np.zeros((0,) + neutral.shape)
+    w = np.stack(weights) if weights else np.zeros((0, len(names)))
+    if w.size and (w.min() < 0 or w.max() > 1):
+        warnings.warn(f"{path}: weights outside [0, 1] clipped", UserWarning, stacklevel=2)
+        w = np.clip(w, 0.0, 1.0)
+    w = w[:, [names.index(n) for n in template.names]]
+
+    # Units and axis -> internal metres, Y up.
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    rot = np.eye(3)
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
+        rot = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # (x, y, z) Z-up -> (x, z, -y) Y-up
+    if mpu != 1.0 or not np.array_equal(rot, np.eye(3)):
+        m = mpu * rot
+        neutral, pts = neutral @ m.T, pts @ m.T
+        template = FaceRig(template.neutral @ m.T, template.triangles, template.names, template.deltas @ m.T,
+                           name="template")
+    root_attr = root.GetAttribute("usdface:capture:device")
+    metadata = {"source": str(path), "units": "m",
+                "counts": {r: int(sum(x == r for x in role)) for r in ROLES},
+                "device": str(root_attr.Get() or "") if root_attr else ""}
+    return Capture(neutral, triangles, template, Frames(pts, w, role, label), list(template.names),
+                   source=str(path), metadata=metadata)
