@@ -1,0 +1,422 @@
+"""UsdSkel avatars -> :class:`usdface.model.Avatar` (one :class:`FaceRig` per skinned mesh with blend shapes).
+
+What is read, the UsdSkel way:
+
+* every ``SkelRoot`` of the stage; its skeleton bindings are resolved with ``UsdSkel.Cache`` (so bindings
+  inherited down namespace work), plus any mesh under a SkelRoot that has blend shapes but no skeleton (kept,
+  with a note: no client will animate it);
+* per mesh: ``skel:blendShapes`` (channel tokens) and ``skel:blendShapeTargets`` (BlendShape prims, a list
+  or Blender's single target), dense or sparse ``pointIndices`` (int[] or uint[]), inbetweens (any weight
+  except 0 and 1, negative included), ``normalOffsets`` (kept verbatim in :class:`MeshSource` for the writer);
+* geometry: points at the default time, polygons fan-triangulated (the authored ``faceVertexCounts/Indices``
+  are kept), and the mesh's full local-to-world transform (every ancestor), the stage's ``metersPerUnit`` and
+  ``upAxis`` folded into ``MeshSource.to_internal`` so the rig is in usdface's internal frame: metres, Y up;
+* names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names`, the BlendShape prim
+  name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); every inexact mapping is
+  recorded in ``Avatar.name_report``.
+
+Every malformed input raises a :class:`usdface.errors.UsdFaceError` subclass naming the file, the prim and the
+fix; nothing is half-read.
+
+Example::
+
+    from usdface.io.usd_rig import read_avatar
+    avatar = read_avatar("avatar.usdc")
+    head = avatar.mesh("Head")          # FaceRig: neutral[n,3] metres Y-up, deltas[K,n,3]
+    weights = np.zeros(head.n_shapes); weights[head.index("jawOpen")] = 1.0
+    points = head.evaluate(weights)     # [n,3] metres, Y up
+    avatar.name_report                  # {"/Avatar/Mouth": {"inexact": [["eyeBlinkLeft2", ...]], ...}}
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .. import arkit
+from ..errors import GeometryError, InputFileError, RigError, UsdFaceError
+from ..model import Avatar, FaceRig, Inbetween, MeshSource
+
+#: Root-layer metadata that describes how to interpret the stage; a layer written over the avatar repeats it.
+STAGE_METADATA_KEYS = ("upAxis", "metersPerUnit", "defaultPrim", "startTimeCode", "endTimeCode",
+                       "timeCodesPerSecond", "framesPerSecond", "kilogramsPerUnit")
+
+# A rotation taking Z-up world coordinates to Y-up: (x, y, z) -> (x, z, -y) (right-handed, -90 deg about X).
+_Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def up_axis_rotation(up_axis: str) -> np.ndarray:
+    """``R[3,3]`` rotating a stage's world frame with the given up axis ("Y" or "Z") to Y up."""
+    if up_axis == "Y":
+        return np.eye(3)
+    if up_axis == "Z":
+        return _Z_UP_TO_Y_UP.copy()
+    raise ValueError(f"unsupported up axis {up_axis!r}")
+
+
+def stage_to_internal(up_axis: str, meters_per_unit: float) -> np.ndarray:
+    """``M[4,4]`` (column vectors) mapping stage world coordinates to internal metres, Y up."""
+    m = np.eye(4)
+    m[:3, :3] = up_axis_rotation(up_axis) * float(meters_per_unit)
+    return m
+
+
+def gf_matrix_to_numpy(matrix) -> np.ndarray:
+    """A ``Gf.Matrix4d`` (USD row-vector convention, ``p' = p M``) as a column-vector ``[4,4]`` array."""
+    return np.array(matrix, dtype=np.float64).reshape(4, 4).T
+
+
+def fan_triangulate(face_vertex_counts, face_vertex_indices) -> np.ndarray:
+    """Fan-triangulate polygons: ``counts[f]``, ``indices[sum(counts)]`` -> ``triangles[t, 3]`` int64.
+
+    Face ``(v0, v1, ..., vk)`` gives ``(v0, v1, v2), (v0, v2, v3), ...``; the caller validates counts >= 3.
+    """
+    counts = np.asarray(face_vertex_counts, dtype=np.int64)
+    indices = np.asarray(face_vertex_indices, dtype=np.int64)
+    n_tris = counts - 2
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    first = np.repeat(starts, n_tris)
+    # position of each triangle inside its face: 0 .. n_tris-1
+    tri_start = np.concatenate([[0], np.cumsum(n_tris)[:-1]])
+    local = np.arange(int(n_tris.sum())) - np.repeat(tri_start, n_tris)
+    return np.stack([indices[first], indices[first + local + 1], indices[first + local + 2]], axis=1)
+
+
+def _open_stage(path: Path):
+    from pxr import Tf, Usd
+
+    if not path.exists():
+        raise InputFileError("file not found", path=path, fix="check the path")
+    if not path.is_file():
+        raise InputFileError("not a file", path=path, fix="give a .usd, .usda or .usdc file")
+    try:
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+    except Tf.ErrorException as exc:
+        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unreadable"
+        raise InputFileError(f"USD cannot open it: {first}", path=path,
+                             fix="check the file is a valid USD layer (usda/usdc/usd)") from None
+    if stage is None:
+        raise InputFileError("USD cannot open it", path=path, fix="check the file is a valid USD layer")
+    return stage
+
+
+def read_stage_metadata(stage, path) -> dict:
+    """The authored root-layer metadata of ``STAGE_METADATA_KEYS`` plus resolved ``upAxis``/``metersPerUnit``.
+
+    Raises InputFileError for an unsupported up axis or non-positive / non-finite metersPerUnit.
+    """
+    from pxr import UsdGeom
+
+    root = stage.GetRootLayer()
+    authored = {}
+    for key in STAGE_METADATA_KEYS:
+        if root.pseudoRoot.HasInfo(key):
+            value = root.pseudoRoot.GetInfo(key)
+            authored[key] = str(value) if key in ("upAxis", "defaultPrim") else value
+    up = str(UsdGeom.GetStageUpAxis(stage))
+    if up not in ("Y", "Z"):
+        raise InputFileError(f"unsupported upAxis {up!r}", path=path,
+                             fix='set the stage upAxis to "Y" or "Z"')
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not math.isfinite(mpu) or mpu <= 0:
+        raise InputFileError(f"invalid metersPerUnit {mpu!r}", path=path,
+                             fix="set the stage metersPerUnit to the size of one unit in metres (cm: 0.01)")
+    return {"authored": authored, "upAxis": up, "metersPerUnit": mpu,
+            "metersPerUnitAuthored": stage.HasAuthoredMetadata("metersPerUnit"),
+            "upAxisAuthored": stage.HasAuthoredMetadata("upAxis")}
+
+
+def _array(value, dtype, width, what, path, prim) -> np.ndarray:
+    """A Vt array as numpy ``[m, width]`` (or ``[m]``), raising RigError on a wrong shape."""
+    if value is None:
+        return np.zeros((0, width) if width else 0, dtype=dtype)
+    try:
+        arr = np.asarray(value, dtype=dtype)
+        if width:
+            arr = arr.reshape(-1, width)
+        else:
+            arr = arr.reshape(-1)
+    except (ValueError, TypeError):
+        raise RigError(f"{what} has an unexpected type or shape", path=path, prim=prim,
+                       fix=f"author {what} with the UsdSkel/UsdGeom type") from None
+    return arr
+
+
+def _check_finite(arr, what, path, prim):
+    if arr.size and not np.isfinite(arr).all():
+        bad = int(np.flatnonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0])
+        raise GeometryError(f"{what} contains NaN/inf (first at element {bad})", path=path, prim=prim,
+                            fix="fix or re-export the asset; usdface cannot use non-finite values")
+
+
+def _check_indices(idx, n, what, path, prim):
+    if idx.size == 0:
+        return
+    if idx.min() < 0 or idx.max() >= n:
+        bad = int(idx[(idx < 0) | (idx >= n)][0])
+        raise RigError(f"{what} has index {bad} outside the mesh's {n} points", path=path, prim=prim,
+                       fix="re-export the blend shape for this mesh")
+    if np.unique(idx).size != idx.size:
+        raise RigError(f"{what} repeats point indices", path=path, prim=prim,
+                       fix="list each point at most once in pointIndices")
+
+
+def _mesh_geometry(mesh_prim, path):
+    """points[n,3] float64 (local, authored units), counts, indices, triangles[t,3]."""
+    from pxr import Usd, UsdGeom
+
+    prim = str(mesh_prim.GetPath())
+    mesh = UsdGeom.Mesh(mesh_prim)
+    points = _array(mesh.GetPointsAttr().Get(Usd.TimeCode.Default()), np.float64, 3, "points", path, prim)
+    if len(points) == 0:
+        raise GeometryError("mesh has no points (at the default time)", path=path, prim=prim,
+                            fix="author the rest-pose points as a default (non time-sampled) value")
+    _check_finite(points, "points", path, prim)
+    counts = _array(mesh.GetFaceVertexCountsAttr().Get(Usd.TimeCode.Default()), np.int64, 0,
+                    "faceVertexCounts", path, prim)
+    indices = _array(mesh.GetFaceVertexIndicesAttr().Get(Usd.TimeCode.Default()), np.int64, 0,
+                     "faceVertexIndices", path, prim)
+    if counts.size == 0:
+        raise GeometryError("mesh has no faces", path=path, prim=prim,
+                            fix="author faceVertexCounts and faceVertexIndices")
+    if counts.min() < 3:
+        face = int(np.flatnonzero(counts < 3)[0])
+        raise GeometryError(f"face {face} has {int(counts[face])} vertices; a polygon needs at least 3",
+                            path=path, prim=prim,
+                            fix="remove degenerate faces (or triangulate) and re-export")
+    if int(counts.sum()) != indices.size:
+        raise GeometryError(f"faceVertexCounts sum to {int(counts.sum())} but there are {indices.size} "
+                            "faceVertexIndices", path=path, prim=prim, fix="re-export the mesh topology")
+    if indices.min() < 0 or indices.max() >= len(points):
+        raise GeometryError(f"faceVertexIndices reference points outside 0..{len(points) - 1}", path=path,
+                            prim=prim, fix="re-export the mesh topology")
+    return points, counts, indices, fan_triangulate(counts, indices)
+
+
+def _mesh_to_internal(mesh_prim, stage_meta) -> np.ndarray:
+    """``to_internal[4,4]``: mesh-local authored coordinates -> internal metres, Y up (column vectors)."""
+    from pxr import Usd, UsdGeom
+
+    local_to_world = gf_matrix_to_numpy(
+        UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    return stage_to_internal(stage_meta["upAxis"], stage_meta["metersPerUnit"]) @ local_to_world
+
+
+def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label) -> tuple:
+    """One skinned mesh -> (FaceRig, name-report entry)."""
+    from pxr import UsdSkel
+
+    prim = str(mesh_prim.GetPath())
+    binding = UsdSkel.BindingAPI(mesh_prim)
+    tokens_value = binding.GetBlendShapesAttr().Get()
+    tokens = [str(t) for t in tokens_value] if tokens_value is not None else []
+    targets = [str(t) for t in binding.GetBlendShapeTargetsRel().GetForwardedTargets()]
+    if len(tokens) != len(targets):
+        raise RigError(f"skel:blendShapes has {len(tokens)} entries but skel:blendShapeTargets has "
+                       f"{len(targets)}", path=path, prim=prim,
+                       fix="give exactly one BlendShape target per channel token, in the same order")
+    if len(set(tokens)) != len(tokens):
+        dup = sorted({t for t in tokens if tokens.count(t) > 1})
+        raise RigError(f"duplicate shape names in skel:blendShapes: {', '.join(dup)}", path=path, prim=prim,
+                       fix="give every blend shape channel a unique name")
+    points, counts, indices, triangles = _mesh_geometry(mesh_prim, path)
+    n = len(points)
+    to_internal = _mesh_to_internal(mesh_prim, stage_meta)
+    if not np.isfinite(to_internal).all() or abs(np.linalg.det(to_internal[:3, :3])) < 1e-300:
+        raise GeometryError("the mesh's world transform is singular or not finite", path=path, prim=prim,
+                            fix="fix the xformOps of the mesh and its ancestors")
+    linear = to_internal[:3, :3]
+    neutral = points @ linear.T + to_internal[:3, 3]
+
+    shape_prims = [stage.GetPrimAtPath(t) for t in targets]
+    match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims])
+    if match.duplicates:
+        clash = [t for t, c in zip(tokens, match.canonical, strict=True) if c in match.duplicates]
+        raise RigError(f"shape names map to the same ARKit shape twice: {', '.join(match.duplicates)} "
+                       f"(tokens {', '.join(clash)})", path=path, prim=prim,
+                       fix="rename or remove the duplicate blend shapes")
+
+    deltas = np.zeros((len(tokens), n, 3))
+    point_indices, normal_offsets, inbetweens = [], [], {}
+    for k, (target, shape_prim) in enumerate(zip(targets, shape_prims, strict=True)):
+        if not shape_prim or not shape_prim.IsA(UsdSkel.BlendShape):
+            raise RigError(f"blend shape target {target} of channel {tokens[k]!r} is missing or not a "
+                           "BlendShape", path=path, prim=prim,
+                           fix="point skel:blendShapeTargets at BlendShape prims")
+        shape = UsdSkel.BlendShape(shape_prim)
+        idx_attr = shape.GetPointIndicesAttr()
+        idx = None
+        if idx_attr.HasAuthoredValue():
+            idx = _array(idx_attr.Get(), np.int64, 0, "pointIndices", path, target)
+        if shape.GetOffsetsAttr().HasAuthoredValue():
+            offsets = _array(shape.GetOffsetsAttr().Get(), np.float64, 3, "offsets", path, target)
+            _check_finite(offsets, "offsets", path, target)
+        else:  # a normals-only shape (UsdSkel allows it): no point motion
+            offsets = np.zeros((n if idx is None else len(idx), 3))
+        if idx is not None:
+            if len(idx) != len(offsets):
+                raise RigError(f"{len(offsets)} offsets but {len(idx)} pointIndices", path=path, prim=target,
+                               fix="give one offset per listed point index")
+            _check_indices(idx, n, "pointIndices", path, target)
+            deltas[k, idx] = offsets @ linear.T
+        else:
+            if len(offsets) != n:
+                raise RigError(f"{len(offsets)} offsets for a mesh of {n} points and no pointIndices",
+                               path=path, prim=target,
+                               fix="author one offset per point, or pointIndices listing the moved points")
+            deltas[k] = offsets @ linear.T
+        normals_attr = shape.GetNormalOffsetsAttr()
+        normals = None
+        if normals_attr.HasAuthoredValue():
+            normals = _array(normals_attr.Get(), np.float32, 3, "normalOffsets", path, target)
+            if len(normals) != len(offsets):
+                raise RigError(f"{len(normals)} normalOffsets but {len(offsets)} offsets", path=path,
+                               prim=target, fix="give one normal offset per offset")
+        point_indices.append(idx)
+        normal_offsets.append(normals)
+        ibs = []
+        for ib in shape.GetInbetweens():
+            ib_name = ib.GetAttr().GetName()
+            weight = ib.GetWeight()
+            if weight is None or not math.isfinite(weight) or weight in (0.0, 1.0):
+                raise RigError(f"inbetween {ib_name} has invalid weight {weight!r}", path=path, prim=target,
+                               fix="give each inbetween a finite weight other than 0 and 1")
+            ib_offsets = _array(ib.GetOffsets(), np.float64, 3, ib_name, path, target)
+            _check_finite(ib_offsets, ib_name, path, target)
+            if len(ib_offsets) != len(offsets):
+                raise RigError(f"{ib_name} has {len(ib_offsets)} offsets, the shape {len(offsets)}",
+                               path=path, prim=target,
+                               fix="give the inbetween as many offsets as the primary shape")
+            dense = np.zeros((n, 3))
+            if idx is None:
+                dense[:] = ib_offsets @ linear.T
+            else:
+                dense[idx] = ib_offsets @ linear.T
+            ib_normals = ib.GetNormalOffsets() if ib.GetNormalOffsetsAttr() else None
+            ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), dense,
+                                 None if ib_normals is None else np.asarray(ib_normals, dtype=np.float32)))
+        if ibs:
+            ws = [b.weight for b in ibs]
+            if len(set(ws)) != len(ws):
+                raise RigError("two inbetweens share a weight", path=path, prim=target,
+                               fix="give each inbetween of a shape a distinct weight")
+            inbetweens[match.canonical[k]] = ibs
+
+    source = MeshSource(
+        file=file_label, prim=prim, shape_prims=targets, channel_tokens=tokens, point_indices=point_indices,
+        normal_offsets=normal_offsets, to_internal=to_internal, face_vertex_counts=counts,
+        face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
+    rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
+    report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
+              "missing": list(match.missing)}
+    return rig, report
+
+
+def _skel_roots(stage):
+    from pxr import Usd, UsdSkel
+
+    return [p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdSkel.Root)]
+
+
+def _has_blend_shapes(prim) -> bool:
+    from pxr import UsdGeom, UsdSkel
+
+    if not prim.IsA(UsdGeom.Mesh):
+        return False
+    binding = UsdSkel.BindingAPI(prim)
+    tokens = binding.GetBlendShapesAttr()
+    return bool((tokens.HasAuthoredValue() and len(tokens.Get() or []) > 0)
+                or binding.GetBlendShapeTargetsRel().GetTargets())
+
+
+def read_avatar(path) -> Avatar:
+    """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
+
+    Parameters
+    ----------
+    path : .usd/.usda/.usdc file (the root layer of the avatar).
+
+    Returns
+    -------
+    Avatar with one FaceRig per mesh (``neutral[n,3]`` metres, ``deltas[K,n,3]`` metres, canonical ARKit names
+    where the channel maps to one, inbetweens by name), ``up_axis``, ``meters_per_unit``, ``default_prim``,
+    ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings) and
+    ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing}).
+
+    Raises
+    ------
+    InputFileError (missing/unreadable file, bad units or up axis), RigError (no SkelRoot, no blend shapes,
+    inconsistent arrays, duplicate names), GeometryError (empty mesh, NaN/inf, bad faces).
+    """
+    from pxr import Tf
+
+    path = Path(path)
+    stage = _open_stage(path)
+    try:
+        return _read_avatar_stage(stage, path)
+    except UsdFaceError:
+        raise
+    except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
+        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {str(exc).strip()[:200]})", path=path,
+                       fix="re-export the avatar; run `usdface inspect` on it for details") from None
+
+
+def _read_avatar_stage(stage, path: Path) -> Avatar:
+    from pxr import Usd, UsdSkel
+
+    meta = read_stage_metadata(stage, path)
+    roots = _skel_roots(stage)
+    if not roots:
+        loose = [str(p.GetPath()) for p in stage.Traverse() if _has_blend_shapes(p)]
+        hint = f" (meshes with blend shapes outside any SkelRoot: {', '.join(loose[:3])})" if loose else ""
+        raise RigError(f"no SkelRoot in the stage{hint}", path=path,
+                       fix="put the skinned meshes and their Skeleton under a SkelRoot prim")
+    notes = []
+    if not meta["metersPerUnitAuthored"]:
+        notes.append(f"metersPerUnit not authored: USD's fallback {meta['metersPerUnit']} (cm) is assumed")
+    if not meta["upAxisAuthored"]:
+        notes.append(f"upAxis not authored: USD's fallback {meta['upAxis']} is assumed")
+
+    cache = UsdSkel.Cache()
+    predicate = Usd.TraverseInstanceProxies()
+    found: dict[str, tuple] = {}  # mesh path -> (prim, skel_root, skeleton, animation)
+    for root_prim in roots:
+        root = UsdSkel.Root(root_prim)
+        cache.Populate(root, predicate)
+        for binding in cache.ComputeSkelBindings(root, predicate):
+            skel = binding.GetSkeleton()
+            skel_query = cache.GetSkelQuery(skel)
+            anim_query = skel_query.GetAnimQuery() if skel_query else None
+            anim = str(anim_query.GetPrim().GetPath()) if anim_query else None
+            for query in binding.GetSkinningTargets():
+                mesh_prim = query.GetPrim()
+                if _has_blend_shapes(mesh_prim):
+                    found.setdefault(str(mesh_prim.GetPath()),
+                                     (mesh_prim, str(root_prim.GetPath()), str(skel.GetPath()), anim))
+        for prim in Usd.PrimRange(root_prim, predicate):
+            key = str(prim.GetPath())
+            if key not in found and _has_blend_shapes(prim):
+                found[key] = (prim, str(root_prim.GetPath()), None, None)
+                notes.append(f"{key}: blend shapes but no skeleton binding "
+                             "(no UsdSkel client will animate them)")
+    if not found:
+        names = ", ".join(str(r.GetPath()) for r in roots)
+        raise RigError(f"no mesh with blend shapes under the SkelRoot(s) {names}", path=path,
+                       fix="export the avatar with its shape keys / blend shapes")
+
+    order = {str(p.GetPath()): i for i, p in enumerate(stage.Traverse(predicate))}
+    meshes, report = [], {}
+    for key in sorted(found, key=lambda k: order.get(k, len(order))):
+        prim, skel_root, skeleton, anim = found[key]
+        rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path))
+        meshes.append(rig)
+        report[key] = entry
+    default_prim = stage.GetDefaultPrim()
+    metadata = {"stage": meta["authored"], "notes": notes,
+                "documentation": stage.GetRootLayer().documentation or ""}
+    return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
+                  meters_per_unit=meta["metersPerUnit"],
+                  default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
+                  name_report=report)
