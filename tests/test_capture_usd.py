@@ -1,0 +1,173 @@
+"""capture.usda: exact round trips, a valid UsdSkel template rig, schema applied, bad input, CLI."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from test_capture_folder import tiny_capture
+
+from usdface.cli import main
+from usdface.errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from usdface.io import read_capture
+from usdface.io.capture_folder import read_capture_folder, write_capture_folder
+from usdface.io.usd_capture import read_capture_usd, write_capture_usd
+
+
+def assert_same_capture(a, b):
+    check = np.testing.assert_array_equal
+    assert a.names == b.names and a.template.names == b.template.names
+    check(a.neutral, b.neutral)
+    check(a.triangles, b.triangles)
+    check(a.template.neutral, b.template.neutral)
+    check(a.template.deltas, b.template.deltas)
+    check(a.frames.points, b.frames.points)
+    check(a.frames.weights, b.frames.weights)
+    assert a.frames.role == b.frames.role and a.frames.label == b.frames.label
+
+
+@pytest.mark.parametrize("ext", ["usda", "usdc"])
+def test_round_trip_exact(tmp_path, ext):
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / f"c.{ext}")
+    assert_same_capture(read_capture_usd(out), cap)
+    assert_same_capture(read_capture(out), cap)
+
+
+def test_float32_mode_is_exact_against_quantised_model(tmp_path):
+    cap = tiny_capture()
+    got = read_capture_usd(write_capture_usd(cap, tmp_path / "c.usda", exact=False))
+    q = lambda a: a.astype(np.float32).astype(np.float64)  # noqa: E731
+    np.testing.assert_array_equal(got.frames.points, q(cap.frames.points))
+    np.testing.assert_array_equal(got.template.deltas, q(cap.template.deltas))
+    np.testing.assert_array_equal(got.frames.weights, cap.frames.weights)  # weights stay double
+    assert not np.array_equal(got.frames.points, cap.frames.points)
+
+
+def test_bench_folder_usda_model_exact(bench, tmp_path):
+    src = bench / "dev2" / "capture"
+
+    def digest():
+        files = sorted(p for p in src.rglob("*") if p.is_file())
+        return hashlib.sha256(b"".join(p.read_bytes() for p in files)).digest()
+
+    before = digest()
+    folder = read_capture_folder(src)
+    assert main(["capture", "import", str(src), "-o", str(tmp_path / "capture.usda")]) == 0
+    assert_same_capture(read_capture_usd(tmp_path / "capture.usda"), folder)
+    assert digest() == before  # input untouched
+
+
+def test_usd_layout_is_valid_usdskel(tmp_path):
+    """The template rig, posed by UsdSkel itself with frame f's weights, equals FaceRig.evaluate."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from usdface import schemas
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    root = stage.GetDefaultPrim()
+    assert root.GetPath() == "/Capture" and root.HasAPI(schemas.CAPTURE_API)
+    assert root.GetAttribute("usdface:capture:trainCount").Get() == 3
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0 and UsdGeom.GetStageUpAxis(stage) == "Y"
+    assert stage.GetEndTimeCode() == len(cap.frames) - 1
+    mesh = stage.GetPrimAtPath("/Capture/Template/Mesh")
+    cache = UsdSkel.Cache()
+    skel_root = UsdSkel.Root(stage.GetPrimAtPath("/Capture/Template"))
+    cache.Populate(skel_root, Usd.PrimDefaultPredicate)
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Capture/Template/Skel"))
+    binding = cache.ComputeSkelBinding(skel_root, skel, Usd.PrimDefaultPredicate)
+    assert [t.GetPrim().GetPath() for t in binding.GetSkinningTargets()] == [mesh.GetPath()]
+    assert cache.GetSkelQuery(skel).GetAnimQuery().GetPrim().GetPath() == "/Capture/Template/Skel/Anim"
+    query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Capture/Template/Skel/Anim"))
+    for f in (0, 3):
+        weights = anim.GetBlendShapeWeightsAttr().Get(f)
+        sub, shape_idx, sub_idx = query.ComputeSubShapeWeights(weights)
+        points = UsdGeom.Mesh(mesh).GetPointsAttr().Get()
+        query.ComputeDeformedPoints(sub, shape_idx, sub_idx, query.ComputeBlendShapePointIndices(),
+                                    query.ComputeSubShapePointOffsets(), points)
+        expected = cap.template.evaluate(cap.frames.weights[f])
+        np.testing.assert_allclose(np.asarray(points), expected, atol=1e-6)
+    frames = stage.GetPrimAtPath("/Capture/Frames")
+    np.testing.assert_allclose(np.asarray(UsdGeom.Mesh(frames).GetPointsAttr().Get(4)), cap.frames.points[4],
+                               atol=1e-7)
+    assert list(frames.GetAttribute("usdface:frames:role").Get()) == cap.frames.role
+
+
+def test_edited_points_win_with_warning(tmp_path):
+    from pxr import Usd, UsdGeom, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    moved = (cap.neutral + 0.01).astype(np.float32)
+    UsdGeom.Mesh(stage.GetPrimAtPath("/Capture/Neutral")).GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(moved))
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match="edited"):
+        got = read_capture_usd(out)
+    np.testing.assert_array_equal(got.neutral, moved.astype(np.float64))
+
+
+def test_centimetre_stage_converted_to_metres(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.GetRootLayer().Save()
+    got = read_capture_usd(out)
+    np.testing.assert_allclose(got.neutral, cap.neutral * 0.01)
+    np.testing.assert_allclose(got.template.deltas, cap.template.deltas * 0.01)
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(InputFileError, match="not found"):
+        read_capture_usd(tmp_path / "none.usda")
+    junk = tmp_path / "junk.usda"
+    junk.write_text("this is not usd")
+    with pytest.raises(InputFileError, match="junk.usda"):
+        read_capture_usd(junk)
+    from pxr import Usd, UsdGeom
+
+    other = tmp_path / "other.usda"
+    stage = Usd.Stage.CreateNew(str(other))
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    stage.Save()
+    with pytest.raises(CaptureError) as info:
+        read_capture_usd(other)
+    assert "other.usda" in str(info.value) and "/World" in str(info.value) and info.value.fix
+
+
+def test_bad_frame_vertex_count(tmp_path):
+    from pxr import Usd, UsdGeom, Vt
+
+    out = write_capture_usd(tiny_capture(), tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    frames = stage.GetPrimAtPath("/Capture/Frames")
+    UsdGeom.Mesh(frames).GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.zeros((5, 3), np.float32)), 2)
+    frames.GetAttribute("usdface:points").Set(Vt.Vec3dArray.FromNumpy(np.zeros((5, 3))), 2)
+    stage.GetRootLayer().Save()
+    with pytest.raises(GeometryError) as info:
+        read_capture_usd(out)
+    assert "/Capture/Frames" in str(info.value)
+
+
+def test_cli_import_refuses_overwrite_and_reports_errors(tmp_path, capsys):
+    src = write_capture_folder(tiny_capture(), tmp_path / "cap")
+    out = tmp_path / "capture.usda"
+    assert main(["capture", "import", str(src), "-o", str(out)]) == 0
+    data = out.read_bytes()
+    assert main(["capture", "import", str(src), "-o", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err and out.read_bytes() == data
+    with pytest.raises(OutputExistsError):
+        write_capture_usd(tiny_capture(), out)
+    assert main(["capture", "import", str(src), "-o", str(out), "--force"]) == 0
+    (src / "neutral.obj").unlink()
+    bad_out = tmp_path / "bad.usda"
+    assert main(["capture", "import", str(src), "-o", str(bad_out)]) == 2
+    assert "neutral.obj" in capsys.readouterr().err and not bad_out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "capture.usda"]  # no temp files left
