@@ -1,0 +1,313 @@
+"""Face-rig rules (usdface.pipeline.check), their OpenUSD validators, the rule-checker object and
+``usdface check``: hand-made bad stages each trip exactly the rule meant to catch them."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import usdface.io  # noqa: F401  (schemas before the first stage)
+from usdface.arkit import ARKIT_NAMES
+from usdface.cli import main
+from usdface.pipeline.check import ERROR, INFO, RULES, WARNING, Issue, check, has_errors
+from usdface.pipeline.validators import (
+    KEYWORD,
+    FaceRigRuleChecker,
+    register_validators,
+    validate_file,
+    validate_stage,
+    validator_name,
+)
+
+pxr = pytest.importorskip("pxr")
+from pxr import Sdf, Usd, UsdGeom, UsdSkel, UsdValidation, Vt  # noqa: E402
+
+NAMES = [n for n in ARKIT_NAMES if n != "tongueOut"]  # 51, like the bench avatars
+
+
+def make_rig(names=NAMES, n_points=4, anim_names=None, metadata=True) -> Usd.Stage:
+    """A minimal valid ARKit face rig: SkelRoot /Avatar, Skeleton + SkelAnimation, Mesh /Avatar/Head with one
+    sparse BlendShape per name."""
+    stage = Usd.Stage.CreateInMemory()
+    if metadata:
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    root = UsdSkel.Root.Define(stage, "/Avatar")
+    if metadata:
+        stage.SetDefaultPrim(root.GetPrim())
+    skel = UsdSkel.Skeleton.Define(stage, "/Avatar/Skel")
+    UsdSkel.BindingAPI.Apply(skel.GetPrim())
+    anim = UsdSkel.Animation.Define(stage, "/Avatar/Skel/Anim")
+    anim_names = list(names) if anim_names is None else anim_names
+    anim.CreateBlendShapesAttr(anim_names)
+    anim.CreateBlendShapeWeightsAttr(Vt.FloatArray([0.0] * len(anim_names)))
+    UsdSkel.BindingAPI(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+    mesh = UsdGeom.Mesh.Define(stage, "/Avatar/Head")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)][:n_points])
+    mesh.CreateFaceVertexCountsAttr([3, 3])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 1, 3, 2])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    targets = []
+    for name in names:
+        shape = UsdSkel.BlendShape.Define(stage, f"/Avatar/Head/{name}")
+        shape.CreateOffsetsAttr([(0, 0, 0.1)])
+        shape.CreatePointIndicesAttr([1])
+        targets.append(shape.GetPath())
+    binding.CreateBlendShapesAttr(list(names))
+    binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    return stage
+
+
+def rules_hit(issues, severity=None):
+    return {(i.rule, i.prim) for i in issues if severity is None or i.severity == severity}
+
+
+def test_valid_rig_is_clean():
+    issues = check(make_rig())
+    assert issues == []
+
+
+def test_stage_metadata_missing():
+    issues = check(make_rig(metadata=False))
+    messages = " ".join(i.message for i in issues if i.rule == "StageMetadata")
+    assert {i.severity for i in issues if i.rule == "StageMetadata"} == {ERROR}
+    assert "upAxis" in messages and "metersPerUnit" in messages and "defaultPrim" in messages
+
+
+def test_binding_api_missing_and_not_under_skelroot():
+    stage = make_rig()
+    stage.GetPrimAtPath("/Avatar/Head").RemoveAPI(UsdSkel.BindingAPI)
+    assert ("SkelBinding", "/Avatar/Head") in rules_hit(check(stage), ERROR)
+    stage = make_rig()
+    stage.GetPrimAtPath("/Avatar").SetTypeName("Xform")
+    issues = [i for i in check(stage) if i.rule == "SkelBinding"]
+    assert any("SkelRoot" in i.message and i.prim == "/Avatar/Head" for i in issues)
+
+
+def test_unbound_skeleton():
+    stage = make_rig()
+    UsdSkel.BindingAPI(stage.GetPrimAtPath("/Avatar/Head")).GetSkeletonRel().ClearTargets(True)
+    issues = [i for i in check(stage) if i.rule == "SkelBinding"]
+    assert issues and "Skeleton" in issues[0].message and issues[0].fix
+
+
+def test_blend_shape_array_lengths():
+    stage = make_rig()
+    UsdSkel.BindingAPI(stage.GetPrimAtPath("/Avatar/Head")).GetBlendShapesAttr().Set(NAMES + ["extra"])
+    issues = [i for i in check(stage) if i.rule == "BlendShapeArrays"]
+    assert len(issues) == 1 and issues[0].severity == ERROR and "52 names" in issues[0].message
+
+
+def test_target_not_a_blend_shape():
+    stage = make_rig()
+    stage.GetPrimAtPath("/Avatar/Head/jawOpen").SetTypeName("Xform")
+    issues = [i for i in check(stage) if i.rule == "BlendShapeArrays"]
+    assert len(issues) == 1 and "jawOpen" in issues[0].message
+
+
+def test_offsets_vs_point_indices():
+    stage = make_rig()
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Avatar/Head/jawOpen"))
+    shape.GetOffsetsAttr().Set([(0, 0, 1), (0, 1, 0)])
+    assert rules_hit(check(stage), ERROR) == {("BlendShapeOffsets", "/Avatar/Head/jawOpen")}
+    stage = make_rig()  # dense shape with the wrong count
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Avatar/Head/jawOpen"))
+    shape.GetPointIndicesAttr().Clear()
+    shape.GetOffsetsAttr().Set([(0, 0, 1)] * 3)
+    issues = [i for i in check(stage) if i.rule == "BlendShapeOffsets"]
+    assert len(issues) == 1 and "points (4)" in issues[0].message
+    shape.GetOffsetsAttr().Set([(0, 0, 1)] * 4)  # dense and right: clean
+    assert not [i for i in check(stage) if i.rule == "BlendShapeOffsets"]
+
+
+def test_nan_offsets():
+    stage = make_rig()
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Avatar/Head/jawOpen"))
+    shape.GetOffsetsAttr().Set([(0, float("nan"), 0)])
+    assert any("NaN" in i.message for i in check(stage) if i.rule == "BlendShapeOffsets")
+
+
+def test_point_indices_range_and_unique():
+    stage = make_rig()
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Avatar/Head/jawOpen"))
+    shape.GetPointIndicesAttr().Set([7])
+    issues = [i for i in check(stage) if i.rule == "PointIndices"]
+    assert len(issues) == 1 and "outside [0, 4)" in issues[0].message
+    shape.GetPointIndicesAttr().Set([1, 1])
+    shape.GetOffsetsAttr().Set([(0, 0, 1), (0, 0, 1)])
+    issues = [i for i in check(stage) if i.rule == "PointIndices"]
+    assert len(issues) == 1 and "repeated" in issues[0].message and issues[0].severity == ERROR
+
+
+def test_inbetween_weights():
+    stage = make_rig()
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Avatar/Head/jawOpen"))
+    shape.CreateInbetween("half").SetWeight(0.5)
+    shape.GetInbetween("half").SetOffsets([(0, 0, 0.05)])
+    assert not [i for i in check(stage) if i.rule == "Inbetweens"]
+    shape.CreateInbetween("over").SetWeight(1.5)
+    shape.GetInbetween("over").SetOffsets([(0, 0, 0.2)])
+    issues = [i for i in check(stage) if i.rule == "Inbetweens"]
+    assert len(issues) == 1 and issues[0].severity == WARNING and "1.5" in issues[0].message
+    shape.GetInbetween("half").SetOffsets([(0, 0, 0.05), (0, 0, 0.05)])
+    assert any("inbetween" in i.message for i in check(stage) if i.rule == "BlendShapeOffsets")
+
+
+def test_arkit_names_missing_misspelt_suffix_duplicate():
+    names = list(NAMES)
+    names[names.index("jawOpen")] = "jawOpn"            # typo
+    names[names.index("eyeBlinkLeft")] = "eyeBlinkLeft2"  # Blender suffix
+    names[names.index("cheekPuff")] = "CheekPuff"        # Live Link spelling: info only
+    stage = make_rig(names=names)
+    issues = [i for i in check(stage) if i.rule == "ArkitNames"]
+    text = {i.severity: " | ".join(j.message for j in issues if j.severity == i.severity) for i in issues}
+    assert "'jawOpn'" in text[WARNING] and "'jawOpen'" in text[WARNING]
+    assert "'eyeBlinkLeft2'" in text[WARNING] and "suffix" in text[WARNING]
+    assert "'CheekPuff'" in text[INFO]
+    assert "jawOpen" in text[ERROR]  # the typo leaves jawOpen missing
+    # tongueOut is optional; a second channel meaning the same shape is an error
+    stage = make_rig(names=NAMES + ["eyeBlink_L"])
+    errors = [i for i in check(stage) if i.rule == "ArkitNames" and i.severity == ERROR]
+    assert len(errors) == 1 and "eyeBlinkLeft" in errors[0].message
+
+
+def test_completeness_is_per_skeleton():
+    """A second mesh with only some shapes (the bench Mouth) is fine: the skeleton's meshes together count."""
+    stage = make_rig()
+    mouth = UsdGeom.Mesh.Define(stage, "/Avatar/Mouth")
+    mouth.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    b = UsdSkel.BindingAPI.Apply(mouth.GetPrim())
+    b.CreateSkeletonRel().SetTargets([Sdf.Path("/Avatar/Skel")])
+    shape = UsdSkel.BlendShape.Define(stage, "/Avatar/Mouth/jawOpen")
+    shape.CreateOffsetsAttr([(0, 0, 0.1)])
+    shape.CreatePointIndicesAttr([0])
+    b.CreateBlendShapesAttr(["jawOpen"])
+    b.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
+    assert check(stage) == []
+
+
+def test_animation_names():
+    anim_names = [n if n != "jawOpen" else "jaw_open" for n in NAMES]
+    issues = [i for i in check(make_rig(anim_names=anim_names)) if i.rule == "AnimationNames"]
+    assert len(issues) == 1 and issues[0].severity == WARNING and "jawOpen" in issues[0].message
+    stage = make_rig()
+    UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/Anim")).GetBlendShapeWeightsAttr().Set(
+        Vt.FloatArray([0.0] * 3), 1.0)
+    issues = [i for i in check(stage) if i.rule == "AnimationNames"]
+    assert len(issues) == 1 and issues[0].severity == ERROR and issues[0].prim == "/Avatar/Skel/Anim"
+
+
+def _provenance_stage(tmp_path, digest=None):
+    avatar = tmp_path / "avatar.usda"
+    avatar.write_text("#usda 1.0\n")
+    import hashlib
+
+    real = hashlib.sha256(avatar.read_bytes()).hexdigest()
+    layer = tmp_path / "out.usda"
+    stage = make_rig()
+    stage.GetRootLayer().Export(str(layer))
+    stage = Usd.Stage.Open(str(layer))
+    prim = stage.GetPrimAtPath("/Avatar")
+    prim.ApplyAPI("UsdFaceProvenanceAPI")
+    prim.GetAttribute("usdface:provenance:version").Set("0.1.0")
+    prim.GetAttribute("usdface:provenance:command").Set("usdface personalize avatar.usda capture out.usda")
+    prim.GetAttribute("usdface:provenance:inputs").Set(["avatar.usda"])
+    prim.GetAttribute("usdface:provenance:inputDigests").Set([digest or real])
+    return stage, avatar
+
+
+def test_provenance(tmp_path):
+    stage, avatar = _provenance_stage(tmp_path)
+    assert [i for i in check(stage) if i.rule == "Provenance"] == []
+    avatar.write_text("#usda 1.0\n# edited\n")  # the input changed after the layer was written
+    issues = [i for i in check(stage) if i.rule == "Provenance"]
+    assert len(issues) == 1 and issues[0].severity == WARNING and "changed" in issues[0].message
+    stage.GetPrimAtPath("/Avatar").GetAttribute("usdface:provenance:inputDigests").Set(["abc", "def"])
+    issues = [i for i in check(stage) if i.rule == "Provenance"]
+    assert issues[0].severity == ERROR and "inputDigests" in issues[0].message
+    stage.GetPrimAtPath("/Avatar").GetAttribute("usdface:provenance:command").Set("")
+    assert any("command" in i.message for i in check(stage) if i.rule == "Provenance")
+
+
+def test_openusd_validators_registered_from_python():
+    names = register_validators()
+    assert names == register_validators()  # idempotent
+    assert validator_name("ArkitNames") in names and len(names) == len(RULES)
+    stage = make_rig(anim_names=NAMES + ["tongueOut"])
+    UsdSkel.BindingAPI(stage.GetPrimAtPath("/Avatar/Head")).GetBlendShapesAttr().Set(NAMES + ["tongueOut"])
+    context = UsdValidation.ValidationContext(keywords=[KEYWORD])
+    errors = [e for e in context.Validate(stage) if not e.HasNoError()]
+    assert {e.GetName() for e in errors} == {"BlendShapeArrays"}
+    assert errors[0].GetType() == UsdValidation.ValidationErrorType.Error
+    assert [str(s.GetPrim().GetPath()) for s in errors[0].GetSites()] == ["/Avatar/Head"]
+    assert errors[0].GetValidator().GetMetadata().name == validator_name("BlendShapeArrays")
+
+
+def test_pixar_merge_keeps_duplicates_once():
+    issues = validate_stage(make_rig(metadata=False))
+    up = [i for i in issues if "upAxis" in i.message]
+    assert len(up) == 1 and up[0].source == "usdface"
+    stage = make_rig()
+    stage.GetPrimAtPath("/Avatar/Skel").RemoveAPI(UsdSkel.BindingAPI)  # animationSource without the API
+    pixar = [i for i in validate_stage(stage) if i.source == "pixar"]
+    assert any("SkelBindingAPI" in i.rule and i.prim == "/Avatar/Skel" for i in pixar)
+
+
+def test_rule_checker_object():
+    checker = FaceRigRuleChecker()
+    assert "ARKit" in checker.GetDescription()
+    checker.CheckStage(make_rig(metadata=False))
+    assert len(checker.GetFailedChecks()) == 3 and checker.GetErrors() == []
+    checker.ResetCaches()
+    assert checker.GetFailedChecks() == [] and checker.issues == []
+
+
+def test_issue_is_serialisable():
+    i = Issue(ERROR, "X", "/A", "msg", "fix it")
+    assert json.loads(json.dumps(i.to_dict()))["fix"] == "fix it" and has_errors([i])
+    assert str(i).startswith("ERROR") and "fix it" in str(i)
+
+
+def test_cli_exit_codes_and_json(tmp_path, capsys):
+    good = tmp_path / "good.usda"
+    good_stage = make_rig()  # keep the stage alive while exporting its layer
+    good_stage.GetRootLayer().Export(str(good))
+    assert main(["check", str(good)]) == 0
+    bad_stage = make_rig()
+    UsdSkel.BlendShape(bad_stage.GetPrimAtPath("/Avatar/Head/jawOpen")).GetPointIndicesAttr().Set([9])
+    bad = tmp_path / "bad.usda"
+    bad_stage.GetRootLayer().Export(str(bad))
+    before = bad.read_bytes()
+    capsys.readouterr()
+    assert main(["check", str(bad), "--json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"] is False and report["counts"]["error"] == 1
+    assert report["issues"][0]["prim"] == "/Avatar/Head/jawOpen" and report["issues"][0]["fix"]
+    assert bad.read_bytes() == before  # never modifies its input
+    assert main(["check", str(tmp_path / "missing.usda")]) == 2
+    junk = tmp_path / "junk.usda"
+    junk.write_text("not usd")
+    assert main(["check", str(junk)]) == 2
+    assert "junk.usda" in capsys.readouterr().err
+
+
+@pytest.mark.shared
+def test_bench_avatars(bench):
+    assert validate_file(bench / "dev1" / "avatar.usdc") == []
+    assert validate_file(bench / "dev2" / "avatar.usdc") == []
+    blender = validate_file(bench / "dev1" / "avatar_blender.usdc")
+    assert not has_errors(blender)
+    suffixed = [i for i in blender if i.rule == "ArkitNames" and "suffix" in i.message]
+    assert len(suffixed) == 50 and {i.prim for i in suffixed} == {"/root/Avatar/Mouth/Mouth"}
+
+
+@pytest.mark.shared
+def test_pixar_usdskel_scenes(shared):
+    """Pixar's own test scene has inbetweens at 1.5 and -0.499: warnings, found by the Inbetweens rule."""
+    scene = (shared / "data/usd-real-world/openusd-usdskel/pxr/usd/usdSkel/testenv/testUsdSkelBakeSkinning"
+             / "blendshapes.usda")
+    issues = validate_file(scene)
+    weights = sorted(i.message.split("weight ")[1].split(",")[0] for i in issues if i.rule == "Inbetweens")
+    assert len(weights) == 3 and weights[0].startswith("-0.49")

@@ -1,0 +1,42 @@
+"""``usdface check FILE``: face-rig rules + OpenUSD's validators, one report; non-zero exit on errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "check", help="validate a face rig or usdface layer (face-rig rules + OpenUSD validators)",
+        description="Run usdface's ARKit face-rig rules and OpenUSD's own validators (UsdValidation) on a "
+                    "USD file and print one merged report. Exit status: 0 clean, 1 errors found "
+                    "(or warnings with --strict), 2 the file cannot be read.")
+    p.add_argument("file", help="USD file (.usd, .usda, .usdc)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--no-pixar", action="store_true", help="run only usdface's face-rig rules")
+    p.add_argument("--rules", help="comma-separated usdface rule ids to run (default: all)")
+    p.add_argument("--strict", action="store_true", help="warnings also make the exit status non-zero")
+    p.add_argument("--quiet", "-q", action="store_true", help="hide info-level findings in the text report")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..api import check
+
+    rules = [r.strip() for r in args.rules.split(",") if r.strip()] if args.rules else None
+    issues = check(args.file, pixar=not args.no_pixar, rules=rules)
+    counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
+    failed = counts["error"] > 0 or (args.strict and counts["warning"] > 0)
+    if args.json:
+        json.dump({"file": str(args.file), "ok": not failed, "counts": counts,
+                   "issues": [i.to_dict() for i in issues]}, sys.stdout, indent=2)
+        print()
+    else:
+        for issue in issues:
+            if args.quiet and issue.severity == "info":
+                continue
+            print(issue)
+        print(f"{args.file}: {counts['error']} error(s), {counts['warning']} warning(s), "
+              f"{counts['info']} info")
+    return 1 if failed else 0

@@ -1,0 +1,460 @@
+"""Face-rig validation rules: ``check(stage) -> list[Issue]``.
+
+The rules a pipeline TD expects of an ARKit face rig in UsdSkel, and of a layer written by usdface. Each rule
+is one function ``stage -> Iterable[Issue]`` registered in :data:`RULES` under a stable id; :func:`check` runs
+them all (or a chosen subset). The same rules are exposed to OpenUSD's validation framework by
+:mod:`usdface.pipeline.validators`, to Pyblish by :mod:`usdface.pipeline.pyblish_plugins`, and to the command
+line by ``usdface check``.
+
+Rules (id: what it checks; severity of a violation):
+
+* ``StageMetadata``: ``upAxis``, ``metersPerUnit`` authored, ``defaultPrim`` set to an existing prim (error).
+* ``SkelBinding``: a mesh with blend shapes has ``SkelBindingAPI`` applied (error), lies under a ``SkelRoot``
+  (error) and inherits a ``skel:skeleton`` binding (error: without one nothing drives its weights).
+* ``BlendShapeArrays``: ``skel:blendShapes`` and ``skel:blendShapeTargets`` the same length, every target a
+  ``BlendShape`` prim (error).
+* ``BlendShapeOffsets``: ``offsets`` (and ``normalOffsets``, inbetween offsets) have one entry per
+  ``pointIndices`` entry, or one per mesh point when ``pointIndices`` is not authored; offsets finite (error).
+* ``PointIndices``: ``pointIndices`` in ``[0, n_points)`` and unique (error).
+* ``Inbetweens``: inbetween weights strictly inside (0, 1) (warning: UsdSkel accepts others, ARKit rigs and
+  most DCC exporters do not).
+* ``ArkitNames``: every channel is an ARKit name in its canonical spelling (warning for a DCC suffix such as
+  ``eyeBlinkLeft2`` or a near-miss typo; info for the raw/Live Link spellings and non-ARKit extras); no two
+  channels of a mesh mean the same shape (error); together the meshes bound to a skeleton cover all 52 ARKit
+  shapes, ``tongueOut`` optional (error).
+* ``AnimationNames``: the bound ``SkelAnimation``'s ``blendShapes`` name every mesh channel exactly (UsdSkel
+  matches by token; a channel it does not name never animates: warning) and ``blendShapeWeights`` has one
+  weight per name (error).
+* ``Provenance``: a usdface layer's ``usdface:provenance:*`` attributes are present and consistent (version,
+  command, one sha256 digest per input: error) and every input that is still reachable has the recorded digest
+  (warning: the input changed after the layer was written).
+
+Example::
+
+    from pxr import Usd
+    from usdface.pipeline.check import check
+    for issue in check(Usd.Stage.Open("avatar.usdc")):
+        print(issue)
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import re
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import ARKIT_NAMES, ARKIT_SET, OPTIONAL_NAMES, match_name, match_names
+
+ERROR, WARNING, INFO = "error", "warning", "info"
+SEVERITIES = (ERROR, WARNING, INFO)
+_RANK = {ERROR: 0, WARNING: 1, INFO: 2}
+
+
+@dataclass(frozen=True)
+class Issue:
+    """One finding: ``severity`` (error / warning / info), the ``rule`` id, the ``prim`` path ("/" for the
+    stage), a ``message``, a suggested ``fix``, and its ``source`` ("usdface" or "pixar" for OpenUSD's own
+    validators)."""
+
+    severity: str
+    rule: str
+    prim: str
+    message: str
+    fix: str = ""
+    source: str = "usdface"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def __str__(self) -> str:
+        text = f"{self.severity.upper():7s} [{self.rule}] {self.prim}: {self.message}"
+        return text + (f" (fix: {self.fix})" if self.fix else "")
+
+
+def has_errors(issues: Iterable[Issue]) -> bool:
+    """True when any issue is an error."""
+    return any(i.severity == ERROR for i in issues)
+
+
+def sort_issues(issues: Iterable[Issue]) -> list[Issue]:
+    """Errors first, then warnings, then infos; by prim path within a severity."""
+    return sorted(issues, key=lambda i: (_RANK.get(i.severity, 3), i.prim, i.rule, i.message))
+
+
+#: rule id -> (function stage -> Iterable[Issue], one-line description). Filled by :func:`_rule`.
+RULES: dict[str, tuple[Callable, str]] = {}
+
+
+def _rule(rule_id: str, doc: str):
+    def deco(fn):
+        RULES[rule_id] = (fn, doc)
+        return fn
+
+    return deco
+
+
+def check(stage, rules: Iterable[str] | None = None) -> list[Issue]:
+    """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
+
+    ``rules`` selects rule ids from :data:`RULES` (default: all). Never modifies the stage.
+    """
+    chosen = list(RULES) if rules is None else list(rules)
+    unknown = [r for r in chosen if r not in RULES]
+    if unknown:
+        from ..errors import UsdFaceError
+
+        raise UsdFaceError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
+    issues: list[Issue] = []
+    for rule_id in chosen:
+        issues.extend(RULES[rule_id][0](stage))
+    return sort_issues(issues)
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+def _skel():
+    from pxr import UsdSkel
+
+    return UsdSkel
+
+
+def _has_blend_shapes(prim) -> bool:
+    attr = prim.GetAttribute("skel:blendShapes")
+    rel = prim.GetRelationship("skel:blendShapeTargets")
+    return bool((attr and attr.HasAuthoredValue()) or (rel and rel.HasAuthoredTargets()))
+
+
+def _blend_shape_meshes(stage):
+    """Every prim that authors blend-shape bindings (normally Mesh prims)."""
+    from pxr import Usd
+
+    return [p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if _has_blend_shapes(p)]
+
+
+def _channels(prim) -> tuple[list[str], list]:
+    attr = prim.GetAttribute("skel:blendShapes")
+    rel = prim.GetRelationship("skel:blendShapeTargets")
+    names = [str(n) for n in (attr.Get() if attr else None) or []]
+    targets = list(rel.GetTargets()) if rel else []
+    return names, targets
+
+
+def _n_points(prim) -> int | None:
+    attr = prim.GetAttribute("points")
+    pts = attr.Get() if attr else None
+    return None if pts is None else len(pts)
+
+
+def _path(prim) -> str:
+    return str(prim.GetPath())
+
+
+# ----------------------------------------------------------------------------------------------- rules
+@_rule("StageMetadata", "upAxis and metersPerUnit authored, defaultPrim set to an existing prim")
+def _stage_metadata(stage) -> Iterable[Issue]:
+    layer = stage.GetRootLayer().identifier
+    if not stage.HasAuthoredMetadata("upAxis"):
+        yield Issue(ERROR, "StageMetadata", "/", f"stage {layer} does not author upAxis",
+                    "author upAxis (Y or Z) in the root layer; a sublayer's metadata does not compose")
+    if not stage.HasAuthoredMetadata("metersPerUnit"):
+        yield Issue(ERROR, "StageMetadata", "/", f"stage {layer} does not author metersPerUnit",
+                    "author metersPerUnit in the root layer (0.01 for centimetres, 1 for metres)")
+    if not stage.HasDefaultPrim():
+        yield Issue(ERROR, "StageMetadata", "/", f"stage {layer} has no defaultPrim",
+                    "set defaultPrim to the avatar's root prim so references need no prim path")
+    elif not stage.GetDefaultPrim():
+        yield Issue(ERROR, "StageMetadata", "/",
+                    f"defaultPrim {stage.GetRootLayer().defaultPrim!r} does not name an existing prim",
+                    "set defaultPrim to the avatar's root prim")
+
+
+@_rule("SkelBinding", "blend-shape meshes: SkelBindingAPI applied, under a SkelRoot, bound to a Skeleton")
+def _skel_binding(stage) -> Iterable[Issue]:
+    UsdSkel = _skel()
+    for prim in _blend_shape_meshes(stage):
+        path = _path(prim)
+        if not prim.HasAPI(UsdSkel.BindingAPI):
+            yield Issue(ERROR, "SkelBinding", path,
+                        "authors skel:blendShapes but SkelBindingAPI is not applied",
+                        "apply the API: prepend apiSchemas = [\"SkelBindingAPI\"] (UsdSkel.BindingAPI.Apply)")
+        if not UsdSkel.Root.Find(prim):
+            yield Issue(ERROR, "SkelBinding", path, "blend-shape mesh is not under a SkelRoot",
+                        "put the mesh and its Skeleton under a SkelRoot prim")
+        if not UsdSkel.BindingAPI(prim).GetInheritedSkeleton():
+            yield Issue(ERROR, "SkelBinding", path,
+                        "no Skeleton bound (skel:skeleton on the mesh or an ancestor): "
+                        "nothing drives its weights",
+                        "bind a Skeleton with rel skel:skeleton on the mesh or its SkelRoot")
+
+
+@_rule("BlendShapeArrays", "skel:blendShapes and skel:blendShapeTargets same length; targets are BlendShapes")
+def _blend_shape_arrays(stage) -> Iterable[Issue]:
+    UsdSkel = _skel()
+    for prim in _blend_shape_meshes(stage):
+        names, targets = _channels(prim)
+        path = _path(prim)
+        if len(names) != len(targets):
+            yield Issue(ERROR, "BlendShapeArrays", path,
+                        f"skel:blendShapes has {len(names)} names but skel:blendShapeTargets "
+                        f"{len(targets)} targets",
+                        "author one channel name per BlendShape target, in the same order")
+        for target in targets:
+            tprim = stage.GetPrimAtPath(target)
+            if not tprim:
+                yield Issue(ERROR, "BlendShapeArrays", path, f"blend-shape target {target} does not exist",
+                            "remove the target or restore the BlendShape prim")
+            elif not tprim.IsA(UsdSkel.BlendShape):
+                yield Issue(ERROR, "BlendShapeArrays", path,
+                            f"blend-shape target {target} is a {tprim.GetTypeName() or 'typeless prim'}, "
+                            "not a BlendShape", "target BlendShape prims only")
+
+
+def _shape_targets(stage):
+    """(mesh prim, n_points, BlendShape) for every valid target of every blend-shape mesh."""
+    UsdSkel = _skel()
+    for prim in _blend_shape_meshes(stage):
+        n = _n_points(prim)
+        for target in _channels(prim)[1]:
+            tprim = stage.GetPrimAtPath(target)
+            if tprim and tprim.IsA(UsdSkel.BlendShape):
+                yield prim, n, UsdSkel.BlendShape(tprim)
+
+
+@_rule("BlendShapeOffsets", "offsets, normalOffsets, inbetweens match pointIndices (or point count); finite")
+def _blend_shape_offsets(stage) -> Iterable[Issue]:
+    for prim, n, shape in _shape_targets(stage):
+        path = _path(shape.GetPrim())
+        offsets = shape.GetOffsetsAttr().Get()
+        indices_attr = shape.GetPointIndicesAttr()
+        indices = indices_attr.Get() if indices_attr.HasAuthoredValue() else None
+        normals = shape.GetNormalOffsetsAttr().Get()
+        if offsets is None or len(offsets) == 0:
+            if normals is not None and len(normals):
+                yield Issue(WARNING, "BlendShapeOffsets", path, "BlendShape has normalOffsets only; it moves "
+                            "no points", "author offsets unless a shading-only shape is intended")
+            else:
+                yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape has no offsets",
+                            "author offsets (one per pointIndices entry, or one per mesh point)")
+            continue
+        if indices is not None:
+            expected, what = len(indices), f"pointIndices ({len(indices)})"
+        else:
+            expected, what = n, f"mesh {_path(prim)} points ({n})"
+        if expected is not None and len(offsets) != expected:
+            yield Issue(ERROR, "BlendShapeOffsets", path, f"{len(offsets)} offsets but {what}",
+                        "author one offset per pointIndices entry (sparse) or per mesh point (dense)")
+        if not np.isfinite(np.asarray(offsets, dtype=np.float64)).all():
+            yield Issue(ERROR, "BlendShapeOffsets", path, "offsets contain NaN or infinity",
+                        "re-export the shape; the mesh would explode when the channel is driven")
+        if normals is not None and len(normals) and len(normals) != len(offsets):
+            yield Issue(ERROR, "BlendShapeOffsets", path,
+                        f"{len(normals)} normalOffsets but {len(offsets)} offsets",
+                        "author normalOffsets with the same length as offsets, or remove them")
+        for ib in shape.GetInbetweens():
+            ib_offsets = ib.GetOffsets()
+            if ib_offsets is not None and len(ib_offsets) != len(offsets):
+                yield Issue(ERROR, "BlendShapeOffsets", path,
+                            f"inbetween {ib.GetAttr().GetName()} has {len(ib_offsets)} offsets, the shape "
+                            f"{len(offsets)}",
+                            "inbetweens share the shape's pointIndices; author as many offsets")
+
+
+@_rule("PointIndices", "pointIndices in range [0, n_points) and unique")
+def _point_indices(stage) -> Iterable[Issue]:
+    for prim, n, shape in _shape_targets(stage):
+        attr = shape.GetPointIndicesAttr()
+        if not attr.HasAuthoredValue():
+            continue
+        idx = np.asarray(attr.Get(), dtype=np.int64)
+        path = _path(shape.GetPrim())
+        if idx.size == 0:
+            continue
+        bad = (idx < 0) | (idx >= n) if n is not None else idx < 0
+        if bad.any():
+            yield Issue(ERROR, "PointIndices", path,
+                        f"{int(bad.sum())} pointIndices outside [0, {n}) of mesh {_path(prim)} "
+                        f"(e.g. {int(idx[bad][0])})", "re-export the shape against this mesh's topology")
+        uniq, counts = np.unique(idx, return_counts=True)
+        if (counts > 1).any():
+            dup = uniq[counts > 1]
+            yield Issue(ERROR, "PointIndices", path,
+                        f"{dup.size} pointIndices repeated (e.g. {int(dup[0])}); UsdSkel rejects the shape",
+                        "list each vertex once (sum duplicate offsets)")
+
+
+@_rule("Inbetweens", "inbetween weights strictly inside (0, 1)")
+def _inbetweens(stage) -> Iterable[Issue]:
+    for _prim, _n, shape in _shape_targets(stage):
+        for ib in shape.GetInbetweens():
+            w = ib.GetWeight()
+            if w is None or not (0.0 < w < 1.0):
+                yield Issue(WARNING, "Inbetweens", _path(shape.GetPrim()),
+                            f"inbetween {ib.GetAttr().GetName()} has weight {w}, outside (0, 1)",
+                            "place inbetweens strictly between 0 and 1 (ARKit weights never leave [0, 1])")
+
+
+def _close_arkit(name: str) -> str | None:
+    lowered = {n.lower(): n for n in ARKIT_NAMES}
+    hit = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.85)
+    return lowered[hit[0]] if hit else None
+
+
+@_rule("ArkitNames", "ARKit names canonical, unique per mesh, complete per skeleton (tongueOut optional)")
+def _arkit_names(stage) -> Iterable[Issue]:
+    UsdSkel = _skel()
+    per_skeleton: dict[str, set[str]] = {}
+    for prim in _blend_shape_meshes(stage):
+        names, targets = _channels(prim)
+        path = _path(prim)
+        fallbacks = [t.name for t in targets] if len(targets) == len(names) else None
+        match = match_names(names, fallbacks)
+        for given, canonical, how in match.inexact:
+            if how == "spelling":
+                yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is a non-canonical spelling of "
+                            f"{canonical!r}",
+                            f"rename to {canonical!r} for tools that only know Apple's names")
+            else:
+                suffix = match_name(given)[1] == "suffix"
+                yield Issue(WARNING, "ArkitNames", path, f"channel {given!r} looks like {canonical!r} "
+                            f"({'a DCC numeric suffix' if suffix else 'only its target prim is named so'})",
+                            f"rename the channel to {canonical!r}; drivers that match by name will miss it")
+        for given in match.unknown:
+            close = _close_arkit(given)
+            if close:
+                yield Issue(WARNING, "ArkitNames", path, f"channel {given!r} is not an ARKit name; misspelt "
+                            f"{close!r}?", f"rename it to {close!r}")
+            else:
+                yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is not an ARKit shape",
+                            "fine for extra shapes; usdface keeps it but does not personalize it")
+        for dup in sorted(set(match.duplicates)):
+            given = [g for g, c in zip(names, match.canonical, strict=True) if c == dup]
+            yield Issue(ERROR, "ArkitNames", path, f"channels {given} all mean {dup!r}",
+                        "keep one channel per ARKit shape")
+        skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        key = str(skel.GetPath()) if skel else path
+        per_skeleton.setdefault(key, set()).update(c for c in match.canonical if c in ARKIT_SET)
+    for key, found in per_skeleton.items():
+        missing = [n for n in ARKIT_NAMES if n not in found and n not in OPTIONAL_NAMES]
+        if not found:
+            yield Issue(WARNING, "ArkitNames", key, "no channel of the meshes bound here is an ARKit shape",
+                        "name the channels with Apple's ARKit names (eyeBlinkLeft, jawOpen, ...)")
+        elif missing:
+            yield Issue(ERROR, "ArkitNames", key, f"{len(missing)} ARKit shape(s) missing: "
+                        f"{', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}",
+                        "add the missing shapes (tongueOut is optional)")
+
+
+@_rule("AnimationNames", "the bound SkelAnimation names every channel exactly; one weight per name")
+def _animation_names(stage) -> Iterable[Issue]:
+    UsdSkel = _skel()
+    by_anim: dict[str, tuple] = {}
+    for prim in _blend_shape_meshes(stage):
+        skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        if not skel:
+            continue  # reported by SkelBinding
+        anim_prim = UsdSkel.BindingAPI(skel.GetPrim()).GetInheritedAnimationSource()
+        if not anim_prim or not anim_prim.IsA(UsdSkel.Animation):
+            continue
+        entry = by_anim.setdefault(str(anim_prim.GetPath()), (UsdSkel.Animation(anim_prim), []))
+        entry[1].append(prim)
+    for anim_path, (anim, meshes) in by_anim.items():
+        anim_names = [str(n) for n in anim.GetBlendShapesAttr().Get() or []]
+        known = set(anim_names)
+        for prim in meshes:
+            names, _ = _channels(prim)
+            unanimated = [n for n in names if n not in known]
+            if unanimated:
+                yield Issue(WARNING, "AnimationNames", _path(prim),
+                            f"{len(unanimated)} channel(s) not named by SkelAnimation {anim_path} "
+                            "never animate: "
+                            f"{', '.join(unanimated[:6])}{' ...' if len(unanimated) > 6 else ''}",
+                            "use the same tokens in the mesh's skel:blendShapes and the "
+                            "animation's blendShapes")
+        weights_attr = anim.GetBlendShapeWeightsAttr()
+        samples = weights_attr.GetTimeSamples()
+        probe = [samples[0]] if samples else []
+        values = [weights_attr.Get(t) for t in probe] if probe else [weights_attr.Get()]
+        for v in values:
+            if v is not None and len(v) != len(anim_names):
+                yield Issue(ERROR, "AnimationNames", anim_path,
+                            f"blendShapeWeights has {len(v)} values, blendShapes {len(anim_names)} names",
+                            "author one weight per blendShapes name at every time sample")
+
+
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def _digest(path: Path) -> str | None:
+    try:
+        from ..io.layers import file_digest
+    except ImportError:
+        file_digest = None
+    if file_digest is not None:
+        return str(file_digest(path))
+    if not path.is_file():
+        return None
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@_rule("Provenance", "a usdface layer's provenance present, consistent, and its inputs unchanged")
+def _provenance(stage) -> Iterable[Issue]:
+    from pxr import Usd
+
+    prov_prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+                  if "UsdFaceProvenanceAPI" in p.GetAppliedSchemas()
+                  or p.GetAttribute("usdface:provenance:version").HasAuthoredValue()]
+    root = stage.GetRootLayer()
+    data = root.customLayerData or {}
+    looks_usdface = any(str(k).lower().startswith("usdface") for k in data)
+    if not prov_prims:
+        if looks_usdface:
+            yield Issue(ERROR, "Provenance", "/", f"layer {root.identifier} was written by usdface but has "
+                        "no UsdFaceProvenanceAPI prim",
+                        "re-run usdface personalize; do not hand-edit the layer")
+        return
+    base = Path(root.realPath).parent if root.realPath else Path.cwd()
+    for prim in prov_prims:
+        path = _path(prim)
+
+        def get(name, prim=prim):
+            attr = prim.GetAttribute(f"usdface:provenance:{name}")
+            return attr.Get() if attr and attr.HasAuthoredValue() else None
+
+        for name in ("version", "command"):
+            if not get(name):
+                yield Issue(ERROR, "Provenance", path, f"usdface:provenance:{name} is empty",
+                            "re-run usdface personalize to rewrite the layer's provenance")
+        inputs = list(get("inputs") or [])
+        digests = list(get("inputDigests") or [])
+        if len(inputs) != len(digests):
+            yield Issue(ERROR, "Provenance", path,
+                        f"{len(inputs)} provenance inputs but {len(digests)} inputDigests",
+                        "re-run usdface personalize to rewrite the layer's provenance")
+            continue
+        if not inputs:
+            yield Issue(ERROR, "Provenance", path, "provenance names no input files",
+                        "re-run usdface personalize to rewrite the layer's provenance")
+        for given, digest in zip(inputs, digests, strict=True):
+            if not _HEX64.match(str(digest)):
+                yield Issue(ERROR, "Provenance", path,
+                            f"digest of input {given!r} is not a sha256 hex string",
+                            "re-run usdface personalize to rewrite the layer's provenance")
+                continue
+            file = Path(given) if Path(given).is_absolute() else base / given
+            if not file.exists():
+                yield Issue(INFO, "Provenance", path,
+                            f"input {given!r} not reachable from here; digest unchecked", "")
+                continue
+            now = _digest(file)
+            if now is not None and now != digest:
+                yield Issue(WARNING, "Provenance", path,
+                            f"input {given!r} changed after this layer was written (sha256 differs)",
+                            "re-run usdface personalize on the current inputs")
