@@ -34,7 +34,7 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
         raise CaptureError("weights contain NaN or infinite values", prim=prim_path,
                            fix="repair the weights before authoring the animation")
     codes = (np.arange(len(weights), dtype=np.float64) if times is None
-             else np.asarray(times, dtype=np.float64) * float(time_codes_per_second))
+             else np.round(np.asarray(times, dtype=np.float64) * float(time_codes_per_second), 9))
     anim = UsdSkel.Animation.Define(stage, Sdf.Path(str(prim_path)))
     anim.CreateBlendShapesAttr(Vt.TokenArray(names))
     attr = anim.CreateBlendShapeWeightsAttr()
@@ -70,3 +70,41 @@ def read_skel_animation(prim) -> tuple[list[str], np.ndarray, np.ndarray]:
                            prim=prim.GetPath(), fix="author one weight per blendShapes token at every time")
     weights = np.stack(rows) if rows else np.zeros((0, len(names)))
     return names, weights, codes
+
+
+def write_animation_usd(path, names, weights, times=None, time_codes_per_second: float = 60.0, *,
+                        curves: dict | None = None, prim_name: str = "Take", force: bool = False,
+                        layer_data: dict | None = None):
+    """Write a weights-only take as a USD file whose defaultPrim is a SkelAnimation (``/<prim_name>``).
+
+    ``weights[F, K]`` for channels ``names[K]``; frame ``f`` at time code ``times[f] * time_codes_per_second``
+    (``times[F]`` in seconds; default: frame index). ``curves`` {name: values[F]} are authored as time-sampled
+    ``double usdface:curves:<name>`` attributes (e.g. Live Link head/eye angles in radians). The file can be
+    bound to an avatar with ``skel:animationSource``. Atomic; refuses an existing file unless ``force``.
+    Returns the path.
+    """
+    from pathlib import Path
+
+    from pxr import Sdf, Tf, Usd, UsdGeom
+
+    from .usd_capture import _check_output, _save
+
+    path = Path(path)
+    _check_output(path, force)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    anim = author_skel_animation(stage, f"/{Tf.MakeValidIdentifier(prim_name)}", names, weights,
+                                 time_codes_per_second, times=times)
+    stage.SetDefaultPrim(anim.GetPrim())
+    codes = (np.arange(len(weights), dtype=np.float64) if times is None
+             else np.round(np.asarray(times, dtype=np.float64) * float(time_codes_per_second), 9))
+    for name, values in (curves or {}).items():
+        attr = anim.GetPrim().CreateAttribute(f"usdface:curves:{Tf.MakeValidIdentifier(name)}",
+                                              Sdf.ValueTypeNames.Double, custom=True)
+        for code, v in zip(codes.tolist(), np.asarray(values, dtype=np.float64).tolist(), strict=True):
+            attr.Set(v, code)
+    if layer_data:
+        stage.GetRootLayer().customLayerData = {"usdface": dict(layer_data)}
+    _save(stage, path)
+    return path

@@ -1,0 +1,44 @@
+"""``usdface anim import take.csv -o take.usda``: a Live Link Face CSV as a UsdSkel SkelAnimation."""
+
+from __future__ import annotations
+
+import warnings
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("anim", help="weight animations (Live Link Face CSV -> SkelAnimation)",
+                                   description="Blend-shape weight animations.")
+    sub = parser.add_subparsers(dest="anim_command", metavar="ACTION", required=True)
+    imp = sub.add_parser(
+        "import", help="Live Link Face CSV -> take.usda (SkelAnimation, time-sampled weights)",
+        description="Read a Live Link Face CSV and write a USD file whose defaultPrim is a SkelAnimation "
+                    "with the ARKit weights as time samples (head/eye angles as usdface:curves:* "
+                    "attributes). Bind it to an avatar's Skeleton with skel:animationSource.")
+    imp.add_argument("csv", help="Live Link Face .csv")
+    imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
+    imp.add_argument("--timecode-rate", type=float, default=60.0,
+                     help="frames per second of the CSV's timecode FF field; also the stage's "
+                          "timeCodesPerSecond (default 60)")
+    imp.add_argument("--force", action="store_true", help="overwrite an existing output")
+    imp.set_defaults(func=run_import)
+
+
+def run_import(args) -> int:
+    from .. import __version__
+    from ..io.livelink import read_livelink_take
+    from ..io.usd_anim import write_animation_usd
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        take = read_livelink_take(args.csv, args.timecode_rate)
+    for w in caught:
+        print(f"warning: {w.message}")
+    out = write_animation_usd(args.output, take.names, take.weights, take.times, args.timecode_rate,
+                              curves={**take.angles, **take.extra}, force=args.force,
+                              layer_data={"source": str(args.csv), "startTimecode": take.timecodes[0],
+                                          "version": __version__})
+    print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "
+          f"{len(take.names)} shapes")
+    if take.name_report.get("missing"):
+        print(f"missing shapes: {', '.join(take.name_report['missing'])}")
+    return 0

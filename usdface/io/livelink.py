@@ -1,0 +1,163 @@
+"""Live Link Face CSV takes (Epic's iOS app): per-row timecode, 52 ARKit weights, head and eye angles.
+
+Format (one header row, then one row per frame, ~30 Hz)::
+
+    Timecode,BlendShapeCount,EyeBlinkLeft,...,TongueOut,HeadYaw,HeadPitch,HeadRoll,LeftEyeYaw,...,RightEyeRoll
+    13:13:04:31.652,61,0.1236470118,...
+
+* ``Timecode`` is ``HH:MM:SS:FF.fff`` with ``FF.fff`` a (fractional) frame count at ``timecode_rate``
+  (60 per second in the app's recordings); times are returned in seconds from the first row.
+* Weight columns are PascalCase ARKit names in Live Link's own order; they are mapped **by name** (any of the
+  three spellings, :mod:`usdface.arkit`) and returned in ARKit order.
+* ``BlendShapeCount`` is ignored; head/eye angle columns (radians) are returned separately, never as weights;
+  any other column is kept in ``extra`` and reported with a warning.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import match_names
+from ..errors import CaptureError, InputFileError
+from .capture_folder import order_names
+
+__all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "parse_timecodes", "ANGLE_COLUMNS"]
+
+#: Head and eye rotation columns (radians), kept out of the weights.
+ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
+                 "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
+_IGNORED = ("BlendShapeCount",)
+
+
+@dataclass
+class LiveLinkTake:
+    """A Live Link Face take: names[K] canonical, weights[F, K] in [0, 1], times[F] seconds from the first
+    row, angles {column: [F] radians}, extra {column: [F]} (unrecognised numeric columns), the raw
+    timecodes[F], and the name report (inexact / missing)."""
+
+    names: list[str]
+    weights: np.ndarray
+    times: np.ndarray
+    angles: dict[str, np.ndarray] = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    timecodes: list[str] = field(default_factory=list)
+    name_report: dict = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def fps(self) -> float:
+        """Median sampling rate (frames per second)."""
+        dt = np.diff(self.times)
+        return float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else 30.0
+
+
+def parse_timecodes(codes, timecode_rate: float = 60.0, path=None) -> np.ndarray:
+    """``HH:MM:SS:FF[.fff]`` strings -> seconds[F] from the first code (a midnight wrap is unwrapped)."""
+    parts = [c.strip().split(":") for c in codes]
+    if any(len(p) != 4 for p in parts):
+        bad = next(c for c, p in zip(codes, parts, strict=True) if len(p) != 4)
+        raise InputFileError(f"timecode {bad!r} is not HH:MM:SS:FF", path=path,
+                             fix="export the take from Live Link Face unchanged")
+    try:
+        hms = np.array(parts, dtype=np.float64)
+    except ValueError:
+        raise InputFileError("timecode with non-numeric fields", path=path,
+                             fix="export the take from Live Link Face unchanged") from None
+    rate = float(timecode_rate)
+    whole = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2]
+    whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
+    # Differences in frames first (whole seconds are exact), then seconds: keeps time codes clean.
+    frames = (whole - whole[0]) * rate + (hms[:, 3] - hms[0, 3]) if len(whole) else whole
+    return frames / rate
+
+
+def read_livelink_take(path, timecode_rate: float = 60.0) -> LiveLinkTake:
+    """Read a Live Link Face CSV into a :class:`LiveLinkTake` (see the module doc for the format).
+
+    Raises InputFileError (missing/unreadable, not a Live Link CSV, ragged or non-numeric rows) or
+    CaptureError (NaN/inf weights, the same shape under two spellings), naming the file and the line. Weights
+    outside [0, 1] are clipped with a warning (real takes have ``EyeLookIn*`` up to ~1.06).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputFileError("file not found", path=path, fix="check the path") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"cannot read the CSV ({exc})", path=path,
+                             fix="pass a Live Link Face .csv") from None
+    rows = list(csv.reader(io.StringIO(text)))
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    if not rows or "Timecode" not in [c.strip() for c in rows[0]]:
+        raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path,
+                             fix="pass the .csv exported by Live Link Face")
+    header = [c.strip() for c in rows[0]]
+    body = rows[1:]
+    if not body:
+        raise InputFileError("the CSV has a header but no frames", path=path, fix="record a take first")
+    ragged = [i for i, r in enumerate(body) if len(r) != len(header)]
+    if ragged:
+        raise InputFileError(f"line {ragged[0] + 2} has {len(body[ragged[0]])} fields, the header "
+                             f"{len(header)}", path=path, fix="the CSV is truncated or damaged; export again")
+    table = np.array(body, dtype=object)
+    t_col = header.index("Timecode")
+    times = parse_timecodes(table[:, t_col].tolist(), timecode_rate, path)
+    numeric = {}
+    for j, name in enumerate(header):
+        if j == t_col or name in _IGNORED:
+            continue
+        try:
+            numeric[name] = table[:, j].astype(np.float64)
+        except ValueError:
+            bad = next(i for i, v in enumerate(table[:, j]) if not _is_float(v))
+            raise InputFileError(f"line {bad + 2}, column {name!r}: {table[bad, j]!r} is not a number",
+                                 path=path, fix="the CSV is damaged; export it again") from None
+    angles = {n: numeric.pop(n) for n in ANGLE_COLUMNS if n in numeric}
+    match = match_names(list(numeric))
+    if match.duplicates:
+        cols = [n for n, c in zip(match.names, match.canonical, strict=True) if c in match.duplicates]
+        raise CaptureError(f"the same shape appears in several columns: {', '.join(cols)}", path=path,
+                           fix="keep one column per shape")
+    extra = {n: numeric[n] for n in match.unknown}
+    if extra:
+        warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
+                      f"not used as weights): {', '.join(extra)}", UserWarning, stacklevel=2)
+    by_name = {c: numeric[n] for n, c in zip(match.names, match.canonical, strict=True) if n not in extra}
+    names = order_names(by_name)
+    weights = np.stack([by_name[n] for n in names], axis=1) if names else np.zeros((len(body), 0))
+    if not np.isfinite(weights).all():
+        f, k = np.argwhere(~np.isfinite(weights))[0]
+        raise CaptureError(f"line {f + 2}, {names[k]}: weight is NaN or infinite", path=path,
+                           fix="repair or re-export the take")
+    if weights.size and (weights.min() < 0 or weights.max() > 1):
+        out = (weights < 0) | (weights > 1)
+        cols = [names[k] for k in np.flatnonzero(out.any(axis=0))]
+        warnings.warn(f"{path}: weights outside [0, 1] (range {weights.min():.4g} .. {weights.max():.4g}) "
+                      f"clipped in {int(out.any(axis=1).sum())} frame(s): {', '.join(cols)}", UserWarning,
+                      stacklevel=2)
+        weights = np.clip(weights, 0.0, 1.0)
+    report = {"inexact": match.inexact, "unknown": match.unknown, "missing": match.missing}
+    return LiveLinkTake(names, weights, times, angles, extra, table[:, t_col].tolist(), report, str(path))
+
+
+def _is_float(v) -> bool:
+    try:
+        float(v)
+    except ValueError:
+        return False
+    return True
+
+
+def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Read a Live Link Face CSV -> (names[K] canonical ARKit, weights[F, K], times[F] seconds from start).
+
+    Head/eye angle columns are not weights and are left out (see :func:`read_livelink_take` for them).
+    """
+    take = read_livelink_take(path, timecode_rate)
+    return take.names, take.weights, take.times
