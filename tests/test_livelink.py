@@ -1,0 +1,128 @@
+"""Live Link Face CSV: names mapped by name (not position), timecodes, angles kept out, SkelAnimation."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from usdface.arkit import ARKIT_NAMES, livelink_name
+from usdface.cli import main
+from usdface.errors import CaptureError, InputFileError, UsdFaceError
+from usdface.io.livelink import ANGLE_COLUMNS, parse_timecodes, read_livelink_csv, read_livelink_take
+from usdface.io.usd_anim import read_skel_animation
+
+# Live Link's own column order differs from Apple's (e.g. JawForward, JawRight, JawLeft).
+LL_ORDER = list(ARKIT_NAMES)
+LL_ORDER[15], LL_ORDER[16] = LL_ORDER[16], LL_ORDER[15]
+
+
+def write_csv(path, weights, codes, names=LL_ORDER, angles=None):
+    header = ["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in names] + list(ANGLE_COLUMNS)
+    angles = np.zeros((len(codes), len(ANGLE_COLUMNS))) if angles is None else angles
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for code, row, ang in zip(codes, weights, angles, strict=True):
+            w.writerow([code, 61] + [f"{x:.10f}" for x in row] + [f"{a:.10f}" for a in ang])
+    return path
+
+
+def test_synthetic_take_maps_by_name(tmp_path):
+    rng = np.random.default_rng(0)
+    w = rng.random((4, 52))
+    angles = rng.normal(size=(4, 9))
+    codes = ["10:00:00:00.000", "10:00:00:02.000", "10:00:00:04.500", "10:00:01:00.000"]
+    take = read_livelink_take(write_csv(tmp_path / "t.csv", w, codes, angles=angles))
+    assert take.names == list(ARKIT_NAMES)  # ARKit order whatever the column order
+    np.testing.assert_allclose(take.weights[:, ARKIT_NAMES.index("jawLeft")], w[:, LL_ORDER.index("jawLeft")],
+                               atol=1e-10)
+    np.testing.assert_allclose(take.times, [0, 2 / 60, 4.5 / 60, 1.0])
+    assert list(take.angles) == list(ANGLE_COLUMNS)
+    np.testing.assert_allclose(take.angles["HeadYaw"], angles[:, 0], atol=1e-10)
+    names, weights, times = read_livelink_csv(tmp_path / "t.csv")
+    assert names == take.names and weights.shape == (4, 52) and times.shape == (4,)
+
+
+def test_timecodes_cross_midnight():
+    t = parse_timecodes(["23:59:59:58.000", "00:00:00:00.000"], 60)
+    np.testing.assert_allclose(t, [0, 2 / 60])
+
+
+def test_bench_take(shared):
+    take = read_livelink_take(shared / "data" / "livelinkface" / "S07-001.csv")
+    assert take.weights.shape == (2028, 52) and take.names == list(ARKIT_NAMES)
+    assert take.name_report["missing"] == []
+    assert abs(take.fps - 30) < 0.5 and abs(take.times[-1] - 2028 / 30) < 1.0
+    assert take.weights.min() >= 0 and take.weights.max() <= 1
+    # 19 shapes never exceed 0.1 in this talking take (SOURCE.md)
+    assert int((take.weights.max(axis=0) <= 0.1).sum()) == 19
+
+
+def test_real_take_out_of_range_weights_clipped_with_warning(shared):
+    with pytest.warns(UserWarning, match="eyeLookIn"):
+        take = read_livelink_take(shared / "data" / "livelinkface" / "alex_rom_4.csv")
+    assert take.weights.max() == 1.0
+
+
+@pytest.mark.parametrize("mutate, error, words", [
+    (lambda rows: [["Frame"] + rows[0][1:]] + rows[1:], InputFileError, "Timecode"),
+    (lambda rows: rows[:1] + [rows[1][:-3]] + rows[2:], InputFileError, "line 2"),
+    (lambda rows: rows[:2] + [[rows[2][0], "61", "abc"] + rows[2][3:]] + rows[3:], InputFileError, "line 3"),
+    (lambda rows: rows[:2] + [[rows[2][0], "61", "nan"] + rows[2][3:]] + rows[3:], CaptureError, "NaN"),
+    (lambda rows: [rows[0][:3] + ["EyeBlink_L"] + rows[0][4:]] + rows[1:], CaptureError, "several columns"),
+    (lambda rows: [["13:00"] + r[1:] if i == 2 else r for i, r in enumerate(rows)], InputFileError, "HH:MM"),
+    (lambda rows: rows[:1], InputFileError, "no frames"),
+])
+def test_bad_csv(tmp_path, mutate, error, words):
+    codes = ["10:00:00:00.0", "10:00:00:02.0", "10:00:00:04.0"]
+    p = write_csv(tmp_path / "t.csv", np.full((3, 52), 0.5), codes)
+    with open(p) as fh:
+        rows = list(csv.reader(fh))
+    with open(p, "w", newline="") as fh:
+        csv.writer(fh).writerows(mutate(rows))
+    with pytest.raises(error) as info:
+        read_livelink_take(p)
+    assert words in str(info.value) and "t.csv" in str(info.value) and info.value.fix
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputFileError, match="not found"):
+        read_livelink_csv(tmp_path / "none.csv")
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.text(alphabet="0123456789:.,-naeTimcod\n ", max_size=40), max_size=6))
+def test_fuzz_raises_only_usdface_errors(tmp_path, lines):
+    p = tmp_path / "fuzz.csv"
+    p.write_text("Timecode,BlendShapeCount,EyeBlinkLeft,JawOpen\n" + "\n".join(lines))
+    try:
+        take = read_livelink_take(p)
+    except UsdFaceError:
+        return
+    assert take.weights.shape == (len(take.times), len(take.names))
+    assert np.isfinite(take.weights).all() and (take.weights >= 0).all() and (take.weights <= 1).all()
+
+
+def test_anim_import_writes_skel_animation(tmp_path):
+    from pxr import Usd
+
+    rng = np.random.default_rng(1)
+    w = rng.random((5, 52))
+    codes = [f"10:00:00:{2 * i:02d}.000" for i in range(5)]
+    src = write_csv(tmp_path / "t.csv", w, codes)
+    out = tmp_path / "take.usda"
+    assert main(["anim", "import", str(src), "-o", str(out)]) == 0
+    stage = Usd.Stage.Open(str(out))
+    prim = stage.GetDefaultPrim()
+    assert prim.GetTypeName() == "SkelAnimation" and stage.GetTimeCodesPerSecond() == 60
+    names, weights, time_codes = read_skel_animation(prim)
+    take = read_livelink_take(src)
+    assert names == take.names
+    np.testing.assert_allclose(weights, take.weights, atol=1e-7)  # float[] in USD
+    np.testing.assert_array_equal(time_codes, [0, 2, 4, 6, 8])
+    assert prim.GetAttribute("usdface:curves:HeadYaw").GetTimeSamples() == [0, 2, 4, 6, 8]
+    assert main(["anim", "import", str(src), "-o", str(out)]) == 2  # refuses to overwrite
