@@ -1,0 +1,127 @@
+"""Batch personalization: manifests, failure isolation, report, resume, local process pool and Dask
+(a small in-process LocalCluster), with a stub worker; plus the real personalize worker on the samples."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from usdface.cli import main
+from usdface.errors import InputFileError
+from usdface.pipeline.batch import DONE, FAILED, SKIPPED, read_manifest, run_batch
+
+
+def stub_worker(item: dict) -> None:
+    """Writes ``output`` (avatar + capture names) or fails for avatars named ``bad*``."""
+    if Path(item["avatar"]).name.startswith("bad"):
+        raise ValueError(f"cannot personalize {item['avatar']}")
+    Path(item["output"]).write_text(json.dumps({"avatar": item["avatar"], "capture": item["capture"],
+                                                "options": item["options"]}))
+
+
+def _manifest(tmp_path: Path, names, suffix=".csv", extra="") -> Path:
+    path = tmp_path / f"people{suffix}"
+    if suffix == ".csv":
+        rows = ["avatar,capture,output" + (",method" if extra else "")]
+        rows += [f"{n}.usdc,{n}_capture,out/{n}.usda" + (f",{extra}" if extra else "") for n in names]
+        path.write_text("\n".join(rows) + "\n")
+    else:
+        path.write_text(json.dumps({"items": [{"avatar": f"{n}.usdc", "capture": f"{n}_capture",
+                                               "output": f"out/{n}.usda"} for n in names]}))
+    (tmp_path / "out").mkdir(exist_ok=True)
+    return path
+
+
+def test_manifest_csv_and_json(tmp_path):
+    items = read_manifest(_manifest(tmp_path, ["a", "b"], extra="dt"))
+    assert [Path(i.avatar).name for i in items] == ["a.usdc", "b.usdc"]
+    assert Path(items[0].output) == (tmp_path / "out" / "a.usda").resolve()  # relative to the manifest
+    assert items[1].options == {"method": "dt"} and items[1].index == 1
+    items = read_manifest(_manifest(tmp_path, ["c"], suffix=".json"))
+    assert Path(items[0].capture).name == "c_capture" and items[0].options == {}
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("avatar,output\nx,y\n", "capture"),
+    ("avatar,capture,output\na,c,o\nb,d,o\n", "both write"),
+    ("avatar,capture,output\n", "no items"),
+])
+def test_bad_manifests(tmp_path, text, needle):
+    path = tmp_path / "m.csv"
+    path.write_text(text)
+    with pytest.raises(InputFileError, match=needle) as err:
+        read_manifest(path)
+    assert "m.csv" in str(err.value) and err.value.fix
+    with pytest.raises(InputFileError):
+        read_manifest(tmp_path / "absent.csv")
+
+
+def test_failure_isolation_report_and_resume(tmp_path):
+    items = read_manifest(_manifest(tmp_path, ["a", "bad1", "b", "c"]))
+    report = run_batch(items, worker=stub_worker, jobs=1, progress=False)
+    assert [r.status for r in report.results] == [DONE, FAILED, DONE, DONE]
+    bad = report.failed[0]
+    assert bad.error_type == "ValueError" and "bad1.usdc" in bad.error and "stub_worker" in bad.traceback
+    assert not Path(bad.output).exists()
+    written = report.write(tmp_path / "report.json")
+    data = json.loads(written.read_text())
+    assert (data["done"], data["failed"], data["skipped"]) == (3, 1, 0)
+    # resume: finished outputs are skipped, the failed one is retried (and fails again)
+    stamp = Path(items[0].output).stat().st_mtime_ns
+    again = run_batch(items, worker=stub_worker, jobs=1, progress=False)
+    assert [r.status for r in again.results] == [SKIPPED, FAILED, SKIPPED, SKIPPED]
+    assert Path(items[0].output).stat().st_mtime_ns == stamp
+    forced = run_batch(items, worker=stub_worker, jobs=1, force=True, progress=False)
+    assert forced.count(DONE) == 3
+
+
+def test_local_process_pool(tmp_path):
+    items = read_manifest(_manifest(tmp_path, ["a", "bad", "b"]))
+    report = run_batch(items, worker=stub_worker, jobs=2, progress=False)
+    assert report.where.startswith("local pool")
+    assert [r.status for r in report.results] == [DONE, FAILED, DONE]
+    assert json.loads(Path(items[2].output).read_text())["avatar"] == items[2].avatar
+
+
+def test_dask_local_cluster(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    items = read_manifest(_manifest(tmp_path, ["a", "bad", "b"]))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
+        report = run_batch(items, worker=stub_worker, scheduler=cluster.scheduler_address, progress=False)
+    assert report.where.startswith("dask")
+    assert [r.status for r in report.results] == [DONE, FAILED, DONE]
+    assert "bad.usdc" in report.failed[0].error
+
+
+def test_cli_batch_exit_status_and_report(tmp_path, capsys):
+    manifest = _manifest(tmp_path, ["a", "bad"])
+    worker = f"{__name__}:stub_worker"
+    assert main(["batch", str(manifest), "-j", "1", "--set", "method=dt", "--worker", worker]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED" in out and "1 done" in out
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert report["failed"] == 1
+    written = json.loads(Path(report["items"][0]["output"]).read_text())
+    assert written["options"] == {"method": "dt"}
+    assert main(["batch", str(manifest), "-j", "1", "--worker", "nowhere:nothing"]) == 2
+
+
+@pytest.mark.slow
+def test_real_personalize_worker(tmp_path, samples):
+    """The default worker runs the real personalize on the project's sample assets."""
+    pytest.importorskip("usdface.transfer", reason="transfer not built yet")
+    from usdface import transfer
+
+    if not hasattr(transfer, "personalize_avatar"):
+        pytest.skip("usdface.transfer.personalize_avatar not built yet")
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps([
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture"), "output": "ok.usda"},
+        {"avatar": str(samples / "missing.usda"), "capture": str(samples / "capture"), "output": "bad.usda"},
+    ]))
+    report = run_batch(read_manifest(manifest), jobs=1, progress=False)
+    assert [r.status for r in report.results] == [DONE, FAILED]
+    assert (tmp_path / "ok.usda").exists() and report.failed[0].error_type == "InputFileError"

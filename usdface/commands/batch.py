@@ -1,0 +1,59 @@
+"""``usdface batch MANIFEST``: personalize many avatars (local process pool or Dask), isolate failures,
+write a report, resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def _option(text: str) -> tuple[str, object]:
+    import argparse
+
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    key, value = text.split("=", 1)
+    try:
+        return key.strip(), json.loads(value)
+    except ValueError:
+        return key.strip(), value
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "batch", help="personalize many avatars from a manifest (process pool or Dask)",
+        description="Personalize every (avatar, capture, output) row of a CSV/JSON manifest. Items whose "
+                    "output exists are skipped (resume); a failing item is reported and the batch goes on. "
+                    "Exit status 1 when any item failed.")
+    p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list")
+    p.add_argument("-j", "--jobs", type=int, default=None,
+                   help="local worker processes (default: CPU count; 1 = in this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="Dask scheduler address (tcp://host:8786): run the items on that cluster")
+    p.add_argument("--force", action="store_true", help="redo items whose output already exists")
+    p.add_argument("--report", type=Path,
+                   help="where to write the JSON report (default: MANIFEST.report.json next to the manifest)")
+    p.add_argument("--set", dest="options", action="append", type=_option, default=[], metavar="KEY=VALUE",
+                   help="personalize option for every item (e.g. --set method=menzel); manifest columns win")
+    p.add_argument("--worker", metavar="MODULE:FUNCTION",
+                   help="run this function on each item instead of personalize (a studio's own step); it "
+                        "gets the item dict and must write item['output']")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
+
+    items = read_manifest(args.manifest)
+    for item in items:
+        item.options = {**dict(args.options), **item.options}
+    worker = load_worker(args.worker) if args.worker else personalize_worker
+    report = run_batch(items, worker=worker, jobs=args.jobs, scheduler=args.scheduler, force=args.force)
+    manifest = Path(args.manifest)
+    out = args.report or manifest.with_name(manifest.stem + ".report.json")
+    report.write(out)
+    for res in report.failed:
+        print(f"FAILED {res.output}: {res.error_type}: {res.error}")
+    print(report.summary())
+    print(f"report: {out}")
+    return 1 if report.failed else 0

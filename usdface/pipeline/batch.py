@@ -1,0 +1,307 @@
+"""Batch personalization: many (avatar, capture, output) items from a manifest, on a local process pool or
+a Dask cluster, with failure isolation, a report and resume.
+
+* **Manifest**: CSV with a header row, or JSON (a list of objects, or ``{"items": [...]}``). Required fields
+  ``avatar``, ``capture``, ``output``; any other field is passed to the worker as a personalize option
+  (e.g. ``method``). Relative paths are relative to the manifest's folder.
+* **Isolation**: every item runs inside :func:`run_item`, which turns any exception into a ``failed`` result;
+  a worker process that dies is reported the same way. One bad item never stops the batch.
+* **Resume**: an item whose output already exists is ``skipped`` (outputs are written atomically, so an
+  existing output is a finished one); ``force=True`` redoes everything.
+* **Where**: ``jobs=1`` runs in this process; otherwise a local ``ProcessPoolExecutor`` (spawned workers,
+  ``jobs`` defaults to the CPU count); ``scheduler="tcp://host:8786"`` (or a ``distributed.Client``) sends the
+  items to a Dask cluster instead.
+
+Example::
+
+    from usdface.pipeline.batch import read_manifest, run_batch
+    report = run_batch(read_manifest("people.csv"), jobs=2)
+    report.write("people.report.json")
+    print(report.summary())
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+import traceback
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from ..errors import InputFileError
+
+REQUIRED = ("avatar", "capture", "output")
+DONE, SKIPPED, FAILED = "done", "skipped", "failed"
+
+
+@dataclass
+class BatchItem:
+    """One unit of work: personalize ``avatar`` with ``capture`` into ``output`` (absolute paths)."""
+
+    avatar: str
+    capture: str
+    output: str
+    options: dict = field(default_factory=dict)
+    index: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class ItemResult:
+    """What happened to one item. ``status`` is ``done``, ``skipped`` or ``failed``."""
+
+    index: int
+    avatar: str
+    capture: str
+    output: str
+    status: str
+    seconds: float = 0.0
+    error: str = ""
+    error_type: str = ""
+    traceback: str = ""
+
+
+@dataclass
+class BatchReport:
+    """All item results (in manifest order) and the wall-clock time of the batch."""
+
+    results: list[ItemResult]
+    seconds: float
+    where: str = "local"
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.results)
+
+    @property
+    def failed(self) -> list[ItemResult]:
+        return [r for r in self.results if r.status == FAILED]
+
+    @property
+    def throughput_per_minute(self) -> float:
+        """Finished (``done``) items per minute of wall-clock time."""
+        return 60.0 * self.count(DONE) / self.seconds if self.seconds > 0 else 0.0
+
+    def summary(self) -> str:
+        text = (f"{self.count(DONE)} done, {self.count(SKIPPED)} skipped, {self.count(FAILED)} failed "
+                f"in {self.seconds:.1f} s on {self.where}")
+        if self.count(DONE):
+            text += f" ({self.throughput_per_minute:.2f} avatars/minute)"
+        return text
+
+    def to_dict(self) -> dict:
+        return {"where": self.where, "seconds": self.seconds, "done": self.count(DONE),
+                "skipped": self.count(SKIPPED), "failed": self.count(FAILED),
+                "avatars_per_minute": self.throughput_per_minute,
+                "items": [asdict(r) for r in self.results]}
+
+    def write(self, path) -> Path:
+        """Write the report as JSON, atomically (temp file + rename)."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=2))
+        os.replace(tmp, path)
+        return path
+
+
+# ----------------------------------------------------------------------------------------------- manifest
+def _coerce(value: str):
+    """CSV cells are strings; numbers and booleans given as options become numbers and booleans."""
+    try:
+        return json.loads(value)
+    except (ValueError, TypeError):
+        return value
+
+
+def read_manifest(path) -> list[BatchItem]:
+    """Read a batch manifest (``.csv`` or ``.json``); paths resolved against the manifest's folder.
+
+    Raises :class:`usdface.errors.InputFileError` for a missing file, a missing column/field, an empty
+    manifest, or two items writing the same output.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError("batch manifest not found", path=path,
+                             fix="pass a CSV (avatar,capture,output) or JSON manifest")
+    base = path.parent.resolve()
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputFileError(f"manifest is not valid JSON ({exc.msg}, line {exc.lineno})", path=path,
+                                 fix="fix the JSON syntax") from None
+        rows = data.get("items") if isinstance(data, dict) else data
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise InputFileError("JSON manifest must be a list of objects (or {\"items\": [...]})", path=path,
+                                 fix='write [{"avatar": ..., "capture": ..., "output": ...}, ...]')
+    else:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            missing = [c for c in REQUIRED if c not in (reader.fieldnames or [])]
+            if missing:
+                raise InputFileError(f"manifest lacks column(s) {missing} (has {reader.fieldnames})",
+                                     path=path, fix="first row: avatar,capture,output[,options]")
+            rows = [{k: _coerce(v) if k not in REQUIRED else v for k, v in r.items()
+                     if k is not None and v not in (None, "")} for r in reader]
+    items, outputs = [], {}
+    for i, row in enumerate(rows):
+        missing = [c for c in REQUIRED if not row.get(c)]
+        if missing:
+            raise InputFileError(f"item {i + 1} lacks {missing}", path=path,
+                                 fix="give every item an avatar, a capture and an output")
+        resolved = {c: str((base / str(row[c])).resolve()) for c in REQUIRED}
+        if resolved["output"] in outputs:
+            raise InputFileError(f"items {outputs[resolved['output']] + 1} and {i + 1} both write "
+                                 f"{row['output']}", path=path, fix="give every item its own output file")
+        outputs[resolved["output"]] = i
+        options = {k: v for k, v in row.items() if k not in REQUIRED}
+        items.append(BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i))
+    if not items:
+        raise InputFileError("manifest lists no items", path=path, fix="add one row per avatar")
+    return items
+
+
+# ----------------------------------------------------------------------------------------------- workers
+def personalize_worker(item: dict) -> None:
+    """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's)."""
+    from ..api import personalize_avatar
+
+    options = dict(item.get("options") or {})
+    options.setdefault("force", bool(item.get("force", False)))
+    personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
+
+
+def load_worker(spec: str) -> Callable[[dict], object]:
+    """Import a worker given as ``"package.module:function"``."""
+    import importlib
+
+    from ..errors import UsdFaceError
+
+    module, _, name = spec.partition(":")
+    try:
+        fn = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise UsdFaceError(f"cannot load batch worker {spec!r}: {exc}",
+                           fix="give an importable MODULE:FUNCTION") from None
+    if not callable(fn):
+        raise UsdFaceError(f"batch worker {spec!r} is not callable", fix="give an importable MODULE:FUNCTION")
+    return fn
+
+
+def run_item(worker: Callable[[dict], object], item: dict) -> dict:
+    """Run ``worker(item)`` and return an :class:`ItemResult` as a dict; never raises (failure isolation)."""
+    start = time.perf_counter()
+    base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
+    try:
+        worker(item)
+    except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
+        if isinstance(exc, KeyboardInterrupt):
+            raise
+        return dict(base, status=FAILED, seconds=time.perf_counter() - start, error=str(exc),
+                    error_type=type(exc).__name__, traceback=traceback.format_exc())
+    return dict(base, status=DONE, seconds=time.perf_counter() - start)
+
+
+def _crashed(item: dict, exc: BaseException) -> dict:
+    base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
+    return dict(base, status=FAILED, error=f"worker crashed: {exc}", error_type=type(exc).__name__,
+                traceback="".join(traceback.format_exception(exc)))
+
+
+# ----------------------------------------------------------------------------------------------- runners
+def _run_serial(worker, todo, advance):
+    for item in todo:
+        yield run_item(worker, item)
+        advance(Path(item["output"]).name)
+
+
+def _run_pool(worker, todo, jobs, advance):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    # spawn, not fork: USD and Open3D start threads, and forking a threaded process can deadlock.
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(run_item, worker, item): item for item in todo}
+        for fut in as_completed(futures):
+            item = futures[fut]
+            try:
+                yield fut.result()
+            except Exception as exc:  # the worker process died (BrokenProcessPool, pickling...)
+                yield _crashed(item, exc)
+            advance(Path(item["output"]).name)
+
+
+def _run_dask(worker, todo, scheduler, advance):
+    try:
+        from distributed import Client, as_completed
+    except ImportError as exc:
+        from ..errors import UsdFaceError
+
+        raise UsdFaceError("--scheduler needs Dask's distributed package",
+                           fix="pip install 'usdface[dask]' (dask[distributed])") from exc
+    own = not isinstance(scheduler, Client)
+    client = Client(scheduler) if own else scheduler
+    try:
+        futures = [client.submit(run_item, worker, item, pure=False, key=f"usdface-item-{item['index']}-"
+                                 f"{time.time_ns()}") for item in todo]
+        by_key = {f.key: item for f, item in zip(futures, todo, strict=True)}
+        for fut in as_completed(futures):
+            item = by_key[fut.key]
+            try:
+                yield fut.result()
+            except Exception as exc:  # worker lost, unpicklable result...
+                yield _crashed(item, exc)
+            advance(Path(item["output"]).name)
+    finally:
+        if own:
+            client.close()
+
+
+def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = personalize_worker,
+              jobs: int | None = None, scheduler=None, force: bool = False,
+              progress: bool = True) -> BatchReport:
+    """Run ``worker`` on every item; returns a :class:`BatchReport` (results in manifest order).
+
+    ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "force"}`` and must write
+    ``output``; it must be importable by name (a module-level function) to run in worker processes. Items
+    whose output exists are skipped unless ``force``. ``jobs=1`` runs in-process; ``jobs=None`` uses
+    ``os.cpu_count()`` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
+    """
+    from ..progress import steps
+
+    items = list(items)
+    start = time.perf_counter()
+    results: dict[int, dict] = {}
+    todo = []
+    for item in items:
+        if not force and Path(item.output).exists():
+            results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
+                                       output=item.output, status=SKIPPED)
+        else:
+            todo.append(dict(item.to_dict(), force=force))
+    jobs = max(1, int(jobs or os.cpu_count() or 1))
+    where = (f"dask {scheduler if isinstance(scheduler, str) else 'client'}" if scheduler is not None
+             else ("in-process" if jobs == 1 or len(todo) <= 1 else f"local pool, {jobs} processes"))
+    if todo:
+        from .. import progress as _progress
+
+        enabled = _progress._ENABLED
+        _progress.set_enabled(enabled and progress)
+        try:
+            with steps("batch", len(todo)) as advance:
+                if scheduler is not None:
+                    runner = _run_dask(worker, todo, scheduler, advance)
+                elif jobs == 1 or len(todo) == 1:
+                    runner = _run_serial(worker, todo, advance)
+                else:
+                    runner = _run_pool(worker, todo, min(jobs, len(todo)), advance)
+                for res in runner:
+                    results[res["index"]] = res
+        finally:
+            _progress.set_enabled(enabled)
+    ordered = [ItemResult(**results[item.index]) for item in items]
+    return BatchReport(ordered, time.perf_counter() - start, where)
