@@ -1,0 +1,225 @@
+"""Triangle-mesh building blocks (pure numpy/scipy): normals, areas, per-triangle frames and deformation
+gradients (Sumner & Popović 2004, with the 4th vertex), the sparse gradient operator, cotangent Laplacian,
+adjacency and boundary loops.
+
+Conventions: ``points[n, 3]`` float64 (metres in usdface, but nothing here depends on the unit),
+``triangles[t, 3]`` int64. Every function is vectorised over triangles.
+
+Examples
+--------
+>>> import numpy as np
+>>> P = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); T = np.array([[0, 1, 2]])
+>>> R = np.array([[0., -1, 0], [1, 0, 0], [0, 0, 1]])          # 90 degrees about z
+>>> np.allclose(deformation_gradients(P, P @ R.T, T)[0], R)
+True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .errors import GeometryError
+
+__all__ = [
+    "triangle_normals", "triangle_areas", "triangle_frames", "deformation_gradients", "gradient_operator",
+    "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
+    "boundary_edges", "boundary_loops", "mesh_scale", "check_triangles",
+]
+
+
+def _edge_vectors(points: np.ndarray, triangles: np.ndarray):
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    v0 = p[..., t[:, 0], :]
+    return v0, p[..., t[:, 1], :] - v0, p[..., t[:, 2], :] - v0
+
+
+def triangle_normals(points: np.ndarray, triangles: np.ndarray, *, unit: bool = True) -> np.ndarray:
+    """Per-triangle normals ``[t,3]`` (``[..., t, 3]`` for stacked ``points[..., n, 3]``).
+
+    ``unit=False`` returns the cross product ``(v1-v0) x (v2-v0)`` (length = twice the area). Degenerate
+    triangles get a zero normal.
+    """
+    _, e1, e2 = _edge_vectors(points, triangles)
+    c = np.cross(e1, e2)
+    if not unit:
+        return c
+    length = np.linalg.norm(c, axis=-1, keepdims=True)
+    return np.divide(c, length, out=np.zeros_like(c), where=length > 0)
+
+
+def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Per-triangle areas ``[t]`` (units of points squared)."""
+    return 0.5 * np.linalg.norm(triangle_normals(points, triangles, unit=False), axis=-1)
+
+
+def triangle_frames(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Sumner & Popović (2004), eq. (the 4th vertex): per-triangle frame ``V = [v1-v0, v2-v0, v3-v0]``
+    as columns, ``[..., t, 3, 3]``, where ``v3 = v0 + (e1 x e2) / sqrt(|e1 x e2|)``.
+
+    The scaled normal makes the frame invertible for any non-degenerate triangle and its length scale
+    consistent with the edges'.
+    """
+    _, e1, e2 = _edge_vectors(points, triangles)
+    c = np.cross(e1, e2)
+    length = np.sqrt(np.linalg.norm(c, axis=-1, keepdims=True))
+    e3 = np.divide(c, length, out=np.zeros_like(c), where=length > 0)
+    return np.stack([e1, e2, e3], axis=-1)
+
+
+def deformation_gradients(source: np.ndarray, deformed: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Sumner & Popović (2004), eq. (3): per-triangle deformation gradients
+    ``Q = V~ V^-1`` ``[..., t, 3, 3]``.
+
+    ``source[n,3]`` rest points, ``deformed[..., n, 3]`` one or several deformed copies (same triangles).
+    ``Q`` maps rest edges (and the scaled normal) to deformed ones; for a rigid motion it is the rotation.
+    """
+    V = triangle_frames(source, triangles)
+    Vd = triangle_frames(deformed, triangles)
+    check = np.abs(np.linalg.det(V))
+    if np.any(check <= 0):
+        raise GeometryError(f"{int(np.sum(check <= 0))} degenerate rest triangle(s)",
+                            fix="remove zero-area triangles from the rest mesh")
+    return Vd @ np.linalg.inv(V)
+
+
+def gradient_operator(points: np.ndarray, triangles: np.ndarray) -> sp.csr_matrix:
+    """Sparse operator ``G[3t, n]`` of the vertex-only deformation gradient (Botsch et al. 2006 form of
+    Sumner & Popović's reconstruction).
+
+    For deformed points ``X[n,3]``, ``(G @ X).reshape(t, 3, 3)[f]`` is ``Q_f^T`` where ``Q_f = X~_f E_f^+``
+    is the deformation gradient of triangle f restricted to its rest plane (``E_f = [v1-v0, v2-v0]`` rest
+    edges, ``E^+`` its pseudo-inverse). A least-squares reconstruction from target gradients ``Q*`` is then
+    ``min_X sum_f a_f ||G_f X - Q*_f^T||^2`` (see :func:`usdface.personalize.dt.PoissonSolver`).
+    """
+    _, e1, e2 = _edge_vectors(points, triangles)
+    t = len(triangles)
+    E = np.stack([e1, e2], axis=-1)                     # [t,3,2]
+    EtE = np.einsum("tji,tjk->tik", E, E)               # [t,2,2]
+    det = EtE[:, 0, 0] * EtE[:, 1, 1] - EtE[:, 0, 1] ** 2
+    if np.any(det <= 1e-30 * np.maximum(np.trace(EtE, axis1=1, axis2=2), 1e-300) ** 2):
+        raise GeometryError(f"{int(np.sum(det <= 0))} degenerate triangle(s) in the rest mesh",
+                            fix="remove zero-area triangles from the rest mesh")
+    Epinv = np.linalg.solve(EtE, np.swapaxes(E, 1, 2))  # [t,2,3] = (E^T E)^-1 E^T
+    # Q^T[f] = Epinv^T @ [x1-x0; x2-x0]  ->  rows of Q^T are coefficient of x0, x1, x2
+    c1 = Epinv[:, 0, :]                                  # [t,3] coefficient of (x1 - x0) in row r
+    c2 = Epinv[:, 1, :]
+    rows = (3 * np.arange(t)[:, None] + np.arange(3)[None, :])      # [t,3]
+    tri = np.asarray(triangles, dtype=np.int64)
+    r = np.concatenate([rows, rows, rows]).ravel()
+    cidx = np.concatenate([np.repeat(tri[:, 0:1], 3, 1), np.repeat(tri[:, 1:2], 3, 1),
+                           np.repeat(tri[:, 2:3], 3, 1)]).ravel()
+    vals = np.concatenate([-(c1 + c2), c1, c2]).ravel()
+    return sp.csr_matrix((vals, (r, cidx)), shape=(3 * t, len(points)))
+
+
+def apply_gradient(G: sp.spmatrix, points: np.ndarray) -> np.ndarray:
+    """Deformation gradients ``Q[..., t, 3, 3]`` of ``points[..., n, 3]`` under the operator of
+    :func:`gradient_operator` (the rest mesh is the one ``G`` was built on)."""
+    p = np.asarray(points, dtype=np.float64)
+    flat = p.reshape(-1, p.shape[-2], 3)
+    out = np.stack([G @ x for x in flat])                # [m, 3t, 3]
+    Qt = out.reshape(flat.shape[0], -1, 3, 3)
+    return np.swapaxes(Qt, -1, -2).reshape(p.shape[:-2] + Qt.shape[1:])
+
+
+def edges(triangles: np.ndarray) -> np.ndarray:
+    """Unique undirected edges ``[e,2]`` (sorted pairs)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def vertex_adjacency(triangles: np.ndarray, n: int) -> sp.csr_matrix:
+    """Symmetric 0/1 vertex adjacency ``[n,n]`` (no self loops)."""
+    e = edges(triangles)
+    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    A = A + A.T
+    A.data[:] = 1.0
+    return A
+
+
+def uniform_laplacian(triangles: np.ndarray, n: int) -> sp.csr_matrix:
+    """Umbrella Laplacian ``L[n,n]``: ``(L x)_i = x_i - mean_{j in N(i)} x_j`` (Hable's "offset of a vertex
+    from the average of its neighbours"). Isolated vertices get a zero row."""
+    A = vertex_adjacency(triangles, n)
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    inv = np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)
+    return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ A).tocsr()
+
+
+def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray) -> sp.csr_matrix:
+    """Cotangent Laplacian ``L[n,n]`` (symmetric, negative semi-definite: ``L_ij = (cot a + cot b)/2``,
+    ``L_ii = -sum_j L_ij``)."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    n = len(p)
+    L = sp.csr_matrix((n, n))
+    rows, cols, vals = [], [], []
+    for k in range(3):
+        i, j, o = t[:, (k + 1) % 3], t[:, (k + 2) % 3], t[:, k]
+        a, b = p[i] - p[o], p[j] - p[o]
+        cross = np.linalg.norm(np.cross(a, b), axis=1)
+        cot = np.einsum("ij,ij->i", a, b) / np.maximum(cross, 1e-300)
+        rows += [i, j]
+        cols += [j, i]
+        vals += [0.5 * cot, 0.5 * cot]
+    L = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    L = L.tocsr()
+    return (L - sp.diags(np.asarray(L.sum(axis=1)).ravel())).tocsr()
+
+
+def boundary_edges(triangles: np.ndarray) -> np.ndarray:
+    """Directed boundary edges ``[b,2]`` (edges used by exactly one triangle, in that triangle's order)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    key = np.sort(d, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return d[cnt[inv.ravel()] == 1]
+
+
+def boundary_loops(triangles: np.ndarray, n: int) -> list[np.ndarray]:
+    """Boundary loops as ordered vertex-index arrays, longest first (the outer rim of a face mask, then the
+    holes: mouth, eyes). Loops that are not simple cycles are returned in connected-component order."""
+    b = boundary_edges(triangles)
+    if len(b) == 0:
+        return []
+    A = sp.coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])), shape=(n, n)).tocsr()
+    _, lab = connected_components(A + A.T, directed=False)
+    nxt = dict(zip(b[:, 0].tolist(), b[:, 1].tolist(), strict=True))
+    loops = []
+    for comp in np.unique(lab[b[:, 0]]):
+        verts = np.unique(b[lab[b[:, 0]] == comp].ravel())
+        start = int(verts.min())
+        loop, v = [start], nxt.get(start)
+        while v is not None and v != start and len(loop) <= len(verts):
+            loop.append(v)
+            v = nxt.get(v)
+        loops.append(np.array(loop if len(loop) == len(verts) else verts, dtype=np.int64))
+    return sorted(loops, key=len, reverse=True)
+
+
+def mesh_scale(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Root-mean-square edge length: the unit-free length scale used to normalise solver constants."""
+    p = np.asarray(points, dtype=np.float64)
+    e = edges(triangles)
+    return float(np.sqrt(np.mean(np.sum((p[e[:, 0]] - p[e[:, 1]]) ** 2, axis=1))))
+
+
+def check_triangles(points: np.ndarray, triangles: np.ndarray, *, what: str = "mesh", path=None,
+                    rel_eps: float = 1e-10) -> None:
+    """Raise :class:`GeometryError` for out-of-range indices, non-finite points or degenerate triangles
+    (area below ``rel_eps`` times the squared mesh scale), naming how many and the first few."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    if not np.all(np.isfinite(p)):
+        raise GeometryError(f"{what}: non-finite point coordinates", path=path, fix="repair the mesh")
+    if t.size and (t.min() < 0 or t.max() >= len(p)):
+        raise GeometryError(f"{what}: triangle index out of range", path=path, fix="repair the mesh")
+    area = triangle_areas(p, t)
+    bad = np.flatnonzero(area <= rel_eps * mesh_scale(p, t) ** 2)
+    if len(bad):
+        raise GeometryError(f"{what}: {len(bad)} degenerate (zero-area) triangle(s), e.g. {bad[:5].tolist()}",
+                            path=path, fix="remove or repair the degenerate triangles")

@@ -1,0 +1,106 @@
+"""Menzel, Botsch & Latoschik (VRST 2022), sec. 3.2: the position-based blendshape fit, eqs. (1)-(3).
+
+Unknown personalized deltas ``B_j[n,3]`` minimise
+
+    E_fit + lambda * E_reg = sum_i ||B0 + sum_j w_ij B_j - S_i||^2 + lambda * sum_j ||D_j (B_j - T_j)||^2
+
+which separates per vertex: for vertex v, with ``W[F,K]`` the training weights, ``r_v[F,3]`` the observed
+displacements ``S_i(v) - B0(v)`` and ``L_v = diag(D_jv^2)``,
+
+    (W^T W + lambda L_v) b_v = W^T r_v + lambda L_v t_v          (a K x K system per vertex).
+
+``lambda = 1`` is the paper's plain sum. :class:`PositionFit` diagonalises every vertex's system once
+(``L^-1/2 W^T W L^-1/2 = U S U^T``), after which a solve and its exact leave-one-frame-out cross-validation
+error cost O(n K^2) per ``lambda`` - that is what ``reg="auto"`` (:mod:`usdface.personalize.crossval`) uses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["regularization_weights", "fit_blendshapes", "PositionFit"]
+
+#: Eq. (3)'s clamp for vertices the template shape does not move.
+D_CLAMP = 1e5
+
+
+def regularization_weights(generic_deltas: np.ndarray, *, clamp: float = D_CLAMP) -> np.ndarray:
+    """Menzel et al. (2022), eq. (3): per-vertex regularisation weights ``D[K,n]``.
+
+    ``(D_j)_ii = max_k |t_kj - t_k0| / |t_ij - t_i0|`` from the generic (template) deltas
+    ``generic_deltas[K,n,3]``
+    (metres; the ratio is unit-free), clamped to ``clamp`` (1e5) where the displacement is (near) zero.
+    A shape that moves no vertex at all gets ``clamp`` everywhere.
+    """
+    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1)      # [K,n]
+    peak = mag.max(axis=1, keepdims=True)
+    D = np.divide(peak, mag, out=np.full_like(mag, clamp), where=mag > peak / clamp)
+    return np.minimum(D, clamp)
+
+
+def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
+                    reg_weights: np.ndarray, reg: float = 1.0) -> np.ndarray:
+    """Menzel et al. (2022), eqs. (1)+(2): personalized ``deltas[K,n,3]`` (metres) at a fixed balance ``reg``.
+
+    ``neutral[n,3]`` = B0, ``points[F,n,3]`` = training meshes S_i, ``weights[F,K]`` = w_ij,
+    ``generic_deltas[K,n,3]`` = T_j, ``reg_weights[K,n]`` = D_j diagonals (eq. 3). ``reg`` multiplies E_reg
+    (1 = the paper). Solved as n batched K x K Cholesky-free systems (one LAPACK call).
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
+    T = np.asarray(generic_deltas, dtype=np.float64)
+    L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                               # [n,K]
+    n, K = L.shape
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    idx = np.arange(K)
+    A[:, idx, idx] += L
+    rhs = np.einsum("fk,fnc->nkc", W, R) + L[:, :, None] * T.transpose(1, 0, 2)             # [n,K,3]
+    # equilibrate (D^2 spans 1..1e10) before solving
+    s = 1.0 / np.sqrt(A[:, idx, idx])
+    As = A * s[:, :, None] * s[:, None, :]
+    B = np.linalg.solve(As, rhs * s[:, :, None]) * s[:, :, None]
+    return B.transpose(1, 0, 2)
+
+
+class PositionFit:
+    """Eqs. (1)-(2) prepared for many regularisation strengths.
+
+    ``neutral[n,3]``, ``points[F,n,3]``, ``weights[F,K]``, ``generic_deltas[K,n,3]``, ``reg_weights[K,n]``.
+    After the one-off per-vertex eigen-decomposition, :meth:`solve` (deltas at a ``reg``) and
+    :meth:`loo_error` (exact leave-one-frame-out residual, the closed form ``e_i / (1 - h_ii)`` of linear
+    smoothers) are O(n K^2).
+    """
+
+    def __init__(self, neutral, points, weights, generic_deltas, reg_weights):
+        self.W = np.asarray(weights, dtype=np.float64)
+        self.R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
+        self.T = np.asarray(generic_deltas, dtype=np.float64)
+        D = np.asarray(reg_weights, dtype=np.float64).T                      # [n,K]
+        self.inv_sqrt_l = 1.0 / D                                            # L^-1/2 (L = D^2)
+        W = self.W
+        C = (W.T @ W)[None] * self.inv_sqrt_l[:, :, None] * self.inv_sqrt_l[:, None, :]   # [n,K,K]
+        self.s, self.U = np.linalg.eigh(C)
+        self.s = np.maximum(self.s, 0.0)
+        M = self.inv_sqrt_l[:, :, None] * self.U                             # L^-1/2 U  [n,K,K]
+        self.M = M
+        WtR = np.einsum("fk,fnc->nkc", W, self.R)                            # [n,K,3]
+        self.y = np.einsum("nkl,nkc->nlc", M, WtR)                           # U^T L^-1/2 W^T r
+        self.z = np.einsum("nkl,nkc->nlc", self.U, D[:, :, None] * self.T.transpose(1, 0, 2))  # U^T L^1/2 t
+        self.q = np.matmul(W[None], M)                                       # [n,F,K]: w_i^T L^-1/2 U
+
+    def _coef(self, reg: float) -> np.ndarray:
+        return (self.y + reg * self.z) / (self.s + reg)[:, :, None]          # [n,K,3]
+
+    def solve(self, reg: float) -> np.ndarray:
+        """Deltas ``[K,n,3]`` minimising E_fit + reg * E_reg."""
+        return np.einsum("nkl,nlc->knc", self.M, self._coef(reg))
+
+    def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
+        """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""
+        fitted = np.einsum("nfl,nlc->fnc", self.q, self._coef(reg))          # [F,n,3]
+        h = np.einsum("nfl,nl->fn", self.q ** 2, 1.0 / (self.s + reg))       # [F,n]
+        e = (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        per_frame = np.mean(e ** 2, axis=(1, 2))
+        if frame_weights is not None:
+            return float(np.average(per_frame, weights=frame_weights))
+        return float(per_frame.mean())
