@@ -37,7 +37,8 @@ from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsEr
 from ..model import Capture, FaceRig, Frames
 from .capture_folder import ROLES
 
-__all__ = ["write_capture_usd", "read_capture_usd", "CAPTURE_PRIM", "DISPLAY_SPACING"]
+__all__ = ["write_capture_usd", "read_capture_usd", "author_template", "author_frames", "CAPTURE_PRIM",
+           "DISPLAY_SPACING"]
 
 CAPTURE_PRIM = "/Capture"
 #: Display-only spacing (metres, along X) between Neutral, Template and Frames in a viewer.
@@ -119,10 +120,9 @@ def _valid_names(names) -> list[str]:
 
 
 def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
     from .. import __version__, schemas
-    from .usd_anim import author_skel_animation
 
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -148,19 +148,47 @@ def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
     neutral = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Neutral")
     _topology(neutral, capture.triangles)
     _set_points(neutral, capture.neutral, exact=exact)
-
     # Template rig as UsdSkel, driven by the frames' weights so that scrubbing plays the generic rig.
-    tpl = capture.template
-    skel_root = UsdSkel.Root.Define(stage, f"{CAPTURE_PRIM}/Template")
+    codes = np.arange(len(fr), dtype=np.float64)
+    author_template(stage, f"{CAPTURE_PRIM}/Template", capture.template,
+                    _columns(fr.weights, names, capture.template.names), codes, time_codes_per_second, exact)
+    frames = author_frames(stage, f"{CAPTURE_PRIM}/Frames", capture.triangles, fr.points, fr.weights, names,
+                           codes, exact)
+    prim = frames.GetPrim()
+    prim.CreateAttribute("usdface:frames:role", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
+        Vt.TokenArray(fr.role))
+    prim.CreateAttribute("usdface:frames:label", Sdf.ValueTypeNames.StringArray, custom=True).Set(
+        Vt.StringArray(fr.label))
+    color = frames.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant)
+    for f in range(len(fr)):
+        color.Set(Vt.Vec3fArray([Gf.Vec3f(*_ROLE_COLOR.get(fr.role[f], (0.7, 0.7, 0.7)))]), f)
+    if len(fr) == 0:
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(0)
+    return stage
+
+
+def author_template(stage, prim_path: str, tpl: FaceRig, weights, time_codes, time_codes_per_second: float,
+                    exact: bool = True):
+    """Define the template rig at ``prim_path`` as UsdSkel: SkelRoot > Skeleton (one root joint) >
+    SkelAnimation (``weights[F, K]`` in ``tpl.names`` order at ``time_codes[F]``) and Mesh + BlendShapes
+    (dense offsets, float64 twins when ``exact``). Displayed ``DISPLAY_SPACING`` to the right. Returns the
+    SkelRoot."""
+    from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
+
+    from .usd_anim import author_skel_animation
+
+    skel_root = UsdSkel.Root.Define(stage, prim_path)
     UsdGeom.Xformable(skel_root).AddTranslateOp().Set(Gf.Vec3d(DISPLAY_SPACING, 0, 0))
-    skel = UsdSkel.Skeleton.Define(stage, f"{CAPTURE_PRIM}/Template/Skel")
+    skel = UsdSkel.Skeleton.Define(stage, f"{prim_path}/Skel")
     skel.CreateJointsAttr(Vt.TokenArray(["root"]))
     skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
     skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
-    anim = author_skel_animation(stage, f"{CAPTURE_PRIM}/Template/Skel/Anim", tpl.names,
-                                 _columns(fr.weights, names, tpl.names), time_codes_per_second)
+    tcps = float(time_codes_per_second)
+    anim = author_skel_animation(stage, f"{prim_path}/Skel/Anim", tpl.names, weights, tcps,
+                                 times=np.asarray(time_codes, dtype=np.float64) / tcps)
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    mesh = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Template/Mesh")
+    mesh = UsdGeom.Mesh.Define(stage, f"{prim_path}/Mesh")
     _topology(mesh, tpl.triangles)
     _set_points(mesh, tpl.neutral, exact=exact)
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
@@ -178,28 +206,26 @@ def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
         targets.append(shape.GetPath())  # prim names may differ from names; the channel tokens are the names
     binding.CreateBlendShapesAttr(Vt.TokenArray(tpl.names))
     binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    return skel_root
 
-    # Frames: one time sample per frame.
-    frames = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Frames")
+
+def author_frames(stage, prim_path: str, triangles, points, weights, names, time_codes, exact: bool = True):
+    """Define a Mesh at ``prim_path`` whose ``points`` are time-sampled (``points[F, n, 3]`` at
+    ``time_codes[F]``) with ``usdface:frames:weights`` (double[K], time-sampled) and ``usdface:frames:names``
+    (token[K]). Displayed ``DISPLAY_SPACING`` to the left. Returns the UsdGeom.Mesh."""
+    from pxr import Gf, Sdf, UsdGeom, Vt
+
+    frames = UsdGeom.Mesh.Define(stage, prim_path)
     frames.AddTranslateOp().Set(Gf.Vec3d(-DISPLAY_SPACING, 0, 0))
-    _topology(frames, capture.triangles)
+    _topology(frames, triangles)
     prim = frames.GetPrim()
     prim.CreateAttribute("usdface:frames:names", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
-        Vt.TokenArray(names))
-    prim.CreateAttribute("usdface:frames:role", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
-        Vt.TokenArray(fr.role))
-    prim.CreateAttribute("usdface:frames:label", Sdf.ValueTypeNames.StringArray, custom=True).Set(
-        Vt.StringArray(fr.label))
+        Vt.TokenArray(list(names)))
     w_attr = prim.CreateAttribute("usdface:frames:weights", Sdf.ValueTypeNames.DoubleArray, custom=True)
-    color = frames.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant)
-    for f in range(len(fr)):
-        _set_points(frames, fr.points[f], f, exact)
-        w_attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(fr.weights[f])), f)
-        color.Set(Vt.Vec3fArray([Gf.Vec3f(*_ROLE_COLOR.get(fr.role[f], (0.7, 0.7, 0.7)))]), f)
-    if len(fr) == 0:
-        stage.SetStartTimeCode(0)
-        stage.SetEndTimeCode(0)
-    return stage
+    for f, code in enumerate(np.asarray(time_codes, dtype=np.float64).tolist()):
+        _set_points(frames, points[f], code, exact)
+        w_attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(weights[f], dtype=np.float64)), code)
+    return frames
 
 
 def _columns(weights, names, wanted) -> np.ndarray:
