@@ -1,0 +1,337 @@
+"""write_avatar_layer: a layer over the untouched avatar; exact round trips, variants, provenance, safety."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from test_usd_rig import write_rig
+
+import usdface.io  # noqa: F401
+from usdface import schemas
+from usdface.errors import GeometryError, InputFileError, OutputExistsError, RigError
+from usdface.io.layers import (
+    PERSONALIZATION_VARIANT_SET,
+    atomic_save,
+    check_output_path,
+    effective_point_set,
+    file_digest,
+    personalization_variant,
+    write_avatar_layer,
+)
+from usdface.io.usd_rig import read_avatar
+
+
+def personalized(avatar, seed=0, scale=0.002):
+    """New internal offsets: every shape changed on a random half of the points; shape 2 zero but 3 points."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for rig in avatar.meshes:
+        mask = (rng.random(rig.deltas.shape[:2]) < 0.5)[..., None]
+        d = rig.deltas + rng.normal(scale=scale, size=rig.deltas.shape) * mask
+        d[2] = 0.0
+        d[2, :3] = rng.normal(scale=scale, size=(3, 3))
+        out[rig.source.prim] = d
+    return out
+
+
+@pytest.fixture
+def rig_file(tmp_path):
+    path = tmp_path / "in" / "avatar.usda"
+    path.parent.mkdir()
+    write_rig(path, "y_cm")
+    return path
+
+
+@pytest.mark.parametrize("style", ["y_cm", "z_m", "blender"])
+@pytest.mark.parametrize("ext", [".usda", ".usdc"])
+def test_round_trip_exact_and_input_untouched(tmp_path, style, ext):
+    src = tmp_path / "in" / "avatar.usda"
+    src.parent.mkdir()
+    write_rig(src, style)
+    before = src.read_bytes()
+    avatar = read_avatar(src)
+    offsets = personalized(avatar)
+    out = write_avatar_layer(avatar, tmp_path / "out" / f"personalized{ext}", offsets,
+                             provenance={"command": "pytest", "parameters": {"method": "menzel"}})
+    assert src.read_bytes() == before
+    assert out.exists() and sorted(p.name for p in out.parent.iterdir()) == [out.name]  # no temp files left
+    again = read_avatar(out)
+    for rig in avatar.meshes:
+        back = again.mesh(rig.name)
+        assert back.names == rig.names and back.source.channel_tokens == rig.source.channel_tokens
+        scale = np.abs(offsets[rig.source.prim]).max()
+        np.testing.assert_allclose(back.deltas, offsets[rig.source.prim], rtol=0, atol=scale * 1e-6)
+        np.testing.assert_allclose(back.neutral, rig.neutral, rtol=0, atol=1e-12)
+        # inbetweens stay consistent: ib' = ib + w (primary' - primary)
+        k = rig.index("jawOpen")
+        (ib,), (ib_back,) = rig.inbetweens["jawOpen"], back.inbetweens["jawOpen"]
+        expect = ib.offsets + ib.weight * (offsets[rig.source.prim][k] - rig.deltas[k])
+        np.testing.assert_allclose(ib_back.offsets, expect, rtol=0, atol=scale * 1e-6)
+        assert ib_back.weight == ib.weight
+    assert again.up_axis == avatar.up_axis and again.meters_per_unit == avatar.meters_per_unit
+
+
+def test_layer_structure_metadata_and_provenance(rig_file, tmp_path):
+    from pxr import Sdf, Usd, UsdGeom
+
+    avatar = read_avatar(rig_file)
+    out = write_avatar_layer(avatar, tmp_path / "p.usda", personalized(avatar),
+                             provenance={"command": "usdface personalize a b", "method": "menzel",
+                                         "parameters": {"reg": "auto", "epsilon": 0.5},
+                                         "timings": {"fit": 1.5}, "registrationScale": 0.01,
+                                         "registrationResidual": 0.0004})
+    layer = Sdf.Layer.FindOrOpen(str(out))
+    assert list(layer.subLayerPaths) == ["./in/avatar.usda"]  # relative
+    source = Sdf.Layer.FindOrOpen(str(rig_file))
+    for key in ("upAxis", "metersPerUnit", "defaultPrim", "startTimeCode", "endTimeCode",
+                "timeCodesPerSecond"):
+        assert layer.pseudoRoot.GetInfo(key) == source.pseudoRoot.GetInfo(key), key
+    stage = Usd.Stage.Open(str(out))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01 and UsdGeom.GetStageUpAxis(stage) == "Y"
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetTimeCodesPerSecond()) == (0, 10, 30)
+    # every prim of the input keeps its path; the new layer defines nothing at root level
+    input_stage = Usd.Stage.Open(str(rig_file))
+    assert {str(p.GetPath()) for p in input_stage.Traverse()} <= {str(p.GetPath()) for p in stage.Traverse()}
+    assert all(spec.specifier == Sdf.SpecifierOver for spec in layer.rootPrims)
+
+    def local_specs(spec):
+        yield spec
+        for child in spec.nameChildren:
+            yield from local_specs(child)
+    assert all(s.specifier == Sdf.SpecifierOver for root in layer.rootPrims for s in local_specs(root))
+    # provenance: customLayerData and the applied schema
+    data = layer.customLayerData["usdface"]
+    assert data["command"] == "usdface personalize a b" and data["parameters"]["reg"] == "auto"
+    assert list(data["inputDigests"]) == [hashlib.sha256(rig_file.read_bytes()).hexdigest()]
+    assert data["timings"]["fit"] == 1.5 and data["timings"]["write_layer"] > 0
+    root = stage.GetPrimAtPath("/Avatar")
+    assert root.HasAPI(schemas.PROVENANCE_API)
+    assert root.GetAttribute("usdface:provenance:method").Get() == "menzel"
+    assert root.GetAttribute("usdface:provenance:registrationScale").Get() == pytest.approx(0.01)
+    assert list(root.GetAttribute("usdface:provenance:inputDigests").Get()) == [file_digest(rig_file)]
+    assert '"epsilon": 0.5' in root.GetAttribute("usdface:provenance:parameters").Get()
+
+
+def test_variant_switches_what_the_skel_binding_sees(rig_file, tmp_path):
+    """personalized (selected) -> new offsets; generic -> the input's offsets; through UsdSkel's own query."""
+    from pxr import Usd, UsdSkel
+
+    avatar = read_avatar(rig_file)
+    offsets = personalized(avatar)
+    out = write_avatar_layer(avatar, tmp_path / "p.usdc", offsets, provenance={})
+    stage = Usd.Stage.Open(str(out))
+    generic_stage = Usd.Stage.Open(str(rig_file))
+    assert personalization_variant(stage, "/Avatar") == "personalized"
+
+    def seen(stage_, mesh):
+        query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(stage_.GetPrimAtPath(mesh)))
+        idx = query.ComputeBlendShapePointIndices()
+        sub = query.ComputeSubShapePointOffsets()
+        n = len(stage_.GetPrimAtPath(mesh).GetAttribute("points").Get())
+        dense = np.zeros((query.GetNumBlendShapes(), n, 3))
+        for i in range(query.GetNumSubShapes()):
+            if not query.GetInbetween(i) and len(sub[i]):  # the primary (not the null shape at weight 0)
+                k = query.GetBlendShapeIndex(i)
+                sel = np.array(idx[k]) if len(idx[k]) else slice(None)
+                dense[k][sel] = np.array(sub[i])
+        return dense
+
+    for rig in avatar.meshes:
+        mesh = rig.source.prim
+        inv = np.linalg.inv(rig.source.to_internal[:3, :3])
+        want_personalized = offsets[mesh] @ inv.T
+        want_generic = seen(generic_stage, mesh)
+        np.testing.assert_allclose(seen(stage, mesh), want_personalized, atol=1e-5)
+        personalization_variant(stage, "/Avatar", "generic")
+        np.testing.assert_allclose(seen(stage, mesh), want_generic, atol=0)
+        personalization_variant(stage, "/Avatar", "personalized")
+        np.testing.assert_allclose(seen(stage, mesh), want_personalized, atol=1e-5)
+        assert not np.allclose(want_generic, want_personalized, atol=1e-4)
+    # the original BlendShape prims (what pipelines read) carry the personalized offsets in both variants
+    personalization_variant(stage, "/Avatar", "generic")
+    original = stage.GetPrimAtPath("/Avatar/Head/eyeBlinkLeft").GetAttribute("offsets").Get()
+    head = avatar.mesh("Head")
+    np.testing.assert_allclose(np.array(original), offsets["/Avatar/Head"][0] * 100.0, atol=1e-4)
+    assert stage.GetPrimAtPath("/Avatar").GetVariantSets().GetNames() == [PERSONALIZATION_VARIANT_SET]
+    assert head.n_shapes == 3
+
+
+def test_sparsity_follows_the_effect(rig_file, tmp_path):
+    from pxr import Usd
+
+    avatar = read_avatar(rig_file)
+    offsets = {m.source.prim: m.deltas.copy() for m in avatar.meshes}
+    head = avatar.mesh("Head")
+    d = offsets["/Avatar/Head"]
+    d[0] = 0.001  # dense (no pointIndices in the input): stays dense, no pointIndices
+    d[1] = 0.0
+    d[1, [4, 7]] = 0.002  # sparse: exactly the moved points (+ those with normal offsets / inbetweens)
+    d[2] = np.where(np.arange(head.n_vertices)[:, None] < 5, 0.003, 0.0)
+    out = write_avatar_layer(avatar, tmp_path / "p.usda", offsets, variants=False,
+                             provenance={})
+    stage = Usd.Stage.Open(str(out))
+    shape0 = stage.GetPrimAtPath("/Avatar/Head/eyeBlinkLeft")
+    assert not shape0.GetAttribute("pointIndices").HasAuthoredValue()
+    assert len(shape0.GetAttribute("offsets").Get()) == head.n_vertices
+    back = read_avatar(out).mesh("Head")
+    ib_points = np.flatnonzero(np.abs(head.inbetweens["jawOpen"][0].offsets).sum(1) > 0)
+    assert set(back.source.point_indices[1]) == {4, 7} | set(ib_points.tolist()) | set(
+        head.source.point_indices[1].tolist())  # normal offsets are kept on their points
+    # normal offsets untouched per point even though the point set changed
+    old = dict(zip(head.source.point_indices[1].tolist(), head.source.normal_offsets[1].tolist(),
+                   strict=True))
+    new = dict(zip(back.source.point_indices[1].tolist(), back.source.normal_offsets[1].tolist(),
+                   strict=True))
+    assert all(new[i] == v for i, v in old.items())
+    assert all(new[i] == [0, 0, 0] for i in set(new) - set(old))
+
+
+def test_effective_point_set():
+    a = np.zeros((5, 3))
+    a[1] = 1.0
+    a[3] = 1e-12  # below 1e-9 relative
+    assert effective_point_set(a).tolist() == [False, True, False, False, False]
+    assert effective_point_set(np.zeros((3, 3))).tolist() == [False] * 3
+    b = np.zeros((5, 3))
+    b[4] = 2.0
+    assert effective_point_set(a, [b]).tolist() == [False, True, False, False, True]
+
+
+def test_blender_dense_indices_become_sparse_at_blender_paths(tmp_path):
+    src = tmp_path / "blender.usda"
+    write_rig(src, "blender", normal_offsets=False)
+    avatar = read_avatar(src)
+    offsets = {m.source.prim: m.deltas for m in avatar.meshes}
+    out = write_avatar_layer(avatar, tmp_path / "o.usda", offsets, provenance={})
+    again = read_avatar(out)
+    for rig in avatar.meshes:
+        back = again.mesh(rig.name)
+        assert back.source.prim == rig.source.prim and back.source.prim.startswith("/root/Avatar/")
+        for k in range(rig.n_shapes):
+            moved = np.flatnonzero(np.abs(rig.deltas[k]).sum(1) > 0)
+            ibs = rig.inbetweens.get(rig.names[k], [])
+            for ib in ibs:
+                moved = np.union1d(moved, np.flatnonzero(np.abs(ib.offsets).sum(1) > 0))
+            assert back.source.point_indices[k].tolist() == moved.tolist()
+    assert again.name_report["/root/Avatar/Mouth/Mouth"]["inexact"][0][0] == "eyeBlinkLeft2"
+
+
+def test_refuses_to_overwrite_and_writes_nothing_on_error(rig_file, tmp_path):
+    avatar = read_avatar(rig_file)
+    offsets = personalized(avatar)
+    out = tmp_path / "p.usda"
+    out.write_text("keep me")
+    with pytest.raises(OutputExistsError) as info:
+        write_avatar_layer(avatar, out, offsets, provenance={})
+    assert str(out) in str(info.value) and "--force" in str(info.value)
+    assert out.read_text() == "keep me"
+    write_avatar_layer(avatar, out, offsets, provenance={}, force=True)
+    first = read_avatar(out).mesh("Head").deltas
+    # a second forced write is seen by a reader in the same process (the cached layer is reloaded)
+    offsets2 = personalized(avatar, seed=5)
+    write_avatar_layer(avatar, out, offsets2, provenance={}, force=True)
+    second = read_avatar(out).mesh("Head").deltas
+    assert not np.allclose(first, second)
+    np.testing.assert_allclose(second, offsets2["/Avatar/Head"], atol=1e-8)
+
+    bad = {"/Avatar/Head": offsets["/Avatar/Head"][:, :-1]}
+    with pytest.raises(GeometryError) as info:
+        write_avatar_layer(avatar, tmp_path / "q.usda", bad, provenance={})
+    assert info.value.prim == "/Avatar/Head"
+    nan = {"/Avatar/Head": offsets["/Avatar/Head"] * np.nan}
+    with pytest.raises(GeometryError):
+        write_avatar_layer(avatar, tmp_path / "q.usda", nan, provenance={})
+    with pytest.raises(RigError):
+        write_avatar_layer(avatar, tmp_path / "q.usda", {"/Avatar/Nose": offsets["/Avatar/Head"]},
+                           provenance={})
+    with pytest.raises(InputFileError):
+        write_avatar_layer(avatar, tmp_path / "q.obj", offsets, provenance={})
+    with pytest.raises(InputFileError):
+        write_avatar_layer(avatar, rig_file, offsets, provenance={}, force=True)  # never the input
+    assert not (tmp_path / "q.usda").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "p.usda"]
+
+
+def test_check_output_path(tmp_path):
+    assert check_output_path(tmp_path / "a.usdc") == tmp_path / "a.usdc"
+    (tmp_path / "a.usda").write_text("")
+    with pytest.raises(OutputExistsError):
+        check_output_path(tmp_path / "a.usda")
+    assert check_output_path(tmp_path / "a.usda", force=True)
+    with pytest.raises(InputFileError):
+        check_output_path(tmp_path, force=True)
+    with pytest.raises(InputFileError):
+        check_output_path(tmp_path / "a.txt")
+
+
+def test_atomic_save_and_digest(tmp_path):
+    from pxr import Sdf
+
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    Sdf.CreatePrimInLayer(layer, "/A")
+    out = atomic_save(layer, tmp_path / "sub" / "x.usda")
+    assert out.exists() and [p.name for p in out.parent.iterdir()] == ["x.usda"]
+    assert Sdf.Layer.FindOrOpen(str(out)).GetPrimAtPath("/A")
+    assert file_digest(out) == hashlib.sha256(out.read_bytes()).hexdigest()
+    assert len(file_digest(tmp_path)) == 64
+    with pytest.raises(InputFileError):
+        file_digest(tmp_path / "missing")
+
+
+def test_primvars_and_edit_callback(rig_file, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    avatar = read_avatar(rig_file)
+    head = avatar.mesh("Head")
+    heat = np.linspace(0, 1, head.n_vertices)
+    colors = np.stack([heat, 1 - heat, np.zeros_like(heat)], axis=1)
+
+    def edit(stage):
+        UsdGeom.Points.Define(stage, "/Avatar/Head/usdfaceLandmarks").CreatePointsAttr([(0, 0, 0)])
+
+    out = write_avatar_layer(avatar, tmp_path / "p.usda", personalized(avatar), provenance={},
+                             primvars={"/Avatar/Head": {"displayColor": (colors, "vertex"),
+                                                        "usdface:error": (heat, "vertex")}}, edit=edit)
+    stage = Usd.Stage.Open(str(out))
+    api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Avatar/Head"))
+    display = api.GetPrimvar("displayColor")
+    assert display.GetInterpolation() == "vertex"
+    np.testing.assert_allclose(np.array(display.Get()), colors, atol=1e-6)
+    np.testing.assert_allclose(np.array(api.GetPrimvar("usdface:error").Get()), heat, atol=1e-6)
+    assert stage.GetPrimAtPath("/Avatar/Head/usdfaceLandmarks").IsA(UsdGeom.Points)
+
+
+def test_bench_avatar_and_blender_get_the_same_local_offsets(bench, tmp_path):
+    """Issue 6: the same personalized offsets written over avatar.usdc and avatar_blender.usdc agree in local
+    units (1e-5 relative) at each file's own prim paths; the renamed Mouth channels are personalized too."""
+    from pxr import Usd
+
+    plain = read_avatar(bench / "dev1" / "avatar.usdc")
+    blender = read_avatar(bench / "dev1" / "avatar_blender.usdc")
+    new = {m.name: m.deltas * 1.25 for m in plain.meshes}
+    out_plain = write_avatar_layer(plain, tmp_path / "plain.usdc",
+                                   {m.source.prim: new[m.name] for m in plain.meshes}, provenance={})
+    out_blender = write_avatar_layer(blender, tmp_path / "blender.usdc",
+                                     {m.source.prim: new[m.name] for m in blender.meshes}, provenance={})
+    s_plain, s_blender = Usd.Stage.Open(str(out_plain)), Usd.Stage.Open(str(out_blender))
+    for name in ("Head", "Mouth"):
+        a, b = plain.mesh(name), blender.mesh(name)
+        for k in (0, a.index("jawOpen"), a.n_shapes - 1):
+            pa = s_plain.GetPrimAtPath(a.source.shape_prims[k])
+            pb = s_blender.GetPrimAtPath(b.source.shape_prims[k])
+            dense_a = np.zeros((a.n_vertices, 3))
+            dense_b = np.zeros((b.n_vertices, 3))
+            for prim, dense in ((pa, dense_a), (pb, dense_b)):
+                idx = prim.GetAttribute("pointIndices").Get()
+                sel = slice(None) if idx is None else np.array(idx)
+                dense[sel] = np.array(prim.GetAttribute("offsets").Get())
+            peak = np.abs(dense_a).max()
+            np.testing.assert_allclose(dense_b, dense_a, rtol=0, atol=1e-5 * peak)
+            np.testing.assert_allclose(dense_a, local_units(a, new[name][k]), rtol=0, atol=1e-6 * peak)
+    assert s_blender.GetPrimAtPath("/root/Avatar/Mouth/Mouth/eyeBlinkLeft").GetAttribute("offsets").Get()
+
+
+def local_units(rig, deltas):
+    return deltas @ np.linalg.inv(rig.source.to_internal[:3, :3]).T

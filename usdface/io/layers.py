@@ -1,0 +1,500 @@
+"""Layered USD output: a new layer over the untouched avatar, with personalized blend shapes and provenance.
+
+:func:`write_avatar_layer` writes ONE new root layer that
+
+* sublayers the input avatar by a relative asset path, so the input file is never modified (and the output
+  follows it when both move together);
+* repeats the input root layer's stage metadata (upAxis, metersPerUnit, defaultPrim, time codes...): USD reads
+  stage metadata from the root layer only, and a layer without it would silently change units and axis;
+* authors only ``over``s at the input's own prim paths (plus the few new prims below): for each
+  personalized BlendShape the ``offsets`` in the mesh's local authored space (``inverse(to_internal)``
+  linear part), with the sparsity re-derived (``pointIndices`` = the points whose offset is non-zero in
+  effect; dense only where dense in effect), inbetweens kept consistent
+  (``ib_i' = ib_i + w_i (primary' - primary)``) and normal offsets kept per point (re-indexed only if the
+  point set changed);
+* with ``variants=True``, adds on each SkelRoot a variant set ``usdfacePersonalization`` = {``personalized``
+  (selected), ``generic``}. Opinions inside a variant are weaker than every local opinion of the layer stack
+  (LIVRPS), so a variant cannot flip the original BlendShape prims. Instead each variant defines, under
+  each mesh, ``usdfaceShapes/<shape>`` BlendShape prims: in ``personalized`` an internal reference to the
+  original BlendShape (which composes the personalized ``over``), in ``generic`` an external reference to
+  the same prim in the input file alone (the generic values); a local ``over`` of the mesh's
+  ``skel:blendShapeTargets`` points at ``usdfaceShapes/<shape>`` in the same order. Pipelines that read the
+  original BlendShape prims get the personalized offsets; the skeleton binding follows the variant switch;
+* records provenance twice: ``customLayerData["usdface"]`` (version, command, parameters, input sha256
+  digests, timings) and the ``UsdFaceProvenanceAPI`` schema applied on each SkelRoot;
+* is written atomically (temporary file in the output directory + ``os.replace``) and refuses to overwrite an
+  existing file unless ``force=True``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import GeometryError, InputFileError, OutputExistsError, RigError
+from ..model import Avatar, FaceRig
+from .usd_rig import STAGE_METADATA_KEYS
+
+#: File extensions the writer accepts (the format follows the extension; ``.usd`` is written as usdc).
+LAYER_EXTENSIONS = (".usda", ".usdc", ".usd")
+#: Variant set (on each SkelRoot) switching the skel binding between personalized and generic shapes.
+PERSONALIZATION_VARIANT_SET = "usdfacePersonalization"
+#: Scope (under each mesh, inside the variants) holding the BlendShape prims the binding points at.
+SHAPES_SCOPE = "usdfaceShapes"
+#: An offset is "non-zero in effect" when its length exceeds this fraction of the shape's largest offset.
+SPARSE_RELATIVE_TOLERANCE = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------------------
+# small public helpers
+# ---------------------------------------------------------------------------------------------------------
+def file_digest(path) -> str:
+    """sha256 hex digest of a file, or of a directory (sorted relative paths + their file digests)."""
+    path = Path(path)
+    if path.is_dir():
+        h = hashlib.sha256()
+        for child in sorted(p for p in path.rglob("*") if p.is_file()):
+            h.update(child.relative_to(path).as_posix().encode())
+            h.update(bytes.fromhex(file_digest(child)))
+        return h.hexdigest()
+    if not path.is_file():
+        raise InputFileError("cannot digest: not found", path=path, fix="check the path")
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_output_path(path, force: bool = False) -> Path:
+    """Validate an output layer path before any work: a USD extension, not a directory, and not an existing
+    file unless ``force``. Raises InputFileError / OutputExistsError; returns the path as a Path."""
+    path = Path(path)
+    if path.suffix.lower() not in LAYER_EXTENSIONS:
+        raise InputFileError(f"output must be a USD layer ({', '.join(LAYER_EXTENSIONS)})", path=path,
+                             fix="name the output e.g. personalized.usda")
+    if path.is_dir():
+        raise InputFileError("output path is a directory", path=path, fix="give a file name, e.g. out.usda")
+    if path.exists() and not force:
+        raise OutputExistsError("output exists", path=path, fix="pass --force (force=True) to replace it")
+    return path
+
+
+def _temp_path(path: Path) -> Path:
+    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    os.unlink(name)  # USD creates the file itself; the unique name is what we need
+    return Path(name)
+
+
+def atomic_save(layer, path) -> Path:
+    """Write ``layer`` to ``path`` atomically: a temporary file in the same directory, then ``os.replace``.
+
+    Relative asset paths in the layer are written as authored, so they must be relative to ``path``'s
+    directory. A layer already open at ``path`` in this process is reloaded.
+    """
+    from pxr import Sdf
+
+    path = Path(path).absolute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_path(path)
+    try:
+        if layer.realPath and Path(layer.realPath).parent == path.parent and not layer.anonymous:
+            if not layer.Save(force=True) and not Path(layer.realPath).exists():
+                raise InputFileError("USD could not write the layer", path=path, fix="check disk space")
+            os.replace(layer.realPath, path)
+        else:
+            if not layer.Export(str(tmp)):
+                raise InputFileError("USD could not write the layer", path=path, fix="check permissions")
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    cached = Sdf.Layer.Find(str(path))
+    if cached is not None:
+        cached.Reload(force=True)
+    return path
+
+
+def _relative_asset_path(target: Path, start_dir: Path) -> str:
+    try:
+        rel = os.path.relpath(Path(target).absolute(), Path(start_dir).absolute())
+    except ValueError:  # different drives (Windows)
+        return Path(target).absolute().as_posix()
+    rel = Path(rel).as_posix()
+    return rel if rel.startswith(".") else f"./{rel}"
+
+
+def _usd_value(value):
+    """Provenance values -> types USD dictionaries hold (dict, str, bool, int, float, lists of str/float)."""
+    if isinstance(value, dict):
+        return {str(k): _usd_value(v) for k, v in value.items()}
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    if isinstance(value, (list, tuple, np.ndarray)):
+        items = list(value)
+        if items and all(isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in items):
+            from pxr import Vt
+
+            return Vt.DoubleArray([float(v) for v in items])
+        from pxr import Vt
+
+        return Vt.StringArray([str(v) for v in items])
+    if value is None:
+        return ""
+    return str(value)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# per-shape authoring data (pure numpy)
+# ---------------------------------------------------------------------------------------------------------
+def local_offsets(rig: FaceRig, deltas: np.ndarray) -> np.ndarray:
+    """Internal offsets ``deltas[..., n, 3]`` (metres, Y up) -> the mesh's local authored space (linear
+    part of ``inverse(rig.source.to_internal)``)."""
+    inv = np.linalg.inv(rig.source.to_internal[:3, :3])
+    return np.asarray(deltas, dtype=np.float64) @ inv.T
+
+
+def effective_point_set(primary: np.ndarray, extra=(), rtol: float = SPARSE_RELATIVE_TOLERANCE) -> np.ndarray:
+    """Boolean ``[n]``: points whose offset (primary ``[n,3]`` or any ``extra[n,3]``) is non-zero in effect,
+    i.e. longer than ``rtol`` times the largest offset of that array."""
+    moved = np.zeros(len(primary), dtype=bool)
+    for arr in (primary, *extra):
+        norms = np.linalg.norm(arr, axis=1)
+        peak = norms.max() if norms.size else 0.0
+        if peak > 0:
+            moved |= norms > rtol * peak
+    return moved
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the writer
+# ---------------------------------------------------------------------------------------------------------
+def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, np.ndarray]]:
+    out = []
+    for key, deltas in offsets.items():
+        try:
+            rig = avatar.mesh(key)
+        except KeyError:
+            raise RigError(f"no mesh {key!r} in the avatar", path=avatar.file,
+                           fix=f"use one of {', '.join(m.source.prim for m in avatar.meshes)}") from None
+        if rig.source is None or not rig.source.prim:
+            raise RigError(f"mesh {key!r} has no USD source to write over", path=avatar.file,
+                           fix="read the avatar with usdface.io.usd_rig.read_avatar")
+        deltas = np.asarray(deltas, dtype=np.float64)
+        if deltas.shape != rig.deltas.shape:
+            raise GeometryError(f"offsets for {rig.source.prim} have shape {deltas.shape}, the rig "
+                                f"{rig.deltas.shape} [K,n,3]", path=avatar.file, prim=rig.source.prim,
+                                fix="give one [n,3] offset array per rig shape, in rig.names order")
+        if not np.isfinite(deltas).all():
+            raise GeometryError("offsets contain NaN/inf", path=avatar.file, prim=rig.source.prim,
+                                fix="check the personalization step that produced them")
+        out.append((rig, deltas))
+    return out
+
+
+def _inbetween_types(stage, rig: FaceRig) -> dict:
+    """{(shape prim, inbetween name): attribute type} as composed from the input (read before authoring)."""
+    from pxr import Sdf
+
+    types = {}
+    for k, name in enumerate(rig.names):
+        prim = stage.GetPrimAtPath(rig.source.shape_prims[k])
+        for ib in rig.inbetweens.get(name, []):
+            attr = prim.GetAttribute(f"inbetweens:{ib.name}") if prim else None
+            types[(rig.source.shape_prims[k], ib.name)] = (
+                attr.GetTypeName() if attr else Sdf.ValueTypeNames.Point3fArray)
+    return types
+
+
+def _author_shape(layer, rig: FaceRig, k: int, new_primary_local: np.ndarray, ib_types: dict):
+    """Author the over of shape k of ``rig``: offsets, pointIndices, inbetweens, normal offsets."""
+    from pxr import Sdf, Vt
+
+    src = rig.source
+    shape_path = src.shape_prims[k]
+    n = rig.n_vertices
+    old_primary_local = local_offsets(rig, rig.deltas[k])
+    diff = new_primary_local - old_primary_local
+    old_idx = src.point_indices[k]
+    ibs = rig.inbetweens.get(rig.names[k], [])
+    ib_new = [local_offsets(rig, ib.offsets) + ib.weight * diff for ib in ibs]
+    normals_dense = None
+    ib_normals_dense = []
+    keep = []
+    if src.normal_offsets and src.normal_offsets[k] is not None:
+        normals_dense = np.zeros((n, 3), dtype=np.float32)
+        normals_dense[slice(None) if old_idx is None else old_idx] = src.normal_offsets[k]
+        keep.append(normals_dense.astype(np.float64))
+    for ib in ibs:
+        dense = None
+        if ib.normal_offsets is not None:
+            dense = np.zeros((n, 3), dtype=np.float32)
+            dense[slice(None) if old_idx is None else old_idx] = ib.normal_offsets
+            keep.append(dense.astype(np.float64))
+        ib_normals_dense.append(dense)
+    moved = effective_point_set(new_primary_local, ib_new + keep)
+    if moved.all():
+        new_idx = None if old_idx is None else np.arange(n)  # dense stays in the form it was authored in
+    else:
+        new_idx = np.flatnonzero(moved)
+    sel = slice(None) if new_idx is None else new_idx
+    same_points = (old_idx is None and new_idx is None) or (
+        old_idx is not None and new_idx is not None and np.array_equal(old_idx, new_idx))
+
+    spec = Sdf.CreatePrimInLayer(layer, shape_path)
+
+    def attr(name, type_name, value):
+        a = spec.attributes.get(name)
+        if a is None:
+            a = Sdf.AttributeSpec(spec, name, type_name, Sdf.VariabilityUniform)
+        a.default = value
+
+    attr("offsets", Sdf.ValueTypeNames.Vector3fArray,
+         Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(new_primary_local[sel], dtype=np.float32)))
+    if not same_points:
+        if new_idx is None:
+            attr("pointIndices", Sdf.ValueTypeNames.IntArray, Sdf.ValueBlock())
+        else:
+            attr("pointIndices", Sdf.ValueTypeNames.IntArray, Vt.IntArray.FromNumpy(new_idx.astype(np.int32)))
+        if normals_dense is not None:
+            attr("normalOffsets", Sdf.ValueTypeNames.Vector3fArray,
+                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals_dense[sel])))
+    for ib, offsets, ib_normals in zip(ibs, ib_new, ib_normals_dense, strict=True):
+        name = f"inbetweens:{ib.name}"
+        type_name = ib_types.get((shape_path, ib.name), Sdf.ValueTypeNames.Point3fArray)
+        if not (np.allclose(offsets, local_offsets(rig, ib.offsets), rtol=0, atol=0) and same_points):
+            attr(name, type_name,
+                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(offsets[sel], dtype=np.float32)))
+        if ib_normals is not None and not same_points:
+            attr(f"{name}:normalOffsets", Sdf.ValueTypeNames.Vector3fArray,
+                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(ib_normals[sel])))
+
+
+def _author_variants(layer, rigs: list[FaceRig], input_asset: str):
+    """usdfacePersonalization = {personalized, generic} on each SkelRoot, retargeting the skel bindings."""
+    from pxr import Sdf
+
+    by_root: dict[str, list[FaceRig]] = {}
+    for rig in rigs:
+        root = rig.source.skel_root or rig.source.prim.rsplit("/", 1)[0]
+        by_root.setdefault(root, []).append(rig)
+    for root, root_rigs in by_root.items():
+        root_spec = Sdf.CreatePrimInLayer(layer, root)
+        root_spec.variantSetNameList.Prepend(PERSONALIZATION_VARIANT_SET)
+        vset = Sdf.VariantSetSpec(root_spec, PERSONALIZATION_VARIANT_SET)
+        variants = {name: Sdf.VariantSpec(vset, name) for name in ("personalized", "generic")}
+        root_spec.variantSelections[PERSONALIZATION_VARIANT_SET] = "personalized"
+        for rig in root_rigs:
+            src = rig.source
+            rel_mesh = Sdf.Path(src.prim).MakeRelativePath(Sdf.Path(root))
+            names = []
+            for p in src.shape_prims:  # unique prim names (targets may live under different parents)
+                name, i = Sdf.Path(p).name, 1
+                while name in names:
+                    name, i = f"{Sdf.Path(p).name}_{i}", i + 1
+                names.append(name)
+            for variant_name, variant in variants.items():
+                parent = variant.primSpec
+                for element in [*rel_mesh.pathString.split("/"), SHAPES_SCOPE]:
+                    if element in ("", "."):
+                        continue
+                    child = parent.nameChildren.get(element)
+                    if child is None:
+                        if element == SHAPES_SCOPE:
+                            child = Sdf.PrimSpec(parent, element, Sdf.SpecifierDef, "Scope")
+                        else:
+                            child = Sdf.PrimSpec(parent, element, Sdf.SpecifierOver)
+                    parent = child
+                for name, shape_path in zip(names, src.shape_prims, strict=True):
+                    shape = Sdf.PrimSpec(parent, name, Sdf.SpecifierDef, "BlendShape")
+                    if variant_name == "personalized":
+                        shape.referenceList.Prepend(Sdf.Reference(primPath=shape_path))
+                    else:
+                        shape.referenceList.Prepend(Sdf.Reference(assetPath=input_asset, primPath=shape_path))
+            mesh_spec = Sdf.CreatePrimInLayer(layer, src.prim)
+            rel = mesh_spec.relationships.get("skel:blendShapeTargets")
+            if rel is None:
+                rel = Sdf.RelationshipSpec(mesh_spec, "skel:blendShapeTargets", custom=False,
+                                           variability=Sdf.VariabilityUniform)
+            rel.targetPathList.explicitItems = [Sdf.Path(f"{src.prim}/{SHAPES_SCOPE}/{n}") for n in names]
+
+
+def _author_primvars(stage, avatar: Avatar, primvars: dict):
+    """Extra primvars on meshes, as local overs: {mesh: {name: (values, interpolation)}}."""
+    from pxr import Sdf, UsdGeom, Vt
+
+    for key, entries in primvars.items():
+        try:
+            rig = avatar.mesh(key)
+        except KeyError:
+            raise RigError(f"no mesh {key!r} for primvars", path=avatar.file,
+                           fix=f"use one of {', '.join(m.source.prim for m in avatar.meshes)}") from None
+        api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(rig.source.prim))
+        for name, (values, interpolation) in entries.items():
+            name = name.removeprefix("primvars:")
+            arr = np.asarray(values)
+            if not np.isfinite(arr.astype(np.float64)).all():
+                raise GeometryError(f"primvar {name} contains NaN/inf", path=avatar.file,
+                                    prim=rig.source.prim, fix="check the values passed as primvars")
+            types = Sdf.ValueTypeNames
+            if arr.ndim == 2 and arr.shape[1] == 3:
+                type_name = types.Color3fArray if name in ("displayColor",) else types.Float3Array
+                value = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(arr, dtype=np.float32))
+            elif arr.dtype.kind in "iu":
+                type_name, value = types.IntArray, Vt.IntArray.FromNumpy(arr.astype(np.int32).ravel())
+            elif arr.dtype.kind == "b":
+                type_name, value = types.BoolArray, Vt.BoolArray([bool(v) for v in arr.ravel()])
+            else:
+                type_name, value = types.FloatArray, Vt.FloatArray.FromNumpy(arr.astype(np.float32).ravel())
+            api.CreatePrimvar(name, type_name, interpolation).Set(value)
+
+
+def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
+    prov = dict(provenance or {})
+    inputs = [str(avatar.file)] + [str(p) for p in prov.pop("inputs", []) if str(p) != str(avatar.file)]
+    digests = {}
+    for p in inputs:
+        try:
+            digests[p] = file_digest(p)
+        except InputFileError:
+            digests[p] = ""
+    prov.setdefault("command", "")
+    prov.setdefault("parameters", {})
+    prov.setdefault("timings", {})
+    prov["version"] = __version__
+    prov["inputs"] = inputs
+    prov["inputDigests"] = [digests[p] for p in inputs]
+    prov["createdAt"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    prov["output"] = out_path.name
+    return prov
+
+
+def _apply_provenance_schema(stage, roots, prov: dict):
+    from .. import schemas
+
+    for root in roots:
+        prim = stage.OverridePrim(root)
+        prim.ApplyAPI(schemas.PROVENANCE_API)
+        values = {
+            "version": prov["version"], "command": str(prov.get("command", "")),
+            "method": str(prov.get("method", "")),
+            "parameters": json.dumps(prov.get("parameters", {}), sort_keys=True, default=str),
+            "inputs": prov["inputs"], "inputDigests": prov["inputDigests"], "createdAt": prov["createdAt"],
+        }
+        for key in ("registrationScale", "registrationResidual", "elapsedSeconds"):
+            if key in prov:
+                values[key] = float(prov[key])
+        for key, value in values.items():
+            attr = prim.GetAttribute(f"usdface:provenance:{key}")
+            if attr:
+                attr.Set(value)
+
+
+def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: dict | None = None,
+                       force: bool = False, variants: bool = True, primvars: dict | None = None,
+                       edit: Callable | None = None) -> Path:
+    """Write a new USD layer over ``avatar.file`` carrying personalized blend-shape offsets.
+
+    Parameters
+    ----------
+    avatar : the Avatar read by :func:`usdface.io.usd_rig.read_avatar` (``MeshSource`` says where to write).
+    out_path : .usda / .usdc / .usd file to create (format follows the extension).
+    offsets : {mesh prim path (or mesh name) -> deltas[K_mesh, n, 3]} in metres, internal frame (Y up), in
+        ``rig.names`` order; meshes not listed are left untouched.
+    provenance : {command, parameters (dict), method, timings (dict name -> s), inputs (paths besides the
+        avatar, e.g. the capture), registrationScale, registrationResidual, elapsedSeconds, ...}; stored in
+        ``customLayerData["usdface"]`` (plus version, input sha256 digests, createdAt) and in the
+        ``UsdFaceProvenanceAPI`` schema on each SkelRoot.
+    force : replace an existing output (atomically).
+    variants : add the ``usdfacePersonalization`` {personalized, generic} variant set (see module doc).
+    primvars : {mesh -> {name -> (values, interpolation)}} extra primvars authored as local overs on the
+        meshes (e.g. ``displayColor`` heat maps: they change the look in every client, see docs/usd-io.md).
+    edit : callback ``edit(stage)`` run on the composed stage (edit target = the new layer) before saving, to
+        author extra prims (landmark Points, SkelAnimation...).
+
+    Returns the output path. Nothing is written if any check fails.
+    """
+    from pxr import Sdf, Usd
+
+    start = time.perf_counter()
+    out_path = check_output_path(out_path, force).absolute()
+    in_path = Path(avatar.file).absolute()
+    if not in_path.is_file():
+        raise InputFileError("the avatar's file is gone", path=in_path,
+                             fix="keep the input avatar in place while writing the layer")
+    if out_path.exists() and out_path.samefile(in_path):
+        raise InputFileError("output would overwrite the input avatar", path=out_path,
+                             fix="choose a different output file; inputs are never modified")
+    resolved = _resolve_offsets(avatar, offsets)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    input_asset = _relative_asset_path(in_path, out_path.parent)
+    input_layer = Sdf.Layer.FindOrOpen(str(in_path))
+    if input_layer is None:
+        raise InputFileError("USD cannot open the avatar", path=in_path, fix="check the avatar file")
+
+    work = _temp_path(out_path)
+    layer = Sdf.Layer.CreateNew(str(work))
+    try:
+        for key in STAGE_METADATA_KEYS:
+            if input_layer.pseudoRoot.HasInfo(key):
+                layer.pseudoRoot.SetInfo(key, input_layer.pseudoRoot.GetInfo(key))
+        layer.documentation = f"usdface {__version__}: personalized blend shapes over {input_asset}"
+        layer.subLayerPaths.append(input_asset)
+        prov = _provenance(avatar, provenance or {}, out_path)
+        stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
+        stage.SetEditTarget(stage.GetRootLayer())
+        rigs = [rig for rig, _ in resolved]
+        ib_types = {}
+        for rig in rigs:
+            ib_types.update(_inbetween_types(stage, rig))
+        # a layer over an earlier usdface output: its bindings already point into usdfaceShapes/
+        redirected = any(f"/{SHAPES_SCOPE}/" in p for rig in rigs for p in rig.source.shape_prims)
+        with Sdf.ChangeBlock():
+            for rig, deltas in resolved:
+                local = local_offsets(rig, deltas)
+                for k in range(rig.n_shapes):
+                    _author_shape(layer, rig, k, local[k], ib_types)
+            if variants and rigs and not redirected:
+                _author_variants(layer, rigs, input_asset)
+        roots = sorted({r.source.skel_root for r in rigs if r.source.skel_root}) or sorted(
+            {m.source.skel_root for m in avatar.meshes if m.source and m.source.skel_root})
+        if primvars:
+            _author_primvars(stage, avatar, primvars)
+        if edit is not None:
+            edit(stage)
+        prov["timings"] = {**{str(k): float(v) for k, v in dict(prov["timings"]).items()},
+                           "write_layer": time.perf_counter() - start}
+        _apply_provenance_schema(stage, roots, prov)
+        layer.customLayerData = {"usdface": _usd_value(prov)}
+        atomic_save(layer, out_path)
+    finally:
+        if work.exists():
+            work.unlink()
+    return out_path
+
+
+def personalization_variant(stage, skel_root: str, name: str | None = None) -> str:
+    """Get (and with ``name``, set in the session layer) the ``usdfacePersonalization`` selection."""
+    prim = stage.GetPrimAtPath(skel_root)
+    vset = prim.GetVariantSets().GetVariantSet(PERSONALIZATION_VARIANT_SET)
+    if name is not None:
+        with_session = stage.GetSessionLayer()
+        from pxr import Usd
+
+        with Usd.EditContext(stage, with_session):
+            vset.SetVariantSelection(name)
+    return vset.GetVariantSelection()
