@@ -27,7 +27,8 @@ from ..arkit import match_names
 from ..errors import CaptureError, InputFileError
 from .capture_folder import order_names
 
-__all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "parse_timecodes", "ANGLE_COLUMNS"]
+__all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "parse_timecodes", "format_timecodes",
+           "write_livelink_csv", "ANGLE_COLUMNS"]
 
 #: Head and eye rotation columns (radians), kept out of the weights.
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
@@ -161,3 +162,47 @@ def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.
     """
     take = read_livelink_take(path, timecode_rate)
     return take.names, take.weights, take.times
+
+
+def format_timecodes(times, timecode_rate: float = 60.0, start: str = "00:00:00:00.000") -> list[str]:
+    """seconds[F] from ``start`` -> ``HH:MM:SS:FF.fff`` strings (``FF`` counts at ``timecode_rate``)."""
+    h, m, sec, ff = (float(x) for x in start.split(":"))
+    rate = float(timecode_rate)
+    frames = (h * 3600 + m * 60 + sec) * rate + ff + np.round(np.asarray(times, dtype=np.float64) * rate, 3)
+    whole, frac = np.divmod(frames, rate)
+    out = []
+    for s, f in zip(whole.astype(np.int64).tolist(), frac.tolist(), strict=True):
+        s %= 86400
+        out.append(f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}:{f:06.3f}")
+    return out
+
+
+def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
+                       timecode_rate: float = 60.0) -> Path:
+    """Write a take in Live Link Face's CSV layout (``Timecode, BlendShapeCount, <PascalCase weights>,
+    <angles>``): ``weights[F, K]`` for canonical ``names[K]``, ``times[F]`` seconds, optional ``angles``
+    {column: [F]}. Written atomically. Used to make test takes; :func:`read_livelink_take` reads it back."""
+    import os
+    import tempfile
+
+    from ..arkit import livelink_name
+
+    path = Path(path)
+    weights = np.asarray(weights, dtype=np.float64)
+    angles = angles or {}
+    header = ["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in names] + list(angles)
+    cols = [np.asarray(v, dtype=np.float64) for v in angles.values()]
+    codes = format_timecodes(times, timecode_rate)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    count = len(names) + len(angles)
+    for f, code in enumerate(codes):
+        row = [repr(float(x)) for x in weights[f]] + [repr(float(c[f])) for c in cols]
+        writer.writerow([code, count] + row)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(buf.getvalue())
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,375 @@
+"""Continuous takes (a time-sampled face mesh plus per-frame weights) <-> :class:`Take`, and the capture made
+from a take by frame selection (:func:`capture_from_take`, rule in :mod:`usdface.take_select`).
+
+A take comes in three forms (:func:`read_take` dispatches):
+
+* **USD take** (``.usda``/``.usdc``/``.usd``): a Mesh whose ``points`` are time-sampled (usdface's own layout,
+  :func:`write_take_usd`: ``/Take/Frames``; otherwise the mesh with the most time samples), with per-frame
+  weights either on that mesh (``usdface:frames:weights`` + ``usdface:frames:names``) or in a
+  ``SkelAnimation`` (``blendShapes`` + time-sampled ``blendShapeWeights``, read at each mesh time code);
+  optional ``Neutral`` mesh and ``Template`` SkelRoot as in capture.usda.
+* **OBJ sequence + Live Link Face CSV** (a folder): ``frames/*.obj`` (or ``*.obj``; frame number = the
+  trailing integer of the file name) and one ``*.csv``; optional ``neutral.obj`` and ``template/`` as in a
+  capture folder. OBJ k is matched to CSV row k when the counts agree, else OBJ number ``n`` to row
+  ``n - first number``.
+* **Live Link CSV alone** (weights only; no mesh, so it cannot become a capture).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import match_names
+from ..errors import CaptureError, GeometryError, InputFileError
+from ..model import Capture, FaceRig, Frames
+from .mesh_io import read_obj
+
+__all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
+           "capture_from_take", "TAKE_PRIM"]
+
+TAKE_PRIM = "/Take"
+
+
+@dataclass
+class Take:
+    """A continuous take: ``weights[F, K]`` for ``names[K]`` at ``times[F]`` seconds; ``points[F, n, 3]``
+    metres and ``triangles[t, 3]`` (None for weights-only takes); optional person ``neutral[n, 3]`` and
+    generic ``template`` rig on the same topology."""
+
+    weights: np.ndarray
+    names: list[str]
+    times: np.ndarray
+    points: np.ndarray | None = None
+    triangles: np.ndarray | None = None
+    neutral: np.ndarray | None = None
+    template: FaceRig | None = None
+    source: str = ""
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.weights = np.asarray(self.weights, dtype=np.float64)
+        self.times = np.asarray(self.times, dtype=np.float64)
+        self.names = [str(n) for n in self.names]
+
+    @property
+    def fps(self) -> float:
+        """Median frame rate (frames per second)."""
+        dt = np.diff(self.times)
+        return float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else 30.0
+
+    def __len__(self) -> int:
+        return int(self.weights.shape[0])
+
+
+# ----------------------------------------------------------------------------------------------- reading
+def read_take(path) -> Take:
+    """Read a take: a folder (OBJ sequence + Live Link CSV), a USD take, or a Live Link CSV (weights only)."""
+    path = Path(path)
+    if path.is_dir():
+        return read_take_folder(path)
+    suffix = path.suffix.lower()
+    if suffix in (".usd", ".usda", ".usdc"):
+        return read_take_usd(path)
+    if suffix == ".csv":
+        from .livelink import read_livelink_take
+
+        ll = read_livelink_take(path)
+        return Take(ll.weights, ll.names, ll.times, source=str(path),
+                    metadata={"name_report": ll.name_report, "angles": ll.angles})
+    if not path.exists():
+        raise InputFileError("take not found", path=path, fix="check the path")
+    raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc or a Live Link .csv)", path=path,
+                         fix="pass a USD take, or a folder of OBJ frames with a Live Link Face CSV")
+
+
+def _canonical(names, path, prim=None) -> list[str]:
+    match = match_names(names)
+    if match.duplicates:
+        raise CaptureError(f"the same shape under several names: {', '.join(match.duplicates)}", path=path,
+                           prim=prim, fix="keep one channel per shape")
+    return match.canonical
+
+
+def _frame_number(p: Path) -> int | None:
+    m = re.search(r"(\d+)$", p.stem)
+    return int(m.group(1)) if m else None
+
+
+def read_take_folder(path) -> Take:
+    """Read an OBJ-sequence take folder with its Live Link Face CSV (see the module doc)."""
+    from .capture_folder import _template
+    from .livelink import read_livelink_take
+
+    root = Path(path)
+    csvs = sorted(root.glob("*.csv"))
+    if len(csvs) != 1:
+        raise CaptureError(f"expected one Live Link .csv in the take folder, found {len(csvs)}", path=root,
+                           fix="put exactly one Live Link Face CSV next to the OBJ frames")
+    ll = read_livelink_take(csvs[0])
+    frame_dir = root / "frames" if (root / "frames").is_dir() else root
+    objs = [p for p in frame_dir.glob("*.obj") if p.name != "neutral.obj"]
+    if not objs:
+        raise CaptureError("no OBJ frames", path=frame_dir, fix="put the take's meshes in frames/NNNN.obj")
+    numbers = [_frame_number(p) for p in objs]
+    if None in numbers:
+        bad = objs[numbers.index(None)]
+        raise CaptureError("OBJ frame name has no frame number", path=bad,
+                           fix="name frames with a trailing number, e.g. frames/0042.obj")
+    order = np.argsort(numbers, kind="stable")
+    objs = [objs[i] for i in order]
+    numbers = np.array(numbers)[order]
+    rows = np.arange(len(objs)) if len(objs) == len(ll.times) else numbers - numbers[0]
+    if rows.max() >= len(ll.times):
+        raise CaptureError(f"OBJ frame {int(numbers[rows.argmax()])} has no CSV row ({len(ll.times)} rows)",
+                           path=csvs[0], fix="the CSV must cover every OBJ frame (row k = frame k)")
+    first, triangles = read_obj(objs[0])
+    points = np.empty((len(objs),) + first.shape)
+    points[0] = first
+    for i, p in enumerate(objs[1:], start=1):
+        pts, tris = read_obj(p)
+        if pts.shape != first.shape or not np.array_equal(tris, triangles):
+            raise GeometryError(f"topology differs from {objs[0].name}", path=p,
+                                fix="every frame of a take must share vertices and faces")
+        points[i] = pts
+    neutral = template = None
+    if (root / "neutral.obj").is_file():
+        neutral, ntris = read_obj(root / "neutral.obj")
+        if neutral.shape != first.shape or not np.array_equal(ntris, triangles):
+            raise GeometryError("neutral.obj topology differs from the frames'", path=root / "neutral.obj",
+                                fix="the neutral must share the frames' vertices and faces")
+    if (root / "template").is_dir():
+        template = _template(root, first if neutral is None else neutral, triangles, {})
+    meta = {"name_report": ll.name_report, "frame_files": [p.name for p in objs], "csv": str(csvs[0])}
+    return Take(ll.weights[rows], ll.names, ll.times[rows], points, triangles, neutral, template, str(root),
+                meta)
+
+
+def read_take_usd(path) -> Take:
+    """Read a USD take (see the module doc). Raises InputFileError / CaptureError / GeometryError naming the
+    file and prim."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from .usd_anim import read_skel_animation
+    from .usd_capture import _points, _template, _triangles
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError("take not found", path=path, fix="check the path")
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
+        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
+                             fix="check that the file is a valid USD layer") from None
+    root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
+    frames = root.GetChild("Frames") if root.GetChild("Frames") else None
+    if frames is None or not UsdGeom.Mesh(frames):
+        meshes = [p for p in Usd.PrimRange(root) if p.IsA(UsdGeom.Mesh)]
+        frames = max(meshes, key=lambda p: UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples(), default=None)
+    codes = UsdGeom.Mesh(frames).GetPointsAttr().GetTimeSamples() if frames else []
+    if len(codes) < 2:
+        raise CaptureError("no mesh with time-sampled points", path=path, prim=root.GetPath(),
+                           fix="a take needs a Mesh whose points are time-sampled (one sample per frame)")
+    codes = np.array(codes, dtype=np.float64)
+    triangles = _triangles(frames, path)
+    points = np.stack([_points(frames, path, c) for c in codes.tolist()])
+    if triangles.max() >= points.shape[1]:
+        raise GeometryError("face index out of range", path=path, prim=frames.GetPath(),
+                            fix="repair the take's mesh")
+    w_attr = frames.GetAttribute("usdface:frames:weights")
+    meta: dict = {"frames_prim": str(frames.GetPath())}
+    if w_attr and w_attr.GetNumTimeSamples():
+        names = [str(n) for n in frames.GetAttribute("usdface:frames:names").Get() or []]
+        weights = np.stack([np.asarray(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        meta["weights_source"] = str(w_attr.GetPath())
+    else:
+        anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
+                 and UsdSkel.Animation(p).GetBlendShapeWeightsAttr().GetNumTimeSamples()]
+        if not anims:
+            raise CaptureError("no per-frame weights (no usdface:frames:weights, no SkelAnimation with "
+                               "time-sampled blendShapeWeights)", path=path, prim=frames.GetPath(),
+                               fix="author the phone's weights as a SkelAnimation in the take")
+        names, _, anim_codes = read_skel_animation(anims[0])
+        attr = UsdSkel.Animation(anims[0]).GetBlendShapeWeightsAttr()
+        weights = np.stack([np.asarray(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        if not np.isin(codes, anim_codes).all():
+            warnings.warn(f"{path}: weights time samples differ from the mesh's; USD interpolated them",
+                          UserWarning, stacklevel=2)
+            meta["weights_interpolated"] = True
+        meta["weights_source"] = str(anims[0].GetPath())
+    if weights.shape[1] != len(names):
+        raise CaptureError(f"{weights.shape[1]} weights per frame for {len(names)} names", path=path,
+                           prim=frames.GetPath(), fix="author one weight per shape name")
+    if not np.isfinite(weights).all():
+        raise CaptureError("weights contain NaN or infinite values", path=path, prim=frames.GetPath(),
+                           fix="repair the take's weights")
+    names = _canonical(names, path, frames.GetPath())
+    if weights.min() < 0 or weights.max() > 1:
+        warnings.warn(f"{path}: weights outside [0, 1] clipped", UserWarning, stacklevel=2)
+        weights = np.clip(weights, 0.0, 1.0)
+    neutral = template = None
+    rp = root.GetPath()
+    if stage.GetPrimAtPath(rp.AppendChild("Neutral")):
+        neutral = _points(stage.GetPrimAtPath(rp.AppendChild("Neutral")), path)
+        if neutral.shape != points.shape[1:]:
+            raise GeometryError("Neutral and frames have different vertex counts", path=path,
+                                prim=rp.AppendChild("Neutral"), fix="the neutral must share the frames' mesh")
+    if stage.GetPrimAtPath(rp.AppendPath("Template/Mesh")):
+        template = _template(stage, rp, path, triangles, points.shape[1])
+    # Units and axis -> internal metres, Y up.
+    m = UsdGeom.GetStageMetersPerUnit(stage) * np.eye(3)
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
+        m = m @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    if not np.array_equal(m, np.eye(3)):
+        points = points @ m.T
+        neutral = None if neutral is None else neutral @ m.T
+        if template is not None:
+            template = FaceRig(template.neutral @ m.T, template.triangles, template.names,
+                               template.deltas @ m.T, name="template")
+    times = (codes - codes[0]) / stage.GetTimeCodesPerSecond()
+    return Take(weights, names, times, points, triangles, neutral, template, str(path), meta)
+
+
+# ----------------------------------------------------------------------------------------------- writing
+def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) -> Path:
+    """Write a take as USD: ``/Take`` (defaultPrim) with ``Neutral`` (if any), ``Template`` (UsdSkel rig
+    driven by the take's weights, if any) or else ``Anim`` (SkelAnimation), and ``Frames`` (time-sampled
+    points and ``usdface:frames:weights``). Frame f is at time code ``times[f] * fps`` with the stage's
+    timeCodesPerSecond = the take's fps. Atomic; refuses an existing file unless ``force``."""
+    from pxr import Usd, UsdGeom
+
+    from . import usd_capture as uc
+    from .usd_anim import author_skel_animation
+
+    path = Path(path)
+    uc._check_output(path, force)
+    if take.points is None:
+        raise CaptureError("the take has no meshes", path=path,
+                           fix="use 'usdface anim import' for weights only")
+    fps = round(take.fps, 6)
+    codes = np.round(take.times * fps, 6)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    root = UsdGeom.Xform.Define(stage, TAKE_PRIM).GetPrim()
+    stage.SetDefaultPrim(root)
+    if take.neutral is not None:
+        neutral = UsdGeom.Mesh.Define(stage, f"{TAKE_PRIM}/Neutral")
+        uc._topology(neutral, take.triangles)
+        uc._set_points(neutral, take.neutral, exact=exact)
+    if take.template is not None:
+        uc.author_template(stage, f"{TAKE_PRIM}/Template", take.template,
+                           uc._columns(take.weights, take.names, take.template.names), codes, fps, exact)
+    else:
+        author_skel_animation(stage, f"{TAKE_PRIM}/Anim", take.names, take.weights, fps, times=take.times)
+    uc.author_frames(stage, f"{TAKE_PRIM}/Frames", take.triangles, take.points, take.weights, take.names,
+                     codes, exact)
+    stage.SetTimeCodesPerSecond(fps)
+    stage.SetFramesPerSecond(fps)
+    stage.SetStartTimeCode(float(codes[0]))
+    stage.SetEndTimeCode(float(codes[-1]))
+    stage.GetRootLayer().customLayerData = {"usdface": {"format": "take", "formatVersion": 1,
+                                                        "source": str(take.source or "")}}
+    uc._save(stage, path)
+    return path
+
+
+def write_take_folder(take: Take, path, force: bool = False) -> Path:
+    """Write a take as ``frames/NNNNN.obj`` + ``take.csv`` (Live Link Face layout) [+ ``neutral.obj``,
+    ``template/``]: the OBJ-sequence form :func:`read_take_folder` reads."""
+    import os
+    import shutil
+    import tempfile
+
+    from ..errors import OutputExistsError
+    from .livelink import write_livelink_csv
+    from .mesh_io import write_obj
+
+    dest = Path(path)
+    if dest.exists() and not force:
+        raise OutputExistsError("output exists", path=dest, fix="choose a new folder or pass --force")
+    if take.points is None:
+        raise CaptureError("the take has no meshes", path=dest, fix="a take folder needs one OBJ per frame")
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    os.chmod(tmp, 0o755)
+    try:
+        for f in range(len(take)):
+            write_obj(tmp / "frames" / f"{f:05d}.obj", take.points[f], take.triangles)
+        write_livelink_csv(tmp / "take.csv", take.names, take.weights, take.times)
+        if take.neutral is not None:
+            write_obj(tmp / "neutral.obj", take.neutral, take.triangles)
+        if take.template is not None:
+            tpl = take.template
+            write_obj(tmp / "template" / "neutral.obj", tpl.neutral, tpl.triangles)
+            for k, name in enumerate(tpl.names):
+                write_obj(tmp / "template" / f"{name}.obj", tpl.neutral + tpl.deltas[k], tpl.triangles)
+        if dest.exists():
+            shutil.rmtree(dest)
+        os.replace(tmp, dest)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dest
+
+
+# ---------------------------------------------------------------------------------------- take -> capture
+def capture_from_take(take: Take, selection, template=None) -> Capture:
+    """The capture a phone app would have recorded: the selected training frames (``selection.train``,
+    labels ``NNN_<shape>``) and held-out test frames (``selection.test``) of ``take``, with their whole weight
+    vectors and meshes, the person's neutral and the template rig.
+
+    ``template``: a FaceRig, or a capture folder / capture.usda path whose template to use; default the
+    take's own. The neutral is the take's ``Neutral`` when present, else the take frame with the smallest
+    largest weight (recorded in ``metadata["neutral_frame"]``, with a warning). Weight columns follow the
+    template's shape order; take channels the template lacks are reported in ``metadata``.
+    """
+    if take.points is None:
+        raise CaptureError("the take has weights only, no meshes", path=take.source or None,
+                           fix="record the mesh with the weights (USD take or OBJ sequence + CSV)")
+    if template is None:
+        template = take.template
+    elif not isinstance(template, FaceRig):
+        from . import read_capture
+
+        template = read_capture(template).template
+    if template is None:
+        raise CaptureError("the take has no template rig", path=take.source or None,
+                           fix="pass --template with a capture folder or capture.usda on the same topology")
+    n = take.points.shape[1]
+    if template.n_vertices != n:
+        raise GeometryError(f"template has {template.n_vertices} vertices, the take {n}",
+                            path=take.source or None, fix="the template must be on the take's topology")
+    metadata: dict = {"source": take.source, "units": "m", "take": {
+        "threshold": selection.threshold, "per_shape": selection.per_shape,
+        "coverage": [{"name": s.name, "frames": s.frames, "times": [float(take.times[f]) for f in s.frames],
+                      "peak": s.peak, "dominance": s.dominance, "max_weight": s.max_weight}
+                     for s in selection.shapes],
+        "missing": selection.missing}}
+    if take.neutral is not None:
+        neutral = take.neutral
+    else:
+        f0 = int(np.argmin(take.weights.max(axis=1)))
+        neutral = take.points[f0]
+        metadata["neutral_frame"] = f0
+        warnings.warn(f"{take.source}: the take has no neutral mesh; using frame {f0} (weights all "
+                      f"<= {take.weights[f0].max():.2f}) as the neutral", UserWarning, stacklevel=2)
+    index = {nm: k for k, nm in enumerate(take.names)}
+    cols = np.array([index.get(nm, -1) for nm in template.names])
+    extra = [nm for nm in take.names if nm not in set(template.names)]
+    if extra:
+        metadata["extra_channels"] = extra
+    frames_idx = np.concatenate([selection.train, selection.test]).astype(np.int64)
+    w = np.where(cols[None, :] >= 0, take.weights[frames_idx][:, np.maximum(cols, 0)], 0.0)
+    roles = ["train"] * len(selection.train) + ["test"] * len(selection.test)
+    labels = selection.labels + selection.test_labels
+    metadata["take_frames"] = frames_idx.tolist()
+    metadata["counts"] = {"train": len(selection.train), "test": len(selection.test)}
+    metadata["never_triggered"] = list(selection.missing)
+    frames = Frames(take.points[frames_idx], w, roles, labels)
+    return Capture(neutral, take.triangles, template, frames, list(template.names), source=take.source,
+                   metadata=metadata)
