@@ -1,0 +1,188 @@
+"""Pictures (usdface.render, ``usdface render``) and inspection data authored into result layers
+(usdface.io.usd_inspection): heat-map displayColor, landmark Points, a SkelAnimation that really drives the
+personalized avatar."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import usdface.io  # noqa: F401  (schemas before the first stage)
+from usdface.cli import main
+from usdface.errors import OutputExistsError, RigError, UsdFaceError
+from usdface.model import FaceRig
+from usdface.render import (
+    default_shapes,
+    draw_mesh,
+    heat_colors,
+    render_comparison,
+    render_heatmap,
+    render_landmarks,
+    render_shapes,
+)
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def grid_rig(n: int = 12) -> FaceRig:
+    """A flat n x n grid facing +Z with two shapes: 'bump' (centre up in z) and 'slide' (everything +x)."""
+    u, v = np.meshgrid(np.linspace(-0.1, 0.1, n), np.linspace(-0.1, 0.1, n))
+    neutral = np.c_[u.ravel(), v.ravel(), np.zeros(n * n)]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
+    a = (j * n + i).ravel()
+    tris = np.r_[np.c_[a, a + 1, a + n], np.c_[a + 1, a + n + 1, a + n]]
+    bump = np.zeros_like(neutral)
+    bump[:, 2] = 0.02 * np.exp(-(neutral[:, 0] ** 2 + neutral[:, 1] ** 2) / 0.002)
+    slide = np.zeros_like(neutral)
+    slide[:, 0] = 0.001
+    return FaceRig(neutral, tris, ["bump", "slide"], np.stack([bump, slide]), name="grid")
+
+
+def test_draw_mesh_culls_back_faces():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    rig = grid_rig()
+    ax = Figure().add_subplot()
+    assert len(draw_mesh(ax, rig.neutral, rig.triangles).get_paths()) == len(rig.triangles)
+    ax = Figure().add_subplot()  # flipped winding: every triangle faces away from the camera
+    assert len(draw_mesh(ax, rig.neutral, rig.triangles[:, ::-1]).get_paths()) == 0
+
+
+def test_render_functions_write_pngs(tmp_path):
+    rig = grid_rig()
+    assert default_shapes(rig, 1) == ["bump"]  # the shape that moves most
+    out = render_shapes(rig, None, tmp_path / "s.png")
+    assert out is not None and (tmp_path / "s.png").read_bytes()[:8] == PNG
+    with pytest.raises(OutputExistsError):
+        render_shapes(rig, None, tmp_path / "s.png")
+    render_shapes(rig, ["slide"], tmp_path / "s.png", force=True)
+    render_comparison(rig, rig, ["bump"], tmp_path / "c.png")
+    render_heatmap(rig.neutral, rig.triangles, np.linalg.norm(rig.deltas[0], axis=1), tmp_path / "h.png")
+    render_landmarks(rig.neutral, rig.triangles, [0, 5, 77], tmp_path / "l.png", labels=["a", "b", "c"])
+    assert all((tmp_path / f).read_bytes()[:8] == PNG for f in ("c.png", "h.png", "l.png"))
+    assert not list(tmp_path.glob(".*tmp*"))  # atomic writes leave no temp files
+    with pytest.raises(UsdFaceError, match="no shape 'nope'"):
+        render_shapes(rig, ["nope"])
+    with pytest.raises(UsdFaceError, match="one value per vertex"):
+        render_heatmap(rig.neutral, rig.triangles, [1.0, 2.0])
+    with pytest.raises(UsdFaceError, match="out of range"):
+        render_landmarks(rig.neutral, rig.triangles, [10_000])
+
+
+def test_heat_colors_monotone():
+    colors = heat_colors([0.0, 0.5, 1.0], vmax=1.0)
+    brightness = colors.sum(axis=1)
+    assert colors.shape == (3, 3) and np.all(np.diff(brightness) > 0)
+    assert np.all((0 <= colors) & (colors <= 1))
+
+
+@pytest.fixture(scope="module")
+def inspected(tmp_path_factory, request):
+    """A result layer over dev1's avatar (Head offsets x1.1) with heat map, landmarks and animation."""
+    bench = request.getfixturevalue("bench")
+    from usdface.arkit import ARKIT_NAMES
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_inspection import inspection_edit
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(bench / "dev1" / "avatar.usdc")
+    head = avatar.mesh("Head")
+    heat = np.linalg.norm(0.1 * head.deltas, axis=2).max(axis=0)
+    weights = np.zeros((3, 52))
+    weights[1, ARKIT_NAMES.index("jawOpen")] = 1.0
+    weights[2, ARKIT_NAMES.index("eyeBlinkLeft")] = 0.5
+    raw = [n.replace("Left", "_L").replace("Right", "_R") for n in ARKIT_NAMES]  # any spelling maps
+    edit = inspection_edit(avatar, heat={"Head": heat}, landmarks={"Head": [0, 10, 100]},
+                           landmark_info={"Head": {"epsilon": 0.25}}, animation=(raw, weights), fps=30)
+    out = tmp_path_factory.mktemp("insp") / "result.usda"
+    write_avatar_layer(avatar, out, {"Head": 1.1 * head.deltas}, provenance={"command": "test"}, edit=edit)
+    return avatar, out, heat
+
+
+@pytest.mark.shared
+def test_inspection_layer_contents(inspected):
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from usdface.io.usd_inspection import ANIMATION_NAME, HEAT_PRIMVAR, generic_input, read_landmarks
+    from usdface.pipeline.validators import validate_file
+
+    avatar, out, heat = inspected
+    stage = Usd.Stage.Open(str(out))
+    head = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Avatar/Head"))
+    colors = np.asarray(head.GetPrimvar("displayColor").Get())
+    assert colors.shape == (avatar.mesh("Head").n_vertices, 3)
+    assert head.GetPrimvar("displayColor").GetInterpolation() == "vertex"
+    np.testing.assert_allclose(np.asarray(head.GetPrimvar(HEAT_PRIMVAR).Get()), heat, rtol=1e-6, atol=1e-9)
+    # the hottest vertex is brighter than the coldest
+    assert colors[np.argmax(heat)].sum() > colors[np.argmin(heat)].sum()
+    # landmark Points sit exactly on the mesh's (world-space) vertices
+    layouts = read_landmarks(out)
+    assert list(layouts) == ["/Avatar/Head"] and layouts["/Avatar/Head"].tolist() == [0, 10, 100]
+    pts_prim = stage.GetPrimAtPath("/Avatar/usdfaceLandmarks/Head")
+    assert pts_prim.GetAttribute("usdface:landmarks:epsilon").Get() == pytest.approx(0.25)
+    cache = UsdGeom.XformCache()
+    pts = np.asarray(UsdGeom.Points(pts_prim).GetPointsAttr().Get(), dtype=float)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
+    rest = np.asarray(mesh.GetPointsAttr().Get(), dtype=float)[[0, 10, 100]]
+
+    def world(prim, p):
+        m = np.array(cache.GetLocalToWorldTransform(prim))
+        return p @ m[:3, :3] + m[3, :3]
+
+    np.testing.assert_allclose(world(pts_prim, pts), world(mesh.GetPrim(), rest), atol=1e-4)
+    # the animation is bound and plays: frame 1 = jawOpen, so skinning moves the Head
+    skel = stage.GetPrimAtPath("/Avatar/Skel")
+    assert UsdSkel.BindingAPI(skel).GetAnimationSource().GetName() == ANIMATION_NAME
+    anim = UsdSkel.Animation(stage.GetPrimAtPath(f"/Avatar/Skel/{ANIMATION_NAME}"))
+    names = list(anim.GetBlendShapesAttr().Get())
+    w1 = np.asarray(anim.GetBlendShapeWeightsAttr().Get(1.0))
+    assert w1[names.index("jawOpen")] == 1.0 and w1.sum() == 1.0
+    assert stage.GetEndTimeCode() == 2.0 and stage.GetTimeCodesPerSecond() == 30.0
+    cache_skel = UsdSkel.Cache()
+    root = UsdSkel.Root(stage.GetPrimAtPath("/Avatar"))
+    cache_skel.Populate(root, Usd.PrimDefaultPredicate)
+    query = cache_skel.GetSkinningQuery(mesh.GetPrim())
+    anim_query = cache_skel.GetSkelQuery(UsdSkel.Skeleton(skel)).GetAnimQuery()
+    assert query.HasBlendShapes() and anim_query.GetPrim().GetName() == ANIMATION_NAME
+    mesh_weights = np.asarray(query.GetBlendShapeMapper().Remap(anim_query.ComputeBlendShapeWeights(1.0)))
+    channels = list(UsdSkel.BindingAPI(mesh.GetPrim()).GetBlendShapesAttr().Get())
+    assert mesh_weights[channels.index("jawOpen")] == 1.0 and mesh_weights.sum() == 1.0
+    assert generic_input(out).name == "avatar.usdc"
+    assert validate_file(out) == []  # Pixar validators + face-rig rules + provenance
+
+
+@pytest.mark.shared
+def test_render_cli_on_result(inspected, tmp_path, capsys):
+    _avatar, out, _heat = inspected
+    for i, flags in enumerate([[], ["--compare"], ["--heatmap"], ["--landmarks"]]):
+        png = tmp_path / f"{i}.png"
+        assert main(["render", str(out), "-o", str(png), "--shapes", "jawOpen", *flags]) == 0
+        assert png.read_bytes()[:8] == PNG
+    assert main(["render", str(out), "-o", str(tmp_path / "0.png")]) == 2  # exists, no --force
+    assert "--force" in capsys.readouterr().err
+
+
+@pytest.mark.shared
+def test_render_cli_capture_and_errors(bench, tmp_path, capsys):
+    assert main(["render", str(bench / "dev1" / "capture"), "-o", str(tmp_path / "cap.png")]) == 0
+    avatar = bench / "dev1" / "avatar.usdc"
+    assert main(["render", str(avatar), "-o", str(tmp_path / "x.png"), "--compare"]) == 2
+    assert "--compare GENERIC" in capsys.readouterr().err
+    assert main(["render", str(avatar), "-o", str(tmp_path / "y.png"), "--landmarks"]) == 2
+    assert main(["render", str(avatar), "-o", str(tmp_path / "z.png"), "--mesh", "Nose"]) == 2
+
+
+def test_inspection_rejects_bad_input():
+    from usdface.io.usd_inspection import inspection_edit
+    from usdface.model import Avatar, MeshSource
+
+    rig = grid_rig()
+    rig.source = MeshSource(file="a.usda", prim="/A/Grid", skel_root="/A")
+    avatar = Avatar([rig], file="a.usda")
+    with pytest.raises(RigError, match="no mesh 'Nose'"):
+        inspection_edit(avatar, heat={"Nose": np.zeros(3)})(None)
+    with pytest.raises(RigError, match="one value per mesh point"):
+        inspection_edit(avatar, heat={"Grid": np.zeros(3)})(None)

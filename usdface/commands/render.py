@@ -1,0 +1,101 @@
+"""``usdface render FILE -o out.png``: pictures without a display (shapes, generic vs personalized, heat maps,
+landmarks)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "render", help="draw an avatar, a capture or a personalize result to PNG (no display needed)",
+        description="Draw the neutral and selected shapes of a mesh (default), generic vs personalized side "
+                    "by side (--compare), a per-vertex heat map of what personalization moved "
+                    "(--heatmap), or the landmark layout stored in the file (--landmarks).")
+    p.add_argument("file", help="avatar / personalize result (.usd*) or capture (folder or capture .usda)")
+    p.add_argument("-o", "--output", required=True, type=Path, help="PNG to write")
+    p.add_argument("--mesh", help="mesh to draw (prim name or path; default: the one with the most shapes)")
+    p.add_argument("--shapes", help="comma-separated shape names (default: the shapes that move most)")
+    p.add_argument("--weight", type=float, default=1.0, help="weight of each drawn shape (default 1)")
+    p.add_argument("--view", choices=("front", "left", "right"), default="front")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--compare", nargs="?", const="", metavar="GENERIC",
+                      help="side by side with the generic avatar (default: the file a usdface layer is over)")
+    mode.add_argument("--heatmap", nargs="?", const="", metavar="GENERIC",
+                      help="RMS over shapes of |personalized - generic| per vertex (mm)")
+    mode.add_argument("--landmarks", action="store_true", help="the landmark layout authored in FILE")
+    p.add_argument("--capture", action="store_true", help="FILE is a capture (.usda); folders always are")
+    p.add_argument("--force", action="store_true", help="overwrite the PNG")
+    p.set_defaults(func=run)
+
+
+def _pick_mesh(avatar, name):
+    if name:
+        try:
+            return avatar.mesh(name)
+        except KeyError:
+            from ..errors import RigError
+
+            raise RigError(f"no mesh {name!r}", path=avatar.file,
+                           fix=f"use one of {', '.join(m.name for m in avatar.meshes)}") from None
+    return max(avatar.meshes, key=lambda m: m.n_shapes)
+
+
+def _generic(args, path: Path) -> Path:
+    from ..errors import InputFileError
+    from ..io.usd_inspection import generic_input
+
+    given = args.compare if args.compare is not None else args.heatmap
+    generic = Path(given) if given else generic_input(path)
+    if generic is None:
+        raise InputFileError("not a usdface layer (no sublayer to compare with)", path=path,
+                             fix="pass the generic avatar explicitly: --compare GENERIC.usdc")
+    return generic
+
+
+def run(args) -> int:
+    import numpy as np
+
+    from .. import api, render
+
+    path = Path(args.file)
+    shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
+    if path.is_dir() or args.capture:
+        capture = api.read_capture(path)
+        rig = capture.template
+        rig = type(rig)(capture.neutral, rig.triangles, rig.names, rig.deltas, rig.inbetweens, rig.source,
+                        "capture")
+        render.render_shapes(rig, shapes, args.output, weight=args.weight, view=args.view, force=args.force,
+                             title=f"{path.name}: template shapes on the person's neutral")
+        print(f"wrote {args.output}")
+        return 0
+    avatar = api.read_avatar(path)
+    rig = _pick_mesh(avatar, args.mesh)
+    if args.landmarks:
+        from ..errors import LandmarkError
+        from ..io.usd_inspection import read_landmarks
+
+        layouts = read_landmarks(path)
+        key = next((k for k in layouts if rig.source and k == rig.source.prim), None)
+        if key is None:
+            raise LandmarkError(f"no landmark layout for mesh {rig.name!r}", path=path,
+                                fix="run 'usdface landmarks' (or personalize with landmarks) first")
+        render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
+                                force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
+    elif args.compare is not None or args.heatmap is not None:
+        generic_path = _generic(args, path)
+        generic = _pick_mesh(api.read_avatar(generic_path), rig.name)
+        if args.compare is not None:
+            render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
+                                     force=args.force, title=f"{rig.name}: generic vs personalized")
+        else:
+            diff = rig.deltas - generic.subset(rig.names).deltas
+            rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
+            render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
+                                  label="RMS change over shapes (mm)", force=args.force,
+                                  title=f"{rig.name}: personalized vs generic")
+    else:
+        render.render_shapes(rig, shapes, args.output, weight=args.weight, view=args.view, force=args.force,
+                             title=f"{path.name}: {rig.name}")
+    print(f"wrote {args.output}")
+    return 0

@@ -1,0 +1,214 @@
+"""Inspection data authored into a personalize result, so usdview shows what usdface did.
+
+:func:`inspection_edit` builds the ``edit(stage)`` callback that :func:`usdface.io.layers.write_avatar_layer`
+runs on the new layer before saving. It authors, as local opinions of the new layer only:
+
+* **heat maps**: for each mesh given, ``primvars:displayColor`` (vertex interpolation, a colour map of the
+  per-vertex values) and the raw values as ``primvars:usdface:heat`` (float, metres). usdview draws
+  displayColor when the mesh has no bound material (or with "Enable Scene Materials" off);
+* **landmarks**: a ``Points`` prim ``<SkelRoot>/usdfaceLandmarks/<mesh>`` at the landmark vertices of the
+  mesh's rest points (same transform as the mesh), with ``UsdFaceLandmarksAPI`` (``vertexIndices``, ``mesh``
+  relationship, ``count`` and whatever layout parameters are given);
+* **animation**: a ``SkelAnimation`` ``<Skeleton>/usdfaceInspection`` playing weights (the capture's test
+  expressions, a Live Link take...) through :func:`usdface.io.usd_anim.author_skel_animation`, with the
+  Skeleton's ``skel:animationSource`` pointed at it (the original binding target is kept in the relationship's
+  ``customData["usdface:originalAnimationSource"]``); the stage's time range covers the animation.
+
+:func:`read_landmarks` and :func:`generic_input` read back what ``usdface render`` needs.
+
+Example::
+
+    edit = inspection_edit(avatar, heat={"Head": err[n]}, landmarks={"Head": idx},
+                           animation=(capture.names, capture.test.weights))
+    write_avatar_layer(avatar, "out.usda", offsets, edit=edit)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import RigError
+from ..model import Avatar
+
+#: Scope under each SkelRoot holding the landmark Points prims.
+LANDMARKS_SCOPE = "usdfaceLandmarks"
+#: Name of the inspection SkelAnimation under the Skeleton.
+ANIMATION_NAME = "usdfaceInspection"
+#: Primvar holding the raw heat-map values (metres).
+HEAT_PRIMVAR = "usdface:heat"
+
+
+def _rig(avatar: Avatar, key: str):
+    try:
+        rig = avatar.mesh(key)
+    except KeyError:
+        raise RigError(f"no mesh {key!r} in the avatar", path=avatar.file,
+                       fix=f"use one of {', '.join(m.name for m in avatar.meshes)}") from None
+    if rig.source is None:
+        raise RigError(f"mesh {key!r} has no USD source", path=avatar.file,
+                       fix="read the avatar with read_avatar")
+    return rig
+
+
+def _author_heat(stage, avatar: Avatar, heat: dict, vmax: float | None):
+    from pxr import Sdf, UsdGeom, Vt
+
+    from ..render import heat_colors
+
+    for key, values in heat.items():
+        rig = _rig(avatar, key)
+        values = np.asarray(values, dtype=np.float64).ravel()
+        if values.shape[0] != rig.n_vertices:
+            raise RigError(f"heat map for {key!r} has {values.shape[0]} values, the mesh {rig.n_vertices}",
+                           path=avatar.file, prim=rig.source.prim, fix="give one value per mesh point")
+        api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(rig.source.prim))
+        colors = heat_colors(values, vmax=vmax).astype(np.float32)
+        api.CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(colors))
+        api.CreatePrimvar(HEAT_PRIMVAR, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+            Vt.FloatArray.FromNumpy(values.astype(np.float32)))
+
+
+def _author_landmarks(stage, avatar: Avatar, landmarks: dict, layout_info: dict):
+    from pxr import Gf, Sdf, UsdGeom, Vt
+
+    from .. import schemas
+
+    cache = UsdGeom.XformCache()
+    for key, indices in landmarks.items():
+        rig = _rig(avatar, key)
+        indices = np.asarray(indices, dtype=np.int64).ravel()
+        if indices.size and (indices.min() < 0 or indices.max() >= rig.n_vertices):
+            raise RigError(f"landmark index out of range [0, {rig.n_vertices}) for {key!r}", path=avatar.file,
+                           prim=rig.source.prim, fix="use vertex indices of this mesh")
+        mesh_prim = stage.GetPrimAtPath(rig.source.prim)
+        rest = np.asarray(UsdGeom.Mesh(mesh_prim).GetPointsAttr().Get(), dtype=np.float64)
+        root = rig.source.skel_root or str(mesh_prim.GetPath().GetParentPath())
+        scope = UsdGeom.Scope.Define(stage, Sdf.Path(root).AppendChild(LANDMARKS_SCOPE))
+        points = UsdGeom.Points.Define(stage, scope.GetPath().AppendChild(mesh_prim.GetName()))
+        local = rest[indices]
+        points.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local.astype(np.float32)))
+        extent = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))) if len(rest) else 1.0
+        points.CreateWidthsAttr(Vt.FloatArray([0.012 * extent] * len(local)))
+        points.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(0.1, 0.55, 1.0)]))
+        # same placement as the mesh: mesh-to-world expressed under the Points' parent
+        to_world = cache.GetLocalToWorldTransform(mesh_prim)
+        parent_world = cache.GetLocalToWorldTransform(scope.GetPrim())
+        points.AddTransformOp().Set(to_world * parent_world.GetInverse())
+        prim = points.GetPrim()
+        prim.ApplyAPI(schemas.LANDMARKS_API)
+        prim.GetAttribute("usdface:landmarks:vertexIndices").Set(Vt.IntArray([int(i) for i in indices]))
+        prim.GetAttribute("usdface:landmarks:count").Set(int(indices.size))
+        rel = prim.GetRelationship("usdface:landmarks:mesh")
+        if rel:
+            rel.SetTargets([mesh_prim.GetPath()])
+        for name, value in (layout_info.get(key) or {}).items():
+            attr = prim.GetAttribute(f"usdface:landmarks:{name}")
+            if attr:
+                attr.Set(value)
+
+
+def _author_animation(stage, avatar: Avatar, names, weights, fps: float):
+    from pxr import Sdf, UsdSkel
+
+    from .usd_anim import author_skel_animation
+
+    weights = np.asarray(weights, dtype=np.float64)
+    names = [str(n) for n in names]
+    column = {n: i for i, n in enumerate(names)}
+    by_skeleton: dict[str, list[str]] = {}
+    for rig in avatar.meshes:
+        if rig.source is None or not rig.source.skeleton:
+            continue
+        tokens = rig.source.channel_tokens or rig.names
+        channels = by_skeleton.setdefault(rig.source.skeleton, [])
+        for canonical, token in zip(rig.names, tokens, strict=True):
+            if token not in channels:
+                channels.append(token)
+                column.setdefault(token, column.get(canonical, -1))
+    if not by_skeleton:
+        raise RigError("no Skeleton bound to the avatar's meshes; cannot add an animation", path=avatar.file,
+                       fix="bind the meshes to a Skeleton (rel skel:skeleton)")
+    for skeleton, tokens in by_skeleton.items():
+        cols = np.array([column.get(t, -1) for t in tokens])
+        w = np.zeros((weights.shape[0], len(tokens)))
+        w[:, cols >= 0] = weights[:, cols[cols >= 0]]
+        anim_path = Sdf.Path(skeleton).AppendChild(ANIMATION_NAME)
+        author_skel_animation(stage, anim_path, tokens, w, fps)
+        binding = UsdSkel.BindingAPI.Apply(stage.GetPrimAtPath(skeleton))
+        rel = binding.CreateAnimationSourceRel()
+        old = rel.GetTargets()
+        if old and old[0] != anim_path:
+            rel.SetCustomDataByKey("usdface:originalAnimationSource", str(old[0]))
+        rel.SetTargets([anim_path])
+
+
+def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: float | None = None,
+                    landmarks: dict | None = None, landmark_info: dict | None = None,
+                    animation: tuple | None = None, fps: float = 24.0) -> Callable:
+    """The ``edit(stage)`` callback for :func:`usdface.io.layers.write_avatar_layer` that authors inspection
+    data.
+
+    Parameters
+    ----------
+    avatar : the avatar the layer is written over (``read_avatar``); meshes are named by prim name or path.
+    heat : {mesh -> values[n]} per-vertex values in metres (e.g. |personalized - generic| or an error).
+    heat_vmax : value mapped to the brightest colour (default: each map's 99th percentile).
+    landmarks : {mesh -> vertex indices[m]} landmark vertices.
+    landmark_info : {mesh -> {attribute -> value}} extra ``usdface:landmarks:*`` values (epsilon, alpha, ...).
+    animation : (names[K], weights[F, K]) weights per frame; names in any ARKit spelling, mapped onto the
+        avatar's channel tokens (a channel with no column stays at 0).
+    fps : frames per second of the animation.
+    """
+
+    def edit(stage) -> None:
+        if heat:
+            _author_heat(stage, avatar, heat, heat_vmax)
+        if landmarks:
+            _author_landmarks(stage, avatar, landmarks, landmark_info or {})
+        if animation is not None:
+            names, weights = animation
+            _author_animation(stage, avatar, _canonical(names), weights, fps)
+
+    return edit
+
+
+def _canonical(names) -> list[str]:
+    from ..arkit import normalize_name
+
+    return [normalize_name(str(n)) or str(n) for n in names]
+
+
+def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
+    """{mesh prim path -> vertex indices} of every prim with ``usdface:landmarks:vertexIndices`` authored."""
+    from pxr import Usd
+
+    stage = stage_or_path
+    if isinstance(stage_or_path, str | Path):
+        from ..pipeline.validators import open_stage
+
+        stage = open_stage(stage_or_path)
+    found = {}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        attr = prim.GetAttribute("usdface:landmarks:vertexIndices")
+        if not attr or not attr.HasAuthoredValue():
+            continue
+        rel = prim.GetRelationship("usdface:landmarks:mesh")
+        targets = rel.GetTargets() if rel else []
+        key = str(targets[0]) if targets else str(prim.GetPath())
+        found[key] = np.asarray(attr.Get(), dtype=np.int64)
+    return found
+
+
+def generic_input(layer_path) -> Path | None:
+    """The avatar a usdface layer was written over (its first sublayer, resolved), or None."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(layer_path))
+    if layer is None or not layer.subLayerPaths:
+        return None
+    sub = Path(layer.subLayerPaths[0])
+    return sub if sub.is_absolute() else (Path(layer_path).parent / sub).resolve()

@@ -1,0 +1,233 @@
+"""Pictures of face rigs without a display (matplotlib, Agg backend): neutral and selected shapes, generic vs
+personalized side by side, per-vertex heat maps, landmarks.
+
+Arrays in, PNG out; no USD here (``usdface render`` reads the files and calls these). Meshes are drawn as an
+orthographic view of flat-shaded triangles, back faces culled and the rest painted far-to-near (painter's
+algorithm), which is exact for the convex-ish, single-sheet face meshes usdface handles.
+
+Conventions: ``points[n, 3]`` metres, internal frame (Y up, the face looking down +Z, as the readers produce);
+``triangles[t, 3]``; ``values[n]`` per-vertex scalars (e.g. error in metres, drawn in millimetres).
+
+Example::
+
+    from usdface.render import render_shapes
+    render_shapes(rig, ["jawOpen", "eyeBlinkLeft"], "shapes.png")
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import OutputExistsError, UsdFaceError
+
+#: View name -> rotation applied to points before dropping z (camera looks down -z of the rotated frame).
+VIEWS = {
+    "front": np.eye(3),
+    "left": np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),   # camera on the person's left
+    "right": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+}
+_LIGHT = np.array([0.35, 0.45, 1.0]) / np.linalg.norm([0.35, 0.45, 1.0])
+_SKIN = np.array([0.86, 0.74, 0.66])
+
+
+def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    ncols = ncols or min(n_panels, 4)
+    nrows = int(np.ceil(n_panels / ncols))
+    fig = Figure(figsize=(size * ncols, size * 1.15 * nrows), dpi=100)
+    axes = [fig.add_subplot(nrows, ncols, i + 1) for i in range(n_panels)]
+    for ax in axes:
+        ax.set_aspect("equal")
+        ax.set_axis_off()
+    return fig, axes
+
+
+def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
+              color=_SKIN):
+    """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
+    map with shading). Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
+    from matplotlib.collections import PolyCollection
+
+    rot = VIEWS[view]
+    p = np.asarray(points, dtype=np.float64) @ rot.T
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    corners = p[tri]                                            # [t, 3, 3]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 0
+    normals[ok] /= length[ok, None]
+    front = ok & (normals[:, 2] > 0.0)
+    order = np.argsort(corners[front][:, :, 2].mean(axis=1))    # far to near
+    faces = np.flatnonzero(front)[order]
+    shade = 0.35 + 0.65 * np.clip(normals[faces] @ _LIGHT, 0.0, 1.0)
+    if values is not None:
+        import matplotlib
+
+        vals = np.asarray(values, dtype=np.float64)[tri[faces]].mean(axis=1)
+        lo = np.nanmin(vals) if vmin is None else vmin
+        hi = np.nanmax(vals) if vmax is None else vmax
+        norm = matplotlib.colors.Normalize(lo, hi if hi > lo else lo + 1e-12)
+        rgb = matplotlib.colormaps[cmap](norm(vals))[:, :3] * (0.55 + 0.45 * shade[:, None])
+    else:
+        rgb = np.asarray(color)[None, :] * shade[:, None]
+    coll = PolyCollection(corners[faces][:, :, :2], facecolors=np.clip(rgb, 0, 1), edgecolors="none",
+                          antialiased=False)
+    if values is not None:
+        coll.set_cmap(cmap)
+        coll.set_norm(norm)
+        coll.set_array(None)
+    ax.add_collection(coll)
+    xy = p[np.unique(tri)][:, :2] if len(tri) else p[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = 0.04 * float(np.max(hi - lo) or 1.0)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    return coll
+
+
+def save_figure(fig, out, force: bool = False) -> Path:
+    """Save a figure as PNG atomically (temp file + rename); refuses to overwrite unless ``force``."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise OutputExistsError("picture exists", path=out, fix="pass --force (force=True) to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.png")
+    try:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out
+
+
+def _shape_index(rig, name: str) -> int:
+    try:
+        return rig.index(name)
+    except ValueError:
+        more = " ..." if rig.n_shapes > 8 else ""
+        raise UsdFaceError(f"rig {rig.name or ''} has no shape {name!r}",
+                           fix=f"choose from {', '.join(rig.names[:8])}{more}") from None
+
+
+def default_shapes(rig, count: int = 5) -> list[str]:
+    """The ``count`` shapes that move the mesh most (largest max vertex offset), in rig order."""
+    if rig.n_shapes == 0:
+        return []
+    size = np.linalg.norm(rig.deltas, axis=2).max(axis=1)
+    keep = np.sort(np.argsort(-size)[:count])
+    return [rig.names[k] for k in keep]
+
+
+def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str = "front",
+                  force: bool = False, title: str | None = None):
+    """Neutral plus each shape of ``shapes`` (default: :func:`default_shapes`) at ``weight``; the heat of
+    each panel is the vertex displacement in mm. Returns the figure; saved to ``out`` when given."""
+    shapes = list(shapes) if shapes is not None else default_shapes(rig)
+    fig, axes = _figure(1 + len(shapes))
+    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view)
+    axes[0].set_title("neutral")
+    for ax, name in zip(axes[1:], shapes, strict=True):
+        k = _shape_index(rig, name)
+        w = np.zeros(rig.n_shapes)
+        w[k] = weight
+        moved = rig.evaluate(w)
+        disp_mm = 1000.0 * np.linalg.norm(moved - rig.neutral, axis=1)
+        draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view)
+        ax.set_title(f"{name} ({disp_mm.max():.1f} mm)")
+    if title:
+        fig.suptitle(title)
+    if out is not None:
+        save_figure(fig, out, force)
+    return fig
+
+
+def render_comparison(generic, personalized, shapes=None, out=None, *, view: str = "front",
+                      force: bool = False, title: str | None = None):
+    """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
+    distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count)."""
+    if generic.n_vertices != personalized.n_vertices:
+        raise UsdFaceError(f"cannot compare rigs with {generic.n_vertices} and {personalized.n_vertices} "
+                           "vertices", fix="compare the same mesh of the generic and personalized avatars")
+    shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
+    fig, axes = _figure(3 * len(shapes), ncols=3)
+    for row, name in enumerate(shapes):
+        a = generic.evaluate(_one_hot(generic, name))
+        b = personalized.evaluate(_one_hot(personalized, name))
+        diff_mm = 1000.0 * np.linalg.norm(b - a, axis=1)
+        draw_mesh(axes[3 * row], a, generic.triangles, view=view)
+        axes[3 * row].set_title(f"{name}: generic")
+        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view)
+        axes[3 * row + 1].set_title(f"{name}: personalized")
+        coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
+                         view=view)
+        axes[3 * row + 2].set_title(f"difference (max {diff_mm.max():.2f} mm)")
+        fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
+    if title:
+        fig.suptitle(title)
+    if out is not None:
+        save_figure(fig, out, force)
+    return fig
+
+
+def heat_colors(values, vmax: float | None = None, cmap: str = "magma") -> np.ndarray:
+    """Per-vertex RGB ``colors[n, 3]`` in [0, 1] for ``values[n]`` on a colour map, 0 -> dark, ``vmax``
+    (default: the 99th percentile, robust to a few outliers) -> bright."""
+    import matplotlib
+
+    values = np.nan_to_num(np.asarray(values, dtype=np.float64).ravel())
+    top = float(np.percentile(values, 99)) if vmax is None and values.size else float(vmax or 0.0)
+    norm = matplotlib.colors.Normalize(0.0, top if top > 0 else 1.0)
+    return matplotlib.colormaps[cmap](norm(values))[:, :3]
+
+
+def _one_hot(rig, name: str) -> np.ndarray:
+    w = np.zeros(rig.n_shapes)
+    w[_shape_index(rig, name)] = 1.0
+    return w
+
+
+def render_heatmap(points, triangles, values, out=None, *, label: str = "error (mm)", scale: float = 1000.0,
+                   view: str = "front", vmax: float | None = None, force: bool = False,
+                   title: str | None = None):
+    """A per-vertex heat map: ``values[n]`` (metres by default, drawn as ``values * scale``) on the mesh."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    if values.shape[0] != np.asarray(points).shape[0]:
+        raise UsdFaceError(f"{values.shape[0]} heat-map values for {np.asarray(points).shape[0]} vertices",
+                           fix="give one value per vertex")
+    fig, axes = _figure(1, size=5.0)
+    coll = draw_mesh(axes[0], points, triangles, values=values * scale, cmap="magma", vmin=0.0,
+                     vmax=vmax, view=view)
+    fig.colorbar(coll, ax=axes[0], shrink=0.8, label=label)
+    axes[0].set_title(title or f"max {np.nanmax(values * scale):.2f}, mean {np.nanmean(values * scale):.2f}")
+    if out is not None:
+        save_figure(fig, out, force)
+    return fig
+
+
+def render_landmarks(points, triangles, indices, out=None, *, labels=None, view: str = "front",
+                     force: bool = False, title: str | None = None):
+    """Landmark vertices ``indices[m]`` as dots on the mesh (optionally numbered with ``labels[m]``)."""
+    indices = np.asarray(indices, dtype=np.int64).ravel()
+    points = np.asarray(points, dtype=np.float64)
+    if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
+        raise UsdFaceError(f"landmark index out of range [0, {len(points)})",
+                           fix="use vertex indices of this mesh")
+    fig, axes = _figure(1, size=5.0)
+    draw_mesh(axes[0], points, triangles, view=view)
+    xy = (points[indices] @ VIEWS[view].T)[:, :2]
+    axes[0].scatter(xy[:, 0], xy[:, 1], s=14, c="#1f77b4", edgecolors="white", linewidths=0.6, zorder=3)
+    if labels is not None:
+        for (x, y), text in zip(xy, labels, strict=True):
+            axes[0].annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    axes[0].set_title(title or f"{indices.size} landmarks")
+    if out is not None:
+        save_figure(fig, out, force)
+    return fig
