@@ -420,3 +420,46 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
+
+
+def read_layer_info(path) -> dict:
+    """What a USD file says about itself, for reports: the root layer's authored stage metadata, sublayers,
+    documentation, ``customLayerData["usdface"]`` (plain Python values), the prims that carry a usdface API
+    schema (with that schema's authored attribute values) and the variant selections of usdface variant sets.
+    """
+    from pxr import Usd
+
+    path = Path(path)
+    stage = _open_stage(path)
+    root = stage.GetRootLayer()
+    meta = {k: _plain(root.pseudoRoot.GetInfo(k)) for k in STAGE_METADATA_KEYS if root.pseudoRoot.HasInfo(k)}
+    usdface_data = _plain(dict(root.customLayerData).get("usdface", {}))
+    schemas_found, variants = {}, {}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        applied = [s for s in prim.GetAppliedSchemas() if s.startswith("UsdFace")]
+        if applied:
+            values = {}
+            for attr in prim.GetAttributes():
+                if attr.GetName().startswith("usdface:") and attr.HasAuthoredValue():
+                    values[attr.GetName()] = _plain(attr.Get())
+            schemas_found[str(prim.GetPath())] = {"schemas": applied, "values": values}
+        for name in prim.GetVariantSets().GetNames():
+            if name.startswith("usdface"):
+                variants.setdefault(str(prim.GetPath()), {})[name] = {
+                    "selection": prim.GetVariantSets().GetVariantSelection(name),
+                    "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
+    return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
+            "documentation": root.documentation or "", "usdface": usdface_data, "schemas": schemas_found,
+            "variants": variants}
+
+
+def _plain(value):
+    """USD values (VtArrays, dictionaries, tokens) -> plain Python for JSON."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (str, bool, int, float)) or value is None:
+        return value
+    try:
+        return [_plain(v) for v in value]
+    except TypeError:
+        return str(value)

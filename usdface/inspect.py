@@ -1,0 +1,217 @@
+"""``usdface inspect``: what an avatar, a usdface layer or a capture contains, as a dict and as text.
+
+For an avatar (or a usdface output layer over one): every skinned mesh with blend shapes, its vertex /
+triangle counts, units and up axis of the stage, and its shapes compared with the ARKit 52: present, missing,
+extra (not ARKit), misspelt (close to an ARKit name: a likely typo), renamed (mapped inexactly, e.g. Blender's
+``eyeBlinkLeft2`` or the raw spelling ``eyeBlink_L``), sparse / dense storage and inbetweens. For a usdface
+layer also the provenance and the variant selections; for a capture (folder or ``capture.usda``) the frames
+by role, the shape names and the mesh sizes.
+
+Pure Python over the model: the file reading is done by :mod:`usdface.io`.
+
+Example::
+
+    from usdface.inspect import inspect_file, format_report
+    report = inspect_file("avatar_blender.usdc")
+    print(format_report(report))
+"""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+
+import numpy as np
+
+from . import arkit
+from .model import Avatar, Capture, FaceRig
+
+#: Similarity above which an unknown name is reported as a likely misspelling of an ARKit name.
+MISSPELLING_CUTOFF = 0.8
+
+
+def _misspellings(unknown) -> dict[str, str]:
+    """{unknown name -> closest ARKit name} for names that look like typos (difflib ratio >= cutoff)."""
+    out = {}
+    candidates = {n.lower(): n for n in arkit.ARKIT_NAMES}
+    for name in unknown:
+        hit = difflib.get_close_matches(name.lower(), list(candidates), n=1, cutoff=MISSPELLING_CUTOFF)
+        if hit:
+            out[name] = candidates[hit[0]]
+    return out
+
+
+def shape_storage(rig: FaceRig) -> dict:
+    """How the rig's shapes are stored: counts of dense (no pointIndices), dense-indexed (pointIndices listing
+    every point) and sparse shapes, the mean fraction of points listed, and inbetweens by shape."""
+    src = rig.source
+    kinds = {"dense": 0, "denseIndexed": 0, "sparse": 0}
+    fractions = []
+    for idx in (src.point_indices if src else [None] * rig.n_shapes):
+        if idx is None:
+            kinds["dense"] += 1
+            fractions.append(1.0)
+        elif len(idx) == rig.n_vertices:
+            kinds["denseIndexed"] += 1
+            fractions.append(1.0)
+        else:
+            kinds["sparse"] += 1
+            fractions.append(len(idx) / max(rig.n_vertices, 1))
+    normals = sum(n is not None for n in (src.normal_offsets if src else []))
+    moved = np.linalg.norm(rig.deltas, axis=2).max(axis=1) if rig.n_shapes else np.zeros(0)
+    return {**kinds, "meanListedFraction": float(np.mean(fractions)) if fractions else 0.0,
+            "normalOffsets": int(normals),
+            "inbetweens": {name: [{"name": b.name, "weight": float(b.weight)} for b in ibs]
+                           for name, ibs in rig.inbetweens.items()},
+            "zeroShapes": [rig.names[k] for k in np.flatnonzero(moved == 0)]}
+
+
+def names_vs_arkit(names, report: dict | None = None) -> dict:
+    """Shape names against the ARKit 52: present, missing, extra, misspelt, renamed (inexact mappings)."""
+    report = report or {}
+    present = [n for n in arkit.ARKIT_NAMES if n in names]
+    extra = [n for n in names if n not in arkit.ARKIT_SET]
+    missing = [n for n in arkit.ARKIT_NAMES if n not in names]
+    return {"present": len(present), "missing": missing,
+            "missingRequired": [n for n in missing if n not in arkit.OPTIONAL_NAMES],
+            "extra": extra, "misspelt": _misspellings(extra),
+            "renamed": [{"given": g, "canonical": c, "how": h} for g, c, h in report.get("inexact", [])]}
+
+
+def _mesh_summary(rig: FaceRig, report: dict) -> dict:
+    src = rig.source
+    lo, hi = rig.neutral.min(axis=0), rig.neutral.max(axis=0)
+    counts = src.face_vertex_counts if src is not None and src.face_vertex_counts is not None else None
+    return {
+        "prim": src.prim if src else rig.name, "name": rig.name, "vertices": rig.n_vertices,
+        "faces": int(len(counts)) if counts is not None else int(len(rig.triangles)),
+        "triangles": int(len(rig.triangles)),
+        "polygons": {str(int(k)): int(v) for k, v in zip(*np.unique(counts, return_counts=True), strict=True)}
+        if counts is not None else {"3": int(len(rig.triangles))},
+        "shapes": rig.n_shapes, "skelRoot": src.skel_root if src else None,
+        "skeleton": src.skeleton if src else None, "animation": src.animation if src else None,
+        "boundsMetres": [lo.round(4).tolist(), hi.round(4).tolist()],
+        "arkit": names_vs_arkit(rig.names, report), "storage": shape_storage(rig),
+        "channelTokens": list(src.channel_tokens) if src else list(rig.names),
+    }
+
+
+def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
+    """Report dict for an avatar (see module doc); ``layer_info`` (from
+    :func:`usdface.io.usd_rig.read_layer_info`) adds provenance, sublayers and variant selections."""
+    layer_info = layer_info or {}
+    out = {
+        "file": avatar.file, "kind": "usdface-layer" if layer_info.get("usdface") else "avatar",
+        "upAxis": avatar.up_axis, "metersPerUnit": avatar.meters_per_unit, "defaultPrim": avatar.default_prim,
+        "stageMetadata": dict(avatar.metadata.get("stage", {})),
+        "notes": list(avatar.metadata.get("notes", [])),
+        "meshes": [_mesh_summary(m, avatar.name_report.get(m.source.prim if m.source else m.name, {}))
+                   for m in avatar.meshes],
+    }
+    if layer_info:
+        out["subLayers"] = layer_info.get("subLayers", [])
+        out["provenance"] = layer_info.get("usdface", {})
+        out["variants"] = layer_info.get("variants", {})
+        out["schemas"] = {p: v["schemas"] for p, v in layer_info.get("schemas", {}).items()}
+    return out
+
+
+def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
+    """Report dict for a capture: frames per role with labels, shape names vs ARKit, mesh sizes."""
+    frames = capture.frames
+    roles = {}
+    for role in sorted(set(frames.role)):
+        sel = [i for i, r in enumerate(frames.role) if r == role]
+        roles[role] = {"count": len(sel), "labels": [frames.label[i] for i in sel]}
+    report = capture.metadata.get("name_report", {}) if isinstance(capture.metadata, dict) else {}
+    out = {"file": capture.source, "kind": "capture", "vertices": int(len(capture.neutral)),
+           "triangles": int(len(capture.triangles)), "frames": len(frames), "roles": roles,
+           "shapes": len(capture.names), "arkit": names_vs_arkit(capture.names, report),
+           "templateShapes": capture.template.n_shapes}
+    if layer_info:
+        out["stageMetadata"] = layer_info.get("stage", {})
+        out["schemas"] = {p: v for p, v in layer_info.get("schemas", {}).items()}
+    return out
+
+
+def inspect_file(path) -> dict:
+    """Inspect an avatar / usdface layer (.usd, .usda, .usdc) or a capture (folder or capture.usda).
+
+    Raises the readers' :class:`usdface.errors.UsdFaceError` subclasses on unreadable input.
+    """
+    import usdface.io as io
+
+    path = Path(path)
+    if path.is_dir():
+        return summarize_capture(io.read_capture(path))
+    from .io.usd_rig import read_avatar, read_layer_info
+
+    info = read_layer_info(path)
+    is_capture = info.get("usdface", {}).get("format") == "capture" or any(
+        "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
+    if is_capture and hasattr(io, "read_capture"):
+        return summarize_capture(io.read_capture(path), info)
+    return summarize_avatar(read_avatar(path), info)
+
+
+def _names_line(label: str, items, limit: int = 12) -> str:
+    items = list(items)
+    more = f" ... (+{len(items) - limit})" if len(items) > limit else ""
+    return f"    {label} ({len(items)}): {', '.join(map(str, items[:limit]))}{more}"
+
+
+def format_report(report: dict) -> str:
+    """Human-readable text for :func:`inspect_file`'s dict."""
+    lines = [f"{report.get('file')}: {report.get('kind')}"]
+    if report.get("kind") == "capture":
+        lines.append(f"  mesh: {report['vertices']} vertices, {report['triangles']} triangles")
+        lines.append(f"  frames: {report['frames']} ("
+                     + ", ".join(f"{r}: {v['count']}" for r, v in report["roles"].items()) + ")")
+        for role, v in report["roles"].items():
+            lines.append(_names_line(role, v["labels"], 8))
+        lines.append(f"  shapes: {report['shapes']} (template {report['templateShapes']})")
+        lines += _arkit_lines(report["arkit"])
+        return "\n".join(lines)
+    mpu = report["metersPerUnit"]
+    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(mpu, f"{mpu} m")
+    lines.append(f"  units: metersPerUnit {mpu} ({unit}), upAxis {report['upAxis']}, "
+                 f"defaultPrim {report.get('defaultPrim')}")
+    for note in report.get("notes", []):
+        lines.append(f"  note: {note}")
+    for mesh in report["meshes"]:
+        st = mesh["storage"]
+        lines.append(f"  mesh {mesh['prim']}: {mesh['vertices']} vertices, {mesh['faces']} faces "
+                     f"({mesh['triangles']} triangles), {mesh['shapes']} shapes; skeleton {mesh['skeleton']}")
+        lines.append(f"    storage: {st['sparse']} sparse, {st['dense']} dense, {st['denseIndexed']} dense "
+                     f"pointIndices (listing every point); {st['meanListedFraction']:.0%} of points "
+                     f"listed on average; {st['normalOffsets']} with normalOffsets")
+        if st["inbetweens"]:
+            lines.append("    inbetweens: " + ", ".join(
+                f"{k} @ " + "/".join(f"{b['weight']:g}" for b in v) for k, v in st["inbetweens"].items()))
+        if st["zeroShapes"]:
+            lines.append(_names_line("zero shapes", st["zeroShapes"]))
+        lines += _arkit_lines(mesh["arkit"])
+    if report.get("provenance"):
+        prov = report["provenance"]
+        lines.append(f"  usdface layer: version {prov.get('version')}, command {prov.get('command')!r}, "
+                     f"created {prov.get('createdAt')}")
+        for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
+            lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
+    for prim, sets in report.get("variants", {}).items():
+        for name, v in sets.items():
+            lines.append(f"  variant set {prim}:{name} = {v['selection']} (of {', '.join(v['variants'])})")
+    return "\n".join(lines)
+
+
+def _arkit_lines(a: dict) -> list[str]:
+    lines = [f"    ARKit: {a['present']}/52 present"]
+    if a["missing"]:
+        lines.append(_names_line("missing", a["missing"]))
+    if a["extra"]:
+        lines.append(_names_line("extra (not ARKit)", a["extra"]))
+    if a["misspelt"]:
+        lines.append(_names_line("misspelt?", [f"{k} -> {v}" for k, v in a["misspelt"].items()]))
+    if a["renamed"]:
+        lines.append(_names_line("renamed", [f"{r['given']} -> {r['canonical']} ({r['how']})"
+                                             for r in a["renamed"]], 6))
+    return lines
