@@ -1,0 +1,205 @@
+"""Correspondence map M between the avatar face and the capture mesh (Menzel et al. 2022, sec. 3.3).
+
+1. :func:`nonrigid_register` - the capture template, already placed by the similarity of
+   :mod:`usdface.transfer.register`, is deformed onto the avatar face surface: alternate closest points on
+   the avatar (Open3D ``RaycastingScene``; pairs rejected by distance and normal tests) and a sparse
+   least-squares solve that keeps the displacement smooth (Laplacian stiffness, relaxed over the iterations).
+2. :func:`correspondence_map` - for every avatar face-mesh vertex, the closest point on the registered capture
+   surface (triangle + barycentric coordinates). The face region is computed automatically: the vertex is
+   within a distance tolerance of the capture surface, its normal agrees with the capture triangle's normal,
+   and the closest point is not clamped onto the capture's open border or a hole (eyes, mouth).
+
+The map is a function of the avatar's face mesh and the capture template only, so it is computed once per
+avatar and cached (:func:`save_correspondence` / :func:`load_correspondence`, keyed by a digest of both).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..errors import InputFileError
+from .surface import (
+    boundary_vertices,
+    closest_points,
+    cotangent_laplacian,
+    mean_edge_length,
+    triangle_normals,
+    vertex_normals,
+)
+
+__all__ = ["Correspondence", "nonrigid_register", "correspondence_map", "geometry_digest",
+           "save_correspondence", "load_correspondence"]
+
+CACHE_VERSION = 1
+
+
+@dataclass
+class Correspondence:
+    """Correspondence from capture vertices to avatar face-mesh vertices.
+
+    ``triangle[m]`` (capture triangle of each avatar vertex), ``barycentric[m,3]``, ``distance[m]`` (m, from
+    the avatar vertex to the registered capture surface), ``face[m]`` bool (the face region),
+    ``source_triangle[t_avatar]`` the capture triangle under each avatar face triangle's centroid (-1 for
+    triangles not entirely in the face), ``key`` the
+    digest it belongs to, ``info`` figures for the report.
+    """
+
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    distance: np.ndarray
+    face: np.ndarray
+    source_triangle: np.ndarray
+    key: str = ""
+    info: dict | None = None
+
+    def matrix(self, capture_triangles, n_capture: int, *, face_only: bool = True) -> sp.csr_matrix:
+        """M as a sparse ``[m, n_capture]`` interpolation matrix (rows outside the face are empty when
+        ``face_only``)."""
+        tri = np.asarray(capture_triangles)[self.triangle]
+        w = self.barycentric * (self.face[:, None] if face_only else 1.0)
+        rows = np.repeat(np.arange(len(self.triangle)), 3)
+        return sp.csr_matrix((w.ravel(), (rows, tri.ravel())), shape=(len(self.triangle), n_capture))
+
+    def apply(self, capture_values, capture_triangles) -> np.ndarray:
+        """``M @ values``: interpolate per-capture-vertex values ``[..., n_capture, c]`` at the avatar
+        vertices -> ``[..., m, c]`` (every vertex; use ``face`` to select the region)."""
+        v = np.asarray(capture_values)
+        tri = np.asarray(capture_triangles)[self.triangle]  # [m,3]
+        return np.einsum("mk,...mkc->...mc", self.barycentric, v[..., tri, :])
+
+
+def nonrigid_register(points, triangles, target_points, target_triangles, *,
+                      stiffness=(30.0, 10.0, 3.0, 1.0, 0.3), iterations_per_level: int = 2,
+                      max_angle_deg: float = 60.0) -> tuple[np.ndarray, dict]:
+    """Deform ``points[n,3]`` (already rigidly placed) onto the surface ``target_points/triangles``.
+
+    Minimises ``alpha^2 ||L (x - x0)||^2 + sum_i w_i ||x_i - c_i||^2`` per iteration with ``c_i`` the closest
+    target point of ``x_i`` (weight 0 if farther than 3 mean edge lengths or if the normals disagree by more
+    than ``max_angle_deg``), ``L`` the cotangent Laplacian of the template, ``alpha`` relaxed through
+    ``stiffness`` (relative to the Laplacian's scale). Returns ``(registered[n,3], info)``.
+    """
+    x0 = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles)
+    n = len(x0)
+    lap = cotangent_laplacian(x0, tri)
+    ltl = (lap.T @ lap).tocsc()
+    scale = float(np.abs(ltl.diagonal()).mean())
+    edge = mean_edge_length(x0, tri)
+    t_normals = triangle_normals(target_points, target_triangles)
+    cos_max = np.cos(np.deg2rad(max_angle_deg))
+    x = x0.copy()
+    used = 0.0
+    for alpha in stiffness:
+        for _ in range(iterations_per_level):
+            t_id, _, c, d = closest_points(target_points, target_triangles, x)
+            nx = vertex_normals(x, tri)
+            ok = (d < 3.0 * edge) & (np.einsum("ij,ij->i", nx, t_normals[t_id]) > cos_max)
+            used = float(ok.mean())
+            w = ok.astype(np.float64)
+            a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
+            rhs = (alpha * alpha / scale) * (ltl @ x0) + w[:, None] * c + 1e-8 * x
+            x = _solve(a, rhs)
+    t_id, _, c, d = closest_points(target_points, target_triangles, x)
+    return x, {"nonrigid_rms_m": float(np.sqrt(np.mean(d ** 2))), "nonrigid_matched": used, "n": n}
+
+
+def _solve(a, rhs):
+    solve = spla.factorized(a.tocsc())
+    return np.stack([solve(rhs[:, c]) for c in range(rhs.shape[1])], axis=1)
+
+
+def correspondence_map(registered, capture_triangles, avatar_points, avatar_triangles, *,
+                       max_distance_ratio: float = 0.5, max_angle_deg: float = 60.0,
+                       candidates=None, exclude_border: bool = True) -> Correspondence:
+    """Closest point on the registered capture surface for every avatar face-mesh vertex, and the face region.
+
+    ``registered[n,3]`` the capture template after :func:`nonrigid_register`; ``avatar_points[m,3]``.
+    Face region: distance below ``max_distance_ratio`` x the capture's mean edge length, normal angle below
+    ``max_angle_deg``, closest point not on a border edge of the capture (open border, eye and mouth holes),
+    and (optionally) ``candidates[m]`` true (e.g. vertices that move in some shape).
+    """
+    reg = np.asarray(registered, dtype=np.float64)
+    ctri = np.asarray(capture_triangles)
+    ap = np.asarray(avatar_points, dtype=np.float64)
+    tri, bary, _, dist = closest_points(reg, ctri, ap)
+    edge = mean_edge_length(reg, ctri)
+    an = vertex_normals(ap, avatar_triangles)
+    cn = triangle_normals(reg, ctri)
+    agree = np.einsum("ij,ij->i", an, cn[tri]) > np.cos(np.deg2rad(max_angle_deg))
+    border = boundary_vertices(ctri, len(reg))
+    # Clamped onto a border: the closest point lies on an edge (one barycentric ~0) whose two ends are border
+    # vertices, or on a border vertex itself (two barycentrics ~0).
+    corners = ctri[tri]
+    on_edge = bary < 1e-4
+    clamped = np.zeros(len(ap), dtype=bool)
+    for k in range(3):
+        a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+        clamped |= on_edge[:, k] & border[a] & border[b] & (dist > 0.05 * edge)
+    at_vertex = on_edge.sum(axis=1) >= 2
+    vtx = corners[np.arange(len(ap)), np.argmax(bary, axis=1)]
+    clamped |= at_vertex & border[vtx] & (dist > 0.05 * edge)
+    face = (dist < max_distance_ratio * edge) & agree & (~clamped if exclude_border else True)
+    if candidates is not None:
+        face &= np.asarray(candidates, dtype=bool)
+    atri = np.asarray(avatar_triangles)
+    src_tri = np.full(len(atri), -1, dtype=np.int64)
+    in_face = np.flatnonzero(face[atri].all(axis=1))
+    if in_face.size:
+        src_tri[in_face] = closest_points(reg, ctri, ap[atri[in_face]].mean(axis=1))[0]
+    info = {"face_vertices": int(face.sum()), "capture_mean_edge_m": edge,
+            "face_rms_distance_m": float(np.sqrt(np.mean(dist[face] ** 2))) if face.any() else None}
+    return Correspondence(tri, bary, dist, face, src_tri, info=info)
+
+
+def geometry_digest(*arrays) -> str:
+    """SHA-256 over arrays' shapes and float64/int64 bytes (rounded to 1e-9 for floats): the cache key."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.asarray(a)
+        a = np.round(a.astype(np.float64), 9) if a.dtype.kind == "f" else a.astype(np.int64)
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:32]
+
+
+def save_correspondence(corr: Correspondence, path) -> Path:
+    """Write the map to ``path`` (``.npz``) atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
+                            face=corr.face, source_triangle=corr.source_triangle,
+                            key=np.array(corr.key), version=np.array(CACHE_VERSION),
+                            info=np.array(json.dumps(corr.info or {})))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_correspondence(path, key: str | None = None) -> Correspondence | None:
+    """Read a cached map; None when the file is absent or belongs to another avatar/template (``key``)."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if int(z["version"]) != CACHE_VERSION or (key is not None and str(z["key"]) != key):
+                return None
+            return Correspondence(z["triangle"], z["barycentric"], z["distance"], z["face"].astype(bool),
+                                  z["source_triangle"], str(z["key"]), json.loads(str(z["info"])))
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputFileError(f"not a usdface correspondence cache ({exc})", path=path,
+                             fix="delete it or pass another --correspondence file") from None

@@ -1,0 +1,144 @@
+"""Seamless partial deformation transfer (Menzel et al. 2022, sec. 3.3, Fig. 3).
+
+Step 1, :func:`face_deformation_transfer`: deformation transfer (Sumner & Popovic 2004) of each personalized
+capture shape B_j onto the avatar's face region only, through the correspondence map.
+Step 2, :func:`blend_adjacent`: the adjacent region (vertices that move in the approximation A_j but are not
+in the face) is deformed from A_j with the face fixed, so that there is no seam; every other vertex keeps A_j.
+
+All arrays are internal metres: ``points[m,3]``, ``triangles[t,3]``, shapes ``[J,m,3]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .surface import cotangent_laplacian, gradient_operator, mean_edge_length, triangle_areas
+
+__all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask"]
+
+
+def deformation_gradients(rest, deformed, triangles) -> np.ndarray:
+    """Sumner & Popovic 2004, eq. (3): per-triangle deformation gradients ``S[J,t,3,3]`` from ``rest[n,3]`` to
+    each ``deformed[J,n,3]``, with the fourth vertex along the scaled normal: ``S = V~ V^-1``,
+    ``V = [v1-v0, v2-v0, n/sqrt|n|]``."""
+    rest = np.asarray(rest, dtype=np.float64)
+    deformed = np.asarray(deformed, dtype=np.float64)
+    tri = np.asarray(triangles)
+
+    def frames(p):
+        e1 = p[..., tri[:, 1], :] - p[..., tri[:, 0], :]
+        e2 = p[..., tri[:, 2], :] - p[..., tri[:, 0], :]
+        n = np.cross(e1, e2)
+        n = n / np.sqrt(np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300))
+        return np.stack([e1, e2, n], axis=-1)  # columns
+
+    v_inv = np.linalg.inv(frames(rest))  # [t,3,3]
+    return frames(deformed) @ v_inv  # [J,t,3,3]
+
+
+def face_deformation_transfer(points, triangles, face, source_triangle, jacobians, anchors, *, base=None,
+                              anchor_weight: float = 0.01) -> np.ndarray:
+    """Step 1: transfer the deformation gradients onto the avatar face region.
+
+    Minimises, for every shape j and over the face vertices' displacements ``d``,
+    ``sum_t area_t ||G_t d - P_t J_{c(t)}^T - G_t base||^2 + lambda sum_v area_v ||d_v - anchor_v||^2``
+    where t runs over avatar triangles whose three vertices are in the face, ``c(t) = source_triangle[t]``
+    its capture triangle, ``P_t = G_t x0`` the tangent projector, ``jacobians[J,tc,3,3]`` the displacement
+    Jacobians on the capture triangles (``S - I`` for plain deformation transfer,
+    :func:`deformation_gradients`; ``S_B - S_T`` to transfer only the personalization onto ``base`` = the
+    avatar's generic shapes), and ``anchors[J,m,3]`` the directly mapped displacements that fix the
+    translation (``lambda = anchor_weight / mean_edge^2``).
+    One sparse factorization serves every shape and coordinate.
+
+    Returns ``d[J,m,3]`` (zero outside the face).
+    """
+    x0 = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles)
+    face = np.asarray(face, dtype=bool)
+    anchors = np.asarray(anchors, dtype=np.float64)
+    n_shapes = anchors.shape[0]
+    out = np.zeros_like(anchors)
+    fidx = np.flatnonzero(face)
+    if fidx.size == 0:
+        return out
+    ftri = np.flatnonzero(face[tri].all(axis=1) & (np.asarray(source_triangle) >= 0))
+    ttri = tri[ftri]
+    grad = gradient_operator(x0, ttri)[:, fidx]  # [3t, F]
+    area = triangle_areas(x0, ttri)
+    w3 = sp.diags(np.repeat(area, 3))
+    vmass = np.zeros(len(x0))
+    for c in range(3):
+        np.add.at(vmass, ttri[:, c], area / 3.0)
+    vmass = vmass[fidx]
+    vmass = np.where(vmass > 0, vmass, area.mean() / 3.0 if area.size else 1.0)
+    lam = anchor_weight / mean_edge_length(x0, tri) ** 2
+    system = (grad.T @ w3 @ grad + sp.diags(lam * vmass)).tocsc()
+    solve = spla.factorized(system)
+    proj = (gradient_operator(x0, ttri) @ x0).reshape(-1, 3, 3)  # P_t (symmetric)
+    jac = np.asarray(jacobians)[:, np.asarray(source_triangle)[ftri]]  # [J,t,3,3]
+    target = np.einsum("tab,jtcb->jtac", proj, jac)  # P_t J^T -> [J,t,3(grad),3(coord)]
+    target = target.reshape(n_shapes, -1, 3)  # [J,3t,3]
+    if base is not None:
+        g_full = gradient_operator(x0, ttri)
+        target = target + np.stack([g_full @ b for b in np.asarray(base, dtype=np.float64)])
+    gw = (w3 @ grad).T.tocsr()  # [F,3t]
+    rhs = np.stack([gw @ target[j] for j in range(n_shapes)]) + lam * vmass[None, :, None] * anchors[:, fidx]
+    flat = rhs.transpose(1, 0, 2).reshape(len(fidx), -1)  # [F, J*3]
+    sol = np.stack([solve(flat[:, c]) for c in range(flat.shape[1])], axis=1)
+    out[:, fidx] = sol.reshape(len(fidx), n_shapes, 3).transpose(1, 0, 2)
+    return out
+
+
+def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
+    """``[J,m]`` true where ``|shapes[j,v]| > tol`` (metres): the vertices a shape moves."""
+    return np.linalg.norm(np.asarray(shapes), axis=-1) > tol
+
+
+def blend_adjacent(points, triangles, face, face_displacements, approximations, *, tol: float = 1e-9,
+                   falloff: float | None = None):
+    """Step 2: seamless completion from the approximations A_j with the face fixed.
+
+    For each shape j the adjacent region ``R_j = moves in A_j and not face`` gets ``A_j + h`` where ``h``
+    minimises ``h^T L h + h^T Mass h / falloff^2`` on R_j (cotangent Laplacian L, lumped vertex areas), with
+    ``h = d_face - A_j`` on the face and 0 on every other vertex: harmonic (``falloff=None``), or screened so
+    that the correction decays over ``falloff`` metres and the adjacent region stays as close to A_j as a
+    seamless join allows. Vertices outside face and R_j keep exactly A_j. Shapes with the same region share
+    one sparse factorization.
+
+    Returns ``(result[J,m,3], adjacent[J,m] bool)``.
+    """
+    x0 = np.asarray(points, dtype=np.float64)
+    face = np.asarray(face, dtype=bool)
+    approx = np.asarray(approximations, dtype=np.float64)
+    dface = np.asarray(face_displacements, dtype=np.float64)
+    adjacent = moving_mask(approx, tol) & ~face[None, :]
+    result = approx.copy()
+    result[:, face] = dface[:, face]
+    lap = cotangent_laplacian(x0, triangles)
+    if falloff:
+        area = triangle_areas(x0, triangles)
+        mass = np.zeros(len(x0))
+        for c in range(3):
+            np.add.at(mass, np.asarray(triangles)[:, c], area / 3.0)
+        lap = (lap + sp.diags(mass / falloff ** 2)).tocsr()
+    groups: dict[bytes, list[int]] = {}
+    for j in range(approx.shape[0]):
+        groups.setdefault(np.packbits(adjacent[j]).tobytes(), []).append(j)
+    fidx = np.flatnonzero(face)
+    for js in groups.values():
+        free = np.flatnonzero(adjacent[js[0]])
+        if free.size == 0:
+            continue
+        l_ff = lap[free][:, free]
+        l_fb = lap[free][:, fidx]
+        reg = 1e-12 * float(np.abs(l_ff.diagonal()).mean())
+        solve = spla.factorized((l_ff + reg * sp.eye(free.size)).tocsc())
+        h_face = dface[js][:, fidx] - approx[js][:, fidx]  # [g,F,3]
+        rhs = -np.stack([l_fb @ h_face[g] for g in range(len(js))])  # [g,free,3]
+        flat = rhs.transpose(1, 0, 2).reshape(free.size, -1)
+        h = np.stack([solve(flat[:, c]) for c in range(flat.shape[1])], axis=1)
+        h = h.reshape(free.size, len(js), 3).transpose(1, 0, 2)
+        result[np.ix_(js, free)] = approx[np.ix_(js, free)] + h
+    return result, adjacent

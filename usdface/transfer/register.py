@@ -1,0 +1,204 @@
+"""Rigid registration with scaling of the capture face onto the avatar face (Menzel et al. 2022, sec. 3.3).
+
+Two stages, both on arrays in internal metres / Y-up (the avatar reader has already applied the
+stage's ``metersPerUnit``, ``upAxis`` and every ancestor transform, so stage metadata is accounted for there):
+
+1. :func:`motion_initialiser` - a global initialiser that needs no manual points: every ARKit shape that both
+   rigs carry moves a recognisable part of the face (an eyelid, a mouth corner, a brow), so the
+   motion-weighted centroid of each shape is a landmark that exists on both meshes, whatever their
+   topology, units, orientation and placement in a full-body scene. A weighted similarity (Umeyama) between
+   the two landmark sets gives scale, rotation and translation.
+2. :func:`register_icp` - Open3D ``registration_icp`` with ``TransformationEstimationPointToPoint(
+   with_scaling=True)`` from the capture neutral to the avatar's moving (face) vertices, coarse to fine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import RegistrationError
+
+__all__ = ["Similarity", "Registration", "motion_landmarks", "similarity_from_pairs", "motion_initialiser",
+           "register_icp", "register_face"]
+
+
+@dataclass
+class Similarity:
+    """``x -> scale * rotation @ x + translation`` (rotation[3,3] proper, translation[3] metres)."""
+
+    scale: float = 1.0
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def apply(self, points) -> np.ndarray:
+        """Transform points ``[...,3]``."""
+        return self.scale * np.asarray(points) @ self.rotation.T + self.translation
+
+    def apply_vectors(self, vectors) -> np.ndarray:
+        """Transform offsets/deltas ``[...,3]`` (linear part only)."""
+        return self.scale * np.asarray(vectors) @ self.rotation.T
+
+    def matrix(self) -> np.ndarray:
+        """Homogeneous ``[4,4]`` (column vectors)."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    @classmethod
+    def from_matrix(cls, m) -> Similarity:
+        m = np.asarray(m, dtype=np.float64)
+        s = float(np.cbrt(np.linalg.det(m[:3, :3])))
+        return cls(s, m[:3, :3] / s, m[:3, 3].copy())
+
+    def as_dict(self) -> dict:
+        return {"scale": self.scale, "rotation": self.rotation.tolist(),
+                "translation_m": self.translation.tolist()}
+
+
+@dataclass
+class Registration:
+    """Result of :func:`register_face`: the similarity, the inlier RMS residual (m), the fraction of capture
+    vertices with an avatar point within the final correspondence distance (``fitness``), and which
+    initialiser won."""
+
+    transform: Similarity
+    residual: float
+    fitness: float
+    initialiser: str
+    max_distance: float
+
+    def as_dict(self) -> dict:
+        return {**self.transform.as_dict(), "residual_m": self.residual, "fitness": self.fitness,
+                "initialiser": self.initialiser, "max_distance_m": self.max_distance}
+
+
+def motion_landmarks(neutral, deltas, *, power: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """One landmark per shape: the centroid of ``neutral[n,3]`` weighted by ``|deltas[k]|^power``.
+
+    Returns ``(landmarks[K,3], strength[K])`` where strength is the shape's largest vertex motion (m); shapes
+    that do not move get strength 0.
+    """
+    mag = np.linalg.norm(np.asarray(deltas), axis=2)  # [K,n]
+    w = mag ** power
+    tot = w.sum(axis=1)
+    lm = (w @ np.asarray(neutral)) / np.maximum(tot, 1e-300)[:, None]
+    return lm, np.where(tot > 0, mag.max(axis=1), 0.0)
+
+
+def similarity_from_pairs(src, dst, weights=None) -> Similarity:
+    """Weighted least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991); ``src, dst[m,3]``."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    a, b = src - mu_s, dst - mu_d
+    cov = (b * w[:, None]).T @ a
+    u, sig, vt = np.linalg.svd(cov)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rot = u @ np.diag(d) @ vt
+    var_s = float(w @ np.einsum("ij,ij->i", a, a))
+    s = float((sig * d).sum() / max(var_s, 1e-300))
+    return Similarity(s, rot, mu_d - s * rot @ mu_s)
+
+
+def motion_initialiser(capture_neutral, capture_deltas, avatar_points, avatar_deltas) -> Similarity:
+    """Global initial similarity from capture space to avatar space, from shape-motion landmarks.
+
+    ``capture_deltas[K,n,3]`` and ``avatar_deltas[K,m,3]`` must list the same K shapes in the same order
+    (the generic template shapes on the capture mesh and the avatar's own generic shapes). Raises
+    :class:`RegistrationError` with fewer than 4 shapes that move on both.
+    """
+    lc, sc = motion_landmarks(capture_neutral, capture_deltas)
+    la, sa = motion_landmarks(avatar_points, avatar_deltas)
+    ok = (sc > 0) & (sa > 0)
+    if ok.sum() < 4:
+        raise RegistrationError(f"only {int(ok.sum())} shapes move on both the capture and the avatar face; "
+                                "need at least 4 to place the capture",
+                                fix="give the avatar ARKit-named blend shapes that move the face")
+    return similarity_from_pairs(lc[ok], la[ok])
+
+
+def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012), iterations: int = 40,
+                 with_scaling: bool = True) -> tuple[Similarity, float, float, float]:
+    """Open3D point-to-point ICP with scaling, coarse to fine.
+
+    ``source[n,3]`` (capture neutral), ``target[m,3]`` (avatar face points); correspondence distances are
+    ``scales`` times the diagonal of the initially placed source. Returns ``(similarity, inlier_rmse_m,
+    fitness, final_max_distance_m)``.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    src = np.asarray(source, dtype=np.float64)
+    tgt = np.asarray(target, dtype=np.float64)
+    origin = tgt.mean(axis=0)
+    pcs = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+    pct = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt - origin))
+    placed = init.apply(src)
+    diag = float(np.linalg.norm(placed.max(axis=0) - placed.min(axis=0)))
+    shift = np.eye(4)
+    shift[:3, 3] = -origin
+    current = shift @ init.matrix()
+    est = reg.TransformationEstimationPointToPoint(with_scaling=with_scaling)
+    res = None
+    dist = diag
+    for f in scales:
+        dist = f * diag
+        res = reg.registration_icp(pcs, pct, dist, current, est,
+                                   reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
+                                                              max_iteration=iterations))
+        if res.fitness > 0:
+            current = np.asarray(res.transformation)
+    unshift = np.eye(4)
+    unshift[:3, 3] = origin
+    sim = Similarity.from_matrix(unshift @ current)
+    return sim, float(res.inlier_rmse), float(res.fitness), dist
+
+
+def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, min_fitness: float = 0.6,
+                  max_residual_ratio: float = 0.05, path=None) -> Registration:
+    """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
+    vertices (those that move in any shape). Also tries the identity-rotation centroid initialiser and keeps
+    the better result (more fitness, then lower residual).
+
+    Raises :class:`RegistrationError` (with the residual and fitness) when the capture does not overlap the
+    avatar face after registration: fitness below ``min_fitness`` or residual above ``max_residual_ratio``
+    times the face's size.
+    """
+    cn = np.asarray(capture_neutral, dtype=np.float64)
+    ap = np.asarray(avatar_points, dtype=np.float64)
+    moving = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0) > 0
+    target = ap[moving] if moving.sum() >= 10 else ap
+    candidates = []
+    try:
+        init = motion_initialiser(cn, capture_deltas, ap, avatar_deltas)
+        candidates.append(("shape-motion landmarks", init))
+    except RegistrationError:
+        if not candidates and moving.sum() < 10:
+            raise
+    ext_c = np.linalg.norm(cn.max(axis=0) - cn.min(axis=0))
+    ext_a = np.linalg.norm(target.max(axis=0) - target.min(axis=0))
+    s0 = ext_a / max(ext_c, 1e-300)
+    shift = target.mean(axis=0) - s0 * cn.mean(axis=0)
+    candidates.append(("centroid + extent", Similarity(s0, np.eye(3), shift)))
+    best = None
+    for name, init in candidates:
+        sim, rmse, fit, dist = register_icp(cn, target, init)
+        key = (round(fit, 2), -rmse)
+        if best is None or key > best[0]:
+            best = (key, Registration(sim, rmse, fit, name, dist))
+    result = best[1]
+    size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
+    if result.fitness < min_fitness or result.residual > max_residual_ratio * size:
+        raise RegistrationError(
+            f"the capture does not overlap the avatar face after registration (residual "
+            f"{result.residual * 1000:.2f} mm, {result.fitness * 100:.0f}% of capture vertices within "
+            f"{result.max_distance * 1000:.1f} mm)", path=path,
+            fix="check that the capture and the avatar show the same kind of face and that the avatar's "
+                "blend shapes are ARKit-named")
+    return result

@@ -1,0 +1,76 @@
+"""Automatic facial retargeting (Menzel et al. 2022, eq. 4): each personalized capture shape, mapped onto the
+avatar face, approximated by a ridge-regularised combination of the avatar's own generic shapes.
+
+The result is a weight map ``W[J,K]`` (row j: the avatar-shape weights that best reproduce capture shape j)
+and the approximations ``A_j = sum_i W[j,i] B~_i`` on every avatar mesh. The map is also what a game engine
+can use in place of a hand-made retargeting table (``usdface retarget ... -o map.json|csv``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import numpy as np
+
+__all__ = ["retarget_weights", "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
+
+
+def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
+    """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i w_i^2`` for every j.
+
+    Parameters
+    ----------
+    avatar_deltas : ``[K,m,3]`` the avatar's generic shapes B~_i restricted to the face region (metres).
+    targets : ``[J,m,3]`` the personalized capture shapes mapped onto the same vertices, ``M B_j`` (metres).
+    mu : ridge weight relative to the shapes' mean squared norm, ``mu' = mu * trace(B~^T B~) / K``, so it is
+        unit- and resolution-free.
+
+    Returns
+    -------
+    weights : ``[J,K]`` with ``A_j = sum_i weights[j,i] B~_i``. One Cholesky-free dense solve of the K x K
+    normal equations shared by every j.
+    """
+    d = np.asarray(avatar_deltas, dtype=np.float64)
+    k = d.shape[0]
+    a = d.reshape(k, -1)  # [K, 3m]
+    t = np.asarray(targets, dtype=np.float64).reshape(-1, a.shape[1])  # [J, 3m]
+    gram = a @ a.T
+    lam = mu * float(np.trace(gram)) / max(k, 1)
+    rhs = a @ t.T  # [K, J]
+    return np.linalg.solve(gram + lam * np.eye(k), rhs).T
+
+
+def approximate(weights, deltas) -> np.ndarray:
+    """``A[J,n,3] = weights[J,K] @ deltas[K,n,3]`` (the approximations A_j on one mesh)."""
+    return np.einsum("jk,knc->jnc", np.asarray(weights), np.asarray(deltas))
+
+
+def weight_map_rows(weights, target_names, avatar_names, *, threshold: float = 0.0) -> dict:
+    """The map as ``{capture_shape: {avatar_shape: weight}}``, dropping ``|weight| <= threshold``."""
+    w = np.asarray(weights)
+    return {t: {a: float(w[j, i]) for i, a in enumerate(avatar_names) if abs(w[j, i]) > threshold}
+            for j, t in enumerate(target_names)}
+
+
+def weight_map_json(weights, target_names, avatar_names, *, meta: dict | None = None) -> str:
+    """JSON text: ``{"format": "usdface.retarget/1", "source": [...], "target": [...], "weights": [[...]],
+    "map": {...}}`` (rows = capture/ARKit input shapes, columns = avatar shapes)."""
+    doc = {"format": "usdface.retarget/1", "equation": "Menzel et al. 2022, eq. 4",
+           "source": list(target_names), "target": list(avatar_names),
+           "weights": np.asarray(weights).round(6).tolist(),
+           "map": weight_map_rows(np.asarray(weights).round(6), target_names, avatar_names, threshold=1e-6)}
+    if meta:
+        doc["meta"] = meta
+    return json.dumps(doc, indent=1)
+
+
+def weight_map_csv(weights, target_names, avatar_names) -> str:
+    """CSV text: header ``source,<avatar shapes...>``, one row per capture/ARKit input shape."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["source", *avatar_names])
+    for j, name in enumerate(target_names):
+        w.writerow([name, *(f"{v:.6g}" for v in np.asarray(weights)[j])])
+    return buf.getvalue()
