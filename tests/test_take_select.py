@@ -1,0 +1,169 @@
+"""Continuous takes (issue 6): Menzel 3.1 frame selection finds the true peaks, reports never-triggered
+shapes, and the fit from selected frames equals the fit from hand-picked frames. Takes round-trip through USD
+and OBJ sequence + Live Link CSV."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdface.arkit import ARKIT_NAMES
+from usdface.cli import main
+from usdface.errors import CaptureError
+from usdface.io import read_capture
+from usdface.io.take import capture_from_take, read_take, write_take_folder, write_take_usd
+from usdface.model import Capture, FaceRig, Frames
+from usdface.sample.take import make_take
+from usdface.take_select import format_coverage, select_frames
+
+SKIP = ["jawLeft", "cheekPuff"]  # ARKit order
+
+
+def grid_rigs(n=9, seed=0):
+    """A curved grid 'face', all 52 ARKit shapes as smooth bumps -> (person's true rig, generic template)."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.linspace(-0.05, 0.05, n), np.linspace(-0.05, 0.05, n))
+    neutral = np.stack([u.ravel(), v.ravel(), 0.05 - 8 * (u.ravel() ** 2 + v.ravel() ** 2)], axis=1)
+    q = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    tris = np.concatenate([np.stack([q, q + 1, q + n], 1), np.stack([q + 1, q + n + 1, q + n], 1)])
+    centres = rng.uniform(-0.04, 0.04, size=(52, 2))
+    falloff = np.exp(-((neutral[None, :, :2] - centres[:, None]) ** 2).sum(-1) / (2 * 0.015 ** 2))
+    direction = rng.normal(size=(52, 1, 3)) * 0.004
+    template = FaceRig(neutral, tris, list(ARKIT_NAMES), falloff[..., None] * direction, name="template")
+    person_deltas = template.deltas * rng.uniform(0.7, 1.4, size=(52, 1, 1)) + falloff[..., None] * 0.001
+    person = FaceRig(neutral + 0.002 * np.sin(20 * neutral), tris, list(ARKIT_NAMES), person_deltas)
+    return person, template
+
+
+@pytest.fixture(scope="module")
+def generated():
+    person, template = grid_rigs()
+    take, truth = make_take(person, template, skip=SKIP, seed=3)
+    return take, truth, person
+
+
+def test_rule_on_hand_made_weights():
+    w = np.zeros((40, 3))
+    w[2:9, 0] = [0.2, 0.6, 0.9, 0.9, 0.9, 0.4, 0.1]      # plateau: the middle frame (5)
+    w[20:25, 0] = [0.3, 0.7, 0.8, 0.5, 0.1]              # a second, lower peak at 22
+    w[30:35, 1] = [0.1, 0.3, 0.5, 0.3, 0.1]              # reaches exactly 0.5: not above the threshold
+    w[35:40, 2] = [0.2, 0.4, 0.6, 0.8, 0.9]              # still rising when the take ends: no peak
+    w[5, 1] = 0.3                                         # rival of shape 0 at its peak
+    sel = select_frames(w, ["a", "b", "c"], min_separation=5)
+    assert sel.train.tolist() == [5] and sel.missing == ["b", "c"]
+    a = sel.shapes[0]
+    assert a.frames == [5] and a.peak == [0.9] and a.rival == ["b"] and a.dominance == [pytest.approx(0.6)]
+    two = select_frames(w, ["a", "b", "c"], per_shape=2, min_separation=5)
+    assert two.shapes[0].frames == [5, 22] and two.train.tolist() == [5, 22]
+    merged = select_frames(w, ["a", "b", "c"], per_shape=2, min_separation=30)
+    assert merged.shapes[0].frames == [5]  # peaks closer than min_separation count once
+    low = select_frames(w, ["a", "b", "c"], threshold=0.45, min_separation=5)
+    assert low.shapes[1].frames == [32]
+    text = format_coverage(sel)
+    assert "never triggered (record again): b, c" in text and "max 0.50" in text
+
+
+def test_test_split_stays_away_from_training_frames():
+    w = np.zeros((200, 2))
+    w[50:61, 0] = np.sin(np.linspace(0, np.pi, 11))
+    w[120:131, 1] = np.sin(np.linspace(0, np.pi, 11))
+    sel = select_frames(w, ["a", "b"], test_every=10, min_separation=15)
+    assert sel.train.tolist() == [55, 125]
+    assert len(sel.test) > 5 and np.abs(sel.test[:, None] - sel.train[None]).min() >= 15
+    assert not set(sel.test.tolist()) & set(sel.train.tolist())
+
+
+@pytest.mark.parametrize("kwargs", [{"weights": np.zeros(5)}, {"weights": np.full((5, 2), np.nan)},
+                                    {"weights": np.zeros((5, 2)), "names": ["a"]},
+                                    {"weights": np.zeros((5, 2)), "per_shape": 0}])
+def test_bad_input(kwargs):
+    with pytest.raises(CaptureError):
+        select_frames(**kwargs)
+
+
+def test_selected_frames_are_the_true_peaks(generated):
+    take, truth, _ = generated
+    sel = select_frames(take.weights, take.names, threshold=0.5, min_separation=int(0.5 * take.fps))
+    chosen = {s.name: s.frames for s in sel.shapes if s.triggered}
+    assert chosen == {name: [f] for name, f in truth.peak_frames.items()}
+    assert sel.missing == SKIP == truth.skipped
+    # cross-talk is real (mirror partners move 20-45%), yet every chosen frame is dominated by its shape
+    assert truth.cross_talk.max() > 0.2 and min(s.dominance[0] for s in sel.shapes if s.triggered) > 0.2
+    assert "never triggered (record again): jawLeft, cheekPuff" in format_coverage(sel, take.times)
+
+
+def hand_picked_capture(take, truth, template) -> Capture:
+    idx = [truth.peak_frames[n] for n in take.names if n in truth.peak_frames]
+    labels = [f"{m:03d}_{n}" for m, n in enumerate(n for n in take.names if n in truth.peak_frames)]
+    frames = Frames(take.points[idx], take.weights[idx], ["train"] * len(idx), labels)
+    return Capture(take.neutral, take.triangles, template, frames, list(template.names))
+
+
+def test_fit_from_selected_frames_matches_hand_picked(generated):
+    from usdface.personalize import fit_personalized_shapes
+
+    take, truth, person = generated
+    sel = select_frames(take.weights, take.names, min_separation=15)
+    selected = capture_from_take(take, sel)
+    hand = hand_picked_capture(take, truth, take.template)
+    assert selected.metadata["never_triggered"] == SKIP
+    with pytest.warns(UserWarning):  # the two skipped shapes are never activated in training
+        fit_sel = fit_personalized_shapes(selected, method="menzel", reg=1.0, eyelids=False)
+    with pytest.warns(UserWarning):
+        fit_hand = fit_personalized_shapes(hand, method="menzel", reg=1.0, eyelids=False)
+    np.testing.assert_allclose(fit_sel.rig.deltas, fit_hand.rig.deltas, atol=1e-12)
+    # and the fit is a real personalization: closer to the person's true shapes than the generic template
+    swept = [take.names.index(n) for n in truth.swept]
+    err = lambda d: np.sqrt(np.mean((d[swept] - person.deltas[swept]) ** 2))  # noqa: E731
+    assert err(fit_sel.rig.deltas) < 0.8 * err(take.template.deltas)
+
+
+def test_usd_take_round_trip_and_cli_select(generated, tmp_path, capsys):
+    take, truth, _ = generated
+    path = write_take_usd(take, tmp_path / "take.usda")
+    got = read_take(path)
+    np.testing.assert_array_equal(got.points, take.points)
+    np.testing.assert_array_equal(got.weights, take.weights)
+    np.testing.assert_allclose(got.times, take.times, atol=1e-9)
+    np.testing.assert_array_equal(got.neutral, take.neutral)
+    assert got.names == take.names and got.template.names == take.template.names
+    out = tmp_path / "capture.usda"
+    assert main(["capture", "select", str(path), "-o", str(out), "--test-every", "40"]) == 0
+    printed = capsys.readouterr().out
+    assert "jawLeft" in printed and "cheekPuff" in printed and "never triggered" in printed
+    cap = read_capture(out)
+    peak = [truth.peak_frames[n] for n in take.names if n in truth.peak_frames]
+    np.testing.assert_array_equal(cap.train.points, take.points[peak])
+    np.testing.assert_array_equal(cap.train.weights, take.weights[peak])
+    assert cap.train.label[0] == "000_eyeBlinkLeft" and len(cap.test) > 10
+
+
+def test_obj_sequence_with_livelink_csv(tmp_path):
+    person, template = grid_rigs(n=5)
+    names = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft"]
+    take, truth = make_take(person.subset(names), template.subset(names), seed=5, rest_seconds=0.2)
+    folder = write_take_folder(take, tmp_path / "take")
+    got = read_take(folder)
+    np.testing.assert_array_equal(got.points, take.points)
+    np.testing.assert_array_equal(got.weights, take.weights)  # CSV written with repr: exact
+    np.testing.assert_allclose(got.times, take.times, atol=1e-9)
+    (folder / "frames" / f"{len(take) - 1:05d}.obj").unlink()  # fewer OBJs than rows: matched by number
+    assert len(read_take(folder)) == len(take) - 1
+    out = tmp_path / "cap"
+    assert main(["capture", "select", str(folder), "-o", str(out), "--min-separation", "0.3"]) == 0
+    cap = read_capture(out)
+    np.testing.assert_array_equal(cap.train.points, take.points[[truth.peak_frames[n] for n in names]])
+
+
+def test_take_without_template_or_mesh(tmp_path, generated):
+    take, _, _ = generated
+    bare = type(take)(take.weights, take.names, take.times, take.points, take.triangles)
+    sel = select_frames(take.weights, take.names)
+    with pytest.raises(CaptureError, match="template"):
+        capture_from_take(bare, sel)
+    with pytest.warns(UserWarning, match="no neutral"):
+        cap = capture_from_take(bare, sel, template=take.template)
+    assert take.weights[cap.metadata["neutral_frame"]].max() < 0.05
+    weights_only = type(take)(take.weights, take.names, take.times)
+    with pytest.raises(CaptureError, match="weights only"):
+        capture_from_take(weights_only, sel)
