@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # pragma: no cover
     from .model import Avatar, Capture, FaceRig
     from .pipeline.check import Issue
+    from .transfer import PersonalizeResult
 
 PathLike = str | Path
 
@@ -80,15 +81,31 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, **
     return evaluate_rig(capture, capture.template if rig is None else rig, **options)
 
 
-def personalize_avatar(avatar_path: PathLike, capture_path: PathLike, out_path: PathLike,
-                       **options: Any) -> Path:
+def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
+                       out_path: PathLike | None, *, inspect: bool = False,
+                       **options: Any) -> PersonalizeResult:
     """Personalize an avatar from a capture and write the result as a USD layer over the untouched avatar
-    (``usdface personalize``); returns the layer's path. ``options`` go to
-    :func:`usdface.transfer.personalize_avatar` (e.g. ``method``, ``force``)."""
+    (``usdface personalize``); returns the ``PersonalizeResult`` (``.out_path`` = the layer written).
+
+    ``options`` go to :func:`usdface.transfer.personalize_avatar` (``method``, ``force``, ``mu``, ...). With
+    ``inspect=True`` the layer also gets inspection data for usdview (:mod:`usdface.io.usd_inspection`): a
+    ``displayColor`` heat map of how much each vertex changed (RMS over shapes) and a ``SkelAnimation`` that
+    plays the capture's test expressions on the personalized avatar."""
     from .transfer import personalize_avatar as _personalize
 
-    result = _personalize(avatar_path, capture_path, out_path, **options)
-    return Path(result) if isinstance(result, str | Path) else result
+    if not inspect:
+        return _personalize(avatar_path, capture_path, out_path, **options)
+    avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
+    capture = _as_capture(capture_path)
+    result = _personalize(avatar, capture, out_path, **options)
+    if getattr(result, "out_path", None):
+        from .io.usd_inspection import add_inspection, change_heat, inspection_edit
+
+        test = capture.test
+        animation = (capture.names, test.weights) if len(test) else None
+        add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
+                                                        animation=animation))
+    return result
 
 
 def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **options: Any):
@@ -113,6 +130,6 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
 def inspect_file(path: PathLike) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
     name report, provenance."""
-    from .io.inspect import inspect_file as _inspect
+    from .inspect import inspect_file as _inspect
 
     return _inspect(path)

@@ -212,3 +212,50 @@ def generic_input(layer_path) -> Path | None:
         return None
     sub = Path(layer.subLayerPaths[0])
     return sub if sub.is_absolute() else (Path(layer_path).parent / sub).resolve()
+
+
+def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
+    """{mesh prim path -> values[n]}: per-vertex RMS over shapes of |new - generic| offsets, metres.
+
+    ``offsets`` is {mesh prim path (or name) -> deltas[K_mesh, n, 3]} in ``rig.names`` order, as given to
+    :func:`usdface.io.layers.write_avatar_layer`."""
+    heat = {}
+    for key, deltas in offsets.items():
+        rig = _rig(avatar, key)
+        diff = np.asarray(deltas, dtype=np.float64) - rig.deltas
+        heat[rig.source.prim] = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if len(diff) else \
+            np.zeros(rig.n_vertices)
+    return heat
+
+
+def add_inspection(layer_path, edit: Callable) -> Path:
+    """Run an inspection ``edit(stage)`` on an already written usdface layer and save it again atomically
+    (temporary file in the same folder + ``os.replace``). Only the layer itself is changed, never its inputs.
+    """
+    import os
+    import tempfile
+
+    from pxr import Sdf, Usd
+
+    from ..errors import InputFileError
+
+    path = Path(layer_path).absolute()
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    if layer is None:
+        raise InputFileError("USD cannot open the layer", path=path, fix="pass a layer written by usdface")
+    layer.Reload(force=True)
+    stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
+    stage.SetEditTarget(stage.GetRootLayer())
+    edit(stage)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    os.unlink(tmp)
+    try:
+        if not layer.Export(tmp):
+            raise InputFileError("USD could not write the layer", path=path, fix="check permissions")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    layer.Reload(force=True)
+    return path

@@ -167,7 +167,8 @@ def read_manifest(path) -> list[BatchItem]:
 
 # ----------------------------------------------------------------------------------------------- workers
 def personalize_worker(item: dict) -> None:
-    """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's)."""
+    """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's;
+    item options such as ``method`` or ``inspect`` pass through)."""
     from ..api import personalize_avatar
 
     options = dict(item.get("options") or {})
