@@ -36,6 +36,10 @@ def test_bench_obj_matches_independent_parse(bench):
     ref_v = np.array([[float(x) for x in ln.split()[1:4]] for ln in lines if ln.startswith("v ")])
     ref_f = np.array([[int(x) - 1 for x in ln.split()[1:4]] for ln in lines if ln.startswith("f ")])
     np.testing.assert_array_equal(points, ref_v)  # same order, same float64 values
+    from usdface.io.mesh_io import _fast_parse
+
+    fast = _fast_parse(p.read_bytes())  # the bench files take the whole-buffer fast path
+    assert fast is not None and np.array_equal(fast[0], ref_v)
     np.testing.assert_array_equal(tris, ref_f)
 
 
@@ -104,3 +108,23 @@ def test_fuzz_reader_raises_only_usdface_errors(tmp_path, lines):
         return
     assert np.isfinite(points).all() and points.shape[1] == 3
     assert tris.shape[1] == 3 and tris.min() >= 0 and tris.max() < len(points)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from([b"v 0.5 -1e-3 2", b"v 1 2", b"v 1 2 3 4", b"v\t1 2 3", b"f 1 2 3",
+                                 b"f 1 2 3 4", b"f 2 3", b"f 0 1 2", b"", b"f 1  2 3", b"v 1.5e2 +3 -0"]),
+                min_size=1, max_size=10))
+def test_fast_path_agrees_with_general_parser(lines):
+    """The whole-buffer fast path either declines or returns exactly what the record parser returns."""
+    from usdface.io.mesh_io import _fast_parse, _general_parse
+
+    data = b"\n".join(lines) + b"\n"
+    fast = _fast_parse(data)
+    if fast is None:
+        return
+    try:
+        general = _general_parse(data, "x.obj")
+    except UsdFaceError:
+        pytest.fail("fast path accepted what the general parser rejects")
+    np.testing.assert_array_equal(fast[0], general[0])
+    np.testing.assert_array_equal(fast[1], general[1])

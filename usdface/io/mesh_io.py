@@ -114,7 +114,11 @@ def _face_triangles(lines: list[bytes], all_lines: list[bytes], path: Path) -> n
         idx = idx - 1
     if (counts == 3).all():
         return idx.reshape(-1, 3)
-    # Fan-triangulate every polygon: (v0, v_i, v_{i+1}) for i = 1 .. count-2.
+    return _fan(counts, idx)
+
+
+def _fan(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons (``counts[faces]`` corners, flat 0-based ``idx``): (v0, v_i, v_i+1)."""
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     n_tri = counts - 2
     face_of_tri = np.repeat(np.arange(len(counts)), n_tri)
@@ -141,6 +145,58 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     if b"\0" in data[:4096]:
         raise InputFileError("not a text OBJ file (binary content)", path=path,
                              fix="pass a Wavefront .obj file")
+    fast = _fast_parse(data)
+    if fast is not None:
+        points, triangles = fast
+    else:
+        points, triangles = _general_parse(data, path)
+    if not np.isfinite(points).all():
+        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+        raise GeometryError(f"vertex {bad} is NaN or infinite", path=path, fix="repair or re-export the mesh")
+    if triangles.min() < 0 or triangles.max() >= len(points):
+        raise GeometryError(f"face index out of range (mesh has {len(points)} vertices)", path=path,
+                            fix="repair or re-export the mesh")
+    return points, triangles
+
+
+_V_CHARS = b"0123456789.-+eE v\n\r\t"
+_F_CHARS = b"0123456789 f\n\r\t"
+
+
+def _fast_parse(data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    """Whole-buffer parse of the common layout: a block of ``v x y z`` records, then ``f a b c ...`` records
+    (what most exporters and :func:`write_obj` write). Each record keyword becomes a marker value (NaN for
+    ``v``, 0 for ``f``; neither can occur otherwise in these character sets), so one numeric parse per block
+    also checks every record's length. Returns None (use the general parser) on anything else."""
+    fpos = data.find(b"\nf ")
+    if fpos < 0 or not data.startswith(b"v "):
+        return None
+    vblock, fblock = data[:fpos + 1], data[fpos + 1:]
+    if vblock.translate(None, _V_CHARS) or fblock.translate(None, _F_CHARS):
+        return None
+    n_v, n_f = vblock.count(b"v"), fblock.count(b"f")
+    vals = _fromstring(vblock.replace(b"v", b"nan"), np.float64, 4 * n_v)
+    if vals is None:
+        return None
+    rec = vals.reshape(-1, 4)
+    if not np.isnan(rec[:, 0]).all() or np.isnan(rec[:, 1:]).any():
+        return None
+    idx = _fromstring(fblock.replace(b"f", b"0"), np.int64, len(fblock.split()))
+    if idx is None:
+        return None
+    marks = np.flatnonzero(idx == 0)
+    if len(marks) != n_f or (n_f and marks[0] != 0):
+        return None
+    counts = np.diff(np.append(marks, len(idx))) - 1
+    if counts.min() < 3:
+        return None
+    corners = np.delete(idx, marks) - 1
+    tris = corners.reshape(-1, 3) if (counts == 3).all() else _fan(counts, corners)
+    return rec[:, 1:].copy(), tris
+
+
+def _general_parse(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Record-by-record parse: any line order, comments, normals/UVs, ``a/t/n`` and negative indices."""
     lines = data.splitlines()
     v_lines = [ln for ln in lines if ln[:2] == b"v " or ln[:2] == b"v\t"]
     f_lines = [ln for ln in lines if ln[:2] == b"f " or ln[:2] == b"f\t"]
@@ -150,15 +206,7 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     if not f_lines:
         raise GeometryError("mesh has no faces", path=path,
                             fix="export the mesh with its faces, not as points")
-    points = _vertex_rows(v_lines, path)
-    if not np.isfinite(points).all():
-        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
-        raise GeometryError(f"vertex {bad} is NaN or infinite", path=path, fix="repair or re-export the mesh")
-    triangles = _face_triangles(f_lines, lines, path)
-    if triangles.min() < 0 or triangles.max() >= len(points):
-        raise GeometryError(f"face index out of range (mesh has {len(points)} vertices)", path=path,
-                            fix="repair or re-export the mesh")
-    return points, triangles
+    return _vertex_rows(v_lines, path), _face_triangles(f_lines, lines, path)
 
 
 def write_obj(path, points, triangles) -> Path:
