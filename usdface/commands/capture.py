@@ -29,7 +29,9 @@ def register(subparsers) -> None:
                                      "test split; print a coverage table (see docs/takes.md).")
     sel.add_argument("take", help="take: a USD take (time-sampled mesh + weights) or an OBJ-sequence folder "
                                   "with a Live Link Face CSV")
-    sel.add_argument("-o", "--output", required=True, help="output capture .usda/.usdc (or a folder)")
+    sel.add_argument("-o", "--output",
+                     help="output capture .usda/.usdc (or a folder); without it only the coverage table is "
+                          "printed (e.g. for a weights-only Live Link CSV)")
     sel.add_argument("--template", help="capture folder or capture.usda whose template rig to use "
                                         "(default: the take's own template)")
     sel.add_argument("--threshold", type=float, default=0.5, help="minimum peak weight (default 0.5)")
@@ -68,12 +70,18 @@ def run_select(args) -> int:
     from ..io.take import capture_from_take, read_take
     from ..take_select import format_coverage, select_frames
 
-    take = read_take(args.take)
-    selection = select_frames(take.weights, take.names, threshold=args.threshold, per_shape=args.per_shape,
-                              test_every=args.test_every,
-                              min_separation=max(1, round(args.min_separation * take.fps)))
-    print(format_coverage(selection, take.times))
-    capture = capture_from_take(take, selection, template=args.template)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        take = read_take(args.take)
+        selection = select_frames(take.weights, take.names, threshold=args.threshold,
+                                  per_shape=args.per_shape, test_every=args.test_every,
+                                  min_separation=max(1, round(args.min_separation * take.fps)))
+        print(format_coverage(selection, take.times))
+        capture = capture_from_take(take, selection, template=args.template) if args.output else None
+    for w in caught:
+        print(f"warning: {w.message}")
+    if capture is None:
+        return 0
     from pathlib import Path
 
     out = Path(args.output)
