@@ -1,0 +1,165 @@
+"""Transfer building blocks on analytic cases: registration, eq. (4), partial transfer, eyelids, cache."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdface.errors import RegistrationError
+from usdface.transfer.correspond import (
+    Correspondence,
+    geometry_digest,
+    load_correspondence,
+    save_correspondence,
+)
+from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
+from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients
+from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
+from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
+from usdface.transfer.surface import closest_points, gradient_operator
+
+
+def _rotation(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _grid(n=25, size=0.16, bump=0.04):
+    """A curved face-like patch [n*n,3] metres with triangles."""
+    u, v = np.meshgrid(np.linspace(-size / 2, size / 2, n), np.linspace(-size / 2, size / 2, n))
+    z = bump * np.exp(-(u ** 2 + v ** 2) / (2 * (size / 3) ** 2)) + 0.02 * np.sin(8 * u) * v
+    pts = np.stack([u.ravel(), v.ravel(), z.ravel()], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    tris = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return pts, tris
+
+
+def _local_shapes(pts, k=8, seed=0):
+    """k localized bump shapes (like ARKit shapes: each moves one part of the face)."""
+    rng = np.random.default_rng(seed)
+    centers = pts[rng.choice(len(pts), k, replace=False)]
+    w = np.exp(-np.sum((pts[None] - centers[:, None]) ** 2, -1) / (2 * 0.02 ** 2))
+    w[w < 1e-3] = 0.0
+    return w[..., None] * rng.normal(size=(k, 1, 3)) * 0.01
+
+
+def test_similarity_from_pairs_recovers_known_transform():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(30, 3))
+    true = Similarity(2.5, _rotation([1, 2, 3], 0.7), np.array([1.0, -2.0, 0.5]))
+    est = similarity_from_pairs(src, true.apply(src))
+    assert est.scale == pytest.approx(2.5, rel=1e-10)
+    np.testing.assert_allclose(est.rotation, true.rotation, atol=1e-10)
+    np.testing.assert_allclose(est.translation, true.translation, atol=1e-10)
+
+
+def test_register_face_finds_face_in_any_placement_units_and_axis():
+    """The capture (metres, at the origin) is found on an 'avatar' placed far away, in cm scale, rotated
+    90 degrees (Z-up-like), with no manual points."""
+    pts, tris = _grid()
+    shapes = _local_shapes(pts)
+    true = Similarity(100.0 * 1.07, _rotation([1, 0, 0], -np.pi / 2) @ _rotation([0, 0, 1], 0.3),
+                      np.array([30.0, 5.0, 160.0]))
+    avatar = true.apply(pts)
+    avatar_shapes = true.apply_vectors(shapes)
+    reg = register_face(pts, shapes, avatar, avatar_shapes)
+    assert reg.transform.scale == pytest.approx(true.scale, rel=1e-6)
+    np.testing.assert_allclose(reg.transform.apply(pts), avatar, atol=1e-6 * true.scale)
+    assert reg.fitness > 0.9 and reg.residual < 1e-6 * true.scale
+
+
+def test_register_face_no_overlap_raises_with_residual():
+    pts, tris = _grid()
+    shapes = _local_shapes(pts)
+    rng = np.random.default_rng(3)
+    blob = rng.normal(size=pts.shape) * 0.05  # not a face: a random cloud moving the same way
+    with pytest.raises(RegistrationError, match=r"residual .* mm"):
+        register_face(blob, shapes, pts, shapes)
+
+
+def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
+    rng = np.random.default_rng(2)
+    basis = rng.normal(size=(6, 200, 3))
+    w_true = rng.normal(size=(4, 6))
+    targets = np.einsum("jk,knc->jnc", w_true, basis)
+    np.testing.assert_allclose(retarget_weights(basis, targets, mu=1e-12), w_true, atol=1e-8)
+    strong = retarget_weights(basis, targets, mu=10.0)
+    assert np.linalg.norm(strong) < np.linalg.norm(w_true)  # eq. (4)'s penalty shrinks the weights
+    text = weight_map_csv(w_true, list("abcd"), list("uvwxyz"))
+    assert text.splitlines()[0] == "source,u,v,w,x,y,z" and len(text.splitlines()) == 5
+    assert '"format": "usdface.retarget/1"' in weight_map_json(w_true, list("abcd"), list("uvwxyz"))
+
+
+def test_gradient_operator_exact_on_linear_functions():
+    pts, tris = _grid(8)
+    g = gradient_operator(pts, tris)
+    a = np.array([0.3, -1.2, 0.0])
+    grads = (g @ (pts @ a)).reshape(-1, 3)
+    normals = np.cross(pts[tris[:, 1]] - pts[tris[:, 0]], pts[tris[:, 2]] - pts[tris[:, 0]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    tangential = a - (normals @ a)[:, None] * normals
+    np.testing.assert_allclose(grads, tangential, atol=1e-9)
+
+
+def test_deformation_gradients_of_a_rotation():
+    pts, tris = _grid(6)
+    rot = _rotation([0, 1, 1], 0.4)
+    s = deformation_gradients(pts, (pts @ rot.T)[None], tris)
+    np.testing.assert_allclose(s[0], np.broadcast_to(rot, s[0].shape), atol=1e-9)
+
+
+def test_closest_points_barycentrics():
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    tri, bary, closest, dist = closest_points(p, np.array([[0, 1, 2]]), np.array([[0.2, 0.3, 0.5]]))
+    np.testing.assert_allclose(bary[0], [0.5, 0.2, 0.3], atol=1e-6)
+    assert dist[0] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_blend_adjacent_is_seamless_and_local():
+    pts, tris = _grid(20)
+    n = len(pts)
+    face = np.linalg.norm(pts[:, :2], axis=1) < 0.04
+    approx = _local_shapes(pts, k=3, seed=5)
+    approx[:, np.linalg.norm(pts[:, :2], axis=1) > 0.07] = 0.0  # A_j does not move the rim
+    dface = approx + 0.002  # the face moves differently from A_j
+    for falloff in (None, 0.01):
+        out, adjacent = blend_adjacent(pts, tris, face, dface, approx, falloff=falloff)
+        np.testing.assert_allclose(out[:, face], dface[:, face])  # face = step 1
+        outside = ~face[None, :] & ~adjacent
+        assert outside.any()
+        np.testing.assert_array_equal(out[outside], approx[outside])  # exactly A_j elsewhere
+        assert np.abs(out - approx).max() <= 0.002 + 1e-12  # harmonic: maximum principle, no overshoot
+    assert adjacent.shape == (3, n)
+
+
+def test_repair_eyelids_moves_penetrating_vertices_to_surface():
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(400, 3))
+    sphere = 0.012 * d / np.linalg.norm(d, axis=1, keepdims=True) + np.array([0.03, 1.6, 0.1])
+    import scipy.spatial
+
+    hull = scipy.spatial.ConvexHull(sphere)
+    c, r, rms = fit_sphere(sphere)
+    assert r == pytest.approx(0.012, rel=1e-6) and rms < 1e-9
+    head = np.random.default_rng(0).normal(size=(50, 3))
+    eyes = find_eyeballs({"/Avatar/EyeLeft": sphere, "/Avatar/Head": head})
+    assert [e.name for e in eyes] == ["/Avatar/EyeLeft"]
+    lid = c + np.array([[0, 0, 0.0125], [0, 0.013, 0.0]])  # two lid vertices just outside the eye
+    shapes = np.array([[[0, 0, -0.003], [0, 0, 0.0]]])  # the first is pushed 2.5 mm into the eyeball
+    fixed, count = repair_eyelids(lid, shapes, [(Eyeball("eye", c, r, rms), sphere, hull.simplices)])
+    assert count == 1
+    assert np.linalg.norm(lid[0] + fixed[0, 0] - c) == pytest.approx(r, rel=0.02)
+    np.testing.assert_array_equal(fixed[0, 1], shapes[0, 1])
+
+
+def test_correspondence_cache_round_trip_and_key(tmp_path):
+    corr = Correspondence(np.array([0, 1]), np.array([[1, 0, 0], [0.2, 0.3, 0.5]]), np.array([0.0, 1e-3]),
+                          np.array([True, False]), np.array([0, -1]), key="abc", info={"face_vertices": 1})
+    path = save_correspondence(corr, tmp_path / "c.npz")
+    back = load_correspondence(path, "abc")
+    np.testing.assert_array_equal(back.barycentric, corr.barycentric)
+    assert back.info["face_vertices"] == 1
+    assert load_correspondence(path, "other-avatar") is None
+    assert geometry_digest(np.ones(3)) != geometry_digest(np.ones(3) * 2)

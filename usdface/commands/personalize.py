@@ -1,0 +1,102 @@
+"""``usdface personalize AVATAR CAPTURE -o OUT``: implant the person's shapes into the avatar (USD layer)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def add_transfer_options(p) -> None:
+    """Options shared by ``personalize`` and ``retarget`` (the fit and the transfer)."""
+    p.add_argument("avatar", help="UsdSkel avatar (.usd/.usda/.usdc) with ARKit-named BlendShapes")
+    p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda")
+    p.add_argument("--method", default="menzel", choices=["menzel", "dt", "ebfr", "laplacian"],
+                   help="capture fit method (default: menzel, the paper's eqs. 1-3)")
+    p.add_argument("--reg", default="auto",
+                   help="fit regularisation: auto (cross-validated), paper, or a number")
+    p.add_argument("--mu", type=float, default=1e-3,
+                   help="eq. (4) ridge weight, relative to the shapes' mean squared norm (default 1e-3)")
+    p.add_argument("--correspondence", metavar="FILE",
+                   help="correspondence cache (.npz): reused when it matches the avatar, written otherwise")
+    p.add_argument("--face-transfer", default="offset", choices=["offset", "dt", "dt-offset"],
+                   help="how the face region receives the shapes (default: offset; dt = the paper's DT)")
+    p.add_argument("--approximation", default="generic", choices=["generic", "retarget"],
+                   help="what the region around the face and the other meshes follow: the avatar's generic "
+                        "shape (default) or the eq. (4) approximation A_j (the paper)")
+    p.add_argument("--falloff", type=float, default=0.15,
+                   help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
+                        "over the whole adjacent region, as in the paper)")
+    p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+
+
+def transfer_kwargs(args) -> dict:
+    reg = args.reg
+    try:
+        reg = float(reg)
+    except ValueError:
+        pass
+    return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
+            "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
+            "eyelids": not args.no_eyelids}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "personalize", help="implant personalized ARKit shapes from a capture into an avatar (USD layer)",
+        description="Fit the person's ARKit blendshapes on the capture, register and correspond the capture "
+                    "with the avatar's face, and write a new USD layer over the untouched avatar with "
+                    "personalized offsets for every BlendShape (Menzel et al. 2022, sec. 3.2-3.3).")
+    add_transfer_options(p)
+    p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: <avatar>.personalized.usda "
+                                          "next to the avatar)")
+    p.add_argument("--force", action="store_true", help="overwrite the output; recompute the correspondence")
+    p.add_argument("--dry-run", action="store_true",
+                   help="compute and print what would change; write nothing")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=run)
+
+
+def _default_output(avatar: str) -> Path:
+    a = Path(avatar)
+    return a.with_name(a.stem + ".personalized.usda")
+
+
+def run(args) -> int:
+    from .. import progress
+    from ..api import personalize_avatar
+
+    if args.quiet or args.json:
+        progress.set_enabled(False)
+    out = Path(args.output) if args.output else _default_output(args.avatar)
+    result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
+                                command=" ".join(["usdface", *sys.argv[1:]]), **transfer_kwargs(args))
+    rep = result.report
+    if args.json:
+        doc = {k: v for k, v in rep.items() if k != "name_report"}
+        doc["output"] = str(result.out_path) if result.out_path else None
+        json.dump(doc, sys.stdout, indent=1, default=str)
+        print()
+        return 0
+    reg = rep["registration"]
+    print(f"registration: scale {reg['scale']:.4f}, residual {reg['residual_m'] * 1000:.2f} mm, "
+          f"fitness {reg['fitness']:.2f} ({reg['initialiser']})")
+    cor = rep["correspondence"]
+    print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']} (cache: "
+          f"{cor.get('cache', 'off')}); {len(rep['shapes'])} shapes implanted")
+    for w in rep["warnings"]:
+        print(f"warning: {w}")
+    changed = [c for c in rep["changes"] if c["max_change_m"] > 0]
+    if args.dry_run:
+        print(f"dry run: {len(changed)} of {len(rep['changes'])} BlendShapes would change "
+              f"(largest change per shape, mm):")
+        for c in changed:
+            print(f"  {c['mesh']}/{c['shape']}: max {c['max_change_m'] * 1000:.3f}, "
+                  f"rms {c['rms_change_m'] * 1000:.3f}, {c['moved_vertices']} vertices")
+        print(f"would write {out}")
+    else:
+        print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
+    t = rep["timings"]
+    print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
+    return 0
