@@ -1,0 +1,114 @@
+"""Pyblish plugins: a real ``pyblish.util.publish`` run collects, validates (face-rig rules + OpenUSD
+validators + capture), stops a bad rig before extraction, and personalizes a good one at publish time."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pyblish_api = pytest.importorskip("pyblish.api")
+import pyblish.util  # noqa: E402
+
+from usdface.pipeline import pyblish_plugins as plugins  # noqa: E402
+
+
+@pytest.fixture
+def registered():
+    pyblish_api.deregister_all_plugins()
+    plugins.register()
+    plugins.register()  # idempotent
+    yield
+    pyblish_api.deregister_all_plugins()
+
+
+def _results(context):
+    # an Instance is a list (of its members): empty means falsy, so compare with None
+    return {(r["plugin"].__name__, None if r["instance"] is None else r["instance"].name): r
+            for r in context.data["results"]}
+
+
+def _bad_avatar(path: Path) -> Path:
+    """A UsdSkel avatar whose one BlendShape has an out-of-range point index (and no ARKit names)."""
+    path.write_text("""#usda 1.0
+(
+    defaultPrim = "Avatar"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+)
+def SkelRoot "Avatar"
+{
+    def Skeleton "Skel" {}
+    def Mesh "Head" (prepend apiSchemas = ["SkelBindingAPI"])
+    {
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        rel skel:skeleton = </Avatar/Skel>
+        uniform token[] skel:blendShapes = ["jawOpen"]
+        rel skel:blendShapeTargets = [</Avatar/Head/jawOpen>]
+        def BlendShape "jawOpen"
+        {
+            uniform vector3f[] offsets = [(0, 0, 1)]
+            uniform int[] pointIndices = [7]
+        }
+    }
+}
+""")
+    return path
+
+
+def test_bad_rig_stops_the_publish(registered, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(plugins.ExtractUsdFacePersonalized, "personalize",
+                        staticmethod(lambda *a, **k: calls.append(a)))
+    pyblish_api.deregister_plugin(plugins.ValidateUsdFaceCapture)  # only the rig matters here
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(_bad_avatar(tmp_path / "bad.usda")),
+                                     "capture": str(tmp_path / "capture"),
+                                     "output": str(tmp_path / "out.usda")}]
+    pyblish.util.publish(context)
+    results = _results(context)
+    assert results[("CollectUsdFaceItems", None)]["success"]
+    failed = results[("ValidateUsdFaceRig", "out")]
+    assert not failed["success"]
+    assert "PointIndices" in str(failed["error"]) and "bad.usda" in str(failed["error"])
+    assert ("ExtractUsdFacePersonalized", "out") not in results and calls == []
+    instance = next(iter(context))
+    assert any(i["rule"] == "PointIndices" for i in instance.data["usdfaceCheck"])
+
+
+def test_missing_capture_fails_validation(registered, tmp_path, bench):
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(bench / "dev1" / "avatar.usdc"),
+                                     "capture": str(tmp_path / "nowhere"),
+                                     "output": str(tmp_path / "o.usda")}]
+    pyblish.util.publish(context)
+    results = _results(context)
+    assert results[("ValidateUsdFaceRig", "o")]["success"]
+    assert not results[("ValidateUsdFaceCapture", "o")]["success"]
+    assert not (tmp_path / "o.usda").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.shared
+def test_publish_personalizes(registered, tmp_path, bench):
+    """Real Pyblish run on bench dev1 with the real personalize, collected from a batch manifest."""
+    pytest.importorskip("usdface.transfer")
+    manifest = tmp_path / "publish.csv"
+    dev1 = bench / "dev1"
+    manifest.write_text("avatar,capture,output\n"
+                        f"{dev1 / 'avatar.usdc'},{dev1 / 'capture'},dev1_person.usda\n")
+    context = pyblish_api.Context()
+    context.data["usdfaceManifest"] = str(manifest)
+    pyblish.util.publish(context)
+    errors = [r["error"] for r in context.data["results"] if not r["success"]]
+    assert errors == []
+    instance = next(iter(context))
+    out = Path(instance.data["usdfaceLayer"])
+    assert out == tmp_path / "dev1_person.usda" and out.exists()
+    assert instance.data["representations"][0]["files"] == "dev1_person.usda"
+    assert instance.data["usdfaceCaptureSummary"]["train"] > 0
+    from usdface.api import check
+
+    assert [i for i in check(out) if i.severity == "error"] == []

@@ -1,0 +1,169 @@
+"""Pyblish plugins: validate an ARKit face rig and personalize it at publish time.
+
+Needs ``pyblish-base`` (``pip install 'usdface[pipeline]'``). The plugins act on instances of the family
+``usdface.avatar`` whose data holds ``avatar`` (USD file), ``capture`` (capture folder or capture USD) and
+``output`` (the layer to write), plus optional ``usdfaceOptions`` (personalize options such as ``method``),
+``force`` and ``inspect``. A studio's own collector usually creates them; :class:`CollectUsdFaceItems`
+makes them from ``context.data["usdfaceItems"]`` (a list of dicts) or ``context.data["usdfaceManifest"]``
+(a batch manifest, see :mod:`usdface.pipeline.batch`).
+
+* :class:`ValidateUsdFaceRig` (validator): usdface's face-rig rules + OpenUSD's validators on the avatar; any
+  error fails the publish (Pyblish then skips extraction); warnings are logged; the report is stored in
+  ``instance.data["usdfaceCheck"]``.
+* :class:`ValidateUsdFaceCapture` (validator): the capture reads (names, topology, weights).
+* :class:`ExtractUsdFacePersonalized` (extractor): runs ``personalize``, re-checks the written layer, and
+  records it in ``instance.data["files"]`` and ``instance.data["representations"]`` (the OpenPype/AYON shape).
+
+Example::
+
+    import pyblish.api, pyblish.util
+    from usdface.pipeline import pyblish_plugins
+    pyblish_plugins.register()
+    context = pyblish.api.Context()
+    context.data["usdfaceItems"] = [{"avatar": "a.usdc", "capture": "capture/", "output": "a_person.usda"}]
+    pyblish.util.publish(context)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+try:
+    import pyblish.api as _pyblish
+except ImportError as exc:  # pragma: no cover - exercised only without the optional extra
+    raise ImportError("usdface's Pyblish plugins need pyblish-base: pip install 'usdface[pipeline]'") from exc
+
+FAMILY = "usdface.avatar"
+
+
+class CollectUsdFaceItems(_pyblish.ContextPlugin):
+    """One ``usdface.avatar`` instance per item of ``context.data["usdfaceItems"]`` or of the batch manifest
+    ``context.data["usdfaceManifest"]``."""
+
+    order = _pyblish.CollectorOrder
+    label = "Collect usdface avatars"
+
+    def process(self, context):
+        items = list(context.data.get("usdfaceItems") or [])
+        manifest = context.data.get("usdfaceManifest")
+        if manifest:
+            from .batch import read_manifest
+
+            items += [dict(avatar=i.avatar, capture=i.capture, output=i.output, usdfaceOptions=i.options)
+                      for i in read_manifest(manifest)]
+        for item in items:
+            name = Path(item["output"]).stem
+            instance = context.create_instance(name, family=FAMILY)
+            instance.data.update(item)
+            instance.data.setdefault("usdfaceOptions", {})
+            self.log.info("collected %s: %s + %s -> %s", name, item["avatar"], item["capture"],
+                          item["output"])
+
+
+class ValidateUsdFaceRig(_pyblish.InstancePlugin):
+    """The avatar passes usdface's face-rig rules and OpenUSD's validators (errors fail the publish)."""
+
+    order = _pyblish.ValidatorOrder
+    families = [FAMILY]
+    label = "Validate face rig (usdface check)"
+    #: Also run OpenUSD's own validators.
+    pixar = True
+    #: Warnings fail the publish too.
+    strict = False
+
+    def process(self, instance):
+        from ..api import check
+
+        issues = check(instance.data["avatar"], pixar=self.pixar)
+        instance.data["usdfaceCheck"] = [i.to_dict() for i in issues]
+        for issue in issues:
+            if issue.severity == "warning":
+                self.log.warning(str(issue))
+            elif issue.severity == "info":
+                self.log.info(str(issue))
+        bad = [i for i in issues if i.severity == "error" or (self.strict and i.severity == "warning")]
+        if bad:
+            from ..errors import RigError
+
+            more = f"; ... {len(bad) - 5} more" if len(bad) > 5 else ""
+            lines = "; ".join(str(i) for i in bad[:5]) + more
+            raise RigError(f"{len(bad)} face-rig problem(s): {lines}", path=instance.data["avatar"],
+                           fix="run 'usdface check' on the avatar and fix what it lists")
+
+
+class ValidateUsdFaceCapture(_pyblish.InstancePlugin):
+    """The capture reads: neutral, template and frames with consistent topology and ARKit weights."""
+
+    order = _pyblish.ValidatorOrder
+    families = [FAMILY]
+    label = "Validate capture (usdface)"
+
+    def process(self, instance):
+        from ..api import read_capture
+
+        capture = read_capture(instance.data["capture"])
+        instance.data["usdfaceCaptureSummary"] = {
+            "vertices": int(capture.neutral.shape[0]), "shapes": len(capture.names),
+            "train": len(capture.train), "test": len(capture.test)}
+        if len(capture.train) == 0:
+            from ..errors import CaptureError
+
+            raise CaptureError("capture has no training expressions", path=instance.data["capture"],
+                               fix="add train/<NNN>_<shape>.obj + .json frames")
+
+
+class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
+    """Personalize the avatar from the capture and write the layer; the written layer must pass the check."""
+
+    order = _pyblish.ExtractorOrder
+    families = [FAMILY]
+    label = "Extract personalized avatar layer (usdface personalize)"
+
+    @staticmethod
+    def personalize(avatar, capture, output, **options):
+        """The personalize step (a hook: a studio can swap in its own)."""
+        from ..api import personalize_avatar
+
+        return personalize_avatar(avatar, capture, output, **options)
+
+    def process(self, instance):
+        from ..api import check
+
+        output = Path(instance.data["output"])
+        options = dict(instance.data.get("usdfaceOptions") or {})
+        options.setdefault("force", bool(instance.data.get("force", False)))
+        if "inspect" in instance.data:
+            options.setdefault("inspect", bool(instance.data["inspect"]))
+        self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
+        result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
+        written = Path(getattr(result, "out_path", None) or output)
+        errors = [i for i in check(written) if i.severity == "error"]
+        if errors:
+            from ..errors import UsdFaceError
+
+            raise UsdFaceError(f"the written layer fails the check: {errors[0]}", path=written,
+                               fix="run 'usdface check' on it; report the problem to the usdface maintainers")
+        instance.data["usdfaceLayer"] = str(written)
+        instance.data.setdefault("files", []).append(str(written))
+        instance.data.setdefault("representations", []).append(
+            {"name": "usd", "ext": written.suffix.lstrip("."), "files": written.name,
+             "stagingDir": str(written.parent)})
+        self.log.info("wrote %s", written)
+
+
+#: The plugins, in publish order.
+PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ExtractUsdFacePersonalized)
+
+
+def register() -> None:
+    """Register usdface's plugins with Pyblish (idempotent)."""
+    for plugin in PLUGINS:
+        if plugin not in _pyblish.registered_plugins():
+            _pyblish.register_plugin(plugin)
+
+
+def deregister() -> None:
+    """Remove usdface's plugins from Pyblish."""
+    for plugin in PLUGINS:
+        if plugin in _pyblish.registered_plugins():
+            _pyblish.deregister_plugin(plugin)
