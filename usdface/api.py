@@ -71,14 +71,22 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", **options: 
     return fit_personalized_shapes(_as_capture(capture), method=method, **options)
 
 
-def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, **options: Any):
-    """Paper eq. 5 on the capture's held-out test expressions: RMSE / max vertex error of ``rig`` (default:
-    the capture's generic template) with the test weights (``usdface evaluate``); see
-    :func:`usdface.personalize.evaluate_rig`."""
+def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, role: str = "test") -> dict:
+    """Paper eq. 5 on the capture's held-out ``test`` (or ``train``) expressions: per-frame RMSE and max
+    vertex error in mm of ``rig`` with the frames' weights (``usdface evaluate``); see
+    :func:`usdface.personalize.evaluate_rig`. ``rig`` defaults to the generic baseline: the template's deltas
+    on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used)."""
+    from .model import FaceRig as _FaceRig
     from .personalize import evaluate_rig
 
     capture = _as_capture(capture)
-    return evaluate_rig(capture, capture.template if rig is None else rig, **options)
+    if rig is None:
+        t = capture.template
+        rig = _FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
+                       "generic")
+    rig = getattr(rig, "rig", rig)
+    return evaluate_rig(rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig,
+                        capture.frames.select(role))
 
 
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
