@@ -490,3 +490,42 @@ def test_all_bench_avatars_read(bench):
 def test_errors_are_usdface_errors():
     assert issubclass(RigError, UsdFaceError) and issubclass(GeometryError, UsdFaceError)
     assert Path(__file__).exists()
+
+
+def test_skinned_mesh_is_placed_the_usdskel_way(tmp_path):
+    """A mesh with joint influences ignores its own xformOps: world = Skeleton world * geomBindTransform (bind
+    pose); the reader agrees with UsdSkel's own skinning of the rest pose."""
+    from pxr import Gf, Usd, UsdGeom, UsdSkel
+
+    path = tmp_path / "skinned.usda"
+    write_rig(path, "y_cm")
+
+    def skin(stage):
+        head = stage.GetPrimAtPath("/Avatar/Head")
+        binding = UsdSkel.BindingAPI(head)
+        binding.CreateJointIndicesPrimvar(True, 1).Set([0])
+        binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+        binding.CreateGeomBindTransformAttr(Gf.Matrix4d().SetTranslate(Gf.Vec3d(0, 10, 0)))
+        UsdGeom.Xformable(head).AddTranslateOp().Set(Gf.Vec3d(50, 0, 0))  # ignored by UsdSkel
+        UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar/Skel")).AddRotateYOp().Set(90.0)
+    edit_stage(path, skin)
+    avatar = read_avatar(path)
+    head = avatar.mesh("Head")
+    stage = Usd.Stage.Open(str(path))
+    cache = UsdSkel.Cache()
+    root = UsdSkel.Root(stage.GetPrimAtPath("/Avatar"))
+    cache.Populate(root, Usd.PrimDefaultPredicate)
+    skel_query = cache.GetSkelQuery(UsdSkel.Skeleton(stage.GetPrimAtPath("/Avatar/Skel")))
+    query = cache.GetSkinningQuery(stage.GetPrimAtPath("/Avatar/Head"))
+    points = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head")).GetPointsAttr().Get()
+    assert query.ComputeSkinnedPoints(skel_query.ComputeSkinningTransforms(Usd.TimeCode.Default()), points,
+                                      Usd.TimeCode.Default())
+    skel_world = UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar/Skel")).ComputeLocalToWorldTransform(
+        Usd.TimeCode.Default())
+    world = np.array([skel_world.Transform(Gf.Vec3d(p)) for p in points]) * 0.01
+    np.testing.assert_allclose(head.neutral, world, atol=1e-7)
+    naive = np.array([UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar/Head")).ComputeLocalToWorldTransform(
+        Usd.TimeCode.Default()).Transform(Gf.Vec3d(p)) for p in points]) * 0.01
+    assert np.abs(head.neutral - naive).max() > 0.1  # the mesh's own xformOps were ignored
+    # the unskinned Mouth keeps its own transform chain
+    np.testing.assert_allclose(avatar.mesh("Mouth").neutral, expected_rig()["Mouth"]["neutral"], atol=1e-7)

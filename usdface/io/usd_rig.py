@@ -195,17 +195,31 @@ def _mesh_geometry(mesh_prim, path):
     return points, counts, indices, fan_triangulate(counts, indices)
 
 
-def _mesh_to_internal(mesh_prim, stage_meta) -> np.ndarray:
-    """``to_internal[4,4]``: mesh-local authored coordinates -> internal metres, Y up (column vectors)."""
+def _mesh_to_internal(mesh_prim, stage_meta, skinning=None) -> np.ndarray:
+    """``to_internal[4,4]``: mesh-local authored coordinates -> internal metres, Y up (column vectors).
+
+    A mesh skinned by a Skeleton is placed the UsdSkel way, ignoring its own and its ancestors' xformOps:
+    ``world = Skeleton local-to-world * geomBindTransform`` (the bind pose). Any other mesh uses its full
+    local-to-world transform (every ancestor).
+    """
     from pxr import Usd, UsdGeom
 
-    local_to_world = gf_matrix_to_numpy(
-        UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    if skinning is not None:
+        query, skel_prim = skinning
+        bind = gf_matrix_to_numpy(query.GetGeomBindTransform(Usd.TimeCode.Default()))
+        skel_to_world = gf_matrix_to_numpy(
+            UsdGeom.Xformable(skel_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+        local_to_world = skel_to_world @ bind
+    else:
+        local_to_world = gf_matrix_to_numpy(
+            UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
     return stage_to_internal(stage_meta["upAxis"], stage_meta["metersPerUnit"]) @ local_to_world
 
 
-def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label) -> tuple:
-    """One skinned mesh -> (FaceRig, name-report entry)."""
+def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
+               skinning=None) -> tuple:
+    """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
+    prim) when joint influences bind it to a skeleton."""
     from pxr import UsdSkel
 
     prim = str(mesh_prim.GetPath())
@@ -223,7 +237,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                        fix="give every blend shape channel a unique name")
     points, counts, indices, triangles = _mesh_geometry(mesh_prim, path)
     n = len(points)
-    to_internal = _mesh_to_internal(mesh_prim, stage_meta)
+    to_internal = _mesh_to_internal(mesh_prim, stage_meta, skinning)
     if not np.isfinite(to_internal).all() or abs(np.linalg.det(to_internal[:3, :3])) < 1e-300:
         raise GeometryError("the mesh's world transform is singular or not finite", path=path, prim=prim,
                             fix="fix the xformOps of the mesh and its ancestors")
@@ -393,12 +407,13 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
             for query in binding.GetSkinningTargets():
                 mesh_prim = query.GetPrim()
                 if _has_blend_shapes(mesh_prim):
-                    found.setdefault(str(mesh_prim.GetPath()),
-                                     (mesh_prim, str(root_prim.GetPath()), str(skel.GetPath()), anim))
+                    skinning = (query, skel.GetPrim()) if query.HasJointInfluences() else None
+                    found.setdefault(str(mesh_prim.GetPath()), (mesh_prim, str(root_prim.GetPath()),
+                                                                str(skel.GetPath()), anim, skinning))
         for prim in Usd.PrimRange(root_prim, predicate):
             key = str(prim.GetPath())
             if key not in found and _has_blend_shapes(prim):
-                found[key] = (prim, str(root_prim.GetPath()), None, None)
+                found[key] = (prim, str(root_prim.GetPath()), None, None, None)
                 notes.append(f"{key}: blend shapes but no skeleton binding "
                              "(no UsdSkel client will animate them)")
     if not found:
@@ -409,8 +424,8 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
     order = {str(p.GetPath()): i for i, p in enumerate(stage.Traverse(predicate))}
     meshes, report = [], {}
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
-        prim, skel_root, skeleton, anim = found[key]
-        rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path))
+        prim, skel_root, skeleton, anim, skinning = found[key]
+        rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning)
         meshes.append(rig)
         report[key] = entry
     default_prim = stage.GetDefaultPrim()
