@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -335,3 +336,18 @@ def test_bench_avatar_and_blender_get_the_same_local_offsets(bench, tmp_path):
 
 def local_units(rig, deltas):
     return deltas @ np.linalg.inv(rig.source.to_internal[:3, :3]).T
+
+
+def test_provenance_with_nested_values(rig_file, tmp_path):
+    from pxr import Sdf
+
+    avatar = read_avatar(rig_file)
+    prov = {"command": "x", "registration": {"rotation": np.eye(3), "scale": np.float64(0.01)},
+            "retargetMap": [{"shape": "jawOpen", "weights": [0.5, 0.5]}], "warnings": [], "flag": True,
+            "inputs": [str(rig_file.parent)], "elapsedSeconds": 3.5}
+    out = write_avatar_layer(avatar, tmp_path / "p.usda", personalized(avatar), provenance=prov)
+    data = Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]
+    assert data["registration"]["scale"] == 0.01 and data["flag"] is True
+    assert json.loads(data["registration"]["rotation"]) == np.eye(3).tolist()
+    assert json.loads(data["retargetMap"])[0]["shape"] == "jawOpen"
+    assert len(data["inputDigests"]) == 2 and all(len(d) == 64 for d in data["inputDigests"])  # file + folder

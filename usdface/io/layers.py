@@ -145,16 +145,25 @@ def _usd_value(value):
     if isinstance(value, (float, np.floating)):
         return float(value)
     if isinstance(value, (list, tuple, np.ndarray)):
-        items = list(value)
-        if items and all(isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in items):
-            from pxr import Vt
-
-            return Vt.DoubleArray([float(v) for v in items])
         from pxr import Vt
 
-        return Vt.StringArray([str(v) for v in items])
+        items = list(value)
+        if items and all(isinstance(v, (int, float, np.number)) and not isinstance(v, (bool, np.bool_))
+                         for v in items):
+            return Vt.DoubleArray([float(v) for v in items])
+        if all(isinstance(v, str) for v in items):
+            return Vt.StringArray(items)
+        return json.dumps(value.tolist() if isinstance(value, np.ndarray) else items, default=_json_default)
     if value is None:
         return ""
+    return str(value)
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
     return str(value)
 
 
