@@ -8,11 +8,13 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from usdface.arkit import ARKIT_NAMES, raw_name
-from usdface.errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from usdface.errors import CaptureError, GeometryError, InputFileError, OutputExistsError, UsdFaceError
 from usdface.io import read_capture
-from usdface.io.capture_folder import read_capture_folder, write_capture_folder
+from usdface.io.capture_folder import read_capture_folder, read_weights_json, write_capture_folder
 from usdface.model import Capture, FaceRig, Frames
 
 NAMES = ["eyeBlinkLeft", "jawOpen", "mouthSmileLeft"]
@@ -185,3 +187,26 @@ def test_bench_capture(bench, case):
     if case == "dev1":
         np.testing.assert_allclose(cap.test.weights, truth["test_weights"], atol=1e-6)
     assert cap.train.label[0] == "000_eyeBlinkLeft"
+
+
+leaves = st.none() | st.booleans() | st.floats(allow_nan=True) | st.integers() | st.text(max_size=8)
+json_values = st.recursive(leaves, lambda children: st.lists(children, max_size=3)
+                           | st.dictionaries(st.text(max_size=12), children, max_size=3), max_leaves=8)
+shape_keys = st.sampled_from(["eyeBlinkLeft", "eyeBlink_L", "EyeBlinkLeft", "jawOpen", "JAWOPEN", "x", ""])
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(json_values, st.fixed_dictionaries({"blendShapes": st.dictionaries(
+    shape_keys, st.floats(allow_nan=True) | st.integers(-3, 3) | st.text(max_size=3), max_size=4)})),
+    st.booleans())
+def test_fuzz_weights_json_raises_only_usdface_errors(tmp_path, data, garble):
+    p = tmp_path / "w.json"
+    text = json.dumps(data)
+    p.write_text(text[: len(text) // 2] if garble else text)
+    try:
+        weights = read_weights_json(p)
+    except UsdFaceError as exc:
+        assert "w.json" in str(exc) and exc.fix
+        return
+    assert all(np.isfinite(v) for v in weights.values())
+    assert len(weights) == len(data["blendShapes"])

@@ -171,3 +171,32 @@ def test_cli_import_refuses_overwrite_and_reports_errors(tmp_path, capsys):
     assert main(["capture", "import", str(src), "-o", str(bad_out)]) == 2
     assert "neutral.obj" in capsys.readouterr().err and not bad_out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "capture.usda"]  # no temp files left
+
+
+def pixar_validation_errors(path) -> list[str]:
+    """Every error/warning of Pixar's own OpenUSD validators (usd-core's UsdValidation registry)."""
+    from pxr import Usd, UsdValidation
+
+    validators = [v for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+                  if not v.GetMetadata().name.startswith("usdface")]
+    assert len(validators) > 20  # geom, skel, shade, utils ... validators are really there
+    errors = UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(path)))
+    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors]
+
+
+def test_written_files_pass_pixar_validators(tmp_path):
+    from test_livelink import write_csv
+    from test_take_select import grid_rigs
+
+    from usdface.io.take import write_take_usd
+    from usdface.sample.take import make_take
+
+    cap = write_capture_usd(tiny_capture(), tmp_path / "capture.usda")
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, template, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    take_path = write_take_usd(take, tmp_path / "take.usdc")
+    csv_path = write_csv(tmp_path / "t.csv", np.full((2, 52), 0.25), ["01:00:00:00.0", "01:00:00:02.0"])
+    anim = tmp_path / "anim.usda"
+    assert main(["anim", "import", str(csv_path), "-o", str(anim)]) == 0
+    for path in (cap, take_path, anim):
+        assert pixar_validation_errors(path) == [], path
