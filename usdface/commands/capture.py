@@ -51,6 +51,9 @@ def run_import(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         capture = read_capture(args.source)
+    from ..io.layers import file_digest
+
+    capture.metadata.setdefault("source_digest", file_digest(args.source))
     for w in caught:
         print(f"warning: {w.message}")
     out = write_capture_usd(capture, args.output, force=args.force, exact=args.exact)

@@ -443,8 +443,12 @@ def read_capture_usd(path) -> Capture:
         neutral, pts = neutral @ m.T, pts @ m.T
         template = FaceRig(template.neutral @ m.T, template.triangles, template.names, template.deltas @ m.T,
                            name="template")
+    from ..arkit import match_names
+
+    match = match_names(template.names)
     root_attr = root.GetAttribute("usdface:capture:device")
     metadata = {"source": str(path), "units": "m",
+                "name_report": {"inexact": match.inexact, "unknown": match.unknown, "missing": match.missing},
                 "counts": {r: int(sum(x == r for x in role)) for r in ROLES},
                 "device": str(root_attr.Get() or "") if root_attr else ""}
     return Capture(neutral, triangles, template, Frames(pts, w, role, label), list(template.names),
