@@ -70,7 +70,10 @@ class FaceRig:
         self.neutral = np.asarray(self.neutral, dtype=np.float64)
         self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
         self.names = [str(n) for n in self.names]
-        self.deltas = np.asarray(self.deltas, dtype=np.float64).reshape(len(self.names), -1, 3)
+        self.deltas = np.asarray(self.deltas, dtype=np.float64)
+        # a rig may have no shapes (e.g. eyes bound to the skeleton only): deltas [0, n, 3]
+        self.deltas = (self.deltas.reshape(len(self.names), -1, 3) if self.names
+                       else np.zeros((0, len(self.neutral), 3)))
         if self.neutral.ndim != 2 or self.neutral.shape[1] != 3:
             raise GeometryError(f"rig {self.name!r}: neutral must be [n,3], got {self.neutral.shape}")
         if self.deltas.shape[1] != self.neutral.shape[0]:
