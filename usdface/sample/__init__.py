@@ -1,0 +1,193 @@
+"""Procedural sample assets with a known truth: ``usdface sample OUTDIR``.
+
+:func:`generate_samples` writes, deterministically (same bytes for the same seed)::
+
+    OUTDIR/
+      avatar.usda            UsdSkel avatar: /Avatar/{Head, Mouth, EyeLeft, EyeRight}, cm, Y up, head at
+                             (0, 160, 2) cm; the 52 ARKit shapes as GENERIC blend shapes (sparse pointIndices)
+      capture/               the person's capture in the folder format (ARKit-like face mask, ~1,200
+                             vertices, metres, centred near the origin): neutral.obj, template/ (GENERIC
+                             rig on the mask, template identity), train/NNN_<shape>.obj+.json,
+                             test/NNN.obj+.json
+      capture.usda           the same capture as a USD asset (usdface.io.usd_capture)
+      truth/capture_truth.npz  names, neutral, deltas (TRUE, metres), template_deltas, test_weights
+      truth/avatar_truth.npz   "Head/<shape>", "Mouth/<shape>" -> TRUE offsets on the avatar meshes (cm)
+      truth/meta.json          parameters: seed, counts, units, the avatar -> capture transform, noise levels
+
+Nothing is derived from third-party data: the head is an analytic surface (:mod:`.head`), the expressions
+are smooth deformation fields (:mod:`.fields`), the person is a random identity plus personalised fields, the
+weights follow cross-talk rules (:mod:`.performance`). A training / test frame is
+``person neutral + sum_j w_j TRUE_j`` (true weights) plus scan noise; its JSON holds the phone's (noisy)
+weights.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import ARKIT_NAMES
+from ..errors import OutputExistsError
+from ..model import Capture, FaceRig, Frames
+from . import fields as F
+from . import head as H
+from . import performance as P
+
+__all__ = ["generate_samples", "SampleParams", "build_samples"]
+
+#: Format version of the generated assets (bump when the generator changes the bytes on purpose).
+SAMPLE_VERSION = 1
+
+
+class SampleParams:
+    """Fixed parameters of the sample case (units noted)."""
+
+    capture_origin_cm = np.array([0.0, 1.0, 3.0])   # head-frame point that becomes the capture origin
+    capture_tilt_deg = 3.0                           # capture frame pitched about X (face-anchor pose)
+    scan_noise_m = 1e-4                              # 0.1 mm per coordinate
+    weight_noise = 0.01                              # phone weight noise (std)
+    capture_decimals = 6                             # metres: 1 micrometre
+    avatar_decimals = 4                              # cm: 1 micrometre
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def build_samples(seed: int = 0) -> dict:
+    """Every array of the sample case, in memory (no files). Keys documented in :func:`generate_samples`."""
+    rng = np.random.default_rng(seed)
+    sp = SampleParams
+    names = list(ARKIT_NAMES)
+    template_id = H.identity_params(rng)
+    person_id = H.identity_params(rng)
+    generic = F.generic_fields()
+    true_fields = F.personalize_fields(generic, rng)
+
+    # ---- capture (metres, capture frame): x_cap = R (X - origin) / 100
+    R = _rot_x(sp.capture_tilt_deg)
+    mask = H.capture_mask_mesh()
+    Xc = mask.points()
+
+    def to_cap(p_cm):
+        return (p_cm - sp.capture_origin_cm) @ R.T / 100.0
+
+    def to_cap_delta(d_cm):
+        return d_cm @ R.T / 100.0
+
+    dec = sp.capture_decimals
+    person_neutral = np.round(to_cap(H.identity_warp(Xc, person_id)), dec)
+    template_neutral = np.round(to_cap(H.identity_warp(Xc, template_id)), dec)
+    # truth rounded (0.1 nm, 10 nm in cm below) so that regeneration gives the same bytes even where libm's
+    # last bits differ between machines
+    true_deltas = np.round(to_cap_delta(F.evaluate_fields(true_fields, Xc)), 10)
+    template_targets = np.round(template_neutral + to_cap_delta(F.evaluate_fields(generic, Xc)), dec)
+    template_deltas = template_targets - template_neutral
+
+    w_train = P.training_weights(rng)
+    test_labels, w_test = P.test_weights(rng)
+    w_true = np.concatenate([w_train, w_test])
+    w_reported = P.reported_weights(rng, w_true, sp.weight_noise)
+    frames = person_neutral + np.einsum("fk,knc->fnc", w_true, true_deltas)
+    frames = np.round(frames + sp.scan_noise_m * rng.standard_normal(frames.shape), dec)
+    roles = ["train"] * len(w_train) + ["test"] * len(w_test)
+    labels = [f"{j:03d}_{n}" for j, n in enumerate(names)] + [f"{i:03d}" for i in range(len(w_test))]
+    tris = mask.triangles
+    capture = Capture(person_neutral, tris, FaceRig(template_neutral, tris, names, template_deltas,
+                                                    name="template"),
+                      Frames(frames, w_reported, roles, labels), names,
+                      metadata={"device": "usdface sample generator", "units_note": "metres"})
+
+    # ---- avatar (cm world; rigs in metres internal)
+    adec = sp.avatar_decimals
+    head = H.avatar_head_mesh()
+    Xh = head.points()
+    head_neutral_cm = np.round(H.AVATAR_CENTER + H.identity_warp(Xh, person_id), adec)
+    head_generic = np.round(F.evaluate_fields(generic, Xh), adec)
+    head_true = np.round(F.evaluate_fields(true_fields, Xh), 6)
+    mouth_pts, mouth_tris = H.mouth_block()
+    mouth_neutral_cm = np.round(H.AVATAR_CENTER + H.identity_warp(mouth_pts, person_id), adec)
+    mouth_names = [n for n in names if n in F.MOUTH_MESH_SHAPES]
+    mouth_generic = np.round(F.evaluate_fields(generic, mouth_pts, "mouth", mouth_names), adec)
+    mouth_true = np.round(F.evaluate_fields(true_fields, mouth_pts, "mouth", mouth_names), 6)
+    rigs = [FaceRig(head_neutral_cm / 100.0, head.triangles, names, head_generic / 100.0, name="Head"),
+            FaceRig(mouth_neutral_cm / 100.0, mouth_tris, mouth_names, mouth_generic / 100.0, name="Mouth")]
+    for mesh_name, sign in (("EyeLeft", 1.0), ("EyeRight", -1.0)):
+        c = H.identity_warp(H.eyeball_center(sign)[None], person_id)[0]
+        pts, tri = H.uv_sphere(c, H.EYEBALL_RADIUS * person_id["scale"], 16, 10)
+        pts = np.round(H.AVATAR_CENTER + pts, adec)
+        rigs.append(FaceRig(pts / 100.0, tri, [], np.zeros((0, len(pts), 3)), name=mesh_name))
+    avatar_truth = {f"Head/{n}": head_true[k].astype(np.float32) for k, n in enumerate(names)}
+    avatar_truth.update({f"Mouth/{n}": mouth_true[k].astype(np.float32) for k, n in enumerate(mouth_names)})
+
+    n_train = len(w_train)
+    capture_truth = {"names": np.array(names), "neutral": person_neutral, "deltas": true_deltas,
+                     "template_deltas": template_deltas, "test_weights": w_test}
+    meta = {
+        "generator": "usdface.sample", "sample_version": SAMPLE_VERSION, "seed": int(seed),
+        "names": "canonical", "shapes": len(names),
+        "capture_vertices": int(len(person_neutral)), "capture_triangles": int(len(tris)),
+        "avatar_vertices": int(sum(r.n_vertices for r in rigs)),
+        "avatar_meshes": {r.name: r.n_vertices for r in rigs},
+        "train_frames": n_train, "test_frames": len(w_test), "test_expressions": test_labels,
+        "units": {"capture": "m", "avatar": "cm (metersPerUnit 0.01)", "avatar_truth": "cm"},
+        "avatar_to_capture": {
+            "formula": "x_capture_m = R @ (x_avatar_cm - head_center_cm - origin_cm) / 100",
+            "head_center_cm": H.AVATAR_CENTER.tolist(), "origin_cm": sp.capture_origin_cm.tolist(),
+            "R": np.round(R, 12).tolist(), "tilt_about_x_deg": sp.capture_tilt_deg},
+        "noise": {"scan_m": sp.scan_noise_m, "weights": sp.weight_noise},
+        "identity": {"template": template_id, "person": person_id},
+    }
+    return {"capture": capture, "rigs": rigs, "capture_truth": capture_truth, "avatar_truth": avatar_truth,
+            "meta": meta, "true_weights": w_true, "head_mesh": head, "mask_mesh": mask}
+
+
+def _write_npz(path: Path, arrays: dict) -> None:
+    """Deterministic compressed npz (sorted keys; zip entries carry numpy's fixed timestamp)."""
+    np.savez_compressed(path, **{k: arrays[k] for k in sorted(arrays)})
+
+
+def generate_samples(outdir, seed: int = 0, force: bool = False) -> Path:
+    """Generate the sample assets into ``outdir`` (see the module docstring); returns ``outdir``.
+
+    Deterministic: the same ``seed`` gives the same bytes. Everything is assembled in a temporary folder next
+    to ``outdir`` and renamed into place; an existing non-empty ``outdir`` is refused unless ``force``
+    (OutputExistsError).
+    """
+    from ..io.avatar_writer import write_rig_usd
+    from ..io.capture_folder import write_capture_folder
+    from ..io.usd_capture import write_capture_usd
+
+    dest = Path(outdir)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not force:
+        raise OutputExistsError("output folder exists and is not empty", path=dest,
+                                fix="choose a new folder or pass --force")
+    data = build_samples(seed)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    os.chmod(tmp, 0o755)
+    try:
+        write_rig_usd(data["rigs"], tmp / "avatar.usda", up_axis="Y", meters_per_unit=0.01, root="/Avatar")
+        write_capture_folder(data["capture"], tmp / "capture")
+        write_capture_usd(data["capture"], tmp / "capture.usda", exact=False)
+        (tmp / "truth").mkdir()
+        _write_npz(tmp / "truth" / "capture_truth.npz", data["capture_truth"])
+        _write_npz(tmp / "truth" / "avatar_truth.npz", data["avatar_truth"])
+        (tmp / "truth" / "meta.json").write_text(json.dumps(data["meta"], indent=1, sort_keys=True) + "\n")
+        if dest.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+            os.replace(dest, old / dest.name)
+            os.replace(tmp, dest)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, dest)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dest
