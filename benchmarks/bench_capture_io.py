@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     med, best, _ = median_time(lambda: write_animation_usd(tmp / "take.usdc", ll.names, ll.weights, ll.times,
                                                            60.0, curves=ll.angles, force=True), r)
     rows.append(("write_animation_usd (anim import body) .usdc", med, best))
-    med, best, sel = median_time(lambda: select_frames(ll.weights, ll.names, min_separation=15,
+    med, best, sel = median_time(lambda: select_frames(ll.weights, names=ll.names, min_separation=15,
                                                        test_every=100), r)
     rows.append((f"select_frames alex_rom_3 ({52 - len(sel.missing)}/52 triggered)", med, best))
 
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     rows.append((f"write_take_usd .usdc ({take_path.stat().st_size / 1e6:.0f} MB)", med, best))
     med, best, back = median_time(lambda: read_take(take_path), max(1, r // 2))
     rows.append(("read_take .usdc", med, best))
-    med, best, sel = median_time(lambda: select_frames(back.weights, back.names, min_separation=15), r)
+    med, best, sel = median_time(lambda: select_frames(back.weights, names=back.names, min_separation=15), r)
     rows.append(("select_frames on the dev1 take", med, best))
 
     print(f"{'step':<58}{'median s':>10}{'best s':>10}")

@@ -49,15 +49,15 @@ def test_rule_on_hand_made_weights():
     w[30:35, 1] = [0.1, 0.3, 0.5, 0.3, 0.1]              # reaches exactly 0.5: not above the threshold
     w[35:40, 2] = [0.2, 0.4, 0.6, 0.8, 0.9]              # still rising when the take ends: no peak
     w[5, 1] = 0.3                                         # rival of shape 0 at its peak
-    sel = select_frames(w, ["a", "b", "c"], min_separation=5)
+    sel = select_frames(w, names=["a", "b", "c"], min_separation=5)
     assert sel.train.tolist() == [5] and sel.missing == ["b", "c"]
     a = sel.shapes[0]
     assert a.frames == [5] and a.peak == [0.9] and a.rival == ["b"] and a.dominance == [pytest.approx(0.6)]
-    two = select_frames(w, ["a", "b", "c"], per_shape=2, min_separation=5)
+    two = select_frames(w, names=["a", "b", "c"], per_shape=2, min_separation=5)
     assert two.shapes[0].frames == [5, 22] and two.train.tolist() == [5, 22]
-    merged = select_frames(w, ["a", "b", "c"], per_shape=2, min_separation=30)
+    merged = select_frames(w, names=["a", "b", "c"], per_shape=2, min_separation=30)
     assert merged.shapes[0].frames == [5]  # peaks closer than min_separation count once
-    low = select_frames(w, ["a", "b", "c"], threshold=0.45, min_separation=5)
+    low = select_frames(w, names=["a", "b", "c"], threshold=0.45, min_separation=5)
     assert low.shapes[1].frames == [32]
     text = format_coverage(sel)
     assert "never triggered (record again): b, c" in text and "max 0.50" in text
@@ -67,7 +67,7 @@ def test_test_split_stays_away_from_training_frames():
     w = np.zeros((200, 2))
     w[50:61, 0] = np.sin(np.linspace(0, np.pi, 11))
     w[120:131, 1] = np.sin(np.linspace(0, np.pi, 11))
-    sel = select_frames(w, ["a", "b"], test_every=10, min_separation=15)
+    sel = select_frames(w, names=["a", "b"], test_every=10, min_separation=15)
     assert sel.train.tolist() == [55, 125]
     assert len(sel.test) > 5 and np.abs(sel.test[:, None] - sel.train[None]).min() >= 15
     assert not set(sel.test.tolist()) & set(sel.train.tolist())
@@ -83,7 +83,7 @@ def test_bad_input(kwargs):
 
 def test_selected_frames_are_the_true_peaks(generated):
     take, truth, _ = generated
-    sel = select_frames(take.weights, take.names, threshold=0.5, min_separation=int(0.5 * take.fps))
+    sel = select_frames(take.weights, names=take.names, threshold=0.5, min_separation=int(0.5 * take.fps))
     chosen = {s.name: s.frames for s in sel.shapes if s.triggered}
     assert chosen == {name: [f] for name, f in truth.peak_frames.items()}
     assert sel.missing == SKIP == truth.skipped
@@ -103,7 +103,7 @@ def test_fit_from_selected_frames_matches_hand_picked(generated):
     from usdface.personalize import fit_personalized_shapes
 
     take, truth, person = generated
-    sel = select_frames(take.weights, take.names, min_separation=15)
+    sel = select_frames(take.weights, names=take.names, min_separation=15)
     selected = capture_from_take(take, sel)
     hand = hand_picked_capture(take, truth, take.template)
     assert selected.metadata["never_triggered"] == SKIP
@@ -158,7 +158,7 @@ def test_obj_sequence_with_livelink_csv(tmp_path):
 def test_take_without_template_or_mesh(tmp_path, generated):
     take, _, _ = generated
     bare = type(take)(take.weights, take.names, take.times, take.points, take.triangles)
-    sel = select_frames(take.weights, take.names)
+    sel = select_frames(take.weights, names=take.names)
     with pytest.raises(CaptureError, match="template"):
         capture_from_take(bare, sel)
     with pytest.warns(UserWarning, match="no neutral"):

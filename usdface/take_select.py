@@ -78,17 +78,17 @@ class Selection:
         return [f"{t:03d}" for t in range(len(self.test))]
 
 
-def select_frames(weights, names=None, threshold: float = 0.5, per_shape: int = 1, test_every: int = 0,
+def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_every: int = 0, *, names=None,
                   min_separation: int = 15) -> Selection:
     """Pick training frames from a continuous take by Menzel et al.'s rule (section 3.1).
 
     Parameters
     ----------
     weights : ``[F, K]`` per-frame weights in [0, 1] (columns follow ``names``).
-    names : ``[K]`` shape names (default ``shape0 ..``).
     threshold : a peak counts only if ``w_ii > threshold``.
     per_shape : number of distinct peaks kept per shape (highest first).
     test_every : hold out every K-th take frame away from training frames as a test frame (0: none).
+    names : ``[K]`` shape names (default ``shape0 ..``).
     min_separation : frames between two peaks of one shape, and between test and training frames.
 
     Returns a :class:`Selection`. Raises CaptureError on malformed input.
@@ -98,7 +98,7 @@ def select_frames(weights, names=None, threshold: float = 0.5, per_shape: int = 
     >>> w = np.zeros((9, 2))
     >>> w[:, 0] = [0, .3, .8, .6, 0, 0, 0, 0, 0]
     >>> w[:, 1] = [0, 0, 0, 0, 0, .4, .9, .9, 0]
-    >>> sel = select_frames(w, ["jawOpen", "eyeBlinkLeft"], min_separation=2)
+    >>> sel = select_frames(w, names=["jawOpen", "eyeBlinkLeft"], min_separation=2)
     >>> sel.train.tolist(), sel.missing
     ([2, 6], [])
     """

@@ -76,7 +76,7 @@ def run_select(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         take = read_take(args.take)
-        selection = select_frames(take.weights, take.names, threshold=args.threshold,
+        selection = select_frames(take.weights, names=take.names, threshold=args.threshold,
                                   per_shape=args.per_shape, test_every=args.test_every,
                                   min_separation=max(1, round(args.min_separation * take.fps)))
         print(format_coverage(selection, take.times))
