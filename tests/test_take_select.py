@@ -167,3 +167,37 @@ def test_take_without_template_or_mesh(tmp_path, generated):
     weights_only = type(take)(take.weights, take.names, take.times)
     with pytest.raises(CaptureError, match="weights only"):
         capture_from_take(weights_only, sel)
+
+
+def test_generic_usd_take_with_skel_animation(tmp_path):
+    """A take authored by another tool: any Mesh with time-sampled points + a SkelAnimation (raw ARKit names,
+    centimetres, Z up)."""
+    from pxr import Usd, UsdGeom, Vt
+
+    from usdface.io.usd_anim import author_skel_animation
+
+    person, _ = grid_rigs(n=4)
+    rng = np.random.default_rng(2)
+    w = rng.random((6, 2))
+    pts = person.subset(["eyeBlinkLeft", "jawOpen"]).evaluate(w)
+    path = tmp_path / "other.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/Face")
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/World"))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(person.triangles)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(person.triangles.ravel().tolist()))
+    to_cm_zup = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) * 100  # inverse of the reader's conversion
+    codes = 10 + 2 * np.arange(6)
+    for f in range(6):
+        authored = (pts[f] @ to_cm_zup.T).astype(np.float32)
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(authored), float(codes[f]))
+    author_skel_animation(stage, "/World/Anim", ["eyeBlink_L", "jawOpen"], w, 24, times=codes / 24)
+    stage.Save()
+    take = read_take(path)
+    assert take.names == ["eyeBlinkLeft", "jawOpen"] and take.metadata["weights_source"] == "/World/Anim"
+    np.testing.assert_allclose(take.weights, w, atol=1e-7)
+    np.testing.assert_allclose(take.points, pts, atol=1e-6)  # back to metres, Y up
+    np.testing.assert_allclose(take.times, np.arange(6) * 2 / 24)
+    assert take.template is None and take.neutral is None
