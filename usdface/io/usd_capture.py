@@ -141,9 +141,13 @@ def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
             ("usdface:capture:shapeNames", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(names)),
             ("usdface:capture:sourceDigest", Sdf.ValueTypeNames.String, str(meta.get("source_digest", "")))):
         root.CreateAttribute(attr, type_).Set(value)
-    stage.GetRootLayer().customLayerData = {"usdface": {"format": "capture", "formatVersion": 1,
-                                                        "version": __version__,
-                                                        "source": str(capture.source or "")}}
+    layer_data = {"format": "capture", "formatVersion": 1, "version": __version__,
+                  "source": str(capture.source or "")}
+    if "take" in meta:  # made by 'capture select': keep the frame-selection record (JSON text)
+        import json
+
+        layer_data["takeSelection"] = json.dumps({**meta["take"], "take_frames": meta.get("take_frames", [])})
+    stage.GetRootLayer().customLayerData = {"usdface": layer_data}
 
     neutral = UsdGeom.Mesh.Define(stage, f"{CAPTURE_PRIM}/Neutral")
     _topology(neutral, capture.triangles)
