@@ -72,9 +72,11 @@ class Correspondence:
     def apply(self, capture_values, capture_triangles) -> np.ndarray:
         """``M @ values``: interpolate per-capture-vertex values ``[..., n_capture, c]`` at the avatar
         vertices -> ``[..., m, c]`` (every vertex; use ``face`` to select the region)."""
-        v = np.asarray(capture_values)
-        tri = np.asarray(capture_triangles)[self.triangle]  # [m,3]
-        return np.einsum("mk,...mkc->...mc", self.barycentric, v[..., tri, :])
+        v = np.asarray(capture_values, dtype=np.float64)
+        lead, (n, c) = v.shape[:-2], v.shape[-2:]
+        flat = np.moveaxis(v.reshape(-1, n, c), 1, 0).reshape(n, -1)  # [n, F*c]
+        out = self.matrix(capture_triangles, n, face_only=False) @ flat  # [m, F*c]
+        return np.moveaxis(out.reshape(-1, int(np.prod(lead, dtype=int)), c), 1, 0).reshape(*lead, -1, c)
 
 
 def nonrigid_register(points, triangles, target_points, target_triangles, *,

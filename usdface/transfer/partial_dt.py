@@ -97,15 +97,17 @@ def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
 
 
 def blend_adjacent(points, triangles, face, face_displacements, approximations, *, tol: float = 1e-9,
-                   falloff: float | None = None):
+                   falloff: float | None = None, band: float = 8.0):
     """Step 2: seamless completion from the approximations A_j with the face fixed.
 
     For each shape j the adjacent region ``R_j = moves in A_j and not face`` gets ``A_j + h`` where ``h``
     minimises ``h^T L h + h^T Mass h / falloff^2`` on R_j (cotangent Laplacian L, lumped vertex areas), with
     ``h = d_face - A_j`` on the face and 0 on every other vertex: harmonic (``falloff=None``), or screened so
     that the correction decays over ``falloff`` metres and the adjacent region stays as close to A_j as a
-    seamless join allows. Vertices outside face and R_j keep exactly A_j. Shapes with the same region share
-    one sparse factorization.
+    seamless join allows. With a falloff the correction is solved only within ``band * falloff`` of the face
+    (it has decayed to ``exp(-band)`` there; farther adjacent vertices keep A_j), which keeps every
+    per-shape system small. Vertices outside face and R_j keep exactly A_j. Shapes with the same free set
+    share one sparse factorization.
 
     Returns ``(result[J,m,3], adjacent[J,m] bool)``.
     """
@@ -123,12 +125,18 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
         for c in range(3):
             np.add.at(mass, np.asarray(triangles)[:, c], area / 3.0)
         lap = (lap + sp.diags(mass / falloff ** 2)).tocsr()
+    solve_set = adjacent
+    if falloff and face.any():
+        from scipy.spatial import cKDTree
+
+        dist = cKDTree(x0[face]).query(x0, distance_upper_bound=band * falloff)[0]
+        solve_set = adjacent & np.isfinite(dist)[None, :]
     groups: dict[bytes, list[int]] = {}
     for j in range(approx.shape[0]):
-        groups.setdefault(np.packbits(adjacent[j]).tobytes(), []).append(j)
+        groups.setdefault(np.packbits(solve_set[j]).tobytes(), []).append(j)
     fidx = np.flatnonzero(face)
     for js in groups.values():
-        free = np.flatnonzero(adjacent[js[0]])
+        free = np.flatnonzero(solve_set[js[0]])
         if free.size == 0:
             continue
         l_ff = lap[free][:, free]
