@@ -245,7 +245,17 @@ def _run_dask(worker, todo, scheduler, advance):
         raise UsdFaceError("--scheduler needs Dask's distributed package",
                            fix="pip install 'usdface[dask]' (dask[distributed])") from exc
     own = not isinstance(scheduler, Client)
-    client = Client(scheduler) if own else scheduler
+    if own:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            from ..errors import UsdFaceError
+
+            raise UsdFaceError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}",
+                               fix="check the address (tcp://host:8786) and that 'dask scheduler' runs; "
+                                   "or drop --scheduler to use the local process pool") from None
+    else:
+        client = scheduler
     try:
         futures = [client.submit(run_item, worker, item, pure=False, key=f"usdface-item-{item['index']}-"
                                  f"{time.time_ns()}") for item in todo]

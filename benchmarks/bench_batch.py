@@ -1,0 +1,81 @@
+"""Benchmark ``usdface batch``: throughput (avatars/minute) of the real personalize on the bench cases, run
+in-process, on the local process pool, and on a Dask LocalCluster.
+
+Usage::
+
+    python benchmarks/bench_batch.py [--items 4] [--repeat 3] [--jobs 2] [--bench ../shared/data/bench]
+
+Each run personalizes ``--items`` avatars (dev1, dev2, dev1, ... into separate outputs) from scratch. Prints a
+table of the median / min wall-clock seconds over ``--repeat`` runs and the median throughput. The machine is
+shared, so read the median. Needs ../shared (the dev bench cases) and, for the Dask row, ``distributed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+from usdface.pipeline.batch import read_manifest, run_batch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _manifest(folder: Path, bench: Path, items: int) -> Path:
+    cases = [c for c in ("dev1", "dev2") if (bench / c / "avatar.usdc").exists()]
+    rows = [{"avatar": str(bench / cases[i % len(cases)] / "avatar.usdc"),
+             "capture": str(bench / cases[i % len(cases)] / "capture"),
+             "output": f"out_{i:02d}.usda"} for i in range(items)]
+    path = folder / "manifest.json"
+    path.write_text(json.dumps(rows))
+    return path
+
+
+def _run(where: str, bench: Path, items: int, jobs: int) -> tuple[float, int]:
+    with tempfile.TemporaryDirectory() as tmp:
+        manifest = _manifest(Path(tmp), bench, items)
+        if where == "dask":
+            from distributed import LocalCluster
+
+            with LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
+                              dashboard_address=None) as cluster:
+                report = run_batch(read_manifest(manifest), scheduler=cluster.scheduler_address,
+                                   progress=False)
+        else:
+            report = run_batch(read_manifest(manifest), jobs=1 if where == "in-process" else jobs,
+                               progress=False)
+        if report.failed:
+            print(f"{where}: {len(report.failed)} failed: {report.failed[0].error}", file=sys.stderr)
+        return report.seconds, report.count("done")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--items", type=int, default=4)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--bench", type=Path, default=ROOT.parent / "shared" / "data" / "bench")
+    parser.add_argument("--only", choices=("in-process", "pool", "dask"), action="append")
+    args = parser.parse_args(argv)
+    if not (args.bench / "dev1" / "avatar.usdc").exists():
+        print(f"bench data not found under {args.bench}", file=sys.stderr)
+        return 1
+    rows = []
+    for where in args.only or ("in-process", "pool", "dask"):
+        runs = [_run(where, args.bench, args.items, args.jobs) for _ in range(args.repeat)]
+        seconds = [s for s, _ in runs]
+        done = min(d for _, d in runs)
+        med = statistics.median(seconds)
+        rows.append((where, done, med, min(seconds), 60.0 * done / med if med else 0.0))
+    print(f"{'where':<12} {'items':>5} {'median s':>9} {'min s':>8} {'avatars/min':>12}   "
+          f"(jobs={args.jobs}, repeat={args.repeat})")
+    for where, done, med, low, rate in rows:
+        print(f"{where:<12} {done:>5} {med:>9.1f} {low:>8.1f} {rate:>12.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
