@@ -110,18 +110,20 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_real_personalize_worker(tmp_path, samples):
-    """The default worker runs the real personalize on the project's sample assets."""
-    pytest.importorskip("usdface.transfer", reason="transfer not built yet")
-    from usdface import transfer
-
-    if not hasattr(transfer, "personalize_avatar"):
-        pytest.skip("usdface.transfer.personalize_avatar not built yet")
+@pytest.mark.shared
+def test_real_personalize_worker(tmp_path, bench):
+    """The default worker runs the real personalize (bench dev1); a missing avatar fails alone."""
+    pytest.importorskip("usdface.transfer")
+    dev1 = bench / "dev1"
     manifest = tmp_path / "m.json"
     manifest.write_text(json.dumps([
-        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture"), "output": "ok.usda"},
-        {"avatar": str(samples / "missing.usda"), "capture": str(samples / "capture"), "output": "bad.usda"},
+        {"avatar": str(dev1 / "avatar.usdc"), "capture": str(dev1 / "capture"), "output": "ok.usda"},
+        {"avatar": str(dev1 / "missing.usdc"), "capture": str(dev1 / "capture"), "output": "bad.usda"},
     ]))
     report = run_batch(read_manifest(manifest), jobs=1, progress=False)
     assert [r.status for r in report.results] == [DONE, FAILED]
     assert (tmp_path / "ok.usda").exists() and report.failed[0].error_type == "InputFileError"
+    assert "missing.usdc" in report.failed[0].error
+    from usdface.api import check
+
+    assert [i for i in check(tmp_path / "ok.usda") if i.severity == "error"] == []

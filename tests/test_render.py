@@ -186,3 +186,29 @@ def test_inspection_rejects_bad_input():
         inspection_edit(avatar, heat={"Nose": np.zeros(3)})(None)
     with pytest.raises(RigError, match="one value per mesh point"):
         inspection_edit(avatar, heat={"Grid": np.zeros(3)})(None)
+
+
+@pytest.mark.shared
+def test_add_inspection_to_written_layer(bench, tmp_path):
+    """add_inspection rewrites only the output layer (atomically) and the heat is |new - generic| RMS."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.layers import file_digest, write_avatar_layer
+    from usdface.io.usd_inspection import HEAT_PRIMVAR, add_inspection, change_heat, inspection_edit
+    from usdface.io.usd_rig import read_avatar
+
+    src = bench / "dev1" / "avatar.usdc"
+    before = file_digest(src)
+    avatar = read_avatar(src)
+    head = avatar.mesh("Head")
+    new = head.deltas.copy()
+    new[head.index("jawOpen")] *= 2.0  # only jawOpen changes
+    out = write_avatar_layer(avatar, tmp_path / "r.usda", {"Head": new})
+    heat = change_heat(avatar, {"Head": new})["/Avatar/Head"]
+    expected = np.linalg.norm(head.deltas[head.index("jawOpen")], axis=1) / np.sqrt(head.n_shapes)
+    np.testing.assert_allclose(heat, expected, rtol=1e-12, atol=1e-15)
+    add_inspection(out, inspection_edit(avatar, heat={"Head": heat}))
+    stage = Usd.Stage.Open(str(out))
+    values = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Avatar/Head")).GetPrimvar(HEAT_PRIMVAR).Get()
+    np.testing.assert_allclose(np.asarray(values), heat, rtol=1e-6, atol=1e-9)
+    assert file_digest(src) == before and not list(tmp_path.glob(".*tmp*"))
