@@ -212,3 +212,11 @@ def test_add_inspection_to_written_layer(bench, tmp_path):
     values = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Avatar/Head")).GetPrimvar(HEAT_PRIMVAR).Get()
     np.testing.assert_allclose(np.asarray(values), heat, rtol=1e-6, atol=1e-9)
     assert file_digest(src) == before and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_landmarks_on_the_far_side_are_hidden():
+    rig = grid_rig()
+    fig = render_landmarks(rig.neutral, rig.triangles[:, ::-1], [0, 5])  # every face looks away
+    assert "2 on the far side" in fig.axes[0].get_title()
+    fig = render_landmarks(rig.neutral, rig.triangles, [0, 5])
+    assert fig.axes[0].get_title() == "2 landmarks"

@@ -222,12 +222,20 @@ def render_landmarks(points, triangles, indices, out=None, *, labels=None, view:
                            fix="use vertex indices of this mesh")
     fig, axes = _figure(1, size=5.0)
     draw_mesh(axes[0], points, triangles, view=view)
-    xy = (points[indices] @ VIEWS[view].T)[:, :2]
-    axes[0].scatter(xy[:, 0], xy[:, 1], s=14, c="#1f77b4", edgecolors="white", linewidths=0.6, zorder=3)
+    from .landmarks.visibility import vertex_normals  # one implementation (should move to usdface.mesh)
+
+    rotated = points @ VIEWS[view].T
+    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0  # landmarks on the far side are hidden
+    xy = rotated[indices][:, :2]
+    axes[0].scatter(xy[visible, 0], xy[visible, 1], s=14, c="#1f77b4", edgecolors="white", linewidths=0.6,
+                    zorder=3)
     if labels is not None:
-        for (x, y), text in zip(xy, labels, strict=True):
-            axes[0].annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
-    axes[0].set_title(title or f"{indices.size} landmarks")
+        for (x, y), text, shown in zip(xy, labels, visible, strict=True):
+            if shown:
+                axes[0].annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    hidden = int((~visible).sum())
+    far = f" ({hidden} on the far side)" if hidden else ""
+    axes[0].set_title(title or f"{indices.size} landmarks{far}")
     if out is not None:
         save_figure(fig, out, force)
     return fig
