@@ -10,7 +10,8 @@
                              rig on the mask, template identity), train/NNN_<shape>.obj+.json,
                              test/NNN.obj+.json
       capture.usda           the same capture as a USD asset (usdface.io.usd_capture)
-      truth/capture_truth.npz  names, neutral, deltas (TRUE, metres), template_deltas, test_weights
+      truth/capture_truth.npz  names, neutral, deltas (TRUE, metres), template_deltas, test_weights,
+                               train_weights (noise-free weights of the frames; the JSONs hold noisy ones)
       truth/avatar_truth.npz   "Head/<shape>", "Mouth/<shape>" -> TRUE offsets on the avatar meshes (cm)
       truth/meta.json          parameters: seed, counts, units, the avatar -> capture transform, noise levels
 
@@ -128,7 +129,7 @@ def build_samples(seed: int = 0) -> dict:
 
     n_train = len(w_train)
     capture_truth = {"names": np.array(names), "neutral": person_neutral, "deltas": true_deltas,
-                     "template_deltas": template_deltas, "test_weights": w_test}
+                     "template_deltas": template_deltas, "test_weights": w_test, "train_weights": w_train}
     meta = {
         "generator": "usdface.sample", "sample_version": SAMPLE_VERSION, "seed": int(seed),
         "names": "canonical", "shapes": len(names),

@@ -213,8 +213,8 @@ def _tilt(rng, vec, deg, centre: bool):
     return rot @ vec
 
 
-def personalize_fields(generic: dict[str, list[dict]], rng: np.random.Generator, *, amplitude_std=0.25,
-                       tilt_deg=12.0, shift_std=0.25, width_std=0.12, extra=0.15) -> dict[str, list[dict]]:
+def personalize_fields(generic: dict[str, list[dict]], rng: np.random.Generator, *, amplitude_std=0.3,
+                       tilt_deg=15.0, shift_std=0.3, width_std=0.12, extra=0.2) -> dict[str, list[dict]]:
     """A person's TRUE fields: each generic term perturbed (amplitude, direction, centre, width) and one extra
     small Gaussian term per shape. Centre shapes stay symmetric (no x shift, tilt about x only)."""
     out = {}
@@ -259,6 +259,10 @@ def personalize_fields(generic: dict[str, list[dict]], rng: np.random.Generator,
         mask = main["mask"] if main is not None else None
         if "eye" in name:
             mask = None
-        terms.append(_g(size * direction, c + offset, (0.9, 0.9, 1.2), mask))
+        pair = bool(main is not None and main.get("pair"))   # off-midline centre term: mirrored, symmetric
+        if pair:
+            direction = rng.standard_normal(3)
+            direction /= np.linalg.norm(direction)
+        terms.append(_g(size * direction, c + offset, (0.9, 0.9, 1.2), mask, pair=pair))
         out[name] = terms
     return out

@@ -260,7 +260,8 @@ def _outside_eyes(x, y, z):
 
 def avatar_head_mesh(columns: int = 80, row_step: float = 0.058) -> SampledMesh:
     """The avatar's Head: the whole head from the neck up (open at the neck), eye holes, mouth slit."""
-    V, U = np.meshgrid(_rows(-1.2, np.pi / 2 - 0.04, row_step), _symmetric_columns(columns, 0.55), indexing="ij")
+    rows = _rows(-1.2, np.pi / 2 - 0.04, row_step)
+    V, U = np.meshgrid(rows, _symmetric_columns(columns, 0.55), indexing="ij")
     return _grid_mesh(U, V, True, _outside_eyes, pole=True)
 
 
