@@ -39,7 +39,7 @@ from .surface import (
 __all__ = ["Correspondence", "nonrigid_register", "correspondence_map", "geometry_digest",
            "save_correspondence", "load_correspondence"]
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclass
@@ -49,7 +49,8 @@ class Correspondence:
     ``triangle[m]`` (capture triangle of each avatar vertex), ``barycentric[m,3]``, ``distance[m]`` (m, from
     the avatar vertex to the registered capture surface), ``face[m]`` bool (the face region),
     ``source_triangle[t_avatar]`` the capture triangle under each avatar face triangle's centroid (-1 for
-    triangles not entirely in the face), ``key`` the
+    triangles not entirely in the face), ``weight[m]`` in [0,1] the face membership (1 = fully face, the
+    region's rim ramps down to 0; ``face = weight > 0``), ``key`` the
     digest it belongs to, ``info`` figures for the report.
     """
 
@@ -58,6 +59,7 @@ class Correspondence:
     distance: np.ndarray
     face: np.ndarray
     source_triangle: np.ndarray
+    weight: np.ndarray | None = None
     key: str = ""
     info: dict | None = None
 
@@ -104,9 +106,10 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
         for _ in range(iterations_per_level):
             t_id, _, c, d = closest_points(target_points, target_triangles, x)
             nx = vertex_normals(x, tri)
-            ok = (d < 3.0 * edge) & (np.einsum("ij,ij->i", nx, t_normals[t_id]) > cos_max)
-            used = float(ok.mean())
-            w = ok.astype(np.float64)
+            # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry
+            w = _ramp_down(d, 2.0 * edge, 4.0 * edge) * _ramp_up(
+                np.einsum("ij,ij->i", nx, t_normals[t_id]), cos_max - 0.1, cos_max + 0.1)
+            used = float((w > 0.5).mean())
             a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
             rhs = (alpha * alpha / scale) * (ltl @ x0) + w[:, None] * c + 1e-8 * x
             x = _solve(a, rhs)
@@ -127,7 +130,8 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     ``registered[n,3]`` the capture template after :func:`nonrigid_register`; ``avatar_points[m,3]``.
     Face region: distance below ``max_distance_ratio`` x the capture's mean edge length, normal angle below
     ``max_angle_deg``, closest point not on a border edge of the capture (open border, eye and mouth holes),
-    and (optionally) ``candidates[m]`` true (e.g. vertices that move in some shape).
+    and (optionally) ``candidates[m]`` true (e.g. vertices that move in some shape). Each test is a smooth
+    ramp around its threshold; their product is ``weight`` and ``face = weight > 0``.
     """
     reg = np.asarray(registered, dtype=np.float64)
     ctri = np.asarray(capture_triangles)
@@ -136,22 +140,29 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     edge = mean_edge_length(reg, ctri)
     an = vertex_normals(ap, avatar_triangles)
     cn = triangle_normals(reg, ctri)
-    agree = np.einsum("ij,ij->i", an, cn[tri]) > np.cos(np.deg2rad(max_angle_deg))
-    border = boundary_vertices(ctri, len(reg))
-    # Clamped onto a border: the closest point lies on an edge (one barycentric ~0) whose two ends are border
-    # vertices, or on a border vertex itself (two barycentrics ~0).
-    corners = ctri[tri]
-    on_edge = bary < 1e-4
-    clamped = np.zeros(len(ap), dtype=bool)
-    for k in range(3):
-        a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
-        clamped |= on_edge[:, k] & border[a] & border[b] & (dist > 0.05 * edge)
-    at_vertex = on_edge.sum(axis=1) >= 2
-    vtx = corners[np.arange(len(ap)), np.argmax(bary, axis=1)]
-    clamped |= at_vertex & border[vtx] & (dist > 0.05 * edge)
-    face = (dist < max_distance_ratio * edge) & agree & (~clamped if exclude_border else True)
+    cosang = np.einsum("ij,ij->i", an, cn[tri])
+    # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
+    # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.
+    limit = max_distance_ratio * edge
+    w_dist = _ramp_down(dist, 0.7 * limit, 1.3 * limit)
+    w_normal = _ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
+    weight = w_dist * w_normal
+    if exclude_border:
+        # Clamped onto the capture's border (open border, eye and mouth holes): the closest point is on a
+        # border edge (opposite barycentric ~0) or a border vertex, and the avatar vertex is off the surface.
+        border = boundary_vertices(ctri, len(reg))
+        corners = ctri[tri]
+        near_border = np.zeros(len(ap))
+        for k in range(3):
+            a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+            on_border_edge = (border[a] & border[b]) * _ramp_down(bary[:, k], 5e-4, 2e-3)
+            near_border = np.maximum(near_border, on_border_edge)
+        vtx = corners[np.arange(len(ap)), np.argmax(bary, axis=1)]
+        near_border = np.maximum(near_border, border[vtx] * _ramp_up(bary.max(axis=1), 1 - 2e-3, 1 - 5e-4))
+        weight = weight * (1.0 - near_border * _ramp_up(dist, 0.02 * edge, 0.08 * edge))
     if candidates is not None:
-        face &= np.asarray(candidates, dtype=bool)
+        weight = weight * np.asarray(candidates, dtype=bool)
+    face = weight > 0
     atri = np.asarray(avatar_triangles)
     src_tri = np.full(len(atri), -1, dtype=np.int64)
     in_face = np.flatnonzero(face[atri].all(axis=1))
@@ -159,7 +170,18 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
         src_tri[in_face] = closest_points(reg, ctri, ap[atri[in_face]].mean(axis=1))[0]
     info = {"face_vertices": int(face.sum()), "capture_mean_edge_m": edge,
             "face_rms_distance_m": float(np.sqrt(np.mean(dist[face] ** 2))) if face.any() else None}
-    return Correspondence(tri, bary, dist, face, src_tri, info=info)
+    return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)
+
+
+def _ramp_down(x, lo, hi):
+    """1 below ``lo``, 0 above ``hi``, smooth (C1) in between."""
+    t = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+def _ramp_up(x, lo, hi):
+    """0 below ``lo``, 1 above ``hi``, smooth (C1) in between."""
+    return 1.0 - _ramp_down(x, lo, hi)
 
 
 def geometry_digest(*arrays) -> str:
@@ -182,6 +204,7 @@ def save_correspondence(corr: Correspondence, path) -> Path:
     try:
         np.savez_compressed(tmp, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
                             face=corr.face, source_triangle=corr.source_triangle,
+                            weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             key=np.array(corr.key), version=np.array(CACHE_VERSION),
                             info=np.array(json.dumps(corr.info or {})))
         os.replace(tmp, path)
@@ -201,7 +224,8 @@ def load_correspondence(path, key: str | None = None) -> Correspondence | None:
             if int(z["version"]) != CACHE_VERSION or (key is not None and str(z["key"]) != key):
                 return None
             return Correspondence(z["triangle"], z["barycentric"], z["distance"], z["face"].astype(bool),
-                                  z["source_triangle"], str(z["key"]), json.loads(str(z["info"])))
+                                  z["source_triangle"], z["weight"], str(z["key"]),
+                                  json.loads(str(z["info"])))
     except (OSError, KeyError, ValueError) as exc:
         raise InputFileError(f"not a usdface correspondence cache ({exc})", path=path,
                              fix="delete it or pass another --correspondence file") from None

@@ -97,7 +97,7 @@ def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
 
 
 def blend_adjacent(points, triangles, face, face_displacements, approximations, *, tol: float = 1e-9,
-                   falloff: float | None = None, band: float = 8.0):
+                   falloff: float | None = None, band: float = 8.0, face_weight=None):
     """Step 2: seamless completion from the approximations A_j with the face fixed.
 
     For each shape j the adjacent region ``R_j = moves in A_j and not face`` gets ``A_j + h`` where ``h``
@@ -109,42 +109,55 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
     per-shape system small. Vertices outside face and R_j keep exactly A_j. Shapes with the same free set
     share one sparse factorization.
 
+    ``face_weight[m]`` in [0,1] (optional, default 1 on ``face``): vertices of weight 1 are fixed to
+    ``d_face``; on the region's rim (0 < w < 1) ``d_face`` is a soft constraint of weight
+    ``w / (1 - w) * area / falloff^2`` (infinite at w = 1, zero at w = 0), so that the result changes
+    continuously when a vertex's membership does.
+
     Returns ``(result[J,m,3], adjacent[J,m] bool)``.
     """
     x0 = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles)
     face = np.asarray(face, dtype=bool)
     approx = np.asarray(approximations, dtype=np.float64)
     dface = np.asarray(face_displacements, dtype=np.float64)
+    alpha = face.astype(np.float64) if face_weight is None else np.clip(face_weight, 0.0, 1.0) * face
+    hard = alpha >= 1.0 - 1e-9
+    soft = face & ~hard
     adjacent = moving_mask(approx, tol) & ~face[None, :]
     result = approx.copy()
-    result[:, face] = dface[:, face]
-    lap = cotangent_laplacian(x0, triangles)
+    result[:, hard] = dface[:, hard]
+    lap = cotangent_laplacian(x0, tri)
+    area = triangle_areas(x0, tri)
+    mass = np.zeros(len(x0))
+    for c in range(3):
+        np.add.at(mass, tri[:, c], area / 3.0)
+    length = falloff if falloff else mean_edge_length(x0, tri)
     if falloff:
-        area = triangle_areas(x0, triangles)
-        mass = np.zeros(len(x0))
-        for c in range(3):
-            np.add.at(mass, np.asarray(triangles)[:, c], area / 3.0)
         lap = (lap + sp.diags(mass / falloff ** 2)).tocsr()
-    solve_set = adjacent
+    stiff = np.zeros(len(x0))
+    stiff[soft] = alpha[soft] / (1.0 - alpha[soft]) * mass[soft] / length ** 2
+    solve_set = adjacent | soft[None, :]
     if falloff and face.any():
         from scipy.spatial import cKDTree
 
         dist = cKDTree(x0[face]).query(x0, distance_upper_bound=band * falloff)[0]
-        solve_set = adjacent & np.isfinite(dist)[None, :]
+        solve_set = solve_set & np.isfinite(dist)[None, :]
     groups: dict[bytes, list[int]] = {}
     for j in range(approx.shape[0]):
         groups.setdefault(np.packbits(solve_set[j]).tobytes(), []).append(j)
-    fidx = np.flatnonzero(face)
+    fidx = np.flatnonzero(hard)
     for js in groups.values():
         free = np.flatnonzero(solve_set[js[0]])
         if free.size == 0:
             continue
-        l_ff = lap[free][:, free]
+        l_ff = lap[free][:, free] + sp.diags(stiff[free])
         l_fb = lap[free][:, fidx]
         reg = 1e-12 * float(np.abs(l_ff.diagonal()).mean())
         solve = spla.factorized((l_ff + reg * sp.eye(free.size)).tocsc())
         h_face = dface[js][:, fidx] - approx[js][:, fidx]  # [g,F,3]
-        rhs = -np.stack([l_fb @ h_face[g] for g in range(len(js))])  # [g,free,3]
+        h_soft = (dface[js][:, free] - approx[js][:, free]) * stiff[free][None, :, None]  # [g,free,3]
+        rhs = h_soft - np.stack([l_fb @ h_face[g] for g in range(len(js))])  # [g,free,3]
         flat = rhs.transpose(1, 0, 2).reshape(free.size, -1)
         h = np.stack([solve(flat[:, c]) for c in range(flat.shape[1])], axis=1)
         h = h.reshape(free.size, len(js), 3).transpose(1, 0, 2)

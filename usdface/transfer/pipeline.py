@@ -151,7 +151,8 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
                                               anchor_weight=anchor_weight)
     else:
         raise ValueError(f"face_transfer must be one of {FACE_TRANSFERS}")
-    return blend_adjacent(face_neutral, face_triangles, corr.face, dface, approx, falloff=falloff)
+    return blend_adjacent(face_neutral, face_triangles, corr.face, dface, approx, falloff=falloff,
+                          face_weight=corr.weight)
 
 
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
