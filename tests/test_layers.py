@@ -351,3 +351,32 @@ def test_provenance_with_nested_values(rig_file, tmp_path):
     assert json.loads(data["registration"]["rotation"]) == np.eye(3).tolist()
     assert json.loads(data["retargetMap"])[0]["shape"] == "jawOpen"
     assert len(data["inputDigests"]) == 2 and all(len(d) == 64 for d in data["inputDigests"])  # file + folder
+
+
+def test_sample_avatar_z_up_scaled_nested_variant(samples, tmp_path):
+    """Issue 6 on the project's own sample avatar: a Z-up, metre, nested variant with a 0.01 scale and a
+    rotation on its parent reads to the same internal rig, and the same personalized offsets written over both
+    give the same local offsets at each file's own prim paths."""
+    writer = pytest.importorskip("usdface.io.avatar_writer")
+    plain = read_avatar(samples / "avatar.usda")
+    variant_path = writer.write_rig_usd(plain.meshes, tmp_path / "zup.usda", up_axis="Z", meters_per_unit=1.0,
+                                        parents=("root",), parent_scale=0.01, parent_rotate_x_deg=90)
+    variant = read_avatar(variant_path)
+    assert (variant.up_axis, variant.meters_per_unit) == ("Z", 1.0)
+    new = personalized(plain, scale=0.001)
+    outs = {}
+    for label, av in (("plain", plain), ("variant", variant)):
+        for rig in av.meshes:
+            ref = plain.mesh(rig.name)
+            np.testing.assert_allclose(rig.neutral, ref.neutral, atol=1e-7)
+            np.testing.assert_allclose(rig.deltas, ref.deltas, atol=1e-8)
+        offsets = {m.source.prim: new[plain.mesh(m.name).source.prim] for m in av.meshes}
+        outs[label] = read_avatar(write_avatar_layer(av, tmp_path / f"{label}.usdc", offsets, provenance={}))
+    assert outs["variant"].mesh("Head").source.prim == "/root/Avatar/Head"
+    for rig in plain.meshes:
+        a, b = outs["plain"].mesh(rig.name), outs["variant"].mesh(rig.name)
+        peak = np.abs(new[rig.source.prim]).max()
+        np.testing.assert_allclose(a.deltas, new[rig.source.prim], atol=1e-6 * peak)
+        np.testing.assert_allclose(b.deltas, new[rig.source.prim], atol=1e-6 * peak)
+        local_a, local_b = local_units(a, a.deltas), local_units(b, b.deltas)  # both cm here
+        np.testing.assert_allclose(local_b, local_a, atol=1e-5 * np.abs(local_a).max())
