@@ -380,3 +380,28 @@ def test_sample_avatar_z_up_scaled_nested_variant(samples, tmp_path):
         np.testing.assert_allclose(b.deltas, new[rig.source.prim], atol=1e-6 * peak)
         local_a, local_b = local_units(a, a.deltas), local_units(b, b.deltas)  # both cm here
         np.testing.assert_allclose(local_b, local_a, atol=1e-5 * np.abs(local_a).max())
+
+
+def test_layer_over_a_usdface_output(rig_file, tmp_path):
+    """A second usdface layer over a first one: overs go to the original BlendShape prims, so the read-back is
+    the newest offsets and the first layer's 'generic' variant still shows the input alone."""
+    from pxr import Usd
+
+    avatar = read_avatar(rig_file)
+    first = write_avatar_layer(avatar, tmp_path / "first.usda", personalized(avatar, seed=1), provenance={})
+    layered = read_avatar(first)
+    assert layered.mesh("Head").source.shape_prims[0] == "/Avatar/Head/usdfaceShapes/eyeBlinkLeft"
+    newest = personalized(layered, seed=2)
+    second = write_avatar_layer(layered, tmp_path / "second.usda", newest, provenance={})
+    back = read_avatar(second)
+    stage = Usd.Stage.Open(str(second))
+    personalization_variant(stage, "/Avatar", "generic")
+    flat = tmp_path / "generic.usda"
+    stage.Flatten().Export(str(flat))
+    generic = read_avatar(flat)
+    for rig in avatar.meshes:
+        peak = np.abs(newest[rig.source.prim]).max()
+        np.testing.assert_allclose(back.mesh(rig.name).deltas, newest[rig.source.prim], atol=1e-6 * peak)
+        np.testing.assert_allclose(generic.mesh(rig.name).deltas, rig.deltas, atol=1e-12)
+    layer_text = second.read_text()
+    assert 'over "eyeBlinkLeft"' in layer_text and "usdfaceShapes" not in layer_text

@@ -215,26 +215,47 @@ def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, np.nd
     return out
 
 
-def _inbetween_types(stage, rig: FaceRig) -> dict:
+def _original_shape_prims(stage, rig: FaceRig) -> list[str]:
+    """The BlendShape prims to author over. Over an earlier usdface output the binding points at
+    ``usdfaceShapes/<shape>`` (defined in a variant); author on the original prim they reference instead, so
+    that both variants keep working (personalized: the new over; generic: the input alone)."""
+    from pxr import Pcp, Usd
+
+    out = []
+    for path in rig.source.shape_prims:
+        original = path
+        prim = stage.GetPrimAtPath(path)
+        if f"/{SHAPES_SCOPE}/" in path and prim:
+            for arc in Usd.PrimCompositionQuery(prim).GetCompositionArcs():
+                node = arc.GetTargetNode()
+                if arc.GetArcType() == Pcp.ArcTypeReference and node.layerStack == prim.GetPrimIndex(
+                        ).rootNode.layerStack:
+                    original = str(node.path)
+                    break
+        out.append(original)
+    return out
+
+
+def _inbetween_types(stage, rig: FaceRig, shape_prims: list[str]) -> dict:
     """{(shape prim, inbetween name): attribute type} as composed from the input (read before authoring)."""
     from pxr import Sdf
 
     types = {}
     for k, name in enumerate(rig.names):
-        prim = stage.GetPrimAtPath(rig.source.shape_prims[k])
+        prim = stage.GetPrimAtPath(shape_prims[k])
         for ib in rig.inbetweens.get(name, []):
             attr = prim.GetAttribute(f"inbetweens:{ib.name}") if prim else None
-            types[(rig.source.shape_prims[k], ib.name)] = (
+            types[(shape_prims[k], ib.name)] = (
                 attr.GetTypeName() if attr else Sdf.ValueTypeNames.Point3fArray)
     return types
 
 
-def _author_shape(layer, rig: FaceRig, k: int, new_primary_local: np.ndarray, ib_types: dict):
+def _author_shape(layer, rig: FaceRig, k: int, new_primary_local: np.ndarray, ib_types: dict,
+                  shape_path: str):
     """Author the over of shape k of ``rig``: offsets, pointIndices, inbetweens, normal offsets."""
     from pxr import Sdf, Vt
 
     src = rig.source
-    shape_path = src.shape_prims[k]
     n = rig.n_vertices
     old_primary_local = local_offsets(rig, rig.deltas[k])
     diff = new_primary_local - old_primary_local
@@ -467,16 +488,17 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
         stage.SetEditTarget(stage.GetRootLayer())
         rigs = [rig for rig, _ in resolved]
-        ib_types = {}
+        ib_types, shape_prims = {}, {}
         for rig in rigs:
-            ib_types.update(_inbetween_types(stage, rig))
+            shape_prims[rig.source.prim] = _original_shape_prims(stage, rig)
+            ib_types.update(_inbetween_types(stage, rig, shape_prims[rig.source.prim]))
         # a layer over an earlier usdface output: its bindings already point into usdfaceShapes/
         redirected = any(f"/{SHAPES_SCOPE}/" in p for rig in rigs for p in rig.source.shape_prims)
         with Sdf.ChangeBlock():
             for rig, deltas in resolved:
                 local = local_offsets(rig, deltas)
                 for k in range(rig.n_shapes):
-                    _author_shape(layer, rig, k, local[k], ib_types)
+                    _author_shape(layer, rig, k, local[k], ib_types, shape_prims[rig.source.prim][k])
             if variants and rigs and not redirected:
                 _author_variants(layer, rigs, input_asset)
         roots = sorted({r.source.skel_root for r in rigs if r.source.skel_root}) or sorted(
