@@ -48,14 +48,15 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
 
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
                 iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Align every frame ``points[F,n,3]`` rigidly to ``reference[n,3]`` on ``vertices`` (indices).
+    """Align every frame ``points[F,n,3]`` rigidly to ``reference[n,3]`` (or one reference per frame,
+    ``[F,n,3]``) on ``vertices`` (indices).
 
     Returns ``(aligned[F,n,3], R[F,3,3], t[F,3])`` with ``aligned = points @ R^T + t``. With ``robust`` the
     fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual).
     """
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
-    src, dst = P[:, vertices], ref[vertices]
+    src, dst = P[:, vertices], ref[..., vertices, :]
     w = np.ones(src.shape[:2])
     R, t = kabsch(src, dst, w)
     for _ in range(iterations if robust else 0):

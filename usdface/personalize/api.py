@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import FitError, GeometryError
 from ..mesh import check_triangles
 from ..model import Capture, FaceRig
-from .align import rigid_align, static_vertices
+from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, fit_blendshapes, regularization_weights
@@ -85,9 +85,10 @@ def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:
                                 eyelids=eyelids)
 
 
-def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, align: bool = False,
-                            reweight: bool | None = None, eyelids: bool = True, clamp: float = D_CLAMP,
-                            weight_sigma: float = 0.05, rounds: int = 3, **options) -> FitResult:
+def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
+                            align: bool = True, reweight: bool = True, eyelids: bool = True,
+                            clamp: float = D_CLAMP, weight_sigma: float = 0.05, rounds: int = 2,
+                            **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -98,11 +99,15 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     reg : balance of E_reg against E_fit for menzel/laplacian: "auto" (leave-one-frame-out cross-validation,
         :func:`usdface.personalize.crossval.choose_regularization`), "paper" (1.0, the paper's plain sum) or a
         number.
-    align : robust rigid pre-alignment of the training frames to B0 on the vertices no template shape moves
-        (:mod:`.align`); applies to every method that uses the frames.
+    prior : the generic shapes T_j of eq. (2): "dt" (the paper: template transferred to B0), "template" (the
+        template's deltas as they are, same topology) or "auto" (a blend of both chosen by the same
+        cross-validation; needs ``reg="auto"``). Default: "auto" with ``reg="auto"``, else "dt". The weights
+        D_j of eq. (3) always come from the DT shapes.
+    align : robust rigid pre-alignment of every training frame (menzel/laplacian/ebfr): each frame is aligned
+        to its leave-one-out prediction (the fit on the other frames), twice, on the moving vertices
+        (:mod:`.align`). Where frames are already aligned this is a no-op.
     reweight : alternate the shape fit with re-estimating each training frame's weights (bounded to [0,1],
         anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`).
-        ``None`` = on for menzel/laplacian.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -114,6 +119,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
+    auto = isinstance(reg, str) and reg == "auto"
+    prior = prior or ("auto" if auto else "dt")
+    if prior not in ("auto", "dt", "template") or (prior == "auto" and not auto):
+        raise FitError(f"bad prior {prior!r}", fix="use 'dt', 'template', or 'auto' (with reg='auto')")
     timings = {}
     t0 = time.perf_counter()
     warn = check_capture(capture)
@@ -125,50 +134,113 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     timings["dt"] = time.perf_counter() - t1
     train = capture.train
     points, weights = train.points, train.weights
-    if method != "dt" and align:
-        t1 = time.perf_counter()
-        static = static_vertices(generic)
-        points, R, tr = rigid_align(points, capture.neutral, static)
-        ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-        info["align"] = {"static_vertices": int(len(static)), "max_rotation_deg": float(ang.max()),
-                         "max_translation_mm": float(np.linalg.norm(tr, axis=1).max() * 1000)}
-        timings["align"] = time.perf_counter() - t1
+    tmpl = capture.template
     if method == "dt":
         deltas = generic
     elif method == "ebfr":
         from .ebfr import ebfr_blendshapes
+        if align:
+            points = _align_frames(capture.neutral, points, weights, generic, info, timings)
         t1 = time.perf_counter()
-        tmpl = capture.template
         deltas = ebfr_blendshapes(capture.neutral, capture.triangles, points, weights, tmpl.neutral,
-                                  tmpl.deltas, generic, **options)
+                                  tmpl.deltas, generic, names=capture.names, eyelids=eyelids,
+                                  info=info, **options)
         timings["ebfr"] = time.perf_counter() - t1
     else:
         D = regularization_weights(generic, clamp=clamp)
-        if reweight is None:
-            reweight = False
-        solve = _make_solver(method, capture, D, generic, options)
-        deltas, lam = _fit_with_reg(solve, capture.neutral, points, weights, generic, D, reg, info, timings)
+        alt = tmpl.deltas if prior == "auto" else None
+        lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info, timings)
+        if align:
+            for _ in range(2):
+                points = _align_frames(capture.neutral, points, weights, generic, info, timings,
+                                       cv=info.get("crossval"), reg=lam, alpha=alpha, D=D, alt=tmpl.deltas)
+                if auto:
+                    cv = info["crossval"]
+                    cv["fit"].set_points(points[:, cv["vertices"]])
+                    lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info,
+                                          timings, fit=cv["fit"], vertices=cv["vertices"])
+        prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else generic
+        solve = _make_solver(method, capture, D, prior_deltas, options)
+        t1 = time.perf_counter()
+        deltas = solve(points, weights, lam)
+        timings["fit"] = time.perf_counter() - t1
+        w_cur = weights
         if reweight:
             t1 = time.perf_counter()
-            w_cur = weights
             for _ in range(rounds):
                 res = points - capture.neutral[None] - np.einsum("fk,knc->fnc", w_cur, deltas)
-                sigma_g2 = float(np.mean(res ** 2))
                 w_cur = reestimate_weights(capture.neutral, deltas, points, weights,
-                                           anchor=sigma_g2 / weight_sigma ** 2)
+                                           anchor=float(np.mean(res ** 2)) / weight_sigma ** 2)
                 deltas = solve(points, w_cur, lam)
             info["reweight"] = {"rounds": rounds, "weight_sigma": weight_sigma,
                                 "mean_abs_change": float(np.abs(w_cur - weights).mean()),
                                 "max_abs_change": float(np.abs(w_cur - weights).max())}
             info["train_weights"] = w_cur
             timings["reweight"] = time.perf_counter() - t1
-        weights_used = info.get("train_weights", weights)
-        res = points - capture.neutral[None] - np.einsum("fk,knc->fnc", weights_used, deltas)
+        res = points - capture.neutral[None] - np.einsum("fk,knc->fnc", w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
+    info.pop("crossval_fit", None)
+    if "crossval" in info:
+        info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
     timings["total"] = time.perf_counter() - t0
-    rig = FaceRig(capture.neutral, capture.triangles, list(capture.names), deltas,
-                  name=f"personalized ({method})")
+    rig = FaceRig(capture.neutral, capture.triangles, list(capture.names), deltas, name="FaceMask")
     return FitResult(rig, info)
+
+
+def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None):
+    """(reg, alpha): the E_reg weight and the prior blend (alpha * DT + (1 - alpha) * template)."""
+    t1 = time.perf_counter()
+    alpha = {"dt": 1.0, "template": 0.0}.get(prior, 1.0)
+    if isinstance(reg, str) and reg == "auto":
+        gen = generic if prior != "template" else alt
+        lam, cv = choose_regularization(neutral, points, weights, gen, D,
+                                        alt_deltas=alt if prior == "auto" else None, fit=fit,
+                                        vertices=vertices)
+        if prior == "auto":
+            alpha = cv["alpha"]
+        info["crossval"] = cv
+    elif isinstance(reg, str) and reg == "paper":
+        lam = 1.0
+    else:
+        try:
+            lam = float(reg)
+        except (TypeError, ValueError):
+            raise FitError(f"bad reg {reg!r}", fix="use 'auto', 'paper' or a positive number") from None
+        if not lam > 0:
+            raise FitError(f"bad reg {reg!r}", fix="use 'auto', 'paper' or a positive number")
+    timings["reg"] = timings.get("reg", 0.0) + time.perf_counter() - t1
+    info["reg"] = lam
+    info["prior_alpha"] = alpha
+    return lam, alpha
+
+
+def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, reg=None, alpha=1.0, D=None,
+                  alt=None):
+    """Rigidly align every frame to its leave-one-out prediction on (a subsample of) the moving vertices."""
+    t1 = time.perf_counter()
+    if D is None:
+        D = regularization_weights(generic)
+    if cv is None or "fit" not in cv:
+        if reg is None:
+            reg, cv = choose_regularization(neutral, points, weights, generic, D)
+        else:
+            _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt,
+                                          grid=np.array([np.log10(reg)]), refine_steps=0)
+            info["crossval"] = cv
+    pf, cand = cv["fit"], cv["vertices"]
+    pf.set_points(points[:, cand])
+    pf.set_prior_mix(alpha)
+    target = points[:, cand] - pf.loo_residuals(reg)
+    _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
+    aligned = np.einsum("fij,fnj->fni", R, points) + tr[:, None]
+    ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    prev = info.get("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})
+    info["align"] = {"vertices": int(len(cand)), "passes": prev["passes"] + 1,
+                     "max_rotation_deg": prev["max_rotation_deg"] + float(ang.max()),
+                     "max_translation_mm": prev["max_translation_mm"] + float(np.linalg.norm(tr, axis=1).max()
+                                                                             * 1000)}
+    timings["align"] = timings.get("align", 0.0) + time.perf_counter() - t1
+    return aligned
 
 
 def _make_solver(method, capture, D, generic, options):
@@ -180,28 +252,6 @@ def _make_solver(method, capture, D, generic, options):
     if options:
         raise FitError(f"unknown option(s) for {method}: {', '.join(options)}", fix="see usdface fit --help")
     return lambda P, W, lam: fit_blendshapes(capture.neutral, P, W, generic, D, lam)
-
-
-def _fit_with_reg(solve, neutral, points, weights, generic, D, reg, info, timings):
-    t1 = time.perf_counter()
-    if isinstance(reg, str) and reg == "auto":
-        lam, cv = choose_regularization(neutral, points, weights, generic, D)
-        info["crossval"] = cv
-    elif isinstance(reg, str) and reg == "paper":
-        lam = 1.0
-    else:
-        try:
-            lam = float(reg)
-        except (TypeError, ValueError):
-            raise FitError(f"bad --reg {reg!r}", fix="use 'auto', 'paper' or a positive number") from None
-        if not lam > 0:
-            raise FitError(f"bad --reg {reg!r}", fix="use 'auto', 'paper' or a positive number")
-    timings["reg"] = time.perf_counter() - t1
-    info["reg"] = lam
-    t1 = time.perf_counter()
-    deltas = solve(points, weights, lam)
-    timings["fit"] = time.perf_counter() - t1
-    return deltas, lam
 
 
 # keep PositionFit importable from here for callers that want the prepared solver

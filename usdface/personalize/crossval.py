@@ -1,11 +1,13 @@
-"""Beyond the papers: choose the fit/regularisation balance of eqs. (1)+(2) by cross-validation on the
+"""Beyond the papers: choose the fit/regularisation balance of eqs. (1)+(2) - and, optionally, the generic
+prior T_j as a blend of the deformation-transferred and the raw template shapes - by cross-validation on the
 training frames (``reg="auto"``).
 
 The criterion is the exact leave-one-frame-out error of :class:`usdface.personalize.fit.PositionFit` (every
 frame left out in turn, its residual predicted by the fit on the others), minimised over ``log10(reg)``: a
-coarse grid, then a golden-section refinement around the best grid point. For speed the criterion is
-evaluated on a deterministic subsample of vertices (it is a mean over vertices, so a few hundred estimate
-it well); the final fit uses every vertex.
+coarse grid, then a golden-section refinement around the best grid point; with an alternative prior, for
+each blend ``alpha`` in :data:`PRIOR_MIX`. For speed the criterion is evaluated on a deterministic subsample
+of the moving vertices (it is a mean over vertices, so a few hundred estimate it well); the final fit uses
+every vertex.
 """
 
 from __future__ import annotations
@@ -14,46 +16,72 @@ import numpy as np
 
 from .fit import PositionFit
 
-__all__ = ["choose_regularization", "REG_GRID"]
+__all__ = ["choose_regularization", "REG_GRID", "PRIOR_MIX"]
 
 #: log10 of the regularisation strengths tried (1 = the paper's plain sum of eqs. 1 and 2).
 REG_GRID = np.arange(-7.0, 1.01, 1.0)
+#: Blends alpha of the prior alpha * DT + (1 - alpha) * template tried when an alternative prior is given.
+PRIOR_MIX = (0.0, 0.5, 1.0)
 
 
-def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, max_vertices: int = 400,
-                          grid=REG_GRID, refine_steps: int = 8, seed: int = 0) -> tuple[float, dict]:
-    """Regularisation strength minimising the leave-one-frame-out error of eqs. (1)+(2).
-
-    Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`. Returns ``(reg, info)`` with
-    ``info = {"grid": [...], "loo_rmse_mm": [...], "reg": reg, "vertices": m}``.
-    """
-    neutral = np.asarray(neutral, dtype=np.float64)
-    n = len(neutral)
-    idx = np.arange(n)
-    moving = np.asarray(reg_weights).min(axis=0) < 1e5          # vertices some template shape moves
-    cand = idx[moving] if moving.any() else idx
-    if len(cand) > max_vertices:
-        cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
-    pts = np.asarray(points)[:, cand]
-    pf = PositionFit(neutral[cand], pts, weights, np.asarray(generic_deltas)[:, cand],
-                     np.asarray(reg_weights)[:, cand])
-    grid = np.asarray(grid, dtype=np.float64)
-    errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
+def _minimise_log(fun, grid, refine_steps):
+    errs = np.array([fun(g) for g in grid])
     k = int(np.argmin(errs))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     phi = (np.sqrt(5.0) - 1.0) / 2.0
     a, b = lo + (1 - phi) * (hi - lo), lo + phi * (hi - lo)
-    fa, fb = pf.loo_error(10.0 ** a), pf.loo_error(10.0 ** b)
+    fa, fb = fun(a), fun(b)
     for _ in range(refine_steps):
         if fa <= fb:
             hi, b, fb = b, a, fa
             a = lo + (1 - phi) * (hi - lo)
-            fa = pf.loo_error(10.0 ** a)
+            fa = fun(a)
         else:
             lo, a, fa = a, b, fb
             b = lo + phi * (hi - lo)
-            fb = pf.loo_error(10.0 ** b)
-    best = min([(errs[k], grid[k]), (fa, a), (fb, b)])
-    reg = float(10.0 ** best[1])
-    return reg, {"reg": reg, "grid": (10.0 ** grid).tolist(),
-                 "loo_rmse_mm": (np.sqrt(errs) * 1000).tolist(), "vertices": int(len(cand))}
+            fb = fun(b)
+    best_err, best = min([(errs[k], grid[k]), (fa, a), (fb, b)])
+    return float(best), float(best_err), errs
+
+
+def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
+                          max_vertices: int = 400, grid=REG_GRID, refine_steps: int = 8,
+                          seed: int = 0, fit: PositionFit | None = None, vertices=None) -> tuple[float, dict]:
+    """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).
+
+    Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`; ``alt_deltas[K,n,3]`` an optional second
+    prior (the raw template deltas). Returns ``(reg, info)`` with ``info = {"reg", "alpha" (blend weight of
+    ``generic_deltas``, 1 without alternative), "grid", "loo_rmse_mm" (at the chosen alpha),
+    "loo_rmse_best_mm", "vertices" (indices used), "fit" (the prepared PositionFit on them)}``.
+    """
+    neutral = np.asarray(neutral, dtype=np.float64)
+    if fit is None:
+        n = len(neutral)
+        idx = np.arange(n)
+        moving = np.asarray(reg_weights).min(axis=0) < 1e5          # vertices some template shape moves
+        cand = idx[moving] if moving.any() else idx
+        if len(cand) > max_vertices:
+            cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
+        fit = PositionFit(neutral[cand], np.asarray(points)[:, cand], weights,
+                          np.asarray(generic_deltas)[:, cand], np.asarray(reg_weights)[:, cand],
+                          None if alt_deltas is None else np.asarray(alt_deltas)[:, cand])
+        vertices = cand
+    pf, cand = fit, vertices
+    grid = np.asarray(grid, dtype=np.float64)
+    # coarse grid for every prior blend, then golden-section refinement of reg for the best blend
+    coarse = []
+    for alpha in (PRIOR_MIX if pf.z_alt is not None else (1.0,)):
+        pf.set_prior_mix(alpha)
+        errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
+        coarse.append((float(errs.min()), alpha, errs))
+    _, alpha, _ = min(coarse, key=lambda r: r[0])
+    pf.set_prior_mix(alpha)
+    g, err, errs = _minimise_log(lambda x: pf.loo_error(10.0 ** x), grid, refine_steps)
+    results = [(err, alpha, g, errs)]
+    err, alpha, g, errs = min(results, key=lambda r: r[0])
+    pf.set_prior_mix(alpha)
+    reg = float(10.0 ** g)
+    return reg, {"reg": reg, "alpha": float(alpha), "grid": (10.0 ** grid).tolist(),
+                 "loo_rmse_mm": (np.sqrt(errs) * 1000).tolist(),
+                 "loo_rmse_best_mm": float(np.sqrt(err) * 1000),
+                 "vertices": cand, "fit": pf}

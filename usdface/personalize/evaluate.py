@@ -8,7 +8,7 @@ import numpy as np
 from ..errors import GeometryError
 from ..model import FaceRig, Frames
 
-__all__ = ["evaluate_rig", "reconstruction_errors", "truth_error"]
+__all__ = ["evaluate_rig", "reconstruction_errors", "truth_error", "error_colors"]
 
 
 def reconstruction_errors(neutral: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
@@ -48,3 +48,12 @@ def truth_error(deltas: np.ndarray, true_deltas: np.ndarray) -> float:
     over every shape and vertex: ``sqrt(mean_{j,i} |B_ij - B*_ij|^2)``."""
     d = np.asarray(deltas, dtype=np.float64) - np.asarray(true_deltas, dtype=np.float64)
     return float(np.sqrt(np.mean(np.sum(d ** 2, axis=-1))) * 1000.0)
+
+
+def error_colors(error_mm: np.ndarray, vmax_mm: float = 5.0) -> np.ndarray:
+    """Menzel et al. (2022), Fig. 6 colour code: ``error_mm[...]`` -> RGB ``[..., 3]`` in [0, 1], blue at 0 mm
+    through green to red at ``vmax_mm`` (5 mm) and above."""
+    t = np.clip(np.asarray(error_mm, dtype=np.float64) / vmax_mm, 0.0, 1.0)[..., None]
+    blue, green, red = np.array([0.1, 0.2, 1.0]), np.array([0.1, 0.9, 0.2]), np.array([1.0, 0.1, 0.1])
+    low = blue + (green - blue) * np.clip(2 * t, 0, 1)
+    return np.where(t < 0.5, low, green + (red - green) * np.clip(2 * t - 1, 0, 1))

@@ -65,16 +65,16 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
 class PositionFit:
     """Eqs. (1)-(2) prepared for many regularisation strengths.
 
-    ``neutral[n,3]``, ``points[F,n,3]``, ``weights[F,K]``, ``generic_deltas[K,n,3]``, ``reg_weights[K,n]``.
+    ``neutral[n,3]``, ``points[F,n,3]``, ``weights[F,K]``, ``generic_deltas[K,n,3]``, ``reg_weights[K,n]``;
+    optional ``alt_deltas[K,n,3]``, a second prior to blend with (:meth:`set_prior_mix`).
     After the one-off per-vertex eigen-decomposition, :meth:`solve` (deltas at a ``reg``) and
     :meth:`loo_error` (exact leave-one-frame-out residual, the closed form ``e_i / (1 - h_ii)`` of linear
     smoothers) are O(n K^2).
     """
 
-    def __init__(self, neutral, points, weights, generic_deltas, reg_weights):
+    def __init__(self, neutral, points, weights, generic_deltas, reg_weights, alt_deltas=None):
         self.W = np.asarray(weights, dtype=np.float64)
         self.R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
-        self.T = np.asarray(generic_deltas, dtype=np.float64)
         D = np.asarray(reg_weights, dtype=np.float64).T                      # [n,K]
         self.inv_sqrt_l = 1.0 / D                                            # L^-1/2 (L = D^2)
         W = self.W
@@ -83,10 +83,27 @@ class PositionFit:
         self.s = np.maximum(self.s, 0.0)
         M = self.inv_sqrt_l[:, :, None] * self.U                             # L^-1/2 U  [n,K,K]
         self.M = M
-        WtR = np.einsum("fk,fnc->nkc", W, self.R)                            # [n,K,3]
-        self.y = np.einsum("nkl,nkc->nlc", M, WtR)                           # U^T L^-1/2 W^T r
-        self.z = np.einsum("nkl,nkc->nlc", self.U, D[:, :, None] * self.T.transpose(1, 0, 2))  # U^T L^1/2 t
+        self.neutral = np.asarray(neutral, dtype=np.float64)
+        self.set_points(points)
+
+        def prior_coef(T):                                                   # U^T L^1/2 t
+            T = np.asarray(T, dtype=np.float64)
+            return np.einsum("nkl,nkc->nlc", self.U, D[:, :, None] * T.transpose(1, 0, 2))
+
+        self.z_main = prior_coef(generic_deltas)
+        self.z_alt = None if alt_deltas is None else prior_coef(alt_deltas)
+        self.z = self.z_main
         self.q = np.matmul(W[None], M)                                       # [n,F,K]: w_i^T L^-1/2 U
+
+    def set_points(self, points) -> None:
+        """Replace the training frames ``points[F,n,3]`` (same weights): O(n F K), no new decomposition."""
+        self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
+        WtR = np.einsum("fk,fnc->nkc", self.W, self.R)                       # [n,K,3]
+        self.y = np.einsum("nkl,nkc->nlc", self.M, WtR)                      # U^T L^-1/2 W^T r
+
+    def set_prior_mix(self, alpha: float) -> None:
+        """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
+        self.z = self.z_main if self.z_alt is None else alpha * self.z_main + (1.0 - alpha) * self.z_alt
 
     def _coef(self, reg: float) -> np.ndarray:
         return (self.y + reg * self.z) / (self.s + reg)[:, :, None]          # [n,K,3]
@@ -95,11 +112,16 @@ class PositionFit:
         """Deltas ``[K,n,3]`` minimising E_fit + reg * E_reg."""
         return np.einsum("nkl,nlc->knc", self.M, self._coef(reg))
 
-    def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
-        """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""
+    def loo_residuals(self, reg: float) -> np.ndarray:
+        """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
+        other frames, ``e_i / (1 - h_ii)``."""
         fitted = np.einsum("nfl,nlc->fnc", self.q, self._coef(reg))          # [F,n,3]
         h = np.einsum("nfl,nl->fn", self.q ** 2, 1.0 / (self.s + reg))       # [F,n]
-        e = (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+
+    def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
+        """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""
+        e = self.loo_residuals(reg)
         per_frame = np.mean(e ** 2, axis=(1, 2))
         if frame_weights is not None:
             return float(np.average(per_frame, weights=frame_weights))

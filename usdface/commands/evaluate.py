@@ -1,0 +1,83 @@
+"""``usdface evaluate CAPTURE``: per-method test-frame errors (Menzel et al. 2022, eq. 5), plots, error
+maps."""
+
+from __future__ import annotations
+
+from .fit import add_fit_options, fit_kwargs
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "evaluate", help="compare personalization methods on the capture's test frames (eq. 5)",
+        description="Fit every method on the training frames and report, per test frame, the RMSE (eq. 5) "
+                    "and max vertex error in mm; optionally a plot (paper Figs. 4-5), colour-coded error "
+                    "maps (Fig. 6) as a USD, a JSON report and the error against known true shapes.")
+    parser.add_argument("capture", help="capture folder or capture .usda")
+    parser.add_argument("--methods", default="dt,ebfr,menzel,laplacian",
+                        help="comma-separated methods (default dt,ebfr,menzel,laplacian)")
+    add_fit_options(parser)
+    parser.add_argument("--json", metavar="JSON", help="write the full report as JSON")
+    parser.add_argument("--plot", metavar="PNG", help="per-test-frame RMSE and max error bar charts")
+    parser.add_argument("--usd", metavar="USDA", help="error maps as displayColor (0 mm blue, >= 5 mm red)")
+    parser.add_argument("--truth", metavar="NPZ", help="capture_truth.npz: also report the error against the "
+                                                       "true blendshapes")
+    parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from ..errors import FitError, InputFileError, OutputExistsError
+    from ..io import read_capture
+    from ..personalize.report import evaluate_methods, plot_errors, write_report_json
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for out in (args.json, args.plot):
+        if out and Path(out).exists() and not args.force:
+            raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    if args.usd:
+        from ..io.layers import check_output_path
+        check_output_path(args.usd, args.force)
+    truth = None
+    if args.truth:
+        import numpy as np
+        try:
+            truth = dict(np.load(args.truth))
+        except (OSError, ValueError) as exc:
+            raise InputFileError(f"cannot read truth file ({exc})", path=args.truth,
+                                 fix="pass a capture_truth.npz (names, deltas)") from None
+    capture = read_capture(args.capture)
+    if len(capture.test) == 0:
+        raise FitError("the capture has no test frames", path=args.capture,
+                       fix="add held-out frames (test/ folder) to evaluate on")
+    report = evaluate_methods(capture, methods, truth=truth, **fit_kwargs(args))
+    table = Table(title=f"{Path(args.capture).name}: {len(capture.test)} test frames (eq. 5)")
+    for col in ("method", "mean RMSE mm", "mean max mm", "vs dt (RMSE)"):
+        table.add_column(col, justify="right" if col != "method" else "left")
+    if truth is not None:
+        table.add_column("vs truth mm", justify="right")
+    table.add_column("fit s", justify="right")
+    base = report["methods"].get("dt", {}).get("mean_rmse_mm")
+    rows = list(report["methods"].items())
+    if truth is not None and "template" in report:
+        rows.append(("template", report["template"]))
+    for name, r in rows:
+        cells = [name, f"{r['mean_rmse_mm']:.3f}", f"{r['mean_max_mm']:.3f}",
+                 f"{r['mean_rmse_mm'] / base:.2f}x" if base else "-"]
+        if truth is not None:
+            cells.append(f"{r['truth_rmse_mm']:.3f}" if r.get("truth_rmse_mm") is not None else "-")
+        cells.append(f"{r['seconds']:.2f}" if r.get("seconds") is not None else "-")
+        table.add_row(*cells)
+    Console().print(table)
+    if args.json:
+        print(f"wrote {write_report_json(report, args.json)}")
+    if args.plot:
+        print(f"wrote {plot_errors(report, args.plot)}")
+    if args.usd:
+        from ..io.usd_error_maps import write_error_maps_usd
+        print(f"wrote {write_error_maps_usd(args.usd, capture.triangles, report['_maps'], force=args.force)}")
+    return 0

@@ -1,0 +1,63 @@
+"""``usdface fit CAPTURE -o rig.usda``: personalized blendshapes on the capture mesh, written as a UsdSkel
+rig."""
+
+from __future__ import annotations
+
+METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
+
+
+def add_fit_options(parser) -> None:
+    """Options shared by ``fit`` and ``evaluate``."""
+    parser.add_argument("--reg", default="auto",
+                        help="E_reg weight: 'auto' (leave-one-frame-out cross-validation, default), 'paper' "
+                             "(1, the paper's plain sum) or a number")
+    parser.add_argument("--prior", choices=("auto", "dt", "template"), default=None,
+                        help="generic shapes T_j: deformation transfer (paper), raw template, or a blend "
+                             "chosen by cross-validation (default with --reg auto)")
+    parser.add_argument("--no-align", dest="align", action="store_false",
+                        help="skip the robust rigid pre-alignment of the training frames")
+    parser.add_argument("--no-reweight", dest="reweight", action="store_false",
+                        help="keep the phone's training weights (no anchored re-estimation)")
+    parser.add_argument("--no-eyelids", dest="eyelids", action="store_false",
+                        help="no virtual eyelid triangles in the deformation transfer")
+
+
+def fit_kwargs(args) -> dict:
+    return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
+            "eyelids": args.eyelids}
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "fit", help="personalized ARKit blendshapes on the capture mesh (the 'face mask' rig)",
+        description="Fit the person's blendshapes from a capture (Menzel et al. 2022, eqs. 1-3, or a "
+                    "baseline) and write them as a UsdSkel rig on the capture mesh, in its vertex order.")
+    parser.add_argument("capture", help="capture folder or capture .usda")
+    parser.add_argument("-o", "--output", required=True, help="output rig .usda/.usdc")
+    parser.add_argument("--method", default="menzel", choices=("dt", "ebfr", "menzel", "laplacian"),
+                        help=METHOD_HELP)
+    add_fit_options(parser)
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..io import read_capture
+    from ..io.avatar_writer import write_rig_usd
+    from ..io.layers import check_output_path
+    from ..personalize import fit_personalized_shapes
+
+    check_output_path(args.output, args.force)
+    capture = read_capture(args.capture)
+    result = fit_personalized_shapes(capture, method=args.method, **fit_kwargs(args))
+    out = write_rig_usd(result.rig, args.output, meters_per_unit=1.0, root="/Capture", force=args.force)
+    info = result.info
+    extra = f", reg {info['reg']:.3g}" if "reg" in info else ""
+    if "prior_alpha" in info and args.method in ("menzel", "laplacian"):
+        extra += f", prior {info['prior_alpha']:.2f} DT + {1 - info['prior_alpha']:.2f} template"
+    print(f"wrote {out}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
+          f"({args.method}{extra}; train RMSE {info.get('train_rmse_mm', float('nan')):.3f} mm; "
+          f"{info['timings']['total']:.2f} s)")
+    for w in info["warnings"]:
+        print(f"warning: {w}")
+    return 0

@@ -1,0 +1,106 @@
+"""Option: the position fit with J. Hable's Laplacian term and per-shape region masks ("Solving face scans
+for ARKit", Filmic Worlds, 2021).
+
+Energy over all shapes at once (coupled across vertices by the Laplacian, so not per-vertex separable):
+
+    E = sum_i ||B0 + sum_j w_ij B_j - S_i||^2                       (blendshape term = Menzel eq. 1)
+      + reg * sum_j ||D_j (B_j - T_j)||^2                           (source term = Menzel eq. 2, D_j of eq. 3)
+      + mu  * sum_j ||L (B_j - T_j)||^2                              (Laplacian term: match T_j's Laplacian)
+
+with ``L`` the umbrella Laplacian (offset of a vertex from its neighbours' average) and the region mask of
+shape j (vertices the template moves by at least ``mask_threshold`` x its peak) enforced by clamping D_j
+outside it (off by default: on realistic captures the true shapes move vertices the template barely
+moves - a 0.1 % mask already costs accuracy - and eq. (3)'s weights are a soft mask anyway).
+Solved by conjugate gradients on the normal equations, preconditioned by the exact per-vertex
+K x K blocks (i.e. by the Menzel solve itself), warm-started from the Menzel solution: one sparse Laplacian
+product per iteration, every right-hand side (x, y, z) at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mesh import uniform_laplacian
+from .fit import D_CLAMP
+
+__all__ = ["LaplacianFit", "region_masks"]
+
+
+def region_masks(generic_deltas: np.ndarray, threshold: float = 0.02) -> np.ndarray:
+    """Hable's per-shape regions of influence ``mask[K,n]`` (bool): vertices the generic shape moves by at
+    least ``threshold`` x its largest displacement."""
+    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1)
+    return mag >= threshold * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
+
+
+class LaplacianFit:
+    """Prepared Laplacian-regularised fit on one mesh.
+
+    ``neutral[n,3]`` B0, ``triangles[t,3]``, ``generic_deltas[K,n,3]`` T_j, ``reg_weights[K,n]`` D_j (eq. 3),
+    ``laplacian_weight`` mu (relative to the fit term, unit-free since L is), ``mask_threshold``.
+    """
+
+    def __init__(self, neutral, triangles, generic_deltas, reg_weights, *, laplacian_weight: float = 0.03,
+                 mask_threshold: float = 0.0, tol: float = 1e-6, max_iter: int = 200):
+        self.neutral = np.asarray(neutral, dtype=np.float64)
+        self.T = np.asarray(generic_deltas, dtype=np.float64)
+        n = len(self.neutral)
+        D = np.asarray(reg_weights, dtype=np.float64).copy()
+        D[~region_masks(self.T, mask_threshold)] = D_CLAMP
+        self.D2 = D ** 2                                                     # [K,n]
+        L = uniform_laplacian(triangles, n)
+        self.LtL = (L.T @ L).tocsr()
+        self.mu = float(laplacian_weight)
+        self.tol, self.max_iter = tol, max_iter
+        self.LtLT = self._lap(self.T)                                        # L^T L T_j  [K,n,3]
+        self.info: dict = {}
+
+    def _lap(self, X):
+        K, n, _ = X.shape
+        Y = self.LtL @ X.transpose(1, 0, 2).reshape(n, 3 * K)
+        return Y.reshape(n, K, 3).transpose(1, 0, 2)
+
+    def solve(self, points, weights, reg: float) -> np.ndarray:
+        """Deltas ``[K,n,3]`` (metres) for training ``points[F,n,3]``, ``weights[F,K]`` at balance ``reg``."""
+        W = np.asarray(weights, dtype=np.float64)
+        R = np.asarray(points, dtype=np.float64) - self.neutral[None]
+        WtW = W.T @ W
+        lam = reg * self.D2                                                  # [K,n]
+        diag_lap = self.mu * self.LtL.diagonal()                             # [n]
+
+        def apply(X):                                                        # normal-equation operator
+            return np.einsum("jk,knc->jnc", WtW, X) + lam[:, :, None] * X + self.mu * self._lap(X)
+
+        b = np.einsum("fk,fnc->knc", W, R) + lam[:, :, None] * self.T + self.mu * self.LtLT
+        # block-Jacobi preconditioner: per-vertex K x K blocks (fit + source + Laplacian diagonal)
+        n, K = lam.shape[1], lam.shape[0]
+        blocks = np.broadcast_to(WtW, (n, K, K)).copy()
+        idx = np.arange(K)
+        blocks[:, idx, idx] += lam.T + diag_lap[:, None]
+        s = 1.0 / np.sqrt(blocks[:, idx, idx])
+        inv = np.linalg.inv(blocks * s[:, :, None] * s[:, None, :]) * s[:, :, None] * s[:, None, :]
+
+        def precond(X):
+            return np.einsum("nkl,lnc->knc", inv, X)
+
+        X = precond(b)                                                       # warm start: block solve
+        r = b - apply(X)
+        z = precond(r)
+        p = z.copy()
+        rz = np.sum(r * z)
+        bnorm = np.linalg.norm(b)
+        it = 0
+        while it < self.max_iter:
+            it += 1
+            Ap = apply(p)
+            alpha = rz / np.sum(p * Ap)
+            X += alpha * p
+            r -= alpha * Ap
+            if np.linalg.norm(r) <= self.tol * bnorm:
+                break
+            z = precond(r)
+            rz_new = np.sum(r * z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.info = {"cg_iterations": it, "relative_residual": float(np.linalg.norm(r) / bnorm)}
+        return X

@@ -1,0 +1,115 @@
+"""Method comparison for ``usdface evaluate``: fit every method, score it on the test frames (eq. 5), build
+the per-frame table, the error maps (Fig. 6 colours) and the bar plot (Figs. 4-5). No USD here."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FitError
+from ..model import Capture
+from .api import METHODS, fit_personalized_shapes
+from .evaluate import error_colors, evaluate_rig, truth_error
+
+__all__ = ["evaluate_methods", "plot_errors", "write_report_json"]
+
+
+def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, **fit_options) -> dict:
+    """Fit and score ``methods`` on ``capture``.
+
+    ``truth`` (optional): ``{"names": [K], "deltas": [K,n,3]}`` (bench ``capture_truth.npz``); adds
+    ``truth_rmse_mm`` per method and a ``template`` row (the generic template deltas' error).
+    Returns ``{"labels": [F], "methods": {name: {"rmse_mm": [F], "max_mm": [F], "mean_rmse_mm",
+    "mean_max_mm", "truth_rmse_mm", "seconds", "info"}}, "_maps": {...}}`` (``_maps`` feeds the USD writer).
+    """
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise FitError(f"unknown method(s): {', '.join(bad) or '(none)'}", path=capture.source or None,
+                       fix=f"use a comma-separated subset of {','.join(METHODS)}")
+    test = capture.test
+    order = None
+    if truth is not None:
+        tnames = [str(n) for n in np.asarray(truth["names"]).tolist()]
+        missing = [n for n in capture.names if n not in tnames]
+        if missing:
+            raise FitError(f"truth lacks shape(s) {', '.join(missing[:5])}",
+                           fix="pass the capture's own truth")
+        order = [tnames.index(n) for n in capture.names]
+        true_deltas = np.asarray(truth["deltas"])[order]
+    report: dict = {"labels": list(test.label), "methods": {}, "_maps": {}}
+    for m in methods:
+        t0 = time.perf_counter()
+        res = fit_personalized_shapes(capture, method=m, **(fit_options if m != "dt" else {}))
+        sec = time.perf_counter() - t0
+        ev = evaluate_rig(res.rig, test)
+        row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
+               "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
+               "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
+               "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
+        report["methods"][m] = row
+        report["_maps"][m] = [(lab, pts, err, error_colors(err))
+                              for lab, pts, err in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
+    if order is not None:
+        from ..model import FaceRig
+        tr = FaceRig(capture.neutral, capture.triangles, capture.names, capture.template.deltas)
+        ev = evaluate_rig(tr, test)
+        report["template"] = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
+                              "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"],
+                              "truth_rmse_mm": truth_error(capture.template.deltas, true_deltas),
+                              "seconds": None}
+    return report
+
+
+def _jsonable(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return str(x)
+
+
+def write_report_json(report: dict, path) -> Path:
+    """Write the report (without the error maps) as JSON; atomic (temp + rename)."""
+    import os
+    path = Path(path)
+    data = {k: v for k, v in report.items() if not k.startswith("_")}
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1, default=_jsonable))
+    os.replace(tmp, path)
+    return path
+
+
+def plot_errors(report: dict, path) -> Path:
+    """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
+    (bottom), methods side by side. Atomic write (temp + rename)."""
+    import os
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = report["labels"]
+    methods = list(report["methods"])
+    x = np.arange(len(labels))
+    width = 0.8 / max(len(methods), 1)
+    fig, axes = plt.subplots(2, 1, figsize=(max(8, 0.35 * len(labels) * len(methods) / 2), 7), sharex=True)
+    panels = (("rmse_mm", "RMSE (eq. 5)"), ("max_mm", "maximum vertex error"))
+    for ax, (key, title) in zip(axes, panels, strict=True):
+        for k, m in enumerate(methods):
+            ax.bar(x + (k - (len(methods) - 1) / 2) * width, report["methods"][m][key], width, label=m)
+        ax.set_ylabel("mm")
+        ax.set_title(title)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(ncol=len(methods))
+    axes[1].set_xticks(x, [str(i + 1) for i in range(len(labels))])
+    axes[1].set_xlabel("test expression")
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
