@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -34,7 +35,7 @@ def _manifest(folder: Path, bench: Path, items: int) -> Path:
     return path
 
 
-def _run(where: str, bench: Path, items: int, jobs: int) -> tuple[float, int]:
+def _run(where: str, bench: Path, items: int, jobs: int) -> tuple[float, int, float]:
     with tempfile.TemporaryDirectory() as tmp:
         manifest = _manifest(Path(tmp), bench, items)
         if where == "dask":
@@ -49,7 +50,8 @@ def _run(where: str, bench: Path, items: int, jobs: int) -> tuple[float, int]:
                                progress=False)
         if report.failed:
             print(f"{where}: {len(report.failed)} failed: {report.failed[0].error}", file=sys.stderr)
-        return report.seconds, report.count("done")
+        cpu = [r.cpu_seconds for r in report.results if r.status == "done"]
+        return report.seconds, report.count("done"), statistics.median(cpu) if cpu else 0.0
 
 
 def main(argv=None) -> int:
@@ -66,14 +68,16 @@ def main(argv=None) -> int:
     rows = []
     for where in args.only or ("in-process", "pool", "dask"):
         runs = [_run(where, args.bench, args.items, args.jobs) for _ in range(args.repeat)]
-        seconds = [s for s, _ in runs]
-        done = min(d for _, d in runs)
+        seconds = [s for s, _, _ in runs]
+        done = min(d for _, d, _ in runs)
+        cpu = statistics.median(c for _, _, c in runs)
         med = statistics.median(seconds)
-        rows.append((where, done, med, min(seconds), 60.0 * done / med if med else 0.0))
-    print(f"{'where':<12} {'items':>5} {'median s':>9} {'min s':>8} {'avatars/min':>12}   "
-          f"(jobs={args.jobs}, repeat={args.repeat})")
-    for where, done, med, low, rate in rows:
-        print(f"{where:<12} {done:>5} {med:>9.1f} {low:>8.1f} {rate:>12.2f}")
+        rows.append((where, done, med, min(seconds), 60.0 * done / med if med else 0.0, cpu))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"{'where':<12} {'items':>5} {'median s':>9} {'min s':>8} {'avatars/min':>12} {'CPU s/item':>11}   "
+          f"(jobs={args.jobs}, repeat={args.repeat}, load {load:.1f} on {os.cpu_count()} CPUs)")
+    for where, done, med, low, rate, cpu in rows:
+        print(f"{where:<12} {done:>5} {med:>9.1f} {low:>8.1f} {rate:>12.2f} {cpu:>11.1f}")
     return 0
 
 

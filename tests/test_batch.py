@@ -109,21 +109,21 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     assert main(["batch", str(manifest), "-j", "1", "--worker", "nowhere:nothing"]) == 2
 
 
-@pytest.mark.slow
 @pytest.mark.shared
-def test_real_personalize_worker(tmp_path, bench):
-    """The default worker runs the real personalize (bench dev1); a missing avatar fails alone."""
+def test_real_personalize_worker_isolates_real_errors(tmp_path, bench):
+    """The default worker goes through usdface.api.personalize_avatar: real input errors fail their item
+    alone, with the UsdFaceError subclass and its message. (The success path of the same call is exercised by
+    tests/test_pyblish.py::test_publish_personalizes.)"""
     pytest.importorskip("usdface.transfer")
     dev1 = bench / "dev1"
     manifest = tmp_path / "m.json"
     manifest.write_text(json.dumps([
-        {"avatar": str(dev1 / "avatar.usdc"), "capture": str(dev1 / "capture"), "output": "ok.usda"},
-        {"avatar": str(dev1 / "missing.usdc"), "capture": str(dev1 / "capture"), "output": "bad.usda"},
+        {"avatar": str(dev1 / "missing.usdc"), "capture": str(dev1 / "capture"), "output": "a.usda"},
+        {"avatar": str(dev1 / "avatar.usdc"), "capture": str(tmp_path / "nocapture"), "output": "b.usda"},
+        {"avatar": str(dev1 / "avatar.usdc"), "capture": str(dev1 / "capture"), "output": "c.txt"},
     ]))
     report = run_batch(read_manifest(manifest), jobs=1, progress=False)
-    assert [r.status for r in report.results] == [DONE, FAILED]
-    assert (tmp_path / "ok.usda").exists() and report.failed[0].error_type == "InputFileError"
-    assert "missing.usdc" in report.failed[0].error
-    from usdface.api import check
-
-    assert [i for i in check(tmp_path / "ok.usda") if i.severity == "error"] == []
+    assert [r.status for r in report.results] == [FAILED, FAILED, FAILED]
+    assert [r.error_type for r in report.results] == ["InputFileError"] * 3
+    assert "missing.usdc" in report.results[0].error and "nocapture" in report.results[1].error
+    assert "fix:" in report.results[2].error and not list(tmp_path.glob("*.usda"))

@@ -61,6 +61,7 @@ class ItemResult:
     output: str
     status: str
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     error: str = ""
     error_type: str = ""
     traceback: str = ""
@@ -195,16 +196,17 @@ def load_worker(spec: str) -> Callable[[dict], object]:
 
 def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     """Run ``worker(item)`` and return an :class:`ItemResult` as a dict; never raises (failure isolation)."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
     try:
         worker(item)
     except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
         if isinstance(exc, KeyboardInterrupt):
             raise
-        return dict(base, status=FAILED, seconds=time.perf_counter() - start, error=str(exc),
-                    error_type=type(exc).__name__, traceback=traceback.format_exc())
-    return dict(base, status=DONE, seconds=time.perf_counter() - start)
+        return dict(base, status=FAILED, seconds=time.perf_counter() - start,
+                    cpu_seconds=time.process_time() - cpu, error=str(exc), error_type=type(exc).__name__,
+                    traceback=traceback.format_exc())
+    return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu)
 
 
 def _crashed(item: dict, exc: BaseException) -> dict:
