@@ -110,8 +110,8 @@ def main(argv=None) -> int:
     fits = {}
     for label, capture in (("selected", selected), ("hand-picked", hand)):
         t0 = time.perf_counter()
-        fits[label] = fit_personalized_shapes(capture, method="menzel", reg=1.0).rig.deltas
-        print(f"fit (menzel, reg=1) from {label} frames: {time.perf_counter() - t0:.2f} s")
+        fits[label] = fit_personalized_shapes(capture, method="menzel", reg="auto").rig.deltas
+        print(f"fit (menzel, reg=auto) from {label} frames: {time.perf_counter() - t0:.2f} s")
     swept = [take.names.index(n) for n in tt.swept]
     rms = lambda d: 1000 * np.sqrt(np.mean(np.sum((d[swept] - truth["deltas"][swept]) ** 2, -1)))  # noqa: E731
     gap = np.abs(fits["selected"] - fits["hand-picked"]).max()
