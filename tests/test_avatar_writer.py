@@ -151,6 +151,8 @@ def test_bad_options(tmp_path):
         write_rig_usd(grid_rig(), tmp_path / "a.usda", meters_per_unit=0.0)
     with pytest.raises(InputFileError, match="parent"):
         write_rig_usd(grid_rig(), tmp_path / "a.usda", parent_scale=0.01)
+    with pytest.raises(InputFileError, match="prim name"):
+        write_rig_usd(grid_rig(), tmp_path / "a.usda", root="/My Avatar")
     with pytest.raises(InputFileError):
         write_rig_usd(grid_rig(), tmp_path / "a.obj")
     assert list(tmp_path.iterdir()) == []

@@ -52,9 +52,11 @@ def sparse_point_indices(offsets: np.ndarray, threshold: float = 0.7) -> np.ndar
 
 
 def _check_rigs(rigs: list[FaceRig], path: Path, root: str) -> None:
+    from pxr import Sdf
+
     names = [r.name for r in rigs]
     for r in rigs:
-        if not r.name or not r.name.replace("_", "a").isalnum() or r.name[0].isdigit():
+        if not Sdf.Path.IsValidIdentifier(r.name):
             raise RigError(f"mesh name {r.name!r} is not a valid USD prim name", path=path,
                            fix="give every FaceRig a name made of letters, digits and '_'")
         if r.n_vertices == 0 or len(r.triangles) == 0:
@@ -110,6 +112,10 @@ def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.
         raise InputFileError(f"invalid metersPerUnit {meters_per_unit!r}", path=path,
                              fix="use a positive number such as 0.01 (cm) or 1 (m)")
     parents = [str(p) for p in parents]
+    bad = [n for n in parents + [root.strip("/")] if not Sdf.Path.IsValidIdentifier(n)]
+    if bad:
+        raise InputFileError(f"invalid prim name(s) for the SkelRoot or its parents: {bad}", path=path,
+                             fix="use simple names such as root='/Avatar', parents=('root',)")
     if (parent_scale != 1.0 or parent_rotate_x_deg != 0.0) and not parents:
         raise InputFileError("parent_scale / parent_rotate_x_deg need a parent Xform", path=path,
                              fix="pass parents=('root',)")

@@ -104,12 +104,6 @@ def front_point(x, y, side=0) -> np.ndarray:
     return surface(u, v, np.full(u.shape, side))
 
 
-def lip_line_y(x) -> np.ndarray:
-    """y (cm) of the mouth line (midway between the lips) at ``x``: the gap-free surface on the mouth row."""
-    x = np.asarray(x, float)
-    return np.full(x.shape, Y_MOUTH)
-
-
 def eye_ellipse_radius(x, y, sign=1.0):
     """Normalised radius of (x, y) w.r.t. the eye opening of the eye on side ``sign`` (<1 inside)."""
     return np.hypot((x - sign * EYE_CENTER[0]) / EYE_RADII[0], (y - EYE_CENTER[1]) / EYE_RADII[1])
