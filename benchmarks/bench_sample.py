@@ -9,24 +9,15 @@ Prints a table of median seconds and sizes; with --fit also the truth RMSE of ea
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
+from bench_capture_io import median_time  # same folder: (median s, min s, last result) of ``repeat`` runs
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def median_time(fn, repeat):
-    times, out = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), min(times), out
 
 
 def main(argv=None) -> int:
