@@ -133,7 +133,7 @@ def _jaw_mask(X, term):
 def _term(X, term, region):
     kind = term["kind"]
     if kind == "gauss":
-        if term["region"] != region and not (term["region"] == "head" and region == "both"):
+        if term["region"] != region:
             return np.zeros_like(X)
         g = np.exp(-0.5 * np.sum(((X - term["c"]) / term["s"]) ** 2, axis=1))
         if term["mask"] == "upper":
