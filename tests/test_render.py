@@ -220,3 +220,21 @@ def test_landmarks_on_the_far_side_are_hidden():
     assert "2 on the far side" in fig.axes[0].get_title()
     fig = render_landmarks(rig.neutral, rig.triangles, [0, 5])
     assert fig.axes[0].get_title() == "2 landmarks"
+
+
+def test_inspection_animation_timeline():
+    """Test expressions every 0.5 s, then the take 1 s after the last one, columns merged by ARKit name."""
+    from usdface.io.take import Take
+    from usdface.io.usd_inspection import inspection_animation
+    from usdface.model import Capture, Frames
+
+    rig = grid_rig(3)
+    frames = Frames(np.zeros((3, 9, 3)), np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.5]]),
+                    ["test", "train", "test"], ["a", "b", "c"])
+    capture = Capture(rig.neutral, rig.triangles, rig, frames, ["jawOpen", "eyeBlinkLeft"])
+    take = Take(np.array([[0.2], [0.4]]), ["JawOpen"], np.array([10.0, 10.1]))  # Live Link spelling
+    names, weights, times = inspection_animation(capture, take)
+    assert names == ["jawOpen", "eyeBlinkLeft"]
+    np.testing.assert_allclose(times, [0.0, 0.5, 1.5, 1.6])
+    np.testing.assert_allclose(weights, [[1.0, 0.0], [0.5, 0.5], [0.2, 0.0], [0.4, 0.0]])
+    assert inspection_animation(None, None) is None

@@ -90,7 +90,7 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
 
 
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
-                       out_path: PathLike | None, *, inspect: bool = False,
+                       out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        **options: Any) -> PersonalizeResult:
     """Personalize an avatar from a capture and write the result as a USD layer over the untouched avatar
     (``usdface personalize``); returns the ``PersonalizeResult`` (``.out_path`` = the layer written).
@@ -98,7 +98,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     ``options`` go to :func:`usdface.transfer.personalize_avatar` (``method``, ``force``, ``mu``, ...). With
     ``inspect=True`` the layer also gets inspection data for usdview (:mod:`usdface.io.usd_inspection`): a
     ``displayColor`` heat map of how much each vertex changed (RMS over shapes) and a ``SkelAnimation`` that
-    plays the capture's test expressions on the personalized avatar."""
+    plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
+    CSV or a take imported with ``usdface anim import``) when given."""
     from .transfer import personalize_avatar as _personalize
 
     if not inspect:
@@ -107,12 +108,12 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     capture = _as_capture(capture_path)
     result = _personalize(avatar, capture, out_path, **options)
     if getattr(result, "out_path", None):
-        from .io.usd_inspection import add_inspection, change_heat, inspection_edit
+        from .io.take import read_take
+        from .io.usd_inspection import add_inspection, change_heat, inspection_animation, inspection_edit
 
-        test = capture.test
-        animation = (capture.names, test.weights) if len(test) else None
+        animation = inspection_animation(capture, read_take(take) if take is not None else None)
         add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
-                                                        animation=animation))
+                                                        animation=animation, fps=24.0))
     return result
 
 

@@ -111,7 +111,7 @@ def _author_landmarks(stage, avatar: Avatar, landmarks: dict, layout_info: dict)
                 attr.Set(value)
 
 
-def _author_animation(stage, avatar: Avatar, names, weights, fps: float):
+def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=None):
     from pxr import Sdf, UsdSkel
 
     from .usd_anim import author_skel_animation
@@ -137,7 +137,7 @@ def _author_animation(stage, avatar: Avatar, names, weights, fps: float):
         w = np.zeros((weights.shape[0], len(tokens)))
         w[:, cols >= 0] = weights[:, cols[cols >= 0]]
         anim_path = Sdf.Path(skeleton).AppendChild(ANIMATION_NAME)
-        author_skel_animation(stage, anim_path, tokens, w, fps)
+        author_skel_animation(stage, anim_path, tokens, w, fps, times=times)
         binding = UsdSkel.BindingAPI.Apply(stage.GetPrimAtPath(skeleton))
         rel = binding.CreateAnimationSourceRel()
         old = rel.GetTargets()
@@ -159,9 +159,10 @@ def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: floa
     heat_vmax : value mapped to the brightest colour (default: each map's 99th percentile).
     landmarks : {mesh -> vertex indices[m]} landmark vertices.
     landmark_info : {mesh -> {attribute -> value}} extra ``usdface:landmarks:*`` values (epsilon, alpha, ...).
-    animation : (names[K], weights[F, K]) weights per frame; names in any ARKit spelling, mapped onto the
-        avatar's channel tokens (a channel with no column stays at 0).
-    fps : frames per second of the animation.
+    animation : (names[K], weights[F, K]) or (names, weights, times[F] seconds): weights per frame (frame f at
+        time code f when no times); names in any ARKit spelling, mapped onto the avatar's channel tokens (a
+        channel with no column stays at 0).
+    fps : time codes per second of the animation.
     """
 
     def edit(stage) -> None:
@@ -170,8 +171,8 @@ def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: floa
         if landmarks:
             _author_landmarks(stage, avatar, landmarks, landmark_info or {})
         if animation is not None:
-            names, weights = animation
-            _author_animation(stage, avatar, _canonical(names), weights, fps)
+            names, weights, *times = animation
+            _author_animation(stage, avatar, _canonical(names), weights, fps, times[0] if times else None)
 
     return edit
 
@@ -226,6 +227,30 @@ def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
         heat[rig.source.prim] = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if len(diff) else \
             np.zeros(rig.n_vertices)
     return heat
+
+
+def inspection_animation(capture=None, take=None, hold: float = 0.5, gap: float = 1.0) -> tuple | None:
+    """One timeline for usdview: the capture's test expressions (one every ``hold`` seconds, interpolated in
+    between), then, ``gap`` seconds later, a take (a ``usdface.io.take.Take``: Live Link CSV or USD take).
+    Returns ``(names[K], weights[F, K], times[F] seconds)`` for :func:`inspection_edit`, or None."""
+    parts = []
+    if capture is not None and len(capture.test):
+        w = capture.test.weights
+        parts.append((list(capture.names), w, np.arange(len(w)) * hold))
+    if take is not None and len(take):
+        start = (parts[0][2][-1] + gap) if parts else 0.0
+        parts.append((list(take.names), take.weights, start + take.times - take.times[0]))
+    if not parts:
+        return None
+    names = list(dict.fromkeys(n for p in parts for n in _canonical(p[0])))
+    rows, times = [], []
+    for part_names, w, t in parts:
+        cols = [names.index(n) for n in _canonical(part_names)]
+        block = np.zeros((len(w), len(names)))
+        block[:, cols] = w
+        rows.append(block)
+        times.append(t)
+    return names, np.vstack(rows), np.concatenate(times)
 
 
 def add_inspection(layer_path, edit: Callable) -> Path:
