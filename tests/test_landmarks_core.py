@@ -1,0 +1,312 @@
+"""usdface.landmarks numerical core on small synthetic models (analytic / brute-force checks)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from usdface.errors import LandmarkError
+from usdface.landmarks import compute_landmarks
+from usdface.landmarks.baselines import delta_cluster_layout, pca_kmeans_layout, random_layout
+from usdface.landmarks.candidates import candidate_sets, relative_displacement
+from usdface.landmarks.cover import reduce_set_cover, set_cover_costs, solve_set_cover
+from usdface.landmarks.layout import lazy_costs
+from usdface.landmarks.multicover import shapes_needing_landmarks
+from usdface.landmarks.reconstruct import layout_error, solve_weights, tracked_landmarks
+from usdface.landmarks.symmetry import mirror_pairs
+from usdface.landmarks.visibility import PoseVisibility, ambient_visibility, camera_visibility
+from usdface.model import FaceRig
+
+# ----------------------------------------------------------------------------------------------------------
+# synthetic models
+# ----------------------------------------------------------------------------------------------------------
+NX, NY = 21, 15
+
+
+def grid_mesh(nx: int = NX, ny: int = NY, width: float = 0.1, height: float = 0.08):
+    """A gently curved sheet facing +Z, bitwise symmetric about x = 0: (points[n, 3] metres, triangles)."""
+    xs = np.linspace(-width / 2, width / 2, nx)
+    xs = np.where(np.arange(nx) >= nx // 2, -xs[::-1], xs)
+    ys = np.linspace(0.0, height, ny)
+    x, y = np.meshgrid(xs, ys)
+    z = 0.02 * np.exp(-(x**2) / 0.002)
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
+    a = (j * nx + i).ravel()
+    tri = np.concatenate([np.stack([a, a + 1, a + nx + 1], 1), np.stack([a, a + nx + 1, a + nx], 1)])
+    return points, tri
+
+
+def bump(points, centre, sigma=0.01, amplitude=0.004):
+    """Offsets [n, 3] of a Gaussian bump along +Z (metres)."""
+    d2 = ((points[:, :2] - np.asarray(centre)[None, :]) ** 2).sum(axis=1)
+    out = np.zeros_like(points)
+    out[:, 2] = amplitude * np.exp(-d2 / (2 * sigma**2))
+    return out
+
+
+def symmetric_rig():
+    """Left/right bump pairs (mirrored exactly) plus mid-line bumps."""
+    points, tri = grid_mesh()
+    names, deltas = [], []
+    for i, (x, y) in enumerate(((0.03, 0.02), (0.025, 0.06), (0.015, 0.04))):
+        right = bump(points, (-x, y))
+        names += [f"shape{i}Right", f"shape{i}Left"]
+        deltas += [right, right.reshape(NY, NX, 3)[:, ::-1].reshape(-1, 3)]
+    for i, c in enumerate(((0.0, 0.01), (0.0, 0.07))):
+        names.append(f"mid{i}")
+        deltas.append(bump(points, c))
+    return FaceRig(points, tri, names, np.array(deltas), name="Sheet")
+
+
+def random_rig(n_shapes: int = 30, seed: int = 0, nx: int = 41, ny: int = 31):
+    """Many random bumps of random size and strength."""
+    points, tri = grid_mesh(nx, ny)
+    rng = np.random.default_rng(seed)
+    deltas = [bump(points, (rng.uniform(-0.05, 0.05), rng.uniform(0.0, 0.08)), rng.uniform(0.004, 0.02),
+                   rng.uniform(0.001, 0.01)) for _ in range(n_shapes)]
+    return FaceRig(points, tri, [f"s{k}" for k in range(n_shapes)], np.array(deltas), name="Sheet")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# candidates (eqs. 2-3)
+# ----------------------------------------------------------------------------------------------------------
+def test_relative_displacement_and_candidates_analytic():
+    mags = np.array([[0.0, 1.0, 2.0, 4.0], [3.0, 3.0, 0.0, 1.5]])
+    r = relative_displacement(mags)
+    np.testing.assert_allclose(r, [[0, 0.25, 0.5, 1.0], [1.0, 1.0, 0, 0.5]])
+    c = candidate_sets(r, 0.5)
+    assert c.tolist() == [[False, False, True, True], [True, True, False, True]]
+    assert candidate_sets(r, 1.0).sum(axis=1).tolist() == [1, 2]  # eq. 3 uses >=: the peak stays
+
+
+@pytest.mark.parametrize("eps", [0.0, -0.1, 1.01, float("nan"), "x"])
+def test_epsilon_outside_unit_interval_raises(eps):
+    with pytest.raises(LandmarkError, match="epsilon") as info:
+        compute_landmarks(symmetric_rig(), epsilon=eps, rays=4)
+    assert "fix:" in str(info.value)
+
+
+def test_rig_without_shapes_raises():
+    points, tri = grid_mesh()
+    rig = FaceRig(points, tri, [], np.zeros((0, len(points), 3)), name="Bare")
+    with pytest.raises(LandmarkError, match="no blend shapes"):
+        compute_landmarks(rig)
+
+
+def test_static_shape_raises_or_is_reported():
+    rig = symmetric_rig()
+    rig = FaceRig(rig.neutral, rig.triangles, rig.names + ["still"],
+                  np.concatenate([rig.deltas, np.zeros((1, rig.n_vertices, 3))]), name="Sheet")
+    with pytest.raises(LandmarkError, match="still") as info:
+        compute_landmarks(rig, rays=4)
+    assert "--skip-static" in str(info.value)
+    layout = compute_landmarks(rig, rays=4, ignore_static=True)
+    assert layout.uncoverable == ["still"] and any("still" in w for w in layout.warnings)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# set cover (eq. 5): reduction keeps the optimum; every backend proves it
+# ----------------------------------------------------------------------------------------------------------
+def brute_force(c, cost):
+    best = np.inf
+    n = c.shape[1]
+    coverable = c.any(axis=1)
+    for m in range(n + 1):
+        for sub in itertools.combinations(range(n), m):
+            if c[:, list(sub)].any(axis=1)[coverable].all() if sub else not coverable.any():
+                best = min(best, cost[list(sub)].sum())
+    return best
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000))
+def test_reduced_cover_is_optimal_vs_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    k, n = rng.integers(1, 7), rng.integers(1, 10)
+    c = rng.random((k, n)) < rng.uniform(0.15, 0.6)
+    cost = rng.choice([1.0, 1.0, 1.5, 2.0], size=n) + rng.random(n) * 0.01
+    sol = solve_set_cover(c, cost)
+    assert sol.status == "optimal" and sol.gap == 0.0
+    assert sol.objective == pytest.approx(brute_force(c, cost), abs=1e-9)
+    coverable = c.any(axis=1)
+    assert c[:, sol.selected].any(axis=1)[coverable].all()
+    assert set(sol.uncovered.tolist()) == set(np.flatnonzero(~coverable).tolist())
+    rows, cols = reduce_set_cover(c, cost)
+    assert rows.size <= coverable.sum() and cols.size <= n
+
+
+@pytest.mark.parametrize("backend", ["scip", "cbc", "highs"])
+def test_backends_agree(backend):
+    rig = random_rig(20, seed=3)
+    c = candidate_sets(relative_displacement(np.linalg.norm(rig.deltas, axis=2)), 0.5)
+    cost = set_cover_costs(c, np.ones(c.shape), "count")
+    ref = solve_set_cover(c, cost, backend="scip")
+    sol = solve_set_cover(c, cost, backend=backend)
+    assert sol.status == "optimal" and sol.objective == pytest.approx(ref.objective)
+
+
+def test_quality_weighting_keeps_the_minimum_count():
+    rig = random_rig(30, seed=1)
+    counts = {w: compute_landmarks(rig, 0.5, weighting=w, rays=8).count
+              for w in ("count", "quality", "paper")}
+    assert counts["quality"] == counts["count"]  # count first, quality only breaks ties
+    assert counts["paper"] >= counts["count"]
+
+
+def test_lazy_visibility_gives_the_fully_evaluated_costs_optimum():
+    rig = random_rig(25, seed=2)
+    r = relative_displacement(np.linalg.norm(rig.deltas, axis=2))
+    c = candidate_sets(r, 0.4)
+    pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=8)
+    full = set_cover_costs(c, 0.5 * r + 0.5 * pv()[None, :], "quality")
+    lazy_pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=8)
+    lazy = lazy_costs(c, r, 0.5, "quality", None, lambda: lazy_pv.values, lazy_pv)
+    assert np.isnan(lazy_pv.values).sum() > 0  # some vertices were never ray cast ...
+    a, b = solve_set_cover(c, full), solve_set_cover(c, lazy)
+    assert a.objective == pytest.approx(b.objective, abs=1e-12)  # ... and the optimum is the same
+    assert a.selected.tolist() == b.selected.tolist()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the whole method
+# ----------------------------------------------------------------------------------------------------------
+def test_every_shape_covered_optimal_and_deterministic():
+    rig = random_rig(30, seed=4)
+    a = compute_landmarks(rig, 0.5, rays=8)
+    b = compute_landmarks(rig, 0.5, rays=8)
+    assert a.status == "optimal" and a.gap == 0.0
+    assert a.coverage.any(axis=0).all() and a.uncoverable == []
+    assert a.vertices.tolist() == b.vertices.tolist()
+    np.testing.assert_array_equal(a.visibility, b.visibility)
+    assert a.count < rig.n_shapes  # merging: fewer landmarks than shapes
+
+
+def test_symmetric_layout_is_exactly_symmetric():
+    rig = symmetric_rig()
+    partner = mirror_pairs(rig.neutral)
+    assert (partner >= 0).all()
+    for multicover in (1, 3):
+        layout = compute_landmarks(rig, 0.6, symmetric=True, multicover=multicover, radius=0.008, rays=8)
+        assert layout.symmetric and not layout.warnings
+        assert set(partner[layout.vertices].tolist()) == set(layout.vertices.tolist())
+        mirrored = layout.positions * [-1, 1, 1]
+        assert np.abs(np.sort(mirrored, axis=0) - np.sort(layout.positions, axis=0)).max() < 1e-12
+        assert layout.coverage.any(axis=0).all()
+
+
+def test_infeasible_symmetric_problem_falls_back_and_says_so():
+    rig = symmetric_rig()
+    # a shape that moves only the top right corner, whose mirror image is cut off the mesh
+    x, y = rig.neutral[:, 0], rig.neutral[:, 1]
+    keep = ~((x < -0.04) & (y > 0.055))
+    index = np.cumsum(keep) - 1
+    tri = rig.triangles[keep[rig.triangles].all(axis=1)]
+    edge = bump(rig.neutral, (0.05, 0.08), sigma=0.002)
+    deltas = np.concatenate([rig.deltas, edge[None]])[:, keep]
+    cut = FaceRig(rig.neutral[keep], index[tri], rig.names + ["edge"], deltas, name="Cut")
+    layout = compute_landmarks(cut, 0.9, symmetric=True, rays=4)
+    assert not layout.symmetric
+    assert any("fell back" in w and "edge" in w for w in layout.warnings)
+    assert layout.coverage.any(axis=0).all()
+
+
+def test_multicover_adds_landmarks_outside_the_radius():
+    rig = random_rig(30, seed=5)
+    one = compute_landmarks(rig, 0.5, rays=4)
+    more = compute_landmarks(rig, 0.5, multicover=3, adaptive=False, radius=0.01, rays=4)
+    assert more.count > one.count and more.rounds.max() > 1
+    assert set(one.vertices.tolist()) <= set(more.vertices.tolist())  # round 1 is the single cover
+    first, later = more.positions[more.rounds == 1], more.positions[more.rounds > 1]
+    d = np.linalg.norm(later[:, None] - first[None], axis=2)
+    assert d.min() > 0.01 - 1e-12
+
+
+def test_ten_percent_heuristic_marks_overloaded_shapes():
+    # 20 shapes; landmark 0 serves shapes 0-9 (50%), landmark 1 serves shape 10 only
+    c = np.zeros((20, 3), dtype=bool)
+    c[:10, 0] = True
+    c[10, 1] = True
+    c[11:, 2] = True
+    need = shapes_needing_landmarks(c, np.array([0, 1]), max_per_shape=5, share=0.1)
+    assert need[:10].all() and not need[10]
+    assert not shapes_needing_landmarks(c, np.array([0, 1]), max_per_shape=1, share=0.1)[:11].any()
+
+
+def test_known_camera_excludes_hidden_vertices():
+    rig = random_rig(10, seed=6)
+    behind = compute_landmarks(rig, 0.5, camera=[0.0, 0.04, -1.0], rays=4)  # camera behind the sheet
+    assert behind.count == 0 and len(behind.uncoverable) == rig.n_shapes
+    front = compute_landmarks(rig, 0.5, camera=[0.0, 0.04, 1.0], rays=4)
+    assert front.uncoverable == [] and (front.visibility == 1.0).all()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# visibility (eq. 4)
+# ----------------------------------------------------------------------------------------------------------
+def test_ambient_visibility_open_sheet_and_covered_vertex():
+    points, tri = grid_mesh(11, 11)
+    points[:, 2] = 0.0
+    assert np.allclose(ambient_visibility(points, tri, rays=32), 1.0)
+    roof = points.copy()
+    roof[:, 2] = 0.01
+    both = np.concatenate([points, roof])
+    l_open = ambient_visibility(both, np.concatenate([tri, tri + len(points)]), [len(points) + 60], 32)
+    l_under = ambient_visibility(both, np.concatenate([tri, tri + len(points)]), [60], 32)
+    assert l_open[0] == 1.0 and l_under[0] < 0.5  # centre vertex under a 10 x 10 cm roof 1 cm up
+
+
+def test_camera_visibility_facing_and_occlusion():
+    points, tri = grid_mesh(11, 11)
+    points[:, 2] = 0.0
+    assert camera_visibility(points, tri, [0, 0.04, 1.0]).min() == 1.0
+    assert camera_visibility(points, tri, [0, 0.04, -1.0]).max() == 0.0
+
+
+def test_global_visibility_is_the_minimum_over_poses():
+    points, tri = grid_mesh(11, 11)
+    points[:, 2] = 0.0
+    # one shape lifts a far corner into a wall over the centre vertex (60)
+    wall = np.zeros_like(points)
+    wall[:, 2] = np.where(points[:, 0] > 0.02, 0.05, 0.0)
+    l = PoseVisibility(points, tri, wall[None], rays=32)([60])
+    assert l[0] < 1.0
+    assert PoseVisibility(points, tri, np.zeros((1,) + points.shape), rays=32)([60])[0] == 1.0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# reconstruction and baselines
+# ----------------------------------------------------------------------------------------------------------
+def test_weights_recovered_exactly_without_noise():
+    rig = random_rig(12, seed=7)
+    layout = compute_landmarks(rig, 0.5, multicover=3, adaptive=False, radius=0.005, rays=4)
+    w = np.random.default_rng(0).uniform(0, 1, (5, rig.n_shapes))
+    pos = tracked_landmarks(rig.neutral, rig.deltas, layout.vertices, w)
+    est = solve_weights(rig.deltas[:, layout.vertices], pos - rig.neutral[layout.vertices][None])
+    np.testing.assert_allclose(est, w, atol=1e-6)
+    assert layout_error(rig.neutral, rig.deltas, layout.vertices, w, noise=0.0) < 1e-9
+    noisy = layout_error(rig.neutral, rig.deltas, layout.vertices, w, noise=0.5e-3)
+    assert 0 < noisy < 0.5e-3
+
+
+def test_weights_respect_bounds_and_tikhonov_shrinks():
+    d = np.zeros((2, 1, 3))
+    d[0, 0, 0] = 1.0
+    d[1, 0, 1] = 1.0
+    est = solve_weights(d, np.array([[[2.0, -1.0, 0.0]]]))
+    np.testing.assert_allclose(est, [[1.0, 0.0]], atol=1e-12)
+    shrunk = solve_weights(d, np.array([[[0.5, 0.5, 0.0]]]), tikhonov=1.0)
+    np.testing.assert_allclose(shrunk, [[0.25, 0.25]], atol=1e-9)
+
+
+def test_baselines_count_and_determinism():
+    rig = random_rig(15, seed=8)
+    for fn in (pca_kmeans_layout, delta_cluster_layout, random_layout):
+        a, b = fn(rig.deltas, 12, seed=1), fn(rig.deltas, 12, seed=1)
+        assert a.tolist() == b.tolist() and 1 <= a.size <= 12
+        assert len(set(a.tolist())) == a.size
+    assert random_layout(rig.deltas, 12, seed=1).size == 12

@@ -1,0 +1,182 @@
+"""``usdface landmarks AVATAR``: compact landmark layout by weighted set cover (Zell & McDonnell 2022)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def _vector3(text: str):
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three comma-separated numbers), got {text!r}")
+    return values
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "landmarks", help="compute a compact facial landmark layout (weighted set cover, OR-tools)",
+        description="Choose the fewest mesh vertices to track so that every blend shape has a "
+                    "representative landmark (Zell & McDonnell, Eurographics 2022), solved to a proven "
+                    "optimum, and write it as a USD layer over the avatar (a Points prim + mesh primvars).")
+    p.add_argument("avatar", help="avatar USD file (UsdSkel, blend shapes)")
+    p.add_argument("--mesh", help="mesh prim name or path (default: most shapes, then most vertices)")
+    p.add_argument("--epsilon", type=float, default=0.5, help="relative-displacement threshold, (0,1]")
+    p.add_argument("--alpha", type=float, default=0.5, help="displacement vs visibility weight, [0,1]")
+    p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
+    p.add_argument("--multicover", type=int, default=1, metavar="N",
+                   help="adaptive multi-cover: up to N landmarks per shape (1)")
+    p.add_argument("--radius", type=float, default=0.01,
+                   help="metres; multi-cover excludes vertices this close to chosen landmarks (0.01)")
+    p.add_argument("--no-adaptive", action="store_true",
+                   help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
+    p.add_argument("--camera", type=_vector3, metavar="X,Y,Z",
+                   help="known camera position, metres in usdface's internal frame (Y up, as read): "
+                        "one visibility ray per vertex instead of the hemisphere")
+    p.add_argument("--rays", type=int, default=16, help="hemisphere rays per vertex (16)")
+    p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
+                   help="OR-tools MIP backend (scip)")
+    p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
+                   help="cost of eq. 5a: quality (count first, quality breaks ties; default), count, paper")
+    p.add_argument("--skip-static", action="store_true", help="leave out shapes that move no vertex")
+    p.add_argument("-o", "--output", help="output layer (.usda/.usdc/.usd)")
+    p.add_argument("--force", action="store_true", help="replace an existing output")
+    p.add_argument("--json", dest="json_out", help="write the layout (or evaluation) as JSON")
+    p.add_argument("--plot", help="PNG: the layout (front view), or with --evaluate the error curve")
+    p.add_argument("--evaluate", action="store_true",
+                   help="sweep epsilon x multi-cover vs baselines; reconstruction error vs landmark count")
+    p.add_argument("--takes", nargs="+", default=[],
+                   help="Live Link Face CSV takes (test weights) for --evaluate")
+    p.add_argument("--empirical",
+                   help="JSON with an empirical layout (list of vertex indices, or ICT-FaceKit's "
+                        "vertex_indices.json: idx_to_landmark_verts) for --evaluate")
+    p.add_argument("--frames", type=int, default=400, help="test frames used by --evaluate (evenly sampled)")
+    p.add_argument("--noise", type=float, default=0.5, help="tracking noise for --evaluate, mm (0.5)")
+    p.set_defaults(func=run)
+
+
+def _pick_mesh(avatar, name):
+    from ..errors import RigError
+
+    if name:
+        try:
+            return avatar.mesh(name)
+        except KeyError:
+            raise RigError(f"no mesh {name!r}", path=avatar.file,
+                           fix="use one of " + ", ".join(m.source.prim if m.source else m.name
+                                                           for m in avatar.meshes)) from None
+    if not avatar.meshes:
+        raise RigError("no mesh with blend shapes", path=avatar.file, fix="pass an avatar with a face rig")
+    return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
+
+
+def _read_empirical(path) -> list[int]:
+    from ..errors import InputFileError
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise InputFileError(f"cannot read the empirical layout: {exc}", path=path,
+                             fix="pass a JSON list of vertex indices or ICT-FaceKit's vertex_indices.json"
+                             ) from None
+    if isinstance(data, dict):
+        data = data.get("idx_to_landmark_verts", data.get("vertices"))
+    if not isinstance(data, list) or not all(isinstance(v, int) for v in data):
+        raise InputFileError("no vertex index list in the empirical layout", path=path,
+                             fix="use a JSON list of ints or a dict with 'idx_to_landmark_verts'")
+    return data
+
+
+def _test_weights(takes, names, frames):
+    import numpy as np
+
+    from ..errors import LandmarkError
+    from ..io.livelink import read_livelink_csv
+
+    if not takes:
+        raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
+    blocks = []
+    for t in takes:
+        take_names, w, _ = read_livelink_csv(t)
+        index = {n: i for i, n in enumerate(take_names)}
+        block = np.zeros((w.shape[0], len(names)))
+        for k, n in enumerate(names):
+            if n in index:
+                block[:, k] = w[:, index[n]]
+        blocks.append(block)
+    w = np.concatenate(blocks)
+    if frames and len(w) > frames:
+        w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
+    return w
+
+
+def run(args) -> int:
+    import time
+
+    from ..io.usd_rig import read_avatar
+    from ..landmarks import compute_landmarks
+    from ..progress import steps
+
+    t0 = time.perf_counter()
+    if args.output:
+        from ..io.layers import check_output_path
+
+        check_output_path(args.output, args.force)
+    avatar = read_avatar(args.avatar)
+    rig = _pick_mesh(avatar, args.mesh)
+    if args.evaluate:
+        from ..landmarks.evaluate import evaluate_landmarks
+        from ..landmarks.plots import plot_evaluation
+
+        weights = _test_weights(args.takes, rig.names, args.frames)
+        empirical = _read_empirical(args.empirical) if args.empirical else None
+        report = evaluate_landmarks(rig, weights, empirical, noise=args.noise * 1e-3, rays=args.rays,
+                                    symmetric=args.symmetric, backend=args.backend)
+        if args.plot:
+            plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}")
+        if args.json_out:
+            Path(args.json_out).write_text(json.dumps(report.to_dict(), indent=2))
+        for key, value in report.summary.items():
+            mm = "rmse" in key and value is not None
+            print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
+        return 0
+    with steps("landmarks", 2) as advance:
+        layout = compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
+                                   multicover=args.multicover, radius=args.radius, camera=args.camera,
+                                   rays=args.rays, backend=args.backend, weighting=args.weighting,
+                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static)
+        advance("layout")
+        if args.output:
+            from ..io.usd_landmarks import write_landmark_layer
+
+            params = {k: v for k, v in vars(args).items() if k not in ("func",)}
+            write_landmark_layer(avatar, rig, layout, args.output, force=args.force,
+                                 provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
+                                             "parameters": params, "timings": layout.timings,
+                                             "elapsedSeconds": time.perf_counter() - t0})
+        advance("layer")
+    mesh = rig.source.prim if rig.source else rig.name
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps({"avatar": str(args.avatar), "mesh": mesh,
+                                                   **layout.to_dict()}, indent=2))
+    if args.plot:
+        from ..landmarks.plots import plot_layout
+
+        plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}")
+    print(f"{mesh}: {layout.count} landmarks for {len(rig.names)} shapes (epsilon {layout.epsilon:g}, "
+          f"alpha {layout.alpha:g}, {layout.weighting}); solver {layout.backend} {layout.status}, "
+          f"gap {layout.gap:.2g}; {time.perf_counter() - t0:.2f} s")
+    print("vertices: " + " ".join(str(int(v)) for v in layout.vertices))
+    for w in layout.warnings:
+        print(f"warning: {w}")
+    if layout.uncoverable:
+        print(f"uncoverable at epsilon {layout.epsilon:g}: {', '.join(layout.uncoverable)}")
+    if args.output:
+        print(f"wrote {args.output}")
+    return 0

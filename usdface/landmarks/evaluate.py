@@ -1,0 +1,120 @@
+"""Evaluation sweep: reconstruction error vs number of landmarks (Zell & McDonnell 2022, sec. 4).
+
+Layouts of this method over a sweep of epsilon and multi-cover rounds are compared with the baselines of
+:mod:`.baselines` (an empirical layout, PCA + k-means, delta-blendshape clustering, random) on test weights
+(e.g. real Live Link Face takes): landmarks are tracked with Gaussian noise, the weights solved by bounded
+least squares (:mod:`.reconstruct`) and the mesh RMSE measured over the moving vertices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..model import FaceRig
+from . import baselines
+from .candidates import candidate_sets, displacement_magnitudes, relative_displacement
+from .layout import compute_landmarks
+from .reconstruct import layout_error
+from .visibility import global_visibility
+
+
+@dataclass
+class EvaluationPoint:
+    """One layout's result: ``method``, a ``label`` (parameters), landmark ``count``, ``rmse`` metres."""
+
+    method: str
+    label: str
+    count: int
+    rmse: float
+
+
+@dataclass
+class EvaluationReport:
+    """All points, plus the summary the acceptance asks for (metres, counts)."""
+
+    points: list[EvaluationPoint]
+    frames: int
+    noise: float
+    summary: dict = field(default_factory=dict)
+
+    def best(self, method: str, max_count: int) -> EvaluationPoint | None:
+        """Lowest-error layout of ``method`` with at most ``max_count`` landmarks."""
+        pts = [p for p in self.points if p.method == method and p.count <= max_count]
+        return min(pts, key=lambda p: (p.rmse, p.count)) if pts else None
+
+    def to_dict(self) -> dict:
+        return {"frames": self.frames, "noise": self.noise, "summary": self.summary,
+                "points": [asdict(p) for p in self.points]}
+
+
+def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:
+    ours = sorted((p for p in report.points if p.method == "ours"), key=lambda p: (p.count, p.rmse))
+    out: dict = {}
+    emp = [p for p in report.points if p.method == "empirical"]
+    if emp and ours:
+        e = emp[0]
+        match = next((p for p in ours if p.rmse <= e.rmse), None)
+        at = report.best("ours", e.count)
+        out = {"empirical_count": e.count, "empirical_rmse": e.rmse,
+               "match_count": match.count if match else None, "match_rmse": match.rmse if match else None,
+               "match_label": match.label if match else None,
+               "ours_at_empirical_count": at.count if at else None,
+               "ours_rmse_at_empirical_count": at.rmse if at else None,
+               "ours_label_at_empirical_count": at.label if at else None}
+        for method in ("pca_kmeans", "delta_cluster", "random"):
+            b = [p for p in report.points if p.method == method and p.count <= e.count]
+            if b:
+                top = max(b, key=lambda p: p.count)
+                out[f"{method}_rmse_at_{top.count}"] = top.rmse
+    return out
+
+
+def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray | None = None,
+                       epsilons=(0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9), rounds=(1, 2, 3, 4, 5, 6),
+                       noise: float = 0.5e-3, tikhonov: float = 0.0, alpha: float = 0.5, rays: int = 16,
+                       symmetric: bool = False, random_seeds: int = 3, seed: int = 0,
+                       backend: str = "scip", extra_counts=()) -> EvaluationReport:
+    """Sweep this method's layouts and the baselines; ``weights[F, K]`` test weights in ``rig.names`` order.
+
+    ``empirical[m]`` vertex indices of an empirical layout (e.g. the 68 ICT points on ``Head``). Baselines are
+    evaluated at every landmark count the sweep produced (plus the empirical count and ``extra_counts``), so
+    curves compare at equal counts. ``noise`` metres of tracking noise (std per coordinate); the same noise
+    seed is used for every layout. RMSE over the vertices that move (:func:`baselines.moving_vertices`).
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    region = baselines.moving_vertices(rig.deltas)
+    r = relative_displacement(displacement_magnitudes(rig.deltas))
+    need = np.flatnonzero(candidate_sets(r, min(epsilons)).any(axis=0))
+    vis = np.zeros(rig.n_vertices)
+    vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, rays)
+
+    def err(vertices) -> float:
+        return layout_error(rig.neutral, rig.deltas, vertices, w, noise, tikhonov, seed, region)
+
+    points: list[EvaluationPoint] = []
+    seen: dict[tuple, float] = {}
+    for eps in epsilons:
+        for n in rounds:
+            layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, visibility=vis,
+                                       backend=backend, ignore_static=True)
+            key = tuple(layout.vertices.tolist())
+            if key not in seen:
+                seen[key] = err(layout.vertices)
+            points.append(EvaluationPoint("ours", f"eps={eps:g} multicover={n}", layout.count, seen[key]))
+    counts = sorted({p.count for p in points} | {int(c) for c in extra_counts})
+    if empirical is not None:
+        emp = baselines.empirical_layout(empirical, rig.n_vertices)
+        points.append(EvaluationPoint("empirical", f"{emp.size} points", int(emp.size), err(emp)))
+        counts = sorted(set(counts) | {int(emp.size)})
+    for m in counts:
+        v = baselines.pca_kmeans_layout(rig.deltas, m, seed=seed)
+        points.append(EvaluationPoint("pca_kmeans", f"k={m}", int(v.size), err(v)))
+        v = baselines.delta_cluster_layout(rig.deltas, m, seed=seed)
+        points.append(EvaluationPoint("delta_cluster", f"k={m}", int(v.size), err(v)))
+        e = [err(baselines.random_layout(rig.deltas, m, seed=seed + s)) for s in range(random_seeds)]
+        points.append(EvaluationPoint("random", f"m={m} mean of {random_seeds}", m, float(np.mean(e))))
+    report = EvaluationReport(points, int(w.shape[0]), float(noise))
+    report.summary = _summary(report, None if empirical is None else len(empirical))
+    return report

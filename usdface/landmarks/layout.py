@@ -1,0 +1,289 @@
+"""Compact landmark layouts for a blendshape rig (Zell & McDonnell 2022): the whole method in one call.
+
+    layout = compute_landmarks(rig, epsilon=0.5, alpha=0.5)
+    layout.vertices      # [m] vertex indices on rig.neutral
+    layout.coverage      # [m, K] bool: landmark i is a candidate for shape k
+
+Steps: relative displacement and candidates (eqs. 2-3, :mod:`.candidates`), global visibility (eq. 4,
+:mod:`.visibility`), quality-weighted set cover solved to a proven optimum (eqs. 1, 5, :mod:`.cover`),
+optional symmetry (:mod:`.symmetry`) and adaptive multi-cover (Algorithm 1, :mod:`.multicover`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import LandmarkError
+from ..model import FaceRig
+from . import candidates as cand
+from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
+from .multicover import adaptive_multicover
+from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
+from .visibility import PoseVisibility
+
+
+@dataclass
+class LandmarkLayout:
+    """A landmark layout on one rig.
+
+    ``vertices[m]`` sorted vertex indices, ``positions[m, 3]`` neutral positions (metres, internal frame),
+    ``coverage[m, K]`` bool (landmark i is a candidate for shape k at ``epsilon``), ``rounds[m]`` multi-cover
+    round that added each landmark, ``visibility[m]`` global visibility l_n, ``shape_names[K]``.
+    ``status`` is the worst solver status over the rounds (optimal / feasible / timeLimit / infeasible),
+    ``gap`` the largest proven relative gap; ``uncoverable`` names shapes no landmark represents;
+    ``warnings`` says what was changed (e.g. the symmetric fallback).
+    """
+
+    vertices: np.ndarray
+    positions: np.ndarray
+    coverage: np.ndarray
+    rounds: np.ndarray
+    visibility: np.ndarray
+    shape_names: list[str]
+    epsilon: float
+    alpha: float
+    symmetric: bool
+    multicover: int
+    status: str
+    gap: float
+    objective: float
+    weighting: str
+    backend: str
+    camera: list[float] | None = None
+    uncoverable: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+    problem: dict = field(default_factory=dict)
+
+    @property
+    def count(self) -> int:
+        return int(self.vertices.size)
+
+    def landmarks_per_shape(self) -> dict[str, int]:
+        """Number of landmarks that are candidates for each shape."""
+        return {n: int(v) for n, v in zip(self.shape_names, self.coverage.sum(axis=0), strict=True)}
+
+    def to_dict(self) -> dict:
+        """A JSON-ready summary (lists, floats)."""
+        d = asdict(self)
+        for key in ("vertices", "positions", "rounds", "visibility"):
+            d[key] = np.asarray(d[key]).tolist()
+        d["coverage"] = [[self.shape_names[k] for k in np.flatnonzero(row)] for row in self.coverage]
+        d["count"] = self.count
+        d["landmarks_per_shape"] = self.landmarks_per_shape()
+        return d
+
+
+_STATUS_RANK = {"optimal": 0, "feasible": 1, "timeLimit": 2, "notSolved": 3, "infeasible": 4}
+
+
+def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]:
+    where = {"path": rig.source.file if rig.source else None, "prim": rig.source.prim if rig.source else None}
+    if rig.n_shapes == 0:
+        raise LandmarkError(f"mesh {rig.name or '?'} has no blend shapes", **where,
+                            fix="pick a mesh with blend shapes (--mesh) or add shapes to this one")
+    if not np.isfinite(rig.deltas).all() or not np.isfinite(rig.neutral).all():
+        raise LandmarkError("neutral or shape offsets contain NaN/inf", **where,
+                            fix="repair the rig's geometry")
+    mag = cand.displacement_magnitudes(rig.deltas)
+    static = [rig.names[k] for k in cand.static_shapes(mag)]
+    if static and not ignore_static:
+        raise LandmarkError(f"shape(s) moving no vertex: {', '.join(static)}", **where,
+                            fix="remove or fix these shapes, or pass --skip-static to leave them out")
+    return mag, static
+
+
+def _superset_bound(sets: np.ndarray, todo: np.ndarray, done: np.ndarray, cost: np.ndarray,
+                    chunk: int = 4096) -> np.ndarray:
+    """For each column in ``todo``: the lowest ``cost`` among ``done`` columns whose candidate set contains
+    its own (``sets[m, K]`` bool) -> ``[len(todo)]`` (inf where none)."""
+    out = np.full(todo.size, np.inf)
+    if done.size == 0 or todo.size == 0:
+        return out
+    big = sets[done].astype(np.float32)
+    for s in range(0, todo.size, chunk):
+        small = sets[todo[s:s + chunk]].astype(np.float32)
+        contains = (small @ big.T) == small.sum(axis=1, keepdims=True)  # [chunk, done]
+        out[s:s + chunk] = np.where(contains, cost[done][None, :], np.inf).min(axis=1)
+    return out
+
+
+def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
+               batch: int = 256) -> np.ndarray:
+    """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
+
+    Every cost form is a non-increasing linear function of the vertex's visibility l_n, and
+    :func:`usdface.landmarks.cover.reduce_set_cover` drops every vertex whose candidate set is contained in
+    (or equal to) that of a vertex no more expensive. So vertices are evaluated best-first (by their
+    optimistic cost, l = 1) until every unevaluated vertex is provably dropped: its optimistic cost is no
+    lower than the exact cost of an evaluated vertex covering a superset of its shapes. Those keep a
+    pessimistic cost (l = 0), which the reduction drops just the same, so the reduced problem - hence the
+    optimum - equals the fully evaluated one. ``lookup() -> l[n]`` (NaN = not evaluated), ``evaluate(v)``.
+    """
+    if weighting == "count":
+        return set_cover_costs(sub, r, "count", multiplicity)
+    n = sub.shape[1]
+
+    def cost_at(vis):
+        return set_cover_costs(sub, cand.landmark_quality(r, vis, alpha), weighting, multiplicity)
+
+    cols = np.flatnonzero(sub.any(axis=0))
+    if cols.size == 0:
+        return cost_at(np.zeros(n))
+    sets = sub[:, cols].T
+    optimistic = cost_at(np.ones(n))[cols]
+    while True:
+        vis = lookup()
+        known = ~np.isnan(vis[cols])
+        exact = cost_at(np.nan_to_num(vis, nan=0.0))[cols]
+        todo = np.flatnonzero(~known)
+        bound = _superset_bound(sets, todo, np.flatnonzero(known), exact)
+        need = todo[optimistic[todo] <= bound + 1e-12]
+        if need.size == 0:
+            return cost_at(np.nan_to_num(vis, nan=0.0))
+        pick = need[np.lexsort((cols[need], optimistic[need]))[:batch]]
+        evaluate(cols[pick])
+        batch *= 2
+
+
+def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, symmetric: bool = False,
+                      multicover: int = 1, radius: float = 0.01, camera=None, rays: int = 16,
+                      backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
+                      share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
+                      visibility: np.ndarray | None = None) -> LandmarkLayout:
+    """Compute a compact landmark layout for ``rig`` (Zell & McDonnell 2022, secs. 3.1-3.3).
+
+    Parameters
+    ----------
+    rig : FaceRig with ``neutral[n, 3]`` and ``deltas[K, n, 3]`` in metres.
+    epsilon : relative-displacement threshold of the candidates (eq. 3), in (0, 1].
+    alpha : weight of relative displacement vs visibility in the quality (eq. 1), in [0, 1].
+    symmetric : mirror-symmetric layout (falls back to asymmetric, with a warning, when infeasible).
+    multicover : maximum landmarks per shape of the adaptive multi-cover (Algorithm 1); 1 = single cover.
+    radius : metres; vertices this close to a chosen landmark leave the candidates of later rounds.
+    camera : optional [3] camera position (metres, internal Y-up frame) for the known-camera visibility;
+        vertices the camera cannot see in some pose are then not candidates.
+    rays : hemisphere rays per vertex for the ambient-occlusion visibility.
+    backend : OR-tools MIP backend: scip (default, measured fastest to a proof), cbc, highs, cp-sat.
+    weighting : cost form of eq. 5a: quality (count first, quality breaks ties), count, paper.
+    adaptive, share : the paper's 10%-of-shapes heuristic in the multi-cover (off: cover every shape
+        ``multicover`` times where candidates remain).
+    ignore_static : leave shapes that move no vertex out (reported in ``uncoverable``) instead of raising.
+    visibility : precomputed l_n ``[n]`` (skips the ray casting; used by the evaluation sweep).
+
+    Returns a :class:`LandmarkLayout`. Raises :class:`LandmarkError` on a rig without shapes, epsilon outside
+    (0, 1], or a shape that moves no vertex (unless ``ignore_static``).
+    """
+    eps = cand.check_epsilon(epsilon)
+    a = cand.check_alpha(alpha)
+    if weighting not in WEIGHTINGS:
+        raise LandmarkError(f"unknown weighting {weighting!r}", fix=f"use one of {', '.join(WEIGHTINGS)}")
+    if backend not in BACKENDS:
+        raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
+    if int(multicover) < 1:
+        raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    mag, static = _validate(rig, ignore_static)
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    t0 = time.perf_counter()
+    r = cand.relative_displacement(mag)
+    c = cand.candidate_sets(r, eps)
+    partner = primary = None
+    if symmetric:
+        partner = mirror_pairs(rig.neutral)
+        primary = primary_side(rig.neutral, partner)
+    need = np.flatnonzero(c.any(axis=0))
+    if partner is not None:
+        need = np.unique(np.concatenate([need, partner[need][partner[need] >= 0]]))
+    timings["candidates"] = time.perf_counter() - t0
+    pose_vis = None
+    if visibility is not None:
+        known = np.asarray(visibility, dtype=np.float64).copy()
+
+        def lookup_plain():
+            return known
+
+        def evaluate_plain(vertices):
+            return None
+    else:
+        pose_vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays, camera)
+
+        def lookup_plain():
+            return pose_vis.values
+
+        def evaluate_plain(vertices):
+            t = time.perf_counter()
+            pose_vis(vertices)
+            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
+    if camera is not None:  # a vertex the camera cannot see in some pose is no candidate
+        evaluate_plain(need)
+        c &= np.nan_to_num(lookup_plain(), nan=0.0)[None, :] > 0.0
+
+    def solve(cc, cost):
+        return solve_set_cover(cc, cost, backend=backend, time_limit=time_limit)
+
+    t0 = time.perf_counter()
+    vis_before = timings.get("visibility", 0.0)
+    result = None
+    if symmetric:
+        # relative to each shape's own peak (a peak on an unpaired vertex must not be renormalised away)
+        peak = np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
+        sym_r = symmetric_magnitudes(mag, partner, primary) / peak
+        sym_c = cand.candidate_sets(sym_r, eps)
+        safe = np.where(partner >= 0, partner, np.arange(rig.n_vertices))
+
+        def lookup_sym():
+            v = lookup_plain()
+            return np.where(primary, np.minimum(v, v[safe]), 0.0)  # NaN propagates: not evaluated
+
+        def evaluate_sym(vertices):
+            evaluate_plain(np.concatenate([vertices, safe[vertices]]))
+
+        if camera is not None:
+            sym_c &= np.nan_to_num(lookup_sym(), nan=0.0)[None, :] > 0.0
+        lost = [rig.names[k] for k in np.flatnonzero(c.any(axis=1) & ~sym_c.any(axis=1))]
+        if lost:
+            warnings.append("symmetric layout infeasible (no mirrored candidate for "
+                            f"{', '.join(lost)}); fell back to an asymmetric layout")
+        else:
+            mult = np.where(partner == np.arange(rig.n_vertices), 1.0, 2.0)
+
+            def sym_costs(sub):
+                return lazy_costs(sub, sym_r, a, weighting, mult, lookup_sym, evaluate_sym)
+
+            sel, rounds, sols = adaptive_multicover(sym_c, sym_costs, rig.neutral, multicover, solve, radius,
+                                                    share if adaptive else None, partner, coverage=c)
+            vertices = np.concatenate([sel, partner[sel]])  # mirror, keeping each pair's round
+            vertices, first = np.unique(vertices, return_index=True)
+            result = (vertices, np.concatenate([rounds, rounds])[first], sols)
+    if result is None:
+        def plain_costs(sub):
+            return lazy_costs(sub, r, a, weighting, None, lookup_plain, evaluate_plain)
+
+        result = adaptive_multicover(c, plain_costs, rig.neutral, multicover, solve, radius,
+                                     share if adaptive else None)
+    vertices, rounds, sols = result
+    evaluate_plain(vertices)
+    vis = np.nan_to_num(lookup_plain(), nan=0.0)
+    timings["cover"] = time.perf_counter() - t0 - (timings.get("visibility", 0.0) - vis_before)
+    coverage = c[:, vertices].T
+    covered = coverage.any(axis=0)
+    uncoverable = [n for k, n in enumerate(rig.names) if not covered[k]]
+    worst = max(sols, key=lambda s: (_STATUS_RANK.get(s.status, 3), s.gap)) if sols else None
+    head: CoverSolution | None = sols[0] if sols else None
+    return LandmarkLayout(
+        vertices=vertices, positions=rig.neutral[vertices], coverage=coverage, rounds=rounds,
+        visibility=vis[vertices], shape_names=list(rig.names), epsilon=eps, alpha=a,
+        symmetric=bool(symmetric and not warnings), multicover=int(multicover),
+        status=worst.status if worst else "optimal", gap=max((s.gap for s in sols), default=0.0),
+        objective=float(sum(s.objective for s in sols)), weighting=weighting, backend=backend,
+        camera=None if camera is None else [float(x) for x in camera], uncoverable=uncoverable,
+        warnings=warnings + ([f"static shapes left out: {', '.join(static)}"] if static else []),
+        timings=timings,
+        problem={"shapes": int(rig.n_shapes), "vertices": int(rig.n_vertices), "candidates": int(need.size),
+                 "visibility_evaluated": int(np.count_nonzero(~np.isnan(lookup_plain()))),
+                 "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
+                 "solve_seconds": [round(s.seconds, 4) for s in sols]})

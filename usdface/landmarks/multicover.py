@@ -1,0 +1,82 @@
+"""Adaptive multi-cover (Zell & McDonnell 2022, sec. 3.3.2, Algorithm 1).
+
+Single covers are solved repeatedly; after each round the chosen vertices and every vertex within ``radius``
+of them leave the candidate sets, and a shape stays in the problem only while it has a candidate left, fewer
+than ``max_per_shape`` landmarks, and (adaptive) its landmarks serve too many shapes: the paper's heuristic
+that "one landmark should not be assigned to more than 10% of blendshapes". Here a shape k is satisfied once
+``|L_k| >= |union of C_l for l in L_k| / (share K)``, i.e. its landmarks serve at most ``share`` of all shapes
+each on average.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .cover import CoverSolution
+
+
+def shapes_needing_landmarks(c: np.ndarray, chosen: np.ndarray, max_per_shape: int, share: float | None = 0.1
+                             ) -> np.ndarray:
+    """Algorithm 1, lines 14-18: ``c[K, n]`` bool candidates (original), ``chosen[m]`` vertex indices ->
+    ``[K]`` bool, True where shape k should get another landmark (before checking candidates remain)."""
+    c = np.asarray(c, dtype=bool)
+    chosen = np.asarray(chosen, dtype=np.int64)
+    cl = c[:, chosen]  # [K, m]: landmark l is a candidate for shape k
+    count = cl.sum(axis=1)
+    need = count < max_per_shape
+    if share is None or chosen.size == 0:
+        return need
+    # shapes served by the landmarks of shape k: union over l in L_k of C_l
+    served = (cl.astype(np.int32) @ cl.T.astype(np.int32)) > 0  # [K, K]
+    limit = max(share * c.shape[0], 1.0)
+    return need & (count < np.ceil(served.sum(axis=1) / limit))
+
+
+def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape: int,
+                        solve: Callable[[np.ndarray, np.ndarray], CoverSolution], radius: float = 0.01,
+                        share: float | None = 0.1, partner: np.ndarray | None = None,
+                        coverage: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, list[CoverSolution]]:
+    """Algorithm 1: ``c[K, n]`` bool candidates (eq. 3), ``cost[n]`` (eq. 5a) or a callable
+    ``cost(sub[K, n]) -> [n]`` evaluated per round, ``neutral[n, 3]`` metres.
+
+    ``solve(c, cost)`` solves one cover (eq. 5). ``partner[n]`` (symmetric mode) adds mirror partners to the
+    excluded neighbourhood; ``coverage[K, n]`` is the candidate matrix used to count landmarks per shape
+    (default ``c``). Returns (selected vertex indices [m], round of each [m], the per-round solutions).
+    """
+    c = np.asarray(c, dtype=bool)
+    coverage = c if coverage is None else np.asarray(coverage, dtype=bool)
+    tree = cKDTree(neutral)
+    chosen: list[int] = []
+    rounds: list[int] = []
+    solutions: list[CoverSolution] = []
+    available = np.ones(c.shape[1], dtype=bool)
+    active = c.any(axis=1)
+    for i in range(max(1, int(max_per_shape))):
+        if i > 0:
+            sel = _expand(np.asarray(chosen, dtype=np.int64), partner)
+            near = np.concatenate([np.asarray(n, dtype=np.int64)
+                                   for n in tree.query_ball_point(neutral[sel], radius)] + [sel])
+            available[near] = False
+            active = shapes_needing_landmarks(coverage, sel, max_per_shape, share)
+        sub = c & available[None, :] & active[:, None]
+        if not sub.any():
+            break
+        sol = solve(sub, cost(sub) if callable(cost) else cost)
+        solutions.append(sol)
+        new = [int(v) for v in sol.selected if v not in chosen]
+        if not new:
+            break
+        chosen += new
+        rounds += [i + 1] * len(new)
+    order = np.argsort(chosen, kind="stable")
+    return np.asarray(chosen, dtype=np.int64)[order], np.asarray(rounds, dtype=np.int64)[order], solutions
+
+
+def _expand(selected: np.ndarray, partner: np.ndarray | None) -> np.ndarray:
+    if partner is None:
+        return selected
+    return np.unique(np.concatenate([selected, partner[selected][partner[selected] >= 0]]))

@@ -1,0 +1,79 @@
+"""Pictures of landmark layouts and of the evaluation curve (matplotlib, Agg backend; no USD)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .evaluate import EvaluationReport
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout") -> None:
+    """Front view (X right, Y up) of ``neutral[n, 3]`` with the layout's landmarks coloured by multi-cover
+    round and labelled with the number of shapes each represents -> PNG at ``path``."""
+    plt = _pyplot()
+    p = np.asarray(neutral)
+    v = np.asarray(layout.vertices, dtype=np.int64)
+    front = p[:, 2] > np.percentile(p[:, 2], 40)
+    fig, ax = plt.subplots(figsize=(5, 6))
+    ax.scatter(p[front, 0], p[front, 1], s=0.3, color="0.75")
+    sc = ax.scatter(p[v, 0], p[v, 1], c=np.asarray(layout.rounds), cmap="autumn", s=40, edgecolors="k",
+                    zorder=3)
+    for i, n in zip(v, np.asarray(layout.coverage).sum(axis=1), strict=True):
+        ax.annotate(str(int(n)), p[i, :2], fontsize=6, xytext=(3, 3), textcoords="offset points")
+    if np.asarray(layout.rounds).max(initial=1) > 1:
+        fig.colorbar(sc, ax=ax, label="multi-cover round")
+    ax.set_aspect("equal")
+    ax.set_title(f"{title}: {layout.count} landmarks, eps {layout.epsilon:g}")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=120)
+    plt.close(fig)
+
+
+def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layouts") -> None:
+    """Reconstruction RMSE (mm) vs number of landmarks, one curve per method (matplotlib, Agg) -> ``path``."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    styles = {"ours": ("tab:red", "o", "this method (best per count)"),
+              "pca_kmeans": ("tab:blue", "s", "PCA + k-means (Cohen 2002)"),
+              "delta_cluster": ("tab:green", "^", "delta clustering (Reverdy 2015)"),
+              "random": ("tab:gray", ".", "random")}
+    for method, (color, marker, label) in styles.items():
+        pts = [p for p in report.points if p.method == method]
+        if not pts:
+            continue
+        if method == "ours":
+            ax.scatter([p.count for p in pts], [p.rmse * 1e3 for p in pts], color=color, alpha=0.25, s=12)
+            counts = sorted({p.count for p in pts})
+            best = [min(q.rmse for q in pts if q.count <= c) for c in counts]
+            ax.plot(counts, np.array(best) * 1e3, color=color, marker=marker, label=label)
+        else:
+            pts = sorted(pts, key=lambda p: p.count)
+            ax.plot([p.count for p in pts], [p.rmse * 1e3 for p in pts], color=color, marker=marker,
+                    label=label, alpha=0.8)
+    for p in (q for q in report.points if q.method == "empirical"):
+        ax.scatter([p.count], [p.rmse * 1e3], color="black", marker="*", s=120, zorder=5,
+                   label=f"empirical {p.count} points")
+        ax.axhline(p.rmse * 1e3, color="black", lw=0.6, ls="--")
+    ax.set_xlabel("number of landmarks")
+    ax.set_ylabel(f"reconstruction RMSE (mm), {report.noise * 1e3:g} mm tracking noise")
+    ax.set_yscale("log")
+    ax.set_title(f"{title} ({report.frames} frames)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=120)
+    plt.close(fig)
