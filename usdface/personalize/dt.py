@@ -168,8 +168,12 @@ def eyelid_triangles(neutral: np.ndarray, deltas: np.ndarray, triangles: np.ndar
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     deltas = np.asarray(deltas, dtype=np.float64)
-    loops = boundary_loops(triangles, len(neutral))[1:]       # skip the outer rim
-    if not loops or len(deltas) == 0:
+    loops = boundary_loops(triangles, len(neutral))
+    if len(loops) < 2 or len(deltas) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    rim = int(np.argmax([_loop_area(neutral, lp) for lp in loops]))   # the outer rim encloses the most
+    loops = [lp for i, lp in enumerate(loops) if i != rim]
+    if not loops:
         return np.zeros((0, 3), dtype=np.int64)
     idx = list(range(len(deltas)))
     if names is not None:

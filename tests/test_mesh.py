@@ -1,0 +1,108 @@
+"""Analytic tests of usdface.mesh: frames, deformation gradients, gradient operator, Laplacians, loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from usdface.errors import GeometryError
+from usdface.mesh import (
+    apply_gradient,
+    boundary_loops,
+    check_triangles,
+    cotangent_laplacian,
+    deformation_gradients,
+    gradient_operator,
+    mesh_scale,
+    triangle_areas,
+    triangle_frames,
+    triangle_normals,
+    uniform_laplacian,
+)
+
+TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+T1 = np.array([[0, 1, 2]])
+
+
+def grid(nx=6, ny=5, hole=False):
+    """A planar grid mesh (optionally with a square hole in the middle)."""
+    xs, ys = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float))
+    pts = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)]
+    tris = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            if hole and i == nx // 2 - 1 and j == ny // 2 - 1:
+                continue
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
+            tris += [[a, b, d], [a, d, c]]
+    return pts, np.array(tris)
+
+
+def test_single_triangle_normal_area_frame():
+    assert np.allclose(triangle_normals(TRI, T1), [[0, 0, 1]])
+    assert np.allclose(triangle_areas(TRI, T1), [0.5])
+    V = triangle_frames(TRI, T1)[0]
+    assert np.allclose(V[:, 2], [0, 0, 1])          # 4th vertex: normal / sqrt(|e1 x e2|) = 1
+    assert np.allclose(V[:, 0], [1, 0, 0]) and np.allclose(V[:, 1], [0, 1, 0])
+
+
+def test_known_rotation_gives_the_rotation():
+    R = Rotation.from_euler("xyz", [30, -20, 75], degrees=True).as_matrix()
+    Q = deformation_gradients(TRI, TRI @ R.T + [3, -1, 2], T1)
+    assert np.allclose(Q[0], R, atol=1e-12)
+
+
+def test_in_plane_affine_map_is_recovered():
+    A = np.array([[2.0, 0.5, 0], [0.1, 0.7, 0], [0, 0, 1.0]])
+    Q = deformation_gradients(TRI, TRI @ A.T, T1)[0]
+    assert np.allclose(Q[:, :2], A[:, :2])          # edges map exactly
+
+
+def test_degenerate_rest_triangle_raises():
+    bad = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    with pytest.raises(GeometryError):
+        deformation_gradients(bad, bad, T1)
+    with pytest.raises(GeometryError, match="degenerate"):
+        check_triangles(bad, T1, what="template neutral", path="x.obj")
+    with pytest.raises(GeometryError):
+        gradient_operator(bad, T1)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=3, max_size=3), st.lists(st.floats(-1, 1), min_size=3, max_size=3))
+def test_gradient_operator_matches_frames_for_rigid_motion(angles, shift):
+    pts, tris = grid(4, 4)
+    pts = pts + np.random.default_rng(0).normal(0, 0.1, pts.shape)   # non-planar
+    R = Rotation.from_rotvec(angles).as_matrix()
+    G = gradient_operator(pts, tris)
+    Q = apply_gradient(G, pts @ R.T + shift)
+    E = np.stack([pts[tris[:, 1]] - pts[tris[:, 0]], pts[tris[:, 2]] - pts[tris[:, 0]]], -1)
+    assert np.allclose(Q @ E, R @ E, atol=1e-9)                       # in-plane part is the rotation
+    assert G.shape == (3 * len(tris), len(pts))
+    assert np.allclose(G @ np.ones(len(pts)), 0)                      # translation-invariant
+
+
+def test_laplacians_annihilate_linear_functions_inside():
+    pts, tris = grid(6, 5)
+    f = 2 * pts[:, 0] - 3 * pts[:, 1] + 1
+    interior = (pts[:, 0] > 0) & (pts[:, 0] < 5) & (pts[:, 1] > 0) & (pts[:, 1] < 4)
+    Lc = cotangent_laplacian(pts, tris)
+    assert abs(Lc - Lc.T).max() < 1e-12
+    assert np.allclose(np.asarray(Lc.sum(axis=1)).ravel(), 0)
+    assert np.allclose((Lc @ f)[interior], 0, atol=1e-12)
+    Lu = uniform_laplacian(tris, len(pts))
+    assert np.allclose(Lu @ np.ones(len(pts)), 0)
+    assert np.allclose((Lu @ f)[interior], 0, atol=1e-12)
+
+
+def test_boundary_loops_outer_rim_then_hole():
+    pts, tris = grid(6, 6, hole=True)
+    loops = boundary_loops(tris, len(pts))
+    assert [len(lp) for lp in loops] == [20, 4]
+    # the loops are closed cycles of boundary edges
+    hole = loops[1]
+    assert set(hole.tolist()) == {14, 15, 20, 21}     # the missing cell (i=2, j=2)
+    assert mesh_scale(pts, tris) > 1.0

@@ -1,0 +1,165 @@
+"""Unit tests of the personalization core on synthetic data with a known answer: deformation transfer,
+eq. (3) weights, the position fit (eqs. 1-2) and its leave-one-out criterion, weights, rigid alignment."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from usdface.errors import GeometryError
+from usdface.personalize.align import kabsch, rigid_align
+from usdface.personalize.dt import PoissonSolver, deformation_transfer, eyelid_triangles, zip_loop
+from usdface.personalize.fit import PositionFit, fit_blendshapes, regularization_weights
+from usdface.personalize.weights import reestimate_weights
+
+
+def bumpy_grid(nx=12, ny=10, seed=0):
+    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
+    z = 0.01 * np.sin(30 * xs) * np.cos(25 * ys)
+    pts = np.c_[xs.ravel(), ys.ravel(), z.ravel()]
+    tris = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
+            tris += [[a, b, d], [a, d, c]]
+    return pts, np.array(tris)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return bumpy_grid()
+
+
+def test_dt_onto_the_same_neutral_reproduces_the_shapes(mesh):
+    pts, tris = mesh
+    rng = np.random.default_rng(1)
+    smooth = np.sin(40 * pts[:, :1]) * np.cos(30 * pts[:, 1:2])
+    deltas = np.stack([0.002 * smooth * rng.normal(size=3) for _ in range(4)])
+    out = deformation_transfer(pts, deltas, pts, tris, eyelids=False)
+    assert np.abs(out - deltas).max() < 1e-9
+
+
+def test_dt_transfers_a_rigid_rotation_as_a_rotation(mesh):
+    pts, tris = mesh
+    R = Rotation.from_euler("z", 10, degrees=True).as_matrix()
+    src_delta = (pts @ R.T - pts)[None]
+    target = pts * [1.3, 0.8, 1.1] + 0.05                            # another "person"
+    out = deformation_transfer(pts, src_delta, target, tris, eyelids=False)[0]
+    moved = target + out
+    c_m, c_t = moved.mean(0), target.mean(0)
+    H = (target - c_t).T @ (moved - c_m)
+    U, _, Vt = np.linalg.svd(H)
+    R_fit = Vt.T @ U.T
+    assert np.allclose(R_fit, R, atol=1e-6)
+    assert np.abs((target - c_t) @ R.T + c_m - moved).max() < 1e-7   # rigid (screening leaves ~1e-8 m)
+
+
+def test_partial_dt_keeps_fixed_vertices(mesh):
+    pts, tris = mesh
+    fixed = np.arange(0, 12)
+    solver = PoissonSolver(pts, tris, fixed=fixed)
+    deltas = np.zeros((1,) + pts.shape)
+    deltas[0, :, 2] = 0.001 * pts[:, 0] / 0.1
+    fixed_deltas = np.full((1, len(fixed), 3), 0.0005)
+    out = deformation_transfer(pts, deltas, pts, tris, solver=solver, fixed_deltas=fixed_deltas)
+    assert np.allclose(out[0, fixed], 0.0005)
+    with pytest.raises(ValueError):
+        solver.solve(np.tile(np.eye(3), (len(tris), 1, 1)))
+
+
+def test_zip_loop_and_eyelid_detection():
+    # a ring of 8 points around an "eye" hole whose upper lid closes in the blink shape
+    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = np.c_[np.cos(ang) * 0.015, np.sin(ang) * 0.005, np.zeros(8)]
+    outer = np.c_[np.cos(ang) * 0.03, np.sin(ang) * 0.02, np.zeros(8)]
+    pts = np.r_[ring, outer]
+    tris = []
+    for i in range(8):
+        j = (i + 1) % 8
+        tris += [[i, 8 + i, 8 + j], [i, 8 + j, j]]
+    tris = np.array(tris)
+    zipped = zip_loop(pts, np.arange(8))
+    assert len(zipped) == 6                                           # an 8-gon needs n - 2 triangles
+    blink = np.zeros((1,) + pts.shape)
+    blink[0, 1:4, 1] = -0.0048                                        # upper lid down to the lower
+    found = eyelid_triangles(pts, blink, tris, ["eyeBlinkLeft"])
+    assert len(found) == 6 and set(found.ravel()) <= set(range(8))
+    assert len(eyelid_triangles(pts, blink, tris, ["jawOpen"])) == 0     # no blink shape, no eyelids
+
+
+def test_regularization_weights_eq3():
+    deltas = np.zeros((2, 4, 3))
+    deltas[0, :, 0] = [0.004, 0.002, 0.001, 0.0]
+    D = regularization_weights(deltas)
+    assert np.allclose(D[0, :3], [1, 2, 4])
+    assert D[0, 3] == 1e5 and np.all(D[1] == 1e5)                    # clamped where nothing moves
+
+
+def synthetic_fit_problem(seed=0, n=30, K=5, F=12, noise=0.0):
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(size=(n, 3)) * 0.05
+    true = rng.normal(size=(K, n, 3)) * 0.003
+    W = np.clip(rng.uniform(-0.3, 1, size=(F, K)), 0, 1)
+    pts = neutral + np.einsum("fk,knc->fnc", W, true) + rng.normal(size=(F, n, 3)) * noise
+    generic = true + rng.normal(size=true.shape) * 0.001
+    return neutral, pts, W, true, generic
+
+
+def test_fit_recovers_exact_shapes_without_noise():
+    neutral, pts, W, true, generic = synthetic_fit_problem()
+    D = regularization_weights(generic)
+    B = fit_blendshapes(neutral, pts, W, generic, D, reg=1e-9)
+    assert np.abs(B - true).max() < 1e-6
+    # with the paper's balance it stays between the data and the prior
+    Bp = fit_blendshapes(neutral, pts, W, generic, D, reg=1.0)
+    assert np.abs(Bp - true).mean() < np.abs(generic - true).mean()
+
+
+def test_position_fit_matches_direct_solve_and_brute_force_loo():
+    neutral, pts, W, true, generic = synthetic_fit_problem(noise=0.0005, F=8)
+    D = regularization_weights(generic)
+    pf = PositionFit(neutral, pts, W, generic, D)
+    for reg in (1e-3, 0.1, 3.0):
+        assert np.allclose(pf.solve(reg), fit_blendshapes(neutral, pts, W, generic, D, reg), atol=1e-12)
+    reg = 0.05
+    brute = []
+    for i in range(len(W)):
+        keep = np.arange(len(W)) != i
+        B = fit_blendshapes(neutral, pts[keep], W[keep], generic, D, reg)
+        brute.append(np.mean((pts[i] - neutral - np.einsum("k,knc->nc", W[i], B)) ** 2))
+    assert np.isclose(pf.loo_error(reg), np.mean(brute), rtol=1e-8)
+
+
+def test_reestimate_weights_recovers_true_weights_within_bounds():
+    neutral, pts, W, true, generic = synthetic_fit_problem(F=20)
+    noisy = np.clip(W + np.random.default_rng(3).normal(0, 0.05, W.shape), 0, 1)
+    est = reestimate_weights(neutral, true, pts, noisy, anchor=1e-12, iterations=3000)
+    assert np.abs(est - W).max() < 1e-3
+    assert est.min() >= 0 and est.max() <= 1
+    anchored = reestimate_weights(neutral, true, pts, noisy, anchor=1e3)
+    assert np.abs(anchored - noisy).max() < 1e-3                      # a strong anchor keeps the phone's
+
+
+def test_rigid_align_recovers_transform_despite_outliers():
+    rng = np.random.default_rng(5)
+    ref = rng.normal(size=(200, 3)) * 0.05
+    R = Rotation.from_euler("xyz", [1.0, -0.5, 0.8], degrees=True).as_matrix()
+    t = np.array([0.001, -0.002, 0.0005])
+    frame = (ref - t) @ R                                              # so that R frame + t = ref
+    frame[:20] += 0.01                                                 # 10 % outliers (a moving region)
+    aligned, R_est, t_est = rigid_align(frame[None], ref, np.arange(200))
+    assert np.allclose(R_est[0], R, atol=1e-6)
+    assert np.abs(aligned[0, 20:] - ref[20:]).max() < 1e-6
+    R_k, _ = kabsch(frame[None], ref)
+    assert np.isclose(np.linalg.det(R_k[0]), 1.0)
+
+
+def test_poisson_solver_reports_disconnected_free_part():
+    pts, tris = bumpy_grid(4, 4)
+    extra = np.array([[100.0, 0, 0], [101, 0, 0], [100, 1, 0]])
+    pts2 = np.r_[pts, extra]
+    tris2 = np.r_[tris, [[16, 17, 18]]]
+    with pytest.raises((GeometryError, RuntimeError)):
+        PoissonSolver(pts2, tris2, fixed=[0]).solve(np.tile(np.eye(3), (len(tris2), 1, 1)),
+                                                    fixed_points=pts2[[0]])

@@ -1,0 +1,53 @@
+"""``usdface fit`` and ``usdface evaluate`` on the sample capture: outputs written, readable, refused."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from usdface.cli import main
+
+
+def test_fit_writes_a_rig_on_the_capture_mesh(samples, tmp_path):
+    from usdface.io import read_capture
+    from usdface.io.usd_rig import read_avatar
+
+    out = tmp_path / "rig.usda"
+    assert main(["fit", str(samples / "capture.usda"), "-o", str(out), "--reg", "0.01", "--no-align",
+                 "--no-reweight"]) == 0
+    avatar = read_avatar(out)
+    rig = avatar.meshes[0]
+    cap = read_capture(samples / "capture.usda")
+    assert rig.n_vertices == len(cap.neutral)
+    assert np.allclose(rig.neutral, cap.neutral, atol=1e-6)           # original vertex order kept
+    assert set(rig.names) == set(cap.names)
+    assert main(["fit", str(samples / "capture.usda"), "-o", str(out)]) == 2      # exists, no --force
+
+
+def test_evaluate_outputs(samples, tmp_path, capsys):
+    from pxr import Usd, UsdGeom
+
+    j, png, usd = tmp_path / "r.json", tmp_path / "r.png", tmp_path / "err.usda"
+    args = ["evaluate", str(samples / "capture"), "--methods", "dt,menzel", "--reg", "0.01",
+            "--json", str(j), "--plot", str(png), "--usd", str(usd),
+            "--truth", str(samples / "truth" / "capture_truth.npz")]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "menzel" in text and "template" in text
+    rep = json.loads(j.read_text())
+    n_test = len(rep["labels"])
+    assert len(rep["methods"]["menzel"]["rmse_mm"]) == n_test
+    assert rep["methods"]["menzel"]["mean_rmse_mm"] < rep["methods"]["dt"]["mean_rmse_mm"]
+    assert rep["methods"]["menzel"]["truth_rmse_mm"] < rep["template"]["truth_rmse_mm"]
+    assert png.stat().st_size > 1000
+    stage = Usd.Stage.Open(str(usd))
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    assert len(meshes) == 2 * n_test
+    colors = UsdGeom.PrimvarsAPI(meshes[0]).GetPrimvar("displayColor")
+    assert colors.GetInterpolation() == "vertex"
+    assert main(args) == 2                                            # outputs exist, no --force
+
+
+def test_evaluate_rejects_unknown_method(samples):
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2

@@ -1,0 +1,78 @@
+"""Bad input to fit_personalized_shapes gets the right UsdFaceError (naming what and how to fix) or a
+warning naming the shapes concerned."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdface.errors import FitError, GeometryError
+from usdface.model import Capture, FaceRig, Frames
+from usdface.personalize import fit_personalized_shapes
+
+
+def tiny_capture(F=6, K=3, n_frame=None, never=None, degenerate=False):
+    rng = np.random.default_rng(0)
+    nx, ny = 6, 5
+    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
+    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
+    tris = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
+            tris += [[a, b, d], [a, d, c]]
+    tris = np.array(tris)
+    n = len(neutral)
+    deltas = rng.normal(size=(K, n, 3)) * 0.002
+    tmpl_neutral = neutral.copy()
+    if degenerate:
+        tmpl_neutral[tris[0, 1]] = tmpl_neutral[tris[0, 0]]
+    names = ["jawOpen", "mouthSmileLeft", "eyeBlinkLeft"][:K]
+    W = rng.uniform(0, 1, size=(F, K))
+    if never is not None:
+        W[:, never] = 0.0
+    pts = neutral + np.einsum("fk,knc->fnc", W, deltas)
+    if n_frame is not None:
+        pts = pts[:, :n_frame]
+    frames = Frames(pts, W, ["train"] * F, [f"{i:03d}" for i in range(F)])
+    template = FaceRig(tmpl_neutral, tris, names, deltas)
+    return Capture(neutral, tris, template, frames, names, source="cap.usda")
+
+
+def test_frames_with_a_different_vertex_count():
+    with pytest.raises(GeometryError, match="vertex count") as exc:
+        fit_personalized_shapes(tiny_capture(n_frame=20))
+    assert "cap.usda" in str(exc.value) and "fix:" in str(exc.value)
+
+
+def test_no_training_frames():
+    cap = tiny_capture()
+    cap.frames.role = ["test"] * len(cap.frames.role)
+    with pytest.raises(FitError, match="no training frames"):
+        fit_personalized_shapes(cap)
+
+
+def test_degenerate_template_triangles():
+    with pytest.raises(GeometryError, match="degenerate"):
+        fit_personalized_shapes(tiny_capture(degenerate=True))
+
+
+def test_unknown_method_and_bad_reg():
+    with pytest.raises(FitError, match="unknown method"):
+        fit_personalized_shapes(tiny_capture(), method="magic")
+    with pytest.raises(FitError, match="reg"):
+        fit_personalized_shapes(tiny_capture(), reg="lots")
+    with pytest.raises(FitError, match="reg"):
+        fit_personalized_shapes(tiny_capture(), reg=-1)
+
+
+def test_underdetermined_and_never_activated_shapes_warn_by_name():
+    with pytest.warns(UserWarning) as rec:
+        res = fit_personalized_shapes(tiny_capture(F=2, never=1), align=False)
+    text = " ".join(str(w.message) for w in rec)
+    assert "underdetermined" in text and "mouthSmileLeft" in text
+    assert any("mouthSmileLeft" in w for w in res.info["warnings"])
+    # the never-activated shape stays at the generic (deformation-transferred) shape
+    k = res.rig.names.index("mouthSmileLeft")
+    cap = tiny_capture(F=2, never=1)
+    assert np.allclose(res.rig.deltas[k], cap.template.deltas[k], atol=1e-6)
