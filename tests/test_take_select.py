@@ -108,14 +108,14 @@ def test_fit_from_selected_frames_matches_hand_picked(generated):
     hand = hand_picked_capture(take, truth, take.template)
     assert selected.metadata["never_triggered"] == SKIP
     with pytest.warns(UserWarning):  # the two skipped shapes are never activated in training
-        fit_sel = fit_personalized_shapes(selected, method="menzel", reg=1.0, eyelids=False)
+        fit_sel = fit_personalized_shapes(selected, method="menzel", reg=0.01, eyelids=False)
     with pytest.warns(UserWarning):
-        fit_hand = fit_personalized_shapes(hand, method="menzel", reg=1.0, eyelids=False)
+        fit_hand = fit_personalized_shapes(hand, method="menzel", reg=0.01, eyelids=False)
     np.testing.assert_allclose(fit_sel.rig.deltas, fit_hand.rig.deltas, atol=1e-12)
     # and the fit is a real personalization: closer to the person's true shapes than the generic template
     swept = [take.names.index(n) for n in truth.swept]
     err = lambda d: np.sqrt(np.mean((d[swept] - person.deltas[swept]) ** 2))  # noqa: E731
-    assert err(fit_sel.rig.deltas) < 0.8 * err(take.template.deltas)
+    assert err(fit_sel.rig.deltas) < 0.5 * err(take.template.deltas)  # measured ~0.07 vs 0.30 mm
 
 
 def test_usd_take_round_trip_and_cli_select(generated, tmp_path, capsys):
