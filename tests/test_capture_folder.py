@@ -124,8 +124,9 @@ def test_duplicate_template_files(folder):
     _expect(CaptureError, folder, "several template files", "template")
 
 
-def test_nan_weight(folder):
-    (folder / "train" / "001_jawOpen.json").write_text('{"blendShapes": {"jawOpen": NaN}}')
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "1" + "0" * 400, '"0.5"', "true", "null"])
+def test_non_finite_or_non_numeric_weight(folder, value):
+    (folder / "train" / "001_jawOpen.json").write_text('{"blendShapes": {"jawOpen": ' + value + "}}")
     _expect(CaptureError, folder, "finite", "001_jawOpen.json")
 
 

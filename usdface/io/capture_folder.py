@@ -75,10 +75,14 @@ def read_weights_json(path) -> dict[str, float]:
     out = {}
     for given, canonical in zip(match.names, match.canonical, strict=True):
         w = shapes[given]
-        if isinstance(w, bool) or not isinstance(w, int | float) or not np.isfinite(w):
-            raise CaptureError(f"weight of {given!r} is not a finite number: {w!r}", path=path,
+        try:
+            value = float(w) if isinstance(w, int | float) and not isinstance(w, bool) else np.nan
+        except OverflowError:  # a huge JSON integer
+            value = np.inf
+        if not np.isfinite(value):
+            raise CaptureError(f"weight of {given!r} is not a finite number: {str(w)[:20]!r}", path=path,
                                fix="weights must be numbers in [0, 1]")
-        out[canonical] = float(w)
+        out[canonical] = value
     return out
 
 
