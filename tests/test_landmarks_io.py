@@ -1,0 +1,115 @@
+"""`usdface landmarks`: the output layer (primvars, Points prim, schema), CLI behaviour, bad input."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from usdface.cli import main
+from usdface.errors import LandmarkError, OutputExistsError
+from usdface.landmarks import compute_landmarks
+
+
+def _digest(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def layer_run(samples, tmp_path_factory):
+    out_dir = tmp_path_factory.mktemp("landmarks")
+    avatar = samples / "avatar.usda"
+    before = _digest(avatar)
+    out, js, png = out_dir / "lm.usda", out_dir / "lm.json", out_dir / "lm.png"
+    code = main(["landmarks", str(avatar), "--mesh", "Head", "--rays", "4", "--symmetric",
+                 "--multicover", "2", "-o", str(out), "--json", str(js), "--plot", str(png)])
+    return avatar, before, out, json.loads(js.read_text()), png, code
+
+
+def test_cli_writes_layer_json_and_plot(layer_run):
+    avatar, before, out, data, png, code = layer_run
+    assert code == 0 and out.is_file() and png.stat().st_size > 1000
+    assert _digest(avatar) == before  # input untouched
+    assert data["status"] == "optimal" and data["gap"] == 0.0 and data["uncoverable"] == []
+    assert data["count"] == len(data["vertices"]) == len(data["coverage"])
+    assert data["symmetric"] is True
+
+
+def test_layer_content_round_trips(layer_run):
+    from pxr import Usd, UsdGeom
+
+    import usdface.schemas as schemas
+    from usdface.io.usd_landmarks import points_prim_path
+
+    avatar, _, out, data, _, _ = layer_run
+    stage = Usd.Stage.Open(str(out))
+    assert any(p.endswith("avatar.usda") for p in stage.GetRootLayer().subLayerPaths)
+    mesh_path = data["mesh"]
+    mesh = stage.GetPrimAtPath(mesh_path)
+    pv = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("usdface:landmarks")
+    assert pv.GetInterpolation() == UsdGeom.Tokens.constant
+    assert list(pv.Get()) == data["vertices"]
+    coverage = list(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("usdface:landmarkCoverage").Get())
+    assert coverage == [",".join(c) for c in data["coverage"]]
+    points = stage.GetPrimAtPath(points_prim_path(mesh_path))
+    assert points.IsA(UsdGeom.Points) and points.HasAPI(schemas.LANDMARKS_API)
+    cache = UsdGeom.XformCache()
+    world_pts = np.array(cache.GetLocalToWorldTransform(points), dtype=float)
+    world_mesh = np.array(cache.GetLocalToWorldTransform(mesh), dtype=float)
+    p = np.array(UsdGeom.Points(points).GetPointsAttr().Get(), dtype=float)
+    m = np.array(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float)[data["vertices"]]
+    homog = np.hstack([p, np.ones((len(p), 1))]) @ world_pts
+    expect = np.hstack([m, np.ones((len(m), 1))]) @ world_mesh
+    np.testing.assert_allclose(homog, expect, atol=1e-5)  # landmarks sit on the mesh vertices
+    assert len(UsdGeom.Points(points).GetWidthsAttr().Get()) == data["count"]
+    assert len(UsdGeom.Points(points).GetDisplayColorPrimvar().Get()) == data["count"]
+    keys = ("epsilon", "alpha", "solverStatus", "optimalityGap", "count", "symmetric", "multicover")
+    attr = {k: points.GetAttribute(f"usdface:landmarks:{k}").Get() for k in keys}
+    assert attr == {"epsilon": 0.5, "alpha": 0.5, "solverStatus": "optimal", "optimalityGap": 0.0,
+                    "count": data["count"], "symmetric": True, "multicover": 2}
+    assert list(points.GetAttribute("usdface:landmarks:vertexIndices").Get()) == data["vertices"]
+    assert [str(t) for t in points.GetRelationship("usdface:landmarks:mesh").GetTargets()] == [mesh_path]
+
+
+def test_refuses_to_overwrite_without_force(layer_run, capsys):
+    avatar, _, out, _, _, _ = layer_run
+    stamp = out.stat().st_mtime_ns
+    assert main(["landmarks", str(avatar), "--rays", "2", "-o", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert out.stat().st_mtime_ns == stamp
+
+
+def test_symmetric_layout_on_the_sample_head_is_exact(samples):
+    from usdface.io.usd_rig import read_avatar
+    from usdface.landmarks.symmetry import mirror_pairs
+
+    head = read_avatar(samples / "avatar.usda").mesh("Head")
+    layout = compute_landmarks(head, 0.5, symmetric=True, rays=2)
+    partner = mirror_pairs(head.neutral)
+    assert layout.symmetric and set(partner[layout.vertices].tolist()) == set(layout.vertices.tolist())
+    assert layout.coverage.any(axis=0).all()
+
+
+@pytest.mark.parametrize("argv, text", [(["--epsilon", "1.5"], "epsilon"), (["--mesh", "Nope"], "Nope"),
+                                        (["--evaluate"], "--takes")])
+def test_bad_input_exits_2_with_one_line(samples, tmp_path, capsys, argv, text):
+    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "2", *argv]) == 2
+    err = capsys.readouterr().err
+    assert text in err and "fix:" in err and err.count("\n") == 1
+
+
+def test_api_errors_are_landmark_errors(samples, tmp_path):
+    from usdface.io.usd_landmarks import write_landmark_layer
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(samples / "avatar.usda")
+    head = avatar.mesh("Head")
+    with pytest.raises(LandmarkError):
+        compute_landmarks(head, alpha=2.0)
+    layout = compute_landmarks(head, 0.8, rays=2)
+    out = tmp_path / "x.usda"
+    out.write_text("#usda 1.0\n")
+    with pytest.raises(OutputExistsError):
+        write_landmark_layer(avatar, head, layout, out)
