@@ -163,3 +163,45 @@ def test_correspondence_cache_round_trip_and_key(tmp_path):
     assert back.info["face_vertices"] == 1
     assert load_correspondence(path, "other-avatar") is None
     assert geometry_digest(np.ones(3)) != geometry_digest(np.ones(3) * 2)
+
+
+def _synthetic(names_avatar, names_capture):
+    from usdface.model import Avatar, Capture, FaceRig, Frames
+
+    pts, tris = _grid()
+    shapes = _local_shapes(pts, k=len(names_capture))
+    template = FaceRig(pts, tris, names_capture, shapes)
+    frames = Frames(np.zeros((0, len(pts), 3)), np.zeros((0, len(names_capture))), [], [])
+    capture = Capture(pts, tris, template, frames, list(names_capture))
+    lookup = dict(zip(names_capture, shapes, strict=True))
+    av_shapes = np.array([lookup.get(n, shapes[0] * 0.5) for n in names_avatar])
+    avatar = Avatar([FaceRig(pts * 1.0, tris, names_avatar, av_shapes, name="Head")], file="synthetic.usda")
+    rig = FaceRig(pts, tris, names_capture, shapes * 1.2)
+    return avatar, capture, rig
+
+
+def test_avatar_without_face_like_shapes_raises_rig_error():
+    from usdface.errors import RigError
+    from usdface.transfer import personalize_avatar
+
+    names = ["eyeBlinkLeft", "jawOpen", "mouthClose", "browInnerUp"]
+    avatar, capture, rig = _synthetic(["foo", "bar"], names)
+    with pytest.raises(RigError, match="face-like") as exc:
+        personalize_avatar(avatar, capture, None, rig=rig, eyelids=False)
+    assert exc.value.path == "synthetic.usda" and exc.value.fix
+
+
+def test_missing_shapes_reported_both_ways():
+    from usdface.transfer import personalize_avatar
+
+    capture_names = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthClose", "browInnerUp", "cheekPuff"]
+    avatar_names = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthClose", "browInnerUp", "tongueOut"]
+    avatar, capture, rig = _synthetic(avatar_names, capture_names)
+    res = personalize_avatar(avatar, capture, None, rig=rig, eyelids=False)
+    assert res.report["capture_shapes_missing_from_avatar"] == ["cheekPuff"]
+    assert res.report["avatar_shapes_missing_from_capture"] == ["tongueOut"]
+    assert any("cheekPuff" in w for w in res.report["warnings"])
+    head = avatar.meshes[0]
+    np.testing.assert_array_equal(res.offsets[head.name][head.index("tongueOut")],
+                                  head.deltas[head.index("tongueOut")])  # kept generic
+    assert not np.allclose(res.offsets[head.name][head.index("jawOpen")], head.deltas[head.index("jawOpen")])
