@@ -129,7 +129,9 @@ def edges(triangles: np.ndarray) -> np.ndarray:
     """Unique undirected edges ``[e,2]`` (sorted pairs)."""
     t = np.asarray(triangles, dtype=np.int64)
     e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0)
+    m = int(e.max()) + 1 if e.size else 1
+    key = np.unique(e[:, 0] * m + e[:, 1])                      # 1-D integer keys: a fast sort
+    return np.stack([key // m, key % m], axis=1)
 
 
 def vertex_adjacency(triangles: np.ndarray, n: int) -> sp.csr_matrix:
@@ -175,8 +177,9 @@ def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     """Directed boundary edges ``[b,2]`` (edges used by exactly one triangle, in that triangle's order)."""
     t = np.asarray(triangles, dtype=np.int64)
     d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    key = np.sort(d, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    s = np.sort(d, axis=1)
+    m = int(d.max()) + 1 if d.size else 1
+    _, inv, cnt = np.unique(s[:, 0] * m + s[:, 1], return_inverse=True, return_counts=True)
     return d[cnt[inv.ravel()] == 1]
 
 
@@ -202,10 +205,11 @@ def boundary_loops(triangles: np.ndarray, n: int) -> list[np.ndarray]:
 
 
 def mesh_scale(points: np.ndarray, triangles: np.ndarray) -> float:
-    """Root-mean-square edge length: the unit-free length scale used to normalise solver constants."""
-    p = np.asarray(points, dtype=np.float64)
-    e = edges(triangles)
-    return float(np.sqrt(np.mean(np.sum((p[e[:, 0]] - p[e[:, 1]]) ** 2, axis=1))))
+    """Root-mean-square triangle edge length (interior edges counted from both sides): the length scale
+    used to normalise solver constants and tolerances."""
+    _, e1, e2 = _edge_vectors(points, triangles)
+    sq = np.sum(e1 ** 2, axis=1) + np.sum(e2 ** 2, axis=1) + np.sum((e2 - e1) ** 2, axis=1)
+    return float(np.sqrt(np.mean(sq) / 3.0))
 
 
 def check_triangles(points: np.ndarray, triangles: np.ndarray, *, what: str = "mesh", path=None,

@@ -64,4 +64,4 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
         s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = kabsch(src, dst, w)
-    return np.einsum("fij,fnj->fni", R, P) + t[:, None], R, t
+    return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t

@@ -14,7 +14,7 @@ from ..model import Capture, FaceRig
 from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
-from .fit import D_CLAMP, PositionFit, fit_blendshapes, regularization_weights
+from .fit import D_CLAMP, PositionFit, blend, fit_blendshapes, regularization_weights
 from .weights import reestimate_weights
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
@@ -168,7 +168,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if reweight:
             t1 = time.perf_counter()
             for _ in range(rounds):
-                res = points - capture.neutral[None] - np.einsum("fk,knc->fnc", w_cur, deltas)
+                res = points - capture.neutral[None] - blend(w_cur, deltas)
                 w_cur = reestimate_weights(capture.neutral, deltas, points, weights,
                                            anchor=float(np.mean(res ** 2)) / weight_sigma ** 2)
                 deltas = solve(points, w_cur, lam)
@@ -177,7 +177,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                 "max_abs_change": float(np.abs(w_cur - weights).max())}
             info["train_weights"] = w_cur
             timings["reweight"] = time.perf_counter() - t1
-        res = points - capture.neutral[None] - np.einsum("fk,knc->fnc", w_cur, deltas)
+        res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
     info.pop("crossval_fit", None)
     if "crossval" in info:
@@ -232,7 +232,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
     _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
-    aligned = np.einsum("fij,fnj->fni", R, points) + tr[:, None]
+    aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.get("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})
     info["align"] = {"vertices": int(len(cand)), "passes": prev["passes"] + 1,

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..mesh import deformation_gradients
 from .dt import PoissonSolver, eyelid_triangles
+from .fit import blend, project
 
 __all__ = ["ebfr_gradients", "ebfr_blendshapes"]
 
@@ -60,7 +61,7 @@ def ebfr_gradients(frame_gradients: np.ndarray, weights: np.ndarray, prior_gradi
     A = np.broadcast_to(W.T @ W, (t, K, K)).copy()
     idx = np.arange(K)
     A[:, idx, idx] += omega.T
-    rhs = np.einsum("fk,ftc->tkc", W, Y) + omega.T[:, :, None] * Rs.transpose(1, 0, 2)   # [t,K,9]
+    rhs = project(W, Y) + omega.T[:, :, None] * Rs.transpose(1, 0, 2)                   # [t,K,9]
     R = np.linalg.solve(A, rhs)                                           # [t,K,9]
     return R.transpose(1, 0, 2).reshape(K, t, 3, 3) + I
 
@@ -93,7 +94,7 @@ def ebfr_blendshapes(neutral: np.ndarray, triangles: np.ndarray, points: np.ndar
     deltas = X - B0[None]
     # refine each shape's translation c_j by ridge least squares on the frames' mean residuals m_i:
     # min sum_i |sum_j w_ij c_j - m_i|^2 + ridge sum_j |c_j|^2 (ridge: fraction of mean activation)
-    m = np.mean(P - B0[None] - np.einsum("fk,knc->fnc", W, deltas), axis=1)        # [F,3]
+    m = np.mean(P - B0[None] - blend(W, deltas), axis=1)        # [F,3]
     K = W.shape[1]
     WtW = W.T @ W
     ridge = translation_ridge * max(np.trace(WtW) / K, 1e-12)

@@ -15,8 +15,9 @@ def reconstruction_errors(neutral: np.ndarray, deltas: np.ndarray, weights: np.n
                           points: np.ndarray) -> np.ndarray:
     """Per-vertex reconstruction errors ``[F,n]`` (metres): ``|B0 + sum_j w_fj B_j - T_f|`` for
     ``neutral[n,3]``, ``deltas[K,n,3]``, ``weights[F,K]``, test meshes ``points[F,n,3]``."""
-    model = np.asarray(neutral)[None] + np.einsum("fk,knc->fnc", np.asarray(weights, dtype=np.float64),
-                                                   np.asarray(deltas, dtype=np.float64))
+    from .fit import blend
+
+    model = np.asarray(neutral)[None] + blend(weights, deltas)
     return np.linalg.norm(model - np.asarray(points, dtype=np.float64), axis=-1)
 
 

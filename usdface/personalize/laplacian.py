@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import uniform_laplacian
-from .fit import D_CLAMP
+from .fit import D_CLAMP, blend, project
 
 __all__ = ["LaplacianFit", "region_masks"]
 
@@ -69,9 +69,9 @@ class LaplacianFit:
         diag_lap = self.mu * self.LtL.diagonal()                             # [n]
 
         def apply(X):                                                        # normal-equation operator
-            return np.einsum("jk,knc->jnc", WtW, X) + lam[:, :, None] * X + self.mu * self._lap(X)
+            return blend(WtW, X) + lam[:, :, None] * X + self.mu * self._lap(X)
 
-        b = np.einsum("fk,fnc->knc", W, R) + lam[:, :, None] * self.T + self.mu * self.LtLT
+        b = project(W, R).transpose(1, 0, 2) + lam[:, :, None] * self.T + self.mu * self.LtLT
         # block-Jacobi preconditioner: per-vertex K x K blocks (fit + source + Laplacian diagonal)
         n, K = lam.shape[1], lam.shape[0]
         blocks = np.broadcast_to(WtW, (n, K, K)).copy()
@@ -81,7 +81,7 @@ class LaplacianFit:
         inv = np.linalg.inv(blocks * s[:, :, None] * s[:, None, :]) * s[:, :, None] * s[:, None, :]
 
         def precond(X):
-            return np.einsum("nkl,lnc->knc", inv, X)
+            return np.matmul(inv, X.transpose(1, 0, 2)).transpose(1, 0, 2)
 
         X = precond(b)                                                       # warm start: block solve
         r = b - apply(X)
