@@ -71,24 +71,33 @@ def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:
     return out
 
 
+#: Landmark counts at which the clustering and random baselines are evaluated (plus the empirical count).
+BASELINE_COUNTS = (8, 10, 12, 15, 20, 25, 30, 35, 40, 45, 50, 60, 68)
+
+
 def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray | None = None,
-                       epsilons=(0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9), rounds=(1, 2, 3, 4, 5, 6),
-                       noise: float = 0.5e-3, tikhonov: float = 0.0, alpha: float = 0.5, rays: int = 16,
-                       symmetric: bool = False, random_seeds: int = 3, seed: int = 0,
-                       backend: str = "scip", extra_counts=()) -> EvaluationReport:
+                       epsilons=(0.5, 0.6, 0.75, 0.9), rounds=(1, 2, 3, 4, 5, 6), radius: float = 0.01,
+                       shares=(0.1, 0.05, None), noise: float = 0.5e-3, tikhonov: float = 0.0,
+                       alpha: float = 1.0, rays: int = 16, symmetric: bool = False, random_seeds: int = 3,
+                       seed: int = 0, backend: str = "scip", counts=BASELINE_COUNTS) -> EvaluationReport:
     """Sweep this method's layouts and the baselines; ``weights[F, K]`` test weights in ``rig.names`` order.
 
-    ``empirical[m]`` vertex indices of an empirical layout (e.g. the 68 ICT points on ``Head``). Baselines are
-    evaluated at every landmark count the sweep produced (plus the empirical count and ``extra_counts``), so
-    curves compare at equal counts. ``noise`` metres of tracking noise (std per coordinate); the same noise
-    seed is used for every layout. RMSE over the vertices that move (:func:`baselines.moving_vertices`).
+    This method: every epsilon x multi-cover rounds x share (the adaptive heuristic's share; None =
+    non-adaptive). ``alpha = 1`` (default) follows the paper's evaluation protocol, layouts from displacement
+    only (no ray casting); the synthetic tracking has no occlusion. ``empirical[m]``: vertex indices of an
+    empirical layout (e.g. the 68 ICT points on ``Head``). Baselines at ``counts`` plus the empirical count.
+    ``noise`` metres of tracking noise (std per coordinate), the same noise seed for every layout. RMSE over
+    the vertices that move (:func:`baselines.moving_vertices`).
     """
     w = np.asarray(weights, dtype=np.float64)
     region = baselines.moving_vertices(rig.deltas)
-    r = relative_displacement(displacement_magnitudes(rig.deltas))
-    need = np.flatnonzero(candidate_sets(r, min(epsilons)).any(axis=0))
-    vis = np.zeros(rig.n_vertices)
-    vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, rays)
+    if alpha < 1.0:
+        r = relative_displacement(displacement_magnitudes(rig.deltas))
+        need = np.flatnonzero(candidate_sets(r, min(epsilons)).any(axis=0))
+        vis = np.zeros(rig.n_vertices)
+        vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, rays)
+    else:
+        vis = np.ones(rig.n_vertices)
 
     def err(vertices) -> float:
         return layout_error(rig.neutral, rig.deltas, vertices, w, noise, tikhonov, seed, region)
@@ -96,14 +105,20 @@ def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray 
     points: list[EvaluationPoint] = []
     seen: dict[tuple, float] = {}
     for eps in epsilons:
-        for n in rounds:
-            layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, visibility=vis,
-                                       backend=backend, ignore_static=True)
-            key = tuple(layout.vertices.tolist())
-            if key not in seen:
-                seen[key] = err(layout.vertices)
-            points.append(EvaluationPoint("ours", f"eps={eps:g} multicover={n}", layout.count, seen[key]))
-    counts = sorted({p.count for p in points} | {int(c) for c in extra_counts})
+        for share in shares:
+            for n in rounds:
+                if share is None and n == 1 and 0.1 in shares:
+                    continue  # identical to the adaptive single cover
+                layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, radius=radius,
+                                           visibility=vis, backend=backend, ignore_static=True,
+                                           adaptive=share is not None, share=share or 0.1)
+                key = tuple(layout.vertices.tolist())
+                if key not in seen:
+                    seen[key] = err(layout.vertices)
+                mode = "non-adaptive" if share is None else f"share={share:g}"
+                points.append(EvaluationPoint("ours", f"eps={eps:g} multicover={n} {mode}", layout.count,
+                                              seen[key]))
+    counts = sorted({int(c) for c in counts})
     if empirical is not None:
         emp = baselines.empirical_layout(empirical, rig.n_vertices)
         points.append(EvaluationPoint("empirical", f"{emp.size} points", int(emp.size), err(emp)))

@@ -96,32 +96,16 @@ def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]
     return mag, static
 
 
-def _superset_bound(sets: np.ndarray, todo: np.ndarray, done: np.ndarray, cost: np.ndarray,
-                    chunk: int = 4096) -> np.ndarray:
-    """For each column in ``todo``: the lowest ``cost`` among ``done`` columns whose candidate set contains
-    its own (``sets[m, K]`` bool) -> ``[len(todo)]`` (inf where none)."""
-    out = np.full(todo.size, np.inf)
-    if done.size == 0 or todo.size == 0:
-        return out
-    big = sets[done].astype(np.float32)
-    for s in range(0, todo.size, chunk):
-        small = sets[todo[s:s + chunk]].astype(np.float32)
-        contains = (small @ big.T) == small.sum(axis=1, keepdims=True)  # [chunk, done]
-        out[s:s + chunk] = np.where(contains, cost[done][None, :], np.inf).min(axis=1)
-    return out
-
-
 def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
-               batch: int = 256) -> np.ndarray:
+               batch: int = 4) -> np.ndarray:
     """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
 
     Every cost form is a non-increasing linear function of the vertex's visibility l_n, and
-    :func:`usdface.landmarks.cover.reduce_set_cover` drops every vertex whose candidate set is contained in
-    (or equal to) that of a vertex no more expensive. So vertices are evaluated best-first (by their
-    optimistic cost, l = 1) until every unevaluated vertex is provably dropped: its optimistic cost is no
-    lower than the exact cost of an evaluated vertex covering a superset of its shapes. Those keep a
-    pessimistic cost (l = 0), which the reduction drops just the same, so the reduced problem - hence the
-    optimum - equals the fully evaluated one. ``lookup() -> l[n]`` (NaN = not evaluated), ``evaluate(v)``.
+    :func:`usdface.landmarks.cover.reduce_set_cover` keeps only the cheapest vertex of each group of identical
+    candidate sets. So per group, vertices are evaluated best-first (by their optimistic cost, l = 1) until no
+    unevaluated vertex can be as cheap as the best evaluated one; the others keep a pessimistic cost (l = 0),
+    provably no lower than the winner's, so the reduced problem - hence the optimum - equals the fully
+    evaluated one. ``lookup() -> l[n]`` (NaN = not evaluated yet), ``evaluate(vertices)``.
     """
     if weighting == "count":
         return set_cover_costs(sub, r, "count", multiplicity)
@@ -133,20 +117,24 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     cols = np.flatnonzero(sub.any(axis=0))
     if cols.size == 0:
         return cost_at(np.zeros(n))
-    sets = sub[:, cols].T
     optimistic = cost_at(np.ones(n))[cols]
+    _, group = np.unique(np.packbits(sub[:, cols].T, axis=1), axis=0, return_inverse=True)
+    group = group.ravel()
     while True:
         vis = lookup()
         known = ~np.isnan(vis[cols])
         exact = cost_at(np.nan_to_num(vis, nan=0.0))[cols]
-        todo = np.flatnonzero(~known)
-        bound = _superset_bound(sets, todo, np.flatnonzero(known), exact)
-        need = todo[optimistic[todo] <= bound + 1e-12]
+        best = np.full(group.max() + 1, np.inf)
+        np.minimum.at(best, group[known], exact[known])
+        need = np.flatnonzero(~known & (optimistic <= best[group] + 1e-12))
         if need.size == 0:
             return cost_at(np.nan_to_num(vis, nan=0.0))
-        pick = need[np.lexsort((cols[need], optimistic[need]))[:batch]]
-        evaluate(cols[pick])
-        batch *= 2
+        order = need[np.lexsort((cols[need], optimistic[need], group[need]))]
+        g = group[order]
+        start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
+        rank = np.arange(order.size) - np.repeat(start, np.diff(np.r_[start, order.size]))
+        evaluate(cols[order[rank < batch]])
+        batch *= 4
 
 
 def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, symmetric: bool = False,

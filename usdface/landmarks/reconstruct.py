@@ -37,8 +37,11 @@ def solve_weights(landmark_deltas: np.ndarray, offsets: np.ndarray, tikhonov: fl
         a = np.vstack([a, np.sqrt(tikhonov) * np.eye(k)])
         rhs = np.hstack([rhs, np.zeros((len(b), k))])
     lo, hi = bounds
-    out = np.empty((len(b), k))
-    for f in range(len(b)):  # one small dense problem per frame; lsq_linear has no batched form
+    # frames whose unconstrained least-squares solution is already inside the bounds are solved (convexity);
+    # the rest go through scipy's bounded solver, one small dense problem each (it has no batched form)
+    out = np.linalg.lstsq(a, rhs.T, rcond=None)[0].T
+    outside = np.flatnonzero(((out < lo) | (out > hi)).any(axis=1))
+    for f in outside:
         out[f] = lsq_linear(a, rhs[f], bounds=(lo, hi), method="bvls").x
     return out
 
