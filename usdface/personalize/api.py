@@ -157,8 +157,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                 if auto:
                     cv = info["crossval"]
                     cv["fit"].set_points(points[:, cv["vertices"]])
+                    # re-tune around the previous choice only (same blend, +-1 decade)
                     lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info,
-                                          timings, fit=cv["fit"], vertices=cv["vertices"])
+                                          timings, fit=cv["fit"], vertices=cv["vertices"],
+                                          grid=np.log10(lam) + np.array([-1.0, 0.0, 1.0]), alphas=(alpha,))
         prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else generic
         solve = _make_solver(method, capture, D, prior_deltas, options)
         t1 = time.perf_counter()
@@ -187,7 +189,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     return FitResult(rig, info)
 
 
-def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None):
+def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None,
+             **search):
     """(reg, alpha): the E_reg weight and the prior blend (alpha * DT + (1 - alpha) * template)."""
     t1 = time.perf_counter()
     alpha = {"dt": 1.0, "template": 0.0}.get(prior, 1.0)
@@ -195,7 +198,7 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
         gen = generic if prior != "template" else alt
         lam, cv = choose_regularization(neutral, points, weights, gen, D,
                                         alt_deltas=alt if prior == "auto" else None, fit=fit,
-                                        vertices=vertices)
+                                        vertices=vertices, **search)
         if prior == "auto":
             alpha = cv["alpha"]
         info["crossval"] = cv

@@ -46,13 +46,16 @@ def _minimise_log(fun, grid, refine_steps):
 
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
                           max_vertices: int = 400, grid=REG_GRID, refine_steps: int = 8,
-                          seed: int = 0, fit: PositionFit | None = None, vertices=None) -> tuple[float, dict]:
+                          seed: int = 0, fit: PositionFit | None = None, vertices=None,
+                          alphas=None) -> tuple[float, dict]:
     """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).
 
     Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`; ``alt_deltas[K,n,3]`` an optional second
     prior (the raw template deltas). Returns ``(reg, info)`` with ``info = {"reg", "alpha" (blend weight of
     ``generic_deltas``, 1 without alternative), "grid", "loo_rmse_mm" (at the chosen alpha),
     "loo_rmse_best_mm", "vertices" (indices used), "fit" (the prepared PositionFit on them)}``.
+    Pass ``fit`` and ``vertices`` from a previous call (after :meth:`PositionFit.set_points`) to skip the
+    decomposition; ``alphas`` restricts the prior blends tried.
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     if fit is None:
@@ -70,7 +73,7 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     grid = np.asarray(grid, dtype=np.float64)
     # coarse grid for every prior blend, then golden-section refinement of reg for the best blend
     coarse = []
-    for alpha in (PRIOR_MIX if pf.z_alt is not None else (1.0,)):
+    for alpha in ((alphas or PRIOR_MIX) if pf.z_alt is not None else (1.0,)):
         pf.set_prior_mix(alpha)
         errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
         coarse.append((float(errs.min()), alpha, errs))

@@ -19,7 +19,7 @@ __all__ = ["reestimate_weights"]
 
 def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarray, phone_weights: np.ndarray,
                        *, anchor: float, lower: float = 0.0, upper: float = 1.0,
-                       iterations: int = 300) -> np.ndarray:
+                       iterations: int = 150) -> np.ndarray:
     """Bounded, anchored weights ``[F,K]`` for ``points[F,n,3]`` given ``neutral[n,3]``, ``deltas[K,n,3]``
     (metres) and the phone's ``phone_weights[F,K]``; ``anchor`` = ``(sigma_g / sigma_w)^2`` (metres^2)."""
     B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)          # [K,3n]
