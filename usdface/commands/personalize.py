@@ -51,7 +51,7 @@ def register(subparsers) -> None:
     add_transfer_options(p)
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: <avatar>.personalized.usda "
                                           "next to the avatar)")
-    p.add_argument("--force", action="store_true", help="overwrite the output; recompute the correspondence")
+    p.add_argument("--force", action="store_true", help="overwrite the output")
     p.add_argument("--dry-run", action="store_true",
                    help="compute and print what would change; write nothing")
     p.add_argument("--json", action="store_true", help="print the report as JSON")

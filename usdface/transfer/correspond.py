@@ -207,11 +207,19 @@ def save_correspondence(corr: Correspondence, path) -> Path:
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             key=np.array(corr.key), version=np.array(CACHE_VERSION),
                             info=np.array(json.dumps(corr.info or {})))
+        _umask_permissions(tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _umask_permissions(path):
+    """Give a mkstemp file (0600) the permissions a normally created file would have (0666 & ~umask)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
 
 
 def load_correspondence(path, key: str | None = None) -> Correspondence | None:

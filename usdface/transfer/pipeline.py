@@ -96,9 +96,9 @@ def _shape_deltas(rig: FaceRig, names: list[str]) -> np.ndarray:
     return out
 
 
-def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, force):
+def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache):
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles)
-    if cache is not None and not force:
+    if cache is not None:
         corr = load_correspondence(cache, key)
         if corr is not None:
             corr.info = {**(corr.info or {}), "cache": "hit"}
@@ -169,7 +169,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     rig : skip step 1 and implant this capture-mesh rig (neutral = person's B0, deltas = B_j).
     mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map.
     correspondence : cache file (``.npz``) for step 3, reused when it belongs to this avatar face and
-        template; written otherwise. ``force`` recomputes it and overwrites the output layer.
+        template (same geometry and topology), rewritten otherwise.
+    force : overwrite an existing output layer.
     face_transfer : ``"offset"`` | ``"dt"`` | ``"dt-offset"`` (:func:`implant_shapes`).
     approximation : ``"generic"`` (default): the adjacent region and the other meshes start from the
         avatar's own generic shape B~_j; ``"retarget"``: from the eq. (4) approximation A_j (the paper).
@@ -250,7 +251,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 3. correspondence
         t = time.perf_counter()
-        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, force)
+        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence)
         timings["correspond"] = time.perf_counter() - t
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():

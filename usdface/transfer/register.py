@@ -163,8 +163,9 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, min_fitness: float = 0.6,
                   max_residual_ratio: float = 0.05, path=None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
-    vertices (those that move in any shape). Also tries the identity-rotation centroid initialiser and keeps
-    the better result (more fitness, then lower residual).
+    vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
+    distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
+    keeps the better result (more fitness, then lower residual).
 
     Raises :class:`RegistrationError` (with the residual and fitness) when the capture does not overlap the
     avatar face after registration: fitness below ``min_fitness`` or residual above ``max_residual_ratio``
@@ -187,11 +188,14 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     shift = target.mean(axis=0) - s0 * cn.mean(axis=0)
     candidates.append(("centroid + extent", Similarity(s0, np.eye(3), shift)))
     best = None
+    size0 = float(np.linalg.norm(np.ptp(cn, axis=0)))
     for name, init in candidates:
         sim, rmse, fit, dist = register_icp(cn, target, init)
         key = (round(fit, 2), -rmse)
         if best is None or key > best[0]:
             best = (key, Registration(sim, rmse, fit, name, dist))
+        if fit >= 0.95 and rmse < 0.02 * size0 * sim.scale:
+            break  # the landmark initialiser converged: no need for the fallback
     result = best[1]
     size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
     if result.fitness < min_fitness or result.residual > max_residual_ratio * size:
