@@ -90,8 +90,9 @@ class PoissonSolver:
         lead = Q.shape[:-3]
         Q = Q.reshape((-1,) + Q.shape[-3:])
         m, t = Q.shape[0], Q.shape[1]
-        rhs_t = np.swapaxes(Q, -1, -2).reshape(m, 3 * t, 3)          # rows of Q^T, like G @ X
-        B = (self.GtW @ rhs_t.transpose(1, 0, 2).reshape(3 * t, 3 * m)).reshape(-1, m, 3)   # [n,m,3]
+        # column (shape s, coordinate c) of the right-hand side holds Q^T rows: entry (3f + r) = Q[s, f, c, r]
+        rhs = Q.transpose(1, 3, 0, 2).reshape(3 * t, 3 * m)
+        B = (self.GtW @ rhs).reshape(-1, m, 3)                                                # [n,m,3]
         n = len(self.rest)
         if self.fixed is None:
             ref = self.rest if reference is None else np.asarray(reference, dtype=np.float64)
