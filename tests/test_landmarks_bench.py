@@ -1,0 +1,80 @@
+"""Acceptance checks of `usdface landmarks` on the dev avatar (../shared; skipped without it)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from usdface.landmarks import compute_landmarks
+from usdface.landmarks.baselines import moving_vertices, random_layout
+from usdface.landmarks.reconstruct import layout_error
+
+pytestmark = pytest.mark.shared
+
+
+@pytest.fixture(scope="module")
+def head(bench):
+    from usdface.io.usd_rig import read_avatar
+
+    path = bench / "dev1" / "avatar.usdc"
+    if not path.is_file():
+        pytest.skip("dev1 avatar missing")
+    return read_avatar(path).mesh("Head")
+
+
+@pytest.fixture(scope="module")
+def test_weights(shared, head):
+    from usdface.io.livelink import read_livelink_csv
+
+    blocks = []
+    for f in sorted((shared / "data" / "livelinkface").glob("*.csv")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            names, w, _ = read_livelink_csv(f)
+        blocks.append(np.stack([w[:, names.index(n)] if n in names else np.zeros(len(w))
+                                for n in head.names], 1))
+    w = np.concatenate(blocks)
+    return w[np.linspace(0, len(w) - 1, 80).round().astype(int)]
+
+
+def test_dev_head_optimal_cover_of_every_shape(head):
+    assert head.n_shapes == 51 and head.n_vertices == 14062
+    a = compute_landmarks(head, 0.5, rays=4)
+    assert a.status == "optimal" and a.gap == 0.0
+    assert a.uncoverable == [] and a.coverage.any(axis=0).all()
+    assert a.count <= 15  # 51 shapes, merged onto few landmarks
+    assert a.problem["reduced"][1] < 200  # the ILP after reduction is tiny
+    b = compute_landmarks(head, 0.5, rays=4)
+    assert b.vertices.tolist() == a.vertices.tolist()  # deterministic
+
+
+def test_dev_head_symmetric_layout(head):
+    from usdface.landmarks.symmetry import mirror_pairs
+
+    layout = compute_landmarks(head, 0.5, symmetric=True, rays=4)
+    partner = mirror_pairs(head.neutral)
+    assert layout.symmetric and layout.status == "optimal"
+    assert set(partner[layout.vertices].tolist()) == set(layout.vertices.tolist())
+    assert layout.coverage.any(axis=0).all()
+
+
+def test_layouts_rank_as_the_paper_predicts(shared, head, test_weights):
+    """This method beats random layouts of the same size, and with as many landmarks beats the empirical
+    68-point layout (0.5 mm tracking noise, Live Link weights)."""
+    region = moving_vertices(head.deltas)
+    vis = np.ones(head.n_vertices)
+
+    def err(v):
+        return layout_error(head.neutral, head.deltas, v, test_weights, 0.5e-3, 0.0, 0, region)
+
+    small = compute_landmarks(head, 0.5, visibility=vis)
+    rand = np.mean([err(random_layout(head.deltas, small.count, seed=s)) for s in range(3)])
+    assert err(small.vertices) < rand
+    many = compute_landmarks(head, 0.75, multicover=5, adaptive=False, visibility=vis)
+    indices = json.loads((shared / "data" / "ict-facekit" / "vertex_indices.json").read_text())
+    empirical = indices["idx_to_landmark_verts"]
+    assert many.count <= len(empirical)
+    assert err(many.vertices) < 0.95 * err(empirical)
