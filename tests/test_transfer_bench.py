@@ -126,7 +126,7 @@ def test_units_axis_and_dcc_variants_give_the_same_offsets(bench, dev1, dev1_res
         b = np.einsum("ij,knj->kni", np.linalg.inv(m.source.to_internal[:3, :3]), ref.offsets[m.source.prim])
         a = a[[v.index(n) for n in m.names]]
         rel = np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b ** 2))
-        assert rel < 2e-3, (kind, m.name, rel)
+        assert rel < 1e-4, (kind, m.name, rel)
     if kind == "blender":
         assert "/root/Avatar/Head/Head" in res.offsets and "/root/Avatar/Mouth/Mouth" in res.offsets
 

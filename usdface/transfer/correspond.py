@@ -82,7 +82,7 @@ class Correspondence:
 
 
 def nonrigid_register(points, triangles, target_points, target_triangles, *,
-                      stiffness=(30.0, 10.0, 3.0, 1.0, 0.3), iterations_per_level: int = 2,
+                      stiffness=(30.0, 10.0, 3.0, 1.0), iterations_per_level: int = 2,
                       max_angle_deg: float = 60.0) -> tuple[np.ndarray, dict]:
     """Deform ``points[n,3]`` (already rigidly placed) onto the surface ``target_points/triangles``.
 
@@ -139,8 +139,11 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     tri, bary, _, dist = closest_points(reg, ctri, ap)
     edge = mean_edge_length(reg, ctri)
     an = vertex_normals(ap, avatar_triangles)
-    cn = triangle_normals(reg, ctri)
-    cosang = np.einsum("ij,ij->i", an, cn[tri])
+    # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
+    # triangle normal would jump when the closest point moves over a crease)
+    cn = np.einsum("mk,mkc->mc", bary, vertex_normals(reg, ctri)[ctri[tri]])
+    cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-300)
+    cosang = np.einsum("ij,ij->i", an, cn)
     # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
     # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.
     limit = max_distance_ratio * edge
