@@ -64,3 +64,46 @@ def test_bench_acceptance(bench, case):
     else:                                                             # scan regime: judge against truth
         assert m["truth"] <= 0.9 * tmpl["truth"]
         assert m["truth"] < dt["truth"] and m["truth"] < ebfr["truth"]
+
+
+def scaled_capture(capture, s):
+    from usdface.model import Capture, FaceRig, Frames
+
+    t, f = capture.template, capture.frames
+    return Capture(capture.neutral * s, capture.triangles,
+                   FaceRig(t.neutral * s, t.triangles, t.names, t.deltas * s),
+                   Frames(f.points * s, f.weights, f.role, f.label), capture.names)
+
+
+@pytest.mark.parametrize("method", ["ebfr", "menzel", "dt"])
+def test_methods_are_unit_invariant(samples, method):
+    """Centimetre input gives the metre result x 100 (EBFR's constants are unit-free here)."""
+    cap = read_capture(samples / "capture.usda")
+    kw = {"method": method} if method != "menzel" else {"method": method, "reg": 0.01}
+    a = fit_personalized_shapes(cap, **kw).rig.deltas
+    b = fit_personalized_shapes(scaled_capture(cap, 100.0), **kw).rig.deltas
+    assert np.abs(b / 100.0 - a).max() < 1e-6 * np.abs(a).max() + 1e-12
+
+
+def test_transferred_blinks_close_with_virtual_eyelid_triangles(samples):
+    """Menzel sec. 3.2: with the virtual eyelid triangles the transferred blink closes the eye opening as the
+    template's blink does (closer to the template's closure ratio than without them)."""
+    from usdface.mesh import boundary_loops
+    from usdface.personalize.dt import _loop_area, eyelid_triangles
+
+    cap = read_capture(samples / "capture.usda")
+    t = cap.template
+    lids = eyelid_triangles(t.neutral, t.deltas, cap.triangles, cap.names)
+    assert len(lids) > 0
+    k = cap.names.index("eyeBlinkLeft")
+    eye = np.unique(lids)
+    loops = [lp for lp in boundary_loops(cap.triangles, len(cap.neutral)) if np.isin(lp, eye).all()]
+    assert len(loops) == 2                                            # both eyes, not the mouth
+
+    def closure(neutral, delta):
+        return min(_loop_area(neutral + delta, lp) / _loop_area(neutral, lp) for lp in loops)
+
+    target = closure(t.neutral, t.deltas[k])
+    blinks = [fit_personalized_shapes(cap, method="dt", eyelids=e).rig.deltas[k] for e in (False, True)]
+    err = [abs(closure(cap.neutral, b) - target) for b in blinks]
+    assert err[1] <= err[0]
