@@ -311,3 +311,25 @@ def test_pixar_usdskel_scenes(shared):
     issues = validate_file(scene)
     weights = sorted(i.message.split("weight ")[1].split(",")[0] for i in issues if i.rule == "Inbetweens")
     assert len(weights) == 3 and weights[0].startswith("-0.49")
+
+
+def test_provenance_missing_on_a_result_layer(tmp_path):
+    """A layer recorded as a usdface result (inputs, sublayered avatar) without the provenance schema is an
+    error; a capture.usda's own record (format, no inputs) is not a result layer."""
+    avatar = tmp_path / "avatar.usda"
+    base = make_rig()
+    base.GetRootLayer().Export(str(avatar))
+    from pxr import Sdf
+
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "result.usda"))
+    layer.subLayerPaths.append("avatar.usda")
+    for key in ("upAxis", "metersPerUnit", "defaultPrim"):
+        layer.pseudoRoot.SetInfo(key, base.GetRootLayer().pseudoRoot.GetInfo(key))
+    layer.customLayerData = {"usdface": {"inputs": ["avatar.usda"], "inputDigests": ["0" * 64]}}
+    layer.Save()
+    issues = [i for i in check(Usd.Stage.Open(layer)) if i.rule == "Provenance"]
+    assert len(issues) == 1 and issues[0].severity == ERROR and "UsdFaceProvenanceAPI" in issues[0].message
+    capture = Sdf.Layer.CreateNew(str(tmp_path / "capture.usda"))
+    capture.customLayerData = {"usdface": {"format": "capture", "version": "0.1.0"}}
+    capture.Save()
+    assert [i for i in check(Usd.Stage.Open(capture)) if i.rule == "Provenance"] == []

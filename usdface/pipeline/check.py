@@ -412,8 +412,11 @@ def _provenance(stage) -> Iterable[Issue]:
                   if "UsdFaceProvenanceAPI" in p.GetAppliedSchemas()
                   or p.GetAttribute("usdface:provenance:version").HasAuthoredValue()]
     root = stage.GetRootLayer()
-    data = root.customLayerData or {}
-    looks_usdface = any(str(k).lower().startswith("usdface") for k in data)
+    record = (root.customLayerData or {}).get("usdface")
+    # a personalize result: usdface's record names inputs and the layer sits over an avatar (a capture.usda
+    # also carries a "usdface" record, with a "format" and no inputs: not a result layer)
+    looks_usdface = (isinstance(record, dict) and ("inputs" in record or "inputDigests" in record)
+                     and bool(root.subLayerPaths))
     if not prov_prims:
         if looks_usdface:
             yield Issue(ERROR, "Provenance", "/", f"layer {root.identifier} was written by usdface but has "
