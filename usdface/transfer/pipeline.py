@@ -104,6 +104,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
             corr.info = {**(corr.info or {}), "cache": "hit"}
             return corr
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
+                          avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None)
     placed = reg_t.transform.apply(capture.template.neutral)
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles)
@@ -244,6 +245,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 2. registration of the person's neutral
         t = time.perf_counter()
         registration = register_face(rig.neutral, template_deltas, face.neutral, avatar_face_deltas,
+                                     avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None)
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()

@@ -160,12 +160,24 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
     return sim, float(res.inlier_rmse), float(res.fitness), dist
 
 
-def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, min_fitness: float = 0.6,
-                  max_residual_ratio: float = 0.05, path=None) -> Registration:
+def _scale_guess(capture_points, avatar_points) -> float:
+    """Rough capture -> avatar scale from bounding-box diagonals (only used to pick a sampling density)."""
+    a = np.linalg.norm(np.ptp(avatar_points, axis=0))
+    c = np.linalg.norm(np.ptp(capture_points, axis=0))
+    return float(a / max(c, 1e-300))
+
+
+def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
+                  capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
+                  path=None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
     keeps the better result (more fitness, then lower residual).
+
+    With ``avatar_triangles`` (and ``capture_triangles`` for the capture's resolution) the ICP target is the
+    avatar face *surface*, sampled at least as densely as the capture (a barycentric grid on every face
+    triangle), so that a coarse avatar does not bias scale and residual by its vertex spacing.
 
     Raises :class:`RegistrationError` (with the residual and fitness) when the capture does not overlap the
     avatar face after registration: fitness below ``min_fitness`` or residual above ``max_residual_ratio``
@@ -175,6 +187,16 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     ap = np.asarray(avatar_points, dtype=np.float64)
     moving = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0) > 0
     target = ap[moving] if moving.sum() >= 10 else ap
+    if avatar_triangles is not None:
+        tri = np.asarray(avatar_triangles)
+        face_tri = tri[moving[tri].all(axis=1)] if moving.sum() >= 10 else tri
+        if len(face_tri):
+            from .surface import mean_edge_length, surface_samples
+
+            c_edge = (mean_edge_length(cn, capture_triangles) if capture_triangles is not None
+                      else float(np.median(np.linalg.norm(np.diff(cn, axis=0), axis=1))))
+            ratio = mean_edge_length(ap, face_tri) / max(c_edge * _scale_guess(cn, target), 1e-300)
+            target = surface_samples(ap, face_tri, int(np.clip(np.ceil(2.0 * ratio), 1, 6)))
     candidates = []
     try:
         init = motion_initialiser(cn, capture_deltas, ap, avatar_deltas)

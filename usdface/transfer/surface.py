@@ -138,3 +138,19 @@ def closest_points(points, triangles, queries):
     bary /= bary.sum(axis=1, keepdims=True)
     closest = np.einsum("qk,qkc->qc", bary, p[np.asarray(triangles)[tri]])
     return tri, bary, closest, np.linalg.norm(closest - (q + origin), axis=1)
+
+
+def surface_samples(points, triangles, subdivisions: int) -> np.ndarray:
+    """Deterministic dense samples of a triangle mesh: the barycentric grid of ``subdivisions`` steps on every
+    triangle (``(s+1)(s+2)/2`` points each, shared edges repeated). ``subdivisions <= 1`` returns the
+    vertices used by the triangles."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles)
+    s = int(subdivisions)
+    if s <= 1:
+        return p[np.unique(t)]
+    i, j = np.meshgrid(np.arange(s + 1), np.arange(s + 1), indexing="ij")
+    keep = (i + j) <= s
+    b1, b2 = i[keep] / s, j[keep] / s
+    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)  # [g,3]
+    return np.einsum("gk,tkc->tgc", bary, p[t]).reshape(-1, 3)
