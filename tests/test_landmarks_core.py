@@ -267,6 +267,16 @@ def test_camera_visibility_facing_and_occlusion():
     assert camera_visibility(points, tri, [0, 0.04, -1.0]).max() == 0.0
 
 
+def test_pose_shortcut_equals_brute_force_minimum():
+    rig = random_rig(15, seed=9)
+    rig.neutral[:, 2] += 0.03 * np.sin(60 * rig.neutral[:, 0])  # ripples: real self-occlusion
+    fast = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16)()
+    poses = [rig.neutral] + [rig.neutral + d for d in rig.deltas]
+    brute = np.min([ambient_visibility(p, rig.triangles, None, 16) for p in poses], axis=0)
+    assert (fast < 1).mean() > 0.2
+    np.testing.assert_array_equal(fast, brute)
+
+
 def test_global_visibility_is_the_minimum_over_poses():
     points, tri = grid_mesh(11, 11)
     points[:, 2] = 0.0

@@ -22,9 +22,8 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])  # |face| = 2 * area
-    normals = np.zeros_like(p)
-    for corner in range(3):
-        np.add.at(normals, t[:, corner], face)
+    normals = np.stack([np.bincount(t.ravel(), weights=np.repeat(face[:, c], 3), minlength=len(p))
+                        for c in range(3)], axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
@@ -99,13 +98,23 @@ def camera_visibility(points: np.ndarray, triangles: np.ndarray, camera: np.ndar
     return PoseVisibility(points, triangles, np.zeros((0,) + np.shape(points)), camera=camera)(vertices)
 
 
+#: Offsets below this (metres) count as "not moving" when deciding which rays a pose can change.
+STATIC_OFFSET = 1e-7
+
+
 class PoseVisibility:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4) of any vertex subset, min over all poses.
 
     ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. The poses are the neutral and
-    each shape at weight 1; their Open3D scenes and vertex normals are built once, then ``self(vertices)``
-    casts ``rays`` hemisphere rays per vertex and pose (or, with ``camera[3]`` metres in the same frame, one
-    ray to the camera) and returns ``l[v]`` in [0, 1]. Results are cached per vertex.
+    each shape at weight 1. ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with
+    ``camera[3]`` metres in the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are
+    cached per vertex.
+
+    Exact shortcut for the hemisphere: a shape moves only part of the mesh. A ray from a vertex none of whose
+    triangles move is the same ray as in the neutral; if a static triangle blocked it there, it is still
+    blocked, and if nothing blocked it, only the shape's moving triangles can. So per shape only the rays of
+    vertices next to moving triangles (and rays first hit by a moving triangle) are cast against the full
+    pose; the neutral's free rays are cast against the moving triangles alone, a much cheaper scene.
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
@@ -122,42 +131,80 @@ class PoseVisibility:
         self.rays = int(rays)
         self.camera = None if camera is None else np.asarray(camera, dtype=np.float64).reshape(3)
         self.offset = _offset(neutral, self.triangles)
-        self._scenes: list = []
-        self._normals: list[np.ndarray] = []
+        self._neutral_scene = None
+        self._neutral_normals = None
         self.values = np.full(len(neutral), np.nan)
         self.rays_cast = 0
 
-    def _poses(self):
-        if not self._scenes:
-            for k in range(-1, len(self.deltas)):
-                pose = self.neutral if k < 0 else self.neutral + self.deltas[k]
-                self._scenes.append(_scene(pose, self.triangles))
-                self._normals.append(vertex_normals(pose, self.triangles))
-        return self._scenes, self._normals
+    def _pose(self, k: int):
+        pose = self.neutral if k < 0 else self.neutral + self.deltas[k]
+        return pose, vertex_normals(pose, self.triangles)
 
-    def __call__(self, vertices: np.ndarray | None = None) -> np.ndarray:
+    def _cast(self, scene, rays: np.ndarray, tfar: float = np.inf) -> np.ndarray:
         import open3d as o3d
 
+        self.rays_cast += len(rays)
+        if len(rays) == 0:
+            return np.zeros(0, dtype=bool)
+        return scene.test_occlusions(o3d.core.Tensor(rays), tfar=tfar).numpy().astype(bool)
+
+    def _camera(self, todo: np.ndarray) -> np.ndarray:
+        out = np.ones(todo.size)
+        for k in range(-1, len(self.deltas)):
+            pose, normals = self._pose(k)
+            batch, facing = _camera_rays(pose[todo], normals[todo], self.offset, self.camera)
+            hit = self._cast(_scene(pose, self.triangles), batch, tfar=1.0)
+            v = np.where(np.linalg.norm(normals[todo], axis=1) > 0, (facing & ~hit).astype(np.float64), 0.0)
+            np.minimum(out, v, out=out)
+        return out
+
+    def _hemisphere(self, todo: np.ndarray) -> np.ndarray:
+        import open3d as o3d
+
+        if self._neutral_scene is None:
+            self._neutral_scene = _scene(self.neutral, self.triangles)
+            self._neutral_normals = vertex_normals(self.neutral, self.triangles)
+        n0 = self._neutral_normals[todo]
+        rays0 = _hemisphere_rays(self.neutral[todo], n0, self.offset, self.rays)
+        first = self._neutral_scene.cast_rays(o3d.core.Tensor(rays0))
+        self.rays_cast += len(rays0)
+        hit0 = np.isfinite(first["t_hit"].numpy())
+        prim0 = np.where(hit0, first["primitive_ids"].numpy().astype(np.int64), 0)
+        valid = np.linalg.norm(n0, axis=1) > 0
+        out = np.where(valid, 1.0 - hit0.reshape(todo.size, self.rays).mean(axis=1), 0.0)
+        for k in range(len(self.deltas)):
+            moving_v = np.linalg.norm(self.deltas[k], axis=1) > STATIC_OFFSET
+            if not moving_v.any():
+                continue
+            moving_t = moving_v[self.triangles].any(axis=1)
+            touched = np.zeros(len(self.neutral), dtype=bool)
+            touched[self.triangles[moving_t].ravel()] = True
+            affected = np.repeat(touched[todo], self.rays)  # origin or normal may change
+            full = affected | (hit0 & moving_t[prim0])
+            free = ~hit0 & ~affected
+            blocked = hit0.copy()
+            if full.any():
+                pose, normals = self._pose(k)
+                sel = np.flatnonzero(full)
+                local = np.unique(sel // self.rays)  # positions in todo of the vertices involved
+                verts = todo[local]
+                dirs = _hemisphere_rays(pose[verts], normals[verts], self.offset, self.rays)
+                row = np.searchsorted(local, sel // self.rays) * self.rays + sel % self.rays
+                blocked[sel] = self._cast(_scene(pose, self.triangles), dirs[row])
+                nk = normals[todo]
+            else:
+                pose, nk = self.neutral + self.deltas[k], n0
+            if free.any():
+                blocked[free] = self._cast(_scene(pose, self.triangles[moving_t]), rays0[free])
+            v = 1.0 - blocked.reshape(todo.size, self.rays).mean(axis=1)
+            np.minimum(out, np.where(np.linalg.norm(nk, axis=1) > 0, v, 0.0), out=out)
+        return out
+
+    def __call__(self, vertices: np.ndarray | None = None) -> np.ndarray:
         idx = np.arange(len(self.neutral)) if vertices is None else np.asarray(vertices, dtype=np.int64)
         todo = np.unique(idx[np.isnan(self.values[idx])])
         if todo.size:
-            out = np.ones(todo.size)
-            scenes, normals = self._poses()
-            for k, (scene, nrm) in enumerate(zip(scenes, normals, strict=True)):
-                p = self.neutral[todo] if k == 0 else self.neutral[todo] + self.deltas[k - 1, todo]
-                n = nrm[todo]
-                if self.camera is None:
-                    batch = _hemisphere_rays(p, n, self.offset, self.rays)
-                    hit = scene.test_occlusions(o3d.core.Tensor(batch)).numpy().reshape(todo.size, self.rays)
-                    v = 1.0 - hit.mean(axis=1)
-                else:
-                    batch, facing = _camera_rays(p, n, self.offset, self.camera)
-                    hit = scene.test_occlusions(o3d.core.Tensor(batch), tfar=1.0).numpy().astype(bool)
-                    v = (facing & ~hit).astype(np.float64)
-                v = np.where(np.linalg.norm(n, axis=1) > 0, v, 0.0)
-                np.minimum(out, v, out=out)
-                self.rays_cast += len(batch)
-            self.values[todo] = out
+            self.values[todo] = self._hemisphere(todo) if self.camera is None else self._camera(todo)
         return self.values[idx].copy()
 
 
