@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -85,6 +86,23 @@ def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:
                                 eyelids=eyelids)
 
 
+def _single_threaded_blas(func):
+    """Run ``func`` with BLAS limited to one thread when ``threadpoolctl`` is installed (optional dependency):
+    thousands of tiny (K x K) LAPACK calls run 2-3x slower with a multi-threaded BLAS on a busy machine."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:
+            return func(*args, **kwargs)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
+@_single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool = True, reweight: bool = True, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma: float = 0.05, rounds: int = 2,
