@@ -34,6 +34,11 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
         ax.annotate(str(int(n)), p[i, :2], fontsize=6, xytext=(3, 3), textcoords="offset points")
     if np.asarray(layout.rounds).max(initial=1) > 1:
         fig.colorbar(sc, ax=ax, label="multi-cover round")
+    if v.size:  # frame the face around the landmarks
+        lo, hi = p[v, :2].min(axis=0), p[v, :2].max(axis=0)
+        pad = 0.4 * max(float((hi - lo).max()), 1e-3)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
     ax.set_title(f"{title}: {layout.count} landmarks, eps {layout.epsilon:g}")
     ax.set_xticks([])
