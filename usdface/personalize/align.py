@@ -34,7 +34,7 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     ws = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     cs = np.einsum("fm,fmc->fc", ws, src)
     cd = np.einsum("fm,fmc->fc", ws, dst)
-    H = np.einsum("fm,fmi,fmj->fij", ws, src - cs[:, None], dst - cd[:, None])
+    H = np.matmul(np.swapaxes((src - cs[:, None]) * ws[:, :, None], 1, 2), dst - cd[:, None])
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
     S = np.zeros_like(H)
@@ -60,7 +60,7 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     w = np.ones(src.shape[:2])
     R, t = kabsch(src, dst, w)
     for _ in range(iterations if robust else 0):
-        r = np.linalg.norm(np.einsum("fij,fmj->fmi", R, src) + t[:, None] - dst, axis=-1)
+        r = np.linalg.norm(np.matmul(src, np.swapaxes(R, 1, 2)) + t[:, None] - dst, axis=-1)
         s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = kabsch(src, dst, w)

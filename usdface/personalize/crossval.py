@@ -45,7 +45,7 @@ def _minimise_log(fun, grid, refine_steps):
 
 
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
-                          max_vertices: int = 400, grid=REG_GRID, refine_steps: int = 8,
+                          max_vertices: int = 300, grid=REG_GRID, refine_steps: int = 6,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
                           alphas=None) -> tuple[float, dict]:
     """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).

@@ -107,7 +107,7 @@ class PositionFit:
         self.z_alt = None if alt_deltas is None else prior_coef(alt_deltas)
         self.z = self.z_main
         self.q = np.matmul(W[None], M)                                       # [n,F,K]: w_i^T L^-1/2 U
-        self.q2 = self.q ** 2
+        self.q2 = np.ascontiguousarray((self.q ** 2).transpose(1, 0, 2))     # [F,n,K]
 
     def set_points(self, points) -> None:
         """Replace the training frames ``points[F,n,3]`` (same weights): O(n F K), no new decomposition."""
@@ -129,8 +129,9 @@ class PositionFit:
     def loo_residuals(self, reg: float) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``."""
-        fitted = np.matmul(self.q, self._coef(reg)).transpose(1, 0, 2)       # [F,n,3]
-        h = np.matmul(self.q2, (1.0 / (self.s + reg))[:, :, None])[:, :, 0].T   # [F,n]
+        B = np.matmul(self.M, self._coef(reg))                               # [n,K,3] = b_v
+        fitted = blend(self.W, B.transpose(1, 0, 2))                         # [F,n,3] (one product)
+        h = np.sum(self.q2 * (1.0 / (self.s + reg))[None], axis=-1)          # [F,n]: w_i^T A^-1 w_i
         return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
 
     def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
