@@ -145,6 +145,10 @@ def run(args) -> int:
         for key, value in report.summary.items():
             mm = "rmse" in key and value is not None
             print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
+        for method in ("ours", "pca_kmeans", "delta_cluster", "random"):
+            best = report.best_per_count(method)
+            print(f"{method} RMSE (mm) by landmark count: "
+                  + ", ".join(f"{m}: {v * 1e3:.3f}" for m, v in best.items()))
         return 0
     with steps("landmarks", 2) as advance:
         layout = compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,

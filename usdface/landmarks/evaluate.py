@@ -44,6 +44,14 @@ class EvaluationReport:
         pts = [p for p in self.points if p.method == method and p.count <= max_count]
         return min(pts, key=lambda p: (p.rmse, p.count)) if pts else None
 
+    def best_per_count(self, method: str = "ours") -> dict[int, float]:
+        """{landmark count: lowest RMSE (metres) of ``method`` at that count}."""
+        out: dict[int, float] = {}
+        for p in self.points:
+            if p.method == method:
+                out[p.count] = min(out.get(p.count, np.inf), p.rmse)
+        return dict(sorted(out.items()))
+
     def to_dict(self) -> dict:
         return {"frames": self.frames, "noise": self.noise, "summary": self.summary,
                 "points": [asdict(p) for p in self.points]}
