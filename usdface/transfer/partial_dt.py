@@ -16,7 +16,22 @@ import scipy.sparse.linalg as spla
 
 from .surface import cotangent_laplacian, gradient_operator, mean_edge_length, triangle_areas
 
-__all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask"]
+__all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask",
+           "personalization_support"]
+
+
+def personalization_support(person_deltas, template_deltas, *, low: float = 0.01, high: float = 0.03):
+    """Where shape j's personalization ``B_j - T_j`` is meaningful: ``[J,n]`` in [0,1], 1 where the person's
+    or the generic shape moves more than ``high`` x its largest motion, 0 below ``low`` (smooth ramp).
+
+    Elsewhere neither shape moves and the difference is fit noise (0.1 mm-level on scans); transferring it
+    would make every personalized shape move the whole face a little and densify sparse BlendShapes.
+    """
+    act = np.maximum(np.linalg.norm(np.asarray(person_deltas), axis=-1),
+                     np.linalg.norm(np.asarray(template_deltas), axis=-1))  # [J,n]
+    rel = act / np.maximum(act.max(axis=1, keepdims=True), 1e-300)
+    t = np.clip((rel - low) / (high - low), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def deformation_gradients(rest, deformed, triangles) -> np.ndarray:

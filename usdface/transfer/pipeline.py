@@ -33,7 +33,12 @@ from .correspond import (
     save_correspondence,
 )
 from .eyelids import find_eyeballs, repair_eyelids
-from .partial_dt import blend_adjacent, deformation_gradients, face_deformation_transfer
+from .partial_dt import (
+    blend_adjacent,
+    deformation_gradients,
+    face_deformation_transfer,
+    personalization_support,
+)
 from .register import register_face
 from .retarget import approximate, retarget_weights
 
@@ -119,7 +124,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
 
 def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_triangles, person_neutral,
                    person_deltas, template_deltas, avatar_deltas, approx, *, face_transfer: str = "offset",
-                   anchor_weight: float = 1.0, falloff: float | None = None):
+                   anchor_weight: float = 1.0, falloff: float | None = None, support=(0.01, 0.03)):
     """Steps 5 on arrays: the face region from the personalized shapes, seamlessly joined to ``approx``.
 
     ``person_neutral[n,3]``, ``person_deltas[J,n,3]``, ``template_deltas[J,n,3]``: capture mesh, already in
@@ -133,10 +138,17 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
     * ``"dt-offset"``: deformation transfer of the gradients' deviation ``S(B_j) - S(T_j)`` onto the generic
       shape.
 
+    ``support=(low, high)``: for the offset modes, the personalization ``B_j - T_j`` is kept only where B_j or
+    T_j moves more than ``low..high`` of its peak (:func:`personalization_support`); None keeps it everywhere.
+
     Returns ``(result[J,m,3], adjacent[J,m])``.
     """
     mb = corr.apply(person_deltas, capture_triangles)
     mt = corr.apply(template_deltas, capture_triangles)
+    if support is not None and face_transfer != "dt":
+        # only the personalization inside the shape's support is transferred (see personalization_support)
+        keep = personalization_support(person_deltas, template_deltas, low=support[0], high=support[1])
+        mb = mt + corr.apply((person_deltas - template_deltas) * keep[..., None], capture_triangles)
     if face_transfer == "offset":
         dface = avatar_deltas + mb - mt
     elif face_transfer in ("dt", "dt-offset"):
