@@ -171,7 +171,8 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
                        mu: float = 1e-3, correspondence=None, force: bool = False, dry_run: bool = False,
                        face_transfer: str = "offset", approximation: str = "generic", falloff: float = 0.15,
-                       eyelids: bool = True, eyes: dict | None = None, rig: FaceRig | None = None,
+                       support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
+                       rig: FaceRig | None = None,
                        command: str = "", **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
@@ -189,6 +190,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         avatar's own generic shape B~_j; ``"retarget"``: from the eq. (4) approximation A_j (the paper).
     falloff : width of the seamless join beyond the face, in capture mean edge lengths (screened harmonic
         blend); 0 = plain harmonic over the whole adjacent region (the paper).
+    support : ``(low, high)`` fractions of each shape's peak motion below which its personalization is not
+        transferred (:func:`usdface.transfer.partial_dt.personalization_support`); None = everywhere.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
         meshes that are eyeballs by name/geometry).
@@ -300,7 +303,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         result, adjacent = implant_shapes(
             face.neutral, face.triangles, corr, capture.triangles, person_neutral, person_deltas, tmpl_av,
             avatar_face_deltas, base[face_prim], face_transfer=face_transfer,
-            falloff=(falloff * edge if falloff and edge > 0 else None))
+            falloff=(falloff * edge if falloff and edge > 0 else None), support=support)
         timings["transfer"] = time.perf_counter() - t
         advance("transfer")
 
@@ -337,7 +340,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
             "options": {"method": method, "reg": reg, "mu": mu, "face_transfer": face_transfer,
-                        "approximation": approximation, "falloff": falloff, "eyelids": eyelids},
+                        "approximation": approximation, "falloff": falloff, "support": support,
+                        "eyelids": eyelids},
             "name_report": avatar.name_report,
             "changes": _changes(avatar, offsets),
         })
