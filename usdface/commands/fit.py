@@ -10,13 +10,14 @@ def add_fit_options(parser) -> None:
     """Options shared by ``fit`` and ``evaluate``."""
     parser.add_argument("--reg", default="auto",
                         help="E_reg weight: 'auto' (leave-one-frame-out cross-validation, default), 'paper' "
-                             "(1, the paper's plain sum) or a number")
+                             "(1, the paper's plain sum, and no alignment/re-estimation: the paper's "
+                             "method) or a number")
     parser.add_argument("--prior", choices=("auto", "dt", "template"), default=None,
                         help="generic shapes T_j: deformation transfer (paper), raw template, or a blend "
                              "chosen by cross-validation (default with --reg auto)")
-    parser.add_argument("--no-align", dest="align", action="store_false",
+    parser.add_argument("--no-align", dest="align", action="store_false", default=None,
                         help="skip the robust rigid pre-alignment of the training frames")
-    parser.add_argument("--no-reweight", dest="reweight", action="store_false",
+    parser.add_argument("--no-reweight", dest="reweight", action="store_false", default=None,
                         help="keep the phone's training weights (no anchored re-estimation)")
     parser.add_argument("--no-eyelids", dest="eyelids", action="store_false",
                         help="no virtual eyelid triangles in the deformation transfer")

@@ -104,7 +104,7 @@ def _single_threaded_blas(func):
 
 @_single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
-                            align: bool = True, reweight: bool = True, eyelids: bool = True,
+                            align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma: float = 0.05, rounds: int = 2,
                             **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
@@ -123,9 +123,11 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         D_j of eq. (3) always come from the DT shapes.
     align : robust rigid pre-alignment of every training frame (menzel/laplacian/ebfr): each frame is aligned
         to its leave-one-out prediction (the fit on the other frames), twice, on the moving vertices
-        (:mod:`.align`). Where frames are already aligned this is a no-op.
+        (:mod:`.align`). Where frames are already aligned this is a no-op. Default: on, except with
+        ``reg="paper"`` (the paper's method as published).
     reweight : alternate the shape fit with re-estimating each training frame's weights (bounded to [0,1],
         anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`).
+        Default: on, except with ``reg="paper"``.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -138,6 +140,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
     auto = isinstance(reg, str) and reg == "auto"
+    paper = isinstance(reg, str) and reg == "paper"
+    align = (not paper) if align is None else bool(align)
+    reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
     if prior not in ("auto", "dt", "template") or (prior == "auto" and not auto):
         raise FitError(f"bad prior {prior!r}", fix="use 'dt', 'template', or 'auto' (with reg='auto')")
