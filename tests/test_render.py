@@ -79,6 +79,17 @@ def test_heat_colors_monotone():
     assert np.all((0 <= colors) & (colors <= 1))
 
 
+def _layout(rig, vertices, epsilon=0.5):
+    """A LandmarkLayout by hand (what usdface.compute_landmarks returns), for fast tests."""
+    from usdface.landmarks.layout import LandmarkLayout
+
+    v = np.asarray(vertices)
+    m = len(v)
+    return LandmarkLayout(v, np.zeros((m, 3)), np.ones((m, rig.n_shapes), bool), np.ones(m, int), np.ones(m),
+                          list(rig.names), epsilon, 0.5, False, 1, "optimal", 0.0, 1.0,
+                          "quality", "scip")
+
+
 @pytest.fixture(scope="module")
 def inspected(tmp_path_factory, request):
     """A result layer over dev1's avatar (Head offsets x1.1) with heat map, landmarks and animation."""
@@ -95,8 +106,9 @@ def inspected(tmp_path_factory, request):
     weights[1, ARKIT_NAMES.index("jawOpen")] = 1.0
     weights[2, ARKIT_NAMES.index("eyeBlinkLeft")] = 0.5
     raw = [n.replace("Left", "_L").replace("Right", "_R") for n in ARKIT_NAMES]  # any spelling maps
-    edit = inspection_edit(avatar, heat={"Head": heat}, landmarks={"Head": [0, 10, 100]},
-                           landmark_info={"Head": {"epsilon": 0.25}}, animation=(raw, weights), fps=30)
+    layout = _layout(head, [0, 10, 100], epsilon=0.25)
+    edit = inspection_edit(avatar, heat={"Head": heat}, landmarks={"Head": layout}, animation=(raw, weights),
+                           fps=30)
     out = tmp_path_factory.mktemp("insp") / "result.usda"
     write_avatar_layer(avatar, out, {"Head": 1.1 * head.deltas}, provenance={"command": "test"}, edit=edit)
     return avatar, out, heat
@@ -121,7 +133,7 @@ def test_inspection_layer_contents(inspected):
     # landmark Points sit exactly on the mesh's (world-space) vertices
     layouts = read_landmarks(out)
     assert list(layouts) == ["/Avatar/Head"] and layouts["/Avatar/Head"].tolist() == [0, 10, 100]
-    pts_prim = stage.GetPrimAtPath("/Avatar/usdfaceLandmarks/Head")
+    pts_prim = stage.GetPrimAtPath("/Avatar/Head_landmarks")  # the landmark writer's Points prim
     assert pts_prim.GetAttribute("usdface:landmarks:epsilon").Get() == pytest.approx(0.25)
     cache = UsdGeom.XformCache()
     pts = np.asarray(UsdGeom.Points(pts_prim).GetPointsAttr().Get(), dtype=float)
@@ -186,6 +198,10 @@ def test_inspection_rejects_bad_input():
         inspection_edit(avatar, heat={"Nose": np.zeros(3)})(None)
     with pytest.raises(RigError, match="one value per mesh point"):
         inspection_edit(avatar, heat={"Grid": np.zeros(3)})(None)
+    with pytest.raises(RigError, match="LandmarkLayout"):
+        inspection_edit(avatar, landmarks={"Grid": [0, 1]})(None)
+    with pytest.raises(RigError, match="out of range"):
+        inspection_edit(avatar, landmarks={"Grid": _layout(rig, [0, 999])})(None)
 
 
 @pytest.mark.shared

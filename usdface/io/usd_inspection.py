@@ -6,9 +6,9 @@ runs on the new layer before saving. It authors, as local opinions of the new la
 * **heat maps**: for each mesh given, ``primvars:displayColor`` (vertex interpolation, a colour map of the
   per-vertex values) and the raw values as ``primvars:usdface:heat`` (float, metres). usdview draws
   displayColor when the mesh has no bound material (or with "Enable Scene Materials" off);
-* **landmarks**: a ``Points`` prim ``<SkelRoot>/usdfaceLandmarks/<mesh>`` at the landmark vertices of the
-  mesh's rest points (same transform as the mesh), with ``UsdFaceLandmarksAPI`` (``vertexIndices``, ``mesh``
-  relationship, ``count`` and whatever layout parameters are given);
+* **landmarks**: for each :class:`usdface.landmarks.LandmarkLayout` given, the landmark writer's
+  ``Points`` prim ``<mesh>_landmarks`` with ``UsdFaceLandmarksAPI`` (one implementation:
+  :mod:`usdface.io.usd_landmarks`);
 * **animation**: a ``SkelAnimation`` ``<Skeleton>/usdfaceInspection`` playing weights (the capture's test
   expressions, a Live Link take...) through :func:`usdface.io.usd_anim.author_skel_animation`, with the
   Skeleton's ``skel:animationSource`` pointed at it (the original binding target is kept in the relationship's
@@ -18,7 +18,7 @@ runs on the new layer before saving. It authors, as local opinions of the new la
 
 Example::
 
-    edit = inspection_edit(avatar, heat={"Head": err[n]}, landmarks={"Head": idx},
+    edit = inspection_edit(avatar, heat={"Head": err[n]}, landmarks={"Head": layout},
                            animation=(capture.names, capture.test.weights))
     write_avatar_layer(avatar, "out.usda", offsets, edit=edit)
 """
@@ -33,8 +33,6 @@ import numpy as np
 from ..errors import RigError
 from ..model import Avatar
 
-#: Scope under each SkelRoot holding the landmark Points prims.
-LANDMARKS_SCOPE = "usdfaceLandmarks"
 #: Name of the inspection SkelAnimation under the Skeleton.
 ANIMATION_NAME = "usdfaceInspection"
 #: Primvar holding the raw heat-map values (metres).
@@ -72,43 +70,20 @@ def _author_heat(stage, avatar: Avatar, heat: dict, vmax: float | None):
             Vt.FloatArray.FromNumpy(values.astype(np.float32)))
 
 
-def _author_landmarks(stage, avatar: Avatar, landmarks: dict, layout_info: dict):
-    from pxr import Gf, Sdf, UsdGeom, Vt
+def _author_landmarks(stage, avatar: Avatar, landmarks: dict):
+    """Landmark Points through the landmark writer's own authoring (one implementation of the Points prim)."""
+    from .usd_landmarks import _author
 
-    from .. import schemas
-
-    cache = UsdGeom.XformCache()
-    for key, indices in landmarks.items():
+    for key, layout in landmarks.items():
         rig = _rig(avatar, key)
-        indices = np.asarray(indices, dtype=np.int64).ravel()
-        if indices.size and (indices.min() < 0 or indices.max() >= rig.n_vertices):
+        if not hasattr(layout, "vertices") or not hasattr(layout, "coverage"):
+            raise RigError(f"landmarks for {key!r} must be a LandmarkLayout (usdface.compute_landmarks)",
+                           path=avatar.file, prim=rig.source.prim, fix="pass the layout object, not indices")
+        vertices = np.asarray(layout.vertices, dtype=np.int64)
+        if vertices.size and (vertices.min() < 0 or vertices.max() >= rig.n_vertices):
             raise RigError(f"landmark index out of range [0, {rig.n_vertices}) for {key!r}", path=avatar.file,
-                           prim=rig.source.prim, fix="use vertex indices of this mesh")
-        mesh_prim = stage.GetPrimAtPath(rig.source.prim)
-        rest = np.asarray(UsdGeom.Mesh(mesh_prim).GetPointsAttr().Get(), dtype=np.float64)
-        root = rig.source.skel_root or str(mesh_prim.GetPath().GetParentPath())
-        scope = UsdGeom.Scope.Define(stage, Sdf.Path(root).AppendChild(LANDMARKS_SCOPE))
-        points = UsdGeom.Points.Define(stage, scope.GetPath().AppendChild(mesh_prim.GetName()))
-        local = rest[indices]
-        points.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local.astype(np.float32)))
-        extent = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))) if len(rest) else 1.0
-        points.CreateWidthsAttr(Vt.FloatArray([0.012 * extent] * len(local)))
-        points.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(0.1, 0.55, 1.0)]))
-        # same placement as the mesh: mesh-to-world expressed under the Points' parent
-        to_world = cache.GetLocalToWorldTransform(mesh_prim)
-        parent_world = cache.GetLocalToWorldTransform(scope.GetPrim())
-        points.AddTransformOp().Set(to_world * parent_world.GetInverse())
-        prim = points.GetPrim()
-        prim.ApplyAPI(schemas.LANDMARKS_API)
-        prim.GetAttribute("usdface:landmarks:vertexIndices").Set(Vt.IntArray([int(i) for i in indices]))
-        prim.GetAttribute("usdface:landmarks:count").Set(int(indices.size))
-        rel = prim.GetRelationship("usdface:landmarks:mesh")
-        if rel:
-            rel.SetTargets([mesh_prim.GetPath()])
-        for name, value in (layout_info.get(key) or {}).items():
-            attr = prim.GetAttribute(f"usdface:landmarks:{name}")
-            if attr:
-                attr.Set(value)
+                           prim=rig.source.prim, fix="use a layout computed on this mesh")
+        _author(stage, rig, layout, avatar.meters_per_unit)
 
 
 def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=None):
@@ -147,8 +122,8 @@ def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=N
 
 
 def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: float | None = None,
-                    landmarks: dict | None = None, landmark_info: dict | None = None,
-                    animation: tuple | None = None, fps: float = 24.0) -> Callable:
+                    landmarks: dict | None = None, animation: tuple | None = None,
+                    fps: float = 24.0) -> Callable:
     """The ``edit(stage)`` callback for :func:`usdface.io.layers.write_avatar_layer` that authors inspection
     data.
 
@@ -157,8 +132,7 @@ def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: floa
     avatar : the avatar the layer is written over (``read_avatar``); meshes are named by prim name or path.
     heat : {mesh -> values[n]} per-vertex values in metres (e.g. |personalized - generic| or an error).
     heat_vmax : value mapped to the brightest colour (default: each map's 99th percentile).
-    landmarks : {mesh -> vertex indices[m]} landmark vertices.
-    landmark_info : {mesh -> {attribute -> value}} extra ``usdface:landmarks:*`` values (epsilon, alpha, ...).
+    landmarks : {mesh -> LandmarkLayout} layouts computed on those meshes (:func:`usdface.compute_landmarks`).
     animation : (names[K], weights[F, K]) or (names, weights, times[F] seconds): weights per frame (frame f at
         time code f when no times); names in any ARKit spelling, mapped onto the avatar's channel tokens (a
         channel with no column stays at 0).
@@ -169,7 +143,7 @@ def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: floa
         if heat:
             _author_heat(stage, avatar, heat, heat_vmax)
         if landmarks:
-            _author_landmarks(stage, avatar, landmarks, landmark_info or {})
+            _author_landmarks(stage, avatar, landmarks)
         if animation is not None:
             names, weights, *times = animation
             _author_animation(stage, avatar, _canonical(names), weights, fps, times[0] if times else None)
