@@ -90,15 +90,13 @@ def test_missing_capture_fails_validation(registered, tmp_path, bench):
     assert not (tmp_path / "o.usda").exists()
 
 
-@pytest.mark.slow
-@pytest.mark.shared
-def test_publish_personalizes(registered, tmp_path, bench):
-    """Real Pyblish run on bench dev1 with the real personalize, collected from a batch manifest."""
+def test_publish_personalizes(registered, tmp_path, samples):
+    """Real Pyblish run on the project's sample assets with the real personalize, collected from a batch
+    manifest, with inspection data requested through the instance."""
     pytest.importorskip("usdface.transfer")
     manifest = tmp_path / "publish.csv"
-    dev1 = bench / "dev1"
-    manifest.write_text("avatar,capture,output\n"
-                        f"{dev1 / 'avatar.usdc'},{dev1 / 'capture'},dev1_person.usda\n")
+    manifest.write_text("avatar,capture,output,inspect\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture'},person.usda,true\n")
     context = pyblish_api.Context()
     context.data["usdfaceManifest"] = str(manifest)
     pyblish.util.publish(context)
@@ -106,9 +104,15 @@ def test_publish_personalizes(registered, tmp_path, bench):
     assert errors == []
     instance = next(iter(context))
     out = Path(instance.data["usdfaceLayer"])
-    assert out == tmp_path / "dev1_person.usda" and out.exists()
-    assert instance.data["representations"][0]["files"] == "dev1_person.usda"
+    assert out == tmp_path / "person.usda" and out.exists()
+    assert instance.data["representations"][0]["files"] == "person.usda"
     assert instance.data["usdfaceCaptureSummary"]["train"] > 0
+    assert instance.data["usdfaceOptions"] == {"inspect": True}
+    from pxr import Usd
+
     from usdface.api import check
+    from usdface.io.usd_inspection import ANIMATION_NAME
 
     assert [i for i in check(out) if i.severity == "error"] == []
+    stage = Usd.Stage.Open(str(out))
+    assert any(p.GetName() == ANIMATION_NAME for p in stage.Traverse())  # inspection data is there
