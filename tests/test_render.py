@@ -92,14 +92,14 @@ def _layout(rig, vertices, epsilon=0.5):
 
 @pytest.fixture(scope="module")
 def inspected(tmp_path_factory, request):
-    """A result layer over dev1's avatar (Head offsets x1.1) with heat map, landmarks and animation."""
-    bench = request.getfixturevalue("bench")
+    """A result layer over the sample avatar (Head offsets x1.1) with heat map, landmarks and animation."""
+    samples = request.getfixturevalue("samples")
     from usdface.arkit import ARKIT_NAMES
     from usdface.io.layers import write_avatar_layer
     from usdface.io.usd_inspection import inspection_edit
     from usdface.io.usd_rig import read_avatar
 
-    avatar = read_avatar(bench / "dev1" / "avatar.usdc")
+    avatar = read_avatar(samples / "avatar.usda")
     head = avatar.mesh("Head")
     heat = np.linalg.norm(0.1 * head.deltas, axis=2).max(axis=0)
     weights = np.zeros((3, 52))
@@ -114,7 +114,6 @@ def inspected(tmp_path_factory, request):
     return avatar, out, heat
 
 
-@pytest.mark.shared
 def test_inspection_layer_contents(inspected):
     from pxr import Usd, UsdGeom, UsdSkel
 
@@ -162,11 +161,10 @@ def test_inspection_layer_contents(inspected):
     mesh_weights = np.asarray(query.GetBlendShapeMapper().Remap(anim_query.ComputeBlendShapeWeights(1.0)))
     channels = list(UsdSkel.BindingAPI(mesh.GetPrim()).GetBlendShapesAttr().Get())
     assert mesh_weights[channels.index("jawOpen")] == 1.0 and mesh_weights.sum() == 1.0
-    assert generic_input(out).name == "avatar.usdc"
+    assert generic_input(out).name == "avatar.usda"
     assert validate_file(out) == []  # Pixar validators + face-rig rules + provenance
 
 
-@pytest.mark.shared
 def test_render_cli_on_result(inspected, tmp_path, capsys):
     _avatar, out, _heat = inspected
     for i, flags in enumerate([[], ["--compare"], ["--heatmap"], ["--landmarks"]]):
@@ -177,10 +175,9 @@ def test_render_cli_on_result(inspected, tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
 
 
-@pytest.mark.shared
-def test_render_cli_capture_and_errors(bench, tmp_path, capsys):
-    assert main(["render", str(bench / "dev1" / "capture"), "-o", str(tmp_path / "cap.png")]) == 0
-    avatar = bench / "dev1" / "avatar.usdc"
+def test_render_cli_capture_and_errors(samples, tmp_path, capsys):
+    assert main(["render", str(samples / "capture"), "-o", str(tmp_path / "cap.png")]) == 0
+    avatar = samples / "avatar.usda"
     assert main(["render", str(avatar), "-o", str(tmp_path / "x.png"), "--compare"]) == 2
     assert "--compare GENERIC" in capsys.readouterr().err
     assert main(["render", str(avatar), "-o", str(tmp_path / "y.png"), "--landmarks"]) == 2
@@ -204,8 +201,7 @@ def test_inspection_rejects_bad_input():
         inspection_edit(avatar, landmarks={"Grid": _layout(rig, [0, 999])})(None)
 
 
-@pytest.mark.shared
-def test_add_inspection_to_written_layer(bench, tmp_path):
+def test_add_inspection_to_written_layer(samples, tmp_path):
     """add_inspection rewrites only the output layer (atomically) and the heat is |new - generic| RMS."""
     from pxr import Usd, UsdGeom
 
@@ -213,7 +209,7 @@ def test_add_inspection_to_written_layer(bench, tmp_path):
     from usdface.io.usd_inspection import HEAT_PRIMVAR, add_inspection, change_heat, inspection_edit
     from usdface.io.usd_rig import read_avatar
 
-    src = bench / "dev1" / "avatar.usdc"
+    src = samples / "avatar.usda"
     before = file_digest(src)
     avatar = read_avatar(src)
     head = avatar.mesh("Head")
