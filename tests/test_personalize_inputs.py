@@ -76,3 +76,10 @@ def test_underdetermined_and_never_activated_shapes_warn_by_name():
     k = res.rig.names.index("mouthSmileLeft")
     cap = tiny_capture(F=2, never=1)
     assert np.allclose(res.rig.deltas[k], cap.template.deltas[k], atol=1e-6)
+
+
+def test_unknown_method_options_are_named():
+    with pytest.raises(FitError, match="bogus"):
+        fit_personalized_shapes(tiny_capture(), method="laplacian", bogus=1)
+    with pytest.raises(FitError, match="bogus"):
+        fit_personalized_shapes(tiny_capture(), method="menzel", bogus=1)

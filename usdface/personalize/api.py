@@ -273,6 +273,10 @@ def _make_solver(method, capture, D, generic, options):
     """A function ``(points, weights, reg) -> deltas`` for the position-based methods."""
     if method == "laplacian":
         from .laplacian import LaplacianFit
+        unknown = set(options) - {"laplacian_weight", "mask_threshold", "tol", "max_iter"}
+        if unknown:
+            raise FitError(f"unknown option(s) for laplacian: {', '.join(sorted(unknown))}",
+                           fix="use laplacian_weight, mask_threshold, tol or max_iter")
         lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, **options)
         return lambda P, W, lam: lf.solve(P, W, lam)
     if options:
