@@ -65,8 +65,11 @@ def accuracy(case: str, variants: bool) -> list[tuple]:
 
 
 def wall_times(case: str, repeats: int) -> dict:
+    """Median wall and CPU seconds (user + sys of the child: about the wall time on an idle machine)."""
+    import resource
+
     exe = [sys.executable, "-m", "usdface.cli"]
-    out = {"cold": [], "warm": []}
+    out = {"cold": [], "warm": [], "cold_cpu": [], "warm_cpu": []}
     with tempfile.TemporaryDirectory() as tmp:
         cache = Path(tmp) / "corr.npz"
         for r in range(repeats):
@@ -75,9 +78,12 @@ def wall_times(case: str, repeats: int) -> dict:
                     cache.unlink()
                 args = exe + ["personalize", str(BENCH / case / "avatar.usdc"), str(BENCH / case / "capture"),
                               "-o", str(Path(tmp) / f"o{r}{kind}.usda"), "-q", "--correspondence", str(cache)]
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t = time.perf_counter()
                 subprocess.run(args, check=True, capture_output=True)
                 out[kind].append(time.perf_counter() - t)
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                out[kind + "_cpu"].append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
     return {k: statistics.median(v) for k, v in out.items()}
 
 
@@ -106,11 +112,11 @@ def main(argv=None) -> int:
             print(f"{row[0]:5} {row[1]:42} {row[2]:10.4f} {row[3]:11.3f} {row[4]:11.3f} {row[5]:7d}")
     if args.no_time:
         return 0
-    print(f"\n{'case':5} {'cold s':>8} {'warm s':>8}   (usdface personalize, fresh process, median of "
-          f"{args.repeats})")
+    print(f"\n{'case':5} {'cold s':>8} {'warm s':>8} {'cold cpu':>9} {'warm cpu':>9}   (usdface personalize, "
+          f"fresh process, median of {args.repeats}; cpu = user+sys)")
     for case in cases:
         t = wall_times(case, args.repeats)
-        print(f"{case:5} {t['cold']:8.2f} {t['warm']:8.2f}")
+        print(f"{case:5} {t['cold']:8.2f} {t['warm']:8.2f} {t['cold_cpu']:9.2f} {t['warm_cpu']:9.2f}")
     for case in cases:
         t = step_times(case)
         print(f"{case} steps: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
