@@ -79,9 +79,13 @@ def run(args) -> int:
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
         return 0
+    import numpy as np
+
     reg = rep["registration"]
-    print(f"registration: scale {reg['scale']:.4f}, residual {reg['residual_m'] * 1000:.2f} mm, "
-          f"fitness {reg['fitness']:.2f} ({reg['initialiser']})")
+    angle = np.degrees(np.arccos(np.clip((np.trace(np.asarray(reg["rotation"])) - 1.0) / 2.0, -1.0, 1.0)))
+    move = ", ".join(f"{v * 100:.1f}" for v in reg["translation_m"])
+    print(f"registration: scale {reg['scale']:.4f}, rotation {angle:.1f} deg, translation ({move}) cm, "
+          f"residual {reg['residual_m'] * 1000:.2f} mm, fitness {reg['fitness']:.2f} ({reg['initialiser']})")
     cor = rep["correspondence"]
     print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']} (cache: "
           f"{cor.get('cache', 'off')}); {len(rep['shapes'])} shapes implanted")
