@@ -78,7 +78,8 @@ class FaceRig:
             raise GeometryError(f"rig {self.name!r}: neutral must be [n,3], got {self.neutral.shape}")
         if self.deltas.shape[1] != self.neutral.shape[0]:
             raise GeometryError(
-                f"rig {self.name!r}: deltas have {self.deltas.shape[1]} vertices, neutral {self.neutral.shape[0]}")
+                f"rig {self.name!r}: deltas have {self.deltas.shape[1]} vertices, "
+                f"neutral {self.neutral.shape[0]}")
 
     @property
     def n_vertices(self) -> int:
@@ -95,8 +96,9 @@ class FaceRig:
         """Deformed points for ``weights[K]`` -> ``[n,3]`` or ``weights[F,K]`` -> ``[F,n,3]``.
 
         Implements UsdSkel blend-shape semantics, inbetweens included: for a shape with inbetweens at weights
-        w_1 < ... < w_m, the offset at weight w interpolates linearly between the neighbouring sub-shapes of the
-        sorted list (0 -> zero offset, w_i -> inbetween i, 1 -> primary offset) and extrapolates the end segments.
+        w_1 < ... < w_m, the offset at weight w interpolates linearly between the neighbouring sub-shapes of
+        the sorted list (0 -> zero offset, w_i -> inbetween i, 1 -> primary offset) and extrapolates the end
+        segments.
         """
         w = np.asarray(weights, dtype=np.float64)
         single = w.ndim == 1

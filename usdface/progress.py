@@ -16,14 +16,18 @@ def set_enabled(flag: bool) -> None:
 
 @contextlib.contextmanager
 def steps(title: str, total: int):
-    """A progress bar over ``total`` named steps: ``with steps("personalize", 6) as advance: advance("ICP")``."""
+    """A progress bar over ``total`` named steps.
+
+    ``with steps("personalize", 6) as advance: advance("ICP")``
+    """
     if not _ENABLED or not sys.stderr.isatty():
         yield lambda label=None: None
         return
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), transient=False) as prog:
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(),
+               TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn())
+    with Progress(*columns, transient=False) as prog:
         task = prog.add_task(title, total=total)
 
         def advance(label: str | None = None):
