@@ -1,8 +1,7 @@
 """Errors raised by usdface.
 
 Every user-facing failure is a :class:`UsdFaceError` subclass whose message names the file, the prim
-(when there
-is one) and the fix, so the CLI can print one clear line and exit non-zero.
+(when there is one) and the fix, so the CLI can print one clear line and exit non-zero.
 """
 
 from __future__ import annotations
