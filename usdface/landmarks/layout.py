@@ -97,7 +97,7 @@ def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]
 
 
 def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
-               batch: int = 4) -> np.ndarray:
+               batch: int = 16) -> np.ndarray:
     """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
 
     Every cost form is a non-increasing linear function of the vertex's visibility l_n, and

@@ -135,10 +135,33 @@ class PoseVisibility:
         self._neutral_normals = None
         self.values = np.full(len(neutral), np.nan)
         self.rays_cast = 0
+        # per-pose scenes, normals and moving-triangle masks are kept across calls (lazy callers ask several
+        # times) while their triangles stay under this budget
+        self.cache_triangles = 6_000_000
+        self._cache: dict = {}
+        self._cached_triangles = 0
+
+    def _cached(self, key, make, triangles: int = 0):
+        if key in self._cache:
+            return self._cache[key]
+        value = make()
+        if self._cached_triangles + triangles <= self.cache_triangles:
+            self._cache[key] = value
+            self._cached_triangles += triangles
+        return value
 
     def _pose(self, k: int):
         pose = self.neutral if k < 0 else self.neutral + self.deltas[k]
-        return pose, vertex_normals(pose, self.triangles)
+        return pose, self._cached(("normals", k), lambda: vertex_normals(pose, self.triangles))
+
+    def _moving(self, k: int):
+        def make():
+            moving_v = np.linalg.norm(self.deltas[k], axis=1) > STATIC_OFFSET
+            moving_t = moving_v[self.triangles].any(axis=1)
+            touched = np.zeros(len(self.neutral), dtype=bool)
+            touched[self.triangles[moving_t].ravel()] = True
+            return moving_v.any(), moving_t, touched
+        return self._cached(("moving", k), make)
 
     def _cast(self, scene, rays: np.ndarray, tfar: float = np.inf) -> np.ndarray:
         import open3d as o3d
@@ -173,12 +196,9 @@ class PoseVisibility:
         valid = np.linalg.norm(n0, axis=1) > 0
         out = np.where(valid, 1.0 - hit0.reshape(todo.size, self.rays).mean(axis=1), 0.0)
         for k in range(len(self.deltas)):
-            moving_v = np.linalg.norm(self.deltas[k], axis=1) > STATIC_OFFSET
-            if not moving_v.any():
+            moves, moving_t, touched = self._moving(k)
+            if not moves:
                 continue
-            moving_t = moving_v[self.triangles].any(axis=1)
-            touched = np.zeros(len(self.neutral), dtype=bool)
-            touched[self.triangles[moving_t].ravel()] = True
             affected = np.repeat(touched[todo], self.rays)  # origin or normal may change
             full = affected | (hit0 & moving_t[prim0])
             free = ~hit0 & ~affected
@@ -190,12 +210,16 @@ class PoseVisibility:
                 verts = todo[local]
                 dirs = _hemisphere_rays(pose[verts], normals[verts], self.offset, self.rays)
                 row = np.searchsorted(local, sel // self.rays) * self.rays + sel % self.rays
-                blocked[sel] = self._cast(_scene(pose, self.triangles), dirs[row])
+                scene = self._cached(("full", k), lambda p=pose: _scene(p, self.triangles),
+                                     len(self.triangles))
+                blocked[sel] = self._cast(scene, dirs[row])
                 nk = normals[todo]
             else:
                 pose, nk = self.neutral + self.deltas[k], n0
             if free.any():
-                blocked[free] = self._cast(_scene(pose, self.triangles[moving_t]), rays0[free])
+                sub_tri = self.triangles[moving_t]
+                scene = self._cached(("moving", k, 1), lambda p=pose, t=sub_tri: _scene(p, t), len(sub_tri))
+                blocked[free] = self._cast(scene, rays0[free])
             v = 1.0 - blocked.reshape(todo.size, self.rays).mean(axis=1)
             np.minimum(out, np.where(np.linalg.norm(nk, axis=1) > 0, v, 0.0), out=out)
         return out
