@@ -34,7 +34,9 @@ def points_prim_path(mesh_prim: str) -> str:
     return f"{mesh_prim}_landmarks"
 
 
-def _author(stage, rig: FaceRig, layout, meters_per_unit: float):
+def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> None:
+    """Author ``layout`` on an open stage (edit target = the output layer): the mesh primvars, the Points
+    prim and its ``UsdFaceLandmarksAPI`` (see the module docstring). ``meters_per_unit`` of the stage."""
     from pxr import Sdf, UsdGeom, Vt
 
     from .. import schemas
@@ -103,4 +105,7 @@ def write_landmark_layer(avatar: Avatar, rig: FaceRig, layout, out_path, *, forc
     prov = dict(provenance or {})
     prov.setdefault("method", "landmarks")
     return write_avatar_layer(avatar, out_path, {}, provenance=prov, force=force, variants=False,
-                              edit=lambda stage: _author(stage, rig, layout, avatar.meters_per_unit))
+                              edit=lambda stage: author_landmarks(stage, rig, layout, avatar.meters_per_unit))
+
+
+_author = author_landmarks  # former private name, used by usdface.io.usd_inspection
