@@ -529,3 +529,75 @@ def test_skinned_mesh_is_placed_the_usdskel_way(tmp_path):
     assert np.abs(head.neutral - naive).max() > 0.1  # the mesh's own xformOps were ignored
     # the unskinned Mouth keeps its own transform chain
     np.testing.assert_allclose(avatar.mesh("Mouth").neutral, expected_rig()["Mouth"]["neutral"], atol=1e-7)
+
+
+@pytest.mark.parametrize("style", ["y_cm", "blender"])
+def test_meshes_without_blend_shapes_are_read_as_static_meshes(tmp_path, style):
+    """Every Mesh under the SkelRoot without blend shapes (eyes, props) lands in ``metadata["static_meshes"]``
+    in the internal frame, whatever the ancestors' transforms; a mesh outside any SkelRoot does not; an
+    unusable one is skipped with a note instead of failing the whole avatar."""
+    from pxr import Gf, UsdGeom, UsdSkel, Vt
+
+    path = tmp_path / f"{style}.usda"
+    write_rig(path, style)
+    root = "/root/Avatar" if style == "blender" else "/Avatar"
+    to_local = np.eye(3) / 0.01  # both styles author mesh-local points in cm, Y up
+    eye_internal = np.array([[0.03, 1.6, 0.1], [0.04, 1.6, 0.1], [0.04, 1.61, 0.1], [0.03, 1.61, 0.11]])
+    shift_cm = np.array([1.0, 2.0, 3.0])  # the eye's own parent Xform translate (local units)
+
+    def add_meshes(stage):
+        parent = UsdGeom.Xform.Define(stage, f"{root}/Eyes")
+        parent.AddTranslateOp().Set(Gf.Vec3d(*shift_cm))
+        eye = UsdGeom.Mesh.Define(stage, f"{root}/Eyes/EyeLeft")
+        local = (eye_internal @ to_local.T - shift_cm).astype(np.float32)
+        eye.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local))
+        eye.CreateFaceVertexCountsAttr([4])
+        eye.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        if style == "blender":  # skinned like Blender's eyes: placed by the skeleton's bind pose
+            binding = UsdSkel.BindingAPI.Apply(eye.GetPrim())
+            binding.CreateJointIndicesPrimvar(True, 1).Set([0])
+            binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+            # geomBindTransform = the eye's own local-to-skeleton transform, as exporters write it
+            binding.CreateGeomBindTransformAttr(Gf.Matrix4d().SetTranslate(Gf.Vec3d(*shift_cm)))
+        broken = UsdGeom.Mesh.Define(stage, f"{root}/Broken")  # no faces
+        broken.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+        outside = UsdGeom.Mesh.Define(stage, "/Outside")
+        outside.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+        outside.CreateFaceVertexCountsAttr([3])
+        outside.CreateFaceVertexIndicesAttr([0, 1, 2])
+    edit_stage(path, add_meshes)
+    avatar = read_avatar(path)
+    assert [m.name for m in avatar.meshes] == ["Head", "Mouth"]
+    static = avatar.metadata["static_meshes"]
+    assert list(static) == [f"{root}/Eyes/EyeLeft"]
+    points, triangles = static[f"{root}/Eyes/EyeLeft"]
+    np.testing.assert_allclose(points, eye_internal, atol=1e-7)
+    np.testing.assert_array_equal(triangles, [[0, 1, 2], [0, 2, 3]])
+    assert any(note.startswith(f"{root}/Broken: mesh without blend shapes skipped") and "no faces" in note
+               for note in avatar.metadata["notes"])
+
+
+def test_sample_and_bench_eye_meshes_are_read(samples, bench):
+    """The sample and bench avatars' EyeLeft/EyeRight (no blend shapes) are static meshes: closed, eyeball
+    sized, mirrored left/right; the Blender round trip reads them at the same place."""
+    from usdface.transfer.eyelids import fit_sphere
+
+    for path, prefix in [(samples / "avatar.usda", "/Avatar/"), (bench / "dev1" / "avatar.usdc", "/Avatar/"),
+                         (bench / "dev1" / "avatar_blender.usdc", None)]:
+        static = read_avatar(path).metadata["static_meshes"]
+        leaves = sorted(k.rsplit("/", 1)[-1] for k in static)
+        assert leaves == ["EyeLeft", "EyeRight"], path
+        if prefix:
+            assert sorted(static) == [prefix + "EyeLeft", prefix + "EyeRight"]
+        (left, tl), (right, _) = (static[k] for k in sorted(static))
+        centre_l, radius, rms = fit_sphere(left)
+        centre_r = fit_sphere(right)[0]
+        assert 0.008 < radius < 0.02 and rms < 0.1 * radius
+        np.testing.assert_allclose(centre_l * [-1, 1, 1], centre_r, atol=1e-4)
+        assert centre_l[0] > 0.02 and 1.4 < centre_l[1] < 1.8  # +X is the avatar's left, metres, Y up
+        edges = np.sort(np.concatenate([tl[:, [0, 1]], tl[:, [1, 2]], tl[:, [2, 0]]]), axis=1)
+        assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all()  # closed surface
+    plain = read_avatar(bench / "dev1" / "avatar.usdc").metadata["static_meshes"]
+    blender = read_avatar(bench / "dev1" / "avatar_blender.usdc").metadata["static_meshes"]
+    np.testing.assert_allclose(blender["/root/Avatar/EyeLeft/EyeLeft"][0], plain["/Avatar/EyeLeft"][0],
+                               atol=5e-7)

@@ -11,6 +11,9 @@ What is read, the UsdSkel way:
 * geometry: points at the default time, polygons fan-triangulated (the authored ``faceVertexCounts/Indices``
   are kept), and the mesh's full local-to-world transform (every ancestor), the stage's ``metersPerUnit`` and
   ``upAxis`` folded into ``MeshSource.to_internal`` so the rig is in usdface's internal frame: metres, Y up;
+* meshes without blend shapes under a SkelRoot (eyes, teeth, props): points and fan triangles only, placed
+  the same way, in ``Avatar.metadata["static_meshes"] = {prim path: (points[n,3] internal metres,
+  triangles[t,3])}`` (the eyelid repair needs the eyeballs); an unusable one is skipped with a note;
 * names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names`, the BlendShape prim
   name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); every inexact mapping is
   recorded in ``Avatar.name_report``.
@@ -356,7 +359,9 @@ def read_avatar(path) -> Avatar:
     -------
     Avatar with one FaceRig per mesh (``neutral[n,3]`` metres, ``deltas[K,n,3]`` metres, canonical ARKit names
     where the channel maps to one, inbetweens by name), ``up_axis``, ``meters_per_unit``, ``default_prim``,
-    ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings) and
+    ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings,
+    ``static_meshes``: {prim path: (points[n,3] metres Y up, triangles[t,3])} for every mesh under a SkelRoot
+    without blend shapes) and
     ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing}).
 
     Raises
@@ -378,7 +383,7 @@ def read_avatar(path) -> Avatar:
 
 
 def _read_avatar_stage(stage, path: Path) -> Avatar:
-    from pxr import Usd, UsdSkel
+    from pxr import Usd, UsdGeom, UsdSkel
 
     meta = read_stage_metadata(stage, path)
     roots = _skel_roots(stage)
@@ -396,6 +401,7 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
     cache = UsdSkel.Cache()
     predicate = Usd.TraverseInstanceProxies()
     found: dict[str, tuple] = {}  # mesh path -> (prim, skel_root, skeleton, animation)
+    static: dict[str, tuple] = {}  # mesh path without blend shapes -> (prim, skinning)
     for root_prim in roots:
         root = UsdSkel.Root(root_prim)
         cache.Populate(root, predicate)
@@ -406,16 +412,20 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
             anim = str(anim_query.GetPrim().GetPath()) if anim_query else None
             for query in binding.GetSkinningTargets():
                 mesh_prim = query.GetPrim()
+                skinning = (query, skel.GetPrim()) if query.HasJointInfluences() else None
                 if _has_blend_shapes(mesh_prim):
-                    skinning = (query, skel.GetPrim()) if query.HasJointInfluences() else None
                     found.setdefault(str(mesh_prim.GetPath()), (mesh_prim, str(root_prim.GetPath()),
                                                                 str(skel.GetPath()), anim, skinning))
+                elif mesh_prim.IsA(UsdGeom.Mesh):
+                    static.setdefault(str(mesh_prim.GetPath()), (mesh_prim, skinning))
         for prim in Usd.PrimRange(root_prim, predicate):
             key = str(prim.GetPath())
             if key not in found and _has_blend_shapes(prim):
                 found[key] = (prim, str(root_prim.GetPath()), None, None, None)
                 notes.append(f"{key}: blend shapes but no skeleton binding "
                              "(no UsdSkel client will animate them)")
+            elif key not in found and prim.IsA(UsdGeom.Mesh):
+                static.setdefault(key, (prim, None))
     if not found:
         names = ", ".join(str(r.GetPath()) for r in roots)
         raise RigError(f"no mesh with blend shapes under the SkelRoot(s) {names}", path=path,
@@ -428,8 +438,18 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
         rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning)
         meshes.append(rig)
         report[key] = entry
+    static_meshes = {}
+    for key in sorted(static, key=lambda k: order.get(k, len(order))):
+        prim, skinning = static[key]
+        try:
+            points, _, _, triangles = _mesh_geometry(prim, path)
+            to_internal = _mesh_to_internal(prim, meta, skinning)
+        except UsdFaceError as exc:  # an unusable prop mesh must not stop the face from being read
+            notes.append(f"{key}: mesh without blend shapes skipped ({exc.message})")
+            continue
+        static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3], triangles)
     default_prim = stage.GetDefaultPrim()
-    metadata = {"stage": meta["authored"], "notes": notes,
+    metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
                 "documentation": stage.GetRootLayer().documentation or ""}
     return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
