@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         from usdface.io import read_capture
         from usdface.personalize import fit_personalized_shapes
 
-        cap = read_capture(ROOT / "sample_assets" / "capture")
+        cap = read_capture(ROOT / "sample_assets" / "capture.usda")
         truth = np.load(ROOT / "sample_assets" / "truth" / "capture_truth.npz")
         names = list(truth["names"])
 

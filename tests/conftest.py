@@ -32,3 +32,13 @@ def samples() -> Path:
     if not (SAMPLES / "avatar.usda").exists():
         pytest.skip("sample_assets not generated yet")
     return SAMPLES
+
+
+@pytest.fixture(scope="session")
+def sample_capture_folder(samples, tmp_path_factory) -> Path:
+    """The sample capture as a capture folder (OBJ + JSON), generated once per session into a temporary
+    folder (``usdface sample OUTDIR --folder``; the committed ``sample_assets/`` holds only capture.usda).
+    Returns the ``capture/`` folder; its parent holds the other generated files, equal to ``samples``."""
+    from usdface.sample import generate_samples
+
+    return generate_samples(tmp_path_factory.mktemp("samples") / "sample_assets", folder=True) / "capture"

@@ -29,7 +29,7 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     from pxr import Usd, UsdGeom
 
     j, png, usd = tmp_path / "r.json", tmp_path / "r.png", tmp_path / "err.usda"
-    args = ["evaluate", str(samples / "capture"), "--methods", "dt,menzel", "--reg", "0.01",
+    args = ["evaluate", str(samples / "capture.usda"), "--methods", "dt,menzel", "--reg", "0.01",
             "--json", str(j), "--plot", str(png), "--usd", str(usd),
             "--truth", str(samples / "truth" / "capture_truth.npz")]
     assert main(args) == 0

@@ -29,7 +29,7 @@ def run_methods(capture_path, truth_path, methods=("dt", "ebfr", "menzel"), pape
 
 @pytest.fixture(scope="module")
 def sample_results(samples):
-    return run_methods(samples / "capture", samples / "truth" / "capture_truth.npz", paper=True)
+    return run_methods(samples / "capture.usda", samples / "truth" / "capture_truth.npz", paper=True)
 
 
 def test_sample_ranking_matches_the_papers(sample_results):

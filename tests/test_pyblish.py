@@ -96,7 +96,7 @@ def test_publish_personalizes(registered, tmp_path, samples):
     pytest.importorskip("usdface.transfer")
     manifest = tmp_path / "publish.csv"
     manifest.write_text("avatar,capture,output,inspect\n"
-                        f"{samples / 'avatar.usda'},{samples / 'capture'},person.usda,true\n")
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},person.usda,true\n")
     context = pyblish_api.Context()
     context.data["usdfaceManifest"] = str(manifest)
     pyblish.util.publish(context)

@@ -176,7 +176,7 @@ def test_render_cli_on_result(inspected, tmp_path, capsys):
 
 
 def test_render_cli_capture_and_errors(samples, tmp_path, capsys):
-    assert main(["render", str(samples / "capture"), "-o", str(tmp_path / "cap.png")]) == 0
+    assert main(["render", str(samples / "capture.usda"), "--capture", "-o", str(tmp_path / "cap.png")]) == 0
     avatar = samples / "avatar.usda"
     assert main(["render", str(avatar), "-o", str(tmp_path / "x.png"), "--compare"]) == 2
     assert "--compare GENERIC" in capsys.readouterr().err

@@ -23,7 +23,7 @@ CENTRE = [n for n in ARKIT_NAMES if mirror_name(n) == n]
 
 @pytest.fixture(scope="module")
 def capture(samples):
-    return read_capture_folder(samples / "capture")
+    return read_capture_usd(samples / "capture.usda")
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +40,17 @@ def _files(root):
     return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
 
 
+def f32(a):
+    """``a`` rounded to float32, as capture.usda stores geometry (exact=False)."""
+    return np.asarray(a).astype(np.float32).astype(np.float64)
+
+
 def test_regeneration_is_byte_identical_to_the_committed_assets(samples, tmp_path, capsys):
     out = tmp_path / "again"
     assert main(["sample", str(out)]) == 0
     assert "capture 1" in capsys.readouterr().out
     assert _files(out) == _files(samples)
+    assert "capture/neutral.obj" not in _files(out)            # the capture folder only with --folder
     differ = [f for f in _files(samples) if (out / f).read_bytes() != (samples / f).read_bytes()]
     assert differ == [], f"regenerated files differ from sample_assets/: {differ[:10]}"
     # an existing folder is refused without --force (exit 2, nothing touched), replaced with it
@@ -95,7 +101,7 @@ def test_capture_topology_like_arkit(capture):
 def test_frames_are_neutral_plus_true_shapes_within_scan_noise(capture, capture_truth):
     T = capture_truth["deltas"]
     assert list(capture_truth["names"]) == capture.names
-    np.testing.assert_array_equal(capture_truth["neutral"], capture.neutral)
+    np.testing.assert_array_equal(capture.neutral, f32(capture_truth["neutral"]))
     for frames, w_true in ((capture.train, capture_truth["train_weights"]),
                            (capture.test, capture_truth["test_weights"])):
         residual = frames.points - capture.neutral - np.einsum("fk,knc->fnc", w_true, T)
@@ -115,7 +121,7 @@ def test_frames_are_neutral_plus_true_shapes_within_scan_noise(capture, capture_
 
 
 def test_template_is_the_generic_rig_and_truth_differs_by_millimetres(capture, capture_truth):
-    np.testing.assert_allclose(capture.template.deltas, capture_truth["template_deltas"], atol=1e-12)
+    np.testing.assert_allclose(capture.template.deltas, capture_truth["template_deltas"], rtol=0, atol=1e-7)
     T, G = capture_truth["deltas"], capture_truth["template_deltas"]
     per_shape = np.linalg.norm(T - G, axis=-1).max(axis=1) * 1000  # mm
     assert (per_shape > 0.5).all() and (per_shape < 10).all()
@@ -211,12 +217,29 @@ def test_avatar_truth_matches_capture_truth_on_the_shared_face(samples, avatar, 
         f"Mouth/{n}" for n in avatar.mesh("Mouth").names)
 
 
-def test_capture_usda_is_the_same_capture(samples, capture):
+def test_folder_variant_adds_the_capture_folder_and_changes_nothing_else(samples, sample_capture_folder):
+    """``usdface sample OUTDIR --folder`` writes the committed files byte for byte plus capture/, and that
+    folder is the capture of capture.usda: the usda equals the folder's capture rounded to float32."""
+    root = sample_capture_folder.parent
+    folder_files = _files(sample_capture_folder)
+    assert _files(root) == sorted(_files(samples) + [f"capture/{f}" for f in folder_files])
+    differ = [f for f in _files(samples) if (root / f).read_bytes() != (samples / f).read_bytes()]
+    assert differ == []
+    assert len([f for f in folder_files if f.startswith("train/") and f.endswith(".obj")]) == 52
+    folder = read_capture_folder(sample_capture_folder)
     usd = read_capture_usd(samples / "capture.usda")
-    assert usd.names == capture.names and usd.frames.label == capture.frames.label
-    np.testing.assert_array_equal(usd.triangles, capture.triangles)
-    np.testing.assert_allclose(usd.frames.points, capture.frames.points, atol=1e-7)   # float32 geometry
-    np.testing.assert_array_equal(usd.frames.weights, capture.frames.weights)
+    assert usd.names == folder.names == list(ARKIT_NAMES)
+    assert usd.frames.role == folder.frames.role and usd.frames.label == folder.frames.label
+    np.testing.assert_array_equal(usd.triangles, folder.triangles)
+    np.testing.assert_array_equal(usd.neutral, f32(folder.neutral))
+    np.testing.assert_array_equal(usd.frames.points, f32(folder.frames.points))
+    np.testing.assert_array_equal(usd.frames.weights, folder.frames.weights)
+    np.testing.assert_array_equal(usd.template.neutral, f32(folder.template.neutral))
+    np.testing.assert_allclose(usd.template.deltas, folder.template.deltas, rtol=0, atol=1e-7)
+    # and the folder holds the generator's exact (micrometre-rounded) values
+    truth = np.load(samples / "truth" / "capture_truth.npz")
+    np.testing.assert_array_equal(folder.neutral, truth["neutral"])
+    np.testing.assert_allclose(folder.template.deltas, truth["template_deltas"], rtol=0, atol=1e-12)
 
 
 def test_avatar_passes_pixar_validators(samples):
@@ -231,5 +254,7 @@ def test_avatar_passes_pixar_validators(samples):
 
 
 def test_sample_assets_size(samples):
+    """The committed sample_assets/ stays under the spec's 10 MB (README, avatar, capture.usda, truth)."""
     size = sum(p.stat().st_size for p in samples.rglob("*") if p.is_file())
-    assert size < 15e6
+    assert size < 10e6
+    assert not (samples / "capture").exists()

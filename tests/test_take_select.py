@@ -210,11 +210,11 @@ def test_sample_assets_take_acceptance(samples):
     reported by name, and the fit from the selected frames equals the fit from the hand-picked frames."""
     import warnings
 
-    from usdface.io.capture_folder import read_capture_folder
+    from usdface.io.usd_capture import read_capture_usd
     from usdface.personalize import fit_personalized_shapes
 
     truth = np.load(samples / "truth" / "capture_truth.npz")
-    capture = read_capture_folder(samples / "capture")
+    capture = read_capture_usd(samples / "capture.usda")
     names = [str(n) for n in truth["names"]]
     person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
     take, tt = make_take(person, capture.template.subset(names), skip=["mouthRollUpper", "tongueOut"], fps=20,

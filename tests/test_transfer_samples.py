@@ -18,7 +18,7 @@ def sample_fit(samples):
     from usdface.io import read_capture
     from usdface.personalize import fit_personalized_shapes
 
-    capture = read_capture(samples / "capture")
+    capture = read_capture(samples / "capture.usda")
     return capture, fit_personalized_shapes(capture).rig
 
 

@@ -7,11 +7,15 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "sample", help="generate the sample avatar + capture + truth (deterministic)",
         description="Write a procedural UsdSkel head avatar (cm, Y up, 52 ARKit shapes), a capture of a "
-                    "'person' on an ARKit-like face mask (folder + capture.usda, metres) and the ground "
-                    "truth (truth/*.npz). The same seed gives the same bytes (see docs/sample-assets.md).")
+                    "'person' on an ARKit-like face mask (capture.usda, metres; with --folder also as a "
+                    "capture folder) and the ground truth (truth/*.npz). The same seed gives the same bytes "
+                    "(see docs/sample-assets.md).")
     parser.add_argument("outdir", help="output folder (e.g. sample_assets)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0: the committed assets)")
     parser.add_argument("--force", action="store_true", help="replace an existing, non-empty folder")
+    parser.add_argument("--folder", action="store_true",
+                        help="also write the capture as a capture folder OUTDIR/capture/ (OBJ + JSON, ~9 MB; "
+                             "not part of the committed sample_assets/)")
     parser.add_argument("--picture", metavar="PNG", help="also draw the avatar and capture into this PNG")
     parser.set_defaults(func=run)
 
@@ -22,7 +26,7 @@ def run(args) -> int:
 
     from ..sample import generate_samples
 
-    out = generate_samples(args.outdir, seed=args.seed, force=args.force)
+    out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "

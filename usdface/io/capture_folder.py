@@ -19,17 +19,15 @@ shapes, then unknown names (kept, with a warning) sorted. Missing shapes are all
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..arkit import ARKIT_NAMES, match_names
-from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from ..errors import CaptureError, GeometryError, InputFileError
 from ..model import Capture, FaceRig, Frames
+from .atomic import check_output_dir, replace_dir_atomically
 from .mesh_io import read_obj, write_obj
 
 __all__ = ["read_capture_folder", "write_capture_folder", "read_weights_json", "order_names",
@@ -210,21 +208,16 @@ def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
 
     Template shapes are written as full targets (``template.neutral + deltas``) named by ``capture.names``;
     frames as ``<role>/<label>.obj`` + ``.json``. The folder is assembled next to the destination and renamed
-    into place, so a failure never leaves a half-written capture. Refuses an existing, non-empty destination
-    unless ``force``. Points and weights round-trip exactly; template deltas to float rounding of
-    ``(neutral + delta) - neutral``.
+    into place (:func:`usdface.io.atomic.replace_dir_atomically`), so a failure never leaves a half-written
+    capture. Refuses an existing, non-empty destination unless ``force`` (OutputExistsError). Points and
+    weights round-trip exactly; template deltas to float rounding of ``(neutral + delta) - neutral``.
     """
-    dest = Path(path)
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not force:
-        raise OutputExistsError("output exists", path=dest, fix="choose a new folder or pass --force")
+    dest = check_output_dir(path, force)
     labels = [f"{r}/{lab}" for r, lab in zip(capture.frames.role, capture.frames.label, strict=True)]
     if len(set(labels)) != len(labels):
         raise CaptureError("two frames share a role and label (they would overwrite each other)", path=dest,
                            fix="give every frame a unique label")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the capture is an ordinary folder
-    try:
+    with replace_dir_atomically(dest, force=force) as tmp:
         tris = capture.triangles
         write_obj(tmp / "neutral.obj", capture.neutral, tris)
         tpl = capture.template
@@ -236,14 +229,4 @@ def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
             base = tmp / fr.role[f] / fr.label[f]
             write_obj(base.with_suffix(".obj"), fr.points[f], tris)
             base.with_suffix(".json").write_text(_weights_json(capture.names, fr.weights[f]))
-        if dest.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
-            os.replace(dest, old / dest.name)
-            os.replace(tmp, dest)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return dest

@@ -1,0 +1,85 @@
+"""Atomic output folders (usdface.io.atomic): complete or untouched, never half-written, no leftovers."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from usdface.errors import OutputExistsError
+from usdface.io import atomic
+from usdface.io.atomic import check_output_dir, replace_dir_atomically
+
+
+def _tree(root):
+    return {p.relative_to(root).as_posix(): p.read_text() for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def existing(tmp_path):
+    dest = tmp_path / "out"
+    (dest / "sub").mkdir(parents=True)
+    (dest / "old.txt").write_text("old")
+    (dest / "sub" / "keep.txt").write_text("keep")
+    return dest
+
+
+def test_new_folder_appears_complete_with_normal_permissions(tmp_path):
+    dest = tmp_path / "a" / "out"
+    with replace_dir_atomically(dest) as tmp:
+        assert tmp.parent == dest.parent and tmp != dest and not dest.exists()
+        (tmp / "x.txt").write_text("x")
+    assert _tree(dest) == {"x.txt": "x"}
+    assert os.stat(dest).st_mode & 0o777 == 0o755
+    assert [p.name for p in dest.parent.iterdir()] == ["out"]
+
+
+def test_existing_folder_needs_force(existing):
+    before = _tree(existing)
+    with pytest.raises(OutputExistsError, match="force") as info:
+        with replace_dir_atomically(existing):
+            raise AssertionError("the block must not run")
+    assert str(existing) in str(info.value)
+    assert _tree(existing) == before and [p.name for p in existing.parent.iterdir()] == ["out"]
+    check_output_dir(existing.parent / "missing")           # missing and empty folders are fine
+    (existing.parent / "empty").mkdir()
+    check_output_dir(existing.parent / "empty")
+    (existing.parent / "file").write_text("f")
+    with pytest.raises(OutputExistsError, match="a file"):
+        check_output_dir(existing.parent / "file")
+
+
+def test_force_replaces_the_whole_folder(existing):
+    with replace_dir_atomically(existing, force=True) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert _tree(existing) == {"new.txt": "new"}
+    assert sorted(p.name for p in existing.parent.iterdir()) == ["out"]
+
+
+def test_failure_in_the_block_leaves_the_old_folder(existing):
+    before = _tree(existing)
+    with pytest.raises(RuntimeError, match="disk full"):
+        with replace_dir_atomically(existing, force=True) as tmp:
+            (tmp / "half.txt").write_text("half")
+            raise RuntimeError("disk full")
+    assert _tree(existing) == before
+    assert [p.name for p in existing.parent.iterdir()] == ["out"]
+
+
+def test_failed_swap_puts_the_old_folder_back(existing, monkeypatch):
+    before = _tree(existing)
+    real = os.replace
+    calls = []
+
+    def flaky(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:                              # moving the new folder into place fails
+            raise OSError("rename failed")
+        return real(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", flaky)
+    with pytest.raises(OSError, match="rename failed"):
+        with replace_dir_atomically(existing, force=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+    assert len(calls) == 3 and _tree(existing) == before
+    assert [p.name for p in existing.parent.iterdir()] == ["out"]

@@ -1,0 +1,73 @@
+"""Atomic output folders: build in a temporary sibling folder, then swap it into place.
+
+Single files are written atomically by their writers (temporary file in the same directory + ``os.replace``,
+e.g. :func:`usdface.io.layers.atomic_save`); a folder of many files (a capture folder, the sample assets) is
+assembled with :func:`replace_dir_atomically`, so a failure never leaves a half-written folder and an existing
+folder is only replaced once the new one is complete.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from ..errors import OutputExistsError
+
+__all__ = ["check_output_dir", "replace_dir_atomically"]
+
+
+def check_output_dir(path, force: bool = False) -> Path:
+    """Refuse an existing output folder that is not empty (or an existing file) unless ``force``.
+
+    Raises :class:`~usdface.errors.OutputExistsError` naming ``path``; returns it as a Path. A missing or
+    empty folder is always accepted.
+    """
+    dest = Path(path)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not force:
+        what = "output folder exists and is not empty" if dest.is_dir() else "output exists (a file)"
+        raise OutputExistsError(what, path=dest, fix="choose a new folder or pass --force (force=True)")
+    return dest
+
+
+@contextmanager
+def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
+    """Context manager: yield a new, empty temporary folder next to ``path``; when the block completes, it
+    becomes ``path``.
+
+    ``path`` is checked first (:func:`check_output_dir`: an existing non-empty folder or a file needs
+    ``force``). The temporary folder lives in ``path``'s parent (same file system, so the final rename is
+    atomic) and gets mode 0755 like an ordinary folder. On success an existing ``path`` is moved aside, the
+    new folder renamed into place, and the old one deleted (if the rename fails the old one is put back). If
+    the block raises, the temporary folder is deleted and ``path`` is left untouched.
+
+    Example::
+
+        with replace_dir_atomically(out, force=force) as tmp:
+            write_obj(tmp / "neutral.obj", points, triangles)
+    """
+    dest = check_output_dir(path, force)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
+    try:
+        yield tmp
+        if dest.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+            try:
+                os.replace(dest, old / dest.name)
+                try:
+                    os.replace(tmp, dest)
+                except BaseException:
+                    os.replace(old / dest.name, dest)
+                    raise
+            finally:
+                shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, dest)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
