@@ -65,19 +65,41 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
     return found[:2]
 
 
+class _EyeSurface:
+    """One Open3D raycasting scene of a closed eye mesh (built once, queried several times)."""
+
+    def __init__(self, points, triangles):
+        import open3d as o3d
+
+        self._o3d = o3d
+        p = np.asarray(points, dtype=np.float64)
+        self.origin = p.mean(axis=0)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor((p - self.origin).astype(np.float32)),
+                                 o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)))
+
+    def _tensor(self, queries):
+        q = np.asarray(queries, dtype=np.float64).reshape(-1, 3) - self.origin
+        return self._o3d.core.Tensor(q.astype(np.float32))
+
+    def signed_distance(self, queries) -> np.ndarray:
+        """Signed distance (m, negative inside) from ``queries[q,3]``."""
+        return self.scene.compute_signed_distance(self._tensor(queries)).numpy().astype(np.float64)
+
+    def inside(self, queries) -> np.ndarray:
+        """``[q]`` bool: inside the mesh (the same ray-parity vote that signs :meth:`signed_distance`)."""
+        return self.scene.compute_occupancy(self._tensor(queries)).numpy() > 0.5
+
+    def closest_points(self, queries) -> np.ndarray:
+        """Closest surface points ``[q,3]``."""
+        c = self.scene.compute_closest_points(self._tensor(queries))["points"].numpy()
+        return c.astype(np.float64) + self.origin
+
+
 def _signed_distance(points, triangles, queries):
     """Signed distance (m, negative inside) and closest points from ``queries[q,3]`` to a closed mesh."""
-    import open3d as o3d
-
-    p = np.asarray(points, dtype=np.float64)
-    origin = p.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((p - origin).astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)))
-    q = o3d.core.Tensor((np.asarray(queries, dtype=np.float64) - origin).astype(np.float32))
-    d = scene.compute_signed_distance(q).numpy().astype(np.float64)
-    c = scene.compute_closest_points(q)["points"].numpy().astype(np.float64) + origin
-    return d, c
+    surf = _EyeSurface(points, triangles)
+    return surf.signed_distance(queries), surf.closest_points(queries)
 
 
 def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5):
@@ -95,32 +117,50 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
 
     A penetrating vertex moves to the closest point on the eyeball surface, pushed back to the allowed depth.
     Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
+
+    The allowed depth is never positive, so only (shape, vertex) pairs inside the eye mesh can penetrate: the
+    distance queries are limited to those (bounding sphere, then Open3D's occupancy vote, the one that signs
+    its signed distance); one raycasting scene per eye.
     """
     x0 = np.asarray(neutral, dtype=np.float64)
     out = np.array(shapes, dtype=np.float64, copy=True)
-    n_shapes = out.shape[0]
     count = 0
     for eye, pts, tris in eyeballs:
+        pts = np.asarray(pts, dtype=np.float64)
         r0 = np.linalg.norm(x0 - eye.center, axis=1)
         near = np.flatnonzero(r0 < 1.5 * eye.radius)
         if near.size == 0:
             continue
-        d0, _ = _signed_distance(pts, tris, x0[near])
-        allowed = np.broadcast_to(np.minimum(d0, 0.0), (n_shapes, near.size)).copy()
+        # bounding sphere of the eye mesh (slightly enlarged for the float32 queries)
+        center = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        bound = float(np.linalg.norm(pts - center, axis=1).max()) * (1.0 + 1e-6) + 1e-6
+        pos = x0[near][None] + out[:, near]                                  # [J,k,3]
+        js, ks = np.nonzero(np.sum((pos - center) ** 2, axis=-1) <= bound ** 2)
+        if js.size == 0:
+            continue
+        surf = _EyeSurface(pts, tris)
+        if tolerance >= 0:
+            inside = surf.inside(pos[js, ks])
+            js, ks = js[inside], ks[inside]
+            if js.size == 0:
+                continue
+        verts = np.unique(ks)
+        d0 = np.zeros(near.size)
+        d0[verts] = surf.signed_distance(x0[near[verts]])
+        allowed = np.minimum(d0[ks], 0.0)
+        q = pos[js, ks]
         if reference is not None:
-            ref = x0[near][None] + np.asarray(reference)[:, near]
-            dref, _ = _signed_distance(pts, tris, ref.reshape(-1, 3))
-            allowed = np.minimum(allowed, dref.reshape(n_shapes, -1))
-        pos = x0[near][None] + out[:, near]
-        d, closest = _signed_distance(pts, tris, pos.reshape(-1, 3))
-        d = d.reshape(n_shapes, -1)
-        closest = closest.reshape(n_shapes, -1, 3)
+            ref = x0[near[ks]] + np.asarray(reference)[js, near[ks]]
+            allowed = np.minimum(allowed, surf.signed_distance(ref))
+        d = surf.signed_distance(q)
         bad = d < allowed - tolerance
         count += int(bad.sum())
         if not bad.any():
             continue
+        js, ks, q, d, allowed = js[bad], ks[bad], q[bad], d[bad], allowed[bad]
+        closest = surf.closest_points(q)
         # closest surface point, then back inside by the allowed depth along the inward direction
-        inward = (pos - closest) / np.maximum(-d, 1e-300)[..., None]
-        target = closest + inward * (-allowed)[..., None]
-        out[:, near] = np.where(bad[..., None], target - x0[near][None], out[:, near])
+        inward = (q - closest) / np.maximum(-d, 1e-300)[:, None]
+        target = closest + inward * (-allowed)[:, None]
+        out[js, near[ks]] = target - x0[near[ks]]
     return out, count
