@@ -1,14 +1,16 @@
-"""``usdface personalize`` / ``usdface retarget`` command lines on the dev1 bench case."""
+"""``usdface personalize`` / ``usdface retarget`` command lines on the dev1 bench case and the sample assets
+(inspection options)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from usdface.cli import main
+from usdface.errors import InputFileError
 
-pytestmark = pytest.mark.shared
 
-
+@pytest.mark.shared
 def test_personalize_dry_run_writes_nothing(bench, tmp_path, capsys):
     out = tmp_path / "p.usda"
     code = main(["personalize", str(bench / "dev1" / "avatar.usdc"), str(bench / "dev1" / "capture"),
@@ -21,6 +23,7 @@ def test_personalize_dry_run_writes_nothing(bench, tmp_path, capsys):
     assert (tmp_path / "c.npz").exists()
 
 
+@pytest.mark.shared
 def test_retarget_writes_csv_and_refuses_to_overwrite(bench, tmp_path, capsys):
     out = tmp_path / "map.csv"
     args = ["retarget", str(bench / "dev1" / "avatar.usdc"), str(bench / "dev1" / "capture"), "-o", str(out),
@@ -37,3 +40,65 @@ def test_personalize_bad_input_exit_2(tmp_path, capsys):
                  str(tmp_path / "o.usda"), "-q"])
     assert code == 2
     assert "missing.usdc" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags, inspect, landmarks, take", [
+    ([], False, False, None),
+    (["--inspect"], True, False, None),
+    (["--landmarks"], True, True, None),
+    (["--take", "t.csv"], True, False, "t.csv"),
+    (["--inspect", "--landmarks", "--take", "t.csv"], True, True, "t.csv"),
+])
+def test_inspection_flags_pass_through(monkeypatch, tmp_path, flags, inspect, landmarks, take):
+    """--inspect / --landmarks / --take reach usdface.api.personalize_avatar (the last two imply
+    --inspect)."""
+    import usdface.api
+
+    seen = {}
+
+    def fake(avatar, capture, out, **kwargs):
+        seen.update(kwargs)
+        raise InputFileError("stop here", path=avatar, fix="none")
+
+    monkeypatch.setattr(usdface.api, "personalize_avatar", fake)
+    assert main(["personalize", "a.usda", "c.usda", "-o", str(tmp_path / "o.usda"), "-q", *flags]) == 2
+    assert (seen["inspect"], seen["landmarks"], seen["take"]) == (inspect, landmarks, take)
+    assert seen["eyelids"] is True and seen["method"] == "menzel"
+
+
+def test_personalize_inspection_layer_on_the_sample(samples, tmp_path, capsys):
+    """``--landmarks --take FILE`` writes the heat map, the landmark Points and one SkelAnimation playing the
+    capture's test expressions followed by the take, into the result layer only."""
+    from pxr import Sdf, Usd
+
+    from usdface.io import read_capture
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.usd_inspection import ANIMATION_NAME, HEAT_PRIMVAR, read_landmarks
+
+    take_weights = np.array([[0.0, 0.0], [0.5, 0.2], [1.0, 0.4], [0.5, 0.6], [0.0, 1.0]])
+    take = write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], take_weights,
+                              np.arange(5) / 30.0)
+    out = tmp_path / "person.usda"
+    avatar_bytes = (samples / "avatar.usda").read_bytes()
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--landmarks", "--take", str(take)]) == 0
+    text = capsys.readouterr().out
+    assert "inspection: change heat map" in text and "landmark Points" in text and "take.csv" in text
+    assert (samples / "avatar.usda").read_bytes() == avatar_bytes
+    layer = Sdf.Layer.FindOrOpen(str(out))
+    head = layer.GetPrimAtPath("/Avatar/Head")
+    assert "primvars:displayColor" in head.properties and f"primvars:{HEAT_PRIMVAR}" in head.properties
+    stage = Usd.Stage.Open(str(out))
+    heat = np.asarray(stage.GetPrimAtPath("/Avatar/Head").GetAttribute(f"primvars:{HEAT_PRIMVAR}").Get())
+    assert heat.shape == (3780,) and heat.max() > 1e-4 and (heat == 0).any()  # the face changed, the back not
+    assert len(read_landmarks(stage)["/Avatar/Head"]) > 10
+    anim = stage.GetPrimAtPath(f"/Avatar/Skel/{ANIMATION_NAME}")
+    assert anim.GetTypeName() == "SkelAnimation"
+    weights_attr = anim.GetAttribute("blendShapeWeights")
+    times = weights_attr.GetTimeSamples()
+    n_test = len(read_capture(samples / "capture.usda").test)
+    assert len(times) == n_test + len(take_weights)
+    channels = list(anim.GetAttribute("blendShapes").Get())
+    last = np.asarray(weights_attr.Get(times[-1]))
+    assert last[channels.index("jawOpen")] == pytest.approx(0.0, abs=1e-6)
+    assert last[channels.index("eyeBlinkLeft")] == pytest.approx(1.0, abs=1e-6)

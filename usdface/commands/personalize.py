@@ -55,6 +55,16 @@ def register(subparsers) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="compute and print what would change; write nothing")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--inspect", action="store_true",
+                   help="also write inspection data for usdview into the layer: a displayColor heat map of "
+                        "how much each vertex changed and a SkelAnimation playing the capture's test "
+                        "expressions on the personalized avatar")
+    p.add_argument("--landmarks", action="store_true",
+                   help="with the inspection data, the personalized face's landmark layout as Points "
+                        "(about 10 s more on a 14k-vertex head; implies --inspect)")
+    p.add_argument("--take", metavar="FILE",
+                   help="append this take to the inspection animation: a Live Link Face CSV, a USD take or "
+                        "an OBJ-sequence take folder (implies --inspect)")
     p.set_defaults(func=run)
 
 
@@ -70,8 +80,10 @@ def run(args) -> int:
     if args.quiet or args.json:
         progress.set_enabled(False)
     out = Path(args.output) if args.output else _default_output(args.avatar)
+    inspect = bool(args.inspect or args.landmarks or args.take)
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
-                                command=" ".join(["usdface", *sys.argv[1:]]), **transfer_kwargs(args))
+                                command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
+                                landmarks=args.landmarks, take=args.take, **transfer_kwargs(args))
     rep = result.report
     if args.json:
         doc = {k: v for k, v in rep.items() if k != "name_report"}
@@ -89,6 +101,10 @@ def run(args) -> int:
     cor = rep["correspondence"]
     print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']} (cache: "
           f"{cor.get('cache', 'off')}); {len(rep['shapes'])} shapes implanted")
+    eyes = rep.get("eyelids")
+    if eyes and eyes["eyeballs"]:
+        print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
+              f"({', '.join(eyes['eyeballs'])})")
     for w in rep["warnings"]:
         print(f"warning: {w}")
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]
@@ -101,6 +117,10 @@ def run(args) -> int:
         print(f"would write {out}")
     else:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
+        if inspect:
+            extra = " + landmark Points" if args.landmarks else ""
+            extra += f" + take {args.take}" if args.take else ""
+            print(f"inspection: change heat map (displayColor), test-expression SkelAnimation{extra}")
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
     return 0
