@@ -102,3 +102,29 @@ def test_personalize_inspection_layer_on_the_sample(samples, tmp_path, capsys):
     last = np.asarray(weights_attr.Get(times[-1]))
     assert last[channels.index("jawOpen")] == pytest.approx(0.0, abs=1e-6)
     assert last[channels.index("eyeBlinkLeft")] == pytest.approx(1.0, abs=1e-6)
+
+
+class _ClosedPipe:
+    def write(self, text):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self):
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_closed_pipe_exits_quietly(samples, monkeypatch, capsys):
+    """``usdface inspect FILE | head``: the reader closing the pipe is no error (exit 141, no traceback)."""
+    monkeypatch.setattr("sys.stdout", _ClosedPipe())
+    assert main(["inspect", str(samples / "avatar.usda")]) == 141
+
+
+def test_closed_pipe_in_a_real_process(samples):
+    import subprocess
+    import sys
+
+    args = [sys.executable, "-m", "usdface.cli", "inspect", "--json", str(samples / "avatar.usda")]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader is gone before the first write
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
