@@ -86,20 +86,22 @@ def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:
                                 eyelids=eyelids)
 
 
-def _single_threaded_blas(func):
-    """Run ``func`` with BLAS limited to one thread when ``threadpoolctl`` is installed (optional dependency):
-    thousands of tiny (K x K) LAPACK calls run 2-3x slower with a multi-threaded BLAS on a busy machine."""
+def single_threaded_blas(func):
+    """Run ``func`` with BLAS limited to one thread (``threadpoolctl``): thousands of tiny (K x K) LAPACK
+    calls and the mid-sized products of the fit and the transfer run 2-3x slower (seconds at high load) with a
+    multi-threaded BLAS on a busy 2-core machine."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        try:
-            from threadpoolctl import threadpool_limits
-        except ImportError:
-            return func(*args, **kwargs)
+        from threadpoolctl import threadpool_limits
+
         with threadpool_limits(limits=1, user_api="blas"):
             return func(*args, **kwargs)
 
     return wrapper
+
+
+_single_threaded_blas = single_threaded_blas
 
 
 @_single_threaded_blas

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import RigError, UsdFaceError
 from ..model import Avatar, Capture, FaceRig
+from ..personalize.api import single_threaded_blas
 from ..progress import steps
 from .correspond import (
     Correspondence,
@@ -122,6 +123,10 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     return corr
 
 
+def _jacobians(neutral, deltas, triangles):
+    return deformation_gradients(neutral, neutral[None] + deltas, triangles)
+
+
 def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_triangles, person_neutral,
                    person_deltas, template_deltas, avatar_deltas, approx, *, face_transfer: str = "offset",
                    anchor_weight: float = 1.0, falloff: float | None = None, support=(0.01, 0.03)):
@@ -143,24 +148,38 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
 
     Returns ``(result[J,m,3], adjacent[J,m])``.
     """
-    mb = corr.apply(person_deltas, capture_triangles)
-    mt = corr.apply(template_deltas, capture_triangles)
-    if support is not None and face_transfer != "dt":
-        # only the personalization inside the shape's support is transferred (see personalization_support)
-        keep = personalization_support(person_deltas, template_deltas, low=support[0], high=support[1])
-        mb = mt + corr.apply((person_deltas - template_deltas) * keep[..., None], capture_triangles)
-    if face_transfer == "offset":
-        dface = avatar_deltas + mb - mt
-    elif face_transfer in ("dt", "dt-offset"):
-        sb = deformation_gradients(person_neutral, person_neutral[None] + person_deltas, capture_triangles)
-        if face_transfer == "dt":
-            dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
-                                              sb - np.eye(3), mb, anchor_weight=anchor_weight)
+    # only the face rows of M B_j, M T_j are used (the transfer and the blend read d_face on the face only)
+    f = np.flatnonzero(corr.face)
+
+    def on_face(values_face):
+        full = np.zeros(avatar_deltas.shape[:1] + (len(corr.face), 3))
+        full[:, f] = values_face
+        return full
+
+    if face_transfer == "dt":
+        dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
+                                          _jacobians(person_neutral, person_deltas, capture_triangles)
+                                          - np.eye(3),
+                                          on_face(corr.apply(person_deltas, capture_triangles, rows=f)),
+                                          anchor_weight=anchor_weight)
+    elif face_transfer in ("offset", "dt-offset"):
+        if support is not None:
+            # only the personalization inside the shape's support is transferred (personalization_support)
+            keep = personalization_support(person_deltas, template_deltas, low=support[0], high=support[1])
+            offset_f = corr.apply((person_deltas - template_deltas) * keep[..., None], capture_triangles,
+                                  rows=f)
         else:
-            st = deformation_gradients(person_neutral, person_neutral[None] + template_deltas,
-                                       capture_triangles)
+            offset_f = (corr.apply(person_deltas, capture_triangles, rows=f)
+                        - corr.apply(template_deltas, capture_triangles, rows=f))
+        offset = np.array(avatar_deltas, dtype=np.float64, copy=True)
+        offset[:, f] += offset_f                                             # avatar_deltas + M B_j - M T_j
+        if face_transfer == "offset":
+            dface = offset
+        else:
+            jac = (_jacobians(person_neutral, person_deltas, capture_triangles)
+                   - _jacobians(person_neutral, template_deltas, capture_triangles))
             dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
-                                              sb - st, avatar_deltas + mb - mt, base=avatar_deltas,
+                                              jac, offset, base=avatar_deltas,
                                               anchor_weight=anchor_weight)
     else:
         raise ValueError(f"face_transfer must be one of {FACE_TRANSFERS}")
@@ -168,6 +187,7 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
                           face_weight=corr.weight)
 
 
+@single_threaded_blas
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
                        mu: float = 1e-3, correspondence=None, force: bool = False, dry_run: bool = False,
                        face_transfer: str = "offset", approximation: str = "generic", falloff: float = 0.15,
@@ -283,10 +303,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         person_neutral = sim.apply(rig.neutral)
         person_deltas = sim.apply_vectors(rig.deltas[b_idx])
         tmpl_av = sim.apply_vectors(template_deltas)
-        mb = corr.apply(person_deltas, capture.triangles)
         f = corr.face
+        mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights = retarget_weights(face.deltas[:, f], mb[:, f], mu=mu)
+        weights = retarget_weights(face.deltas[:, f], mb_face, mu=mu)
         approx_eq4 = {}
         for m in avatar.meshes:
             key = m.source.prim if m.source else m.name

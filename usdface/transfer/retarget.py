@@ -36,18 +36,18 @@ def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
     k = d.shape[0]
     a = d.reshape(k, -1)  # [K, 3m]
     t = np.asarray(targets, dtype=np.float64).reshape(-1, a.shape[1])  # [J, 3m]
-    # einsum, not BLAS GEMM: these products are small, and a multi-threaded BLAS on a busy machine can
-    # take seconds for them (measured: 1.9 s vs 3 ms for the 51 x 20k Gram matrix at load 10 on 2 cores).
-    gram = np.einsum("ik,jk->ij", a, a)
+    # BLAS products: personalize_avatar caps BLAS at one thread (a multi-threaded BLAS on a busy 2-core
+    # machine took 1.9 s for this 51 x 20k Gram matrix at load 10; single-threaded it is ~2 ms)
+    gram = a @ a.T
     lam = mu * float(np.trace(gram)) / max(k, 1)
-    rhs = np.einsum("ik,jk->ij", a, t)  # [K, J]
+    rhs = a @ t.T  # [K, J]
     return np.linalg.solve(gram + lam * np.eye(k), rhs).T
 
 
 def approximate(weights, deltas) -> np.ndarray:
     """``A[J,n,3] = weights[J,K] @ deltas[K,n,3]`` (the approximations A_j on one mesh)."""
     d = np.asarray(deltas, dtype=np.float64)
-    flat = np.einsum("jk,kx->jx", np.asarray(weights, dtype=np.float64), d.reshape(d.shape[0], -1))
+    flat = np.asarray(weights, dtype=np.float64) @ d.reshape(d.shape[0], -1)
     return flat.reshape(-1, *d.shape[1:])
 
 
