@@ -19,7 +19,14 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import GeometryError
-from ..mesh import boundary_loops, deformation_gradients, gradient_operator, triangle_areas
+from ..mesh import (
+    boundary_loops,
+    frame_vectors,
+    gradient_coefficients,
+    gradient_operator,
+    inverse_rest_frames,
+    triangle_areas,
+)
 
 __all__ = ["PoissonSolver", "eyelid_triangles", "zip_loop", "deformation_transfer"]
 
@@ -48,10 +55,13 @@ class PoissonSolver:
         self.rest = np.asarray(rest, dtype=np.float64)
         self.triangles = np.asarray(triangles, dtype=np.int64)
         n = len(self.rest)
-        self.G = gradient_operator(self.rest, self.triangles)
+        self.C = gradient_coefficients(self.rest, self.triangles)            # [t,3,3], G's entries
+        self.G = gradient_operator(self.rest, self.triangles, coefficients=self.C)
         a = triangle_areas(self.rest, self.triangles)
         if tri_weights is not None:
             a = a * np.asarray(tri_weights, dtype=np.float64)
+        self.area = a
+        self._scatter = None
         self.W = sp.diags(np.repeat(a, 3))
         self.GtW = (self.G.T @ self.W).tocsr()
         A = (self.GtW @ self.G).tocsc()
@@ -93,7 +103,36 @@ class PoissonSolver:
         # column (shape s, coordinate c) of the right-hand side holds Q^T rows: entry (3f + r) = Q[s, f, c, r]
         rhs = Q.transpose(1, 3, 0, 2).reshape(3 * t, 3 * m)
         B = (self.GtW @ rhs).reshape(-1, m, 3)                                                # [n,m,3]
-        n = len(self.rest)
+        return self._solve_rhs(B, reference, fixed_points).reshape(lead + (len(self.rest), 3))
+
+    def solve_transfer(self, source: np.ndarray, deformed: np.ndarray, *, reference: np.ndarray | None = None,
+                       fixed_points: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`solve` for the deformation gradients ``Q = V~ V^-1`` of ``source[n,3] -> deformed[m,n,3]``
+        (Sumner & Popović eq. 3, :func:`usdface.mesh.deformation_gradients`, on this solver's triangles),
+        without forming them: ``G^T W Q`` is assembled per triangle as ``V~ (a V^-1 c_k)`` for its three
+        vertices k (``c_k`` the gradient coefficients), one sparse scatter for all shapes. Same result as
+        ``solve(deformation_gradients(source, deformed, triangles))`` up to rounding. Returns ``[m,n,3]``."""
+        tri = self.triangles
+        n, t = len(self.rest), len(tri)
+        P = np.asarray(deformed, dtype=np.float64).reshape(-1, n, 3)
+        m = P.shape[0]
+        # u[f,k] = a_f V_f^-1 c_k[f]: the rest-side factor of triangle f's contribution to its vertex k
+        u = self.area[:, None, None] * np.einsum("tij,tkj->tki", inverse_rest_frames(source, tri), self.C)
+        e1, e2, e3 = frame_vectors(np.ascontiguousarray(P.transpose(1, 0, 2)), tri, axis=0)   # [t,m,3]
+        contrib = np.empty((3, t, m, 3))
+        for k in range(3):
+            contrib[k] = (e1 * u[:, k, 0, None, None] + e2 * u[:, k, 1, None, None]
+                          + e3 * u[:, k, 2, None, None])
+        if self._scatter is None:      # [n, 3t]: contribution (k, f) goes to vertex tri[f, k]
+            self._scatter = sp.csr_matrix((np.ones(3 * t), (tri.T.ravel(), np.arange(3 * t))),
+                                          shape=(n, 3 * t))
+        B = (self._scatter @ contrib.reshape(3 * t, 3 * m)).reshape(n, m, 3)
+        return self._solve_rhs(B, reference, fixed_points)
+
+    def _solve_rhs(self, B, reference, fixed_points):
+        """Solve ``A X = B`` (``B[n,m,3]`` = ``G^T W Q``) with the screening / fixed vertices -> ``[m,n,3]``.
+        """
+        n, m = B.shape[0], B.shape[1]
         if self.fixed is None:
             ref = self.rest if reference is None else np.asarray(reference, dtype=np.float64)
             ref = np.broadcast_to(ref.reshape((-1, n, 3)) if ref.ndim > 2 else ref, (m, n, 3))
@@ -114,7 +153,7 @@ class PoissonSolver:
             X[self.free] = Xf
             X[self.fixed] = fp.transpose(1, 0, 2)
             X = X.transpose(1, 0, 2)
-        return X.reshape(lead + (n, 3))
+        return X
 
 
 def zip_loop(points: np.ndarray, loop: np.ndarray) -> np.ndarray:
@@ -224,10 +263,10 @@ def deformation_transfer(source_neutral: np.ndarray, source_deltas: np.ndarray, 
         solver = PoissonSolver(tgt, all_tris, fixed=fixed)
     else:
         all_tris = solver.triangles
-    Q = deformation_gradients(src, src[None] + D, all_tris)     # [K,t,3,3]
+    # the deformation gradients S_j = V~_j V^-1 enter only through G^T W S_j: assembled without forming them
     if solver.fixed is None:
-        X = solver.solve(Q, reference=tgt[None] + D)
+        X = solver.solve_transfer(src, src[None] + D, reference=tgt[None] + D)
     else:
         fd = np.asarray(fixed_deltas, dtype=np.float64).reshape(len(D), -1, 3)
-        X = solver.solve(Q, fixed_points=tgt[solver.fixed][None] + fd)
+        X = solver.solve_transfer(src, src[None] + D, fixed_points=tgt[solver.fixed][None] + fd)
     return X - tgt[None]
