@@ -473,8 +473,15 @@ def test_bench_avatar_and_its_blender_round_trip(bench):
     for name in ("Head", "Mouth"):
         a, b = avatar.mesh(name), blender.mesh(name)
         assert a.names == b.names
-        np.testing.assert_allclose(b.neutral, a.neutral, atol=5e-7)  # Blender's float32 0.01 scale/rotation
-        np.testing.assert_allclose(b.deltas, a.deltas, atol=5e-7, rtol=1e-5)
+        # the same float32 cm points; Blender's float32 0.01 scale and 89.99999237 deg rotation are snapped
+        # to the exact transform, so the neutral is identical
+        np.testing.assert_array_equal(b.neutral, a.neutral)
+        # the offsets carry Blender's own float32 noise (shape keys are stored as absolute positions)
+        np.testing.assert_allclose(b.deltas, a.deltas, atol=1e-7)
+    unsnapped = read_avatar(bench / "dev1" / "avatar_blender.usdc", snap_transforms=False).mesh("Head")
+    assert 1e-8 < np.abs(unsnapped.neutral - avatar.mesh("Head").neutral).max() < 5e-7
+    assert any("snapped" in note and "/root/Avatar/Head/Head" in note for note in blender.metadata["notes"])
+    assert not any("snapped" in note for note in avatar.metadata["notes"])
     inexact = blender.name_report["/root/Avatar/Mouth/Mouth"]["inexact"]
     assert len(inexact) == 50 and ["eyeBlinkLeft2", "eyeBlinkLeft", "fallback"] in inexact
     assert blender.metadata["stage"]["upAxis"] == "Z" and "timeCodesPerSecond" in blender.metadata["stage"]
@@ -601,3 +608,34 @@ def test_sample_and_bench_eye_meshes_are_read(samples, bench):
     blender = read_avatar(bench / "dev1" / "avatar_blender.usdc").metadata["static_meshes"]
     np.testing.assert_allclose(blender["/root/Avatar/EyeLeft/EyeLeft"][0], plain["/Avatar/EyeLeft"][0],
                                atol=5e-7)
+
+
+def test_snap_transform_removes_float32_export_noise_only():
+    from pxr import Gf
+
+    from usdface.io.usd_rig import gf_matrix_to_numpy, snap_transform
+
+    def xform(rotate_xyz, scale):  # rotateXYZ then scale, as Blender authors them (float32 values)
+        rot = Gf.Matrix4d().SetRotate(Gf.Rotation(Gf.Vec3d(1, 0, 0), rotate_xyz[0]))
+        return gf_matrix_to_numpy(Gf.Matrix4d().SetScale(Gf.Vec3d(*scale)) * rot)
+
+    exact = xform((90.0, 0, 0), (0.01, 0.01, 0.01))
+    noisy = xform((float(np.float32(89.99999237060547)), 0, 0),
+                  (0.009999998845160007, 0.009999999776482582, 0.009999999776482582))
+    assert np.abs(noisy - exact).max() > 1e-10
+    snapped, change = snap_transform(noisy)
+    np.testing.assert_array_equal(snapped[:3, :3], np.round(exact[:3, :3], 12))
+    assert 0 < change < 2e-7
+    # already exact: untouched; a mirror is an axis permutation with signs too
+    mirror = np.diag([-0.01, 0.01, 0.01, 1.0])
+    assert snap_transform(mirror)[1] == 0.0 and (snap_transform(mirror)[0] == mirror).all()
+    # real rotations and non-uniform scales are authored on purpose: unchanged
+    for kept in (xform((89.99, 0, 0), (0.01, 0.01, 0.01)), xform((90.0, 0, 0), (0.01, 0.0101, 0.01)),
+                 xform((35.0, 0, 0), (1.0, 1.0, 1.0))):
+        out, change = snap_transform(kept)
+        assert change == 0.0 and (out == kept).all()
+    # a scale that is not a short decimal keeps its value; only the rotation noise goes
+    third = xform((float(np.float32(90.0 + 4e-6)), 0, 0), (1 / 3, 1 / 3, 1 / 3))
+    out, _ = snap_transform(third)
+    np.testing.assert_allclose(np.abs(out[:3, :3]).sum(axis=0), 1 / 3, rtol=1e-15)
+    assert (np.count_nonzero(out[:3, :3], axis=0) == 1).all()

@@ -71,6 +71,46 @@ def gf_matrix_to_numpy(matrix) -> np.ndarray:
     return np.array(matrix, dtype=np.float64).reshape(4, 4).T
 
 
+#: Relative deviation (float32 export noise: ~2 ulps) within which a transform counts as an exact one.
+SNAP_TOLERANCE = 2e-7
+
+
+def snap_transform(matrix, tolerance: float = SNAP_TOLERANCE) -> tuple[np.ndarray, float]:
+    """Remove float32 export noise from a ``[4,4]`` (column-vector) transform's linear part.
+
+    DCCs write rotations and scales as float32 (Blender 5.0: ``rotateXYZ`` 89.99999237 instead of 90, scale
+    0.0099999988 on X and 0.0099999998 on Y/Z), so a re-exported avatar sits up to ~2e-7 m (at 1.6 m) away
+    from the original, below the float32 resolution of its points but enough for the non-rigid registration to
+    amplify it. When the linear part is, within ``tolerance`` relative per element, a uniform scale ``s``
+    times an axis permutation with signs, it is replaced by that exact transform, with ``s`` rounded to 6
+    significant digits when that is also within ``tolerance``. Anything else (a real rotation, a non-uniform
+    scale) is returned unchanged. Returns ``(matrix[4,4], largest relative change of an element)``.
+    """
+    m = np.array(matrix, dtype=np.float64)
+    linear = m[:3, :3]
+    if not np.isfinite(m).all():
+        return m, 0.0
+    det = float(np.linalg.det(linear))
+    if det == 0.0:
+        return m, 0.0
+    scale = abs(det) ** (1.0 / 3.0)
+    axes = np.round(linear / scale)
+    if not (np.abs(axes).sum(axis=0) == 1).all() or not (np.abs(axes).sum(axis=1) == 1).all():
+        return m, 0.0
+    if np.abs(linear / scale - axes).max() > tolerance:
+        return m, 0.0
+    rounded = float(f"{scale:.6g}")
+    if abs(rounded - scale) <= tolerance * scale:
+        scale = rounded
+    exact = axes * scale
+    change = float(np.abs(exact - linear).max() / scale)
+    m[:3, :3] = exact
+    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() <= tolerance:  # geomBindTransform's 1.0000000000000002
+        change = max(change, float(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max()))
+        m[3] = [0.0, 0.0, 0.0, 1.0]
+    return m, change
+
+
 def fan_triangulate(face_vertex_counts, face_vertex_indices) -> np.ndarray:
     """Fan-triangulate polygons: ``counts[f]``, ``indices[sum(counts)]`` -> ``triangles[t, 3]`` int64.
 
@@ -198,12 +238,14 @@ def _mesh_geometry(mesh_prim, path):
     return points, counts, indices, fan_triangulate(counts, indices)
 
 
-def _mesh_to_internal(mesh_prim, stage_meta, skinning=None) -> np.ndarray:
+def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None = None) -> np.ndarray:
     """``to_internal[4,4]``: mesh-local authored coordinates -> internal metres, Y up (column vectors).
 
     A mesh skinned by a Skeleton is placed the UsdSkel way, ignoring its own and its ancestors' xformOps:
     ``world = Skeleton local-to-world * geomBindTransform`` (the bind pose). Any other mesh uses its full
-    local-to-world transform (every ancestor).
+    local-to-world transform (every ancestor). Composed in double precision (``Gf.Matrix4d``). With a
+    ``snapped`` list, float32 export noise is removed (:func:`snap_transform`) and ``(prim, change)`` appended
+    when that changed the matrix.
     """
     from pxr import Usd, UsdGeom
 
@@ -216,11 +258,16 @@ def _mesh_to_internal(mesh_prim, stage_meta, skinning=None) -> np.ndarray:
     else:
         local_to_world = gf_matrix_to_numpy(
             UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
-    return stage_to_internal(stage_meta["upAxis"], stage_meta["metersPerUnit"]) @ local_to_world
+    to_internal = stage_to_internal(stage_meta["upAxis"], stage_meta["metersPerUnit"]) @ local_to_world
+    if snapped is not None:
+        to_internal, change = snap_transform(to_internal)
+        if change > 0:
+            snapped.append((str(mesh_prim.GetPath()), change))
+    return to_internal
 
 
 def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
-               skinning=None) -> tuple:
+               skinning=None, snapped: list | None = None) -> tuple:
     """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
     prim) when joint influences bind it to a skeleton."""
     from pxr import UsdSkel
@@ -240,7 +287,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                        fix="give every blend shape channel a unique name")
     points, counts, indices, triangles = _mesh_geometry(mesh_prim, path)
     n = len(points)
-    to_internal = _mesh_to_internal(mesh_prim, stage_meta, skinning)
+    to_internal = _mesh_to_internal(mesh_prim, stage_meta, skinning, snapped)
     if not np.isfinite(to_internal).all() or abs(np.linalg.det(to_internal[:3, :3])) < 1e-300:
         raise GeometryError("the mesh's world transform is singular or not finite", path=path, prim=prim,
                             fix="fix the xformOps of the mesh and its ancestors")
@@ -348,12 +395,14 @@ def _has_blend_shapes(prim) -> bool:
                 or binding.GetBlendShapeTargetsRel().GetTargets())
 
 
-def read_avatar(path) -> Avatar:
+def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
 
     Parameters
     ----------
     path : .usd/.usda/.usdc file (the root layer of the avatar).
+    snap_transforms : remove float32 export noise from the meshes' world transforms (:func:`snap_transform`;
+        a DCC round trip then reads to the same numbers as the original); each snapped mesh gets a note.
 
     Returns
     -------
@@ -374,7 +423,7 @@ def read_avatar(path) -> Avatar:
     path = Path(path)
     stage = _open_stage(path)
     try:
-        return _read_avatar_stage(stage, path)
+        return _read_avatar_stage(stage, path, snap_transforms)
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
@@ -382,7 +431,7 @@ def read_avatar(path) -> Avatar:
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
-def _read_avatar_stage(stage, path: Path) -> Avatar:
+def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
     meta = read_stage_metadata(stage, path)
@@ -433,9 +482,11 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
 
     order = {str(p.GetPath()): i for i, p in enumerate(stage.Traverse(predicate))}
     meshes, report = [], {}
+    snapped: list | None = [] if snap_transforms else None
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
         prim, skel_root, skeleton, anim, skinning = found[key]
-        rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning)
+        rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning,
+                                snapped)
         meshes.append(rig)
         report[key] = entry
     static_meshes = {}
@@ -443,11 +494,15 @@ def _read_avatar_stage(stage, path: Path) -> Avatar:
         prim, skinning = static[key]
         try:
             points, _, _, triangles = _mesh_geometry(prim, path)
-            to_internal = _mesh_to_internal(prim, meta, skinning)
+            to_internal = _mesh_to_internal(prim, meta, skinning, snapped)
         except UsdFaceError as exc:  # an unusable prop mesh must not stop the face from being read
             notes.append(f"{key}: mesh without blend shapes skipped ({exc.message})")
             continue
         static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3], triangles)
+    if snapped:
+        worst = max(c for _, c in snapped)
+        notes.append(f"world transforms of {', '.join(p for p, _ in snapped)} snapped to exact axis-aligned "
+                     f"rotation and scale (float32 export noise, largest change {worst:.1e} relative)")
     default_prim = stage.GetDefaultPrim()
     metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
                 "documentation": stage.GetRootLayer().documentation or ""}
