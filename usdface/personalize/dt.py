@@ -25,6 +25,7 @@ from ..mesh import (
     gradient_coefficients,
     gradient_operator,
     inverse_rest_frames,
+    spd_lu,
     triangle_areas,
 )
 
@@ -47,7 +48,7 @@ class PoissonSolver:
         screening term (relative weight ``screen``) that makes the mean displacement match a reference.
     tri_weights : optional extra per-triangle weights[t] (multiplied with the areas).
 
-    One sparse LU (:func:`scipy.sparse.linalg.splu`) is computed here and reused by every :meth:`solve`.
+    One sparse LU (:func:`usdface.mesh.spd_lu`) is computed here and reused by every :meth:`solve`.
     """
 
     def __init__(self, rest: np.ndarray, triangles: np.ndarray, *, fixed=None, tri_weights=None,
@@ -74,7 +75,7 @@ class PoissonSolver:
             self.fixed = None
             self.free = np.arange(n)
             self.eps = screen * A.diagonal().mean() / mass.mean()
-            self._lu = splu((A + sp.diags(self.eps * mass)).tocsc())
+            self._lu = spd_lu(A + sp.diags(self.eps * mass))
         else:
             mask = np.ones(n, bool)
             mask[self.fixed] = False
@@ -83,7 +84,7 @@ class PoissonSolver:
             A_ff = A[self.free][:, self.free].tocsc()
             self.eps = 0.0
             try:
-                self._lu = splu(A_ff)
+                self._lu = splu(A_ff.tocsc())  # default pivoting: reports a singular (unfixed) part
             except RuntimeError as exc:
                 raise GeometryError("partial deformation transfer: a free part has no fixed vertex",
                                     fix="fix at least one vertex in every connected part") from exc
