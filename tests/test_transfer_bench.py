@@ -143,38 +143,21 @@ def test_missing_shapes_are_reported(bench, dev1):
     assert "jawOpen" not in res.names and head
 
 
-def _eye_meshes(path):
-    """Eye meshes (no blend shapes, so not in read_avatar's result) in internal metres, read with pxr."""
-    from pxr import Usd, UsdGeom
-
-    stage = Usd.Stage.Open(str(path))
-    mpu = UsdGeom.GetStageMetersPerUnit(stage)
-    eyes = {}
-    for prim in stage.Traverse():
-        if prim.IsA(UsdGeom.Mesh) and "Eye" in prim.GetName():
-            mesh = UsdGeom.Mesh(prim)
-            pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
-            xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(0)).T
-            pts = (pts @ xf[:3, :3].T + xf[:3, 3]) * mpu
-            tris = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
-            eyes[str(prim.GetPath())] = (pts, tris)
-    return eyes
-
-
 def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
+    from usdface.io.usd_rig import read_avatar
     from usdface.transfer import personalize_avatar
     from usdface.transfer.eyelids import _signed_distance, find_eyeballs
 
-    eyes = _eye_meshes(bench / "dev1" / "avatar.usdc")
-    res = personalize_avatar(bench / "dev1" / "avatar.usdc", dev1[0], None, rig=dev1[1], eyes=eyes)
+    avatar = bench / "dev1" / "avatar.usdc"
+    eyes = read_avatar(avatar).metadata["static_meshes"]  # the eyes carry no blend shapes
+    res, _ = dev1_result  # default settings: eyes found in the avatar, repair on
     assert sorted(res.report["eyelids"]["eyeballs"]) == ["/Avatar/EyeLeft", "/Avatar/EyeRight"]
     assert res.report["eyelids"]["repaired_vertex_shapes"] > 0
-    ref, _ = dev1_result
+    ref = personalize_avatar(avatar, dev1[0], None, rig=dev1[1], eyelids=False)
     key = next(k for k in res.offsets if k.endswith("Head"))
-    from usdface.io.usd_rig import read_avatar
-
-    head = read_avatar(bench / "dev1" / "avatar.usdc").mesh("Head")
+    head = read_avatar(avatar).mesh("Head")
     idx = [head.index(n) for n in res.names]
+    eyes = {k: v for k, v in eyes.items() if "Eye" in k}
     for eye in find_eyeballs({k: v[0] for k, v in eyes.items()}):
         pts, tris = eyes[eye.name]
         near = np.flatnonzero(np.linalg.norm(head.neutral - eye.center, axis=1) < 1.5 * eye.radius)
