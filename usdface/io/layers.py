@@ -192,14 +192,21 @@ def effective_point_set(primary: np.ndarray, extra=(), rtol: float = SPARSE_RELA
 # ---------------------------------------------------------------------------------------------------------
 # the writer
 # ---------------------------------------------------------------------------------------------------------
+def avatar_mesh(avatar: Avatar, key: str, context: str = "in the avatar") -> FaceRig:
+    """``avatar.mesh(key)`` (prim name or path), raising :class:`~usdface.errors.RigError` naming the avatar
+    file and the meshes it does have when there is no such mesh."""
+    try:
+        return avatar.mesh(key)
+    except KeyError:
+        meshes = ", ".join(m.source.prim if m.source else m.name for m in avatar.meshes)
+        raise RigError(f"no mesh {key!r} {context}", path=avatar.file,
+                       fix=f"use one of {meshes}" if meshes else "pass an avatar with a face rig") from None
+
+
 def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, np.ndarray]]:
     out = []
     for key, deltas in offsets.items():
-        try:
-            rig = avatar.mesh(key)
-        except KeyError:
-            raise RigError(f"no mesh {key!r} in the avatar", path=avatar.file,
-                           fix=f"use one of {', '.join(m.source.prim for m in avatar.meshes)}") from None
+        rig = avatar_mesh(avatar, key)
         if rig.source is None or not rig.source.prim:
             raise RigError(f"mesh {key!r} has no USD source to write over", path=avatar.file,
                            fix="read the avatar with usdface.io.usd_rig.read_avatar")
@@ -368,11 +375,7 @@ def _author_primvars(stage, avatar: Avatar, primvars: dict):
     from pxr import Sdf, UsdGeom, Vt
 
     for key, entries in primvars.items():
-        try:
-            rig = avatar.mesh(key)
-        except KeyError:
-            raise RigError(f"no mesh {key!r} for primvars", path=avatar.file,
-                           fix=f"use one of {', '.join(m.source.prim for m in avatar.meshes)}") from None
+        rig = avatar_mesh(avatar, key, "for primvars")
         api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(rig.source.prim))
         for name, (values, interpolation) in entries.items():
             name = name.removeprefix("primvars:")

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import GeometryError, InputFileError
 
-__all__ = ["read_obj", "write_obj"]
+__all__ = ["read_obj", "write_obj", "fan_triangulate"]
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -114,11 +114,12 @@ def _face_triangles(lines: list[bytes], all_lines: list[bytes], path: Path) -> n
         idx = idx - 1
     if (counts == 3).all():
         return idx.reshape(-1, 3)
-    return _fan(counts, idx)
+    return fan_triangulate(counts, idx)
 
 
-def _fan(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Fan-triangulate polygons (``counts[faces]`` corners, flat 0-based ``idx``): (v0, v_i, v_i+1)."""
+def fan_triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons (``counts[faces]`` corners, flat 0-based ``idx``): (v0, v_i, v_i+1) ->
+    ``triangles[t, 3]``; vectorized (OBJ faces and USD ``faceVertexCounts``/``faceVertexIndices``)."""
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     n_tri = counts - 2
     face_of_tri = np.repeat(np.arange(len(counts)), n_tri)
@@ -191,7 +192,7 @@ def _fast_parse(data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
     if counts.min() < 3:
         return None
     corners = np.delete(idx, marks) - 1
-    tris = corners.reshape(-1, 3) if (counts == 3).all() else _fan(counts, corners)
+    tris = corners.reshape(-1, 3) if (counts == 3).all() else fan_triangulate(counts, corners)
     return rec[:, 1:].copy(), tris
 
 

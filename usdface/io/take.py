@@ -280,24 +280,17 @@ def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) ->
 
 def write_take_folder(take: Take, path, force: bool = False) -> Path:
     """Write a take as ``frames/NNNNN.obj`` + ``take.csv`` (Live Link Face layout) [+ ``neutral.obj``,
-    ``template/``]: the OBJ-sequence form :func:`read_take_folder` reads."""
-    import os
-    import shutil
-    import tempfile
-
-    from ..errors import OutputExistsError
+    ``template/``]: the OBJ-sequence form :func:`read_take_folder` reads. Built in a temporary folder and
+    swapped in (:func:`usdface.io.atomic.replace_dir_atomically`); an existing non-empty folder needs
+    ``force``."""
+    from .atomic import check_output_dir, replace_dir_atomically
     from .livelink import write_livelink_csv
     from .mesh_io import write_obj
 
-    dest = Path(path)
-    if dest.exists() and not force:
-        raise OutputExistsError("output exists", path=dest, fix="choose a new folder or pass --force")
+    dest = check_output_dir(path, force)
     if take.points is None:
         raise CaptureError("the take has no meshes", path=dest, fix="a take folder needs one OBJ per frame")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    os.chmod(tmp, 0o755)
-    try:
+    with replace_dir_atomically(dest, force=force) as tmp:
         for f in range(len(take)):
             write_obj(tmp / "frames" / f"{f:05d}.obj", take.points[f], take.triangles)
         write_livelink_csv(tmp / "take.csv", take.names, take.weights, take.times)
@@ -308,12 +301,6 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
             write_obj(tmp / "template" / "neutral.obj", tpl.neutral, tpl.triangles)
             for k, name in enumerate(tpl.names):
                 write_obj(tmp / "template" / f"{name}.obj", tpl.neutral + tpl.deltas[k], tpl.triangles)
-        if dest.exists():
-            shutil.rmtree(dest)
-        os.replace(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return dest
 
 

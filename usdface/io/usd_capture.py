@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsError
 from ..model import Capture, FaceRig, Frames
 from .capture_folder import ROLES
+from .mesh_io import fan_triangulate
 
 __all__ = ["write_capture_usd", "read_capture_usd", "author_template", "author_frames", "CAPTURE_PRIM",
            "DISPLAY_SPACING"]
@@ -301,12 +302,7 @@ def _triangles(prim, path) -> np.ndarray:
     if counts.size == 0 or counts.min() < 3 or counts.sum() != idx.size:
         raise GeometryError("invalid or empty faces (faceVertexCounts/faceVertexIndices)", path=path,
                             prim=prim.GetPath(), fix="re-create the capture with 'usdface capture import'")
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    n_tri = counts - 2
-    face = np.repeat(np.arange(len(counts)), n_tri)
-    corner = np.arange(int(n_tri.sum())) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri) + 1
-    first = start[face]
-    return np.stack([idx[first], idx[first + corner], idx[first + corner + 1]], axis=1)
+    return fan_triangulate(counts, idx)
 
 
 def _child(stage, prim_path, path, kind):

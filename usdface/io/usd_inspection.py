@@ -40,11 +40,9 @@ HEAT_PRIMVAR = "usdface:heat"
 
 
 def _rig(avatar: Avatar, key: str):
-    try:
-        rig = avatar.mesh(key)
-    except KeyError:
-        raise RigError(f"no mesh {key!r} in the avatar", path=avatar.file,
-                       fix=f"use one of {', '.join(m.name for m in avatar.meshes)}") from None
+    from .layers import avatar_mesh
+
+    rig = avatar_mesh(avatar, key)
     if rig.source is None:
         raise RigError(f"mesh {key!r} has no USD source", path=avatar.file,
                        fix="read the avatar with read_avatar")
