@@ -23,10 +23,11 @@ from scipy.sparse.csgraph import connected_components
 from .errors import GeometryError
 
 __all__ = [
-    "triangle_normals", "triangle_areas", "frame_vectors", "triangle_frames", "inverse_rest_frames",
-    "deformation_gradients", "gradient_coefficients", "gradient_operator",
+    "triangle_normals", "vertex_normals", "triangle_areas", "frame_vectors", "triangle_frames",
+    "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
-    "boundary_edges", "boundary_loops", "mesh_scale", "check_triangles", "spd_lu",
+    "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
+    "check_triangles", "spd_lu",
 ]
 
 
@@ -59,6 +60,16 @@ def triangle_normals(points: np.ndarray, triangles: np.ndarray, *, unit: bool = 
         return c
     length = np.linalg.norm(c, axis=-1, keepdims=True)
     return np.divide(c, length, out=np.zeros_like(c), where=length > 0)
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[n,3]`` (zero for isolated vertices)."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    fn = triangle_normals(p, t, unit=False)
+    idx, w = t.T.ravel(), np.concatenate([fn, fn, fn])   # corner k of every triangle, k = 0, 1, 2
+    vn = np.stack([np.bincount(idx, weights=w[:, c], minlength=len(p)) for c in range(3)], axis=1)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -119,24 +130,31 @@ def deformation_gradients(source: np.ndarray, deformed: np.ndarray, triangles: n
             + Vd[..., :, 2:3] * Vi[:, 2:3, :])
 
 
-def gradient_coefficients(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def gradient_coefficients(points: np.ndarray, triangles: np.ndarray, *,
+                          allow_degenerate: bool = False) -> np.ndarray:
     """Per-triangle coefficients ``C[t,3,3]`` of :func:`gradient_operator`: row r of ``Q_f^T`` is
-    ``sum_k C[f,k,r] x_{tri[f,k]}`` (``C[f,k]`` = the rest-plane gradient of vertex k's hat function)."""
+    ``sum_k C[f,k,r] x_{tri[f,k]}`` (``C[f,k]`` = the rest-plane gradient of vertex k's hat function).
+    Degenerate triangles raise GeometryError, or get zero coefficients with ``allow_degenerate``."""
     _, e1, e2 = _edge_vectors(points, triangles)
     E = np.stack([e1, e2], axis=-1)                     # [t,3,2]
     EtE = np.einsum("tji,tjk->tik", E, E)               # [t,2,2]
     det = EtE[:, 0, 0] * EtE[:, 1, 1] - EtE[:, 0, 1] ** 2
-    if np.any(det <= 1e-30 * np.maximum(np.trace(EtE, axis1=1, axis2=2), 1e-300) ** 2):
-        raise GeometryError(f"{int(np.sum(det <= 0))} degenerate triangle(s) in the rest mesh",
-                            fix="remove zero-area triangles from the rest mesh")
+    bad = det <= 1e-30 * np.maximum(np.trace(EtE, axis1=1, axis2=2), 1e-300) ** 2
+    if np.any(bad):
+        if not allow_degenerate:
+            raise GeometryError(f"{int(np.sum(det <= 0))} degenerate triangle(s) in the rest mesh",
+                                fix="remove zero-area triangles from the rest mesh")
+        EtE[bad] = np.eye(2)
     Epinv = np.linalg.solve(EtE, np.swapaxes(E, 1, 2))  # [t,2,3] = (E^T E)^-1 E^T
+    if np.any(bad):
+        Epinv[bad] = 0.0
     c1 = Epinv[:, 0, :]                                  # [t,3] coefficient of (x1 - x0) in row r
     c2 = Epinv[:, 1, :]
     return np.stack([-(c1 + c2), c1, c2], axis=1)
 
 
-def gradient_operator(points: np.ndarray, triangles: np.ndarray, *,
-                      coefficients: np.ndarray | None = None) -> sp.csr_matrix:
+def gradient_operator(points: np.ndarray, triangles: np.ndarray, *, coefficients: np.ndarray | None = None,
+                      allow_degenerate: bool = False) -> sp.csr_matrix:
     """Sparse operator ``G[3t, n]`` of the vertex-only deformation gradient (Botsch et al. 2006 form of
     Sumner & Popović's reconstruction).
 
@@ -144,9 +162,13 @@ def gradient_operator(points: np.ndarray, triangles: np.ndarray, *,
     is the deformation gradient of triangle f restricted to its rest plane (``E_f = [v1-v0, v2-v0]`` rest
     edges, ``E^+`` its pseudo-inverse). A least-squares reconstruction from target gradients ``Q*`` is then
     ``min_X sum_f a_f ||G_f X - Q*_f^T||^2`` (see :func:`usdface.personalize.dt.PoissonSolver`).
-    ``coefficients``: :func:`gradient_coefficients` of the same mesh, if already computed.
+    Equivalently ``(G @ f)[3t:3t+3]`` is the gradient of the piecewise-linear interpolant of ``f[n]`` on
+    triangle t (``G @ points`` stacks the tangent-plane projectors). ``coefficients``:
+    :func:`gradient_coefficients` of the same mesh, if already computed; ``allow_degenerate``: zero rows
+    for degenerate triangles instead of an error.
     """
-    C = gradient_coefficients(points, triangles) if coefficients is None else coefficients  # [t,3,3]
+    C = (gradient_coefficients(points, triangles, allow_degenerate=allow_degenerate) if coefficients is None
+         else coefficients)                             # [t,3,3]
     t = len(triangles)
     # Q^T[f] = Epinv^T @ [x1-x0; x2-x0]  ->  rows of Q^T are coefficient of x0, x1, x2
     rows = (3 * np.arange(t)[:, None] + np.arange(3)[None, :])      # [t,3]
@@ -195,13 +217,14 @@ def uniform_laplacian(triangles: np.ndarray, n: int) -> sp.csr_matrix:
     return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ A).tocsr()
 
 
-def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray) -> sp.csr_matrix:
+def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray, *,
+                        min_weight: float | None = None) -> sp.csr_matrix:
     """Cotangent Laplacian ``L[n,n]`` (symmetric, negative semi-definite: ``L_ij = (cot a + cot b)/2``,
-    ``L_ii = -sum_j L_ij``)."""
+    ``L_ii = -sum_j L_ij``). ``min_weight``: clamp the edge weights from below (e.g. ``1e-3``), so that
+    obtuse meshes still give a well-posed Dirichlet problem (``-L`` is then positive semi-definite)."""
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     n = len(p)
-    L = sp.csr_matrix((n, n))
     rows, cols, vals = [], [], []
     for k in range(3):
         i, j, o = t[:, (k + 1) % 3], t[:, (k + 2) % 3], t[:, k]
@@ -213,6 +236,8 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray) -> sp.csr_mat
         vals += [0.5 * cot, 0.5 * cot]
     L = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
     L = L.tocsr()
+    if min_weight is not None:
+        L.data = np.maximum(L.data, min_weight)
     return (L - sp.diags(np.asarray(L.sum(axis=1)).ravel())).tocsr()
 
 
@@ -237,6 +262,13 @@ def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     return d[cnt[inv.ravel()] == 1]
 
 
+def boundary_vertices(triangles: np.ndarray, n: int) -> np.ndarray:
+    """Boolean mask ``[n]`` of the vertices on a boundary edge (an edge used by exactly one triangle)."""
+    mask = np.zeros(n, dtype=bool)
+    mask[boundary_edges(triangles).ravel()] = True
+    return mask
+
+
 def boundary_loops(triangles: np.ndarray, n: int) -> list[np.ndarray]:
     """Boundary loops as ordered vertex-index arrays, longest first (the outer rim of a face mask, then the
     holes: mouth, eyes). Loops that are not simple cycles are returned in connected-component order."""
@@ -256,6 +288,14 @@ def boundary_loops(triangles: np.ndarray, n: int) -> list[np.ndarray]:
             v = nxt.get(v)
         loops.append(np.array(loop if len(loop) == len(verts) else verts, dtype=np.int64))
     return sorted(loops, key=len, reverse=True)
+
+
+def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Mean length of the triangles' edges (interior edges counted from both sides)."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    e = np.concatenate([p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 1]], p[t[:, 0]] - p[t[:, 2]]])
+    return float(np.linalg.norm(e, axis=1).mean())
 
 
 def mesh_scale(points: np.ndarray, triangles: np.ndarray) -> float:

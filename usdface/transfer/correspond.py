@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from ..errors import InputFileError
+from ..mesh import spd_lu
 from .surface import (
     boundary_vertices,
     closest_points,
@@ -125,8 +125,7 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
 
 
 def _solve(a, rhs):
-    solve = spla.factorized(a.tocsc())
-    return np.stack([solve(rhs[:, c]) for c in range(rhs.shape[1])], axis=1)
+    return spd_lu(a).solve(np.asarray(rhs, dtype=np.float64))
 
 
 def correspondence_map(registered, capture_triangles, avatar_points, avatar_triangles, *,

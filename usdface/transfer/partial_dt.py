@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from .surface import cotangent_laplacian, gradient_operator, mean_edge_length, triangle_areas
+from ..mesh import deformation_gradients, gradient_operator, mean_edge_length, spd_lu, triangle_areas
+from .surface import cotangent_laplacian
 
 __all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask",
            "personalization_support"]
@@ -32,25 +32,6 @@ def personalization_support(person_deltas, template_deltas, *, low: float = 0.01
     rel = act / np.maximum(act.max(axis=1, keepdims=True), 1e-300)
     t = np.clip((rel - low) / (high - low), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
-
-
-def deformation_gradients(rest, deformed, triangles) -> np.ndarray:
-    """Sumner & Popovic 2004, eq. (3): per-triangle deformation gradients ``S[J,t,3,3]`` from ``rest[n,3]`` to
-    each ``deformed[J,n,3]``, with the fourth vertex along the scaled normal: ``S = V~ V^-1``,
-    ``V = [v1-v0, v2-v0, n/sqrt|n|]``."""
-    rest = np.asarray(rest, dtype=np.float64)
-    deformed = np.asarray(deformed, dtype=np.float64)
-    tri = np.asarray(triangles)
-
-    def frames(p):
-        e1 = p[..., tri[:, 1], :] - p[..., tri[:, 0], :]
-        e2 = p[..., tri[:, 2], :] - p[..., tri[:, 0], :]
-        n = np.cross(e1, e2)
-        n = n / np.sqrt(np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300))
-        return np.stack([e1, e2, n], axis=-1)  # columns
-
-    v_inv = np.linalg.inv(frames(rest))  # [t,3,3]
-    return frames(deformed) @ v_inv  # [J,t,3,3]
 
 
 def face_deformation_transfer(points, triangles, face, source_triangle, jacobians, anchors, *, base=None,
@@ -80,30 +61,33 @@ def face_deformation_transfer(points, triangles, face, source_triangle, jacobian
         return out
     ftri = np.flatnonzero(face[tri].all(axis=1) & (np.asarray(source_triangle) >= 0))
     ttri = tri[ftri]
-    grad = gradient_operator(x0, ttri)[:, fidx]  # [3t, F]
+    g_full = gradient_operator(x0, ttri, allow_degenerate=True)  # [3t, m]
+    grad = g_full[:, fidx]  # [3t, F]
     area = triangle_areas(x0, ttri)
     w3 = sp.diags(np.repeat(area, 3))
-    vmass = np.zeros(len(x0))
-    for c in range(3):
-        np.add.at(vmass, ttri[:, c], area / 3.0)
-    vmass = vmass[fidx]
+    vmass = _vertex_mass(ttri, area, len(x0))[fidx]
     vmass = np.where(vmass > 0, vmass, area.mean() / 3.0 if area.size else 1.0)
     lam = anchor_weight / mean_edge_length(x0, tri) ** 2
     system = (grad.T @ w3 @ grad + sp.diags(lam * vmass)).tocsc()
-    solve = spla.factorized(system)
-    proj = (gradient_operator(x0, ttri) @ x0).reshape(-1, 3, 3)  # P_t (symmetric)
+    solve = spd_lu(system).solve
+    proj = (g_full @ x0).reshape(-1, 3, 3)  # P_t (symmetric)
     jac = np.asarray(jacobians)[:, np.asarray(source_triangle)[ftri]]  # [J,t,3,3]
     target = np.einsum("tab,jtcb->jtac", proj, jac)  # P_t J^T -> [J,t,3(grad),3(coord)]
     target = target.reshape(n_shapes, -1, 3)  # [J,3t,3]
     if base is not None:
-        g_full = gradient_operator(x0, ttri)
         target = target + np.stack([g_full @ b for b in np.asarray(base, dtype=np.float64)])
     gw = (w3 @ grad).T.tocsr()  # [F,3t]
     rhs = np.stack([gw @ target[j] for j in range(n_shapes)]) + lam * vmass[None, :, None] * anchors[:, fidx]
     flat = rhs.transpose(1, 0, 2).reshape(len(fidx), -1)  # [F, J*3]
-    sol = np.stack([solve(flat[:, c]) for c in range(flat.shape[1])], axis=1)
+    sol = solve(flat)
     out[:, fidx] = sol.reshape(len(fidx), n_shapes, 3).transpose(1, 0, 2)
     return out
+
+
+def _vertex_mass(triangles, area, n: int) -> np.ndarray:
+    """Lumped vertex areas ``[n]``: a third of every incident triangle's area."""
+    tri = np.asarray(triangles, dtype=np.int64)
+    return np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=n)
 
 
 def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
@@ -144,9 +128,7 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
     result[:, hard] = dface[:, hard]
     lap = cotangent_laplacian(x0, tri)
     area = triangle_areas(x0, tri)
-    mass = np.zeros(len(x0))
-    for c in range(3):
-        np.add.at(mass, tri[:, c], area / 3.0)
+    mass = _vertex_mass(tri, area, len(x0))
     length = falloff if falloff else mean_edge_length(x0, tri)
     if falloff:
         lap = (lap + sp.diags(mass / falloff ** 2)).tocsr()
@@ -169,12 +151,12 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
         l_ff = lap[free][:, free] + sp.diags(stiff[free])
         l_fb = lap[free][:, fidx]
         reg = 1e-12 * float(np.abs(l_ff.diagonal()).mean())
-        solve = spla.factorized((l_ff + reg * sp.eye(free.size)).tocsc())
+        solve = spd_lu(l_ff + reg * sp.eye(free.size)).solve
         h_face = dface[js][:, fidx] - approx[js][:, fidx]  # [g,F,3]
         h_soft = (dface[js][:, free] - approx[js][:, free]) * stiff[free][None, :, None]  # [g,free,3]
         rhs = h_soft - np.stack([l_fb @ h_face[g] for g in range(len(js))])  # [g,free,3]
         flat = rhs.transpose(1, 0, 2).reshape(free.size, -1)
-        h = np.stack([solve(flat[:, c]) for c in range(flat.shape[1])], axis=1)
+        h = solve(flat)
         h = h.reshape(free.size, len(js), 3).transpose(1, 0, 2)
         result[np.ix_(js, free)] = approx[np.ix_(js, free)] + h
     return result, adjacent

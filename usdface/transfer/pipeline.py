@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RigError, UsdFaceError
+from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
@@ -34,12 +35,7 @@ from .correspond import (
     save_correspondence,
 )
 from .eyelids import find_eyeballs, repair_eyelids
-from .partial_dt import (
-    blend_adjacent,
-    deformation_gradients,
-    face_deformation_transfer,
-    personalization_support,
-)
+from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
 from .register import register_face
 from .retarget import approximate, retarget_weights
 
