@@ -131,7 +131,7 @@ class PositionFit:
         other frames, ``e_i / (1 - h_ii)``."""
         B = np.matmul(self.M, self._coef(reg))                               # [n,K,3] = b_v
         fitted = blend(self.W, B.transpose(1, 0, 2))                         # [F,n,3] (one product)
-        h = np.sum(self.q2 * (1.0 / (self.s + reg))[None], axis=-1)          # [F,n]: w_i^T A^-1 w_i
+        h = np.einsum("fnk,nk->fn", self.q2, 1.0 / (self.s + reg))          # [F,n]: w_i^T A^-1 w_i
         return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
 
     def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:

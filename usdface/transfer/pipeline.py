@@ -395,9 +395,10 @@ def _changes(avatar: Avatar, offsets: dict) -> list[dict]:
     rows = []
     for m in avatar.meshes:
         key = m.source.prim if m.source else m.name
-        diff = np.linalg.norm(offsets[key] - m.deltas, axis=2)  # [K,n]
+        sq = np.sum((offsets[key] - m.deltas) ** 2, axis=2)  # [K,n] squared change
+        peak, rms = np.sqrt(sq.max(axis=1)), np.sqrt(sq.mean(axis=1))
+        moved = (sq > 1e-18).sum(axis=1)
         for k, n in enumerate(m.names):
-            rows.append({"mesh": key, "shape": n, "max_change_m": float(diff[k].max()),
-                         "rms_change_m": float(np.sqrt(np.mean(diff[k] ** 2))),
-                         "moved_vertices": int((diff[k] > 1e-9).sum())})
+            rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
+                         "rms_change_m": float(rms[k]), "moved_vertices": int(moved[k])})
     return rows
