@@ -9,8 +9,9 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 _API = {
-    "personalize_avatar", "fit_capture", "evaluate_capture", "compute_landmarks", "read_avatar",
-    "read_capture", "import_capture_folder", "check", "inspect_file",
+    "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
+    "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
+    "select_capture_frames", "import_livelink_take", "check", "inspect_file",
 }
 
 

@@ -15,21 +15,29 @@ Example::
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .io.livelink import LiveLinkTake
+    from .io.take import Take
     from .model import Avatar, Capture, FaceRig
+    from .personalize import FitResult
     from .pipeline.check import Issue
+    from .take_select import Selection
     from .transfer import PersonalizeResult
 
 PathLike = str | Path
 
 __all__ = [
-    "personalize_avatar", "fit_capture", "evaluate_capture", "compute_landmarks", "read_avatar",
-    "read_capture", "import_capture_folder", "check", "inspect_file",
+    "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
+    "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
+    "select_capture_frames", "import_livelink_take", "check", "inspect_file",
 ]
+
+#: The personalization methods of :func:`fit_capture` / :func:`evaluate_methods`.
+METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 
 def read_avatar(path: PathLike) -> Avatar:
@@ -47,28 +55,138 @@ def read_capture(path: PathLike) -> Capture:
     return _read(path)
 
 
-def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = False) -> Path:
-    """Convert a capture folder into one ``capture.usda`` (``usdface capture import``); returns the path
-    written. Refuses to overwrite an existing file unless ``force``."""
-    from .io.capture_folder import read_capture_folder
-    from .io.usd_capture import write_capture_usd
+def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
+    """The mesh of ``avatar`` to work on: the one whose prim name or path is ``name``, or by default the one
+    with the most shapes (then the most vertices). Raises :class:`~usdface.errors.RigError` naming the
+    avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all)."""
+    from .errors import RigError
 
-    return Path(write_capture_usd(read_capture_folder(folder), out_path, force=force))
+    if name:
+        from .io.layers import avatar_mesh
+
+        return avatar_mesh(avatar, name)
+    if not avatar.meshes:
+        raise RigError("no mesh with blend shapes", path=avatar.file, fix="pass an avatar with a face rig")
+    return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
+
+
+def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
+                  source: PathLike | None = None) -> Path:
+    """Write ``capture`` as a capture ``.usda``/``.usdc``/``.usd`` file, or as a capture folder (OBJ + JSON)
+    for any other path; returns the path written (atomically). Refuses an existing output unless ``force``.
+    ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
+    or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``."""
+    out = Path(out_path)
+    if source is not None:
+        from .io.layers import file_digest
+
+        capture.metadata.setdefault("source_digest", file_digest(source))
+    if out.suffix.lower() in (".usda", ".usdc", ".usd"):
+        from .io.usd_capture import write_capture_usd
+
+        return Path(write_capture_usd(capture, out, force=force, exact=exact))
+    from .io.capture_folder import write_capture_folder
+
+    return Path(write_capture_folder(capture, out, force=force))
+
+
+def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = False, *,
+                          exact: bool = True) -> Path:
+    """Convert a capture folder (or rewrite a capture ``.usda``) into one ``capture.usda``
+    (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
+    ``force``; the source's digest is recorded (see :func:`write_capture`)."""
+    return write_capture(read_capture(folder), out_path, force=force, exact=exact, source=folder)
+
+
+class CaptureSelection(NamedTuple):
+    """Result of :func:`select_capture_frames`: the ``take`` read, the frame ``selection``
+    (:class:`usdface.take_select.Selection`), its plain-text ``coverage`` table, and the ``capture`` built
+    from it with the path it was written to (both None when no output was asked for)."""
+
+    take: Take
+    selection: Selection
+    coverage: str
+    capture: Capture | None
+    out_path: Path | None
+
+
+def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
+                          template: PathLike | FaceRig | None = None, threshold: float = 0.5,
+                          per_shape: int = 1, test_every: int = 0, min_separation: float = 0.5,
+                          force: bool = False) -> CaptureSelection:
+    """Pick training (and held-out test) frames from a continuous take (Menzel et al. 2022, section 3.1;
+    ``usdface capture select``): for each shape up to ``per_shape`` frames where its weight peaks above
+    ``threshold``, peaks of one shape at least ``min_separation`` seconds apart, every ``test_every``-th
+    remaining peak held out as a test frame (0: none).
+
+    ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
+    ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
+    folder) using ``template`` (a capture path or FaceRig; default the take's own template)."""
+    from .io.take import capture_from_take, read_take
+    from .take_select import format_coverage, select_frames
+
+    data = read_take(take)
+    selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
+                              test_every=test_every, min_separation=max(1, round(min_separation * data.fps)))
+    coverage = format_coverage(selection, data.times)
+    if out_path is None:
+        return CaptureSelection(data, selection, coverage, None, None)
+    capture = capture_from_take(data, selection, template=template)
+    return CaptureSelection(data, selection, coverage, capture, write_capture(capture, out_path, force=force))
+
+
+def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float = 60.0,
+                         force: bool = False) -> tuple[Path, LiveLinkTake]:
+    """Convert a Live Link Face CSV into a USD file whose defaultPrim is a ``SkelAnimation`` with the ARKit
+    weights as time samples and the head/eye angles (and other numeric columns) as ``usdface:curves:*``
+    attributes (``usdface anim import``). ``timecode_rate``: frames per second of the CSV's timecode FF
+    field, also the stage's timeCodesPerSecond. Returns the path written (atomically; an existing file
+    needs ``force``) and the :class:`usdface.io.livelink.LiveLinkTake` read."""
+    from . import __version__
+    from .io.livelink import read_livelink_take
+    from .io.usd_anim import write_animation_usd
+
+    data = read_livelink_take(csv, timecode_rate)
+    out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
+                              curves={**data.angles, **data.extra}, force=force,
+                              layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
+                                          "version": __version__})
+    return Path(out), data
 
 
 def _as_capture(capture) -> Capture:
     return read_capture(capture) if isinstance(capture, str | Path) else capture
 
 
-def fit_capture(capture: Capture | PathLike, method: str = "menzel", **options: Any):
+def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path: PathLike | None = None,
+                force: bool = False, **options: Any) -> FitResult:
     """Fit personalized blendshapes on the capture mesh (``usdface fit``); returns a ``FitResult`` whose
     ``.rig`` is a :class:`usdface.model.FaceRig` (neutral = the person's neutral, deltas = personalized
     shapes).
     ``method`` is one of ``dt``, ``ebfr``, ``menzel``, ``laplacian``; ``options`` go to
-    :func:`usdface.personalize.fit_personalized_shapes`."""
+    :func:`usdface.personalize.fit_personalized_shapes`. With ``out_path`` an existing output is refused
+    before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
+    written is ``result.info["out_path"]``."""
     from .personalize import fit_personalized_shapes
 
-    return fit_personalized_shapes(_as_capture(capture), method=method, **options)
+    if out_path is not None:
+        from .io.layers import check_output_path
+
+        check_output_path(out_path, force)
+    result = fit_personalized_shapes(_as_capture(capture), method=method, **options)
+    if out_path is not None:
+        result.info["out_path"] = write_fit_rig(result, out_path, force=force)
+    return result
+
+
+def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool = False) -> Path:
+    """Write a fitted rig (a ``FitResult`` or its ``FaceRig``) as a UsdSkel rig on the capture mesh, in its
+    vertex order (metres, Y up, root ``/Capture``); returns the path written (atomically; an existing file
+    needs ``force``)."""
+    from .io.avatar_writer import write_rig_usd
+
+    return Path(write_rig_usd(getattr(fit, "rig", fit), out_path, meters_per_unit=1.0, root="/Capture",
+                              force=force))
 
 
 def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, role: str = "test") -> dict:
@@ -87,6 +205,61 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     rig = getattr(rig, "rig", rig)
     return evaluate_rig(rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig,
                         capture.frames.select(role))
+
+
+def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHODS, *,
+                     truth: PathLike | dict | None = None, json_path: PathLike | None = None,
+                     plot_path: PathLike | None = None, usd_path: PathLike | None = None, force: bool = False,
+                     **options: Any) -> dict:
+    """Fit each of ``methods`` on the capture's training frames and score it on the held-out test frames
+    (Menzel et al. 2022, eq. 5; ``usdface evaluate``); see :func:`usdface.personalize.report.evaluate_methods`
+    for the report (``report["methods"][m]``: ``rmse_mm[F]``, ``max_mm[F]``, ``mean_rmse_mm``,
+    ``mean_max_mm``, ``seconds``, with ``truth`` also ``truth_rmse_mm`` and a ``template`` row).
+
+    ``truth``: a ``capture_truth.npz`` path (or its dict: ``names``, ``deltas``). Optional outputs, all
+    refused before fitting if they exist (unless ``force``): ``json_path`` (the report), ``plot_path`` (per
+    test frame bar charts, paper Figs. 4-5), ``usd_path`` (colour-coded error maps, Fig. 6); the paths
+    written are ``report["_outputs"]``. ``options`` go to the fit (``reg``, ``prior``, ...). Raises
+    :class:`~usdface.errors.FitError` if the capture has no test frames."""
+    from .errors import FitError, InputFileError, OutputExistsError
+    from .personalize.report import evaluate_methods as _evaluate
+
+    for out in (json_path, plot_path):
+        if out and Path(out).exists() and not force:
+            raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    if usd_path:
+        from .io.layers import check_output_path
+
+        check_output_path(usd_path, force)
+    if isinstance(truth, str | Path):
+        import numpy as np
+
+        try:
+            truth = dict(np.load(truth))
+        except (OSError, ValueError) as exc:
+            raise InputFileError(f"cannot read truth file ({exc})", path=truth,
+                                 fix="pass a capture_truth.npz (names, deltas)") from None
+    source = capture if isinstance(capture, str | Path) else None
+    capture = _as_capture(capture)
+    if len(capture.test) == 0:
+        raise FitError("the capture has no test frames", path=source or capture.source or None,
+                       fix="add held-out frames (test/ folder) to evaluate on")
+    report = _evaluate(capture, list(methods), truth=truth, **options)
+    outputs = {}
+    if json_path:
+        from .personalize.report import write_report_json
+
+        outputs["json"] = Path(write_report_json(report, json_path))
+    if plot_path:
+        from .personalize.report import plot_errors
+
+        outputs["plot"] = Path(plot_errors(report, plot_path))
+    if usd_path:
+        from .io.usd_error_maps import write_error_maps_usd
+
+        outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"], force=force))
+    report["_outputs"] = outputs
+    return report
 
 
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,

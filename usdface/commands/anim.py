@@ -24,19 +24,14 @@ def register(subparsers) -> None:
 
 
 def run_import(args) -> int:
-    from .. import __version__
-    from ..io.livelink import read_livelink_take
-    from ..io.usd_anim import write_animation_usd
+    from .. import api
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        take = read_livelink_take(args.csv, args.timecode_rate)
+        out, take = api.import_livelink_take(args.csv, args.output, timecode_rate=args.timecode_rate,
+                                             force=args.force)
     for w in caught:
         print(f"warning: {w.message}")
-    out = write_animation_usd(args.output, take.names, take.weights, take.times, args.timecode_rate,
-                              curves={**take.angles, **take.extra}, force=args.force,
-                              layer_data={"source": str(args.csv), "startTimecode": take.timecodes[0],
-                                          "version": __version__})
     print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "
           f"{len(take.names)} shapes")
     if take.name_report.get("missing"):

@@ -45,18 +45,14 @@ def register(subparsers) -> None:
 
 
 def run_import(args) -> int:
-    from ..io import read_capture
-    from ..io.usd_capture import write_capture_usd
+    from .. import api
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        capture = read_capture(args.source)
-    from ..io.layers import file_digest
-
-    capture.metadata.setdefault("source_digest", file_digest(args.source))
+        capture = api.read_capture(args.source)
     for w in caught:
         print(f"warning: {w.message}")
-    out = write_capture_usd(capture, args.output, force=args.force, exact=args.exact)
+    out = api.write_capture(capture, args.output, force=args.force, exact=args.exact, source=args.source)
     report = capture.metadata.get("name_report", {})
     counts = capture.metadata.get("counts", {})
     print(f"wrote {out}: {capture.neutral.shape[0]} vertices, {len(capture.names)} shapes, "
@@ -70,32 +66,19 @@ def run_import(args) -> int:
 
 
 def run_select(args) -> int:
-    from ..io.take import capture_from_take, read_take
-    from ..take_select import format_coverage, select_frames
+    from .. import api
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        take = read_take(args.take)
-        selection = select_frames(take.weights, names=take.names, threshold=args.threshold,
-                                  per_shape=args.per_shape, test_every=args.test_every,
-                                  min_separation=max(1, round(args.min_separation * take.fps)))
-        print(format_coverage(selection, take.times))
-        capture = capture_from_take(take, selection, template=args.template) if args.output else None
+        result = api.select_capture_frames(args.take, args.output, template=args.template,
+                                           threshold=args.threshold, per_shape=args.per_shape,
+                                           test_every=args.test_every, min_separation=args.min_separation,
+                                           force=args.force)
+    print(result.coverage)
     for w in caught:
         print(f"warning: {w.message}")
-    if capture is None:
+    if result.capture is None:
         return 0
-    from pathlib import Path
-
-    out = Path(args.output)
-    if out.suffix.lower() in (".usda", ".usdc", ".usd"):
-        from ..io.usd_capture import write_capture_usd
-
-        write_capture_usd(capture, out, force=args.force)
-    else:
-        from ..io.capture_folder import write_capture_folder
-
-        write_capture_folder(capture, out, force=args.force)
-    counts = capture.metadata.get("counts", {})
-    print(f"wrote {out}: {counts.get('train', 0)} train + {counts.get('test', 0)} test frames")
+    counts = result.capture.metadata.get("counts", {})
+    print(f"wrote {result.out_path}: {counts.get('train', 0)} train + {counts.get('test', 0)} test frames")
     return 0

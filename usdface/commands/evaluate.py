@@ -31,31 +31,14 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from ..errors import FitError, InputFileError, OutputExistsError
-    from ..io import read_capture
-    from ..personalize.report import evaluate_methods, plot_errors, write_report_json
+    from .. import api
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for out in (args.json, args.plot):
-        if out and Path(out).exists() and not args.force:
-            raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
-    if args.usd:
-        from ..io.layers import check_output_path
-        check_output_path(args.usd, args.force)
-    truth = None
-    if args.truth:
-        import numpy as np
-        try:
-            truth = dict(np.load(args.truth))
-        except (OSError, ValueError) as exc:
-            raise InputFileError(f"cannot read truth file ({exc})", path=args.truth,
-                                 fix="pass a capture_truth.npz (names, deltas)") from None
-    capture = read_capture(args.capture)
-    if len(capture.test) == 0:
-        raise FitError("the capture has no test frames", path=args.capture,
-                       fix="add held-out frames (test/ folder) to evaluate on")
-    report = evaluate_methods(capture, methods, truth=truth, **fit_kwargs(args))
-    table = Table(title=f"{Path(args.capture).name}: {len(capture.test)} test frames (eq. 5)")
+    truth = args.truth
+    report = api.evaluate_methods(args.capture, methods, truth=truth, json_path=args.json,
+                                  plot_path=args.plot, usd_path=args.usd, force=args.force,
+                                  **fit_kwargs(args))
+    table = Table(title=f"{Path(args.capture).name}: {len(report['labels'])} test frames (eq. 5)")
     for col in ("method", "mean RMSE mm", "mean max mm", "vs dt (RMSE)"):
         table.add_column(col, justify="right" if col != "method" else "left")
     if truth is not None:
@@ -73,11 +56,6 @@ def run(args) -> int:
         cells.append(f"{r['seconds']:.2f}" if r.get("seconds") is not None else "-")
         table.add_row(*cells)
     Console().print(table)
-    if args.json:
-        print(f"wrote {write_report_json(report, args.json)}")
-    if args.plot:
-        print(f"wrote {plot_errors(report, args.plot)}")
-    if args.usd:
-        from ..io.usd_error_maps import write_error_maps_usd
-        print(f"wrote {write_error_maps_usd(args.usd, capture.triangles, report['_maps'], force=args.force)}")
+    for out in report["_outputs"].values():
+        print(f"wrote {out}")
     return 0

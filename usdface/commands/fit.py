@@ -4,6 +4,7 @@ rig."""
 from __future__ import annotations
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
+METHODS = ("dt", "ebfr", "menzel", "laplacian")  # == usdface.api.METHODS (not imported: keeps --help fast)
 
 
 def add_fit_options(parser) -> None:
@@ -35,7 +36,7 @@ def register(subparsers) -> None:
                     "baseline) and write them as a UsdSkel rig on the capture mesh, in its vertex order.")
     parser.add_argument("capture", help="capture folder or capture .usda")
     parser.add_argument("-o", "--output", required=True, help="output rig .usda/.usdc")
-    parser.add_argument("--method", default="menzel", choices=("dt", "ebfr", "menzel", "laplacian"),
+    parser.add_argument("--method", default="menzel", choices=METHODS,
                         help=METHOD_HELP)
     add_fit_options(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -43,20 +44,15 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..io import read_capture
-    from ..io.avatar_writer import write_rig_usd
-    from ..io.layers import check_output_path
-    from ..personalize import fit_personalized_shapes
+    from .. import api
 
-    check_output_path(args.output, args.force)
-    capture = read_capture(args.capture)
-    result = fit_personalized_shapes(capture, method=args.method, **fit_kwargs(args))
-    out = write_rig_usd(result.rig, args.output, meters_per_unit=1.0, root="/Capture", force=args.force)
+    result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
+                             **fit_kwargs(args))
     info = result.info
     extra = f", reg {info['reg']:.3g}" if "reg" in info else ""
     if "prior_alpha" in info and args.method in ("menzel", "laplacian"):
         extra += f", prior {info['prior_alpha']:.2f} DT + {1 - info['prior_alpha']:.2f} template"
-    print(f"wrote {out}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
+    print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
           f"({args.method}{extra}; train RMSE {info.get('train_rmse_mm', float('nan')):.3f} mm; "
           f"{info['timings']['total']:.2f} s)")
     for w in info["warnings"]:
