@@ -11,7 +11,8 @@ __version__ = "0.1.0"
 _API = {
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
-    "select_capture_frames", "import_livelink_take", "check", "inspect_file",
+    "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
+    "write_retarget_map", "check", "inspect_file",
 }
 
 

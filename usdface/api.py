@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 if TYPE_CHECKING:  # pragma: no cover
     from .io.livelink import LiveLinkTake
     from .io.take import Take
+    from .landmarks import LandmarkLayout
+    from .landmarks.evaluate import EvaluationReport
     from .model import Avatar, Capture, FaceRig
     from .personalize import FitResult
     from .pipeline.check import Issue
@@ -33,7 +35,8 @@ PathLike = str | Path
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
-    "select_capture_frames", "import_livelink_take", "check", "inspect_file",
+    "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
+    "write_retarget_map", "check", "inspect_file",
 ]
 
 #: The personalization methods of :func:`fit_capture` / :func:`evaluate_methods`.
@@ -305,6 +308,105 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **
     from .landmarks import compute_landmarks as _landmarks
 
     return _landmarks(rig, epsilon=epsilon, alpha=alpha, **options)
+
+
+def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_path: PathLike, *,
+                    force: bool = False, provenance: dict | None = None) -> Path:
+    """Write a landmark ``layout`` computed on ``rig`` (a mesh of ``avatar``) as a new USD layer over the
+    untouched ``avatar.file``: a ``Points`` prim and mesh primvars, with the ``UsdFaceLandmarksAPI`` schema
+    (``usdface landmarks -o``); see :func:`usdface.io.usd_landmarks.write_landmark_layer`. Returns the path
+    written (atomically; an existing file needs ``force``)."""
+    from .io.usd_landmarks import write_landmark_layer
+
+    return Path(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
+
+
+def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: PathLike | None = None,
+                       frames: int = 400, noise_mm: float = 0.5, **options: Any) -> EvaluationReport:
+    """Sweep landmark layouts (epsilon x multi-cover) against baselines on test weights read from Live Link
+    Face CSV ``takes`` (``usdface landmarks --evaluate``): reconstruction RMSE vs landmark count (Zell &
+    McDonnell 2022, Sec. 5), with ``noise_mm`` of tracking noise, ``frames`` test frames evenly sampled.
+    ``empirical``: a JSON list of vertex indices (or ICT-FaceKit's ``vertex_indices.json``) scored as an
+    extra layout. ``options`` go to :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``,
+    ``symmetric``, ``backend``, ...)."""
+    from .landmarks.evaluate import evaluate_landmarks as _evaluate
+
+    weights = _take_weights(takes, rig.names, frames)
+    indices = _read_vertex_list(empirical) if empirical else None
+    return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
+
+
+def _take_weights(takes: Sequence[PathLike], names: Sequence[str], frames: int):
+    """Live Link CSV weights of all ``takes`` stacked, columns in ``names`` order (absent shapes 0),
+    ``frames`` rows evenly sampled (0: all) -> ``weights[F, K]``."""
+    import numpy as np
+
+    from .errors import LandmarkError
+    from .io.livelink import read_livelink_csv
+
+    if not takes:
+        raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
+    blocks = []
+    for t in takes:
+        take_names, w, _ = read_livelink_csv(t)
+        index = {n: i for i, n in enumerate(take_names)}
+        block = np.zeros((w.shape[0], len(names)))
+        for k, n in enumerate(names):
+            if n in index:
+                block[:, k] = w[:, index[n]]
+        blocks.append(block)
+    w = np.concatenate(blocks)
+    if frames and len(w) > frames:
+        w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
+    return w
+
+
+def _read_vertex_list(path: PathLike) -> list[int]:
+    """An empirical layout: a JSON list of vertex indices, or a dict with ``idx_to_landmark_verts``
+    (ICT-FaceKit) or ``vertices``."""
+    import json
+
+    from .errors import InputFileError
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise InputFileError(f"cannot read the empirical layout: {exc}", path=path,
+                             fix="pass a JSON list of vertex indices or ICT-FaceKit's vertex_indices.json"
+                             ) from None
+    if isinstance(data, dict):
+        data = data.get("idx_to_landmark_verts", data.get("vertices"))
+    if not isinstance(data, list) or not all(isinstance(v, int) for v in data):
+        raise InputFileError("no vertex index list in the empirical layout", path=path,
+                             fix="use a JSON list of ints or a dict with 'idx_to_landmark_verts'")
+    return data
+
+
+def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture, out_path: PathLike,
+                       *, force: bool = False, **options: Any) -> PersonalizeResult:
+    """The automatic retargeting map of Menzel et al. 2022 eq. (4) (``usdface retarget``): each personalized
+    ARKit shape of the capture as a ridge-regularised combination of the avatar's own shapes, written as a
+    ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
+    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written).
+    Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
+    from .errors import InputFileError, OutputExistsError
+    from .transfer import personalize_avatar as _personalize
+    from .transfer.retarget import weight_map_csv, weight_map_json, write_text_atomic
+
+    out = Path(out_path)
+    if out.suffix.lower() not in (".json", ".csv"):
+        raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")
+    if out.exists() and not force:
+        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    result = _personalize(avatar_path, capture_path, None, **options)
+    if out.suffix.lower() == ".json":
+        meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
+                "capture": str(getattr(capture_path, "source", capture_path)), "mu": options.get("mu")}
+        text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
+    else:
+        text = weight_map_csv(result.weights, result.names, result.avatar_names)
+    write_text_atomic(out, text)
+    return result
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,

@@ -61,66 +61,10 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _pick_mesh(avatar, name):
-    from ..errors import RigError
-
-    if name:
-        try:
-            return avatar.mesh(name)
-        except KeyError:
-            raise RigError(f"no mesh {name!r}", path=avatar.file,
-                           fix="use one of " + ", ".join(m.source.prim if m.source else m.name
-                                                           for m in avatar.meshes)) from None
-    if not avatar.meshes:
-        raise RigError("no mesh with blend shapes", path=avatar.file, fix="pass an avatar with a face rig")
-    return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
-
-
-def _read_empirical(path) -> list[int]:
-    from ..errors import InputFileError
-
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise InputFileError(f"cannot read the empirical layout: {exc}", path=path,
-                             fix="pass a JSON list of vertex indices or ICT-FaceKit's vertex_indices.json"
-                             ) from None
-    if isinstance(data, dict):
-        data = data.get("idx_to_landmark_verts", data.get("vertices"))
-    if not isinstance(data, list) or not all(isinstance(v, int) for v in data):
-        raise InputFileError("no vertex index list in the empirical layout", path=path,
-                             fix="use a JSON list of ints or a dict with 'idx_to_landmark_verts'")
-    return data
-
-
-def _test_weights(takes, names, frames):
-    import numpy as np
-
-    from ..errors import LandmarkError
-    from ..io.livelink import read_livelink_csv
-
-    if not takes:
-        raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
-    blocks = []
-    for t in takes:
-        take_names, w, _ = read_livelink_csv(t)
-        index = {n: i for i, n in enumerate(take_names)}
-        block = np.zeros((w.shape[0], len(names)))
-        for k, n in enumerate(names):
-            if n in index:
-                block[:, k] = w[:, index[n]]
-        blocks.append(block)
-    w = np.concatenate(blocks)
-    if frames and len(w) > frames:
-        w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
-    return w
-
-
 def run(args) -> int:
     import time
 
-    from ..io.usd_rig import read_avatar
-    from ..landmarks import compute_landmarks
+    from .. import api
     from ..progress import steps
 
     t0 = time.perf_counter()
@@ -128,16 +72,14 @@ def run(args) -> int:
         from ..io.layers import check_output_path
 
         check_output_path(args.output, args.force)
-    avatar = read_avatar(args.avatar)
-    rig = _pick_mesh(avatar, args.mesh)
+    avatar = api.read_avatar(args.avatar)
+    rig = api.pick_mesh(avatar, args.mesh)
     if args.evaluate:
-        from ..landmarks.evaluate import evaluate_landmarks
         from ..landmarks.plots import plot_evaluation
 
-        weights = _test_weights(args.takes, rig.names, args.frames)
-        empirical = _read_empirical(args.empirical) if args.empirical else None
-        report = evaluate_landmarks(rig, weights, empirical, noise=args.noise * 1e-3, rays=args.rays,
-                                    symmetric=args.symmetric, backend=args.backend)
+        report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical, frames=args.frames,
+                                        noise_mm=args.noise, rays=args.rays, symmetric=args.symmetric,
+                                        backend=args.backend)
         if args.plot:
             plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}")
         if args.json_out:
@@ -151,19 +93,17 @@ def run(args) -> int:
                   + ", ".join(f"{m}: {v * 1e3:.3f}" for m, v in best.items()))
         return 0
     with steps("landmarks", 2) as advance:
-        layout = compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
+        layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
                                    multicover=args.multicover, radius=args.radius, camera=args.camera,
                                    rays=args.rays, backend=args.backend, weighting=args.weighting,
                                    adaptive=not args.no_adaptive, ignore_static=args.skip_static)
         advance("layout")
         if args.output:
-            from ..io.usd_landmarks import write_landmark_layer
-
             params = {k: v for k, v in vars(args).items() if k not in ("func",)}
-            write_landmark_layer(avatar, rig, layout, args.output, force=args.force,
-                                 provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
-                                             "parameters": params, "timings": layout.timings,
-                                             "elapsedSeconds": time.perf_counter() - t0})
+            api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
+                                provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
+                                            "parameters": params, "timings": layout.timings,
+                                            "elapsedSeconds": time.perf_counter() - t0})
         advance("layer")
     mesh = rig.source.prim if rig.source else rig.name
     if args.json_out:

@@ -29,18 +29,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _pick_mesh(avatar, name):
-    if name:
-        try:
-            return avatar.mesh(name)
-        except KeyError:
-            from ..errors import RigError
-
-            raise RigError(f"no mesh {name!r}", path=avatar.file,
-                           fix=f"use one of {', '.join(m.name for m in avatar.meshes)}") from None
-    return max(avatar.meshes, key=lambda m: m.n_shapes)
-
-
 def _generic(args, path: Path) -> Path:
     from ..errors import InputFileError
     from ..io.usd_inspection import generic_input
@@ -70,7 +58,7 @@ def run(args) -> int:
         print(f"wrote {args.output}")
         return 0
     avatar = api.read_avatar(path)
-    rig = _pick_mesh(avatar, args.mesh)
+    rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks:
         from ..errors import LandmarkError
         from ..io.usd_inspection import read_landmarks
@@ -84,7 +72,7 @@ def run(args) -> int:
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
         generic_path = _generic(args, path)
-        generic = _pick_mesh(api.read_avatar(generic_path), rig.name)
+        generic = api.pick_mesh(api.read_avatar(generic_path), rig.name)
         if args.compare is not None:
             render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
                                      force=args.force, title=f"{rig.name}: generic vs personalized")

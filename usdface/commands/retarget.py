@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from .personalize import add_transfer_options, transfer_kwargs
 
 
@@ -21,26 +19,13 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .. import progress
-    from ..errors import InputFileError, OutputExistsError
-    from ..transfer import personalize_avatar
-    from ..transfer.retarget import weight_map_csv, weight_map_json, write_text_atomic
+    from .. import api, progress
 
-    out = Path(args.output)
-    if out.suffix.lower() not in (".json", ".csv"):
-        raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")
-    if out.exists() and not args.force:
-        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
     if args.quiet:
         progress.set_enabled(False)
-    result = personalize_avatar(args.avatar, args.capture, None, **transfer_kwargs(args))
-    if out.suffix.lower() == ".json":
-        text = weight_map_json(result.weights, result.names, result.avatar_names,
-                               meta={"avatar": str(args.avatar), "capture": str(args.capture), "mu": args.mu})
-    else:
-        text = weight_map_csv(result.weights, result.names, result.avatar_names)
-    write_text_atomic(out, text)
+    result = api.write_retarget_map(args.avatar, args.capture, args.output, force=args.force,
+                                    **transfer_kwargs(args))
     w = result.weights
-    print(f"{w.shape[0]} x {w.shape[1]} retarget map -> {out} (weights in [{w.min():.2f}, {w.max():.2f}], "
-          f"{int((abs(w) > 0.05).sum())} above 0.05)")
+    print(f"{w.shape[0]} x {w.shape[1]} retarget map -> {args.output} (weights in [{w.min():.2f}, "
+          f"{w.max():.2f}], {int((abs(w) > 0.05).sum())} above 0.05)")
     return 0
