@@ -1,0 +1,236 @@
+"""The API functions the thin CLI calls (write_fit_rig, evaluate_methods, write_capture,
+select_capture_frames, import_livelink_take, pick_mesh, write_landmarks, evaluate_landmarks,
+write_retarget_map): what they write reads back exactly, outputs are refused before any work, and the
+commands pass their options through."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import usdface
+from usdface import api
+from usdface.cli import main
+from usdface.errors import CaptureError, FitError, InputFileError, LandmarkError, OutputExistsError, RigError
+
+
+@pytest.fixture(scope="module")
+def capture(samples):
+    return usdface.read_capture(samples / "capture.usda")
+
+
+@pytest.fixture(scope="module")
+def avatar(samples):
+    return usdface.read_avatar(samples / "avatar.usda")
+
+
+def _forbid(monkeypatch, module, name):
+    def fail(*a, **k):
+        raise AssertionError(f"{name} must not run when the output is refused")
+
+    monkeypatch.setattr(module, name, fail)
+
+
+def test_pick_mesh(avatar):
+    assert usdface.pick_mesh(avatar).source.prim == "/Avatar/Head"       # most shapes
+    assert usdface.pick_mesh(avatar, "Mouth").n_shapes == 5
+    assert usdface.pick_mesh(avatar, "/Avatar/Mouth").name == "Mouth"
+    with pytest.raises(RigError) as err:
+        usdface.pick_mesh(avatar, "Nose")
+    assert "avatar.usda" in str(err.value) and "/Avatar/Head" in err.value.fix
+    with pytest.raises(RigError, match="no mesh with blend shapes"):
+        usdface.pick_mesh(dataclasses.replace(avatar, meshes=[]))
+
+
+def test_write_capture_round_trips_and_records_the_source(capture, samples, tmp_path):
+    folder = usdface.write_capture(capture, tmp_path / "cap")
+    usd = usdface.import_capture_folder(folder, tmp_path / "cap.usda")
+    again = usdface.read_capture(usd)
+    np.testing.assert_array_equal(again.neutral, capture.neutral)     # exact=True: bit-exact
+    np.testing.assert_array_equal(again.frames.points, capture.frames.points)
+    assert again.names == capture.names and list(again.frames.role) == list(capture.frames.role)
+    from pxr import Usd
+
+    from usdface.io.layers import file_digest
+
+    stage = Usd.Stage.Open(str(usd))
+    digests = [a.Get() for p in stage.Traverse() for a in p.GetAttributes()
+               if a.GetName() == "usdface:capture:sourceDigest"]
+    assert digests == [file_digest(folder)]
+    with pytest.raises(OutputExistsError):
+        usdface.write_capture(capture, usd)
+    with pytest.raises(OutputExistsError):
+        usdface.write_capture(capture, folder)
+
+
+def test_fit_capture_writes_the_rig_and_refuses_before_fitting(capture, tmp_path, monkeypatch):
+    out = tmp_path / "rig.usda"
+    fit = usdface.fit_capture(capture, "dt", out_path=out)
+    assert fit.info["out_path"] == out and out.exists()
+    rig = usdface.pick_mesh(usdface.read_avatar(out))
+    np.testing.assert_allclose(rig.neutral, fit.rig.neutral, atol=1e-6)
+    np.testing.assert_allclose(rig.subset(fit.rig.names).deltas, fit.rig.deltas, atol=1e-6)
+    import usdface.personalize as personalize
+
+    _forbid(monkeypatch, personalize, "fit_personalized_shapes")
+    with pytest.raises(OutputExistsError):
+        usdface.fit_capture(capture, "dt", out_path=out)
+    again = usdface.write_fit_rig(fit.rig, tmp_path / "rig2.usdc")   # a FaceRig is accepted too
+    np.testing.assert_allclose(usdface.pick_mesh(usdface.read_avatar(again)).neutral, rig.neutral, atol=1e-6)
+
+
+def test_evaluate_methods_matches_evaluate_capture(capture, tmp_path):
+    report = usdface.evaluate_methods(capture, ["dt"], json_path=tmp_path / "r.json")
+    single = usdface.evaluate_capture(capture, usdface.fit_capture(capture, "dt"))
+    np.testing.assert_allclose(report["methods"]["dt"]["rmse_mm"], single["rmse_mm"], rtol=1e-9)
+    assert report["_outputs"] == {"json": tmp_path / "r.json"} and (tmp_path / "r.json").exists()
+    with pytest.raises(OutputExistsError):
+        usdface.evaluate_methods(capture, ["dt"], json_path=tmp_path / "r.json")
+    no_test = dataclasses.replace(capture, frames=capture.frames.select("train"))
+    with pytest.raises(FitError, match="no test frames"):
+        usdface.evaluate_methods(no_test, ["dt"])
+    with pytest.raises(InputFileError) as err:
+        usdface.evaluate_methods(capture, ["dt"], truth=tmp_path / "missing.npz")
+    assert "missing.npz" in str(err.value) and err.value.fix
+
+
+def _grid_take(tmp_path):
+    from test_take_select import SKIP, grid_rigs
+
+    from usdface.io.take import write_take_usd
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs()
+    take, _ = make_take(person, template, skip=SKIP, seed=3)
+    return write_take_usd(take, tmp_path / "take.usda"), take
+
+
+def test_select_capture_frames(tmp_path):
+    from usdface.take_select import select_frames
+
+    path, take = _grid_take(tmp_path)
+    dry = usdface.select_capture_frames(path, threshold=0.5, min_separation=0.5)
+    assert dry.capture is None and dry.out_path is None and "jawLeft" in dry.coverage
+    expected = select_frames(take.weights, names=take.names, min_separation=max(1, round(0.5 * take.fps)))
+    assert dry.selection.train.tolist() == expected.train.tolist()
+    out = tmp_path / "cap"
+    res = usdface.select_capture_frames(path, out, test_every=4)
+    assert res.out_path == out and (out / "neutral.obj").exists()
+    back = usdface.read_capture(out)
+    assert len(back.train) == len(res.selection.train) and len(back.test) == len(res.selection.test) > 0
+    with pytest.raises(OutputExistsError):
+        usdface.select_capture_frames(path, out, test_every=4)
+    with pytest.raises((CaptureError, InputFileError)):
+        usdface.select_capture_frames(tmp_path / "nope.usda")
+
+
+def test_import_livelink_take(tmp_path):
+    from pxr import Usd
+
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.usd_anim import read_skel_animation
+
+    rng = np.random.default_rng(2)
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileRight"]
+    weights, times = rng.random((6, 3)), np.arange(6) / 30.0
+    csv = write_livelink_csv(tmp_path / "t.csv", names, weights, times, timecode_rate=30.0)
+    out, take = usdface.import_livelink_take(csv, tmp_path / "t.usda", timecode_rate=30.0)
+    stage = Usd.Stage.Open(str(out))
+    got_names, got, codes = read_skel_animation(stage.GetDefaultPrim())
+    assert stage.GetTimeCodesPerSecond() == 30
+    np.testing.assert_allclose(got[:, [got_names.index(n) for n in names]],
+                               take.weights[:, [take.names.index(n) for n in names]], atol=1e-7)
+    np.testing.assert_allclose(take.weights[:, [take.names.index(n) for n in names]], weights, atol=1e-3)
+    np.testing.assert_array_equal(codes, np.arange(6))
+    with pytest.raises(OutputExistsError):
+        usdface.import_livelink_take(csv, out, timecode_rate=30.0)
+
+
+def test_write_landmarks_reads_back(avatar, tmp_path):
+    from usdface.io.usd_inspection import read_landmarks
+
+    head = usdface.pick_mesh(avatar)
+    rig = head.subset(["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"])
+    layout = usdface.compute_landmarks(rig, rays=2, time_limit=10)
+    out = usdface.write_landmarks(avatar, rig, layout, tmp_path / "lm.usda")
+    assert read_landmarks(out)["/Avatar/Head"].tolist() == np.asarray(layout.vertices).tolist()
+    with pytest.raises(OutputExistsError):
+        usdface.write_landmarks(avatar, rig, layout, out)
+
+
+def test_evaluate_landmarks_inputs(avatar, tmp_path):
+    from usdface.io.livelink import write_livelink_csv
+
+    rig = usdface.pick_mesh(avatar).subset(["jawOpen", "eyeBlinkLeft"])
+    with pytest.raises(LandmarkError, match="test weights"):
+        usdface.evaluate_landmarks(rig, [])
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"something": 1}')
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen", "cheekPuff"], np.full((4, 2), 0.5),
+                             np.arange(4) / 60)
+    with pytest.raises(InputFileError) as err:
+        usdface.evaluate_landmarks(rig, [csv], empirical=bad)
+    assert "bad.json" in str(err.value) and "idx_to_landmark_verts" in err.value.fix
+    w = api._take_weights([csv, csv], rig.names, frames=0)
+    assert w.shape == (8, 2)
+    np.testing.assert_allclose(w[:, 0], 0.5, atol=1e-3)
+    assert (w[:, 1] == 0).all()                                   # eyeBlinkLeft absent from the take
+
+
+def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):
+    import usdface.transfer as transfer
+
+    _forbid(monkeypatch, transfer, "personalize_avatar")
+    with pytest.raises(InputFileError, match="unknown map format"):
+        usdface.write_retarget_map("a.usda", "c.usda", tmp_path / "map.txt")
+    (tmp_path / "map.json").write_text("{}")
+    with pytest.raises(OutputExistsError):
+        usdface.write_retarget_map("a.usda", "c.usda", tmp_path / "map.json")
+
+
+def test_commands_call_the_api(monkeypatch, tmp_path, capsys):
+    """fit / capture select / anim import parse, call the API function with the options, print."""
+    seen = {}
+
+    class Fit:
+        rig = type("R", (), {"names": ["jawOpen"], "n_vertices": 3})()
+        info = {"out_path": tmp_path / "r.usda", "timings": {"total": 0.5}, "warnings": ["careful"]}
+
+    def fake_fit(capture, method="menzel", **kw):
+        seen["fit"] = (capture, method, kw)
+        return Fit()
+
+    monkeypatch.setattr(api, "fit_capture", fake_fit)
+    assert main(["fit", "cap.usda", "-o", str(tmp_path / "r.usda"), "--method", "dt", "--reg", "paper"]) == 0
+    capture, method, kw = seen["fit"]
+    assert (capture, method, kw["force"], kw["reg"]) == ("cap.usda", "dt", False, "paper")
+    assert kw["out_path"] == str(tmp_path / "r.usda")
+    assert "warning: careful" in capture_out(capsys)
+
+    def fake_select(take, out=None, **kw):
+        seen["select"] = (take, out, kw)
+        return api.CaptureSelection(None, None, "COVERAGE", None, None)
+
+    monkeypatch.setattr(api, "select_capture_frames", fake_select)
+    assert main(["capture", "select", "take.usda", "--threshold", "0.7", "--min-separation", "0.2"]) == 0
+    assert seen["select"][0] == "take.usda" and seen["select"][1] is None
+    assert seen["select"][2]["threshold"] == 0.7 and seen["select"][2]["min_separation"] == 0.2
+    assert "COVERAGE" in capture_out(capsys)
+
+    class Take:
+        times, fps, names, name_report = np.array([0.0, 0.5]), 2.0, ["jawOpen"], {"missing": ["x"]}
+
+    def fake_anim(csv, out, **kw):
+        seen["anim"] = (csv, out, kw)
+        return tmp_path / "t.usda", Take()
+
+    monkeypatch.setattr(api, "import_livelink_take", fake_anim)
+    assert main(["anim", "import", "t.csv", "-o", "t.usda", "--timecode-rate", "30", "--force"]) == 0
+    assert seen["anim"] == ("t.csv", "t.usda", {"timecode_rate": 30.0, "force": True})
+    assert "missing shapes: x" in capture_out(capsys)
+
+
+def capture_out(capsys) -> str:
+    return capsys.readouterr().out
