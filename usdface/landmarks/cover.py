@@ -61,8 +61,8 @@ class CoverSolution:
 
 def set_cover_costs(c: np.ndarray, q: np.ndarray, weighting: str = "quality",
                     multiplicity: np.ndarray | None = None) -> np.ndarray:
-    """Objective coefficients cost_n of eq. 5a: ``c[K, n]`` bool, ``q[K, n]`` quality in [0, 1] ->
-    ``cost[n]``.
+    """Objective coefficients cost_n of Zell & McDonnell 2022, eq. 5a: ``c[K, n]`` bool, ``q[K, n]`` quality
+    in [0, 1] -> ``cost[n]``.
 
     See the module docstring for the three forms. ``multiplicity[n]`` (default 1) is the number of landmarks
     column n stands for.
@@ -137,7 +137,7 @@ def reduce_set_cover(c: np.ndarray, cost: np.ndarray, max_rounds: int = 10) -> t
 
 def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time_limit: float = 60.0,
                     reduce: bool = True) -> CoverSolution:
-    """Solve the weighted set cover of eq. 5 to a proven optimum.
+    """Solve the weighted set cover of Zell & McDonnell 2022, eqs. 5a-c, to a proven optimum.
 
     ``c[K, n]`` bool candidate sets (eq. 3), ``cost[n]`` > 0 (eq. 5a, :func:`set_cover_costs`). Shapes
     without any candidate are skipped and returned in ``uncovered``. ``backend`` is an OR-tools ``pywraplp``

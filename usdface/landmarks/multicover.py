@@ -40,8 +40,8 @@ def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape:
                         share: float | None = 0.1, partner: np.ndarray | None = None,
                         coverage: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray, list[CoverSolution]]:
-    """Algorithm 1: ``c[K, n]`` bool candidates (eq. 3), ``cost[n]`` (eq. 5a) or a callable
-    ``cost(sub[K, n]) -> [n]`` evaluated per round, ``neutral[n, 3]`` metres.
+    """Zell & McDonnell 2022, Algorithm 1 (sec. 3.3.2): ``c[K, n]`` bool candidates (eq. 3), ``cost[n]``
+    (eq. 5a) or a callable ``cost(sub[K, n]) -> [n]`` evaluated per round, ``neutral[n, 3]`` metres.
 
     ``solve(c, cost)`` solves one cover (eq. 5). ``partner[n]`` (symmetric mode) adds mirror partners to the
     excluded neighbourhood; ``coverage[K, n]`` is the candidate matrix used to count landmarks per shape

@@ -18,7 +18,7 @@ from ..errors import LandmarkError
 
 def solve_weights(landmark_deltas: np.ndarray, offsets: np.ndarray, tikhonov: float = 0.0,
                   bounds: tuple[float, float] = (0.0, 1.0)) -> np.ndarray:
-    """Bounded least-squares blendshape weights from landmark offsets.
+    """Bounded least-squares blendshape weights from landmark offsets (Zell & McDonnell 2022, sec. 4).
 
     ``landmark_deltas[K, m, 3]`` metres (the rig's deltas at the landmarks), ``offsets[F, m, 3]`` metres
     (tracked positions minus the neutral landmarks), ``tikhonov`` lambda >= 0 (metres^2 per unit weight^2)
@@ -76,9 +76,9 @@ def reconstruction_rmse(deltas: np.ndarray, weights_true: np.ndarray, weights_es
 def layout_error(neutral: np.ndarray, deltas: np.ndarray, vertices: np.ndarray, weights: np.ndarray,
                  noise: float = 0.5e-3, tikhonov: float = 0.0, seed: int = 0,
                  region: np.ndarray | None = None) -> float:
-    """Reconstruction RMSE (metres) of a landmark layout: track ``vertices`` through ``weights[F, K]`` with
-    ``noise`` metres of tracking noise, solve the weights (:func:`solve_weights`), rebuild, compare over
-    ``region`` vertices (default all)."""
+    """Reconstruction RMSE (metres) of a landmark layout (Zell & McDonnell 2022, sec. 4): track ``vertices``
+    through ``weights[F, K]`` with ``noise`` metres of tracking noise, solve the weights
+    (:func:`solve_weights`), rebuild, compare over ``region`` vertices (default all)."""
     v = np.asarray(vertices, dtype=np.int64)
     if v.size == 0:
         raise LandmarkError("empty landmark layout", fix="pass at least one landmark vertex")

@@ -14,8 +14,8 @@ from scipy.spatial import cKDTree
 
 def mirror_pairs(neutral: np.ndarray, axis: int = 0, tolerance: float | None = None,
                  centre: float | None = None) -> np.ndarray:
-    """Mirror partner of every vertex: ``neutral[n, 3]`` metres -> ``partner[n]`` int (-1 = none, itself on
-    the mid-line).
+    """Mirror partner of every vertex (Zell & McDonnell 2022, sec. 3.3.1): ``neutral[n, 3]`` metres ->
+    ``partner[n]`` int (-1 = none, itself on the mid-line).
 
     The mirror plane is ``x[axis] = centre`` (default: the median coordinate, refined once by the median
     offset of the reflected points' nearest neighbours, robust to scanned, slightly asymmetric meshes). A pair
@@ -60,6 +60,7 @@ def symmetric_magnitudes(magnitudes: np.ndarray, partner: np.ndarray, primary: n
 
 
 def mirror_selection(selected: np.ndarray, partner: np.ndarray) -> np.ndarray:
-    """Selected primary vertices plus their mirror partners, sorted and unique -> ``[m]``."""
+    """Selected primary vertices plus their mirror partners, sorted and unique -> ``[m]`` (Zell & McDonnell
+    2022, sec. 3.3.1: symmetric layouts)."""
     s = np.asarray(selected, dtype=np.int64)
     return np.unique(np.concatenate([s, partner[s]]))
