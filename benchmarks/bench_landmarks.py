@@ -129,19 +129,13 @@ def bench_synthetic(repeat: int):
 
 
 def bench_evaluate(rig, out: Path, frames: int):
-    from usdface.io.livelink import read_livelink_csv
+    from usdface.io.livelink import livelink_weights
     from usdface.landmarks.evaluate import evaluate_landmarks
     from usdface.landmarks.plots import plot_evaluation
 
-    blocks = []
-    for f in sorted((SHARED / "livelinkface").glob("*.csv")):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            names, w, _ = read_livelink_csv(f)
-        blocks.append(np.stack([w[:, names.index(n)] if n in names else np.zeros(len(w))
-                                for n in rig.names], 1))
-    w = np.concatenate(blocks)
-    w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        w = livelink_weights(sorted((SHARED / "livelinkface").glob("*.csv")), rig.names, frames)
     indices = json.loads((SHARED / "ict-facekit" / "vertex_indices.json").read_text())
     empirical = indices["idx_to_landmark_verts"]
     t = time.perf_counter()

@@ -173,10 +173,14 @@ def test_evaluate_landmarks_inputs(avatar, tmp_path):
     with pytest.raises(InputFileError) as err:
         usdface.evaluate_landmarks(rig, [csv], empirical=bad)
     assert "bad.json" in str(err.value) and "idx_to_landmark_verts" in err.value.fix
-    w = api._take_weights([csv, csv], rig.names, frames=0)
+    from usdface.io.livelink import livelink_weights
+
+    w = livelink_weights([csv, csv], rig.names)
     assert w.shape == (8, 2)
     np.testing.assert_allclose(w[:, 0], 0.5, atol=1e-3)
     assert (w[:, 1] == 0).all()                                   # eyeBlinkLeft absent from the take
+    sampled = livelink_weights([csv, csv], rig.names, frames=3)
+    np.testing.assert_array_equal(sampled, w[[0, 4, 7]])           # evenly sampled, ends kept
 
 
 def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):

@@ -27,17 +27,11 @@ def head(bench):
 
 @pytest.fixture(scope="module")
 def test_weights(shared, head):
-    from usdface.io.livelink import read_livelink_csv
+    from usdface.io.livelink import livelink_weights
 
-    blocks = []
-    for f in sorted((shared / "data" / "livelinkface").glob("*.csv")):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            names, w, _ = read_livelink_csv(f)
-        blocks.append(np.stack([w[:, names.index(n)] if n in names else np.zeros(len(w))
-                                for n in head.names], 1))
-    w = np.concatenate(blocks)
-    return w[np.linspace(0, len(w) - 1, 80).round().astype(int)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return livelink_weights(sorted((shared / "data" / "livelinkface").glob("*.csv")), head.names, 80)
 
 
 def test_dev_head_optimal_cover_of_every_shape(head):

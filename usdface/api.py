@@ -329,36 +329,15 @@ def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: Pa
     ``empirical``: a JSON list of vertex indices (or ICT-FaceKit's ``vertex_indices.json``) scored as an
     extra layout. ``options`` go to :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``,
     ``symmetric``, ``backend``, ...)."""
-    from .landmarks.evaluate import evaluate_landmarks as _evaluate
-
-    weights = _take_weights(takes, rig.names, frames)
-    indices = _read_vertex_list(empirical) if empirical else None
-    return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
-
-
-def _take_weights(takes: Sequence[PathLike], names: Sequence[str], frames: int):
-    """Live Link CSV weights of all ``takes`` stacked, columns in ``names`` order (absent shapes 0),
-    ``frames`` rows evenly sampled (0: all) -> ``weights[F, K]``."""
-    import numpy as np
-
     from .errors import LandmarkError
-    from .io.livelink import read_livelink_csv
+    from .io.livelink import livelink_weights
+    from .landmarks.evaluate import evaluate_landmarks as _evaluate
 
     if not takes:
         raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
-    blocks = []
-    for t in takes:
-        take_names, w, _ = read_livelink_csv(t)
-        index = {n: i for i, n in enumerate(take_names)}
-        block = np.zeros((w.shape[0], len(names)))
-        for k, n in enumerate(names):
-            if n in index:
-                block[:, k] = w[:, index[n]]
-        blocks.append(block)
-    w = np.concatenate(blocks)
-    if frames and len(w) > frames:
-        w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
-    return w
+    weights = livelink_weights(takes, rig.names, frames)
+    indices = _read_vertex_list(empirical) if empirical else None
+    return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
 
 
 def _read_vertex_list(path: PathLike) -> list[int]:

@@ -27,8 +27,8 @@ from ..arkit import match_names
 from ..errors import CaptureError, InputFileError
 from .capture_folder import order_names
 
-__all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "parse_timecodes", "format_timecodes",
-           "write_livelink_csv", "ANGLE_COLUMNS"]
+__all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_weights", "parse_timecodes",
+           "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS"]
 
 #: Head and eye rotation columns (radians), kept out of the weights.
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
@@ -162,6 +162,25 @@ def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.
     """
     take = read_livelink_take(path, timecode_rate)
     return take.names, take.weights, take.times
+
+
+def livelink_weights(paths, names, frames: int = 0, timecode_rate: float = 60.0) -> np.ndarray:
+    """The weights of one or more Live Link Face CSVs stacked in file order, as columns of ``names[K]``
+    (canonical ARKit; a shape a take lacks is 0) -> ``weights[F, K]``; with ``frames`` > 0 and more rows than
+    that, ``frames`` rows evenly sampled (first and last kept)."""
+    blocks = []
+    for path in paths:
+        take_names, w, _ = read_livelink_csv(path, timecode_rate)
+        index = {n: i for i, n in enumerate(take_names)}
+        block = np.zeros((w.shape[0], len(names)))
+        for k, n in enumerate(names):
+            if n in index:
+                block[:, k] = w[:, index[n]]
+        blocks.append(block)
+    w = np.concatenate(blocks) if blocks else np.zeros((0, len(names)))
+    if frames and len(w) > frames:
+        w = w[np.linspace(0, len(w) - 1, frames).round().astype(int)]
+    return w
 
 
 def format_timecodes(times, timecode_rate: float = 60.0, start: str = "00:00:00:00.000") -> list[str]:
