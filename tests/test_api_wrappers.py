@@ -238,3 +238,27 @@ def test_commands_call_the_api(monkeypatch, tmp_path, capsys):
 
 def capture_out(capsys) -> str:
     return capsys.readouterr().out
+
+
+def echo_worker(item: dict) -> None:
+    """Batch worker for the test below: writes the item's options to its output."""
+    import json
+    from pathlib import Path
+
+    Path(item["output"]).parent.mkdir(parents=True, exist_ok=True)
+    Path(item["output"]).write_text(json.dumps(item["options"]))
+
+
+def test_personalize_batch_options_report_and_resume(tmp_path):
+    import json
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output,method\na.usdc,a_cap,out/a.usda,dt\nb.usdc,b_cap,out/b.usda,\n")
+    report = usdface.personalize_batch(manifest, jobs=1, worker=f"{__name__}:echo_worker",
+                                       options={"method": "menzel", "mu": 0.01},
+                                       report_path=tmp_path / "r.json")
+    assert report.report_path == tmp_path / "r.json"
+    assert json.loads(report.report_path.read_text())["done"] == 2
+    assert json.loads((tmp_path / "out" / "a.usda").read_text()) == {"method": "dt", "mu": 0.01}  # row wins
+    again = usdface.personalize_batch(manifest, jobs=1, worker=f"{__name__}:echo_worker")
+    assert again.count("skipped") == 2 and again.report_path == tmp_path / "m.report.json"

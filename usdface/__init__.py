@@ -12,7 +12,7 @@ _API = {
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
     "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
-    "write_retarget_map", "check", "inspect_file",
+    "write_retarget_map", "personalize_batch", "check", "inspect_file",
 }
 
 

@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .landmarks.evaluate import EvaluationReport
     from .model import Avatar, Capture, FaceRig
     from .personalize import FitResult
+    from .pipeline.batch import BatchReport
     from .pipeline.check import Issue
     from .take_select import Selection
     from .transfer import PersonalizeResult
@@ -36,7 +37,7 @@ __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
     "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
-    "write_retarget_map", "check", "inspect_file",
+    "write_retarget_map", "personalize_batch", "check", "inspect_file",
 ]
 
 #: The personalization methods of :func:`fit_capture` / :func:`evaluate_methods`.
@@ -386,6 +387,29 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text)
     return result
+
+
+def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
+                      worker: str | None = None, options: dict | None = None, force: bool = False,
+                      report_path: PathLike | None = None) -> BatchReport:
+    """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
+    local processes (default: CPU count; 1 = in this process) or a Dask ``scheduler`` address. Items whose
+    output exists are skipped (resume) unless ``force``; a failing item is recorded and the batch goes on.
+    ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
+    :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
+    ``report_path``, default ``MANIFEST.report.json``; returns the
+    :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
+
+    items = read_manifest(manifest)
+    for item in items:
+        item.options = {**dict(options or {}), **item.options}
+    run = load_worker(worker) if worker else personalize_worker
+    report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+    manifest = Path(manifest)
+    path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
+    report.report_path = Path(report.write(path))
+    return report
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,

@@ -42,18 +42,13 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
+    from .. import api
 
-    items = read_manifest(args.manifest)
-    for item in items:
-        item.options = {**dict(args.options), **item.options}
-    worker = load_worker(args.worker) if args.worker else personalize_worker
-    report = run_batch(items, worker=worker, jobs=args.jobs, scheduler=args.scheduler, force=args.force)
-    manifest = Path(args.manifest)
-    out = args.report or manifest.with_name(manifest.stem + ".report.json")
-    report.write(out)
+    report = api.personalize_batch(args.manifest, jobs=args.jobs, scheduler=args.scheduler,
+                                   worker=args.worker, options=dict(args.options), force=args.force,
+                                   report_path=args.report)
     for res in report.failed:
         print(f"FAILED {res.output}: {res.error_type}: {res.error}")
     print(report.summary())
-    print(f"report: {out}")
+    print(f"report: {report.report_path}")
     return 1 if report.failed else 0

@@ -74,6 +74,7 @@ class BatchReport:
     results: list[ItemResult]
     seconds: float
     where: str = "local"
+    report_path: Path | None = None  # where :func:`usdface.api.personalize_batch` wrote the report
 
     def count(self, status: str) -> int:
         return sum(r.status == status for r in self.results)
