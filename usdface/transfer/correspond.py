@@ -63,13 +63,16 @@ class Correspondence:
     key: str = ""
     info: dict | None = None
 
-    def matrix(self, capture_triangles, n_capture: int, *, face_only: bool = True) -> sp.csr_matrix:
+    def matrix(self, capture_triangles, n_capture: int, *, face_only: bool = True,
+               rows=None) -> sp.csr_matrix:
         """M as a sparse ``[m, n_capture]`` interpolation matrix (rows outside the face are empty when
-        ``face_only``)."""
+        ``face_only``); ``rows`` (indices or bool mask) keeps only those avatar vertices."""
         tri = np.asarray(capture_triangles)[self.triangle]
         w = self.barycentric * (self.face[:, None] if face_only else 1.0)
-        rows = np.repeat(np.arange(len(self.triangle)), 3)
-        return sp.csr_matrix((w.ravel(), (rows, tri.ravel())), shape=(len(self.triangle), n_capture))
+        if rows is not None:
+            tri, w = tri[rows], w[rows]
+        r = np.repeat(np.arange(len(tri)), 3)
+        return sp.csr_matrix((w.ravel(), (r, tri.ravel())), shape=(len(tri), n_capture))
 
     def apply(self, capture_values, capture_triangles, rows=None) -> np.ndarray:
         """``M @ values``: interpolate per-capture-vertex values ``[..., n_capture, c]`` at the avatar
@@ -77,15 +80,9 @@ class Correspondence:
         avatar vertex indices (or a bool mask): only those are interpolated -> ``[..., len(rows), c]``."""
         v = np.asarray(capture_values, dtype=np.float64)
         lead, (n, c) = v.shape[:-2], v.shape[-2:]
-        tri = np.asarray(capture_triangles)[self.triangle]                  # [m,3] capture vertex ids
-        bary = self.barycentric
-        if rows is not None:
-            tri, bary = tri[rows], bary[rows]
-        flat = v.reshape(-1, n, c)                                          # [F,n,c]
-        # three gathers instead of a sparse product: same sum, no [n, F*c] transposed copy
-        out = (flat[:, tri[:, 0]] * bary[None, :, 0:1] + flat[:, tri[:, 1]] * bary[None, :, 1:2]
-               + flat[:, tri[:, 2]] * bary[None, :, 2:3])
-        return out.reshape(*lead, -1, c)
+        flat = np.moveaxis(v.reshape(-1, n, c), 1, 0).reshape(n, -1)  # [n, F*c]
+        out = self.matrix(capture_triangles, n, face_only=False, rows=rows) @ flat  # [m, F*c]
+        return np.moveaxis(out.reshape(-1, int(np.prod(lead, dtype=int)), c), 1, 0).reshape(*lead, -1, c)
 
 
 def nonrigid_register(points, triangles, target_points, target_triangles, *,
