@@ -5,8 +5,8 @@ Prints (1) accuracy per method/option: test RMSE and mean max error (eq. 5, mm),
 
     python benchmarks/bench_fit.py [--cases dev1,dev2] [--repeat 7]
 
-Timings are noisy on a shared machine; OPENBLAS_NUM_THREADS=1 avoids BLAS thread oversubscription for the
-many tiny (K x K) problems.
+Timings are noisy on a shared machine: run it when the machine is quiet. ``fit_personalized_shapes`` limits
+BLAS to one thread itself (threadpoolctl), which avoids oversubscription for the many tiny (K x K) problems.
 """
 
 from __future__ import annotations

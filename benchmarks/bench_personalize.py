@@ -8,7 +8,7 @@ Prints two tables:
    ``--variants``, the other transfer options);
 2. time: end-to-end wall time of the ``usdface personalize`` command (fresh process each run), cold
    (no correspondence cache) and warm (cache reused), median of ``--repeats`` runs, plus the in-process step
-   breakdown of one run.
+   breakdown of one run, and the import-only time of a fresh process (with and without Open3D).
 """
 
 from __future__ import annotations
@@ -87,6 +87,22 @@ def wall_times(case: str, repeats: int) -> dict:
     return {k: statistics.median(v) for k, v in out.items()}
 
 
+def import_times(repeats: int) -> dict:
+    """Median wall seconds of fresh processes that only import what ``usdface personalize`` imports: the
+    interpreter with numpy/scipy/pxr/usdface, and the same plus Open3D (its marginal cost)."""
+    base = ("import usdface.cli, usdface.commands.personalize, usdface.api, usdface.transfer, "
+            "usdface.personalize, usdface.io.usd_rig, usdface.io.layers, scipy.spatial")
+    out = {}
+    for label, code in (("python + numpy/scipy/pxr/usdface", base), ("... + open3d", base + ", open3d")):
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+            ts.append(time.perf_counter() - t)
+        out[label] = statistics.median(ts)
+    return out
+
+
 def step_times(case: str) -> dict:
     from usdface.transfer import personalize_avatar
 
@@ -120,6 +136,8 @@ def main(argv=None) -> int:
     for case in cases:
         t = step_times(case)
         print(f"{case} steps: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
+    for label, sec in import_times(args.repeats).items():
+        print(f"imports only ({label}): {sec:.2f} s")
     return 0
 
 

@@ -129,8 +129,8 @@ class PositionFit:
     def loo_residuals(self, reg: float) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``."""
-        B = np.matmul(self.M, self._coef(reg))                               # [n,K,3] = b_v
-        fitted = blend(self.W, B.transpose(1, 0, 2))                         # [F,n,3] (one product)
+        # fitted frames W b_v = (W L^-1/2 U) coef_v = q_v coef_v: one batched product, b_v never formed
+        fitted = np.matmul(self.q, self._coef(reg)).transpose(1, 0, 2)       # [F,n,3]
         h = np.einsum("fnk,nk->fn", self.q2, 1.0 / (self.s + reg))          # [F,n]: w_i^T A^-1 w_i
         return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
 
