@@ -28,8 +28,8 @@ import scipy.sparse as sp
 from ..errors import InputFileError
 from ..mesh import spd_lu
 from .surface import (
+    SurfaceQuery,
     boundary_vertices,
-    closest_points,
     cotangent_laplacian,
     mean_edge_length,
     triangle_normals,
@@ -106,9 +106,10 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
     used = 0.0
+    target = SurfaceQuery(target_points, target_triangles)     # one BVH for every iteration
     for alpha in stiffness:
         for _ in range(iterations_per_level):
-            t_id, _, c, d = closest_points(target_points, target_triangles, x)
+            t_id, _, c, d = target.closest_points(x)
             nx = vertex_normals(x, tri)
             # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry
             w = _ramp_down(d, 2.0 * edge, 4.0 * edge) * _ramp_up(
@@ -117,7 +118,7 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
             a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
             rhs = (alpha * alpha / scale) * (ltl @ x0) + w[:, None] * c + 1e-8 * x
             x = _solve(a, rhs)
-    t_id, _, c, d = closest_points(target_points, target_triangles, x)
+    t_id, _, c, d = target.closest_points(x)
     return x, {"nonrigid_rms_m": float(np.sqrt(np.mean(d ** 2))), "nonrigid_matched": used, "n": n}
 
 
@@ -139,7 +140,8 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     reg = np.asarray(registered, dtype=np.float64)
     ctri = np.asarray(capture_triangles)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    tri, bary, _, dist = closest_points(reg, ctri, ap)
+    surface = SurfaceQuery(reg, ctri)
+    tri, bary, _, dist = surface.closest_points(ap)
     edge = mean_edge_length(reg, ctri)
     an = vertex_normals(ap, avatar_triangles)
     # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
@@ -173,7 +175,7 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     src_tri = np.full(len(atri), -1, dtype=np.int64)
     in_face = np.flatnonzero(face[atri].all(axis=1))
     if in_face.size:
-        src_tri[in_face] = closest_points(reg, ctri, ap[atri[in_face]].mean(axis=1))[0]
+        src_tri[in_face] = surface.closest_points(ap[atri[in_face]].mean(axis=1))[0]
     info = {"face_vertices": int(face.sum()), "capture_mean_edge_m": edge,
             "face_rms_distance_m": float(np.sqrt(np.mean(dist[face] ** 2))) if face.any() else None}
     return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)

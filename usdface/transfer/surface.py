@@ -24,7 +24,8 @@ from ..mesh import (
 )
 
 __all__ = ["triangle_normals", "vertex_normals", "triangle_areas", "gradient_operator", "cotangent_laplacian",
-           "boundary_vertices", "closest_points", "mean_edge_length", "vertex_adjacency", "surface_samples"]
+           "boundary_vertices", "closest_points", "SurfaceQuery", "mean_edge_length", "vertex_adjacency",
+           "surface_samples"]
 
 
 def cotangent_laplacian(points, triangles):
@@ -34,29 +35,42 @@ def cotangent_laplacian(points, triangles):
     return (-_cotangent_laplacian(points, triangles, min_weight=1e-3)).tocsr()
 
 
-def closest_points(points, triangles, queries):
-    """Closest points on a triangle mesh (Open3D ``RaycastingScene.compute_closest_points``).
+class SurfaceQuery:
+    """Closest-point queries on one triangle mesh (Open3D ``RaycastingScene``, built once and reused).
 
-    Returns ``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``; ``barycentric`` weighs the
-    triangle's vertices in order. Computed about the mesh's centroid so that float32 keeps sub-micrometre
-    precision wherever the mesh is placed.
+    Computed about the mesh's centroid so that float32 keeps sub-micrometre precision wherever the mesh is
+    placed.
     """
-    import open3d as o3d
 
-    p = np.asarray(points, dtype=np.float64)
-    origin = p.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((p - origin).astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)))
-    q = np.asarray(queries, dtype=np.float64) - origin
-    ans = scene.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
-    tri = ans["primitive_ids"].numpy().astype(np.int64)
-    uv = ans["primitive_uvs"].numpy().astype(np.float64)
-    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    bary = np.clip(bary, 0.0, 1.0)
-    bary /= bary.sum(axis=1, keepdims=True)
-    closest = np.einsum("qk,qkc->qc", bary, p[np.asarray(triangles)[tri]])
-    return tri, bary, closest, np.linalg.norm(closest - (q + origin), axis=1)
+    def __init__(self, points, triangles):
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.points = np.asarray(points, dtype=np.float64)
+        self.triangles = np.asarray(triangles)
+        self.origin = self.points.mean(axis=0)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor((self.points - self.origin).astype(np.float32)),
+                                 o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)))
+
+    def closest_points(self, queries):
+        """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])`` for ``queries[q,3]``;
+        ``barycentric`` weighs the triangle's vertices in order."""
+        q = np.asarray(queries, dtype=np.float64) - self.origin
+        ans = self.scene.compute_closest_points(self._o3d.core.Tensor(q.astype(np.float32)))
+        tri = ans["primitive_ids"].numpy().astype(np.int64)
+        uv = ans["primitive_uvs"].numpy().astype(np.float64)
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        bary = np.clip(bary, 0.0, 1.0)
+        bary /= bary.sum(axis=1, keepdims=True)
+        closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
+        return tri, bary, closest, np.linalg.norm(closest - (q + self.origin), axis=1)
+
+
+def closest_points(points, triangles, queries):
+    """Closest points on a triangle mesh (Open3D ``RaycastingScene.compute_closest_points``): one-off
+    :class:`SurfaceQuery`. Returns ``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``."""
+    return SurfaceQuery(points, triangles).closest_points(queries)
 
 
 def surface_samples(points, triangles, subdivisions: int) -> np.ndarray:
