@@ -33,7 +33,8 @@ __all__ = ["PoissonSolver", "eyelid_triangles", "zip_loop", "deformation_transfe
 
 
 class PoissonSolver:
-    """Least-squares reconstruction of points from per-triangle deformation gradients on a fixed rest mesh.
+    """Sumner & Popović (2004), eq. (5): least-squares reconstruction of points from per-triangle
+    deformation gradients on a fixed rest mesh (the linear system shared by DT, EBFR and partial DT).
 
     Solves ``min_X sum_f a_f ||Q_f(X) - Q*_f||_F^2 (+ screen)`` where ``Q_f(X)`` is the deformation
     gradient of triangle f (rest plane part, :func:`usdface.mesh.gradient_operator`) and ``a_f`` its rest

@@ -71,7 +71,8 @@ def ebfr_blendshapes(neutral: np.ndarray, triangles: np.ndarray, points: np.ndar
                      *, beta: float | str = 0.5, kappa: float = 0.1, theta: float = 2.0, names=None,
                      eyelids: bool = True, info: dict | None = None,
                      translation_ridge: float = 0.1) -> np.ndarray:
-    """EBFR personalized ``deltas[K,n,3]`` (metres).
+    """Li, Weise & Pauly (2010), eqs. (5)-(7) then vertex reconstruction (Sumner & Popović 2004, eq. 5):
+    EBFR personalized ``deltas[K,n,3]`` (metres).
 
     ``neutral[n,3]`` = B0, ``points[F,n,3]`` training frames, ``weights[F,K]``, the template rig
     (``template_neutral[n,3]``, ``template_deltas[K,n,3]``, same topology) for the prior gradients,

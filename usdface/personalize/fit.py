@@ -76,7 +76,7 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
 
 
 class PositionFit:
-    """Eqs. (1)-(2) prepared for many regularisation strengths.
+    """Menzel et al. (2022), eqs. (1)-(2) prepared for many regularisation strengths.
 
     ``neutral[n,3]``, ``points[F,n,3]``, ``weights[F,K]``, ``generic_deltas[K,n,3]``, ``reg_weights[K,n]``;
     optional ``alt_deltas[K,n,3]``, a second prior to blend with (:meth:`set_prior_mix`).

@@ -36,7 +36,8 @@ def personalization_support(person_deltas, template_deltas, *, low: float = 0.01
 
 def face_deformation_transfer(points, triangles, face, source_triangle, jacobians, anchors, *, base=None,
                               anchor_weight: float = 0.01) -> np.ndarray:
-    """Step 1: transfer the deformation gradients onto the avatar face region.
+    """Menzel et al. 2022, sec. 3.3, step 1 (with Sumner & Popović 2004, eq. 5): transfer the deformation
+    gradients onto the avatar face region.
 
     Minimises, for every shape j and over the face vertices' displacements ``d``,
     ``sum_t area_t ||G_t d - P_t J_{c(t)}^T - G_t base||^2 + lambda sum_v area_v ||d_v - anchor_v||^2``
@@ -97,7 +98,8 @@ def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
 
 def blend_adjacent(points, triangles, face, face_displacements, approximations, *, tol: float = 1e-9,
                    falloff: float | None = None, band: float = 8.0, face_weight=None):
-    """Step 2: seamless completion from the approximations A_j with the face fixed.
+    """Menzel et al. 2022, sec. 3.3, step 2: seamless completion from the approximations A_j with the face
+    fixed.
 
     For each shape j the adjacent region ``R_j = moves in A_j and not face`` gets ``A_j + h`` where ``h``
     minimises ``h^T L h + h^T Mass h / falloff^2`` on R_j (cotangent Laplacian L, lumped vertex areas), with

@@ -45,7 +45,8 @@ def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
 
 
 def approximate(weights, deltas) -> np.ndarray:
-    """``A[J,n,3] = weights[J,K] @ deltas[K,n,3]`` (the approximations A_j on one mesh)."""
+    """Menzel et al. 2022, sec. 3.3: the approximations ``A[J,n,3] = weights[J,K] @ deltas[K,n,3]`` of the
+    personalized shapes by the avatar's own ``deltas`` on one mesh, with the eq. (4) ``weights``."""
     d = np.asarray(deltas, dtype=np.float64)
     flat = np.asarray(weights, dtype=np.float64) @ d.reshape(d.shape[0], -1)
     return flat.reshape(-1, *d.shape[1:])
