@@ -405,3 +405,22 @@ def test_layer_over_a_usdface_output(rig_file, tmp_path):
         np.testing.assert_allclose(generic.mesh(rig.name).deltas, rig.deltas, atol=1e-12)
     layer_text = second.read_text()
     assert 'over "eyeBlinkLeft"' in layer_text and "usdfaceShapes" not in layer_text
+
+
+def test_provenance_inputs_are_recorded_relative_to_the_layer(rig_file, tmp_path, monkeypatch):
+    """Inputs given relative to the working directory are stored relative to the layer, so `usdface check`
+    verifies their digests from any working directory."""
+    from pxr import Sdf, Usd
+
+    from usdface.pipeline.check import check
+
+    monkeypatch.chdir(rig_file.parent)
+    out_dir = tmp_path / "out" / "deeper"
+    out_dir.mkdir(parents=True)
+    avatar = read_avatar(rig_file.name)
+    out = write_avatar_layer(avatar, out_dir / "p.usda", personalized(avatar), provenance={"command": "x"})
+    data = Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]
+    assert (out_dir / data["inputs"][0]).resolve() == rig_file.resolve()
+    monkeypatch.chdir(tmp_path)
+    issues = [i for i in check(Usd.Stage.Open(str(out))) if i.rule == "Provenance"]
+    assert not [i for i in issues if "not reachable" in i.message or i.severity != "info"], issues

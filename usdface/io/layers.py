@@ -396,6 +396,15 @@ def _author_primvars(stage, avatar: Avatar, primvars: dict):
             api.CreatePrimvar(name, type_name, interpolation).Set(value)
 
 
+def _relative_to_layer(path, out_path: Path) -> str:
+    """``path`` relative to the directory of ``out_path`` (absolute when no relative path exists)."""
+    target = Path(path).resolve()
+    try:
+        return Path(os.path.relpath(target, Path(out_path).resolve().parent)).as_posix()
+    except ValueError:  # another drive
+        return target.as_posix()
+
+
 def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
     prov = dict(provenance or {})
     inputs = [str(avatar.file)] + [str(p) for p in prov.pop("inputs", []) if str(p) != str(avatar.file)]
@@ -409,7 +418,8 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
     prov.setdefault("parameters", {})
     prov.setdefault("timings", {})
     prov["version"] = __version__
-    prov["inputs"] = inputs
+    # recorded relative to the layer (like its sublayer path), so the record stays checkable from anywhere
+    prov["inputs"] = [_relative_to_layer(p, out_path) for p in inputs]
     prov["inputDigests"] = [digests[p] for p in inputs]
     prov["createdAt"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     prov["output"] = out_path.name
