@@ -119,7 +119,10 @@ def _face_triangles(lines: list[bytes], all_lines: list[bytes], path: Path) -> n
 
 def fan_triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Fan-triangulate polygons (``counts[faces]`` corners, flat 0-based ``idx``): (v0, v_i, v_i+1) ->
-    ``triangles[t, 3]``; vectorized (OBJ faces and USD ``faceVertexCounts``/``faceVertexIndices``)."""
+    ``triangles[t, 3]`` int64; vectorized (OBJ faces and USD ``faceVertexCounts``/``faceVertexIndices``).
+    The caller validates counts >= 3."""
+    counts = np.asarray(counts, dtype=np.int64)
+    idx = np.asarray(idx, dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     n_tri = counts - 2
     face_of_tri = np.repeat(np.arange(len(counts)), n_tri)

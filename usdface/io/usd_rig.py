@@ -41,6 +41,7 @@ import numpy as np
 from .. import arkit
 from ..errors import GeometryError, InputFileError, RigError, UsdFaceError
 from ..model import Avatar, FaceRig, Inbetween, MeshSource
+from .mesh_io import fan_triangulate
 
 #: Root-layer metadata that describes how to interpret the stage; a layer written over the avatar repeats it.
 STAGE_METADATA_KEYS = ("upAxis", "metersPerUnit", "defaultPrim", "startTimeCode", "endTimeCode",
@@ -109,22 +110,6 @@ def snap_transform(matrix, tolerance: float = SNAP_TOLERANCE) -> tuple[np.ndarra
         change = max(change, float(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max()))
         m[3] = [0.0, 0.0, 0.0, 1.0]
     return m, change
-
-
-def fan_triangulate(face_vertex_counts, face_vertex_indices) -> np.ndarray:
-    """Fan-triangulate polygons: ``counts[f]``, ``indices[sum(counts)]`` -> ``triangles[t, 3]`` int64.
-
-    Face ``(v0, v1, ..., vk)`` gives ``(v0, v1, v2), (v0, v2, v3), ...``; the caller validates counts >= 3.
-    """
-    counts = np.asarray(face_vertex_counts, dtype=np.int64)
-    indices = np.asarray(face_vertex_indices, dtype=np.int64)
-    n_tris = counts - 2
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    first = np.repeat(starts, n_tris)
-    # position of each triangle inside its face: 0 .. n_tris-1
-    tri_start = np.concatenate([[0], np.cumsum(n_tris)[:-1]])
-    local = np.arange(int(n_tris.sum())) - np.repeat(tri_start, n_tris)
-    return np.stack([indices[first], indices[first + local + 1], indices[first + local + 2]], axis=1)
 
 
 def _open_stage(path: Path):
