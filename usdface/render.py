@@ -222,7 +222,7 @@ def render_landmarks(points, triangles, indices, out=None, *, labels=None, view:
                            fix="use vertex indices of this mesh")
     fig, axes = _figure(1, size=5.0)
     draw_mesh(axes[0], points, triangles, view=view)
-    from .landmarks.visibility import vertex_normals  # one implementation (should move to usdface.mesh)
+    from .mesh import vertex_normals
 
     rotated = points @ VIEWS[view].T
     visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0  # landmarks on the far side are hidden

@@ -15,17 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import GeometryError
-
-
-def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals: ``points[n, 3]``, ``triangles[t, 3]`` -> ``[n, 3]`` (0 if none)."""
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])  # |face| = 2 * area
-    normals = np.stack([np.bincount(t.ravel(), weights=np.repeat(face[:, c], 3), minlength=len(p))
-                        for c in range(3)], axis=1)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+from ..mesh import vertex_normals
 
 
 def hemisphere_directions(count: int) -> np.ndarray:
