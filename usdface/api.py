@@ -370,8 +370,9 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written).
     Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
     from .errors import InputFileError, OutputExistsError
+    from .io.atomic import write_text_atomic
     from .transfer import personalize_avatar as _personalize
-    from .transfer.retarget import weight_map_csv, weight_map_json, write_text_atomic
+    from .transfer.retarget import weight_map_csv, weight_map_json
 
     out = Path(out_path)
     if out.suffix.lower() not in (".json", ".csv"):

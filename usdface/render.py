@@ -16,7 +16,6 @@ Example::
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -97,14 +96,10 @@ def save_figure(fig, out, force: bool = False) -> Path:
     out = Path(out)
     if out.exists() and not force:
         raise OutputExistsError("picture exists", path=out, fix="pass --force (force=True) to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.png")
-    try:
+    from .io.atomic import atomic_file
+
+    with atomic_file(out) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return out
 
 

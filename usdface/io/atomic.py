@@ -1,9 +1,9 @@
-"""Atomic output folders: build in a temporary sibling folder, then swap it into place.
+"""Atomic outputs: build in a temporary sibling, then swap it into place.
 
-Single files are written atomically by their writers (temporary file in the same directory + ``os.replace``,
-e.g. :func:`usdface.io.layers.atomic_save`); a folder of many files (a capture folder, the sample assets) is
-assembled with :func:`replace_dir_atomically`, so a failure never leaves a half-written folder and an existing
-folder is only replaced once the new one is complete.
+A single file is written through :func:`atomic_file` (or :func:`write_text_atomic` for text; USD
+layers through :func:`usdface.io.layers.atomic_save`); a folder of many files (a capture folder, the
+sample assets) is assembled with :func:`replace_dir_atomically`. A failure never leaves a half-written
+output, and an existing output is only replaced once the new one is complete.
 """
 
 from __future__ import annotations
@@ -17,7 +17,36 @@ from pathlib import Path
 
 from ..errors import OutputExistsError
 
-__all__ = ["check_output_dir", "replace_dir_atomically"]
+__all__ = ["check_output_dir", "replace_dir_atomically", "atomic_file", "write_text_atomic"]
+
+
+@contextmanager
+def atomic_file(path) -> Iterator[Path]:
+    """Context manager: yield a temporary file path next to ``path``, ending in ``.tmp<suffix>`` so that
+    writers going by the extension (``savefig``, ``np.savez``) still work. When the block completes, the file
+    gets the permissions of a normally created file (0666 & ~umask) and replaces ``path``; on an exception
+    it is removed and ``path`` is untouched."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_text_atomic(path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_file`); returns ``path`` as a Path."""
+    with atomic_file(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
 
 
 def check_output_dir(path, force: bool = False) -> Path:

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..arkit import match_names
 from ..errors import CaptureError, InputFileError
+from .atomic import write_text_atomic
 from .capture_folder import order_names
 
 __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_weights", "parse_timecodes",
@@ -201,8 +202,6 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     """Write a take in Live Link Face's CSV layout (``Timecode, BlendShapeCount, <PascalCase weights>,
     <angles>``): ``weights[F, K]`` for canonical ``names[K]``, ``times[F]`` seconds, optional ``angles``
     {column: [F]}. Written atomically. Used to make test takes; :func:`read_livelink_take` reads it back."""
-    import os
-    import tempfile
 
     from ..arkit import livelink_name
 
@@ -219,9 +218,4 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     for f, code in enumerate(codes):
         row = [repr(float(x)) for x in weights[f]] + [repr(float(c[f])) for c in cols]
         writer.writerow([code, count] + row)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(buf.getvalue())
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, buf.getvalue())

@@ -12,14 +12,13 @@ Everything else in an OBJ (normals, UVs, groups, materials) is ignored.
 
 from __future__ import annotations
 
-import os
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import GeometryError, InputFileError
+from .atomic import write_text_atomic
 
 __all__ = ["read_obj", "write_obj", "fan_triangulate"]
 
@@ -234,14 +233,4 @@ def write_obj(path, points, triangles) -> Path:
         raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
     text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
     text += "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_text_atomic(path, text)

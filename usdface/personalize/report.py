@@ -73,23 +73,20 @@ def _jsonable(x):
 
 def write_report_json(report: dict, path) -> Path:
     """Write the report (without the error maps) as JSON; atomic (temp + rename)."""
-    import os
-    path = Path(path)
+    from ..io.atomic import write_text_atomic
+
     data = {k: v for k, v in report.items() if not k.startswith("_")}
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=_jsonable))
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, json.dumps(data, indent=1, default=_jsonable))
 
 
 def plot_errors(report: dict, path) -> Path:
     """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
     (bottom), methods side by side. Atomic write (temp + rename)."""
-    import os
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from ..io.atomic import atomic_file
 
     labels = report["labels"]
     methods = list(report["methods"])
@@ -107,9 +104,7 @@ def plot_errors(report: dict, path) -> Path:
     axes[1].set_xticks(x, [str(i + 1) for i in range(len(labels))])
     axes[1].set_xlabel("test expression")
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    return Path(path)

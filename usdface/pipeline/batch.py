@@ -103,11 +103,9 @@ class BatchReport:
 
     def write(self, path) -> Path:
         """Write the report as JSON, atomically (temp file + rename)."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2))
-        os.replace(tmp, path)
-        return path
+        from ..io.atomic import write_text_atomic
+
+        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2))
 
 
 # ----------------------------------------------------------------------------------------------- manifest

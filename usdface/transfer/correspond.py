@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -205,29 +203,16 @@ def geometry_digest(*arrays) -> str:
 
 def save_correspondence(corr: Correspondence, path) -> Path:
     """Write the map to ``path`` (``.npz``) atomically."""
+    from ..io.atomic import atomic_file
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_file(path) as tmp:
         np.savez_compressed(tmp, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
                             face=corr.face, source_triangle=corr.source_triangle,
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             key=np.array(corr.key), version=np.array(CACHE_VERSION),
                             info=np.array(json.dumps(corr.info or {})))
-        _umask_permissions(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
-
-
-def _umask_permissions(path):
-    """Give a mkstemp file (0600) the permissions a normally created file would have (0666 & ~umask)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
 
 
 def load_correspondence(path, key: str | None = None) -> Correspondence | None:

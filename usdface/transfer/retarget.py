@@ -79,25 +79,3 @@ def weight_map_csv(weights, target_names, avatar_names) -> str:
     for j, name in enumerate(target_names):
         w.writerow([name, *(f"{v:.6g}" for v in np.asarray(weights)[j])])
     return buf.getvalue()
-
-
-def write_text_atomic(path, text: str):
-    """Write ``text`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
-    import os
-    import tempfile
-    from pathlib import Path
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
