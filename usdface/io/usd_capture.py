@@ -26,14 +26,12 @@ then the float32-quantised capture (exactly).
 
 from __future__ import annotations
 
-import os
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, GeometryError, InputFileError, OutputExistsError
+from ..errors import CaptureError, GeometryError, InputFileError
 from ..model import Capture, FaceRig, Frames
 from .capture_folder import ROLES
 from .mesh_io import fan_triangulate
@@ -51,37 +49,16 @@ _ROLE_COLOR = {"train": (0.35, 0.55, 0.85), "test": (0.9, 0.55, 0.25)}
 
 # ----------------------------------------------------------------------------------------------- writing
 def _check_output(path: Path, force: bool) -> None:
-    try:
-        from .layers import check_output_path
-    except ImportError:
-        if path.exists() and not force:
-            raise OutputExistsError("output exists", path=path,
-                                    fix="choose a new file name or pass --force") from None
-        return
+    from .layers import check_output_path
+
     check_output_path(path, force)
 
 
 def _save(stage, path: Path) -> None:
     """Write the stage's root layer to ``path`` atomically (temp file in the same folder + rename)."""
-    try:
-        from .layers import atomic_save
-    except ImportError:
-        atomic_save = None
-    if atomic_save is not None:
-        atomic_save(stage.GetRootLayer(), path)
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        if not stage.GetRootLayer().Export(tmp):
-            raise InputFileError("USD could not write the file", path=path,
-                                 fix="check the folder is writable")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from .layers import atomic_save
+
+    atomic_save(stage.GetRootLayer(), path)
 
 
 def _topology(mesh, triangles) -> None:
