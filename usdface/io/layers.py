@@ -153,13 +153,14 @@ def _usd_value(value):
             return Vt.DoubleArray([float(v) for v in items])
         if all(isinstance(v, str) for v in items):
             return Vt.StringArray(items)
-        return json.dumps(value.tolist() if isinstance(value, np.ndarray) else items, default=_json_default)
+        return json.dumps(value.tolist() if isinstance(value, np.ndarray) else items, default=json_default)
     if value is None:
         return ""
     return str(value)
 
 
-def _json_default(value):
+def json_default(value):
+    """``json.dumps(default=...)`` for numpy values: arrays -> lists, scalars -> Python numbers, else str."""
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):

@@ -63,20 +63,13 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, **
     return report
 
 
-def _jsonable(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return str(x)
-
-
 def write_report_json(report: dict, path) -> Path:
     """Write the report (without the error maps) as JSON; atomic (temp + rename)."""
     from ..io.atomic import write_text_atomic
+    from ..io.layers import json_default
 
     data = {k: v for k, v in report.items() if not k.startswith("_")}
-    return write_text_atomic(path, json.dumps(data, indent=1, default=_jsonable))
+    return write_text_atomic(path, json.dumps(data, indent=1, default=json_default))
 
 
 def plot_errors(report: dict, path) -> Path:
