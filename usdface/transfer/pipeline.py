@@ -188,7 +188,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        mu: float = 1e-3, correspondence=None, force: bool = False, dry_run: bool = False,
                        face_transfer: str = "offset", approximation: str = "generic", falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
-                       rig: FaceRig | None = None,
+                       rig: FaceRig | None = None, name_map=None, face_mesh: str | None = None,
                        command: str = "", **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
@@ -197,6 +197,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     ----------
     method, reg, fit_options : step 1, passed to :func:`usdface.personalize.fit_personalized_shapes`.
     rig : skip step 1 and implant this capture-mesh rig (neutral = person's B0, deltas = B_j).
+    name_map : the studio's {channel: ARKit name} map (dict or JSON/CSV file) for reading ``avatar``
+        (:func:`usdface.io.usd_rig.read_avatar`).
+    face_mesh : prim name or path of the face mesh (default: the mesh the shared shapes move most).
     mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map.
     correspondence : cache file (``.npz``) for step 3, reused when it belongs to this avatar face and
         template (same geometry and topology), rewritten otherwise.
@@ -230,7 +233,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if not isinstance(avatar, Avatar):
             from ..io.usd_rig import read_avatar
 
-            avatar = read_avatar(avatar)
+            avatar = read_avatar(avatar, name_map=name_map)
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
@@ -251,7 +254,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         advance("fit")
 
         # names: capture shapes vs avatar shapes
-        face = _face_mesh(avatar, [n for n in rig.names])
+        if face_mesh:
+            from ..io.layers import avatar_mesh
+
+            face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
+        else:
+            face = _face_mesh(avatar, [n for n in rig.names])
         face_prim = face.source.prim if face.source else face.name
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         names = [n for n in rig.names if n in face.names]
