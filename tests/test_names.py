@@ -220,11 +220,19 @@ def test_reader_keeps_the_best_of_two_channels(tmp_path):
     entry = avatar.name_report["/Avatar/Head"]
     assert entry["conflicts"] == [["eyeBlink_L", "eyeBlinkLeft", "eyeBlinkLeft"]]
     assert ["eyeBlink_L", None, "conflict"] in entry["channels"]
+    from usdface.inspect import summarize_avatar
+
+    arkit_report = summarize_avatar(avatar)["meshes"][0]["arkit"]
+    assert arkit_report["extra"] == ["eyeBlink_L"] and arkit_report["misspelt"] == {}
     assert any("'eyeBlink_L' also means 'eyeBlinkLeft'" in n for n in avatar.metadata["notes"])
     # a name map whose loser keeps a name another channel maps to is refused, naming both channels
     with pytest.raises(RigError, match="same ARKit shape twice") as info:
         read_avatar(path, name_map={"eyeBlinkLeft": "mouthSmileLeft"})
     assert "eyeBlink_L" in str(info.value) and "--name-map" in str(info.value)
+    # map entries that match no channel are noted (a typo in the map would otherwise go unseen)
+    notes = read_avatar(path, name_map={"Nope": "jawOpen", "blendShape9.mouthSmileLeft": "mouthSmileRight"}
+                        ).metadata["notes"]
+    assert "name map entries that match no channel: Nope, blendShape9.mouthSmileLeft" in notes
 
 
 def _studio_name(canonical: str, k: int) -> str:

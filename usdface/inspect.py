@@ -71,10 +71,11 @@ def names_vs_arkit(names, report: dict | None = None) -> dict:
     report = report or {}
     present = [n for n in arkit.ARKIT_NAMES if n in names]
     extra = [n for n in names if n not in arkit.ARKIT_SET]
+    lost = {given for given, _c, _k in report.get("conflicts", [])}  # mean a shape another channel has
     missing = [n for n in arkit.ARKIT_NAMES if n not in names]
     return {"present": len(present), "missing": missing,
             "missingRequired": [n for n in missing if n not in arkit.OPTIONAL_NAMES],
-            "extra": extra, "misspelt": _misspellings(extra),
+            "extra": extra, "misspelt": _misspellings([n for n in extra if n not in lost]),
             "renamed": [{"given": g, "canonical": c, "how": h} for g, c, h in report.get("inexact", [])]}
 
 
