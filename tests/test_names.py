@@ -349,12 +349,18 @@ def test_studio_avatar_personalizes_to_the_same_offsets(samples, studio_avatar, 
     assert np.abs(ref.offsets["/Avatar/Head"] - generic).max() > 1e-4  # something was personalized
 
 
-def test_face_mesh_not_found_names_the_meshes(samples, sample_fit):
+def test_face_mesh_not_found_names_the_meshes(samples, sample_fit, monkeypatch):
+    """A --face-mesh that is no mesh with blend shapes stops before the fit, naming the meshes there are."""
+    import usdface.personalize
     from usdface.api import personalize_avatar
 
-    capture, rig = sample_fit
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the fit ran before --face-mesh was checked")
+
+    monkeypatch.setattr(usdface.personalize, "fit_personalized_shapes", no_fit)
+    capture, _ = sample_fit
     with pytest.raises(RigError, match="no mesh 'Nose'") as info:
-        personalize_avatar(samples / "avatar.usda", capture, None, rig=rig, face_mesh="Nose")
+        personalize_avatar(samples / "avatar.usda", capture, None, face_mesh="Nose")
     assert "/Avatar/Head" in str(info.value) and "/Avatar/Mouth" in str(info.value)
 
 

@@ -238,6 +238,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io import read_capture
 
             capture = read_capture(capture)
+        chosen_face = None
+        if face_mesh:  # checked before the fit
+            from ..io.layers import avatar_mesh
+
+            chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
         timings["read"] = time.perf_counter() - t
         advance("read")
 
@@ -254,12 +259,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         advance("fit")
 
         # names: capture shapes vs avatar shapes
-        if face_mesh:
-            from ..io.layers import avatar_mesh
-
-            face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
-        else:
-            face = _face_mesh(avatar, [n for n in rig.names])
+        face = chosen_face if chosen_face is not None else _face_mesh(avatar, [n for n in rig.names])
         face_prim = face.source.prim if face.source else face.name
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         names = [n for n in rig.names if n in face.names]
