@@ -338,9 +338,11 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
             else:
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is not an ARKit shape",
                             "fine for extra shapes; usdface keeps it but does not personalize it")
+        kept = {c: k for _g, c, k in match_names(names, fallbacks, name_map, resolve=True).conflicts}
         for dup in sorted(set(match.duplicates)):
             given = [g for g, c in zip(names, match.canonical, strict=True) if c == dup]
-            yield Issue(ERROR, "ArkitNames", path, f"channels {given} all mean {dup!r}",
+            using = f"; usdface uses {kept[dup]!r}" if dup in kept else ""
+            yield Issue(ERROR, "ArkitNames", path, f"channels {given} all mean {dup!r}{using}",
                         "keep one channel per ARKit shape")
         skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
         key = str(skel.GetPath()) if skel else path
