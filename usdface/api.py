@@ -44,12 +44,14 @@ __all__ = [
 METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 
-def read_avatar(path: PathLike) -> Avatar:
+def read_avatar(path: PathLike, name_map: dict | PathLike | None = None) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, converted to metres / Y up, ARKit names
-    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`)."""
+    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`). ``name_map``: the studio's
+    ``{"studio_channel": "arkitName"}`` dict or a JSON / CSV file of them, for channels usdface does not
+    recognise (:mod:`usdface.io.name_map`)."""
     from .io.usd_rig import read_avatar as _read
 
-    return _read(path)
+    return _read(path, name_map=name_map)
 
 
 def read_capture(path: PathLike) -> Capture:
@@ -282,7 +284,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
-    avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
+    avatar = (avatar_path if not isinstance(avatar_path, str | Path)
+              else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)
     result = _personalize(avatar, capture, out_path, **options)
     if getattr(result, "out_path", None):
@@ -414,19 +417,22 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
-          rules: Iterable[str] | None = None) -> list[Issue]:
+          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
-    OpenUSD's own validators, merged and sorted errors first (``usdface check``). Never modifies the file."""
+    OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
+    :func:`read_avatar`. Never modifies the file."""
+    from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
+    name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | Path):
-        return validate_file(file_or_stage, pixar=pixar, rules=rules)
-    return validate_stage(file_or_stage, pixar=pixar, rules=rules)
+        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
 
 
-def inspect_file(path: PathLike) -> dict:
+def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
-    name report, provenance."""
+    how each channel maps to ARKit (``name_map`` as for :func:`read_avatar`), provenance."""
     from .inspect import inspect_file as _inspect
 
-    return _inspect(path)
+    return _inspect(path, name_map=name_map)

@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from . import add_name_map_option
+
 
 def _vector3(text: str):
     try:
@@ -27,6 +29,7 @@ def register(subparsers) -> None:
                     "optimum, and write it as a USD layer over the avatar (a Points prim + mesh primvars).")
     p.add_argument("avatar", help="avatar USD file (UsdSkel, blend shapes)")
     p.add_argument("--mesh", help="mesh prim name or path (default: most shapes, then most vertices)")
+    add_name_map_option(p)
     p.add_argument("--epsilon", type=float, default=0.5, help="relative-displacement threshold, (0,1]")
     p.add_argument("--alpha", type=float, default=0.5, help="displacement vs visibility weight, [0,1]")
     p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
@@ -72,7 +75,7 @@ def run(args) -> int:
         from ..io.layers import check_output_path
 
         check_output_path(args.output, args.force)
-    avatar = api.read_avatar(args.avatar)
+    avatar = api.read_avatar(args.avatar, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation

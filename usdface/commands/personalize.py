@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from . import add_name_map_option
+
 
 def add_transfer_options(p) -> None:
     """Options shared by ``personalize`` and ``retarget`` (the fit and the transfer)."""
@@ -28,6 +30,7 @@ def add_transfer_options(p) -> None:
                    help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
                         "over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
@@ -39,7 +42,7 @@ def transfer_kwargs(args) -> dict:
         pass
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
             "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
-            "eyelids": not args.no_eyelids}
+            "eyelids": not args.no_eyelids, "name_map": args.name_map}
 
 
 def register(subparsers) -> None:
@@ -52,6 +55,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: <avatar>.personalized.usda "
                                           "next to the avatar)")
     p.add_argument("--force", action="store_true", help="overwrite the output")
+    p.add_argument("--face-mesh", metavar="PRIM",
+                   help="prim name or path of the face mesh (default: the mesh the capture's shapes "
+                        "move most)")
     p.add_argument("--dry-run", action="store_true",
                    help="compute and print what would change; write nothing")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -83,7 +89,8 @@ def run(args) -> int:
     inspect = bool(args.inspect or args.landmarks or args.take)
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
-                                landmarks=args.landmarks, take=args.take, **transfer_kwargs(args))
+                                landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
+                                **transfer_kwargs(args))
     rep = result.report
     if args.json:
         doc = {k: v for k, v in rep.items() if k != "name_report"}

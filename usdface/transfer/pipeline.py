@@ -239,7 +239,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        face_transfer: str = "person", approximation: str = "field", falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
-                       extension_length: float | None = 1.0, command: str = "", **fit_options
+                       name_map=None, extension_length: float | None = 1.0, command: str = "", **fit_options
                        ) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
@@ -251,6 +251,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         ``"avatar"`` (default): the avatar's own generic shapes sampled on the capture mesh, so that a shape
         the capture barely shows stays the avatar's; ``"template"``: the capture's template rig (the paper).
     rig : skip step 1 and implant this capture-mesh rig (neutral = person's B0, deltas = B_j).
+    name_map : the studio's {channel: ARKit name} map (dict or JSON/CSV file) for reading ``avatar``
+        (:func:`usdface.io.usd_rig.read_avatar`).
     mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map; ``"auto"`` chooses
         it by generalized cross-validation on the face rows.
     correspondence : cache file for step 3, reused when it belongs to this avatar face and template (same
@@ -297,17 +299,22 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if not isinstance(avatar, Avatar):
             from ..io.usd_rig import read_avatar
 
-            avatar = read_avatar(avatar)
+            avatar = read_avatar(avatar, name_map=name_map)
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
             capture = read_capture(capture)
+        chosen_face = None
+        if face_mesh:  # checked before the fit
+            from ..io.layers import avatar_mesh
+
+            chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
         timings["read"] = time.perf_counter() - t
         advance("read")
 
         # names: capture shapes vs avatar shapes
         cap_names = list(rig.names) if rig is not None else list(capture.names)
-        face = _pick_face_mesh(avatar, cap_names, face_mesh)
+        face = chosen_face if chosen_face is not None else _pick_face_mesh(avatar, cap_names, None)
         face_prim = face.source.prim if face.source else face.name
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
