@@ -52,8 +52,8 @@ class Take:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        self.weights = np.asarray(self.weights, dtype=np.float64)
-        self.times = np.asarray(self.times, dtype=np.float64)
+        self.weights = np.array(self.weights, dtype=np.float64)
+        self.times = np.array(self.times, dtype=np.float64)
         self.names = [str(n) for n in self.names]
 
     @property
@@ -184,7 +184,7 @@ def read_take_usd(path) -> Take:
     meta: dict = {"frames_prim": str(frames.GetPath())}
     if w_attr and w_attr.GetNumTimeSamples():
         names = [str(n) for n in frames.GetAttribute("usdface:frames:names").Get() or []]
-        weights = np.stack([np.asarray(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        weights = np.stack([np.array(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
         meta["weights_source"] = str(w_attr.GetPath())
     else:
         anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
@@ -195,7 +195,7 @@ def read_take_usd(path) -> Take:
                                fix="author the phone's weights as a SkelAnimation in the take")
         names, _, anim_codes = read_skel_animation(anims[0])
         attr = UsdSkel.Animation(anims[0]).GetBlendShapeWeightsAttr()
-        weights = np.stack([np.asarray(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        weights = np.stack([np.array(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
         if not np.isin(codes, anim_codes).all():
             warnings.warn(f"{path}: weights time samples differ from the mesh's; USD interpolated them",
                           UserWarning, stacklevel=2)

@@ -168,7 +168,7 @@ def author_template(stage, prim_path: str, tpl: FaceRig, weights, time_codes, ti
     skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
     tcps = float(time_codes_per_second)
     anim = author_skel_animation(stage, f"{prim_path}/Skel/Anim", tpl.names, weights, tcps,
-                                 times=np.asarray(time_codes, dtype=np.float64) / tcps)
+                                 times=np.array(time_codes, dtype=np.float64) / tcps)
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
     mesh = UsdGeom.Mesh.Define(stage, f"{prim_path}/Mesh")
     _topology(mesh, tpl.triangles)
@@ -204,7 +204,7 @@ def author_frames(stage, prim_path: str, triangles, points, weights, names, time
     prim.CreateAttribute("usdface:frames:names", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
         Vt.TokenArray(list(names)))
     w_attr = prim.CreateAttribute("usdface:frames:weights", Sdf.ValueTypeNames.DoubleArray, custom=True)
-    for f, code in enumerate(np.asarray(time_codes, dtype=np.float64).tolist()):
+    for f, code in enumerate(np.array(time_codes, dtype=np.float64).tolist()):
         _set_points(frames, points[f], code, exact)
         w_attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(weights[f], dtype=np.float64)), code)
     return frames
@@ -251,11 +251,11 @@ def _points(prim, path, time=None) -> np.ndarray:
     if value is None or len(value) == 0:
         raise GeometryError("mesh has no points", path=path, prim=prim.GetPath(),
                             fix="re-create the capture with 'usdface capture import'")
-    p32 = np.asarray(value, dtype=np.float32)
+    p32 = np.array(value, dtype=np.float32)
     twin = prim.GetAttribute(_EXACT)
     exact = twin.Get(t) if twin else None
     if exact is not None and len(exact) == len(p32):
-        p64 = np.asarray(exact, dtype=np.float64)
+        p64 = np.array(exact, dtype=np.float64)
         if np.array_equal(p64.astype(np.float32), p32):
             return _finite(p64, path, prim)
         warnings.warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
@@ -274,8 +274,8 @@ def _triangles(prim, path) -> np.ndarray:
     from pxr import UsdGeom
 
     mesh = UsdGeom.Mesh(prim)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.array(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
     if counts.size == 0 or counts.min() < 3 or counts.sum() != idx.size:
         raise GeometryError("invalid or empty faces (faceVertexCounts/faceVertexIndices)", path=path,
                             prim=prim.GetPath(), fix="re-create the capture with 'usdface capture import'")
@@ -315,16 +315,16 @@ def _template(stage, root, path, triangles, n) -> FaceRig:
             raise CaptureError("blend shape target not found", path=path, prim=target,
                                fix="re-create the capture with 'usdface capture import'")
         bs = UsdSkel.BlendShape(shape)
-        off32 = np.asarray(bs.GetOffsetsAttr().Get() or [], dtype=np.float32)
+        off32 = np.array(bs.GetOffsetsAttr().Get() or [], dtype=np.float32)
         twin = shape.GetAttribute(_EXACT_OFFSETS)
         exact = twin.Get() if twin else None
         off = off32.astype(np.float64)
         if exact is not None and len(exact) == len(off32):
-            e = np.asarray(exact, dtype=np.float64)
+            e = np.array(exact, dtype=np.float64)
             if np.array_equal(e.astype(np.float32), off32):
                 off = e
         pi = bs.GetPointIndicesAttr().Get()
-        idx = np.arange(n) if not pi else np.asarray(pi, dtype=np.int64)
+        idx = np.arange(n) if not pi else np.array(pi, dtype=np.int64)
         if len(idx) != len(off) or (len(idx) and (idx.min() < 0 or idx.max() >= n)):
             raise CaptureError("offsets/pointIndices do not match the mesh", path=path, prim=target,
                                fix="author one offset per point index, indices within the mesh")
@@ -399,7 +399,7 @@ def read_capture_usd(path) -> Capture:
         if w is None or len(w) != len(names):
             raise CaptureError(f"frame {f}: weights missing or of the wrong length", path=path,
                                prim=fprim.GetPath(), fix="author usdface:frames:weights, one value per name")
-        weights.append(_finite(np.asarray(w, dtype=np.float64), path, fprim))
+        weights.append(_finite(np.array(w, dtype=np.float64), path, fprim))
     if any(p.shape != neutral.shape for p in points):
         raise GeometryError("a frame's vertex count differs from the neutral's", path=path,
                             prim=fprim.GetPath(), fix="every frame must share the neutral's topology")

@@ -161,7 +161,7 @@ def _array(value, dtype, width, what, path, prim) -> np.ndarray:
     if value is None:
         return np.zeros((0, width) if width else 0, dtype=dtype)
     try:
-        arr = np.asarray(value, dtype=dtype)
+        arr = np.array(value, dtype=dtype)
         if width:
             arr = arr.reshape(-1, width)
         else:
@@ -345,7 +345,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                 dense[idx] = ib_offsets @ linear.T
             ib_normals = ib.GetNormalOffsets() if ib.GetNormalOffsetsAttr() else None
             ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), dense,
-                                 None if ib_normals is None else np.asarray(ib_normals, dtype=np.float32)))
+                                 None if ib_normals is None else np.array(ib_normals, dtype=np.float32)))
         if ibs:
             ws = [b.weight for b in ibs]
             if len(set(ws)) != len(ws):
