@@ -253,11 +253,11 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     if json_path:
         from .personalize.report import write_report_json
 
-        outputs["json"] = Path(write_report_json(report, json_path))
+        outputs["json"] = Path(write_report_json(report, json_path, force=force))
     if plot_path:
         from .personalize.report import plot_errors
 
-        outputs["plot"] = Path(plot_errors(report, plot_path))
+        outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
     if usd_path:
         from .io.usd_error_maps import write_error_maps_usd
 
@@ -280,16 +280,20 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
     from .transfer import personalize_avatar as _personalize
 
+    if take is not None:
+        inspect = True
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
+    from .io.take import read_take
+
+    take_data = read_take(take) if take is not None else None  # a bad take fails before any work
     avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
     capture = _as_capture(capture_path)
     result = _personalize(avatar, capture, out_path, **options)
     if getattr(result, "out_path", None):
-        from .io.take import read_take
         from .io.usd_inspection import add_inspection, change_heat, inspection_animation, inspection_edit
 
-        animation = inspection_animation(capture, read_take(take) if take is not None else None)
+        animation = inspection_animation(capture, take_data)
         layouts = None
         if landmarks:
             from .model import FaceRig as _FaceRig
@@ -298,8 +302,12 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
             personalized = _FaceRig(face.neutral, face.triangles, face.names,
                                     result.offsets[face.source.prim], face.inbetweens, face.source, face.name)
             layouts = {face.source.prim: compute_landmarks(personalized)}
-        add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
-                                                        landmarks=layouts, animation=animation, fps=24.0))
+        try:
+            add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
+                                                            landmarks=layouts, animation=animation, fps=24.0))
+        except BaseException:
+            Path(result.out_path).unlink(missing_ok=True)  # no half-finished layer for batch to call done
+            raise
     return result
 
 
@@ -386,7 +394,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
-    write_text_atomic(out, text)
+    write_text_atomic(out, text, force=force)
     return result
 
 

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
@@ -70,6 +71,33 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("usdface: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
+        if args.debug:
+            raise
+        print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        return 2
+
+
+#: errno -> what to do about it (the one-line error's ``fix``).
+_OS_FIXES = {
+    errno.EACCES: "choose a folder you can write to (-o elsewhere) or fix its permissions",
+    errno.EPERM: "choose a folder you can write to (-o elsewhere) or fix its permissions",
+    errno.EROFS: "the file system is read-only: write the output elsewhere (-o)",
+    errno.ENOSPC: "free disk space or write the output elsewhere (-o)",
+    errno.EDQUOT: "free disk space (quota) or write the output elsewhere (-o)",
+    errno.EISDIR: "the path is a folder: give a file name",
+    errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
+    errno.ENOENT: "check the path",
+    errno.ENAMETOOLONG: "use a shorter path",
+}
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an OSError: the file, what the system said and the fix."""
+    where = exc.filename if exc.filename is not None else ""
+    what = exc.strerror or str(exc)
+    fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
+    return f"{where}: {what} (fix: {fix})" if where else f"{what} (fix: {fix})"
 
 
 if __name__ == "__main__":

@@ -42,7 +42,8 @@ def test_capture_import_then_personalize(sample_set, tmp_path, ext, exact):
     capture.usda -o OUT`` (the flow that crashed with 'array is not writeable')."""
     before = digest(sample_set / "avatar.usda", sample_set / "capture")
     cap = f"capture{ext}"
-    run("capture", "import", sample_set / "capture", "-o", cap, *([] if exact else ["--no-exact"]), cwd=tmp_path)
+    run("capture", "import", sample_set / "capture", "-o", cap, *([] if exact else ["--no-exact"]),
+        cwd=tmp_path)
     assert_valid_usd(tmp_path / cap, checked=False)
     run("personalize", sample_set / "avatar.usda", cap, "-o", "person.usda", "-q", cwd=tmp_path)
     assert_valid_usd(tmp_path / "person.usda")
@@ -75,7 +76,8 @@ def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
 
 
 def test_anim_import_then_personalize_take(sample_set, take_files, tmp_path):
-    """docs/pipeline.md: ``usdface anim import take.csv -o take.usda`` then ``personalize --take take.usda``."""
+    """docs/pipeline.md: ``usdface anim import take.csv -o take.usda``, then ``personalize --take take.usda``
+    (refused before: 'no mesh with time-sampled points')."""
     before = digest(take_files, sample_set / "avatar.usda", sample_set / "capture.usda")
     run("anim", "import", take_files / "take.csv", "-o", "take.usda", cwd=tmp_path)
     assert_valid_usd(tmp_path / "take.usda", checked=False)
@@ -89,7 +91,8 @@ def test_anim_import_then_personalize_take(sample_set, take_files, tmp_path):
 def test_landmarks_check_render_inspect(sample_set, tmp_path):
     """docs/landmarks.md, docs/pipeline.md: landmarks -o/--json, check, inspect, render."""
     before = digest(sample_set / "avatar.usda")
-    run("landmarks", sample_set / "avatar.usda", "-o", "landmarks.usda", "--json", "layout.json", cwd=tmp_path)
+    run("landmarks", sample_set / "avatar.usda", "-o", "landmarks.usda", "--json", "layout.json",
+        cwd=tmp_path)
     assert_valid_usd(tmp_path / "landmarks.usda", checked=False)
     assert json.loads((tmp_path / "layout.json").read_text())
     run("check", sample_set / "avatar.usda", cwd=tmp_path)

@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+import usdface  # before any pxr stage: a stage opened first is the DCC case, tested on its own
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))
@@ -48,7 +48,6 @@ def digest(*paths) -> dict:
 
 def assert_valid_usd(path, checked=True) -> None:
     """``path`` opens in USD with a default prim, and ``usdface check`` finds no error in it."""
-    import usdface  # first: a stage opened before it is the DCC case, tested on its own
     from pxr import Usd
 
     stage = Usd.Stage.Open(str(path))

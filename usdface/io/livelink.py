@@ -218,4 +218,4 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     for f, code in enumerate(codes):
         row = [repr(float(x)) for x in weights[f]] + [repr(float(c[f])) for c in cols]
         writer.writerow([code, count] + row)
-    return write_text_atomic(path, buf.getvalue())
+    return write_text_atomic(path, buf.getvalue(), force=True)

@@ -172,8 +172,13 @@ def read_take_usd(path) -> Take:
         frames = max(meshes, key=lambda p: UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples(), default=None)
     codes = UsdGeom.Mesh(frames).GetPointsAttr().GetTimeSamples() if frames else []
     if len(codes) < 2:
-        raise CaptureError("no mesh with time-sampled points", path=path, prim=root.GetPath(),
-                           fix="a take needs a Mesh whose points are time-sampled (one sample per frame)")
+        weights_only = _weights_only_take(stage, path)
+        if weights_only is not None:
+            return weights_only
+        raise CaptureError("no mesh with time-sampled points and no SkelAnimation with time-sampled "
+                           "blendShapeWeights", path=path, prim=root.GetPath(),
+                           fix="a take needs a Mesh whose points are time-sampled (one sample per frame), or "
+                               "the weights as written by 'usdface anim import'")
     codes = np.array(codes, dtype=np.float64)
     triangles = _triangles(frames, path)
     points = np.stack([_points(frames, path, c) for c in codes.tolist()])
@@ -232,6 +237,36 @@ def read_take_usd(path) -> Take:
                                template.deltas @ m.T, name="template")
     times = (codes - codes[0]) / stage.GetTimeCodesPerSecond()
     return Take(weights, names, times, points, triangles, neutral, template, str(path), meta)
+
+
+def _weights_only_take(stage, path) -> Take | None:
+    """The weights of the first SkelAnimation with time-sampled ``blendShapeWeights`` as a weights-only Take
+    (what ``usdface anim import`` writes), or None when the stage has none."""
+    from pxr import Usd, UsdSkel
+
+    from .usd_anim import read_skel_animation
+
+    anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
+             and UsdSkel.Animation(p).GetBlendShapeWeightsAttr().GetNumTimeSamples()]
+    if not anims:
+        return None
+    names, weights, codes = read_skel_animation(anims[0])
+    prim = anims[0].GetPath()
+    if not len(names) or weights.shape[1] != len(names):
+        raise CaptureError("the SkelAnimation has no blendShapes names for its weights", path=path, prim=prim,
+                           fix="author one blendShapes token per weight")
+    if not np.isfinite(weights).all():
+        raise CaptureError("weights contain NaN or infinite values", path=path, prim=prim,
+                           fix="repair the take's weights")
+    tcps = stage.GetTimeCodesPerSecond()
+    if not (np.isfinite(tcps) and tcps > 0):
+        raise CaptureError(f"invalid timeCodesPerSecond {tcps!r}", path=path,
+                           fix="set a positive timeCodesPerSecond (e.g. 60)")
+    names = _canonical(names, path, prim)
+    if weights.min() < 0 or weights.max() > 1:
+        weights = np.clip(weights, 0.0, 1.0)
+    times = (codes - codes[0]) / tcps
+    return Take(weights, names, times, source=str(path), metadata={"weights_source": str(prim)})
 
 
 # ----------------------------------------------------------------------------------------------- writing

@@ -54,11 +54,11 @@ def _check_output(path: Path, force: bool) -> None:
     check_output_path(path, force)
 
 
-def _save(stage, path: Path) -> None:
+def _save(stage, path: Path, force: bool = False) -> None:
     """Write the stage's root layer to ``path`` atomically (temp file in the same folder + rename)."""
     from .layers import atomic_save
 
-    atomic_save(stage.GetRootLayer(), path)
+    atomic_save(stage.GetRootLayer(), path, force)
 
 
 def _topology(mesh, triangles) -> None:
@@ -109,7 +109,7 @@ def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
     stage.SetDefaultPrim(root)
     fr, names = capture.frames, list(capture.names)
     counts = {r: int(sum(x == r for x in fr.role)) for r in ROLES}
-    root.ApplyAPI(schemas.CAPTURE_API)
+    schemas.apply_api(root, schemas.CAPTURE_API)
     meta = capture.metadata or {}
     for attr, type_, value in (
             ("usdface:capture:device", Sdf.ValueTypeNames.String, str(meta.get("device", ""))),
@@ -237,7 +237,7 @@ def write_capture_usd(capture: Capture, path, force: bool = False, *,
         raise GeometryError("frames and neutral have different vertex counts", path=path,
                             fix="every frame must share the neutral's topology")
     stage = _capture_stage(capture, time_codes_per_second, exact)
-    _save(stage, path)
+    _save(stage, path, force)
     return path
 
 

@@ -74,7 +74,7 @@ def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> Non
         Vt.IntArray([int(n) for n in np.array(layout.coverage).sum(axis=1)]))
 
     prim = points.GetPrim()
-    prim.ApplyAPI(schemas.LANDMARKS_API)
+    schemas.apply_api(prim, schemas.LANDMARKS_API)
     status = layout.status if layout.status in _SOLVER_TOKENS else "notSolved"
     values = {"epsilon": float(layout.epsilon), "alpha": float(layout.alpha), "solverStatus": status,
               "optimalityGap": float(layout.gap), "count": int(layout.count),

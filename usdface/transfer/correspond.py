@@ -206,8 +206,8 @@ def save_correspondence(corr: Correspondence, path) -> Path:
     from ..io.atomic import atomic_file
 
     path = Path(path)
-    with atomic_file(path) as tmp:
-        np.savez_compressed(tmp, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
+    with atomic_file(path, force=True) as tmp, open(tmp, "wb") as f:  # a file object: no ".npz" appended
+        np.savez_compressed(f, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
                             face=corr.face, source_triangle=corr.source_triangle,
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             key=np.array(corr.key), version=np.array(CACHE_VERSION),
