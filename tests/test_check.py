@@ -178,6 +178,8 @@ def test_completeness_is_per_skeleton():
     stage = make_rig()
     mouth = UsdGeom.Mesh.Define(stage, "/Avatar/Mouth")
     mouth.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    mouth.CreateFaceVertexCountsAttr([3])  # a mesh without faces is refused by the reader (rule Readable)
+    mouth.CreateFaceVertexIndicesAttr([0, 1, 2])
     b = UsdSkel.BindingAPI.Apply(mouth.GetPrim())
     b.CreateSkeletonRel().SetTargets([Sdf.Path("/Avatar/Skel")])
     shape = UsdSkel.BlendShape.Define(stage, "/Avatar/Mouth/jawOpen")

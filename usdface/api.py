@@ -74,13 +74,36 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
 
 
+def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> Path:
+    """Validate a capture output before any work: ``.usda``/``.usdc``/``.usd`` (a file) or a name without
+    extension (a folder); never one of the ``inputs``; an existing output needs ``force``."""
+    from .errors import InputFileError
+
+    out = Path(out_path)
+    usd = out.suffix.lower() in (".usda", ".usdc", ".usd")
+    if out.suffix and not usd:
+        raise InputFileError("a capture is written as .usda/.usdc/.usd or as a folder (a name without "
+                             "extension)", path=out, fix=f"name it e.g. {out.stem}.usda or {out.stem}/")
+    for given in inputs:
+        if given is not None and Path(given).exists() and out.exists() and out.samefile(given):
+            raise InputFileError("output would overwrite the input", path=out,
+                                 fix="choose a different output; inputs are never modified")
+    if usd:
+        from .io.layers import check_output_path
+
+        return check_output_path(out, force)
+    from .io.atomic import check_output_dir
+
+    return check_output_dir(out, force)
+
+
 def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
                   source: PathLike | None = None) -> Path:
     """Write ``capture`` as a capture ``.usda``/``.usdc``/``.usd`` file, or as a capture folder (OBJ + JSON)
     for any other path; returns the path written (atomically). Refuses an existing output unless ``force``.
     ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
     or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``."""
-    out = Path(out_path)
+    out = check_capture_output(out_path, force, inputs=[source])
     if source is not None:
         from .io.layers import file_digest
 
@@ -99,6 +122,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     """Convert a capture folder (or rewrite a capture ``.usda``) into one ``capture.usda``
     (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
     ``force``; the source's digest is recorded (see :func:`write_capture`)."""
+    check_capture_output(out_path, force, inputs=[folder])
     return write_capture(read_capture(folder), out_path, force=force, exact=exact, source=folder)
 
 
@@ -129,6 +153,8 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     from .io.take import capture_from_take, read_take
     from .take_select import format_coverage, select_frames
 
+    if out_path is not None:
+        check_capture_output(out_path, force, inputs=[take])
     data = read_take(take)
     selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
                               test_every=test_every, min_separation=max(1, round(min_separation * data.fps)))
@@ -266,6 +292,22 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     return report
 
 
+def _check_correspondence_cache(path) -> None:
+    """Refuse an existing ``--correspondence`` file that cannot be a cache (not a file, empty, not an npz zip)
+    before any work; a missing one is fine (it will be written)."""
+    if path is None or not Path(path).exists():
+        return
+    import zipfile
+
+    from .errors import InputFileError
+    from .io.usd_open import require_file
+
+    require_file(path, "correspondence cache", "pass a .npz cache written by usdface, or a new file name")
+    if not zipfile.is_zipfile(path):
+        raise InputFileError("not a usdface correspondence cache (empty or not an .npz archive)", path=path,
+                             fix="delete it or pass another --correspondence file")
+
+
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
                        out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        landmarks: bool = False, **options: Any) -> PersonalizeResult:
@@ -278,8 +320,16 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
     layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
 
+    refuse_usdface_output(avatar_path)
+    _check_correspondence_cache(options.get("correspondence"))
+    if out_path is not None and not options.get("dry_run"):
+        from .io.layers import check_output_path
+
+        check_output_path(out_path, options.get("force", False),
+                          inputs=[p for p in (avatar_path, capture_path, take) if isinstance(p, str | Path)])
     if take is not None:
         inspect = True
     if not inspect:
@@ -379,9 +429,11 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
     from .errors import InputFileError, OutputExistsError
     from .io.atomic import write_text_atomic
+    from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.retarget import weight_map_csv, weight_map_json
 
+    refuse_usdface_output(avatar_path)
     out = Path(out_path)
     if out.suffix.lower() not in (".json", ".csv"):
         raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")

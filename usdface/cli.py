@@ -21,8 +21,15 @@ COMMAND_MODULES = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="usdface",
         description="Personalized ARKit facial blendshapes from a phone capture, written as a USD layer.")
     parser.add_argument("--version", action="version", version=f"usdface {__version__}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import warnings
 
+from .options import positive_float
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("anim", help="weight animations (Live Link Face CSV -> SkelAnimation)",
@@ -16,7 +18,7 @@ def register(subparsers) -> None:
                     "attributes). Bind it to an avatar's Skeleton with skel:animationSource.")
     imp.add_argument("csv", help="Live Link Face .csv")
     imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
-    imp.add_argument("--timecode-rate", type=float, default=60.0,
+    imp.add_argument("--timecode-rate", type=positive_float, default=60.0,
                      help="frames per second of the CSV's timecode FF field; also the stage's "
                           "timeCodesPerSecond (default 60)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")

@@ -3,13 +3,15 @@ rig."""
 
 from __future__ import annotations
 
+from .options import reg_value
+
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
 METHODS = ("dt", "ebfr", "menzel", "laplacian")  # == usdface.api.METHODS (not imported: keeps --help fast)
 
 
 def add_fit_options(parser) -> None:
     """Options shared by ``fit`` and ``evaluate``."""
-    parser.add_argument("--reg", default="auto",
+    parser.add_argument("--reg", default="auto", type=reg_value,
                         help="E_reg weight: 'auto' (leave-one-frame-out cross-validation, default), 'paper' "
                              "(1, the paper's plain sum, and no alignment/re-estimation: the paper's "
                              "method) or a number")

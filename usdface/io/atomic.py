@@ -15,10 +15,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import OutputExistsError
+from ..errors import InputFileError, OutputExistsError
 
-__all__ = ["check_output_dir", "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish",
-           "temp_sibling"]
+__all__ = ["check_output_file", "check_output_dir", "replace_dir_atomically", "atomic_file",
+           "write_text_atomic", "publish", "temp_sibling"]
 
 
 def publish(tmp, path, force: bool = False) -> Path:
@@ -87,6 +87,39 @@ def write_text_atomic(path, text: str, force: bool = False) -> Path:
     with atomic_file(path, force=force) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=()) -> Path:
+    """Validate an output file path before any work; returns it as a Path.
+
+    Refuses (InputFileError) a line break in the name, an extension not in ``suffixes`` (lower case, with
+    the dot; None = any), a folder at ``path``, a parent that is a file, and ``path`` being one of the
+    existing ``inputs`` (even with ``force``: inputs are never modified); an existing file needs ``force``
+    (OutputExistsError)."""
+    path = Path(path)
+    if "\n" in str(path) or "\r" in str(path):
+        raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
+                             fix="choose a file name without line breaks")
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise InputFileError(f"{what} must end in {' or '.join(suffixes)}", path=path,
+                             fix=f"name it e.g. {path.stem or 'out'}{suffixes[0]}")
+    if path.is_dir():
+        raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputFileError(f"{what}'s parent {parent} is a file, not a folder", path=path,
+                             fix="choose another output path")
+    if path.exists():
+        for given in inputs:
+            if given is not None and Path(given).exists() and path.samefile(given):
+                raise InputFileError(f"{what} would overwrite an input", path=path,
+                                     fix="choose a different output file; inputs are never modified")
+        if not force:
+            raise OutputExistsError(f"{what} exists", path=path,
+                                    fix="pass --force (force=True) to replace it")
+    return path
 
 
 def check_output_dir(path, force: bool = False) -> Path:

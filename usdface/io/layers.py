@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import GeometryError, InputFileError, OutputExistsError, RigError
+from ..errors import GeometryError, InputFileError, RigError
 from ..model import Avatar, FaceRig
 from .usd_rig import STAGE_METADATA_KEYS
 
@@ -74,18 +74,13 @@ def file_digest(path) -> str:
     return h.hexdigest()
 
 
-def check_output_path(path, force: bool = False) -> Path:
-    """Validate an output layer path before any work: a USD extension, not a directory, and not an existing
-    file unless ``force``. Raises InputFileError / OutputExistsError; returns the path as a Path."""
-    path = Path(path)
-    if path.suffix.lower() not in LAYER_EXTENSIONS:
-        raise InputFileError(f"output must be a USD layer ({', '.join(LAYER_EXTENSIONS)})", path=path,
-                             fix="name the output e.g. personalized.usda")
-    if path.is_dir():
-        raise InputFileError("output path is a directory", path=path, fix="give a file name, e.g. out.usda")
-    if path.exists() and not force:
-        raise OutputExistsError("output exists", path=path, fix="pass --force (force=True) to replace it")
-    return path
+def check_output_path(path, force: bool = False, inputs=()) -> Path:
+    """Validate an output layer path before any work: a USD extension, not a directory (nor under a file),
+    not one of the existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
+    OutputExistsError; returns the path as a Path."""
+    from .atomic import check_output_file
+
+    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what="output layer", inputs=inputs)
 
 
 def _temp_path(path: Path) -> Path:

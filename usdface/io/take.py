@@ -156,15 +156,10 @@ def read_take_usd(path) -> Take:
 
     from .usd_anim import read_skel_animation
     from .usd_capture import _points, _template, _triangles
+    from .usd_open import open_usd_stage
 
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError("take not found", path=path, fix="check the path")
-    try:
-        stage = Usd.Stage.Open(str(path))
-    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
-        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
-                             fix="check that the file is a valid USD layer") from None
+    stage = open_usd_stage(path, "take", "pass a USD take (e.g. written by 'usdface anim import')")
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     frames = root.GetChild("Frames") if root.GetChild("Frames") else None
     if frames is None or not UsdGeom.Mesh(frames):

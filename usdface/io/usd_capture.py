@@ -339,20 +339,12 @@ def read_capture_usd(path) -> Capture:
     InputFileError (missing/unreadable), CaptureError (layout: missing prims, inconsistent arrays) or
     GeometryError (NaN/inf, vertex counts), naming file and prim.
     """
-    from pxr import Sdf, Usd, UsdGeom
+    from pxr import UsdGeom
+
+    from .usd_open import open_usd_stage
 
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError("capture file not found", path=path, fix="check the path")
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(path))
-        stage = Usd.Stage.Open(layer) if layer else None
-    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
-        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
-                             fix="check that the file is a valid USD layer") from None
-    if stage is None:
-        raise InputFileError("USD cannot open the file", path=path,
-                             fix="check that the file is a valid USD layer")
+    stage = open_usd_stage(path, "capture file", "pass a capture .usda written by 'usdface capture import'")
     root = stage.GetDefaultPrim() or stage.GetPrimAtPath(CAPTURE_PRIM)
     if not root or not root.GetChild("Frames"):
         raise CaptureError("not a usdface capture (no /Capture with Neutral, Template, Frames)", path=path,

@@ -227,6 +227,6 @@ def load_correspondence(path, key: str | None = None) -> Correspondence | None:
             return Correspondence(z["triangle"], z["barycentric"], z["distance"], z["face"].astype(bool),
                                   z["source_triangle"], z["weight"], str(z["key"]),
                                   json.loads(str(z["info"])))
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, EOFError) as exc:
         raise InputFileError(f"not a usdface correspondence cache ({exc})", path=path,
                              fix="delete it or pass another --correspondence file") from None
