@@ -334,30 +334,44 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         inspect = True
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
+    import time
+
     from .io.take import read_take
 
+    start = time.perf_counter()
     take_data = read_take(take) if take is not None else None  # a bad take fails before any work
     avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
     capture = _as_capture(capture_path)
+    read_s = time.perf_counter() - start
     result = _personalize(avatar, capture, out_path, **options)
+    timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if getattr(result, "out_path", None):
         from .io.usd_inspection import add_inspection, change_heat, inspection_animation, inspection_edit
 
-        animation = inspection_animation(capture, take_data)
-        layouts = None
-        if landmarks:
-            from .model import FaceRig as _FaceRig
-
-            face = avatar.mesh(result.face_mesh)
-            personalized = _FaceRig(face.neutral, face.triangles, face.names,
-                                    result.offsets[face.source.prim], face.inbetweens, face.source, face.name)
-            layouts = {face.source.prim: compute_landmarks(personalized)}
+        t_inspect = time.perf_counter()
         try:
+            animation = inspection_animation(capture, take_data)
+            layouts = None
+            if landmarks:
+                from .model import FaceRig as _FaceRig
+
+                face = avatar.mesh(result.face_mesh)
+                personalized = _FaceRig(face.neutral, face.triangles, face.names,
+                                        result.offsets[face.source.prim], face.inbetweens, face.source,
+                                        face.name)
+                layouts = {face.source.prim: compute_landmarks(personalized)}
             add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
                                                             landmarks=layouts, animation=animation, fps=24.0))
         except BaseException:
             Path(result.out_path).unlink(missing_ok=True)  # no half-finished layer for batch to call done
             raise
+        if timings is not None:
+            timings.pop("total", None)
+            timings["inspect"] = time.perf_counter() - t_inspect
+    if timings is not None:  # the reading done here, and the whole call, belong in the report
+        timings["read"] = float(timings.get("read", 0.0)) + read_s
+        timings.pop("total", None)
+        timings["total"] = time.perf_counter() - start
     return result
 
 

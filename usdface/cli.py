@@ -10,6 +10,7 @@ import errno
 import importlib
 import os
 import sys
+import warnings
 
 from . import __version__
 from .errors import UsdFaceError
@@ -63,8 +64,14 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from .commands import reset_warnings, say_warning
+
+    reset_warnings()
     try:
-        code = int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = lambda message, *_a, **_k: say_warning(message)
+            code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit
         return code
     except BrokenPipeError:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 
+from . import say_warning
 from .options import positive_float
 
 
@@ -33,7 +34,7 @@ def run_import(args) -> int:
         out, take = api.import_livelink_take(args.csv, args.output, timecode_rate=args.timecode_rate,
                                              force=args.force)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "
           f"{len(take.names)} shapes")
     if take.name_report.get("missing"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 
+from . import say_warning
 from .options import nonnegative_float, nonnegative_int, positive_int, unit_float
 
 
@@ -55,7 +56,7 @@ def run_import(args) -> int:
         warnings.simplefilter("always")
         capture = api.read_capture(args.source)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     out = api.write_capture(capture, args.output, force=args.force, exact=args.exact, source=args.source)
     report = capture.metadata.get("name_report", {})
     counts = capture.metadata.get("counts", {})
@@ -80,7 +81,7 @@ def run_select(args) -> int:
                                            force=args.force)
     print(result.coverage)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     if result.capture is None:
         return 0
     counts = result.capture.metadata.get("counts", {})

@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+from . import say_warning
 from .options import nonnegative_float, positive_float, positive_int, unit_float, vector3
 
 
@@ -116,7 +117,7 @@ def run(args) -> int:
           f"gap {layout.gap:.2g}; {time.perf_counter() - t0:.2f} s")
     print("vertices: " + " ".join(str(int(v)) for v in layout.vertices))
     for w in layout.warnings:
-        print(f"warning: {w}")
+        say_warning(w)
     if layout.uncoverable:
         print(f"uncoverable at epsilon {layout.epsilon:g}: {', '.join(layout.uncoverable)}")
     if args.output:

@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+from . import say_warning
 from .options import nonnegative_float, positive_float, reg_value
 
 
@@ -109,7 +110,7 @@ def run(args) -> int:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
               f"({', '.join(eyes['eyeballs'])})")
     for w in rep["warnings"]:
-        print(f"warning: {w}")
+        say_warning(w)
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]
     if args.dry_run:
         print(f"dry run: {len(changed)} of {len(rep['changes'])} BlendShapes would change "
