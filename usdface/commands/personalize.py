@@ -6,7 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from . import add_name_map_option
+from . import add_name_map_option, say_warning
+from .options import nonnegative_float, positive_float, reg_value
 
 
 def add_transfer_options(p) -> None:
@@ -15,9 +16,9 @@ def add_transfer_options(p) -> None:
     p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda")
     p.add_argument("--method", default="menzel", choices=["menzel", "dt", "ebfr", "laplacian"],
                    help="capture fit method (default: menzel, the paper's eqs. 1-3)")
-    p.add_argument("--reg", default="auto",
+    p.add_argument("--reg", default="auto", type=reg_value,
                    help="fit regularisation: auto (cross-validated), paper, or a number")
-    p.add_argument("--mu", type=float, default=1e-3,
+    p.add_argument("--mu", type=positive_float, default=1e-3,
                    help="eq. (4) ridge weight, relative to the shapes' mean squared norm (default 1e-3)")
     p.add_argument("--correspondence", metavar="FILE",
                    help="correspondence cache (.npz): reused when it matches the avatar, written otherwise")
@@ -26,7 +27,7 @@ def add_transfer_options(p) -> None:
     p.add_argument("--approximation", default="generic", choices=["generic", "retarget"],
                    help="what the region around the face and the other meshes follow: the avatar's generic "
                         "shape (default) or the eq. (4) approximation A_j (the paper)")
-    p.add_argument("--falloff", type=float, default=0.15,
+    p.add_argument("--falloff", type=nonnegative_float, default=0.15,
                    help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
                         "over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
@@ -52,8 +53,8 @@ def register(subparsers) -> None:
                     "with the avatar's face, and write a new USD layer over the untouched avatar with "
                     "personalized offsets for every BlendShape (Menzel et al. 2022, sec. 3.2-3.3).")
     add_transfer_options(p)
-    p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: <avatar>.personalized.usda "
-                                          "next to the avatar)")
+    p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: "
+                                          "<avatar name>.personalized.usda in the current folder)")
     p.add_argument("--force", action="store_true", help="overwrite the output")
     p.add_argument("--face-mesh", metavar="PRIM",
                    help="prim name or path of the face mesh (default: the mesh the capture's shapes "
@@ -75,8 +76,9 @@ def register(subparsers) -> None:
 
 
 def _default_output(avatar: str) -> Path:
-    a = Path(avatar)
-    return a.with_name(a.stem + ".personalized.usda")
+    """``<avatar stem>.personalized.usda`` in the current folder (the avatar's folder is often a read-only
+    asset library)."""
+    return Path(Path(avatar).stem + ".personalized.usda")
 
 
 def run(args) -> int:
@@ -113,7 +115,7 @@ def run(args) -> int:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
               f"({', '.join(eyes['eyeballs'])})")
     for w in rep["warnings"]:
-        print(f"warning: {w}")
+        say_warning(w)
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]
     if args.dry_run:
         print(f"dry run: {len(changed)} of {len(rep['changes'])} BlendShapes would change "

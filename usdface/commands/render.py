@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import add_name_map_option
+from .options import finite_float
 
 
 def register(subparsers) -> None:
@@ -18,7 +19,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, type=Path, help="PNG to write")
     p.add_argument("--mesh", help="mesh to draw (prim name or path; default: the one with the most shapes)")
     p.add_argument("--shapes", help="comma-separated shape names (default: the shapes that move most)")
-    p.add_argument("--weight", type=float, default=1.0, help="weight of each drawn shape (default 1)")
+    p.add_argument("--weight", type=finite_float, default=1.0, help="weight of each drawn shape (default 1)")
     p.add_argument("--view", choices=("front", "left", "right"), default="front")
     add_name_map_option(p)
     mode = p.add_mutually_exclusive_group()
@@ -48,8 +49,10 @@ def run(args) -> int:
     import numpy as np
 
     from .. import api, render
+    from ..io.atomic import check_output_file
 
     path = Path(args.file)
+    check_output_file(args.output, args.force, suffixes=(".png",), what="picture", inputs=[path])
     shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
     if path.is_dir() or args.capture:
         capture = api.read_capture(path)

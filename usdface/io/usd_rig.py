@@ -115,21 +115,9 @@ def snap_transform(matrix, tolerance: float = SNAP_TOLERANCE) -> tuple[np.ndarra
 
 
 def _open_stage(path: Path):
-    from pxr import Tf, Usd
+    from .usd_open import open_usd_stage
 
-    if not path.exists():
-        raise InputFileError("file not found", path=path, fix="check the path")
-    if not path.is_file():
-        raise InputFileError("not a file", path=path, fix="give a .usd, .usda or .usdc file")
-    try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unreadable"
-        raise InputFileError(f"USD cannot open it: {first}", path=path,
-                             fix="check the file is a valid USD layer (usda/usdc/usd)") from None
-    if stage is None:
-        raise InputFileError("USD cannot open it", path=path, fix="check the file is a valid USD layer")
-    return stage
+    return open_usd_stage(path, "avatar", "pass the avatar's .usd/.usda/.usdc file")
 
 
 def read_stage_metadata(stage, path) -> dict:
@@ -163,7 +151,7 @@ def _array(value, dtype, width, what, path, prim) -> np.ndarray:
     if value is None:
         return np.zeros((0, width) if width else 0, dtype=dtype)
     try:
-        arr = np.asarray(value, dtype=dtype)
+        arr = np.array(value, dtype=dtype)
         if width:
             arr = arr.reshape(-1, width)
         else:
@@ -348,7 +336,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                 dense[idx] = ib_offsets @ linear.T
             ib_normals = ib.GetNormalOffsets() if ib.GetNormalOffsetsAttr() else None
             ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), dense,
-                                 None if ib_normals is None else np.asarray(ib_normals, dtype=np.float32)))
+                                 None if ib_normals is None else np.array(ib_normals, dtype=np.float32)))
         if ibs:
             ws = [b.weight for b in ibs]
             if len(set(ws)) != len(ws):
@@ -429,10 +417,63 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
+_NOT_AVATAR = {
+    "capture": ("a usdface capture (written by 'usdface capture import/select'), not an avatar",
+                "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
+    "take": ("a usdface take (a recording), not an avatar",
+             "pass the avatar's .usd file; takes go to 'capture select' or 'personalize --take'"),
+}
+
+
+def _refuse_non_avatar(stage, path: Path) -> None:
+    """A capture or take passed where an avatar is expected: say what the file is (its template rig would
+    otherwise be read as a face)."""
+    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
+    kind = str(data.get("format", "")) if hasattr(data, "get") else ""
+    root = stage.GetDefaultPrim()
+    if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
+        kind = "capture" if root.GetChild("Neutral") else "take"
+    if kind in _NOT_AVATAR:
+        what, fix = _NOT_AVATAR[kind]
+        raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
+
+
+def usdface_output_provenance(path) -> dict | None:
+    """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
+    neither a capture nor a take), else None. Reads only the root layer's header-level data."""
+    from pxr import Sdf
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # unreadable: the reader that follows says so
+        return None
+    data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
+    if not isinstance(data, dict) or data.get("format") in _NOT_AVATAR or not data.get("inputs"):
+        return None
+    return data
+
+
+def refuse_usdface_output(path) -> None:
+    """Personalizing a usdface output layer again would personalize the personalized shapes (the layer's
+    default variant): refuse it, naming the original avatar recorded in the layer's provenance.
+
+    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised."""
+    if not isinstance(path, str | Path):
+        return
+    data = usdface_output_provenance(path)
+    if data is None:
+        return
+    original = Path(path).parent / str(data["inputs"][0])
+    raise RigError("this is a usdface output layer (already personalized); personalizing it again would "
+                   "stack the personalization on the personalized shapes", path=path,
+                   fix=f"pass the original avatar ({original})")
+
+
 def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                        name_map: dict | None = None) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
+    _refuse_non_avatar(stage, path)
     meta = read_stage_metadata(stage, path)
     roots = _skel_roots(stage)
     if not roots:

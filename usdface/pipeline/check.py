@@ -116,6 +116,8 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         raise UsdFaceError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
     issues: list[Issue] = []
     for rule_id in chosen:
+        if rule_id == "Readable" and any(i.severity == ERROR for i in issues):
+            continue  # the reader would only repeat a finding already made
         fn = RULES[rule_id][0]
         issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map else fn(stage))
     return sort_issues(issues)
@@ -471,3 +473,27 @@ def _provenance(stage) -> Iterable[Issue]:
                 yield Issue(WARNING, "Provenance", path,
                             f"input {given!r} changed after this layer was written (sha256 differs)",
                             "re-run usdface personalize on the current inputs")
+
+
+@_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
+                   "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, ...)")
+def _readable(stage) -> Iterable[Issue]:
+    """Run the reader every usdface command uses (``usdface.io.usd_rig``) on the stage; a refusal is an
+    error, so a publish validator never passes a rig the tools then reject."""
+    from ..errors import UsdFaceError
+    from ..io.usd_rig import _read_avatar_stage
+
+    layer = stage.GetRootLayer()
+    data = dict(layer.customLayerData).get("usdface") or {}
+    if hasattr(data, "get") and data.get("format") in ("capture", "take"):
+        return  # not an avatar: the capture/take readers own those files
+    if not _blend_shape_meshes(stage):
+        return  # no face rig at all: the other rules already say so
+    try:
+        _read_avatar_stage(stage, Path(layer.realPath or layer.identifier))
+    except UsdFaceError as exc:
+        yield Issue(ERROR, "Readable", exc.prim or "/", exc.message,
+                    exc.fix or "repair the rig; usdface inspect FILE shows what it reads")
+    except Exception as exc:  # noqa: BLE001  (a reader crash is a finding, not a crash of the validator)
+        yield Issue(ERROR, "Readable", "/", f"the avatar reader failed ({type(exc).__name__}: "
+                    f"{str(exc).strip()[:160]})", "re-export the avatar; usdface inspect FILE")

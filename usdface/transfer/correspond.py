@@ -265,8 +265,8 @@ def save_correspondence(corr: Correspondence, path) -> Path:
     from ..io.atomic import atomic_file
 
     path = Path(path)
-    with atomic_file(path) as tmp:
-        np.savez_compressed(tmp, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
+    with atomic_file(path, force=True) as tmp, open(tmp, "wb") as f:  # a file object: no ".npz" appended
+        np.savez_compressed(f, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
                             face=corr.face, source_triangle=corr.source_triangle,
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             registered=(corr.registered if corr.registered is not None
@@ -289,6 +289,6 @@ def load_correspondence(path, key: str | None = None) -> Correspondence | None:
                                   z["source_triangle"], z["weight"], str(z["key"]),
                                   json.loads(str(z["info"])),
                                   z["registered"] if len(z["registered"]) else None)
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, EOFError) as exc:
         raise InputFileError(f"not a usdface correspondence cache ({exc})", path=path,
                              fix="delete it or pass another --correspondence file") from None
