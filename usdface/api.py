@@ -430,3 +430,38 @@ def inspect_file(path: PathLike) -> dict:
     from .inspect import inspect_file as _inspect
 
     return _inspect(path)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# review and delivery (usdface review / usdface export)
+# ---------------------------------------------------------------------------------------------------------
+__all__ += ["write_review", "export_avatar"]
+
+
+def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike | Capture | None = None,
+                 take: PathLike | None = None, fit_errors: bool = True, force: bool = False) -> Path:
+    """Write the review page of a usdface layer (``usdface review``): ONE self-contained HTML file (plotly.js
+    and the mesh data inside, no network needed to view it) with generic | personalized side by side, a
+    slider per shape, presets, a change heat map (mm), the landmarks when the layer has them, playback of
+    the capture's test expressions and of ``take`` (Live Link Face CSV or USD take), and the fit's figures.
+
+    ``capture`` defaults to the capture recorded in the layer's provenance (when it still exists); with
+    ``fit_errors`` the generic template and the refitted personalized shapes are scored on its test
+    expressions (eq. 5). Returns the path written (atomically; an existing file needs ``force``, checked
+    before any work)."""
+    from .errors import InputFileError, OutputExistsError
+    from .io.atomic import write_text_atomic
+    from .review.collect import collect_review
+    from .review.page import build_review_html
+
+    out = Path(out_path)
+    if out.suffix.lower() not in (".html", ".htm"):
+        raise InputFileError("the review page must be an .html file", path=out, fix="name it e.g. review.html")
+    if out.is_dir():
+        raise InputFileError("output path is a directory", path=out, fix="give a file name, e.g. review.html")
+    if out.exists() and not force:
+        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    if take is not None and not Path(take).exists():
+        raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
+    data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+    return write_text_atomic(out, build_review_html(data))
