@@ -3,9 +3,9 @@
 A layer written by :func:`usdface.io.layers.write_avatar_layer` carries the ``usdfacePersonalization``
 variant set {``personalized``, ``generic``} on each SkelRoot. :func:`variant_stage` opens the layer with the
 chosen selection authored in the stage's session layer (the files are never modified);
-:func:`read_avatar_variant` reads that composed avatar (metres, Y up, like :func:`usdface.io.usd_rig.read_avatar`)
-and :func:`flatten_variant` writes ``Usd.Stage.Flatten()`` of it: one layer, no sublayers or references, for
-places that do not take layers.
+:func:`read_avatar_variant` reads that composed avatar (metres, Y up, like
+:func:`usdface.io.usd_rig.read_avatar`) and :func:`flatten_variant` writes ``Usd.Stage.Flatten()`` of it:
+one layer, no sublayers or references, for places that do not take layers.
 """
 
 from __future__ import annotations

@@ -115,7 +115,8 @@ def _fit_errors(capture, info: dict) -> dict | None:
     if len(test) == 0:
         return None
     t = capture.template
-    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source, "generic")
+    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
+                      "generic")
     params = dict(info.get("parameters") or {})
     method = str(info.get("method") or params.get("method") or "menzel")
     reg = params.get("reg", "auto")

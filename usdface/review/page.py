@@ -43,9 +43,9 @@ _COLORS = {"skin": "#d8b19a", "mouth": "#c07e7e", "eye": "#eeeeea"}
 
 @dataclass
 class ReviewMesh:
-    """One mesh of the avatar: ``neutral[n, 3]``, ``triangles[t, 3]``, shape ``names[K]`` and the deltas of both
-    variants (``generic[K, n, 3]``, ``personalized[K, n, 3]``; both empty for a static mesh such as an eye
-    bound to the skeleton only); ``heat[n]`` metres (optional) and ``landmarks[m]`` vertex indices
+    """One mesh of the avatar: ``neutral[n, 3]``, ``triangles[t, 3]``, shape ``names[K]`` and the deltas of
+    both variants (``generic[K, n, 3]``, ``personalized[K, n, 3]``; both empty for a static mesh such as an
+    eye bound to the skeleton only); ``heat[n]`` metres (optional) and ``landmarks[m]`` vertex indices
     (optional)."""
 
     name: str
@@ -166,7 +166,8 @@ def _figure(data: ReviewData):
             p = np.asarray(m.neutral, dtype=np.float32)
             t = np.asarray(m.triangles, dtype=np.uint16 if len(p) < 65536 else np.uint32)
             fig.add_trace(go.Mesh3d(
-                x=p[:, 0], y=p[:, 1], z=p[:, 2], i=t[:, 0], j=t[:, 1], k=t[:, 2], name=f"{m.name} ({variant})",
+                x=p[:, 0], y=p[:, 1], z=p[:, 2], i=t[:, 0], j=t[:, 1], k=t[:, 2],
+                name=f"{m.name} ({variant})",
                 color=_COLORS[m.role], flatshading=False, lighting=lighting,
                 lightposition={"x": 2e4, "y": 3e4, "z": 6e4}, hoverinfo="skip", showscale=False,
                 scene=scene, colorbar={"title": {"text": "mm"}, "len": 0.6, "x": 1.0}))
@@ -196,7 +197,8 @@ def _figure(data: ReviewData):
 def _tables_html(data: ReviewData) -> str:
     parts = []
     for title, rows in data.tables:
-        body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
+        body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>"
+                       for k, v in rows)
         parts.append(f"<table class='figs'><caption>{html.escape(title)}</caption>{body}</table>")
     if data.errors:
         cols = list(data.errors["columns"])
@@ -218,12 +220,14 @@ def _tables_html(data: ReviewData) -> str:
 _STYLE = """
 body{margin:0;overflow-x:hidden;background:#15181d;color:#ddd;font:13px/1.4 system-ui,sans-serif}
 #usdface-app{display:flex;height:82vh}
-#usdface-panel{width:270px;overflow-x:hidden;overflow-y:auto;padding:6px 10px;border-right:1px solid #333;flex:none}
+#usdface-panel{width:270px;overflow-x:hidden;overflow-y:auto;padding:6px 10px;border-right:1px solid #333;
+  flex:none}
 #usdface-plotwrap{flex:1;min-width:0;height:82vh}
 #usdface-plotwrap>div{height:100%}
 #usdface-panel select{max-width:250px}
 #usdface-panel h3{margin:10px 0 4px;font-size:13px;color:#9cf}
-#usdface-panel button{margin:2px;background:#2a3038;color:#ddd;border:1px solid #444;border-radius:3px;cursor:pointer}
+#usdface-panel button{margin:2px;background:#2a3038;color:#ddd;border:1px solid #444;border-radius:3px;
+  cursor:pointer}
 #usdface-panel label.sl{display:flex;align-items:center;gap:4px;font-size:11px}
 #usdface-panel label.sl span{width:118px;overflow:hidden;text-overflow:ellipsis;white-space:nowrap}
 #usdface-panel label.sl input{width:90px}
