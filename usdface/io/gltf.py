@@ -272,11 +272,12 @@ def read_gltf(path) -> dict:
     for mesh in gltf.meshes:
         prim = mesh.primitives[0]
         a = prim.attributes
-        entry = {"positions": _read_accessor(gltf, blob, a.POSITION),
+        positions = _read_accessor(gltf, blob, a.POSITION)
+        entry = {"positions": positions,
                  "indices": _read_accessor(gltf, blob, prim.indices).reshape(-1, 3).astype(np.int64),
                  "target_names": list((mesh.extras or {}).get("targetNames", [])),
                  "targets": np.stack([_read_accessor(gltf, blob, _target(t)) for t in prim.targets])
-                 if prim.targets else np.zeros((0, 0, 3), dtype=np.float32)}
+                 if prim.targets else np.zeros((0, len(positions), 3), dtype=np.float32)}
         if a.NORMAL is not None:
             entry["normals"] = _read_accessor(gltf, blob, a.NORMAL)
         if a.JOINTS_0 is not None:
