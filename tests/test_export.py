@@ -20,12 +20,9 @@ from usdface.io.layers import file_digest
 from usdface.io.mesh_io import read_obj
 
 
-@pytest.fixture(scope="module")
-def layer(samples, tmp_path_factory) -> Path:
-    """The sample avatar personalized once for this module (about 2 s)."""
-    out = tmp_path_factory.mktemp("export") / "person.usda"
-    api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, force=True)
-    return out
+@pytest.fixture()
+def layer(personalized_sample) -> Path:
+    return personalized_sample
 
 
 def _rigs(avatar):
@@ -38,8 +35,9 @@ def _rigs(avatar):
 
 def _validate_gltf(path: Path) -> dict:
     """A structural check of what usdface writes, after the glTF 2.0 spec: every accessor fits its buffer
-    view, views fit the buffer, POSITION accessors (targets too) carry exact min/max, index values are in range,
-    sparse indices strictly increase, every primitive's targets match its mesh's targetNames and weights."""
+    view, views fit the buffer, POSITION accessors (targets too) carry exact min/max, index values are in
+    range, sparse indices strictly increase, every primitive's targets match its mesh's targetNames and
+    weights."""
     import pygltflib
 
     gltf = pygltflib.GLTF2().load(str(path))

@@ -186,6 +186,7 @@ def _figure(data: ReviewData):
         scene={**scene, "domain": {"x": [0.0, 0.5], "y": [0.0, 1.0]}},
         scene2={**scene, "domain": {"x": [0.5, 1.0], "y": [0.0, 1.0]}},
         margin={"l": 0, "r": 0, "t": 28, "b": 0}, paper_bgcolor="#1d2127", showlegend=False,
+        modebar={"orientation": "v", "bgcolor": "rgba(0,0,0,0)"},
         font={"color": "#dddddd"},
         annotations=[{"text": "generic", "x": 0.25, "y": 1.0, "xref": "paper", "yref": "paper",
                       "showarrow": False, "yanchor": "bottom", "font": {"size": 15}},

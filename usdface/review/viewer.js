@@ -250,8 +250,10 @@ function usdfaceStart(plotId) {
   });
   chain.then(function () {
     if (!status.textContent.startsWith("error")) status.textContent = "ok";
+    console.log("usdface-status: " + status.textContent);  // for headless tests reading the console
     status.setAttribute("data-size", gd._fullLayout.width + "x" + gd._fullLayout.height);
   }, function (err) {
     status.textContent = "error: " + (err && err.message ? err.message : err); status.style.color = "#f66";
+    console.log("usdface-status: " + status.textContent);
   });
 }
