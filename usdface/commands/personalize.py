@@ -72,6 +72,8 @@ def register(subparsers) -> None:
     p.add_argument("--take", metavar="FILE",
                    help="append this take to the inspection animation: a Live Link Face CSV, a USD take or "
                         "an OBJ-sequence take folder (implies --inspect)")
+    p.add_argument("--review", action="store_true",
+                   help="also write the review page (usdface review) beside the layer: <layer>.review.html")
     p.set_defaults(func=run)
 
 
@@ -89,6 +91,12 @@ def run(args) -> int:
         progress.set_enabled(False)
     out = Path(args.output) if args.output else _default_output(args.avatar)
     inspect = bool(args.inspect or args.landmarks or args.take)
+    if args.review and not args.dry_run:  # refuse an existing review page before the work, like the layer
+        from ..errors import OutputExistsError
+        from .review import default_output
+
+        if default_output(out).exists() and not args.force:
+            raise OutputExistsError("review page exists", path=default_output(out), fix="pass --force")
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
@@ -130,6 +138,13 @@ def run(args) -> int:
             extra = " + landmark Points" if args.landmarks else ""
             extra += f" + take {args.take}" if args.take else ""
             print(f"inspection: change heat map (displayColor), test-expression SkelAnimation{extra}")
+    if args.review and not args.dry_run and result.out_path:
+        from ..api import write_review
+        from .review import default_output
+
+        page = write_review(result.out_path, default_output(result.out_path), capture=args.capture,
+                            take=args.take, force=args.force)
+        print(f"review page: {page} ({page.stat().st_size / 1e6:.1f} MB)")
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
     return 0
