@@ -108,7 +108,7 @@ _single_threaded_blas = single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma: float = 0.05, rounds: int = 2,
-                            **options) -> FitResult:
+                            avatar_prior=None, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -130,6 +130,20 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     reweight : alternate the shape fit with re-estimating each training frame's weights (bounded to [0,1],
         anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`).
         Default: on, except with ``reg="paper"``.
+    avatar_prior : optional ``deltas[K,n,3]`` (metres, capture frame, ``capture.names`` order): the avatar's
+        own generic shapes mapped onto the capture mesh; a row of NaN = the avatar lacks that shape. With
+        ``prior="auto"`` (the default with ``reg="auto"``) the candidates for T_j of eq. (2) are today's
+        blend of DT and template (alpha in {0, 1/2, 1}) and the avatar prior (the blend where it is NaN),
+        each with its own CV-tuned ``reg``; the exact leave-one-frame-out criterion picks one. The choice is
+        one for all shapes, not per shape: a per-shape choice among {DT, template, blend, avatar} (the LOO
+        error is an exact quadratic in the one-hot choice; minimising it shape by shape was tried) overfits
+        the selection - on dev3 it lowered the LOO error but left the truth error at 0.44 mm, where the one
+        global choice reaches 0.21 mm. The fit still falls back per shape where the data are silent: eq. (2)
+        holds the shapes (and the combinations of shapes) the frames do not determine at the prior, and a
+        shape with zero weight in every frame is returned as its prior exactly. The capture template is
+        another artist's rig, so there the avatar's own shape is the safe fall-back (transferring it back onto
+        the avatar changes nothing). ``prior="avatar"`` forces it (DT where NaN), with any ``reg``.
+        Menzel/laplacian only.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -137,6 +151,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
     Returns a :class:`FitResult`. Raises FitError / GeometryError on unusable input (see
     :func:`check_capture`); warnings are in ``result.info["warnings"]`` and issued as ``UserWarning``.
+    For menzel/laplacian ``info`` also holds ``prior_choice`` (list[str] per shape: "dt", "template", "blend"
+    (``prior_alpha`` DT + rest template when no avatar prior is given) or "avatar") and ``shape_confidence``
+    (``[K]`` in [0, 1]: how much the capture determines each shape, the diagonal of the hat matrix
+    ``A_v^-1 W^T W`` of eqs. (1)+(2) for that shape - the fraction of ``b_vj`` that follows the frames rather
+    than the prior - averaged over vertices with weights ``|T_vj|^2`` of the DT shape, at the chosen ``reg``
+    with the phone's weights: 0 for a shape with zero training weight, ~1 for a shape isolated at weight 1
+    in clean data; :meth:`usdface.personalize.fit.PositionFit.data_share`).
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
@@ -146,8 +167,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
-    if prior not in ("auto", "dt", "template") or (prior == "auto" and not auto):
-        raise FitError(f"bad prior {prior!r}", fix="use 'dt', 'template', or 'auto' (with reg='auto')")
+    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
+        raise FitError(f"bad prior {prior!r}",
+                       fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
+    avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
     t0 = time.perf_counter()
     warn = check_capture(capture)
@@ -174,19 +197,39 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     else:
         D = regularization_weights(generic, clamp=clamp)
         alt = tmpl.deltas if prior == "auto" else None
-        lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info, timings)
+        K = len(capture.names)
+        main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
+        if prior == "avatar":
+            main = np.where(avatar_ok[:, None, None], avatar, generic)
+        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings)
+        prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main
+        choice = None
+        per_shape = False                      # a prior other than alpha * DT + (1 - alpha) * template
+        if avatar is not None and prior == "auto":
+            lam, prior_deltas, choice, per_shape = _choose_priors(capture, generic, avatar, avatar_ok, lam,
+                                                                  alpha, info, timings)
         if align:
             for _ in range(2):
                 points = _align_frames(capture.neutral, points, weights, generic, info, timings,
-                                       cv=info.get("crossval"), reg=lam, alpha=alpha, D=D, alt=tmpl.deltas)
+                                       cv=info.get("crossval"), reg=lam, prior_deltas=prior_deltas, D=D,
+                                       alt=tmpl.deltas, alpha=alpha)
                 if auto:
                     cv = info["crossval"]
                     cv["fit"].set_points(points[:, cv["vertices"]])
-                    # re-tune around the previous choice only (same blend, +-1 decade)
-                    lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info,
-                                          timings, fit=cv["fit"], vertices=cv["vertices"],
-                                          grid=np.log10(lam) + np.array([-1.0, 0.0, 1.0]), alphas=(alpha,))
-        prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else generic
+                    # re-tune around the previous choice only (same prior, +-1 decade)
+                    lam, a2 = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info,
+                                       timings, fit=cv["fit"], vertices=cv["vertices"],
+                                       grid=np.log10(lam) + np.array([-1.0, 0.0, 1.0]), alphas=(alpha,),
+                                       keep_prior=per_shape)
+                    if not per_shape:
+                        alpha = a2
+                    info["prior_alpha"] = alpha
+        if choice is None:
+            choice = (["avatar" if ok else "dt" for ok in avatar_ok] if prior == "avatar"
+                      else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
+        info["prior_choice"] = choice
+        info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
+                                                     info)
         solve = _make_solver(method, capture, D, prior_deltas, options)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
@@ -194,10 +237,16 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         w_cur = weights
         if reweight:
             t1 = time.perf_counter()
+            # shapes the phone never activates keep its weights: the geometry cannot tell them from the
+            # residual of the others, and their prior must stay what the fit returns
+            frozen = weights.max(axis=0) < ACTIVATION_MIN
+            lo = np.where(frozen[None], weights, 0.0)
+            hi = np.where(frozen[None], weights, 1.0)
             for _ in range(rounds):
                 res = points - capture.neutral[None] - blend(w_cur, deltas)
                 w_cur = reestimate_weights(capture.neutral, deltas, points, weights,
-                                           anchor=float(np.mean(res ** 2)) / weight_sigma ** 2)
+                                           anchor=float(np.mean(res ** 2)) / weight_sigma ** 2,
+                                           lower=lo, upper=hi)
                 deltas = solve(points, w_cur, lam)
             info["reweight"] = {"rounds": rounds, "weight_sigma": weight_sigma,
                                 "mean_abs_change": float(np.abs(w_cur - weights).mean()),
@@ -214,14 +263,98 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     return FitResult(rig, info)
 
 
+_BLEND_NAME = {1.0: "dt", 0.0: "template"}
+
+
+def _check_avatar_prior(avatar_prior, capture, method, prior):
+    """Validate ``avatar_prior[K,n,3]``: returns ``(deltas with NaN rows zeroed, available[K])`` or
+    ``(None, None)``."""
+    if avatar_prior is None:
+        if prior == "avatar":
+            raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
+        return None, None
+    if method not in ("menzel", "laplacian"):
+        raise FitError(f"avatar_prior is not used by method {method!r}",
+                       fix="use it with menzel or laplacian, or drop it")
+    if prior in ("dt", "template"):
+        raise FitError(f"avatar_prior given but prior={prior!r} ignores it",
+                       fix="use prior='auto' (with reg='auto') or 'avatar'")
+    a = np.asarray(avatar_prior, dtype=np.float64)
+    K, n = len(capture.names), len(capture.neutral)
+    if a.shape != (K, n, 3):
+        raise FitError(f"avatar_prior has shape {a.shape}, expected {(K, n, 3)} (shapes, vertices, 3)",
+                       fix="map the avatar's generic shapes onto the capture mesh, in capture.names order")
+    fin = np.isfinite(a).reshape(K, -1)
+    ok = fin.all(axis=1)
+    partial = ~ok & fin.any(axis=1)
+    if partial.any():
+        bad = [capture.names[k] for k in np.flatnonzero(partial)]
+        raise FitError(f"avatar_prior rows partly non-finite: {', '.join(bad[:5])}",
+                       fix="a shape the avatar lacks must be a whole row of NaN")
+    return np.where(ok[:, None, None], a, 0.0), ok
+
+
+def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timings):
+    """The avatar prior (today's blend where it lacks a shape) against the CV-chosen blend of DT and template,
+    by the same leave-one-frame-out criterion, each at its own CV-tuned ``reg``, on the prepared fit (no new
+    decomposition). Returns ``(reg, prior_deltas[K,n,3], choice names, avatar_won)``."""
+    t1 = time.perf_counter()
+    cv = info["crossval"]
+    pf, cand = cv["fit"], cv["vertices"]
+    tmpl = capture.template.deltas
+    blend_prior = alpha * generic + (1.0 - alpha) * tmpl
+    fallback = _BLEND_NAME.get(alpha, "blend")
+    av = np.where(avatar_ok[:, None, None], avatar, blend_prior)
+    pf.set_prior(av[:, cand])
+    lam_av, cv_av = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand,
+                                          keep_prior=True)
+    scores = {fallback: cv["loo_rmse_best_mm"], "avatar": cv_av["loo_rmse_best_mm"]}
+    info["prior_search"] = {"loo_rmse_mm": scores, "reg": {fallback: lam, "avatar": lam_av}}
+    K = len(capture.names)
+    won = scores["avatar"] < scores[fallback]
+    if won:
+        cv_av["alpha"] = alpha
+        info["crossval"] = cv_av
+        info["reg"] = lam = lam_av
+        prior, choice = av, ["avatar" if ok else fallback for ok in avatar_ok]
+    else:
+        pf.set_prior_mix(alpha)
+        prior, choice = (blend_prior if alpha < 1.0 else generic), [fallback] * K
+    timings["prior"] = time.perf_counter() - t1
+    return lam, prior, choice, won
+
+
+def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info):
+    """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
+    cv = info.get("crossval")
+    if cv is not None and "fit" in cv:
+        pf, cand = cv["fit"], cv["vertices"]
+    else:
+        cand = _cv_vertices(D)
+        pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
+    share = pf.data_share(lam)                                               # [m,K]
+    w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
+    w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
+    return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
+
+
+def _cv_vertices(D, max_vertices=300, seed=0):
+    """The deterministic vertex subsample of :func:`choose_regularization` (moving vertices)."""
+    idx = np.arange(D.shape[1])
+    moving = D.min(axis=0) < 1e5
+    cand = idx[moving] if moving.any() else idx
+    if len(cand) > max_vertices:
+        cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
+    return cand
+
+
 def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None,
              **search):
     """(reg, alpha): the E_reg weight and the prior blend (alpha * DT + (1 - alpha) * template)."""
     t1 = time.perf_counter()
     alpha = {"dt": 1.0, "template": 0.0}.get(prior, 1.0)
     if isinstance(reg, str) and reg == "auto":
-        gen = generic if prior != "template" else alt
-        lam, cv = choose_regularization(neutral, points, weights, gen, D,
+        lam, cv = choose_regularization(neutral, points, weights, generic, D,
                                         alt_deltas=alt if prior == "auto" else None, fit=fit,
                                         vertices=vertices, **search)
         if prior == "auto":
@@ -243,7 +376,7 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
 
 
 def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, reg=None, alpha=1.0, D=None,
-                  alt=None):
+                  alt=None, prior_deltas=None):
     """Rigidly align every frame to its leave-one-out prediction on (a subsample of) the moving vertices."""
     t1 = time.perf_counter()
     if D is None:
@@ -257,7 +390,10 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
     pf.set_points(points[:, cand])
-    pf.set_prior_mix(alpha)
+    if prior_deltas is not None:
+        pf.set_prior(prior_deltas[:, cand])
+    else:
+        pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
     _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]

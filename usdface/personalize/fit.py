@@ -103,6 +103,7 @@ class PositionFit:
             T = np.asarray(T, dtype=np.float64)
             return np.matmul(np.swapaxes(self.U, 1, 2), D[:, :, None] * T.transpose(1, 0, 2))
 
+        self._prior_coef = prior_coef
         self.z_main = prior_coef(generic_deltas)
         self.z_alt = None if alt_deltas is None else prior_coef(alt_deltas)
         self.z = self.z_main
@@ -118,6 +119,20 @@ class PositionFit:
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
         self.z = self.z_main if self.z_alt is None else alpha * self.z_main + (1.0 - alpha) * self.z_alt
+
+    def set_prior(self, prior_deltas) -> None:
+        """Use the prior ``prior_deltas[K,n,3]`` (eq. 2's T_j, on this fit's vertices) from now on."""
+        self.z = self._prior_coef(prior_deltas)
+
+    def data_share(self, reg: float) -> np.ndarray:
+        """Per vertex and shape, the share of the fitted shape determined by the frames rather than the prior:
+        the diagonal of ``A_v^-1 W^T W`` (``A_v = W^T W + reg L_v``), ``[n,K]`` in [0, 1].
+
+        Since ``b_v = A_v^-1 W^T r_v + A_v^-1 reg L_v t_v`` and the two matrices sum to the identity, entry
+        ``(v, j)`` is how much of ``b_vj`` follows the data (1) rather than the prior (0): 0 for a shape with
+        zero training weight, -> 1 for a shape isolated in a frame as ``reg`` -> 0. In the eigenbasis it is
+        ``sum_k U_jk^2 s_k / (s_k + reg)`` (the per-shape effective degrees of freedom)."""
+        return np.einsum("njk,nk->nj", self.U ** 2, self.s / (self.s + reg))
 
     def _coef(self, reg: float) -> np.ndarray:
         return (self.y + reg * self.z) / (self.s + reg)[:, :, None]          # [n,K,3]
