@@ -136,3 +136,39 @@ def test_dev3_avatar_prior_beats_the_other_artists_template(bench):
     err = truth_error(res.rig.deltas, truth["deltas"])
     assert err < 0.40
     assert err < 0.8 * truth_error(fit(c3).rig.deltas, truth["deltas"])
+
+
+def noisy_capture(misalign_deg=0.0, seed=3):
+    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    neutral, tris = grid_mesh(14, 12)
+    K, n = len(NAMES), len(neutral)
+    true = rng.normal(size=(K, n, 3)) * 0.002
+    template = true + rng.normal(size=(K, n, 3)) * 0.0005
+    W = np.vstack([np.eye(K), rng.uniform(0, 0.6, size=(10, K))])
+    pts = neutral + np.einsum("fk,knc->fnc", W, true) + rng.normal(size=(len(W), n, 3)) * 2e-5
+    if misalign_deg:
+        c = neutral.mean(axis=0)
+        for f in range(len(W)):
+            R = Rotation.from_rotvec(rng.normal(size=3) * np.radians(misalign_deg)).as_matrix()
+            pts[f] = (pts[f] - c) @ R.T + c + rng.normal(size=3) * 5e-4
+    frames = Frames(pts, W, ["train"] * len(W), [f"{i:03d}" for i in range(len(W))])
+    return Capture(neutral, tris, FaceRig(neutral.copy(), tris, list(NAMES), template), frames, list(NAMES)), true
+
+
+def test_alignment_and_reweighting_are_no_ops_on_clean_data():
+    cap, true = noisy_capture()
+    res = fit(cap)
+    assert res.info["align"]["applied"] is False and res.info["reweight"]["applied"] is False
+    plain = fit(cap, align=False, reweight=False)
+    assert np.array_equal(res.rig.deltas, plain.rig.deltas)
+
+
+def test_alignment_is_applied_where_frames_are_misaligned():
+    cap, true = noisy_capture(misalign_deg=1.0)
+    res = fit(cap, reweight=False)
+    assert res.info["align"]["applied"] is True
+    plain = fit(cap, align=False, reweight=False)
+    assert truth_error(res.rig.deltas, true) < 0.6 * truth_error(plain.rig.deltas, true)

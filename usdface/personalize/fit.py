@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["regularization_weights", "fit_blendshapes", "PositionFit", "blend", "project"]
+__all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -73,6 +73,36 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     # checked against an equilibrated solve: < 1e-11 m)
     B = np.linalg.solve(A, rhs)
     return B.transpose(1, 0, 2)
+
+
+def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
+                  reg_weights: np.ndarray, reg: float, predict_weights=None) -> np.ndarray:
+    """Exact leave-one-frame-out residuals ``[F,n,3]`` (metres) of eqs. (1)+(2) at one ``reg``, by one batched
+    solve per vertex (cheaper than :class:`PositionFit`'s eigen-decomposition when only one ``reg`` is
+    needed). Arrays as in :func:`fit_blendshapes`; ``predict_weights[F,K]`` as in
+    :meth:`PositionFit.loo_residuals`."""
+    W = np.asarray(weights, dtype=np.float64)
+    R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
+    T = np.asarray(generic_deltas, dtype=np.float64)
+    L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                               # [n,K]
+    n, K = L.shape
+    F = len(W)
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    idx = np.arange(K)
+    A[:, idx, idx] += L
+    rhs = np.concatenate([project(W, R) + L[:, :, None] * T.transpose(1, 0, 2),
+                          np.broadcast_to(W.T, (n, K, F))], axis=2)                  # [n,K,3+F]
+    X = np.linalg.solve(A, rhs)
+    b, G = X[:, :, :3], X[:, :, 3:]                                                 # b_v, A^-1 W^T
+    fitted = np.matmul(W[None], b).transpose(1, 0, 2)                               # [F,n,3]
+    h = np.einsum("fk,nkf->fn", W, G)
+    e = (R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+    if predict_weights is None:
+        return e
+    Pw = np.asarray(predict_weights, dtype=np.float64)
+    pred = np.matmul(Pw[None], b).transpose(1, 0, 2)
+    cross = np.einsum("fk,nkf->fn", Pw, G)
+    return R - pred + cross[:, :, None] * e
 
 
 class PositionFit:
@@ -141,13 +171,25 @@ class PositionFit:
         """Deltas ``[K,n,3]`` minimising E_fit + reg * E_reg."""
         return np.matmul(self.M, self._coef(reg)).transpose(1, 0, 2)
 
-    def loo_residuals(self, reg: float) -> np.ndarray:
+    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
-        other frames, ``e_i / (1 - h_ii)``."""
+        other frames, ``e_i / (1 - h_ii)``.
+
+        ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
+        phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison)."""
         # fitted frames W b_v = (W L^-1/2 U) coef_v = q_v coef_v: one batched product, b_v never formed
-        fitted = np.matmul(self.q, self._coef(reg)).transpose(1, 0, 2)       # [F,n,3]
-        h = np.einsum("fnk,nk->fn", self.q2, 1.0 / (self.s + reg))          # [F,n]: w_i^T A^-1 w_i
-        return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        coef = self._coef(reg)
+        fitted = np.matmul(self.q, coef).transpose(1, 0, 2)                  # [F,n,3]
+        inv = 1.0 / (self.s + reg)
+        h = np.einsum("fnk,nk->fn", self.q2, inv)                            # [F,n]: w_i^T A^-1 w_i
+        e = (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        if predict_weights is None:
+            return e
+        qp = np.matmul(np.asarray(predict_weights, dtype=np.float64)[None], self.M)   # [n,F,K]
+        pred = np.matmul(qp, coef).transpose(1, 0, 2)                        # p_i^T b
+        cross = np.einsum("nfk,nfk,nk->fn", qp, self.q, inv)                 # p_i^T A^-1 w_i
+        return self.R - pred + cross[:, :, None] * e
 
     def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
         """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""
