@@ -155,7 +155,8 @@ def noisy_capture(misalign_deg=0.0, seed=3):
             R = Rotation.from_rotvec(rng.normal(size=3) * np.radians(misalign_deg)).as_matrix()
             pts[f] = (pts[f] - c) @ R.T + c + rng.normal(size=3) * 5e-4
     frames = Frames(pts, W, ["train"] * len(W), [f"{i:03d}" for i in range(len(W))])
-    return Capture(neutral, tris, FaceRig(neutral.copy(), tris, list(NAMES), template), frames, list(NAMES)), true
+    rig = FaceRig(neutral.copy(), tris, list(NAMES), template)
+    return Capture(neutral, tris, rig, frames, list(NAMES)), true
 
 
 def test_alignment_and_reweighting_are_no_ops_on_clean_data():
