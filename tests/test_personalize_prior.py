@@ -173,3 +173,21 @@ def test_alignment_is_applied_where_frames_are_misaligned():
     assert res.info["align"]["applied"] is True
     plain = fit(cap, align=False, reweight=False)
     assert truth_error(res.rig.deltas, true) < 0.6 * truth_error(plain.rig.deltas, true)
+
+
+def test_evaluate_reports_tuned_and_fixed_variants():
+    from usdface.personalize.report import evaluate_methods
+
+    cap, true = noisy_capture()
+    test = Frames(cap.frames.points[-4:], cap.frames.weights[-4:], ["test"] * 4, ["t0", "t1", "t2", "t3"])
+    both = Frames(np.concatenate([cap.frames.points, test.points]),
+                  np.concatenate([cap.frames.weights, test.weights]), cap.frames.role + test.role,
+                  cap.frames.label + test.label)
+    cap = Capture(cap.neutral, cap.triangles, cap.template, both, cap.names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rep = evaluate_methods(cap, ["ebfr", "menzel"], reg="auto", prior=None, align=None, reweight=None)
+    assert list(rep["methods"]) == ["ebfr", "ebfr tuned", "menzel", "menzel paper"]
+    assert rep["methods"]["ebfr"]["info"]["beta"] == 0.5
+    assert rep["methods"]["ebfr tuned"]["info"]["beta"] != 0.5
+    assert rep["methods"]["menzel paper"]["info"]["reg"] == 1.0

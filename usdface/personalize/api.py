@@ -169,6 +169,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
+    _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
     auto = isinstance(reg, str) and reg == "auto"
     paper = isinstance(reg, str) and reg == "paper"
     align = (not paper) if align is None else bool(align)
@@ -196,7 +197,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         from .ebfr import ebfr_blendshapes
         if align:
             D = regularization_weights(generic, clamp=clamp)
-            cand = _cv_vertices(D)
+            cand = _cv_vertices(D, clamp)
             pf = PositionFit(capture.neutral[cand], points[:, cand], weights, generic[:, cand], D[:, cand])
             reg_a, _ = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand)
             helps, test = _alignment_generalises(pf, points[:, cand], reg_a, info)
@@ -217,7 +218,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
         if prior == "avatar":
             main = np.where(avatar_ok[:, None, None], avatar, generic)
-        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings)
+        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings,
+                              clamp=clamp)
         prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main
         choice = None
         per_shape = False                      # a prior other than alpha * DT + (1 - alpha) * template
@@ -227,7 +229,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if align:
             cv = info.get("crossval")
             if cv is None or "fit" not in cv:
-                cand = _cv_vertices(D)
+                cand = _cv_vertices(D, clamp)
                 pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
                                  D[:, cand])
                 info["crossval"] = {"fit": pf, "vertices": cand}
@@ -240,7 +242,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             for _ in range(2 if helps else 0):
                 points = _align_frames(capture.neutral, points, weights, generic, info, timings,
                                        cv=info.get("crossval"), reg=lam, prior_deltas=prior_deltas, D=D,
-                                       alt=tmpl.deltas, alpha=alpha)
+                                       alt=tmpl.deltas, alpha=alpha, clamp=clamp)
                 if auto:
                     cv = info["crossval"]
                     cv["fit"].set_points(points[:, cv["vertices"]])
@@ -257,8 +259,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                       else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
         info["prior_choice"] = choice
         info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
-                                                     info)
-        solve = _make_solver(method, capture, D, prior_deltas, options)
+                                                     info, clamp)
+        solve = _make_solver(method, capture, D, prior_deltas, options, clamp)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
         timings["fit"] = time.perf_counter() - t1
@@ -297,7 +299,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
             sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
             sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate_on,
-                                         sigmas)
+                                         sigmas, clamp)
             if sigma is not None:
                 w_cur, deltas = reestimate(capture.neutral, points, lambda w: solve(points, w, lam), deltas,
                                            sigma)
@@ -320,6 +322,37 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
 
 _BLEND_NAME = {1.0: "dt", 0.0: "template"}
+
+
+#: Method-specific options of :func:`fit_personalized_shapes` (``**options``).
+METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
+                  "laplacian": ("laplacian_weight", "mask_threshold", "tol", "max_iter"),
+                  "menzel": (), "dt": ()}
+
+
+def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):
+    """Raise :class:`FitError` naming every option that ``method`` would accept and ignore."""
+    bad = []
+    if method in ("dt", "ebfr"):
+        if not (isinstance(reg, str) and reg == "auto"):
+            bad.append(f"reg={reg!r}")
+        if prior is not None:
+            bad.append(f"prior={prior!r}")
+        if clamp != D_CLAMP:
+            bad.append("clamp")
+        if reweight:
+            bad.append("reweight")
+        if not (isinstance(weight_sigma, str) and weight_sigma == "auto"):
+            bad.append("weight_sigma")
+        if method == "dt" and align:
+            bad.append("align")
+    allowed = METHOD_OPTIONS[method]
+    bad += sorted(set(options) - set(allowed))
+    if bad:
+        takes = ", ".join(allowed) if allowed else "no extra options"
+        extra = {"dt": " (and eyelids)", "ebfr": " (and align, eyelids)"}.get(method, "")
+        raise FitError(f"option(s) not used by method {method!r}: {', '.join(bad)}",
+                       fix=f"drop them; {method} takes {takes}{extra}")
 
 
 def _check_avatar_prior(avatar_prior, capture, method, prior):
@@ -380,13 +413,13 @@ def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timing
     return lam, prior, choice, won
 
 
-def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info):
+def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info, clamp=D_CLAMP):
     """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         pf, cand = cv["fit"], cv["vertices"]
     else:
-        cand = _cv_vertices(D)
+        cand = _cv_vertices(D, clamp)
         pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
     share = pf.data_share(lam)                                               # [m,K]
     w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
@@ -394,10 +427,10 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
 
 
-def _cv_vertices(D, max_vertices=300, seed=0):
+def _cv_vertices(D, clamp=D_CLAMP, max_vertices=300, seed=0):
     """The deterministic vertex subsample of :func:`choose_regularization` (moving vertices)."""
     idx = np.arange(D.shape[1])
-    moving = D.min(axis=0) < 1e5
+    moving = D.min(axis=0) < clamp
     cand = idx[moving] if moving.any() else idx
     if len(cand) > max_vertices:
         cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
@@ -431,7 +464,7 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
     return lam, alpha
 
 
-def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas):
+def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas, clamp=D_CLAMP):
     """Cross-validated decision on the weight re-estimation and its prior width, by spatially separated
     halves of the (subsampled) vertices (either side of the neutral's centroid along its two principal axes).
     The position fit is separable per vertex, so weights re-estimated from one half (``reestimate(vertex
@@ -441,7 +474,7 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reesti
     ``sigmas`` is scored; the best is kept if it beats the phone's weights (sigma -> 0, no re-estimation).
     Returns ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out LOO RMSE)``."""
     cv = info.get("crossval")
-    cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D)
+    cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D, clamp)
     nb = capture.neutral[cand] - capture.neutral[cand].mean(axis=0)
     splits = []
     for ax in np.linalg.svd(nb, full_matrices=False)[2][:2]:
@@ -492,16 +525,16 @@ def _alignment_generalises(pf, points, reg, info):
 
 
 def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, reg=None, alpha=1.0, D=None,
-                  alt=None, prior_deltas=None):
+                  alt=None, prior_deltas=None, clamp=D_CLAMP):
     """Rigidly align every frame to its leave-one-out prediction on (a subsample of) the moving vertices."""
     t1 = time.perf_counter()
     if D is None:
-        D = regularization_weights(generic)
+        D = regularization_weights(generic, clamp=clamp)
     if cv is None or "fit" not in cv:
         if reg is None:
-            reg, cv = choose_regularization(neutral, points, weights, generic, D)
+            reg, cv = choose_regularization(neutral, points, weights, generic, D, clamp=clamp)
         else:
-            _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt,
+            _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt, clamp=clamp,
                                           grid=np.array([np.log10(reg)]), refine_steps=0)
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
@@ -523,18 +556,12 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     return aligned
 
 
-def _make_solver(method, capture, D, generic, options):
+def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP):
     """A function ``(points, weights, reg) -> deltas`` for the position-based methods."""
     if method == "laplacian":
         from .laplacian import LaplacianFit
-        unknown = set(options) - {"laplacian_weight", "mask_threshold", "tol", "max_iter"}
-        if unknown:
-            raise FitError(f"unknown option(s) for laplacian: {', '.join(sorted(unknown))}",
-                           fix="use laplacian_weight, mask_threshold, tol or max_iter")
-        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, **options)
+        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp, **options)
         return lambda P, W, lam: lf.solve(P, W, lam)
-    if options:
-        raise FitError(f"unknown option(s) for {method}: {', '.join(options)}", fix="see usdface fit --help")
     return lambda P, W, lam: fit_blendshapes(capture.neutral, P, W, generic, D, lam)
 
 

@@ -41,12 +41,12 @@ class LaplacianFit:
     """
 
     def __init__(self, neutral, triangles, generic_deltas, reg_weights, *, laplacian_weight: float = 0.03,
-                 mask_threshold: float = 0.0, tol: float = 1e-6, max_iter: int = 200):
+                 mask_threshold: float = 0.0, tol: float = 1e-6, max_iter: int = 200, clamp: float = D_CLAMP):
         self.neutral = np.asarray(neutral, dtype=np.float64)
         self.T = np.asarray(generic_deltas, dtype=np.float64)
         n = len(self.neutral)
         D = np.asarray(reg_weights, dtype=np.float64).copy()
-        D[~region_masks(self.T, mask_threshold)] = D_CLAMP
+        D[~region_masks(self.T, mask_threshold)] = clamp
         self.D2 = D ** 2                                                     # [K,n]
         L = uniform_laplacian(triangles, n)
         self.LtL = (L.T @ L).tocsr()
