@@ -98,10 +98,10 @@ def accuracy(case: str, console: Console) -> dict:
     m, dt, eb, paper = rows["menzel"], rows["dt"], rows["ebfr"], rows["menzel --reg paper"]
     tm = rows["template"]["truth"]
     et = rows["ebfr tuned (beta auto)"]
-    console.print(f"{case}: tuned vs tuned - menzel / ebfr tuned RMSE {m['rmse'] / et['rmse']:.3f} (issue 13: "
-                  f"<= 0.75), menzel paper / ebfr fixed {paper['rmse'] / eb['rmse']:.3f}, menzel paper / ebfr "
-                  f"tuned {paper['rmse'] / et['rmse']:.3f}; default vs CV only (truth) {m['truth']:.4f} vs "
-                  f"{rows['menzel auto, no options']['truth']:.4f}")
+    console.print(f"{case}: tuned vs tuned - menzel / ebfr tuned RMSE {m['rmse'] / et['rmse']:.3f} "
+                  f"(issue 13: <= 0.75), menzel paper / ebfr fixed {paper['rmse'] / eb['rmse']:.3f}, menzel "
+                  f"paper / ebfr tuned {paper['rmse'] / et['rmse']:.3f}; default vs CV only (truth) "
+                  f"{m['truth']:.4f} vs {rows['menzel auto, no options']['truth']:.4f}")
     console.print(f"{case} ratios: menzel/dt RMSE {m['rmse'] / dt['rmse']:.3f}, menzel/ebfr RMSE "
                   f"{m['rmse'] / eb['rmse']:.3f}, menzel/dt max {m['max'] / dt['max']:.3f}, menzel/template "
                   f"truth {m['truth'] / tm:.3f}; paper: /dt {paper['rmse'] / dt['rmse']:.3f}, "
@@ -122,8 +122,8 @@ def timing(case: str, repeat: int, console: Console) -> None:
         "laplacian fixed reg": {"method": "laplacian", "reg": 1e-3, "align": False, "reweight": False},
     }
     med = {}
-    table = Table(title=f"{case}: CPU seconds, median of {repeat} ({len(cap.neutral)} vertices, {len(cap.names)} "
-                        f"shapes, {len(cap.train)} training frames)")
+    table = Table(title=f"{case}: CPU seconds, median of {repeat} ({len(cap.neutral)} vertices, "
+                        f"{len(cap.names)} shapes, {len(cap.train)} training frames)")
     for col in ("run", "median CPU s", "min CPU s", "DT s (median, wall)"):
         table.add_column(col)
     for name, kw in runs.items():
