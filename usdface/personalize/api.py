@@ -260,7 +260,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         info["prior_choice"] = choice
         info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
                                                      info, clamp)
-        solve = _make_solver(method, capture, D, prior_deltas, options, clamp)
+        solve = _make_solver(method, capture, D, prior_deltas, options, clamp, (points, weights, lam), info)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
         timings["fit"] = time.perf_counter() - t1
@@ -556,11 +556,24 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     return aligned
 
 
-def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP):
-    """A function ``(points, weights, reg) -> deltas`` for the position-based methods."""
+def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=None, info=None):
+    """A function ``(points, weights, reg) -> deltas`` for the position-based methods. Laplacian with
+    ``laplacian_weight="auto"`` (default): the weight is chosen on ``cv_data = (points, weights, reg)`` by
+    :meth:`LaplacianFit.choose_weight`."""
     if method == "laplacian":
         from .laplacian import LaplacianFit
-        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp, **options)
+        opts = dict(options)
+        mu = opts.pop("laplacian_weight", "auto")
+        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp,
+                          laplacian_weight=0.0 if isinstance(mu, str) else float(mu), **opts)
+        if isinstance(mu, str):
+            if mu != "auto":
+                raise FitError(f"bad laplacian_weight {mu!r}", fix="use 'auto' or a number >= 0")
+            cv = lf.choose_weight(*cv_data)
+            if info is not None:
+                info["laplacian_cv"] = cv
+        if info is not None:
+            info["laplacian_weight"] = lf.mu
         return lambda P, W, lam: lf.solve(P, W, lam)
     return lambda P, W, lam: fit_blendshapes(capture.neutral, P, W, generic, D, lam)
 
