@@ -111,7 +111,7 @@ _single_threaded_blas = single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
-                            avatar_prior=None, **options) -> FitResult:
+                            avatar_prior=None, frame_weights=None, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -151,6 +151,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         another artist's rig, so there the avatar's own shape is the safe fall-back (transferring it back onto
         the avatar changes nothing). ``prior="avatar"`` forces it (DT where NaN), with any ``reg``.
         Menzel/laplacian only.
+    frame_weights : optional per-training-frame weights ``omega[F] >= 0`` of E_fit (and of the LOO
+        criterion), or ``"balanced"`` (:func:`usdface.personalize.takefit.balanced_frame_weights`): for
+        fitting on every frame of a take. Menzel/laplacian; alignment and re-estimation are then off
+        (they act on the frames as scanned; asking for them is refused).
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -172,6 +176,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
     auto = isinstance(reg, str) and reg == "auto"
     paper = isinstance(reg, str) and reg == "paper"
+    align_arg, reweight_arg = bool(align), bool(reweight)
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
@@ -191,6 +196,24 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     train = capture.train
     points, weights = train.points, train.weights
     tmpl = capture.template
+    if frame_weights is not None:
+        from .takefit import balanced_frame_weights, weighted_frames
+
+        if method not in ("menzel", "laplacian"):
+            raise FitError(f"frame_weights is not used by method {method!r}", fix="use menzel or laplacian")
+        if align_arg or reweight_arg:
+            raise FitError("frame_weights with align/reweight", fix="drop align/reweight (they act on the "
+                           "frames as scanned) or frame_weights")
+        omega = (balanced_frame_weights(weights) if isinstance(frame_weights, str) and
+                 frame_weights == "balanced" else np.asarray(frame_weights, dtype=np.float64))
+        if omega.shape != (len(weights),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
+            raise FitError(f"frame_weights must be {len(weights)} finite numbers >= 0 (or 'balanced')",
+                           fix="one weight per training frame")
+        points, weights = weighted_frames(capture.neutral, points, weights, omega)
+        align = reweight = False
+        n_eff = float(omega.sum() ** 2 / max(np.sum(omega ** 2), 1e-300))
+        info["frame_weights"] = {"min": float(omega.min()), "max": float(omega.max()),
+                                 "effective_frames": n_eff}
     if method == "dt":
         deltas = generic
     elif method == "ebfr":
