@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
+from test_personalize_prior import grid_mesh
 
 from usdface.mesh import uniform_laplacian
 from usdface.personalize.fit import regularization_weights
 from usdface.personalize.laplacian import LaplacianFit
-from test_personalize_prior import grid_mesh
 
 
 def direct_solve(neutral, tris, points, W, T, D, reg, mu):

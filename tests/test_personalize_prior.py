@@ -191,3 +191,22 @@ def test_evaluate_reports_tuned_and_fixed_variants():
     assert rep["methods"]["ebfr"]["info"]["beta"] == 0.5
     assert rep["methods"]["ebfr tuned"]["info"]["beta"] != 0.5
     assert rep["methods"]["menzel paper"]["info"]["reg"] == 1.0
+
+
+def test_pinned_vertices_are_the_artists_version():
+    cap, true = noisy_capture()
+    n = len(cap.neutral)
+    region = np.arange(n) < n // 3
+    res = fit(cap, pins={"jawOpen": region, "eyeBlinkLeft": [0, 1, 2]})
+    k, b = cap.names.index("jawOpen"), cap.names.index("eyeBlinkLeft")
+    assert np.abs(res.rig.deltas[k, region] - cap.template.deltas[k, region]).max() < 1e-9
+    assert np.abs(res.rig.deltas[b, :3] - cap.template.deltas[b, :3]).max() < 1e-9
+    free = fit(cap)
+    # elsewhere the shape is still fitted (closer to the truth than the template)
+    err = np.abs(res.rig.deltas[k, ~region] - true[k, ~region]).mean()
+    assert err < np.abs(cap.template.deltas[k, ~region] - true[k, ~region]).mean()
+    assert not np.allclose(free.rig.deltas[k, region], res.rig.deltas[k, region])
+    with pytest.raises(FitError, match="lacks"):
+        fit(cap, pins={"nope": [0]})
+    with pytest.raises(FitError, match="pins"):
+        fit(cap, method="dt", pins={"jawOpen": [0]})

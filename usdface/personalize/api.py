@@ -111,7 +111,7 @@ _single_threaded_blas = single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
-                            avatar_prior=None, frame_weights=None, **options) -> FitResult:
+                            avatar_prior=None, frame_weights=None, pins=None, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -155,6 +155,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         criterion), or ``"balanced"`` (:func:`usdface.personalize.takefit.balanced_frame_weights`): for
         fitting on every frame of a take. Menzel/laplacian; alignment and re-estimation are then off
         (they act on the frames as scanned; asking for them is refused).
+    pins : artist constraints (Hable): parts of shapes pinned to the artist's version, the template's
+        deltas - ``{shape name: vertex indices or bool[n]}`` or a bool ``[K,n]`` mask. A pinned vertex of a
+        shape is returned exactly as the template has it (within rounding); the other shapes at that vertex
+        and the shape elsewhere are fitted around it. Menzel/laplacian.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -174,6 +178,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
+    if pins is not None:
+        _pin_mask(pins, capture, method)                  # validate before the work starts
     auto = isinstance(reg, str) and reg == "auto"
     paper = isinstance(reg, str) and reg == "paper"
     align_arg, reweight_arg = bool(align), bool(reweight)
@@ -283,7 +289,15 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         info["prior_choice"] = choice
         info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
                                                      info, clamp)
-        solve = _make_solver(method, capture, D, prior_deltas, options, clamp, (points, weights, lam), info)
+        D_fit, prior_fit = D, prior_deltas
+        if pins is not None:
+            mask = _pin_mask(pins, capture, method)
+            # a pinned entry's E_reg weight reg * D^2 becomes 1e14 (a hard constraint in double precision: the
+            # other terms of its row are O(1)), towards the artist's (template) delta
+            D_fit = np.where(mask, np.sqrt(1e14 / lam), D)
+            prior_fit = np.where(mask[:, :, None], tmpl.deltas, prior_deltas)
+            info["pins"] = {capture.names[k]: int(mask[k].sum()) for k in np.flatnonzero(mask.any(axis=1))}
+        solve = _make_solver(method, capture, D_fit, prior_fit, options, clamp, (points, weights, lam), info)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
         timings["fit"] = time.perf_counter() - t1
@@ -376,6 +390,33 @@ def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_si
         extra = {"dt": " (and eyelids)", "ebfr": " (and align, eyelids)"}.get(method, "")
         raise FitError(f"option(s) not used by method {method!r}: {', '.join(bad)}",
                        fix=f"drop them; {method} takes {takes}{extra}")
+
+
+def _pin_mask(pins, capture, method) -> np.ndarray:
+    """``pins`` (dict name -> indices / bool[n], or bool[K,n]) as a bool ``[K,n]`` mask; FitError if bad."""
+    K, n = len(capture.names), len(capture.neutral)
+    if method not in ("menzel", "laplacian"):
+        raise FitError(f"pins are not used by method {method!r}", fix="use menzel or laplacian")
+    if isinstance(pins, dict):
+        mask = np.zeros((K, n), bool)
+        for name, v in pins.items():
+            if name not in capture.names:
+                raise FitError(f"pins name a shape the capture lacks: {name!r}", fix="use capture.names")
+            v = np.asarray(v)
+            if v.dtype == bool:
+                if v.shape != (n,):
+                    raise FitError(f"pin mask of {name} has {v.shape}, expected ({n},)", fix="one per vertex")
+                mask[capture.names.index(name)] |= v
+            else:
+                v = v.astype(np.int64).ravel()
+                if v.size and (v.min() < 0 or v.max() >= n):
+                    raise FitError(f"pins of {name} index outside 0..{n - 1}", fix="capture vertex indices")
+                mask[capture.names.index(name), v] = True
+        return mask
+    mask = np.asarray(pins, dtype=bool)
+    if mask.shape != (K, n):
+        raise FitError(f"pins mask has shape {mask.shape}, expected {(K, n)}", fix="bool [shapes, vertices]")
+    return mask
 
 
 def _check_avatar_prior(avatar_prior, capture, method, prior):
