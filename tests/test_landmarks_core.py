@@ -364,3 +364,20 @@ def test_multicover_radius_scales_with_the_face():
     b = adaptive_multicover(c, cost, neutral * 100.0, 3, solve, share=None)[0]
     assert a.tolist() == b.tolist()
     assert np.isclose(face_size(neutral * 100, c), 100 * face_size(neutral, c))
+
+
+def test_one_shot_multicover_is_the_optimal_n_fold_cover():
+    """Every shape gets min(N, |C_k|) landmarks, at the least total cost (brute force on a tiny problem)."""
+    from usdface.landmarks.multicover import one_shot_multicover
+
+    rng = np.random.default_rng(3)
+    c = rng.uniform(size=(5, 9)) < 0.45
+    c[4] = False                                               # a shape without candidates
+    cost = rng.uniform(1.0, 2.0, size=9)
+    sol = one_shot_multicover(c, cost, 2)
+    assert sol.status == "optimal" and sol.uncovered.tolist() == [4]
+    need = np.minimum(2, c.sum(axis=1))
+    assert np.all(c[:, sol.selected].sum(axis=1) >= need)
+    best = min(cost[list(s)].sum() for r in range(10) for s in itertools.combinations(range(9), r)
+               if np.all(c[:, list(s)].sum(axis=1) >= need))
+    assert np.isclose(cost[sol.selected].sum(), best)
