@@ -161,8 +161,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         and the shape elsewhere are fitted around it. Menzel/laplacian.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
-    options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
-        ``mask_threshold``).
+    options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
+        laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
+        ``mask_threshold``, ``tol``, ``max_iter``). Options a method cannot use raise :class:`FitError`.
 
     Returns a :class:`FitResult`. Raises FitError / GeometryError on unusable input (see
     :func:`check_capture`); warnings are in ``result.info["warnings"]`` and issued as ``UserWarning``.
