@@ -25,6 +25,9 @@ METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 #: Prior widths (std of the phone's weight error) tried by ``weight_sigma="auto"``.
 WEIGHT_SIGMAS = (0.01, 0.02, 0.05)
+#: Principal axes of the face the re-estimation CV splits along (1: the two halves across the longest axis;
+#: 2 gave the same decisions on dev1-dev3 and the sample at twice the cost).
+REWEIGHT_SPLIT_AXES = 1
 
 #: A shape whose largest training weight is below this is "never activated".
 ACTIVATION_MIN = 0.05
@@ -531,7 +534,8 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
 
 def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas, clamp=D_CLAMP):
     """Cross-validated decision on the weight re-estimation and its prior width, by spatially separated
-    halves of the (subsampled) vertices (either side of the neutral's centroid along its two principal axes).
+    halves of the (subsampled) vertices (either side of the neutral's centroid along its principal axis,
+    :data:`REWEIGHT_SPLIT_AXES`).
     The position fit is separable per vertex, so weights re-estimated from one half (``reestimate(vertex
     indices, sigma)``) are independent of the other half's data; there, the fit with those weights predicts
     every held-out frame (exact leave-one-frame-out) with the *phone's* weights - as the test frames and every
@@ -542,7 +546,7 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reesti
     cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D, clamp)
     nb = capture.neutral[cand] - capture.neutral[cand].mean(axis=0)
     splits = []
-    for ax in np.linalg.svd(nb, full_matrices=False)[2][:2]:
+    for ax in np.linalg.svd(nb, full_matrices=False)[2][:REWEIGHT_SPLIT_AXES]:
         side = nb @ ax > 0
         splits += [(cand[side], cand[~side]), (cand[~side], cand[side])]
     e = {"phone": 0.0, **{sg: 0.0 for sg in sigmas}}
