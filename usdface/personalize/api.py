@@ -485,11 +485,15 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
-        pf, cand = cv["fit"], cv["vertices"]
-    else:
+        cand = cv["vertices"]
+        share = cv["fit"].data_share(lam)                                     # [m,K]
+    else:                                # diag(A_v^-1 W^T W) by one batched solve (no eigen-decomposition)
         cand = _cv_vertices(D, clamp)
-        pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
-    share = pf.data_share(lam)                                               # [m,K]
+        WtW = weights.T @ weights
+        K = len(WtW)
+        A = np.broadcast_to(WtW, (len(cand), K, K)).copy()
+        A[:, np.arange(K), np.arange(K)] += lam * D[:, cand].T ** 2
+        share = np.diagonal(np.linalg.solve(A, np.broadcast_to(WtW, A.shape)), axis1=1, axis2=2)
     w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
