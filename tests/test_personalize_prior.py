@@ -94,7 +94,7 @@ def test_shape_the_avatar_lacks_falls_back_to_the_generic_prior():
 
 def test_shape_confidence_is_zero_without_data_and_one_when_isolated():
     cap, true, avatar = prior_capture()
-    for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}):
+    for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}, {"reg": 1e-4, "align": False, "reweight": False}):
         conf = fit(cap, **kw).info["shape_confidence"]
         assert conf.shape == (len(NAMES),) and np.all((conf >= 0) & (conf <= 1))
         assert np.all(conf[NEVER] < 1e-9)
