@@ -291,6 +291,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             choice = (["avatar" if ok else "dt" for ok in avatar_ok] if prior == "avatar"
                       else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
         info["prior_choice"] = choice
+        info["prior_deltas"] = prior_deltas          # T_j of eq. (2) as used, [K,n,3] (the implant's P_j)
         info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
                                                      info, clamp)
         D_fit, prior_fit = D, prior_deltas

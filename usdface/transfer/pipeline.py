@@ -56,10 +56,15 @@ FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 APPROXIMATIONS = ("field", "generic", "retarget")
 #: Width of the join between the face region and the field beyond, in face radii (about 7 mm on a head).
 SEAM_BAND = 0.1
-#: Effective training weight (sqrt of the shape's precision) below which a shape stays generic, and above
-#: which the capture's version is trusted in full: the phone's weights are uncertain by ~0.03-0.05, so a shape
-#: shown at 0.15 is known to about a third of its amplitude.
-WEAK_SHAPE = (0.15, 0.3)
+#: The phone's weights are uncertain by about this much (ARKit reports, per frame and shape).
+WEIGHT_NOISE = 0.04
+#: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
+#: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
+#: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
+WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
+#: How the avatar prior enters the fit: "avatar_prior" (the fit's CV choice between it and the template's
+#: blend) or "replace" (the template replaced by the avatar's shapes).
+PRIOR_MODE = "avatar_prior"
 #: Priors of the fit (see :func:`personalize_avatar`).
 PRIORS = ("avatar", "template")
 
@@ -140,7 +145,8 @@ def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tup
     return pairs, used
 
 
-def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=()):
+def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
+                    initial=None):
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -153,7 +159,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
             return corr
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                          path=capture.source or None)
+                          path=capture.source or None, initial=initial)
     placed = reg_t.transform.apply(capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
@@ -347,7 +353,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
-        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names)
+        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
+                               initial=sim)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
@@ -377,10 +384,15 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if rig is None:
             from ..personalize import fit_personalized_shapes
 
-            fit_capture = capture
-            if prior == "avatar":
+            fit_capture, extra = capture, {}
+            if prior == "avatar" and PRIOR_MODE == "replace":
                 fit_capture = _with_template_deltas(capture, names, generic_on_capture)
-            fit = fit_personalized_shapes(fit_capture, method=method, reg=reg, **fit_options)
+            elif prior == "avatar" and method in ("menzel", "laplacian"):
+                full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
+                for j, n in enumerate(names):
+                    full[list(capture.names).index(n)] = generic_on_capture[j]
+                extra["avatar_prior"] = full
+            fit = fit_personalized_shapes(fit_capture, method=method, reg=reg, **extra, **fit_options)
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
@@ -634,6 +646,9 @@ def _fit_prior(fit, rig, b_idx, names, capture, generic_on_capture, sim, prior):
     alpha = float(fit.info.get("prior_alpha", 1.0)) if positional else 1.0
     base = generic_on_capture if prior == "avatar" else capture.template.deltas[
         [capture.template.names.index(n) for n in names]]
+    used = fit.info.get("prior_deltas")
+    if used is not None and prior == "avatar" and PRIOR_MODE != "replace":
+        return sim.apply_vectors(np.asarray(used)[[list(capture.names).index(n) for n in names]])
     if alpha > 0:
         from ..personalize.dt import deformation_transfer
 

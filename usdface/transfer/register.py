@@ -173,7 +173,7 @@ def _scale_guess(capture_points, avatar_points) -> float:
 
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
-                  path=None) -> Registration:
+                  path=None, initial: Similarity | None = None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -201,7 +201,9 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
                       else float(np.median(np.linalg.norm(np.diff(cn, axis=0), axis=1))))
             ratio = mean_edge_length(ap, face_tri) / max(c_edge * _scale_guess(cn, target), 1e-300)
             target = surface_samples(ap, face_tri, int(np.clip(np.ceil(2.0 * ratio), 1, 6)))
-    candidates = []
+    # ``initial``: a placement known to be close (the person's neutral, in the same capture frame as the
+    # template); tried first, refined by the same ICP
+    candidates = [("person's registration", initial)] if initial is not None else []
     try:
         init = motion_initialiser(cn, capture_deltas, ap, avatar_deltas)
         candidates.append(("shape-motion landmarks", init))
