@@ -4,6 +4,7 @@
 //   variant=generic|personalized           one variant, full width (default: both side by side)
 //   heat=rms|pose   heat map on the personalized face      landmarks=0|1
 //   seq=<index> & frame=<n>                show a frame of a sequence (0: test expressions, 1: take)
+//   bench=<n>                              time n pose updates, logged to the console (benchmarks/)
 function usdfaceStart(plotId) {
   "use strict";
   var D = window.USDFACE_DATA, gd = document.getElementById(plotId);
@@ -72,7 +73,12 @@ function usdfaceStart(plotId) {
     busy = true;
     var X = [], Y = [], Z = [], I = [], C = [], S = [], CMAX = [];
     var left = state.variant === "split" ? "generic" : state.variant;
+    var full = state.heatChanged || !state.drawn;
     D.meshes.forEach(function (m) {
+      // a mesh whose shapes' weights did not change keeps its traces (eyes, an unused mouth)
+      var key = left + "|" + state.heat + "|" + m.shapes.map(function (k) { return weights[k]; }).join(",");
+      if (!full && key === m.key) return;
+      m.key = key;
       var pl = pose(m, left), pr = pose(m, "personalized"), a = split(pl), b = split(pr);
       X.push(a[0], b[0]); Y.push(a[1], b[1]); Z.push(a[2], b[2]); I.push(m.trace[0], m.trace[1]);
       var heat = null, top = 1;
@@ -95,6 +101,8 @@ function usdfaceStart(plotId) {
         C.push(undefined, undefined); S.push(undefined, undefined); CMAX.push(undefined, undefined);
       }
     });
+    state.drawn = true;
+    if (!I.length) { busy = false; return Promise.resolve(); }
     var upd = {x: X, y: Y, z: Z};
     if (state.heatChanged) {
       upd.intensity = C; upd.showscale = S; upd.cmin = C.map(function (c) { return c === undefined ? undefined : 0; });
@@ -248,6 +256,25 @@ function usdfaceStart(plotId) {
     if (seqParam !== null && D.sequences[+seqParam]) { seqSel.value = seqParam; seqSlider.max = D.sequences[+seqParam].frames - 1; return showFrame(+seqParam, +(params.get("frame") || 0)); }
     return update();
   });
+  var benchN = +(params.get("bench") || 0);  // bench=N: N pose updates (blend + restyle + draw), timed
+  if (benchN > 0) {
+    chain = chain.then(function () {
+      var k = D.names.indexOf("jawOpen") >= 0 ? D.names.indexOf("jawOpen") : 0, i = 0, times = [];
+      function step() {
+        if (i >= benchN) {
+          times.sort(function (a, b) { return a - b; });
+          console.log("usdface-bench: " + times[times.length >> 1].toFixed(1) + " ms/frame");
+          return Promise.resolve();
+        }
+        weights[k] = (i++ % 10) / 10;
+        var t0 = performance.now();
+        return update().then(function () {  // the next animation frame = drawn
+          return new Promise(function (done) { requestAnimationFrame(function () { done(); }); });
+        }).then(function () { times.push(performance.now() - t0); return step(); });
+      }
+      return step();
+    });
+  }
   chain.then(function () {
     if (!status.textContent.startsWith("error")) status.textContent = "ok";
     console.log("usdface-status: " + status.textContent);  // for headless tests reading the console
