@@ -28,9 +28,10 @@ from usdface import api
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _frame_ms(page: Path, frames: int, query: str) -> float | None:
-    """Median ms per pose update measured inside the page (``?bench=N``), driven by Python playwright with
-    the system Chromium (``pip install playwright``; no browser download). None when either is missing."""
+def _frame_ms(page: Path, frames: int, query: str) -> tuple[float, float] | None:
+    """Median ms per pose update (blend + ``Plotly.restyle``) and per frame (until the next animation frame,
+    i.e. drawn), measured inside the page (``?bench=N``), driven by Python playwright with the system Chromium
+    (``pip install playwright``; no browser download). None when either is missing."""
     exe = shutil.which("chromium") or shutil.which("google-chrome")
     try:
         from playwright.sync_api import sync_playwright
@@ -48,9 +49,9 @@ def _frame_ms(page: Path, frames: int, query: str) -> float | None:
         tab.wait_for_function("document.getElementById('usdface-status').textContent !== 'loading'",
                               timeout=300000)
         browser.close()
-    found = next((re.search(r"usdface-bench: ([\d.]+) ms/frame", x) for x in logs if "usdface-bench" in x),
-                 None)
-    return float(found.group(1)) if found else None
+    found = next((re.search(r"usdface-bench: ([\d.]+) ms/update ([\d.]+) ms/frame", x) for x in logs
+                  if "usdface-bench" in x), None)
+    return (float(found.group(1)), float(found.group(2))) if found else None
 
 
 def main(argv=None) -> int:
@@ -81,14 +82,14 @@ def main(argv=None) -> int:
                 t = time.perf_counter()
                 api.export_avatar(layer, gltf=glb, force=True)
                 export.append(time.perf_counter() - t)
-            nan = float("nan")
-            rows.append((name, page.stat().st_size / 1e6, statistics.median(build), nan if split is None
-                         else split, nan if single is None else single, glb.stat().st_size / 1e6,
-                         statistics.median(export)))
-    print(f"{'case':8} {'page MB':>8} {'build s':>8} {'split ms':>9} {'single ms':>10} {'glb MB':>7} "
-          f"{'export s':>9}")
+            nan = (float("nan"), float("nan"))
+            rows.append((name, page.stat().st_size / 1e6, statistics.median(build), split or nan,
+                         single or nan, glb.stat().st_size / 1e6, statistics.median(export)))
+    print(f"{'case':8} {'page MB':>8} {'build s':>8} {'split update/frame ms':>22} "
+          f"{'single update/frame ms':>23} {'glb MB':>7} {'export s':>9}")
     for r in rows:
-        print(f"{r[0]:8} {r[1]:8.2f} {r[2]:8.2f} {r[3]:9.1f} {r[4]:10.1f} {r[5]:7.2f} {r[6]:9.2f}")
+        print(f"{r[0]:8} {r[1]:8.2f} {r[2]:8.2f} {r[3][0]:12.1f} /{r[3][1]:7.1f} {r[4][0]:13.1f} "
+              f"/{r[4][1]:7.1f} {r[5]:7.2f} {r[6]:9.2f}")
     return 0
 
 

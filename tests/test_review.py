@@ -185,3 +185,21 @@ def test_review_page_in_headless_chromium(review, tmp_path):
         img = ROOT / "docs" / "img"
         _browse(review, "preset=jaw%20open", screenshot=img / "review-split.png")
         _browse(review, "variant=personalized&preset=smile&heat=rms", screenshot=img / "review-heat.png")
+
+
+def test_pyblish_extractor_attaches_the_review_page(personalized_sample, samples):
+    pyblish = pytest.importorskip("pyblish.api")
+    from usdface.pipeline.pyblish_plugins import ExtractUsdFaceReview
+
+    context = pyblish.Context()
+    instance = context.create_instance("person", family="usdface.avatar")
+    instance.data.update({"usdfaceLayer": str(personalized_sample), "review": False})
+    ExtractUsdFaceReview().process(instance)
+    assert "usdfaceReview" not in instance.data  # only when asked for
+    instance.data.update({"review": True, "capture": str(samples / "capture.usda"), "force": True})
+    ExtractUsdFaceReview().process(instance)
+    page = Path(instance.data["usdfaceReview"])
+    assert page.name == "person.review.html" and page.parent == personalized_sample.parent
+    assert {"name": "review", "ext": "html", "files": page.name, "stagingDir": str(page.parent)} in \
+        instance.data["representations"]
+    assert "usdfaceStart(" in page.read_text()

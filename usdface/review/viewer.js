@@ -259,18 +259,19 @@ function usdfaceStart(plotId) {
   var benchN = +(params.get("bench") || 0);  // bench=N: N pose updates (blend + restyle + draw), timed
   if (benchN > 0) {
     chain = chain.then(function () {
-      var k = D.names.indexOf("jawOpen") >= 0 ? D.names.indexOf("jawOpen") : 0, i = 0, times = [];
+      var k = D.names.indexOf("jawOpen") >= 0 ? D.names.indexOf("jawOpen") : 0, i = 0, up = [], fr = [];
+      function median(a) { a.sort(function (x, y) { return x - y; }); return a[a.length >> 1].toFixed(1); }
       function step() {
-        if (i >= benchN) {
-          times.sort(function (a, b) { return a - b; });
-          console.log("usdface-bench: " + times[times.length >> 1].toFixed(1) + " ms/frame");
+        if (i >= benchN) {  // update = blend + Plotly.restyle; frame = until the next animation frame
+          console.log("usdface-bench: " + median(up) + " ms/update " + median(fr) + " ms/frame");
           return Promise.resolve();
         }
         weights[k] = (i++ % 10) / 10;
         var t0 = performance.now();
-        return update().then(function () {  // the next animation frame = drawn
+        return update().then(function () {
+          up.push(performance.now() - t0);
           return new Promise(function (done) { requestAnimationFrame(function () { done(); }); });
-        }).then(function () { times.push(performance.now() - t0); return step(); });
+        }).then(function () { fr.push(performance.now() - t0); return step(); });
       }
       return step();
     });
