@@ -203,3 +203,18 @@ def test_pyblish_extractor_attaches_the_review_page(personalized_sample, samples
     assert {"name": "review", "ext": "html", "files": page.name, "stagingDir": str(page.parent)} in \
         instance.data["representations"]
     assert "usdfaceStart(" in page.read_text()
+
+
+def test_landmarks_are_embedded_lifted_off_the_surface():
+    from usdface.review.page import LANDMARK_LIFT_M, ReviewData, ReviewMesh, _payload
+
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    tris = np.array([[0, 1, 2], [1, 3, 2]])  # facing +Z
+    deltas = np.zeros((1, 4, 3))
+    deltas[0, 3] = [0.0, 0.0, 0.01]
+    mesh = ReviewMesh("Head", points, tris, ["jawOpen"], deltas, deltas * 2.0, landmarks=np.array([0, 3]))
+    data = _payload(ReviewData("t", [mesh]))
+    m = data["meshes"][0]
+    assert m["landmarks"] == [0, 3]
+    np.testing.assert_allclose(np.reshape(m["lmOffset"], (2, 3)), [[0, 0, LANDMARK_LIFT_M]] * 2, atol=1e-9)
+    np.testing.assert_allclose(decode_sparse_deltas(m["change"], 4), deltas, atol=1e-6)  # 2x - 1x generic

@@ -61,9 +61,11 @@ function usdfaceStart(plotId) {
     for (var i = 0; i < n; i++) { x[i] = p[3 * i]; y[i] = p[3 * i + 1]; z[i] = p[3 * i + 2]; }
     return [x, y, z];
   }
-  function pick(p, idx) {
+  function pick(p, idx, lift) {  // landmark positions, lifted off the surface (lift: [m*3] metres)
     var x = [], y = [], z = [];
-    idx.forEach(function (i) { x.push(p[3 * i]); y.push(p[3 * i + 1]); z.push(p[3 * i + 2]); });
+    idx.forEach(function (i, j) {
+      x.push(p[3 * i] + lift[3 * j]); y.push(p[3 * i + 1] + lift[3 * j + 1]); z.push(p[3 * i + 2] + lift[3 * j + 2]);
+    });
     return [x, y, z];
   }
 
@@ -96,7 +98,7 @@ function usdfaceStart(plotId) {
       var lh = left === "personalized" ? heat : null;  // heat is on whichever scene shows personalized
       C.push(lh, heat); S.push(!!lh && m.role === "skin", !!heat && m.role === "skin"); CMAX.push(top, top);
       if (m.landmarks) {
-        var la = pick(pl, m.landmarks), lb = pick(pr, m.landmarks);
+        var la = pick(pl, m.landmarks, m.lmOffset), lb = pick(pr, m.landmarks, m.lmOffset);
         X.push(la[0], lb[0]); Y.push(la[1], lb[1]); Z.push(la[2], lb[2]); I.push(m.lmTrace[0], m.lmTrace[1]);
         C.push(undefined, undefined); S.push(undefined, undefined); CMAX.push(undefined, undefined);
       }
