@@ -207,10 +207,12 @@ function usdfaceStart(plotId) {
   var syncing = false;
   gd.on("plotly_relayout", function (ev) {
     if (syncing) return;
-    var cam = ev["scene.camera"] ? ["scene2.camera", ev["scene.camera"]] : ev["scene2.camera"] ? ["scene.camera", ev["scene2.camera"]] : null;
-    if (!cam) return;
+    var keys = Object.keys(ev || {}), from = null;
+    if (keys.some(function (k) { return k.indexOf("scene2.camera") === 0; })) from = "scene2";
+    else if (keys.some(function (k) { return k.indexOf("scene.camera") === 0; })) from = "scene";
+    if (!from) return;
     syncing = true;
-    var lay = {}; lay[cam[0]] = cam[1];
+    var lay = {}; lay[(from === "scene" ? "scene2" : "scene") + ".camera"] = JSON.parse(JSON.stringify(gd.layout[from].camera));
     Plotly.relayout(gd, lay).then(function () { syncing = false; }, function () { syncing = false; });
   });
 
