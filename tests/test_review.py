@@ -218,3 +218,41 @@ def test_landmarks_are_embedded_lifted_off_the_surface():
     assert m["landmarks"] == [0, 3]
     np.testing.assert_allclose(np.reshape(m["lmOffset"], (2, 3)), [[0, 0, LANDMARK_LIFT_M]] * 2, atol=1e-9)
     np.testing.assert_allclose(decode_sparse_deltas(m["change"], 4), deltas, atol=1e-6)  # 2x - 1x generic
+
+
+def test_review_page_interaction_with_playwright(review):
+    """Drive the page like a user (playwright with the system Chromium; skipped without either): play
+    advances the sequence, dragging one scene orbits both, a preset sets its sliders."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    exe = _chromium()
+    errors: list[str] = []
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox", "--disable-gpu",
+                                                               "--enable-unsafe-swiftshader"])
+        try:
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"{review.as_uri()}?seq=1")  # the take: 90 frames over 3 s
+            page.wait_for_function("document.getElementById('usdface-status').textContent !== 'loading'",
+                                   timeout=120000)
+            assert page.text_content("#usdface-status") == "ok"
+            frame = "document.querySelector('#usdface-seq ~ input[type=range]').value"
+            page.click("#usdface-play")
+            page.wait_for_function(f"+{frame} > 0", timeout=30000)
+            page.click("#usdface-play")  # pause
+            page.mouse.move(420, 330)
+            page.mouse.down()
+            page.mouse.move(520, 360, steps=5)
+            page.mouse.up()
+            eyes = "(() => { const l = document.getElementById('usdface-plot').layout; " \
+                   "return JSON.stringify([l.scene.camera.eye, l.scene2.camera.eye]); })()"
+            synced = "return e[0].x !== 0 && JSON.stringify(e[0]) === JSON.stringify(e[1]); })()"
+            page.wait_for_function(f"(() => {{ const e = JSON.parse({eyes}); " + synced, timeout=30000)
+            page.click("button[data-preset='blink']")
+            values = page.evaluate("['eyeBlinkLeft', 'eyeBlinkRight', 'jawOpen'].map(n => "
+                                   "+document.querySelector(`input[data-shape=${n}]`).value)")
+            assert values == [1.0, 1.0, 0.0]
+        finally:
+            browser.close()
+    assert not errors, errors
