@@ -105,6 +105,8 @@ def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
         api.write_review(personalized_sample, tmp_path / "r.png")
     with pytest.raises(InputFileError, match="not a usdface layer"):
         api.write_review(samples / "avatar.usda", tmp_path / "plain.html", fit_errors=False)
+    with pytest.raises(InputFileError, match="capture not found"):
+        api.write_review(personalized_sample, tmp_path / "c.html", capture=tmp_path / "nope.usda")
     with pytest.raises(InputFileError, match="take not found"):
         api.write_review(personalized_sample, tmp_path / "t.html", take=tmp_path / "missing.csv")
 

@@ -464,8 +464,16 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
-    data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
-    return write_text_atomic(out, build_review_html(data))
+    if isinstance(capture, str | Path) and not Path(capture).exists():
+        raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
+    from . import progress
+
+    with progress.steps("review", 2) as advance:
+        data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+        advance("page")
+        page = build_review_html(data)
+        advance()
+    return write_text_atomic(out, page)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
