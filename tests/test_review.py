@@ -258,3 +258,23 @@ def test_review_page_interaction_with_playwright(review):
         finally:
             browser.close()
     assert not errors, errors
+
+
+def test_review_cli_and_personalize_review(personalized_sample, samples, tmp_path, capsys):
+    from usdface import cli
+
+    out = tmp_path / "page.html"
+    assert cli.main(["review", str(personalized_sample), "-o", str(out), "--no-fit-errors"]) == 0
+    assert "wrote" in capsys.readouterr().out and out.stat().st_size > 1e6
+    assert cli.main(["review", str(personalized_sample), "-o", str(out)]) == 2  # exists, no --force
+    assert "--force" in capsys.readouterr().err
+
+    layer = tmp_path / "p" / "person.usda"
+    args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(layer),
+            "--review", "-q"]
+    assert cli.main(args) == 0
+    page = layer.with_name("person.review.html")
+    assert page.is_file() and f"review page: {page}" in capsys.readouterr().out
+    layer.unlink()
+    assert cli.main(args) == 2  # the page exists: refused before any work, no layer written
+    assert not layer.exists()
