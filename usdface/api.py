@@ -44,12 +44,14 @@ __all__ = [
 METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 
-def read_avatar(path: PathLike) -> Avatar:
+def read_avatar(path: PathLike, name_map: dict | PathLike | None = None) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, converted to metres / Y up, ARKit names
-    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`)."""
+    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`). ``name_map``: the studio's
+    ``{"studio_channel": "arkitName"}`` dict or a JSON / CSV file of them, for channels usdface does not
+    recognise (:mod:`usdface.io.name_map`)."""
     from .io.usd_rig import read_avatar as _read
 
-    return _read(path)
+    return _read(path, name_map=name_map)
 
 
 def read_capture(path: PathLike) -> Capture:
@@ -74,13 +76,36 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
 
 
+def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> Path:
+    """Validate a capture output before any work: ``.usda``/``.usdc``/``.usd`` (a file) or a name without
+    extension (a folder); never one of the ``inputs``; an existing output needs ``force``."""
+    from .errors import InputFileError
+
+    out = Path(out_path)
+    usd = out.suffix.lower() in (".usda", ".usdc", ".usd")
+    if out.suffix and not usd:
+        raise InputFileError("a capture is written as .usda/.usdc/.usd or as a folder (a name without "
+                             "extension)", path=out, fix=f"name it e.g. {out.stem}.usda or {out.stem}/")
+    for given in inputs:
+        if given is not None and Path(given).exists() and out.exists() and out.samefile(given):
+            raise InputFileError("output would overwrite the input", path=out,
+                                 fix="choose a different output; inputs are never modified")
+    if usd:
+        from .io.layers import check_output_path
+
+        return check_output_path(out, force)
+    from .io.atomic import check_output_dir
+
+    return check_output_dir(out, force)
+
+
 def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
                   source: PathLike | None = None) -> Path:
     """Write ``capture`` as a capture ``.usda``/``.usdc``/``.usd`` file, or as a capture folder (OBJ + JSON)
     for any other path; returns the path written (atomically). Refuses an existing output unless ``force``.
     ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
     or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``."""
-    out = Path(out_path)
+    out = check_capture_output(out_path, force, inputs=[source])
     if source is not None:
         from .io.layers import file_digest
 
@@ -99,6 +124,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     """Convert a capture folder (or rewrite a capture ``.usda``) into one ``capture.usda``
     (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
     ``force``; the source's digest is recorded (see :func:`write_capture`)."""
+    check_capture_output(out_path, force, inputs=[folder])
     return write_capture(read_capture(folder), out_path, force=force, exact=exact, source=folder)
 
 
@@ -129,6 +155,8 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     from .io.take import capture_from_take, read_take
     from .take_select import format_coverage, select_frames
 
+    if out_path is not None:
+        check_capture_output(out_path, force, inputs=[take])
     data = read_take(take)
     selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
                               test_every=test_every, min_separation=max(1, round(min_separation * data.fps)))
@@ -253,17 +281,33 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     if json_path:
         from .personalize.report import write_report_json
 
-        outputs["json"] = Path(write_report_json(report, json_path))
+        outputs["json"] = Path(write_report_json(report, json_path, force=force))
     if plot_path:
         from .personalize.report import plot_errors
 
-        outputs["plot"] = Path(plot_errors(report, plot_path))
+        outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
     if usd_path:
         from .io.usd_error_maps import write_error_maps_usd
 
         outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"], force=force))
     report["_outputs"] = outputs
     return report
+
+
+def _check_correspondence_cache(path) -> None:
+    """Refuse an existing ``--correspondence`` file that cannot be a cache (not a file, empty, not an npz zip)
+    before any work; a missing one is fine (it will be written)."""
+    if path is None or not Path(path).exists():
+        return
+    import zipfile
+
+    from .errors import InputFileError
+    from .io.usd_open import require_file
+
+    require_file(path, "correspondence cache", "pass a .npz cache written by usdface, or a new file name")
+    if not zipfile.is_zipfile(path):
+        raise InputFileError("not a usdface correspondence cache (empty or not an .npz archive)", path=path,
+                             fix="delete it or pass another --correspondence file")
 
 
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
@@ -278,28 +322,59 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
     layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
 
+    refuse_usdface_output(avatar_path)
+    _check_correspondence_cache(options.get("correspondence"))
+    if out_path is not None and not options.get("dry_run"):
+        from .io.layers import check_output_path
+
+        check_output_path(out_path, options.get("force", False),
+                          inputs=[p for p in (avatar_path, capture_path, take) if isinstance(p, str | Path)])
+    if take is not None:
+        inspect = True
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
-    avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
+    import time
+
+    from .io.take import read_take
+
+    start = time.perf_counter()
+    take_data = read_take(take) if take is not None else None  # a bad take fails before any work
+    avatar = (avatar_path if not isinstance(avatar_path, str | Path)
+              else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)
+    read_s = time.perf_counter() - start
     result = _personalize(avatar, capture, out_path, **options)
+    timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if getattr(result, "out_path", None):
-        from .io.take import read_take
         from .io.usd_inspection import add_inspection, change_heat, inspection_animation, inspection_edit
 
-        animation = inspection_animation(capture, read_take(take) if take is not None else None)
-        layouts = None
-        if landmarks:
-            from .model import FaceRig as _FaceRig
+        t_inspect = time.perf_counter()
+        try:
+            animation = inspection_animation(capture, take_data)
+            layouts = None
+            if landmarks:
+                from .model import FaceRig as _FaceRig
 
-            face = avatar.mesh(result.face_mesh)
-            personalized = _FaceRig(face.neutral, face.triangles, face.names,
-                                    result.offsets[face.source.prim], face.inbetweens, face.source, face.name)
-            layouts = {face.source.prim: compute_landmarks(personalized)}
-        add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
-                                                        landmarks=layouts, animation=animation, fps=24.0))
+                face = avatar.mesh(result.face_mesh)
+                personalized = _FaceRig(face.neutral, face.triangles, face.names,
+                                        result.offsets[face.source.prim], face.inbetweens, face.source,
+                                        face.name)
+                layouts = {face.source.prim: compute_landmarks(personalized)}
+            add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
+                                                            landmarks=layouts, animation=animation, fps=24.0))
+        except BaseException:
+            Path(result.out_path).unlink(missing_ok=True)  # no half-finished layer for batch to call done
+            raise
+        if timings is not None:
+            timings.pop("total", None)
+            timings["inspect"] = time.perf_counter() - t_inspect
+    if timings is not None:  # the reading done here, and the whole call, belong in the report
+        timings["read"] = float(timings.get("read", 0.0)) + read_s
+        timings.pop("total", None)
+        timings["total"] = time.perf_counter() - start
     return result
 
 
@@ -371,9 +446,11 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
     from .errors import InputFileError, OutputExistsError
     from .io.atomic import write_text_atomic
+    from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.retarget import weight_map_csv, weight_map_json
 
+    refuse_usdface_output(avatar_path)
     out = Path(out_path)
     if out.suffix.lower() not in (".json", ".csv"):
         raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")
@@ -386,7 +463,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
-    write_text_atomic(out, text)
+    write_text_atomic(out, text, force=force)
     return result
 
 
@@ -414,22 +491,25 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
-          rules: Iterable[str] | None = None) -> list[Issue]:
+          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
-    OpenUSD's own validators, merged and sorted errors first (``usdface check``). Never modifies the file."""
+    OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
+    :func:`read_avatar`. Never modifies the file."""
+    from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
+    name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | Path):
-        return validate_file(file_or_stage, pixar=pixar, rules=rules)
-    return validate_stage(file_or_stage, pixar=pixar, rules=rules)
+        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
 
 
-def inspect_file(path: PathLike) -> dict:
+def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
-    name report, provenance."""
+    how each channel maps to ARKit (``name_map`` as for :func:`read_avatar`), provenance."""
     from .inspect import inspect_file as _inspect
 
-    return _inspect(path)
+    return _inspect(path, name_map=name_map)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -449,19 +529,13 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     ``fit_errors`` the generic template and the refitted personalized shapes are scored on its test
     expressions (eq. 5). Returns the path written (atomically; an existing file needs ``force``, checked
     before any work)."""
-    from .errors import InputFileError, OutputExistsError
-    from .io.atomic import write_text_atomic
+    from .errors import InputFileError
+    from .io.atomic import check_output_file, write_text_atomic
     from .review.collect import collect_review
     from .review.page import build_review_html
 
-    out = Path(out_path)
-    if out.suffix.lower() not in (".html", ".htm"):
-        raise InputFileError("the review page must be an .html file", path=out,
-                             fix="name it e.g. review.html")
-    if out.is_dir():
-        raise InputFileError("output path is a directory", path=out, fix="give a file name, e.g. review.html")
-    if out.exists() and not force:
-        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
+                            inputs=[layer_path])
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
     if isinstance(capture, str | Path) and not Path(capture).exists():
@@ -473,7 +547,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         advance("page")
         page = build_review_html(data)
         advance()
-    return write_text_atomic(out, page)
+    return write_text_atomic(out, page, force=force)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
@@ -493,7 +567,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
     usdface layer) exports as authored with ``variant="personalized"``."""
     from .errors import UsdFaceError
-    from .io.atomic import check_output_dir, replace_dir_atomically
+    from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
     from .io.flatten import VARIANTS, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
     from .io.layers import check_output_path
@@ -506,17 +580,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         raise UsdFaceError("nothing to export",
                            fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
     if gltf:
-        from .errors import InputFileError, OutputExistsError
-
-        if Path(gltf).suffix.lower() not in GLTF_EXTENSIONS:
-            raise InputFileError("a glTF output must end in .glb or .gltf", path=gltf,
-                                 fix="name it e.g. out.glb")
-        if Path(gltf).exists() and not force:
-            raise OutputExistsError("output exists", path=gltf, fix="pass --force to replace it")
+        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
     if obj_dir:
         check_output_dir(obj_dir, force)
     if flatten:
-        check_output_path(flatten, force)
+        check_output_path(flatten, force, inputs=[layer_path])
     done: dict[str, Path] = {}
     if gltf or obj_dir:
         avatar = read_avatar_variant(layer_path, variant)

@@ -6,9 +6,11 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
+import warnings
 
 from . import __version__
 from .errors import UsdFaceError
@@ -20,8 +22,15 @@ COMMAND_MODULES = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="usdface",
         description="Personalized ARKit facial blendshapes from a phone capture, written as a USD layer.")
     parser.add_argument("--version", action="version", version=f"usdface {__version__}")
@@ -55,8 +64,14 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from .commands import reset_warnings, say_warning
+
+    reset_warnings()
     try:
-        code = int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = lambda message, *_a, **_k: say_warning(message)
+            code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit
         return code
     except BrokenPipeError:
@@ -70,6 +85,33 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("usdface: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
+        if args.debug:
+            raise
+        print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        return 2
+
+
+#: errno -> what to do about it (the one-line error's ``fix``).
+_OS_FIXES = {
+    errno.EACCES: "choose a folder you can write to (-o elsewhere) or fix its permissions",
+    errno.EPERM: "choose a folder you can write to (-o elsewhere) or fix its permissions",
+    errno.EROFS: "the file system is read-only: write the output elsewhere (-o)",
+    errno.ENOSPC: "free disk space or write the output elsewhere (-o)",
+    errno.EDQUOT: "free disk space (quota) or write the output elsewhere (-o)",
+    errno.EISDIR: "the path is a folder: give a file name",
+    errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
+    errno.ENOENT: "check the path",
+    errno.ENAMETOOLONG: "use a shorter path",
+}
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an OSError: the file, what the system said and the fix."""
+    where = exc.filename if exc.filename is not None else ""
+    what = exc.strerror or str(exc)
+    fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
+    return f"{where}: {what} (fix: {fix})" if where else f"{what} (fix: {fix})"
 
 
 if __name__ == "__main__":

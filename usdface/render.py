@@ -98,7 +98,7 @@ def save_figure(fig, out, force: bool = False) -> Path:
         raise OutputExistsError("picture exists", path=out, fix="pass --force (force=True) to replace it")
     from .io.atomic import atomic_file
 
-    with atomic_file(out) as tmp:
+    with atomic_file(out, force=force) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
     return out
 

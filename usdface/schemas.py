@@ -82,9 +82,12 @@ def register(strict: bool = False) -> Path:
         from .errors import UsdFaceError
 
         error = UsdFaceError(
-            "USD's schema registry was created before usdface registered its schemas",
+            "USD's schema registry was created before usdface registered its schemas (a stage was opened "
+            "first, e.g. inside a DCC); usdface still writes the same data and records the applied schemas, "
+            "only their fallback values are unknown to this process",
             path=directory,
-            fix="import usdface.io (or call usdface.schemas.register()) before opening any USD stage")
+            fix=f"set PXR_PLUGINPATH_NAME={directory} before starting the host, or import usdface.io before "
+                "opening any USD stage")
         if strict:
             raise error
         warnings.warn(str(error), stacklevel=2)
@@ -98,3 +101,40 @@ def is_registered() -> bool:
     from pxr import Usd
 
     return all(Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(n) is not None for n in SCHEMA_NAMES)
+
+
+def apply_api(prim, name: str) -> None:
+    """Apply the usdface API schema ``name`` to ``prim``: ``ApplyAPI`` when USD's registry knows it, else (the
+    registry was built before :func:`register`, as inside a DCC) the same ``apiSchemas`` entry is authored
+    with ``AddAppliedSchema``; :func:`schema_attribute` then creates the attributes with their schema types.
+    The file written is the same either way (:func:`register` already warned once)."""
+    from pxr import Usd
+
+    if Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(name) is not None:
+        prim.ApplyAPI(name)
+    else:
+        prim.AddAppliedSchema(name)
+
+
+def schema_attribute(prim, attr_name: str, api_name: str):
+    """The schema attribute ``attr_name`` of ``api_name`` on ``prim``; created with the type declared in
+    ``generatedSchema.usda`` when this process's schema registry does not define it."""
+    attr = prim.GetAttribute(attr_name)
+    if attr:
+        return attr
+    return prim.CreateAttribute(attr_name, _attribute_types(api_name)[attr_name], custom=False)
+
+
+_types_cache: dict = {}
+
+
+def _attribute_types(api_name: str) -> dict:
+    """{attribute name: Sdf.ValueTypeName} of an API schema, read from ``generatedSchema.usda`` (Sdf level:
+    works without the schema registry)."""
+    if api_name not in _types_cache:
+        from pxr import Sdf
+
+        layer = Sdf.Layer.FindOrOpen(str(schema_dir() / "generatedSchema.usda"))
+        spec = layer.GetPrimAtPath(f"/{api_name}")
+        _types_cache[api_name] = {a.name: a.typeName for a in spec.attributes} if spec else {}
+    return _types_cache[api_name]

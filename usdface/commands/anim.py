@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import warnings
 
+from . import say_warning
+from .options import positive_float
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("anim", help="weight animations (Live Link Face CSV -> SkelAnimation)",
@@ -16,7 +19,7 @@ def register(subparsers) -> None:
                     "attributes). Bind it to an avatar's Skeleton with skel:animationSource.")
     imp.add_argument("csv", help="Live Link Face .csv")
     imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
-    imp.add_argument("--timecode-rate", type=float, default=60.0,
+    imp.add_argument("--timecode-rate", type=positive_float, default=60.0,
                      help="frames per second of the CSV's timecode FF field; also the stage's "
                           "timeCodesPerSecond (default 60)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -31,7 +34,7 @@ def run_import(args) -> int:
         out, take = api.import_livelink_take(args.csv, args.output, timecode_rate=args.timecode_rate,
                                              force=args.force)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "
           f"{len(take.names)} shapes")
     if take.name_report.get("missing"):

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .options import positive_int
+
 
 def _option(text: str) -> tuple[str, object]:
     import argparse
@@ -26,7 +28,7 @@ def register(subparsers) -> None:
                     "output exists are skipped (resume); a failing item is reported and the batch goes on. "
                     "Exit status 1 when any item failed.")
     p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list")
-    p.add_argument("-j", "--jobs", type=int, default=None,
+    p.add_argument("-j", "--jobs", type=positive_int, default=None,
                    help="local worker processes (default: CPU count; 1 = in this process)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786): run the items on that cluster")

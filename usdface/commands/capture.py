@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import warnings
 
+from . import say_warning
+from .options import nonnegative_float, nonnegative_int, positive_int, unit_float
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -34,11 +37,12 @@ def register(subparsers) -> None:
                           "printed (e.g. for a weights-only Live Link CSV)")
     sel.add_argument("--template", help="capture folder or capture.usda whose template rig to use "
                                         "(default: the take's own template)")
-    sel.add_argument("--threshold", type=float, default=0.5, help="minimum peak weight (default 0.5)")
-    sel.add_argument("--per-shape", type=int, default=1, help="distinct peaks kept per shape (default 1)")
-    sel.add_argument("--test-every", type=int, default=0,
+    sel.add_argument("--threshold", type=unit_float, default=0.5, help="minimum peak weight (default 0.5)")
+    sel.add_argument("--per-shape", type=positive_int, default=1,
+                     help="distinct peaks kept per shape (default 1)")
+    sel.add_argument("--test-every", type=nonnegative_int, default=0,
                      help="hold out every K-th remaining peak frame as a test frame (default 0: none)")
-    sel.add_argument("--min-separation", type=float, default=0.5,
+    sel.add_argument("--min-separation", type=nonnegative_float, default=0.5,
                      help="seconds between two peaks of the same shape (default 0.5)")
     sel.add_argument("--force", action="store_true", help="overwrite an existing output")
     sel.set_defaults(func=run_select)
@@ -47,11 +51,12 @@ def register(subparsers) -> None:
 def run_import(args) -> int:
     from .. import api
 
+    api.check_capture_output(args.output, args.force, inputs=[args.source])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         capture = api.read_capture(args.source)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     out = api.write_capture(capture, args.output, force=args.force, exact=args.exact, source=args.source)
     report = capture.metadata.get("name_report", {})
     counts = capture.metadata.get("counts", {})
@@ -76,7 +81,7 @@ def run_select(args) -> int:
                                            force=args.force)
     print(result.coverage)
     for w in caught:
-        print(f"warning: {w.message}")
+        say_warning(w.message)
     if result.capture is None:
         return 0
     counts = result.capture.metadata.get("counts", {})

@@ -3,13 +3,16 @@ rig."""
 
 from __future__ import annotations
 
+from . import say_warning
+from .options import reg_value
+
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
 METHODS = ("dt", "ebfr", "menzel", "laplacian")  # == usdface.api.METHODS (not imported: keeps --help fast)
 
 
 def add_fit_options(parser) -> None:
     """Options shared by ``fit`` and ``evaluate``."""
-    parser.add_argument("--reg", default="auto",
+    parser.add_argument("--reg", default="auto", type=reg_value,
                         help="E_reg weight: 'auto' (leave-one-frame-out cross-validation, default), 'paper' "
                              "(1, the paper's plain sum, and no alignment/re-estimation: the paper's "
                              "method) or a number")
@@ -45,10 +48,15 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from .. import api
+    from ..io.layers import check_output_path
 
-    result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
+    check_output_path(args.output, args.force)
+    capture = api.read_capture(args.capture)
+    result = api.fit_capture(capture, method=args.method, out_path=args.output, force=args.force,
                              **fit_kwargs(args))
     info = result.info
+    if info.get("train_rmse_mm") is None:  # dt/ebfr do not score themselves: eq. 5 on the training frames
+        info["train_rmse_mm"] = float(api.evaluate_capture(capture, result.rig, role="train")["mean_rmse_mm"])
     extra = f", reg {info['reg']:.3g}" if "reg" in info else ""
     if "prior_alpha" in info and args.method in ("menzel", "laplacian"):
         extra += f", prior {info['prior_alpha']:.2f} DT + {1 - info['prior_alpha']:.2f} template"
@@ -56,5 +64,5 @@ def run(args) -> int:
           f"({args.method}{extra}; train RMSE {info.get('train_rmse_mm', float('nan')):.3f} mm; "
           f"{info['timings']['total']:.2f} s)")
     for w in info["warnings"]:
-        print(f"warning: {w}")
+        say_warning(w)
     return 0

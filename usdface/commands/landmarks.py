@@ -6,17 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-
-def _vector3(text: str):
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        import argparse
-
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three comma-separated numbers), got {text!r}")
-    return values
+from . import add_name_map_option, say_warning
+from .options import nonnegative_float, positive_float, positive_int, unit_float, vector3
 
 
 def register(subparsers) -> None:
@@ -27,19 +18,21 @@ def register(subparsers) -> None:
                     "optimum, and write it as a USD layer over the avatar (a Points prim + mesh primvars).")
     p.add_argument("avatar", help="avatar USD file (UsdSkel, blend shapes)")
     p.add_argument("--mesh", help="mesh prim name or path (default: most shapes, then most vertices)")
-    p.add_argument("--epsilon", type=float, default=0.5, help="relative-displacement threshold, (0,1]")
-    p.add_argument("--alpha", type=float, default=0.5, help="displacement vs visibility weight, [0,1]")
+    add_name_map_option(p)
+    p.add_argument("--epsilon", type=positive_float, default=0.5,
+                   help="relative-displacement threshold, (0,1]")
+    p.add_argument("--alpha", type=unit_float, default=0.5, help="displacement vs visibility weight, [0,1]")
     p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
-    p.add_argument("--multicover", type=int, default=1, metavar="N",
+    p.add_argument("--multicover", type=positive_int, default=1, metavar="N",
                    help="adaptive multi-cover: up to N landmarks per shape (1)")
-    p.add_argument("--radius", type=float, default=0.01,
+    p.add_argument("--radius", type=nonnegative_float, default=0.01,
                    help="metres; multi-cover excludes vertices this close to chosen landmarks (0.01)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
-    p.add_argument("--camera", type=_vector3, metavar="X,Y,Z",
+    p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
-    p.add_argument("--rays", type=int, default=16, help="hemisphere rays per vertex (16)")
+    p.add_argument("--rays", type=positive_int, default=16, help="hemisphere rays per vertex (16)")
     p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
                    help="OR-tools MIP backend (scip)")
     p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
@@ -56,8 +49,10 @@ def register(subparsers) -> None:
     p.add_argument("--empirical",
                    help="JSON with an empirical layout (list of vertex indices, or ICT-FaceKit's "
                         "vertex_indices.json: idx_to_landmark_verts) for --evaluate")
-    p.add_argument("--frames", type=int, default=400, help="test frames used by --evaluate (evenly sampled)")
-    p.add_argument("--noise", type=float, default=0.5, help="tracking noise for --evaluate, mm (0.5)")
+    p.add_argument("--frames", type=positive_int, default=400,
+                   help="test frames used by --evaluate (evenly sampled)")
+    p.add_argument("--noise", type=nonnegative_float, default=0.5,
+                   help="tracking noise for --evaluate, mm (0.5)")
     p.set_defaults(func=run)
 
 
@@ -65,14 +60,18 @@ def run(args) -> int:
     import time
 
     from .. import api
+    from ..io.atomic import check_output_file, write_text_atomic
     from ..progress import steps
 
     t0 = time.perf_counter()
     if args.output:
         from ..io.layers import check_output_path
 
-        check_output_path(args.output, args.force)
-    avatar = api.read_avatar(args.avatar)
+        check_output_path(args.output, args.force, inputs=[args.avatar])
+    for out, suffix in ((args.json_out, ".json"), (args.plot, ".png")):
+        if out:
+            check_output_file(out, args.force, suffixes=(suffix,), inputs=[args.avatar])
+    avatar = api.read_avatar(args.avatar, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation
@@ -81,9 +80,9 @@ def run(args) -> int:
                                         noise_mm=args.noise, rays=args.rays, symmetric=args.symmetric,
                                         backend=args.backend)
         if args.plot:
-            plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}")
+            plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}", force=args.force)
         if args.json_out:
-            Path(args.json_out).write_text(json.dumps(report.to_dict(), indent=2))
+            write_text_atomic(args.json_out, json.dumps(report.to_dict(), indent=2), force=args.force)
         for key, value in report.summary.items():
             mm = "rmse" in key and value is not None
             print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
@@ -107,18 +106,19 @@ def run(args) -> int:
         advance("layer")
     mesh = rig.source.prim if rig.source else rig.name
     if args.json_out:
-        Path(args.json_out).write_text(json.dumps({"avatar": str(args.avatar), "mesh": mesh,
-                                                   **layout.to_dict()}, indent=2))
+        write_text_atomic(args.json_out, json.dumps({"avatar": str(args.avatar), "mesh": mesh,
+                                                     **layout.to_dict()}, indent=2), force=args.force)
     if args.plot:
         from ..landmarks.plots import plot_layout
 
-        plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}")
+        plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
+                    force=args.force)
     print(f"{mesh}: {layout.count} landmarks for {len(rig.names)} shapes (epsilon {layout.epsilon:g}, "
           f"alpha {layout.alpha:g}, {layout.weighting}); solver {layout.backend} {layout.status}, "
           f"gap {layout.gap:.2g}; {time.perf_counter() - t0:.2f} s")
     print("vertices: " + " ".join(str(int(v)) for v in layout.vertices))
     for w in layout.warnings:
-        print(f"warning: {w}")
+        say_warning(w)
     if layout.uncoverable:
         print(f"uncoverable at epsilon {layout.epsilon:g}: {', '.join(layout.uncoverable)}")
     if args.output:

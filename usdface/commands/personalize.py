@@ -6,6 +6,9 @@ import json
 import sys
 from pathlib import Path
 
+from . import add_name_map_option, say_warning
+from .options import mu_value, nonnegative_float, positive_float, reg_value
+
 
 def add_transfer_options(p) -> None:
     """Options shared by ``personalize`` and ``retarget`` (the fit and the transfer)."""
@@ -13,21 +16,32 @@ def add_transfer_options(p) -> None:
     p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda")
     p.add_argument("--method", default="menzel", choices=["menzel", "dt", "ebfr", "laplacian"],
                    help="capture fit method (default: menzel, the paper's eqs. 1-3)")
-    p.add_argument("--reg", default="auto",
+    p.add_argument("--reg", default="auto", type=reg_value,
                    help="fit regularisation: auto (cross-validated), paper, or a number")
-    p.add_argument("--mu", type=float, default=1e-3,
-                   help="eq. (4) ridge weight, relative to the shapes' mean squared norm (default 1e-3)")
+    p.add_argument("--mu", type=mu_value, default="auto",
+                   help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
+                        "(generalized cross-validation on the face rows; default)")
+    p.add_argument("--prior", default="avatar", choices=["avatar", "template"],
+                   help="what the fit shrinks towards where the capture does not inform a shape: the "
+                        "avatar's own generic shapes on the capture mesh (default) or the capture's template")
     p.add_argument("--correspondence", metavar="FILE",
                    help="correspondence cache (.npz): reused when it matches the avatar, written otherwise")
-    p.add_argument("--face-transfer", default="offset", choices=["offset", "dt", "dt-offset"],
-                   help="how the face region receives the shapes (default: offset; dt = the paper's DT)")
-    p.add_argument("--approximation", default="generic", choices=["generic", "retarget"],
-                   help="what the region around the face and the other meshes follow: the avatar's generic "
-                        "shape (default) or the eq. (4) approximation A_j (the paper)")
-    p.add_argument("--falloff", type=float, default=0.15,
-                   help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
-                        "over the whole adjacent region, as in the paper)")
+    p.add_argument("--face-transfer", default="person", choices=["person", "offset", "dt", "dt-offset"],
+                   help="how the face region receives the shapes (default: person = the person's motion "
+                        "A_j + M(B_j - P_j); offset = the older B_j - T_j deviation; dt = the paper's DT)")
+    p.add_argument("--approximation", default=None, choices=["field", "generic", "retarget"],
+                   help="what lies beyond the face and the other meshes follow: field (default with "
+                        "--face-transfer person: the person's rotation+scale field of the generic motion, "
+                        "extended smoothly), generic (default with the older modes) or retarget (eq. 4, the "
+                        "paper)")
+    p.add_argument("--extension-length", type=positive_float, default=1.0,
+                   help="with the field: how far the person's motion reaches beyond the face before it fades "
+                        "to the generic, in face radii (default 1)")
+    p.add_argument("--falloff", type=nonnegative_float, default=0.15,
+                   help="older modes: width of the seamless join beyond the face in capture edge lengths "
+                        "(0 = harmonic over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
@@ -37,9 +51,11 @@ def transfer_kwargs(args) -> dict:
         reg = float(reg)
     except ValueError:
         pass
+    approximation = args.approximation or ("field" if args.face_transfer == "person" else "generic")
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
-            "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
-            "eyelids": not args.no_eyelids}
+            "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
+            "prior": args.prior, "extension_length": args.extension_length,
+            "eyelids": not args.no_eyelids, "name_map": args.name_map}
 
 
 def register(subparsers) -> None:
@@ -49,9 +65,12 @@ def register(subparsers) -> None:
                     "with the avatar's face, and write a new USD layer over the untouched avatar with "
                     "personalized offsets for every BlendShape (Menzel et al. 2022, sec. 3.2-3.3).")
     add_transfer_options(p)
-    p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: <avatar>.personalized.usda "
-                                          "next to the avatar)")
+    p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: "
+                                          "<avatar name>.personalized.usda in the current folder)")
     p.add_argument("--force", action="store_true", help="overwrite the output")
+    p.add_argument("--face-mesh", metavar="PRIM",
+                   help="prim name or path of the face mesh (default: the mesh the capture's shapes "
+                        "move most)")
     p.add_argument("--dry-run", action="store_true",
                    help="compute and print what would change; write nothing")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -71,8 +90,9 @@ def register(subparsers) -> None:
 
 
 def _default_output(avatar: str) -> Path:
-    a = Path(avatar)
-    return a.with_name(a.stem + ".personalized.usda")
+    """``<avatar stem>.personalized.usda`` in the current folder (the avatar's folder is often a read-only
+    asset library)."""
+    return Path(Path(avatar).stem + ".personalized.usda")
 
 
 def run(args) -> int:
@@ -91,7 +111,8 @@ def run(args) -> int:
             raise OutputExistsError("review page exists", path=default_output(out), fix="pass --force")
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
-                                landmarks=args.landmarks, take=args.take, **transfer_kwargs(args))
+                                landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
+                                **transfer_kwargs(args))
     rep = result.report
     if args.json:
         doc = {k: v for k, v in rep.items() if k != "name_report"}
@@ -114,7 +135,7 @@ def run(args) -> int:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
               f"({', '.join(eyes['eyeballs'])})")
     for w in rep["warnings"]:
-        print(f"warning: {w}")
+        say_warning(w)
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]
     if args.dry_run:
         print(f"dry run: {len(changed)} of {len(rep['changes'])} BlendShapes would change "

@@ -15,38 +15,111 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import OutputExistsError
+from ..errors import InputFileError, OutputExistsError
 
-__all__ = ["check_output_dir", "replace_dir_atomically", "atomic_file", "write_text_atomic"]
+__all__ = ["check_output_file", "check_output_dir", "replace_dir_atomically", "atomic_file",
+           "write_text_atomic", "publish", "temp_sibling"]
+
+
+def publish(tmp, path, force: bool = False) -> Path:
+    """Move the finished temporary file ``tmp`` to ``path`` (same folder, so atomic).
+
+    With ``force`` an existing ``path`` is replaced (``os.replace``). Without it the target is created
+    *exclusively*: ``os.link`` fails if ``path`` exists, so of two processes writing the same new output
+    exactly one wins and the other gets :class:`~usdface.errors.OutputExistsError`; ``tmp`` is removed either
+    way. On a file system without hard links the existence check and the rename are two steps."""
+    tmp, path = Path(tmp), Path(path)
+    if force:
+        os.replace(tmp, path)
+        return path
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        tmp.unlink(missing_ok=True)
+        raise OutputExistsError("output exists (written by another process meanwhile)", path=path,
+                                fix="choose another output or pass --force (force=True)") from None
+    except OSError:  # no hard links here (FAT, some network shares): best effort
+        if path.exists():
+            tmp.unlink(missing_ok=True)
+            raise OutputExistsError("output exists", path=path,
+                                    fix="choose another output or pass --force (force=True)") from None
+        os.replace(tmp, path)
+        return path
+    tmp.unlink()
+    return path
+
+
+def temp_sibling(path, create: bool = True) -> Path:
+    """A new unique hidden file name next to ``path``: ``.NAME.XXXX.tmp<suffix>`` (created empty, or with
+    ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
+    path = Path(path)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    if not create:
+        os.unlink(name)
+    return Path(name)
 
 
 @contextmanager
-def atomic_file(path) -> Iterator[Path]:
+def atomic_file(path, force: bool = False) -> Iterator[Path]:
     """Context manager: yield a temporary file path next to ``path``, ending in ``.tmp<suffix>`` so that
-    writers going by the extension (``savefig``, ``np.savez``) still work. When the block completes, the file
-    gets the permissions of a normally created file (0666 & ~umask) and replaces ``path``; on an exception
-    it is removed and ``path`` is untouched."""
+    writers going by the extension (``savefig``) still work. When the block completes, the file gets the
+    permissions of a normally created file (0666 & ~umask) and is published at ``path`` (:func:`publish`:
+    exclusively unless ``force``); on an exception (or Ctrl-C) it is removed and ``path`` is untouched."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = temp_sibling(path)
         yield tmp
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
+        publish(tmp, path, force)
     finally:
-        if tmp.exists():
+        if tmp is not None and tmp.exists():
             tmp.unlink()
 
 
-def write_text_atomic(path, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_file`); returns ``path`` as a Path."""
-    with atomic_file(path) as tmp:
+def write_text_atomic(path, text: str, force: bool = False) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_file`; an existing file is replaced only
+    with ``force``); returns ``path`` as a Path."""
+    with atomic_file(path, force=force) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=()) -> Path:
+    """Validate an output file path before any work; returns it as a Path.
+
+    Refuses (InputFileError) a line break in the name, an extension not in ``suffixes`` (lower case, with
+    the dot; None = any), a folder at ``path``, a parent that is a file, and ``path`` being one of the
+    existing ``inputs`` (even with ``force``: inputs are never modified); an existing file needs ``force``
+    (OutputExistsError)."""
+    path = Path(path)
+    if "\n" in str(path) or "\r" in str(path):
+        raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
+                             fix="choose a file name without line breaks")
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise InputFileError(f"{what} must end in {' or '.join(suffixes)}", path=path,
+                             fix=f"name it e.g. {path.stem or 'out'}{suffixes[0]}")
+    if path.is_dir():
+        raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputFileError(f"{what}'s parent {parent} is a file, not a folder", path=path,
+                             fix="choose another output path")
+    if path.exists():
+        for given in inputs:
+            if given is not None and Path(given).exists() and path.samefile(given):
+                raise InputFileError(f"{what} would overwrite an input", path=path,
+                                     fix="choose a different output file; inputs are never modified")
+        if not force:
+            raise OutputExistsError(f"{what} exists", path=path,
+                                    fix="pass --force (force=True) to replace it")
+    return path
 
 
 def check_output_dir(path, force: bool = False) -> Path:
@@ -80,9 +153,10 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     """
     dest = check_output_dir(path, force)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
+    tmp = None
     try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
         yield tmp
         if dest.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
@@ -98,5 +172,6 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
         else:
             os.replace(tmp, dest)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -202,5 +202,5 @@ def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.
     anim.CreateBlendShapesAttr(Vt.TokenArray(all_names))
     anim.CreateBlendShapeWeightsAttr(Vt.FloatArray(len(all_names)))
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    atomic_save(stage.GetRootLayer(), path)
+    atomic_save(stage.GetRootLayer(), path, force)
     return path

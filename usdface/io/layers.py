@@ -32,7 +32,6 @@ import datetime as _dt
 import hashlib
 import json
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -40,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import GeometryError, InputFileError, OutputExistsError, RigError
+from ..errors import GeometryError, InputFileError, RigError
 from ..model import Avatar, FaceRig
 from .usd_rig import STAGE_METADATA_KEYS
 
@@ -75,54 +74,65 @@ def file_digest(path) -> str:
     return h.hexdigest()
 
 
-def check_output_path(path, force: bool = False) -> Path:
-    """Validate an output layer path before any work: a USD extension, not a directory, and not an existing
-    file unless ``force``. Raises InputFileError / OutputExistsError; returns the path as a Path."""
-    path = Path(path)
-    if path.suffix.lower() not in LAYER_EXTENSIONS:
-        raise InputFileError(f"output must be a USD layer ({', '.join(LAYER_EXTENSIONS)})", path=path,
-                             fix="name the output e.g. personalized.usda")
-    if path.is_dir():
-        raise InputFileError("output path is a directory", path=path, fix="give a file name, e.g. out.usda")
-    if path.exists() and not force:
-        raise OutputExistsError("output exists", path=path, fix="pass --force (force=True) to replace it")
-    return path
+def check_output_path(path, force: bool = False, inputs=()) -> Path:
+    """Validate an output layer path before any work: a USD extension, not a directory (nor under a file),
+    not one of the existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
+    OutputExistsError; returns the path as a Path."""
+    from .atomic import check_output_file
+
+    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what="output layer", inputs=inputs)
 
 
 def _temp_path(path: Path) -> Path:
-    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    os.unlink(name)  # USD creates the file itself; the unique name is what we need
-    return Path(name)
+    from .atomic import temp_sibling
+
+    return temp_sibling(path, create=False)  # USD creates the file itself; the unique name is what we need
 
 
-def atomic_save(layer, path) -> Path:
-    """Write ``layer`` to ``path`` atomically: a temporary file in the same directory, then ``os.replace``.
+def atomic_save(layer, path, force: bool = False) -> Path:
+    """Write ``layer`` to ``path`` atomically: a temporary file in the same directory, then published with
+    :func:`usdface.io.atomic.publish` (exclusive creation unless ``force``, so two writers of one new output
+    cannot both succeed).
 
     Relative asset paths in the layer are written as authored, so they must be relative to ``path``'s
     directory. A layer already open at ``path`` in this process is reloaded.
     """
     from pxr import Sdf
 
+    from .atomic import publish
+
     path = Path(path).absolute()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(path)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _temp_path(path)
         if layer.realPath and Path(layer.realPath).parent == path.parent and not layer.anonymous:
-            if not layer.Save(force=True) and not Path(layer.realPath).exists():
+            if not _usd_call(layer.Save, force=True) and not Path(layer.realPath).exists():
                 raise InputFileError("USD could not write the layer", path=path, fix="check disk space")
-            os.replace(layer.realPath, path)
+            publish(layer.realPath, path, force)
         else:
-            if not layer.Export(str(tmp)):
-                raise InputFileError("USD could not write the layer", path=path, fix="check permissions")
-            os.replace(tmp, path)
+            if not _usd_call(layer.Export, str(tmp)):
+                raise InputFileError("USD could not write the layer", path=path,
+                                     fix="check the folder is writable and the disk has space")
+            publish(tmp, path, force)
     finally:
-        if tmp.exists():
+        if tmp is not None and tmp.exists():
             tmp.unlink()
     cached = Sdf.Layer.Find(str(path))
     if cached is not None:
         cached.Reload(force=True)
     return path
+
+
+def _usd_call(fn, *args, **kwargs):
+    """Call a USD save/export; a ``Tf.ErrorException`` (disk full, permission) becomes an OSError-like
+    failure return (False) so the caller reports it in one line."""
+    try:
+        return fn(*args, **kwargs)
+    except Exception as exc:  # pxr.Tf.ErrorException: USD's own text
+        if type(exc).__name__ == "ErrorException":
+            return False
+        raise
 
 
 def _relative_asset_path(target: Path, start_dir: Path) -> str:
@@ -432,7 +442,7 @@ def _apply_provenance_schema(stage, roots, prov: dict):
 
     for root in roots:
         prim = stage.OverridePrim(root)
-        prim.ApplyAPI(schemas.PROVENANCE_API)
+        schemas.apply_api(prim, schemas.PROVENANCE_API)
         values = {
             "version": prov["version"], "command": str(prov.get("command", "")),
             "method": str(prov.get("method", "")),
@@ -443,9 +453,7 @@ def _apply_provenance_schema(stage, roots, prov: dict):
             if key in prov:
                 values[key] = float(prov[key])
         for key, value in values.items():
-            attr = prim.GetAttribute(f"usdface:provenance:{key}")
-            if attr:
-                attr.Set(value)
+            schemas.schema_attribute(prim, f"usdface:provenance:{key}", schemas.PROVENANCE_API).Set(value)
 
 
 def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: dict | None = None,
@@ -525,7 +533,7 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
                            "write_layer": time.perf_counter() - start}
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
-        atomic_save(layer, out_path)
+        atomic_save(layer, out_path, force)
     finally:
         if work.exists():
             work.unlink()

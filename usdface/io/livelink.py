@@ -86,7 +86,9 @@ def read_livelink_take(path, timecode_rate: float = 60.0) -> LiveLinkTake:
     CaptureError (NaN/inf weights, the same shape under two spellings), naming the file and the line. Weights
     outside [0, 1] are clipped with a warning (real takes have ``EyeLookIn*`` up to ~1.06).
     """
-    path = Path(path)
+    from .usd_open import require_file
+
+    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
@@ -100,6 +102,10 @@ def read_livelink_take(path, timecode_rate: float = 60.0) -> LiveLinkTake:
         raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path,
                              fix="pass the .csv exported by Live Link Face")
     header = [c.strip() for c in rows[0]]
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:
+        raise InputFileError(f"duplicated column(s) in the header: {', '.join(twice)}", path=path,
+                             fix="keep one column per name (the CSV was edited or merged); export it again")
     body = rows[1:]
     if not body:
         raise InputFileError("the CSV has a header but no frames", path=path, fix="record a take first")
@@ -218,4 +224,4 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     for f, code in enumerate(codes):
         row = [repr(float(x)) for x in weights[f]] + [repr(float(c[f])) for c in cols]
         writer.writerow([code, count] + row)
-    return write_text_atomic(path, buf.getvalue())
+    return write_text_atomic(path, buf.getvalue(), force=True)

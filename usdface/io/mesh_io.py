@@ -233,4 +233,4 @@ def write_obj(path, points, triangles) -> Path:
         raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
     text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
     text += "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
-    return write_text_atomic(path, text)
+    return write_text_atomic(path, text, force=True)

@@ -52,8 +52,8 @@ class Take:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        self.weights = np.asarray(self.weights, dtype=np.float64)
-        self.times = np.asarray(self.times, dtype=np.float64)
+        self.weights = np.array(self.weights, dtype=np.float64)
+        self.times = np.array(self.times, dtype=np.float64)
         self.names = [str(n) for n in self.names]
 
     @property
@@ -156,15 +156,10 @@ def read_take_usd(path) -> Take:
 
     from .usd_anim import read_skel_animation
     from .usd_capture import _points, _template, _triangles
+    from .usd_open import open_usd_stage
 
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError("take not found", path=path, fix="check the path")
-    try:
-        stage = Usd.Stage.Open(str(path))
-    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
-        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
-                             fix="check that the file is a valid USD layer") from None
+    stage = open_usd_stage(path, "take", "pass a USD take (e.g. written by 'usdface anim import')")
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     frames = root.GetChild("Frames") if root.GetChild("Frames") else None
     if frames is None or not UsdGeom.Mesh(frames):
@@ -172,8 +167,13 @@ def read_take_usd(path) -> Take:
         frames = max(meshes, key=lambda p: UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples(), default=None)
     codes = UsdGeom.Mesh(frames).GetPointsAttr().GetTimeSamples() if frames else []
     if len(codes) < 2:
-        raise CaptureError("no mesh with time-sampled points", path=path, prim=root.GetPath(),
-                           fix="a take needs a Mesh whose points are time-sampled (one sample per frame)")
+        weights_only = _weights_only_take(stage, path)
+        if weights_only is not None:
+            return weights_only
+        raise CaptureError("no mesh with time-sampled points and no SkelAnimation with time-sampled "
+                           "blendShapeWeights", path=path, prim=root.GetPath(),
+                           fix="a take needs a Mesh whose points are time-sampled (one sample per frame), or "
+                               "the weights as written by 'usdface anim import'")
     codes = np.array(codes, dtype=np.float64)
     triangles = _triangles(frames, path)
     points = np.stack([_points(frames, path, c) for c in codes.tolist()])
@@ -184,7 +184,7 @@ def read_take_usd(path) -> Take:
     meta: dict = {"frames_prim": str(frames.GetPath())}
     if w_attr and w_attr.GetNumTimeSamples():
         names = [str(n) for n in frames.GetAttribute("usdface:frames:names").Get() or []]
-        weights = np.stack([np.asarray(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        weights = np.stack([np.array(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
         meta["weights_source"] = str(w_attr.GetPath())
     else:
         anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
@@ -195,7 +195,7 @@ def read_take_usd(path) -> Take:
                                fix="author the phone's weights as a SkelAnimation in the take")
         names, _, anim_codes = read_skel_animation(anims[0])
         attr = UsdSkel.Animation(anims[0]).GetBlendShapeWeightsAttr()
-        weights = np.stack([np.asarray(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
+        weights = np.stack([np.array(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
         if not np.isin(codes, anim_codes).all():
             warnings.warn(f"{path}: weights time samples differ from the mesh's; USD interpolated them",
                           UserWarning, stacklevel=2)
@@ -232,6 +232,36 @@ def read_take_usd(path) -> Take:
                                template.deltas @ m.T, name="template")
     times = (codes - codes[0]) / stage.GetTimeCodesPerSecond()
     return Take(weights, names, times, points, triangles, neutral, template, str(path), meta)
+
+
+def _weights_only_take(stage, path) -> Take | None:
+    """The weights of the first SkelAnimation with time-sampled ``blendShapeWeights`` as a weights-only Take
+    (what ``usdface anim import`` writes), or None when the stage has none."""
+    from pxr import Usd, UsdSkel
+
+    from .usd_anim import read_skel_animation
+
+    anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
+             and UsdSkel.Animation(p).GetBlendShapeWeightsAttr().GetNumTimeSamples()]
+    if not anims:
+        return None
+    names, weights, codes = read_skel_animation(anims[0])
+    prim = anims[0].GetPath()
+    if not len(names) or weights.shape[1] != len(names):
+        raise CaptureError("the SkelAnimation has no blendShapes names for its weights", path=path, prim=prim,
+                           fix="author one blendShapes token per weight")
+    if not np.isfinite(weights).all():
+        raise CaptureError("weights contain NaN or infinite values", path=path, prim=prim,
+                           fix="repair the take's weights")
+    tcps = stage.GetTimeCodesPerSecond()
+    if not (np.isfinite(tcps) and tcps > 0):
+        raise CaptureError(f"invalid timeCodesPerSecond {tcps!r}", path=path,
+                           fix="set a positive timeCodesPerSecond (e.g. 60)")
+    names = _canonical(names, path, prim)
+    if weights.min() < 0 or weights.max() > 1:
+        weights = np.clip(weights, 0.0, 1.0)
+    times = (codes - codes[0]) / tcps
+    return Take(weights, names, times, source=str(path), metadata={"weights_source": str(prim)})
 
 
 # ----------------------------------------------------------------------------------------------- writing

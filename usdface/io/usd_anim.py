@@ -25,7 +25,7 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
     """
     from pxr import Sdf, UsdSkel, Vt
 
-    weights = np.asarray(weights, dtype=np.float64)
+    weights = np.array(weights, dtype=np.float64)
     names = [str(n) for n in names]
     if weights.ndim != 2 or weights.shape[1] != len(names):
         raise CaptureError(f"weights must be [frames, {len(names)}], got {weights.shape}", prim=prim_path,
@@ -34,7 +34,7 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
         raise CaptureError("weights contain NaN or infinite values", prim=prim_path,
                            fix="repair the weights before authoring the animation")
     codes = (np.arange(len(weights), dtype=np.float64) if times is None
-             else np.round(np.asarray(times, dtype=np.float64) * float(time_codes_per_second), 9))
+             else np.round(np.array(times, dtype=np.float64) * float(time_codes_per_second), 9))
     anim = UsdSkel.Animation.Define(stage, Sdf.Path(str(prim_path)))
     anim.CreateBlendShapesAttr(Vt.TokenArray(names))
     attr = anim.CreateBlendShapeWeightsAttr()
@@ -59,10 +59,10 @@ def read_skel_animation(prim) -> tuple[list[str], np.ndarray, np.ndarray]:
     codes = np.array(attr.GetTimeSamples(), dtype=np.float64)
     if len(codes) == 0:
         value = attr.Get()
-        rows = [np.asarray(value, dtype=np.float64)] if value is not None else []
+        rows = [np.array(value, dtype=np.float64)] if value is not None else []
         codes = np.zeros(len(rows))
     else:
-        rows = [np.asarray(attr.Get(c), dtype=np.float64) for c in codes.tolist()]
+        rows = [np.array(attr.Get(c), dtype=np.float64) for c in codes.tolist()]
     bad = [i for i, r in enumerate(rows) if r.shape != (len(names),)]
     if bad:
         raise CaptureError(f"blendShapeWeights at time code {codes[bad[0]]} has {rows[bad[0]].size} values "
@@ -98,11 +98,11 @@ def write_animation_usd(path, names, weights, times=None, time_codes_per_second:
                                  time_codes_per_second, times=times)
     stage.SetDefaultPrim(anim.GetPrim())
     codes = (np.arange(len(weights), dtype=np.float64) if times is None
-             else np.round(np.asarray(times, dtype=np.float64) * float(time_codes_per_second), 9))
+             else np.round(np.array(times, dtype=np.float64) * float(time_codes_per_second), 9))
     for name, values in (curves or {}).items():
         attr = anim.GetPrim().CreateAttribute(f"usdface:curves:{Tf.MakeValidIdentifier(name)}",
                                               Sdf.ValueTypeNames.Double, custom=True)
-        for code, v in zip(codes.tolist(), np.asarray(values, dtype=np.float64).tolist(), strict=True):
+        for code, v in zip(codes.tolist(), np.array(values, dtype=np.float64).tolist(), strict=True):
             attr.Set(v, code)
     if layer_data:
         stage.GetRootLayer().customLayerData = {"usdface": dict(layer_data)}

@@ -54,11 +54,11 @@ def _check_output(path: Path, force: bool) -> None:
     check_output_path(path, force)
 
 
-def _save(stage, path: Path) -> None:
+def _save(stage, path: Path, force: bool = False) -> None:
     """Write the stage's root layer to ``path`` atomically (temp file in the same folder + rename)."""
     from .layers import atomic_save
 
-    atomic_save(stage.GetRootLayer(), path)
+    atomic_save(stage.GetRootLayer(), path, force)
 
 
 def _topology(mesh, triangles) -> None:
@@ -109,7 +109,7 @@ def _capture_stage(capture: Capture, time_codes_per_second: float, exact: bool):
     stage.SetDefaultPrim(root)
     fr, names = capture.frames, list(capture.names)
     counts = {r: int(sum(x == r for x in fr.role)) for r in ROLES}
-    root.ApplyAPI(schemas.CAPTURE_API)
+    schemas.apply_api(root, schemas.CAPTURE_API)
     meta = capture.metadata or {}
     for attr, type_, value in (
             ("usdface:capture:device", Sdf.ValueTypeNames.String, str(meta.get("device", ""))),
@@ -168,7 +168,7 @@ def author_template(stage, prim_path: str, tpl: FaceRig, weights, time_codes, ti
     skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
     tcps = float(time_codes_per_second)
     anim = author_skel_animation(stage, f"{prim_path}/Skel/Anim", tpl.names, weights, tcps,
-                                 times=np.asarray(time_codes, dtype=np.float64) / tcps)
+                                 times=np.array(time_codes, dtype=np.float64) / tcps)
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
     mesh = UsdGeom.Mesh.Define(stage, f"{prim_path}/Mesh")
     _topology(mesh, tpl.triangles)
@@ -204,7 +204,7 @@ def author_frames(stage, prim_path: str, triangles, points, weights, names, time
     prim.CreateAttribute("usdface:frames:names", Sdf.ValueTypeNames.TokenArray, custom=True).Set(
         Vt.TokenArray(list(names)))
     w_attr = prim.CreateAttribute("usdface:frames:weights", Sdf.ValueTypeNames.DoubleArray, custom=True)
-    for f, code in enumerate(np.asarray(time_codes, dtype=np.float64).tolist()):
+    for f, code in enumerate(np.array(time_codes, dtype=np.float64).tolist()):
         _set_points(frames, points[f], code, exact)
         w_attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(weights[f], dtype=np.float64)), code)
     return frames
@@ -237,7 +237,7 @@ def write_capture_usd(capture: Capture, path, force: bool = False, *,
         raise GeometryError("frames and neutral have different vertex counts", path=path,
                             fix="every frame must share the neutral's topology")
     stage = _capture_stage(capture, time_codes_per_second, exact)
-    _save(stage, path)
+    _save(stage, path, force)
     return path
 
 
@@ -251,11 +251,11 @@ def _points(prim, path, time=None) -> np.ndarray:
     if value is None or len(value) == 0:
         raise GeometryError("mesh has no points", path=path, prim=prim.GetPath(),
                             fix="re-create the capture with 'usdface capture import'")
-    p32 = np.asarray(value, dtype=np.float32)
+    p32 = np.array(value, dtype=np.float32)
     twin = prim.GetAttribute(_EXACT)
     exact = twin.Get(t) if twin else None
     if exact is not None and len(exact) == len(p32):
-        p64 = np.asarray(exact, dtype=np.float64)
+        p64 = np.array(exact, dtype=np.float64)
         if np.array_equal(p64.astype(np.float32), p32):
             return _finite(p64, path, prim)
         warnings.warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
@@ -274,8 +274,8 @@ def _triangles(prim, path) -> np.ndarray:
     from pxr import UsdGeom
 
     mesh = UsdGeom.Mesh(prim)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.array(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
     if counts.size == 0 or counts.min() < 3 or counts.sum() != idx.size:
         raise GeometryError("invalid or empty faces (faceVertexCounts/faceVertexIndices)", path=path,
                             prim=prim.GetPath(), fix="re-create the capture with 'usdface capture import'")
@@ -315,16 +315,16 @@ def _template(stage, root, path, triangles, n) -> FaceRig:
             raise CaptureError("blend shape target not found", path=path, prim=target,
                                fix="re-create the capture with 'usdface capture import'")
         bs = UsdSkel.BlendShape(shape)
-        off32 = np.asarray(bs.GetOffsetsAttr().Get() or [], dtype=np.float32)
+        off32 = np.array(bs.GetOffsetsAttr().Get() or [], dtype=np.float32)
         twin = shape.GetAttribute(_EXACT_OFFSETS)
         exact = twin.Get() if twin else None
         off = off32.astype(np.float64)
         if exact is not None and len(exact) == len(off32):
-            e = np.asarray(exact, dtype=np.float64)
+            e = np.array(exact, dtype=np.float64)
             if np.array_equal(e.astype(np.float32), off32):
                 off = e
         pi = bs.GetPointIndicesAttr().Get()
-        idx = np.arange(n) if not pi else np.asarray(pi, dtype=np.int64)
+        idx = np.arange(n) if not pi else np.array(pi, dtype=np.int64)
         if len(idx) != len(off) or (len(idx) and (idx.min() < 0 or idx.max() >= n)):
             raise CaptureError("offsets/pointIndices do not match the mesh", path=path, prim=target,
                                fix="author one offset per point index, indices within the mesh")
@@ -339,20 +339,12 @@ def read_capture_usd(path) -> Capture:
     InputFileError (missing/unreadable), CaptureError (layout: missing prims, inconsistent arrays) or
     GeometryError (NaN/inf, vertex counts), naming file and prim.
     """
-    from pxr import Sdf, Usd, UsdGeom
+    from pxr import UsdGeom
+
+    from .usd_open import open_usd_stage
 
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError("capture file not found", path=path, fix="check the path")
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(path))
-        stage = Usd.Stage.Open(layer) if layer else None
-    except Exception as exc:  # pxr raises Tf.ErrorException with USD's own text
-        raise InputFileError(f"USD cannot open the file ({str(exc).strip().splitlines()[-1]})", path=path,
-                             fix="check that the file is a valid USD layer") from None
-    if stage is None:
-        raise InputFileError("USD cannot open the file", path=path,
-                             fix="check that the file is a valid USD layer")
+    stage = open_usd_stage(path, "capture file", "pass a capture .usda written by 'usdface capture import'")
     root = stage.GetDefaultPrim() or stage.GetPrimAtPath(CAPTURE_PRIM)
     if not root or not root.GetChild("Frames"):
         raise CaptureError("not a usdface capture (no /Capture with Neutral, Template, Frames)", path=path,
@@ -399,7 +391,7 @@ def read_capture_usd(path) -> Capture:
         if w is None or len(w) != len(names):
             raise CaptureError(f"frame {f}: weights missing or of the wrong length", path=path,
                                prim=fprim.GetPath(), fix="author usdface:frames:weights, one value per name")
-        weights.append(_finite(np.asarray(w, dtype=np.float64), path, fprim))
+        weights.append(_finite(np.array(w, dtype=np.float64), path, fprim))
     if any(p.shape != neutral.shape for p in points):
         raise GeometryError("a frame's vertex count differs from the neutral's", path=path,
                             prim=fprim.GetPath(), fix="every frame must share the neutral's topology")

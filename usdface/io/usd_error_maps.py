@@ -57,4 +57,4 @@ def write_error_maps_usd(path, triangles: np.ndarray, maps: dict, *, spacing: fl
                                                     UsdGeom.Tokens.vertex).Set(
                 Vt.FloatArray.FromNumpy(np.asarray(err, dtype=np.float32)))
             UsdGeom.XformCommonAPI(mesh).SetTranslate(Gf.Vec3d(col * spacing, -row * spacing, 0.0))
-    return atomic_save(stage.GetRootLayer(), path)
+    return atomic_save(stage.GetRootLayer(), path, force)

@@ -56,7 +56,7 @@ def _author_heat(stage, avatar: Avatar, heat: dict, vmax: float | None):
 
     for key, values in heat.items():
         rig = _rig(avatar, key)
-        values = np.asarray(values, dtype=np.float64).ravel()
+        values = np.array(values, dtype=np.float64).ravel()
         if values.shape[0] != rig.n_vertices:
             raise RigError(f"heat map for {key!r} has {values.shape[0]} values, the mesh {rig.n_vertices}",
                            path=avatar.file, prim=rig.source.prim, fix="give one value per mesh point")
@@ -77,7 +77,7 @@ def _author_landmarks(stage, avatar: Avatar, landmarks: dict):
         if not hasattr(layout, "vertices") or not hasattr(layout, "coverage"):
             raise RigError(f"landmarks for {key!r} must be a LandmarkLayout (usdface.compute_landmarks)",
                            path=avatar.file, prim=rig.source.prim, fix="pass the layout object, not indices")
-        vertices = np.asarray(layout.vertices, dtype=np.int64)
+        vertices = np.array(layout.vertices, dtype=np.int64)
         if vertices.size and (vertices.min() < 0 or vertices.max() >= rig.n_vertices):
             raise RigError(f"landmark index out of range [0, {rig.n_vertices}) for {key!r}", path=avatar.file,
                            prim=rig.source.prim, fix="use a layout computed on this mesh")
@@ -89,7 +89,7 @@ def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=N
 
     from .usd_anim import author_skel_animation
 
-    weights = np.asarray(weights, dtype=np.float64)
+    weights = np.array(weights, dtype=np.float64)
     names = [str(n) for n in names]
     column = {n: i for i, n in enumerate(names)}
     by_skeleton: dict[str, list[str]] = {}
@@ -172,7 +172,7 @@ def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
         rel = prim.GetRelationship("usdface:landmarks:mesh")
         targets = rel.GetTargets() if rel else []
         key = str(targets[0]) if targets else str(prim.GetPath())
-        found[key] = np.asarray(attr.Get(), dtype=np.int64)
+        found[key] = np.array(attr.Get(), dtype=np.int64)
     return found
 
 
@@ -195,7 +195,7 @@ def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
     heat = {}
     for key, deltas in offsets.items():
         rig = _rig(avatar, key)
-        diff = np.asarray(deltas, dtype=np.float64) - rig.deltas
+        diff = np.array(deltas, dtype=np.float64) - rig.deltas
         heat[rig.source.prim] = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if len(diff) else \
             np.zeros(rig.n_vertices)
     return heat

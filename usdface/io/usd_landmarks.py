@@ -46,7 +46,7 @@ def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> Non
         raise RigError("mesh prim not found in the composed stage", path=rig.source.file,
                        prim=rig.source.prim, fix="pass the avatar the layout was computed on")
     mesh = UsdGeom.Mesh(mesh_prim)
-    vertices = np.asarray(layout.vertices, dtype=np.int64)
+    vertices = np.array(layout.vertices, dtype=np.int64)
     pv = UsdGeom.PrimvarsAPI(mesh_prim)
     pv.CreatePrimvar("usdface:landmarks", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.constant).Set(
         Vt.IntArray([int(v) for v in vertices]))
@@ -54,7 +54,7 @@ def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> Non
     pv.CreatePrimvar("usdface:landmarkCoverage", Sdf.ValueTypeNames.StringArray, UsdGeom.Tokens.constant).Set(
         Vt.StringArray(coverage))
 
-    local = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)[vertices]
+    local = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)[vertices]
     xf = mesh.GetLocalTransformation()
     points = UsdGeom.Points.Define(stage, points_prim_path(rig.source.prim))
     points.AddTransformOp().Set(xf)
@@ -64,17 +64,17 @@ def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> Non
     width = LANDMARK_WIDTH / (meters_per_unit * scale)
     points.CreateWidthsAttr(Vt.FloatArray([float(width)] * len(vertices)))
     points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
-    colours = _ROUND_COLOURS[(np.asarray(layout.rounds, dtype=np.int64) - 1) % len(_ROUND_COLOURS)]
+    colours = _ROUND_COLOURS[(np.array(layout.rounds, dtype=np.int64) - 1) % len(_ROUND_COLOURS)]
     points.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(
         Vt.Vec3fArray.FromNumpy(colours.astype(np.float32)))
     ppv = UsdGeom.PrimvarsAPI(points)
     ppv.CreatePrimvar("usdface:vertexIndex", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
         Vt.IntArray([int(v) for v in vertices]))
     ppv.CreatePrimvar("usdface:shapeCount", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
-        Vt.IntArray([int(n) for n in np.asarray(layout.coverage).sum(axis=1)]))
+        Vt.IntArray([int(n) for n in np.array(layout.coverage).sum(axis=1)]))
 
     prim = points.GetPrim()
-    prim.ApplyAPI(schemas.LANDMARKS_API)
+    schemas.apply_api(prim, schemas.LANDMARKS_API)
     status = layout.status if layout.status in _SOLVER_TOKENS else "notSolved"
     values = {"epsilon": float(layout.epsilon), "alpha": float(layout.alpha), "solverStatus": status,
               "optimalityGap": float(layout.gap), "count": int(layout.count),

@@ -14,9 +14,11 @@ What is read, the UsdSkel way:
 * meshes without blend shapes under a SkelRoot (eyes, teeth, props): points and fan triangles only, placed
   the same way, in ``Avatar.metadata["static_meshes"] = {prim path: (points[n,3] internal metres,
   triangles[t,3])}`` (the eyelid repair needs the eyeballs); an unusable one is skipped with a note;
-* names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names`, the BlendShape prim
-  name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); every inexact mapping is
-  recorded in ``Avatar.name_report``.
+* names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names` (a studio name map
+  first, then the spellings studios ship: ``eye_blink_left``, ``Eye_Blink_L``, Character Creator names, DCC
+  suffixes and node prefixes such as ``eyeBlinkLeft.001`` / ``blendShape1.eyeBlinkLeft``), the BlendShape
+  prim name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); how every channel was
+  mapped is recorded in ``Avatar.name_report``; of two channels meaning one shape the better mapping keeps it.
 
 Every malformed input raises a :class:`usdface.errors.UsdFaceError` subclass naming the file, the prim and the
 fix; nothing is half-read.
@@ -113,21 +115,9 @@ def snap_transform(matrix, tolerance: float = SNAP_TOLERANCE) -> tuple[np.ndarra
 
 
 def _open_stage(path: Path):
-    from pxr import Tf, Usd
+    from .usd_open import open_usd_stage
 
-    if not path.exists():
-        raise InputFileError("file not found", path=path, fix="check the path")
-    if not path.is_file():
-        raise InputFileError("not a file", path=path, fix="give a .usd, .usda or .usdc file")
-    try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unreadable"
-        raise InputFileError(f"USD cannot open it: {first}", path=path,
-                             fix="check the file is a valid USD layer (usda/usdc/usd)") from None
-    if stage is None:
-        raise InputFileError("USD cannot open it", path=path, fix="check the file is a valid USD layer")
-    return stage
+    return open_usd_stage(path, "avatar", "pass the avatar's .usd/.usda/.usdc file")
 
 
 def read_stage_metadata(stage, path) -> dict:
@@ -161,7 +151,7 @@ def _array(value, dtype, width, what, path, prim) -> np.ndarray:
     if value is None:
         return np.zeros((0, width) if width else 0, dtype=dtype)
     try:
-        arr = np.asarray(value, dtype=dtype)
+        arr = np.array(value, dtype=dtype)
         if width:
             arr = arr.reshape(-1, width)
         else:
@@ -252,7 +242,7 @@ def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None
 
 
 def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
-               skinning=None, snapped: list | None = None) -> tuple:
+               skinning=None, snapped: list | None = None, name_map: dict | None = None) -> tuple:
     """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
     prim) when joint influences bind it to a skeleton."""
     from pxr import UsdSkel
@@ -280,12 +270,13 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
     neutral = points @ linear.T + to_internal[:3, 3]
 
     shape_prims = [stage.GetPrimAtPath(t) for t in targets]
-    match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims])
-    if match.duplicates:
+    match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims],
+                              name_map=name_map, resolve=True)
+    if match.duplicates:  # only when a channel left unmapped is itself named as another channel's shape
         clash = [t for t, c in zip(tokens, match.canonical, strict=True) if c in match.duplicates]
         raise RigError(f"shape names map to the same ARKit shape twice: {', '.join(match.duplicates)} "
                        f"(tokens {', '.join(clash)})", path=path, prim=prim,
-                       fix="rename or remove the duplicate blend shapes")
+                       fix="rename or remove the duplicate blend shapes, or fix the --name-map")
 
     deltas = np.zeros((len(tokens), n, 3))
     point_indices, normal_offsets, inbetweens = [], [], {}
@@ -345,7 +336,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                 dense[idx] = ib_offsets @ linear.T
             ib_normals = ib.GetNormalOffsets() if ib.GetNormalOffsetsAttr() else None
             ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), dense,
-                                 None if ib_normals is None else np.asarray(ib_normals, dtype=np.float32)))
+                                 None if ib_normals is None else np.array(ib_normals, dtype=np.float32)))
         if ibs:
             ws = [b.weight for b in ibs]
             if len(set(ws)) != len(ws):
@@ -359,7 +350,8 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
         face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
     report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
-              "missing": list(match.missing)}
+              "missing": list(match.missing), "conflicts": [list(x) for x in match.conflicts],
+              "channels": [list(x) for x in match.channels]}
     return rig, report
 
 
@@ -380,7 +372,7 @@ def _has_blend_shapes(prim) -> bool:
                 or binding.GetBlendShapeTargetsRel().GetTargets())
 
 
-def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
+def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
 
     Parameters
@@ -388,6 +380,9 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     path : .usd/.usda/.usdc file (the root layer of the avatar).
     snap_transforms : remove float32 export noise from the meshes' world transforms (:func:`snap_transform`;
         a DCC round trip then reads to the same numbers as the original); each snapped mesh gets a note.
+    name_map : {studio channel: ARKit name} dict, or a JSON / CSV file of them
+        (:func:`usdface.io.name_map.read_name_map`), validated before the file is opened; tried before the
+        built-in spellings (:func:`usdface.arkit.match_name`).
 
     Returns
     -------
@@ -396,7 +391,10 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings,
     ``static_meshes``: {prim path: (points[n,3] metres Y up, triangles[t,3])} for every mesh under a SkelRoot
     without blend shapes) and
-    ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing}).
+    ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing, conflicts:
+    [[token, canonical, kept token]], channels: [[token, canonical or None, how]] for every channel}). When
+    two channels of a mesh mean the same ARKit shape the better mapping keeps it (exact, name map,
+    spelling, ...: :func:`usdface.arkit.match_names`) and the other keeps its own name, with a note.
 
     Raises
     ------
@@ -405,10 +403,13 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     """
     from pxr import Tf
 
+    from .name_map import read_name_map
+
+    name_map = read_name_map(name_map)
     path = Path(path)
     stage = _open_stage(path)
     try:
-        return _read_avatar_stage(stage, path, snap_transforms)
+        return _read_avatar_stage(stage, path, snap_transforms, name_map)
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
@@ -416,9 +417,63 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
-def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True) -> Avatar:
+_NOT_AVATAR = {
+    "capture": ("a usdface capture (written by 'usdface capture import/select'), not an avatar",
+                "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
+    "take": ("a usdface take (a recording), not an avatar",
+             "pass the avatar's .usd file; takes go to 'capture select' or 'personalize --take'"),
+}
+
+
+def _refuse_non_avatar(stage, path: Path) -> None:
+    """A capture or take passed where an avatar is expected: say what the file is (its template rig would
+    otherwise be read as a face)."""
+    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
+    kind = str(data.get("format", "")) if hasattr(data, "get") else ""
+    root = stage.GetDefaultPrim()
+    if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
+        kind = "capture" if root.GetChild("Neutral") else "take"
+    if kind in _NOT_AVATAR:
+        what, fix = _NOT_AVATAR[kind]
+        raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
+
+
+def usdface_output_provenance(path) -> dict | None:
+    """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
+    neither a capture nor a take), else None. Reads only the root layer's header-level data."""
+    from pxr import Sdf
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # unreadable: the reader that follows says so
+        return None
+    data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
+    if not isinstance(data, dict) or data.get("format") in _NOT_AVATAR or not data.get("inputs"):
+        return None
+    return data
+
+
+def refuse_usdface_output(path) -> None:
+    """Personalizing a usdface output layer again would personalize the personalized shapes (the layer's
+    default variant): refuse it, naming the original avatar recorded in the layer's provenance.
+
+    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised."""
+    if not isinstance(path, str | Path):
+        return
+    data = usdface_output_provenance(path)
+    if data is None:
+        return
+    original = Path(path).parent / str(data["inputs"][0])
+    raise RigError("this is a usdface output layer (already personalized); personalizing it again would "
+                   "stack the personalization on the personalized shapes", path=path,
+                   fix=f"pass the original avatar ({original})")
+
+
+def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
+                       name_map: dict | None = None) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
+    _refuse_non_avatar(stage, path)
     meta = read_stage_metadata(stage, path)
     roots = _skel_roots(stage)
     if not roots:
@@ -471,9 +526,18 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True) -> Avata
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
         prim, skel_root, skeleton, anim, skinning = found[key]
         rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning,
-                                snapped)
+                                snapped, name_map)
         meshes.append(rig)
         report[key] = entry
+        for token, canonical, kept in entry["conflicts"]:
+            notes.append(f"{key}: channel {token!r} also means {canonical!r}, which {kept!r} maps to better; "
+                         f"{token!r} is kept under its own name and not personalized")
+    if name_map:
+        forms = {t for m in meshes for t in m.source.channel_tokens}
+        forms |= {bare for t in list(forms) for bare, _ in arkit.undecorated(t)}
+        unused = [k for k in name_map if k not in forms]
+        if unused:
+            notes.append(f"name map entries that match no channel: {', '.join(unused)}")
     static_meshes = {}
     for key in sorted(static, key=lambda k: order.get(k, len(order))):
         prim, skinning = static[key]

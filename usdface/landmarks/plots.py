@@ -19,7 +19,8 @@ def _pyplot():
     return plt
 
 
-def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout") -> None:
+def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout",
+                force: bool = False) -> None:
     """Front view (X right, Y up) of ``neutral[n, 3]`` with the layout's landmarks coloured by multi-cover
     round and labelled with the number of shapes each represents -> PNG at ``path``."""
     plt = _pyplot()
@@ -44,11 +45,11 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()
-    fig.savefig(str(path), dpi=120)
-    plt.close(fig)
+    _save(fig, path, force)
 
 
-def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layouts") -> None:
+def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layouts",
+                    force: bool = False) -> None:
     """Reconstruction RMSE (mm) vs number of landmarks, one curve per method (matplotlib, Agg) -> ``path``."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -80,5 +81,17 @@ def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layou
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(str(path), dpi=120)
-    plt.close(fig)
+    _save(fig, path, force)
+
+
+def _save(fig, path, force: bool) -> None:
+    """Save ``fig`` as PNG atomically (never over an existing file unless ``force``) and close it."""
+    import matplotlib.pyplot as plt
+
+    from ..io.atomic import atomic_file
+
+    try:
+        with atomic_file(path, force=force) as tmp:
+            fig.savefig(str(tmp), dpi=120, format="png")
+    finally:
+        plt.close(fig)

@@ -63,16 +63,16 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, **
     return report
 
 
-def write_report_json(report: dict, path) -> Path:
+def write_report_json(report: dict, path, force: bool = False) -> Path:
     """Write the report (without the error maps) as JSON; atomic (temp + rename)."""
     from ..io.atomic import write_text_atomic
     from ..io.layers import json_default
 
     data = {k: v for k, v in report.items() if not k.startswith("_")}
-    return write_text_atomic(path, json.dumps(data, indent=1, default=json_default))
+    return write_text_atomic(path, json.dumps(data, indent=1, default=json_default), force=force)
 
 
-def plot_errors(report: dict, path) -> Path:
+def plot_errors(report: dict, path, force: bool = False) -> Path:
     """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
     (bottom), methods side by side. Atomic write (temp + rename)."""
     import matplotlib
@@ -97,7 +97,7 @@ def plot_errors(report: dict, path) -> Path:
     axes[1].set_xticks(x, [str(i + 1) for i in range(len(labels))])
     axes[1].set_xlabel("test expression")
     fig.tight_layout()
-    with atomic_file(path) as tmp:
+    with atomic_file(path, force=force) as tmp:
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return Path(path)

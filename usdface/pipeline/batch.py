@@ -105,7 +105,7 @@ class BatchReport:
         """Write the report as JSON, atomically (temp file + rename)."""
         from ..io.atomic import write_text_atomic
 
-        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2))
+        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2), force=True)
 
 
 # ----------------------------------------------------------------------------------------------- manifest

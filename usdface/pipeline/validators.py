@@ -25,9 +25,6 @@ the same rules in the ``BaseRuleChecker`` style of older pipelines and NVIDIA's 
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
-
 from .check import ERROR, INFO, RULES, WARNING, Issue, check, sort_issues
 
 #: The keyword under which usdface's validators are registered.
@@ -139,37 +136,25 @@ def merge_issues(ours: list[Issue], pixar: list[Issue]) -> list[Issue]:
     return sort_issues(kept)
 
 
-def validate_stage(stage, pixar: bool = True, rules=None) -> list[Issue]:
-    """Face-rig rules (and, with ``pixar=True``, OpenUSD's own validators) on an open stage, merged."""
-    ours = check(stage, rules)
+def validate_stage(stage, pixar: bool = True, rules=None, name_map=None) -> list[Issue]:
+    """Face-rig rules (and, with ``pixar=True``, OpenUSD's own validators) on an open stage, merged;
+    ``name_map``: the studio's {channel: ARKit name} map (:func:`usdface.io.name_map.read_name_map`)."""
+    ours = check(stage, rules, name_map=name_map)
     return merge_issues(ours, run_pixar_validators(stage)) if pixar else ours
 
 
 def open_stage(path):
-    """Open a USD file for checking; raises :class:`usdface.errors.InputFileError` naming the file."""
-    from ..errors import InputFileError
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError("file not found", path=path, fix="pass an existing .usd/.usda/.usdc file")
-    from pxr import Tf, Usd
-
+    """Open a USD file for checking; raises :class:`usdface.errors.InputFileError` naming the file (missing,
+    a folder or pipe, unreadable, composition errors such as a missing or cyclic sublayer)."""
     import usdface.io  # noqa: F401  (registers usdface's schemas before the first stage)
+    from usdface.io.usd_open import open_usd_stage
 
-    try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        detail = re.findall(r"'([^']+)'", str(exc))
-        raise InputFileError(f"USD cannot open it ({detail[-1] if detail else 'not a USD layer'})", path=path,
-                             fix="check that it is a valid USD file (usdcat FILE)") from None
-    if stage is None:
-        raise InputFileError("USD cannot open it", path=path, fix="check that it is a valid USD file")
-    return stage
+    return open_usd_stage(path, "file", "pass an existing .usd/.usda/.usdc file")
 
 
-def validate_file(path, pixar: bool = True, rules=None) -> list[Issue]:
+def validate_file(path, pixar: bool = True, rules=None, name_map=None) -> list[Issue]:
     """Open ``path`` and run :func:`validate_stage`. The file is never modified."""
-    return validate_stage(open_stage(path), pixar=pixar, rules=rules)
+    return validate_stage(open_stage(path), pixar=pixar, rules=rules, name_map=name_map)
 
 
 class FaceRigRuleChecker:

@@ -1,0 +1,145 @@
+"""The documented command chains, run as subprocesses exactly as README.md and docs/ show them (issue 11).
+
+Each test checks the exit status, that every output opens in USD and passes ``usdface check``, that no
+temporary file is left and that the inputs are byte-identical afterwards. The sample set is made once per
+session with ``usdface sample DIR --folder``; the ``shared`` tests use the bench cases when ../shared exists.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from wfutil import assert_valid_usd, digest, no_temp_left, run
+
+
+@pytest.fixture(scope="module")
+def take_files(sample_set, tmp_path_factory):
+    """A continuous take of the sample person (``take.usda``, USD take with template) and its weights as a
+    Live Link Face CSV (``take.csv``), as a phone app would record them."""
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.take import write_take_usd
+    from usdface.io.usd_capture import read_capture_usd
+    from usdface.model import FaceRig
+    from usdface.sample.take import make_take
+
+    truth = np.load(sample_set / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(sample_set / "capture.usda")
+    names = [str(n) for n in truth["names"]]
+    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
+                        seed=3)
+    d = tmp_path_factory.mktemp("take")
+    write_take_usd(take, d / "take.usda")
+    write_livelink_csv(d / "take.csv", take.names, take.weights[:40], take.times[:40])
+    return d
+
+
+@pytest.mark.parametrize("ext,exact", [(".usda", True), (".usdc", False)])
+def test_capture_import_then_personalize(sample_set, tmp_path, ext, exact):
+    """README/docs: ``usdface capture import DIR -o capture.usda`` then ``usdface personalize AVATAR
+    capture.usda -o OUT`` (the flow that crashed with 'array is not writeable')."""
+    before = digest(sample_set / "avatar.usda", sample_set / "capture")
+    cap = f"capture{ext}"
+    run("capture", "import", sample_set / "capture", "-o", cap, *([] if exact else ["--no-exact"]),
+        cwd=tmp_path)
+    assert_valid_usd(tmp_path / cap, checked=False)
+    run("personalize", sample_set / "avatar.usda", cap, "-o", "person.usda", "-q", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usda")
+    run("check", "person.usda", cwd=tmp_path)
+    assert digest(sample_set / "avatar.usda", sample_set / "capture") == before
+    no_temp_left(tmp_path)
+
+
+def test_retarget_and_fit_from_imported_capture(sample_set, tmp_path):
+    before = digest(sample_set / "avatar.usda", sample_set / "capture.usda")
+    run("capture", "import", sample_set / "capture", "-o", "capture.usdc", cwd=tmp_path)
+    run("retarget", sample_set / "avatar.usda", "capture.usdc", "-o", "map.json", cwd=tmp_path)
+    data = json.loads((tmp_path / "map.json").read_text())  # strict JSON: no NaN literals
+    assert data
+    run("fit", "capture.usdc", "-o", "rig.usda", "--method", "dt", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "rig.usda", checked=False)
+    assert digest(sample_set / "avatar.usda", sample_set / "capture.usda") == before
+    no_temp_left(tmp_path)
+
+
+def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
+    """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
+    before = digest(take_files, sample_set / "avatar.usda")
+    proc = run("capture", "select", take_files / "take.usda", "-o", "capture.usda", cwd=tmp_path)
+    assert "wrote capture.usda" in proc.stdout
+    run("personalize", sample_set / "avatar.usda", "capture.usda", "-o", "person.usda", "-q", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usda")
+    assert digest(take_files, sample_set / "avatar.usda") == before
+    no_temp_left(tmp_path)
+
+
+def test_anim_import_then_personalize_take(sample_set, take_files, tmp_path):
+    """docs/pipeline.md: ``usdface anim import take.csv -o take.usda``, then ``personalize --take take.usda``
+    (refused before: 'no mesh with time-sampled points')."""
+    before = digest(take_files, sample_set / "avatar.usda", sample_set / "capture.usda")
+    run("anim", "import", take_files / "take.csv", "-o", "take.usda", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "take.usda", checked=False)
+    run("personalize", sample_set / "avatar.usda", sample_set / "capture.usda", "-o", "person.usda", "-q",
+        "--take", "take.usda", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usda")
+    assert digest(take_files, sample_set / "avatar.usda", sample_set / "capture.usda") == before
+    no_temp_left(tmp_path)
+
+
+def test_landmarks_check_render_inspect(sample_set, tmp_path):
+    """docs/landmarks.md, docs/pipeline.md: landmarks -o/--json, check, inspect, render."""
+    before = digest(sample_set / "avatar.usda")
+    run("landmarks", sample_set / "avatar.usda", "-o", "landmarks.usda", "--json", "layout.json",
+        cwd=tmp_path)
+    assert_valid_usd(tmp_path / "landmarks.usda", checked=False)
+    assert json.loads((tmp_path / "layout.json").read_text())
+    run("check", sample_set / "avatar.usda", cwd=tmp_path)
+    report = json.loads(run("check", sample_set / "avatar.usda", "--json", cwd=tmp_path).stdout)
+    assert report["ok"]
+    run("inspect", sample_set / "avatar.usda", cwd=tmp_path)
+    run("render", sample_set / "avatar.usda", "-o", "shapes.png", "--shapes", "jawOpen,eyeBlinkLeft",
+        cwd=tmp_path)
+    assert (tmp_path / "shapes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert digest(sample_set / "avatar.usda") == before
+    no_temp_left(tmp_path)
+
+
+def test_batch_with_manifest(sample_set, tmp_path):
+    """docs/pipeline.md#batch: a CSV manifest with relative paths; rerun skips the finished item."""
+    run("capture", "import", sample_set / "capture", "-o", "capture.usda", cwd=tmp_path)
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output\n{sample_set / 'avatar.usda'},capture.usda,"
+                                         "out/anna.usda\n")
+    before = digest(sample_set / "avatar.usda", tmp_path / "capture.usda")
+    run("batch", "people.csv", "-j", "1", cwd=tmp_path)
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [i["status"] for i in report["items"]] == ["done"], report
+    assert_valid_usd(tmp_path / "out" / "anna.usda")
+    assert digest(sample_set / "avatar.usda", tmp_path / "capture.usda") == before
+    no_temp_left(tmp_path)
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("case", ["dev1", "dev2", "dev3"])
+def test_bench_capture_import_then_personalize(bench_case, tmp_path, case):
+    d = bench_case / case
+    before = digest(d / "avatar.usdc", d / "capture")
+    run("capture", "import", d / "capture", "-o", "capture.usdc", cwd=tmp_path)
+    run("personalize", d / "avatar.usdc", "capture.usdc", "-o", "person.usdc", "-q", "--method", "dt",
+        cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usdc")
+    assert digest(d / "avatar.usdc", d / "capture") == before
+    no_temp_left(tmp_path)
+
+
+@pytest.mark.shared
+def test_bench_blender_export(bench_case, tmp_path):
+    d = bench_case / "dev1"
+    before = digest(d / "avatar_blender.usdc")
+    run("inspect", d / "avatar_blender.usdc", cwd=tmp_path)
+    run("personalize", d / "avatar_blender.usdc", d / "capture", "-o", "person.usda", "-q", "--method", "dt",
+        cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usda")
+    assert digest(d / "avatar_blender.usdc") == before
+    no_temp_left(tmp_path)

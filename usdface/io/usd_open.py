@@ -1,0 +1,101 @@
+"""Opening an input file the one way every reader does: the path is checked first (missing, a folder, a named
+pipe or device, a newline in the name), USD's own warnings while composing are kept off the terminal, and a
+composition problem (missing or cyclic sublayer, dangling reference, unreadable crate) is raised once as an
+:class:`~usdface.errors.InputFileError` naming the file and the layer at fault."""
+
+from __future__ import annotations
+
+import os
+import stat
+import sys
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+from ..errors import InputFileError
+
+__all__ = ["require_file", "open_usd_stage", "quiet_stderr"]
+
+
+def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
+    """``path`` as a Path if it is an existing regular file; else InputFileError saying what it is instead."""
+    path = Path(path)
+    if "\n" in str(path) or "\r" in str(path):
+        raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
+                             fix="rename the file without line breaks")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise InputFileError(f"{what} not found", path=path, fix=fix) from None
+    except OSError as exc:
+        raise InputFileError(f"{what} cannot be read ({exc.strerror})", path=path, fix=fix) from None
+    if stat.S_ISDIR(mode):
+        raise InputFileError(f"{what} is a folder, not a file", path=path, fix=fix)
+    if not stat.S_ISREG(mode):
+        kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+        raise InputFileError(f"{what} is {kind}, not a regular file", path=path, fix=fix)
+    return path
+
+
+@contextmanager
+def quiet_stderr():
+    """Collect what C++ code (USD's diagnostics) writes to file descriptor 2 while the block runs; yields a
+    list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected."""
+    out: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield out
+        return
+    with tempfile.TemporaryFile() as buf:
+        os.dup2(buf.fileno(), 2)
+        try:
+            yield out
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            buf.seek(0)
+            out.append(buf.read().decode("utf-8", "replace"))
+
+
+def _fix_for(error_type: str) -> str:
+    return {
+        "ErrorInvalidSublayerPath": "restore the missing sublayer or remove it from subLayers",
+        "ErrorSublayerCycle": "remove the sublayer that points back to a layer above it",
+        "ErrorUnresolvedPrimPath": "fix the reference/payload prim path or restore the referenced prim",
+        "ErrorInvalidAssetPath": "restore the referenced file or fix the asset path",
+        "ErrorInvalidExternalTargetPath": "fix the relationship/connection target",
+    }.get(error_type, "repair the layer (usdcat FILE shows what USD reads)")
+
+
+def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.usda/.usdc file",
+                   composition_errors: bool = True):
+    """Open ``path`` as a ``Usd.Stage`` (LoadAll) after :func:`require_file`; USD's own warnings are kept
+    quiet. Raises InputFileError naming the file for an unreadable layer and, with ``composition_errors``,
+    for the first composition error (missing/cyclic sublayer, dangling reference)."""
+    from pxr import Usd
+
+    path = require_file(path, what, fix)
+    try:
+        with quiet_stderr() as said:
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+    except Exception as exc:  # pxr.Tf.ErrorException with USD's text
+        if type(exc).__name__ != "ErrorException":
+            raise
+        lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+        detail = lines[-1] if lines else "unreadable"
+        raise InputFileError(f"USD cannot open it ({detail[:200]})", path=path,
+                             fix="check that it is a valid USD layer (usdcat FILE)") from None
+    if stage is None:
+        text = " ".join((said[0] if said else "").split())[:200]
+        raise InputFileError(f"USD cannot open it{f' ({text})' if text else ''}", path=path,
+                             fix="check that it is a valid USD layer (usdcat FILE)")
+    if composition_errors:
+        errors = stage.GetCompositionErrors()
+        if errors:
+            first = errors[0]
+            more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+            raise InputFileError(f"composition error: {str(first).strip()}{more}", path=path,
+                                 fix=_fix_for(type(first).__name__))
+    return stage
