@@ -105,6 +105,8 @@ def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
         api.write_review(personalized_sample, tmp_path / "r.png")
     with pytest.raises(InputFileError, match="not a usdface layer"):
         api.write_review(samples / "avatar.usda", tmp_path / "plain.html", fit_errors=False)
+    with pytest.raises(InputFileError, match="capture not found"):
+        api.write_review(personalized_sample, tmp_path / "c.html", capture=tmp_path / "nope.usda")
     with pytest.raises(InputFileError, match="take not found"):
         api.write_review(personalized_sample, tmp_path / "t.html", take=tmp_path / "missing.csv")
 
@@ -185,3 +187,94 @@ def test_review_page_in_headless_chromium(review, tmp_path):
         img = ROOT / "docs" / "img"
         _browse(review, "preset=jaw%20open", screenshot=img / "review-split.png")
         _browse(review, "variant=personalized&preset=smile&heat=rms", screenshot=img / "review-heat.png")
+
+
+def test_pyblish_extractor_attaches_the_review_page(personalized_sample, samples):
+    pyblish = pytest.importorskip("pyblish.api")
+    from usdface.pipeline.pyblish_plugins import ExtractUsdFaceReview
+
+    context = pyblish.Context()
+    instance = context.create_instance("person", family="usdface.avatar")
+    instance.data.update({"usdfaceLayer": str(personalized_sample), "review": False})
+    ExtractUsdFaceReview().process(instance)
+    assert "usdfaceReview" not in instance.data  # only when asked for
+    instance.data.update({"review": True, "capture": str(samples / "capture.usda"), "force": True})
+    ExtractUsdFaceReview().process(instance)
+    page = Path(instance.data["usdfaceReview"])
+    assert page.name == "person.review.html" and page.parent == personalized_sample.parent
+    assert {"name": "review", "ext": "html", "files": page.name, "stagingDir": str(page.parent)} in \
+        instance.data["representations"]
+    assert "usdfaceStart(" in page.read_text()
+
+
+def test_landmarks_are_embedded_lifted_off_the_surface():
+    from usdface.review.page import LANDMARK_LIFT_M, ReviewData, ReviewMesh, _payload
+
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    tris = np.array([[0, 1, 2], [1, 3, 2]])  # facing +Z
+    deltas = np.zeros((1, 4, 3))
+    deltas[0, 3] = [0.0, 0.0, 0.01]
+    mesh = ReviewMesh("Head", points, tris, ["jawOpen"], deltas, deltas * 2.0, landmarks=np.array([0, 3]))
+    data = _payload(ReviewData("t", [mesh]))
+    m = data["meshes"][0]
+    assert m["landmarks"] == [0, 3]
+    np.testing.assert_allclose(np.reshape(m["lmOffset"], (2, 3)), [[0, 0, LANDMARK_LIFT_M]] * 2, atol=1e-9)
+    np.testing.assert_allclose(decode_sparse_deltas(m["change"], 4), deltas, atol=1e-6)  # 2x - 1x generic
+
+
+def test_review_page_interaction_with_playwright(review):
+    """Drive the page like a user (playwright with the system Chromium; skipped without either): play
+    advances the sequence, dragging one scene orbits both, a preset sets its sliders."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    exe = _chromium()
+    errors: list[str] = []
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox", "--disable-gpu",
+                                                               "--enable-unsafe-swiftshader"])
+        try:
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"{review.as_uri()}?seq=1")  # the take: 90 frames over 3 s
+            page.wait_for_function("document.getElementById('usdface-status').textContent !== 'loading'",
+                                   timeout=120000)
+            assert page.text_content("#usdface-status") == "ok"
+            frame = "document.querySelector('#usdface-seq ~ input[type=range]').value"
+            page.click("#usdface-play")
+            page.wait_for_function(f"+{frame} > 0", timeout=30000)
+            page.click("#usdface-play")  # pause
+            page.mouse.move(420, 330)
+            page.mouse.down()
+            page.mouse.move(520, 360, steps=5)
+            page.mouse.up()
+            eyes = "(() => { const l = document.getElementById('usdface-plot').layout; " \
+                   "return JSON.stringify([l.scene.camera.eye, l.scene2.camera.eye]); })()"
+            synced = "return e[0].x !== 0 && JSON.stringify(e[0]) === JSON.stringify(e[1]); })()"
+            page.wait_for_function(f"(() => {{ const e = JSON.parse({eyes}); " + synced, timeout=30000)
+            page.click("button[data-preset='blink']")
+            values = page.evaluate("['eyeBlinkLeft', 'eyeBlinkRight', 'jawOpen'].map(n => "
+                                   "+document.querySelector(`input[data-shape=${n}]`).value)")
+            assert values == [1.0, 1.0, 0.0]
+        finally:
+            browser.close()
+    assert not errors, errors
+
+
+def test_review_cli_and_personalize_review(personalized_sample, samples, tmp_path, capsys):
+    from usdface import cli
+
+    out = tmp_path / "page.html"
+    assert cli.main(["review", str(personalized_sample), "-o", str(out), "--no-fit-errors"]) == 0
+    assert "wrote" in capsys.readouterr().out and out.stat().st_size > 1e6
+    assert cli.main(["review", str(personalized_sample), "-o", str(out)]) == 2  # exists, no --force
+    assert "--force" in capsys.readouterr().err
+
+    layer = tmp_path / "p" / "person.usda"
+    args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(layer),
+            "--review", "-q"]
+    assert cli.main(args) == 0
+    page = layer.with_name("person.review.html")
+    assert page.is_file() and f"review page: {page}" in capsys.readouterr().out
+    layer.unlink()
+    assert cli.main(args) == 2  # the page exists: refused before any work, no layer written
+    assert not layer.exists()

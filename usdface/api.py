@@ -529,23 +529,25 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     ``fit_errors`` the generic template and the refitted personalized shapes are scored on its test
     expressions (eq. 5). Returns the path written (atomically; an existing file needs ``force``, checked
     before any work)."""
-    from .errors import InputFileError, OutputExistsError
-    from .io.atomic import write_text_atomic
+    from .errors import InputFileError
+    from .io.atomic import check_output_file, write_text_atomic
     from .review.collect import collect_review
     from .review.page import build_review_html
 
-    out = Path(out_path)
-    if out.suffix.lower() not in (".html", ".htm"):
-        raise InputFileError("the review page must be an .html file", path=out,
-                             fix="name it e.g. review.html")
-    if out.is_dir():
-        raise InputFileError("output path is a directory", path=out, fix="give a file name, e.g. review.html")
-    if out.exists() and not force:
-        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
+                            inputs=[layer_path])
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
-    data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
-    return write_text_atomic(out, build_review_html(data), force=force)
+    if isinstance(capture, str | Path) and not Path(capture).exists():
+        raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
+    from . import progress
+
+    with progress.steps("review", 2) as advance:
+        data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+        advance("page")
+        page = build_review_html(data)
+        advance()
+    return write_text_atomic(out, page, force=force)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
@@ -565,7 +567,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
     usdface layer) exports as authored with ``variant="personalized"``."""
     from .errors import UsdFaceError
-    from .io.atomic import check_output_dir, replace_dir_atomically
+    from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
     from .io.flatten import VARIANTS, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
     from .io.layers import check_output_path
@@ -578,17 +580,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         raise UsdFaceError("nothing to export",
                            fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
     if gltf:
-        from .errors import InputFileError, OutputExistsError
-
-        if Path(gltf).suffix.lower() not in GLTF_EXTENSIONS:
-            raise InputFileError("a glTF output must end in .glb or .gltf", path=gltf,
-                                 fix="name it e.g. out.glb")
-        if Path(gltf).exists() and not force:
-            raise OutputExistsError("output exists", path=gltf, fix="pass --force to replace it")
+        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
     if obj_dir:
         check_output_dir(obj_dir, force)
     if flatten:
-        check_output_path(flatten, force)
+        check_output_path(flatten, force, inputs=[layer_path])
     done: dict[str, Path] = {}
     if gltf or obj_dir:
         avatar = read_avatar_variant(layer_path, variant)

@@ -75,13 +75,11 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     from .layers import atomic_save
 
     _check_variant(variant)
-    out = check_output_path(out_path, force).absolute()
     src = Path(path).absolute()
-    if out.exists() and src.exists() and out.samefile(src):
-        raise InputFileError("output would overwrite the input", path=out, fix="choose another output file")
+    out = check_output_path(out_path, force, inputs=[src]).absolute()
     stage = variant_stage(src, variant)
     flat = stage.Flatten()
     data = dict(flat.customLayerData)
     data["usdfaceFlatten"] = {"source": src.name, "variant": variant}
     flat.customLayerData = data
-    return atomic_save(flat, out)
+    return atomic_save(flat, out, force)

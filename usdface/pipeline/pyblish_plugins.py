@@ -13,6 +13,8 @@ makes them from ``context.data["usdfaceItems"]`` (a list of dicts) or ``context.
 * :class:`ValidateUsdFaceCapture` (validator): the capture reads (names, topology, weights).
 * :class:`ExtractUsdFacePersonalized` (extractor): runs ``personalize``, re-checks the written layer, and
   records it in ``instance.data["files"]`` and ``instance.data["representations"]`` (the OpenPype/AYON shape).
+* :class:`ExtractUsdFaceReview` (extractor, with ``instance.data["review"]``): the self-contained review page
+  (``usdface review``) beside the layer, attached as a ``review`` representation.
 
 Example::
 
@@ -151,8 +153,33 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         self.log.info("wrote %s", written)
 
 
+class ExtractUsdFaceReview(_pyblish.InstancePlugin):
+    """With ``instance.data["review"]`` true: the review page of the written layer (``usdface review``),
+    ``<layer>.review.html`` beside it, attached to the publish as a ``review`` representation."""
+
+    order = _pyblish.ExtractorOrder + 0.1
+    families = [FAMILY]
+    label = "Extract review page (usdface review)"
+
+    def process(self, instance):
+        if not instance.data.get("review") or not instance.data.get("usdfaceLayer"):
+            return
+        from ..api import write_review
+        from ..commands.review import default_output
+
+        layer = Path(instance.data["usdfaceLayer"])
+        page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
+                            take=instance.data.get("take"), force=bool(instance.data.get("force", False)))
+        instance.data["usdfaceReview"] = str(page)
+        instance.data.setdefault("files", []).append(str(page))
+        instance.data.setdefault("representations", []).append(
+            {"name": "review", "ext": "html", "files": page.name, "stagingDir": str(page.parent)})
+        self.log.info("wrote %s", page)
+
+
 #: The plugins, in publish order.
-PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ExtractUsdFacePersonalized)
+PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ExtractUsdFacePersonalized,
+           ExtractUsdFaceReview)
 
 
 def register() -> None:

@@ -199,7 +199,12 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
             kept = [n for n, t in zip(names, top, strict=True) if t == 0.0]
             rows.append((f"{name}: shapes changed", f"{int((top > 0).sum())} of {len(names)} "
                          f"(largest change {top.max() * 1000:.2f} mm)"))
-            if kept:
+            if len(kept) == len(names):
+                why = (" (approximation=generic: meshes and regions the capture does not see keep the "
+                       "avatar's generic shapes)"
+                       if (prov.get("parameters") or {}).get("approximation") == "generic" else "")
+                rows.append((f"{name}: left generic", f"all {len(names)} shapes{why}"))
+            elif kept:
                 rows.append((f"{name}: left generic", ", ".join(kept)))
         tables.append(("what changed", rows))
     for w in prov.get("warnings") or []:

@@ -124,6 +124,18 @@ def decode_sparse_deltas(encoded: list[dict], n: int) -> np.ndarray:
     return out
 
 
+#: Landmark markers float this far (metres) off the surface along the neutral's normal, so the depth test
+#: does not cut them in half.
+LANDMARK_LIFT_M = 0.0015
+
+
+def _landmark_offsets(m: ReviewMesh) -> np.ndarray:
+    from ..mesh import vertex_normals
+
+    idx = np.asarray(m.landmarks, dtype=np.int64)
+    return vertex_normals(m.neutral, m.triangles)[idx] * LANDMARK_LIFT_M
+
+
 def _payload(data: ReviewData) -> dict:
     names = list(dict.fromkeys(n for m in data.meshes for n in m.names))
     meshes = []
@@ -139,6 +151,7 @@ def _payload(data: ReviewData) -> dict:
             mesh["heat"] = _b64(np.asarray(m.heat, dtype=np.float32) * np.float32(1000.0))  # mm
         if m.landmarks is not None and len(m.landmarks):
             mesh["landmarks"] = [int(i) for i in m.landmarks]
+            mesh["lmOffset"] = [round(float(v), 6) for v in _landmark_offsets(m).ravel()]
         meshes.append(mesh)
     sequences = []
     for s in data.sequences:
@@ -173,7 +186,8 @@ def _figure(data: ReviewData):
                 scene=scene, colorbar={"title": {"text": "mm"}, "len": 0.6, "x": 1.0}))
         for m in data.meshes:
             if m.landmarks is not None and len(m.landmarks):
-                q = np.asarray(m.neutral, dtype=np.float32)[np.asarray(m.landmarks, dtype=np.int64)]
+                lm = np.asarray(m.landmarks, dtype=np.int64)
+                q = (m.neutral[lm] + _landmark_offsets(m)).astype(np.float32)
                 fig.add_trace(go.Scatter3d(x=q[:, 0], y=q[:, 1], z=q[:, 2], mode="markers", scene=scene,
                                            name=f"{m.name} landmarks ({variant})", hoverinfo="skip",
                                            marker={"size": 2.5, "color": "#2f7df6"}))

@@ -4,6 +4,7 @@
 //   variant=generic|personalized           one variant, full width (default: both side by side)
 //   heat=rms|pose   heat map on the personalized face      landmarks=0|1
 //   seq=<index> & frame=<n>                show a frame of a sequence (0: test expressions, 1: take)
+//   bench=<n>                              time n pose updates, logged to the console (benchmarks/)
 function usdfaceStart(plotId) {
   "use strict";
   var D = window.USDFACE_DATA, gd = document.getElementById(plotId);
@@ -60,9 +61,11 @@ function usdfaceStart(plotId) {
     for (var i = 0; i < n; i++) { x[i] = p[3 * i]; y[i] = p[3 * i + 1]; z[i] = p[3 * i + 2]; }
     return [x, y, z];
   }
-  function pick(p, idx) {
+  function pick(p, idx, lift) {  // landmark positions, lifted off the surface (lift: [m*3] metres)
     var x = [], y = [], z = [];
-    idx.forEach(function (i) { x.push(p[3 * i]); y.push(p[3 * i + 1]); z.push(p[3 * i + 2]); });
+    idx.forEach(function (i, j) {
+      x.push(p[3 * i] + lift[3 * j]); y.push(p[3 * i + 1] + lift[3 * j + 1]); z.push(p[3 * i + 2] + lift[3 * j + 2]);
+    });
     return [x, y, z];
   }
 
@@ -72,7 +75,12 @@ function usdfaceStart(plotId) {
     busy = true;
     var X = [], Y = [], Z = [], I = [], C = [], S = [], CMAX = [];
     var left = state.variant === "split" ? "generic" : state.variant;
+    var full = state.heatChanged || !state.drawn;
     D.meshes.forEach(function (m) {
+      // a mesh whose shapes' weights did not change keeps its traces (eyes, an unused mouth)
+      var key = left + "|" + state.heat + "|" + m.shapes.map(function (k) { return weights[k]; }).join(",");
+      if (!full && key === m.key) return;
+      m.key = key;
       var pl = pose(m, left), pr = pose(m, "personalized"), a = split(pl), b = split(pr);
       X.push(a[0], b[0]); Y.push(a[1], b[1]); Z.push(a[2], b[2]); I.push(m.trace[0], m.trace[1]);
       var heat = null, top = 1;
@@ -90,11 +98,13 @@ function usdfaceStart(plotId) {
       var lh = left === "personalized" ? heat : null;  // heat is on whichever scene shows personalized
       C.push(lh, heat); S.push(!!lh && m.role === "skin", !!heat && m.role === "skin"); CMAX.push(top, top);
       if (m.landmarks) {
-        var la = pick(pl, m.landmarks), lb = pick(pr, m.landmarks);
+        var la = pick(pl, m.landmarks, m.lmOffset), lb = pick(pr, m.landmarks, m.lmOffset);
         X.push(la[0], lb[0]); Y.push(la[1], lb[1]); Z.push(la[2], lb[2]); I.push(m.lmTrace[0], m.lmTrace[1]);
         C.push(undefined, undefined); S.push(undefined, undefined); CMAX.push(undefined, undefined);
       }
     });
+    state.drawn = true;
+    if (!I.length) { busy = false; return Promise.resolve(); }
     var upd = {x: X, y: Y, z: Z};
     if (state.heatChanged) {
       upd.intensity = C; upd.showscale = S; upd.cmin = C.map(function (c) { return c === undefined ? undefined : 0; });
@@ -197,10 +207,12 @@ function usdfaceStart(plotId) {
   var syncing = false;
   gd.on("plotly_relayout", function (ev) {
     if (syncing) return;
-    var cam = ev["scene.camera"] ? ["scene2.camera", ev["scene.camera"]] : ev["scene2.camera"] ? ["scene.camera", ev["scene2.camera"]] : null;
-    if (!cam) return;
+    var keys = Object.keys(ev || {}), from = null;
+    if (keys.some(function (k) { return k.indexOf("scene2.camera") === 0; })) from = "scene2";
+    else if (keys.some(function (k) { return k.indexOf("scene.camera") === 0; })) from = "scene";
+    if (!from) return;
     syncing = true;
-    var lay = {}; lay[cam[0]] = cam[1];
+    var lay = {}; lay[(from === "scene" ? "scene2" : "scene") + ".camera"] = JSON.parse(JSON.stringify(gd.layout[from].camera));
     Plotly.relayout(gd, lay).then(function () { syncing = false; }, function () { syncing = false; });
   });
 
@@ -248,6 +260,26 @@ function usdfaceStart(plotId) {
     if (seqParam !== null && D.sequences[+seqParam]) { seqSel.value = seqParam; seqSlider.max = D.sequences[+seqParam].frames - 1; return showFrame(+seqParam, +(params.get("frame") || 0)); }
     return update();
   });
+  var benchN = +(params.get("bench") || 0);  // bench=N: N pose updates (blend + restyle + draw), timed
+  if (benchN > 0) {
+    chain = chain.then(function () {
+      var k = D.names.indexOf("jawOpen") >= 0 ? D.names.indexOf("jawOpen") : 0, i = 0, up = [], fr = [];
+      function median(a) { a.sort(function (x, y) { return x - y; }); return a[a.length >> 1].toFixed(1); }
+      function step() {
+        if (i >= benchN) {  // update = blend + Plotly.restyle; frame = until the next animation frame
+          console.log("usdface-bench: " + median(up) + " ms/update " + median(fr) + " ms/frame");
+          return Promise.resolve();
+        }
+        weights[k] = (i++ % 10) / 10;
+        var t0 = performance.now();
+        return update().then(function () {
+          up.push(performance.now() - t0);
+          return new Promise(function (done) { requestAnimationFrame(function () { done(); }); });
+        }).then(function () { fr.push(performance.now() - t0); return step(); });
+      }
+      return step();
+    });
+  }
   chain.then(function () {
     if (!status.textContent.startsWith("error")) status.textContent = "ok";
     console.log("usdface-status: " + status.textContent);  // for headless tests reading the console
