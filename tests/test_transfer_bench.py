@@ -180,8 +180,15 @@ def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
             d = _signed_distance(pts, tris, (head.neutral[near][None] + out[:, near]).reshape(-1, 3))[0]
             gen = _signed_distance(pts, tris, (head.neutral[near][None] + head.deltas[idx][:, near])
                                    .reshape(-1, 3))[0]
-            allowed = np.minimum(np.minimum(d0, 0.0)[None].repeat(len(idx), 0).ravel(), gen)
-            assert (d >= allowed - 6e-5).all()  # nothing deeper in the eyeball than neutral/generic allow
-    # the repair is local: the rest of the result is unchanged
+            deep = np.minimum(np.minimum(d0, 0.0)[None].repeat(len(idx), 0).ravel(), gen)
+            # issue 10: a lid the generic shape keeps off the eyeball keeps min(its clearance, 0.3 mm); one it
+            # tucks in goes no deeper than the generic shape / the neutral
+            required = np.where(gen > 0, np.minimum(gen, 3e-4), deep)
+            moved = (np.linalg.norm(out[:, near] - head.deltas[idx][:, near], axis=-1) > 1e-9).ravel()
+            assert (d[moved] >= required[moved] - 6e-5).all()
+    # the repair is local: only vertices near the eyes change
     changed = np.linalg.norm(res.offsets[key] - ref.offsets[key], axis=-1) > 1e-12
-    assert 0 < changed.sum() < 500
+    assert changed.sum() > 0
+    centers = [e.center for e in find_eyeballs({k: v[0] for k, v in eyes.items()})]
+    dist = np.min([np.linalg.norm(head.neutral - c, axis=1) for c in centers], axis=0)
+    assert dist[np.nonzero(changed)[1]].max() < 0.03

@@ -102,28 +102,33 @@ def _signed_distance(points, triangles, queries):
     return surf.signed_distance(queries), surf.closest_points(queries)
 
 
-def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5):
-    """Move eyelid vertices that a shape pushes into an eyeball back onto its surface.
+def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5,
+                   clearance: float = 3e-4):
+    """Keep eyelid vertices off the eyeballs: a personalized shape may not bring a vertex closer to (or deeper
+    into) an eyeball than the avatar's own generic shape does.
 
     Parameters
     ----------
     neutral : ``[n,3]`` face-mesh neutral (metres).
     shapes : ``[J,n,3]`` personalized offsets.
     eyeballs : list of ``(Eyeball, points[m,3], triangles[t,3])``, closed eye meshes.
-    reference : ``[J,n,3]`` the avatar's generic offsets (optional). A vertex may sit as deep inside the
-        eyeball as it does in the neutral or in the artist's generic shape (eye sockets and lids that tuck
-        behind the eyeball are modelled that way on purpose); only deeper penetration, by more than
-        ``tolerance`` m, is an artifact of the personalization.
+    reference : ``[J,n,3]`` the avatar's generic offsets (optional).
+    clearance : metres. Where the generic shape keeps a vertex outside the eyeball, the personalized one keeps
+        at least ``min(generic clearance, clearance)`` (0.3 mm: a closed lid shows no eyeball through it).
+        Where the generic shape (or the neutral) tucks a vertex inside on purpose (eye sockets, lids modelled
+        behind the eyeball), it may go as deep as the deeper of the two, no deeper. Without ``reference``
+        only penetration deeper than the neutral's is repaired.
 
-    A penetrating vertex moves to the closest point on the eyeball surface, pushed back to the allowed depth.
-    Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
+    A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
+    on the eye mesh to the bound. Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
 
-    The allowed depth is never positive, so only (shape, vertex) pairs inside the eye mesh can penetrate: the
-    distance queries are limited to those (bounding sphere, then Open3D's occupancy vote, the one that signs
-    its signed distance); one raycasting scene per eye.
+    Distance queries are limited to (shape, vertex) pairs within the eye's bounding sphere plus ``clearance``;
+    one raycasting scene per eye.
     """
     x0 = np.asarray(neutral, dtype=np.float64)
     out = np.array(shapes, dtype=np.float64, copy=True)
+    ref_all = None if reference is None else np.asarray(reference, dtype=np.float64)
+    margin = clearance if ref_all is not None else 0.0
     count = 0
     for eye, pts, tris in eyeballs:
         pts = np.asarray(pts, dtype=np.float64)
@@ -131,36 +136,52 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         near = np.flatnonzero(r0 < 1.5 * eye.radius)
         if near.size == 0:
             continue
-        # bounding sphere of the eye mesh (slightly enlarged for the float32 queries)
         center = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        bound = float(np.linalg.norm(pts - center, axis=1).max()) * (1.0 + 1e-6) + 1e-6
+        bound = float(np.linalg.norm(pts - center, axis=1).max()) * (1.0 + 1e-6) + 1e-6 + margin
         pos = x0[near][None] + out[:, near]                                  # [J,k,3]
         js, ks = np.nonzero(np.sum((pos - center) ** 2, axis=-1) <= bound ** 2)
         if js.size == 0:
             continue
         surf = _EyeSurface(pts, tris)
-        if tolerance >= 0:
+        if margin <= 0 and tolerance >= 0:
             inside = surf.inside(pos[js, ks])
             js, ks = js[inside], ks[inside]
+            if js.size == 0:
+                continue
+        if ref_all is not None:
+            # a vertex the personalization leaves where the generic shape has it is fine by definition
+            moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+            js, ks = js[moved], ks[moved]
             if js.size == 0:
                 continue
         verts = np.unique(ks)
         d0 = np.zeros(near.size)
         d0[verts] = surf.signed_distance(x0[near[verts]])
-        allowed = np.minimum(d0[ks], 0.0)
+        required = np.minimum(d0[ks], 0.0)
         q = pos[js, ks]
-        if reference is not None:
-            ref = x0[near[ks]] + np.asarray(reference)[js, near[ks]]
-            allowed = np.minimum(allowed, surf.signed_distance(ref))
+        if ref_all is not None:
+            d_ref = surf.signed_distance(x0[near[ks]] + ref_all[js, near[ks]])
+            required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
         d = surf.signed_distance(q)
-        bad = d < allowed - tolerance
+        bad = d < required - tolerance
         count += int(bad.sum())
         if not bad.any():
             continue
-        js, ks, q, d, allowed = js[bad], ks[bad], q[bad], d[bad], allowed[bad]
+        js, ks, q, d, required = js[bad], ks[bad], q[bad], d[bad], required[bad]
+        # first onto the bound along the line to the closest point, then - since a step off one part of a
+        # non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
+        # along which the distance to a star-shaped eye grows, until the bound holds
         closest = surf.closest_points(q)
-        # closest surface point, then back inside by the allowed depth along the inward direction
-        inward = (q - closest) / np.maximum(-d, 1e-300)[:, None]
-        target = closest + inward * (-allowed)[:, None]
-        out[js, near[ks]] = target - x0[near[ks]]
+        ok = np.abs(d) > 1e-9
+        radial = q - eye.center
+        radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
+        direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
+        q = closest + direction * required[:, None]
+        for _ in range(8):
+            d = surf.signed_distance(q)
+            short = d < required - 1e-6
+            if not short.any():
+                break
+            q[short] += radial[short] * (required[short] - d[short])[:, None]
+        out[js, near[ks]] = q - x0[near[ks]]
     return out, count
