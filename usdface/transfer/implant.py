@@ -23,7 +23,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from .motion_field import apply_field, extend_field, motion_weights, rotation_scale, smooth_field
+from .motion_field import (
+    FieldExtension,
+    _neighbourhood,
+    apply_field,
+    motion_weights,
+    rotation_scale,
+    smooth_field,
+)
+
+#: A vertex moves when some shape moves it by more than this fraction of the mesh's largest motion (float
+#: noise of a DCC export is not motion).
+MOVING_TOLERANCE = 1e-6
+#: Shapes handled at once in the field extension (bounds the memory to SHAPE_CHUNK x vertices x 9 doubles).
+SHAPE_CHUNK = 8
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "face_radius", "extend_personalization",
            "seam_ramp",
@@ -93,19 +106,53 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     """
     g = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
-    w = np.clip(np.asarray(face_weight, dtype=np.float64), 0.0, 1.0)
-    known = w >= 1.0 - 1e-9
+    w0 = np.clip(np.asarray(face_weight, dtype=np.float64), 0.0, 1.0)
     n_shapes, m = g.shape[:2]
-    phi, valid = rotation_scale(g, p)
-    mw = motion_weights(g) * valid * known[None]
-    phi = smooth_field(phi * known[None, :, None, None], mw, triangles, rings=rings)
-    flat = phi.transpose(1, 0, 2, 3).reshape(m, -1)
-    ext = extend_field(points, triangles, known, flat, length=length)
-    field = ext.reshape(m, n_shapes, 3, 3).transpose(1, 0, 2, 3)
-    outside = apply_field(g, field)
-    w = seam_ramp(points, w, band)
-    result = w[None, :, None] * p + (1.0 - w)[None, :, None] * outside
-    return result, field
+    # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
+    # motion, and so the result, is 0 whatever the field
+    mag = np.linalg.norm(g, axis=-1).max(axis=0)
+    domain = np.flatnonzero((mag > MOVING_TOLERANCE * max(float(mag.max()), 1e-300)) | (w0 > 0))
+    local = np.full(m, -1)
+    local[domain] = np.arange(domain.size)
+    tri = np.asarray(triangles)
+    sub_tri = local[tri[(local[tri] >= 0).all(axis=1)]]
+    x = np.asarray(points, dtype=np.float64)[domain]
+    known = w0[domain] >= 1.0 - 1e-9
+    ext = FieldExtension(x, sub_tri, known, length=length)
+    smoother = _neighbourhood(sub_tri, domain.size, rings)
+    field = np.zeros((n_shapes, domain.size, 3, 3), dtype=np.float32)
+    result = np.zeros_like(g)
+    w = seam_ramp(points, w0, band)[domain]
+    for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
+        js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
+        gd, pd = g[js][:, domain], p[js][:, domain]
+        k = gd.shape[0]
+        phi = np.zeros((k, domain.size, 3, 3))
+        valid = np.zeros((k, domain.size), dtype=bool)
+        phi[:, known], valid[:, known] = rotation_scale(gd[:, known], pd[:, known])   # measured where known
+        mw = motion_weights(gd) * valid
+        phi = smooth_field(phi, mw, sub_tri, rings=rings, neighbourhood=smoother)
+        flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
+        f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
+        field[js] = f
+        outside = apply_field(gd, f)
+        result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
+    return result, FieldOnMesh(np.asarray(points, dtype=np.float64)[domain], field)
+
+
+class FieldOnMesh:
+    """The person's field ``phi[J,d,3,3]`` (float32) at the vertices ``points[d,3]`` where it was computed."""
+
+    def __init__(self, points, phi):
+        self.points = points
+        self.phi = phi
+
+    def at(self, queries) -> np.ndarray:
+        """``phi[J,q,3,3]`` at the nearest field vertex of each query point ``[q,3]``."""
+        from scipy.spatial import cKDTree
+
+        _, nn = cKDTree(self.points).query(np.asarray(queries, dtype=np.float64))
+        return self.phi[:, nn].astype(np.float64)
 
 
 def is_rigid_part(points, deltas, *, tolerance: float = 0.1) -> bool:
@@ -124,20 +171,23 @@ def is_rigid_part(points, deltas, *, tolerance: float = 0.1) -> bool:
     return bool(res < tolerance)
 
 
-def follow_field(points, deltas, head_points, field, *, rigid: bool):
+def follow_field(points, deltas, field, *, rigid: bool):
     """Another mesh's shapes personalized by the head's field: ``deltas[J,k,3]`` on ``points[k,3]`` follow
-    ``field[J,m,3,3]`` sampled at the nearest head vertex (``head_points[m,3]``); a ``rigid`` part takes one
-    field per shape, the motion-weighted mean over its vertices, so it stays one body."""
-    from scipy.spatial import cKDTree
-
+    the field (:class:`FieldOnMesh`) at the nearest head vertex; a ``rigid`` part takes one field per shape,
+    the motion-weighted mean over its vertices, so it stays one body."""
     d = np.asarray(deltas, dtype=np.float64)
-    _, nn = cKDTree(np.asarray(head_points, dtype=np.float64)).query(np.asarray(points, dtype=np.float64))
-    phi = np.asarray(field)[:, nn]                                                        # [J,k,3,3]
+    moving = np.flatnonzero(np.linalg.norm(d, axis=-1).max(axis=0) > 0)
+    out = d.copy()
+    if moving.size == 0:
+        return out
+    phi = field.at(np.asarray(points, dtype=np.float64)[moving])                        # [J,k,3,3]
+    dm = d[:, moving]
     if rigid:
-        w = np.sum(d * d, axis=-1)                                                        # [J,k]
+        w = np.sum(dm * dm, axis=-1)                                                     # [J,k]
         mean = np.einsum("jk,jkab->jab", w, phi) / np.maximum(w.sum(axis=1), 1e-300)[:, None, None]
         phi = np.broadcast_to(mean[:, None], phi.shape)
-    return apply_field(d, phi)
+    out[:, moving] = apply_field(dm, phi)
+    return out
 
 
 def shape_confidence(personalization, excitation, noise_rms: float, *, moving=None) -> np.ndarray:

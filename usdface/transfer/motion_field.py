@@ -28,7 +28,8 @@ import scipy.sparse as sp
 from ..mesh import spd_lu, triangle_areas, vertex_adjacency
 from .surface import cotangent_laplacian
 
-__all__ = ["rotation_scale", "smooth_field", "extend_field", "apply_field", "motion_weights"]
+__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension",
+           "apply_field", "motion_weights"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -84,18 +85,51 @@ def _neighbourhood(triangles, n: int, rings: int) -> sp.csr_matrix:
     return out
 
 
-def smooth_field(phi, weights, triangles, *, rings: int = 2) -> np.ndarray:
+def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None) -> np.ndarray:
     """Motion-weighted local average of ``phi[J,m,3,3]`` over ``rings`` edge rings, weights ``[J,m]``
     (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves."""
     phi = np.asarray(phi, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     n_shapes, m = w.shape
-    s = _neighbourhood(triangles, m, rings)
+    s = _neighbourhood(triangles, m, rings) if neighbourhood is None else neighbourhood
     num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [m, J*9]
     den = s @ w.T                                                                                # [m, J]
     out = num.reshape(m, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
     return out.transpose(1, 0, 2).reshape(n_shapes, m, 3, 3)
+
+
+class FieldExtension:
+    """Screened harmonic extension on one mesh, factorized once: :meth:`extend` maps ``values[m,c]`` given on
+    ``known[m]`` to every vertex (see :func:`extend_field`)."""
+
+    def __init__(self, points, triangles, known, *, length: float | None):
+        x0 = np.asarray(points, dtype=np.float64)
+        tri = np.asarray(triangles)
+        self.known = np.asarray(known, dtype=bool)
+        self.n = len(x0)
+        self.free = np.flatnonzero(~self.known)
+        self.kidx = np.flatnonzero(self.known)
+        self._solve = None
+        if self.free.size == 0 or self.kidx.size == 0:
+            return
+        lap = cotangent_laplacian(x0, tri)
+        if length:
+            area = triangle_areas(x0, tri)
+            mass = np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(x0))
+            lap = (lap + sp.diags(mass / length ** 2)).tocsr()
+        a_ff = lap[self.free][:, self.free]
+        reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
+        self._a_fk = lap[self.free][:, self.kidx].tocsr()
+        self._solve = spd_lu((a_ff + reg * sp.eye(self.free.size)).tocsc()).solve
+
+    def extend(self, values) -> np.ndarray:
+        vals = np.asarray(values, dtype=np.float64)
+        out = np.zeros((self.n, vals.shape[1]))
+        out[self.known] = vals[self.known]
+        if self._solve is not None:
+            out[self.free] = self._solve(-(self._a_fk @ vals[self.kidx]))
+        return out
 
 
 def extend_field(points, triangles, known, values, *, length: float | None) -> np.ndarray:
@@ -104,28 +138,9 @@ def extend_field(points, triangles, known, values, *, length: float | None) -> n
     Minimises ``x^T (L + Mass / length^2) x`` over the unknown vertices with ``x = values`` on ``known``
     (cotangent Laplacian ``L``, lumped vertex areas): the known values fill holes surrounded by them (a mouth
     or eye socket) and fade to 0 over about ``length`` metres elsewhere; ``length=None`` is plain harmonic.
-    One sparse factorization for all ``c`` channels. Returns ``[m,c]``.
+    One sparse factorization for all ``c`` channels (:class:`FieldExtension`). Returns ``[m,c]``.
     """
-    x0 = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(triangles)
-    known = np.asarray(known, dtype=bool)
-    vals = np.asarray(values, dtype=np.float64)
-    out = np.zeros((len(x0), vals.shape[1]))
-    out[known] = vals[known]
-    free = np.flatnonzero(~known)
-    if free.size == 0 or not known.any():
-        return out
-    lap = cotangent_laplacian(x0, tri)
-    if length:
-        area = triangle_areas(x0, tri)
-        mass = np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(x0))
-        lap = (lap + sp.diags(mass / length ** 2)).tocsr()
-    kidx = np.flatnonzero(known)
-    a_ff = lap[free][:, free]
-    reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
-    rhs = -(lap[free][:, kidx] @ vals[kidx])
-    out[free] = spd_lu((a_ff + reg * sp.eye(free.size)).tocsc()).solve(rhs)
-    return out
+    return FieldExtension(points, triangles, known, length=length).extend(values)
 
 
 def apply_field(generic, phi) -> np.ndarray:

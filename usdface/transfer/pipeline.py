@@ -450,7 +450,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 if _is_eyeball(m):
                     other[_key(m)] = sub
                     continue
-                other[_key(m)] = follow_field(m.neutral, sub, face.neutral, pfield,
+                other[_key(m)] = follow_field(m.neutral, sub, pfield,
                                               rigid=is_rigid_part(m.neutral, sub))
             report["extension"] = {"length_m": length, "face_radius_m": radius}
         else:
