@@ -375,9 +375,16 @@ def test_batched_box_least_squares_matches_bvls():
         ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in rhs])
         assert converged.all() and ((w == 0.0) | (w == 1.0)).any()  # bounds really active
         np.testing.assert_allclose(w, ref, atol=1e-10)
-    # rank-deficient (fewer rows than shapes): solve_weights falls back to BVLS frame by frame
+    # rank-deficient (9 coordinates, 12 shapes): an optimum (BVLS's objective), of no larger norm than BVLS's
     d = rng.normal(size=(12, 3, 3))
-    b = rng.normal(size=(6, 3, 3))
+    b = rng.uniform(0.2, 0.8, (6, 12)) @ d.reshape(12, 9) + 0.3 * rng.normal(size=(6, 9))
     a = d.reshape(12, 9).T
-    ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in b.reshape(6, 9)])
-    np.testing.assert_array_equal(solve_weights(d, b), ref)
+    ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in b])
+    w = solve_weights(d, b.reshape(6, 3, 3))
+    assert ((w >= 0.0) & (w <= 1.0)).all()
+
+    def objective(x):
+        return ((x @ a.T - b) ** 2).sum(axis=1)
+
+    np.testing.assert_allclose(objective(w), objective(ref), rtol=1e-6, atol=1e-12)
+    assert (np.linalg.norm(w, axis=1) <= np.linalg.norm(ref, axis=1) + 1e-6).all()

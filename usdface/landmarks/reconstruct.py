@@ -37,18 +37,29 @@ def solve_weights(landmark_deltas: np.ndarray, offsets: np.ndarray, tikhonov: fl
         a = np.vstack([a, np.sqrt(tikhonov) * np.eye(k)])
         rhs = np.hstack([rhs, np.zeros((len(b), k))])
     lo, hi = bounds
-    # frames whose unconstrained least-squares solution is already inside the bounds are solved (convexity);
-    # with full column rank the rest are solved together (batched active set, :func:`box_least_squares`),
-    # else (several optima) and for any frame that does not converge, by scipy's BVLS one frame at a time
+    # frames whose unconstrained least-squares solution (the minimum-norm one) is already inside the bounds
+    # are solved (convexity); the rest are solved together (batched active set, :func:`box_least_squares`)
     out = np.linalg.lstsq(a, rhs.T, rcond=None)[0].T
     outside = np.flatnonzero(((out < lo) | (out > hi)).any(axis=1))
-    if outside.size and np.linalg.matrix_rank(a) == k:
-        gram = a.T @ a
-        out[outside], converged = box_least_squares(gram, rhs[outside] @ a, lo, hi, out[outside])
-        outside = outside[~converged]
-    for f in outside:
+    if outside.size == 0:
+        return out
+    gram = a.T @ a
+    if np.linalg.matrix_rank(a) < k:
+        # fewer independent landmark coordinates than shapes: a whole set of weights is optimal; take the
+        # (near) minimum-norm one, as lstsq does for the frames above, via a vanishing ridge
+        ridge = RANK_DEFICIENT_RIDGE * max(float(np.trace(gram)) / k, 1e-300)
+        gram = gram + ridge * np.eye(k)
+        a = np.vstack([a, np.sqrt(ridge) * np.eye(k)])
+        rhs = np.hstack([rhs, np.zeros((len(rhs), k))])
+    out[outside], converged = box_least_squares(gram, rhs[outside] @ a, lo, hi, out[outside])
+    for f in outside[~converged]:  # safety net: scipy's BVLS, one frame at a time
         out[f] = lsq_linear(a, rhs[f], bounds=(lo, hi), method="bvls").x
     return out
+
+
+#: Relative ridge (of the mean diagonal of A^T A) that picks the minimum-norm optimum of a rank-deficient
+#: bounded least squares: it changes the objective by a relative ~1e-9, far below the tracking noise.
+RANK_DEFICIENT_RIDGE = 1e-9
 
 
 def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, start: np.ndarray,
