@@ -294,13 +294,15 @@ def _brute_pose_visibility(points, tri, offset, rays=16, camera=None):
     return np.where(valid, (facing & ~hit).astype(float), 0.0)
 
 
+@pytest.mark.parametrize("strategy", ["full", "union", "auto"])
 @pytest.mark.parametrize("camera", [None, [0.3, 0.04, 0.06]])
-def test_pose_shortcut_equals_brute_force_minimum(camera):
+def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
     from usdface.landmarks.visibility import _offset
 
     rig = random_rig(15, seed=9)
     rig.neutral[:, 2] += 0.03 * np.sin(60 * rig.neutral[:, 0])  # ripples: real self-occlusion
     pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16, camera=camera)
+    pv.strategy = strategy
     half = np.arange(0, rig.n_vertices, 2)
     first = pv(half)  # two calls (lazy callers), the second reusing the kept scenes
     fast = pv()

@@ -121,16 +121,23 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     cols = np.flatnonzero(sub.any(axis=0))
     if cols.size == 0:
         return cost_at(np.zeros(n))
-    bound = np.ones(n)
+    # costs are per column: work on the candidate columns only (a body mesh has ~20x more vertices)
+    sub_c, r_c = sub[:, cols], r[:, cols]
+    mult_c = None if multiplicity is None else np.asarray(multiplicity)[cols]
+
+    def cost_cols(vis_c):
+        return set_cover_costs(sub_c, cand.landmark_quality(r_c, vis_c, alpha), weighting, mult_c)
+
+    bound = np.ones(cols.size)
     if upper is not None:
-        bound[cols] = np.clip(upper(cols), 0.0, 1.0)
-    optimistic = cost_at(bound)[cols]
-    _, group = np.unique(np.packbits(sub[:, cols].T, axis=1), axis=0, return_inverse=True)
+        bound = np.clip(upper(cols), 0.0, 1.0)
+    optimistic = cost_cols(bound)
+    _, group = np.unique(np.packbits(sub_c.T, axis=1), axis=0, return_inverse=True)
     group = group.ravel()
     while True:
         vis = lookup()
         known = ~np.isnan(vis[cols])
-        exact = cost_at(np.nan_to_num(vis, nan=0.0))[cols]
+        exact = cost_cols(np.nan_to_num(vis[cols], nan=0.0))
         best = np.full(group.max() + 1, np.inf)
         np.minimum.at(best, group[known], exact[known])
         need = np.flatnonzero(~known & (optimistic <= best[group] + 1e-12))

@@ -91,6 +91,11 @@ def camera_visibility(points: np.ndarray, triangles: np.ndarray, camera: np.ndar
 #: Offsets below this (metres) count as "not moving" when deciding which rays a pose can change.
 STATIC_OFFSET = 1e-7
 
+#: CPU microseconds per triangle of a scene build and per ray of an occlusion test (Open3D 0.19-0.20, measured
+#: on the bench heads): the cost model choosing, per pose, between a scene of the whole posed mesh and the
+#: never-moving triangles' scene + a scene of the rest (a body mesh around a face).
+COST_US = {"build": 0.5, "cast": 0.3}
+
 
 class PoseVisibility:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4) of any vertex subset, min over all poses.
@@ -104,10 +109,13 @@ class PoseVisibility:
     Exact shortcut: a shape moves only part of the mesh. A ray from a vertex none of whose triangles move is
     the neutral's ray; if a triangle the shape leaves in place blocked it first in the neutral, it is still
     blocked, and it is not cast again. Every other ray (from a vertex next to moving triangles, or first hit
-    by a moving triangle, or free in the neutral) is cast against the pose. The work is pose-major: one
-    ray-casting scene per pose and call (kept across calls while the kept scenes stay under
-    :attr:`cache_triangles`), the pose's points formed one pose at a time and vertex normals computed only at
-    the vertices asked for, so memory is O(n + rays) plus the kept scenes.
+    by a moving triangle, or free in the neutral) is cast against the pose: either a scene of the whole
+    posed mesh, or - when most of the mesh never moves (a body around a face) - a scene of the triangles no
+    shape moves, built once, plus one of the others in the pose (a ray is blocked iff either blocks it);
+    :data:`COST_US` picks the cheaper per pose. The work is pose-major: one scene per pose and call (kept
+    across calls while the kept scenes stay under :attr:`cache_triangles`), the pose's points formed one pose
+    at a time and vertex normals computed only at the vertices asked for, so memory is O(n + rays) plus the
+    kept scenes.
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
@@ -133,17 +141,23 @@ class PoseVisibility:
         # pose scenes are kept across calls (lazy callers ask several times) while their triangles stay under
         # this budget (~77 bytes per triangle in Open3D/Embree: 4M triangles ~ 300 MB)
         self.cache_triangles = 4_000_000
+        # "auto": per pose the cheaper exact way (a scene of the whole posed mesh, or one scene of the
+        # triangles no shape moves, built once, + a scene of the others in the pose); "full"/"union" force one
+        self.strategy = "auto"
         self._cache: dict = {}
         self._cached_triangles = 0
 
     @property
     def batch_hint(self) -> int:
-        """Vertices worth evaluating per call: 0 when every pose scene stays cached across calls, else about
+        """Vertices worth evaluating per call: 0 when every pose's scene stays kept across calls, else about
         as many as make the rays of a call cost what rebuilding its scenes costs (a triangle's share of a
         scene build ~ a tenth of a vertex's rays, measured with Open3D 0.19-0.20)."""
-        if (len(self.deltas) + 1) * len(self.triangles) <= self.cache_triangles:
+        per_pose = len(self.triangles)
+        if self.strategy != "full":
+            per_pose = min(per_pose, int(self._union()[0].sum()))
+        if (len(self.deltas) + 1) * per_pose <= self.cache_triangles:
             return 0
-        return len(self.triangles) * 16 // (10 * self._per_vertex)
+        return per_pose * 16 // (10 * self._per_vertex)
 
     @property
     def _per_vertex(self) -> int:
@@ -224,6 +238,43 @@ class PoseVisibility:
         self.upper[todo] = vis
         return n0, rays0, facing0, first, vis
 
+    def _union(self):
+        """(ever_t[t] bool: triangles some shape moves, scene of the others at their neutral positions)."""
+        if "union" not in self._cache:
+            ever = np.zeros(len(self.triangles), dtype=bool)
+            for k in range(len(self.deltas)):
+                ever |= self._moving(k)[1]
+            static = self.triangles[~ever]
+            scene = _scene(self.neutral, static) if len(static) else None
+            self.scenes_built += scene is not None
+            self._cache["union"] = (ever, scene)
+        return self._cache["union"]
+
+    def _union_scene(self, k: int, pose: np.ndarray, ever: np.ndarray):
+        """Scene of the triangles some shape moves, at pose k's positions (compact vertex buffer), kept."""
+        key = ("union scene", k)
+        if key in self._cache:
+            return self._cache[key]
+        tri = self.triangles[ever]
+        used, local = np.unique(tri, return_inverse=True)
+        scene = _scene(pose[used], local.reshape(-1, 3))
+        self.scenes_built += 1
+        if self._cached_triangles + len(tri) <= self.cache_triangles:
+            self._cache[key] = scene
+            self._cached_triangles += len(tri)
+        return scene
+
+    def _use_union(self, k: int, rays: int) -> bool:
+        """Cheaper of the two exact ways to cast pose k's ``rays`` (cost model of :data:`COST_US`): a scene of
+        the whole posed mesh, or the never-moving triangles' scene (built once) + a scene of the others."""
+        if self.strategy != "auto":
+            return self.strategy == "union"
+        build, cast = COST_US["build"], COST_US["cast"]
+        ever_count = int(self._union()[0].sum())
+        full = (0 if ("scene", k) in self._cache else build * len(self.triangles)) + cast * rays
+        union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
+        return union < full
+
     def _evaluate(self, todo: np.ndarray) -> np.ndarray:
         per = self._per_vertex
         n0, rays0, facing0, first, out = self._neutral_pass(todo)
@@ -240,13 +291,26 @@ class PoseVisibility:
             normals, facing = n0, facing0
             if recast.any() or affected.any():
                 pose = self.neutral + self.deltas[k]
-                scene = self._pose_scene(k, pose)
-                blocked[recast] = self._cast(scene, rays0[recast])
+                if self._use_union(k, int(recast.sum()) + int(affected.sum()) * per):
+                    ever, static_scene = self._union()
+                    scene = self._union_scene(k, pose, ever)
+
+                    def cast_pose(rays, sc=scene, st=static_scene):
+                        out = self._cast(sc, rays)
+                        if st is not None:
+                            out[~out] = self._cast(st, rays[~out])
+                        return out
+                else:
+                    scene = self._pose_scene(k, pose)
+
+                    def cast_pose(rays, sc=scene):
+                        return self._cast(sc, rays)
+                blocked[recast] = cast_pose(rays0[recast])
                 if affected.any():
                     verts = todo[affected]
                     nk = self._normals_at(pose, verts)
                     rays_k, facing_k = self._make_rays(pose[verts], nk)
-                    blocked[~same] = self._cast(scene, rays_k)
+                    blocked[~same] = cast_pose(rays_k)
                     normals = n0.copy()
                     normals[affected] = nk
                     if facing0 is not None:
