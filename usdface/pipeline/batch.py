@@ -238,7 +238,10 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     for name in WORKER_THREAD_ENV:
         os.environ.setdefault(name, "1")
     for module in preload:
-        importlib.import_module(module)
+        try:
+            importlib.import_module(module)
+        except ImportError:  # a missing optional stack is the item's error to report, not the pool's
+            pass
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")  # for any BLAS loaded before the variables were set
