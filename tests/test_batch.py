@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -83,6 +84,27 @@ def test_local_process_pool(tmp_path):
     assert report.where.startswith("local pool")
     assert [r.status for r in report.results] == [DONE, FAILED, DONE]
     assert json.loads(Path(items[2].output).read_text())["avatar"] == items[2].avatar
+
+
+def worker_state(item: dict) -> None:
+    """Writes what the worker process looked like when the item started: BLAS threads, preloaded modules."""
+    import sys
+
+    from threadpoolctl import threadpool_info
+
+    blas = [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
+    Path(item["output"]).write_text(json.dumps({"blas": blas, "api": "usdface.api" in sys.modules,
+                                                "env": os.environ.get("OPENBLAS_NUM_THREADS")}))
+
+
+def test_pool_workers_start_single_threaded_and_preloaded(tmp_path):
+    items = read_manifest(_manifest(tmp_path, ["a", "b"]))
+    report = run_batch(items, worker=worker_state, jobs=2, progress=False)
+    assert [r.status for r in report.results] == [DONE, DONE]
+    for item in items:
+        state = json.loads(Path(item.output).read_text())
+        assert state["blas"] and set(state["blas"]) == {1}  # one BLAS thread per pool process
+        assert state["api"] and state["env"] == "1"
 
 
 def test_dask_local_cluster(tmp_path):

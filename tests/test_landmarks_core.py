@@ -170,6 +170,13 @@ def test_lazy_visibility_gives_the_fully_evaluated_costs_optimum():
     a, b = solve_set_cover(c, full), solve_set_cover(c, lazy)
     assert a.objective == pytest.approx(b.objective, abs=1e-12)  # ... and the optimum is the same
     assert a.selected.tolist() == b.selected.tolist()
+    # with the neutral visibility as an upper bound, fewer vertices are cast, the optimum is still the same
+    bound_pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=8)
+    bounded = lazy_costs(c, r, 0.5, "quality", None, lambda: bound_pv.values, bound_pv,
+                         upper=bound_pv.upper_bound)
+    assert np.count_nonzero(~np.isnan(bound_pv.values)) <= np.count_nonzero(~np.isnan(lazy_pv.values))
+    d = solve_set_cover(c, bounded)
+    assert d.objective == pytest.approx(a.objective, abs=1e-12) and d.selected.tolist() == a.selected.tolist()
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -267,14 +274,48 @@ def test_camera_visibility_facing_and_occlusion():
     assert camera_visibility(points, tri, [0, 0.04, -1.0]).max() == 0.0
 
 
-def test_pose_shortcut_equals_brute_force_minimum():
+def _brute_pose_visibility(points, tri, offset, rays=16, camera=None):
+    """Eq. 4 for one pose by the definition: a scene of the whole posed mesh, every ray cast (``offset``:
+    the ray start offset, the neutral's in PoseVisibility)."""
+    import open3d as o3d
+
+    from usdface.landmarks.visibility import _camera_rays, _hemisphere_rays
+    from usdface.mesh import vertex_normals
+
+    n = vertex_normals(points, tri)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(points.astype(np.float32)), o3d.core.Tensor(tri.astype(np.uint32)))
+    valid = np.linalg.norm(n, axis=1) > 0
+    if camera is None:
+        hit = scene.test_occlusions(o3d.core.Tensor(_hemisphere_rays(points, n, offset, rays)))
+        return np.where(valid, 1.0 - hit.numpy().astype(bool).reshape(-1, rays).mean(axis=1), 0.0)
+    r, facing = _camera_rays(points, n, offset, camera)
+    hit = scene.test_occlusions(o3d.core.Tensor(r), tfar=1.0).numpy().astype(bool)
+    return np.where(valid, (facing & ~hit).astype(float), 0.0)
+
+
+@pytest.mark.parametrize("strategy", ["full", "union", "auto"])
+@pytest.mark.parametrize("camera", [None, [0.3, 0.04, 0.06]])
+def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
+    from usdface.landmarks.visibility import _offset
+
     rig = random_rig(15, seed=9)
     rig.neutral[:, 2] += 0.03 * np.sin(60 * rig.neutral[:, 0])  # ripples: real self-occlusion
-    fast = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16)()
+    pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16, camera=camera)
+    pv.strategy = strategy
+    half = np.arange(0, rig.n_vertices, 2)
+    first = pv(half)  # two calls (lazy callers), the second reusing the kept scenes
+    fast = pv()
+    np.testing.assert_array_equal(fast[half], first)
     poses = [rig.neutral] + [rig.neutral + d for d in rig.deltas]
-    brute = np.min([ambient_visibility(p, rig.triangles, None, 16) for p in poses], axis=0)
-    assert (fast < 1).mean() > 0.2
+    off = _offset(rig.neutral, rig.triangles)
+    brute = np.min([_brute_pose_visibility(p, rig.triangles, off, 16, camera) for p in poses], axis=0)
+    assert 0.2 < (fast < 1).mean() < 1.0
     np.testing.assert_array_equal(fast, brute)
+    # the neutral visibility bounds l from above and is what the neutral pose alone gives
+    upper = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16, camera=camera).upper_bound()
+    np.testing.assert_array_equal(upper, _brute_pose_visibility(rig.neutral, rig.triangles, off, 16, camera))
+    assert (upper >= fast).all() and (upper > fast).any()
 
 
 def test_global_visibility_is_the_minimum_over_poses():
@@ -381,3 +422,32 @@ def test_one_shot_multicover_is_the_optimal_n_fold_cover():
     best = min(cost[list(s)].sum() for r in range(10) for s in itertools.combinations(range(9), r)
                if np.all(c[:, list(s)].sum(axis=1) >= need))
     assert np.isclose(cost[sol.selected].sum(), best)
+
+
+def test_batched_box_least_squares_matches_bvls():
+    from scipy.optimize import lsq_linear
+
+    from usdface.landmarks.reconstruct import box_least_squares
+
+    rng = np.random.default_rng(3)
+    for m in (5, 9, 16):  # 15-48 rows, 12 unknowns: full column rank
+        a = rng.normal(size=(3 * m, 12))
+        rhs = rng.uniform(-0.5, 1.5, (40, 12)) @ a.T + 0.1 * rng.normal(size=(40, 3 * m))
+        start = np.linalg.lstsq(a, rhs.T, rcond=None)[0].T
+        w, converged = box_least_squares(a.T @ a, rhs @ a, 0.0, 1.0, start)
+        ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in rhs])
+        assert converged.all() and ((w == 0.0) | (w == 1.0)).any()  # bounds really active
+        np.testing.assert_allclose(w, ref, atol=1e-10)
+    # rank-deficient (9 coordinates, 12 shapes): an optimum (BVLS's objective), of no larger norm than BVLS's
+    d = rng.normal(size=(12, 3, 3))
+    b = rng.uniform(0.2, 0.8, (6, 12)) @ d.reshape(12, 9) + 0.3 * rng.normal(size=(6, 9))
+    a = d.reshape(12, 9).T
+    ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in b])
+    w = solve_weights(d, b.reshape(6, 3, 3))
+    assert ((w >= 0.0) & (w <= 1.0)).all()
+
+    def objective(x):
+        return ((x @ a.T - b) ** 2).sum(axis=1)
+
+    np.testing.assert_allclose(objective(w), objective(ref), rtol=1e-6, atol=1e-12)
+    assert (np.linalg.norm(w, axis=1) <= np.linalg.norm(ref, axis=1) + 1e-6).all()

@@ -97,6 +97,25 @@ def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray 
     ``noise`` metres of tracking noise (std per coordinate), the same noise seed for every layout. RMSE over
     the vertices that move (:func:`baselines.moving_vertices`).
     """
+    from threadpoolctl import threadpool_limits
+
+    # thousands of small (3m x K) least-squares solves: a multi-threaded BLAS makes each one ~10x slower
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, tikhonov, alpha,
+                         rays, symmetric, random_seeds, seed, backend, counts)
+
+
+def _sweep(epsilons, rounds, shares) -> list[tuple]:
+    """The (epsilon, share, rounds) layouts of the sweep (the non-adaptive single cover equals the adaptive
+    one at share 0.1 and is skipped)."""
+    return [(eps, share, n) for eps in epsilons for share in shares for n in rounds
+            if not (share is None and n == 1 and 0.1 in shares)]
+
+
+def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, tikhonov, alpha, rays,
+              symmetric, random_seeds, seed, backend, counts) -> EvaluationReport:
+    from ..progress import steps
+
     w = np.asarray(weights, dtype=np.float64)
     region = baselines.moving_vertices(rig.deltas)
     if alpha < 1.0:
@@ -112,32 +131,32 @@ def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray 
 
     points: list[EvaluationPoint] = []
     seen: dict[tuple, float] = {}
-    for eps in epsilons:
-        for share in shares:
-            for n in rounds:
-                if share is None and n == 1 and 0.1 in shares:
-                    continue  # identical to the adaptive single cover
-                layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, radius=radius,
-                                           visibility=vis, backend=backend, ignore_static=True,
-                                           adaptive=share is not None, share=share or 0.1)
-                key = tuple(layout.vertices.tolist())
-                if key not in seen:
-                    seen[key] = err(layout.vertices)
-                mode = "non-adaptive" if share is None else f"share={share:g}"
-                points.append(EvaluationPoint("ours", f"eps={eps:g} multicover={n} {mode}", layout.count,
-                                              seen[key]))
-    counts = sorted({int(c) for c in counts})
-    if empirical is not None:
-        emp = baselines.empirical_layout(empirical, rig.n_vertices)
-        points.append(EvaluationPoint("empirical", f"{emp.size} points", int(emp.size), err(emp)))
-        counts = sorted(set(counts) | {int(emp.size)})
-    for m in counts:
-        v = baselines.pca_kmeans_layout(rig.deltas, m, seed=seed)
-        points.append(EvaluationPoint("pca_kmeans", f"k={m}", int(v.size), err(v)))
-        v = baselines.delta_cluster_layout(rig.deltas, m, seed=seed)
-        points.append(EvaluationPoint("delta_cluster", f"k={m}", int(v.size), err(v)))
-        e = [err(baselines.random_layout(rig.deltas, m, seed=seed + s)) for s in range(random_seeds)]
-        points.append(EvaluationPoint("random", f"m={m} mean of {random_seeds}", m, float(np.mean(e))))
+    sweep = _sweep(epsilons, rounds, shares)
+    emp = None if empirical is None else baselines.empirical_layout(empirical, rig.n_vertices)
+    counts = sorted({int(c) for c in counts} | ({int(emp.size)} if emp is not None else set()))
+    with steps("landmarks --evaluate", len(sweep) + len(counts) + (emp is not None)) as advance:
+        for eps, share, n in sweep:
+            layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, radius=radius,
+                                       visibility=vis, backend=backend, ignore_static=True,
+                                       adaptive=share is not None, share=share or 0.1)
+            key = tuple(layout.vertices.tolist())
+            if key not in seen:
+                seen[key] = err(layout.vertices)
+            mode = "non-adaptive" if share is None else f"share={share:g}"
+            label = f"eps={eps:g} multicover={n} {mode}"
+            points.append(EvaluationPoint("ours", label, layout.count, seen[key]))
+            advance(label)
+        if emp is not None:
+            points.append(EvaluationPoint("empirical", f"{emp.size} points", int(emp.size), err(emp)))
+            advance("empirical")
+        for m in counts:
+            v = baselines.pca_kmeans_layout(rig.deltas, m, seed=seed)
+            points.append(EvaluationPoint("pca_kmeans", f"k={m}", int(v.size), err(v)))
+            v = baselines.delta_cluster_layout(rig.deltas, m, seed=seed)
+            points.append(EvaluationPoint("delta_cluster", f"k={m}", int(v.size), err(v)))
+            e = [err(baselines.random_layout(rig.deltas, m, seed=seed + s)) for s in range(random_seeds)]
+            points.append(EvaluationPoint("random", f"m={m} mean of {random_seeds}", m, float(np.mean(e))))
+            advance(f"baselines at {m}")
     report = EvaluationReport(points, int(w.shape[0]), float(noise))
     report.summary = _summary(report, None if empirical is None else len(empirical))
     return report

@@ -97,7 +97,7 @@ def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]
 
 
 def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
-               batch: int = 16) -> np.ndarray:
+               batch: int = 16, upper=None, min_batch: int = 0) -> np.ndarray:
     """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
 
     Every cost form is a non-increasing linear function of the vertex's visibility l_n, and
@@ -105,7 +105,11 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     candidate sets. So per group, vertices are evaluated best-first (by their optimistic cost, l = 1) until no
     unevaluated vertex can be as cheap as the best evaluated one; the others keep a pessimistic cost (l = 0),
     provably no lower than the winner's, so the reduced problem - hence the optimum - equals the fully
-    evaluated one. ``lookup() -> l[n]`` (NaN = not evaluated yet), ``evaluate(vertices)``.
+    evaluated one. ``lookup() -> l[n]`` (NaN = not evaluated yet), ``evaluate(vertices)``; ``upper(vertices)
+    -> [v]`` an optional cheap upper bound of l (e.g. the neutral pose's visibility, l being a minimum over
+    poses): the optimistic cost is taken at it instead of l = 1, so far fewer vertices need evaluating.
+    ``min_batch``: evaluate at least this many vertices per call (the best-ranked of every group first), for
+    evaluators whose calls have a fixed cost (scenes rebuilt per call); it changes the work, not the result.
     """
     if weighting == "count":
         return set_cover_costs(sub, r, "count", multiplicity)
@@ -117,13 +121,23 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     cols = np.flatnonzero(sub.any(axis=0))
     if cols.size == 0:
         return cost_at(np.zeros(n))
-    optimistic = cost_at(np.ones(n))[cols]
-    _, group = np.unique(np.packbits(sub[:, cols].T, axis=1), axis=0, return_inverse=True)
+    # costs are per column: work on the candidate columns only (a body mesh has ~20x more vertices)
+    sub_c, r_c = sub[:, cols], r[:, cols]
+    mult_c = None if multiplicity is None else np.asarray(multiplicity)[cols]
+
+    def cost_cols(vis_c):
+        return set_cover_costs(sub_c, cand.landmark_quality(r_c, vis_c, alpha), weighting, mult_c)
+
+    bound = np.ones(cols.size)
+    if upper is not None:
+        bound = np.clip(upper(cols), 0.0, 1.0)
+    optimistic = cost_cols(bound)
+    _, group = np.unique(np.packbits(sub_c.T, axis=1), axis=0, return_inverse=True)
     group = group.ravel()
     while True:
         vis = lookup()
         known = ~np.isnan(vis[cols])
-        exact = cost_at(np.nan_to_num(vis, nan=0.0))[cols]
+        exact = cost_cols(np.nan_to_num(vis[cols], nan=0.0))
         best = np.full(group.max() + 1, np.inf)
         np.minimum.at(best, group[known], exact[known])
         need = np.flatnonzero(~known & (optimistic <= best[group] + 1e-12))
@@ -133,7 +147,8 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
         g = group[order]
         start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
         rank = np.arange(order.size) - np.repeat(start, np.diff(np.r_[start, order.size]))
-        evaluate(cols[order[rank < batch]])
+        take = max(int(np.count_nonzero(rank < batch)), min(int(min_batch), order.size))
+        evaluate(cols[order[np.argsort(rank, kind="stable")[:take]]])
         batch *= 4
 
 
@@ -196,6 +211,9 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
 
         def evaluate_plain(vertices):
             return None
+
+        def upper_plain(vertices):
+            return np.nan_to_num(known[vertices], nan=1.0)
     else:
         pose_vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays, camera)
 
@@ -206,6 +224,13 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             t = time.perf_counter()
             pose_vis(vertices)
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
+
+        def upper_plain(vertices):
+            t = time.perf_counter()
+            out = pose_vis.upper_bound(vertices)
+            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
+            return out
+    min_batch = 0 if pose_vis is None else pose_vis.batch_hint
     if camera is not None:  # a vertex the camera cannot see in some pose is no candidate
         evaluate_plain(need)
         c &= np.nan_to_num(lookup_plain(), nan=0.0)[None, :] > 0.0
@@ -230,6 +255,10 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         def evaluate_sym(vertices):
             evaluate_plain(np.concatenate([vertices, safe[vertices]]))
 
+        def upper_sym(vertices):
+            bound = np.minimum(upper_plain(vertices), upper_plain(safe[vertices]))
+            return np.where(primary[vertices], bound, 0.0)
+
         if camera is not None:
             sym_c &= np.nan_to_num(lookup_sym(), nan=0.0)[None, :] > 0.0
         lost = [rig.names[k] for k in np.flatnonzero(c.any(axis=1) & ~sym_c.any(axis=1))]
@@ -240,7 +269,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             mult = np.where(partner == np.arange(rig.n_vertices), 1.0, 2.0)
 
             def sym_costs(sub):
-                return lazy_costs(sub, sym_r, a, weighting, mult, lookup_sym, evaluate_sym)
+                return lazy_costs(sub, sym_r, a, weighting, mult, lookup_sym, evaluate_sym, upper=upper_sym,
+                                  min_batch=min_batch // 2)
 
             sel, rounds, sols = adaptive_multicover(sym_c, sym_costs, rig.neutral, multicover, solve, radius,
                                                     share if adaptive else None, partner, coverage=c)
@@ -249,7 +279,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             result = (vertices, np.concatenate([rounds, rounds])[first], sols)
     if result is None:
         def plain_costs(sub):
-            return lazy_costs(sub, r, a, weighting, None, lookup_plain, evaluate_plain)
+            return lazy_costs(sub, r, a, weighting, None, lookup_plain, evaluate_plain, upper=upper_plain,
+                              min_batch=min_batch)
 
         result = adaptive_multicover(c, plain_costs, rig.neutral, multicover, solve, radius,
                                      share if adaptive else None)

@@ -91,6 +91,11 @@ def camera_visibility(points: np.ndarray, triangles: np.ndarray, camera: np.ndar
 #: Offsets below this (metres) count as "not moving" when deciding which rays a pose can change.
 STATIC_OFFSET = 1e-7
 
+#: CPU microseconds per triangle of a scene build and per ray of an occlusion test (Open3D 0.19-0.20, measured
+#: on the bench heads): the cost model choosing, per pose, between a scene of the whole posed mesh and the
+#: never-moving triangles' scene + a scene of the rest (a body mesh around a face).
+COST_US = {"build": 0.5, "cast": 0.3}
+
 
 class PoseVisibility:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4) of any vertex subset, min over all poses.
@@ -98,13 +103,19 @@ class PoseVisibility:
     ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. The poses are the neutral and
     each shape at weight 1. ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with
     ``camera[3]`` metres in the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are
-    cached per vertex.
+    cached per vertex. :meth:`upper_bound` is the neutral pose's visibility alone: an upper bound of l_n at
+    1/(K+1) of the cost, which callers use to skip vertices that cannot matter.
 
-    Exact shortcut for the hemisphere: a shape moves only part of the mesh. A ray from a vertex none of whose
-    triangles move is the same ray as in the neutral; if a static triangle blocked it there, it is still
-    blocked, and if nothing blocked it, only the shape's moving triangles can. So per shape only the rays of
-    vertices next to moving triangles (and rays first hit by a moving triangle) are cast against the full
-    pose; the neutral's free rays are cast against the moving triangles alone, a much cheaper scene.
+    Exact shortcut: a shape moves only part of the mesh. A ray from a vertex none of whose triangles move is
+    the neutral's ray; if a triangle the shape leaves in place blocked it first in the neutral, it is still
+    blocked, and it is not cast again. Every other ray (from a vertex next to moving triangles, or first hit
+    by a moving triangle, or free in the neutral) is cast against the pose: either a scene of the whole
+    posed mesh, or - when most of the mesh never moves (a body around a face) - a scene of the triangles no
+    shape moves, built once, plus one of the others in the pose (a ray is blocked iff either blocks it);
+    :data:`COST_US` picks the cheaper per pose. The work is pose-major: one scene per pose and call (kept
+    across calls while the kept scenes stay under :attr:`cache_triangles`), the pose's points formed one pose
+    at a time and vertex normals computed only at the vertices asked for, so memory is O(n + rays) plus the
+    kept scenes.
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
@@ -124,101 +135,203 @@ class PoseVisibility:
         self._neutral_scene = None
         self._neutral_normals = None
         self.values = np.full(len(neutral), np.nan)
+        self.upper = np.full(len(neutral), np.nan)
         self.rays_cast = 0
-        # per-pose scenes, normals and moving-triangle masks are kept across calls (lazy callers ask several
-        # times) while their triangles stay under this budget
-        self.cache_triangles = 6_000_000
+        self.scenes_built = 0
+        # pose scenes are kept across calls (lazy callers ask several times) while their triangles stay under
+        # this budget (~77 bytes per triangle in Open3D/Embree: 4M triangles ~ 300 MB)
+        self.cache_triangles = 4_000_000
+        # "auto": per pose the cheaper exact way (a scene of the whole posed mesh, or one scene of the
+        # triangles no shape moves, built once, + a scene of the others in the pose); "full"/"union" force one
+        self.strategy = "auto"
         self._cache: dict = {}
         self._cached_triangles = 0
 
-    def _cached(self, key, make, triangles: int = 0):
-        if key in self._cache:
-            return self._cache[key]
-        value = make()
-        if self._cached_triangles + triangles <= self.cache_triangles:
-            self._cache[key] = value
-            self._cached_triangles += triangles
-        return value
+    @property
+    def batch_hint(self) -> int:
+        """Vertices worth evaluating per call: 0 when every pose's scene stays kept across calls, else about
+        as many as make the rays of a call cost what rebuilding its scenes costs (a triangle's share of a
+        scene build ~ a tenth of a vertex's rays, measured with Open3D 0.19-0.20)."""
+        per_pose = len(self.triangles)
+        if self.strategy != "full":
+            per_pose = min(per_pose, int(self._union()[0].sum()))
+        if (len(self.deltas) + 1) * per_pose <= self.cache_triangles:
+            return 0
+        return per_pose * 16 // (10 * self._per_vertex)
 
-    def _pose(self, k: int):
-        pose = self.neutral if k < 0 else self.neutral + self.deltas[k]
-        return pose, self._cached(("normals", k), lambda: vertex_normals(pose, self.triangles))
+    @property
+    def _per_vertex(self) -> int:
+        return 1 if self.camera is not None else self.rays
 
     def _moving(self, k: int):
-        def make():
+        """(any vertex moves, moving_t[t] bool, touched[n] bool: vertex of a moving triangle) of shape k."""
+        key = ("moving", k)
+        if key not in self._cache:
             moving_v = np.linalg.norm(self.deltas[k], axis=1) > STATIC_OFFSET
             moving_t = moving_v[self.triangles].any(axis=1)
             touched = np.zeros(len(self.neutral), dtype=bool)
             touched[self.triangles[moving_t].ravel()] = True
-            return moving_v.any(), moving_t, touched
-        return self._cached(("moving", k), make)
+            self._cache[key] = (bool(moving_v.any()), moving_t, touched)
+        return self._cache[key]
 
-    def _cast(self, scene, rays: np.ndarray, tfar: float = np.inf) -> np.ndarray:
+    def _normals_at(self, points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+        """:func:`usdface.mesh.vertex_normals` of ``points`` at ``vertices`` only; bit-identical (the same
+        area-weighted sums over the incident triangles, accumulated in the same order)."""
+        near = np.zeros(len(self.neutral), dtype=bool)
+        near[vertices] = True
+        return vertex_normals(points, self.triangles[near[self.triangles].any(axis=1)])[vertices]
+
+    def _neutral(self):
+        if self._neutral_scene is None:
+            self._neutral_scene = _scene(self.neutral, self.triangles)
+            self._neutral_normals = vertex_normals(self.neutral, self.triangles)
+            self.scenes_built += 1
+        return self._neutral_scene, self._neutral_normals
+
+    def _pose_scene(self, k: int, pose: np.ndarray):
+        key = ("scene", k)
+        if key in self._cache:
+            return self._cache[key]
+        scene = _scene(pose, self.triangles)
+        self.scenes_built += 1
+        if self._cached_triangles + len(self.triangles) <= self.cache_triangles:
+            self._cache[key] = scene
+            self._cached_triangles += len(self.triangles)
+        return scene
+
+    def _make_rays(self, points: np.ndarray, normals: np.ndarray):
+        if self.camera is None:
+            return _hemisphere_rays(points, normals, self.offset, self.rays), None
+        return _camera_rays(points, normals, self.offset, self.camera)
+
+    def _cast(self, scene, rays: np.ndarray) -> np.ndarray:
         import open3d as o3d
 
         self.rays_cast += len(rays)
         if len(rays) == 0:
             return np.zeros(0, dtype=bool)
+        tfar = 1.0 if self.camera is not None else np.inf
         return scene.test_occlusions(o3d.core.Tensor(rays), tfar=tfar).numpy().astype(bool)
 
-    def _camera(self, todo: np.ndarray) -> np.ndarray:
-        out = np.ones(todo.size)
-        for k in range(-1, len(self.deltas)):
-            pose, normals = self._pose(k)
-            batch, facing = _camera_rays(pose[todo], normals[todo], self.offset, self.camera)
-            hit = self._cast(_scene(pose, self.triangles), batch, tfar=1.0)
-            v = np.where(np.linalg.norm(normals[todo], axis=1) > 0, (facing & ~hit).astype(np.float64), 0.0)
-            np.minimum(out, v, out=out)
-        return out
+    def _score(self, blocked: np.ndarray, facing, normals: np.ndarray) -> np.ndarray:
+        valid = np.linalg.norm(normals, axis=1) > 0
+        if self.camera is None:
+            return np.where(valid, 1.0 - blocked.reshape(-1, self.rays).mean(axis=1), 0.0)
+        return np.where(valid, (facing & ~blocked).astype(np.float64), 0.0)
 
-    def _hemisphere(self, todo: np.ndarray) -> np.ndarray:
+    def _neutral_pass(self, todo: np.ndarray):
+        """Neutral rays of ``todo``, their first hit (-1: none) and the neutral visibility ``[len(todo)]``."""
         import open3d as o3d
 
-        if self._neutral_scene is None:
-            self._neutral_scene = _scene(self.neutral, self.triangles)
-            self._neutral_normals = vertex_normals(self.neutral, self.triangles)
-        n0 = self._neutral_normals[todo]
-        rays0 = _hemisphere_rays(self.neutral[todo], n0, self.offset, self.rays)
-        first = self._neutral_scene.cast_rays(o3d.core.Tensor(rays0))
-        self.rays_cast += len(rays0)
-        hit0 = np.isfinite(first["t_hit"].numpy())
-        prim0 = np.where(hit0, first["primitive_ids"].numpy().astype(np.int64), 0)
-        valid = np.linalg.norm(n0, axis=1) > 0
-        out = np.where(valid, 1.0 - hit0.reshape(todo.size, self.rays).mean(axis=1), 0.0)
+        scene, normals = self._neutral()
+        n0 = normals[todo]
+        rays0, facing0 = self._make_rays(self.neutral[todo], n0)
+        first = np.full(len(rays0), -1, dtype=np.int64)
+        if len(rays0):
+            tfar = 1.0 if self.camera is not None else np.inf
+            hit = scene.cast_rays(o3d.core.Tensor(rays0))
+            t_hit = hit["t_hit"].numpy()
+            self.rays_cast += len(rays0)
+            ok = np.isfinite(t_hit) & (t_hit <= tfar)
+            first[ok] = hit["primitive_ids"].numpy()[ok].astype(np.int64)
+        vis = self._score(first >= 0, facing0, n0)
+        self.upper[todo] = vis
+        return n0, rays0, facing0, first, vis
+
+    def _union(self):
+        """(ever_t[t] bool: triangles some shape moves, scene of the others at their neutral positions)."""
+        if "union" not in self._cache:
+            ever = np.zeros(len(self.triangles), dtype=bool)
+            for k in range(len(self.deltas)):
+                ever |= self._moving(k)[1]
+            static = self.triangles[~ever]
+            scene = _scene(self.neutral, static) if len(static) else None
+            self.scenes_built += scene is not None
+            self._cache["union"] = (ever, scene)
+        return self._cache["union"]
+
+    def _union_scene(self, k: int, pose: np.ndarray, ever: np.ndarray):
+        """Scene of the triangles some shape moves, at pose k's positions (compact vertex buffer), kept."""
+        key = ("union scene", k)
+        if key in self._cache:
+            return self._cache[key]
+        tri = self.triangles[ever]
+        used, local = np.unique(tri, return_inverse=True)
+        scene = _scene(pose[used], local.reshape(-1, 3))
+        self.scenes_built += 1
+        if self._cached_triangles + len(tri) <= self.cache_triangles:
+            self._cache[key] = scene
+            self._cached_triangles += len(tri)
+        return scene
+
+    def _use_union(self, k: int, rays: int) -> bool:
+        """Cheaper of the two exact ways to cast pose k's ``rays`` (cost model of :data:`COST_US`): a scene of
+        the whole posed mesh, or the never-moving triangles' scene (built once) + a scene of the others."""
+        if self.strategy != "auto":
+            return self.strategy == "union"
+        build, cast = COST_US["build"], COST_US["cast"]
+        ever_count = int(self._union()[0].sum())
+        full = (0 if ("scene", k) in self._cache else build * len(self.triangles)) + cast * rays
+        union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
+        return union < full
+
+    def _evaluate(self, todo: np.ndarray) -> np.ndarray:
+        per = self._per_vertex
+        n0, rays0, facing0, first, out = self._neutral_pass(todo)
+        out = out.copy()
         for k in range(len(self.deltas)):
             moves, moving_t, touched = self._moving(k)
             if not moves:
                 continue
-            affected = np.repeat(touched[todo], self.rays)  # origin or normal may change
-            full = affected | (hit0 & moving_t[prim0])
-            free = ~hit0 & ~affected
-            blocked = hit0.copy()
-            if full.any():
-                pose, normals = self._pose(k)
-                sel = np.flatnonzero(full)
-                local = np.unique(sel // self.rays)  # positions in todo of the vertices involved
-                verts = todo[local]
-                dirs = _hemisphere_rays(pose[verts], normals[verts], self.offset, self.rays)
-                row = np.searchsorted(local, sel // self.rays) * self.rays + sel % self.rays
-                scene = self._cached(("full", k), lambda p=pose: _scene(p, self.triangles),
-                                     len(self.triangles))
-                blocked[sel] = self._cast(scene, dirs[row])
-                nk = normals[todo]
-            else:
-                pose, nk = self.neutral + self.deltas[k], n0
-            if free.any():
-                sub_tri = self.triangles[moving_t]
-                scene = self._cached(("moving", k, 1), lambda p=pose, t=sub_tri: _scene(p, t), len(sub_tri))
-                blocked[free] = self._cast(scene, rays0[free])
-            v = 1.0 - blocked.reshape(todo.size, self.rays).mean(axis=1)
-            np.minimum(out, np.where(np.linalg.norm(nk, axis=1) > 0, v, 0.0), out=out)
+            affected = touched[todo]  # origin or normal may change: recast from the pose
+            same = ~np.repeat(affected, per)
+            # a neutral ray first blocked by a triangle this shape leaves in place stays blocked
+            blocked = same & (first >= 0) & ~moving_t[np.maximum(first, 0)]
+            recast = same & ~blocked
+            normals, facing = n0, facing0
+            if recast.any() or affected.any():
+                pose = self.neutral + self.deltas[k]
+                if self._use_union(k, int(recast.sum()) + int(affected.sum()) * per):
+                    ever, static_scene = self._union()
+                    scene = self._union_scene(k, pose, ever)
+
+                    def cast_pose(rays, sc=scene, st=static_scene):
+                        out = self._cast(sc, rays)
+                        if st is not None:
+                            out[~out] = self._cast(st, rays[~out])
+                        return out
+                else:
+                    scene = self._pose_scene(k, pose)
+
+                    def cast_pose(rays, sc=scene):
+                        return self._cast(sc, rays)
+                blocked[recast] = cast_pose(rays0[recast])
+                if affected.any():
+                    verts = todo[affected]
+                    nk = self._normals_at(pose, verts)
+                    rays_k, facing_k = self._make_rays(pose[verts], nk)
+                    blocked[~same] = cast_pose(rays_k)
+                    normals = n0.copy()
+                    normals[affected] = nk
+                    if facing0 is not None:
+                        facing = facing0.copy()
+                        facing[affected] = facing_k
+            np.minimum(out, self._score(blocked, facing, normals), out=out)
         return out
+
+    def upper_bound(self, vertices: np.ndarray | None = None) -> np.ndarray:
+        """The neutral pose's visibility ``[v]``, an upper bound of l_n (l_n itself where it is known)."""
+        idx = np.arange(len(self.neutral)) if vertices is None else np.asarray(vertices, dtype=np.int64)
+        todo = np.unique(idx[np.isnan(self.upper[idx])])
+        if todo.size:
+            self._neutral_pass(todo)
+        return np.where(np.isnan(self.values[idx]), self.upper[idx], self.values[idx])
 
     def __call__(self, vertices: np.ndarray | None = None) -> np.ndarray:
         idx = np.arange(len(self.neutral)) if vertices is None else np.asarray(vertices, dtype=np.int64)
         todo = np.unique(idx[np.isnan(self.values[idx])])
         if todo.size:
-            self.values[todo] = self._hemisphere(todo) if self.camera is None else self._camera(todo)
+            self.values[todo] = self._evaluate(todo)
         return self.values[idx].copy()
 
 

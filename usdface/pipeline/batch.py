@@ -221,12 +221,39 @@ def _run_serial(worker, todo, advance):
         advance(Path(item["output"]).name)
 
 
+#: Thread-count variables set in every pool worker before numpy loads: the pool's processes are the
+#: parallelism, and a BLAS per process using every core oversubscribes the machine.
+WORKER_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+#: Modules a personalize worker imports up front (what one personalize run loads).
+PRELOAD = ("usdface.api", "usdface.io.usd_rig", "usdface.io.layers", "usdface.personalize",
+           "usdface.transfer",
+           "scipy.sparse.linalg", "scipy.spatial", "open3d")
+
+
+def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
+    """Pool worker start-up: one BLAS thread per worker, and the heavy modules (USD, numpy/scipy, Open3D via
+    the transfer) imported once here rather than inside the first item's timing."""
+    import importlib
+
+    for name in WORKER_THREAD_ENV:
+        os.environ.setdefault(name, "1")
+    for module in preload:
+        try:
+            importlib.import_module(module)
+        except ImportError:  # a missing optional stack is the item's error to report, not the pool's
+            pass
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")  # for any BLAS loaded before the variables were set
+
+
 def _run_pool(worker, todo, jobs, advance):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     # spawn, not fork: USD and Open3D start threads, and forking a threaded process can deadlock.
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=init_worker) as pool:
         futures = {pool.submit(run_item, worker, item): item for item in todo}
         for fut in as_completed(futures):
             item = futures[fut]
