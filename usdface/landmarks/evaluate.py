@@ -84,18 +84,19 @@ BASELINE_COUNTS = (8, 10, 12, 15, 20, 25, 30, 35, 40, 45, 50, 60, 68)
 
 
 def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray | None = None,
-                       epsilons=(0.5, 0.6, 0.75, 0.9), rounds=(1, 2, 3, 4, 5, 6), radius: float = 0.01,
+                       epsilons=(0.5, 0.6, 0.75, 0.9), rounds=(1, 2, 3, 4, 5, 6), radius: float | None = 0.01,
                        shares=(0.1, 0.05, None), noise: float = 0.5e-3, tikhonov: float = 0.0,
-                       alpha: float = 1.0, rays: int = 16, symmetric: bool = False, random_seeds: int = 3,
+                       alpha: float = 0.0, rays: int = 16, symmetric: bool = False, random_seeds: int = 3,
                        seed: int = 0, backend: str = "scip", counts=BASELINE_COUNTS) -> EvaluationReport:
     """Sweep this method's layouts and the baselines; ``weights[F, K]`` test weights in ``rig.names`` order.
 
     This method: every epsilon x multi-cover rounds x share (the adaptive heuristic's share; None =
-    non-adaptive). ``alpha = 1`` (default) follows the paper's evaluation protocol, layouts from displacement
-    only (no ray casting); the synthetic tracking has no occlusion. ``empirical[m]``: vertex indices of an
-    empirical layout (e.g. the 68 ICT points on ``Head``). Baselines at ``counts`` plus the empirical count.
-    ``noise`` metres of tracking noise (std per coordinate), the same noise seed for every layout. RMSE over
-    the vertices that move (:func:`baselines.moving_vertices`).
+    non-adaptive). ``alpha = 0`` (default; eq. 1 is ``q = (1 - alpha) r + alpha l``) follows the paper's
+    evaluation protocol: layouts from displacement only (no ray casting); the synthetic tracking has no
+    occlusion. ``radius``: the multi-cover radius (metres; None: relative to the face size).
+    ``empirical[m]``: vertex indices of an empirical layout (e.g. the 68 ICT points on ``Head``). Baselines at
+    ``counts`` plus the empirical count. ``noise`` metres of tracking noise (std per coordinate), the same
+    noise seed for every layout. RMSE over the vertices that move (:func:`baselines.moving_vertices`).
     """
     from threadpoolctl import threadpool_limits
 
@@ -118,7 +119,7 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
 
     w = np.asarray(weights, dtype=np.float64)
     region = baselines.moving_vertices(rig.deltas)
-    if alpha < 1.0:
+    if alpha > 0.0:
         r = relative_displacement(displacement_magnitudes(rig.deltas))
         need = np.flatnonzero(candidate_sets(r, min(epsilons)).any(axis=0))
         vis = np.zeros(rig.n_vertices)

@@ -153,7 +153,7 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
 
 
 def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, symmetric: bool = False,
-                      multicover: int = 1, radius: float = 0.01, camera=None, rays: int = 16,
+                      multicover: int = 1, radius: float | None = 0.01, camera=None, rays: int = 16,
                       backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
                       share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
                       visibility: np.ndarray | None = None) -> LandmarkLayout:
@@ -163,10 +163,12 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     ----------
     rig : FaceRig with ``neutral[n, 3]`` and ``deltas[K, n, 3]`` in metres.
     epsilon : relative-displacement threshold of the candidates (eq. 3), in (0, 1].
-    alpha : weight of relative displacement vs visibility in the quality (eq. 1), in [0, 1].
+    alpha : weight of the visibility against the relative displacement in the quality, eq. (1)
+        ``q = (1 - alpha) r + alpha l``, in [0, 1].
     symmetric : mirror-symmetric layout (falls back to asymmetric, with a warning, when infeasible).
     multicover : maximum landmarks per shape of the adaptive multi-cover (Algorithm 1); 1 = single cover.
-    radius : metres; vertices this close to a chosen landmark leave the candidates of later rounds.
+    radius : metres; vertices this close to a chosen landmark leave the candidates of later rounds (None: 5 %
+        of the face size; default 0.01, the layouts the benchmarks were measured with).
     camera : optional [3] camera position (metres, internal Y-up frame) for the known-camera visibility;
         vertices the camera cannot see in some pose are then not candidates.
     rays : hemisphere rays per vertex for the ambient-occlusion visibility.
