@@ -42,3 +42,14 @@ def sample_capture_folder(samples, tmp_path_factory) -> Path:
     from usdface.sample import generate_samples
 
     return generate_samples(tmp_path_factory.mktemp("samples") / "sample_assets", folder=True) / "capture"
+
+
+@pytest.fixture(scope="session")
+def personalized_sample(samples, tmp_path_factory) -> Path:
+    """The sample avatar personalized with the sample capture once per session (a usdface layer over
+    ``sample_assets/avatar.usda``), for tests that read a result (review page, export)."""
+    from usdface import api
+
+    out = tmp_path_factory.mktemp("personalized") / "person.usda"
+    api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, force=True)
+    return out

@@ -35,13 +35,15 @@ def test_public_names_are_lazy_and_typed():
 def test_cli_check_goes_through_the_api(monkeypatch, tmp_path, capsys):
     seen = []
 
-    def fake_check(path, pixar=True, rules=None):
-        seen.append((str(path), pixar, rules))
+    def fake_check(path, pixar=True, rules=None, name_map=None):
+        seen.append((str(path), pixar, rules, name_map))
         return []
 
     monkeypatch.setattr(api, "check", fake_check)
     assert main(["check", str(tmp_path / "x.usda"), "--no-pixar", "--rules", "ArkitNames"]) == 0
-    assert seen == [(str(tmp_path / "x.usda"), False, ["ArkitNames"])]
+    assert main(["check", str(tmp_path / "x.usda"), "--name-map", "m.csv"]) == 0
+    assert seen == [(str(tmp_path / "x.usda"), False, ["ArkitNames"], None),
+                    (str(tmp_path / "x.usda"), True, None, "m.csv")]
 
 
 def test_check_accepts_a_stage():

@@ -171,6 +171,7 @@ def test_arkit_names_missing_misspelt_suffix_duplicate():
     stage = make_rig(names=NAMES + ["eyeBlink_L"])
     errors = [i for i in check(stage) if i.rule == "ArkitNames" and i.severity == ERROR]
     assert len(errors) == 1 and "eyeBlinkLeft" in errors[0].message
+    assert "usdface uses 'eyeBlinkLeft'" in errors[0].message  # the exact one; eyeBlink_L is left unmapped
 
 
 def test_completeness_is_per_skeleton():

@@ -37,7 +37,7 @@ def test_blender_style_avatar(tmp_path):
     assert mouth["vertices"] == 12 and mouth["triangles"] == 12 and mouth["polygons"] == {"3": 2, "4": 5}
     assert mouth["arkit"]["present"] == 3
     text = format_report(report)
-    assert "eyeBlinkLeft2 -> eyeBlinkLeft (fallback)" in text and "upAxis Z" in text
+    assert "eyeBlinkLeft2 -> eyeBlinkLeft (BlendShape prim name)" in text and "upAxis Z" in text
     json.dumps(report)  # JSON-serialisable
 
 
@@ -63,7 +63,7 @@ def test_cli_text_json_and_errors(tmp_path, capsys):
         ["eyeBlink_L", "jawOpen", "mouthSmileLeft"]))
     assert main(["inspect", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "mesh /Avatar/Head: 30 vertices" in out and "eyeBlink_L -> eyeBlinkLeft (spelling)" in out
+    assert "mesh /Avatar/Head: 30 vertices" in out and "eyeBlink_L -> eyeBlinkLeft (spelling variant)" in out
     assert "metersPerUnit 0.01 (cm)" in out
     assert main(["inspect", "--json", str(path)]) == 0
     data = json.loads(capsys.readouterr().out)

@@ -320,3 +320,13 @@ def test_baselines_count_and_determinism():
         assert a.tolist() == b.tolist() and 1 <= a.size <= 12
         assert len(set(a.tolist())) == a.size
     assert random_layout(rig.deltas, 12, seed=1).size == 12
+
+
+def test_landmark_quality_weighs_visibility_by_alpha_as_the_paper():
+    """Zell & McDonnell eq. 1: q = (1 - alpha) r + alpha l (alpha weighs the visibility)."""
+    from usdface.landmarks.candidates import landmark_quality
+
+    r = np.array([[1.0, 0.0]])
+    vis = np.array([0.0, 1.0])
+    assert np.allclose(landmark_quality(r, vis, 0.2), [[0.8, 0.2]])
+    assert np.allclose(landmark_quality(r, vis, 1.0), [[0.0, 1.0]])

@@ -66,3 +66,62 @@ def cited_numbers(doc: str) -> set[str]:
         for lo, hi in re.findall(r"(\d+)\)?\s*-\s*\(?(\d+)", span):
             found.update(str(k) for k in range(int(lo), int(hi) + 1))
     return found
+
+
+def _row(section: str, equation: str) -> str:
+    """The 'meaning' cell of the row ``equation`` in the section whose heading contains ``section``."""
+    current = None
+    for line in PAGE.read_text().splitlines():
+        if line.startswith("## "):
+            current = line
+        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else []
+        if current and section in current and cells and cells[0] == equation:
+            return cells[1]
+    raise AssertionError(f"no row {equation!r} under a heading with {section!r}")
+
+
+def _norm(x):
+    import numpy as np
+
+    return np.linalg.norm(x, axis=-1)
+
+
+# the formula each row states (verbatim), and that formula written in numpy: the page must state it and the
+# function must compute it
+FORMULAS = {
+    ("Menzel", "eq. 3"): (
+        "(D_j)_vv = min(max_k ‖T_j(k)‖ / ‖T_j(v)‖, clamp)",
+        "usdface.personalize.fit.regularization_weights",
+        lambda T, clamp=1e5: __import__("numpy").minimum(
+            _norm(T).max(axis=1, keepdims=True) / _norm(T), clamp)),
+    ("Zell", "eq. 1"): (
+        "q_n^k = (1 − α) r_n^k + α l_n",
+        "usdface.landmarks.candidates.landmark_quality",
+        lambda r, l, alpha: (1 - alpha) * r + alpha * l[None, :]),
+    ("Zell", "eq. 2"): (
+        "r_n^k = ‖Δv_n^k‖ / max_m ‖Δv_m^k‖",
+        "usdface.landmarks.candidates.relative_displacement",
+        lambda mag: mag / mag.max(axis=1, keepdims=True)),
+}
+
+
+@pytest.mark.parametrize("key", list(FORMULAS))
+def test_stated_formula_is_what_the_function_computes(key):
+    import numpy as np
+
+    if not PAGE.exists():
+        pytest.skip("docs/math.md not present")
+    text, function, formula = FORMULAS[key]
+    assert text in _row(*key), f"docs/math.md {key}: the row does not state {text!r}"
+    fn = _resolve(function)
+    rng = np.random.default_rng(0)
+    if key == ("Menzel", "eq. 3"):
+        T = rng.normal(size=(3, 20, 3)) * 1e-3
+        assert np.allclose(fn(T), formula(T), rtol=1e-12)
+    elif key == ("Zell", "eq. 1"):
+        r, vis = rng.uniform(size=(4, 15)), rng.uniform(size=15)
+        for alpha in (0.0, 0.2, 0.5, 0.9):
+            assert np.allclose(fn(r, vis, alpha), formula(r, vis, alpha), rtol=1e-12)
+    else:
+        mag = rng.uniform(0.1, 1.0, size=(4, 15))
+        assert np.allclose(fn(mag), formula(mag), rtol=1e-12)

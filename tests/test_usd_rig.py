@@ -320,9 +320,6 @@ def _bad_cases():
         "duplicate names": (_set("/Avatar/Head", "skel:blendShapes",
                                  Vt.TokenArray(["jawOpen", "jawOpen", "x"])),
                             RigError, "/Avatar/Head", "duplicate"),
-        "same ARKit name twice": (_set("/Avatar/Head", "skel:blendShapes",
-                                       Vt.TokenArray(["jawOpen", "JawOpen", "x"])), RigError, "/Avatar/Head",
-                                  "same ARKit shape"),
         "metersPerUnit 0": (bad_units(0.0), InputFileError, None, "metersPerUnit"),
         "metersPerUnit negative": (bad_units(-1.0), InputFileError, None, "metersPerUnit"),
         "upAxis X": (lambda s: s.SetMetadata("upAxis", "X"), InputFileError, None, "upAxis"),
@@ -331,7 +328,7 @@ def _bad_cases():
 
 BAD = ["no SkelRoot", "no blend shapes", "blendShapes vs targets", "target not a BlendShape",
        "offsets vs pointIndices", "dense offsets count", "index out of range", "NaN points", "NaN offsets",
-       "empty mesh", "face with 2 vertices", "duplicate names", "same ARKit name twice", "metersPerUnit 0",
+       "empty mesh", "face with 2 vertices", "duplicate names", "metersPerUnit 0",
        "metersPerUnit negative", "upAxis X"]
 
 

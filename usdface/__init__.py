@@ -14,6 +14,7 @@ _API = {
     "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
     "write_retarget_map", "personalize_batch", "check", "inspect_file",
 }
+_API |= {"write_review", "export_avatar"}  # usdface review / usdface export
 
 
 def __getattr__(name):

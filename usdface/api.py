@@ -44,12 +44,14 @@ __all__ = [
 METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 
-def read_avatar(path: PathLike) -> Avatar:
+def read_avatar(path: PathLike, name_map: dict | PathLike | None = None) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, converted to metres / Y up, ARKit names
-    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`)."""
+    canonicalised (see :func:`usdface.io.usd_rig.read_avatar`). ``name_map``: the studio's
+    ``{"studio_channel": "arkitName"}`` dict or a JSON / CSV file of them, for channels usdface does not
+    recognise (:mod:`usdface.io.name_map`)."""
     from .io.usd_rig import read_avatar as _read
 
-    return _read(path)
+    return _read(path, name_map=name_map)
 
 
 def read_capture(path: PathLike) -> Capture:
@@ -340,7 +342,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     start = time.perf_counter()
     take_data = read_take(take) if take is not None else None  # a bad take fails before any work
-    avatar = avatar_path if not isinstance(avatar_path, str | Path) else read_avatar(avatar_path)
+    avatar = (avatar_path if not isinstance(avatar_path, str | Path)
+              else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)
     read_s = time.perf_counter() - start
     result = _personalize(avatar, capture, out_path, **options)
@@ -488,19 +491,127 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
-          rules: Iterable[str] | None = None) -> list[Issue]:
+          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
-    OpenUSD's own validators, merged and sorted errors first (``usdface check``). Never modifies the file."""
+    OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
+    :func:`read_avatar`. Never modifies the file."""
+    from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
+    name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | Path):
-        return validate_file(file_or_stage, pixar=pixar, rules=rules)
-    return validate_stage(file_or_stage, pixar=pixar, rules=rules)
+        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
 
 
-def inspect_file(path: PathLike) -> dict:
+def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
-    name report, provenance."""
+    how each channel maps to ARKit (``name_map`` as for :func:`read_avatar`), provenance."""
     from .inspect import inspect_file as _inspect
 
-    return _inspect(path)
+    return _inspect(path, name_map=name_map)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# review and delivery (usdface review / usdface export)
+# ---------------------------------------------------------------------------------------------------------
+__all__ += ["write_review", "export_avatar"]
+
+
+def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike | Capture | None = None,
+                 take: PathLike | None = None, fit_errors: bool = True, force: bool = False) -> Path:
+    """Write the review page of a usdface layer (``usdface review``): ONE self-contained HTML file (plotly.js
+    and the mesh data inside, no network needed to view it) with generic | personalized side by side, a
+    slider per shape, presets, a change heat map (mm), the landmarks when the layer has them, playback of
+    the capture's test expressions and of ``take`` (Live Link Face CSV or USD take), and the fit's figures.
+
+    ``capture`` defaults to the capture recorded in the layer's provenance (when it still exists); with
+    ``fit_errors`` the generic template and the refitted personalized shapes are scored on its test
+    expressions (eq. 5). Returns the path written (atomically; an existing file needs ``force``, checked
+    before any work)."""
+    from .errors import InputFileError, OutputExistsError
+    from .io.atomic import write_text_atomic
+    from .review.collect import collect_review
+    from .review.page import build_review_html
+
+    out = Path(out_path)
+    if out.suffix.lower() not in (".html", ".htm"):
+        raise InputFileError("the review page must be an .html file", path=out,
+                             fix="name it e.g. review.html")
+    if out.is_dir():
+        raise InputFileError("output path is a directory", path=out, fix="give a file name, e.g. review.html")
+    if out.exists() and not force:
+        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    if take is not None and not Path(take).exists():
+        raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
+    data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+    return write_text_atomic(out, build_review_html(data))
+
+
+def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
+                  flatten: PathLike | None = None, variant: str = "personalized", skin: bool = True,
+                  force: bool = False) -> dict[str, Path]:
+    """Deliver one variant (``personalized`` or ``generic``) of a usdface layer (``usdface export``):
+
+    * ``gltf``: glTF 2.0 (``.glb`` or ``.gltf``), one morph target per shape, names in
+      ``mesh.extras.targetNames``, metres, Y up, with the skin and skeleton when ``skin`` and the avatar has
+      joints (see :mod:`usdface.io.gltf`);
+    * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
+      ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``);
+    * ``flatten``: one flattened USD file with the variant baked in
+      (:func:`usdface.io.flatten.flatten_variant`).
+
+    Every output is checked before any work (an existing one needs ``force``) and written atomically; the
+    inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
+    usdface layer) exports as authored with ``variant="personalized"``."""
+    from .errors import UsdFaceError
+    from .io.atomic import check_output_dir, replace_dir_atomically
+    from .io.flatten import VARIANTS, flatten_variant, read_avatar_variant
+    from .io.gltf import GLTF_EXTENSIONS, write_gltf
+    from .io.layers import check_output_path
+    from .io.mesh_io import write_obj
+    from .model import FaceRig as _FaceRig
+
+    if variant not in VARIANTS:
+        raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+    if not (gltf or obj_dir or flatten):
+        raise UsdFaceError("nothing to export",
+                           fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
+    if gltf:
+        from .errors import InputFileError, OutputExistsError
+
+        if Path(gltf).suffix.lower() not in GLTF_EXTENSIONS:
+            raise InputFileError("a glTF output must end in .glb or .gltf", path=gltf,
+                                 fix="name it e.g. out.glb")
+        if Path(gltf).exists() and not force:
+            raise OutputExistsError("output exists", path=gltf, fix="pass --force to replace it")
+    if obj_dir:
+        check_output_dir(obj_dir, force)
+    if flatten:
+        check_output_path(flatten, force)
+    done: dict[str, Path] = {}
+    if gltf or obj_dir:
+        avatar = read_avatar_variant(layer_path, variant)
+        rigs = list(avatar.meshes) + [
+            _FaceRig(points, tris, [], [], name=prim.rsplit("/", 1)[-1])
+            for prim, (points, tris) in sorted(avatar.metadata.get("static_meshes", {}).items())]
+        if gltf:
+            from .io.usd_skeleton import read_gltf_skin
+
+            skeleton = read_gltf_skin(layer_path, avatar) if skin else None
+            root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
+            extras = {"usdface": {"source": Path(layer_path).name, "variant": variant}}
+            done["gltf"] = Path(write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras,
+                                           force=force))
+        if obj_dir:
+            with replace_dir_atomically(obj_dir, force=force) as tmp:
+                for rig in rigs:
+                    folder = tmp / rig.name
+                    folder.mkdir()
+                    write_obj(folder / "neutral.obj", rig.neutral, rig.triangles)
+                    for name, delta in zip(rig.names, rig.deltas, strict=True):
+                        write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles)
+            done["obj_dir"] = Path(obj_dir)
+    if flatten:
+        done["flatten"] = Path(flatten_variant(layer_path, flatten, variant, force=force))
+    return done

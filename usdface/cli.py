@@ -18,7 +18,7 @@ from .errors import UsdFaceError
 #: Sub-command modules, in the order ``usdface --help`` lists them.
 COMMAND_MODULES = (
     "personalize", "fit", "evaluate", "retarget", "landmarks", "inspect", "check", "capture", "anim",
-    "sample", "render", "batch",
+    "sample", "render", "batch", "review", "export",
 )
 
 

@@ -71,11 +71,32 @@ def names_vs_arkit(names, report: dict | None = None) -> dict:
     report = report or {}
     present = [n for n in arkit.ARKIT_NAMES if n in names]
     extra = [n for n in names if n not in arkit.ARKIT_SET]
+    lost = {given for given, _c, _k in report.get("conflicts", [])}  # mean a shape another channel has
     missing = [n for n in arkit.ARKIT_NAMES if n not in names]
     return {"present": len(present), "missing": missing,
             "missingRequired": [n for n in missing if n not in arkit.OPTIONAL_NAMES],
-            "extra": extra, "misspelt": _misspellings(extra),
+            "extra": extra, "misspelt": _misspellings([n for n in extra if n not in lost]),
             "renamed": [{"given": g, "canonical": c, "how": h} for g, c, h in report.get("inexact", [])]}
+
+
+def channel_mapping(rig: FaceRig, report: dict) -> list[dict]:
+    """How each channel of ``rig`` was mapped to ARKit: ``[{"channel", "arkit" (or None), "how", "label"}]``
+    in channel order, ``how`` one of :data:`usdface.arkit.HOW_LABELS` (``label`` its words); a channel that
+    lost to a better one for the same shape also names ``"kept"`` (the channel that has it)."""
+    rows = report.get("channels")
+    if rows is None:  # a rig not read by usd_rig (or an older report): the names are what they are
+        tokens = rig.source.channel_tokens if rig.source and rig.source.channel_tokens else rig.names
+        rows = [(t, n if n in arkit.ARKIT_SET else None, "exact" if t == n and n in arkit.ARKIT_SET
+                 else ("unknown" if n not in arkit.ARKIT_SET else "spelling"))
+                for t, n in zip(tokens, rig.names, strict=True)]
+    kept = {given: k for given, _c, k in report.get("conflicts", [])}
+    out = []
+    for given, canonical, how in rows:
+        row = {"channel": given, "arkit": canonical, "how": how, "label": arkit.HOW_LABELS.get(how, how)}
+        if given in kept:
+            row["kept"] = kept[given]
+        out.append(row)
+    return out
 
 
 def _mesh_summary(rig: FaceRig, report: dict) -> dict:
@@ -93,6 +114,7 @@ def _mesh_summary(rig: FaceRig, report: dict) -> dict:
         "boundsMetres": [lo.round(4).tolist(), hi.round(4).tolist()],
         "arkit": names_vs_arkit(rig.names, report), "storage": shape_storage(rig),
         "channelTokens": list(src.channel_tokens) if src else list(rig.names),
+        "channels": channel_mapping(rig, report),
     }
 
 
@@ -134,13 +156,19 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
     return out
 
 
-def inspect_file(path) -> dict:
+def inspect_file(path, name_map=None) -> dict:
     """Inspect an avatar / usdface layer (.usd, .usda, .usdc) or a capture (folder or capture.usda).
+
+    ``name_map``: the studio's {channel: ARKit name} dict or JSON / CSV file, used to read an avatar
+    (:func:`usdface.io.usd_rig.read_avatar`); validated first, also for a capture.
 
     Raises the readers' :class:`usdface.errors.UsdFaceError` subclasses on unreadable input.
     """
     import usdface.io as io
 
+    from .io.name_map import read_name_map
+
+    name_map = read_name_map(name_map)
     path = Path(path)
     if path.is_dir():
         return summarize_capture(io.read_capture(path))
@@ -151,7 +179,7 @@ def inspect_file(path) -> dict:
         "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
     if is_capture and hasattr(io, "read_capture"):
         return summarize_capture(io.read_capture(path), info)
-    return summarize_avatar(read_avatar(path), info)
+    return summarize_avatar(read_avatar(path, name_map=name_map), info)
 
 
 def _names_line(label: str, items, limit: int = 12) -> str:
@@ -190,7 +218,8 @@ def format_report(report: dict) -> str:
                 f"{k} @ " + "/".join(f"{b['weight']:g}" for b in v) for k, v in st["inbetweens"].items()))
         if st["zeroShapes"]:
             lines.append(_names_line("zero shapes", st["zeroShapes"]))
-        lines += _arkit_lines(mesh["arkit"])
+        lines += _arkit_lines(mesh["arkit"], renamed=not mesh.get("channels"))
+        lines += _channel_lines(mesh.get("channels", []))
     if report.get("provenance"):
         prov = report["provenance"]
         lines.append(f"  usdface layer: version {prov.get('version')}, command {prov.get('command')!r}, "
@@ -203,7 +232,7 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _arkit_lines(a: dict) -> list[str]:
+def _arkit_lines(a: dict, renamed: bool = True) -> list[str]:
     lines = [f"    ARKit: {a['present']}/52 present"]
     if a["missing"]:
         lines.append(_names_line("missing", a["missing"]))
@@ -211,7 +240,25 @@ def _arkit_lines(a: dict) -> list[str]:
         lines.append(_names_line("extra (not ARKit)", a["extra"]))
     if a["misspelt"]:
         lines.append(_names_line("misspelt?", [f"{k} -> {v}" for k, v in a["misspelt"].items()]))
-    if a["renamed"]:
+    if a["renamed"] and renamed:
         lines.append(_names_line("renamed", [f"{r['given']} -> {r['canonical']} ({r['how']})"
                                              for r in a["renamed"]], 6))
+    return lines
+
+
+def _channel_lines(channels: list[dict]) -> list[str]:
+    """How the channels were mapped: the exact ones counted, every other one listed with how."""
+    if not channels:
+        return []
+    exact = sum(c["how"] == "exact" for c in channels)
+    lines = [f"    channel names: {exact} of {len(channels)} exact ARKit names"]
+    for c in channels:
+        if c["how"] == "exact":
+            continue
+        if c["arkit"]:
+            lines.append(f"      {c['channel']} -> {c['arkit']} ({c['label']})")
+        elif c.get("kept"):
+            lines.append(f"      {c['channel']}: unmapped, same shape as {c['kept']!r} (kept)")
+        else:
+            lines.append(f"      {c['channel']}: unmapped (not an ARKit shape; map it with --name-map)")
     return lines

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
+from . import add_name_map_option
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -15,6 +17,7 @@ def register(subparsers) -> None:
     p.add_argument("file", help="USD file (.usd, .usda, .usdc)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--no-pixar", action="store_true", help="run only usdface's face-rig rules")
+    add_name_map_option(p)
     p.add_argument("--rules", help="comma-separated usdface rule ids to run (default: all)")
     p.add_argument("--strict", action="store_true", help="warnings also make the exit status non-zero")
     p.add_argument("--quiet", "-q", action="store_true", help="hide info-level findings in the text report")
@@ -25,7 +28,7 @@ def run(args) -> int:
     from ..api import check
 
     rules = [r.strip() for r in args.rules.split(",") if r.strip()] if args.rules else None
-    issues = check(args.file, pixar=not args.no_pixar, rules=rules)
+    issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map)
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
     failed = counts["error"] > 0 or (args.strict and counts["warning"] > 0)
     if args.json:

@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from . import say_warning
+from . import add_name_map_option, say_warning
 from .options import nonnegative_float, positive_float, positive_int, unit_float, vector3
 
 
@@ -18,6 +18,7 @@ def register(subparsers) -> None:
                     "optimum, and write it as a USD layer over the avatar (a Points prim + mesh primvars).")
     p.add_argument("avatar", help="avatar USD file (UsdSkel, blend shapes)")
     p.add_argument("--mesh", help="mesh prim name or path (default: most shapes, then most vertices)")
+    add_name_map_option(p)
     p.add_argument("--epsilon", type=positive_float, default=0.5,
                    help="relative-displacement threshold, (0,1]")
     p.add_argument("--alpha", type=unit_float, default=0.5, help="displacement vs visibility weight, [0,1]")
@@ -70,7 +71,7 @@ def run(args) -> int:
     for out, suffix in ((args.json_out, ".json"), (args.plot, ".png")):
         if out:
             check_output_file(out, args.force, suffixes=(suffix,), inputs=[args.avatar])
-    avatar = api.read_avatar(args.avatar)
+    avatar = api.read_avatar(args.avatar, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation

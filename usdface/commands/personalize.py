@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from . import say_warning
+from . import add_name_map_option, say_warning
 from .options import nonnegative_float, positive_float, reg_value
 
 
@@ -31,6 +31,7 @@ def add_transfer_options(p) -> None:
                    help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
                         "over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
@@ -42,7 +43,7 @@ def transfer_kwargs(args) -> dict:
         pass
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
             "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
-            "eyelids": not args.no_eyelids}
+            "eyelids": not args.no_eyelids, "name_map": args.name_map}
 
 
 def register(subparsers) -> None:
@@ -55,6 +56,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: "
                                           "<avatar name>.personalized.usda in the current folder)")
     p.add_argument("--force", action="store_true", help="overwrite the output")
+    p.add_argument("--face-mesh", metavar="PRIM",
+                   help="prim name or path of the face mesh (default: the mesh the capture's shapes "
+                        "move most)")
     p.add_argument("--dry-run", action="store_true",
                    help="compute and print what would change; write nothing")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -68,6 +72,8 @@ def register(subparsers) -> None:
     p.add_argument("--take", metavar="FILE",
                    help="append this take to the inspection animation: a Live Link Face CSV, a USD take or "
                         "an OBJ-sequence take folder (implies --inspect)")
+    p.add_argument("--review", action="store_true",
+                   help="also write the review page (usdface review) beside the layer: <layer>.review.html")
     p.set_defaults(func=run)
 
 
@@ -85,9 +91,16 @@ def run(args) -> int:
         progress.set_enabled(False)
     out = Path(args.output) if args.output else _default_output(args.avatar)
     inspect = bool(args.inspect or args.landmarks or args.take)
+    if args.review and not args.dry_run:  # refuse an existing review page before the work, like the layer
+        from ..errors import OutputExistsError
+        from .review import default_output
+
+        if default_output(out).exists() and not args.force:
+            raise OutputExistsError("review page exists", path=default_output(out), fix="pass --force")
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
-                                landmarks=args.landmarks, take=args.take, **transfer_kwargs(args))
+                                landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
+                                **transfer_kwargs(args))
     rep = result.report
     if args.json:
         doc = {k: v for k, v in rep.items() if k != "name_report"}
@@ -125,6 +138,13 @@ def run(args) -> int:
             extra = " + landmark Points" if args.landmarks else ""
             extra += f" + take {args.take}" if args.take else ""
             print(f"inspection: change heat map (displayColor), test-expression SkelAnimation{extra}")
+    if args.review and not args.dry_run and result.out_path:
+        from ..api import write_review
+        from .review import default_output
+
+        page = write_review(result.out_path, default_output(result.out_path), capture=args.capture,
+                            take=args.take, force=args.force)
+        print(f"review page: {page} ({page.stat().st_size / 1e6:.1f} MB)")
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from . import add_name_map_option
 from .options import finite_float
 
 
@@ -20,6 +21,7 @@ def register(subparsers) -> None:
     p.add_argument("--shapes", help="comma-separated shape names (default: the shapes that move most)")
     p.add_argument("--weight", type=finite_float, default=1.0, help="weight of each drawn shape (default 1)")
     p.add_argument("--view", choices=("front", "left", "right"), default="front")
+    add_name_map_option(p)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--compare", nargs="?", const="", metavar="GENERIC",
                       help="side by side with the generic avatar (default: the file a usdface layer is over)")
@@ -61,7 +63,7 @@ def run(args) -> int:
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
-    avatar = api.read_avatar(path)
+    avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks:
         from ..errors import LandmarkError
@@ -76,7 +78,7 @@ def run(args) -> int:
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
         generic_path = _generic(args, path)
-        generic = api.pick_mesh(api.read_avatar(generic_path), rig.name)
+        generic = api.pick_mesh(api.read_avatar(generic_path, args.name_map), rig.name)
         if args.compare is not None:
             render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
                                      force=args.force, title=f"{rig.name}: generic vs personalized")

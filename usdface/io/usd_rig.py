@@ -14,9 +14,11 @@ What is read, the UsdSkel way:
 * meshes without blend shapes under a SkelRoot (eyes, teeth, props): points and fan triangles only, placed
   the same way, in ``Avatar.metadata["static_meshes"] = {prim path: (points[n,3] internal metres,
   triangles[t,3])}`` (the eyelid repair needs the eyeballs); an unusable one is skipped with a note;
-* names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names`, the BlendShape prim
-  name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); every inexact mapping is
-  recorded in ``Avatar.name_report``.
+* names: channel tokens mapped to the ARKit 52 with :func:`usdface.arkit.match_names` (a studio name map
+  first, then the spellings studios ship: ``eye_blink_left``, ``Eye_Blink_L``, Character Creator names, DCC
+  suffixes and node prefixes such as ``eyeBlinkLeft.001`` / ``blendShape1.eyeBlinkLeft``), the BlendShape
+  prim name as fallback (Blender renames a second mesh's tokens ``eyeBlinkLeft2``...); how every channel was
+  mapped is recorded in ``Avatar.name_report``; of two channels meaning one shape the better mapping keeps it.
 
 Every malformed input raises a :class:`usdface.errors.UsdFaceError` subclass naming the file, the prim and the
 fix; nothing is half-read.
@@ -240,7 +242,7 @@ def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None
 
 
 def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
-               skinning=None, snapped: list | None = None) -> tuple:
+               skinning=None, snapped: list | None = None, name_map: dict | None = None) -> tuple:
     """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
     prim) when joint influences bind it to a skeleton."""
     from pxr import UsdSkel
@@ -268,12 +270,13 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
     neutral = points @ linear.T + to_internal[:3, 3]
 
     shape_prims = [stage.GetPrimAtPath(t) for t in targets]
-    match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims])
-    if match.duplicates:
+    match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims],
+                              name_map=name_map, resolve=True)
+    if match.duplicates:  # only when a channel left unmapped is itself named as another channel's shape
         clash = [t for t, c in zip(tokens, match.canonical, strict=True) if c in match.duplicates]
         raise RigError(f"shape names map to the same ARKit shape twice: {', '.join(match.duplicates)} "
                        f"(tokens {', '.join(clash)})", path=path, prim=prim,
-                       fix="rename or remove the duplicate blend shapes")
+                       fix="rename or remove the duplicate blend shapes, or fix the --name-map")
 
     deltas = np.zeros((len(tokens), n, 3))
     point_indices, normal_offsets, inbetweens = [], [], {}
@@ -347,7 +350,8 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
         face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
     report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
-              "missing": list(match.missing)}
+              "missing": list(match.missing), "conflicts": [list(x) for x in match.conflicts],
+              "channels": [list(x) for x in match.channels]}
     return rig, report
 
 
@@ -368,7 +372,7 @@ def _has_blend_shapes(prim) -> bool:
                 or binding.GetBlendShapeTargetsRel().GetTargets())
 
 
-def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
+def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
 
     Parameters
@@ -376,6 +380,9 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     path : .usd/.usda/.usdc file (the root layer of the avatar).
     snap_transforms : remove float32 export noise from the meshes' world transforms (:func:`snap_transform`;
         a DCC round trip then reads to the same numbers as the original); each snapped mesh gets a note.
+    name_map : {studio channel: ARKit name} dict, or a JSON / CSV file of them
+        (:func:`usdface.io.name_map.read_name_map`), validated before the file is opened; tried before the
+        built-in spellings (:func:`usdface.arkit.match_name`).
 
     Returns
     -------
@@ -384,7 +391,10 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings,
     ``static_meshes``: {prim path: (points[n,3] metres Y up, triangles[t,3])} for every mesh under a SkelRoot
     without blend shapes) and
-    ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing}).
+    ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing, conflicts:
+    [[token, canonical, kept token]], channels: [[token, canonical or None, how]] for every channel}). When
+    two channels of a mesh mean the same ARKit shape the better mapping keeps it (exact, name map,
+    spelling, ...: :func:`usdface.arkit.match_names`) and the other keeps its own name, with a note.
 
     Raises
     ------
@@ -393,10 +403,13 @@ def read_avatar(path, *, snap_transforms: bool = True) -> Avatar:
     """
     from pxr import Tf
 
+    from .name_map import read_name_map
+
+    name_map = read_name_map(name_map)
     path = Path(path)
     stage = _open_stage(path)
     try:
-        return _read_avatar_stage(stage, path, snap_transforms)
+        return _read_avatar_stage(stage, path, snap_transforms, name_map)
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
@@ -456,7 +469,8 @@ def refuse_usdface_output(path) -> None:
                    fix=f"pass the original avatar ({original})")
 
 
-def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True) -> Avatar:
+def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
+                       name_map: dict | None = None) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
     _refuse_non_avatar(stage, path)
@@ -512,9 +526,18 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True) -> Avata
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
         prim, skel_root, skeleton, anim, skinning = found[key]
         rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning,
-                                snapped)
+                                snapped, name_map)
         meshes.append(rig)
         report[key] = entry
+        for token, canonical, kept in entry["conflicts"]:
+            notes.append(f"{key}: channel {token!r} also means {canonical!r}, which {kept!r} maps to better; "
+                         f"{token!r} is kept under its own name and not personalized")
+    if name_map:
+        forms = {t for m in meshes for t in m.source.channel_tokens}
+        forms |= {bare for t in list(forms) for bare, _ in arkit.undecorated(t)}
+        unused = [k for k in name_map if k not in forms]
+        if unused:
+            notes.append(f"name map entries that match no channel: {', '.join(unused)}")
     static_meshes = {}
     for key in sorted(static, key=lambda k: order.get(k, len(order))):
         prim, skinning = static[key]

@@ -68,11 +68,12 @@ def candidate_sets(r: np.ndarray, epsilon: float) -> np.ndarray:
 
 
 def landmark_quality(r: np.ndarray, visibility: np.ndarray, alpha: float) -> np.ndarray:
-    """Quality q_n^k = alpha r_n^k + (1 - alpha) l_n (Zell & McDonnell 2022, eq. 1, as a quality in [0, 1]).
+    """Quality q_n^k = (1 - alpha) r_n^k + alpha l_n (Zell & McDonnell 2022, eq. 1, as a quality in [0, 1]).
 
     ``r[K, n]`` relative displacement, ``visibility[n]`` global visibility l_n in [0, 1] -> ``q[K, n]``.
+    ``alpha`` weighs the visibility, as in the paper (``alpha = 0``: displacement only; 1: visibility only).
     The paper's importance weight is the negated form ``2 - q`` (small = good); see
     :mod:`usdface.landmarks.cover`.
     """
     a = check_alpha(alpha)
-    return a * np.asarray(r, dtype=np.float64) + (1.0 - a) * np.asarray(visibility, dtype=np.float64)[None, :]
+    return (1.0 - a) * np.asarray(r, dtype=np.float64) + a * np.asarray(visibility, dtype=np.float64)[None, :]

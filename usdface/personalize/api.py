@@ -15,13 +15,16 @@ from ..model import Capture, FaceRig
 from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
-from .fit import D_CLAMP, PositionFit, blend, fit_blendshapes, regularization_weights
+from .fit import D_CLAMP, PositionFit, blend, fit_blendshapes, loo_residuals, regularization_weights
 from .weights import reestimate_weights
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
 
 #: Methods of :func:`fit_personalized_shapes`.
 METHODS = ("dt", "ebfr", "menzel", "laplacian")
+
+#: Prior widths (std of the phone's weight error) tried by ``weight_sigma="auto"``.
+WEIGHT_SIGMAS = (0.01, 0.02, 0.05)
 
 #: A shape whose largest training weight is below this is "never activated".
 ACTIVATION_MIN = 0.05
@@ -107,8 +110,8 @@ _single_threaded_blas = single_threaded_blas
 @_single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
-                            clamp: float = D_CLAMP, weight_sigma: float = 0.05, rounds: int = 2,
-                            **options) -> FitResult:
+                            clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
+                            avatar_prior=None, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -125,11 +128,29 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         D_j of eq. (3) always come from the DT shapes.
     align : robust rigid pre-alignment of every training frame (menzel/laplacian/ebfr): each frame is aligned
         to its leave-one-out prediction (the fit on the other frames), twice, on the moving vertices
-        (:mod:`.align`). Where frames are already aligned this is a no-op. Default: on, except with
-        ``reg="paper"`` (the paper's method as published).
+        (:mod:`.align`) - if it generalises: a transform estimated on one spatial half of the face must lower
+        the other half's leave-one-out residual (:func:`_alignment_generalises`), otherwise the frames are
+        left as they are (``info["align"]["applied"]``). Default: on, except with ``reg="paper"``.
     reweight : alternate the shape fit with re-estimating each training frame's weights (bounded to [0,1],
-        anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`).
+        anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`) - if it
+        helps by a spatially split cross-validation (:func:`_reweight_helps`), else a no-op
+        (``info["reweight"]["applied"]``). ``weight_sigma="auto"`` picks the prior width from
+        :data:`WEIGHT_SIGMAS` by the same criterion. Shapes the phone never activates keep its weights.
         Default: on, except with ``reg="paper"``.
+    avatar_prior : optional ``deltas[K,n,3]`` (metres, capture frame, ``capture.names`` order): the avatar's
+        own generic shapes mapped onto the capture mesh; a row of NaN = the avatar lacks that shape. With
+        ``prior="auto"`` (the default with ``reg="auto"``) the candidates for T_j of eq. (2) are today's
+        blend of DT and template (alpha in {0, 1/2, 1}) and the avatar prior (the blend where it is NaN),
+        each with its own CV-tuned ``reg``; the exact leave-one-frame-out criterion picks one. The choice is
+        one for all shapes, not per shape: a per-shape choice among {DT, template, blend, avatar} (the LOO
+        error is an exact quadratic in the one-hot choice; minimising it shape by shape was tried) overfits
+        the selection - on dev3 it lowered the LOO error but left the truth error at 0.44 mm, where the one
+        global choice reaches 0.21 mm. The fit still falls back per shape where the data are silent: eq. (2)
+        holds the shapes (and the combinations of shapes) the frames do not determine at the prior, and a
+        shape with zero weight in every frame is returned as its prior exactly. The capture template is
+        another artist's rig, so there the avatar's own shape is the safe fall-back (transferring it back onto
+        the avatar changes nothing). ``prior="avatar"`` forces it (DT where NaN), with any ``reg``.
+        Menzel/laplacian only.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
@@ -137,6 +158,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
     Returns a :class:`FitResult`. Raises FitError / GeometryError on unusable input (see
     :func:`check_capture`); warnings are in ``result.info["warnings"]`` and issued as ``UserWarning``.
+    For menzel/laplacian ``info`` also holds ``prior_choice`` (list[str] per shape: "dt", "template", "blend"
+    (``prior_alpha`` DT + rest template when no avatar prior is given) or "avatar") and ``shape_confidence``
+    (``[K]`` in [0, 1]: how much the capture determines each shape, the diagonal of the hat matrix
+    ``A_v^-1 W^T W`` of eqs. (1)+(2) for that shape - the fraction of ``b_vj`` that follows the frames rather
+    than the prior - averaged over vertices with weights ``|T_vj|^2`` of the DT shape, at the chosen ``reg``
+    with the phone's weights: 0 for a shape with zero training weight, ~1 for a shape isolated at weight 1
+    in clean data; :meth:`usdface.personalize.fit.PositionFit.data_share`).
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
@@ -146,8 +174,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
-    if prior not in ("auto", "dt", "template") or (prior == "auto" and not auto):
-        raise FitError(f"bad prior {prior!r}", fix="use 'dt', 'template', or 'auto' (with reg='auto')")
+    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
+        raise FitError(f"bad prior {prior!r}",
+                       fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
+    avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
     t0 = time.perf_counter()
     warn = check_capture(capture)
@@ -165,7 +195,16 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     elif method == "ebfr":
         from .ebfr import ebfr_blendshapes
         if align:
-            points = _align_frames(capture.neutral, points, weights, generic, info, timings)
+            D = regularization_weights(generic, clamp=clamp)
+            cand = _cv_vertices(D)
+            pf = PositionFit(capture.neutral[cand], points[:, cand], weights, generic[:, cand], D[:, cand])
+            reg_a, _ = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand)
+            helps, test = _alignment_generalises(pf, points[:, cand], reg_a, info)
+            info["align"] = {"applied": helps, "held_out_rmse_mm": test, "passes": 0,
+                             "max_rotation_deg": 0.0, "max_translation_mm": 0.0}
+            if helps:
+                points = _align_frames(capture.neutral, points, weights, generic, info, timings,
+                                       cv={"fit": pf, "vertices": cand}, reg=reg_a, D=D)
         t1 = time.perf_counter()
         deltas = ebfr_blendshapes(capture.neutral, capture.triangles, points, weights, tmpl.neutral,
                                   tmpl.deltas, generic, names=capture.names, eyelids=eyelids,
@@ -174,19 +213,51 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     else:
         D = regularization_weights(generic, clamp=clamp)
         alt = tmpl.deltas if prior == "auto" else None
-        lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info, timings)
+        K = len(capture.names)
+        main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
+        if prior == "avatar":
+            main = np.where(avatar_ok[:, None, None], avatar, generic)
+        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings)
+        prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main
+        choice = None
+        per_shape = False                      # a prior other than alpha * DT + (1 - alpha) * template
+        if avatar is not None and prior == "auto":
+            lam, prior_deltas, choice, per_shape = _choose_priors(capture, generic, avatar, avatar_ok, lam,
+                                                                  alpha, info, timings)
         if align:
-            for _ in range(2):
+            cv = info.get("crossval")
+            if cv is None or "fit" not in cv:
+                cand = _cv_vertices(D)
+                pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
+                                 D[:, cand])
+                info["crossval"] = {"fit": pf, "vertices": cand}
+            else:
+                pf, cand = cv["fit"], cv["vertices"]
+                pf.set_prior(prior_deltas[:, cand])
+            helps, test = _alignment_generalises(pf, points[:, cand], lam, info)
+            info["align"] = {"applied": helps, "held_out_rmse_mm": test, "passes": 0,
+                             "max_rotation_deg": 0.0, "max_translation_mm": 0.0}
+            for _ in range(2 if helps else 0):
                 points = _align_frames(capture.neutral, points, weights, generic, info, timings,
-                                       cv=info.get("crossval"), reg=lam, alpha=alpha, D=D, alt=tmpl.deltas)
+                                       cv=info.get("crossval"), reg=lam, prior_deltas=prior_deltas, D=D,
+                                       alt=tmpl.deltas, alpha=alpha)
                 if auto:
                     cv = info["crossval"]
                     cv["fit"].set_points(points[:, cv["vertices"]])
-                    # re-tune around the previous choice only (same blend, +-1 decade)
-                    lam, alpha = _balance(reg, capture.neutral, points, weights, generic, D, alt, prior, info,
-                                          timings, fit=cv["fit"], vertices=cv["vertices"],
-                                          grid=np.log10(lam) + np.array([-1.0, 0.0, 1.0]), alphas=(alpha,))
-        prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else generic
+                    # re-tune around the previous choice only (same prior, +-1 decade)
+                    lam, a2 = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info,
+                                       timings, fit=cv["fit"], vertices=cv["vertices"],
+                                       grid=np.log10(lam) + np.array([-1.0, 0.0, 1.0]), alphas=(alpha,),
+                                       keep_prior=per_shape)
+                    if not per_shape:
+                        alpha = a2
+                    info["prior_alpha"] = alpha
+        if choice is None:
+            choice = (["avatar" if ok else "dt" for ok in avatar_ok] if prior == "avatar"
+                      else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
+        info["prior_choice"] = choice
+        info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
+                                                     info)
         solve = _make_solver(method, capture, D, prior_deltas, options)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
@@ -194,24 +265,143 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         w_cur = weights
         if reweight:
             t1 = time.perf_counter()
-            for _ in range(rounds):
-                res = points - capture.neutral[None] - blend(w_cur, deltas)
-                w_cur = reestimate_weights(capture.neutral, deltas, points, weights,
-                                           anchor=float(np.mean(res ** 2)) / weight_sigma ** 2)
-                deltas = solve(points, w_cur, lam)
-            info["reweight"] = {"rounds": rounds, "weight_sigma": weight_sigma,
+            # shapes the phone never activates keep its weights: the geometry cannot tell them from the
+            # residual of the others, and their prior must stay what the fit returns
+            frozen = weights.max(axis=0) < ACTIVATION_MIN
+            lo = np.where(frozen[None], weights, 0.0)
+            hi = np.where(frozen[None], weights, 1.0)
+
+            def reestimate(neutral, P, fit_fn, deltas, sigma, last_fit=True):
+                """``rounds`` alternations of weight re-estimation (prior std ``sigma``) and the shape fit
+                ``fit_fn(w)``; returns the weights and the shapes fitted with them (None without
+                ``last_fit``)."""
+                w = weights
+                for r in range(rounds):
+                    res = P - neutral[None] - blend(w, deltas)
+                    w = reestimate_weights(neutral, deltas, P, weights, anchor=float(np.mean(res ** 2))
+                                           / sigma ** 2, lower=lo, upper=hi)
+                    deltas = fit_fn(w) if last_fit or r < rounds - 1 else None
+                return w, deltas
+
+            first: dict = {}
+
+            def reestimate_on(v, sigma):
+                def fit_v(w):
+                    return fit_blendshapes(capture.neutral[v], points[:, v], w, prior_deltas[:, v], D[:, v],
+                                           lam)
+                key = v.tobytes()
+                if key not in first:
+                    first[key] = fit_v(weights)
+                return reestimate(capture.neutral[v], points[:, v], fit_v, first[key], sigma,
+                                  last_fit=False)[0]
+
+            sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
+            sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate_on,
+                                         sigmas)
+            if sigma is not None:
+                w_cur, deltas = reestimate(capture.neutral, points, lambda w: solve(points, w, lam), deltas,
+                                           sigma)
+                info["train_weights"] = w_cur
+            info["reweight"] = {"rounds": rounds, "weight_sigma": sigma, "applied": sigma is not None,
+                                "held_out_rmse_mm": loo,
                                 "mean_abs_change": float(np.abs(w_cur - weights).mean()),
                                 "max_abs_change": float(np.abs(w_cur - weights).max())}
-            info["train_weights"] = w_cur
             timings["reweight"] = time.perf_counter() - t1
         res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
+        if not info["crossval"]:
+            del info["crossval"]
     timings["total"] = time.perf_counter() - t0
     rig = FaceRig(capture.neutral, capture.triangles, list(capture.names), deltas, name="FaceMask")
     return FitResult(rig, info)
+
+
+_BLEND_NAME = {1.0: "dt", 0.0: "template"}
+
+
+def _check_avatar_prior(avatar_prior, capture, method, prior):
+    """Validate ``avatar_prior[K,n,3]``: returns ``(deltas with NaN rows zeroed, available[K])`` or
+    ``(None, None)``."""
+    if avatar_prior is None:
+        if prior == "avatar":
+            raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
+        return None, None
+    if method not in ("menzel", "laplacian"):
+        raise FitError(f"avatar_prior is not used by method {method!r}",
+                       fix="use it with menzel or laplacian, or drop it")
+    if prior in ("dt", "template"):
+        raise FitError(f"avatar_prior given but prior={prior!r} ignores it",
+                       fix="use prior='auto' (with reg='auto') or 'avatar'")
+    a = np.asarray(avatar_prior, dtype=np.float64)
+    K, n = len(capture.names), len(capture.neutral)
+    if a.shape != (K, n, 3):
+        raise FitError(f"avatar_prior has shape {a.shape}, expected {(K, n, 3)} (shapes, vertices, 3)",
+                       fix="map the avatar's generic shapes onto the capture mesh, in capture.names order")
+    fin = np.isfinite(a).reshape(K, -1)
+    ok = fin.all(axis=1)
+    partial = ~ok & fin.any(axis=1)
+    if partial.any():
+        bad = [capture.names[k] for k in np.flatnonzero(partial)]
+        raise FitError(f"avatar_prior rows partly non-finite: {', '.join(bad[:5])}",
+                       fix="a shape the avatar lacks must be a whole row of NaN")
+    return np.where(ok[:, None, None], a, 0.0), ok
+
+
+def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timings):
+    """The avatar prior (today's blend where it lacks a shape) against the CV-chosen blend of DT and template,
+    by the same leave-one-frame-out criterion, each at its own CV-tuned ``reg``, on the prepared fit (no new
+    decomposition). Returns ``(reg, prior_deltas[K,n,3], choice names, avatar_won)``."""
+    t1 = time.perf_counter()
+    cv = info["crossval"]
+    pf, cand = cv["fit"], cv["vertices"]
+    tmpl = capture.template.deltas
+    blend_prior = alpha * generic + (1.0 - alpha) * tmpl
+    fallback = _BLEND_NAME.get(alpha, "blend")
+    av = np.where(avatar_ok[:, None, None], avatar, blend_prior)
+    pf.set_prior(av[:, cand])
+    lam_av, cv_av = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand,
+                                          keep_prior=True)
+    scores = {fallback: cv["loo_rmse_best_mm"], "avatar": cv_av["loo_rmse_best_mm"]}
+    info["prior_search"] = {"loo_rmse_mm": scores, "reg": {fallback: lam, "avatar": lam_av}}
+    K = len(capture.names)
+    won = scores["avatar"] < scores[fallback]
+    if won:
+        cv_av["alpha"] = alpha
+        info["crossval"] = cv_av
+        info["reg"] = lam = lam_av
+        prior, choice = av, ["avatar" if ok else fallback for ok in avatar_ok]
+    else:
+        pf.set_prior_mix(alpha)
+        prior, choice = (blend_prior if alpha < 1.0 else generic), [fallback] * K
+    timings["prior"] = time.perf_counter() - t1
+    return lam, prior, choice, won
+
+
+def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info):
+    """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
+    cv = info.get("crossval")
+    if cv is not None and "fit" in cv:
+        pf, cand = cv["fit"], cv["vertices"]
+    else:
+        cand = _cv_vertices(D)
+        pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
+    share = pf.data_share(lam)                                               # [m,K]
+    w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
+    w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
+    return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
+
+
+def _cv_vertices(D, max_vertices=300, seed=0):
+    """The deterministic vertex subsample of :func:`choose_regularization` (moving vertices)."""
+    idx = np.arange(D.shape[1])
+    moving = D.min(axis=0) < 1e5
+    cand = idx[moving] if moving.any() else idx
+    if len(cand) > max_vertices:
+        cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
+    return cand
 
 
 def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None,
@@ -220,8 +410,7 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
     t1 = time.perf_counter()
     alpha = {"dt": 1.0, "template": 0.0}.get(prior, 1.0)
     if isinstance(reg, str) and reg == "auto":
-        gen = generic if prior != "template" else alt
-        lam, cv = choose_regularization(neutral, points, weights, gen, D,
+        lam, cv = choose_regularization(neutral, points, weights, generic, D,
                                         alt_deltas=alt if prior == "auto" else None, fit=fit,
                                         vertices=vertices, **search)
         if prior == "auto":
@@ -242,8 +431,68 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
     return lam, alpha
 
 
+def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas):
+    """Cross-validated decision on the weight re-estimation and its prior width, by spatially separated
+    halves of the (subsampled) vertices (either side of the neutral's centroid along its two principal axes).
+    The position fit is separable per vertex, so weights re-estimated from one half (``reestimate(vertex
+    indices, sigma)``) are independent of the other half's data; there, the fit with those weights predicts
+    every held-out frame (exact leave-one-frame-out) with the *phone's* weights - as the test frames and every
+    later use of the rig are driven - and is compared with the fit on the phone's weights. Each prior width in
+    ``sigmas`` is scored; the best is kept if it beats the phone's weights (sigma -> 0, no re-estimation).
+    Returns ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out LOO RMSE)``."""
+    cv = info.get("crossval")
+    cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D)
+    nb = capture.neutral[cand] - capture.neutral[cand].mean(axis=0)
+    splits = []
+    for ax in np.linalg.svd(nb, full_matrices=False)[2][:2]:
+        side = nb @ ax > 0
+        splits += [(cand[side], cand[~side]), (cand[~side], cand[side])]
+    e = {"phone": 0.0, **{sg: 0.0 for sg in sigmas}}
+    n_res = 0
+    for a, b in splits:
+        args = (capture.neutral[b], points[:, b], prior_deltas[:, b], D[:, b])
+        e["phone"] += float(np.sum(loo_residuals(args[0], args[1], weights, args[2], args[3], lam) ** 2))
+        for sg in sigmas:
+            res = loo_residuals(args[0], args[1], reestimate(a, sg), args[2], args[3], lam,
+                                predict_weights=weights)
+            e[sg] += float(np.sum(res ** 2))
+        n_res += points[:, b].size
+    best = min(e, key=e.get)
+    scores = {(k if k == "phone" else f"sigma={k:g}"): float(np.sqrt(v / n_res) * 1000) for k, v in e.items()}
+    return (None if best == "phone" else float(best)), scores
+
+
+def _alignment_generalises(pf, points, reg, info):
+    """Cross-validated decision on the rigid alignment, by spatially separated halves of the (subsampled)
+    vertices: a head misalignment is one rigid motion of the whole face, so a transform estimated on one half
+    (each frame to its leave-one-out prediction, :func:`rigid_align`) must also lower the other half's
+    leave-one-out residual; a "motion" fitted to model error in one region (the lips' non-linear motion, say)
+    does not carry over to the other. Halves: either side of the neutral's centroid along its two principal
+    axes (top/bottom and left/right of a face), four estimates in all. ``points[F,m,3]`` on ``pf``'s vertices.
+    Returns ``(helps, {"aligned", "original"} held-out RMSE in mm)``."""
+    pf.set_points(points)
+    target = points - pf.loo_residuals(reg)
+    nb = pf.neutral - pf.neutral.mean(axis=0)
+    axes = np.linalg.svd(nb, full_matrices=False)[2][:2]
+    before = after = 0.0
+    count = 0
+    for ax in axes:
+        side = nb @ ax > 0
+        for half in (side, ~side):
+            est, out = np.flatnonzero(half), np.flatnonzero(~half)
+            if len(est) < 6 or len(out) == 0:
+                continue
+            moved, _, _ = rigid_align(points, target, est)
+            before += float(np.sum((points[:, out] - target[:, out]) ** 2))
+            after += float(np.sum((moved[:, out] - target[:, out]) ** 2))
+            count += points[:, out].size
+    count = max(count, 1)
+    return bool(after < before), {"aligned": float(np.sqrt(after / count) * 1000),
+                                  "original": float(np.sqrt(before / count) * 1000)}
+
+
 def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, reg=None, alpha=1.0, D=None,
-                  alt=None):
+                  alt=None, prior_deltas=None):
     """Rigidly align every frame to its leave-one-out prediction on (a subsample of) the moving vertices."""
     t1 = time.perf_counter()
     if D is None:
@@ -257,16 +506,19 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
     pf.set_points(points[:, cand])
-    pf.set_prior_mix(alpha)
+    if prior_deltas is not None:
+        pf.set_prior(prior_deltas[:, cand])
+    else:
+        pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
     _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-    prev = info.get("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})
-    info["align"] = {"vertices": int(len(cand)), "passes": prev["passes"] + 1,
+    prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})
+    prev.update({"vertices": int(len(cand)), "passes": prev["passes"] + 1,
                      "max_rotation_deg": prev["max_rotation_deg"] + float(ang.max()),
-                     "max_translation_mm": prev["max_translation_mm"] + float(np.linalg.norm(tr, axis=1).max()
-                                                                             * 1000)}
+                 "max_translation_mm": prev["max_translation_mm"] + float(np.linalg.norm(tr, axis=1).max()
+                                                                         * 1000)})
     timings["align"] = timings.get("align", 0.0) + time.perf_counter() - t1
     return aligned
 

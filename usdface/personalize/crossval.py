@@ -47,7 +47,7 @@ def _minimise_log(fun, grid, refine_steps):
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
                           max_vertices: int = 300, grid=REG_GRID, refine_steps: int = 6,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
-                          alphas=None) -> tuple[float, dict]:
+                          alphas=None, keep_prior: bool = False) -> tuple[float, dict]:
     """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).
 
     Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`; ``alt_deltas[K,n,3]`` an optional second
@@ -55,7 +55,8 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     ``generic_deltas``, 1 without alternative), "grid", "loo_rmse_mm" (at the chosen alpha),
     "loo_rmse_best_mm", "vertices" (indices used), "fit" (the prepared PositionFit on them)}``.
     Pass ``fit`` and ``vertices`` from a previous call (after :meth:`PositionFit.set_points`) to skip the
-    decomposition; ``alphas`` restricts the prior blends tried.
+    decomposition; ``alphas`` restricts the prior blends tried; ``keep_prior`` searches ``reg`` only, with the
+    prior ``fit`` holds (e.g. a per-shape choice, :meth:`PositionFit.set_prior`).
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     if fit is None:
@@ -72,19 +73,20 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     pf, cand = fit, vertices
     grid = np.asarray(grid, dtype=np.float64)
     # coarse grid for every prior blend, then golden-section refinement of reg for the best blend
-    coarse = []
-    for alpha in ((alphas or PRIOR_MIX) if pf.z_alt is not None else (1.0,)):
+    if keep_prior:
+        alpha = float("nan")
+    else:
+        coarse = []
+        for alpha in ((alphas or PRIOR_MIX) if pf.z_alt is not None else (1.0,)):
+            pf.set_prior_mix(alpha)
+            errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
+            coarse.append((float(errs.min()), alpha, errs))
+        _, alpha, _ = min(coarse, key=lambda r: r[0])
         pf.set_prior_mix(alpha)
-        errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
-        coarse.append((float(errs.min()), alpha, errs))
-    _, alpha, _ = min(coarse, key=lambda r: r[0])
-    pf.set_prior_mix(alpha)
     g, err, errs = _minimise_log(lambda x: pf.loo_error(10.0 ** x), grid, refine_steps)
-    results = [(err, alpha, g, errs)]
-    err, alpha, g, errs = min(results, key=lambda r: r[0])
-    pf.set_prior_mix(alpha)
     reg = float(10.0 ** g)
     return reg, {"reg": reg, "alpha": float(alpha), "grid": (10.0 ** grid).tolist(),
                  "loo_rmse_mm": (np.sqrt(errs) * 1000).tolist(),
                  "loo_rmse_best_mm": float(np.sqrt(err) * 1000),
                  "vertices": cand, "fit": pf}
+

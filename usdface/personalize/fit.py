@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["regularization_weights", "fit_blendshapes", "PositionFit", "blend", "project"]
+__all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -75,6 +75,36 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     return B.transpose(1, 0, 2)
 
 
+def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
+                  reg_weights: np.ndarray, reg: float, predict_weights=None) -> np.ndarray:
+    """Exact leave-one-frame-out residuals ``[F,n,3]`` (metres) of eqs. (1)+(2) at one ``reg``, by one batched
+    solve per vertex (cheaper than :class:`PositionFit`'s eigen-decomposition when only one ``reg`` is
+    needed). Arrays as in :func:`fit_blendshapes`; ``predict_weights[F,K]`` as in
+    :meth:`PositionFit.loo_residuals`."""
+    W = np.asarray(weights, dtype=np.float64)
+    R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
+    T = np.asarray(generic_deltas, dtype=np.float64)
+    L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                               # [n,K]
+    n, K = L.shape
+    F = len(W)
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    idx = np.arange(K)
+    A[:, idx, idx] += L
+    rhs = np.concatenate([project(W, R) + L[:, :, None] * T.transpose(1, 0, 2),
+                          np.broadcast_to(W.T, (n, K, F))], axis=2)                  # [n,K,3+F]
+    X = np.linalg.solve(A, rhs)
+    b, G = X[:, :, :3], X[:, :, 3:]                                                 # b_v, A^-1 W^T
+    fitted = np.matmul(W[None], b).transpose(1, 0, 2)                               # [F,n,3]
+    h = np.einsum("fk,nkf->fn", W, G)
+    e = (R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+    if predict_weights is None:
+        return e
+    Pw = np.asarray(predict_weights, dtype=np.float64)
+    pred = np.matmul(Pw[None], b).transpose(1, 0, 2)
+    cross = np.einsum("fk,nkf->fn", Pw, G)
+    return R - pred + cross[:, :, None] * e
+
+
 class PositionFit:
     """Menzel et al. (2022), eqs. (1)-(2) prepared for many regularisation strengths.
 
@@ -103,6 +133,7 @@ class PositionFit:
             T = np.asarray(T, dtype=np.float64)
             return np.matmul(np.swapaxes(self.U, 1, 2), D[:, :, None] * T.transpose(1, 0, 2))
 
+        self._prior_coef = prior_coef
         self.z_main = prior_coef(generic_deltas)
         self.z_alt = None if alt_deltas is None else prior_coef(alt_deltas)
         self.z = self.z_main
@@ -119,6 +150,20 @@ class PositionFit:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
         self.z = self.z_main if self.z_alt is None else alpha * self.z_main + (1.0 - alpha) * self.z_alt
 
+    def set_prior(self, prior_deltas) -> None:
+        """Use the prior ``prior_deltas[K,n,3]`` (eq. 2's T_j, on this fit's vertices) from now on."""
+        self.z = self._prior_coef(prior_deltas)
+
+    def data_share(self, reg: float) -> np.ndarray:
+        """Per vertex and shape, the share of the fitted shape determined by the frames rather than the prior:
+        the diagonal of ``A_v^-1 W^T W`` (``A_v = W^T W + reg L_v``), ``[n,K]`` in [0, 1].
+
+        Since ``b_v = A_v^-1 W^T r_v + A_v^-1 reg L_v t_v`` and the two matrices sum to the identity, entry
+        ``(v, j)`` is how much of ``b_vj`` follows the data (1) rather than the prior (0): 0 for a shape with
+        zero training weight, -> 1 for a shape isolated in a frame as ``reg`` -> 0. In the eigenbasis it is
+        ``sum_k U_jk^2 s_k / (s_k + reg)`` (the per-shape effective degrees of freedom)."""
+        return np.einsum("njk,nk->nj", self.U ** 2, self.s / (self.s + reg))
+
     def _coef(self, reg: float) -> np.ndarray:
         return (self.y + reg * self.z) / (self.s + reg)[:, :, None]          # [n,K,3]
 
@@ -126,13 +171,25 @@ class PositionFit:
         """Deltas ``[K,n,3]`` minimising E_fit + reg * E_reg."""
         return np.matmul(self.M, self._coef(reg)).transpose(1, 0, 2)
 
-    def loo_residuals(self, reg: float) -> np.ndarray:
+    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
-        other frames, ``e_i / (1 - h_ii)``."""
+        other frames, ``e_i / (1 - h_ii)``.
+
+        ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
+        phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison)."""
         # fitted frames W b_v = (W L^-1/2 U) coef_v = q_v coef_v: one batched product, b_v never formed
-        fitted = np.matmul(self.q, self._coef(reg)).transpose(1, 0, 2)       # [F,n,3]
-        h = np.einsum("fnk,nk->fn", self.q2, 1.0 / (self.s + reg))          # [F,n]: w_i^T A^-1 w_i
-        return (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        coef = self._coef(reg)
+        fitted = np.matmul(self.q, coef).transpose(1, 0, 2)                  # [F,n,3]
+        inv = 1.0 / (self.s + reg)
+        h = np.einsum("fnk,nk->fn", self.q2, inv)                            # [F,n]: w_i^T A^-1 w_i
+        e = (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        if predict_weights is None:
+            return e
+        qp = np.matmul(np.asarray(predict_weights, dtype=np.float64)[None], self.M)   # [n,F,K]
+        pred = np.matmul(qp, coef).transpose(1, 0, 2)                        # p_i^T b
+        cross = np.einsum("nfk,nfk,nk->fn", qp, self.q, inv)                 # p_i^T A^-1 w_i
+        return self.R - pred + cross[:, :, None] * e
 
     def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
         """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""

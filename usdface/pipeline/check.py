@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import ARKIT_NAMES, ARKIT_SET, OPTIONAL_NAMES, match_name, match_names
+from ..arkit import ARKIT_NAMES, ARKIT_SET, HOW_LABELS, OPTIONAL_NAMES, match_name, match_names
 
 ERROR, WARNING, INFO = "error", "warning", "info"
 SEVERITIES = (ERROR, WARNING, INFO)
@@ -98,10 +98,15 @@ def _rule(rule_id: str, doc: str):
     return deco
 
 
-def check(stage, rules: Iterable[str] | None = None) -> list[Issue]:
+#: Rules that take the studio's channel-name map (``name_map=`` {channel: ARKit name}).
+_NAME_MAP_RULES = {"ArkitNames"}
+
+
+def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
-    ``rules`` selects rule ids from :data:`RULES` (default: all). Never modifies the stage.
+    ``rules`` selects rule ids from :data:`RULES` (default: all); ``name_map`` ({studio channel: ARKit name},
+    :func:`usdface.io.name_map.read_name_map`) is used by the name rule. Never modifies the stage.
     """
     chosen = list(RULES) if rules is None else list(rules)
     unknown = [r for r in chosen if r not in RULES]
@@ -113,7 +118,8 @@ def check(stage, rules: Iterable[str] | None = None) -> list[Issue]:
     for rule_id in chosen:
         if rule_id == "Readable" and any(i.severity == ERROR for i in issues):
             continue  # the reader would only repeat a finding already made
-        issues.extend(RULES[rule_id][0](stage))
+        fn = RULES[rule_id][0]
+        issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map else fn(stage))
     return sort_issues(issues)
 
 
@@ -306,23 +312,25 @@ def _close_arkit(name: str) -> str | None:
 
 
 @_rule("ArkitNames", "ARKit names canonical, unique per mesh, complete per skeleton (tongueOut optional)")
-def _arkit_names(stage) -> Iterable[Issue]:
+def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
     UsdSkel = _skel()
     per_skeleton: dict[str, set[str]] = {}
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
         path = _path(prim)
         fallbacks = [t.name for t in targets] if len(targets) == len(names) else None
-        match = match_names(names, fallbacks)
+        match = match_names(names, fallbacks, name_map)
         for given, canonical, how in match.inexact:
-            if how == "spelling":
+            if how in ("spelling", "alias", "name-map"):
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is a non-canonical spelling of "
-                            f"{canonical!r}",
+                            f"{canonical!r} ({HOW_LABELS[how]})",
                             f"rename to {canonical!r} for tools that only know Apple's names")
             else:
-                suffix = match_name(given)[1] == "suffix"
+                bare = match_name(given)[1]
+                reason = {"suffix": "a DCC numeric suffix", "prefix": "a DCC node or namespace prefix"}.get(
+                    bare, "only its target prim is named so")
                 yield Issue(WARNING, "ArkitNames", path, f"channel {given!r} looks like {canonical!r} "
-                            f"({'a DCC numeric suffix' if suffix else 'only its target prim is named so'})",
+                            f"({reason})",
                             f"rename the channel to {canonical!r}; drivers that match by name will miss it")
         for given in match.unknown:
             close = _close_arkit(given)
@@ -332,9 +340,11 @@ def _arkit_names(stage) -> Iterable[Issue]:
             else:
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is not an ARKit shape",
                             "fine for extra shapes; usdface keeps it but does not personalize it")
+        kept = {c: k for _g, c, k in match_names(names, fallbacks, name_map, resolve=True).conflicts}
         for dup in sorted(set(match.duplicates)):
             given = [g for g, c in zip(names, match.canonical, strict=True) if c == dup]
-            yield Issue(ERROR, "ArkitNames", path, f"channels {given} all mean {dup!r}",
+            using = f"; usdface uses {kept[dup]!r}" if dup in kept else ""
+            yield Issue(ERROR, "ArkitNames", path, f"channels {given} all mean {dup!r}{using}",
                         "keep one channel per ARKit shape")
         skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
         key = str(skel.GetPath()) if skel else path

@@ -34,10 +34,10 @@ from .surface import (
     vertex_normals,
 )
 
-__all__ = ["Correspondence", "nonrigid_register", "correspondence_map", "geometry_digest",
+__all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
            "save_correspondence", "load_correspondence"]
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 
 
 @dataclass
@@ -49,7 +49,8 @@ class Correspondence:
     ``source_triangle[t_avatar]`` the capture triangle under each avatar face triangle's centroid (-1 for
     triangles not entirely in the face), ``weight[m]`` in [0,1] the face membership (1 = fully face, the
     region's rim ramps down to 0; ``face = weight > 0``), ``key`` the
-    digest it belongs to, ``info`` figures for the report.
+    digest it belongs to, ``info`` figures for the report, ``registered[n,3]`` the capture template deformed
+    onto the avatar face (the inverse map's source).
     """
 
     triangle: np.ndarray
@@ -60,6 +61,7 @@ class Correspondence:
     weight: np.ndarray | None = None
     key: str = ""
     info: dict | None = None
+    registered: np.ndarray | None = None
 
     def matrix(self, capture_triangles, n_capture: int, *, face_only: bool = True,
                rows=None) -> sp.csr_matrix:
@@ -83,15 +85,64 @@ class Correspondence:
         return np.moveaxis(out.reshape(-1, int(np.prod(lead, dtype=int)), c), 1, 0).reshape(*lead, -1, c)
 
 
+class PosedSurface:
+    """Closest points on a triangle surface seen in several poses at once: the neutral ``points[n,3]`` and
+    ``points + deltas_p`` for each ``deltas_p[n,3]`` of ``poses`` (one Open3D scene per pose, built once).
+
+    :meth:`closest_points` takes queries with their own posed offsets and returns, among the closest points
+    found in each pose separately, the one nearest in the stacked space of all poses,
+    ``sum_p |q + dq_p - (s + ds_p)|^2``: a point on the right side of a mouth or an eye that is shut in the
+    neutral. Without poses it is a plain closest-point query. The returned ``closest``/``distance`` are in
+    the neutral pose.
+    """
+
+    def __init__(self, points, triangles, poses=()):
+        self.points = np.asarray(points, dtype=np.float64)
+        self.triangles = np.asarray(triangles)
+        self.poses = [np.asarray(d, dtype=np.float64) for d in poses]
+        self.queries = [SurfaceQuery(self.points, self.triangles)]
+        self.queries += [SurfaceQuery(self.points + d, self.triangles) for d in self.poses]
+
+    def closest_points(self, queries, query_poses=()):
+        """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``, closest in the neutral pose."""
+        q = np.asarray(queries, dtype=np.float64)
+        tri, bary, closest, dist = self.queries[0].closest_points(q)
+        if not self.poses:
+            return tri, bary, closest, dist
+        qp = [q] + [q + np.asarray(d, dtype=np.float64) for d in query_poses]
+        sp_ = [self.points] + [self.points + d for d in self.poses]
+
+        def cost(t, b):
+            corners = self.triangles[t]
+            return sum(np.sum((qq - np.einsum("qk,qkc->qc", b, s[corners])) ** 2, axis=1)
+                       for qq, s in zip(qp, sp_, strict=True))
+
+        best = cost(tri, bary)
+        for k, query in enumerate(self.queries[1:]):
+            t2, b2, _, _ = query.closest_points(qp[k + 1])
+            c2 = cost(t2, b2)
+            better = c2 < best
+            tri, bary, best = np.where(better, t2, tri), np.where(better[:, None], b2, bary), \
+                np.minimum(c2, best)
+        closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
+        return tri, bary, closest, np.linalg.norm(closest - q, axis=1)
+
+
 def nonrigid_register(points, triangles, target_points, target_triangles, *,
                       stiffness=(30.0, 10.0, 3.0, 1.0), iterations_per_level: int = 2,
-                      max_angle_deg: float = 60.0) -> tuple[np.ndarray, dict]:
+                      max_angle_deg: float = 60.0, poses=None) -> tuple[np.ndarray, dict]:
     """Deform ``points[n,3]`` (already rigidly placed) onto the surface ``target_points/triangles``.
 
     Minimises ``alpha^2 ||L (x - x0)||^2 + sum_i w_i ||x_i - c_i||^2`` per iteration with ``c_i`` the closest
     target point of ``x_i`` (weight 0 if farther than 3 mean edge lengths or if the normals disagree by more
     than ``max_angle_deg``), ``L`` the cotangent Laplacian of the template, ``alpha`` relaxed through
     ``stiffness`` (relative to the Laplacian's scale). Returns ``(registered[n,3], info)``.
+
+    ``poses``: semantic guidance, a list of ``(source_deltas[n,3], target_deltas[m,3])`` pairs, the same
+    ARKit shape on both rigs (e.g. ``jawOpen`` and the blinks), in this frame. ``c_i`` is then the target
+    surface point closest to ``x_i`` *in every pose at once* (:class:`PosedSurface`): where the lips or the
+    lids touch in the neutral, the closest point can lie on the wrong lip; posed with the mouth open and the
+    eyes shut, the two sides are centimetres apart.
     """
     x0 = np.asarray(points, dtype=np.float64)
     tri = np.asarray(triangles)
@@ -104,10 +155,12 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
     used = 0.0
-    target = SurfaceQuery(target_points, target_triangles)     # one BVH for every iteration
+    target = PosedSurface(target_points, target_triangles,
+                          [p[1] for p in poses or ()])          # one BVH per pose for every iteration
+    src_poses = [np.asarray(p[0], dtype=np.float64) for p in poses or ()]
     for alpha in stiffness:
         for _ in range(iterations_per_level):
-            t_id, _, c, d = target.closest_points(x)
+            t_id, _, c, d = target.closest_points(x, src_poses)
             nx = vertex_normals(x, tri)
             # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry
             w = _ramp_down(d, 2.0 * edge, 4.0 * edge) * _ramp_up(
@@ -116,7 +169,7 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
             a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
             rhs = (alpha * alpha / scale) * (ltl @ x0) + w[:, None] * c + 1e-8 * x
             x = _solve(a, rhs)
-    t_id, _, c, d = target.closest_points(x)
+    t_id, _, c, d = target.closest_points(x, src_poses)
     return x, {"nonrigid_rms_m": float(np.sqrt(np.mean(d ** 2))), "nonrigid_matched": used, "n": n}
 
 
@@ -126,7 +179,7 @@ def _solve(a, rhs):
 
 def correspondence_map(registered, capture_triangles, avatar_points, avatar_triangles, *,
                        max_distance_ratio: float = 0.5, max_angle_deg: float = 60.0,
-                       candidates=None, exclude_border: bool = True) -> Correspondence:
+                       candidates=None, exclude_border: bool = True, poses=None) -> Correspondence:
     """Closest point on the registered capture surface for every avatar face-mesh vertex, and the face region.
 
     ``registered[n,3]`` the capture template after :func:`nonrigid_register`; ``avatar_points[m,3]``.
@@ -134,12 +187,16 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     ``max_angle_deg``, closest point not on a border edge of the capture (open border, eye and mouth holes),
     and (optionally) ``candidates[m]`` true (e.g. vertices that move in some shape). Each test is a smooth
     ramp around its threshold; their product is ``weight`` and ``face = weight > 0``.
+
+    ``poses``: ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of the same shape on both rigs: the
+    closest point is taken in all poses at once (:class:`PosedSurface`), so that no avatar vertex lands on
+    the other lip or lid.
     """
     reg = np.asarray(registered, dtype=np.float64)
     ctri = np.asarray(capture_triangles)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    surface = SurfaceQuery(reg, ctri)
-    tri, bary, _, dist = surface.closest_points(ap)
+    surface = PosedSurface(reg, ctri, [p[0] for p in poses or ()])
+    tri, bary, _, dist = surface.closest_points(ap, [np.asarray(p[1], dtype=np.float64) for p in poses or ()])
     edge = mean_edge_length(reg, ctri)
     an = vertex_normals(ap, avatar_triangles)
     # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
@@ -173,7 +230,9 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     src_tri = np.full(len(atri), -1, dtype=np.int64)
     in_face = np.flatnonzero(face[atri].all(axis=1))
     if in_face.size:
-        src_tri[in_face] = surface.closest_points(ap[atri[in_face]].mean(axis=1))[0]
+        src_tri[in_face] = surface.closest_points(
+            ap[atri[in_face]].mean(axis=1),
+            [np.asarray(p[1], dtype=np.float64)[atri[in_face]].mean(axis=1) for p in poses or ()])[0]
     info = {"face_vertices": int(face.sum()), "capture_mean_edge_m": edge,
             "face_rms_distance_m": float(np.sqrt(np.mean(dist[face] ** 2))) if face.any() else None}
     return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)
@@ -210,6 +269,8 @@ def save_correspondence(corr: Correspondence, path) -> Path:
         np.savez_compressed(f, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
                             face=corr.face, source_triangle=corr.source_triangle,
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
+                            registered=(corr.registered if corr.registered is not None
+                                        else np.zeros((0, 3))),
                             key=np.array(corr.key), version=np.array(CACHE_VERSION),
                             info=np.array(json.dumps(corr.info or {})))
     return path
@@ -226,7 +287,8 @@ def load_correspondence(path, key: str | None = None) -> Correspondence | None:
                 return None
             return Correspondence(z["triangle"], z["barycentric"], z["distance"], z["face"].astype(bool),
                                   z["source_triangle"], z["weight"], str(z["key"]),
-                                  json.loads(str(z["info"])))
+                                  json.loads(str(z["info"])),
+                                  z["registered"] if len(z["registered"]) else None)
     except (OSError, KeyError, ValueError, EOFError) as exc:
         raise InputFileError(f"not a usdface correspondence cache ({exc})", path=path,
                              fix="delete it or pass another --correspondence file") from None

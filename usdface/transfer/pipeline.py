@@ -35,6 +35,15 @@ from .correspond import (
     save_correspondence,
 )
 from .eyelids import find_eyeballs, repair_eyelids
+from .implant import (
+    avatar_shapes_on_capture,
+    extend_personalization,
+    face_personalization,
+    face_radius,
+    follow_field,
+    is_rigid_part,
+    shape_confidence,
+)
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
 from .register import register_face
 from .retarget import approximate, retarget_weights
@@ -42,9 +51,17 @@ from .retarget import approximate, retarget_weights
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS"]
 
 #: Face-region transfer modes (see :func:`implant_shapes`).
-FACE_TRANSFERS = ("offset", "dt", "dt-offset")
+FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 #: What the adjacent region and the other meshes are blended from / follow.
-APPROXIMATIONS = ("generic", "retarget")
+APPROXIMATIONS = ("field", "generic", "retarget")
+#: Width of the join between the face region and the field beyond, in face radii (about 7 mm on a head).
+SEAM_BAND = 0.1
+#: Effective training weight (sqrt of the shape's precision) below which a shape stays generic, and above
+#: which the capture's version is trusted in full: the phone's weights are uncertain by ~0.03-0.05, so a shape
+#: shown at 0.15 is known to about a third of its amplitude.
+WEAK_SHAPE = (0.15, 0.3)
+#: Priors of the fit (see :func:`personalize_avatar`).
+PRIORS = ("avatar", "template")
 
 
 @dataclass
@@ -98,8 +115,37 @@ def _shape_deltas(rig: FaceRig, names: list[str]) -> np.ndarray:
     return out
 
 
-def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache):
-    key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles)
+#: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
+SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
+
+
+def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tuple[list, list]:
+    """The ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of :data:`SEMANTIC_SHAPES` both rigs move,
+    the capture side in the avatar frame (``transform``) and scaled to the avatar shape's peak motion (two
+    artists' amplitudes differ; only where each side moves matters). Returns ``(pairs, names)``."""
+    pairs, used = [], []
+    for name in SEMANTIC_SHAPES:
+        if name not in names:
+            continue
+        j = names.index(name)
+        t = np.asarray(template_deltas[j], dtype=np.float64)
+        if transform is not None:
+            t = transform.apply_vectors(t)
+        a = np.asarray(avatar_deltas[j], dtype=np.float64)
+        pt, pa = float(np.linalg.norm(t, axis=1).max()), float(np.linalg.norm(a, axis=1).max())
+        if pt <= 0 or pa <= 0:
+            continue
+        pairs.append((t * (pa / pt), a))
+        used.append(name)
+    return pairs, used
+
+
+def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=()):
+    names = list(names)
+    sem = [n for n in SEMANTIC_SHAPES if n in names]
+    key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
+                          *[template_deltas[names.index(n)] for n in sem],
+                          *[avatar_deltas[names.index(n)] for n in sem])
     if cache is not None:
         corr = load_correspondence(cache, key)
         if corr is not None:
@@ -109,8 +155,12 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None)
     placed = reg_t.transform.apply(capture.template.neutral)
-    registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles)
-    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles)
+    poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
+    registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
+                                            poses=poses)
+    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses)
+    corr.registered = registered
+    nr_info["semantic_shapes"] = ",".join(used)
     corr.key = key
     corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
                  "cache": "miss" if cache is not None else "off"}
@@ -185,29 +235,40 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
 
 @single_threaded_blas
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
-                       mu: float = 1e-3, correspondence=None, force: bool = False, dry_run: bool = False,
-                       face_transfer: str = "offset", approximation: str = "generic", falloff: float = 0.15,
+                       mu="auto", correspondence=None, force: bool = False, dry_run: bool = False,
+                       face_transfer: str = "person", approximation: str = "field", falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
-                       rig: FaceRig | None = None,
-                       command: str = "", **fit_options) -> PersonalizeResult:
+                       rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
+                       name_map=None, extension_length: float | None = 1.0, command: str = "", **fit_options
+                       ) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
     Parameters
     ----------
     method, reg, fit_options : step 1, passed to :func:`usdface.personalize.fit_personalized_shapes`.
+    prior : what the fit shrinks the person's shapes towards where the capture does not inform them:
+        ``"avatar"`` (default): the avatar's own generic shapes sampled on the capture mesh, so that a shape
+        the capture barely shows stays the avatar's; ``"template"``: the capture's template rig (the paper).
     rig : skip step 1 and implant this capture-mesh rig (neutral = person's B0, deltas = B_j).
-    mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map.
-    correspondence : cache file (``.npz``) for step 3, reused when it belongs to this avatar face and
-        template (same geometry and topology), rewritten otherwise.
+    name_map : the studio's {channel: ARKit name} map (dict or JSON/CSV file) for reading ``avatar``
+        (:func:`usdface.io.usd_rig.read_avatar`).
+    mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map; ``"auto"`` chooses
+        it by generalized cross-validation on the face rows.
+    correspondence : cache file for step 3, reused when it belongs to this avatar face and template (same
+        geometry, topology and semantic shapes), rewritten otherwise.
     force : overwrite an existing output layer.
-    face_transfer : ``"offset"`` | ``"dt"`` | ``"dt-offset"`` (:func:`implant_shapes`).
-    approximation : ``"generic"`` (default): the adjacent region and the other meshes start from the
-        avatar's own generic shape B~_j; ``"retarget"``: from the eq. (4) approximation A_j (the paper).
-    falloff : width of the seamless join beyond the face, in capture mean edge lengths (screened harmonic
-        blend); 0 = plain harmonic over the whole adjacent region (the paper).
-    support : ``(low, high)`` fractions of each shape's peak motion below which its personalization is not
-        transferred (:func:`usdface.transfer.partial_dt.personalization_support`); None = everywhere.
+    face_transfer : ``"person"`` (default): the face region receives the person's motion,
+        ``A_j + M (B_j - P_j)`` (:func:`usdface.transfer.implant.face_personalization`); the older modes map
+        the deviation from the capture's template: ``"offset"`` (``A_j + M (B_j - T_j)``), ``"dt"`` (the
+        paper's deformation transfer), ``"dt-offset"`` (:func:`implant_shapes`).
+    approximation : beyond the face region and on the other meshes: ``"field"`` (default) the person's motion
+        as a rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`);
+        ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4) approximation A_j (the paper).
+    extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
+        to the generic motion, in face radii (RMS radius of the face region; None = no fade).
+    falloff, support : the join of the older modes (:func:`implant_shapes`).
+    face_mesh : prim path (or name) of the face mesh; default: the mesh the shared ARKit shapes move most.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
         meshes that are eyeballs by name/geometry).
@@ -221,6 +282,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     if approximation not in APPROXIMATIONS:
         raise UsdFaceError(f"unknown approximation {approximation!r}",
                            fix=f"use one of {', '.join(APPROXIMATIONS)}")
+    if prior not in PRIORS:
+        raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
+    if face_transfer == "person" and approximation == "field":
+        pass
+    elif face_transfer == "person" or approximation == "field":
+        raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
+                           "together", fix="use face_transfer='person' with approximation='field' (the "
+                           "default), or one of the older modes with 'generic' or 'retarget'")
     with steps("personalize", 8) as advance:
         t = time.perf_counter()
         if out_path is not None and not dry_run:
@@ -230,35 +299,28 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if not isinstance(avatar, Avatar):
             from ..io.usd_rig import read_avatar
 
-            avatar = read_avatar(avatar)
+            avatar = read_avatar(avatar, name_map=name_map)
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
             capture = read_capture(capture)
+        chosen_face = None
+        if face_mesh:  # checked before the fit
+            from ..io.layers import avatar_mesh
+
+            chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
         timings["read"] = time.perf_counter() - t
         advance("read")
 
-        # 1. fit
-        t = time.perf_counter()
-        fit = None
-        if rig is None:
-            from ..personalize import fit_personalized_shapes
-
-            fit = fit_personalized_shapes(capture, method=method, reg=reg, **fit_options)
-            rig = fit.rig
-            report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
-        timings["fit"] = time.perf_counter() - t
-        advance("fit")
-
         # names: capture shapes vs avatar shapes
-        face = _face_mesh(avatar, [n for n in rig.names])
+        cap_names = list(rig.names) if rig is not None else list(capture.names)
+        face = chosen_face if chosen_face is not None else _pick_face_mesh(avatar, cap_names, None)
         face_prim = face.source.prim if face.source else face.name
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
-        names = [n for n in rig.names if n in face.names]
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
-        names = [n for n in names if n in tmpl_idx]
-        report["capture_shapes_missing_from_avatar"] = [n for n in rig.names if n not in face.names]
-        report["avatar_shapes_missing_from_capture"] = [n for n in avatar_all if n not in rig.names]
+        names = [n for n in cap_names if n in face.names and n in tmpl_idx]
+        report["capture_shapes_missing_from_avatar"] = [n for n in cap_names if n not in face.names]
+        report["avatar_shapes_missing_from_capture"] = [n for n in avatar_all if n not in cap_names]
         if report["capture_shapes_missing_from_avatar"]:
             report["warnings"].append("capture shapes the avatar lacks (skipped): "
                                       + ", ".join(report["capture_shapes_missing_from_avatar"]))
@@ -269,57 +331,125 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
                            path=avatar.file, prim=face_prim,
                            fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
-        b_idx = [rig.index(n) for n in names]
         template_deltas = capture.template.deltas[[tmpl_idx[n] for n in names]]
         avatar_face_deltas = _shape_deltas(face, names)
+        person_neutral0 = rig.neutral if rig is not None else capture.neutral
 
         # 2. registration of the person's neutral
         t = time.perf_counter()
-        registration = register_face(rig.neutral, template_deltas, face.neutral, avatar_face_deltas,
+        registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None)
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()
+        sim = registration.transform
         advance("register")
 
-        # 3. correspondence
+        # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
-        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence)
-        timings["correspond"] = time.perf_counter() - t
+        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
                            path=avatar.file, prim=face_prim,
                            fix="check that the capture and the avatar are faces")
+        semantic, disagree = correspondence_semantics(corr, capture.triangles, names, template_deltas,
+                                                      avatar_face_deltas, corr_transform(corr, sim))
+        report["correspondence"].update(semantic)
+        if semantic["opposing_share"] > 0.02:
+            report["warnings"].append(
+                f"correspondence: {semantic['opposing_share'] * 100:.1f}% of the moving face vertices move "
+                "against the avatar's own generic motion under the mapped template shapes (lips or lids "
+                "swapped?); check the registration")
+        generic_on_capture = None
+        if prior == "avatar" or face_transfer == "person":
+            poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, corr_transform(corr, sim))
+            g_av, _ = avatar_shapes_on_capture(corr.registered, face.neutral, face.triangles,
+                                               avatar_face_deltas, poses=poses)
+            generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
+        timings["correspond"] = time.perf_counter() - t
         advance("correspond")
 
-        # 4. retargeting, eq. (4)
+        # 1. fit (after the correspondence: the avatar's shapes on the capture are its prior)
         t = time.perf_counter()
-        sim = registration.transform
+        fit = None
+        b_names = names
+        if rig is None:
+            from ..personalize import fit_personalized_shapes
+
+            fit_capture = capture
+            if prior == "avatar":
+                fit_capture = _with_template_deltas(capture, names, generic_on_capture)
+            fit = fit_personalized_shapes(fit_capture, method=method, reg=reg, **fit_options)
+            rig = fit.rig
+            report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
+            report["fit"]["prior"] = prior
+        timings["fit"] = time.perf_counter() - t
+        advance("fit")
+        b_idx = [rig.index(n) for n in b_names]
         person_neutral = sim.apply(rig.neutral)
         person_deltas = sim.apply_vectors(rig.deltas[b_idx])
         tmpl_av = sim.apply_vectors(template_deltas)
+
+        # 4. retargeting, eq. (4): the weight map (and the paper's approximations A_j)
+        t = time.perf_counter()
         f = corr.face
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights = retarget_weights(face.deltas[:, f], mb_face, mu=mu)
+        weights, mu_used = retarget_weights(face.deltas[:, f], mb_face, mu=mu, return_mu=True)
+        report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
+                              "weight_max": float(weights.max()) if weights.size else 0.0}
         approx_eq4 = {}
-        for m in avatar.meshes:
-            key = m.source.prim if m.source else m.name
-            approx_eq4[key] = approximate(weights, _shape_deltas(m, k_names))
+        if approximation == "retarget":
+            for m in avatar.meshes:
+                approx_eq4[_key(m)] = approximate(weights, _shape_deltas(m, k_names))
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
 
-        # 5. seamless partial transfer on the face mesh; other meshes follow the approximation
+        # 5. the implant
         t = time.perf_counter()
-        base = {key: (approx_eq4[key] if approximation == "retarget"
-                      else _shape_deltas(m, names)) for key, m in
-                zip(approx_eq4, avatar.meshes, strict=True)}
-        edge = float(corr.info.get("capture_mean_edge_m", 0.0)) * sim.scale if corr.info else 0.0
-        result, adjacent = implant_shapes(
-            face.neutral, face.triangles, corr, capture.triangles, person_neutral, person_deltas, tmpl_av,
-            avatar_face_deltas, base[face_prim], face_transfer=face_transfer,
-            falloff=(falloff * edge if falloff and edge > 0 else None), support=support)
+        other = {}
+        if face_transfer == "person":
+            prior_av = _fit_prior(fit, rig, b_idx, names, capture, generic_on_capture, sim, prior)
+            conf = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
+            report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
+            low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
+            if low:
+                report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
+                                          "shape): " + ", ".join(low))
+            person_face = avatar_face_deltas.copy()
+            person_face[:, f] += conf[:, None, None] * face_personalization(corr, capture.triangles,
+                                                                            person_deltas, prior_av, f)
+            weight = corr.weight if corr.weight is not None else corr.face.astype(float)
+            # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
+            # lip on the other side), the capture is not trusted: the field from the neighbours fills in
+            weight = weight * ~_dilate(disagree, face.triangles, 2)
+            radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
+            length = extension_length * radius if extension_length else None
+            result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
+                                                   person_face, weight, length=length,
+                                                   band=SEAM_BAND * radius)
+            adjacent = (weight < 1.0)[None] & (np.linalg.norm(result - avatar_face_deltas, axis=-1) > 1e-9)
+            eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
+            for m in avatar.meshes:
+                if m is face or _key(m) in eyeballs_static:
+                    continue
+                sub = _shape_deltas(m, names)
+                if _is_eyeball(m):
+                    other[_key(m)] = sub
+                    continue
+                other[_key(m)] = follow_field(m.neutral, sub, face.neutral, pfield,
+                                              rigid=is_rigid_part(m.neutral, sub))
+            report["extension"] = {"length_m": length, "face_radius_m": radius}
+        else:
+            base = {_key(m): (approx_eq4[_key(m)] if approximation == "retarget" else _shape_deltas(m, names))
+                    for m in avatar.meshes}
+            edge = float(corr.info.get("capture_mean_edge_m", 0.0)) * sim.scale if corr.info else 0.0
+            result, adjacent = implant_shapes(
+                face.neutral, face.triangles, corr, capture.triangles, person_neutral, person_deltas, tmpl_av,
+                avatar_face_deltas, base[face_prim], face_transfer=face_transfer,
+                falloff=(falloff * edge if falloff and edge > 0 else None), support=support)
+            other = {k: v for k, v in base.items() if k != face_prim}
         timings["transfer"] = time.perf_counter() - t
         advance("transfer")
 
@@ -330,7 +460,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             eye_meshes = dict(eyes or avatar.metadata.get("static_meshes") or {})
             for m in avatar.meshes:
                 if m is not face:
-                    eye_meshes.setdefault(m.source.prim if m.source else m.name, (m.neutral, m.triangles))
+                    eye_meshes.setdefault(_key(m), (m.neutral, m.triangles))
             found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
             if found:
                 result, repaired = repair_eyelids(face.neutral, result,
@@ -345,19 +475,20 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # offsets for every mesh, in rig.names order; shapes the capture lacks stay generic
         offsets = {}
         for m in avatar.meshes:
-            key = m.source.prim if m.source else m.name
+            key = _key(m)
             new = m.deltas.copy()
-            src = result if m is face else base[key]
-            for j, n in enumerate(names):
-                if n in m.names:
-                    new[m.index(n)] = src[j]
+            src = result if m is face else other.get(key)
+            if src is not None:
+                for j, n in enumerate(names):
+                    if n in m.names:
+                        new[m.index(n)] = src[j]
             offsets[key] = new
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
             "options": {"method": method, "reg": reg, "mu": mu, "face_transfer": face_transfer,
-                        "approximation": approximation, "falloff": falloff, "support": support,
-                        "eyelids": eyelids},
+                        "approximation": approximation, "prior": prior, "extension_length": extension_length,
+                        "falloff": falloff, "support": support, "eyelids": eyelids},
             "name_report": avatar.name_report,
             "changes": _changes(avatar, offsets),
         })
@@ -388,6 +519,128 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     report["timings"] = timings
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
+
+
+def _dilate(mask, triangles, rings: int):
+    from ..mesh import vertex_adjacency
+
+    out = np.asarray(mask, dtype=bool)
+    if not out.any():
+        return out
+    adj = vertex_adjacency(triangles, len(out))
+    for _ in range(rings):
+        out = out | (adj @ out.astype(np.float64) > 0)
+    return out
+
+
+def _key(m: FaceRig) -> str:
+    return m.source.prim if m.source else m.name
+
+
+def _is_eyeball(m: FaceRig) -> bool:
+    return bool(find_eyeballs({_key(m): m.neutral}))
+
+
+def _pick_face_mesh(avatar: Avatar, names: list[str], face_mesh: str | None) -> FaceRig:
+    if face_mesh is None:
+        return _face_mesh(avatar, names)
+    for m in avatar.meshes:
+        if face_mesh in (_key(m), m.name) or _key(m).endswith("/" + face_mesh.lstrip("/")):
+            return m
+    raise RigError(f"no mesh {face_mesh!r} with blend shapes in the avatar", path=avatar.file,
+                   fix="pass one of: " + ", ".join(_key(m) for m in avatar.meshes))
+
+
+def corr_transform(corr, fallback):
+    """The similarity that placed the capture template for ``corr`` (from its info), else ``fallback``."""
+    from .register import Similarity
+
+    reg = (corr.info or {}).get("template_registration")
+    if not reg:
+        return fallback
+    return Similarity(float(reg["scale"]), np.asarray(reg["rotation"]), np.asarray(reg["translation_m"]))
+
+
+def correspondence_semantics(corr, capture_triangles, names, template_deltas, avatar_deltas, transform,
+                             *, moving: float = 0.1) -> dict:
+    """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
+    face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
+    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
+    more than half the peak on one rig and less than a fifth on the other."""
+    f = np.flatnonzero(corr.face)
+    sig_total, opposing, swaps = 0, 0, {}
+    disagree = np.zeros(len(corr.face), dtype=bool)
+    for name in SEMANTIC_SHAPES:
+        if name not in names:
+            continue
+        j = names.index(name)
+        mt = corr.apply(transform.apply_vectors(template_deltas[j])[None], capture_triangles, rows=f)[0]
+        a = np.asarray(avatar_deltas[j])[f]
+        na, nm = np.linalg.norm(a, axis=1), np.linalg.norm(mt, axis=1)
+        pa = max(float(na.max()), 1e-300)
+        pm = max(float(np.linalg.norm(transform.apply_vectors(template_deltas[j]), axis=1).max()), 1e-300)
+        ra, rm = na / pa, nm / pm
+        sig = np.maximum(ra, rm) > moving
+        sig_total += int(sig.sum())
+        opposing += int((sig & (np.einsum("ij,ij->i", a, mt) < 0)).sum())
+        swapped = ((ra > 0.5) & (rm < 0.2)) | ((ra < 0.2) & (rm > 0.5))
+        swaps[name] = int(swapped.sum())
+        disagree[f[swapped]] = True
+    return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
+            **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
+
+
+def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> np.ndarray:
+    """Per-shape trust in the personalization (:func:`usdface.transfer.implant.shape_confidence`): 1 without a
+    cross-validated fit (a given rig, fixed regularization)."""
+    n_shapes = len(b_idx)
+    info = fit.info if fit is not None else {}
+    loo = (info.get("crossval") or {}).get("loo_rmse_best_mm")
+    if loo is None or len(capture.train) == 0:
+        return np.ones(n_shapes)
+    w = np.asarray(info.get("train_weights", capture.train.weights), dtype=np.float64)
+    cap_idx = [list(capture.names).index(rig.names[i]) for i in b_idx]
+    excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
+    diff = np.asarray(person_deltas) - np.asarray(prior_av)
+    mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
+    moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
+    # a shape seen only at a small effective weight (sqrt of its training energy) is known only to a fraction
+    # of its amplitude, whatever the
+    # residuals say (the fit can explain other shapes' non-linear motion with it): ramp to the generic
+    effective = np.sqrt(excitation)
+    t = np.clip((effective - WEAK_SHAPE[0]) / (WEAK_SHAPE[1] - WEAK_SHAPE[0]), 0.0, 1.0)
+    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * t * t * (3.0 - 2.0 * t)
+
+
+def _with_template_deltas(capture: Capture, names, deltas) -> Capture:
+    """A copy of ``capture`` whose template shapes ``names`` are ``deltas[J,n,3]`` (the others unchanged)."""
+    import dataclasses
+
+    tmpl = capture.template
+    new = np.array(tmpl.deltas, dtype=np.float64, copy=True)
+    idx = {n: i for i, n in enumerate(tmpl.names)}
+    for j, n in enumerate(names):
+        new[idx[n]] = deltas[j]
+    return dataclasses.replace(capture, template=dataclasses.replace(tmpl, deltas=new))
+
+
+def _fit_prior(fit, rig, b_idx, names, capture, generic_on_capture, sim, prior):
+    """The prior ``P_j`` the fit shrank each shape towards, in the avatar frame (``[J,n,3]``)."""
+    if fit is None:
+        base = generic_on_capture if generic_on_capture is not None else capture.template.deltas[
+            [capture.template.names.index(n) for n in names]]
+        return sim.apply_vectors(base)
+    positional = fit.info.get("method") in ("menzel", "laplacian")
+    alpha = float(fit.info.get("prior_alpha", 1.0)) if positional else 1.0
+    base = generic_on_capture if prior == "avatar" else capture.template.deltas[
+        [capture.template.names.index(n) for n in names]]
+    if alpha > 0:
+        from ..personalize.dt import deformation_transfer
+
+        tmpl_neutral = capture.template.neutral
+        dt = deformation_transfer(tmpl_neutral, base, capture.neutral, capture.triangles, names=list(names))
+        base = alpha * dt + (1.0 - alpha) * base
+    return sim.apply_vectors(base)
 
 
 def _changes(avatar: Avatar, offsets: dict) -> list[dict]:

@@ -40,6 +40,10 @@ class Similarity:
         """Transform offsets/deltas ``[...,3]`` (linear part only)."""
         return self.scale * np.asarray(vectors) @ self.rotation.T
 
+    def inverse_vectors(self, vectors) -> np.ndarray:
+        """The inverse of :meth:`apply_vectors`: offsets ``[...,3]`` back into the source frame."""
+        return np.asarray(vectors) @ self.rotation / self.scale
+
     def matrix(self) -> np.ndarray:
         """Homogeneous ``[4,4]`` (column vectors)."""
         m = np.eye(4)

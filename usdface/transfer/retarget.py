@@ -17,7 +17,30 @@ import numpy as np
 __all__ = ["retarget_weights", "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
-def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
+def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
+              grid=None) -> float:
+    """Generalized cross-validation (Golub, Heath & Wahba 1979) of the eq. (4) ridge weight, pooled over the
+    targets: ``GCV(mu) = N ||r_mu||^2 / (N - tr H_mu)^2`` with ``N = n_rows`` observations per target, from
+    the Gram matrix's eigenvalues ``[K]``, the targets projected on its eigenvectors ``projected[K,J]`` and
+    the residual outside the shapes' span ``residual_ss``. ``mu`` is relative (see :func:`retarget_weights`).
+    """
+    ev = np.maximum(np.asarray(gram_eigenvalues, dtype=np.float64), 0.0)
+    scale = float(ev.sum()) / max(k, 1)
+    grid = np.logspace(-6, 0, 25) if grid is None else np.asarray(grid)
+    best, best_mu = np.inf, float(grid[0])
+    proj2 = np.sum(np.asarray(projected) ** 2, axis=1)                     # [K] summed over targets
+    for m in grid:
+        lam = m * scale
+        shrink = lam / (ev + lam)
+        rss = float(np.sum(np.where(ev > 0, shrink ** 2 * proj2 / np.maximum(ev, 1e-300), 0.0))) + residual_ss
+        dof = float(np.sum(ev / (ev + lam)))
+        score = rss / max(n_rows - dof, 1e-9) ** 2
+        if score < best:
+            best, best_mu = score, float(m)
+    return best_mu
+
+
+def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False):
     """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i w_i^2`` for every j.
 
     Parameters
@@ -25,7 +48,9 @@ def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
     avatar_deltas : ``[K,m,3]`` the avatar's generic shapes B~_i restricted to the face region (metres).
     targets : ``[J,m,3]`` the personalized capture shapes mapped onto the same vertices, ``M B_j`` (metres).
     mu : ridge weight relative to the shapes' mean squared norm, ``mu' = mu * trace(B~^T B~) / K``, so it is
-        unit- and resolution-free.
+        unit- and resolution-free; ``"auto"`` (default) chooses it by generalized cross-validation over the
+        face rows (:func:`choose_mu`), which bounds the weights where shapes are nearly collinear.
+    return_mu : also return the relative ``mu`` used.
 
     Returns
     -------
@@ -39,9 +64,19 @@ def retarget_weights(avatar_deltas, targets, mu: float = 1e-3) -> np.ndarray:
     # BLAS products: personalize_avatar caps BLAS at one thread (a multi-threaded BLAS on a busy 2-core
     # machine took 1.9 s for this 51 x 20k Gram matrix at load 10; single-threaded it is ~2 ms)
     gram = a @ a.T
-    lam = mu * float(np.trace(gram)) / max(k, 1)
     rhs = a @ t.T  # [K, J]
-    return np.linalg.solve(gram + lam * np.eye(k), rhs).T
+    if isinstance(mu, str):
+        if mu != "auto":
+            raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
+        ev, vec = np.linalg.eigh(gram)
+        proj = vec.T @ rhs                                                   # [K,J]: U^T A t  (= s_i u_i^T t)
+        # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
+        inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None] * (ev > 1e-12 * ev.max())[:, None]))
+        residual = max(float(np.sum(t * t)) - inside, 0.0)
+        mu = choose_mu(ev, proj, residual, a.shape[1], k)
+    lam = float(mu) * float(np.trace(gram)) / max(k, 1)
+    w = np.linalg.solve(gram + lam * np.eye(k), rhs).T
+    return (w, float(mu)) if return_mu else w
 
 
 def approximate(weights, deltas) -> np.ndarray:

@@ -1,0 +1,250 @@
+"""``usdface export``: glTF 2.0 (structure, exact float32 round trip, skin), OBJ per shape, flattened USD."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdface import api
+from usdface.errors import InputFileError, OutputExistsError, UsdFaceError
+from usdface.io.flatten import read_avatar_variant
+from usdface.io.gltf import read_gltf
+from usdface.io.layers import file_digest
+from usdface.io.mesh_io import read_obj
+
+
+@pytest.fixture()
+def layer(personalized_sample) -> Path:
+    return personalized_sample
+
+
+def _rigs(avatar):
+    """{mesh name: (neutral, triangles, names, deltas)} for every mesh, static meshes included."""
+    out = {m.name: (m.neutral, m.triangles, m.names, m.deltas) for m in avatar.meshes}
+    for prim, (points, tris) in avatar.metadata["static_meshes"].items():
+        out[prim.rsplit("/", 1)[-1]] = (points, tris, [], np.zeros((0, len(points), 3)))
+    return out
+
+
+def _validate_gltf(path: Path) -> dict:
+    """A structural check of what usdface writes, after the glTF 2.0 spec: every accessor fits its buffer
+    view, views fit the buffer, POSITION accessors (targets too) carry exact min/max, index values are in
+    range, sparse indices strictly increase, every primitive's targets match its mesh's targetNames and
+    weights."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    doc = json.loads(gltf.to_json())
+    blob = gltf.binary_blob()
+    assert doc["asset"]["version"] == "2.0"
+    assert len(blob) >= doc["buffers"][0]["byteLength"]
+    sizes = {5126: 4, 5125: 4, 5123: 2, 5121: 1}
+    width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+    for bv in doc["bufferViews"]:
+        assert bv.get("byteOffset", 0) % 4 == 0
+        assert bv.get("byteOffset", 0) + bv["byteLength"] <= doc["buffers"][0]["byteLength"]
+    for acc in doc["accessors"]:
+        need = acc["count"] * width[acc["type"]] * sizes[acc["componentType"]]
+        if "bufferView" in acc:
+            assert doc["bufferViews"][acc["bufferView"]]["byteLength"] >= need + acc.get("byteOffset", 0)
+        if "sparse" in acc:
+            sp = acc["sparse"]
+            assert 1 <= sp["count"] <= acc["count"]
+            idx = _read(gltf, blob, sp["indices"]["bufferView"], sp["indices"]["componentType"], sp["count"])
+            assert np.all(np.diff(idx.astype(np.int64)) > 0) and idx.max() < acc["count"]
+    data = read_gltf(path)
+    for mesh in doc["meshes"]:
+        prim = mesh["primitives"][0]
+        assert prim["mode"] == 4
+        pos = doc["accessors"][prim["attributes"]["POSITION"]]
+        n = pos["count"]
+        arrays = data[mesh["name"]]
+        assert pos["type"] == "VEC3" and pos["componentType"] == 5126
+        np.testing.assert_array_equal(pos["min"], arrays["positions"].min(axis=0))
+        np.testing.assert_array_equal(pos["max"], arrays["positions"].max(axis=0))
+        assert doc["accessors"][prim["attributes"]["NORMAL"]]["count"] == n
+        assert doc["accessors"][prim["indices"]]["count"] % 3 == 0
+        assert arrays["indices"].max() < n
+        names = mesh.get("extras", {}).get("targetNames", [])
+        targets = prim.get("targets", [])
+        assert len(targets) == len(names) == len(mesh.get("weights", []))
+        for k, t in enumerate(targets):
+            acc = doc["accessors"][t["POSITION"]]
+            assert acc["count"] == n and acc["type"] == "VEC3"
+            np.testing.assert_array_equal(acc["min"], arrays["targets"][k].min(axis=0))
+            np.testing.assert_array_equal(acc["max"], arrays["targets"][k].max(axis=0))
+    return doc
+
+
+def _read(gltf, blob, view, comp, count):
+    bv = gltf.bufferViews[view]
+    dtype = {5125: np.uint32, 5123: np.uint16}[comp]
+    return np.frombuffer(blob, dtype=dtype, count=count, offset=bv.byteOffset or 0)
+
+
+@pytest.mark.parametrize("variant", ["personalized", "generic"])
+def test_gltf_round_trip_is_exact_float32(layer, tmp_path, variant):
+    out = api.export_avatar(layer, gltf=tmp_path / "a.glb", variant=variant)["gltf"]
+    doc = _validate_gltf(out)
+    data = read_gltf(out)
+    expect = _rigs(read_avatar_variant(layer, variant))
+    assert set(data) == set(expect)
+    for name, (neutral, tris, names, deltas) in expect.items():
+        got = data[name]
+        np.testing.assert_array_equal(got["positions"], neutral.astype(np.float32))
+        np.testing.assert_array_equal(got["indices"], tris)
+        assert got["target_names"] == list(names)
+        np.testing.assert_array_equal(got["targets"], deltas.astype(np.float32))
+    assert doc["scenes"][0]["extras"]["usdface"]["variant"] == variant
+    # the sample's deltas are sparse: the writer stores most targets sparse
+    head = next(m for m in doc["meshes"] if m["name"] == "Head")
+    sparse = sum("sparse" in doc["accessors"][t["POSITION"]] for t in head["primitives"][0]["targets"])
+    assert sparse > len(head["primitives"][0]["targets"]) // 2
+
+
+def test_gltf_variants_differ_and_generic_is_the_input_avatar(layer, samples, tmp_path):
+    gen = read_gltf(api.export_avatar(layer, gltf=tmp_path / "g.glb", variant="generic")["gltf"])
+    per = read_gltf(api.export_avatar(layer, gltf=tmp_path / "p.gltf")["gltf"])  # JSON + data URI
+    source = api.read_avatar(samples / "avatar.usda").mesh("Head")
+    np.testing.assert_array_equal(gen["Head"]["targets"], source.subset(gen["Head"]["target_names"]).deltas
+                                  .astype(np.float32))
+    change = np.abs(per["Head"]["targets"] - gen["Head"]["targets"]).max()
+    assert change > 1e-4  # personalization moved the face by more than 0.1 mm somewhere
+
+
+def test_gltf_skin_matches_the_skeleton(layer, tmp_path):
+    import pygltflib
+
+    out = api.export_avatar(layer, gltf=tmp_path / "s.glb")["gltf"]
+    gltf = pygltflib.GLTF2().load(str(out))
+    assert len(gltf.skins) == 1
+    skin = gltf.skins[0]
+    assert [gltf.nodes[j].name for j in skin.joints] == ["root"]
+    data = read_gltf(out)
+    for name in ("Head", "Mouth", "EyeLeft", "EyeRight"):  # every sample mesh is bound to the root joint
+        np.testing.assert_allclose(data[name]["weights"].sum(axis=1), 1.0, atol=1e-6)
+        assert set(np.unique(data[name]["joints"])) == {0}
+    # rest pose == bind pose: joint world matrix @ inverse bind = identity
+    ibm = np.frombuffer(gltf.binary_blob(), dtype=np.float32, count=16,
+                        offset=gltf.bufferViews[gltf.accessors[skin.inverseBindMatrices].bufferView].byteOffset)
+    world = np.asarray(gltf.nodes[skin.joints[0]].matrix).reshape(4, 4).T
+    np.testing.assert_allclose(world @ ibm.reshape(4, 4).T, np.eye(4), atol=1e-6)
+    no_skin = api.export_avatar(layer, gltf=tmp_path / "n.glb", skin=False)["gltf"]
+    assert not pygltflib.GLTF2().load(str(no_skin)).skins
+
+
+def test_obj_dir_holds_one_full_target_per_shape(layer, tmp_path):
+    out = api.export_avatar(layer, obj_dir=tmp_path / "objs")["obj_dir"]
+    avatar = read_avatar_variant(layer, "personalized")
+    head = avatar.mesh("Head")
+    neutral, tris = read_obj(out / "Head" / "neutral.obj")
+    np.testing.assert_array_equal(neutral, head.neutral)
+    np.testing.assert_array_equal(tris, head.triangles)
+    assert sorted(p.stem for p in (out / "Head").glob("*.obj")) == sorted(["neutral", *head.names])
+    k = head.index("jawOpen")
+    target, _ = read_obj(out / "Head" / "jawOpen.obj")
+    np.testing.assert_allclose(target - neutral, head.deltas[k], rtol=0, atol=1e-12)
+    assert (out / "EyeLeft" / "neutral.obj").is_file()
+
+
+@pytest.mark.parametrize("variant", ["personalized", "generic"])
+def test_flatten_bakes_the_variant(layer, tmp_path, variant):
+    from pxr import Sdf
+
+    before = file_digest(layer)
+    out = api.export_avatar(layer, flatten=tmp_path / "flat.usdc", variant=variant)["flatten"]
+    assert file_digest(layer) == before  # the input is never modified
+    flat_layer = Sdf.Layer.FindOrOpen(str(out))
+    assert not flat_layer.subLayerPaths
+    flat = api.read_avatar(out)
+    expect = read_avatar_variant(layer, variant)
+    for rig in expect.meshes:
+        got = flat.mesh(rig.name)
+        assert got.names == rig.names
+        np.testing.assert_array_equal(got.deltas, rig.deltas)
+        np.testing.assert_array_equal(got.neutral, rig.neutral)
+
+
+def test_export_refuses_and_validates_before_work(layer, tmp_path, samples):
+    glb = tmp_path / "a.glb"
+    glb.write_bytes(b"keep")
+    with pytest.raises(OutputExistsError, match="a.glb"):
+        api.export_avatar(layer, gltf=glb, flatten=tmp_path / "f.usdc")
+    assert glb.read_bytes() == b"keep" and not (tmp_path / "f.usdc").exists()
+    with pytest.raises(InputFileError, match="glb or .gltf"):
+        api.export_avatar(layer, gltf=tmp_path / "a.fbx")
+    with pytest.raises(UsdFaceError, match="nothing to export"):
+        api.export_avatar(layer)
+    with pytest.raises(UsdFaceError, match="unknown variant"):
+        api.export_avatar(layer, gltf=tmp_path / "b.glb", variant="mixed")
+    with pytest.raises(InputFileError, match="not a usdface layer"):
+        api.export_avatar(samples / "avatar.usda", gltf=tmp_path / "c.glb", variant="generic")
+    api.export_avatar(layer, gltf=glb, force=True)
+    assert glb.read_bytes()[:4] == b"glTF"
+
+
+def test_export_cli(layer, tmp_path):
+    cmd = [sys.executable, "-m", "usdface.cli", "export", str(layer), "--gltf", str(tmp_path / "x.glb"),
+           "--variant", "generic"]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "x.glb" in done.stdout and "[generic]" in done.stdout
+    again = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert again.returncode == 2 and "--force" in again.stderr
+
+
+@pytest.mark.shared
+def test_gltf_round_trip_dev1(bench, tmp_path):
+    out_layer = tmp_path / "dev1.usda"
+    api.personalize_avatar(bench / "dev1" / "avatar.usdc", bench / "dev1" / "capture", out_layer, force=True)
+    out = api.export_avatar(out_layer, gltf=tmp_path / "dev1.glb")["gltf"]
+    _validate_gltf(out)
+    data = read_gltf(out)
+    for name, (neutral, _, names, deltas) in _rigs(read_avatar_variant(out_layer, "personalized")).items():
+        np.testing.assert_array_equal(data[name]["positions"], neutral.astype(np.float32))
+        assert data[name]["target_names"] == list(names)
+        np.testing.assert_array_equal(data[name]["targets"],
+                                      deltas.astype(np.float32))
+    joints = data["Head"]["joints"]
+    assert joints.shape == (len(data["Head"]["positions"]), 4)
+
+
+_BPY = Path(os.environ.get("USDFACE_BPY_PYTHON", Path.home() / ".cache" / "bpy-venv" / "bin" / "python"))
+
+_BLENDER_SCRIPT = """
+import json, sys
+import bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=sys.argv[1])
+out = {}
+for ob in bpy.data.objects:
+    if ob.type == "MESH":
+        keys = ob.data.shape_keys
+        out[ob.name] = [k.name for k in keys.key_blocks][1:] if keys else []
+print("USDFACE_JSON " + json.dumps(out))
+"""
+
+
+def test_gltf_imports_in_blender(layer, tmp_path):
+    """Optional: Blender (the ``bpy`` wheel in its own venv, see ../shared/tools/blender_check.py) imports
+    the glTF with the ARKit shape keys. Skips when no such venv exists."""
+    if not _BPY.is_file():
+        pytest.skip(f"no Blender Python at {_BPY} (set USDFACE_BPY_PYTHON; see blender_check.py)")
+    out = api.export_avatar(layer, gltf=tmp_path / "b.glb")["gltf"]
+    script = tmp_path / "check.py"
+    script.write_text(_BLENDER_SCRIPT)
+    done = subprocess.run([str(_BPY), str(script), str(out)], capture_output=True, text=True, check=False,
+                          timeout=300)
+    line = next((x for x in done.stdout.splitlines() if x.startswith("USDFACE_JSON ")), None)
+    assert line, done.stdout[-2000:] + done.stderr[-2000:]
+    keys = json.loads(line.split(" ", 1)[1])
+    head = next(v for k, v in keys.items() if k.startswith("Head"))
+    assert head == read_avatar_variant(layer, "personalized").mesh("Head").names
+    assert shutil.which  # keeps the import used when Blender is absent

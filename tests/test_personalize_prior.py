@@ -1,0 +1,175 @@
+"""The avatar prior of the fit (``avatar_prior``), the per-shape prior report and the shape confidence."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from usdface.errors import FitError
+from usdface.model import Capture, FaceRig, Frames
+from usdface.personalize import fit_personalized_shapes, truth_error
+
+NAMES = ["jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "cheekPuff", "noseSneerLeft"]
+NEVER = [4, 5]          # shapes with weight 0 in every training frame
+
+
+def grid_mesh(nx=9, ny=8):
+    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
+    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel()) + 0.005 * np.cos(30 * ys.ravel())]
+    tris = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
+            tris += [[a, b, d], [a, d, c]]
+    return neutral, np.array(tris)
+
+
+def prior_capture(seed=0):
+    """Clean synthetic capture: the person's shapes = the avatar's generic shapes + a small personal offset
+    (excited shapes) or exactly the avatar's (never-excited shapes); the template is another rig, 1.5 mm off.
+    Shape 0 is isolated at weight 1 in frame 0 (and nowhere else)."""
+    rng = np.random.default_rng(seed)
+    neutral, tris = grid_mesh()
+    K, n = len(NAMES), len(neutral)
+    avatar = rng.normal(size=(K, n, 3)) * 0.002
+    true = avatar + rng.normal(size=(K, n, 3)) * 0.0002
+    true[NEVER] = avatar[NEVER]
+    template = avatar + rng.normal(size=(K, n, 3)) * 0.0015
+    tmpl_neutral = neutral + rng.normal(size=neutral.shape) * 0.0005
+    F = 8
+    W = rng.uniform(0, 1, size=(F, K)) * (rng.uniform(size=(F, K)) < 0.6)
+    W[:, 0] = 0.0
+    W[0] = 0.0
+    W[0, 0] = 1.0
+    W[:, NEVER] = 0.0
+    pts = neutral + np.einsum("fk,knc->fnc", W, true)
+    frames = Frames(pts, W, ["train"] * F, [f"{i:03d}" for i in range(F)])
+    cap = Capture(neutral, tris, FaceRig(tmpl_neutral, tris, list(NAMES), template), frames, list(NAMES),
+                  source="cap.usda")
+    return cap, true, avatar
+
+
+def fit(cap, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")           # "never activated" is expected here
+        return fit_personalized_shapes(cap, **kw)
+
+
+def test_never_excited_shapes_are_exactly_the_avatar_prior():
+    cap, true, avatar = prior_capture()
+    res = fit(cap, avatar_prior=avatar)
+    assert [res.info["prior_choice"][k] for k in NEVER] == ["avatar", "avatar"]
+    assert np.abs(res.rig.deltas[NEVER] - true[NEVER]).max() < 1e-9
+    assert truth_error(res.rig.deltas, true) < 0.5 * truth_error(fit(cap).rig.deltas, true)
+
+
+def test_without_avatar_prior_never_excited_shapes_are_the_chosen_generic_prior():
+    from usdface.personalize.dt import deformation_transfer
+
+    cap, true, avatar = prior_capture()
+    res = fit(cap)
+    dt = deformation_transfer(cap.template.neutral, cap.template.deltas, cap.neutral, cap.triangles,
+                              names=cap.names)
+    a = res.info["prior_alpha"]
+    expect = a * dt + (1 - a) * cap.template.deltas
+    assert res.info["prior_choice"] == [{1.0: "dt", 0.0: "template"}.get(a, "blend")] * len(NAMES)
+    assert np.abs(res.rig.deltas[NEVER] - expect[NEVER]).max() < 1e-9
+    # prior="template" really gives the template there
+    res_t = fit(cap, prior="template", reg=1e-3)
+    assert res_t.info["prior_choice"] == ["template"] * len(NAMES)
+    assert np.abs(res_t.rig.deltas[NEVER] - cap.template.deltas[NEVER]).max() < 1e-9
+
+
+def test_shape_the_avatar_lacks_falls_back_to_the_generic_prior():
+    cap, true, avatar = prior_capture()
+    av = avatar.copy()
+    av[5] = np.nan
+    res = fit(cap, avatar_prior=av)
+    assert res.info["prior_choice"][4] == "avatar" and res.info["prior_choice"][5] != "avatar"
+    assert np.abs(res.rig.deltas[4] - true[4]).max() < 1e-9
+    assert np.all(np.isfinite(res.rig.deltas))
+
+
+def test_shape_confidence_is_zero_without_data_and_one_when_isolated():
+    cap, true, avatar = prior_capture()
+    for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}):
+        conf = fit(cap, **kw).info["shape_confidence"]
+        assert conf.shape == (len(NAMES),) and np.all((conf >= 0) & (conf <= 1))
+        assert np.all(conf[NEVER] < 1e-9)
+        assert conf[0] > 0.9                        # isolated at weight 1, clean data
+
+
+def test_bad_avatar_prior_is_refused():
+    cap, true, avatar = prior_capture()
+    with pytest.raises(FitError, match="shape"):
+        fit(cap, avatar_prior=avatar[:3])
+    part = avatar.copy()
+    part[2, :5] = np.nan
+    with pytest.raises(FitError, match="eyeBlinkLeft"):
+        fit(cap, avatar_prior=part)
+    for kw in ({"method": "dt"}, {"method": "ebfr"}, {"prior": "dt"}):
+        with pytest.raises(FitError, match="avatar_prior"):
+            fit(cap, avatar_prior=avatar, **kw)
+    with pytest.raises(FitError, match="avatar_prior"):
+        fit(cap, prior="avatar")
+
+
+def test_dev3_avatar_prior_beats_the_other_artists_template(bench):
+    """dev3's template is another artist's rig (~1.4 mm off the person). A stand-in for the avatar's generic
+    shapes on the capture: dev1's template (the same ICT avatar's rig sampled on the same capture topology),
+    rotated rigidly onto dev3's neutral. With it the CV picks the avatar prior and the truth error drops
+    below the issue's 0.40 mm (0.53 mm without)."""
+    from usdface.io import read_capture
+    from usdface.personalize.align import kabsch
+
+    if not (bench / "dev3").is_dir():
+        pytest.skip("dev3 not present")
+    c1, c3 = read_capture(bench / "dev1" / "capture"), read_capture(bench / "dev3" / "capture")
+    truth = np.load(bench / "dev3" / "truth" / "capture_truth.npz")
+    assert c1.names == c3.names == list(truth["names"])
+    R, _ = kabsch(c1.template.neutral[None], c3.neutral)
+    prior = np.einsum("ij,knj->kni", R[0], c1.template.deltas)
+    res = fit(c3, avatar_prior=prior)
+    assert set(res.info["prior_choice"]) == {"avatar"}
+    err = truth_error(res.rig.deltas, truth["deltas"])
+    assert err < 0.40
+    assert err < 0.8 * truth_error(fit(c3).rig.deltas, truth["deltas"])
+
+
+def noisy_capture(misalign_deg=0.0, seed=3):
+    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    neutral, tris = grid_mesh(14, 12)
+    K, n = len(NAMES), len(neutral)
+    true = rng.normal(size=(K, n, 3)) * 0.002
+    template = true + rng.normal(size=(K, n, 3)) * 0.0005
+    W = np.vstack([np.eye(K), rng.uniform(0, 0.6, size=(10, K))])
+    pts = neutral + np.einsum("fk,knc->fnc", W, true) + rng.normal(size=(len(W), n, 3)) * 2e-5
+    if misalign_deg:
+        c = neutral.mean(axis=0)
+        for f in range(len(W)):
+            R = Rotation.from_rotvec(rng.normal(size=3) * np.radians(misalign_deg)).as_matrix()
+            pts[f] = (pts[f] - c) @ R.T + c + rng.normal(size=3) * 5e-4
+    frames = Frames(pts, W, ["train"] * len(W), [f"{i:03d}" for i in range(len(W))])
+    rig = FaceRig(neutral.copy(), tris, list(NAMES), template)
+    return Capture(neutral, tris, rig, frames, list(NAMES)), true
+
+
+def test_alignment_and_reweighting_are_no_ops_on_clean_data():
+    cap, true = noisy_capture()
+    res = fit(cap)
+    assert res.info["align"]["applied"] is False and res.info["reweight"]["applied"] is False
+    plain = fit(cap, align=False, reweight=False)
+    assert np.array_equal(res.rig.deltas, plain.rig.deltas)
+
+
+def test_alignment_is_applied_where_frames_are_misaligned():
+    cap, true = noisy_capture(misalign_deg=1.0)
+    res = fit(cap, reweight=False)
+    assert res.info["align"]["applied"] is True
+    plain = fit(cap, align=False, reweight=False)
+    assert truth_error(res.rig.deltas, true) < 0.6 * truth_error(plain.rig.deltas, true)

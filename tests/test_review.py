@@ -1,0 +1,187 @@
+"""``usdface review``: the self-contained page (its embedded data decodes to both variants' shapes), its
+figures, its refusals, and a real headless Chromium drawing it (skipped without Chromium)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdface import api
+from usdface.errors import InputFileError, OutputExistsError
+from usdface.io.flatten import read_avatar_variant
+from usdface.review.page import SPARSE_TOLERANCE_M, decode_sparse_deltas, encode_sparse_deltas
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _payload(html: str) -> dict:
+    start = html.index("window.USDFACE_DATA = ") + len("window.USDFACE_DATA = ")
+    return json.JSONDecoder().raw_decode(html, start)[0]
+
+
+def test_sparse_deltas_round_trip_within_the_quantization_step():
+    rng = np.random.default_rng(3)
+    deltas = rng.normal(scale=0.004, size=(5, 200, 3))
+    deltas[:, 50:] *= (rng.random((5, 150, 1)) < 0.3)  # most vertices still
+    deltas[2] = 0.0
+    enc = encode_sparse_deltas(deltas)
+    dec = decode_sparse_deltas(enc, 200)
+    moved = np.linalg.norm(deltas, axis=2) > SPARSE_TOLERANCE_M
+    for k in range(5):
+        step = enc[k]["s"]
+        assert enc[k]["m"] == moved[k].sum()
+        assert np.abs(dec[k][moved[k]] - deltas[k][moved[k]]).max(initial=0.0) <= step / 2 + 1e-12
+        assert not dec[k][~moved[k]].any()
+    assert enc[2]["m"] == 0
+
+
+@pytest.fixture(scope="module")
+def review(personalized_sample, tmp_path_factory) -> Path:
+    take = tmp_path_factory.mktemp("take") / "take.csv"
+    from usdface.io.livelink import write_livelink_csv
+
+    t = np.arange(90) / 30.0
+    weights = np.zeros((90, 2))
+    weights[:, 0] = 0.5 - 0.5 * np.cos(2 * np.pi * t / 3.0)  # jawOpen up and down over 3 s
+    weights[:, 1] = (t > 1.5).astype(float)
+    write_livelink_csv(take, ["jawOpen", "eyeBlinkLeft"], weights, t)
+    out = tmp_path_factory.mktemp("review") / "review.html"
+    return api.write_review(personalized_sample, out, take=take)
+
+
+def test_page_is_self_contained_and_carries_both_variants(review, personalized_sample):
+    html = review.read_text()
+    assert not re.search(r"<script[^>]+src=", html)  # plotly.js is inlined, nothing is fetched
+    assert "Plotly.newPlot" in html and "usdfaceStart(" in html
+    assert review.stat().st_size < 15e6
+    data = _payload(html)
+    generic = read_avatar_variant(personalized_sample, "generic")
+    personalized = read_avatar_variant(personalized_sample, "personalized")
+    for mesh in data["meshes"]:
+        if "generic" not in mesh:
+            continue
+        g = generic.mesh(mesh["name"])
+        p = personalized.mesh(mesh["name"])
+        names = [data["names"][k] for k in mesh["shapes"]]
+        assert names == p.names
+        steps = np.array([e["s"] for e in mesh["generic"]])[:, None, None]
+        got_g = decode_sparse_deltas(mesh["generic"], mesh["n"])
+        got_p = got_g + decode_sparse_deltas(mesh["change"], mesh["n"])
+        tol = SPARSE_TOLERANCE_M * 2 + steps
+        assert np.all(np.abs(got_g - g.subset(names).deltas) <= tol)
+        change_steps = np.array([e["s"] for e in mesh["change"]])[:, None, None]
+        assert np.all(np.abs(got_p - p.deltas) <= tol + change_steps)
+    assert [s["title"] for s in data["sequences"]] == ["test expressions", "take take.csv"]
+    assert data["sequences"][1]["frames"] == 90
+    assert {"smile", "jaw open", "blink", "pucker"} <= set(data["presets"])
+
+
+def test_page_figures(review):
+    html = review.read_text()
+    for caption in ("registration (capture -&gt; avatar)", "correspondence", "what changed",
+                    "eq. 5 on the capture&#x27;s test expressions"):
+        assert caption in html, caption
+    table = html[html.index("eq. 5 on the capture"):]
+    rows = re.findall(r"<tr><th>mean</th><td><b>([\d.]+)</b></td><td><b>([\d.]+)</b></td>", table)
+    generic_rmse, personalized_rmse = map(float, rows[0])
+    assert personalized_rmse < generic_rmse  # the person's own shapes explain their test expressions better
+
+
+def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
+    page = tmp_path / "r.html"
+    page.write_text("keep")
+    with pytest.raises(OutputExistsError, match="r.html"):
+        api.write_review(personalized_sample, page)
+    assert page.read_text() == "keep"
+    with pytest.raises(InputFileError, match="html"):
+        api.write_review(personalized_sample, tmp_path / "r.png")
+    with pytest.raises(InputFileError, match="not a usdface layer"):
+        api.write_review(samples / "avatar.usda", tmp_path / "plain.html", fit_errors=False)
+    with pytest.raises(InputFileError, match="take not found"):
+        api.write_review(personalized_sample, tmp_path / "t.html", take=tmp_path / "missing.csv")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# a real browser: Debian's chromium, headless (installed by .ci/system-deps)
+# ---------------------------------------------------------------------------------------------------------
+def _chromium() -> str:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        found = shutil.which(name)
+        if found:
+            return found
+    pytest.skip("no Chromium found (bash .ci/system-deps installs Debian's chromium): browser test skipped")
+
+
+_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-quic",
+          "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
+          "--window-size=1000,700", "--virtual-time-budget=20000"]
+
+
+def _browse(page: Path, query: str, *, screenshot: Path | None = None) -> tuple[str, str]:
+    """Run headless Chromium on ``page?query``: a screenshot, or the DOM after the scripts ran. Returns
+    (stdout, stderr); the page's console is logged to stderr."""
+    exe = _chromium()
+    with tempfile.TemporaryDirectory() as profile:
+        mode = [f"--screenshot={screenshot}"] if screenshot else ["--dump-dom"]
+        done = subprocess.run([exe, *_FLAGS, f"--user-data-dir={profile}", "--enable-logging=stderr", "--v=0",
+                               *mode, f"{page.as_uri()}?{query}"], capture_output=True, text=True,
+                              timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout, done.stderr
+
+
+def _console_errors(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines()
+            if "CONSOLE" in line and re.search(r"Uncaught|Error|error:", line) and "GL Driver" not in line]
+
+
+def _image(path: Path) -> np.ndarray:
+    import matplotlib.image
+
+    return matplotlib.image.imread(str(path))[..., :3]
+
+
+def _face_box(img: np.ndarray) -> tuple[slice, slice]:
+    """Rows/columns of the plot where the face is drawn (pixels far from the dark background), below the
+    scene titles."""
+    bright = img.mean(axis=2) > 0.35
+    bright[:80] = False
+    bright[:, : img.shape[1] // 5] = False  # the control panel
+    rows, cols = np.flatnonzero(bright.any(axis=1)), np.flatnonzero(bright.any(axis=0))
+    assert rows.size and cols.size, "nothing drawn"
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def test_review_page_in_headless_chromium(review, tmp_path):
+    _chromium()
+    shots = {}
+    for name, query in (("generic", "variant=generic&shape=jawOpen&w=1"),
+                        ("personalized", "variant=personalized&shape=jawOpen&w=1"),
+                        ("neutral", "variant=personalized&shape=jawOpen&w=0")):
+        shots[name] = tmp_path / f"{name}.png"
+        _, log = _browse(review, query, screenshot=shots[name])
+        assert not _console_errors(log), (name, _console_errors(log))
+        status = re.findall(r'"usdface-status: ([^"]*)"', log)  # the page logs its final status
+        assert status == ["ok"], (name, status, log[-2000:])
+    images = {k: _image(v) for k, v in shots.items()}
+    rows, cols = _face_box(images["personalized"])
+
+    def changed(a, b) -> float:  # fraction of face-region pixels that differ visibly
+        return float((np.abs(images[a][rows, cols] - images[b][rows, cols]).max(axis=2) > 0.04).mean())
+
+    assert changed("personalized", "generic") > 0.002  # personalization shows in the face
+    assert changed("personalized", "neutral") > 0.01  # moving the jawOpen slider moves the picture
+    assert changed("personalized", "neutral") > changed("personalized", "generic")
+
+    if os.environ.get("USDFACE_WRITE_DOC_IMAGES") == "1":  # the docs' pictures, made by this test
+        img = ROOT / "docs" / "img"
+        _browse(review, "preset=jaw%20open", screenshot=img / "review-split.png")
+        _browse(review, "variant=personalized&preset=smile&heat=rms", screenshot=img / "review-heat.png")

@@ -1,0 +1,36 @@
+"""``usdface export LAYER --gltf out.glb [--obj-dir DIR] [--flatten out.usdc]``: deliver one variant of a
+personalize result to engines, web viewers and tools that do not take USD layers."""
+
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export", help="one variant of a personalize result as glTF (morph targets), OBJs or flattened USD",
+        description="Export the composed avatar with the generic or personalized variant: glTF 2.0 with one "
+                    "morph target per ARKit shape (names in mesh.extras.targetNames; metres, Y up; skin and "
+                    "skeleton when the avatar has joints), a folder of OBJs (one full target mesh per "
+                    "shape), and/or one flattened USD file with the variant baked in.")
+    p.add_argument("layer", help="a layer written by 'usdface personalize' (or any UsdSkel avatar)")
+    p.add_argument("--gltf", metavar="OUT",
+                   help="glTF file to write (.glb binary, or .gltf with embedded data)")
+    p.add_argument("--obj-dir", metavar="DIR",
+                   help="folder to write: <mesh>/neutral.obj + <mesh>/<shape>.obj")
+    p.add_argument("--flatten", metavar="OUT", help="flattened USD file to write (.usdc/.usda/.usd)")
+    p.add_argument("--variant", choices=("personalized", "generic"), default="personalized",
+                   help="which usdfacePersonalization variant to export (default: personalized)")
+    p.add_argument("--no-skin", action="store_true", help="glTF without the skeleton and skin")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..api import export_avatar
+
+    done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
+                         variant=args.variant, skin=not args.no_skin, force=args.force)
+    for kind, path in done.items():
+        size = (f" ({path.stat().st_size / 1e6:.1f} MB)" if path.is_file() else
+                f" ({sum(1 for _ in path.rglob('*.obj'))} OBJ files)")
+        print(f"wrote {kind}: {path}{size} [{args.variant}]")
+    return 0

@@ -1,0 +1,40 @@
+"""``usdface review LAYER -o review.html``: one self-contained web page to review a personalize result."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "review", help="a self-contained HTML viewer of a personalize result (generic | personalized)",
+        description="Write ONE HTML file (the viewer and the mesh data inside; no server, no network) that "
+                    "shows the avatar's face meshes lit and orbitable, generic and personalized side by side "
+                    "with a shared camera: a slider per ARKit shape, presets, a heat map of the change (mm), "
+                    "the landmarks when the layer has them, playback of the capture's test expressions and "
+                    "of a Live Link Face take, and the fit's figures.")
+    p.add_argument("layer", help="a layer written by 'usdface personalize' (.usda/.usdc)")
+    p.add_argument("-o", "--output", type=Path, help="HTML file to write (default: <layer>.review.html)")
+    p.add_argument("--capture", help="capture whose test expressions are played and scored (default: the one "
+                                     "recorded in the layer's provenance, when it still exists)")
+    p.add_argument("--take", help="a Live Link Face CSV (or USD take / take folder) to play")
+    p.add_argument("--no-fit-errors", action="store_true",
+                   help="skip scoring the fit on the capture's test expressions (eq. 5; one refit)")
+    p.add_argument("--force", action="store_true", help="overwrite the HTML file")
+    p.set_defaults(func=run)
+
+
+def default_output(layer) -> Path:
+    """``<layer stem>.review.html`` next to the layer."""
+    layer = Path(layer)
+    return layer.with_name(layer.stem + ".review.html")
+
+
+def run(args) -> int:
+    from ..api import write_review
+
+    out = args.output or default_output(args.layer)
+    path = write_review(args.layer, out, capture=args.capture, take=args.take,
+                        fit_errors=not args.no_fit_errors, force=args.force)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+    return 0

@@ -1,0 +1,87 @@
+"""One variant of a usdface layer: read it, or flatten it into one self-contained USD file.
+
+A layer written by :func:`usdface.io.layers.write_avatar_layer` carries the ``usdfacePersonalization``
+variant set {``personalized``, ``generic``} on each SkelRoot. :func:`variant_stage` opens the layer with the
+chosen selection authored in the stage's session layer (the files are never modified);
+:func:`read_avatar_variant` reads that composed avatar (metres, Y up, like
+:func:`usdface.io.usd_rig.read_avatar`) and :func:`flatten_variant` writes ``Usd.Stage.Flatten()`` of it:
+one layer, no sublayers or references, for places that do not take layers.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputFileError, RigError, UsdFaceError
+from ..model import Avatar
+from .layers import PERSONALIZATION_VARIANT_SET, check_output_path
+
+__all__ = ["VARIANTS", "variant_stage", "read_avatar_variant", "flatten_variant"]
+
+#: The variants of ``usdfacePersonalization``.
+VARIANTS = ("personalized", "generic")
+
+
+def _check_variant(variant: str) -> None:
+    if variant not in VARIANTS:
+        raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+
+
+def variant_stage(path, variant: str = "personalized"):
+    """Open ``path`` with ``variant`` selected on every prim that has the ``usdfacePersonalization`` variant
+    set (authored in the session layer). Raises :class:`~usdface.errors.InputFileError` when the file has no
+    such variant set (not a usdface layer) and ``generic`` was asked for; ``personalized`` of a plain avatar
+    is the avatar as authored."""
+    from pxr import Usd
+
+    from .usd_rig import _open_stage
+
+    _check_variant(variant)
+    path = Path(path)
+    stage = _open_stage(path)
+    prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+             if p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)]
+    if not prims and variant == "generic":
+        raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,
+                             fix="pass a layer written by 'usdface personalize'")
+    with Usd.EditContext(stage, stage.GetSessionLayer()):
+        for prim in prims:
+            prim.GetVariantSets().GetVariantSet(PERSONALIZATION_VARIANT_SET).SetVariantSelection(variant)
+    return stage
+
+
+def read_avatar_variant(path, variant: str = "personalized") -> Avatar:
+    """The avatar composed with ``variant`` selected (see :func:`variant_stage`), as an
+    :class:`usdface.model.Avatar` in metres / Y up."""
+    from pxr import Tf
+
+    from .usd_rig import _read_avatar_stage
+
+    path = Path(path)
+    stage = variant_stage(path, variant)
+    try:
+        return _read_avatar_stage(stage, path)
+    except UsdFaceError:
+        raise
+    except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
+        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {str(exc).strip()[:200]})", path=path,
+                       fix="re-export the avatar; run `usdface inspect` on it for details") from None
+
+
+def flatten_variant(path, out_path, variant: str = "personalized", *, force: bool = False) -> Path:
+    """Write ``path`` composed with ``variant`` selected as ONE flattened USD file (``.usda``/``.usdc``/
+    ``.usd``): every sublayer and reference resolved into it, the variant selection baked in. Returns the
+    path written (atomically; an existing file needs ``force``). The input is never modified."""
+    from .layers import atomic_save
+
+    _check_variant(variant)
+    out = check_output_path(out_path, force).absolute()
+    src = Path(path).absolute()
+    if out.exists() and src.exists() and out.samefile(src):
+        raise InputFileError("output would overwrite the input", path=out, fix="choose another output file")
+    stage = variant_stage(src, variant)
+    flat = stage.Flatten()
+    data = dict(flat.customLayerData)
+    data["usdfaceFlatten"] = {"source": src.name, "variant": variant}
+    flat.customLayerData = data
+    return atomic_save(flat, out)

@@ -1,0 +1,90 @@
+"""The UsdSkel skeleton of an avatar, as a :class:`usdface.io.gltf.GltfSkin` (metres, Y up, column-vector
+matrices): joints and parents, local rest transforms, world bind transforms and each skinned mesh's joint
+influences (mapped to the skeleton's joint order, constant influences expanded per vertex).
+
+Frames: a USD matrix ``M`` (row vectors, stage units and up axis) becomes ``C @ M.T @ inv(C)`` with
+``C = stage_to_internal(up_axis, metersPerUnit)``, so that it maps internal points to internal points; at the
+rest pose ``world_rest @ inv(bind_world)`` then leaves the internal neutral points where they are when rest
+equals bind, as UsdSkel does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..model import Avatar
+from .gltf import GltfSkin
+
+__all__ = ["read_gltf_skin"]
+
+
+def _to_internal(matrices, c: np.ndarray) -> np.ndarray:
+    m = np.asarray([np.asarray(x, dtype=np.float64) for x in matrices]).reshape(-1, 4, 4)
+    return c @ np.transpose(m, (0, 2, 1)) @ np.linalg.inv(c)
+
+
+def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
+    """The skeleton bound to ``avatar``'s meshes in the USD file ``path`` (or the open ``stage``), or None
+    when the meshes are not bound to a Skeleton with joints. Only the first Skeleton found is exported (glTF
+    skins one skeleton per mesh; usdface avatars have one)."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from .usd_rig import stage_to_internal
+
+    if stage is None:
+        from .usd_rig import _open_stage
+
+        stage = _open_stage(Path(path))
+    skel_paths = [m.source.skeleton for m in avatar.meshes if m.source and m.source.skeleton]
+    if not skel_paths:
+        return None
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath(skel_paths[0]))
+    if not skel:
+        return None
+    cache = UsdSkel.Cache()
+    query = cache.GetSkelQuery(skel)
+    joints = [str(j) for j in query.GetJointOrder()]
+    if not joints:
+        return None
+    c = stage_to_internal(avatar.up_axis, avatar.meters_per_unit)
+    topology = query.GetTopology()
+    parents = [int(topology.GetParent(j)) for j in range(len(joints))]
+    xf = UsdGeom.XformCache(Usd.TimeCode.Default())
+    rest_world = _to_internal(query.ComputeJointWorldTransforms(xf, True), c)
+    bind = skel.GetBindTransformsAttr().Get()
+    bind_world = _to_internal(bind, c) if bind else rest_world.copy()
+    rest_local = np.array([rest_world[j] if p < 0 else np.linalg.inv(rest_world[p]) @ rest_world[j]
+                           for j, p in enumerate(parents)])
+    influences = {}
+    skel_root = avatar.meshes[0].source.skel_root
+    root = stage.GetPrimAtPath(skel_root) if skel_root else None
+    if root:
+        cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
+    meshes = [(rig.name, rig.source.prim, rig.n_vertices) for rig in avatar.meshes if rig.source]
+    meshes += [(prim.rsplit("/", 1)[-1], prim, len(points))
+               for prim, (points, _) in sorted(avatar.metadata.get("static_meshes", {}).items())]
+    for name, prim_path, n_vertices in meshes:
+        prim = stage.GetPrimAtPath(prim_path)
+        sq = cache.GetSkinningQuery(prim) if prim else None
+        if not sq or not sq.HasJointInfluences():
+            continue
+        res = sq.ComputeJointInfluences()
+        if not res:
+            continue
+        idx, w = res
+        size = sq.GetNumInfluencesPerComponent()
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, size)
+        w = np.asarray(w, dtype=np.float64).reshape(-1, size)
+        order = sq.GetJointOrder()
+        if order:  # the mesh's own joint list -> skeleton joint indices
+            remap = np.array([joints.index(str(j)) for j in order], dtype=np.int64)
+            idx = remap[idx]
+        if sq.IsRigidlyDeformed() or len(idx) == 1:
+            idx = np.repeat(idx[:1], n_vertices, axis=0)
+            w = np.repeat(w[:1], n_vertices, axis=0)
+        if len(idx) == n_vertices:
+            influences[name] = (idx, w)
+    return GltfSkin(joints, parents, rest_local, bind_world, influences,
+                    name=str(skel.GetPrim().GetName()))

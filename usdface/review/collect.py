@@ -1,0 +1,208 @@
+"""Gather what the review page shows from a usdface layer (and its capture, and a take): both variants'
+meshes and shapes, the change heat map, landmarks, the test expressions and a take to play, the layer's
+provenance figures and the eq. 5 errors per test expression.
+
+Files are read through :mod:`usdface.io` only; the result is a :class:`usdface.review.page.ReviewData` of
+numpy arrays and text.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputFileError, RigError
+from .page import ReviewData, ReviewMesh, Sequence
+
+__all__ = ["collect_review", "recorded_capture"]
+
+#: Seconds each test expression is held during playback.
+TEST_HOLD_S = 0.75
+
+
+def recorded_capture(layer_path, info: dict) -> Path | None:
+    """The capture a usdface layer was made from (the second input in its provenance, which is recorded
+    relative to the layer), when it still exists; else None."""
+    inputs = list(info.get("inputs") or [])
+    if len(inputs) < 2:
+        return None
+    p = Path(inputs[1])
+    p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
+    return p.resolve() if p.exists() else None
+
+
+def _mm(v) -> str:
+    return f"{float(v) * 1000.0:.2f} mm"
+
+
+def _provenance_tables(info: dict) -> list[tuple[str, list[tuple[str, str]]]]:
+    tables = []
+    reg = info.get("registration") or {}
+    if reg:
+        rows = [("scale", f"{float(reg.get('scale', 1.0)):.4f}")]
+        rot = reg.get("rotation")
+        if rot is not None:
+            r = np.asarray(rot if not isinstance(rot, str) else _parse_matrix(rot), dtype=np.float64)
+            angle = np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+            rows.append(("rotation", f"{angle:.2f} deg"))
+        if reg.get("translation_m") is not None:
+            rows.append(("translation", "(" + ", ".join(f"{float(v) * 100:.2f}" for v in reg["translation_m"])
+                         + ") cm"))
+        for key, label in (("residual_m", "ICP residual"), ("max_distance_m", "max distance")):
+            if key in reg:
+                rows.append((label, _mm(reg[key])))
+        for key in ("fitness", "initialiser"):
+            if key in reg:
+                rows.append((key, str(reg[key])))
+        tables.append(("registration (capture -> avatar)", rows))
+    cor = info.get("correspondence") or {}
+    if cor:
+        rows = []
+        for key, label in (("face_vertices", "avatar face vertices"), ("n", "capture vertices")):
+            if key in cor:
+                rows.append((label, str(cor[key])))
+        for key, label in (("face_rms_distance_m", "face RMS distance"), ("nonrigid_rms_m", "non-rigid RMS"),
+                           ("capture_mean_edge_m", "capture mean edge")):
+            if key in cor:
+                rows.append((label, _mm(cor[key])))
+        if "nonrigid_matched" in cor:
+            rows.append(("non-rigid matched", f"{float(cor['nonrigid_matched']) * 100:.1f} %"))
+        rows.append(("cache", str(cor.get("cache", "off"))))
+        tables.append(("correspondence", rows))
+    params = dict(info.get("parameters") or {})
+    if params or info.get("method"):
+        rows = [("method", str(info.get("method", params.get("method", ""))))]
+        rows += [(str(k), str(v)) for k, v in sorted(params.items()) if k != "method"]
+        rows += [("usdface", str(info.get("version", ""))), ("created", str(info.get("createdAt", "")))]
+        tables.append(("fit and transfer parameters", rows))
+    return tables
+
+
+def _parse_matrix(text: str):
+    import json
+
+    return json.loads(text)
+
+
+def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
+    meshes = []
+    for rig in personalized.meshes:
+        try:
+            gen = generic.mesh(rig.source.prim if rig.source else rig.name)
+        except KeyError:
+            raise RigError(f"mesh {rig.name!r} is missing from the generic variant", path=personalized.file,
+                           fix="review a layer written by 'usdface personalize'") from None
+        if gen.n_vertices != rig.n_vertices or not set(rig.names) <= set(gen.names):
+            raise RigError(f"mesh {rig.name!r} differs between the variants", path=personalized.file,
+                           fix="review a layer written by 'usdface personalize'")
+        g = gen.subset(rig.names).deltas
+        diff = rig.deltas - g
+        heat = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if rig.n_shapes else None
+        meshes.append(ReviewMesh(rig.name, rig.neutral, rig.triangles, list(rig.names), g, rig.deltas, heat))
+    for prim, (points, triangles) in sorted(personalized.metadata.get("static_meshes", {}).items()):
+        meshes.append(ReviewMesh(prim.rsplit("/", 1)[-1], points, triangles))
+    return meshes
+
+
+def _fit_errors(capture, info: dict) -> dict | None:
+    """Eq. 5 on the capture's test expressions: the generic template vs the person's fitted shapes (refit
+    with the layer's recorded method and regularisation)."""
+    from ..model import FaceRig
+    from ..personalize import evaluate_rig, fit_personalized_shapes
+
+    test = capture.test
+    if len(test) == 0:
+        return None
+    t = capture.template
+    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
+                      "generic")
+    params = dict(info.get("parameters") or {})
+    method = str(info.get("method") or params.get("method") or "menzel")
+    reg = params.get("reg", "auto")
+    try:
+        reg = float(reg)
+    except (TypeError, ValueError):
+        reg = str(reg)
+    fit = fit_personalized_shapes(capture, method=method, reg=reg).rig
+    cols = {}
+    for label, rig in (("generic RMSE", generic), ("personalized RMSE", fit)):
+        rig = rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig
+        res = evaluate_rig(rig, test)
+        cols[label] = [float(v) for v in res["rmse_mm"]]
+        cols[label.replace("RMSE", "max")] = [float(v) for v in res["max_mm"]]
+    order = ["generic RMSE", "personalized RMSE", "generic max", "personalized max"]
+    return {"title": f"eq. 5 on the capture's test expressions (mm; {method} refit)",
+            "labels": list(test.label), "columns": {k: cols[k] for k in order}}
+
+
+def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = True) -> ReviewData:
+    """Everything :func:`usdface.review.page.build_review_html` needs for the usdface layer ``layer_path``.
+
+    ``capture``: the capture (path or :class:`usdface.model.Capture`) whose test expressions are played and
+    scored; default the one recorded in the layer's provenance, when it still exists (else no test
+    expressions). ``take``: a Live Link Face CSV, USD take or take folder to play (path or
+    :class:`usdface.io.take.Take`). ``fit_errors``: score the generic template and the refitted personalized
+    shapes on the capture's test expressions (eq. 5; one fit, a few seconds)."""
+    from ..io import read_capture
+    from ..io.flatten import read_avatar_variant
+    from ..io.take import read_take
+    from ..io.usd_inspection import read_landmarks
+    from ..io.usd_rig import read_layer_info
+
+    layer_path = Path(layer_path)
+    info = read_layer_info(layer_path)
+    prov = info.get("usdface") or {}
+    if not info.get("variants"):
+        raise InputFileError("no usdfacePersonalization variant set (not a usdface layer)", path=layer_path,
+                             fix="review a layer written by 'usdface personalize'")
+    personalized = read_avatar_variant(layer_path, "personalized")
+    generic = read_avatar_variant(layer_path, "generic")
+    meshes = _mesh_pairs(personalized, generic)
+    layouts = read_landmarks(layer_path)
+    for m, rig in zip(meshes, personalized.meshes, strict=False):
+        if rig.source and rig.source.prim in layouts:
+            m.landmarks = layouts[rig.source.prim]
+
+    notes = []
+    sequences = []
+    if capture is None:
+        capture = recorded_capture(layer_path, prov)
+        if capture is None:
+            notes.append("the capture recorded in the layer's provenance was not found: no test expressions "
+                         "(pass --capture)")
+    if isinstance(capture, str | Path):
+        capture = read_capture(capture)
+    errors = None
+    if capture is not None and len(capture.test):
+        test = capture.test
+        sequences.append(Sequence("test expressions", list(capture.names), test.weights,
+                                  np.arange(len(test)) * TEST_HOLD_S, list(test.label)))
+        if fit_errors:
+            errors = _fit_errors(capture, prov)
+    if take is not None:
+        data = take if not isinstance(take, str | Path) else read_take(take)
+        if len(data):
+            t = np.asarray(data.times, dtype=np.float64)
+            name = Path(str(take if isinstance(take, str | Path) else data.source or "take")).name
+            sequences.append(Sequence(f"take {name}", list(data.names), data.weights, t - t[0], []))
+
+    tables = _provenance_tables(prov)
+    changes = []
+    for m in meshes:
+        if m.names:
+            top = np.linalg.norm(m.personalized - m.generic, axis=2).max(axis=1)
+            changes.append((m.name, m.names, top))
+    if changes:
+        rows = []
+        for name, names, top in changes:
+            kept = [n for n, t in zip(names, top, strict=True) if t == 0.0]
+            rows.append((f"{name}: shapes changed", f"{int((top > 0).sum())} of {len(names)} "
+                         f"(largest change {top.max() * 1000:.2f} mm)"))
+            if kept:
+                rows.append((f"{name}: left generic", ", ".join(kept)))
+        tables.append(("what changed", rows))
+    for w in prov.get("warnings") or []:
+        notes.append(f"warning: {w}")
+    title = f"usdface review: {layer_path.name}"
+    return ReviewData(title, meshes, sequences, tables, errors, notes)

@@ -1,0 +1,134 @@
+"""The person's motion as a field over the avatar: per shape and vertex, the rotation and scale that turn the
+avatar's generic motion into the person's (the personalization beyond what the capture sees).
+
+Inside the face region the capture tells, shape by shape, how the person's motion ``P_j(v)`` differs from the
+avatar's generic motion ``A_j(v)``. Outside it (the mouth and eye sockets behind the capture's holes, the
+neck, the back of the head, the teeth, gums and tongue of other meshes) there is no measurement, but the
+tissue is the same and the motion is continuous. This module models the difference as the smallest local
+change that maps one motion onto the other - a rotation and a scale, ``P_j(v) = s R A_j(v)`` - a field that
+is smooth over the head and is applied to the avatar's *own* generic motion (so a vertex the generic shape
+leaves still stays still and sparse shapes stay sparse):
+
+1. :func:`rotation_scale` - the field on the face: ``Phi_j(v) = s R - I [J,m,3,3]``, unit-free;
+2. :func:`smooth_field` - its motion-weighted local average (a vertex that barely moves in a shape says
+   little about that shape's field);
+3. :func:`extend_field` - screened harmonic extension beyond the face (one sparse factorization for every
+   shape and matrix entry): the values around a hole fill the socket behind it, and the field decays to 0
+   (the generic motion) over ``length`` metres away from the face;
+4. :func:`apply_field` - ``A_j + Phi_j A_j`` on any mesh, with the field sampled where that mesh is.
+
+All arrays internal metres: ``points[m,3]``, ``generic[J,m,3]``, ``person[J,m,3]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..mesh import spd_lu, triangle_areas, vertex_adjacency
+from .surface import cotangent_laplacian
+
+__all__ = ["rotation_scale", "smooth_field", "extend_field", "apply_field", "motion_weights"]
+
+#: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
+MOTION_FLOOR = 0.02
+
+
+def motion_weights(generic, *, floor: float = MOTION_FLOOR) -> np.ndarray:
+    """``[J,m]`` confidence of each vertex's field: ``(|A_j(v)| / peak_j)^2`` ramped to 0 below ``floor``."""
+    mag = np.linalg.norm(np.asarray(generic, dtype=np.float64), axis=-1)
+    rel = mag / np.maximum(mag.max(axis=-1, keepdims=True), 1e-300)
+    ramp = np.clip((rel - floor) / floor, 0.0, 1.0)
+    return rel * rel * ramp
+
+
+def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per shape and vertex the minimal rotation ``R`` (about ``a x p``) and the scale ``s = |p|/|a|`` with
+    ``s R a = p`` for ``a = generic[j,v]``, ``p = person[j,v]`` (both ``[J,m,3]``).
+
+    Returns ``(phi[J,m,3,3] = s R - I, valid[J,m])``; ``phi`` is 0 where the generic shape does not move the
+    vertex, where the motions point apart by more than 120 degrees (no small change explains it), or where the
+    scale leaves ``[1/max_scale, max_scale]``.
+    """
+    a = np.asarray(generic, dtype=np.float64)
+    p = np.asarray(person, dtype=np.float64)
+    na = np.linalg.norm(a, axis=-1)
+    npp = np.linalg.norm(p, axis=-1)
+    ok = (na > 1e-12) & (npp > 1e-12)
+    ah = a / np.maximum(na, 1e-300)[..., None]
+    ph = p / np.maximum(npp, 1e-300)[..., None]
+    cos = np.clip(np.einsum("...c,...c->...", ah, ph), -1.0, 1.0)
+    scale = npp / np.maximum(na, 1e-300)
+    valid = ok & (cos > -0.5) & (scale < max_scale) & (scale > 1.0 / max_scale)
+    v = np.cross(ah, ph)
+    vx = np.zeros(a.shape + (3,))
+    vx[..., 0, 1], vx[..., 0, 2] = -v[..., 2], v[..., 1]
+    vx[..., 1, 0], vx[..., 1, 2] = v[..., 2], -v[..., 0]
+    vx[..., 2, 0], vx[..., 2, 1] = -v[..., 1], v[..., 0]
+    # Rodrigues for the rotation taking ah onto ph: I + [v]x + [v]x^2 / (1 + cos)
+    vx2 = np.einsum("...ij,...jk->...ik", vx, vx)
+    rot = np.eye(3) + vx + vx2 / np.maximum(1.0 + cos, 1e-3)[..., None, None]
+    phi = scale[..., None, None] * rot - np.eye(3)
+    phi[~valid] = 0.0
+    return phi, valid
+
+
+def _neighbourhood(triangles, n: int, rings: int) -> sp.csr_matrix:
+    adj = vertex_adjacency(triangles, n)
+    adj = (adj + sp.eye(n)).tocsr()
+    adj.data[:] = 1.0
+    out = adj
+    for _ in range(rings - 1):
+        out = (out @ adj).tocsr()
+        out.data[:] = 1.0
+    return out
+
+
+def smooth_field(phi, weights, triangles, *, rings: int = 2) -> np.ndarray:
+    """Motion-weighted local average of ``phi[J,m,3,3]`` over ``rings`` edge rings, weights ``[J,m]``
+    (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves."""
+    phi = np.asarray(phi, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    n_shapes, m = w.shape
+    s = _neighbourhood(triangles, m, rings)
+    num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [m, J*9]
+    den = s @ w.T                                                                                # [m, J]
+    out = num.reshape(m, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
+    out[den <= 1e-12] = 0.0
+    return out.transpose(1, 0, 2).reshape(n_shapes, m, 3, 3)
+
+
+def extend_field(points, triangles, known, values, *, length: float | None) -> np.ndarray:
+    """Screened harmonic extension of ``values[m,c]`` given on ``known[m]`` to every vertex of the mesh.
+
+    Minimises ``x^T (L + Mass / length^2) x`` over the unknown vertices with ``x = values`` on ``known``
+    (cotangent Laplacian ``L``, lumped vertex areas): the known values fill holes surrounded by them (a mouth
+    or eye socket) and fade to 0 over about ``length`` metres elsewhere; ``length=None`` is plain harmonic.
+    One sparse factorization for all ``c`` channels. Returns ``[m,c]``.
+    """
+    x0 = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles)
+    known = np.asarray(known, dtype=bool)
+    vals = np.asarray(values, dtype=np.float64)
+    out = np.zeros((len(x0), vals.shape[1]))
+    out[known] = vals[known]
+    free = np.flatnonzero(~known)
+    if free.size == 0 or not known.any():
+        return out
+    lap = cotangent_laplacian(x0, tri)
+    if length:
+        area = triangle_areas(x0, tri)
+        mass = np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(x0))
+        lap = (lap + sp.diags(mass / length ** 2)).tocsr()
+    kidx = np.flatnonzero(known)
+    a_ff = lap[free][:, free]
+    reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
+    rhs = -(lap[free][:, kidx] @ vals[kidx])
+    out[free] = spd_lu((a_ff + reg * sp.eye(free.size)).tocsc()).solve(rhs)
+    return out
+
+
+def apply_field(generic, phi) -> np.ndarray:
+    """``generic[J,m,3] + phi[J,m,3,3] @ generic``: the person's motion from the avatar's generic motion."""
+    g = np.asarray(generic, dtype=np.float64)
+    return g + np.einsum("jmab,jmb->jma", np.asarray(phi, dtype=np.float64), g)
