@@ -240,7 +240,8 @@ def make_bad_rig(kind: str, out: Path) -> Path:
         head.GetFaceVertexCountsAttr().Set([])
         head.GetFaceVertexIndicesAttr().Set([])
     elif kind.startswith("mpu_"):
-        stage.SetMetadata("metersPerUnit", {"mpu_zero": 0.0, "mpu_negative": -1.0, "mpu_nan": float("nan")}[kind])
+        mpu = {"mpu_zero": 0.0, "mpu_negative": -1.0, "mpu_nan": float("nan")}[kind]
+        stage.SetMetadata("metersPerUnit", mpu)
     elif kind == "up_x":
         stage.SetMetadata("upAxis", "X")
     elif kind == "time_sampled_points":
@@ -265,7 +266,7 @@ def test_check_catches_what_the_readers_refuse(tmp_path, kind):
 
 @pytest.mark.parametrize("text", ["<S>/", "pipe.usda", "cycle.usda"])
 def test_check_says_what_is_wrong_with_the_file(tmp_path, monkeypatch, capfd, text):
-    """A folder or a pipe said 'file not found'; a sublayer cycle printed USD's warnings then nothing useful."""
+    """A folder or a pipe said 'file not found'; a sublayer cycle printed USD's warnings, then no cause."""
     monkeypatch.chdir(tmp_path)
     os.mkfifo("pipe.usda")
     Path("cycle.usda").write_text('#usda 1.0\n(\n    subLayers = [@other.usda@]\n)\n')
@@ -304,12 +305,12 @@ def test_inside_a_dcc_that_opened_a_stage_first(tmp_path):
     script = textwrap.dedent(f"""
         import warnings
         from pxr import Usd
-        Usd.Stage.CreateInMemory()            # the host's own stage, before usdface is imported
+        Usd.Stage.Open({str(SAMPLES / 'avatar.usda')!r})   # the host's scene, before usdface is imported
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
             import usdface
-            r = usdface.personalize_avatar({str(SAMPLES / 'avatar.usda')!r}, {str(SAMPLES / 'capture.usda')!r},
-                                           "person.usda", method="dt")
+            usdface.personalize_avatar({str(SAMPLES / 'avatar.usda')!r},
+                                       {str(SAMPLES / 'capture.usda')!r}, "person.usda", method="dt")
         print(len([w for w in said if "PXR_PLUGINPATH_NAME" in str(w.message)]))
     """)
     proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True,
@@ -320,8 +321,9 @@ def test_inside_a_dcc_that_opened_a_stage_first(tmp_path):
 
     import usdface
 
-    prim = Usd.Stage.Open(str(tmp_path / "person.usda")).GetPrimAtPath("/Avatar")
-    assert "UsdFaceProvenanceAPI" in prim.GetAppliedSchemas()
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    prim = stage.GetPrimAtPath("/Avatar")
+    assert "UsdFaceProvenanceAPI" in prim.GetMetadata("apiSchemas").GetAddedOrExplicitItems()
     assert prim.GetAttribute("usdface:provenance:version").Get() == usdface.__version__
     assert json.loads(prim.GetAttribute("usdface:provenance:parameters").Get())["method"] == "dt"
     assert not [i for i in usdface.check(tmp_path / "person.usda") if i.severity == "error"]
