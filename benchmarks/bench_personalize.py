@@ -1,11 +1,14 @@
 """Benchmark ``usdface personalize`` on the bench cases (../shared): accuracy vs truth and wall time.
 
-Run:  python benchmarks/bench_personalize.py [--cases dev1,dev2] [--repeats 3] [--variants]
+Run:  python benchmarks/bench_personalize.py [--cases sample,dev1,dev2,dev3] [--repeats 3] [--variants]
 
 Prints two tables:
-1. accuracy: RMSE over the avatar ``Head`` vertices of the output offsets vs ``truth/avatar_truth.npz``, as a
-   ratio of the generic input offsets' RMSE, with the eq. (4) approximation alone for comparison (and, with
-   ``--variants``, the other transfer options);
+1. accuracy (issue 10's figures, :mod:`usdface.transfer.scoring`): RMSE vs ``truth/avatar_truth.npz`` as a
+   ratio output / generic input over the Head's face region (bench: vertices 0-9408), the whole Head and the
+   other meshes (``inf``: the truth keeps that mesh generic and the output moved it); the shape whose face
+   RMSE grew most (mm); the seam (largest error jump across an edge within two rings of the capture border,
+   bench: vertices 0-6705) beside the generic input's; the correspondence's lip/lid side swaps. With
+   ``--variants``, the older and the paper's settings too;
 2. time: end-to-end wall time of the ``usdface personalize`` command (fresh process each run), cold
    (no correspondence cache) and warm (cache reused), median of ``--repeats`` runs, plus the in-process step
    breakdown of one run, and the import-only time of a fresh process (with and without Open3D).
@@ -31,36 +34,70 @@ def _rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
 
 
-def accuracy(case: str, variants: bool) -> list[tuple]:
+def _case(case: str):
+    """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case or the sample."""
+    import json
+
     from usdface.io import read_capture
     from usdface.io.usd_rig import read_avatar
-    from usdface.personalize import fit_personalized_shapes
-    from usdface.transfer import personalize_avatar
 
-    avatar = read_avatar(BENCH / case / "avatar.usdc")
-    capture = read_capture(BENCH / case / "capture")
-    fit = fit_personalized_shapes(capture)
-    head = avatar.mesh("Head")
-    npz = np.load(BENCH / case / "truth" / "avatar_truth.npz")
-    truth = np.array([npz["Head/" + n] for n in head.names]) @ head.source.to_internal[:3, :3].T
-    generic = _rmse(head.deltas, truth)
-    settings = [("default (offset, generic, falloff 0.15)", {})]
+    if case == "sample":
+        from usdface.transfer.surface import closest_points, mean_edge_length
+
+        d = ROOT / "sample_assets"
+        avatar, capture = read_avatar(d / "avatar.usda"), read_capture(d / "capture.usda")
+        head = avatar.mesh("Head")
+        meta = json.loads((d / "truth" / "meta.json").read_text())["avatar_to_capture"]
+        x = (head.neutral / 0.01 - np.array(meta["head_center_cm"]) - np.array(meta["origin_cm"]))
+        x = x @ np.array(meta["R"]).T / 100
+        ct = np.load(d / "truth" / "capture_truth.npz")
+        dist = closest_points(ct["neutral"], capture.triangles, x)[3]
+        covered = dist < 0.5 * mean_edge_length(ct["neutral"], capture.triangles)
+        face = covered
+    else:
+        d = BENCH / case
+        avatar, capture = read_avatar(d / "avatar.usdc"), read_capture(d / "capture")
+        idx = np.arange(avatar.mesh("Head").n_vertices)
+        face, covered = idx <= 9408, idx <= 6705
+    npz = np.load(d / "truth" / "avatar_truth.npz")
+    truth = {m.source.prim: np.array([npz[f"{m.name}/{n}"] if f"{m.name}/{n}" in npz
+                                      else np.zeros((m.n_vertices, 3)) for n in m.names])
+             @ m.source.to_internal[:3, :3].T for m in avatar.meshes}
+    return avatar, capture, face, covered, truth
+
+
+def accuracy(case: str, variants: bool) -> list[dict]:
+    """Issue 10's figures per setting: face / whole-Head / Mouth RMSE ratios output / generic, the worst
+    shape's face RMSE minus generic (mm), the seam (largest error jump within two edge rings of the capture
+    border, mm) beside the generic input's, and the lip/lid side swaps of the correspondence."""
+    from usdface.transfer import personalize_avatar
+    from usdface.transfer.scoring import score_mesh
+
+    avatar, capture, face, covered, truth = _case(case)
+    settings = [("default (person + field, avatar prior)", {})]
     if variants:
-        settings += [("face_transfer=dt (paper DT)", {"face_transfer": "dt"}),
-                     ("face_transfer=dt-offset", {"face_transfer": "dt-offset"}),
-                     ("approximation=retarget (paper A_j)", {"approximation": "retarget"}),
-                     ("falloff=0 (harmonic, paper)", {"falloff": 0}),
-                     ("paper: dt + retarget + harmonic", {"face_transfer": "dt", "approximation": "retarget",
-                                                          "falloff": 0})]
+        settings += [("prior=template", {"prior": "template"}),
+                     ("previous default: offset B-T + generic", {"face_transfer": "offset",
+                                                                 "approximation": "generic"}),
+                     ("paper: dt + retarget (eq. 4) + harmonic", {"face_transfer": "dt",
+                                                                  "approximation": "retarget", "falloff": 0,
+                                                                  "prior": "template"})]
     rows = []
     for label, opts in settings:
-        res = personalize_avatar(avatar, capture, None, rig=fit.rig, **opts)
-        out = res.offsets[head.source.prim]
-        eq4 = head.deltas.copy()
-        for j, n in enumerate(res.names):
-            eq4[head.index(n)] = res.approximation[head.source.prim][j]
-        rows.append((case, label, generic * 1000, _rmse(out, truth) / generic, _rmse(eq4, truth) / generic,
-                     int(res.face.sum())))
+        res = personalize_avatar(avatar, capture, None, **opts)
+        row = {"case": case, "setting": label, "swaps": res.report["correspondence"].get("side_swaps", -1)}
+        for m in avatar.meshes:
+            key = m.source.prim
+            extra = {"face": face, "covered": covered, "triangles": m.triangles} if m.name == "Head" else {}
+            sc = score_mesh(m.names, m.deltas, res.offsets[key], truth[key], **extra)
+            if m.name == "Head":
+                row.update(face=sc.face_ratio, whole=sc.whole_ratio, worst=sc.worst_shape(),
+                           seam=(sc.seam_out, sc.seam_generic), generic_mm=sc.face_generic)
+            elif sc.whole_generic > 0:
+                row.setdefault("meshes", {})[m.name] = sc.whole_ratio
+            elif sc.whole_out > 0:
+                row.setdefault("meshes", {})[m.name] = float("inf")   # truth = generic here, output moved
+        rows.append(row)
     return rows
 
 
@@ -112,20 +149,22 @@ def step_times(case: str) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default="dev1,dev2")
+    ap.add_argument("--cases", default="sample,dev1,dev2,dev3")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--variants", action="store_true", help="also score the paper's transfer options")
     ap.add_argument("--no-time", action="store_true")
     args = ap.parse_args(argv)
+    cases = [c for c in args.cases.split(",") if c == "sample" or (BENCH / c).is_dir()]
     if not BENCH.is_dir():
-        print(f"{BENCH} not found: nothing to benchmark")
-        return 0
-    cases = args.cases.split(",")
-    print(f"{'case':5} {'setting':42} {'generic mm':>10} {'out/generic':>11} {'eq4/generic':>11} "
-          f"{'face v':>7}")
+        print(f"{BENCH} not found: only the sample is benchmarked")
+    print(f"{'case':6} {'setting':42} {'face':>6} {'whole':>6} {'other meshes':>16} {'worst shape (mm)':>26} "
+          f"{'seam out/gen mm':>16} {'swaps':>5}")
     for case in cases:
-        for row in accuracy(case, args.variants):
-            print(f"{row[0]:5} {row[1]:42} {row[2]:10.4f} {row[3]:11.3f} {row[4]:11.3f} {row[5]:7d}")
+        for r in accuracy(case, args.variants):
+            other = " ".join(f"{k} {v:.2f}" for k, v in r.get("meshes", {}).items())
+            print(f"{r['case']:6} {r['setting']:42} {r['face']:6.3f} {r['whole']:6.3f} {other:>16} "
+                  f"{r['worst'][0]:>18} {r['worst'][1]:+7.3f} {r['seam'][0]:7.2f}/{r['seam'][1]:<7.2f} "
+                  f"{r['swaps']:5d}")
     if args.no_time:
         return 0
     print(f"\n{'case':5} {'cold s':>8} {'warm s':>8} {'cold cpu':>9} {'warm cpu':>9}   (usdface personalize, "

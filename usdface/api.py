@@ -551,7 +551,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
     data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
-    return write_text_atomic(out, build_review_html(data))
+    return write_text_atomic(out, build_review_html(data), force=force)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,

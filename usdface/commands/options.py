@@ -69,6 +69,16 @@ def nonnegative_int(text: str) -> int:
     return value
 
 
+def mu_value(text: str):
+    """``auto`` or a finite number > 0 (the eq. (4) ridge weight)."""
+    if text == "auto":
+        return text
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected auto or a number > 0, got {text!r}") from None
+
+
 def reg_value(text: str):
     """``auto``, ``paper`` or a finite number >= 0 (the fit's E_reg weight)."""
     if text in ("auto", "paper"):

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
-from .options import nonnegative_float, positive_float, reg_value
+from .options import mu_value, nonnegative_float, positive_float, reg_value
 
 
 def add_transfer_options(p) -> None:
@@ -18,18 +18,28 @@ def add_transfer_options(p) -> None:
                    help="capture fit method (default: menzel, the paper's eqs. 1-3)")
     p.add_argument("--reg", default="auto", type=reg_value,
                    help="fit regularisation: auto (cross-validated), paper, or a number")
-    p.add_argument("--mu", type=positive_float, default=1e-3,
-                   help="eq. (4) ridge weight, relative to the shapes' mean squared norm (default 1e-3)")
+    p.add_argument("--mu", type=mu_value, default="auto",
+                   help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
+                        "(generalized cross-validation on the face rows; default)")
+    p.add_argument("--prior", default="avatar", choices=["avatar", "template"],
+                   help="what the fit shrinks towards where the capture does not inform a shape: the "
+                        "avatar's own generic shapes on the capture mesh (default) or the capture's template")
     p.add_argument("--correspondence", metavar="FILE",
                    help="correspondence cache (.npz): reused when it matches the avatar, written otherwise")
-    p.add_argument("--face-transfer", default="offset", choices=["offset", "dt", "dt-offset"],
-                   help="how the face region receives the shapes (default: offset; dt = the paper's DT)")
-    p.add_argument("--approximation", default="generic", choices=["generic", "retarget"],
-                   help="what the region around the face and the other meshes follow: the avatar's generic "
-                        "shape (default) or the eq. (4) approximation A_j (the paper)")
+    p.add_argument("--face-transfer", default="person", choices=["person", "offset", "dt", "dt-offset"],
+                   help="how the face region receives the shapes (default: person = the person's motion "
+                        "A_j + M(B_j - P_j); offset = the older B_j - T_j deviation; dt = the paper's DT)")
+    p.add_argument("--approximation", default=None, choices=["field", "generic", "retarget"],
+                   help="what lies beyond the face and the other meshes follow: field (default with "
+                        "--face-transfer person: the person's rotation+scale field of the generic motion, "
+                        "extended smoothly), generic (default with the older modes) or retarget (eq. 4, the "
+                        "paper)")
+    p.add_argument("--extension-length", type=positive_float, default=1.0,
+                   help="with the field: how far the person's motion reaches beyond the face before it fades "
+                        "to the generic, in face radii (default 1)")
     p.add_argument("--falloff", type=nonnegative_float, default=0.15,
-                   help="width of the seamless join beyond the face in capture edge lengths (0 = harmonic "
-                        "over the whole adjacent region, as in the paper)")
+                   help="older modes: width of the seamless join beyond the face in capture edge lengths "
+                        "(0 = harmonic over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
     add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
@@ -41,8 +51,10 @@ def transfer_kwargs(args) -> dict:
         reg = float(reg)
     except ValueError:
         pass
+    approximation = args.approximation or ("field" if args.face_transfer == "person" else "generic")
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
-            "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
+            "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
+            "prior": args.prior, "extension_length": args.extension_length,
             "eyelids": not args.no_eyelids, "name_map": args.name_map}
 
 

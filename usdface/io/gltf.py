@@ -213,7 +213,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     gltf.scene = 0
     gltf.buffers = [pygltflib.Buffer(byteLength=len(blob.data))]
     gltf.set_binary_blob(bytes(blob.data))
-    with atomic_file(path) as tmp:
+    with atomic_file(path, force=force) as tmp:
         if path.suffix.lower() == ".glb":
             gltf.save_binary(str(tmp))
         else:
