@@ -342,3 +342,29 @@ def test_warning_said_once(tmp_path, monkeypatch, capfd):
         say_warning("same text")
     out = capfd.readouterr()
     assert out.out.count("same text") == 1 and "UserWarning" not in out.err
+
+
+# ----------------------------------------------------------------------------------------------- --json
+def test_json_output_and_json_errors(tmp_path, monkeypatch, capfd):
+    """Section 4: fit, anim import, capture select and sample speak JSON with --json, errors included."""
+    from usdface.io.livelink import write_livelink_csv
+
+    monkeypatch.chdir(tmp_path)
+    w = np.clip(np.sin(np.linspace(0, 3, 40))[:, None] * [0.9, 0.2], 0, 1)
+    write_livelink_csv("t.csv", ["jawOpen", "eyeBlinkLeft"], w, np.arange(40) / 30)
+    assert main(["anim", "import", "t.csv", "-o", "t.usda", "--json"]) == 0
+    doc = json.loads(capfd.readouterr().out)
+    assert doc["ok"] and doc["frames"] == 40 and set(doc["names"]) == {"jawOpen", "eyeBlinkLeft"}
+    assert main(["capture", "select", "t.csv", "--json"]) == 0
+    doc = json.loads(capfd.readouterr().out)
+    by_name = {s["name"]: s for s in doc["shapes"]}
+    assert by_name["jawOpen"]["triggered"] and by_name["jawOpen"]["frames"] == [int(np.argmax(w[:, 0]))]
+    assert "eyeBlinkLeft" in doc["never_triggered"]
+    assert main(["fit", str(SAMPLES / "capture.usda"), "-o", "rig.usda", "--method", "dt", "--json"]) == 0
+    doc = json.loads(capfd.readouterr().out)
+    assert doc["ok"] and doc["method"] == "dt" and doc["train_rmse_mm"] > 0 and len(doc["shapes"]) == 52
+    assert main(["fit", "missing.usda", "-o", "rig2.usda", "--json"]) == 2
+    out = capfd.readouterr()
+    err = json.loads(out.out)["error"]
+    assert err["file"] == "missing.usda" and err["fix"] and err["type"] == "InputFileError"
+    assert not Path("rig2.usda").exists()

@@ -43,6 +43,7 @@ def register(subparsers) -> None:
                         help=METHOD_HELP)
     add_fit_options(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+    parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
     parser.set_defaults(func=run)
 
 
@@ -52,6 +53,17 @@ def run(args) -> int:
     result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
                              **fit_kwargs(args))
     info = result.info
+    if args.json:
+        import json
+
+        from ..io.layers import json_default
+
+        doc = {"ok": True, "output": str(info["out_path"]), "method": args.method,
+               "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
+               **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
+                                                         "warnings")}}
+        print(json.dumps(doc, default=json_default))
+        return 0
     rmse = f"; train RMSE {info['train_rmse_mm']:.3f} mm" if info.get("train_rmse_mm") is not None else ""
     extra = f", reg {info['reg']:.3g}" if "reg" in info else ""
     if "prior_alpha" in info and args.method in ("menzel", "laplacian"):
