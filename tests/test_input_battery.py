@@ -193,7 +193,7 @@ CASES = {
     "anim-import-exists": (["anim", "import", "nan_take.csv", "-o", "exists.usda"], ["exists.usda"]),
     "fit-output-exists": (["fit", C, "-o", "exists.usda"], ["exists.usda", "--force"]),
     # --- option values (argparse: one line naming the option)
-    "mu-nan": (["retarget", A, C, "-o", "m.json", "--mu", "nan"], ["--mu", "finite"]),
+    "mu-nan": (["retarget", A, C, "-o", "m.json", "--mu", "nan"], ["--mu", "'nan'"]),
     "mu-negative": (P + [A, C, "--mu", "-1"], ["--mu"]),
     "falloff-nan": (P + [A, C, "--falloff", "nan"], ["--falloff"]),
     "reg-inf": (["fit", C, "-o", "r.usda", "--reg", "inf"], ["--reg"]),
