@@ -1,9 +1,14 @@
-"""Benchmark of the personalized-shape fit on the bench captures (../shared/data/bench/dev1, dev2).
+"""Benchmark of the personalized-shape fit on the bench captures (../shared/data/bench/dev1-dev3) and the
+project's sample capture (``sample``).
 
 Prints (1) accuracy per method/option: test RMSE and mean max error (eq. 5, mm), error against the true shapes
 (mm) and the issue-7 acceptance ratios; (2) timings, median of ``--repeat`` runs, incl. the DT step.
 
-    python benchmarks/bench_fit.py [--cases dev1,dev2] [--repeat 7]
+    python benchmarks/bench_fit.py [--cases dev1,dev2,dev3,sample] [--repeat 7]
+
+dev3 also runs the fit with an avatar prior: a stand-in for the avatar's generic shapes sampled on the
+capture (dev1's template - the same avatar's rig on the same capture topology - rotated onto dev3's neutral;
+needs dev1).
 
 Timings are noisy on a shared machine: run it when the machine is quiet. ``fit_personalized_shapes`` limits
 BLAS to one thread itself (threadpoolctl), which avoids oversubscription for the many tiny (K x K) problems.
@@ -25,9 +30,12 @@ from usdface.personalize import evaluate_rig, fit_personalized_shapes, truth_err
 
 BENCH = Path(__file__).resolve().parents[2] / "shared" / "data" / "bench"
 
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
+
 RUNS = {
     "dt": {"method": "dt"},
     "ebfr": {"method": "ebfr"},
+    "ebfr tuned (beta auto)": {"method": "ebfr", "beta": "auto"},
     "menzel": {"method": "menzel"},
     "menzel --reg paper": {"method": "menzel", "reg": "paper", "align": False, "reweight": False},
     "menzel auto, no options": {"method": "menzel", "align": False, "reweight": False},
@@ -39,15 +47,39 @@ RUNS = {
 }
 
 
+def load(case: str):
+    """(capture, truth npz) of a bench case or of the sample (``case="sample"``)."""
+    if case == "sample":
+        return read_capture(SAMPLE / "capture.usda"), np.load(SAMPLE / "truth" / "capture_truth.npz")
+    return read_capture(BENCH / case / "capture"), np.load(BENCH / case / "truth" / "capture_truth.npz")
+
+
+def avatar_prior_standin(cap):
+    """dev1's template rotated onto ``cap``'s neutral (same avatar, same capture topology), or None."""
+    from usdface.personalize.align import kabsch
+
+    if not (BENCH / "dev1").is_dir():
+        return None
+    c1 = read_capture(BENCH / "dev1" / "capture")
+    if c1.names != cap.names or c1.neutral.shape != cap.neutral.shape:
+        return None
+    R, _ = kabsch(c1.template.neutral[None], cap.neutral)
+    return np.einsum("ij,knj->kni", R[0], c1.template.deltas)
+
+
 def accuracy(case: str, console: Console) -> dict:
-    cap = read_capture(BENCH / case / "capture")
-    truth = np.load(BENCH / case / "truth" / "capture_truth.npz")
+    cap, truth = load(case)
     true = truth["deltas"][[list(truth["names"]).index(n) for n in cap.names]]
     rows = {"template": {"truth": truth_error(cap.template.deltas, true)}}
     generic = type(cap.template)(cap.neutral, cap.triangles, cap.names, cap.template.deltas)
     tr = evaluate_rig(generic, cap.test)
     rows["template"].update(rmse=tr["mean_rmse_mm"], max=tr["mean_max_mm"])
-    for name, kw in RUNS.items():
+    runs = dict(RUNS)
+    if case == "dev3":
+        prior = avatar_prior_standin(cap)
+        if prior is not None:
+            runs["menzel + avatar prior (stand-in)"] = {"method": "menzel", "avatar_prior": prior}
+    for name, kw in runs.items():
         res = fit_personalized_shapes(cap, **kw)
         ev = evaluate_rig(res.rig, cap.test)
         rows[name] = {"rmse": ev["mean_rmse_mm"], "max": ev["mean_max_mm"],
@@ -65,6 +97,11 @@ def accuracy(case: str, console: Console) -> dict:
     console.print(table)
     m, dt, eb, paper = rows["menzel"], rows["dt"], rows["ebfr"], rows["menzel --reg paper"]
     tm = rows["template"]["truth"]
+    et = rows["ebfr tuned (beta auto)"]
+    console.print(f"{case}: tuned vs tuned - menzel / ebfr tuned RMSE {m['rmse'] / et['rmse']:.3f} "
+                  f"(issue 13: <= 0.75), menzel paper / ebfr fixed {paper['rmse'] / eb['rmse']:.3f}, menzel "
+                  f"paper / ebfr tuned {paper['rmse'] / et['rmse']:.3f}; default vs CV only (truth) "
+                  f"{m['truth']:.4f} vs {rows['menzel auto, no options']['truth']:.4f}")
     console.print(f"{case} ratios: menzel/dt RMSE {m['rmse'] / dt['rmse']:.3f}, menzel/ebfr RMSE "
                   f"{m['rmse'] / eb['rmse']:.3f}, menzel/dt max {m['max'] / dt['max']:.3f}, menzel/template "
                   f"truth {m['truth'] / tm:.3f}; paper: /dt {paper['rmse'] / dt['rmse']:.3f}, "
@@ -74,7 +111,7 @@ def accuracy(case: str, console: Console) -> dict:
 
 
 def timing(case: str, repeat: int, console: Console) -> None:
-    cap = read_capture(BENCH / case / "capture")
+    cap = load(case)[0]
     runs = {
         "menzel fixed reg (incl. DT)": {"method": "menzel", "reg": 1e-3, "align": False, "reweight": False},
         "menzel fixed reg + align + reweight": {"method": "menzel", "reg": 1e-3},
@@ -85,16 +122,16 @@ def timing(case: str, repeat: int, console: Console) -> None:
         "laplacian fixed reg": {"method": "laplacian", "reg": 1e-3, "align": False, "reweight": False},
     }
     med = {}
-    table = Table(title=f"{case}: seconds, median of {repeat} ({len(cap.neutral)} vertices, {len(cap.names)} "
-                        f"shapes, {len(cap.train)} training frames)")
-    for col in ("run", "median s", "min s", "DT s (median)"):
+    table = Table(title=f"{case}: CPU seconds, median of {repeat} ({len(cap.neutral)} vertices, "
+                        f"{len(cap.names)} shapes, {len(cap.train)} training frames)")
+    for col in ("run", "median CPU s", "min CPU s", "DT s (median, wall)"):
         table.add_column(col)
     for name, kw in runs.items():
         ts, dts = [], []
         for _ in range(repeat):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             res = fit_personalized_shapes(cap, **kw)
-            ts.append(time.perf_counter() - t0)
+            ts.append(time.process_time() - t0)
             dts.append(res.info["timings"]["dt"])
         med[name] = statistics.median(ts)
         table.add_row(name, f"{med[name]:.4f}", f"{min(ts):.4f}", f"{statistics.median(dts):.4f}")
@@ -105,16 +142,16 @@ def timing(case: str, repeat: int, console: Console) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--cases", default="dev1,dev2")
+    ap.add_argument("--cases", default="dev1,dev2,dev3,sample")
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--no-accuracy", action="store_true")
     ap.add_argument("--no-timing", action="store_true")
     args = ap.parse_args()
     console = Console(width=150)
-    if not BENCH.is_dir():
-        console.print(f"no bench data at {BENCH}; nothing to do")
-        return
     for case in args.cases.split(","):
+        if case != "sample" and not (BENCH / case).is_dir():
+            console.print(f"no bench data at {BENCH / case}; skipped")
+            continue
         if not args.no_accuracy:
             accuracy(case, console)
         if not args.no_timing:

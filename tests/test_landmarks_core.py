@@ -330,3 +330,54 @@ def test_landmark_quality_weighs_visibility_by_alpha_as_the_paper():
     vis = np.array([0.0, 1.0])
     assert np.allclose(landmark_quality(r, vis, 0.2), [[0.8, 0.2]])
     assert np.allclose(landmark_quality(r, vis, 1.0), [[0.0, 1.0]])
+
+
+def test_mirror_axis_is_detected_from_the_mesh():
+    """A left-right symmetric point set mirrored across y (or z) is paired across that axis."""
+    from usdface.landmarks.symmetry import mirror_axis, mirror_pairs, primary_side
+
+    rng = np.random.default_rng(0)
+    half = rng.uniform([0.01, -0.1, -0.05], [0.08, 0.1, 0.05], size=(60, 3))
+    pts = np.vstack([half, half * [-1, 1, 1], rng.uniform([0, -0.1, -0.05], [0, 0.1, 0.05], size=(4, 3))])
+    for axis in (0, 1, 2):
+        p = np.roll(pts, axis, axis=1)                    # the mirror axis moves to `axis`
+        assert mirror_axis(p) == axis
+        partner = mirror_pairs(p)
+        assert np.array_equal(partner[:60], np.arange(60, 120))
+        assert primary_side(p, partner)[:120].sum() == 60
+
+
+def test_multicover_radius_scales_with_the_face():
+    """The default exclusion radius is relative to the face: the same layout in metres and centimetres."""
+    from usdface.landmarks.cover import solve_set_cover
+    from usdface.landmarks.multicover import adaptive_multicover, face_size
+
+    rng = np.random.default_rng(1)
+    neutral = rng.uniform(0, 0.2, size=(80, 3))
+    c = rng.uniform(size=(6, 80)) < 0.3
+    cost = np.ones(80)
+
+    def solve(sub, cst):
+        return solve_set_cover(sub, cst)
+
+    a = adaptive_multicover(c, cost, neutral, 3, solve, share=None)[0]
+    b = adaptive_multicover(c, cost, neutral * 100.0, 3, solve, share=None)[0]
+    assert a.tolist() == b.tolist()
+    assert np.isclose(face_size(neutral * 100, c), 100 * face_size(neutral, c))
+
+
+def test_one_shot_multicover_is_the_optimal_n_fold_cover():
+    """Every shape gets min(N, |C_k|) landmarks, at the least total cost (brute force on a tiny problem)."""
+    from usdface.landmarks.multicover import one_shot_multicover
+
+    rng = np.random.default_rng(3)
+    c = rng.uniform(size=(5, 9)) < 0.45
+    c[4] = False                                               # a shape without candidates
+    cost = rng.uniform(1.0, 2.0, size=9)
+    sol = one_shot_multicover(c, cost, 2)
+    assert sol.status == "optimal" and sol.uncovered.tolist() == [4]
+    need = np.minimum(2, c.sum(axis=1))
+    assert np.all(c[:, sol.selected].sum(axis=1) >= need)
+    best = min(cost[list(s)].sum() for r in range(10) for s in itertools.combinations(range(9), r)
+               if np.all(c[:, list(s)].sum(axis=1) >= need))
+    assert np.isclose(cost[sol.selected].sum(), best)

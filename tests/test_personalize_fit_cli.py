@@ -43,7 +43,8 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert png.stat().st_size > 1000
     stage = Usd.Stage.Open(str(usd))
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
-    assert len(meshes) == 2 * n_test
+    assert list(rep["methods"]) == ["dt", "menzel", "menzel paper"]     # menzel also at the paper's balance
+    assert len(meshes) == 3 * n_test
     colors = UsdGeom.PrimvarsAPI(meshes[0]).GetPrimvar("displayColor")
     assert colors.GetInterpolation() == "vertex"
     assert main(args) == 2                                            # outputs exist, no --force

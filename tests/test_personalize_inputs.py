@@ -83,3 +83,34 @@ def test_unknown_method_options_are_named():
         fit_personalized_shapes(tiny_capture(), method="laplacian", bogus=1)
     with pytest.raises(FitError, match="bogus"):
         fit_personalized_shapes(tiny_capture(), method="menzel", bogus=1)
+
+
+def test_options_a_method_cannot_use_are_refused():
+    cap = tiny_capture()
+    for method, kw in (("dt", {"reg": 0.1}), ("dt", {"align": True}), ("dt", {"prior": "dt"}),
+                       ("ebfr", {"reg": "paper"}), ("ebfr", {"clamp": 10.0}), ("ebfr", {"reweight": True}),
+                       ("ebfr", {"prior": "template"}), ("menzel", {"beta": 0.5}), ("dt", {"beta": 0.5})):
+        with pytest.raises(FitError, match="not used by method"):
+            fit_personalized_shapes(cap, method=method, **kw)
+
+
+def test_user_clamp_is_honoured_by_the_cross_validation_and_laplacian():
+    """A user clamp changes eq. (3)'s weights and the vertices the CV treats as static."""
+    from usdface.personalize.api import _cv_vertices
+    from usdface.personalize.fit import regularization_weights
+    from usdface.personalize.laplacian import region_masks
+
+    cap = tiny_capture(K=2)
+    deltas = cap.template.deltas.copy()
+    deltas[:, :5] = 0.0                                # 5 static vertices
+    D = regularization_weights(deltas, clamp=50.0)
+    static = np.flatnonzero(D.min(axis=0) >= 50.0)
+    assert set(range(5)) <= set(static.tolist())
+    assert set(_cv_vertices(D, 50.0).tolist()) == set(range(len(D[0]))) - set(static.tolist())
+    assert set(_cv_vertices(D, 1e5).tolist()) == set(range(len(D[0])))    # the old hard-coded clamp
+    cap.frames.points[:] += np.random.default_rng(1).normal(size=cap.frames.points.shape) * 1e-3
+    kw = {"method": "laplacian", "reg": 1e-3, "mask_threshold": 0.5, "align": False, "reweight": False}
+    a = fit_personalized_shapes(cap, clamp=50.0, **kw)
+    b = fit_personalized_shapes(cap, **kw)
+    outside = ~region_masks(cap.template.deltas, 0.5)              # where the mask clamps D_j
+    assert np.abs(a.rig.deltas - b.rig.deltas)[outside].max() > 1e-6

@@ -94,7 +94,7 @@ def test_shape_the_avatar_lacks_falls_back_to_the_generic_prior():
 
 def test_shape_confidence_is_zero_without_data_and_one_when_isolated():
     cap, true, avatar = prior_capture()
-    for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}):
+    for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}, {"reg": 1e-4, "align": False, "reweight": False}):
         conf = fit(cap, **kw).info["shape_confidence"]
         assert conf.shape == (len(NAMES),) and np.all((conf >= 0) & (conf <= 1))
         assert np.all(conf[NEVER] < 1e-9)
@@ -173,3 +173,40 @@ def test_alignment_is_applied_where_frames_are_misaligned():
     assert res.info["align"]["applied"] is True
     plain = fit(cap, align=False, reweight=False)
     assert truth_error(res.rig.deltas, true) < 0.6 * truth_error(plain.rig.deltas, true)
+
+
+def test_evaluate_reports_tuned_and_fixed_variants():
+    from usdface.personalize.report import evaluate_methods
+
+    cap, true = noisy_capture()
+    test = Frames(cap.frames.points[-4:], cap.frames.weights[-4:], ["test"] * 4, ["t0", "t1", "t2", "t3"])
+    both = Frames(np.concatenate([cap.frames.points, test.points]),
+                  np.concatenate([cap.frames.weights, test.weights]), cap.frames.role + test.role,
+                  cap.frames.label + test.label)
+    cap = Capture(cap.neutral, cap.triangles, cap.template, both, cap.names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rep = evaluate_methods(cap, ["ebfr", "menzel"], reg="auto", prior=None, align=None, reweight=None)
+    assert list(rep["methods"]) == ["ebfr", "ebfr tuned", "menzel", "menzel paper"]
+    assert rep["methods"]["ebfr"]["info"]["beta"] == 0.5
+    assert rep["methods"]["ebfr tuned"]["info"]["beta"] != 0.5
+    assert rep["methods"]["menzel paper"]["info"]["reg"] == 1.0
+
+
+def test_pinned_vertices_are_the_artists_version():
+    cap, true = noisy_capture()
+    n = len(cap.neutral)
+    region = np.arange(n) < n // 3
+    res = fit(cap, pins={"jawOpen": region, "eyeBlinkLeft": [0, 1, 2]})
+    k, b = cap.names.index("jawOpen"), cap.names.index("eyeBlinkLeft")
+    assert np.abs(res.rig.deltas[k, region] - cap.template.deltas[k, region]).max() < 1e-9
+    assert np.abs(res.rig.deltas[b, :3] - cap.template.deltas[b, :3]).max() < 1e-9
+    free = fit(cap)
+    # elsewhere the shape is still fitted (closer to the truth than the template)
+    err = np.abs(res.rig.deltas[k, ~region] - true[k, ~region]).mean()
+    assert err < np.abs(cap.template.deltas[k, ~region] - true[k, ~region]).mean()
+    assert not np.allclose(free.rig.deltas[k, region], res.rig.deltas[k, region])
+    with pytest.raises(FitError, match="lacks"):
+        fit(cap, pins={"nope": [0]})
+    with pytest.raises(FitError, match="pins"):
+        fit(cap, method="dt", pins={"jawOpen": [0]})

@@ -167,7 +167,7 @@ def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
     res, _ = dev1_result  # default settings: eyes found in the avatar, repair on
     assert sorted(res.report["eyelids"]["eyeballs"]) == ["/Avatar/EyeLeft", "/Avatar/EyeRight"]
     assert res.report["eyelids"]["repaired_vertex_shapes"] > 0
-    ref = personalize_avatar(avatar, dev1[0], None, rig=dev1[1], eyelids=False)
+    ref = personalize_avatar(avatar, dev1[0], None, eyelids=False)
     key = next(k for k in res.offsets if k.endswith("Head"))
     head = read_avatar(avatar).mesh("Head")
     idx = [head.index(n) for n in res.names]

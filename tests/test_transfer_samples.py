@@ -29,27 +29,30 @@ def sample_result(samples, sample_fit, tmp_path_factory):
     avatar = samples / "avatar.usda"
     before = hashlib.sha256(avatar.read_bytes()).hexdigest()
     out = tmp_path_factory.mktemp("s") / "sample.usda"
-    res = personalize_avatar(avatar, sample_fit[0], out, rig=sample_fit[1])
+    res = personalize_avatar(avatar, sample_fit[0], out)
     return res, before
 
 
 def test_sample_accuracy_regions_input(samples, sample_result):
+    """The sample: closer to the person than the generic avatar on the Head and the Mouth, the lips kept apart
+    by the correspondence, the input untouched."""
     from usdface.io.usd_rig import read_avatar
+    from usdface.transfer.scoring import score_mesh
 
     res, before = sample_result
-    head = read_avatar(samples / "avatar.usda").mesh("Head")
+    avatar = read_avatar(samples / "avatar.usda")
     npz = np.load(samples / "truth" / "avatar_truth.npz")
-    truth = np.array([npz["Head/" + n] for n in head.names]) @ head.source.to_internal[:3, :3].T
-    eq4 = head.deltas.copy()
-    for j, n in enumerate(res.names):
-        eq4[head.index(n)] = res.approximation[head.source.prim][j]
-    generic = _rmse(head.deltas, truth)
-    ratio = _rmse(res.offsets[head.source.prim], truth) / generic
-    assert ratio <= 0.6, ratio
-    assert ratio < _rmse(eq4, truth) / generic
-    idx = [head.index(n) for n in res.names]
-    outside = ~res.face[None, :] & ~res.adjacent
-    np.testing.assert_array_equal(res.offsets[head.source.prim][idx][outside], head.deltas[idx][outside])
+    for m in avatar.meshes:
+        if not m.names:
+            continue
+        truth = np.array([npz[f"{m.name}/{n}"] for n in m.names]) @ m.source.to_internal[:3, :3].T
+        s = score_mesh(m.names, m.deltas, res.offsets[m.source.prim], truth)
+        assert s.whole_ratio <= (0.5 if m.name == "Head" else 0.9), (m.name, s.whole_ratio)
+        # no Head shape worse than generic (the rigid Mouth's jawOpen is +0.09 mm, see docs/personalize.md)
+        if m.name == "Head":
+            assert s.per_shape_delta.max() <= 0.05, (m.name, s.worst_shape())
+    # 15 lower-lip vertices landed on the upper lip with the neutral-only closest points
+    assert res.report["correspondence"]["side_swaps_jawOpen"] == 0
     assert hashlib.sha256((samples / "avatar.usda").read_bytes()).hexdigest() == before
     assert res.report["registration"]["fitness"] > 0.95
 

@@ -35,8 +35,22 @@ def shapes_needing_landmarks(c: np.ndarray, chosen: np.ndarray, max_per_shape: i
     return need & (count < np.ceil(served.sum(axis=1) / limit))
 
 
+#: Default exclusion radius of :func:`adaptive_multicover`, as a fraction of the face size
+#: (:func:`face_size`): 5 % - about 1 cm on a human face, whatever the rig's units.
+RADIUS_FRACTION = 0.05
+
+
+def face_size(neutral: np.ndarray, c: np.ndarray) -> float:
+    """Size of the face a layout covers: the bounding-box diagonal of the vertices that are candidates for
+    some shape (``c[K, n]``), in ``neutral``'s units; the whole mesh's if there are none."""
+    p = np.asarray(neutral, dtype=np.float64)
+    used = np.asarray(c, dtype=bool).any(axis=0)
+    q = p[used] if used.any() else p
+    return float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
+
+
 def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape: int,
-                        solve: Callable[[np.ndarray, np.ndarray], CoverSolution], radius: float = 0.01,
+                        solve: Callable[[np.ndarray, np.ndarray], CoverSolution], radius: float | None = None,
                         share: float | None = 0.1, partner: np.ndarray | None = None,
                         coverage: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray, list[CoverSolution]]:
@@ -45,9 +59,13 @@ def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape:
 
     ``solve(c, cost)`` solves one cover (eq. 5). ``partner[n]`` (symmetric mode) adds mirror partners to the
     excluded neighbourhood; ``coverage[K, n]`` is the candidate matrix used to count landmarks per shape
-    (default ``c``). Returns (selected vertex indices [m], round of each [m], the per-round solutions).
+    (default ``c``). ``radius`` (``neutral``'s units) default: :data:`RADIUS_FRACTION` x :func:`face_size`,
+    so the exclusion scales with the face (an absolute 1 cm is 1 % of a face in centimetres).
+    Returns (selected vertex indices [m], round of each [m], the per-round solutions).
     """
     c = np.asarray(c, dtype=bool)
+    if radius is None:
+        radius = RADIUS_FRACTION * face_size(neutral, c)
     coverage = c if coverage is None else np.asarray(coverage, dtype=bool)
     tree = cKDTree(neutral)
     chosen: list[int] = []
@@ -80,3 +98,65 @@ def _expand(selected: np.ndarray, partner: np.ndarray | None) -> np.ndarray:
     if partner is None:
         return selected
     return np.unique(np.concatenate([selected, partner[selected][partner[selected] >= 0]]))
+
+
+def one_shot_multicover(c: np.ndarray, cost: np.ndarray, n_per_shape: int, *, backend: str = "scip",
+                        time_limit: float = 60.0) -> CoverSolution:
+    """Zell & McDonnell 2022, sec. 3.3.2, the one-shot multi-cover beside :func:`adaptive_multicover`: one
+    ILP that covers every shape ``N = n_per_shape`` times, ``min sum_n cost_n f_n`` s.t.
+    ``sum_n c_kn f_n >= min(N, |C_k|)`` for every shape k, ``f_n`` binary (eq. 5 with the right-hand side
+    N). ``c[K, n]`` bool candidates (eq. 3), ``cost[n] > 0`` (eq. 5a). Unlike the adaptive rounds it sees all
+    the landmarks at once (a proven optimum of the whole layout) but has no spatial exclusion radius and no
+    10 % heuristic. Shapes without a candidate are returned in ``uncovered``. Solved to a proven optimum with
+    OR-tools (relative gap 0) like :func:`usdface.landmarks.cover.solve_set_cover`.
+    """
+    import time
+
+    from ortools.linear_solver import pywraplp
+
+    from ..errors import LandmarkError
+    from .cover import BACKENDS
+
+    c = np.asarray(c, dtype=bool)
+    cost = np.asarray(cost, dtype=np.float64)
+    if c.ndim != 2 or cost.shape != (c.shape[1],):
+        raise LandmarkError(f"multi-cover needs c[K, n] and cost[n]; got {c.shape} and {cost.shape}")
+    if int(n_per_shape) < 1:
+        raise LandmarkError(f"n_per_shape must be >= 1, got {n_per_shape}", fix="use 1 or more")
+    if backend not in BACKENDS:
+        raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
+    t0 = time.perf_counter()
+    uncovered = np.flatnonzero(~c.any(axis=1))
+    rows = np.flatnonzero(c.any(axis=1))
+    cols = np.flatnonzero(c[rows].any(axis=0))
+    size = (int(c.shape[0]), int(c.shape[1]))
+    solver = pywraplp.Solver.CreateSolver(BACKENDS[backend])
+    if solver is None:
+        raise LandmarkError(f"OR-tools has no {backend} backend in this build", fix="use backend scip")
+    solver.SetNumThreads(1)
+    solver.SetTimeLimit(int(time_limit * 1000))
+    f = [solver.BoolVar(f"f{n}") for n in cols]
+    sub = c[np.ix_(rows, cols)]
+    for k in range(rows.size):
+        members = np.flatnonzero(sub[k])
+        solver.Add(solver.Sum([f[j] for j in members]) >= min(int(n_per_shape), len(members)))
+    objective = solver.Objective()
+    for j, n in enumerate(cols):
+        objective.SetCoefficient(f[j], float(cost[n]))
+    objective.SetMinimization()
+    params = pywraplp.MPSolverParameters()
+    params.SetDoubleParam(params.RELATIVE_MIP_GAP, 0.0)
+    code = solver.Solve(params)
+    seconds = time.perf_counter() - t0
+    if code not in (pywraplp.Solver.OPTIMAL, pywraplp.Solver.FEASIBLE):
+        status = {pywraplp.Solver.INFEASIBLE: "infeasible"}.get(code, "notSolved")
+        return CoverSolution(np.zeros(0, dtype=np.int64), uncovered, status, float("nan"), float("nan"),
+                             float("inf"), seconds, backend, size, (int(rows.size), int(cols.size)))
+    chosen = np.array([v.solution_value() > 0.5 for v in f], dtype=bool)
+    value, bound = float(objective.Value()), float(objective.BestBound())
+    gap = max(0.0, (value - bound) / max(abs(value), 1e-12))
+    status = "optimal" if code == pywraplp.Solver.OPTIMAL else ("timeLimit" if seconds >= time_limit
+                                                                else "feasible")
+    return CoverSolution(np.sort(cols[chosen]) if chosen.size else np.zeros(0, dtype=np.int64), uncovered,
+                         status, value, bound, 0.0 if status == "optimal" and gap < 1e-9 else gap, seconds,
+                         backend, size, (int(rows.size), int(cols.size)))

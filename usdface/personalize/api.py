@@ -25,6 +25,9 @@ METHODS = ("dt", "ebfr", "menzel", "laplacian")
 
 #: Prior widths (std of the phone's weight error) tried by ``weight_sigma="auto"``.
 WEIGHT_SIGMAS = (0.01, 0.02, 0.05)
+#: Principal axes of the face the re-estimation CV splits along (1: the two halves across the longest axis;
+#: 2 gave the same decisions on dev1-dev3 and the sample at twice the cost).
+REWEIGHT_SPLIT_AXES = 1
 
 #: A shape whose largest training weight is below this is "never activated".
 ACTIVATION_MIN = 0.05
@@ -111,7 +114,7 @@ _single_threaded_blas = single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
-                            avatar_prior=None, **options) -> FitResult:
+                            avatar_prior=None, frame_weights=None, pins=None, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -151,10 +154,19 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         another artist's rig, so there the avatar's own shape is the safe fall-back (transferring it back onto
         the avatar changes nothing). ``prior="avatar"`` forces it (DT where NaN), with any ``reg``.
         Menzel/laplacian only.
+    frame_weights : optional per-training-frame weights ``omega[F] >= 0`` of E_fit (and of the LOO
+        criterion), or ``"balanced"`` (:func:`usdface.personalize.takefit.balanced_frame_weights`): for
+        fitting on every frame of a take. Menzel/laplacian; alignment and re-estimation are then off
+        (they act on the frames as scanned; asking for them is refused).
+    pins : artist constraints (Hable): parts of shapes pinned to the artist's version, the template's
+        deltas - ``{shape name: vertex indices or bool[n]}`` or a bool ``[K,n]`` mask. A pinned vertex of a
+        shape is returned exactly as the template has it (within rounding); the other shapes at that vertex
+        and the shape elsewhere are fitted around it. Menzel/laplacian.
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
-    options : method-specific (ebfr: ``beta``, ``kappa``, ``theta``; laplacian: ``laplacian_weight``,
-        ``mask_threshold``).
+    options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
+        laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
+        ``mask_threshold``, ``tol``, ``max_iter``). Options a method cannot use raise :class:`FitError`.
 
     Returns a :class:`FitResult`. Raises FitError / GeometryError on unusable input (see
     :func:`check_capture`); warnings are in ``result.info["warnings"]`` and issued as ``UserWarning``.
@@ -169,8 +181,12 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
+    _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
+    if pins is not None:
+        _pin_mask(pins, capture, method)                  # validate before the work starts
     auto = isinstance(reg, str) and reg == "auto"
     paper = isinstance(reg, str) and reg == "paper"
+    align_arg, reweight_arg = bool(align), bool(reweight)
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
@@ -190,13 +206,31 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     train = capture.train
     points, weights = train.points, train.weights
     tmpl = capture.template
+    if frame_weights is not None:
+        from .takefit import balanced_frame_weights, weighted_frames
+
+        if method not in ("menzel", "laplacian"):
+            raise FitError(f"frame_weights is not used by method {method!r}", fix="use menzel or laplacian")
+        if align_arg or reweight_arg:
+            raise FitError("frame_weights with align/reweight", fix="drop align/reweight (they act on the "
+                           "frames as scanned) or frame_weights")
+        omega = (balanced_frame_weights(weights) if isinstance(frame_weights, str) and
+                 frame_weights == "balanced" else np.asarray(frame_weights, dtype=np.float64))
+        if omega.shape != (len(weights),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
+            raise FitError(f"frame_weights must be {len(weights)} finite numbers >= 0 (or 'balanced')",
+                           fix="one weight per training frame")
+        points, weights = weighted_frames(capture.neutral, points, weights, omega)
+        align = reweight = False
+        n_eff = float(omega.sum() ** 2 / max(np.sum(omega ** 2), 1e-300))
+        info["frame_weights"] = {"min": float(omega.min()), "max": float(omega.max()),
+                                 "effective_frames": n_eff}
     if method == "dt":
         deltas = generic
     elif method == "ebfr":
         from .ebfr import ebfr_blendshapes
         if align:
             D = regularization_weights(generic, clamp=clamp)
-            cand = _cv_vertices(D)
+            cand = _cv_vertices(D, clamp)
             pf = PositionFit(capture.neutral[cand], points[:, cand], weights, generic[:, cand], D[:, cand])
             reg_a, _ = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand)
             helps, test = _alignment_generalises(pf, points[:, cand], reg_a, info)
@@ -217,7 +251,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
         if prior == "avatar":
             main = np.where(avatar_ok[:, None, None], avatar, generic)
-        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings)
+        lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings,
+                              clamp=clamp)
         prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main
         choice = None
         per_shape = False                      # a prior other than alpha * DT + (1 - alpha) * template
@@ -227,7 +262,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if align:
             cv = info.get("crossval")
             if cv is None or "fit" not in cv:
-                cand = _cv_vertices(D)
+                cand = _cv_vertices(D, clamp)
                 pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
                                  D[:, cand])
                 info["crossval"] = {"fit": pf, "vertices": cand}
@@ -240,7 +275,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             for _ in range(2 if helps else 0):
                 points = _align_frames(capture.neutral, points, weights, generic, info, timings,
                                        cv=info.get("crossval"), reg=lam, prior_deltas=prior_deltas, D=D,
-                                       alt=tmpl.deltas, alpha=alpha)
+                                       alt=tmpl.deltas, alpha=alpha, clamp=clamp)
                 if auto:
                     cv = info["crossval"]
                     cv["fit"].set_points(points[:, cv["vertices"]])
@@ -257,8 +292,16 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                       else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
         info["prior_choice"] = choice
         info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
-                                                     info)
-        solve = _make_solver(method, capture, D, prior_deltas, options)
+                                                     info, clamp)
+        D_fit, prior_fit = D, prior_deltas
+        if pins is not None:
+            mask = _pin_mask(pins, capture, method)
+            # a pinned entry's E_reg weight reg * D^2 becomes 1e14 (a hard constraint in double precision: the
+            # other terms of its row are O(1)), towards the artist's (template) delta
+            D_fit = np.where(mask, np.sqrt(1e14 / lam), D)
+            prior_fit = np.where(mask[:, :, None], tmpl.deltas, prior_deltas)
+            info["pins"] = {capture.names[k]: int(mask[k].sum()) for k in np.flatnonzero(mask.any(axis=1))}
+        solve = _make_solver(method, capture, D_fit, prior_fit, options, clamp, (points, weights, lam), info)
         t1 = time.perf_counter()
         deltas = solve(points, weights, lam)
         timings["fit"] = time.perf_counter() - t1
@@ -297,7 +340,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
             sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
             sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate_on,
-                                         sigmas)
+                                         sigmas, clamp)
             if sigma is not None:
                 w_cur, deltas = reestimate(capture.neutral, points, lambda w: solve(points, w, lam), deltas,
                                            sigma)
@@ -320,6 +363,64 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
 
 _BLEND_NAME = {1.0: "dt", 0.0: "template"}
+
+
+#: Method-specific options of :func:`fit_personalized_shapes` (``**options``).
+METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
+                  "laplacian": ("laplacian_weight", "mask_threshold", "tol", "max_iter"),
+                  "menzel": (), "dt": ()}
+
+
+def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):
+    """Raise :class:`FitError` naming every option that ``method`` would accept and ignore."""
+    bad = []
+    if method in ("dt", "ebfr"):
+        if not (isinstance(reg, str) and reg == "auto"):
+            bad.append(f"reg={reg!r}")
+        if prior is not None:
+            bad.append(f"prior={prior!r}")
+        if clamp != D_CLAMP:
+            bad.append("clamp")
+        if reweight:
+            bad.append("reweight")
+        if not (isinstance(weight_sigma, str) and weight_sigma == "auto"):
+            bad.append("weight_sigma")
+        if method == "dt" and align:
+            bad.append("align")
+    allowed = METHOD_OPTIONS[method]
+    bad += sorted(set(options) - set(allowed))
+    if bad:
+        takes = ", ".join(allowed) if allowed else "no extra options"
+        extra = {"dt": " (and eyelids)", "ebfr": " (and align, eyelids)"}.get(method, "")
+        raise FitError(f"option(s) not used by method {method!r}: {', '.join(bad)}",
+                       fix=f"drop them; {method} takes {takes}{extra}")
+
+
+def _pin_mask(pins, capture, method) -> np.ndarray:
+    """``pins`` (dict name -> indices / bool[n], or bool[K,n]) as a bool ``[K,n]`` mask; FitError if bad."""
+    K, n = len(capture.names), len(capture.neutral)
+    if method not in ("menzel", "laplacian"):
+        raise FitError(f"pins are not used by method {method!r}", fix="use menzel or laplacian")
+    if isinstance(pins, dict):
+        mask = np.zeros((K, n), bool)
+        for name, v in pins.items():
+            if name not in capture.names:
+                raise FitError(f"pins name a shape the capture lacks: {name!r}", fix="use capture.names")
+            v = np.asarray(v)
+            if v.dtype == bool:
+                if v.shape != (n,):
+                    raise FitError(f"pin mask of {name} has {v.shape}, expected ({n},)", fix="one per vertex")
+                mask[capture.names.index(name)] |= v
+            else:
+                v = v.astype(np.int64).ravel()
+                if v.size and (v.min() < 0 or v.max() >= n):
+                    raise FitError(f"pins of {name} index outside 0..{n - 1}", fix="capture vertex indices")
+                mask[capture.names.index(name), v] = True
+        return mask
+    mask = np.asarray(pins, dtype=bool)
+    if mask.shape != (K, n):
+        raise FitError(f"pins mask has shape {mask.shape}, expected {(K, n)}", fix="bool [shapes, vertices]")
+    return mask
 
 
 def _check_avatar_prior(avatar_prior, capture, method, prior):
@@ -380,24 +481,28 @@ def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timing
     return lam, prior, choice, won
 
 
-def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info):
+def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info, clamp=D_CLAMP):
     """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
-        pf, cand = cv["fit"], cv["vertices"]
-    else:
-        cand = _cv_vertices(D)
-        pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
-    share = pf.data_share(lam)                                               # [m,K]
+        cand = cv["vertices"]
+        share = cv["fit"].data_share(lam)                                     # [m,K]
+    else:                                # diag(A_v^-1 W^T W) by one batched solve (no eigen-decomposition)
+        cand = _cv_vertices(D, clamp)
+        WtW = weights.T @ weights
+        K = len(WtW)
+        A = np.broadcast_to(WtW, (len(cand), K, K)).copy()
+        A[:, np.arange(K), np.arange(K)] += lam * D[:, cand].T ** 2
+        share = np.diagonal(np.linalg.solve(A, np.broadcast_to(WtW, A.shape)), axis1=1, axis2=2)
     w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
 
 
-def _cv_vertices(D, max_vertices=300, seed=0):
+def _cv_vertices(D, clamp=D_CLAMP, max_vertices=300, seed=0):
     """The deterministic vertex subsample of :func:`choose_regularization` (moving vertices)."""
     idx = np.arange(D.shape[1])
-    moving = D.min(axis=0) < 1e5
+    moving = D.min(axis=0) < clamp
     cand = idx[moving] if moving.any() else idx
     if len(cand) > max_vertices:
         cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
@@ -431,9 +536,10 @@ def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timing
     return lam, alpha
 
 
-def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas):
+def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reestimate, sigmas, clamp=D_CLAMP):
     """Cross-validated decision on the weight re-estimation and its prior width, by spatially separated
-    halves of the (subsampled) vertices (either side of the neutral's centroid along its two principal axes).
+    halves of the (subsampled) vertices (either side of the neutral's centroid along its principal axis,
+    :data:`REWEIGHT_SPLIT_AXES`).
     The position fit is separable per vertex, so weights re-estimated from one half (``reestimate(vertex
     indices, sigma)``) are independent of the other half's data; there, the fit with those weights predicts
     every held-out frame (exact leave-one-frame-out) with the *phone's* weights - as the test frames and every
@@ -441,10 +547,10 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, reesti
     ``sigmas`` is scored; the best is kept if it beats the phone's weights (sigma -> 0, no re-estimation).
     Returns ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out LOO RMSE)``."""
     cv = info.get("crossval")
-    cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D)
+    cand = cv["vertices"] if cv is not None and "vertices" in cv else _cv_vertices(D, clamp)
     nb = capture.neutral[cand] - capture.neutral[cand].mean(axis=0)
     splits = []
-    for ax in np.linalg.svd(nb, full_matrices=False)[2][:2]:
+    for ax in np.linalg.svd(nb, full_matrices=False)[2][:REWEIGHT_SPLIT_AXES]:
         side = nb @ ax > 0
         splits += [(cand[side], cand[~side]), (cand[~side], cand[side])]
     e = {"phone": 0.0, **{sg: 0.0 for sg in sigmas}}
@@ -492,16 +598,16 @@ def _alignment_generalises(pf, points, reg, info):
 
 
 def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, reg=None, alpha=1.0, D=None,
-                  alt=None, prior_deltas=None):
+                  alt=None, prior_deltas=None, clamp=D_CLAMP):
     """Rigidly align every frame to its leave-one-out prediction on (a subsample of) the moving vertices."""
     t1 = time.perf_counter()
     if D is None:
-        D = regularization_weights(generic)
+        D = regularization_weights(generic, clamp=clamp)
     if cv is None or "fit" not in cv:
         if reg is None:
-            reg, cv = choose_regularization(neutral, points, weights, generic, D)
+            reg, cv = choose_regularization(neutral, points, weights, generic, D, clamp=clamp)
         else:
-            _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt,
+            _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt, clamp=clamp,
                                           grid=np.array([np.log10(reg)]), refine_steps=0)
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
@@ -523,18 +629,25 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     return aligned
 
 
-def _make_solver(method, capture, D, generic, options):
-    """A function ``(points, weights, reg) -> deltas`` for the position-based methods."""
+def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=None, info=None):
+    """A function ``(points, weights, reg) -> deltas`` for the position-based methods. Laplacian with
+    ``laplacian_weight="auto"`` (default): the weight is chosen on ``cv_data = (points, weights, reg)`` by
+    :meth:`LaplacianFit.choose_weight`."""
     if method == "laplacian":
         from .laplacian import LaplacianFit
-        unknown = set(options) - {"laplacian_weight", "mask_threshold", "tol", "max_iter"}
-        if unknown:
-            raise FitError(f"unknown option(s) for laplacian: {', '.join(sorted(unknown))}",
-                           fix="use laplacian_weight, mask_threshold, tol or max_iter")
-        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, **options)
+        opts = dict(options)
+        mu = opts.pop("laplacian_weight", "auto")
+        lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp,
+                          laplacian_weight=0.0 if isinstance(mu, str) else float(mu), **opts)
+        if isinstance(mu, str):
+            if mu != "auto":
+                raise FitError(f"bad laplacian_weight {mu!r}", fix="use 'auto' or a number >= 0")
+            cv = lf.choose_weight(*cv_data)
+            if info is not None:
+                info["laplacian_cv"] = cv
+        if info is not None:
+            info["laplacian_weight"] = lf.mu
         return lambda P, W, lam: lf.solve(P, W, lam)
-    if options:
-        raise FitError(f"unknown option(s) for {method}: {', '.join(options)}", fix="see usdface fit --help")
     return lambda P, W, lam: fit_blendshapes(capture.neutral, P, W, generic, D, lam)
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fit import PositionFit
+from .fit import D_CLAMP, PositionFit
 
 __all__ = ["choose_regularization", "REG_GRID", "PRIOR_MIX"]
 
@@ -47,7 +47,8 @@ def _minimise_log(fun, grid, refine_steps):
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
                           max_vertices: int = 300, grid=REG_GRID, refine_steps: int = 6,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
-                          alphas=None, keep_prior: bool = False) -> tuple[float, dict]:
+                          alphas=None, keep_prior: bool = False,
+                          clamp: float = D_CLAMP) -> tuple[float, dict]:
     """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).
 
     Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`; ``alt_deltas[K,n,3]`` an optional second
@@ -56,13 +57,14 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     "loo_rmse_best_mm", "vertices" (indices used), "fit" (the prepared PositionFit on them)}``.
     Pass ``fit`` and ``vertices`` from a previous call (after :meth:`PositionFit.set_points`) to skip the
     decomposition; ``alphas`` restricts the prior blends tried; ``keep_prior`` searches ``reg`` only, with the
-    prior ``fit`` holds (e.g. a per-shape choice, :meth:`PositionFit.set_prior`).
+    prior ``fit`` holds (e.g. the avatar prior, :meth:`PositionFit.set_prior`). ``clamp``: eq. (3)'s clamp
+    used for ``reg_weights`` (vertices at the clamp in every shape are static and left out).
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     if fit is None:
         n = len(neutral)
         idx = np.arange(n)
-        moving = np.asarray(reg_weights).min(axis=0) < 1e5          # vertices some template shape moves
+        moving = np.asarray(reg_weights).min(axis=0) < clamp        # vertices some template shape moves
         cand = idx[moving] if moving.any() else idx
         if len(cand) > max_vertices:
             cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))

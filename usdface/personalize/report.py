@@ -17,8 +17,29 @@ from .evaluate import error_colors, evaluate_rig, truth_error
 __all__ = ["evaluate_methods", "plot_errors", "write_report_json"]
 
 
-def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, **fit_options) -> dict:
+#: The runs a method stands for in the comparison: ``(report key, method, options)``. Each method is shown
+#: as its authors tuned it and as this package tunes it, so that tuned meets tuned: ``menzel`` (default:
+#: CV of the balance and prior, CV-gated alignment and re-estimation) beside ``menzel paper`` (reg = 1,
+#: the method as published); ``ebfr`` (Li et al.'s beta = 0.5) beside ``ebfr tuned`` (beta by the same
+#: leave-one-frame-out CV as menzel, the same CV-gated alignment).
+VARIANTS = {"dt": (("dt", "dt", {}),),
+            "menzel": (("menzel", "menzel", {}), ("menzel paper", "menzel", {"reg": "paper"})),
+            "ebfr": (("ebfr", "ebfr", {"beta": 0.5}), ("ebfr tuned", "ebfr", {"beta": "auto"})),
+            "laplacian": (("laplacian", "laplacian", {}),)}
+
+#: The user options each method takes (the rest would be refused as unused).
+_TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
+          "menzel": ("reg", "prior", "align", "reweight", "eyelids"),
+          "laplacian": ("reg", "prior", "align", "reweight", "eyelids")}
+
+
+def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, variants: bool = True,
+                     **fit_options) -> dict:
     """Fit and score ``methods`` on ``capture``.
+
+    With ``variants`` each method stands for its runs in :data:`VARIANTS` (menzel also at the paper's
+    balance, EBFR also tuned); ``fit_options`` go to the methods that take them (``reg``/``prior``/
+    ``reweight`` only to menzel and laplacian, ``align`` not to dt), a variant's own options win.
 
     ``truth`` (optional): ``{"names": [K], "deltas": [K,n,3]}`` (bench ``capture_truth.npz``); adds
     ``truth_rmse_mm`` per method and a ``template`` row (the generic template deltas' error).
@@ -40,17 +61,22 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, **
         order = [tnames.index(n) for n in capture.names]
         true_deltas = np.asarray(truth["deltas"])[order]
     report: dict = {"labels": list(test.label), "methods": {}, "_maps": {}}
-    for m in methods:
+    runs = [run for m in methods for run in (VARIANTS[m] if variants else ((m, m, {}),))]
+    for key, m, own in runs:
+        opts = {k: v for k, v in fit_options.items() if k in _TAKES[m] and v is not None}
+        if own.get("reg") == "paper":
+            opts = {k: v for k, v in opts.items() if k == "eyelids"}
+        opts.update(own)
         t0 = time.perf_counter()
-        res = fit_personalized_shapes(capture, method=m, **(fit_options if m != "dt" else {}))
+        res = fit_personalized_shapes(capture, method=m, **opts)
         sec = time.perf_counter() - t0
         ev = evaluate_rig(res.rig, test)
         row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
                "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
                "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
                "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
-        report["methods"][m] = row
-        report["_maps"][m] = [(lab, pts, err, error_colors(err))
+        report["methods"][key] = row
+        report["_maps"][key] = [(lab, pts, err, error_colors(err))
                               for lab, pts, err in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
     if order is not None:
         from ..model import FaceRig

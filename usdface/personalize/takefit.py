@@ -1,0 +1,41 @@
+"""Beyond Menzel et al. (2022): fitting on every frame of a recorded take, not one peak frame per shape.
+
+A take has hundreds of frames: long runs of near-identical poses (rest, the plateau of a sweep) and a few
+frames in between. Fitting eq. (1) on all of them with equal weight lets the most repeated poses dominate;
+weighting each frame by the inverse of the number of frames with (nearly) the same weights makes every
+distinct pose count about once, while the repeats still average out the scan noise of that pose.
+:func:`balanced_frame_weights` computes those weights; ``fit_personalized_shapes(capture,
+frame_weights=...)`` uses them in E_fit (``sum_i omega_i ||B0 + sum_j w_ij B_j - S_i||^2``) and in the
+leave-one-frame-out criterion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["balanced_frame_weights", "weighted_frames"]
+
+
+def balanced_frame_weights(weights: np.ndarray, radius: float = 0.05) -> np.ndarray:
+    """``omega[F]`` for the frames' blendshape weights ``weights[F,K]``: 1 / (number of frames whose weight
+    vector lies within ``radius`` of this frame's - RMS over the K weights, so the radius means "every weight
+    within about ``radius``", independent of K; itself included), normalised to mean 1. A pose held for 30
+    frames then weighs as much as a pose passed through once; the default (0.05) is above the phone's weight
+    noise (~0.01-0.03), so noisy repeats of one pose count as that pose."""
+    W = np.asarray(weights, dtype=np.float64)
+    if len(W) == 0:
+        return np.zeros(0)
+    r = radius * np.sqrt(W.shape[1])
+    counts = np.array([len(n) for n in cKDTree(W).query_ball_point(W, r)], dtype=np.float64)
+    omega = 1.0 / counts
+    return omega * (len(W) / omega.sum())
+
+
+def weighted_frames(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, omega: np.ndarray):
+    """Frames and weights scaled by ``sqrt(omega)`` about the neutral, so that the unweighted eqs. (1)+(2)
+    on them are the frame-weighted fit: ``(neutral + sqrt(omega_i) (S_i - B0), sqrt(omega_i) w_i)``."""
+    s = np.sqrt(np.asarray(omega, dtype=np.float64))
+    B0 = np.asarray(neutral, dtype=np.float64)
+    P = B0[None] + s[:, None, None] * (np.asarray(points, dtype=np.float64) - B0[None])
+    return P, s[:, None] * np.asarray(weights, dtype=np.float64)
