@@ -175,9 +175,11 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     field, also the stage's timeCodesPerSecond. Returns the path written (atomically; an existing file
     needs ``force``) and the :class:`usdface.io.livelink.LiveLinkTake` read."""
     from . import __version__
+    from .io.layers import check_output_path
     from .io.livelink import read_livelink_take
     from .io.usd_anim import write_animation_usd
 
+    check_output_path(out_path, force, inputs=[csv])
     data = read_livelink_take(csv, timecode_rate)
     out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
                               curves={**data.angles, **data.extra}, force=force,
@@ -205,7 +207,11 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
         from .io.layers import check_output_path
 
         check_output_path(out_path, force)
-    result = fit_personalized_shapes(_as_capture(capture), method=method, **options)
+    capture = _as_capture(capture)
+    result = fit_personalized_shapes(capture, method=method, **options)
+    if result.info.get("train_rmse_mm") is None and len(capture.frames.select("train")):
+        # dt/ebfr do not score themselves: eq. 5 on the training frames, as the other methods report
+        result.info["train_rmse_mm"] = float(evaluate_capture(capture, result, role="train")["mean_rmse_mm"])
     if out_path is not None:
         result.info["out_path"] = write_fit_rig(result, out_path, force=force)
     return result

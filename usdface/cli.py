@@ -80,7 +80,10 @@ def main(argv=None) -> int:
     except UsdFaceError as exc:
         if args.debug:
             raise
-        print(f"usdface {args.command}: error: {exc}", file=sys.stderr)
+        if getattr(args, "json", None) is True:
+            _json_error(args, str(exc), type(exc).__name__, exc.path, exc.prim, exc.fix)
+        else:
+            print(f"usdface {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("usdface: interrupted", file=sys.stderr)
@@ -88,8 +91,22 @@ def main(argv=None) -> int:
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
-        print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        if getattr(args, "json", None) is True:
+            _json_error(args, os_error_text(exc), type(exc).__name__, exc.filename, None, None)
+        else:
+            print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
         return 2
+
+
+def _json_error(args, text, kind, path, prim, fix) -> None:
+    """With ``--json`` an error is JSON too: one object on stdout (``{"ok": false, "error": {...}}``) and the
+    usual one line on stderr."""
+    import json
+
+    doc = {"ok": False, "error": {"command": args.command, "type": kind, "message": text,
+                                  "file": None if path is None else str(path), "prim": prim, "fix": fix}}
+    print(json.dumps(doc))
+    print(f"usdface {args.command}: error: {text}", file=sys.stderr)
 
 
 #: errno -> what to do about it (the one-line error's ``fix``).

@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import usdface  # before any pxr stage: a stage opened first is the DCC case, tested on its own
+import usdface.io  # noqa: F401  (schemas first: a stage opened before them is the DCC case, tested on its own)
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))

@@ -23,6 +23,7 @@ def register(subparsers) -> None:
                      help="frames per second of the CSV's timecode FF field; also the stage's "
                           "timeCodesPerSecond (default 60)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
+    imp.add_argument("--json", action="store_true", help="print the result as JSON")
     imp.set_defaults(func=run_import)
 
 
@@ -33,6 +34,14 @@ def run_import(args) -> int:
         warnings.simplefilter("always")
         out, take = api.import_livelink_take(args.csv, args.output, timecode_rate=args.timecode_rate,
                                              force=args.force)
+    if args.json:
+        import json
+
+        print(json.dumps({"ok": True, "output": str(out), "frames": len(take.times),
+                          "seconds": float(take.times[-1]), "fps": float(take.fps), "names": list(take.names),
+                          "name_report": take.name_report, "warnings": [str(w.message) for w in caught]},
+                         default=str))
+        return 0
     for w in caught:
         say_warning(w.message)
     print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "

@@ -45,6 +45,7 @@ def register(subparsers) -> None:
     sel.add_argument("--min-separation", type=nonnegative_float, default=0.5,
                      help="seconds between two peaks of the same shape (default 0.5)")
     sel.add_argument("--force", action="store_true", help="overwrite an existing output")
+    sel.add_argument("--json", action="store_true", help="print the coverage table and result as JSON")
     sel.set_defaults(func=run_select)
 
 
@@ -79,6 +80,21 @@ def run_select(args) -> int:
                                            threshold=args.threshold, per_shape=args.per_shape,
                                            test_every=args.test_every, min_separation=args.min_separation,
                                            force=args.force)
+    if args.json:
+        import json
+
+        sel = result.selection
+        shapes = [{"name": s.name, "triggered": bool(s.frames), "frames": [int(f) for f in s.frames],
+                   "times_s": [float(result.take.times[f]) for f in s.frames],
+                   "peak": [float(v) for v in s.peak], "dominance": [float(v) for v in s.dominance],
+                   "strongest_other": list(s.rival), "max_weight": float(s.max_weight)} for s in sel.shapes]
+        print(json.dumps({"ok": True, "output": None if result.out_path is None else str(result.out_path),
+                          "threshold": float(sel.threshold), "per_shape": int(sel.per_shape),
+                          "train_frames": [int(f) for f in sel.train],
+                          "test_frames": [int(f) for f in sel.test], "shapes": shapes,
+                          "never_triggered": [s["name"] for s in shapes if not s["triggered"]],
+                          "warnings": [str(w.message) for w in caught]}))
+        return 0
     print(result.coverage)
     for w in caught:
         say_warning(w.message)

@@ -43,25 +43,33 @@ def register(subparsers) -> None:
                         help=METHOD_HELP)
     add_fit_options(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+    parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
     from .. import api
-    from ..io.layers import check_output_path
 
-    check_output_path(args.output, args.force)
-    capture = api.read_capture(args.capture)
-    result = api.fit_capture(capture, method=args.method, out_path=args.output, force=args.force,
+    result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
                              **fit_kwargs(args))
     info = result.info
-    if info.get("train_rmse_mm") is None:  # dt/ebfr do not score themselves: eq. 5 on the training frames
-        info["train_rmse_mm"] = float(api.evaluate_capture(capture, result.rig, role="train")["mean_rmse_mm"])
+    if args.json:
+        import json
+
+        from ..io.layers import json_default
+
+        doc = {"ok": True, "output": str(info["out_path"]), "method": args.method,
+               "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
+               **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
+                                                         "warnings")}}
+        print(json.dumps(doc, default=json_default))
+        return 0
+    rmse = f"; train RMSE {info['train_rmse_mm']:.3f} mm" if info.get("train_rmse_mm") is not None else ""
     extra = f", reg {info['reg']:.3g}" if "reg" in info else ""
     if "prior_alpha" in info and args.method in ("menzel", "laplacian"):
         extra += f", prior {info['prior_alpha']:.2f} DT + {1 - info['prior_alpha']:.2f} template"
     print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
-          f"({args.method}{extra}; train RMSE {info.get('train_rmse_mm', float('nan')):.3f} mm; "
+          f"({args.method}{extra}{rmse}; "
           f"{info['timings']['total']:.2f} s)")
     for w in info["warnings"]:
         say_warning(w)

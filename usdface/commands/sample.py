@@ -17,6 +17,7 @@ def register(subparsers) -> None:
                         help="also write the capture as a capture folder OUTDIR/capture/ (OBJ + JSON, ~9 MB; "
                              "not part of the committed sample_assets/)")
     parser.add_argument("--picture", metavar="PNG", help="also draw the avatar and capture into this PNG")
+    parser.add_argument("--json", action="store_true", help="print what was written as JSON")
     parser.set_defaults(func=run)
 
 
@@ -29,6 +30,9 @@ def run(args) -> int:
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
+    if args.json:
+        print(json.dumps({"ok": True, "output": str(out), "bytes": size, "meta": meta}, default=str))
+        return 0
     print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "
           f"{meta['shapes']} shapes; capture {meta['capture_vertices']} vertices, "
           f"{meta['train_frames']} train + {meta['test_frames']} test frames; {size / 1e6:.1f} MB")

@@ -8,6 +8,7 @@ output, and an existing output is only replaced once the new one is complete.
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import tempfile
@@ -19,6 +20,10 @@ from ..errors import InputFileError, OutputExistsError
 
 __all__ = ["check_output_file", "check_output_dir", "replace_dir_atomically", "atomic_file",
            "write_text_atomic", "publish", "temp_sibling"]
+
+
+#: errno values meaning "this file system cannot hard-link" (publish then falls back to check + rename).
+_NO_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS}
 
 
 def publish(tmp, path, force: bool = False) -> Path:
@@ -38,7 +43,10 @@ def publish(tmp, path, force: bool = False) -> Path:
         tmp.unlink(missing_ok=True)
         raise OutputExistsError("output exists (written by another process meanwhile)", path=path,
                                 fix="choose another output or pass --force (force=True)") from None
-    except OSError:  # no hard links here (FAT, some network shares): best effort
+    except OSError as exc:
+        if exc.errno not in _NO_LINKS:
+            raise
+        # no hard links here (FAT, some network shares): best effort
         if path.exists():
             tmp.unlink(missing_ok=True)
             raise OutputExistsError("output exists", path=path,
@@ -54,7 +62,11 @@ def temp_sibling(path, create: bool = True) -> Path:
     ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
     path = Path(path)
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    try:
+        os.close(fd)
+    except BaseException:  # an interrupt right here leaves nothing behind
+        os.unlink(name)
+        raise
     if not create:
         os.unlink(name)
     return Path(name)

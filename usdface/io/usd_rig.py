@@ -36,6 +36,7 @@ Example::
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -441,9 +442,13 @@ def _refuse_non_avatar(stage, path: Path) -> None:
 def usdface_output_provenance(path) -> dict | None:
     """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
     neither a capture nor a take), else None. Reads only the root layer's header-level data."""
+    import stat
+
     from pxr import Sdf
 
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None  # a folder, pipe or device: the reader that follows says what it is
         layer = Sdf.Layer.FindOrOpen(str(path))
     except Exception:  # unreadable: the reader that follows says so
         return None
