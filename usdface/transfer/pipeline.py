@@ -146,7 +146,7 @@ def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tup
 
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
-                    initial=None):
+                    initial=None, target=None):
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -159,7 +159,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
             return corr
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                          path=capture.source or None, initial=initial)
+                          path=capture.source or None, initial=initial, target=target)
     placed = reg_t.transform.apply(capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
@@ -354,7 +354,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
-                               initial=sim)
+                               initial=sim, target=registration.target)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",

@@ -20,6 +20,11 @@ import numpy as np
 
 from ..errors import RegistrationError
 
+#: A vertex "moves" when some shape moves it by more than this fraction of the largest motion.
+MOVING_TOLERANCE = 1e-6
+#: ICP target sample spacing on the avatar surface, in placed capture edge lengths.
+SAMPLE_SPACING = 0.15
+
 __all__ = ["Similarity", "Registration", "motion_landmarks", "similarity_from_pairs", "motion_initialiser",
            "register_icp", "register_face"]
 
@@ -73,6 +78,7 @@ class Registration:
     fitness: float
     initialiser: str
     max_distance: float
+    target: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         return {**self.transform.as_dict(), "residual_m": self.residual, "fitness": self.fitness,
@@ -164,6 +170,16 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
     return sim, float(res.inlier_rmse), float(res.fitness), dist
 
 
+def _even(points, spacing: float) -> np.ndarray:
+    """``points[k,3]`` thinned to one per ``spacing``-sized voxel (Open3D ``voxel_down_sample``, the mean of
+    each voxel): the same density whatever the mesh they were sampled from."""
+    import open3d as o3d
+
+    origin = points.mean(axis=0)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - origin))
+    return np.asarray(pc.voxel_down_sample(spacing).points) + origin
+
+
 def _scale_guess(capture_points, avatar_points) -> float:
     """Rough capture -> avatar scale from bounding-box diagonals (only used to pick a sampling density)."""
     a = np.linalg.norm(np.ptp(avatar_points, axis=0))
@@ -173,7 +189,7 @@ def _scale_guess(capture_points, avatar_points) -> float:
 
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
-                  path=None, initial: Similarity | None = None) -> Registration:
+                  path=None, initial: Similarity | None = None, target=None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -189,9 +205,11 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    moving = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0) > 0
-    target = ap[moving] if moving.sum() >= 10 else ap
-    if avatar_triangles is not None:
+    mag = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0)
+    moving = mag > MOVING_TOLERANCE * max(float(mag.max()), 1e-300)   # float noise of an export: no motion
+    given = target is not None
+    target = np.asarray(target, dtype=np.float64) if given else (ap[moving] if moving.sum() >= 10 else ap)
+    if avatar_triangles is not None and not given:
         tri = np.asarray(avatar_triangles)
         face_tri = tri[moving[tri].all(axis=1)] if moving.sum() >= 10 else tri
         if len(face_tri):
@@ -199,8 +217,15 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
 
             c_edge = (mean_edge_length(cn, capture_triangles) if capture_triangles is not None
                       else float(np.median(np.linalg.norm(np.diff(cn, axis=0), axis=1))))
-            ratio = mean_edge_length(ap, face_tri) / max(c_edge * _scale_guess(cn, target), 1e-300)
-            target = surface_samples(ap, face_tri, int(np.clip(np.ceil(2.0 * ratio), 1, 6)))
+            try:   # the scale from the shape-motion landmarks (the bounding boxes mislead on a whole head)
+                scale = motion_initialiser(cn, capture_deltas, ap, avatar_deltas).scale
+            except RegistrationError:
+                scale = _scale_guess(cn, target)
+            # the ICP target is the surface, thinned to SAMPLE_SPACING placed capture edges whatever the
+            # avatar's resolution (matching vertices of a coarse avatar biases scale and residual)
+            spacing = SAMPLE_SPACING * c_edge * scale
+            steps = int(np.clip(np.ceil(mean_edge_length(ap, face_tri) / max(spacing, 1e-300)), 1, 8))
+            target = _even(surface_samples(ap, face_tri, steps), spacing)
     # ``initial``: a placement known to be close (the person's neutral, in the same capture frame as the
     # template); tried first, refined by the same ICP
     candidates = [("person's registration", initial)] if initial is not None else []
@@ -221,7 +246,7 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
         sim, rmse, fit, dist = register_icp(cn, target, init)
         key = (round(fit, 2), -rmse)
         if best is None or key > best[0]:
-            best = (key, Registration(sim, rmse, fit, name, dist))
+            best = (key, Registration(sim, rmse, fit, name, dist, target))
         if fit >= 0.95 and rmse < 0.02 * size0 * sim.scale:
             break  # the landmark initialiser converged: no need for the fallback
     result = best[1]
