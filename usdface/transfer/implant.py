@@ -129,8 +129,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         k = gd.shape[0]
         phi = np.zeros((k, domain.size, 3, 3))
         valid = np.zeros((k, domain.size), dtype=bool)
-        phi[:, known], valid[:, known] = rotation_scale(gd[:, known], pd[:, known])   # measured where known
-        mw = motion_weights(gd) * valid
+        mw = motion_weights(gd)
+        jj, vv = np.nonzero((mw > 0) & known[None])       # measured where known and the shape moves (sparse)
+        phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv])
+        mw = mw * valid
         phi = smooth_field(phi, mw, sub_tri, rings=rings, neighbourhood=smoother)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
