@@ -61,11 +61,21 @@ def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar
     return g, dist
 
 
-def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows):
-    """``M (B_j - P_j)`` on the avatar vertices ``rows``: the person's change of each shape, interpolated
-    from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame).
-    Returns ``[J,len(rows),3]``."""
-    diff = np.asarray(person_deltas, dtype=np.float64) - np.asarray(prior_deltas, dtype=np.float64)
+def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03)):
+    """``M (s_j (B_j - P_j))`` on the avatar vertices ``rows``: the person's change of each shape,
+    interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame).
+
+    ``s_j`` (:func:`usdface.transfer.partial_dt.personalization_support`, ``support=(low, high)`` fractions of
+    the shape's peak motion; None = everywhere) keeps the change where the person's or the prior shape moves:
+    elsewhere neither moves and the difference is fit noise (0.1 mm-level on scans), which would make every
+    shape move the whole face a little. Returns ``[J,len(rows),3]``."""
+    b = np.asarray(person_deltas, dtype=np.float64)
+    p = np.asarray(prior_deltas, dtype=np.float64)
+    diff = b - p
+    if support is not None:
+        from .partial_dt import personalization_support
+
+        diff = diff * personalization_support(b, p, low=support[0], high=support[1])[..., None]
     return corr.apply(diff, capture_triangles, rows=rows)
 
 

@@ -65,6 +65,8 @@ WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
 #: How the avatar prior enters the fit: "avatar_prior" (the fit's CV choice between it and the template's
 #: blend) or "replace" (the template replaced by the avatar's shapes).
 PRIOR_MODE = "avatar_prior"
+#: The per-shape trust (see :func:`_confidence`): "fit" (the fit's data share) or "loo" (James-Stein).
+CONFIDENCE = "fit"
 #: Priors of the fit (see :func:`personalize_avatar`).
 PRIORS = ("avatar", "template")
 
@@ -430,8 +432,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
                                           "shape): " + ", ".join(low))
             person_face = avatar_face_deltas.copy()
-            person_face[:, f] += conf[:, None, None] * face_personalization(corr, capture.triangles,
-                                                                            person_deltas, prior_av, f)
+            person_face[:, f] += conf[:, None, None] * face_personalization(
+                corr, capture.triangles, person_deltas, prior_av, f, support=support)
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in
@@ -603,25 +605,32 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
 
 
 def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> np.ndarray:
-    """Per-shape trust in the personalization (:func:`usdface.transfer.implant.shape_confidence`): 1 without a
-    cross-validated fit (a given rig, fixed regularization)."""
+    """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
+    weakly (:data:`WEAK_SHAPE`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
+    the data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``); ``"loo"``: the
+    positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
+    leave-one-frame-out error as the noise. 1 without training frames (a given rig)."""
     n_shapes = len(b_idx)
-    info = fit.info if fit is not None else {}
-    loo = (info.get("crossval") or {}).get("loo_rmse_best_mm")
-    if loo is None or len(capture.train) == 0:
+    if len(capture.train) == 0 or fit is None:
         return np.ones(n_shapes)
-    w = np.asarray(info.get("train_weights", capture.train.weights), dtype=np.float64)
+    w = np.asarray(fit.info.get("train_weights", capture.train.weights), dtype=np.float64)
     cap_idx = [list(capture.names).index(rig.names[i]) for i in b_idx]
     excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
+    # a shape seen only at a small effective weight (sqrt of its training energy) is known only to a fraction
+    # of its amplitude, whatever the residuals say (the fit can explain other shapes' non-linear motion with
+    # it): ramp to the generic
+    t = np.clip((np.sqrt(excitation) - WEAK_SHAPE[0]) / (WEAK_SHAPE[1] - WEAK_SHAPE[0]), 0.0, 1.0)
+    ramp = t * t * (3.0 - 2.0 * t)
+    share = fit.info.get("shape_confidence")
+    if CONFIDENCE == "fit" and share is not None:
+        return np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp
+    loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
+    if loo is None:
+        return ramp
     diff = np.asarray(person_deltas) - np.asarray(prior_av)
     mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
     moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
-    # a shape seen only at a small effective weight (sqrt of its training energy) is known only to a fraction
-    # of its amplitude, whatever the
-    # residuals say (the fit can explain other shapes' non-linear motion with it): ramp to the generic
-    effective = np.sqrt(excitation)
-    t = np.clip((effective - WEAK_SHAPE[0]) / (WEAK_SHAPE[1] - WEAK_SHAPE[0]), 0.0, 1.0)
-    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * t * t * (3.0 - 2.0 * t)
+    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp
 
 
 def _with_template_deltas(capture: Capture, names, deltas) -> Capture:
