@@ -192,3 +192,21 @@ def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
     centers = [e.center for e in find_eyeballs({k: v[0] for k, v in eyes.items()})]
     dist = np.min([np.linalg.norm(head.neutral - c, axis=1) for c in centers], axis=0)
     assert dist[np.nonzero(changed)[1]].max() < 0.03
+
+
+def test_eq4_maps_the_generic_template_onto_itself(bench, dev1):
+    """Issue 10: implanting dev1's template (the avatar's generic shapes sampled on the capture) through the
+    semantic correspondence, eq. (4) with the GCV ridge finds each shape in itself: jawOpen ~1 (it was
+    mouthPress 4.7, mouthUpperUp 2.7, mouthFunnel -1.8 with the lips swapped), bounded weights."""
+    from usdface.model import FaceRig
+    from usdface.transfer import personalize_avatar
+
+    capture = dev1[0]
+    t = capture.template
+    rig = FaceRig(capture.neutral, capture.triangles, list(t.names), t.deltas, name="template")
+    res = personalize_avatar(bench / "dev1" / "avatar.usdc", capture, None, rig=rig, eyelids=False)
+    w = res.weights
+    diag = np.array([w[res.names.index(n), res.avatar_names.index(n)] for n in res.names])
+    assert 0.9 < w[res.names.index("jawOpen"), res.avatar_names.index("jawOpen")] < 1.1
+    assert np.median(diag) > 0.9 and diag.min() > 0.7
+    assert -0.5 < w.min() and w.max() < 1.5
