@@ -1,7 +1,8 @@
 """Progress reporting for long steps, on stderr: a rich bar on a terminal, plain lines in logs and CI.
 
-The mode is chosen per ``steps()`` block: ``bar`` when stderr is a terminal, ``plain`` (one line per step,
-flushed at once, no control codes) when it is not, ``off`` after :func:`set_enabled(False)
+The mode is chosen per ``steps()`` block: ``bar`` when stderr is a terminal, ``plain`` when it is not (a log,
+CI, a pipe): no control codes, one flushed line when a step has run :func:`delay` seconds (2 by default,
+``USDFACE_PROGRESS_DELAY``) naming it, and one when it ends; ``off`` after :func:`set_enabled(False)
 <set_enabled>` (``--quiet``, ``--json``). ``USDFACE_PROGRESS=bar|plain|off`` overrides the choice.
 
 Two ways to mark steps, both on the callable a ``steps()`` block yields::
@@ -24,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 import time
 
 _ENABLED = True
@@ -53,6 +55,16 @@ def mode() -> str:
     return "bar" if tty else "plain"
 
 
+def delay() -> float:
+    """Seconds a step runs before its plain line is printed (``USDFACE_PROGRESS_DELAY``, default 2): a log
+    names every step that takes longer, and a quick command (or a quick error) prints no progress at all."""
+    try:
+        value = float(os.environ.get("USDFACE_PROGRESS_DELAY", "2"))
+    except ValueError:
+        return 2.0
+    return value if value >= 0 else 2.0  # NaN and negatives: the default
+
+
 class _Steps:
     """The callable a ``steps()`` block yields: ``advance(label)`` (a step is done) and ``start(label)``
     (a step begins; the one started before is done)."""
@@ -63,27 +75,61 @@ class _Steps:
         self.running: str | None = None
         self.t0 = self.t_step = time.perf_counter()
         self.task = None
+        self.delay = delay()
+        self.timer: threading.Timer | None = None
+        self.announced = False  # the running step's line is printed
+        self.printed = False    # any line of this block is printed
+        self.t_line = self.t0   # when this block last printed (many short steps: a line every ``delay`` s)
+        self.lock = threading.Lock()
         outer = [s.title for s in _STACK if s.how == "plain"]
         self.prefix = " > ".join([*outer, title])
 
     # plain lines -----------------------------------------------------------------------------------------
     def _line(self, text: str) -> None:
+        self.printed = True
+        self.t_line = time.perf_counter()
         print(f"usdface: {self.prefix} {text}", file=sys.stderr, flush=True)
 
     def _counter(self, n: int) -> str:
-        return f"[{min(n, self.total) if self.total else n}/{self.total}]" if self.total else f"[{n}]"
+        return f"[{min(n, self.total)}/{self.total}]" if self.total else f"[{n}]"
+
+    def _announce(self, label: str) -> None:
+        """The running step's line (from the timer thread once it has run ``delay`` seconds)."""
+        with self.lock:
+            if self.running == label and not self.announced:
+                self.announced = True
+                self._line(f"{self._counter(self.done + 1)} {label} ... "
+                           f"(t+{self.t_step - self.t0:.1f} s)")
+
+    def _end_running(self) -> None:
+        """The started step is done: stop its timer; if its line was printed, say how long it took."""
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        with self.lock:
+            label, self.running = self.running, None
+            self.done += 1
+            if self.how == "plain" and self.announced:
+                self._line(f"{self._counter(self.done)} {label} done "
+                           f"({time.perf_counter() - self.t_step:.1f} s)")
+            self.announced = False
+        if self.how == "bar":
+            _LIVE.update(self.task, advance=1)
 
     # the two calls ---------------------------------------------------------------------------------------
     def __call__(self, label: str | None = None) -> None:
         """The step ``label`` (or the one started last) is done."""
         if self.how == "off":
             return
-        label = label or self.running
-        self.running = None
+        if self.running is not None:
+            self._end_running()
+            self.t_step = time.perf_counter()
+            return
         self.done += 1
         now = time.perf_counter()
         if self.how == "plain":
-            self._line(f"{self._counter(self.done)} {label or 'step'} done ({now - self.t_step:.1f} s)")
+            if now - self.t_step >= self.delay or now - self.t_line >= self.delay:
+                self._line(f"{self._counter(self.done)} {label or 'step'} done ({now - self.t_step:.1f} s)")
         else:
             _LIVE.update(self.task, advance=1, description=f"{self.title}: {label}" if label else self.title)
         self.t_step = now
@@ -93,24 +139,28 @@ class _Steps:
         if self.how == "off":
             return
         if self.running is not None:
-            self.done += 1
-            if self.how == "bar":
-                _LIVE.update(self.task, advance=1)
+            self._end_running()
         self.running = label
         self.t_step = time.perf_counter()
-        if self.how == "plain":
-            self._line(f"{self._counter(self.done + 1)} {label} ... (t+{self.t_step - self.t0:.1f} s)")
-        else:
+        if self.how == "bar":
             _LIVE.update(self.task, description=f"{self.title}: {label}")
+        elif self.delay <= 0 or self.t_step - self.t_line >= self.delay:
+            self._announce(label)
+        else:
+            self.timer = threading.Timer(self.delay, self._announce, args=(label,))
+            self.timer.daemon = True
+            self.timer.start()
 
     def _close(self, ok: bool) -> None:
         if self.how == "off":
             return
-        if self.running is not None and ok:
-            self.done += 1
-            if self.how == "bar":
-                _LIVE.update(self.task, advance=1)
-        if self.how == "plain" and ok:
+        if self.running is not None:
+            if ok:
+                self._end_running()
+            elif self.timer is not None:
+                self.timer.cancel()
+                self.running = None
+        if self.how == "plain" and ok and self.printed:
             self._line(f"done in {time.perf_counter() - self.t0:.1f} s")
 
 
