@@ -153,18 +153,26 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path or FaceRig; default the take's own template)."""
     from .io.take import capture_from_take, read_take
+    from .progress import steps
     from .take_select import format_coverage, select_frames
 
     if out_path is not None:
         check_capture_output(out_path, force, inputs=[take])
-    data = read_take(take)
-    selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
-                              test_every=test_every, min_separation=max(1, round(min_separation * data.fps)))
-    coverage = format_coverage(selection, data.times)
-    if out_path is None:
-        return CaptureSelection(data, selection, coverage, None, None)
-    capture = capture_from_take(data, selection, template=template)
-    return CaptureSelection(data, selection, coverage, capture, write_capture(capture, out_path, force=force))
+    with steps("capture select", 2 if out_path is None else 4) as p:
+        p.start(f"read take {Path(take).name}")
+        data = read_take(take)
+        p.start(f"select frames ({len(data.times)} frames)")
+        selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
+                                  test_every=test_every,
+                                  min_separation=max(1, round(min_separation * data.fps)))
+        coverage = format_coverage(selection, data.times)
+        if out_path is None:
+            return CaptureSelection(data, selection, coverage, None, None)
+        p.start("build capture")
+        capture = capture_from_take(data, selection, template=template)
+        p.start(f"write {Path(out_path).name}")
+        written = write_capture(capture, out_path, force=force)
+    return CaptureSelection(data, selection, coverage, capture, written)
 
 
 def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float = 60.0,
@@ -178,13 +186,17 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     from .io.layers import check_output_path
     from .io.livelink import read_livelink_take
     from .io.usd_anim import write_animation_usd
+    from .progress import steps
 
     check_output_path(out_path, force, inputs=[csv])
-    data = read_livelink_take(csv, timecode_rate)
-    out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
-                              curves={**data.angles, **data.extra}, force=force,
-                              layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
-                                          "version": __version__})
+    with steps("anim import", 2) as p:
+        p.start(f"read {Path(csv).name}")
+        data = read_livelink_take(csv, timecode_rate)
+        p.start(f"write {Path(out_path).name} ({len(data.times)} frames)")
+        out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
+                                  curves={**data.angles, **data.extra}, force=force,
+                                  layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
+                                              "version": __version__})
     return Path(out), data
 
 
@@ -202,18 +214,26 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
     written is ``result.info["out_path"]``."""
     from .personalize import fit_personalized_shapes
+    from .progress import steps
 
     if out_path is not None:
         from .io.layers import check_output_path
 
         check_output_path(out_path, force)
-    capture = _as_capture(capture)
-    result = fit_personalized_shapes(capture, method=method, **options)
-    if result.info.get("train_rmse_mm") is None and len(capture.frames.select("train")):
-        # dt/ebfr do not score themselves: eq. 5 on the training frames, as the other methods report
-        result.info["train_rmse_mm"] = float(evaluate_capture(capture, result, role="train")["mean_rmse_mm"])
-    if out_path is not None:
-        result.info["out_path"] = write_fit_rig(result, out_path, force=force)
+    reading = isinstance(capture, str | Path)
+    with steps("fit", 1 + reading + (out_path is not None)) as p:
+        if reading:
+            p.start(f"read capture {Path(capture).name}")
+        capture = _as_capture(capture)
+        p.start(f"fit {method}")
+        result = fit_personalized_shapes(capture, method=method, **options)
+        if result.info.get("train_rmse_mm") is None and len(capture.frames.select("train")):
+            # dt/ebfr do not score themselves: eq. 5 on the training frames, as the other methods report
+            result.info["train_rmse_mm"] = float(evaluate_capture(capture, result,
+                                                                  role="train")["mean_rmse_mm"])
+        if out_path is not None:
+            p.start(f"write {Path(out_path).name}")
+            result.info["out_path"] = write_fit_rig(result, out_path, force=force)
     return result
 
 
@@ -278,24 +298,33 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             raise InputFileError(f"cannot read truth file ({exc})", path=truth,
                                  fix="pass a capture_truth.npz (names, deltas)") from None
     source = capture if isinstance(capture, str | Path) else None
-    capture = _as_capture(capture)
-    if len(capture.test) == 0:
-        raise FitError("the capture has no test frames", path=source or capture.source or None,
-                       fix="add held-out frames (test/ folder) to evaluate on")
-    report = _evaluate(capture, list(methods), truth=truth, **options)
-    outputs = {}
-    if json_path:
-        from .personalize.report import write_report_json
+    from .progress import steps
 
-        outputs["json"] = Path(write_report_json(report, json_path, force=force))
-    if plot_path:
-        from .personalize.report import plot_errors
+    with steps("evaluate", 1 + (source is not None) + bool(json_path or plot_path or usd_path)) as p:
+        if source is not None:
+            p.start(f"read capture {Path(source).name}")
+        capture = _as_capture(capture)
+        if len(capture.test) == 0:
+            raise FitError("the capture has no test frames", path=source or capture.source or None,
+                           fix="add held-out frames (test/ folder) to evaluate on")
+        p.start("fit and score the methods")
+        report = _evaluate(capture, list(methods), truth=truth, **options)
+        outputs = {}
+        if json_path or plot_path or usd_path:
+            p.start("write outputs")
+        if json_path:
+            from .personalize.report import write_report_json
 
-        outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
-    if usd_path:
-        from .io.usd_error_maps import write_error_maps_usd
+            outputs["json"] = Path(write_report_json(report, json_path, force=force))
+        if plot_path:
+            from .personalize.report import plot_errors
 
-        outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"], force=force))
+            outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
+        if usd_path:
+            from .io.usd_error_maps import write_error_maps_usd
+
+            outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
+                                                       force=force))
     report["_outputs"] = outputs
     return report
 

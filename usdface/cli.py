@@ -64,9 +64,12 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from . import progress
     from .commands import reset_warnings, say_warning
 
     reset_warnings()
+    # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it)
+    progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")

@@ -1,36 +1,198 @@
-"""Progress reporting for long steps (rich), silent when not attached to a terminal or when disabled."""
+"""Progress reporting for long steps, on stderr: a rich bar on a terminal, plain lines in logs and CI.
+
+The mode is chosen per ``steps()`` block: ``bar`` when stderr is a terminal, ``plain`` when it is not (a log,
+CI, a pipe): no control codes, one flushed line when a step has run :func:`delay` seconds (2 by default,
+``USDFACE_PROGRESS_DELAY``) naming it, and one when it ends; ``off`` after :func:`set_enabled(False)
+<set_enabled>` (``--quiet``, ``--json``). ``USDFACE_PROGRESS=bar|plain|off`` overrides the choice.
+
+Two ways to mark steps, both on the callable a ``steps()`` block yields::
+
+    with steps("fit", 3) as p:
+        p.start("read capture")      # names the step that runs now
+        ...
+        p.start("fit menzel")        # ends the previous one, starts the next
+        ...
+    with steps("personalize", 8) as advance:
+        ...
+        advance("read")              # the step "read" is done
+
+A ``steps()`` block inside another one (an API call inside a command's block) shares the same bar (a
+second row) or prefixes its lines with the outer title.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
+import threading
+import time
 
 _ENABLED = True
+_STACK: list[_Steps] = []  # open steps() blocks, outermost first
+_LIVE = None  # the rich Progress shared by nested blocks in bar mode
 
 
 def set_enabled(flag: bool) -> None:
-    """Turn progress bars on or off for the whole process (``--quiet``)."""
+    """Turn progress on or off for the whole process (``--quiet``, ``--json``)."""
     global _ENABLED
     _ENABLED = bool(flag)
 
 
+def mode() -> str:
+    """``off``, ``bar`` or ``plain``: what a ``steps()`` block opened now shows."""
+    if not _ENABLED:
+        return "off"
+    env = os.environ.get("USDFACE_PROGRESS", "").strip().lower()
+    if env in ("off", "0", "none", "quiet"):
+        return "off"
+    if env in ("bar", "plain"):
+        return env
+    try:
+        tty = sys.stderr.isatty()
+    except (AttributeError, ValueError):  # stderr closed or replaced by an object without isatty
+        tty = False
+    return "bar" if tty else "plain"
+
+
+def delay() -> float:
+    """Seconds a step runs before its plain line is printed (``USDFACE_PROGRESS_DELAY``, default 2): a log
+    names every step that takes longer, and a quick command (or a quick error) prints no progress at all."""
+    try:
+        value = float(os.environ.get("USDFACE_PROGRESS_DELAY", "2"))
+    except ValueError:
+        return 2.0
+    return value if value >= 0 else 2.0  # NaN and negatives: the default
+
+
+class _Steps:
+    """The callable a ``steps()`` block yields: ``advance(label)`` (a step is done) and ``start(label)``
+    (a step begins; the one started before is done)."""
+
+    def __init__(self, title: str, total: int, how: str):
+        self.title, self.total, self.how = title, max(int(total), 0), how
+        self.done = 0
+        self.running: str | None = None
+        self.t0 = self.t_step = time.perf_counter()
+        self.task = None
+        self.delay = delay()
+        self.timer: threading.Timer | None = None
+        self.announced = False  # the running step's line is printed
+        self.printed = False    # any line of this block is printed
+        self.t_line = self.t0   # when this block last printed (many short steps: a line every ``delay`` s)
+        self.lock = threading.Lock()
+        outer = [s.title for s in _STACK if s.how == "plain"]
+        self.prefix = " > ".join([*outer, title])
+
+    # plain lines -----------------------------------------------------------------------------------------
+    def _line(self, text: str) -> None:
+        self.printed = True
+        self.t_line = time.perf_counter()
+        print(f"usdface: {self.prefix} {text}", file=sys.stderr, flush=True)
+
+    def _counter(self, n: int) -> str:
+        return f"[{min(n, self.total)}/{self.total}]" if self.total else f"[{n}]"
+
+    def _announce(self, label: str) -> None:
+        """The running step's line (from the timer thread once it has run ``delay`` seconds)."""
+        with self.lock:
+            if self.running == label and not self.announced:
+                self.announced = True
+                self._line(f"{self._counter(self.done + 1)} {label} ... "
+                           f"(t+{self.t_step - self.t0:.1f} s)")
+
+    def _end_running(self) -> None:
+        """The started step is done: stop its timer; if its line was printed, say how long it took."""
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        with self.lock:
+            label, self.running = self.running, None
+            self.done += 1
+            if self.how == "plain" and self.announced:
+                self._line(f"{self._counter(self.done)} {label} done "
+                           f"({time.perf_counter() - self.t_step:.1f} s)")
+            self.announced = False
+        if self.how == "bar":
+            _LIVE.update(self.task, advance=1)
+
+    # the two calls ---------------------------------------------------------------------------------------
+    def __call__(self, label: str | None = None) -> None:
+        """The step ``label`` (or the one started last) is done."""
+        if self.how == "off":
+            return
+        if self.running is not None:
+            self._end_running()
+            self.t_step = time.perf_counter()
+            return
+        self.done += 1
+        now = time.perf_counter()
+        if self.how == "plain":
+            if now - self.t_step >= self.delay or now - self.t_line >= self.delay:
+                self._line(f"{self._counter(self.done)} {label or 'step'} done ({now - self.t_step:.1f} s)")
+        else:
+            _LIVE.update(self.task, advance=1, description=f"{self.title}: {label}" if label else self.title)
+        self.t_step = now
+
+    def start(self, label: str) -> None:
+        """The step ``label`` begins (ending the one started before, if any)."""
+        if self.how == "off":
+            return
+        if self.running is not None:
+            self._end_running()
+        self.running = label
+        self.t_step = time.perf_counter()
+        if self.how == "bar":
+            _LIVE.update(self.task, description=f"{self.title}: {label}")
+        elif self.delay <= 0 or self.t_step - self.t_line >= self.delay:
+            self._announce(label)
+        else:
+            self.timer = threading.Timer(self.delay, self._announce, args=(label,))
+            self.timer.daemon = True
+            self.timer.start()
+
+    def _close(self, ok: bool) -> None:
+        if self.how == "off":
+            return
+        if self.running is not None:
+            if ok:
+                self._end_running()
+            elif self.timer is not None:
+                self.timer.cancel()
+                self.running = None
+        if self.how == "plain" and ok and self.printed:
+            self._line(f"done in {time.perf_counter() - self.t0:.1f} s")
+
+
 @contextlib.contextmanager
 def steps(title: str, total: int):
-    """A progress bar over ``total`` named steps.
+    """A progress block over ``total`` named steps (see the module docstring)."""
+    global _LIVE
+    how = mode()
+    s = _Steps(title, total, how)
+    own_live = False
+    if how == "bar":
+        if _LIVE is None:
+            from rich.console import Console
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    ``with steps("personalize", 6) as advance: advance("ICP")``
-    """
-    if not _ENABLED or not sys.stderr.isatty():
-        yield lambda label=None: None
-        return
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(),
-               TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn())
-    with Progress(*columns, transient=False) as prog:
-        task = prog.add_task(title, total=total)
-
-        def advance(label: str | None = None):
-            prog.update(task, advance=1, description=f"{title}: {label}" if label else title)
-
-        yield advance
+            columns = (TextColumn("[bold]{task.description}"), BarColumn(),
+                       TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn())
+            _LIVE = Progress(*columns, transient=False, console=Console(stderr=True))
+            _LIVE.start()
+            own_live = True
+        s.task = _LIVE.add_task(title, total=s.total or None)
+    _STACK.append(s)
+    ok = False
+    try:
+        yield s
+        ok = True
+    finally:
+        _STACK.pop()
+        s._close(ok)
+        if how == "bar":
+            if own_live:
+                _LIVE.stop()
+                _LIVE = None
+            else:
+                _LIVE.remove_task(s.task)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 
 from . import say_warning
-from .options import positive_float
+from .options import add_quiet, positive_float
 
 
 def register(subparsers) -> None:
@@ -24,6 +24,7 @@ def register(subparsers) -> None:
                           "timeCodesPerSecond (default 60)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_quiet(imp)
     imp.set_defaults(func=run_import)
 
 

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 from . import say_warning
-from .options import nonnegative_float, nonnegative_int, positive_int, unit_float
+from .options import add_quiet, nonnegative_float, nonnegative_int, positive_int, unit_float
 
 
 def register(subparsers) -> None:
@@ -24,6 +25,7 @@ def register(subparsers) -> None:
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--no-exact", dest="exact", action="store_false",
                      help="store geometry as float32 only (half the size; not bit-exact)")
+    add_quiet(imp)
     imp.set_defaults(func=run_import)
 
     sel = sub.add_parser("select", help="continuous take -> capture.usda (frame selection, Menzel 3.1)",
@@ -46,19 +48,24 @@ def register(subparsers) -> None:
                      help="seconds between two peaks of the same shape (default 0.5)")
     sel.add_argument("--force", action="store_true", help="overwrite an existing output")
     sel.add_argument("--json", action="store_true", help="print the coverage table and result as JSON")
+    add_quiet(sel)
     sel.set_defaults(func=run_select)
 
 
 def run_import(args) -> int:
     from .. import api
+    from ..progress import steps
 
     api.check_capture_output(args.output, args.force, inputs=[args.source])
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        capture = api.read_capture(args.source)
-    for w in caught:
-        say_warning(w.message)
-    out = api.write_capture(capture, args.output, force=args.force, exact=args.exact, source=args.source)
+    with steps("capture import", 2) as p:
+        p.start(f"read {Path(args.source).name}")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            capture = api.read_capture(args.source)
+        for w in caught:
+            say_warning(w.message)
+        p.start(f"write {Path(args.output).name}")
+        out = api.write_capture(capture, args.output, force=args.force, exact=args.exact, source=args.source)
     report = capture.metadata.get("name_report", {})
     counts = capture.metadata.get("counts", {})
     print(f"wrote {out}: {capture.neutral.shape[0]} vertices, {len(capture.names)} shapes, "

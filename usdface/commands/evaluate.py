@@ -4,6 +4,7 @@ maps."""
 from __future__ import annotations
 
 from .fit import add_fit_options, fit_kwargs
+from .options import add_quiet
 
 
 def register(subparsers) -> None:
@@ -22,6 +23,7 @@ def register(subparsers) -> None:
     parser.add_argument("--truth", metavar="NPZ", help="capture_truth.npz: also report the error against the "
                                                        "true blendshapes")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    add_quiet(parser)
     parser.set_defaults(func=run)
 
 

@@ -4,7 +4,7 @@ rig."""
 from __future__ import annotations
 
 from . import say_warning
-from .options import reg_value
+from .options import add_quiet, reg_value
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
 METHODS = ("dt", "ebfr", "menzel", "laplacian")  # == usdface.api.METHODS (not imported: keeps --help fast)
@@ -44,6 +44,7 @@ def register(subparsers) -> None:
     add_fit_options(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
     parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
+    add_quiet(parser)
     parser.set_defaults(func=run)
 
 

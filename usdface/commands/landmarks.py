@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
-from .options import nonnegative_float, positive_float, positive_int, unit_float, vector3
+from .options import add_quiet, nonnegative_float, positive_float, positive_int, unit_float, vector3
 
 
 def register(subparsers) -> None:
@@ -53,6 +53,7 @@ def register(subparsers) -> None:
                    help="test frames used by --evaluate (evenly sampled)")
     p.add_argument("--noise", type=nonnegative_float, default=0.5,
                    help="tracking noise for --evaluate, mm (0.5)")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 
@@ -91,19 +92,19 @@ def run(args) -> int:
             print(f"{method} RMSE (mm) by landmark count: "
                   + ", ".join(f"{m}: {v * 1e3:.3f}" for m, v in best.items()))
         return 0
-    with steps("landmarks", 2) as advance:
+    with steps("landmarks", 1 + bool(args.output)) as p:
+        p.start(f"layout of {rig.name}")
         layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
                                    multicover=args.multicover, radius=args.radius, camera=args.camera,
                                    rays=args.rays, backend=args.backend, weighting=args.weighting,
                                    adaptive=not args.no_adaptive, ignore_static=args.skip_static)
-        advance("layout")
         if args.output:
+            p.start(f"write {Path(args.output).name}")
             params = {k: v for k, v in vars(args).items() if k not in ("func",)}
             api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
                                 provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
                                             "parameters": params, "timings": layout.timings,
                                             "elapsedSeconds": time.perf_counter() - t0})
-        advance("layer")
     mesh = rig.source.prim if rig.source else rig.name
     if args.json_out:
         write_text_atomic(args.json_out, json.dumps({"avatar": str(args.avatar), "mesh": mesh,

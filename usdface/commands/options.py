@@ -98,3 +98,9 @@ def vector3(text: str) -> list[float]:
         return [_number(p) for p in parts]
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"expected X,Y,Z (three finite numbers), got {text!r}") from None
+
+
+def add_quiet(parser) -> None:
+    """``--quiet``/``-q``: no progress on stderr (a bar on a terminal, step lines in logs); ``usdface.cli``
+    reads it, and ``--json`` (printed on stdout) silences progress too."""
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from .options import add_quiet
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -18,6 +20,7 @@ def register(subparsers) -> None:
                              "not part of the committed sample_assets/)")
     parser.add_argument("--picture", metavar="PNG", help="also draw the avatar and capture into this PNG")
     parser.add_argument("--json", action="store_true", help="print what was written as JSON")
+    add_quiet(parser)
     parser.set_defaults(func=run)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..model import Capture
+from ..progress import steps
 from .api import METHODS, fit_personalized_shapes
 from .evaluate import error_colors, evaluate_rig, truth_error
 
@@ -62,22 +63,24 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
         true_deltas = np.asarray(truth["deltas"])[order]
     report: dict = {"labels": list(test.label), "methods": {}, "_maps": {}}
     runs = [run for m in methods for run in (VARIANTS[m] if variants else ((m, m, {}),))]
-    for key, m, own in runs:
-        opts = {k: v for k, v in fit_options.items() if k in _TAKES[m] and v is not None}
-        if own.get("reg") == "paper":
-            opts = {k: v for k, v in opts.items() if k == "eyelids"}
-        opts.update(own)
-        t0 = time.perf_counter()
-        res = fit_personalized_shapes(capture, method=m, **opts)
-        sec = time.perf_counter() - t0
-        ev = evaluate_rig(res.rig, test)
-        row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
-               "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
-               "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
-               "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
-        report["methods"][key] = row
-        report["_maps"][key] = [(lab, pts, err, error_colors(err))
-                              for lab, pts, err in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
+    with steps("methods", len(runs)) as p:
+        for key, m, own in runs:
+            p.start(f"fit and score {key}")
+            opts = {k: v for k, v in fit_options.items() if k in _TAKES[m] and v is not None}
+            if own.get("reg") == "paper":
+                opts = {k: v for k, v in opts.items() if k == "eyelids"}
+            opts.update(own)
+            t0 = time.perf_counter()
+            res = fit_personalized_shapes(capture, method=m, **opts)
+            sec = time.perf_counter() - t0
+            ev = evaluate_rig(res.rig, test)
+            row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
+                   "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
+                   "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
+                   "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
+            report["methods"][key] = row
+            report["_maps"][key] = [(lab, pts, err, error_colors(err)) for lab, pts, err
+                                    in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
     if order is not None:
         from ..model import FaceRig
         tr = FaceRig(capture.neutral, capture.triangles, capture.names, capture.template.deltas)

@@ -235,6 +235,9 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     the transfer) imported once here rather than inside the first item's timing."""
     import importlib
 
+    from .. import progress
+
+    progress.set_enabled(False)  # the parent reports per item; N workers' step lines would interleave
     for name in WORKER_THREAD_ENV:
         os.environ.setdefault(name, "1")
     for module in preload:

@@ -199,15 +199,21 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
     from ..io.avatar_writer import write_rig_usd
     from ..io.capture_folder import write_capture_folder
     from ..io.usd_capture import write_capture_usd
+    from ..progress import steps
 
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
-    data = build_samples(seed)
-    with replace_dir_atomically(dest, force=force) as tmp:
+    with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
+        p.start("build avatar and capture")
+        data = build_samples(seed)
         (tmp / "README.txt").write_text(_readme(data["meta"]))
+        p.start("write avatar.usda")
         write_rig_usd(data["rigs"], tmp / "avatar.usda", up_axis="Y", meters_per_unit=0.01, root="/Avatar")
+        p.start("write capture.usda")
         write_capture_usd(data["capture"], tmp / "capture.usda", exact=False)
         if folder:
+            p.start("write capture folder")
             write_capture_folder(data["capture"], tmp / "capture")
+        p.start("write truth")
         (tmp / "truth").mkdir()
         _write_npz(tmp / "truth" / "capture_truth.npz", data["capture_truth"])
         _write_npz(tmp / "truth" / "avatar_truth.npz", data["avatar_truth"])
