@@ -299,6 +299,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                            "together", fix="use face_transfer='person' with approximation='field' (the "
                            "default), or one of the older modes with 'generic' or 'retarget'")
     with steps("personalize", 8) as advance:
+        advance.start("read")
         t = time.perf_counter()
         if out_path is not None and not dry_run:
             from ..io.layers import check_output_path
@@ -319,6 +320,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
         timings["read"] = time.perf_counter() - t
         advance("read")
+        advance.start("register")
 
         # names: capture shapes vs avatar shapes
         cap_names = list(rig.names) if rig is not None else list(capture.names)
@@ -352,6 +354,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report["registration"] = registration.as_dict()
         sim = registration.transform
         advance("register")
+        advance.start("correspond")
 
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
@@ -378,6 +381,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
         timings["correspond"] = time.perf_counter() - t
         advance("correspond")
+        advance.start("fit")
 
         # 1. fit (after the correspondence: the avatar's shapes on the capture are its prior)
         t = time.perf_counter()
@@ -400,6 +404,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             report["fit"]["prior"] = prior
         timings["fit"] = time.perf_counter() - t
         advance("fit")
+        advance.start("retarget")
         b_idx = [rig.index(n) for n in b_names]
         person_neutral = sim.apply(rig.neutral)
         person_deltas = sim.apply_vectors(rig.deltas[b_idx])
@@ -419,6 +424,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 approx_eq4[_key(m)] = approximate(weights, _shape_deltas(m, k_names))
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
+        advance.start("transfer")
 
         # 5. the implant
         t = time.perf_counter()
@@ -466,6 +472,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             other = {k: v for k, v in base.items() if k != face_prim}
         timings["transfer"] = time.perf_counter() - t
         advance("transfer")
+        advance.start("eyelids")
 
         # 6. eyelids
         t = time.perf_counter()
@@ -485,6 +492,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
         timings["eyelids"] = time.perf_counter() - t
         advance("eyelids")
+        advance.start("write")
 
         # offsets for every mesh, in rig.names order; shapes the capture lacks stay generic
         offsets = {}
