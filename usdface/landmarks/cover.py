@@ -136,8 +136,12 @@ def reduce_set_cover(c: np.ndarray, cost: np.ndarray, max_rounds: int = 10) -> t
 
 
 def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time_limit: float = 60.0,
-                    reduce: bool = True) -> CoverSolution:
+                    reduce: bool = True, cover_times: int = 1) -> CoverSolution:
     """Solve the weighted set cover of Zell & McDonnell 2022, eqs. 5a-c, to a proven optimum.
+
+    ``cover_times = N > 1`` asks each shape to be covered ``min(N, |C_k|)`` times (the one-shot multi-cover,
+    :func:`usdface.landmarks.multicover.one_shot_multicover`); the dominance reduction, exact for a single
+    cover only, is then skipped.
 
     ``c[K, n]`` bool candidate sets (eq. 3), ``cost[n]`` > 0 (eq. 5a, :func:`set_cover_costs`). Shapes
     without any candidate are skipped and returned in ``uncovered``. ``backend`` is an OR-tools ``pywraplp``
@@ -154,7 +158,7 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
     t0 = time.perf_counter()
     uncovered = np.flatnonzero(~c.any(axis=1))
-    if reduce:
+    if reduce and int(cover_times) == 1:
         rows, cols = reduce_set_cover(c, cost)
     else:
         rows = np.flatnonzero(c.any(axis=1))
@@ -171,7 +175,8 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
     f = [solver.BoolVar(f"f{n}") for n in cols]
     sub = c[np.ix_(rows, cols)]
     for k in range(rows.size):
-        solver.Add(solver.Sum([f[j] for j in np.flatnonzero(sub[k])]) >= 1)
+        members = np.flatnonzero(sub[k])
+        solver.Add(solver.Sum([f[j] for j in members]) >= min(int(cover_times), len(members)))
     objective = solver.Objective()
     for j, n in enumerate(cols):
         objective.SetCoefficient(f[j], float(cost[n]))

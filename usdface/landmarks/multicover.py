@@ -110,12 +110,8 @@ def one_shot_multicover(c: np.ndarray, cost: np.ndarray, n_per_shape: int, *, ba
     10 % heuristic. Shapes without a candidate are returned in ``uncovered``. Solved to a proven optimum with
     OR-tools (relative gap 0) like :func:`usdface.landmarks.cover.solve_set_cover`.
     """
-    import time
-
-    from ortools.linear_solver import pywraplp
-
     from ..errors import LandmarkError
-    from .cover import BACKENDS
+    from .cover import solve_set_cover
 
     c = np.asarray(c, dtype=bool)
     cost = np.asarray(cost, dtype=np.float64)
@@ -123,40 +119,4 @@ def one_shot_multicover(c: np.ndarray, cost: np.ndarray, n_per_shape: int, *, ba
         raise LandmarkError(f"multi-cover needs c[K, n] and cost[n]; got {c.shape} and {cost.shape}")
     if int(n_per_shape) < 1:
         raise LandmarkError(f"n_per_shape must be >= 1, got {n_per_shape}", fix="use 1 or more")
-    if backend not in BACKENDS:
-        raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
-    t0 = time.perf_counter()
-    uncovered = np.flatnonzero(~c.any(axis=1))
-    rows = np.flatnonzero(c.any(axis=1))
-    cols = np.flatnonzero(c[rows].any(axis=0))
-    size = (int(c.shape[0]), int(c.shape[1]))
-    solver = pywraplp.Solver.CreateSolver(BACKENDS[backend])
-    if solver is None:
-        raise LandmarkError(f"OR-tools has no {backend} backend in this build", fix="use backend scip")
-    solver.SetNumThreads(1)
-    solver.SetTimeLimit(int(time_limit * 1000))
-    f = [solver.BoolVar(f"f{n}") for n in cols]
-    sub = c[np.ix_(rows, cols)]
-    for k in range(rows.size):
-        members = np.flatnonzero(sub[k])
-        solver.Add(solver.Sum([f[j] for j in members]) >= min(int(n_per_shape), len(members)))
-    objective = solver.Objective()
-    for j, n in enumerate(cols):
-        objective.SetCoefficient(f[j], float(cost[n]))
-    objective.SetMinimization()
-    params = pywraplp.MPSolverParameters()
-    params.SetDoubleParam(params.RELATIVE_MIP_GAP, 0.0)
-    code = solver.Solve(params)
-    seconds = time.perf_counter() - t0
-    if code not in (pywraplp.Solver.OPTIMAL, pywraplp.Solver.FEASIBLE):
-        status = {pywraplp.Solver.INFEASIBLE: "infeasible"}.get(code, "notSolved")
-        return CoverSolution(np.zeros(0, dtype=np.int64), uncovered, status, float("nan"), float("nan"),
-                             float("inf"), seconds, backend, size, (int(rows.size), int(cols.size)))
-    chosen = np.array([v.solution_value() > 0.5 for v in f], dtype=bool)
-    value, bound = float(objective.Value()), float(objective.BestBound())
-    gap = max(0.0, (value - bound) / max(abs(value), 1e-12))
-    status = "optimal" if code == pywraplp.Solver.OPTIMAL else ("timeLimit" if seconds >= time_limit
-                                                                else "feasible")
-    return CoverSolution(np.sort(cols[chosen]) if chosen.size else np.zeros(0, dtype=np.int64), uncovered,
-                         status, value, bound, 0.0 if status == "optimal" and gap < 1e-9 else gap, seconds,
-                         backend, size, (int(rows.size), int(cols.size)))
+    return solve_set_cover(c, cost, backend, time_limit, reduce=False, cover_times=int(n_per_shape))
