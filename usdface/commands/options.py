@@ -69,24 +69,24 @@ def nonnegative_int(text: str) -> int:
     return value
 
 
-def mu_value(text: str):
-    """``auto`` or a finite number > 0 (the eq. (4) ridge weight)."""
-    if text == "auto":
-        return text
-    try:
-        return positive_float(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected auto or a number > 0, got {text!r}") from None
+def _keyword_or(number, keywords: tuple[str, ...], expected: str):
+    """An argparse type: one of ``keywords`` as is, else ``number(text)``, one message for both."""
+
+    def parse(text: str):
+        if text in keywords:
+            return text
+        try:
+            return number(text)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+    return parse
 
 
-def reg_value(text: str):
-    """``auto``, ``paper`` or a finite number >= 0 (the fit's E_reg weight)."""
-    if text in ("auto", "paper"):
-        return text
-    try:
-        return nonnegative_float(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected auto, paper or a number >= 0, got {text!r}") from None
+#: ``auto`` or a finite number > 0 (the eq. (4) ridge weight).
+mu_value = _keyword_or(positive_float, ("auto",), "auto or a number > 0")
+#: ``auto``, ``paper`` or a finite number >= 0 (the fit's E_reg weight).
+reg_value = _keyword_or(nonnegative_float, ("auto", "paper"), "auto, paper or a number >= 0")
 
 
 def vector3(text: str) -> list[float]:

@@ -25,9 +25,9 @@ import numpy as np
 
 from .motion_field import (
     FieldExtension,
-    _neighbourhood,
     apply_field,
     motion_weights,
+    neighbourhood_matrix,
     rotation_scale,
     smooth_field,
 )
@@ -96,10 +96,10 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
     if not inner.any() or inner.all() or band <= 0:
         return w
     pts = np.asarray(points, dtype=np.float64)
-    d = np.zeros(len(pts))
+    d = np.zeros(len(pts))                          # 0 on the rim (weight < 1): the join starts there
     d[inner] = cKDTree(pts[~inner]).query(pts[inner])[0]
     t = np.clip(d / band, 0.0, 1.0)
-    return w * t * t * (3.0 - 2.0 * t) * inner + w * ~inner * 0.0
+    return w * t * t * (3.0 - 2.0 * t)
 
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
@@ -129,7 +129,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     x = np.asarray(points, dtype=np.float64)[domain]
     known = w0[domain] >= 1.0 - 1e-9
     ext = FieldExtension(x, sub_tri, known, length=length)
-    smoother = _neighbourhood(sub_tri, domain.size, rings)
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings)
     field = np.zeros((n_shapes, domain.size, 3, 3), dtype=np.float32)
     result = np.zeros_like(g)
     w = seam_ramp(points, w0, band)[domain]

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from ..mesh import spd_lu, triangle_areas, vertex_adjacency
 from .surface import cotangent_laplacian
 
-__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension",
+__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
            "apply_field", "motion_weights"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
@@ -74,7 +74,8 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     return phi, valid
 
 
-def _neighbourhood(triangles, n: int, rings: int) -> sp.csr_matrix:
+def neighbourhood_matrix(triangles, n: int, rings: int) -> sp.csr_matrix:
+    """``[n,n]`` 0/1 sparse matrix: vertices within ``rings`` edge rings of each other (self included)."""
     adj = vertex_adjacency(triangles, n)
     adj = (adj + sp.eye(n)).tocsr()
     adj.data[:] = 1.0
@@ -91,7 +92,7 @@ def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None)
     phi = np.asarray(phi, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     n_shapes, m = w.shape
-    s = _neighbourhood(triangles, m, rings) if neighbourhood is None else neighbourhood
+    s = neighbourhood_matrix(triangles, m, rings) if neighbourhood is None else neighbourhood
     num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [m, J*9]
     den = s @ w.T                                                                                # [m, J]
     out = num.reshape(m, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]

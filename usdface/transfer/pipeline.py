@@ -62,9 +62,6 @@ WEIGHT_NOISE = 0.04
 #: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
 #: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
 WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
-#: How the avatar prior enters the fit: "avatar_prior" (the fit's CV choice between it and the template's
-#: blend) or "replace" (the template replaced by the avatar's shapes).
-PRIOR_MODE = "avatar_prior"
 #: The per-shape trust (see :func:`_confidence`): "fit" (the fit's data share) or "loo" (James-Stein).
 CONFIDENCE = "fit"
 #: Priors of the fit (see :func:`personalize_avatar`).
@@ -292,9 +289,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                            fix=f"use one of {', '.join(APPROXIMATIONS)}")
     if prior not in PRIORS:
         raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
-    if face_transfer == "person" and approximation == "field":
-        pass
-    elif face_transfer == "person" or approximation == "field":
+    if (face_transfer == "person") != (approximation == "field"):
         raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
                            "together", fix="use face_transfer='person' with approximation='field' (the "
                            "default), or one of the older modes with 'generic' or 'retarget'")
@@ -324,7 +319,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # names: capture shapes vs avatar shapes
         cap_names = list(rig.names) if rig is not None else list(capture.names)
-        face = chosen_face if chosen_face is not None else _pick_face_mesh(avatar, cap_names, None)
+        face = chosen_face if chosen_face is not None else _face_mesh(avatar, cap_names)
         face_prim = face.source.prim if face.source else face.name
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
@@ -365,8 +360,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
                            path=avatar.file, prim=face_prim,
                            fix="check that the capture and the avatar are faces")
+        placed_by = corr_transform(corr, sim)                  # the similarity that placed the template
         semantic, disagree = correspondence_semantics(corr, capture.triangles, names, template_deltas,
-                                                      avatar_face_deltas, corr_transform(corr, sim))
+                                                      avatar_face_deltas, placed_by)
         report["correspondence"].update(semantic)
         if semantic["opposing_share"] > 0.02:
             report["warnings"].append(
@@ -375,7 +371,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 "swapped?); check the registration")
         generic_on_capture = None
         if prior == "avatar" or face_transfer == "person":
-            poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, corr_transform(corr, sim))
+            poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, placed_by)
             g_av, _ = avatar_shapes_on_capture(corr.registered, face.neutral, face.triangles,
                                                avatar_face_deltas, poses=poses)
             generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
@@ -386,26 +382,22 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 1. fit (after the correspondence: the avatar's shapes on the capture are its prior)
         t = time.perf_counter()
         fit = None
-        b_names = names
         if rig is None:
             from ..personalize import fit_personalized_shapes
 
-            fit_capture, extra = capture, {}
-            if prior == "avatar" and PRIOR_MODE == "replace":
-                fit_capture = _with_template_deltas(capture, names, generic_on_capture)
-            elif prior == "avatar" and method in ("menzel", "laplacian"):
+            extra = {}
+            if prior == "avatar" and method in ("menzel", "laplacian"):
                 full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
-                for j, n in enumerate(names):
-                    full[list(capture.names).index(n)] = generic_on_capture[j]
+                full[[list(capture.names).index(n) for n in names]] = generic_on_capture
                 extra["avatar_prior"] = full
-            fit = fit_personalized_shapes(fit_capture, method=method, reg=reg, **extra, **fit_options)
+            fit = fit_personalized_shapes(capture, method=method, reg=reg, **extra, **fit_options)
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
         timings["fit"] = time.perf_counter() - t
         advance("fit")
         advance.start("retarget")
-        b_idx = [rig.index(n) for n in b_names]
+        b_idx = [rig.index(n) for n in names]
         person_neutral = sim.apply(rig.neutral)
         person_deltas = sim.apply_vectors(rig.deltas[b_idx])
         tmpl_av = sim.apply_vectors(template_deltas)
@@ -430,7 +422,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         other = {}
         if face_transfer == "person":
-            prior_av = _fit_prior(fit, rig, b_idx, names, capture, generic_on_capture, sim, prior)
+            prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
             conf = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
             report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
             low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
@@ -544,15 +536,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
 
 def _dilate(mask, triangles, rings: int):
-    from ..mesh import vertex_adjacency
+    """``mask[n]`` grown by ``rings`` edge rings."""
+    from .motion_field import neighbourhood_matrix
 
     out = np.asarray(mask, dtype=bool)
     if not out.any():
         return out
-    adj = vertex_adjacency(triangles, len(out))
-    for _ in range(rings):
-        out = out | (adj @ out.astype(np.float64) > 0)
-    return out
+    return (neighbourhood_matrix(triangles, len(out), rings) @ out.astype(np.float64)) > 0
 
 
 def _key(m: FaceRig) -> str:
@@ -561,16 +551,6 @@ def _key(m: FaceRig) -> str:
 
 def _is_eyeball(m: FaceRig) -> bool:
     return bool(find_eyeballs({_key(m): m.neutral}))
-
-
-def _pick_face_mesh(avatar: Avatar, names: list[str], face_mesh: str | None) -> FaceRig:
-    if face_mesh is None:
-        return _face_mesh(avatar, names)
-    for m in avatar.meshes:
-        if face_mesh in (_key(m), m.name) or _key(m).endswith("/" + face_mesh.lstrip("/")):
-            return m
-    raise RigError(f"no mesh {face_mesh!r} with blend shapes in the avatar", path=avatar.file,
-                   fix="pass one of: " + ", ".join(_key(m) for m in avatar.meshes))
 
 
 def corr_transform(corr, fallback):
@@ -588,7 +568,8 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
     """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
     face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
     motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
-    more than half the peak on one rig and less than a fifth on the other."""
+    more than half the peak on one rig and less than a fifth on the other. Returns ``(figures, swapped[m])``,
+    the second the face-mesh vertices of those swaps."""
     f = np.flatnonzero(corr.face)
     sig_total, opposing, swaps = 0, 0, {}
     disagree = np.zeros(len(corr.face), dtype=bool)
@@ -641,38 +622,22 @@ def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> np.ndarray
     return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp
 
 
-def _with_template_deltas(capture: Capture, names, deltas) -> Capture:
-    """A copy of ``capture`` whose template shapes ``names`` are ``deltas[J,n,3]`` (the others unchanged)."""
-    import dataclasses
+def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
+    """The prior ``P_j`` the fit shrank each shape towards, in the avatar frame (``[J,n,3]``): the fit's own
+    (``info["prior_deltas"]``, menzel/laplacian); for dt/ebfr the deformation transfer of the chosen prior;
+    for a given rig (no fit) the prior itself."""
+    cap_idx = [list(capture.names).index(n) for n in names]
+    used = fit.info.get("prior_deltas") if fit is not None else None
+    if used is not None:
+        return sim.apply_vectors(np.asarray(used)[cap_idx])
+    template = capture.template.deltas[[capture.template.names.index(n) for n in names]]
+    if fit is None:   # a given rig: measured against the avatar's shapes on the capture where there are any
+        return sim.apply_vectors(generic_on_capture if generic_on_capture is not None else template)
+    base = generic_on_capture if prior == "avatar" else template
+    from ..personalize.dt import deformation_transfer
 
-    tmpl = capture.template
-    new = np.array(tmpl.deltas, dtype=np.float64, copy=True)
-    idx = {n: i for i, n in enumerate(tmpl.names)}
-    for j, n in enumerate(names):
-        new[idx[n]] = deltas[j]
-    return dataclasses.replace(capture, template=dataclasses.replace(tmpl, deltas=new))
-
-
-def _fit_prior(fit, rig, b_idx, names, capture, generic_on_capture, sim, prior):
-    """The prior ``P_j`` the fit shrank each shape towards, in the avatar frame (``[J,n,3]``)."""
-    if fit is None:
-        base = generic_on_capture if generic_on_capture is not None else capture.template.deltas[
-            [capture.template.names.index(n) for n in names]]
-        return sim.apply_vectors(base)
-    positional = fit.info.get("method") in ("menzel", "laplacian")
-    alpha = float(fit.info.get("prior_alpha", 1.0)) if positional else 1.0
-    base = generic_on_capture if prior == "avatar" else capture.template.deltas[
-        [capture.template.names.index(n) for n in names]]
-    used = fit.info.get("prior_deltas")
-    if used is not None and prior == "avatar" and PRIOR_MODE != "replace":
-        return sim.apply_vectors(np.asarray(used)[[list(capture.names).index(n) for n in names]])
-    if alpha > 0:
-        from ..personalize.dt import deformation_transfer
-
-        tmpl_neutral = capture.template.neutral
-        dt = deformation_transfer(tmpl_neutral, base, capture.neutral, capture.triangles, names=list(names))
-        base = alpha * dt + (1.0 - alpha) * base
-    return sim.apply_vectors(base)
+    return sim.apply_vectors(deformation_transfer(capture.template.neutral, base, capture.neutral,
+                                                  capture.triangles, names=list(names)))
 
 
 def _changes(avatar: Avatar, offsets: dict) -> list[dict]:

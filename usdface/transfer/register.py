@@ -207,6 +207,10 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     ap = np.asarray(avatar_points, dtype=np.float64)
     mag = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0)
     moving = mag > MOVING_TOLERANCE * max(float(mag.max()), 1e-300)   # float noise of an export: no motion
+    try:   # the global initialiser; its scale also sets the ICP target's density below
+        landmarks, no_landmarks = motion_initialiser(cn, capture_deltas, ap, avatar_deltas), None
+    except RegistrationError as exc:
+        landmarks, no_landmarks = None, exc
     given = target is not None
     target = np.asarray(target, dtype=np.float64) if given else (ap[moving] if moving.sum() >= 10 else ap)
     if avatar_triangles is not None and not given:
@@ -217,10 +221,8 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
 
             c_edge = (mean_edge_length(cn, capture_triangles) if capture_triangles is not None
                       else float(np.median(np.linalg.norm(np.diff(cn, axis=0), axis=1))))
-            try:   # the scale from the shape-motion landmarks (the bounding boxes mislead on a whole head)
-                scale = motion_initialiser(cn, capture_deltas, ap, avatar_deltas).scale
-            except RegistrationError:
-                scale = _scale_guess(cn, target)
+            # the scale from the shape-motion landmarks (the bounding boxes mislead on a whole head)
+            scale = landmarks.scale if landmarks is not None else _scale_guess(cn, target)
             # the ICP target is the surface, thinned to SAMPLE_SPACING placed capture edges whatever the
             # avatar's resolution (matching vertices of a coarse avatar biases scale and residual)
             spacing = SAMPLE_SPACING * c_edge * scale
@@ -229,12 +231,10 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     # ``initial``: a placement known to be close (the person's neutral, in the same capture frame as the
     # template); tried first, refined by the same ICP
     candidates = [("person's registration", initial)] if initial is not None else []
-    try:
-        init = motion_initialiser(cn, capture_deltas, ap, avatar_deltas)
-        candidates.append(("shape-motion landmarks", init))
-    except RegistrationError:
-        if not candidates and moving.sum() < 10:
-            raise
+    if landmarks is not None:
+        candidates.append(("shape-motion landmarks", landmarks))
+    elif not candidates and moving.sum() < 10:
+        raise no_landmarks
     ext_c = np.linalg.norm(cn.max(axis=0) - cn.min(axis=0))
     ext_a = np.linalg.norm(target.max(axis=0) - target.min(axis=0))
     s0 = ext_a / max(ext_c, 1e-300)

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..mesh import edges as mesh_edges
+
 __all__ = ["rmse", "MeshScore", "score_mesh", "seam_jump", "border_band_edges"]
 
 
@@ -22,16 +24,10 @@ def rmse(a, b, region=None) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=-1)))) if d.size else 0.0
 
 
-def _edges(triangles) -> np.ndarray:
-    t = np.asarray(triangles, dtype=np.int64)
-    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
-
-
 def border_band_edges(triangles, covered, rings: int = 2) -> np.ndarray:
     """Edges ``[e,2]`` with both ends within ``rings`` edge rings of the border of ``covered[n]`` (the
     vertices the capture covers): the edges across which a seam would show."""
-    edges = _edges(triangles)
+    edges = mesh_edges(triangles)
     covered = np.asarray(covered, dtype=bool)
     n = len(covered)
     near = np.zeros(n, dtype=bool)
