@@ -38,7 +38,8 @@ MOVING_TOLERANCE = 1e-6
 #: Shapes handled at once in the field extension (bounds the memory to SHAPE_CHUNK x vertices x 9 doubles).
 SHAPE_CHUNK = 8
 
-__all__ = ["avatar_shapes_on_capture", "face_personalization", "face_radius", "extend_personalization",
+__all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
+           "extend_personalization",
            "seam_ramp",
            "follow_field", "is_rigid_part", "shape_confidence"]
 
@@ -61,9 +62,51 @@ def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar
     return g, dist
 
 
-def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03)):
+#: A person's motion at a point differs from an artist's generic motion there by less than this angle and
+#: this factor in length (a stronger or tilted smile, not a different motion) ...
+MAX_ANGLE_DEG = 60.0
+MAX_RATIO = 2.0
+#: ... judged where either moves more than this fraction of the shape's peak motion.
+SIGNIFICANT = 0.1
+
+
+def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_deg: float = MAX_ANGLE_DEG,
+                     max_ratio: float = MAX_RATIO, significant: float = SIGNIFICANT) -> np.ndarray:
+    """``[J,n]`` bool: capture vertices where the prior's motion ``P_j`` (the avatar's generic shape sampled
+    through the correspondence) is not the motion of the same point of the face, so ``B_j - P_j`` there is
+    a mapping error, not the person.
+
+    Three witnesses of each shape at each capture vertex: the person ``B`` (measured), the capture's template
+    ``T`` (another artist, on the capture's own mesh: no correspondence involved) and the avatar's ``P``
+    (through the correspondence). A vertex is an outlier when ``P`` is incompatible with the person (their
+    directions more than ``max_angle_deg`` apart, or lengths more than ``max_ratio`` apart, where either
+    moves more than ``significant`` of the peak) *and* is the odd one out: further from both ``B`` and ``T``
+    than those two are from each other (and than ``significant`` of the peak). Where the template is the
+    prior (``P = T``) nothing is an outlier. On a coarse phone mesh a lid-margin vertex mapped a millimetre
+    off lands where the avatar's lid does not move: its 9 mm "personalization" would tear the blink.
+    All ``[J,n,3]``, one frame (m).
+    """
+    b = np.asarray(person_deltas, dtype=np.float64)
+    p = np.asarray(prior_deltas, dtype=np.float64)
+    t = np.asarray(template_deltas, dtype=np.float64)
+    nb, npr = np.linalg.norm(b, axis=-1), np.linalg.norm(p, axis=-1)
+    peak = np.maximum(nb.max(axis=1, keepdims=True), npr.max(axis=1, keepdims=True))
+    cos = np.einsum("jnc,jnc->jn", b, p) / np.maximum(nb * npr, 1e-300)
+    ratio = np.maximum(nb, npr) / np.maximum(np.minimum(nb, npr), 1e-300)
+    incompatible = ((np.maximum(nb, npr) > significant * peak)
+                    & ((cos < np.cos(np.radians(max_angle_deg))) | (ratio > max_ratio)))
+    d_pb = np.linalg.norm(p - b, axis=-1)
+    d_pt = np.linalg.norm(p - t, axis=-1)
+    d_bt = np.linalg.norm(b - t, axis=-1)
+    odd = np.minimum(d_pb, d_pt) > np.maximum(d_bt, significant * peak)
+    return incompatible & odd
+
+
+def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),
+                         outliers=None):
     """``M (s_j (B_j - P_j))`` on the avatar vertices ``rows``: the person's change of each shape,
-    interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame).
+    interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame);
+    0 at the capture vertices ``outliers[J,n]`` (:func:`mapping_outliers`).
 
     ``s_j`` (:func:`usdface.transfer.partial_dt.personalization_support`, ``support=(low, high)`` fractions of
     the shape's peak motion; None = everywhere) keeps the change where the person's or the prior shape moves:
@@ -76,6 +119,8 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
         from .partial_dt import personalization_support
 
         diff = diff * personalization_support(b, p, low=support[0], high=support[1])[..., None]
+    if outliers is not None:
+        diff = np.where(np.asarray(outliers, dtype=bool)[..., None], 0.0, diff)
     return corr.apply(diff, capture_triangles, rows=rows)
 
 

@@ -42,6 +42,7 @@ from .implant import (
     face_radius,
     follow_field,
     is_rigid_part,
+    mapping_outliers,
     shape_confidence,
 )
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
@@ -429,9 +430,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             if low:
                 report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
                                           "shape): " + ", ".join(low))
+            # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
+            # incompatible with the person's and the template's): no personalization from them
+            outliers = mapping_outliers(person_deltas, prior_av, tmpl_av)
+            report["correspondence"]["mapping_outliers"] = int(outliers.sum())
             person_face = avatar_face_deltas.copy()
             person_face[:, f] += conf[:, None, None] * face_personalization(
-                corr, capture.triangles, person_deltas, prior_av, f, support=support)
+                corr, capture.triangles, person_deltas, prior_av, f, support=support, outliers=outliers)
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in

@@ -1,0 +1,44 @@
+"""Pure-array units of the implant (:mod:`usdface.transfer.implant`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from usdface.transfer.implant import mapping_outliers
+
+
+def _rotation(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _witnesses(seed=0):
+    """Two shapes on 200 vertices: the avatar's motion P, the person's B = 1.15 x P tilted 10 degrees, the
+    template T = 0.9 x P tilted -10 degrees (another artist)."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(2, 200, 3)) * 0.004
+    b = 1.15 * p @ _rotation(10).T
+    t = 0.9 * p @ _rotation(-10).T
+    return b, p, t
+
+
+def test_consistent_witnesses_have_no_outliers():
+    b, p, t = _witnesses()
+    assert not mapping_outliers(b, p, t).any()
+    # the template as the prior: the map is not involved, nothing is an outlier
+    assert not mapping_outliers(b, t, t).any()
+
+
+def test_a_mismapped_vertex_is_the_odd_one_out():
+    b, p, t = _witnesses()
+    v0, v1 = np.argsort(-np.linalg.norm(p, axis=-1), axis=1)[:, 0]      # a strongly moving vertex each
+    slipped = p.copy()
+    slipped[0, v0] = 0.05 * p[0, v0]                # mapped to a point the shape barely moves
+    slipped[1, v1] = np.cross(p[1, v1], [0.0, 0.0, 1.0])    # mapped to a point moving sideways
+    out = mapping_outliers(b, slipped, t)
+    assert out[0, v0] and out[1, v1]
+    assert out.sum() == 2
+    # a person who really moves differently from both artists is not an outlier: B is the odd one out
+    odd_person = b.copy()
+    odd_person[0, v0] = -b[0, v0]
+    assert not mapping_outliers(odd_person, p, t)[0, v0]
