@@ -42,3 +42,17 @@ def test_a_mismapped_vertex_is_the_odd_one_out():
     odd_person = b.copy()
     odd_person[0, v0] = -b[0, v0]
     assert not mapping_outliers(odd_person, p, t)[0, v0]
+
+
+def test_seam_ramp_is_the_smoothstep_of_the_distance_to_the_rim():
+    from usdface.transfer.implant import seam_ramp
+
+    rng = np.random.default_rng(1)
+    pts = rng.random((400, 3)) * 0.1
+    weight = np.where(pts[:, 0] > 0.03, 1.0, 0.4)
+    band = 0.02
+    rim = weight < 1.0
+    dist = np.linalg.norm(pts[:, None] - pts[None, rim], axis=-1).min(axis=1)     # brute force
+    t = np.clip(dist / band, 0.0, 1.0)
+    expect = weight * t * t * (3.0 - 2.0 * t)          # 0 on the rim itself
+    np.testing.assert_allclose(seam_ramp(pts, weight, band), expect, atol=1e-12)

@@ -142,7 +142,7 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
         return w
     pts = np.asarray(points, dtype=np.float64)
     d = np.zeros(len(pts))                          # 0 on the rim (weight < 1): the join starts there
-    d[inner] = cKDTree(pts[~inner]).query(pts[inner])[0]
+    d[inner] = cKDTree(pts[~inner]).query(pts[inner], distance_upper_bound=band)[0]   # inf beyond the band
     t = np.clip(d / band, 0.0, 1.0)
     return w * t * t * (3.0 - 2.0 * t)
 
