@@ -56,3 +56,26 @@ def test_seam_ramp_is_the_smoothstep_of_the_distance_to_the_rim():
     t = np.clip(dist / band, 0.0, 1.0)
     expect = weight * t * t * (3.0 - 2.0 * t)          # 0 on the rim itself
     np.testing.assert_allclose(seam_ramp(pts, weight, band), expect, atol=1e-12)
+
+
+def test_float_noise_of_an_export_is_not_motion():
+    """A dense body whose shapes carry only float32 re-storage noise (offsets ~1e-7 x coordinates) must not
+    be taken for the face, nor count as moving; the head with real motion is the face mesh."""
+    from usdface.model import Avatar, FaceRig
+    from usdface.motion import moving_vertices, peak_motion
+    from usdface.transfer.pipeline import _face_mesh
+
+    rng = np.random.default_rng(0)
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft", "browInnerUp"]
+    head_pts = rng.random((300, 3)) * 0.2 + [0.0, 1.5, 0.0]
+    head_d = np.zeros((4, 300, 3))
+    head_d[:, :120] = rng.normal(size=(4, 120, 3)) * 0.004              # the face moves, the scalp does not
+    body_pts = rng.random((3000, 3)) * [0.5, 1.4, 0.3]
+    body_d = rng.normal(size=(4, 3000, 3)) * 1.2e-7 * 1.5                # float32 noise around 1.5 m coords
+    tri = np.array([[0, 1, 2]])
+    avatar = Avatar([FaceRig(body_pts, tri, names, body_d, name="Body"),
+                     FaceRig(head_pts, tri, names, head_d, name="Head")])
+    assert _face_mesh(avatar, names).name == "Head"
+    assert not moving_vertices(peak_motion(body_d), body_pts).any()
+    moving = moving_vertices(peak_motion(head_d), head_pts)
+    assert moving[:120].all() and not moving[120:].any()

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..motion import moving_vertices, peak_motion
 from .motion_field import (
     FieldExtension,
     apply_field,
@@ -32,9 +33,6 @@ from .motion_field import (
     smooth_field,
 )
 
-#: A vertex moves when some shape moves it by more than this fraction of the mesh's largest motion (float
-#: noise of a DCC export is not motion).
-MOVING_TOLERANCE = 1e-6
 #: Shapes handled at once in the field extension (bounds the memory to SHAPE_CHUNK x vertices x 9 doubles).
 SHAPE_CHUNK = 8
 
@@ -165,8 +163,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     n_shapes, m = g.shape[:2]
     # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
     # motion, and so the result, is 0 whatever the field
-    mag = np.linalg.norm(g, axis=-1).max(axis=0)
-    domain = np.flatnonzero((mag > MOVING_TOLERANCE * max(float(mag.max()), 1e-300)) | (w0 > 0))
+    domain = np.flatnonzero(moving_vertices(peak_motion(g), points) | (w0 > 0))
     local = np.full(m, -1)
     local[domain] = np.arange(domain.size)
     tri = np.asarray(triangles)

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh import spd_lu, triangle_areas, vertex_adjacency
+from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
 __all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
@@ -37,7 +38,7 @@ MOTION_FLOOR = 0.02
 
 def motion_weights(generic, *, floor: float = MOTION_FLOOR) -> np.ndarray:
     """``[J,m]`` confidence of each vertex's field: ``(|A_j(v)| / peak_j)^2`` ramped to 0 below ``floor``."""
-    mag = np.linalg.norm(np.asarray(generic, dtype=np.float64), axis=-1)
+    mag = shape_norms(generic)
     rel = mag / np.maximum(mag.max(axis=-1, keepdims=True), 1e-300)
     ramp = np.clip((rel - floor) / floor, 0.0, 1.0)
     return rel * rel * ramp

@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import RigError, UsdFaceError
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
+from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
 from .correspond import (
@@ -95,13 +96,14 @@ class PersonalizeResult:
 
 
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
-    """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh)."""
+    """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
+    export is not motion (:func:`usdface.motion.moving_vertices`)."""
     best, score = None, 0
     for rig in avatar.meshes:
         idx = [rig.index(n) for n in names if n in rig.names]
         if not idx:
             continue
-        moving = int((np.linalg.norm(rig.deltas[idx], axis=2).max(axis=0) > 0).sum())
+        moving = int(moving_vertices(peak_motion(rig.deltas[idx]), rig.neutral).sum())
         if moving > score:
             best, score = rig, moving
     if best is None:
@@ -446,7 +448,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
                                                    person_face, weight, length=length,
                                                    band=SEAM_BAND * radius)
-            adjacent = (weight < 1.0)[None] & (np.linalg.norm(result - avatar_face_deltas, axis=-1) > 1e-9)
+            adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
             eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
             for m in avatar.meshes:
                 if m is face or _key(m) in eyeballs_static:

@@ -19,9 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import RegistrationError
+from ..motion import moving_vertices, peak_motion, shape_norms
 
-#: A vertex "moves" when some shape moves it by more than this fraction of the largest motion.
-MOVING_TOLERANCE = 1e-6
 #: ICP target sample spacing on the avatar surface, in placed capture edge lengths.
 SAMPLE_SPACING = 0.15
 
@@ -91,7 +90,7 @@ def motion_landmarks(neutral, deltas, *, power: float = 2.0) -> tuple[np.ndarray
     Returns ``(landmarks[K,3], strength[K])`` where strength is the shape's largest vertex motion (m); shapes
     that do not move get strength 0.
     """
-    mag = np.linalg.norm(np.asarray(deltas), axis=2)  # [K,n]
+    mag = shape_norms(deltas)  # [K,n]
     w = mag ** power
     tot = w.sum(axis=1)
     lm = (w @ np.asarray(neutral)) / np.maximum(tot, 1e-300)[:, None]
@@ -205,8 +204,7 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    mag = np.linalg.norm(np.asarray(avatar_deltas), axis=2).max(axis=0)
-    moving = mag > MOVING_TOLERANCE * max(float(mag.max()), 1e-300)   # float noise of an export: no motion
+    moving = moving_vertices(peak_motion(avatar_deltas), ap)   # float noise of an export: no motion
     try:   # the global initialiser; its scale also sets the ICP target's density below
         landmarks, no_landmarks = motion_initialiser(cn, capture_deltas, ap, avatar_deltas), None
     except RegistrationError as exc:

@@ -1,0 +1,50 @@
+"""How much blend shapes move each vertex, and which vertices move at all (pure numpy).
+
+Computed once per rig and passed on: on a production mesh (225k vertices x 51 shapes) every norm over the
+dense offsets costs 0.1-0.2 s, and the pipeline used to take it a dozen times.
+
+* :func:`shape_norms` - ``|deltas[k,v]|`` ``[K,n]``;
+* :func:`peak_motion` - the largest motion of each vertex over the shapes, ``[n]``;
+* :func:`moving_vertices` - the vertices some shape moves, with a tolerance: float noise of a DCC export
+  (offsets re-stored in float32 around head-sized coordinates) is not motion.
+
+Units: whatever the deltas are in (metres in usdface).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["MOVING_TOLERANCE", "FLOAT32_NOISE", "shape_norms", "peak_motion", "moving_vertices"]
+
+#: A vertex moves when some shape moves it by more than this fraction of the mesh's largest motion ...
+MOVING_TOLERANCE = 1e-6
+#: ... and by more than this many float32 steps of its coordinates (an offset stored in float32 next to
+#: coordinates of size c is only known to about 1.2e-7 c).
+FLOAT32_NOISE = 8 * float(np.finfo(np.float32).eps)
+
+
+def shape_norms(deltas) -> np.ndarray:
+    """``[K,n]`` length of every shape's offset at every vertex (``deltas[K,n,3]``)."""
+    d = np.asarray(deltas, dtype=np.float64)
+    return np.sqrt(np.einsum("knc,knc->kn", d, d))
+
+
+def peak_motion(deltas) -> np.ndarray:
+    """``[n]`` the largest offset of each vertex over the shapes (``deltas[K,n,3]``; zeros for K = 0)."""
+    d = np.asarray(deltas, dtype=np.float64)
+    if d.shape[0] == 0:
+        return np.zeros(d.shape[1])
+    return np.sqrt(np.einsum("knc,knc->kn", d, d).max(axis=0))
+
+
+def moving_vertices(peak, points=None, *, tolerance: float = MOVING_TOLERANCE) -> np.ndarray:
+    """``[n]`` bool: the vertices whose ``peak`` motion (:func:`peak_motion`) exceeds ``tolerance`` of the
+    largest and, given the rest ``points[n,3]``, the float32 noise of coordinates that size."""
+    peak = np.asarray(peak, dtype=np.float64)
+    if peak.size == 0:
+        return np.zeros(0, dtype=bool)
+    floor = tolerance * float(peak.max())
+    if points is not None and len(points):
+        floor = max(floor, FLOAT32_NOISE * float(np.abs(np.asarray(points, dtype=np.float64)).max()))
+    return peak > floor
