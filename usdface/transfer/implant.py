@@ -34,7 +34,7 @@ from .motion_field import (
 )
 
 #: Shapes handled at once in the field extension (bounds the memory to SHAPE_CHUNK x vertices x 9 doubles).
-SHAPE_CHUNK = 8
+SHAPE_CHUNK = 4
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
@@ -146,7 +146,7 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
-                           band: float = 0.0, rings: int = 2):
+                           band: float = 0.0, rings: int = 2, keep_at=None):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -155,7 +155,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     over ``rings`` edge rings with motion weights, extended by a screened harmonic solve (``length`` m, one
     factorization for every shape) and applied to the generic motion; the result ramps from ``person`` to the
     field over ``band`` metres inside the face region (:func:`seam_ramp`). Returns ``(result[J,m,3],
-    field[J,m,3,3])``.
+    field)``: the field (:class:`FieldOnMesh`) kept at the vertices nearest to ``keep_at[q,3]`` (the other
+    meshes' points; None: every vertex of the moving part), so a production head does not hold
+    ``J x m x 9`` values for a few thousand teeth vertices.
     """
     g = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
@@ -172,7 +174,14 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     known = w0[domain] >= 1.0 - 1e-9
     ext = FieldExtension(x, sub_tri, known, length=length)
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings)
-    field = np.zeros((n_shapes, domain.size, 3, 3), dtype=np.float32)
+    if keep_at is None:
+        kept = np.arange(domain.size)
+    else:
+        from scipy.spatial import cKDTree
+
+        q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
+        kept = np.unique(cKDTree(x).query(q)[1]) if len(q) else np.zeros(0, dtype=np.int64)
+    field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
     result = np.zeros_like(g)
     w = seam_ramp(points, w0, band)[domain]
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
@@ -188,10 +197,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         phi = smooth_field(phi, mw, sub_tri, rings=rings, neighbourhood=smoother)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
-        field[js] = f
+        field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
-    return result, FieldOnMesh(np.asarray(points, dtype=np.float64)[domain], field)
+    return result, FieldOnMesh(x[kept], field)
 
 
 class FieldOnMesh:

@@ -445,20 +445,18 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             weight = weight * ~_dilate(disagree, face.triangles, 2)
             radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
             length = extension_length * radius if extension_length else None
+            eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
+            others = [m for m in avatar.meshes if m is not face and _key(m) not in eyeballs_static]
+            followers = [m for m in others if not _is_eyeball(m)]            # eyeballs keep their shapes
+            keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
                                                    person_face, weight, length=length,
-                                                   band=SEAM_BAND * radius)
+                                                   band=SEAM_BAND * radius, keep_at=keep_at)
             adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
-            eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
-            for m in avatar.meshes:
-                if m is face or _key(m) in eyeballs_static:
-                    continue
+            for m in others:
                 sub = _shape_deltas(m, names)
-                if _is_eyeball(m):
-                    other[_key(m)] = sub
-                    continue
-                other[_key(m)] = follow_field(m.neutral, sub, pfield,
-                                              rigid=is_rigid_part(m.neutral, sub))
+                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=is_rigid_part(m.neutral, sub))
+                                  if any(m is x for x in followers) else sub)
             report["extension"] = {"length_m": length, "face_radius_m": radius}
         else:
             base = {_key(m): (approx_eq4[_key(m)] if approximation == "retarget" else _shape_deltas(m, names))
