@@ -3,6 +3,8 @@ elliptical opening whose template blink brings the upper side exactly onto the l
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -239,3 +241,18 @@ def test_lip_crossings_refuses_a_mesh_without_opening_or_a_bad_delta(patch):
         lip_crossings(pts, closed, np.zeros_like(pts))
     with pytest.raises(GeometryError, match="delta"):
         lip_crossings(pts, tri, np.zeros((3, 3)))
+
+
+def test_fit_command_reports_the_gaps_before_and_after(samples, tmp_path, capsys):
+    from usdface.cli import main
+
+    out = tmp_path / "rig.usda"
+    args = ["fit", str(samples / "capture.usda"), "-o", str(out), "--reg", "0.01", "--no-align",
+            "--no-reweight", "-q"]
+    assert main(args + ["--contact", "on"]) == 0
+    text = capsys.readouterr().out
+    assert "contact (on)" in text and "eyeBlinkLeft" in text and "-> 0.000 (corrected)" in text
+    assert main(args + ["--contact", "off", "--force", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    blink = doc["contact"]["shapes"]["eyeBlinkLeft"]
+    assert not blink["applied"] and blink["gap_after_mm"] == blink["gap_before_mm"] > 0.1

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
+from .fit import add_contact_option
 from .options import mu_value, nonnegative_float, positive_float, reg_value
 
 
@@ -41,6 +42,7 @@ def add_transfer_options(p) -> None:
                    help="older modes: width of the seamless join beyond the face in capture edge lengths "
                         "(0 = harmonic over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    add_contact_option(p)
     add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
@@ -55,7 +57,7 @@ def transfer_kwargs(args) -> dict:
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
             "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
             "prior": args.prior, "extension_length": args.extension_length,
-            "eyelids": not args.no_eyelids, "name_map": args.name_map}
+            "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact}
 
 
 def register(subparsers) -> None:
