@@ -256,3 +256,34 @@ def test_fit_command_reports_the_gaps_before_and_after(samples, tmp_path, capsys
     doc = json.loads(capsys.readouterr().out)
     blink = doc["contact"]["shapes"]["eyeBlinkLeft"]
     assert not blink["applied"] and blink["gap_after_mm"] == blink["gap_before_mm"] > 0.1
+
+
+def two_lips(h=0.002, gap=0.001):
+    """A mouth whose lips are separate sheets joined nowhere near the lip line (as on an avatar head, where
+    they run into the mouth bag): an upper sheet from y = gap/2 up, a lower one from y = -gap/2 down."""
+    xs, ys = np.arange(-0.01, 0.01001, h), np.arange(0.0, 0.01001, h)
+    gx, gy = np.meshgrid(xs, ys)
+    sheet = np.stack([gx.ravel(), gy.ravel()], 1)
+    tri = Delaunay(sheet + np.random.default_rng(2).uniform(-1e-5, 1e-5, sheet.shape)).simplices
+    up = np.c_[sheet[:, 0], sheet[:, 1] + gap / 2, np.zeros(len(sheet))]
+    lo = np.c_[sheet[:, 0], -sheet[:, 1] - gap / 2, np.zeros(len(sheet))]
+    pts = np.concatenate([up, lo])
+    tris = np.concatenate([tri, tri[:, ::-1] + len(sheet)])
+    jaw = np.zeros_like(pts)
+    jaw[len(sheet):, 1] = -0.01                                   # jawOpen: the lower lip drops 1 cm
+    return pts, tris, jaw, len(sheet), len(xs)
+
+
+def test_lip_crossings_on_joined_lips_finds_the_lip_line_by_motion():
+    pts, tri, jaw, half, nx = two_lips()
+    front_lower = half + np.arange(nx)                            # lower sheet row y = -gap/2
+    d = np.zeros_like(pts)
+    middle = front_lower[3:-3]
+    d[middle, 1] = 0.0015                                         # 1.5 mm up across a 1 mm gap
+    res = lip_crossings(pts, tri, d, openings=[], opening_delta=jaw, radius=0.0015)
+    assert sorted(res.vertices.tolist()) == middle.tolist()
+    assert np.allclose(res.depth, 0.0005, atol=1e-12)
+    rest = lip_crossings(pts, tri, np.zeros_like(pts), openings=[], opening_delta=jaw, radius=0.0015)
+    assert rest.count == 0
+    with pytest.raises(GeometryError, match="opening_delta"):
+        lip_crossings(pts, tri, d, openings=[])

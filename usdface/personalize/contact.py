@@ -42,7 +42,8 @@ from ..mesh import boundary_loops, spd_lu, uniform_laplacian
 
 __all__ = ["CONTACT_SHAPES", "CONTACT_RADIUS", "CORRECTION_RINGS", "CONTACT_WEIGHT", "Opening",
            "ContactPairs", "find_openings", "signed_gaps", "find_contact_pairs", "ContactSolver",
-           "contact_test", "apply_contact", "keep_contact", "lip_crossings", "LipCrossings", "face_size"]
+           "contact_test", "apply_contact", "keep_contact", "lip_crossings", "LipCrossings", "face_size",
+           "lip_pairs_from_motion", "LipPairs"]
 
 #: Shapes whose template pose may bring the two sides of an opening together, with the shapes they are
 #: posed on top of (ARKit: ``mouthClose`` closes the lips *independent of the jaw*: it is authored on top
@@ -388,18 +389,64 @@ def _upper_at(neutral, op: Opening):
     return chain[j], chain[j + 1], t
 
 
+@dataclass
+class LipPairs:
+    """Lip pairs on a mesh whose lips are joined (no mouth hole): ``upper[m]``, ``lower[m]`` (vertex indices),
+    ``direction[m,3]`` (unit, per pair, from the lower vertex towards the upper one as the mouth opens)."""
+
+    upper: np.ndarray
+    lower: np.ndarray
+    direction: np.ndarray
+
+
+def lip_pairs_from_motion(neutral: np.ndarray, opening_delta: np.ndarray, *,
+                          radius: float | None = None) -> LipPairs:
+    """The lips of a mesh without a mouth hole (an avatar head whose lips run into the mouth bag), found by
+    what the mouth does: under ``opening_delta[n,3]`` (the rig's ``jawOpen``) the lower lip moves with the
+    jaw (at least half the largest displacement) and the upper lip stays (at most a tenth of it). Each
+    lower-lip vertex is paired with the closest upper-lip vertex on ``neutral[n,3]``; pairs at most
+    ``radius`` apart (default :data:`CONTACT_RADIUS` x :func:`face_size`) are the lip line. The direction of
+    a pair is its relative motion under the opening, reversed (lower towards upper).
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(neutral, dtype=np.float64)
+    d = np.asarray(opening_delta, dtype=np.float64)
+    mag = np.linalg.norm(d, axis=1)
+    peak = mag.max() if len(mag) else 0.0
+    lower, upper = np.flatnonzero(mag >= 0.5 * peak), np.flatnonzero(mag <= 0.1 * peak)
+    if peak <= 0 or len(lower) == 0 or len(upper) == 0:
+        raise GeometryError("lip check: the opening shape moves nothing (or everything alike)",
+                            fix="pass the rig's jawOpen offsets as opening_delta")
+    r = CONTACT_RADIUS * face_size(p) if radius is None else float(radius)
+    dist, j = cKDTree(p[upper]).query(p[lower])
+    keep = dist <= r
+    lo, up = lower[keep], upper[j[keep]]
+    rel = d[up] - d[lo]
+    direction = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
+    return LipPairs(up, lo, direction)
+
+
 def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray, *,
                   opening: int | None = None, tolerance: float = 0.0,
-                  openings: list[Opening] | None = None) -> LipCrossings:
+                  openings: list[Opening] | None = None, opening_delta: np.ndarray | None = None,
+                  radius: float | None = None) -> LipCrossings:
     """Lower-lip vertices that passed through the upper lip in the posed shape ``neutral + delta``.
 
-    ``neutral[n,3]``, ``triangles[t,3]``, ``delta[n,3]`` (same units as the neutral). The mouth is
-    ``opening`` (an index into :func:`find_openings`; default: the opening whose vertices ``delta`` moves
-    most - pass it explicitly for a shape that also moves the lids). Each lower-side vertex is paired with
-    the upper side at the same position along the corner axis on the neutral (linear between the two
-    upper vertices that bracket it); its signed gap along the neutral's opening direction
-    (:func:`signed_gaps`) below ``-tolerance`` is a crossing of that depth. Raises :class:`GeometryError`
-    when the mesh has no opening (lips joined or no mouth hole).
+    ``neutral[n,3]``, ``triangles[t,3]``, ``delta[n,3]`` (same units as the neutral). A crossing is a
+    signed gap (:func:`signed_gaps`: upper minus lower along the opening direction) below ``-tolerance``;
+    its depth is minus the gap.
+
+    * A mesh with a mouth hole (a capture's face mask): the mouth is ``opening`` (an index into
+      :func:`find_openings`; default: the opening whose vertices ``delta`` moves most - pass it explicitly
+      for a shape that also moves the lids). Each lower-side vertex is paired with the upper side at the same
+      position along the corner axis on the neutral (linear between the two upper vertices that bracket it),
+      along the neutral's opening direction.
+    * A mesh whose lips are joined (an avatar head; or ``openings=[]``): pass ``opening_delta`` (the rig's
+      ``jawOpen`` offsets): pairs and per-pair directions from :func:`lip_pairs_from_motion` (``radius``).
+
+    Raises :class:`GeometryError` for a ``delta`` of the wrong shape, or a mesh with no opening and no
+    ``opening_delta``.
     """
     p = np.asarray(neutral, dtype=np.float64)
     d = np.asarray(delta, dtype=np.float64)
@@ -407,15 +454,21 @@ def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray,
         raise GeometryError(f"lip check: delta has shape {d.shape}, the neutral {p.shape}",
                             fix="pass one shape's offsets for every vertex of the mesh")
     ops = find_openings(p, triangles) if openings is None else openings
+    X = p + d
     if not ops:
-        raise GeometryError("lip check: the mesh has no opening (no boundary loop besides the rim)",
-                            fix="use the face mesh with its mouth hole, or check the lips another way")
+        if opening_delta is None:
+            raise GeometryError("lip check: the mesh has no opening (no boundary loop besides the rim)",
+                                fix="pass opening_delta (the rig's jawOpen offsets) to find the lips by "
+                                    "their motion")
+        pairs = lip_pairs_from_motion(p, opening_delta, radius=radius)
+        g = np.einsum("ij,ij->i", X[pairs.upper] - X[pairs.lower], pairs.direction)
+        bad = g < -float(tolerance)
+        return LipCrossings(pairs.lower[bad], -g[bad])
     if opening is None:
         mag = np.linalg.norm(d, axis=1)
         opening = int(np.argmax([mag[op.loop].mean() for op in ops]))
     op = ops[opening]
     a, b, t = _upper_at(p, op)
-    X = p + d
     upper_pt = (1.0 - t)[:, None] * X[a] + t[:, None] * X[b]
     g = (upper_pt - X[op.lower]) @ op.direction_on(p)
     bad = g < -float(tolerance)
