@@ -36,6 +36,13 @@ def add_contact_option(parser) -> None:
                              "likelihood-ratio test), on for every such shape, off to only measure the gaps")
 
 
+def add_pins_option(parser) -> None:
+    parser.add_argument("--pins", metavar="FILE",
+                        help="artist pins (menzel/laplacian): keep these vertices of these shapes at the "
+                             "template's version; a JSON file {\"pins\": {\"jawOpen\": [12, 13]}} or a USD "
+                             "file with per-vertex primvars usdface:pin:<shape> (e.g. the painted capture)")
+
+
 def fit_kwargs(args) -> dict:
     return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
             "eyelids": args.eyelids, "contact": args.contact}
@@ -63,6 +70,7 @@ def register(subparsers) -> None:
     parser.add_argument("--method", default="menzel", choices=METHODS,
                         help=METHOD_HELP)
     add_fit_options(parser)
+    add_pins_option(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
     parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
     add_quiet(parser)
@@ -72,8 +80,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from .. import api
 
+    pins = {"pins": args.pins} if args.pins else {}
     result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
-                             **fit_kwargs(args))
+                             **fit_kwargs(args), **pins)
     info = result.info
     if args.json:
         import json
