@@ -255,9 +255,10 @@ def contact_test(weights: np.ndarray, residuals: np.ndarray, correction: np.ndar
     ``weights[F,K]`` (training weights), ``residuals[F,n,3]`` (frames minus the unconstrained fit, metres),
     ``correction[n,3]`` (added to shape ``shape``). The increase of the fit term,
     ``dE = sum_i ||r_i - w_ij c||^2 - ||r_i||^2``, is compared with ``sigma^2 chi2_{1-alpha}(dof)``, with
-    ``sigma^2`` the frames' mean squared residual per coordinate. Returns ``{"delta_mm2", "threshold_mm2",
-    "agrees"}``: ``agrees`` when the data cannot reject contact (a shape the frames barely show always
-    agrees; one they show with the sides apart does not).
+    ``sigma^2`` the frames' mean squared residual per coordinate where the correction acts (vertices it moves
+    by at least 1 % of its largest: the noise level that matters there, not the static rest). Returns
+    ``{"delta_mm2", "threshold_mm2", "agrees"}``: ``agrees`` when the data cannot reject contact (a shape
+    the frames barely show always agrees; one they show with the sides apart does not).
     """
     from scipy.special import gammaincinv
 
@@ -266,7 +267,9 @@ def contact_test(weights: np.ndarray, residuals: np.ndarray, correction: np.ndar
     c = np.asarray(correction, dtype=np.float64)
     cross = np.einsum("f,fvc,vc->", w, R, c)
     dE = float(np.sum(w ** 2) * np.sum(c ** 2) - 2.0 * cross)
-    sigma2 = float(np.mean(R ** 2))
+    mag = np.linalg.norm(c, axis=1)
+    support = mag >= 0.01 * mag.max() if mag.max() > 0 else np.ones(len(mag), bool)
+    sigma2 = float(np.mean(R[:, support] ** 2))
     dof = max(int(dof), 1)
     thr = float(sigma2 * 2.0 * gammaincinv(dof / 2.0, 1.0 - alpha))          # sigma^2 chi2_{1-alpha}(dof)
     return {"delta_mm2": dE * 1e6, "threshold_mm2": thr * 1e6, "agrees": bool(dE <= thr)}
