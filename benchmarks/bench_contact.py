@@ -5,7 +5,10 @@ Prints (1) per case and contact shape: the pairs the template brings into contac
 there, and the largest gap vs the template's (mm) of the true shapes and of the fit without contact (before),
 with ``auto`` and with ``on`` (after); (2) per case the truth error (RMSE vs ``truth/capture_truth.npz``, mm)
 over all shapes and over the contact shapes, the training RMSE, and the contact step's seconds (median of
-``--repeat`` fits).
+``--repeat`` fits); (3) for the implant (issue 10 item 4): lower-lip vertices of the avatar's Head that pass
+through the upper lip (:func:`usdface.personalize.contact.lip_crossings`, lips found by their motion under
+jawOpen), count and deepest (mm), in the generic shapes and in the true personalized ones
+(``truth/avatar_truth.npz``); mouthClose is posed on jawOpen.
 
     python benchmarks/bench_contact.py [--cases dev1,dev2,dev3,sample] [--repeat 3]
 """
@@ -23,11 +26,13 @@ from rich.table import Table
 
 from usdface.io import read_capture
 from usdface.personalize import fit_personalized_shapes, truth_error
-from usdface.personalize.contact import apply_contact, find_contact_pairs, find_openings
+from usdface.personalize.contact import apply_contact, find_contact_pairs, find_openings, lip_crossings
 
 BENCH = Path(__file__).resolve().parents[2] / "shared" / "data" / "bench"
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 MODES = ("off", "auto", "on")
+LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthRollUpper",
+              "mouthPucker", "mouthFunnel", "mouthShrugLower")
 
 
 def load(case: str):
@@ -64,6 +69,33 @@ def run_case(case: str, repeat: int):
     return per_shape, summary
 
 
+def avatar_lips(case: str) -> list[tuple]:
+    """(shape, generic count, generic depth mm, truth count, truth depth mm) on the avatar's Head."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.usd_rig import read_avatar
+
+    path = BENCH / case / "avatar.usdc"
+    truth_path = BENCH / case / "truth" / "avatar_truth.npz"
+    if not path.is_file() or not truth_path.is_file():
+        return []
+    head = next(m for m in read_avatar(path).meshes if m.name == "Head")
+    unit = UsdGeom.GetStageMetersPerUnit(Usd.Stage.Open(str(path)))        # truth offsets: avatar units
+    truth = np.load(truth_path)
+    jaw = head.deltas[head.names.index("jawOpen")]
+    true_jaw = truth["Head/jawOpen"] * unit
+    rows = []
+    for s in LIP_SHAPES:
+        if s not in head.names or f"Head/{s}" not in truth:
+            continue
+        gen = head.deltas[head.names.index(s)] + (jaw if s == "mouthClose" else 0.0)
+        tru = truth[f"Head/{s}"] * unit + (true_jaw if s == "mouthClose" else 0.0)
+        g = lip_crossings(head.neutral, head.triangles, gen, opening_delta=jaw)
+        t = lip_crossings(head.neutral, head.triangles, tru, opening_delta=jaw)
+        rows.append((s, g.count, g.max_depth * 1000, t.count, t.max_depth * 1000))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="dev1,dev2,dev3,sample")
@@ -96,6 +128,16 @@ def main(argv=None) -> int:
                          f"{s['sec']:.3f}")
     console.print(gaps)
     console.print(errs)
+    lips = Table(title="Avatar Head: lower-lip vertices past the upper lip (count, deepest mm)")
+    for col in ("case", "shape", "generic", "generic mm", "true shapes", "true mm"):
+        lips.add_column(col, justify="left" if col in ("case", "shape") else "right")
+    for case in cases:
+        if case == "sample":
+            continue
+        for s, gc, gd, tc, td in avatar_lips(case):
+            lips.add_row(case, s + (" + jawOpen" if s == "mouthClose" else ""), str(gc), f"{gd:.2f}", str(tc),
+                         f"{td:.2f}")
+    console.print(lips)
     return 0
 
 
