@@ -326,9 +326,8 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
         prev = report.get(pr.name)
         if prev is None:
             report[pr.name] = entry
-        else:                                   # one shape on two openings: merge
-            for key in ("pairs",):
-                prev[key] += entry[key]
+        else:                  # one shape on two openings (corrected one after the other): merge the figures
+            prev["pairs"] += entry["pairs"]
             prev["applied"] = prev["applied"] or entry["applied"]
             prev["target_mm"] += entry["target_mm"]
             for key in ("gap_before_mm", "gap_after_mm"):
