@@ -287,3 +287,27 @@ def test_lip_crossings_on_joined_lips_finds_the_lip_line_by_motion():
     assert rest.count == 0
     with pytest.raises(GeometryError, match="opening_delta"):
         lip_crossings(pts, tri, d, openings=[])
+
+
+def test_bench_dev1_auto_keeps_the_fit_and_on_closes_the_lips(bench):
+    """dev1 (phone-mesh regime): the template's mouthClose (on jawOpen) brings 2 lip pairs into contact; the
+    person's frames show the lips ~8 mm past it, so ``auto`` leaves the fit exactly as without contact and
+    ``on`` closes the gap below 0.2 mm (at a truth-error cost, measured in benchmarks/bench_contact.py)."""
+    import warnings
+
+    from usdface.io import read_capture
+
+    cap = read_capture(bench / "dev1" / "capture")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        off = fit_personalized_shapes(cap, contact="off", align=False, reweight=False)
+        auto = fit_personalized_shapes(cap, align=False, reweight=False)
+        on = fit_personalized_shapes(cap, contact="on", align=False, reweight=False)
+    rep = auto.info["contact"]["shapes"]
+    assert set(rep) == {"mouthClose"} and rep["mouthClose"]["pairs"] == 2
+    assert not rep["mouthClose"]["applied"] and rep["mouthClose"]["gap_after_mm"] > 5.0
+    assert np.array_equal(auto.rig.deltas, off.rig.deltas)
+    assert on.info["contact"]["shapes"]["mouthClose"]["gap_after_mm"] < 0.2
+    k = cap.names.index("mouthClose")
+    changed = np.flatnonzero(np.abs(on.rig.deltas - off.rig.deltas).max(axis=(1, 2)) > 0)
+    assert changed.tolist() == [k]                                 # only the contact shape is corrected
