@@ -210,7 +210,8 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     ``.rig`` is a :class:`usdface.model.FaceRig` (neutral = the person's neutral, deltas = personalized
     shapes).
     ``method`` is one of ``dt``, ``ebfr``, ``menzel``, ``laplacian``; ``options`` go to
-    :func:`usdface.personalize.fit_personalized_shapes`. With ``out_path`` an existing output is refused
+    :func:`usdface.personalize.fit_personalized_shapes` (``pins`` may also be a file: JSON or USD primvars,
+    :func:`usdface.io.pins.read_pins`). With ``out_path`` an existing output is refused
     before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
     written is ``result.info["out_path"]``."""
     from .personalize import fit_personalized_shapes
@@ -225,6 +226,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
         if reading:
             p.start(f"read capture {Path(capture).name}")
         capture = _as_capture(capture)
+        _read_pins_option(options, capture)
         p.start(f"fit {method}")
         result = fit_personalized_shapes(capture, method=method, **options)
         if result.info.get("train_rmse_mm") is None and len(capture.frames.select("train")):
@@ -235,6 +237,16 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
             p.start(f"write {Path(out_path).name}")
             result.info["out_path"] = write_fit_rig(result, out_path, force=force)
     return result
+
+
+def _read_pins_option(options: dict, capture: Capture) -> None:
+    """``options["pins"]`` given as a file (JSON or USD primvars, :func:`usdface.io.pins.read_pins`) ->
+    the ``{shape: vertex indices}`` mapping the fit takes (in place)."""
+    pins = options.get("pins")
+    if isinstance(pins, str | Path):
+        from .io.pins import read_pins
+
+        options["pins"] = read_pins(pins, capture.names, len(capture.neutral))
 
 
 def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool = False) -> Path:
@@ -369,6 +381,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                           inputs=[p for p in (avatar_path, capture_path, take) if isinstance(p, str | Path)])
     if take is not None:
         inspect = True
+    if isinstance(options.get("pins"), str | Path):
+        capture_path = _as_capture(capture_path)
+        _read_pins_option(options, capture_path)
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
     import time

@@ -25,11 +25,39 @@ def add_fit_options(parser) -> None:
                         help="keep the phone's training weights (no anchored re-estimation)")
     parser.add_argument("--no-eyelids", dest="eyelids", action="store_false",
                         help="no virtual eyelid triangles in the deformation transfer")
+    add_contact_option(parser)
+
+
+def add_contact_option(parser) -> None:
+    parser.add_argument("--contact", choices=("auto", "on", "off"), default="auto",
+                        help="lip and eyelid contact (menzel/laplacian): keep the vertex pairs the "
+                             "template's blinks, mouthClose, mouthPress and mouthRoll bring together at the "
+                             "template's gap; auto (default) only where the training frames agree (a "
+                             "likelihood-ratio test), on for every such shape, off to only measure the gaps")
+
+
+def add_pins_option(parser) -> None:
+    parser.add_argument("--pins", metavar="FILE",
+                        help="artist pins (menzel/laplacian): keep these vertices of these shapes at the "
+                             "template's version; a JSON file {\"pins\": {\"jawOpen\": [12, 13]}} or a USD "
+                             "file with per-vertex primvars usdface:pin:<shape> (e.g. the painted capture)")
 
 
 def fit_kwargs(args) -> dict:
     return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
-            "eyelids": args.eyelids}
+            "eyelids": args.eyelids, "contact": args.contact}
+
+
+def contact_lines(contact: dict | None) -> list[str]:
+    """One line per contact shape: pairs, the largest gap vs the template's before -> after (mm)."""
+    if not contact or not contact.get("shapes"):
+        return []
+    lines = [f"contact ({contact['mode']}): largest gap vs the template's, mm (before -> after)"]
+    for name, r in contact["shapes"].items():
+        how = "corrected" if r["applied"] else ("frames disagree" if "test" in r else "not corrected")
+        lines.append(f"  {name}: {r['pairs']} pair(s), {r['gap_before_mm']:.3f} -> {r['gap_after_mm']:.3f} "
+                     f"({how})")
+    return lines
 
 
 def register(subparsers) -> None:
@@ -42,6 +70,7 @@ def register(subparsers) -> None:
     parser.add_argument("--method", default="menzel", choices=METHODS,
                         help=METHOD_HELP)
     add_fit_options(parser)
+    add_pins_option(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
     parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
     add_quiet(parser)
@@ -51,8 +80,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from .. import api
 
+    pins = {"pins": args.pins} if args.pins else {}
     result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
-                             **fit_kwargs(args))
+                             **fit_kwargs(args), **pins)
     info = result.info
     if args.json:
         import json
@@ -62,7 +92,7 @@ def run(args) -> int:
         doc = {"ok": True, "output": str(info["out_path"]), "method": args.method,
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
-                                                         "warnings")}}
+                                                         "warnings", "contact")}}
         print(json.dumps(doc, default=json_default))
         return 0
     rmse = f"; train RMSE {info['train_rmse_mm']:.3f} mm" if info.get("train_rmse_mm") is not None else ""
@@ -72,6 +102,8 @@ def run(args) -> int:
     print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
           f"({args.method}{extra}{rmse}; "
           f"{info['timings']['total']:.2f} s)")
+    for line in contact_lines(info.get("contact")):
+        print(line)
     for w in info["warnings"]:
         say_warning(w)
     return 0

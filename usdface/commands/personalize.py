@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
+from .fit import add_contact_option, add_pins_option
 from .options import mu_value, nonnegative_float, positive_float, reg_value
 
 
@@ -41,6 +42,7 @@ def add_transfer_options(p) -> None:
                    help="older modes: width of the seamless join beyond the face in capture edge lengths "
                         "(0 = harmonic over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
+    add_contact_option(p)
     add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
@@ -55,7 +57,7 @@ def transfer_kwargs(args) -> dict:
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
             "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
             "prior": args.prior, "extension_length": args.extension_length,
-            "eyelids": not args.no_eyelids, "name_map": args.name_map}
+            "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact}
 
 
 def register(subparsers) -> None:
@@ -65,6 +67,7 @@ def register(subparsers) -> None:
                     "with the avatar's face, and write a new USD layer over the untouched avatar with "
                     "personalized offsets for every BlendShape (Menzel et al. 2022, sec. 3.2-3.3).")
     add_transfer_options(p)
+    add_pins_option(p)
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: "
                                           "<avatar name>.personalized.usda in the current folder)")
     p.add_argument("--force", action="store_true", help="overwrite the output")
@@ -112,7 +115,7 @@ def run(args) -> int:
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
-                                **transfer_kwargs(args))
+                                **transfer_kwargs(args), **({"pins": args.pins} if args.pins else {}))
     rep = result.report
     if args.json:
         doc = {k: v for k, v in rep.items() if k != "name_report"}

@@ -114,7 +114,8 @@ _single_threaded_blas = single_threaded_blas
 def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto", *, prior: str | None = None,
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
-                            avatar_prior=None, frame_weights=None, pins=None, **options) -> FitResult:
+                            avatar_prior=None, frame_weights=None, pins=None, contact: str = "auto",
+                            **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -162,6 +163,15 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         deltas - ``{shape name: vertex indices or bool[n]}`` or a bool ``[K,n]`` mask. A pinned vertex of a
         shape is returned exactly as the template has it (within rounding); the other shapes at that vertex
         and the shape elsewhere are fitted around it. Menzel/laplacian.
+    contact : lip and eyelid contact (Hable), :mod:`.contact`: the pairs of vertices across the mouth and eye
+        openings that the template's ``mouthClose`` (on ``jawOpen``), ``mouthPress*``, ``mouthRoll*`` and
+        blinks bring into contact are kept at the template's gap by a smooth (Laplacian) correction of the
+        fitted shape. ``"auto"`` (default): only for shapes whose training frames agree with contact (a
+        likelihood-ratio test; a no-op where the person's own frames show the sides apart), ``"on"``: every
+        shape with pairs, ``"off"``: no correction (the gaps are still measured). ``info["contact"]``
+        reports per shape the pairs, whether the correction was applied and the largest gap (mm, vs the
+        template's) before and after.
+        Menzel/laplacian (``"on"`` with another method is refused).
     eyelids : virtual eyelid triangles in the deformation transfer.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
@@ -182,6 +192,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         raise FitError(f"unknown method {method!r}", path=capture.source or None,
                        fix=f"use one of {', '.join(METHODS)}")
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
+    if contact not in ("auto", "on", "off"):
+        raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
+    if contact == "on" and method not in ("menzel", "laplacian"):
+        raise FitError(f"contact is not used by method {method!r}", fix="use menzel or laplacian, or drop it")
     if pins is not None:
         _pin_mask(pins, capture, method)                  # validate before the work starts
     auto = isinstance(reg, str) and reg == "auto"
@@ -351,6 +365,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                 "mean_abs_change": float(np.abs(w_cur - weights).mean()),
                                 "max_abs_change": float(np.abs(w_cur - weights).max())}
             timings["reweight"] = time.perf_counter() - t1
+        from .contact import keep_contact
+
+        t1 = time.perf_counter()
+        deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
+                                               capture.names, deltas, mode=contact, points=points,
+                                               weights=w_cur, pinned=mask if pins is not None else None)
+        timings["contact"] = time.perf_counter() - t1
         res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
     info.pop("crossval_fit", None)

@@ -30,8 +30,8 @@ VARIANTS = {"dt": (("dt", "dt", {}),),
 
 #: The user options each method takes (the rest would be refused as unused).
 _TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
-          "menzel": ("reg", "prior", "align", "reweight", "eyelids"),
-          "laplacian": ("reg", "prior", "align", "reweight", "eyelids")}
+          "menzel": ("reg", "prior", "align", "reweight", "eyelids", "contact"),
+          "laplacian": ("reg", "prior", "align", "reweight", "eyelids", "contact")}
 
 
 def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, variants: bool = True,

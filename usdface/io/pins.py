@@ -1,0 +1,115 @@
+"""Artist pins (Hable's artist constraints) from a file: which vertices of which shapes the fit must keep at
+the template's (the artist's) version.
+
+Two sources, both read into ``{capture shape name: vertex indices}`` for
+:func:`usdface.personalize.fit_personalized_shapes` (``pins=``):
+
+* a JSON file: ``{"pins": {"jawOpen": [12, 13, 14], "eyeBlink_L": [...]}}`` (or the inner mapping alone);
+  shape names in any ARKit spelling, vertex indices of the capture mesh;
+* a USD file (e.g. the capture ``.usda`` itself, after an artist painted it): per-vertex primvars
+  ``primvars:usdface:pin:<shape>`` (float or bool, ``vertex`` interpolation; a vertex is pinned where the
+  value is > 0.5) on a Mesh with the capture's vertex count (the Template's mesh is read first).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..arkit import normalize_name
+from ..errors import InputFileError
+
+__all__ = ["read_pins", "PIN_PRIMVAR"]
+
+#: Namespace of the per-vertex pin primvars (``primvars:usdface:pin:<shape>``).
+PIN_PRIMVAR = "usdface:pin:"
+
+
+def _shape_index(names) -> dict:
+    index = {}
+    for nm in names:
+        index[str(nm)] = nm
+        canon = normalize_name(nm)
+        if canon is not None:
+            index.setdefault(canon, nm)
+    return index
+
+
+def _resolve(name, index, path, prim=None):
+    key = normalize_name(name) or str(name)
+    if str(name) in index:
+        return index[str(name)]
+    if key in index:
+        return index[key]
+    raise InputFileError(f"pins name a shape the capture lacks: {name!r}", path=path, prim=prim,
+                         fix="use the capture's shape names (any ARKit spelling)")
+
+
+def _read_json(path: Path, names, n: int) -> dict:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputFileError(f"cannot read pins: {exc}", path=path,
+                             fix='write JSON like {"pins": {"jawOpen": [12, 13]}}') from None
+    if isinstance(doc, dict) and isinstance(doc.get("pins"), dict):
+        doc = doc["pins"]
+    if not isinstance(doc, dict):
+        raise InputFileError("pins file is not a mapping of shape names to vertex lists", path=path,
+                             fix='write JSON like {"pins": {"jawOpen": [12, 13]}}')
+    index, out = _shape_index(names), {}
+    for name, verts in doc.items():
+        shape = _resolve(name, index, path)
+        if not isinstance(verts, list) or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                  for v in verts):
+            raise InputFileError(f"pins of {name!r} are not a list of vertex indices", path=path,
+                                 fix="give integer vertex indices of the capture mesh")
+        v = np.asarray(verts, dtype=np.int64)
+        if v.size and (v.min() < 0 or v.max() >= n):
+            raise InputFileError(f"pins of {name!r} index outside 0..{n - 1}", path=path,
+                                 fix="use vertex indices of the capture mesh")
+        out[shape] = np.union1d(out.get(shape, np.zeros(0, np.int64)), v)
+    return out
+
+
+def _read_usd(path: Path, names, n: int) -> dict:
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise InputFileError("cannot open the pins file as USD", path=path, fix="pass a .usd/.usda/.usdc")
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    meshes.sort(key=lambda p: (0 if "Template" in str(p.GetPath()) else 1, str(p.GetPath())))
+    index, out = _shape_index(names), {}
+    for prim in meshes:
+        api = UsdGeom.PrimvarsAPI(prim)
+        pvs = [pv for pv in api.GetPrimvars() if pv.GetPrimvarName().startswith(PIN_PRIMVAR)]
+        if not pvs:
+            continue
+        for pv in pvs:
+            name = pv.GetPrimvarName()[len(PIN_PRIMVAR):]
+            values = pv.Get()
+            vals = np.asarray(values if values is not None else [], dtype=np.float64).ravel()
+            if vals.shape != (n,) or pv.GetInterpolation() != UsdGeom.Tokens.vertex:
+                raise InputFileError(f"pin primvar {pv.GetPrimvarName()} has {vals.size} values "
+                                     f"({pv.GetInterpolation()}), expected {n} per vertex", path=path,
+                                     prim=prim.GetPath(), fix="author one value per capture vertex, "
+                                     "interpolation 'vertex'")
+            out[_resolve(name, index, path, prim.GetPath())] = np.flatnonzero(vals > 0.5)
+        return out
+    raise InputFileError(f"no {PIN_PRIMVAR}<shape> primvars on any Mesh", path=path,
+                         fix="paint per-vertex primvars primvars:usdface:pin:<shape> on the Template mesh")
+
+
+def read_pins(path, names, n_vertices: int) -> dict:
+    """Artist pins from ``path`` (JSON or USD, see the module doc) as ``{shape name in names: vertex
+    indices[int64]}`` for a capture with shape ``names`` and ``n_vertices`` vertices. Raises
+    :class:`InputFileError` naming the file (and prim) for a missing file, an unknown shape, indices out of
+    range or primvars of the wrong size."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputFileError("pins file not found", path=p, fix="pass an existing .json or .usd file")
+    if p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
+        return _read_usd(p, names, int(n_vertices))
+    return _read_json(p, names, int(n_vertices))
