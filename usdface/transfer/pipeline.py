@@ -56,8 +56,10 @@ __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TR
 FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 #: What the adjacent region and the other meshes are blended from / follow.
 APPROXIMATIONS = ("field", "generic", "retarget")
-#: Width of the join between the face region and the field beyond, in face radii (about 7 mm on a head).
-SEAM_BAND = 0.1
+#: Width of the join between the face region and the field beyond, in face radii: 1.1-1.2 cm on a head, so it
+#: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
+#: left a step where the direct result and the field differ), and more on finer meshes.
+SEAM_BAND = 0.2
 #: The phone's weights are uncertain by about this much (ARKit reports, per frame and shape).
 WEIGHT_NOISE = 0.04
 #: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
