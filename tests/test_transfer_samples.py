@@ -53,6 +53,12 @@ def test_sample_accuracy_regions_input(samples, sample_result):
             assert s.per_shape_delta.max() <= 0.05, (m.name, s.worst_shape())
     # 15 lower-lip vertices landed on the upper lip with the neutral-only closest points
     assert res.report["correspondence"]["side_swaps_jawOpen"] == 0
+    # the lips pass through each other only where the generic shapes do (the lip check of the report)
+    lips = res.report["lips"]
+    assert {"mouthClose", "mouthPressLeft", "mouthRollUpper"} <= set(lips)
+    for shape, row in lips.items():
+        if row["generic"][0] == 0:
+            assert row["output"][0] == 0, (shape, row)
     assert hashlib.sha256((samples / "avatar.usda").read_bytes()).hexdigest() == before
     assert res.report["registration"]["fitness"] > 0.95
 

@@ -137,6 +137,12 @@ def run(args) -> int:
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
               f"({', '.join(eyes['eyeballs'])})")
+    lips = rep.get("lips") or {}
+    if lips:
+        deeper = [f"{k} {v['output'][1]:.1f} mm (generic {v['generic'][1]:.1f})" for k, v in lips.items()
+                  if v["output"][1] > v["generic"][1] + 0.5]
+        print("lips: " + ("lower lip deeper past the upper lip than generic: " + ", ".join(deeper) if deeper
+                          else "lower lip past the upper lip no deeper than in the generic shapes (+0.5 mm)"))
     for w in rep["warnings"]:
         say_warning(w)
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]

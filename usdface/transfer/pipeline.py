@@ -489,6 +489,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             report["eyelids"] = {"eyeballs": [e.name for e in found], "repaired_vertex_shapes": repaired}
             if not found:
                 report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
+        report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
         timings["eyelids"] = time.perf_counter() - t
         advance("eyelids")
         advance.start("write")
@@ -598,6 +599,39 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
         disagree[f[swapped]] = True
     return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
             **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
+
+
+#: Shapes whose lips the lip check looks at (``mouthClose`` posed on ``jawOpen``, as ARKit authors it).
+LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthRollUpper",
+              "mouthPucker", "mouthFunnel", "mouthShrugLower")
+
+
+def lip_report(points, triangles, names, generic, output) -> dict:
+    """Lower-lip vertices past the upper lip (:func:`usdface.personalize.contact.lip_crossings`, the lips
+    found by their motion under the generic ``jawOpen``) per lip shape, generic beside output:
+    ``{shape: {"generic": [count, deepest mm], "output": [count, deepest mm]}}``; ``{}`` without jawOpen.
+    ``generic``/``output`` ``[J,m,3]`` in ``names`` order."""
+    from ..errors import GeometryError
+    from ..personalize.contact import lip_crossings
+
+    if "jawOpen" not in names:
+        return {}
+    jaw = names.index("jawOpen")
+    out = {}
+    for name in LIP_SHAPES:
+        if name not in names:
+            continue
+        j = names.index(name)
+        row = {}
+        for label, d in (("generic", generic), ("output", output)):
+            pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
+            try:
+                c = lip_crossings(points, triangles, pose, openings=[], opening_delta=generic[jaw])
+            except GeometryError:
+                return {}
+            row[label] = [c.count, round(c.max_depth * 1e3, 3)]
+        out[name] = row
+    return out
 
 
 def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> np.ndarray:
