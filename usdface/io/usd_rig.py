@@ -177,7 +177,7 @@ def _check_indices(idx, n, what, path, prim):
         bad = int(idx[(idx < 0) | (idx >= n)][0])
         raise RigError(f"{what} has index {bad} outside the mesh's {n} points", path=path, prim=prim,
                        fix="re-export the blend shape for this mesh")
-    if np.unique(idx).size != idx.size:
+    if idx.size > 1 and np.bincount(idx, minlength=n).max() > 1:          # O(n + k), no sort
         raise RigError(f"{what} repeats point indices", path=path, prim=prim,
                        fix="list each point at most once in pointIndices")
 
