@@ -79,3 +79,19 @@ def test_float_noise_of_an_export_is_not_motion():
     assert not moving_vertices(peak_motion(body_d), body_pts).any()
     moving = moving_vertices(peak_motion(head_d), head_pts)
     assert moving[:120].all() and not moving[120:].any()
+
+
+def test_outliers_spread_over_the_capture_neighbourhood():
+    """With the capture's triangles the neighbours of a mismapped vertex are outliers too (1 ring); without,
+    only the vertex itself."""
+    b, p, t = _witnesses()
+    n = p.shape[1]
+    tri = np.array([[i, i + 1, i + 2] for i in range(0, n - 2, 2)])   # a strip of triangles
+    v = int(np.argmax(np.linalg.norm(p[0], axis=-1)))
+    slipped = p.copy()
+    slipped[0, v] = 0.05 * p[0, v]                  # mapped to a point the shape barely moves
+    alone = mapping_outliers(b, slipped, t)
+    spread = mapping_outliers(b, slipped, t, triangles=tri)
+    ring = np.unique(tri[(tri == v).any(axis=1)])
+    assert alone[0, v] and alone.sum() == 1
+    assert len(ring) > 1 and spread[0, ring].all() and spread.sum() == len(ring)

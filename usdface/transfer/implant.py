@@ -69,7 +69,8 @@ SIGNIFICANT = 0.1
 
 
 def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_deg: float = MAX_ANGLE_DEG,
-                     max_ratio: float = MAX_RATIO, significant: float = SIGNIFICANT) -> np.ndarray:
+                     max_ratio: float = MAX_RATIO, significant: float = SIGNIFICANT, triangles=None,
+                     rings: int = 1) -> np.ndarray:
     """``[J,n]`` bool: capture vertices where the prior's motion ``P_j`` (the avatar's generic shape sampled
     through the correspondence) is not the motion of the same point of the face, so ``B_j - P_j`` there is
     a mapping error, not the person.
@@ -82,6 +83,8 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     than those two are from each other (and than ``significant`` of the peak). Where the template is the
     prior (``P = T``) nothing is an outlier. On a coarse phone mesh a lid-margin vertex mapped a millimetre
     off lands where the avatar's lid does not move: its 9 mm "personalization" would tear the blink.
+    With the capture's ``triangles``, the vertices within ``rings`` edge rings of an outlier are outliers of
+    that shape too (the map's errors are spatially coherent, as on the avatar side).
     All ``[J,n,3]``, one frame (m).
     """
     b = np.asarray(person_deltas, dtype=np.float64)
@@ -97,7 +100,11 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     d_pt = np.linalg.norm(p - t, axis=-1)
     d_bt = np.linalg.norm(b - t, axis=-1)
     odd = np.minimum(d_pb, d_pt) > np.maximum(d_bt, significant * peak)
-    return incompatible & odd
+    out = incompatible & odd
+    if triangles is not None and rings > 0 and out.any():
+        near = neighbourhood_matrix(triangles, out.shape[1], rings)
+        out = (near @ out.T.astype(np.float64)).T > 0
+    return out
 
 
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),

@@ -436,7 +436,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                           "shape): " + ", ".join(low))
             # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
             # incompatible with the person's and the template's): no personalization from them
-            outliers = mapping_outliers(person_deltas, prior_av, tmpl_av)
+            outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
             report["correspondence"]["mapping_outliers"] = int(outliers.sum())
             person_face = avatar_face_deltas.copy()
             person_face[:, f] += conf[:, None, None] * face_personalization(
