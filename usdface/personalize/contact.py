@@ -432,7 +432,7 @@ def lip_pairs_from_motion(neutral: np.ndarray, opening_delta: np.ndarray, *,
 def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray, *,
                   opening: int | None = None, tolerance: float = 0.0,
                   openings: list[Opening] | None = None, opening_delta: np.ndarray | None = None,
-                  radius: float | None = None) -> LipCrossings:
+                  radius: float | None = None, pairs: LipPairs | None = None) -> LipCrossings:
     """Lower-lip vertices that passed through the upper lip in the posed shape ``neutral + delta``.
 
     ``neutral[n,3]``, ``triangles[t,3]``, ``delta[n,3]`` (same units as the neutral). A crossing is a
@@ -445,7 +445,8 @@ def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray,
       position along the corner axis on the neutral (linear between the two upper vertices that bracket it),
       along the neutral's opening direction.
     * A mesh whose lips are joined (an avatar head; or ``openings=[]``): pass ``opening_delta`` (the rig's
-      ``jawOpen`` offsets): pairs and per-pair directions from :func:`lip_pairs_from_motion` (``radius``).
+      ``jawOpen`` offsets): pairs and per-pair directions from :func:`lip_pairs_from_motion` (``radius``),
+      or the ``pairs`` it returned (to check many shapes of one mesh at the cost of one search).
 
     Raises :class:`GeometryError` for a ``delta`` of the wrong shape, or a mesh with no opening and no
     ``opening_delta``.
@@ -458,6 +459,10 @@ def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray,
     ops = find_openings(p, triangles) if openings is None else openings
     X = p + d
     if not ops:
+        if pairs is not None:
+            g = np.einsum("ij,ij->i", X[pairs.upper] - X[pairs.lower], pairs.direction)
+            bad = g < -float(tolerance)
+            return LipCrossings(pairs.lower[bad], -g[bad])
         if opening_delta is None:
             raise GeometryError("lip check: the mesh has no opening (no boundary loop besides the rim)",
                                 fix="pass opening_delta (the rig's jawOpen offsets) to find the lips by "

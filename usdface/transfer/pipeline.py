@@ -612,11 +612,15 @@ def lip_report(points, triangles, names, generic, output) -> dict:
     ``{shape: {"generic": [count, deepest mm], "output": [count, deepest mm]}}``; ``{}`` without jawOpen.
     ``generic``/``output`` ``[J,m,3]`` in ``names`` order."""
     from ..errors import GeometryError
-    from ..personalize.contact import lip_crossings
+    from ..personalize.contact import lip_crossings, lip_pairs_from_motion
 
     if "jawOpen" not in names:
         return {}
     jaw = names.index("jawOpen")
+    try:
+        pairs = lip_pairs_from_motion(points, generic[jaw])
+    except GeometryError:
+        return {}
     out = {}
     for name in LIP_SHAPES:
         if name not in names:
@@ -625,10 +629,7 @@ def lip_report(points, triangles, names, generic, output) -> dict:
         row = {}
         for label, d in (("generic", generic), ("output", output)):
             pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
-            try:
-                c = lip_crossings(points, triangles, pose, openings=[], opening_delta=generic[jaw])
-            except GeometryError:
-                return {}
+            c = lip_crossings(points, triangles, pose, openings=[], pairs=pairs)
             row[label] = [c.count, round(c.max_depth * 1e3, 3)]
         out[name] = row
     return out
