@@ -24,8 +24,8 @@ REG_GRID = np.arange(-7.0, 1.01, 1.0)
 PRIOR_MIX = (0.0, 0.5, 1.0)
 
 
-def _minimise_log(fun, grid, refine_steps):
-    errs = np.array([fun(g) for g in grid])
+def _minimise_log(fun, grid, refine_steps, errs=None):
+    errs = np.array([fun(g) for g in grid]) if errs is None else np.asarray(errs)
     k = int(np.argmin(errs))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     phi = (np.sqrt(5.0) - 1.0) / 2.0
@@ -79,13 +79,14 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
         alpha = float("nan")
     else:
         coarse = []
-        for alpha in ((alphas or PRIOR_MIX) if pf.z_alt is not None else (1.0,)):
+        for alpha in ((alphas or PRIOR_MIX) if pf.has_alt else (1.0,)):
             pf.set_prior_mix(alpha)
-            errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
+            errs = pf.loo_errors(10.0 ** grid)                     # the whole grid in one batched product
             coarse.append((float(errs.min()), alpha, errs))
-        _, alpha, _ = min(coarse, key=lambda r: r[0])
+        _, alpha, best_errs = min(coarse, key=lambda r: r[0])
         pf.set_prior_mix(alpha)
-    g, err, errs = _minimise_log(lambda x: pf.loo_error(10.0 ** x), grid, refine_steps)
+    g, err, errs = _minimise_log(lambda x: pf.loo_error(10.0 ** x), grid, refine_steps,
+                                 pf.loo_errors(10.0 ** grid) if keep_prior else best_errs)
     reg = float(10.0 ** g)
     return reg, {"reg": reg, "alpha": float(alpha), "grid": (10.0 ** grid).tolist(),
                  "loo_rmse_mm": (np.sqrt(errs) * 1000).tolist(),
