@@ -61,9 +61,9 @@ def regularization_weights(generic_deltas: np.ndarray, *, clamp: float = D_CLAMP
 
 
 def weight_basis(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Thin SVD ``W = P diag(s) Q^T`` of ``weights[F,K]`` truncated to its numerical rank ``r`` (singular values
-    above ``s_max max(F, K) eps``): ``P[F,r]``, ``s[r]``, ``Q[K,r]``. Dropped directions carry no data (the
-    fit holds them at the prior)."""
+    """Thin SVD ``W = P diag(s) Q^T`` of ``weights[F,K]`` truncated to its numerical rank ``r`` (singular
+    values above ``s_max max(F, K) eps``): ``P[F,r]``, ``s[r]``, ``Q[K,r]``. Dropped directions carry no
+    data (the fit holds them at the prior)."""
     W = np.asarray(weights, dtype=np.float64)
     P, s, Qt = np.linalg.svd(W, full_matrices=False)
     keep = s > (s[0] if s.size else 0.0) * max(W.shape) * np.finfo(np.float64).eps
@@ -234,11 +234,15 @@ class PositionFit:
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
     def _loo(self, regs):
-        """LOO residuals ``[G,F,n,c]`` for ``regs[G]``."""
-        g = self.mu[None] / (self.mu[None] + np.asarray(regs, dtype=np.float64)[:, None, None])   # [G,n,r]
-        fitted = np.matmul(self.Z[None], g[..., None] * self.c[None])                # [G,n,F,c]
-        h = np.matmul(self.Z2[None], g[..., None])[..., 0]                            # [G,n,F]
-        return (self.e0.transpose(1, 0, 2)[None] - fitted) / np.maximum(1.0 - h, 1e-9)[..., None]
+        """LOO residuals ``[n,F,G,c]`` for ``regs[G]``: two batched products for the whole grid."""
+        regs = np.asarray(regs, dtype=np.float64)
+        n, F, r = self.Z.shape
+        c = self.c.shape[2]
+        g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
+        gc = (g[:, :, :, None] * self.c[:, :, None, :]).reshape(n, r, -1)            # [n,r,G*c]
+        fitted = np.matmul(self.Z, gc).reshape(n, F, len(regs), c)
+        h = np.matmul(self.Z2, g)                                                    # [n,F,G]
+        return (self.e0.transpose(1, 0, 2)[:, :, None, :] - fitted) / np.maximum(1.0 - h, 1e-9)[..., None]
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
@@ -247,7 +251,7 @@ class PositionFit:
         ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
         phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
         ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison)."""
-        e = self._loo([reg])[0].transpose(1, 0, 2)                                    # [F,n,c]
+        e = self._loo([reg])[:, :, 0].transpose(1, 0, 2)                              # [F,n,c]
         if predict_weights is None:
             return e
         Pw = np.asarray(predict_weights, dtype=np.float64)
@@ -259,7 +263,7 @@ class PositionFit:
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
-        per_frame = np.mean(self._loo(regs) ** 2, axis=(1, 3))                        # [G,F]
+        per_frame = np.mean(self._loo(regs) ** 2, axis=(0, 3)).T                      # [G,F]
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)
