@@ -25,34 +25,37 @@ def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count:
     return idx
 
 
+def _det3(M: np.ndarray) -> np.ndarray:
+    """Determinants of ``M[F,3,3]`` (closed form, no LAPACK call per matrix)."""
+    return np.sum(M[:, 0] * np.cross(M[:, 1], M[:, 2]), axis=-1)
+
+
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     """Rigid transforms minimising ``sum_v w_v |R src_v + t - dst_v|^2``, batched:
     ``src[F,m,3]``, ``dst[m,3]`` or ``[F,m,3]``, ``w[F,m]`` -> ``R[F,3,3]``, ``t[F,3]`` (proper rotations)."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), src.shape)
     w = np.ones(src.shape[:2]) if w is None else np.asarray(w, dtype=np.float64)
-    ws = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    cs = np.einsum("fm,fmc->fc", ws, src)
-    cd = np.einsum("fm,fmc->fc", ws, dst)
-    H = np.matmul(np.swapaxes((src - cs[:, None]) * ws[:, :, None], 1, 2), dst - cd[:, None])
+    ws = (w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300))[:, None, :]          # [F,1,m]
+    cs = np.matmul(ws, src)                                                          # [F,1,3]
+    cd = np.matmul(ws, dst)
+    H = np.matmul(np.swapaxes(src - cs, 1, 2) * ws, dst - cd)                        # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    S = np.zeros_like(H)
-    S[:, 0, 0] = 1.0
-    S[:, 1, 1] = 1.0
-    S[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ S @ np.swapaxes(U, 1, 2)
-    t = cd - np.einsum("fij,fj->fi", R, cs)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
+    R = np.matmul(V, Ut)
+    t = cd[:, 0] - np.matmul(cs, np.swapaxes(R, 1, 2))[:, 0]
     return R, t
 
 
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
-                iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                iterations: int = 10, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Align every frame ``points[F,n,3]`` rigidly to ``reference[n,3]`` (or one reference per frame,
     ``[F,n,3]``) on ``vertices`` (indices).
 
     Returns ``(aligned[F,n,3], R[F,3,3], t[F,3])`` with ``aligned = points @ R^T + t``. With ``robust`` the
-    fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual).
+    fit is re-weighted up to ``iterations`` times (Geman-McClure, scale 1.4826 x median residual), stopping
+    once no robust weight changes by more than ``tol``.
     """
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
@@ -62,6 +65,10 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     for _ in range(iterations if robust else 0):
         r = np.linalg.norm(np.matmul(src, np.swapaxes(R, 1, 2)) + t[:, None] - dst, axis=-1)
         s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
-        w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
+        w_new = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
+        converged = np.abs(w_new - w).max() <= tol
+        w = w_new
         R, t = kabsch(src, dst, w)
+        if converged:
+            break
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t

@@ -650,7 +650,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
             reg, cv = choose_regularization(neutral, points, weights, generic, D, clamp=clamp)
         else:
             _, cv = choose_regularization(neutral, points, weights, generic, D, alt_deltas=alt, clamp=clamp,
-                                          grid=np.array([np.log10(reg)]), refine_steps=0)
+                                          grid=np.array([np.log10(reg)]), refine=0)
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
     pf.set_points(points[:, cand])

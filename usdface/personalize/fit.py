@@ -233,16 +233,33 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def _loo(self, regs):
-        """LOO residuals ``[n,F,G,c]`` for ``regs[G]``: two batched products for the whole grid."""
+    def _loo(self, regs, c=None, e0=None):
+        """LOO residuals ``[n,F,G,c]`` for ``regs[G]`` (of the prior's ``c``, ``e0`` unless given): two
+        batched products for the whole grid."""
+        c = self.c if c is None else c
+        e0 = self.e0 if e0 is None else e0
         regs = np.asarray(regs, dtype=np.float64)
         n, F, r = self.Z.shape
-        c = self.c.shape[2]
         g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
-        gc = (g[:, :, :, None] * self.c[:, :, None, :]).reshape(n, r, -1)            # [n,r,G*c]
-        fitted = np.matmul(self.Z, gc).reshape(n, F, len(regs), c)
+        gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*c]
+        fitted = np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
         h = np.matmul(self.Z2, g)                                                    # [n,F,G]
-        return (self.e0.transpose(1, 0, 2)[:, :, None, :] - fitted) / np.maximum(1.0 - h, 1e-9)[..., None]
+        return (e0.transpose(1, 0, 2)[:, :, None, :] - fitted) / np.maximum(1.0 - h, 1e-9)[..., None]
+
+    def loo_errors_mix(self, regs, alphas) -> np.ndarray:
+        """:meth:`loo_error` ``[A,G]`` for every prior blend ``alpha`` in ``alphas`` (:meth:`set_prior_mix`)
+        and ``reg`` in ``regs``: the LOO residual is affine in ``alpha``, so two grids give them all."""
+        alphas = np.asarray(alphas, dtype=np.float64)
+        if self._alt is None:
+            return np.broadcast_to(self.loo_errors(regs), (len(alphas), len(regs))).copy()
+        k = self.c.shape[2]
+        c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
+        e0 = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2)
+        res = self._loo(regs, c, e0)
+        r1, r0 = res[..., :k], res[..., k:]
+        s11, s00, s01 = (np.sum(a * b, axis=(0, 1, 3)) for a, b in ((r1, r1), (r0, r0), (r1, r0)))
+        a = alphas[:, None]
+        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (r1[:, :, 0].size)
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
