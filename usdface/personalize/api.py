@@ -597,7 +597,7 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
         e["phone"] += np.sum(phone_loo[:, ib] ** 2, axis=(1, 2))
         for sg in sigmas:
             w = first_weights(cand[ia], phone_fit[:, ia], sg)
-            e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w)[:, ib] ** 2, axis=(1, 2))
+            e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w, vertices=ib) ** 2, axis=(1, 2))
         n_res += phone_loo[:, ib].size
     best = min(sigmas, key=lambda k: e[k].sum())
     scores = {(k if k == "phone" else f"sigma={k:g}"): float(np.sqrt(v.sum() / n_res) * 1000)

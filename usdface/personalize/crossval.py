@@ -4,7 +4,7 @@ training frames (``reg="auto"``).
 
 The criterion is the exact leave-one-frame-out error of :class:`usdface.personalize.fit.PositionFit` (every
 frame left out in turn, its residual predicted by the fit on the others), minimised over ``log10(reg)``: a
-coarse grid, then a grid of 8 points per decade around the best grid point (each grid one batched
+coarse grid, then a grid of 4 points per decade around the best grid point (each grid one batched
 evaluation of :meth:`~usdface.personalize.fit.PositionFit.loo_errors`) and the vertex of the parabola
 through the best fine point and its neighbours; with an alternative prior, for each blend ``alpha`` in
 :data:`PRIOR_MIX` (:meth:`~usdface.personalize.fit.PositionFit.loo_errors_mix`). For speed the criterion is
@@ -54,7 +54,7 @@ def _minimise_log(errors, grid, refine, errs=None):
 
 
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
-                          max_vertices: int = 300, grid=REG_GRID, refine: int = 8,
+                          max_vertices: int = 300, grid=REG_GRID, refine: int = 4,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
                           alphas=None, keep_prior: bool = False,
                           clamp: float = D_CLAMP) -> tuple[float, dict]:

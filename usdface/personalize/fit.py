@@ -261,22 +261,29 @@ class PositionFit:
         a = alphas[:, None]
         return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (r1[:, :, 0].size)
 
-    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
+    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
+                      vertices: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``.
 
         ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
         phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
-        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison)."""
-        e = self._loo([reg])[:, :, 0].transpose(1, 0, 2)                              # [F,n,c]
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison). ``vertices``: only these (indices into
+        this fit's vertices; the result is ``[F,len(vertices),c]``)."""
+        v = slice(None) if vertices is None else np.asarray(vertices)
+        mu, Z, c, e0 = self.mu[v], self.Z[v], self.c[v], self.e0[:, v]
+        g = mu / (mu + reg)
+        fitted = np.matmul(Z, g[:, :, None] * c)                                      # [n,F,c]
+        h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                                 # [n,F]
+        e = ((e0.transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
         if predict_weights is None:
             return e
         Pw = np.asarray(predict_weights, dtype=np.float64)
-        inv = 1.0 / (self.mu + reg)                                                   # [n,r]
-        Xp = np.matmul(Pw[None] * self.inv_l[:, None, :], self.BV)                    # p^T L^-1 B V  [n,F,r]
-        pred = blend(Pw, self.T) + np.matmul(Xp, self.c * inv[:, :, None]).transpose(1, 0, 2)
-        cross = np.einsum("nfr,nfr,nr->fn", Xp, self.Z, inv)                          # p_i^T A^-1 w_i
-        return self.R - pred + cross[:, :, None] * e
+        inv = 1.0 / (mu + reg)                                                        # [n,r]
+        Xp = np.matmul(Pw[None] * self.inv_l[v][:, None, :], self.BV[v])              # p^T L^-1 B V  [n,F,r]
+        pred = blend(Pw, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)
+        cross = np.einsum("nfr,nfr,nr->fn", Xp, Z, inv)                               # p_i^T A^-1 w_i
+        return self.R[:, v] - pred + cross[:, :, None] * e
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
