@@ -331,10 +331,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                     deltas = fit_fn(w) if last_fit or r < n_rounds - 1 else None
                 return w, deltas
 
-            def first_weights(v, deltas, sigma):
-                """The first re-estimation on vertices ``v`` from the phone-weight shapes ``deltas``."""
-                return reestimate(capture.neutral[v], points[:, v], None, deltas, sigma, last_fit=False,
-                                  n_rounds=1)[0]
+            def first_weights(v, deltas, sigmas):
+                """The first re-estimation on vertices ``v`` from the phone-weight shapes ``deltas``, for
+                every prior width in ``sigmas`` at once: ``[S,F,K]``."""
+                res = points[:, v] - capture.neutral[v][None] - blend(weights, deltas)
+                anchors = float(np.mean(res ** 2)) / np.asarray(sigmas, dtype=np.float64) ** 2
+                return reestimate_weights(capture.neutral[v], deltas, points[:, v], weights, anchor=anchors,
+                                          lower=lo, upper=hi)
 
             sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
             sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_weights,
@@ -575,11 +578,11 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     :data:`REWEIGHT_SPLIT_AXES`) - with the one decomposition of the prepared fit (:func:`_prepared_fit`).
 
     The position fit is separable per vertex, so weights re-estimated on one half (``first_weights(vertex
-    indices, phone-weight shapes there, sigma)``) are independent of the other half's data. On the other half
-    each training frame is predicted by the shapes fitted (phone's weights) on the *other* frames (exact
-    leave-one-frame-out downdate), once with the re-estimated weights of that frame and once with the
-    phone's: if the phone's weights are off, the independent estimate explains the held-out geometry
-    better. Each prior width in ``sigmas`` is scored; the best is kept if its gain is significant
+    indices, phone-weight shapes there, sigmas) -> [S,F,K]``) are independent of the other half's data. On
+    the other half each training frame is predicted by the shapes fitted (phone's weights) on the *other*
+    frames (exact leave-one-frame-out downdate), once with the re-estimated weights of that frame and once
+    with the phone's: if the phone's weights are off, the independent estimate explains the held-out
+    geometry better. Each prior width in ``sigmas`` is scored; the best is kept if its gain is significant
     (:func:`significantly_better`, Bonferroni over ``sigmas``) - on clean weights it is a no-op.
     Returns ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out RMSE)``."""
     pf, cand = _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp)
@@ -595,8 +598,8 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     n_res = 0
     for ia, ib in splits:
         e["phone"] += np.sum(phone_loo[:, ib] ** 2, axis=(1, 2))
-        for sg in sigmas:
-            w = first_weights(cand[ia], phone_fit[:, ia], sg)
+        ws = first_weights(cand[ia], phone_fit[:, ia], sigmas)
+        for sg, w in zip(sigmas, ws, strict=True):
             e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w, vertices=ib) ** 2, axis=(1, 2))
         n_res += phone_loo[:, ib].size
     best = min(sigmas, key=lambda k: e[k].sum())

@@ -18,21 +18,28 @@ __all__ = ["reestimate_weights"]
 
 
 def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarray, phone_weights: np.ndarray,
-                       *, anchor: float, lower: float = 0.0, upper: float = 1.0,
-                       iterations: int = 150) -> np.ndarray:
+                       *, anchor, lower=0.0, upper=1.0, iterations: int = 150) -> np.ndarray:
     """Bounded, anchored weights ``[F,K]`` for ``points[F,n,3]`` given ``neutral[n,3]``, ``deltas[K,n,3]``
-    (metres) and the phone's ``phone_weights[F,K]``; ``anchor`` = ``(sigma_g / sigma_w)^2`` (metres^2)."""
+    (metres) and the phone's ``phone_weights[F,K]``; ``anchor`` = ``(sigma_g / sigma_w)^2`` (metres^2).
+
+    ``anchor`` may also be a sequence of ``S`` values: then the ``S`` problems (one per prior width) are
+    solved together, ``[S,F,K]`` - the same iterates as ``S`` separate calls, in one loop."""
     B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)          # [K,3n]
     r = (np.asarray(points, dtype=np.float64) - np.asarray(neutral)[None]).reshape(len(points), -1)   # [F,3n]
     w0 = np.asarray(phone_weights, dtype=np.float64)
-    Q = B @ B.T + anchor * np.eye(len(B))                                       # [K,K]
-    c = r @ B.T + anchor * w0                                                   # [F,K]
-    step = 1.0 / np.linalg.eigvalsh(Q)[-1]
-    x = np.clip(w0, lower, upper)
+    a = np.asarray(anchor, dtype=np.float64)
+    many = a.ndim > 0
+    a = np.atleast_1d(a)[:, None, None]                                         # [S,1,1]
+    G = B @ B.T                                                                 # [K,K]
+    c = (r @ B.T)[None] + a * w0[None]                                          # [S,F,K]
+    step = 1.0 / (np.linalg.eigvalsh(G)[-1] + a)                                # 1 / L_max per problem
+    lo = np.broadcast_to(lower, w0.shape)
+    hi = np.broadcast_to(upper, w0.shape)
+    x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
     y, tk = x.copy(), 1.0
     for _ in range(iterations):
-        x_new = np.clip(y - step * (y @ Q - c), lower, upper)
+        x_new = np.clip(y - step * (y @ G + a * y - c), lo, hi)
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
         y = x_new + ((tk - 1.0) / t_new) * (x_new - x)
         x, tk = x_new, t_new
-    return x
+    return x if many else x[0]
