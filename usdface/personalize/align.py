@@ -48,27 +48,39 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     return R, t
 
 
+def _masked_median(r: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """Per-row median ``[F,1]`` of ``r[F,m]`` over the entries where ``mask[F,m]`` (all without a mask)."""
+    if mask is None:
+        return np.median(r, axis=1, keepdims=True)
+    srt = np.sort(np.where(mask, r, np.inf), axis=1)
+    cnt = np.maximum(mask.sum(axis=1), 1)
+    lo = np.take_along_axis(srt, ((cnt - 1) // 2)[:, None], axis=1)
+    hi = np.take_along_axis(srt, (cnt // 2)[:, None], axis=1)
+    return 0.5 * (lo + hi)
+
+
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
-                iterations: int = 10, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                iterations: int = 10,
+                mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Align every frame ``points[F,n,3]`` rigidly to ``reference[n,3]`` (or one reference per frame,
     ``[F,n,3]``) on ``vertices`` (indices).
 
     Returns ``(aligned[F,n,3], R[F,3,3], t[F,3])`` with ``aligned = points @ R^T + t``. With ``robust`` the
-    fit is re-weighted up to ``iterations`` times (Geman-McClure, scale 1.4826 x median residual), stopping
-    once no robust weight changes by more than ``tol``.
+    fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual). ``mask[F,m]``
+    (bool, over ``vertices``): each frame uses only its own subset - several subsets of one frame are aligned
+    in one batched call by repeating the frame.
     """
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     src, dst = P[:, vertices], ref[..., vertices, :]
-    w = np.ones(src.shape[:2])
+    m = None if mask is None else np.asarray(mask, dtype=bool)
+    w = np.ones(src.shape[:2]) if m is None else m.astype(np.float64)
     R, t = kabsch(src, dst, w)
     for _ in range(iterations if robust else 0):
         r = np.linalg.norm(np.matmul(src, np.swapaxes(R, 1, 2)) + t[:, None] - dst, axis=-1)
-        s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
-        w_new = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
-        converged = np.abs(w_new - w).max() <= tol
-        w = w_new
+        s = 1.4826 * _masked_median(r, m) + 1e-12
+        w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
+        if m is not None:
+            w = w * m
         R, t = kabsch(src, dst, w)
-        if converged:
-            break
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
