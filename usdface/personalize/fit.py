@@ -252,6 +252,9 @@ class PositionFit:
         alphas = np.asarray(alphas, dtype=np.float64)
         if self._alt is None:
             return np.broadcast_to(self.loo_errors(regs), (len(alphas), len(regs))).copy()
+        if len(alphas) == 1:
+            self.set_prior_mix(float(alphas[0]))
+            return self.loo_errors(regs)[None]
         k = self.c.shape[2]
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
         e0 = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2)
