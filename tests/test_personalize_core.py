@@ -155,21 +155,6 @@ def test_rigid_align_recovers_transform_despite_outliers():
     assert np.isclose(np.linalg.det(R_k[0]), 1.0)
 
 
-def test_rigid_align_with_masks_equals_one_call_per_subset():
-    rng = np.random.default_rng(4)
-    ref = rng.normal(size=(120, 3)) * 0.05
-    R = Rotation.from_rotvec([0.01, -0.02, 0.015]).as_matrix()
-    frames = np.stack([ref @ R.T + [0.001, 0.0, -0.002], ref @ R + 0.003])
-    frames += rng.normal(size=(2, 120, 3)) * 1e-4
-    subsets = [np.arange(120) < 70, np.arange(120) % 3 == 0]
-    mask = np.repeat(np.array(subsets), 2, axis=0)                   # both frames, each subset
-    moved, R_all, t_all = rigid_align(np.tile(frames, (2, 1, 1)), ref, np.arange(120), mask=mask)
-    for k, sub in enumerate(subsets):
-        one, R_one, t_one = rigid_align(frames, ref, np.flatnonzero(sub))
-        assert np.allclose(R_all[2 * k:2 * k + 2], R_one, atol=1e-12)
-        assert np.allclose(moved[2 * k:2 * k + 2], one, atol=1e-12)
-
-
 def test_poisson_solver_reports_disconnected_free_part():
     pts, tris = bumpy_grid(4, 4)
     extra = np.array([[100.0, 0, 0], [101, 0, 0], [100, 1, 0]])

@@ -30,16 +30,13 @@ def _det3(M: np.ndarray) -> np.ndarray:
     return np.sum(M[:, 0] * np.cross(M[:, 1], M[:, 2]), axis=-1)
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
-    """Rigid transforms minimising ``sum_v w_v |R src_v + t - dst_v|^2``, batched:
-    ``src[F,m,3]``, ``dst[m,3]`` or ``[F,m,3]``, ``w[F,m]`` -> ``R[F,3,3]``, ``t[F,3]`` (proper rotations)."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), src.shape)
-    w = np.ones(src.shape[:2]) if w is None else np.asarray(w, dtype=np.float64)
+def _kabsch_prepared(src, srcT, dst, w):
+    """:func:`kabsch` with ``srcT = src^T`` per frame given (contiguous), ``dst[F,m,3]``: no centred copies,
+    ``H = src^T diag(w~) dst - c_s c_d^T`` with ``w~`` the normalised weights."""
     ws = (w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300))[:, None, :]          # [F,1,m]
     cs = np.matmul(ws, src)                                                          # [F,1,3]
     cd = np.matmul(ws, dst)
-    H = np.matmul(np.swapaxes(src - cs, 1, 2) * ws, dst - cd)                        # [F,3,3]
+    H = np.matmul(srcT, ws[:, 0, :, None] * dst) - np.swapaxes(cs, 1, 2) * cd        # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
     V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
     V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
@@ -48,39 +45,34 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     return R, t
 
 
-def _masked_median(r: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    """Per-row median ``[F,1]`` of ``r[F,m]`` over the entries where ``mask[F,m]`` (all without a mask)."""
-    if mask is None:
-        return np.median(r, axis=1, keepdims=True)
-    srt = np.sort(np.where(mask, r, np.inf), axis=1)
-    cnt = np.maximum(mask.sum(axis=1), 1)
-    lo = np.take_along_axis(srt, ((cnt - 1) // 2)[:, None], axis=1)
-    hi = np.take_along_axis(srt, (cnt // 2)[:, None], axis=1)
-    return 0.5 * (lo + hi)
+def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
+    """Rigid transforms minimising ``sum_v w_v |R src_v + t - dst_v|^2``, batched:
+    ``src[F,m,3]``, ``dst[m,3]`` or ``[F,m,3]``, ``w[F,m]`` -> ``R[F,3,3]``, ``t[F,3]`` (proper rotations)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), src.shape)
+    w = np.ones(src.shape[:2]) if w is None else np.asarray(w, dtype=np.float64)
+    return _kabsch_prepared(src, np.ascontiguousarray(np.swapaxes(src, 1, 2)), dst, w)
 
 
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
-                iterations: int = 10,
-                mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Align every frame ``points[F,n,3]`` rigidly to ``reference[n,3]`` (or one reference per frame,
     ``[F,n,3]``) on ``vertices`` (indices).
 
     Returns ``(aligned[F,n,3], R[F,3,3], t[F,3])`` with ``aligned = points @ R^T + t``. With ``robust`` the
-    fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual). ``mask[F,m]``
-    (bool, over ``vertices``): each frame uses only its own subset - several subsets of one frame are aligned
-    in one batched call by repeating the frame.
+    fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual).
     """
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
-    src, dst = P[:, vertices], ref[..., vertices, :]
-    m = None if mask is None else np.asarray(mask, dtype=bool)
-    w = np.ones(src.shape[:2]) if m is None else m.astype(np.float64)
-    R, t = kabsch(src, dst, w)
+    src = P[:, vertices]
+    dst = np.ascontiguousarray(np.broadcast_to(ref[..., vertices, :], src.shape))
+    srcT = np.ascontiguousarray(np.swapaxes(src, 1, 2))
+    w = np.ones(src.shape[:2])
+    R, t = _kabsch_prepared(src, srcT, dst, w)
     for _ in range(iterations if robust else 0):
-        r = np.linalg.norm(np.matmul(src, np.swapaxes(R, 1, 2)) + t[:, None] - dst, axis=-1)
-        s = 1.4826 * _masked_median(r, m) + 1e-12
+        d = np.matmul(src, np.swapaxes(R, 1, 2)) + (t[:, None] - dst)
+        r = np.sqrt(np.einsum("fmc,fmc->fm", d, d))
+        s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
-        if m is not None:
-            w = w * m
-        R, t = kabsch(src, dst, w)
+        R, t = _kabsch_prepared(src, srcT, dst, w)
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t

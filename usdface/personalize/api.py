@@ -625,19 +625,18 @@ def _alignment_generalises(pf, points, reg, info):
     target = points - pf.loo_residuals(reg)
     nb = pf.neutral - pf.neutral.mean(axis=0)
     axes = np.linalg.svd(nb, full_matrices=False)[2][:2]
-    halves = [h for ax in axes for side in (nb @ ax > 0,) for h in (side, ~side)
-              if h.sum() >= 6 and (~h).any()]
-    F = len(points)
-    before, after = np.zeros(F), np.zeros(F)
+    before, after = np.zeros(len(points)), np.zeros(len(points))
     count = 0
-    if halves:                              # every half of every frame in one batched robust alignment
-        est = np.repeat(np.array(halves), F, axis=0)                                 # [H*F, m]
-        moved, _, _ = rigid_align(np.tile(points, (len(halves), 1, 1)), np.tile(target, (len(halves), 1, 1)),
-                                  np.arange(points.shape[1]), mask=est)
-        for k, half in enumerate(halves):
-            out = np.flatnonzero(~half)
+    for ax in axes:
+        side = nb @ ax > 0
+        for half in (side, ~side):
+            est, out = np.flatnonzero(half), np.flatnonzero(~half)
+            if len(est) < 6 or len(out) == 0:
+                continue
+            _, R, t = rigid_align(points[:, est], target[:, est], np.arange(len(est)))
+            moved = np.matmul(points[:, out], np.swapaxes(R, 1, 2)) + t[:, None]
             before += np.sum((points[:, out] - target[:, out]) ** 2, axis=(1, 2))
-            after += np.sum((moved[k * F:(k + 1) * F, out] - target[:, out]) ** 2, axis=(1, 2))
+            after += np.sum((moved - target[:, out]) ** 2, axis=(1, 2))
             count += points[:, out].size
     count = max(count, 1)
     return bool(after.sum() < before.sum()), {"aligned": float(np.sqrt(after.sum() / count) * 1000),
