@@ -205,6 +205,7 @@ class PositionFit:
             WT = a * self._main[1] + (1.0 - a) * self._alt[1]
         self.c = self.cR - cT                                                # V^T P^T (r - W t)  [n,r,c]
         self.e0 = self.R - WT                                                # r - W t  [F,n,c]
+        self.e0n = np.ascontiguousarray(self.e0.transpose(1, 0, 2))          # the same, [n,F,c]
 
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
@@ -233,18 +234,17 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def _loo(self, regs, c=None, e0=None):
-        """LOO residuals ``[n,F,G,c]`` for ``regs[G]`` (of the prior's ``c``, ``e0`` unless given): two
-        batched products for the whole grid."""
-        c = self.c if c is None else c
-        e0 = self.e0 if e0 is None else e0
+    def _loo_parts(self, regs, c, e0n):
+        """For ``regs[G]``: the leave-in residuals ``d[n,F,G,k]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
+        and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
+        products for the whole grid."""
         regs = np.asarray(regs, dtype=np.float64)
         n, F, r = self.Z.shape
         g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
-        gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*c]
-        fitted = np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
-        h = np.matmul(self.Z2, g)                                                    # [n,F,G]
-        return (e0.transpose(1, 0, 2)[:, :, None, :] - fitted) / np.maximum(1.0 - h, 1e-9)[..., None]
+        gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*k]
+        d = e0n[:, :, None, :] - np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
+        q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9) ** -2                      # [n,F,G]
+        return d, q
 
     def loo_errors_mix(self, regs, alphas) -> np.ndarray:
         """:meth:`loo_error` ``[A,G]`` for every prior blend ``alpha`` in ``alphas`` (:meth:`set_prior_mix`)
@@ -257,12 +257,12 @@ class PositionFit:
             return self.loo_errors(regs)[None]
         k = self.c.shape[2]
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
-        e0 = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2)
-        res = self._loo(regs, c, e0)
-        r1, r0 = res[..., :k], res[..., k:]
-        s11, s00, s01 = (np.sum(a * b, axis=(0, 1, 3)) for a, b in ((r1, r1), (r0, r0), (r1, r0)))
+        e0n = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2).transpose(1, 0, 2)
+        d, q = self._loo_parts(regs, c, np.ascontiguousarray(e0n))
+        d1, d0 = d[..., :k], d[..., k:]
+        s11, s00, s01 = (np.einsum("nfgc,nfgc,nfg->g", x, y, q) for x, y in ((d1, d1), (d0, d0), (d1, d0)))
         a = alphas[:, None]
-        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (r1[:, :, 0].size)
+        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
                       vertices: np.ndarray | None = None) -> np.ndarray:
@@ -290,7 +290,8 @@ class PositionFit:
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
-        per_frame = np.mean(self._loo(regs) ** 2, axis=(0, 3)).T                      # [G,F]
+        d, q = self._loo_parts(regs, self.c, self.e0n)
+        per_frame = np.einsum("nfgc,nfgc,nfg->gf", d, d, q) / (d.shape[0] * d.shape[3])   # [G,F]
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)
