@@ -16,7 +16,7 @@ from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, fit_blendshapes, regularization_weights
-from .weights import reestimate_weights
+from .weights import reestimate_weights, reestimate_weights_batched
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
 
@@ -331,13 +331,15 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                     deltas = fit_fn(w) if last_fit or r < n_rounds - 1 else None
                 return w, deltas
 
-            def first_weights(v, deltas, sigmas):
-                """The first re-estimation on vertices ``v`` from the phone-weight shapes ``deltas``, for
-                every prior width in ``sigmas`` at once: ``[S,F,K]``."""
-                res = points[:, v] - capture.neutral[v][None] - blend(weights, deltas)
-                anchors = float(np.mean(res ** 2)) / np.asarray(sigmas, dtype=np.float64) ** 2
-                return reestimate_weights(capture.neutral[v], deltas, points[:, v], weights, anchor=anchors,
-                                          lower=lo, upper=hi)
+            def first_weights(parts, sigmas):
+                """The first re-estimation on each vertex set ``v`` of ``parts = [(v, phone-weight shapes
+                there), ...]``, for every prior width in ``sigmas``: ``[H,S,F,K]``, one batched loop."""
+                probs, anchors = [], []
+                for v, deltas in parts:
+                    res = points[:, v] - capture.neutral[v][None] - blend(weights, deltas)
+                    anchors.append(float(np.mean(res ** 2)) / np.asarray(sigmas, dtype=np.float64) ** 2)
+                    probs.append((capture.neutral[v], deltas, points[:, v]))
+                return reestimate_weights_batched(probs, weights, np.array(anchors), lower=lo, upper=hi)
 
             sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
             sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_weights,
@@ -577,14 +579,14 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     halves of the (subsampled) vertices (either side of the neutral's centroid along its principal axis,
     :data:`REWEIGHT_SPLIT_AXES`) - with the one decomposition of the prepared fit (:func:`_prepared_fit`).
 
-    The position fit is separable per vertex, so weights re-estimated on one half (``first_weights(vertex
-    indices, phone-weight shapes there, sigmas) -> [S,F,K]``) are independent of the other half's data. On
-    the other half each training frame is predicted by the shapes fitted (phone's weights) on the *other*
-    frames (exact leave-one-frame-out downdate), once with the re-estimated weights of that frame and once
-    with the phone's: if the phone's weights are off, the independent estimate explains the held-out
+    The position fit is separable per vertex, so weights re-estimated on one half (``first_weights([(vertex
+    indices, phone-weight shapes there), ...], sigmas) -> [H,S,F,K]``) are independent of the other half's
+    data. On the other half each training frame is predicted by the shapes fitted (phone's weights) on the
+    *other* frames (exact leave-one-frame-out downdate), once with the re-estimated weights of that frame and
+    once with the phone's: if the phone's weights are off, the independent estimate explains the held-out
     geometry better. Each prior width in ``sigmas`` is scored; the best is kept if its gain is significant
-    (:func:`significantly_better`, Bonferroni over ``sigmas``) - on clean weights it is a no-op.
-    Returns ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out RMSE)``."""
+    (:func:`significantly_better`, Bonferroni over ``sigmas``) - on clean weights it is a no-op. Returns
+    ``(best sigma or None, {"phone": mm, "sigma=...": mm} held-out RMSE)``."""
     pf, cand = _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp)
     phone_loo, phone_fit = pf.loo_residuals(lam), pf.solve(lam)
     nb = capture.neutral[cand] - capture.neutral[cand].mean(axis=0)
@@ -596,9 +598,9 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     F = len(weights)
     e = {"phone": np.zeros(F), **{sg: np.zeros(F) for sg in sigmas}}
     n_res = 0
-    for ia, ib in splits:
+    estimates = first_weights([(cand[ia], phone_fit[:, ia]) for ia, _ in splits], sigmas)   # [H,S,F,K]
+    for (_, ib), ws in zip(splits, estimates, strict=True):
         e["phone"] += np.sum(phone_loo[:, ib] ** 2, axis=(1, 2))
-        ws = first_weights(cand[ia], phone_fit[:, ia], sigmas)
         for sg, w in zip(sigmas, ws, strict=True):
             e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w, vertices=ib) ** 2, axis=(1, 2))
         n_res += phone_loo[:, ib].size

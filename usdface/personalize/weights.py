@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reestimate_weights"]
+__all__ = ["reestimate_weights", "reestimate_weights_batched"]
 
 
 def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarray, phone_weights: np.ndarray,
@@ -24,15 +24,28 @@ def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarr
 
     ``anchor`` may also be a sequence of ``S`` values: then the ``S`` problems (one per prior width) are
     solved together, ``[S,F,K]`` - the same iterates as ``S`` separate calls, in one loop."""
-    B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)          # [K,3n]
-    r = (np.asarray(points, dtype=np.float64) - np.asarray(neutral)[None]).reshape(len(points), -1)   # [F,3n]
-    w0 = np.asarray(phone_weights, dtype=np.float64)
     a = np.asarray(anchor, dtype=np.float64)
-    many = a.ndim > 0
-    a = np.atleast_1d(a)[:, None, None]                                         # [S,1,1]
-    G = B @ B.T                                                                 # [K,K]
-    c = (r @ B.T)[None] + a * w0[None]                                          # [S,F,K]
-    step = 1.0 / (np.linalg.eigvalsh(G)[-1] + a)                                # 1 / L_max per problem
+    x = reestimate_weights_batched([(neutral, deltas, points)], phone_weights, np.atleast_1d(a)[None],
+                                   lower=lower, upper=upper, iterations=iterations)[0]
+    return x if a.ndim > 0 else x[0]
+
+
+def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.ndarray, *, lower=0.0,
+                               upper=1.0, iterations: int = 150) -> np.ndarray:
+    """:func:`reestimate_weights` for ``H`` vertex sets at once: ``problems`` = ``[(neutral[n_h,3],
+    deltas[K,n_h,3], points[F,n_h,3]), ...]``, ``anchors[H,S]`` -> weights ``[H,S,F,K]`` (the same iterates as
+    ``H x S`` separate calls, one loop)."""
+    w0 = np.asarray(phone_weights, dtype=np.float64)
+    a = np.asarray(anchors, dtype=np.float64)[:, :, None, None]                   # [H,S,1,1]
+    Gs, cs = [], []
+    for neutral, deltas, points in problems:
+        B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)        # [K,3n]
+        r = (np.asarray(points, dtype=np.float64) - np.asarray(neutral)[None]).reshape(len(points), -1)
+        Gs.append(B @ B.T)
+        cs.append(r @ B.T)
+    G = np.stack(Gs)[:, None]                                                   # [H,1,K,K]
+    c = np.stack(cs)[:, None] + a * w0                                          # [H,S,F,K]
+    step = 1.0 / (np.linalg.eigvalsh(G[:, 0])[:, -1][:, None, None, None] + a)  # 1 / L_max per problem
     lo = np.broadcast_to(lower, w0.shape)
     hi = np.broadcast_to(upper, w0.shape)
     x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
@@ -42,4 +55,4 @@ def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarr
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
         y = x_new + ((tk - 1.0) / t_new) * (x_new - x)
         x, tk = x_new, t_new
-    return x if many else x[0]
+    return x
