@@ -15,7 +15,7 @@ from ..model import Capture, FaceRig
 from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
-from .fit import D_CLAMP, PositionFit, blend, fit_blendshapes, regularization_weights
+from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
 from .weights import reestimate_weights, reestimate_weights_batched
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
@@ -490,13 +490,9 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     if cv is not None and "fit" in cv:
         cand = cv["vertices"]
         share = cv["fit"].data_share(lam)                                     # [m,K]
-    else:                                # diag(A_v^-1 W^T W) by one batched solve (no eigen-decomposition)
+    else:                                # diag(A_v^-1 W^T W): one batched r x r solve, no eigh
         cand = _cv_vertices(D, clamp)
-        WtW = weights.T @ weights
-        K = len(WtW)
-        A = np.broadcast_to(WtW, (len(cand), K, K)).copy()
-        A[:, np.arange(K), np.arange(K)] += lam * D[:, cand].T ** 2
-        share = np.diagonal(np.linalg.solve(A, np.broadcast_to(WtW, A.shape)), axis1=1, axis2=2)
+        share = data_share(weights, D[:, cand], lam)
     w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
-           "weight_basis", "reduced_normal_matrix"]
+           "weight_basis", "reduced_normal_matrix", "data_share"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -114,6 +114,22 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     T = np.asarray(generic_deltas, dtype=np.float64)
     _, B, inv_l, _, X = _reduced_solve(np.asarray(weights, dtype=np.float64), R, T, reg_weights, reg, False)
     return T + (inv_l[:, :, None] * np.matmul(B, X)).transpose(1, 0, 2)
+
+
+def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
+    """:meth:`PositionFit.data_share` at one ``reg`` without the eigen-decomposition: the diagonal of
+    ``A_v^-1 W^T W = reg^-1 L_v^-1 B (I + H_v / reg)^-1 B^T`` per vertex, ``[n,K]`` in [0, 1], by one batched
+    r x r solve (``weights[F,K]``, ``reg_weights[K,n]``)."""
+    P, s, Q = weight_basis(weights)
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
+    r = len(s)
+    if r == 0:
+        return np.zeros_like(inv_l)
+    M = reduced_normal_matrix(inv_l, B)
+    M[:, np.arange(r), np.arange(r)] += 1.0
+    X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
+    return inv_l * np.einsum("kr,nrk->nk", B, X)
 
 
 def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
