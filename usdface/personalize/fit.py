@@ -32,6 +32,13 @@ __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "Positi
 D_CLAMP = 1e5
 
 
+def _left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``A @ X_v`` for every ``v``: ``A[a,b]``, ``X[n,b,c]`` -> ``[n,a,c]`` as one matrix product (not ``n``
+    small ones)."""
+    n, b, c = X.shape
+    return (A @ X.transpose(1, 0, 2).reshape(b, n * c)).reshape(A.shape[0], n, c).transpose(1, 0, 2)
+
+
 def blend(weights: np.ndarray, deltas: np.ndarray) -> np.ndarray:
     """``sum_j w_fj B_j``: ``weights[F,K]``, ``deltas[K,n,3]`` -> ``[F,n,3]`` (one matrix product)."""
     d = np.asarray(deltas, dtype=np.float64)
@@ -113,7 +120,7 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
     _, B, inv_l, _, X = _reduced_solve(np.asarray(weights, dtype=np.float64), R, T, reg_weights, reg, False)
-    return T + (inv_l[:, :, None] * np.matmul(B, X)).transpose(1, 0, 2)
+    return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
 def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
@@ -147,14 +154,14 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
     c = R.shape[2]
     P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True)
     x, G = X[:, :, :c], X[:, :, c:]                                                  # [n,r,c], [n,r,F]
-    Pte0 = np.matmul(P.T[None], e0.transpose(1, 0, 2))                               # [n,r,c]
-    resid = e0 - np.matmul(P[None], Pte0 - x).transpose(1, 0, 2)                     # [F,n,c]
+    Pte0 = _left(P.T, e0.transpose(1, 0, 2))                                         # [n,r,c]
+    resid = e0 - _left(P, Pte0 - x).transpose(1, 0, 2)                               # [F,n,c]
     h = np.sum(P ** 2, axis=1)[:, None] - np.einsum("fr,nrf->fn", P, G)
     e = resid / np.maximum(1.0 - h, 1e-9)[:, :, None]
     if predict_weights is None:
         return e
     Pw = np.asarray(predict_weights, dtype=np.float64)
-    XB = np.matmul(Pw[None] * inv_l[:, None, :], B)                                  # [n,F,r]: p^T L^-1 B
+    XB = _left(Pw, inv_l[:, :, None] * B)                                            # [n,F,r]: p^T L^-1 B
     pred = blend(Pw, T) + np.matmul(XB, x).transpose(1, 0, 2)                        # p_i^T b
     cross = np.einsum("nfr,nrf->fn", XB, G)                                          # p_i^T A^-1 w_i
     return R - pred + cross[:, :, None] * e
@@ -184,9 +191,9 @@ class PositionFit:
         else:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
-        self.Z = np.matmul(self.P[None], self.V)                            # P V  [n,F,r]
+        self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
         self.Z2 = self.Z ** 2
-        self.BV = np.matmul(self.B[None], self.V)                           # B V  [n,K,r]
+        self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
         self.has_alt = self.T_alt is not None
@@ -195,13 +202,13 @@ class PositionFit:
 
     def _coeffs(self, T):
         """``(V^T B^T t_v [n,r,c], W t [F,n,c])`` of a prior ``T[K,n,c]``."""
-        Bt = np.matmul(self.B.T[None], T.transpose(1, 0, 2))                # [n,r,c]
+        Bt = _left(self.B.T, T.transpose(1, 0, 2))                          # [n,r,c]
         return np.matmul(np.swapaxes(self.V, 1, 2), Bt), blend(self.W, T)
 
     def set_points(self, points) -> None:
         """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition."""
         self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
-        PtR = np.matmul(self.P.T[None], self.R.transpose(1, 0, 2))           # [n,r,c]
+        PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
         self._main = self._coeffs(self.T_main)
         self._alt = None if self.T_alt is None else self._coeffs(self.T_alt)
@@ -299,7 +306,7 @@ class PositionFit:
             return e
         Pw = np.asarray(predict_weights, dtype=np.float64)
         inv = 1.0 / (mu + reg)                                                        # [n,r]
-        Xp = np.matmul(Pw[None] * self.inv_l[v][:, None, :], self.BV[v])              # p^T L^-1 B V  [n,F,r]
+        Xp = _left(Pw, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,F,r]
         pred = blend(Pw, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)
         cross = np.einsum("nfr,nfr,nr->fn", Xp, Z, inv)                               # p_i^T A^-1 w_i
         return self.R[:, v] - pred + cross[:, :, None] * e

@@ -50,9 +50,18 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     hi = np.broadcast_to(upper, w0.shape)
     x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
     y, tk = x.copy(), 1.0
+    Ga = G + a * np.eye(G.shape[-1])                                  # [H,S,K,K]: G + a I
+    grad = np.empty_like(x)
+    x_new = np.empty_like(x)
     for _ in range(iterations):
-        x_new = np.clip(y - step * (y @ G + a * y - c), lo, hi)
+        np.matmul(y, Ga, out=grad)
+        grad -= c
+        grad *= step
+        np.subtract(y, grad, out=x_new)
+        np.clip(x_new, lo, hi, out=x_new)
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
-        y = x_new + ((tk - 1.0) / t_new) * (x_new - x)
-        x, tk = x_new, t_new
+        np.subtract(x_new, x, out=y)                                            # y = x_new + m (x_new - x)
+        y *= (tk - 1.0) / t_new
+        y += x_new
+        x, x_new, tk = x_new, x, t_new
     return x
