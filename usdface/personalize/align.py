@@ -69,10 +69,15 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     srcT = np.ascontiguousarray(np.swapaxes(src, 1, 2))
     w = np.ones(src.shape[:2])
     R, t = _kabsch_prepared(src, srcT, dst, w)
+    m = src.shape[1]
+    mid = [(m - 1) // 2, m // 2]
     for _ in range(iterations if robust else 0):
-        d = np.matmul(src, np.swapaxes(R, 1, 2)) + (t[:, None] - dst)
+        d = np.matmul(src, np.swapaxes(R, 1, 2))
+        d += t[:, None]
+        d -= dst
         r = np.sqrt(np.einsum("fmc,fmc->fm", d, d))
-        s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
+        med = 0.5 * np.partition(r, mid, axis=1)[:, mid].sum(axis=1, keepdims=True)   # = np.median
+        s = 1.4826 * med + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = _kabsch_prepared(src, srcT, dst, w)
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
