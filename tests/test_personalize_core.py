@@ -131,6 +131,45 @@ def test_position_fit_matches_direct_solve_and_brute_force_loo():
     assert np.isclose(pf.loo_error(reg), np.mean(brute), rtol=1e-8)
 
 
+@pytest.mark.parametrize("reduced", [True, False])
+def test_reduced_basis_fit_equals_the_full_k_by_k_systems(monkeypatch, reduced):
+    """Rank-deficient weights (a repeated frame, a shape never excited): the r x r push-through solve (or,
+    above REDUCED_MAX_RANK, the K x K path), the hat-matrix LOO and the data share equal the direct K x K
+    formulas of eqs. (1)+(2) written out here."""
+    import usdface.personalize.fit as fit_module
+    from usdface.personalize.fit import data_share, loo_residuals
+
+    monkeypatch.setattr(fit_module, "REDUCED_MAX_RANK", 1.0 if reduced else 0.0)
+    neutral, pts, W, true, generic = synthetic_fit_problem(noise=0.0005, F=9, K=6)
+    W[:, 5] = 0.0
+    W[8] = W[2]
+    D = regularization_weights(generic)
+    reg = 0.02
+    n, K = D.shape[1], D.shape[0]
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    A[:, np.arange(K), np.arange(K)] += reg * D.T ** 2
+    R = pts - neutral
+    rhs = np.einsum("fk,fnc->nkc", W, R) + reg * D.T[:, :, None] ** 2 * generic.transpose(1, 0, 2)
+    direct = np.linalg.solve(A, rhs).transpose(1, 0, 2)
+    assert np.abs(fit_blendshapes(neutral, pts, W, generic, D, reg) - direct).max() < 1e-12
+    hat = np.einsum("fk,nkl,gl->nfg", W, np.linalg.inv(A), W)                    # W A^-1 W^T per vertex
+    fitted = np.einsum("fk,knc->fnc", W, direct)
+    e = (R - fitted) / (1 - np.einsum("nff->fn", hat))[:, :, None]
+    assert np.abs(loo_residuals(neutral, pts, W, generic, D, reg) - e).max() < 1e-12
+    Pw = np.clip(W + 0.05, 0, 1)                                                 # predict with other weights
+    brute = []
+    for i in range(len(W)):
+        A_i = A - np.einsum("k,l->kl", W[i], W[i])[None]
+        b_i = np.linalg.solve(A_i, rhs - np.einsum("k,nc->nkc", W[i], R[i]))
+        brute.append(R[i] - np.einsum("k,nkc->nc", Pw[i], b_i))
+    pred = loo_residuals(neutral, pts, W, generic, D, reg, predict_weights=Pw)
+    assert np.abs(pred - np.array(brute)).max() < 1e-10
+    share = np.einsum("nkl,lj->nkj", np.linalg.inv(A), W.T @ W).diagonal(axis1=1, axis2=2)
+    assert np.abs(data_share(W, D, reg) - share).max() < 1e-10
+    assert np.abs(PositionFit(neutral, pts, W, generic, D).data_share(reg) - share).max() < 1e-10
+    assert np.all(share[:, 5] < 1e-12)                                         # never excited: all prior
+
+
 def test_reestimate_weights_recovers_true_weights_within_bounds():
     neutral, pts, W, true, generic = synthetic_fit_problem(F=20)
     noisy = np.clip(W + np.random.default_rng(3).normal(0, 0.05, W.shape), 0, 1)

@@ -51,6 +51,18 @@ def test_sample_cross_validation_beats_the_paper_balance(sample_results):
     assert r["menzel"]["truth"] < r["paper"]["truth"]
 
 
+def test_sample_default_is_no_worse_than_cross_validation_only(samples, sample_results):
+    """Issue 13: the beyond-paper steps decide for themselves; on the sample (clean frames, phone weights
+    within 0.01) neither the alignment nor the re-estimation may raise the truth error of CV alone."""
+    capture = read_capture(samples / "capture.usda")
+    truth = np.load(samples / "truth" / "capture_truth.npz")
+    true = truth["deltas"][[list(truth["names"]).index(n) for n in capture.names]]
+    cv_only = fit_personalized_shapes(capture, align=False, reweight=False)
+    default = sample_results["menzel"]
+    assert default["info"]["reweight"]["applied"] is False and default["info"]["align"]["applied"] is False
+    assert default["truth"] <= truth_error(cv_only.rig.deltas, true) + 1e-12
+
+
 @pytest.mark.parametrize("case", ["dev1", "dev2"])
 def test_bench_acceptance(bench, case):
     root = bench / case

@@ -138,8 +138,9 @@ def test_dev3_avatar_prior_beats_the_other_artists_template(bench):
     assert err < 0.8 * truth_error(fit(c3).rig.deltas, truth["deltas"])
 
 
-def noisy_capture(misalign_deg=0.0, seed=3):
-    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated."""
+def noisy_capture(misalign_deg=0.0, seed=3, weight_noise=0.0):
+    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated and
+    whose reported weights optionally carry Gaussian noise (clipped to [0, 1])."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
@@ -154,6 +155,8 @@ def noisy_capture(misalign_deg=0.0, seed=3):
         for f in range(len(W)):
             R = Rotation.from_rotvec(rng.normal(size=3) * np.radians(misalign_deg)).as_matrix()
             pts[f] = (pts[f] - c) @ R.T + c + rng.normal(size=3) * 5e-4
+    if weight_noise:
+        W = np.clip(W + rng.normal(size=W.shape) * weight_noise, 0.0, 1.0)
     frames = Frames(pts, W, ["train"] * len(W), [f"{i:03d}" for i in range(len(W))])
     rig = FaceRig(neutral.copy(), tris, list(NAMES), template)
     return Capture(neutral, tris, rig, frames, list(NAMES)), true
@@ -173,6 +176,27 @@ def test_alignment_is_applied_where_frames_are_misaligned():
     assert res.info["align"]["applied"] is True
     plain = fit(cap, align=False, reweight=False)
     assert truth_error(res.rig.deltas, true) < 0.6 * truth_error(plain.rig.deltas, true)
+
+
+def test_reweighting_is_applied_where_the_phone_weights_are_noisy():
+    cap, true = noisy_capture(weight_noise=0.05)
+    res = fit(cap, align=False)
+    assert res.info["reweight"]["applied"] is True
+    assert res.info["reweight"]["held_out_rmse_mm"]["phone"] > min(
+        v for k, v in res.info["reweight"]["held_out_rmse_mm"].items() if k != "phone")
+    plain = fit(cap, align=False, reweight=False)
+    assert truth_error(res.rig.deltas, true) < 0.8 * truth_error(plain.rig.deltas, true)
+
+
+def test_significance_test_refuses_a_gain_within_the_noise():
+    from usdface.personalize.api import significantly_better
+
+    rng = np.random.default_rng(0)
+    old = rng.uniform(1.0, 2.0, size=50)
+    noise = rng.normal(size=50) * 0.2
+    assert not significantly_better(old + noise - noise.mean() - 1e-3, old)    # mean gain 1e-3, sd 0.2
+    assert significantly_better(old * 0.9, old)                                # 10 % on every frame
+    assert not significantly_better(old * 1.1, old)
 
 
 def test_evaluate_reports_tuned_and_fixed_variants():

@@ -25,25 +25,33 @@ def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count:
     return idx
 
 
+def _det3(M: np.ndarray) -> np.ndarray:
+    """Determinants of ``M[F,3,3]`` (closed form, no LAPACK call per matrix)."""
+    return np.sum(M[:, 0] * np.cross(M[:, 1], M[:, 2]), axis=-1)
+
+
+def _kabsch_prepared(src, srcT, dst, w):
+    """:func:`kabsch` with ``srcT = src^T`` per frame given (contiguous), ``dst[F,m,3]``: no centred copies,
+    ``H = src^T diag(w~) dst - c_s c_d^T`` with ``w~`` the normalised weights."""
+    ws = (w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300))[:, None, :]          # [F,1,m]
+    cs = np.matmul(ws, src)                                                          # [F,1,3]
+    cd = np.matmul(ws, dst)
+    H = np.matmul(srcT, ws[:, 0, :, None] * dst) - np.swapaxes(cs, 1, 2) * cd        # [F,3,3]
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
+    R = np.matmul(V, Ut)
+    t = cd[:, 0] - np.matmul(cs, np.swapaxes(R, 1, 2))[:, 0]
+    return R, t
+
+
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     """Rigid transforms minimising ``sum_v w_v |R src_v + t - dst_v|^2``, batched:
     ``src[F,m,3]``, ``dst[m,3]`` or ``[F,m,3]``, ``w[F,m]`` -> ``R[F,3,3]``, ``t[F,3]`` (proper rotations)."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), src.shape)
     w = np.ones(src.shape[:2]) if w is None else np.asarray(w, dtype=np.float64)
-    ws = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    cs = np.einsum("fm,fmc->fc", ws, src)
-    cd = np.einsum("fm,fmc->fc", ws, dst)
-    H = np.matmul(np.swapaxes((src - cs[:, None]) * ws[:, :, None], 1, 2), dst - cd[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    S = np.zeros_like(H)
-    S[:, 0, 0] = 1.0
-    S[:, 1, 1] = 1.0
-    S[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ S @ np.swapaxes(U, 1, 2)
-    t = cd - np.einsum("fij,fj->fi", R, cs)
-    return R, t
+    return _kabsch_prepared(src, np.ascontiguousarray(np.swapaxes(src, 1, 2)), dst, w)
 
 
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
@@ -56,12 +64,20 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     """
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
-    src, dst = P[:, vertices], ref[..., vertices, :]
+    src = P[:, vertices]
+    dst = np.ascontiguousarray(np.broadcast_to(ref[..., vertices, :], src.shape))
+    srcT = np.ascontiguousarray(np.swapaxes(src, 1, 2))
     w = np.ones(src.shape[:2])
-    R, t = kabsch(src, dst, w)
+    R, t = _kabsch_prepared(src, srcT, dst, w)
+    m = src.shape[1]
+    mid = [(m - 1) // 2, m // 2]
     for _ in range(iterations if robust else 0):
-        r = np.linalg.norm(np.matmul(src, np.swapaxes(R, 1, 2)) + t[:, None] - dst, axis=-1)
-        s = 1.4826 * np.median(r, axis=1, keepdims=True) + 1e-12
+        d = np.matmul(src, np.swapaxes(R, 1, 2))
+        d += t[:, None]
+        d -= dst
+        r = np.sqrt(np.einsum("fmc,fmc->fm", d, d))
+        med = 0.5 * np.partition(r, mid, axis=1)[:, mid].sum(axis=1, keepdims=True)   # = np.median
+        s = 1.4826 * med + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
-        R, t = kabsch(src, dst, w)
+        R, t = _kabsch_prepared(src, srcT, dst, w)
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t

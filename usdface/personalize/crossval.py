@@ -4,10 +4,12 @@ training frames (``reg="auto"``).
 
 The criterion is the exact leave-one-frame-out error of :class:`usdface.personalize.fit.PositionFit` (every
 frame left out in turn, its residual predicted by the fit on the others), minimised over ``log10(reg)``: a
-coarse grid, then a golden-section refinement around the best grid point; with an alternative prior, for
-each blend ``alpha`` in :data:`PRIOR_MIX`. For speed the criterion is evaluated on a deterministic subsample
-of the moving vertices (it is a mean over vertices, so a few hundred estimate it well); the final fit uses
-every vertex.
+coarse grid, then a grid of 4 points per decade around the best grid point (each grid one batched
+evaluation of :meth:`~usdface.personalize.fit.PositionFit.loo_errors`) and the vertex of the parabola
+through the best fine point and its neighbours; with an alternative prior, for each blend ``alpha`` in
+:data:`PRIOR_MIX` (:meth:`~usdface.personalize.fit.PositionFit.loo_errors_mix`). For speed the criterion is
+evaluated on a deterministic subsample of the moving vertices (it is a mean over vertices, so a few
+hundred estimate it well); the final fit uses every vertex.
 """
 
 from __future__ import annotations
@@ -24,28 +26,35 @@ REG_GRID = np.arange(-7.0, 1.01, 1.0)
 PRIOR_MIX = (0.0, 0.5, 1.0)
 
 
-def _minimise_log(fun, grid, refine_steps):
-    errs = np.array([fun(g) for g in grid])
+def _minimise_log(errors, grid, refine, errs=None):
+    """Minimise ``errors(log10 regs[G]) -> [G]`` over the coarse ``grid``, then over ``refine`` points per
+    decade in the two grid intervals around the best point (one batched evaluation each), then at the vertex
+    of the parabola through the best fine point and its neighbours."""
+    errs = errors(grid) if errs is None else np.asarray(errs)
     k = int(np.argmin(errs))
+    best, best_err = float(grid[k]), float(errs[k])
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    phi = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = lo + (1 - phi) * (hi - lo), lo + phi * (hi - lo)
-    fa, fb = fun(a), fun(b)
-    for _ in range(refine_steps):
-        if fa <= fb:
-            hi, b, fb = b, a, fa
-            a = lo + (1 - phi) * (hi - lo)
-            fa = fun(a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + phi * (hi - lo)
-            fb = fun(b)
-    best_err, best = min([(errs[k], grid[k]), (fa, a), (fb, b)])
-    return float(best), float(best_err), errs
+    if refine and hi > lo:
+        fine = np.linspace(lo, hi, int(round((hi - lo) * refine)) + 1)
+        fe = errors(fine)
+        j = int(np.argmin(fe))
+        if fe[j] < best_err:
+            best, best_err = float(fine[j]), float(fe[j])
+        if 0 < j < len(fine) - 1:                    # the parabola through the best fine point's neighbours
+            x, y = fine[j - 1:j + 2], fe[j - 1:j + 2]
+            den = (x[1] - x[0]) * (y[1] - y[2]) - (x[1] - x[2]) * (y[1] - y[0])
+            if den != 0:
+                num = (x[1] - x[0]) ** 2 * (y[1] - y[2]) - (x[1] - x[2]) ** 2 * (y[1] - y[0])
+                xv = x[1] - 0.5 * num / den
+                if x[0] < xv < x[2]:
+                    ev = float(errors(np.array([xv]))[0])
+                    if ev < best_err:
+                        best, best_err = float(xv), ev
+    return best, best_err, errs
 
 
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
-                          max_vertices: int = 300, grid=REG_GRID, refine_steps: int = 6,
+                          max_vertices: int = 300, grid=REG_GRID, refine: int = 4,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
                           alphas=None, keep_prior: bool = False,
                           clamp: float = D_CLAMP) -> tuple[float, dict]:
@@ -74,18 +83,16 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
         vertices = cand
     pf, cand = fit, vertices
     grid = np.asarray(grid, dtype=np.float64)
-    # coarse grid for every prior blend, then golden-section refinement of reg for the best blend
+    # coarse grid for every prior blend (one batched evaluation), then a finer grid of reg for the best blend
     if keep_prior:
-        alpha = float("nan")
+        alpha, best_errs = float("nan"), pf.loo_errors(10.0 ** grid)
     else:
-        coarse = []
-        for alpha in ((alphas or PRIOR_MIX) if pf.z_alt is not None else (1.0,)):
-            pf.set_prior_mix(alpha)
-            errs = np.array([pf.loo_error(10.0 ** g) for g in grid])
-            coarse.append((float(errs.min()), alpha, errs))
-        _, alpha, _ = min(coarse, key=lambda r: r[0])
+        mixes = tuple(alphas or PRIOR_MIX) if pf.has_alt else (1.0,)
+        coarse = pf.loo_errors_mix(10.0 ** grid, mixes)                          # [A,G]
+        a = int(np.argmin(coarse.min(axis=1)))
+        alpha, best_errs = mixes[a], coarse[a]
         pf.set_prior_mix(alpha)
-    g, err, errs = _minimise_log(lambda x: pf.loo_error(10.0 ** x), grid, refine_steps)
+    g, err, errs = _minimise_log(lambda x: pf.loo_errors(10.0 ** np.asarray(x)), grid, refine, best_errs)
     reg = float(10.0 ** g)
     return reg, {"reg": reg, "alpha": float(alpha), "grid": (10.0 ** grid).tolist(),
                  "loo_rmse_mm": (np.sqrt(errs) * 1000).tolist(),

@@ -9,19 +9,37 @@ displacements ``S_i(v) - B0(v)`` and ``L_v = diag(D_jv^2)``,
 
     (W^T W + lambda L_v) b_v = W^T r_v + lambda L_v t_v          (a K x K system per vertex).
 
-``lambda = 1`` is the paper's plain sum. :class:`PositionFit` diagonalises every vertex's system once
-(``L^-1/2 W^T W L^-1/2 = U S U^T``), after which a solve and its exact leave-one-frame-out cross-validation
-error cost O(n K^2) per ``lambda`` - that is what ``reg="auto"`` (:mod:`usdface.personalize.crossval`) uses.
+``lambda = 1`` is the paper's plain sum. Every vertex shares ``W``: with its thin SVD ``W = P S Q^T`` (rank
+``r``, computed once) and ``B = Q S``, the push-through identity turns each K x K system into an r x r one,
+
+    b_v = t_v + lambda^-1 L_v^-1 B x_v,   (I_r + lambda^-1 H_v) x_v = P^T (r_v - W t_v),
+    H_v = B^T L_v^-1 B                                           (:func:`reduced_normal_matrix`),
+
+exact (no approximation) and cheaper when the frames excite fewer than K directions (dev1: r = 28 of 51).
+:class:`PositionFit` diagonalises every vertex's ``H_v = V_v diag(mu_v) V_v^T`` once, after which a solve,
+its hat matrix ``P V diag(mu / (mu + lambda)) V^T P^T`` and the exact leave-one-frame-out cross-validation
+error cost O(n F r) per ``lambda`` - that is what ``reg="auto"`` (:mod:`usdface.personalize.crossval`) uses.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project"]
+__all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
+           "weight_basis", "reduced_normal_matrix", "data_share"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
+#: Single-``reg`` solves use the rank-r basis while ``r <= REDUCED_MAX_RANK * K`` (its cost grows ~r^2.5; at
+#: full rank the direct K x K solve is 2x cheaper, at dev1's r = 28 of 51 the reduced one is 1.8x cheaper).
+REDUCED_MAX_RANK = 0.75
+
+
+def _left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``A @ X_v`` for every ``v``: ``A[a,b]``, ``X[n,b,c]`` -> ``[n,a,c]`` as one matrix product (not ``n``
+    small ones)."""
+    n, b, c = X.shape
+    return (A @ X.transpose(1, 0, 2).reshape(b, n * c)).reshape(A.shape[0], n, c).transpose(1, 0, 2)
 
 
 def blend(weights: np.ndarray, deltas: np.ndarray) -> np.ndarray:
@@ -52,107 +70,211 @@ def regularization_weights(generic_deltas: np.ndarray, *, clamp: float = D_CLAMP
     return np.minimum(D, clamp)
 
 
+def weight_basis(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Thin SVD ``W = P diag(s) Q^T`` of ``weights[F,K]`` truncated to its numerical rank ``r`` (singular
+    values above ``s_max max(F, K) eps``): ``P[F,r]``, ``s[r]``, ``Q[K,r]``. Dropped directions carry no
+    data (the fit holds them at the prior)."""
+    W = np.asarray(weights, dtype=np.float64)
+    P, s, Qt = np.linalg.svd(W, full_matrices=False)
+    keep = s > (s[0] if s.size else 0.0) * max(W.shape) * np.finfo(np.float64).eps
+    return P[:, keep], s[keep], Qt[keep].T
+
+
+def reduced_normal_matrix(inv_l: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """``H_v = B^T diag(inv_l_v) B`` for every vertex: ``inv_l[n,K]`` (the inverse regularisation weights
+    ``1 / (lambda D_jv^2)``), ``basis[K,r]`` (``B = Q S``) -> ``[n,r,r]`` symmetric, by one matrix product of
+    the upper triangle."""
+    K, r = basis.shape
+    iu, ju = np.triu_indices(r)
+    upper = np.asarray(inv_l, dtype=np.float64) @ (basis[:, iu] * basis[:, ju])       # [n, r(r+1)/2]
+    H = np.empty((len(upper), r, r))
+    H[:, iu, ju] = upper
+    H[:, ju, iu] = upper
+    return H
+
+
+def _reduced_solve(W, R, T, D, reg, extra_rhs: bool):
+    """The r x r systems ``(I + H_v / reg) x_v = P^T e0_v`` (and, with ``extra_rhs``, ``= P^T``) of eqs.
+    (1)+(2), ``e0 = R - W T``. Returns ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
+    P, s, Q = weight_basis(W)
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
+    e0 = R - blend(W, T)                                                             # [F,n,c]
+    F, n, c = e0.shape
+    r = len(s)
+    M = reduced_normal_matrix(inv_l, B)
+    M[:, np.arange(r), np.arange(r)] += 1.0
+    rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
+    if extra_rhs:
+        rhs = np.concatenate([rhs, np.broadcast_to(P.T, (n, r, F))], axis=2)
+    X = np.linalg.solve(M, rhs) if r else rhs
+    return P, B, inv_l, e0, X
+
+
+def _direct_system(W, R, T, D, reg, extra):
+    """The K x K systems ``A_v = W^T W + reg L_v`` of eqs. (1)+(2) with right-hand sides
+    ``W^T r_v + reg L_v t_v`` (and ``W^T`` with ``extra``), solved in one batched LAPACK call:
+    ``[n,K,c(+F)]``."""
+    L = reg * np.asarray(D, dtype=np.float64).T ** 2                                 # [n,K]
+    n, K = L.shape
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    A[:, np.arange(K), np.arange(K)] += L
+    rhs = project(W, R) + L[:, :, None] * T.transpose(1, 0, 2)                      # [n,K,c]
+    if extra:
+        rhs = np.concatenate([rhs, np.broadcast_to(W.T, (n, K, len(W)))], axis=2)
+    return np.linalg.solve(A, rhs)
+
+
+def _reduced_pays(W: np.ndarray) -> bool:
+    return np.linalg.matrix_rank(W) <= REDUCED_MAX_RANK * W.shape[1]
+
+
 def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
                     reg_weights: np.ndarray, reg: float = 1.0) -> np.ndarray:
     """Menzel et al. (2022), eqs. (1)+(2): personalized ``deltas[K,n,3]`` (metres) at a fixed balance ``reg``.
 
     ``neutral[n,3]`` = B0, ``points[F,n,3]`` = training meshes S_i, ``weights[F,K]`` = w_ij,
-    ``generic_deltas[K,n,3]`` = T_j, ``reg_weights[K,n]`` = D_j diagonals (eq. 3). ``reg`` multiplies E_reg
-    (1 = the paper). Solved as n batched K x K systems (one batched LAPACK call).
+    ``generic_deltas[K,n,3]`` = T_j, ``reg_weights[K,n]`` = D_j diagonals (eq. 3, > 0). ``reg`` multiplies
+    E_reg (1 = the paper). Solved exactly, n batched systems in one LAPACK call: r x r in the weights' rank-r
+    basis (module docstring) when ``r <= REDUCED_MAX_RANK K``, else the K x K systems themselves.
     """
     W = np.asarray(weights, dtype=np.float64)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                               # [n,K]
-    n, K = L.shape
-    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
-    idx = np.arange(K)
-    A[:, idx, idx] += L
-    rhs = project(W, R) + L[:, :, None] * T.transpose(1, 0, 2)             # [n,K,3]
-    # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal;
-    # checked against an equilibrated solve: < 1e-11 m)
-    B = np.linalg.solve(A, rhs)
-    return B.transpose(1, 0, 2)
+    if not _reduced_pays(W):
+        # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal)
+        return _direct_system(W, R, T, reg_weights, reg, False).transpose(1, 0, 2)
+    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False)
+    return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
+
+
+def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
+    """:meth:`PositionFit.data_share` at one ``reg`` without the eigen-decomposition: the diagonal of
+    ``A_v^-1 W^T W = reg^-1 L_v^-1 B (I + H_v / reg)^-1 B^T`` per vertex, ``[n,K]`` in [0, 1], by one batched
+    r x r solve (``weights[F,K]``, ``reg_weights[K,n]``)."""
+    P, s, Q = weight_basis(weights)
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
+    r = len(s)
+    if r == 0:
+        return np.zeros_like(inv_l)
+    M = reduced_normal_matrix(inv_l, B)
+    M[:, np.arange(r), np.arange(r)] += 1.0
+    X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
+    return inv_l * np.einsum("kr,nrk->nk", B, X)
 
 
 def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
                   reg_weights: np.ndarray, reg: float, predict_weights=None) -> np.ndarray:
     """Exact leave-one-frame-out residuals ``[F,n,3]`` (metres) of eqs. (1)+(2) at one ``reg``, by one batched
-    solve per vertex (cheaper than :class:`PositionFit`'s eigen-decomposition when only one ``reg`` is
+    r x r solve per vertex (cheaper than :class:`PositionFit`'s eigen-decomposition when only one ``reg`` is
     needed). Arrays as in :func:`fit_blendshapes`; ``predict_weights[F,K]`` as in
-    :meth:`PositionFit.loo_residuals`."""
+    :meth:`PositionFit.loo_residuals`.
+
+    With ``G_v = (I + H_v / reg)^-1 P^T``: the fitted frames are ``W t + P (P^T e0 - x)``, the hat diagonal
+    ``h_i = |P_i|^2 - P_i . G_v[:, i]`` and ``A_v^-1 W^T = reg^-1 L_v^-1 B G_v``."""
     W = np.asarray(weights, dtype=np.float64)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                               # [n,K]
-    n, K = L.shape
-    F = len(W)
-    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
-    idx = np.arange(K)
-    A[:, idx, idx] += L
-    rhs = np.concatenate([project(W, R) + L[:, :, None] * T.transpose(1, 0, 2),
-                          np.broadcast_to(W.T, (n, K, F))], axis=2)                  # [n,K,3+F]
-    X = np.linalg.solve(A, rhs)
-    b, G = X[:, :, :3], X[:, :, 3:]                                                 # b_v, A^-1 W^T
-    fitted = np.matmul(W[None], b).transpose(1, 0, 2)                               # [F,n,3]
-    h = np.einsum("fk,nkf->fn", W, G)
-    e = (R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
-    if predict_weights is None:
+    c = R.shape[2]
+    Pw = None if predict_weights is None else np.asarray(predict_weights, dtype=np.float64)
+    if not _reduced_pays(W):                                 # the K x K systems: b_v and G_v = A_v^-1 W^T
+        X = _direct_system(W, R, T, reg_weights, reg, True)
+        b, G = X[:, :, :c], X[:, :, c:]
+        e = (R - _left(W, b).transpose(1, 0, 2)) / np.maximum(1.0 - np.einsum("fk,nkf->fn", W, G),
+                                                              1e-9)[:, :, None]
+        if Pw is None:
+            return e
+        cross = np.einsum("fk,nkf->fn", Pw, G)
+        return R - _left(Pw, b).transpose(1, 0, 2) + cross[:, :, None] * e
+    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True)
+    x, G = X[:, :, :c], X[:, :, c:]                                                  # [n,r,c], [n,r,F]
+    Pte0 = _left(P.T, e0.transpose(1, 0, 2))                                         # [n,r,c]
+    resid = e0 - _left(P, Pte0 - x).transpose(1, 0, 2)                               # [F,n,c]
+    h = np.sum(P ** 2, axis=1)[:, None] - np.einsum("fr,nrf->fn", P, G)
+    e = resid / np.maximum(1.0 - h, 1e-9)[:, :, None]
+    if Pw is None:
         return e
-    Pw = np.asarray(predict_weights, dtype=np.float64)
-    pred = np.matmul(Pw[None], b).transpose(1, 0, 2)
-    cross = np.einsum("fk,nkf->fn", Pw, G)
+    XB = _left(Pw, inv_l[:, :, None] * B)                                            # [n,F,r]: p^T L^-1 B
+    pred = blend(Pw, T) + np.matmul(XB, x).transpose(1, 0, 2)                        # p_i^T b
+    cross = np.einsum("nfr,nrf->fn", XB, G)                                          # p_i^T A^-1 w_i
     return R - pred + cross[:, :, None] * e
 
 
 class PositionFit:
     """Menzel et al. (2022), eqs. (1)-(2) prepared for many regularisation strengths.
 
-    ``neutral[n,3]``, ``points[F,n,3]``, ``weights[F,K]``, ``generic_deltas[K,n,3]``, ``reg_weights[K,n]``;
-    optional ``alt_deltas[K,n,3]``, a second prior to blend with (:meth:`set_prior_mix`).
-    After the one-off per-vertex eigen-decomposition, :meth:`solve` (deltas at a ``reg``) and
-    :meth:`loo_error` (exact leave-one-frame-out residual, the closed form ``e_i / (1 - h_ii)`` of linear
-    smoothers) are O(n K^2).
+    ``neutral[n,3]``, ``points[F,n,c]``, ``weights[F,K]``, ``generic_deltas[K,n,c]``, ``reg_weights[K,n]``
+    (> 0); optional ``alt_deltas[K,n,c]``, a second prior to blend with (:meth:`set_prior_mix`).
+    One SVD of the weights and one per-vertex eigen-decomposition of the r x r ``H_v = B^T L_v^-1 B``
+    (module docstring); then :meth:`solve` (deltas at a ``reg``), :meth:`loo_error` (exact
+    leave-one-frame-out residual, the closed form ``e_i / (1 - h_ii)`` of linear smoothers, for many ``reg``
+    at once: :meth:`loo_errors`) and :meth:`data_share` cost O(n F r) per ``reg``; new points
+    (:meth:`set_points`) or priors (:meth:`set_prior`) need no new decomposition.
     """
 
     def __init__(self, neutral, points, weights, generic_deltas, reg_weights, alt_deltas=None):
         self.W = np.asarray(weights, dtype=np.float64)
-        self.R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
-        D = np.asarray(reg_weights, dtype=np.float64).T                      # [n,K]
-        self.inv_sqrt_l = 1.0 / D                                            # L^-1/2 (L = D^2)
-        W = self.W
-        C = (W.T @ W)[None] * self.inv_sqrt_l[:, :, None] * self.inv_sqrt_l[:, None, :]   # [n,K,K]
-        self.s, self.U = np.linalg.eigh(C)
-        self.s = np.maximum(self.s, 0.0)
-        M = self.inv_sqrt_l[:, :, None] * self.U                             # L^-1/2 U  [n,K,K]
-        self.M = M
         self.neutral = np.asarray(neutral, dtype=np.float64)
+        self.P, s, Q = weight_basis(self.W)
+        self.B = Q * s                                                       # [K,r]
+        self.inv_l = 1.0 / np.asarray(reg_weights, dtype=np.float64).T ** 2  # L^-1  [n,K]
+        H = reduced_normal_matrix(self.inv_l, self.B)
+        if self.B.shape[1]:
+            self.mu, self.V = np.linalg.eigh(H)                              # [n,r], [n,r,r]
+        else:
+            self.mu, self.V = np.zeros(H.shape[:2]), H
+        self.mu = np.maximum(self.mu, 0.0)
+        self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
+        self.Z2 = self.Z ** 2
+        self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
+        self.T_main = np.asarray(generic_deltas, dtype=np.float64)
+        self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
+        self.has_alt = self.T_alt is not None
+        self._prior_parts = {}
         self.set_points(points)
 
-        def prior_coef(T):                                                   # U^T L^1/2 t
-            T = np.asarray(T, dtype=np.float64)
-            return np.matmul(np.swapaxes(self.U, 1, 2), D[:, :, None] * T.transpose(1, 0, 2))
-
-        self._prior_coef = prior_coef
-        self.z_main = prior_coef(generic_deltas)
-        self.z_alt = None if alt_deltas is None else prior_coef(alt_deltas)
-        self.z = self.z_main
-        self.q = np.matmul(W[None], M)                                       # [n,F,K]: w_i^T L^-1/2 U
-        self.q2 = np.ascontiguousarray((self.q ** 2).transpose(1, 0, 2))     # [F,n,K]
+    def _coeffs(self, T):
+        """``(V^T B^T t_v [n,r,c], W t [F,n,c])`` of a prior ``T[K,n,c]``."""
+        Bt = _left(self.B.T, T.transpose(1, 0, 2))                          # [n,r,c]
+        return np.matmul(np.swapaxes(self.V, 1, 2), Bt), blend(self.W, T)
 
     def set_points(self, points) -> None:
-        """Replace the training frames ``points[F,n,3]`` (same weights): O(n F K), no new decomposition."""
+        """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition."""
         self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
-        WtR = project(self.W, self.R)                                        # [n,K,3]
-        self.y = np.matmul(np.swapaxes(self.M, 1, 2), WtR)                   # U^T L^-1/2 W^T r
+        PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
+        self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
+        self._main = self._coeffs(self.T_main)
+        self._alt = None if self.T_alt is None else self._coeffs(self.T_alt)
+        self._custom = None if getattr(self, "_custom_T", None) is None else self._coeffs(self._custom_T)
+        self._mix = getattr(self, "_mix", 1.0)
+        self._apply_prior()
+
+    def _apply_prior(self) -> None:
+        if self._custom is not None:
+            self.T, (cT, WT) = self._custom_T, self._custom
+        elif self._alt is None or self._mix == 1.0:
+            self.T, (cT, WT) = self.T_main, self._main
+        else:
+            a = self._mix
+            self.T = a * self.T_main + (1.0 - a) * self.T_alt
+            cT = a * self._main[0] + (1.0 - a) * self._alt[0]
+            WT = a * self._main[1] + (1.0 - a) * self._alt[1]
+        self.c = self.cR - cT                                                # V^T P^T (r - W t)  [n,r,c]
+        self.e0 = self.R - WT                                                # r - W t  [F,n,c]
+        self.e0n = np.ascontiguousarray(self.e0.transpose(1, 0, 2))          # the same, [n,F,c]
 
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
-        self.z = self.z_main if self.z_alt is None else alpha * self.z_main + (1.0 - alpha) * self.z_alt
+        self._custom_T, self._custom = None, None
+        self._mix = float(alpha)
+        self._apply_prior()
 
     def set_prior(self, prior_deltas) -> None:
-        """Use the prior ``prior_deltas[K,n,3]`` (eq. 2's T_j, on this fit's vertices) from now on."""
-        self.z = self._prior_coef(prior_deltas)
+        """Use the prior ``prior_deltas[K,n,c]`` (eq. 2's T_j, on this fit's vertices) from now on."""
+        self._custom_T = np.asarray(prior_deltas, dtype=np.float64)
+        self._custom = self._coeffs(self._custom_T)
+        self._apply_prior()
 
     def data_share(self, reg: float) -> np.ndarray:
         """Per vertex and shape, the share of the fitted shape determined by the frames rather than the prior:
@@ -160,41 +282,77 @@ class PositionFit:
 
         Since ``b_v = A_v^-1 W^T r_v + A_v^-1 reg L_v t_v`` and the two matrices sum to the identity, entry
         ``(v, j)`` is how much of ``b_vj`` follows the data (1) rather than the prior (0): 0 for a shape with
-        zero training weight, -> 1 for a shape isolated in a frame as ``reg`` -> 0. In the eigenbasis it is
-        ``sum_k U_jk^2 s_k / (s_k + reg)`` (the per-shape effective degrees of freedom)."""
-        return np.einsum("njk,nk->nj", self.U ** 2, self.s / (self.s + reg))
-
-    def _coef(self, reg: float) -> np.ndarray:
-        return (self.y + reg * self.z) / (self.s + reg)[:, :, None]          # [n,K,3]
+        zero training weight, -> 1 for a shape isolated in a frame as ``reg`` -> 0. In the reduced basis it
+        is ``L_jj^-1 sum_k (B V)_jk^2 / (mu_k + reg)`` (the per-shape effective degrees of freedom)."""
+        return self.inv_l * np.matmul(self.BV ** 2, (1.0 / (self.mu + reg))[:, :, None])[:, :, 0]
 
     def solve(self, reg: float) -> np.ndarray:
-        """Deltas ``[K,n,3]`` minimising E_fit + reg * E_reg."""
-        return np.matmul(self.M, self._coef(reg)).transpose(1, 0, 2)
+        """Deltas ``[K,n,c]`` minimising E_fit + reg * E_reg."""
+        coef = self.c / (self.mu + reg)[:, :, None]
+        return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None) -> np.ndarray:
-        """Leave-one-frame-out residuals ``[F,n,3]`` (metres): frame i minus its prediction by the fit on the
+    def _loo_parts(self, regs, c, e0n):
+        """For ``regs[G]``: the leave-in residuals ``d[n,F,G,k]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
+        and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
+        products for the whole grid."""
+        regs = np.asarray(regs, dtype=np.float64)
+        n, F, r = self.Z.shape
+        g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
+        gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*k]
+        d = e0n[:, :, None, :] - np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
+        q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9) ** -2                      # [n,F,G]
+        return d, q
+
+    def loo_errors_mix(self, regs, alphas) -> np.ndarray:
+        """:meth:`loo_error` ``[A,G]`` for every prior blend ``alpha`` in ``alphas`` (:meth:`set_prior_mix`)
+        and ``reg`` in ``regs``: the LOO residual is affine in ``alpha``, so two grids give them all."""
+        alphas = np.asarray(alphas, dtype=np.float64)
+        if self._alt is None:
+            return np.broadcast_to(self.loo_errors(regs), (len(alphas), len(regs))).copy()
+        if len(alphas) == 1:
+            self.set_prior_mix(float(alphas[0]))
+            return self.loo_errors(regs)[None]
+        k = self.c.shape[2]
+        c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
+        e0n = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2).transpose(1, 0, 2)
+        d, q = self._loo_parts(regs, c, np.ascontiguousarray(e0n))
+        d1, d0 = d[..., :k], d[..., k:]
+        s11, s00, s01 = (np.einsum("nfgc,nfgc,nfg->g", x, y, q) for x, y in ((d1, d1), (d0, d0), (d1, d0)))
+        a = alphas[:, None]
+        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
+
+    def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
+                      vertices: np.ndarray | None = None) -> np.ndarray:
+        """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``.
 
         ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
         phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
-        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison)."""
-        # fitted frames W b_v = (W L^-1/2 U) coef_v = q_v coef_v: one batched product, b_v never formed
-        coef = self._coef(reg)
-        fitted = np.matmul(self.q, coef).transpose(1, 0, 2)                  # [F,n,3]
-        inv = 1.0 / (self.s + reg)
-        h = np.einsum("fnk,nk->fn", self.q2, inv)                            # [F,n]: w_i^T A^-1 w_i
-        e = (self.R - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison). ``vertices``: only these (indices into
+        this fit's vertices; the result is ``[F,len(vertices),c]``)."""
+        v = slice(None) if vertices is None else np.asarray(vertices)
+        mu, Z, c, e0 = self.mu[v], self.Z[v], self.c[v], self.e0[:, v]
+        g = mu / (mu + reg)
+        fitted = np.matmul(Z, g[:, :, None] * c)                                      # [n,F,c]
+        h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                                 # [n,F]
+        e = ((e0.transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
         if predict_weights is None:
             return e
-        qp = np.matmul(np.asarray(predict_weights, dtype=np.float64)[None], self.M)   # [n,F,K]
-        pred = np.matmul(qp, coef).transpose(1, 0, 2)                        # p_i^T b
-        cross = np.einsum("nfk,nfk,nk->fn", qp, self.q, inv)                 # p_i^T A^-1 w_i
-        return self.R - pred + cross[:, :, None] * e
+        Pw = np.asarray(predict_weights, dtype=np.float64)
+        inv = 1.0 / (mu + reg)                                                        # [n,r]
+        Xp = _left(Pw, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,F,r]
+        pred = blend(Pw, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)
+        cross = np.einsum("nfr,nfr,nr->fn", Xp, Z, inv)                               # p_i^T A^-1 w_i
+        return self.R[:, v] - pred + cross[:, :, None] * e
+
+    def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
+        d, q = self._loo_parts(regs, self.c, self.e0n)
+        per_frame = np.einsum("nfgc,nfgc,nfg->gf", d, d, q) / (d.shape[0] * d.shape[3])   # [G,F]
+        if frame_weights is not None:
+            return np.average(per_frame, axis=1, weights=frame_weights)
+        return per_frame.mean(axis=1)
 
     def loo_error(self, reg: float, frame_weights: np.ndarray | None = None) -> float:
         """Exact leave-one-frame-out mean squared residual (per vertex coordinate, metres^2) at ``reg``."""
-        e = self.loo_residuals(reg)
-        per_frame = np.mean(e ** 2, axis=(1, 2))
-        if frame_weights is not None:
-            return float(np.average(per_frame, weights=frame_weights))
-        return float(per_frame.mean())
+        return float(self.loo_errors([reg], frame_weights)[0])

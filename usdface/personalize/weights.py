@@ -14,25 +14,54 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reestimate_weights"]
+__all__ = ["reestimate_weights", "reestimate_weights_batched"]
 
 
 def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarray, phone_weights: np.ndarray,
-                       *, anchor: float, lower: float = 0.0, upper: float = 1.0,
-                       iterations: int = 150) -> np.ndarray:
+                       *, anchor, lower=0.0, upper=1.0, iterations: int = 150) -> np.ndarray:
     """Bounded, anchored weights ``[F,K]`` for ``points[F,n,3]`` given ``neutral[n,3]``, ``deltas[K,n,3]``
-    (metres) and the phone's ``phone_weights[F,K]``; ``anchor`` = ``(sigma_g / sigma_w)^2`` (metres^2)."""
-    B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)          # [K,3n]
-    r = (np.asarray(points, dtype=np.float64) - np.asarray(neutral)[None]).reshape(len(points), -1)   # [F,3n]
+    (metres) and the phone's ``phone_weights[F,K]``; ``anchor`` = ``(sigma_g / sigma_w)^2`` (metres^2).
+
+    ``anchor`` may also be a sequence of ``S`` values: then the ``S`` problems (one per prior width) are
+    solved together, ``[S,F,K]`` - the same iterates as ``S`` separate calls, in one loop."""
+    a = np.asarray(anchor, dtype=np.float64)
+    x = reestimate_weights_batched([(neutral, deltas, points)], phone_weights, np.atleast_1d(a)[None],
+                                   lower=lower, upper=upper, iterations=iterations)[0]
+    return x if a.ndim > 0 else x[0]
+
+
+def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.ndarray, *, lower=0.0,
+                               upper=1.0, iterations: int = 150) -> np.ndarray:
+    """:func:`reestimate_weights` for ``H`` vertex sets at once: ``problems`` = ``[(neutral[n_h,3],
+    deltas[K,n_h,3], points[F,n_h,3]), ...]``, ``anchors[H,S]`` -> weights ``[H,S,F,K]`` (the same iterates as
+    ``H x S`` separate calls, one loop)."""
     w0 = np.asarray(phone_weights, dtype=np.float64)
-    Q = B @ B.T + anchor * np.eye(len(B))                                       # [K,K]
-    c = r @ B.T + anchor * w0                                                   # [F,K]
-    step = 1.0 / np.linalg.eigvalsh(Q)[-1]
-    x = np.clip(w0, lower, upper)
+    a = np.asarray(anchors, dtype=np.float64)[:, :, None, None]                   # [H,S,1,1]
+    Gs, cs = [], []
+    for neutral, deltas, points in problems:
+        B = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), -1)        # [K,3n]
+        r = (np.asarray(points, dtype=np.float64) - np.asarray(neutral)[None]).reshape(len(points), -1)
+        Gs.append(B @ B.T)
+        cs.append(r @ B.T)
+    G = np.stack(Gs)[:, None]                                                   # [H,1,K,K]
+    c = np.stack(cs)[:, None] + a * w0                                          # [H,S,F,K]
+    step = 1.0 / (np.linalg.eigvalsh(G[:, 0])[:, -1][:, None, None, None] + a)  # 1 / L_max per problem
+    lo = np.broadcast_to(lower, w0.shape)
+    hi = np.broadcast_to(upper, w0.shape)
+    x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
     y, tk = x.copy(), 1.0
+    Ga = G + a * np.eye(G.shape[-1])                                  # [H,S,K,K]: G + a I
+    grad = np.empty_like(x)
+    x_new = np.empty_like(x)
     for _ in range(iterations):
-        x_new = np.clip(y - step * (y @ Q - c), lower, upper)
+        np.matmul(y, Ga, out=grad)
+        grad -= c
+        grad *= step
+        np.subtract(y, grad, out=x_new)
+        np.clip(x_new, lo, hi, out=x_new)
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
-        y = x_new + ((tk - 1.0) / t_new) * (x_new - x)
-        x, tk = x_new, t_new
+        np.subtract(x_new, x, out=y)                                            # y = x_new + m (x_new - x)
+        y *= (tk - 1.0) / t_new
+        y += x_new
+        x, x_new, tk = x_new, x, t_new
     return x
