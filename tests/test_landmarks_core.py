@@ -451,3 +451,22 @@ def test_batched_box_least_squares_matches_bvls():
 
     np.testing.assert_allclose(objective(w), objective(ref), rtol=1e-6, atol=1e-12)
     assert (np.linalg.norm(w, axis=1) <= np.linalg.norm(ref, axis=1) + 1e-6).all()
+
+
+def test_solve_weights_admm_start_reaches_the_bvls_optimum():
+    """The ADMM warm start only picks the active set: the weights are BVLS's optimum, for every frame."""
+    from scipy.optimize import lsq_linear
+
+    from usdface.landmarks.reconstruct import admm_box_start
+
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(12, 8, 3))  # 24 coordinates, 12 shapes: full column rank
+    a = d.reshape(12, 24).T
+    b = rng.uniform(-0.6, 1.6, (50, 12)) @ a.T + 0.2 * rng.normal(size=(50, 24))
+    w = solve_weights(d, b.reshape(50, 8, 3))
+    ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in b])
+    assert ((ref == 0.0) | (ref == 1.0)).sum() > 100  # many active bounds
+    np.testing.assert_allclose(w, ref, atol=1e-10)
+    start = admm_box_start(a.T @ a, b @ a, 0.0, 1.0, np.linalg.lstsq(a, b.T, rcond=None)[0].T)
+    assert ((start >= 0.0) & (start <= 1.0)).all()
+    assert np.mean((start <= 0.0) | (start >= 1.0)) > 0.3  # the bounds it found are exactly on them

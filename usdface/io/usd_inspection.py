@@ -176,6 +176,33 @@ def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
     return found
 
 
+def read_landmark_settings(stage_or_path) -> dict[str, dict[str, float]]:
+    """{mesh prim path -> {"epsilon": .., "alpha": ..}} of every authored landmark layout (the values the
+    layout was computed with; keys as in :func:`read_landmarks`, entries only for authored values)."""
+    from pxr import Usd
+
+    stage = stage_or_path
+    if isinstance(stage_or_path, str | Path):
+        from ..pipeline.validators import open_stage
+
+        stage = open_stage(stage_or_path)
+    found = {}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        attr = prim.GetAttribute("usdface:landmarks:vertexIndices")
+        if not attr or not attr.HasAuthoredValue():
+            continue
+        rel = prim.GetRelationship("usdface:landmarks:mesh")
+        targets = rel.GetTargets() if rel else []
+        key = str(targets[0]) if targets else str(prim.GetPath())
+        values = {}
+        for name in ("epsilon", "alpha"):
+            a = prim.GetAttribute(f"usdface:landmarks:{name}")
+            if a and a.HasAuthoredValue():
+                values[name] = float(a.Get())
+        found[key] = values
+    return found
+
+
 def generic_input(layer_path) -> Path | None:
     """The avatar a usdface layer was written over (its first sublayer, resolved), or None."""
     from pxr import Sdf

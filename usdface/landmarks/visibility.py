@@ -275,7 +275,7 @@ class PoseVisibility:
         union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
         return union < full
 
-    def _evaluate(self, todo: np.ndarray) -> np.ndarray:
+    def _evaluate(self, todo: np.ndarray, on_pose=None) -> np.ndarray:
         per = self._per_vertex
         n0, rays0, facing0, first, out = self._neutral_pass(todo)
         out = out.copy()
@@ -317,6 +317,8 @@ class PoseVisibility:
                         facing = facing0.copy()
                         facing[affected] = facing_k
             np.minimum(out, self._score(blocked, facing, normals), out=out)
+            if on_pose is not None:
+                on_pose(k + 1, len(self.deltas))
         return out
 
     def upper_bound(self, vertices: np.ndarray | None = None) -> np.ndarray:
@@ -327,11 +329,12 @@ class PoseVisibility:
             self._neutral_pass(todo)
         return np.where(np.isnan(self.values[idx]), self.upper[idx], self.values[idx])
 
-    def __call__(self, vertices: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, vertices: np.ndarray | None = None, on_pose=None) -> np.ndarray:
+        """l ``[v]`` of ``vertices`` (default all); ``on_pose(done, total)`` after each pose (progress)."""
         idx = np.arange(len(self.neutral)) if vertices is None else np.asarray(vertices, dtype=np.int64)
         todo = np.unique(idx[np.isnan(self.values[idx])])
         if todo.size:
-            self.values[todo] = self._evaluate(todo)
+            self.values[todo] = self._evaluate(todo, on_pose)
         return self.values[idx].copy()
 
 
