@@ -275,15 +275,30 @@ class PoseVisibility:
         union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
         return union < full
 
+    @property
+    def order(self) -> np.ndarray:
+        """Shape poses in evaluation order ``[K]``, most moving triangles first: big motions occlude most, so
+        vertices reach l = 0 (after which no later pose can lower them, and none is cast) early."""
+        if "order" not in self._cache:
+            size = np.array([int(self._moving(k)[1].sum()) for k in range(len(self.deltas))], dtype=np.int64)
+            self._cache["order"] = np.argsort(-size, kind="stable")
+        return self._cache["order"]
+
     def _evaluate(self, todo: np.ndarray, on_pose=None) -> np.ndarray:
         per = self._per_vertex
-        n0, rays0, facing0, first, out = self._neutral_pass(todo)
+        n0_all, rays0_all, facing0_all, first_all, out = self._neutral_pass(todo)
         out = out.copy()
-        for k in range(len(self.deltas)):
-            moves, moving_t, touched = self._moving(k)
-            if not moves:
+        for done, k in enumerate(self.order, start=1):
+            moves, moving_t, touched = self._moving(int(k))
+            live = np.flatnonzero(out > 0.0)  # l = 0 is final: a minimum cannot fall further
+            if not moves or live.size == 0:
+                if on_pose is not None:
+                    on_pose(done, len(self.deltas))
                 continue
-            affected = touched[todo]  # origin or normal may change: recast from the pose
+            ray_ids = (live[:, None] * per + np.arange(per)[None, :]).ravel()
+            n0, rays0, first = n0_all[live], rays0_all[ray_ids], first_all[ray_ids]
+            facing0 = None if facing0_all is None else facing0_all[live]
+            affected = touched[todo[live]]  # origin or normal may change: recast from the pose
             same = ~np.repeat(affected, per)
             # a neutral ray first blocked by a triangle this shape leaves in place stays blocked
             blocked = same & (first >= 0) & ~moving_t[np.maximum(first, 0)]
@@ -307,7 +322,7 @@ class PoseVisibility:
                         return self._cast(sc, rays)
                 blocked[recast] = cast_pose(rays0[recast])
                 if affected.any():
-                    verts = todo[affected]
+                    verts = todo[live[affected]]
                     nk = self._normals_at(pose, verts)
                     rays_k, facing_k = self._make_rays(pose[verts], nk)
                     blocked[~same] = cast_pose(rays_k)
@@ -316,9 +331,9 @@ class PoseVisibility:
                     if facing0 is not None:
                         facing = facing0.copy()
                         facing[affected] = facing_k
-            np.minimum(out, self._score(blocked, facing, normals), out=out)
+            out[live] = np.minimum(out[live], self._score(blocked, facing, normals))
             if on_pose is not None:
-                on_pose(k + 1, len(self.deltas))
+                on_pose(done, len(self.deltas))
         return out
 
     def upper_bound(self, vertices: np.ndarray | None = None) -> np.ndarray:
