@@ -297,8 +297,6 @@ def _brute_pose_visibility(points, tri, offset, rays=16, camera=None):
 @pytest.mark.parametrize("strategy", ["full", "union", "auto"])
 @pytest.mark.parametrize("camera", [None, [0.3, 0.04, 0.06]])
 def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
-    from usdface.landmarks.visibility import _offset
-
     rig = random_rig(15, seed=9)
     rig.neutral[:, 2] += 0.03 * np.sin(60 * rig.neutral[:, 0])  # ripples: real self-occlusion
     pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16, camera=camera)
@@ -308,7 +306,7 @@ def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
     fast = pv()
     np.testing.assert_array_equal(fast[half], first)
     poses = [rig.neutral] + [rig.neutral + d for d in rig.deltas]
-    off = _offset(rig.neutral, rig.triangles)
+    off = pv.offset
     brute = np.min([_brute_pose_visibility(p, rig.triangles, off, 16, camera) for p in poses], axis=0)
     assert 0.2 < (fast < 1).mean() < 1.0
     np.testing.assert_array_equal(fast, brute)
@@ -470,3 +468,33 @@ def test_solve_weights_admm_start_reaches_the_bvls_optimum():
     start = admm_box_start(a.T @ a, b @ a, 0.0, 1.0, np.linalg.lstsq(a, b.T, rcond=None)[0].T)
     assert ((start >= 0.0) & (start <= 1.0)).all()
     assert np.mean((start <= 0.0) | (start >= 1.0)) > 0.3  # the bounds it found are exactly on them
+
+
+def test_ray_offset_is_physical_and_the_same_at_every_resolution():
+    """The ray start offset is a share of the face size, not of the edge length: a subdivided copy of the
+    same surface (4x the triangles) gets the same offset, and the original vertices the same visibility."""
+    import sys
+    from pathlib import Path
+
+    from usdface.landmarks.visibility import RAY_OFFSET, face_size
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from scale_avatars import midpoint_subdivide
+
+    points, tri = grid_mesh()
+    points[:, 2] += 0.01 * np.sin(80 * points[:, 0])  # ripples: self-occlusion
+    deltas = np.stack([bump(points, (0.01, 0.04), amplitude=0.006), bump(points, (-0.02, 0.02))])
+    fine_p, fine_t, fine_d = midpoint_subdivide(points, tri, deltas)
+    coarse = PoseVisibility(points, tri, deltas, rays=16)
+    fine = PoseVisibility(fine_p, fine_t, fine_d, rays=16)
+    # the same up to where the 5 % face threshold falls between vertices (a share of the mean edge: 2x apart)
+    assert np.isclose(coarse.offset, fine.offset, rtol=0.05)
+    mag = np.linalg.norm(deltas, axis=2)
+    share = (mag / mag.max(axis=1, keepdims=True)).max(axis=0)
+    assert np.isclose(coarse.offset, RAY_OFFSET * face_size(points, share))
+    # the original vertices: same position, same normal direction (corner triangles are scaled copies) ->
+    # the same rays against the same surface
+    inner = np.flatnonzero((np.abs(points[:, 0]) < 0.045) & (points[:, 1] > 0.005) & (points[:, 1] < 0.075))
+    a, b = coarse(inner), fine(inner)
+    assert (a < 1).mean() > 0.2
+    assert np.mean(np.abs(a - b) <= 1 / 16 + 1e-12) > 0.97

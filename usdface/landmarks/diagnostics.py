@@ -23,10 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import candidates as cand
-from .visibility import PoseVisibility
+from .visibility import FACE_SHARE, PoseVisibility
 
-#: Default share of a shape's peak displacement above which a vertex belongs to the diagnosed region.
-REGION_SHARE = 0.05
+#: Default share of a shape's peak displacement above which a vertex belongs to the diagnosed region: the
+#: face, as the ray offset's face size defines it.
+REGION_SHARE = FACE_SHARE
 
 
 @dataclass
