@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import add_name_map_option
-from .options import finite_float, positive_int
+from .options import add_quiet, finite_float, positive_int
 
 
 def register(subparsers) -> None:
@@ -36,6 +36,7 @@ def register(subparsers) -> None:
                    help="hemisphere rays per vertex for --diagnostics (16, as 'usdface landmarks')")
     p.add_argument("--capture", action="store_true", help="FILE is a capture (.usda); folders always are")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 
