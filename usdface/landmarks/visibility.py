@@ -113,7 +113,9 @@ COST_US = {"build": 0.5, "cast": 0.3}
 class PoseVisibility:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4) of any vertex subset, min over all poses.
 
-    ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. The poses are the neutral and
+    ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres (``magnitudes[K, n]``: their
+    norms, when the caller has them, :func:`usdface.landmarks.candidates.displacement_magnitudes`). The poses
+    are the neutral and
     each shape at weight 1. ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with
     ``camera[3]`` metres in the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are
     cached per vertex. :meth:`upper_bound` is the neutral pose's visibility alone: an upper bound of l_n at
@@ -132,7 +134,7 @@ class PoseVisibility:
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
-                 camera=None):
+                 camera=None, magnitudes: np.ndarray | None = None):
         neutral = np.asarray(neutral, dtype=np.float64)
         deltas = np.asarray(deltas, dtype=np.float64)
         if not np.isfinite(neutral).all() or not np.isfinite(deltas).all():
@@ -148,7 +150,7 @@ class PoseVisibility:
         self._moving_v = np.zeros((len(deltas), len(neutral)), dtype=bool)
         share = np.zeros(len(neutral))
         for k in range(len(deltas)):
-            mag = np.linalg.norm(deltas[k], axis=1)
+            mag = np.linalg.norm(deltas[k], axis=1) if magnitudes is None else magnitudes[k]
             self._moving_v[k] = mag > STATIC_OFFSET
             peak = mag.max(initial=0.0)
             if peak > 0.0:
@@ -277,9 +279,11 @@ class PoseVisibility:
         key = ("union scene", k)
         if key in self._cache:
             return self._cache[key]
-        tri = self.triangles[ever]
-        used, local = np.unique(tri, return_inverse=True)
-        scene = _scene(pose[used], local.reshape(-1, 3))
+        if "union buffer" not in self._cache:  # the same compact vertex buffer for every pose
+            used, local = np.unique(self.triangles[ever], return_inverse=True)
+            self._cache["union buffer"] = (used, local.reshape(-1, 3))
+        used, tri = self._cache["union buffer"]
+        scene = _scene(pose[used], tri)
         self.scenes_built += 1
         if self._cached_triangles + len(tri) <= self.cache_triangles:
             self._cache[key] = scene
