@@ -121,7 +121,7 @@ def _diagnostics(args, path: Path, rig) -> None:
     prim = rig.source.prim if rig.source else None
     layouts = read_landmarks(path)
     settings = read_landmark_settings(path).get(prim, {})
-    with steps("render --diagnostics", 3) as p:
+    with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
         if prim in layouts:
             vertices = layouts[prim]
             epsilon, alpha = settings.get("epsilon", 0.5), settings.get("alpha", 0.5)
