@@ -51,7 +51,8 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
               color=_SKIN):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
-    map with shading). Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
+    map with shading; faces with a NaN value drawn as plain skin). Returns the ``PolyCollection`` (a
+    colour-bar mappable when ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
     rot = VIEWS[view]
@@ -213,25 +214,11 @@ def render_heatmap(points, triangles, values, out=None, *, label: str = "error (
 def render_landmarks(points, triangles, indices, out=None, *, labels=None, view: str = "front",
                      force: bool = False, title: str | None = None):
     """Landmark vertices ``indices[m]`` as dots on the mesh (optionally numbered with ``labels[m]``)."""
-    indices = np.asarray(indices, dtype=np.int64).ravel()
-    points = np.asarray(points, dtype=np.float64)
-    if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
-        raise UsdFaceError(f"landmark index out of range [0, {len(points)})",
-                           fix="use vertex indices of this mesh")
+    indices = _check_landmarks(points, indices)
     fig, axes = _figure(1, size=5.0)
     draw_mesh(axes[0], points, triangles, view=view)
-    from .mesh import vertex_normals
-
-    rotated = points @ VIEWS[view].T
-    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0  # landmarks on the far side are hidden
-    xy = rotated[indices][:, :2]
-    axes[0].scatter(xy[visible, 0], xy[visible, 1], s=14, c="#1f77b4", edgecolors="white", linewidths=0.6,
-                    zorder=3)
-    if labels is not None:
-        for (x, y), text, shown in zip(xy, labels, visible, strict=True):
-            if shown:
-                axes[0].annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
-    hidden = int((~visible).sum())
+    hidden = _landmark_dots(axes[0], points, triangles, indices, view, labels, colour="#1f77b4",
+                            edge="white")
     far = f" ({hidden} on the far side)" if hidden else ""
     axes[0].set_title(title or f"{indices.size} landmarks{far}")
     if out is not None:
@@ -239,15 +226,25 @@ def render_landmarks(points, triangles, indices, out=None, *, labels=None, view:
     return fig
 
 
-def _landmark_dots(ax, points, triangles, indices, view: str, labels=None) -> int:
-    """Landmarks ``indices[m]`` as dots (those facing the view) on ``ax``; returns how many face away."""
+def _check_landmarks(points, indices) -> np.ndarray:
+    """``indices`` as int64 ``[m]``, or :class:`UsdFaceError` when one is not a vertex of ``points``."""
+    indices = np.asarray(indices, dtype=np.int64).ravel()
+    if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
+        raise UsdFaceError(f"landmark index out of range [0, {len(points)})",
+                           fix="use vertex indices of this mesh")
+    return indices
+
+
+def _landmark_dots(ax, points, triangles, indices, view: str, labels=None, colour: str = "#00c8ff",
+                   edge: str = "black") -> int:
+    """Landmarks ``indices[m]`` as dots on ``ax``, those on the far side of the view hidden; returns how many
+    are hidden."""
     from .mesh import vertex_normals
 
     rotated = np.asarray(points, dtype=np.float64) @ VIEWS[view].T
     visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0
     xy = rotated[indices][:, :2]
-    ax.scatter(xy[visible, 0], xy[visible, 1], s=16, c="#00c8ff", edgecolors="black", linewidths=0.7,
-               zorder=3)
+    ax.scatter(xy[visible, 0], xy[visible, 1], s=16, c=colour, edgecolors=edge, linewidths=0.7, zorder=3)
     if labels is not None:
         for (x, y), text, shown in zip(xy, labels, visible, strict=True):
             if shown:
@@ -261,11 +258,8 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
     2022, Figs. 3 and 5). ``panels``: a list of ``(title, values[n], colour map, vmin, vmax)``; NaN values
     (not evaluated) are drawn as plain skin. ``crop[v]``: vertex indices the view is framed on (default all).
     Returns the figure; saved to ``out`` when given."""
-    indices = np.asarray(indices, dtype=np.int64).ravel()
     points = np.asarray(points, dtype=np.float64)
-    if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
-        raise UsdFaceError(f"landmark index out of range [0, {len(points)})",
-                           fix="use vertex indices of this mesh")
+    indices = _check_landmarks(points, indices)
     fig, axes = _figure(len(panels), ncols=min(len(panels), 3), size=4.0)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     for ax, (name, values, cmap, vmin, vmax) in zip(axes, panels, strict=True):
