@@ -498,3 +498,17 @@ def test_ray_offset_is_physical_and_the_same_at_every_resolution():
     a, b = coarse(inner), fine(inner)
     assert (a < 1).mean() > 0.2
     assert np.mean(np.abs(a - b) <= 1 / 16 + 1e-12) > 0.97
+
+
+def test_baselines_with_precomputed_features_are_the_same_layouts():
+    from usdface.landmarks.baselines import moving_vertices, pca_features
+
+    rig = random_rig(12, seed=4)
+    feats, moving = pca_features(rig.deltas), moving_vertices(rig.deltas)
+    for m in (3, 6):
+        assert np.array_equal(pca_kmeans_layout(rig.deltas, m, features=feats),
+                              pca_kmeans_layout(rig.deltas, m))
+        assert np.array_equal(delta_cluster_layout(rig.deltas, m, moving=moving),
+                              delta_cluster_layout(rig.deltas, m))
+        assert np.array_equal(random_layout(rig.deltas, m, seed=2, moving=moving),
+                              random_layout(rig.deltas, m, seed=2))
