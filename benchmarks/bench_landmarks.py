@@ -4,7 +4,8 @@
 
 1. ILP backends on the dev avatar's Head (eq. 5 after reduction; visibility computed once): median seconds
    to a proven optimum per OR-tools backend, with and without the problem reduction.
-2. The whole command (`usdface landmarks dev1/avatar.usdc -o ...`, a fresh process) wall time.
+2. The whole command (`usdface landmarks dev1/avatar.usdc -o ...`, a fresh process) wall time, and
+   ``compute_landmarks`` in-process: CPU seconds, rays cast, scenes built, vertices ray cast.
 3. A synthetic 237-shape, 20k-vertex model: reduction + ILP seconds, and compute_landmarks end to end.
 4. (--evaluate) reconstruction error vs landmark count on the dev avatar, Live Link Face takes as test
    weights, 0.5 mm tracking noise: this method's sweep vs the 68-point empirical layout and the baselines;
@@ -128,6 +129,36 @@ def bench_synthetic(repeat: int):
           f"{layout.problem['candidates']}")
 
 
+def bench_visibility(rig, repeat: int):
+    """compute_landmarks on the rig in-process: CPU seconds (median), rays cast, scenes built, vertices
+    evaluated (the work of eq. 4's lazy visibility)."""
+    from usdface.landmarks import compute_landmarks, visibility
+
+    made = []
+    original = visibility.PoseVisibility.__init__
+
+    def init(self, *a, **k):
+        original(self, *a, **k)
+        made.append(self)
+
+    visibility.PoseVisibility.__init__ = init
+    try:
+        cpu = []
+        for _ in range(repeat):
+            made.clear()
+            t = time.process_time()
+            layout = compute_landmarks(rig)
+            cpu.append(time.process_time() - t)
+    finally:
+        visibility.PoseVisibility.__init__ = original
+    pv, prob = made[0], layout.problem
+    print(f"\n## compute_landmarks, {rig.name} ({rig.n_vertices} vertices, {rig.n_shapes} shapes), median of "
+          f"{repeat}: {statistics.median(cpu):.2f} CPU-s; {layout.count} landmarks; rays cast "
+          f"{pv.rays_cast:,}, scenes built {pv.scenes_built}, visibility evaluated on "
+          f"{prob['visibility_evaluated']:,} of {prob['candidates']:,} candidates; ray offset "
+          f"{pv.offset * 1e6:.1f} um")
+
+
 def bench_evaluate(rig, out: Path, frames: int):
     from usdface.io.livelink import livelink_weights
     from usdface.landmarks.evaluate import evaluate_landmarks
@@ -138,13 +169,14 @@ def bench_evaluate(rig, out: Path, frames: int):
         w = livelink_weights(sorted((SHARED / "livelinkface").glob("*.csv")), rig.names, frames)
     indices = json.loads((SHARED / "ict-facekit" / "vertex_indices.json").read_text())
     empirical = indices["idx_to_landmark_verts"]
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     report = evaluate_landmarks(rig, w, empirical)
+    cpu = time.process_time() - cpu
     out.mkdir(parents=True, exist_ok=True)
     plot_evaluation(report, out / "landmarks_eval.png", title="dev1 Head")
     (out / "landmarks_eval.json").write_text(json.dumps(report.to_dict(), indent=2))
     print(f"\n## evaluation, dev1 Head, {len(w)} Live Link frames, 0.5 mm noise "
-          f"({time.perf_counter() - t:.0f} s); plot {out / 'landmarks_eval.png'}")
+          f"({time.perf_counter() - t:.0f} s wall, {cpu:.0f} CPU-s); plot {out / 'landmarks_eval.png'}")
     for key, value in report.summary.items():
         print(f"{key}: {value * 1e3:.4f} mm" if "rmse" in key and value is not None else f"{key}: {value}")
     best = {}
@@ -161,7 +193,8 @@ def main(argv=None) -> int:
     parser.add_argument("--evaluate", action="store_true")
     parser.add_argument("--frames", type=int, default=400)
     parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "landmarks_bench")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["backends", "command", "synthetic"])
+    parser.add_argument("--skip", nargs="*", default=[],
+                        choices=["backends", "command", "visibility", "synthetic"])
     args = parser.parse_args(argv)
     avatar = SHARED / "bench" / "dev1" / "avatar.usdc"
     rig = None
@@ -173,6 +206,8 @@ def main(argv=None) -> int:
             bench_backends(rig, args.repeat)
         if "command" not in args.skip:
             bench_command(avatar, max(1, args.repeat // 2 + 1))
+        if "visibility" not in args.skip:
+            bench_visibility(rig, max(1, args.repeat // 2 + 1))
     else:
         print(f"(no {avatar}: dev-avatar benchmarks skipped)")
     if "synthetic" not in args.skip:

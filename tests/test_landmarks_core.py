@@ -297,8 +297,6 @@ def _brute_pose_visibility(points, tri, offset, rays=16, camera=None):
 @pytest.mark.parametrize("strategy", ["full", "union", "auto"])
 @pytest.mark.parametrize("camera", [None, [0.3, 0.04, 0.06]])
 def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
-    from usdface.landmarks.visibility import _offset
-
     rig = random_rig(15, seed=9)
     rig.neutral[:, 2] += 0.03 * np.sin(60 * rig.neutral[:, 0])  # ripples: real self-occlusion
     pv = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays=16, camera=camera)
@@ -308,7 +306,7 @@ def test_pose_shortcut_equals_brute_force_minimum(camera, strategy):
     fast = pv()
     np.testing.assert_array_equal(fast[half], first)
     poses = [rig.neutral] + [rig.neutral + d for d in rig.deltas]
-    off = _offset(rig.neutral, rig.triangles)
+    off = pv.offset
     brute = np.min([_brute_pose_visibility(p, rig.triangles, off, 16, camera) for p in poses], axis=0)
     assert 0.2 < (fast < 1).mean() < 1.0
     np.testing.assert_array_equal(fast, brute)
@@ -451,3 +449,66 @@ def test_batched_box_least_squares_matches_bvls():
 
     np.testing.assert_allclose(objective(w), objective(ref), rtol=1e-6, atol=1e-12)
     assert (np.linalg.norm(w, axis=1) <= np.linalg.norm(ref, axis=1) + 1e-6).all()
+
+
+def test_solve_weights_admm_start_reaches_the_bvls_optimum():
+    """The ADMM warm start only picks the active set: the weights are BVLS's optimum, for every frame."""
+    from scipy.optimize import lsq_linear
+
+    from usdface.landmarks.reconstruct import admm_box_start
+
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(12, 8, 3))  # 24 coordinates, 12 shapes: full column rank
+    a = d.reshape(12, 24).T
+    b = rng.uniform(-0.6, 1.6, (50, 12)) @ a.T + 0.2 * rng.normal(size=(50, 24))
+    w = solve_weights(d, b.reshape(50, 8, 3))
+    ref = np.array([lsq_linear(a, r, bounds=(0.0, 1.0), method="bvls").x for r in b])
+    assert ((ref == 0.0) | (ref == 1.0)).sum() > 100  # many active bounds
+    np.testing.assert_allclose(w, ref, atol=1e-10)
+    start = admm_box_start(a.T @ a, b @ a, 0.0, 1.0, np.linalg.lstsq(a, b.T, rcond=None)[0].T)
+    assert ((start >= 0.0) & (start <= 1.0)).all()
+    assert np.mean((start <= 0.0) | (start >= 1.0)) > 0.3  # the bounds it found are exactly on them
+
+
+def test_ray_offset_is_physical_and_the_same_at_every_resolution():
+    """The ray start offset is a share of the face size, not of the edge length: a subdivided copy of the
+    same surface (4x the triangles) gets the same offset, and the original vertices the same visibility."""
+    import sys
+    from pathlib import Path
+
+    from usdface.landmarks.visibility import RAY_OFFSET, face_size
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from scale_avatars import midpoint_subdivide
+
+    points, tri = grid_mesh()
+    points[:, 2] += 0.01 * np.sin(80 * points[:, 0])  # ripples: self-occlusion
+    deltas = np.stack([bump(points, (0.01, 0.04), amplitude=0.006), bump(points, (-0.02, 0.02))])
+    fine_p, fine_t, fine_d = midpoint_subdivide(points, tri, deltas)
+    coarse = PoseVisibility(points, tri, deltas, rays=16)
+    fine = PoseVisibility(fine_p, fine_t, fine_d, rays=16)
+    # the same up to where the 5 % face threshold falls between vertices (a share of the mean edge: 2x apart)
+    assert np.isclose(coarse.offset, fine.offset, rtol=0.05)
+    mag = np.linalg.norm(deltas, axis=2)
+    share = (mag / mag.max(axis=1, keepdims=True)).max(axis=0)
+    assert np.isclose(coarse.offset, RAY_OFFSET * face_size(points, share))
+    # the original vertices: same position, same normal direction (corner triangles are scaled copies) ->
+    # the same rays against the same surface
+    inner = np.flatnonzero((np.abs(points[:, 0]) < 0.045) & (points[:, 1] > 0.005) & (points[:, 1] < 0.075))
+    a, b = coarse(inner), fine(inner)
+    assert (a < 1).mean() > 0.2
+    assert np.mean(np.abs(a - b) <= 1 / 16 + 1e-12) > 0.97
+
+
+def test_baselines_with_precomputed_features_are_the_same_layouts():
+    from usdface.landmarks.baselines import moving_vertices, pca_features
+
+    rig = random_rig(12, seed=4)
+    feats, moving = pca_features(rig.deltas), moving_vertices(rig.deltas)
+    for m in (3, 6):
+        assert np.array_equal(pca_kmeans_layout(rig.deltas, m, features=feats),
+                              pca_kmeans_layout(rig.deltas, m))
+        assert np.array_equal(delta_cluster_layout(rig.deltas, m, moving=moving),
+                              delta_cluster_layout(rig.deltas, m))
+        assert np.array_equal(random_layout(rig.deltas, m, seed=2, moving=moving),
+                              random_layout(rig.deltas, m, seed=2))

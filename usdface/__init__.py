@@ -15,6 +15,7 @@ _API = {
     "write_retarget_map", "personalize_batch", "check", "inspect_file",
 }
 _API |= {"write_review", "export_avatar"}  # usdface review / usdface export
+_API |= {"landmark_diagnostics"}  # usdface render --landmarks --diagnostics
 
 
 def __getattr__(name):

@@ -35,8 +35,9 @@ PathLike = str | Path
 
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
-    "compute_landmarks", "read_avatar", "pick_mesh", "read_capture", "write_capture", "import_capture_folder",
-    "select_capture_frames", "import_livelink_take", "write_landmarks", "evaluate_landmarks",
+    "compute_landmarks", "landmark_diagnostics", "read_avatar", "pick_mesh", "read_capture", "write_capture",
+    "import_capture_folder", "select_capture_frames", "import_livelink_take", "write_landmarks",
+    "evaluate_landmarks",
     "write_retarget_map", "personalize_batch", "check", "inspect_file",
 ]
 
@@ -434,6 +435,15 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **
     from .landmarks import compute_landmarks as _landmarks
 
     return _landmarks(rig, epsilon=epsilon, alpha=alpha, **options)
+
+
+def landmark_diagnostics(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **options: Any):
+    """The paper's per-vertex diagnostics of ``rig`` (visibility, relative displacement, importance weights;
+    ``usdface render --landmarks --diagnostics``); see
+    :func:`usdface.landmarks.diagnostics.landmark_diagnostics`."""
+    from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
+
+    return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
 
 
 def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_path: PathLike, *,

@@ -51,7 +51,8 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
               color=_SKIN):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
-    map with shading). Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
+    map with shading; faces with a NaN value drawn as plain skin). Returns the ``PolyCollection`` (a
+    colour-bar mappable when ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
     rot = VIEWS[view]
@@ -70,10 +71,13 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
         import matplotlib
 
         vals = np.asarray(values, dtype=np.float64)[tri[faces]].mean(axis=1)
-        lo = np.nanmin(vals) if vmin is None else vmin
-        hi = np.nanmax(vals) if vmax is None else vmax
+        known = np.isfinite(vals)  # NaN (not evaluated): plain shaded skin
+        lo = (np.min(vals[known]) if known.any() else 0.0) if vmin is None else vmin
+        hi = (np.max(vals[known]) if known.any() else 1.0) if vmax is None else vmax
         norm = matplotlib.colors.Normalize(lo, hi if hi > lo else lo + 1e-12)
-        rgb = matplotlib.colormaps[cmap](norm(vals))[:, :3] * (0.55 + 0.45 * shade[:, None])
+        rgb = matplotlib.colormaps[cmap](norm(np.where(known, vals, lo)))[:, :3]
+        rgb = rgb * (0.55 + 0.45 * shade[:, None])
+        rgb[~known] = 0.8 * np.asarray(color)[None, :] * shade[~known, None]
     else:
         rgb = np.asarray(color)[None, :] * shade[:, None]
     coll = PolyCollection(corners[faces][:, :, :2], facecolors=np.clip(rgb, 0, 1), edgecolors="none",
@@ -210,27 +214,71 @@ def render_heatmap(points, triangles, values, out=None, *, label: str = "error (
 def render_landmarks(points, triangles, indices, out=None, *, labels=None, view: str = "front",
                      force: bool = False, title: str | None = None):
     """Landmark vertices ``indices[m]`` as dots on the mesh (optionally numbered with ``labels[m]``)."""
+    indices = _check_landmarks(points, indices)
+    fig, axes = _figure(1, size=5.0)
+    draw_mesh(axes[0], points, triangles, view=view)
+    hidden = _landmark_dots(axes[0], points, triangles, indices, view, labels, colour="#1f77b4",
+                            edge="white")
+    far = f" ({hidden} on the far side)" if hidden else ""
+    axes[0].set_title(title or f"{indices.size} landmarks{far}")
+    if out is not None:
+        save_figure(fig, out, force)
+    return fig
+
+
+def _check_landmarks(points, indices) -> np.ndarray:
+    """``indices`` as int64 ``[m]``, or :class:`UsdFaceError` when one is not a vertex of ``points``."""
     indices = np.asarray(indices, dtype=np.int64).ravel()
-    points = np.asarray(points, dtype=np.float64)
     if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
         raise UsdFaceError(f"landmark index out of range [0, {len(points)})",
                            fix="use vertex indices of this mesh")
-    fig, axes = _figure(1, size=5.0)
-    draw_mesh(axes[0], points, triangles, view=view)
+    return indices
+
+
+def _landmark_dots(ax, points, triangles, indices, view: str, labels=None, colour: str = "#00c8ff",
+                   edge: str = "black") -> int:
+    """Landmarks ``indices[m]`` as dots on ``ax``, those on the far side of the view hidden; returns how many
+    are hidden."""
     from .mesh import vertex_normals
 
-    rotated = points @ VIEWS[view].T
-    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0  # landmarks on the far side are hidden
+    rotated = np.asarray(points, dtype=np.float64) @ VIEWS[view].T
+    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0
     xy = rotated[indices][:, :2]
-    axes[0].scatter(xy[visible, 0], xy[visible, 1], s=14, c="#1f77b4", edgecolors="white", linewidths=0.6,
-                    zorder=3)
+    ax.scatter(xy[visible, 0], xy[visible, 1], s=16, c=colour, edgecolors=edge, linewidths=0.7, zorder=3)
     if labels is not None:
         for (x, y), text, shown in zip(xy, labels, visible, strict=True):
             if shown:
-                axes[0].annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
-    hidden = int((~visible).sum())
-    far = f" ({hidden} on the far side)" if hidden else ""
-    axes[0].set_title(title or f"{indices.size} landmarks{far}")
+                ax.annotate(str(text), (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    return int((~visible).sum())
+
+
+def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *, view: str = "front",
+                                force: bool = False, title: str | None = None, crop=None):
+    """Heat maps of per-vertex diagnostics with the landmarks ``indices[m]`` dotted on each (Zell & McDonnell
+    2022, Figs. 3 and 5). ``panels``: a list of ``(title, values[n], colour map, vmin, vmax)``; NaN values
+    (not evaluated) are drawn as plain skin. ``crop[v]``: vertex indices the view is framed on (default all).
+    Returns the figure; saved to ``out`` when given."""
+    points = np.asarray(points, dtype=np.float64)
+    indices = _check_landmarks(points, indices)
+    fig, axes = _figure(len(panels), ncols=min(len(panels), 3), size=4.0)
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    for ax, (name, values, cmap, vmin, vmax) in zip(axes, panels, strict=True):
+        values = np.asarray(values, dtype=np.float64).ravel()
+        if values.shape[0] != len(points):
+            raise UsdFaceError(f"{values.shape[0]} values for {len(points)} vertices in panel {name!r}",
+                               fix="give one value per vertex")
+        coll = draw_mesh(ax, points, tri, values=values, cmap=cmap, vmin=vmin, vmax=vmax, view=view)
+        fig.colorbar(coll, ax=ax, shrink=0.7)
+        _landmark_dots(ax, points, tri, indices, view)
+        ax.set_title(name, fontsize=9)
+        if crop is not None and len(crop):
+            xy = (points[np.asarray(crop, dtype=np.int64)] @ VIEWS[view].T)[:, :2]
+            lo, hi = xy.min(axis=0), xy.max(axis=0)
+            pad = 0.06 * float(np.max(hi - lo) or 1.0)
+            ax.set_xlim(lo[0] - pad, hi[0] + pad)
+            ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    if title:
+        fig.suptitle(title)
     if out is not None:
         save_figure(fig, out, force)
     return fig

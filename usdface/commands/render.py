@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import add_name_map_option
-from .options import finite_float
+from .options import add_quiet, finite_float, positive_int
 
 
 def register(subparsers) -> None:
@@ -28,8 +28,15 @@ def register(subparsers) -> None:
     mode.add_argument("--heatmap", nargs="?", const="", metavar="GENERIC",
                       help="RMS over shapes of |personalized - generic| per vertex (mm)")
     mode.add_argument("--landmarks", action="store_true", help="the landmark layout authored in FILE")
+    p.add_argument("--diagnostics", action="store_true",
+                   help="with --landmarks: the paper's diagnostics as heat maps with the landmarks (neutral "
+                        "and global visibility, what expressions hide, relative displacement, importance "
+                        "weights); FILE without a layout gets one computed with the landmarks defaults")
+    p.add_argument("--rays", type=positive_int, default=16,
+                   help="hemisphere rays per vertex for --diagnostics (16, as 'usdface landmarks')")
     p.add_argument("--capture", action="store_true", help="FILE is a capture (.usda); folders always are")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 
@@ -52,6 +59,10 @@ def run(args) -> int:
     from ..io.atomic import check_output_file
 
     path = Path(args.file)
+    if args.diagnostics and not args.landmarks:
+        from ..errors import LandmarkError
+
+        raise LandmarkError("--diagnostics draws a landmark layout", fix="pass --landmarks --diagnostics")
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture", inputs=[path])
     shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
     if path.is_dir() or args.capture:
@@ -65,7 +76,9 @@ def run(args) -> int:
         return 0
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
-    if args.landmarks:
+    if args.diagnostics:
+        _diagnostics(args, path, rig)
+    elif args.landmarks:
         from ..errors import LandmarkError
         from ..io.usd_inspection import read_landmarks
 
@@ -93,3 +106,37 @@ def run(args) -> int:
                              title=f"{path.name}: {rig.name}")
     print(f"wrote {args.output}")
     return 0
+
+
+def _diagnostics(args, path: Path, rig) -> None:
+    """``--landmarks --diagnostics``: the layout authored in FILE (or one computed with the defaults) over
+    the paper's per-vertex diagnostics."""
+    import numpy as np
+
+    from .. import api, render
+    from ..io.usd_inspection import read_landmark_settings, read_landmarks
+    from ..landmarks.diagnostics import diagnostic_panels
+    from ..progress import steps
+
+    prim = rig.source.prim if rig.source else None
+    layouts = read_landmarks(path)
+    settings = read_landmark_settings(path).get(prim, {})
+    with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
+        if prim in layouts:
+            vertices = layouts[prim]
+            epsilon, alpha = settings.get("epsilon", 0.5), settings.get("alpha", 0.5)
+            source = "authored"
+        else:
+            p.start(f"layout of {rig.name} (none authored: landmarks defaults)")
+            layout = api.compute_landmarks(rig, rays=args.rays)
+            vertices, epsilon, alpha, source = layout.vertices, layout.epsilon, layout.alpha, "computed"
+        p.start(f"visibility of {rig.name} ({rig.n_shapes + 1} poses)")
+        diag = api.landmark_diagnostics(rig, epsilon=epsilon, alpha=alpha, rays=args.rays)
+        p.start(f"draw {args.output.name}")
+        panels = diagnostic_panels(diag, vertices, rig.names)
+        summary = (f"{rig.name}: {len(vertices)} landmarks ({source}), epsilon {epsilon:g}, alpha {alpha:g}, "
+                   f"{diag.rays} rays")
+        render.render_landmark_diagnostics(rig.neutral, rig.triangles, panels, vertices, args.output,
+                                           view=args.view, force=args.force,
+                                           crop=np.flatnonzero(diag.c.any(axis=0)), title=summary)
+    print(summary)

@@ -155,8 +155,8 @@ def _canonical(names) -> list[str]:
     return [normalize_name(str(n)) or str(n) for n in names]
 
 
-def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
-    """{mesh prim path -> vertex indices} of every prim with ``usdface:landmarks:vertexIndices`` authored."""
+def _landmark_prims(stage_or_path):
+    """(mesh prim path, Points prim) of every prim with ``usdface:landmarks:vertexIndices`` authored."""
     from pxr import Usd
 
     stage = stage_or_path
@@ -164,15 +164,32 @@ def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
         from ..pipeline.validators import open_stage
 
         stage = open_stage(stage_or_path)
-    found = {}
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         attr = prim.GetAttribute("usdface:landmarks:vertexIndices")
         if not attr or not attr.HasAuthoredValue():
             continue
         rel = prim.GetRelationship("usdface:landmarks:mesh")
         targets = rel.GetTargets() if rel else []
-        key = str(targets[0]) if targets else str(prim.GetPath())
-        found[key] = np.array(attr.Get(), dtype=np.int64)
+        yield (str(targets[0]) if targets else str(prim.GetPath())), prim
+
+
+def read_landmarks(stage_or_path) -> dict[str, np.ndarray]:
+    """{mesh prim path -> vertex indices} of every prim with ``usdface:landmarks:vertexIndices`` authored."""
+    return {key: np.array(prim.GetAttribute("usdface:landmarks:vertexIndices").Get(), dtype=np.int64)
+            for key, prim in _landmark_prims(stage_or_path)}
+
+
+def read_landmark_settings(stage_or_path) -> dict[str, dict[str, float]]:
+    """{mesh prim path -> {"epsilon": .., "alpha": ..}} of every authored landmark layout (the values the
+    layout was computed with; keys as in :func:`read_landmarks`, entries only for authored values)."""
+    found = {}
+    for key, prim in _landmark_prims(stage_or_path):
+        values = {}
+        for name in ("epsilon", "alpha"):
+            attr = prim.GetAttribute(f"usdface:landmarks:{name}")
+            if attr and attr.HasAuthoredValue():
+                values[name] = float(attr.Get())
+        found[key] = values
     return found
 
 

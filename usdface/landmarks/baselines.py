@@ -46,32 +46,44 @@ def _nearest_to_centres(features: np.ndarray, count: int, seed: int) -> np.ndarr
     return np.unique(nearest)
 
 
-def pca_kmeans_layout(deltas: np.ndarray, count: int, variance: float = 0.99, seed: int = 0) -> np.ndarray:
-    """Cohen et al. 2002: ``deltas[K, n, 3]`` -> ``count`` (or fewer, if clusters share a vertex) vertices.
-
-    The motion matrix ``X[K, 3n]`` is decomposed by SVD; each vertex's row of the scaled PCA matrix
-    (its 3 coordinates x the components explaining ``variance`` of the motion) is clustered by k-means.
-    """
+def pca_features(deltas: np.ndarray, variance: float = 0.99) -> tuple[np.ndarray, np.ndarray]:
+    """Cohen et al. 2002's features: ``(moving[v], loadings[v, 3P])``, each moving vertex's row of the scaled
+    PCA matrix of the motion ``X[K, 3n]`` (its 3 coordinates x the P components explaining ``variance``)."""
     d = np.asarray(deltas, dtype=np.float64)
     moving = moving_vertices(d)
     x = d[:, moving].reshape(d.shape[0], -1)
     x = x - x.mean(axis=0, keepdims=True)
     _, s, vt = np.linalg.svd(x, full_matrices=False)
     keep = int(np.searchsorted(np.cumsum(s**2) / np.sum(s**2), variance) + 1)
-    loadings = (vt[:keep].T * s[:keep]).reshape(len(moving), 3 * keep)  # [v, 3P]
+    return moving, (vt[:keep].T * s[:keep]).reshape(len(moving), 3 * keep)
+
+
+def pca_kmeans_layout(deltas: np.ndarray, count: int, variance: float = 0.99, seed: int = 0,
+                      features: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Cohen et al. 2002: ``deltas[K, n, 3]`` -> ``count`` (or fewer, if clusters share a vertex) vertices.
+
+    The motion matrix ``X[K, 3n]`` is decomposed by SVD; each vertex's row of the scaled PCA matrix
+    (its 3 coordinates x the components explaining ``variance`` of the motion) is clustered by k-means.
+    ``features``: :func:`pca_features` of the same deltas, when a sweep over counts computed them once.
+    """
+    moving, loadings = pca_features(deltas, variance) if features is None else features
     return moving[_nearest_to_centres(loadings, count, seed)]
 
 
-def delta_cluster_layout(deltas: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """Reverdy et al. 2015: k-means on the delta-blendshape matrix rows ``[n, 3K]`` of the moving vertices."""
+def delta_cluster_layout(deltas: np.ndarray, count: int, seed: int = 0,
+                         moving: np.ndarray | None = None) -> np.ndarray:
+    """Reverdy et al. 2015: k-means on the delta-blendshape matrix rows ``[n, 3K]`` of the moving vertices
+    (``moving``: :func:`moving_vertices` of the same deltas, when already known)."""
     d = np.asarray(deltas, dtype=np.float64)
-    moving = moving_vertices(d)
+    moving = moving_vertices(d) if moving is None else moving
     rows = d[:, moving].transpose(1, 0, 2).reshape(len(moving), -1)
     return moving[_nearest_to_centres(rows, count, seed)]
 
 
-def random_layout(deltas: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` distinct moving vertices drawn uniformly at random."""
-    moving = moving_vertices(deltas)
+def random_layout(deltas: np.ndarray, count: int, seed: int = 0, moving: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """``count`` distinct moving vertices drawn uniformly at random (``moving`` as in
+    :func:`delta_cluster_layout`)."""
+    moving = moving_vertices(deltas) if moving is None else moving
     rng = np.random.default_rng(seed)
     return np.sort(rng.choice(moving, size=min(int(count), len(moving)), replace=False))

@@ -150,12 +150,14 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
         if emp is not None:
             points.append(EvaluationPoint("empirical", f"{emp.size} points", int(emp.size), err(emp)))
             advance("empirical")
+        pca = baselines.pca_features(rig.deltas)  # once for every count
         for m in counts:
-            v = baselines.pca_kmeans_layout(rig.deltas, m, seed=seed)
+            v = baselines.pca_kmeans_layout(rig.deltas, m, seed=seed, features=pca)
             points.append(EvaluationPoint("pca_kmeans", f"k={m}", int(v.size), err(v)))
-            v = baselines.delta_cluster_layout(rig.deltas, m, seed=seed)
+            v = baselines.delta_cluster_layout(rig.deltas, m, seed=seed, moving=region)
             points.append(EvaluationPoint("delta_cluster", f"k={m}", int(v.size), err(v)))
-            e = [err(baselines.random_layout(rig.deltas, m, seed=seed + s)) for s in range(random_seeds)]
+            e = [err(baselines.random_layout(rig.deltas, m, seed=seed + s, moving=region))
+                 for s in range(random_seeds)]
             points.append(EvaluationPoint("random", f"m={m} mean of {random_seeds}", m, float(np.mean(e))))
             advance(f"baselines at {m}")
     report = EvaluationReport(points, int(w.shape[0]), float(noise))

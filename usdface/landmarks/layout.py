@@ -217,7 +217,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         def upper_plain(vertices):
             return np.nan_to_num(known[vertices], nan=1.0)
     else:
-        pose_vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays, camera)
+        pose_vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays, camera, magnitudes=mag)
 
         def lookup_plain():
             return pose_vis.values

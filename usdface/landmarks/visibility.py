@@ -47,10 +47,23 @@ def _scene(points: np.ndarray, triangles: np.ndarray):
     return scene
 
 
-def _offset(points: np.ndarray, triangles: np.ndarray) -> float:
-    """Ray start offset (metres) along the normal: 1% of the mean edge length, to avoid self-hits."""
-    e = points[triangles[:, 1]] - points[triangles[:, 0]]
-    return 0.01 * float(np.mean(np.linalg.norm(e, axis=1))) if len(e) else 1e-6
+#: Ray start offset along the normal (metres), as a share of the face size (:func:`face_size`): a physical
+#: length, so a surface point gets the same rays at every mesh resolution (a share of the edge length would
+#: shrink 4x per subdivision). 1e-4 of a 0.42 m head is 42 um: far above the float32 rounding of the scene's
+#: coordinates (~0.1 um at 1.6 m), far below any gap between lips or lids.
+RAY_OFFSET = 1e-4
+#: A vertex belongs to the face when some shape moves it by at least this share of that shape's peak.
+FACE_SHARE = 0.05
+
+
+def face_size(neutral: np.ndarray, moving_share: np.ndarray | None = None) -> float:
+    """Diagonal (metres) of the box around the face: the vertices whose ``moving_share[n]`` (max over shapes
+    of |dv| / the shape's peak, eq. 2) is at least :data:`FACE_SHARE`; the whole mesh when none is given or
+    nothing moves. ``neutral[n, 3]`` metres."""
+    p = np.asarray(neutral, dtype=np.float64)
+    if moving_share is not None and (np.asarray(moving_share) >= FACE_SHARE).any():
+        p = p[np.asarray(moving_share) >= FACE_SHARE]
+    return float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if len(p) else 0.0
 
 
 def _hemisphere_rays(p: np.ndarray, n: np.ndarray, offset: float, rays: int) -> np.ndarray:
@@ -100,7 +113,9 @@ COST_US = {"build": 0.5, "cast": 0.3}
 class PoseVisibility:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4) of any vertex subset, min over all poses.
 
-    ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. The poses are the neutral and
+    ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres (``magnitudes[K, n]``: their
+    norms, when the caller has them, :func:`usdface.landmarks.candidates.displacement_magnitudes`). The poses
+    are the neutral and
     each shape at weight 1. ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with
     ``camera[3]`` metres in the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are
     cached per vertex. :meth:`upper_bound` is the neutral pose's visibility alone: an upper bound of l_n at
@@ -119,7 +134,7 @@ class PoseVisibility:
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
-                 camera=None):
+                 camera=None, magnitudes: np.ndarray | None = None):
         neutral = np.asarray(neutral, dtype=np.float64)
         deltas = np.asarray(deltas, dtype=np.float64)
         if not np.isfinite(neutral).all() or not np.isfinite(deltas).all():
@@ -131,7 +146,16 @@ class PoseVisibility:
         self.neutral, self.deltas = neutral, deltas
         self.rays = int(rays)
         self.camera = None if camera is None else np.asarray(camera, dtype=np.float64).reshape(3)
-        self.offset = _offset(neutral, self.triangles)
+        # one pass over the shapes: which vertices each moves (for the exact shortcut) and the face's extent
+        self._moving_v = np.zeros((len(deltas), len(neutral)), dtype=bool)
+        share = np.zeros(len(neutral))
+        for k in range(len(deltas)):
+            mag = np.linalg.norm(deltas[k], axis=1) if magnitudes is None else magnitudes[k]
+            self._moving_v[k] = mag > STATIC_OFFSET
+            peak = mag.max(initial=0.0)
+            if peak > 0.0:
+                np.maximum(share, mag / peak, out=share)
+        self.offset = max(RAY_OFFSET * face_size(neutral, share), 1e-9)
         self._neutral_scene = None
         self._neutral_normals = None
         self.values = np.full(len(neutral), np.nan)
@@ -167,7 +191,7 @@ class PoseVisibility:
         """(any vertex moves, moving_t[t] bool, touched[n] bool: vertex of a moving triangle) of shape k."""
         key = ("moving", k)
         if key not in self._cache:
-            moving_v = np.linalg.norm(self.deltas[k], axis=1) > STATIC_OFFSET
+            moving_v = self._moving_v[k]
             moving_t = moving_v[self.triangles].any(axis=1)
             touched = np.zeros(len(self.neutral), dtype=bool)
             touched[self.triangles[moving_t].ravel()] = True
@@ -255,9 +279,11 @@ class PoseVisibility:
         key = ("union scene", k)
         if key in self._cache:
             return self._cache[key]
-        tri = self.triangles[ever]
-        used, local = np.unique(tri, return_inverse=True)
-        scene = _scene(pose[used], local.reshape(-1, 3))
+        if "union buffer" not in self._cache:  # the same compact vertex buffer for every pose
+            used, local = np.unique(self.triangles[ever], return_inverse=True)
+            self._cache["union buffer"] = (used, local.reshape(-1, 3))
+        used, tri = self._cache["union buffer"]
+        scene = _scene(pose[used], tri)
         self.scenes_built += 1
         if self._cached_triangles + len(tri) <= self.cache_triangles:
             self._cache[key] = scene
@@ -275,15 +301,30 @@ class PoseVisibility:
         union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
         return union < full
 
-    def _evaluate(self, todo: np.ndarray) -> np.ndarray:
+    @property
+    def order(self) -> np.ndarray:
+        """Shape poses in evaluation order ``[K]``, most moving triangles first: big motions occlude most, so
+        vertices reach l = 0 (after which no later pose can lower them, and none is cast) early."""
+        if "order" not in self._cache:
+            size = np.array([int(self._moving(k)[1].sum()) for k in range(len(self.deltas))], dtype=np.int64)
+            self._cache["order"] = np.argsort(-size, kind="stable")
+        return self._cache["order"]
+
+    def _evaluate(self, todo: np.ndarray, on_pose=None) -> np.ndarray:
         per = self._per_vertex
-        n0, rays0, facing0, first, out = self._neutral_pass(todo)
+        n0_all, rays0_all, facing0_all, first_all, out = self._neutral_pass(todo)
         out = out.copy()
-        for k in range(len(self.deltas)):
-            moves, moving_t, touched = self._moving(k)
-            if not moves:
+        for done, k in enumerate(self.order, start=1):
+            moves, moving_t, touched = self._moving(int(k))
+            live = np.flatnonzero(out > 0.0)  # l = 0 is final: a minimum cannot fall further
+            if not moves or live.size == 0:
+                if on_pose is not None:
+                    on_pose(done, len(self.deltas))
                 continue
-            affected = touched[todo]  # origin or normal may change: recast from the pose
+            ray_ids = (live[:, None] * per + np.arange(per)[None, :]).ravel()
+            n0, rays0, first = n0_all[live], rays0_all[ray_ids], first_all[ray_ids]
+            facing0 = None if facing0_all is None else facing0_all[live]
+            affected = touched[todo[live]]  # origin or normal may change: recast from the pose
             same = ~np.repeat(affected, per)
             # a neutral ray first blocked by a triangle this shape leaves in place stays blocked
             blocked = same & (first >= 0) & ~moving_t[np.maximum(first, 0)]
@@ -307,7 +348,7 @@ class PoseVisibility:
                         return self._cast(sc, rays)
                 blocked[recast] = cast_pose(rays0[recast])
                 if affected.any():
-                    verts = todo[affected]
+                    verts = todo[live[affected]]
                     nk = self._normals_at(pose, verts)
                     rays_k, facing_k = self._make_rays(pose[verts], nk)
                     blocked[~same] = cast_pose(rays_k)
@@ -316,7 +357,9 @@ class PoseVisibility:
                     if facing0 is not None:
                         facing = facing0.copy()
                         facing[affected] = facing_k
-            np.minimum(out, self._score(blocked, facing, normals), out=out)
+            out[live] = np.minimum(out[live], self._score(blocked, facing, normals))
+            if on_pose is not None:
+                on_pose(done, len(self.deltas))
         return out
 
     def upper_bound(self, vertices: np.ndarray | None = None) -> np.ndarray:
@@ -327,11 +370,12 @@ class PoseVisibility:
             self._neutral_pass(todo)
         return np.where(np.isnan(self.values[idx]), self.upper[idx], self.values[idx])
 
-    def __call__(self, vertices: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, vertices: np.ndarray | None = None, on_pose=None) -> np.ndarray:
+        """l ``[v]`` of ``vertices`` (default all); ``on_pose(done, total)`` after each pose (progress)."""
         idx = np.arange(len(self.neutral)) if vertices is None else np.asarray(vertices, dtype=np.int64)
         todo = np.unique(idx[np.isnan(self.values[idx])])
         if todo.size:
-            self.values[todo] = self._evaluate(todo)
+            self.values[todo] = self._evaluate(todo, on_pose)
         return self.values[idx].copy()
 
 
