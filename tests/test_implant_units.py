@@ -95,3 +95,29 @@ def test_outliers_spread_over_the_capture_neighbourhood():
     ring = np.unique(tri[(tri == v).any(axis=1)])
     assert alone[0, v] and alone.sum() == 1
     assert len(ring) > 1 and spread[0, ring].all() and spread.sum() == len(ring)
+
+
+def test_field_is_averaged_over_the_same_patch_of_skin_at_every_resolution():
+    """``smoothing`` (m) sets the edge rings of the field's average from the mesh's edge length: a mesh twice
+    as fine averages over twice as many rings (at least ``rings``), so the same patch of skin."""
+    from usdface.transfer.implant import extend_personalization
+
+    def sheet(n):
+        xs, ys = np.meshgrid(np.linspace(0.0, 0.1, n), np.linspace(0.0, 0.1, n))
+        pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+        idx = np.arange(n * n).reshape(n, n)
+        a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        return pts, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+
+    rings = {}
+    for n in (21, 41):                                   # edges of 5 mm and 2.5 mm (diagonals longer)
+        pts, tri = sheet(n)
+        generic = np.zeros((1, len(pts), 3))
+        generic[0, :, 2] = 0.004 * np.exp(-np.sum((pts[:, :2] - 0.05) ** 2, axis=1) / 0.001)
+        weight = (pts[:, 0] < 0.06).astype(float)
+        _, field = extend_personalization(pts, tri, generic, 1.2 * generic, weight, length=0.05,
+                                          smoothing=0.012)
+        _, plain = extend_personalization(pts, tri, generic, 1.2 * generic, weight, length=0.05)
+        rings[n] = (field.rings, plain.rings)
+    assert rings[21][1] == rings[41][1] == 2                 # without: the same rings, half the skin
+    assert rings[21][0] >= 2 and rings[41][0] == 2 * rings[21][0]

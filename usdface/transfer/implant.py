@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import vertex_adjacency
 from ..motion import moving_vertices, peak_motion
 from .motion_field import (
     FieldExtension,
@@ -153,18 +154,20 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
-                           band: float = 0.0, rings: int = 2, keep_at=None):
+                           band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
     ``face_weight[m] > 0``). The rotation + scale field
     (:func:`usdface.transfer.motion_field.rotation_scale`) is measured where the face weight is 1, averaged
-    over ``rings`` edge rings with motion weights, extended by a screened harmonic solve (``length`` m, one
-    factorization for every shape) and applied to the generic motion; the result ramps from ``person`` to the
+    with motion weights over ``rings`` edge rings, or over as many as span ``smoothing`` metres (the
+    resolution the field was measured at: the same patch of skin whatever the mesh's resolution), extended
+    by a screened harmonic solve (``length`` m, one factorization for every shape) and applied to the
+    generic motion; the result ramps from ``person`` to the
     field over ``band`` metres inside the face region (:func:`seam_ramp`). Returns ``(result[J,m,3],
-    field)``: the field (:class:`FieldOnMesh`) kept at the vertices nearest to ``keep_at[q,3]`` (the other
-    meshes' points; None: every vertex of the moving part), so a production head does not hold
-    ``J x m x 9`` values for a few thousand teeth vertices.
+    field)``: the field (:class:`FieldOnMesh`, ``.rings`` the smoothing used) kept at the vertices nearest to
+    ``keep_at[q,3]`` (the other meshes' points; None: every vertex of the moving part), so a production head
+    does not hold ``J x m x 9`` values for a few thousand teeth vertices.
     """
     g = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
@@ -180,7 +183,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     x = np.asarray(points, dtype=np.float64)[domain]
     known = w0[domain] >= 1.0 - 1e-9
     ext = FieldExtension(x, sub_tri, known, length=length)
-    smoother = neighbourhood_matrix(sub_tri, domain.size, rings)
+    if smoothing and len(sub_tri):
+        from ..mesh import mean_edge_length
+
+        rings = max(rings, int(round(smoothing / mean_edge_length(x, sub_tri))))
     if keep_at is None:
         kept = np.arange(domain.size)
     else:
@@ -191,6 +197,13 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
     result = np.zeros_like(g)
     w = seam_ramp(points, w0, band)[domain]
+    # the measured field is used only where the extension reads it (known vertices next to unknown ones),
+    # where the result blends it in (the join) and where other meshes follow it: smoothed only there
+    touches_free = (vertex_adjacency(sub_tri, domain.size) @ (~known).astype(np.float64)) > 0
+    used = known & ((w < 1.0) | touches_free)
+    used[kept] = used[kept] | known[kept]
+    rows = np.flatnonzero(used)
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows)
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
@@ -201,21 +214,23 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         jj, vv = np.nonzero((mw > 0) & known[None])       # measured where known and the shape moves (sparse)
         phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv])
         mw = mw * valid
-        phi = smooth_field(phi, mw, sub_tri, rings=rings, neighbourhood=smoother)
+        phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
         field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
-    return result, FieldOnMesh(x[kept], field)
+    return result, FieldOnMesh(x[kept], field, rings)
 
 
 class FieldOnMesh:
-    """The person's field ``phi[J,d,3,3]`` (float32) at the vertices ``points[d,3]`` where it was computed."""
+    """The person's field ``phi[J,d,3,3]`` (float32) at the vertices ``points[d,3]`` where it was computed;
+    ``rings`` the edge rings it was averaged over."""
 
-    def __init__(self, points, phi):
+    def __init__(self, points, phi, rings: int = 0):
         self.points = points
         self.phi = phi
+        self.rings = rings
 
     def at(self, queries) -> np.ndarray:
         """``phi[J,q,3,3]`` at the nearest field vertex of each query point ``[q,3]``."""

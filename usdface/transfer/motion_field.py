@@ -75,30 +75,38 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     return phi, valid
 
 
-def neighbourhood_matrix(triangles, n: int, rings: int) -> sp.csr_matrix:
-    """``[n,n]`` 0/1 sparse matrix: vertices within ``rings`` edge rings of each other (self included)."""
+def neighbourhood_matrix(triangles, n: int, rings: int, rows=None) -> sp.csr_matrix:
+    """``[n,n]`` 0/1 sparse matrix: vertices within ``rings`` edge rings of each other (self included);
+    ``rows`` (indices): only those rows, ``[len(rows), n]`` (the cost of the rows that are used)."""
     adj = vertex_adjacency(triangles, n)
     adj = (adj + sp.eye(n)).tocsr()
     adj.data[:] = 1.0
-    out = adj
+    out = adj if rows is None else adj[np.asarray(rows, dtype=np.int64)]
     for _ in range(rings - 1):
         out = (out @ adj).tocsr()
         out.data[:] = 1.0
     return out
 
 
-def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None) -> np.ndarray:
+def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None, rows=None) -> np.ndarray:
     """Motion-weighted local average of ``phi[J,m,3,3]`` over ``rings`` edge rings, weights ``[J,m]``
-    (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves."""
+    (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves. ``rows`` (indices): only
+    there (0 elsewhere; ``neighbourhood`` is then :func:`neighbourhood_matrix` of those rows)."""
     phi = np.asarray(phi, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     n_shapes, m = w.shape
-    s = neighbourhood_matrix(triangles, m, rings) if neighbourhood is None else neighbourhood
-    num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [m, J*9]
-    den = s @ w.T                                                                                # [m, J]
-    out = num.reshape(m, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
+    s = neighbourhood_matrix(triangles, m, rings, rows) if neighbourhood is None else neighbourhood
+    r = s.shape[0]
+    num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [r, J*9]
+    den = s @ w.T                                                                                # [r, J]
+    out = num.reshape(r, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
-    return out.transpose(1, 0, 2).reshape(n_shapes, m, 3, 3)
+    out = out.transpose(1, 0, 2).reshape(n_shapes, r, 3, 3)
+    if rows is None:
+        return out
+    full = np.zeros((n_shapes, m, 3, 3))
+    full[:, np.asarray(rows, dtype=np.int64)] = out
+    return full
 
 
 class FieldExtension:

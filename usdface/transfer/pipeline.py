@@ -451,15 +451,19 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             others = [m for m in avatar.meshes if m is not face and _key(m) not in eyeballs_static]
             followers = [m for m in others if not _is_eyeball(m)]            # eyeballs keep their shapes
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
+            # the field is known at the capture's resolution: averaged over one placed capture edge
+            smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
             result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
                                                    person_face, weight, length=length,
-                                                   band=SEAM_BAND * radius, keep_at=keep_at)
+                                                   band=SEAM_BAND * radius, smoothing=smoothing,
+                                                   keep_at=keep_at)
             adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
             for m in others:
                 sub = _shape_deltas(m, names)
                 other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=is_rigid_part(m.neutral, sub))
                                   if any(m is x for x in followers) else sub)
-            report["extension"] = {"length_m": length, "face_radius_m": radius}
+            report["extension"] = {"length_m": length, "face_radius_m": radius,
+                                   "smoothing_rings": pfield.rings}
         else:
             base = {_key(m): (approx_eq4[_key(m)] if approximation == "retarget" else _shape_deltas(m, names))
                     for m in avatar.meshes}
