@@ -459,15 +459,12 @@ def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray,
     ops = find_openings(p, triangles) if openings is None else openings
     X = p + d
     if not ops:
-        if pairs is not None:
-            g = np.einsum("ij,ij->i", X[pairs.upper] - X[pairs.lower], pairs.direction)
-            bad = g < -float(tolerance)
-            return LipCrossings(pairs.lower[bad], -g[bad])
-        if opening_delta is None:
+        if pairs is None and opening_delta is None:
             raise GeometryError("lip check: the mesh has no opening (no boundary loop besides the rim)",
                                 fix="pass opening_delta (the rig's jawOpen offsets) to find the lips by "
                                     "their motion")
-        pairs = lip_pairs_from_motion(p, opening_delta, radius=radius)
+        if pairs is None:
+            pairs = lip_pairs_from_motion(p, opening_delta, radius=radius)
         g = np.einsum("ij,ij->i", X[pairs.upper] - X[pairs.lower], pairs.direction)
         bad = g < -float(tolerance)
         return LipCrossings(pairs.lower[bad], -g[bad])

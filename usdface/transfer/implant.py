@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import vertex_adjacency
-from ..motion import moving_vertices, peak_motion
+from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
     apply_field,
+    dilate,
     motion_weights,
     neighbourhood_matrix,
     rotation_scale,
@@ -91,21 +91,16 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     b = np.asarray(person_deltas, dtype=np.float64)
     p = np.asarray(prior_deltas, dtype=np.float64)
     t = np.asarray(template_deltas, dtype=np.float64)
-    nb, npr = np.linalg.norm(b, axis=-1), np.linalg.norm(p, axis=-1)
+    nb, npr = shape_norms(b), shape_norms(p)
     peak = np.maximum(nb.max(axis=1, keepdims=True), npr.max(axis=1, keepdims=True))
     cos = np.einsum("jnc,jnc->jn", b, p) / np.maximum(nb * npr, 1e-300)
     ratio = np.maximum(nb, npr) / np.maximum(np.minimum(nb, npr), 1e-300)
     incompatible = ((np.maximum(nb, npr) > significant * peak)
                     & ((cos < np.cos(np.radians(max_angle_deg))) | (ratio > max_ratio)))
-    d_pb = np.linalg.norm(p - b, axis=-1)
-    d_pt = np.linalg.norm(p - t, axis=-1)
-    d_bt = np.linalg.norm(b - t, axis=-1)
-    odd = np.minimum(d_pb, d_pt) > np.maximum(d_bt, significant * peak)
+    odd = (np.minimum(shape_norms(p - b), shape_norms(p - t))
+           > np.maximum(shape_norms(b - t), significant * peak))
     out = incompatible & odd
-    if triangles is not None and rings > 0 and out.any():
-        near = neighbourhood_matrix(triangles, out.shape[1], rings)
-        out = (near @ out.T.astype(np.float64)).T > 0
-    return out
+    return dilate(out, triangles, rings) if triangles is not None else out
 
 
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),
@@ -199,10 +194,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     w = seam_ramp(points, w0, band)[domain]
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
-    touches_free = (vertex_adjacency(sub_tri, domain.size) @ (~known).astype(np.float64)) > 0
-    used = known & ((w < 1.0) | touches_free)
-    used[kept] = used[kept] | known[kept]
-    rows = np.flatnonzero(used)
+    touches_free = np.zeros(domain.size, dtype=bool)          # shares a triangle (so an edge) with a free one
+    touches_free[sub_tri[(~known)[sub_tri].any(axis=1)].ravel()] = True
+    is_kept = np.zeros(domain.size, dtype=bool)
+    is_kept[kept] = True
+    rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows)
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))

@@ -30,7 +30,7 @@ from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
 __all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
-           "apply_field", "motion_weights"]
+           "dilate", "apply_field", "motion_weights"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -86,6 +86,16 @@ def neighbourhood_matrix(triangles, n: int, rings: int, rows=None) -> sp.csr_mat
         out = (out @ adj).tocsr()
         out.data[:] = 1.0
     return out
+
+
+def dilate(mask, triangles, rings: int) -> np.ndarray:
+    """``mask[..., n]`` (bool, per vertex; e.g. one row per shape) grown by ``rings`` edge rings."""
+    out = np.asarray(mask, dtype=bool)
+    if rings <= 0 or not out.any():
+        return out
+    near = neighbourhood_matrix(triangles, out.shape[-1], rings)
+    flat = out.reshape(-1, out.shape[-1]).T.astype(np.float64)                       # [n, rows]
+    return ((near @ flat) > 0).T.reshape(out.shape)
 
 
 def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None, rows=None) -> np.ndarray:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import RigError, UsdFaceError
+from ..errors import GeometryError, RigError, UsdFaceError
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
 from ..motion import moving_vertices, peak_motion, shape_norms
@@ -46,6 +46,7 @@ from .implant import (
     mapping_outliers,
     shape_confidence,
 )
+from .motion_field import dilate
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
 from .register import register_face
 from .retarget import approximate, retarget_weights
@@ -444,7 +445,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in
-            weight = weight * ~_dilate(disagree, face.triangles, 2)
+            weight = weight * ~dilate(disagree, face.triangles, 2)
             radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
             length = extension_length * radius if extension_length else None
             eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
@@ -547,16 +548,6 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                              written, fit)
 
 
-def _dilate(mask, triangles, rings: int):
-    """``mask[n]`` grown by ``rings`` edge rings."""
-    from .motion_field import neighbourhood_matrix
-
-    out = np.asarray(mask, dtype=bool)
-    if not out.any():
-        return out
-    return (neighbourhood_matrix(triangles, len(out), rings) @ out.astype(np.float64)) > 0
-
-
 def _key(m: FaceRig) -> str:
     return m.source.prim if m.source else m.name
 
@@ -615,7 +606,6 @@ def lip_report(points, triangles, names, generic, output) -> dict:
     found by their motion under the generic ``jawOpen``) per lip shape, generic beside output:
     ``{shape: {"generic": [count, deepest mm], "output": [count, deepest mm]}}``; ``{}`` without jawOpen.
     ``generic``/``output`` ``[J,m,3]`` in ``names`` order."""
-    from ..errors import GeometryError
     from ..personalize.contact import lip_crossings, lip_pairs_from_motion
 
     if "jawOpen" not in names:
