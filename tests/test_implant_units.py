@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from synthetic_meshes import grid_triangles
 
 from usdface.transfer.implant import mapping_outliers
 
@@ -104,10 +105,7 @@ def test_field_is_averaged_over_the_same_patch_of_skin_at_every_resolution():
 
     def sheet(n):
         xs, ys = np.meshgrid(np.linspace(0.0, 0.1, n), np.linspace(0.0, 0.1, n))
-        pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
-        idx = np.arange(n * n).reshape(n, n)
-        a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-        return pts, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+        return np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), grid_triangles(n, n)
 
     rings = {}
     for n in (21, 41):                                   # edges of 5 mm and 2.5 mm (diagonals longer)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from synthetic_meshes import grid_triangles
 
 from usdface.errors import GeometryError
 from usdface.personalize.align import kabsch, rigid_align
@@ -18,12 +19,7 @@ def bumpy_grid(nx=12, ny=10, seed=0):
     xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
     z = 0.01 * np.sin(30 * xs) * np.cos(25 * ys)
     pts = np.c_[xs.ravel(), ys.ravel(), z.ravel()]
-    tris = []
-    for j in range(ny - 1):
-        for i in range(nx - 1):
-            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
-            tris += [[a, b, d], [a, d, c]]
-    return pts, np.array(tris)
+    return pts, grid_triangles(nx, ny)
 
 
 @pytest.fixture(scope="module")

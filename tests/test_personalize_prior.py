@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+from synthetic_meshes import grid_triangles
 
 from usdface.errors import FitError
 from usdface.model import Capture, FaceRig, Frames
@@ -18,12 +19,7 @@ NEVER = [4, 5]          # shapes with weight 0 in every training frame
 def grid_mesh(nx=9, ny=8):
     xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
     neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel()) + 0.005 * np.cos(30 * ys.ravel())]
-    tris = []
-    for j in range(ny - 1):
-        for i in range(nx - 1):
-            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
-            tris += [[a, b, d], [a, d, c]]
-    return neutral, np.array(tris)
+    return neutral, grid_triangles(nx, ny)
 
 
 def prior_capture(seed=0):
