@@ -119,3 +119,58 @@ def test_field_is_averaged_over_the_same_patch_of_skin_at_every_resolution():
         rings[n] = (field.rings, plain.rings)
     assert rings[21][1] == rings[41][1] == 2                 # without: the same rings, half the skin
     assert rings[21][0] >= 2 and rings[41][0] == 2 * rings[21][0]
+
+
+def _sheet(n, size=0.1):
+    xs, ys = np.meshgrid(np.linspace(0.0, size, n), np.linspace(0.0, size, n))
+    return np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), grid_triangles(n, n)
+
+
+def _known_ring(pts):
+    """A square ring of known vertices (the face) enclosing a small unknown patch (a socket behind a hole)
+    inside a large unknown outside (the rest of the head)."""
+    r = np.max(np.abs(pts[:, :2] - 0.05), axis=1)
+    return (r > 0.012) & (r < 0.03), r <= 0.012
+
+
+def test_pockets_are_the_unknown_parts_smaller_than_the_known_region():
+    from usdface.mesh import triangle_areas
+    from usdface.transfer.motion_field import pockets
+
+    pts, tri = _sheet(41)
+    known, inner = _known_ring(pts)
+    mass = np.bincount(tri.ravel(), weights=np.repeat(triangle_areas(pts, tri) / 3.0, 3), minlength=len(pts))
+    found = pockets(tri, known, mass)
+    assert np.array_equal(found, inner)          # the socket, not the outside (larger than the ring)
+    assert not pockets(tri, np.zeros(len(pts), bool), mass).any()
+
+
+def test_the_field_fills_a_socket_without_fading_and_fades_outside():
+    """A constant known value: the screened extension keeps it in the enclosed socket (to 1e-9) and fades it
+    beyond the region over ``length``."""
+    from usdface.transfer.motion_field import extend_field
+
+    pts, tri = _sheet(41)
+    known, inner = _known_ring(pts)
+    out = extend_field(pts, tri, known, np.where(known, 1.0, 0.0)[:, None], length=0.01)[:, 0]
+    assert np.allclose(out[inner], 1.0, atol=1e-9)
+    far = np.max(np.abs(pts[:, :2] - 0.05), axis=1) > 0.045
+    assert out[far].max() < 0.5
+
+
+def test_the_field_is_not_measured_where_the_person_moves_more_than_the_person_model_allows():
+    """Known vertices whose personalized motion is more than ``MAX_RATIO`` times the generic (a mapping error
+    the capture-side test missed) do not set the field: an unknown patch next to them takes the field of the
+    consistent neighbours (scale 0.9), not a blend with the outlier's 3x."""
+    from usdface.transfer.implant import MAX_RATIO, extend_personalization
+
+    pts, tri = _sheet(41)
+    generic = np.zeros((1, len(pts), 3))
+    generic[0, :, 2] = 0.004
+    weight = (pts[:, 0] < 0.05).astype(float)
+    person = 0.9 * generic
+    rim = np.flatnonzero(np.isclose(pts[:, 0], 0.0475) & (np.abs(pts[:, 1] - 0.05) < 0.01))
+    person[0, rim] = (MAX_RATIO + 1.0) * generic[0, rim]
+    result, _ = extend_personalization(pts, tri, generic, person, weight, length=None)
+    beyond = pts[:, 0] > 0.06
+    assert np.allclose(result[0, beyond, 2], 0.9 * 0.004, rtol=1e-6)

@@ -208,7 +208,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         valid = np.zeros((k, domain.size), dtype=bool)
         mw = motion_weights(gd)
         jj, vv = np.nonzero((mw > 0) & known[None])       # measured where known and the shape moves (sparse)
-        phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv])
+        # the person model of :func:`mapping_outliers`: a vertex whose personalized motion is more than
+        # MAX_RATIO times longer or shorter than the generic says nothing about the field (a mapping error
+        # the capture-side test did not catch); its neighbours' field fills in
+        phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv], max_scale=MAX_RATIO)
         mw = mw * valid
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)

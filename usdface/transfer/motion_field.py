@@ -30,7 +30,7 @@ from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
 __all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
-           "dilate", "apply_field", "motion_weights"]
+           "dilate", "apply_field", "motion_weights", "pockets"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -119,6 +119,24 @@ def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None,
     return full
 
 
+def pockets(triangles, known, mass) -> np.ndarray:
+    """``[m]`` bool: the unknown vertices of the pockets behind the known region's holes - each connected
+    part of the unknown vertices whose area (``mass[m]``, lumped vertex areas) is smaller than the known
+    region's (the mouth and eye sockets behind a face; not the rest of the head beyond it)."""
+    from scipy.sparse.csgraph import connected_components
+
+    known = np.asarray(known, dtype=bool)
+    out = np.zeros(known.shape, dtype=bool)
+    free = np.flatnonzero(~known)
+    if free.size == 0 or not known.any():
+        return out
+    adj = vertex_adjacency(np.asarray(triangles), known.size).tocsr()
+    n_parts, label = connected_components(adj[free][:, free], directed=False)
+    part_area = np.bincount(label, weights=np.asarray(mass, dtype=np.float64)[free], minlength=n_parts)
+    out[free] = part_area[label] < float(np.sum(np.asarray(mass)[known]))
+    return out
+
+
 class FieldExtension:
     """Screened harmonic extension on one mesh, factorized once: :meth:`extend` maps ``values[m,c]`` given on
     ``known[m]`` to every vertex (see :func:`extend_field`)."""
@@ -137,6 +155,8 @@ class FieldExtension:
         if length:
             area = triangle_areas(x0, tri)
             mass = np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(x0))
+            # no fade inside the sockets behind the face's holes: their tissue moves with the lips and lids
+            mass[pockets(tri, self.known, mass)] = 0.0
             lap = (lap + sp.diags(mass / length ** 2)).tocsr()
         a_ff = lap[self.free][:, self.free]
         reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
@@ -156,8 +176,9 @@ def extend_field(points, triangles, known, values, *, length: float | None) -> n
     """Screened harmonic extension of ``values[m,c]`` given on ``known[m]`` to every vertex of the mesh.
 
     Minimises ``x^T (L + Mass / length^2) x`` over the unknown vertices with ``x = values`` on ``known``
-    (cotangent Laplacian ``L``, lumped vertex areas): the known values fill holes surrounded by them (a mouth
-    or eye socket) and fade to 0 over about ``length`` metres elsewhere; ``length=None`` is plain harmonic.
+    (cotangent Laplacian ``L``, lumped vertex areas, 0 on the :func:`pockets`): the known values fill the
+    pockets behind the region's holes (a mouth or eye socket) without fading, and fade to 0 over about
+    ``length`` metres elsewhere; ``length=None`` is plain harmonic.
     One sparse factorization for all ``c`` channels (:class:`FieldExtension`). Returns ``[m,c]``.
     """
     return FieldExtension(points, triangles, known, length=length).extend(values)
