@@ -174,3 +174,31 @@ def test_the_field_is_not_measured_where_the_person_moves_more_than_the_person_m
     result, _ = extend_personalization(pts, tri, generic, person, weight, length=None)
     beyond = pts[:, 0] > 0.06
     assert np.allclose(result[0, beyond, 2], 0.9 * 0.004, rtol=1e-6)
+
+
+def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
+    """Per shape: the jaw shape moves the mesh's lower part rigidly (``rigid_shapes`` True), the tongue's own
+    shape bends it (False). Following a field that differs between the head vertices nearest to the mesh,
+    the jaw shape stays one affine motion (no crease on the tongue), the tongue shape follows per vertex."""
+    from usdface.transfer.implant import FieldOnMesh, follow_field, rigid_shapes
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.02, 0.02, size=(300, 3))
+    lower = pts[:, 1] < 0.0
+    jaw = np.zeros((300, 3))
+    jaw[lower] = np.cross([0.15, 0.0, 0.0], pts[lower] - [0.0, 0.0, -0.05])       # a small jaw rotation
+    tongue = np.zeros((300, 3))
+    tongue[lower, 2] = 0.004 * np.sin(80.0 * pts[lower, 0])                       # a bend, not affine
+    deltas = np.stack([jaw, tongue])
+    assert rigid_shapes(pts, deltas).tolist() == [True, False]
+
+    head = np.array([[-0.03, -0.01, 0.0], [0.03, -0.01, 0.0]])        # two head vertices, two fields
+    phi = np.zeros((2, 2, 3, 3), dtype=np.float32)
+    phi[:, 0] = 0.2 * np.eye(3)
+    phi[:, 1] = -0.2 * np.eye(3)
+    out = follow_field(pts, deltas, FieldOnMesh(head, phi), rigid=rigid_shapes(pts, deltas))
+    x = np.column_stack([pts[lower], np.ones(lower.sum())])
+    coef = np.linalg.lstsq(x, out[0, lower], rcond=None)[0]
+    assert np.abs(x @ coef - out[0, lower]).max() < 1e-12                         # still one affine body
+    left = lower & (pts[:, 0] < -0.005)
+    assert np.allclose(out[1, left], 1.2 * tongue[left])      # per vertex: its nearest field

@@ -13,8 +13,8 @@ avatar is the person's absolute motion, not a deviation from the capture's templ
   rotation + scale field of the avatar's generic motion, extended smoothly (:mod:`.motion_field`,
   :func:`extend_personalization`), joined to the face seamlessly (the face-region weight ramps from the
   direct result to the field);
-* rigid parts (a mesh whose generic shapes move it rigidly, like the teeth with the jaw) follow the field as
-  one body (:func:`follow_field`).
+* in a shape that moves another mesh rigidly (the teeth, gums and tongue with the jaw) that mesh follows the
+  field as one body (:func:`rigid_shapes`, :func:`follow_field`).
 
 Pure numpy/scipy on arrays in internal metres, the avatar frame: ``points[m,3]``, ``deltas[J,m,3]``.
 """
@@ -40,7 +40,7 @@ SHAPE_CHUNK = 4
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
            "seam_ramp",
-           "follow_field", "is_rigid_part", "shape_confidence"]
+           "follow_field", "rigid_shapes", "shape_confidence"]
 
 
 def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar_deltas, *, poses=None):
@@ -239,26 +239,31 @@ class FieldOnMesh:
         return self.phi[:, nn].astype(np.float64)
 
 
-def is_rigid_part(points, deltas, *, tolerance: float = 0.1) -> bool:
-    """True when every shape moves the mesh ``points[m,3]`` (``deltas[K,m,3]``) as one affine body (residual
-    of the best affine motion below ``tolerance`` of the motion, for the shapes that move it): teeth and a
-    tongue that follow the jaw, not skin."""
+def rigid_shapes(points, deltas, *, tolerance: float = 0.1) -> np.ndarray:
+    """``[K]`` bool: the shapes that move the mesh ``points[m,3]`` (``deltas[K,m,3]``) as one affine body:
+    the residual of the best affine motion of the vertices the shape moves (more than 1e-3 of its peak) is
+    below ``tolerance`` of their motion (the lower teeth, gums and tongue under the jaw shapes; not the
+    tongue's own shapes)."""
     x = np.column_stack([np.asarray(points, dtype=np.float64), np.ones(len(points))])     # [m,4]
     d = np.asarray(deltas, dtype=np.float64)
-    mag = np.linalg.norm(d, axis=-1)
-    moving = np.flatnonzero(mag.max(axis=1) > 1e-3 * max(float(mag.max()), 1e-300))
-    if moving.size == 0 or len(points) < 4:
-        return False
-    flat = d[moving].transpose(1, 0, 2).reshape(len(points), -1)                         # [m, k*3]
-    coef = np.linalg.lstsq(x, flat, rcond=None)[0]
-    res = np.linalg.norm(x @ coef - flat) / max(float(np.linalg.norm(flat)), 1e-300)
-    return bool(res < tolerance)
+    mag = np.linalg.norm(d, axis=-1)                                                     # [K,m]
+    out = np.zeros(len(d), dtype=bool)
+    for j in np.flatnonzero(mag.max(axis=1) > 0):                # one small least squares per shape
+        moving = mag[j] > 1e-3 * mag[j].max()
+        if moving.sum() < 4:
+            continue
+        coef = np.linalg.lstsq(x[moving], d[j, moving], rcond=None)[0]
+        res = np.linalg.norm(x[moving] @ coef - d[j, moving]) / np.linalg.norm(d[j, moving])
+        out[j] = res < tolerance
+    return out
 
 
-def follow_field(points, deltas, field, *, rigid: bool):
+def follow_field(points, deltas, field, *, rigid=False):
     """Another mesh's shapes personalized by the head's field: ``deltas[J,k,3]`` on ``points[k,3]`` follow
-    the field (:class:`FieldOnMesh`) at the nearest head vertex; a ``rigid`` part takes one field per shape,
-    the motion-weighted mean over its vertices, so it stays one body."""
+    the field (:class:`FieldOnMesh`) at the nearest head vertex; in a shape that moves the mesh as one body
+    (``rigid``: bool, or ``[J]`` bool from :func:`rigid_shapes`) it takes one field, the motion-weighted mean
+    over its vertices, so the jaw's teeth and tongue stay one body (no crease where their nearest head
+    vertices change)."""
     d = np.asarray(deltas, dtype=np.float64)
     moving = np.flatnonzero(np.linalg.norm(d, axis=-1).max(axis=0) > 0)
     out = d.copy()
@@ -266,10 +271,11 @@ def follow_field(points, deltas, field, *, rigid: bool):
         return out
     phi = field.at(np.asarray(points, dtype=np.float64)[moving])                        # [J,k,3,3]
     dm = d[:, moving]
-    if rigid:
-        w = np.sum(dm * dm, axis=-1)                                                     # [J,k]
-        mean = np.einsum("jk,jkab->jab", w, phi) / np.maximum(w.sum(axis=1), 1e-300)[:, None, None]
-        phi = np.broadcast_to(mean[:, None], phi.shape)
+    one = np.broadcast_to(np.asarray(rigid, dtype=bool), (len(d),))
+    if one.any():
+        w = np.sum(dm[one] * dm[one], axis=-1)                                           # [r,k]
+        mean = np.einsum("jk,jkab->jab", w, phi[one]) / np.maximum(w.sum(axis=1), 1e-300)[:, None, None]
+        phi[one] = mean[:, None]
     out[:, moving] = apply_field(dm, phi)
     return out
 

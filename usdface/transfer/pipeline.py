@@ -42,8 +42,8 @@ from .implant import (
     face_personalization,
     face_radius,
     follow_field,
-    is_rigid_part,
     mapping_outliers,
+    rigid_shapes,
     shape_confidence,
 )
 from .motion_field import dilate
@@ -461,7 +461,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
             for m in others:
                 sub = _shape_deltas(m, names)
-                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=is_rigid_part(m.neutral, sub))
+                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
                                   if any(m is x for x in followers) else sub)
             report["extension"] = {"length_m": length, "face_radius_m": radius,
                                    "smoothing_rings": pfield.rings}
