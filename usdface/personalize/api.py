@@ -562,8 +562,10 @@ def significantly_better(per_frame_new, per_frame_old, *, level: float = SIGNIFI
     beyond-paper step (aligned frames, re-estimated weights) below the plain fit's ``per_frame_old[F]``
     at significance ``level`` (Bonferroni-corrected for ``comparisons`` candidates chosen on the same data)?
     Frames are the independent units (a frame's vertices share its noise and its misalignment). A gain within
-    the noise is not evidence the step helps on this capture, so the step stays off (the plain fit)."""
-    from scipy.stats import t as student_t
+    the noise is not evidence the step helps on this capture, so the step stays off (the plain fit).
+    The critical value is Student's t quantile ``scipy.special.stdtrit`` (``scipy.stats`` took 1-2 s to
+    import on a cold ``personalize``)."""
+    from scipy.special import stdtrit
 
     d = np.asarray(per_frame_old, dtype=np.float64) - np.asarray(per_frame_new, dtype=np.float64)
     F = len(d)
@@ -572,7 +574,7 @@ def significantly_better(per_frame_new, per_frame_old, *, level: float = SIGNIFI
     sd = d.std(ddof=1)
     if sd == 0:
         return True
-    return bool(d.mean() / (sd / np.sqrt(F)) > student_t.ppf(1.0 - level / comparisons, F - 1))
+    return bool(d.mean() / (sd / np.sqrt(F)) > stdtrit(F - 1, 1.0 - level / comparisons))
 
 
 def _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp=D_CLAMP):
