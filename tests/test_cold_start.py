@@ -58,3 +58,19 @@ def test_inspect_and_check_are_light(command):
 def test_probe_detects_an_imported_module():
     """The probe sees what the CLI did import (json, argparse), so an empty list above means something."""
     assert _heavy_modules(["--help"], ("argparse", "json", "open3d")) == ["argparse", "json"]
+
+
+#: What ``personalize`` never uses (landmark solver, plots, tables, batch schedulers, statistics/optimisers):
+#: deferred to where they are used, so the product command does not pay for them (``scipy.stats`` alone cost a
+#: cold run 1-2 s for one t quantile, now ``scipy.special.stdtrit``).
+PERSONALIZE_UNUSED = ("ortools", "matplotlib", "rich", "dask", "distributed", "scipy.optimize", "scipy.stats")
+
+
+def test_personalize_skips_the_stacks_it_does_not_use():
+    avatar, capture = SAMPLE / "avatar.usda", SAMPLE / "capture.usda"
+    if not (avatar.exists() and capture.exists()):
+        pytest.skip("no sample avatar/capture")
+    used = ("scipy.sparse", "scipy.spatial")     # what it does use: proves the probe saw a real run
+    found = _heavy_modules(["personalize", str(avatar), str(capture), "--dry-run", "-q"],
+                           PERSONALIZE_UNUSED + used)
+    assert found == sorted(used)
