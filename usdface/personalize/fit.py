@@ -300,8 +300,8 @@ class PositionFit:
         g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
         gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*k]
         d = e0n[:, :, None, :] - np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
-        q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9) ** -2                      # [n,F,G]
-        return d, q
+        q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9)
+        return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
 
     def loo_errors_mix(self, regs, alphas) -> np.ndarray:
         """:meth:`loo_error` ``[A,G]`` for every prior blend ``alpha`` in ``alphas`` (:meth:`set_prior_mix`)
@@ -317,7 +317,8 @@ class PositionFit:
         e0n = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2).transpose(1, 0, 2)
         d, q = self._loo_parts(regs, c, np.ascontiguousarray(e0n))
         d1, d0 = d[..., :k], d[..., k:]
-        s11, s00, s01 = (np.einsum("nfgc,nfgc,nfg->g", x, y, q) for x, y in ((d1, d1), (d0, d0), (d1, d0)))
+        s11, s00, s01 = (np.einsum("nfg,nfg->g", np.einsum("nfgc,nfgc->nfg", x, y), q)
+                         for x, y in ((d1, d1), (d0, d0), (d1, d0)))
         a = alphas[:, None]
         return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
 
@@ -348,7 +349,8 @@ class PositionFit:
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
         d, q = self._loo_parts(regs, self.c, self.e0n)
-        per_frame = np.einsum("nfgc,nfgc,nfg->gf", d, d, q) / (d.shape[0] * d.shape[3])   # [G,F]
+        sq = np.einsum("nfgc,nfgc->nfg", d, d)                       # two binary einsums: 2x one ternary
+        per_frame = np.einsum("nfg,nfg->gf", sq, q) / (d.shape[0] * d.shape[3])           # [G,F]
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)
