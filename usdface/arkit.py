@@ -20,6 +20,7 @@ and missing, and (with ``resolve=True``) keeps only the best of several channels
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass, field
 
@@ -164,6 +165,17 @@ def match_name(name: str, fallback: str | None = None,
     (the BlendShape prim's name), ``suffix`` / ``prefix`` (DCC decoration), ``unknown``.
     """
     name = str(name)
+    if not name_map:                       # pure in (name, fallback): every frame's weights repeat them
+        return _match_plain(name, None if fallback is None else str(fallback))
+    return _match(name, fallback, name_map)
+
+
+@functools.lru_cache(maxsize=8192)
+def _match_plain(name: str, fallback: str | None) -> tuple[str | None, str]:
+    return _match(name, fallback, None)
+
+
+def _match(name: str, fallback, name_map) -> tuple[str | None, str]:
     bare = undecorated(name)
     if name_map:
         for candidate in [name] + [b for b, _ in bare]:
