@@ -240,14 +240,16 @@ class PositionFit:
         return np.matmul(np.swapaxes(self.V, 1, 2), Bt), blend(self.W, T)
 
     def set_points(self, points) -> None:
-        """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition."""
+        """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition
+        (the priors' coefficients do not depend on the frames: computed once)."""
         self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
-        self._main = self._coeffs(self.T_main)
-        self._alt = None if self.T_alt is None else self._coeffs(self.T_alt)
-        self._custom = None if getattr(self, "_custom_T", None) is None else self._coeffs(self._custom_T)
-        self._mix = getattr(self, "_mix", 1.0)
+        if not hasattr(self, "_main"):
+            self._main = self._coeffs(self.T_main)
+            self._alt = None if self.T_alt is None else self._coeffs(self.T_alt)
+            self._custom_T, self._custom = None, None
+            self._mix = 1.0
         self._apply_prior()
 
     def _apply_prior(self) -> None:
@@ -272,7 +274,11 @@ class PositionFit:
 
     def set_prior(self, prior_deltas) -> None:
         """Use the prior ``prior_deltas[K,n,c]`` (eq. 2's T_j, on this fit's vertices) from now on."""
-        self._custom_T = np.asarray(prior_deltas, dtype=np.float64)
+        prior = np.asarray(prior_deltas, dtype=np.float64)
+        if self._custom_T is not None and self._custom_T.shape == prior.shape and np.array_equal(
+                self._custom_T, prior):
+            return                                  # the prior it holds (the alignment passes re-set it)
+        self._custom_T = prior
         self._custom = self._coeffs(self._custom_T)
         self._apply_prior()
 
