@@ -199,7 +199,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     is_kept = np.zeros(domain.size, dtype=bool)
     is_kept[kept] = True
     rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
-    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows)
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()   # column slices per chunk
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]

@@ -101,14 +101,19 @@ def dilate(mask, triangles, rings: int) -> np.ndarray:
 def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None, rows=None) -> np.ndarray:
     """Motion-weighted local average of ``phi[J,m,3,3]`` over ``rings`` edge rings, weights ``[J,m]``
     (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves. ``rows`` (indices): only
-    there (0 elsewhere; ``neighbourhood`` is then :func:`neighbourhood_matrix` of those rows)."""
+    there (0 elsewhere; ``neighbourhood`` is then :func:`neighbourhood_matrix` of those rows, best as CSC:
+    only the columns of vertices some shape moves are read, a few tenths of a face for most shapes)."""
     phi = np.asarray(phi, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     n_shapes, m = w.shape
     s = neighbourhood_matrix(triangles, m, rings, rows) if neighbourhood is None else neighbourhood
     r = s.shape[0]
-    num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [r, J*9]
-    den = s @ w.T                                                                                # [r, J]
+    cols = np.flatnonzero((w > 0).any(axis=0))                  # the other columns of w phi and w are 0
+    s = sp.csc_matrix(s)[:, cols]
+    wc = w[:, cols]
+    num = s @ (wc[..., None] * phi[:, cols].reshape(n_shapes, cols.size, 9)).transpose(1, 0, 2).reshape(
+        cols.size, -1)                                                                         # [r, J*9]
+    den = s @ wc.T                                                                             # [r, J]
     out = num.reshape(r, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
     out = out.transpose(1, 0, 2).reshape(n_shapes, r, 3, 3)
