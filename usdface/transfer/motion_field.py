@@ -110,7 +110,7 @@ def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None,
     s = sp.csc_matrix(s)[:, cols]
     wc = w[:, cols]
     num = s @ (wc[..., None] * phi[:, cols].reshape(n_shapes, cols.size, 9)).transpose(1, 0, 2).reshape(
-        cols.size, -1)                                                                         # [r, J*9]
+        cols.size, n_shapes * 9)                                                               # [r, J*9]
     den = s @ wc.T                                                                             # [r, J]
     out = num.reshape(r, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
