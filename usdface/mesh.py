@@ -255,9 +255,9 @@ def spd_lu(A: sp.spmatrix):
 def spd_solver(A: sp.spmatrix):
     """``solve(b)`` for a symmetric positive definite sparse ``A[n,n]`` (``b[n]`` or ``b[n,k]``): one
     supernodal Cholesky factorization (CHOLMOD, through :mod:`cholespy`), reused for every right-hand side.
-    Its solves work on blocks of right-hand sides (level-3 BLAS): 7x faster than :func:`spd_lu`'s per column
-    on a 100k-vertex Laplacian with 36 right-hand sides (``benchmarks/bench_scale.py``, docs/scale.md), to
-    round-off the same answer. ``A`` must be definite (add a tiny ridge to a semi-definite one)."""
+    Its solves work on blocks of right-hand sides (level-3 BLAS): 3x faster than :func:`spd_lu`'s column by
+    column on a 107k-vertex screened Laplacian with 36 right-hand sides (docs/scale.md), to round-off the same
+    answer. ``A`` must be definite (add a tiny ridge to a semi-definite one)."""
     from cholespy import CholeskySolverD, MatrixType
 
     coo = sp.coo_matrix(A)

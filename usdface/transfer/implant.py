@@ -212,7 +212,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         mw = mw * valid
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
+        del phi                                                   # bounded memory: one [k, m, 9] at a time
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
+        del flat
         field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
