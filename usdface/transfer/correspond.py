@@ -103,13 +103,23 @@ class PosedSurface:
         self.queries = [SurfaceQuery(self.points, self.triangles)]
         self.queries += [SurfaceQuery(self.points + d, self.triangles) for d in self.poses]
 
-    def closest_points(self, queries, query_poses=()):
-        """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``, closest in the neutral pose."""
-        q = np.asarray(queries, dtype=np.float64)
-        tri, bary, closest, dist = self.queries[0].closest_points(q)
+    def closest_points(self, queries, query_poses=(), *, within: float | None = None):
+        """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``, closest in the neutral pose.
+
+        ``within`` (m): queries farther than that from the surface in the neutral keep their neutral closest
+        point (the poses are searched for the others only: no point of the stacked search is nearer in the
+        neutral than the neutral's closest, so a query the caller rejects beyond ``within`` stays rejected).
+        """
+        q_all = np.asarray(queries, dtype=np.float64)
+        tri, bary, closest, dist = self.queries[0].closest_points(q_all)
         if not self.poses:
             return tri, bary, closest, dist
-        qp = [q] + [q + np.asarray(d, dtype=np.float64) for d in query_poses]
+        sel = np.flatnonzero(dist < within) if within is not None else np.arange(len(q_all))
+        if sel.size == 0:
+            return tri, bary, closest, dist
+        out_tri, out_bary, out_closest, out_dist = tri, bary, closest, dist
+        q, tri, bary = q_all[sel], tri[sel], bary[sel]
+        qp = [q] + [q + np.asarray(d, dtype=np.float64)[sel] for d in query_poses]
         sp_ = [self.points] + [self.points + d for d in self.poses]
 
         def cost(t, b):
@@ -124,8 +134,10 @@ class PosedSurface:
             better = c2 < best
             tri, bary, best = np.where(better, t2, tri), np.where(better[:, None], b2, bary), \
                 np.minimum(c2, best)
-        closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
-        return tri, bary, closest, np.linalg.norm(closest - q, axis=1)
+        out_tri[sel], out_bary[sel] = tri, bary
+        out_closest[sel] = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
+        out_dist[sel] = np.linalg.norm(out_closest[sel] - q, axis=1)
+        return out_tri, out_bary, out_closest, out_dist
 
 
 def nonrigid_register(points, triangles, target_points, target_triangles, *,
@@ -195,9 +207,12 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     reg = np.asarray(registered, dtype=np.float64)
     ctri = np.asarray(capture_triangles)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    surface = PosedSurface(reg, ctri, [p[0] for p in poses or ()])
-    tri, bary, _, dist = surface.closest_points(ap, [np.asarray(p[1], dtype=np.float64) for p in poses or ()])
     edge = mean_edge_length(reg, ctri)
+    limit = max_distance_ratio * edge
+    surface = PosedSurface(reg, ctri, [p[0] for p in poses or ()])
+    # the poses are searched only for vertices the distance test can keep (weight 0 beyond 1.3 x limit)
+    tri, bary, _, dist = surface.closest_points(ap, [np.asarray(p[1], dtype=np.float64) for p in poses or ()],
+                                                within=1.3 * limit)
     an = vertex_normals(ap, avatar_triangles)
     # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
     # triangle normal would jump when the closest point moves over a crease)
@@ -206,7 +221,6 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     cosang = np.einsum("ij,ij->i", an, cn)
     # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
     # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.
-    limit = max_distance_ratio * edge
     w_dist = _ramp_down(dist, 0.7 * limit, 1.3 * limit)
     w_normal = _ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
     weight = w_dist * w_normal

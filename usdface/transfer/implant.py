@@ -199,7 +199,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     is_kept = np.zeros(domain.size, dtype=bool)
     is_kept[kept] = True
     rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
-    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows)
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()   # column slices per chunk
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
@@ -215,7 +215,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         mw = mw * valid
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
+        del phi                                                   # bounded memory: one [k, m, 9] at a time
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
+        del flat
         field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import spd_lu, triangle_areas, vertex_adjacency
+from ..mesh import spd_solver, triangle_areas, vertex_adjacency
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -76,15 +76,13 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
 
 
 def neighbourhood_matrix(triangles, n: int, rings: int, rows=None) -> sp.csr_matrix:
-    """``[n,n]`` 0/1 sparse matrix: vertices within ``rings`` edge rings of each other (self included);
-    ``rows`` (indices): only those rows, ``[len(rows), n]`` (the cost of the rows that are used)."""
-    adj = vertex_adjacency(triangles, n)
-    adj = (adj + sp.eye(n)).tocsr()
-    adj.data[:] = 1.0
+    """``[n,n]`` boolean sparse matrix: vertices within ``rings`` edge rings of each other (self included);
+    ``rows`` (indices): only those rows, ``[len(rows), n]`` (the cost of the rows that are used). Boolean
+    (one byte a value): a 9-ring neighbourhood of a 225k-vertex head holds 16M entries."""
+    adj = (vertex_adjacency(triangles, n) + sp.eye(n)).astype(bool).tocsr()
     out = adj if rows is None else adj[np.asarray(rows, dtype=np.int64)]
     for _ in range(rings - 1):
-        out = (out @ adj).tocsr()
-        out.data[:] = 1.0
+        out = (out @ adj).tocsr()                  # boolean product: or of ands
     return out
 
 
@@ -101,14 +99,19 @@ def dilate(mask, triangles, rings: int) -> np.ndarray:
 def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None, rows=None) -> np.ndarray:
     """Motion-weighted local average of ``phi[J,m,3,3]`` over ``rings`` edge rings, weights ``[J,m]``
     (:func:`motion_weights`): ``S(w phi) / S(w)``; 0 where no neighbour moves. ``rows`` (indices): only
-    there (0 elsewhere; ``neighbourhood`` is then :func:`neighbourhood_matrix` of those rows)."""
+    there (0 elsewhere; ``neighbourhood`` is then :func:`neighbourhood_matrix` of those rows, best as CSC:
+    only the columns of vertices some shape moves are read, a few tenths of a face for most shapes)."""
     phi = np.asarray(phi, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     n_shapes, m = w.shape
     s = neighbourhood_matrix(triangles, m, rings, rows) if neighbourhood is None else neighbourhood
     r = s.shape[0]
-    num = s @ (w[..., None] * phi.reshape(n_shapes, m, 9)).transpose(1, 0, 2).reshape(m, -1)   # [r, J*9]
-    den = s @ w.T                                                                                # [r, J]
+    cols = np.flatnonzero((w > 0).any(axis=0))                  # the other columns of w phi and w are 0
+    s = sp.csc_matrix(s)[:, cols]
+    wc = w[:, cols]
+    num = s @ (wc[..., None] * phi[:, cols].reshape(n_shapes, cols.size, 9)).transpose(1, 0, 2).reshape(
+        cols.size, n_shapes * 9)                                                               # [r, J*9]
+    den = s @ wc.T                                                                             # [r, J]
     out = num.reshape(r, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
     out = out.transpose(1, 0, 2).reshape(n_shapes, r, 3, 3)
@@ -161,7 +164,7 @@ class FieldExtension:
         a_ff = lap[self.free][:, self.free]
         reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
         self._a_fk = lap[self.free][:, self.kidx].tocsr()
-        self._solve = spd_lu((a_ff + reg * sp.eye(self.free.size)).tocsc()).solve
+        self._solve = spd_solver(a_ff + reg * sp.eye(self.free.size))
 
     def extend(self, values) -> np.ndarray:
         vals = np.asarray(values, dtype=np.float64)
