@@ -27,7 +27,7 @@ __all__ = [
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
     "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
-    "check_triangles", "spd_lu", "spd_solver",
+    "check_triangles", "spd_lu",
 ]
 
 
@@ -250,29 +250,6 @@ def spd_lu(A: sp.spmatrix):
 
     return splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                 options={"SymmetricMode": True})
-
-
-def spd_solver(A: sp.spmatrix):
-    """``solve(b)`` for a symmetric positive definite sparse ``A[n,n]`` (``b[n]`` or ``b[n,k]``): one
-    supernodal Cholesky factorization (CHOLMOD, through :mod:`cholespy`), reused for every right-hand side.
-    Its solves work on blocks of right-hand sides (level-3 BLAS): 3x faster than :func:`spd_lu`'s column by
-    column on a 107k-vertex screened Laplacian with 36 right-hand sides (docs/scale.md), to round-off the same
-    answer. ``A`` must be definite (add a tiny ridge to a semi-definite one)."""
-    from cholespy import CholeskySolverD, MatrixType
-
-    coo = sp.coo_matrix(A)
-    n = coo.shape[0]
-    solver = CholeskySolverD(n, coo.row.astype(np.int32), coo.col.astype(np.int32),
-                             coo.data.astype(np.float64), MatrixType.COO)
-
-    def solve(b):
-        rhs = np.ascontiguousarray(b, dtype=np.float64)
-        out = np.empty_like(rhs)
-        if rhs.size:
-            solver.solve(rhs, out)
-        return out
-
-    return solve
 
 
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import spd_solver, triangle_areas, vertex_adjacency
+from ..mesh import spd_lu, triangle_areas, vertex_adjacency
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -164,7 +164,7 @@ class FieldExtension:
         a_ff = lap[self.free][:, self.free]
         reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
         self._a_fk = lap[self.free][:, self.kidx].tocsr()
-        self._solve = spd_solver(a_ff + reg * sp.eye(self.free.size))
+        self._solve = spd_lu((a_ff + reg * sp.eye(self.free.size)).tocsc()).solve
 
     def extend(self, values) -> np.ndarray:
         vals = np.asarray(values, dtype=np.float64)
