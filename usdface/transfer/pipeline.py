@@ -27,6 +27,7 @@ from ..model import Avatar, Capture, FaceRig
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
+from ..submesh import SparseOffsets, crop_avatar, scatter
 from .correspond import (
     Correspondence,
     correspondence_map,
@@ -309,7 +310,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if not isinstance(avatar, Avatar):
             from ..io.usd_rig import read_avatar
 
-            avatar = read_avatar(avatar, name_map=name_map)
+            avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
+        # every step works on the part of each mesh its shapes move; scattered back at the end (write)
+        generic_full = {_key(m): m.deltas for m in avatar.meshes}
+        avatar, regions = crop_avatar(avatar)
+        generic_full = {k: v for k, v in generic_full.items() if k in regions and v.shape[1] == regions[k].n}
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
@@ -450,7 +455,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             length = extension_length * radius if extension_length else None
             eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
             others = [m for m in avatar.meshes if m is not face and _key(m) not in eyeballs_static]
-            followers = [m for m in others if not _is_eyeball(m)]            # eyeballs keep their shapes
+            followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
@@ -461,7 +466,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
             for m in others:
                 sub = _shape_deltas(m, names)
-                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=is_rigid_part(m.neutral, sub))
+                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=_is_rigid(m, sub, regions))
                                   if any(m is x for x in followers) else sub)
             report["extension"] = {"length_m": length, "face_radius_m": radius,
                                    "smoothing_rings": pfield.rings}
@@ -486,6 +491,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             for m in avatar.meshes:
                 if m is not face:
                     eye_meshes.setdefault(_key(m), (m.neutral, m.triangles))
+            # an eyeball is found by the whole mesh's shape, not by its moving part
+            eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
+                               for k, v in eye_meshes.items() if k in regions})
             found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
             if found:
                 result, repaired = repair_eyelids(face.neutral, result,
@@ -509,7 +517,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 for j, n in enumerate(names):
                     if n in m.names:
                         new[m.index(n)] = src[j]
-            offsets[key] = new
+            region = regions.get(key)
+            offsets[key] = new if region is None else SparseOffsets(region.vertices, new, region.n,
+                                                                    base=generic_full.get(key))
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
@@ -517,7 +527,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                         "approximation": approximation, "prior": prior, "extension_length": extension_length,
                         "falloff": falloff, "support": support, "eyelids": eyelids},
             "name_report": avatar.name_report,
-            "changes": _changes(avatar, offsets),
+            "changes": _changes(avatar, offsets, regions),
         })
 
         # 7. write
@@ -544,6 +554,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         advance("write")
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings
+    if face_prim in regions:                                      # the face mesh's regions on every vertex
+        f, adjacent = scatter(f[:, None], regions[face_prim])[:, 0], scatter(adjacent[..., None],
+                                                                           regions[face_prim])[..., 0]
+    approx_eq4 = {k: (SparseOffsets(regions[k].vertices, v, regions[k].n) if k in regions else v)
+                  for k, v in approx_eq4.items()}
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
 
@@ -552,8 +567,19 @@ def _key(m: FaceRig) -> str:
     return m.source.prim if m.source else m.name
 
 
-def _is_eyeball(m: FaceRig) -> bool:
-    return bool(find_eyeballs({_key(m): m.neutral}))
+def _is_eyeball(m: FaceRig, regions: dict | None = None) -> bool:
+    region = (regions or {}).get(_key(m))
+    return bool(find_eyeballs({_key(m): m.neutral if region is None else region.points}))
+
+
+def _is_rigid(m: FaceRig, deltas, regions: dict) -> bool:
+    """:func:`.implant.is_rigid_part` of the whole mesh ``m`` (its vertices no shape moves included, as
+    zero motion) from ``deltas[J,s,3]`` on the part held (only the shapes that move it are made full-size)."""
+    region = regions.get(_key(m))
+    if region is None:
+        return is_rigid_part(m.neutral, deltas)
+    moving = np.flatnonzero(np.abs(deltas).reshape(len(deltas), -1).max(axis=1) > 0) if len(deltas) else []
+    return is_rigid_part(region.points, scatter(deltas[moving], region))
 
 
 def corr_transform(corr, fallback):
@@ -676,13 +702,19 @@ def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
                                                   capture.triangles, names=list(names)))
 
 
-def _changes(avatar: Avatar, offsets: dict) -> list[dict]:
-    """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints."""
+def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list[dict]:
+    """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints. A mesh held
+    on its moving part (``regions``, offsets :class:`usdface.submesh.SparseOffsets`) changes nowhere else."""
     rows = []
     for m in avatar.meshes:
         key = m.source.prim if m.source else m.name
-        sq = np.sum((offsets[key] - m.deltas) ** 2, axis=2)  # [K,n] squared change
-        peak, rms = np.sqrt(sq.max(axis=1)), np.sqrt(sq.mean(axis=1))
+        new = offsets[key]
+        new = new.values if isinstance(new, SparseOffsets) else new
+        d = new - m.deltas
+        sq = np.einsum("knc,knc->kn", d, d)  # [K,n] squared change (on the part held)
+        n_full = regions[key].n if regions and key in regions else m.n_vertices
+        peak = np.sqrt(sq.max(axis=1)) if sq.shape[1] else np.zeros(len(sq))
+        rms = np.sqrt(sq.sum(axis=1) / max(n_full, 1))
         moved = (sq > 1e-18).sum(axis=1)
         for k, n in enumerate(m.names):
             rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
