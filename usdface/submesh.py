@@ -72,9 +72,10 @@ def moving_region(peak, points=None) -> np.ndarray:
     return moving_vertices(peak, points)
 
 
-#: The part worked on reaches this far beyond what moves, in RMS radii of the moving vertices (about 8 cm on
-#: a head): the correspondence looks for the avatar surface around the capture, which may overlap skin that
-#: no shape moves (a forehead, the ears); a body beyond is left out.
+#: The part worked on reaches this far beyond what moves, in RMS radii of the moving vertices (2-3 cm on a
+#: head, a few capture edges): the correspondence takes avatar surface points up to 4 capture edges from
+#: the capture, which lies on the moving face but may overhang skin no shape moves (the ears, a hairline);
+#: a body beyond is left out.
 MARGIN = 1.0
 
 

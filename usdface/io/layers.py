@@ -276,7 +276,13 @@ def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
     values_new = np.concatenate([deltas.values[k], r_off])
     values_old = np.concatenate([rig.deltas[k], r_off])
     ib_old = [np.concatenate([ib.offsets, r]) for ib, r in zip(ibs, r_ibs, strict=True)]
-    more = np.setdiff1d(np.concatenate(extra), points)                 # normal offsets only: no motion
+    more = np.concatenate(extra)
+    if more.size:                                                      # normal offsets only: no motion
+        seen = np.zeros(region.n, dtype=bool)
+        seen[points] = True
+        more = np.unique(more[~seen[more]])
+    if r_idx.size == 0 and more.size == 0:                             # the region's own points, ascending
+        return points, values_new, values_old, ib_old
     points = np.concatenate([points, more])
     order = np.argsort(points, kind="stable")
     pad = np.zeros((more.size, 3))

@@ -15,6 +15,7 @@ Steps (Menzel et al. 2022, sec. 3.2-3.3), each a pure function on arrays in anot
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,11 +24,11 @@ import numpy as np
 
 from ..errors import GeometryError, RigError, UsdFaceError
 from ..mesh import deformation_gradients
-from ..model import Avatar, Capture, FaceRig
+from ..model import Avatar, Capture, FaceRig, Inbetween
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
-from ..submesh import SparseOffsets, crop_avatar, scatter
+from ..submesh import SparseOffsets, crop, crop_avatar, scatter
 from .correspond import (
     Correspondence,
     correspondence_map,
@@ -179,6 +180,65 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     if cache is not None:
         save_correspondence(corr, cache)
     return corr
+
+
+#: A separate piece of the face mesh is within the capture's reach when some vertex of it lies within this
+#: share of the placed capture's diagonal of a capture vertex: the registration's first (widest) ICP
+#: correspondence distance (:func:`.register.register_icp`).
+REACH = 0.08
+
+
+def reached_parts(points, triangles, placed, *, reach: float = REACH):
+    """``keep[m]`` bool: the face mesh's connected pieces the capture reaches, or None when it reaches every
+    piece (one connected head).
+
+    ``points[m,3]``, ``triangles[t,3]`` the face mesh (as held: its moving part and margin), ``placed[q,3]``
+    the registered capture. A connected piece none of whose vertices is within ``reach`` x the capture's
+    diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
+    where the capture lies, and its triangles must not take part in the face's closest-point queries."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from ..mesh import vertex_adjacency
+
+    p = np.asarray(points, dtype=np.float64)
+    count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
+    if count < 2:
+        return None
+    q = np.asarray(placed, dtype=np.float64)
+    limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
+    near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
+    keep = np.isin(label, np.unique(label[near]))
+    return None if keep.all() or not keep.any() else keep
+
+
+def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
+    """``rig`` as two rigs: on the vertices ``keep[m]`` (sharing its source, so its key) and on the rest (no
+    source: another mesh for the steps, named after it); the triangles within each, re-indexed."""
+    def part(mask, source, name):
+        sub = crop(rig.triangles, mask)
+        v = sub.vertices
+        ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
+               for k, lst in rig.inbetweens.items()}
+        return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, name)
+
+    return part(keep, rig.source, rig.name), part(~keep, None, f"{_key(rig)} (beyond the capture)")
+
+
+def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
+    """Values of a split face mesh (:func:`_split_rig`; ``[k]``, ``[J,k]`` or ``[J,k,3]``) in one array
+    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``."""
+    a = np.asarray(reached_values)
+    axis = 0 if a.ndim == 1 else 1                          # [m] masks, [J,m] and [J,m,3] per shape
+    shape = list(a.shape)
+    shape[axis] = reached.size
+    out = np.zeros(shape, dtype=a.dtype)
+    idx = [slice(None)] * a.ndim
+    idx[axis] = np.flatnonzero(reached)
+    out[tuple(idx)] = a
+    idx[axis] = rest
+    out[tuple(idx)] = rest_values
+    return out
 
 
 def _jacobians(neutral, deltas, triangles):
@@ -356,6 +416,19 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None)
+        # separate pieces of the face mesh beyond the capture's reach (a body merged into the head's mesh,
+        # its neck moved by the jaw) cannot say where the capture lies nor what it shows: the steps below
+        # see the reached pieces as the face mesh and the rest as another mesh (scattered back before write)
+        reached = reached_parts(face.neutral, face.triangles, registration.transform.apply(person_neutral0))
+        whole_face, beyond = face, None
+        if reached is not None:
+            face, beyond = _split_rig(face, reached)
+            avatar = dataclasses.replace(avatar, meshes=[face if m is whole_face else m
+                                                         for m in avatar.meshes] + [beyond])
+            avatar_face_deltas = avatar_face_deltas[:, reached]
+            registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
+                                         avatar_triangles=face.triangles, capture_triangles=capture.triangles,
+                                         path=capture.source or None)
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()
         sim = registration.transform
@@ -503,6 +576,17 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             if not found:
                 report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
         report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
+        f = corr.face
+        if beyond is not None:                   # the face mesh in one piece again: reached + beyond
+            rest = np.flatnonzero(~reached)
+            result = _join(result, reached, other.pop(_key(beyond)), rest)
+            f, adjacent = _join(f, reached, False, rest), _join(adjacent, reached, False, rest)
+            if _key(beyond) in approx_eq4:
+                approx_eq4[face_prim] = _join(approx_eq4[face_prim], reached, approx_eq4.pop(_key(beyond)),
+                                              rest)
+            face = whole_face
+            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+                                                         for m in avatar.meshes if m is not beyond])
         timings["eyelids"] = time.perf_counter() - t
         advance("eyelids")
         advance.start("write")
