@@ -76,7 +76,7 @@ def moving_region(peak, points=None) -> np.ndarray:
 #: head, a few capture edges): the correspondence takes avatar surface points up to 4 capture edges from
 #: the capture, which lies on the moving face but may overhang skin no shape moves (the ears, a hairline);
 #: a body beyond is left out.
-MARGIN = 1.0
+MARGIN = 0.75
 
 
 def with_margin(points, moving, margin: float = MARGIN) -> np.ndarray:
@@ -158,31 +158,44 @@ def outside_offsets(indices, offsets, inbetweens=()) -> tuple:
     return idx[nonzero], off[nonzero], [b[nonzero] for b in ibs]
 
 
-def crop_rig(rig, keep):
+def crop_rig(rig, keep, region: SubMesh | None = None):
     """``(FaceRig on the sub-mesh, SubMesh)``: ``rig`` (:class:`usdface.model.FaceRig`) with its neutral,
-    deltas and inbetweens on the vertices ``keep[n]`` and the triangles among them; its source (a copy)
-    records the crop (``region``) and the non-zero offsets outside it (``residue``). A crop that keeps every
-    vertex returns ``rig`` itself."""
+    deltas and inbetweens on its vertices ``keep`` and the triangles among them; its source (a copy) records
+    the crop (``region``) and the non-zero offsets outside it (``residue``). A rig that is itself a part of
+    its mesh (``region``: that part) is cropped further, the result again a part of the whole mesh. A crop
+    that keeps every vertex returns ``rig`` itself (and ``region``, or a whole SubMesh)."""
     import dataclasses
 
     from .model import FaceRig, Inbetween
 
     sub = crop(rig.triangles, keep, rig.neutral)
     if sub.whole:
-        return rig, sub
+        return rig, region if region is not None else sub
     v = sub.vertices
-    outside = np.ones(sub.n, dtype=bool)
-    outside[v] = False
+    dropped = np.ones(sub.n, dtype=bool)
+    dropped[v] = False
     ibs = {name: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
            for name, lst in rig.inbetweens.items()}
+    if region is not None:                                  # a part of a part: indices into the whole mesh
+        sub = SubMesh(region.vertices[v], sub.triangles, region.n, region.points)
     source = rig.source
     if source is not None:
         residue = []
         for k, name in enumerate(rig.names):
-            authored = source.point_indices[k] if k < len(source.point_indices) else None
-            rows = np.flatnonzero(outside) if authored is None else authored[outside[authored]]
-            residue.append(outside_offsets(rows, rig.deltas[k, rows],
-                                           [b.offsets[rows] for b in rig.inbetweens.get(name, [])]))
+            if region is None:
+                authored = source.point_indices[k] if k < len(source.point_indices) else None
+                rows = np.flatnonzero(dropped) if authored is None else authored[dropped[authored]]
+                full = rows
+            else:
+                rows = np.flatnonzero(dropped)
+                full = region.vertices[rows]
+            out = outside_offsets(full, rig.deltas[k, rows],
+                                  [b.offsets[rows] for b in rig.inbetweens.get(name, [])])
+            if region is not None and source.residue:
+                before = source.residue[k]
+                out = (np.concatenate([before[0], out[0]]), np.concatenate([before[1], out[1]]),
+                       [np.concatenate([x, y]) for x, y in zip(before[2], out[2], strict=True)])
+            residue.append(out)
         source = dataclasses.replace(source, region=sub, residue=residue)
     return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, rig.name), sub
 

@@ -28,7 +28,7 @@ from ..model import Avatar, Capture, FaceRig, Inbetween
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
-from ..submesh import SparseOffsets, crop, crop_avatar, scatter
+from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, scatter
 from .correspond import (
     Correspondence,
     correspondence_map,
@@ -193,7 +193,8 @@ def reached_parts(points, triangles, placed, *, reach: float = REACH):
     piece (one connected head).
 
     ``points[m,3]``, ``triangles[t,3]`` the face mesh (as held: its moving part and margin), ``placed[q,3]``
-    the registered capture. A connected piece none of whose vertices is within ``reach`` x the capture's
+    the capture placed on it (or a function returning it, called only for a mesh in several pieces). A
+    connected piece none of whose vertices is within ``reach`` x the capture's
     diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
     where the capture lies, and its triangles must not take part in the face's closest-point queries."""
     from scipy.sparse.csgraph import connected_components
@@ -205,11 +206,25 @@ def reached_parts(points, triangles, placed, *, reach: float = REACH):
     count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
     if count < 2:
         return None
-    q = np.asarray(placed, dtype=np.float64)
+    q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)
     limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
     near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
     keep = np.isin(label, np.unique(label[near]))
     return None if keep.all() or not keep.any() else keep
+
+
+def _rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_deltas, capture) -> np.ndarray:
+    """The person's neutral ``[q,3]`` placed on the face mesh roughly (for :func:`reached_parts`): by the
+    shape-motion landmarks (:func:`.register.motion_initialiser`), else by a full registration."""
+    from .register import RegistrationError, motion_initialiser
+
+    try:
+        return motion_initialiser(person_neutral, template_deltas, face.neutral, avatar_deltas).apply(
+            person_neutral)
+    except RegistrationError:
+        return register_face(person_neutral, template_deltas, face.neutral, avatar_deltas,
+                             avatar_triangles=face.triangles, capture_triangles=capture.triangles,
+                             path=capture.source or None).transform.apply(person_neutral)
 
 
 def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
@@ -225,14 +240,18 @@ def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
     return part(keep, rig.source, rig.name), part(~keep, None, f"{_key(rig)} (beyond the capture)")
 
 
-def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
+def _join(reached_values, reached, rest_values, rest, base=None) -> np.ndarray:
     """Values of a split face mesh (:func:`_split_rig`; ``[k]``, ``[J,k]`` or ``[J,k,3]``) in one array
-    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``."""
+    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``,
+    ``base`` (the whole mesh's values, e.g. the generic offsets) or 0 elsewhere."""
     a = np.asarray(reached_values)
     axis = 0 if a.ndim == 1 else 1                          # [m] masks, [J,m] and [J,m,3] per shape
-    shape = list(a.shape)
-    shape[axis] = reached.size
-    out = np.zeros(shape, dtype=a.dtype)
+    if base is not None:
+        out = np.array(base, dtype=a.dtype, copy=True)
+    else:
+        shape = list(a.shape)
+        shape[axis] = reached.size
+        out = np.zeros(shape, dtype=a.dtype)
     idx = [slice(None)] * a.ndim
     idx[axis] = np.flatnonzero(reached)
     out[tuple(idx)] = a
@@ -372,9 +391,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
             avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
-        generic_full = {_key(m): m.deltas for m in avatar.meshes}
+        generic_full = {_key(m): m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
+                        if m.source is None or m.source.region is None}
         avatar, regions = crop_avatar(avatar)
-        generic_full = {k: v for k, v in generic_full.items() if k in regions and v.shape[1] == regions[k].n}
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
@@ -413,22 +432,27 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 2. registration of the person's neutral
         t = time.perf_counter()
+        # separate pieces of the face mesh beyond the capture's reach (a body merged into the head's mesh,
+        # its neck moved by the jaw) cannot say where the capture lies nor what it shows: the steps below
+        # see the reached pieces as the face mesh and the rest as another mesh (joined back before write)
+        reached = reached_parts(face.neutral, face.triangles, lambda: _rough_placement(
+            person_neutral0, template_deltas, face, avatar_face_deltas, capture))
+        whole_face, beyond = face, None
+        if reached is not None:
+            # the still vertices beyond are left as they are (out of the part worked on and written)
+            keep = reached | moving_vertices(peak_motion(face.deltas), face.neutral)
+            whole_face, region = crop_rig(face, keep, regions.get(face_prim))
+            if not region.whole:
+                regions[face_prim] = region
+            avatar_face_deltas, reached = avatar_face_deltas[:, keep], reached[keep]
+            avatar_face_deltas = avatar_face_deltas[:, reached]
+            face, beyond = _split_rig(whole_face, reached)
+            rest = np.flatnonzero(~reached)
+            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+                                                         for m in avatar.meshes] + [beyond])
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None)
-        # separate pieces of the face mesh beyond the capture's reach (a body merged into the head's mesh,
-        # its neck moved by the jaw) cannot say where the capture lies nor what it shows: the steps below
-        # see the reached pieces as the face mesh and the rest as another mesh (scattered back before write)
-        reached = reached_parts(face.neutral, face.triangles, registration.transform.apply(person_neutral0))
-        whole_face, beyond = face, None
-        if reached is not None:
-            face, beyond = _split_rig(face, reached)
-            avatar = dataclasses.replace(avatar, meshes=[face if m is whole_face else m
-                                                         for m in avatar.meshes] + [beyond])
-            avatar_face_deltas = avatar_face_deltas[:, reached]
-            registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
-                                         avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                                         path=capture.source or None)
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()
         sim = registration.transform
@@ -578,7 +602,6 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
         f = corr.face
         if beyond is not None:                   # the face mesh in one piece again: reached + beyond
-            rest = np.flatnonzero(~reached)
             result = _join(result, reached, other.pop(_key(beyond)), rest)
             f, adjacent = _join(f, reached, False, rest), _join(adjacent, reached, False, rest)
             if _key(beyond) in approx_eq4:
@@ -602,8 +625,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     if n in m.names:
                         new[m.index(n)] = src[j]
             region = regions.get(key)
-            offsets[key] = new if region is None else SparseOffsets(region.vertices, new, region.n,
-                                                                    base=generic_full.get(key))
+            base = generic_full.get(key)
+            offsets[key] = new if region is None else SparseOffsets(
+                region.vertices, new, region.n,
+                base=base if base is not None and base.shape[1] == region.n else None)
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
