@@ -72,10 +72,10 @@ def moving_region(peak, points=None) -> np.ndarray:
     return moving_vertices(peak, points)
 
 
-#: The part worked on reaches this far beyond what moves, in RMS radii of the moving vertices (2-3 cm on a
-#: head, a few capture edges): the correspondence takes avatar surface points up to 4 capture edges from
-#: the capture, which lies on the moving face but may overhang skin no shape moves (the ears, a hairline);
-#: a body beyond is left out.
+#: The part worked on reaches this far beyond what moves, in RMS radii of the moving vertices (about 6 cm
+#: on a head): the correspondence takes avatar surface points up to 4 capture edges (3 cm) from the capture,
+#: which lies on the moving face but may overhang skin no shape moves (the ears, a hairline), and its
+#: closest-point queries should see the same triangles as on the whole head.
 MARGIN = 0.75
 
 
