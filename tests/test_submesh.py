@@ -168,3 +168,39 @@ def test_read_moving_only_is_the_dense_read_on_its_part(samples, tmp_path):
     np.testing.assert_array_equal(region.vertices[part.triangles], inside)
     # outside the part nothing moves (no residue of noise here)
     assert all(r[0].size == 0 for r in part.source.residue)
+
+
+def test_sparse_write_of_a_part_keeps_noise_and_inbetweens_consistent(tmp_path):
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_rig import read_avatar
+    from usdface.model import Inbetween
+
+    points, tri = _grid(40, 40)
+    points = points + [0.0, 1.5, 0.0]
+    n = len(points)
+    deltas = np.zeros((2, n, 3))
+    deltas[0, :21] = [0.0, 0.0, 0.004]
+    deltas[0, 1500] = [1e-8, 0.0, 0.0]                       # float noise far away: not motion, kept as is
+    deltas[1, 3] = [0.0, -0.01, 0.0]
+    half = Inbetween("half", 0.5, deltas[1] * 0.7)
+    rig = FaceRig(points, tri, ["jawOpen", "eyeBlinkLeft"], deltas, {"eyeBlinkLeft": [half]}, name="Head")
+    src = write_rig_usd([rig], tmp_path / "a.usda")
+    part = read_avatar(src, moving_only=True)
+    head = part.mesh("Head")
+    region = head.source.region
+    assert region is not None and 1500 not in set(region.vertices.tolist())
+    new = head.deltas.copy()
+    at3 = int(np.flatnonzero(region.vertices == 3)[0])
+    new[1, at3] = [0.0, -0.012, 0.001]
+    out = write_avatar_layer(part, tmp_path / "out.usda",
+                             {"/Avatar/Head": SparseOffsets(region.vertices, new, n)})
+    back = read_avatar(out).mesh("Head")
+    before = read_avatar(src).mesh("Head")
+    np.testing.assert_array_equal(back.deltas[0], before.deltas[0])               # noise and all, untouched
+    np.testing.assert_allclose(back.deltas[1, 3], [0.0, -0.012, 0.001], atol=1e-8)
+    np.testing.assert_array_equal(np.delete(back.deltas[1], 3, axis=0), 0.0)
+    ib = back.inbetweens["eyeBlinkLeft"][0].offsets
+    expect = before.inbetweens["eyeBlinkLeft"][0].offsets[3] + 0.5 * (back.deltas[1, 3] - before.deltas[1, 3])
+    np.testing.assert_allclose(ib[3], expect, atol=1e-8)
+    assert back.source.point_indices[1].tolist() == [3]                            # only the moved vertex
