@@ -127,10 +127,11 @@ def crop(triangles, keep, points=None) -> SubMesh:
         if points is None:
             raise ValueError("crop: give points (or a bool mask) so the full vertex count is known")
         n, vertices = len(points), np.unique(keep.astype(np.int64))
+    mask = np.zeros(n, dtype=bool)
+    mask[vertices] = True
     local = np.full(n, -1, dtype=np.int64)
     local[vertices] = np.arange(vertices.size)
-    sub = local[tri]
-    return SubMesh(vertices, sub[(sub >= 0).all(axis=1)], n,
+    return SubMesh(vertices, local[tri[mask[tri].all(axis=1)]], n,
                    None if points is None else np.asarray(points, dtype=np.float64))
 
 
