@@ -240,18 +240,14 @@ def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
     return part(keep, rig.source, rig.name), part(~keep, None, f"{_key(rig)} (beyond the capture)")
 
 
-def _join(reached_values, reached, rest_values, rest, base=None) -> np.ndarray:
+def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
     """Values of a split face mesh (:func:`_split_rig`; ``[k]``, ``[J,k]`` or ``[J,k,3]``) in one array
-    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``,
-    ``base`` (the whole mesh's values, e.g. the generic offsets) or 0 elsewhere."""
+    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``."""
     a = np.asarray(reached_values)
     axis = 0 if a.ndim == 1 else 1                          # [m] masks, [J,m] and [J,m,3] per shape
-    if base is not None:
-        out = np.array(base, dtype=a.dtype, copy=True)
-    else:
-        shape = list(a.shape)
-        shape[axis] = reached.size
-        out = np.zeros(shape, dtype=a.dtype)
+    shape = list(a.shape)
+    shape[axis] = reached.size
+    out = np.zeros(shape, dtype=a.dtype)
     idx = [slice(None)] * a.ndim
     idx[axis] = np.flatnonzero(reached)
     out[tuple(idx)] = a
