@@ -204,3 +204,22 @@ def test_sparse_write_of_a_part_keeps_noise_and_inbetweens_consistent(tmp_path):
     expect = before.inbetweens["eyeBlinkLeft"][0].offsets[3] + 0.5 * (back.deltas[1, 3] - before.deltas[1, 3])
     np.testing.assert_allclose(ib[3], expect, atol=1e-8)
     assert back.source.point_indices[1].tolist() == [3]                            # only the moved vertex
+
+
+def test_merged_mesh_in_the_papers_mode_also_gives_the_head_alones_offsets(samples, tmp_path):
+    """The older transfer (eq. 4 approximations beyond the face): the piece beyond the capture's reach is
+    approximated like another mesh and joined back; the head keeps the head alone's answer."""
+    from usdface.transfer import personalize_avatar
+
+    path, n, strip = _merged_avatar(samples, tmp_path)
+    capture = samples / "capture.usda"
+    opts = {"face_transfer": "offset", "approximation": "retarget"}
+    alone = personalize_avatar(samples / "avatar.usda", capture, None, **opts)
+    merged = personalize_avatar(path, capture, None, **opts)
+    np.testing.assert_allclose(np.asarray(merged.offsets["/Avatar/Head"])[:, :n],
+                               np.asarray(alone.offsets["/Avatar/Head"]), rtol=0, atol=1e-7)
+    approx = np.asarray(merged.approximation["/Avatar/Head"])
+    assert approx.shape == (len(merged.names), n + 9600 + strip.size, 3)
+    np.testing.assert_allclose(approx[:, :n], np.asarray(alone.approximation["/Avatar/Head"]), rtol=0,
+                               atol=1e-7)
+    assert merged.face.shape == (n + 9600 + strip.size,) and not merged.face[n:].any()
