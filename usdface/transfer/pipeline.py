@@ -11,6 +11,10 @@ Steps (Menzel et al. 2022, sec. 3.2-3.3), each a pure function on arrays in anot
    approximation, every other vertex and mesh follows the approximation;
 6. eyelid-eyeball repair (:mod:`.eyelids`);
 7. the layer (:func:`usdface.io.layers.write_avatar_layer`).
+
+Every step works on the part of each mesh its shapes move (:mod:`usdface.submesh`: read that way, or cropped
+after reading; the offsets go back as :class:`usdface.submesh.SparseOffsets`), and the face mesh's separate
+pieces beyond the capture's reach are handled as another mesh (:func:`reached_parts`).
 """
 
 from __future__ import annotations
@@ -79,7 +83,9 @@ PRIORS = ("avatar", "template")
 class PersonalizeResult:
     """Everything ``personalize`` computed.
 
-    ``offsets``: {mesh prim path -> deltas[K_mesh,n,3]} metres internal, rig.names order (the layer's).
+    ``offsets``: {mesh prim path -> deltas[K_mesh,n,3]} metres internal, rig.names order (the layer's); for a
+    mesh worked on by its moving part a :class:`usdface.submesh.SparseOffsets` (``np.asarray`` is the dense
+    array; outside the part the input's offsets, or 0 for float noise read from a file).
     ``names``: the capture shapes that were implanted (J). ``weights``: eq. (4) retarget map ``[J,K]`` with
     ``avatar_names`` (K, the face mesh's shapes). ``approximation``: {mesh -> A_j [J,n,3]} eq. (4).
     ``face``/``adjacent``: face-mesh regions (``[n]``, ``[J,n]``). ``report``: figures for people
