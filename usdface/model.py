@@ -35,6 +35,13 @@ class MeshSource:
     ``to_internal[4, 4]`` maps the mesh's authored local points (column vectors, homogeneous) to internal
     metres / Y-up world space: ``p_internal = to_internal[:3, :3] @ p_local + to_internal[:3, 3]``. Offsets
     map by the linear part only.
+
+    ``region``: when the rig holds only part of the mesh (``read_avatar(..., moving_only=True)``,
+    :func:`usdface.submesh.crop_rig`), the :class:`usdface.submesh.SubMesh` it is (full-mesh vertex indices,
+    the full vertex count and rest points); ``residue[k]``: for such a rig, shape ``k``'s authored points
+    outside the region as ``(indices[r], offsets[r,3] internal metres, [inbetween offsets[r,3], ...])``
+    (float noise below the moving tolerance, kept so that a writer leaves it as it was). None: the whole
+    mesh.
     """
 
     file: str
@@ -49,6 +56,8 @@ class MeshSource:
     skel_root: str | None = None
     skeleton: str | None = None
     animation: str | None = None
+    region: object | None = None
+    residue: list | None = None
 
 
 @dataclass

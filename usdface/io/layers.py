@@ -214,23 +214,83 @@ def avatar_mesh(avatar: Avatar, key: str, context: str = "in the avatar") -> Fac
                        fix=f"use one of {meshes}" if meshes else "pass an avatar with a face rig") from None
 
 
-def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, np.ndarray]]:
+def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, object]]:
+    from ..submesh import SparseOffsets
+
     out = []
     for key, deltas in offsets.items():
         rig = avatar_mesh(avatar, key)
         if rig.source is None or not rig.source.prim:
             raise RigError(f"mesh {key!r} has no USD source to write over", path=avatar.file,
                            fix="read the avatar with usdface.io.usd_rig.read_avatar")
-        deltas = np.asarray(deltas, dtype=np.float64)
-        if deltas.shape != rig.deltas.shape:
-            raise GeometryError(f"offsets for {rig.source.prim} have shape {deltas.shape}, the rig "
-                                f"{rig.deltas.shape} [K,n,3]", path=avatar.file, prim=rig.source.prim,
+        region = rig.source.region
+        full = (rig.n_shapes, region.n if region is not None else rig.n_vertices, 3)
+        if isinstance(deltas, SparseOffsets):
+            values = deltas.values
+            if region is not None and not np.array_equal(deltas.vertices, region.vertices):
+                raise GeometryError(f"sparse offsets for {rig.source.prim} are not on the vertices the rig "
+                                    "holds", path=avatar.file, prim=rig.source.prim,
+                                    fix="give offsets on the rig's region (rig.source.region.vertices)")
+        else:
+            deltas = values = np.asarray(deltas, dtype=np.float64)
+        if tuple(deltas.shape) != full:
+            raise GeometryError(f"offsets for {rig.source.prim} have shape {tuple(deltas.shape)}, the rig "
+                                f"{full} [K,n,3]", path=avatar.file, prim=rig.source.prim,
                                 fix="give one [n,3] offset array per rig shape, in rig.names order")
-        if not np.isfinite(deltas).all():
+        if not np.isfinite(values).all():
             raise GeometryError("offsets contain NaN/inf", path=avatar.file, prim=rig.source.prim,
                                 fix="check the personalization step that produced them")
+        if region is not None and not isinstance(deltas, SparseOffsets):   # dense over a cropped rig
+            deltas = SparseOffsets(region.vertices, deltas[:, region.vertices], region.n)
         out.append((rig, deltas))
     return out
+
+
+def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
+    """Shape ``k``'s new and old offsets (internal metres) where the layer may author them:
+    ``(points[p] or None for every vertex, new[p,3], old[p,3], [old inbetween[p,3], ...])``. A rig on its
+    moving part (``rig.source.region``) adds the authored points outside it (``rig.source.residue``: kept
+    as they were) and those with normal offsets; nothing of size ``[n]`` beyond them is formed."""
+    from ..submesh import SparseOffsets
+
+    src = rig.source
+    ibs = rig.inbetweens.get(rig.names[k], [])
+    region = src.region
+    if region is None:
+        if isinstance(deltas, SparseOffsets):
+            new = rig.deltas[k].copy()
+            new[deltas.vertices] = deltas.values[k]
+        else:
+            new = deltas[k]
+        return None, new, rig.deltas[k], [ib.offsets for ib in ibs]
+    r_idx, r_off, r_ibs = (src.residue[k] if src.residue else
+                           (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), [np.zeros((0, 3))] * len(ibs)))
+    old_idx = src.point_indices[k]
+    extra = [np.zeros(0, dtype=np.int64)]
+    normals = [src.normal_offsets[k] if src.normal_offsets else None] + [ib.normal_offsets for ib in ibs]
+    for nrm in normals:
+        if nrm is not None:
+            rows = np.arange(region.n) if old_idx is None else np.asarray(old_idx, dtype=np.int64)
+            extra.append(rows[np.abs(nrm).reshape(-1, 3).max(axis=1) > 0])
+    points = np.concatenate([region.vertices, r_idx])
+    values_new = np.concatenate([deltas.values[k], r_off])
+    values_old = np.concatenate([rig.deltas[k], r_off])
+    ib_old = [np.concatenate([ib.offsets, r]) for ib, r in zip(ibs, r_ibs, strict=True)]
+    more = np.concatenate(extra)
+    if more.size:                                                      # normal offsets only: no motion
+        seen = np.zeros(region.n, dtype=bool)
+        seen[points] = True
+        more = np.unique(more[~seen[more]])
+    if r_idx.size == 0 and more.size == 0:                             # the region's own points, ascending
+        return points, values_new, values_old, ib_old
+    points = np.concatenate([points, more])
+    order = np.argsort(points, kind="stable")
+    pad = np.zeros((more.size, 3))
+
+    def arrange(a):
+        return np.concatenate([a, pad])[order]
+
+    return points[order], arrange(values_new), arrange(values_old), [arrange(b) for b in ib_old]
 
 
 def _original_shape_prims(stage, rig: FaceRig) -> list[str]:
@@ -268,38 +328,54 @@ def _inbetween_types(stage, rig: FaceRig, shape_prims: list[str]) -> dict:
     return types
 
 
-def _author_shape(layer, rig: FaceRig, k: int, new_primary_local: np.ndarray, ib_types: dict,
-                  shape_path: str):
-    """Author the over of shape k of ``rig``: offsets, pointIndices, inbetweens, normal offsets."""
+def _author_shape(layer, rig: FaceRig, k: int, support: tuple, ib_types: dict, shape_path: str):
+    """Author the over of shape k of ``rig``: offsets, pointIndices, inbetweens, normal offsets.
+    ``support`` = :func:`_shape_support` (the points considered and the new / old offsets there)."""
     from pxr import Sdf, Vt
 
     src = rig.source
-    n = rig.n_vertices
-    old_primary_local = local_offsets(rig, rig.deltas[k])
+    n = src.region.n if src.region is not None else rig.n_vertices
+    points, new_primary, old_primary, ib_old = support
+    new_primary_local = local_offsets(rig, new_primary)
+    old_primary_local = local_offsets(rig, old_primary)
     diff = new_primary_local - old_primary_local
+    m = n if points is None else points.size
     old_idx = src.point_indices[k]
+    if points is None:
+        where_old = slice(None) if old_idx is None else old_idx     # positions of authored points
+    else:
+        rows = np.arange(n) if old_idx is None else np.asarray(old_idx, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(points, rows), max(m - 1, 0))
+        found = points[pos] == rows if m else np.zeros(rows.size, dtype=bool)
+        where_old = pos[found]
+
+    def on_points(values):      # per authored point -> per considered point (those outside are zero)
+        out = np.zeros((m, 3), dtype=np.float32)
+        vals = np.asarray(values, dtype=np.float32).reshape(-1, 3)
+        out[where_old] = vals if points is None else vals[found]
+        return out
+
     ibs = rig.inbetweens.get(rig.names[k], [])
-    ib_new = [local_offsets(rig, ib.offsets) + ib.weight * diff for ib in ibs]
+    ib_new = [local_offsets(rig, old) + ib.weight * diff for ib, old in zip(ibs, ib_old, strict=True)]
     normals_dense = None
     ib_normals_dense = []
     keep = []
     if src.normal_offsets and src.normal_offsets[k] is not None:
-        normals_dense = np.zeros((n, 3), dtype=np.float32)
-        normals_dense[slice(None) if old_idx is None else old_idx] = src.normal_offsets[k]
+        normals_dense = on_points(src.normal_offsets[k])
         keep.append(normals_dense.astype(np.float64))
     for ib in ibs:
         dense = None
         if ib.normal_offsets is not None:
-            dense = np.zeros((n, 3), dtype=np.float32)
-            dense[slice(None) if old_idx is None else old_idx] = ib.normal_offsets
+            dense = on_points(ib.normal_offsets)
             keep.append(dense.astype(np.float64))
         ib_normals_dense.append(dense)
     moved = effective_point_set(new_primary_local, ib_new + keep)
-    if moved.all():
+    if moved.all() and m == n:
         new_idx = None if old_idx is None else np.arange(n)  # dense stays in the form it was authored in
+        sel = slice(None)
     else:
-        new_idx = np.flatnonzero(moved)
-    sel = slice(None) if new_idx is None else new_idx
+        sel = np.flatnonzero(moved)
+        new_idx = sel if points is None else points[sel]
     same_points = (old_idx is None and new_idx is None) or (
         old_idx is not None and new_idx is not None and np.array_equal(old_idx, new_idx))
 
@@ -321,10 +397,10 @@ def _author_shape(layer, rig: FaceRig, k: int, new_primary_local: np.ndarray, ib
         if normals_dense is not None:
             attr("normalOffsets", Sdf.ValueTypeNames.Vector3fArray,
                  Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals_dense[sel])))
-    for ib, offsets, ib_normals in zip(ibs, ib_new, ib_normals_dense, strict=True):
+    for ib, offsets, ib_normals, old in zip(ibs, ib_new, ib_normals_dense, ib_old, strict=True):
         name = f"inbetweens:{ib.name}"
         type_name = ib_types.get((shape_path, ib.name), Sdf.ValueTypeNames.Point3fArray)
-        if not (np.allclose(offsets, local_offsets(rig, ib.offsets), rtol=0, atol=0) and same_points):
+        if not (np.allclose(offsets, local_offsets(rig, old), rtol=0, atol=0) and same_points):
             attr(name, type_name,
                  Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(offsets[sel], dtype=np.float32)))
         if ib_normals is not None and not same_points:
@@ -518,9 +594,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         redirected = any(f"/{SHAPES_SCOPE}/" in p for rig in rigs for p in rig.source.shape_prims)
         with Sdf.ChangeBlock():
             for rig, deltas in resolved:
-                local = local_offsets(rig, deltas)
                 for k in range(rig.n_shapes):
-                    _author_shape(layer, rig, k, local[k], ib_types, shape_prims[rig.source.prim][k])
+                    _author_shape(layer, rig, k, _shape_support(rig, k, deltas), ib_types,
+                                  shape_prims[rig.source.prim][k])
             if variants and rigs and not redirected:
                 _author_variants(layer, rigs, input_asset)
         roots = sorted({r.source.skel_root for r in rigs if r.source.skel_root}) or sorted(

@@ -243,7 +243,8 @@ def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None
 
 
 def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
-               skinning=None, snapped: list | None = None, name_map: dict | None = None) -> tuple:
+               skinning=None, snapped: list | None = None, name_map: dict | None = None,
+               moving_only: bool = False) -> tuple:
     """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
     prim) when joint influences bind it to a skeleton."""
     from pxr import UsdSkel
@@ -279,7 +280,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                        f"(tokens {', '.join(clash)})", path=path, prim=prim,
                        fix="rename or remove the duplicate blend shapes, or fix the --name-map")
 
-    deltas = np.zeros((len(tokens), n, 3))
+    sparse = []                           # per shape: (indices or None, offsets[k,3] internal metres)
     point_indices, normal_offsets, inbetweens = [], [], {}
     for k, (target, shape_prim) in enumerate(zip(targets, shape_prims, strict=True)):
         if not shape_prim or not shape_prim.IsA(UsdSkel.BlendShape):
@@ -301,13 +302,12 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                 raise RigError(f"{len(offsets)} offsets but {len(idx)} pointIndices", path=path, prim=target,
                                fix="give one offset per listed point index")
             _check_indices(idx, n, "pointIndices", path, target)
-            deltas[k, idx] = offsets @ linear.T
         else:
             if len(offsets) != n:
                 raise RigError(f"{len(offsets)} offsets for a mesh of {n} points and no pointIndices",
                                path=path, prim=target,
                                fix="author one offset per point, or pointIndices listing the moved points")
-            deltas[k] = offsets @ linear.T
+        sparse.append((idx, offsets @ linear.T))
         normals_attr = shape.GetNormalOffsetsAttr()
         normals = None
         if normals_attr.HasAuthoredValue():
@@ -330,13 +330,8 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                 raise RigError(f"{ib_name} has {len(ib_offsets)} offsets, the shape {len(offsets)}",
                                path=path, prim=target,
                                fix="give the inbetween as many offsets as the primary shape")
-            dense = np.zeros((n, 3))
-            if idx is None:
-                dense[:] = ib_offsets @ linear.T
-            else:
-                dense[idx] = ib_offsets @ linear.T
             ib_normals = ib.GetNormalOffsets() if ib.GetNormalOffsetsAttr() else None
-            ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), dense,
+            ibs.append(Inbetween(ib_name.split(":", 1)[-1], float(weight), ib_offsets @ linear.T,
                                  None if ib_normals is None else np.array(ib_normals, dtype=np.float32)))
         if ibs:
             ws = [b.weight for b in ibs]
@@ -349,11 +344,58 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
         file=file_label, prim=prim, shape_prims=targets, channel_tokens=tokens, point_indices=point_indices,
         normal_offsets=normal_offsets, to_internal=to_internal, face_vertex_counts=counts,
         face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
+    neutral, triangles, deltas = _place_offsets(source, neutral, triangles, sparse, inbetweens,
+                                                match.canonical, moving_only)
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
     report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
               "missing": list(match.missing), "conflicts": [list(x) for x in match.conflicts],
               "channels": [list(x) for x in match.channels]}
     return rig, report
+
+
+def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving_only):
+    """The rig's arrays from the shapes as read (``sparse``: per shape ``(indices or None, offsets[k,3])``,
+    inbetween offsets in ``inbetweens`` aligned the same way, replaced in place by their placed form):
+    ``(neutral, triangles, deltas[K,s,3])`` on every vertex, or with ``moving_only`` on the part some shape
+    or inbetween moves and its margin (:func:`usdface.submesh.moving_part`; the crop and the authored points
+    outside it are recorded on ``source.region`` / ``source.residue``), never forming ``[K,n,3]`` for the
+    rest."""
+    from ..submesh import crop, moving_part, outside_offsets, peak_of_shapes
+
+    n = len(neutral)
+    ibs_of = [inbetweens.get(name, []) for name in names]
+    sub = None
+    if moving_only and n:
+        shapes = list(sparse) + [(idx, b.offsets) for (idx, _), ibs in zip(sparse, ibs_of, strict=True)
+                                 for b in ibs]
+        keep = moving_part(peak_of_shapes(n, shapes), neutral)
+        if keep is not None:
+            sub = crop(triangles, keep, neutral)
+    vertices = np.arange(n) if sub is None else sub.vertices
+    local = np.full(n, -1, dtype=np.int64)
+    local[vertices] = np.arange(vertices.size)
+    deltas = np.zeros((len(sparse), vertices.size, 3))
+    residue = []
+    for k, ((idx, off), ibs) in enumerate(zip(sparse, ibs_of, strict=True)):
+        rows = np.arange(n) if idx is None else idx
+        at = local[rows]
+        inside = at >= 0
+        if sub is None and idx is None:
+            deltas[k] = off
+        else:
+            deltas[k, at[inside]] = off[inside]
+        rest = []
+        for b in ibs:
+            placed = np.zeros((vertices.size, 3))
+            placed[at[inside]] = b.offsets[inside]
+            rest.append(b.offsets[~inside])
+            b.offsets = placed
+        if sub is not None:
+            residue.append(outside_offsets(rows[~inside], off[~inside], rest))
+    if sub is None:
+        return neutral, triangles, deltas
+    source.region, source.residue = sub, residue
+    return neutral[sub.vertices], sub.triangles, deltas
 
 
 def _skel_roots(stage):
@@ -373,7 +415,7 @@ def _has_blend_shapes(prim) -> bool:
                 or binding.GetBlendShapeTargetsRel().GetTargets())
 
 
-def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
+def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_only: bool = False) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
 
     Parameters
@@ -384,6 +426,13 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
     name_map : {studio channel: ARKit name} dict, or a JSON / CSV file of them
         (:func:`usdface.io.name_map.read_name_map`), validated before the file is opened; tried before the
         built-in spellings (:func:`usdface.arkit.match_name`).
+    moving_only : keep each mesh with blend shapes only where some shape (or inbetween) moves it, with a
+        margin, when that is at most half the mesh (:func:`usdface.submesh.moving_part`): the rig's
+        neutral, triangles and deltas are those of the sub-mesh, ``rig.source.region`` the
+        :class:`usdface.submesh.SubMesh` (full-mesh indices, vertex count and points) and
+        ``rig.source.residue`` the authored float noise outside it; the file's sparse ``pointIndices`` are
+        never made dense for the rest of the mesh. What ``personalize`` reads (a full-body mesh whose face
+        shapes move 5 % of it costs about 5 %).
 
     Returns
     -------
@@ -410,7 +459,7 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None) -> Avatar:
     path = Path(path)
     stage = _open_stage(path)
     try:
-        return _read_avatar_stage(stage, path, snap_transforms, name_map)
+        return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only)
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
@@ -475,7 +524,7 @@ def refuse_usdface_output(path) -> None:
 
 
 def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
-                       name_map: dict | None = None) -> Avatar:
+                       name_map: dict | None = None, moving_only: bool = False) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
     _refuse_non_avatar(stage, path)
@@ -531,7 +580,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
         prim, skel_root, skeleton, anim, skinning = found[key]
         rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning,
-                                snapped, name_map)
+                                snapped, name_map, moving_only)
         meshes.append(rig)
         report[key] = entry
         for token, canonical, kept in entry["conflicts"]:

@@ -11,10 +11,15 @@ Steps (Menzel et al. 2022, sec. 3.2-3.3), each a pure function on arrays in anot
    approximation, every other vertex and mesh follows the approximation;
 6. eyelid-eyeball repair (:mod:`.eyelids`);
 7. the layer (:func:`usdface.io.layers.write_avatar_layer`).
+
+Every step works on the part of each mesh its shapes move (:mod:`usdface.submesh`: read that way, or cropped
+after reading; the offsets go back as :class:`usdface.submesh.SparseOffsets`), and the face mesh's separate
+pieces beyond the capture's reach are handled as another mesh (:func:`reached_parts`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,10 +28,11 @@ import numpy as np
 
 from ..errors import GeometryError, RigError, UsdFaceError
 from ..mesh import deformation_gradients
-from ..model import Avatar, Capture, FaceRig
+from ..model import Avatar, Capture, FaceRig, Inbetween
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
+from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, scatter
 from .correspond import (
     Correspondence,
     correspondence_map,
@@ -77,7 +83,9 @@ PRIORS = ("avatar", "template")
 class PersonalizeResult:
     """Everything ``personalize`` computed.
 
-    ``offsets``: {mesh prim path -> deltas[K_mesh,n,3]} metres internal, rig.names order (the layer's).
+    ``offsets``: {mesh prim path -> deltas[K_mesh,n,3]} metres internal, rig.names order (the layer's); for a
+    mesh worked on by its moving part a :class:`usdface.submesh.SparseOffsets` (``np.asarray`` is the dense
+    array; outside the part the input's offsets, or 0 for float noise read from a file).
     ``names``: the capture shapes that were implanted (J). ``weights``: eq. (4) retarget map ``[J,K]`` with
     ``avatar_names`` (K, the face mesh's shapes). ``approximation``: {mesh -> A_j [J,n,3]} eq. (4).
     ``face``/``adjacent``: face-mesh regions (``[n]``, ``[J,n]``). ``report``: figures for people
@@ -178,6 +186,80 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     if cache is not None:
         save_correspondence(corr, cache)
     return corr
+
+
+#: A separate piece of the face mesh is within the capture's reach when some vertex of it lies within this
+#: share of the placed capture's diagonal of a capture vertex: the registration's first (widest) ICP
+#: correspondence distance (:func:`.register.register_icp`).
+REACH = 0.08
+
+
+def reached_parts(points, triangles, placed, *, reach: float = REACH):
+    """``keep[m]`` bool: the face mesh's connected pieces the capture reaches, or None when it reaches every
+    piece (one connected head).
+
+    ``points[m,3]``, ``triangles[t,3]`` the face mesh (as held: its moving part and margin), ``placed[q,3]``
+    the capture placed on it (or a function returning it, called only for a mesh in several pieces). A
+    connected piece none of whose vertices is within ``reach`` x the capture's
+    diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
+    where the capture lies, and its triangles must not take part in the face's closest-point queries."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from ..mesh import vertex_adjacency
+
+    p = np.asarray(points, dtype=np.float64)
+    count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
+    if count < 2:
+        return None
+    q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)
+    limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
+    near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
+    keep = np.isin(label, np.unique(label[near]))
+    return None if keep.all() or not keep.any() else keep
+
+
+def _rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_deltas, capture) -> np.ndarray:
+    """The person's neutral ``[q,3]`` placed on the face mesh roughly (for :func:`reached_parts`): by the
+    shape-motion landmarks (:func:`.register.motion_initialiser`), else by a full registration."""
+    from .register import RegistrationError, motion_initialiser
+
+    try:
+        return motion_initialiser(person_neutral, template_deltas, face.neutral, avatar_deltas).apply(
+            person_neutral)
+    except RegistrationError:
+        return register_face(person_neutral, template_deltas, face.neutral, avatar_deltas,
+                             avatar_triangles=face.triangles, capture_triangles=capture.triangles,
+                             path=capture.source or None).transform.apply(person_neutral)
+
+
+def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
+    """``rig`` as two rigs: on the vertices ``keep[m]`` (sharing its source, so its key) and on the rest (no
+    source: another mesh for the steps, named after it); the triangles within each, re-indexed."""
+    def part(mask, source, name):
+        sub = crop(rig.triangles, mask)
+        v = sub.vertices
+        ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
+               for k, lst in rig.inbetweens.items()}
+        return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, name)
+
+    return part(keep, rig.source, rig.name), part(~keep, None, f"{_key(rig)} (beyond the capture)")
+
+
+def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
+    """Values of a split face mesh (:func:`_split_rig`; ``[k]``, ``[J,k]`` or ``[J,k,3]``) in one array
+    again: ``reached_values`` at the vertices ``reached[m]``, ``rest_values`` (array or fill) at ``rest``."""
+    a = np.asarray(reached_values)
+    axis = 0 if a.ndim == 1 else 1                          # [m] masks, [J,m] and [J,m,3] per shape
+    shape = list(a.shape)
+    shape[axis] = reached.size
+    out = np.zeros(shape, dtype=a.dtype)
+    idx = [slice(None)] * a.ndim
+    idx[axis] = np.flatnonzero(reached)
+    out[tuple(idx)] = a
+    idx[axis] = rest
+    out[tuple(idx)] = rest_values
+    return out
 
 
 def _jacobians(neutral, deltas, triangles):
@@ -309,7 +391,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if not isinstance(avatar, Avatar):
             from ..io.usd_rig import read_avatar
 
-            avatar = read_avatar(avatar, name_map=name_map)
+            avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
+        # every step works on the part of each mesh its shapes move; scattered back at the end (write)
+        generic_full = {_key(m): m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
+                        if m.source is None or m.source.region is None}
+        avatar, regions = crop_avatar(avatar)
         if not isinstance(capture, Capture):
             from ..io import read_capture
 
@@ -348,6 +434,24 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 2. registration of the person's neutral
         t = time.perf_counter()
+        # separate pieces of the face mesh beyond the capture's reach (a body merged into the head's mesh,
+        # its neck moved by the jaw) cannot say where the capture lies nor what it shows: the steps below
+        # see the reached pieces as the face mesh and the rest as another mesh (joined back before write)
+        reached = reached_parts(face.neutral, face.triangles, lambda: _rough_placement(
+            person_neutral0, template_deltas, face, avatar_face_deltas, capture))
+        whole_face, beyond = face, None
+        if reached is not None:
+            # the still vertices beyond are left as they are (out of the part worked on and written)
+            keep = reached | moving_vertices(peak_motion(face.deltas), face.neutral)
+            whole_face, region = crop_rig(face, keep, regions.get(face_prim))
+            if not region.whole:
+                regions[face_prim] = region
+            avatar_face_deltas, reached = avatar_face_deltas[:, keep], reached[keep]
+            avatar_face_deltas = avatar_face_deltas[:, reached]
+            face, beyond = _split_rig(whole_face, reached)
+            rest = np.flatnonzero(~reached)
+            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+                                                         for m in avatar.meshes] + [beyond])
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None)
@@ -450,7 +554,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             length = extension_length * radius if extension_length else None
             eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
             others = [m for m in avatar.meshes if m is not face and _key(m) not in eyeballs_static]
-            followers = [m for m in others if not _is_eyeball(m)]            # eyeballs keep their shapes
+            followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
@@ -486,6 +590,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             for m in avatar.meshes:
                 if m is not face:
                     eye_meshes.setdefault(_key(m), (m.neutral, m.triangles))
+            # an eyeball is found by the whole mesh's shape, not by its moving part
+            eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
+                               for k, v in eye_meshes.items() if k in regions})
             found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
             if found:
                 result, repaired = repair_eyelids(face.neutral, result,
@@ -495,6 +602,16 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             if not found:
                 report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
         report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
+        f = corr.face
+        if beyond is not None:                   # the face mesh in one piece again: reached + beyond
+            result = _join(result, reached, other.pop(_key(beyond)), rest)
+            f, adjacent = _join(f, reached, False, rest), _join(adjacent, reached, False, rest)
+            if _key(beyond) in approx_eq4:
+                approx_eq4[face_prim] = _join(approx_eq4[face_prim], reached, approx_eq4.pop(_key(beyond)),
+                                              rest)
+            face = whole_face
+            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+                                                         for m in avatar.meshes if m is not beyond])
         timings["eyelids"] = time.perf_counter() - t
         advance("eyelids")
         advance.start("write")
@@ -509,7 +626,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 for j, n in enumerate(names):
                     if n in m.names:
                         new[m.index(n)] = src[j]
-            offsets[key] = new
+            region = regions.get(key)
+            base = generic_full.get(key)
+            offsets[key] = new if region is None else SparseOffsets(
+                region.vertices, new, region.n,
+                base=base if base is not None and base.shape[1] == region.n else None)
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
@@ -517,7 +638,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                         "approximation": approximation, "prior": prior, "extension_length": extension_length,
                         "falloff": falloff, "support": support, "eyelids": eyelids},
             "name_report": avatar.name_report,
-            "changes": _changes(avatar, offsets),
+            "changes": _changes(avatar, offsets, regions),
         })
 
         # 7. write
@@ -544,6 +665,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         advance("write")
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings
+    if face_prim in regions:                                      # the face mesh's regions on every vertex
+        f, adjacent = scatter(f[:, None], regions[face_prim])[:, 0], scatter(adjacent[..., None],
+                                                                           regions[face_prim])[..., 0]
+    approx_eq4 = {k: (SparseOffsets(regions[k].vertices, v, regions[k].n) if k in regions else v)
+                  for k, v in approx_eq4.items()}
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
 
@@ -552,8 +678,9 @@ def _key(m: FaceRig) -> str:
     return m.source.prim if m.source else m.name
 
 
-def _is_eyeball(m: FaceRig) -> bool:
-    return bool(find_eyeballs({_key(m): m.neutral}))
+def _is_eyeball(m: FaceRig, regions: dict | None = None) -> bool:
+    region = (regions or {}).get(_key(m))
+    return bool(find_eyeballs({_key(m): m.neutral if region is None else region.points}))
 
 
 def corr_transform(corr, fallback):
@@ -676,13 +803,19 @@ def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
                                                   capture.triangles, names=list(names)))
 
 
-def _changes(avatar: Avatar, offsets: dict) -> list[dict]:
-    """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints."""
+def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list[dict]:
+    """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints. A mesh held
+    on its moving part (``regions``, offsets :class:`usdface.submesh.SparseOffsets`) changes nowhere else."""
     rows = []
     for m in avatar.meshes:
         key = m.source.prim if m.source else m.name
-        sq = np.sum((offsets[key] - m.deltas) ** 2, axis=2)  # [K,n] squared change
-        peak, rms = np.sqrt(sq.max(axis=1)), np.sqrt(sq.mean(axis=1))
+        new = offsets[key]
+        new = new.values if isinstance(new, SparseOffsets) else new
+        d = new - m.deltas
+        sq = np.einsum("knc,knc->kn", d, d)  # [K,n] squared change (on the part held)
+        n_full = regions[key].n if regions and key in regions else m.n_vertices
+        peak = np.sqrt(sq.max(axis=1)) if sq.shape[1] else np.zeros(len(sq))
+        rms = np.sqrt(sq.sum(axis=1) / max(n_full, 1))
         moved = (sq > 1e-18).sum(axis=1)
         for k, n in enumerate(m.names):
             rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),

@@ -1,0 +1,273 @@
+"""The part of a mesh its blend shapes move, and back: crop / scatter (pure numpy).
+
+A full-body avatar is often one mesh whose face shapes move 5 % of it; a separate body mesh may move only
+its neck. Every step of ``personalize`` works on the moving part only: a vertex no shape moves has zero
+generic motion, so the person's field (a rotation + scale of the generic motion, :mod:`.transfer.implant`)
+leaves it still, and it can be left out of every solve. The pair used at the edges of the pipeline:
+
+* :func:`crop` - ``keep[n]`` (e.g. :func:`moving_region`) -> a :class:`SubMesh`: the kept vertices (indices
+  into the full mesh, ascending) and the triangles among them, re-indexed;
+* :func:`scatter` - values on the sub-mesh ``[..., s, c]`` back to the full mesh ``[..., n, c]``;
+* :func:`crop_rig` - a :class:`usdface.model.FaceRig` on its sub-mesh (neutral, triangles, deltas and
+  inbetweens cropped; the crop is recorded on the rig's source);
+* :class:`SparseOffsets` - personalized offsets as indices + values (``vertices[s]``, ``values[K,s,3]``),
+  what the layer writer takes without ever forming the dense ``[K, n, 3]`` array.
+
+Units: whatever the arrays are in (metres in usdface). ``crop`` then ``scatter`` is the identity on the kept
+vertices (exact: indexing only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .motion import moving_vertices
+
+__all__ = ["SubMesh", "moving_region", "crop", "scatter", "crop_rig", "SparseOffsets", "peak_of_shapes",
+           "outside_offsets", "crop_avatar",
+           "with_margin", "moving_part", "MARGIN", "MAX_SHARE"]
+
+
+@dataclass
+class SubMesh:
+    """A part of a mesh of ``n`` vertices: ``vertices[s]`` int64 ascending indices into the full mesh,
+    ``triangles[t,3]`` the full mesh's triangles whose three corners are kept, re-indexed to ``0..s-1``
+    (full-mesh order kept), ``points[n,3]`` the full mesh's rest points (None if not known)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    n: int
+    points: np.ndarray | None = None
+
+    @property
+    def size(self) -> int:
+        return int(self.vertices.size)
+
+    @property
+    def whole(self) -> bool:
+        """True when every vertex is kept (the crop is the identity)."""
+        return self.size == self.n
+
+
+def peak_of_shapes(n: int, shapes) -> np.ndarray:
+    """``[n]`` largest offset length of each vertex over sparse ``shapes``: an iterable of
+    ``(indices[k] or None, offsets[k,3])`` (None: all ``n`` vertices, in order); no ``[K,n,3]`` array."""
+    peak = np.zeros(n)
+    for idx, off in shapes:
+        off = np.asarray(off, dtype=np.float64)
+        norms = np.sqrt(np.einsum("kc,kc->k", off, off))
+        if idx is None:
+            np.maximum(peak, norms, out=peak)
+        elif len(idx):
+            np.maximum.at(peak, np.asarray(idx, dtype=np.int64), norms)
+    return peak
+
+
+def moving_region(peak, points=None) -> np.ndarray:
+    """``[n]`` bool: the vertices some shape moves, from each vertex's ``peak[n]`` motion over every shape
+    (and inbetween) of the mesh, with :func:`usdface.motion.moving_vertices`' tolerance (float noise of an
+    export is not motion; ``points[n,3]`` the rest points that noise scales with)."""
+    return moving_vertices(peak, points)
+
+
+#: The part worked on reaches this far beyond what moves, in RMS radii of the moving vertices (about 6 cm
+#: on a head): the correspondence takes avatar surface points up to 4 capture edges (3 cm) from the capture,
+#: which lies on the moving face but may overhang skin no shape moves (the ears, a hairline), and its
+#: closest-point queries should see the same triangles as on the whole head.
+MARGIN = 0.75
+
+
+def with_margin(points, moving, margin: float = MARGIN) -> np.ndarray:
+    """``[n]`` bool: ``moving[n]`` plus every vertex of ``points[n,3]`` within ``margin`` RMS radii of the
+    moving vertices (their RMS distance from their centroid)."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64)
+    moving = np.asarray(moving, dtype=bool)
+    keep = moving.copy()
+    if not moving.any() or moving.all() or margin <= 0:
+        return keep
+    mp = p[moving]
+    reach = margin * float(np.sqrt(np.mean(np.sum((mp - mp.mean(axis=0)) ** 2, axis=1))))
+    lo, hi = mp.min(axis=0) - reach, mp.max(axis=0) + reach
+    cand = np.flatnonzero(~moving & (p >= lo).all(axis=1) & (p <= hi).all(axis=1))
+    if cand.size:
+        d = cKDTree(mp).query(p[cand], distance_upper_bound=reach)[0]
+        keep[cand[np.isfinite(d)]] = True
+    return keep
+
+
+#: A mesh is cropped only when the part kept is at most this share of it: a crop of a head that moves
+#: nearly everywhere saves little, and the whole mesh gives the whole-mesh answer to the last bit (the
+#: non-rigid registration's solve amplifies float rounding of sums over a different vertex count ~1e8-fold,
+#: to ~1e-8 m).
+MAX_SHARE = 0.5
+
+
+def moving_part(peak, points) -> np.ndarray | None:
+    """``keep[n]`` bool, the part of a mesh worked on: the vertices some shape moves (:func:`moving_region`
+    of ``peak[n]``) and :func:`with_margin` around them; None when that is more than :data:`MAX_SHARE` of
+    the mesh (or nothing moves): keep the whole mesh."""
+    keep = with_margin(points, moving_region(peak, points))
+    if not keep.any() or keep.sum() > MAX_SHARE * keep.size:
+        return None
+    return keep
+
+
+def crop(triangles, keep, points=None) -> SubMesh:
+    """The sub-mesh of the vertices ``keep`` (``[n]`` bool, or indices into ``n = len(points)`` vertices):
+    the triangles whose three corners are kept, re-indexed. ``points[n,3]`` is kept on the result."""
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    keep = np.asarray(keep)
+    if keep.dtype == bool:
+        n, vertices = keep.size, np.flatnonzero(keep)
+    else:
+        if points is None:
+            raise ValueError("crop: give points (or a bool mask) so the full vertex count is known")
+        n, vertices = len(points), np.unique(keep.astype(np.int64))
+    mask = np.zeros(n, dtype=bool)
+    mask[vertices] = True
+    local = np.full(n, -1, dtype=np.int64)
+    local[vertices] = np.arange(vertices.size)
+    return SubMesh(vertices, local[tri[mask[tri].all(axis=1)]], n,
+                   None if points is None else np.asarray(points, dtype=np.float64))
+
+
+def scatter(values, sub: SubMesh, base=None) -> np.ndarray:
+    """``values[..., s, c]`` on the sub-mesh -> ``[..., n, c]`` on the full mesh: a copy of ``base`` (same
+    shape, e.g. the generic offsets) with the kept vertices replaced, zeros elsewhere without ``base``."""
+    v = np.asarray(values)
+    if base is None:
+        out = np.zeros(v.shape[:-2] + (sub.n,) + v.shape[-1:], dtype=v.dtype)
+    else:
+        out = np.array(base, dtype=np.result_type(v.dtype, np.asarray(base).dtype), copy=True)
+    out[..., sub.vertices, :] = v
+    return out
+
+
+def outside_offsets(indices, offsets, inbetweens=()) -> tuple:
+    """``(indices[r], offsets[r,3], [inbetween offsets[r,3], ...])`` of the points outside a crop whose
+    offset (or an inbetween's) is not exactly zero: what a writer must keep as it was."""
+    idx = np.asarray(indices, dtype=np.int64)
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
+    ibs = [np.asarray(b, dtype=np.float64).reshape(-1, 3) for b in inbetweens]
+    nonzero = (off != 0).any(axis=1)
+    for b in ibs:
+        nonzero |= (b != 0).any(axis=1)
+    return idx[nonzero], off[nonzero], [b[nonzero] for b in ibs]
+
+
+def crop_rig(rig, keep, region: SubMesh | None = None):
+    """``(FaceRig on the sub-mesh, SubMesh)``: ``rig`` (:class:`usdface.model.FaceRig`) with its neutral,
+    deltas and inbetweens on its vertices ``keep`` and the triangles among them; its source (a copy) records
+    the crop (``region``) and the non-zero offsets outside it (``residue``). A rig that is itself a part of
+    its mesh (``region``: that part) is cropped further, the result again a part of the whole mesh. A crop
+    that keeps every vertex returns ``rig`` itself (and ``region``, or a whole SubMesh)."""
+    import dataclasses
+
+    from .model import FaceRig, Inbetween
+
+    sub = crop(rig.triangles, keep, rig.neutral)
+    if sub.whole:
+        return rig, region if region is not None else sub
+    v = sub.vertices
+    dropped = np.ones(sub.n, dtype=bool)
+    dropped[v] = False
+    ibs = {name: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
+           for name, lst in rig.inbetweens.items()}
+    if region is not None:                                  # a part of a part: indices into the whole mesh
+        sub = SubMesh(region.vertices[v], sub.triangles, region.n, region.points)
+    source = rig.source
+    if source is not None:
+        residue = []
+        for k, name in enumerate(rig.names):
+            if region is None:
+                authored = source.point_indices[k] if k < len(source.point_indices) else None
+                rows = np.flatnonzero(dropped) if authored is None else authored[dropped[authored]]
+                full = rows
+            else:
+                rows = np.flatnonzero(dropped)
+                full = region.vertices[rows]
+            out = outside_offsets(full, rig.deltas[k, rows],
+                                  [b.offsets[rows] for b in rig.inbetweens.get(name, [])])
+            if region is not None and source.residue:
+                before = source.residue[k]
+                out = (np.concatenate([before[0], out[0]]), np.concatenate([before[1], out[1]]),
+                       [np.concatenate([x, y]) for x, y in zip(before[2], out[2], strict=True)])
+            residue.append(out)
+        source = dataclasses.replace(source, region=sub, residue=residue)
+    return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, rig.name), sub
+
+
+class SparseOffsets:
+    """Offsets of a ``K``-shape rig on an ``n``-vertex mesh, kept sparse: ``values[K,s,3]`` at the full-mesh
+    ``vertices[s]`` (ascending); elsewhere ``base[K,n,3]`` when given (the generic offsets, untouched),
+    else 0. ``np.asarray(offsets)`` (and indexing) gives the dense ``[K,n,3]`` array for callers that want
+    it; :func:`usdface.io.layers.write_avatar_layer` writes it without densifying."""
+
+    def __init__(self, vertices, values, n: int, base=None):
+        self.vertices = np.asarray(vertices, dtype=np.int64)
+        self.values = np.asarray(values, dtype=np.float64)
+        self.n = int(n)
+        self.base = base
+        if self.values.ndim != 3 or self.values.shape[1] != self.vertices.size or self.values.shape[2] != 3:
+            raise ValueError(f"SparseOffsets: values {self.values.shape} do not fit {self.vertices.size} "
+                             "vertices [K,s,3]")
+        if base is not None and np.shape(base) != self.shape:
+            raise ValueError(f"SparseOffsets: base {np.shape(base)} is not {self.shape}")
+
+    @property
+    def shape(self) -> tuple:
+        return (self.values.shape[0], self.n, 3)
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    def dense(self) -> np.ndarray:
+        """The ``[K,n,3]`` float64 array."""
+        out = (np.zeros(self.shape) if self.base is None
+               else np.array(self.base, dtype=np.float64, copy=True))
+        out[:, self.vertices] = self.values
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        d = self.dense()
+        return d if dtype is None else d.astype(dtype)
+
+    def __getitem__(self, item):
+        return self.dense()[item]
+
+    def shape_row(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Shape ``k`` as ``(vertices[s], values[s,3])``."""
+        return self.vertices, self.values[k]
+
+
+def crop_avatar(avatar) -> tuple:
+    """``(avatar on its moving parts, {mesh key -> SubMesh})``: every mesh with blend shapes of ``avatar``
+    (:class:`usdface.model.Avatar`) cropped to the vertices some shape or inbetween moves
+    and the margin around them (:func:`moving_part`), unless it is already (read with ``moving_only``) or the
+    part is most of the mesh. Keys are the meshes' prim paths (their names without a source); meshes kept
+    whole have no entry."""
+    import dataclasses
+
+    from .motion import peak_motion
+
+    meshes, regions = [], {}
+    for m in avatar.meshes:
+        key = m.source.prim if m.source else m.name
+        if m.source is not None and m.source.region is not None:        # read on its moving part
+            meshes.append(m)
+            regions[key] = m.source.region
+            continue
+        peak = peak_motion(m.deltas)
+        for ibs in m.inbetweens.values():
+            for b in ibs:
+                np.maximum(peak, np.sqrt(np.einsum("nc,nc->n", b.offsets, b.offsets)), out=peak)
+        keep = moving_part(peak, m.neutral)
+        if keep is not None:
+            m, regions[key] = crop_rig(m, keep)
+        meshes.append(m)
+    return dataclasses.replace(avatar, meshes=meshes), regions
+
