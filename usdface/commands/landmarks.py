@@ -33,6 +33,10 @@ def register(subparsers) -> None:
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
     p.add_argument("--rays", type=positive_int, default=16, help="hemisphere rays per vertex (16)")
+    p.add_argument("--spacing", type=nonnegative_float, default=None,
+                   help="metres between candidate points on the skin (default: 1%% of the face size as a "
+                        "power of two mm, 4 mm on a human head); 0: every vertex a candidate, visibility "
+                        "against the full mesh")
     p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
                    help="OR-tools MIP backend (scip)")
     p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
@@ -97,7 +101,8 @@ def run(args) -> int:
         layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
                                    multicover=args.multicover, radius=args.radius, camera=args.camera,
                                    rays=args.rays, backend=args.backend, weighting=args.weighting,
-                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static)
+                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static,
+                                   spacing="auto" if args.spacing is None else (args.spacing or None))
         if args.output:
             p.start(f"write {Path(args.output).name}")
             params = {k: v for k, v in vars(args).items() if k not in ("func",)}
