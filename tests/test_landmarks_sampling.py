@@ -47,10 +47,11 @@ def _max_edge(points, tri):
 
 
 def test_sample_spacing_is_a_power_of_two_mm_of_the_face_size():
-    assert sampling.sample_spacing(0.42) == pytest.approx(0.004)
+    assert sampling.sample_spacing(0.42) == pytest.approx(0.008)
     # the dev head's face size at dev1 and twice subdivided (0.4171 / 0.4217 m): the same grid
     assert sampling.sample_spacing(0.4171) == sampling.sample_spacing(0.4217)
-    assert sampling.sample_spacing(0.21) == pytest.approx(0.002)
+    assert sampling.sample_spacing(0.21) == pytest.approx(0.004)
+    assert sampling.sample_spacing(0.42, share=0.01) == pytest.approx(0.004)
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(LandmarkError, match="face size"):
             sampling.sample_spacing(bad)
@@ -123,7 +124,8 @@ def _visibility_pair(rig, spacing="auto"):
     c = cand.candidate_sets(r, 0.5)
     spacing, samples = face_samples(rig, spacing, r=r)
     _thin_candidates(rig, r, c, samples, None)
-    origins = np.flatnonzero(c.any(axis=0))
+    # every sample of the face as a ray origin (not only the candidates): the occluded flanks and folds too
+    origins = np.union1d(samples, np.flatnonzero(c.any(axis=0)))
     occ = _occluder(rig, origins, spacing)
     approx = PoseVisibility(rig.neutral, occ, rig.deltas, magnitudes=mag)(origins)
     exact = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, magnitudes=mag)(origins)
@@ -138,7 +140,7 @@ VIS_MEAN, VIS_SHARE = 0.02, 0.95
 def test_occluder_visibility_within_tolerance_of_the_full_mesh():
     points, tri, deltas = _face()
     fine = _rig(*midpoint_subdivide(*midpoint_subdivide(points, tri, deltas)))
-    approx, exact, occ = _visibility_pair(fine, 0.004)  # a human face's spacing (this face is small)
+    approx, exact, occ = _visibility_pair(fine, 0.008)  # a human face's spacing (this face is small)
     assert len(occ) < len(fine.triangles) / 3  # the point: a smaller scene per pose
     assert exact.min() < 0.8  # the shapes do occlude: the test can tell a wrong occluder
     diff = np.abs(approx - exact)
@@ -153,8 +155,8 @@ def test_occluder_visibility_within_tolerance_on_the_dev_head():
     head = read_avatar(DEV1).mesh("Head")
     approx, exact, _ = _visibility_pair(head)
     diff = np.abs(approx - exact)
-    assert diff.mean() <= VIS_MEAN / 2  # measured 0.001
-    assert (diff <= 1.0 / 16 + 1e-9).mean() >= 0.99  # measured 0.997
+    assert diff.mean() <= VIS_MEAN / 2  # measured 0.0011 over its 2,192 face samples
+    assert (diff <= 1.0 / 16 + 1e-9).mean() >= 0.99  # measured 0.998
 
 
 def test_thinned_layout_is_a_valid_cover_and_the_same_count_at_two_resolutions():

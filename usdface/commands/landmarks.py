@@ -34,8 +34,8 @@ def register(subparsers) -> None:
                         "one visibility ray per vertex instead of the hemisphere")
     p.add_argument("--rays", type=positive_int, default=16, help="hemisphere rays per vertex (16)")
     p.add_argument("--spacing", type=nonnegative_float, default=None,
-                   help="metres between candidate points on the skin (default: 1%% of the face size as a "
-                        "power of two mm, 4 mm on a human head); 0: every vertex a candidate, visibility "
+                   help="metres between candidate points on the skin (default: 2%% of the face size as a "
+                        "power of two mm, 8 mm on a human head); 0: every vertex a candidate, visibility "
                         "against the full mesh")
     p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
                    help="OR-tools MIP backend (scip)")

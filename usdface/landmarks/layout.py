@@ -227,7 +227,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     spacing : metres between candidate points on the skin (:mod:`.sampling`): the candidates are the vertices
         nearest the surface sampled at this spacing, and visibility is ray cast against the mesh clustered at
         it, so the work and the answer do not change with the mesh resolution. "auto" (default):
-        :func:`sampling.sample_spacing` of the face size (4 mm on a human head); None: every vertex is a
+        :func:`sampling.sample_spacing` of the face size (8 mm on a human head); None: every vertex is a
         candidate and the full mesh occludes (the exact eq. 4 at the mesh's own resolution).
     samples : precomputed sample vertices at ``spacing`` (:func:`face_samples`; a sweep computes them once).
 

@@ -28,20 +28,21 @@ from ..errors import LandmarkError
 
 #: The candidate spacing as a share of the face size (:func:`usdface.landmarks.visibility.face_size`, the
 #: diagonal of the box around the moving vertices), rounded to a power of two millimetres
-#: (:func:`sample_spacing`): 4 mm on the dev heads (0.42 m). About half an edge of a phone's face mesh
-#: (ARKit's 1,220-vertex mask: ~7 mm edges, the resolution the landmarks are tracked against), so points a
-#: tracker can tell apart are not merged, and coarser than the dev heads' own face vertex spacing (2.8 mm
-#: median edge), so the same points are sampled on them as on any finer mesh of their surface.
-SPACING_SHARE = 0.01
+#: (:func:`sample_spacing`): 8 mm on the dev heads (0.42 m), the resolution of the capture the landmarks are
+#: tracked against (the phone's face mesh, ARKit's 1,220-vertex mask: ~7 mm edges): points closer than that
+#: are one landmark to the tracker. It is also well above the dev heads' own face vertex spacing (2.8 mm
+#: median edge), so the same points are sampled on them as on any finer mesh of their surface (at 4 mm, 15 %
+#: of dev1's surface points shared a nearest vertex with another one and were lost).
+SPACING_SHARE = 0.02
 #: The occluder's clustering spacing as a share of the candidate spacing: 2 mm on a human head, fine enough
-#: for a lid's or lip's margin (the 4 mm clustering changed the visibility of lid-margin vertices by up to
-#: 0.9, mean 0.037 on the twice-subdivided dev head; 2 mm: mean 0.007, 98.8 % within one ray of 16).
-OCCLUDER_SHARE = 0.5
+#: for a lid's or lip's margin (a 4 mm clustering changed the visibility of lid-margin vertices by up to 0.9,
+#: mean 0.037 on the twice-subdivided dev head; 2 mm: mean 0.007, 98.8 % within one ray of 16).
+OCCLUDER_SHARE = 0.25
 
 
 def sample_spacing(face_size: float, share: float = SPACING_SHARE) -> float:
     """The sampling spacing (metres) for a face of ``face_size`` metres: ``share`` of it, rounded to a power
-    of two millimetres (4 mm for the dev heads' 0.42 m). The rounding keeps the grid the same when the face
+    of two millimetres (8 mm for the dev heads' 0.42 m). The rounding keeps the grid the same when the face
     size itself moves with the resolution (the dev head's box of moving vertices grows by 1.1 % when
     subdivided: its midpoints reach half an edge further)."""
     size = float(face_size) * float(share)
