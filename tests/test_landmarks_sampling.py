@@ -63,13 +63,16 @@ def test_surface_points_are_the_same_on_a_subdivided_mesh():
     points, tri, deltas = _face()
     fine_p, fine_t, _ = midpoint_subdivide(*midpoint_subdivide(points, tri, deltas))
     h = 0.004  # above the coarse mesh's 3-4 mm edges: no cube of the surface is missed at either resolution
-    a = sampling.surface_points(points, tri, h)
-    b = sampling.surface_points(fine_p, fine_t, h)
+    a, tri_a, bary_a = sampling.surface_points(points, tri, h)
+    b, tri_b, bary_b = sampling.surface_points(fine_p, fine_t, h)
     assert len(a) == len(b) > 500
     # the same surface: the same points, to the float32 rounding of the closest-point queries (median 0.04 um,
     # a few um near edges; a cube centre almost equidistant from two places may take either: measured 12 um)
     d = np.concatenate([cKDTree(b).query(a)[0], cKDTree(a).query(b)[0]])
     assert np.mean(d < 1e-6) >= 0.98 and np.mean(d < 1e-5) >= 0.998 and d.max() < 0.05e-3
+    # the triangle and barycentric coordinates returned give the point back
+    np.testing.assert_allclose(np.einsum("sj,sjx->sx", bary_a, points[tri[tri_a]]), a, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("sj,sjx->sx", bary_b, fine_p[fine_t[tri_b]]), b, atol=1e-12)
 
 
 def test_sample_vertices_are_the_same_physical_points_at_two_resolutions():

@@ -90,46 +90,50 @@ def cluster_vertices(points: np.ndarray, triangles: np.ndarray, spacing: float
 
 
 def surface_points(points: np.ndarray, triangles: np.ndarray, spacing: float,
-                   near: np.ndarray | None = None) -> np.ndarray:
+                   near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The surface sampled on a grid of side ``spacing`` metres: per grid cube whose inscribed ball (radius
-    ``spacing / 2`` around its centre) meets the surface, the surface point nearest the centre -> ``[s, 3]``.
+    ``spacing / 2`` around its centre) meets the surface, the surface point nearest the centre.
 
-    A property of the surface alone (the grid is anchored at the frame's origin): a mesh subdivided without
-    moving its surface (midpoints) gives the same points, to float rounding. ``near[v]`` restricts the
-    cubes to those within one cube of the given vertices (default: of every vertex; the surface must then be
-    sampled finer than ``spacing`` for no cube to be missed). Closest points by Open3D's
+    Returns ``(q[s, 3]`` metres, ``triangle[s]`` the triangle each lies on, ``bary[s, 3]`` its barycentric
+    coordinates there``)``. A property of the surface alone (the grid is anchored at the frame's origin): a
+    mesh subdivided without moving its surface (midpoints) gives the same points, to float rounding, and any
+    piecewise-linear field (the shapes' offsets) interpolated there the same values. ``near[v]`` restricts
+    the cubes to those within one cube of the given vertices (default: of every vertex; the surface must then
+    be sampled finer than ``spacing`` for no cube to be missed). Closest points by Open3D's
     ``RaycastingScene.compute_closest_points``.
     """
     import open3d as o3d
 
     p = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles, dtype=np.int64)
     h = float(spacing)
     src = p if near is None else p[np.asarray(near, dtype=np.int64)]
-    if len(src) == 0 or len(triangles) == 0:
-        return np.zeros((0, 3))
+    if len(src) == 0 or len(tri) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
     base = np.unique(np.floor(src / h).astype(np.int64), axis=0)
     offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     cubes = np.unique((base[:, None, :] + offsets[None]).reshape(-1, 3), axis=0)
     centres = (cubes + 0.5) * h
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(p, dtype=np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
+                        o3d.core.Tensor(np.ascontiguousarray(tri, dtype=np.uint32)))
     closest = scene.compute_closest_points(o3d.core.Tensor(centres.astype(np.float32)))
     tri_id = closest["primitive_ids"].numpy().astype(np.int64)
     uv = closest["primitive_uvs"].numpy().astype(np.float64)
-    corners = p[np.asarray(triangles, dtype=np.int64)[tri_id]]  # [s, 3, 3]: float64 closest points
-    q = (corners[:, 0] * (1.0 - uv.sum(axis=1))[:, None] + corners[:, 1] * uv[:, :1]
-         + corners[:, 2] * uv[:, 1:])
-    return q[np.linalg.norm(q - centres, axis=1) <= 0.5 * h]
+    bary = np.stack([1.0 - uv.sum(axis=1), uv[:, 0], uv[:, 1]], axis=1)
+    q = np.einsum("sj,sjx->sx", bary, p[tri[tri_id]])  # float64 points from the float32 query
+    ok = np.linalg.norm(q - centres, axis=1) <= 0.5 * h
+    return q[ok], tri_id[ok], bary[ok]
 
 
 def sample_vertices(points: np.ndarray, triangles: np.ndarray, spacing: float,
                     near: np.ndarray | None = None) -> np.ndarray:
-    """The vertices nearest the :func:`surface_points` (ascending, unique) -> ``[m]``: the same physical
-    points at every resolution, each to within the mesh's own vertex spacing."""
+    """The vertices nearest the :func:`surface_points` -> ``[m]`` (ascending, unique): the same physical
+    points at every resolution, each written as its mesh's nearest vertex (where two points share one, on a
+    mesh coarser than ``spacing``, it stands for both)."""
     from scipy.spatial import cKDTree
 
-    q = surface_points(points, triangles, spacing, near)
+    q, _, _ = surface_points(points, triangles, spacing, near)
     if len(q) == 0:
         return np.zeros(0, dtype=np.int64)
     _, idx = cKDTree(np.asarray(points, dtype=np.float64)).query(q)
