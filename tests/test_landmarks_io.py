@@ -113,3 +113,17 @@ def test_api_errors_are_landmark_errors(samples, tmp_path):
     out.write_text("#usda 1.0\n")
     with pytest.raises(OutputExistsError):
         write_landmark_layer(avatar, head, layout, out)
+
+
+def test_spacing_option_thins_the_candidates_and_zero_takes_every_vertex(samples, tmp_path):
+    runs = {}
+    for name, argv in (("default", []), ("every", ["--spacing", "0"])):
+        js = tmp_path / f"{name}.json"
+        assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Head", "--rays", "2", "--json",
+                     str(js), "-q", *argv]) == 0
+        runs[name] = json.loads(js.read_text())["problem"]
+    assert runs["every"]["spacing"] is None and runs["every"]["samples"] is None
+    # the sample head's face box is smaller than a real head's: 2 % of it rounds to 4 mm
+    assert runs["default"]["spacing"] == pytest.approx(0.004)
+    assert runs["default"]["candidates"] < runs["every"]["candidates"]
+    assert runs["default"]["occluder_triangles"] < runs["every"]["occluder_triangles"]

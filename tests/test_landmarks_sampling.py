@@ -178,3 +178,10 @@ def test_thinned_layout_is_a_valid_cover_and_the_same_count_at_two_resolutions()
         assert layout.coverage.any(axis=0).all()
         assert layout.problem["samples"] < rig.n_vertices
     assert exact.problem["spacing"] is None and exact.problem["occluder_triangles"] == len(tri)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.004, float("nan"), "fine"])
+def test_bad_spacing_is_refused_before_any_work(bad):
+    points, tri, deltas = _face(9, 9)
+    with pytest.raises(LandmarkError, match="spacing"):
+        compute_landmarks(_rig(points, tri, deltas), spacing=bad)

@@ -242,6 +242,10 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
     if int(multicover) < 1:
         raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
+            or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
+        raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
+                            fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
     mag, static = _validate(rig, ignore_static)
     timings: dict[str, float] = {}
     warnings: list[str] = []
