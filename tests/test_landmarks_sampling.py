@@ -17,7 +17,7 @@ from synthetic_meshes import grid_triangles  # noqa: E402
 from usdface.errors import LandmarkError  # noqa: E402
 from usdface.landmarks import candidates as cand  # noqa: E402
 from usdface.landmarks import compute_landmarks, sampling  # noqa: E402
-from usdface.landmarks.layout import _occluder, _thin_candidates, face_samples  # noqa: E402
+from usdface.landmarks.layout import _occluder, _thin_candidates, face_samples, nearest_sample  # noqa: E402
 from usdface.landmarks.visibility import PoseVisibility  # noqa: E402
 from usdface.mesh import edges  # noqa: E402
 from usdface.model import FaceRig  # noqa: E402
@@ -166,8 +166,8 @@ def test_thinned_layout_is_a_valid_cover_and_the_same_count_at_two_resolutions()
     points, tri, deltas = _face()
     coarse = _rig(points, tri, deltas)
     fine = _rig(*midpoint_subdivide(points, tri, deltas))
-    a = compute_landmarks(coarse)
-    b = compute_landmarks(fine)
+    a = compute_landmarks(coarse, thin_candidates=True)
+    b = compute_landmarks(fine, thin_candidates=True)
     exact = compute_landmarks(coarse, spacing=None)
     assert a.status == b.status == "optimal" and not a.uncoverable and not b.uncoverable
     assert a.count == b.count == exact.count
@@ -185,3 +185,26 @@ def test_bad_spacing_is_refused_before_any_work(bad):
     points, tri, deltas = _face(9, 9)
     with pytest.raises(LandmarkError, match="spacing"):
         compute_landmarks(_rig(points, tri, deltas), spacing=bad)
+
+
+def test_each_vertex_takes_the_visibility_of_its_nearest_sample_along_the_mesh():
+    # two parallel sheets 1 mm apart (closed lips), one sample on each: no vertex takes the other sheet's
+    sheet = np.stack(np.meshgrid(np.linspace(0, 0.01, 6), np.linspace(0, 0.01, 6)), -1).reshape(-1, 2)
+    points = np.concatenate([np.c_[sheet, np.zeros(36)], np.c_[sheet, np.full(36, 0.001)]])
+    tri = np.concatenate([grid_triangles(6, 6), grid_triangles(6, 6) + 36])
+    rig = FaceRig(points, tri, ["a"], np.zeros((1, 72, 3)), name="Lips")
+    owner = nearest_sample(rig, np.array([0, 36 + 35]))  # opposite corners of the two sheets
+    assert (owner[:36] == 0).all() and (owner[36:] == 71).all()  # in space, half would cross the gap
+
+
+def test_default_layout_takes_visibility_from_the_samples_and_keeps_every_candidate():
+    points, tri, deltas = _face()
+    rig = _rig(*midpoint_subdivide(points, tri, deltas))
+    layout = compute_landmarks(rig)
+    exact = compute_landmarks(rig, spacing=None)
+    r = cand.relative_displacement(cand.displacement_magnitudes(rig.deltas))
+    assert layout.problem["candidates"] == exact.problem["candidates"] == int((r >= 0.5).any(axis=0).sum())
+    assert layout.count == exact.count and layout.problem["samples"] < layout.problem["candidates"] / 5
+    # the landmarks' visibility is their samples' (within the stated tolerance of their own exact values)
+    assert np.abs(layout.visibility - PoseVisibility(rig.neutral, rig.triangles, rig.deltas)(
+        layout.vertices)).max() <= 0.25

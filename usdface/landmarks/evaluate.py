@@ -15,7 +15,7 @@ import numpy as np
 from ..model import FaceRig
 from . import baselines
 from .candidates import candidate_sets, displacement_magnitudes, relative_displacement
-from .layout import compute_landmarks, face_samples
+from .layout import compute_landmarks
 from .reconstruct import layout_error
 from .visibility import global_visibility
 
@@ -135,13 +135,11 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
     sweep = _sweep(epsilons, rounds, shares)
     emp = None if empirical is None else baselines.empirical_layout(empirical, rig.n_vertices)
     counts = sorted({int(c) for c in counts} | ({int(emp.size)} if emp is not None else set()))
-    spacing, samples = face_samples(rig)  # the same candidate samples for every layout of the sweep
     with steps("landmarks --evaluate", len(sweep) + len(counts) + (emp is not None)) as advance:
         for eps, share, n in sweep:
             layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, radius=radius,
                                        visibility=vis, backend=backend, ignore_static=True,
-                                       adaptive=share is not None, share=share or 0.1, spacing=spacing,
-                                       samples=samples)
+                                       adaptive=share is not None, share=share or 0.1)
             key = tuple(layout.vertices.tolist())
             if key not in seen:
                 seen[key] = err(layout.vertices)

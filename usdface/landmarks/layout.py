@@ -115,6 +115,30 @@ def face_samples(rig: FaceRig, spacing: float | str = "auto", r: np.ndarray | No
     return float(spacing), sampling.sample_vertices(rig.neutral, rig.triangles, spacing, near=near)
 
 
+def nearest_sample(rig: FaceRig, samples: np.ndarray) -> np.ndarray:
+    """Each vertex's nearest sample along the mesh's edges ``[n]`` (vertex indices; multi-source Dijkstra,
+    so the two lips or lids are never each other's; vertices no edge path joins to a sample take the
+    nearest one in space)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    from ..mesh import edges
+
+    e = edges(rig.triangles)
+    length = np.linalg.norm(rig.neutral[e[:, 0]] - rig.neutral[e[:, 1]], axis=1)
+    graph = sp.coo_matrix((np.maximum(length, 1e-12), (e[:, 0], e[:, 1])),
+                          shape=(rig.n_vertices, rig.n_vertices)).tocsr()
+    _, _, source = dijkstra(graph, directed=False, indices=np.asarray(samples), min_only=True,
+                            return_predecessors=True)
+    source = np.asarray(source, dtype=np.int64)
+    lost = source < 0
+    if lost.any():
+        _, j = cKDTree(rig.neutral[samples]).query(rig.neutral[lost])
+        source[lost] = np.asarray(samples)[j]
+    return source
+
+
 def _thin_candidates(rig: FaceRig, r: np.ndarray, c: np.ndarray, samples: np.ndarray, partner):
     """Restrict the candidates ``c[K, n]`` (in place) to the ``samples`` (:func:`face_samples`); each shape
     keeps at least its peak vertex (eq. 3 at epsilon = 1), and with ``partner[n]`` a mirror pair stays when
@@ -202,7 +226,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                       backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
                       share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
                       visibility: np.ndarray | None = None, spacing: float | str | None = "auto",
-                      samples: np.ndarray | None = None) -> LandmarkLayout:
+                      samples: np.ndarray | None = None, thin_candidates: bool = False) -> LandmarkLayout:
     """Compute a compact landmark layout for ``rig`` (Zell & McDonnell 2022, secs. 3.1-3.3).
 
     Parameters
@@ -224,11 +248,14 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         ``multicover`` times where candidates remain).
     ignore_static : leave shapes that move no vertex out (reported in ``uncoverable``) instead of raising.
     visibility : precomputed l_n ``[n]`` (skips the ray casting; used by the evaluation sweep).
-    spacing : metres between candidate points on the skin (:mod:`.sampling`): the candidates are the vertices
-        nearest the surface sampled at this spacing, and visibility is ray cast against the mesh clustered at
-        it, so the work and the answer do not change with the mesh resolution. "auto" (default):
-        :func:`sampling.sample_spacing` of the face size (8 mm on a human head); None: every vertex is a
-        candidate and the full mesh occludes (the exact eq. 4 at the mesh's own resolution).
+    spacing : metres between points on the skin sampled for the visibility (:mod:`.sampling`): every
+        vertex takes the global visibility of its nearest sample (along the mesh), ray cast against the mesh
+        clustered at a quarter of the spacing, so the ray casting does not grow with the mesh resolution.
+        "auto" (default): :func:`sampling.sample_spacing` of the face size (8 mm on a human head); None:
+        every vertex ray cast against the full mesh (the exact eq. 4 at the mesh's own resolution).
+    thin_candidates : also restrict the set cover's candidates to the samples (each shape keeps its peak
+        vertex): the same candidate points at every resolution, hence resolution-independent layouts, but
+        fewer places to choose from (measured: worse reconstruction at 10-11 landmarks; off by default).
     samples : precomputed sample vertices at ``spacing`` (:func:`face_samples`; a sweep computes them once).
 
     Returns a :class:`LandmarkLayout`. Raises :class:`LandmarkError` on a rig without shapes, epsilon outside
@@ -257,20 +284,27 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         partner = mirror_pairs(rig.neutral)
         primary = primary_side(rig.neutral, partner)
     sample_spacing, allowed = None, None
-    if spacing is not None:
+    if spacing is not None and (thin_candidates or visibility is None):
         if samples is None:
             sample_spacing, samples = face_samples(rig, spacing, r)
         elif isinstance(spacing, str):
             sample_spacing = sampling.sample_spacing(face_size(rig.neutral, r.max(axis=0, initial=0.0)))
         else:
             sample_spacing = float(spacing)
-        allowed = _thin_candidates(rig, r, c, samples, partner)
+        if thin_candidates:
+            allowed = _thin_candidates(rig, r, c, samples, partner)
     need = np.flatnonzero(c.any(axis=0))
     if partner is not None:
         need = np.unique(np.concatenate([need, partner[need][partner[need] >= 0]]))
-    occluder = rig.triangles
-    if allowed is not None and visibility is None:  # ray casting ahead: against the clustered mesh
-        occluder = _occluder(rig, need, sample_spacing)
+    occluder, owner = rig.triangles, None
+    if samples is not None and visibility is None:  # ray casting ahead: against the clustered mesh
+        if thin_candidates:  # the candidates are samples: each is its own ray origin
+            occluder = _occluder(rig, need, sample_spacing)
+        else:
+            owner = nearest_sample(rig, samples)
+            allowed = np.zeros(rig.n_vertices, dtype=bool)
+            allowed[np.unique(owner[need])] = True
+            occluder = _occluder(rig, np.flatnonzero(allowed), sample_spacing)
     timings["candidates"] = time.perf_counter() - t0
     pose_vis = None
     if visibility is not None:
@@ -286,18 +320,19 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             return np.nan_to_num(known[vertices], nan=1.0)
     else:
         pose_vis = PoseVisibility(rig.neutral, occluder, rig.deltas, rays, camera, magnitudes=mag)
+        at = np.arange(rig.n_vertices) if owner is None else owner  # a vertex sees what its sample sees
 
         def lookup_plain():
-            return pose_vis.values
+            return pose_vis.values[at]
 
         def evaluate_plain(vertices):
             t = time.perf_counter()
-            pose_vis(vertices)
+            pose_vis(np.unique(at[vertices]))
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
 
         def upper_plain(vertices):
             t = time.perf_counter()
-            out = pose_vis.upper_bound(vertices)
+            out = pose_vis.upper_bound(at[vertices])
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
             return out
     min_batch = 0 if pose_vis is None else pose_vis.batch_hint
