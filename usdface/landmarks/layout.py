@@ -336,6 +336,10 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
             return out
     min_batch = 0 if pose_vis is None else pose_vis.batch_hint
+    if owner is not None and weighting != "count":
+        # a few hundred samples stand for every candidate: casting them all in one pass (one scene per pose)
+        # is cheaper than the lazy passes, and gives the same values
+        evaluate_plain(need)
     if camera is not None:  # a vertex the camera cannot see in some pose is no candidate
         evaluate_plain(need)
         c &= np.nan_to_num(lookup_plain(), nan=0.0)[None, :] > 0.0

@@ -72,7 +72,11 @@ def cluster_vertices(points: np.ndarray, triangles: np.ndarray, spacing: float
     if n == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     cell = np.floor(p / h).astype(np.int64)
-    _, cube = np.unique(cell, axis=0, return_inverse=True)
+    span = cell.max(axis=0) - cell.min(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:  # one int64 per cube: a fast 1-D unique
+        _, cube = np.unique(np.ravel_multi_index((cell - cell.min(axis=0)).T, span), return_inverse=True)
+    else:
+        _, cube = np.unique(cell, axis=0, return_inverse=True)
     cube = cube.ravel()
     # edges inside one cube join their vertices; the connected components of that graph are the clusters
     e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]).reshape(-1, 2)
