@@ -233,3 +233,14 @@ def test_sampled_visibility_within_tolerance_on_the_dev_head():
     diff = np.abs(approx.values[owner[need]] - exact)
     assert diff.mean() <= SAMPLED_MEAN
     assert (diff <= 1.0 / 16 + 1e-9).mean() >= SAMPLED_SHARE
+
+
+@pytest.mark.parametrize("options", [{"symmetric": True}, {"multicover": 2}])
+def test_sampled_visibility_keeps_every_candidate_in_every_mode(options):
+    # with the count weighting the layout's size does not depend on visibility: it must be the per-vertex one
+    points, tri, deltas = _face()
+    rig = _rig(points, tri, deltas)
+    a = compute_landmarks(rig, weighting="count", **options)
+    b = compute_landmarks(rig, weighting="count", spacing=None, **options)
+    assert a.problem["candidates"] == b.problem["candidates"]
+    assert a.count == b.count and a.objective == b.objective

@@ -296,15 +296,14 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     need = np.flatnonzero(c.any(axis=0))
     if partner is not None:
         need = np.unique(np.concatenate([need, partner[need][partner[need] >= 0]]))
-    occluder, owner = rig.triangles, None
+    occluder, owner, origins = rig.triangles, None, None
     if samples is not None and visibility is None:  # ray casting ahead: against the clustered mesh
-        if thin_candidates:  # the candidates are samples: each is its own ray origin
-            occluder = _occluder(rig, need, sample_spacing)
+        if thin_candidates or camera is not None:  # each candidate its own ray origin (the camera test is
+            occluder = _occluder(rig, need, sample_spacing)  # binary: a neighbour's answer would be a guess)
         else:
             owner = nearest_sample(rig, samples)
-            allowed = np.zeros(rig.n_vertices, dtype=bool)
-            allowed[np.unique(owner[need])] = True
-            occluder = _occluder(rig, np.flatnonzero(allowed), sample_spacing)
+            origins = np.unique(owner[need])  # the samples that stand for the candidates
+            occluder = _occluder(rig, origins, sample_spacing)
     timings["candidates"] = time.perf_counter() - t0
     pose_vis = None
     if visibility is not None:
@@ -416,6 +415,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         problem={"shapes": int(rig.n_shapes), "vertices": int(rig.n_vertices), "candidates": int(need.size),
                  "visibility_evaluated": int(np.count_nonzero(~np.isnan(lookup_plain()))),
                  "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
-                 "spacing": sample_spacing, "samples": None if allowed is None else int(allowed.sum()),
+                 "spacing": sample_spacing,
+                 "samples": (int(allowed.sum()) if allowed is not None
+                             else None if origins is None else int(origins.size)),
                  "occluder_triangles": int(len(occluder)),
                  "solve_seconds": [round(s.seconds, 4) for s in sols]})
