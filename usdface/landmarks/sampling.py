@@ -1,19 +1,19 @@
 """The face surface sampled at a fixed physical spacing: the same points at every mesh resolution.
 
-A landmark is a point on the skin. Two vertices closer than the spacing are, for a tracker, the same landmark,
-so the set cover (Zell & McDonnell 2022, eq. 5) only needs one candidate per patch of skin of that size, and
-the visibility of eq. 4 only needs the occluding surface at that resolution. Both come from one clustering of
-the vertices (vertex clustering, Rossignac & Borrel 1993, made topology-aware):
+A landmark is a point on the skin, and the visibility of eq. 4 (Zell & McDonnell 2022) is a property of the
+skin, not of how finely a mesh describes it. Two tools, both on a grid of cubes anchored at the origin of the
+rig's frame (the same grid at every resolution):
 
-* the space is cut into cubes of side ``spacing`` (a grid anchored at the origin of the rig's frame, so it is
-  the same grid at every resolution); the vertices of one cube that are connected by edges inside the cube
-  form one cluster (the two lips or lids in one cube stay two clusters);
-* each cluster's **representative** is its vertex nearest the cube's centre: on a finer mesh of the same
-  surface it is nearer the same surface point, so the representatives of two resolutions are the same
-  physical points to within the coarser mesh's vertex spacing;
-* the **occluder** is the mesh with every vertex moved to its representative (the triangles re-indexed,
-  degenerate and repeated ones dropped): about two triangles per cluster, whatever the resolution, and
-  posed by the representatives' own offsets.
+* **samples** (:func:`surface_points`, :func:`sample_vertices`): per cube whose inscribed ball meets the
+  surface, the surface point nearest the cube's centre, written as the mesh's vertex nearest it. The points
+  are the surface's own (a subdivided mesh gives the same ones); the vertices the same physical points to
+  within the coarser mesh's vertex spacing. :mod:`usdface.landmarks.layout` ray casts them for every vertex
+  near them (and, on request, takes them as the only set-cover candidates);
+* the **occluder** (:func:`cluster_vertices`, :func:`occluder_triangles`): vertex clustering (Rossignac &
+  Borrel 1993) made topology-aware: the vertices of one cube connected by edges inside it form a cluster
+  (the two lips or lids in one cube stay two), represented by its vertex nearest the cube's centre; the
+  triangles re-indexed to the representatives, degenerate and repeated ones dropped. About two triangles per
+  cluster, whatever the resolution, posed by the representatives' own offsets.
 
 All functions are pure numpy/scipy: ``points[n, 3]`` metres, ``triangles[t, 3]`` int.
 """
