@@ -413,7 +413,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         warnings=warnings + ([f"static shapes left out: {', '.join(static)}"] if static else []),
         timings=timings,
         problem={"shapes": int(rig.n_shapes), "vertices": int(rig.n_vertices), "candidates": int(need.size),
-                 "visibility_evaluated": int(np.count_nonzero(~np.isnan(lookup_plain()))),
+                 "visibility_evaluated": int(np.count_nonzero(~np.isnan(  # ray-cast vertices (samples)
+                     lookup_plain() if pose_vis is None else pose_vis.values))),
                  "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
                  "spacing": sample_spacing,
                  "samples": (int(allowed.sum()) if allowed is not None
