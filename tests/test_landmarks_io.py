@@ -113,3 +113,20 @@ def test_api_errors_are_landmark_errors(samples, tmp_path):
     out.write_text("#usda 1.0\n")
     with pytest.raises(OutputExistsError):
         write_landmark_layer(avatar, head, layout, out)
+
+
+def test_spacing_options_sample_the_visibility_and_optionally_the_candidates(samples, tmp_path):
+    runs = {}
+    for name, argv in (("default", []), ("every", ["--spacing", "0"]), ("sampled", ["--sampled-candidates"])):
+        js = tmp_path / f"{name}.json"
+        assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Head", "--rays", "1", "--json",
+                     str(js), "-q", *argv]) == 0
+        runs[name] = json.loads(js.read_text())["problem"]
+    every, default, sampled = runs["every"], runs["default"], runs["sampled"]
+    assert every["spacing"] is None and every["samples"] is None
+    # the sample head's face box is smaller than a real head's: 2 % of it rounds to 4 mm
+    assert default["spacing"] == sampled["spacing"] == pytest.approx(0.004)
+    # by default every vertex stays a candidate and a few samples are ray cast, against a smaller occluder
+    assert default["candidates"] == every["candidates"] and default["samples"] < default["candidates"]
+    assert default["occluder_triangles"] < every["occluder_triangles"]
+    assert sampled["candidates"] < default["candidates"]

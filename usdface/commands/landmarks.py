@@ -33,6 +33,13 @@ def register(subparsers) -> None:
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
     p.add_argument("--rays", type=positive_int, default=16, help="hemisphere rays per vertex (16)")
+    p.add_argument("--spacing", type=nonnegative_float, default=None,
+                   help="metres between the skin points whose visibility is ray cast (default: 2%% of the "
+                        "face size as a power of two mm, 8 mm on a human head); 0: every vertex, against "
+                        "the full mesh")
+    p.add_argument("--sampled-candidates", action="store_true",
+                   help="candidates only at those skin points too: the same layout at every mesh resolution, "
+                        "fewer places to choose from")
     p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
                    help="OR-tools MIP backend (scip)")
     p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
@@ -97,7 +104,9 @@ def run(args) -> int:
         layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
                                    multicover=args.multicover, radius=args.radius, camera=args.camera,
                                    rays=args.rays, backend=args.backend, weighting=args.weighting,
-                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static)
+                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static,
+                                   spacing="auto" if args.spacing is None else (args.spacing or None),
+                                   thin_candidates=args.sampled_candidates)
         if args.output:
             p.start(f"write {Path(args.output).name}")
             params = {k: v for k, v in vars(args).items() if k not in ("func",)}

@@ -36,8 +36,10 @@ def check_alpha(alpha: float) -> float:
 
 
 def displacement_magnitudes(deltas: np.ndarray) -> np.ndarray:
-    """|dv_n^k|: ``deltas[K, n, 3]`` metres -> ``[K, n]`` metres."""
-    return np.linalg.norm(np.asarray(deltas, dtype=np.float64), axis=2)
+    """|dv_n^k|: ``deltas[K, n, 3]`` metres -> ``[K, n]`` metres (the same sums as ``np.linalg.norm``, in the
+    same order, without its ``[K, n, 3]`` temporary)."""
+    d = np.asarray(deltas, dtype=np.float64)
+    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
 
 
 def static_shapes(magnitudes: np.ndarray, tolerance: float = STATIC_TOLERANCE) -> np.ndarray:

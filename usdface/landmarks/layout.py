@@ -19,10 +19,11 @@ import numpy as np
 from ..errors import LandmarkError
 from ..model import FaceRig
 from . import candidates as cand
+from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
 from .multicover import adaptive_multicover
 from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
-from .visibility import PoseVisibility
+from .visibility import FACE_SHARE, PoseVisibility, face_size
 
 
 @dataclass
@@ -96,6 +97,72 @@ def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]
     return mag, static
 
 
+def face_samples(rig: FaceRig, spacing: float | str = "auto", r: np.ndarray | None = None
+                 ) -> tuple[float, np.ndarray]:
+    """(spacing in metres, sample vertices ``[m]``): the vertices nearest the skin of the face sampled at
+    ``spacing`` (:func:`sampling.sample_vertices` over the vertices some shape moves by at least
+    :data:`visibility.FACE_SHARE` of its peak); "auto": :func:`sampling.sample_spacing` of the face size.
+    ``r[K, n]``: eq. 2's relative displacement when the caller has it. The same for every epsilon, so a sweep
+    computes them once (``compute_landmarks(samples=)``)."""
+    if r is None:
+        r = cand.relative_displacement(cand.displacement_magnitudes(rig.deltas))
+    share = r.max(axis=0, initial=0.0)
+    if isinstance(spacing, str):
+        if spacing != "auto":
+            raise LandmarkError(f"unknown spacing {spacing!r}", fix="pass metres, 'auto' or None")
+        spacing = sampling.sample_spacing(face_size(rig.neutral, share))
+    near = np.flatnonzero(share >= FACE_SHARE)
+    return float(spacing), sampling.sample_vertices(rig.neutral, rig.triangles, spacing, near=near)
+
+
+def nearest_sample(rig: FaceRig, samples: np.ndarray) -> np.ndarray:
+    """Each vertex's nearest sample along the mesh's edges ``[n]`` (vertex indices; multi-source Dijkstra,
+    so the two lips or lids are never each other's; vertices no edge path joins to a sample take the
+    nearest one in space)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    from ..mesh import edges
+
+    e = edges(rig.triangles)
+    length = np.linalg.norm(rig.neutral[e[:, 0]] - rig.neutral[e[:, 1]], axis=1)
+    graph = sp.coo_matrix((np.maximum(length, 1e-12), (e[:, 0], e[:, 1])),
+                          shape=(rig.n_vertices, rig.n_vertices)).tocsr()
+    _, _, source = dijkstra(graph, directed=False, indices=np.asarray(samples), min_only=True,
+                            return_predecessors=True)
+    source = np.asarray(source, dtype=np.int64)
+    lost = source < 0
+    if lost.any():
+        _, j = cKDTree(rig.neutral[samples]).query(rig.neutral[lost])
+        source[lost] = np.asarray(samples)[j]
+    return source
+
+
+def _thin_candidates(rig: FaceRig, r: np.ndarray, c: np.ndarray, samples: np.ndarray, partner):
+    """Restrict the candidates ``c[K, n]`` (in place) to the ``samples`` (:func:`face_samples`); each shape
+    keeps at least its peak vertex (eq. 3 at epsilon = 1), and with ``partner[n]`` a mirror pair stays when
+    either side is a sample. Returns the ``allowed[n]`` mask."""
+    allowed = np.zeros(rig.n_vertices, dtype=bool)
+    allowed[np.asarray(samples, dtype=np.int64)] = True
+    allowed[np.argmax(r, axis=1)] = True  # every shape keeps a candidate (its peak)
+    if partner is not None:
+        allowed[partner[allowed & (partner >= 0)]] = True
+    c &= allowed[None, :]
+    return allowed
+
+
+def _occluder(rig: FaceRig, origins: np.ndarray, spacing: float) -> np.ndarray:
+    """The occluder triangles: the mesh clustered at ``spacing`` x :data:`sampling.OCCLUDER_SHARE`, with every
+    ray origin and its first ring of triangles kept exact (the origins' normals are the mesh's, and nothing
+    of the clustering lies between an origin and its first ring)."""
+    ring = np.zeros(rig.n_vertices, dtype=bool)
+    ring[origins] = True
+    ring[rig.triangles[ring[rig.triangles].any(axis=1)].ravel()] = True
+    cluster, reps = sampling.cluster_vertices(rig.neutral, rig.triangles, spacing * sampling.OCCLUDER_SHARE)
+    return sampling.occluder_triangles(rig.triangles, cluster, reps, keep=np.flatnonzero(ring))
+
+
 def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
                batch: int = 16, upper=None, min_batch: int = 0) -> np.ndarray:
     """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
@@ -115,12 +182,12 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
         return set_cover_costs(sub, r, "count", multiplicity)
     n = sub.shape[1]
 
-    def cost_at(vis):
-        return set_cover_costs(sub, cand.landmark_quality(r, vis, alpha), weighting, multiplicity)
+    def cost_at_zero():
+        return set_cover_costs(sub, np.zeros((1, n)), weighting, multiplicity)
 
     cols = np.flatnonzero(sub.any(axis=0))
     if cols.size == 0:
-        return cost_at(np.zeros(n))
+        return cost_at_zero()
     # costs are per column: work on the candidate columns only (a body mesh has ~20x more vertices)
     sub_c, r_c = sub[:, cols], r[:, cols]
     mult_c = None if multiplicity is None else np.asarray(multiplicity)[cols]
@@ -141,8 +208,10 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
         best = np.full(group.max() + 1, np.inf)
         np.minimum.at(best, group[known], exact[known])
         need = np.flatnonzero(~known & (optimistic <= best[group] + 1e-12))
-        if need.size == 0:
-            return cost_at(np.nan_to_num(vis, nan=0.0))
+        if need.size == 0:  # non-candidate columns cost what they cost at any visibility
+            out = cost_at_zero()
+            out[cols] = exact
+            return out
         order = need[np.lexsort((cols[need], optimistic[need], group[need]))]
         g = group[order]
         start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
@@ -156,7 +225,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                       multicover: int = 1, radius: float | None = 0.01, camera=None, rays: int = 16,
                       backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
                       share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
-                      visibility: np.ndarray | None = None) -> LandmarkLayout:
+                      visibility: np.ndarray | None = None, spacing: float | str | None = "auto",
+                      samples: np.ndarray | None = None, thin_candidates: bool = False) -> LandmarkLayout:
     """Compute a compact landmark layout for ``rig`` (Zell & McDonnell 2022, secs. 3.1-3.3).
 
     Parameters
@@ -178,6 +248,15 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         ``multicover`` times where candidates remain).
     ignore_static : leave shapes that move no vertex out (reported in ``uncoverable``) instead of raising.
     visibility : precomputed l_n ``[n]`` (skips the ray casting; used by the evaluation sweep).
+    spacing : metres between points on the skin sampled for the visibility (:mod:`.sampling`): every
+        vertex takes the global visibility of its nearest sample (along the mesh), ray cast against the mesh
+        clustered at a quarter of the spacing, so the ray casting does not grow with the mesh resolution.
+        "auto" (default): :func:`sampling.sample_spacing` of the face size (8 mm on a human head); None:
+        every vertex ray cast against the full mesh (the exact eq. 4 at the mesh's own resolution).
+    thin_candidates : also restrict the set cover's candidates to the samples (each shape keeps its peak
+        vertex): the same candidate points at every resolution, hence resolution-independent layouts, but
+        fewer places to choose from (measured: worse reconstruction at 10-11 landmarks; off by default).
+    samples : precomputed sample vertices at ``spacing`` (:func:`face_samples`; a sweep computes them once).
 
     Returns a :class:`LandmarkLayout`. Raises :class:`LandmarkError` on a rig without shapes, epsilon outside
     (0, 1], or a shape that moves no vertex (unless ``ignore_static``).
@@ -190,6 +269,10 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
     if int(multicover) < 1:
         raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
+            or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
+        raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
+                            fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
     mag, static = _validate(rig, ignore_static)
     timings: dict[str, float] = {}
     warnings: list[str] = []
@@ -200,9 +283,27 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     if symmetric:
         partner = mirror_pairs(rig.neutral)
         primary = primary_side(rig.neutral, partner)
+    sample_spacing, allowed = None, None
+    if spacing is not None and (thin_candidates or visibility is None):
+        if samples is None:
+            sample_spacing, samples = face_samples(rig, spacing, r)
+        elif isinstance(spacing, str):
+            sample_spacing = sampling.sample_spacing(face_size(rig.neutral, r.max(axis=0, initial=0.0)))
+        else:
+            sample_spacing = float(spacing)
+        if thin_candidates:
+            allowed = _thin_candidates(rig, r, c, samples, partner)
     need = np.flatnonzero(c.any(axis=0))
     if partner is not None:
         need = np.unique(np.concatenate([need, partner[need][partner[need] >= 0]]))
+    occluder, owner, origins = rig.triangles, None, None
+    if samples is not None and visibility is None:  # ray casting ahead: against the clustered mesh
+        if thin_candidates or camera is not None:  # each candidate its own ray origin (the camera test is
+            occluder = _occluder(rig, need, sample_spacing)  # binary: a neighbour's answer would be a guess)
+        else:
+            owner = nearest_sample(rig, samples)
+            origins = np.unique(owner[need])  # the samples that stand for the candidates
+            occluder = _occluder(rig, origins, sample_spacing)
     timings["candidates"] = time.perf_counter() - t0
     pose_vis = None
     if visibility is not None:
@@ -217,22 +318,27 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         def upper_plain(vertices):
             return np.nan_to_num(known[vertices], nan=1.0)
     else:
-        pose_vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, rays, camera, magnitudes=mag)
+        pose_vis = PoseVisibility(rig.neutral, occluder, rig.deltas, rays, camera, magnitudes=mag)
+        at = np.arange(rig.n_vertices) if owner is None else owner  # a vertex sees what its sample sees
 
         def lookup_plain():
-            return pose_vis.values
+            return pose_vis.values[at]
 
         def evaluate_plain(vertices):
             t = time.perf_counter()
-            pose_vis(vertices)
+            pose_vis(np.unique(at[vertices]))
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
 
         def upper_plain(vertices):
             t = time.perf_counter()
-            out = pose_vis.upper_bound(vertices)
+            out = pose_vis.upper_bound(at[vertices])
             timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t
             return out
     min_batch = 0 if pose_vis is None else pose_vis.batch_hint
+    if owner is not None and weighting != "count":
+        # a few hundred samples stand for every candidate: casting them all in one pass (one scene per pose)
+        # is cheaper than the lazy passes, and gives the same values
+        evaluate_plain(need)
     if camera is not None:  # a vertex the camera cannot see in some pose is no candidate
         evaluate_plain(need)
         c &= np.nan_to_num(lookup_plain(), nan=0.0)[None, :] > 0.0
@@ -248,6 +354,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         peak = np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
         sym_r = symmetric_magnitudes(mag, partner, primary) / peak
         sym_c = cand.candidate_sets(sym_r, eps)
+        if allowed is not None:
+            sym_c &= allowed[None, :]
         safe = np.where(partner >= 0, partner, np.arange(rig.n_vertices))
 
         def lookup_sym():
@@ -305,6 +413,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         warnings=warnings + ([f"static shapes left out: {', '.join(static)}"] if static else []),
         timings=timings,
         problem={"shapes": int(rig.n_shapes), "vertices": int(rig.n_vertices), "candidates": int(need.size),
-                 "visibility_evaluated": int(np.count_nonzero(~np.isnan(lookup_plain()))),
+                 "visibility_evaluated": int(np.count_nonzero(~np.isnan(  # ray-cast vertices (samples)
+                     lookup_plain() if pose_vis is None else pose_vis.values))),
                  "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
+                 "spacing": sample_spacing,
+                 "samples": (int(allowed.sum()) if allowed is not None
+                             else None if origins is None else int(origins.size)),
+                 "occluder_triangles": int(len(occluder)),
                  "solve_seconds": [round(s.seconds, 4) for s in sols]})

@@ -203,7 +203,14 @@ class PoseVisibility:
         area-weighted sums over the incident triangles, accumulated in the same order)."""
         near = np.zeros(len(self.neutral), dtype=bool)
         near[vertices] = True
-        return vertex_normals(points, self.triangles[near[self.triangles].any(axis=1)])[vertices]
+        tri = self.triangles[near[self.triangles].any(axis=1)]
+        used, local = np.unique(tri, return_inverse=True)  # a compact copy: O(ring) work, not O(n)
+        normals = vertex_normals(points[used], local.reshape(-1, 3))
+        out = np.zeros((len(vertices), 3))
+        at = np.searchsorted(used, vertices)
+        ok = (at < len(used)) & (used[np.minimum(at, len(used) - 1)] == vertices)
+        out[ok] = normals[at[ok]]
+        return out
 
     def _neutral(self):
         if self._neutral_scene is None:
