@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GeometryError, RigError, UsdFaceError
+from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig, Inbetween
 from ..motion import moving_vertices, peak_motion, shape_norms
@@ -411,6 +412,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.layers import avatar_mesh
 
             chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
+        release_free_memory()                      # USD's buffers and the per-shape arrays read
         timings["read"] = time.perf_counter() - t
         advance("read")
         advance.start("register")
@@ -551,8 +553,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
             report["correspondence"]["mapping_outliers"] = int(outliers.sum())
             person_face = avatar_face_deltas.copy()
-            person_face[:, f] += conf[:, None, None] * face_personalization(
-                corr, capture.triangles, person_deltas, prior_av, f, support=support, outliers=outliers)
+            change = face_personalization(corr, capture.triangles, person_deltas, prior_av, f,
+                                          support=support, outliers=outliers)
+            change *= conf[:, None, None]                                   # in place: [J, face, 3] once
+            person_face[:, f] += change
+            del change
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in
@@ -565,6 +570,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
+            release_free_memory()                  # the read's and the fit's freed blocks, before the peak
             # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
             result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
                                                    person_face, weight, length=length,
