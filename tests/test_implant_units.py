@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from synthetic_meshes import grid_triangles
 
 from usdface.transfer.implant import mapping_outliers
@@ -174,6 +175,30 @@ def test_the_field_is_not_measured_where_the_person_moves_more_than_the_person_m
     result, _ = extend_personalization(pts, tri, generic, person, weight, length=None)
     beyond = pts[:, 0] > 0.06
     assert np.allclose(result[0, beyond, 2], 0.9 * 0.004, rtol=1e-6)
+
+
+def test_the_field_written_over_the_person_array_is_the_same_result():
+    """``out=person`` (the pipeline's memory saving: no second [J,m,3] array) gives the fresh result to the
+    last bit, including the zeros outside the moving part where ``person`` held other values."""
+    from usdface.transfer.implant import SHAPE_CHUNK, extend_personalization
+
+    pts, tri = _sheet(21)
+    rng = np.random.default_rng(3)
+    n_shapes = SHAPE_CHUNK + 2                                     # two chunks of shapes
+    generic = np.zeros((n_shapes, len(pts), 3))
+    moving = pts[:, 0] < 0.07
+    generic[:, moving] = 0.003 * rng.normal(size=(n_shapes, int(moving.sum()), 3))
+    weight = (pts[:, 0] < 0.04).astype(float)
+    person = 1.1 * generic + 1e-4 * rng.normal(size=generic.shape)       # non-zero where nothing moves
+    fresh, _ = extend_personalization(pts, tri, generic, person, weight, length=0.05, band=0.01)
+    buffer = person.copy()
+    written, _ = extend_personalization(pts, tri, generic, buffer, weight, length=0.05, band=0.01,
+                                        out=buffer)
+    assert written is buffer
+    np.testing.assert_array_equal(written, fresh)
+    assert not fresh[:, ~moving & (weight == 0)].any()
+    with pytest.raises(ValueError, match="out must be float64"):
+        extend_personalization(pts, tri, generic, person, weight, length=0.05, out=person[:1])
 
 
 def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():

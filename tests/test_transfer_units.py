@@ -152,6 +152,12 @@ def test_repair_eyelids_moves_penetrating_vertices_to_surface():
     assert count == 1
     assert np.linalg.norm(lid[0] + fixed[0, 0] - c) == pytest.approx(r, rel=0.02)
     np.testing.assert_array_equal(fixed[0, 1], shapes[0, 1])
+    # overwrite=True repairs the caller's array itself (no [J,n,3] copy), to the same bits
+    mine = shapes.astype(np.float64)
+    again, count2 = repair_eyelids(lid, mine, [(Eyeball("eye", c, r, rms), sphere, hull.simplices)],
+                                   overwrite=True)
+    assert again is mine and count2 == count
+    np.testing.assert_array_equal(again, fixed)
 
 
 def test_correspondence_cache_round_trip_and_key(tmp_path):

@@ -359,7 +359,7 @@ def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving
     ``(neutral, triangles, deltas[K,s,3])`` on every vertex, or with ``moving_only`` on the part some shape
     or inbetween moves and its margin (:func:`usdface.submesh.moving_part`; the crop and the authored points
     outside it are recorded on ``source.region`` / ``source.residue``), never forming ``[K,n,3]`` for the
-    rest."""
+    rest. ``sparse`` is emptied as the shapes are placed."""
     from ..submesh import crop, moving_part, outside_offsets, peak_of_shapes
 
     n = len(neutral)
@@ -369,6 +369,7 @@ def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving
         shapes = list(sparse) + [(idx, b.offsets) for (idx, _), ibs in zip(sparse, ibs_of, strict=True)
                                  for b in ibs]
         keep = moving_part(peak_of_shapes(n, shapes), neutral)
+        del shapes
         if keep is not None:
             sub = crop(triangles, keep, neutral)
     vertices = np.arange(n) if sub is None else sub.vertices
@@ -377,6 +378,7 @@ def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving
     deltas = np.zeros((len(sparse), vertices.size, 3))
     residue = []
     for k, ((idx, off), ibs) in enumerate(zip(sparse, ibs_of, strict=True)):
+        sparse[k] = None                  # each shape's read array freed once placed (one [K,n,3] at a time)
         rows = np.arange(n) if idx is None else idx
         at = local[rows]
         inside = at >= 0

@@ -103,7 +103,7 @@ def _signed_distance(points, triangles, queries):
 
 
 def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5,
-                   clearance: float = 3e-4):
+                   clearance: float = 3e-4, overwrite: bool = False):
     """Keep eyelid vertices off the eyeballs: a personalized shape may not bring a vertex closer to (or deeper
     into) an eyeball than the avatar's own generic shape does.
 
@@ -118,6 +118,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         Where the generic shape (or the neutral) tucks a vertex inside on purpose (eye sockets, lids modelled
         behind the eyeball), it may go as deep as the deeper of the two, no deeper. Without ``reference``
         only penetration deeper than the neutral's is repaired.
+    overwrite : repair ``shapes`` in place (a float64 array the caller does not need unrepaired) instead of
+        a copy: one ``[J,n,3]`` array fewer.
 
     A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
     on the eye mesh to the bound. Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
@@ -126,7 +128,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     one raycasting scene per eye.
     """
     x0 = np.asarray(neutral, dtype=np.float64)
-    out = np.array(shapes, dtype=np.float64, copy=True)
+    out = np.array(shapes, dtype=np.float64, copy=not overwrite)
     ref_all = None if reference is None else np.asarray(reference, dtype=np.float64)
     margin = clearance if ref_all is not None else 0.0
     count = 0

@@ -149,7 +149,8 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
-                           band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None):
+                           band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
+                           out=None):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -162,7 +163,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     field over ``band`` metres inside the face region (:func:`seam_ramp`). Returns ``(result[J,m,3],
     field)``: the field (:class:`FieldOnMesh`, ``.rings`` the smoothing used) kept at the vertices nearest to
     ``keep_at[q,3]`` (the other meshes' points; None: every vertex of the moving part), so a production head
-    does not hold ``J x m x 9`` values for a few thousand teeth vertices.
+    does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]``
+    array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
+    written): one ``[J,m,3]`` array fewer.
     """
     g = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
@@ -190,7 +193,12 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
         kept = np.unique(cKDTree(x).query(q)[1]) if len(q) else np.zeros(0, dtype=np.int64)
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
-    result = np.zeros_like(g)
+    if out is None:
+        result = np.zeros_like(g)
+    else:
+        if out.shape != g.shape or out.dtype != np.float64:
+            raise ValueError(f"out must be float64 {g.shape}, not {out.dtype} {out.shape}")
+        result = out
     w = seam_ramp(points, w0, band)[domain]
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
@@ -221,6 +229,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
+    if out is not None:                                           # elsewhere 0, as a fresh result
+        rest = np.ones(m, dtype=bool)
+        rest[domain] = False
+        result[:, rest] = 0.0
     return result, FieldOnMesh(x[kept], field, rings)
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GeometryError, RigError, UsdFaceError
+from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig, Inbetween
 from ..motion import moving_vertices, peak_motion, shape_norms
@@ -124,8 +125,14 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     return best
 
 
-def _shape_deltas(rig: FaceRig, names: list[str]) -> np.ndarray:
-    """``[len(names), n, 3]`` deltas of ``rig`` for ``names`` (zero for shapes the mesh lacks)."""
+def _shape_deltas(rig: FaceRig, names: list[str], *, view: bool = False) -> np.ndarray:
+    """``[len(names), n, 3]`` deltas of ``rig`` for ``names`` (zero for shapes the mesh lacks). With ``view``
+    and ``names`` the rig's own shapes in its order, a read-only view of ``rig.deltas`` (no copy: 24 B per
+    vertex and shape; a step that wrote into it would raise)."""
+    if view and list(names) == list(rig.names) and rig.deltas.dtype == np.float64:
+        out = rig.deltas.view()
+        out.flags.writeable = False
+        return out
     out = np.zeros((len(names), rig.n_vertices, 3))
     for i, n in enumerate(names):
         if n in rig.names:
@@ -405,6 +412,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.layers import avatar_mesh
 
             chosen_face = avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
+        release_free_memory()                      # USD's buffers and the per-shape arrays read
         timings["read"] = time.perf_counter() - t
         advance("read")
         advance.start("register")
@@ -429,7 +437,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                            path=avatar.file, prim=face_prim,
                            fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
         template_deltas = capture.template.deltas[[tmpl_idx[n] for n in names]]
-        avatar_face_deltas = _shape_deltas(face, names)
+        avatar_face_deltas = _shape_deltas(face, names, view=True)
         person_neutral0 = rig.neutral if rig is not None else capture.neutral
 
         # 2. registration of the person's neutral
@@ -518,6 +526,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
         weights, mu_used = retarget_weights(face.deltas[:, f], mb_face, mu=mu, return_mu=True)
+        del mb_face                                                       # [J, face, 3]: not used again
         report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
                               "weight_max": float(weights.max()) if weights.size else 0.0}
         approx_eq4 = {}
@@ -544,8 +553,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
             report["correspondence"]["mapping_outliers"] = int(outliers.sum())
             person_face = avatar_face_deltas.copy()
-            person_face[:, f] += conf[:, None, None] * face_personalization(
-                corr, capture.triangles, person_deltas, prior_av, f, support=support, outliers=outliers)
+            change = face_personalization(corr, capture.triangles, person_deltas, prior_av, f,
+                                          support=support, outliers=outliers)
+            change *= conf[:, None, None]                                   # in place: [J, face, 3] once
+            person_face[:, f] += change
+            del change
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in
@@ -558,11 +570,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
+            release_free_memory()                  # the read's and the fit's freed blocks, before the peak
+            # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
             result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
                                                    person_face, weight, length=length,
                                                    band=SEAM_BAND * radius, smoothing=smoothing,
-                                                   keep_at=keep_at)
-            adjacent = (weight < 1.0)[None] & (shape_norms(result - avatar_face_deltas) > 1e-9)
+                                                   keep_at=keep_at, out=person_face)
+            del person_face
+            adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
             for m in others:
                 sub = _shape_deltas(m, names)
                 other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
@@ -597,7 +612,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             if found:
                 result, repaired = repair_eyelids(face.neutral, result,
                                                   [(e, *eye_meshes[e.name]) for e in found],
-                                                  reference=avatar_face_deltas)
+                                                  reference=avatar_face_deltas, overwrite=True)
             report["eyelids"] = {"eyeballs": [e.name for e in found], "repaired_vertex_shapes": repaired}
             if not found:
                 report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
@@ -620,9 +635,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         offsets = {}
         for m in avatar.meshes:
             key = _key(m)
-            new = m.deltas.copy()
             src = result if m is face else other.get(key)
-            if src is not None:
+            if m is face and list(names) == list(m.names) and np.shape(result) == m.deltas.shape:
+                new = result                      # every shape personalized, in the rig's order: no copy
+            else:
+                new = m.deltas.copy()
+            if src is not None and new is not src:
                 for j, n in enumerate(names):
                     if n in m.names:
                         new[m.index(n)] = src[j]
@@ -803,6 +821,15 @@ def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
                                                   capture.triangles, names=list(names)))
 
 
+def _changed(result, generic, where) -> np.ndarray:
+    """``[J,m]`` bool: vertices ``where[m]`` whose offset in ``result[J,m,3]`` differs from ``generic[J,m,3]``
+    by more than 1e-9 m, formed shape by shape (no ``[J,m,3]`` difference)."""
+    out = np.zeros(result.shape[:2], dtype=bool)
+    for j in range(len(out)):
+        out[j] = where & (shape_norms(result[j:j + 1] - generic[j:j + 1])[0] > 1e-9)
+    return out
+
+
 def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list[dict]:
     """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints. A mesh held
     on its moving part (``regions``, offsets :class:`usdface.submesh.SparseOffsets`) changes nowhere else."""
@@ -811,8 +838,10 @@ def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list
         key = m.source.prim if m.source else m.name
         new = offsets[key]
         new = new.values if isinstance(new, SparseOffsets) else new
-        d = new - m.deltas
-        sq = np.einsum("knc,knc->kn", d, d)  # [K,n] squared change (on the part held)
+        sq = np.empty(m.deltas.shape[:2])    # [K,n] squared change (on the part held), shape by shape
+        for k in range(len(sq)):
+            d = new[k] - m.deltas[k]
+            sq[k] = np.einsum("nc,nc->n", d, d)
         n_full = regions[key].n if regions and key in regions else m.n_vertices
         peak = np.sqrt(sq.max(axis=1)) if sq.shape[1] else np.zeros(len(sq))
         rms = np.sqrt(sq.sum(axis=1) / max(n_full, 1))
