@@ -127,7 +127,7 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         "upAxis": avatar.up_axis, "metersPerUnit": avatar.meters_per_unit, "defaultPrim": avatar.default_prim,
         "stageMetadata": dict(avatar.metadata.get("stage", {})),
         "notes": list(avatar.metadata.get("notes", [])),
-        "meshes": [_mesh_summary(m, avatar.name_report.get(m.source.prim if m.source else m.name, {}))
+        "meshes": [_mesh_summary(m, avatar.name_report.get(m.key, {}))
                    for m in avatar.meshes],
     }
     if layer_info:

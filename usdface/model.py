@@ -95,6 +95,11 @@ class FaceRig:
         return int(self.neutral.shape[0])
 
     @property
+    def key(self) -> str:
+        """The mesh's prim path when read from USD, else its name: how meshes are keyed (offsets, regions)."""
+        return self.source.prim if self.source else self.name
+
+    @property
     def n_shapes(self) -> int:
         return len(self.names)
 

@@ -25,9 +25,9 @@ import numpy as np
 
 from .motion import moving_vertices
 
-__all__ = ["SubMesh", "moving_region", "crop", "scatter", "crop_rig", "SparseOffsets", "peak_of_shapes",
-           "outside_offsets", "crop_avatar",
-           "with_margin", "moving_part", "MARGIN", "MAX_SHARE"]
+__all__ = ["SubMesh", "moving_region", "crop", "scatter", "crop_rig", "rig_on", "SparseOffsets",
+           "peak_of_shapes", "outside_offsets", "crop_avatar", "with_margin", "moving_part", "MARGIN",
+           "MAX_SHARE"]
 
 
 @dataclass
@@ -167,16 +167,13 @@ def crop_rig(rig, keep, region: SubMesh | None = None):
     that keeps every vertex returns ``rig`` itself (and ``region``, or a whole SubMesh)."""
     import dataclasses
 
-    from .model import FaceRig, Inbetween
-
     sub = crop(rig.triangles, keep, rig.neutral)
     if sub.whole:
         return rig, region if region is not None else sub
     v = sub.vertices
     dropped = np.ones(sub.n, dtype=bool)
     dropped[v] = False
-    ibs = {name: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
-           for name, lst in rig.inbetweens.items()}
+    triangles = sub.triangles
     if region is not None:                                  # a part of a part: indices into the whole mesh
         sub = SubMesh(region.vertices[v], sub.triangles, region.n, region.points)
     source = rig.source
@@ -198,7 +195,19 @@ def crop_rig(rig, keep, region: SubMesh | None = None):
                        [np.concatenate([x, y]) for x, y in zip(before[2], out[2], strict=True)])
             residue.append(out)
         source = dataclasses.replace(source, region=sub, residue=residue)
-    return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, rig.name), sub
+    return rig_on(rig, v, triangles, source, rig.name), sub
+
+
+def rig_on(rig, vertices, triangles, source, name):
+    """``rig`` (:class:`usdface.model.FaceRig`) on its ``vertices[s]`` (indices, ascending) with the
+    re-indexed ``triangles[t,3]`` among them: neutral, deltas and inbetweens taken there; ``source`` and
+    ``name`` those of the new rig."""
+    from .model import FaceRig, Inbetween
+
+    v = np.asarray(vertices, dtype=np.int64)
+    ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
+           for k, lst in rig.inbetweens.items()}
+    return FaceRig(rig.neutral[v], triangles, rig.names, rig.deltas[:, v], ibs, source, name)
 
 
 class SparseOffsets:
@@ -256,7 +265,7 @@ def crop_avatar(avatar) -> tuple:
 
     meshes, regions = [], {}
     for m in avatar.meshes:
-        key = m.source.prim if m.source else m.name
+        key = m.key
         if m.source is not None and m.source.region is not None:        # read on its moving part
             meshes.append(m)
             regions[key] = m.source.region

@@ -114,7 +114,7 @@ def run(args) -> int:
                                 provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
                                             "parameters": params, "timings": layout.timings,
                                             "elapsedSeconds": time.perf_counter() - t0})
-    mesh = rig.source.prim if rig.source else rig.name
+    mesh = rig.key
     if args.json_out:
         write_text_atomic(args.json_out, json.dumps({"avatar": str(args.avatar), "mesh": mesh,
                                                      **layout.to_dict()}, indent=2), force=args.force)

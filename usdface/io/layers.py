@@ -209,7 +209,7 @@ def avatar_mesh(avatar: Avatar, key: str, context: str = "in the avatar") -> Fac
     try:
         return avatar.mesh(key)
     except KeyError:
-        meshes = ", ".join(m.source.prim if m.source else m.name for m in avatar.meshes)
+        meshes = ", ".join(m.key for m in avatar.meshes)
         raise RigError(f"no mesh {key!r} {context}", path=avatar.file,
                        fix=f"use one of {meshes}" if meshes else "pass an avatar with a face rig") from None
 

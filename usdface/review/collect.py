@@ -89,7 +89,7 @@ def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
     meshes = []
     for rig in personalized.meshes:
         try:
-            gen = generic.mesh(rig.source.prim if rig.source else rig.name)
+            gen = generic.mesh(rig.key)
         except KeyError:
             raise RigError(f"mesh {rig.name!r} is missing from the generic variant", path=personalized.file,
                            fix="review a layer written by 'usdface personalize'") from None

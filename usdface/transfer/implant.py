@@ -260,7 +260,7 @@ def rigid_shapes(points, deltas, *, tolerance: float = 0.1) -> np.ndarray:
     tongue's own shapes)."""
     x = np.column_stack([np.asarray(points, dtype=np.float64), np.ones(len(points))])     # [m,4]
     d = np.asarray(deltas, dtype=np.float64)
-    mag = np.linalg.norm(d, axis=-1)                                                     # [K,m]
+    mag = shape_norms(d)                                                                 # [K,m]
     out = np.zeros(len(d), dtype=bool)
     for j in np.flatnonzero(mag.max(axis=1) > 0):                # one small least squares per shape
         moving = mag[j] > 1e-3 * mag[j].max()
@@ -279,7 +279,7 @@ def follow_field(points, deltas, field, *, rigid=False):
     over its vertices, so the jaw's teeth and tongue stay one body (no crease where their nearest head
     vertices change)."""
     d = np.asarray(deltas, dtype=np.float64)
-    moving = np.flatnonzero(np.linalg.norm(d, axis=-1).max(axis=0) > 0)
+    moving = np.flatnonzero(peak_motion(d) > 0)
     out = d.copy()
     if moving.size == 0:
         return out

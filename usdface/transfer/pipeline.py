@@ -29,11 +29,11 @@ import numpy as np
 from ..errors import GeometryError, RigError, UsdFaceError
 from ..memory import release_free_memory
 from ..mesh import deformation_gradients
-from ..model import Avatar, Capture, FaceRig, Inbetween
+from ..model import Avatar, Capture, FaceRig
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
-from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, scatter
+from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
 from .correspond import (
     Correspondence,
     correspondence_map,
@@ -245,12 +245,9 @@ def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
     source: another mesh for the steps, named after it); the triangles within each, re-indexed."""
     def part(mask, source, name):
         sub = crop(rig.triangles, mask)
-        v = sub.vertices
-        ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
-               for k, lst in rig.inbetweens.items()}
-        return FaceRig(rig.neutral[v], sub.triangles, rig.names, rig.deltas[:, v], ibs, source, name)
+        return rig_on(rig, sub.vertices, sub.triangles, source, name)
 
-    return part(keep, rig.source, rig.name), part(~keep, None, f"{_key(rig)} (beyond the capture)")
+    return part(keep, rig.source, rig.name), part(~keep, None, f"{rig.key} (beyond the capture)")
 
 
 def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
@@ -400,7 +397,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
             avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
-        generic_full = {_key(m): m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
+        generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
         avatar, regions = crop_avatar(avatar)
         if not isinstance(capture, Capture):
@@ -420,7 +417,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # names: capture shapes vs avatar shapes
         cap_names = list(rig.names) if rig is not None else list(capture.names)
         face = chosen_face if chosen_face is not None else _face_mesh(avatar, cap_names)
-        face_prim = face.source.prim if face.source else face.name
+        face_prim = face.key
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
         names = [n for n in cap_names if n in face.names and n in tmpl_idx]
@@ -454,11 +451,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             whole_face, region = crop_rig(face, keep, regions.get(face_prim))
             if not region.whole:
                 regions[face_prim] = region
-            avatar_face_deltas, reached = avatar_face_deltas[:, keep], reached[keep]
-            avatar_face_deltas = avatar_face_deltas[:, reached]
+            reached = reached[keep]
             face, beyond = _split_rig(whole_face, reached)
+            avatar_face_deltas = _shape_deltas(face, names, view=True)
             rest = np.flatnonzero(~reached)
-            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+            avatar = dataclasses.replace(avatar, meshes=[face if m.key == face_prim else m
                                                          for m in avatar.meshes] + [beyond])
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
@@ -532,7 +529,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         approx_eq4 = {}
         if approximation == "retarget":
             for m in avatar.meshes:
-                approx_eq4[_key(m)] = approximate(weights, _shape_deltas(m, k_names))
+                approx_eq4[m.key] = approximate(weights, _shape_deltas(m, k_names))
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
         advance.start("transfer")
@@ -565,7 +562,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
             length = extension_length * radius if extension_length else None
             eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
-            others = [m for m in avatar.meshes if m is not face and _key(m) not in eyeballs_static]
+            others = [m for m in avatar.meshes if m is not face and m.key not in eyeballs_static]
             followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
@@ -580,12 +577,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
             for m in others:
                 sub = _shape_deltas(m, names)
-                other[_key(m)] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
+                other[m.key] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
                                   if any(m is x for x in followers) else sub)
             report["extension"] = {"length_m": length, "face_radius_m": radius,
                                    "smoothing_rings": pfield.rings}
         else:
-            base = {_key(m): (approx_eq4[_key(m)] if approximation == "retarget" else _shape_deltas(m, names))
+            base = {m.key: (approx_eq4[m.key] if approximation == "retarget" else _shape_deltas(m, names))
                     for m in avatar.meshes}
             edge = float(corr.info.get("capture_mean_edge_m", 0.0)) * sim.scale if corr.info else 0.0
             result, adjacent = implant_shapes(
@@ -604,7 +601,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             eye_meshes = dict(eyes or avatar.metadata.get("static_meshes") or {})
             for m in avatar.meshes:
                 if m is not face:
-                    eye_meshes.setdefault(_key(m), (m.neutral, m.triangles))
+                    eye_meshes.setdefault(m.key, (m.neutral, m.triangles))
             # an eyeball is found by the whole mesh's shape, not by its moving part
             eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
                                for k, v in eye_meshes.items() if k in regions})
@@ -619,13 +616,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
         f = corr.face
         if beyond is not None:                   # the face mesh in one piece again: reached + beyond
-            result = _join(result, reached, other.pop(_key(beyond)), rest)
+            result = _join(result, reached, other.pop(beyond.key), rest)
             f, adjacent = _join(f, reached, False, rest), _join(adjacent, reached, False, rest)
-            if _key(beyond) in approx_eq4:
-                approx_eq4[face_prim] = _join(approx_eq4[face_prim], reached, approx_eq4.pop(_key(beyond)),
+            if beyond.key in approx_eq4:
+                approx_eq4[face_prim] = _join(approx_eq4[face_prim], reached, approx_eq4.pop(beyond.key),
                                               rest)
             face = whole_face
-            avatar = dataclasses.replace(avatar, meshes=[face if _key(m) == face_prim else m
+            avatar = dataclasses.replace(avatar, meshes=[face if m.key == face_prim else m
                                                          for m in avatar.meshes if m is not beyond])
         timings["eyelids"] = time.perf_counter() - t
         advance("eyelids")
@@ -634,7 +631,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # offsets for every mesh, in rig.names order; shapes the capture lacks stay generic
         offsets = {}
         for m in avatar.meshes:
-            key = _key(m)
+            key = m.key
             src = result if m is face else other.get(key)
             if m is face and list(names) == list(m.names) and np.shape(result) == m.deltas.shape:
                 new = result                      # every shape personalized, in the rig's order: no copy
@@ -692,13 +689,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                              written, fit)
 
 
-def _key(m: FaceRig) -> str:
-    return m.source.prim if m.source else m.name
-
-
 def _is_eyeball(m: FaceRig, regions: dict | None = None) -> bool:
-    region = (regions or {}).get(_key(m))
-    return bool(find_eyeballs({_key(m): m.neutral if region is None else region.points}))
+    region = (regions or {}).get(m.key)
+    return bool(find_eyeballs({m.key: m.neutral if region is None else region.points}))
 
 
 def corr_transform(corr, fallback):
@@ -835,7 +828,7 @@ def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list
     on its moving part (``regions``, offsets :class:`usdface.submesh.SparseOffsets`) changes nowhere else."""
     rows = []
     for m in avatar.meshes:
-        key = m.source.prim if m.source else m.name
+        key = m.key
         new = offsets[key]
         new = new.values if isinstance(new, SparseOffsets) else new
         sq = np.empty(m.deltas.shape[:2])    # [K,n] squared change (on the part held), shape by shape
