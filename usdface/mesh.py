@@ -27,7 +27,7 @@ __all__ = [
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
     "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
-    "check_triangles", "spd_lu",
+    "check_triangles", "spd_lu", "vertex_areas",
 ]
 
 
@@ -288,6 +288,13 @@ def boundary_loops(triangles: np.ndarray, n: int) -> list[np.ndarray]:
             v = nxt.get(v)
         loops.append(np.array(loop if len(loop) == len(verts) else verts, dtype=np.int64))
     return sorted(loops, key=len, reverse=True)
+
+
+def vertex_areas(triangles: np.ndarray, areas: np.ndarray, n: int) -> np.ndarray:
+    """Lumped vertex areas ``[n]`` (the mass matrix's diagonal): a third of every incident triangle's area,
+    ``areas[t]`` (:func:`triangle_areas`)."""
+    tri = np.asarray(triangles, dtype=np.int64)
+    return np.bincount(tri.T.ravel(), weights=np.tile(np.asarray(areas) / 3.0, 3), minlength=n)
 
 
 def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:

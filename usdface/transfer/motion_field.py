@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import spd_lu, triangle_areas, vertex_adjacency
+from ..mesh import spd_lu, triangle_areas, vertex_adjacency, vertex_areas
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -156,8 +156,7 @@ class FieldExtension:
             return
         lap = cotangent_laplacian(x0, tri)
         if length:
-            area = triangle_areas(x0, tri)
-            mass = np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(x0))
+            mass = vertex_areas(tri, triangle_areas(x0, tri), len(x0))
             # no fade inside the sockets behind the face's holes: their tissue moves with the lips and lids
             mass[pockets(tri, self.known, mass)] = 0.0
             lap = (lap + sp.diags(mass / length ** 2)).tocsr()

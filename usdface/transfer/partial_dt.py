@@ -13,7 +13,14 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import deformation_gradients, gradient_operator, mean_edge_length, spd_lu, triangle_areas
+from ..mesh import (
+    deformation_gradients,
+    gradient_operator,
+    mean_edge_length,
+    spd_lu,
+    triangle_areas,
+    vertex_areas,
+)
 from .surface import cotangent_laplacian
 
 __all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask",
@@ -66,7 +73,7 @@ def face_deformation_transfer(points, triangles, face, source_triangle, jacobian
     grad = g_full[:, fidx]  # [3t, F]
     area = triangle_areas(x0, ttri)
     w3 = sp.diags(np.repeat(area, 3))
-    vmass = _vertex_mass(ttri, area, len(x0))[fidx]
+    vmass = vertex_areas(ttri, area, len(x0))[fidx]
     vmass = np.where(vmass > 0, vmass, area.mean() / 3.0 if area.size else 1.0)
     lam = anchor_weight / mean_edge_length(x0, tri) ** 2
     system = (grad.T @ w3 @ grad + sp.diags(lam * vmass)).tocsc()
@@ -83,12 +90,6 @@ def face_deformation_transfer(points, triangles, face, source_triangle, jacobian
     sol = solve(flat)
     out[:, fidx] = sol.reshape(len(fidx), n_shapes, 3).transpose(1, 0, 2)
     return out
-
-
-def _vertex_mass(triangles, area, n: int) -> np.ndarray:
-    """Lumped vertex areas ``[n]``: a third of every incident triangle's area."""
-    tri = np.asarray(triangles, dtype=np.int64)
-    return np.bincount(tri.T.ravel(), weights=np.tile(area / 3.0, 3), minlength=n)
 
 
 def moving_mask(shapes, tol: float = 1e-9) -> np.ndarray:
@@ -130,7 +131,7 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
     result[:, hard] = dface[:, hard]
     lap = cotangent_laplacian(x0, tri)
     area = triangle_areas(x0, tri)
-    mass = _vertex_mass(tri, area, len(x0))
+    mass = vertex_areas(tri, area, len(x0))
     length = falloff if falloff else mean_edge_length(x0, tri)
     if falloff:
         lap = (lap + sp.diags(mass / falloff ** 2)).tocsr()
