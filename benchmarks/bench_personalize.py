@@ -34,6 +34,11 @@ def _rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
 
 
+def _generated(case: str) -> bool:
+    """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``)?"""
+    return (Path(case) / "truth" / "meta.json").is_file() and (Path(case) / "avatar.usda").is_file()
+
+
 def _case(case: str):
     """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case or the sample."""
     import json
@@ -41,10 +46,10 @@ def _case(case: str):
     from usdface.io import read_capture
     from usdface.io.usd_rig import read_avatar
 
-    if case == "sample":
+    if case == "sample" or _generated(case):
         from usdface.transfer.surface import closest_points, mean_edge_length
 
-        d = ROOT / "sample_assets"
+        d = ROOT / "sample_assets" if case == "sample" else Path(case)
         avatar, capture = read_avatar(d / "avatar.usda"), read_capture(d / "capture.usda")
         head = avatar.mesh("Head")
         meta = json.loads((d / "truth" / "meta.json").read_text())["avatar_to_capture"]
@@ -154,7 +159,7 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", action="store_true", help="also score the paper's transfer options")
     ap.add_argument("--no-time", action="store_true")
     args = ap.parse_args(argv)
-    cases = [c for c in args.cases.split(",") if c == "sample" or (BENCH / c).is_dir()]
+    cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()]
     if not BENCH.is_dir():
         print(f"{BENCH} not found: only the sample is benchmarked")
     print(f"{'case':6} {'setting':42} {'face':>6} {'whole':>6} {'other meshes':>16} {'worst shape (mm)':>26} "

@@ -76,6 +76,23 @@ def test_other_seed_gives_another_person():
     assert np.abs(a["capture"].neutral - b["capture"].neutral).max() > 1e-3
 
 
+def test_artist_template_is_another_rig_for_the_same_person():
+    """``--template artist`` (the dev3 regime): the same person, frames and avatar; only the capture's template
+    changes, and it is further from the person's true shapes than the avatar's own generic template is."""
+    g, a = build_samples(2), build_samples(2, "artist")
+    for key in ("neutral", "deltas", "test_weights"):
+        np.testing.assert_array_equal(g["capture_truth"][key], a["capture_truth"][key])
+    np.testing.assert_array_equal(g["capture"].frames.points, a["capture"].frames.points)
+
+    def rmse(t):
+        return np.sqrt(np.mean(np.sum((t["template_deltas"] - t["deltas"]) ** 2, axis=-1)))
+
+    assert rmse(a["capture_truth"]) > 1.3 * rmse(g["capture_truth"])
+    assert a["meta"]["template"] == "artist" and "template" not in g["meta"]
+    with pytest.raises(ValueError, match="artist"):
+        build_samples(0, "other")
+
+
 def test_capture_topology_like_arkit(capture):
     n, t = len(capture.neutral), len(capture.triangles)
     assert 1100 <= n <= 1300 and 2000 <= t <= 2500

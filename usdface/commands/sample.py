@@ -18,6 +18,10 @@ def register(subparsers) -> None:
     parser.add_argument("--folder", action="store_true",
                         help="also write the capture as a capture folder OUTDIR/capture/ (OBJ + JSON, ~9 MB; "
                              "not part of the committed sample_assets/)")
+    parser.add_argument("--template", choices=("generic", "artist"), default="generic",
+                        help="the capture's template rig: the avatar's own generic shapes (default, the "
+                             "committed sample) or another artist's rig, further from the person than the "
+                             "avatar's shapes, as real phone apps ship (the bench's dev3 regime)")
     parser.add_argument("--picture", metavar="PNG", help="also draw the avatar and capture into this PNG")
     parser.add_argument("--json", action="store_true", help="print what was written as JSON")
     add_quiet(parser)
@@ -30,7 +34,8 @@ def run(args) -> int:
 
     from ..sample import generate_samples
 
-    out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder)
+    out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
+                           template=args.template)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     if args.json:
@@ -43,7 +48,7 @@ def run(args) -> int:
         from ..sample import build_samples
         from ..sample.picture import render_sample_picture
 
-        data = build_samples(args.seed)
+        data = build_samples(args.seed, args.template)
         cap = data["capture"]
         print(f"wrote {render_sample_picture(data['rigs'], cap.neutral, cap.triangles, args.picture)}")
     return 0

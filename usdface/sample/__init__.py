@@ -59,8 +59,32 @@ def _rot_x(deg: float) -> np.ndarray:
     return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
 
 
-def build_samples(seed: int = 0) -> dict:
-    """Every array of the sample case, in memory (no files). Keys documented in :func:`generate_samples`."""
+#: The capture's template rig: ``"generic"`` (the avatar's own generic shapes sampled on the mask, the
+#: committed sample) or ``"artist"`` (another artist's rig, as a real phone app ships:
+#: :func:`artist_fields`).
+TEMPLATES = ("generic", "artist")
+
+
+def artist_fields(generic: dict[str, list[dict]], seed: int) -> dict[str, list[dict]]:
+    """Another artist's template rig for the same 52 ARKit shapes: the generic fields perturbed independently
+    of the person and by more (amplitudes, directions, centres, widths, an extra component per shape), and a
+    ``mouthClose`` authored to be used on top of ``jawOpen`` (it also carries the lower lip's jaw travel back
+    up), so the template is further from the person than the avatar's own generic shapes are (the bench's
+    ``dev3`` regime). Its own random stream (``seed``, 7), so the person and the committed sample's bytes do
+    not depend on it."""
+    rng = np.random.default_rng([seed, 7])
+    out = F.personalize_fields(generic, rng, amplitude_std=0.45, tilt_deg=25.0, shift_std=0.45,
+                               width_std=0.18, extra=0.35)
+    out["mouthClose"] = out["mouthClose"] + [F._g((0.0, 0.6, 0.0), F._p(0, F.Y_MOUTH - 0.6), (2.0, 0.9, 1.4),
+                                                  "lower")]
+    return out
+
+
+def build_samples(seed: int = 0, template: str = "generic") -> dict:
+    """Every array of the sample case, in memory (no files). Keys documented in :func:`generate_samples`;
+    ``template``: one of :data:`TEMPLATES`."""
+    if template not in TEMPLATES:
+        raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
     rng = np.random.default_rng(seed)
     sp = SampleParams
     names = list(ARKIT_NAMES)
@@ -86,7 +110,8 @@ def build_samples(seed: int = 0) -> dict:
     # truth rounded (0.1 nm, 10 nm in cm below) so that regeneration gives the same bytes even where libm's
     # last bits differ between machines
     true_deltas = np.round(to_cap_delta(F.evaluate_fields(true_fields, Xc)), 10)
-    template_targets = np.round(template_neutral + to_cap_delta(F.evaluate_fields(generic, Xc)), dec)
+    template_fields = generic if template == "generic" else artist_fields(generic, seed)
+    template_targets = np.round(template_neutral + to_cap_delta(F.evaluate_fields(template_fields, Xc)), dec)
     template_deltas = template_targets - template_neutral
 
     w_train = P.training_weights(rng)
@@ -143,6 +168,8 @@ def build_samples(seed: int = 0) -> dict:
         "noise": {"scan_m": sp.scan_noise_m, "weights": sp.weight_noise},
         "identity": {"template": template_id, "person": person_id},
     }
+    if template != "generic":      # the committed sample's meta.json stays byte-identical
+        meta["template"] = template
     return {"capture": capture, "rigs": rigs, "capture_truth": capture_truth, "avatar_truth": avatar_truth,
             "meta": meta, "true_weights": w_true, "head_mesh": head, "mask_mesh": mask}
 
@@ -185,12 +212,14 @@ def _readme(meta: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = False) -> Path:
+def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = False,
+                     template: str = "generic") -> Path:
     """Generate the sample assets into ``outdir`` (see the module docstring); returns ``outdir``.
 
     Always writes ``README.txt``, ``avatar.usda``, ``capture.usda`` and ``truth/``; with ``folder=True`` also
     the raw capture folder ``capture/`` (the committed ``sample_assets/`` leaves it out to stay small). Every
     other file is the same with or without it. Deterministic: the same ``seed`` gives the same bytes.
+    ``template="artist"``: the capture's template rig is another artist's (:func:`artist_fields`).
     Everything is assembled in a temporary folder next to ``outdir`` and renamed into place
     (:func:`usdface.io.atomic.replace_dir_atomically`); an existing non-empty ``outdir`` is refused unless
     ``force`` (OutputExistsError).
@@ -201,10 +230,12 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
     from ..io.usd_capture import write_capture_usd
     from ..progress import steps
 
+    if template not in TEMPLATES:
+        raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
     with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
         p.start("build avatar and capture")
-        data = build_samples(seed)
+        data = build_samples(seed, template)
         (tmp / "README.txt").write_text(_readme(data["meta"]))
         p.start("write avatar.usda")
         write_rig_usd(data["rigs"], tmp / "avatar.usda", up_axis="Y", meters_per_unit=0.01, root="/Avatar")
