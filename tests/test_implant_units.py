@@ -227,3 +227,30 @@ def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
     assert np.abs(x @ coef - out[0, lower]).max() < 1e-12                         # still one affine body
     left = lower & (pts[:, 0] < -0.005)
     assert np.allclose(out[1, left], 1.2 * tongue[left])      # per vertex: its nearest field
+
+
+def test_a_mesh_follows_the_field_only_in_shapes_that_move_it_with_the_skin():
+    """The lower teeth move with the chin under the jaw (attached: they follow the person's field); the tongue
+    in ``tongueOut`` moves centimetres past lips that barely move (not attached: it keeps its generic shape,
+    not the lips' rotation, which says nothing about the tongue)."""
+    from usdface.transfer.implant import FieldOnMesh, attached_shapes, follow_field
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-0.01, 0.01, size=(200, 3))
+    jaw = np.tile([0.0, -0.004, 0.001], (200, 1)) * (1.0 + 0.1 * pts[:, :1] / 0.01)
+    tongue = np.tile([0.0, 0.0, 0.02], (200, 1))
+    deltas = np.stack([jaw, tongue])
+    head = rng.uniform(-0.012, 0.012, size=(50, 3))
+    skin = np.stack([np.tile([0.0, -0.005, 0.0], (50, 1)),                 # the chin: like the teeth
+                     np.tile([0.0, 0.0005, 0.0005], (50, 1))])            # the lips in tongueOut: barely
+    phi = np.zeros((2, 50, 3, 3), dtype=np.float32)
+    phi[:] = 0.3 * np.eye(3)
+    field = FieldOnMesh(head, phi, generic=skin.astype(np.float32))
+    nn = field.nearest(pts)
+    assert attached_shapes(deltas, skin[:, nn]).tolist() == [True, False]
+    out = follow_field(pts, deltas, field, rigid=True)
+    np.testing.assert_allclose(out[0], 1.3 * jaw, rtol=1e-6)               # the person's jaw
+    np.testing.assert_array_equal(out[1], tongue)                           # generic
+    # without the skin's motion (an older field) every shape follows, as before
+    np.testing.assert_allclose(follow_field(pts, deltas, FieldOnMesh(head, phi), rigid=True)[1], 1.3 * tongue,
+                               rtol=1e-6)

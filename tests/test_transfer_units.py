@@ -146,6 +146,10 @@ def test_repair_eyelids_moves_penetrating_vertices_to_surface():
     head = np.random.default_rng(0).normal(size=(50, 3))
     eyes = find_eyeballs({"/Avatar/EyeLeft": sphere, "/Avatar/Head": head})
     assert [e.name for e in eyes] == ["/Avatar/EyeLeft"]
+    # a round mesh is an eyeball by geometry alone, unless it is named for a part of the mouth (a teeth and
+    # tongue block can be round enough; taken as an eyeball it kept its generic jaw)
+    assert [e.name for e in find_eyeballs({"/Avatar/Geo1": sphere})] == ["/Avatar/Geo1"]
+    assert find_eyeballs({"/Avatar/Mouth": sphere, "/Avatar/Teeth_low": sphere}) == []
     lid = c + np.array([[0, 0, 0.0125], [0, 0.013, 0.0]])  # two lid vertices just outside the eye
     shapes = np.array([[[0, 0, -0.003], [0, 0, 0.0]]])  # the first is pushed 2.5 mm into the eyeball
     fixed, count = repair_eyelids(lid, shapes, [(Eyeball("eye", c, r, rms), sphere, hull.simplices)])

@@ -17,6 +17,9 @@ __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids"]
 
 _EYE_NAME = re.compile(r"eye", re.IGNORECASE)
 _NOT_EYE = re.compile(r"lash|brow|lid|socket|shadow|occlusion|tear", re.IGNORECASE)
+#: Meshes named for the mouth's parts are never eyeballs, however round (a teeth-and-tongue block can fit a
+#: sphere within the geometric test's tolerance).
+_MOUTH_PART = re.compile(r"mouth|teeth|tooth|tongue|gum|jaw", re.IGNORECASE)
 
 
 @dataclass
@@ -46,8 +49,9 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
     """Eyeballs among ``meshes`` = ``{name: points[n,3]}`` (internal metres).
 
     A mesh qualifies by name (contains "eye" but not lash/brow/lid/...) with a sphere fit of plausible radius,
-    or, unnamed, by geometry alone (sphere fit residual below ``max_rel_rms`` x radius, radius in
-    [``min_radius``, ``max_radius``]). At most the two best-fitting spheres are returned.
+    or, unnamed (and not named for a part of the mouth), by geometry alone (sphere fit residual below
+    ``max_rel_rms`` x radius, radius in [``min_radius``, ``max_radius``]). At most the two best-fitting
+    spheres are returned.
     """
     found = []
     for name, pts in meshes.items():
@@ -59,6 +63,8 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
             continue
         leaf = str(name).rsplit("/", 1)[-1]
         named = bool(_EYE_NAME.search(leaf)) and not _NOT_EYE.search(leaf)
+        if not named and _MOUTH_PART.search(leaf):
+            continue
         if named and rms < 2 * max_rel_rms * r or rms < max_rel_rms * r:
             found.append(Eyeball(str(name), c, r, rms))
     found.sort(key=lambda e: e.rms / e.radius)

@@ -40,7 +40,7 @@ SHAPE_CHUNK = 4
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
            "seam_ramp",
-           "follow_field", "rigid_shapes", "shape_confidence"]
+           "attached_shapes", "follow_field", "rigid_shapes", "shape_confidence"]
 
 
 def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar_deltas, *, poses=None):
@@ -233,24 +233,30 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         rest = np.ones(m, dtype=bool)
         rest[domain] = False
         result[:, rest] = 0.0
-    return result, FieldOnMesh(x[kept], field, rings)
+    return result, FieldOnMesh(x[kept], field, rings, generic=g[:, domain[kept]].astype(np.float32))
 
 
 class FieldOnMesh:
     """The person's field ``phi[J,d,3,3]`` (float32) at the vertices ``points[d,3]`` where it was computed;
-    ``rings`` the edge rings it was averaged over."""
+    ``rings`` the edge rings it was averaged over; ``generic[J,d,3]`` (float32, optional) the mesh's generic
+    motion there, the skin the field describes (:func:`follow_field` asks whether another mesh moves with it).
+    """
 
-    def __init__(self, points, phi, rings: int = 0):
+    def __init__(self, points, phi, rings: int = 0, generic=None):
         self.points = points
         self.phi = phi
         self.rings = rings
+        self.generic = generic
+
+    def nearest(self, queries) -> np.ndarray:
+        """``[q]``: the field vertex nearest to each query point ``[q,3]``."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points).query(np.asarray(queries, dtype=np.float64))[1]
 
     def at(self, queries) -> np.ndarray:
         """``phi[J,q,3,3]`` at the nearest field vertex of each query point ``[q,3]``."""
-        from scipy.spatial import cKDTree
-
-        _, nn = cKDTree(self.points).query(np.asarray(queries, dtype=np.float64))
-        return self.phi[:, nn].astype(np.float64)
+        return self.phi[:, self.nearest(queries)].astype(np.float64)
 
 
 def rigid_shapes(points, deltas, *, tolerance: float = 0.1) -> np.ndarray:
@@ -272,19 +278,43 @@ def rigid_shapes(points, deltas, *, tolerance: float = 0.1) -> np.ndarray:
     return out
 
 
+def attached_shapes(deltas, skin, *, max_angle_deg: float = MAX_ANGLE_DEG, max_ratio: float = MAX_RATIO,
+                    significant: float = SIGNIFICANT) -> np.ndarray:
+    """``[J]`` bool: the shapes in which another mesh moves with the head skin nearest to it, so the person's
+    field of that skin applies to it. ``deltas[J,k,3]``: the mesh's generic motion; ``skin[J,k,3]``: the
+    head's generic motion at the nearest head vertex of each of its vertices (m). A vertex moves with the skin
+    when the two motions agree as a person's motion agrees with an artist's (:func:`mapping_outliers`' person
+    model: within ``max_angle_deg`` and ``max_ratio``); a shape is attached when at least half of its motion
+    (squared length, over the vertices moving more than ``significant`` of its peak) does. The lower teeth
+    under the jaw shapes are attached to the chin and lips; the tongue in ``tongueOut`` (centimetres past lips
+    that barely move) is not, and keeps its generic shape rather than the lips' rotation."""
+    d = np.asarray(deltas, dtype=np.float64)
+    h = np.asarray(skin, dtype=np.float64)
+    nd, nh = shape_norms(d), shape_norms(h)
+    cos = np.einsum("jkc,jkc->jk", d, h) / np.maximum(nd * nh, 1e-300)
+    ratio = np.maximum(nd, nh) / np.maximum(np.minimum(nd, nh), 1e-300)
+    agree = (cos >= np.cos(np.radians(max_angle_deg))) & (ratio <= max_ratio)
+    w = nd * nd * (nd > significant * nd.max(axis=1, keepdims=True))
+    return np.sum(w * agree, axis=1) >= 0.5 * np.maximum(np.sum(w, axis=1), 1e-300)
+
+
 def follow_field(points, deltas, field, *, rigid=False):
     """Another mesh's shapes personalized by the head's field: ``deltas[J,k,3]`` on ``points[k,3]`` follow
     the field (:class:`FieldOnMesh`) at the nearest head vertex; in a shape that moves the mesh as one body
     (``rigid``: bool, or ``[J]`` bool from :func:`rigid_shapes`) it takes one field, the motion-weighted mean
     over its vertices, so the jaw's teeth and tongue stay one body (no crease where their nearest head
-    vertices change)."""
+    vertices change). With the head's generic motion in the field (``field.generic``), a shape in which the
+    mesh does not move with that skin (:func:`attached_shapes`) keeps its generic motion."""
     d = np.asarray(deltas, dtype=np.float64)
     moving = np.flatnonzero(peak_motion(d) > 0)
     out = d.copy()
     if moving.size == 0:
         return out
-    phi = field.at(np.asarray(points, dtype=np.float64)[moving])                        # [J,k,3,3]
+    nn = field.nearest(np.asarray(points, dtype=np.float64)[moving])
+    phi = field.phi[:, nn].astype(np.float64)                                         # [J,k,3,3]
     dm = d[:, moving]
+    if field.generic is not None:
+        phi[~attached_shapes(dm, field.generic[:, nn])] = 0.0
     one = np.broadcast_to(np.asarray(rigid, dtype=bool), (len(d),))
     if one.any():
         w = np.sum(dm[one] * dm[one], axis=-1)                                           # [r,k]
