@@ -16,6 +16,7 @@ from usdface.mesh import (
     cotangent_laplacian,
     deformation_gradients,
     gradient_operator,
+    harmonic_fill,
     mesh_scale,
     triangle_areas,
     triangle_frames,
@@ -106,3 +107,28 @@ def test_boundary_loops_outer_rim_then_hole():
     hole = loops[1]
     assert set(hole.tolist()) == {14, 15, 20, 21}     # the missing cell (i=2, j=2)
     assert mesh_scale(pts, tris) > 1.0
+
+
+def test_harmonic_fill_interpolates_fades_and_leaves_the_known_alone():
+    """Unknown vertices of a linear field on a regular grid (each vertex the mean of its symmetric
+    neighbours) are recovered exactly by the harmonic fill; screened over one edge they fade towards 0 but
+    stay between 0 and the harmonic value; an unknown island touching no known vertex is 0; known vertices
+    and shapes without unknowns are returned unchanged."""
+    pts, tris = grid(9, 9)
+    linear = 0.3 + 2.0 * pts[:, 0] - 0.5 * pts[:, 1]                    # > 0 on the grid
+    values = np.stack([np.c_[linear, -linear], np.c_[linear, linear]])  # [2, 81, 2]
+    unknown = np.zeros((2, 81), dtype=bool)
+    inner = (np.abs(pts[:, 0] - 4) <= 1) & (np.abs(pts[:, 1] - 4) <= 1)  # a 3 x 3 patch
+    unknown[0, inner] = True
+    noisy = values.copy()
+    noisy[0, inner] = 99.0
+    out = harmonic_fill(noisy, unknown, tris)
+    np.testing.assert_allclose(out, values, atol=1e-12)
+    faded = harmonic_fill(noisy, unknown, tris, length=1.0)
+    assert np.all(faded[0, inner, 0] > 0) and np.all(faded[0, inner, 0] < linear[inner])
+    np.testing.assert_array_equal(faded[:, ~inner], values[:, ~inner])
+    np.testing.assert_array_equal(faded[1], values[1])
+    # the whole mesh unknown for a shape: nothing to interpolate from, 0
+    everything = np.zeros((2, 81), dtype=bool)
+    everything[1] = True
+    np.testing.assert_array_equal(harmonic_fill(values, everything, tris)[1], 0.0)

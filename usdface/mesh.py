@@ -241,6 +241,36 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray, *,
     return (L - sp.diags(np.asarray(L.sum(axis=1)).ravel())).tocsr()
 
 
+def harmonic_fill(values: np.ndarray, unknown: np.ndarray, triangles: np.ndarray, *,
+                  length: float | None = None) -> np.ndarray:
+    """``values[J,n,d]`` with each shape's ``unknown[J,n]`` vertices replaced by the interpolation of its
+    known ones: the Dirichlet problem of the graph Laplacian ``K = D - A`` on the unknown vertices (each one
+    the mean of its neighbours), screened to decay to 0 over ``length`` edges (``(K + I / length^2) x = -K_uk
+    x_k``; None: harmonic, no decay). A part of the unknown set that touches no known vertex is 0. One small
+    sparse solve per shape that has unknown vertices (its size: that shape's unknown vertices)."""
+    from scipy.sparse.csgraph import connected_components
+
+    v = np.array(values, dtype=np.float64)
+    unknown = np.asarray(unknown, dtype=bool)
+    n = v.shape[1]
+    A = vertex_adjacency(triangles, n)
+    K = (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsr()
+    screen = 0.0 if length is None else 1.0 / float(length) ** 2
+    for j in np.flatnonzero(unknown.any(axis=1)):
+        u = np.flatnonzero(unknown[j])
+        k = np.flatnonzero(~unknown[j])
+        rows = K[u]
+        Kuu, Kuk = rows[:, u], rows[:, k]
+        _, label = connected_components(Kuu, directed=False)
+        reached = np.bincount(label, weights=np.asarray(abs(Kuk).sum(axis=1)).ravel()) > 0
+        keep = reached[label]
+        v[j, u[~keep]] = 0.0
+        if keep.any():
+            system = Kuu[keep][:, keep] + screen * sp.eye(int(keep.sum()))
+            v[j, u[keep]] = spd_lu(system).solve(-(Kuk[keep] @ v[j, k]))
+    return v
+
+
 def spd_lu(A: sp.spmatrix):
     """Sparse LU (:func:`scipy.sparse.linalg.splu`) of a symmetric positive (semi-)definite mesh operator
     (Laplacian / Poisson systems), with a symmetric fill-reducing ordering (minimum degree on ``A^T + A``,

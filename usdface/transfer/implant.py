@@ -67,6 +67,11 @@ MAX_ANGLE_DEG = 60.0
 MAX_RATIO = 2.0
 #: ... judged where either moves more than this fraction of the shape's peak motion.
 SIGNIFICANT = 0.1
+#: Where a capture vertex is a mapping outlier, the person's change is taken from its neighbours, fading to
+#: none (the generic) over this many capture edges: the resolution the capture measures at (the field's
+#: average covers one capture edge too). 0 inside (the first version) left holes, and so creases, in a
+#: brow's raise; a harmonic fill without fading carried mismapped lid margins into the blinks.
+OUTLIER_FILL_EDGES = 1.0
 
 
 def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_deg: float = MAX_ANGLE_DEG,
@@ -106,8 +111,11 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),
                          outliers=None):
     """``M (s_j (B_j - P_j))`` on the avatar vertices ``rows``: the person's change of each shape,
-    interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame);
-    0 at the capture vertices ``outliers[J,n]`` (:func:`mapping_outliers`).
+    interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame); at
+    the capture vertices ``outliers[J,n]`` (:func:`mapping_outliers`), where the difference is a mapping
+    error, the shape's other vertices' interpolated and fading to 0 over :data:`OUTLIER_FILL_EDGES` capture
+    edges (:func:`usdface.mesh.harmonic_fill`): the person's change there is unknown, not zero (a zero hole in
+    a brow's 3 mm raise is a crease), and known only as far as the capture resolves it.
 
     ``s_j`` (:func:`usdface.transfer.partial_dt.personalization_support`, ``support=(low, high)`` fractions of
     the shape's peak motion; None = everywhere) keeps the change where the person's or the prior shape moves:
@@ -120,8 +128,10 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
         from .partial_dt import personalization_support
 
         diff = diff * personalization_support(b, p, low=support[0], high=support[1])[..., None]
-    if outliers is not None:
-        diff = np.where(np.asarray(outliers, dtype=bool)[..., None], 0.0, diff)
+    if outliers is not None and np.any(outliers):
+        from ..mesh import harmonic_fill
+
+        diff = harmonic_fill(diff, outliers, capture_triangles, length=OUTLIER_FILL_EDGES)
     return corr.apply(diff, capture_triangles, rows=rows)
 
 
