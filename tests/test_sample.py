@@ -77,8 +77,9 @@ def test_other_seed_gives_another_person():
 
 
 def test_artist_template_is_another_rig_for_the_same_person():
-    """``--template artist`` (the dev3 regime): the same person, frames and avatar; only the capture's template
-    changes, and it is further from the person's true shapes than the avatar's own generic template is."""
+    """``--template artist`` (the dev3 regime): the same person, frames and avatar; only the capture's
+    template changes, and it is further from the person's true shapes than the avatar's own generic template
+    is."""
     g, a = build_samples(2), build_samples(2, "artist")
     for key in ("neutral", "deltas", "test_weights"):
         np.testing.assert_array_equal(g["capture_truth"][key], a["capture_truth"][key])
