@@ -37,7 +37,7 @@ from .surface import (
 __all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
            "save_correspondence", "load_correspondence"]
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 
 
 @dataclass

@@ -128,7 +128,9 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         a copy: one ``[J,n,3]`` array fewer.
 
     A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
-    on the eye mesh to the bound. Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
+    on the eye mesh to the bound (then radially from the eyeball's centre; with ``reference``, where that does
+    not reach the bound either, back to the generic shape's position). Returns ``(repaired shapes[J,n,3],
+    number of repaired vertex-shape pairs)``.
 
     Distance queries are limited to (shape, vertex) pairs within the eye's bounding sphere plus ``clearance``;
     one raycasting scene per eye.
@@ -191,5 +193,11 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             if not short.any():
                 break
             q[short] += radial[short] * (required[short] - d[short])[:, None]
+        if ref_all is not None:
+            # where neither step reaches the bound (a grazing corner of a non-star-shaped eye mesh), the
+            # generic shape's position, which meets it by definition
+            d = surf.signed_distance(q)
+            short = d < required - tolerance
+            q[short] = x0[near[ks[short]]] + ref_all[js[short], near[ks[short]]]
         out[js, near[ks]] = q - x0[near[ks]]
     return out, count

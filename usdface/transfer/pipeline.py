@@ -146,8 +146,13 @@ SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
 
 def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tuple[list, list]:
     """The ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of :data:`SEMANTIC_SHAPES` both rigs move,
-    the capture side in the avatar frame (``transform``) and scaled to the avatar shape's peak motion (two
-    artists' amplitudes differ; only where each side moves matters). Returns ``(pairs, names)``."""
+    the capture side in the avatar frame (``transform``). Only where and how much each side moves is used,
+    not the direction: each vertex moves by its own motion's length, scaled to the avatar shape's peak motion
+    (two artists' amplitudes differ), along one common direction, the avatar's motion-weighted mean
+    (:func:`pose_by_length`). A posed lower lip is then centimetres from the upper lip on both rigs, while a
+    template ``jawOpen`` hinged or tilted otherwise than the avatar's (another artist's) does not drag the
+    jaw line's correspondence sideways to where the two artists' directions happen to agree.
+    Returns ``(pairs, names)``."""
     pairs, used = [], []
     for name in SEMANTIC_SHAPES:
         if name not in names:
@@ -157,12 +162,27 @@ def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tup
         if transform is not None:
             t = transform.apply_vectors(t)
         a = np.asarray(avatar_deltas[j], dtype=np.float64)
-        pt, pa = float(np.linalg.norm(t, axis=1).max()), float(np.linalg.norm(a, axis=1).max())
-        if pt <= 0 or pa <= 0:
+        pair = pose_by_length(t, a)
+        if pair is None:
             continue
-        pairs.append((t * (pa / pt), a))
+        pairs.append(pair)
         used.append(name)
     return pairs, used
+
+
+def pose_by_length(template_delta, avatar_delta):
+    """``(template[n,3], avatar[m,3])``: one shape of the two rigs as the semantic pose of the
+    correspondence, each vertex moved by its motion's length (the template's scaled to the avatar's peak)
+    along the avatar's motion-weighted mean direction (m); None when either side does not move."""
+    lt = np.linalg.norm(template_delta, axis=1)
+    la = np.linalg.norm(avatar_delta, axis=1)
+    pt, pa = float(lt.max(initial=0.0)), float(la.max(initial=0.0))
+    direction = np.sum(avatar_delta * la[:, None], axis=0)
+    size = float(np.linalg.norm(direction))
+    if pt <= 0 or pa <= 0 or size <= 0:
+        return None
+    direction /= size
+    return (lt * (pa / pt))[:, None] * direction, la[:, None] * direction
 
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
