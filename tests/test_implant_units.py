@@ -254,3 +254,61 @@ def test_a_mesh_follows_the_field_only_in_shapes_that_move_it_with_the_skin():
     # without the skin's motion (an older field) every shape follows, as before
     np.testing.assert_allclose(follow_field(pts, deltas, FieldOnMesh(head, phi), rigid=True)[1], 1.3 * tongue,
                                rtol=1e-6)
+
+
+def test_an_error_that_does_not_scale_with_the_motion_is_not_carried_beyond_the_face():
+    """The field's values at the rim are shrunk by their reliability before they are extended: a person who
+    moves 1.2x the generic everywhere keeps exactly that field (no noise: nothing shrinks), while a 0.2 mm
+    sideways error on the whole face (a misplaced capture: it does not grow with the motion), which turns
+    the field most where the generic motion fades towards the rim, reaches beyond the face weaker. The join
+    stays seamless (no larger step across the rim than without the shrink) and the face beyond the join
+    band is the direct result, untouched."""
+    from usdface.mesh import edges
+    from usdface.transfer.implant import extend_personalization
+
+    pts, tri = _sheet(41)
+    x = pts[:, 0]
+    generic = np.zeros((1, len(pts), 3))
+    generic[0, :, 2] = 0.004 * np.clip(1.0 - x / 0.055, 0.08, 1.0)        # fades towards the face's rim
+    weight = (x < 0.05).astype(float)
+    person = 1.2 * generic
+    error = np.zeros_like(person)
+    error[0, :, 1] = 0.0002 * weight
+    kw = {"length": 0.05, "band": 0.01, "smoothing": 0.005}
+    clean, _ = extend_personalization(pts, tri, generic, person, weight, **kw)
+    clean_plain, _ = extend_personalization(pts, tri, generic, person, weight, shrink=False, **kw)
+    np.testing.assert_allclose(clean, clean_plain, rtol=0, atol=1e-12)
+    shrunk, _ = extend_personalization(pts, tri, generic, person + error, weight, **kw)
+    plain, _ = extend_personalization(pts, tri, generic, person + error, weight, shrink=False, **kw)
+
+    beyond = x > 0.0525
+    def rms(a):
+        return np.sqrt(np.mean(np.sum((a - clean)[:, beyond] ** 2, axis=-1)))
+    assert rms(shrunk) < 0.8 * rms(plain)
+    e = edges(tri)
+    across = e[weight[e[:, 0]] != weight[e[:, 1]]]
+    def step(a):
+        return np.linalg.norm(a[0, across[:, 0]] - a[0, across[:, 1]], axis=-1).max()
+    assert step(shrunk) <= step(plain) + 1e-9
+    inside = x < 0.05 - 0.01 - 0.003                     # beyond the join band (and a smoothing patch)
+    np.testing.assert_array_equal(shrunk[:, inside], plain[:, inside])
+
+
+def test_field_noise_separates_what_grows_with_the_motion_from_what_does_not():
+    """Personalization ``Phi A`` (|Phi A| = 0.3 |A|) plus an orthogonal 0.1 mm that does not grow with the
+    motion: the fitted line gives noise^2 = (0.1 mm)^2 and spread^2 = 0.3^2 exactly, and the Wiener factor
+    is 1/2 where the field's part equals the noise (|A| = 1/3 mm)."""
+    from usdface.transfer.motion_field import field_noise, reliability
+
+    rng = np.random.default_rng(5)
+    length = rng.uniform(0.0002, 0.004, size=50)
+    generic = np.zeros((1, 50, 3))
+    generic[0, :, 2] = length
+    change = np.zeros_like(generic)
+    change[0, :, 2] = 0.3 * length                       # a 1.3x scale
+    change[0, :, 0] = 0.0001                             # sideways, the same everywhere
+    noise2, spread2 = field_noise(generic, change, np.ones((1, 50), bool), rng.uniform(1.0, 2.0, 50))
+    np.testing.assert_allclose([noise2[0], spread2[0]], [1e-8, 0.09], rtol=1e-9)
+    r = reliability(np.array([[0.0, (0.0001 / 0.3) ** 2, 1.0]]), noise2, spread2)
+    np.testing.assert_allclose(r[0], [0.0, 0.5, 1.0], atol=1e-6)
+    assert reliability(np.ones((1, 2)), np.zeros(1), np.zeros(1)).tolist() == [[1.0, 1.0]]   # no doubt

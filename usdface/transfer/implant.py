@@ -22,14 +22,17 @@ Pure numpy/scipy on arrays in internal metres, the avatar frame: ``points[m,3]``
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
     apply_field,
     dilate,
+    field_noise,
     motion_weights,
     neighbourhood_matrix,
+    reliability,
     rotation_scale,
     smooth_field,
 )
@@ -160,7 +163,7 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
                            band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
-                           out=None):
+                           out=None, shrink: bool = True):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -170,7 +173,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     resolution the field was measured at: the same patch of skin whatever the mesh's resolution), extended
     by a screened harmonic solve (``length`` m, one factorization for every shape) and applied to the
     generic motion; the result ramps from ``person`` to the
-    field over ``band`` metres inside the face region (:func:`seam_ramp`). Returns ``(result[J,m,3],
+    field over ``band`` metres inside the face region (:func:`seam_ramp`). With ``shrink`` (default), what
+    is carried beyond the face (not into the sockets behind its holes) is the field times its reliability
+    (:func:`usdface.transfer.motion_field.reliability`, the shape's noise estimated on the face by
+    :func:`usdface.transfer.motion_field.field_noise`), ramped in over the same ``band`` inside the face, so
+    the field stays one continuous function and the join absorbs the difference. Returns ``(result[J,m,3],
     field)``: the field (:class:`FieldOnMesh`, ``.rings`` the smoothing used) kept at the vertices nearest to
     ``keep_at[q,3]`` (the other meshes' points; None: every vertex of the moving part), so a production head
     does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]``
@@ -210,6 +217,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             raise ValueError(f"out must be float64 {g.shape}, not {out.dtype} {out.shape}")
         result = out
     w = seam_ramp(points, w0, band)[domain]
+    # how much of the reliability shrink applies: 1 beyond the face, ramping to 0 over the band inside it
+    # (and 0 around the sockets: their values are surrounded by the capture and not extrapolated)
+    toward = 1.0 - seam_ramp(x, (~ext.beyond).astype(np.float64), band) if shrink else np.zeros(domain.size)
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
     touches_free = np.zeros(domain.size, dtype=bool)          # shares a triangle (so an edge) with a free one
@@ -218,6 +228,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     is_kept[kept] = True
     rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()   # column slices per chunk
+    shrunk = rows[toward[rows] > 0]                             # the rows whose field is shrunk
+    patch = sp.csr_matrix(smoother)[np.flatnonzero(toward[rows] > 0)] if shrunk.size else None
+    patch_size = np.asarray(patch.sum(axis=1)).ravel() if shrunk.size else None
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
@@ -232,6 +245,18 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv], max_scale=MAX_RATIO)
         mw = mw * valid
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
+        if shrunk.size:
+            # the generic motion and the personalization averaged over the patch each value of the field was
+            # averaged on (the capture's resolution), where the field was measured; the noise of that
+            # average, estimated on the values that are carried beyond the face
+            measured = (mw > 0)[..., None]
+            a_bar, d_bar = ((patch @ (v * measured).transpose(1, 0, 2).reshape(domain.size, k * 3))
+                            .reshape(shrunk.size, k, 3).transpose(1, 0, 2) / patch_size[:, None]
+                            for v in (gd, pd - gd))
+            noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk, 0], ext.mass[shrunk])
+            motion2 = np.einsum("jvc,jvc->jv", a_bar, a_bar)
+            keep = 1.0 - toward[shrunk] * (1.0 - reliability(motion2, noise2, spread2))
+            phi[:, shrunk] *= keep[..., None, None]
         flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
         del phi                                                   # bounded memory: one [k, m, 9] at a time
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)

@@ -12,10 +12,14 @@ leaves still stays still and sparse shapes stay sparse):
 1. :func:`rotation_scale` - the field on the face: ``Phi_j(v) = s R - I [J,m,3,3]``, unit-free;
 2. :func:`smooth_field` - its motion-weighted local average (a vertex that barely moves in a shape says
    little about that shape's field);
-3. :func:`extend_field` - screened harmonic extension beyond the face (one sparse factorization for every
+3. :func:`field_noise`, :func:`reliability` - how far each vertex's field can be trusted: the part of the
+   personalization that does not scale with the generic motion is noise (estimated per shape from the face),
+   and where the generic motion is not well above it the field is shrunk towards 0 (the generic motion)
+   before it is carried beyond the capture;
+4. :func:`extend_field` - screened harmonic extension beyond the face (one sparse factorization for every
    shape and matrix entry): the values around a hole fill the socket behind it, and the field decays to 0
    (the generic motion) over ``length`` metres away from the face;
-4. :func:`apply_field` - ``A_j + Phi_j A_j`` on any mesh, with the field sampled where that mesh is.
+5. :func:`apply_field` - ``A_j + Phi_j A_j`` on any mesh, with the field sampled where that mesh is.
 
 All arrays internal metres: ``points[m,3]``, ``generic[J,m,3]``, ``person[J,m,3]``.
 """
@@ -30,7 +34,7 @@ from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
 __all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
-           "dilate", "apply_field", "motion_weights", "pockets"]
+           "dilate", "apply_field", "motion_weights", "pockets", "field_noise", "reliability"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -122,6 +126,46 @@ def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None,
     return full
 
 
+def field_noise(generic, change, where, mass) -> tuple[np.ndarray, np.ndarray]:
+    """Per shape, the noise of the personalization and the spread of the field, from the data themselves.
+
+    Where the person's motion is the generic one turned and scaled (``P = s R A``, :func:`rotation_scale`),
+    the personalization ``|P - A|^2 = |Phi A|^2`` grows with the generic motion ``|A|^2``; what does not is
+    noise (of the fit, of the correspondence: it shows where the generic shape barely moves). The
+    area-weighted least-squares line ``|P - A|^2 = noise^2 + spread^2 |A|^2`` over the vertices
+    ``where[J,v]`` gives both, per shape (a method-of-moments estimate, as James-Stein's; each clipped at 0).
+    Given motion averaged over a patch of skin, the noise is that of the patch average: noise that averages
+    out over the patch does not count, noise shared by the patch does.
+
+    ``generic[J,v,3]`` (``A``) and ``change[J,v,3]`` (``P - A``), m; ``mass[v]`` lumped areas.
+    Returns ``(noise2[J] m^2, spread2[J])``.
+    """
+    g = np.asarray(generic, dtype=np.float64)
+    d = np.asarray(change, dtype=np.float64)
+    mass = np.asarray(mass, dtype=np.float64)
+    noise2, spread2 = np.zeros(len(g)), np.zeros(len(g))
+    for j in range(len(g)):
+        v = np.flatnonzero(where[j])
+        if v.size < 3:
+            continue
+        a = np.einsum("vc,vc->v", g[j, v], g[j, v])
+        u = np.einsum("vc,vc->v", d[j, v], d[j, v])
+        sw = np.sqrt(mass[v])
+        coef = np.linalg.lstsq(np.column_stack([sw, sw * a]), sw * u, rcond=None)[0]
+        noise2[j], spread2[j] = max(float(coef[0]), 0.0), max(float(coef[1]), 0.0)
+    return noise2, spread2
+
+
+def reliability(motion2, noise2, spread2) -> np.ndarray:
+    """``[J,m]`` in [0,1]: the Wiener factor ``spread^2 a^2 / (spread^2 a^2 + noise^2)`` of a field measured
+    on generic motion of squared length ``motion2[J,m]`` (m^2; of the patch average, as the noise), with
+    ``noise2[J]``, ``spread2[J]`` from :func:`field_noise`: the field's expected share of what was measured
+    there. 1 where the shape has no noise, 0 where it has no spread."""
+    signal = np.asarray(spread2, dtype=np.float64)[:, None] * np.asarray(motion2, dtype=np.float64)
+    total = signal + np.asarray(noise2, dtype=np.float64)[:, None]
+    return np.where(total > 0, signal / np.maximum(total, 1e-300), 1.0)
+
+
 def pockets(triangles, known, mass) -> np.ndarray:
     """``[m]`` bool: the unknown vertices of the pockets behind the known region's holes - each connected
     part of the unknown vertices whose area (``mass[m]``, lumped vertex areas) is smaller than the known
@@ -142,7 +186,8 @@ def pockets(triangles, known, mass) -> np.ndarray:
 
 class FieldExtension:
     """Screened harmonic extension on one mesh, factorized once: :meth:`extend` maps ``values[m,c]`` given on
-    ``known[m]`` to every vertex (see :func:`extend_field`)."""
+    ``known[m]`` to every vertex (see :func:`extend_field`). ``mass[m]``: lumped vertex areas; ``beyond[m]``:
+    the unknown vertices outside the :func:`pockets` (where the field fades)."""
 
     def __init__(self, points, triangles, known, *, length: float | None):
         x0 = np.asarray(points, dtype=np.float64)
@@ -151,15 +196,16 @@ class FieldExtension:
         self.n = len(x0)
         self.free = np.flatnonzero(~self.known)
         self.kidx = np.flatnonzero(self.known)
+        self.mass = vertex_areas(tri, triangle_areas(x0, tri), len(x0)) if len(tri) else np.zeros(self.n)
+        in_pocket = pockets(tri, self.known, self.mass) if len(tri) else np.zeros(self.n, dtype=bool)
+        self.beyond = ~self.known & ~in_pocket
         self._solve = None
         if self.free.size == 0 or self.kidx.size == 0:
             return
         lap = cotangent_laplacian(x0, tri)
         if length:
-            mass = vertex_areas(tri, triangle_areas(x0, tri), len(x0))
             # no fade inside the sockets behind the face's holes: their tissue moves with the lips and lids
-            mass[pockets(tri, self.known, mass)] = 0.0
-            lap = (lap + sp.diags(mass / length ** 2)).tocsr()
+            lap = (lap + sp.diags(np.where(in_pocket, 0.0, self.mass) / length ** 2)).tocsr()
         a_ff = lap[self.free][:, self.free]
         reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
         self._a_fk = lap[self.free][:, self.kidx].tocsr()
