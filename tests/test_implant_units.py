@@ -312,3 +312,32 @@ def test_field_noise_separates_what_grows_with_the_motion_from_what_does_not():
     r = reliability(np.array([[0.0, (0.0001 / 0.3) ** 2, 1.0]]), noise2, spread2)
     np.testing.assert_allclose(r[0], [0.0, 0.5, 1.0], atol=1e-6)
     assert reliability(np.ones((1, 2)), np.zeros(1), np.zeros(1)).tolist() == [[1.0, 1.0]]   # no doubt
+
+
+def test_semantic_poses_carry_where_and_how_much_not_the_direction():
+    """The correspondence's poses (``pipeline.pose_by_length``): another artist's ``jawOpen``, hinged or
+    tilted otherwise (here 40 degrees), gives the same pose as the avatar's own direction would: every vertex
+    moves by its motion's length, the template's scaled to the avatar's peak, along the avatar's mean
+    direction; a rig that does not move gives no pose."""
+    from scipy.spatial.transform import Rotation
+
+    from usdface.transfer.pipeline import pose_by_length, semantic_poses
+
+    rng = np.random.default_rng(2)
+    avatar = np.zeros((40, 3))
+    avatar[:20] = [0.0, -0.008, 0.002] * rng.uniform(0.2, 1.0, size=(20, 1))      # the lower half opens
+    template = np.zeros((30, 3))
+    template[:15] = [0.0, -0.006, 0.0] * rng.uniform(0.2, 1.0, size=(15, 1))
+    tilted = Rotation.from_euler("x", 40, degrees=True).apply(template)
+    t1, a1 = pose_by_length(template, avatar)
+    t2, a2 = pose_by_length(tilted, avatar)
+    np.testing.assert_allclose(t1, t2, atol=1e-15)
+    np.testing.assert_array_equal(a1, a2)
+    direction = a1[0] / np.linalg.norm(a1[0])
+    np.testing.assert_allclose(np.cross(t1, direction), 0.0, atol=1e-15)          # one common direction
+    np.testing.assert_allclose(np.linalg.norm(a1, axis=1), np.linalg.norm(avatar, axis=1))
+    assert np.linalg.norm(t1, axis=1).max() == pytest.approx(np.linalg.norm(avatar, axis=1).max())
+    assert pose_by_length(np.zeros((30, 3)), avatar) is None
+    pairs, used = semantic_poses(["jawOpen", "mouthClose"], template[None].repeat(2, 0),
+                                 avatar[None].repeat(2, 0))
+    assert used == ["jawOpen"] and len(pairs) == 1
