@@ -16,7 +16,7 @@ from .align import rigid_align
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
-from .weights import reestimate_weights, reestimate_weights_batched
+from .weights import held_weights, reestimate_weights, reestimate_weights_batched
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
 
@@ -143,7 +143,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`) - if it
         helps by a spatially split cross-validation (:func:`_reweight_helps`), else a no-op
         (``info["reweight"]["applied"]``). ``weight_sigma="auto"`` picks the prior width from
-        :data:`WEIGHT_SIGMAS` by the same criterion. Shapes the phone never activates keep its weights.
+        :data:`WEIGHT_SIGMAS` by the same criterion. Shapes the phone never activates keep its weights, and
+        each shape keeps its weight in its peak frame (the frame of its largest weight: there weight and
+        amplitude are not separately identifiable, :func:`.weights.held_weights`).
         Default: on, except with ``reg="paper"``.
     avatar_prior : optional ``deltas[K,n,3]`` (metres, capture frame, ``capture.names`` order): the avatar's
         own generic shapes mapped onto the capture mesh; a row of NaN = the avatar lacks that shape. With
@@ -327,11 +329,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         w_cur = weights
         if reweight:
             t1 = time.perf_counter()
-            # shapes the phone never activates keep its weights: the geometry cannot tell them from the
-            # residual of the others, and their prior must stay what the fit returns
-            frozen = weights.max(axis=0) < ACTIVATION_MIN
-            lo = np.where(frozen[None], weights, 0.0)
-            hi = np.where(frozen[None], weights, 1.0)
+            # held at the phone's values (bounds lo = hi, :func:`.weights.held_weights`): every weight of a
+            # shape the phone never activates (the geometry cannot tell it from the residual of the others,
+            # and its prior must stay what the fit returns), and each shape's weight in its peak frame (there
+            # the weight and the shape's amplitude are not separately identifiable)
+            held = held_weights(weights, ACTIVATION_MIN)
+            lo = np.where(held, weights, 0.0)
+            hi = np.where(held, weights, 1.0)
 
             def reestimate(neutral, P, fit_fn, deltas, sigma, last_fit=True, n_rounds=rounds):
                 """``n_rounds`` alternations of weight re-estimation (prior std ``sigma``) and the shape fit
