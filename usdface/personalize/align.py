@@ -27,7 +27,9 @@ def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count:
 
 def _det3(M: np.ndarray) -> np.ndarray:
     """Determinants of ``M[F,3,3]`` (closed form, no LAPACK call per matrix)."""
-    return np.sum(M[:, 0] * np.cross(M[:, 1], M[:, 2]), axis=-1)
+    return (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
+            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
+            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
 
 
 def _kabsch_prepared(src, srcT, dst, w):
@@ -70,13 +72,22 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     w = np.ones(src.shape[:2])
     R, t = _kabsch_prepared(src, srcT, dst, w)
     m = src.shape[1]
-    mid = [(m - 1) // 2, m // 2]
+    dstT = np.swapaxes(dst, 1, 2)                                    # [F,3,m] views: coordinate planes
+    d = np.empty((3,) + src.shape[:2])
     for _ in range(iterations if robust else 0):
-        d = np.matmul(src, np.swapaxes(R, 1, 2))
-        d += t[:, None]
-        d -= dst
-        r = np.sqrt(np.einsum("fmc,fmc->fm", d, d))
-        med = 0.5 * np.partition(r, mid, axis=1)[:, mid].sum(axis=1, keepdims=True)   # = np.median
+        # residual R src + t - dst, one coordinate plane [F,m] at a time (a batched 3 x 3 matmul is 2x slower)
+        for j in range(3):
+            np.multiply(srcT[:, 0], R[:, j, 0, None], out=d[j])
+            d[j] += srcT[:, 1] * R[:, j, 1, None]
+            d[j] += srcT[:, 2] * R[:, j, 2, None]
+            d[j] += t[:, j, None]
+            d[j] -= dstT[:, j]
+        r = np.sqrt(np.einsum("cfm,cfm->fm", d, d))
+        # the median (np.median's value): one partition at m // 2; for even m the lower middle is the
+        # largest value below it
+        part = np.partition(r, m // 2, axis=1)
+        lower = part[:, m // 2] if m % 2 else part[:, :m // 2].max(axis=1)
+        med = (0.5 * (lower + part[:, m // 2]))[:, None]
         s = 1.4826 * med + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = _kabsch_prepared(src, srcT, dst, w)

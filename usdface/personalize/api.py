@@ -623,10 +623,12 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     n_res = 0
     estimates = first_weights([(cand[ia], phone_fit[:, ia]) for ia, _ in splits], sigmas)   # [H,S,F,K]
     for (_, ib), ws in zip(splits, estimates, strict=True):
-        e["phone"] += np.sum(phone_loo[:, ib] ** 2, axis=(1, 2))
-        for sg, w in zip(sigmas, ws, strict=True):
-            e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w, vertices=ib) ** 2, axis=(1, 2))
-        n_res += phone_loo[:, ib].size
+        e_b = phone_loo[:, ib]
+        e["phone"] += np.sum(e_b ** 2, axis=(1, 2))
+        held_out = pf.loo_residuals(lam, predict_weights=ws, vertices=ib, loo=e_b)       # [S,F,m,3]
+        for sg, res in zip(sigmas, held_out, strict=True):
+            e[sg] += np.sum(res ** 2, axis=(1, 2))
+        n_res += e_b.size
     best = min(sigmas, key=lambda k: e[k].sum())
     scores = {(k if k == "phone" else f"sigma={k:g}"): float(np.sqrt(v.sum() / n_res) * 1000)
               for k, v in e.items()}

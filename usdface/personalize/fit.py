@@ -329,28 +329,39 @@ class PositionFit:
         return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
-                      vertices: np.ndarray | None = None) -> np.ndarray:
+                      vertices: np.ndarray | None = None, loo: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``.
 
         ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
         phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
-        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison). ``vertices``: only these (indices into
-        this fit's vertices; the result is ``[F,len(vertices),c]``)."""
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison); ``predict_weights[S,F,K]``: ``S`` such
+        sets at once, ``[S,F,n,c]`` (one product for all). ``vertices``: only these (indices into this fit's
+        vertices; the result is ``[F,len(vertices),c]``). ``loo``: the plain residuals ``e`` at ``reg`` on
+        these vertices if already computed (they do not depend on ``predict_weights``)."""
         v = slice(None) if vertices is None else np.asarray(vertices)
-        mu, Z, c, e0 = self.mu[v], self.Z[v], self.c[v], self.e0[:, v]
-        g = mu / (mu + reg)
-        fitted = np.matmul(Z, g[:, :, None] * c)                                      # [n,F,c]
-        h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                                 # [n,F]
-        e = ((e0.transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+        mu, Z, c = self.mu[v], self.Z[v], self.c[v]
+        if loo is None:
+            g = mu / (mu + reg)
+            fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
+            h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                             # [n,F]
+            e = ((self.e0[:, v].transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+                 ).transpose(1, 0, 2)
+        else:
+            e = loo
         if predict_weights is None:
             return e
         Pw = np.asarray(predict_weights, dtype=np.float64)
+        F, K = Pw.shape[-2:]
+        P2 = Pw.reshape(-1, K)                                                        # [S*F,K]
+        S = len(P2) // F
+        n, r = Z.shape[0], Z.shape[2]
         inv = 1.0 / (mu + reg)                                                        # [n,r]
-        Xp = _left(Pw, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,F,r]
-        pred = blend(Pw, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)
-        cross = np.einsum("nfr,nfr,nr->fn", Xp, Z, inv)                               # p_i^T A^-1 w_i
-        return self.R[:, v] - pred + cross[:, :, None] * e
+        Xp = _left(P2, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,SF,r]
+        pred = blend(P2, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)   # [SF,n,c]
+        cross = np.einsum("nsfr,nfr->sfn", Xp.reshape(n, S, F, r), Z * inv[:, None, :])  # p_i^T A^-1 w_i
+        out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross[..., None] * e
+        return out if Pw.ndim == 3 else out[0]
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""

@@ -79,15 +79,16 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     hi = np.broadcast_to(upper, w0.shape)
     x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
     y, tk = x.copy(), 1.0
-    Ga = G + a * np.eye(G.shape[-1])                                  # [H,S,K,K]: G + a I
-    grad = np.empty_like(x)
+    # the gradient step y - step (y (G + a I) - c) as one affine map y M + step c (M symmetric)
+    eye = np.eye(G.shape[-1])
+    M = eye - step * (G + a * eye)                                              # [H,S,K,K]
+    c *= step
     x_new = np.empty_like(x)
     for _ in range(iterations):
-        np.matmul(y, Ga, out=grad)
-        grad -= c
-        grad *= step
-        np.subtract(y, grad, out=x_new)
-        np.clip(x_new, lo, hi, out=x_new)
+        np.matmul(y, M, out=x_new)
+        x_new += c
+        np.maximum(x_new, lo, out=x_new)                                        # = np.clip, cheaper
+        np.minimum(x_new, hi, out=x_new)
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
         np.subtract(x_new, x, out=y)                                            # y = x_new + m (x_new - x)
         y *= (tk - 1.0) / t_new
