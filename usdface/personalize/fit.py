@@ -249,8 +249,14 @@ class PositionFit:
 
     def set_points(self, points) -> None:
         """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition
-        (the priors' coefficients do not depend on the frames: computed once)."""
-        self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
+        (the priors' coefficients do not depend on the frames: computed once). The frames it already holds:
+        a no-op."""
+        points = np.asarray(points, dtype=np.float64)
+        if hasattr(self, "_points") and self._points.shape == points.shape and np.array_equal(self._points,
+                                                                                              points):
+            return
+        self._points = points
+        self.R = points - self.neutral[None]
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
         if not hasattr(self, "_main"):
@@ -283,9 +289,8 @@ class PositionFit:
     def set_prior(self, prior_deltas) -> None:
         """Use the prior ``prior_deltas[K,n,c]`` (eq. 2's T_j, on this fit's vertices) from now on."""
         prior = np.asarray(prior_deltas, dtype=np.float64)
-        if self._custom_T is not None and self._custom_T.shape == prior.shape and np.array_equal(
-                self._custom_T, prior):
-            return                                  # the prior it holds (the alignment passes re-set it)
+        if self.T.shape == prior.shape and np.array_equal(self.T, prior):
+            return              # the prior it holds, as given or as a blend (the alignment passes re-set it)
         self._custom_T = prior
         self._custom = self._coeffs(self._custom_T)
         self._apply_prior()
