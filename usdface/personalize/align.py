@@ -38,7 +38,8 @@ def _kabsch_prepared(src, srcT, dst, w):
     ws = (w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300))[:, None, :]          # [F,1,m]
     cs = np.matmul(ws, src)                                                          # [F,1,3]
     cd = np.matmul(ws, dst)
-    H = np.matmul(srcT, ws[:, 0, :, None] * dst) - np.swapaxes(cs, 1, 2) * cd        # [F,3,3]
+    # the weights multiply src^T along its contiguous axis (2x cheaper than weighting dst[F,m,3])
+    H = np.matmul(srcT * ws, dst) - np.swapaxes(cs, 1, 2) * cd                       # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
     V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
     V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection

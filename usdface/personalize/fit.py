@@ -282,6 +282,8 @@ class PositionFit:
 
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
+        if self._custom is None and self._mix == float(alpha):
+            return                                                        # the blend it already uses
         self._custom_T, self._custom = None, None
         self._mix = float(alpha)
         self._apply_prior()
