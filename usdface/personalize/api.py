@@ -374,11 +374,14 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         from .contact import keep_contact
 
         t1 = time.perf_counter()
+        res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
                                                capture.names, deltas, mode=contact, points=points,
-                                               weights=w_cur, pinned=mask if pins is not None else None)
+                                               weights=w_cur, pinned=mask if pins is not None else None,
+                                               residuals=res)
         timings["contact"] = time.perf_counter() - t1
-        res = points - capture.neutral[None] - blend(w_cur, deltas)
+        if any(v["applied"] for v in info["contact"]["shapes"].values()):
+            res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
     info.pop("crossval_fit", None)
     if "crossval" in info:
