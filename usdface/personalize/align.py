@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["static_vertices", "kabsch", "rigid_align"]
+__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms"]
 
 
 def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count: int = 12) -> np.ndarray:
@@ -66,6 +66,14 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     fit is re-weighted ``iterations`` times (Geman-McClure, scale 1.4826 x median residual).
     """
     P = np.asarray(points, dtype=np.float64)
+    R, t = rigid_transforms(P, reference, vertices, robust=robust, iterations=iterations)
+    return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
+
+
+def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
+                     iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points)."""
+    P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     src = P[:, vertices]
     dst = np.ascontiguousarray(np.broadcast_to(ref[..., vertices, :], src.shape))
@@ -92,4 +100,4 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
         s = 1.4826 * med + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = _kabsch_prepared(src, srcT, dst, w)
-    return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
+    return R, t

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import FitError, GeometryError
 from ..mesh import check_triangles
 from ..model import Capture, FaceRig
-from .align import rigid_align
+from .align import rigid_transforms
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
@@ -643,7 +643,7 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
 def _alignment_generalises(pf, points, reg, info):
     """Cross-validated decision on the rigid alignment, by spatially separated halves of the (subsampled)
     vertices: a head misalignment is one rigid motion of the whole face, so a transform estimated on one half
-    (each frame to its leave-one-out prediction, :func:`rigid_align`) must also lower the other half's
+    (each frame to its leave-one-out prediction, :func:`.align.rigid_align`) must also lower the other half's
     leave-one-out residual; a "motion" fitted to model error in one region (the lips' non-linear motion, say)
     does not carry over to the other. Halves: either side of the neutral's centroid along its two principal
     axes (top/bottom and left/right of a face), four estimates in all. (A paired t-test over frames, as the
@@ -663,7 +663,7 @@ def _alignment_generalises(pf, points, reg, info):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
             if len(est) < 6 or len(out) == 0:
                 continue
-            _, R, t = rigid_align(points[:, est], target[:, est], np.arange(len(est)))
+            R, t = rigid_transforms(points[:, est], target[:, est], np.arange(len(est)))
             moved = np.matmul(points[:, out], np.swapaxes(R, 1, 2)) + t[:, None]
             before += np.sum((points[:, out] - target[:, out]) ** 2, axis=(1, 2))
             after += np.sum((moved - target[:, out]) ** 2, axis=(1, 2))
@@ -693,7 +693,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     else:
         pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
-    _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
+    R, tr = rigid_transforms(points[:, cand], target, np.arange(len(cand)))
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})
