@@ -255,7 +255,7 @@ class PositionFit:
         if hasattr(self, "_points") and self._points.shape == points.shape and np.array_equal(self._points,
                                                                                               points):
             return
-        self._points = points
+        self._points = points.copy()                    # a copy: the caller may change its array in place
         self.R = points - self.neutral[None]
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
