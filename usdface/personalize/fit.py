@@ -360,9 +360,8 @@ class PositionFit:
         if loo is None:
             g = mu / (mu + reg)
             fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
-            h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                             # [n,F]
-            e = ((self.e0[:, v].transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
-                 ).transpose(1, 0, 2)
+            h = np.matmul(self.Z2[v], g[:, :, None])[:, :, 0]                         # [n,F]
+            e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
         else:
             e = loo
         if predict_weights is None:
@@ -371,12 +370,13 @@ class PositionFit:
         F, K = Pw.shape[-2:]
         P2 = Pw.reshape(-1, K)                                                        # [S*F,K]
         S = len(P2) // F
-        n, r = Z.shape[0], Z.shape[2]
         inv = 1.0 / (mu + reg)                                                        # [n,r]
-        Xp = _left(P2, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,SF,r]
-        pred = blend(P2, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)   # [SF,n,c]
-        cross = np.einsum("nsfr,nfr->sfn", Xp.reshape(n, S, F, r), Z * inv[:, None, :])  # p_i^T A^-1 w_i
-        out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross[..., None] * e
+        LBV = self.inv_l[v][:, :, None] * self.BV[v]                                  # L^-1 B V  [n,K,r]
+        b = self.T[:, v] + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
+        pred = blend(P2, b)                                                           # p_i^T b  [SF,n,c]
+        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes(Z, 1, 2))                   # A^-1 w_i  [n,K,F]
+        cross = np.matmul(P2.reshape(S, F, K).transpose(1, 0, 2), Aw.transpose(2, 1, 0))  # p_i^T A^-1 w_i
+        out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross.transpose(1, 0, 2)[..., None] * e
         return out if Pw.ndim == 3 else out[0]
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
