@@ -198,3 +198,43 @@ def test_poisson_solver_reports_disconnected_free_part():
     with pytest.raises((GeometryError, RuntimeError)):
         PoissonSolver(pts2, tris2, fixed=[0]).solve(np.tile(np.eye(3), (len(tris2), 1, 1)),
                                                     fixed_points=pts2[[0]])
+
+
+def test_position_fit_batched_predictions_reuse_and_short_grid_search():
+    """The fit's exact speed-ups: prior widths' predictions in one product equal separate calls (and the
+    module-level LOO); set_points / set_prior are no-ops only for what the fit already holds; the short
+    re-tune grid evaluated in one batch finds what the coarse-then-fine search finds."""
+    from usdface.personalize.crossval import _minimise_log
+    from usdface.personalize.fit import loo_residuals
+
+    neutral, pts, W, true, generic = synthetic_fit_problem(noise=0.0005, F=9, K=6)
+    D = regularization_weights(generic)
+    pf = PositionFit(neutral, pts, W, generic, D)
+    reg = 0.02
+    sets = np.stack([np.clip(W + s, 0, 1) for s in (0.0, 0.03, 0.07)])            # [S,F,K]
+    many = pf.loo_residuals(reg, predict_weights=sets)
+    for Pw, got in zip(sets, many, strict=True):
+        assert np.abs(got - pf.loo_residuals(reg, predict_weights=Pw)).max() < 1e-15
+        assert np.abs(got - loo_residuals(neutral, pts, W, generic, D, reg, predict_weights=Pw)).max() < 1e-12
+    v = np.arange(5)
+    part = pf.loo_residuals(reg, predict_weights=sets, vertices=v, loo=pf.loo_residuals(reg)[:, v])
+    assert np.abs(part - many[:, :, v]).max() < 1e-15
+    moved = pts.copy()
+    pf.set_points(moved)                                                       # the same frames: no-op
+    assert np.allclose(pf.solve(reg), fit_blendshapes(neutral, pts, W, generic, D, reg), atol=1e-12)
+    moved[0] += 0.001                                                          # changed in place: seen
+    pf.set_points(moved)
+    assert np.allclose(pf.solve(reg), fit_blendshapes(neutral, moved, W, generic, D, reg), atol=1e-12)
+    pf.set_prior(generic)                                                      # the prior it holds
+    other = generic * 0.5
+    pf.set_prior(other)
+    assert np.allclose(pf.solve(reg), fit_blendshapes(neutral, moved, W, other, D, reg), atol=1e-12)
+
+    def err(x):
+        x = np.asarray(x, dtype=np.float64)
+        return (x + 2.37) ** 2 + 0.1 * np.sin(3 * x)
+
+    grid = np.log10(0.004) + np.array([-1.0, 0.0, 1.0])
+    one_batch = _minimise_log(err, grid, 4)                                      # coarse + fine at once
+    separate = _minimise_log(err, grid, 4, errs=err(grid))                       # coarse given: two steps
+    assert abs(one_batch[0] - separate[0]) < 1e-12 and abs(one_batch[1] - separate[1]) < 1e-12

@@ -230,3 +230,23 @@ def test_pinned_vertices_are_the_artists_version():
         fit(cap, pins={"nope": [0]})
     with pytest.raises(FitError, match="pins"):
         fit(cap, method="dt", pins={"jawOpen": [0]})
+
+
+def test_reweighting_holds_each_shape_weight_in_its_peak_frame():
+    """A shape's amplitude and its weight in the frame that isolates it are not separately identifiable:
+    re-estimation keeps that weight at the phone's value (and so cannot rescale the shape) and re-estimates
+    the others."""
+    from usdface.personalize.weights import held_weights, peak_frames
+
+    cap, true = noisy_capture(weight_noise=0.05)
+    W = cap.train.weights
+    res = fit(cap, align=False)
+    assert res.info["reweight"]["applied"] is True
+    new = res.info["train_weights"]
+    peak = peak_frames(W)
+    K = W.shape[1]
+    assert np.array_equal(new[peak, np.arange(K)], W[peak, np.arange(K)])
+    assert np.abs(new - W)[~held_weights(W)].max() > 1e-3            # the other weights do move
+    W2 = np.array([[0.9, 0.0, 0.01], [0.2, 0.7, 0.0], [0.3, 0.8, 0.02]])
+    assert peak_frames(W2).tolist() == [0, 2, 2]
+    assert held_weights(W2, 0.05).tolist() == [[True, False, True], [False, False, True], [False, True, True]]

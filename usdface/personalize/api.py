@@ -12,11 +12,11 @@ import numpy as np
 from ..errors import FitError, GeometryError
 from ..mesh import check_triangles
 from ..model import Capture, FaceRig
-from .align import rigid_align
+from .align import rigid_transforms
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
-from .weights import reestimate_weights, reestimate_weights_batched
+from .weights import held_weights, reestimate_weights, reestimate_weights_batched
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
 
@@ -143,7 +143,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         anchored to the phone's with prior std ``weight_sigma``), ``rounds`` times (:mod:`.weights`) - if it
         helps by a spatially split cross-validation (:func:`_reweight_helps`), else a no-op
         (``info["reweight"]["applied"]``). ``weight_sigma="auto"`` picks the prior width from
-        :data:`WEIGHT_SIGMAS` by the same criterion. Shapes the phone never activates keep its weights.
+        :data:`WEIGHT_SIGMAS` by the same criterion. Shapes the phone never activates keep its weights, and
+        each shape keeps its weight in its peak frame (the frame of its largest weight: there weight and
+        amplitude are not separately identifiable, :func:`.weights.held_weights`).
         Default: on, except with ``reg="paper"``.
     avatar_prior : optional ``deltas[K,n,3]`` (metres, capture frame, ``capture.names`` order): the avatar's
         own generic shapes mapped onto the capture mesh; a row of NaN = the avatar lacks that shape. With
@@ -327,11 +329,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         w_cur = weights
         if reweight:
             t1 = time.perf_counter()
-            # shapes the phone never activates keep its weights: the geometry cannot tell them from the
-            # residual of the others, and their prior must stay what the fit returns
-            frozen = weights.max(axis=0) < ACTIVATION_MIN
-            lo = np.where(frozen[None], weights, 0.0)
-            hi = np.where(frozen[None], weights, 1.0)
+            # held at the phone's values (bounds lo = hi, :func:`.weights.held_weights`): every weight of a
+            # shape the phone never activates (the geometry cannot tell it from the residual of the others,
+            # and its prior must stay what the fit returns), and each shape's weight in its peak frame (there
+            # the weight and the shape's amplitude are not separately identifiable)
+            held = held_weights(weights, ACTIVATION_MIN)
+            lo = np.where(held, weights, 0.0)
+            hi = np.where(held, weights, 1.0)
 
             def reestimate(neutral, P, fit_fn, deltas, sigma, last_fit=True, n_rounds=rounds):
                 """``n_rounds`` alternations of weight re-estimation (prior std ``sigma``) and the shape fit
@@ -370,11 +374,14 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         from .contact import keep_contact
 
         t1 = time.perf_counter()
+        res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
                                                capture.names, deltas, mode=contact, points=points,
-                                               weights=w_cur, pinned=mask if pins is not None else None)
+                                               weights=w_cur, pinned=mask if pins is not None else None,
+                                               residuals=res)
         timings["contact"] = time.perf_counter() - t1
-        res = points - capture.neutral[None] - blend(w_cur, deltas)
+        if any(v["applied"] for v in info["contact"]["shapes"].values()):
+            res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
     info.pop("crossval_fit", None)
     if "crossval" in info:
@@ -619,10 +626,12 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
     n_res = 0
     estimates = first_weights([(cand[ia], phone_fit[:, ia]) for ia, _ in splits], sigmas)   # [H,S,F,K]
     for (_, ib), ws in zip(splits, estimates, strict=True):
-        e["phone"] += np.sum(phone_loo[:, ib] ** 2, axis=(1, 2))
-        for sg, w in zip(sigmas, ws, strict=True):
-            e[sg] += np.sum(pf.loo_residuals(lam, predict_weights=w, vertices=ib) ** 2, axis=(1, 2))
-        n_res += phone_loo[:, ib].size
+        e_b = phone_loo[:, ib]
+        e["phone"] += np.sum(e_b ** 2, axis=(1, 2))
+        held_out = pf.loo_residuals(lam, predict_weights=ws, vertices=ib, loo=e_b)       # [S,F,m,3]
+        for sg, res in zip(sigmas, held_out, strict=True):
+            e[sg] += np.sum(res ** 2, axis=(1, 2))
+        n_res += e_b.size
     best = min(sigmas, key=lambda k: e[k].sum())
     scores = {(k if k == "phone" else f"sigma={k:g}"): float(np.sqrt(v.sum() / n_res) * 1000)
               for k, v in e.items()}
@@ -634,7 +643,7 @@ def _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_
 def _alignment_generalises(pf, points, reg, info):
     """Cross-validated decision on the rigid alignment, by spatially separated halves of the (subsampled)
     vertices: a head misalignment is one rigid motion of the whole face, so a transform estimated on one half
-    (each frame to its leave-one-out prediction, :func:`rigid_align`) must also lower the other half's
+    (each frame to its leave-one-out prediction, :func:`.align.rigid_align`) must also lower the other half's
     leave-one-out residual; a "motion" fitted to model error in one region (the lips' non-linear motion, say)
     does not carry over to the other. Halves: either side of the neutral's centroid along its two principal
     axes (top/bottom and left/right of a face), four estimates in all. (A paired t-test over frames, as the
@@ -654,7 +663,7 @@ def _alignment_generalises(pf, points, reg, info):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
             if len(est) < 6 or len(out) == 0:
                 continue
-            _, R, t = rigid_align(points[:, est], target[:, est], np.arange(len(est)))
+            R, t = rigid_transforms(points[:, est], target[:, est], np.arange(len(est)))
             moved = np.matmul(points[:, out], np.swapaxes(R, 1, 2)) + t[:, None]
             before += np.sum((points[:, out] - target[:, out]) ** 2, axis=(1, 2))
             after += np.sum((moved - target[:, out]) ** 2, axis=(1, 2))
@@ -684,7 +693,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     else:
         pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
-    _, R, tr = rigid_align(points[:, cand], target, np.arange(len(cand)))
+    R, tr = rigid_transforms(points[:, cand], target, np.arange(len(cand)))
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})

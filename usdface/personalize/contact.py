@@ -338,18 +338,19 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
 
 
 def keep_contact(neutral, triangles, template_neutral, template_deltas, names, deltas, *, mode: str = "auto",
-                 points=None, weights=None, pinned=None):
+                 points=None, weights=None, pinned=None, residuals=None):
     """The fit's contact step: pairs from the template (:func:`find_contact_pairs`), then
     :func:`apply_contact` on the fitted ``deltas[K,n,3]``.
 
     ``neutral[n,3]`` (the person's B0), ``template_neutral[n,3]``, ``template_deltas[K,n,3]`` (the template
     rig on the same topology), ``names[K]``; ``points[F,n,3]``, ``weights[F,K]``: the training frames the fit
-    used (for ``mode="auto"``'s test). Returns ``(deltas, {"mode", "shapes": per-shape report})``.
+    used (for ``mode="auto"``'s test); ``residuals[F,n,3]``: the frames minus the fit
+    (``points - neutral - weights @ deltas``) if the caller has them. Returns ``(deltas, {"mode", "shapes":
+    per-shape report})``.
     """
     openings = find_openings(template_neutral, triangles)
     pairs = find_contact_pairs(template_neutral, template_deltas, triangles, names, openings=openings)
-    residuals = None
-    if points is not None and weights is not None:
+    if residuals is None and points is not None and weights is not None:
         W = np.asarray(weights, dtype=np.float64)
         D = np.asarray(deltas, dtype=np.float64)
         residuals = (np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]

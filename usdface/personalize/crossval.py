@@ -30,13 +30,25 @@ def _minimise_log(errors, grid, refine, errs=None):
     """Minimise ``errors(log10 regs[G]) -> [G]`` over the coarse ``grid``, then over ``refine`` points per
     decade in the two grid intervals around the best point (one batched evaluation each), then at the vertex
     of the parabola through the best fine point and its neighbours."""
-    errs = errors(grid) if errs is None else np.asarray(errs)
+    union = _union_grid(grid, refine) if errs is None else None
+    if union is not None:
+        # every fine grid this search can need lies on one grid through the coarse points (a short coarse
+        # grid, e.g. the +-1 decade re-tune): one batched evaluation serves the coarse and the fine step
+        ue = errors(union)
+        step = (len(union) - 1) // (len(grid) - 1)
+        errs = ue[::step]
+    else:
+        errs = errors(grid) if errs is None else np.asarray(errs)
     k = int(np.argmin(errs))
     best, best_err = float(grid[k]), float(errs[k])
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     if refine and hi > lo:
-        fine = np.linspace(lo, hi, int(round((hi - lo) * refine)) + 1)
-        fe = errors(fine)
+        if union is not None:
+            fine = union[max(k - 1, 0) * step:min(k + 1, len(grid) - 1) * step + 1]
+            fe = ue[max(k - 1, 0) * step:min(k + 1, len(grid) - 1) * step + 1]
+        else:
+            fine = np.linspace(lo, hi, int(round((hi - lo) * refine)) + 1)
+            fe = errors(fine)
         j = int(np.argmin(fe))
         if fe[j] < best_err:
             best, best_err = float(fine[j]), float(fe[j])
@@ -51,6 +63,22 @@ def _minimise_log(errors, grid, refine, errs=None):
                     if ev < best_err:
                         best, best_err = float(xv), ev
     return best, best_err, errs
+
+
+def _union_grid(grid, refine):
+    """The grid of ``refine`` points per decade through a uniform coarse ``grid``, if evaluating it at once
+    costs no more than the coarse grid plus one fine step (short coarse grids); else None."""
+    grid = np.asarray(grid, dtype=np.float64)
+    if not refine or len(grid) < 2:
+        return None
+    h = np.diff(grid)
+    step = int(round(h[0] * refine))
+    if step < 1 or not np.allclose(h, h[0], rtol=0, atol=1e-12) or abs(h[0] * refine - step) > 1e-9:
+        return None
+    m = (len(grid) - 1) * step + 1
+    if m > len(grid) + 2 * step + 1:
+        return None
+    return np.linspace(grid[0], grid[-1], m)
 
 
 def choose_regularization(neutral, points, weights, generic_deltas, reg_weights, *, alt_deltas=None,
@@ -84,10 +112,15 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     pf, cand = fit, vertices
     grid = np.asarray(grid, dtype=np.float64)
     # coarse grid for every prior blend (one batched evaluation), then a finer grid of reg for the best blend
-    if keep_prior:
-        alpha, best_errs = float("nan"), pf.loo_errors(10.0 ** grid)
+    mixes = None if keep_prior else (tuple(alphas or PRIOR_MIX) if pf.has_alt else (1.0,))
+    if mixes is None or len(mixes) == 1:
+        # one prior: the coarse grid is evaluated by the search itself (with the fine grid, if short)
+        alpha, best_errs = float("nan"), None
+        if mixes is not None:
+            alpha = mixes[0]
+            if pf.has_alt:
+                pf.set_prior_mix(alpha)
     else:
-        mixes = tuple(alphas or PRIOR_MIX) if pf.has_alt else (1.0,)
         coarse = pf.loo_errors_mix(10.0 ** grid, mixes)                          # [A,G]
         a = int(np.argmin(coarse.min(axis=1)))
         alpha, best_errs = mixes[a], coarse[a]

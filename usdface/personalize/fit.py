@@ -42,6 +42,15 @@ def _left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
     return (A @ X.transpose(1, 0, 2).reshape(b, n * c)).reshape(A.shape[0], n, c).transpose(1, 0, 2)
 
 
+def _sum_axis2(x: np.ndarray) -> np.ndarray:
+    """``x.sum(axis=2)`` of ``x[a,b,k,c]`` with small ``k`` by ``k - 1`` whole-array additions (numpy's
+    reduction over a middle axis is several times slower)."""
+    out = x[:, :, 0].copy()
+    for j in range(1, x.shape[2]):
+        out += x[:, :, j]
+    return out
+
+
 def blend(weights: np.ndarray, deltas: np.ndarray) -> np.ndarray:
     """``sum_j w_fj B_j``: ``weights[F,K]``, ``deltas[K,n,3]`` -> ``[F,n,3]`` (one matrix product)."""
     d = np.asarray(deltas, dtype=np.float64)
@@ -83,14 +92,13 @@ def weight_basis(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def reduced_normal_matrix(inv_l: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """``H_v = B^T diag(inv_l_v) B`` for every vertex: ``inv_l[n,K]`` (the inverse regularisation weights
     ``1 / (lambda D_jv^2)``), ``basis[K,r]`` (``B = Q S``) -> ``[n,r,r]`` symmetric, by one matrix product of
-    the upper triangle."""
+    the upper triangle, spread to both triangles by one gather (two fancy-index scatters took 5x as long)."""
     K, r = basis.shape
     iu, ju = np.triu_indices(r)
     upper = np.asarray(inv_l, dtype=np.float64) @ (basis[:, iu] * basis[:, ju])       # [n, r(r+1)/2]
-    H = np.empty((len(upper), r, r))
-    H[:, iu, ju] = upper
-    H[:, ju, iu] = upper
-    return H
+    pos = np.empty((r, r), dtype=np.intp)                                           # entry (i, j) -> column
+    pos[iu, ju] = pos[ju, iu] = np.arange(len(iu))
+    return np.take(upper, pos.ravel(), axis=1).reshape(len(upper), r, r)
 
 
 def _reduced_solve(W, R, T, D, reg, extra_rhs: bool):
@@ -103,7 +111,7 @@ def _reduced_solve(W, R, T, D, reg, extra_rhs: bool):
     F, n, c = e0.shape
     r = len(s)
     M = reduced_normal_matrix(inv_l, B)
-    M[:, np.arange(r), np.arange(r)] += 1.0
+    M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
     rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
     if extra_rhs:
         rhs = np.concatenate([rhs, np.broadcast_to(P.T, (n, r, F))], axis=2)
@@ -118,7 +126,7 @@ def _direct_system(W, R, T, D, reg, extra):
     L = reg * np.asarray(D, dtype=np.float64).T ** 2                                 # [n,K]
     n, K = L.shape
     A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
-    A[:, np.arange(K), np.arange(K)] += L
+    A.reshape(n, -1)[:, ::K + 1] += L                                                # the diagonals
     rhs = project(W, R) + L[:, :, None] * T.transpose(1, 0, 2)                      # [n,K,c]
     if extra:
         rhs = np.concatenate([rhs, np.broadcast_to(W.T, (n, K, len(W)))], axis=2)
@@ -159,7 +167,7 @@ def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.n
     if r == 0:
         return np.zeros_like(inv_l)
     M = reduced_normal_matrix(inv_l, B)
-    M[:, np.arange(r), np.arange(r)] += 1.0
+    M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
     X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
     return inv_l * np.einsum("kr,nrk->nk", B, X)
 
@@ -241,8 +249,14 @@ class PositionFit:
 
     def set_points(self, points) -> None:
         """Replace the training frames ``points[F,n,c]`` (same weights): O(n F r), no new decomposition
-        (the priors' coefficients do not depend on the frames: computed once)."""
-        self.R = np.asarray(points, dtype=np.float64) - self.neutral[None]
+        (the priors' coefficients do not depend on the frames: computed once). The frames it already holds:
+        a no-op."""
+        points = np.asarray(points, dtype=np.float64)
+        if hasattr(self, "_points") and self._points.shape == points.shape and np.array_equal(self._points,
+                                                                                              points):
+            return
+        self._points = points.copy()                    # a copy: the caller may change its array in place
+        self.R = points - self.neutral[None]
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
         if not hasattr(self, "_main"):
@@ -268,6 +282,8 @@ class PositionFit:
 
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
+        if self._custom is None and self._mix == float(alpha):
+            return                                                        # the blend it already uses
         self._custom_T, self._custom = None, None
         self._mix = float(alpha)
         self._apply_prior()
@@ -275,9 +291,8 @@ class PositionFit:
     def set_prior(self, prior_deltas) -> None:
         """Use the prior ``prior_deltas[K,n,c]`` (eq. 2's T_j, on this fit's vertices) from now on."""
         prior = np.asarray(prior_deltas, dtype=np.float64)
-        if self._custom_T is not None and self._custom_T.shape == prior.shape and np.array_equal(
-                self._custom_T, prior):
-            return                                  # the prior it holds (the alignment passes re-set it)
+        if self.T.shape == prior.shape and np.array_equal(self.T, prior):
+            return              # the prior it holds, as given or as a blend (the alignment passes re-set it)
         self._custom_T = prior
         self._custom = self._coeffs(self._custom_T)
         self._apply_prior()
@@ -298,14 +313,15 @@ class PositionFit:
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
     def _loo_parts(self, regs, c, e0n):
-        """For ``regs[G]``: the leave-in residuals ``d[n,F,G,k]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
+        """For ``regs[G]``: the leave-in residuals ``d[n,F,k,G]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
         and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
-        products for the whole grid."""
+        products for the whole grid. The grid is the last (contiguous) axis: the broadcasts run over it."""
         regs = np.asarray(regs, dtype=np.float64)
         n, F, r = self.Z.shape
         g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
-        gc = (g[:, :, :, None] * c[:, :, None, :]).reshape(n, r, -1)                 # [n,r,G*k]
-        d = e0n[:, :, None, :] - np.matmul(self.Z, gc).reshape(n, F, len(regs), c.shape[2])
+        gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
+        d = np.matmul(self.Z, gc).reshape(n, F, c.shape[2], len(regs))
+        np.subtract(e0n[:, :, :, None], d, out=d)
         q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9)
         return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
 
@@ -322,41 +338,54 @@ class PositionFit:
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
         e0n = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2).transpose(1, 0, 2)
         d, q = self._loo_parts(regs, c, np.ascontiguousarray(e0n))
-        d1, d0 = d[..., :k], d[..., k:]
-        s11, s00, s01 = (np.einsum("nfg,nfg->g", np.einsum("nfgc,nfgc->nfg", x, y), q)
+        d1, d0 = d[:, :, :k], d[:, :, k:]
+        s11, s00, s01 = (np.einsum("nfg,nfg->g", _sum_axis2(x * y), q)
                          for x, y in ((d1, d1), (d0, d0), (d1, d0)))
         a = alphas[:, None]
         return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
-                      vertices: np.ndarray | None = None) -> np.ndarray:
+                      vertices: np.ndarray | None = None, loo: np.ndarray | None = None) -> np.ndarray:
         """Leave-one-frame-out residuals ``[F,n,c]`` (metres): frame i minus its prediction by the fit on the
         other frames, ``e_i / (1 - h_ii)``.
 
         ``predict_weights[F,K]``: predict frame i with these weights instead of the fitted ones (e.g. the
         phone's, when the fit used re-estimated weights): ``r_i - p_i^T b^(-i)`` with the exact downdate
-        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison). ``vertices``: only these (indices into
-        this fit's vertices; the result is ``[F,len(vertices),c]``)."""
+        ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison); ``predict_weights[S,F,K]``: ``S`` such
+        sets at once, ``[S,F,n,c]`` (one product for all). ``vertices``: only these (indices into this fit's
+        vertices; the result is ``[F,len(vertices),c]``). ``loo``: the plain residuals ``e`` at ``reg`` on
+        these vertices if already computed (they do not depend on ``predict_weights``)."""
         v = slice(None) if vertices is None else np.asarray(vertices)
-        mu, Z, c, e0 = self.mu[v], self.Z[v], self.c[v], self.e0[:, v]
-        g = mu / (mu + reg)
-        fitted = np.matmul(Z, g[:, :, None] * c)                                      # [n,F,c]
-        h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                                 # [n,F]
-        e = ((e0.transpose(1, 0, 2) - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+        mu, Z, c = self.mu[v], self.Z[v], self.c[v]
+        if loo is None:
+            g = mu / (mu + reg)
+            fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
+            h = np.matmul(self.Z2[v], g[:, :, None])[:, :, 0]                         # [n,F]
+            e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+        else:
+            e = loo
         if predict_weights is None:
             return e
         Pw = np.asarray(predict_weights, dtype=np.float64)
+        F, K = Pw.shape[-2:]
+        P2 = Pw.reshape(-1, K)                                                        # [S*F,K]
+        S = len(P2) // F
         inv = 1.0 / (mu + reg)                                                        # [n,r]
-        Xp = _left(Pw, self.inv_l[v][:, :, None] * self.BV[v])                        # p^T L^-1 B V  [n,F,r]
-        pred = blend(Pw, self.T[:, v]) + np.matmul(Xp, c * inv[:, :, None]).transpose(1, 0, 2)
-        cross = np.einsum("nfr,nfr,nr->fn", Xp, Z, inv)                               # p_i^T A^-1 w_i
-        return self.R[:, v] - pred + cross[:, :, None] * e
+        LBV = self.inv_l[v][:, :, None] * self.BV[v]                                  # L^-1 B V  [n,K,r]
+        b = self.T[:, v] + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
+        pred = blend(P2, b)                                                           # p_i^T b  [SF,n,c]
+        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes(Z, 1, 2))                   # A^-1 w_i  [n,K,F]
+        cross = np.matmul(P2.reshape(S, F, K).transpose(1, 0, 2), Aw.transpose(2, 1, 0))  # p_i^T A^-1 w_i
+        out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross.transpose(1, 0, 2)[..., None] * e
+        return out if Pw.ndim == 3 else out[0]
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
         d, q = self._loo_parts(regs, self.c, self.e0n)
-        sq = np.einsum("nfgc,nfgc->nfg", d, d)                       # two binary einsums: 2x one ternary
-        per_frame = np.einsum("nfg,nfg->gf", sq, q) / (d.shape[0] * d.shape[3])           # [G,F]
+        k = d.shape[2]
+        d *= d
+        sq = _sum_axis2(d)                                                                 # [n,F,G]
+        per_frame = np.einsum("nfg,nfg->gf", sq, q) / (d.shape[0] * k)                     # [G,F]
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)

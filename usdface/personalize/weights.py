@@ -8,13 +8,42 @@ around the phone's values (``sigma_w``), bounded to [0, 1]:
 
 All frames share the K x K normal matrix, so the bound-constrained problems are solved together by
 accelerated projected gradient (FISTA) in a few hundred tiny matrix products.
+
+Each shape's weight in its *peak frame* (:func:`peak_frames`, the frame Menzel keeps for the shape) is held
+at the phone's value (:func:`held_weights`): a shape's amplitude and its weight in the frame that isolates it
+are not separately identifiable (``w B_j = (c w)(B_j / c)``), so re-estimating that weight only trades against
+the shape's own scale. The other shapes' weights in that frame, and the shape's weights in every other frame,
+are re-estimated; the peak frame fixes the scale they are measured in.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reestimate_weights", "reestimate_weights_batched"]
+__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched"]
+
+
+def peak_frames(weights: np.ndarray) -> np.ndarray:
+    """``[K]`` int: for each shape the training frame where the phone reports its largest weight
+    (``weights[F,K]``; the first on ties) - the frame that isolates the shape, as :mod:`usdface.take_select`
+    picks it from a take. Defined by the weights, not by the frames' labels (a frame recorded for
+    ``eyeBlinkLeft`` often blinks both eyes; then it is the peak frame of both blinks).
+
+    >>> peak_frames(np.array([[0.9, 0.1], [0.2, 0.7], [0.3, 0.8]]))
+    array([0, 2])
+    """
+    return np.argmax(np.asarray(weights), axis=0)
+
+
+def held_weights(weights: np.ndarray, activation_min: float = 0.0) -> np.ndarray:
+    """``bool[F,K]``: the entries of ``weights[F,K]`` that re-estimation keeps at the phone's value - each
+    shape's weight in its peak frame (:func:`peak_frames`; fixes the shape's scale) and every weight of a
+    shape whose largest weight is below ``activation_min`` (never activated)."""
+    w = np.asarray(weights)
+    held = np.zeros(w.shape, dtype=bool)
+    held[:, w.max(axis=0) < activation_min] = True
+    held[peak_frames(w), np.arange(w.shape[1])] = True
+    return held
 
 
 def reestimate_weights(neutral: np.ndarray, deltas: np.ndarray, points: np.ndarray, phone_weights: np.ndarray,
@@ -50,15 +79,16 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     hi = np.broadcast_to(upper, w0.shape)
     x = np.broadcast_to(np.clip(w0, lo, hi), c.shape).copy()
     y, tk = x.copy(), 1.0
-    Ga = G + a * np.eye(G.shape[-1])                                  # [H,S,K,K]: G + a I
-    grad = np.empty_like(x)
+    # the gradient step y - step (y (G + a I) - c) as one affine map y M + step c (M symmetric)
+    eye = np.eye(G.shape[-1])
+    M = eye - step * (G + a * eye)                                              # [H,S,K,K]
+    c *= step
     x_new = np.empty_like(x)
     for _ in range(iterations):
-        np.matmul(y, Ga, out=grad)
-        grad -= c
-        grad *= step
-        np.subtract(y, grad, out=x_new)
-        np.clip(x_new, lo, hi, out=x_new)
+        np.matmul(y, M, out=x_new)
+        x_new += c
+        np.maximum(x_new, lo, out=x_new)                                        # = np.clip, cheaper
+        np.minimum(x_new, hi, out=x_new)
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
         np.subtract(x_new, x, out=y)                                            # y = x_new + m (x_new - x)
         y *= (tk - 1.0) / t_new
