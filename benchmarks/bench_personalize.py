@@ -2,6 +2,11 @@
 
 Run:  python benchmarks/bench_personalize.py [--cases sample,dev1,dev2,dev3] [--repeats 3] [--variants]
 
+A case is a bench case (``dev1``), ``sample``, a folder written by ``usdface sample``, or ``artist:SEED`` /
+``generic:SEED``: generated here (``usdface sample --template artist --seed SEED``) into a temporary folder,
+removed at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whose template is another
+artist's rig without ``../shared``. The time table is for the bench cases only.
+
 Prints two tables:
 1. accuracy (issue 10's figures, :mod:`usdface.transfer.scoring`): RMSE vs ``truth/avatar_truth.npz`` as a
    ratio output / generic input over the Head's face region (bench: vertices 0-9408), the whole Head and the
@@ -34,9 +39,32 @@ def _rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
 
 
+_MADE: dict[str, Path] = {}
+
+
 def _generated(case: str) -> bool:
-    """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``)?"""
+    """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``), or
+    ``artist:SEED`` / ``generic:SEED`` (generated here, once per run, into a temporary folder)?"""
+    if case.split(":")[0] in ("artist", "generic") and case.split(":")[-1].isdigit():
+        return True
     return (Path(case) / "truth" / "meta.json").is_file() and (Path(case) / "avatar.usda").is_file()
+
+
+def _folder(case: str) -> Path:
+    """The folder of a generated case (see :func:`_generated`)."""
+    if ":" not in case:
+        return Path(case)
+    if case not in _MADE:
+        from usdface.sample import generate_samples
+
+        template, seed = case.split(":")
+        import atexit
+        import shutil
+
+        tmp = tempfile.mkdtemp(prefix="usdface-bench-")
+        atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+        _MADE[case] = generate_samples(Path(tmp) / f"{template}{seed}", seed=int(seed), template=template)
+    return _MADE[case]
 
 
 def _case(case: str):
@@ -49,7 +77,7 @@ def _case(case: str):
     if case == "sample" or _generated(case):
         from usdface.transfer.surface import closest_points, mean_edge_length
 
-        d = ROOT / "sample_assets" if case == "sample" else Path(case)
+        d = ROOT / "sample_assets" if case == "sample" else _folder(case)
         avatar, capture = read_avatar(d / "avatar.usda"), read_capture(d / "capture.usda")
         head = avatar.mesh("Head")
         meta = json.loads((d / "truth" / "meta.json").read_text())["avatar_to_capture"]
@@ -170,7 +198,8 @@ def main(argv=None) -> int:
             print(f"{r['case']:6} {r['setting']:42} {r['face']:6.3f} {r['whole']:6.3f} {other:>16} "
                   f"{r['worst'][0]:>18} {r['worst'][1]:+7.3f} {r['seam'][0]:7.2f}/{r['seam'][1]:<7.2f} "
                   f"{r['swaps']:5d}")
-    if args.no_time:
+    cases = [c for c in cases if (BENCH / c).is_dir()]
+    if args.no_time or not cases:
         return 0
     print(f"\n{'case':5} {'cold s':>8} {'warm s':>8} {'cold cpu':>9} {'warm cpu':>9}   (usdface personalize, "
           f"fresh process, median of {args.repeats}; cpu = user+sys)")
