@@ -14,6 +14,8 @@ import ctypes
 import ctypes.util
 import functools
 
+import numpy as np
+
 
 @functools.cache
 def _malloc_trim():
@@ -31,3 +33,68 @@ def release_free_memory() -> bool:
     """Give the allocator's free heap pages back to the OS (glibc ``malloc_trim(0)``); True when it did."""
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
+
+
+class Float32Offsets:
+    """Offsets ``[K,n,3]`` float64 held as float32 ``authored[K,n,3]`` and one linear map ``linear[3,3]``,
+    expanded shape by shape as ``authored[k] @ linear.T``: the reader's own conversion of a USD file's float32
+    offsets to internal metres (a cm-to-m scale, an up-axis rotation), so half the memory of the float64
+    array and the same values to the last bit (:meth:`pack` checks every shape; when it cannot hold them
+    exactly it returns None). ``self[k]``, ``self[lo:hi]`` and :meth:`expand` give float64 arrays.
+
+    Examples
+    --------
+    >>> d = np.float32([[[1.5, -2.0, 0.25]]]).astype(np.float64) @ (0.01 * np.eye(3)).T
+    >>> packed = Float32Offsets.pack(d, 0.01 * np.eye(3))
+    >>> bool(np.array_equal(packed.expand(), d)), packed.shape
+    (True, (1, 1, 3))
+    """
+
+    def __init__(self, authored, linear):
+        self.authored = authored
+        self.linear = np.asarray(linear, dtype=np.float64)
+
+    @classmethod
+    def pack(cls, deltas, linear) -> Float32Offsets | None:
+        """``deltas[K,n,3]`` (float64) as float32 authored values, or None where one shape's values are not
+        exactly ``float32 @ linear.T`` (offsets not read from float32, a singular map)."""
+        d = np.asarray(deltas)
+        lin = np.asarray(linear, dtype=np.float64)
+        if d.dtype != np.float64 or d.ndim != 3 or d.shape[-1] != 3 or abs(np.linalg.det(lin)) < 1e-300:
+            return None
+        inverse = np.linalg.inv(lin).T
+        out = cls(np.empty(d.shape, dtype=np.float32), lin)
+        for k in range(len(d)):
+            out.authored[k] = d[k] @ inverse
+            if not np.array_equal(out[k], d[k]):
+                return None
+        return out
+
+    @property
+    def shape(self) -> tuple:
+        return self.authored.shape
+
+    @property
+    def dtype(self):
+        return np.dtype(np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.authored.nbytes)
+
+    def __len__(self) -> int:
+        return len(self.authored)
+
+    def __getitem__(self, shapes) -> np.ndarray:
+        """Float64 offsets of one shape ``[n,3]`` or of a slice of shapes ``[k,n,3]``."""
+        a = self.authored[shapes]
+        if a.ndim == 2:
+            return a.astype(np.float64) @ self.linear.T
+        out = np.empty(a.shape)
+        for k in range(len(a)):
+            out[k] = a[k].astype(np.float64) @ self.linear.T
+        return out
+
+    def expand(self) -> np.ndarray:
+        """The float64 ``[K,n,3]`` array."""
+        return self[:]
