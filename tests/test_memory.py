@@ -32,4 +32,9 @@ def test_float32_offsets_hold_the_readers_values_to_the_last_bit():
     np.testing.assert_array_equal(packed[2], deltas[2])
     np.testing.assert_array_equal(packed[1:3], deltas[1:3])
     assert memory.Float32Offsets.pack(deltas + 1e-12, linear) is None           # not float32 values
+    turn = 0.01 * np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])   # not an axis map
+    turned = np.stack([a.astype(np.float64) @ turn.T for a in authored])
+    packed = memory.Float32Offsets.pack(turned, turn)
+    assert packed is not None
+    np.testing.assert_array_equal(packed.expand(), turned)
     assert memory.Float32Offsets.pack(deltas, np.zeros((3, 3))) is None          # singular map

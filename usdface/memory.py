@@ -53,6 +53,11 @@ class Float32Offsets:
     def __init__(self, authored, linear):
         self.authored = authored
         self.linear = np.asarray(linear, dtype=np.float64)
+        # a scaled axis permutation (a snapped cm/up-axis map): one product per coordinate, no matrix
+        # product (the same values: the other terms are exact zeros; :meth:`pack` checks them anyway)
+        nonzero = self.linear != 0.0
+        self._axes = (np.argmax(nonzero, axis=1) if (nonzero.sum(axis=1) == 1).all()
+                      and (nonzero.sum(axis=0) == 1).all() else None)
 
     @classmethod
     def pack(cls, deltas, linear) -> Float32Offsets | None:
@@ -89,11 +94,17 @@ class Float32Offsets:
         """Float64 offsets of one shape ``[n,3]`` or of a slice of shapes ``[k,n,3]``."""
         a = self.authored[shapes]
         if a.ndim == 2:
-            return a.astype(np.float64) @ self.linear.T
+            return self._expand(a)
         out = np.empty(a.shape)
-        for k in range(len(a)):
-            out[k] = a[k].astype(np.float64) @ self.linear.T
+        for k in range(len(a)):                      # shape by shape: no copy of them all
+            out[k] = self._expand(a[k])
         return out
+
+    def _expand(self, a) -> np.ndarray:
+        """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``."""
+        if self._axes is not None:
+            return a[:, self._axes] * self.linear[np.arange(3), self._axes]
+        return a.astype(np.float64) @ self.linear.T
 
     def expand(self) -> np.ndarray:
         """The float64 ``[K,n,3]`` array."""

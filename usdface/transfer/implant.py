@@ -191,10 +191,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     x = np.asarray(points, dtype=np.float64)[domain]
     known = w0[domain] >= 1.0 - 1e-9
     ext = FieldExtension(x, sub_tri, known, length=length)
-    release_free_memory()                            # the factorization's working memory, before the person's
-    p = np.asarray(person() if callable(person) else person, dtype=np.float64)    # after the factorization
-    if overwrite:
-        out = p
+    release_free_memory()                            # the factorization's working memory
     if smoothing and len(sub_tri):
         from ..mesh import mean_edge_length
 
@@ -207,7 +204,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
         kept = np.unique(cKDTree(x).query(q)[1]) if len(q) else np.zeros(0, dtype=np.int64)
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
-    if out is None:
+    if overwrite:
+        result = None                                # the person's array, formed below
+    elif out is None:
         result = np.zeros(g.shape)
     else:
         if out.shape != g.shape or out.dtype != np.float64:
@@ -222,6 +221,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     is_kept[kept] = True
     rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()   # column slices per chunk
+    release_free_memory()                            # its construction's products
+    # the person's array last: the factorization's and the smoother's working memory are gone by then
+    p = np.asarray(person() if callable(person) else person, dtype=np.float64)
+    if overwrite:
+        result = out = p
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
@@ -243,6 +247,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         field[js] = f[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
+        del gd, pd, f, outside
+        release_free_memory()                                     # the chunk's arrays: the heap stays flat
     if out is not None:                                           # elsewhere 0, as a fresh result
         rest = np.ones(m, dtype=bool)
         rest[domain] = False

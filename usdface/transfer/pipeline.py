@@ -599,6 +599,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                                    person_face, weight, length=length,
                                                    band=SEAM_BAND * radius, smoothing=smoothing,
                                                    keep_at=keep_at, overwrite=True)
+            release_free_memory()                  # the field's freed working memory
             if packed is not None:                 # the float64 generic offsets again, as read
                 face.deltas = packed.expand()
                 del packed

@@ -72,7 +72,7 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         proj = vec.T @ rhs                                                   # [K,J]: U^T A t  (= s_i u_i^T t)
         # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
         inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None] * (ev > 1e-12 * ev.max())[:, None]))
-        residual = max(float(np.sum(t * t)) - inside, 0.0)
+        residual = max(float(np.einsum("jv,jv->", t, t)) - inside, 0.0)       # no [J, 3m] temporary
         mu = choose_mu(ev, proj, residual, a.shape[1], k)
     lam = float(mu) * float(np.trace(gram)) / max(k, 1)
     w = np.linalg.solve(gram + lam * np.eye(k), rhs).T
