@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from usdface import memory
+from usdface.motion import peak_motion
 
 
 def test_release_free_memory_keeps_every_value_and_reports_what_it_did(monkeypatch):
@@ -31,6 +32,8 @@ def test_float32_offsets_hold_the_readers_values_to_the_last_bit():
     np.testing.assert_array_equal(packed.expand(), deltas)
     np.testing.assert_array_equal(packed[2], deltas[2])
     np.testing.assert_array_equal(packed[1:3], deltas[1:3])
+    np.testing.assert_allclose(packed.peak_motion(), peak_motion(deltas), rtol=1e-15)
+    assert np.allclose(memory.Float32Offsets(packed.authored, linear).peak_motion(), peak_motion(deltas))
     assert memory.Float32Offsets.pack(deltas + 1e-12, linear) is None           # not float32 values
     turn = 0.01 * np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])   # not an axis map
     turned = np.stack([a.astype(np.float64) @ turn.T for a in authored])

@@ -53,6 +53,7 @@ class Float32Offsets:
     def __init__(self, authored, linear):
         self.authored = authored
         self.linear = np.asarray(linear, dtype=np.float64)
+        self.peak = None                             # [n] the largest offset of each vertex (from pack)
         # a scaled axis permutation (a snapped cm/up-axis map): one product per coordinate, no matrix
         # product (the same values: the other terms are exact zeros; :meth:`pack` checks them anyway)
         nonzero = self.linear != 0.0
@@ -69,11 +70,24 @@ class Float32Offsets:
             return None
         inverse = np.linalg.inv(lin).T
         out = cls(np.empty(d.shape, dtype=np.float32), lin)
+        square = np.zeros(d.shape[1])
         for k in range(len(d)):
             out.authored[k] = d[k] @ inverse
             if not np.array_equal(out[k], d[k]):
                 return None
+            np.maximum(square, np.einsum("nc,nc->n", d[k], d[k]), out=square)
+        out.peak = np.sqrt(square)
         return out
+
+    def peak_motion(self) -> np.ndarray:
+        """``[n]`` the largest offset of each vertex over the shapes (:func:`usdface.motion.peak_motion`)."""
+        if self.peak is None:
+            square = np.zeros(self.shape[1])
+            for k in range(len(self)):
+                d = self[k]
+                np.maximum(square, np.einsum("nc,nc->n", d, d), out=square)
+            self.peak = np.sqrt(square)
+        return self.peak
 
     @property
     def shape(self) -> tuple:

@@ -180,8 +180,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     n_shapes, m = g.shape[:2]
     # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
     # motion, and so the result, is 0 whatever the field
-    peak = (peak_motion(g) if isinstance(g, np.ndarray)
-            else np.max([peak_motion(g[k:k + 1]) for k in range(n_shapes)], axis=0, initial=0.0))
+    peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
     domain = np.flatnonzero(moving_vertices(peak, points) | (w0 > 0))
     del peak
     local = np.full(m, -1)

@@ -140,13 +140,20 @@ def _shape_deltas(rig: FaceRig, names: list[str], *, view: bool = False) -> np.n
     return out
 
 
+#: Face offsets from this size on are held packed during the field (a head of about 80k vertices and
+#: more; below, the packing's passes over them cost more than the memory is worth).
+PACK_BYTES = 100 * 2 ** 20
+
+
 def _packed_generic(rig: FaceRig, names: list[str]):
     """``rig.deltas`` as :class:`usdface.memory.Float32Offsets` (the authored float32 offsets and the reader's
-    conversion, the same values to the last bit) when ``names`` are the rig's own shapes in its order and
-    the rig was read from a file; else None (keep the float64 array)."""
+    conversion, the same values to the last bit) when ``names`` are the rig's own shapes in its order, the
+    rig was read from a file and its offsets take ``PACK_BYTES`` or more; else None (keep the float64
+    array)."""
     from ..memory import Float32Offsets
 
-    if rig.source is None or list(names) != list(rig.names) or rig.deltas.dtype != np.float64:
+    if (rig.source is None or list(names) != list(rig.names) or rig.deltas.dtype != np.float64
+            or rig.deltas.nbytes < PACK_BYTES):
         return None
     return Float32Offsets.pack(rig.deltas, rig.source.to_internal[:3, :3])
 
