@@ -35,6 +35,8 @@ def test_float32_offsets_hold_the_readers_values_to_the_last_bit():
     np.testing.assert_allclose(packed.peak_motion(), peak_motion(deltas), rtol=1e-15)
     assert np.allclose(memory.Float32Offsets(packed.authored, linear).peak_motion(), peak_motion(deltas))
     assert memory.Float32Offsets.pack(deltas + 1e-12, linear) is None           # not float32 values
+    scaled = np.stack([a.astype(np.float64) * 0.01 for a in authored])          # cm to m, axes kept
+    np.testing.assert_array_equal(memory.Float32Offsets.pack(scaled, 0.01 * np.eye(3)).expand(), scaled)
     turn = 0.01 * np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])   # not an axis map
     turned = np.stack([a.astype(np.float64) @ turn.T for a in authored])
     packed = memory.Float32Offsets.pack(turned, turn)

@@ -117,7 +117,8 @@ class Float32Offsets:
     def _expand(self, a) -> np.ndarray:
         """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``."""
         if self._axes is not None:
-            return a[:, self._axes] * self.linear[np.arange(3), self._axes]
+            scale = self.linear[np.arange(3), self._axes]
+            return (a if (self._axes == np.arange(3)).all() else a[:, self._axes]) * scale
         return a.astype(np.float64) @ self.linear.T
 
     def expand(self) -> np.ndarray:
