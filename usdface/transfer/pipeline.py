@@ -507,6 +507,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, placed_by)
             g_av, _ = avatar_shapes_on_capture(corr.registered, face.neutral, face.triangles,
                                                avatar_face_deltas, poses=poses)
+            del poses                              # views of the face's offsets: they would keep them alive
             generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
         timings["correspond"] = time.perf_counter() - t
         advance("correspond")
@@ -586,6 +587,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             if packed is not None:
                 generic_full.update(dict.fromkeys(held))
                 face.deltas = avatar_face_deltas = None
+            # and those of the whole face mesh when it was split (reached + beyond): used only after the field
+            whole_packed = _packed_generic(whole_face, whole_face.names) if whole_face is not face else None
+            whole_held = [k for k, v in generic_full.items() if v is whole_face.deltas]
+            if whole_packed is not None:
+                generic_full.update(dict.fromkeys(whole_held))
+                whole_face.deltas = None
 
             def person_face():
                 """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by the
@@ -612,6 +619,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 del packed
                 generic_full.update(dict.fromkeys(held, face.deltas))
                 avatar_face_deltas = _shape_deltas(face, names, view=True)
+            if whole_packed is not None:
+                whole_face.deltas = whole_packed.expand()
+                del whole_packed
+                generic_full.update(dict.fromkeys(whole_held, whole_face.deltas))
             adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
             for m in others:
                 sub = _shape_deltas(m, names)
