@@ -541,7 +541,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         f = corr.face
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights, mu_used = retarget_weights(face.deltas[:, f], mb_face, mu=mu, return_mu=True)
+        weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f)
         del mb_face                                                       # [J, face, 3]: not used again
         report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
                               "weight_max": float(weights.max()) if weights.size else 0.0}
