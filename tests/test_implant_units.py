@@ -201,6 +201,30 @@ def test_the_field_written_over_the_person_array_is_the_same_result():
         extend_personalization(pts, tri, generic, person, weight, length=0.05, out=person[:1])
 
 
+def test_the_field_from_packed_generic_offsets_and_a_late_person_array_is_the_same_result():
+    """The pipeline's memory savings: the generic offsets as :class:`usdface.memory.Float32Offsets` and the
+    person's array formed by a callable after the factorization, written over (``overwrite``), give the
+    fresh result to the last bit."""
+    from usdface.memory import Float32Offsets
+    from usdface.transfer.implant import extend_personalization
+
+    pts, tri = _sheet(21)
+    rng = np.random.default_rng(4)
+    moving = pts[:, 0] < 0.07
+    authored = np.zeros((3, len(pts), 3), dtype=np.float32)
+    authored[:, moving] = 0.3 * rng.normal(size=(3, int(moving.sum()), 3))
+    linear = 0.01 * np.eye(3)
+    generic = np.stack([a.astype(np.float64) @ linear.T for a in authored])
+    weight = (pts[:, 0] < 0.04).astype(float)
+    person = 1.1 * generic + 1e-4 * rng.normal(size=generic.shape)
+    fresh, field = extend_personalization(pts, tri, generic, person, weight, length=0.05, band=0.01)
+    packed = Float32Offsets.pack(generic, linear)
+    written, packed_field = extend_personalization(pts, tri, packed, lambda: person.copy(), weight,
+                                                   length=0.05, band=0.01, overwrite=True)
+    np.testing.assert_array_equal(written, fresh)
+    np.testing.assert_array_equal(packed_field.phi, field.phi)
+
+
 def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
     """Per shape: the jaw shape moves the mesh's lower part rigidly (``rigid_shapes`` True), the tongue's own
     shape bends it (False). Following a field that differs between the head vertices nearest to the mesh,

@@ -79,6 +79,24 @@ def test_register_face_no_overlap_raises_with_residual():
         register_face(blob, shapes, pts, shapes)
 
 
+def test_retarget_weights_on_rows_sums_the_same_products_in_blocks(monkeypatch):
+    """``rows=`` (the pipeline's face region, never copied out of the avatar's offsets) gives the weights of
+    the copied rows, in several blocks, bool mask or indices, and the same chosen ``mu``."""
+    from usdface.transfer import retarget
+
+    rng = np.random.default_rng(2)
+    basis = rng.normal(size=(6, 50, 3))
+    rows = rng.random(50) < 0.6
+    targets = np.einsum("jk,knc->jnc", rng.normal(size=(4, 6)), basis[:, rows]) + 0.01 * rng.normal(
+        size=(4, int(rows.sum()), 3))
+    monkeypatch.setattr(retarget, "ROW_BLOCK", 7)
+    copied, mu = retarget_weights(basis[:, rows], targets, return_mu=True)
+    for r in (rows, np.flatnonzero(rows)):
+        blocked, mu_rows = retarget_weights(basis, targets, return_mu=True, rows=r)
+        np.testing.assert_allclose(blocked, copied, rtol=1e-10, atol=1e-12)
+        assert mu_rows == pytest.approx(mu, rel=1e-9)
+
+
 def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
     rng = np.random.default_rng(2)
     basis = rng.normal(size=(6, 200, 3))

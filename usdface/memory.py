@@ -14,6 +14,8 @@ import ctypes
 import ctypes.util
 import functools
 
+import numpy as np
+
 
 @functools.cache
 def _malloc_trim():
@@ -31,3 +33,94 @@ def release_free_memory() -> bool:
     """Give the allocator's free heap pages back to the OS (glibc ``malloc_trim(0)``); True when it did."""
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
+
+
+class Float32Offsets:
+    """Offsets ``[K,n,3]`` float64 held as float32 ``authored[K,n,3]`` and one linear map ``linear[3,3]``,
+    expanded shape by shape as ``authored[k] @ linear.T``: the reader's own conversion of a USD file's float32
+    offsets to internal metres (a cm-to-m scale, an up-axis rotation), so half the memory of the float64
+    array and the same values to the last bit (:meth:`pack` checks every shape; when it cannot hold them
+    exactly it returns None). ``self[k]``, ``self[lo:hi]`` and :meth:`expand` give float64 arrays.
+
+    Examples
+    --------
+    >>> d = np.float32([[[1.5, -2.0, 0.25]]]).astype(np.float64) @ (0.01 * np.eye(3)).T
+    >>> packed = Float32Offsets.pack(d, 0.01 * np.eye(3))
+    >>> bool(np.array_equal(packed.expand(), d)), packed.shape
+    (True, (1, 1, 3))
+    """
+
+    def __init__(self, authored, linear):
+        self.authored = authored
+        self.linear = np.asarray(linear, dtype=np.float64)
+        self.peak = None                             # [n] the largest offset of each vertex (from pack)
+        # a scaled axis permutation (a snapped cm/up-axis map): one product per coordinate, no matrix
+        # product (the same values: the other terms are exact zeros; :meth:`pack` checks them anyway)
+        nonzero = self.linear != 0.0
+        self._axes = (np.argmax(nonzero, axis=1) if (nonzero.sum(axis=1) == 1).all()
+                      and (nonzero.sum(axis=0) == 1).all() else None)
+
+    @classmethod
+    def pack(cls, deltas, linear) -> Float32Offsets | None:
+        """``deltas[K,n,3]`` (float64) as float32 authored values, or None where one shape's values are not
+        exactly ``float32 @ linear.T`` (offsets not read from float32, a singular map)."""
+        d = np.asarray(deltas)
+        lin = np.asarray(linear, dtype=np.float64)
+        if d.dtype != np.float64 or d.ndim != 3 or d.shape[-1] != 3 or abs(np.linalg.det(lin)) < 1e-300:
+            return None
+        inverse = np.linalg.inv(lin).T
+        out = cls(np.empty(d.shape, dtype=np.float32), lin)
+        square = np.zeros(d.shape[1])
+        for k in range(len(d)):
+            out.authored[k] = d[k] @ inverse
+            if not np.array_equal(out[k], d[k]):
+                return None
+            np.maximum(square, np.einsum("nc,nc->n", d[k], d[k]), out=square)
+        out.peak = np.sqrt(square)
+        return out
+
+    def peak_motion(self) -> np.ndarray:
+        """``[n]`` the largest offset of each vertex over the shapes (:func:`usdface.motion.peak_motion`)."""
+        if self.peak is None:
+            square = np.zeros(self.shape[1])
+            for k in range(len(self)):
+                d = self[k]
+                np.maximum(square, np.einsum("nc,nc->n", d, d), out=square)
+            self.peak = np.sqrt(square)
+        return self.peak
+
+    @property
+    def shape(self) -> tuple:
+        return self.authored.shape
+
+    @property
+    def dtype(self):
+        return np.dtype(np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.authored.nbytes)
+
+    def __len__(self) -> int:
+        return len(self.authored)
+
+    def __getitem__(self, shapes) -> np.ndarray:
+        """Float64 offsets of one shape ``[n,3]`` or of a slice of shapes ``[k,n,3]``."""
+        a = self.authored[shapes]
+        if a.ndim == 2:
+            return self._expand(a)
+        out = np.empty(a.shape)
+        for k in range(len(a)):                      # shape by shape: no copy of them all
+            out[k] = self._expand(a[k])
+        return out
+
+    def _expand(self, a) -> np.ndarray:
+        """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``."""
+        if self._axes is not None:
+            scale = self.linear[np.arange(3), self._axes]
+            return (a if (self._axes == np.arange(3)).all() else a[:, self._axes]) * scale
+        return a.astype(np.float64) @ self.linear.T
+
+    def expand(self) -> np.ndarray:
+        """The float64 ``[K,n,3]`` array."""
+        return self[:]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..memory import Float32Offsets, release_free_memory
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
@@ -38,7 +39,9 @@ from .motion_field import (
 )
 
 #: Shapes handled at once in the field extension (bounds the memory to SHAPE_CHUNK x vertices x 9 doubles).
-SHAPE_CHUNK = 4
+#: One: the smallest working set (244 MB less at the peak of a 225k-vertex head than 4) and no more CPU (the
+#: smoothing reads only the columns the one shape moves; the solves cost per right-hand side).
+SHAPE_CHUNK = 1
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
@@ -163,7 +166,7 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
                            band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
-                           out=None, shrink: bool = True):
+                           out=None, overwrite: bool = False, shrink: bool = True):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -182,15 +185,21 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     ``keep_at[q,3]`` (the other meshes' points; None: every vertex of the moving part), so a production head
     does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]``
     array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
-    written): one ``[J,m,3]`` array fewer.
+    written): one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same).
+
+    Memory (a production head's peak is here): ``generic`` may be a :class:`usdface.memory.Float32Offsets`
+    (read shape by shape, half the bytes) and ``person`` a callable that returns the array, called once the
+    extension is factorized (the factorization's working memory and the ``[J,m,3]`` array are never
+    resident together).
     """
-    g = np.asarray(generic, dtype=np.float64)
-    p = np.asarray(person, dtype=np.float64)
+    g = generic if isinstance(generic, Float32Offsets) else np.asarray(generic, dtype=np.float64)
     w0 = np.clip(np.asarray(face_weight, dtype=np.float64), 0.0, 1.0)
     n_shapes, m = g.shape[:2]
     # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
     # motion, and so the result, is 0 whatever the field
-    domain = np.flatnonzero(moving_vertices(peak_motion(g), points) | (w0 > 0))
+    peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
+    domain = np.flatnonzero(moving_vertices(peak, points) | (w0 > 0))
+    del peak
     local = np.full(m, -1)
     local[domain] = np.arange(domain.size)
     tri = np.asarray(triangles)
@@ -198,6 +207,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     x = np.asarray(points, dtype=np.float64)[domain]
     known = w0[domain] >= 1.0 - 1e-9
     ext = FieldExtension(x, sub_tri, known, length=length)
+    release_free_memory()                            # the factorization's working memory
     if smoothing and len(sub_tri):
         from ..mesh import mean_edge_length
 
@@ -210,8 +220,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
         kept = np.unique(cKDTree(x).query(q)[1]) if len(q) else np.zeros(0, dtype=np.int64)
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
-    if out is None:
-        result = np.zeros_like(g)
+    if overwrite:
+        result = None                                # the person's array, formed below
+    elif out is None:
+        result = np.zeros(g.shape)
     else:
         if out.shape != g.shape or out.dtype != np.float64:
             raise ValueError(f"out must be float64 {g.shape}, not {out.dtype} {out.shape}")
@@ -231,6 +243,12 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     shrunk = rows[toward[rows] > 0]                             # the rows whose field is shrunk
     patch = sp.csr_matrix(smoother)[np.flatnonzero(toward[rows] > 0)] if shrunk.size else None
     patch_size = np.asarray(patch.sum(axis=1)).ravel() if shrunk.size else None
+    release_free_memory()                            # its construction's products
+    # the person's array last: the factorization's and the smoother's working memory are gone by then
+    p = np.asarray(person() if callable(person) else person, dtype=np.float64)
+    if overwrite:
+        result = out = p
+    skin = np.zeros((n_shapes, kept.size, 3), dtype=np.float32)   # the generic motion where the field is kept
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
@@ -262,13 +280,16 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
         del flat
         field[js] = f[:, kept]
+        skin[js] = gd[:, kept]
         outside = apply_field(gd, f)
         result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
+        del gd, pd, f, outside
+        release_free_memory()                                     # the chunk's arrays: the heap stays flat
     if out is not None:                                           # elsewhere 0, as a fresh result
         rest = np.ones(m, dtype=bool)
         rest[domain] = False
         result[:, rest] = 0.0
-    return result, FieldOnMesh(x[kept], field, rings, generic=g[:, domain[kept]].astype(np.float32))
+    return result, FieldOnMesh(x[kept], field, rings, generic=skin)
 
 
 class FieldOnMesh:

@@ -85,8 +85,10 @@ def neighbourhood_matrix(triangles, n: int, rings: int, rows=None) -> sp.csr_mat
     (one byte a value): a 9-ring neighbourhood of a 225k-vertex head holds 16M entries."""
     adj = (vertex_adjacency(triangles, n) + sp.eye(n)).astype(bool).tocsr()
     out = adj if rows is None else adj[np.asarray(rows, dtype=np.int64)]
-    for _ in range(rings - 1):
-        out = (out @ adj).tocsr()                  # boolean product: or of ands
+    ring = out                                     # the vertices first reached at the last step (and more)
+    for _ in range(rings - 1):                     # grown from the outer ring only: rows x rings, not rings^2
+        ring = (ring @ adj).tocsr() > out          # boolean product (or of ands), minus what is reached
+        out = (out + ring).tocsr()
     return out
 
 
@@ -113,9 +115,12 @@ def smooth_field(phi, weights, triangles, *, rings: int = 2, neighbourhood=None,
     cols = np.flatnonzero((w > 0).any(axis=0))                  # the other columns of w phi and w are 0
     s = sp.csc_matrix(s)[:, cols]
     wc = w[:, cols]
-    num = s @ (wc[..., None] * phi[:, cols].reshape(n_shapes, cols.size, 9)).transpose(1, 0, 2).reshape(
-        cols.size, n_shapes * 9)                                                               # [r, J*9]
-    den = s @ wc.T                                                                             # [r, J]
+    both = np.empty((cols.size, n_shapes * 10))             # one product for the sums and the weights
+    both[:, :n_shapes * 9] = (wc[..., None] * phi[:, cols].reshape(n_shapes, cols.size, 9)).transpose(
+        1, 0, 2).reshape(cols.size, n_shapes * 9)
+    both[:, n_shapes * 9:] = wc.T
+    both = s @ both
+    num, den = both[:, :n_shapes * 9], both[:, n_shapes * 9:]                       # [r, J*9], [r, J]
     out = num.reshape(r, n_shapes, 9) / np.maximum(den, 1e-300)[..., None]
     out[den <= 1e-12] = 0.0
     out = out.transpose(1, 0, 2).reshape(n_shapes, r, 3, 3)

@@ -140,6 +140,24 @@ def _shape_deltas(rig: FaceRig, names: list[str], *, view: bool = False) -> np.n
     return out
 
 
+#: Face offsets from this size on are held packed during the field (a head of about 80k vertices and
+#: more; below, the packing's passes over them cost more than the memory is worth).
+PACK_BYTES = 100 * 2 ** 20
+
+
+def _packed_generic(rig: FaceRig, names: list[str]):
+    """``rig.deltas`` as :class:`usdface.memory.Float32Offsets` (the authored float32 offsets and the reader's
+    conversion, the same values to the last bit) when ``names`` are the rig's own shapes in its order, the
+    rig was read from a file and its offsets take ``PACK_BYTES`` or more; else None (keep the float64
+    array)."""
+    from ..memory import Float32Offsets
+
+    if (rig.source is None or list(names) != list(rig.names) or rig.deltas.dtype != np.float64
+            or rig.deltas.nbytes < PACK_BYTES):
+        return None
+    return Float32Offsets.pack(rig.deltas, rig.source.to_internal[:3, :3])
+
+
 #: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
 SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
 
@@ -509,6 +527,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, placed_by)
             g_av, _ = avatar_shapes_on_capture(corr.registered, face.neutral, face.triangles,
                                                avatar_face_deltas, poses=poses)
+            del poses                              # not needed after this: three [m,3] pairs fewer
             generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
         timings["correspond"] = time.perf_counter() - t
         advance("correspond")
@@ -542,7 +561,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         f = corr.face
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights, mu_used = retarget_weights(face.deltas[:, f], mb_face, mu=mu, return_mu=True)
+        weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f)
         del mb_face                                                       # [J, face, 3]: not used again
         report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
                               "weight_max": float(weights.max()) if weights.size else 0.0}
@@ -569,12 +588,6 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             # incompatible with the person's and the template's): no personalization from them
             outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
             report["correspondence"]["mapping_outliers"] = int(outliers.sum())
-            person_face = avatar_face_deltas.copy()
-            change = face_personalization(corr, capture.triangles, person_deltas, prior_av, f,
-                                          support=support, outliers=outliers)
-            change *= conf[:, None, None]                                   # in place: [J, face, 3] once
-            person_face[:, f] += change
-            del change
             weight = corr.weight if corr.weight is not None else corr.face.astype(float)
             # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
             # lip on the other side), the capture is not trusted: the field from the neighbours fills in
@@ -587,13 +600,49 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
+            # during the field (the run's peak) the face's generic offsets are held as the authored float32
+            # and the reader's conversion (the same values to the last bit), the float64 array let go
+            packed = _packed_generic(face, names)
+            held = [k for k, v in generic_full.items() if v is face.deltas]
+            if packed is not None:
+                generic_full.update(dict.fromkeys(held))
+                face.deltas = avatar_face_deltas = None
+            # and those of the whole face mesh when it was split (reached + beyond): used only after the field
+            whole_packed = _packed_generic(whole_face, whole_face.names) if whole_face is not face else None
+            whole_held = [k for k, v in generic_full.items() if v is whole_face.deltas]
+            if whole_packed is not None:
+                generic_full.update(dict.fromkeys(whole_held))
+                whole_face.deltas = None
+
+            def person_face():
+                """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by the
+                field once its extension is factorized (:func:`extend_personalization`)."""
+                out = packed.expand() if packed is not None else avatar_face_deltas.copy()
+                for lo in range(0, len(names), 8):
+                    js = slice(lo, lo + 8)
+                    change = face_personalization(corr, capture.triangles, person_deltas[js], prior_av[js], f,
+                                                  support=support, outliers=outliers[js])
+                    change *= conf[js, None, None]
+                    out[js, f] += change
+                return out
+
             release_free_memory()                  # the read's and the fit's freed blocks, before the peak
             # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
-            result, pfield = extend_personalization(face.neutral, face.triangles, avatar_face_deltas,
+            result, pfield = extend_personalization(face.neutral, face.triangles,
+                                                   avatar_face_deltas if packed is None else packed,
                                                    person_face, weight, length=length,
                                                    band=SEAM_BAND * radius, smoothing=smoothing,
-                                                   keep_at=keep_at, out=person_face)
-            del person_face
+                                                   keep_at=keep_at, overwrite=True)
+            release_free_memory()                  # the field's freed working memory
+            if packed is not None:                 # the float64 generic offsets again, as read
+                face.deltas = packed.expand()
+                del packed
+                generic_full.update(dict.fromkeys(held, face.deltas))
+                avatar_face_deltas = _shape_deltas(face, names, view=True)
+            if whole_packed is not None:
+                whole_face.deltas = whole_packed.expand()
+                del whole_packed
+                generic_full.update(dict.fromkeys(whole_held, whole_face.deltas))
             adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
             for m in others:
                 sub = _shape_deltas(m, names)

@@ -17,6 +17,10 @@ import numpy as np
 __all__ = ["retarget_weights", "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
+#: Vertices per block of :func:`retarget_weights`' products over ``rows``.
+ROW_BLOCK = 16384
+
+
 def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
               grid=None) -> float:
     """Generalized cross-validation (Golub, Heath & Wahba 1979) of the eq. (4) ridge weight, pooled over the
@@ -40,7 +44,7 @@ def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
     return best_mu
 
 
-def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False):
+def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None):
     """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i w_i^2`` for every j.
 
     Parameters
@@ -51,6 +55,9 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         unit- and resolution-free; ``"auto"`` (default) chooses it by generalized cross-validation over the
         face rows (:func:`choose_mu`), which bounds the weights where shapes are nearly collinear.
     return_mu : also return the relative ``mu`` used.
+    rows : optional vertex indices (or a bool mask) of ``avatar_deltas[K,n,3]`` that ``targets[J,m,3]`` are
+        on: the products are summed over blocks of those rows, never forming ``avatar_deltas[:, rows]`` (a
+        production head's face region: 180 MB); the same weights up to rounding.
 
     Returns
     -------
@@ -59,12 +66,23 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
     """
     d = np.asarray(avatar_deltas, dtype=np.float64)
     k = d.shape[0]
-    a = d.reshape(k, -1)  # [K, 3m]
-    t = np.asarray(targets, dtype=np.float64).reshape(-1, a.shape[1])  # [J, 3m]
     # BLAS products: personalize_avatar caps BLAS at one thread (a multi-threaded BLAS on a busy 2-core
     # machine took 1.9 s for this 51 x 20k Gram matrix at load 10; single-threaded it is ~2 ms)
-    gram = a @ a.T
-    rhs = a @ t.T  # [K, J]
+    if rows is None:
+        a = d.reshape(k, -1)  # [K, 3m]
+        t = np.asarray(targets, dtype=np.float64).reshape(-1, a.shape[1])  # [J, 3m]
+        gram = a @ a.T
+        rhs = a @ t.T  # [K, J]
+    else:
+        idx = np.asarray(rows)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.int64)
+        t3 = np.asarray(targets, dtype=np.float64)
+        t = t3.reshape(t3.shape[0], -1 if t3.shape[0] else 3 * idx.size)                  # [J, 3m]
+        gram, rhs = np.zeros((k, k)), np.zeros((k, len(t3)))
+        for lo in range(0, idx.size, ROW_BLOCK):
+            a = d[:, idx[lo:lo + ROW_BLOCK]].reshape(k, -1)
+            gram += a @ a.T
+            rhs += a @ t[:, 3 * lo:3 * (lo + ROW_BLOCK)].T
     if isinstance(mu, str):
         if mu != "auto":
             raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
@@ -72,8 +90,8 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         proj = vec.T @ rhs                                                   # [K,J]: U^T A t  (= s_i u_i^T t)
         # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
         inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None] * (ev > 1e-12 * ev.max())[:, None]))
-        residual = max(float(np.sum(t * t)) - inside, 0.0)
-        mu = choose_mu(ev, proj, residual, a.shape[1], k)
+        residual = max(float(np.einsum("jv,jv->", t, t)) - inside, 0.0)       # no [J, 3m] temporary
+        mu = choose_mu(ev, proj, residual, t.shape[1], k)
     lam = float(mu) * float(np.trace(gram)) / max(k, 1)
     w = np.linalg.solve(gram + lam * np.eye(k), rhs).T
     return (w, float(mu)) if return_mu else w
