@@ -102,6 +102,21 @@ class _EyeSurface:
         return c.astype(np.float64) + self.origin
 
 
+def _largest_share(surf, generic, personalized, bound, steps: int = 12):
+    """``[q,3]``: the point ``generic + t (personalized - generic)`` with the largest ``t`` in [0, 1] whose
+    signed distance from the eye (:class:`_EyeSurface`) is at least ``bound[q]`` (bisection; ``t = 0``, the
+    generic shape's position, meets it by definition): where neither step of :func:`repair_eyelids` reaches
+    the bound (a grazing corner of a non-star-shaped eye mesh), as much of the personalization as keeps the
+    lid off the eye, not all or nothing."""
+    lo, hi = np.zeros(len(generic)), np.ones(len(generic))
+    step = personalized - generic
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        ok = surf.signed_distance(generic + mid[:, None] * step) >= bound
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return generic + lo[:, None] * step
+
+
 def _signed_distance(points, triangles, queries):
     """Signed distance (m, negative inside) and closest points from ``queries[q,3]`` to a closed mesh."""
     surf = _EyeSurface(points, triangles)
@@ -129,8 +144,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
 
     A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
     on the eye mesh to the bound (then radially from the eyeball's centre; with ``reference``, where that does
-    not reach the bound either, back to the generic shape's position). Returns ``(repaired shapes[J,n,3],
-    number of repaired vertex-shape pairs)``.
+    not reach the bound either, the largest share of its personalization that does: :func:`_largest_share`).
+    Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
 
     Distance queries are limited to (shape, vertex) pairs within the eye's bounding sphere plus ``clearance``;
     one raycasting scene per eye.
@@ -178,6 +193,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         if not bad.any():
             continue
         js, ks, q, d, required = js[bad], ks[bad], q[bad], d[bad], required[bad]
+        start = q.copy()                                   # the personalized positions
         # first onto the bound along the line to the closest point, then - since a step off one part of a
         # non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
         # along which the distance to a star-shaped eye grows, until the bound holds
@@ -194,10 +210,10 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                 break
             q[short] += radial[short] * (required[short] - d[short])[:, None]
         if ref_all is not None:
-            # where neither step reaches the bound (a grazing corner of a non-star-shaped eye mesh), the
-            # generic shape's position, which meets it by definition
             d = surf.signed_distance(q)
-            short = d < required - tolerance
-            q[short] = x0[near[ks[short]]] + ref_all[js[short], near[ks[short]]]
+            short = np.flatnonzero(d < required - tolerance)
+            if short.size:
+                q[short] = _largest_share(surf, x0[near[ks[short]]] + ref_all[js[short], near[ks[short]]],
+                                          start[short], required[short] - tolerance)
         out[js, near[ks]] = q - x0[near[ks]]
     return out, count
