@@ -3,8 +3,9 @@
 Run:  python benchmarks/bench_personalize.py [--cases sample,dev1,dev2,dev3] [--repeats 3] [--variants]
 
 A case is a bench case (``dev1``), ``sample``, a folder written by ``usdface sample``, or ``artist:SEED`` /
-``generic:SEED``: generated here (``usdface sample --template artist --seed SEED``) into a temporary folder,
-removed at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whose template is another
+``generic:SEED`` / ``noisy:SEED``: generated here (``usdface sample --template artist --seed SEED``; noisy:
+the same with ``--scan-noise 0.15 --weight-noise 0.03``, dev2's regime) into a temporary folder, removed
+at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whose template is another
 artist's rig without ``../shared``. The time table is for the bench cases only.
 
 Prints two tables:
@@ -45,7 +46,7 @@ _MADE: dict[str, Path] = {}
 def _generated(case: str) -> bool:
     """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``), or
     ``artist:SEED`` / ``generic:SEED`` (generated here, once per run, into a temporary folder)?"""
-    if case.split(":")[0] in ("artist", "generic") and case.split(":")[-1].isdigit():
+    if case.split(":")[0] in ("artist", "generic", "noisy") and case.split(":")[-1].isdigit():
         return True
     return (Path(case) / "truth" / "meta.json").is_file() and (Path(case) / "avatar.usda").is_file()
 
@@ -57,13 +58,17 @@ def _folder(case: str) -> Path:
     if case not in _MADE:
         from usdface.sample import generate_samples
 
-        template, seed = case.split(":")
+        kind, seed = case.split(":")
+        # noisy: the artist template in dev2's scan regime (scan noise 0.15 mm, phone weights +- 0.03)
+        noise = {"scan_noise_m": 1.5e-4, "weight_noise": 0.03} if kind == "noisy" else {}
+        template = "artist" if kind == "noisy" else kind
         import atexit
         import shutil
 
         tmp = tempfile.mkdtemp(prefix="usdface-bench-")
         atexit.register(shutil.rmtree, tmp, ignore_errors=True)
-        _MADE[case] = generate_samples(Path(tmp) / f"{template}{seed}", seed=int(seed), template=template)
+        _MADE[case] = generate_samples(Path(tmp) / f"{kind}{seed}", seed=int(seed), template=template,
+                                       **noise)
     return _MADE[case]
 
 

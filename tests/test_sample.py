@@ -94,6 +94,22 @@ def test_artist_template_is_another_rig_for_the_same_person():
         build_samples(0, "other")
 
 
+def test_noise_options_change_only_the_frames_and_the_reported_weights():
+    """``--scan-noise`` / ``--weight-noise``: the same person, truth and template; the frames and the phone's
+    weights deviate from the noise-free ones by the asked amounts; meta.json records them."""
+    base, noisy = build_samples(3), build_samples(3, scan_noise_m=1.5e-4, weight_noise=0.03)
+    for key in ("neutral", "deltas", "template_deltas", "test_weights"):
+        np.testing.assert_array_equal(base["capture_truth"][key], noisy["capture_truth"][key])
+    clean = build_samples(3, scan_noise_m=0.0, weight_noise=0.0)
+    scan = noisy["capture"].frames.points - clean["capture"].frames.points
+    assert 1.3e-4 < np.std(scan) < 1.7e-4
+    reported = noisy["capture"].frames.weights - clean["capture"].frames.weights
+    assert 0.005 < np.std(reported) < 0.04            # clipped to [0, 1]: less than 0.03 where a weight is 0
+    assert noisy["meta"]["noise"] == {"scan_m": 1.5e-4, "weights": 0.03}
+    with pytest.raises(ValueError, match=">= 0"):
+        build_samples(0, scan_noise_m=-1.0)
+
+
 def test_capture_topology_like_arkit(capture):
     n, t = len(capture.neutral), len(capture.triangles)
     assert 1100 <= n <= 1300 and 2000 <= t <= 2500

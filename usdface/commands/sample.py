@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .options import add_quiet
+from .options import add_quiet, nonnegative_float
 
 
 def register(subparsers) -> None:
@@ -22,6 +22,10 @@ def register(subparsers) -> None:
                         help="the capture's template rig: the avatar's own generic shapes (default, the "
                              "committed sample) or another artist's rig, further from the person than the "
                              "avatar's shapes, as real phone apps ship (the bench's dev3 regime)")
+    parser.add_argument("--scan-noise", type=nonnegative_float, metavar="MM", default=None,
+                        help="the frames' scan noise, mm per coordinate (default 0.1; dev2's regime ~0.15)")
+    parser.add_argument("--weight-noise", type=nonnegative_float, metavar="STD", default=None,
+                        help="the phone weights' noise (default 0.01; dev2's scan regime ~0.03)")
     parser.add_argument("--picture", metavar="PNG", help="also draw the avatar and capture into this PNG")
     parser.add_argument("--json", action="store_true", help="print what was written as JSON")
     add_quiet(parser)
@@ -35,7 +39,9 @@ def run(args) -> int:
     from ..sample import generate_samples
 
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
-                           template=args.template)
+                           template=args.template,
+                           scan_noise_m=None if args.scan_noise is None else args.scan_noise * 1e-3,
+                           weight_noise=args.weight_noise)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     if args.json:
@@ -48,7 +54,9 @@ def run(args) -> int:
         from ..sample import build_samples
         from ..sample.picture import render_sample_picture
 
-        data = build_samples(args.seed, args.template)
+        data = build_samples(args.seed, args.template,
+                             scan_noise_m=None if args.scan_noise is None else args.scan_noise * 1e-3,
+                             weight_noise=args.weight_noise)
         cap = data["capture"]
         print(f"wrote {render_sample_picture(data['rigs'], cap.neutral, cap.triangles, args.picture)}")
     return 0

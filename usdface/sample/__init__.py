@@ -80,11 +80,18 @@ def artist_fields(generic: dict[str, list[dict]], seed: int) -> dict[str, list[d
     return out
 
 
-def build_samples(seed: int = 0, template: str = "generic") -> dict:
+def build_samples(seed: int = 0, template: str = "generic", *, scan_noise_m: float | None = None,
+                  weight_noise: float | None = None) -> dict:
     """Every array of the sample case, in memory (no files). Keys documented in :func:`generate_samples`;
-    ``template``: one of :data:`TEMPLATES`."""
+    ``template``: one of :data:`TEMPLATES`; ``scan_noise_m`` (m per coordinate) and ``weight_noise`` (std of
+    the phone's weights): None keeps :class:`SampleParams`' (the committed sample's 0.1 mm and 0.01; dev2's
+    scan regime is about 0.15 mm and 0.03)."""
     if template not in TEMPLATES:
         raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
+    scan_noise = SampleParams.scan_noise_m if scan_noise_m is None else float(scan_noise_m)
+    weight_sigma = SampleParams.weight_noise if weight_noise is None else float(weight_noise)
+    if not (scan_noise >= 0 and weight_sigma >= 0):
+        raise ValueError("scan_noise_m and weight_noise must be >= 0")
     rng = np.random.default_rng(seed)
     sp = SampleParams
     names = list(ARKIT_NAMES)
@@ -117,9 +124,9 @@ def build_samples(seed: int = 0, template: str = "generic") -> dict:
     w_train = P.training_weights(rng)
     test_labels, w_test = P.test_weights(rng)
     w_true = np.concatenate([w_train, w_test])
-    w_reported = P.reported_weights(rng, w_true, sp.weight_noise)
+    w_reported = P.reported_weights(rng, w_true, weight_sigma)
     frames = person_neutral + np.einsum("fk,knc->fnc", w_true, true_deltas)
-    frames = np.round(frames + sp.scan_noise_m * rng.standard_normal(frames.shape), dec)
+    frames = np.round(frames + scan_noise * rng.standard_normal(frames.shape), dec)
     roles = ["train"] * len(w_train) + ["test"] * len(w_test)
     labels = [f"{j:03d}_{n}" for j, n in enumerate(names)] + [f"{i:03d}" for i in range(len(w_test))]
     tris = mask.triangles
@@ -165,7 +172,7 @@ def build_samples(seed: int = 0, template: str = "generic") -> dict:
             "formula": "x_capture_m = R @ (x_avatar_cm - head_center_cm - origin_cm) / 100",
             "head_center_cm": H.AVATAR_CENTER.tolist(), "origin_cm": sp.capture_origin_cm.tolist(),
             "R": np.round(R, 12).tolist(), "tilt_about_x_deg": sp.capture_tilt_deg},
-        "noise": {"scan_m": sp.scan_noise_m, "weights": sp.weight_noise},
+        "noise": {"scan_m": scan_noise, "weights": weight_sigma},
         "identity": {"template": template_id, "person": person_id},
     }
     if template != "generic":      # the committed sample's meta.json stays byte-identical
@@ -213,13 +220,15 @@ def _readme(meta: dict) -> str:
 
 
 def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = False,
-                     template: str = "generic") -> Path:
+                     template: str = "generic", *, scan_noise_m: float | None = None,
+                     weight_noise: float | None = None) -> Path:
     """Generate the sample assets into ``outdir`` (see the module docstring); returns ``outdir``.
 
     Always writes ``README.txt``, ``avatar.usda``, ``capture.usda`` and ``truth/``; with ``folder=True`` also
     the raw capture folder ``capture/`` (the committed ``sample_assets/`` leaves it out to stay small). Every
     other file is the same with or without it. Deterministic: the same ``seed`` gives the same bytes.
-    ``template="artist"``: the capture's template rig is another artist's (:func:`artist_fields`).
+    ``template="artist"``: the capture's template rig is another artist's (:func:`artist_fields`);
+    ``scan_noise_m``, ``weight_noise``: the frames' noise (:func:`build_samples`).
     Everything is assembled in a temporary folder next to ``outdir`` and renamed into place
     (:func:`usdface.io.atomic.replace_dir_atomically`); an existing non-empty ``outdir`` is refused unless
     ``force`` (OutputExistsError).
@@ -232,10 +241,12 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
 
     if template not in TEMPLATES:
         raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
+    if not ((scan_noise_m is None or scan_noise_m >= 0) and (weight_noise is None or weight_noise >= 0)):
+        raise ValueError("scan_noise_m and weight_noise must be >= 0")
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
     with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
         p.start("build avatar and capture")
-        data = build_samples(seed, template)
+        data = build_samples(seed, template, scan_noise_m=scan_noise_m, weight_noise=weight_noise)
         (tmp / "README.txt").write_text(_readme(data["meta"]))
         p.start("write avatar.usda")
         write_rig_usd(data["rigs"], tmp / "avatar.usda", up_axis="Y", meters_per_unit=0.01, root="/Avatar")
