@@ -84,6 +84,14 @@ SIGNIFICANT = 0.1
 OUTLIER_FILL_EDGES = 1.0
 
 
+def _same_motion(a, b, na, nb, max_angle_deg: float, max_ratio: float) -> np.ndarray:
+    """``[J,n]`` bool: the motions ``a``, ``b`` (``[J,n,3]``, lengths ``na``, ``nb``) are one motion by the
+    person model: directions within ``max_angle_deg``, lengths within ``max_ratio`` of each other."""
+    cos = np.einsum("jnc,jnc->jn", a, b) / np.maximum(na * nb, 1e-300)
+    ratio = np.maximum(na, nb) / np.maximum(np.minimum(na, nb), 1e-300)
+    return (cos >= np.cos(np.radians(max_angle_deg))) & (ratio <= max_ratio)
+
+
 def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_deg: float = MAX_ANGLE_DEG,
                      max_ratio: float = MAX_RATIO, significant: float = SIGNIFICANT, triangles=None,
                      rings: int = 1) -> np.ndarray:
@@ -108,10 +116,8 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     t = np.asarray(template_deltas, dtype=np.float64)
     nb, npr = shape_norms(b), shape_norms(p)
     peak = np.maximum(nb.max(axis=1, keepdims=True), npr.max(axis=1, keepdims=True))
-    cos = np.einsum("jnc,jnc->jn", b, p) / np.maximum(nb * npr, 1e-300)
-    ratio = np.maximum(nb, npr) / np.maximum(np.minimum(nb, npr), 1e-300)
     incompatible = ((np.maximum(nb, npr) > significant * peak)
-                    & ((cos < np.cos(np.radians(max_angle_deg))) | (ratio > max_ratio)))
+                    & ~_same_motion(b, p, nb, npr, max_angle_deg, max_ratio))
     odd = (np.minimum(shape_norms(p - b), shape_norms(p - t))
            > np.maximum(shape_norms(b - t), significant * peak))
     out = incompatible & odd
@@ -316,10 +322,6 @@ class FieldOnMesh:
 
         return cKDTree(self.points).query(np.asarray(queries, dtype=np.float64))[1]
 
-    def at(self, queries) -> np.ndarray:
-        """``phi[J,q,3,3]`` at the nearest field vertex of each query point ``[q,3]``."""
-        return self.phi[:, self.nearest(queries)].astype(np.float64)
-
 
 def rigid_shapes(points, deltas, *, tolerance: float = 0.1) -> np.ndarray:
     """``[K]`` bool: the shapes that move the mesh ``points[m,3]`` (``deltas[K,m,3]``) as one affine body:
@@ -353,9 +355,7 @@ def attached_shapes(deltas, skin, *, max_angle_deg: float = MAX_ANGLE_DEG, max_r
     d = np.asarray(deltas, dtype=np.float64)
     h = np.asarray(skin, dtype=np.float64)
     nd, nh = shape_norms(d), shape_norms(h)
-    cos = np.einsum("jkc,jkc->jk", d, h) / np.maximum(nd * nh, 1e-300)
-    ratio = np.maximum(nd, nh) / np.maximum(np.minimum(nd, nh), 1e-300)
-    agree = (cos >= np.cos(np.radians(max_angle_deg))) & (ratio <= max_ratio)
+    agree = _same_motion(d, h, nd, nh, max_angle_deg, max_ratio)
     w = nd * nd * (nd > significant * nd.max(axis=1, keepdims=True))
     return np.sum(w * agree, axis=1) >= 0.5 * np.maximum(np.sum(w, axis=1), 1e-300)
 
