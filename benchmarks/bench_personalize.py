@@ -45,7 +45,8 @@ _MADE: dict[str, Path] = {}
 
 def _generated(case: str) -> bool:
     """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``), or
-    ``artist:SEED`` / ``generic:SEED`` (generated here, once per run, into a temporary folder)?"""
+    ``artist:SEED`` / ``generic:SEED`` / ``noisy:SEED`` (generated here, once per run, into a temporary
+    folder)?"""
     if case.split(":")[0] in ("artist", "generic", "noisy") and case.split(":")[-1].isdigit():
         return True
     return (Path(case) / "truth" / "meta.json").is_file() and (Path(case) / "avatar.usda").is_file()
@@ -56,15 +57,15 @@ def _folder(case: str) -> Path:
     if ":" not in case:
         return Path(case)
     if case not in _MADE:
+        import atexit
+        import shutil
+
         from usdface.sample import generate_samples
 
         kind, seed = case.split(":")
         # noisy: the artist template in dev2's scan regime (scan noise 0.15 mm, phone weights +- 0.03)
         noise = {"scan_noise_m": 1.5e-4, "weight_noise": 0.03} if kind == "noisy" else {}
         template = "artist" if kind == "noisy" else kind
-        import atexit
-        import shutil
-
         tmp = tempfile.mkdtemp(prefix="usdface-bench-")
         atexit.register(shutil.rmtree, tmp, ignore_errors=True)
         _MADE[case] = generate_samples(Path(tmp) / f"{kind}{seed}", seed=int(seed), template=template,
@@ -80,17 +81,13 @@ def _case(case: str):
     from usdface.io.usd_rig import read_avatar
 
     if case == "sample" or _generated(case):
-        from usdface.transfer.surface import closest_points, mean_edge_length
+        from usdface.sample import covered_vertices
 
         d = ROOT / "sample_assets" if case == "sample" else _folder(case)
         avatar, capture = read_avatar(d / "avatar.usda"), read_capture(d / "capture.usda")
-        head = avatar.mesh("Head")
-        meta = json.loads((d / "truth" / "meta.json").read_text())["avatar_to_capture"]
-        x = (head.neutral / 0.01 - np.array(meta["head_center_cm"]) - np.array(meta["origin_cm"]))
-        x = x @ np.array(meta["R"]).T / 100
+        meta = json.loads((d / "truth" / "meta.json").read_text())
         ct = np.load(d / "truth" / "capture_truth.npz")
-        dist = closest_points(ct["neutral"], capture.triangles, x)[3]
-        covered = dist < 0.5 * mean_edge_length(ct["neutral"], capture.triangles)
+        covered = covered_vertices(avatar.mesh("Head").neutral, meta, ct["neutral"], capture.triangles)
         face = covered
     else:
         d = BENCH / case

@@ -17,19 +17,8 @@ from wfutil import run
 
 from usdface.io import read_capture
 from usdface.io.usd_rig import read_avatar
+from usdface.sample import covered_vertices
 from usdface.transfer.scoring import score_mesh
-from usdface.transfer.surface import closest_points, mean_edge_length
-
-
-def _covered(folder, head):
-    """Head vertices the capture covers: within half a capture edge of the person's true capture neutral."""
-    meta = json.loads((folder / "truth" / "meta.json").read_text())["avatar_to_capture"]
-    x = (head.neutral / 0.01 - np.array(meta["head_center_cm"]) - np.array(meta["origin_cm"]))
-    x = x @ np.array(meta["R"]).T / 100
-    ct = np.load(folder / "truth" / "capture_truth.npz")
-    capture = read_capture(folder / "capture.usda")
-    dist = closest_points(ct["neutral"], capture.triangles, x)[3]
-    return dist < 0.5 * mean_edge_length(ct["neutral"], capture.triangles)
 
 
 @pytest.mark.parametrize("seed", [1, 6])
@@ -48,7 +37,9 @@ def test_personalize_never_worse_than_generic_on_an_artist_template(tmp_path, se
         assert mine.names == mesh.names
         extra = {}
         if mesh.name == "Head":
-            covered = _covered(folder, mesh)
+            covered = covered_vertices(mesh.neutral, json.loads((folder / "truth" / "meta.json").read_text()),
+                                       np.load(folder / "truth" / "capture_truth.npz")["neutral"],
+                                       read_capture(folder / "capture.usda").triangles)
             extra = {"face": covered, "covered": covered, "triangles": mesh.triangles}
         sc = score_mesh(mesh.names, mesh.deltas, mine.deltas, truth, **extra)
         assert sc.whole_out <= sc.whole_generic, f"{mesh.name}: {sc.whole_out:.3f} mm > generic"

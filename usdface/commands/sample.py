@@ -38,10 +38,10 @@ def run(args) -> int:
 
     from ..sample import generate_samples
 
+    noise = {"scan_noise_m": None if args.scan_noise is None else args.scan_noise * 1e-3,
+             "weight_noise": args.weight_noise}
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
-                           template=args.template,
-                           scan_noise_m=None if args.scan_noise is None else args.scan_noise * 1e-3,
-                           weight_noise=args.weight_noise)
+                           template=args.template, **noise)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     if args.json:
@@ -54,9 +54,7 @@ def run(args) -> int:
         from ..sample import build_samples
         from ..sample.picture import render_sample_picture
 
-        data = build_samples(args.seed, args.template,
-                             scan_noise_m=None if args.scan_noise is None else args.scan_noise * 1e-3,
-                             weight_noise=args.weight_noise)
+        data = build_samples(args.seed, args.template, **noise)
         cap = data["capture"]
         print(f"wrote {render_sample_picture(data['rigs'], cap.neutral, cap.triangles, args.picture)}")
     return 0

@@ -37,7 +37,7 @@ from . import fields as F
 from . import head as H
 from . import performance as P
 
-__all__ = ["generate_samples", "SampleParams", "build_samples"]
+__all__ = ["generate_samples", "SampleParams", "build_samples", "artist_fields", "covered_vertices"]
 
 #: Format version of the generated assets (bump when the generator changes the bytes on purpose).
 SAMPLE_VERSION = 1
@@ -80,18 +80,37 @@ def artist_fields(generic: dict[str, list[dict]], seed: int) -> dict[str, list[d
     return out
 
 
+def _check_options(template: str, scan_noise_m, weight_noise) -> None:
+    """ValueError for a template not in :data:`TEMPLATES` or a negative noise (None: the default)."""
+    if template not in TEMPLATES:
+        raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
+    if not all(v is None or float(v) >= 0 for v in (scan_noise_m, weight_noise)):
+        raise ValueError("scan_noise_m and weight_noise must be >= 0")
+
+
+def covered_vertices(points, meta: dict, capture_points, capture_triangles) -> np.ndarray:
+    """``[n]`` bool: the avatar vertices ``points[n,3]`` (internal metres) that a generated case's capture
+    covers - within half a capture edge of the capture surface ``capture_points[c,3]``/``capture_triangles``
+    (metres) once taken into the capture frame by ``meta["avatar_to_capture"]`` (``truth/meta.json``). The
+    region the benchmark and the tests score the face and the seam on."""
+    from ..transfer.surface import closest_points, mean_edge_length
+
+    t = meta["avatar_to_capture"]
+    cm = np.asarray(points, dtype=np.float64) / 0.01
+    x = (cm - np.array(t["head_center_cm"]) - np.array(t["origin_cm"])) @ np.array(t["R"]).T / 100
+    dist = closest_points(capture_points, capture_triangles, x)[3]
+    return dist < 0.5 * mean_edge_length(capture_points, capture_triangles)
+
+
 def build_samples(seed: int = 0, template: str = "generic", *, scan_noise_m: float | None = None,
                   weight_noise: float | None = None) -> dict:
     """Every array of the sample case, in memory (no files). Keys documented in :func:`generate_samples`;
     ``template``: one of :data:`TEMPLATES`; ``scan_noise_m`` (m per coordinate) and ``weight_noise`` (std of
     the phone's weights): None keeps :class:`SampleParams`' (the committed sample's 0.1 mm and 0.01; dev2's
     scan regime is about 0.15 mm and 0.03)."""
-    if template not in TEMPLATES:
-        raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
+    _check_options(template, scan_noise_m, weight_noise)
     scan_noise = SampleParams.scan_noise_m if scan_noise_m is None else float(scan_noise_m)
     weight_sigma = SampleParams.weight_noise if weight_noise is None else float(weight_noise)
-    if not (scan_noise >= 0 and weight_sigma >= 0):
-        raise ValueError("scan_noise_m and weight_noise must be >= 0")
     rng = np.random.default_rng(seed)
     sp = SampleParams
     names = list(ARKIT_NAMES)
@@ -239,10 +258,7 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
     from ..io.usd_capture import write_capture_usd
     from ..progress import steps
 
-    if template not in TEMPLATES:
-        raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
-    if not ((scan_noise_m is None or scan_noise_m >= 0) and (weight_noise is None or weight_noise >= 0)):
-        raise ValueError("scan_noise_m and weight_noise must be >= 0")
+    _check_options(template, scan_noise_m, weight_noise)
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
     with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
         p.start("build avatar and capture")
