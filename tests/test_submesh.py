@@ -223,3 +223,35 @@ def test_merged_mesh_in_the_papers_mode_also_gives_the_head_alones_offsets(sampl
     np.testing.assert_allclose(approx[:, :n], np.asarray(alone.approximation["/Avatar/Head"]), rtol=0,
                                atol=1e-7)
     assert merged.face.shape == (n + 9600 + strip.size,) and not merged.face[n:].any()
+
+
+@pytest.mark.parametrize("merged", [False, True], ids=["head", "head-merged-with-a-body"])
+def test_packed_generic_offsets_give_the_same_offsets(samples, tmp_path, monkeypatch, merged):
+    """From ``PACK_BYTES`` on the face's generic offsets are held packed (float32 + the reader's conversion)
+    through the field and restored after it - on the face mesh, and on the whole face mesh when a body merged
+    into it was split off (reached + beyond). Forcing the packing on every size gives the same offsets to the
+    last bit, and leaves the avatar's generic offsets as read."""
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer import personalize_avatar, pipeline
+
+    path = _merged_avatar(samples, tmp_path)[0] if merged else samples / "avatar.usda"
+    capture = samples / "capture.usda"
+    plain = personalize_avatar(path, capture, None)
+    calls = []
+    real = pipeline._packed_generic
+
+    def packing(rig, names):
+        packed = real(rig, names)
+        calls.append(packed is not None)
+        return packed
+
+    monkeypatch.setattr(pipeline, "PACK_BYTES", 0)
+    monkeypatch.setattr(pipeline, "_packed_generic", packing)
+    avatar = read_avatar(path, moving_only=True)
+    generic = {m.key: m.deltas.copy() for m in avatar.meshes}
+    packed = personalize_avatar(avatar, capture, None)
+    assert calls.count(True) == (2 if merged else 1)       # the face (and the whole face mesh when split)
+    for key in plain.offsets:
+        np.testing.assert_array_equal(np.asarray(packed.offsets[key]), np.asarray(plain.offsets[key]))
+    for m in avatar.meshes:                                # the caller's avatar is given back as read
+        np.testing.assert_array_equal(m.deltas, generic[m.key])

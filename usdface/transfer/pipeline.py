@@ -145,6 +145,44 @@ def _shape_deltas(rig: FaceRig, names: list[str], *, view: bool = False) -> np.n
 PACK_BYTES = 100 * 2 ** 20
 
 
+class _HeldPacked:
+    """Context manager: inside the block, the generic offsets of each ``(rig, names)`` of ``parts`` that
+    :func:`_packed_generic` packs are held packed only - ``rig.deltas`` and the entries of ``generic_full``
+    that are that array are let go, so the float64 array is not alive at the run's peak - and on exit they are
+    the float64 array again (the same values to the last bit, :class:`usdface.memory.Float32Offsets`).
+    ``parts``' None entries are skipped. :meth:`packed` gives a part's packed offsets inside the block (None:
+    kept as float64); after the block nothing here refers to them."""
+
+    def __init__(self, generic_full: dict, parts):
+        self._generic_full = generic_full
+        self._parts = parts
+        self._held: list = []
+
+    def __enter__(self):
+        for part in self._parts:
+            rig, names = part if part is not None else (None, None)
+            packed = _packed_generic(rig, names) if rig is not None else None
+            keys = [k for k, v in self._generic_full.items() if packed is not None and v is rig.deltas]
+            if packed is not None:
+                self._generic_full.update(dict.fromkeys(keys))
+                rig.deltas = None
+            self._held.append((rig, packed, keys))
+        return self
+
+    def packed(self, i: int):
+        return self._held[i][1] if self._held else None
+
+    def __exit__(self, *exc):
+        held, self._held = self._held, []
+        while held:
+            rig, packed, keys = held.pop()
+            if packed is not None:
+                rig.deltas = packed.expand()
+                self._generic_full.update(dict.fromkeys(keys, rig.deltas))
+            del packed
+        return False
+
+
 def _packed_generic(rig: FaceRig, names: list[str]):
     """``rig.deltas`` as :class:`usdface.memory.Float32Offsets` (the authored float32 offsets and the reader's
     conversion, the same values to the last bit) when ``names`` are the rig's own shapes in its order, the
@@ -600,49 +638,38 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
             # the field is known at the capture's resolution: averaged over one placed capture edge
             smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
-            # during the field (the run's peak) the face's generic offsets are held as the authored float32
-            # and the reader's conversion (the same values to the last bit), the float64 array let go
-            packed = _packed_generic(face, names)
-            held = [k for k, v in generic_full.items() if v is face.deltas]
-            if packed is not None:
-                generic_full.update(dict.fromkeys(held))
-                face.deltas = avatar_face_deltas = None
-            # and those of the whole face mesh when it was split (reached + beyond): used only after the field
-            whole_packed = _packed_generic(whole_face, whole_face.names) if whole_face is not face else None
-            whole_held = [k for k, v in generic_full.items() if v is whole_face.deltas]
-            if whole_packed is not None:
-                generic_full.update(dict.fromkeys(whole_held))
-                whole_face.deltas = None
+            # during the field (the run's peak) the face's generic offsets - and those of the whole face
+            # mesh when it was split (reached + beyond), used only after the field - are held as the
+            # authored float32 and the reader's conversion (the same values to the last bit)
+            split = (whole_face, whole_face.names) if whole_face is not face else None
+            with _HeldPacked(generic_full, [(face, names), split]) as held:
+                if held.packed(0) is not None:
+                    avatar_face_deltas = None          # a view of the float64 array let go
 
-            def person_face():
-                """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by the
-                field once its extension is factorized (:func:`extend_personalization`)."""
-                out = packed.expand() if packed is not None else avatar_face_deltas.copy()
-                for lo in range(0, len(names), 8):
-                    js = slice(lo, lo + 8)
-                    change = face_personalization(corr, capture.triangles, person_deltas[js], prior_av[js], f,
-                                                  support=support, outliers=outliers[js])
-                    change *= conf[js, None, None]
-                    out[js, f] += change
-                return out
+                def person_face():
+                    """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by
+                    the field once its extension is factorized (:func:`extend_personalization`)."""
+                    packed = held.packed(0)
+                    out = packed.expand() if packed is not None else avatar_face_deltas.copy()
+                    for lo in range(0, len(names), 8):
+                        js = slice(lo, lo + 8)
+                        change = face_personalization(corr, capture.triangles, person_deltas[js],
+                                                      prior_av[js], f, support=support, outliers=outliers[js])
+                        change *= conf[js, None, None]
+                        out[js, f] += change
+                    return out
 
-            release_free_memory()                  # the read's and the fit's freed blocks, before the peak
-            # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
-            result, pfield = extend_personalization(face.neutral, face.triangles,
-                                                   avatar_face_deltas if packed is None else packed,
-                                                   person_face, weight, length=length,
-                                                   band=SEAM_BAND * radius, smoothing=smoothing,
-                                                   keep_at=keep_at, overwrite=True)
-            release_free_memory()                  # the field's freed working memory
-            if packed is not None:                 # the float64 generic offsets again, as read
-                face.deltas = packed.expand()
-                del packed
-                generic_full.update(dict.fromkeys(held, face.deltas))
+                release_free_memory()              # the read's and the fit's freed blocks, before the peak
+                # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
+                result, pfield = extend_personalization(face.neutral, face.triangles,
+                                                       held.packed(0) if avatar_face_deltas is None
+                                                       else avatar_face_deltas,
+                                                       person_face, weight, length=length,
+                                                       band=SEAM_BAND * radius, smoothing=smoothing,
+                                                       keep_at=keep_at, overwrite=True)
+                release_free_memory()              # the field's freed working memory
+            if avatar_face_deltas is None:         # the float64 generic offsets again, as read
                 avatar_face_deltas = _shape_deltas(face, names, view=True)
-            if whole_packed is not None:
-                whole_face.deltas = whole_packed.expand()
-                del whole_packed
-                generic_full.update(dict.fromkeys(whole_held, whole_face.deltas))
             adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
             for m in others:
                 sub = _shape_deltas(m, names)
