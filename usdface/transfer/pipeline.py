@@ -449,18 +449,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    if face_transfer not in FACE_TRANSFERS:
-        raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
-                           fix=f"use one of {', '.join(FACE_TRANSFERS)}")
-    if approximation not in APPROXIMATIONS:
-        raise UsdFaceError(f"unknown approximation {approximation!r}",
-                           fix=f"use one of {', '.join(APPROXIMATIONS)}")
-    if prior not in PRIORS:
-        raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
-    if (face_transfer == "person") != (approximation == "field"):
-        raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
-                           "together", fix="use face_transfer='person' with approximation='field' (the "
-                           "default), or one of the older modes with 'generic' or 'retarget'")
+    _check_modes(face_transfer, approximation, prior)
     with steps("personalize", 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -575,14 +564,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         fit = None
         if rig is None:
-            from ..personalize import fit_personalized_shapes
-
-            extra = {}
-            if prior == "avatar" and method in ("menzel", "laplacian"):
-                full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
-                full[[list(capture.names).index(n) for n in names]] = generic_on_capture
-                extra["avatar_prior"] = full
-            fit = fit_personalized_shapes(capture, method=method, reg=reg, **extra, **fit_options)
+            fit = _fit(capture, names, generic_on_capture, prior, method, reg, fit_options)
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
@@ -613,70 +595,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 5. the implant
         t = time.perf_counter()
-        other = {}
         if face_transfer == "person":
-            prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
-            conf = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
-            report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
-            low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
-            if low:
-                report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
-                                          "shape): " + ", ".join(low))
-            # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
-            # incompatible with the person's and the template's): no personalization from them
-            outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
-            report["correspondence"]["mapping_outliers"] = int(outliers.sum())
-            weight = corr.weight if corr.weight is not None else corr.face.astype(float)
-            # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
-            # lip on the other side), the capture is not trusted: the field from the neighbours fills in
-            weight = weight * ~dilate(disagree, face.triangles, 2)
-            radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
-            length = extension_length * radius if extension_length else None
-            eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
-            others = [m for m in avatar.meshes if m is not face and m.key not in eyeballs_static]
-            followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
-            keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
-            # the field is known at the capture's resolution: averaged over one placed capture edge
-            smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
-            # during the field (the run's peak) the face's generic offsets - and those of the whole face
-            # mesh when it was split (reached + beyond), used only after the field - are held as the
-            # authored float32 and the reader's conversion (the same values to the last bit)
-            split = (whole_face, whole_face.names) if whole_face is not face else None
-            with _HeldPacked(generic_full, [(face, names), split]) as held:
-                if held.packed(0) is not None:
-                    avatar_face_deltas = None          # a view of the float64 array let go
-
-                def person_face():
-                    """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by
-                    the field once its extension is factorized (:func:`extend_personalization`)."""
-                    packed = held.packed(0)
-                    out = packed.expand() if packed is not None else avatar_face_deltas.copy()
-                    for lo in range(0, len(names), 8):
-                        js = slice(lo, lo + 8)
-                        change = face_personalization(corr, capture.triangles, person_deltas[js],
-                                                      prior_av[js], f, support=support, outliers=outliers[js])
-                        change *= conf[js, None, None]
-                        out[js, f] += change
-                    return out
-
-                release_free_memory()              # the read's and the fit's freed blocks, before the peak
-                # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
-                result, pfield = extend_personalization(face.neutral, face.triangles,
-                                                       held.packed(0) if avatar_face_deltas is None
-                                                       else avatar_face_deltas,
-                                                       person_face, weight, length=length,
-                                                       band=SEAM_BAND * radius, smoothing=smoothing,
-                                                       keep_at=keep_at, overwrite=True)
-                release_free_memory()              # the field's freed working memory
-            if avatar_face_deltas is None:         # the float64 generic offsets again, as read
-                avatar_face_deltas = _shape_deltas(face, names, view=True)
-            adjacent = _changed(result, avatar_face_deltas, weight < 1.0)
-            for m in others:
-                sub = _shape_deltas(m, names)
-                other[m.key] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
-                                  if any(m is x for x in followers) else sub)
-            report["extension"] = {"length_m": length, "face_radius_m": radius,
-                                   "smoothing_rings": pfield.rings}
+            avatar_face_deltas = None           # held by the implant (packed at the run's peak); read after
+            result, adjacent, other, avatar_face_deltas = _implant_person(
+                avatar, face, whole_face, generic_full, regions, capture, corr, disagree, sim, names, fit,
+                rig, prior, generic_on_capture, person_deltas, tmpl_av, extension_length, support, report)
         else:
             base = {m.key: (approx_eq4[m.key] if approximation == "retarget" else _shape_deltas(m, names))
                     for m in avatar.meshes}
@@ -692,23 +615,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 6. eyelids
         t = time.perf_counter()
-        repaired = 0
         if eyelids:
-            eye_meshes = dict(eyes or avatar.metadata.get("static_meshes") or {})
-            for m in avatar.meshes:
-                if m is not face:
-                    eye_meshes.setdefault(m.key, (m.neutral, m.triangles))
-            # an eyeball is found by the whole mesh's shape, not by its moving part
-            eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
-                               for k, v in eye_meshes.items() if k in regions})
-            found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
-            if found:
-                result, repaired = repair_eyelids(face.neutral, result,
-                                                  [(e, *eye_meshes[e.name]) for e in found],
-                                                  reference=avatar_face_deltas, overwrite=True)
-            report["eyelids"] = {"eyeballs": [e.name for e in found], "repaired_vertex_shapes": repaired}
-            if not found:
-                report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
+            result = _repair_lids(avatar, face, regions, eyes, result, avatar_face_deltas, report)
         report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
         f = corr.face
         if beyond is not None:                   # the face mesh in one piece again: reached + beyond
@@ -725,23 +633,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         advance.start("write")
 
         # offsets for every mesh, in rig.names order; shapes the capture lacks stay generic
-        offsets = {}
-        for m in avatar.meshes:
-            key = m.key
-            src = result if m is face else other.get(key)
-            if m is face and list(names) == list(m.names) and np.shape(result) == m.deltas.shape:
-                new = result                      # every shape personalized, in the rig's order: no copy
-            else:
-                new = m.deltas.copy()
-            if src is not None and new is not src:
-                for j, n in enumerate(names):
-                    if n in m.names:
-                        new[m.index(n)] = src[j]
-            region = regions.get(key)
-            base = generic_full.get(key)
-            offsets[key] = new if region is None else SparseOffsets(
-                region.vertices, new, region.n,
-                base=base if base is not None and base.shape[1] == region.n else None)
+        offsets = _layer_offsets(avatar, face, result, other, names, regions, generic_full)
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
@@ -783,6 +675,162 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                   for k, v in approx_eq4.items()}
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
+
+
+def _check_modes(face_transfer: str, approximation: str, prior: str) -> None:
+    """Refuse unknown or mismatched transfer modes before any work (:class:`usdface.errors.UsdFaceError`)."""
+    if face_transfer not in FACE_TRANSFERS:
+        raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
+                           fix=f"use one of {', '.join(FACE_TRANSFERS)}")
+    if approximation not in APPROXIMATIONS:
+        raise UsdFaceError(f"unknown approximation {approximation!r}",
+                           fix=f"use one of {', '.join(APPROXIMATIONS)}")
+    if prior not in PRIORS:
+        raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
+    if (face_transfer == "person") != (approximation == "field"):
+        raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
+                           "together", fix="use face_transfer='person' with approximation='field' (the "
+                           "default), or one of the older modes with 'generic' or 'retarget'")
+
+
+def _fit(capture, names, generic_on_capture, prior, method, reg, fit_options):
+    """Step 1 (:func:`usdface.personalize.fit_personalized_shapes`), after the correspondence: with
+    ``prior="avatar"`` the avatar's own shapes on the capture (``generic_on_capture[J,n,3]``, capture frame,
+    metres; NaN rows for the capture's shapes the avatar lacks) are the prior of menzel / laplacian."""
+    from ..personalize import fit_personalized_shapes
+
+    extra = {}
+    if prior == "avatar" and method in ("menzel", "laplacian"):
+        full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
+        full[[list(capture.names).index(n) for n in names]] = generic_on_capture
+        extra["avatar_prior"] = full
+    return fit_personalized_shapes(capture, method=method, reg=reg, **extra, **fit_options)
+
+
+def _repair_lids(avatar, face, regions, eyes, result, generic, report) -> np.ndarray:
+    """Step 6: the eyelid repair (:func:`usdface.transfer.eyelids.repair_eyelids`) of ``result[J,m,3]``
+    against the avatar's eyeballs - ``eyes`` ({name: (points, triangles)}), the reader's static meshes, or
+    the other meshes that are eyeballs by the *whole* mesh's shape - with ``generic[J,m,3]`` as the
+    clearance reference. Returns the repaired offsets (in place); adds ``report["eyelids"]``."""
+    eye_meshes = dict(eyes or avatar.metadata.get("static_meshes") or {})
+    for m in avatar.meshes:
+        if m is not face:
+            eye_meshes.setdefault(m.key, (m.neutral, m.triangles))
+    # an eyeball is found by the whole mesh's shape, not by its moving part
+    eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
+                       for k, v in eye_meshes.items() if k in regions})
+    found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
+    repaired = 0
+    if found:
+        result, repaired = repair_eyelids(face.neutral, result, [(e, *eye_meshes[e.name]) for e in found],
+                                          reference=generic, overwrite=True)
+    report["eyelids"] = {"eyeballs": [e.name for e in found], "repaired_vertex_shapes": repaired}
+    if not found:
+        report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
+    return result
+
+
+def _layer_offsets(avatar, face, result, other, names, regions, generic_full) -> dict:
+    """{mesh key: offsets in the mesh's own shape order} for the layer: ``result[J,m,3]`` on the face mesh,
+    ``other[key][J,n,3]`` on the others, the input's offsets for the shapes not in ``names``; a mesh worked
+    on by its moving part as :class:`usdface.submesh.SparseOffsets` over the caller's whole-mesh array."""
+    offsets = {}
+    for m in avatar.meshes:
+        key = m.key
+        src = result if m is face else other.get(key)
+        if m is face and list(names) == list(m.names) and np.shape(result) == m.deltas.shape:
+            new = result                      # every shape personalized, in the rig's order: no copy
+        else:
+            new = m.deltas.copy()
+        if src is not None and new is not src:
+            for j, n in enumerate(names):
+                if n in m.names:
+                    new[m.index(n)] = src[j]
+        region = regions.get(key)
+        if region is None:
+            offsets[key] = new
+            continue
+        base = generic_full.get(key)
+        offsets[key] = SparseOffsets(region.vertices, new, region.n,
+                                     base=base if base is not None and base.shape[1] == region.n else None)
+    return offsets
+
+
+def _implant_person(avatar, face, whole_face, generic_full, regions, capture, corr, disagree, sim, names, fit,
+                    rig, prior, generic_on_capture, person_deltas, tmpl_av, extension_length, support,
+                    report) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+    """Step 5 of the default transfer: the person's motion on the face region (``A_j + c_j M s_j (B_j -
+    P_j)``, :func:`usdface.transfer.implant.face_personalization`), extended as a rotation + scale field of
+    the generic motion beyond it and onto the meshes that follow the skin (:mod:`.motion_field`).
+    ``person_deltas[J,n,3]`` / ``tmpl_av[J,n,3]``: the person's and the template's capture shapes in the
+    avatar frame (metres). Returns ``(result[J,m,3], adjacent[J,m] bool, {mesh key: [J,n_mesh,3]}, the
+    face's generic offsets [J,m,3])`` and adds the confidence, mapping outliers and extension figures to
+    ``report``.
+
+    The face's generic offsets are held packed during the field (the run's peak) when they are large
+    (:class:`_HeldPacked`): the caller lets go of its own references to them first."""
+    f = corr.face
+    b_idx = [rig.index(n) for n in names]
+    prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
+    conf = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
+    report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
+    low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
+    if low:
+        report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
+                                  "shape): " + ", ".join(low))
+    # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
+    # incompatible with the person's and the template's): no personalization from them
+    outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
+    report["correspondence"]["mapping_outliers"] = int(outliers.sum())
+    weight = corr.weight if corr.weight is not None else corr.face.astype(float)
+    # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
+    # lip on the other side), the capture is not trusted: the field from the neighbours fills in
+    weight = weight * ~dilate(disagree, face.triangles, 2)
+    radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
+    length = extension_length * radius if extension_length else None
+    eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
+    others = [m for m in avatar.meshes if m is not face and m.key not in eyeballs_static]
+    followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
+    keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
+    # the field is known at the capture's resolution: averaged over one placed capture edge
+    smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
+    # during the field (the run's peak) the face's generic offsets - and those of the whole face
+    # mesh when it was split (reached + beyond), used only after the field - are held as the
+    # authored float32 and the reader's conversion (the same values to the last bit)
+    split = (whole_face, whole_face.names) if whole_face is not face else None
+    with _HeldPacked(generic_full, [(face, names), split]) as held:
+
+        def person_face():
+            """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by
+            the field once its extension is factorized (:func:`extend_personalization`)."""
+            out = packed.expand() if packed is not None else _shape_deltas(face, names, view=True).copy()
+            for lo in range(0, len(names), 8):
+                js = slice(lo, lo + 8)
+                change = face_personalization(corr, capture.triangles, person_deltas[js],
+                                              prior_av[js], f, support=support, outliers=outliers[js])
+                change *= conf[js, None, None]
+                out[js, f] += change
+            return out
+
+        release_free_memory()              # the read's and the fit's freed blocks, before the peak
+        # the result is written over person_face (not used again): one [J,m,3] array fewer at the peak
+        packed = held.packed(0)
+        result, pfield = extend_personalization(face.neutral, face.triangles,
+                                               _shape_deltas(face, names, view=True) if packed is None
+                                               else packed, person_face, weight, length=length,
+                                               band=SEAM_BAND * radius, smoothing=smoothing,
+                                               keep_at=keep_at, overwrite=True)
+        packed = None                      # (person_face is not called again)
+        release_free_memory()              # the field's freed working memory
+    generic = _shape_deltas(face, names, view=True)       # the float64 generic offsets again, as read
+    adjacent = _changed(result, generic, weight < 1.0)
+    other = {}
+    for m in others:
+        sub = _shape_deltas(m, names)
+        other[m.key] = (follow_field(m.neutral, sub, pfield, rigid=rigid_shapes(m.neutral, sub))
+                        if any(m is x for x in followers) else sub)
+    report["extension"] = {"length_m": length, "face_radius_m": radius, "smoothing_rings": pfield.rings}
+    return result, adjacent, other, generic
 
 
 def _is_eyeball(m: FaceRig, regions: dict | None = None) -> bool:
