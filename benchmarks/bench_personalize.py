@@ -36,6 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT.parent / "shared" / "data" / "bench"
 
 
+#: A mesh whose generic offsets are this close to the truth (RMS, mm as the scores) is one the truth keeps
+#: generic: dev1 and dev2's Mouth differ from it by the float32 rounding of the files (8e-7 mm RMS), which as
+#: a ratio printed 690964 instead of "inf".
+TRUTH_IS_GENERIC_MM = 1e-4
+
+
 def _rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
 
@@ -128,9 +134,9 @@ def accuracy(case: str, variants: bool) -> list[dict]:
             if m.name == "Head":
                 row.update(face=sc.face_ratio, whole=sc.whole_ratio, worst=sc.worst_shape(),
                            seam=(sc.seam_out, sc.seam_generic), generic_mm=sc.face_generic)
-            elif sc.whole_generic > 0:
+            elif sc.whole_generic > TRUTH_IS_GENERIC_MM:
                 row.setdefault("meshes", {})[m.name] = sc.whole_ratio
-            elif sc.whole_out > 0:
+            elif sc.whole_out > TRUTH_IS_GENERIC_MM:
                 row.setdefault("meshes", {})[m.name] = float("inf")   # truth = generic here, output moved
         rows.append(row)
     return rows
