@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -128,3 +130,28 @@ def test_closed_pipe_in_a_real_process(samples):
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+@pytest.mark.parametrize("flags", [["--reg", "paper"], ["--reg", "0.01"],
+                                   ["--method", "laplacian", "--reg", "0.01"]])
+def test_personalize_with_a_fixed_reg_uses_the_avatar_prior(samples, tmp_path, capsys, flags):
+    """``--reg`` other than ``auto`` (documented for personalize) used to fail after the registration with
+    "avatar_prior given but prior='dt' ignores it": the avatar's shapes on the capture are the fit's prior
+    with any ``reg``."""
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--json", *flags]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert set(report["fit"]["prior_choice"]) == {"avatar"}
+    assert out.is_file()
+
+
+def test_personalize_refuses_a_fit_option_before_any_work(samples, tmp_path, capsys, monkeypatch):
+    """An option the fit method would ignore is refused before reading the avatar (nothing runs)."""
+    from usdface.transfer import pipeline
+
+    monkeypatch.setattr(pipeline, "crop_avatar", lambda *a, **k: pytest.fail("work started"))
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o",
+                 str(tmp_path / "p.usda"), "--method", "ebfr", "--reg", "0.01"]) == 2
+    assert "not used by method 'ebfr': reg=0.01" in capsys.readouterr().err
+    assert not (tmp_path / "p.usda").exists()

@@ -18,7 +18,7 @@ from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched
 
-__all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture"]
+__all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture", "check_fit_options"]
 
 #: Methods of :func:`fit_personalized_shapes`.
 METHODS = ("dt", "ebfr", "menzel", "laplacian")
@@ -194,14 +194,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     with the phone's weights: 0 for a shape with zero training weight, ~1 for a shape isolated at weight 1
     in clean data; :meth:`usdface.personalize.fit.PositionFit.data_share`).
     """
-    if method not in METHODS:
-        raise FitError(f"unknown method {method!r}", path=capture.source or None,
-                       fix=f"use one of {', '.join(METHODS)}")
-    _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
-    if contact not in ("auto", "on", "off"):
-        raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
-    if contact == "on" and method not in ("menzel", "laplacian"):
-        raise FitError(f"contact is not used by method {method!r}", fix="use menzel or laplacian, or drop it")
+    check_fit_options(method, reg, prior=prior, align=align, reweight=reweight, clamp=clamp,
+                      weight_sigma=weight_sigma, contact=contact, avatar_prior=avatar_prior is not None,
+                      path=capture.source or None, **options)
     if pins is not None:
         _pin_mask(pins, capture, method)                  # validate before the work starts
     auto = isinstance(reg, str) and reg == "auto"
@@ -210,9 +205,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
     prior = prior or ("auto" if auto else "dt")
-    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
-        raise FitError(f"bad prior {prior!r}",
-                       fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
     avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
     t0 = time.perf_counter()
@@ -402,6 +394,35 @@ METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
                   "menzel": (), "dt": ()}
 
 
+def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None = None, align=None,
+                      reweight=None, clamp: float = D_CLAMP, weight_sigma="auto", contact: str = "auto",
+                      avatar_prior: bool = False, path=None, **options) -> None:
+    """Refuse, before any work, options :func:`fit_personalized_shapes` would refuse (same arguments;
+    ``avatar_prior``: whether one will be given): an unknown method, options the method would accept and
+    ignore, a bad ``contact`` or ``prior``, an avatar prior the chosen ``prior`` ignores. Raises
+    :class:`FitError` naming the option and the fix."""
+    if method not in METHODS:
+        raise FitError(f"unknown method {method!r}", path=path, fix=f"use one of {', '.join(METHODS)}")
+    _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
+    if contact not in ("auto", "on", "off"):
+        raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
+    if contact == "on" and method not in ("menzel", "laplacian"):
+        raise FitError(f"contact is not used by method {method!r}", fix="use menzel or laplacian, or drop it")
+    auto = isinstance(reg, str) and reg == "auto"
+    prior = prior or ("auto" if auto else "dt")
+    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
+        raise FitError(f"bad prior {prior!r}",
+                       fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
+    if avatar_prior and method not in ("menzel", "laplacian"):
+        raise FitError(f"avatar_prior is not used by method {method!r}",
+                       fix="use it with menzel or laplacian, or drop it")
+    if avatar_prior and prior in ("dt", "template"):
+        raise FitError(f"avatar_prior given but prior={prior!r} ignores it",
+                       fix="use prior='auto' (with reg='auto') or 'avatar'")
+    if not avatar_prior and prior == "avatar":
+        raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
+
+
 def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):
     """Raise :class:`FitError` naming every option that ``method`` would accept and ignore."""
     bad = []
@@ -457,16 +478,8 @@ def _pin_mask(pins, capture, method) -> np.ndarray:
 def _check_avatar_prior(avatar_prior, capture, method, prior):
     """Validate ``avatar_prior[K,n,3]``: returns ``(deltas with NaN rows zeroed, available[K])`` or
     ``(None, None)``."""
-    if avatar_prior is None:
-        if prior == "avatar":
-            raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
+    if avatar_prior is None:                   # the options were checked (:func:`check_fit_options`)
         return None, None
-    if method not in ("menzel", "laplacian"):
-        raise FitError(f"avatar_prior is not used by method {method!r}",
-                       fix="use it with menzel or laplacian, or drop it")
-    if prior in ("dt", "template"):
-        raise FitError(f"avatar_prior given but prior={prior!r} ignores it",
-                       fix="use prior='auto' (with reg='auto') or 'avatar'")
     a = np.asarray(avatar_prior, dtype=np.float64)
     K, n = len(capture.names), len(capture.neutral)
     if a.shape != (K, n, 3):

@@ -450,6 +450,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
     _check_modes(face_transfer, approximation, prior)
+    if rig is None:                                # the fit's options, before any work
+        from ..personalize.api import check_fit_options
+
+        check_fit_options(method, reg, **_fit_prior_options(prior, method, reg), **fit_options)
     with steps("personalize", 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -693,14 +697,25 @@ def _check_modes(face_transfer: str, approximation: str, prior: str) -> None:
                            "default), or one of the older modes with 'generic' or 'retarget'")
 
 
+def _fit_prior_options(prior: str, method: str, reg) -> dict:
+    """The fit's prior options for personalize's ``prior``: with ``"avatar"`` (menzel / laplacian) the
+    avatar's own shapes on the capture are given, chosen among the priors by cross-validation with
+    ``reg="auto"`` and used as the prior with any other ``reg``; ``{"avatar_prior": True}`` marks that."""
+    if prior != "avatar" or method not in ("menzel", "laplacian"):
+        return {}
+    return {"avatar_prior": True} if isinstance(reg, str) and reg == "auto" else {"avatar_prior": True,
+                                                                                  "prior": "avatar"}
+
+
 def _fit(capture, names, generic_on_capture, prior, method, reg, fit_options):
     """Step 1 (:func:`usdface.personalize.fit_personalized_shapes`), after the correspondence: with
     ``prior="avatar"`` the avatar's own shapes on the capture (``generic_on_capture[J,n,3]``, capture frame,
-    metres; NaN rows for the capture's shapes the avatar lacks) are the prior of menzel / laplacian."""
+    metres; NaN rows for the capture's shapes the avatar lacks) are the prior of menzel / laplacian
+    (:func:`_fit_prior_options`)."""
     from ..personalize import fit_personalized_shapes
 
-    extra = {}
-    if prior == "avatar" and method in ("menzel", "laplacian"):
+    extra = _fit_prior_options(prior, method, reg)
+    if extra.pop("avatar_prior", False):
         full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
         full[[list(capture.names).index(n) for n in names]] = generic_on_capture
         extra["avatar_prior"] = full
