@@ -65,3 +65,32 @@ def test_personalize_repairs_eyelids_on_the_sample(samples, tmp_path, capsys):
     assert excess[False] > 5 * TOLERANCE, excess
     # ... and the repair brings every vertex of every shape back to the surface
     assert excess[True] <= TOLERANCE, excess
+
+
+def test_eyelid_repair_uses_the_eyes_of_the_face_it_personalizes(samples, tmp_path, capsys):
+    """Two characters referencing one avatar in a stage: personalizing either face repairs its lids
+    against its own two eyeballs (it took the two best-fitting spheres of the whole stage: one eye of each
+    character, and one lid per face went unrepaired)."""
+    import json
+    import shutil
+
+    shutil.copy(samples / "avatar.usda", tmp_path / "avatar.usda")
+    (tmp_path / "crowd.usda").write_text(
+        '#usda 1.0\n(\n    defaultPrim = "World"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n\n'
+        'def Xform "World"\n{\n    def "Anna" (prepend references = @./avatar.usda@)\n    {\n    }\n\n'
+        '    def "Ben" (prepend references = @./avatar.usda@)\n    {\n'
+        '        double3 xformOp:translate = (100, 0, 0)\n'
+        '        uniform token[] xformOpOrder = ["xformOp:translate"]\n    }\n}\n')
+    alone = None
+    for who in ("Anna", "Ben", None):
+        args = (["personalize", str(tmp_path / "crowd.usda"), str(samples / "capture.usda"), "--face-mesh",
+                 f"/World/{who}/Head"] if who else
+                ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda")])
+        assert main([*args, "--dry-run", "--json", "-q"]) == 0
+        lids = json.loads(capsys.readouterr().out)["eyelids"]
+        if who:
+            assert sorted(lids["eyeballs"]) == [f"/World/{who}/EyeLeft", f"/World/{who}/EyeRight"]
+            repaired = lids["repaired_vertex_shapes"]
+        else:
+            alone = lids["repaired_vertex_shapes"]
+    assert repaired == alone > 0

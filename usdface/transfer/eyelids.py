@@ -45,14 +45,21 @@ def fit_sphere(points) -> tuple[np.ndarray, float, float]:
 
 
 def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float = 0.02,
-                  max_rel_rms: float = 0.12) -> list[Eyeball]:
+                  max_rel_rms: float = 0.12, face=None) -> list[Eyeball]:
     """Eyeballs among ``meshes`` = ``{name: points[n,3]}`` (internal metres).
 
     A mesh qualifies by name (contains "eye" but not lash/brow/lid/...) with a sphere fit of plausible radius,
     or, unnamed (and not named for a part of the mouth), by geometry alone (sphere fit residual below
-    ``max_rel_rms`` x radius, radius in [``min_radius``, ``max_radius``]). At most the two best-fitting
+    ``max_rel_rms`` x radius, radius in [``min_radius``, ``max_radius``]). With ``face`` (``points[m,3]``,
+    the face mesh's vertices) only the eyes of that face: spheres whose centre is within two radii of a face
+    vertex (under its lids), not those of another character in the same stage. At most the two best-fitting
     spheres are returned.
     """
+    tree = None
+    if face is not None and len(face):
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(np.asarray(face, dtype=np.float64))
     found = []
     for name, pts in meshes.items():
         pts = np.asarray(pts, dtype=np.float64)
@@ -65,6 +72,8 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
         named = bool(_EYE_NAME.search(leaf)) and not _NOT_EYE.search(leaf)
         if not named and _MOUTH_PART.search(leaf):
             continue
+        if tree is not None and tree.query(c)[0] > 2.0 * r:
+            continue                                   # not under this face's lids
         if named and rms < 2 * max_rel_rms * r or rms < max_rel_rms * r:
             found.append(Eyeball(str(name), c, r, rms))
     found.sort(key=lambda e: e.rms / e.radius)

@@ -734,7 +734,7 @@ def _repair_lids(avatar, face, regions, eyes, result, generic, report) -> np.nda
     # an eyeball is found by the whole mesh's shape, not by its moving part
     eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
                        for k, v in eye_meshes.items() if k in regions})
-    found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()})
+    found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()}, face=face.neutral)
     repaired = 0
     if found:
         result, repaired = repair_eyelids(face.neutral, result, [(e, *eye_meshes[e.name]) for e in found],
