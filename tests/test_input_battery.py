@@ -342,3 +342,21 @@ def test_read_only_folder(work, monkeypatch, capfd):
         assert_clean_failure(code, err, ["Permission denied"], before, work)
     finally:
         ro.chmod(0o755)
+
+
+@pytest.mark.parametrize("command", ["personalize", "landmarks"])
+def test_an_avatar_under_an_instanceable_prim_is_refused(samples, tmp_path, capsys, command):
+    """USD composes no override under an instance: a layer over an instanced avatar would change nothing
+    (it used to print "56 BlendShapes personalized" and pass ``check``). Refused, naming the prim, before
+    any work; nothing written."""
+    shutil.copy(samples / "avatar.usda", tmp_path / "avatar.usda")
+    (tmp_path / "shot.usda").write_text(
+        '#usda 1.0\n(\n    defaultPrim = "Hero"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n\n'
+        'def "Hero" (\n    prepend references = @./avatar.usda@\n    instanceable = true\n)\n{\n}\n')
+    out = tmp_path / "out.usda"
+    args = ([str(tmp_path / "shot.usda"), str(samples / "capture.usda")] if command == "personalize"
+            else [str(tmp_path / "shot.usda")])
+    assert main([command, *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "instanceable prim /Hero" in err and "instanceable = false" in err
+    assert not out.exists()

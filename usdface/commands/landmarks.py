@@ -81,6 +81,10 @@ def run(args) -> int:
             check_output_file(out, args.force, suffixes=(suffix,), inputs=[args.avatar])
     avatar = api.read_avatar(args.avatar, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
+    if args.output and not args.evaluate:     # its primvars would change nothing under an instance
+        from ..io.usd_rig import refuse_instanced
+
+        refuse_instanced(avatar, [rig.key], "the landmarks layer")
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation
 

@@ -610,11 +610,40 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                      f"rotation and scale (float32 export noise, largest change {worst:.1e} relative)")
     default_prim = stage.GetDefaultPrim()
     metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
-                "documentation": stage.GetRootLayer().documentation or ""}
+                "documentation": stage.GetRootLayer().documentation or "",
+                "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static])}
     return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
+
+
+def _instanced(prims) -> dict:
+    """{prim path: path of the instanceable prim it is under} for the ``prims`` that are instance proxies:
+    USD ignores a layer's overrides there (:func:`refuse_instanced`)."""
+    out = {}
+    for prim in prims:
+        if prim.IsInstanceProxy():
+            up = prim.GetParent()
+            while up and not up.IsInstance():
+                up = up.GetParent()
+            out[str(prim.GetPath())] = str(up.GetPath()) if up else ""
+    return out
+
+
+def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:
+    """Raise :class:`RigError` when a mesh of ``avatar`` that ``what`` would write over (``keys``: mesh prim
+    paths; default every mesh) lies under an instanceable prim: USD composes no override under an
+    instance, so the layer would change nothing there. Uses ``avatar.metadata["instanced"]``
+    (:func:`read_avatar`)."""
+    instanced = (avatar.metadata or {}).get("instanced") or {}
+    keys = list(instanced) if keys is None else [k for k in keys if k in instanced]
+    if keys:
+        holder = instanced[keys[0]]
+        raise RigError(f"{keys[0]} is inside the instanceable prim {holder}: USD ignores overrides under an "
+                       f"instance, so {what} would change nothing", path=avatar.file, prim=holder,
+                       fix=f"set instanceable = false on {holder} in the file that references the avatar, or "
+                           "run on the referenced avatar asset itself")
 
 
 def read_layer_info(path) -> dict:

@@ -465,6 +465,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.usd_rig import read_avatar
 
             avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
+        if out_path is not None:                  # an override under an instance would change nothing
+            from ..io.usd_rig import refuse_instanced
+
+            refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
