@@ -122,7 +122,8 @@ def accuracy(case: str, variants: bool) -> list[dict]:
                                                                  "approximation": "generic"}),
                      ("paper: dt + retarget (eq. 4) + harmonic", {"face_transfer": "dt",
                                                                   "approximation": "retarget", "falloff": 0,
-                                                                  "prior": "template"})]
+                                                                  "prior": "template", "weight_bounds": None,
+                                                                  "map_prior": "zero"})]
     rows = []
     for label, opts in settings:
         res = personalize_avatar(avatar, capture, None, **opts)

@@ -110,6 +110,38 @@ def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
     assert '"format": "usdface.retarget/1"' in weight_map_json(w_true, list("abcd"), list("uvwxyz"))
 
 
+def test_retarget_weights_bounded_and_around_a_prior():
+    """``bounds``: the ridge objective minimised over the box (checked against scipy's bounded least squares
+    on the stacked system and against a brute-force perturbation); ``prior``: the ridge's centre (a strong
+    ridge returns it, a vanishing one the data's combination); the namesake prior is the identity of the
+    shared names."""
+    from scipy.optimize import lsq_linear
+
+    from usdface.transfer.retarget import namesake_prior
+
+    rng = np.random.default_rng(5)
+    basis = rng.normal(size=(5, 80, 3))
+    basis[1] = basis[0] + 0.05 * rng.normal(size=(80, 3))                 # two nearly collinear shapes
+    w_true = np.array([[1.0, 0.0, 0.2, 0.0, 0.0], [0.0, 0.0, 1.0, 0.3, 0.0]])
+    targets = np.einsum("jk,knc->jnc", w_true, basis) + 0.05 * rng.normal(size=(2, 80, 3))
+    free = retarget_weights(basis, targets, mu=1e-8)
+    assert free.min() < 0.0 or free.max() > 1.0                            # the collinear pair: out of range
+    boxed = retarget_weights(basis, targets, mu=1e-8, bounds=(0.0, 1.0))
+    assert boxed.min() >= 0.0 and boxed.max() <= 1.0
+    A = basis.reshape(5, -1).T
+    lam = 1e-8 * np.trace(A.T @ A) / 5
+    for j in range(2):
+        stacked = np.vstack([A, np.sqrt(lam) * np.eye(5)])
+        ref = lsq_linear(stacked, np.concatenate([targets[j].ravel(), np.zeros(5)]), bounds=(0, 1)).x
+        np.testing.assert_allclose(boxed[j], ref, atol=1e-6)
+    p = namesake_prior(["b", "x", "a"], ["a", "b", "c", "d", "e"])
+    np.testing.assert_array_equal(p, [[0, 1, 0, 0, 0], [0, 0, 0, 0, 0], [1, 0, 0, 0, 0]])
+    prior = np.eye(5)[[0, 2]]
+    np.testing.assert_allclose(retarget_weights(basis, targets, mu=1e8, prior=prior), prior, atol=1e-6)
+    np.testing.assert_allclose(retarget_weights(basis, targets, mu=1e-12, prior=prior),
+                               retarget_weights(basis, targets, mu=1e-12), atol=1e-6)
+
+
 def test_gradient_operator_exact_on_linear_functions():
     pts, tris = _grid(8)
     g = gradient_operator(pts, tris)

@@ -22,6 +22,14 @@ def add_transfer_options(p) -> None:
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
                         "(generalized cross-validation on the face rows; default)")
+    p.add_argument("--weight-bounds", nargs=2, type=float, default=(0.0, 1.0), metavar=("LO", "HI"),
+                   help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's channels "
+                        "are authored for, so an engine can drive the avatar with the map as it is)")
+    p.add_argument("--unbounded", action="store_true",
+                   help="eq. (4) as the paper: any real weights (overrides --weight-bounds)")
+    p.add_argument("--map-prior", default="namesake", choices=["namesake", "zero"],
+                   help="what eq. (4)'s ridge shrinks each row of the map towards: the avatar shape of the "
+                        "same ARKit name (default, as a hand-made retargeting table) or zero (the paper)")
     p.add_argument("--prior", default="avatar", choices=["avatar", "template"],
                    help="what the fit shrinks towards where the capture does not inform a shape: the "
                         "avatar's own generic shapes on the capture mesh (default) or the capture's template")
@@ -57,7 +65,9 @@ def transfer_kwargs(args) -> dict:
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
             "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
             "prior": args.prior, "extension_length": args.extension_length,
-            "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact}
+            "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact,
+            "weight_bounds": None if args.unbounded else tuple(args.weight_bounds),
+            "map_prior": args.map_prior}
 
 
 def register(subparsers) -> None:

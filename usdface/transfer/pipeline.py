@@ -56,7 +56,7 @@ from .implant import (
 from .motion_field import dilate
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
 from .register import register_face
-from .retarget import approximate, retarget_weights
+from .retarget import approximate, namesake_prior, retarget_weights
 
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS"]
 
@@ -78,6 +78,8 @@ WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
 CONFIDENCE = "fit"
 #: Priors of the fit (see :func:`personalize_avatar`).
 PRIORS = ("avatar", "template")
+#: What eq. (4)'s ridge shrinks the retarget map towards (see :func:`personalize_avatar`).
+MAP_PRIORS = ("namesake", "zero")
 
 
 @dataclass
@@ -412,7 +414,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        face_transfer: str = "person", approximation: str = "field", falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
-                       name_map=None, extension_length: float | None = 1.0, command: str = "", **fit_options
+                       name_map=None, extension_length: float | None = 1.0, command: str = "",
+                       weight_bounds=(0.0, 1.0), map_prior: str = "namesake", **fit_options
                        ) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
@@ -428,6 +431,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         (:func:`usdface.io.usd_rig.read_avatar`).
     mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map; ``"auto"`` chooses
         it by generalized cross-validation on the face rows.
+    weight_bounds : ``(lo, hi)`` range of the eq. (4) map's weights (default ``(0, 1)``, the range an ARKit
+        rig's channels are authored for); None: any real weights, as the paper.
+    map_prior : what eq. (4)'s ridge shrinks each row towards: ``"namesake"`` (default: the avatar shape of
+        the same ARKit name, weight 1, as a hand-made retargeting table) or ``"zero"`` (the paper).
     correspondence : cache file for step 3, reused when it belongs to this avatar face and template (same
         geometry, topology and semantic shapes), rewritten otherwise.
     force : overwrite an existing output layer.
@@ -449,7 +456,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    _check_modes(face_transfer, approximation, prior)
+    _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
 
@@ -589,10 +596,15 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         f = corr.face
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f)
+        weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f,
+                                            bounds=weight_bounds,
+                                            prior=namesake_prior(names, k_names) if map_prior == "namesake"
+                                            else None)
         del mb_face                                                       # [J, face, 3]: not used again
         report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
-                              "weight_max": float(weights.max()) if weights.size else 0.0}
+                              "weight_max": float(weights.max()) if weights.size else 0.0,
+                              "bounds": None if weight_bounds is None else list(weight_bounds),
+                              "prior": map_prior}
         approx_eq4 = {}
         if approximation == "retarget":
             for m in avatar.meshes:
@@ -645,7 +657,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
-            "options": {"method": method, "reg": reg, "mu": mu, "face_transfer": face_transfer,
+            "options": {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds,
+                        "map_prior": map_prior,
+                        "face_transfer": face_transfer,
                         "approximation": approximation, "prior": prior, "extension_length": extension_length,
                         "falloff": falloff, "support": support, "eyelids": eyelids},
             "name_report": avatar.name_report,
@@ -685,8 +699,17 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                              written, fit)
 
 
-def _check_modes(face_transfer: str, approximation: str, prior: str) -> None:
-    """Refuse unknown or mismatched transfer modes before any work (:class:`usdface.errors.UsdFaceError`)."""
+def _check_modes(face_transfer: str, approximation: str, prior: str, weight_bounds=None,
+                 map_prior: str = "namesake") -> None:
+    """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
+    (:class:`usdface.errors.UsdFaceError`)."""
+    if map_prior not in MAP_PRIORS:
+        raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
+    if weight_bounds is not None:
+        lo, hi = (float(b) for b in weight_bounds)
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise UsdFaceError(f"bad weight bounds {lo:g} {hi:g}",
+                               fix="give LO < HI, e.g. 0 1 (or --unbounded)")
     if face_transfer not in FACE_TRANSFERS:
         raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
                            fix=f"use one of {', '.join(FACE_TRANSFERS)}")

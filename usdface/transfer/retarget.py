@@ -14,7 +14,8 @@ import json
 
 import numpy as np
 
-__all__ = ["retarget_weights", "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
+__all__ = ["retarget_weights", "namesake_prior", "approximate", "weight_map_rows", "weight_map_json",
+           "weight_map_csv"]
 
 
 #: Vertices per block of :func:`retarget_weights`' products over ``rows``.
@@ -44,8 +45,10 @@ def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
     return best_mu
 
 
-def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None):
-    """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i w_i^2`` for every j.
+def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None, bounds=None,
+                     prior=None):
+    """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i (w_i - p_ji)^2`` for
+    every j, with ``p = 0`` as the paper.
 
     Parameters
     ----------
@@ -55,6 +58,13 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         unit- and resolution-free; ``"auto"`` (default) chooses it by generalized cross-validation over the
         face rows (:func:`choose_mu`), which bounds the weights where shapes are nearly collinear.
     return_mu : also return the relative ``mu`` used.
+    prior : ``[J,K]`` weights the ridge shrinks towards (None: 0, the paper). With the identity of the shared
+        ARKit names (``p_ji = 1`` where avatar shape i is capture shape j) a shape maps to its namesake
+        unless the geometry says otherwise, as a hand-made retargeting table does.
+    bounds : None (the paper: any real weights) or ``(lo, hi)``: the same objective minimised over
+        ``lo <= w <= hi`` (e.g. ``(0, 1)``, the range an ARKit rig's channels are authored for, so an engine
+        can drive the avatar with the map as it is), by bounded least squares on the Cholesky factor of the
+        regularised normal matrix (:func:`scipy.optimize.lsq_linear`, ``bvls``), row by row.
     rows : optional vertex indices (or a bool mask) of ``avatar_deltas[K,n,3]`` that ``targets[J,m,3]`` are
         on: the products are summed over blocks of those rows, never forming ``avatar_deltas[:, rows]`` (a
         production head's face region: 180 MB); the same weights up to rounding.
@@ -83,18 +93,56 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
             a = d[:, idx[lo:lo + ROW_BLOCK]].reshape(k, -1)
             gram += a @ a.T
             rhs += a @ t[:, 3 * lo:3 * (lo + ROW_BLOCK)].T
+    p = np.zeros((len(t), k)) if prior is None else np.asarray(prior, dtype=np.float64)      # [J,K]
+    # the ridge around p is the plain ridge of the targets' residual from p: t - B~ p
+    rhs_p = rhs - gram @ p.T                                                  # [K,J]
     if isinstance(mu, str):
         if mu != "auto":
             raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
         ev, vec = np.linalg.eigh(gram)
-        proj = vec.T @ rhs                                                   # [K,J]: U^T A t  (= s_i u_i^T t)
+        proj = vec.T @ rhs_p                                                 # [K,J]: U^T A t  (= s_i u_i^T t)
         # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
         inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None] * (ev > 1e-12 * ev.max())[:, None]))
-        residual = max(float(np.einsum("jv,jv->", t, t)) - inside, 0.0)       # no [J, 3m] temporary
+        tt = float(np.einsum("jv,jv->", t, t)) - 2.0 * float(np.sum(p.T * rhs))   # ||t - B~ p||^2, no [J, 3m]
+        residual = max(tt + float(np.sum(p.T * (gram @ p.T))) - inside, 0.0)      # temporary
         mu = choose_mu(ev, proj, residual, t.shape[1], k)
     lam = float(mu) * float(np.trace(gram)) / max(k, 1)
-    w = np.linalg.solve(gram + lam * np.eye(k), rhs).T
+    w = p + np.linalg.solve(gram + lam * np.eye(k), rhs_p).T
+    if bounds is not None:
+        w = _bounded(gram + lam * np.eye(k), rhs + lam * p.T, w, bounds)
     return (w, float(mu)) if return_mu else w
+
+
+def namesake_prior(target_names, avatar_names) -> np.ndarray:
+    """``[J,K]``: 1 where avatar shape i has capture shape j's (canonical ARKit) name, else 0 - the
+    identity of the shared names, the prior of the product's retarget map (:func:`retarget_weights`)."""
+    index = {n: i for i, n in enumerate(avatar_names)}
+    p = np.zeros((len(target_names), len(avatar_names)))
+    for j, n in enumerate(target_names):
+        if n in index:
+            p[j, index[n]] = 1.0
+    return p
+
+
+def _bounded(normal, rhs, start, bounds) -> np.ndarray:
+    """``argmin_{lo <= w <= hi} w^T N w - 2 w^T rhs_j`` for every column j of ``rhs[K,J]`` (``N[K,K]``
+    symmetric positive definite): with ``N = L L^T`` it is ``||L^T w - L^-1 rhs_j||^2``, a bounded linear
+    least-squares problem (:func:`scipy.optimize.lsq_linear`). ``start[J,K]``: the unbounded solution, kept
+    where it is inside the bounds. Returns ``[J,K]``."""
+    from scipy.linalg import cholesky, solve_triangular
+    from scipy.optimize import lsq_linear
+
+    lo, hi = (float(b) for b in bounds)
+    if not lo < hi:
+        raise ValueError(f"weight bounds must have lo < hi, not {bounds!r}")
+    out = np.array(start, dtype=np.float64, copy=True)
+    outside = np.flatnonzero(((out < lo) | (out > hi)).any(axis=1))
+    if outside.size:
+        L = cholesky(normal, lower=True)
+        b = solve_triangular(L, rhs[:, outside], lower=True)                  # L^-1 rhs  [K, J_out]
+        for col, j in enumerate(outside):
+            out[j] = np.clip(lsq_linear(L.T, b[:, col], bounds=(lo, hi), method="bvls").x, lo, hi)
+    return out
 
 
 def approximate(weights, deltas) -> np.ndarray:
