@@ -425,7 +425,7 @@ def test_one_shot_multicover_is_the_optimal_n_fold_cover():
 def test_batched_box_least_squares_matches_bvls():
     from scipy.optimize import lsq_linear
 
-    from usdface.landmarks.reconstruct import box_least_squares
+    from usdface.bounded_lsq import box_least_squares
 
     rng = np.random.default_rng(3)
     for m in (5, 9, 16):  # 15-48 rows, 12 unknowns: full column rank
@@ -455,7 +455,7 @@ def test_solve_weights_admm_start_reaches_the_bvls_optimum():
     """The ADMM warm start only picks the active set: the weights are BVLS's optimum, for every frame."""
     from scipy.optimize import lsq_linear
 
-    from usdface.landmarks.reconstruct import admm_box_start
+    from usdface.bounded_lsq import admm_box_start
 
     rng = np.random.default_rng(7)
     d = rng.normal(size=(12, 8, 3))  # 24 coordinates, 12 shapes: full column rank

@@ -63,8 +63,8 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         unless the geometry says otherwise, as a hand-made retargeting table does.
     bounds : None (the paper: any real weights) or ``(lo, hi)``: the same objective minimised over
         ``lo <= w <= hi`` (e.g. ``(0, 1)``, the range an ARKit rig's channels are authored for, so an engine
-        can drive the avatar with the map as it is), by bounded least squares on the Cholesky factor of the
-        regularised normal matrix (:func:`scipy.optimize.lsq_linear`, ``bvls``), row by row.
+        can drive the avatar with the map as it is), by the exact bounded least squares of
+        :func:`usdface.bounded_lsq.box_least_squares` on the regularised normal matrix, all rows at once.
     rows : optional vertex indices (or a bool mask) of ``avatar_deltas[K,n,3]`` that ``targets[J,m,3]`` are
         on: the products are summed over blocks of those rows, never forming ``avatar_deltas[:, rows]`` (a
         production head's face region: 180 MB); the same weights up to rounding.
@@ -126,11 +126,10 @@ def namesake_prior(target_names, avatar_names) -> np.ndarray:
 
 def _bounded(normal, rhs, start, bounds) -> np.ndarray:
     """``argmin_{lo <= w <= hi} w^T N w - 2 w^T rhs_j`` for every column j of ``rhs[K,J]`` (``N[K,K]``
-    symmetric positive definite): with ``N = L L^T`` it is ``||L^T w - L^-1 rhs_j||^2``, a bounded linear
-    least-squares problem (:func:`scipy.optimize.lsq_linear`). ``start[J,K]``: the unbounded solution, kept
-    where it is inside the bounds. Returns ``[J,K]``."""
-    from scipy.linalg import cholesky, solve_triangular
-    from scipy.optimize import lsq_linear
+    symmetric positive definite), all rows at once by the exact active-set method of
+    :func:`usdface.bounded_lsq.box_least_squares`; ``start[J,K]``: the unbounded solutions (kept where they
+    are inside the bounds). Returns ``[J,K]``."""
+    from ..bounded_lsq import box_least_squares
 
     lo, hi = (float(b) for b in bounds)
     if not lo < hi:
@@ -138,10 +137,8 @@ def _bounded(normal, rhs, start, bounds) -> np.ndarray:
     out = np.array(start, dtype=np.float64, copy=True)
     outside = np.flatnonzero(((out < lo) | (out > hi)).any(axis=1))
     if outside.size:
-        L = cholesky(normal, lower=True)
-        b = solve_triangular(L, rhs[:, outside], lower=True)                  # L^-1 rhs  [K, J_out]
-        for col, j in enumerate(outside):
-            out[j] = np.clip(lsq_linear(L.T, b[:, col], bounds=(lo, hi), method="bvls").x, lo, hi)
+        out[outside], _ = box_least_squares(normal, np.asarray(rhs, dtype=np.float64)[:, outside].T, lo, hi,
+                                            out[outside])
     return out
 
 
