@@ -338,3 +338,23 @@ def test_provenance_missing_on_a_result_layer(tmp_path):
     capture.customLayerData = {"usdface": {"format": "capture", "version": "0.1.0"}}
     capture.Save()
     assert [i for i in check(Usd.Stage.Open(capture)) if i.rule == "Provenance"] == []
+
+
+def test_readable_refuses_what_personalize_refuses():
+    """``check`` never passes a rig personalize then refuses (docs/pipeline.md): blend shapes none of which
+    is an ARKit shape (Blender's test files passed with one warning) unless the studio's name map gives them
+    ARKit names; meshes without any blend shape (Pixar's skinned arm passed). A file without geometry (an
+    animation take) is not an avatar and is not judged as one."""
+    studio = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"])
+    assert [i.message for i in studio if i.severity == ERROR] == [
+        "no face-like blend shapes (no ARKit-named shape that moves): personalize finds no face mesh"]
+    mapped = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"],
+                   name_map={"Smile": "mouthSmileLeft", "Frown": "mouthFrownLeft", "Blink": "eyeBlinkLeft"})
+    assert not has_errors(mapped)
+    arm = make_rig(names=[])
+    arm.GetPrimAtPath("/Avatar/Head").RemoveProperty("skel:blendShapes")
+    arm.GetPrimAtPath("/Avatar/Head").RemoveProperty("skel:blendShapeTargets")
+    assert "no mesh with blend shapes" in check(arm, rules=["Readable"])[0].message
+    take = make_rig()
+    take.RemovePrim("/Avatar/Head")
+    assert check(take, rules=["Readable"]) == []

@@ -6,7 +6,8 @@ dense offsets costs 0.1-0.2 s, and the pipeline used to take it a dozen times.
 * :func:`shape_norms` - ``|deltas[k,v]|`` ``[K,n]``;
 * :func:`peak_motion` - the largest motion of each vertex over the shapes, ``[n]``;
 * :func:`moving_vertices` - the vertices some shape moves, with a tolerance: float noise of a DCC export
-  (offsets re-stored in float32 around head-sized coordinates) is not motion.
+  (offsets re-stored in float32 around head-sized coordinates) is not motion;
+* :func:`most_moving_mesh` - the mesh whose named shapes move the most vertices (an avatar's face mesh).
 
 Units: whatever the deltas are in (metres in usdface).
 """
@@ -48,3 +49,18 @@ def moving_vertices(peak, points=None, *, tolerance: float = MOVING_TOLERANCE) -
     if points is not None and len(points):
         floor = max(floor, FLOAT32_NOISE * float(np.abs(np.asarray(points, dtype=np.float64)).max()))
     return peak > floor
+
+
+def most_moving_mesh(meshes, names):
+    """The rig of ``meshes`` (:class:`usdface.model.FaceRig`) whose shapes named in ``names`` move the most
+    vertices (:func:`moving_vertices`: float noise of an export is not motion), or None when none of them
+    moves: the face mesh of an avatar, for the ARKit names."""
+    best, score = None, 0
+    for rig in meshes:
+        idx = [rig.index(n) for n in names if n in rig.names]
+        if not idx:
+            continue
+        moving = int(moving_vertices(peak_motion(rig.deltas[idx]), rig.neutral).sum())
+        if moving > score:
+            best, score = rig, moving
+    return best

@@ -99,7 +99,7 @@ def _rule(rule_id: str, doc: str):
 
 
 #: Rules that take the studio's channel-name map (``name_map=`` {channel: ARKit name}).
-_NAME_MAP_RULES = {"ArkitNames"}
+_NAME_MAP_RULES = {"ArkitNames", "Readable"}
 
 
 def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
@@ -477,20 +477,31 @@ def _provenance(stage) -> Iterable[Issue]:
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
                    "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, ...)")
-def _readable(stage) -> Iterable[Issue]:
+def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
     """Run the reader every usdface command uses (``usdface.io.usd_rig``) on the stage; a refusal is an
     error, so a publish validator never passes a rig the tools then reject."""
+    from ..arkit import ARKIT_NAMES
     from ..errors import UsdFaceError
     from ..io.usd_rig import _read_avatar_stage
+    from ..motion import most_moving_mesh
 
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
     if hasattr(data, "get") and data.get("format") in ("capture", "take"):
         return  # not an avatar: the capture/take readers own those files
     if not _blend_shape_meshes(stage):
-        return  # no face rig at all: the other rules already say so
+        from pxr import Usd, UsdGeom
+
+        if any(p.IsA(UsdGeom.Mesh) for p in stage.Traverse(Usd.TraverseInstanceProxies())):
+            yield Issue(ERROR, "Readable", "/", "no mesh with blend shapes: not a face rig personalize "
+                        "can use", "export the avatar with its shape keys / blend shapes (ARKit names)")
+        return  # no geometry at all (an animation take, a schema file): not an avatar
     try:
-        _read_avatar_stage(stage, Path(layer.realPath or layer.identifier))
+        avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
+        if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
+            yield Issue(ERROR, "Readable", "/", "no face-like blend shapes (no ARKit-named shape that "
+                        "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
+                        "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
     except UsdFaceError as exc:
         yield Issue(ERROR, "Readable", exc.prim or "/", exc.message,
                     exc.fix or "repair the rig; usdface inspect FILE shows what it reads")

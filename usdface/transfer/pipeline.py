@@ -30,7 +30,7 @@ from ..errors import GeometryError, RigError, UsdFaceError
 from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
-from ..motion import moving_vertices, peak_motion, shape_norms
+from ..motion import most_moving_mesh, moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
@@ -111,15 +111,8 @@ class PersonalizeResult:
 
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
-    export is not motion (:func:`usdface.motion.moving_vertices`)."""
-    best, score = None, 0
-    for rig in avatar.meshes:
-        idx = [rig.index(n) for n in names if n in rig.names]
-        if not idx:
-            continue
-        moving = int(moving_vertices(peak_motion(rig.deltas[idx]), rig.neutral).sum())
-        if moving > score:
-            best, score = rig, moving
+    export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
+    best = most_moving_mesh(avatar.meshes, names)
     if best is None:
         raise RigError("the avatar has no face-like blend shapes (no ARKit-named shape that moves)",
                        path=avatar.file,
