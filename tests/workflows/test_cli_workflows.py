@@ -143,3 +143,32 @@ def test_bench_blender_export(bench_case, tmp_path):
     assert_valid_usd(tmp_path / "person.usda")
     assert digest(d / "avatar_blender.usdc") == before
     no_temp_left(tmp_path)
+
+
+def test_studio_named_avatar_needs_the_name_map_once(sample_set, tmp_path):
+    """README "studio names": personalize a studio-named avatar with ``--name-map``; the layer records the
+    map (and the map file's digest), so ``check`` and ``render`` of the layer need no ``--name-map`` again
+    (check reported the layer's jawOpen missing, render "rig Head has no shape 'jawOpen'")."""
+    renamed = {"jawOpen": "JawDrop", "eyeBlinkLeft": "Blink_L", "eyeBlinkRight": "Blink_R"}
+    text = (sample_set / "avatar.usda").read_text()
+    lines = []
+    for line in text.splitlines():
+        if "blendShapes = [" in line:
+            for a, b in renamed.items():
+                line = line.replace(f'"{a}"', f'"{b}"')
+        lines.append(line)
+    (tmp_path / "studio.usda").write_text("\n".join(lines) + "\n")
+    (tmp_path / "names.json").write_text(json.dumps({b: a for a, b in renamed.items()}))
+    before = digest(tmp_path / "studio.usda", tmp_path / "names.json")
+    run("personalize", "studio.usda", sample_set / "capture.usda", "--name-map", "names.json", "-o",
+        "studio_p.usda", "-q", cwd=tmp_path)
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(tmp_path / "studio_p.usda"))
+    data = dict(stage.GetRootLayer().customLayerData)["usdface"]
+    assert dict(data["nameMap"]) == {b: a for a, b in renamed.items()}
+    assert any(str(p).endswith("names.json") for p in data["inputs"])
+    report = json.loads(run("check", "studio_p.usda", "--json", cwd=tmp_path).stdout)
+    assert report["ok"], report
+    run("render", "studio_p.usda", "--compare", "--shapes", "jawOpen", "-o", "c.png", cwd=tmp_path)
+    assert digest(tmp_path / "studio.usda", tmp_path / "names.json") == before

@@ -460,6 +460,8 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
     name_map = read_name_map(name_map)
     path = Path(path)
     stage = _open_stage(path)
+    if name_map is None:                       # a usdface layer over a studio-named avatar carries its map
+        name_map = recorded_name_map(stage)
     try:
         return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only)
     except UsdFaceError:
@@ -611,11 +613,23 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     default_prim = stage.GetDefaultPrim()
     metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
                 "documentation": stage.GetRootLayer().documentation or "",
-                "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static])}
+                "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static]),
+                "name_map": dict(name_map) if name_map else None}
     return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
+
+
+def recorded_name_map(stage) -> dict | None:
+    """The studio's name map a usdface layer was written with (``customLayerData["usdface"]["nameMap"]``,
+    {channel: ARKit name}), so that reading, checking or rendering the layer needs no ``--name-map`` again;
+    None when it has none."""
+    from .name_map import validate_name_map
+
+    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
+    recorded = data.get("nameMap") if hasattr(data, "get") else None
+    return validate_name_map(dict(recorded)) if recorded else None
 
 
 def _instanced(prims) -> dict:

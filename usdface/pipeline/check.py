@@ -106,8 +106,13 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
     ``rules`` selects rule ids from :data:`RULES` (default: all); ``name_map`` ({studio channel: ARKit name},
-    :func:`usdface.io.name_map.read_name_map`) is used by the name rule. Never modifies the stage.
+    :func:`usdface.io.name_map.read_name_map`; default: the one a usdface layer records,
+    :func:`usdface.io.usd_rig.recorded_name_map`) is used by the name rules. Never modifies the stage.
     """
+    if name_map is None:
+        from ..io.usd_rig import recorded_name_map
+
+        name_map = recorded_name_map(stage)
     chosen = list(RULES) if rules is None else list(rules)
     unknown = [r for r in chosen if r not in RULES]
     if unknown:

@@ -669,7 +669,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             prov = {"command": command or "usdface personalize",
                     "parameters": {k: (v if isinstance(v, int | float | str | bool) else str(v))
                                    for k, v in report["options"].items()},
-                    "method": method, "inputs": [str(capture.source)] if capture.source else [],
+                    "method": method,
+                    "inputs": ([str(capture.source)] if capture.source else [])
+                    + ([str(name_map)] if isinstance(name_map, str | Path) else []),
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": registration.as_dict(),
@@ -678,6 +680,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
+            if (avatar.metadata or {}).get("name_map"):   # read back by every reader of the layer
+                prov["nameMap"] = dict(avatar.metadata["name_map"])
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force)
         timings["write"] = time.perf_counter() - t
         advance("write")
