@@ -117,7 +117,8 @@ def inspected(tmp_path_factory, request):
 def test_inspection_layer_contents(inspected):
     from pxr import Usd, UsdGeom, UsdSkel
 
-    from usdface.io.usd_inspection import ANIMATION_NAME, HEAT_PRIMVAR, generic_input, read_landmarks
+    from usdface.io.usd_inspection import ANIMATION_NAME, HEAT_PRIMVAR, read_landmarks
+    from usdface.io.usd_rig import generic_input
     from usdface.pipeline.validators import validate_file
 
     avatar, out, heat = inspected

@@ -172,3 +172,22 @@ def test_studio_named_avatar_needs_the_name_map_once(sample_set, tmp_path):
     assert report["ok"], report
     run("render", "studio_p.usda", "--compare", "--shapes", "jawOpen", "-o", "c.png", cwd=tmp_path)
     assert digest(tmp_path / "studio.usda", tmp_path / "names.json") == before
+
+
+def test_layers_stacked_over_usdface_layers(sample_set, tmp_path):
+    """A landmarks layer over the plain avatar personalizes like the avatar (it was refused as "already
+    personalized"); a landmarks layer over that personalized layer is refused, naming the unpersonalized
+    layer under both, and ``render --compare`` compares with it (it compared the personalized layer with
+    itself as "generic"); a second layout over a layer that has one replaces it (it crashed)."""
+    from usdface.io.usd_rig import generic_input
+
+    avatar, capture = sample_set / "avatar.usda", sample_set / "capture.usda"
+    run("landmarks", avatar, "-o", "lm.usda", "-q", cwd=tmp_path)
+    run("personalize", "lm.usda", capture, "-o", "p.usda", "-q", cwd=tmp_path)
+    run("landmarks", "p.usda", "-o", "lm_p.usda", "-q", cwd=tmp_path)
+    assert generic_input(tmp_path / "lm_p.usda") == (tmp_path / "lm.usda").resolve()
+    assert generic_input(tmp_path / "lm.usda") == avatar.resolve()
+    again = run("personalize", "lm_p.usda", capture, "-o", "pp.usda", cwd=tmp_path, ok=False)
+    assert again.returncode == 2 and "already personalized" in again.stderr
+    assert str((tmp_path / "lm.usda").resolve()) in again.stderr
+    assert not (tmp_path / "pp.usda").exists()

@@ -42,7 +42,7 @@ def register(subparsers) -> None:
 
 def _generic(args, path: Path) -> Path:
     from ..errors import InputFileError
-    from ..io.usd_inspection import generic_input
+    from ..io.usd_rig import generic_input
 
     given = args.compare if args.compare is not None else args.heatmap
     generic = Path(given) if given else generic_input(path)

@@ -41,12 +41,10 @@ import numpy as np
 from .. import __version__
 from ..errors import GeometryError, InputFileError, RigError
 from ..model import Avatar, FaceRig
-from .usd_rig import STAGE_METADATA_KEYS
+from .usd_rig import PERSONALIZATION_VARIANT_SET, STAGE_METADATA_KEYS
 
 #: File extensions the writer accepts (the format follows the extension; ``.usd`` is written as usdc).
 LAYER_EXTENSIONS = (".usda", ".usdc", ".usd")
-#: Variant set (on each SkelRoot) switching the skel binding between personalized and generic shapes.
-PERSONALIZATION_VARIANT_SET = "usdfacePersonalization"
 #: Scope (under each mesh, inside the variants) holding the BlendShape prims the binding points at.
 SHAPES_SCOPE = "usdfaceShapes"
 #: An offset is "non-zero in effect" when its length exceeds this fraction of the shape's largest offset.

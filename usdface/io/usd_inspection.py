@@ -14,7 +14,8 @@ runs on the new layer before saving. It authors, as local opinions of the new la
   Skeleton's ``skel:animationSource`` pointed at it (the original binding target is kept in the relationship's
   ``customData["usdface:originalAnimationSource"]``); the stage's time range covers the animation.
 
-:func:`read_landmarks` and :func:`generic_input` read back what ``usdface render`` needs.
+:func:`read_landmarks` reads back what ``usdface render`` needs (the generic avatar under a layer:
+:func:`usdface.io.usd_rig.generic_input`).
 
 Example::
 
@@ -191,17 +192,6 @@ def read_landmark_settings(stage_or_path) -> dict[str, dict[str, float]]:
                 values[name] = float(attr.Get())
         found[key] = values
     return found
-
-
-def generic_input(layer_path) -> Path | None:
-    """The avatar a usdface layer was written over (its first sublayer, resolved), or None."""
-    from pxr import Sdf
-
-    layer = Sdf.Layer.FindOrOpen(str(layer_path))
-    if layer is None or not layer.subLayerPaths:
-        return None
-    sub = Path(layer.subLayerPaths[0])
-    return sub if sub.is_absolute() else (Path(layer_path).parent / sub).resolve()
 
 
 def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:

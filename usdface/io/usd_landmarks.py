@@ -57,7 +57,7 @@ def author_landmarks(stage, rig: FaceRig, layout, meters_per_unit: float) -> Non
     local = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)[vertices]
     xf = mesh.GetLocalTransformation()
     points = UsdGeom.Points.Define(stage, points_prim_path(rig.source.prim))
-    points.AddTransformOp().Set(xf)
+    points.MakeMatrixXform().Set(xf)      # one transform op, also over an earlier layout (a layer under this)
     points.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local.astype(np.float32)))
     to_world = np.array(UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(0.0), dtype=np.float64)
     scale = abs(np.linalg.det(to_world[:3, :3])) ** (1.0 / 3.0) or 1.0

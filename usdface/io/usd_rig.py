@@ -47,6 +47,9 @@ from ..model import Avatar, FaceRig, Inbetween, MeshSource
 from .mesh_io import fan_triangulate
 
 #: Root-layer metadata that describes how to interpret the stage; a layer written over the avatar repeats it.
+#: Variant set (on each SkelRoot) switching the skel binding between personalized and generic shapes
+#: (authored by :func:`usdface.io.layers.write_avatar_layer`).
+PERSONALIZATION_VARIANT_SET = "usdfacePersonalization"
 STAGE_METADATA_KEYS = ("upAxis", "metersPerUnit", "defaultPrim", "startTimeCode", "endTimeCode",
                        "timeCodesPerSecond", "framesPerSecond", "kilogramsPerUnit")
 
@@ -511,6 +514,36 @@ def usdface_output_provenance(path) -> dict | None:
     return data
 
 
+def _has_personalization(path) -> bool:
+    """Whether the composed stage of ``path`` carries usdface's personalization variant set (authored by
+    ``personalize`` on each SkelRoot, in this layer or one it composes: a landmarks layer over a personalized
+    avatar has it, a landmarks layer over the plain avatar has not)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    return any(p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)
+               for p in stage.Traverse(Usd.TraverseInstanceProxies()))
+
+
+def generic_input(layer_path) -> Path | None:
+    """The generic avatar under a usdface layer: its first sublayer (resolved), followed down while that is
+    itself a personalized layer (a landmarks layer over a personalized avatar compares with the avatar under
+    both), or None without a sublayer."""
+    from pxr import Sdf
+
+    current, seen = Path(layer_path), set()
+    while True:
+        layer = Sdf.Layer.FindOrOpen(str(current))
+        if layer is None or not layer.subLayerPaths:
+            return None if current == Path(layer_path) else current
+        sub = Path(layer.subLayerPaths[0])
+        sub = sub if sub.is_absolute() else (current.parent / sub).resolve()
+        if sub in seen or not sub.is_file() or not _has_personalization(sub):
+            return sub
+        seen.add(sub)
+        current = sub
+
+
 def refuse_usdface_output(path) -> None:
     """Personalizing a usdface output layer again would personalize the personalized shapes (the layer's
     default variant): refuse it, naming the original avatar recorded in the layer's provenance.
@@ -519,9 +552,9 @@ def refuse_usdface_output(path) -> None:
     if not isinstance(path, str | Path):
         return
     data = usdface_output_provenance(path)
-    if data is None:
-        return
-    original = Path(path).parent / str(data["inputs"][0])
+    if data is None or not _has_personalization(path):
+        return                  # not a usdface layer, or one that personalizes nothing (a landmarks layer)
+    original = generic_input(path) or Path(path).parent / str(data["inputs"][0])
     raise RigError("this is a usdface output layer (already personalized); personalizing it again would "
                    "stack the personalization on the personalized shapes", path=path,
                    fix=f"pass the original avatar ({original})")
