@@ -110,7 +110,9 @@ def inputs(tmp_path_factory) -> Path:
     from usdface.io.layers import write_avatar_layer
     from usdface.io.usd_rig import read_avatar
 
-    write_avatar_layer(read_avatar(d / "avatar.usda"), d / "person.usda", {}, provenance={})
+    avatar = read_avatar(d / "avatar.usda")
+    head = avatar.mesh("Head")            # a personalized layer (it carries the personalization variants)
+    write_avatar_layer(avatar, d / "person.usda", {head.key: head.deltas * 1.01}, provenance={})
     return d
 
 

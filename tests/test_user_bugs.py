@@ -132,7 +132,9 @@ def test_usdface_output_is_not_personalized_again(tmp_path, capfd):
     from usdface.io.usd_rig import read_avatar
 
     avatar = read_avatar(SAMPLES / "avatar.usda")
-    layer = write_avatar_layer(avatar, tmp_path / "person.usda", {}, provenance={})
+    head = avatar.mesh("Head")          # personalized offsets: the layer carries the personalization variants
+    layer = write_avatar_layer(avatar, tmp_path / "person.usda", {head.key: head.deltas * 1.01},
+                               provenance={})
     for argv in (["personalize", str(layer), str(SAMPLES / "capture.usda"), "-o", str(tmp_path / "p2.usda")],
                  ["retarget", str(layer), str(SAMPLES / "capture.usda"), "-o", str(tmp_path / "m.json")]):
         assert main(argv) == 2
