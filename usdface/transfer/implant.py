@@ -234,10 +234,13 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         ext = FieldExtension(x, sub_tri, known, length=length)
         beyond, mass = ext.beyond, ext.mass
     else:
-        ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length)
+        # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
+        # face's rim and what lies beyond)
         fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
         beyond = ~known & ~pockets(sub_tri, known, fine_mass)
         del fine_mass
+        ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
+                             in_pocket=~(known | beyond)[proxy.fine])
         proxy.near_face(x, sub_tri, known, known | beyond, length)
     release_free_memory()                            # the factorization's working memory
     if keep_at is None:
