@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
-from ..mesh import triangle_areas, vertex_areas
+from ..mesh import triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
@@ -54,6 +54,8 @@ TRIM_CHUNK_BYTES = 8 << 20
 #: and interpolated to the fine vertices (:class:`FieldProxy`): its cost stops growing with the resolution.
 PROXY_RINGS = 3
 PROXY_MIN_RINGS = 4
+#: A proxy vertex takes its known value at the nearest of this many fine vertices that faces its way.
+PROXY_NEAREST = 8
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
@@ -275,7 +277,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # on the proxy: its known vertices the extension reads, that the join interpolates from and that
         # other meshes follow; each smoothed at its fine vertex, exactly as on the fine mesh
         rows_c = proxy.rows(kept)
-        rows = np.unique(np.concatenate([proxy.fine[rows_c], proxy.strip_known]))
+        rows = np.unique(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]))
         at_row = np.searchsorted(rows, proxy.fine[rows_c])
         mass = np.zeros(domain.size)
         np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
@@ -348,6 +350,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
                       .reshape(proxy.strip_known.size, -1))
                 f[at[proxy.strip]] = proxy.strip_solve(-(proxy.a_sk @ vk
                                                          + proxy.a_so @ f[at[proxy.strip_out]]))
+            if proxy.direct.size:                                 # the join's rim: its own field
+                f[proxy.need_position[proxy.direct]] = (phi[:, np.searchsorted(rows, proxy.direct)]
+                                                        .transpose(1, 0, 2, 3).reshape(proxy.direct.size, -1))
             f = f.reshape(proxy.need.size, k, 3, 3).transpose(1, 0, 2, 3)
             outside = apply_field(gd[:, proxy.need], f)
             wn = w[proxy.need]
@@ -377,20 +382,35 @@ class FieldProxy:
         self.need, self.prolong = need, prolong
 
     def near_face(self, x, triangles, known, fading, length):
-        """The fine unknown vertices within one proxy edge of the known ones (``strip``), where the field
-        varies at the mesh's own resolution (the lips' and lids' margins): solved on the fine mesh (the same
-        screened system, :class:`usdface.transfer.motion_field.FieldExtension`), from the fine known values
-        next to them (``strip_known``) and the proxy's interpolated field around them (``strip_out``).
+        """Where the proxy's interpolation would mix the face's measured field with the extension's, or
+        reads a proxy triangle facing away from the vertex (the other lip), the fine mesh answers itself:
+
+        * ``direct``: the known vertices that read the field (the join) whose proxy triangle has an unknown
+          corner or faces away: their own smoothed field, as on the fine mesh;
+        * ``strip``: the unknown vertices within one proxy edge of the known ones, or whose proxy triangle
+          has a known corner or faces away (the lips' and lids' margins, where the field varies at the
+          mesh's own resolution): solved on the fine mesh (the same screened system,
+          :class:`usdface.transfer.motion_field.FieldExtension`) from the fine known values next to them
+          (``strip_known``) and the proxy's interpolated field around them (``strip_out``).
+
         ``fading[n]``: the vertices whose screening applies (not the sockets' pockets)."""
         from scipy.spatial import cKDTree
 
+        from ..mesh import spd_lu, triangle_normals, vertex_normals
         from .surface import cotangent_laplacian
 
+        corners = self.prolong.indices.reshape(-1, 3)            # each row: its proxy triangle, in order
+        facing = np.einsum("qc,qc->q", vertex_normals(x, triangles)[self.need],
+                           triangle_normals(self.points, corners, unit=False)) > 0
+        known_corner = self.known[corners]
+        known_need = known[self.need]
+        self.direct = self.need[known_need & (~known_corner.all(axis=1) | ~facing)]
         free = np.flatnonzero(~known)
         edge = float(np.sqrt(np.mean(np.sum((self.points[self.triangles[:, 0]]
                                              - self.points[self.triangles[:, 1]]) ** 2, axis=1))))
         d = cKDTree(x[known]).query(x[free], distance_upper_bound=edge)[0]
-        self.strip = free[d < edge]
+        self.strip = np.union1d(free[d < edge],
+                                self.need[~known_need & (known_corner.any(axis=1) | ~facing)])
         self.need_position = np.full(len(x), -1)
         self.need_position[self.need] = np.arange(self.need.size)
         if not self.strip.size:
@@ -408,9 +428,9 @@ class FieldProxy:
         self.strip_known = around[known[around]]
         self.strip_out = around[~known[around] & ~in_strip[around]]
         self.a_sk, self.a_so = rows[:, self.strip_known].tocsr(), rows[:, self.strip_out].tocsr()
-        from ..mesh import spd_lu
-
-        self.strip_solve = spd_lu(rows[:, self.strip].tocsc()).solve
+        a_ss = rows[:, self.strip]
+        reg = 1e-12 * float(np.abs(a_ss.diagonal()).mean() or 1.0)   # as FieldExtension: a closed pocket
+        self.strip_solve = spd_lu((a_ss + reg * sp.eye(self.strip.size)).tocsc()).solve
 
     def rows(self, kept) -> np.ndarray:
         """The proxy's known vertices whose field is read: next to an unknown one (the extension's boundary
@@ -445,7 +465,11 @@ def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
     xc, tc = decimate(x[region], local[tri], edge)
     if len(xc) >= region.sum():
         return None
-    fine = cKDTree(x).query(xc)[1]
+    # each proxy vertex's fine vertex: the nearest on the same side of the surface (where two sheets touch,
+    # as closed lips, the nearest may be on the other one)
+    near = cKDTree(x).query(xc, k=PROXY_NEAREST)[1]                                   # [p, k]
+    agree = np.einsum("pc,pkc->pk", vertex_normals(xc, tc), vertex_normals(x, triangles)[near]) > 0
+    fine = near[np.arange(len(xc)), np.where(agree.any(axis=1), np.argmax(agree, axis=1), 0)]
     return FieldProxy(xc, tc, fine, known[fine], need, prolongation(xc, tc, x[need]))
 
 

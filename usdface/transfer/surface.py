@@ -114,7 +114,8 @@ def decimate(points, triangles, edge: float):
 def prolongation(coarse_points, coarse_triangles, queries):
     """``[q, p]`` sparse (CSR) linear interpolation from the vertices of a coarse mesh to ``queries[q,3]``:
     each row the barycentric weights of the query's closest point on the coarse surface (3 entries summing
-    to 1), so a field linear over each coarse triangle is reproduced exactly there."""
+    to 1, in the order of that coarse triangle's corners: ``indices.reshape(-1, 3)`` are the triangles), so
+    a field linear over each coarse triangle is reproduced exactly there."""
     import scipy.sparse as sp
 
     tri, bary, _, _ = SurfaceQuery(coarse_points, coarse_triangles).closest_points(queries)
