@@ -231,7 +231,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         from ..mesh import mean_edge_length
 
         rings = max(rings, int(round(smoothing / mean_edge_length(x, sub_tri))))
-    proxy = _field_proxy(x, sub_tri, known, w, smoothing) if rings >= PROXY_MIN_RINGS else None
+    proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
+             if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
     if proxy is None:
         ext = FieldExtension(x, sub_tri, known, length=length)
         beyond, mass = ext.beyond, ext.mass
@@ -463,7 +464,7 @@ def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
     tri = tri[region[tri].all(axis=1)]
     local = np.cumsum(region) - 1
     xc, tc = decimate(x[region], local[tri], edge)
-    if len(xc) >= region.sum():
+    if len(tc) == 0 or len(xc) >= region.sum():
         return None
     # each proxy vertex's fine vertex: the nearest on the same side of the surface (where two sheets touch,
     # as closed lips, the nearest may be on the other one)
