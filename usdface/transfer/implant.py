@@ -207,6 +207,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
     written): one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same).
 
+    On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
+    solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
+    of the smoothing no longer grows with the resolution) and interpolated to the fine vertices, which solve
+    it themselves next to the face; the field is then kept at the proxy's vertices.
+
     Memory (a production head's peak is here): ``generic`` may be a :class:`usdface.memory.Float32Offsets`
     (read shape by shape, half the bytes) and ``person`` a callable that returns the array, called once the
     extension is factorized (the factorization's working memory and the ``[J,m,3]`` array are never
@@ -372,10 +377,14 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
 
 
 class FieldProxy:
-    """A coarser mesh of the moving part the field is extended on (:func:`_field_proxy`): ``points[p,3]``,
-    ``triangles[s,3]``; ``fine[p]`` the fine vertex nearest to each of its vertices (where its known values
-    are measured), ``known[p]`` theirs; ``need[q]`` the fine vertices whose result reads the field (the
-    face weight ramp below 1) and ``prolong[q,p]`` (CSR) the barycentric interpolation to them."""
+    """A coarser mesh of the moving part the field is extended on (:func:`_field_proxy`): ``points[p,3]``
+    (m), ``triangles[s,3]``; ``fine[p]`` (indices into the fine vertices) the nearest fine vertex facing
+    the same way as each of its vertices (where its known value is measured), ``known[p]`` theirs;
+    ``need[q]`` the fine vertices whose result reads the field (the face weight ramp below 1) and
+    ``prolong[q,p]`` (CSR) the barycentric interpolation to them. :meth:`near_face` adds where the fine
+    mesh answers itself: ``direct[a]``, ``strip[b]`` (fine vertex indices), ``strip_known``/``strip_out``
+    (their fine neighbours), the strip's blocks ``a_sk[b, .]``, ``a_so[b, .]`` and its factorized
+    ``strip_solve``, and ``need_position[n]`` (a fine vertex's row in ``need``, -1 if none)."""
 
     def __init__(self, points, triangles, fine, known, need, prolong):
         self.points, self.triangles = points, triangles
@@ -397,7 +406,7 @@ class FieldProxy:
         ``fading[n]``: the vertices whose screening applies (not the sockets' pockets)."""
         from scipy.spatial import cKDTree
 
-        from ..mesh import spd_lu, triangle_normals, vertex_normals
+        from ..mesh import spd_lu, triangle_normals
         from .surface import cotangent_laplacian
 
         corners = self.prolong.indices.reshape(-1, 3)            # each row: its proxy triangle, in order
@@ -468,7 +477,8 @@ def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
         return None
     # each proxy vertex's fine vertex: the nearest on the same side of the surface (where two sheets touch,
     # as closed lips, the nearest may be on the other one)
-    near = cKDTree(x).query(xc, k=PROXY_NEAREST)[1]                                   # [p, k]
+    k = min(PROXY_NEAREST, len(x))
+    near = cKDTree(x).query(xc, k=k)[1].reshape(len(xc), k)                           # [p, k]
     agree = np.einsum("pc,pkc->pk", vertex_normals(xc, tc), vertex_normals(x, triangles)[near]) > 0
     fine = near[np.arange(len(xc)), np.where(agree.any(axis=1), np.argmax(agree, axis=1), 0)]
     return FieldProxy(xc, tc, fine, known[fine], need, prolongation(xc, tc, x[need]))
