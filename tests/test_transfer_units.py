@@ -223,6 +223,12 @@ def test_correspondence_cache_round_trip_and_key(tmp_path):
     assert back.info["face_vertices"] == 1
     assert load_correspondence(path, "other-avatar") is None
     assert geometry_digest(np.ones(3)) != geometry_digest(np.ones(3) * 2)
+    np.testing.assert_array_equal(back.source_triangle, corr.source_triangle)
+    # without the source triangles (the default face transfer does not read them): None again when read
+    corr.source_triangle = None
+    back = load_correspondence(save_correspondence(corr, tmp_path / "d.npz"), "abc")
+    assert back.source_triangle is None
+    np.testing.assert_array_equal(back.barycentric, corr.barycentric)
 
 
 def _synthetic(names_avatar, names_capture):

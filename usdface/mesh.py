@@ -195,7 +195,11 @@ def edges(triangles: np.ndarray) -> np.ndarray:
     t = np.asarray(triangles, dtype=np.int64)
     e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
     m = int(e.max()) + 1 if e.size else 1
-    key = np.unique(e[:, 0] * m + e[:, 1])                      # 1-D integer keys: a fast sort
+    # 1-D integer keys, sorted and deduplicated: what np.unique returns, without its hash table (numpy >= 2.3
+    # takes it for plain unique values: 0.33 CPU-s on the 1.35M keys of a 450k-triangle mesh, against
+    # 0.03 s for the sort)
+    key = np.sort(e[:, 0] * m + e[:, 1])
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])] if key.size else key
     return np.stack([key // m, key % m], axis=1)
 
 

@@ -37,7 +37,7 @@ from .surface import (
 __all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
            "save_correspondence", "load_correspondence"]
 
-CACHE_VERSION = 4
+CACHE_VERSION = 5
 
 
 @dataclass
@@ -47,9 +47,10 @@ class Correspondence:
     ``triangle[m]`` (capture triangle of each avatar vertex), ``barycentric[m,3]``, ``distance[m]`` (m, from
     the avatar vertex to the registered capture surface), ``face[m]`` bool (the face region),
     ``source_triangle[t_avatar]`` the capture triangle under each avatar face triangle's centroid (-1 for
-    triangles not entirely in the face), ``weight[m]`` in [0,1] the face membership (1 = fully face, the
-    region's rim ramps down to 0; ``face = weight > 0``), ``key`` the
-    digest it belongs to, ``info`` figures for the report, ``registered[n,3]`` the capture template deformed
+    triangles not entirely in the face; None when not computed: only the deformation-transfer modes read
+    it), ``weight[m]`` in [0,1] the face membership (1 = fully face, the region's rim ramps down to 0;
+    ``face = weight > 0``), ``key`` the digest it belongs to, ``info`` figures for the report,
+    ``registered[n,3]`` the capture template deformed
     onto the avatar face (the inverse map's source).
     """
 
@@ -57,7 +58,7 @@ class Correspondence:
     barycentric: np.ndarray
     distance: np.ndarray
     face: np.ndarray
-    source_triangle: np.ndarray
+    source_triangle: np.ndarray | None
     weight: np.ndarray | None = None
     key: str = ""
     info: dict | None = None
@@ -191,7 +192,8 @@ def _solve(a, rhs):
 
 def correspondence_map(registered, capture_triangles, avatar_points, avatar_triangles, *,
                        max_distance_ratio: float = 0.5, max_angle_deg: float = 60.0,
-                       candidates=None, exclude_border: bool = True, poses=None) -> Correspondence:
+                       candidates=None, exclude_border: bool = True, poses=None,
+                       source_triangles: bool = True) -> Correspondence:
     """Closest point on the registered capture surface for every avatar face-mesh vertex, and the face region.
 
     ``registered[n,3]`` the capture template after :func:`nonrigid_register`; ``avatar_points[m,3]``.
@@ -202,7 +204,9 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
 
     ``poses``: ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of the same shape on both rigs: the
     closest point is taken in all poses at once (:class:`PosedSurface`), so that no avatar vertex lands on
-    the other lip or lid.
+    the other lip or lid. ``source_triangles=False``: no ``source_triangle`` (None; the closest points of
+    every face triangle's centroid, as many queries again as the vertices and more, for the deformation
+    transfer only).
     """
     reg = np.asarray(registered, dtype=np.float64)
     ctri = np.asarray(capture_triangles)
@@ -241,8 +245,8 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
         weight = weight * np.asarray(candidates, dtype=bool)
     face = weight > 0
     atri = np.asarray(avatar_triangles)
-    src_tri = np.full(len(atri), -1, dtype=np.int64)
-    in_face = np.flatnonzero(face[atri].all(axis=1))
+    src_tri = np.full(len(atri), -1, dtype=np.int64) if source_triangles else None
+    in_face = np.flatnonzero(face[atri].all(axis=1)) if source_triangles else np.zeros(0, dtype=np.int64)
     if in_face.size:
         src_tri[in_face] = surface.closest_points(
             ap[atri[in_face]].mean(axis=1),
@@ -281,7 +285,10 @@ def save_correspondence(corr: Correspondence, path) -> Path:
     path = Path(path)
     with atomic_file(path, force=True) as tmp, open(tmp, "wb") as f:  # a file object: no ".npz" appended
         np.savez_compressed(f, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
-                            face=corr.face, source_triangle=corr.source_triangle,
+                            face=corr.face,
+                            source_triangle=(corr.source_triangle if corr.source_triangle is not None
+                                             else np.zeros(0, dtype=np.int64)),
+                            has_source_triangle=np.array(corr.source_triangle is not None),
                             weight=corr.weight if corr.weight is not None else corr.face.astype(float),
                             registered=(corr.registered if corr.registered is not None
                                         else np.zeros((0, 3))),
@@ -300,7 +307,8 @@ def load_correspondence(path, key: str | None = None) -> Correspondence | None:
             if int(z["version"]) != CACHE_VERSION or (key is not None and str(z["key"]) != key):
                 return None
             return Correspondence(z["triangle"], z["barycentric"], z["distance"], z["face"].astype(bool),
-                                  z["source_triangle"], z["weight"], str(z["key"]),
+                                  z["source_triangle"] if bool(z["has_source_triangle"]) else None,
+                                  z["weight"], str(z["key"]),
                                   json.loads(str(z["info"])),
                                   z["registered"] if len(z["registered"]) else None)
     except (OSError, KeyError, ValueError, EOFError) as exc:

@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
+from ..mesh import triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
@@ -33,6 +34,7 @@ from .motion_field import (
     field_noise,
     motion_weights,
     neighbourhood_matrix,
+    pockets,
     reliability,
     rotation_scale,
     smooth_field,
@@ -46,6 +48,14 @@ SHAPE_CHUNK = 1
 #: big: on a bench head (1 MB per array) trimming after every shape and faulting the pages back in cost 0.14 s
 #: of a 0.5 s transfer; on a 225k-vertex head (16 MB) it keeps the heap flat.
 TRIM_CHUNK_BYTES = 8 << 20
+#: The field is known at the capture's resolution (its smoothing length, one placed capture edge): on a mesh
+#: that resolves that length with at least PROXY_MIN_RINGS edge rings, the field's extension is solved on
+#: a proxy of the mesh decimated to PROXY_RINGS edges per smoothing length (a bench head's own resolution)
+#: and interpolated to the fine vertices (:class:`FieldProxy`): its cost stops growing with the resolution.
+PROXY_RINGS = 3
+PROXY_MIN_RINGS = 4
+#: A proxy vertex takes its known value at the nearest of this many fine vertices that faces its way.
+PROXY_NEAREST = 8
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
@@ -197,6 +207,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
     written): one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same).
 
+    On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
+    solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
+    of the smoothing no longer grows with the resolution) and interpolated to the fine vertices, which solve
+    it themselves next to the face; the field is then kept at the proxy's vertices.
+
     Memory (a production head's peak is here): ``generic`` may be a :class:`usdface.memory.Float32Offsets`
     (read shape by shape, half the bytes) and ``person`` a callable that returns the array, called once the
     extension is factorized (the factorization's working memory and the ``[J,m,3]`` array are never
@@ -216,19 +231,34 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     sub_tri = local[tri[(local[tri] >= 0).all(axis=1)]]
     x = np.asarray(points, dtype=np.float64)[domain]
     known = w0[domain] >= 1.0 - 1e-9
-    ext = FieldExtension(x, sub_tri, known, length=length)
-    release_free_memory()                            # the factorization's working memory
+    w = seam_ramp(points, w0, band)[domain]
     if smoothing and len(sub_tri):
         from ..mesh import mean_edge_length
 
         rings = max(rings, int(round(smoothing / mean_edge_length(x, sub_tri))))
+    proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
+             if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
+    if proxy is None:
+        ext = FieldExtension(x, sub_tri, known, length=length)
+        beyond, mass = ext.beyond, ext.mass
+    else:
+        # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
+        # face's rim and what lies beyond)
+        fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
+        beyond = ~known & ~pockets(sub_tri, known, fine_mass)
+        del fine_mass
+        ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
+                             in_pocket=~(known | beyond)[proxy.fine])
+        proxy.near_face(x, sub_tri, known, known | beyond, length)
+    release_free_memory()                            # the factorization's working memory
     if keep_at is None:
-        kept = np.arange(domain.size)
+        kept = np.arange(domain.size if proxy is None else len(proxy.points))
     else:
         from scipy.spatial import cKDTree
 
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
-        kept = np.unique(cKDTree(x).query(q)[1]) if len(q) else np.zeros(0, dtype=np.int64)
+        kept = (np.unique(cKDTree(x if proxy is None else proxy.points).query(q)[1]) if len(q)
+                else np.zeros(0, dtype=np.int64))
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
     if overwrite:
         result = None                                # the person's array, formed below
@@ -238,21 +268,36 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         if out.shape != g.shape or out.dtype != np.float64:
             raise ValueError(f"out must be float64 {g.shape}, not {out.dtype} {out.shape}")
         result = out
-    w = seam_ramp(points, w0, band)[domain]
     # how much of the reliability shrink applies: 1 beyond the face, ramping to 0 over the band inside it
     # (and 0 around the sockets: their values are surrounded by the capture and not extrapolated)
-    toward = 1.0 - seam_ramp(x, (~ext.beyond).astype(np.float64), band) if shrink else np.zeros(domain.size)
+    toward = 1.0 - seam_ramp(x, (~beyond).astype(np.float64), band) if shrink else np.zeros(domain.size)
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
-    touches_free = np.zeros(domain.size, dtype=bool)          # shares a triangle (so an edge) with a free one
-    touches_free[sub_tri[(~known)[sub_tri].any(axis=1)].ravel()] = True
-    is_kept = np.zeros(domain.size, dtype=bool)
-    is_kept[kept] = True
-    rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
-    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()   # column slices per chunk
-    shrunk = rows[toward[rows] > 0]                             # the rows whose field is shrunk
-    patch = sp.csr_matrix(smoother)[np.flatnonzero(toward[rows] > 0)] if shrunk.size else None
+    if proxy is None:
+        touches_free = np.zeros(domain.size, dtype=bool)      # shares a triangle (so an edge) with a free one
+        touches_free[sub_tri[(~known)[sub_tri].any(axis=1)].ravel()] = True
+        is_kept = np.zeros(domain.size, dtype=bool)
+        is_kept[kept] = True
+        rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
+    else:
+        # on the proxy: its known vertices the extension reads, that the join interpolates from and that
+        # other meshes follow; each smoothed at its fine vertex, exactly as on the fine mesh
+        rows_c = proxy.rows(kept)
+        rows = np.unique(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]))
+        at_row = np.searchsorted(rows, proxy.fine[rows_c])
+        mass = np.zeros(domain.size)
+        np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
+    # the smoothing on the vertices it reads only (the columns of its rows' neighbourhoods), in their order:
+    # the same sums as on the whole mesh
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()
+    reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
+    smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk
+    known_r = known[reach]
+    sel = np.flatnonzero(toward[rows] > 0)                      # the rows whose field is shrunk
+    shrunk = rows[sel]
+    patch = sp.csr_matrix(smoother)[sel] if shrunk.size else None
     patch_size = np.asarray(patch.sum(axis=1)).ravel() if shrunk.size else None
+    shrunk_r = np.searchsorted(reach, shrunk)
     release_free_memory()                            # its construction's products
     # the person's array last: the factorization's and the smoother's working memory are gone by then
     p = np.asarray(person() if callable(person) else person, dtype=np.float64)
@@ -264,44 +309,179 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         gd, pd = g[js][:, domain], p[js][:, domain]
         k = gd.shape[0]
-        phi = np.zeros((k, domain.size, 3, 3))
-        valid = np.zeros((k, domain.size), dtype=bool)
-        mw = motion_weights(gd)
-        jj, vv = np.nonzero((mw > 0) & known[None])       # measured where known and the shape moves (sparse)
+        gr, pr = gd[:, reach], pd[:, reach]
+        mw = motion_weights(gd)[:, reach]
+        phi = np.zeros((k, reach.size, 3, 3))
+        valid = np.zeros((k, reach.size), dtype=bool)
+        jj, vv = np.nonzero((mw > 0) & known_r[None])   # measured where known and the shape moves (sparse)
         # the person model of :func:`mapping_outliers`: a vertex whose personalized motion is more than
         # MAX_RATIO times longer or shorter than the generic says nothing about the field (a mapping error
         # the capture-side test did not catch); its neighbours' field fills in
-        phi[jj, vv], valid[jj, vv] = rotation_scale(gd[jj, vv], pd[jj, vv], max_scale=MAX_RATIO)
+        phi[jj, vv], valid[jj, vv] = rotation_scale(gr[jj, vv], pr[jj, vv], max_scale=MAX_RATIO)
         mw = mw * valid
-        phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother, rows=rows)
+        phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother)          # [k, rows, 3, 3]
         if shrunk.size:
             # the generic motion and the personalization averaged over the patch each value of the field was
             # averaged on (the capture's resolution), where the field was measured; the noise of that
             # average, estimated on the values that are carried beyond the face
             measured = (mw > 0)[..., None]
-            a_bar, d_bar = ((patch @ (v * measured).transpose(1, 0, 2).reshape(domain.size, k * 3))
+            a_bar, d_bar = ((patch @ (v * measured).transpose(1, 0, 2).reshape(reach.size, k * 3))
                             .reshape(shrunk.size, k, 3).transpose(1, 0, 2) / patch_size[:, None]
-                            for v in (gd, pd - gd))
-            noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk, 0], ext.mass[shrunk])
+                            for v in (gr, pr - gr))
+            noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk_r, 0], mass[shrunk])
             motion2 = np.einsum("jvc,jvc->jv", a_bar, a_bar)
             keep = 1.0 - toward[shrunk] * (1.0 - reliability(motion2, noise2, spread2))
-            phi[:, shrunk] *= keep[..., None, None]
-        flat = phi.transpose(1, 0, 2, 3).reshape(domain.size, -1)
-        del phi                                                   # bounded memory: one [k, m, 9] at a time
-        f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
-        del flat
-        field[js] = f[:, kept]
-        skin[js] = gd[:, kept]
-        outside = apply_field(gd, f)
-        result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
-        del gd, pd, f, outside
+            phi[:, sel] *= keep[..., None, None]
+        del gr, pr, mw, valid
+        if proxy is None:
+            flat = np.zeros((domain.size, k * 9))
+            flat[rows] = phi.transpose(1, 0, 2, 3).reshape(rows.size, -1)
+            f = ext.extend(flat).reshape(domain.size, k, 3, 3).transpose(1, 0, 2, 3)
+            del flat
+            field[js] = f[:, kept]
+            skin[js] = gd[:, kept]
+            outside = apply_field(gd, f)
+            result[js, domain] = w[None, :, None] * pd + (1.0 - w)[None, :, None] * outside
+        else:
+            flat = np.zeros((len(proxy.points), k * 9))
+            flat[rows_c] = phi[:, at_row].transpose(1, 0, 2, 3).reshape(rows_c.size, -1)
+            fc = ext.extend(flat)                                 # [p, k*9] on the proxy
+            del flat
+            field[js] = fc[kept].reshape(kept.size, k, 3, 3).transpose(1, 0, 2, 3)
+            skin[js] = gd[:, proxy.fine[kept]]
+            f = proxy.prolong @ fc                                # [need, k*9]
+            if proxy.strip.size:                                  # next to the face: the fine solve
+                at = proxy.need_position
+                vk = (phi[:, np.searchsorted(rows, proxy.strip_known)].transpose(1, 0, 2, 3)
+                      .reshape(proxy.strip_known.size, -1))
+                f[at[proxy.strip]] = proxy.strip_solve(-(proxy.a_sk @ vk
+                                                         + proxy.a_so @ f[at[proxy.strip_out]]))
+            if proxy.direct.size:                                 # the join's rim: its own field
+                f[proxy.need_position[proxy.direct]] = (phi[:, np.searchsorted(rows, proxy.direct)]
+                                                        .transpose(1, 0, 2, 3).reshape(proxy.direct.size, -1))
+            f = f.reshape(proxy.need.size, k, 3, 3).transpose(1, 0, 2, 3)
+            outside = apply_field(gd[:, proxy.need], f)
+            wn = w[proxy.need]
+            pd[:, proxy.need] = wn[None, :, None] * pd[:, proxy.need] + (1.0 - wn)[None, :, None] * outside
+            result[js, domain] = pd
+            del fc
+        del gd, pd, f, outside, phi
         if trim_chunks:
             release_free_memory()                                 # the chunk's arrays: the heap stays flat
     if out is not None:                                           # elsewhere 0, as a fresh result
         rest = np.ones(m, dtype=bool)
         rest[domain] = False
         result[:, rest] = 0.0
-    return result, FieldOnMesh(x[kept], field, rings, generic=skin)
+    points_kept = x[kept] if proxy is None else proxy.points[kept]
+    return result, FieldOnMesh(points_kept, field, rings, generic=skin)
+
+
+class FieldProxy:
+    """A coarser mesh of the moving part the field is extended on (:func:`_field_proxy`): ``points[p,3]``
+    (m), ``triangles[s,3]``; ``fine[p]`` (indices into the fine vertices) the nearest fine vertex facing
+    the same way as each of its vertices (where its known value is measured), ``known[p]`` theirs;
+    ``need[q]`` the fine vertices whose result reads the field (the face weight ramp below 1) and
+    ``prolong[q,p]`` (CSR) the barycentric interpolation to them. :meth:`near_face` adds where the fine
+    mesh answers itself: ``direct[a]``, ``strip[b]`` (fine vertex indices), ``strip_known``/``strip_out``
+    (their fine neighbours), the strip's blocks ``a_sk[b, .]``, ``a_so[b, .]`` and its factorized
+    ``strip_solve``, and ``need_position[n]`` (a fine vertex's row in ``need``, -1 if none)."""
+
+    def __init__(self, points, triangles, fine, known, need, prolong):
+        self.points, self.triangles = points, triangles
+        self.fine, self.known = fine, known
+        self.need, self.prolong = need, prolong
+
+    def near_face(self, x, triangles, known, fading, length):
+        """Where the proxy's interpolation would mix the face's measured field with the extension's, or
+        reads a proxy triangle facing away from the vertex (the other lip), the fine mesh answers itself:
+
+        * ``direct``: the known vertices that read the field (the join) whose proxy triangle has an unknown
+          corner or faces away: their own smoothed field, as on the fine mesh;
+        * ``strip``: the unknown vertices within one proxy edge of the known ones, or whose proxy triangle
+          has a known corner or faces away (the lips' and lids' margins, where the field varies at the
+          mesh's own resolution): solved on the fine mesh (the same screened system,
+          :class:`usdface.transfer.motion_field.FieldExtension`) from the fine known values next to them
+          (``strip_known``) and the proxy's interpolated field around them (``strip_out``).
+
+        ``fading[n]``: the vertices whose screening applies (not the sockets' pockets)."""
+        from scipy.spatial import cKDTree
+
+        from ..mesh import spd_lu, triangle_normals
+        from .surface import cotangent_laplacian
+
+        corners = self.prolong.indices.reshape(-1, 3)            # each row: its proxy triangle, in order
+        facing = np.einsum("qc,qc->q", vertex_normals(x, triangles)[self.need],
+                           triangle_normals(self.points, corners, unit=False)) > 0
+        known_corner = self.known[corners]
+        known_need = known[self.need]
+        self.direct = self.need[known_need & (~known_corner.all(axis=1) | ~facing)]
+        free = np.flatnonzero(~known)
+        edge = float(np.sqrt(np.mean(np.sum((self.points[self.triangles[:, 0]]
+                                             - self.points[self.triangles[:, 1]]) ** 2, axis=1))))
+        d = cKDTree(x[known]).query(x[free], distance_upper_bound=edge)[0]
+        self.strip = np.union1d(free[d < edge],
+                                self.need[~known_need & (known_corner.any(axis=1) | ~facing)])
+        self.need_position = np.full(len(x), -1)
+        self.need_position[self.need] = np.arange(self.need.size)
+        if not self.strip.size:
+            self.strip_known = np.zeros(0, dtype=np.int64)
+            return
+        in_strip = np.zeros(len(x), dtype=bool)
+        in_strip[self.strip] = True
+        tri = triangles[in_strip[triangles].any(axis=1)]              # the rows of the strip need only these
+        lap = cotangent_laplacian(x, tri)
+        if length:
+            mass = vertex_areas(tri, triangle_areas(x, tri), len(x))
+            lap = (lap + sp.diags(np.where(fading, mass, 0.0) / length ** 2)).tocsr()
+        rows = lap[self.strip]
+        around = np.flatnonzero(np.diff(rows.tocsc().indptr) > 0)
+        self.strip_known = around[known[around]]
+        self.strip_out = around[~known[around] & ~in_strip[around]]
+        self.a_sk, self.a_so = rows[:, self.strip_known].tocsr(), rows[:, self.strip_out].tocsr()
+        a_ss = rows[:, self.strip]
+        reg = 1e-12 * float(np.abs(a_ss.diagonal()).mean() or 1.0)   # as FieldExtension: a closed pocket
+        self.strip_solve = spd_lu((a_ss + reg * sp.eye(self.strip.size)).tocsc()).solve
+
+    def rows(self, kept) -> np.ndarray:
+        """The proxy's known vertices whose field is read: next to an unknown one (the extension's boundary
+        values), in the interpolation of a fine vertex that reads the field, or kept for other meshes."""
+        used = np.zeros(len(self.points), dtype=bool)
+        used[self.triangles[(~self.known)[self.triangles].any(axis=1)].ravel()] = True
+        used[self.prolong.indices] = True
+        used[kept] = True
+        return np.flatnonzero(self.known & used)
+
+
+def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
+    """The field's mesh when the avatar's is finer than the field's resolution: decimated to an edge of
+    ``smoothing / PROXY_RINGS`` (:func:`usdface.transfer.surface.decimate`); None when that is not
+    coarser than ``x[n,3]`` / ``triangles``. ``known[n]``, ``w[n]``: the fine known vertices and the face
+    weight ramp (:func:`seam_ramp`)."""
+    from scipy.spatial import cKDTree
+
+    from .surface import decimate, prolongation
+
+    edge = smoothing / PROXY_RINGS
+    need = np.flatnonzero(w < 1.0)
+    # the proxy covers what reads the field and two of its edges around it (the face's inside keeps its own
+    # values: the result there is the person's shape)
+    region = np.ones(len(x), dtype=bool)
+    if need.size < len(x):
+        inside = w >= 1.0
+        region[inside] = cKDTree(x[need]).query(x[inside], distance_upper_bound=2.0 * edge)[0] < 2.0 * edge
+    tri = np.asarray(triangles)
+    tri = tri[region[tri].all(axis=1)]
+    local = np.cumsum(region) - 1
+    xc, tc = decimate(x[region], local[tri], edge)
+    if len(tc) == 0 or len(xc) >= region.sum():
+        return None
+    # each proxy vertex's fine vertex: the nearest on the same side of the surface (where two sheets touch,
+    # as closed lips, the nearest may be on the other one)
+    k = min(PROXY_NEAREST, len(x))
+    near = cKDTree(x).query(xc, k=k)[1].reshape(len(xc), k)                           # [p, k]
+    agree = np.einsum("pc,pkc->pk", vertex_normals(xc, tc), vertex_normals(x, triangles)[near]) > 0
+    fine = near[np.arange(len(xc)), np.where(agree.any(axis=1), np.argmax(agree, axis=1), 0)]
+    return FieldProxy(xc, tc, fine, known[fine], need, prolongation(xc, tc, x[need]))
 
 
 class FieldOnMesh:

@@ -192,9 +192,11 @@ def pockets(triangles, known, mass) -> np.ndarray:
 class FieldExtension:
     """Screened harmonic extension on one mesh, factorized once: :meth:`extend` maps ``values[m,c]`` given on
     ``known[m]`` to every vertex (see :func:`extend_field`). ``mass[m]``: lumped vertex areas; ``beyond[m]``:
-    the unknown vertices outside the :func:`pockets` (where the field fades)."""
+    the unknown vertices outside the :func:`pockets` (where the field fades); ``in_pocket[m]`` (bool,
+    optional): the pockets as found on another mesh of the same surface (a proxy of it), instead of on this
+    one."""
 
-    def __init__(self, points, triangles, known, *, length: float | None):
+    def __init__(self, points, triangles, known, *, length: float | None, in_pocket=None):
         x0 = np.asarray(points, dtype=np.float64)
         tri = np.asarray(triangles)
         self.known = np.asarray(known, dtype=bool)
@@ -202,7 +204,12 @@ class FieldExtension:
         self.free = np.flatnonzero(~self.known)
         self.kidx = np.flatnonzero(self.known)
         self.mass = vertex_areas(tri, triangle_areas(x0, tri), len(x0)) if len(tri) else np.zeros(self.n)
-        in_pocket = pockets(tri, self.known, self.mass) if len(tri) else np.zeros(self.n, dtype=bool)
+        if in_pocket is not None:
+            in_pocket = np.asarray(in_pocket, dtype=bool) & ~self.known
+        elif len(tri):
+            in_pocket = pockets(tri, self.known, self.mass)
+        else:
+            in_pocket = np.zeros(self.n, dtype=bool)
         self.beyond = ~self.known & ~in_pocket
         self._solve = None
         if self.free.size == 0 or self.kidx.size == 0:

@@ -237,7 +237,10 @@ def pose_by_length(template_delta, avatar_delta):
 
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
-                    initial=None, target=None):
+                    initial=None, target=None, source_triangles: bool = True):
+    """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
+    and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
+    otherwise."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -245,7 +248,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
                           *[avatar_deltas[names.index(n)] for n in sem])
     if cache is not None:
         corr = load_correspondence(cache, key)
-        if corr is not None:
+        if corr is not None and (corr.source_triangle is not None or not source_triangles):
             corr.info = {**(corr.info or {}), "cache": "hit"}
             return corr
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
@@ -255,7 +258,8 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
                                             poses=poses)
-    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses)
+    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses,
+                              source_triangles=source_triangles)
     corr.registered = registered
     nr_info["semantic_shapes"] = ",".join(used)
     corr.key = key
@@ -542,7 +546,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
-                               initial=sim, target=registration.target)
+                               initial=sim, target=registration.target,
+                               source_triangles=face_transfer != "person")   # the deformation transfer's
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",

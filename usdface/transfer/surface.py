@@ -25,7 +25,7 @@ from ..mesh import (
 
 __all__ = ["triangle_normals", "vertex_normals", "triangle_areas", "gradient_operator", "cotangent_laplacian",
            "boundary_vertices", "closest_points", "SurfaceQuery", "mean_edge_length", "vertex_adjacency",
-           "surface_samples"]
+           "surface_samples", "decimate", "prolongation"]
 
 
 def cotangent_laplacian(points, triangles):
@@ -87,3 +87,39 @@ def surface_samples(points, triangles, subdivisions: int) -> np.ndarray:
     b1, b2 = i[keep] / s, j[keep] / s
     bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)  # [g,3]
     return np.einsum("gk,tkc->tgc", bary, p[t]).reshape(-1, 3)
+
+
+def decimate(points, triangles, edge: float):
+    """A coarser mesh of the same surface whose mean edge is about ``edge`` metres: Open3D's quadric edge
+    collapse (Garland & Heckbert 1997) down to the triangle count an equilateral mesh of that edge has on the
+    surface's area. Edge collapses keep the connectivity (two surfaces that do not share an edge, as closed
+    lips, stay apart), and the vertices sit where the quadric error is least, so on a subdivided mesh
+    they are the original corners. Returns ``(points[p,3], triangles[s,3])``; the input unchanged when it
+    is not finer than that."""
+    import open3d as o3d
+
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles)
+    target = int(np.ceil(triangle_areas(p, t).sum() / (np.sqrt(3.0) / 4.0 * edge * edge)))
+    if target >= len(t):
+        return p, t
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(p),
+                                     o3d.utility.Vector3iVector(t.astype(np.int32)))
+    coarse = mesh.simplify_quadric_decimation(target)
+    coarse.remove_degenerate_triangles()
+    coarse.remove_unreferenced_vertices()
+    return np.asarray(coarse.vertices, dtype=np.float64), np.asarray(coarse.triangles, dtype=np.int64)
+
+
+def prolongation(coarse_points, coarse_triangles, queries):
+    """``[q, p]`` sparse (CSR) linear interpolation from the vertices of a coarse mesh to ``queries[q,3]``:
+    each row the barycentric weights of the query's closest point on the coarse surface (3 entries summing
+    to 1, in the order of that coarse triangle's corners: ``indices.reshape(-1, 3)`` are the triangles), so
+    a field linear over each coarse triangle is reproduced exactly there."""
+    import scipy.sparse as sp
+
+    tri, bary, _, _ = SurfaceQuery(coarse_points, coarse_triangles).closest_points(queries)
+    q = len(tri)
+    cols = np.asarray(coarse_triangles)[tri]
+    return sp.csr_matrix((bary.ravel(), cols.ravel(), np.arange(0, 3 * q + 1, 3)),
+                         shape=(q, len(coarse_points)))
