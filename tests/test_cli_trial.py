@@ -82,3 +82,31 @@ def _sample_take(tmp_path):
     pts[:, 1, 0] = pts[:, 2, 1] = 0.01
     return Take(points=pts, triangles=tri, times=np.arange(3) / 30.0, weights=np.zeros((3, 1)),
                 names=["jawOpen"])
+
+
+# ------------------------------------------------------------------------------------------ 2. evaluate
+def test_evaluate_bad_plot_format_fails_before_work(sample_dir, tmp_path):
+    res = _usdface("evaluate", sample_dir / "capture.usda", "--plot", "errors.pgn", "--json", "rep.json",
+                   cwd=tmp_path)
+    _no_traceback(res)
+    assert "errors.pgn" in res.stderr and "'pgn'" in res.stderr and "errors.png" in res.stderr
+    assert list(tmp_path.iterdir()) == []  # rep.json not written
+
+
+def test_evaluate_json_report_must_end_in_json(sample_dir, tmp_path):
+    res = _usdface("evaluate", sample_dir / "capture.usda", "--json", "rep.txt", cwd=tmp_path)
+    _no_traceback(res)
+    assert "rep.txt" in res.stderr and ".json" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_wrong_truth_file_names_the_right_one(sample_dir, tmp_path):
+    capture = sample_dir / "capture.usda"
+    res = _usdface("evaluate", capture, "--truth", sample_dir / "truth" / "avatar_truth.npz",
+                   "--plot", "e.png", cwd=tmp_path)
+    _no_traceback(res)
+    assert "avatar_truth.npz" in res.stderr and "capture_truth.npz" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+    res = _usdface("evaluate", capture, "--truth", capture, cwd=tmp_path)
+    _no_traceback(res)
+    assert "not an .npz" in res.stderr
