@@ -110,3 +110,12 @@ def test_evaluate_wrong_truth_file_names_the_right_one(sample_dir, tmp_path):
     res = _usdface("evaluate", capture, "--truth", capture, cwd=tmp_path)
     _no_traceback(res)
     assert "not an .npz" in res.stderr
+
+
+# ------------------------------------------------------------------------------------- 3. error messages
+def test_face_mesh_mouth_says_the_capture_collapsed_not_a_perfect_residual(sample_dir, tmp_path):
+    res = _usdface("personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda",
+                   "--face-mesh", "Mouth", "--dry-run", cwd=tmp_path)
+    _no_traceback(res)
+    assert "shrank the capture to a point" in res.stderr and "--face-mesh" in res.stderr
+    assert "residual 0.00 mm" not in res.stderr and "100% of capture vertices" not in res.stderr
