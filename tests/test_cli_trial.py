@@ -132,3 +132,47 @@ def test_anim_import_take_passed_as_avatar_is_named_a_take(livelink_csv, sample_
     assert "this is a take" in res.stderr and "not an avatar" in res.stderr, res.stderr
     assert "SkelRoot" not in res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.usdc"]
+
+
+def _read_only_folder(monkeypatch, folder: Path) -> None:
+    """Make creating files or folders in ``folder`` fail as in a read-only folder (the tests run as root, who
+    may write anywhere): ``tempfile`` raises PermissionError naming the temporary path it tried, as it
+    does."""
+    import errno
+    import os
+    import tempfile
+
+    real_mkstemp, real_mkdtemp = tempfile.mkstemp, tempfile.mkdtemp
+
+    def denied(real, tail):
+        def make(suffix=None, prefix=None, dir=None, *a, **k):
+            if dir is not None and Path(dir).resolve() == folder.resolve():
+                name = os.path.join(dir, f"{prefix or ''}cmx9kqh4{tail(suffix)}")
+                raise PermissionError(errno.EACCES, "Permission denied", name)
+            return real(suffix, prefix, dir, *a, **k)
+
+        return make
+
+    monkeypatch.setattr(tempfile, "mkstemp", denied(real_mkstemp, lambda s: s or ""))
+    monkeypatch.setattr(tempfile, "mkdtemp", denied(real_mkdtemp, lambda s: ""))
+
+
+def test_read_only_output_folder_names_the_output_not_the_temp_file(sample_dir, tmp_path, monkeypatch,
+                                                                    capsys):
+    from usdface.cli import main
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    _read_only_folder(monkeypatch, ro)
+    out = ro / "avatar.personalized.usda"
+    assert main(["personalize", str(sample_dir / "avatar.usda"), str(sample_dir / "capture.usda"),
+                 "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: Permission denied" in err and ".tmp" not in err and "cmx9kqh4" not in err, err
+    assert "(-o)" in err
+
+    assert main(["sample", str(ro / "s"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{ro / 's'}: Permission denied" in err and "cmx9kqh4" not in err, err
+    assert "(-o" not in err  # sample has no -o option
+    assert list(ro.iterdir()) == []

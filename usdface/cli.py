@@ -94,10 +94,11 @@ def main(argv=None) -> int:
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
+        text = os_error_text(exc, hasattr(args, "output"))
         if getattr(args, "json", None) is True:
-            _json_error(args, os_error_text(exc), type(exc).__name__, exc.filename, None, None)
+            _json_error(args, text, type(exc).__name__, exc.filename, None, None)
         else:
-            print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+            print(f"usdface {args.command}: error: {text}", file=sys.stderr)
         return 2
 
 
@@ -112,13 +113,14 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {args.command}: error: {text}", file=sys.stderr)
 
 
-#: errno -> what to do about it (the one-line error's ``fix``).
+#: errno -> what to do about it (the one-line error's ``fix``); ``{o}`` is " (-o)" for a command that has
+#: that option, else "" (``sample OUTDIR``, ``evaluate --json/--plot/--usd``).
 _OS_FIXES = {
-    errno.EACCES: "choose a folder you can write to (-o elsewhere) or fix its permissions",
-    errno.EPERM: "choose a folder you can write to (-o elsewhere) or fix its permissions",
-    errno.EROFS: "the file system is read-only: write the output elsewhere (-o)",
-    errno.ENOSPC: "free disk space or write the output elsewhere (-o)",
-    errno.EDQUOT: "free disk space (quota) or write the output elsewhere (-o)",
+    errno.EACCES: "choose a folder you can write to{o} or fix its permissions",
+    errno.EPERM: "choose a folder you can write to{o} or fix its permissions",
+    errno.EROFS: "the file system is read-only: write the output elsewhere{o}",
+    errno.ENOSPC: "free disk space or write the output elsewhere{o}",
+    errno.EDQUOT: "free disk space (quota) or write the output elsewhere{o}",
     errno.EISDIR: "the path is a folder: give a file name",
     errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
     errno.ENOENT: "check the path",
@@ -126,11 +128,13 @@ _OS_FIXES = {
 }
 
 
-def os_error_text(exc: OSError) -> str:
-    """One line for an OSError: the file, what the system said and the fix."""
+def os_error_text(exc: OSError, output_option: bool = True) -> str:
+    """One line for an OSError: the file, what the system said and the fix (naming ``-o`` only when
+    ``output_option``: the command has one)."""
     where = exc.filename if exc.filename is not None else ""
     what = exc.strerror or str(exc)
     fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
+    fix = fix.format(o=" (-o)" if output_option else "")
     return f"{where}: {what} (fix: {fix})" if where else f"{what} (fix: {fix})"
 
 
