@@ -176,3 +176,32 @@ def test_read_only_output_folder_names_the_output_not_the_temp_file(sample_dir, 
     assert f"{ro / 's'}: Permission denied" in err and "cmx9kqh4" not in err, err
     assert "(-o" not in err  # sample has no -o option
     assert list(ro.iterdir()) == []
+
+
+@pytest.mark.parametrize("content,expected", [
+    ('#usda 1.0\ndef Xform "A" {\n  float x = \n}\n', "line 3, column 3: Expected }"),
+    ("garbage\n", "bad.usda is not a valid usda layer"),
+    ("", "bad.usda is not a valid usda layer"),
+])
+def test_usd_syntax_error_shows_the_parsers_message_with_the_line(sample_dir, tmp_path, content, expected):
+    bad = tmp_path / "bad.usda"
+    bad.write_text(content)
+    for args in (["inspect", bad], ["personalize", bad, sample_dir / "capture.usda", "--dry-run"],
+                 ["personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda", "--pins", bad,
+                  "--dry-run"]):
+        res = _usdface(*args, cwd=tmp_path)
+        _no_traceback(res)
+        assert expected in res.stderr, res.stderr
+        assert "pxrInternal" not in res.stderr and ".cpp" not in res.stderr and "Error in '" not in res.stderr
+
+
+def test_truncated_usdc_says_so(sample_dir, tmp_path):
+    from pxr import Sdf
+
+    whole = tmp_path / "whole.usdc"
+    Sdf.Layer.FindOrOpen(str(sample_dir / "avatar.usda")).Export(str(whole))
+    cut = tmp_path / "cut.usdc"
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])
+    res = _usdface("inspect", cut, cwd=tmp_path)
+    _no_traceback(res)
+    assert "possibly truncated" in res.stderr and "crateFile.cpp" not in res.stderr, res.stderr

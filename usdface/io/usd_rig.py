@@ -465,7 +465,10 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
-        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {str(exc).strip()[:200]})", path=path,
+        from .usd_open import tf_error_text
+
+        what = tf_error_text(exc, path, 200) if isinstance(exc, Tf.ErrorException) else str(exc).strip()[:200]
+        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {what})", path=path,
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
