@@ -205,3 +205,33 @@ def test_truncated_usdc_says_so(sample_dir, tmp_path):
     res = _usdface("inspect", cut, cwd=tmp_path)
     _no_traceback(res)
     assert "possibly truncated" in res.stderr and "crateFile.cpp" not in res.stderr, res.stderr
+
+
+def _studio_named(avatar: Path, out: Path) -> Path:
+    """``avatar`` with every ARKit shape name replaced by a studio's own (``ch17_ctrl``), everywhere."""
+    import re
+
+    from usdface.arkit import ARKIT_NAMES
+
+    idx = {n: i for i, n in enumerate(ARKIT_NAMES)}
+    words = re.compile(r"\b(" + "|".join(sorted(ARKIT_NAMES, key=len, reverse=True)) + r")\b")
+    out.write_text(words.sub(lambda m: f"ch{idx[m.group(1)]:02d}_ctrl", avatar.read_text()))
+    return out
+
+
+def test_render_unknown_shape_names_the_file_and_the_name_map(sample_dir, tmp_path):
+    studio = _studio_named(sample_dir / "avatar.usda", tmp_path / "studio.usda")
+    res = _usdface("render", studio, "--shapes", "jawOpen", "-o", "x.png", cwd=tmp_path)
+    _no_traceback(res)
+    assert "studio.usda, prim /Avatar/Head: mesh Head has no shape 'jawOpen'" in res.stderr, res.stderr
+    assert "--name-map" in res.stderr and "ch00_ctrl" in res.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_render_compare_unknown_shape_names_the_layer(personalized_sample, tmp_path):
+    res = _usdface("render", personalized_sample, "--compare", "--shapes", "jawOpen,nope", "-o", "x.png",
+                   cwd=tmp_path)
+    _no_traceback(res)
+    assert f"{personalized_sample}, prim /Avatar/Head: mesh Head has no shape 'nope'" in res.stderr
+    assert "--name-map" not in res.stderr  # its shapes are ARKit-named
+    assert not (tmp_path / "x.png").exists()
