@@ -4,6 +4,7 @@ before the fix."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -235,3 +236,35 @@ def test_render_compare_unknown_shape_names_the_layer(personalized_sample, tmp_p
     assert f"{personalized_sample}, prim /Avatar/Head: mesh Head has no shape 'nope'" in res.stderr
     assert "--name-map" not in res.stderr  # its shapes are ARKit-named
     assert not (tmp_path / "x.png").exists()
+
+
+# ------------------------------------------------------------------------------------------- 4. --json
+def test_every_json_success_says_ok_and_output(sample_dir, livelink_csv, tmp_path):
+    avatar, capture = sample_dir / "avatar.usda", sample_dir / "capture.usda"
+    runs = {
+        "personalize": ["personalize", avatar, capture, "-o", "p.usda", "--json"],
+        "personalize --dry-run": ["personalize", avatar, capture, "--dry-run", "--json"],
+        "inspect": ["inspect", avatar, "--json"],
+        "check": ["check", avatar, "--json"],
+        "sample": ["sample", "s3", "--json"],
+        "anim import": ["anim", "import", livelink_csv, "-o", "t.usda", "--json"],
+        "fit": ["fit", capture, "-o", "rig.usda", "--json"],
+    }
+    for what, args in runs.items():
+        res = _usdface(*args, cwd=tmp_path)
+        assert res.returncode == 0, (what, res.stderr)
+        doc = json.loads(res.stdout)
+        assert doc["ok"] is True and "output" in doc, (what, list(doc)[:5])
+    assert json.loads(_usdface(*runs["personalize"], "--force", cwd=tmp_path).stdout)["output"].endswith(
+        "p.usda")
+
+
+def test_json_failures_are_ok_false_also_for_usage_errors(sample_dir, tmp_path):
+    for args in (["inspect", tmp_path / "nope.usda", "--json"],                   # input error
+                 ["inspect", sample_dir / "avatar.usda", "--json", "--bogus"],    # usage errors
+                 ["personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda", "--mu", "-1",
+                  "--json"]):
+        res = _usdface(*args, cwd=tmp_path)
+        assert res.returncode == 2 and "Traceback" not in res.stderr
+        doc = json.loads(res.stdout)
+        assert doc["ok"] is False and doc["error"]["message"] and doc["error"]["command"] == args[0], doc

@@ -22,10 +22,23 @@ COMMAND_MODULES = (
 )
 
 
+#: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
+JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check")
+_argv: list[str] = []  # the arguments being parsed, for _Parser.error
+
+
 class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2."""
+    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2; with
+    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
 
     def error(self, message):
+        command = next((a for a in _argv if not a.startswith("-")), None)
+        if "--json" in _argv and command in JSON_FLAG_COMMANDS:
+            import json
+
+            print(json.dumps({"ok": False, "error": {
+                "command": command, "type": "UsageError", "message": message, "file": None, "prim": None,
+                "fix": f"see '{self.prog} --help'"}}))
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
@@ -60,6 +73,7 @@ def _silence_stdout() -> None:
 
 def main(argv=None) -> int:
     parser = build_parser()
+    _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
