@@ -268,3 +268,35 @@ def test_json_failures_are_ok_false_also_for_usage_errors(sample_dir, tmp_path):
         assert res.returncode == 2 and "Traceback" not in res.stderr
         doc = json.loads(res.stdout)
         assert doc["ok"] is False and doc["error"]["message"] and doc["error"]["command"] == args[0], doc
+
+
+# -------------------------------------------------------------------------------------------- 5. minor
+def test_export_of_a_plain_avatar_says_as_authored(sample_dir, personalized_sample, tmp_path):
+    import pygltflib
+
+    res = _usdface("export", sample_dir / "avatar.usda", "--gltf", "a.glb", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "[personalized]" not in res.stdout and "as authored" in res.stdout, res.stdout
+    extras = pygltflib.GLTF2().load(str(tmp_path / "a.glb")).scenes[0].extras
+    assert extras["usdface"]["variant"] == "authored"
+    res = _usdface("export", personalized_sample, "--gltf", "p.glb", cwd=tmp_path)
+    assert res.returncode == 0 and "[personalized]" in res.stdout, res.stderr
+    extras = pygltflib.GLTF2().load(str(tmp_path / "p.glb")).scenes[0].extras
+    assert extras["usdface"]["variant"] == "personalized"
+
+
+def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
+    import os
+
+    (tmp_path / "m.csv").write_text("avatar,capture,output\n"
+                                    f"{tmp_path / 'missing.usda'},{sample_dir / 'capture.usda'},bad.usda\n"
+                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'nope'},bad2.usda\n")
+    env = dict(os.environ, USDFACE_PROGRESS="plain", USDFACE_PROGRESS_DELAY="0")
+    exe = Path(sys.executable).with_name("usdface")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
+                                                                  "sys.exit(main())"]
+    res = subprocess.run(cmd + ["batch", "m.csv", "-j", "1"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 1
+    assert "[1/2] bad.usda failed" in res.stderr and "[2/2] bad2.usda failed" in res.stderr, res.stderr
+    assert "bad.usda done" not in res.stderr

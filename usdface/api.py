@@ -674,10 +674,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
 
     Every output is checked before any work (an existing one needs ``force``) and written atomically; the
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
-    usdface layer) exports as authored with ``variant="personalized"``."""
+    usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
+    ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
-    from .io.flatten import VARIANTS, flatten_variant, read_avatar_variant
+    from .io.flatten import VARIANTS, exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
     from .io.layers import check_output_path
     from .io.mesh_io import write_obj
@@ -705,7 +706,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
 
             skeleton = read_gltf_skin(layer_path, avatar) if skin else None
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
-            extras = {"usdface": {"source": Path(layer_path).name, "variant": variant}}
+            extras = {"usdface": {"source": Path(layer_path).name,
+                                  "variant": exported_variant(layer_path, variant)}}
             done["gltf"] = Path(write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras,
                                            force=force))
         if obj_dir:
