@@ -113,6 +113,13 @@ def test_evaluate_wrong_truth_file_names_the_right_one(sample_dir, tmp_path):
     assert "not an .npz" in res.stderr
 
 
+def test_sample_picture_extension_checked_before_the_samples_are_written(tmp_path):
+    res = _usdface("sample", "s4", "--picture", "x.pgn", cwd=tmp_path)
+    _no_traceback(res)
+    assert "x.pgn" in res.stderr and "x.png" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 # ------------------------------------------------------------------------------------- 3. error messages
 def test_face_mesh_mouth_says_the_capture_collapsed_not_a_perfect_residual(sample_dir, tmp_path):
     res = _usdface("personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda",
