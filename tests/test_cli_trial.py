@@ -307,3 +307,15 @@ def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
     assert res.returncode == 1
     assert "[1/2] bad.usda failed" in res.stderr and "[2/2] bad2.usda failed" in res.stderr, res.stderr
     assert "bad.usda done" not in res.stderr
+
+
+def test_a_failed_write_names_the_output_not_the_temp_file(tmp_path):
+    import errno
+
+    from usdface.io.atomic import atomic_file
+
+    out = tmp_path / "report.json"
+    with pytest.raises(OSError) as info, atomic_file(out) as tmp:
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []

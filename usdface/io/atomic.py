@@ -91,6 +91,10 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
         publish(tmp, path, force)
+    except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
+        if tmp is None or exc.filename is None or Path(exc.filename) != tmp:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
