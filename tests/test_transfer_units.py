@@ -75,7 +75,7 @@ def test_register_face_no_overlap_raises_with_residual():
     shapes = _local_shapes(pts)
     rng = np.random.default_rng(3)
     blob = rng.normal(size=pts.shape) * 0.05  # not a face: a random cloud moving the same way
-    with pytest.raises(RegistrationError, match=r"residual .* mm"):
+    with pytest.raises(RegistrationError, match=r"shrank the capture to a point .* mm across"):
         register_face(blob, shapes, pts, shapes)
 
 

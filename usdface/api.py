@@ -292,9 +292,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     test frame bar charts, paper Figs. 4-5), ``usd_path`` (colour-coded error maps, Fig. 6); the paths
     written are ``report["_outputs"]``. ``options`` go to the fit (``reg``, ``prior``, ...). Raises
     :class:`~usdface.errors.FitError` if the capture has no test frames."""
-    from .errors import FitError, InputFileError, OutputExistsError
+    from .errors import FitError, OutputExistsError
     from .personalize.report import evaluate_methods as _evaluate
 
+    _check_evaluate_suffixes(json_path, plot_path)
     for out in (json_path, plot_path):
         if out and Path(out).exists() and not force:
             raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
@@ -303,13 +304,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
         check_output_path(usd_path, force)
     if isinstance(truth, str | Path):
-        import numpy as np
-
-        try:
-            truth = dict(np.load(truth))
-        except (OSError, ValueError) as exc:
-            raise InputFileError(f"cannot read truth file ({exc})", path=truth,
-                                 fix="pass a capture_truth.npz (names, deltas)") from None
+        truth = _read_truth(truth)
     source = capture if isinstance(capture, str | Path) else None
     from .progress import steps
 
@@ -340,6 +335,60 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
                                                        force=force))
     report["_outputs"] = outputs
     return report
+
+
+def _check_evaluate_suffixes(json_path, plot_path) -> None:
+    """Refuse, before any fitting, a ``--json`` report not ending in .json and a ``--plot`` whose extension
+    matplotlib cannot write (``errors.pgn``), so a typo fails at once and leaves no output behind."""
+    from .errors import InputFileError
+
+    if json_path and Path(json_path).suffix.lower() != ".json":
+        raise InputFileError("JSON report must end in .json", path=json_path,
+                             fix=f"name it e.g. {Path(json_path).stem or 'report'}.json")
+    if plot_path:
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        kinds = sorted(FigureCanvasBase.get_supported_filetypes())
+        suffix = Path(plot_path).suffix.lower().lstrip(".")
+        if suffix not in kinds:
+            kind = repr(suffix) if suffix else "(no extension)"
+            raise InputFileError(f"plot format {kind} is not supported "
+                                 f"(supported: {', '.join(kinds)})", path=plot_path,
+                                 fix=f"name it e.g. {Path(plot_path).stem or 'errors'}.png")
+
+
+def _read_truth(path) -> dict:
+    """Read a ``capture_truth.npz`` (``usdface sample`` writes it in ``truth/`` next to the capture) and
+    check it holds ``names[K]`` and ``deltas[K, n, 3]``; InputFileError naming the file expected otherwise
+    (e.g. for ``avatar_truth.npz``, which holds the avatar's true shapes, not the capture's)."""
+    import zipfile
+
+    import numpy as np
+
+    from .errors import InputFileError
+
+    fix = "pass the capture's capture_truth.npz (usdface sample writes it to truth/capture_truth.npz)"
+    from .io.usd_open import require_file
+
+    require_file(path, "truth file", fix)
+    if not zipfile.is_zipfile(path):
+        raise InputFileError("not a capture truth file (not an .npz archive)", path=path, fix=fix)
+    try:
+        with np.load(path) as npz:
+            keys = set(npz.files)
+            missing = [k for k in ("names", "deltas") if k not in keys]
+            if missing:
+                raise InputFileError(f"not a capture truth file: no {' or '.join(repr(k) for k in missing)} "
+                                     f"array (it has {', '.join(sorted(keys)[:4]) or 'nothing'}"
+                                     f"{', ...' if len(keys) > 4 else ''})", path=path, fix=fix)
+            truth = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputFileError(f"cannot read truth file ({exc})", path=path, fix=fix) from None
+    names, deltas = np.asarray(truth["names"]), np.asarray(truth["deltas"])
+    if names.ndim != 1 or deltas.ndim != 3 or deltas.shape[0] != len(names) or deltas.shape[2] != 3:
+        raise InputFileError(f"truth file's names {names.shape} and deltas {deltas.shape} do not match "
+                             "(expected names[K] and deltas[K, n, 3])", path=path, fix=fix)
+    return truth
 
 
 def _check_correspondence_cache(path) -> None:
@@ -625,10 +674,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
 
     Every output is checked before any work (an existing one needs ``force``) and written atomically; the
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
-    usdface layer) exports as authored with ``variant="personalized"``."""
+    usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
+    ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
-    from .io.flatten import VARIANTS, flatten_variant, read_avatar_variant
+    from .io.flatten import VARIANTS, exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
     from .io.layers import check_output_path
     from .io.mesh_io import write_obj
@@ -656,7 +706,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
 
             skeleton = read_gltf_skin(layer_path, avatar) if skin else None
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
-            extras = {"usdface": {"source": Path(layer_path).name, "variant": variant}}
+            extras = {"usdface": {"source": Path(layer_path).name,
+                                  "variant": exported_variant(layer_path, variant)}}
             done["gltf"] = Path(write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras,
                                            force=force))
         if obj_dir:

@@ -22,10 +22,23 @@ COMMAND_MODULES = (
 )
 
 
+#: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
+JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check")
+_argv: list[str] = []  # the arguments being parsed, for _Parser.error
+
+
 class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2."""
+    """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2; with
+    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
 
     def error(self, message):
+        command = next((a for a in _argv if not a.startswith("-")), None)
+        if "--json" in _argv and command in JSON_FLAG_COMMANDS:
+            import json
+
+            print(json.dumps({"ok": False, "error": {
+                "command": command, "type": "UsageError", "message": message, "file": None, "prim": None,
+                "fix": f"see '{self.prog} --help'"}}))
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
@@ -60,6 +73,7 @@ def _silence_stdout() -> None:
 
 def main(argv=None) -> int:
     parser = build_parser()
+    _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
@@ -94,10 +108,11 @@ def main(argv=None) -> int:
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
+        text = os_error_text(exc, hasattr(args, "output"))
         if getattr(args, "json", None) is True:
-            _json_error(args, os_error_text(exc), type(exc).__name__, exc.filename, None, None)
+            _json_error(args, text, type(exc).__name__, exc.filename, None, None)
         else:
-            print(f"usdface {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+            print(f"usdface {args.command}: error: {text}", file=sys.stderr)
         return 2
 
 
@@ -112,13 +127,14 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {args.command}: error: {text}", file=sys.stderr)
 
 
-#: errno -> what to do about it (the one-line error's ``fix``).
+#: errno -> what to do about it (the one-line error's ``fix``); ``{o}`` is " (-o)" for a command that has
+#: that option, else "" (``sample OUTDIR``, ``evaluate --json/--plot/--usd``).
 _OS_FIXES = {
-    errno.EACCES: "choose a folder you can write to (-o elsewhere) or fix its permissions",
-    errno.EPERM: "choose a folder you can write to (-o elsewhere) or fix its permissions",
-    errno.EROFS: "the file system is read-only: write the output elsewhere (-o)",
-    errno.ENOSPC: "free disk space or write the output elsewhere (-o)",
-    errno.EDQUOT: "free disk space (quota) or write the output elsewhere (-o)",
+    errno.EACCES: "choose a folder you can write to{o} or fix its permissions",
+    errno.EPERM: "choose a folder you can write to{o} or fix its permissions",
+    errno.EROFS: "the file system is read-only: write the output elsewhere{o}",
+    errno.ENOSPC: "free disk space or write the output elsewhere{o}",
+    errno.EDQUOT: "free disk space (quota) or write the output elsewhere{o}",
     errno.EISDIR: "the path is a folder: give a file name",
     errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
     errno.ENOENT: "check the path",
@@ -126,11 +142,13 @@ _OS_FIXES = {
 }
 
 
-def os_error_text(exc: OSError) -> str:
-    """One line for an OSError: the file, what the system said and the fix."""
+def os_error_text(exc: OSError, output_option: bool = True) -> str:
+    """One line for an OSError: the file, what the system said and the fix (naming ``-o`` only when
+    ``output_option``: the command has one)."""
     where = exc.filename if exc.filename is not None else ""
     what = exc.strerror or str(exc)
     fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
+    fix = fix.format(o=" (-o)" if output_option else "")
     return f"{where}: {what} (fix: {fix})" if where else f"{what} (fix: {fix})"
 
 

@@ -117,8 +117,9 @@ class _Steps:
             _LIVE.update(self.task, advance=1)
 
     # the two calls ---------------------------------------------------------------------------------------
-    def __call__(self, label: str | None = None) -> None:
-        """The step ``label`` (or the one started last) is done."""
+    def __call__(self, label: str | None = None, outcome: str = "done") -> None:
+        """The step ``label`` (or the one started last) is over; ``outcome`` says how (``done``, or e.g.
+        ``failed`` for a batch item whose error is reported at the end)."""
         if self.how == "off":
             return
         if self.running is not None:
@@ -128,10 +129,13 @@ class _Steps:
         self.done += 1
         now = time.perf_counter()
         if self.how == "plain":
-            if now - self.t_step >= self.delay or now - self.t_line >= self.delay:
-                self._line(f"{self._counter(self.done)} {label or 'step'} done ({now - self.t_step:.1f} s)")
+            if (now - self.t_step >= self.delay or now - self.t_line >= self.delay
+                    or outcome != "done"):  # a failure is always said
+                self._line(f"{self._counter(self.done)} {label or 'step'} {outcome} "
+                           f"({now - self.t_step:.1f} s)")
         else:
-            _LIVE.update(self.task, advance=1, description=f"{self.title}: {label}" if label else self.title)
+            text = f"{label} {outcome}" if label and outcome != "done" else label
+            _LIVE.update(self.task, advance=1, description=f"{self.title}: {text}" if text else self.title)
         self.t_step = now
 
     def start(self, label: str) -> None:

@@ -107,13 +107,30 @@ def save_figure(fig, out, force: bool = False) -> Path:
     return out
 
 
-def _shape_index(rig, name: str) -> int:
-    try:
-        return rig.index(name)
-    except ValueError:
+def check_shapes(rig, names, path=None) -> None:
+    """Refuse (RigError naming ``path`` -- else the rig's file --, the mesh prim and the shapes it has) a
+    shape name ``rig`` lacks, before anything is drawn. An ARKit name asked of a rig whose shapes are not
+    ARKit-named (a studio's own names) points at ``--name-map``."""
+    from .arkit import ARKIT_SET
+    from .errors import RigError
+
+    for name in names or ():
+        if name in rig.names:
+            continue
         more = " ..." if rig.n_shapes > 8 else ""
-        raise UsdFaceError(f"rig {rig.name or ''} has no shape {name!r}",
-                           fix=f"choose from {', '.join(rig.names[:8])}{more}") from None
+        fix = f"choose from {', '.join(rig.names[:8])}{more}"
+        if name in ARKIT_SET and not ARKIT_SET & set(rig.names):
+            fix += ("; the mesh's shapes have the studio's own names: name them as ARKit shapes with "
+                    "--name-map FILE (docs/names.md) or pass the studio names")
+        source = rig.source
+        raise RigError(f"mesh {rig.name or ''} has no shape {name!r}",
+                       path=path if path is not None else (source.file if source else None),
+                       prim=source.prim if source else None, fix=fix)
+
+
+def _shape_index(rig, name: str) -> int:
+    check_shapes(rig, [name])
+    return rig.index(name)
 
 
 def default_shapes(rig, count: int = 5) -> list[str]:

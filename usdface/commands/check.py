@@ -32,7 +32,7 @@ def run(args) -> int:
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
     failed = counts["error"] > 0 or (args.strict and counts["warning"] > 0)
     if args.json:
-        json.dump({"file": str(args.file), "ok": not failed, "counts": counts,
+        json.dump({"ok": not failed, "output": None, "file": str(args.file), "counts": counts,
                    "issues": [i.to_dict() for i in issues]}, sys.stdout, indent=2)
         print()
     else:

@@ -26,11 +26,14 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..api import export_avatar
+    from ..io.flatten import AS_AUTHORED, exported_variant
 
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
                          variant=args.variant, skin=not args.no_skin, force=args.force)
+    variant = exported_variant(args.layer, args.variant)
+    label = "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else variant
     for kind, path in done.items():
         size = (f" ({path.stat().st_size / 1e6:.1f} MB)" if path.is_file() else
                 f" ({sum(1 for _ in path.rglob('*.obj'))} OBJ files)")
-        print(f"wrote {kind}: {path}{size} [{args.variant}]")
+        print(f"wrote {kind}: {path}{size} [{label}]")
     return 0

@@ -28,7 +28,7 @@ def run(args) -> int:
 
     report = inspect_file(args.file, name_map=args.name_map)
     if args.json:
-        json.dump(report, sys.stdout, indent=2, default=str)
+        json.dump({"ok": True, "output": None, **report}, sys.stdout, indent=2, default=str)
         print()
     else:
         print(format_report(report))

@@ -128,8 +128,8 @@ def run(args) -> int:
                                 **transfer_kwargs(args), **({"pins": args.pins} if args.pins else {}))
     rep = result.report
     if args.json:
-        doc = {k: v for k, v in rep.items() if k != "name_report"}
-        doc["output"] = str(result.out_path) if result.out_path else None
+        doc = {"ok": True, "output": str(result.out_path) if result.out_path else None}
+        doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
         return 0

@@ -70,12 +70,14 @@ def run(args) -> int:
         rig = capture.template
         rig = type(rig)(capture.neutral, rig.triangles, rig.names, rig.deltas, rig.inbetweens, rig.source,
                         "capture")
+        render.check_shapes(rig, shapes, path)
         render.render_shapes(rig, shapes, args.output, weight=args.weight, view=args.view, force=args.force,
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
+    render.check_shapes(rig, shapes, path)
     if args.diagnostics:
         _diagnostics(args, path, rig)
     elif args.landmarks:

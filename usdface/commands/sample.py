@@ -38,6 +38,11 @@ def run(args) -> int:
 
     from ..sample import generate_samples
 
+    if args.picture and Path(args.picture).suffix.lower() != ".png":  # before the samples are written
+        from ..errors import InputFileError
+
+        raise InputFileError("picture must end in .png", path=args.picture,
+                             fix=f"name it e.g. {Path(args.picture).stem or 'samples'}.png")
     noise = {"scan_noise_m": None if args.scan_noise is None else args.scan_noise * 1e-3,
              "weight_noise": args.weight_noise}
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,

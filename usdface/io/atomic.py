@@ -61,7 +61,10 @@ def temp_sibling(path, create: bool = True) -> Path:
     """A new unique hidden file name next to ``path``: ``.NAME.XXXX.tmp<suffix>`` (created empty, or with
     ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
     path = Path(path)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    except OSError as exc:  # name the output, not the hidden temp file nobody asked for
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     try:
         os.close(fd)
     except BaseException:  # an interrupt right here leaves nothing behind
@@ -88,6 +91,10 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
         publish(tmp, path, force)
+    except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
+        if tmp is None or exc.filename is None or Path(exc.filename) != tmp:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
@@ -167,7 +174,10 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = None
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+        except OSError as exc:  # name the output folder, not the hidden temporary one
+            raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
         yield tmp
         if dest.exists():

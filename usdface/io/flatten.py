@@ -16,7 +16,8 @@ from ..errors import InputFileError, RigError, UsdFaceError
 from ..model import Avatar
 from .layers import PERSONALIZATION_VARIANT_SET, check_output_path
 
-__all__ = ["VARIANTS", "variant_stage", "read_avatar_variant", "flatten_variant"]
+__all__ = ["VARIANTS", "AS_AUTHORED", "exported_variant", "variant_stage", "read_avatar_variant",
+           "flatten_variant"]
 
 #: The variants of ``usdfacePersonalization``.
 VARIANTS = ("personalized", "generic")
@@ -25,6 +26,26 @@ VARIANTS = ("personalized", "generic")
 def _check_variant(variant: str) -> None:
     if variant not in VARIANTS:
         raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+
+
+#: What :func:`exported_variant` says of a plain avatar (no ``usdfacePersonalization`` variant set).
+AS_AUTHORED = "authored"
+
+
+def _personalization_prims(stage) -> list:
+    from pxr import Usd
+
+    return [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+            if p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)]
+
+
+def exported_variant(path, variant: str = "personalized") -> str:
+    """What exporting ``path`` with ``variant`` actually gives: ``variant`` for a usdface layer, else
+    :data:`AS_AUTHORED` ("authored": a plain avatar has no personalized variant; it exports as authored)."""
+    from .usd_rig import _open_stage
+
+    _check_variant(variant)
+    return variant if _personalization_prims(_open_stage(Path(path))) else AS_AUTHORED
 
 
 def variant_stage(path, variant: str = "personalized"):
@@ -39,8 +60,7 @@ def variant_stage(path, variant: str = "personalized"):
     _check_variant(variant)
     path = Path(path)
     stage = _open_stage(path)
-    prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
-             if p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)]
+    prims = _personalization_prims(stage)
     if not prims and variant == "generic":
         raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,
                              fix="pass a layer written by 'usdface personalize'")
@@ -64,7 +84,10 @@ def read_avatar_variant(path, variant: str = "personalized") -> Avatar:
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
-        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {str(exc).strip()[:200]})", path=path,
+        from .usd_open import tf_error_text
+
+        what = tf_error_text(exc, path, 200) if isinstance(exc, Tf.ErrorException) else str(exc).strip()[:200]
+        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {what})", path=path,
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 

@@ -74,11 +74,11 @@ def _read_json(path: Path, names, n: int) -> dict:
 
 
 def _read_usd(path: Path, names, n: int) -> dict:
-    from pxr import Usd, UsdGeom
+    from pxr import UsdGeom
 
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise InputFileError("cannot open the pins file as USD", path=path, fix="pass a .usd/.usda/.usdc")
+    from .usd_open import open_usd_stage
+
+    stage = open_usd_stage(path, "pins file", "pass a .usd/.usda/.usdc")
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
     meshes.sort(key=lambda p: (0 if "Template" in str(p.GetPath()) else 1, str(p.GetPath())))
     index, out = _shape_index(names), {}

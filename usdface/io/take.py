@@ -304,7 +304,7 @@ def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) ->
     stage.SetEndTimeCode(float(codes[-1]))
     stage.GetRootLayer().customLayerData = {"usdface": {"format": "take", "formatVersion": 1,
                                                         "source": str(take.source or "")}}
-    uc._save(stage, path)
+    uc._save(stage, path, force)
     return path
 
 

@@ -106,5 +106,5 @@ def write_animation_usd(path, names, weights, times=None, time_codes_per_second:
             attr.Set(v, code)
     if layer_data:
         stage.GetRootLayer().customLayerData = {"usdface": dict(layer_data)}
-    _save(stage, path)
+    _save(stage, path, force)
     return path

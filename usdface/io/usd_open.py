@@ -6,6 +6,7 @@ composition problem (missing or cyclic sublayer, dangling reference, unreadable 
 from __future__ import annotations
 
 import os
+import re
 import stat
 import sys
 import tempfile
@@ -14,7 +15,7 @@ from pathlib import Path
 
 from ..errors import InputFileError
 
-__all__ = ["require_file", "open_usd_stage", "quiet_stderr"]
+__all__ = ["require_file", "open_usd_stage", "quiet_stderr", "tf_error_text"]
 
 
 def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
@@ -59,6 +60,33 @@ def quiet_stderr():
             out.append(buf.read().decode("utf-8", "replace"))
 
 
+#: One error of a ``Tf.ErrorException``'s text: "Error in 'FUNCTION' at line N in file SOURCE : 'COMMENTARY'".
+_TF_ERROR = re.compile(r"Error in '[^']*' at line \d+ in file \S+ : '(.*?)'\s*(?=(?:Error in '|$))", re.S)
+
+
+def tf_error_text(exc, path=None, limit: int = 300) -> str:
+    """What USD said in a ``Tf.ErrorException``, without its C++ source locations: the commentary of each
+    error (the parser's message with the file's line and column first), USD's generic "Failed to open layer"
+    dropped when there is more, namespaces stripped; ``FILE:LINE:COL:`` of ``path`` becomes "line L, column
+    C:"."""
+    text = str(exc)
+    found = [m.strip() for m in _TF_ERROR.findall(text) if m.strip()]
+    if not found:
+        lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+        found = lines[-1:] or ["unreadable"]
+    specific = [m for m in found if not m.startswith("Failed to open layer")]
+    parts = []
+    for msg in specific or found:
+        msg = re.sub(r"pxrInternal_v\d+_\d+(?:_\d+)?__pxrReserved__::", "", msg)
+        msg = re.sub(r"^<?(/[^:>]*?)>? is not", lambda m: f"{Path(m.group(1)).name} is not", msg)
+        loc = re.match(r"^(.*?):(\d+):(\d+): ", msg)
+        if loc and (path is None or Path(loc.group(1)).name == Path(path).name):
+            msg = f"line {loc.group(2)}, column {loc.group(3)}: {msg[loc.end():]}"
+        parts.append(" ".join(msg.split()))
+    joined = "; ".join(dict.fromkeys(parts))
+    return joined if len(joined) <= limit else joined[:limit - 3] + "..."
+
+
 def _fix_for(error_type: str) -> str:
     return {
         "ErrorInvalidSublayerPath": "restore the missing sublayer or remove it from subLayers",
@@ -83,9 +111,7 @@ def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.
     except Exception as exc:  # pxr.Tf.ErrorException with USD's text
         if type(exc).__name__ != "ErrorException":
             raise
-        lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-        detail = lines[-1] if lines else "unreadable"
-        raise InputFileError(f"USD cannot open it ({detail[:200]})", path=path,
+        raise InputFileError(f"USD cannot open it: {tf_error_text(exc, path)}", path=path,
                              fix="check that it is a valid USD layer (usdcat FILE)") from None
     if stage is None:
         text = " ".join((said[0] if said else "").split())[:200]

@@ -470,7 +470,10 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
-        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {str(exc).strip()[:200]})", path=path,
+        from .usd_open import tf_error_text
+
+        what = tf_error_text(exc, path, 200) if isinstance(exc, Tf.ErrorException) else str(exc).strip()[:200]
+        raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {what})", path=path,
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
@@ -479,17 +482,38 @@ _NOT_AVATAR = {
                 "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
     "take": ("a usdface take (a recording), not an avatar",
              "pass the avatar's .usd file; takes go to 'capture select' or 'personalize --take'"),
+    "animation": ("a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), "
+                  "not an avatar",
+                  "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the "
+                  "avatar's Skeleton with skel:animationSource"),
 }
+
+
+def _is_weights_take(stage) -> bool:
+    """A weights-only take (``usdface anim import``, :func:`usdface.io.usd_anim.write_animation_usd`, or any
+    file whose default prim, or else a top-level prim, is a SkelAnimation) with no SkelRoot anywhere."""
+    from pxr import UsdSkel
+
+    root = stage.GetDefaultPrim()
+    tops = [root] if root else list(stage.GetPseudoRoot().GetChildren())
+    if not any(p.IsA(UsdSkel.Animation) for p in tops):
+        return False
+    return not any(p.IsA(UsdSkel.Root) for p in stage.Traverse())
 
 
 def _refuse_non_avatar(stage, path: Path) -> None:
     """A capture or take passed where an avatar is expected: say what the file is (its template rig would
     otherwise be read as a face)."""
+    from pxr import UsdSkel
+
     data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
     kind = str(data.get("format", "")) if hasattr(data, "get") else ""
     root = stage.GetDefaultPrim()
     if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
         kind = "capture" if root.GetChild("Neutral") else "take"
+    if kind not in _NOT_AVATAR and _is_weights_take(stage):
+        kind = "animation"
+        root = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))
     if kind in _NOT_AVATAR:
         what, fix = _NOT_AVATAR[kind]
         raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)

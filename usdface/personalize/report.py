@@ -61,6 +61,10 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
                            fix="pass the capture's own truth")
         order = [tnames.index(n) for n in capture.names]
         true_deltas = np.asarray(truth["deltas"])[order]
+        if true_deltas.shape[1:] != (len(capture.neutral), 3):
+            raise FitError(f"truth deltas are for {true_deltas.shape[1]} vertices, the capture has "
+                           f"{len(capture.neutral)}", path=capture.source or None,
+                           fix="pass the capture's own capture_truth.npz")
     report: dict = {"labels": list(test.label), "methods": {}, "_maps": {}}
     runs = [run for m in methods for run in (VARIANTS[m] if variants else ((m, m, {}),))]
     with steps("methods", len(runs)) as p:

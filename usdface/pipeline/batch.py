@@ -217,8 +217,9 @@ def _crashed(item: dict, exc: BaseException) -> dict:
 # ----------------------------------------------------------------------------------------------- runners
 def _run_serial(worker, todo, advance):
     for item in todo:
-        yield run_item(worker, item)
-        advance(Path(item["output"]).name)
+        res = run_item(worker, item)
+        yield res
+        advance(Path(item["output"]).name, res.get("status", DONE))
 
 
 #: Thread-count variables set in every pool worker before numpy loads: the pool's processes are the
@@ -261,10 +262,11 @@ def _run_pool(worker, todo, jobs, advance):
         for fut in as_completed(futures):
             item = futures[fut]
             try:
-                yield fut.result()
+                res = fut.result()
             except Exception as exc:  # the worker process died (BrokenProcessPool, pickling...)
-                yield _crashed(item, exc)
-            advance(Path(item["output"]).name)
+                res = _crashed(item, exc)
+            yield res
+            advance(Path(item["output"]).name, res.get("status", DONE))
 
 
 def _run_dask(worker, todo, scheduler, advance):
@@ -294,10 +296,11 @@ def _run_dask(worker, todo, scheduler, advance):
         for fut in as_completed(futures):
             item = by_key[fut.key]
             try:
-                yield fut.result()
+                res = fut.result()
             except Exception as exc:  # worker lost, unpicklable result...
-                yield _crashed(item, exc)
-            advance(Path(item["output"]).name)
+                res = _crashed(item, exc)
+            yield res
+            advance(Path(item["output"]).name, res.get("status", DONE))
     finally:
         if own:
             client.close()

@@ -251,9 +251,29 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
     if result.fitness < min_fitness or result.residual > max_residual_ratio * size:
         raise RegistrationError(
-            f"the capture does not overlap the avatar face after registration (residual "
-            f"{result.residual * 1000:.2f} mm, {result.fitness * 100:.0f}% of capture vertices within "
-            f"{result.max_distance * 1000:.1f} mm)", path=path,
-            fix="check that the capture and the avatar show the same kind of face and that the avatar's "
-                "blend shapes are ARKit-named")
+            _no_overlap_text(result, size, size0, ext_a, min_fitness, max_residual_ratio), path=path,
+            fix="check that the avatar mesh registered against is the face's skin (pick it with "
+                "--face-mesh, not the mouth, teeth or eyes), that the capture and the avatar show the same "
+                "kind of face and that the avatar's blend shapes are ARKit-named")
     return result
+
+
+def _no_overlap_text(result: Registration, size: float, size0: float, target_size: float, min_fitness: float,
+                     max_residual_ratio: float) -> str:
+    """What failed in :func:`register_face`'s final check, in words: the capture shrunk to a point (ICP with
+    scaling onto a mesh much smaller than the face, e.g. the mouth interior: a tiny residual and every vertex
+    "within" the distance, which is no overlap at all), too few capture vertices near the face, or too large
+    a residual."""
+    mm = 1000.0
+    if size < 0.2 * target_size:
+        return (f"registration shrank the capture to a point ({size * mm:.2f} mm across, scale "
+                f"{result.transform.scale:.3g}; it is {size0 * mm:.0f} mm across) instead of placing it on "
+                f"the avatar face mesh ({target_size * mm:.0f} mm across): the capture and that mesh do not "
+                f"show the same face")
+    if result.fitness < min_fitness:
+        return (f"the capture does not overlap the avatar face after registration: only "
+                f"{result.fitness * 100:.0f}% of capture vertices lie within "
+                f"{result.max_distance * mm:.1f} mm of it (need {min_fitness * 100:.0f}%)")
+    return (f"the capture does not fit the avatar face after registration: residual "
+            f"{result.residual * mm:.2f} mm is more than {max_residual_ratio * 100:.0f}% of the placed "
+            f"capture's size ({size * mm:.0f} mm)")
