@@ -60,7 +60,8 @@ def most_moving_mesh(meshes, names):
         idx = [rig.index(n) for n in names if n in rig.names]
         if not idx:
             continue
-        moving = int(moving_vertices(peak_motion(rig.deltas[idx]), rig.neutral).sum())
+        shapes = rig.deltas if len(set(idx)) == len(rig.deltas) else rig.deltas[idx]   # no copy of them all
+        moving = int(moving_vertices(peak_motion(shapes), rig.neutral).sum())
         if moving > score:
             best, score = rig, moving
     return best
