@@ -115,6 +115,14 @@ def _usd_dependencies(path: Path) -> list[Path]:
     return [Path(layer.realPath) for layer in layers if layer.realPath]
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the current folder when it lies inside it (USD gives absolute real paths)."""
+    try:
+        return str(path.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
     """(path, how to name it) of the existing ``inputs`` (paths; None and non-path objects skipped) and, with
     ``composed``, of the files the USD ones compose."""
@@ -126,7 +134,7 @@ def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
         found.append((given, f"{'input folder' if given.is_dir() else 'input'} {given}"))
         if composed:
             real = given.resolve()
-            found.extend((d, f"input {d} (a layer the input {given} composes)")
+            found.extend((d, f"input {_shown(d)} (a layer the input {given} composes)")
                          for d in _usd_dependencies(given) if d.exists() and d.resolve() != real)
     return found
 
