@@ -109,7 +109,10 @@ def _usd_dependencies(path: Path) -> list[Path]:
     try:
         from pxr import UsdUtils
 
-        layers, _assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
+        from .usd_open import quiet_stderr
+
+        with quiet_stderr():  # a missing sublayer: the reader names it in one line later
+            layers, _assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
     except Exception:  # noqa: BLE001  (a broken file: its reader says why later, not this check)
         return []
     return [Path(layer.realPath) for layer in layers if layer.realPath]
@@ -128,7 +131,7 @@ def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
     ``composed``, of the files the USD ones compose."""
     found: list[tuple[Path, str]] = []
     for given in inputs:
-        if not isinstance(given, str | os.PathLike) or not os.path.lexists(given):
+        if not isinstance(given, str | os.PathLike) or not os.path.exists(given):  # its reader says so
             continue
         given = Path(given)
         found.append((given, f"{'input folder' if given.is_dir() else 'input'} {given}"))
