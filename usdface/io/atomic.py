@@ -101,10 +101,14 @@ def write_text_atomic(path, text: str, force: bool = False) -> Path:
     return Path(path)
 
 
+#: What a layer an input composes can be called.
+_USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
 def _usd_dependencies(path: Path) -> list[Path]:
     """The files a USD input composes besides itself (sublayers, references, payloads, recursively:
     ``UsdUtils.ComputeAllDependencies``); [] when USD cannot read it (the reader reports that later)."""
-    if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz") or not path.is_file():
+    if path.suffix.lower() not in _USD_SUFFIXES or not path.is_file():
         return []
     try:
         from pxr import UsdUtils
@@ -170,7 +174,9 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
       is a hard link of an input or a symlink to an input (or to a folder holding one).
     """
     path = Path(path)
-    given = _given_inputs(inputs, composed=os.path.lexists(path))  # a new file cannot overwrite a sublayer
+    # only an existing USD file (or a folder) can be a layer an input composes: skip opening them otherwise
+    composed = os.path.lexists(path) and (folder or path.suffix.lower() in _USD_SUFFIXES)
+    given = _given_inputs(inputs, composed=composed)
     if not given:
         return
     target = path.resolve()
