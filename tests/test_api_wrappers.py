@@ -187,7 +187,7 @@ def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):
     import usdface.transfer as transfer
 
     _forbid(monkeypatch, transfer, "personalize_avatar")
-    with pytest.raises(InputFileError, match="unknown map format"):
+    with pytest.raises(InputFileError, match="must end in .json or .csv"):
         usdface.write_retarget_map("a.usda", "c.usda", tmp_path / "map.txt")
     (tmp_path / "map.json").write_text("{}")
     with pytest.raises(OutputExistsError):

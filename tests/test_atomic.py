@@ -49,11 +49,25 @@ def test_existing_folder_needs_force(existing):
         check_output_dir(existing.parent / "file")
 
 
-def test_force_replaces_the_whole_folder(existing):
-    with replace_dir_atomically(existing, force=True) as tmp:
-        (tmp / "new.txt").write_text("new")
-    assert _tree(existing) == {"new.txt": "new"}
+def test_force_replaces_only_the_files_written(existing):
+    with pytest.warns(UserWarning, match="kept 1 file"):
+        with replace_dir_atomically(existing, force=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+            (tmp / "old.txt").write_text("replaced")
+    assert _tree(existing) == {"new.txt": "new", "old.txt": "replaced", "sub/keep.txt": "keep"}
     assert sorted(p.name for p in existing.parent.iterdir()) == ["out"]
+
+
+def test_force_never_replaces_a_file_by_a_folder(existing):
+    (existing.parent / "file").write_text("f")
+    with pytest.raises(OutputExistsError, match="a file"):
+        check_output_dir(existing.parent / "file", force=True)
+    before = _tree(existing)
+    with pytest.raises(OutputExistsError, match="is a file where usdface writes a folder"):
+        with replace_dir_atomically(existing, force=True) as tmp:
+            (tmp / "old.txt").mkdir()
+            (tmp / "old.txt" / "x.txt").write_text("x")
+    assert _tree(existing) == before and sorted(p.name for p in existing.parent.iterdir()) == ["file", "out"]
 
 
 def test_failure_in_the_block_leaves_the_old_folder(existing):
@@ -66,20 +80,30 @@ def test_failure_in_the_block_leaves_the_old_folder(existing):
     assert [p.name for p in existing.parent.iterdir()] == ["out"]
 
 
-def test_failed_swap_puts_the_old_folder_back(existing, monkeypatch):
+def test_failed_merge_puts_the_old_files_back(existing, monkeypatch):
     before = _tree(existing)
     real = os.replace
     calls = []
 
     def flaky(src, dst):
         calls.append((src, dst))
-        if len(calls) == 2:                              # moving the new folder into place fails
+        if len(calls) == 3:                              # moving the third new file into place fails
             raise OSError("rename failed")
         return real(src, dst)
 
     monkeypatch.setattr(atomic.os, "replace", flaky)
     with pytest.raises(OSError, match="rename failed"):
         with replace_dir_atomically(existing, force=True) as tmp:
-            (tmp / "new.txt").write_text("new")
-    assert len(calls) == 3 and _tree(existing) == before
+            for name in ("a.txt", "old.txt", "sub/keep.txt", "z/new.txt"):
+                (tmp / name).parent.mkdir(parents=True, exist_ok=True)
+                (tmp / name).write_text("new")
+    assert _tree(existing) == before
     assert [p.name for p in existing.parent.iterdir()] == ["out"]
+
+
+def test_empty_folder_is_replaced_in_one_rename(tmp_path):
+    dest = tmp_path / "out"
+    dest.mkdir()
+    with replace_dir_atomically(dest) as tmp:
+        (tmp / "x.txt").write_text("x")
+    assert _tree(dest) == {"x.txt": "x"} and [p.name for p in tmp_path.iterdir()] == ["out"]

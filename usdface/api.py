@@ -79,7 +79,9 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
 
 def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> Path:
     """Validate a capture output before any work: ``.usda``/``.usdc``/``.usd`` (a file) or a name without
-    extension (a folder); never one of the ``inputs``; an existing output needs ``force``."""
+    extension (a folder); never touching one of the ``inputs`` (:func:`usdface.io.atomic.check_not_input`:
+    not an input, not inside an input folder, a folder holding none of them), even with ``force``; an
+    existing output needs ``force``."""
     from .errors import InputFileError
 
     out = Path(out_path)
@@ -87,26 +89,24 @@ def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> 
     if out.suffix and not usd:
         raise InputFileError("a capture is written as .usda/.usdc/.usd or as a folder (a name without "
                              "extension)", path=out, fix=f"name it e.g. {out.stem}.usda or {out.stem}/")
-    for given in inputs:
-        if given is not None and Path(given).exists() and out.exists() and out.samefile(given):
-            raise InputFileError("output would overwrite the input", path=out,
-                                 fix="choose a different output; inputs are never modified")
     if usd:
         from .io.layers import check_output_path
 
-        return check_output_path(out, force)
+        return check_output_path(out, force, inputs=inputs)
     from .io.atomic import check_output_dir
 
-    return check_output_dir(out, force)
+    return check_output_dir(out, force, inputs=inputs)
 
 
 def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
-                  source: PathLike | None = None) -> Path:
+                  source: PathLike | None = None, inputs: Sequence[PathLike | None] = ()) -> Path:
     """Write ``capture`` as a capture ``.usda``/``.usdc``/``.usd`` file, or as a capture folder (OBJ + JSON)
     for any other path; returns the path written (atomically). Refuses an existing output unless ``force``.
     ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
-    or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``."""
-    out = check_capture_output(out_path, force, inputs=[source])
+    or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``.
+    ``source`` and ``inputs`` (other files the capture was made from) are never overwritten, even with
+    ``force`` (:func:`check_capture_output`)."""
+    out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
 
@@ -158,7 +158,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     from .take_select import format_coverage, select_frames
 
     if out_path is not None:
-        check_capture_output(out_path, force, inputs=[take])
+        check_capture_output(out_path, force, inputs=[take, template])
     with steps("capture select", 2 if out_path is None else 4) as p:
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
@@ -172,7 +172,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         p.start("build capture")
         capture = capture_from_take(data, selection, template=template)
         p.start(f"write {Path(out_path).name}")
-        written = write_capture(capture, out_path, force=force)
+        written = write_capture(capture, out_path, force=force, inputs=[take, template])
     return CaptureSelection(data, selection, coverage, capture, written)
 
 
@@ -221,7 +221,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     if out_path is not None:
         from .io.layers import check_output_path
 
-        check_output_path(out_path, force)
+        check_output_path(out_path, force, inputs=[capture, options.get("pins")])
     reading = isinstance(capture, str | Path)
     with steps("fit", 1 + reading + (out_path is not None)) as p:
         if reading:
@@ -292,17 +292,19 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     test frame bar charts, paper Figs. 4-5), ``usd_path`` (colour-coded error maps, Fig. 6); the paths
     written are ``report["_outputs"]``. ``options`` go to the fit (``reg``, ``prior``, ...). Raises
     :class:`~usdface.errors.FitError` if the capture has no test frames."""
-    from .errors import FitError, OutputExistsError
+    from .errors import FitError
+    from .io.atomic import check_output_file
     from .personalize.report import evaluate_methods as _evaluate
 
-    _check_evaluate_suffixes(json_path, plot_path)
-    for out in (json_path, plot_path):
-        if out and Path(out).exists() and not force:
-            raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
+    inputs = [capture, truth]
+    for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
+        if out:
+            check_output_file(out, force, what=what, inputs=inputs)
     if usd_path:
         from .io.layers import check_output_path
 
-        check_output_path(usd_path, force)
+        check_output_path(usd_path, force, inputs=inputs)
     if isinstance(truth, str | Path):
         truth = _read_truth(truth)
     source = capture if isinstance(capture, str | Path) else None
@@ -407,6 +409,12 @@ def _check_correspondence_cache(path) -> None:
                              fix="delete it or pass another --correspondence file")
 
 
+def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) -> list:
+    """Every file ``personalize``/``retarget`` read (avatar, capture, take, pins, name map; the
+    correspondence cache is read *and* written, by design): no output may be one of them."""
+    return [avatar_path, capture_path, take, options.get("pins"), options.get("name_map")]
+
+
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
                        out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        landmarks: bool = False, **options: Any) -> PersonalizeResult:
@@ -427,8 +435,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     if out_path is not None and not options.get("dry_run"):
         from .io.layers import check_output_path
 
-        check_output_path(out_path, options.get("force", False),
-                          inputs=[p for p in (avatar_path, capture_path, take) if isinstance(p, str | Path)])
+        check_output_path(out_path, options.get("force", False), inputs=personalize_inputs(
+            avatar_path, capture_path, take=take, **options))
     if take is not None:
         inspect = True
     if isinstance(options.get("pins"), str | Path):
@@ -553,18 +561,15 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
     work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written).
     Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
-    from .errors import InputFileError, OutputExistsError
-    from .io.atomic import write_text_atomic
+    from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.retarget import weight_map_csv, weight_map_json
 
     refuse_usdface_output(avatar_path)
-    out = Path(out_path)
-    if out.suffix.lower() not in (".json", ".csv"):
-        raise InputFileError("unknown map format", path=out, fix="use a .json or .csv output file")
-    if out.exists() and not force:
-        raise OutputExistsError("output exists", path=out, fix="pass --force to replace it")
+    out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
+                            inputs=personalize_inputs(avatar_path, capture_path, **options))
+    _check_correspondence_cache(options.get("correspondence"))
     result = _personalize(avatar_path, capture_path, None, **options)
     if out.suffix.lower() == ".json":
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
@@ -586,15 +591,19 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``MANIFEST.report.json``; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    from .io.atomic import check_output_file
     from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
 
     items = read_manifest(manifest)
     for item in items:
         item.options = {**dict(options or {}), **item.options}
-    run = load_worker(worker) if worker else personalize_worker
-    report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
     manifest = Path(manifest)
     path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
+    # the report is rewritten on every run (resume), but never over the manifest or an item's input
+    check_output_file(path, True, what="batch report",
+                      inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))])
+    run = load_worker(worker) if worker else personalize_worker
+    report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
     report.report_path = Path(report.write(path))
     return report
 
@@ -644,7 +653,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     from .review.page import build_review_html
 
     out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
-                            inputs=[layer_path])
+                            inputs=[layer_path, capture, take])
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
     if isinstance(capture, str | Path) and not Path(capture).exists():
@@ -692,7 +701,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
     if obj_dir:
-        check_output_dir(obj_dir, force)
+        check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
         check_output_path(flatten, force, inputs=[layer_path])
     done: dict[str, Path] = {}

@@ -72,13 +72,14 @@ def run(args) -> int:
     from ..progress import steps
 
     t0 = time.perf_counter()
+    inputs = [args.avatar, args.name_map, args.empirical, *args.takes]
     if args.output:
         from ..io.layers import check_output_path
 
-        check_output_path(args.output, args.force, inputs=[args.avatar])
+        check_output_path(args.output, args.force, inputs=inputs)
     for out, suffix in ((args.json_out, ".json"), (args.plot, ".png")):
         if out:
-            check_output_file(out, args.force, suffixes=(suffix,), inputs=[args.avatar])
+            check_output_file(out, args.force, suffixes=(suffix,), inputs=inputs)
     avatar = api.read_avatar(args.avatar, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.output and not args.evaluate:     # its primvars would change nothing under an instance

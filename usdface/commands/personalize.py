@@ -34,7 +34,9 @@ def add_transfer_options(p) -> None:
                    help="what the fit shrinks towards where the capture does not inform a shape: the "
                         "avatar's own generic shapes on the capture mesh (default) or the capture's template")
     p.add_argument("--correspondence", metavar="FILE",
-                   help="correspondence cache (.npz): reused when it matches the avatar, written otherwise")
+                   help="correspondence cache (.npz): reused when it matches the avatar face and the "
+                        "capture's template, written otherwise (a cache of another avatar is rewritten, "
+                        "with a warning: it is a cache, not an input)")
     p.add_argument("--face-transfer", default="person", choices=["person", "offset", "dt", "dt-offset"],
                    help="how the face region receives the shapes (default: person = the person's motion "
                         "A_j + M(B_j - P_j); offset = the older B_j - T_j deviation; dt = the paper's DT)")
@@ -110,18 +112,30 @@ def _default_output(avatar: str) -> Path:
 
 def run(args) -> int:
     from .. import progress
-    from ..api import personalize_avatar
+    from ..api import personalize_avatar, personalize_inputs
+    from ..errors import UsdFaceError
+    from ..io.atomic import check_output_file
+    from ..io.layers import check_output_path
+    from .review import default_output
 
     if args.quiet or args.json:
         progress.set_enabled(False)
     out = Path(args.output) if args.output else _default_output(args.avatar)
     inspect = bool(args.inspect or args.landmarks or args.take)
-    if args.review and not args.dry_run:  # refuse an existing review page before the work, like the layer
-        from ..errors import OutputExistsError
-        from .review import default_output
-
-        if default_output(out).exists() and not args.force:
-            raise OutputExistsError("review page exists", path=default_output(out), fix="pass --force")
+    inputs = personalize_inputs(args.avatar, args.capture, take=args.take, pins=args.pins,
+                                name_map=args.name_map)
+    refusal = None
+    if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
+        try:
+            check_output_path(out, args.force, inputs=inputs)
+            if args.review:
+                check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
+                                  inputs=inputs)
+        except UsdFaceError as exc:
+            refusal = str(exc)
+    elif args.review:  # refuse an existing review page (or an input) before the work, like the layer
+        check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
+                          inputs=inputs)
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
@@ -130,6 +144,9 @@ def run(args) -> int:
     if args.json:
         doc = {"ok": True, "output": str(result.out_path) if result.out_path else None}
         doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
+        if args.dry_run:
+            doc["would_write"] = None if refusal else str(out)
+            doc["output_refused"] = refusal
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
         return 0
@@ -143,6 +160,10 @@ def run(args) -> int:
     cor = rep["correspondence"]
     print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']} (cache: "
           f"{cor.get('cache', 'off')}); {len(rep['shapes'])} shapes implanted")
+    if cor.get("cache") == "replaced":
+        say_warning(f"--correspondence {args.correspondence} held the map of another avatar face or template "
+                    "(or an older usdface): it was rewritten for this one; give each avatar its own file "
+                    "to keep both")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
@@ -162,7 +183,7 @@ def run(args) -> int:
         for c in changed:
             print(f"  {c['mesh']}/{c['shape']}: max {c['max_change_m'] * 1000:.3f}, "
                   f"rms {c['rms_change_m'] * 1000:.3f}, {c['moved_vertices']} vertices")
-        print(f"would write {out}")
+        print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}")
     else:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
         if inspect:
@@ -171,7 +192,6 @@ def run(args) -> int:
             print(f"inspection: change heat map (displayColor), test-expression SkelAnimation{extra}")
     if args.review and not args.dry_run and result.out_path:
         from ..api import write_review
-        from .review import default_output
 
         page = write_review(result.out_path, default_output(result.out_path), capture=args.capture,
                             take=args.take, force=args.force)

@@ -63,7 +63,8 @@ def run(args) -> int:
         from ..errors import LandmarkError
 
         raise LandmarkError("--diagnostics draws a landmark layout", fix="pass --landmarks --diagnostics")
-    check_output_file(args.output, args.force, suffixes=(".png",), what="picture", inputs=[path])
+    check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
+                      inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
     shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
     if path.is_dir() or args.capture:
         capture = api.read_capture(path)

@@ -14,7 +14,9 @@ def register(subparsers) -> None:
                     "(see docs/sample-assets.md).")
     parser.add_argument("outdir", help="output folder (e.g. sample_assets)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0: the committed assets)")
-    parser.add_argument("--force", action="store_true", help="replace an existing, non-empty folder")
+    parser.add_argument("--force", action="store_true",
+                        help="write into an existing, non-empty folder: replace the files 'sample' writes, "
+                             "keep every other file")
     parser.add_argument("--folder", action="store_true",
                         help="also write the capture as a capture folder OUTDIR/capture/ (OBJ + JSON, ~9 MB; "
                              "not part of the committed sample_assets/)")
@@ -36,13 +38,11 @@ def run(args) -> int:
     import json
     from pathlib import Path
 
+    from ..io.atomic import check_output_file
     from ..sample import generate_samples
 
-    if args.picture and Path(args.picture).suffix.lower() != ".png":  # before the samples are written
-        from ..errors import InputFileError
-
-        raise InputFileError("picture must end in .png", path=args.picture,
-                             fix=f"name it e.g. {Path(args.picture).stem or 'samples'}.png")
+    if args.picture:  # checked before the folder is written
+        check_output_file(args.picture, args.force, suffixes=(".png",), what="picture")
     noise = {"scan_noise_m": None if args.scan_noise is None else args.scan_noise * 1e-3,
              "weight_noise": args.weight_noise}
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
@@ -61,5 +61,7 @@ def run(args) -> int:
 
         data = build_samples(args.seed, args.template, **noise)
         cap = data["capture"]
-        print(f"wrote {render_sample_picture(data['rigs'], cap.neutral, cap.triangles, args.picture)}")
+        picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
+                                        force=args.force)
+        print(f"wrote {picture}")
     return 0

@@ -18,8 +18,8 @@ from pathlib import Path
 
 from ..errors import InputFileError, OutputExistsError
 
-__all__ = ["check_output_file", "check_output_dir", "replace_dir_atomically", "atomic_file",
-           "write_text_atomic", "publish", "temp_sibling"]
+__all__ = ["check_output_file", "check_output_dir", "check_not_input",
+           "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling"]
 
 
 #: errno values meaning "this file system cannot hard-link" (publish then falls back to check + rename).
@@ -108,13 +108,112 @@ def write_text_atomic(path, text: str, force: bool = False) -> Path:
     return Path(path)
 
 
+#: What a layer an input composes can be called.
+_USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def _usd_dependencies(path: Path) -> list[Path]:
+    """The files a USD input composes besides itself (sublayers, references, payloads, recursively:
+    ``UsdUtils.ComputeAllDependencies``); [] when USD cannot read it (the reader reports that later)."""
+    if path.suffix.lower() not in _USD_SUFFIXES or not path.is_file():
+        return []
+    try:
+        from pxr import UsdUtils
+
+        from .usd_open import quiet_stderr
+
+        with quiet_stderr():  # a missing sublayer: the reader names it in one line later
+            layers, _assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
+    except Exception:  # noqa: BLE001  (a broken file: its reader says why later, not this check)
+        return []
+    return [Path(layer.realPath) for layer in layers if layer.realPath]
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the current folder when it lies inside it (USD gives absolute real paths)."""
+    try:
+        return str(path.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
+    """(path, how to name it) of the existing ``inputs`` (paths; None and non-path objects skipped) and, with
+    ``composed``, of the files the USD ones compose."""
+    found: list[tuple[Path, str]] = []
+    for given in inputs:
+        if not isinstance(given, str | os.PathLike) or not os.path.exists(given):  # its reader says so
+            continue
+        given = Path(given)
+        found.append((given, f"{'input folder' if given.is_dir() else 'input'} {given}"))
+        if composed:
+            real = given.resolve()
+            found.extend((d, f"input {_shown(d)} (a layer the input {given} composes)")
+                         for d in _usd_dependencies(given) if d.exists() and d.resolve() != real)
+    return found
+
+
+def _output_tree(folder: Path) -> tuple[set, list[Path]]:
+    """(dev, inode) of every entry under the existing ``folder`` (symlinks not followed), and the resolved
+    targets of the symlinks found there."""
+    ids, links = set(), []
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            entry = Path(root) / name
+            st = entry.lstat()
+            if entry.is_symlink():
+                links.append(entry.resolve())
+            else:
+                ids.add((st.st_dev, st.st_ino))
+    return ids, links
+
+
+def check_not_input(path, inputs, *, what: str = "output", folder: bool = False) -> None:
+    """THE check that an output never touches an input, used by every command before any work.
+
+    Raises :class:`~usdface.errors.InputFileError` naming the input and the fix, whatever ``force`` says,
+    when writing ``path`` could modify one of the existing ``inputs`` (paths; for a USD file also every file
+    it composes: sublayers, references, payloads):
+
+    * ``path`` is an input: the same file, also through a symlink or a hard link;
+    * ``path`` is an input folder or lies inside one (a new file there changes the input folder);
+    * ``folder=True`` (``path`` is an output folder): ``path`` contains an input, or an entry under ``path``
+      is a hard link of an input or a symlink to an input (or to a folder holding one).
+    """
+    path = Path(path)
+    # only an existing USD file (or a folder) can be a layer an input composes: skip opening them otherwise
+    composed = os.path.lexists(path) and (folder or path.suffix.lower() in _USD_SUFFIXES)
+    given = _given_inputs(inputs, composed=composed)
+    if not given:
+        return
+    target = path.resolve()
+    tree = _output_tree(path) if folder and path.is_dir() else (set(), [])
+    for inp, named in given:
+        real, st = inp.resolve(), inp.stat()
+        if path.exists() and os.path.samestat(path.stat(), st):
+            raise InputFileError(f"{what} would overwrite an input: it is the {named}", path=path,
+                                 fix=f"choose a different {what}; inputs are never modified, even with "
+                                     "--force")
+        if inp.is_dir() and target.is_relative_to(real):
+            raise InputFileError(f"{what} is inside the {named} (writing it would change that input)",
+                                 path=path,
+                                 fix=f"write the {what} outside {inp}; inputs are never modified, even with "
+                                     "--force")
+        if folder and (real.is_relative_to(target) or (st.st_dev, st.st_ino) in tree[0]
+                       or any(real == link or real.is_relative_to(link) for link in tree[1])):
+            raise InputFileError(f"{what} holds the {named} (writing into it could overwrite or delete "
+                                 "that input)", path=path,
+                                 fix="choose a new or empty folder that holds none of the inputs; inputs are "
+                                     "never modified, even with --force")
+
+
 def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=()) -> Path:
     """Validate an output file path before any work; returns it as a Path.
 
     Refuses (InputFileError) a line break in the name, an extension not in ``suffixes`` (lower case, with
-    the dot; None = any), a folder at ``path``, a parent that is a file, and ``path`` being one of the
-    existing ``inputs`` (even with ``force``: inputs are never modified); an existing file needs ``force``
-    (OutputExistsError)."""
+    the dot; None = any), a folder at ``path``, a parent that is a file, and ``path`` touching one of the
+    existing ``inputs`` (:func:`check_not_input`, even with ``force``: inputs are never modified); an existing
+    file needs ``force`` (OutputExistsError)."""
     path = Path(path)
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
@@ -130,40 +229,47 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     if not parent.is_dir():
         raise InputFileError(f"{what}'s parent {parent} is a file, not a folder", path=path,
                              fix="choose another output path")
-    if path.exists():
-        for given in inputs:
-            if given is not None and Path(given).exists() and path.samefile(given):
-                raise InputFileError(f"{what} would overwrite an input", path=path,
-                                     fix="choose a different output file; inputs are never modified")
-        if not force:
-            raise OutputExistsError(f"{what} exists", path=path,
-                                    fix="pass --force (force=True) to replace it")
+    check_not_input(path, inputs, what=what)
+    if path.exists() and not force:
+        raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
     return path
 
 
-def check_output_dir(path, force: bool = False) -> Path:
-    """Refuse an existing output folder that is not empty (or an existing file) unless ``force``.
+def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "output folder") -> Path:
+    """Validate an output folder before any work; returns it as a Path.
 
-    Raises :class:`~usdface.errors.OutputExistsError` naming ``path``; returns it as a Path. A missing or
-    empty folder is always accepted.
+    Refuses (InputFileError) a folder that touches one of the existing ``inputs`` (:func:`check_not_input`
+    with ``folder=True``: it is, holds or lies inside an input), even with ``force``. An existing file at
+    ``path`` is refused (OutputExistsError), even with ``force``: usdface does not delete a file it did not
+    write. An existing folder that is not empty needs ``force`` (OutputExistsError); with ``force``
+    :func:`replace_dir_atomically` replaces only the files it writes. A missing or empty folder is always
+    accepted.
     """
     dest = Path(path)
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not force:
-        what = "output folder exists and is not empty" if dest.is_dir() else "output exists (a file)"
-        raise OutputExistsError(what, path=dest, fix="choose a new folder or pass --force (force=True)")
+    check_not_input(dest, inputs, what=what, folder=True)
+    if dest.exists() and not dest.is_dir():
+        raise OutputExistsError(f"{what} exists as a file", path=dest,
+                                fix="choose a new folder (--force never replaces a file by a folder)")
+    if dest.is_dir() and any(dest.iterdir()) and not force:
+        raise OutputExistsError(f"{what} exists and is not empty", path=dest,
+                                fix="choose a new folder, or pass --force (force=True) to replace the files "
+                                    "usdface writes there (other files are kept)")
     return dest
 
 
 @contextmanager
 def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
-    """Context manager: yield a new, empty temporary folder next to ``path``; when the block completes, it
-    becomes ``path``.
+    """Context manager: yield a new, empty temporary folder next to ``path``; when the block completes, its
+    files are published at ``path``.
 
-    ``path`` is checked first (:func:`check_output_dir`: an existing non-empty folder or a file needs
-    ``force``). The temporary folder lives in ``path``'s parent (same file system, so the final rename is
-    atomic) and gets mode 0755 like an ordinary folder. On success an existing ``path`` is moved aside, the
-    new folder renamed into place, and the old one deleted (if the rename fails the old one is put back). If
-    the block raises, the temporary folder is deleted and ``path`` is left untouched.
+    ``path`` is checked first (:func:`check_output_dir`; callers check it against their inputs before any
+    work). The temporary folder lives beside ``path`` (same file system) and gets mode 0755 like an ordinary
+    folder. A missing or empty ``path`` is replaced by the new folder in one rename (atomic). An existing
+    non-empty folder (only with ``force``) is *merged into*: each file written replaces the file of the same
+    name (atomically, the old one staying in place until then), every other file in ``path`` is kept (a
+    warning says how many), and if any move fails the files already moved are put back. A file where the new
+    folder has a sub-folder (or the reverse) is refused, changing nothing. If the block raises, the temporary
+    folder is deleted and ``path`` is left untouched.
 
     Example::
 
@@ -171,6 +277,8 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             write_obj(tmp / "neutral.obj", points, triangles)
     """
     dest = check_output_dir(path, force)
+    if dest.is_symlink():  # write into the folder the link names, on its file system
+        dest = dest.resolve()
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = None
     try:
@@ -180,20 +288,72 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
         yield tmp
-        if dest.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
-            try:
-                os.replace(dest, old / dest.name)
-                try:
-                    os.replace(tmp, dest)
-                except BaseException:
-                    os.replace(old / dest.name, dest)
-                    raise
-            finally:
-                shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, dest)
-    except BaseException:
+        try:
+            os.rename(tmp, dest)  # a missing or empty dest: the whole folder appears at once
+            tmp = None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not dest.is_dir():
+                raise
+            if not force:  # a file appeared meanwhile
+                raise OutputExistsError("output folder is not empty (written by another process meanwhile)",
+                                        path=dest, fix="choose a new folder or pass --force (force=True)"
+                                        ) from None
+            _merge_into(tmp, dest)
+    finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _merge_into(tmp: Path, dest: Path) -> None:
+    """Move every file under ``tmp`` to the same place under ``dest``, replacing only those files; all or
+    nothing (see :func:`replace_dir_atomically`)."""
+    import warnings
+
+    files = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if not p.is_dir())
+    written = {rel.as_posix() for rel in files}
+    for rel in files:
+        for up in reversed(rel.parents[:-1]):
+            if os.path.lexists(dest / up) and not (dest / up).is_dir():
+                raise OutputExistsError(f"{dest / up} is a file where usdface writes a folder", path=dest,
+                                        fix="move that file away or choose a new folder")
+        if (dest / rel).is_dir():
+            raise OutputExistsError(f"{dest / rel} is a folder where usdface writes a file", path=dest,
+                                    fix="move that folder away or choose a new folder")
+    backup = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+    done: list[tuple[Path, bool]] = []
+    made: list[Path] = []
+    try:
+        for rel in files:
+            target = dest / rel
+            for up in reversed(rel.parents[:-1]):
+                if not (dest / up).exists():
+                    (dest / up).mkdir()
+                    made.append(dest / up)
+            had = os.path.lexists(target)
+            if had:  # keep the old file until the new one replaces it (put back on failure)
+                (backup / rel).parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(target, backup / rel, follow_symlinks=False)
+                except OSError:
+                    shutil.copy2(target, backup / rel, follow_symlinks=False)
+            os.replace(tmp / rel, target)
+            done.append((rel, had))
+    except BaseException:
+        for rel, had in reversed(done):
+            if had:
+                os.replace(backup / rel, dest / rel)
+            else:
+                (dest / rel).unlink(missing_ok=True)
+        for folder in reversed(made):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
         raise
+    finally:
+        shutil.rmtree(backup, ignore_errors=True)
+    kept = [p.relative_to(dest).as_posix() for p in dest.rglob("*")
+            if not p.is_dir() and p.relative_to(dest).as_posix() not in written]
+    if kept:
+        warnings.warn(f"{dest}: kept {len(kept)} file(s) this run did not write (e.g. {kept[0]}); --force "
+                      "only replaces the files usdface writes: delete stale ones yourself", stacklevel=3)

@@ -557,14 +557,11 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
     from pxr import Sdf, Usd
 
     start = time.perf_counter()
-    out_path = check_output_path(out_path, force).absolute()
     in_path = Path(avatar.file).absolute()
     if not in_path.is_file():
         raise InputFileError("the avatar's file is gone", path=in_path,
                              fix="keep the input avatar in place while writing the layer")
-    if out_path.exists() and out_path.samefile(in_path):
-        raise InputFileError("output would overwrite the input avatar", path=out_path,
-                             fix="choose a different output file; inputs are never modified")
+    out_path = check_output_path(out_path, force, inputs=[in_path]).absolute()
     resolved = _resolve_offsets(avatar, offsets)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     input_asset = _relative_asset_path(in_path, out_path.parent)

@@ -43,9 +43,11 @@ def _frame(ax, center, half):
     ax.set_axis_off()
 
 
-def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles, path) -> Path:
+def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles, path,
+                          force: bool = True) -> Path:
     """Write a PNG: the avatar (Head, Mouth, eyes; cm) neutral and in :data:`SHOWCASE` expressions, and the
-    capture mask (metres, scaled for display). ``rigs`` as built by :func:`usdface.sample.build_samples`."""
+    capture mask (metres, scaled for display). ``rigs`` as built by :func:`usdface.sample.build_samples`.
+    Atomic (temp + rename); an existing file is replaced only with ``force``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -71,7 +73,11 @@ def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles
             _frame(ax, center, 10.5)
         ax.set_title(title, fontsize=11)
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)
+    from ..io.atomic import atomic_file
+
+    try:
+        with atomic_file(path, force=force) as tmp:
+            fig.savefig(tmp, metadata={"Software": None}, format="png")
+    finally:
+        plt.close(fig)
     return path

@@ -246,11 +246,13 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
                           *[template_deltas[names.index(n)] for n in sem],
                           *[avatar_deltas[names.index(n)] for n in sem])
+    stale = False
     if cache is not None:
         corr = load_correspondence(cache, key)
         if corr is not None and (corr.source_triangle is not None or not source_triangles):
             corr.info = {**(corr.info or {}), "cache": "hit"}
             return corr
+        stale = Path(cache).exists()  # a cache of another avatar face / template (or version): rewritten
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target)
@@ -264,7 +266,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     nr_info["semantic_shapes"] = ",".join(used)
     corr.key = key
     corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
-                 "cache": "miss" if cache is not None else "off"}
+                 "cache": "replaced" if stale else "miss" if cache is not None else "off"}
     if cache is not None:
         save_correspondence(corr, cache)
     return corr

@@ -1,0 +1,283 @@
+"""Outputs never touch inputs, and ``--force`` replaces only what usdface writes (issue: new-user trial, data
+loss). Every repro runs the ``usdface`` command as a user would (a subprocess in a scratch folder) and checks
+the exit status, the message (the input and the fix named) and that every input and unrelated file is
+byte-identical afterwards. Each one deleted or overwrote a file before the fix."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+from wfutil import digest, no_temp_left, run
+
+
+def refused(proc, *needles):
+    """Exit 2, one line naming ``needles`` and a fix, no traceback."""
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    for needle in needles:
+        assert needle in proc.stderr, proc.stderr
+    assert "(fix: " in proc.stderr
+
+
+def tree(folder) -> dict:
+    """Every file under ``folder`` with its sha256 (the folder's full content: nothing added or removed)."""
+    return {os.path.relpath(k, folder): v for k, v in digest(folder).items()}
+
+
+@pytest.fixture(scope="module")
+def person_files(sample_set, tmp_path_factory):
+    """``sa/avatar.usda`` + ``sa/capture.usda`` and ``out/person.usda`` personalized from them (a layer that
+    sublayers ../sa/avatar.usda), made once; tests work on copies (:func:`project`)."""
+    root = tmp_path_factory.mktemp("person")
+    (root / "sa").mkdir()
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, root / "sa" / name)
+    (root / "out").mkdir()
+    run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/person.usda", "-q", cwd=root)
+    return root
+
+
+@pytest.fixture
+def project(person_files, tmp_path):
+    """A fresh copy of :func:`person_files` (relative sublayer paths kept) in this test's scratch folder."""
+    shutil.copytree(person_files, tmp_path, dirs_exist_ok=True)
+    return tmp_path
+
+
+@pytest.fixture(scope="module")
+def take_file(sample_set, tmp_path_factory):
+    """A continuous USD take of the sample person (``take.usdc``)."""
+    from usdface.io.take import write_take_usd
+    from usdface.io.usd_capture import read_capture_usd
+    from usdface.model import FaceRig
+    from usdface.sample.take import make_take
+
+    truth = np.load(sample_set / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(sample_set / "capture.usda")
+    names = [str(n) for n in truth["names"]]
+    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
+                        seed=3)
+    return write_take_usd(take, tmp_path_factory.mktemp("take") / "take.usdc")
+
+
+# ------------------------------------------------------------------- 1. --force on a folder output
+def test_export_obj_dir_holding_the_input_layer_is_refused(project):
+    """``export out/person.usda --obj-dir out --force`` deleted out/person.usda (the input)."""
+    before = tree(project)
+    proc = run("export", "out/person.usda", "--obj-dir", "out", "--force", cwd=project, ok=False)
+    refused(proc, "out: output folder holds the input out/person.usda", "even with --force")
+    assert tree(project) == before
+
+
+def test_export_obj_dir_holding_a_sublayer_of_the_input_is_refused(project):
+    """The avatar person.usda sublayers is an input too: a folder holding it is refused."""
+    before = tree(project)
+    proc = run("export", "out/person.usda", "--obj-dir", "sa", "--force", cwd=project, ok=False)
+    refused(proc, "holds the input", "avatar.usda (a layer the input out/person.usda composes)")
+    assert tree(project) == before
+
+
+def test_export_force_into_a_folder_keeps_unrelated_files(project):
+    """``--force`` replaces the OBJs export writes and keeps every other file (it emptied the folder)."""
+    objs = project / "objs"
+    run("export", "out/person.usda", "--obj-dir", "objs", cwd=project)
+    written = tree(objs)
+    (objs / "notes.txt").write_text("mine")
+    (objs / "Head" / "old_shape.obj").write_text("stale, but not usdface's to delete")
+    proc = run("export", "out/person.usda", "--obj-dir", "objs", cwd=project, ok=False)
+    assert proc.returncode == 2 and "not empty" in proc.stderr and "--force" in proc.stderr
+    proc = run("export", "out/person.usda", "--obj-dir", "objs", "--force", cwd=project)
+    assert "kept 2 file(s)" in proc.stdout
+    after = tree(objs)
+    assert after.pop("notes.txt") and after.pop(os.path.join("Head", "old_shape.obj"))
+    assert after == written  # the same files, rewritten with the same bytes
+    assert (objs / "notes.txt").read_text() == "mine"
+    no_temp_left(project)
+    assert sorted(p.name for p in project.iterdir()) == ["objs", "out", "sa"]
+
+
+def test_export_to_a_symlink_of_the_input_folder_is_refused(project):
+    (project / "link").symlink_to("out", target_is_directory=True)
+    before = tree(project / "out")
+    proc = run("export", "out/person.usda", "--obj-dir", "link", "--force", cwd=project, ok=False)
+    refused(proc, "holds the input")
+    assert tree(project / "out") == before
+
+
+def test_capture_select_into_the_takes_folder_is_refused(take_file, tmp_path):
+    """``capture select t3/take.usdc -o t3 --force`` deleted the take and t3/notes.txt."""
+    t3 = tmp_path / "t3"
+    t3.mkdir()
+    shutil.copy(take_file, t3 / "take.usdc")
+    (t3 / "notes.txt").write_text("session notes")
+    before = tree(t3)
+    proc = run("capture", "select", "t3/take.usdc", "-o", "t3", "--force", cwd=tmp_path, ok=False)
+    refused(proc, "t3: output folder holds the input t3/take.usdc")
+    assert tree(t3) == before
+    # a folder elsewhere is fine, and --force there keeps what usdface does not write
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "cap" / "notes.txt").write_text("keep me")
+    run("capture", "select", "t3/take.usdc", "-o", "cap", "--force", "-q", cwd=tmp_path)
+    assert (tmp_path / "cap" / "notes.txt").read_text() == "keep me"
+    assert (tmp_path / "cap" / "neutral.obj").is_file() and tree(t3) == before
+
+
+def test_capture_import_into_the_project_folder_is_refused(sample_set, tmp_path):
+    """``capture import proj/cap -o proj --force`` deleted proj/cap and proj/avatar.usda."""
+    proj = tmp_path / "proj"
+    shutil.copytree(sample_set / "capture", proj / "cap")
+    shutil.copy(sample_set / "avatar.usda", proj / "avatar.usda")
+    before = tree(proj)
+    proc = run("capture", "import", "proj/cap", "-o", "proj", "--force", cwd=tmp_path, ok=False)
+    refused(proc, "proj: output folder holds the input folder proj/cap")
+    # the input folder itself, and a folder inside it, are refused too
+    proc = run("capture", "import", "proj/cap", "-o", "proj/cap", "--force", cwd=tmp_path, ok=False)
+    refused(proc, "would overwrite an input: it is the input folder proj/cap")
+    proc = run("capture", "import", "proj/cap", "-o", "proj/cap/again", cwd=tmp_path, ok=False)
+    refused(proc, "is inside the input folder proj/cap")
+    assert tree(proj) == before
+    no_temp_left(tmp_path)
+
+
+def test_sample_force_keeps_unrelated_files(tmp_path):
+    """``sample dir --force`` deleted every other file in dir."""
+    d = tmp_path / "dir"
+    d.mkdir()
+    (d / "notes.txt").write_text("notes")
+    (d / "truth").mkdir()
+    (d / "truth" / "mine.txt").write_text("mine")
+    proc = run("sample", "dir", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "not empty" in proc.stderr
+    run("sample", "dir", "--force", "-q", cwd=tmp_path)
+    assert (d / "notes.txt").read_text() == "notes" and (d / "truth" / "mine.txt").read_text() == "mine"
+    assert {"avatar.usda", "capture.usda", "README.txt"} <= {p.name for p in d.iterdir()}
+    assert (d / "truth" / "meta.json").is_file()
+    no_temp_left(tmp_path)
+
+
+# ------------------------------------------------------------------- 2. a file output that is an input
+@pytest.mark.parametrize("how", ["same", "hardlink", "symlink"])
+def test_fit_over_its_capture_is_refused(person_files, tmp_path, how):
+    """``fit capture.usda -o capture.usda --force`` replaced the capture (also through links)."""
+    cap = tmp_path / "capture.usda"
+    shutil.copy(person_files / "sa" / "capture.usda", cap)
+    out = {"same": cap, "hardlink": tmp_path / "hard.usda", "symlink": tmp_path / "soft.usda"}[how]
+    if how == "hardlink":
+        os.link(cap, out)
+    elif how == "symlink":
+        out.symlink_to(cap.name)
+    before = digest(cap)
+    proc = run("fit", "capture.usda", "-o", out.name, "--force", "-q", cwd=tmp_path, ok=False)
+    refused(proc, "would overwrite an input: it is the input capture.usda")
+    assert digest(cap) == before
+
+
+@pytest.mark.parametrize("option,needle", [
+    (["--usd", "capture.usda"], "would overwrite an input: it is the input capture.usda"),
+    (["--json", "capture.usda"], "JSON report must end in .json"),
+    (["--json", "report.txt"], "JSON report must end in .json"),
+    (["--plot", "capture.usda"], "plot format 'usda' is not supported"),
+])
+def test_evaluate_outputs_are_checked(person_files, tmp_path, option, needle):
+    """``evaluate capture.usda --usd capture.usda --force`` (or ``--json capture.usda``) destroyed the
+    capture; ``--json`` had no extension check."""
+    shutil.copy(person_files / "sa" / "capture.usda", tmp_path / "capture.usda")
+    before = tree(tmp_path)
+    proc = run("evaluate", "capture.usda", "--methods", "dt", *option, "--force", "-q", cwd=tmp_path,
+               ok=False)
+    refused(proc, needle)
+    assert tree(tmp_path) == before
+
+
+def test_export_flatten_over_the_sublayered_avatar_is_refused(project):
+    """``export person.usda --flatten sa/avatar.usda --force`` overwrote the avatar person.usda sublayers."""
+    before = tree(project)
+    proc = run("export", "out/person.usda", "--flatten", "sa/avatar.usda", "--force", cwd=project, ok=False)
+    refused(proc, "(a layer the input out/person.usda composes)")
+    proc = run("export", "out/person.usda", "--gltf", "sa/avatar.glb", "--flatten", "out/person.usda",
+               "--force", cwd=project, ok=False)
+    refused(proc, "would overwrite an input")
+    assert tree(project) == before
+
+
+def test_personalize_over_the_avatars_sublayer_is_refused(project):
+    """A layer the avatar composes (here: person.usda's avatar) is an input of personalize too."""
+    (project / "wrap.usda").write_text('#usda 1.0\n(\n    subLayers = [@sa/avatar.usda@]\n)\n')
+    before = tree(project)
+    proc = run("personalize", "wrap.usda", "sa/capture.usda", "-o", "sa/avatar.usda", "--force", "-q",
+               cwd=project, ok=False)
+    refused(proc, "sa/avatar.usda (a layer the input wrap.usda composes)")
+    assert tree(project) == before
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["retarget", "sa/avatar.usda", "sa/capture.usda", "--name-map", "names.json", "-o", "names.json"],
+     "it is the input names.json"),
+    (["landmarks", "sa/avatar.usda", "--evaluate", "--takes", "t.csv", "--empirical", "names.json",
+      "--json", "names.json"], "it is the input names.json"),
+    (["render", "out/person.usda", "--compare", "mine.png", "-o", "mine.png"], "it is the input mine.png"),
+    (["review", "out/person.usda", "--take", "page.html", "-o", "page.html"], "it is the input page.html"),
+    (["batch", "names.json", "--report", "names.json"], "it is the input names.json"),
+    (["sample", "newdir", "--picture", "mine.png"], "picture exists"),
+])
+def test_every_output_option_is_checked_before_work(project, argv, needle):
+    """The audit: each command's other inputs (name maps, layouts, generic avatars, takes, manifests) and
+    outputs go through the one check, before any work."""
+    (project / "names.json").write_text(json.dumps([{"avatar": "sa/avatar.usda", "capture": "sa/capture.usda",
+                                                     "output": "b.usda"}]))
+    (project / "mine.png").write_bytes(b"\x89PNG mine")
+    (project / "page.html").write_text("<p>mine</p>")
+    (project / "t.csv").write_text("not read")
+    before = tree(project)
+    proc = run(*argv, "--force" if argv[0] != "sample" else "-q", cwd=project, ok=False)
+    refused(proc, needle)
+    assert tree(project) == before
+
+
+# ------------------------------------------------------------------- 3. dry run and correspondence cache
+def test_dry_run_says_an_existing_output_would_be_refused(project):
+    proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/person.usda", "--dry-run",
+               "-q", cwd=project)
+    assert "a real run would refuse to write: out/person.usda: output layer exists" in proc.stdout
+    assert "would write out/person.usda" not in proc.stdout
+    proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "sa/capture.usda", "--dry-run",
+               "--force", "-q", cwd=project)
+    assert "a real run would refuse to write" in proc.stdout and "overwrite an input" in proc.stdout
+    proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "new.usda", "--dry-run", "-q",
+               "--json", cwd=project)
+    doc = json.loads(proc.stdout)
+    assert doc["would_write"] == "new.usda" and doc["output_refused"] is None
+    assert not (project / "new.usda").exists()
+
+
+def test_correspondence_cache_of_another_avatar_is_rewritten_with_a_warning(project, sample_set):
+    run("sample", "artist", "--template", "artist", "-q", cwd=project)
+    run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "a.usda", "--correspondence", "c.npz", "-q",
+        cwd=project)
+    proc = run("personalize", "sa/avatar.usda", "artist/capture.usda", "-o", "b.usda", "--correspondence",
+               "c.npz", "-q", cwd=project)
+    assert "cache: replaced" in proc.stdout
+    assert "warning: --correspondence c.npz held the map of another avatar face or template" in proc.stdout
+    proc = run("personalize", "sa/avatar.usda", "artist/capture.usda", "-o", "c.usda", "--correspondence",
+               "c.npz", "-q", cwd=project)
+    assert "cache: hit" in proc.stdout and "warning: --correspondence" not in proc.stdout
+
+
+# ------------------------------------------------------------------- the one check, directly
+def test_check_not_input_sees_hard_links_inside_an_output_folder(tmp_path):
+    from usdface.errors import InputFileError
+    from usdface.io.atomic import check_not_input, check_output_dir
+
+    src = tmp_path / "input.usda"
+    src.write_text("#usda 1.0\n")
+    (tmp_path / "out").mkdir()
+    os.link(src, tmp_path / "out" / "copy.usda")
+    with pytest.raises(InputFileError, match="holds the input"):
+        check_output_dir(tmp_path / "out", force=True, inputs=[src])
+    check_not_input(tmp_path / "new", [src], folder=True)          # a new folder elsewhere is fine
+    check_not_input(tmp_path / "other.usda", [src, None, 3])       # None / non-paths are skipped
