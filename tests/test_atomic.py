@@ -58,6 +58,28 @@ def test_force_replaces_only_the_files_written(existing):
     assert sorted(p.name for p in existing.parent.iterdir()) == ["out"]
 
 
+def test_force_refuses_a_stale_file_of_a_kind_written_in_its_folder(tmp_path):
+    """A capture folder written with ``--force`` over another run's: a frame that run had and this one has
+    not would be read as one of this capture's frames - refused, changing nothing; a file of another kind in
+    that folder is kept."""
+    dest = tmp_path / "cap"
+    (dest / "train").mkdir(parents=True)
+    (dest / "train" / "001_old.obj").write_text("old frame")
+    (dest / "train" / "notes.txt").write_text("mine")
+    before = _tree(dest)
+    with pytest.raises(OutputExistsError, match="001_old.obj"):
+        with replace_dir_atomically(dest, force=True) as tmp:
+            (tmp / "train").mkdir()
+            (tmp / "train" / "001_new.obj").write_text("new frame")
+    assert _tree(dest) == before
+    (dest / "train" / "001_old.obj").unlink()
+    with pytest.warns(UserWarning, match="kept 1 file"):
+        with replace_dir_atomically(dest, force=True) as tmp:
+            (tmp / "train").mkdir()
+            (tmp / "train" / "001_new.obj").write_text("new frame")
+    assert _tree(dest) == {"train/001_new.obj": "new frame", "train/notes.txt": "mine"}
+
+
 def test_force_never_replaces_a_file_by_a_folder(existing):
     (existing.parent / "file").write_text("f")
     with pytest.raises(OutputExistsError, match="a file"):
