@@ -159,12 +159,7 @@ def test_field_on_the_proxy_gives_the_coarse_mesh_answer():
     assert len(fine_field.points) < len(fine_pts) / 4                       # the field kept on the proxy
     change = np.sqrt(np.mean((coarse - generic) ** 2))
     off = 100 * np.sqrt(np.mean((fine[:, :n] - coarse) ** 2)) / change
-    saved = implant.PROXY_MIN_RINGS
-    try:
-        implant.PROXY_MIN_RINGS = 10 ** 6
-        plain, plain_field = implant.extend_personalization(fine_pts, fine_tri, g, p, w, **options)
-    finally:
-        implant.PROXY_MIN_RINGS = saved
+    plain, plain_field = _without_proxy(fine_pts, fine_tri, g, p, w, **options)
     assert len(plain_field.points) == len(fine_pts)
     plain_off = 100 * np.sqrt(np.mean((plain[:, :n] - coarse) ** 2)) / change
     proxy_off = 100 * np.sqrt(np.mean((fine - plain) ** 2)) / change
@@ -172,6 +167,17 @@ def test_field_on_the_proxy_gives_the_coarse_mesh_answer():
           f"proxy vs full fine {proxy_off:.2f} %")
     assert off < 2.0 and proxy_off < 1.0
 
+
+def _without_proxy(*args, **options):
+    """:func:`usdface.transfer.implant.extend_personalization` solved on every fine vertex (no proxy)."""
+    import usdface.transfer.implant as implant
+
+    saved = implant.PROXY_MIN_RINGS
+    try:
+        implant.PROXY_MIN_RINGS = 10 ** 6
+        return implant.extend_personalization(*args, **options)
+    finally:
+        implant.PROXY_MIN_RINGS = saved
 
 def test_field_on_the_proxy_keeps_touching_sheets_apart():
     """Two curved sheets 0.2 mm apart joined along one edge (closed lips), moving apart with different
@@ -198,12 +204,7 @@ def test_field_on_the_proxy_keeps_touching_sheets_apart():
     options = dict(length=0.03, band=0.004, smoothing=0.01)
     got, field = implant.extend_personalization(pts, tri, generic, person, weight, **options)
     assert field.rings >= implant.PROXY_MIN_RINGS and len(field.points) < len(pts) / 4
-    saved = implant.PROXY_MIN_RINGS
-    try:
-        implant.PROXY_MIN_RINGS = 10 ** 6
-        want, _ = implant.extend_personalization(pts, tri, generic, person, weight, **options)
-    finally:
-        implant.PROXY_MIN_RINGS = saved
+    want, _ = _without_proxy(pts, tri, generic, person, weight, **options)
     change = want - generic
     err = np.linalg.norm(got - want, axis=-1)
     rms = 100 * np.sqrt(np.mean(err ** 2) / np.mean(np.sum(change ** 2, axis=-1)))

@@ -9,27 +9,18 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 from wfutil import assert_valid_usd, digest, no_temp_left, run
 
 
 @pytest.fixture(scope="module")
-def take_files(sample_set, tmp_path_factory):
+def take_files(sample_take, tmp_path_factory):
     """A continuous take of the sample person (``take.usda``, USD take with template) and its weights as a
     Live Link Face CSV (``take.csv``), as a phone app would record them."""
     from usdface.io.livelink import write_livelink_csv
     from usdface.io.take import write_take_usd
-    from usdface.io.usd_capture import read_capture_usd
-    from usdface.model import FaceRig
-    from usdface.sample.take import make_take
 
-    truth = np.load(sample_set / "truth" / "capture_truth.npz")
-    capture = read_capture_usd(sample_set / "capture.usda")
-    names = [str(n) for n in truth["names"]]
-    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
-    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
-                        seed=3)
+    take = sample_take
     d = tmp_path_factory.mktemp("take")
     write_take_usd(take, d / "take.usda")
     write_livelink_csv(d / "take.csv", take.names, take.weights[:40], take.times[:40])

@@ -9,7 +9,6 @@ import json
 import os
 import shutil
 
-import numpy as np
 import pytest
 from wfutil import digest, no_temp_left, run
 
@@ -49,20 +48,11 @@ def project(person_files, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def take_file(sample_set, tmp_path_factory):
+def take_file(sample_take, tmp_path_factory):
     """A continuous USD take of the sample person (``take.usdc``)."""
     from usdface.io.take import write_take_usd
-    from usdface.io.usd_capture import read_capture_usd
-    from usdface.model import FaceRig
-    from usdface.sample.take import make_take
 
-    truth = np.load(sample_set / "truth" / "capture_truth.npz")
-    capture = read_capture_usd(sample_set / "capture.usda")
-    names = [str(n) for n in truth["names"]]
-    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
-    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
-                        seed=3)
-    return write_take_usd(take, tmp_path_factory.mktemp("take") / "take.usdc")
+    return write_take_usd(sample_take, tmp_path_factory.mktemp("take") / "take.usdc")
 
 
 # ------------------------------------------------------------------- 1. --force on a folder output
