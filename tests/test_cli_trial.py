@@ -120,6 +120,15 @@ def test_sample_picture_extension_checked_before_the_samples_are_written(tmp_pat
     assert list(tmp_path.iterdir()) == []
 
 
+
+def test_sample_json_still_draws_the_picture(tmp_path):
+    """``sample --json --picture`` returned before drawing the picture; it is drawn and named in the JSON."""
+    res = _usdface("sample", "s5", "--json", "--picture", "s5.png", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["ok"] and Path(doc["picture"]).name == "s5.png"
+    assert (tmp_path / "s5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
 # ------------------------------------------------------------------------------------- 3. error messages
 def test_face_mesh_mouth_says_the_capture_collapsed_not_a_perfect_residual(sample_dir, tmp_path):
     res = _usdface("personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda",

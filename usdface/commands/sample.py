@@ -49,12 +49,7 @@ def run(args) -> int:
                            template=args.template, **noise)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
-    if args.json:
-        print(json.dumps({"ok": True, "output": str(out), "bytes": size, "meta": meta}, default=str))
-        return 0
-    print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "
-          f"{meta['shapes']} shapes; capture {meta['capture_vertices']} vertices, "
-          f"{meta['train_frames']} train + {meta['test_frames']} test frames; {size / 1e6:.1f} MB")
+    picture = None
     if args.picture:
         from ..sample import build_samples
         from ..sample.picture import render_sample_picture
@@ -63,5 +58,13 @@ def run(args) -> int:
         cap = data["capture"]
         picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
                                         force=args.force)
+    if args.json:
+        print(json.dumps({"ok": True, "output": str(out), "bytes": size, "meta": meta,
+                          "picture": str(picture) if picture else None}, default=str))
+        return 0
+    print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "
+          f"{meta['shapes']} shapes; capture {meta['capture_vertices']} vertices, "
+          f"{meta['train_frames']} train + {meta['test_frames']} test frames; {size / 1e6:.1f} MB")
+    if picture:
         print(f"wrote {picture}")
     return 0
