@@ -129,6 +129,10 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     written = json.loads(Path(report["items"][0]["output"]).read_text())
     assert written["options"] == {"method": "dt"}
     assert main(["batch", str(manifest), "-j", "1", "--worker", "nowhere:nothing"]) == 2
+    capsys.readouterr()
+    assert main(["batch", str(manifest), "-j", "1", "--worker", worker, "--report",
+                 str(tmp_path / "r.txt")]) == 2        # the report is JSON: refused before any item
+    assert "must end in .json" in capsys.readouterr().err and not (tmp_path / "r.txt").exists()
 
 
 @pytest.mark.shared

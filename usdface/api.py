@@ -600,7 +600,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     manifest = Path(manifest)
     path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
     # the report is rewritten on every run (resume), but never over the manifest or an item's input
-    check_output_file(path, True, what="batch report",
+    check_output_file(path, True, suffixes=(".json",), what="batch report",
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))])
     run = load_worker(worker) if worker else personalize_worker
     report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
