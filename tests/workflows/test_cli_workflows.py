@@ -182,3 +182,21 @@ def test_layers_stacked_over_usdface_layers(sample_set, tmp_path):
     assert again.returncode == 2 and "already personalized" in again.stderr
     assert str((tmp_path / "lm.usda").resolve()) in again.stderr
     assert not (tmp_path / "pp.usda").exists()
+
+
+def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
+    """A shot that references the avatar: the layer's provenance records the referenced avatar's digest
+    too, so ``check`` notices when that file changes after personalizing (it hashed only the shot)."""
+    import shutil
+
+    shutil.copy(sample_set / "avatar.usda", tmp_path / "avatar.usda")
+    (tmp_path / "shot.usda").write_text(
+        '#usda 1.0\n(\n    defaultPrim = "Hero"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n\n'
+        'def "Hero" (\n    prepend references = @./avatar.usda@\n)\n{\n}\n')
+    run("personalize", "shot.usda", sample_set / "capture.usda", "-o", "p.usda", "-q", cwd=tmp_path)
+    clean = json.loads(run("check", "p.usda", "--json", cwd=tmp_path).stdout)
+    assert not [i for i in clean["issues"] if "changed" in i["message"]]
+    with open(tmp_path / "avatar.usda", "a") as f:
+        f.write("\n")                                       # an edit of the referenced avatar
+    edited = json.loads(run("check", "p.usda", "--json", cwd=tmp_path).stdout)
+    assert [i for i in edited["issues"] if "avatar.usda" in i["message"] and "changed" in i["message"]]

@@ -112,7 +112,7 @@ def write_text_atomic(path, text: str, force: bool = False) -> Path:
 _USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
-def _usd_dependencies(path: Path) -> list[Path]:
+def usd_dependencies(path: Path) -> list[Path]:
     """The files a USD input composes besides itself (sublayers, references, payloads, recursively:
     ``UsdUtils.ComputeAllDependencies``); [] when USD cannot read it (the reader reports that later)."""
     if path.suffix.lower() not in _USD_SUFFIXES or not path.is_file():
@@ -149,7 +149,7 @@ def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
         if composed:
             real = given.resolve()
             found.extend((d, f"input {_shown(d)} (a layer the input {given} composes)")
-                         for d in _usd_dependencies(given) if d.exists() and d.resolve() != real)
+                         for d in usd_dependencies(given) if d.exists() and d.resolve() != real)
     return found
 
 

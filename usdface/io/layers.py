@@ -491,8 +491,15 @@ def _relative_to_layer(path, out_path: Path) -> str:
 
 
 def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
+    from .atomic import usd_dependencies
+
     prov = dict(provenance or {})
     inputs = [str(avatar.file)] + [str(p) for p in prov.pop("inputs", []) if str(p) != str(avatar.file)]
+    # the layers the avatar composes (a shot's referenced avatar, its sublayers): an edit of one of them
+    # changes what this layer was computed from, so ``check`` verifies their digests too
+    root = Path(avatar.file).resolve()
+    inputs += [str(d) for d in usd_dependencies(Path(avatar.file))
+               if d.resolve() != root and str(d) not in inputs]
     digests = {}
     for p in inputs:
         try:
