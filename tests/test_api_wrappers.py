@@ -252,3 +252,25 @@ def test_personalize_batch_options_report_and_resume(tmp_path):
     assert json.loads((tmp_path / "out" / "a.usda").read_text()) == {"method": "dt", "mu": 0.01}  # row wins
     again = usdface.personalize_batch(manifest, jobs=1, worker=f"{__name__}:echo_worker")
     assert again.count("skipped") == 2 and again.report_path == tmp_path / "m.report.json"
+
+
+def test_inspect_force_keeps_the_old_output_when_the_inspection_fails(samples, tmp_path, monkeypatch):
+    """``personalize --inspect --force`` over an existing layer: the new layer replaces it, then the
+    inspection data is added; when that step fails the old output is back in place, byte for byte (it was
+    deleted together with the half-finished new layer)."""
+    import usdface.io.usd_inspection as inspection
+    from usdface import api
+
+    out = tmp_path / "p.usda"
+    out.write_text("#usda 1.0\n(\n    doc = \"an earlier run\"\n)\n")
+    before = out.read_bytes()
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("inspection failed")
+
+    monkeypatch.setattr(inspection, "add_inspection", broken)
+    with pytest.raises(RuntimeError, match="inspection failed"):
+        api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, inspect=True,
+                               force=True)
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.usda"]              # nothing left beside it
