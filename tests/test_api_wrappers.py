@@ -255,22 +255,30 @@ def test_personalize_batch_options_report_and_resume(tmp_path):
 
 
 def test_inspect_force_keeps_the_old_output_when_the_inspection_fails(samples, tmp_path, monkeypatch):
-    """``personalize --inspect --force`` over an existing layer: the new layer replaces it, then the
-    inspection data is added; when that step fails the old output is back in place, byte for byte (it was
-    deleted together with the half-finished new layer)."""
+    """``personalize --inspect --force`` over an existing layer: the inspection data is authored in the
+    same atomic write as the layer, so when it fails the old output is untouched, byte for byte (the layer
+    used to replace it first and be deleted with it), and nothing is left beside it; when it succeeds one
+    layer holds both."""
     import usdface.io.usd_inspection as inspection
     from usdface import api
 
     out = tmp_path / "p.usda"
     out.write_text("#usda 1.0\n(\n    doc = \"an earlier run\"\n)\n")
     before = out.read_bytes()
+    real = inspection.inspection_edit
 
     def broken(*args, **kwargs):
         raise RuntimeError("inspection failed")
 
-    monkeypatch.setattr(inspection, "add_inspection", broken)
+    monkeypatch.setattr(inspection, "inspection_edit", broken)
     with pytest.raises(RuntimeError, match="inspection failed"):
         api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, inspect=True,
                                force=True)
     assert out.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.usda"]              # nothing left beside it
+    monkeypatch.setattr(inspection, "inspection_edit", real)
+    api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, inspect=True, force=True)
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetPrimAtPath("/Avatar/Head").GetAttribute("primvars:" + inspection.HEAT_PRIMVAR)

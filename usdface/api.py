@@ -454,77 +454,38 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
               else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)
     read_s = time.perf_counter() - start
-    # the layer is written, then its inspection data added: an output replaced with --force is kept aside
-    # until both are done, and put back if the second step fails (it was deleted with the new layer)
-    replacing = out_path is not None and options.get("force") and not options.get("dry_run")
-    kept = _keep_aside(out_path) if replacing else None
-    try:
-        result = _personalize(avatar, capture, out_path, **options)
-    except BaseException:
-        _put_back(kept, out_path)
-        raise
+    t_inspect = [0.0]
+
+    def inspection(offsets, face_prim):
+        """The inspection data, authored in the same atomic write as the layer (no second save)."""
+        import numpy as np
+
+        from .io.usd_inspection import change_heat, inspection_animation, inspection_edit
+
+        t = time.perf_counter()
+        animation = inspection_animation(capture, take_data)
+        layouts = None
+        if landmarks:
+            from .model import FaceRig as _FaceRig
+
+            face = next(m for m in avatar.meshes if m.source.prim == face_prim)
+            personalized = _FaceRig(face.neutral, face.triangles, face.names, np.asarray(offsets[face_prim]),
+                                    face.inbetweens, face.source, face.name)
+            layouts = {face_prim: compute_landmarks(personalized)}
+        edit = inspection_edit(avatar, heat=change_heat(avatar, offsets), landmarks=layouts,
+                               animation=animation, fps=24.0)
+        t_inspect[0] = time.perf_counter() - t
+        return edit
+
+    result = _personalize(avatar, capture, out_path, layer_edit=inspection, **options)
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
-    if not getattr(result, "out_path", None):
-        _put_back(kept, out_path)
-    else:
-        from .io.usd_inspection import add_inspection, change_heat, inspection_animation, inspection_edit
-
-        t_inspect = time.perf_counter()
-        try:
-            animation = inspection_animation(capture, take_data)
-            layouts = None
-            if landmarks:
-                from .model import FaceRig as _FaceRig
-
-                face = avatar.mesh(result.face_mesh)
-                personalized = _FaceRig(face.neutral, face.triangles, face.names,
-                                        result.offsets[face.source.prim], face.inbetweens, face.source,
-                                        face.name)
-                layouts = {face.source.prim: compute_landmarks(personalized)}
-            add_inspection(result.out_path, inspection_edit(avatar, heat=change_heat(avatar, result.offsets),
-                                                            landmarks=layouts, animation=animation, fps=24.0))
-        except BaseException:
-            Path(result.out_path).unlink(missing_ok=True)  # no half-finished layer for batch to call done
-            _put_back(kept, out_path)
-            raise
-        if kept is not None:
-            kept.unlink(missing_ok=True)
-        if timings is not None:
-            timings.pop("total", None)
-            timings["inspect"] = time.perf_counter() - t_inspect
+    if timings is not None and getattr(result, "out_path", None):
+        timings["inspect"] = t_inspect[0]
     if timings is not None:  # the reading done here, and the whole call, belong in the report
         timings["read"] = float(timings.get("read", 0.0)) + read_s
         timings.pop("total", None)
         timings["total"] = time.perf_counter() - start
     return result
-
-
-def _keep_aside(path) -> Path | None:
-    """A hard link (else a copy) of an existing output beside it, hidden, for :func:`_put_back`; None when
-    there is nothing to keep."""
-    import os
-    import shutil
-    import tempfile
-
-    path = Path(path)
-    if not path.is_file():
-        return None
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".kept", dir=path.parent)
-    os.close(fd)
-    os.unlink(name)
-    try:
-        os.link(path, name)
-    except OSError:
-        shutil.copy2(path, name)
-    return Path(name)
-
-
-def _put_back(kept: Path | None, path) -> None:
-    """The output kept aside by :func:`_keep_aside` in place again (atomic rename); a no-op without one."""
-    import os
-
-    if kept is not None and kept.exists():
-        os.replace(kept, path)
 
 
 def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **options: Any):

@@ -414,8 +414,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
-                       weight_bounds=(0.0, 1.0), map_prior: str = "namesake", **fit_options
-                       ) -> PersonalizeResult:
+                       weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
+                       **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
@@ -432,6 +432,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         it by generalized cross-validation on the face rows.
     weight_bounds : ``(lo, hi)`` range of the eq. (4) map's weights (default ``(0, 1)``, the range an ARKit
         rig's channels are authored for); None: any real weights, as the paper.
+    layer_edit : ``layer_edit(offsets, face_prim) -> edit(stage)`` (or None): extra prims and primvars
+        authored into the layer in the same atomic write (the inspection data of
+        :func:`usdface.api.personalize_avatar`), from the offsets that are written.
     map_prior : what eq. (4)'s ridge shrinks each row towards: ``"namesake"`` (default: the avatar shape of
         the same ARKit name, weight 1, as a hand-made retargeting table) or ``"zero"`` (the paper).
     correspondence : cache file for step 3, reused when it belongs to this avatar face and template (same
@@ -689,7 +692,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "timings": dict(timings)}
             if (avatar.metadata or {}).get("name_map"):   # read back by every reader of the layer
                 prov["nameMap"] = dict(avatar.metadata["name_map"])
-            written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force)
+            edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
+            written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
         timings["write"] = time.perf_counter() - t
         advance("write")
     timings["total"] = time.perf_counter() - t_start
