@@ -171,3 +171,12 @@ def test_retarget_map_is_bounded_by_default_and_the_papers_on_request(samples, t
     assert paper.max() > 1.5 and paper.min() < -0.5
     assert main([*base, "-o", str(tmp_path / "bad.json"), "--weight-bounds", "1", "0"]) == 2
     assert "bad weight bounds" in capsys.readouterr().err
+
+
+def test_personalize_with_artist_pins(samples, tmp_path, capsys):
+    """``--pins`` reaches the fit (the option check before any work accepts every argument the fit takes)."""
+    pins = tmp_path / "pins.json"
+    pins.write_text(json.dumps({"pins": {"jawOpen": [0, 1, 2]}}))
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--pins",
+                 str(pins), "--dry-run", "--json", "-q"]) == 0
+    assert json.loads(capsys.readouterr().out)["fit"]["pins"] == {"jawOpen": 3}

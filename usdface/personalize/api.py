@@ -396,11 +396,14 @@ METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
 
 def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None = None, align=None,
                       reweight=None, clamp: float = D_CLAMP, weight_sigma="auto", contact: str = "auto",
-                      avatar_prior: bool = False, path=None, **options) -> None:
+                      avatar_prior: bool = False, path=None, eyelids: bool = True, rounds: int = 2,
+                      frame_weights=None, pins=None, **options) -> None:
     """Refuse, before any work, options :func:`fit_personalized_shapes` would refuse (same arguments;
     ``avatar_prior``: whether one will be given): an unknown method, options the method would accept and
     ignore, a bad ``contact`` or ``prior``, an avatar prior the chosen ``prior`` ignores. Raises
-    :class:`FitError` naming the option and the fix."""
+    :class:`FitError` naming the option and the fix. (``frame_weights`` and ``pins`` need the capture: the
+    fit checks them.)"""
+    del eyelids, rounds, frame_weights, pins
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=path, fix=f"use one of {', '.join(METHODS)}")
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
