@@ -78,6 +78,13 @@ def test_force_refuses_a_stale_file_of_a_kind_written_in_its_folder(tmp_path):
             (tmp / "train").mkdir()
             (tmp / "train" / "001_new.obj").write_text("new frame")
     assert _tree(dest) == {"train/001_new.obj": "new frame", "train/notes.txt": "mine"}
+    (dest / "test").mkdir()                         # an earlier run's test frame; this run writes none
+    (dest / "test" / "007.obj").write_text("old test frame")
+    with pytest.raises(OutputExistsError, match="007.obj"):
+        with replace_dir_atomically(dest, force=True) as tmp:
+            (tmp / "train").mkdir()
+            (tmp / "train" / "001_new.obj").write_text("newer frame")
+    assert (dest / "train" / "001_new.obj").read_text() == "new frame"
 
 
 def test_force_never_replaces_a_file_by_a_folder(existing):

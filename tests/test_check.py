@@ -358,3 +358,16 @@ def test_readable_refuses_what_personalize_refuses():
     take = make_rig()
     take.RemovePrim("/Avatar/Head")
     assert check(take, rules=["Readable"]) == []
+
+
+def test_usdfaces_own_error_maps_pass_check(tmp_path):
+    """``evaluate --usd`` writes error maps (meshes, no skinned rig): not judged as an avatar by Readable."""
+    import numpy as np
+
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    tri = np.array([[0, 1, 2]])
+    points = np.array([[0.0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]])
+    path = write_error_maps_usd(tmp_path / "errors.usda", tri,
+                                {"dt": [("frame 0", points, np.zeros(3), np.zeros((3, 3)))]})
+    assert not has_errors(validate_file(path))

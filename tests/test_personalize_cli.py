@@ -180,3 +180,18 @@ def test_personalize_with_artist_pins(samples, tmp_path, capsys):
     assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--pins",
                  str(pins), "--dry-run", "--json", "-q"]) == 0
     assert json.loads(capsys.readouterr().out)["fit"]["pins"] == {"jawOpen": 3}
+
+
+def test_correspondence_cache_extended_for_the_dt_modes_is_not_another_avatars(samples, tmp_path, capsys):
+    """A cache of this avatar and template, written by the default mode, lacks the face triangles' source
+    triangles the dt modes read: it is extended ("cache: extended"), not reported as another avatar's."""
+    cache = tmp_path / "c.npz"
+    base = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--dry-run", "-q",
+            "--correspondence", str(cache)]
+    assert main([*base, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["correspondence"]["cache"] == "miss"
+    assert main([*base, "--face-transfer", "dt", "--approximation", "generic"]) == 0
+    said = capsys.readouterr()
+    assert "cache: extended" in said.out and "another avatar" not in said.out + said.err
+    assert main([*base, "--json", "--face-transfer", "dt", "--approximation", "generic"]) == 0
+    assert json.loads(capsys.readouterr().out)["correspondence"]["cache"] == "hit"

@@ -162,6 +162,12 @@ def test_studio_named_avatar_needs_the_name_map_once(sample_set, tmp_path):
     report = json.loads(run("check", "studio_p.usda", "--json", cwd=tmp_path).stdout)
     assert report["ok"], report
     run("render", "studio_p.usda", "--compare", "--shapes", "jawOpen", "-o", "c.png", cwd=tmp_path)
+    run("render", "studio_p.usda", "--compare", "-o", "c2.png", cwd=tmp_path)  # the generic with the map too
+    run("render", "studio_p.usda", "--heatmap", "-o", "h.png", cwd=tmp_path)
+    run("landmarks", "studio_p.usda", "-o", "lm.usda", "-q", cwd=tmp_path)       # a layer over the layer
+    assert json.loads(run("check", "lm.usda", "--json", cwd=tmp_path).stdout)["ok"]
+    run("landmarks", "studio.usda", "--name-map", "names.json", "-o", "lm_s.usda", "-q", cwd=tmp_path)
+    assert json.loads(run("check", "lm_s.usda", "--json", cwd=tmp_path).stdout)["ok"]
     assert digest(tmp_path / "studio.usda", tmp_path / "names.json") == before
 
 

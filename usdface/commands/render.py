@@ -94,7 +94,9 @@ def run(args) -> int:
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
         generic_path = _generic(args, path)
-        generic = api.pick_mesh(api.read_avatar(generic_path, args.name_map), rig.name)
+        # the avatar under the layer with the layer's channel names: the map given, else the one it records
+        name_map = args.name_map or (avatar.metadata or {}).get("name_map")
+        generic = api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name)
         if args.compare is not None:
             render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
                                      force=args.force, title=f"{rig.name}: generic vs personalized")

@@ -268,10 +268,10 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     non-empty folder (only with ``force``) is *merged into*: each file written replaces the file of the same
     name (atomically, the old one staying in place until then), every other file is kept (a warning says how
     many), and if any move fails the files already moved are put back. A file this run does not write, in a
-    sub-folder it writes into and of a kind it writes there (a capture's stale ``train/*.obj`` frame), would
-    be read as part of the output: refused, changing nothing. A file where the new folder has a sub-folder
-    (or the reverse) is refused, changing nothing. If the block raises, the temporary
-    folder is deleted and ``path`` is left untouched.
+    sub-folder and of a kind the run writes in its sub-folders (a capture's stale ``train/*.obj`` or
+    ``test/*.json`` frame), would be read as part of the output: refused, changing nothing. A file where the
+    new folder has a sub-folder (or the reverse) is refused, changing nothing. If the block raises, the
+    temporary folder is deleted and ``path`` is left untouched.
 
     Example::
 
@@ -313,19 +313,6 @@ def _merge_into(tmp: Path, dest: Path) -> None:
 
     files = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if not p.is_dir())
     written = {rel.as_posix() for rel in files}
-    # in a sub-folder usdface writes (a capture's train/, an export's Head/) a file of a kind it writes there,
-    # left from another run, would be read as part of this one (a stale frame, a shape that is not there)
-    kinds: dict[Path, set] = {}
-    for rel in files:
-        if rel.parent != Path("."):
-            kinds.setdefault(rel.parent, set()).add(rel.suffix.lower())
-    stale = sorted(p.relative_to(dest).as_posix() for sub, exts in kinds.items() if (dest / sub).is_dir()
-                   for p in (dest / sub).iterdir() if not p.is_dir() and p.suffix.lower() in exts
-                   and p.relative_to(dest).as_posix() not in written)
-    if stale:
-        raise OutputExistsError(f"{len(stale)} file(s) in the folders usdface writes would stay from another "
-                                f"run and be read as part of this output (e.g. {dest / stale[0]})", path=dest,
-                                fix="delete them, or choose a new folder")
     for rel in files:
         for up in reversed(rel.parents[:-1]):
             if os.path.lexists(dest / up) and not (dest / up).is_dir():
@@ -334,6 +321,16 @@ def _merge_into(tmp: Path, dest: Path) -> None:
         if (dest / rel).is_dir():
             raise OutputExistsError(f"{dest / rel} is a folder where usdface writes a file", path=dest,
                                     fix="move that folder away or choose a new folder")
+    # below the top of the folder (a capture's train/ and test/, an export's Head/) a file of a kind this run
+    # writes there, left from another run, would be read as part of this one (a stale frame - also in a
+    # test/ this run leaves empty - or a shape that is not there)
+    kinds = {rel.suffix.lower() for rel in files if rel.parent != Path(".")}
+    stale = sorted(rel.as_posix() for p in dest.rglob("*") if p.suffix.lower() in kinds and not p.is_dir()
+                   and (rel := p.relative_to(dest)).parent != Path(".") and rel.as_posix() not in written)
+    if stale:
+        raise OutputExistsError(f"{len(stale)} file(s) in the folders usdface writes would stay from another "
+                                f"run and be read as part of this output (e.g. {dest / stale[0]})", path=dest,
+                                fix="delete them, or choose a new folder")
     backup = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
     done: list[tuple[Path, bool]] = []
     made: list[Path] = []

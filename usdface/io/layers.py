@@ -506,6 +506,8 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
             digests[p] = file_digest(p)
         except InputFileError:
             digests[p] = ""
+    if (avatar.metadata or {}).get("name_map") and "nameMap" not in prov:
+        prov["nameMap"] = dict(avatar.metadata["name_map"])   # read back by every reader of the layer
     prov.setdefault("command", "")
     prov.setdefault("parameters", {})
     prov.setdefault("timings", {})

@@ -680,13 +680,17 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
 
 def recorded_name_map(stage) -> dict | None:
     """The studio's name map a usdface layer was written with (``customLayerData["usdface"]["nameMap"]``,
-    {channel: ARKit name}), so that reading, checking or rendering the layer needs no ``--name-map`` again;
-    None when it has none."""
+    {channel: ARKit name}) - of the root layer or, for a layer stacked over such a layer, of the first layer
+    of its layer stack that has one - so that reading, checking or rendering the layer needs no
+    ``--name-map`` again; None when none has one."""
     from .name_map import validate_name_map
 
-    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
-    recorded = data.get("nameMap") if hasattr(data, "get") else None
-    return validate_name_map(dict(recorded)) if recorded else None
+    for layer in stage.GetLayerStack(includeSessionLayers=False):
+        data = dict(layer.customLayerData).get("usdface") or {}
+        recorded = data.get("nameMap") if hasattr(data, "get") else None
+        if recorded:
+            return validate_name_map(dict(recorded))
+    return None
 
 
 def _instanced(prims) -> dict:

@@ -495,12 +495,13 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
     if hasattr(data, "get") and data.get("format") in ("capture", "take"):
         return  # not an avatar: the capture/take readers own those files
     if not _blend_shape_meshes(stage):
-        from pxr import Usd, UsdGeom
+        from pxr import Usd, UsdGeom, UsdSkel
 
-        if any(p.IsA(UsdGeom.Mesh) for p in stage.Traverse(Usd.TraverseInstanceProxies())):
+        prims = list(stage.Traverse(Usd.TraverseInstanceProxies()))
+        if any(p.IsA(UsdSkel.Root) for p in prims) and any(p.IsA(UsdGeom.Mesh) for p in prims):
             yield Issue(ERROR, "Readable", "/", "no mesh with blend shapes: not a face rig personalize "
                         "can use", "export the avatar with its shape keys / blend shapes (ARKit names)")
-        return  # no geometry at all (an animation take, a schema file): not an avatar
+        return  # no skinned geometry (a take, usdface's error maps, a schema file): not judged as an avatar
     try:
         avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:

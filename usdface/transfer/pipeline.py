@@ -252,7 +252,9 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
         if corr is not None and (corr.source_triangle is not None or not source_triangles):
             corr.info = {**(corr.info or {}), "cache": "hit"}
             return corr
-        stale = Path(cache).exists()  # a cache of another avatar face / template (or version): rewritten
+        # rewritten: a cache of another avatar face / template (or version), or this one's without the face
+        # triangles' source triangles a deformation-transfer mode needs ("extended")
+        stale = "extended" if corr is not None else Path(cache).exists()
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target)
@@ -266,7 +268,8 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     nr_info["semantic_shapes"] = ",".join(used)
     corr.key = key
     corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
-                 "cache": "replaced" if stale else "miss" if cache is not None else "off"}
+                 "cache": stale if isinstance(stale, str) else "replaced" if stale
+                 else "miss" if cache is not None else "off"}
     if cache is not None:
         save_correspondence(corr, cache)
     return corr
@@ -477,7 +480,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if out_path is not None:                  # an override under an instance would change nothing
             from ..io.usd_rig import refuse_instanced
 
-            refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+            try:
+                refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+            except RigError as exc:
+                if not dry_run:
+                    raise
+                report["warnings"].append(f"a real run would refuse: {exc.message} (fix: {exc.fix})")
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
@@ -690,8 +698,6 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
-            if (avatar.metadata or {}).get("name_map"):   # read back by every reader of the layer
-                prov["nameMap"] = dict(avatar.metadata["name_map"])
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
         timings["write"] = time.perf_counter() - t
