@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -136,3 +137,17 @@ def test_empty_folder_is_replaced_in_one_rename(tmp_path):
     with replace_dir_atomically(dest) as tmp:
         (tmp / "x.txt").write_text("x")
     assert _tree(dest) == {"x.txt": "x"} and [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_writing_into_the_current_folder_keeps_it_the_current_folder(tmp_path, monkeypatch):
+    """``usdface sample .`` in an empty folder: the files are moved into it (a rename would swap the folder
+    for a new one under the process and the user's shell, whose relative paths then pointed into the old,
+    deleted one: the command failed reading its own truth/meta.json; before that it failed with EBUSY)."""
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    with replace_dir_atomically(".") as tmp:
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "a.txt").write_text("a")
+    assert Path("sub/a.txt").read_text() == "a" and Path.cwd().samefile(here)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]                      # no temp folder left

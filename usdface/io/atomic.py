@@ -281,6 +281,7 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     dest = check_output_dir(path, force)
     if dest.is_symlink():  # write into the folder the link names, on its file system
         dest = dest.resolve()
+    dest = Path(os.path.abspath(dest))  # "." named: its own name for the temporary folder and messages
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = None
     try:
@@ -290,6 +291,11 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
         yield tmp
+        if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
+            # the current folder: a rename would swap it for a new folder under the caller (and the user's
+            # shell), whose relative paths would then point into the old, deleted one - filled file by file
+            _merge_into(tmp, dest)
+            return
         try:
             os.rename(tmp, dest)  # a missing or empty dest: the whole folder appears at once
             tmp = None
