@@ -381,15 +381,17 @@ class FieldProxy:
     (m), ``triangles[s,3]``; ``fine[p]`` (indices into the fine vertices) the nearest fine vertex facing
     the same way as each of its vertices (where its known value is measured), ``known[p]`` theirs;
     ``need[q]`` the fine vertices whose result reads the field (the face weight ramp below 1) and
-    ``prolong[q,p]`` (CSR) the barycentric interpolation to them. :meth:`near_face` adds where the fine
+    ``prolong[q,p]`` (CSR) the barycentric interpolation to them; ``normals[n,3]`` the fine mesh's vertex
+    normals (computed once, for both sides' facing tests). :meth:`near_face` adds where the fine
     mesh answers itself: ``direct[a]``, ``strip[b]`` (fine vertex indices), ``strip_known``/``strip_out``
     (their fine neighbours), the strip's blocks ``a_sk[b, .]``, ``a_so[b, .]`` and its factorized
     ``strip_solve``, and ``need_position[n]`` (a fine vertex's row in ``need``, -1 if none)."""
 
-    def __init__(self, points, triangles, fine, known, need, prolong):
+    def __init__(self, points, triangles, fine, known, need, prolong, normals):
         self.points, self.triangles = points, triangles
         self.fine, self.known = fine, known
         self.need, self.prolong = need, prolong
+        self.normals = normals
 
     def near_face(self, x, triangles, known, fading, length):
         """Where the proxy's interpolation would mix the face's measured field with the extension's, or
@@ -410,7 +412,7 @@ class FieldProxy:
         from .surface import cotangent_laplacian
 
         corners = self.prolong.indices.reshape(-1, 3)            # each row: its proxy triangle, in order
-        facing = np.einsum("qc,qc->q", vertex_normals(x, triangles)[self.need],
+        facing = np.einsum("qc,qc->q", self.normals[self.need],
                            triangle_normals(self.points, corners, unit=False)) > 0
         known_corner = self.known[corners]
         known_need = known[self.need]
@@ -479,9 +481,10 @@ def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
     # as closed lips, the nearest may be on the other one)
     k = min(PROXY_NEAREST, len(x))
     near = cKDTree(x).query(xc, k=k)[1].reshape(len(xc), k)                           # [p, k]
-    agree = np.einsum("pc,pkc->pk", vertex_normals(xc, tc), vertex_normals(x, triangles)[near]) > 0
+    normals = vertex_normals(x, triangles)
+    agree = np.einsum("pc,pkc->pk", vertex_normals(xc, tc), normals[near]) > 0
     fine = near[np.arange(len(xc)), np.where(agree.any(axis=1), np.argmax(agree, axis=1), 0)]
-    return FieldProxy(xc, tc, fine, known[fine], need, prolongation(xc, tc, x[need]))
+    return FieldProxy(xc, tc, fine, known[fine], need, prolongation(xc, tc, x[need]), normals)
 
 
 class FieldOnMesh:
