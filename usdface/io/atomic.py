@@ -330,9 +330,11 @@ def _merge_into(tmp: Path, dest: Path) -> None:
     # below the top of the folder (a capture's train/ and test/, an export's Head/) a file of a kind this run
     # writes there, left from another run, would be read as part of this one (a stale frame - also in a
     # test/ this run leaves empty - or a shape that is not there)
+    others = [rel for rel in (p.relative_to(dest) for p in dest.rglob("*") if not p.is_dir())
+              if rel.as_posix() not in written]                 # the folder's files this run does not write
     kinds = {rel.suffix.lower() for rel in files if rel.parent != Path(".")}
-    stale = sorted(rel.as_posix() for p in dest.rglob("*") if p.suffix.lower() in kinds and not p.is_dir()
-                   and (rel := p.relative_to(dest)).parent != Path(".") and rel.as_posix() not in written)
+    stale = sorted(rel.as_posix() for rel in others
+                   if rel.parent != Path(".") and rel.suffix.lower() in kinds)
     if stale:
         raise OutputExistsError(f"{len(stale)} file(s) in the folders usdface writes would stay from another "
                                 f"run and be read as part of this output (e.g. {dest / stale[0]})", path=dest,
@@ -370,8 +372,7 @@ def _merge_into(tmp: Path, dest: Path) -> None:
         raise
     finally:
         shutil.rmtree(backup, ignore_errors=True)
-    kept = [p.relative_to(dest).as_posix() for p in dest.rglob("*")
-            if not p.is_dir() and p.relative_to(dest).as_posix() not in written]
-    if kept:
-        warnings.warn(f"{dest}: kept {len(kept)} file(s) this run did not write (e.g. {kept[0]}); --force "
-                      "only replaces the files usdface writes: delete stale ones yourself", stacklevel=3)
+    if others:
+        warnings.warn(f"{dest}: kept {len(others)} file(s) this run did not write (e.g. "
+                      f"{others[0].as_posix()}); --force only replaces the files usdface writes: delete "
+                      "stale ones yourself", stacklevel=3)
