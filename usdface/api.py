@@ -468,7 +468,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         if landmarks:
             from .model import FaceRig as _FaceRig
 
-            face = next(m for m in avatar.meshes if m.source.prim == face_prim)
+            face = avatar.mesh(face_prim)
             personalized = _FaceRig(face.neutral, face.triangles, face.names, np.asarray(offsets[face_prim]),
                                     face.inbetweens, face.source, face.name)
             layouts = {face_prim: compute_landmarks(personalized)}
