@@ -151,3 +151,36 @@ def test_writing_into_the_current_folder_keeps_it_the_current_folder(tmp_path, m
         (tmp / "sub" / "a.txt").write_text("a")
     assert Path("sub/a.txt").read_text() == "a" and Path.cwd().samefile(here)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]                      # no temp folder left
+
+
+def test_a_failed_write_inside_the_temporary_folder_names_the_output_file(tmp_path):
+    """A write that fails in the hidden temporary folder (disk full, a read-only sub-folder) is reported at
+    the place the user asked for: ``out/train/x.obj``, not ``.out.XXXX/train/x.obj``; nothing is left."""
+    import errno
+
+    dest = tmp_path / "out"
+    with pytest.raises(OSError) as info:
+        with replace_dir_atomically(dest) as tmp:
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "train" / "x.obj"))
+    assert info.value.errno == errno.ENOSPC
+    assert info.value.filename == str(dest / "train" / "x.obj")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unrelated_os_error_in_the_block_is_raised_as_it_was(tmp_path):
+    elsewhere = tmp_path / "input.obj"
+    with pytest.raises(FileNotFoundError) as info:
+        with replace_dir_atomically(tmp_path / "out"):
+            elsewhere.read_text()
+    assert info.value.filename == str(elsewhere)
+
+
+def test_a_failed_file_write_names_the_output_not_the_temporary_file(tmp_path):
+    import errno
+
+    out = tmp_path / "layer.usda"
+    with pytest.raises(OSError) as info:
+        with atomic.atomic_file(out) as tmp:
+            raise OSError(errno.EDQUOT, "Disk quota exceeded", str(tmp))
+    assert info.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []

@@ -57,6 +57,18 @@ def publish(tmp, path, force: bool = False) -> Path:
     return path
 
 
+def _naming_output(exc: OSError, hidden: Path, shown: Path) -> OSError:
+    """``exc`` as raised, or - where it names ``hidden`` (a temporary file or folder nobody asked for) or a
+    file inside it - the same error naming ``shown`` (the output) or the file at the same place in it."""
+    if exc.filename is None:
+        return exc
+    try:
+        rel = Path(os.path.abspath(exc.filename)).relative_to(os.path.abspath(hidden))
+    except ValueError:
+        return exc
+    return OSError(exc.errno, exc.strerror, str(Path(shown) / rel if rel.parts else shown))
+
+
 def temp_sibling(path, create: bool = True) -> Path:
     """A new unique hidden file name next to ``path``: ``.NAME.XXXX.tmp<suffix>`` (created empty, or with
     ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
@@ -92,9 +104,10 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
         os.chmod(tmp, 0o666 & ~mask)
         publish(tmp, path, force)
     except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
-        if tmp is None or exc.filename is None or Path(exc.filename) != tmp:
+        named = exc if tmp is None else _naming_output(exc, tmp, path)
+        if named is exc:
             raise
-        raise OSError(exc.errno, exc.strerror, str(path)) from None
+        raise named from None
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
@@ -290,7 +303,13 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
         except OSError as exc:  # name the output folder, not the hidden temporary one
             raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:  # a failed write names the file in the output folder, not in the hidden one
+            named = _naming_output(exc, tmp, dest)
+            if named is exc:
+                raise
+            raise named from None
         if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
             # the current folder: a rename would swap it for a new folder under the caller (and the user's
             # shell), whose relative paths would then point into the old, deleted one - filled file by file
