@@ -315,8 +315,13 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             p.start(f"read capture {Path(source).name}")
         capture = _as_capture(capture)
         if len(capture.test) == 0:
-            raise FitError("the capture has no test frames", path=source or capture.source or None,
-                           fix="add held-out frames (test/ folder) to evaluate on")
+            whole_take = (capture.metadata or {}).get("whole_take")
+            raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
+                                                               if whole_take else ""),
+                           path=source or capture.source or None,
+                           fix=("hold frames out with 'usdface capture select TAKE -o capture.usda "
+                                "--test-every 10' and evaluate that capture" if whole_take
+                                else "add held-out frames (test/ folder) to evaluate on"))
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}

@@ -48,6 +48,15 @@ def fit_kwargs(args) -> dict:
             "eyelids": args.eyelids, "contact": args.contact}
 
 
+def take_line(info: dict) -> str | None:
+    """One line on a weighted (whole-take) fit: frames, effective frames (Kish), the weighting."""
+    fw = info.get("frame_weights")
+    if not fw:
+        return None
+    return (f"whole take: {fw['frames']} frames weighted {fw['mode']} (as many as "
+            f"{fw['effective_frames']:.0f} equally weighted frames; weights {fw['min']:.3g}-{fw['max']:.3g})")
+
+
 def contact_lines(contact: dict | None) -> list[str]:
     """One line per contact shape: pairs, the largest gap vs the template's before -> after (mm)."""
     if not contact or not contact.get("shapes"):
@@ -65,7 +74,9 @@ def register(subparsers) -> None:
         "fit", help="personalized ARKit blendshapes on the capture mesh (the 'face mask' rig)",
         description="Fit the person's blendshapes from a capture (Menzel et al. 2022, eqs. 1-3, or a "
                     "baseline) and write them as a UsdSkel rig on the capture mesh, in its vertex order.")
-    parser.add_argument("capture", help="capture folder or capture .usda")
+    parser.add_argument("capture", help="capture folder or capture .usda, or a take (USD take or "
+                                        "OBJ-sequence folder with a Live Link CSV): every frame fitted "
+                                        "(docs/takes.md)")
     parser.add_argument("-o", "--output", required=True, help="output rig .usda/.usdc")
     parser.add_argument("--method", default="menzel", choices=METHODS,
                         help=METHOD_HELP)
@@ -92,7 +103,7 @@ def run(args) -> int:
         doc = {"ok": True, "output": str(info["out_path"]), "method": args.method,
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
-                                                         "warnings", "contact")}}
+                                                         "warnings", "contact", "frame_weights")}}
         print(json.dumps(doc, default=json_default))
         return 0
     rmse = f"; train RMSE {info['train_rmse_mm']:.3f} mm" if info.get("train_rmse_mm") is not None else ""
@@ -102,8 +113,9 @@ def run(args) -> int:
     print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
           f"({args.method}{extra}{rmse}; "
           f"{info['timings']['total']:.2f} s)")
-    for line in contact_lines(info.get("contact")):
-        print(line)
+    for line in [take_line(info), *contact_lines(info.get("contact"))]:
+        if line:
+            print(line)
     for w in info["warnings"]:
         say_warning(w)
     return 0

@@ -7,14 +7,16 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
-from .fit import add_contact_option, add_pins_option
+from .fit import add_contact_option, add_pins_option, take_line
 from .options import mu_value, nonnegative_float, positive_float, reg_value
 
 
 def add_transfer_options(p) -> None:
     """Options shared by ``personalize`` and ``retarget`` (the fit and the transfer)."""
     p.add_argument("avatar", help="UsdSkel avatar (.usd/.usda/.usdc) with ARKit-named BlendShapes")
-    p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda")
+    p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda, or a "
+                                   "take (USD take or OBJ-sequence folder with a Live Link CSV): every frame "
+                                   "fitted, a held pose counted once (docs/takes.md)")
     p.add_argument("--method", default="menzel", choices=["menzel", "dt", "ebfr", "laplacian"],
                    help="capture fit method (default: menzel, the paper's eqs. 1-3)")
     p.add_argument("--reg", default="auto", type=reg_value,
@@ -164,6 +166,9 @@ def run(args) -> int:
         say_warning(f"--correspondence {args.correspondence} held the map of another avatar face or template "
                     "(or an older usdface): it was rewritten for this one; give each avatar its own file "
                     "to keep both")
+    whole_take = take_line(rep.get("fit") or {})
+    if whole_take:
+        print(f"fit: {whole_take}")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "

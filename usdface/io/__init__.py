@@ -22,13 +22,21 @@ USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 def read_capture(path):
     """Read a capture folder or a capture USD file into a :class:`usdface.model.Capture`.
 
-    Dispatches on the path: a directory -> :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``,
+    Dispatches on the path: a take (:func:`usdface.io.take.is_take`: a USD take, an OBJ-sequence folder with
+    a Live Link CSV) -> every frame as a training frame (:func:`usdface.io.take.capture_from_whole_take`,
+    whole-take fitting); a directory -> :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``,
     ``.usda``, ``.usdc`` file -> :func:`usdface.io.usd_capture.read_capture_usd`. Anything else raises
     :class:`usdface.errors.InputFileError`.
     """
     from ..errors import InputFileError
+    from .take import probe_take
 
     path = Path(path)
+    take, _layer = probe_take(path)  # _layer held: the file is parsed once
+    if take:
+        from .take import capture_from_whole_take, read_take
+
+        return capture_from_whole_take(read_take(path))
     if path.is_dir():
         from .capture_folder import read_capture_folder
 

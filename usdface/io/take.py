@@ -30,7 +30,8 @@ from ..model import Capture, FaceRig, Frames
 from .mesh_io import read_obj
 
 __all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
-           "capture_from_take", "TAKE_PRIM"]
+           "capture_from_take", "capture_from_whole_take", "is_take", "probe_take",
+           "TAKE_PRIM"]
 
 TAKE_PRIM = "/Take"
 
@@ -335,6 +336,57 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
 
 
 # ---------------------------------------------------------------------------------------- take -> capture
+def is_take(path) -> bool:
+    """True when ``path`` is a take rather than a capture: a folder with ``frames/`` or a Live Link CSV and
+    no ``train/``; a USD file marked ``format = "take"`` by :func:`write_take_usd`, or, unmarked, one whose
+    default prim has no capture ``Frames`` but a Mesh with time-sampled points. A capture (or anything
+    else) is False, so its reader reports what is wrong with it."""
+    return probe_take(path)[0]
+
+
+def probe_take(path) -> tuple[bool, object]:
+    """:func:`is_take` and the USD root layer it opened (None for folders): hold it while the file is read
+    so that USD parses it once (the stage reader finds the open layer in USD's registry)."""
+    path = Path(path)
+    if path.is_dir():
+        take = not (path / "train").is_dir() and ((path / "frames").is_dir() or any(path.glob("*.csv")))
+        return take, None
+    if path.suffix.lower() not in (".usd", ".usda", ".usdc") or not path.is_file():
+        return False, None
+    from pxr import Sdf, Usd, UsdGeom
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # noqa: BLE001 - unreadable: the capture reader names the problem
+        return False, None
+    if layer is None:
+        return False, None
+    kind = (dict(layer.customLayerData).get("usdface") or {}).get("format")
+    if kind in ("take", "capture"):
+        return kind == "take", layer
+    stage = Usd.Stage.Open(layer)
+    root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
+    frames = root.GetChild("Frames")
+    if frames and frames.GetAttribute("usdface:frames:role"):
+        return False, layer
+    return any(UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 1
+               for p in Usd.PrimRange(root) if p.IsA(UsdGeom.Mesh)), layer
+
+
+def capture_from_whole_take(take: Take, template=None) -> Capture:
+    """Every frame of ``take`` as a training frame (labels ``fNNNNN``; no test frames): the capture of
+    whole-take fitting (``usdface fit TAKE``, ``usdface personalize AVATAR TAKE``). ``metadata["whole_take"]``
+    marks it, so the fit weights its frames (``frame_weights="balanced"``, a held pose counts once,
+    :mod:`usdface.personalize.takefit`) unless told otherwise. ``template`` and the neutral as in
+    :func:`capture_from_take`."""
+    frames_idx = np.arange(len(take), dtype=np.int64)
+    capture = _capture(take, frames_idx, ["train"] * len(take), [f"f{f:05d}" for f in frames_idx], template,
+                       {"source": take.source, "units": "m"})
+    capture.metadata["whole_take"] = {"frames": len(take), "fps": take.fps}
+    capture.metadata["counts"] = {"train": len(take), "test": 0}
+    return capture
+
+
 def capture_from_take(take: Take, selection, template=None) -> Capture:
     """The capture a phone app would have recorded: the selected training frames (``selection.train``,
     labels ``NNN_<shape>``) and held-out test frames (``selection.test``) of ``take``, with their whole weight
@@ -345,6 +397,23 @@ def capture_from_take(take: Take, selection, template=None) -> Capture:
     largest weight (recorded in ``metadata["neutral_frame"]``, with a warning). Weight columns follow the
     template's shape order; take channels the template lacks are reported in ``metadata``.
     """
+    metadata: dict = {"source": take.source, "units": "m", "take": {
+        "threshold": selection.threshold, "per_shape": selection.per_shape,
+        "coverage": [{"name": s.name, "frames": s.frames, "times": [float(take.times[f]) for f in s.frames],
+                      "peak": s.peak, "dominance": s.dominance, "max_weight": s.max_weight}
+                     for s in selection.shapes],
+        "missing": selection.missing}}
+    frames_idx = np.concatenate([selection.train, selection.test]).astype(np.int64)
+    roles = ["train"] * len(selection.train) + ["test"] * len(selection.test)
+    capture = _capture(take, frames_idx, roles, selection.labels + selection.test_labels, template, metadata)
+    capture.metadata["counts"] = {"train": len(selection.train), "test": len(selection.test)}
+    capture.metadata["never_triggered"] = list(selection.missing)
+    return capture
+
+
+def _capture(take: Take, frames_idx, roles, labels, template, metadata: dict) -> Capture:
+    """The capture of ``take``'s frames ``frames_idx`` with these roles and labels (see
+    :func:`capture_from_take`)."""
     if take.points is None:
         raise CaptureError("the take has weights only, no meshes", path=take.source or None,
                            fix="record the mesh with the weights (USD take or OBJ sequence + CSV)")
@@ -361,12 +430,6 @@ def capture_from_take(take: Take, selection, template=None) -> Capture:
     if template.n_vertices != n:
         raise GeometryError(f"template has {template.n_vertices} vertices, the take {n}",
                             path=take.source or None, fix="the template must be on the take's topology")
-    metadata: dict = {"source": take.source, "units": "m", "take": {
-        "threshold": selection.threshold, "per_shape": selection.per_shape,
-        "coverage": [{"name": s.name, "frames": s.frames, "times": [float(take.times[f]) for f in s.frames],
-                      "peak": s.peak, "dominance": s.dominance, "max_weight": s.max_weight}
-                     for s in selection.shapes],
-        "missing": selection.missing}}
     if take.neutral is not None:
         neutral = take.neutral
     else:
@@ -380,13 +443,8 @@ def capture_from_take(take: Take, selection, template=None) -> Capture:
     extra = [nm for nm in take.names if nm not in set(template.names)]
     if extra:
         metadata["extra_channels"] = extra
-    frames_idx = np.concatenate([selection.train, selection.test]).astype(np.int64)
     w = np.where(cols[None, :] >= 0, take.weights[frames_idx][:, np.maximum(cols, 0)], 0.0)
-    roles = ["train"] * len(selection.train) + ["test"] * len(selection.test)
-    labels = selection.labels + selection.test_labels
     metadata["take_frames"] = frames_idx.tolist()
-    metadata["counts"] = {"train": len(selection.train), "test": len(selection.test)}
-    metadata["never_triggered"] = list(selection.missing)
     frames = Frames(take.points[frames_idx], w, roles, labels)
     return Capture(neutral, take.triangles, template, frames, list(template.names), source=take.source,
                    metadata=metadata)

@@ -164,7 +164,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     frame_weights : optional per-training-frame weights ``omega[F] >= 0`` of E_fit (and of the LOO
         criterion), or ``"balanced"`` (:func:`usdface.personalize.takefit.balanced_frame_weights`): for
         fitting on every frame of a take. Menzel/laplacian; alignment and re-estimation are then off
-        (they act on the frames as scanned; asking for them is refused).
+        (they act on the frames as scanned; asking for them is refused). Default None: ``"balanced"`` for a
+        whole-take capture (``capture.metadata["whole_take"]``, a take read as a capture), else unweighted.
     pins : artist constraints (Hable): parts of shapes pinned to the artist's version, the template's
         deltas - ``{shape name: vertex indices or bool[n]}`` or a bool ``[K,n]`` mask. A pinned vertex of a
         shape is returned exactly as the template has it (within rounding); the other shapes at that vertex
@@ -218,6 +219,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     train = capture.train
     points, weights = train.points, train.weights
     tmpl = capture.template
+    if frame_weights is None and (capture.metadata or {}).get("whole_take") and method in ("menzel",
+                                                                                         "laplacian"):
+        frame_weights = "balanced"          # every frame of a take: a held pose counts once (takefit)
     if frame_weights is not None:
         from .takefit import balanced_frame_weights, weighted_frames
 
@@ -235,7 +239,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         align = reweight = False
         n_eff = float(omega.sum() ** 2 / max(np.sum(omega ** 2), 1e-300))
         info["frame_weights"] = {"min": float(omega.min()), "max": float(omega.max()),
-                                 "effective_frames": n_eff}
+                                 "effective_frames": n_eff, "frames": len(omega),
+                                 "mode": frame_weights if isinstance(frame_weights, str) else "given"}
     if method == "dt":
         deltas = generic
     elif method == "ebfr":

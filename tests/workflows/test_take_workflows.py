@@ -1,0 +1,100 @@
+"""A recorded take given where a capture goes: ``usdface fit TAKE`` and ``usdface personalize AVATAR TAKE``
+fit every frame (balanced frame weights), as docs/takes.md shows, against the peak-frame capture
+``usdface capture select`` makes of the same take. The take is the sample person recorded in the scan regime
+(0.3 mm scan noise, phone weights +- 0.02), so the truth is known."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from wfutil import assert_valid_usd, digest, run
+
+from usdface.io.take import probe_take, write_take_folder, write_take_usd
+from usdface.io.usd_capture import read_capture_usd
+from usdface.io.usd_rig import read_avatar
+from usdface.model import FaceRig
+from usdface.personalize import truth_error
+from usdface.sample.take import make_take
+
+
+@pytest.fixture(scope="module")
+def scan_take(sample_set, tmp_path_factory):
+    """(folder with take.usdc, the take, the person's true rig): 10 fps, 0.5 s sweeps, 366 frames."""
+    truth = np.load(sample_set / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(sample_set / "capture.usda")
+    names = [str(n) for n in truth["names"]]
+    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
+                        point_noise=3e-4, weight_noise=0.02, seed=5)
+    d = tmp_path_factory.mktemp("scan_take")
+    write_take_usd(take, d / "take.usdc")
+    run("capture", "select", "take.usdc", "-o", "peaks.usda", "--min-separation", "0.2", cwd=d)
+    return d, take, person
+
+
+def _rig_deltas(path, names):
+    rig = read_avatar(path).meshes[0]
+    order = [rig.names.index(n) for n in names]
+    return rig.deltas[order]
+
+
+def test_fit_take_fits_every_frame_and_beats_its_peak_frames(scan_take, tmp_path):
+    d, take, person = scan_take
+    before = digest(d / "take.usdc")
+    run("fit", d / "peaks.usda", "-o", "peaks_rig.usda", "-q", cwd=tmp_path)
+    proc = run("fit", d / "take.usdc", "-o", "take_rig.usda", "--json", "-q", cwd=tmp_path)
+    doc = json.loads(proc.stdout)
+    assert doc["frame_weights"]["mode"] == "balanced" and doc["frame_weights"]["frames"] == len(take)
+    assert 30 < doc["frame_weights"]["effective_frames"] < len(take)  # held poses count about once
+    peak = truth_error(_rig_deltas(tmp_path / "peaks_rig.usda", person.names), person.deltas)
+    whole = truth_error(_rig_deltas(tmp_path / "take_rig.usda", person.names), person.deltas)
+    # issue 13: the whole-take fit at least 25 % below the peak-frame fit of the same take
+    # (measured 0.247 against 0.345 mm, 0.71x)
+    assert whole <= 0.75 * peak, (whole, peak)
+    assert digest(d / "take.usdc") == before
+    text = run("fit", d / "take.usdc", "-o", "again.usda", "-q", cwd=tmp_path).stdout
+    assert f"whole take: {len(take)} frames weighted balanced" in text
+
+
+def test_personalize_take_beats_its_peak_frames_on_the_avatar(scan_take, sample_set, tmp_path):
+    d, take, _ = scan_take
+    avatar = sample_set / "avatar.usda"
+    run("personalize", avatar, d / "peaks.usda", "-o", "peaks.usda", "-q", cwd=tmp_path)
+    text = run("personalize", avatar, d / "take.usdc", "-o", "take.usda", "-q", cwd=tmp_path).stdout
+    assert f"fit: whole take: {len(take)} frames" in text
+    assert_valid_usd(tmp_path / "take.usda")
+    truth = np.load(sample_set / "truth" / "avatar_truth.npz")
+    generic = read_avatar(avatar).mesh("Head")
+    true = np.stack([truth[f"Head/{n}"] for n in generic.names]) @ generic.source.to_internal[:3, :3].T
+    errors = {}
+    for name in ("peaks", "take"):
+        head = read_avatar(tmp_path / f"{name}.usda").mesh("Head")
+        errors[name] = truth_error(head.deltas, true)
+    errors["generic"] = truth_error(generic.deltas, true)
+    # more frames, less of the scan noise on the avatar (measured 0.152 against 0.270 mm, generic 0.343)
+    assert errors["take"] < 0.8 * errors["peaks"] < errors["generic"], errors
+
+
+def test_takes_are_told_from_captures(scan_take, sample_set, tmp_path):
+    d, take, _ = scan_take
+    assert probe_take(d / "take.usdc")[0]
+    assert not probe_take(sample_set / "capture.usda")[0]
+    assert not probe_take(sample_set / "capture")[0]             # capture folder (train/, test/)
+    assert not probe_take(d / "peaks.usda")[0]                    # a capture made from a take
+    short = type(take)(take.weights[:12], take.names, take.times[:12], take.points[:12], take.triangles,
+                       take.neutral, take.template)
+    write_take_folder(short, tmp_path / "take_dir")               # OBJ sequence + Live Link CSV
+    assert probe_take(tmp_path / "take_dir")[0]
+    # a take another tool wrote: no usdface marker, a mesh with time-sampled points
+    from pxr import Sdf
+
+    write_take_usd(short, tmp_path / "plain.usda")
+    layer = Sdf.Layer.FindOrOpen(str(tmp_path / "plain.usda"))
+    layer.customLayerData = {}
+    layer.Save()
+    del layer
+    assert probe_take(tmp_path / "plain.usda")[0]
+    proc = run("evaluate", d / "take.usdc", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "capture select" in proc.stderr and "Traceback" not in proc.stderr
