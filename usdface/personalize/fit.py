@@ -234,7 +234,6 @@ class PositionFit:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
         self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
-        self.Z2 = self.Z ** 2
         self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
@@ -312,18 +311,29 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def _loo_parts(self, regs, c, e0n):
+    def _loo_parts(self, regs, c, e0n, v=slice(None)):
         """For ``regs[G]``: the leave-in residuals ``d[n,F,k,G]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
         and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
-        products for the whole grid. The grid is the last (contiguous) axis: the broadcasts run over it."""
+        products for the whole grid. The grid is the last (contiguous) axis: the broadcasts run over it.
+        ``v``: only these vertices (a block of :meth:`_loo_blocks`)."""
         regs = np.asarray(regs, dtype=np.float64)
-        n, F, r = self.Z.shape
-        g = self.mu[:, :, None] / (self.mu[:, :, None] + regs)                       # [n,r,G]
+        Z, mu, c, e0n = self.Z[v], self.mu[v], c[v], e0n[v]
+        n, F, r = Z.shape
+        g = mu[:, :, None] / (mu[:, :, None] + regs)                                 # [n,r,G]
         gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
-        d = np.matmul(self.Z, gc).reshape(n, F, c.shape[2], len(regs))
+        d = np.matmul(Z, gc).reshape(n, F, c.shape[2], len(regs))
         np.subtract(e0n[:, :, :, None], d, out=d)
-        q = np.maximum(1.0 - np.matmul(self.Z2, g), 1e-9)
+        q = np.maximum(1.0 - np.matmul(Z ** 2, g), 1e-9)        # Z^2 per block: no [n,F,r] copy kept
         return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
+
+    def _loo_blocks(self, regs, k: int):
+        """Vertex blocks (slices) for :meth:`_loo_parts` whose ``d[n,F,k,G]`` stays within ~64 MB: one block
+        (all vertices, the same arithmetic as unblocked) for a capture of a few dozen frames, several for the
+        thousands of frames of a whole take, whose grids would otherwise need gigabytes."""
+        n, F, _ = self.Z.shape
+        per_vertex = F * k * max(len(np.atleast_1d(regs)), 1) * 8
+        step = max(1, (64 << 20) // per_vertex)
+        return [slice(s, s + step) for s in range(0, n, step)] if step < n else [slice(None)]
 
     def loo_errors_mix(self, regs, alphas) -> np.ndarray:
         """:meth:`loo_error` ``[A,G]`` for every prior blend ``alpha`` in ``alphas`` (:meth:`set_prior_mix`)
@@ -336,13 +346,18 @@ class PositionFit:
             return self.loo_errors(regs)[None]
         k = self.c.shape[2]
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
-        e0n = np.concatenate([self.R - self._main[1], self.R - self._alt[1]], axis=2).transpose(1, 0, 2)
-        d, q = self._loo_parts(regs, c, np.ascontiguousarray(e0n))
-        d1, d0 = d[:, :, :k], d[:, :, k:]
-        s11, s00, s01 = (np.einsum("nfg,nfg->g", _sum_axis2(x * y), q)
-                         for x, y in ((d1, d1), (d0, d0), (d1, d0)))
+        e0n = np.ascontiguousarray(np.concatenate([self.R - self._main[1], self.R - self._alt[1]],
+                                                  axis=2).transpose(1, 0, 2))
+        s11 = s00 = s01 = 0.0
+        for v in self._loo_blocks(regs, 2 * k):
+            d, q = self._loo_parts(regs, c, e0n, v)
+            d1, d0 = d[:, :, :k], d[:, :, k:]
+            b11, b00, b01 = (np.einsum("nfg,nfg->g", _sum_axis2(x * y), q)
+                             for x, y in ((d1, d1), (d0, d0), (d1, d0)))
+            s11, s00, s01 = s11 + b11, s00 + b00, s01 + b01
         a = alphas[:, None]
-        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (q.shape[0] * q.shape[1] * k)
+        n, F = self.Z.shape[:2]
+        return (a ** 2 * s11 + (1 - a) ** 2 * s00 + 2 * a * (1 - a) * s01) / (n * F * k)
 
     def loo_residuals(self, reg: float, predict_weights: np.ndarray | None = None,
                       vertices: np.ndarray | None = None, loo: np.ndarray | None = None) -> np.ndarray:
@@ -360,7 +375,7 @@ class PositionFit:
         if loo is None:
             g = mu / (mu + reg)
             fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
-            h = np.matmul(self.Z2[v], g[:, :, None])[:, :, 0]                         # [n,F]
+            h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                             # [n,F]
             e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
         else:
             e = loo
@@ -381,11 +396,14 @@ class PositionFit:
 
     def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
         """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
-        d, q = self._loo_parts(regs, self.c, self.e0n)
-        k = d.shape[2]
-        d *= d
-        sq = _sum_axis2(d)                                                                 # [n,F,G]
-        per_frame = np.einsum("nfg,nfg->gf", sq, q) / (d.shape[0] * k)                     # [G,F]
+        k = self.c.shape[2]
+        per_frame = 0.0
+        for v in self._loo_blocks(regs, k):
+            d, q = self._loo_parts(regs, self.c, self.e0n, v)
+            d *= d
+            sq = _sum_axis2(d)                                                             # [n,F,G]
+            per_frame = per_frame + np.einsum("nfg,nfg->gf", sq, q)                        # [G,F]
+        per_frame = per_frame / (self.Z.shape[0] * k)
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)
