@@ -62,9 +62,17 @@ def test_personalize_take_beats_its_peak_frames_on_the_avatar(scan_take, sample_
     d, take, _ = scan_take
     avatar = sample_set / "avatar.usda"
     run("personalize", avatar, d / "peaks.usda", "-o", "peaks.usda", "-q", cwd=tmp_path)
-    text = run("personalize", avatar, d / "take.usdc", "-o", "take.usda", "-q", cwd=tmp_path).stdout
+    text = run("personalize", avatar, d / "take.usdc", "-o", "take.usda", "-q", "--inspect", "--review",
+               cwd=tmp_path).stdout
     assert f"fit: whole take: {len(take)} frames" in text
     assert_valid_usd(tmp_path / "take.usda")
+    # inspection and review play the take itself (it has no test expressions)
+    from pxr import Usd, UsdSkel
+
+    stage = Usd.Stage.Open(str(tmp_path / "take.usda"))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
+    assert anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
+    assert "the take (every frame fitted)" in (tmp_path / "take.review.html").read_text()
     truth = np.load(sample_set / "truth" / "avatar_truth.npz")
     generic = read_avatar(avatar).mesh("Head")
     true = np.stack([truth[f"Head/{n}"] for n in generic.names]) @ generic.source.to_internal[:3, :3].T

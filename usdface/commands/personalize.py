@@ -194,7 +194,8 @@ def run(args) -> int:
         if inspect:
             extra = " + landmark Points" if args.landmarks else ""
             extra += f" + take {args.take}" if args.take else ""
-            print(f"inspection: change heat map (displayColor), test-expression SkelAnimation{extra}")
+            played = "the take's frames" if whole_take and not args.take else "test-expression"
+            print(f"inspection: change heat map (displayColor), {played} SkelAnimation{extra}")
     if args.review and not args.dry_run and result.out_path:
         from ..api import write_review
 

@@ -31,7 +31,7 @@ from .mesh_io import read_obj
 
 __all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
            "capture_from_take", "capture_from_whole_take", "is_take", "probe_take",
-           "TAKE_PRIM"]
+           "whole_take_playback", "TAKE_PRIM"]
 
 TAKE_PRIM = "/Take"
 
@@ -382,9 +382,19 @@ def capture_from_whole_take(take: Take, template=None) -> Capture:
     frames_idx = np.arange(len(take), dtype=np.int64)
     capture = _capture(take, frames_idx, ["train"] * len(take), [f"f{f:05d}" for f in frames_idx], template,
                        {"source": take.source, "units": "m"})
-    capture.metadata["whole_take"] = {"frames": len(take), "fps": take.fps}
+    capture.metadata["whole_take"] = {"frames": len(take), "fps": take.fps,
+                                      "times": (take.times - take.times[0]).tolist()}
     capture.metadata["counts"] = {"train": len(take), "test": 0}
     return capture
+
+
+def whole_take_playback(capture) -> tuple | None:
+    """``(names[K], weights[F,K], times[F] s)`` of a capture read from a whole take (its training frames, at
+    their times in the take: what inspection and review play when no other take is given), else None."""
+    whole = (getattr(capture, "metadata", None) or {}).get("whole_take")
+    if not whole or not len(capture.train):
+        return None
+    return list(capture.names), capture.train.weights, np.asarray(whole["times"], dtype=np.float64)
 
 
 def capture_from_take(take: Take, selection, template=None) -> Capture:

@@ -210,12 +210,20 @@ def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
 
 def inspection_animation(capture=None, take=None, hold: float = 0.5, gap: float = 1.0) -> tuple | None:
     """One timeline for usdview: the capture's test expressions (one every ``hold`` seconds, interpolated in
-    between), then, ``gap`` seconds later, a take (a ``usdface.io.take.Take``: Live Link CSV or USD take).
+    between), then, ``gap`` seconds later, a take (a ``usdface.io.take.Take``: Live Link CSV or USD take);
+    without a take, a capture read from a whole take plays its frames at their times.
     Returns ``(names[K], weights[F, K], times[F] seconds)`` for :func:`inspection_edit`, or None."""
     parts = []
     if capture is not None and len(capture.test):
         w = capture.test.weights
         parts.append((list(capture.names), w, np.arange(len(w)) * hold))
+    if take is None and capture is not None:  # a take read whole as the capture: play it
+        from .take import whole_take_playback
+
+        take = whole_take_playback(capture)
+        if take is not None:
+            parts.append(take)
+            take = None
     if take is not None and len(take):
         start = (parts[0][2][-1] + gap) if parts else 0.0
         parts.append((list(take.names), take.weights, start + take.times - take.times[0]))

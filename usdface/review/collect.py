@@ -180,6 +180,12 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                                   np.arange(len(test)) * TEST_HOLD_S, list(test.label)))
         if fit_errors:
             errors = _fit_errors(capture, prov)
+    if take is None and capture is not None:  # a take read whole as the capture: play it
+        from ..io.take import whole_take_playback
+
+        played = whole_take_playback(capture)
+        if played is not None:
+            sequences.append(Sequence("the take (every frame fitted)", *played, []))
     if take is not None:
         data = take if not isinstance(take, str | Path) else read_take(take)
         if len(data):
