@@ -1,0 +1,67 @@
+"""User trial, session 22: the fixes a trial user's findings asked for, each pinned by a test that failed
+before the fix."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from usdface.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+
+
+# ------------------------------------------------------------------------- 1. flattened personalized export
+@pytest.fixture(scope="module")
+def person_layer(tmp_path_factory) -> Path:
+    """A usdface layer over the sample avatar (personalized offsets on the Head: the layer carries the
+    personalization variant set and the provenance)."""
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(SAMPLES / "avatar.usda")
+    head = avatar.mesh("Head")
+    return write_avatar_layer(avatar, tmp_path_factory.mktemp("person") / "person.usda",
+                              {head.key: head.deltas * 1.01}, provenance={})
+
+
+def test_flattened_personalized_export_is_not_personalized_again(person_layer, tmp_path, capsys):
+    """A `usdface export --flatten` of the personalized variant lost the variant set the refusal looked for:
+    personalize stacked the personalization a second time. Now it is refused (AlreadyPersonalizedError) naming
+    the file, the layer it came from and the fix (the generic variant, or the original avatar)."""
+    from usdface.io.flatten import flatten_variant
+
+    flat = flatten_variant(person_layer, tmp_path / "flat.usdc", "personalized")
+    for command, out in (("personalize", tmp_path / "p2.usda"), ("retarget", tmp_path / "m.json")):
+        argv = [command, str(flat), str(SAMPLES / "capture.usda"), "-o", str(out)]
+        assert main(argv + (["--json"] if command == "personalize" else [])) == 2
+        captured = capsys.readouterr()
+        assert "flattened export" in captured.err and str(flat) in captured.err
+        assert "--variant generic" in captured.err and "avatar.usda" in captured.err
+        if command == "personalize":
+            error = json.loads(captured.out)["error"]
+            assert error["type"] == "AlreadyPersonalizedError" and error["file"] == str(flat)
+            assert "person.usda --flatten flat.generic.usdc --variant generic" in error["fix"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flat.usdc"]
+
+
+def test_flattened_generic_export_and_plain_avatar_are_accepted(person_layer, tmp_path):
+    """A flattened *generic* export is the avatar's own shapes: accepted. A flattened plain avatar records
+    'authored' (it used to record 'personalized', the variant asked for, which it does not have)."""
+    from pxr import Sdf
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.flatten import flatten_variant
+    from usdface.io.usd_rig import flattened_from, refuse_usdface_output
+
+    generic = flatten_variant(person_layer, tmp_path / "generic.usdc", "generic")
+    assert flattened_from(generic) == {"source": "person.usda", "variant": "generic"}
+    refuse_usdface_output(generic)                       # no error
+    plain = flatten_variant(SAMPLES / "avatar.usda", tmp_path / "plain.usdc", "personalized")
+    assert dict(Sdf.Layer.FindOrOpen(str(plain)).customLayerData)["usdfaceFlatten"]["variant"] == "authored"
+    refuse_usdface_output(plain)
+    with pytest.raises(AlreadyPersonalizedError):        # the layer itself: refused as before
+        refuse_usdface_output(person_layer)
