@@ -65,3 +65,33 @@ def test_flattened_generic_export_and_plain_avatar_are_accepted(person_layer, tm
     refuse_usdface_output(plain)
     with pytest.raises(AlreadyPersonalizedError):        # the layer itself: refused as before
         refuse_usdface_output(person_layer)
+
+
+# ----------------------------------------------------------------------------- 2. --json and system errors
+def test_json_error_for_a_full_disk_carries_the_fix(tmp_path, monkeypatch, capsys):
+    """With --json a system OSError (here a full disk) used to give `"fix": null` while the stderr line and a
+    UsdFaceError document carry one; now the document has the same fix as the line."""
+    import errno
+
+    from usdface.io import atomic
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "capture2.usda"))
+
+    monkeypatch.setattr(atomic.os, "link", full)
+    monkeypatch.chdir(tmp_path)
+    code = main(["fit", str(SAMPLES / "capture.usda"), "-o", "capture2.usda", "--json"])
+    captured = capsys.readouterr()
+    error = json.loads(captured.out)["error"]
+    assert code == 2 and error["type"] == "OSError" and error["file"] == str(tmp_path / "capture2.usda")
+    assert error["fix"] == "free disk space or write the output elsewhere (-o)"
+    assert f"(fix: {error['fix']})" in captured.err
+
+
+def test_json_error_for_a_file_in_the_way_carries_the_fix(tmp_path, capsys):
+    """A real system error, no mock: `sample` into a folder under a plain file."""
+    (tmp_path / "afile").write_text("")
+    assert main(["sample", str(tmp_path / "afile" / "sub"), "--json"]) == 2
+    captured = capsys.readouterr()
+    error = json.loads(captured.out)["error"]
+    assert error["fix"] and f"(fix: {error['fix']})" in captured.err and "(-o)" not in error["fix"]
