@@ -95,3 +95,25 @@ def test_json_error_for_a_file_in_the_way_carries_the_fix(tmp_path, capsys):
     captured = capsys.readouterr()
     error = json.loads(captured.out)["error"]
     assert error["fix"] and f"(fix: {error['fix']})" in captured.err and "(-o)" not in error["fix"]
+
+
+# ------------------------------------------------------------------ 3. landmarks: the other mode's options
+@pytest.mark.parametrize("extra, named", [
+    (["--takes", "take.csv"], "--takes"),
+    (["--frames", "100", "--noise", "1"], "--frames/--noise"),
+    (["--empirical", "layout.json"], "--empirical"),
+    (["--evaluate", "--takes", "take.csv", "-o", "layout.usda"], "-o/--output"),
+])
+def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, capsys, extra, named):
+    """--takes/--frames/--noise/--empirical without --evaluate used to be ignored (a layout was computed and
+    written as if they were not there); -o with --evaluate was ignored too. Now refused before any work
+    (the avatar is not even read: the missing take files are not reached), naming the option and the fix."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert "LandmarkError" not in err and named in err and "(fix: " in err
+    assert ("leave out -o" in err) if named == "-o/--output" else ("add --evaluate" in err)
+    assert list(tmp_path.iterdir()) == []
