@@ -117,3 +117,17 @@ def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, ca
     assert "LandmarkError" not in err and named in err and "(fix: " in err
     assert ("leave out -o" in err) if named == "-o/--output" else ("add --evaluate" in err)
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------ 4. docs/pipeline.md plugin table
+def test_pipeline_doc_lists_every_pyblish_plugin_in_publish_order():
+    """docs/pipeline.md's plugin table missed ExtractUsdFaceReview; it lists exactly PLUGINS, in order."""
+    import re
+
+    pytest.importorskip("pyblish")
+    from usdface.pipeline.pyblish_plugins import PLUGINS
+
+    text = (ROOT / "docs" / "pipeline.md").read_text()
+    table = text[text.index("| plugin | order | does |"):]
+    rows = re.findall(r"^\| `(\w+)` \|", table[:table.index("\n\n")], flags=re.M)
+    assert rows == [plugin.__name__ for plugin in PLUGINS]
