@@ -131,3 +131,26 @@ def test_pipeline_doc_lists_every_pyblish_plugin_in_publish_order():
     table = text[text.index("| plugin | order | does |"):]
     rows = re.findall(r"^\| `(\w+)` \|", table[:table.index("\n\n")], flags=re.M)
     assert rows == [plugin.__name__ for plugin in PLUGINS]
+
+
+# ------------------------------------------------------------------------------- 5. batch report's name
+def test_batch_report_is_named_as_documented(tmp_path, capsys):
+    """The docs said `MANIFEST.report.json` (read: people.csv.report.json) where batch writes
+    `<manifest stem>.report.json` beside the manifest; docs, --help and the file written now agree."""
+    out = tmp_path / "out" / "anna.usda"
+    out.parent.mkdir()
+    out.write_text("#usda 1.0\n")                        # finished before: skipped, so the batch is instant
+    manifest = tmp_path / "people.csv"
+    manifest.write_text(f"avatar,capture,output\n{SAMPLES / 'avatar.usda'},{SAMPLES / 'capture.usda'},"
+                        "out/anna.usda\n")
+    assert main(["batch", str(manifest), "-j", "1"]) == 0
+    report = tmp_path / "people.report.json"
+    assert f"report: {report}" in capsys.readouterr().out
+    assert json.loads(report.read_text())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "people.csv", "people.report.json"]
+    pipeline = (ROOT / "docs" / "pipeline.md").read_text()
+    assert "`<manifest stem>.report.json` next to the manifest (`people.csv` -> `people.report.json`" \
+        in pipeline
+    for doc in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "usdface" / "commands" / "batch.py",
+                ROOT / "usdface" / "api.py"]:
+        assert "MANIFEST.report.json" not in doc.read_text(), doc
