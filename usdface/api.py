@@ -596,7 +596,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     output exists are skipped (resume) unless ``force``; a failing item is recorded and the batch goes on.
     ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
-    ``report_path``, default ``MANIFEST.report.json``; returns the
+    ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     from .io.atomic import check_output_file
     from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch

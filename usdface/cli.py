@@ -110,7 +110,8 @@ def main(argv=None) -> int:
             raise
         text = os_error_text(exc, hasattr(args, "output"))
         if getattr(args, "json", None) is True:
-            _json_error(args, text, type(exc).__name__, exc.filename, None, None)
+            _json_error(args, text, type(exc).__name__, exc.filename, None,
+                        os_error_fix(exc, hasattr(args, "output")))
         else:
             print(f"usdface {args.command}: error: {text}", file=sys.stderr)
         return 2
@@ -142,13 +143,18 @@ _OS_FIXES = {
 }
 
 
+def os_error_fix(exc: OSError, output_option: bool = True) -> str:
+    """What to do about an OSError (by its errno), naming ``-o`` only when ``output_option``: the command has
+    one. The ``fix`` of the one-line error and of the ``--json`` error document."""
+    fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
+    return fix.format(o=" (-o)" if output_option else "")
+
+
 def os_error_text(exc: OSError, output_option: bool = True) -> str:
-    """One line for an OSError: the file, what the system said and the fix (naming ``-o`` only when
-    ``output_option``: the command has one)."""
+    """One line for an OSError: the file, what the system said and the fix (:func:`os_error_fix`)."""
     where = exc.filename if exc.filename is not None else ""
     what = exc.strerror or str(exc)
-    fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
-    fix = fix.format(o=" (-o)" if output_option else "")
+    fix = os_error_fix(exc, output_option)
     return f"{where}: {what} (fix: {fix})" if where else f"{what} (fix: {fix})"
 
 

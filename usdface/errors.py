@@ -45,6 +45,12 @@ class RigError(UsdFaceError):
     """An avatar's UsdSkel face rig is malformed (no SkelRoot, no blend shapes, inconsistent arrays...)."""
 
 
+class AlreadyPersonalizedError(RigError):
+    """An avatar given to ``personalize``/``retarget`` is already personalized: a usdface output layer, or a
+    flattened export of its personalized variant (``usdface export --flatten``); personalizing it again would
+    stack the personalization on the personalized shapes."""
+
+
 class CaptureError(UsdFaceError):
     """A capture (folder, capture.usda, take) is malformed."""
 

@@ -34,7 +34,8 @@ def register(subparsers) -> None:
                    help="Dask scheduler address (tcp://host:8786): run the items on that cluster")
     p.add_argument("--force", action="store_true", help="redo items whose output already exists")
     p.add_argument("--report", type=Path,
-                   help="where to write the JSON report (default: MANIFEST.report.json next to the manifest)")
+                   help="where to write the JSON report (default: <manifest stem>.report.json next to the "
+                        "manifest: people.csv -> people.report.json)")
     p.add_argument("--set", dest="options", action="append", type=_option, default=[], metavar="KEY=VALUE",
                    help="personalize option for every item (e.g. --set method=menzel); manifest columns win")
     p.add_argument("--worker", metavar="MODULE:FUNCTION",

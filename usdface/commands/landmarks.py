@@ -45,7 +45,7 @@ def register(subparsers) -> None:
     p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
                    help="cost of eq. 5a: quality (count first, quality breaks ties; default), count, paper")
     p.add_argument("--skip-static", action="store_true", help="leave out shapes that move no vertex")
-    p.add_argument("-o", "--output", help="output layer (.usda/.usdc/.usd)")
+    p.add_argument("-o", "--output", help="output layer (.usda/.usdc/.usd); not with --evaluate")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.add_argument("--json", dest="json_out", help="write the layout (or evaluation) as JSON")
     p.add_argument("--plot", help="PNG: the layout (front view), or with --evaluate the error curve")
@@ -56,12 +56,33 @@ def register(subparsers) -> None:
     p.add_argument("--empirical",
                    help="JSON with an empirical layout (list of vertex indices, or ICT-FaceKit's "
                         "vertex_indices.json: idx_to_landmark_verts) for --evaluate")
-    p.add_argument("--frames", type=positive_int, default=400,
-                   help="test frames used by --evaluate (evenly sampled)")
-    p.add_argument("--noise", type=nonnegative_float, default=0.5,
+    p.add_argument("--frames", type=positive_int, default=None,
+                   help="test frames used by --evaluate (evenly sampled; 400)")
+    p.add_argument("--noise", type=nonnegative_float, default=None,
                    help="tracking noise for --evaluate, mm (0.5)")
     add_quiet(p)
     p.set_defaults(func=run)
+
+
+#: Options only ``--evaluate`` reads (attribute, spelling): given without it they would be ignored.
+EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", "--frames"),
+                 ("noise", "--noise"))
+
+
+def refuse_other_mode(args) -> None:
+    """Refuse, before any work, an option of the other mode: ``--takes/--empirical/--frames/--noise``
+    without ``--evaluate`` (the layout ignores them), ``-o`` with it (the sweep writes no layer)."""
+    from ..errors import LandmarkError
+
+    if args.evaluate and args.output:
+        raise LandmarkError("-o/--output writes a landmark layout layer, which --evaluate does not compute",
+                            fix="leave out -o to evaluate (the results go to --json/--plot), or leave out "
+                                "--evaluate to write the layout layer")
+    given = [flag for name, flag in EVALUATE_ONLY if getattr(args, name) not in (None, [])]
+    if given and not args.evaluate:
+        raise LandmarkError(f"{'/'.join(given)} applies only to --evaluate (the layout would ignore it)",
+                            fix=f"add --evaluate to evaluate layouts on the takes, or leave out "
+                                f"{'/'.join(given)}")
 
 
 def run(args) -> int:
@@ -71,6 +92,7 @@ def run(args) -> int:
     from ..io.atomic import check_output_file, write_text_atomic
     from ..progress import steps
 
+    refuse_other_mode(args)
     t0 = time.perf_counter()
     inputs = [args.avatar, args.name_map, args.empirical, *args.takes]
     if args.output:
@@ -89,9 +111,10 @@ def run(args) -> int:
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation
 
-        report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical, frames=args.frames,
-                                        noise_mm=args.noise, rays=args.rays, symmetric=args.symmetric,
-                                        backend=args.backend)
+        report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical,
+                                        frames=400 if args.frames is None else args.frames,
+                                        noise_mm=0.5 if args.noise is None else args.noise, rays=args.rays,
+                                        symmetric=args.symmetric, backend=args.backend)
         if args.plot:
             plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}", force=args.force)
         if args.json_out:

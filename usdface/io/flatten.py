@@ -103,6 +103,8 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     stage = variant_stage(src, variant)
     flat = stage.Flatten()
     data = dict(flat.customLayerData)
-    data["usdfaceFlatten"] = {"source": src.name, "variant": variant}
+    # the variant actually baked in ("authored" for a plain avatar): personalize refuses a personalized one
+    data["usdfaceFlatten"] = {"source": src.name,
+                              "variant": variant if _personalization_prims(stage) else AS_AUTHORED}
     flat.customLayerData = data
     return atomic_save(flat, out, force)

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import arkit
-from ..errors import GeometryError, InputFileError, RigError, UsdFaceError
+from ..errors import AlreadyPersonalizedError, GeometryError, InputFileError, RigError, UsdFaceError
 from ..model import Avatar, FaceRig, Inbetween, MeshSource
 from .mesh_io import fan_triangulate
 
@@ -568,20 +568,53 @@ def generic_input(layer_path) -> Path | None:
         current = sub
 
 
+def flattened_from(path) -> dict | None:
+    """``customLayerData["usdfaceFlatten"]`` of a ``usdface export --flatten`` file: ``source`` (the layer's
+    file name) and ``variant`` (``personalized``, ``generic`` or ``authored``: the one baked in), or None."""
+    import stat
+
+    from pxr import Sdf
+
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # unreadable: the reader that follows says so
+        return None
+    data = _plain(dict(layer.customLayerData).get("usdfaceFlatten", {})) if layer else {}
+    return data if isinstance(data, dict) and data.get("variant") else None
+
+
 def refuse_usdface_output(path) -> None:
     """Personalizing a usdface output layer again would personalize the personalized shapes (the layer's
-    default variant): refuse it, naming the original avatar recorded in the layer's provenance.
+    default variant): refuse it (:class:`~usdface.errors.AlreadyPersonalizedError`), naming the original
+    avatar recorded in the layer's provenance. A flattened export of the personalized variant (``usdface
+    export --flatten``, which records the variant in ``customLayerData["usdfaceFlatten"]``) is refused too;
+    one of the generic variant is the avatar's shapes and is accepted.
 
     A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised."""
     if not isinstance(path, str | Path):
         return
     data = usdface_output_provenance(path)
-    if data is None or not _has_personalization(path):
-        return                  # not a usdface layer, or one that personalizes nothing (a landmarks layer)
+    if data is None:
+        return                  # not a usdface layer
+    flat = flattened_from(path)
+    if flat is not None and flat["variant"] == "personalized":
+        inputs = data.get("inputs") or []
+        original = f" ({Path(str(inputs[0])).name})" if inputs else ""
+        generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
+        raise AlreadyPersonalizedError(
+            f"this is a flattened export of the personalized variant of the usdface layer "
+            f"{flat.get('source', '?')}; personalizing it again would stack the personalization on the "
+            "personalized shapes", path=path,
+            fix=f"flatten the generic variant instead (usdface export {flat.get('source', 'LAYER')} "
+                f"--flatten {generic} --variant generic) or pass the original avatar{original}")
+    if not _has_personalization(path):
+        return          # one that personalizes nothing (a landmarks layer), or a flattened generic one
     original = generic_input(path) or Path(path).parent / str(data["inputs"][0])
-    raise RigError("this is a usdface output layer (already personalized); personalizing it again would "
-                   "stack the personalization on the personalized shapes", path=path,
-                   fix=f"pass the original avatar ({original})")
+    raise AlreadyPersonalizedError(
+        "this is a usdface output layer (already personalized); personalizing it again would stack the "
+        "personalization on the personalized shapes", path=path, fix=f"pass the original avatar ({original})")
 
 
 def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
