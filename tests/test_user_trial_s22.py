@@ -154,3 +154,13 @@ def test_batch_report_is_named_as_documented(tmp_path, capsys):
     for doc in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "usdface" / "commands" / "batch.py",
                 ROOT / "usdface" / "api.py"]:
         assert "MANIFEST.report.json" not in doc.read_text(), doc
+
+
+def test_python_dash_m_usdface_runs_the_cli():
+    """``python -m usdface`` (a venv without the console script on PATH) is the ``usdface`` command."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "usdface", "--version"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and proc.stdout.startswith("usdface "), proc.stderr
