@@ -138,6 +138,7 @@ _OS_FIXES = {
     errno.EDQUOT: "free disk space (quota) or write the output elsewhere{o}",
     errno.EISDIR: "the path is a folder: give a file name",
     errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
+    errno.EEXIST: "a file is in the way of a folder the output needs: choose another path{o} or move it",
     errno.ENOENT: "check the path",
     errno.ENAMETOOLONG: "use a shorter path",
 }
