@@ -104,6 +104,10 @@ def test_json_error_for_a_file_in_the_way_carries_the_fix(tmp_path, capsys):
     (["--frames", "100", "--noise", "1"], "--frames/--noise"),
     (["--empirical", "layout.json"], "--empirical"),
     (["--evaluate", "--takes", "take.csv", "-o", "layout.usda"], "-o/--output"),
+    (["--evaluate", "--takes", "take.csv", "--epsilon", "0.6", "--alpha", "0.2"], "--epsilon/--alpha"),
+    (["--evaluate", "--takes", "take.csv", "--spacing", "0"], "--spacing"),
+    (["--evaluate", "--takes", "take.csv", "--multicover", "2", "--no-adaptive"],
+     "--multicover/--no-adaptive"),
 ])
 def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, capsys, extra, named):
     """--takes/--frames/--noise/--empirical without --evaluate used to be ignored (a layout was computed and
@@ -116,7 +120,10 @@ def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, ca
     assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
     err = capsys.readouterr().err
     assert "LandmarkError" not in err and named in err and "(fix: " in err
-    assert ("leave out -o" in err) if named == "-o/--output" else ("add --evaluate" in err)
+    if "--evaluate" not in extra:
+        assert "add --evaluate" in err
+    else:
+        assert f"leave out {named}" in err or "leave out -o" in err
     assert list(tmp_path.iterdir()) == []
 
 

@@ -19,13 +19,14 @@ def register(subparsers) -> None:
     p.add_argument("avatar", help="avatar USD file (UsdSkel, blend shapes)")
     p.add_argument("--mesh", help="mesh prim name or path (default: most shapes, then most vertices)")
     add_name_map_option(p)
-    p.add_argument("--epsilon", type=positive_float, default=0.5,
-                   help="relative-displacement threshold, (0,1]")
-    p.add_argument("--alpha", type=unit_float, default=0.5, help="displacement vs visibility weight, [0,1]")
+    p.add_argument("--epsilon", type=positive_float, default=None,
+                   help="relative-displacement threshold, (0,1] (0.5)")
+    p.add_argument("--alpha", type=unit_float, default=None,
+                   help="displacement vs visibility weight, [0,1] (0.5)")
     p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
-    p.add_argument("--multicover", type=positive_int, default=1, metavar="N",
+    p.add_argument("--multicover", type=positive_int, default=None, metavar="N",
                    help="adaptive multi-cover: up to N landmarks per shape (1)")
-    p.add_argument("--radius", type=nonnegative_float, default=0.01,
+    p.add_argument("--radius", type=nonnegative_float, default=None,
                    help="metres; multi-cover excludes vertices this close to chosen landmarks (0.01)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
@@ -42,7 +43,7 @@ def register(subparsers) -> None:
                         "fewer places to choose from")
     p.add_argument("--backend", default="scip", choices=["scip", "cbc", "highs", "cp-sat"],
                    help="OR-tools MIP backend (scip)")
-    p.add_argument("--weighting", default="quality", choices=["quality", "count", "paper"],
+    p.add_argument("--weighting", default=None, choices=["quality", "count", "paper"],
                    help="cost of eq. 5a: quality (count first, quality breaks ties; default), count, paper")
     p.add_argument("--skip-static", action="store_true", help="leave out shapes that move no vertex")
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc/.usd); not with --evaluate")
@@ -64,6 +65,14 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+#: Options only the layout reads (attribute, spelling, default): ``--evaluate`` sweeps epsilon x multi-cover
+#: at the paper's protocol (alpha 0, every vertex a candidate, no camera), so given with it they would be
+#: ignored. ``--radius`` is read by both.
+LAYOUT_ONLY = (("epsilon", "--epsilon", 0.5), ("alpha", "--alpha", 0.5), ("multicover", "--multicover", 1),
+               ("weighting", "--weighting", "quality"), ("no_adaptive", "--no-adaptive", False),
+               ("skip_static", "--skip-static", False), ("camera", "--camera", None),
+               ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False))
+
 #: Options only ``--evaluate`` reads (attribute, spelling): given without it they would be ignored.
 EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", "--frames"),
                  ("noise", "--noise"))
@@ -71,7 +80,8 @@ EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", 
 
 def refuse_other_mode(args) -> None:
     """Refuse, before any work, an option of the other mode: ``--takes/--empirical/--frames/--noise``
-    without ``--evaluate`` (the layout ignores them), ``-o`` with it (the sweep writes no layer)."""
+    without ``--evaluate`` (the layout ignores them), ``-o`` or a layout-only option (:data:`LAYOUT_ONLY`)
+    with it (the sweep writes no layer and sets those itself); then fill in the layout's defaults."""
     from ..errors import LandmarkError
 
     if args.evaluate and args.output:
@@ -83,6 +93,17 @@ def refuse_other_mode(args) -> None:
         raise LandmarkError(f"{'/'.join(given)} applies only to --evaluate (the layout would ignore it)",
                             fix=f"add --evaluate to evaluate layouts on the takes, or leave out "
                                 f"{'/'.join(given)}")
+    layout_only = [flag for name, flag, _ in LAYOUT_ONLY           # 'is': --spacing 0 is given, not False
+                   if getattr(args, name) is not None and getattr(args, name) is not False]
+    if layout_only and args.evaluate:
+        raise LandmarkError(f"{'/'.join(layout_only)} applies only to the layout: --evaluate sweeps epsilon "
+                            "x multi-cover at the paper's protocol (alpha 0, no camera, every vertex a "
+                            "candidate) and would ignore it",
+                            fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
+                                "the layout")
+    for name, _, default in LAYOUT_ONLY:   # the layout's defaults (None above: 'not given')
+        if getattr(args, name) is None:
+            setattr(args, name, default)
 
 
 def run(args) -> int:
@@ -114,7 +135,8 @@ def run(args) -> int:
         report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical,
                                         frames=400 if args.frames is None else args.frames,
                                         noise_mm=0.5 if args.noise is None else args.noise, rays=args.rays,
-                                        symmetric=args.symmetric, backend=args.backend)
+                                        symmetric=args.symmetric, backend=args.backend,
+                                        radius=0.01 if args.radius is None else args.radius)
         if args.plot:
             plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}", force=args.force)
         if args.json_out:
@@ -130,7 +152,8 @@ def run(args) -> int:
     with steps("landmarks", 1 + bool(args.output)) as p:
         p.start(f"layout of {rig.name}")
         layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
-                                   multicover=args.multicover, radius=args.radius, camera=args.camera,
+                                   multicover=args.multicover,
+                                   radius=0.01 if args.radius is None else args.radius, camera=args.camera,
                                    rays=args.rays, backend=args.backend, weighting=args.weighting,
                                    adaptive=not args.no_adaptive, ignore_static=args.skip_static,
                                    spacing="auto" if args.spacing is None else (args.spacing or None),
