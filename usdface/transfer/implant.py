@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
-from ..mesh import triangle_areas, vertex_areas, vertex_normals
+from ..mesh import index_set, triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
@@ -257,8 +257,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         from scipy.spatial import cKDTree
 
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
-        kept = (np.unique(cKDTree(x if proxy is None else proxy.points).query(q)[1]) if len(q)
-                else np.zeros(0, dtype=np.int64))
+        on = x if proxy is None else proxy.points
+        kept = index_set(cKDTree(on).query(q)[1], len(on)) if len(q) else np.zeros(0, dtype=np.int64)
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
     if overwrite:
         result = None                                # the person's array, formed below
@@ -283,7 +283,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # on the proxy: its known vertices the extension reads, that the join interpolates from and that
         # other meshes follow; each smoothed at its fine vertex, exactly as on the fine mesh
         rows_c = proxy.rows(kept)
-        rows = np.unique(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]))
+        rows = index_set(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]), domain.size)
         at_row = np.searchsorted(rows, proxy.fine[rows_c])
         mass = np.zeros(domain.size)
         np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
@@ -302,7 +302,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # the offsets are read only where they are used (the smoothing's columns, the vertices that read the
         # field, those the field is kept at), and each shape's largest motion over the moving part (the
         # motion weights' scale) from them and the vertices whose peak over the shapes could exceed it
-        used = np.unique(np.concatenate([reach, proxy.need, proxy.fine[kept]]))
+        used = index_set(np.concatenate([reach, proxy.need, proxy.fine[kept]]), domain.size)
         at_reach, at_need, at_kept = (np.searchsorted(used, v) for v in (reach, proxy.need, proxy.fine[kept]))
         others = np.ones(domain.size, dtype=bool)
         others[used] = False
