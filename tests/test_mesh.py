@@ -132,3 +132,12 @@ def test_harmonic_fill_interpolates_fades_and_leaves_the_known_alone():
     everything = np.zeros((2, 81), dtype=bool)
     everything[1] = True
     np.testing.assert_array_equal(harmonic_fill(values, everything, tris)[1], 0.0)
+
+
+def test_index_set_is_np_unique():
+    from usdface.mesh import index_set
+
+    rng = np.random.default_rng(3)
+    t = rng.integers(0, 50, size=(40, 3))
+    assert np.array_equal(index_set(t, 60), np.unique(t))
+    assert index_set(np.zeros(0, dtype=np.int64), 5).size == 0

@@ -114,6 +114,15 @@ class Float32Offsets:
             out[k] = self._expand(a[k])
         return out
 
+    def take(self, shapes, vertices) -> np.ndarray:
+        """Float64 offsets ``[k,s,3]`` of a slice of shapes at the vertices ``vertices[s]`` only: the same
+        values as ``self[shapes][:, vertices]`` without expanding the others."""
+        a = self.authored[shapes]
+        out = np.empty((len(a), len(vertices), 3))
+        for k in range(len(a)):
+            out[k] = self._expand(a[k][vertices])
+        return out
+
     def _expand(self, a) -> np.ndarray:
         """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``."""
         if self._axes is not None:

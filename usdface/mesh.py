@@ -27,7 +27,7 @@ __all__ = [
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
     "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
-    "check_triangles", "spd_lu", "vertex_areas",
+    "check_triangles", "spd_lu", "vertex_areas", "index_set",
 ]
 
 
@@ -201,6 +201,15 @@ def edges(triangles: np.ndarray) -> np.ndarray:
     key = np.sort(e[:, 0] * m + e[:, 1])
     key = key[np.concatenate([[True], key[1:] != key[:-1]])] if key.size else key
     return np.stack([key // m, key % m], axis=1)
+
+
+def index_set(indices, n: int) -> np.ndarray:
+    """The distinct values of ``indices`` (any shape, integers in ``[0, n)``: vertex indices), sorted: what
+    ``np.unique`` returns, by a ``[n]`` mask instead of its hash table (numpy >= 2.3 takes it for integers:
+    0.48 CPU-s for the 1.35M corners of a 450k-triangle mesh, against 0.01 s)."""
+    mask = np.zeros(n, dtype=bool)
+    mask[np.asarray(indices).ravel()] = True
+    return np.flatnonzero(mask)
 
 
 def vertex_adjacency(triangles: np.ndarray, n: int) -> sp.csr_matrix:

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
-from ..mesh import triangle_areas, vertex_areas, vertex_normals
+from ..mesh import index_set, triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from .motion_field import (
     FieldExtension,
@@ -224,7 +224,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # motion, and so the result, is 0 whatever the field
     peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
     domain = np.flatnonzero(moving_vertices(peak, points) | (w0 > 0))
-    del peak
+    peak = peak[domain]
     local = np.full(m, -1)
     local[domain] = np.arange(domain.size)
     tri = np.asarray(triangles)
@@ -257,8 +257,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         from scipy.spatial import cKDTree
 
         q = np.asarray(keep_at, dtype=np.float64).reshape(-1, 3)
-        kept = (np.unique(cKDTree(x if proxy is None else proxy.points).query(q)[1]) if len(q)
-                else np.zeros(0, dtype=np.int64))
+        on = x if proxy is None else proxy.points
+        kept = index_set(cKDTree(on).query(q)[1], len(on)) if len(q) else np.zeros(0, dtype=np.int64)
     field = np.zeros((n_shapes, kept.size, 3, 3), dtype=np.float32)
     if overwrite:
         result = None                                # the person's array, formed below
@@ -283,7 +283,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # on the proxy: its known vertices the extension reads, that the join interpolates from and that
         # other meshes follow; each smoothed at its fine vertex, exactly as on the fine mesh
         rows_c = proxy.rows(kept)
-        rows = np.unique(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]))
+        rows = index_set(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]), domain.size)
         at_row = np.searchsorted(rows, proxy.fine[rows_c])
         mass = np.zeros(domain.size)
         np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
@@ -298,6 +298,17 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     patch = sp.csr_matrix(smoother)[sel] if shrunk.size else None
     patch_size = np.asarray(patch.sum(axis=1)).ravel() if shrunk.size else None
     shrunk_r = np.searchsorted(reach, shrunk)
+    if proxy is not None:
+        # the offsets are read only where they are used (the smoothing's columns, the vertices that read the
+        # field, those the field is kept at), and each shape's largest motion over the moving part (the
+        # motion weights' scale) from them and the vertices whose peak over the shapes could exceed it
+        used = index_set(np.concatenate([reach, proxy.need, proxy.fine[kept]]), domain.size)
+        at_reach, at_need, at_kept = (np.searchsorted(used, v) for v in (reach, proxy.need, proxy.fine[kept]))
+        others = np.ones(domain.size, dtype=bool)
+        others[used] = False
+        others = np.flatnonzero(others)
+        used_m, peak_others = domain[used], peak[others]
+    del peak
     release_free_memory()                            # its construction's products
     # the person's array last: the factorization's and the smoother's working memory are gone by then
     p = np.asarray(person() if callable(person) else person, dtype=np.float64)
@@ -307,10 +318,19 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     trim_chunks = SHAPE_CHUNK * domain.size * 9 * 8 >= TRIM_CHUNK_BYTES
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
-        gd, pd = g[js][:, domain], p[js][:, domain]
+        if proxy is None:
+            gd, pd = g[js][:, domain], p[js][:, domain]
+            gr, pr = gd[:, reach], pd[:, reach]
+            mw = motion_weights(gd)[:, reach]
+        else:                                                     # gd, pd: at the ``used`` vertices only
+            gd, pd = _offsets_at(g, js, used_m), p[js][:, used_m]
+            gr, pr = gd[:, at_reach], pd[:, at_reach]
+            top = shape_norms(gd).max(axis=1)                     # [k] a lower bound of each shape's peak
+            cand = others[peak_others >= top.min() * (1.0 - 1e-9)]
+            if cand.size:
+                top = np.maximum(top, shape_norms(_offsets_at(g, js, domain[cand])).max(axis=1))
+            mw = motion_weights(gr, peak=top)
         k = gd.shape[0]
-        gr, pr = gd[:, reach], pd[:, reach]
-        mw = motion_weights(gd)[:, reach]
         phi = np.zeros((k, reach.size, 3, 3))
         valid = np.zeros((k, reach.size), dtype=bool)
         jj, vv = np.nonzero((mw > 0) & known_r[None])   # measured where known and the shape moves (sparse)
@@ -348,7 +368,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             fc = ext.extend(flat)                                 # [p, k*9] on the proxy
             del flat
             field[js] = fc[kept].reshape(kept.size, k, 3, 3).transpose(1, 0, 2, 3)
-            skin[js] = gd[:, proxy.fine[kept]]
+            skin[js] = gd[:, at_kept]
             f = proxy.prolong @ fc                                # [need, k*9]
             if proxy.strip.size:                                  # next to the face: the fine solve
                 at = proxy.need_position
@@ -360,10 +380,12 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
                 f[proxy.need_position[proxy.direct]] = (phi[:, np.searchsorted(rows, proxy.direct)]
                                                         .transpose(1, 0, 2, 3).reshape(proxy.direct.size, -1))
             f = f.reshape(proxy.need.size, k, 3, 3).transpose(1, 0, 2, 3)
-            outside = apply_field(gd[:, proxy.need], f)
+            outside = apply_field(gd[:, at_need], f)
             wn = w[proxy.need]
-            pd[:, proxy.need] = wn[None, :, None] * pd[:, proxy.need] + (1.0 - wn)[None, :, None] * outside
-            result[js, domain] = pd
+            if result is not p:                                   # the person's shapes, then the join's
+                result[js, domain] = p[js][:, domain]
+            result[js, domain[proxy.need]] = (wn[None, :, None] * pd[:, at_need]
+                                              + (1.0 - wn)[None, :, None] * outside)
             del fc
         del gd, pd, f, outside, phi
         if trim_chunks:
@@ -374,6 +396,14 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         result[:, rest] = 0.0
     points_kept = x[kept] if proxy is None else proxy.points[kept]
     return result, FieldOnMesh(points_kept, field, rings, generic=skin)
+
+
+def _offsets_at(offsets, shapes, vertices) -> np.ndarray:
+    """Float64 ``offsets[shapes][:, vertices]`` (``offsets``: an array or a :class:`Float32Offsets`, expanded
+    at those vertices only)."""
+    if isinstance(offsets, Float32Offsets):
+        return offsets.take(shapes, vertices)
+    return offsets[shapes][:, vertices]
 
 
 class FieldProxy:

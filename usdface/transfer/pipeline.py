@@ -237,10 +237,10 @@ def pose_by_length(template_delta, avatar_delta):
 
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
-                    initial=None, target=None, source_triangles: bool = True):
+                    initial=None, target=None, source_triangles: bool = True, avatar_peak=None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
-    otherwise."""
+    otherwise. ``avatar_peak``: the face's peak motion, for :func:`register_face`."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -257,7 +257,8 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
         stale = "extended" if corr is not None else Path(cache).exists()
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                          path=capture.source or None, initial=initial, target=target)
+                          path=capture.source or None, initial=initial, target=target,
+                          avatar_peak=avatar_peak)
     placed = reg_t.transform.apply(capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
@@ -547,9 +548,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             rest = np.flatnonzero(~reached)
             avatar = dataclasses.replace(avatar, meshes=[face if m.key == face_prim else m
                                                          for m in avatar.meshes] + [beyond])
+        # the face's peak motion, once for both registrations (the person's and the template's)
+        face_peak = peak_motion(avatar_face_deltas)
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                                     path=capture.source or None)
+                                     path=capture.source or None, avatar_peak=face_peak)
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()
         sim = registration.transform
@@ -560,7 +563,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
                                initial=sim, target=registration.target,
-                               source_triangles=face_transfer != "person")   # the deformation transfer's
+                               source_triangles=face_transfer != "person",   # the deformation transfer's
+                               avatar_peak=face_peak)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",

@@ -188,7 +188,8 @@ def _scale_guess(capture_points, avatar_points) -> float:
 
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
-                  path=None, initial: Similarity | None = None, target=None) -> Registration:
+                  path=None, initial: Similarity | None = None, target=None,
+                  avatar_peak=None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -201,10 +202,14 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     Raises :class:`RegistrationError` (with the residual and fitness) when the capture does not overlap the
     avatar face after registration: fitness below ``min_fitness`` or residual above ``max_residual_ratio``
     times the face's size.
+
+    ``avatar_peak[n]``: :func:`usdface.motion.peak_motion` of ``avatar_deltas`` when the caller has it (the
+    pipeline registers the person and the template on the same face: computed once).
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
     ap = np.asarray(avatar_points, dtype=np.float64)
-    moving = moving_vertices(peak_motion(avatar_deltas), ap)   # float noise of an export: no motion
+    peak = peak_motion(avatar_deltas) if avatar_peak is None else avatar_peak
+    moving = moving_vertices(peak, ap)   # float noise of an export: no motion
     try:   # the global initialiser; its scale also sets the ICP target's density below
         landmarks, no_landmarks = motion_initialiser(cn, capture_deltas, ap, avatar_deltas), None
     except RegistrationError as exc:

@@ -13,6 +13,7 @@ import numpy as np
 from ..mesh import (
     boundary_vertices,
     gradient_operator,
+    index_set,
     mean_edge_length,
     triangle_areas,
     triangle_normals,
@@ -81,7 +82,7 @@ def surface_samples(points, triangles, subdivisions: int) -> np.ndarray:
     t = np.asarray(triangles)
     s = int(subdivisions)
     if s <= 1:
-        return p[np.unique(t)]
+        return p[index_set(t, len(p))]
     i, j = np.meshgrid(np.arange(s + 1), np.arange(s + 1), indexing="ij")
     keep = (i + j) <= s
     b1, b2 = i[keep] / s, j[keep] / s
