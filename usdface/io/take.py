@@ -339,7 +339,7 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
 def is_take(path) -> bool:
     """True when ``path`` is a take rather than a capture: a folder with ``frames/`` or a Live Link CSV and
     no ``train/``; a USD file marked ``format = "take"`` by :func:`write_take_usd`, or, unmarked, one whose
-    default prim has no capture ``Frames`` but a Mesh with time-sampled points. A capture (or anything
+    root layer has time-sampled ``points`` and no capture ``usdface:frames:role``. A capture (or anything
     else) is False, so its reader reports what is wrong with it."""
     return probe_take(path)[0]
 
@@ -353,7 +353,7 @@ def probe_take(path) -> tuple[bool, object]:
         return take, None
     if path.suffix.lower() not in (".usd", ".usda", ".usdc") or not path.is_file():
         return False, None
-    from pxr import Sdf, Usd, UsdGeom
+    from pxr import Sdf
 
     try:
         layer = Sdf.Layer.FindOrOpen(str(path))
@@ -364,13 +364,19 @@ def probe_take(path) -> tuple[bool, object]:
     kind = (dict(layer.customLayerData).get("usdface") or {}).get("format")
     if kind in ("take", "capture"):
         return kind == "take", layer
-    stage = Usd.Stage.Open(layer)
-    root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
-    frames = root.GetChild("Frames")
-    if frames and frames.GetAttribute("usdface:frames:role"):
-        return False, layer
-    return any(UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 1
-               for p in Usd.PrimRange(root) if p.IsA(UsdGeom.Mesh)), layer
+    # the layer's own specs, not a composed stage: opening one here would report its composition errors
+    # (a missing sublayer) a second time, outside the reader that names them with their fix
+    seen = {"role": False, "points": False}
+
+    def visit(spec_path):
+        if spec_path.IsPropertyPath():
+            if spec_path.name == "usdface:frames:role":
+                seen["role"] = True
+            elif spec_path.name == "points" and layer.GetNumTimeSamplesForPath(spec_path) > 1:
+                seen["points"] = True
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return seen["points"] and not seen["role"], layer
 
 
 def capture_from_whole_take(take: Take, template=None) -> Capture:
