@@ -394,8 +394,8 @@ class PositionFit:
         out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross.transpose(1, 0, 2)[..., None] * e
         return out if Pw.ndim == 3 else out[0]
 
-    def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
-        """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
+    def _loo_per_frame(self, regs) -> np.ndarray:
+        """``[G,F]``: per ``reg`` and training frame, its leave-one-frame-out mean squared residual."""
         k = self.c.shape[2]
         per_frame = 0.0
         for v in self._loo_blocks(regs, k):
@@ -403,7 +403,17 @@ class PositionFit:
             d *= d
             sq = _sum_axis2(d)                                                             # [n,F,G]
             per_frame = per_frame + np.einsum("nfg,nfg->gf", sq, q)                        # [G,F]
-        per_frame = per_frame / (self.Z.shape[0] * k)
+        return per_frame / (self.Z.shape[0] * k)
+
+    def loo_frame_errors(self, reg: float) -> np.ndarray:
+        """``[F]``: each training frame's leave-one-frame-out mean squared residual (per vertex coordinate,
+        metres^2) at ``reg`` with the current prior - what :meth:`loo_error` averages, kept per frame for a
+        paired comparison of two priors on the same frames."""
+        return self._loo_per_frame([reg])[0]
+
+    def loo_errors(self, regs, frame_weights: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`loo_error` for every ``reg`` in ``regs`` at once, ``[G]``."""
+        per_frame = self._loo_per_frame(regs)
         if frame_weights is not None:
             return np.average(per_frame, axis=1, weights=frame_weights)
         return per_frame.mean(axis=1)
