@@ -19,15 +19,22 @@ from usdface.personalize import truth_error
 from usdface.sample.take import make_take
 
 
-@pytest.fixture(scope="module")
-def scan_take(sample_set, tmp_path_factory):
-    """(folder with take.usdc, the take, the person's true rig): 10 fps, 0.5 s sweeps, 366 frames."""
-    truth = np.load(sample_set / "truth" / "capture_truth.npz")
-    capture = read_capture_usd(sample_set / "capture.usda")
+def record_take(case, point_noise):
+    """(take, the person's true rig, the case's capture truth): the person of a ``usdface sample`` folder
+    recorded with the capture's template at 10 fps, 0.5 s sweeps (366 frames), phone weights +- 0.02."""
+    truth = np.load(case / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(case / "capture.usda")
     names = [str(n) for n in truth["names"]]
     person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
     take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
-                        point_noise=3e-4, weight_noise=0.02, seed=5)
+                        point_noise=point_noise, weight_noise=0.02, seed=5)
+    return take, person, truth, capture
+
+
+@pytest.fixture(scope="module")
+def scan_take(sample_set, tmp_path_factory):
+    """(folder with take.usdc, the take, the person's true rig): the scan regime (0.3 mm)."""
+    take, person, _, _ = record_take(sample_set, 3e-4)
     d = tmp_path_factory.mktemp("scan_take")
     write_take_usd(take, d / "take.usdc")
     run("capture", "select", "take.usdc", "-o", "peaks.usda", "--min-separation", "0.2", cwd=d)
@@ -120,12 +127,7 @@ def test_personalize_a_take_with_another_artists_template_stays_better_than_gene
 
     d = tmp_path / "artist"
     run("sample", d, "--template", "artist", "--seed", "24", cwd=tmp_path)
-    truth = np.load(d / "truth" / "capture_truth.npz")
-    capture = read_capture_usd(d / "capture.usda")
-    names = [str(n) for n in truth["names"]]
-    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
-    take, _ = make_take(person, capture.template.subset(names), fps=10, sweep_seconds=0.5, rest_seconds=0.2,
-                        point_noise=1e-4, weight_noise=0.02, seed=5)
+    take, _, truth, capture = record_take(d, 1e-4)
     write_take_usd(take, tmp_path / "take.usdc")
     run("personalize", d / "avatar.usda", "take.usdc", "-o", "out.usda", "-q", cwd=tmp_path)
     generic = read_avatar(d / "avatar.usda").mesh("Head")
