@@ -98,3 +98,32 @@ def test_takes_are_told_from_captures(scan_take, sample_set, tmp_path):
     assert probe_take(tmp_path / "plain.usda")[0]
     proc = run("evaluate", d / "take.usdc", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "capture select" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_takes_that_cannot_be_fitted_say_why_and_how(scan_take, sample_set, tmp_path):
+    """A take without its template, a Live Link CSV and an 'anim import' take given where a capture goes:
+    each refusal names the file (and prim) and a fix the command has (fit/personalize have no --template)."""
+    from dataclasses import replace
+
+    d, take, _ = scan_take
+    short = replace(take, weights=take.weights[:12], times=take.times[:12], points=take.points[:12],
+                    template=None)
+    write_take_usd(short, tmp_path / "bare.usdc")
+    write_take_folder(short, tmp_path / "bare_dir")
+    avatar = sample_set / "avatar.usda"
+    for args, said in ((("fit", "bare.usdc", "-o", "a.usda"), ["bare.usdc, prim /Take/Template"]),
+                       (("personalize", avatar, "bare_dir", "-o", "b.usda"), ["bare_dir/template"])):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "no template rig" in proc.stderr and "capture select" in proc.stderr, proc.stderr
+        assert "pass --template" not in proc.stderr, proc.stderr
+        for s in said:
+            assert s in proc.stderr, proc.stderr
+    (tmp_path / "take.csv").write_text((tmp_path / "bare_dir" / "take.csv").read_text())
+    run("anim", "import", "take.csv", "-o", "anim.usda", "-q", cwd=tmp_path)
+    for args in (("fit", "take.csv", "-o", "c.usda"), ("personalize", avatar, "anim.usda", "-o", "d.usda")):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "weights only" in proc.stderr and "--take" in proc.stderr, proc.stderr
+    assert "prim /" in proc.stderr  # the SkelAnimation
+    assert not list(tmp_path.glob("[abcd].usda"))

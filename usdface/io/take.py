@@ -379,12 +379,40 @@ def capture_from_whole_take(take: Take, template=None) -> Capture:
     marks it, so the fit weights its frames (``frame_weights="balanced"``, a held pose counts once,
     :mod:`usdface.personalize.takefit`) unless told otherwise. ``template`` and the neutral as in
     :func:`capture_from_take`."""
+    if take.points is None:
+        raise CaptureError("a take of weights only (no meshes): nothing to fit", path=take.source or None,
+                           fix=WEIGHTS_ONLY_FIX)
+    if template is None and take.template is None:
+        _refuse_without_template(take)
     frames_idx = np.arange(len(take), dtype=np.int64)
     capture = _capture(take, frames_idx, ["train"] * len(take), [f"f{f:05d}" for f in frames_idx], template,
                        {"source": take.source, "units": "m"})
     capture.metadata["whole_take"] = {"frames": len(take), "fps": take.fps}
     capture.metadata["counts"] = {"train": len(take), "test": 0}
     return capture
+
+
+#: What to do with a weights-only take (a Live Link CSV, an ``anim import`` SkelAnimation) given as a capture.
+WEIGHTS_ONLY_FIX = ("fit on the take's meshes: a folder of its OBJ frames (frames/NNNN.obj) with the "
+                    "Live Link CSV, or a USD take with time-sampled points; a weights-only take plays on "
+                    "the avatar with 'personalize AVATAR CAPTURE --take FILE' and 'capture select FILE' "
+                    "shows its coverage")
+
+
+def _refuse_without_template(take: Take) -> None:
+    """A take read whole (``fit TAKE``, ``personalize AVATAR TAKE``) without its template rig: where the
+    template belongs in the take, and the capture-select route that takes one from elsewhere."""
+    source = Path(take.source) if take.source else None
+    route = ("or pick frames with 'usdface capture select TAKE -o capture.usda --template CAPTURE' "
+             "(a capture on the take's topology) and use that capture")
+    if source is not None and source.is_dir():
+        raise CaptureError("the take has no template rig (no template/ folder)", path=source / "template",
+                           fix="add template/ (neutral.obj + one OBJ per ARKit shape, as in a capture "
+                               f"folder) on the frames' topology, {route}")
+    prim = (take.metadata.get("frames_prim") or "/Take/Frames").rsplit("/", 1)[0] + "/Template"
+    raise CaptureError("the take has no template rig", path=source, prim=prim,
+                       fix="author the template SkelRoot there as in capture.usda (write_take_usd with "
+                           f"take.template set), {route}")
 
 
 def capture_from_take(take: Take, selection, template=None) -> Capture:
