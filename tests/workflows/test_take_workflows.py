@@ -127,3 +127,14 @@ def test_takes_that_cannot_be_fitted_say_why_and_how(scan_take, sample_set, tmp_
         assert "weights only" in proc.stderr and "--take" in proc.stderr, proc.stderr
     assert "prim /" in proc.stderr  # the SkelAnimation
     assert not list(tmp_path.glob("[abcd].usda"))
+
+
+def test_render_draws_capture_and_take_files_like_capture_folders(scan_take, sample_set, tmp_path):
+    """docs/pipeline.md: 'usdface render capture/' draws the template shapes on the person's neutral; a
+    capture.usda or a take file is the same thing and is drawn without --capture (not refused as 'not an
+    avatar')."""
+    d, _, _ = scan_take
+    for i, src in enumerate((sample_set / "capture.usda", d / "take.usdc", sample_set / "capture")):
+        proc = run("render", src, "-o", f"{i}.png", "--shapes", "jawOpen", cwd=tmp_path)
+        assert (tmp_path / f"{i}.png").read_bytes()[:4] == b"\x89PNG", proc.stderr
+    run("render", sample_set / "avatar.usda", "-o", "avatar.png", cwd=tmp_path)  # an avatar still an avatar
