@@ -138,3 +138,11 @@ def test_render_draws_capture_and_take_files_like_capture_folders(scan_take, sam
         proc = run("render", src, "-o", f"{i}.png", "--shapes", "jawOpen", cwd=tmp_path)
         assert (tmp_path / f"{i}.png").read_bytes()[:4] == b"\x89PNG", proc.stderr
     run("render", sample_set / "avatar.usda", "-o", "avatar.png", cwd=tmp_path)  # an avatar still an avatar
+
+
+def test_a_take_where_an_avatar_goes_points_to_the_take_commands(scan_take, tmp_path):
+    """The refusal's fix names what a take is for since whole-take fitting: personalize AVATAR TAKE, fit."""
+    d, _, _ = scan_take
+    proc = run("inspect", d / "take.usdc", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "prim /Take" in proc.stderr, proc.stderr
+    assert "'personalize AVATAR TAKE'" in proc.stderr and "'fit TAKE'" in proc.stderr, proc.stderr
