@@ -146,3 +146,18 @@ def test_a_take_where_an_avatar_goes_points_to_the_take_commands(scan_take, tmp_
     proc = run("inspect", d / "take.usdc", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "prim /Take" in proc.stderr, proc.stderr
     assert "'personalize AVATAR TAKE'" in proc.stderr and "'fit TAKE'" in proc.stderr, proc.stderr
+
+
+def test_personalize_take_inspect_plays_the_take(scan_take, sample_set, tmp_path):
+    """personalize AVATAR TAKE --inspect: a take read whole has no test expressions, so the inspection
+    SkelAnimation plays the take itself (one sample per frame), and the summary says so."""
+    from pxr import Usd, UsdSkel
+
+    d, take, _ = scan_take
+    text = run("personalize", sample_set / "avatar.usda", d / "take.usdc", "-o", "person.usda", "--inspect",
+               "-q", cwd=tmp_path).stdout
+    assert "SkelAnimation of the take" in text and "test-expression" not in text, text
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
+    assert anim and anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
+    assert_valid_usd(tmp_path / "person.usda")

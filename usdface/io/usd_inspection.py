@@ -211,11 +211,17 @@ def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
 def inspection_animation(capture=None, take=None, hold: float = 0.5, gap: float = 1.0) -> tuple | None:
     """One timeline for usdview: the capture's test expressions (one every ``hold`` seconds, interpolated in
     between), then, ``gap`` seconds later, a take (a ``usdface.io.take.Take``: Live Link CSV or USD take).
-    Returns ``(names[K], weights[F, K], times[F] seconds)`` for :func:`inspection_edit`, or None."""
+    A capture that is a take read whole (no test frames) plays its own frames at the take's rate when no
+    other ``take`` is given. Returns ``(names[K], weights[F, K], times[F] seconds)`` for
+    :func:`inspection_edit`, or None."""
     parts = []
+    whole = (getattr(capture, "metadata", None) or {}).get("whole_take") if capture is not None else None
     if capture is not None and len(capture.test):
         w = capture.test.weights
         parts.append((list(capture.names), w, np.arange(len(w)) * hold))
+    elif whole and take is None and len(capture.train):
+        w = capture.train.weights
+        parts.append((list(capture.names), w, np.arange(len(w)) / float(whole.get("fps") or 30.0)))
     if take is not None and len(take):
         start = (parts[0][2][-1] + gap) if parts else 0.0
         parts.append((list(take.names), take.weights, start + take.times - take.times[0]))
