@@ -161,3 +161,13 @@ def test_personalize_take_inspect_plays_the_take(scan_take, sample_set, tmp_path
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
     assert anim and anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
     assert_valid_usd(tmp_path / "person.usda")
+
+
+def test_review_of_a_take_layer_plays_the_take(scan_take, sample_set, tmp_path):
+    """usdface review of a layer personalized from a take: the recorded capture is that take, read whole,
+    so the page plays it (there are no test expressions) and says why nothing is scored."""
+    d, _, _ = scan_take
+    run("personalize", sample_set / "avatar.usda", d / "take.usdc", "-o", "person.usda", "-q", cwd=tmp_path)
+    run("review", "person.usda", "-o", "review.html", cwd=tmp_path)
+    page = (tmp_path / "review.html").read_text()
+    assert "take take.usdc" in page and "fitted whole" in page
