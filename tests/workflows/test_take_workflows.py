@@ -171,3 +171,18 @@ def test_review_of_a_take_layer_plays_the_take(scan_take, sample_set, tmp_path):
     run("review", "person.usda", "-o", "review.html", cwd=tmp_path)
     page = (tmp_path / "review.html").read_text()
     assert "take take.usdc" in page and "fitted whole" in page
+
+
+def test_batch_item_with_a_frame_weighting_that_is_not_one(scan_take, sample_set, tmp_path):
+    """A manifest's frame_weights other than 'balanced' or numbers fails its item with a FitError that names
+    the accepted values (not 'ValueError: could not convert string to float')."""
+    d, _, _ = scan_take
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"items": [{"avatar": str(sample_set / "avatar.usda"),
+                                               "capture": str(d / "take.usdc"), "output": "out/a.usda",
+                                               "frame_weights": "uniform"}]}))
+    proc = run("batch", manifest, "-j", "1", cwd=tmp_path, ok=False)
+    assert proc.returncode == 1, proc.stderr
+    item = json.loads((tmp_path / "m.report.json").read_text())["items"][0]
+    assert item["status"] == "failed", item
+    assert item["error_type"] == "FitError" and "'balanced'" in item["error"], item
