@@ -186,3 +186,19 @@ def test_batch_item_with_a_frame_weighting_that_is_not_one(scan_take, sample_set
     item = json.loads((tmp_path / "m.report.json").read_text())["items"][0]
     assert item["status"] == "failed", item
     assert item["error_type"] == "FitError" and "'balanced'" in item["error"], item
+
+
+def test_capture_select_test_every_that_holds_out_nothing_says_so(scan_take, tmp_path):
+    """capture select --test-every on a take without rests: no frame is --min-separation from every training
+    frame, so no test frame is held out; select warns at once and evaluate's refusal names the select route
+    (not a test/ folder, which a capture.usda has no place for)."""
+    d, _, _ = scan_take
+    proc = run("capture", "select", d / "take.usdc", "-o", "c.usda", "--test-every", "40", cwd=tmp_path)
+    assert "0 test frames" in proc.stdout
+    said = proc.stdout + proc.stderr
+    assert "warning:" in said and "held out no test frame" in said and "--min-separation" in said, said
+    proc = run("evaluate", "c.usda", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "capture select" in proc.stderr, proc.stderr
+    proc = run("capture", "select", d / "take.usdc", "-o", "ok.usda", "--test-every", "3", "--min-separation",
+               "0.2", cwd=tmp_path)
+    assert "held out no test frame" not in proc.stdout + proc.stderr and " 0 test frames" not in proc.stdout
