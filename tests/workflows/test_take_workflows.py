@@ -202,3 +202,17 @@ def test_capture_select_test_every_that_holds_out_nothing_says_so(scan_take, tmp
     proc = run("capture", "select", d / "take.usdc", "-o", "ok.usda", "--test-every", "3", "--min-separation",
                "0.2", cwd=tmp_path)
     assert "held out no test frame" not in proc.stdout + proc.stderr and " 0 test frames" not in proc.stdout
+
+
+def test_a_take_packaged_as_usdz_is_a_take(scan_take, tmp_path):
+    """A USD take delivered as a .usdz package (as captures already may be): capture select reads it and fit
+    fits every frame, instead of 'not a take' / 'missing usdface:frames:role'."""
+    from pxr import Sdf, UsdUtils
+
+    d, take, _ = scan_take
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(d / "take.usdc")), str(tmp_path / "take.usdz"))
+    assert probe_take(tmp_path / "take.usdz")[0]
+    proc = run("capture", "select", "take.usdz", "--min-separation", "0.2", cwd=tmp_path)
+    assert "52/52 shapes triggered" in proc.stdout, proc.stdout
+    proc = run("fit", "take.usdz", "-o", "rig.usda", "-q", cwd=tmp_path)
+    assert f"whole take: {len(take)} frames" in proc.stdout, proc.stdout

@@ -3,11 +3,12 @@ from a take by frame selection (:func:`capture_from_take`, rule in :mod:`usdface
 
 A take comes in three forms (:func:`read_take` dispatches):
 
-* **USD take** (``.usda``/``.usdc``/``.usd``): a Mesh whose ``points`` are time-sampled (usdface's own layout,
-  :func:`write_take_usd`: ``/Take/Frames``; otherwise the mesh with the most time samples), with per-frame
-  weights either on that mesh (``usdface:frames:weights`` + ``usdface:frames:names``) or in a
-  ``SkelAnimation`` (``blendShapes`` + time-sampled ``blendShapeWeights``, read at each mesh time code);
-  optional ``Neutral`` mesh and ``Template`` SkelRoot as in capture.usda.
+* **USD take** (``.usda``/``.usdc``/``.usd``, or packaged as ``.usdz``): a Mesh whose ``points`` are
+  time-sampled (usdface's own layout, :func:`write_take_usd`: ``/Take/Frames``; otherwise the mesh with the
+  most time samples), with per-frame weights either on that mesh (``usdface:frames:weights`` +
+  ``usdface:frames:names``) or in a ``SkelAnimation`` (``blendShapes`` + time-sampled
+  ``blendShapeWeights``, read at each mesh time code); optional ``Neutral`` mesh and ``Template`` SkelRoot
+  as in capture.usda.
 * **OBJ sequence + Live Link Face CSV** (a folder): ``frames/*.obj`` (or ``*.obj``; frame number = the
   trailing integer of the file name) and one ``*.csv``; optional ``neutral.obj`` and ``template/`` as in a
   capture folder. OBJ k is matched to CSV row k when the counts agree, else OBJ number ``n`` to row
@@ -74,7 +75,7 @@ def read_take(path) -> Take:
     if path.is_dir():
         return read_take_folder(path)
     suffix = path.suffix.lower()
-    if suffix in (".usd", ".usda", ".usdc"):
+    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
         return read_take_usd(path)
     if suffix == ".csv":
         from .livelink import read_livelink_take
@@ -84,8 +85,9 @@ def read_take(path) -> Take:
                     metadata={"name_report": ll.name_report, "angles": ll.angles})
     if not path.exists():
         raise InputFileError("take not found", path=path, fix="check the path")
-    raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc or a Live Link .csv)", path=path,
-                         fix="pass a USD take, or a folder of OBJ frames with a Live Link Face CSV")
+    raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc/.usdz or a Live Link .csv)",
+                         path=path, fix="pass a USD take, or a folder of OBJ frames with a Live Link Face "
+                                        "CSV")
 
 
 def _canonical(names, path, prim=None) -> list[str]:
@@ -351,7 +353,7 @@ def probe_take(path) -> tuple[bool, object]:
     if path.is_dir():
         take = not (path / "train").is_dir() and ((path / "frames").is_dir() or any(path.glob("*.csv")))
         return take, None
-    if path.suffix.lower() not in (".usd", ".usda", ".usdc") or not path.is_file():
+    if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz") or not path.is_file():
         return False, None
     from pxr import Sdf, Usd, UsdGeom
 
