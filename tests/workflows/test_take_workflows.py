@@ -216,3 +216,27 @@ def test_a_take_packaged_as_usdz_is_a_take(scan_take, tmp_path):
     assert "52/52 shapes triggered" in proc.stdout, proc.stdout
     proc = run("fit", "take.usdz", "-o", "rig.usda", "-q", cwd=tmp_path)
     assert f"whole take: {len(take)} frames" in proc.stdout, proc.stdout
+
+
+def test_a_dcc_take_without_template_names_where_the_template_goes(scan_take, tmp_path):
+    """An unmarked take another tool wrote, its mesh deep in the hierarchy (/Root/Geo/Face): the refusal
+    names <defaultPrim>/Template, where the reader looks, not a sibling of the mesh."""
+    from pxr import Usd, UsdGeom, Vt
+
+    from usdface.io.usd_anim import author_skel_animation
+
+    _, take, _ = scan_take
+    stage = Usd.Stage.CreateNew(str(tmp_path / "dcc.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/Root").GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/Geo/Face")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(take.triangles)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(take.triangles.ravel().tolist()))
+    for f in range(12):
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(take.points[f].astype(np.float32)), float(f))
+    author_skel_animation(stage, "/Root/Anim", list(take.names), take.weights[:12], 10.0,
+                          times=take.times[:12])
+    stage.Save()
+    proc = run("fit", "dcc.usda", "-o", "rig.usda", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "dcc.usda, prim /Root/Template:" in proc.stderr, proc.stderr

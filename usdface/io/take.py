@@ -184,7 +184,8 @@ def read_take_usd(path) -> Take:
         raise GeometryError("face index out of range", path=path, prim=frames.GetPath(),
                             fix="repair the take's mesh")
     w_attr = frames.GetAttribute("usdface:frames:weights")
-    meta: dict = {"frames_prim": str(frames.GetPath())}
+    meta: dict = {"frames_prim": str(frames.GetPath()),
+                  "template_prim": str(root.GetPath().AppendChild("Template"))}
     if w_attr and w_attr.GetNumTimeSamples():
         names = [str(n) for n in frames.GetAttribute("usdface:frames:names").Get() or []]
         weights = np.stack([np.array(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
@@ -411,7 +412,7 @@ def _refuse_without_template(take: Take) -> None:
         raise CaptureError("the take has no template rig (no template/ folder)", path=source / "template",
                            fix="add template/ (neutral.obj + one OBJ per ARKit shape, as in a capture "
                                f"folder) on the frames' topology, {route}")
-    prim = (take.metadata.get("frames_prim") or "/Take/Frames").rsplit("/", 1)[0] + "/Template"
+    prim = take.metadata.get("template_prim") or "/Take/Template"  # where read_take_usd looks
     raise CaptureError("the take has no template rig", path=source, prim=prim,
                        fix="author the template SkelRoot there as in capture.usda (write_take_usd with "
                            f"take.template set), {route}")
