@@ -143,7 +143,7 @@ def test_render_draws_capture_and_take_files_like_capture_folders(scan_take, sam
 def test_a_take_where_an_avatar_goes_points_to_the_take_commands(scan_take, tmp_path):
     """The refusal's fix names what a take is for since whole-take fitting: personalize AVATAR TAKE, fit."""
     d, _, _ = scan_take
-    proc = run("inspect", d / "take.usdc", cwd=tmp_path, ok=False)
+    proc = run("landmarks", d / "take.usdc", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "prim /Take" in proc.stderr, proc.stderr
     assert "'personalize AVATAR TAKE'" in proc.stderr and "'fit TAKE'" in proc.stderr, proc.stderr
 
@@ -240,3 +240,17 @@ def test_a_dcc_take_without_template_names_where_the_template_goes(scan_take, tm
     stage.Save()
     proc = run("fit", "dcc.usda", "-o", "rig.usda", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "dcc.usda, prim /Root/Template:" in proc.stderr, proc.stderr
+
+
+def test_inspect_reads_a_take_file_as_it_reads_a_take_folder(scan_take, tmp_path):
+    """inspect take_dir/ summarized the take (read whole) while inspect take.usdc refused it as 'not an
+    avatar': both now show the frames, and say it is a take read whole."""
+    d, take, _ = scan_take
+    short = type(take)(take.weights[:12], take.names, take.times[:12], take.points[:12], take.triangles,
+                       take.neutral, take.template)
+    write_take_folder(short, tmp_path / "take_dir")
+    for src in (d / "take.usdc", tmp_path / "take_dir"):
+        text = run("inspect", src, cwd=tmp_path).stdout
+        assert "read whole: every frame trains" in text and "frames:" in text, text
+    doc = json.loads(run("inspect", d / "take.usdc", "--json", cwd=tmp_path).stdout)
+    assert doc["take"]["frames"] == len(take) and doc["roles"]["train"]["count"] == len(take)
