@@ -254,3 +254,18 @@ def test_inspect_reads_a_take_file_as_it_reads_a_take_folder(scan_take, tmp_path
         assert "read whole: every frame trains" in text and "frames:" in text, text
     doc = json.loads(run("inspect", d / "take.usdc", "--json", cwd=tmp_path).stdout)
     assert doc["take"]["frames"] == len(take) and doc["roles"]["train"]["count"] == len(take)
+
+
+def test_a_live_link_csv_where_a_usd_file_goes_is_named(tmp_path):
+    """A Live Link CSV given to a command that reads USD (check, inspect, the avatar of personalize): the
+    refusal says it is a CSV take and how takes are used, not USD's 'Cannot determine file format'."""
+    from usdface.io.livelink import write_livelink_csv
+
+    write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], np.zeros((4, 2)),
+                       np.arange(4) / 30.0)
+    for args in (("check", "take.csv"), ("inspect", "take.csv"),
+                 ("personalize", "take.csv", "take.csv", "-o", "out.usda")):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "take.csv: a CSV file (a Live Link Face take?)" in proc.stderr and "--take" in proc.stderr
+        assert "Cannot determine file format" not in proc.stderr
