@@ -367,7 +367,10 @@ def probe_take(path) -> tuple[bool, object]:
     kind = (dict(layer.customLayerData).get("usdface") or {}).get("format")
     if kind in ("take", "capture"):
         return kind == "take", layer
-    stage = Usd.Stage.Open(layer)
+    from .usd_open import quiet_stderr
+
+    with quiet_stderr():  # a composition error (missing sublayer) is the reader's to report, in one line
+        stage = Usd.Stage.Open(layer)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     frames = root.GetChild("Frames")
     if frames and frames.GetAttribute("usdface:frames:role"):
