@@ -166,6 +166,13 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
                                   test_every=test_every,
                                   min_separation=max(1, round(min_separation * data.fps)))
+        if test_every > 0 and len(selection.test) == 0:
+            import warnings
+
+            warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
+                          f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
+                          "refuse this capture); lower --min-separation or --test-every", UserWarning,
+                          stacklevel=2)
         coverage = format_coverage(selection, data.times)
         if out_path is None:
             return CaptureSelection(data, selection, coverage, None, None)
@@ -321,7 +328,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
                            path=source or capture.source or None,
                            fix=("hold frames out with 'usdface capture select TAKE -o capture.usda "
                                 "--test-every 10' and evaluate that capture" if whole_take
-                                else "add held-out frames (test/ folder) to evaluate on"))
+                                else "add held-out frames to evaluate on: a test/ folder in a capture "
+                                     "folder, or for a capture picked from a take 'usdface capture select "
+                                     "TAKE -o capture.usda --test-every 10' (lower --min-separation when it "
+                                     "holds out none)"))
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}

@@ -150,6 +150,9 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
            "triangles": int(len(capture.triangles)), "frames": len(frames), "roles": roles,
            "shapes": len(capture.names), "arkit": names_vs_arkit(capture.names, report),
            "templateShapes": capture.template.n_shapes}
+    whole = capture.metadata.get("whole_take") if isinstance(capture.metadata, dict) else None
+    if whole:
+        out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
     if layer_info:
         out["stageMetadata"] = layer_info.get("stage", {})
         out["schemas"] = {p: v for p, v in layer_info.get("schemas", {}).items()}
@@ -157,7 +160,8 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
 
 
 def inspect_file(path, name_map=None) -> dict:
-    """Inspect an avatar / usdface layer (.usd, .usda, .usdc) or a capture (folder or capture.usda).
+    """Inspect an avatar / usdface layer (.usd, .usda, .usdc) or a capture (folder or capture.usda), or a
+    take (read whole, as a capture: ``report["take"]``).
 
     ``name_map``: the studio's {channel: ARKit name} dict or JSON / CSV file, used to read an avatar
     (:func:`usdface.io.usd_rig.read_avatar`); validated first, also for a capture.
@@ -172,9 +176,13 @@ def inspect_file(path, name_map=None) -> dict:
     path = Path(path)
     if path.is_dir():
         return summarize_capture(io.read_capture(path))
+    from .io.take import probe_take
     from .io.usd_rig import read_avatar, read_layer_info
 
+    take, _layer = probe_take(path)  # _layer held: the file is parsed once
     info = read_layer_info(path)
+    if take:  # read as every command that takes a capture reads it: whole
+        return summarize_capture(io.read_capture(path), info)
     is_capture = info.get("usdface", {}).get("format") == "capture" or any(
         "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
     if is_capture and hasattr(io, "read_capture"):
@@ -192,6 +200,9 @@ def format_report(report: dict) -> str:
     """Human-readable text for :func:`inspect_file`'s dict."""
     lines = [f"{report.get('file')}: {report.get('kind')}"]
     if report.get("kind") == "capture":
+        if report.get("take"):
+            lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "
+                         "read whole: every frame trains ('fit TAKE', 'personalize AVATAR TAKE')")
         lines.append(f"  mesh: {report['vertices']} vertices, {report['triangles']} triangles")
         lines.append(f"  frames: {report['frames']} ("
                      + ", ".join(f"{r}: {v['count']}" for r, v in report["roles"].items()) + ")")

@@ -79,7 +79,7 @@ def test_personalize_take_beats_its_peak_frames_on_the_avatar(scan_take, sample_
     stage = Usd.Stage.Open(str(tmp_path / "take.usda"))
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
     assert anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
-    assert "the take (every frame fitted)" in (tmp_path / "take.review.html").read_text()
+    assert "take take.usdc (every frame fitted)" in (tmp_path / "take.review.html").read_text()
     truth = np.load(sample_set / "truth" / "avatar_truth.npz")
     generic = read_avatar(avatar).mesh("Head")
     true = np.stack([truth[f"Head/{n}"] for n in generic.names]) @ generic.source.to_internal[:3, :3].T
@@ -139,3 +139,174 @@ def test_personalize_a_take_with_another_artists_template_stays_better_than_gene
     score = score_mesh(generic.names, generic.deltas, head.deltas, true, face=covered)
     assert score.face_ratio < 0.6, score.face_ratio
     assert score.worst_shape()[1] <= 0.05, score.worst_shape()      # issue 10's per-shape rule
+
+
+def test_takes_that_cannot_be_fitted_say_why_and_how(scan_take, sample_set, tmp_path):
+    """A take without its template, a Live Link CSV and an 'anim import' take given where a capture goes:
+    each refusal names the file (and prim) and a fix the command has (fit/personalize have no --template)."""
+    from dataclasses import replace
+
+    d, take, _ = scan_take
+    short = replace(take, weights=take.weights[:12], times=take.times[:12], points=take.points[:12],
+                    template=None)
+    write_take_usd(short, tmp_path / "bare.usdc")
+    write_take_folder(short, tmp_path / "bare_dir")
+    avatar = sample_set / "avatar.usda"
+    for args, said in ((("fit", "bare.usdc", "-o", "a.usda"), ["bare.usdc, prim /Take/Template"]),
+                       (("personalize", avatar, "bare_dir", "-o", "b.usda"), ["bare_dir/template"])):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "no template rig" in proc.stderr and "capture select" in proc.stderr, proc.stderr
+        assert "pass --template" not in proc.stderr, proc.stderr
+        for s in said:
+            assert s in proc.stderr, proc.stderr
+    (tmp_path / "take.csv").write_text((tmp_path / "bare_dir" / "take.csv").read_text())
+    run("anim", "import", "take.csv", "-o", "anim.usda", "-q", cwd=tmp_path)
+    for args in (("fit", "take.csv", "-o", "c.usda"), ("personalize", avatar, "anim.usda", "-o", "d.usda")):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "weights only" in proc.stderr and "--take" in proc.stderr, proc.stderr
+    assert "prim /" in proc.stderr  # the SkelAnimation
+    assert not list(tmp_path.glob("[abcd].usda"))
+
+
+def test_render_draws_capture_and_take_files_like_capture_folders(scan_take, sample_set, tmp_path):
+    """docs/pipeline.md: 'usdface render capture/' draws the template shapes on the person's neutral; a
+    capture.usda or a take file is the same thing and is drawn without --capture (not refused as 'not an
+    avatar')."""
+    d, _, _ = scan_take
+    for i, src in enumerate((sample_set / "capture.usda", d / "take.usdc", sample_set / "capture")):
+        proc = run("render", src, "-o", f"{i}.png", "--shapes", "jawOpen", cwd=tmp_path)
+        assert (tmp_path / f"{i}.png").read_bytes()[:4] == b"\x89PNG", proc.stderr
+    run("render", sample_set / "avatar.usda", "-o", "avatar.png", cwd=tmp_path)  # an avatar still an avatar
+
+
+def test_a_take_where_an_avatar_goes_points_to_the_take_commands(scan_take, tmp_path):
+    """The refusal's fix names what a take is for since whole-take fitting: personalize AVATAR TAKE, fit."""
+    d, _, _ = scan_take
+    proc = run("landmarks", d / "take.usdc", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "prim /Take" in proc.stderr, proc.stderr
+    assert "'personalize AVATAR TAKE'" in proc.stderr and "'fit TAKE'" in proc.stderr, proc.stderr
+
+
+def test_personalize_take_inspect_plays_the_take(scan_take, sample_set, tmp_path):
+    """personalize AVATAR TAKE --inspect: a take read whole has no test expressions, so the inspection
+    SkelAnimation plays the take itself (one sample per frame), and the summary says so."""
+    from pxr import Usd, UsdSkel
+
+    d, take, _ = scan_take
+    text = run("personalize", sample_set / "avatar.usda", d / "take.usdc", "-o", "person.usda", "--inspect",
+               "-q", cwd=tmp_path).stdout
+    assert "SkelAnimation of the take" in text and "test-expression" not in text, text
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
+    assert anim and anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
+    assert_valid_usd(tmp_path / "person.usda")
+
+
+def test_review_of_a_take_layer_plays_the_take(scan_take, sample_set, tmp_path):
+    """usdface review of a layer personalized from a take: the recorded capture is that take, read whole,
+    so the page plays it (there are no test expressions) and says why nothing is scored."""
+    d, _, _ = scan_take
+    run("personalize", sample_set / "avatar.usda", d / "take.usdc", "-o", "person.usda", "-q", cwd=tmp_path)
+    run("review", "person.usda", "-o", "review.html", cwd=tmp_path)
+    page = (tmp_path / "review.html").read_text()
+    assert "take take.usdc" in page and "fitted whole" in page
+
+
+def test_batch_item_with_a_frame_weighting_that_is_not_one(scan_take, sample_set, tmp_path):
+    """A manifest's frame_weights other than 'balanced' or numbers fails its item with a FitError that names
+    the accepted values (not 'ValueError: could not convert string to float')."""
+    d, _, _ = scan_take
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"items": [{"avatar": str(sample_set / "avatar.usda"),
+                                               "capture": str(d / "take.usdc"), "output": "out/a.usda",
+                                               "frame_weights": "uniform"}]}))
+    proc = run("batch", manifest, "-j", "1", cwd=tmp_path, ok=False)
+    assert proc.returncode == 1, proc.stderr
+    item = json.loads((tmp_path / "m.report.json").read_text())["items"][0]
+    assert item["status"] == "failed", item
+    assert item["error_type"] == "FitError" and "'balanced'" in item["error"], item
+
+
+def test_capture_select_test_every_that_holds_out_nothing_says_so(scan_take, tmp_path):
+    """capture select --test-every on a take without rests: no frame is --min-separation from every training
+    frame, so no test frame is held out; select warns at once and evaluate's refusal names the select route
+    (not a test/ folder, which a capture.usda has no place for)."""
+    d, _, _ = scan_take
+    proc = run("capture", "select", d / "take.usdc", "-o", "c.usda", "--test-every", "40", cwd=tmp_path)
+    assert "0 test frames" in proc.stdout
+    said = proc.stdout + proc.stderr
+    assert "warning:" in said and "held out no test frame" in said and "--min-separation" in said, said
+    proc = run("evaluate", "c.usda", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "capture select" in proc.stderr, proc.stderr
+    proc = run("capture", "select", d / "take.usdc", "-o", "ok.usda", "--test-every", "3", "--min-separation",
+               "0.2", cwd=tmp_path)
+    assert "held out no test frame" not in proc.stdout + proc.stderr and " 0 test frames" not in proc.stdout
+
+
+def test_a_take_packaged_as_usdz_is_a_take(scan_take, tmp_path):
+    """A USD take delivered as a .usdz package (as captures already may be): capture select reads it and fit
+    fits every frame, instead of 'not a take' / 'missing usdface:frames:role'."""
+    from pxr import Sdf, UsdUtils
+
+    d, take, _ = scan_take
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(d / "take.usdc")), str(tmp_path / "take.usdz"))
+    assert probe_take(tmp_path / "take.usdz")[0]
+    proc = run("capture", "select", "take.usdz", "--min-separation", "0.2", cwd=tmp_path)
+    assert "52/52 shapes triggered" in proc.stdout, proc.stdout
+    proc = run("fit", "take.usdz", "-o", "rig.usda", "-q", cwd=tmp_path)
+    assert f"whole take: {len(take)} frames" in proc.stdout, proc.stdout
+
+
+def test_a_dcc_take_without_template_names_where_the_template_goes(scan_take, tmp_path):
+    """An unmarked take another tool wrote, its mesh deep in the hierarchy (/Root/Geo/Face): the refusal
+    names <defaultPrim>/Template, where the reader looks, not a sibling of the mesh."""
+    from pxr import Usd, UsdGeom, Vt
+
+    from usdface.io.usd_anim import author_skel_animation
+
+    _, take, _ = scan_take
+    stage = Usd.Stage.CreateNew(str(tmp_path / "dcc.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/Root").GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/Geo/Face")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(take.triangles)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(take.triangles.ravel().tolist()))
+    for f in range(12):
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(take.points[f].astype(np.float32)), float(f))
+    author_skel_animation(stage, "/Root/Anim", list(take.names), take.weights[:12], 10.0,
+                          times=take.times[:12])
+    stage.Save()
+    proc = run("fit", "dcc.usda", "-o", "rig.usda", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "dcc.usda, prim /Root/Template:" in proc.stderr, proc.stderr
+
+
+def test_inspect_reads_a_take_file_as_it_reads_a_take_folder(scan_take, tmp_path):
+    """inspect take_dir/ summarized the take (read whole) while inspect take.usdc refused it as 'not an
+    avatar': both now show the frames, and say it is a take read whole."""
+    d, take, _ = scan_take
+    short = type(take)(take.weights[:12], take.names, take.times[:12], take.points[:12], take.triangles,
+                       take.neutral, take.template)
+    write_take_folder(short, tmp_path / "take_dir")
+    for src in (d / "take.usdc", tmp_path / "take_dir"):
+        text = run("inspect", src, cwd=tmp_path).stdout
+        assert "read whole: every frame trains" in text and "frames:" in text, text
+    doc = json.loads(run("inspect", d / "take.usdc", "--json", cwd=tmp_path).stdout)
+    assert doc["take"]["frames"] == len(take) and doc["roles"]["train"]["count"] == len(take)
+
+
+def test_a_live_link_csv_where_a_usd_file_goes_is_named(tmp_path):
+    """A Live Link CSV given to a command that reads USD (check, inspect, the avatar of personalize): the
+    refusal says it is a CSV take and how takes are used, not USD's 'Cannot determine file format'."""
+    from usdface.io.livelink import write_livelink_csv
+
+    write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], np.zeros((4, 2)),
+                       np.arange(4) / 30.0)
+    for args in (("check", "take.csv"), ("inspect", "take.csv"),
+                 ("personalize", "take.csv", "take.csv", "-o", "out.usda")):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "take.csv: a CSV file (a Live Link Face take?)" in proc.stderr and "--take" in proc.stderr
+        assert "Cannot determine file format" not in proc.stderr

@@ -193,9 +193,12 @@ def run(args) -> int:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
         if inspect:
             extra = " + landmark Points" if args.landmarks else ""
-            extra += f" + take {args.take}" if args.take else ""
-            played = "the take's frames" if whole_take and not args.take else "test-expression"
-            print(f"inspection: change heat map (displayColor), {played} SkelAnimation{extra}")
+            if whole_take:  # the capture is a take read whole: no test expressions
+                anim = f"SkelAnimation of the take {args.take}" if args.take else \
+                    f"SkelAnimation of the take {args.capture}"
+            else:
+                anim = "test-expression SkelAnimation" + (f" + take {args.take}" if args.take else "")
+            print(f"inspection: change heat map (displayColor), {anim}{extra}")
     if args.review and not args.dry_run and result.out_path:
         from ..api import write_review
 

@@ -34,7 +34,9 @@ def register(subparsers) -> None:
                         "weights); FILE without a layout gets one computed with the landmarks defaults")
     p.add_argument("--rays", type=positive_int, default=16,
                    help="hemisphere rays per vertex for --diagnostics (16, as 'usdface landmarks')")
-    p.add_argument("--capture", action="store_true", help="FILE is a capture (.usda); folders always are")
+    p.add_argument("--capture", action="store_true",
+                   help="FILE is a capture (.usda); folders, files written by 'capture import/select' and "
+                        "takes always are")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -52,6 +54,19 @@ def _generic(args, path: Path) -> Path:
     return generic
 
 
+def _capture_file(path: Path) -> tuple[bool, object]:
+    """Whether ``path`` is a capture or take USD file (marked by 'capture import/select' or write_take_usd,
+    or a take another tool wrote), drawn like a capture folder without ``--capture``; and the root layer
+    opened to tell (None for folders and other files)."""
+    from ..io.take import probe_take
+
+    take, layer = probe_take(path)
+    if take or layer is None:
+        return take, layer
+    data = dict(layer.customLayerData).get("usdface") or {}
+    return (hasattr(data, "get") and data.get("format") == "capture"), layer
+
+
 def run(args) -> int:
     import numpy as np
 
@@ -66,7 +81,8 @@ def run(args) -> int:
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
                       inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
     shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
-    if path.is_dir() or args.capture:
+    is_capture, _layer = _capture_file(path)  # _layer held: the file is parsed once
+    if path.is_dir() or args.capture or is_capture:
         capture = api.read_capture(path)
         rig = capture.template
         rig = type(rig)(capture.neutral, rig.triangles, rig.names, rig.deltas, rig.inbetweens, rig.source,

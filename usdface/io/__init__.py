@@ -37,6 +37,12 @@ def read_capture(path):
         from .take import capture_from_whole_take, read_take
 
         return capture_from_whole_take(read_take(path))
+    if path.suffix.lower() == ".csv" and path.is_file():
+        from ..errors import CaptureError
+        from .take import WEIGHTS_ONLY_FIX
+
+        raise CaptureError("a Live Link Face CSV: a take of weights only, no meshes to fit", path=path,
+                           fix=WEIGHTS_ONLY_FIX)
     if path.is_dir():
         from .capture_folder import read_capture_folder
 

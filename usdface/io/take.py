@@ -3,11 +3,12 @@ from a take by frame selection (:func:`capture_from_take`, rule in :mod:`usdface
 
 A take comes in three forms (:func:`read_take` dispatches):
 
-* **USD take** (``.usda``/``.usdc``/``.usd``): a Mesh whose ``points`` are time-sampled (usdface's own layout,
-  :func:`write_take_usd`: ``/Take/Frames``; otherwise the mesh with the most time samples), with per-frame
-  weights either on that mesh (``usdface:frames:weights`` + ``usdface:frames:names``) or in a
-  ``SkelAnimation`` (``blendShapes`` + time-sampled ``blendShapeWeights``, read at each mesh time code);
-  optional ``Neutral`` mesh and ``Template`` SkelRoot as in capture.usda.
+* **USD take** (``.usda``/``.usdc``/``.usd``, or packaged as ``.usdz``): a Mesh whose ``points`` are
+  time-sampled (usdface's own layout, :func:`write_take_usd`: ``/Take/Frames``; otherwise the mesh with the
+  most time samples), with per-frame weights either on that mesh (``usdface:frames:weights`` +
+  ``usdface:frames:names``) or in a ``SkelAnimation`` (``blendShapes`` + time-sampled
+  ``blendShapeWeights``, read at each mesh time code); optional ``Neutral`` mesh and ``Template`` SkelRoot
+  as in capture.usda.
 * **OBJ sequence + Live Link Face CSV** (a folder): ``frames/*.obj`` (or ``*.obj``; frame number = the
   trailing integer of the file name) and one ``*.csv``; optional ``neutral.obj`` and ``template/`` as in a
   capture folder. OBJ k is matched to CSV row k when the counts agree, else OBJ number ``n`` to row
@@ -74,7 +75,7 @@ def read_take(path) -> Take:
     if path.is_dir():
         return read_take_folder(path)
     suffix = path.suffix.lower()
-    if suffix in (".usd", ".usda", ".usdc"):
+    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
         return read_take_usd(path)
     if suffix == ".csv":
         from .livelink import read_livelink_take
@@ -84,8 +85,9 @@ def read_take(path) -> Take:
                     metadata={"name_report": ll.name_report, "angles": ll.angles})
     if not path.exists():
         raise InputFileError("take not found", path=path, fix="check the path")
-    raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc or a Live Link .csv)", path=path,
-                         fix="pass a USD take, or a folder of OBJ frames with a Live Link Face CSV")
+    raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc/.usdz or a Live Link .csv)",
+                         path=path, fix="pass a USD take, or a folder of OBJ frames with a Live Link Face "
+                                        "CSV")
 
 
 def _canonical(names, path, prim=None) -> list[str]:
@@ -182,7 +184,8 @@ def read_take_usd(path) -> Take:
         raise GeometryError("face index out of range", path=path, prim=frames.GetPath(),
                             fix="repair the take's mesh")
     w_attr = frames.GetAttribute("usdface:frames:weights")
-    meta: dict = {"frames_prim": str(frames.GetPath())}
+    meta: dict = {"frames_prim": str(frames.GetPath()),
+                  "template_prim": str(root.GetPath().AppendChild("Template"))}
     if w_attr and w_attr.GetNumTimeSamples():
         names = [str(n) for n in frames.GetAttribute("usdface:frames:names").Get() or []]
         weights = np.stack([np.array(w_attr.Get(c), dtype=np.float64) for c in codes.tolist()])
@@ -351,7 +354,7 @@ def probe_take(path) -> tuple[bool, object]:
     if path.is_dir():
         take = not (path / "train").is_dir() and ((path / "frames").is_dir() or any(path.glob("*.csv")))
         return take, None
-    if path.suffix.lower() not in (".usd", ".usda", ".usdc") or not path.is_file():
+    if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz") or not path.is_file():
         return False, None
     from pxr import Sdf
 
@@ -385,6 +388,11 @@ def capture_from_whole_take(take: Take, template=None) -> Capture:
     marks it, so the fit weights its frames (``frame_weights="balanced"``, a held pose counts once,
     :mod:`usdface.personalize.takefit`) unless told otherwise. ``template`` and the neutral as in
     :func:`capture_from_take`."""
+    if take.points is None:
+        raise CaptureError("a take of weights only (no meshes): nothing to fit", path=take.source or None,
+                           fix=WEIGHTS_ONLY_FIX)
+    if template is None and take.template is None:
+        _refuse_without_template(take)
     frames_idx = np.arange(len(take), dtype=np.int64)
     capture = _capture(take, frames_idx, ["train"] * len(take), [f"f{f:05d}" for f in frames_idx], template,
                        {"source": take.source, "units": "m"})
@@ -401,6 +409,29 @@ def whole_take_playback(capture) -> tuple | None:
     if not whole or not len(capture.train):
         return None
     return list(capture.names), capture.train.weights, np.asarray(whole["times"], dtype=np.float64)
+
+
+#: What to do with a weights-only take (a Live Link CSV, an ``anim import`` SkelAnimation) given as a capture.
+WEIGHTS_ONLY_FIX = ("fit on the take's meshes: a folder of its OBJ frames (frames/NNNN.obj) with the "
+                    "Live Link CSV, or a USD take with time-sampled points; a weights-only take plays on "
+                    "the avatar with 'personalize AVATAR CAPTURE --take FILE' and 'capture select FILE' "
+                    "shows its coverage")
+
+
+def _refuse_without_template(take: Take) -> None:
+    """A take read whole (``fit TAKE``, ``personalize AVATAR TAKE``) without its template rig: where the
+    template belongs in the take, and the capture-select route that takes one from elsewhere."""
+    source = Path(take.source) if take.source else None
+    route = ("or pick frames with 'usdface capture select TAKE -o capture.usda --template CAPTURE' "
+             "(a capture on the take's topology) and use that capture")
+    if source is not None and source.is_dir():
+        raise CaptureError("the take has no template rig (no template/ folder)", path=source / "template",
+                           fix="add template/ (neutral.obj + one OBJ per ARKit shape, as in a capture "
+                               f"folder) on the frames' topology, {route}")
+    prim = take.metadata.get("template_prim") or "/Take/Template"  # where read_take_usd looks
+    raise CaptureError("the take has no template rig", path=source, prim=prim,
+                       fix="author the template SkelRoot there as in capture.usda (write_take_usd with "
+                           f"take.template set), {route}")
 
 
 def capture_from_take(take: Take, selection, template=None) -> Capture:

@@ -347,6 +347,15 @@ def read_capture_usd(path) -> Capture:
     stage = open_usd_stage(path, "capture file", "pass a capture .usda written by 'usdface capture import'")
     root = stage.GetDefaultPrim() or stage.GetPrimAtPath(CAPTURE_PRIM)
     if not root or not root.GetChild("Frames"):
+        from .take import WEIGHTS_ONLY_FIX
+        from .usd_rig import _is_weights_take
+
+        if _is_weights_take(stage):
+            from pxr import UsdSkel
+
+            anim = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))
+            raise CaptureError("a take of weights only (a SkelAnimation, e.g. from 'usdface anim import'), "
+                               "no meshes to fit", path=path, prim=anim.GetPath(), fix=WEIGHTS_ONLY_FIX)
         raise CaptureError("not a usdface capture (no /Capture with Neutral, Template, Frames)", path=path,
                            prim=root.GetPath() if root else None,
                            fix="make capture files with 'usdface capture import DIR -o capture.usda'")

@@ -481,7 +481,8 @@ _NOT_AVATAR = {
     "capture": ("a usdface capture (written by 'usdface capture import/select'), not an avatar",
                 "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
     "take": ("a usdface take (a recording), not an avatar",
-             "pass the avatar's .usd file; takes go to 'capture select' or 'personalize --take'"),
+             "pass the avatar's .usd file; a take goes where a capture goes ('personalize AVATAR TAKE', "
+             "'fit TAKE', 'capture select TAKE') or to 'personalize AVATAR CAPTURE --take TAKE'"),
     "animation": ("a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), "
                   "not an avatar",
                   "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the "

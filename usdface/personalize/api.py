@@ -230,8 +230,16 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if align_arg or reweight_arg:
             raise FitError("frame_weights with align/reweight", fix="drop align/reweight (they act on the "
                            "frames as scanned) or frame_weights")
-        omega = (balanced_frame_weights(weights) if isinstance(frame_weights, str) and
-                 frame_weights == "balanced" else np.asarray(frame_weights, dtype=np.float64))
+        bad = FitError(f"frame_weights {str(frame_weights)[:40]!r} is not a weighting",
+                       fix=f"pass 'balanced', or one weight >= 0 per training frame ({len(weights)} numbers; "
+                           "all 1 weights every frame equally)")
+        if isinstance(frame_weights, str) and frame_weights != "balanced":
+            raise bad
+        try:
+            omega = (balanced_frame_weights(weights) if isinstance(frame_weights, str)
+                     else np.asarray(frame_weights, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise bad from None
         if omega.shape != (len(weights),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
             raise FitError(f"frame_weights must be {len(weights)} finite numbers >= 0 (or 'balanced')",
                            fix="one weight per training frame")

@@ -180,12 +180,17 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                                   np.arange(len(test)) * TEST_HOLD_S, list(test.label)))
         if fit_errors:
             errors = _fit_errors(capture, prov)
+    whole = (capture.metadata or {}).get("whole_take") if capture is not None else None
+    if whole and not len(capture.test):  # a take fitted whole: it plays itself, there is nothing to score
+        notes.append("the capture is a take fitted whole: no held-out test expressions to score (score one "
+                     "made by 'usdface capture select TAKE -o capture.usda --test-every 10', with --capture)")
     if take is None and capture is not None:  # a take read whole as the capture: play it
         from ..io.take import whole_take_playback
 
         played = whole_take_playback(capture)
         if played is not None:
-            sequences.append(Sequence("the take (every frame fitted)", *played, []))
+            name = Path(str(capture.source or "take")).name
+            sequences.append(Sequence(f"take {name} (every frame fitted)", *played, []))
     if take is not None:
         data = take if not isinstance(take, str | Path) else read_take(take)
         if len(data):
