@@ -310,3 +310,23 @@ def test_a_live_link_csv_where_a_usd_file_goes_is_named(tmp_path):
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert "take.csv: a CSV file (a Live Link Face take?)" in proc.stderr and "--take" in proc.stderr
         assert "Cannot determine file format" not in proc.stderr
+
+
+def test_every_thins_a_take_and_is_refused_on_a_capture(scan_take, sample_set, tmp_path):
+    """``--every N`` fits every N-th frame of a take (a long take's cost is its frames); on a capture of
+    picked frames it is refused before any output, naming the option and the fix."""
+    d, take, person = scan_take
+    proc = run("fit", d / "take.usdc", "-o", "every2.usda", "--every", "2", "--json", "-q", cwd=tmp_path)
+    doc = json.loads(proc.stdout)
+    assert doc["frame_weights"]["frames"] == (len(take) + 1) // 2
+    every2 = truth_error(_rig_deltas(tmp_path / "every2.usda", person.names), person.deltas)
+    assert every2 < 0.345                          # still below the peak-frame fit of the same take
+    for cmd in (("fit", sample_set / "capture.usda", "-o", "x.usda", "--every", "2"),
+                ("personalize", sample_set / "avatar.usda", sample_set / "capture.usda", "-o", "y.usda",
+                 "--every", "3")):
+        proc = run(*cmd, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2, proc.stderr
+        assert "thins a take read whole" in proc.stderr and "leave out --every" in proc.stderr, proc.stderr
+    assert not (tmp_path / "x.usda").exists() and not (tmp_path / "y.usda").exists()
+    proc = run("fit", d / "take.usdc", "-o", "z.usda", "--every", "0", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "--every" in proc.stderr

@@ -4,7 +4,7 @@ rig."""
 from __future__ import annotations
 
 from . import say_warning
-from .options import add_quiet, reg_value
+from .options import add_quiet, positive_int, reg_value
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
 METHODS = ("dt", "ebfr", "menzel", "laplacian")  # == usdface.api.METHODS (not imported: keeps --help fast)
@@ -43,9 +43,16 @@ def add_pins_option(parser) -> None:
                              "file with per-vertex primvars usdface:pin:<shape> (e.g. the painted capture)")
 
 
+def add_every_option(parser) -> None:
+    parser.add_argument("--every", type=positive_int, default=1, metavar="N",
+                        help="a take given as the capture: fit every N-th frame (default 1: all; a long "
+                             "take's fit costs time and memory in proportion to its frames, docs/takes.md)")
+
+
 def fit_kwargs(args) -> dict:
     return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
-            "eyelids": args.eyelids, "contact": args.contact}
+            "eyelids": args.eyelids, "contact": args.contact,
+            **({"every": args.every} if getattr(args, "every", 1) != 1 else {})}
 
 
 def take_line(info: dict) -> str | None:
@@ -53,7 +60,8 @@ def take_line(info: dict) -> str | None:
     fw = info.get("frame_weights")
     if not fw:
         return None
-    return (f"whole take: {fw['frames']} frames weighted {fw['mode']} (as many as "
+    every = f" (every {info['whole_take_every']}th)" if info.get("whole_take_every") else ""
+    return (f"whole take: {fw['frames']} frames{every} weighted {fw['mode']} (as many as "
             f"{fw['effective_frames']:.0f} equally weighted frames; weights {fw['min']:.3g}-{fw['max']:.3g})")
 
 
@@ -82,6 +90,7 @@ def register(subparsers) -> None:
                         help=METHOD_HELP)
     add_fit_options(parser)
     add_pins_option(parser)
+    add_every_option(parser)
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
     parser.add_argument("--json", action="store_true", help="print the fit's summary as JSON")
     add_quiet(parser)

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
-from .fit import add_contact_option, add_pins_option, take_line
+from .fit import add_contact_option, add_every_option, add_pins_option, take_line
 from .options import mu_value, nonnegative_float, positive_float, reg_value
 
 
@@ -55,6 +55,7 @@ def add_transfer_options(p) -> None:
                         "(0 = harmonic over the whole adjacent region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
     add_contact_option(p)
+    add_every_option(p)
     add_name_map_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
@@ -70,6 +71,7 @@ def transfer_kwargs(args) -> dict:
             "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
             "prior": args.prior, "extension_length": args.extension_length,
             "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact,
+            **({"every": args.every} if getattr(args, "every", 1) != 1 else {}),
             "weight_bounds": None if args.unbounded else tuple(args.weight_bounds),
             "map_prior": args.map_prior}
 

@@ -119,7 +119,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
                             avatar_prior=None, frame_weights=None, pins=None, contact: str = "auto",
-                            **options) -> FitResult:
+                            every: int = 1, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -166,6 +166,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         fitting on every frame of a take. Menzel/laplacian; alignment and re-estimation are then off
         (they act on the frames as scanned; asking for them is refused). Default None: ``"balanced"`` for a
         whole-take capture (``capture.metadata["whole_take"]``, a take read as a capture), else unweighted.
+    every : for a take read whole (``capture.metadata["whole_take"]``): fit every ``every``-th frame (1: all).
+        A long take's fit costs O(n F r) time and memory; most of the gain stays at 2-4 (docs/takes.md).
+        Refused (:class:`FitError`) for a capture of picked frames.
     pins : artist constraints (Hable): parts of shapes pinned to the artist's version, the template's
         deltas - ``{shape name: vertex indices or bool[n]}`` or a bool ``[K,n]`` mask. A pinned vertex of a
         shape is returned exactly as the template has it (within rounding); the other shapes at that vertex
@@ -198,6 +201,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     check_fit_options(method, reg, prior=prior, align=align, reweight=reweight, clamp=clamp,
                       weight_sigma=weight_sigma, contact=contact, avatar_prior=avatar_prior is not None,
                       path=capture.source or None, **options)
+    check_every(every, capture)
     if pins is not None:
         _pin_mask(pins, capture, method)                  # validate before the work starts
     auto = isinstance(reg, str) and reg == "auto"
@@ -218,6 +222,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     timings["dt"] = time.perf_counter() - t1
     train = capture.train
     points, weights = train.points, train.weights
+    if every > 1:
+        points, weights = points[::every], weights[::every]
+        info["whole_take_every"] = int(every)
     tmpl = capture.template
     if frame_weights is None and (capture.metadata or {}).get("whole_take") and method in ("menzel",
                                                                                          "laplacian"):
@@ -408,16 +415,29 @@ METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
                   "menzel": (), "dt": ()}
 
 
+def check_every(every, capture=None) -> None:
+    """``every`` is a whole number >= 1, and above 1 only for a take read whole."""
+    if isinstance(every, bool) or not isinstance(every, int | np.integer) or every < 1:
+        raise FitError(f"every must be a whole number >= 1, got {every!r}",
+                       fix="fit every N-th frame of a take: 1 (all), 2, 3, ...")
+    if every > 1 and capture is not None and not (capture.metadata or {}).get("whole_take"):
+        raise FitError(f"every={every} thins a take read whole; this capture holds frames picked one per "
+                       "shape",
+                       path=capture.source or None,
+                       fix="leave out --every, or pass the take itself (fit TAKE, personalize AVATAR TAKE)")
+
+
 def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None = None, align=None,
                       reweight=None, clamp: float = D_CLAMP, weight_sigma="auto", contact: str = "auto",
                       avatar_prior: bool = False, path=None, eyelids: bool = True, rounds: int = 2,
-                      frame_weights=None, pins=None, **options) -> None:
+                      frame_weights=None, pins=None, every: int = 1, **options) -> None:
     """Refuse, before any work, options :func:`fit_personalized_shapes` would refuse (same arguments;
     ``avatar_prior``: whether one will be given): an unknown method, options the method would accept and
     ignore, a bad ``contact`` or ``prior``, an avatar prior the chosen ``prior`` ignores. Raises
     :class:`FitError` naming the option and the fix. (``frame_weights`` and ``pins`` need the capture: the
     fit checks them.)"""
     del eyelids, rounds, frame_weights, pins
+    check_every(every)
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=path, fix=f"use one of {', '.join(METHODS)}")
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)

@@ -495,6 +495,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io import read_capture
 
             capture = read_capture(capture)
+        if rig is None and fit_options.get("every", 1) != 1:   # a take's thinning: refused on a capture now
+            from ..personalize.api import check_every
+
+            check_every(fit_options["every"], capture)
         chosen_face = None
         if face_mesh:  # checked before the fit
             from ..io.layers import avatar_mesh
