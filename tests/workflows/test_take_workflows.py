@@ -330,3 +330,10 @@ def test_every_thins_a_take_and_is_refused_on_a_capture(scan_take, sample_set, t
     assert not (tmp_path / "x.usda").exists() and not (tmp_path / "y.usda").exists()
     proc = run("fit", d / "take.usdc", "-o", "z.usda", "--every", "0", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "--every" in proc.stderr
+
+
+def test_fit_take_with_ebfr_says_its_frames_count_equally(scan_take, tmp_path):
+    """EBFR takes no frame weights: a take fitted whole with it says so instead of nothing."""
+    d, take, _ = scan_take
+    text = run("fit", d / "take.usdc", "-o", "ebfr.usda", "--method", "ebfr", "-q", cwd=tmp_path).stdout
+    assert f"whole take: {len(take)} frames weighted equally (ebfr takes no frame weights)" in text

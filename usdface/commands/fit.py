@@ -61,6 +61,8 @@ def take_line(info: dict) -> str | None:
     if not fw:
         return None
     every = f" (every {info['whole_take_every']}th)" if info.get("whole_take_every") else ""
+    if fw["mode"].startswith("equally"):
+        return f"whole take: {fw['frames']} frames{every} weighted {fw['mode']}"
     return (f"whole take: {fw['frames']} frames{every} weighted {fw['mode']} (as many as "
             f"{fw['effective_frames']:.0f} equally weighted frames; weights {fw['min']:.3g}-{fw['max']:.3g})")
 

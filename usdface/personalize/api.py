@@ -229,6 +229,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     if frame_weights is None and (capture.metadata or {}).get("whole_take") and method in ("menzel",
                                                                                          "laplacian"):
         frame_weights = "balanced"          # every frame of a take: a held pose counts once (takefit)
+    elif frame_weights is None and (capture.metadata or {}).get("whole_take") and method == "ebfr":
+        info["frame_weights"] = {"min": 1.0, "max": 1.0, "effective_frames": float(len(weights)),
+                                 "frames": len(weights), "mode": "equally (ebfr takes no frame weights)"}
     if frame_weights is not None:
         from .takefit import balanced_frame_weights, weighted_frames
 
