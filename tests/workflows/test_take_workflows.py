@@ -337,3 +337,14 @@ def test_fit_take_with_ebfr_says_its_frames_count_equally(scan_take, tmp_path):
     d, take, _ = scan_take
     text = run("fit", d / "take.usdc", "-o", "ebfr.usda", "--method", "ebfr", "-q", cwd=tmp_path).stdout
     assert f"whole take: {len(take)} frames weighted equally (ebfr takes no frame weights)" in text
+
+
+def test_check_of_a_take_folder_says_what_reads_it(scan_take, tmp_path):
+    """``check`` validates USD files; a take folder got 'file is a folder, not a file'."""
+    from dataclasses import replace
+
+    _, take, _ = scan_take
+    write_take_folder(replace(take, weights=take.weights[:6], times=take.times[:6], points=take.points[:6]),
+                      tmp_path / "take_dir")
+    proc = run("check", "take_dir", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "a take folder" in proc.stderr and "usdface inspect" in proc.stderr

@@ -24,9 +24,28 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _refuse_folder(path) -> None:
+    """``check`` validates USD files: a take or capture folder gets a fix that says what reads it."""
+    from pathlib import Path
+
+    from ..errors import InputFileError
+
+    folder = Path(path)
+    if not folder.is_dir():
+        return
+    from ..io.take import is_take
+
+    kind = ("a take folder (OBJ frames + Live Link CSV)" if is_take(folder)
+            else "a capture folder" if (folder / "neutral.obj").is_file() else "a folder")
+    raise InputFileError(f"{kind}: check validates a USD file", path=folder,
+                         fix="pass a .usd/.usda/.usdc file; 'usdface inspect' summarizes a take or capture "
+                             "folder, 'usdface capture import' makes a capture folder a .usda")
+
+
 def run(args) -> int:
     from ..api import check
 
+    _refuse_folder(args.file)
     rules = [r.strip() for r in args.rules.split(",") if r.strip()] if args.rules else None
     issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map)
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
