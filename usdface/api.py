@@ -322,7 +322,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             p.start(f"read capture {Path(source).name}")
         capture = _as_capture(capture)
         if len(capture.test) == 0:
-            whole_take = (capture.metadata or {}).get("whole_take")
+            whole_take = capture.whole_take
             raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
                                                                if whole_take else ""),
                            path=source or capture.source or None,

@@ -150,7 +150,7 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
            "triangles": int(len(capture.triangles)), "frames": len(frames), "roles": roles,
            "shapes": len(capture.names), "arkit": names_vs_arkit(capture.names, report),
            "templateShapes": capture.template.n_shapes}
-    whole = capture.metadata.get("whole_take") if isinstance(capture.metadata, dict) else None
+    whole = capture.whole_take
     if whole:
         out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
     if layer_info:

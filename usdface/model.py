@@ -208,5 +208,11 @@ class Capture:
         return self.frames.select("train")
 
     @property
+    def whole_take(self) -> dict | None:
+        """``{"frames", "fps", "times"}`` when this capture is a take read whole (every frame a training
+        frame, :func:`usdface.io.take.capture_from_whole_take`), else None."""
+        return (self.metadata or {}).get("whole_take") if isinstance(self.metadata, dict) else None
+
+    @property
     def test(self) -> Frames:
         return self.frames.select("test")

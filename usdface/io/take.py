@@ -405,7 +405,7 @@ def capture_from_whole_take(take: Take, template=None) -> Capture:
 def whole_take_playback(capture) -> tuple | None:
     """``(names[K], weights[F,K], times[F] s)`` of a capture read from a whole take (its training frames, at
     their times in the take: what inspection and review play when no other take is given), else None."""
-    whole = (getattr(capture, "metadata", None) or {}).get("whole_take")
+    whole = capture.whole_take
     if not whole or not len(capture.train):
         return None
     return list(capture.names), capture.train.weights, np.asarray(whole["times"], dtype=np.float64)

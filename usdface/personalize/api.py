@@ -226,10 +226,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         points, weights = points[::every], weights[::every]
         info["whole_take_every"] = int(every)
     tmpl = capture.template
-    if frame_weights is None and (capture.metadata or {}).get("whole_take") and method in ("menzel",
-                                                                                         "laplacian"):
+    if frame_weights is None and capture.whole_take and method in ("menzel", "laplacian"):
         frame_weights = "balanced"          # every frame of a take: a held pose counts once (takefit)
-    elif frame_weights is None and (capture.metadata or {}).get("whole_take") and method == "ebfr":
+    elif frame_weights is None and capture.whole_take and method == "ebfr":
         info["frame_weights"] = {"min": 1.0, "max": 1.0, "effective_frames": float(len(weights)),
                                  "frames": len(weights), "mode": "equally (ebfr takes no frame weights)"}
     if frame_weights is not None:
@@ -423,7 +422,7 @@ def check_every(every, capture=None) -> None:
     if isinstance(every, bool) or not isinstance(every, int | np.integer) or every < 1:
         raise FitError(f"every must be a whole number >= 1, got {every!r}",
                        fix="fit every N-th frame of a take: 1 (all), 2, 3, ...")
-    if every > 1 and capture is not None and not (capture.metadata or {}).get("whole_take"):
+    if every > 1 and capture is not None and not capture.whole_take:
         raise FitError(f"every={every} thins a take read whole; this capture holds frames picked one per "
                        "shape",
                        path=capture.source or None,

@@ -180,7 +180,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                                   np.arange(len(test)) * TEST_HOLD_S, list(test.label)))
         if fit_errors:
             errors = _fit_errors(capture, prov)
-    whole = (capture.metadata or {}).get("whole_take") if capture is not None else None
+    whole = capture.whole_take if capture is not None else None
     if whole and not len(capture.test):  # a take fitted whole: it plays itself, there is nothing to score
         notes.append("the capture is a take fitted whole: no held-out test expressions to score (score one "
                      "made by 'usdface capture select TAKE -o capture.usda --test-every 10', with --capture)")
