@@ -202,6 +202,10 @@ def test_personalize_take_inspect_plays_the_take(scan_take, sample_set, tmp_path
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
     assert anim and anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
     assert_valid_usd(tmp_path / "person.usda")
+    # a method that weights no frames (dt) plays the take too, and the summary says so as well
+    text = run("personalize", sample_set / "avatar.usda", d / "take.usdc", "-o", "dt.usda", "--inspect",
+               "--method", "dt", "-q", cwd=tmp_path).stdout
+    assert "SkelAnimation of the take" in text and "test-expression" not in text, text
 
 
 def test_review_of_a_take_layer_plays_the_take(scan_take, sample_set, tmp_path):

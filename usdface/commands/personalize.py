@@ -168,9 +168,10 @@ def run(args) -> int:
         say_warning(f"--correspondence {args.correspondence} held the map of another avatar face or template "
                     "(or an older usdface): it was rewritten for this one; give each avatar its own file "
                     "to keep both")
-    whole_take = take_line(rep.get("fit") or {})
-    if whole_take:
-        print(f"fit: {whole_take}")
+    whole_take = rep.get("whole_take")
+    fit_line = take_line(rep.get("fit") or {})
+    if fit_line:
+        print(f"fit: {fit_line}")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "

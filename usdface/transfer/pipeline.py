@@ -602,6 +602,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
+        if capture.whole_take:                     # the inspection plays it: no test expressions
+            report["whole_take"] = {"frames": capture.whole_take["frames"], "fps": capture.whole_take["fps"]}
         timings["fit"] = time.perf_counter() - t
         advance("fit")
         advance.start("retarget")
