@@ -3,6 +3,8 @@ warning naming the shapes concerned."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,42 @@ def test_user_clamp_is_honoured_by_the_cross_validation_and_laplacian():
     b = fit_personalized_shapes(cap, **kw)
     outside = ~region_masks(cap.template.deltas, 0.5)              # where the mask clamps D_j
     assert np.abs(a.rig.deltas - b.rig.deltas)[outside].max() > 1e-6
+
+
+def test_training_frames_repeated_exactly_warn_by_label():
+    """A capture app that keeps one frame for several requested shapes (dev1/dev3: 51 labels, 28 distinct
+    scans) is told: the repeated frames are named, grouped, and counted; a frame that differs in one weight or
+    one coordinate is not a repeat."""
+    from usdface.personalize.api import check_capture, duplicate_frames
+
+    cap = tiny_capture(F=8, K=3)
+    fr = cap.frames
+    pts, w = fr.points.copy(), fr.weights.copy()
+    pts[5], w[5] = pts[1], w[1]                        # 005 = 001
+    pts[6], w[6] = pts[1], w[1]                        # 006 = 001
+    pts[7], w[7] = pts[2], w[2].copy()                 # 007 = 002 but one weight off by 1e-12
+    w[7, 0] += 1e-12
+    pts[3], w[3] = pts[0] + 1e-12, w[0]                # 003 = 000 but every coordinate off by 1e-12
+    assert duplicate_frames(pts, w) == [[1, 5, 6]]
+    cap.frames = Frames(pts, w, fr.role, [f"{i:03d}_{n}" for i, n in enumerate("abcdefgh")])
+    text = " ".join(check_capture(cap))
+    assert "2 training frame(s) repeat another frame exactly" in text
+    assert "001_b = 005_f = 006_g" in text and "6 distinct frames" in text
+    assert "002_c" not in text and "003_d" not in text
+    assert duplicate_frames(fr.points, fr.weights) == []      # tiny_capture's own frames are distinct
+    assert not any("repeat" in s for s in check_capture(tiny_capture(F=8, K=3)))
+
+
+@pytest.mark.skipif(not (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bench" / "dev1"
+                         / "capture").is_dir(), reason="needs ../shared")
+def test_dev1_capture_repeats_its_rest_frame():
+    """dev1's training frames as the phone app picked them: 23 of 51 repeat another (one frame stands for 12
+    requested shapes the take never triggered)."""
+    from usdface.io import read_capture
+    from usdface.personalize.api import duplicate_frames
+
+    train = read_capture(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bench" / "dev1"
+                         / "capture").train
+    groups = duplicate_frames(train.points, train.weights)
+    assert sum(len(g) - 1 for g in groups) == 23 and max(len(g) for g in groups) == 12
+    assert [train.label[i] for i in groups[0]] == ["000_eyeBlinkLeft", "007_eyeBlinkRight"]

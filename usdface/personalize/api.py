@@ -55,7 +55,8 @@ def check_capture(capture: Capture) -> list[str]:
 
     Raises :class:`GeometryError` (vertex-count mismatch, degenerate template triangles, non-finite points)
     or :class:`FitError` (no training frames, no shapes). Warns (returned strings) about fewer training
-    frames than shapes and shapes never activated in training (by name).
+    frames than shapes, shapes never activated in training (by name) and training frames that repeat another
+    exactly (:func:`duplicate_frames`, by label).
     """
     src = capture.source or None
     n = len(capture.neutral)
@@ -87,7 +88,36 @@ def check_capture(capture: Capture) -> list[str]:
     if never:
         warn.append(f"shape(s) never activated in training (max weight < {ACTIVATION_MIN}): "
                     f"{', '.join(never)}; they stay at the template's deformation transfer")
+    groups = duplicate_frames(train.points, train.weights)
+    if groups:
+        repeats = sum(len(g) - 1 for g in groups)
+        shown = "; ".join(" = ".join(train.label[i] for i in g[:4]) + (f" (+{len(g) - 4})" if len(g) > 4
+                                                                         else "")
+                          for g in sorted(groups, key=len, reverse=True)[:3])
+        more = f"; and {len(groups) - 3} more group(s)" if len(groups) > 3 else ""
+        warn.append(f"{repeats} training frame(s) repeat another frame exactly (the same scan and "
+                    f"weights under another label: {shown}{more}): {len(train) - repeats} distinct frames; "
+                    "the capture app kept one frame for several requested shapes, so those shapes are not "
+                    "measured separately (record them again to personalize each)")
     return warn
+
+
+def duplicate_frames(points: np.ndarray, weights: np.ndarray) -> list[list[int]]:
+    """Groups of training frames that are exactly the same frame: ``points[F,n,3]`` and ``weights[F,K]``
+    equal to the last bit (a capture app that keeps one frame for several requested shapes writes it once per
+    shape). Returns the groups of two or more frame indices, ascending, in order of their first frame; [] if
+    every frame is distinct. One sort of the frames' bytes (:func:`numpy.unique`), no pairwise comparison."""
+    F = len(points)
+    if F < 2:
+        return []
+    rows = np.concatenate([np.ascontiguousarray(points, dtype=np.float64).reshape(F, -1),
+                           np.ascontiguousarray(weights, dtype=np.float64).reshape(F, -1)], axis=1)
+    keys = np.ascontiguousarray(rows).view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1])))[:, 0]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    groups: dict[int, list[int]] = {}
+    for f in np.flatnonzero(counts[inverse] > 1):
+        groups.setdefault(int(inverse[f]), []).append(int(f))
+    return sorted(groups.values())
 
 
 def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:
