@@ -38,7 +38,7 @@ def _manifest(tmp_path: Path, names, suffix=".csv", extra="") -> Path:
 def test_manifest_csv_and_json(tmp_path):
     items = read_manifest(_manifest(tmp_path, ["a", "b"], extra="dt"))
     assert [Path(i.avatar).name for i in items] == ["a.usdc", "b.usdc"]
-    assert Path(items[0].output) == (tmp_path / "out" / "a.usda").resolve()  # relative to the manifest
+    assert os.path.samefile(Path(items[0].output).parent, tmp_path / "out")  # relative to the manifest
     assert items[1].options == {"method": "dt"} and items[1].index == 1
     items = read_manifest(_manifest(tmp_path, ["c"], suffix=".json"))
     assert Path(items[0].capture).name == "c_capture" and items[0].options == {}
@@ -76,6 +76,53 @@ def test_failure_isolation_report_and_resume(tmp_path):
     assert Path(items[0].output).stat().st_mtime_ns == stamp
     forced = run_batch(items, worker=stub_worker, jobs=1, force=True, progress=False)
     assert forced.count(DONE) == 3
+
+
+def dying_worker(item: dict) -> None:
+    """Kills its own process (an out-of-memory kill, a crash in native code) for avatars named ``die*``."""
+    if Path(item["avatar"]).name.startswith("die"):
+        os._exit(1)
+    stub_worker(item)
+
+
+def test_a_dead_worker_process_fails_its_item_alone(tmp_path):
+    """A worker process that dies breaks Python's process pool for every item still in it; those are run
+    again each in a process of their own, so only the culprit fails (docs/pipeline.md: 'the batch goes
+    on')."""
+    items = read_manifest(_manifest(tmp_path, ["a", "die", "b", "c"]))
+    report = run_batch(items, worker=dying_worker, jobs=2, progress=False)
+    assert [r.status for r in report.results] == [DONE, FAILED, DONE, DONE]
+    assert "worker crashed" in report.failed[0].error and report.failed[0].avatar.endswith("die.usdc")
+    assert all(Path(it.output).is_file() for it in items if not it.avatar.endswith("die.usdc"))
+
+
+def test_manifest_refuses_an_output_that_another_item_reads(tmp_path):
+    """An input is never overwritten, even with --force: item 2 writing item 1's avatar (by another name:
+    a symlink) or its take is refused when the manifest is read, before any work."""
+    (tmp_path / "a.usda").write_text("#usda 1.0\n")
+    (tmp_path / "link.usda").symlink_to(tmp_path / "a.usda")
+    path = tmp_path / "m.csv"
+    path.write_text("avatar,capture,output\na.usda,c1,out/a.usda\nb.usda,c2,link.usda\n")
+    with pytest.raises(InputFileError, match="item 2 writes .*link.usda, the avatar item 1 reads") as err:
+        read_manifest(path)
+    assert "even with --force" in err.value.fix
+    path.write_text("avatar,capture,output,take\na.usda,c1,out/a.usda,t.csv\nb.usda,c2,t.csv,\n")
+    with pytest.raises(InputFileError, match="the take item 1 reads"):
+        read_manifest(path)
+
+
+def test_manifest_as_a_spreadsheet_writes_it(tmp_path):
+    """Excel's "CSV UTF-8" (a byte-order mark), spaces after the commas, TRUE/FALSE booleans; path options
+    relative to the manifest's folder; a symlinked folder kept as the link (not its target)."""
+    (tmp_path / "real").mkdir()
+    (tmp_path / "latest").symlink_to(tmp_path / "real")
+    path = tmp_path / "m.csv"
+    path.write_bytes("\ufeffavatar, capture, output, inspect, eyelids, take\n"
+                     "latest/a.usda, c, out/a.usda, FALSE, True, takes/t.csv\n".encode("utf-8"))
+    item = read_manifest(path)[0]
+    assert item.options["inspect"] is False and item.options["eyelids"] is True
+    assert item.options["take"] == str(tmp_path / "takes" / "t.csv")
+    assert item.avatar == str(tmp_path / "latest" / "a.usda")
 
 
 def test_local_process_pool(tmp_path):

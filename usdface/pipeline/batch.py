@@ -110,11 +110,61 @@ class BatchReport:
 
 # ----------------------------------------------------------------------------------------------- manifest
 def _coerce(value: str):
-    """CSV cells are strings; numbers and booleans given as options become numbers and booleans."""
+    """CSV cells are strings; numbers and booleans given as options become numbers and booleans (``true`` /
+    ``false`` in any case: a spreadsheet writes ``TRUE`` / ``FALSE``)."""
+    if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+        return value.strip().lower() == "true"
     try:
         return json.loads(value)
     except (ValueError, TypeError):
         return value
+
+
+#: Item options that name files (read by the worker): relative to the manifest's folder like the required
+#: paths, and (except the correspondence cache, which is read and written by design) never an output.
+PATH_OPTIONS = ("take", "name_map", "pins", "correspondence")
+
+
+def _absolute(base: Path, value) -> str:
+    """``value`` relative to ``base`` as an absolute path, symlinks kept (a ``latest -> v003`` link in a
+    manifest stays the link in the layer's sublayer path, as with ``usdface personalize``)."""
+    return os.path.normpath(os.path.join(base, os.path.expanduser(str(value))))
+
+
+def _file_keys(p: str) -> list:
+    """What identifies the file ``p`` names: its real path and, if it exists, its (device, inode) - two
+    names of one file (a symlink, a hard link) share one of them."""
+    keys: list = [os.path.realpath(p)]
+    try:
+        st = os.stat(p)
+        keys.append((st.st_dev, st.st_ino))
+    except OSError:
+        pass
+    return keys
+
+
+def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
+    """No item's output may be another item's output or any item's input (avatar, capture, take, pins, name
+    map): the batch would write over a file the batch reads, whatever ``force`` says. One pass over the
+    items with a table of the files they name (no pairwise comparison)."""
+    outputs: dict = {}
+    for it in items:
+        for key in _file_keys(it.output):
+            if key in outputs:
+                raise InputFileError(f"items {outputs[key] + 1} and {it.index + 1} both write {it.output}",
+                                     path=path, fix="give every item its own output file")
+            outputs[key] = it.index
+    for it in items:
+        reads = [("avatar", it.avatar), ("capture", it.capture)]
+        reads += [(k, it.options[k]) for k in PATH_OPTIONS
+                  if k != "correspondence" and isinstance(it.options.get(k), str)]
+        for what, src in reads:
+            hit = next((outputs[k] for k in _file_keys(src) if k in outputs), None)
+            if hit is not None:
+                raise InputFileError(f"item {hit + 1} writes {items[hit].output}, the {what} item "
+                                     f"{it.index + 1} reads", path=path,
+                                     fix="write outputs to their own files (an input is never overwritten, "
+                                         "even with --force)")
 
 
 def read_manifest(path) -> list[BatchItem]:
@@ -127,7 +177,7 @@ def read_manifest(path) -> list[BatchItem]:
     if not path.is_file():
         raise InputFileError("batch manifest not found", path=path,
                              fix="pass a CSV (avatar,capture,output) or JSON manifest")
-    base = path.parent.resolve()
+    base = Path(os.path.abspath(path.parent))
     if path.suffix.lower() == ".json":
         try:
             data = json.loads(path.read_text())
@@ -139,29 +189,30 @@ def read_manifest(path) -> list[BatchItem]:
             raise InputFileError("JSON manifest must be a list of objects (or {\"items\": [...]})", path=path,
                                  fix='write [{"avatar": ..., "capture": ..., "output": ...}, ...]')
     else:
-        with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
+        # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark; skipinitialspace and the
+        # stripped header: "avatar, capture, output" names the columns too
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.DictReader(fh, skipinitialspace=True)
+            reader.fieldnames = [f.strip() for f in reader.fieldnames or []]
             missing = [c for c in REQUIRED if c not in (reader.fieldnames or [])]
             if missing:
                 raise InputFileError(f"manifest lacks column(s) {missing} (has {reader.fieldnames})",
                                      path=path, fix="first row: avatar,capture,output[,options]")
             rows = [{k: _coerce(v) if k not in REQUIRED else v for k, v in r.items()
                      if k is not None and v not in (None, "")} for r in reader]
-    items, outputs = [], {}
+    items = []
     for i, row in enumerate(rows):
         missing = [c for c in REQUIRED if not row.get(c)]
         if missing:
             raise InputFileError(f"item {i + 1} lacks {missing}", path=path,
                                  fix="give every item an avatar, a capture and an output")
-        resolved = {c: str((base / str(row[c])).resolve()) for c in REQUIRED}
-        if resolved["output"] in outputs:
-            raise InputFileError(f"items {outputs[resolved['output']] + 1} and {i + 1} both write "
-                                 f"{row['output']}", path=path, fix="give every item its own output file")
-        outputs[resolved["output"]] = i
-        options = {k: v for k, v in row.items() if k not in REQUIRED}
+        resolved = {c: _absolute(base, row[c]) for c in REQUIRED}
+        options = {k: (_absolute(base, v) if k in PATH_OPTIONS and isinstance(v, str) and v else v)
+                   for k, v in row.items() if k not in REQUIRED}
         items.append(BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i))
     if not items:
         raise InputFileError("manifest lists no items", path=path, fix="add one row per avatar")
+    _refuse_outputs_over_inputs(items, path)
     return items
 
 
@@ -252,9 +303,15 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
 
 
 def _run_pool(worker, todo, jobs, advance):
+    """The items on one shared pool of ``jobs`` processes. A worker process that dies (an out-of-memory
+    kill, a crash in native code) breaks the whole pool, and every item not finished by then fails with it
+    through no fault of its own: those items are run again, each in a process of its own (``jobs`` at a
+    time, :func:`_run_isolated`), so the one that kills its process fails alone and the rest finish."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
 
+    again = []
     # spawn, not fork: USD and Open3D start threads, and forking a threaded process can deadlock.
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                              initializer=init_worker) as pool:
@@ -263,10 +320,59 @@ def _run_pool(worker, todo, jobs, advance):
             item = futures[fut]
             try:
                 res = fut.result()
-            except Exception as exc:  # the worker process died (BrokenProcessPool, pickling...)
+            except BrokenProcessPool:
+                again.append(item)
+                continue
+            except Exception as exc:  # the item's result could not come back (pickling...)
                 res = _crashed(item, exc)
             yield res
             advance(Path(item["output"]).name, res.get("status", DONE))
+    if again:
+        yield from _run_isolated(worker, sorted(again, key=lambda it: it["index"]), jobs, advance)
+
+
+def _one_process(worker, item) -> dict:
+    """``run_item(worker, item)`` in a fresh worker process of its own; its death fails this item only."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=init_worker) as pool:
+        try:
+            return pool.submit(run_item, worker, item).result()
+        except Exception as exc:  # the process died (BrokenProcessPool) or the result did not come back
+            return _crashed(item, exc)
+
+
+def _run_isolated(worker, todo, jobs, advance):
+    """Every item in a process of its own, ``jobs`` at a time (after a worker process died in the shared
+    pool: the culprit is not known, so no item may take another down with it)."""
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+
+    with ThreadPoolExecutor(max_workers=jobs) as threads:
+        futures = {threads.submit(_one_process, worker, item): item for item in todo}
+        for fut in as_completed(futures):
+            item = futures[fut]
+            res = fut.result()
+            yield res
+            advance(Path(item["output"]).name, res.get("status", DONE))
+
+
+def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
+    """:func:`run_item` on a Dask worker: no progress lines of its own (the batch reports per item; the
+    workers' step lines would interleave in its log) and one BLAS thread (the cluster's processes are the
+    parallelism), as the local pool's :func:`init_worker` sets up."""
+    from threadpoolctl import threadpool_limits
+
+    from .. import progress
+
+    enabled = progress._ENABLED
+    progress.set_enabled(False)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            return run_item(worker, item)
+    finally:
+        progress.set_enabled(enabled)
 
 
 def _run_dask(worker, todo, scheduler, advance):
@@ -290,8 +396,8 @@ def _run_dask(worker, todo, scheduler, advance):
     else:
         client = scheduler
     try:
-        futures = [client.submit(run_item, worker, item, pure=False, key=f"usdface-item-{item['index']}-"
-                                 f"{time.time_ns()}") for item in todo]
+        futures = [client.submit(run_item_quiet, worker, item, pure=False,
+                                 key=f"usdface-item-{item['index']}-{time.time_ns()}") for item in todo]
         by_key = {f.key: item for f, item in zip(futures, todo, strict=True)}
         for fut in as_completed(futures):
             item = by_key[fut.key]
