@@ -49,3 +49,102 @@ def test_api_numbers_that_are_fine_pass_the_check():
     check_numbers(mu="auto", extension_length=None, falloff=0, support=None)
     check_numbers(mu="1e-3", extension_length=0.5, falloff=0.15, support=(0.0, 0.0))
     check_numbers(mu=2, extension_length=2, falloff=1, support=[0.01, 0.03])
+
+
+# ------------------------------------------------------------------ check agrees with what the readers do
+HERO = 'def "Hero" (\n    instanceable = true\n    prepend references = @AVATAR@\n)\n{\n}\n'
+
+
+def _shot(tmp_path: Path, header: str) -> Path:
+    """A shot file referencing the sample avatar under an instanceable prim ``/Hero``."""
+    path = tmp_path / "shot.usda"
+    path.write_text(("#usda 1.0\n(\n" + header + ")\n" + HERO).replace("AVATAR", A.as_posix()))
+    return path
+
+
+def test_check_refuses_the_instanced_avatar_personalize_refuses(tmp_path, capsys):
+    """``check`` (and so the publish validator) passed a shot that references the avatar under an
+    instanceable prim, which personalize then refuses: check runs the refusal too."""
+    from usdface.cli import main
+
+    shot = _shot(tmp_path, '    defaultPrim = "Hero"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n')
+    assert main(["check", str(shot)]) == 1
+    out = capsys.readouterr().out
+    assert "[Readable]" in out and "instanceable prim /Hero" in out and "instanceable = false" in out
+    assert main(["personalize", str(shot), str(C), "-o", str(tmp_path / "o.usda"), "-q"]) == 2
+
+
+def test_check_runs_the_reader_after_an_unrelated_error(tmp_path):
+    """A missing metersPerUnit (an error of the StageMetadata rule the reader tolerates) no longer hides what
+    the reader refuses: both are told in one run, not the second after the first is fixed."""
+    from usdface.api import check as check_file
+
+    inst = _shot(tmp_path, '    defaultPrim = "Hero"\n    upAxis = "Y"\n')
+    rules = {i.rule for i in check_file(inst) if i.severity == "error"}
+    assert {"StageMetadata", "Readable"} <= rules
+
+
+def test_an_avatar_with_an_animated_cache_is_not_a_take(tmp_path, capsys):
+    """``inspect`` took an avatar whose root layer also holds a time-sampled mesh (a hair cache) for a take
+    and failed on it ('no per-frame weights'); read_avatar, check and personalize accept it."""
+    from usdface.cli import main
+    from usdface.io.take import is_take
+
+    cache = ('def Mesh "HairCache"\n    {\n        int[] faceVertexCounts = [3]\n'
+             '        int[] faceVertexIndices = [0, 1, 2]\n'
+             '        point3f[] points.timeSamples = {\n'
+             '            1: [(0, 0, 0), (1, 0, 0), (0, 1, 0)],\n'
+             '            2: [(0, 0, 1), (1, 0, 1), (0, 1, 1)],\n'
+             '            3: [(0, 0, 2), (1, 0, 2), (0, 1, 2)],\n        }\n    }\n')
+    text = A.read_text()
+    at = text.index('def SkelRoot "Avatar"')
+    at = text.index("{", at) + 1
+    path = tmp_path / "avatar_cache.usda"
+    path.write_text(text[:at] + "\n    " + cache + text[at:])
+    assert not is_take(path)
+    assert main(["inspect", str(path)]) == 0
+    assert "avatar" in capsys.readouterr().out.splitlines()[0]
+
+
+def test_api_layers_pass_check_without_a_command(tmp_path):
+    """``write_landmarks`` / ``write_avatar_layer`` with the documented default ``provenance=None`` wrote an
+    empty ``usdface:provenance:command``, which ``check`` calls an error: the API names itself."""
+    from usdface import api
+    from usdface.api import check as check_file
+
+    av = api.read_avatar(A)
+    rig = api.pick_mesh(av)
+    out = api.write_landmarks(av, rig, api.compute_landmarks(A), tmp_path / "lm.usda")
+    assert not [i for i in check_file(out) if i.severity == "error"]
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(out))
+    command = stage.GetPrimAtPath("/Avatar").GetAttribute("usdface:provenance:command").Get()
+    assert "write_landmarks" in command
+
+
+def test_api_refuses_what_it_cannot_use():
+    from usdface import api
+
+    with pytest.raises(UsdFaceError, match="expected a FaceRig, an Avatar or an avatar file"):
+        api.compute_landmarks(3)
+    with pytest.raises(UsdFaceError, match="unknown frame role 'bogus'"):
+        api.evaluate_capture(C, role="bogus")
+
+
+def test_source_date_epoch_makes_the_layer_reproducible(tmp_path, monkeypatch):
+    """The same inputs twice gave layers that differed in createdAt and the timings: with SOURCE_DATE_EPOCH
+    (the reproducible-builds convention) the bytes are the same, createdAt is that time."""
+    from usdface.cli import main
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    for sub in ("a", "b"):
+        (tmp_path / sub).mkdir()
+        monkeypatch.chdir(tmp_path / sub)
+        assert main(["personalize", str(A), str(C), "-o", "p.usda", "-q"]) == 0
+    one, two = (tmp_path / "a" / "p.usda").read_bytes(), (tmp_path / "b" / "p.usda").read_bytes()
+    assert one == two and b'createdAt = "2023-11-14T22:13:20Z"' in one
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    monkeypatch.chdir(tmp_path / "a")
+    assert main(["personalize", str(A), str(C), "-o", "q.usda", "-q"]) == 2
+    assert not (tmp_path / "a" / "q.usda").exists()

@@ -275,6 +275,11 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     from .model import FaceRig as _FaceRig
     from .personalize import evaluate_rig
 
+    if role not in ("test", "train"):
+        from .errors import UsdFaceError
+
+        raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
+                           "'train'")
     capture = _as_capture(capture)
     if rig is None:
         t = capture.template
@@ -503,20 +508,40 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     return result
 
 
-def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **options: Any):
-    """A landmark layout for ``rig`` (``usdface landmarks``); see
-    :func:`usdface.landmarks.compute_landmarks`."""
+def _as_rig(rig) -> FaceRig:
+    """A :class:`FaceRig`: as given, the face mesh of an :class:`Avatar` (:func:`pick_mesh`), or of the avatar
+    file a path names (:func:`read_avatar`); anything else is refused naming what is expected."""
+    from .model import Avatar, FaceRig
+
+    if isinstance(rig, FaceRig):
+        return rig
+    if isinstance(rig, Avatar):
+        return pick_mesh(rig)
+    if isinstance(rig, str | Path):
+        return pick_mesh(read_avatar(rig))
+    from .errors import UsdFaceError
+
+    raise UsdFaceError(f"expected a FaceRig, an Avatar or an avatar file, got {type(rig).__name__}",
+                       fix="pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
+
+
+def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
+                      **options: Any):
+    """A landmark layout for ``rig`` (``usdface landmarks``): a :class:`FaceRig`, or an avatar (object or
+    file: its face mesh, :func:`pick_mesh`); see :func:`usdface.landmarks.compute_landmarks`."""
     from .landmarks import compute_landmarks as _landmarks
 
-    return _landmarks(rig, epsilon=epsilon, alpha=alpha, **options)
+    return _landmarks(_as_rig(rig), epsilon=epsilon, alpha=alpha, **options)
 
 
-def landmark_diagnostics(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, **options: Any):
-    """The paper's per-vertex diagnostics of ``rig`` (visibility, relative displacement, importance weights;
-    ``usdface render --landmarks --diagnostics``); see
+def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
+                         **options: Any):
+    """The paper's per-vertex diagnostics of ``rig`` (as :func:`compute_landmarks` takes it: visibility,
+    relative displacement, importance weights; ``usdface render --landmarks --diagnostics``); see
     :func:`usdface.landmarks.diagnostics.landmark_diagnostics`."""
     from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
 
+    rig = _as_rig(rig)
     return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
 
 

@@ -490,6 +490,30 @@ def _relative_to_layer(path, out_path: Path) -> str:
         return target.as_posix()
 
 
+def _reproducible() -> bool:
+    """Whether ``SOURCE_DATE_EPOCH`` is set (the reproducible-builds convention): then a layer's
+    ``createdAt`` is that time and it records no timings, so the same inputs give the same bytes."""
+    return bool(os.environ.get("SOURCE_DATE_EPOCH", "").strip())
+
+
+def _created_at() -> str:
+    """The layer's ``createdAt`` (UTC, ISO 8601): now, or ``SOURCE_DATE_EPOCH`` (seconds since 1970) when
+    set; a value that is not a whole number is refused (:class:`usdface.errors.UsdFaceError`)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch:
+        try:
+            when = _dt.datetime.fromtimestamp(int(epoch), _dt.UTC)
+        except (ValueError, OverflowError, OSError):
+            from ..errors import UsdFaceError
+
+            raise UsdFaceError(f"SOURCE_DATE_EPOCH={epoch!r} is not a time",
+                               fix="set it to whole seconds since 1970-01-01 UTC (e.g. $(git log -1 "
+                                   "--format=%ct)), or unset it") from None
+    else:
+        when = _dt.datetime.now(_dt.UTC)
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
 def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
     from .atomic import usd_dependencies
 
@@ -508,14 +532,15 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
             digests[p] = ""
     if (avatar.metadata or {}).get("name_map") and "nameMap" not in prov:
         prov["nameMap"] = dict(avatar.metadata["name_map"])   # read back by every reader of the layer
-    prov.setdefault("command", "")
+    # what wrote the layer: the CLI passes its command line; a script that gives none is named as the API
+    prov["command"] = prov.get("command") or "usdface.io.layers.write_avatar_layer (Python API)"
     prov.setdefault("parameters", {})
     prov.setdefault("timings", {})
     prov["version"] = __version__
     # recorded relative to the layer (like its sublayer path), so the record stays checkable from anywhere
     prov["inputs"] = [_relative_to_layer(p, out_path) for p in inputs]
     prov["inputDigests"] = [digests[p] for p in inputs]
-    prov["createdAt"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    prov["createdAt"] = _created_at()
     prov["output"] = out_path.name
     return prov
 
@@ -611,6 +636,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
             edit(stage)
         prov["timings"] = {**{str(k): float(v) for k, v in dict(prov["timings"]).items()},
                            "write_layer": time.perf_counter() - start}
+        if _reproducible():          # the same inputs give the same bytes: no clock readings in the layer
+            prov["timings"] = {}
+            prov.pop("elapsedSeconds", None)
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
         atomic_save(layer, out_path, force)

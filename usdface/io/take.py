@@ -342,8 +342,10 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
 def is_take(path) -> bool:
     """True when ``path`` is a take rather than a capture: a folder with ``frames/`` or a Live Link CSV and
     no ``train/``; a USD file marked ``format = "take"`` by :func:`write_take_usd`, or, unmarked, one whose
-    root layer has time-sampled ``points`` and no capture ``usdface:frames:role``. A capture (or anything
-    else) is False, so its reader reports what is wrong with it."""
+    root layer has time-sampled ``points``, no capture ``usdface:frames:role``, no blend shapes and no
+    sublayer, reference or payload (an avatar with an animated cache mesh is an avatar, and so is a shot file
+    that adds one over a referenced avatar). A capture (or anything else) is False, so its reader
+    reports what is wrong with it."""
     return probe_take(path)[0]
 
 
@@ -369,7 +371,9 @@ def probe_take(path) -> tuple[bool, object]:
         return kind == "take", layer
     # the layer's own specs, not a composed stage: opening one here would report its composition errors
     # (a missing sublayer) a second time, outside the reader that names them with their fix
-    seen = {"role": False, "points": False}
+    # an avatar (blend shapes bound to a mesh) is not a take even where one of its meshes is an animated
+    # cache (a hair cache, a baked ground truth): its reader, not the take reader, judges it
+    seen = {"role": False, "points": False, "blend": False}
 
     def visit(spec_path):
         if spec_path.IsPropertyPath():
@@ -377,9 +381,27 @@ def probe_take(path) -> tuple[bool, object]:
                 seen["role"] = True
             elif spec_path.name == "points" and layer.GetNumTimeSamplesForPath(spec_path) > 1:
                 seen["points"] = True
+            elif spec_path.name == "skel:blendShapes" and not _in_template(spec_path):
+                seen["blend"] = True
+        elif spec_path.IsPrimPath():
+            spec = layer.GetPrimAtPath(spec_path)
+            # a BlendShape outside the take's own template rig (<root>/Template, read_take_usd), or an arc
+            # that brings in what the root layer does not show (a shot file's animated cache over a
+            # referenced avatar): not judged a take from these specs alone
+            if spec is not None and ((spec.typeName == "BlendShape" and not _in_template(spec_path))
+                                     or spec.hasReferences or spec.hasPayloads):
+                seen["blend"] = True
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-    return seen["points"] and not seen["role"], layer
+    if layer.subLayerPaths:
+        seen["blend"] = True
+    return seen["points"] and not seen["role"] and not seen["blend"], layer
+
+
+def _in_template(spec_path) -> bool:
+    """Whether a spec path lies in a take's own template rig, ``/<root>/Template/...`` (read_take_usd)."""
+    prefixes = spec_path.GetPrefixes()
+    return len(prefixes) > 1 and prefixes[1].name == "Template"
 
 
 def capture_from_whole_take(take: Take, template=None) -> Capture:

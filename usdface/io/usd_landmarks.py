@@ -104,6 +104,7 @@ def write_landmark_layer(avatar: Avatar, rig: FaceRig, layout, out_path, *, forc
                        fix="read the avatar with usdface.io.usd_rig.read_avatar")
     prov = dict(provenance or {})
     prov.setdefault("method", "landmarks")
+    prov["command"] = prov.get("command") or "usdface.api.write_landmarks (Python API)"
     return write_avatar_layer(avatar, out_path, {}, provenance=prov, force=force, variants=False,
                               edit=lambda stage: author_landmarks(stage, rig, layout, avatar.meters_per_unit))
 

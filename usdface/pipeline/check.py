@@ -100,6 +100,11 @@ def _rule(rule_id: str, doc: str):
 
 #: Rules that take the studio's channel-name map (``name_map=`` {channel: ARKit name}).
 _NAME_MAP_RULES = {"ArkitNames", "Readable"}
+#: Rules whose errors the avatar reader would only repeat (a broken binding or blend-shape array): after one
+#: of them, Readable is not run. After any other rule's error (no metersPerUnit, a stale provenance, a
+#: non-canonical name) it still runs, so that what the reader refuses is told at once, not after the first
+#: error is fixed.
+READER_RULES = {"SkelBinding", "BlendShapeArrays", "BlendShapeOffsets", "PointIndices", "Inbetweens"}
 
 
 def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
@@ -121,7 +126,7 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         raise UsdFaceError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
     issues: list[Issue] = []
     for rule_id in chosen:
-        if rule_id == "Readable" and any(i.severity == ERROR for i in issues):
+        if rule_id == "Readable" and any(i.severity == ERROR and i.rule in READER_RULES for i in issues):
             continue  # the reader would only repeat a finding already made
         fn = RULES[rule_id][0]
         issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map else fn(stage))
@@ -451,7 +456,8 @@ def _provenance(stage) -> Iterable[Issue]:
         for name in ("version", "command"):
             if not get(name):
                 yield Issue(ERROR, "Provenance", path, f"usdface:provenance:{name} is empty",
-                            "re-run usdface personalize to rewrite the layer's provenance")
+                            "re-run the usdface command that wrote the layer (personalize, landmarks) to "
+                            "rewrite its provenance")
         inputs = list(get("inputs") or [])
         digests = list(get("inputDigests") or [])
         if len(inputs) != len(digests):
@@ -504,6 +510,9 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         return  # no skinned geometry (a take, usdface's error maps, a schema file): not judged as an avatar
     try:
         avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
+        from ..io.usd_rig import refuse_instanced
+
+        refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
             yield Issue(ERROR, "Readable", "/", "no face-like blend shapes (no ARKit-named shape that "
                         "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
