@@ -71,10 +71,49 @@ def _silence_stdout() -> None:
     os.close(devnull)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a farm's or a queue's kill, a Dask worker's shutdown) raised in the main thread, so that the
+    atomic writers' clean-up runs exactly as on Ctrl-C and no temporary file is left behind."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
+    """Run one command; the exit status: 0 done, 1 findings (check, batch failures), 2 an error, 130
+    interrupted (Ctrl-C), 143 terminated (SIGTERM), 141 a closed pipe."""
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _main(argv)
+    except Terminated:
+        print("usdface: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str | None):
+    """The sub-command's own parser (its errors name it: ``usdface export: error: ...``), or None."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices.get(command)
+    return None
+
+
+def _main(argv=None) -> int:
     parser = build_parser()
     _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:          # the sub-command's parser reports them, so the error line names the command
+        (_subparser(parser, getattr(args, "command", None)) or parser).error(
+            "unrecognized arguments: " + " ".join(extra))
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
@@ -102,7 +141,9 @@ def main(argv=None) -> int:
         else:
             print(f"usdface {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated):
+            raise
         print("usdface: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .options import positive_int
+from .options import add_quiet, positive_int
 
 
 def _option(text: str) -> tuple[str, object]:
@@ -41,6 +41,7 @@ def register(subparsers) -> None:
     p.add_argument("--worker", metavar="MODULE:FUNCTION",
                    help="run this function on each item instead of personalize (a studio's own step); it "
                         "gets the item dict and must write item['output']")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 

@@ -3,6 +3,8 @@ personalize result to engines, web viewers and tools that do not take USD layers
 
 from __future__ import annotations
 
+from .options import add_quiet
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,6 +23,7 @@ def register(subparsers) -> None:
                    help="which usdfacePersonalization variant to export (default: personalized)")
     p.add_argument("--no-skin", action="store_true", help="glTF without the skeleton and skin")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 

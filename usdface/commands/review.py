@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .options import add_quiet
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,6 +23,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-fit-errors", action="store_true",
                    help="skip scoring the fit on the capture's test expressions (eq. 5; one refit)")
     p.add_argument("--force", action="store_true", help="overwrite the HTML file")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 
