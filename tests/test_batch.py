@@ -200,3 +200,49 @@ def test_real_personalize_worker_isolates_real_errors(tmp_path, bench):
     assert [r.error_type for r in report.results] == ["InputFileError"] * 3
     assert "missing.usdc" in report.results[0].error and "nocapture" in report.results[1].error
     assert "fix:" in report.results[2].error and not list(tmp_path.glob("*.usda"))
+
+
+def _usdface_layer(path: Path, inputs, digests) -> None:
+    """A stand-in for a personalize layer: only the record resume reads (inputs relative to the layer)."""
+    from pxr import Sdf, Vt
+
+    layer = Sdf.Layer.CreateNew(str(path))
+    layer.customLayerData = {"usdface": {"inputs": Vt.StringArray(list(inputs)),
+                                         "inputDigests": Vt.StringArray(list(digests))}}
+    layer.Save()
+
+
+def test_resume_skips_only_the_items_own_results(tmp_path):
+    """An existing output counted as finished even when it was written from another avatar or from inputs
+    changed since (the row was edited, the capture re-recorded): such an item fails with the reason and the
+    --force hint instead of being reported 'skipped'; a studio worker's non-USD output is still skipped."""
+    from usdface.io.layers import file_digest
+
+    for n in ("a", "b", "c"):
+        (tmp_path / f"{n}.usdc").write_text(f"avatar {n}")
+        (tmp_path / f"{n}_capture").mkdir()
+        (tmp_path / f"{n}_capture" / "neutral.obj").write_text(f"v 0 0 {n == 'c'}\n")
+    manifest = _manifest(tmp_path, ["a", "b", "c", "d"])
+    d = {n: file_digest(tmp_path / f"{n}.usdc") for n in ("a", "b", "c")}
+    _usdface_layer(tmp_path / "out" / "a.usda", ["../a.usdc", "../a_capture"],
+                   [d["a"], file_digest(tmp_path / "a_capture")])                 # a's own result
+    _usdface_layer(tmp_path / "out" / "b.usda", ["../a.usdc", "../b_capture"],
+                   [d["a"], file_digest(tmp_path / "b_capture")])                 # written from a's avatar
+    _usdface_layer(tmp_path / "out" / "c.usda", ["../c.usdc", "../c_capture"],
+                   [d["c"], "0" * 64])                                            # its capture changed since
+    (tmp_path / "out" / "d.usda").write_text("not a layer")                      # a studio worker's output
+    report = run_batch(read_manifest(manifest), worker=stub_worker, jobs=1, progress=False)
+    assert [r.status for r in report.results] == [SKIPPED, FAILED, FAILED, SKIPPED]
+    b, c = report.results[1], report.results[2]
+    assert b.error_type == "StaleOutput" and "another avatar" in b.error and "--force" in b.error
+    assert "capture" in c.error and "changed after it was written" in c.error
+    assert Path(tmp_path / "out" / "b.usda").read_text() != ""                    # nothing was overwritten
+
+
+def test_manifest_refuses_an_item_writing_its_own_avatar(tmp_path):
+    """'0 done, 1 skipped' for an item whose output is its own avatar: refused when the manifest is read."""
+    (tmp_path / "a.usda").write_text("#usda 1.0\n")
+    path = tmp_path / "m.csv"
+    path.write_text("avatar,capture,output\na.usda,c,a.usda\n")
+    with pytest.raises(InputFileError, match="item 1 writes .*a.usda, the avatar item 1 reads"):
+        read_manifest(path)

@@ -216,6 +216,43 @@ def read_manifest(path) -> list[BatchItem]:
     return items
 
 
+def stale_output(item: BatchItem) -> str:
+    """Why an existing ``item.output`` is not this item's finished result ("" if it is, or if it cannot
+    tell): a usdface layer records its inputs and their sha256 (``customLayerData["usdface"]``); one written
+    from another avatar or capture than the row names, or from files changed since, is not a finished item
+    that resume may skip. Outputs that are not usdface layers (a studio worker's) are taken as finished."""
+    out = Path(item.output)
+    if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
+        return ""
+    from pxr import Sdf
+
+    from ..io.layers import file_digest
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(out))
+        record = dict(layer.customLayerData).get("usdface") if layer is not None else None
+    except Exception:  # noqa: BLE001 - not readable as a layer: the worker's business, not resume's
+        return ""
+    if not hasattr(record, "get") or not record.get("inputs"):
+        return ""
+    recorded = {os.path.realpath(os.path.join(out.parent, str(p))): str(d)
+                for p, d in zip(record.get("inputs") or [], record.get("inputDigests") or [], strict=False)}
+    for what, path in (("avatar", item.avatar), ("capture", item.capture)):
+        real = os.path.realpath(path)
+        if real not in recorded:
+            return (f"{out.name} exists but was written from another {what} than {path} (it records "
+                    f"{', '.join(str(p) for p in record.get('inputs') or [])}): not this item's result; "
+                    "--force redoes it")
+        try:
+            changed = recorded[real] and file_digest(path) != recorded[real]
+        except Exception:  # noqa: BLE001 - a missing input is the item's error when it runs
+            changed = False
+        if changed:
+            return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
+                    "--force redoes it")
+    return ""
+
+
 # ----------------------------------------------------------------------------------------------- workers
 def personalize_worker(item: dict) -> None:
     """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's;
@@ -430,8 +467,10 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     todo = []
     for item in items:
         if not force and Path(item.output).exists():
+            stale = stale_output(item)
             results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
-                                       output=item.output, status=SKIPPED)
+                                       output=item.output, status=FAILED if stale else SKIPPED,
+                                       error=stale or "", error_type="StaleOutput" if stale else "")
         else:
             todo.append(dict(item.to_dict(), force=force))
     jobs = max(1, int(jobs or os.cpu_count() or 1))
