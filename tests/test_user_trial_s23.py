@@ -190,3 +190,46 @@ def test_unknown_options_are_named_by_their_command(capsys):
         with pytest.raises(SystemExit):
             main([command, "--help"])
         assert "--quiet" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ takes and captures told apart
+@pytest.fixture(scope="module")
+def weights_take(tmp_path_factory) -> Path:
+    """A weights-only take as ``anim import`` writes it (the sample's test weights as a 30 fps recording)."""
+    import numpy as np
+
+    from usdface.io.usd_anim import write_animation_usd
+
+    rng = np.random.default_rng(0)
+    from usdface.arkit import ARKIT_NAMES
+
+    w = rng.uniform(0.0, 0.45, size=(60, len(ARKIT_NAMES)))
+    w[10, ARKIT_NAMES.index("jawOpen")] = 0.93
+    out = tmp_path_factory.mktemp("take") / "take.usda"
+    write_animation_usd(out, list(ARKIT_NAMES), w, np.arange(60) / 30.0)
+    return out
+
+
+def test_inspect_summarises_a_weights_only_take(weights_take, capsys):
+    """``inspect`` refused the take ``anim import`` had just written ('this is a take ..., not an avatar');
+    index.md promises a summary: frames, rate, and the shapes never above 0.5."""
+    from usdface.cli import main
+
+    assert main(["inspect", str(weights_take)]) == 0
+    out = capsys.readouterr().out
+    assert "take" in out.splitlines()[0] and "60 frames at 30 fps" in out
+    assert "never above 0.5 (51)" in out and "jawOpen" not in out.split("never above")[1].split("\n")[0]
+
+
+def test_capture_select_refuses_a_capture_and_an_empty_selection(weights_take, tmp_path, capsys):
+    """A capture given to ``capture select`` was re-selected (its test frames became training frames), and a
+    threshold no shape reaches wrote a capture of 0 frames with exit 0: both refused, nothing written."""
+    from usdface.cli import main
+
+    assert main(["capture", "select", str(C), "-o", str(tmp_path / "cc.usda")]) == 2
+    assert "this is a capture" in capsys.readouterr().err and not (tmp_path / "cc.usda").exists()
+    assert main(["capture", "select", str(weights_take), "-o", str(tmp_path / "y.usda"),
+                 "--threshold", "0.99"]) == 2
+    err = capsys.readouterr().err
+    assert "no shape peaks above --threshold 0.99" in err and "jawOpen 0.93" in err
+    assert not (tmp_path / "y.usda").exists()

@@ -147,8 +147,10 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                           force: bool = False) -> CaptureSelection:
     """Pick training (and held-out test) frames from a continuous take (Menzel et al. 2022, section 3.1;
     ``usdface capture select``): for each shape up to ``per_shape`` frames where its weight peaks above
-    ``threshold``, peaks of one shape at least ``min_separation`` seconds apart, every ``test_every``-th
-    remaining peak held out as a test frame (0: none).
+    ``threshold``, peaks of one shape at least ``min_separation`` seconds apart; every ``test_every``-th take
+    frame at least ``min_separation`` seconds from every training frame held out as a test frame (0: none).
+    With ``out_path``, a selection without training frames (no peak above ``threshold``) and a capture given
+    as the take are refused (:class:`usdface.errors.CaptureError`) before anything is written.
 
     ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
@@ -159,6 +161,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
 
     if out_path is not None:
         check_capture_output(out_path, force, inputs=[take, template])
+    _refuse_capture_as_take(take)
     with steps("capture select", 2 if out_path is None else 4) as p:
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
@@ -176,11 +179,45 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         coverage = format_coverage(selection, data.times)
         if out_path is None:
             return CaptureSelection(data, selection, coverage, None, None)
+        if len(selection.train) == 0:
+            from .errors import CaptureError
+
+            peak = data.weights.max(axis=0) if data.weights.size else None
+            best = "" if peak is None else (f" (the highest peak: {data.names[int(peak.argmax())]} "
+                                            f"{float(peak.max()):.2f})")
+            raise CaptureError(f"no shape peaks above --threshold {threshold:g} in the take{best}: the "
+                               "capture would have no training frames", path=take,
+                               fix="lower --threshold (0.5 is the paper's), or record the shapes again")
         p.start("build capture")
         capture = capture_from_take(data, selection, template=template)
         p.start(f"write {Path(out_path).name}")
         written = write_capture(capture, out_path, force=force, inputs=[take, template])
     return CaptureSelection(data, selection, coverage, capture, written)
+
+
+def _refuse_capture_as_take(path: PathLike) -> None:
+    """``capture select`` picks frames from a take; a capture (a folder with ``train/``, a USD capture) holds
+    frames already picked - read as a take its test frames would become training frames. Refused naming
+    what it is and what reads it."""
+    from .errors import CaptureError
+
+    p = Path(path)
+    is_capture = p.is_dir() and (p / "train").is_dir()
+    if not is_capture and p.is_file() and p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
+        from pxr import Sdf
+
+        try:
+            layer = Sdf.Layer.FindOrOpen(str(p))
+        except Exception:  # noqa: BLE001 - unreadable: the take reader names the problem
+            layer = None
+        data = dict(layer.customLayerData).get("usdface") if layer is not None else None
+        is_capture = hasattr(data, "get") and data.get("format") == "capture"
+    if is_capture:
+        raise CaptureError("this is a capture (its training and test frames are already picked), not a "
+                           "take", path=p,
+                           fix="use it as it is (usdface fit / personalize AVATAR CAPTURE); capture select "
+                               "reads a take: a USD take ('anim import', a time-sampled mesh) or an "
+                               "OBJ-sequence folder with its Live Link CSV")
 
 
 def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float = 60.0,

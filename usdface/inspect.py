@@ -187,7 +187,43 @@ def inspect_file(path, name_map=None) -> dict:
         "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
     if is_capture and hasattr(io, "read_capture"):
         return summarize_capture(io.read_capture(path), info)
+    if _weights_only_take(path):
+        from .io.take import read_take
+
+        return summarize_take(read_take(path), info)
     return summarize_avatar(read_avatar(path, name_map=name_map), info)
+
+
+def _weights_only_take(path: Path) -> bool:
+    """A take of weights only (``usdface anim import``: a SkelAnimation and no SkelRoot)."""
+    from .io.usd_open import open_usd_stage
+    from .io.usd_rig import _is_weights_take
+
+    try:
+        return _is_weights_take(open_usd_stage(path, "file", "check the path"))
+    except Exception:  # noqa: BLE001 - unreadable: the avatar reader names the problem
+        return False
+
+
+#: A shape whose weight never exceeds this in a take is one ``capture select`` cannot pick (its default
+#: threshold): listed by ``inspect`` so the recording can be repeated.
+TAKE_PEAK = 0.5
+
+
+def summarize_take(take, layer_info: dict | None = None) -> dict:
+    """Report dict for a take of weights only (``usdface anim import``): frames, rate, duration, shapes vs
+    ARKit, and the shapes never above :data:`TAKE_PEAK` (what ``capture select`` could not pick)."""
+    import numpy as np
+
+    peak = take.weights.max(axis=0) if len(take.weights) else np.zeros(len(take.names))
+    never = {n: round(float(w), 3) for n, w in zip(take.names, peak, strict=True) if w < TAKE_PEAK}
+    out = {"file": take.source, "kind": "take", "frames": len(take.weights), "fps": float(take.fps),
+           "seconds": float(take.times[-1] - take.times[0]) if len(take.times) else 0.0,
+           "shapes": len(take.names), "meshes": take.points is not None, "neverAbove": never,
+           "arkit": names_vs_arkit(take.names, take.metadata.get("name_report", {}))}
+    if layer_info:
+        out["stageMetadata"] = layer_info.get("stage", {})
+    return out
 
 
 def _names_line(label: str, items, limit: int = 12) -> str:
@@ -199,6 +235,16 @@ def _names_line(label: str, items, limit: int = 12) -> str:
 def format_report(report: dict) -> str:
     """Human-readable text for :func:`inspect_file`'s dict."""
     lines = [f"{report.get('file')}: {report.get('kind')}"]
+    if report.get("kind") == "take":
+        lines.append(f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), "
+                     f"{report['shapes']} shapes, weights only: it plays on an avatar ('personalize AVATAR "
+                     "CAPTURE --take TAKE'); 'capture select TAKE' shows which frames a capture would keep")
+        never = report.get("neverAbove") or {}
+        if never:
+            lines.append(_names_line(f"never above {TAKE_PEAK}", [f"{n} {w:.2f}" for n, w in never.items()],
+                                     8))
+        lines += _arkit_lines(report["arkit"])
+        return "\n".join(lines)
     if report.get("kind") == "capture":
         if report.get("take"):
             lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "

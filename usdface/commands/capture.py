@@ -43,9 +43,11 @@ def register(subparsers) -> None:
     sel.add_argument("--per-shape", type=positive_int, default=1,
                      help="distinct peaks kept per shape (default 1)")
     sel.add_argument("--test-every", type=nonnegative_int, default=0,
-                     help="hold out every K-th remaining peak frame as a test frame (default 0: none)")
+                     help="hold out every K-th take frame at least --min-separation from every training "
+                          "frame as a test frame (default 0: none)")
     sel.add_argument("--min-separation", type=nonnegative_float, default=0.5,
-                     help="seconds between two peaks of the same shape (default 0.5)")
+                     help="seconds between two peaks of the same shape, and between a test frame and every "
+                          "training frame (default 0.5)")
     sel.add_argument("--force", action="store_true", help="overwrite an existing output")
     sel.add_argument("--json", action="store_true", help="print the coverage table and result as JSON")
     add_quiet(sel)
