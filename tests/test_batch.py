@@ -246,3 +246,23 @@ def test_manifest_refuses_an_item_writing_its_own_avatar(tmp_path):
     path.write_text("avatar,capture,output\na.usda,c,a.usda\n")
     with pytest.raises(InputFileError, match="item 1 writes .*a.usda, the avatar item 1 reads"):
         read_manifest(path)
+
+
+@pytest.mark.parametrize("column, value, needle", [
+    ("review", "true", "unknown personalize option(s): review"),
+    ("mu", "-1", "bad mu -1"),
+    ("beta", "0.5", "menzel takes reg, prior"),
+])
+def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, value, needle):
+    """A column personalize does not take (a CLI flag, a typo, another method's option) failed every item
+    one by one, the fix saying 'menzel takes no extra options'; now the batch is refused before the first
+    item, naming the row, the option and what the method takes."""
+    from usdface.api import personalize_batch
+
+    (tmp_path / "out").mkdir()
+    path = tmp_path / "m.csv"
+    path.write_text(f"avatar,capture,output,{column}\na.usda,c,out/a.usda,{value}\n")
+    with pytest.raises(InputFileError, match="item 1: ") as err:
+        personalize_batch(path, jobs=1)
+    assert needle in str(err.value) and "m.csv" in str(err.value)
+    assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()

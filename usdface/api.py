@@ -660,6 +660,46 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     return result
 
 
+#: Options :func:`personalize_avatar` itself takes (the rest go to :func:`usdface.transfer.personalize_avatar`
+#: and the fit).
+_API_OPTIONS = ("inspect", "take", "landmarks")
+
+
+def check_personalize_options(**options: Any) -> None:
+    """Refuse, before any work, what :func:`personalize_avatar` would refuse or ignore among ``options``: an
+    option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
+    (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
+    row before the first item starts."""
+    import inspect as _inspect
+
+    from .errors import UsdFaceError
+    from .personalize.api import METHOD_OPTIONS, fit_personalized_shapes
+    from .transfer import pipeline as _pipeline
+
+    transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
+        "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command"}
+    fit = set(_inspect.signature(fit_personalized_shapes).parameters) - {
+        "capture", "method", "reg", "prior", "options", "avatar_prior"}
+    known = transfer | fit | set(_API_OPTIONS) | {k for ks in METHOD_OPTIONS.values() for k in ks}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
+                           fix="drop them, or use one of: " + ", ".join(sorted(known)))
+    get = options.get
+    _pipeline._check_modes(get("face_transfer", "person"), get("approximation", "field"),
+                           get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
+                           get("map_prior", "namesake"))
+    _pipeline.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),
+                            falloff=get("falloff", 0.15), support=get("support", (0.01, 0.03)))
+    from .personalize.api import check_fit_options
+
+    method, reg = get("method", "menzel"), get("reg", "auto")
+    method_options = {k for ks in METHOD_OPTIONS.values() for k in ks}
+    fit_opts = {k: v for k, v in options.items() if k in fit or k in method_options}
+    check_fit_options(method, reg, **_pipeline._fit_prior_options(get("prior", "avatar"), method, reg),
+                      **fit_opts)
+
+
 def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
                       worker: str | None = None, options: dict | None = None, force: bool = False,
                       report_path: PathLike | None = None) -> BatchReport:
@@ -682,6 +722,15 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     check_output_file(path, True, suffixes=(".json",), what="batch report",
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))])
     run = load_worker(worker) if worker else personalize_worker
+    if worker is None:                 # every row's options checked before any item runs
+        from .errors import InputFileError, UsdFaceError
+
+        for item in items:
+            try:
+                check_personalize_options(**item.options)
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                                     fix=exc.fix or "fix the manifest's option columns") from None
     report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
     report.report_path = Path(report.write(path))
     return report

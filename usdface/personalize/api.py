@@ -447,6 +447,18 @@ METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
                   "menzel": (), "dt": ()}
 
 
+#: The options of :func:`fit_personalized_shapes` each method uses besides its :data:`METHOD_OPTIONS` (what
+#: a refusal lists as the method's options).
+METHOD_TAKES = {
+    "menzel": ("reg", "prior", "align", "reweight", "clamp", "weight_sigma", "rounds", "contact", "pins",
+               "frame_weights", "every", "eyelids"),
+    "laplacian": ("reg", "prior", "align", "reweight", "clamp", "weight_sigma", "rounds", "contact", "pins",
+                  "frame_weights", "every", "eyelids"),
+    "ebfr": ("align", "eyelids"),
+    "dt": ("eyelids",),
+}
+
+
 def check_every(every, capture=None) -> None:
     """``every`` is a whole number >= 1, and above 1 only for a take read whole."""
     if isinstance(every, bool) or not isinstance(every, int | np.integer) or every < 1:
@@ -511,10 +523,8 @@ def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_si
     allowed = METHOD_OPTIONS[method]
     bad += sorted(set(options) - set(allowed))
     if bad:
-        takes = ", ".join(allowed) if allowed else "no extra options"
-        extra = {"dt": " (and eyelids)", "ebfr": " (and align, eyelids)"}.get(method, "")
         raise FitError(f"option(s) not used by method {method!r}: {', '.join(bad)}",
-                       fix=f"drop them; {method} takes {takes}{extra}")
+                       fix=f"drop them; {method} takes {', '.join(METHOD_TAKES[method] + allowed)}")
 
 
 def _pin_mask(pins, capture, method) -> np.ndarray:
