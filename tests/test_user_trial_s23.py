@@ -233,3 +233,24 @@ def test_capture_select_refuses_a_capture_and_an_empty_selection(weights_take, t
     err = capsys.readouterr().err
     assert "no shape peaks above --threshold 0.99" in err and "jawOpen 0.93" in err
     assert not (tmp_path / "y.usda").exists()
+
+
+# ------------------------------------------------------------------ errors that say what was given
+def test_errors_name_what_the_file_is(tmp_path, capsys):
+    """--correspondence naming the avatar said 'delete it'; a capture folder given as the avatar said only
+    'is a folder'; a fitted rig given as the capture said 'not a usdface capture (no /Capture with ...)'."""
+    from usdface.cli import main
+
+    avatar = tmp_path / "avatar.usda"
+    avatar.write_bytes(A.read_bytes())
+    assert main(["personalize", str(avatar), str(C), "-o", str(tmp_path / "p.usda"),
+                 "--correspondence", str(avatar)]) == 2
+    err = capsys.readouterr().err
+    assert "names one of this run's inputs" in err and "delete" not in err
+    assert avatar.read_bytes() == A.read_bytes()
+    cap = tmp_path / "cap"
+    (cap / "train").mkdir(parents=True)
+    assert main(["personalize", str(cap), str(A), "-o", str(tmp_path / "q.usda")]) == 2
+    assert "arguments swapped?" in capsys.readouterr().err
+    assert main(["personalize", str(A), str(A), "-o", str(tmp_path / "r.usda")]) == 2
+    assert "this is a rig" in capsys.readouterr().err

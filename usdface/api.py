@@ -450,9 +450,10 @@ def _read_truth(path) -> dict:
     return truth
 
 
-def _check_correspondence_cache(path) -> None:
+def _check_correspondence_cache(path, inputs=()) -> None:
     """Refuse an existing ``--correspondence`` file that cannot be a cache (not a file, empty, not an npz zip)
-    before any work; a missing one is fine (it will be written)."""
+    before any work; a missing one is fine (it will be written). One of the run's ``inputs`` (the avatar, the
+    capture, ...: a swapped or mistyped option) is named as such, never suggested for deletion."""
     if path is None or not Path(path).exists():
         return
     import zipfile
@@ -460,10 +461,22 @@ def _check_correspondence_cache(path) -> None:
     from .errors import InputFileError
     from .io.usd_open import require_file
 
+    for given in inputs:
+        if given is None or not isinstance(given, str | Path) or not Path(given).exists():
+            continue
+        try:
+            same = Path(given).resolve() == Path(path).resolve() or Path(given).samefile(path)
+        except OSError:
+            same = False
+        if same:
+            raise InputFileError("--correspondence names one of this run's inputs, not a cache", path=path,
+                                 fix="pass a new file name for the cache (e.g. avatar.corr.npz); the input "
+                                     "is never written")
     require_file(path, "correspondence cache", "pass a .npz cache written by usdface, or a new file name")
     if not zipfile.is_zipfile(path):
         raise InputFileError("not a usdface correspondence cache (empty or not an .npz archive)", path=path,
-                             fix="delete it or pass another --correspondence file")
+                             fix="pass another --correspondence file (a new name is written), or remove "
+                                 "this one if it is a stale cache of yours")
 
 
 def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) -> list:
@@ -488,7 +501,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .transfer import personalize_avatar as _personalize
 
     refuse_usdface_output(avatar_path)
-    _check_correspondence_cache(options.get("correspondence"))
+    _check_correspondence_cache(options.get("correspondence"),
+                                personalize_inputs(avatar_path, capture_path, take=take, **options))
     if out_path is not None and not options.get("dry_run"):
         from .io.layers import check_output_path
 
@@ -648,7 +662,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     refuse_usdface_output(avatar_path)
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
-    _check_correspondence_cache(options.get("correspondence"))
+    _check_correspondence_cache(options.get("correspondence"),
+                                personalize_inputs(avatar_path, capture_path, **options))
     result = _personalize(avatar_path, capture_path, None, **options)
     if out.suffix.lower() == ".json":
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),

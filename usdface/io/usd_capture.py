@@ -356,8 +356,17 @@ def read_capture_usd(path) -> Capture:
             anim = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))
             raise CaptureError("a take of weights only (a SkelAnimation, e.g. from 'usdface anim import'), "
                                "no meshes to fit", path=path, prim=anim.GetPath(), fix=WEIGHTS_ONLY_FIX)
-        raise CaptureError("not a usdface capture (no /Capture with Neutral, Template, Frames)", path=path,
-                           prim=root.GetPath() if root else None,
+        from pxr import Usd, UsdSkel
+
+        if any(p.IsA(UsdSkel.BlendShape) for p in stage.Traverse(Usd.TraverseInstanceProxies())):
+            raise CaptureError("this is a rig (meshes with blend shapes: an avatar, or a 'usdface fit' "
+                               "result), not a capture: it holds no captured frames", path=path,
+                               prim=root.GetPath() if root else None,
+                               fix="pass the capture (folder or capture.usda) where a capture goes, e.g. "
+                                   "personalize AVATAR CAPTURE; a fitted rig is implanted with the API "
+                                   "(personalize_avatar(..., rig=...))")
+        raise CaptureError("not a usdface capture (no Frames mesh of captured expressions under the default "
+                           "prim or /Capture)", path=path, prim=root.GetPath() if root else None,
                            fix="make capture files with 'usdface capture import DIR -o capture.usda'")
     rp = root.GetPath()
     neutral_prim = _child(stage, rp.AppendChild("Neutral"), path, "Neutral mesh")
