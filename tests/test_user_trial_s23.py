@@ -254,3 +254,30 @@ def test_errors_name_what_the_file_is(tmp_path, capsys):
     assert "arguments swapped?" in capsys.readouterr().err
     assert main(["personalize", str(A), str(A), "-o", str(tmp_path / "r.usda")]) == 2
     assert "this is a rig" in capsys.readouterr().err
+
+
+def test_stale_layers_and_other_captures_are_not_exported_or_reviewed_silently(tmp_path):
+    """``check`` warned that a layer's avatar changed after it was written, but ``export`` and ``review``
+    used the layer without a word, and ``review --capture`` scored another person's capture under the
+    layer's name: both warn now (the files are still written: a warning, not a refusal)."""
+    from usdface import api
+
+    avatar, capture = tmp_path / "avatar.usda", tmp_path / "capture.usda"
+    avatar.write_bytes(A.read_bytes())
+    capture.write_bytes(C.read_bytes())
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(avatar, capture, layer)
+    with pytest.warns(UserWarning) as rec:             # the layer's own inputs: no word
+        import warnings
+
+        warnings.warn("sentinel", UserWarning, stacklevel=1)
+        api.export_avatar(layer, gltf=tmp_path / "a.glb")
+    assert [str(w.message) for w in rec] == ["sentinel"]
+    avatar.write_bytes(A.read_bytes() + b"\n")          # the avatar re-exported since
+    with pytest.warns(UserWarning, match="changed after it was written"):
+        api.export_avatar(layer, gltf=tmp_path / "b.glb")
+    assert (tmp_path / "b.glb").is_file()
+    other = tmp_path / "other.usda"
+    other.write_bytes(C.read_bytes())
+    with pytest.warns(UserWarning, match="other.usda is not among the inputs p.usda records"):
+        api.write_review(layer, tmp_path / "r.html", capture=other, fit_errors=False)

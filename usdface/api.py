@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -802,7 +803,10 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     if isinstance(capture, str | Path) and not Path(capture).exists():
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
     from . import progress
+    from .io.layers import stale_inputs
 
+    for text in stale_inputs(layer_path, [capture] if isinstance(capture, str | Path) else []):
+        warnings.warn(text, UserWarning, stacklevel=2)          # the page is a sign-off: say it first
     with progress.steps("review", 2) as advance:
         data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
         advance("page")
@@ -847,6 +851,10 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
         check_output_path(flatten, force, inputs=[layer_path])
+    from .io.layers import stale_inputs
+
+    for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
+        warnings.warn(text, UserWarning, stacklevel=2)
     done: dict[str, Path] = {}
     if gltf or obj_dir:
         avatar = read_avatar_variant(layer_path, variant)

@@ -490,6 +490,47 @@ def _relative_to_layer(path, out_path: Path) -> str:
         return target.as_posix()
 
 
+def recorded_inputs(layer_path) -> dict[str, str] | None:
+    """``{real path: sha256}`` of the inputs a usdface layer records (``customLayerData["usdface"]``, paths
+    relative to the layer), or None for a file that is not a usdface layer (or not a readable layer)."""
+    from pxr import Sdf
+
+    layer_path = Path(layer_path)
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(layer_path))
+        record = dict(layer.customLayerData).get("usdface") if layer is not None else None
+    except Exception:  # noqa: BLE001 - not a layer: nothing recorded
+        return None
+    if not hasattr(record, "get") or not record.get("inputs"):
+        return None
+    return {os.path.realpath(os.path.join(layer_path.parent, str(p))): str(d)
+            for p, d in zip(record.get("inputs") or [], record.get("inputDigests") or [], strict=False)}
+
+
+def stale_inputs(layer_path, given=()) -> list[str]:
+    """What makes a usdface layer's result stale for the files at hand: a recorded input changed since the
+    layer was written (sha256 differs), and each of ``given`` (e.g. the capture a review scores) that is not
+    among the layer's recorded inputs. Messages for a warning; [] when all agree or nothing is recorded."""
+    recorded = recorded_inputs(layer_path)
+    if recorded is None:
+        return []
+    out = []
+    for real, digest in recorded.items():
+        if digest and os.path.exists(real):
+            try:
+                now = file_digest(real)
+            except InputFileError:
+                continue
+            if now != digest:
+                out.append(f"{Path(layer_path).name} was made from {real}, which changed after it was "
+                           "written (sha256 differs): re-run usdface personalize on the current inputs")
+    for g in given:
+        if g is not None and isinstance(g, str | Path) and os.path.realpath(g) not in recorded:
+            out.append(f"{g} is not among the inputs {Path(layer_path).name} records (another capture or "
+                       "person?): its figures describe that file, not this layer's capture")
+    return out
+
+
 def _reproducible() -> bool:
     """Whether ``SOURCE_DATE_EPOCH`` is set (the reproducible-builds convention): then a layer's
     ``createdAt`` is that time and it records no timings, so the same inputs give the same bytes."""

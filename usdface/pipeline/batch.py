@@ -224,25 +224,17 @@ def stale_output(item: BatchItem) -> str:
     out = Path(item.output)
     if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
         return ""
-    from pxr import Sdf
+    from ..io.layers import file_digest, recorded_inputs
 
-    from ..io.layers import file_digest
-
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(out))
-        record = dict(layer.customLayerData).get("usdface") if layer is not None else None
-    except Exception:  # noqa: BLE001 - not readable as a layer: the worker's business, not resume's
+    recorded = recorded_inputs(out)
+    if recorded is None:
         return ""
-    if not hasattr(record, "get") or not record.get("inputs"):
-        return ""
-    recorded = {os.path.realpath(os.path.join(out.parent, str(p))): str(d)
-                for p, d in zip(record.get("inputs") or [], record.get("inputDigests") or [], strict=False)}
+    shown = ", ".join(sorted(recorded))
     for what, path in (("avatar", item.avatar), ("capture", item.capture)):
         real = os.path.realpath(path)
         if real not in recorded:
             return (f"{out.name} exists but was written from another {what} than {path} (it records "
-                    f"{', '.join(str(p) for p in record.get('inputs') or [])}): not this item's result; "
-                    "--force redoes it")
+                    f"{shown}): not this item's result; --force redoes it")
         try:
             changed = recorded[real] and file_digest(path) != recorded[real]
         except Exception:  # noqa: BLE001 - a missing input is the item's error when it runs
