@@ -281,3 +281,28 @@ def test_stale_layers_and_other_captures_are_not_exported_or_reviewed_silently(t
     other.write_bytes(C.read_bytes())
     with pytest.warns(UserWarning, match="other.usda is not among the inputs p.usda records"):
         api.write_review(layer, tmp_path / "r.html", capture=other, fit_errors=False)
+
+
+def test_render_takes_the_meshs_own_channel_names_on_a_name_mapped_layer(tmp_path):
+    """troubleshooting.md: '--shapes names shapes as the mesh has them'; on a layer written with --name-map
+    only the ARKit name worked ('mesh Head has no shape ch17_ctrl'). Both work now, and a comparison names
+    the shape as ARKit does."""
+    import json
+    import re
+
+    from usdface.arkit import ARKIT_NAMES
+    from usdface.cli import main
+
+    idx = {n: i for i, n in enumerate(ARKIT_NAMES)}
+    words = re.compile(r"\b(" + "|".join(sorted(ARKIT_NAMES, key=len, reverse=True)) + r")\b")
+    studio = tmp_path / "studio.usda"
+    studio.write_text(words.sub(lambda m: f"ch{idx[m.group(1)]:02d}_ctrl", A.read_text()))
+    names = tmp_path / "names.json"
+    names.write_text(json.dumps({f"ch{k:02d}_ctrl": n for n, k in idx.items()}))
+    assert main(["personalize", str(studio), str(C), "-o", str(tmp_path / "p.usda"), "--name-map", str(names),
+                 "-q"]) == 0
+    for shapes in ("ch17_ctrl", "jawOpen", "ch17_ctrl,eyeBlinkLeft"):
+        out = tmp_path / f"{shapes.replace(',', '_')}.png"
+        assert main(["render", str(tmp_path / "p.usda"), "--compare", "--shapes", shapes, "-o", str(out),
+                     "-q"]) == 0
+        assert out.is_file()

@@ -107,15 +107,27 @@ def save_figure(fig, out, force: bool = False) -> Path:
     return out
 
 
+def resolve_shape(rig, name: str) -> str | None:
+    """The rig's name for a shape asked as ``name``: itself, or the canonical ARKit name of the channel the
+    mesh authors as ``name`` (a studio's own channel name read through a name map); None if neither."""
+    if name in rig.names:
+        return name
+    tokens = list(rig.source.channel_tokens) if rig.source is not None else []
+    if name in tokens and len(tokens) == len(rig.names):
+        return rig.names[tokens.index(name)]
+    return None
+
+
 def check_shapes(rig, names, path=None) -> None:
     """Refuse (RigError naming ``path`` -- else the rig's file --, the mesh prim and the shapes it has) a
-    shape name ``rig`` lacks, before anything is drawn. An ARKit name asked of a rig whose shapes are not
-    ARKit-named (a studio's own names) points at ``--name-map``."""
+    shape name ``rig`` lacks (by its name or the channel name the mesh authors, :func:`resolve_shape`), before
+    anything is drawn. An ARKit name asked of a rig whose shapes are not ARKit-named (a studio's own names)
+    points at ``--name-map``."""
     from .arkit import ARKIT_SET
     from .errors import RigError
 
     for name in names or ():
-        if name in rig.names:
+        if resolve_shape(rig, name) is not None:
             continue
         more = " ..." if rig.n_shapes > 8 else ""
         fix = f"choose from {', '.join(rig.names[:8])}{more}"
@@ -130,7 +142,7 @@ def check_shapes(rig, names, path=None) -> None:
 
 def _shape_index(rig, name: str) -> int:
     check_shapes(rig, [name])
-    return rig.index(name)
+    return rig.index(resolve_shape(rig, name))
 
 
 def default_shapes(rig, count: int = 5) -> list[str]:
@@ -159,7 +171,7 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view)
         ax.set_title(f"{name} ({disp_mm.max():.1f} mm)")
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -170,8 +182,14 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
     """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
     distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count)."""
     if generic.n_vertices != personalized.n_vertices:
-        raise UsdFaceError(f"cannot compare rigs with {generic.n_vertices} and {personalized.n_vertices} "
-                           "vertices", fix="compare the same mesh of the generic and personalized avatars")
+        def where(rig):
+            src = rig.source
+            return f"{rig.name or 'mesh'} ({src.file}, {src.prim})" if src is not None else rig.name or "mesh"
+
+        raise UsdFaceError(f"cannot compare {where(generic)}, {generic.n_vertices} vertices, with "
+                           f"{where(personalized)}, {personalized.n_vertices} vertices",
+                           fix="compare the same mesh of the generic and personalized avatars (--compare the "
+                               "avatar the layer was made over, --mesh the same mesh)")
     shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
     fig, axes = _figure(3 * len(shapes), ncols=3)
     for row, name in enumerate(shapes):
@@ -187,7 +205,7 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
         axes[3 * row + 2].set_title(f"difference (max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -295,7 +313,7 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
             ax.set_xlim(lo[0] - pad, hi[0] + pad)
             ax.set_ylim(lo[1] - pad, hi[1] + pad)
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
     if out is not None:
         save_figure(fig, out, force)
     return fig

@@ -95,6 +95,8 @@ def run(args) -> int:
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     render.check_shapes(rig, shapes, path)
+    if shapes:            # the mesh's own channel names as the names the rig reads them under
+        shapes = [render.resolve_shape(rig, s) for s in shapes]
     if args.diagnostics:
         _diagnostics(args, path, rig)
     elif args.landmarks:
