@@ -27,3 +27,11 @@ def say_warning(text) -> None:
 
 def reset_warnings() -> None:
     _said.clear()
+
+
+def json_path(path) -> str | None:
+    """A written file as ``--json`` reports it (``"output"``): absolute, whatever the command was given, so
+    every command's document names its output the same way (None when nothing was written)."""
+    import os
+
+    return None if path is None else os.path.abspath(str(path))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warnings
 
-from . import say_warning
+from . import json_path, say_warning
 from .options import add_quiet, positive_float
 
 
@@ -38,7 +38,7 @@ def run_import(args) -> int:
     if args.json:
         import json
 
-        print(json.dumps({"ok": True, "output": str(out), "frames": len(take.times),
+        print(json.dumps({"ok": True, "output": json_path(out), "frames": len(take.times),
                           "seconds": float(take.times[-1]), "fps": float(take.fps), "names": list(take.names),
                           "name_report": take.name_report, "warnings": [str(w.message) for w in caught]},
                          default=str))

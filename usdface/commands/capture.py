@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from . import say_warning
+from . import json_path, say_warning
 from .options import add_quiet, nonnegative_float, nonnegative_int, positive_int, unit_float
 
 
@@ -97,7 +97,7 @@ def run_select(args) -> int:
                    "times_s": [float(result.take.times[f]) for f in s.frames],
                    "peak": [float(v) for v in s.peak], "dominance": [float(v) for v in s.dominance],
                    "strongest_other": list(s.rival), "max_weight": float(s.max_weight)} for s in sel.shapes]
-        print(json.dumps({"ok": True, "output": None if result.out_path is None else str(result.out_path),
+        print(json.dumps({"ok": True, "output": json_path(result.out_path),
                           "threshold": float(sel.threshold), "per_shape": int(sel.per_shape),
                           "train_frames": [int(f) for f in sel.train],
                           "test_frames": [int(f) for f in sel.test], "shapes": shapes,

@@ -3,7 +3,7 @@ rig."""
 
 from __future__ import annotations
 
-from . import say_warning
+from . import json_path, say_warning
 from .options import add_quiet, positive_int, reg_value
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
@@ -111,7 +111,7 @@ def run(args) -> int:
 
         from ..io.layers import json_default
 
-        doc = {"ok": True, "output": str(info["out_path"]), "method": args.method,
+        doc = {"ok": True, "output": json_path(info["out_path"]), "method": args.method,
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
                                                          "warnings", "contact", "frame_weights")}}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from . import json_path
 from .options import add_quiet, nonnegative_float
 
 
@@ -59,7 +60,7 @@ def run(args) -> int:
         picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
                                         force=args.force)
     if args.json:
-        print(json.dumps({"ok": True, "output": str(out), "bytes": size, "meta": meta,
+        print(json.dumps({"ok": True, "output": json_path(out), "bytes": size, "meta": meta,
                           "picture": str(picture) if picture else None}, default=str))
         return 0
     print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "

@@ -499,7 +499,11 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
     if hasattr(data, "get") and data.get("format") in ("capture", "take"):
-        return  # not an avatar: the capture/take readers own those files
+        # not an avatar: the capture/take readers own those files; said, so "0 errors" is not read as a pass
+        kind = data.get("format")
+        yield Issue(INFO, "Readable", "/", f"this is a usdface {kind}, not an avatar: check judges avatars "
+                    "and usdface layers", f"usdface inspect FILE summarises the {kind}")
+        return
     if not _blend_shape_meshes(stage):
         from pxr import Usd, UsdGeom, UsdSkel
 
