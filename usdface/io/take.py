@@ -128,8 +128,11 @@ def read_take_folder(path) -> Take:
     numbers = np.array(numbers)[order]
     rows = np.arange(len(objs)) if len(objs) == len(ll.times) else numbers - numbers[0]
     if rows.max() >= len(ll.times):
-        raise CaptureError(f"OBJ frame {int(numbers[rows.argmax()])} has no CSV row ({len(ll.times)} rows)",
-                           path=csvs[0], fix="the CSV must cover every OBJ frame (row k = frame k)")
+        late = objs[int(rows.argmax())]
+        raise CaptureError(f"OBJ frame {late.relative_to(root) if late.is_relative_to(root) else late} has "
+                           f"no CSV row ({len(ll.times)} rows for {len(objs)} frames)", path=csvs[0],
+                           fix="the CSV must cover every OBJ frame (row k = frame k): export the whole take's "
+                               "weights, or remove the frames past its end")
     first, triangles = read_obj(objs[0])
     points = np.empty((len(objs),) + first.shape)
     points[0] = first

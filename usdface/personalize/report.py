@@ -49,8 +49,8 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
     """
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
-        raise FitError(f"unknown method(s): {', '.join(bad) or '(none)'}", path=capture.source or None,
-                       fix=f"use a comma-separated subset of {','.join(METHODS)}")
+        raise FitError(f"unknown method(s) in --methods: {', '.join(bad) or '(none)'}",
+                       fix=f"use a comma-separated subset of {','.join(METHODS)}")   # an option, not the file
     test = capture.test
     order = None
     if truth is not None:

@@ -557,7 +557,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         face_peak = peak_motion(avatar_face_deltas)
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                                     path=capture.source or None, avatar_peak=face_peak)
+                                     path=capture.source or None, avatar_peak=face_peak,
+                                     avatar_mesh=f"{face_prim} of {Path(avatar.file).name}")
         timings["register"] = time.perf_counter() - t
         report["registration"] = registration.as_dict()
         sim = registration.transform

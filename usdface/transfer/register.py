@@ -192,7 +192,7 @@ def _scale_guess(capture_points, avatar_points) -> float:
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
                   path=None, initial: Similarity | None = None, target=None,
-                  avatar_peak=None) -> Registration:
+                  avatar_peak=None, avatar_mesh: str | None = None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -207,7 +207,8 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     times the face's size.
 
     ``avatar_peak[n]``: :func:`usdface.motion.peak_motion` of ``avatar_deltas`` when the caller has it (the
-    pipeline registers the person and the template on the same face: computed once).
+    pipeline registers the person and the template on the same face: computed once). ``avatar_mesh``: the
+    mesh's name for the error (e.g. ``"/Avatar/Head of avatar.usdc"``: a ``--face-mesh`` choice shows).
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
     ap = np.asarray(avatar_points, dtype=np.float64)
@@ -258,8 +259,12 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     result = best[1]
     size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
     if result.fitness < min_fitness or result.residual > max_residual_ratio * size:
+        text = _no_overlap_text(result, size, size0, ext_a, min_fitness, max_residual_ratio)
+        if avatar_mesh:        # which avatar mesh it was registered against (a --face-mesh choice, say)
+            text = text.replace("the avatar face mesh", f"the avatar mesh {avatar_mesh}", 1).replace(
+                "the avatar face after", f"the avatar mesh {avatar_mesh} after", 1)
         raise RegistrationError(
-            _no_overlap_text(result, size, size0, ext_a, min_fitness, max_residual_ratio), path=path,
+            text, path=path,
             fix="check that the avatar mesh registered against is the face's skin (pick it with "
                 "--face-mesh, not the mouth, teeth or eyes), that the capture and the avatar show the same "
                 "kind of face and that the avatar's blend shapes are ARKit-named")
