@@ -131,8 +131,8 @@ def read_take_folder(path) -> Take:
         late = objs[int(rows.argmax())]
         raise CaptureError(f"OBJ frame {late.relative_to(root) if late.is_relative_to(root) else late} has "
                            f"no CSV row ({len(ll.times)} rows for {len(objs)} frames)", path=csvs[0],
-                           fix="the CSV must cover every OBJ frame (row k = frame k): export the whole take's "
-                               "weights, or remove the frames past its end")
+                           fix="the CSV must cover every OBJ frame (row k = frame k): export the whole "
+                               "take's weights, or remove the frames past its end")
     first, triangles = read_obj(objs[0])
     points = np.empty((len(objs),) + first.shape)
     points[0] = first
