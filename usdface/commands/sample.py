@@ -49,7 +49,11 @@ def run(args) -> int:
     out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
                            template=args.template, **noise)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
-    size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
+    # what this run wrote (a --force run over an older folder keeps files it does not write: not counted)
+    written = [Path(out) / n for n in ("README.txt", "avatar.usda", "capture.usda", "truth")]
+    written += [Path(out) / "capture"] if args.folder else []
+    size = sum(f.stat().st_size for w in written for f in ([w] if w.is_file() else w.rglob("*"))
+               if f.is_file())
     picture = None
     if args.picture:
         from ..sample import build_samples

@@ -355,9 +355,10 @@ def _merge_into(tmp: Path, dest: Path) -> None:
     stale = sorted(rel.as_posix() for rel in others
                    if rel.parent != Path(".") and rel.suffix.lower() in kinds)
     if stale:
-        raise OutputExistsError(f"{len(stale)} file(s) in the folders usdface writes would stay from another "
-                                f"run and be read as part of this output (e.g. {dest / stale[0]})", path=dest,
-                                fix="delete them, or choose a new folder")
+        raise OutputExistsError(f"{len(stale)} file(s) in sub-folders of {dest.name}, of kinds this run "
+                                "writes there, would stay from another run and could be read as part of this "
+                                f"output (e.g. {dest / stale[0]})", path=dest,
+                                fix="delete them (or the sub-folder), or choose a new folder")
     backup = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
     done: list[tuple[Path, bool]] = []
     made: list[Path] = []
