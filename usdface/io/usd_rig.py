@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import os
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -604,12 +605,13 @@ def refuse_usdface_output(path) -> None:
         inputs = data.get("inputs") or []
         original = f" ({Path(str(inputs[0])).name})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
+        source = shlex.quote(str(flat.get("source", "LAYER")))         # a command one can paste
         raise AlreadyPersonalizedError(
             f"this is a flattened export of the personalized variant of the usdface layer "
             f"{flat.get('source', '?')}; personalizing it again would stack the personalization on the "
             "personalized shapes", path=path,
-            fix=f"flatten the generic variant instead (usdface export {flat.get('source', 'LAYER')} "
-                f"--flatten {generic} --variant generic) or pass the original avatar{original}")
+            fix=f"flatten the generic variant instead (usdface export {source} --flatten "
+                f"{shlex.quote(generic)} --variant generic) or pass the original avatar{original}")
     if not _has_personalization(path):
         return          # one that personalizes nothing (a landmarks layer), or a flattened generic one
     original = generic_input(path) or Path(path).parent / str(data["inputs"][0])
