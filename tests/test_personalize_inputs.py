@@ -155,3 +155,18 @@ def test_dev1_capture_repeats_its_rest_frame():
     groups = duplicate_frames(train.points, train.weights)
     assert sum(len(g) - 1 for g in groups) == 23 and max(len(g) for g in groups) == 12
     assert [train.label[i] for i in groups[0]] == ["000_eyeBlinkLeft", "007_eyeBlinkRight"]
+
+
+def test_inspect_of_a_capture_lists_its_repeated_frames(tmp_path):
+    """``inspect`` of a capture says which training frames are copies (the fit warns about them too)."""
+    from usdface.inspect import format_report, summarize_capture
+
+    cap = tiny_capture(F=8, K=3)
+    fr = cap.frames
+    pts, w = fr.points.copy(), fr.weights.copy()
+    pts[4], w[4] = pts[2], w[2]
+    cap.frames = Frames(pts, w, fr.role, [f"{i:03d}_x" for i in range(8)])
+    report = summarize_capture(cap)
+    assert report["repeatedFrames"] == [["002_x", "004_x"]]
+    assert "repeated exactly: 1 training frame(s)" in format_report(report)
+    assert summarize_capture(tiny_capture(F=8, K=3))["repeatedFrames"] == []

@@ -153,6 +153,12 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
     whole = capture.whole_take
     if whole:
         out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
+    else:                 # frames stored more than once (one scan for several requested shapes)
+        from .personalize.api import duplicate_frames
+
+        train = capture.train
+        out["repeatedFrames"] = [[train.label[i] for i in g]
+                                 for g in duplicate_frames(train.points, train.weights)]
     if layer_info:
         out["stageMetadata"] = layer_info.get("stage", {})
         out["schemas"] = {p: v for p, v in layer_info.get("schemas", {}).items()}
@@ -254,6 +260,12 @@ def format_report(report: dict) -> str:
                      + ", ".join(f"{r}: {v['count']}" for r, v in report["roles"].items()) + ")")
         for role, v in report["roles"].items():
             lines.append(_names_line(role, v["labels"], 8))
+        groups = report.get("repeatedFrames") or []
+        if groups:
+            lines.append(f"  repeated exactly: {sum(len(g) - 1 for g in groups)} training frame(s) are "
+                         f"copies of another ({len(groups)} group(s): one scan for several requested shapes)")
+            for g in sorted(groups, key=len, reverse=True)[:3]:
+                lines.append(_names_line("same frame", g, 6))
         lines.append(f"  shapes: {report['shapes']} (template {report['templateShapes']})")
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
