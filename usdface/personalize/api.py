@@ -245,7 +245,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     t0 = time.perf_counter()
     warn = check_capture(capture)
     for w in warn:
-        warnings.warn(w, stacklevel=2)
+        warnings.warn(w, stacklevel=3)  # past the single-threaded-BLAS wrapper: the caller's line
     info: dict = {"method": method, "warnings": warn, "timings": timings}
     t1 = time.perf_counter()
     generic = _generic_shapes(capture, eyelids)
