@@ -266,3 +266,39 @@ def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, val
         personalize_batch(path, jobs=1)
     assert needle in str(err.value) and "m.csv" in str(err.value)
     assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
+
+
+def slow_worker(item: dict) -> None:
+    """Marks that it started, then takes 30 s before writing ``output``."""
+    import time
+
+    Path(item["output"] + ".started").write_text("")
+    time.sleep(30)
+    stub_worker(item)
+
+
+def test_sigterm_stops_a_batch_now(tmp_path):
+    """A terminated batch (SIGTERM to the parent, as a queue's kill) ran every queued item to its end before
+    exiting (33 s for four 15 s items on two processes); it stops the pool and exits 143 at once."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    manifest = _manifest(tmp_path, ["a", "b", "c", "d"])
+    tests = Path(__file__).resolve().parent
+    code = ("import sys\nfrom usdface.cli import main\n"
+            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
+            f"'{Path(__file__).stem}:slow_worker']\nsys.exit(main())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not list((tmp_path / "out").glob("*.started")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    start = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert time.monotonic() - start < 15 and "terminated" in err
+    assert not list((tmp_path / "out").glob("*.usda"))

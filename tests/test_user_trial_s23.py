@@ -169,7 +169,8 @@ def test_sigterm_leaves_no_temporary_files(tmp_path):
             "    return real(*a, **k)\n"
             "m.write_obj = write_obj\n"
             "from usdface.cli import main\n"
-            f"sys.exit(main(['export', {str(A)!r}, '--obj-dir', 'objs', '-q']))\n")
+            f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+            "sys.exit(main())\n")              # as the console script runs it (argv from sys.argv)
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 143, proc.stderr
@@ -306,3 +307,29 @@ def test_render_takes_the_meshs_own_channel_names_on_a_name_mapped_layer(tmp_pat
         assert main(["render", str(tmp_path / "p.usda"), "--compare", "--shapes", shapes, "-o", str(out),
                      "-q"]) == 0
         assert out.is_file()
+
+
+def test_a_host_calling_main_keeps_its_own_sigterm_handling(tmp_path):
+    """Called in-process with arguments (a DCC, a farm wrapper), ``main`` leaves SIGTERM to the host: the
+    host's handler runs (the review found it swallowed and the host's SIG_IGN lost)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, signal, sys\n"
+            "calls = []\n"
+            "signal.signal(signal.SIGTERM, lambda *a: calls.append(1))\n"
+            "import usdface.io.mesh_io as m\n"
+            "real, n = m.write_obj, [0]\n"
+            "def write_obj(*a, **k):\n"
+            "    n[0] += 1\n"
+            "    if n[0] == 10:\n"
+            "        os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    return real(*a, **k)\n"
+            "m.write_obj = write_obj\n"
+            "from usdface.cli import main\n"
+            f"code = main(['export', {str(A)!r}, '--obj-dir', 'objs', '-q'])\n"
+            "print(code, calls)\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 0 and proc.stdout.splitlines()[-1] == "0 [1]", (proc.stdout, proc.stderr)

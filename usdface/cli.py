@@ -82,12 +82,16 @@ def _on_sigterm(signum, frame):
 
 def main(argv=None) -> int:
     """Run one command; the exit status: 0 done, 1 findings (check, batch failures), 2 an error, 130
-    interrupted (Ctrl-C), 143 terminated (SIGTERM), 141 a closed pipe."""
+    interrupted (Ctrl-C), 143 terminated (SIGTERM), 141 a closed pipe.
+
+    Run as the ``usdface`` program (``argv`` None: the console script, ``python -m usdface``), SIGTERM is
+    turned into :class:`Terminated` so the atomic writers clean up; called with ``argv`` from a host
+    application, the host's own signal handling is left alone."""
     import signal
     import threading
 
     previous = None
-    if threading.current_thread() is threading.main_thread():
+    if argv is None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return _main(argv)

@@ -345,46 +345,80 @@ def _run_pool(worker, todo, jobs, advance):
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                              initializer=init_worker) as pool:
         futures = {pool.submit(run_item, worker, item): item for item in todo}
-        for fut in as_completed(futures):
-            item = futures[fut]
-            try:
-                res = fut.result()
-            except BrokenProcessPool:
-                again.append(item)
-                continue
-            except Exception as exc:  # the item's result could not come back (pickling...)
-                res = _crashed(item, exc)
-            yield res
-            advance(Path(item["output"]).name, res.get("status", DONE))
+        try:
+            for fut in as_completed(futures):
+                item = futures[fut]
+                try:
+                    res = fut.result()
+                except BrokenProcessPool:
+                    again.append(item)
+                    continue
+                except Exception as exc:  # the item's result could not come back (pickling...)
+                    res = _crashed(item, exc)
+                yield res
+                advance(Path(item["output"]).name, res.get("status", DONE))
+        except BaseException:        # Ctrl-C, SIGTERM: stop now, not after every queued item has run
+            _stop_pool(pool)
+            raise
     if again:
         yield from _run_isolated(worker, sorted(again, key=lambda it: it["index"]), jobs, advance)
 
 
-def _one_process(worker, item) -> dict:
-    """``run_item(worker, item)`` in a fresh worker process of its own; its death fails this item only."""
+def _stop_pool(pool) -> None:
+    """Cancel a process pool's queued items and end its worker processes (an interrupted batch: leaving the
+    ``with`` block would otherwise wait for every submitted item). The items' own atomic writes leave
+    nothing half-written."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())   # no public API before 3.14; taken
+    pool.shutdown(wait=False, cancel_futures=True)                       # before shutdown forgets them
+    for proc in procs:
+        try:
+            proc.terminate()
+        except (OSError, AttributeError, ValueError):
+            pass
+
+
+def _one_process(worker, item, pools: list, stopping) -> dict:
+    """``run_item(worker, item)`` in a fresh worker process of its own; its death fails this item only.
+    The pool is listed in ``pools`` while it runs (so an interrupt can end it); none is started once
+    ``stopping`` is set."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
+    if stopping.is_set():
+        return _crashed(item, RuntimeError("the batch was interrupted"))
     with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                              initializer=init_worker) as pool:
+        pools.append(pool)
         try:
             return pool.submit(run_item, worker, item).result()
         except Exception as exc:  # the process died (BrokenProcessPool) or the result did not come back
             return _crashed(item, exc)
+        finally:
+            pools.remove(pool)
 
 
 def _run_isolated(worker, todo, jobs, advance):
     """Every item in a process of its own, ``jobs`` at a time (after a worker process died in the shared
     pool: the culprit is not known, so no item may take another down with it)."""
+    import threading
     from concurrent.futures import ThreadPoolExecutor, as_completed
 
+    pools: list = []
+    stopping = threading.Event()
     with ThreadPoolExecutor(max_workers=jobs) as threads:
-        futures = {threads.submit(_one_process, worker, item): item for item in todo}
-        for fut in as_completed(futures):
-            item = futures[fut]
-            res = fut.result()
-            yield res
-            advance(Path(item["output"]).name, res.get("status", DONE))
+        futures = {threads.submit(_one_process, worker, item, pools, stopping): item for item in todo}
+        try:
+            for fut in as_completed(futures):
+                item = futures[fut]
+                res = fut.result()
+                yield res
+                advance(Path(item["output"]).name, res.get("status", DONE))
+        except BaseException:        # Ctrl-C, SIGTERM: end the running processes, start no more
+            stopping.set()
+            threads.shutdown(wait=False, cancel_futures=True)
+            for pool in list(pools):
+                _stop_pool(pool)
+            raise
 
 
 def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
