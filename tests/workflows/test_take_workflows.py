@@ -111,6 +111,23 @@ def test_takes_are_told_from_captures(scan_take, sample_set, tmp_path):
     layer.Save()
     del layer
     assert probe_take(tmp_path / "plain.usda")[0]
+    # arcs and sublayers elsewhere do not change the answer (the review found a looks reference, a
+    # sublayer and a template in a file of its own turned real takes into "captures")
+    looks = tmp_path / "looks.usda"
+    looks.write_text('#usda 1.0\ndef Scope "Looks"\n{\n}\n')
+    text = (tmp_path / "plain.usda").read_text()
+    (tmp_path / "withlooks.usda").write_text(
+        text + '\ndef Scope "Looks" (\n    references = @./looks.usda@\n)\n{\n}\n')
+    (tmp_path / "withsub.usda").write_text(text.replace("#usda 1.0\n(", "#usda 1.0\n(\n    subLayers = "
+                                                        "[@./looks.usda@]", 1))
+    assert "subLayers" in (tmp_path / "withsub.usda").read_text()
+    assert probe_take(tmp_path / "withlooks.usda")[0] and probe_take(tmp_path / "withsub.usda")[0]
+    # a shot file that animates a mesh of a referenced avatar (an over) is not a take
+    (tmp_path / "shot.usda").write_text(
+        '#usda 1.0\ndef "Hero" (\n    references = @' + (sample_set / "avatar.usda").as_posix() + '@\n)\n{\n'
+        '    over "Head"\n    {\n        point3f[] points.timeSamples = {\n            1: [(0, 0, 0)],\n'
+        '            2: [(0, 0, 1)],\n        }\n    }\n}\n')
+    assert not probe_take(tmp_path / "shot.usda")[0]
     proc = run("evaluate", d / "take.usdc", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "capture select" in proc.stderr and "Traceback" not in proc.stderr
 

@@ -345,10 +345,11 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
 def is_take(path) -> bool:
     """True when ``path`` is a take rather than a capture: a folder with ``frames/`` or a Live Link CSV and
     no ``train/``; a USD file marked ``format = "take"`` by :func:`write_take_usd`, or, unmarked, one whose
-    root layer has time-sampled ``points``, no capture ``usdface:frames:role``, no blend shapes and no
-    sublayer, reference or payload (an avatar with an animated cache mesh is an avatar, and so is a shot file
-    that adds one over a referenced avatar). A capture (or anything else) is False, so its reader
-    reports what is wrong with it."""
+    root layer *defines* a mesh with time-sampled ``points`` and has no capture ``usdface:frames:role`` and
+    no blend shapes outside the take's own ``Template`` rig (an avatar with an animated cache mesh is an
+    avatar, and so is a shot file whose cache is an ``over`` of a referenced avatar); arcs and sublayers
+    elsewhere (a take's looks, its template in a file of its own) do not change the answer. A capture (or
+    anything else) is False, so its reader reports what is wrong with it."""
     return probe_take(path)[0]
 
 
@@ -374,8 +375,10 @@ def probe_take(path) -> tuple[bool, object]:
         return kind == "take", layer
     # the layer's own specs, not a composed stage: opening one here would report its composition errors
     # (a missing sublayer) a second time, outside the reader that names them with their fix
-    # an avatar (blend shapes bound to a mesh) is not a take even where one of its meshes is an animated
-    # cache (a hair cache, a baked ground truth): its reader, not the take reader, judges it
+    # an avatar (blend shapes bound to a mesh outside a take's own Template rig) is not a take even where one
+    # of its meshes is an animated cache (a hair cache, a baked ground truth); nor is a shot file whose
+    # animated mesh is an ``over`` of something it composes (a cache over a referenced avatar): a take
+    # *defines* its frames mesh
     seen = {"role": False, "points": False, "blend": False}
 
     def visit(spec_path):
@@ -383,21 +386,17 @@ def probe_take(path) -> tuple[bool, object]:
             if spec_path.name == "usdface:frames:role":
                 seen["role"] = True
             elif spec_path.name == "points" and layer.GetNumTimeSamplesForPath(spec_path) > 1:
-                seen["points"] = True
+                owner = layer.GetPrimAtPath(spec_path.GetPrimPath())
+                if owner is not None and owner.specifier == Sdf.SpecifierDef:
+                    seen["points"] = True
             elif spec_path.name == "skel:blendShapes" and not _in_template(spec_path):
                 seen["blend"] = True
         elif spec_path.IsPrimPath():
             spec = layer.GetPrimAtPath(spec_path)
-            # a BlendShape outside the take's own template rig (<root>/Template, read_take_usd), or an arc
-            # that brings in what the root layer does not show (a shot file's animated cache over a
-            # referenced avatar): not judged a take from these specs alone
-            if spec is not None and ((spec.typeName == "BlendShape" and not _in_template(spec_path))
-                                     or spec.hasReferences or spec.hasPayloads):
+            if spec is not None and spec.typeName == "BlendShape" and not _in_template(spec_path):
                 seen["blend"] = True
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-    if layer.subLayerPaths:
-        seen["blend"] = True
     return seen["points"] and not seen["role"] and not seen["blend"], layer
 
 
