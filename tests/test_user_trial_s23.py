@@ -333,3 +333,21 @@ def test_a_host_calling_main_keeps_its_own_sigterm_handling(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 0 and proc.stdout.splitlines()[-1] == "0 [1]", (proc.stdout, proc.stderr)
+
+
+def test_json_documents_stay_parseable_when_something_warns(tmp_path, capsys, monkeypatch):
+    """A warning line went to stdout before the ``--json`` document (seen with an ImportWarning of six's
+    importer under Dask, and any library warning): stdout is the document alone, warnings go to stderr."""
+    import json
+
+    import usdface.personalize.api as fit_api
+    from usdface.cli import main
+
+    real = fit_api.check_capture
+    monkeypatch.setattr(fit_api, "check_capture", lambda c: real(c) + ["a library warning"])
+    assert main(["fit", str(C), "-o", str(tmp_path / "r.usda"), "--reg", "0.01", "--json"]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert doc["ok"] and "a library warning" in doc["warnings"] and "warning: a library warning" in err
+    assert main(["fit", str(C), "-o", str(tmp_path / "s.usda"), "--reg", "0.01", "-q"]) == 0
+    assert "warning: a library warning" in capsys.readouterr().out       # text mode: as before

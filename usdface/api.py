@@ -701,6 +701,9 @@ def check_personalize_options(**options: Any) -> None:
     if unknown:
         raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
                            fix="drop them, or use one of: " + ", ".join(sorted(known)))
+    for name in ("inspect", "landmarks", "dry_run", "force"):
+        if name in options and not isinstance(options[name], bool):
+            raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
     _pipeline._check_modes(get("face_transfer", "person"), get("approximation", "field"),
                            get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
@@ -747,6 +750,10 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
             except UsdFaceError as exc:
                 raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
+            except (TypeError, ValueError) as exc:      # a value of the wrong shape for its option
+                raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
+                                     fix="fix the manifest's option columns (docs/personalize.md, Options)") \
+                    from None
     report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
     report.report_path = Path(report.write(path))
     return report

@@ -124,12 +124,14 @@ def _main(argv=None) -> int:
     from . import progress
     from .commands import reset_warnings, say_warning
 
-    reset_warnings()
+    reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
     # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it)
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
+            # third-party import machinery (six's importer under Dask) is not the user's business
+            warnings.filterwarnings("ignore", category=ImportWarning)
             warnings.showwarning = lambda message, *_a, **_k: say_warning(message)
             code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit

@@ -13,20 +13,26 @@ def add_name_map_option(p) -> None:
 
 
 _said: set[str] = set()
+#: Where ``warning:`` lines go: stdout with the command's text, stderr when stdout carries a ``--json``
+#: document (a warning line there would make it unparseable); set per run by :func:`reset_warnings`.
+_to_stderr = [False]
 
 
 def say_warning(text) -> None:
     """Print ``warning: TEXT`` once per command run (a warning raised by the library and the same text in a
     result's ``warnings`` list are said once)."""
+    import sys
+
     text = str(text).strip()
     if text in _said:
         return
     _said.add(text)
-    print(f"warning: {text}")
+    print(f"warning: {text}", file=sys.stderr if _to_stderr[0] else sys.stdout)
 
 
-def reset_warnings() -> None:
+def reset_warnings(json_on_stdout: bool = False) -> None:
     _said.clear()
+    _to_stderr[0] = bool(json_on_stdout)
 
 
 def json_path(path) -> str | None:

@@ -3,7 +3,6 @@ write a report, resume."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from .options import add_quiet, positive_int
@@ -14,11 +13,10 @@ def _option(text: str) -> tuple[str, object]:
 
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    from ..pipeline.batch import _coerce
+
     key, value = text.split("=", 1)
-    try:
-        return key.strip(), json.loads(value)
-    except ValueError:
-        return key.strip(), value
+    return key.strip(), _coerce(value)          # as a manifest cell: True/FALSE, numbers, JSON
 
 
 def register(subparsers) -> None:

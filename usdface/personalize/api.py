@@ -480,10 +480,11 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
     ignore, a bad ``contact`` or ``prior``, an avatar prior the chosen ``prior`` ignores. Raises
     :class:`FitError` naming the option and the fix. (``frame_weights`` and ``pins`` need the capture: the
     fit checks them.)"""
-    del eyelids, rounds, frame_weights, pins
+    del frame_weights, pins
     check_every(every)
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}", path=path, fix=f"use one of {', '.join(METHODS)}")
+    _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds, options)
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
     if contact not in ("auto", "on", "off"):
         raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
@@ -502,6 +503,39 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
                        fix="use prior='auto' (with reg='auto') or 'avatar'")
     if not avatar_prior and prior == "avatar":
         raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
+
+
+def _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds, options) -> None:
+    """The option *values* :func:`fit_personalized_shapes` would choke on later, refused now (FitError): a
+    ``reg`` that is not "auto", "paper" or a finite number >= 0; a ``clamp`` not > 0; ``weight_sigma`` not
+    "auto" or > 0; ``rounds`` not a whole number >= 1; ``align``/``reweight``/``eyelids`` not booleans (a
+    manifest's string "False" would count as true); ebfr's ``beta`` not "auto" or a number >= 0."""
+    def number(name, value, low, inclusive, fix, keywords=()):
+        if isinstance(value, str) and value in keywords:
+            return
+        ok = not isinstance(value, bool)                      # a number, or a numeric string ("0.1")
+        if ok:
+            try:
+                x = float(value)
+            except (TypeError, ValueError):
+                ok = False
+            else:
+                ok = bool(np.isfinite(x)) and (x > low or (inclusive and x == low))
+        if not ok:
+            raise FitError(f"bad {name} {value!r}", fix=fix)
+
+    number("reg", reg, 0.0, True, "use 'auto', 'paper' or a number >= 0", ("auto", "paper"))
+    number("clamp", clamp, 0.0, False, "a number > 0 (eq. 3's clamp, 1e5)")
+    number("weight_sigma", weight_sigma, 0.0, False, "use 'auto' or a number > 0", ("auto",))
+    if isinstance(rounds, bool) or not isinstance(rounds, int | np.integer) or rounds < 1:
+        raise FitError(f"bad rounds {rounds!r}", fix="a whole number >= 1 (2)")
+    for name, value in (("align", align), ("reweight", reweight), ("eyelids", eyelids)):
+        if value is not None and not isinstance(value, bool | np.bool_):
+            raise FitError(f"bad {name} {value!r}: not a boolean", fix=f"{name}=true or false")
+    if "beta" in options:
+        beta = options["beta"]
+        if not (isinstance(beta, str) and beta == "auto"):
+            number("beta", beta, 0.0, True, "use 'auto' or a number >= 0 (Li et al.: 0.5)")
 
 
 def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):

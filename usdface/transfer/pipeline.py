@@ -732,7 +732,11 @@ def _check_modes(face_transfer: str, approximation: str, prior: str, weight_boun
     if map_prior not in MAP_PRIORS:
         raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
     if weight_bounds is not None:
-        lo, hi = (float(b) for b in weight_bounds)
+        try:
+            lo, hi = (float(b) for b in weight_bounds)
+        except (TypeError, ValueError):
+            raise UsdFaceError(f"bad weight bounds {weight_bounds!r}",
+                               fix="give two numbers LO < HI, e.g. [0, 1] (or --unbounded)") from None
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise UsdFaceError(f"bad weight bounds {lo:g} {hi:g}",
                                fix="give LO < HI, e.g. 0 1 (or --unbounded)")
