@@ -351,3 +351,19 @@ def test_json_documents_stay_parseable_when_something_warns(tmp_path, capsys, mo
     assert doc["ok"] and "a library warning" in doc["warnings"] and "warning: a library warning" in err
     assert main(["fit", str(C), "-o", str(tmp_path / "s.usda"), "--reg", "0.01", "-q"]) == 0
     assert "warning: a library warning" in capsys.readouterr().out       # text mode: as before
+
+
+def test_review_of_a_landmarks_layer(tmp_path, capsys):
+    """``review`` of a ``usdface landmarks`` layer took the avatar (its second recorded input) for the
+    capture ('this is a rig, not a capture') and, given --capture, refit with method 'landmarks'."""
+    from usdface.cli import main
+
+    assert main(["personalize", str(A), str(C), "-o", str(tmp_path / "p.usda"), "-q"]) == 0
+    assert main(["landmarks", str(tmp_path / "p.usda"), "-o", str(tmp_path / "lm.usda"), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["review", str(tmp_path / "lm.usda"), "-o", str(tmp_path / "a.html"), "-q"]) == 0
+    assert main(["review", str(tmp_path / "lm.usda"), "-o", str(tmp_path / "b.html"), "--capture", str(C),
+                 "-q"]) == 0
+    out = capsys.readouterr()
+    assert "not among the inputs" not in out.out + out.err
+    assert "menzel refit" in (tmp_path / "b.html").read_text()

@@ -811,8 +811,13 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
     from . import progress
     from .io.layers import stale_inputs
+    from .io.usd_rig import read_layer_info
+    from .review.collect import _fitted
 
-    for text in stale_inputs(layer_path, [capture] if isinstance(capture, str | Path) else []):
+    record = read_layer_info(layer_path).get("usdface") or {}
+    # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
+    given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
+    for text in stale_inputs(layer_path, given):
         warnings.warn(text, UserWarning, stacklevel=2)          # the page is a sign-off: say it first
     with progress.steps("review", 2) as advance:
         data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)

@@ -22,11 +22,12 @@ TEST_HOLD_S = 0.75
 
 
 def recorded_capture(layer_path, info: dict) -> Path | None:
-    """The capture a usdface layer was made from (the second input in its provenance, which is recorded
-    relative to the layer), when it still exists; else None."""
+    """The capture a usdface layer was made from (the second input in the provenance of a personalize
+    layer, which is recorded relative to the layer), when it still exists; else None (also for a layer of
+    another command, e.g. ``usdface landmarks``)."""
     inputs = list(info.get("inputs") or [])
-    if len(inputs) < 2:
-        return None
+    if len(inputs) < 2 or not _fitted(info):
+        return None       # a landmarks layer records the avatar (and its layers) only: no capture
     p = Path(inputs[1])
     p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
     return p.resolve() if p.exists() else None
@@ -105,6 +106,14 @@ def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
     return meshes
 
 
+def _fitted(info: dict) -> bool:
+    """Whether the layer's provenance is a personalize run's (a fit method), not another command's."""
+    from ..personalize.api import METHODS
+
+    params = dict(info.get("parameters") or {})
+    return str(info.get("method") or params.get("method") or "menzel") in METHODS
+
+
 def _fit_errors(capture, info: dict) -> dict | None:
     """Eq. 5 on the capture's test expressions: the generic template vs the person's fitted shapes (refit
     with the layer's recorded method and regularisation)."""
@@ -119,6 +128,8 @@ def _fit_errors(capture, info: dict) -> dict | None:
                       "generic")
     params = dict(info.get("parameters") or {})
     method = str(info.get("method") or params.get("method") or "menzel")
+    if not _fitted(info):
+        method = "menzel"      # a landmarks layer given a --capture: the default fit scores the capture
     reg = params.get("reg", "auto")
     try:
         reg = float(reg)
