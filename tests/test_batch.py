@@ -215,7 +215,8 @@ def _usdface_layer(path: Path, inputs, digests) -> None:
 def test_resume_skips_only_the_items_own_results(tmp_path):
     """An existing output counted as finished even when it was written from another avatar or from inputs
     changed since (the row was edited, the capture re-recorded): such an item fails with the reason and the
-    --force hint instead of being reported 'skipped'; a studio worker's non-USD output is still skipped."""
+    --force hint instead of being reported 'skipped'; a non-layer output is still skipped, and so is every
+    output of a studio's own worker (it may prepare its own inputs)."""
     from usdface.io.layers import file_digest
 
     for n in ("a", "b", "c"):
@@ -231,8 +232,10 @@ def test_resume_skips_only_the_items_own_results(tmp_path):
     _usdface_layer(tmp_path / "out" / "c.usda", ["../c.usdc", "../c_capture"],
                    [d["c"], "0" * 64])                                            # its capture changed since
     (tmp_path / "out" / "d.usda").write_text("not a layer")                      # a studio worker's output
-    report = run_batch(read_manifest(manifest), worker=stub_worker, jobs=1, progress=False)
-    assert [r.status for r in report.results] == [SKIPPED, FAILED, FAILED, SKIPPED]
+    from usdface.pipeline.batch import personalize_worker
+
+    report = run_batch(read_manifest(manifest), worker=personalize_worker, jobs=1, progress=False)
+    assert [r.status for r in report.results] == [SKIPPED, FAILED, FAILED, SKIPPED]   # nothing ran
     b, c = report.results[1], report.results[2]
     assert b.error_type == "StaleOutput" and "another avatar" in b.error and "--force" in b.error
     assert "capture" in c.error and "changed after it was written" in c.error
@@ -302,3 +305,15 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     assert proc.returncode == 143, err
     assert time.monotonic() - start < 15 and "terminated" in err
     assert not list((tmp_path / "out").glob("*.usda"))
+
+
+def test_manifest_refuses_an_output_inside_another_items_input_folder(tmp_path):
+    """Item 2 writing into item 1's capture folder changed that input (item 1 then stale on every resume)."""
+    (tmp_path / "cap").mkdir()
+    path = tmp_path / "m.csv"
+    path.write_text("avatar,capture,output\na.usda,cap,out/a.usda\na.usda,cap2,cap/b.usda\n\n,,\n")
+    with pytest.raises(InputFileError, match="item 2 writes .*cap/b.usda inside .*cap, the capture folder "
+                                             "item 1 reads"):
+        read_manifest(path)
+    path.write_text("avatar,capture,output\na.usda,cap,out/a.usda\n,,\n")     # trailing empty rows: no items
+    assert len(read_manifest(path)) == 1

@@ -60,7 +60,7 @@ def take_line(info: dict) -> str | None:
     fw = info.get("frame_weights")
     if not fw:
         return None
-    every = f" (every {info['whole_take_every']}th)" if info.get("whole_take_every") else ""
+    every = f" (every {_ordinal(info['whole_take_every'])} frame)" if info.get("whole_take_every") else ""
     if fw["mode"].startswith("equally"):
         return f"whole take: {fw['frames']} frames{every} weighted {fw['mode']}"
     return (f"whole take: {fw['frames']} frames{every} weighted {fw['mode']} (as many as "
@@ -130,3 +130,10 @@ def run(args) -> int:
     for w in info["warnings"]:
         say_warning(w)
     return 0
+
+
+def _ordinal(n: int) -> str:
+    """2nd, 3rd, 4th, 11th, 21st ..."""
+    n = int(n)
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"

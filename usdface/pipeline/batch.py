@@ -154,6 +154,7 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                 raise InputFileError(f"items {outputs[key] + 1} and {it.index + 1} both write {it.output}",
                                      path=path, fix="give every item its own output file")
             outputs[key] = it.index
+    folders: dict[str, tuple[str, int]] = {}        # real path of an input folder -> (what, item)
     for it in items:
         reads = [("avatar", it.avatar), ("capture", it.capture)]
         reads += [(k, it.options[k]) for k in PATH_OPTIONS
@@ -165,6 +166,15 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                                      f"{it.index + 1} reads", path=path,
                                      fix="write outputs to their own files (an input is never overwritten, "
                                          "even with --force)")
+            if os.path.isdir(src):
+                folders.setdefault(os.path.realpath(src), (what, it.index))
+    for it in items:                  # an output inside an input folder changes that input (a capture)
+        for parent in Path(os.path.realpath(it.output)).parents:
+            if str(parent) in folders:
+                what, reader = folders[str(parent)]
+                raise InputFileError(f"item {it.index + 1} writes {it.output} inside {parent}, the {what} "
+                                     f"folder item {reader + 1} reads", path=path,
+                                     fix="write outputs outside the input folders")
 
 
 def read_manifest(path) -> list[BatchItem]:
@@ -200,6 +210,7 @@ def read_manifest(path) -> list[BatchItem]:
                                      path=path, fix="first row: avatar,capture,output[,options]")
             rows = [{k: _coerce(v) if k not in REQUIRED else v for k, v in r.items()
                      if k is not None and v not in (None, "")} for r in reader]
+            rows = [r for r in rows if r]         # a spreadsheet's trailing ",,," rows are no items
     items = []
     for i, row in enumerate(rows):
         missing = [c for c in REQUIRED if not row.get(c)]
@@ -493,7 +504,8 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     todo = []
     for item in items:
         if not force and Path(item.output).exists():
-            stale = stale_output(item)
+            # a studio worker may prepare its own inputs (a converted capture): its outputs are its business
+            stale = stale_output(item) if worker is personalize_worker else ""
             results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
                                        output=item.output, status=FAILED if stale else SKIPPED,
                                        error=stale or "", error_type="StaleOutput" if stale else "")
