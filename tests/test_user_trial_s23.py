@@ -367,3 +367,12 @@ def test_review_of_a_landmarks_layer(tmp_path, capsys):
     out = capsys.readouterr()
     assert "not among the inputs" not in out.out + out.err
     assert "menzel refit" in (tmp_path / "b.html").read_text()
+
+
+def test_check_of_a_take_says_what_it_is(weights_take, capsys):
+    """``check`` of an ``anim import`` take printed a bare '0 error(s)' as if it were a valid rig."""
+    from usdface.cli import main
+
+    assert main(["check", str(weights_take)]) == 0
+    out = capsys.readouterr().out
+    assert "this is a take" in out and "1 info" in out

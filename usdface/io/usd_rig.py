@@ -512,7 +512,8 @@ def _refuse_non_avatar(stage, path: Path) -> None:
     kind = str(data.get("format", "")) if hasattr(data, "get") else ""
     root = stage.GetDefaultPrim()
     if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
-        kind = "capture" if root.GetChild("Neutral") else "take"
+        # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
+        kind = "capture" if root.GetChild("Frames").GetAttribute("usdface:frames:role") else "take"
     if kind not in _NOT_AVATAR and _is_weights_take(stage):
         kind = "animation"
         root = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))

@@ -88,7 +88,9 @@ def check_capture(capture: Capture) -> list[str]:
     if never:
         warn.append(f"shape(s) never activated in training (max weight < {ACTIVATION_MIN}): "
                     f"{', '.join(never)}; they stay at the template's deformation transfer")
-    groups = duplicate_frames(train.points, train.weights)
+    # a take read whole holds near-repeats by nature (a held pose, a doubled frame rate): its frame weights
+    # count a pose once (takefit); the message is about a capture app's picked frames
+    groups = [] if capture.whole_take else duplicate_frames(train.points, train.weights)
     if groups:
         repeats = sum(len(g) - 1 for g in groups)
         shown = "; ".join(" = ".join(train.label[i] for i in g[:4]) + (f" (+{len(g) - 4})" if len(g) > 4
@@ -106,18 +108,28 @@ def duplicate_frames(points: np.ndarray, weights: np.ndarray) -> list[list[int]]
     """Groups of training frames that are exactly the same frame: ``points[F,n,3]`` and ``weights[F,K]``
     equal to the last bit (a capture app that keeps one frame for several requested shapes writes it once per
     shape). Returns the groups of two or more frame indices, ascending, in order of their first frame; [] if
-    every frame is distinct. One sort of the frames' bytes (:func:`numpy.unique`), no pairwise comparison."""
+    every frame is distinct. One hash per frame (``hashlib.blake2b`` of its bytes), a match confirmed
+    exactly; no pairwise comparison and no copy of all frames at once."""
+    import hashlib
+
     F = len(points)
     if F < 2:
         return []
-    rows = np.concatenate([np.ascontiguousarray(points, dtype=np.float64).reshape(F, -1),
-                           np.ascontiguousarray(weights, dtype=np.float64).reshape(F, -1)], axis=1)
-    keys = np.ascontiguousarray(rows).view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1])))[:, 0]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    groups: dict[int, list[int]] = {}
-    for f in np.flatnonzero(counts[inverse] > 1):
-        groups.setdefault(int(inverse[f]), []).append(int(f))
-    return sorted(groups.values())
+    by_hash: dict[bytes, list[int]] = {}
+    for f in range(F):              # one frame's bytes at a time: no [F, 3n + K] copy of a long take
+        h = hashlib.blake2b(np.ascontiguousarray(points[f], dtype=np.float64).tobytes(), digest_size=16)
+        h.update(np.ascontiguousarray(weights[f], dtype=np.float64).tobytes())
+        by_hash.setdefault(h.digest(), []).append(f)
+    groups = []
+    for members in by_hash.values():       # a hash match is confirmed exactly
+        while len(members) > 1:
+            first = members[0]
+            same = [f for f in members if np.array_equal(points[f], points[first])
+                    and np.array_equal(weights[f], weights[first])]
+            if len(same) > 1:
+                groups.append(same)
+            members = [f for f in members if f not in same]
+    return sorted(groups)
 
 
 def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:

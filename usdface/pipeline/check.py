@@ -498,6 +498,14 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
 
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
+    from ..io.take import probe_take
+    from ..io.usd_rig import _is_weights_take
+
+    if _is_weights_take(stage) or (layer.realPath and probe_take(layer.realPath)[0]):
+        yield Issue(INFO, "Readable", "/", "this is a take (a recording: blend-shape weights, and meshes if "
+                    "it has them), not an avatar: check judges avatars and usdface layers",
+                    "usdface inspect FILE summarises the take")
+        return
     if hasattr(data, "get") and data.get("format") in ("capture", "take"):
         # not an avatar: the capture/take readers own those files; said, so "0 errors" is not read as a pass
         kind = data.get("format")
