@@ -55,11 +55,13 @@ SPARSE_RELATIVE_TOLERANCE = 1e-9
 # small public helpers
 # ---------------------------------------------------------------------------------------------------------
 def file_digest(path) -> str:
-    """sha256 hex digest of a file, or of a directory (sorted relative paths + their file digests)."""
+    """sha256 hex digest of a file, or of a directory (sorted relative paths + their file digests; hidden
+    files and folders - a Finder's ``.DS_Store``, an editor's swap file - are not part of a capture)."""
     path = Path(path)
     if path.is_dir():
         h = hashlib.sha256()
-        for child in sorted(p for p in path.rglob("*") if p.is_file()):
+        for child in sorted(p for p in path.rglob("*") if p.is_file()
+                            and not any(part.startswith(".") for part in p.relative_to(path).parts)):
             h.update(child.relative_to(path).as_posix().encode())
             h.update(bytes.fromhex(file_digest(child)))
         return h.hexdigest()

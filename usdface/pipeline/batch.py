@@ -128,7 +128,10 @@ PATH_OPTIONS = ("take", "name_map", "pins", "correspondence")
 def _absolute(base: Path, value) -> str:
     """``value`` relative to ``base`` as an absolute path, symlinks kept (a ``latest -> v003`` link in a
     manifest stays the link in the layer's sublayer path, as with ``usdface personalize``)."""
-    return os.path.normpath(os.path.join(base, os.path.expanduser(str(value))))
+    joined = os.path.join(base, os.path.expanduser(str(value)))
+    # ".." is left to the OS when present: after a symlinked folder it climbs the link's target, which a
+    # lexical normalisation would not
+    return joined if ".." in Path(str(value)).parts else os.path.normpath(joined)
 
 
 def _file_keys(p: str) -> list:
@@ -227,6 +230,21 @@ def read_manifest(path) -> list[BatchItem]:
     return items
 
 
+_DIGESTS: dict = {}
+
+
+def _digest(path) -> str:
+    """:func:`usdface.io.layers.file_digest`, remembered per (real path, size, modification time): a shared
+    avatar behind a thousand rows of a resumed batch is hashed once."""
+    from ..io.layers import file_digest
+
+    st = os.stat(path)
+    key = (os.path.realpath(path), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        _DIGESTS[key] = file_digest(path)
+    return _DIGESTS[key]
+
+
 def stale_output(item: BatchItem) -> str:
     """Why an existing ``item.output`` is not this item's finished result ("" if it is, or if it cannot
     tell): a usdface layer records its inputs and their sha256 (``customLayerData["usdface"]``); one written
@@ -235,7 +253,7 @@ def stale_output(item: BatchItem) -> str:
     out = Path(item.output)
     if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
         return ""
-    from ..io.layers import file_digest, recorded_inputs
+    from ..io.layers import recorded_inputs
 
     recorded = recorded_inputs(out)
     if recorded is None:
@@ -247,7 +265,7 @@ def stale_output(item: BatchItem) -> str:
             return (f"{out.name} exists but was written from another {what} than {path} (it records "
                     f"{shown}): not this item's result; --force redoes it")
         try:
-            changed = recorded[real] and file_digest(path) != recorded[real]
+            changed = recorded[real] and _digest(path) != recorded[real]
         except Exception:  # noqa: BLE001 - a missing input is the item's error when it runs
             changed = False
         if changed:
@@ -440,13 +458,11 @@ def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
 
     from .. import progress
 
-    enabled = progress._ENABLED
+    # process-wide and not restored: a Dask worker's threads run items side by side, and one finishing must
+    # not turn progress back on under another (an in-process cluster's parent: run_batch restores its own)
     progress.set_enabled(False)
-    try:
-        with threadpool_limits(limits=1, user_api="blas"):
-            return run_item(worker, item)
-    finally:
-        progress.set_enabled(enabled)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return run_item(worker, item)
 
 
 def _run_dask(worker, todo, scheduler, advance):
@@ -500,6 +516,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
 
     items = list(items)
     start = time.perf_counter()
+    _DIGESTS.clear()            # remembered within one batch (a folder's time does not see its files change)
     results: dict[int, dict] = {}
     todo = []
     for item in items:
