@@ -153,6 +153,10 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
     whole = capture.whole_take
     if whole:
         out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
+        w = capture.train.weights
+        peak = w.max(axis=0) if len(w) else np.zeros(len(capture.names))
+        out["neverAbove"] = {n: round(float(v), 3) for n, v in zip(capture.names, peak, strict=True)
+                             if v < TAKE_PEAK}
     else:                 # frames stored more than once (one scan for several requested shapes)
         from .personalize.api import duplicate_frames
 
@@ -255,6 +259,10 @@ def format_report(report: dict) -> str:
         if report.get("take"):
             lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "
                          "read whole: every frame trains ('fit TAKE', 'personalize AVATAR TAKE')")
+            never = report.get("neverAbove") or {}
+            if never:
+                lines.append(_names_line(f"never above {TAKE_PEAK}",
+                                         [f"{n} {w:.2f}" for n, w in never.items()], 8))
         lines.append(f"  mesh: {report['vertices']} vertices, {report['triangles']} triangles")
         lines.append(f"  frames: {report['frames']} ("
                      + ", ".join(f"{r}: {v['count']}" for r, v in report["roles"].items()) + ")")

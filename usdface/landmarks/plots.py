@@ -53,7 +53,7 @@ def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layou
     """Reconstruction RMSE (mm) vs number of landmarks, one curve per method (matplotlib, Agg) -> ``path``."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    styles = {"ours": ("tab:red", "o", "this method (best per count)"),
+    styles = {"ours": ("tab:red", "o", "this method (best with at most N)"),
               "pca_kmeans": ("tab:blue", "s", "PCA + k-means (Cohen 2002)"),
               "delta_cluster": ("tab:green", "^", "delta clustering (Reverdy 2015)"),
               "random": ("tab:gray", ".", "random")}
