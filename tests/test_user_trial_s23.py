@@ -151,28 +151,37 @@ def test_source_date_epoch_makes_the_layer_reproducible(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------ SIGTERM cleans up as Ctrl-C does
+#: A prologue that makes the export's tenth OBJ write send SIGTERM to its own process (deterministic).
+SIGTERM_AT_TENTH_OBJ = ("import os, signal, sys\n"
+                        "import usdface.io.mesh_io as m\n"
+                        "real, n = m.write_obj, [0]\n"
+                        "def write_obj(*a, **k):\n"
+                        "    n[0] += 1\n"
+                        "    if n[0] == 10:\n"
+                        "        os.kill(os.getpid(), signal.SIGTERM)\n"
+                        "    return real(*a, **k)\n"
+                        "m.write_obj = write_obj\n"
+                        "from usdface.cli import main\n")
+
+
+def _python(code: str, cwd: Path):
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
 def test_sigterm_leaves_no_temporary_files(tmp_path):
     """A farm's kill (SIGTERM) in the middle of an export left the hidden temporary folder (51 MB on dev1)
     behind; Ctrl-C did not. The signal arrives while the tenth OBJ is written (deterministically: the process
     sends it to itself), the command exits 143 and the output folder holds nothing."""
     import os
-    import subprocess
-    import sys
 
-    code = ("import os, signal, sys\n"
-            "import usdface.io.mesh_io as m\n"
-            "real, n = m.write_obj, [0]\n"
-            "def write_obj(*a, **k):\n"
-            "    n[0] += 1\n"
-            "    if n[0] == 10:\n"
-            "        os.kill(os.getpid(), signal.SIGTERM)\n"
-            "    return real(*a, **k)\n"
-            "m.write_obj = write_obj\n"
-            "from usdface.cli import main\n"
-            f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
-            "sys.exit(main())\n")              # as the console script runs it (argv from sys.argv)
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    proc = _python(SIGTERM_AT_TENTH_OBJ
+                   + f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+                   "sys.exit(main())\n", tmp_path)      # as the console script runs it (argv from sys.argv)
     assert proc.returncode == 143, proc.stderr
     assert "terminated" in proc.stderr and "Traceback" not in proc.stderr
     assert sorted(os.listdir(tmp_path)) == []
@@ -312,26 +321,10 @@ def test_render_takes_the_meshs_own_channel_names_on_a_name_mapped_layer(tmp_pat
 def test_a_host_calling_main_keeps_its_own_sigterm_handling(tmp_path):
     """Called in-process with arguments (a DCC, a farm wrapper), ``main`` leaves SIGTERM to the host: the
     host's handler runs (the review found it swallowed and the host's SIG_IGN lost)."""
-    import os
-    import subprocess
-    import sys
-
-    code = ("import os, signal, sys\n"
-            "calls = []\n"
-            "signal.signal(signal.SIGTERM, lambda *a: calls.append(1))\n"
-            "import usdface.io.mesh_io as m\n"
-            "real, n = m.write_obj, [0]\n"
-            "def write_obj(*a, **k):\n"
-            "    n[0] += 1\n"
-            "    if n[0] == 10:\n"
-            "        os.kill(os.getpid(), signal.SIGTERM)\n"
-            "    return real(*a, **k)\n"
-            "m.write_obj = write_obj\n"
-            "from usdface.cli import main\n"
-            f"code = main(['export', {str(A)!r}, '--obj-dir', 'objs', '-q'])\n"
-            "print(code, calls)\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    host = "calls = []\nimport signal\nsignal.signal(signal.SIGTERM, lambda *a: calls.append(1))\n"
+    proc = _python(host + SIGTERM_AT_TENTH_OBJ
+                   + f"code = main(['export', {str(A)!r}, '--obj-dir', 'objs', '-q'])\nprint(code, calls)\n",
+                   tmp_path)
     assert proc.returncode == 0 and proc.stdout.splitlines()[-1] == "0 [1]", (proc.stdout, proc.stderr)
 
 
