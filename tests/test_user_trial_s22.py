@@ -58,7 +58,9 @@ def test_flattened_generic_export_and_plain_avatar_are_accepted(person_layer, tm
     from usdface.io.usd_rig import flattened_from, refuse_usdface_output
 
     generic = flatten_variant(person_layer, tmp_path / "generic.usdc", "generic")
-    assert flattened_from(generic) == {"source": "person.usda", "variant": "generic"}
+    flat = flattened_from(generic)            # the source relative to the flattened file (stop 23)
+    assert flat["variant"] == "generic"
+    assert (generic.parent / flat["source"]).resolve() == person_layer.resolve()
     refuse_usdface_output(generic)                       # no error
     plain = flatten_variant(SAMPLES / "avatar.usda", tmp_path / "plain.usdc", "personalized")
     assert dict(Sdf.Layer.FindOrOpen(str(plain)).customLayerData)["usdfaceFlatten"]["variant"] == "authored"

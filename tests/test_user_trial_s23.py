@@ -369,3 +369,19 @@ def test_check_of_a_take_says_what_it_is(weights_take, capsys):
     assert main(["check", str(weights_take)]) == 0
     out = capsys.readouterr().out
     assert "this is a take" in out and "1 info" in out
+
+
+def test_a_flattened_export_elsewhere_keeps_a_provenance_check_can_follow(tmp_path):
+    """A flattened file written into another folder copied its provenance paths (relative to the layer's
+    folder), so ``check`` found the inputs 'not reachable' and the stale-input check was off."""
+    from usdface import api
+    from usdface.io.layers import recorded_inputs
+
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(A, C, layer)
+    flat = tmp_path / "deliver" / "x" / "flat.usda"
+    flat.parent.mkdir(parents=True)
+    api.export_avatar(layer, flatten=flat, variant="generic")
+    assert set(recorded_inputs(flat)) == {str(A.resolve()), str(C.resolve())}
+    issues = api.check(flat)
+    assert not [i for i in issues if "not reachable" in i.message], issues

@@ -95,6 +95,8 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     """Write ``path`` composed with ``variant`` selected as ONE flattened USD file (``.usda``/``.usdc``/
     ``.usd``): every sublayer and reference resolved into it, the variant selection baked in. Returns the
     path written (atomically; an existing file needs ``force``). The input is never modified."""
+    from pxr import Vt
+
     from .layers import atomic_save
 
     _check_variant(variant)
@@ -104,7 +106,36 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     flat = stage.Flatten()
     data = dict(flat.customLayerData)
     # the variant actually baked in ("authored" for a plain avatar): personalize refuses a personalized one
-    data["usdfaceFlatten"] = {"source": src.name,
+    data["usdfaceFlatten"] = {"source": _rebase(src.name, src, out),
                               "variant": variant if _personalization_prims(stage) else AS_AUTHORED}
+    record = data.get("usdface")
+    if hasattr(record, "get") and record.get("inputs"):        # provenance paths, relative to the new file
+        record = dict(record)
+        record["inputs"] = Vt.StringArray([_rebase(p, src, out) for p in record["inputs"]])
+        data["usdface"] = record
     flat.customLayerData = data
+    _rebase_provenance_attributes(flat, src, out)
     return atomic_save(flat, out, force)
+
+
+def _rebase(path, src: Path, out: Path) -> str:
+    """A path recorded relative to ``src``'s folder, relative to ``out``'s folder (a flattened file written
+    elsewhere keeps a provenance that ``check`` can follow)."""
+    from .layers import _relative_to_layer
+
+    p = Path(str(path))
+    return _relative_to_layer(p if p.is_absolute() else src.parent / p, out)
+
+
+def _rebase_provenance_attributes(layer, src: Path, out: Path) -> None:
+    """``usdface:provenance:inputs`` on the flattened prims, rebased as the layer's record
+    (:func:`_rebase`)."""
+    from pxr import Sdf, Vt
+
+    def visit(spec_path):
+        if spec_path.IsPropertyPath() and spec_path.name == "usdface:provenance:inputs":
+            spec = layer.GetAttributeAtPath(spec_path)
+            if spec is not None and spec.default:
+                spec.default = Vt.StringArray([_rebase(p, src, out) for p in spec.default])
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)

@@ -606,7 +606,9 @@ def refuse_usdface_output(path) -> None:
         inputs = data.get("inputs") or []
         original = f" ({Path(str(inputs[0])).name})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
-        source = shlex.quote(str(flat.get("source", "LAYER")))         # a command one can paste
+        recorded = Path(str(flat.get("source", "LAYER")))          # relative to the flattened file
+        source = shlex.quote(str(recorded if recorded.is_absolute() or "source" not in flat
+                                 else Path(path).parent / recorded))  # a command one can paste
         raise AlreadyPersonalizedError(
             f"this is a flattened export of the personalized variant of the usdface layer "
             f"{flat.get('source', '?')}; personalizing it again would stack the personalization on the "
