@@ -461,14 +461,10 @@ METHOD_OPTIONS = {"ebfr": ("beta", "kappa", "theta", "translation_ridge"),
 
 #: The options of :func:`fit_personalized_shapes` each method uses besides its :data:`METHOD_OPTIONS` (what
 #: a refusal lists as the method's options).
-METHOD_TAKES = {
-    "menzel": ("reg", "prior", "align", "reweight", "clamp", "weight_sigma", "rounds", "contact", "pins",
-               "frame_weights", "every", "eyelids"),
-    "laplacian": ("reg", "prior", "align", "reweight", "clamp", "weight_sigma", "rounds", "contact", "pins",
-                  "frame_weights", "every", "eyelids"),
-    "ebfr": ("align", "eyelids"),
-    "dt": ("eyelids",),
-}
+_POSITION_FIT_TAKES = ("reg", "prior", "align", "reweight", "clamp", "weight_sigma", "rounds", "contact",
+                       "pins", "frame_weights", "every", "eyelids")
+METHOD_TAKES = {"menzel": _POSITION_FIT_TAKES, "laplacian": _POSITION_FIT_TAKES, "ebfr": ("align", "eyelids"),
+                "dt": ("eyelids",)}
 
 
 def check_every(every, capture=None) -> None:
@@ -517,37 +513,46 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
         raise FitError("prior='avatar' needs avatar_prior", fix="pass avatar_prior=deltas[K,n,3]")
 
 
+def check_number(name: str, value, *, low: float, inclusive: bool, fix: str, keywords=(),
+                 error: type = FitError):
+    """``value`` as a finite float ``> low`` (``>= low`` with ``inclusive``; a numeric string counts), or one
+    of the ``keywords`` as given; else ``error`` naming the option, what it expects and ``fix``. The API's
+    refusal of what the CLI's argument types refuse (:mod:`usdface.commands.options`), for the fit's options
+    and personalize's (:func:`usdface.transfer.pipeline.check_numbers`)."""
+    if isinstance(value, str) and value in keywords:
+        return value
+    number = f"a finite number {'>=' if inclusive else '>'} {low:g}"
+    expected = " or ".join([*(repr(k) for k in keywords), number])
+    bad = error(f"bad {name} {value!r}: expected {expected}", fix=fix)
+    if isinstance(value, bool):
+        raise bad
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise bad from None
+    if not np.isfinite(x) or x < low or (x == low and not inclusive):
+        raise bad
+    return x
+
+
 def _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds, options) -> None:
     """The option *values* :func:`fit_personalized_shapes` would choke on later, refused now (FitError): a
     ``reg`` that is not "auto", "paper" or a finite number >= 0; a ``clamp`` not > 0; ``weight_sigma`` not
     "auto" or > 0; ``rounds`` not a whole number >= 1; ``align``/``reweight``/``eyelids`` not booleans (a
     manifest's string "False" would count as true); ebfr's ``beta`` not "auto" or a number >= 0."""
-    def number(name, value, low, inclusive, fix, keywords=()):
-        if isinstance(value, str) and value in keywords:
-            return
-        ok = not isinstance(value, bool)                      # a number, or a numeric string ("0.1")
-        if ok:
-            try:
-                x = float(value)
-            except (TypeError, ValueError):
-                ok = False
-            else:
-                ok = bool(np.isfinite(x)) and (x > low or (inclusive and x == low))
-        if not ok:
-            raise FitError(f"bad {name} {value!r}", fix=fix)
-
-    number("reg", reg, 0.0, True, "use 'auto', 'paper' or a number >= 0", ("auto", "paper"))
-    number("clamp", clamp, 0.0, False, "a number > 0 (eq. 3's clamp, 1e5)")
-    number("weight_sigma", weight_sigma, 0.0, False, "use 'auto' or a number > 0", ("auto",))
+    check_number("reg", reg, low=0.0, inclusive=True, fix="use 'auto', 'paper' or a number >= 0",
+                 keywords=("auto", "paper"))
+    check_number("clamp", clamp, low=0.0, inclusive=False, fix="a number > 0 (eq. 3's clamp, 1e5)")
+    check_number("weight_sigma", weight_sigma, low=0.0, inclusive=False, fix="use 'auto' or a number > 0",
+                 keywords=("auto",))
     if isinstance(rounds, bool) or not isinstance(rounds, int | np.integer) or rounds < 1:
         raise FitError(f"bad rounds {rounds!r}", fix="a whole number >= 1 (2)")
     for name, value in (("align", align), ("reweight", reweight), ("eyelids", eyelids)):
         if value is not None and not isinstance(value, bool | np.bool_):
             raise FitError(f"bad {name} {value!r}: not a boolean", fix=f"{name}=true or false")
     if "beta" in options:
-        beta = options["beta"]
-        if not (isinstance(beta, str) and beta == "auto"):
-            number("beta", beta, 0.0, True, "use 'auto' or a number >= 0 (Li et al.: 0.5)")
+        check_number("beta", options["beta"], low=0.0, inclusive=True,
+                     fix="use 'auto' or a number >= 0 (Li et al.: 0.5)", keywords=("auto",))
 
 
 def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):

@@ -754,34 +754,18 @@ def _check_modes(face_transfer: str, approximation: str, prior: str, weight_boun
                            "default), or one of the older modes with 'generic' or 'retarget'")
 
 
-def _number(name: str, value, *, low: float, inclusive: bool, fix: str) -> float:
-    """``value`` as a finite float ``> low`` (``>= low`` with ``inclusive``), else :class:`UsdFaceError`
-    naming the option and ``fix`` (the API refuses what the CLI's argument types refuse)."""
-    bad = UsdFaceError(f"bad {name} {value!r}: expected a finite number {'>=' if inclusive else '>'} {low:g}",
-                       fix=fix)
-    if isinstance(value, bool):
-        raise bad
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise bad from None
-    if not np.isfinite(x) or x < low or (x == low and not inclusive):
-        raise bad
-    return x
-
-
 def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.01, 0.03)) -> None:
     """Refuse, before any work, numeric options of :func:`personalize_avatar` the work would choke on or
     silently misuse (NaN, inf, zero or negative where a size or a weight is meant, a non-number), as the CLI's
     argument types do (:mod:`usdface.commands.options`): ``mu`` ``"auto"`` or > 0, ``extension_length`` None
     or > 0, ``falloff`` >= 0, ``support`` None or ``(low, high)`` with ``0 <= low <= high``."""
-    if not (isinstance(mu, str) and mu == "auto"):
-        if isinstance(mu, str):
-            try:
-                mu = float(mu)
-            except ValueError:
-                raise UsdFaceError(f"bad mu {mu!r}", fix="use 'auto' or a number > 0") from None
-        _number("mu", mu, low=0.0, inclusive=False, fix="use 'auto' or a number > 0 (the eq. 4 ridge weight)")
+    from ..personalize.api import check_number
+
+    def _number(name, value, **how):
+        return check_number(name, value, error=UsdFaceError, **how)
+
+    _number("mu", mu, low=0.0, inclusive=False, fix="use 'auto' or a number > 0 (the eq. 4 ridge weight)",
+            keywords=("auto",))
     if extension_length is not None:
         _number("extension_length", extension_length, low=0.0, inclusive=False,
                 fix="a length in face radii > 0 (1 = the default), or None for no fade")
