@@ -153,10 +153,7 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
     whole = capture.whole_take
     if whole:
         out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
-        w = capture.train.weights
-        peak = w.max(axis=0) if len(w) else np.zeros(len(capture.names))
-        out["neverAbove"] = {n: round(float(v), 3) for n, v in zip(capture.names, peak, strict=True)
-                             if v < TAKE_PEAK}
+        out["neverAbove"] = _never_above(capture.names, capture.train.weights)
     else:                 # frames stored more than once (one scan for several requested shapes)
         from .personalize.api import duplicate_frames
 
@@ -220,16 +217,26 @@ def _weights_only_take(path: Path) -> bool:
 TAKE_PEAK = 0.5
 
 
+def _never_above(names, weights) -> dict[str, float]:
+    """``{shape: its largest weight}`` for the shapes a take's ``weights[F,K]`` never show above
+    :data:`TAKE_PEAK`."""
+    peak = weights.max(axis=0) if len(weights) else np.zeros(len(names))
+    return {n: round(float(w), 3) for n, w in zip(names, peak, strict=True) if w < TAKE_PEAK}
+
+
+def _never_above_line(report: dict) -> list[str]:
+    never = report.get("neverAbove") or {}
+    return [_names_line(f"never above {TAKE_PEAK}", [f"{n} {w:.2f}" for n, w in never.items()], 8)] if never \
+        else []
+
+
 def summarize_take(take, layer_info: dict | None = None) -> dict:
     """Report dict for a take of weights only (``usdface anim import``): frames, rate, duration, shapes vs
     ARKit, and the shapes never above :data:`TAKE_PEAK` (what ``capture select`` could not pick)."""
-    import numpy as np
-
-    peak = take.weights.max(axis=0) if len(take.weights) else np.zeros(len(take.names))
-    never = {n: round(float(w), 3) for n, w in zip(take.names, peak, strict=True) if w < TAKE_PEAK}
     out = {"file": take.source, "kind": "take", "frames": len(take.weights), "fps": float(take.fps),
            "seconds": float(take.times[-1] - take.times[0]) if len(take.times) else 0.0,
-           "shapes": len(take.names), "meshes": take.points is not None, "neverAbove": never,
+           "shapes": len(take.names), "meshes": take.points is not None,
+           "neverAbove": _never_above(take.names, take.weights),
            "arkit": names_vs_arkit(take.names, take.metadata.get("name_report", {}))}
     if layer_info:
         out["stageMetadata"] = layer_info.get("stage", {})
@@ -249,20 +256,14 @@ def format_report(report: dict) -> str:
         lines.append(f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), "
                      f"{report['shapes']} shapes, weights only: it plays on an avatar ('personalize AVATAR "
                      "CAPTURE --take TAKE'); 'capture select TAKE' shows which frames a capture would keep")
-        never = report.get("neverAbove") or {}
-        if never:
-            lines.append(_names_line(f"never above {TAKE_PEAK}", [f"{n} {w:.2f}" for n, w in never.items()],
-                                     8))
+        lines += _never_above_line(report)
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
     if report.get("kind") == "capture":
         if report.get("take"):
             lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "
                          "read whole: every frame trains ('fit TAKE', 'personalize AVATAR TAKE')")
-            never = report.get("neverAbove") or {}
-            if never:
-                lines.append(_names_line(f"never above {TAKE_PEAK}",
-                                         [f"{n} {w:.2f}" for n, w in never.items()], 8))
+            lines += _never_above_line(report)
         lines.append(f"  mesh: {report['vertices']} vertices, {report['triangles']} triangles")
         lines.append(f"  frames: {report['frames']} ("
                      + ", ".join(f"{r}: {v['count']}" for r, v in report["roles"].items()) + ")")
