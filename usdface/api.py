@@ -811,10 +811,10 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
     from . import progress
     from .io.layers import stale_inputs
-    from .io.usd_rig import read_layer_info
+    from .io.usd_rig import usdface_output_provenance
     from .review.collect import _fitted
 
-    record = read_layer_info(layer_path).get("usdface") or {}
+    record = usdface_output_provenance(layer_path) or {}      # the root layer's header: no stage composed
     # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
     given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
     for text in stale_inputs(layer_path, given):

@@ -493,20 +493,29 @@ def _relative_to_layer(path, out_path: Path) -> str:
 
 
 def recorded_inputs(layer_path) -> dict[str, str] | None:
-    """``{real path: sha256}`` of the inputs a usdface layer records (``customLayerData["usdface"]``, paths
-    relative to the layer), or None for a file that is not a usdface layer (or not a readable layer)."""
-    from pxr import Sdf
+    """``{real path: sha256}`` of the inputs a usdface layer records (its provenance,
+    :func:`usdface.io.usd_rig.usdface_output_provenance`; paths relative to the layer), or None for a file
+    that is not a usdface layer."""
+    from .usd_rig import usdface_output_provenance
 
-    layer_path = Path(layer_path)
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(layer_path))
-        record = dict(layer.customLayerData).get("usdface") if layer is not None else None
-    except Exception:  # noqa: BLE001 - not a layer: nothing recorded
+    record = usdface_output_provenance(layer_path)
+    if record is None:
         return None
-    if not hasattr(record, "get") or not record.get("inputs"):
-        return None
-    return {os.path.realpath(os.path.join(layer_path.parent, str(p))): str(d)
+    folder = Path(layer_path).parent
+    return {os.path.realpath(os.path.join(folder, str(p))): str(d)
             for p, d in zip(record.get("inputs") or [], record.get("inputDigests") or [], strict=False)}
+
+
+def input_changed(real: str, recorded: str, digest: Callable = file_digest) -> bool:
+    """Whether the input at ``real`` no longer has the sha256 ``recorded`` for it (False when none was
+    recorded or the file is gone: its reader says so when it runs). ``digest``: how to hash it (a batch
+    remembers its inputs' digests)."""
+    if not recorded or not os.path.exists(real):
+        return False
+    try:
+        return digest(real) != recorded
+    except (InputFileError, OSError):
+        return False
 
 
 def stale_inputs(layer_path, given=()) -> list[str]:
@@ -516,16 +525,9 @@ def stale_inputs(layer_path, given=()) -> list[str]:
     recorded = recorded_inputs(layer_path)
     if recorded is None:
         return []
-    out = []
-    for real, digest in recorded.items():
-        if digest and os.path.exists(real):
-            try:
-                now = file_digest(real)
-            except InputFileError:
-                continue
-            if now != digest:
-                out.append(f"{Path(layer_path).name} was made from {real}, which changed after it was "
-                           "written (sha256 differs): re-run usdface personalize on the current inputs")
+    out = [f"{Path(layer_path).name} was made from {real}, which changed after it was written (sha256 "
+           "differs): re-run usdface personalize on the current inputs"
+           for real, digest in recorded.items() if input_changed(real, digest)]
     for g in given:
         if g is not None and isinstance(g, str | Path) and os.path.realpath(g) not in recorded:
             out.append(f"{g} is not among the inputs {Path(layer_path).name} records (another capture or "

@@ -253,7 +253,7 @@ def stale_output(item: BatchItem) -> str:
     out = Path(item.output)
     if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
         return ""
-    from ..io.layers import recorded_inputs
+    from ..io.layers import input_changed, recorded_inputs
 
     recorded = recorded_inputs(out)
     if recorded is None:
@@ -264,11 +264,7 @@ def stale_output(item: BatchItem) -> str:
         if real not in recorded:
             return (f"{out.name} exists but was written from another {what} than {path} (it records "
                     f"{shown}): not this item's result; --force redoes it")
-        try:
-            changed = recorded[real] and _digest(path) != recorded[real]
-        except Exception:  # noqa: BLE001 - a missing input is the item's error when it runs
-            changed = False
-        if changed:
+        if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
     return ""
