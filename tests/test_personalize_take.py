@@ -12,7 +12,7 @@ from usdface.errors import FitError
 from usdface.io.take import capture_from_take
 from usdface.model import Capture, Frames
 from usdface.personalize import fit_personalized_shapes, truth_error
-from usdface.personalize.takefit import balanced_frame_weights
+from usdface.personalize.takefit import balanced_frame_weights, unique_excitation, weight_noise
 from usdface.sample.take import make_take
 from usdface.take_select import select_frames
 
@@ -68,3 +68,70 @@ def test_frame_weights_are_checked(scan_take):
     a = fit(cap, frame_weights=np.ones(60), reg=1e-3).rig.deltas
     b = fit(cap, reg=1e-3, align=False, reweight=False).rig.deltas
     assert np.allclose(a, b, atol=1e-12)
+
+
+def test_weight_noise_is_the_jitter_not_the_motion():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 20.0, 1500)[:, None]
+    smooth = 0.5 + 0.4 * np.sin(t * np.linspace(0.5, 2.0, 8)[None])    # 8 shapes moving at 15-60 frames/cycle
+    assert weight_noise(smooth) < 0.002                                 # smooth motion: ~no noise
+    noisy = smooth + rng.normal(scale=0.02, size=smooth.shape)
+    assert weight_noise(noisy) == pytest.approx(0.02, rel=0.1)
+    assert np.isnan(weight_noise(noisy[:2]))
+
+
+def test_unique_excitation_sees_coupled_and_never_performed_shapes():
+    rng = np.random.default_rng(4)
+    F = 1000
+    w = np.zeros((F, 4))
+    w[100:200, 0] = np.sin(np.linspace(0, np.pi, 100)) * 0.9           # shape 0 performed
+    w[:, 1] = 0.3 * w[:, 0]                                             # shape 1 only as 0's fixed cross-talk
+    w[500:600, 2] = np.sin(np.linspace(0, np.pi, 100)) * 0.8            # shape 2 performed on its own
+    sigma = 0.02
+    noisy = np.clip(w + rng.normal(scale=sigma, size=w.shape), 0.0, 1.0)  # shape 3: noise only
+    e = unique_excitation(noisy, sigma)
+    assert e[2] == pytest.approx(np.sqrt(np.sum(w[:, 2] ** 2) - F * sigma ** 2), rel=0.1)
+    assert e[3] < 0.1 * e[2]                                            # never performed
+    assert e[0] < 0.25 * e[2] and e[1] < 0.25 * e[2]                    # only their sum is measured
+    exact = unique_excitation(w[:, :3], 0.0)                            # an exactly collinear pair: 0
+    assert exact[0] < 1e-3 and exact[1] < 1e-3 and exact[2] == pytest.approx(np.linalg.norm(w[:, 2]))
+
+
+@pytest.mark.slow
+def test_whole_take_keeps_shapes_it_never_performs_generic():
+    """A whole take in which the person never performs cheekPuff and jawLeft (seen only as cross-talk and
+    the phone's noise, 0.02): both stay the avatar's generic shape instead of landing up to 0.7 mm worse
+    (their trust was 1.0 from the total training energy of 1,000 frames of cross-talk), and the seam stays
+    below the generic's."""
+    import json
+    from pathlib import Path
+
+    from usdface.api import read_avatar, read_capture
+    from usdface.io.take import capture_from_whole_take
+    from usdface.model import FaceRig
+    from usdface.sample import covered_vertices
+    from usdface.transfer import personalize_avatar
+    from usdface.transfer.scoring import score_mesh
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    avatar, capture = read_avatar(root / "avatar.usda"), read_capture(root / "capture.usda")
+    ct = np.load(root / "truth" / "capture_truth.npz")
+    person = FaceRig(ct["neutral"], capture.triangles, [str(n) for n in ct["names"]], ct["deltas"])
+    skip = ["cheekPuff", "jawLeft"]
+    take, _ = make_take(person, capture.template.subset(person.names), skip=skip, point_noise=1e-4,
+                        weight_noise=0.02, seed=2, fps=15)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = personalize_avatar(avatar, capture_from_whole_take(take), None)
+    assert res.report["excitation"]["weight_noise"] == pytest.approx(0.0125, abs=0.003)  # 0.02, half clipped
+    for name in skip:
+        assert res.report["shape_confidence"][name] < 0.1
+    head = avatar.mesh("Head")
+    npz = np.load(root / "truth" / "avatar_truth.npz")
+    truth = np.array([npz[f"Head/{n}"] for n in head.names]) @ head.source.to_internal[:3, :3].T
+    meta = json.loads((root / "truth" / "meta.json").read_text())
+    face = covered_vertices(head.neutral, meta, ct["neutral"], capture.triangles)
+    sc = score_mesh(head.names, head.deltas, res.offsets[head.source.prim], truth, face=face,
+                    triangles=head.triangles)
+    for name in skip:
+        assert sc.per_shape_delta[head.names.index(name)] <= 0.05            # mm, never worse than generic

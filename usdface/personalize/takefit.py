@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["balanced_frame_weights", "weighted_frames"]
+__all__ = ["balanced_frame_weights", "unique_excitation", "weight_noise", "weighted_frames"]
 
 
 def balanced_frame_weights(weights: np.ndarray, radius: float = 0.05) -> np.ndarray:
@@ -47,3 +47,41 @@ def weighted_frames(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     B0 = np.asarray(neutral, dtype=np.float64)
     P = B0[None] + s[:, None, None] * (np.asarray(points, dtype=np.float64) - B0[None])
     return P, s[:, None] * np.asarray(weights, dtype=np.float64)
+
+
+def weight_noise(weights: np.ndarray) -> float:
+    """The phone's weight noise, measured on a take: ``weights[F,K]`` in time order. A face moves smoothly
+    from frame to frame, the solver's jitter does not: the second difference ``w_f - (w_{f-1} + w_{f+1}) / 2``
+    of white noise of standard deviation ``sigma`` has variance ``1.5 sigma^2``, of smooth motion about 0.
+    Returns ``sigma`` (weight units), the RMS over the frames and shapes; ``nan`` with fewer than 3 frames.
+    The motion's own curvature (a subsampled take, fast moves) makes it larger, never smaller: a
+    conservative figure."""
+    W = np.asarray(weights, dtype=np.float64)
+    if W.ndim != 2 or len(W) < 3 or W.shape[1] == 0:
+        return float("nan")
+    d = W[1:-1] - 0.5 * (W[:-2] + W[2:])
+    return float(np.sqrt(np.mean(d * d) / 1.5))
+
+
+def unique_excitation(weights: np.ndarray, noise: float) -> np.ndarray:
+    """``[K]``: how strongly a take shows each shape *on its own*, beyond what its weight noise alone would
+    show (weight units). ``weights[F,K]``, ``noise`` the weights' standard deviation (:func:`weight_noise`).
+
+    The part of shape j's weight column that the other shapes' columns do not explain has energy
+    ``1 / [(W^T W)^+]_jj`` (the precision of j's least-squares coefficient); a column of pure noise has
+    ``F noise^2`` of it. Returns ``sqrt(max(0, 1 / [(W^T W)^+]_jj - F noise^2))``: 0 for a shape the take
+    shows only in a fixed ratio to another (a mirror partner's cross-talk: their sum is measured, not each)
+    or only at the noise's level (a shape never performed). The total energy ``sum_f w_fj^2`` grows with
+    every frame of cross-talk and noise, so on a take of hundreds of frames it calls such a shape well
+    shown."""
+    W = np.asarray(weights, dtype=np.float64)
+    F, K = W.shape
+    if F == 0 or K == 0:
+        return np.zeros(K)
+    G = W.T @ W
+    # a vanishing ridge keeps an exactly collinear pair at ~0 (a pseudo-inverse would call each of two
+    # equal columns a quarter of their energy unique)
+    eps = 1e-10 * max(float(np.max(np.diag(G))), 1e-300)
+    inv_diag = np.diag(np.linalg.inv(G + eps * np.eye(K)))
+    unique = 1.0 / np.maximum(inv_diag, 1e-300)
+    return np.sqrt(np.maximum(0.0, unique - F * float(noise) ** 2))

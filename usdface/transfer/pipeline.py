@@ -74,6 +74,8 @@ WEIGHT_NOISE = 0.04
 #: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
 #: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
 WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
+#: The least weight noise assumed of a take (its measured jitter can be ~0 for computed weights).
+TAKE_NOISE_MIN = 1e-3
 #: The per-shape trust (see :func:`_confidence`): "fit" (the fit's data share) or "loo" (James-Stein).
 CONFIDENCE = "fit"
 #: Priors of the fit (see :func:`personalize_avatar`).
@@ -872,7 +874,9 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     f = corr.face
     b_idx = [rig.index(n) for n in names]
     prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
-    conf = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
+    conf, excitation = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
+    if excitation:
+        report["excitation"] = excitation
     report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
     low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
     if low:
@@ -1011,33 +1015,58 @@ def lip_report(points, triangles, names, generic, output) -> dict:
     return out
 
 
-def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> np.ndarray:
+def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict]:
     """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
-    weakly (:data:`WEAK_SHAPE`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
+    weakly (:func:`_weak_ramp`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
     the data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``); ``"loo"``: the
     positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
-    leave-one-frame-out error as the noise. 1 without training frames (a given rig)."""
+    leave-one-frame-out error as the noise. 1 without training frames (a given rig). Returns ``(trust[J],
+    report)``, the report saying how the excitation was measured (``{}`` for a capture)."""
     n_shapes = len(b_idx)
     if len(capture.train) == 0 or fit is None:
-        return np.ones(n_shapes)
+        return np.ones(n_shapes), {}
     w = np.asarray(fit.info.get("train_weights", capture.train.weights), dtype=np.float64)
     cap_idx = [list(capture.names).index(rig.names[i]) for i in b_idx]
     excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
-    # a shape seen only at a small effective weight (sqrt of its training energy) is known only to a fraction
-    # of its amplitude, whatever the residuals say (the fit can explain other shapes' non-linear motion with
-    # it): ramp to the generic
-    t = np.clip((np.sqrt(excitation) - WEAK_SHAPE[0]) / (WEAK_SHAPE[1] - WEAK_SHAPE[0]), 0.0, 1.0)
-    ramp = t * t * (3.0 - 2.0 * t)
+    ramp, info = _weak_ramp(capture, excitation, cap_idx)
     share = fit.info.get("shape_confidence")
     if CONFIDENCE == "fit" and share is not None:
-        return np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp
+        return np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp, info
     loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
     if loo is None:
-        return ramp
+        return ramp, info
     diff = np.asarray(person_deltas) - np.asarray(prior_av)
     mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
     moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
-    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp
+    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp, info
+
+
+def _weak_ramp(capture, excitation, cap_idx) -> tuple[np.ndarray, dict]:
+    """``[J]`` smooth ramp from 0 (the shape stays generic) to 1 over the effective weight a shape is shown
+    at, between 4 and 10 times the weights' noise (:data:`WEAK_SHAPE`): a shape seen at a small effective
+    weight is known only to a fraction of its amplitude, whatever the residuals say (the fit can explain
+    other shapes' non-linear motion with it).
+
+    A capture (one frame per requested shape): the effective weight is the root of the shape's training
+    energy ``excitation[J]``, the noise the phone's nominal :data:`WEIGHT_NOISE`. A take read whole
+    (hundreds of frames): that energy grows with every frame of cross-talk and noise (a shape the take never
+    performs reached trust 0.98 and landed 0.1-2 mm worse than generic), so the effective weight is the
+    part of the shape's weights the other shapes' do not explain, above the noise's own share
+    (:func:`usdface.personalize.takefit.unique_excitation`), and the noise is the take's own, measured from
+    its frame-to-frame jitter (:func:`usdface.personalize.takefit.weight_noise`)."""
+    lo, hi = WEAK_SHAPE
+    effective = np.sqrt(excitation)
+    info = {}
+    if capture.whole_take and len(capture.train) >= 3:
+        from ..personalize.takefit import unique_excitation, weight_noise
+
+        reported = np.asarray(capture.train.weights, dtype=np.float64)       # time order, as the phone said
+        noise = max(weight_noise(reported), TAKE_NOISE_MIN)
+        effective = unique_excitation(reported, noise)[cap_idx]
+        lo, hi = noise * lo / WEIGHT_NOISE, noise * hi / WEIGHT_NOISE
+        info = {"statistic": "unique weight above the take's noise", "weight_noise": round(noise, 5)}
+    t = np.clip((effective - lo) / (hi - lo), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t), info
 
 
 def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
