@@ -234,10 +234,17 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray, *,
                         min_weight: float | None = None) -> sp.csr_matrix:
     """Cotangent Laplacian ``L[n,n]`` (symmetric, negative semi-definite: ``L_ij = (cot a + cot b)/2``,
     ``L_ii = -sum_j L_ij``). ``min_weight``: clamp the edge weights from below (e.g. ``1e-3``), so that
-    obtuse meshes still give a well-posed Dirichlet problem (``-L`` is then positive semi-definite)."""
+    obtuse meshes still give a well-posed Dirichlet problem (``-L`` is then positive semi-definite).
+    Degenerate triangles (a repeated corner, or collinear corners: no area, so no cotangent) are left out,
+    as a finite-element Laplacian has no term for them; production meshes carry a few."""
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     n = len(p)
+    if len(t):
+        e1, e2 = p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]
+        area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
+        scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+        t = t[(area2 > 1e-12 * scale) & (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     rows, cols, vals = [], [], []
     for k in range(3):
         i, j, o = t[:, (k + 1) % 3], t[:, (k + 2) % 3], t[:, k]
