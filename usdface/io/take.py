@@ -227,8 +227,10 @@ def read_take_usd(path) -> Take:
                                 prim=rp.AppendChild("Neutral"), fix="the neutral must share the frames' mesh")
     if stage.GetPrimAtPath(rp.AppendPath("Template/Mesh")):
         template = _template(stage, rp, path, triangles, points.shape[1])
-    # Units and axis -> internal metres, Y up.
-    m = UsdGeom.GetStageMetersPerUnit(stage) * np.eye(3)
+    # Units and axis -> internal metres, Y up (a bad unit refused as for an avatar or a capture)
+    from .usd_rig import read_stage_metadata
+
+    m = read_stage_metadata(stage, path)["metersPerUnit"] * np.eye(3)
     if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
         m = m @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
     if not np.array_equal(m, np.eye(3)):

@@ -420,8 +420,11 @@ def read_capture_usd(path) -> Capture:
         w = np.clip(w, 0.0, 1.0)
     w = w[:, [names.index(n) for n in template.names]]
 
-    # Units and axis -> internal metres, Y up.
-    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    # Units and axis -> internal metres, Y up (refused as for an avatar: a negative or zero unit mirrored
+    # or collapsed the face without a word)
+    from .usd_rig import read_stage_metadata
+
+    mpu = read_stage_metadata(stage, path)["metersPerUnit"]
     rot = np.eye(3)
     if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
         rot = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # (x, y, z) Z-up -> (x, z, -y) Y-up

@@ -79,6 +79,10 @@ def check_capture(capture: Capture) -> list[str]:
         raise FitError("no training frames", path=src, fix="add frames with role 'train' (train/ folder)")
     if not np.all(np.isfinite(train.points)) or not np.all(np.isfinite(train.weights)):
         raise GeometryError("non-finite training points or weights", path=src, fix="repair the frames")
+    if not np.any(np.abs(train.weights) >= ACTIVATION_MIN):
+        raise FitError(f"no training frame activates any shape (every weight below {ACTIVATION_MIN})",
+                       path=src, fix="the frames' blendshape weights are missing or zero: export them with "
+                       "the scans (weights.json / the take's weight channels)")
     warn = []
     K = len(capture.names)
     if len(train) < K:
@@ -291,9 +295,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                      else np.asarray(frame_weights, dtype=np.float64))
         except (TypeError, ValueError):
             raise bad from None
-        if omega.shape != (len(weights),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
-            raise FitError(f"frame_weights must be {len(weights)} finite numbers >= 0 (or 'balanced')",
-                           fix="one weight per training frame")
+        if (omega.shape != (len(weights),) or not np.all(np.isfinite(omega)) or np.any(omega < 0)
+                or not np.any(omega > 0)):
+            raise FitError(f"frame_weights must be {len(weights)} finite numbers >= 0, not all 0 (or "
+                           "'balanced')", fix="one weight per training frame")
         points, weights = weighted_frames(capture.neutral, points, weights, omega)
         align = reweight = False
         n_eff = float(omega.sum() ** 2 / max(np.sum(omega ** 2), 1e-300))
@@ -539,7 +544,7 @@ def _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds
     """The option *values* :func:`fit_personalized_shapes` would choke on later, refused now (FitError): a
     ``reg`` that is not "auto", "paper" or a finite number >= 0; a ``clamp`` not > 0; ``weight_sigma`` not
     "auto" or > 0; ``rounds`` not a whole number >= 1; ``align``/``reweight``/``eyelids`` not booleans (a
-    manifest's string "False" would count as true); ebfr's ``beta`` not "auto" or a number >= 0."""
+    manifest's string "False" would count as true); ebfr's ``beta`` not "auto" or a number > 0."""
     check_number("reg", reg, low=0.0, inclusive=True, fix="use 'auto', 'paper' or a number >= 0",
                  keywords=("auto", "paper"))
     check_number("clamp", clamp, low=0.0, inclusive=False, fix="a number > 0 (eq. 3's clamp, 1e5)")
@@ -551,8 +556,9 @@ def _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds
         if value is not None and not isinstance(value, bool | np.bool_):
             raise FitError(f"bad {name} {value!r}: not a boolean", fix=f"{name}=true or false")
     if "beta" in options:
-        check_number("beta", options["beta"], low=0.0, inclusive=True,
-                     fix="use 'auto' or a number >= 0 (Li et al.: 0.5)", keywords=("auto",))
+        # beta 0 is the unregularised least squares: singular with fewer frames than shapes
+        check_number("beta", options["beta"], low=0.0, inclusive=False,
+                     fix="use 'auto' or a number > 0 (Li et al.: 0.5)", keywords=("auto",))
 
 
 def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options):

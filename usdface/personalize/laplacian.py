@@ -75,6 +75,10 @@ class LaplacianFit:
         "cv_rmse_mm"}``."""
         P = np.asarray(points, dtype=np.float64)
         W = np.asarray(weights, dtype=np.float64)
+        folds = min(int(folds), len(W))
+        if folds < 2:                              # one frame: nothing to hold out, mu stays as given
+            return {"mu": float(self.mu), "grid": [float(g) for g in grid], "cv_rmse_mm": [],
+                    "note": f"{len(W)} training frame(s): no cross-validation, mu kept"}
         fold = np.arange(len(W)) % folds
         errs, fulls = [], []
         tol = self.tol
