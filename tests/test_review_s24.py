@@ -74,3 +74,19 @@ def test_one_frame_fits_and_zero_frame_weights_are_refused():
             fit_personalized_shapes(one, "ebfr", beta=0.0, align=False)
         with pytest.raises(FitError, match="not all 0"):
             fit_personalized_shapes(cap, frame_weights=np.zeros(len(cap.train)))
+
+
+def test_a_pose_held_from_the_first_frame_is_a_peak_one_at_the_end_is_named():
+    """find_peaks never returns an end sample: a take that starts on a held jawOpen lost it as 'never
+    triggered' although it reached 0.95 and then relaxed (the paper's rule: it peaked). A weight still
+    rising when the take ends has not peaked; the coverage now says so instead of 'never above 0.5'."""
+    from usdface.take_select import format_coverage, select_frames
+
+    w = np.zeros((60, 2))
+    w[:10, 0] = 0.95
+    w[10:20, 0] = np.linspace(0.9, 0.0, 10)             # held from frame 0, then relaxing
+    w[50:, 1] = np.linspace(0.1, 1.0, 10)               # rising to the last frame
+    sel = select_frames(w, names=["jawOpen", "eyeBlinkLeft"], min_separation=5)
+    assert sel.shapes[0].frames == [4] and sel.missing == ["eyeBlinkLeft"]
+    text = format_coverage(sel)
+    assert "above 0.5 only at the take's end" in text and "max 1.00" in text

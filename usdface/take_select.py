@@ -12,7 +12,8 @@ whole weight vector and the mesh of that frame. :func:`select_frames` applies th
 * the ``per_shape`` highest peaks are kept (Hable et al. used about two scans per shape);
 * ``dominance`` = ``w_ii - max_{j != i} w_ij`` at the chosen frame says how cleanly the shape was isolated
   (bilateral pairs such as eyeBlinkLeft/Right are naturally low);
-* shapes with no peak above the threshold are reported as never triggered, with their maximum weight;
+* shapes with no peak above the threshold are reported as never triggered, with their maximum weight (a pose
+  held from the first frame that then relaxes is a peak; one still rising or held at the last frame is not);
 * with ``test_every = K > 0``, every K-th take frame that is at least ``min_separation`` frames away from any
   training frame is held out as a test frame (Menzel et al.'s eq. 5 evaluation set).
 """
@@ -124,7 +125,12 @@ def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_ever
         rows = np.arange(n_frames)
     for k, name in enumerate(names):
         col = w[:, k]
-        peaks, props = find_peaks(col, height=threshold + 1e-12, distance=min_separation)
+        # a pose held from the take's first frame that then relaxes has peaked (the paper's rule: it reached
+        # its maximum and starts decreasing); find_peaks never returns an end sample, so the column is
+        # started below everything. A weight still rising or held at the take's end has not peaked.
+        peaks, props = find_peaks(np.concatenate([[-np.inf], col]), height=threshold + 1e-12,
+                                  distance=min_separation)
+        peaks = peaks - 1
         best = peaks[np.argsort(-props["peak_heights"], kind="stable")][:per_shape] if len(peaks) else peaks
         pick = ShapePick(name, max_weight=float(col.max()) if n_frames else 0.0)
         for f in best.tolist():
@@ -161,8 +167,10 @@ def format_coverage(selection: Selection, times=None) -> str:
     lines = [head, "-" * len(head)]
     for s in selection.shapes:
         if not s.triggered:
-            lines.append(f"{s.name:<22}{'-':>7}{'-':>9}{'-':>7}{'-':>11}  "
-                         f"never above {selection.threshold:g} (max {s.max_weight:.2f})")
+            why = (f"above {selection.threshold:g} only at the take's end, still rising or held "
+                   f"(max {s.max_weight:.2f})" if s.max_weight > selection.threshold
+                   else f"never above {selection.threshold:g} (max {s.max_weight:.2f})")
+            lines.append(f"{s.name:<22}{'-':>7}{'-':>9}{'-':>7}{'-':>11}  {why}")
             continue
         for i, f in enumerate(s.frames):
             t = f"{times[f]:.2f}" if times is not None else "-"
