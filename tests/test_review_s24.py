@@ -90,3 +90,22 @@ def test_a_pose_held_from_the_first_frame_is_a_peak_one_at_the_end_is_named():
     assert sel.shapes[0].frames == [4] and sel.missing == ["eyeBlinkLeft"]
     text = format_coverage(sel)
     assert "above 0.5 only at the take's end" in text and "max 1.00" in text
+
+
+def test_a_capture_with_too_few_shapes_is_named_not_the_avatar(tmp_path, capsys):
+    """A capture of jawOpen alone was refused with 'only 1 of the capture's shapes exist on the avatar face
+    mesh' naming the avatar, which has all 52; the capture is what is short."""
+    from usdface.api import write_capture
+    from usdface.model import Capture, Frames
+
+    cap = _capture()
+    k = list(cap.names).index("jawOpen")
+    f = cap.frames
+    one = Capture(cap.neutral, cap.triangles, cap.template.subset(["jawOpen"]),
+                  Frames(f.points, f.weights[:, [k]], f.role, f.label), ["jawOpen"])
+    path = tmp_path / "jaw_only.usda"
+    write_capture(one, path)
+    assert main(["personalize", str(A), str(path), "-o", str(tmp_path / "p.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "jaw_only.usda" in err and "the capture has 1 shape(s) (jawOpen)" in err
+    assert "avatar.usda" not in err

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GeometryError, RigError, UsdFaceError
+from ..errors import CaptureError, GeometryError, RigError, UsdFaceError
 from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
@@ -527,6 +527,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if report["avatar_shapes_missing_from_capture"]:
             report["warnings"].append("avatar shapes the capture lacks (kept generic): "
                                       + ", ".join(report["avatar_shapes_missing_from_capture"]))
+        if len(names) < 4 and len(cap_names) < 4:      # the capture is what is short
+            shown = ", ".join(cap_names) or "none"
+            raise CaptureError(f"the capture has {len(cap_names)} shape(s) ({shown}); personalizing needs at "
+                               "least 4 ARKit-named shapes",
+                               path=getattr(capture, "source", None) or None,
+                               fix="capture the ARKit expressions (eyeBlinkLeft, jawOpen, ...) with their "
+                               "template shapes")
         if len(names) < 4:
             raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
                            path=avatar.file, prim=face_prim,
