@@ -86,9 +86,12 @@ def test_page_is_self_contained_and_carries_both_variants(review, personalized_s
 
 def test_page_figures(review):
     html = review.read_text()
-    for caption in ("registration (capture -&gt; avatar)", "correspondence", "what changed",
+    for caption in ("made from", "registration (capture -&gt; avatar)", "correspondence", "what changed",
                     "eq. 5 on the capture&#x27;s test expressions"):
         assert caption in html, caption
+    made = html[html.index("made from"):html.index("registration (capture")]
+    assert re.search(r"<th>avatar</th><td>[^<]*avatar\.usda</td>", made)      # which avatar and capture
+    assert re.search(r"<th>capture</th><td>[^<]*capture\.usda</td>", made)
     table = html[html.index("eq. 5 on the capture"):]
     rows = re.findall(r"<tr><th>mean</th><td><b>([\d.]+)</b></td><td><b>([\d.]+)</b></td>", table)
     generic_rmse, personalized_rmse = map(float, rows[0])

@@ -39,6 +39,13 @@ def _mm(v) -> str:
 
 def _provenance_tables(info: dict) -> list[tuple[str, list[tuple[str, str]]]]:
     tables = []
+    inputs = [str(p) for p in info.get("inputs") or []]
+    if inputs:             # what the layer was made from, as recorded (relative to the layer)
+        labels = (["avatar", "capture"] if _fitted(info) else ["avatar"]) + ["input"] * len(inputs)
+        rows = [(label, path) for label, path in zip(labels, inputs, strict=False)]
+        if info.get("command"):
+            rows.append(("command", str(info["command"])))
+        tables.append(("made from", rows))
     reg = info.get("registration") or {}
     if reg:
         rows = [("scale", f"{float(reg.get('scale', 1.0)):.4f}")]
