@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from usdface import api
+from usdface.cli import main
 from usdface.errors import InputFileError, OutputExistsError, UsdFaceError
 from usdface.io.flatten import read_avatar_variant
 from usdface.io.gltf import read_gltf
@@ -248,3 +249,29 @@ def test_gltf_imports_in_blender(layer, tmp_path):
     head = next(v for k, v in keys.items() if k.startswith("Head"))
     assert head == read_avatar_variant(layer, "personalized").mesh("Head").names
     assert shutil.which  # keeps the import used when Blender is absent
+
+
+def test_a_flattened_generic_export_personalizes_like_the_avatar(layer, tmp_path, samples):
+    """The chain the docs give for a place that takes one file: export --flatten --variant generic, then
+    personalize that file. The flattened file is the avatar again (its own BlendShape paths, no usdface
+    scope), so the new layer carries its variant set (review and export --variant generic refused it before)
+    and gives the same offsets as personalizing the original avatar."""
+    from pxr import Usd
+
+    flat = tmp_path / "flat.generic.usdc"
+    assert main(["export", str(layer), "--flatten", str(flat), "--variant", "generic", "-q"]) == 0
+    stage = Usd.Stage.Open(str(flat))
+    assert not [p for p in stage.Traverse() if "usdfaceShapes" in str(p.GetPath())]
+    original = api.read_avatar(samples / "avatar.usda")
+    again = api.read_avatar(flat)
+    for rig in original.meshes:
+        np.testing.assert_array_equal(again.mesh(rig.name).deltas, rig.deltas)
+    out = tmp_path / "again.usda"
+    assert main(["personalize", str(flat), str(samples / "capture.usda"), "-o", str(out), "-q"]) == 0
+    assert main(["review", str(out), "-o", str(tmp_path / "r.html"), "-q", "--no-fit-errors"]) == 0
+    generic = read_avatar_variant(out, "generic")
+    first, second = read_avatar_variant(layer), read_avatar_variant(out)
+    for rig in original.meshes:
+        np.testing.assert_array_equal(generic.mesh(rig.name).deltas, rig.deltas)
+        np.testing.assert_allclose(second.mesh(rig.name).deltas, first.mesh(rig.name).deltas, rtol=0,
+                                   atol=1e-9)

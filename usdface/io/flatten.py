@@ -103,7 +103,9 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     src = Path(path).absolute()
     out = check_output_path(out_path, force, inputs=[src]).absolute()
     stage = variant_stage(src, variant)
+    targets = _shape_redirections(stage)
     flat = stage.Flatten()
+    _bake_redirections(flat, targets)
     data = dict(flat.customLayerData)
     # the variant actually baked in ("authored" for a plain avatar): personalize refuses a personalized one
     data["usdfaceFlatten"] = {"source": _rebase(src.name, src, out),
@@ -116,6 +118,58 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     flat.customLayerData = data
     _rebase_provenance_attributes(flat, src, out)
     return atomic_save(flat, out, force)
+
+
+def _shape_redirections(stage) -> dict[str, list[tuple[str, str]]]:
+    """``{mesh path: [(usdfaceShapes/<shape> path, original BlendShape path), ...]}`` in binding order, for
+    the meshes whose ``skel:blendShapeTargets`` a usdface layer redirected into its variant scope: each
+    scope prim's first reference arc targets the original prim (internal in ``personalized``, into the input
+    file in ``generic``)."""
+    from pxr import Pcp, Usd, UsdSkel
+
+    from .layers import SHAPES_SCOPE
+
+    out = {}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        if not prim.HasAPI(UsdSkel.BindingAPI):
+            continue
+        rel = UsdSkel.BindingAPI(prim).GetBlendShapeTargetsRel()
+        targets = rel.GetTargets() if rel else []
+        if not targets or not all(t.GetParentPath().name == SHAPES_SCOPE for t in targets):
+            continue
+        pairs = []
+        for t in targets:
+            arcs = [a for a in Usd.PrimCompositionQuery(stage.GetPrimAtPath(t)).GetCompositionArcs()
+                    if a.GetArcType() == Pcp.ArcTypeReference]
+            if not arcs:
+                break
+            pairs.append((str(t), str(arcs[0].GetTargetNode().path)))
+        else:
+            out[str(prim.GetPath())] = pairs
+    return out
+
+
+def _bake_redirections(layer, redirections: dict) -> None:
+    """In the flattened ``layer``: the variant's values (on ``usdfaceShapes/<shape>``) moved onto the
+    original BlendShape prims, the bindings pointed back at those, and the scopes removed. The flattened file
+    is then an avatar like the one the layer was made over, with the chosen values: personalizing a
+    flattened *generic* export writes its own variant set again (its targets no longer lead into a scope
+    without variants), and DCCs see the avatar's own BlendShape paths."""
+    from pxr import Sdf
+
+    for mesh, pairs in redirections.items():
+        if any(scoped == original or layer.GetPrimAtPath(original) is None for scoped, original in pairs):
+            continue                              # an original not in the flattened file: keep the scope
+        for scoped, original in pairs:
+            src, dst = layer.GetPrimAtPath(scoped), layer.GetPrimAtPath(original)
+            for prop in list(src.properties):
+                if prop.name in dst.properties:
+                    del dst.properties[prop.name]
+                Sdf.CopySpec(layer, prop.path, layer, dst.path.AppendProperty(prop.name))
+        rel = layer.GetRelationshipAtPath(Sdf.Path(mesh).AppendProperty("skel:blendShapeTargets"))
+        rel.targetPathList.explicitItems = [Sdf.Path(original) for _, original in pairs]
+        scope = Sdf.Path(pairs[0][0]).GetParentPath()
+        del layer.GetPrimAtPath(scope.GetParentPath()).nameChildren[scope.name]
 
 
 def _rebase(path, src: Path, out: Path) -> str:
