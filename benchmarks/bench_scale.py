@@ -120,6 +120,10 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=1, help="runs per command (median)")
     parser.add_argument("--keep", type=Path, help="keep the outputs in this folder (default: a temp folder)")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    parser.add_argument("--layer-format", choices=["usdc", "usda"], default="usdc",
+                        help="format of the personalized layers written (default usdc, as a pipeline writes a "
+                        "100 MB+ layer; usda: USD's text serialisation, ~5 CPU-s of the twice-subdivided "
+                        "head's run)")
     args = parser.parse_args(argv)
     case = args.bench / "dev1"
     if not (case / "avatar.usdc").is_file():
@@ -142,7 +146,7 @@ def main(argv=None) -> int:
             if r["rc"] != 0:
                 print(f"{name}: usdface check failed:\n{r['out'][-2000:]}", file=sys.stderr)
         if "personalize" not in args.skip:
-            out = outdir / f"{name}.personalized.usda"
+            out = outdir / f"{name}.personalized.{args.layer_format}"
             cmd = usdface("personalize", avatar, case / "capture", "-o", out, "--force", "-q")
             row["personalize"] = measure(cmd, args.repeat, f"{name} personalize")
             row["personalize"]["output"] = out
