@@ -317,3 +317,63 @@ def test_manifest_refuses_an_output_inside_another_items_input_folder(tmp_path):
         read_manifest(path)
     path.write_text("avatar,capture,output\na.usda,cap,out/a.usda\n,,\n")     # trailing empty rows: no items
     assert len(read_manifest(path)) == 1
+
+
+def _layer_with_parameters(path: Path, tmp_path: Path, parameters: dict) -> None:
+    from pxr import Sdf, Vt
+
+    from usdface.io.layers import file_digest
+
+    layer = Sdf.Layer.CreateNew(str(path))
+    layer.customLayerData = {"usdface": {
+        "inputs": Vt.StringArray(["../a.usdc", "../a_capture"]),
+        "inputDigests": Vt.StringArray([file_digest(tmp_path / "a.usdc"),
+                                        file_digest(tmp_path / "a_capture")]),
+        "parameters": json.dumps(parameters)}}
+    layer.Save()
+
+
+@pytest.mark.parametrize("row, recorded, stale", [
+    ("method=ebfr", {"method": "dt"}, "method=dt, the row asks method=ebfr"),
+    ("", {"method": "dt"}, "method=dt, the row asks method=menzel"),       # the row dropped method=dt
+    ("method=dt", {"method": "dt", "support": "(0.01, 0.03)", "mu": "auto", "eyelids": True}, ""),
+    ("reg=0.001", {"reg": "1e-3"}, ""),
+    ("reg=0.01", {"reg": "1e-3"}, "reg=1e-3, the row asks reg=0.01"),
+])
+def test_resume_redoes_an_item_whose_options_changed(tmp_path, row, recorded, stale):
+    """Editing a row's option (method dt -> ebfr) and running the batch again reported the old dt layer as
+    'skipped': resume compares the options the layer records with the row's (the defaults standing for the
+    options it leaves out), as it compares the input files."""
+    from usdface.pipeline.batch import personalize_worker
+
+    (tmp_path / "a.usdc").write_text("avatar a")
+    (tmp_path / "a_capture").mkdir()
+    (tmp_path / "a_capture" / "neutral.obj").write_text("v 0 0 0\n")
+    key, _, value = row.partition("=")
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output" + (f",{key}" if key else "") + "\n"
+                        + "a.usdc,a_capture,out/a.usda" + (f",{value}" if key else "") + "\n")
+    (tmp_path / "out").mkdir()
+    _layer_with_parameters(tmp_path / "out" / "a.usda", tmp_path, recorded)
+    report = run_batch(read_manifest(manifest), worker=personalize_worker, jobs=1, progress=False)
+    r = report.results[0]
+    if stale:
+        assert r.status == FAILED and r.error_type == "StaleOutput"
+        assert stale in r.error and "--force" in r.error
+    else:
+        assert r.status == SKIPPED, r.error
+
+
+def test_resume_of_a_real_layer_skips_the_same_row_and_redoes_an_edited_one(tmp_path):
+    """The recorded parameters of a real personalize layer match the row that wrote it (defaults included),
+    so an unchanged row is skipped; the same row with another method is stale."""
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"avatar,capture,output,method\n{root / 'avatar.usda'},{root / 'capture.usda'},"
+                        "out/p.usda,dt\n")
+    first = run_batch(read_manifest(manifest), jobs=1, progress=False)
+    assert first.results[0].status == DONE, first.results[0].error
+    assert run_batch(read_manifest(manifest), jobs=1, progress=False).results[0].status == SKIPPED
+    manifest.write_text(manifest.read_text().replace(",dt", ",ebfr"))
+    again = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert again.status == FAILED and "method=dt, the row asks method=ebfr" in again.error

@@ -267,7 +267,65 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
+    changed = _changed_option(item.options or {}, out)
+    if changed:
+        key, was, wanted = changed
+        return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
+                "item's result; --force redoes it")
     return ""
+
+
+def _changed_option(options: dict, layer) -> tuple[str, str, str] | None:
+    """``(option, recorded, asked)`` for the first personalize option whose value the layer records
+    (``parameters`` of its provenance: every option, resolved) differently from what the row asks, the
+    defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves out (a row
+    that drops ``method=dt`` asks for the default again); None when they agree or the layer records none."""
+    import inspect as _inspect
+
+    from ..io.usd_rig import usdface_output_provenance
+    from ..transfer.pipeline import personalize_avatar
+
+    record = usdface_output_provenance(layer) or {}
+    params = record.get("parameters")
+    if isinstance(params, str):
+        try:
+            params = json.loads(params)
+        except ValueError:
+            return None
+    if not isinstance(params, dict):
+        return None
+    defaults = {k: v.default for k, v in _inspect.signature(personalize_avatar).parameters.items()
+                if v.default is not _inspect.Parameter.empty}
+    for key, was in sorted(params.items()):
+        wanted = options.get(key, defaults.get(key, _MISSING))
+        if wanted is not _MISSING and not _same_value(was, wanted):
+            return key, str(was), str(wanted)
+    return None
+
+
+_MISSING = object()
+
+
+def _same_value(a, b) -> bool:
+    """Whether a recorded option value and a manifest's (or a default) are the same setting: numbers
+    compared as numbers (``"1e-3"`` is ``0.001``, ``(0.01, 0.03)`` is ``"0.01,0.03"``), booleans and words
+    as words (case-insensitive), ``None`` as ``"None"``."""
+    import re
+
+    def numbers(v):
+        text = str(v).strip()
+        if re.fullmatch(r"[\s()\[\],+\-.eE0-9]*", text) and re.search(r"\d", text):
+            try:
+                return [float(x) for x in re.findall(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?", text)]
+            except ValueError:
+                return None
+        return None
+
+    na, nb = numbers(a), numbers(b)
+    if na is not None and nb is not None:
+        return len(na) == len(nb) and all(abs(x - y) <= 1e-9 * max(1.0, abs(x), abs(y))
+                                          for x, y in zip(na, nb, strict=True))
+    return str(a).strip().lower() == str(b).strip().lower()
 
 
 # ----------------------------------------------------------------------------------------------- workers
