@@ -59,6 +59,28 @@ def test_bad_manifests(tmp_path, text, needle):
         read_manifest(tmp_path / "absent.csv")
 
 
+def half_worker(item: dict) -> None:
+    """Writes ``output``, then fails for avatars named ``bad*`` (a studio step that exports, then fails its
+    own validation)."""
+    Path(item["output"]).write_text("partial")
+    if Path(item["avatar"]).name.startswith("bad"):
+        raise RuntimeError("validation failed after the export")
+
+
+def test_an_output_a_failed_item_left_is_set_aside_and_the_item_retried(tmp_path):
+    """A worker that wrote its output and then raised: the item failed, but the next run took the output as
+    finished ('0 done, 2 skipped') although the docs say a re-run retries what failed. The output is moved
+    to <output>.failed, and the item runs again."""
+    items = read_manifest(_manifest(tmp_path, ["a", "bad1"]))
+    first = run_batch(items, worker=half_worker, jobs=1, progress=False)
+    assert [r.status for r in first.results] == [DONE, FAILED]
+    bad = Path(items[1].output)
+    assert not bad.exists() and bad.with_name(bad.name + ".failed").read_text() == "partial"
+    assert "moved to bad1.usda.failed" in first.results[1].error
+    again = run_batch(items, worker=half_worker, jobs=1, progress=False)
+    assert [r.status for r in again.results] == [SKIPPED, FAILED]           # retried, not skipped
+
+
 def test_failure_isolation_report_and_resume(tmp_path):
     items = read_manifest(_manifest(tmp_path, ["a", "bad1", "b", "c"]))
     report = run_batch(items, worker=stub_worker, jobs=1, progress=False)
@@ -289,6 +311,8 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     import time
 
     manifest = _manifest(tmp_path, ["a", "b", "c", "d"])
+    report = tmp_path / "people.report.json"
+    report.write_text(json.dumps({"done": 4, "skipped": 0, "failed": 0}))    # an earlier, finished run's
     tests = Path(__file__).resolve().parent
     code = ("import sys\nfrom usdface.cli import main\n"
             f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
@@ -305,6 +329,10 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     assert proc.returncode == 143, err
     assert time.monotonic() - start < 15 and "terminated" in err
     assert not list((tmp_path / "out").glob("*.usda"))
+    # the report is this run's (nothing finished), not the earlier run's "4 done"
+    data = json.loads(report.read_text())
+    assert data["done"] == 0 and data["failed"] == 4
+    assert {r["error_type"] for r in data["items"]} == {"Interrupted"}
 
 
 def test_manifest_refuses_an_output_inside_another_items_input_folder(tmp_path):

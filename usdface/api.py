@@ -754,7 +754,13 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
-    report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+    try:
+        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+    except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
+        partial = getattr(exc, "batch_report", None)
+        if partial is not None:
+            partial.write(path)
+        raise
     report.report_path = Path(report.write(path))
     return report
 

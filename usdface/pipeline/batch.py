@@ -360,15 +360,34 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     """Run ``worker(item)`` and return an :class:`ItemResult` as a dict; never raises (failure isolation)."""
     start, cpu = time.perf_counter(), time.process_time()
     base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
+    out = Path(item["output"])
+    existed = out.exists()
     try:
         worker(item)
     except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
         if isinstance(exc, KeyboardInterrupt):
             raise
+        error = str(exc)
+        if not existed and out.exists():     # a worker that wrote its output, then failed: not a result
+            error += f" (its output was written before the failure: moved to {_set_aside(out).name})"
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
-                    cpu_seconds=time.process_time() - cpu, error=str(exc), error_type=type(exc).__name__,
+                    cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
                     traceback=traceback.format_exc())
     return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu)
+
+
+def _set_aside(out: Path) -> Path:
+    """Move the output a failed item left to ``<output>.failed`` (replacing an earlier one), so that resume,
+    which takes an existing output as finished, runs the item again; returns the new path."""
+    import shutil
+
+    aside = out.with_name(out.name + ".failed")
+    if aside.is_dir() and not aside.is_symlink():
+        shutil.rmtree(aside)
+    elif aside.exists() or aside.is_symlink():
+        aside.unlink()
+    os.replace(out, aside)
+    return aside
 
 
 def _crashed(item: dict, exc: BaseException) -> dict:
@@ -600,6 +619,15 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
                     runner = _run_pool(worker, todo, min(jobs, len(todo)), advance)
                 for res in runner:
                     results[res["index"]] = res
+        except BaseException as exc:      # stopped (Ctrl-C, SIGTERM): the report says what finished
+            for item in items:
+                results.setdefault(item.index, dict(
+                    index=item.index, avatar=item.avatar, capture=item.capture, output=item.output,
+                    status=FAILED, error="the batch was stopped before this item finished (run it again to "
+                    "resume)", error_type="Interrupted"))
+            exc.batch_report = BatchReport([ItemResult(**results[item.index]) for item in items],
+                                           time.perf_counter() - start, where)
+            raise
         finally:
             _progress.set_enabled(enabled)
     ordered = [ItemResult(**results[item.index]) for item in items]
