@@ -109,3 +109,26 @@ def test_a_capture_with_too_few_shapes_is_named_not_the_avatar(tmp_path, capsys)
     err = capsys.readouterr().err
     assert "jaw_only.usda" in err and "the capture has 1 shape(s) (jawOpen)" in err
     assert "avatar.usda" not in err
+
+
+def test_a_moved_latest_link_is_a_changed_input(tmp_path, capsys):
+    """User trial: a layer written from lib/latest/hero.usda (latest -> v003) recorded the resolved v003, so
+    after `ln -sfn v004 latest` check, review and export saw nothing (the layer composes over v004 now).
+    The input is recorded through the link, as the sublayer path is, and check warns."""
+    import os
+
+    (tmp_path / "lib" / "v003").mkdir(parents=True)
+    (tmp_path / "lib" / "v004").mkdir()
+    text = A.read_text()
+    (tmp_path / "lib" / "v003" / "hero.usda").write_text(text)
+    (tmp_path / "lib" / "v004" / "hero.usda").write_text(text + "\n")
+    os.symlink("v003", tmp_path / "lib" / "latest")
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(tmp_path / "lib" / "latest" / "hero.usda"), str(C), "-o", str(out),
+                 "--method", "dt", "-q"]) == 0
+    assert main(["check", str(out)]) == 0
+    assert "changed after" not in capsys.readouterr().out
+    os.unlink(tmp_path / "lib" / "latest")
+    os.symlink("v004", tmp_path / "lib" / "latest")
+    main(["check", str(out)])
+    assert "input 'lib/latest/hero.usda' changed after this layer was written" in capsys.readouterr().out

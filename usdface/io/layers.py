@@ -484,10 +484,13 @@ def _author_primvars(stage, avatar: Avatar, primvars: dict):
 
 
 def _relative_to_layer(path, out_path: Path) -> str:
-    """``path`` relative to the directory of ``out_path`` (absolute when no relative path exists)."""
-    target = Path(path).resolve()
+    """``path`` relative to the directory of ``out_path`` (absolute when no relative path exists), through
+    the same symlinks as the layer's sublayer path (:func:`_relative_asset_path`): an avatar read as
+    ``lib/latest/hero.usda`` is recorded so, and a ``latest`` link moved to another version is an input that
+    changed (its digest is checked where the link points now), not an unchanged ``v003``."""
+    target = Path(path).absolute()
     try:
-        return Path(os.path.relpath(target, Path(out_path).resolve().parent)).as_posix()
+        return Path(os.path.relpath(target, Path(out_path).absolute().parent)).as_posix()
     except ValueError:  # another drive
         return target.as_posix()
 
