@@ -116,3 +116,31 @@ def test_publish_personalizes(registered, tmp_path, samples):
     assert [i for i in check(out) if i.severity == "error"] == []
     stage = Usd.Stage.Open(str(out))
     assert any(p.GetName() == ANIMATION_NAME for p in stage.Traverse())  # inspection data is there
+
+
+def test_a_name_mapped_rig_validates_and_publishes(registered, tmp_path, samples):
+    """User trial: an avatar with studio control names (ch17_ctrl for jawOpen) and usdfaceOptions' name_map
+    failed ValidateUsdFaceRig with 'missing: jawOpen' (check ran without the map), although check
+    --name-map and personalize --name-map accept it; and its message carried two '(fix: ...)' clauses."""
+    import json
+
+    studio = tmp_path / "studio.usda"
+    studio.write_text((samples / "avatar.usda").read_text().replace("jawOpen", "ch17_ctrl"))
+    name_map = tmp_path / "studio map.json"
+    name_map.write_text(json.dumps({"ch17_ctrl": "jawOpen"}))
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(studio), "capture": str(samples / "capture.usda"),
+                                     "output": str(tmp_path / "person.usda"),
+                                     "usdfaceOptions": {"name_map": str(name_map), "method": "dt"}}]
+    pyblish.util.publish(context)
+    errors = [str(r["error"]) for r in context.data["results"] if not r["success"]]
+    assert errors == []
+    assert (tmp_path / "person.usda").exists()
+    pyblish_api.deregister_all_plugins()
+    plugins.register()
+    context = pyblish_api.Context()                      # without the map: refused once, one fix clause
+    context.data["usdfaceItems"] = [{"avatar": str(studio), "capture": str(samples / "capture.usda"),
+                                     "output": str(tmp_path / "other.usda")}]
+    pyblish.util.publish(context)
+    failed = [str(r["error"]) for r in context.data["results"] if not r["success"]]
+    assert failed and "jawOpen" in failed[0] and failed[0].count("(fix:") == 1

@@ -76,7 +76,9 @@ class ValidateUsdFaceRig(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import check
 
-        issues = check(instance.data["avatar"], pixar=self.pixar)
+        # the studio's control names read as ARKit's, as personalize will (usdfaceOptions' name_map)
+        name_map = (instance.data.get("usdfaceOptions") or {}).get("name_map")
+        issues = check(instance.data["avatar"], pixar=self.pixar, name_map=name_map)
         instance.data["usdfaceCheck"] = [i.to_dict() for i in issues]
         for issue in issues:
             if issue.severity == "warning":
@@ -88,9 +90,12 @@ class ValidateUsdFaceRig(_pyblish.InstancePlugin):
             from ..errors import RigError
 
             more = f"; ... {len(bad) - 5} more" if len(bad) > 5 else ""
-            lines = "; ".join(str(i) for i in bad[:5]) + more
+            lines = "; ".join(f"{i.severity.upper()} [{i.rule}] {i.prim}: {i.message}"
+                              for i in bad[:5]) + more
+            first = next((i.fix for i in bad if i.fix), "")
             raise RigError(f"{len(bad)} face-rig problem(s): {lines}", path=instance.data["avatar"],
-                           fix="run 'usdface check' on the avatar and fix what it lists")
+                           fix=(first + "; " if first else "") + "run 'usdface check' on the avatar for the "
+                           "whole list" + (" (with --name-map)" if name_map else ""))
 
 
 class ValidateUsdFaceCapture(_pyblish.InstancePlugin):
@@ -139,7 +144,7 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
         result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
         written = Path(getattr(result, "out_path", None) or output)
-        errors = [i for i in check(written) if i.severity == "error"]
+        errors = [i for i in check(written, name_map=options.get("name_map")) if i.severity == "error"]
         if errors:
             from ..errors import UsdFaceError
 
