@@ -132,3 +132,24 @@ def test_a_moved_latest_link_is_a_changed_input(tmp_path, capsys):
     os.symlink("v004", tmp_path / "lib" / "latest")
     main(["check", str(out)])
     assert "input 'lib/latest/hero.usda' changed after this layer was written" in capsys.readouterr().out
+
+
+def test_a_name_mapped_layer_reviews_with_arkit_names(tmp_path):
+    """User trial: the review page of a layer over a studio-named avatar (ch17_ctrl = jawOpen) played a
+    Live Link take with the jaw shut: the variants were read without the name map the layer records (every
+    other reader applies it), so no channel drove ch17_ctrl."""
+    import json
+
+    from usdface.io.flatten import read_avatar_variant
+    from usdface.review.collect import collect_review
+
+    studio = tmp_path / "studio.usda"
+    studio.write_text(A.read_text().replace("jawOpen", "ch17_ctrl"))
+    (tmp_path / "map.json").write_text(json.dumps({"ch17_ctrl": "jawOpen"}))
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(studio), str(C), "--name-map", str(tmp_path / "map.json"), "-o", str(out),
+                 "--method", "dt", "-q"]) == 0
+    for variant in ("personalized", "generic"):
+        assert "jawOpen" in read_avatar_variant(out, variant).mesh("Head").names
+    data = collect_review(out, fit_errors=False)
+    assert any("jawOpen" in m.names for m in data.meshes)

@@ -75,12 +75,12 @@ def read_avatar_variant(path, variant: str = "personalized") -> Avatar:
     :class:`usdface.model.Avatar` in metres / Y up."""
     from pxr import Tf
 
-    from .usd_rig import _read_avatar_stage
+    from .usd_rig import _read_avatar_stage, recorded_name_map
 
     path = Path(path)
     stage = variant_stage(path, variant)
-    try:
-        return _read_avatar_stage(stage, path)
+    try:          # a layer over a studio-named avatar reads with the name map it was written with
+        return _read_avatar_stage(stage, path, name_map=recorded_name_map(stage))
     except UsdFaceError:
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
