@@ -126,3 +126,15 @@ def test_anim_import_writes_skel_animation(tmp_path):
     np.testing.assert_array_equal(time_codes, [0, 2, 4, 6, 8])
     assert prim.GetAttribute("usdface:curves:HeadYaw").GetTimeSamples() == [0, 2, 4, 6, 8]
     assert main(["anim", "import", str(src), "-o", str(out)]) == 2  # refuses to overwrite
+
+
+def test_inspect_summarises_a_live_link_csv(tmp_path, capsys):
+    """The docs say inspect summarises a weights-only take, and a Live Link CSV is one; inspect refused it
+    ('a CSV file (a Live Link Face take?) where a USD avatar is expected')."""
+    w = np.zeros((4, 52))
+    w[1:3, LL_ORDER.index("jawOpen")] = [0.7, 0.9]
+    codes = ["10:00:00:00.000", "10:00:00:02.000", "10:00:00:04.000", "10:00:00:06.000"]
+    path = write_csv(tmp_path / "take.csv", w, codes)
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "take.csv: take" in out and "4 frames" in out and "never above 0.5 (51)" in out

@@ -168,7 +168,8 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
 
 def inspect_file(path, name_map=None) -> dict:
     """Inspect an avatar / usdface layer (.usd, .usda, .usdc) or a capture (folder or capture.usda), or a
-    take (read whole, as a capture: ``report["take"]``).
+    take (read whole, as a capture: ``report["take"]``; a weights-only take, USD or a Live Link Face CSV:
+    :func:`summarize_take`).
 
     ``name_map``: the studio's {channel: ARKit name} dict or JSON / CSV file, used to read an avatar
     (:func:`usdface.io.usd_rig.read_avatar`); validated first, also for a capture.
@@ -183,6 +184,10 @@ def inspect_file(path, name_map=None) -> dict:
     path = Path(path)
     if path.is_dir():
         return summarize_capture(io.read_capture(path))
+    if path.suffix.lower() == ".csv":      # a Live Link Face recording: a take of weights only
+        from .io.take import read_take
+
+        return summarize_take(read_take(path))
     from .io.take import probe_take
     from .io.usd_rig import read_avatar, read_layer_info
 
