@@ -153,3 +153,19 @@ def test_a_name_mapped_layer_reviews_with_arkit_names(tmp_path):
         assert "jawOpen" in read_avatar_variant(out, variant).mesh("Head").names
     data = collect_review(out, fit_errors=False)
     assert any("jawOpen" in m.names for m in data.meshes)
+
+
+def test_the_pipeline_doc_validator_snippet_runs_without_warnings(tmp_path):
+    """docs/pipeline.md's OpenUSD-validator snippet, copied as written, warned that the schema registry was
+    created before usdface registered its schemas: register_validators built the validation registry
+    first. Run as the doc gives it (on the sample avatar), in a fresh process, warnings as errors."""
+    import re
+    import subprocess
+    import sys
+
+    doc = (ROOT / "docs" / "pipeline.md").read_text()
+    snippet = next(b for b in re.findall(r"```python\n(.*?)```", doc, re.S) if "register_validators()" in b)
+    code = snippet.replace('"avatar.usdc"', repr(str(A)))
+    done = subprocess.run([sys.executable, "-W", "error::UserWarning", "-c", code], capture_output=True,
+                          text=True, cwd=tmp_path, check=False)
+    assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr

@@ -81,7 +81,11 @@ def _make_validator(rule_id: str):
 
 def register_validators() -> list[str]:
     """Register every rule of :data:`usdface.pipeline.check.RULES` with OpenUSD's ``ValidationRegistry``
-    (idempotent). Returns the validator names."""
+    (idempotent). Returns the validator names. usdface's schemas are registered first: the validation
+    registry builds USD's schema registry, which takes no plugins afterwards."""
+    from .. import schemas
+
+    schemas.register()
     from pxr import UsdValidation
 
     registry = UsdValidation.ValidationRegistry()
