@@ -405,3 +405,18 @@ def test_resume_of_a_real_layer_skips_the_same_row_and_redoes_an_edited_one(tmp_
     manifest.write_text(manifest.read_text().replace(",dt", ",ebfr"))
     again = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
     assert again.status == FAILED and "method=dt, the row asks method=ebfr" in again.error
+
+
+def test_every_item_gets_its_progress_line(tmp_path, monkeypatch, capsys):
+    """User trial: `batch -j 2` printed `batch [1/3] p1.usda done` only, since items finishing within the
+    progress delay of the last line were not printed; a farm log must list every item."""
+    from usdface import progress
+
+    monkeypatch.setenv("USDFACE_PROGRESS", "plain")
+    monkeypatch.setenv("USDFACE_PROGRESS_DELAY", "30")
+    monkeypatch.setattr(progress, "_ENABLED", True)
+    items = read_manifest(_manifest(tmp_path, ["a", "b", "c"]))
+    run_batch(items, worker=stub_worker, jobs=1)
+    err = capsys.readouterr().err
+    for i, n in enumerate("abc", 1):
+        assert f"batch [{i}/3] {n}.usda done" in err, err

@@ -69,8 +69,9 @@ class _Steps:
     """The callable a ``steps()`` block yields: ``advance(label)`` (a step is done) and ``start(label)``
     (a step begins; the one started before is done)."""
 
-    def __init__(self, title: str, total: int, how: str):
+    def __init__(self, title: str, total: int, how: str, every: bool = False):
         self.title, self.total, self.how = title, max(int(total), 0), how
+        self.every = every      # a plain line for every step, however quick (a batch's items)
         self.done = 0
         self.running: str | None = None
         self.t0 = self.t_step = time.perf_counter()
@@ -129,7 +130,7 @@ class _Steps:
         self.done += 1
         now = time.perf_counter()
         if self.how == "plain":
-            if (now - self.t_step >= self.delay or now - self.t_line >= self.delay
+            if (self.every or now - self.t_step >= self.delay or now - self.t_line >= self.delay
                     or outcome != "done"):  # a failure is always said
                 self._line(f"{self._counter(self.done)} {label or 'step'} {outcome} "
                            f"({now - self.t_step:.1f} s)")
@@ -169,11 +170,12 @@ class _Steps:
 
 
 @contextlib.contextmanager
-def steps(title: str, total: int):
-    """A progress block over ``total`` named steps (see the module docstring)."""
+def steps(title: str, total: int, *, every: bool = False):
+    """A progress block over ``total`` named steps (see the module docstring). ``every``: in plain mode a
+    line for each step however quick (a batch's items, which a farm log must list one by one)."""
     global _LIVE
     how = mode()
-    s = _Steps(title, total, how)
+    s = _Steps(title, total, how, every)
     own_live = False
     if how == "bar":
         if _LIVE is None:

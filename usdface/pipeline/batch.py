@@ -610,7 +610,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
         enabled = _progress._ENABLED
         _progress.set_enabled(enabled and progress)
         try:
-            with steps("batch", len(todo)) as advance:
+            with steps("batch", len(todo), every=True) as advance:
                 if scheduler is not None:
                     runner = _run_dask(worker, todo, scheduler, advance)
                 elif jobs == 1 or len(todo) == 1:
