@@ -420,3 +420,52 @@ def test_every_item_gets_its_progress_line(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     for i, n in enumerate("abc", 1):
         assert f"batch [{i}/3] {n}.usda done" in err, err
+
+
+def pid_slow_worker(item: dict) -> None:
+    """Writes its process id next to ``output``, then takes 60 s."""
+    import time
+
+    Path(item["output"] + ".pid").write_text(str(os.getpid()))
+    time.sleep(60)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="Linux /proc")
+def test_pool_workers_die_with_a_killed_batch(tmp_path):
+    """User trial: `kill -9` on a `batch -j 2` left its two pool workers (~290 MB each) running until ended
+    by hand. Each worker asks Linux for SIGTERM when its parent dies."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    manifest = _manifest(tmp_path, ["a", "b"])
+    tests = Path(__file__).resolve().parent
+    code = ("import sys\nfrom usdface.cli import main\n"
+            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
+            f"'{Path(__file__).stem}:pid_slow_worker']\nsys.exit(main())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 90
+    while len(list((tmp_path / "out").glob("*.pid"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    pids = [int(p.read_text()) for p in (tmp_path / "out").glob("*.pid")]
+    assert len(pids) == 2 and all(_alive(p) for p in pids)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 20
+    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = [p for p in pids if _alive(p)]
+    for p in left:                                   # do not leave them behind if the test fails
+        os.kill(p, signal.SIGKILL)
+    assert not left

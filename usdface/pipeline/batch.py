@@ -413,6 +413,26 @@ PRELOAD = ("usdface.api", "usdface.io.usd_rig", "usdface.io.layers", "usdface.pe
            "scipy.sparse.linalg", "scipy.spatial", "open3d")
 
 
+def _die_with_parent() -> None:
+    """Linux: this pool worker gets SIGTERM when the batch process dies, even by SIGKILL (a farm's hard
+    kill left the workers running, ~290 MB each, until killed by hand): ``prctl(PR_SET_PDEATHSIG)``.
+    Elsewhere nothing (no such call)."""
+    import ctypes
+    import ctypes.util
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)              # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() == 1:          # the parent died before the call: nothing would signal us
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     """Pool worker start-up: one BLAS thread per worker, and the heavy modules (USD, numpy/scipy, Open3D via
     the transfer) imported once here rather than inside the first item's timing."""
@@ -421,6 +441,7 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     from .. import progress
 
     progress.set_enabled(False)  # the parent reports per item; N workers' step lines would interleave
+    _die_with_parent()
     for name in WORKER_THREAD_ENV:
         os.environ.setdefault(name, "1")
     for module in preload:
@@ -558,6 +579,7 @@ def _run_dask(worker, todo, scheduler, advance):
                                    "or drop --scheduler to use the local process pool") from None
     else:
         client = scheduler
+    futures = []
     try:
         futures = [client.submit(run_item_quiet, worker, item, pure=False,
                                  key=f"usdface-item-{item['index']}-{time.time_ns()}") for item in todo]
@@ -568,8 +590,15 @@ def _run_dask(worker, todo, scheduler, advance):
                 res = fut.result()
             except Exception as exc:  # worker lost, unpicklable result...
                 res = _crashed(item, exc)
+                if "deserializ" in str(exc).lower():    # the workers cannot import what the task names
+                    res["error"] = (f"the Dask workers cannot load the task ({exc}); a --worker module "
+                                    "must be importable on every Dask worker (install it there or put it "
+                                    "on their PYTHONPATH), as must usdface")
             yield res
             advance(Path(item["output"]).name, res.get("status", DONE))
+    except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the cluster
+        client.cancel([f for f in futures if not f.done()])
+        raise
     finally:
         if own:
             client.close()
