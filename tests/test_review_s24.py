@@ -169,3 +169,24 @@ def test_the_pipeline_doc_validator_snippet_runs_without_warnings(tmp_path):
     done = subprocess.run([sys.executable, "-W", "error::UserWarning", "-c", code], capture_output=True,
                           text=True, cwd=tmp_path, check=False)
     assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr
+
+
+def test_refusal_of_a_flattened_export_names_the_avatar_as_one_can_pass_it(tmp_path, monkeypatch):
+    """User trial: the refusal suggested '(avatar.usda)', the name recorded relative to the layer, which does
+    not exist relative to where the user stands; it is now a path from the current folder."""
+    import re
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import refuse_usdface_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["personalize", str(A), str(C), "-o", str(out / "p.usda"), "--method", "dt", "-q"]) == 0
+    assert main(["export", str(out / "p.usda"), "--flatten", str(out / "flat.usdc"), "-q"]) == 0
+    elsewhere = tmp_path / "shot"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    with pytest.raises(AlreadyPersonalizedError) as err:
+        refuse_usdface_output(Path("../out/flat.usdc"))
+    named = re.search(r"pass the original avatar \((.+)\)\)?$", err.value.fix).group(1).rstrip(")")
+    assert Path(named).resolve() == A.resolve()

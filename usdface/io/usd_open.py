@@ -94,7 +94,9 @@ def tf_error_text(exc, path=None, limit: int = 300) -> str:
 
 def _fix_for(error_type: str) -> str:
     return {
-        "ErrorInvalidSublayerPath": "restore the missing sublayer or remove it from subLayers",
+        "ErrorInvalidSublayerPath": "restore the missing sublayer at the path the layer names (relative to "
+                                    "the layer: a layer copied elsewhere needs its sublayers beside it, or "
+                                    "'usdface export LAYER --flatten OUT.usdc' for one self-contained file)",
         "ErrorSublayerCycle": "remove the sublayer that points back to a layer above it",
         "ErrorUnresolvedPrimPath": "fix the reference/payload prim path or restore the referenced prim",
         "ErrorInvalidAssetPath": "restore the referenced file or fix the asset path",

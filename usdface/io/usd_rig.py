@@ -522,6 +522,16 @@ def _refuse_non_avatar(stage, path: Path) -> None:
         raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
 
 
+def _from_cwd(path: Path) -> str:
+    """``path`` relative to the current folder when it is below or beside it, else absolute (shell-quoted)."""
+    absolute = Path(os.path.normpath(Path(path).absolute()))
+    try:
+        rel = os.path.relpath(absolute)
+    except ValueError:      # another drive
+        rel = str(absolute)
+    return shlex.quote(rel if not rel.startswith(".." + os.sep + "..") else str(absolute))
+
+
 def usdface_output_provenance(path) -> dict | None:
     """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
     neither a capture nor a take), else None. Reads only the root layer's header-level data."""
@@ -604,7 +614,9 @@ def refuse_usdface_output(path) -> None:
     flat = flattened_from(path)
     if flat is not None and flat["variant"] == "personalized":
         inputs = data.get("inputs") or []
-        original = f" ({Path(str(inputs[0])).name})" if inputs else ""
+        # the provenance records the original relative to the flattened file: say it as one can pass it
+        # from here
+        original = f" ({_from_cwd(Path(path).parent / str(inputs[0]))})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
         recorded = Path(str(flat.get("source", "LAYER")))          # relative to the flattened file
         source = shlex.quote(str(recorded if recorded.is_absolute() or "source" not in flat
