@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
 
@@ -190,3 +191,51 @@ def test_refusal_of_a_flattened_export_names_the_avatar_as_one_can_pass_it(tmp_p
         refuse_usdface_output(Path("../out/flat.usdc"))
     named = re.search(r"pass the original avatar \((.+)\)\)?$", err.value.fix).group(1).rstrip(")")
     assert Path(named).resolve() == A.resolve()
+
+
+def _two_meshes(shared_under_instance: bool) -> str:
+    """Two triangle meshes under one SkelRoot binding jawOpen: one BlendShape prim shared by both, or each
+    its own prim under an instanceable Lib."""
+    mesh = """
+    def Mesh "{name}" (prepend apiSchemas = ["SkelBindingAPI"])
+    {{
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [1]
+        int[] faceVertexIndices = [0, 1, 2]
+        rel skel:skeleton = </Root/Skel>
+        uniform token[] skel:blendShapes = ["jawOpen"]
+        rel skel:blendShapeTargets = [<{target}>]
+    }}"""
+    shape = """
+        def BlendShape "{name}"
+        {{
+            uniform vector3f[] offsets = [(0, -1, 0), (0, -1, 0), (0, -1, 0)]
+        }}"""
+    if shared_under_instance:
+        meshes = mesh.format(name="Head", target="/Root/Lib/jawOpen").replace("[1]", "[3]")
+        lib = ('def Scope "Lib" (instanceable = true\n        references = </Proto>)\n    {\n    }\n}\n'
+               'def Scope "Proto"\n{' + shape.format(name="jawOpen") + "\n")
+    else:
+        meshes = "".join(mesh.format(name=n, target="/Root/Shapes/jawOpen").replace("[1]", "[3]")
+                         for n in ("Head", "Mouth"))
+        lib = 'def Scope "Shapes"\n    {' + shape.format(name="jawOpen") + "\n    }"
+    return ('#usda 1.0\n(\n    defaultPrim = "Root"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n'
+            'def SkelRoot "Root"\n{\n    def Skeleton "Skel" {}\n' + meshes + "\n    " + lib + "\n}\n")
+
+
+@pytest.mark.parametrize("instanced, needle", [(False, "is bound by 2 meshes (/Root/Head, /Root/Mouth)"),
+                                                (True, "inside the instanceable prim /Root/Lib")])
+def test_blend_shapes_a_layer_cannot_override_are_refused(tmp_path, capsys, instanced, needle):
+    """USD review: a BlendShape bound by two meshes got the last mesh's offsets for both (in its own local
+    frame), and one under an instanceable prim silently kept its values; personalize and check refuse both
+    before any work, naming the BlendShape."""
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar, refuse_unwritable_shapes
+
+    path = tmp_path / "avatar.usda"
+    path.write_text(_two_meshes(instanced))
+    avatar = read_avatar(path)
+    with pytest.raises(RigError, match=re.escape(needle)):
+        refuse_unwritable_shapes(avatar)
+    main(["check", str(path), "--no-pixar"])
+    assert needle in capsys.readouterr().out

@@ -645,6 +645,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
                              fix="keep the input avatar in place while writing the layer")
     out_path = check_output_path(out_path, force, inputs=[in_path]).absolute()
     resolved = _resolve_offsets(avatar, offsets)
+    from .usd_rig import refuse_unwritable_shapes
+
+    refuse_unwritable_shapes(avatar, [rig.key for rig, _ in resolved], "the layer")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     input_asset = _relative_asset_path(in_path, out_path.parent)
     input_layer = Sdf.Layer.FindOrOpen(str(in_path))

@@ -722,6 +722,8 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
                 "documentation": stage.GetRootLayer().documentation or "",
                 "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static]),
+                "instanced_targets": _instanced_targets(stage, meshes),
+                "shared_shapes": _shared_shapes(meshes),
                 "name_map": dict(name_map) if name_map else None}
     return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
@@ -755,6 +757,54 @@ def _instanced(prims) -> dict:
                 up = up.GetParent()
             out[str(prim.GetPath())] = str(up.GetPath()) if up else ""
     return out
+
+
+def _instanced_targets(stage, meshes) -> dict:
+    """{mesh prim path: (BlendShape path, instanceable prim)} for the meshes one of whose BlendShape targets
+    lies under an instance (the mesh itself may not): a layer's ``over`` of that target changes nothing."""
+    out = {}
+    for rig in meshes:
+        for target in rig.source.shape_prims if rig.source else []:
+            prim = stage.GetPrimAtPath(target)
+            holder = _instanced([prim]) if prim and prim.IsInstanceProxy() else {}
+            if holder:
+                out[rig.source.prim] = (target, holder[target])
+                break
+    return out
+
+
+def _shared_shapes(meshes) -> dict:
+    """{BlendShape path: [mesh prim paths]} for the targets more than one mesh binds."""
+    users: dict[str, list[str]] = {}
+    for rig in meshes:
+        for target in dict.fromkeys(rig.source.shape_prims if rig.source else []):
+            users.setdefault(target, []).append(rig.source.prim)
+    return {t: ms for t, ms in users.items() if len(ms) > 1}
+
+
+def refuse_unwritable_shapes(avatar, keys=None, what: str = "the personalized layer") -> None:
+    """Raise :class:`RigError` when ``what`` would author BlendShape offsets that USD cannot compose as
+    meant, for the meshes ``keys`` (default every mesh): a target under an instanceable prim (the ``over`` is
+    ignored: nothing would change), or a target bound by two meshes (one prim holds one set of offsets: the
+    last mesh written would win for both, in its own local frame). Uses :func:`read_avatar`'s
+    ``metadata["instanced_targets"]`` and ``["shared_shapes"]``."""
+    meta = avatar.metadata or {}
+    keys = [m.key for m in avatar.meshes] if keys is None else list(keys)
+    for key in keys:
+        if key in (meta.get("instanced_targets") or {}):
+            target, holder = meta["instanced_targets"][key]
+            raise RigError(f"{key}'s BlendShape {target} is inside the instanceable prim {holder}: USD "
+                           f"ignores overrides under an instance, so {what} would not change it",
+                           path=avatar.file, prim=target,
+                           fix=f"set instanceable = false on {holder}, or keep the mesh's BlendShape prims "
+                               "under the mesh")
+    for target, users in (meta.get("shared_shapes") or {}).items():
+        if any(u in keys for u in users):
+            raise RigError(f"the BlendShape {target} is bound by {len(users)} meshes ({', '.join(users)}): "
+                           f"one prim holds one set of offsets, so {what} cannot personalize each mesh",
+                           path=avatar.file, prim=target,
+                           fix="give each mesh its own BlendShape prims (duplicate the shared ones under "
+                               "each mesh and point its skel:blendShapeTargets at them)")
 
 
 def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:

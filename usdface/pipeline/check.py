@@ -522,9 +522,10 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         return  # no skinned geometry (a take, usdface's error maps, a schema file): not judged as an avatar
     try:
         avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
-        from ..io.usd_rig import refuse_instanced
+        from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
+        refuse_unwritable_shapes(avatar, None, "the personalized layer")
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
             yield Issue(ERROR, "Readable", "/", "no face-like blend shapes (no ARKit-named shape that "
                         "moves): personalize finds no face mesh", "name the face shapes as ARKit does "

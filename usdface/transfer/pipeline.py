@@ -482,10 +482,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
             avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
         if out_path is not None:                  # an override under an instance would change nothing
-            from ..io.usd_rig import refuse_instanced
+            from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
             try:
                 refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+                refuse_unwritable_shapes(avatar, [m.key for m in avatar.meshes], "the personalized layer")
             except RigError as exc:
                 if not dry_run:
                     raise
