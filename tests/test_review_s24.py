@@ -239,3 +239,43 @@ def test_blend_shapes_a_layer_cannot_override_are_refused(tmp_path, capsys, inst
         refuse_unwritable_shapes(avatar)
     main(["check", str(path), "--no-pixar"])
     assert needle in capsys.readouterr().out
+
+
+def test_check_judges_only_meshes_that_bind_blend_shapes(tmp_path):
+    """USD review (Pixar's testUsdSkelCache/populate.usda): skel:blendShapes on a Scope (UsdSkel ignores it
+    there) and a mesh that blocks both bindings were reported as 'skel:blendShapes has 1 names but
+    skel:blendShapeTargets 0 targets' errors; a mesh with names and no targets still is."""
+    from usdface.api import check
+
+    path = tmp_path / "populate.usda"
+    path.write_text("""#usda 1.0
+(
+    defaultPrim = "Root"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+)
+def SkelRoot "Root"
+{
+    def Scope "Scope" (prepend apiSchemas = ["SkelBindingAPI"])
+    {
+        uniform token[] skel:blendShapes = ["ignored"]
+        def Mesh "Block" (prepend apiSchemas = ["SkelBindingAPI"])
+        {
+            point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+            int[] faceVertexCounts = [3]
+            int[] faceVertexIndices = [0, 1, 2]
+            uniform token[] skel:blendShapes = None
+            rel skel:blendShapeTargets = None
+        }
+        def Mesh "Override" (prepend apiSchemas = ["SkelBindingAPI"])
+        {
+            point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+            int[] faceVertexCounts = [3]
+            int[] faceVertexIndices = [0, 1, 2]
+            uniform token[] skel:blendShapes = ["shape"]
+        }
+    }
+}
+""")
+    arrays = [i.prim for i in check(path, pixar=False) if i.rule == "BlendShapeArrays"]
+    assert arrays == ["/Root/Scope/Override"]

@@ -140,15 +140,14 @@ def _skel():
     return UsdSkel
 
 
-def _has_blend_shapes(prim) -> bool:
-    attr = prim.GetAttribute("skel:blendShapes")
-    rel = prim.GetRelationship("skel:blendShapeTargets")
-    return bool((attr and attr.HasAuthoredValue()) or (rel and rel.HasAuthoredTargets()))
-
-
 def _blend_shape_meshes(stage):
-    """Every prim that authors blend-shape bindings (normally Mesh prims)."""
+    """Every Mesh with blend-shape bindings, as the reader finds them
+    (:func:`usdface.io.usd_rig._has_blend_shapes`): UsdSkel ignores ``skel:blendShapes`` on other prims (a
+    Scope that passes it down, Pixar's "ignored" token), and a blocked ``skel:blendShapes`` / an empty
+    ``skel:blendShapeTargets`` binds nothing."""
     from pxr import Usd
+
+    from ..io.usd_rig import _has_blend_shapes
 
     return [p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if _has_blend_shapes(p)]
 
