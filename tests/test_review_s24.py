@@ -279,3 +279,45 @@ def SkelRoot "Root"
 """)
     arrays = [i.prim for i in check(path, pixar=False) if i.rule == "BlendShapeArrays"]
     assert arrays == ["/Root/Scope/Override"]
+
+
+def _two_roots() -> str:
+    root = """
+def SkelRoot "{r}"
+{{
+    def Skeleton "Skel" {{}}
+    def Mesh "Head" (prepend apiSchemas = ["SkelBindingAPI"])
+    {{
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        rel skel:skeleton = </{r}/Skel>
+        uniform token[] skel:blendShapes = ["jawOpen"]
+        rel skel:blendShapeTargets = [</{r}/Head/jawOpen>]
+        def BlendShape "jawOpen"
+        {{
+            uniform vector3f[] offsets = [(0, -1, 0), (0, -1, 0), (0, -1, 0)]
+            uniform vector3f[] inbetweens:half = [(0, -0.2, 0), (0, -0.2, 0), (0, -0.2, 0)] (weight = 0.5)
+        }}
+    }}
+}}
+"""
+    return ('#usda 1.0\n(\n    defaultPrim = "A"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n'
+            + root.format(r="A") + root.format(r="B"))
+
+
+def test_export_keeps_one_node_per_mesh_and_says_inbetweens_are_dropped(tmp_path):
+    """USD review: two SkelRoots with a Head each gave two glTF nodes named 'Head' (and the OBJ export
+    one folder for both); and the glTF/OBJ targets silently dropped inbetweens (a shape with an inbetween
+    at 0.5 plays 2.4 cm off there)."""
+    import pygltflib
+
+    from usdface import api
+
+    path = tmp_path / "two.usda"
+    path.write_text(_two_roots())
+    with pytest.warns(UserWarning, match=r"2 shape\(s\) have inbetweens.*A_Head:jawOpen"):
+        api.export_avatar(path, gltf=tmp_path / "two.glb", obj_dir=tmp_path / "objs")
+    names = [n.name for n in pygltflib.GLTF2().load(str(tmp_path / "two.glb")).nodes]
+    assert names == ["A", "A_Head", "B_Head"]
+    assert sorted(p.name for p in (tmp_path / "objs").iterdir()) == ["A_Head", "B_Head"]

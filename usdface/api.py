@@ -719,6 +719,21 @@ def check_personalize_options(**options: Any) -> None:
                       **fit_opts)
 
 
+def _unique_mesh_names(rigs, prims):
+    """``rigs`` renamed where two meshes share a name (two SkelRoots with a ``Head`` each): those take their
+    prim path (``/A/Head`` -> ``A_Head``), so glTF nodes and OBJ folders stay one per mesh."""
+    import collections
+    import dataclasses
+
+    counts = collections.Counter(r.name for r in rigs)
+    out = []
+    for rig, prim in zip(rigs, prims, strict=True):
+        if counts[rig.name] > 1:
+            rig = dataclasses.replace(rig, name=str(prim).strip("/").replace("/", "_"))
+        out.append(rig)
+    return out
+
+
 def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
                       worker: str | None = None, options: dict | None = None, force: bool = False,
                       report_path: PathLike | None = None) -> BatchReport:
@@ -879,6 +894,14 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         rigs = list(avatar.meshes) + [
             _FaceRig(points, tris, [], [], name=prim.rsplit("/", 1)[-1])
             for prim, (points, tris) in sorted(avatar.metadata.get("static_meshes", {}).items())]
+        rigs = _unique_mesh_names(rigs, [m.key for m in avatar.meshes]
+                                  + sorted(avatar.metadata.get("static_meshes", {})))
+        with_inbetweens = [f"{rig.name}:{n}" for rig in rigs for n in getattr(rig, "inbetweens", {}) or {}]
+        if with_inbetweens:           # glTF morph targets and full target OBJs are the primary shapes only
+            more = " ..." if len(with_inbetweens) > 4 else ""
+            warnings.warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
+                          f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
+                          "and 1 there", UserWarning, stacklevel=2)
         if gltf:
             from .io.usd_skeleton import read_gltf_skin
 

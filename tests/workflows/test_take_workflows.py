@@ -319,14 +319,15 @@ def test_inspect_reads_a_take_file_as_it_reads_a_take_folder(scan_take, tmp_path
 
 
 def test_a_live_link_csv_where_a_usd_file_goes_is_named(tmp_path):
-    """A Live Link CSV given to a command that reads USD (check, inspect, the avatar of personalize): the
-    refusal says it is a CSV take and how takes are used, not USD's 'Cannot determine file format'."""
+    """A Live Link CSV given to a command that reads USD (check, the avatar of personalize): the refusal says
+    it is a CSV take and how takes are used, not USD's 'Cannot determine file format'. (inspect summarises
+    it as the weights-only take it is.)"""
     from usdface.io.livelink import write_livelink_csv
 
     write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], np.zeros((4, 2)),
                        np.arange(4) / 30.0)
-    for args in (("check", "take.csv"), ("inspect", "take.csv"),
-                 ("personalize", "take.csv", "take.csv", "-o", "out.usda")):
+    assert "take.csv: take" in run("inspect", "take.csv", cwd=tmp_path).stdout
+    for args in (("check", "take.csv"), ("personalize", "take.csv", "take.csv", "-o", "out.usda")):
         proc = run(*args, cwd=tmp_path, ok=False)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert "take.csv: a CSV file (a Live Link Face take?)" in proc.stderr and "--take" in proc.stderr
