@@ -321,3 +321,20 @@ def test_export_keeps_one_node_per_mesh_and_says_inbetweens_are_dropped(tmp_path
     names = [n.name for n in pygltflib.GLTF2().load(str(tmp_path / "two.glb")).nodes]
     assert names == ["A", "A_Head", "B_Head"]
     assert sorted(p.name for p in (tmp_path / "objs").iterdir()) == ["A_Head", "B_Head"]
+
+
+def test_time_sampled_only_offsets_are_named_as_such(tmp_path):
+    """USD review: offsets authored as time samples only (no default) read as '0 offsets for a mesh of 3
+    points' and checked as 'BlendShape has no offsets'; both now say what is wrong."""
+    from usdface.api import check
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar
+
+    text = _two_meshes(False).replace(
+        "uniform vector3f[] offsets = [(0, -1, 0), (0, -1, 0), (0, -1, 0)]",
+        "vector3f[] offsets.timeSamples = {1: [(0, -1, 0), (0, -1, 0), (0, -1, 0)]}")
+    path = tmp_path / "ts.usda"
+    path.write_text(text)
+    with pytest.raises(RigError, match="time-sampled only"):
+        read_avatar(path)
+    assert any("time-sampled only" in i.message for i in check(path, pixar=False))

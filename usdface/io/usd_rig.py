@@ -296,6 +296,10 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
         idx = None
         if idx_attr.HasAuthoredValue():
             idx = _array(idx_attr.Get(), np.int64, 0, "pointIndices", path, target)
+        if shape.GetOffsetsAttr().GetNumTimeSamples() and shape.GetOffsetsAttr().Get() is None:
+            raise RigError("offsets are time-sampled only, with no default value: UsdSkel reads the "
+                           "default (offsets are uniform)", path=path, prim=target,
+                           fix="author the offsets as a default value (uniform vector3f[] offsets = [...])")
         if shape.GetOffsetsAttr().HasAuthoredValue():
             offsets = _array(shape.GetOffsetsAttr().Get(), np.float64, 3, "offsets", path, target)
             _check_finite(offsets, "offsets", path, target)

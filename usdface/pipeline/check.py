@@ -253,6 +253,10 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
             if normals is not None and len(normals):
                 yield Issue(WARNING, "BlendShapeOffsets", path, "BlendShape has normalOffsets only; it moves "
                             "no points", "author offsets unless a shading-only shape is intended")
+            elif shape.GetOffsetsAttr().GetNumTimeSamples():
+                yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape offsets are time-sampled only (no "
+                            "default value); UsdSkel reads the default", "author the offsets as a default "
+                            "value (uniform vector3f[] offsets = [...])")
             else:
                 yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape has no offsets",
                             "author offsets (one per pointIndices entry, or one per mesh point)")
