@@ -469,3 +469,19 @@ def test_pool_workers_die_with_a_killed_batch(tmp_path):
     for p in left:                                   # do not leave them behind if the test fails
         os.kill(p, signal.SIGKILL)
     assert not left
+
+
+def test_every_on_a_capture_is_refused_before_any_item_runs(tmp_path):
+    """User trial: every=3 on a row whose capture holds picked frames failed only when that item ran; the
+    batch is refused up front like the other bad options (a take's row keeps it)."""
+    from usdface.api import personalize_batch
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    (tmp_path / "out").mkdir()
+    path = tmp_path / "m.csv"
+    path.write_text("avatar,capture,output,every\n"
+                    f"{root / 'avatar.usda'},{root / 'capture.usda'},out/a.usda,3\n")
+    with pytest.raises(InputFileError, match="item 1: every=3 thins a take read whole") as err:
+        personalize_batch(path, jobs=1)
+    assert "m.csv" in str(err.value)
+    assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()

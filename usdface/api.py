@@ -769,6 +769,16 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            every = item.options.get("every", 1)
+            if not isinstance(every, bool) and isinstance(every, int) and every > 1 \
+                    and Path(item.capture).exists():
+                from .io.take import is_take
+
+                if not is_take(item.capture):    # as the item itself would refuse it, but before any work
+                    raise InputFileError(f"item {item.index + 1}: every={every} thins a take read whole; "
+                                         f"{item.capture} holds frames picked one per shape", path=manifest,
+                                         fix="leave 'every' out for that row, or give the take itself as its "
+                                             "capture")
     try:
         report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
     except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
