@@ -338,3 +338,31 @@ def test_time_sampled_only_offsets_are_named_as_such(tmp_path):
     with pytest.raises(RigError, match="time-sampled only"):
         read_avatar(path)
     assert any("time-sampled only" in i.message for i in check(path, pixar=False))
+
+
+def test_a_smaller_capture_gives_the_same_personalization(tmp_path):
+    """Review: the field's smoothing (and the join of the offset modes) took the capture's mean edge as the
+    correspondence measured it on the capture placed on the avatar, then multiplied it by the registration's
+    scale again: a capture 10x smaller than its person (a wrong unit) smoothed over 9 rings instead of 2 and
+    moved the offsets by 12 % of the personalization. The same capture at a tenth of its size (registration
+    scale ~10) now gives the same offsets."""
+    import dataclasses
+
+    from usdface.api import read_avatar
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.transfer import personalize_avatar
+
+    cap, avatar = _capture(), read_avatar(A)
+    s = 0.1
+    t, f = cap.template, cap.frames
+    small = Capture(cap.neutral * s, cap.triangles,
+                    FaceRig(t.neutral * s, t.triangles, list(t.names), t.deltas * s, name=t.name),
+                    Frames(f.points * s, f.weights, f.role, f.label), cap.names)
+    small = dataclasses.replace(small, metadata=dict(cap.metadata or {}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = personalize_avatar(avatar, cap, None, method="dt")
+        b = personalize_avatar(avatar, small, None, method="dt")
+    key = avatar.mesh("Head").key
+    change = np.abs(a.offsets[key] - avatar.mesh("Head").deltas).max()
+    assert np.abs(a.offsets[key] - b.offsets[key]).max() < 1e-3 * change

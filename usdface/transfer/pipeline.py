@@ -656,7 +656,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         else:
             base = {m.key: (approx_eq4[m.key] if approximation == "retarget" else _shape_deltas(m, names))
                     for m in avatar.meshes}
-            edge = float(corr.info.get("capture_mean_edge_m", 0.0)) * sim.scale if corr.info else 0.0
+            # measured on the capture as placed on the avatar (avatar metres): no second registration scale
+            edge = float(corr.info.get("capture_mean_edge_m", 0.0)) if corr.info else 0.0
             result, adjacent = implant_shapes(
                 face.neutral, face.triangles, corr, capture.triangles, person_neutral, person_deltas, tmpl_av,
                 avatar_face_deltas, base[face_prim], face_transfer=face_transfer,
@@ -905,7 +906,9 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     followers = [m for m in others if not _is_eyeball(m, regions)]      # eyeballs keep their shapes
     keep_at = np.concatenate([m.neutral for m in followers]) if followers else np.zeros((0, 3))
     # the field is known at the capture's resolution: averaged over one placed capture edge
-    smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) * sim.scale or None
+    # (the correspondence measured it on the placed capture, in avatar metres: the registration's scale is
+    # in it once already)
+    smoothing = float((corr.info or {}).get("capture_mean_edge_m", 0.0)) or None
     # during the field (the run's peak) the face's generic offsets - and those of the whole face
     # mesh when it was split (reached + beyond), used only after the field - are held as the
     # authored float32 and the reader's conversion (the same values to the last bit)
