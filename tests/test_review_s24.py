@@ -366,3 +366,38 @@ def test_a_smaller_capture_gives_the_same_personalization(tmp_path):
     key = avatar.mesh("Head").key
     change = np.abs(a.offsets[key] - avatar.mesh("Head").deltas).max()
     assert np.abs(a.offsets[key] - b.offsets[key]).max() < 1e-3 * change
+
+
+@pytest.mark.parametrize("how", ["mm", "z-up"])
+def test_a_frame_in_other_units_or_axes_is_refused(how):
+    """User trial: one training OBJ exported in millimetres (or Z up) among metre Y-up ones was fitted
+    silently ('train RMSE 9690 mm', truth error 0.19 -> 3.5 mm); the frame is named and the fit refused."""
+    from usdface.errors import GeometryError
+    from usdface.model import Capture, Frames
+    from usdface.personalize import fit_personalized_shapes
+
+    cap = _capture()
+    f = cap.frames
+    points = np.array(f.points)
+    k = list(f.role).index("train")
+    centre = points[k].mean(axis=0)
+    zup = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    points[k] = points[k] * 1000.0 if how == "mm" else (points[k] - centre) @ zup.T + centre
+    bad = Capture(cap.neutral, cap.triangles, cap.template, Frames(points, f.weights, f.role, f.label),
+                  cap.names)
+    with pytest.raises(GeometryError, match=rf"frame '{f.label[k]}' is turned .* not in the neutral's units"):
+        fit_personalized_shapes(bad, "dt")
+
+
+def test_a_capture_in_millimetres_read_as_metres_is_said():
+    """User trial: a whole capture in millimetres fitted a rig 1000x too large without a word."""
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.personalize import fit_personalized_shapes
+
+    cap = _capture()
+    t, f = cap.template, cap.frames
+    mm = Capture(cap.neutral * 1000, cap.triangles,
+                 FaceRig(t.neutral * 1000, t.triangles, list(t.names), t.deltas * 1000, name=t.name),
+                 Frames(f.points * 1000, f.weights, f.role, f.label), cap.names)
+    with pytest.warns(UserWarning, match=r"the neutral scan is .* m across .* are its units right"):
+        fit_personalized_shapes(mm, "dt")

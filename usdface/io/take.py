@@ -127,6 +127,17 @@ def read_take_folder(path) -> Take:
     objs = [objs[i] for i in order]
     numbers = np.array(numbers)[order]
     rows = np.arange(len(objs)) if len(objs) == len(ll.times) else numbers - numbers[0]
+    if len(objs) != len(ll.times):
+        # row = frame number - the first file's: right for a take trimmed at its start or its end, wrong by
+        # one row for every later mesh when the first file is the one missing; said, not guessed silently
+        gaps = np.flatnonzero(np.diff(numbers) > 1)
+        after = ", ".join(str(int(numbers[i])) for i in gaps[:5])
+        warnings.warn(f"{root}: {len(objs)} OBJ frames for {len(ll.times)} rows of {csvs[0].name}: frame "
+                      f"{int(numbers[0])} read as row 0, frame n as row n - {int(numbers[0])}"
+                      + (f"; frames missing after {after}" if after else "")
+                      + " (if a frame file is missing at the start, every later mesh is paired with the "
+                        "wrong weights: restore it, or trim the CSV to the frames)",
+                      UserWarning, stacklevel=2)
     if rows.max() >= len(ll.times):
         late = objs[int(rows.argmax())]
         raise CaptureError(f"OBJ frame {late.relative_to(root) if late.is_relative_to(root) else late} has "

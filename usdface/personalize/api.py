@@ -79,6 +79,7 @@ def check_capture(capture: Capture) -> list[str]:
         raise FitError("no training frames", path=src, fix="add frames with role 'train' (train/ folder)")
     if not np.all(np.isfinite(train.points)) or not np.all(np.isfinite(train.weights)):
         raise GeometryError("non-finite training points or weights", path=src, fix="repair the frames")
+    _check_frames_like_neutral(capture, src)
     if not np.any(np.abs(train.weights) >= ACTIVATION_MIN):
         raise FitError(f"no training frame activates any shape (every weight below {ACTIVATION_MIN})",
                        path=src, fix="the frames' blendshape weights are missing or zero: export them with "
@@ -691,6 +692,51 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
+
+
+#: A frame whose mask is turned more than this against the neutral's (degrees), or scaled by more than
+#: this factor (either way), is in other axes or units than the neutral: no expression does that.
+FRAME_TURN_MAX_DEG = 30.0
+FRAME_SCALE_MAX = 1.5
+#: The face mask's diagonal a capture in metres has, roughly (m): outside it, the units are suspect.
+FACE_DIAGONAL_M = (0.03, 1.5)
+
+
+def _check_frames_like_neutral(capture, src) -> None:
+    """Refuse a frame in other units or axes than the neutral (one OBJ exported in millimetres or Z up among
+    metre Y-up ones fitted as a 'train RMSE 9690 mm' rig): each frame's mask against the neutral's, by the
+    best rotation (Kabsch, one batched 3x3 SVD) and the ratio of their RMS radii. Warn when the neutral
+    itself is not face-sized in metres (a capture in millimetres read as metres)."""
+    from ..errors import GeometryError
+
+    n0 = np.asarray(capture.neutral, dtype=np.float64)
+    c0 = n0 - n0.mean(axis=0)
+    r0 = np.sqrt(np.mean(np.sum(c0 * c0, axis=1)))
+    diagonal = float(np.linalg.norm(np.ptp(n0, axis=0)))
+    if not FACE_DIAGONAL_M[0] <= diagonal <= FACE_DIAGONAL_M[1]:
+        warnings.warn(f"{src or 'capture'}: the neutral scan is {diagonal:.3g} m across (a face mask in "
+                      "metres is ~0.15-0.3 m): are its units right? (OBJ captures are read as metres; a USD "
+                      "capture's metersPerUnit says its unit)", UserWarning, stacklevel=3)
+    frames = capture.frames
+    P = np.asarray(frames.points, dtype=np.float64)
+    if not len(P) or r0 <= 0:
+        return
+    C = P - P.mean(axis=1, keepdims=True)                                          # [F,n,3]
+    radius = np.sqrt(np.mean(np.sum(C * C, axis=2), axis=1))                        # [F]
+    u, _, vt = np.linalg.svd(np.einsum("fni,nj->fij", C, c0))                       # [F,3,3] Kabsch
+    flip = np.ones((len(P), 3))
+    flip[:, 2] = np.sign(np.linalg.det(u @ vt))                                     # a rotation, not a mirror
+    rot = (u * flip[:, None, :]) @ vt
+    angle = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    scale = radius / r0
+    bad = np.flatnonzero((angle > FRAME_TURN_MAX_DEG) | (scale > FRAME_SCALE_MAX)
+                         | (scale < 1.0 / FRAME_SCALE_MAX))
+    if bad.size:
+        f = int(bad[0])
+        raise GeometryError(f"frame {frames.label[f]!r} is turned {angle[f]:.0f} degrees and scaled "
+                            f"x{scale[f]:.3g} against the neutral scan ({bad.size} such frame(s)): not in "
+                            "the neutral's units or axes", path=src,
+                            fix="export every frame as the neutral is (same units, same up axis)")
 
 
 def _cv_vertices(D, clamp=D_CLAMP, max_vertices=300, seed=0):
