@@ -401,3 +401,20 @@ def test_a_capture_in_millimetres_read_as_metres_is_said():
                  Frames(f.points * 1000, f.weights, f.role, f.label), cap.names)
     with pytest.warns(UserWarning, match=r"the neutral scan is .* m across .* are its units right"):
         fit_personalized_shapes(mm, "dt")
+
+
+def test_a_frame_weight_file_without_its_scan_is_refused(tmp_path):
+    """User trial: a train/ JSON whose OBJ was missing was skipped silently ('50 train frames'), while an
+    OBJ without its JSON is a clear error; both are now."""
+    import shutil
+
+    from usdface.api import read_capture, write_capture
+    from usdface.errors import CaptureError
+
+    folder = tmp_path / "cap"
+    write_capture(_capture(), folder)
+    victim = sorted((folder / "train").glob("*.obj"))[3]
+    victim.unlink()
+    with pytest.raises(CaptureError, match=rf"train/{victim.stem}.json has no scan {victim.name}"):
+        read_capture(folder)
+    shutil.rmtree(folder)

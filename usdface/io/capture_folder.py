@@ -132,6 +132,11 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict) ->
         folder = root / role
         if not folder.is_dir():
             continue
+        orphans = sorted(j for j in folder.glob("*.json") if not j.with_suffix(".obj").is_file())
+        if orphans:                     # a frame's weights without its scan (as its scan without weights)
+            raise CaptureError(f"{role}/{orphans[0].name} has no scan {orphans[0].with_suffix('.obj').name} "
+                               f"({len(orphans)} such weight file(s))", path=root,
+                               fix="restore the frame's OBJ, or remove its .json too")
         for obj in sorted(folder.glob("*.obj")):
             pts, tris = read_obj(obj)
             _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
