@@ -418,3 +418,24 @@ def test_a_frame_weight_file_without_its_scan_is_refused(tmp_path):
     with pytest.raises(CaptureError, match=rf"train/{victim.stem}.json has no scan {victim.name}"):
         read_capture(folder)
     shutil.rmtree(folder)
+
+
+def test_inspect_of_a_capture_without_test_frames_says_no_animation(tmp_path, capsys):
+    """User trial: with an empty test/ folder, personalize --inspect printed 'test-expression SkelAnimation'
+    although it wrote none."""
+    from usdface.api import write_capture
+    from usdface.model import Capture, Frames
+
+    cap = _capture()
+    f = cap.frames
+    keep = [i for i, r in enumerate(f.role) if r == "train"]
+    train_only = Capture(cap.neutral, cap.triangles, cap.template,
+                         Frames(f.points[keep], f.weights[keep], ["train"] * len(keep),
+                                [f.label[i] for i in keep]), cap.names)
+    path = tmp_path / "train_only.usda"
+    write_capture(train_only, path)
+    assert main(["personalize", str(A), str(path), "-o", str(tmp_path / "p.usda"), "--method", "dt",
+                 "--inspect"]) == 0
+    out = capsys.readouterr().out
+    assert "no SkelAnimation (the capture has no test expressions" in out
+    assert "usdfaceInspection" not in (tmp_path / "p.usda").read_text().split("SkelAnimation")[0][-200:]

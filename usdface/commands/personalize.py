@@ -201,6 +201,9 @@ def run(args) -> int:
                     f"SkelAnimation of the take {args.capture}"
             else:
                 anim = "test-expression SkelAnimation" + (f" + take {args.take}" if args.take else "")
+            if not (result.report.get("inspection") or {}).get("animation_frames", 1):
+                anim = ("no SkelAnimation (the capture has no test expressions; --take TAKE plays a "
+                        "recording)")
             print(f"inspection: change heat map (displayColor), {anim}{extra}")
     if args.review and not args.dry_run and result.out_path:
         from ..api import write_review
