@@ -439,3 +439,17 @@ def test_inspect_of_a_capture_without_test_frames_says_no_animation(tmp_path, ca
     out = capsys.readouterr().out
     assert "no SkelAnimation (the capture has no test expressions" in out
     assert "usdfaceInspection" not in (tmp_path / "p.usda").read_text().split("SkelAnimation")[0][-200:]
+
+
+def test_evaluate_refuses_another_captures_truth(tmp_path):
+    """User trial: evaluate --truth printed 'vs truth 0.677' against another person's truth file (its neutral
+    6.8 mm from the capture's); a truth whose neutral is not the capture's is refused."""
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    npz = np.load(SAMPLES / "truth" / "capture_truth.npz")
+    other = {k: npz[k] for k in npz.files}
+    other["neutral"] = other["neutral"] + np.array([0.0, 0.004, 0.0])          # another face, 4 mm off
+    np.savez(tmp_path / "other.npz", **other)
+    with pytest.raises(InputFileError, match=r"4.00 mm RMS from the capture's neutral scan"):
+        api.evaluate_methods(C, ["dt"], truth=tmp_path / "other.npz")

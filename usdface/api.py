@@ -364,6 +364,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         if source is not None:
             p.start(f"read capture {Path(source).name}")
         capture = _as_capture(capture)
+        _check_truth_matches(truth, capture, inputs[1] if isinstance(inputs[1], str | Path) else None)
         if len(capture.test) == 0:
             whole_take = capture.whole_take
             raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
@@ -415,6 +416,32 @@ def _check_evaluate_suffixes(json_path, plot_path) -> None:
             raise InputFileError(f"plot format {kind} is not supported "
                                  f"(supported: {', '.join(kinds)})", path=plot_path,
                                  fix=f"name it e.g. {Path(plot_path).stem or 'errors'}.png")
+
+
+#: RMS distance (m) between a truth file's neutral and the capture's neutral scan above which the truth is
+#: another person's (a scan's noise is ~0.1-0.15 mm; two people differ by millimetres).
+TRUTH_NEUTRAL_RMS_M = 1e-3
+
+
+def _check_truth_matches(truth, capture, path) -> None:
+    """Refuse a truth file made for another capture: its ``neutral`` (when it has one) on another vertex
+    count, or more than :data:`TRUTH_NEUTRAL_RMS_M` RMS from the capture's neutral scan ('vs truth 0.677'
+    was printed against another person's truth)."""
+    import numpy as np
+
+    from .errors import InputFileError
+
+    if truth is None or not isinstance(truth, dict) or "neutral" not in truth:
+        return
+    neutral = np.asarray(truth["neutral"], dtype=np.float64)
+    fix = "pass the truth file written with this capture (truth/capture_truth.npz beside it)"
+    if neutral.shape != np.asarray(capture.neutral).shape:
+        raise InputFileError(f"the truth's neutral has {len(neutral)} vertices, the capture "
+                             f"{len(capture.neutral)}", path=path, fix=fix)
+    rms = float(np.sqrt(np.mean(np.sum((neutral - capture.neutral) ** 2, axis=1))))
+    if rms > TRUTH_NEUTRAL_RMS_M:
+        raise InputFileError(f"the truth's neutral is {rms * 1e3:.2f} mm RMS from the capture's neutral scan "
+                             "(another capture's truth?)", path=path, fix=fix)
 
 
 def _read_truth(path) -> dict:
