@@ -453,3 +453,17 @@ def test_evaluate_refuses_another_captures_truth(tmp_path):
     np.savez(tmp_path / "other.npz", **other)
     with pytest.raises(InputFileError, match=r"4.00 mm RMS from the capture's neutral scan"):
         api.evaluate_methods(C, ["dt"], truth=tmp_path / "other.npz")
+
+
+def test_landmarks_evaluate_reads_a_usd_take(tmp_path):
+    """User trial: landmarks --evaluate --takes refused the tool's own `anim import` output ('not a Live
+    Link Face CSV (no Timecode column)' for a .usda); it reads USD takes as every take reader does."""
+    from usdface.io.livelink import livelink_weights, write_livelink_csv
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    w = np.array([[0.0, 0.1], [0.5, 0.2], [0.9, 0.0]])
+    write_livelink_csv(tmp_path / "take.csv", names, w, np.arange(3) / 30.0)
+    assert main(["anim", "import", str(tmp_path / "take.csv"), "-o", str(tmp_path / "take.usda"), "-q"]) == 0
+    from_csv = livelink_weights([tmp_path / "take.csv"], names)
+    from_usd = livelink_weights([tmp_path / "take.usda"], names)
+    np.testing.assert_allclose(from_usd, from_csv, atol=1e-6)

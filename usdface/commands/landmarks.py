@@ -53,7 +53,8 @@ def register(subparsers) -> None:
     p.add_argument("--evaluate", action="store_true",
                    help="sweep epsilon x multi-cover vs baselines; reconstruction error vs landmark count")
     p.add_argument("--takes", nargs="+", default=[],
-                   help="Live Link Face CSV takes (test weights) for --evaluate")
+                   help="takes (test weights) for --evaluate: Live Link Face CSVs, USD takes ('anim "
+                        "import') or take folders")
     p.add_argument("--empirical",
                    help="JSON with an empirical layout (list of vertex indices, or ICT-FaceKit's "
                         "vertex_indices.json: idx_to_landmark_verts) for --evaluate")

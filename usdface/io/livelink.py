@@ -172,12 +172,19 @@ def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.
 
 
 def livelink_weights(paths, names, frames: int = 0, timecode_rate: float = 60.0) -> np.ndarray:
-    """The weights of one or more Live Link Face CSVs stacked in file order, as columns of ``names[K]``
+    """The weights of one or more takes (Live Link Face CSVs, or USD takes / take folders read with
+    :func:`usdface.io.take.read_take`) stacked in file order, as columns of ``names[K]``
     (canonical ARKit; a shape a take lacks is 0) -> ``weights[F, K]``; with ``frames`` > 0 and more rows than
     that, ``frames`` rows evenly sampled (first and last kept)."""
     blocks = []
     for path in paths:
-        take_names, w, _ = read_livelink_csv(path, timecode_rate)
+        if Path(path).suffix.lower() == ".csv":
+            take_names, w, _ = read_livelink_csv(path, timecode_rate)
+        else:          # a USD take (``usdface anim import``) or a take folder: the same weights
+            from .take import read_take
+
+            take = read_take(path)
+            take_names, w = list(take.names), np.asarray(take.weights, dtype=np.float64)
         index = {n: i for i, n in enumerate(take_names)}
         block = np.zeros((w.shape[0], len(names)))
         for k, n in enumerate(names):
