@@ -467,3 +467,16 @@ def test_landmarks_evaluate_reads_a_usd_take(tmp_path):
     from_csv = livelink_weights([tmp_path / "take.csv"], names)
     from_usd = livelink_weights([tmp_path / "take.usda"], names)
     np.testing.assert_allclose(from_usd, from_csv, atol=1e-6)
+
+
+def test_a_misspelt_template_file_is_refused_with_the_rename(tmp_path):
+    """User trial: template/jawOpn.obj was accepted with two warnings, every jawOpen weight dropped and
+    jawOpn 'never activated'; refused, naming the rename."""
+    from usdface.api import read_capture, write_capture
+    from usdface.errors import CaptureError
+
+    folder = tmp_path / "cap"
+    write_capture(_capture(), folder)
+    (folder / "template" / "jawOpen.obj").rename(folder / "template" / "jawOpn.obj")
+    with pytest.raises(CaptureError, match=r"rename template/jawOpn.obj to template/jawOpen.obj"):
+        read_capture(folder)

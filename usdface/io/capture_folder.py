@@ -198,9 +198,24 @@ def read_capture_folder(path) -> Capture:
     template = _template(root, neutral, triangles, report)
     metadata: dict = {"source": str(root), "name_report": report, "units": "m"}
     frames = _frames(root, neutral, triangles, template.names, metadata)
+    _refuse_misspelt_template(root, report.get("unknown") or [], metadata.get("extra_weights") or {})
     metadata["counts"] = {role: int(sum(r == role for r in frames.role)) for role in ROLES}
     return Capture(neutral, triangles, template, frames, list(template.names), source=str(root),
                    metadata=metadata)
+
+
+def _refuse_misspelt_template(root: Path, unknown, extra_weights) -> None:
+    """A template file whose name is a near-miss of an ARKit name that the frames' weights use while the
+    template lacks it (``template/jawOpn.obj``, weights ``jawOpen``): every jawOpen weight would be dropped
+    and jawOpn never fitted. Refused, with the rename."""
+    import difflib
+
+    for name in unknown:
+        hit = difflib.get_close_matches(name, list(extra_weights), n=1, cutoff=0.8)
+        if hit:
+            raise CaptureError(f"template/{name}.obj is not an ARKit name, and the frames' weights name "
+                               f"{hit[0]!r}, which the template lacks: misspelt?", path=root,
+                               fix=f"rename template/{name}.obj to template/{hit[0]}.obj")
 
 
 def _weights_json(names, row) -> str:
