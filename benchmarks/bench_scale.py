@@ -121,9 +121,9 @@ def main(argv=None) -> int:
     parser.add_argument("--keep", type=Path, help="keep the outputs in this folder (default: a temp folder)")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     parser.add_argument("--layer-format", choices=["usdc", "usda"], default="usdc",
-                        help="format of the personalized layers written (default usdc, as a pipeline writes a "
-                        "100 MB+ layer; usda: USD's text serialisation, ~5 CPU-s of the twice-subdivided "
-                        "head's run)")
+                        help="format of the personalized layers written (default usdc, as a pipeline "
+                        "writes a 100 MB+ layer; usda: USD's text serialisation, ~5 CPU-s of the "
+                        "twice-subdivided head's run)")
     args = parser.parse_args(argv)
     case = args.bench / "dev1"
     if not (case / "avatar.usdc").is_file():

@@ -293,6 +293,20 @@ def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, val
     assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
 
 
+def _spawn_batch(manifest: Path, worker: str, cwd: Path, **popen):
+    """``usdface batch MANIFEST -j 2 -q --worker test_batch:WORKER`` in a child process (signals reach it
+    alone)."""
+    import subprocess
+    import sys
+
+    tests = Path(__file__).resolve().parent
+    code = ("import sys\nfrom usdface.cli import main\n"
+            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
+            f"'{Path(__file__).stem}:{worker}']\nsys.exit(main())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
+    return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, env=env, **popen)
+
+
 def slow_worker(item: dict) -> None:
     """Marks that it started, then takes 30 s before writing ``output``."""
     import time
@@ -307,19 +321,13 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     exiting (33 s for four 15 s items on two processes); it stops the pool and exits 143 at once."""
     import signal
     import subprocess
-    import sys
     import time
 
     manifest = _manifest(tmp_path, ["a", "b", "c", "d"])
     report = tmp_path / "people.report.json"
     report.write_text(json.dumps({"done": 4, "skipped": 0, "failed": 0}))    # an earlier, finished run's
-    tests = Path(__file__).resolve().parent
-    code = ("import sys\nfrom usdface.cli import main\n"
-            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
-            f"'{Path(__file__).stem}:slow_worker']\nsys.exit(main())\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = _spawn_batch(manifest, "slow_worker", tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                        text=True)
     deadline = time.monotonic() + 60
     while not list((tmp_path / "out").glob("*.started")) and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -444,17 +452,11 @@ def test_pool_workers_die_with_a_killed_batch(tmp_path):
     by hand. Each worker asks Linux for SIGTERM when its parent dies."""
     import signal
     import subprocess
-    import sys
     import time
 
     manifest = _manifest(tmp_path, ["a", "b"])
-    tests = Path(__file__).resolve().parent
-    code = ("import sys\nfrom usdface.cli import main\n"
-            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
-            f"'{Path(__file__).stem}:pid_slow_worker']\nsys.exit(main())\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = _spawn_batch(manifest, "pid_slow_worker", tmp_path, stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 90
     while len(list((tmp_path / "out").glob("*.pid"))) < 2 and time.monotonic() < deadline:
         time.sleep(0.2)
