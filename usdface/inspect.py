@@ -256,7 +256,10 @@ def _names_line(label: str, items, limit: int = 12) -> str:
 
 def format_report(report: dict) -> str:
     """Human-readable text for :func:`inspect_file`'s dict."""
-    lines = [f"{report.get('file')}: {report.get('kind')}"]
+    kind = report.get("kind")
+    if kind == "capture" and report.get("take"):      # a take with meshes (read whole, as a capture)
+        kind = "take with meshes"
+    lines = [f"{report.get('file')}: {kind}"]
     if report.get("kind") == "take":
         lines.append(f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), "
                      f"{report['shapes']} shapes, weights only: it plays on an avatar ('personalize AVATAR "

@@ -314,6 +314,7 @@ def test_inspect_reads_a_take_file_as_it_reads_a_take_folder(scan_take, tmp_path
     for src in (d / "take.usdc", tmp_path / "take_dir"):
         text = run("inspect", src, cwd=tmp_path).stdout
         assert "read whole: every frame trains" in text and "frames:" in text, text
+        assert text.splitlines()[0].endswith(": take with meshes"), text     # not ': capture' (trial 24)
     doc = json.loads(run("inspect", d / "take.usdc", "--json", cwd=tmp_path).stdout)
     assert doc["take"]["frames"] == len(take) and doc["roles"]["train"]["count"] == len(take)
 
