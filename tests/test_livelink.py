@@ -138,3 +138,21 @@ def test_inspect_summarises_a_live_link_csv(tmp_path, capsys):
     assert main(["inspect", str(path)]) == 0
     out = capsys.readouterr().out
     assert "take.csv: take" in out and "4 frames" in out and "never above 0.5 (51)" in out
+
+
+def test_a_take_cut_off_mid_row_keeps_its_complete_rows(tmp_path):
+    """User trial: a Live Link CSV cut mid-row (a recording that crashed) was refused whole ('line 246 has
+    5 fields ... export again'), losing its 244 complete rows; the cut last line is dropped with a warning.
+    A short row inside the file, or a complete short last line, is still refused."""
+    w = np.random.default_rng(1).random((5, 52))
+    codes = [f"10:00:00:{i:02d}.000" for i in range(5)]
+    full = write_csv(tmp_path / "t.csv", w, codes).read_text()
+    cut = tmp_path / "cut.csv"
+    cut.write_text(full[: full.rstrip("\n").rfind("\n") + 40])         # the last row's first 39 characters
+    with pytest.warns(UserWarning, match=r"last line is cut off .* 4 complete frames read"):
+        take = read_livelink_take(cut)
+    jaw = take.weights[:, ARKIT_NAMES.index("jawLeft")]
+    np.testing.assert_allclose(jaw, w[:4, LL_ORDER.index("jawLeft")], atol=1e-9)
+    cut.write_text(full[: full.rstrip("\n").rfind("\n") + 40] + "\n")  # ended by a line end: damaged
+    with pytest.raises(InputFileError, match="fields"):
+        read_livelink_take(cut)

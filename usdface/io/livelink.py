@@ -110,6 +110,12 @@ def read_livelink_take(path, timecode_rate: float = 60.0) -> LiveLinkTake:
     if not body:
         raise InputFileError("the CSV has a header but no frames", path=path, fix="record a take first")
     ragged = [i for i, r in enumerate(body) if len(r) != len(header)]
+    if ragged == [len(body) - 1] and len(body) > 1 and len(body[-1]) < len(header) \
+            and not text.endswith(("\n", "\r")):
+        # the recording stopped mid-row (an app crash, a copy cut short): the complete rows are the take
+        warnings.warn(f"{path}: the last line is cut off ({len(body[-1])} of {len(header)} fields, no line "
+                      f"end): dropped; {len(body) - 1} complete frames read", UserWarning, stacklevel=3)
+        body, ragged = body[:-1], []
     if ragged:
         raise InputFileError(f"line {ragged[0] + 2} has {len(body[ragged[0]])} fields, the header "
                              f"{len(header)}", path=path, fix="the CSV is truncated or damaged; export again")
