@@ -480,3 +480,24 @@ def test_a_misspelt_template_file_is_refused_with_the_rename(tmp_path):
     (folder / "template" / "jawOpen.obj").rename(folder / "template" / "jawOpn.obj")
     with pytest.raises(CaptureError, match=r"rename template/jawOpn.obj to template/jawOpen.obj"):
         read_capture(folder)
+
+
+def test_json_documents_carry_the_readers_warnings(tmp_path, capsys):
+    """User trial: `fit --json` listed the fit's own warnings only; a capture reader's (a frame weight for a
+    shape the template lacks) went to stderr alone, so a pipeline reading the document never saw it."""
+    import json
+
+    from usdface.api import write_capture
+
+    folder = tmp_path / "cap"
+    write_capture(_capture(), folder)
+    first = sorted((folder / "train").glob("*.json"))[0]
+    data = json.loads(first.read_text())
+    data["blendShapes"]["notAShape"] = 0.5
+    first.write_text(json.dumps(data))
+    for argv in (["fit", str(folder), "-o", str(tmp_path / "r.usda"), "--method", "dt", "--json"],
+                 ["personalize", str(A), str(folder), "-o", str(tmp_path / "p.usda"), "--method", "dt",
+                  "--json"]):
+        assert main(argv) == 0
+        doc = json.loads(capsys.readouterr().out)
+        assert any("notAShape" in w for w in doc["warnings"]), doc["warnings"]

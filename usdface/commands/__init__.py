@@ -13,6 +13,7 @@ def add_name_map_option(p) -> None:
 
 
 _said: set[str] = set()
+_said_order: list[str] = []          # the same texts in the order they were said
 #: Where ``warning:`` lines go: stdout with the command's text, stderr when stdout carries a ``--json``
 #: document (a warning line there would make it unparseable); set per run by :func:`reset_warnings`.
 _to_stderr = [False]
@@ -27,12 +28,22 @@ def say_warning(text) -> None:
     if text in _said:
         return
     _said.add(text)
+    _said_order.append(text)
     print(f"warning: {text}", file=sys.stderr if _to_stderr[0] else sys.stdout)
 
 
 def reset_warnings(json_on_stdout: bool = False) -> None:
     _said.clear()
+    _said_order.clear()
     _to_stderr[0] = bool(json_on_stdout)
+
+
+def all_warnings(own) -> list[str]:
+    """A ``--json`` document's ``warnings``: the result's ``own`` list, then every other warning the run
+    said (a reader's: a template name that is not ARKit, weights the template lacks), each once - a pipeline
+    reading the document sees what a person reading the terminal sees."""
+    out = [str(w).strip() for w in own or []]
+    return out + [w for w in _said_order if w not in out]
 
 
 def json_path(path) -> str | None:

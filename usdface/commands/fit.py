@@ -3,7 +3,7 @@ rig."""
 
 from __future__ import annotations
 
-from . import json_path, say_warning
+from . import all_warnings, json_path, say_warning
 from .options import add_quiet, positive_int, reg_value
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
@@ -115,6 +115,7 @@ def run(args) -> int:
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
                                                          "warnings", "contact", "frame_weights")}}
+        doc["warnings"] = all_warnings(info.get("warnings"))
         print(json.dumps(doc, default=json_default))
         return 0
     rmse = f"; train RMSE {info['train_rmse_mm']:.3f} mm" if info.get("train_rmse_mm") is not None else ""

@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from . import add_name_map_option, json_path, say_warning
+from . import add_name_map_option, all_warnings, json_path, say_warning
 from .fit import add_contact_option, add_every_option, add_pins_option, take_line
 from .options import mu_value, nonnegative_float, positive_float, reg_value
 
@@ -148,6 +148,7 @@ def run(args) -> int:
     if args.json:
         doc = {"ok": True, "output": json_path(result.out_path)}
         doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
+        doc["warnings"] = all_warnings(rep.get("warnings"))
         if args.dry_run:
             doc["would_write"] = None if refusal else str(out)
             doc["output_refused"] = refusal
