@@ -355,8 +355,9 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         from .io.layers import check_output_path
 
         check_output_path(usd_path, force, inputs=inputs)
-    if isinstance(truth, str | Path):
-        truth = _read_truth(truth)
+    truth_path = truth if isinstance(truth, str | Path) else None
+    if truth_path is not None:
+        truth = _read_truth(truth_path)
     source = capture if isinstance(capture, str | Path) else None
     from .progress import steps
 
@@ -364,7 +365,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         if source is not None:
             p.start(f"read capture {Path(source).name}")
         capture = _as_capture(capture)
-        _check_truth_matches(truth, capture, inputs[1] if isinstance(inputs[1], str | Path) else None)
+        _check_truth_matches(truth, capture, truth_path)
         if len(capture.test) == 0:
             whole_take = capture.whole_take
             raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
@@ -749,15 +750,16 @@ def check_personalize_options(**options: Any) -> None:
                       **fit_opts)
 
 
-def _unique_mesh_names(rigs, prims):
-    """``rigs`` renamed where two meshes share a name (two SkelRoots with a ``Head`` each): those take their
-    prim path (``/A/Head`` -> ``A_Head``), so glTF nodes and OBJ folders stay one per mesh."""
+def _unique_mesh_names(keyed):
+    """The rigs of ``keyed`` ``[(prim path, rig)]``, renamed where two meshes share a name (two SkelRoots
+    with a ``Head`` each): those take their prim path (``/A/Head`` -> ``A_Head``), so glTF nodes and OBJ
+    folders stay one per mesh."""
     import collections
     import dataclasses
 
-    counts = collections.Counter(r.name for r in rigs)
+    counts = collections.Counter(rig.name for _, rig in keyed)
     out = []
-    for rig, prim in zip(rigs, prims, strict=True):
+    for prim, rig in keyed:
         if counts[rig.name] > 1:
             rig = dataclasses.replace(rig, name=str(prim).strip("/").replace("/", "_"))
         out.append(rig)
@@ -931,12 +933,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     done: dict[str, Path] = {}
     if gltf or obj_dir:
         avatar = read_avatar_variant(layer_path, variant)
-        rigs = list(avatar.meshes) + [
-            _FaceRig(points, tris, [], [], name=prim.rsplit("/", 1)[-1])
+        keyed = [(m.key, m) for m in avatar.meshes] + [
+            (prim, _FaceRig(points, tris, [], [], name=prim.rsplit("/", 1)[-1]))
             for prim, (points, tris) in sorted(avatar.metadata.get("static_meshes", {}).items())]
-        rigs = _unique_mesh_names(rigs, [m.key for m in avatar.meshes]
-                                  + sorted(avatar.metadata.get("static_meshes", {})))
-        with_inbetweens = [f"{rig.name}:{n}" for rig in rigs for n in getattr(rig, "inbetweens", {}) or {}]
+        rigs = _unique_mesh_names(keyed)
+        with_inbetweens = [f"{rig.name}:{n}" for rig in rigs for n in rig.inbetweens]
         if with_inbetweens:           # glTF morph targets and full target OBJs are the primary shapes only
             more = " ..." if len(with_inbetweens) > 4 else ""
             warnings.warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "

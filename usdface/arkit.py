@@ -40,6 +40,8 @@ ARKIT_NAMES: tuple[str, ...] = (
 ARKIT_SET = frozenset(ARKIT_NAMES)
 #: Shapes a complete rig may omit.
 OPTIONAL_NAMES = frozenset({"tongueOut"})
+#: Similarity (difflib ratio) above which an unknown name is taken as a likely misspelling of an ARKit name.
+MISSPELLING_CUTOFF = 0.8
 
 #: Character Creator (Reallusion CC3+/CC4 Extended profile) morph names whose ARKit equivalent is not a mere
 #: respelling. The others (``Eye_Blink_L``, ``Mouth_Smile_L``, ``Jaw_Open``, ``Jaw_L``, ``Mouth_Close``,

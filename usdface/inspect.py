@@ -26,8 +26,7 @@ import numpy as np
 from . import arkit
 from .model import Avatar, Capture, FaceRig
 
-#: Similarity above which an unknown name is reported as a likely misspelling of an ARKit name.
-MISSPELLING_CUTOFF = 0.8
+MISSPELLING_CUTOFF = arkit.MISSPELLING_CUTOFF
 
 
 def _misspellings(unknown) -> dict[str, str]:

@@ -12,8 +12,7 @@ def add_name_map_option(p) -> None:
     p.add_argument("--name-map", metavar="FILE", help=NAME_MAP_HELP)
 
 
-_said: set[str] = set()
-_said_order: list[str] = []          # the same texts in the order they were said
+_said: dict[str, None] = {}          # the texts said this run, in the order said
 #: Where ``warning:`` lines go: stdout with the command's text, stderr when stdout carries a ``--json``
 #: document (a warning line there would make it unparseable); set per run by :func:`reset_warnings`.
 _to_stderr = [False]
@@ -27,14 +26,12 @@ def say_warning(text) -> None:
     text = str(text).strip()
     if text in _said:
         return
-    _said.add(text)
-    _said_order.append(text)
+    _said[text] = None
     print(f"warning: {text}", file=sys.stderr if _to_stderr[0] else sys.stdout)
 
 
 def reset_warnings(json_on_stdout: bool = False) -> None:
     _said.clear()
-    _said_order.clear()
     _to_stderr[0] = bool(json_on_stdout)
 
 
@@ -43,7 +40,7 @@ def all_warnings(own) -> list[str]:
     said (a reader's: a template name that is not ARKit, weights the template lacks), each once - a pipeline
     reading the document sees what a person reading the terminal sees."""
     out = [str(w).strip() for w in own or []]
-    return out + [w for w in _said_order if w not in out]
+    return out + [w for w in _said if w not in out]
 
 
 def json_path(path) -> str | None:

@@ -210,8 +210,10 @@ def _refuse_misspelt_template(root: Path, unknown, extra_weights) -> None:
     and jawOpn never fitted. Refused, with the rename."""
     import difflib
 
+    from ..arkit import MISSPELLING_CUTOFF
+
     for name in unknown:
-        hit = difflib.get_close_matches(name, list(extra_weights), n=1, cutoff=0.8)
+        hit = difflib.get_close_matches(name, list(extra_weights), n=1, cutoff=MISSPELLING_CUTOFF)
         if hit:
             raise CaptureError(f"template/{name}.obj is not an ARKit name, and the frames' weights name "
                                f"{hit[0]!r}, which the template lacks: misspelt?", path=root,

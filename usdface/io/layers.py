@@ -495,13 +495,13 @@ def _relative_to_layer(path, out_path: Path) -> str:
         return target.as_posix()
 
 
-def recorded_inputs(layer_path) -> dict[str, str] | None:
+def recorded_inputs(layer_path, record: dict | None = None) -> dict[str, str] | None:
     """``{real path: sha256}`` of the inputs a usdface layer records (its provenance,
-    :func:`usdface.io.usd_rig.usdface_output_provenance`; paths relative to the layer), or None for a file
-    that is not a usdface layer."""
+    :func:`usdface.io.usd_rig.usdface_output_provenance`, read here unless the caller has it as ``record``;
+    paths relative to the layer), or None for a file that is not a usdface layer."""
     from .usd_rig import usdface_output_provenance
 
-    record = usdface_output_provenance(layer_path)
+    record = usdface_output_provenance(layer_path) if record is None else record
     if record is None:
         return None
     folder = Path(layer_path).parent

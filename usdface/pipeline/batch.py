@@ -23,6 +23,7 @@ Example::
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import os
 import time
@@ -254,10 +255,12 @@ def stale_output(item: BatchItem) -> str:
     if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
         return ""
     from ..io.layers import input_changed, recorded_inputs
+    from ..io.usd_rig import usdface_output_provenance
 
-    recorded = recorded_inputs(out)
-    if recorded is None:
+    record = usdface_output_provenance(out)       # read once: the inputs and the options it records
+    if record is None:
         return ""
+    recorded = recorded_inputs(out, record)
     shown = ", ".join(sorted(recorded))
     for what, path in (("avatar", item.avatar), ("capture", item.capture)):
         real = os.path.realpath(path)
@@ -267,7 +270,7 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
-    changed = _changed_option(item.options or {}, out)
+    changed = _changed_option(item.options or {}, record)
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
@@ -275,17 +278,25 @@ def stale_output(item: BatchItem) -> str:
     return ""
 
 
-def _changed_option(options: dict, layer) -> tuple[str, str, str] | None:
-    """``(option, recorded, asked)`` for the first personalize option whose value the layer records
-    (``parameters`` of its provenance: every option, resolved) differently from what the row asks, the
-    defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves out (a row
-    that drops ``method=dt`` asks for the default again); None when they agree or the layer records none."""
+_MISSING = object()
+
+
+@functools.cache
+def _personalize_defaults() -> dict:
+    """The defaults of :func:`usdface.transfer.personalize_avatar`'s options (read once per process)."""
     import inspect as _inspect
 
-    from ..io.usd_rig import usdface_output_provenance
     from ..transfer.pipeline import personalize_avatar
 
-    record = usdface_output_provenance(layer) or {}
+    return {k: v.default for k, v in _inspect.signature(personalize_avatar).parameters.items()
+            if v.default is not _inspect.Parameter.empty}
+
+
+def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
+    """``(option, recorded, asked)`` for the first personalize option whose value a layer's provenance
+    ``record`` holds (``parameters``: every option, resolved) differently from what the row asks, the
+    defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves out (a row
+    that drops ``method=dt`` asks for the default again); None when they agree or the layer records none."""
     params = record.get("parameters")
     if isinstance(params, str):
         try:
@@ -294,16 +305,12 @@ def _changed_option(options: dict, layer) -> tuple[str, str, str] | None:
             return None
     if not isinstance(params, dict):
         return None
-    defaults = {k: v.default for k, v in _inspect.signature(personalize_avatar).parameters.items()
-                if v.default is not _inspect.Parameter.empty}
+    defaults = _personalize_defaults()
     for key, was in sorted(params.items()):
         wanted = options.get(key, defaults.get(key, _MISSING))
         if wanted is not _MISSING and not _same_value(was, wanted):
             return key, str(was), str(wanted)
     return None
-
-
-_MISSING = object()
 
 
 def _same_value(a, b) -> bool:

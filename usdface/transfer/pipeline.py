@@ -486,7 +486,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
             try:
                 refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
-                refuse_unwritable_shapes(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+                refuse_unwritable_shapes(avatar, None, "the personalized layer")     # every mesh
             except RigError as exc:
                 if not dry_run:
                     raise
