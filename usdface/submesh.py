@@ -27,19 +27,23 @@ from .motion import moving_vertices
 
 __all__ = ["SubMesh", "moving_region", "crop", "scatter", "crop_rig", "rig_on", "SparseOffsets",
            "peak_of_shapes", "outside_offsets", "crop_avatar", "with_margin", "moving_part", "MARGIN",
-           "MAX_SHARE"]
+           "MAX_SHARE", "coincident_vertices", "weld_rig", "WELD_TOLERANCE"]
 
 
 @dataclass
 class SubMesh:
     """A part of a mesh of ``n`` vertices: ``vertices[s]`` int64 ascending indices into the full mesh,
     ``triangles[t,3]`` the full mesh's triangles whose three corners are kept, re-indexed to ``0..s-1``
-    (full-mesh order kept), ``points[n,3]`` the full mesh's rest points (None if not known)."""
+    (full-mesh order kept), ``points[n,3]`` the full mesh's rest points (None if not known).
+    ``copies``: ``(full[d], local[d])`` for a welded part (:func:`weld_rig`): the full-mesh vertices that are
+    copies of a kept vertex (split at a UV or normal seam) and that vertex's index in the part; they take
+    its values when scattered back. None: no copies."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     n: int
     points: np.ndarray | None = None
+    copies: tuple | None = None
 
     @property
     def size(self) -> int:
@@ -144,6 +148,8 @@ def scatter(values, sub: SubMesh, base=None) -> np.ndarray:
     else:
         out = np.array(base, dtype=np.result_type(v.dtype, np.asarray(base).dtype), copy=True)
     out[..., sub.vertices, :] = v
+    if sub.copies is not None:
+        out[..., sub.copies[0], :] = v[..., sub.copies[1], :]
     return out
 
 
@@ -163,39 +169,118 @@ def crop_rig(rig, keep, region: SubMesh | None = None):
     """``(FaceRig on the sub-mesh, SubMesh)``: ``rig`` (:class:`usdface.model.FaceRig`) with its neutral,
     deltas and inbetweens on its vertices ``keep`` and the triangles among them; its source (a copy) records
     the crop (``region``) and the non-zero offsets outside it (``residue``). A rig that is itself a part of
-    its mesh (``region``: that part) is cropped further, the result again a part of the whole mesh. A crop
-    that keeps every vertex returns ``rig`` itself (and ``region``, or a whole SubMesh)."""
-    import dataclasses
-
+    its mesh (``region``: that part) is cropped further, the result again a part of the whole mesh (a welded
+    part's copies follow their kept vertex, or join the residue with it). A crop that keeps every vertex
+    returns ``rig`` itself (and ``region``, or a whole SubMesh)."""
     sub = crop(rig.triangles, keep, rig.neutral)
     if sub.whole:
         return rig, region if region is not None else sub
+    return _part(rig, sub, region, np.zeros(sub.n, dtype=bool), None)
+
+
+def _part(rig, sub: SubMesh, region: SubMesh | None, copy: np.ndarray, rep: np.ndarray | None):
+    """:func:`crop_rig` / :func:`weld_rig`'s common end: ``rig`` on ``sub`` (indices into the rig's
+    vertices); ``copy[n]`` the rig's vertices that become copies of ``rep[n]`` (their kept twin)."""
+    import dataclasses
+
     v = sub.vertices
+    local = np.full(sub.n, -1, dtype=np.int64)
+    local[v] = np.arange(v.size)
     dropped = np.ones(sub.n, dtype=bool)
     dropped[v] = False
+    dropped &= ~copy                                        # a copy is written with its twin, not kept
     triangles = sub.triangles
-    if region is not None:                                  # a part of a part: indices into the whole mesh
-        sub = SubMesh(region.vertices[v], sub.triangles, region.n, region.points)
+    full_of = (lambda i: i) if region is None else (lambda i: region.vertices[i])
+    c_full, c_local = full_of(np.flatnonzero(copy)), (local[rep[copy]] if rep is not None
+                                                      else np.zeros(0, dtype=np.int64))
+    lost = np.zeros(0, dtype=np.int64)                      # earlier copies whose twin is dropped
+    if region is not None and region.copies is not None:
+        before_full, before_local = region.copies
+        kept = local[before_local] >= 0
+        c_full = np.concatenate([c_full, before_full[kept]])
+        c_local = np.concatenate([c_local, local[before_local[kept]]])
+        lost = np.flatnonzero(~kept)
+    copies = (c_full, c_local) if c_full.size else None
+    sub = SubMesh(full_of(v), triangles, sub.n if region is None else region.n,
+                  sub.points if region is None else region.points, copies)
     source = rig.source
     if source is not None:
         residue = []
         for k, name in enumerate(rig.names):
+            ibs = rig.inbetweens.get(name, [])
             if region is None:
                 authored = source.point_indices[k] if k < len(source.point_indices) else None
                 rows = np.flatnonzero(dropped) if authored is None else authored[dropped[authored]]
-                full = rows
+                out = outside_offsets(rows, rig.deltas[k, rows], [b.offsets[rows] for b in ibs])
             else:
                 rows = np.flatnonzero(dropped)
-                full = region.vertices[rows]
-            out = outside_offsets(full, rig.deltas[k, rows],
-                                  [b.offsets[rows] for b in rig.inbetweens.get(name, [])])
-            if region is not None and source.residue:
-                before = source.residue[k]
-                out = (np.concatenate([before[0], out[0]]), np.concatenate([before[1], out[1]]),
-                       [np.concatenate([x, y]) for x, y in zip(before[2], out[2], strict=True)])
+                twin = region.copies[1][lost] if lost.size else np.zeros(0, dtype=np.int64)
+                at = np.concatenate([rows, twin])
+                out = outside_offsets(np.concatenate([region.vertices[rows], region.copies[0][lost]
+                                                      if lost.size else np.zeros(0, dtype=np.int64)]),
+                                      rig.deltas[k, at], [b.offsets[at] for b in ibs])
+                if source.residue:
+                    before = source.residue[k]
+                    out = (np.concatenate([before[0], out[0]]), np.concatenate([before[1], out[1]]),
+                           [np.concatenate([x, y]) for x, y in zip(before[2], out[2], strict=True)])
             residue.append(out)
         source = dataclasses.replace(source, region=sub, residue=residue)
     return rig_on(rig, v, triangles, source, rig.name), sub
+
+
+#: Two vertices closer than this share of the mesh's bounding-box diagonal are one point of the surface.
+WELD_TOLERANCE = 1e-7
+
+
+def coincident_vertices(points, deltas, inbetweens=(), *, tolerance: float = WELD_TOLERANCE) -> np.ndarray:
+    """``rep[n]``: for each vertex of ``points[n,3]`` the lowest-index vertex it is a copy of (itself when
+    none): the same rest point and the same offset in every shape ``deltas[K,n,3]`` and inbetween
+    (``[n,3]`` arrays), within ``tolerance`` of the bounding-box diagonal. A mesh exported with its vertices
+    split along UV or hard-normal seams (glTF, FBX) has such copies; the shapes move both alike, so they are
+    one point of the surface. Closed lips or lids whose rest points touch are not copies: some shape parts
+    them."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64)
+    n = len(p)
+    rep = np.arange(n)
+    if n < 2:
+        return rep
+    eps = tolerance * float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    pairs = cKDTree(p).query_pairs(max(eps, 1e-300), output_type="ndarray")
+    if not len(pairs):
+        return rep
+    i, j = pairs[:, 0], pairs[:, 1]
+    same = np.ones(len(pairs), dtype=bool)
+    for d in [np.asarray(deltas, dtype=np.float64).reshape(-1, n, 3), *(np.asarray(b)[None]
+                                                                        for b in inbetweens)]:
+        for k in range(len(d)):                                   # shape by shape: no [K,pairs,3] array
+            same &= np.abs(d[k, i] - d[k, j]).max(axis=1) <= eps
+    if not same.any():
+        return rep
+    graph = coo_matrix((np.ones(int(same.sum())), (i[same], j[same])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    first = np.full(label.max() + 1, n)
+    np.minimum.at(first, label, np.arange(n))
+    return first[label]
+
+
+def weld_rig(rig, region: SubMesh | None = None):
+    """``(FaceRig, SubMesh or region)``: ``rig`` (:class:`usdface.model.FaceRig`, a part of its mesh when
+    ``region`` is given) with the copies of each vertex (:func:`coincident_vertices`) merged into it: the
+    triangles re-indexed to the kept vertex, so every step sees one connected surface where the export
+    split it, and the region records the copies (``SubMesh.copies``), which take their twin's result when
+    written or scattered. Without copies: ``(rig, region)`` unchanged."""
+    ibs = [b.offsets for lst in rig.inbetweens.values() for b in lst]
+    rep = coincident_vertices(rig.neutral, rig.deltas, ibs)
+    copy = rep != np.arange(len(rep))
+    if not copy.any():
+        return rig, region
+    tri = rep[rig.triangles]
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+    return _part(rig, crop(tri, ~copy, rig.neutral), region, copy, rep)
 
 
 def rig_on(rig, vertices, triangles, source, name):
@@ -214,13 +299,16 @@ class SparseOffsets:
     """Offsets of a ``K``-shape rig on an ``n``-vertex mesh, kept sparse: ``values[K,s,3]`` at the full-mesh
     ``vertices[s]`` (ascending); elsewhere ``base[K,n,3]`` when given (the generic offsets, untouched),
     else 0. ``np.asarray(offsets)`` (and indexing) gives the dense ``[K,n,3]`` array for callers that want
-    it; :func:`usdface.io.layers.write_avatar_layer` writes it without densifying."""
+    it; :func:`usdface.io.layers.write_avatar_layer` writes it without densifying. ``copies``: a welded
+    part's ``(full[d], local[d])`` (:attr:`SubMesh.copies`): vertex ``full[i]`` has the values of
+    ``vertices[local[i]]``."""
 
-    def __init__(self, vertices, values, n: int, base=None):
+    def __init__(self, vertices, values, n: int, base=None, copies=None):
         self.vertices = np.asarray(vertices, dtype=np.int64)
         self.values = np.asarray(values, dtype=np.float64)
         self.n = int(n)
         self.base = base
+        self.copies = copies
         if self.values.ndim != 3 or self.values.shape[1] != self.vertices.size or self.values.shape[2] != 3:
             raise ValueError(f"SparseOffsets: values {self.values.shape} do not fit {self.vertices.size} "
                              "vertices [K,s,3]")
@@ -239,6 +327,8 @@ class SparseOffsets:
         out = (np.zeros(self.shape) if self.base is None
                else np.array(self.base, dtype=np.float64, copy=True))
         out[:, self.vertices] = self.values
+        if self.copies is not None:
+            out[:, self.copies[0]] = self.values[:, self.copies[1]]
         return out
 
     def __array__(self, dtype=None, copy=None):
@@ -257,8 +347,8 @@ def crop_avatar(avatar) -> tuple:
     """``(avatar on its moving parts, {mesh key -> SubMesh})``: every mesh with blend shapes of ``avatar``
     (:class:`usdface.model.Avatar`) cropped to the vertices some shape or inbetween moves
     and the margin around them (:func:`moving_part`), unless it is already (read with ``moving_only``) or the
-    part is most of the mesh. Keys are the meshes' prim paths (their names without a source); meshes kept
-    whole have no entry."""
+    part is most of the mesh, and welded where the export split its vertices (:func:`weld_rig`). Keys are
+    the meshes' prim paths (their names without a source); meshes kept whole have no entry."""
     import dataclasses
 
     from .motion import peak_motion
@@ -266,17 +356,21 @@ def crop_avatar(avatar) -> tuple:
     meshes, regions = [], {}
     for m in avatar.meshes:
         key = m.key
+        region = None
         if m.source is not None and m.source.region is not None:        # read on its moving part
-            meshes.append(m)
-            regions[key] = m.source.region
-            continue
-        peak = peak_motion(m.deltas)
-        for ibs in m.inbetweens.values():
-            for b in ibs:
-                np.maximum(peak, np.sqrt(np.einsum("nc,nc->n", b.offsets, b.offsets)), out=peak)
-        keep = moving_part(peak, m.neutral)
-        if keep is not None:
-            m, regions[key] = crop_rig(m, keep)
+            region = m.source.region
+        else:
+            peak = peak_motion(m.deltas)
+            for ibs in m.inbetweens.values():
+                for b in ibs:
+                    np.maximum(peak, np.sqrt(np.einsum("nc,nc->n", b.offsets, b.offsets)), out=peak)
+            keep = moving_part(peak, m.neutral)
+            if keep is not None:
+                m, region = crop_rig(m, keep)
+        if m.n_shapes:
+            m, region = weld_rig(m, region)
+        if region is not None:
+            regions[key] = region
         meshes.append(m)
     return dataclasses.replace(avatar, meshes=meshes), regions
 

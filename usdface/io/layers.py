@@ -241,7 +241,8 @@ def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, objec
             raise GeometryError("offsets contain NaN/inf", path=avatar.file, prim=rig.source.prim,
                                 fix="check the personalization step that produced them")
         if region is not None and not isinstance(deltas, SparseOffsets):   # dense over a cropped rig
-            deltas = SparseOffsets(region.vertices, deltas[:, region.vertices], region.n)
+            deltas = SparseOffsets(region.vertices, deltas[:, region.vertices], region.n,
+                                   copies=region.copies)
         out.append((rig, deltas))
     return out
 
@@ -272,8 +273,16 @@ def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
         if nrm is not None:
             rows = np.arange(region.n) if old_idx is None else np.asarray(old_idx, dtype=np.int64)
             extra.append(rows[np.abs(nrm).reshape(-1, 3).max(axis=1) > 0])
+    if region.copies is not None:          # a welded part: each copy written as its twin (same generic)
+        c_full, c_local = region.copies
+        r_idx = np.concatenate([c_full, r_idx])
+        r_new = np.concatenate([deltas.values[k][c_local], r_off])
+        r_off = np.concatenate([rig.deltas[k][c_local], r_off])
+        r_ibs = [np.concatenate([ib.offsets[c_local], r]) for ib, r in zip(ibs, r_ibs, strict=True)]
+    else:
+        r_new = r_off
     points = np.concatenate([region.vertices, r_idx])
-    values_new = np.concatenate([deltas.values[k], r_off])
+    values_new = np.concatenate([deltas.values[k], r_new])
     values_old = np.concatenate([rig.deltas[k], r_off])
     ib_old = [np.concatenate([ib.offsets, r]) for ib, r in zip(ibs, r_ibs, strict=True)]
     more = np.concatenate(extra)

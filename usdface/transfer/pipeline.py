@@ -730,7 +730,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     if face_prim in regions:                                      # the face mesh's regions on every vertex
         f, adjacent = scatter(f[:, None], regions[face_prim])[:, 0], scatter(adjacent[..., None],
                                                                            regions[face_prim])[..., 0]
-    approx_eq4 = {k: (SparseOffsets(regions[k].vertices, v, regions[k].n) if k in regions else v)
+    approx_eq4 = {k: (SparseOffsets(regions[k].vertices, v, regions[k].n, copies=regions[k].copies)
+                      if k in regions else v)
                   for k, v in approx_eq4.items()}
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
@@ -863,7 +864,8 @@ def _layer_offsets(avatar, face, result, other, names, regions, generic_full) ->
             continue
         base = generic_full.get(key)
         offsets[key] = SparseOffsets(region.vertices, new, region.n,
-                                     base=base if base is not None and base.shape[1] == region.n else None)
+                                     base=base if base is not None and base.shape[1] == region.n else None,
+                                     copies=region.copies)
     return offsets
 
 
