@@ -271,3 +271,42 @@ def test_missing_shapes_reported_both_ways():
     np.testing.assert_array_equal(res.offsets[head.name][head.index("tongueOut")],
                                   head.deltas[head.index("tongueOut")])  # kept generic
     assert not np.allclose(res.offsets[head.name][head.index("jawOpen")], head.deltas[head.index("jawOpen")])
+
+
+def test_a_stylized_characters_large_named_eyes_are_eyeballs_and_a_rejection_is_explained():
+    """A mesh named for an eye qualifies with a stylized character's radius (3-50 mm); found by geometry
+    alone a mesh must still look like a human eye (7-20 mm). A named eye that does not qualify says why."""
+    from usdface.transfer.eyelids import find_eyeballs
+
+    d = np.random.default_rng(5).normal(size=(400, 3))
+    unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+    big = 0.03 * unit + [0.03, 1.6, 0.1]
+    assert [e.name for e in find_eyeballs({"/Avatar/EyeLeft": big})] == ["/Avatar/EyeLeft"]
+    assert find_eyeballs({"/Avatar/Geo1": big}) == []
+    why: list = []
+    assert find_eyeballs({"/Avatar/EyeLeft": 0.08 * unit}, rejected=why) == []
+    assert len(why) == 1 and "80.0 mm is outside 3-50 mm" in why[0] and why[0].startswith("/Avatar/EyeLeft")
+
+
+def test_personalize_repairs_the_lids_of_a_larger_character(samples, tmp_path, capsys):
+    """The sample avatar referenced into a shot under a x2.5 scale (eyeballs 28.6 mm): before, no eyeball
+    qualified (7-20 mm) and the lid repair was skipped with a bare warning."""
+    import json
+
+    from pxr import Gf, Usd, UsdGeom
+
+    from usdface.cli import main
+
+    shot = tmp_path / "shot.usda"
+    stage = Usd.Stage.CreateNew(str(shot))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    world.AddScaleOp().Set(Gf.Vec3f(2.5, 2.5, 2.5))
+    stage.DefinePrim("/World/Avatar").GetReferences().AddReference(str(samples / "avatar.usda"), "/Avatar")
+    stage.GetRootLayer().Save()
+    assert main(["personalize", str(shot), str(samples / "capture.usda"), "-o", str(tmp_path / "o.usda"),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert len(doc["eyelids"]["eyeballs"]) == 2, doc["warnings"]
+    assert not [w for w in doc["warnings"] if "no eyeball" in w]

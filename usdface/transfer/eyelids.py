@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids"]
+__all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
 
 _EYE_NAME = re.compile(r"eye", re.IGNORECASE)
 _NOT_EYE = re.compile(r"lash|brow|lid|socket|shadow|occlusion|tear", re.IGNORECASE)
@@ -44,13 +44,22 @@ def fit_sphere(points) -> tuple[np.ndarray, float, float]:
     return c, r, rms
 
 
+#: The radius (m) a mesh named for an eye may have: from a child's eye to a stylized character's (a human
+#: eyeball is 11-13 mm); a mesh found by geometry alone must look like a human eye (``min_radius`` to
+#: ``max_radius`` of :func:`find_eyeballs`).
+NAMED_RADIUS = (0.003, 0.05)
+
+
 def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float = 0.02,
-                  max_rel_rms: float = 0.12, face=None) -> list[Eyeball]:
+                  max_rel_rms: float = 0.12, face=None, named_radius=NAMED_RADIUS,
+                  rejected: list | None = None) -> list[Eyeball]:
     """Eyeballs among ``meshes`` = ``{name: points[n,3]}`` (internal metres).
 
-    A mesh qualifies by name (contains "eye" but not lash/brow/lid/...) with a sphere fit of plausible radius,
-    or, unnamed (and not named for a part of the mouth), by geometry alone (sphere fit residual below
-    ``max_rel_rms`` x radius, radius in [``min_radius``, ``max_radius``]). With ``face`` (``points[m,3]``,
+    A mesh qualifies by name (contains "eye" but not lash/brow/lid/...) with a sphere fit of a radius in
+    ``named_radius`` (:data:`NAMED_RADIUS`), or, unnamed (and not named for a part of the mouth), by geometry
+    alone (sphere fit residual below ``max_rel_rms`` x radius, radius in [``min_radius``, ``max_radius``]).
+    ``rejected``: a list that receives, for each mesh named for an eye that did not qualify, a sentence
+    saying why (for the caller's warning). With ``face`` (``points[m,3]``,
     the face mesh's vertices) only the eyes of that face: spheres whose centre is within two radii of a face
     vertex (under its lids), not those of another character in the same stage. At most the two best-fitting
     spheres are returned.
@@ -66,16 +75,22 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
         if len(pts) < 20:
             continue
         c, r, rms = fit_sphere(pts)
-        if not (min_radius <= r <= max_radius):
-            continue
         leaf = str(name).rsplit("/", 1)[-1]
         named = bool(_EYE_NAME.search(leaf)) and not _NOT_EYE.search(leaf)
-        if not named and _MOUTH_PART.search(leaf):
+        lo, hi = named_radius if named else (min_radius, max_radius)
+        why = None
+        if not (lo <= r <= hi):
+            why = f"its sphere's radius {r * 1e3:.1f} mm is outside {lo * 1e3:g}-{hi * 1e3:g} mm"
+        elif not named and _MOUTH_PART.search(leaf):
             continue
-        if tree is not None and tree.query(c)[0] > 2.0 * r:
-            continue                                   # not under this face's lids
-        if named and rms < 2 * max_rel_rms * r or rms < max_rel_rms * r:
+        elif tree is not None and tree.query(c)[0] > 2.0 * r:
+            why = "its centre is not under this face's lids"   # another character's eye, or a prop
+        elif not (named and rms < 2 * max_rel_rms * r or rms < max_rel_rms * r):
+            why = f"it is not round (sphere fit residual {rms / r:.0%} of its radius)"
+        if why is None:
             found.append(Eyeball(str(name), c, r, rms))
+        elif named and rejected is not None:
+            rejected.append(f"{name}: {why}")
     found.sort(key=lambda e: e.rms / e.radius)
     return found[:2]
 

@@ -831,14 +831,16 @@ def _repair_lids(avatar, face, regions, eyes, result, generic, report) -> np.nda
     # an eyeball is found by the whole mesh's shape, not by its moving part
     eye_meshes.update({k: (regions[k].points, regions[k].vertices[v[1]])
                        for k, v in eye_meshes.items() if k in regions})
-    found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()}, face=face.neutral)
+    rejected: list[str] = []
+    found = find_eyeballs({k: v[0] for k, v in eye_meshes.items()}, face=face.neutral, rejected=rejected)
     repaired = 0
     if found:
         result, repaired = repair_eyelids(face.neutral, result, [(e, *eye_meshes[e.name]) for e in found],
                                           reference=generic, overwrite=True)
     report["eyelids"] = {"eyeballs": [e.name for e in found], "repaired_vertex_shapes": repaired}
     if not found:
-        report["warnings"].append("no eyeball meshes found: eyelid repair skipped")
+        report["warnings"].append("no eyeball meshes found: eyelid repair skipped"
+                                  + (" (" + "; ".join(rejected) + ")" if rejected else ""))
     return result
 
 
