@@ -91,9 +91,9 @@ def check_capture(capture: Capture) -> list[str]:
                     f"swapped the template explains the scans better ({swapped['swapped_mm']:.2f} mm RMS "
                     f"against {swapped['reported_mm']:.2f} mm as reported; {swapped['frames_swapped']} "
                     f"frame(s) better swapped, {swapped['frames_reported']} as reported). A capture app "
-                    "showing a mirrored (selfie) view may write the sides exchanged; the fit would learn each "
-                    "side's shape from the other side's motion (fix: turn the app's mirroring off and export "
-                    "again, or exchange the Left/Right weight names in the capture's weights)")
+                    "showing a mirrored (selfie) view may write the sides exchanged; the fit would learn "
+                    "each side's shape from the other side's motion (fix: turn the app's mirroring off and "
+                    "export again, or exchange the Left/Right weight names in the capture's weights)")
     K = len(capture.names)
     if len(train) < K:
         warn.append(f"{len(train)} training frames for {K} shapes: the fit is underdetermined; shapes the "
@@ -125,8 +125,9 @@ SIDE_MARGIN = 0.9
 
 def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: int = 64) -> dict | None:
     """Whether the capture's Left/Right weights are exchanged (a mirrored capture app): the residual of
-    the scans ``points[F,n,3]`` (m) from ``neutral[n,3]`` plus the template's motion ``template_deltas[K,n,3]``
-    under the reported ``weights[F,K]``, against the same with every ``*Left``/``*Right`` column exchanged
+    the scans ``points[F,n,3]`` (m) from ``neutral[n,3]`` plus the template's motion
+    ``template_deltas[K,n,3]`` under the reported ``weights[F,K]``, against the same with every
+    ``*Left``/``*Right`` column exchanged
     (:func:`usdface.arkit.mirror_name`). Returns ``{"reported_mm", "swapped_mm", "frames_reported",
     "frames_swapped"}`` when the exchanged labels explain the scans better overall and in more frames (at
     least 3) distinctly (:data:`SIDE_MARGIN`); None otherwise (also when no shape has a partner). On the
