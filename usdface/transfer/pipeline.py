@@ -494,6 +494,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
+        avatar, origin = near_origin(avatar)
+        if eyes:
+            eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
         avatar, regions = crop_avatar(avatar)
         if not isinstance(capture, Capture):
             from ..io import read_capture
@@ -570,7 +573,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                      path=capture.source or None, avatar_peak=face_peak,
                                      avatar_mesh=f"{face_prim} of {Path(avatar.file).name}")
         timings["register"] = time.perf_counter() - t
-        report["registration"] = registration.as_dict()
+        report["registration"] = registration.as_dict()        # in the avatar's frame, as read
+        report["registration"]["translation_m"] = (registration.transform.translation + origin).tolist()
         sim = registration.transform
         advance("register")
         advance.start("correspond")
@@ -715,7 +719,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     + ([str(name_map)] if isinstance(name_map, str | Path) else []),
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
-                    "registration": registration.as_dict(),
+                    "registration": dict(report["registration"]),
                     "correspondence": {k: v for k, v in report["correspondence"].items()
                                        if isinstance(v, int | float | str)},
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
@@ -735,6 +739,36 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                   for k, v in approx_eq4.items()}
     return PersonalizeResult(offsets, names, k_names, weights, approx_eq4, face_prim, f, adjacent, report,
                              written, fit)
+
+
+def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
+    """``(avatar, origin[3])``: the avatar with every mesh's rest points (its part's full points, the static
+    meshes) moved by ``-origin``, the local origin of its main mesh (the one with the most shapes, then
+    vertices) as placed in the stage. Offsets do not change with a translation, and the steps then see the
+    coordinates the rig was authored in: an avatar placed 50 m or 500 m from the stage's origin gives the
+    answer it gives at the origin (the float32 noise floor of :func:`usdface.motion.moving_vertices` grows
+    with the coordinates' size: at 500 m it took 0.5 mm motions for float noise, and 26 shapes changed by
+    more than 10 %). An avatar already there (or without a source) is returned as it is."""
+    rigs = [m for m in avatar.meshes if m.source is not None]
+    if not rigs:
+        return avatar, np.zeros(3)
+    main = max(rigs, key=lambda m: (m.n_shapes, m.n_vertices))
+    origin = np.asarray(main.source.to_internal, dtype=np.float64)[:3, 3].copy()
+    if not np.any(origin):
+        return avatar, np.zeros(3)
+
+    def moved(m: FaceRig) -> FaceRig:
+        src = m.source
+        if src is not None and src.region is not None and src.region.points is not None:
+            src = dataclasses.replace(src, region=dataclasses.replace(src.region,
+                                                                      points=src.region.points - origin))
+        return dataclasses.replace(m, neutral=m.neutral - origin, source=src)
+
+    meta = dict(avatar.metadata)
+    if meta.get("static_meshes"):
+        meta["static_meshes"] = {k: (np.asarray(p, dtype=np.float64) - origin, t)
+                                 for k, (p, t) in meta["static_meshes"].items()}
+    return dataclasses.replace(avatar, meshes=[moved(m) for m in avatar.meshes], metadata=meta), origin
 
 
 def _check_modes(face_transfer: str, approximation: str, prior: str, weight_bounds=None,
