@@ -422,3 +422,34 @@ def test_name_map_round_trip_through_the_cli(samples, studio_avatar, tmp_path, c
     issues = json.loads(capsys.readouterr().out)["issues"]
     assert not [i for i in issues if i["rule"] == "ArkitNames" and "missing" in i["message"]]
     assert any("'JawDrop'" in i["message"] and "name map" in i["message"] for i in issues)
+
+
+def test_a_studio_prefix_without_its_name_map_is_named_not_registered_on_the_mouth(samples, tmp_path,
+                                                                                   capsys):
+    """Every Head channel and BlendShape prim renamed ``STU_<ARKit name>`` (a studio prefix the reader
+    cannot undo) and no --name-map: the Mouth's few ARKit shapes made it the face and the run failed in the
+    registration ("shrank the capture to a point ... /Avatar/Mouth", a user trial). Now the run stops before
+    any work naming the Head, its lookalike names and --name-map; nothing is written."""
+    from pxr import Sdf
+
+    src = Sdf.Layer.FindOrOpen(str(samples / "avatar.usda"))
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "prefixed.usda"))
+    layer.TransferContent(src)
+    head = layer.GetPrimAtPath("/Avatar/Head")
+    attr = head.attributes.get("skel:blendShapes")
+    attr.default = [f"STU_{t}" for t in attr.default]
+    rel = head.relationships.get("skel:blendShapeTargets")
+    targets = list(rel.targetPathList.explicitItems)
+    edit = Sdf.BatchNamespaceEdit()
+    for t in targets:
+        edit.Add(t, t.GetParentPath().AppendChild(f"STU_{t.name}"))
+    rel.targetPathList.explicitItems = [t.GetParentPath().AppendChild(f"STU_{t.name}") for t in targets]
+    assert layer.Apply(edit)
+    layer.Save()
+    out = tmp_path / "o.usda"
+    assert main(["personalize", str(tmp_path / "prefixed.usda"), str(samples / "capture.usda"), "-o",
+                 str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "/Avatar/Head has 52 shapes whose names look like" in err
+    assert "STU_eyeBlinkLeft -> eyeBlinkLeft" in err
+    assert "--name-map" in err and not out.exists()

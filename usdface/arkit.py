@@ -118,6 +118,23 @@ def normalize_name(name: str) -> str | None:
     return _LOOKUP.get(spelling_key(str(name)))
 
 
+def lookalike(name: str) -> str | None:
+    """The ARKit name an unknown ``name`` looks like: one spelled inside it after a studio's prefix or before
+    its suffix (``STU_eyeBlinkLeft``, ``jawOpen_geo``: the longest such), else a close misspelling (difflib
+    ratio >= :data:`MISSPELLING_CUTOFF`); None for a name that is one (:func:`normalize_name`) or looks like
+    none. What a ``--name-map`` would map."""
+    import difflib
+
+    if normalize_name(name) is not None:
+        return None
+    key = spelling_key(str(name))
+    inside = [n for k, n in _LOOKUP.items() if len(k) >= 6 and (key.endswith(k) or key.startswith(k))]
+    if inside:
+        return max(inside, key=len)
+    hit = difflib.get_close_matches(key, list(_LOOKUP), n=1, cutoff=MISSPELLING_CUTOFF)
+    return _LOOKUP[hit[0]] if hit else None
+
+
 def mirror_name(name: str) -> str:
     """The left/right counterpart of a canonical name (the name itself for centre shapes)."""
     if name.endswith("Left"):

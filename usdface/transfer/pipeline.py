@@ -122,6 +122,28 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     return best
 
 
+def _refuse_unmapped_face(avatar: Avatar, face: FaceRig, names: list[str]) -> None:
+    """Refuse a face mesh found by its ARKit names when another mesh has more shapes whose names only look
+    like the capture's (:func:`usdface.arkit.lookalike`: a studio prefix, ``STU_eyeBlinkLeft``): the real
+    face is that one, read without its name map, and the run would register the capture on the wrong mesh
+    (a user trial: "registration shrank the capture to a point ... /Avatar/Mouth")."""
+    from ..arkit import lookalike
+
+    wanted = set(names)
+    ours = sum(n in wanted for n in face.names)
+    for m in avatar.meshes:
+        if m is face:
+            continue
+        look = {n: a for n in m.names if (a := lookalike(n)) is not None and a in wanted}
+        if len(look) > ours:
+            shown = ", ".join(f"{n} -> {a}" for n, a in list(look.items())[:3])
+            raise RigError(f"{m.key} has {len(look)} shapes whose names look like the capture's ARKit names "
+                           f"in another spelling ({shown}, ...), more than the {ours} of {face.key}, which "
+                           "would be taken for the face", path=avatar.file, prim=m.key,
+                           fix="map the names with --name-map FILE (a JSON or CSV {channel: ARKit name}, see "
+                           "docs/names.md), or choose the face mesh with --face-mesh")
+
+
 def _shape_deltas(rig: FaceRig, names: list[str], *, view: bool = False) -> np.ndarray:
     """``[len(names), n, 3]`` deltas of ``rig`` for ``names`` (zero for shapes the mesh lacks). With ``view``
     and ``names`` the rig's own shapes in its order, a read-only view of ``rig.deltas`` (no copy: 24 B per
@@ -519,6 +541,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # names: capture shapes vs avatar shapes
         cap_names = list(rig.names) if rig is not None else list(capture.names)
         face = chosen_face if chosen_face is not None else _face_mesh(avatar, cap_names)
+        if chosen_face is None:
+            _refuse_unmapped_face(avatar, face, cap_names)
         face_prim = face.key
         avatar_all = sorted({n for m in avatar.meshes for n in m.names})
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
