@@ -249,11 +249,20 @@ def coincident_vertices(points, deltas, inbetweens=(), *, tolerance: float = WEL
     if n < 2:
         return rep
     eps = tolerance * float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
-    pairs = cKDTree(p).query_pairs(max(eps, 1e-300), output_type="ndarray")
-    if not len(pairs):
+    # the pairs to compare: every vertex with the first of the vertices at exactly its point (a clump of
+    # thousands of parked vertices costs one pair each, not thousands), then the distinct points within
+    # ``eps`` of each other
+    _, first, group = np.unique(p, axis=0, return_index=True, return_inverse=True)
+    group = group.reshape(-1)
+    twin = first[group]
+    same_point = np.flatnonzero(twin != rep)
+    distinct = np.sort(first)
+    near = cKDTree(p[distinct]).query_pairs(max(eps, 1e-300), output_type="ndarray")
+    i = np.concatenate([twin[same_point], distinct[near[:, 0]] if len(near) else np.zeros(0, dtype=np.int64)])
+    j = np.concatenate([same_point, distinct[near[:, 1]] if len(near) else np.zeros(0, dtype=np.int64)])
+    if not len(i):
         return rep
-    i, j = pairs[:, 0], pairs[:, 1]
-    same = np.ones(len(pairs), dtype=bool)
+    same = np.ones(len(i), dtype=bool)
     for d in [np.asarray(deltas, dtype=np.float64).reshape(-1, n, 3), *(np.asarray(b)[None]
                                                                         for b in inbetweens)]:
         for k in range(len(d)):                                   # shape by shape: no [K,pairs,3] array
@@ -339,8 +348,11 @@ class SparseOffsets:
         return self.dense()[item]
 
     def shape_row(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Shape ``k`` as ``(vertices[s], values[s,3])``."""
-        return self.vertices, self.values[k]
+        """Shape ``k`` as ``(vertices[s], values[s,3])`` (a welded part's copies after its vertices)."""
+        if self.copies is None:
+            return self.vertices, self.values[k]
+        return (np.concatenate([self.vertices, self.copies[0]]),
+                np.concatenate([self.values[k], self.values[k][self.copies[1]]]))
 
 
 def crop_avatar(avatar) -> tuple:

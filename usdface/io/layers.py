@@ -226,11 +226,10 @@ def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, objec
         region = rig.source.region
         full = (rig.n_shapes, region.n if region is not None else rig.n_vertices, 3)
         if isinstance(deltas, SparseOffsets):
+            if region is not None and not (np.array_equal(deltas.vertices, region.vertices)
+                                           and _same_copies(deltas.copies, region.copies)):
+                deltas = _on_region(rig, deltas, avatar.file)     # e.g. a welded part (its copies apart)
             values = deltas.values
-            if region is not None and not np.array_equal(deltas.vertices, region.vertices):
-                raise GeometryError(f"sparse offsets for {rig.source.prim} are not on the vertices the rig "
-                                    "holds", path=avatar.file, prim=rig.source.prim,
-                                    fix="give offsets on the rig's region (rig.source.region.vertices)")
         else:
             deltas = values = np.asarray(deltas, dtype=np.float64)
         if tuple(deltas.shape) != full:
@@ -247,6 +246,46 @@ def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, objec
     return out
 
 
+def _same_copies(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def _on_region(rig: FaceRig, deltas, file):
+    """Sparse offsets given on another part of the mesh than the rig holds (the pipeline's welded part of a
+    mesh the reader cropped: copies of a vertex held apart) re-expressed on the rig's own region: each of
+    its vertices takes the value given for it (as a vertex or a copy), the rig's own offsets where none
+    is; a vertex the region lacks but the offsets move is refused."""
+    from ..submesh import SparseOffsets
+
+    region = rig.source.region
+    at = np.full(region.n, -1, dtype=np.int64)
+    at[deltas.vertices] = np.arange(deltas.vertices.size)
+    copies = deltas.copies
+    if copies is not None:
+        at[copies[0]] = copies[1]
+    where = at[region.vertices]
+    given = np.zeros(region.n, dtype=bool)
+    given[deltas.vertices] = True
+    if copies is not None:
+        given[copies[0]] = True
+    given[region.vertices] = False
+    outside = np.flatnonzero(given)
+    if outside.size:
+        rows = at[outside]
+        moved = np.abs(deltas.values[:, rows]).max() if rows.size else 0.0
+        if moved > 0 and (deltas.base is None or np.abs(np.asarray(deltas.base)[:, outside]
+                                                         - deltas.values[:, rows]).max() > 0):
+            raise GeometryError(f"sparse offsets for {rig.source.prim} move vertices the rig does not hold",
+                                path=file, prim=rig.source.prim,
+                                fix="give offsets on the rig's region (rig.source.region.vertices)")
+    values = rig.deltas.copy()
+    ok = where >= 0
+    values[:, ok] = deltas.values[:, where[ok]]
+    return SparseOffsets(region.vertices, values, region.n, copies=region.copies)
+
+
 def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
     """Shape ``k``'s new and old offsets (internal metres) where the layer may author them:
     ``(points[p] or None for every vertex, new[p,3], old[p,3], [old inbetween[p,3], ...])``. A rig on its
@@ -261,6 +300,8 @@ def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
         if isinstance(deltas, SparseOffsets):
             new = rig.deltas[k].copy()
             new[deltas.vertices] = deltas.values[k]
+            if deltas.copies is not None:                  # a welded part's copies: their twin's values
+                new[deltas.copies[0]] = deltas.values[k][deltas.copies[1]]
         else:
             new = deltas[k]
         return None, new, rig.deltas[k], [ib.offsets for ib in ibs]

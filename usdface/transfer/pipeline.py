@@ -1176,16 +1176,20 @@ def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list
     for m in avatar.meshes:
         key = m.key
         new = offsets[key]
+        copies = new.copies if isinstance(new, SparseOffsets) else None
         new = new.values if isinstance(new, SparseOffsets) else new
         sq = np.empty(m.deltas.shape[:2])    # [K,n] squared change (on the part held), shape by shape
         for k in range(len(sq)):
             d = new[k] - m.deltas[k]
             sq[k] = np.einsum("nc,nc->n", d, d)
         n_full = regions[key].n if regions and key in regions else m.n_vertices
+        # a welded part's vertex stands for itself and its copies (written with its offsets)
+        count = (1.0 + np.bincount(copies[1], minlength=sq.shape[1]) if copies is not None
+                 else np.ones(sq.shape[1]))
         peak = np.sqrt(sq.max(axis=1)) if sq.shape[1] else np.zeros(len(sq))
-        rms = np.sqrt(sq.sum(axis=1) / max(n_full, 1))
-        moved = (sq > 1e-18).sum(axis=1)
+        rms = np.sqrt(sq @ count / max(n_full, 1))
+        moved = (sq > 1e-18).astype(np.float64) @ count
         for k, n in enumerate(m.names):
             rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
-                         "rms_change_m": float(rms[k]), "moved_vertices": int(moved[k])})
+                         "rms_change_m": float(rms[k]), "moved_vertices": int(round(moved[k]))})
     return rows
