@@ -142,15 +142,13 @@ def _split_on_sheet(samples, path):
     from usdface.io.avatar_writer import write_rig_usd
     from usdface.io.usd_rig import read_avatar
 
-    from test_submesh import _grid as grid
-
     avatar = read_avatar(samples / "avatar.usda")
     head = avatar.mesh("Head")
     moving = np.abs(head.deltas).max(axis=(0, 2)) > 0
     split, seam = _split(FaceRig(head.neutral, head.triangles, head.names, head.deltas, head.inbetweens,
                                  name="Head"), float(head.neutral[moving, 1].mean()))
     n = split.n_vertices
-    sheet, sheet_tri = grid(120, 80, z=0.0, spacing=0.005)
+    sheet, sheet_tri = _grid(120, 80, z=0.0, spacing=0.005)
     sheet = sheet[:, [0, 2, 1]] + [-0.3, float(head.neutral[:, 1].min()) - 0.5, -0.2]
     merged = FaceRig(np.concatenate([split.neutral, sheet]), np.concatenate([split.triangles, sheet_tri + n]),
                      split.names, np.concatenate([split.deltas, np.zeros((split.n_shapes, len(sheet), 3))],
