@@ -132,9 +132,12 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     "frames_swapped"}`` when the exchanged labels explain the scans better overall and in more frames (at
     least 3) distinctly (:data:`SIDE_MARGIN`); None otherwise (also when no shape has a partner). On the
     sample and dev1-dev3, templates by another artist included, the reported labels explain the scans
-    1.4-2.6x better. ``||x - w T||^2 = ||x||^2 - 2 w.(T x) + w^T (T T^T) w``: frames in chunks of
+    1.4-2.6x better. Each frame is first placed rigidly on the neutral by the vertices no template shape
+    moves (:func:`usdface.personalize.align.rigid_transforms`): 1-5 degrees of head motion between scans
+    hid a swap (a review). ``||x - w T||^2 = ||x||^2 - 2 w.(T x) + w^T (T T^T) w``: frames in chunks of
     ``chunk``, no ``[F,n,3]`` temporary."""
     from ..arkit import mirror_name
+    from .align import rigid_transforms, static_vertices
 
     names = list(names)
     where = {n: i for i, n in enumerate(names)}
@@ -142,13 +145,16 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     w = np.asarray(weights, dtype=np.float64)
     if (perm == np.arange(len(names))).all() or len(w) == 0:
         return None
+    rot, shift = rigid_transforms(points, neutral, static_vertices(template_deltas))
     t = np.asarray(template_deltas, dtype=np.float64).reshape(len(names), -1)      # [K,3n]
     b = np.asarray(neutral, dtype=np.float64).reshape(-1)
     gram = t @ t.T
     r_rep = np.empty(len(w))
     r_sw = np.empty(len(w))
     for lo in range(0, len(w), chunk):
-        x = np.asarray(points[lo:lo + chunk], dtype=np.float64).reshape(-1, b.size) - b   # [c,3n]
+        placed = np.matmul(np.asarray(points[lo:lo + chunk], dtype=np.float64),
+                           np.swapaxes(rot[lo:lo + chunk], 1, 2)) + shift[lo:lo + chunk, None, :]
+        x = placed.reshape(-1, b.size) - b                                                 # [c,3n]
         xx = np.einsum("fi,fi->f", x, x)
         cx = x @ t.T                                                                       # [c,K]
         for out, ww in ((r_rep, w[lo:lo + chunk]), (r_sw, w[lo:lo + chunk][:, perm])):
