@@ -8,7 +8,8 @@ What is read, the UsdSkel way:
 * per mesh: ``skel:blendShapes`` (channel tokens) and ``skel:blendShapeTargets`` (BlendShape prims, a list
   or Blender's single target), dense or sparse ``pointIndices`` (int[] or uint[]), inbetweens (any weight
   except 0 and 1, negative included), ``normalOffsets`` (kept verbatim in :class:`MeshSource` for the writer);
-* geometry: points at the default time, polygons fan-triangulated (the authored ``faceVertexCounts/Indices``
+* geometry: points at the default time (time-sampled only: the first sample, with a warning), polygons
+  fan-triangulated (the authored ``faceVertexCounts/Indices``
   are kept), and the mesh's full local-to-world transform (every ancestor), the stage's ``metersPerUnit`` and
   ``upAxis`` folded into ``MeshSource.to_internal`` so the rig is in usdface's internal frame: metres, Y up;
 * meshes without blend shapes under a SkelRoot (eyes, teeth, props): points and fan triangles only, placed
@@ -192,7 +193,17 @@ def _mesh_geometry(mesh_prim, path):
 
     prim = str(mesh_prim.GetPath())
     mesh = UsdGeom.Mesh(mesh_prim)
-    points = _array(mesh.GetPointsAttr().Get(Usd.TimeCode.Default()), np.float64, 3, "points", path, prim)
+    attr = mesh.GetPointsAttr()
+    points = _array(attr.Get(Usd.TimeCode.Default()), np.float64, 3, "points", path, prim)
+    samples = attr.GetTimeSamples() if len(points) == 0 else []
+    if len(points) == 0 and samples:
+        # a cache export: the points only time-sampled; the first sample is taken as the rest pose
+        import warnings
+
+        points = _array(attr.Get(samples[0]), np.float64, 3, "points", path, prim)
+        warnings.warn(f"{path}, prim {prim}: points have no default value, only {len(samples)} time "
+                      f"sample(s): the sample at time {samples[0]:g} is read as the rest pose (author the "
+                      "rest points as a default value to choose it)", stacklevel=2)
     if len(points) == 0:
         raise GeometryError("mesh has no points (at the default time)", path=path, prim=prim,
                             fix="author the rest-pose points as a default (non time-sampled) value")
