@@ -85,7 +85,7 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
                           max_vertices: int = 300, grid=REG_GRID, refine: int = 4,
                           seed: int = 0, fit: PositionFit | None = None, vertices=None,
                           alphas=None, keep_prior: bool = False,
-                          clamp: float = D_CLAMP) -> tuple[float, dict]:
+                          clamp: float = D_CLAMP, block: int = 1) -> tuple[float, dict]:
     """Regularisation strength (and prior blend) minimising the leave-one-frame-out error of eqs. (1)+(2).
 
     Arrays as in :func:`usdface.personalize.fit.fit_blendshapes`; ``alt_deltas[K,n,3]`` an optional second
@@ -95,7 +95,9 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     Pass ``fit`` and ``vertices`` from a previous call (after :meth:`PositionFit.set_points`) to skip the
     decomposition; ``alphas`` restricts the prior blends tried; ``keep_prior`` searches ``reg`` only, with the
     prior ``fit`` holds (e.g. the avatar prior, :meth:`PositionFit.set_prior`). ``clamp``: eq. (3)'s clamp
-    used for ``reg_weights`` (vertices at the clamp in every shape are static and left out).
+    used for ``reg_weights`` (vertices at the clamp in every shape are static and left out). ``block``:
+    frames held out together (a take's consecutive frames, :func:`usdface.personalize.takefit.cv_block`;
+    1: leave-one-frame-out).
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     if fit is None:
@@ -107,7 +109,7 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
             cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
         fit = PositionFit(neutral[cand], np.asarray(points)[:, cand], weights,
                           np.asarray(generic_deltas)[:, cand], np.asarray(reg_weights)[:, cand],
-                          None if alt_deltas is None else np.asarray(alt_deltas)[:, cand])
+                          None if alt_deltas is None else np.asarray(alt_deltas)[:, cand], block=block)
         vertices = cand
     pf, cand = fit, vertices
     grid = np.asarray(grid, dtype=np.float64)
