@@ -636,3 +636,27 @@ def test_snap_transform_removes_float32_export_noise_only():
     out, _ = snap_transform(third)
     np.testing.assert_allclose(np.abs(out[:3, :3]).sum(axis=0), 1 / 3, rtol=1e-15)
     assert (np.count_nonzero(out[:3, :3], axis=0) == 1).all()
+
+
+def test_a_shot_layer_that_retypes_the_avatars_skelroot_is_named(samples, tmp_path):
+    """A shot layer with ``def Xform "Hero"`` referencing the avatar's SkelRoot: the stronger local type
+    hides the SkelRoot. The refusal said only 'put the meshes under a SkelRoot' (a user trial); it names
+    the prim, both layers and the fix."""
+    from pxr import Usd
+
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar
+
+    shot = tmp_path / "shot.usda"
+    stage = Usd.Stage.CreateNew(str(shot))
+    stage.DefinePrim("/Hero", "Xform").GetReferences().AddReference(str(samples / "avatar.usda"), "/Avatar")
+    stage.GetRootLayer().Save()
+    with pytest.raises(RigError) as info:
+        read_avatar(shot)
+    text = str(info.value)
+    assert "/Hero is a SkelRoot in" in text and "avatar.usda" in text and "defines it as Xform" in text
+    assert "'over'" in info.value.fix
+    # without the local type the referenced SkelRoot composes, and the avatar reads
+    stage.GetPrimAtPath("/Hero").ClearTypeName()
+    stage.GetRootLayer().Save()
+    assert [m.name for m in read_avatar(shot).meshes] == ["Head", "Mouth"]

@@ -650,6 +650,24 @@ def refuse_usdface_output(path) -> None:
         "personalization on the personalized shapes", path=path, fix=f"pass the original avatar ({original})")
 
 
+def _overridden_skel_root(meshes):
+    """``(prim path, layer that types it SkelRoot, stronger layer that types it otherwise)`` for the first
+    ancestor of ``meshes`` that a weaker layer defines as a SkelRoot and the composed stage does not (a shot
+    layer's ``def Xform "Hero"`` over a referenced avatar's SkelRoot), else None."""
+    for mesh in meshes:
+        prim = mesh.GetParent()
+        while prim and not prim.IsPseudoRoot():
+            stack = prim.GetPrimStack()                                    # strongest first
+            typed = [spec for spec in stack if spec.typeName == "SkelRoot"]
+            if typed and prim.GetTypeName() != "SkelRoot":
+                strong = next((spec for spec in stack if spec.typeName and spec.typeName != "SkelRoot"),
+                              None)
+                return (str(prim.GetPath()), typed[0].layer.identifier,
+                        strong.layer.identifier if strong is not None else "a stronger layer")
+            prim = prim.GetParent()
+    return None
+
+
 def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                        name_map: dict | None = None, moving_only: bool = False) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
@@ -658,8 +676,17 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     meta = read_stage_metadata(stage, path)
     roots = _skel_roots(stage)
     if not roots:
-        loose = [str(p.GetPath()) for p in stage.Traverse() if _has_blend_shapes(p)]
-        hint = f" (meshes with blend shapes outside any SkelRoot: {', '.join(loose[:3])})" if loose else ""
+        loose = [p for p in stage.Traverse() if _has_blend_shapes(p)]
+        shown = ", ".join(str(p.GetPath()) for p in loose[:3])
+        hint = f" (meshes with blend shapes outside any SkelRoot: {shown})" if loose else ""
+        hidden = _overridden_skel_root(loose)
+        if hidden is not None:
+            prim, typed, strong = hidden
+            now = stage.GetPrimAtPath(prim).GetTypeName() or "untyped"
+            raise RigError(f"no SkelRoot in the stage{hint}: {prim} is a SkelRoot in {typed} but {strong}, a "
+                           f"stronger layer, defines it as {now}", path=path, prim=prim,
+                           fix=f"leave the prim's type to the asset: author {prim} in {strong} without a type "
+                           "('over', or 'def' with no type name), or as 'def SkelRoot'")
         raise RigError(f"no SkelRoot in the stage{hint}", path=path,
                        fix="put the skinned meshes and their Skeleton under a SkelRoot prim")
     notes = []
