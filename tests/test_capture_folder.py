@@ -211,3 +211,23 @@ def test_fuzz_weights_json_raises_only_usdface_errors(tmp_path, data, garble):
         return
     assert all(np.isfinite(v) for v in weights.values())
     assert len(weights) == len(data["blendShapes"])
+
+
+def test_a_misspelt_weight_in_a_frame_is_refused_naming_the_file(sample_capture_folder, tmp_path, capsys):
+    """A frame's JSON spells ``jawOpen`` as ``jawOpn``: the frame's jawOpen weight was read as 0 with a
+    warning that named neither the file nor the shape meant, and the fit learnt the open jaw from the other
+    shapes. ``capture import`` now stops naming the file and the rename; nothing is written."""
+    from usdface.cli import main
+
+    folder = tmp_path / "cap"
+    shutil.copytree(sample_capture_folder, folder)
+    frame = next(p for p in sorted(folder.glob("train/*.json"))
+                 if json.loads(p.read_text())["blendShapes"].get("jawOpen", 0) > 0.5)
+    doc = json.loads(frame.read_text())
+    doc["blendShapes"]["jawOpn"] = doc["blendShapes"].pop("jawOpen")
+    frame.write_text(json.dumps(doc))
+    out = tmp_path / "c.usda"
+    assert main(["capture", "import", str(folder), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"train/{frame.name}: weight 'jawOpn' is not a template shape" in err
+    assert "rename the weight 'jawOpn' to 'jawOpen'" in err and not out.exists()

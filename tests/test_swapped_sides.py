@@ -82,3 +82,4 @@ def test_swapped_sides_seen_through_head_motion(samples):
     assert swapped_sides(moved, cap.neutral, cap.template.deltas, train.weights, names) is None
     found = swapped_sides(moved, cap.neutral, cap.template.deltas, train.weights[:, perm], names)
     assert found is not None and found["swapped_mm"] < 0.5 * found["reported_mm"]
+

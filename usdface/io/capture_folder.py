@@ -141,6 +141,7 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict) ->
             pts, tris = read_obj(obj)
             _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
             w = read_weights_json(obj.with_suffix(".json"))
+            _refuse_misspelt_weight(root, f"{role}/{obj.with_suffix('.json').name}", w, index)
             row = np.zeros(len(names))
             for name, value in w.items():
                 if name in index:
@@ -202,6 +203,24 @@ def read_capture_folder(path) -> Capture:
     metadata["counts"] = {role: int(sum(r == role for r in frames.role)) for role in ROLES}
     return Capture(neutral, triangles, template, frames, list(template.names), source=str(root),
                    metadata=metadata)
+
+
+def _refuse_misspelt_weight(root: Path, where: str, weights: dict, index: dict) -> None:
+    """A frame's weight whose name only looks like a template shape (:func:`usdface.arkit.lookalike`:
+    ``jawOpn``, ``STU_jawOpen``) while the frame does not give that shape: the shape's weight in the frame
+    would be read as 0 and its value set aside, so the fit would learn the scan's jaw from the other shapes.
+    Refused, naming the file and the rename."""
+    from ..arkit import lookalike
+
+    for name in weights:
+        if name in index:
+            continue
+        meant = lookalike(name)
+        if meant is not None and meant in index and meant not in weights:
+            raise CaptureError(f"{where}: weight {name!r} is not a template shape, and the frame gives no "
+                               f"{meant!r}, which the template has: misspelt?", path=root,
+                               fix=f"rename the weight {name!r} to {meant!r} in {where} (and in any other "
+                               "frame that spells it so)")
 
 
 def _refuse_misspelt_template(root: Path, unknown, extra_weights) -> None:

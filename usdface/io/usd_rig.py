@@ -685,8 +685,8 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
             now = stage.GetPrimAtPath(prim).GetTypeName() or "untyped"
             raise RigError(f"no SkelRoot in the stage{hint}: {prim} is a SkelRoot in {typed} but {strong}, a "
                            f"stronger layer, defines it as {now}", path=path, prim=prim,
-                           fix=f"leave the prim's type to the asset: author {prim} in {strong} without a type "
-                           "('over', or 'def' with no type name), or as 'def SkelRoot'")
+                           fix=f"leave the prim's type to the asset: author {prim} in {strong} without a "
+                           "type ('over', or 'def' with no type name), or as 'def SkelRoot'")
         raise RigError(f"no SkelRoot in the stage{hint}", path=path,
                        fix="put the skinned meshes and their Skeleton under a SkelRoot prim")
     notes = []
