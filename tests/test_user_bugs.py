@@ -216,7 +216,6 @@ BAD_RIGS = {
     "mpu_negative": "metersPerUnit",
     "mpu_nan": "metersPerUnit",
     "up_x": "upAxis",
-    "time_sampled_points": "no points",
 }
 
 
@@ -254,6 +253,18 @@ def make_bad_rig(kind: str, out: Path) -> Path:
         attr.Set(value, 2.0)
     stage.GetRootLayer().Export(str(out))
     return out
+
+
+def test_check_reports_what_the_reader_assumes(tmp_path):
+    """Points only time-sampled (a cache export) are read at their first sample (they were refused):
+    ``check`` reports that as a warning on the mesh, not as an error, and not silently."""
+    import usdface
+
+    path = make_bad_rig("time_sampled_points", tmp_path / "ts.usda")
+    issues = usdface.check(path, pixar=False)
+    assert not [i for i in issues if i.severity == "error"], issues
+    said = [i for i in issues if i.severity == "warning" and "time sample" in i.message]
+    assert len(said) == 1 and said[0].prim == "/Avatar/Head"
 
 
 @pytest.mark.parametrize("kind", sorted(BAD_RIGS))

@@ -107,6 +107,14 @@ _NAME_MAP_RULES = {"ArkitNames", "Readable"}
 READER_RULES = {"SkelBinding", "BlendShapeArrays", "BlendShapeOffsets", "PointIndices", "Inbetweens"}
 
 
+def _prim_in(text: str) -> str:
+    """The prim a reader's message names (``file, prim /A/B: ...``), else ``/``."""
+    import re
+
+    hit = re.search(r"prim (/[^\s:,]*)", text)
+    return hit.group(1) if hit else "/"
+
+
 def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
@@ -524,7 +532,16 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
                         "can use", "export the avatar with its shape keys / blend shapes (ARKit names)")
         return  # no skinned geometry (a take, usdface's error maps, a schema file): not judged as an avatar
     try:
-        avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
+        import warnings
+
+        with warnings.catch_warnings(record=True) as said:      # what the reader says goes into the report
+            warnings.simplefilter("always")
+            avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
+        for w in said:
+            if issubclass(w.category, UserWarning):
+                text = str(w.message)
+                yield Issue(WARNING, "Readable", _prim_in(text), text,
+                            "author what the reader assumed (see the message), or accept it")
         from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
