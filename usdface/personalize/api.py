@@ -35,9 +35,6 @@ ACTIVATION_MIN = 0.05
 SIGNIFICANCE = 0.05
 #: Alignment passes (each frame to the leave-one-out prediction of the fit on the others).
 ALIGN_PASSES = 2
-#: Vertices the cross-validation of a take read whole uses (a capture's: 300): its hundreds of frames give
-#: the criterion as many residuals per vertex, and each held-out block costs a small solve per vertex.
-TAKE_CV_VERTICES = 100
 
 
 @dataclass
@@ -337,7 +334,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         points, weights = points[::every], weights[::every]
         info["whole_take_every"] = int(every)
     tmpl = capture.template
-    time_weights = weights                  # in time order, before any frame weighting (a take's CV blocks)
     if frame_weights is None and capture.whole_take and method in ("menzel", "laplacian"):
         frame_weights = "balanced"          # every frame of a take: a held pose counts once (takefit)
     elif frame_weights is None and capture.whole_take and method == "ebfr":
@@ -398,15 +394,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
         if prior == "avatar":
             main = np.where(avatar_ok[:, None, None], avatar, generic)
-        block = 1
-        if capture.whole_take and frame_weights is not None:
-            from .takefit import cv_block
-
-            block = cv_block(time_weights)     # a take's neighbouring frames show one pose: held out together
-            info["cv_block_frames"] = block
         lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings,
-                              clamp=clamp, **({"block": block, "max_vertices": TAKE_CV_VERTICES}
-                                              if block > 1 else {}))
+                              clamp=clamp)
         prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main
         choice = None
         per_shape = False                      # a prior other than alpha * DT + (1 - alpha) * template

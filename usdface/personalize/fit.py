@@ -223,8 +223,8 @@ class PositionFit:
 
     def __init__(self, neutral, points, weights, generic_deltas, reg_weights, alt_deltas=None, *,
                  block: int = 1):
-        #: frames held out together by the cross-validation criteria (1: leave-one-frame-out; a take read
-        #: whole: :func:`usdface.personalize.takefit.cv_block`, see :meth:`_block_residuals`)
+        #: frames held out together by the cross-validation criteria (1: leave-one-frame-out, the default;
+        #: see :meth:`_block_residuals` and :func:`usdface.personalize.takefit.cv_block`)
         self.block = max(int(block), 1)
         self.W = np.asarray(weights, dtype=np.float64)
         self.neutral = np.asarray(neutral, dtype=np.float64)
@@ -335,11 +335,11 @@ class PositionFit:
         (:meth:`_loo_parts`) of the vertices ``v``: the training frames in consecutive blocks of
         :attr:`block` (the last one shorter), each block's residual predicted by the fit on the other
         blocks, ``(I - H_BB)^-1 e_B`` with the hat matrix ``H = Z diag(g) Z^T``, ``g = mu / (mu + reg)`` (the
-        block form of ``e_i / (1 - h_ii)``). On a take the frames next to a left-out frame show nearly the
-        same pose, so leaving one out measures how well the fit interpolates between neighbours, not how
-        it predicts a pose: on the sample's generated take the leave-one-frame-out choice was 8-16x too
-        weakly regularized (truth error 0.383 mm against 0.335 at 16x). A block of ``b <= r`` frames solves
-        its ``b x b`` system; a longer one the ``r x r`` system of the Woodbury identity
+        block form of ``e_i / (1 - h_ii)``; ``I - H_BB`` is positive definite, its eigenvalues at least
+        ``reg / (mu_max + reg)``, since ``Z`` has orthonormal columns). Not the default for takes (see
+        docs/takes.md: a block long enough to stop the neighbours' help holds out whole expressions and
+        over-regularizes); exact against refits. A block of ``b <= r`` frames solves its ``b x b`` system; a
+        longer one the ``r x r`` system of the Woodbury identity
         ``(I - Z_B G Z_B^T)^-1 = I + Z_B G^1/2 (I - G^1/2 Z_B^T Z_B G^1/2)^-1 G^1/2 Z_B^T``."""
         regs = np.asarray(regs, dtype=np.float64)
         Z, mu = self.Z[v], self.mu[v]
@@ -356,12 +356,12 @@ class PositionFit:
                 db = np.ascontiguousarray(d[:, lo:hi, :, gi]).reshape(n, nb, bb, k)
                 if bb <= r:                                                         # I - Z_B G Z_B^T
                     a = -np.matmul(zb * g[:, None, None, :], np.swapaxes(zb, 2, 3))
-                    a[..., np.arange(bb), np.arange(bb)] += 1.0 + 1e-9
+                    a[..., np.arange(bb), np.arange(bb)] += 1.0
                     sol = np.linalg.solve(a, db)
                 else:
                     zs = zb * np.sqrt(g)[:, None, None, :]                          # Z_B G^1/2
                     a = -np.matmul(np.swapaxes(zs, 2, 3), zs)
-                    a[..., np.arange(r), np.arange(r)] += 1.0 + 1e-9
+                    a[..., np.arange(r), np.arange(r)] += 1.0
                     sol = db + np.matmul(zs, np.linalg.solve(a, np.matmul(np.swapaxes(zs, 2, 3), db)))
                 out[:, lo:hi, :, gi] = sol.reshape(n, hi - lo, k)
         return out

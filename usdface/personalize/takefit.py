@@ -119,9 +119,12 @@ def correlation_frames(weights: np.ndarray, level: float = CORRELATION_LEVEL) ->
 
 
 def cv_block(weights: np.ndarray) -> int:
-    """The frames a take's cross-validation holds out together (:meth:`usdface.personalize.fit.PositionFit.
-    _block_residuals`): twice the weights' correlation time (:func:`correlation_frames`), so a held-out
-    frame's pose is not shown by the frames that stay in the fit - about one expression (h-block
-    cross-validation, Burman, Chow & Nolan 1994) - and at most ``F // MIN_FOLDS`` frames."""
+    """A block length for leave-block-out cross-validation of a take (h-block cross-validation, Burman,
+    Chow & Nolan 1994; :meth:`usdface.personalize.fit.PositionFit._block_residuals`,
+    ``choose_regularization(block=...)``): twice the weights' correlation time (:func:`correlation_frames`),
+    at most ``F // MIN_FOLDS`` frames; 1 when the weights decorrelate at once. Not used by default: measured
+    in docs/takes.md, such blocks hold out whole expressions and over-regularize takes whose every shape is
+    performed."""
     F = len(np.asarray(weights))
-    return int(max(1, min(2 * correlation_frames(weights), F // MIN_FOLDS)))
+    lag = correlation_frames(weights)
+    return 1 if lag <= 1 else int(max(1, min(2 * lag, F // MIN_FOLDS)))
