@@ -196,3 +196,41 @@ def test_correlation_frames_is_a_poses_duration():
     assert cv_block(poses) == 2 * correlation_frames(poses)
     assert cv_block(poses[:40]) <= 8
 
+
+
+def test_a_take_of_one_held_pose_is_refused_before_any_work(samples, tmp_path, capsys):
+    """600 frames of one expression (jawOpen 0.7 + mouthSmileLeft 0.5, the phone's jitter on it): the fit
+    gave that pose's motion to both shapes in full (trust 1.0) and the avatar came out 2.3x further from the
+    person than the generic one, mouthSmileLeft 4.8 mm worse (a user trial). Refused on reading, naming the
+    count of distinct poses; ``--every`` that leaves one frame is refused the same way."""
+    import dataclasses
+
+    from usdface.cli import main
+    from usdface.io import read_capture
+    from usdface.io.take import write_take_usd
+    from usdface.model import FaceRig
+    from usdface.personalize.takefit import distinct_poses
+
+    capture = read_capture(samples / "capture.usda")
+    ct = np.load(samples / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
+                        rest_seconds=0.1)
+    rng = np.random.default_rng(0)
+    pose = np.zeros(len(take.names))
+    pose[take.names.index("jawOpen")], pose[take.names.index("mouthSmileLeft")] = 0.7, 0.5
+    weights = np.clip(pose + rng.normal(0.0, 0.005, (120, len(pose))), 0.0, 1.0)
+    order = [names.index(n) for n in take.names]
+    points = person.neutral + np.einsum("fk,knc->fnc", np.tile(pose, (120, 1)), person.deltas[order])
+    held = dataclasses.replace(take, weights=weights, points=points, times=np.arange(120) / 30.0)
+    assert distinct_poses(held.weights) < 1.5 and distinct_poses(take.weights) > 10
+    write_take_usd(held, tmp_path / "held.usdc")
+    write_take_usd(take, tmp_path / "take.usdc")
+    out = tmp_path / "o.usda"
+    for argv in (["personalize", str(samples / "avatar.usda"), str(tmp_path / "held.usdc"), "-o", str(out)],
+                 ["fit", str(tmp_path / "take.usdc"), "-o", str(out), "--every", "100000"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "distinct pose(s)" in err and "too few to tell its shapes apart" in err, err
+        assert not out.exists()

@@ -61,9 +61,10 @@ def take_line(info: dict) -> str | None:
     if not fw:
         return None
     every = f" (every {_ordinal(info['whole_take_every'])} frame)" if info.get("whole_take_every") else ""
+    poses = f", {info['take_poses']:.0f} distinct poses" if info.get("take_poses") is not None else ""
     if fw["mode"].startswith("equally"):
-        return f"whole take: {fw['frames']} frames{every} weighted {fw['mode']}"
-    return (f"whole take: {fw['frames']} frames{every} weighted {fw['mode']} (as many as "
+        return f"whole take: {fw['frames']} frames{every}{poses} weighted {fw['mode']}"
+    return (f"whole take: {fw['frames']} frames{every}{poses} weighted {fw['mode']} (as many as "
             f"{fw['effective_frames']:.0f} equally weighted frames; weights {fw['min']:.3g}-{fw['max']:.3g})")
 
 
@@ -114,7 +115,8 @@ def run(args) -> int:
         doc = {"ok": True, "output": json_path(info["out_path"]), "method": args.method,
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
-                                                         "warnings", "contact", "frame_weights")}}
+                                                         "warnings", "contact", "frame_weights",
+                                                         "take_poses")}}
         doc["warnings"] = all_warnings(info.get("warnings"))
         print(json.dumps(doc, default=json_default))
         return 0

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["balanced_frame_weights", "unique_excitation", "weight_noise", "weighted_frames", "cv_block",
+__all__ = ["balanced_frame_weights", "distinct_poses", "pose_counts", "unique_excitation", "weight_noise",
+           "weighted_frames", "cv_block",
            "correlation_frames", "CORRELATION_LEVEL", "MIN_FOLDS"]
 
 #: The weight curves are taken as decorrelated from a lag at which their mean autocorrelation is this low.
@@ -31,6 +32,22 @@ def balanced_frame_weights(weights: np.ndarray, radius: float = 0.05) -> np.ndar
     W = np.asarray(weights, dtype=np.float64)
     if len(W) == 0:
         return np.zeros(0)
+    omega = 1.0 / pose_counts(W, radius)
+    return omega * (len(W) / omega.sum())
+
+
+def distinct_poses(weights: np.ndarray, radius: float = 0.05) -> float:
+    """How many distinct poses the frames' weights ``weights[F,K]`` show: ``sum_i 1 / count_i`` with
+    ``count_i`` the frames within ``radius`` of frame i (:func:`balanced_frame_weights`' neighbourhoods): a
+    pose held for 600 frames counts 1, 600 different poses count 600."""
+    W = np.asarray(weights, dtype=np.float64)
+    return float(np.sum(1.0 / pose_counts(W, radius))) if len(W) else 0.0
+
+
+def pose_counts(weights: np.ndarray, radius: float = 0.05) -> np.ndarray:
+    """``[F]``: the number of frames whose weight vector lies within ``radius`` (RMS over the K weights) of
+    each frame's, itself included."""
+    W = np.asarray(weights, dtype=np.float64)
     r2 = radius ** 2 * W.shape[1]
     # Counting neighbours in K ~ 52 dimensions: a k-d tree degrades to brute force there (0.9 s for 2,248
     # frames); the pairwise distances by blocks of rows through one matrix product are ~20x faster, with
@@ -41,9 +58,7 @@ def balanced_frame_weights(weights: np.ndarray, radius: float = 0.05) -> np.ndar
     for s in range(0, len(W), step):
         d2 = sq[s:s + step, None] + sq[None, :] - 2.0 * (W[s:s + step] @ W.T)
         counts[s:s + step] = np.count_nonzero(d2 <= r2, axis=1)
-    counts = np.maximum(counts, 1.0)  # itself, whatever the rounding
-    omega = 1.0 / counts
-    return omega * (len(W) / omega.sum())
+    return np.maximum(counts, 1.0)  # itself, whatever the rounding
 
 
 def weighted_frames(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, omega: np.ndarray):

@@ -528,6 +528,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..personalize.api import check_every
 
             check_every(fit_options["every"], capture)
+        if rig is None and capture.whole_take:                # a take of one held pose: refused now
+            from ..personalize.api import check_take_poses
+
+            check_take_poses(capture, fit_options.get("every", 1))
         chosen_face = None
         if face_mesh:  # checked before the fit
             from ..io.layers import avatar_mesh
