@@ -88,15 +88,10 @@ def check_capture(capture: Capture) -> list[str]:
                        path=src, fix="the frames' blendshape weights are missing or zero: export them with "
                        "the scans (weights.json / the take's weight channels)")
     warn = []
-    swapped = swapped_sides(train.points, capture.neutral, tmpl.deltas, train.weights, capture.names)
+    swapped = refuse_swapped_sides(capture)
     if swapped is not None:
-        warn.append(f"the capture's Left and Right weights look exchanged: with every *Left/*Right weight "
-                    f"swapped the template explains the scans better ({swapped['swapped_mm']:.2f} mm RMS "
-                    f"against {swapped['reported_mm']:.2f} mm as reported; {swapped['frames_swapped']} "
-                    f"frame(s) better swapped, {swapped['frames_reported']} as reported). A capture app "
-                    "showing a mirrored (selfie) view may write the sides exchanged; the fit would learn "
-                    "each side's shape from the other side's motion (fix: turn the app's mirroring off and "
-                    "export again, or exchange the Left/Right weight names in the capture's weights)")
+        warn.append(_swapped_message(swapped, capture) + " (fix: turn the app's mirroring off and export "
+                    "again, or exchange the Left/Right weight names)")
     K = len(capture.names)
     if len(train) < K:
         warn.append(f"{len(train)} training frames for {K} shapes: the fit is underdetermined; shapes the "
@@ -119,6 +114,46 @@ def check_capture(capture: Capture) -> list[str]:
                     "the capture app kept one frame for several requested shapes, so those shapes are not "
                     "measured separately (record them again to personalize each)")
     return warn
+
+
+#: The exchanged labels are taken as proven, and the capture refused, when they explain at least this many
+#: times as many frames distinctly better as the reported ones do (and at least 10) ...
+SIDES_PROVEN_FRAMES = 10
+#: ... with an RMS residual at most this share of the reported labels' (the sample and dev1-dev3 exchanged:
+#: 0.39-0.74; as reported the exchanged labels explain the scans 1.4-2.6x worse).
+SIDES_PROVEN_RATIO = 0.8
+
+
+def _swapped_message(swapped: dict, capture: Capture) -> str:
+    what = "take's" if capture.whole_take else "capture's"
+    return (f"the {what} Left and Right weights look exchanged: with every *Left/*Right weight swapped the "
+            f"template explains the scans better ({swapped['swapped_mm']:.2f} mm RMS against "
+            f"{swapped['reported_mm']:.2f} mm as reported; {swapped['frames_swapped']} frame(s) better "
+            f"swapped, {swapped['frames_reported']} as reported). A capture app showing a mirrored (selfie) "
+            "view may write the sides exchanged; the fit would learn each side's shape from the other side's "
+            "motion")
+
+
+def refuse_swapped_sides(capture: Capture) -> dict | None:
+    """:func:`swapped_sides` on the capture's training frames: refused (:class:`FitError`) when the
+    exchanged labels are proven (:data:`SIDES_PROVEN_FRAMES`, :data:`SIDES_PROVEN_RATIO`: a user trial's
+    mirrored take was personalized 2.85x further from the person than generic, jawLeft 5.7 mm worse, after a
+    warning); the weaker finding is returned for a warning, None when the sides look right."""
+    train = capture.train
+    if len(train) == 0:
+        return None
+    found = swapped_sides(train.points, capture.neutral, capture.template.deltas, train.weights,
+                          capture.names)
+    if found is None:
+        return None
+    if (found["frames_swapped"] >= SIDES_PROVEN_FRAMES * max(found["frames_reported"], 1)
+            and found["swapped_mm"] <= SIDES_PROVEN_RATIO * found["reported_mm"]):
+        where = ("the take's CSV header (or the USD take's weight names)" if capture.whole_take
+                 else "every frame's JSON (train/ and test/)")
+        raise FitError(_swapped_message(found, capture), path=capture.source or None,
+                       fix="turn the capture app's mirroring off and record or export again, or exchange "
+                       f"Left and Right in the weight names of {where}")
+    return found
 
 
 #: A frame is explained distinctly better by one labelling than the other when its residual is at most this

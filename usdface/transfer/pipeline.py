@@ -532,6 +532,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..personalize.api import check_take_poses
 
             check_take_poses(capture, fit_options.get("every", 1))
+        if rig is None:                                       # proven exchanged sides: refused now
+            from ..personalize.api import refuse_swapped_sides
+
+            refuse_swapped_sides(capture)
         chosen_face = None
         if face_mesh:  # checked before the fit
             from ..io.layers import avatar_mesh
