@@ -234,3 +234,53 @@ def test_a_take_of_one_held_pose_is_refused_before_any_work(samples, tmp_path, c
         err = capsys.readouterr().err
         assert "distinct pose(s)" in err and "too few to tell its shapes apart" in err, err
         assert not out.exists()
+
+
+def test_a_nan_in_a_usd_takes_points_names_the_point_and_time(samples, tmp_path, capsys):
+    """A NaN in one frame of a USD take: it was first called 'points edited after import' (NaN != NaN in the
+    exact-twin comparison), then refused without saying where (a user trial)."""
+    import dataclasses
+
+    from usdface.cli import main
+    from usdface.io import read_capture
+    from usdface.io.take import write_take_usd
+    from usdface.model import FaceRig
+
+    capture = read_capture(samples / "capture.usda")
+    ct = np.load(samples / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
+                        rest_seconds=0.1)
+    points = take.points.copy()
+    points[30, 7] = np.nan
+    write_take_usd(dataclasses.replace(take, points=points), tmp_path / "nan.usdc")
+    assert main(["fit", str(tmp_path / "nan.usdc"), "-o", str(tmp_path / "r.usda")]) == 2
+    out = capsys.readouterr()
+    assert "NaN or infinite values (point 7 at time 30)" in out.err, out.err
+    assert "edited after import" not in out.out + out.err
+
+
+def test_evaluate_says_when_its_test_frames_show_no_expression(samples):
+    """``capture select --test-every 10`` on a take can hold out only rests: every method then scores the
+    same (a user trial: six methods at 0.408 mm) and the table means nothing; evaluate says so."""
+    import dataclasses
+
+    from usdface import api
+    from usdface.io import read_capture
+    from usdface.model import Frames
+
+    capture = read_capture(samples / "capture.usda")
+    test = np.array([r == "test" for r in capture.frames.role])
+    weights = capture.frames.weights.copy()
+    weights[test] *= 0.05                                          # the held-out frames: rests
+    points = capture.frames.points.copy()
+    points[test] = capture.neutral
+    rest = dataclasses.replace(capture, frames=Frames(points, weights, capture.frames.role,
+                                                      capture.frames.label))
+    with pytest.warns(UserWarning, match="test frames show no expression"):
+        api.evaluate_methods(rest, ["dt"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        warnings.filterwarnings("ignore", message="(?!.*test frames show no expression)")
+        api.evaluate_methods(capture, ["dt"])                      # the capture's own: expressions

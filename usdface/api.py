@@ -305,6 +305,10 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
                               force=force))
 
 
+#: Test frames whose weights all stay below this show no expression (a take's rests held out).
+REST_TEST_WEIGHT = 0.15
+
+
 def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, role: str = "test") -> dict:
     """Paper eq. 5 on the capture's held-out ``test`` (or ``train``) expressions: per-frame RMSE and max
     vertex error in mm of ``rig`` with the frames' weights (``usdface evaluate``); see
@@ -377,6 +381,14 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
                                      "folder, or for a capture picked from a take 'usdface capture select "
                                      "TAKE -o capture.usda --test-every 10' (lower --min-separation when it "
                                      "holds out none)"))
+        tw = capture.test.weights
+        test_peak = float(abs(tw).max()) if tw.size else 0.0
+        if test_peak < REST_TEST_WEIGHT:                    # every method predicts them as the neutral
+            warnings.warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
+                          f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
+                          "as the neutral, so the table cannot tell the methods apart (hold out frames with "
+                          "expressions: 'usdface capture select TAKE --test-every 5 --min-separation 0.2')",
+                          UserWarning, stacklevel=2)
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}

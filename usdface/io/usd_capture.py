@@ -256,16 +256,19 @@ def _points(prim, path, time=None) -> np.ndarray:
     exact = twin.Get(t) if twin else None
     if exact is not None and len(exact) == len(p32):
         p64 = np.array(exact, dtype=np.float64)
-        if np.array_equal(p64.astype(np.float32), p32):
-            return _finite(p64, path, prim)
+        if np.array_equal(p64.astype(np.float32), p32, equal_nan=True):     # NaN: refused below, not "edited"
+            return _finite(p64, path, prim, t)
         warnings.warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
                       f"points", UserWarning, stacklevel=3)
-    return _finite(p32.astype(np.float64), path, prim)
+    return _finite(p32.astype(np.float64), path, prim, t)
 
 
-def _finite(a, path, prim):
+def _finite(a, path, prim, time=None):
     if not np.isfinite(a).all():
-        raise GeometryError("NaN or infinite values", path=path, prim=prim.GetPath(),
+        bad = int(np.flatnonzero(~np.isfinite(a).all(axis=-1))[0]) if a.ndim == 2 else None
+        at = "" if time is None or time.IsDefault() else f" at time {time.GetValue():g}"
+        where = f" (point {bad}{at})" if bad is not None else at
+        raise GeometryError(f"NaN or infinite values{where}", path=path, prim=prim.GetPath(),
                             fix="repair the capture and import it again")
     return a
 

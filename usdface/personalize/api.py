@@ -99,7 +99,8 @@ def check_capture(capture: Capture) -> list[str]:
     never = [nm for nm, w in zip(capture.names, train.weights.max(axis=0), strict=True) if w < ACTIVATION_MIN]
     if never:
         warn.append(f"shape(s) never activated in training (max weight < {ACTIVATION_MIN}): "
-                    f"{', '.join(never)}; they stay at the template's deformation transfer")
+                    f"{', '.join(never)}; the frames barely measure them: the fit holds them towards the "
+                    "prior only as far as the regularization does (personalize keeps them generic)")
     # a take read whole holds near-repeats by nature (a held pose, a doubled frame rate): its frame weights
     # count a pose once (takefit); the message is about a capture app's picked frames
     groups = [] if capture.whole_take else duplicate_frames(train.points, train.weights)
