@@ -198,6 +198,20 @@ def test_correlation_frames_is_a_poses_duration():
 
 
 
+def _short_sample_take(samples):
+    """A short take (10 fps, quick sweeps) of the sample's person: ``(take, person rig, names)``."""
+    from usdface.io import read_capture
+    from usdface.model import FaceRig
+
+    capture = read_capture(samples / "capture.usda")
+    ct = np.load(samples / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
+                        rest_seconds=0.1)
+    return take, person, names
+
+
 def test_a_take_of_one_held_pose_is_refused_before_any_work(samples, tmp_path, capsys):
     """600 frames of one expression (jawOpen 0.7 + mouthSmileLeft 0.5, the phone's jitter on it): the fit
     gave that pose's motion to both shapes in full (trust 1.0) and the avatar came out 2.3x further from the
@@ -206,17 +220,10 @@ def test_a_take_of_one_held_pose_is_refused_before_any_work(samples, tmp_path, c
     import dataclasses
 
     from usdface.cli import main
-    from usdface.io import read_capture
     from usdface.io.take import write_take_usd
-    from usdface.model import FaceRig
     from usdface.personalize.takefit import distinct_poses
 
-    capture = read_capture(samples / "capture.usda")
-    ct = np.load(samples / "truth" / "capture_truth.npz")
-    names = [str(n) for n in ct["names"]]
-    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
-    take, _ = make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
-                        rest_seconds=0.1)
+    take, person, names = _short_sample_take(samples)
     rng = np.random.default_rng(0)
     pose = np.zeros(len(take.names))
     pose[take.names.index("jawOpen")], pose[take.names.index("mouthSmileLeft")] = 0.7, 0.5
@@ -242,16 +249,9 @@ def test_a_nan_in_a_usd_takes_points_names_the_point_and_time(samples, tmp_path,
     import dataclasses
 
     from usdface.cli import main
-    from usdface.io import read_capture
     from usdface.io.take import write_take_usd
-    from usdface.model import FaceRig
 
-    capture = read_capture(samples / "capture.usda")
-    ct = np.load(samples / "truth" / "capture_truth.npz")
-    names = [str(n) for n in ct["names"]]
-    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
-    take, _ = make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
-                        rest_seconds=0.1)
+    take, person, names = _short_sample_take(samples)
     points = take.points.copy()
     points[30, 7] = np.nan
     write_take_usd(dataclasses.replace(take, points=points), tmp_path / "nan.usdc")
