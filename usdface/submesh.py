@@ -252,7 +252,8 @@ def coincident_vertices(points, deltas, inbetweens=(), *, tolerance: float = WEL
     # the pairs to compare: every vertex with the first of the vertices at exactly its point (a clump of
     # thousands of parked vertices costs one pair each, not thousands), then the distinct points within
     # ``eps`` of each other
-    _, first, group = np.unique(p, axis=0, return_index=True, return_inverse=True)
+    rows = np.ascontiguousarray(p).view(np.dtype((np.void, p.dtype.itemsize * 3))).ravel()   # a row's bytes
+    _, first, group = np.unique(rows, return_index=True, return_inverse=True)   # (-0.0 vs 0.0: the k-d tree)
     group = group.reshape(-1)
     twin = first[group]
     same_point = np.flatnonzero(twin != rep)
