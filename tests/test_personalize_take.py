@@ -185,7 +185,8 @@ def test_leave_block_out_residuals_are_refits_without_the_block(block):
 
 def test_correlation_frames_is_a_poses_duration():
     """Poses held for 12 frames (with a little noise): the weight curves decorrelate after about a pose;
-    white noise decorrelates at once; the CV block is twice that, at most a fifth of the take."""
+    white noise decorrelates at once; the CV block is the half-correlation time, at most a fifth of the
+    take."""
     from usdface.personalize.takefit import correlation_frames, cv_block
 
     rng = np.random.default_rng(3)
@@ -193,7 +194,7 @@ def test_correlation_frames_is_a_poses_duration():
     assert 8 <= correlation_frames(poses) <= 12
     assert correlation_frames(rng.normal(size=(480, 8))) == 1
     assert cv_block(rng.normal(size=(480, 8))) == 1
-    assert cv_block(poses) == 2 * correlation_frames(poses)
+    assert cv_block(poses) == correlation_frames(poses, 0.5) < correlation_frames(poses)
     assert cv_block(poses[:40]) <= 8
 
 

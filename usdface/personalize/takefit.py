@@ -15,12 +15,14 @@ import numpy as np
 
 __all__ = ["balanced_frame_weights", "distinct_poses", "pose_counts", "unique_excitation", "weight_noise",
            "weighted_frames", "cv_block",
-           "correlation_frames", "CORRELATION_LEVEL", "MIN_FOLDS"]
+           "correlation_frames", "CORRELATION_LEVEL", "MIN_FOLDS", "HALF_CORRELATION"]
 
 #: The weight curves are taken as decorrelated from a lag at which their mean autocorrelation is this low.
 CORRELATION_LEVEL = 0.1
 #: The cross-validation of a take keeps at least this many blocks.
 MIN_FOLDS = 5
+#: A take's cross-validation holds out the frames whose weights correlate with the left-out one's above this.
+HALF_CORRELATION = 0.5
 
 
 def balanced_frame_weights(weights: np.ndarray, radius: float = 0.05) -> np.ndarray:
@@ -136,10 +138,11 @@ def correlation_frames(weights: np.ndarray, level: float = CORRELATION_LEVEL) ->
 def cv_block(weights: np.ndarray) -> int:
     """A block length for leave-block-out cross-validation of a take (h-block cross-validation, Burman,
     Chow & Nolan 1994; :meth:`usdface.personalize.fit.PositionFit._block_residuals`,
-    ``choose_regularization(block=...)``): twice the weights' correlation time (:func:`correlation_frames`),
-    at most ``F // MIN_FOLDS`` frames; 1 when the weights decorrelate at once. Not used by default: measured
-    in docs/takes.md, such blocks hold out whole expressions and over-regularize takes whose every shape is
-    performed."""
+    ``choose_regularization(block=...)``): the weights' half-correlation time, the first lag at which their
+    mean autocorrelation falls to 0.5 (:func:`correlation_frames`): the neighbours that show nearly the same
+    pose leave with the frame, but never a whole expression; at most ``F // MIN_FOLDS`` frames, 1 when the
+    weights decorrelate at once. Not the default (measured in docs/takes.md: the fit gains or ties, but the
+    avatar lost 31 % on a noisy 30 fps take through the data share the implant trusts)."""
     F = len(np.asarray(weights))
-    lag = correlation_frames(weights)
-    return 1 if lag <= 1 else int(max(1, min(2 * lag, F // MIN_FOLDS)))
+    lag = correlation_frames(weights, HALF_CORRELATION)
+    return 1 if lag <= 1 else int(max(1, min(lag, F // MIN_FOLDS)))
