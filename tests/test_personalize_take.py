@@ -285,3 +285,24 @@ def test_evaluate_says_when_its_test_frames_show_no_expression(samples):
         warnings.simplefilter("error", UserWarning)
         warnings.filterwarnings("ignore", message="(?!.*test frames show no expression)")
         api.evaluate_methods(capture, ["dt"])                      # the capture's own: expressions
+
+
+def test_the_prior_choice_measures_a_takes_standard_error_by_batch_means():
+    """Per-frame errors of a take are correlated over a pose's frames: ``std / sqrt(F)`` understates the
+    standard error of their mean (2.3x on the sample's take, a review); batch means over the weights'
+    correlation time give the right one, within its own sampling error, on a series of known error."""
+    from usdface.personalize.api import _standard_error_of_mean
+
+    rng = np.random.default_rng(5)
+    poses, hold = 200, 12
+    weights = np.repeat(rng.random((poses, 6)), hold, axis=0) + rng.normal(size=(poses * hold, 6)) * 0.01
+    errors = []
+    naive = []
+    for _ in range(200):
+        series = np.repeat(rng.normal(size=poses), hold)                # one error per pose, held
+        errors.append(series.mean())
+        naive.append(series.std(ddof=1) / np.sqrt(series.size))
+        se = _standard_error_of_mean(series, weights)
+    true_se = float(np.std(errors))                                        # 1 / sqrt(200) = 0.071
+    assert abs(se - true_se) < 0.35 * true_se
+    assert np.mean(naive) < 0.35 * true_se                                 # the plain formula: ~1/sqrt(12)
