@@ -453,3 +453,25 @@ def test_a_studio_prefix_without_its_name_map_is_named_not_registered_on_the_mou
     assert "/Avatar/Head has 52 shapes whose names look like" in err
     assert "STU_eyeBlinkLeft -> eyeBlinkLeft" in err
     assert "--name-map" in err and not out.exists()
+
+
+def test_a_second_mesh_with_prefixed_and_corrective_shapes_does_not_stop_the_face(samples, tmp_path):
+    """A beard mesh carrying every shape as ``Beard_<name>`` plus a corrective ``jawOpen_mouthClose``: its
+    lookalike names count as 52 distinct shapes, not 53, so the Head (all 52 capture names) stays the face
+    (a review: refused as 'more than the 52 of /Avatar/Head')."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.io.usd_rig import read_avatar
+    from usdface.model import FaceRig
+    from usdface.transfer import personalize_avatar
+
+    avatar = read_avatar(samples / "avatar.usda")
+    head = avatar.mesh("Head")
+    beard_names = [f"Beard_{n}" for n in head.names] + ["jawOpen_mouthClose"]
+    beard = FaceRig(head.neutral + [0.0, 0.0, 0.002], head.triangles, beard_names,
+                    np.concatenate([head.deltas, head.deltas[[head.index("jawOpen")]] * 0.1]), name="Beard")
+    rigs = [FaceRig(m.neutral, m.triangles, m.names, m.deltas, name=m.name) for m in avatar.meshes] + [beard]
+    rigs += [FaceRig(p, t, [], np.zeros((0, len(p), 3)), name=k.rsplit("/", 1)[-1])
+             for k, (p, t) in avatar.metadata["static_meshes"].items()]
+    path = write_rig_usd(rigs, tmp_path / "beard.usda", meters_per_unit=avatar.meters_per_unit)
+    result = personalize_avatar(path, samples / "capture.usda", None, dry_run=True)
+    assert result.face_mesh == "/Avatar/Head"

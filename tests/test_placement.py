@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 
 def test_an_avatar_far_from_the_stage_origin_gets_the_answer_it_gets_at_the_origin(samples, tmp_path, capsys):
@@ -41,3 +42,37 @@ def test_an_avatar_far_from_the_stage_origin_gets_the_answer_it_gets_at_the_orig
     t_here = np.array(docs[0]["registration"]["translation_m"])
     t_there = np.array(docs[1]["registration"]["translation_m"])
     np.testing.assert_allclose(t_there - t_here, [500.0, 0.0, -200.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("how", ["baked", "points-back"])
+def test_points_far_from_the_origin_however_placed(samples, tmp_path, how):
+    """The points themselves 500 m out (baked, identity transforms), or 500 m back under a +500 m translate
+    (at the origin in the stage): both give the origin's answer to what float32 points at 500 m resolve (a
+    review: the first was 1.5 mm off, the second made 1.5 mm off by shifting by the mesh's local origin
+    instead of where its points are)."""
+    from pxr import Gf, Sdf, Usd, UsdGeom
+
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer import personalize_avatar
+
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "far.usda"))
+    layer.TransferContent(Sdf.Layer.FindOrOpen(str(samples / "avatar.usda")))
+    stage = Usd.Stage.Open(layer)
+    shift = Gf.Vec3f(50000.0, 0.0, 0.0)                                       # centimetres
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh):
+            attr = UsdGeom.Mesh(prim).GetPointsAttr()
+            attr.Set([p + shift if how == "baked" else p - shift for p in attr.Get()])
+    if how == "points-back":
+        UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar")).AddTranslateOp().Set(Gf.Vec3d(shift))
+    layer.Save()
+    here = np.asarray(personalize_avatar(samples / "avatar.usda", samples / "capture.usda", None)
+                      .offsets["/Avatar/Head"])
+    there = np.asarray(personalize_avatar(tmp_path / "far.usda", samples / "capture.usda", None)
+                       .offsets["/Avatar/Head"])
+    change = here - read_avatar(samples / "avatar.usda").mesh("Head").deltas
+    assert np.abs(change).max() > 1e-4
+    # float32 points at 500 m are known to ~40 um in the file: the answer within a few of those (was 1.5 mm)
+    diff = np.linalg.norm(there - here, axis=-1)
+    assert diff.max() < 2e-4, diff.max()
+    assert np.sqrt(np.mean(diff ** 2)) < 0.005 * np.sqrt(np.mean(np.sum(change ** 2, axis=-1)))

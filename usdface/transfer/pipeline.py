@@ -135,9 +135,10 @@ def _refuse_unmapped_face(avatar: Avatar, face: FaceRig, names: list[str]) -> No
         if m is face:
             continue
         look = {n: a for n in m.names if (a := lookalike(n)) is not None and a in wanted}
-        if len(look) > ours:
+        meant = len(set(look.values()))     # distinct shapes: a corrective 'jawOpen_mouthClose' is one
+        if meant > ours:
             shown = ", ".join(f"{n} -> {a}" for n, a in list(look.items())[:3])
-            raise RigError(f"{m.key} has {len(look)} shapes whose names look like the capture's ARKit names "
+            raise RigError(f"{m.key} has {meant} shapes whose names look like the capture's ARKit names "
                            f"in another spelling ({shown}, ...), more than the {ours} of {face.key}, which "
                            "would be taken for the face", path=avatar.file, prim=m.key,
                            fix="map the names with --name-map FILE (a JSON or CSV {channel: ARKit name}, see "
@@ -618,6 +619,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                source_triangles=face_transfer != "person",   # the deformation transfer's
                                avatar_peak=face_peak)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
+        placed = report["correspondence"].get("template_registration")
+        if isinstance(placed, dict) and "translation_m" in placed:          # reported in the stage's frame
+            report["correspondence"]["template_registration"] = {
+                **placed, "translation_m": (np.asarray(placed["translation_m"]) + origin).tolist()}
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
                            path=avatar.file, prim=face_prim,
@@ -773,20 +778,28 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                              written, fit)
 
 
+#: An avatar whose main mesh's centre lies within this many of its sizes from the origin is left where it is
+#: (the bench heads and an avatar at the stage's origin: their answers unchanged to the bit).
+NEAR_ORIGIN = 20.0
+
+
 def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
     """``(avatar, origin[3])``: the avatar with every mesh's rest points (its part's full points, the static
-    meshes) moved by ``-origin``, the local origin of its main mesh (the one with the most shapes, then
-    vertices) as placed in the stage. Offsets do not change with a translation, and the steps then see the
-    coordinates the rig was authored in: an avatar placed 50 m or 500 m from the stage's origin gives the
-    answer it gives at the origin (the float32 noise floor of :func:`usdface.motion.moving_vertices` grows
-    with the coordinates' size: at 500 m it took 0.5 mm motions for float noise, and 26 shapes changed by
-    more than 10 %). An avatar already there (or without a source) is returned as it is."""
+    meshes) moved by ``-origin``, the centre of its main mesh's (the one with the most shapes, then
+    vertices) bounding box: where its points are, whether placed by transforms or baked into the points.
+    Offsets do not change with a translation, and the steps then see coordinates of a head's size: an
+    avatar placed 50 m or 500 m from the stage's origin gives the answer it gives at the origin (the float32
+    noise floor of :func:`usdface.motion.moving_vertices` grows with the coordinates' size: at 500 m it took
+    0.5 mm motions for float noise, and 26 shapes changed by more than 10 %). An avatar already there (its
+    centre within :data:`NEAR_ORIGIN` of its size from the origin, or without a source) is returned as is."""
     rigs = [m for m in avatar.meshes if m.source is not None]
     if not rigs:
         return avatar, np.zeros(3)
     main = max(rigs, key=lambda m: (m.n_shapes, m.n_vertices))
-    origin = np.asarray(main.source.to_internal, dtype=np.float64)[:3, 3].copy()
-    if not np.any(origin):
+    if main.n_vertices == 0:
+        return avatar, np.zeros(3)
+    origin = 0.5 * (main.neutral.min(axis=0) + main.neutral.max(axis=0))
+    if np.all(np.abs(origin) <= NEAR_ORIGIN * float(np.ptp(main.neutral, axis=0).max())):
         return avatar, np.zeros(3)
 
     def moved(m: FaceRig) -> FaceRig:
