@@ -231,3 +231,25 @@ def test_a_misspelt_weight_in_a_frame_is_refused_naming_the_file(sample_capture_
     err = capsys.readouterr().err
     assert f"train/{frame.name}: weight 'jawOpn' is not a template shape" in err
     assert "rename the weight 'jawOpn' to 'jawOpen'" in err and not out.exists()
+
+
+@pytest.mark.parametrize("extra", [{"mouthSmile": 0.0}, {"cheekPuffLeft": 0.1, "cheekPuffRight": 0.1}])
+def test_side_or_combined_weights_in_a_sparse_frame_are_extra_not_misspelt(sample_capture_folder, tmp_path,
+                                                                           extra):
+    """A sparse frame JSON (it lists only some shapes) with a combined or per-side channel the template
+    does not have (``mouthSmile``, ``cheekPuffLeft``): kept as an extra weight with the reader's warning,
+    not refused as a misspelling (a review: the refusal advised renaming mouthSmile to mouthSmileLeft)."""
+    from usdface.cli import main
+
+    folder = tmp_path / "cap"
+    shutil.copytree(sample_capture_folder, folder)
+    frame = sorted(folder.glob("train/*.json"))[3]
+    doc = json.loads(frame.read_text())
+    shapes = {k: v for k, v in doc["blendShapes"].items() if v > 0.05}        # sparse
+    shapes.pop("mouthSmileLeft", None)
+    shapes.pop("cheekPuff", None)
+    doc["blendShapes"] = {**shapes, **extra}
+    frame.write_text(json.dumps(doc))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["capture", "import", str(folder), "-o", str(tmp_path / "c.usda"), "-q"]) == 0

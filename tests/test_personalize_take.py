@@ -242,6 +242,7 @@ def test_a_take_of_one_held_pose_is_refused_before_any_work(samples, tmp_path, c
         err = capsys.readouterr().err
         assert "distinct pose(s)" in err and "too few to tell its shapes apart" in err, err
         assert not out.exists()
+    assert "use a smaller --every: the whole take shows" in err                 # the last: --every
 
 
 def test_a_nan_in_a_usd_takes_points_names_the_point_and_time(samples, tmp_path, capsys):

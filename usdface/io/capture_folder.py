@@ -206,21 +206,27 @@ def read_capture_folder(path) -> Capture:
 
 
 def _refuse_misspelt_weight(root: Path, where: str, weights: dict, index: dict) -> None:
-    """A frame's weight whose name only looks like a template shape (:func:`usdface.arkit.lookalike`:
-    ``jawOpn``, ``STU_jawOpen``) while the frame does not give that shape: the shape's weight in the frame
-    would be read as 0 and its value set aside, so the fit would learn the scan's jaw from the other shapes.
-    Refused, naming the file and the rename."""
-    from ..arkit import lookalike
+    """A frame's weight whose name is a misspelling of a template shape the frame does not give
+    (:func:`usdface.arkit.lookalike`: ``jawOpn``, ``STU_jawOpen``): the shape's weight in the frame would be
+    read as 0 and its value set aside, so the fit would learn the scan's motion from the other shapes.
+    Refused, naming the file and the rename. Not a misspelling: a side or combined form of it (``mouthSmile``
+    for the two ``mouthSmile*``, ``cheekPuffLeft`` beside ``cheekPuff``, a sparse frame that lists neither):
+    those stay extra weights, with the reader's warning (a review)."""
+    from ..arkit import lookalike, spelling_key
+
+    def core(n: str) -> str:
+        return spelling_key(n).replace("left", "").replace("right", "")
 
     for name in weights:
         if name in index:
             continue
         meant = lookalike(name)
-        if meant is not None and meant in index and meant not in weights:
-            raise CaptureError(f"{where}: weight {name!r} is not a template shape, and the frame gives no "
-                               f"{meant!r}, which the template has: misspelt?", path=root,
-                               fix=f"rename the weight {name!r} to {meant!r} in {where} (and in any other "
-                               "frame that spells it so)")
+        if meant is None or meant not in index or meant in weights or core(name) == core(meant):
+            continue
+        raise CaptureError(f"{where}: weight {name!r} is not a template shape, and the frame gives no "
+                           f"{meant!r}, which the template has: misspelt?", path=root,
+                           fix=f"rename the weight {name!r} to {meant!r} in {where} (and in any other "
+                           "frame that spells it so)")
 
 
 def _refuse_misspelt_template(root: Path, unknown, extra_weights) -> None:

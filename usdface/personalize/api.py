@@ -585,13 +585,19 @@ def check_take_poses(capture: Capture, every: int = 1) -> float:
     weights = capture.train.weights[::every]
     poses = distinct_poses(weights)
     if poses < MIN_TAKE_POSES:
-        thinned = f" (every {every}th)" if every > 1 else ""
+        fix = ("record a take that performs the expressions one after another (a range of motion), or give a "
+               "capture of one frame per shape")
+        thinned = ""
+        if every > 1:
+            thinned = f" (every {every} frames)"
+            whole = distinct_poses(capture.train.weights)
+            if whole >= MIN_TAKE_POSES:                     # the take is fine: --every thinned it to nothing
+                fix = (f"use a smaller --every: the whole take shows {whole:.0f} distinct poses in "
+                       f"{len(capture.train)} frames")
         raise FitError(f"the take shows {poses:.1f} distinct pose(s) in {len(weights)} frames{thinned} "
                        "(frames whose weights lie within 0.05 of each other are one pose): too few to tell "
                        "its shapes apart; the fit would give one pose's motion to every shape in it",
-                       path=capture.source or None,
-                       fix="record a take that performs the expressions one after another (a range of "
-                       "motion), or give a capture of one frame per shape")
+                       path=capture.source or None, fix=fix)
     return poses
 
 
