@@ -660,3 +660,19 @@ def test_a_shot_layer_that_retypes_the_avatars_skelroot_is_named(samples, tmp_pa
     stage.GetPrimAtPath("/Hero").ClearTypeName()
     stage.GetRootLayer().Save()
     assert [m.name for m in read_avatar(shot).meshes] == ["Head", "Mouth"]
+
+
+def test_check_names_the_layer_that_retyped_the_skelroot(samples, tmp_path):
+    """``usdface check`` on a shot whose ``def Xform "Hero"`` retypes the referenced avatar's SkelRoot said
+    only 'not under a SkelRoot' (a review); it names the prim, the layers and the fix, as personalize does."""
+    from pxr import Usd
+
+    import usdface
+
+    shot = tmp_path / "shot.usda"
+    stage = Usd.Stage.CreateNew(str(shot))
+    stage.DefinePrim("/Hero", "Xform").GetReferences().AddReference(str(samples / "avatar.usda"), "/Avatar")
+    stage.GetRootLayer().Save()
+    said = [i for i in usdface.check(shot, pixar=False)
+            if i.rule == "SkelBinding" and "SkelRoot" in i.message]
+    assert said and all("/Hero is a SkelRoot in" in i.message and "'over'" in i.fix for i in said), said

@@ -207,8 +207,19 @@ def _skel_binding(stage) -> Iterable[Issue]:
                         "authors skel:blendShapes but SkelBindingAPI is not applied",
                         "apply the API: prepend apiSchemas = [\"SkelBindingAPI\"] (UsdSkel.BindingAPI.Apply)")
         if not UsdSkel.Root.Find(prim):
-            yield Issue(ERROR, "SkelBinding", path, "blend-shape mesh is not under a SkelRoot",
-                        "put the mesh and its Skeleton under a SkelRoot prim")
+            from ..io.usd_rig import _overridden_skel_root
+
+            hidden = _overridden_skel_root([prim])       # a shot layer's def Xform over the asset's SkelRoot
+            if hidden is not None:
+                root, typed, strong = hidden
+                yield Issue(ERROR, "SkelBinding", path,
+                            f"blend-shape mesh is not under a SkelRoot: {root} is a SkelRoot in {typed} but "
+                            f"{strong}, a stronger layer, gives it another type",
+                            f"author {root} in {strong} without a type ('over', or 'def' with no type name), "
+                            "or as 'def SkelRoot'")
+            else:
+                yield Issue(ERROR, "SkelBinding", path, "blend-shape mesh is not under a SkelRoot",
+                            "put the mesh and its Skeleton under a SkelRoot prim")
         if not UsdSkel.BindingAPI(prim).GetInheritedSkeleton():
             yield Issue(ERROR, "SkelBinding", path,
                         "no Skeleton bound (skel:skeleton on the mesh or an ancestor): "
