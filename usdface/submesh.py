@@ -193,13 +193,13 @@ def _part(rig, sub: SubMesh, region: SubMesh | None, copy: np.ndarray, rep: np.n
     full_of = (lambda i: i) if region is None else (lambda i: region.vertices[i])
     c_full, c_local = full_of(np.flatnonzero(copy)), (local[rep[copy]] if rep is not None
                                                       else np.zeros(0, dtype=np.int64))
-    lost = np.zeros(0, dtype=np.int64)                      # earlier copies whose twin is dropped
-    if region is not None and region.copies is not None:
-        before_full, before_local = region.copies
-        kept = local[before_local] >= 0
-        c_full = np.concatenate([c_full, before_full[kept]])
-        c_local = np.concatenate([c_local, local[before_local[kept]]])
-        lost = np.flatnonzero(~kept)
+    none = np.zeros(0, dtype=np.int64)
+    before_full, before_local = region.copies if region is not None and region.copies is not None else (none,
+                                                                                                      none)
+    kept = local[before_local] >= 0                         # earlier copies follow their kept twin ...
+    c_full = np.concatenate([c_full, before_full[kept]])
+    c_local = np.concatenate([c_local, local[before_local[kept]]])
+    lost = np.flatnonzero(~kept)                            # ... or join the residue with it
     copies = (c_full, c_local) if c_full.size else None
     sub = SubMesh(full_of(v), triangles, sub.n if region is None else region.n,
                   sub.points if region is None else region.points, copies)
@@ -214,10 +214,8 @@ def _part(rig, sub: SubMesh, region: SubMesh | None, copy: np.ndarray, rep: np.n
                 out = outside_offsets(rows, rig.deltas[k, rows], [b.offsets[rows] for b in ibs])
             else:
                 rows = np.flatnonzero(dropped)
-                twin = region.copies[1][lost] if lost.size else np.zeros(0, dtype=np.int64)
-                at = np.concatenate([rows, twin])
-                out = outside_offsets(np.concatenate([region.vertices[rows], region.copies[0][lost]
-                                                      if lost.size else np.zeros(0, dtype=np.int64)]),
+                at = np.concatenate([rows, before_local[lost]])
+                out = outside_offsets(np.concatenate([region.vertices[rows], before_full[lost]]),
                                       rig.deltas[k, at], [b.offsets[at] for b in ibs])
                 if source.residue:
                     before = source.residue[k]
@@ -253,14 +251,13 @@ def coincident_vertices(points, deltas, inbetweens=(), *, tolerance: float = WEL
     # thousands of parked vertices costs one pair each, not thousands), then the distinct points within
     # ``eps`` of each other
     rows = np.ascontiguousarray(p).view(np.dtype((np.void, p.dtype.itemsize * 3))).ravel()   # a row's bytes
-    _, first, group = np.unique(rows, return_index=True, return_inverse=True)   # (-0.0 vs 0.0: the k-d tree)
-    group = group.reshape(-1)
-    twin = first[group]
+    _, first_at, group = np.unique(rows, return_index=True, return_inverse=True)   # (-0.0, 0.0: the k-d tree)
+    twin = first_at[group.reshape(-1)]
     same_point = np.flatnonzero(twin != rep)
-    distinct = np.sort(first)
-    near = cKDTree(p[distinct]).query_pairs(max(eps, 1e-300), output_type="ndarray")
-    i = np.concatenate([twin[same_point], distinct[near[:, 0]] if len(near) else np.zeros(0, dtype=np.int64)])
-    j = np.concatenate([same_point, distinct[near[:, 1]] if len(near) else np.zeros(0, dtype=np.int64)])
+    distinct = np.sort(first_at)
+    near = cKDTree(p[distinct]).query_pairs(max(eps, 1e-300), output_type="ndarray")       # [pairs, 2]
+    i = np.concatenate([twin[same_point], distinct[near[:, 0]]])
+    j = np.concatenate([same_point, distinct[near[:, 1]]])
     if not len(i):
         return rep
     same = np.ones(len(i), dtype=bool)
@@ -272,9 +269,9 @@ def coincident_vertices(points, deltas, inbetweens=(), *, tolerance: float = WEL
         return rep
     graph = coo_matrix((np.ones(int(same.sum())), (i[same], j[same])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
-    first = np.full(label.max() + 1, n)
-    np.minimum.at(first, label, np.arange(n))
-    return first[label]
+    lowest = np.full(label.max() + 1, n)
+    np.minimum.at(lowest, label, np.arange(n))
+    return lowest[label]
 
 
 def weld_rig(rig, region: SubMesh | None = None):

@@ -266,17 +266,13 @@ def _on_region(rig: FaceRig, deltas, file):
     if copies is not None:
         at[copies[0]] = copies[1]
     where = at[region.vertices]
-    given = np.zeros(region.n, dtype=bool)
-    given[deltas.vertices] = True
-    if copies is not None:
-        given[copies[0]] = True
+    given = at >= 0                                       # a value is given there (a vertex or a copy)
     given[region.vertices] = False
     outside = np.flatnonzero(given)
     if outside.size:
-        rows = at[outside]
-        moved = np.abs(deltas.values[:, rows]).max() if rows.size else 0.0
-        if moved > 0 and (deltas.base is None or np.abs(np.asarray(deltas.base)[:, outside]
-                                                         - deltas.values[:, rows]).max() > 0):
+        there = deltas.values[:, at[outside]]
+        base = None if deltas.base is None else np.asarray(deltas.base)[:, outside]
+        if np.abs(there).max() > 0 and (base is None or np.abs(base - there).max() > 0):
             raise GeometryError(f"sparse offsets for {rig.source.prim} move vertices the rig does not hold",
                                 path=file, prim=rig.source.prim,
                                 fix="give offsets on the rig's region (rig.source.region.vertices)")
@@ -299,9 +295,8 @@ def _shape_support(rig: FaceRig, k: int, deltas) -> tuple:
     if region is None:
         if isinstance(deltas, SparseOffsets):
             new = rig.deltas[k].copy()
-            new[deltas.vertices] = deltas.values[k]
-            if deltas.copies is not None:                  # a welded part's copies: their twin's values
-                new[deltas.copies[0]] = deltas.values[k][deltas.copies[1]]
+            at, values = deltas.shape_row(k)               # a welded part's copies with their twin's values
+            new[at] = values
         else:
             new = deltas[k]
         return None, new, rig.deltas[k], [ib.offsets for ib in ibs]

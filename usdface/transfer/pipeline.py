@@ -606,8 +606,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                      path=capture.source or None, avatar_peak=face_peak,
                                      avatar_mesh=f"{face_prim} of {Path(avatar.file).name}")
         timings["register"] = time.perf_counter() - t
-        report["registration"] = registration.as_dict()        # in the avatar's frame, as read
-        report["registration"]["translation_m"] = (registration.transform.translation + origin).tolist()
+        report["registration"] = _in_stage(registration.as_dict(), origin)
         sim = registration.transform
         advance("register")
         advance.start("correspond")
@@ -620,9 +619,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                avatar_peak=face_peak)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         placed = report["correspondence"].get("template_registration")
-        if isinstance(placed, dict) and "translation_m" in placed:          # reported in the stage's frame
-            report["correspondence"]["template_registration"] = {
-                **placed, "translation_m": (np.asarray(placed["translation_m"]) + origin).tolist()}
+        if isinstance(placed, dict) and "translation_m" in placed:
+            report["correspondence"]["template_registration"] = _in_stage(placed, origin)
         if not corr.face.any():
             raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
                            path=avatar.file, prim=face_prim,
@@ -781,6 +779,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 #: An avatar whose main mesh's centre lies within this many of its sizes from the origin is left where it is
 #: (the bench heads and an avatar at the stage's origin: their answers unchanged to the bit).
 NEAR_ORIGIN = 20.0
+
+
+def _in_stage(similarity: dict, origin) -> dict:
+    """A similarity's record (``translation_m`` among its keys) found on the avatar moved by ``-origin``
+    (:func:`near_origin`), as it places the capture in the stage's frame."""
+    return {**similarity, "translation_m": (np.asarray(similarity["translation_m"]) + origin).tolist()}
 
 
 def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
@@ -1205,12 +1209,12 @@ def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list
             sq[k] = np.einsum("nc,nc->n", d, d)
         n_full = regions[key].n if regions and key in regions else m.n_vertices
         # a welded part's vertex stands for itself and its copies (written with its offsets)
-        count = (1.0 + np.bincount(copies[1], minlength=sq.shape[1]) if copies is not None
-                 else np.ones(sq.shape[1]))
+        count = (1 + np.bincount(copies[1], minlength=sq.shape[1]) if copies is not None
+                 else np.ones(sq.shape[1], dtype=np.int64))
         peak = np.sqrt(sq.max(axis=1)) if sq.shape[1] else np.zeros(len(sq))
         rms = np.sqrt(sq @ count / max(n_full, 1))
-        moved = (sq > 1e-18).astype(np.float64) @ count
+        moved = (sq > 1e-18) @ count
         for k, n in enumerate(m.names):
             rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
-                         "rms_change_m": float(rms[k]), "moved_vertices": int(round(moved[k]))})
+                         "rms_change_m": float(rms[k]), "moved_vertices": int(moved[k])})
     return rows
