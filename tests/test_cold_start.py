@@ -74,3 +74,45 @@ def test_personalize_skips_the_stacks_it_does_not_use():
     found = _heavy_modules(["personalize", str(avatar), str(capture), "--dry-run", "-q"],
                            PERSONALIZE_UNUSED + used)
     assert found == sorted(used)
+
+
+_HUGEPAGE_PROBE = """
+import os, sys
+sys.argv = ["usdface", "--version"]
+from usdface.cli import main
+try:
+    main()
+except SystemExit:
+    pass
+import numpy
+from numpy._core.multiarray import _set_madvise_hugepage
+print(os.environ.get("NUMPY_MADVISE_HUGEPAGE"), _set_madvise_hugepage(True))
+"""
+
+
+@pytest.mark.parametrize(("preset", "expected"), [(None, "0 False"), ("1", "1 True")])
+def test_the_program_asks_numpy_for_no_huge_pages_unless_the_user_chose(preset, expected):
+    """The ``usdface`` program's own process turns numpy's huge-page ``madvise`` off before numpy is
+    imported (direct-compaction stalls: a fresh 100 MB array 1.43 s instead of 0.09 s on this machine
+    class, docs/scale.md); a user's own ``NUMPY_MADVISE_HUGEPAGE`` is kept, and a host application calling
+    ``main(argv)`` is left alone."""
+    import os
+
+    pytest.importorskip("numpy._core.multiarray")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    if preset is not None:
+        env["NUMPY_MADVISE_HUGEPAGE"] = preset
+    out = subprocess.run([sys.executable, "-c", _HUGEPAGE_PROBE], capture_output=True, text=True, check=True,
+                         cwd=ROOT, env=env).stdout
+    assert out.strip().splitlines()[-1] == expected
+
+
+def test_a_host_calling_main_keeps_its_numpy_settings(monkeypatch):
+    import os
+
+    from usdface.cli import main
+
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert "NUMPY_MADVISE_HUGEPAGE" not in os.environ

@@ -90,6 +90,8 @@ def main(argv=None) -> int:
     import signal
     import threading
 
+    if argv is None:
+        _program_environment()
     previous = None
     if argv is None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
@@ -101,6 +103,19 @@ def main(argv=None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _program_environment() -> None:
+    """Settings for the ``usdface`` program's own process (and the batch workers it starts), before numpy
+    is imported; a host application calling :func:`main` keeps its own.
+
+    numpy asks the kernel for transparent huge pages for every array of 4 MB or more (``madvise``). Where
+    the kernel's THP ``defrag`` setting is ``madvise`` (this machine class), each such page fault may stall
+    in direct memory compaction once memory is fragmented: a fresh 100 MB array took 1.43 s instead of
+    0.09 s, and the field that carries the person's motion onto a 300k-vertex body mesh 2.7 s instead of
+    0.4 s (docs/scale.md). The program opts out (``NUMPY_MADVISE_HUGEPAGE=0``, numpy's own switch) unless
+    the user set it."""
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str | None):
