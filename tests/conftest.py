@@ -7,6 +7,10 @@ from pathlib import Path
 
 import pytest
 
+# as the usdface program does for itself (usdface.cli._program_environment, docs/scale.md): numpy's
+# transparent-huge-page madvise stalls in memory compaction on this machine class; read when numpy is imported
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))
 SAMPLES = ROOT / "sample_assets"
