@@ -138,6 +138,22 @@ def test_inspect_summarises_a_live_link_csv(tmp_path, capsys):
     assert main(["inspect", str(path)]) == 0
     out = capsys.readouterr().out
     assert "take.csv: take" in out and "4 frames" in out and "never above 0.5 (51)" in out
+    # Live Link's capitalised columns are its convention, one line (they were 52 "renamed (spelling)")
+    assert "capitalised ARKit names (Live Link Face's columns): 52 (" in out and "renamed" not in out
+
+
+def test_inspect_lists_a_real_rename_beside_live_links_capitalised_columns(tmp_path, capsys):
+    names = [n if n != "jawOpen" else "jaw_open" for n in LL_ORDER]
+    header = ["Timecode", "BlendShapeCount"] + [livelink_name(n) if n != "jaw_open" else n for n in names]
+    rows = [[f"10:00:00:0{i}.000", 61] + ["0.5" if (i + k) % 7 == 0 else "0" for k in range(52)]
+            for i in range(6)]
+    path = tmp_path / "take.csv"
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows([header] + rows)
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "capitalised ARKit names (Live Link Face's columns): 51 (" in out
+    assert "renamed (1): jaw_open -> jawOpen" in out
 
 
 def test_a_take_cut_off_mid_row_keeps_its_complete_rows(tmp_path):

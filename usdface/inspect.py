@@ -326,8 +326,17 @@ def _arkit_lines(a: dict, renamed: bool = True) -> list[str]:
     if a["misspelt"]:
         lines.append(_names_line("misspelt?", [f"{k} -> {v}" for k, v in a["misspelt"].items()]))
     if a["renamed"] and renamed:
-        lines.append(_names_line("renamed", [f"{r['given']} -> {r['canonical']} ({r['how']})"
-                                             for r in a["renamed"]], 6))
+        # Live Link Face's CSV columns are the ARKit names capitalised (EyeBlinkLeft): its convention, one
+        # line, not 52 "renamed (spelling)" entries; any other inexact mapping is listed
+        livelink = [r for r in a["renamed"] if r["given"] == arkit.livelink_name(r["canonical"])]
+        others = [r for r in a["renamed"] if r not in livelink]
+        if livelink:
+            r = livelink[0]
+            lines.append(f"    capitalised ARKit names (Live Link Face's columns): {len(livelink)} "
+                         f"({r['given']} is {r['canonical']})")
+        if others:
+            lines.append(_names_line("renamed", [f"{r['given']} -> {r['canonical']} ({r['how']})"
+                                                 for r in others], 6))
     return lines
 
 
