@@ -184,3 +184,34 @@ def test_a_failed_file_write_names_the_output_not_the_temporary_file(tmp_path):
             raise OSError(errno.EDQUOT, "Disk quota exceeded", str(tmp))
     assert info.value.filename == str(out)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_usd_save_publishes_nothing_and_keeps_the_existing_output(samples, tmp_path, monkeypatch,
+                                                                             capsys):
+    """A full disk: USD's save fails after writing part of the .usda. It was published as the output with
+    exit 0 (`--force` replaced a good layer by a file USD cannot parse; a user trial, 300 KB tmpfs): the
+    failure is an error now, the old output stays, no temporary file is left."""
+    from pathlib import Path
+
+    from usdface.cli import main
+    from usdface.io import layers
+
+    real = layers._usd_call
+
+    def full_disk(fn, *args, **kwargs):
+        if getattr(fn, "__name__", "") == "Save":
+            Path(fn.__self__.realPath).write_text("#usda 1.0\n(\n    customLayerData = {\n")   # cut off
+            return False
+        return real(fn, *args, **kwargs)
+
+    out = tmp_path / "out" / "avatar.usda"
+    args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out), "-q"]
+    assert main(args) == 0
+    good = out.read_bytes()
+    monkeypatch.setattr(layers, "_usd_call", full_disk)
+    assert main(args + ["--force"]) == 2
+    assert "could not write the layer" in capsys.readouterr().err
+    assert out.read_bytes() == good
+    assert sorted(p.name for p in out.parent.iterdir()) == ["avatar.usda"]
+    assert main(args[:3] + ["-o", str(tmp_path / "new.usda"), "-q"]) == 2
+    assert not (tmp_path / "new.usda").exists()

@@ -107,8 +107,11 @@ def atomic_save(layer, path, force: bool = False) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = _temp_path(path)
         if layer.realPath and Path(layer.realPath).parent == path.parent and not layer.anonymous:
-            if not _usd_call(layer.Save, force=True) and not Path(layer.realPath).exists():
-                raise InputFileError("USD could not write the layer", path=path, fix="check disk space")
+            # a failed save leaves a partial file (a full disk: a .usda cut off mid-value): never published
+            if not _usd_call(layer.Save, force=True):
+                raise InputFileError("USD could not write the layer (is the disk full?)", path=path,
+                                     fix="free disk space or write the output elsewhere (-o); an existing "
+                                         "output was left as it was")
             publish(layer.realPath, path, force)
         else:
             if not _usd_call(layer.Export, str(tmp)):
