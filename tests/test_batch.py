@@ -81,6 +81,26 @@ def test_an_output_a_failed_item_left_is_set_aside_and_the_item_retried(tmp_path
     assert [r.status for r in again.results] == [SKIPPED, FAILED]           # retried, not skipped
 
 
+def raced_worker(item: dict) -> None:
+    """Another batch of the same manifest writes the output first; this one's exclusive write is refused."""
+    from usdface.errors import OutputExistsError
+
+    Path(item["output"]).write_text("the other run's layer")
+    raise OutputExistsError("output exists (written by another process meanwhile)", path=item["output"])
+
+
+def test_an_output_another_run_wrote_meanwhile_is_left_in_place(tmp_path):
+    """The same manifest run twice at once: the run that lost the race moved the winner's finished outputs to
+    <output>.failed, so both runs' outputs were gone (a user trial). Refused as existing, the output is
+    the other run's: it stays where it is."""
+    items = read_manifest(_manifest(tmp_path, ["a"]))
+    report = run_batch(items, worker=raced_worker, jobs=1, progress=False)
+    out = Path(items[0].output)
+    assert [r.status for r in report.results] == [FAILED]
+    assert out.read_text() == "the other run's layer"
+    assert not out.with_name(out.name + ".failed").exists() and "moved to" not in report.results[0].error
+
+
 def test_failure_isolation_report_and_resume(tmp_path):
     items = read_manifest(_manifest(tmp_path, ["a", "bad1", "b", "c"]))
     report = run_batch(items, worker=stub_worker, jobs=1, progress=False)
@@ -237,8 +257,8 @@ def _usdface_layer(path: Path, inputs, digests) -> None:
 def test_resume_skips_only_the_items_own_results(tmp_path):
     """An existing output counted as finished even when it was written from another avatar or from inputs
     changed since (the row was edited, the capture re-recorded): such an item fails with the reason and the
-    --force hint instead of being reported 'skipped'; a non-layer output is still skipped, and so is every
-    output of a studio's own worker (it may prepare its own inputs)."""
+    --force hint instead of being reported 'skipped'; so does a layer USD cannot read (cut off by a full
+    disk); every output of a studio's own worker is still skipped (it may prepare its own inputs)."""
     from usdface.io.layers import file_digest
 
     for n in ("a", "b", "c"):
@@ -253,12 +273,15 @@ def test_resume_skips_only_the_items_own_results(tmp_path):
                    [d["a"], file_digest(tmp_path / "b_capture")])                 # written from a's avatar
     _usdface_layer(tmp_path / "out" / "c.usda", ["../c.usdc", "../c_capture"],
                    [d["c"], "0" * 64])                                            # its capture changed since
-    (tmp_path / "out" / "d.usda").write_text("not a layer")                      # a studio worker's output
+    # a layer cut off mid-write (a full disk): resume took it as finished (a user trial)
+    whole = (tmp_path / "out" / "a.usda").read_text()
+    (tmp_path / "out" / "d.usda").write_text(whole[:len(whole) // 2])
     from usdface.pipeline.batch import personalize_worker
 
     report = run_batch(read_manifest(manifest), worker=personalize_worker, jobs=1, progress=False)
-    assert [r.status for r in report.results] == [SKIPPED, FAILED, FAILED, SKIPPED]   # nothing ran
-    b, c = report.results[1], report.results[2]
+    assert [r.status for r in report.results] == [SKIPPED, FAILED, FAILED, FAILED]   # nothing ran
+    b, c, d = report.results[1:]
+    assert d.error_type == "StaleOutput" and "USD cannot read it" in d.error and "--force" in d.error
     assert b.error_type == "StaleOutput" and "another avatar" in b.error and "--force" in b.error
     assert "capture" in c.error and "changed after it was written" in c.error
     assert Path(tmp_path / "out" / "b.usda").read_text() != ""                    # nothing was overwritten

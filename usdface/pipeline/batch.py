@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..errors import InputFileError
+from ..errors import InputFileError, OutputExistsError
 
 REQUIRED = ("avatar", "capture", "output")
 DONE, SKIPPED, FAILED = "done", "skipped", "failed"
@@ -250,13 +250,23 @@ def stale_output(item: BatchItem) -> str:
     """Why an existing ``item.output`` is not this item's finished result ("" if it is, or if it cannot
     tell): a usdface layer records its inputs and their sha256 (``customLayerData["usdface"]``); one written
     from another avatar or capture than the row names, or from files changed since, is not a finished item
-    that resume may skip. Outputs that are not usdface layers (a studio worker's) are taken as finished."""
+    that resume may skip, and neither is a file USD cannot read (cut off). Other outputs that are not
+    usdface layers (a studio worker's) are taken as finished."""
     out = Path(item.output)
     if out.suffix.lower() not in (".usd", ".usda", ".usdc") or not out.is_file():
         return ""
+    from pxr import Sdf
+
     from ..io.layers import input_changed, recorded_inputs
     from ..io.usd_rig import usdface_output_provenance
 
+    try:                                          # a layer cut off (a full disk, a killed copy) is no result
+        readable = Sdf.Layer.FindOrOpen(str(out)) is not None
+    except Exception:  # noqa: BLE001  (pxr.Tf.ErrorException: USD's parse error)
+        readable = False
+    if not readable:
+        return (f"{out.name} exists but USD cannot read it (a write cut off?): not a finished result; "
+                "--force redoes it")
     record = usdface_output_provenance(out)       # read once: the inputs and the options it records
     if record is None:
         return ""
@@ -375,7 +385,9 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
         if isinstance(exc, KeyboardInterrupt):
             raise
         error = str(exc)
-        if not existed and out.exists():     # a worker that wrote its output, then failed: not a result
+        # a worker that wrote its output, then failed: not a result. An output refused as existing was
+        # written by someone else meanwhile (the same manifest run twice at once): theirs, left in place
+        if not existed and out.exists() and not isinstance(exc, OutputExistsError):
             error += f" (its output was written before the failure: moved to {_set_aside(out).name})"
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
