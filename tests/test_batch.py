@@ -224,6 +224,31 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     assert "must end in .json" in capsys.readouterr().err and not (tmp_path / "r.txt").exists()
 
 
+def test_a_report_folder_that_refuses_writes_stops_the_batch_before_any_item(tmp_path, capsys, monkeypatch):
+    """A manifest on a read-only file system: every item ran, then the report could not be written (no
+    machine-readable result after hours of work; a user trial). The report's folder is probed first."""
+    import errno
+    import tempfile
+
+    manifest = _manifest(tmp_path, ["a"])
+    real = tempfile.TemporaryFile
+
+    def read_only(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir) == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    assert main(["batch", str(manifest), "-j", "1", "--worker", f"{__name__}:stub_worker"]) == 2
+    err = capsys.readouterr().err
+    assert "batch report cannot be written in" in err and "Read-only file system" in err and "--report" in err
+    assert not any((tmp_path / "out").iterdir())                       # no item ran
+    (tmp_path / "elsewhere").mkdir()                                    # the fix the message names works
+    report = tmp_path / "elsewhere" / "r.json"
+    assert main(["batch", str(manifest), "-j", "1", "--worker", f"{__name__}:stub_worker", "--report",
+                 str(report)]) == 0 and json.loads(report.read_text())["done"] == 1
+
+
 @pytest.mark.shared
 def test_real_personalize_worker_isolates_real_errors(tmp_path, bench):
     """The default worker goes through usdface.api.personalize_avatar: real input errors fail their item

@@ -248,6 +248,25 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     return path
 
 
+def check_writable(path, *, what: str = "output", fix: str = "choose a folder you can write to") -> Path:
+    """Refuse (InputFileError, before any work) an output file whose folder - or its nearest existing
+    ancestor, where the write would create it - cannot be written: a read-only file system or folder. Probed
+    by creating and removing a temporary file there (permission bits do not tell a read-only mount)."""
+    import tempfile
+
+    path = Path(path)
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise InputFileError(f"{what} cannot be written in {parent}: {exc.strerror or exc}", path=path,
+                             fix=fix) from None
+    return path
+
+
 def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "output folder") -> Path:
     """Validate an output folder before any work; returns it as a Path.
 
