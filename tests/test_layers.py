@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 
 import numpy as np
 import pytest
@@ -424,3 +425,22 @@ def test_provenance_inputs_are_recorded_relative_to_the_layer(rig_file, tmp_path
     monkeypatch.chdir(tmp_path)
     issues = [i for i in check(Usd.Stage.Open(str(out))) if i.rule == "Provenance"]
     assert not [i for i in issues if "not reachable" in i.message or i.severity != "info"], issues
+
+
+def test_the_input_path_is_relative_inside_a_project_and_absolute_across_the_root():
+    """A publish whose avatar lies on another mount (only the root in common) was written with
+    ``../../../../../work/...``: copied to a folder of another depth it no longer composed (a user trial).
+    Relative when the two share a folder below the root (a project moved as a whole keeps composing),
+    absolute otherwise."""
+    from pathlib import PurePosixPath
+
+    from usdface.io.layers import _relative_asset_path
+
+    if os.name != "posix":
+        pytest.skip("POSIX paths")
+    assert _relative_asset_path(PurePosixPath("/work/lib/hero.usdc"), PurePosixPath("/tmp/pub")) \
+        == "/work/lib/hero.usdc"
+    assert _relative_asset_path(PurePosixPath("/proj/lib/hero.usdc"), PurePosixPath("/proj/pub/v1")) \
+        == "../../lib/hero.usdc"
+    assert _relative_asset_path(PurePosixPath("/proj/pub/hero.usdc"), PurePosixPath("/proj/pub")) \
+        == "./hero.usdc"

@@ -139,10 +139,19 @@ def _usd_call(fn, *args, **kwargs):
 
 
 def _relative_asset_path(target: Path, start_dir: Path) -> str:
+    """The layer's path to its input ``target`` from the output's folder ``start_dir``: relative when the two
+    share a folder below the file system's root (a project moved or copied as a whole keeps composing),
+    absolute when their only common folder is the root or another drive (an avatar library on another
+    mount: ``../../../../work/lib/hero.usdc`` broke as soon as the publish was copied to a folder of
+    another depth, a user trial)."""
+    target, start_dir = Path(target).absolute(), Path(start_dir).absolute()
     try:
-        rel = os.path.relpath(Path(target).absolute(), Path(start_dir).absolute())
+        common = Path(os.path.commonpath([target, start_dir]))
+        rel = os.path.relpath(target, start_dir)
     except ValueError:  # different drives (Windows)
-        return Path(target).absolute().as_posix()
+        return target.as_posix()
+    if common == Path(common.anchor):
+        return target.as_posix()
     rel = Path(rel).as_posix()
     return rel if rel.startswith(".") else f"./{rel}"
 
