@@ -224,6 +224,35 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     assert "must end in .json" in capsys.readouterr().err and not (tmp_path / "r.txt").exists()
 
 
+def warning_worker(item: dict):
+    """Writes ``output`` and warns (a capture with repeated frames), and returns a result whose report
+    holds a note of its own (as :func:`usdface.api.personalize_avatar`'s does)."""
+    import types
+    import warnings
+
+    stub_worker(item)
+    warnings.warn(f"23 training frame(s) of {Path(item['capture']).name} repeat another frame", UserWarning,
+                  stacklevel=2)
+    return types.SimpleNamespace(report={"warnings": ["the capture barely shows: jawLeft"]})
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_an_items_warnings_name_it_and_reach_the_report(tmp_path, capsys, jobs):
+    """A batch's warnings went to stdout in-process (-j 1) or as raw Python warnings with a source line
+    from the pool (-j 2), naming no item, and the report had none (a user trial)."""
+    manifest = _manifest(tmp_path, ["a", "b"])
+    assert main(["batch", str(manifest), "-j", jobs, "-q", "--worker", f"{__name__}:warning_worker"]) == 0
+    out, err = capsys.readouterr()
+    assert "repeat another frame" not in out
+    for name in ("a", "b"):
+        assert f"warning: {name}.usda: 23 training frame(s) of {name}_capture repeat another frame" in err
+        assert f"warning: {name}.usda: the capture barely shows: jawLeft" in err
+    items = json.loads((tmp_path / "people.report.json").read_text())["items"]
+    assert [it["warnings"] for it in items] == [[f"23 training frame(s) of {n}_capture repeat another frame",
+                                                 "the capture barely shows: jawLeft"] for n in ("a", "b")]
+    assert "UserWarning" not in err and "warnings.warn" not in err
+
+
 def test_a_report_folder_that_refuses_writes_stops_the_batch_before_any_item(tmp_path, capsys, monkeypatch):
     """A manifest on a read-only file system: every item ran, then the report could not be written (no
     machine-readable result after hours of work; a user trial). The report's folder is probed first."""

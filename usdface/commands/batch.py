@@ -3,6 +3,7 @@ write a report, resume."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from .options import add_quiet, positive_int
@@ -49,6 +50,9 @@ def run(args) -> int:
     report = api.personalize_batch(args.manifest, jobs=args.jobs, scheduler=args.scheduler,
                                    worker=args.worker, options=dict(args.options), force=args.force,
                                    report_path=args.report)
+    for res in report.results:                # each item's warnings, naming it (stderr, like a command's)
+        for note in res.warnings:
+            print(f"warning: {Path(res.output).name}: {note}", file=sys.stderr)
     for res in report.failed:
         print(f"FAILED {res.output}: {res.error_type}: {res.error}")
     print(report.summary())

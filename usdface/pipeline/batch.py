@@ -66,6 +66,7 @@ class ItemResult:
     error: str = ""
     error_type: str = ""
     traceback: str = ""
+    warnings: list = field(default_factory=list)   # what the item warned about (:func:`run_item`)
 
 
 @dataclass
@@ -346,14 +347,15 @@ def _same_value(a, b) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- workers
-def personalize_worker(item: dict) -> None:
+def personalize_worker(item: dict):
     """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's;
-    item options such as ``method`` or ``inspect`` pass through)."""
+    item options such as ``method`` or ``inspect`` pass through); returns its result (the report's
+    ``warnings`` go to the item's)."""
     from ..api import personalize_avatar
 
     options = dict(item.get("options") or {})
     options.setdefault("force", bool(item.get("force", False)))
-    personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
+    return personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
 
 
 def load_worker(spec: str) -> Callable[[dict], object]:
@@ -379,11 +381,24 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
     out = Path(item["output"])
     existed = out.exists()
-    try:
-        worker(item)
-    except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
+    import warnings as _warnings
+
+    # the item's warnings go to its result (the report, and the batch's own lines naming the item), not to
+    # the worker's stdout/stderr unattributed
+    with _warnings.catch_warnings(record=True) as caught:
+        _warnings.simplefilter("always")
+        try:
+            value = worker(item)
+        except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported)
+            value = exc
+    notes = list(dict.fromkeys(str(w.message) for w in caught))
+    notes += [n for n in dict.fromkeys((getattr(value, "report", None) or {}).get("warnings", []))
+              if isinstance(n, str) and n not in notes]            # a personalize result's own notes
+    base["warnings"] = notes
+    if isinstance(value, BaseException):
+        exc = value
         if isinstance(exc, KeyboardInterrupt):
-            raise
+            raise exc
         error = str(exc)
         # a worker that wrote its output, then failed: not a result. An output refused as existing was
         # written by someone else meanwhile (the same manifest run twice at once): theirs, left in place
@@ -391,7 +406,7 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
             error += f" (its output was written before the failure: moved to {_set_aside(out).name})"
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
-                    traceback=traceback.format_exc())
+                    traceback="".join(traceback.format_exception(exc)))
     return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu)
 
 
