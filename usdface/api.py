@@ -542,6 +542,11 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .transfer import personalize_avatar as _personalize
 
     refuse_usdface_output(avatar_path)
+    # an option personalize does not take (a typo) is named as such before any work, as batch does (it was
+    # a fit error listing the method's options, after reading the inputs; a user trial); the pipeline's
+    # own keyword arguments (a given rig, the provenance's command) are not the user's options
+    check_personalize_options(**{k: v for k, v in options.items()
+                                 if k not in ("command", "rig", "layer_edit", "fit_options")})
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, take=take, **options))
     if out_path is not None and not options.get("dry_run"):
