@@ -545,11 +545,14 @@ def _relative_to_layer(path, out_path: Path) -> str:
     the same symlinks as the layer's sublayer path (:func:`_relative_asset_path`): an avatar read as
     ``lib/latest/hero.usda`` is recorded so, and a ``latest`` link moved to another version is an input that
     changed (its digest is checked where the link points now), not an unchanged ``v003``."""
-    target = Path(path).absolute()
+    target, folder = Path(path).absolute(), Path(out_path).absolute().parent
     try:
-        return Path(os.path.relpath(target, Path(out_path).absolute().parent)).as_posix()
+        common = Path(os.path.commonpath([target, folder]))
+        rel = Path(os.path.relpath(target, folder)).as_posix()
     except ValueError:  # another drive
         return target.as_posix()
+    # as the sublayer's path (:func:`_relative_asset_path`): absolute when only the root is in common
+    return target.as_posix() if common == Path(common.anchor) else rel
 
 
 def recorded_inputs(layer_path, record: dict | None = None) -> dict[str, str] | None:
