@@ -392,8 +392,10 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
         except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported)
             value = exc
     notes = list(dict.fromkeys(str(w.message) for w in caught))
-    notes += [n for n in dict.fromkeys((getattr(value, "report", None) or {}).get("warnings", []))
-              if isinstance(n, str) and n not in notes]            # a personalize result's own notes
+    report = getattr(value, "report", None)                       # a personalize result's own notes
+    own = report.get("warnings") if isinstance(report, dict) else None
+    notes += [n for n in dict.fromkeys(own if isinstance(own, list | tuple) else ())
+              if isinstance(n, str) and n not in notes]
     base["warnings"] = notes
     if isinstance(value, BaseException):
         exc = value
