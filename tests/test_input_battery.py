@@ -361,7 +361,7 @@ def test_an_avatar_under_an_instanceable_prim_is_refused(samples, tmp_path, caps
     assert "instanceable prim /Hero" in err and "instanceable = false" in err
     assert not out.exists()
     if command == "personalize":                    # a dry run reports what a real run would refuse
-        assert main([command, *args, "-o", str(out), "--dry-run", "-q"]) == 0
+        assert main([command, *args, "-o", str(out), "--dry-run", "-q"]) == 1      # a preflight's answer
         said = capsys.readouterr()
         assert "a real run would refuse" in said.out + said.err
 

@@ -195,3 +195,18 @@ def test_correspondence_cache_extended_for_the_dt_modes_is_not_another_avatars(s
     assert "cache: extended" in said.out and "another avatar" not in said.out + said.err
     assert main([*base, "--json", "--face-transfer", "dt", "--approximation", "generic"]) == 0
     assert json.loads(capsys.readouterr().out)["correspondence"]["cache"] == "hit"
+
+
+def test_a_dry_run_answers_whether_a_real_run_would_write(samples, tmp_path, capsys):
+    """A preflight: ``--dry-run`` onto an existing output did the work and exited 0 although a real run
+    would refuse (a user trial). Exit status 1 then (text and JSON), 0 when a real run would write."""
+    out = tmp_path / "p.usda"
+    base = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out),
+            "--dry-run", "-q", "--correspondence", str(tmp_path / "c.npz")]
+    assert main(base) == 0 and "would write" in capsys.readouterr().out
+    out.write_text("#usda 1.0\n")
+    assert main(base) == 1
+    assert "a real run would refuse to write" in capsys.readouterr().out
+    assert main([*base, "--json"]) == 1
+    assert "exists" in json.loads(capsys.readouterr().out)["output_refused"]
+    assert main([*base, "--force"]) == 0

@@ -91,7 +91,9 @@ def register(subparsers) -> None:
                    help="prim name or path of the face mesh (default: the mesh the capture's shapes "
                         "move most)")
     p.add_argument("--dry-run", action="store_true",
-                   help="compute and print what would change; write nothing")
+                   help="compute and print what would change; write nothing (exit status 1 when a real "
+                        "run would refuse to write: an existing output without --force, an instanced "
+                        "avatar)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--inspect", action="store_true",
                    help="also write inspection data for usdview into the layer: a displayColor heat map of "
@@ -145,6 +147,8 @@ def run(args) -> int:
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
                                 **transfer_kwargs(args), **({"pins": args.pins} if args.pins else {}))
     rep = result.report
+    # a dry run says whether a real run would write: exit status 1 when it would refuse (a preflight)
+    refusal = refusal or rep.pop("would_refuse", None)
     if args.json:
         doc = {"ok": True, "output": json_path(result.out_path)}
         doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
@@ -154,7 +158,7 @@ def run(args) -> int:
             doc["output_refused"] = refusal
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
-        return 0
+        return 1 if args.dry_run and refusal else 0
     import numpy as np
 
     reg = rep["registration"]
@@ -214,4 +218,4 @@ def run(args) -> int:
         print(f"review page: {page} ({page.stat().st_size / 1e6:.1f} MB)")
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
-    return 0
+    return 1 if args.dry_run and refusal else 0

@@ -514,6 +514,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 if not dry_run:
                     raise
                 report["warnings"].append(f"a real run would refuse: {exc.message} (fix: {exc.fix})")
+                report["would_refuse"] = f"{exc.message} (fix: {exc.fix})"
         # every step works on the part of each mesh its shapes move; scattered back at the end (write)
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
