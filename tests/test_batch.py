@@ -564,3 +564,17 @@ def test_every_on_a_capture_is_refused_before_any_item_runs(tmp_path):
         personalize_batch(path, jobs=1)
     assert "m.csv" in str(err.value)
     assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
+
+
+def test_cli_batch_json_is_the_report_on_stdout(tmp_path, capsys):
+    """``batch --json``: the report as one JSON document on stdout (a pipeline parses it), the same as the
+    report file plus ``ok`` and ``report_path``; a usage error is JSON too."""
+    manifest = _manifest(tmp_path, ["a", "bad"])
+    assert main(["batch", str(manifest), "-j", "1", "--json", "--worker", f"{__name__}:stub_worker"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    written = json.loads((tmp_path / "people.report.json").read_text())
+    assert doc["ok"] is False and doc["report_path"] == str(tmp_path / "people.report.json")
+    assert {k: v for k, v in doc.items() if k not in ("ok", "report_path")} == written
+    assert [it["status"] for it in doc["items"]] == [DONE, FAILED]
+    assert main(["batch", str(tmp_path / "missing.csv"), "--json"]) == 2
+    assert json.loads(capsys.readouterr().out)["ok"] is False

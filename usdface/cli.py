@@ -23,7 +23,7 @@ COMMAND_MODULES = (
 
 
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
-JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check")
+JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch")
 _argv: list[str] = []  # the arguments being parsed, for _Parser.error
 
 

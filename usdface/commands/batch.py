@@ -40,6 +40,9 @@ def register(subparsers) -> None:
     p.add_argument("--worker", metavar="MODULE:FUNCTION",
                    help="run this function on each item instead of personalize (a studio's own step); it "
                         "gets the item dict and must write item['output']")
+    p.add_argument("--json", action="store_true",
+                   help="print the report (as written to --report) as JSON on stdout, with ok and "
+                        "report_path; warnings stay on stderr")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -53,6 +56,12 @@ def run(args) -> int:
     for res in report.results:                # each item's warnings, naming it (stderr, like a command's)
         for note in res.warnings:
             print(f"warning: {Path(res.output).name}: {note}", file=sys.stderr)
+    if args.json:                             # the report itself: one document on stdout
+        import json
+
+        doc = {"ok": not report.failed, "report_path": str(report.report_path), **report.to_dict()}
+        print(json.dumps(doc, indent=1, default=str))
+        return 1 if report.failed else 0
     for res in report.failed:
         print(f"FAILED {res.output}: {res.error_type}: {res.error}")
     print(report.summary())
