@@ -71,6 +71,29 @@ def test_plain_lines_name_each_running_step_and_its_end(capsys):
     assert capsys.readouterr().out == ""
 
 
+def test_a_host_application_gets_the_lines_in_its_own_log(capsys, caplog, monkeypatch):
+    """A host application (a DCC, a farm job) wants progress in its log, not on its stderr (a user trial:
+    no logging integration): :func:`usdface.progress.set_logger`; ``None`` goes back to stderr."""
+    import logging
+
+    monkeypatch.setenv("USDFACE_PROGRESS", "bar")          # the logger wins over a terminal's bar
+    logger = logging.getLogger("studio.usdface")
+    progress.set_logger(logger)
+    try:
+        with caplog.at_level(logging.INFO, logger="studio.usdface"), progress.steps("job", 2) as p:
+            p.start("first")
+            p.start("second")
+    finally:
+        progress.set_logger(None)
+    lines = [r.getMessage() for r in caplog.records if r.name == "studio.usdface"]
+    assert lines[0] == "job [1/2] first ... (t+0.0 s)" and lines[-1].startswith("job done in ")
+    assert capsys.readouterr().err == ""
+    monkeypatch.delenv("USDFACE_PROGRESS")
+    with progress.steps("job", 1) as p:
+        p.start("again")
+    assert progress_lines(capsys.readouterr().err)[0] == "usdface: job [1/1] again ... (t+0.0 s)"
+
+
 def test_quick_steps_print_nothing_and_a_slow_one_is_named_while_it_runs(capsys, monkeypatch):
     monkeypatch.setenv("USDFACE_PROGRESS_DELAY", "60")
     with progress.steps("job", 3) as p:

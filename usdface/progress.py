@@ -3,7 +3,8 @@
 The mode is chosen per ``steps()`` block: ``bar`` when stderr is a terminal, ``plain`` when it is not (a log,
 CI, a pipe): no control codes, one flushed line when a step has run :func:`delay` seconds (2 by default,
 ``USDFACE_PROGRESS_DELAY``) naming it, and one when it ends; ``off`` after :func:`set_enabled(False)
-<set_enabled>` (``--quiet``, ``--json``). ``USDFACE_PROGRESS=bar|plain|off`` overrides the choice.
+<set_enabled>` (``--quiet``, ``--json``). ``USDFACE_PROGRESS=bar|plain|off`` overrides the choice;
+:func:`set_logger` sends the plain lines to a :mod:`logging` logger instead (a host application's log).
 
 Two ways to mark steps, both on the callable a ``steps()`` block yields::
 
@@ -31,12 +32,21 @@ import time
 _ENABLED = True
 _STACK: list[_Steps] = []  # open steps() blocks, outermost first
 _LIVE = None  # the rich Progress shared by nested blocks in bar mode
+_LOGGER = None  # a host application's logging.Logger for the plain lines (set_logger), else stderr
 
 
 def set_enabled(flag: bool) -> None:
     """Turn progress on or off for the whole process (``--quiet``, ``--json``)."""
     global _ENABLED
     _ENABLED = bool(flag)
+
+
+def set_logger(logger) -> None:
+    """Send the progress lines to ``logger`` (a :class:`logging.Logger`, level INFO; the plain lines, no bar)
+    instead of stderr: a host application's own log (a DCC's, a farm job's). ``None``: back to stderr.
+    Warnings are Python warnings (``logging.captureWarnings(True)`` routes them to the same log)."""
+    global _LOGGER
+    _LOGGER = logger
 
 
 def mode() -> str:
@@ -46,6 +56,8 @@ def mode() -> str:
     env = os.environ.get("USDFACE_PROGRESS", "").strip().lower()
     if env in ("off", "0", "none", "quiet"):
         return "off"
+    if _LOGGER is not None:
+        return "plain"
     if env in ("bar", "plain"):
         return env
     try:
@@ -89,7 +101,10 @@ class _Steps:
     def _line(self, text: str) -> None:
         self.printed = True
         self.t_line = time.perf_counter()
-        print(f"usdface: {self.prefix} {text}", file=sys.stderr, flush=True)
+        if _LOGGER is not None:
+            _LOGGER.info("%s %s", self.prefix, text)
+        else:
+            print(f"usdface: {self.prefix} {text}", file=sys.stderr, flush=True)
 
     def _counter(self, n: int) -> str:
         return f"[{min(n, self.total)}/{self.total}]" if self.total else f"[{n}]"
