@@ -578,3 +578,56 @@ def test_cli_batch_json_is_the_report_on_stdout(tmp_path, capsys):
     assert [it["status"] for it in doc["items"]] == [DONE, FAILED]
     assert main(["batch", str(tmp_path / "missing.csv"), "--json"]) == 2
     assert json.loads(capsys.readouterr().out)["ok"] is False
+
+
+def test_items_on_threads_side_by_side_keep_their_own_warnings(tmp_path):
+    """A Dask worker's threads run items side by side: each item's report holds its own warnings (a review:
+    ``catch_warnings`` per item swapped process-wide state, one item's warning landed in another's report
+    and the host's filters were left changed)."""
+    import threading
+    import warnings
+
+    from usdface.pipeline.batch import run_item
+
+    gate = threading.Barrier(3)
+
+    def worker(item):
+        gate.wait()
+        warnings.warn(f"note of {item['index']}", UserWarning, stacklevel=1)
+        gate.wait()
+
+    filters = list(warnings.filters)
+    results = {}
+
+    def run(i):
+        results[i] = run_item(worker, {"index": i, "avatar": "a", "capture": "c",
+                                       "output": str(tmp_path / f"{i}.usda")})
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert {i: r["warnings"] for i, r in results.items()} == {i: [f"note of {i}"] for i in range(3)}
+    assert [f for f in warnings.filters if f not in filters] in ([], [warnings.filters[-1]])
+
+
+def test_a_workers_odd_result_or_a_sidecar_refusal_do_not_break_the_batch(tmp_path):
+    """run_item never raises, whatever a worker returns (a report with dicts for warnings made the whole
+    batch stop, a review); an OutputExistsError about another file (a sidecar) still sets the output aside."""
+    import types
+
+    from usdface.errors import OutputExistsError
+    from usdface.pipeline.batch import run_item
+
+    item = {"index": 0, "avatar": "a", "capture": "c", "output": str(tmp_path / "o.abc")}
+    res = run_item(lambda it: types.SimpleNamespace(report={"warnings": [{"a": 1}, "kept"]}), item)
+    assert res["status"] == DONE and res["warnings"] == ["kept"]
+
+    def sidecar(it):
+        Path(it["output"]).write_text("half")
+        raise OutputExistsError("exists", path=str(tmp_path / "o.json"))
+
+    res = run_item(sidecar, item)
+    assert res["status"] == FAILED and "moved to o.abc.failed" in res["error"]
+    assert not (tmp_path / "o.abc").exists()

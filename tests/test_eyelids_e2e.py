@@ -86,7 +86,7 @@ def test_eyelid_repair_uses_the_eyes_of_the_face_it_personalizes(samples, tmp_pa
         args = (["personalize", str(tmp_path / "crowd.usda"), str(samples / "capture.usda"), "--face-mesh",
                  f"/World/{who}/Head"] if who else
                 ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda")])
-        assert main([*args, "--dry-run", "--json", "-q"]) == 0
+        assert main([*args, "--dry-run", "--json", "-q", "-o", str(tmp_path / "o.usda")]) == 0
         lids = json.loads(capsys.readouterr().out)["eyelids"]
         if who:
             assert sorted(lids["eyeballs"]) == [f"/World/{who}/EyeLeft", f"/World/{who}/EyeRight"]

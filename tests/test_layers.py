@@ -444,3 +444,22 @@ def test_the_input_path_is_relative_inside_a_project_and_absolute_across_the_roo
         == "../../lib/hero.usdc"
     assert _relative_asset_path(PurePosixPath("/proj/pub/hero.usdc"), PurePosixPath("/proj/pub")) \
         == "./hero.usdc"
+    # a relative input is judged by where it is (a review: ../../../../work/... kept its dots)
+    dotted = PurePosixPath("/tmp/pub/../../work/lib/hero.usdc")
+    assert _relative_asset_path(dotted, PurePosixPath("/tmp/pub")) == "/work/lib/hero.usdc"
+
+
+def test_an_input_on_another_file_system_is_written_absolute(monkeypatch):
+    """Mounts often share a top folder (/mnt/lib, /mnt/scratch; /Volumes/...): the same project only when
+    the two lie on one file system too."""
+    from pathlib import PurePosixPath
+
+    from usdface.io import layers
+
+    if os.name != "posix":
+        pytest.skip("POSIX paths")
+    monkeypatch.setattr(layers, "_device", lambda path: 1 if str(path).startswith("/mnt/lib") else 2)
+    assert layers._relative_asset_path(PurePosixPath("/mnt/lib/hero.usdc"), PurePosixPath("/mnt/scratch")) \
+        == "/mnt/lib/hero.usdc"
+    assert layers._relative_asset_path(PurePosixPath("/mnt/x/hero.usdc"), PurePosixPath("/mnt/scratch")) \
+        == "../x/hero.usdc"

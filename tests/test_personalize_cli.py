@@ -178,7 +178,7 @@ def test_personalize_with_artist_pins(samples, tmp_path, capsys):
     pins = tmp_path / "pins.json"
     pins.write_text(json.dumps({"pins": {"jawOpen": [0, 1, 2]}}))
     assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--pins",
-                 str(pins), "--dry-run", "--json", "-q"]) == 0
+                 str(pins), "--dry-run", "--json", "-q", "-o", str(tmp_path / "o.usda")]) == 0
     assert json.loads(capsys.readouterr().out)["fit"]["pins"] == {"jawOpen": 3}
 
 
@@ -187,7 +187,7 @@ def test_correspondence_cache_extended_for_the_dt_modes_is_not_another_avatars(s
     triangles the dt modes read: it is extended ("cache: extended"), not reported as another avatar's."""
     cache = tmp_path / "c.npz"
     base = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--dry-run", "-q",
-            "--correspondence", str(cache)]
+            "--correspondence", str(cache), "-o", str(tmp_path / "o.usda")]
     assert main([*base, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["correspondence"]["cache"] == "miss"
     assert main([*base, "--face-transfer", "dt", "--approximation", "generic"]) == 0
@@ -208,5 +208,6 @@ def test_a_dry_run_answers_whether_a_real_run_would_write(samples, tmp_path, cap
     assert main(base) == 1
     assert "a real run would refuse to write" in capsys.readouterr().out
     assert main([*base, "--json"]) == 1
-    assert "exists" in json.loads(capsys.readouterr().out)["output_refused"]
+    doc = json.loads(capsys.readouterr().out)
+    assert "exists" in doc["output_refused"] and doc["ok"] is False
     assert main([*base, "--force"]) == 0

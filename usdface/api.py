@@ -544,9 +544,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     refuse_usdface_output(avatar_path)
     # an option personalize does not take (a typo) is named as such before any work, as batch does (it was
     # a fit error listing the method's options, after reading the inputs; a user trial); the pipeline's
-    # own keyword arguments (a given rig, the provenance's command) are not the user's options
-    check_personalize_options(**{k: v for k, v in options.items()
-                                 if k not in ("command", "rig", "layer_edit", "fit_options")})
+    # own keyword arguments (a given rig, the provenance's command) are not the user's options. The values
+    # are checked where they always were (a given rig skips the fit's checks; numpy booleans pass)
+    _refuse_unknown_options([k for k in options if k not in ("command", "rig", "layer_edit", "fit_options")])
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, take=take, **options))
     if out_path is not None and not options.get("dry_run"):
@@ -729,11 +729,9 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 _API_OPTIONS = ("inspect", "take", "landmarks")
 
 
-def check_personalize_options(**options: Any) -> None:
-    """Refuse, before any work, what :func:`personalize_avatar` would refuse or ignore among ``options``: an
-    option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
-    (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
-    row before the first item starts."""
+def _refuse_unknown_options(options) -> None:
+    """Refuse (:class:`usdface.errors.UsdFaceError`) a name among ``options`` that :func:`personalize_avatar`
+    does not take (a typo, a CLI flag such as ``review``), listing the ones it takes."""
     import inspect as _inspect
 
     from .errors import UsdFaceError
@@ -749,6 +747,22 @@ def check_personalize_options(**options: Any) -> None:
     if unknown:
         raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
                            fix="drop them, or use one of: " + ", ".join(sorted(known)))
+
+
+def check_personalize_options(**options: Any) -> None:
+    """Refuse, before any work, what :func:`personalize_avatar` would refuse or ignore among ``options``: an
+    option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
+    (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
+    row before the first item starts."""
+    import inspect as _inspect
+
+    from .errors import UsdFaceError
+    from .personalize.api import METHOD_OPTIONS, fit_personalized_shapes
+    from .transfer import pipeline as _pipeline
+
+    _refuse_unknown_options(options)
+    fit = set(_inspect.signature(fit_personalized_shapes).parameters) - {
+        "capture", "method", "reg", "prior", "options", "avatar_prior"}
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
             raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")

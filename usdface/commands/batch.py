@@ -59,7 +59,8 @@ def run(args) -> int:
     if args.json:                             # the report itself: one document on stdout
         import json
 
-        doc = {"ok": not report.failed, "report_path": str(report.report_path), **report.to_dict()}
+        doc = {"ok": not report.failed, "report_path": str(Path(report.report_path).absolute()),
+               **report.to_dict()}
         print(json.dumps(doc, indent=1, default=str))
         return 1 if report.failed else 0
     for res in report.failed:

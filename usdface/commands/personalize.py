@@ -150,7 +150,8 @@ def run(args) -> int:
     # a dry run says whether a real run would write: exit status 1 when it would refuse (a preflight)
     refusal = refusal or rep.pop("would_refuse", None)
     if args.json:
-        doc = {"ok": True, "output": json_path(result.out_path)}
+        # ok: a real run would do what is asked (a dry run a real run would refuse: false, exit 1)
+        doc = {"ok": not (args.dry_run and refusal), "output": json_path(result.out_path)}
         doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
         doc["warnings"] = all_warnings(rep.get("warnings"))
         if args.dry_run:

@@ -138,21 +138,45 @@ def _usd_call(fn, *args, **kwargs):
         raise
 
 
-def _relative_asset_path(target: Path, start_dir: Path) -> str:
-    """The layer's path to its input ``target`` from the output's folder ``start_dir``: relative when the two
-    share a folder below the file system's root (a project moved or copied as a whole keeps composing),
-    absolute when their only common folder is the root or another drive (an avatar library on another
-    mount: ``../../../../work/lib/hero.usdc`` broke as soon as the publish was copied to a folder of
-    another depth, a user trial)."""
-    target, start_dir = Path(target).absolute(), Path(start_dir).absolute()
+def _device(path: Path):
+    """The file system (``st_dev``) holding ``path`` or, where it does not exist yet, its nearest existing
+    ancestor; None when it cannot be told."""
+    while not path.exists() and path != path.parent:
+        path = path.parent
     try:
-        common = Path(os.path.commonpath([target, start_dir]))
-        rel = os.path.relpath(target, start_dir)
+        return os.stat(path).st_dev
+    except OSError:
+        return None
+
+
+def _project_relative(target, folder) -> str | None:
+    """``target`` relative to ``folder`` (POSIX separators) when the two belong to one project: they share a
+    folder below the file system's root and lie on one file system; None otherwise (an avatar library on
+    another mount or drive: a relative ``../../../../work/lib/hero.usdc`` broke as soon as the publish was
+    copied to a folder of another depth, a user trial). Symlinks are kept (the paths as given); ``..`` in
+    them is resolved by name first, so a relative input is judged by where it is."""
+    target = Path(os.path.normpath(Path(target).absolute()))
+    folder = Path(os.path.normpath(Path(folder).absolute()))
+    try:
+        common = Path(os.path.commonpath([target, folder]))
+        rel = os.path.relpath(target, folder)
     except ValueError:  # different drives (Windows)
-        return target.as_posix()
+        return None
     if common == Path(common.anchor):
-        return target.as_posix()
-    rel = Path(rel).as_posix()
+        return None
+    a, b = _device(target), _device(folder)
+    if a is not None and b is not None and a != b:
+        return None
+    return Path(rel).as_posix()
+
+
+def _relative_asset_path(target: Path, start_dir: Path) -> str:
+    """The layer's path to its input ``target`` from the output's folder ``start_dir``: relative within a
+    project (:func:`_project_relative`: a project moved or copied as a whole keeps composing), absolute
+    otherwise."""
+    rel = _project_relative(target, start_dir)
+    if rel is None:
+        return Path(os.path.normpath(Path(target).absolute())).as_posix()
     return rel if rel.startswith(".") else f"./{rel}"
 
 
@@ -545,14 +569,8 @@ def _relative_to_layer(path, out_path: Path) -> str:
     the same symlinks as the layer's sublayer path (:func:`_relative_asset_path`): an avatar read as
     ``lib/latest/hero.usda`` is recorded so, and a ``latest`` link moved to another version is an input that
     changed (its digest is checked where the link points now), not an unchanged ``v003``."""
-    target, folder = Path(path).absolute(), Path(out_path).absolute().parent
-    try:
-        common = Path(os.path.commonpath([target, folder]))
-        rel = Path(os.path.relpath(target, folder)).as_posix()
-    except ValueError:  # another drive
-        return target.as_posix()
-    # as the sublayer's path (:func:`_relative_asset_path`): absolute when only the root is in common
-    return target.as_posix() if common == Path(common.anchor) else rel
+    rel = _project_relative(path, Path(out_path).absolute().parent)   # as the sublayer's path
+    return Path(os.path.normpath(Path(path).absolute())).as_posix() if rel is None else rel
 
 
 def recorded_inputs(layer_path, record: dict | None = None) -> dict[str, str] | None:

@@ -26,6 +26,7 @@ import csv
 import functools
 import json
 import os
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable
@@ -381,35 +382,73 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
     out = Path(item["output"])
     existed = out.exists()
-    import warnings as _warnings
-
     # the item's warnings go to its result (the report, and the batch's own lines naming the item), not to
-    # the worker's stdout/stderr unattributed
-    with _warnings.catch_warnings(record=True) as caught:
-        _warnings.simplefilter("always")
-        try:
-            value = worker(item)
-        except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported)
-            value = exc
-    notes = list(dict.fromkeys(str(w.message) for w in caught))
-    report = getattr(value, "report", None)                       # a personalize result's own notes
-    own = report.get("warnings") if isinstance(report, dict) else None
-    notes += [n for n in dict.fromkeys(own if isinstance(own, list | tuple) else ())
-              if isinstance(n, str) and n not in notes]
-    base["warnings"] = notes
+    # the worker's stdout/stderr unattributed: collected per thread (a Dask worker's threads run items side
+    # by side), with the host's warning filters as they are
+    _capture_warnings()
+    caught = _ITEM.notes = []
+    try:
+        value = worker(item)
+    except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
+        value = exc
+    finally:
+        _ITEM.notes = None
+    base["warnings"] = _item_notes(caught, value)
     if isinstance(value, BaseException):
         exc = value
         if isinstance(exc, KeyboardInterrupt):
             raise exc
         error = str(exc)
-        # a worker that wrote its output, then failed: not a result. An output refused as existing was
+        # a worker that wrote its output, then failed: not a result. The output refused as existing was
         # written by someone else meanwhile (the same manifest run twice at once): theirs, left in place
-        if not existed and out.exists() and not isinstance(exc, OutputExistsError):
+        theirs = isinstance(exc, OutputExistsError) and exc.path is not None and \
+            Path(exc.path).absolute() == out.absolute()
+        if not existed and out.exists() and not theirs:
             error += f" (its output was written before the failure: moved to {_set_aside(out).name})"
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
                     traceback="".join(traceback.format_exception(exc)))
     return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu)
+
+
+_ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
+_SHOW_LOCK = threading.Lock()
+
+
+def _capture_warnings() -> None:
+    """Install (once per process) a :func:`warnings.showwarning` that gives a warning shown while an item
+    runs on this thread to that item (:func:`run_item`) and passes every other one on to what was installed
+    before. The filters stay the host's (``-W error`` still fails the item; hidden warnings stay hidden);
+    usdface's own warnings are shown every time (``always``, appended after the host's filters), so the
+    same note on two items of one process reaches both."""
+    import warnings
+
+    with _SHOW_LOCK:
+        if getattr(warnings.showwarning, "_usdface_batch", False):
+            return
+        previous = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            notes = getattr(_ITEM, "notes", None)
+            if notes is None:
+                return previous(message, category, filename, lineno, file, line)
+            notes.append(str(message))
+
+        show._usdface_batch = True
+        warnings.showwarning = show
+        warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
+
+
+def _item_notes(caught, value) -> list[str]:
+    """The item's warnings, each once: those shown while it ran, then its result's own report notes
+    (``value.report["warnings"]``, a personalize result's), strings only; never raises."""
+    try:
+        report = getattr(value, "report", None)
+        own = report.get("warnings") if isinstance(report, dict) else None
+        own = [n for n in own if isinstance(n, str)] if isinstance(own, list | tuple) else []
+        return list(dict.fromkeys([str(n) for n in caught] + own))
+    except Exception:  # noqa: BLE001  (a worker's odd return value must not fail the batch)
+        return [str(n) for n in caught]
 
 
 def _set_aside(out: Path) -> Path:
