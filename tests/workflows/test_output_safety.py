@@ -240,11 +240,13 @@ def test_every_output_option_is_checked_before_work(project, argv, needle):
 # ------------------------------------------------------------------- 3. dry run and correspondence cache
 def test_dry_run_says_an_existing_output_would_be_refused(project):
     proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/person.usda", "--dry-run",
-               "-q", cwd=project)
+               "-q", cwd=project, ok=False)
+    assert proc.returncode == 1                               # a preflight: a real run would refuse
     assert "a real run would refuse to write: out/person.usda: output layer exists" in proc.stdout
     assert "would write out/person.usda" not in proc.stdout
     proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "sa/capture.usda", "--dry-run",
-               "--force", "-q", cwd=project)
+               "--force", "-q", cwd=project, ok=False)
+    assert proc.returncode == 1
     assert "a real run would refuse to write" in proc.stdout and "overwrite an input" in proc.stdout
     proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "new.usda", "--dry-run", "-q",
                "--json", cwd=project)
