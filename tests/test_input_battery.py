@@ -26,9 +26,11 @@ SAMPLES = ROOT / "sample_assets"
 
 
 def _export(out: Path, edit) -> None:
-    from pxr import Usd, UsdGeom
+    from pxr import Sdf, Usd, UsdGeom
 
-    stage = Usd.Stage.Open(str(SAMPLES / "avatar.usda"))
+    copy = Sdf.Layer.CreateAnonymous(".usda")          # never the sample's own (cached, shared) layer
+    copy.TransferContent(Sdf.Layer.FindOrOpen(str(SAMPLES / "avatar.usda")))
+    stage = Usd.Stage.Open(copy)
     edit(stage, UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head")))
     stage.GetRootLayer().Export(str(out))
 

@@ -221,9 +221,14 @@ BAD_RIGS = {
 
 def make_bad_rig(kind: str, out: Path) -> Path:
     """The sample avatar with one defect of ``kind`` (see BAD_RIGS), exported to ``out``."""
-    from pxr import Usd, UsdGeom, Vt
+    from pxr import Sdf, Usd, UsdGeom, Vt
 
-    stage = Usd.Stage.Open(str(SAMPLES / "avatar.usda"))
+    # edited on a copy: the sample's own layer is USD's cached one for every test in this process (edited in
+    # place, the defects piled up in later tests while anything kept it alive: face_counts in face_indices'
+    # rig, upAxis X in the next module's sample)
+    copy = Sdf.Layer.CreateAnonymous(".usda")
+    copy.TransferContent(Sdf.Layer.FindOrOpen(str(SAMPLES / "avatar.usda")))
+    stage = Usd.Stage.Open(copy)
     head = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
     if kind == "nan_points":
         p = np.array(head.GetPointsAttr().Get(), dtype=np.float32)
@@ -275,6 +280,17 @@ def test_check_catches_what_the_readers_refuse(tmp_path, kind):
     path = make_bad_rig(kind, tmp_path / f"{kind}.usda")
     errors = [i for i in usdface.check(path, pixar=False) if i.severity == "error"]
     assert errors and any(BAD_RIGS[kind] in i.message for i in errors), errors
+
+
+def test_the_bad_rigs_leave_the_samples_own_layer_untouched(tmp_path):
+    """USD caches a layer by path for the whole process: editing the sample's own layer (not a copy) made
+    the defects of one case show up in the next and in other modules' tests (upAxis X on the sample)."""
+    from pxr import Sdf
+
+    for kind in sorted(BAD_RIGS):
+        make_bad_rig(kind, tmp_path / f"{kind}.usda")
+        cached = Sdf.Layer.Find(str(SAMPLES / "avatar.usda"))
+        assert cached is None or not cached.dirty, kind
 
 
 @pytest.mark.parametrize("text", ["<S>/", "pipe.usda", "cycle.usda"])
