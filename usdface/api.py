@@ -729,20 +729,28 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 _API_OPTIONS = ("inspect", "take", "landmarks")
 
 
+def _fit_option_names() -> set[str]:
+    """The options :func:`personalize_avatar` passes to the fit: the fit's keywords and every method's own."""
+    import inspect as _inspect
+
+    from .personalize.api import METHOD_OPTIONS, fit_personalized_shapes
+
+    return (set(_inspect.signature(fit_personalized_shapes).parameters)
+            - {"capture", "method", "reg", "prior", "options", "avatar_prior"}
+            | {k for ks in METHOD_OPTIONS.values() for k in ks})
+
+
 def _refuse_unknown_options(options) -> None:
     """Refuse (:class:`usdface.errors.UsdFaceError`) a name among ``options`` that :func:`personalize_avatar`
     does not take (a typo, a CLI flag such as ``review``), listing the ones it takes."""
     import inspect as _inspect
 
     from .errors import UsdFaceError
-    from .personalize.api import METHOD_OPTIONS, fit_personalized_shapes
     from .transfer import pipeline as _pipeline
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
         "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command"}
-    fit = set(_inspect.signature(fit_personalized_shapes).parameters) - {
-        "capture", "method", "reg", "prior", "options", "avatar_prior"}
-    known = transfer | fit | set(_API_OPTIONS) | {k for ks in METHOD_OPTIONS.values() for k in ks}
+    known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:
         raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
@@ -754,15 +762,10 @@ def check_personalize_options(**options: Any) -> None:
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
     (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
-    import inspect as _inspect
-
     from .errors import UsdFaceError
-    from .personalize.api import METHOD_OPTIONS, fit_personalized_shapes
     from .transfer import pipeline as _pipeline
 
     _refuse_unknown_options(options)
-    fit = set(_inspect.signature(fit_personalized_shapes).parameters) - {
-        "capture", "method", "reg", "prior", "options", "avatar_prior"}
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
             raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
@@ -775,8 +778,8 @@ def check_personalize_options(**options: Any) -> None:
     from .personalize.api import check_fit_options
 
     method, reg = get("method", "menzel"), get("reg", "auto")
-    method_options = {k for ks in METHOD_OPTIONS.values() for k in ks}
-    fit_opts = {k: v for k, v in options.items() if k in fit or k in method_options}
+    fit = _fit_option_names()
+    fit_opts = {k: v for k, v in options.items() if k in fit}
     check_fit_options(method, reg, **_pipeline._fit_prior_options(get("prior", "avatar"), method, reg),
                       **fit_opts)
 

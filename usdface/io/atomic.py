@@ -220,6 +220,15 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
                                      "never modified, even with --force")
 
 
+def existing_ancestor(path) -> Path:
+    """``path`` itself when it exists, else its nearest existing ancestor (where a write would create the
+    missing folders); the file system's root at worst."""
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
 def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=()) -> Path:
     """Validate an output file path before any work; returns it as a Path.
 
@@ -236,9 +245,7 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
                              fix=f"name it e.g. {path.stem or 'out'}{suffixes[0]}")
     if path.is_dir():
         raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
+    parent = existing_ancestor(path.parent)
     if not parent.is_dir():
         raise InputFileError(f"{what}'s parent {parent} is a file, not a folder", path=path,
                              fix="choose another output path")
@@ -255,9 +262,7 @@ def check_writable(path, *, what: str = "output", fix: str = "choose a folder yo
     import tempfile
 
     path = Path(path)
-    parent = path.absolute().parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
+    parent = existing_ancestor(path.absolute().parent)
     try:
         with tempfile.TemporaryFile(dir=parent):
             pass

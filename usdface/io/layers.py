@@ -141,43 +141,39 @@ def _usd_call(fn, *args, **kwargs):
 def _device(path: Path):
     """The file system (``st_dev``) holding ``path`` or, where it does not exist yet, its nearest existing
     ancestor; None when it cannot be told."""
-    while not path.exists() and path != path.parent:
-        path = path.parent
+    from .atomic import existing_ancestor
+
     try:
-        return os.stat(path).st_dev
+        return os.stat(existing_ancestor(path)).st_dev
     except OSError:
         return None
 
 
-def _project_relative(target, folder) -> str | None:
-    """``target`` relative to ``folder`` (POSIX separators) when the two belong to one project: they share a
-    folder below the file system's root and lie on one file system; None otherwise (an avatar library on
-    another mount or drive: a relative ``../../../../work/lib/hero.usdc`` broke as soon as the publish was
-    copied to a folder of another depth, a user trial). Symlinks are kept (the paths as given); ``..`` in
-    them is resolved by name first, so a relative input is judged by where it is."""
+def _layer_path(target, folder) -> str:
+    """How a layer in ``folder`` names its input ``target`` (POSIX separators): relative when the two belong
+    to one project - they share a folder below the file system's root and lie on one file system - else
+    absolute (an avatar library on another mount or drive: a relative ``../../../../work/lib/hero.usdc``
+    broke as soon as the publish was copied to a folder of another depth, a user trial). Symlinks are kept
+    (the paths as given); ``..`` in them is resolved by name first, so a relative input is judged by where
+    it is."""
     target = Path(os.path.normpath(Path(target).absolute()))
     folder = Path(os.path.normpath(Path(folder).absolute()))
     try:
         common = Path(os.path.commonpath([target, folder]))
         rel = os.path.relpath(target, folder)
     except ValueError:  # different drives (Windows)
-        return None
-    if common == Path(common.anchor):
-        return None
+        return target.as_posix()
     a, b = _device(target), _device(folder)
-    if a is not None and b is not None and a != b:
-        return None
+    if common == Path(common.anchor) or (a is not None and b is not None and a != b):
+        return target.as_posix()
     return Path(rel).as_posix()
 
 
 def _relative_asset_path(target: Path, start_dir: Path) -> str:
-    """The layer's path to its input ``target`` from the output's folder ``start_dir``: relative within a
-    project (:func:`_project_relative`: a project moved or copied as a whole keeps composing), absolute
-    otherwise."""
-    rel = _project_relative(target, start_dir)
-    if rel is None:
-        return Path(os.path.normpath(Path(target).absolute())).as_posix()
-    return rel if rel.startswith(".") else f"./{rel}"
+    """The layer's asset path to its input ``target`` from the output's folder ``start_dir``
+    (:func:`_layer_path`), a relative one anchored with ``./``."""
+    path = _layer_path(target, start_dir)
+    return path if path.startswith(".") or os.path.isabs(path) else f"./{path}"
 
 
 def _usd_value(value):
@@ -569,8 +565,7 @@ def _relative_to_layer(path, out_path: Path) -> str:
     the same symlinks as the layer's sublayer path (:func:`_relative_asset_path`): an avatar read as
     ``lib/latest/hero.usda`` is recorded so, and a ``latest`` link moved to another version is an input that
     changed (its digest is checked where the link points now), not an unchanged ``v003``."""
-    rel = _project_relative(path, Path(out_path).absolute().parent)   # as the sublayer's path
-    return Path(os.path.normpath(Path(path).absolute())).as_posix() if rel is None else rel
+    return _layer_path(path, Path(out_path).absolute().parent)        # as the sublayer's path
 
 
 def recorded_inputs(layer_path, record: dict | None = None) -> dict[str, str] | None:

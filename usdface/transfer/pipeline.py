@@ -1204,16 +1204,16 @@ def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list
         new = offsets[key]
         copies = new.copies if isinstance(new, SparseOffsets) else None
         new = new.values if isinstance(new, SparseOffsets) else new
-        K, n = m.deltas.shape[:2]
+        K, held = m.deltas.shape[:2]
         n_full = regions[key].n if regions and key in regions else m.n_vertices
         # a welded part's vertex stands for itself and its copies (written with its offsets)
-        count = (1 + np.bincount(copies[1], minlength=n) if copies is not None
-                 else np.ones(n, dtype=np.int64))
+        count = (1 + np.bincount(copies[1], minlength=held) if copies is not None
+                 else np.ones(held, dtype=np.int64))
         peak, rms, moved = np.zeros(K), np.zeros(K), np.zeros(K, dtype=np.int64)
         for k in range(K):                   # shape by shape: no [K,n] array (the twice-subdivided head's
             d = new[k] - m.deltas[k]         # 94 MB of them set the run's peak, +125 MB)
             sq = np.einsum("nc,nc->n", d, d)                             # squared change on the part held
-            peak[k] = np.sqrt(sq.max()) if n else 0.0
+            peak[k] = np.sqrt(sq.max()) if held else 0.0
             rms[k] = np.sqrt(sq @ count / max(n_full, 1))
             moved[k] = (sq > 1e-18) @ count
         for k, n in enumerate(m.names):
