@@ -44,10 +44,6 @@ from .motion_field import (
 #: One: the smallest working set (244 MB less at the peak of a 225k-vertex head than 4) and no more CPU (the
 #: smoothing reads only the columns the one shape moves; the solves cost per right-hand side).
 SHAPE_CHUNK = 1
-#: The chunk's freed arrays are handed back to the OS (``malloc_trim``) only when one of them is at least this
-#: big: on a bench head (1 MB per array) trimming after every shape and faulting the pages back in cost 0.14 s
-#: of a 0.5 s transfer; on a 225k-vertex head (16 MB) it keeps the heap flat.
-TRIM_CHUNK_BYTES = 8 << 20
 #: The field is known at the capture's resolution (its smoothing length, one placed capture edge): on a mesh
 #: that resolves that length with at least PROXY_MIN_RINGS edge rings, the field's extension is solved on
 #: a proxy of the mesh decimated to PROXY_RINGS edges per smoothing length (a bench head's own resolution)
@@ -315,7 +311,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     if overwrite:
         result = out = p
     skin = np.zeros((n_shapes, kept.size, 3), dtype=np.float32)   # the generic motion where the field is kept
-    trim_chunks = SHAPE_CHUNK * domain.size * 9 * 8 >= TRIM_CHUNK_BYTES
+    # the chunk's freed arrays are not handed back to the OS after each shape (trimming them and faulting
+    # them back in cost 2.5-4 s of system time on a 225k-vertex head, for the same peak RSS)
     for lo in range(0, n_shapes, SHAPE_CHUNK):                    # bounded memory: a few shapes at a time
         js = slice(lo, min(lo + SHAPE_CHUNK, n_shapes))
         if proxy is None:
@@ -388,8 +385,6 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
                                               + (1.0 - wn)[None, :, None] * outside)
             del fc
         del gd, pd, f, outside, phi
-        if trim_chunks:
-            release_free_memory()                                 # the chunk's arrays: the heap stays flat
     if out is not None:                                           # elsewhere 0, as a fresh result
         rest = np.ones(m, dtype=bool)
         rest[domain] = False

@@ -90,7 +90,7 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         t = t3.reshape(t3.shape[0], -1 if t3.shape[0] else 3 * idx.size)                  # [J, 3m]
         gram, rhs = np.zeros((k, k)), np.zeros((k, len(t3)))
         for lo in range(0, idx.size, ROW_BLOCK):
-            a = d[:, idx[lo:lo + ROW_BLOCK]].reshape(k, -1)
+            a = np.take(d, idx[lo:lo + ROW_BLOCK], axis=1).reshape(k, -1)   # C order: no copy to reshape
             gram += a @ a.T
             rhs += a @ t[:, 3 * lo:3 * (lo + ROW_BLOCK)].T
     p = np.zeros((len(t), k)) if prior is None else np.asarray(prior, dtype=np.float64)      # [J,K]
