@@ -91,10 +91,15 @@ def test_retarget_weights_on_rows_sums_the_same_products_in_blocks(monkeypatch):
         size=(4, int(rows.sum()), 3))
     monkeypatch.setattr(retarget, "ROW_BLOCK", 7)
     copied, mu = retarget_weights(basis[:, rows], targets, return_mu=True)
+    # the targets also as the correspondence gives them: vertex-major in memory ([m, J, 3] transposed)
+    vertex_major = np.moveaxis(np.ascontiguousarray(np.moveaxis(targets, 1, 0)), 1, 0)
+    assert not vertex_major.flags.c_contiguous
     for r in (rows, np.flatnonzero(rows)):
-        blocked, mu_rows = retarget_weights(basis, targets, return_mu=True, rows=r)
-        np.testing.assert_allclose(blocked, copied, rtol=1e-10, atol=1e-12)
-        assert mu_rows == pytest.approx(mu, rel=1e-9)
+        for t in (targets, vertex_major):
+            blocked, mu_rows = retarget_weights(basis, t, return_mu=True, rows=r)
+            np.testing.assert_allclose(blocked, copied, rtol=1e-10, atol=1e-12)
+            assert mu_rows == pytest.approx(mu, rel=1e-9)
+    assert retarget_weights(basis, np.zeros((0, int(rows.sum()), 3)), rows=rows).shape == (0, 6)
 
 
 def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
@@ -165,6 +170,28 @@ def test_closest_points_barycentrics():
     tri, bary, closest, dist = closest_points(p, np.array([[0, 1, 2]]), np.array([[0.2, 0.3, 0.5]]))
     np.testing.assert_allclose(bary[0], [0.5, 0.2, 0.3], atol=1e-6)
     assert dist[0] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_avatar_shapes_on_capture_reuses_the_registration_surface_only_when_it_is_the_same():
+    """The posed avatar surface the registration built answers for the avatar's shapes on the capture (its
+    ray-casting scenes are not built twice); one of other poses is not used: the same answers either way."""
+    from usdface.transfer.correspond import PosedSurface
+    from usdface.transfer.implant import avatar_shapes_on_capture
+
+    pts, tris = _grid(n=15)
+    deltas = _local_shapes(pts, k=3)
+    rng = np.random.default_rng(4)
+    queries = pts[rng.choice(len(pts), 40, replace=False)] + 1e-3 * rng.normal(size=(40, 3))
+    poses = [(0.5 * deltas[0][:40], deltas[0]), (deltas[1][:40], deltas[1])]
+    fresh, dist = avatar_shapes_on_capture(queries, pts, tris, deltas, poses=poses)
+    sides = [p[1] for p in poses]
+    same, other = PosedSurface(pts, tris, sides), PosedSurface(pts, tris, [deltas[2]])
+    assert same.serves(pts, tris, sides) and not other.serves(pts, tris, sides)
+    assert not same.serves(pts + 1e-3, tris, sides)
+    for surface in (same, other):
+        g, d = avatar_shapes_on_capture(queries, pts, tris, deltas, poses=poses, surface=surface)
+        np.testing.assert_array_equal(g, fresh)
+        np.testing.assert_array_equal(d, dist)
 
 
 def test_blend_adjacent_is_seamless_and_local():

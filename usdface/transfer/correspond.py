@@ -104,6 +104,13 @@ class PosedSurface:
         self.queries = [SurfaceQuery(self.points, self.triangles)]
         self.queries += [SurfaceQuery(self.points + d, self.triangles) for d in self.poses]
 
+    def serves(self, points, triangles, poses) -> bool:
+        """True when this is the surface of ``points``/``triangles`` in the poses ``poses`` (``[p][m,3]``)
+        exactly, so it can answer for them."""
+        return (len(poses) == len(self.poses) and np.array_equal(self.points, points)
+                and np.array_equal(self.triangles, triangles)
+                and all(np.array_equal(a, b) for a, b in zip(self.poses, poses, strict=True)))
+
     def closest_points(self, queries, query_poses=(), *, within: float | None = None):
         """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])``, closest in the neutral pose.
 
@@ -143,7 +150,7 @@ class PosedSurface:
 
 def nonrigid_register(points, triangles, target_points, target_triangles, *,
                       stiffness=(30.0, 10.0, 3.0, 1.0), iterations_per_level: int = 2,
-                      max_angle_deg: float = 60.0, poses=None) -> tuple[np.ndarray, dict]:
+                      max_angle_deg: float = 60.0, poses=None, surface=None) -> tuple[np.ndarray, dict]:
     """Deform ``points[n,3]`` (already rigidly placed) onto the surface ``target_points/triangles``.
 
     Minimises ``alpha^2 ||L (x - x0)||^2 + sum_i w_i ||x_i - c_i||^2`` per iteration with ``c_i`` the closest
@@ -156,6 +163,9 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
     surface point closest to ``x_i`` *in every pose at once* (:class:`PosedSurface`): where the lips or the
     lids touch in the neutral, the closest point can lie on the wrong lip; posed with the mouth open and the
     eyes shut, the two sides are centimetres apart.
+
+    ``surface``: the target in those poses, :class:`PosedSurface` of ``target_points/triangles`` and the
+    poses' target sides, when the caller has it (its ray-casting scenes are the cost on a production head).
     """
     x0 = np.asarray(points, dtype=np.float64)
     tri = np.asarray(triangles)
@@ -168,8 +178,8 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
     used = 0.0
-    target = PosedSurface(target_points, target_triangles,
-                          [p[1] for p in poses or ()])          # one BVH per pose for every iteration
+    target = surface if surface is not None else PosedSurface(
+        target_points, target_triangles, [p[1] for p in poses or ()])     # one BVH per pose, every iteration
     src_poses = [np.asarray(p[0], dtype=np.float64) for p in poses or ()]
     for alpha in stiffness:
         for _ in range(iterations_per_level):

@@ -59,17 +59,23 @@ __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers
            "attached_shapes", "follow_field", "rigid_shapes", "shape_confidence"]
 
 
-def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar_deltas, *, poses=None):
+def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar_deltas, *, poses=None,
+                             surface=None):
     """``G[J,n,3]``: the avatar's generic shapes sampled at the capture vertices (the inverse map N).
 
     ``registered[n,3]``: the capture template deformed onto the avatar face (avatar frame); each capture
     vertex takes the avatar's motion at its closest avatar surface point, found in the semantic ``poses`` too
     (:class:`usdface.transfer.correspond.PosedSurface`: ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs).
+    ``surface``: a :class:`usdface.transfer.correspond.PosedSurface` built for the correspondence, used when
+    it is this avatar surface in these poses (:meth:`~usdface.transfer.correspond.PosedSurface.serves`):
+    its ray-casting scenes are not built twice.
     Returns ``(G[J,n,3], distance[n])`` in the avatar frame (m).
     """
     from .correspond import PosedSurface
 
-    surf = PosedSurface(avatar_points, avatar_triangles, [p[1] for p in poses or ()])
+    avatar_poses = [p[1] for p in poses or ()]
+    surf = (surface if surface is not None and surface.serves(avatar_points, avatar_triangles, avatar_poses)
+            else PosedSurface(avatar_points, avatar_triangles, avatar_poses))
     tri, bary, _, dist = surf.closest_points(registered, [p[0] for p in poses or ()])
     corners = np.asarray(avatar_triangles)[tri]                                   # [n,3]
     d = np.asarray(avatar_deltas, dtype=np.float64)

@@ -36,6 +36,7 @@ from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
 from .correspond import (
     Correspondence,
+    PosedSurface,
     correspondence_map,
     geometry_digest,
     load_correspondence,
@@ -262,10 +263,13 @@ def pose_by_length(template_delta, avatar_delta):
 
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
-                    initial=None, target=None, source_triangles: bool = True, avatar_peak=None):
+                    initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
+                    surfaces: dict | None = None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
-    otherwise. ``avatar_peak``: the face's peak motion, for :func:`register_face`."""
+    otherwise. ``avatar_peak``: the face's peak motion, for :func:`register_face`. ``surfaces``: a dict
+    that receives the posed avatar face surface the registration built (``"avatar"``, a
+    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -286,8 +290,12 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
                           avatar_peak=avatar_peak)
     placed = reg_t.transform.apply(capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
+    surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
+    if surfaces is not None:
+        surfaces["avatar"] = surface
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
-                                            poses=poses)
+                                            poses=poses, surface=surface)
+    del surface
     corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses,
                               source_triangles=source_triangles)
     corr.registered = registered
@@ -614,10 +622,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
+        surfaces = {}                              # the posed avatar face, built once for both uses
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
                                initial=sim, target=registration.target,
                                source_triangles=face_transfer != "person",   # the deformation transfer's
-                               avatar_peak=face_peak)
+                               avatar_peak=face_peak, surfaces=surfaces)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         placed = report["correspondence"].get("template_registration")
         if isinstance(placed, dict) and "translation_m" in placed:
@@ -639,9 +648,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if prior == "avatar" or face_transfer == "person":
             poses, _ = semantic_poses(names, template_deltas, avatar_face_deltas, placed_by)
             g_av, _ = avatar_shapes_on_capture(corr.registered, face.neutral, face.triangles,
-                                               avatar_face_deltas, poses=poses)
+                                               avatar_face_deltas, poses=poses,
+                                               surface=surfaces.get("avatar"))
             del poses                              # not needed after this: three [m,3] pairs fewer
             generic_on_capture = sim.inverse_vectors(g_av)                  # capture frame, person's rig
+        surfaces.clear()                           # its scenes (77 B per triangle and pose) before the fit
         timings["correspond"] = time.perf_counter() - t
         advance("correspond")
         advance.start("fit")
