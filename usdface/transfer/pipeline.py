@@ -56,7 +56,7 @@ from .implant import (
 )
 from .motion_field import dilate
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
-from .register import register_face
+from .register import motion_landmarks, register_face
 from .retarget import approximate, namesake_prior, retarget_weights
 
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS"]
@@ -264,10 +264,11 @@ def pose_by_length(template_delta, avatar_delta):
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
                     initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
-                    surfaces: dict | None = None):
+                    avatar_landmarks=None, surfaces: dict | None = None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
-    otherwise. ``avatar_peak``: the face's peak motion, for :func:`register_face`. ``surfaces``: a dict
+    otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
+    :func:`register_face`. ``surfaces``: a dict
     that receives the posed avatar face surface the registration built (``"avatar"``, a
     :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
     names = list(names)
@@ -287,7 +288,7 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target,
-                          avatar_peak=avatar_peak)
+                          avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
     placed = reg_t.transform.apply(capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
     surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
@@ -610,9 +611,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                                          for m in avatar.meshes] + [beyond])
         # the face's peak motion, once for both registrations (the person's and the template's)
         face_peak = peak_motion(avatar_face_deltas)
+        face_landmarks = motion_landmarks(face.neutral, avatar_face_deltas)         # the same for both too
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None, avatar_peak=face_peak,
+                                     avatar_landmarks=face_landmarks,
                                      avatar_mesh=f"{face_prim} of {Path(avatar.file).name}")
         timings["register"] = time.perf_counter() - t
         report["registration"] = _in_stage(registration.as_dict(), origin)
@@ -626,7 +629,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
                                initial=sim, target=registration.target,
                                source_triangles=face_transfer != "person",   # the deformation transfer's
-                               avatar_peak=face_peak, surfaces=surfaces)
+                               avatar_peak=face_peak, avatar_landmarks=face_landmarks, surfaces=surfaces)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         placed = report["correspondence"].get("template_registration")
         if isinstance(placed, dict) and "translation_m" in placed:

@@ -115,15 +115,18 @@ def similarity_from_pairs(src, dst, weights=None) -> Similarity:
     return Similarity(s, rot, mu_d - s * rot @ mu_s)
 
 
-def motion_initialiser(capture_neutral, capture_deltas, avatar_points, avatar_deltas) -> Similarity:
+def motion_initialiser(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *,
+                       avatar_landmarks=None) -> Similarity:
     """Global initial similarity from capture space to avatar space, from shape-motion landmarks.
 
     ``capture_deltas[K,n,3]`` and ``avatar_deltas[K,m,3]`` must list the same K shapes in the same order
-    (the generic template shapes on the capture mesh and the avatar's own generic shapes). Raises
+    (the generic template shapes on the capture mesh and the avatar's own generic shapes);
+    ``avatar_landmarks``: :func:`motion_landmarks` of the avatar side when the caller has them. Raises
     :class:`RegistrationError` with fewer than 4 shapes that move on both.
     """
     lc, sc = motion_landmarks(capture_neutral, capture_deltas)
-    la, sa = motion_landmarks(avatar_points, avatar_deltas)
+    la, sa = (motion_landmarks(avatar_points, avatar_deltas) if avatar_landmarks is None
+              else avatar_landmarks)
     ok = (sc > 0) & (sa > 0)
     if ok.sum() < 4:
         raise RegistrationError(f"only {int(ok.sum())} shapes move on both the capture and the avatar face; "
@@ -192,7 +195,7 @@ def _scale_guess(capture_points, avatar_points) -> float:
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
                   path=None, initial: Similarity | None = None, target=None,
-                  avatar_peak=None, avatar_mesh: str | None = None) -> Registration:
+                  avatar_peak=None, avatar_landmarks=None, avatar_mesh: str | None = None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -207,7 +210,8 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     times the face's size.
 
     ``avatar_peak[n]``: :func:`usdface.motion.peak_motion` of ``avatar_deltas`` when the caller has it (the
-    pipeline registers the person and the template on the same face: computed once). ``avatar_mesh``: the
+    pipeline registers the person and the template on the same face: computed once), ``avatar_landmarks``
+    its :func:`motion_landmarks` (the same: a ``[K,n]`` pass over a production face). ``avatar_mesh``: the
     mesh's name for the error (e.g. ``"/Avatar/Head of avatar.usdc"``: a ``--face-mesh`` choice shows).
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
@@ -215,7 +219,8 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     peak = peak_motion(avatar_deltas) if avatar_peak is None else avatar_peak
     moving = moving_vertices(peak, ap)   # float noise of an export: no motion
     try:   # the global initialiser; its scale also sets the ICP target's density below
-        landmarks, no_landmarks = motion_initialiser(cn, capture_deltas, ap, avatar_deltas), None
+        landmarks, no_landmarks = motion_initialiser(cn, capture_deltas, ap, avatar_deltas,
+                                                     avatar_landmarks=avatar_landmarks), None
     except RegistrationError as exc:
         landmarks, no_landmarks = None, exc
     given = target is not None
