@@ -281,3 +281,36 @@ def test_review_cli_and_personalize_review(personalized_sample, samples, tmp_pat
     layer.unlink()
     assert cli.main(args) == 2  # the page exists: refused before any work, no layer written
     assert not layer.exists()
+
+
+def test_review_scores_the_fit_the_layer_carries(samples, tmp_path):
+    """The page's eq. 5 table is the layer's own fit (recorded by personalize: the avatar prior, contact, pins
+    and its other options), not a refit with the method and ``reg`` alone; a capture other than
+    the recorded one is refitted, and the title says which."""
+    from usdface.io import read_capture
+    from usdface.io.usd_rig import read_layer_info
+    from usdface.personalize import fit_personalized_shapes
+    from usdface.personalize.evaluate import test_expression_errors
+    from usdface.review.collect import _fit_errors
+
+    layer = tmp_path / "contact.usda"
+    result = api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", layer, contact="on")
+    capture = read_capture(samples / "capture.usda")
+    recorded = read_layer_info(layer)["usdface"]["fitTestExpressions"]
+    mine = test_expression_errors(capture, result.fit.rig)     # eq. 5 of the fit the layer implanted
+    assert recorded["labels"] == [str(s) for s in capture.test.label] == mine["labels"]
+    for key in ("generic_rmse_mm", "personalized_rmse_mm", "generic_max_mm", "personalized_max_mm"):
+        assert np.allclose(recorded[key], mine[key], rtol=1e-12, atol=0), key
+    # what the page showed before: the method's fit without the layer's options
+    refit = test_expression_errors(capture, fit_personalized_shapes(capture, method="menzel").rig)
+    assert np.abs(np.subtract(recorded["personalized_rmse_mm"], refit["personalized_rmse_mm"])).max() > 1e-4
+    assert np.allclose(recorded["generic_rmse_mm"], refit["generic_rmse_mm"], rtol=1e-12, atol=0)
+
+    prov = read_layer_info(layer)["usdface"]
+    page = _fit_errors(capture, prov, recorded=True)
+    assert "the layer's fit" in page["title"]
+    assert page["columns"]["personalized RMSE"] == recorded["personalized_rmse_mm"]
+    other = _fit_errors(capture, prov, recorded=False)         # --capture: figures for that capture
+    assert "menzel refit" in other["title"]
+    assert np.allclose(other["columns"]["personalized RMSE"], refit["personalized_rmse_mm"],
+                       rtol=1e-12, atol=0)

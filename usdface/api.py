@@ -894,9 +894,9 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     the capture's test expressions and of ``take`` (Live Link Face CSV or USD take), and the fit's figures.
 
     ``capture`` defaults to the capture recorded in the layer's provenance (when it still exists); with
-    ``fit_errors`` the generic template and the refitted personalized shapes are scored on its test
-    expressions (eq. 5). Returns the path written (atomically; an existing file needs ``force``, checked
-    before any work)."""
+    ``fit_errors`` the generic template and the personalized shapes are scored on its test
+    expressions (eq. 5: the layer's recorded figures of its own fit, or a refit for another capture).
+    Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
     from .review.collect import collect_review

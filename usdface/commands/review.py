@@ -21,7 +21,8 @@ def register(subparsers) -> None:
                                      "recorded in the layer's provenance, when it still exists)")
     p.add_argument("--take", help="a Live Link Face CSV (or USD take / take folder) to play")
     p.add_argument("--no-fit-errors", action="store_true",
-                   help="skip scoring the fit on the capture's test expressions (eq. 5; one refit)")
+                   help="skip scoring the fit on the capture's test expressions (eq. 5: the layer's recorded "
+                        "figures; another --capture is refitted)")
     p.add_argument("--force", action="store_true", help="overwrite the HTML file")
     add_quiet(p)
     p.set_defaults(func=run)

@@ -8,7 +8,7 @@ import numpy as np
 from ..errors import GeometryError
 from ..model import FaceRig, Frames
 
-__all__ = ["evaluate_rig", "reconstruction_errors", "truth_error", "error_colors"]
+__all__ = ["evaluate_rig", "reconstruction_errors", "test_expression_errors", "truth_error", "error_colors"]
 
 
 def reconstruction_errors(neutral: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
@@ -42,6 +42,27 @@ def evaluate_rig(rig: FaceRig, frames: Frames) -> dict:
     mx = err.max(axis=1)
     return {"rmse_mm": rmse, "max_mm": mx, "vertex_mm": err, "labels": list(frames.label),
             "mean_rmse_mm": float(rmse.mean()), "mean_max_mm": float(mx.mean())}
+
+
+def test_expression_errors(capture, rig: FaceRig) -> dict | None:
+    """Eq. (5) on the capture's held-out test expressions, the capture's generic template beside the fitted
+    ``rig`` (the person's shapes on the capture mesh): ``{"labels": [F], "generic_rmse_mm": [F],
+    "personalized_rmse_mm": [F], "generic_max_mm": [F], "personalized_max_mm": [F]}`` (plain lists, mm), or
+    None when the capture has no test expressions. ``capture``: a :class:`usdface.model.Capture`
+    (``neutral[n,3]`` m, ``template``, ``test`` frames with weights ``[F,K]`` in ``capture.names`` order)."""
+    test = capture.test
+    if len(test) == 0:
+        return None
+    t = capture.template
+    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
+                      "generic")
+    out = {"labels": [str(s) for s in test.label]}
+    for label, r in (("generic", generic), ("personalized", rig)):
+        r = r.subset(capture.names) if list(r.names) != list(capture.names) else r
+        res = evaluate_rig(r, test)
+        out[f"{label}_rmse_mm"] = [float(v) for v in res["rmse_mm"]]
+        out[f"{label}_max_mm"] = [float(v) for v in res["max_mm"]]
+    return out
 
 
 def truth_error(deltas: np.ndarray, true_deltas: np.ndarray) -> float:

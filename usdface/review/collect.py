@@ -121,37 +121,36 @@ def _fitted(info: dict) -> bool:
     return str(info.get("method") or params.get("method") or "menzel") in METHODS
 
 
-def _fit_errors(capture, info: dict) -> dict | None:
-    """Eq. 5 on the capture's test expressions: the generic template vs the person's fitted shapes (refit
-    with the layer's recorded method and regularisation)."""
-    from ..model import FaceRig
-    from ..personalize import evaluate_rig, fit_personalized_shapes
+def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
+    """Eq. 5 on the capture's test expressions: the generic template vs the person's fitted shapes. The
+    layer's own figures (``fitTestExpressions``, scored by ``personalize`` on the fit it implanted, prior,
+    alignment and options included) when ``recorded`` (the capture is the one the layer records) and they
+    cover these expressions; else (an older layer, another capture) a refit with the layer's recorded method
+    and regularisation, said so in the title."""
+    from ..personalize import fit_personalized_shapes
+    from ..personalize.evaluate import test_expression_errors
 
-    test = capture.test
-    if len(test) == 0:
+    if len(capture.test) == 0:
         return None
-    t = capture.template
-    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
-                      "generic")
-    params = dict(info.get("parameters") or {})
-    method = str(info.get("method") or params.get("method") or "menzel")
-    if not _fitted(info):
-        method = "menzel"      # a landmarks layer given a --capture: the default fit scores the capture
-    reg = params.get("reg", "auto")
-    try:
-        reg = float(reg)
-    except (TypeError, ValueError):
-        reg = str(reg)
-    fit = fit_personalized_shapes(capture, method=method, reg=reg).rig
-    cols = {}
-    for label, rig in (("generic RMSE", generic), ("personalized RMSE", fit)):
-        rig = rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig
-        res = evaluate_rig(rig, test)
-        cols[label] = [float(v) for v in res["rmse_mm"]]
-        cols[label.replace("RMSE", "max")] = [float(v) for v in res["max_mm"]]
-    order = ["generic RMSE", "personalized RMSE", "generic max", "personalized max"]
-    return {"title": f"eq. 5 on the capture's test expressions (mm; {method} refit)",
-            "labels": list(test.label), "columns": {k: cols[k] for k in order}}
+    scored = info.get("fitTestExpressions") if recorded else None
+    source = "the layer's fit"
+    if not (isinstance(scored, dict) and scored.get("labels") == [str(s) for s in capture.test.label]):
+        params = dict(info.get("parameters") or {})
+        method = str(info.get("method") or params.get("method") or "menzel")
+        if not _fitted(info):
+            method = "menzel"      # a landmarks layer given a --capture: the default fit scores the capture
+        reg = params.get("reg", "auto")
+        try:
+            reg = float(reg)
+        except (TypeError, ValueError):
+            reg = str(reg)
+        scored = test_expression_errors(capture, fit_personalized_shapes(capture, method=method, reg=reg).rig)
+        source = f"{method} refit"
+    columns = {"generic RMSE": "generic_rmse_mm", "personalized RMSE": "personalized_rmse_mm",
+               "generic max": "generic_max_mm", "personalized max": "personalized_max_mm"}
+    return {"title": f"eq. 5 on the capture's test expressions (mm; {source})",
+            "labels": list(scored["labels"]),
+            "columns": {k: [float(v) for v in scored[key]] for k, key in columns.items()}}
 
 
 def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = True) -> ReviewData:
@@ -160,8 +159,9 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     ``capture``: the capture (path or :class:`usdface.model.Capture`) whose test expressions are played and
     scored; default the one recorded in the layer's provenance, when it still exists (else no test
     expressions). ``take``: a Live Link Face CSV, USD take or take folder to play (path or
-    :class:`usdface.io.take.Take`). ``fit_errors``: score the generic template and the refitted personalized
-    shapes on the capture's test expressions (eq. 5; one fit, a few seconds)."""
+    :class:`usdface.io.take.Take`). ``fit_errors``: score the generic template and the personalized shapes
+    on the capture's test expressions (eq. 5): the layer's own figures (:func:`_fit_errors`), or one refit
+    (a few seconds) for another capture or an older layer."""
     from ..io import read_capture
     from ..io.flatten import read_avatar_variant
     from ..io.take import read_take
@@ -184,6 +184,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
 
     notes = []
     sequences = []
+    recorded = capture is None
     if capture is None:
         capture = recorded_capture(layer_path, prov)
         if capture is None:
@@ -197,7 +198,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         sequences.append(Sequence("test expressions", list(capture.names), test.weights,
                                   np.arange(len(test)) * TEST_HOLD_S, list(test.label)))
         if fit_errors:
-            errors = _fit_errors(capture, prov)
+            errors = _fit_errors(capture, prov, recorded=recorded)
     whole = capture.whole_take if capture is not None else None
     if whole and not len(capture.test):  # a take fitted whole: it plays itself, there is nothing to score
         notes.append("the capture is a take fitted whole: no held-out test expressions to score (score one "

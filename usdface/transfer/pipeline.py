@@ -32,6 +32,7 @@ from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
 from ..motion import most_moving_mesh, moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
+from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
 from .correspond import (
@@ -668,6 +669,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
+            scored = test_expression_errors(capture, rig)    # eq. 5 of the fit the layer carries
+            if scored is not None:
+                report["fit"]["test_expressions"] = scored
         if capture.whole_take:                     # the inspection plays it: no test expressions
             report["whole_take"] = {"frames": capture.whole_take["frames"], "fps": capture.whole_take["fps"]}
         timings["fit"] = time.perf_counter() - t
@@ -772,6 +776,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "registration": dict(report["registration"]),
                     "correspondence": {k: v for k, v in report["correspondence"].items()
                                        if isinstance(v, int | float | str)},
+                    **({"fitTestExpressions": report["fit"]["test_expressions"]}
+                       if "test_expressions" in report.get("fit", {}) else {}),
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
