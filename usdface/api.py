@@ -713,7 +713,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options))
-    result = _personalize(avatar_path, capture_path, None, **options)
+    result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
                 "capture": str(getattr(capture_path, "source", capture_path)), "mu": options.get("mu")}
@@ -749,7 +749,7 @@ def _refuse_unknown_options(options) -> None:
     from .transfer import pipeline as _pipeline
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
-        "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command"}
+        "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command", "map_only"}
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:

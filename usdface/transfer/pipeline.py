@@ -454,7 +454,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
                        weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
-                       **fit_options) -> PersonalizeResult:
+                       map_only: bool = False, **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
@@ -471,6 +471,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         it by generalized cross-validation on the face rows.
     weight_bounds : ``(lo, hi)`` range of the eq. (4) map's weights (default ``(0, 1)``, the range an ARKit
         rig's channels are authored for); None: any real weights, as the paper.
+    map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
+        layer; the result's ``offsets`` and ``approximation`` are empty, ``weights`` the map.
     layer_edit : ``layer_edit(offsets, face_prim) -> edit(stage)`` (or None): extra prims and primvars
         authored into the layer in the same atomic write (the inspection data of
         :func:`usdface.api.personalize_avatar`), from the offsets that are written.
@@ -503,7 +505,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         from ..personalize.api import check_fit_options
 
         check_fit_options(method, reg, **_fit_prior_options(prior, method, reg), **fit_options)
-    with steps("personalize", 8) as advance:
+    with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
         advance.start("read")
         t = time.perf_counter()
         if out_path is not None and not dry_run:
@@ -697,11 +699,17 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                               "bounds": None if weight_bounds is None else list(weight_bounds),
                               "prior": map_prior}
         approx_eq4 = {}
-        if approximation == "retarget":
+        if approximation == "retarget" and not map_only:
             for m in avatar.meshes:
                 approx_eq4[m.key] = approximate(weights, _shape_deltas(m, k_names))
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
+        if map_only:                 # the map is the product: the implant, eyelids and write are not needed
+            face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
+            timings["total"] = time.perf_counter() - t_start
+            report["timings"] = timings
+            return PersonalizeResult({}, names, k_names, weights, {}, face_prim, face_all,
+                                     np.zeros((len(names), len(face_all)), dtype=bool), report, None, fit)
         advance.start("transfer")
 
         # 5. the implant
