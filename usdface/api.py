@@ -770,7 +770,7 @@ def check_personalize_options(**options: Any) -> None:
         if name in options and not isinstance(options[name], bool):
             raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
-    _pipeline._check_modes(get("face_transfer", "person"), get("approximation", "field"),
+    _pipeline._check_modes(get("face_transfer", "person"), get("approximation"),
                            get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
                            get("map_prior", "namesake"))
     _pipeline.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),

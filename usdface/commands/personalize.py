@@ -66,9 +66,8 @@ def transfer_kwargs(args) -> dict:
         reg = float(reg)
     except ValueError:
         pass
-    approximation = args.approximation or ("field" if args.face_transfer == "person" else "generic")
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
-            "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
+            "face_transfer": args.face_transfer, "approximation": args.approximation, "falloff": args.falloff,
             "prior": args.prior, "extension_length": args.extension_length,
             "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact,
             **({"every": args.every} if getattr(args, "every", 1) != 1 else {}),

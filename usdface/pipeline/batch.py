@@ -317,7 +317,11 @@ def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
             return None
     if not isinstance(params, dict):
         return None
-    defaults = _personalize_defaults()
+    from ..transfer.pipeline import default_approximation
+
+    defaults = dict(_personalize_defaults())
+    # the approximation a row leaves out is its face transfer's (as the API and the CLI resolve it)
+    defaults["approximation"] = default_approximation(options.get("face_transfer", defaults["face_transfer"]))
     for key, was in sorted(params.items()):
         wanted = options.get(key, defaults.get(key, _MISSING))
         if wanted is not _MISSING and not _same_value(was, wanted):

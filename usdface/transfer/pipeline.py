@@ -59,12 +59,21 @@ from .partial_dt import blend_adjacent, face_deformation_transfer, personalizati
 from .register import motion_landmarks, register_face
 from .retarget import approximate, namesake_prior, retarget_weights
 
-__all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS"]
+__all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
+           "default_approximation"]
 
 #: Face-region transfer modes (see :func:`implant_shapes`).
 FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 #: What the adjacent region and the other meshes are blended from / follow.
 APPROXIMATIONS = ("field", "generic", "retarget")
+
+
+def default_approximation(face_transfer: str) -> str:
+    """The approximation a face-transfer mode gets when none is given: ``"field"`` for ``"person"`` (the only
+    one it goes with), ``"generic"`` for the older modes. The one rule the Python API, ``usdface
+    personalize`` and ``usdface batch`` share, so the same mode gives the same result from each."""
+    return "field" if face_transfer == "person" else "generic"
+
 #: Width of the join between the face region and the field beyond, in face radii: 1.1-1.2 cm on a head, so it
 #: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
 #: left a step where the direct result and the field differ), and more on finer meshes.
@@ -448,7 +457,7 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
 @single_threaded_blas
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
                        mu="auto", correspondence=None, force: bool = False, dry_run: bool = False,
-                       face_transfer: str = "person", approximation: str = "field", falloff: float = 0.15,
+                       face_transfer: str = "person", approximation: str | None = None, falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
@@ -482,9 +491,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         ``A_j + M (B_j - P_j)`` (:func:`usdface.transfer.implant.face_personalization`); the older modes map
         the deviation from the capture's template: ``"offset"`` (``A_j + M (B_j - T_j)``), ``"dt"`` (the
         paper's deformation transfer), ``"dt-offset"`` (:func:`implant_shapes`).
-    approximation : beyond the face region and on the other meshes: ``"field"`` (default) the person's motion
-        as a rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`);
-        ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4) approximation A_j (the paper).
+    approximation : beyond the face region and on the other meshes: ``"field"`` the person's motion as a
+        rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`; the only one
+        ``"person"`` goes with); ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4)
+        approximation A_j (the paper). None (default): :func:`default_approximation` of ``face_transfer``.
     extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
         to the generic motion, in face radii (RMS radius of the face region; None = no fade).
     falloff, support : the join of the older modes (:func:`implant_shapes`).
@@ -496,7 +506,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
+    approximation = _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
     check_numbers(mu=mu, extension_length=extension_length, falloff=falloff, support=support)
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
@@ -835,10 +845,11 @@ def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
     return dataclasses.replace(avatar, meshes=[moved(m) for m in avatar.meshes], metadata=meta), origin
 
 
-def _check_modes(face_transfer: str, approximation: str, prior: str, weight_bounds=None,
-                 map_prior: str = "namesake") -> None:
+def _check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,
+                 map_prior: str = "namesake") -> str:
     """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
-    (:class:`usdface.errors.UsdFaceError`)."""
+    (:class:`usdface.errors.UsdFaceError`); returns the approximation to use (``approximation``, or
+    :func:`default_approximation` of ``face_transfer`` when None)."""
     if map_prior not in MAP_PRIORS:
         raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
     if weight_bounds is not None:
@@ -853,6 +864,8 @@ def _check_modes(face_transfer: str, approximation: str, prior: str, weight_boun
     if face_transfer not in FACE_TRANSFERS:
         raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
                            fix=f"use one of {', '.join(FACE_TRANSFERS)}")
+    if approximation is None:
+        approximation = default_approximation(face_transfer)
     if approximation not in APPROXIMATIONS:
         raise UsdFaceError(f"unknown approximation {approximation!r}",
                            fix=f"use one of {', '.join(APPROXIMATIONS)}")
@@ -862,6 +875,7 @@ def _check_modes(face_transfer: str, approximation: str, prior: str, weight_boun
         raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
                            "together", fix="use face_transfer='person' with approximation='field' (the "
                            "default), or one of the older modes with 'generic' or 'retarget'")
+    return approximation
 
 
 def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.01, 0.03)) -> None:
