@@ -57,3 +57,79 @@ def test_the_api_and_the_cli_give_the_same_layer_for_an_older_mode(tmp_path, cap
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     for layer in (cli, py):
         assert usdface_output_provenance(layer)["parameters"]["approximation"] == "generic"
+
+
+# ------------------------------------------------------------------ options a mode (or a command) ignores
+@pytest.mark.parametrize("mode, option", [
+    ("person", {"falloff": 0.3}),
+    ("dt", {"support": (0.01, 0.03)}),
+    ("offset", {"extension_length": 2.0}),
+    ("dt-offset", {"extension_length": None}),
+])
+def test_the_api_refuses_an_option_the_mode_does_not_use(tmp_path, monkeypatch, mode, option):
+    """``falloff=0.3`` with the default ``person`` transfer was silently ignored (the same layer as without
+    it): refused before any work, naming the option and the mode in both spellings and the fix."""
+    from usdface import api
+    from usdface.errors import OptionError
+    from usdface.transfer import pipeline
+
+    monkeypatch.setattr(pipeline, "crop_avatar", lambda *a, **k: pytest.fail("work started"))
+    (name,) = option
+    flag = {"support": "Python API only"}.get(name, "--" + name.replace("_", "-"))
+    for call in (lambda: api.personalize_avatar(A, C, tmp_path / "p.usda", face_transfer=mode, **option),
+                 lambda: api.check_personalize_options(face_transfer=mode, **option)):     # a batch row
+        with pytest.raises(OptionError) as err:
+            call()
+        text = str(err.value)
+        assert f"{name} ({flag}) is not used by face_transfer (--face-transfer) {mode!r}" in text
+        assert "fix: drop" in text and all(m in text.split("fix:")[1] for m, used in
+                                           pipeline.MODE_OPTIONS.items() if name in used)
+    assert not (tmp_path / "p.usda").exists()
+
+
+def test_the_options_each_mode_uses_pass():
+    from usdface import api
+    from usdface.transfer.pipeline import MODE_OPTIONS
+
+    values = {"extension_length": 2.0, "falloff": 0.3, "support": (0.02, 0.04)}
+    for mode, used in MODE_OPTIONS.items():
+        api.check_personalize_options(face_transfer=mode, **{k: values[k] for k in used})
+
+
+def test_the_cli_refuses_an_option_the_mode_does_not_use(tmp_path, capsys, monkeypatch):
+    """``usdface personalize --falloff 0.3`` (person) ran as without it; refused (exit 2) before any work.
+    The defaults themselves are not "given": the older modes run without ``--falloff``, ``person`` without
+    ``--extension-length``."""
+    from usdface.transfer import pipeline
+
+    monkeypatch.setattr(pipeline, "crop_avatar", lambda *a, **k: pytest.fail("work started"))
+    base = ["personalize", str(A), str(C), "-o", str(tmp_path / "p.usda"), "-q"]
+    assert main([*base, "--falloff", "0.3"]) == 2
+    err = capsys.readouterr().err
+    assert "falloff (--falloff) is not used by face_transfer (--face-transfer) 'person'" in err
+    assert main([*base, "--face-transfer", "dt", "--extension-length", "2"]) == 2
+    assert "extension_length (--extension-length) is not used by" in capsys.readouterr().err
+    assert not (tmp_path / "p.usda").exists()
+
+
+def test_retarget_offers_and_takes_no_implant_option(tmp_path, capsys):
+    """``usdface retarget`` offered --face-transfer, --approximation, --falloff, --extension-length and
+    --no-eyelids and ignored them (the map is eq. 4 of the fitted shapes); the writer refuses them from a
+    script too."""
+    from usdface import api
+    from usdface.errors import OptionError
+
+    with pytest.raises(SystemExit):
+        main(["retarget", "--help"])
+    helptext = capsys.readouterr().out
+    for flag in ("--face-transfer", "--approximation", "--falloff", "--extension-length", "--no-eyelids"):
+        assert flag not in helptext
+    assert "--weight-bounds" in helptext and "--mu" in helptext
+    out = tmp_path / "map.json"
+    with pytest.raises(SystemExit) as code:
+        main(["retarget", str(A), str(C), "-o", str(out), "--falloff", "0.3"])
+    assert code.value.code == 2
+    assert "unrecognized arguments: --falloff" in capsys.readouterr().err
+    with pytest.raises(OptionError, match=r"face_transfer \(--face-transfer\).*not used by the retarget map"):
+        api.write_retarget_map(A, C, out, face_transfer="dt")
+    assert not out.exists()

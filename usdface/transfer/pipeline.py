@@ -60,12 +60,56 @@ from .register import motion_landmarks, register_face
 from .retarget import approximate, namesake_prior, retarget_weights
 
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
-           "default_approximation"]
+           "default_approximation", "MODE_OPTIONS", "IMPLANT_OPTIONS", "check_mode_options", "option_name"]
 
 #: Face-region transfer modes (see :func:`implant_shapes`).
 FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 #: What the adjacent region and the other meshes are blended from / follow.
 APPROXIMATIONS = ("field", "generic", "retarget")
+
+
+#: The options of :func:`personalize_avatar` each face-transfer mode uses besides the fit's, eq. (4)'s and
+#: ``eyelids`` (:func:`check_mode_options` refuses the others when given): the person's field reaches
+#: ``extension_length`` face radii; the older modes join over ``falloff`` edge lengths; ``support`` ramps
+#: the personalization of ``person`` and the offset modes (``dt`` transfers the whole deformation).
+MODE_OPTIONS = {
+    "person": ("extension_length", "support"),
+    "offset": ("falloff", "support"),
+    "dt": ("falloff",),
+    "dt-offset": ("falloff", "support"),
+}
+#: The implant's options (step 5 and the eyelid repair): ``usdface retarget``, which writes the eq. (4) map
+#: only, takes none of them.
+IMPLANT_OPTIONS = ("face_transfer", "approximation", "extension_length", "falloff", "support", "eyelids",
+                   "eyes")
+#: Command-line spellings of options whose flag is not ``--`` + the name with dashes (None: API only).
+_FLAGS = {"support": None, "eyes": None, "eyelids": "--no-eyelids", "weight_bounds": "--weight-bounds"}
+
+
+def option_name(name: str) -> str:
+    """``"falloff (--falloff)"``: an option of :func:`personalize_avatar` in both spellings, the API's and the
+    command line's (``"support (Python API only)"`` for one the commands do not offer)."""
+    flag = _FLAGS.get(name, "--" + name.replace("_", "-"))
+    return f"{name} ({flag})" if flag else f"{name} (Python API only)"
+
+
+def check_mode_options(face_transfer: str, given) -> None:
+    """Refuse (:class:`usdface.errors.OptionError`), before any work, an option among ``given`` (the names
+    the caller gave explicitly) that ``face_transfer`` does not use (:data:`MODE_OPTIONS`): it would be
+    ignored without a word. An unknown ``face_transfer`` is left to :func:`_check_modes`."""
+    from ..errors import OptionError
+
+    used = MODE_OPTIONS.get(face_transfer)
+    if used is None:
+        return
+    for name in sorted(set(given) & {k for ks in MODE_OPTIONS.values() for k in ks}):
+        if name not in used:
+            modes = [m for m, ks in MODE_OPTIONS.items() if name in ks]
+            raise OptionError(
+                f"{option_name(name)} is not used by {option_name('face_transfer')} {face_transfer!r} "
+                f"(it uses {', '.join(option_name(k) for k in used)})",
+                fix=f"drop {option_name(name)}, or choose a {option_name('face_transfer')} that uses it: "
+                    + ", ".join(modes))
 
 
 def default_approximation(face_transfer: str) -> str:
@@ -497,7 +541,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         approximation A_j (the paper). None (default): :func:`default_approximation` of ``face_transfer``.
     extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
         to the generic motion, in face radii (RMS radius of the face region; None = no fade).
-    falloff, support : the join of the older modes (:func:`implant_shapes`).
+    falloff, support : the join of the older modes (:func:`implant_shapes`); ``support`` also ramps the
+        person's personalization. Which mode uses which: :data:`MODE_OPTIONS` (the API and the commands
+        refuse one the mode does not use, :func:`check_mode_options`; this function takes them all).
     face_mesh : prim path (or name) of the face mesh; default: the mesh the shared ARKit shapes move most.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
@@ -872,9 +918,13 @@ def _check_modes(face_transfer: str, approximation: str | None, prior: str, weig
     if prior not in PRIORS:
         raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
     if (face_transfer == "person") != (approximation == "field"):
-        raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
-                           "together", fix="use face_transfer='person' with approximation='field' (the "
-                           "default), or one of the older modes with 'generic' or 'retarget'")
+        from ..errors import OptionError
+
+        raise OptionError(f"{option_name('face_transfer')} {face_transfer!r} and "
+                          f"{option_name('approximation')} {approximation!r} do not go together",
+                          fix="use face_transfer='person' with approximation='field' (the default), or one "
+                              "of the older modes with 'generic' or 'retarget' (leave the approximation out "
+                              "for the mode's default)")
     return approximation
 
 
