@@ -133,3 +133,29 @@ def test_retarget_offers_and_takes_no_implant_option(tmp_path, capsys):
     with pytest.raises(OptionError, match=r"face_transfer \(--face-transfer\).*not used by the retarget map"):
         api.write_retarget_map(A, C, out, face_transfer="dt")
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ weight bounds
+@pytest.mark.parametrize("bounds", [["0", "inf"], ["nan", "1"], ["0", "Infinity"]])
+def test_a_non_finite_weight_bound_points_to_unbounded(tmp_path, capsys, bounds):
+    """``--weight-bounds 0 inf`` ("no upper bound") said "bad weight bounds 0 inf (fix: give LO < HI, e.g.
+    0 1 (or --unbounded))"; refused by the argument parser, saying that no bounds is ``--unbounded``."""
+    for command in ("personalize", "retarget"):
+        with pytest.raises(SystemExit) as code:
+            main([command, str(A), str(C), "-o", str(tmp_path / "o.json"), "--weight-bounds", *bounds])
+        assert code.value.code == 2
+        err = capsys.readouterr().err
+        assert "--weight-bounds" in err and "for no bounds use --unbounded" in err
+
+
+@pytest.mark.parametrize("bounds", [(0.0, float("inf")), (float("-inf"), 1.0), (float("nan"), 1.0)])
+def test_the_api_refuses_a_non_finite_weight_bound(tmp_path, bounds):
+    from usdface import api
+    from usdface.errors import OptionError
+
+    for call in (lambda: api.write_retarget_map(A, C, tmp_path / "m.json", weight_bounds=bounds),
+                 lambda: api.check_personalize_options(weight_bounds=bounds)):
+        with pytest.raises(OptionError, match=r"weight_bounds \(--weight-bounds\) must be finite") as err:
+            call()
+        assert "for no bounds use weight_bounds=None (--unbounded)" in str(err.value)
+    assert not (tmp_path / "m.json").exists()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from . import add_name_map_option, all_warnings, json_path, say_warning
 from .fit import add_contact_option, add_every_option, add_pins_option, take_line
-from .options import mu_value, nonnegative_float, positive_float, reg_value
+from .options import mu_value, nonnegative_float, positive_float, reg_value, weight_bound
 
 
 def add_transfer_options(p) -> None:
@@ -25,7 +25,7 @@ def add_transfer_options(p) -> None:
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
                         "(generalized cross-validation on the face rows; default)")
-    p.add_argument("--weight-bounds", nargs=2, type=float, default=(0.0, 1.0), metavar=("LO", "HI"),
+    p.add_argument("--weight-bounds", nargs=2, type=weight_bound, default=(0.0, 1.0), metavar=("LO", "HI"),
                    help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's channels "
                         "are authored for, so an engine can drive the avatar with the map as it is)")
     p.add_argument("--unbounded", action="store_true",

@@ -899,14 +899,23 @@ def _check_modes(face_transfer: str, approximation: str | None, prior: str, weig
     if map_prior not in MAP_PRIORS:
         raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
     if weight_bounds is not None:
+        from ..errors import OptionError
+
+        name = option_name("weight_bounds")
         try:
             lo, hi = (float(b) for b in weight_bounds)
         except (TypeError, ValueError):
-            raise UsdFaceError(f"bad weight bounds {weight_bounds!r}",
-                               fix="give two numbers LO < HI, e.g. [0, 1] (or --unbounded)") from None
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise UsdFaceError(f"bad weight bounds {lo:g} {hi:g}",
-                               fix="give LO < HI, e.g. 0 1 (or --unbounded)")
+            raise OptionError(f"bad weight bounds {weight_bounds!r}: {name} takes two numbers",
+                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)") from None
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} must be finite",
+                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)")
+        if not lo < hi:
+            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} needs LO < HI",
+                              fix="give LO < HI, e.g. (0, 1) (--weight-bounds 0 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)")
     if face_transfer not in FACE_TRANSFERS:
         raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
                            fix=f"use one of {', '.join(FACE_TRANSFERS)}")
