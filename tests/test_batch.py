@@ -457,6 +457,9 @@ def _layer_with_parameters(path: Path, tmp_path: Path, parameters: dict) -> None
     ("", {"face_transfer": "person", "approximation": "field"}, ""),
     ("face_transfer=offset", {"face_transfer": "offset", "approximation": "retarget"},
      "approximation=retarget, the row asks approximation=generic"),
+    # the fit's contact mode a layer records: a row that drops contact=on asks the default again
+    ("", {"contact": "on"}, "contact=on, the row asks contact=auto"),
+    ("contact=on", {"contact": "on"}, ""),
 ])
 def test_resume_redoes_an_item_whose_options_changed(tmp_path, row, recorded, stale):
     """Editing a row's option (method dt -> ebfr) and running the batch again reported the old dt layer as

@@ -159,3 +159,36 @@ def test_the_api_refuses_a_non_finite_weight_bound(tmp_path, bounds):
             call()
         assert "for no bounds use weight_bounds=None (--unbounded)" in str(err.value)
     assert not (tmp_path / "m.json").exists()
+
+
+# ------------------------------------------------------------------ provenance of what the user gave
+def test_the_layer_records_the_contact_option_and_the_artist_pins(tmp_path, capsys):
+    """A layer personalized with ``--contact on --pins pins.json`` recorded neither: not the contact mode
+    among its parameters, not the pins, and not the pins file among its inputs (an edited pins file left the
+    layer "up to date"). The pins file is an input with its digest, as the capture is."""
+    from usdface.io.layers import file_digest, stale_inputs
+    from usdface.io.usd_rig import usdface_output_provenance
+
+    pins = tmp_path / "pins.json"
+    pins.write_text('{"pins": {"jawOpen": [0, 1, 2]}}')
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(A), str(C), "-o", str(out), "-q", "--contact", "on", "--pins",
+                 str(pins)]) == 0
+    prov = usdface_output_provenance(out)
+    assert prov["parameters"]["contact"] == "on"
+    assert dict(prov["pins"]) == {"jawOpen": 3}
+    recorded = dict(zip(prov["inputs"], prov["inputDigests"], strict=True))
+    assert recorded.get("pins.json") == file_digest(pins)
+    assert stale_inputs(out) == []
+    pins.write_text('{"pins": {"jawOpen": [0, 1]}}')
+    assert any("pins.json" in s for s in stale_inputs(out))
+
+
+def test_read_pins_remembers_its_file(tmp_path):
+    from usdface.io.pins import Pins, read_pins
+
+    pins = tmp_path / "p.json"
+    pins.write_text('{"jawOpen": [4, 2]}')
+    got = read_pins(pins, ["jawOpen", "eyeBlinkLeft"], 10)
+    assert isinstance(got, Pins) and isinstance(got, dict) and got.source == pins
+    assert list(got) == ["jawOpen"] and got["jawOpen"].tolist() == [2, 4]

@@ -295,13 +295,18 @@ _MISSING = object()
 
 @functools.cache
 def _personalize_defaults() -> dict:
-    """The defaults of :func:`usdface.transfer.personalize_avatar`'s options (read once per process)."""
+    """The defaults of :func:`usdface.transfer.personalize_avatar`'s options, and of the fit's it records
+    (``contact``), read once per process."""
     import inspect as _inspect
 
+    from ..personalize.api import fit_personalized_shapes
     from ..transfer.pipeline import personalize_avatar
 
-    return {k: v.default for k, v in _inspect.signature(personalize_avatar).parameters.items()
-            if v.default is not _inspect.Parameter.empty}
+    def defaults(fn):
+        return {k: v.default for k, v in _inspect.signature(fn).parameters.items()
+                if v.default is not _inspect.Parameter.empty}
+
+    return {**defaults(fit_personalized_shapes), **defaults(personalize_avatar)}
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:

@@ -805,7 +805,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                         "map_prior": map_prior,
                         "face_transfer": face_transfer,
                         "approximation": approximation, "prior": prior, "extension_length": extension_length,
-                        "falloff": falloff, "support": support, "eyelids": eyelids},
+                        "falloff": falloff, "support": support, "eyelids": eyelids,
+                        **(_recorded_fit_options(method, fit_options) if fit is not None else {})},
             "name_report": avatar.name_report,
             "changes": _changes(avatar, offsets, regions),
         })
@@ -822,7 +823,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                    for k, v in report["options"].items()},
                     "method": method,
                     "inputs": ([str(capture.source)] if capture.source else [])
-                    + ([str(name_map)] if isinstance(name_map, str | Path) else []),
+                    + ([str(name_map)] if isinstance(name_map, str | Path) else [])
+                    + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source),
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": dict(report["registration"]),
@@ -831,6 +833,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
+            if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}
+                prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
         timings["write"] = time.perf_counter() - t
@@ -963,6 +967,31 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
         hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         if lo > hi:
             raise UsdFaceError(f"bad support {support!r}: low > high", fix="e.g. support=(0.01, 0.03)")
+
+
+def _recorded_fit_options(method: str, fit_options: dict) -> dict:
+    """The fit's options a layer's provenance records besides the method and ``reg``: those given (numbers,
+    words; the artist pins are recorded as ``pins`` and their file among the inputs) and the lip and eyelid
+    ``contact`` (default ``"auto"``) when the method uses it."""
+    from ..personalize.api import METHOD_TAKES
+
+    out = {k: v for k, v in fit_options.items()
+           if k not in ("pins", "contact") and (v is None or isinstance(v, int | float | str | bool))}
+    if "contact" in METHOD_TAKES.get(method, ()):
+        out["contact"] = fit_options.get("contact", "auto")
+    return out
+
+
+def _pins_input(pins, capture_source) -> list[str]:
+    """``[file]`` the artist ``pins`` were read from (:class:`usdface.io.pins.Pins`), for the layer's
+    recorded inputs (with its digest, as the capture's); [] for pins given as arrays, or read from the
+    capture itself."""
+    source = getattr(pins, "source", None)
+    if source is None:
+        return []
+    if capture_source and Path(source).resolve() == Path(capture_source).resolve():
+        return []
+    return [str(source)]
 
 
 def _fit_prior_options(prior: str, method: str, reg) -> dict:
