@@ -56,7 +56,20 @@ def test_the_api_and_the_cli_give_the_same_layer_for_an_older_mode(tmp_path, cap
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     for layer in (cli, py):
-        assert usdface_output_provenance(layer)["parameters"]["approximation"] == "generic"
+        params = usdface_output_provenance(layer)["parameters"]
+        assert params["approximation"] == "generic"
+        # the options the mode uses, with their defaults; not the person field's extension_length
+        assert params["falloff"] == 0.15 and "support" in params and "extension_length" not in params
+
+
+def test_the_report_lists_only_the_options_the_mode_uses():
+    """The report (and so the provenance's parameters) listed extension_length, falloff and support
+    whatever the mode: falloff 0.15 on a person-mode layer, which no falloff shaped."""
+    import usdface
+
+    options = usdface.personalize_avatar(A, C, None, dry_run=True).report["options"]
+    assert options["extension_length"] == 1.0 and options["support"] == (0.01, 0.03)
+    assert "falloff" not in options
 
 
 # ------------------------------------------------------------------ options a mode (or a command) ignores

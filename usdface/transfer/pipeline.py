@@ -801,11 +801,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
+            # the options the run used: of the mode's own, those it uses (MODE_OPTIONS)
             "options": {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds,
                         "map_prior": map_prior,
                         "face_transfer": face_transfer,
-                        "approximation": approximation, "prior": prior, "extension_length": extension_length,
-                        "falloff": falloff, "support": support, "eyelids": eyelids,
+                        "approximation": approximation, "prior": prior,
+                        **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
+                                             ("support", support)) if k in MODE_OPTIONS[face_transfer]},
+                        "eyelids": eyelids,
                         **(_recorded_fit_options(method, fit_options) if fit is not None else {})},
             "name_report": avatar.name_report,
             "changes": _changes(avatar, offsets, regions),
