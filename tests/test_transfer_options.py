@@ -205,3 +205,13 @@ def test_read_pins_remembers_its_file(tmp_path):
     got = read_pins(pins, ["jawOpen", "eyeBlinkLeft"], 10)
     assert isinstance(got, Pins) and isinstance(got, dict) and got.source == pins
     assert list(got) == ["jawOpen"] and got["jawOpen"].tolist() == [2, 4]
+
+
+def test_weight_bounds_and_unbounded_are_not_given_together(tmp_path, capsys):
+    """``--weight-bounds 0 2 --unbounded`` ran unbounded: the bounds given were dropped without a word."""
+    for command in ("personalize", "retarget"):
+        with pytest.raises(SystemExit) as code:
+            main([command, str(A), str(C), "-o", str(tmp_path / "o.json"), "--weight-bounds", "0", "2",
+                  "--unbounded"])
+        assert code.value.code == 2
+        assert "not allowed with argument" in capsys.readouterr().err

@@ -25,11 +25,14 @@ def add_transfer_options(p) -> None:
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
                         "(generalized cross-validation on the face rows; default)")
-    p.add_argument("--weight-bounds", nargs=2, type=weight_bound, default=(0.0, 1.0), metavar=("LO", "HI"),
-                   help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's channels "
-                        "are authored for, so an engine can drive the avatar with the map as it is)")
-    p.add_argument("--unbounded", action="store_true",
-                   help="eq. (4) as the paper: any real weights (overrides --weight-bounds)")
+    bounds = p.add_mutually_exclusive_group()      # --unbounded would drop the bounds given without a word
+    bounds.add_argument("--weight-bounds", nargs=2, type=weight_bound, default=(0.0, 1.0),
+                        metavar=("LO", "HI"),
+                        help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's "
+                             "channels are authored for, so an engine can drive the avatar with the map as "
+                             "it is)")
+    bounds.add_argument("--unbounded", action="store_true",
+                        help="eq. (4) as the paper: any real weights (not with --weight-bounds)")
     p.add_argument("--map-prior", default="namesake", choices=["namesake", "zero"],
                    help="what eq. (4)'s ridge shrinks each row of the map towards: the avatar shape of the "
                         "same ARKit name (default, as a hand-made retargeting table) or zero (the paper)")
