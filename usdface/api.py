@@ -704,8 +704,10 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     """The automatic retargeting map of Menzel et al. 2022 eq. (4) (``usdface retarget``): each personalized
     ARKit shape of the capture as a ridge-regularised combination of the avatar's own shapes, written as a
     ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
-    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written).
-    Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
+    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written);
+    the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.pipeline.IMPLANT_OPTIONS`)
+    do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
+    ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
