@@ -452,6 +452,14 @@ def _layer_with_parameters(path: Path, tmp_path: Path, parameters: dict) -> None
     ("method=dt", {"method": "dt", "support": "(0.01, 0.03)", "mu": "auto", "eyelids": True}, ""),
     ("reg=0.001", {"reg": "1e-3"}, ""),
     ("reg=0.01", {"reg": "1e-3"}, "reg=1e-3, the row asks reg=0.01"),
+    # a row that leaves the approximation out asks its face transfer's default (as the API and the CLI)
+    ("face_transfer=offset", {"face_transfer": "offset", "approximation": "generic"}, ""),
+    ("", {"face_transfer": "person", "approximation": "field"}, ""),
+    ("face_transfer=offset", {"face_transfer": "offset", "approximation": "retarget"},
+     "approximation=retarget, the row asks approximation=generic"),
+    # the fit's contact mode a layer records: a row that drops contact=on asks the default again
+    ("", {"contact": "on"}, "contact=on, the row asks contact=auto"),
+    ("contact=on", {"contact": "on"}, ""),
 ])
 def test_resume_redoes_an_item_whose_options_changed(tmp_path, row, recorded, stale):
     """Editing a row's option (method dt -> ebfr) and running the batch again reported the old dt layer as

@@ -31,15 +31,18 @@ A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 def test_api_refuses_the_numbers_the_cli_refuses(tmp_path, options, needle):
     """A script and the CLI behave identically: ``mu=nan`` wrote a "successful" map of 2,704 NaN, ``mu=0``
     raised numpy's LinAlgError, ``extension_length=-1`` was taken as 1. Refused before any work, nothing
-    written."""
+    written. The implant's options are not the retarget map's (refused as such); falloff is the older
+    modes'."""
     from usdface import api
 
     out = tmp_path / "map.json"
-    with pytest.raises(UsdFaceError, match=needle) as err:
+    implant = {"extension_length", "falloff", "support"} & set(options)
+    with pytest.raises(UsdFaceError, match="not used by the retarget map" if implant else needle) as err:
         api.write_retarget_map(A, C, out, **options)
     assert err.value.fix and not out.exists()
+    mode = {"face_transfer": "offset"} if "falloff" in options else {}
     with pytest.raises(UsdFaceError, match=needle):
-        api.personalize_avatar(A, C, tmp_path / "p.usda", **options)
+        api.personalize_avatar(A, C, tmp_path / "p.usda", **options, **mode)
     assert not (tmp_path / "p.usda").exists()
 
 

@@ -547,6 +547,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     # own keyword arguments (a given rig, the provenance's command) are not the user's options. The values
     # are checked where they always were (a given rig skips the fit's checks; numpy booleans pass)
     _refuse_unknown_options([k for k in options if k not in ("command", "rig", "layer_edit", "fit_options")])
+    from .transfer.pipeline import check_mode_options
+
+    check_mode_options(options.get("face_transfer", "person"), options)   # one the mode would ignore
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, take=take, **options))
     if out_path is not None and not options.get("dry_run"):
@@ -701,13 +704,16 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     """The automatic retargeting map of Menzel et al. 2022 eq. (4) (``usdface retarget``): each personalized
     ARKit shape of the capture as a ridge-regularised combination of the avatar's own shapes, written as a
     ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
-    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written).
-    Returns the ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
+    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written);
+    the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.pipeline.IMPLANT_OPTIONS`)
+    do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
+    ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.retarget import weight_map_csv, weight_map_json
 
+    _refuse_implant_options(options)
     refuse_usdface_output(avatar_path)
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
@@ -722,6 +728,21 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
     return result
+
+
+def _refuse_implant_options(options) -> None:
+    """Refuse (:class:`usdface.errors.OptionError`) an implant option among ``options`` given to
+    :func:`write_retarget_map`: the map is eq. (4) of the fit's shapes on the avatar's, whatever the face
+    transfer (``usdface retarget`` does not offer them)."""
+    from .errors import OptionError
+    from .transfer.pipeline import IMPLANT_OPTIONS, option_name
+
+    given = [k for k in IMPLANT_OPTIONS if k in options]
+    if given:
+        raise OptionError(f"{', '.join(option_name(k) for k in given)}: not used by the retarget map "
+                          "(eq. 4 of the fitted shapes; no implant is written)",
+                          fix="drop them, or use personalize (usdface personalize): it implants the "
+                              "shapes")
 
 
 #: Options :func:`personalize_avatar` itself takes (the rest go to :func:`usdface.transfer.personalize_avatar`
@@ -770,7 +791,8 @@ def check_personalize_options(**options: Any) -> None:
         if name in options and not isinstance(options[name], bool):
             raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
-    _pipeline._check_modes(get("face_transfer", "person"), get("approximation", "field"),
+    _pipeline.check_mode_options(get("face_transfer", "person"), options)
+    _pipeline._check_modes(get("face_transfer", "person"), get("approximation"),
                            get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
                            get("map_prior", "namesake"))
     _pipeline.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),

@@ -59,6 +59,12 @@ class GeometryError(UsdFaceError):
     """Geometry is unusable: NaN/inf, empty, degenerate, mismatched vertex counts."""
 
 
+class OptionError(UsdFaceError):
+    """An option cannot be used as given: one the chosen mode or command does not use (``falloff`` with
+    ``face_transfer='person'``, a face-transfer option for ``retarget``), or a value out of its range. Named
+    in both spellings (``falloff (--falloff)``), refused before any work."""
+
+
 class OutputExistsError(UsdFaceError):
     """The output file exists and --force was not given."""
 

@@ -23,6 +23,14 @@ def finite_float(text: str) -> float:
     return _number(text)
 
 
+def weight_bound(text: str) -> float:
+    """A finite number: one end of ``--weight-bounds`` (``inf`` is no bound: that is ``--unbounded``)."""
+    try:
+        return _number(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (for no bounds use --unbounded)") from None
+
+
 def positive_float(text: str) -> float:
     """A finite number > 0."""
     value = _number(text)

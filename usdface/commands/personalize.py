@@ -8,11 +8,12 @@ from pathlib import Path
 
 from . import add_name_map_option, all_warnings, json_path, say_warning
 from .fit import add_contact_option, add_every_option, add_pins_option, take_line
-from .options import mu_value, nonnegative_float, positive_float, reg_value
+from .options import mu_value, nonnegative_float, positive_float, reg_value, weight_bound
 
 
 def add_transfer_options(p) -> None:
-    """Options shared by ``personalize`` and ``retarget`` (the fit and the transfer)."""
+    """Options shared by ``personalize`` and ``retarget``: the inputs, the fit and eq. (4)'s map (the
+    implant's own are :func:`add_implant_options`, ``personalize`` only)."""
     p.add_argument("avatar", help="UsdSkel avatar (.usd/.usda/.usdc) with ARKit-named BlendShapes")
     p.add_argument("capture", help="capture folder (neutral.obj, template/, train/) or capture .usda, or a "
                                    "take (USD take or OBJ-sequence folder with a Live Link CSV): every frame "
@@ -24,11 +25,14 @@ def add_transfer_options(p) -> None:
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
                         "(generalized cross-validation on the face rows; default)")
-    p.add_argument("--weight-bounds", nargs=2, type=float, default=(0.0, 1.0), metavar=("LO", "HI"),
-                   help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's channels "
-                        "are authored for, so an engine can drive the avatar with the map as it is)")
-    p.add_argument("--unbounded", action="store_true",
-                   help="eq. (4) as the paper: any real weights (overrides --weight-bounds)")
+    bounds = p.add_mutually_exclusive_group()      # --unbounded would drop the bounds given without a word
+    bounds.add_argument("--weight-bounds", nargs=2, type=weight_bound, default=(0.0, 1.0),
+                        metavar=("LO", "HI"),
+                        help="range of the eq. (4) map's weights (default 0 1: the range an ARKit rig's "
+                             "channels are authored for, so an engine can drive the avatar with the map as "
+                             "it is)")
+    bounds.add_argument("--unbounded", action="store_true",
+                        help="eq. (4) as the paper: any real weights (not with --weight-bounds)")
     p.add_argument("--map-prior", default="namesake", choices=["namesake", "zero"],
                    help="what eq. (4)'s ridge shrinks each row of the map towards: the avatar shape of the "
                         "same ARKit name (default, as a hand-made retargeting table) or zero (the paper)")
@@ -39,6 +43,15 @@ def add_transfer_options(p) -> None:
                    help="correspondence cache (.npz): reused when it matches the avatar face and the "
                         "capture's template, written otherwise (a cache of another avatar is rewritten, "
                         "with a warning: it is a cache, not an input)")
+    add_contact_option(p)
+    add_every_option(p)
+    add_name_map_option(p)
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+
+
+def add_implant_options(p) -> None:
+    """The implant's options (how the face region receives the shapes, what lies beyond, the eyelid repair):
+    ``personalize`` only; ``retarget`` writes eq. (4)'s map and uses none of them."""
     p.add_argument("--face-transfer", default="person", choices=["person", "offset", "dt", "dt-offset"],
                    help="how the face region receives the shapes (default: person = the person's motion "
                         "A_j + M(B_j - P_j); offset = the older B_j - T_j deviation; dt = the paper's DT)")
@@ -47,33 +60,39 @@ def add_transfer_options(p) -> None:
                         "--face-transfer person: the person's rotation+scale field of the generic motion, "
                         "extended smoothly), generic (default with the older modes) or retarget (eq. 4, the "
                         "paper)")
-    p.add_argument("--extension-length", type=positive_float, default=1.0,
-                   help="with the field: how far the person's motion reaches beyond the face before it fades "
-                        "to the generic, in face radii (default 1)")
-    p.add_argument("--falloff", type=nonnegative_float, default=0.15,
-                   help="older modes: width of the seamless join beyond the face in capture edge lengths "
-                        "(0 = harmonic over the whole adjacent region, as in the paper)")
+    # None: not given (a mode that does not use an option refuses it when given, MODE_OPTIONS)
+    p.add_argument("--extension-length", type=positive_float, default=None,
+                   help="--face-transfer person only: how far the person's motion reaches beyond the face "
+                        "before it fades to the generic, in face radii (default 1)")
+    p.add_argument("--falloff", type=nonnegative_float, default=None,
+                   help="older modes only (offset, dt, dt-offset): width of the seamless join beyond the "
+                        "face in capture edge lengths (default 0.15; 0 = harmonic over the whole adjacent "
+                        "region, as in the paper)")
     p.add_argument("--no-eyelids", action="store_true", help="skip the eyelid-eyeball repair")
-    add_contact_option(p)
-    add_every_option(p)
-    add_name_map_option(p)
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
 def transfer_kwargs(args) -> dict:
+    """The keyword arguments of :func:`add_transfer_options` for :func:`usdface.api.personalize_avatar` /
+    :func:`usdface.api.write_retarget_map`."""
     reg = args.reg
     try:
         reg = float(reg)
     except ValueError:
         pass
-    approximation = args.approximation or ("field" if args.face_transfer == "person" else "generic")
     return {"method": args.method, "reg": reg, "mu": args.mu, "correspondence": args.correspondence,
-            "face_transfer": args.face_transfer, "approximation": approximation, "falloff": args.falloff,
-            "prior": args.prior, "extension_length": args.extension_length,
-            "eyelids": not args.no_eyelids, "name_map": args.name_map, "contact": args.contact,
+            "prior": args.prior, "name_map": args.name_map, "contact": args.contact,
             **({"every": args.every} if getattr(args, "every", 1) != 1 else {}),
             "weight_bounds": None if args.unbounded else tuple(args.weight_bounds),
             "map_prior": args.map_prior}
+
+
+def implant_kwargs(args) -> dict:
+    """The keyword arguments of :func:`add_implant_options`: an option left out stays out (the mode's
+    default applies; one the mode does not use is refused only when given)."""
+    given = {"approximation": args.approximation, "extension_length": args.extension_length,
+             "falloff": args.falloff}
+    return {"face_transfer": args.face_transfer, "eyelids": not args.no_eyelids,
+            **{k: v for k, v in given.items() if v is not None}}
 
 
 def register(subparsers) -> None:
@@ -83,6 +102,7 @@ def register(subparsers) -> None:
                     "with the avatar's face, and write a new USD layer over the untouched avatar with "
                     "personalized offsets for every BlendShape (Menzel et al. 2022, sec. 3.2-3.3).")
     add_transfer_options(p)
+    add_implant_options(p)
     add_pins_option(p)
     p.add_argument("-o", "--output", help="output layer (.usda/.usdc; default: "
                                           "<avatar name>.personalized.usda in the current folder)")
@@ -145,7 +165,8 @@ def run(args) -> int:
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
                                 command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
-                                **transfer_kwargs(args), **({"pins": args.pins} if args.pins else {}))
+                                **transfer_kwargs(args), **implant_kwargs(args),
+                                **({"pins": args.pins} if args.pins else {}))
     rep = result.report
     # a dry run says whether a real run would write: exit status 1 when it would refuse (a preflight)
     refusal = refusal or rep.pop("would_refuse", None)

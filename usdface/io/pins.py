@@ -21,10 +21,20 @@ import numpy as np
 from ..arkit import normalize_name
 from ..errors import InputFileError
 
-__all__ = ["read_pins", "PIN_PRIMVAR"]
+__all__ = ["read_pins", "Pins", "PIN_PRIMVAR"]
 
 #: Namespace of the per-vertex pin primvars (``primvars:usdface:pin:<shape>``).
 PIN_PRIMVAR = "usdface:pin:"
+
+
+class Pins(dict):
+    """Artist pins read from a file: ``{capture shape name: vertex indices[int64]}`` (a dict, as
+    :func:`usdface.personalize.fit_personalized_shapes` takes them) that remembers the file (``source``), so
+    a layer personalized with them records that file and its digest among its inputs."""
+
+    def __init__(self, pins=(), source=None):
+        super().__init__(pins)
+        self.source = None if source is None else Path(source)
 
 
 def _shape_index(names) -> dict:
@@ -102,14 +112,15 @@ def _read_usd(path: Path, names, n: int) -> dict:
                          fix="paint per-vertex primvars primvars:usdface:pin:<shape> on the Template mesh")
 
 
-def read_pins(path, names, n_vertices: int) -> dict:
-    """Artist pins from ``path`` (JSON or USD, see the module doc) as ``{shape name in names: vertex
-    indices[int64]}`` for a capture with shape ``names`` and ``n_vertices`` vertices. Raises
+def read_pins(path, names, n_vertices: int) -> Pins:
+    """Artist pins from ``path`` (JSON or USD, see the module doc) as :class:`Pins` ``{shape name in names:
+    vertex indices[int64]}`` (``.source`` = ``path``) for a capture with shape ``names`` and ``n_vertices``
+    vertices. Raises
     :class:`InputFileError` naming the file (and prim) for a missing file, an unknown shape, indices out of
     range or primvars of the wrong size."""
     p = Path(path)
     if not p.is_file():
         raise InputFileError("pins file not found", path=p, fix="pass an existing .json or .usd file")
     if p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
-        return _read_usd(p, names, int(n_vertices))
-    return _read_json(p, names, int(n_vertices))
+        return Pins(_read_usd(p, names, int(n_vertices)), source=p)
+    return Pins(_read_json(p, names, int(n_vertices)), source=p)

@@ -295,13 +295,18 @@ _MISSING = object()
 
 @functools.cache
 def _personalize_defaults() -> dict:
-    """The defaults of :func:`usdface.transfer.personalize_avatar`'s options (read once per process)."""
+    """The defaults of :func:`usdface.transfer.personalize_avatar`'s options, and of the fit's it records
+    (``contact``), read once per process."""
     import inspect as _inspect
 
+    from ..personalize.api import fit_personalized_shapes
     from ..transfer.pipeline import personalize_avatar
 
-    return {k: v.default for k, v in _inspect.signature(personalize_avatar).parameters.items()
-            if v.default is not _inspect.Parameter.empty}
+    def defaults(fn):
+        return {k: v.default for k, v in _inspect.signature(fn).parameters.items()
+                if v.default is not _inspect.Parameter.empty}
+
+    return {**defaults(fit_personalized_shapes), **defaults(personalize_avatar)}
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
@@ -317,7 +322,11 @@ def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
             return None
     if not isinstance(params, dict):
         return None
-    defaults = _personalize_defaults()
+    from ..transfer.pipeline import default_approximation
+
+    defaults = dict(_personalize_defaults())
+    # the approximation a row leaves out is its face transfer's (as the API and the CLI resolve it)
+    defaults["approximation"] = default_approximation(options.get("face_transfer", defaults["face_transfer"]))
     for key, was in sorted(params.items()):
         wanted = options.get(key, defaults.get(key, _MISSING))
         if wanted is not _MISSING and not _same_value(was, wanted):

@@ -60,12 +60,65 @@ from .partial_dt import blend_adjacent, face_deformation_transfer, personalizati
 from .register import motion_landmarks, register_face
 from .retarget import approximate, namesake_prior, retarget_weights
 
-__all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS"]
+__all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
+           "default_approximation", "MODE_OPTIONS", "IMPLANT_OPTIONS", "check_mode_options", "option_name"]
 
 #: Face-region transfer modes (see :func:`implant_shapes`).
 FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 #: What the adjacent region and the other meshes are blended from / follow.
 APPROXIMATIONS = ("field", "generic", "retarget")
+
+
+#: The options of :func:`personalize_avatar` each face-transfer mode uses besides the fit's, eq. (4)'s and
+#: ``eyelids`` (:func:`check_mode_options` refuses the others when given): the person's field reaches
+#: ``extension_length`` face radii; the older modes join over ``falloff`` edge lengths; ``support`` ramps
+#: the personalization of ``person`` and the offset modes (``dt`` transfers the whole deformation).
+MODE_OPTIONS = {
+    "person": ("extension_length", "support"),
+    "offset": ("falloff", "support"),
+    "dt": ("falloff",),
+    "dt-offset": ("falloff", "support"),
+}
+#: The implant's options (step 5 and the eyelid repair): ``usdface retarget``, which writes the eq. (4) map
+#: only, takes none of them.
+IMPLANT_OPTIONS = ("face_transfer", "approximation", "extension_length", "falloff", "support", "eyelids",
+                   "eyes")
+#: Command-line spellings of options whose flag is not ``--`` + the name with dashes (None: API only).
+_FLAGS = {"support": None, "eyes": None, "eyelids": "--no-eyelids", "weight_bounds": "--weight-bounds"}
+
+
+def option_name(name: str) -> str:
+    """``"falloff (--falloff)"``: an option of :func:`personalize_avatar` in both spellings, the API's and the
+    command line's (``"support (Python API only)"`` for one the commands do not offer)."""
+    flag = _FLAGS.get(name, "--" + name.replace("_", "-"))
+    return f"{name} ({flag})" if flag else f"{name} (Python API only)"
+
+
+def check_mode_options(face_transfer: str, given) -> None:
+    """Refuse (:class:`usdface.errors.OptionError`), before any work, an option among ``given`` (the names
+    the caller gave explicitly) that ``face_transfer`` does not use (:data:`MODE_OPTIONS`): it would be
+    ignored without a word. An unknown ``face_transfer`` is left to :func:`_check_modes`."""
+    from ..errors import OptionError
+
+    used = MODE_OPTIONS.get(face_transfer)
+    if used is None:
+        return
+    for name in sorted(set(given) & {k for ks in MODE_OPTIONS.values() for k in ks}):
+        if name not in used:
+            modes = [m for m, ks in MODE_OPTIONS.items() if name in ks]
+            raise OptionError(
+                f"{option_name(name)} is not used by {option_name('face_transfer')} {face_transfer!r} "
+                f"(it uses {', '.join(option_name(k) for k in used)})",
+                fix=f"drop {option_name(name)}, or choose a {option_name('face_transfer')} that uses it: "
+                    + ", ".join(modes))
+
+
+def default_approximation(face_transfer: str) -> str:
+    """The approximation a face-transfer mode gets when none is given: ``"field"`` for ``"person"`` (the only
+    one it goes with), ``"generic"`` for the older modes. The one rule the Python API, ``usdface
+    personalize`` and ``usdface batch`` share, so the same mode gives the same result from each."""
+    return "field" if face_transfer == "person" else "generic"
+
 #: Width of the join between the face region and the field beyond, in face radii: 1.1-1.2 cm on a head, so it
 #: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
 #: left a step where the direct result and the field differ), and more on finer meshes.
@@ -449,7 +502,7 @@ def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_t
 @single_threaded_blas
 def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel", reg="auto",
                        mu="auto", correspondence=None, force: bool = False, dry_run: bool = False,
-                       face_transfer: str = "person", approximation: str = "field", falloff: float = 0.15,
+                       face_transfer: str = "person", approximation: str | None = None, falloff: float = 0.15,
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
@@ -485,12 +538,15 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         ``A_j + M (B_j - P_j)`` (:func:`usdface.transfer.implant.face_personalization`); the older modes map
         the deviation from the capture's template: ``"offset"`` (``A_j + M (B_j - T_j)``), ``"dt"`` (the
         paper's deformation transfer), ``"dt-offset"`` (:func:`implant_shapes`).
-    approximation : beyond the face region and on the other meshes: ``"field"`` (default) the person's motion
-        as a rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`);
-        ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4) approximation A_j (the paper).
+    approximation : beyond the face region and on the other meshes: ``"field"`` the person's motion as a
+        rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`; the only one
+        ``"person"`` goes with); ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4)
+        approximation A_j (the paper). None (default): :func:`default_approximation` of ``face_transfer``.
     extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
         to the generic motion, in face radii (RMS radius of the face region; None = no fade).
-    falloff, support : the join of the older modes (:func:`implant_shapes`).
+    falloff, support : the join of the older modes (:func:`implant_shapes`); ``support`` also ramps the
+        person's personalization. Which mode uses which: :data:`MODE_OPTIONS` (the API and the commands
+        refuse one the mode does not use, :func:`check_mode_options`; this function takes them all).
     face_mesh : prim path (or name) of the face mesh; default: the mesh the shared ARKit shapes move most.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
@@ -499,7 +555,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
+    approximation = _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
     check_numbers(mu=mu, extension_length=extension_length, falloff=falloff, support=support)
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
@@ -757,11 +813,15 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
+            # the options the run used: of the mode's own, those it uses (MODE_OPTIONS)
             "options": {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds,
                         "map_prior": map_prior,
                         "face_transfer": face_transfer,
-                        "approximation": approximation, "prior": prior, "extension_length": extension_length,
-                        "falloff": falloff, "support": support, "eyelids": eyelids},
+                        "approximation": approximation, "prior": prior,
+                        **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
+                                             ("support", support)) if k in MODE_OPTIONS[face_transfer]},
+                        "eyelids": eyelids,
+                        **(_recorded_fit_options(method, fit_options) if fit is not None else {})},
             "name_report": avatar.name_report,
             "changes": _changes(avatar, offsets, regions),
         })
@@ -778,7 +838,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                    for k, v in report["options"].items()},
                     "method": method,
                     "inputs": ([str(capture.source)] if capture.source else [])
-                    + ([str(name_map)] if isinstance(name_map, str | Path) else []),
+                    + ([str(name_map)] if isinstance(name_map, str | Path) else [])
+                    + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source),
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": dict(report["registration"]),
@@ -789,6 +850,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
+            if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}
+                prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
         timings["write"] = time.perf_counter() - t
@@ -849,33 +912,50 @@ def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
     return dataclasses.replace(avatar, meshes=[moved(m) for m in avatar.meshes], metadata=meta), origin
 
 
-def _check_modes(face_transfer: str, approximation: str, prior: str, weight_bounds=None,
-                 map_prior: str = "namesake") -> None:
+def _check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,
+                 map_prior: str = "namesake") -> str:
     """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
-    (:class:`usdface.errors.UsdFaceError`)."""
+    (:class:`usdface.errors.UsdFaceError`); returns the approximation to use (``approximation``, or
+    :func:`default_approximation` of ``face_transfer`` when None)."""
     if map_prior not in MAP_PRIORS:
         raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
     if weight_bounds is not None:
+        from ..errors import OptionError
+
+        name = option_name("weight_bounds")
         try:
             lo, hi = (float(b) for b in weight_bounds)
         except (TypeError, ValueError):
-            raise UsdFaceError(f"bad weight bounds {weight_bounds!r}",
-                               fix="give two numbers LO < HI, e.g. [0, 1] (or --unbounded)") from None
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise UsdFaceError(f"bad weight bounds {lo:g} {hi:g}",
-                               fix="give LO < HI, e.g. 0 1 (or --unbounded)")
+            raise OptionError(f"bad weight bounds {weight_bounds!r}: {name} takes two numbers",
+                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)") from None
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} must be finite",
+                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)")
+        if not lo < hi:
+            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} needs LO < HI",
+                              fix="give LO < HI, e.g. (0, 1) (--weight-bounds 0 1); for no bounds use "
+                                  "weight_bounds=None (--unbounded)")
     if face_transfer not in FACE_TRANSFERS:
         raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
                            fix=f"use one of {', '.join(FACE_TRANSFERS)}")
+    if approximation is None:
+        approximation = default_approximation(face_transfer)
     if approximation not in APPROXIMATIONS:
         raise UsdFaceError(f"unknown approximation {approximation!r}",
                            fix=f"use one of {', '.join(APPROXIMATIONS)}")
     if prior not in PRIORS:
         raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
     if (face_transfer == "person") != (approximation == "field"):
-        raise UsdFaceError(f"face_transfer {face_transfer!r} and approximation {approximation!r} do not go "
-                           "together", fix="use face_transfer='person' with approximation='field' (the "
-                           "default), or one of the older modes with 'generic' or 'retarget'")
+        from ..errors import OptionError
+
+        raise OptionError(f"{option_name('face_transfer')} {face_transfer!r} and "
+                          f"{option_name('approximation')} {approximation!r} do not go together",
+                          fix="use face_transfer='person' with approximation='field' (the default), or one "
+                              "of the older modes with 'generic' or 'retarget' (leave the approximation out "
+                              "for the mode's default)")
+    return approximation
 
 
 def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.01, 0.03)) -> None:
@@ -904,6 +984,31 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
         hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         if lo > hi:
             raise UsdFaceError(f"bad support {support!r}: low > high", fix="e.g. support=(0.01, 0.03)")
+
+
+def _recorded_fit_options(method: str, fit_options: dict) -> dict:
+    """The fit's options a layer's provenance records besides the method and ``reg``: those given (numbers,
+    words; the artist pins are recorded as ``pins`` and their file among the inputs) and the lip and eyelid
+    ``contact`` (default ``"auto"``) when the method uses it."""
+    from ..personalize.api import METHOD_TAKES
+
+    out = {k: v for k, v in fit_options.items()
+           if k not in ("pins", "contact") and (v is None or isinstance(v, int | float | str | bool))}
+    if "contact" in METHOD_TAKES.get(method, ()):
+        out["contact"] = fit_options.get("contact", "auto")
+    return out
+
+
+def _pins_input(pins, capture_source) -> list[str]:
+    """``[file]`` the artist ``pins`` were read from (:class:`usdface.io.pins.Pins`), for the layer's
+    recorded inputs (with its digest, as the capture's); [] for pins given as arrays, or read from the
+    capture itself."""
+    source = getattr(pins, "source", None)
+    if source is None:
+        return []
+    if capture_source and Path(source).resolve() == Path(capture_source).resolve():
+        return []
+    return [str(source)]
 
 
 def _fit_prior_options(prior: str, method: str, reg) -> dict:
