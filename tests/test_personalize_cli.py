@@ -173,7 +173,7 @@ def test_retarget_map_is_bounded_by_default_and_the_papers_on_request(samples, t
     assert "bad weight bounds" in capsys.readouterr().err
 
 
-def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, capsys, monkeypatch):
+def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, monkeypatch):
     """``usdface retarget`` writes eq. (4)'s map and stops there: the same weights a personalize run
     computes, and no implant, eyelid repair or layer (it ran the whole transfer after the map: ~30 s of a
     225k-vertex head for a file of 51 x 51 numbers)."""
@@ -189,8 +189,6 @@ def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, capsys
     monkeypatch.setattr(pipeline, "repair_eyelids", no_implant)
     assert main(["retarget", str(samples / "avatar.usda"), str(samples / "capture.usda"),
                  "-o", str(tmp_path / "map.json")]) == 0
-    err = capsys.readouterr().err
-    assert "retarget [5/5]" in err and "personalize [" not in err          # its own progress, 5 steps
     doc = json.loads((tmp_path / "map.json").read_text())
     assert doc["source"] == list(full.names) and doc["target"] == list(full.avatar_names)
     assert np.abs(np.array(doc["weights"]) - full.weights).max() <= 1e-6         # written to 6 decimals

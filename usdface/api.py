@@ -704,7 +704,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     """The automatic retargeting map of Menzel et al. 2022 eq. (4) (``usdface retarget``): each personalized
     ARKit shape of the capture as a ridge-regularised combination of the avatar's own shapes, written as a
     ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
-    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; no layer is written);
+    work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; it stops after eq. 4:
+    no implant, no layer, empty ``offsets``);
     the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.pipeline.IMPLANT_OPTIONS`)
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
     ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
