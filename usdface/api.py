@@ -221,16 +221,18 @@ def _refuse_capture_as_take(path: PathLike) -> None:
                                "OBJ-sequence folder with its Live Link CSV")
 
 
-def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float = 60.0,
+def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float | None = None,
                          force: bool = False) -> tuple[Path, LiveLinkTake]:
     """Convert a Live Link Face CSV into a USD file whose defaultPrim is a ``SkelAnimation`` with the ARKit
     weights as time samples and the head/eye angles (and other numeric columns) as ``usdface:curves:*``
     attributes (``usdface anim import``). ``timecode_rate``: frames per second of the CSV's timecode FF
-    field, also the stage's timeCodesPerSecond. Returns the path written (atomically; an existing file
-    needs ``force``) and the :class:`usdface.io.livelink.LiveLinkTake` read."""
+    field, also the stage's timeCodesPerSecond (None: 60, the app's, with a warning when the take looks like
+    30; a frame field at or above the rate raises :class:`usdface.errors.TimecodeError`). Returns the path
+    written (atomically; an existing file needs ``force``) and the
+    :class:`usdface.io.livelink.LiveLinkTake` read."""
     from . import __version__
     from .io.layers import check_output_path
-    from .io.livelink import read_livelink_take
+    from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
     from .io.usd_anim import write_animation_usd
     from .progress import steps
 
@@ -239,7 +241,8 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
         p.start(f"read {Path(csv).name}")
         data = read_livelink_take(csv, timecode_rate)
         p.start(f"write {Path(out_path).name} ({len(data.times)} frames)")
-        out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
+        rate = DEFAULT_TIMECODE_RATE if timecode_rate is None else timecode_rate
+        out = write_animation_usd(out_path, data.names, data.weights, data.times, rate,
                                   curves={**data.angles, **data.extra}, force=force,
                                   layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
                                               "version": __version__})

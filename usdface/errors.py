@@ -41,6 +41,11 @@ class InputFileError(UsdFaceError):
     """A file is missing, unreadable or not of the expected format."""
 
 
+class TimecodeError(InputFileError):
+    """A Live Link Face take's timecodes do not fit the rate they are read at (a frame field at or above the
+    rate, a negative field): reading on would place the frames at wrong times."""
+
+
 class RigError(UsdFaceError):
     """An avatar's UsdSkel face rig is malformed (no SkelRoot, no blend shapes, inconsistent arrays...)."""
 
