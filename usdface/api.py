@@ -813,7 +813,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
-    from .io.atomic import check_output_file, check_writable
+    from .io.atomic import check_output_file
     from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
 
     items = read_manifest(manifest)
@@ -821,11 +821,12 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         item.options = {**dict(options or {}), **item.options}
     manifest = Path(manifest)
     path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
-    # the report is rewritten on every run (resume), but never over the manifest or an item's input
+    # the report is rewritten on every run (resume), but never over the manifest or an item's input; it is
+    # written after the last item, so a place that refuses it (a read-only folder, an immutable report) stops
+    # the batch before the first
     check_output_file(path, True, suffixes=(".json",), what="batch report",
-                      inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))])
-    # written after the last item: a folder that refuses it must stop the batch before the first
-    check_writable(path, what="batch report", fix="pass --report PATH in a folder you can write to")
+                      inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
+                      fix="pass --report PATH in a folder you can write to")
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options checked before any item runs
         from .errors import InputFileError, UsdFaceError
