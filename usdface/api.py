@@ -922,12 +922,15 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
     for text in stale_inputs(layer_path, given):
         warnings.warn(text, UserWarning, stacklevel=2)          # the page is a sign-off: say it first
-    with progress.steps("review", 2) as advance:
+    what = [w for w, given in (("fit figures", fit_errors), ("take", take is not None)) if given]
+    with progress.steps("review", 3) as p:          # each step named for what it does while it runs
+        p.start(f"read {Path(layer_path).name} (meshes, shapes" + "".join(f", {w}" for w in what) + ")")
         data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
-        advance("page")
+        p.start("build the page")
         page = build_review_html(data)
-        advance()
-    return write_text_atomic(out, page, force=force)
+        p.start(f"write {out.name}")
+        written = write_text_atomic(out, page, force=force)
+    return written
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
