@@ -215,3 +215,122 @@ def test_a_failed_usd_save_publishes_nothing_and_keeps_the_existing_output(sampl
     assert sorted(p.name for p in out.parent.iterdir()) == ["avatar.usda"]
     assert main(args[:3] + ["-o", str(tmp_path / "new.usda"), "-q"]) == 2
     assert not (tmp_path / "new.usda").exists()
+
+
+# ------------------------------------------------------------------------- outputs that cannot be written
+@pytest.fixture
+def chattr(tmp_path):
+    """``chattr(path, "+i")``: set an inode flag (root may not write an immutable file or folder either, so
+    this is what a read-only place is for tests run as root); every flag set is lifted at the end. Skips
+    where the file system or the user cannot set flags."""
+    import shutil
+    import subprocess
+
+    if shutil.which("chattr") is None:
+        pytest.skip("no chattr here")
+    done = []
+
+    def set_flag(path, flag):
+        res = subprocess.run(["chattr", flag, str(path)], capture_output=True, text=True)
+        if res.returncode != 0:
+            pytest.skip(f"chattr {flag} refused here: {res.stderr.strip()}")
+        done.append((path, flag.replace("+", "-")))
+
+    yield set_flag
+    for path, flag in reversed(done):
+        subprocess.run(["chattr", flag, str(path)], capture_output=True)
+
+
+def test_an_immutable_output_file_is_refused_before_any_work_even_with_force(tmp_path, chattr):
+    """User trial: ``-o`` an immutable file with ``--force`` ran the whole personalization, then failed to
+    publish (EPERM). The check names the file, the flag and the fix."""
+    from usdface.errors import InputFileError, OutputNotWritableError
+
+    out = tmp_path / "out.usda"
+    out.write_text("#usda 1.0\n")
+    atomic.check_output_file(out, force=True)                 # a plain existing file: fine with force
+    chattr(out, "+i")
+    with pytest.raises(OutputNotWritableError) as info:
+        atomic.check_output_file(out, force=True, what="output layer")
+    text = str(info.value)
+    assert str(out) in text and "immutable" in text and f"chattr -i {out}" in info.value.fix
+    assert isinstance(info.value, InputFileError)             # the input/output error family
+    with pytest.raises(OutputExistsError):                    # without force: that it exists comes first
+        atomic.check_output_file(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.usda"]
+
+
+def test_an_immutable_folder_refuses_outputs_in_it_before_any_work(tmp_path, chattr):
+    from usdface.errors import OutputNotWritableError
+
+    locked = tmp_path / "locked"
+    (locked / "old").mkdir(parents=True)
+    chattr(locked, "+i")
+    for check in (lambda: atomic.check_output_file(locked / "a.usda"),
+                  lambda: atomic.check_output_file(locked / "new" / "deeper" / "a.usda"),
+                  lambda: check_output_dir(locked / "capture"),
+                  lambda: check_output_dir(locked, force=True)):
+        with pytest.raises(OutputNotWritableError) as info:
+            check()
+        assert f"cannot be written in {locked}" in str(info.value) and "immutable" in str(info.value)
+        assert "chattr -i" in info.value.fix
+    assert [p.name for p in locked.iterdir()] == ["old"]         # nothing left behind
+    with pytest.raises(OutputNotWritableError):                  # an empty immutable output folder too
+        check_output_dir(locked / "old")
+
+
+def test_an_output_under_a_regular_file_is_refused_with_the_enotdir_fix(tmp_path):
+    """``-o notes.txt/capture``: the folder could never be made (ENOTDIR), found only after the work."""
+    import errno
+
+    from usdface.errors import OutputNotWritableError, write_fix
+
+    (tmp_path / "notes.txt").write_text("x")
+    for check in (lambda: check_output_dir(tmp_path / "notes.txt" / "capture"),
+                  lambda: atomic.check_output_file(tmp_path / "notes.txt" / "sub" / "a.usda")):
+        with pytest.raises(OutputNotWritableError, match="notes.txt is a file, not a folder") as info:
+            check()
+        assert info.value.fix == write_fix(errno.ENOTDIR)
+
+
+def test_a_read_only_place_is_named_with_the_fix_for_its_errno(tmp_path, monkeypatch):
+    """A read-only file system (EROFS): the fix of the shared errno table (errors.write_fix), the same the
+    CLI gives when a write fails later; the table lives in errors.py, the CLI uses it."""
+    import errno
+    import tempfile
+
+    from usdface import cli
+    from usdface.errors import OutputNotWritableError, write_fix
+
+    real = tempfile.TemporaryFile
+
+    def read_only(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir) == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    with pytest.raises(OutputNotWritableError, match="Read-only file system") as info:
+        check_output_dir(tmp_path / "out")
+    assert info.value.fix == write_fix(errno.EROFS) and "read-only" in info.value.fix
+    assert not (tmp_path / "out").exists()
+    exc = OSError(errno.EROFS, "Read-only file system", "x")
+    assert cli.os_error_fix(exc) == write_fix(errno.EROFS, True) and "(-o)" in cli.os_error_fix(exc)
+    assert not hasattr(cli, "_OS_FIXES")
+
+
+def test_personalize_into_an_immutable_folder_fails_at_once_writing_nothing(samples, tmp_path, chattr, capfd):
+    import time
+
+    from usdface.cli import main
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    chattr(locked, "+i")
+    start = time.perf_counter()
+    code = main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o",
+                 str(locked / "person.usda")])
+    err = capfd.readouterr().err
+    assert code == 2 and f"{locked / 'person.usda'}: output layer cannot be written in {locked}" in err, err
+    assert "fix: lift the flag" in err and "[1/" not in err         # refused before the first step
+    assert time.perf_counter() - start < 5 and list(locked.iterdir()) == []

@@ -639,3 +639,23 @@ def test_a_workers_odd_result_or_a_sidecar_refusal_do_not_break_the_batch(tmp_pa
     res = run_item(sidecar, item)
     assert res["status"] == FAILED and "moved to o.abc.failed" in res["error"]
     assert not (tmp_path / "o.abc").exists()
+
+
+def test_an_immutable_report_stops_the_batch_before_any_item(tmp_path, capsys):
+    """The report is rewritten on every run; one that cannot be replaced (``chattr +i``: not even root may)
+    went unnoticed until every item had run. The report's path goes through the output check."""
+    import shutil
+    import subprocess
+
+    manifest = _manifest(tmp_path, ["a"])
+    report = tmp_path / "people.report.json"                  # the default name next to the manifest
+    report.write_text("{}")
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(report)]).returncode != 0:
+        pytest.skip("cannot set the immutable flag here")
+    try:
+        assert main(["batch", str(manifest), "-j", "1", "--worker", f"{__name__}:stub_worker"]) == 2
+        err = capsys.readouterr().err
+        assert f"{report}: batch report is immutable" in err and "--report" in err, err
+        assert not any((tmp_path / "out").iterdir())                   # no item ran
+    finally:
+        subprocess.run(["chattr", "-i", str(report)])

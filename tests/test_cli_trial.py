@@ -138,6 +138,40 @@ def test_face_mesh_mouth_says_the_capture_collapsed_not_a_perfect_residual(sampl
     assert "residual 0.00 mm" not in res.stderr and "100% of capture vertices" not in res.stderr
 
 
+def test_face_mesh_mouth_on_a_production_avatar_names_the_skin_meshes(shared, tmp_path, capfd):
+    """User trial: ``--face-mesh Mouth`` on dev1 (the capture registers, but covers none of the mouth
+    socket) said "no avatar vertex lies on the registered capture surface (empty face region) (fix: check that
+    the capture and the avatar are faces)": they were. The message says the chosen mesh has no vertex the
+    capture covers and names the skin mesh to pick."""
+    from usdface.cli import main
+
+    bench = shared / "data" / "bench" / "dev1"
+    code = main(["personalize", str(bench / "avatar.usdc"), str(bench / "capture"), "--face-mesh", "Mouth",
+                 "--dry-run", "-q"])
+    err = capfd.readouterr().err
+    assert code == 2 and "prim /Avatar/Mouth" in err, err
+    assert "empty face region" not in err and "are faces" not in err
+    assert "--face-mesh has no vertex the capture covers" in err
+    assert "pick the skin mesh with --face-mesh (candidates: /Avatar/Head (" in err
+    assert "without --face-mesh usdface picks /Avatar/Head" in err
+
+
+def test_empty_face_region_error_lists_the_meshes_the_shapes_move(samples):
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer.pipeline import empty_face_region
+
+    avatar = read_avatar(samples / "avatar.usda")
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    chosen = empty_face_region(avatar.file, avatar.meshes, "/Avatar/Mouth", names, chosen=True)
+    assert isinstance(chosen, RigError) and chosen.prim == "/Avatar/Mouth"
+    assert "no vertex the capture covers" in chosen.message
+    assert chosen.fix.startswith("pick the skin mesh with --face-mesh (candidates: /Avatar/Head (")
+    assert "/Avatar/Mouth (" not in chosen.fix                          # not the mesh that failed
+    auto = empty_face_region(avatar.file, avatar.meshes, "/Avatar/Head", names, chosen=False)
+    assert "same face" in auto.fix and "--face-mesh" in auto.fix and "/Avatar/Head (" not in auto.fix
+
+
 @pytest.mark.parametrize("command", ["personalize", "render"])
 def test_anim_import_take_passed_as_avatar_is_named_a_take(livelink_csv, sample_dir, tmp_path, command):
     take = tmp_path / "take.usdc"

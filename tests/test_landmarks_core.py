@@ -512,3 +512,23 @@ def test_baselines_with_precomputed_features_are_the_same_layouts():
                               delta_cluster_layout(rig.deltas, m))
         assert np.array_equal(random_layout(rig.deltas, m, seed=2, moving=moving),
                               random_layout(rig.deltas, m, seed=2))
+
+
+def test_no_backend_prints_its_solver_log():
+    """User trial: ``usdface landmarks --backend highs`` printed HiGHS's banner ("Running HiGHS 1.12.0 ...")
+    on stdout at every solve (into ``--json -`` output and logs; numeric code never prints). Run in a fresh
+    process: the solvers write from C++, past Python's capture."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np\n"
+            "from usdface.landmarks.cover import solve_set_cover\n"
+            "rng = np.random.default_rng(0)\n"
+            "c, cost = rng.random((30, 60)) < 0.15, rng.random(60) + 0.5\n"
+            "for backend in ('highs', 'scip', 'cbc', 'cp-sat'):\n"
+            "    for cover_times in (1, 2):\n"
+            "        sol = solve_set_cover(c, cost, backend=backend, reduce=False, cover_times=cover_times)\n"
+            "        assert sol.status == 'optimal', (backend, sol.status)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == "", (proc.stdout, proc.stderr)

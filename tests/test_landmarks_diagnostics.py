@@ -82,3 +82,40 @@ def test_render_diagnostics_cli(samples, tmp_path, capsys):
     assert main(["render", str(layer), "--landmarks", "--diagnostics", "-o", str(png)]) == 2  # no --force
     assert main(["render", str(layer), "--diagnostics", "-o", str(tmp_path / "x.png")]) == 2
     assert "--landmarks --diagnostics" in capsys.readouterr().err
+
+
+def test_render_diagnostics_sees_a_camera_layout_from_its_camera(samples, tmp_path, capsys, monkeypatch):
+    """User trial: the diagnostics of a layout computed with ``landmarks --camera`` were drawn with 16
+    hemisphere rays (the title said "16 rays"), not from the camera the layout was chosen for. The camera
+    recorded in the layer is used (and named); ``--camera``/``--rays`` given to render win."""
+    from usdface import api
+
+    seen = []
+    real = api.landmark_diagnostics
+
+    def spy(rig, **kw):
+        seen.append(kw)
+        return real(rig, **kw)
+
+    monkeypatch.setattr(api, "landmark_diagnostics", spy)
+    layer = tmp_path / "lm.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "-o", str(layer), "-q", "--camera",
+                 "0,0,0.6"]) == 0
+    capsys.readouterr()
+    png = tmp_path / "diag.png"
+    assert main(["render", str(layer), "--landmarks", "--diagnostics", "-o", str(png), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert seen[-1]["camera"] == [0.0, 0.0, 0.6], seen[-1]
+    assert "visibility: camera at 0, 0, 0.6 m" in out and "rays" not in out, out
+    assert png.read_bytes()[:8] == PNG
+    assert main(["render", str(layer), "--landmarks", "--diagnostics", "-o", str(png), "-q", "--force",
+                 "--camera", "0.1,0,0.5"]) == 0
+    assert seen[-1]["camera"] == [0.1, 0.0, 0.5] and "camera at 0.1, 0, 0.5 m" in capsys.readouterr().out
+    # a hemisphere layout stays a hemisphere one, with the rays it was computed with
+    plain = tmp_path / "plain.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "-o", str(plain), "-q", "--rays", "8"]) == 0
+    capsys.readouterr()
+    assert main(["render", str(plain), "--landmarks", "--diagnostics", "-o", str(tmp_path / "p.png"),
+                 "-q"]) == 0
+    assert seen[-1]["camera"] is None and seen[-1]["rays"] == 8
+    assert "visibility: 8 hemisphere rays" in capsys.readouterr().out

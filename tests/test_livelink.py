@@ -12,7 +12,13 @@ from hypothesis import strategies as st
 from usdface.arkit import ARKIT_NAMES, livelink_name
 from usdface.cli import main
 from usdface.errors import CaptureError, InputFileError, UsdFaceError
-from usdface.io.livelink import ANGLE_COLUMNS, parse_timecodes, read_livelink_csv, read_livelink_take
+from usdface.io.livelink import (
+    ANGLE_COLUMNS,
+    format_timecodes,
+    parse_timecodes,
+    read_livelink_csv,
+    read_livelink_take,
+)
 from usdface.io.usd_anim import read_skel_animation
 
 # Live Link's own column order differs from Apple's (e.g. JawForward, JawRight, JawLeft).
@@ -172,3 +178,62 @@ def test_a_take_cut_off_mid_row_keeps_its_complete_rows(tmp_path):
     cut.write_text(full[: full.rstrip("\n").rfind("\n") + 40] + "\n")  # ended by a line end: damaged
     with pytest.raises(InputFileError, match="fields"):
         read_livelink_take(cut)
+
+
+def test_a_frame_field_at_or_above_the_rate_is_refused_with_the_implied_rate(tmp_path, capfd):
+    """User trial: a 120 fps take ('10:00:00:95.000') read at the default 60 gave times past the next second
+    and overlapping frames, silently. Refused, naming the file, the implied rate and the option."""
+    from usdface.errors import TimecodeError
+
+    codes = ["10:00:00:00.000", "10:00:00:59.000", "10:00:00:95.000", "10:00:01:10.000"]
+    p = write_csv(tmp_path / "t120.csv", np.full((4, 52), 0.5), codes)
+    with pytest.raises(TimecodeError) as info:
+        read_livelink_take(p)
+    text = str(info.value)
+    assert "t120.csv" in text and "95" in text and "more than 95 frames per second (likely 120)" in text
+    assert "--timecode-rate 120" in info.value.fix and "timecode_rate=120" in info.value.fix
+    assert isinstance(info.value, InputFileError)
+    take = read_livelink_take(p, timecode_rate=120)            # the fix works
+    np.testing.assert_allclose(take.times, [0, 59 / 120, 95 / 120, 130 / 120])
+    with pytest.raises(TimecodeError, match="not below rate 30"):   # an explicit rate is checked too
+        parse_timecodes(["00:00:00:00", "00:00:00:30"], 30)
+    out = tmp_path / "t.usda"
+    assert main(["anim", "import", str(p), "-o", str(out)]) == 2 and not out.exists()
+    assert "--timecode-rate 120" in capfd.readouterr().err
+    assert main(["anim", "import", str(p), "-o", str(out), "--timecode-rate", "120", "-q"]) == 0
+
+
+@pytest.mark.parametrize("code", ["10:00:-01:00.000", "10:00:00:-2.000", "-1:00:00:00.000"])
+def test_a_negative_timecode_field_is_refused(tmp_path, code):
+    from usdface.errors import TimecodeError
+
+    p = write_csv(tmp_path / "neg.csv", np.full((3, 52), 0.5), ["10:00:00:00.000", code, "10:00:00:10.000"])
+    with pytest.raises(TimecodeError, match=r"negative .* row 2|row 2 .* negative") as info:
+        read_livelink_take(p)
+    assert "neg.csv" in str(info.value) and info.value.fix
+
+
+def test_default_rate_warns_when_the_take_looks_like_30_fps(tmp_path, recwarn):
+    """Frame fields that never reach 30 over several seconds: the timecodes count at 30, and read at the
+    default 60 every frame's time is wrong. Warned (naming the option); an explicit rate is not warned."""
+    times = np.arange(120) / 30.0                                  # 4 s at 30 fps
+    p = write_csv(tmp_path / "t30.csv", np.full((120, 52), 0.5),
+                  format_timecodes(times, 30.0))
+    with pytest.warns(UserWarning, match=r"t30.csv: .*look like 30 per second.*--timecode-rate 30"):
+        read_livelink_take(p)
+    recwarn.clear()
+    take = read_livelink_take(p, timecode_rate=30)
+    np.testing.assert_allclose(take.times, times, atol=1e-9)
+    take = read_livelink_take(p, timecode_rate=60)                 # explicit: the user said so
+    assert not [w for w in recwarn if "30 per second" in str(w.message)]
+    # a real 60-rate take sampled at 30 Hz reaches frame fields up to 58: no warning
+    q = write_csv(tmp_path / "t60.csv", np.full((120, 52), 0.5),
+                  format_timecodes(times, 60.0))
+    read_livelink_take(q)
+    assert not [w for w in recwarn if "30 per second" in str(w.message)]
+
+
+def test_real_takes_read_at_the_default_rate_without_a_rate_warning(shared, recwarn):
+    for path in sorted((shared / "data" / "livelinkface").glob("*.csv")):
+        read_livelink_take(path)
+    assert not [w for w in recwarn if "per second" in str(w.message)]

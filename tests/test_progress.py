@@ -271,3 +271,17 @@ def test_landmarks_evaluate_names_each_layout(capsys):
     assert lines[0].startswith("usdface: landmarks --evaluate [1/3] eps=0.5 multicover=1 share=0.1 done (")
     assert lines[1].startswith("usdface: landmarks --evaluate [2/3] eps=0.5 multicover=2 share=0.1 done (")
     assert lines[2].startswith("usdface: landmarks --evaluate [3/3] baselines at 8 done (")
+
+
+def test_review_names_its_steps_for_what_they_do(capsys, tmp_path, personalized_sample):
+    """User trial: ``usdface review`` printed "review [1/2] page done" for the reading and "review [2/2] step
+    done" for building the page. Each step is named while it runs, the write included."""
+    out, err = run_cli(capsys, "review", personalized_sample, "-o", tmp_path / "r.html")
+    lines = progress_lines(err)
+    for n, label in enumerate((f"read {personalized_sample.name} (meshes, shapes, fit figures)",
+                               "build the page", "write r.html"), 1):
+        assert any(ln.startswith(f"usdface: review [{n}/3] {label} ...") for ln in lines), (label, lines)
+        assert any(ln.startswith(f"usdface: review [{n}/3] {label} done (") for ln in lines), (label, lines)
+    assert not any(" step done" in ln or "] page done" in ln for ln in lines), lines
+    assert all(LINE.match(ln) or " done in " in ln for ln in lines)
+    assert (tmp_path / "r.html").stat().st_size > 0

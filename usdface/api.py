@@ -221,16 +221,18 @@ def _refuse_capture_as_take(path: PathLike) -> None:
                                "OBJ-sequence folder with its Live Link CSV")
 
 
-def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float = 60.0,
+def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float | None = None,
                          force: bool = False) -> tuple[Path, LiveLinkTake]:
     """Convert a Live Link Face CSV into a USD file whose defaultPrim is a ``SkelAnimation`` with the ARKit
     weights as time samples and the head/eye angles (and other numeric columns) as ``usdface:curves:*``
     attributes (``usdface anim import``). ``timecode_rate``: frames per second of the CSV's timecode FF
-    field, also the stage's timeCodesPerSecond. Returns the path written (atomically; an existing file
-    needs ``force``) and the :class:`usdface.io.livelink.LiveLinkTake` read."""
+    field, also the stage's timeCodesPerSecond (None: 60, the app's, with a warning when the take looks like
+    30; a frame field at or above the rate raises :class:`usdface.errors.TimecodeError`). Returns the path
+    written (atomically; an existing file needs ``force``) and the
+    :class:`usdface.io.livelink.LiveLinkTake` read."""
     from . import __version__
     from .io.layers import check_output_path
-    from .io.livelink import read_livelink_take
+    from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
     from .io.usd_anim import write_animation_usd
     from .progress import steps
 
@@ -239,7 +241,8 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
         p.start(f"read {Path(csv).name}")
         data = read_livelink_take(csv, timecode_rate)
         p.start(f"write {Path(out_path).name} ({len(data.times)} frames)")
-        out = write_animation_usd(out_path, data.names, data.weights, data.times, timecode_rate,
+        rate = DEFAULT_TIMECODE_RATE if timecode_rate is None else timecode_rate
+        out = write_animation_usd(out_path, data.names, data.weights, data.times, rate,
                                   curves={**data.angles, **data.extra}, force=force,
                                   layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
                                               "version": __version__})
@@ -833,7 +836,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
-    from .io.atomic import check_output_file, check_writable
+    from .io.atomic import check_output_file
     from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
 
     items = read_manifest(manifest)
@@ -841,11 +844,12 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         item.options = {**dict(options or {}), **item.options}
     manifest = Path(manifest)
     path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
-    # the report is rewritten on every run (resume), but never over the manifest or an item's input
+    # the report is rewritten on every run (resume), but never over the manifest or an item's input; it is
+    # written after the last item, so a place that refuses it (a read-only folder, an immutable report) stops
+    # the batch before the first
     check_output_file(path, True, suffixes=(".json",), what="batch report",
-                      inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))])
-    # written after the last item: a folder that refuses it must stop the batch before the first
-    check_writable(path, what="batch report", fix="pass --report PATH in a folder you can write to")
+                      inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
+                      fix="pass --report PATH in a folder you can write to")
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options checked before any item runs
         from .errors import InputFileError, UsdFaceError
@@ -941,12 +945,15 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
     for text in stale_inputs(layer_path, given):
         warnings.warn(text, UserWarning, stacklevel=2)          # the page is a sign-off: say it first
-    with progress.steps("review", 2) as advance:
+    what = [w for w, given in (("fit figures", fit_errors), ("take", take is not None)) if given]
+    with progress.steps("review", 3) as p:          # each step named for what it does while it runs
+        p.start(f"read {Path(layer_path).name} (meshes, shapes" + "".join(f", {w}" for w in what) + ")")
         data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
-        advance("page")
+        p.start("build the page")
         page = build_review_html(data)
-        advance()
-    return write_text_atomic(out, page, force=force)
+        p.start(f"write {out.name}")
+        written = write_text_atomic(out, page, force=force)
+    return written
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,

@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib
 import os
 import sys
@@ -190,27 +189,13 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {args.command}: error: {text}", file=sys.stderr)
 
 
-#: errno -> what to do about it (the one-line error's ``fix``); ``{o}`` is " (-o)" for a command that has
-#: that option, else "" (``sample OUTDIR``, ``evaluate --json/--plot/--usd``).
-_OS_FIXES = {
-    errno.EACCES: "choose a folder you can write to{o} or fix its permissions",
-    errno.EPERM: "choose a folder you can write to{o} or fix its permissions",
-    errno.EROFS: "the file system is read-only: write the output elsewhere{o}",
-    errno.ENOSPC: "free disk space or write the output elsewhere{o}",
-    errno.EDQUOT: "free disk space (quota) or write the output elsewhere{o}",
-    errno.EISDIR: "the path is a folder: give a file name",
-    errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
-    errno.EEXIST: "a file is in the way of a folder the output needs: choose another path{o} or move it",
-    errno.ENOENT: "check the path",
-    errno.ENAMETOOLONG: "use a shorter path",
-}
-
-
 def os_error_fix(exc: OSError, output_option: bool = True) -> str:
-    """What to do about an OSError (by its errno), naming ``-o`` only when ``output_option``: the command has
-    one. The ``fix`` of the one-line error and of the ``--json`` error document."""
-    fix = _OS_FIXES.get(exc.errno, "check the path, its permissions and the free disk space")
-    return fix.format(o=" (-o)" if output_option else "")
+    """What to do about an OSError (by its errno: :func:`usdface.errors.write_fix`), naming ``-o`` only when
+    ``output_option``: the command has one. The ``fix`` of the one-line error and of the ``--json`` error
+    document."""
+    from .errors import write_fix
+
+    return write_fix(exc.errno, output_option)
 
 
 def os_error_text(exc: OSError, output_option: bool = True) -> str:

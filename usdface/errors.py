@@ -6,6 +6,8 @@ Every user-facing failure is a :class:`UsdFaceError` subclass whose message name
 
 from __future__ import annotations
 
+import errno
+
 
 class UsdFaceError(Exception):
     """Base class of every error usdface raises on bad input or a failed step.
@@ -41,6 +43,11 @@ class InputFileError(UsdFaceError):
     """A file is missing, unreadable or not of the expected format."""
 
 
+class TimecodeError(InputFileError):
+    """A Live Link Face take's timecodes do not fit the rate they are read at (a frame field at or above the
+    rate, a negative field): reading on would place the frames at wrong times."""
+
+
 class RigError(UsdFaceError):
     """An avatar's UsdSkel face rig is malformed (no SkelRoot, no blend shapes, inconsistent arrays...)."""
 
@@ -67,6 +74,37 @@ class OptionError(UsdFaceError):
 
 class OutputExistsError(UsdFaceError):
     """The output file exists and --force was not given."""
+
+
+class OutputNotWritableError(InputFileError):
+    """An output cannot be written where it was asked for: a read-only folder or file system, a missing
+    permission, an immutable (``chattr +i``) or append-only file or folder, a parent that is a file. Raised
+    by the output checks (:func:`usdface.io.atomic.check_output_file`,
+    :func:`usdface.io.atomic.check_output_dir`) before any work, naming the output, the folder that refuses
+    it and the fix (:func:`write_fix`)."""
+
+
+#: errno -> what to do about a write that fails with it; ``{o}`` is " (-o)" where the command has that option.
+_WRITE_FIXES = {
+    errno.EACCES: "choose a folder you can write to{o} or fix its permissions",
+    errno.EPERM: "choose a folder you can write to{o} or fix its permissions",
+    errno.EROFS: "the file system is read-only: write the output elsewhere{o}",
+    errno.ENOSPC: "free disk space or write the output elsewhere{o}",
+    errno.EDQUOT: "free disk space (quota) or write the output elsewhere{o}",
+    errno.EISDIR: "the path is a folder: give a file name",
+    errno.ENOTDIR: "a parent of the path is a file, not a folder: choose another path",
+    errno.EEXIST: "a file is in the way of a folder the output needs: choose another path{o} or move it",
+    errno.ENOENT: "check the path",
+    errno.ENAMETOOLONG: "use a shorter path",
+}
+
+
+def write_fix(err: int | None, output_option: bool = False) -> str:
+    """What to do about a write that failed with errno ``err`` (one sentence, the ``fix`` of an error);
+    ``output_option``: name ``-o`` (the command has that option). Shared by the output checks and the CLI's
+    one-line report of an OSError, so both say the same."""
+    fix = _WRITE_FIXES.get(err, "check the path, its permissions and the free disk space")
+    return fix.format(o=" (-o)" if output_option else "")
 
 
 class RegistrationError(UsdFaceError):

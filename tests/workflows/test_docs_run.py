@@ -1,6 +1,6 @@
-"""The docs paste and run as written (issue 11): the Python snippets of README.md, docs/index.md and
-docs/api.md, and the getting-started shell commands of docs/index.md, in a fresh temporary folder holding
-only what they name (made with ``usdface sample``)."""
+"""The docs paste and run as written (issue 11): the Python snippets of README.md, docs/index.md,
+docs/api.md and docs/schemas.md, and the getting-started shell commands of docs/index.md, in a fresh
+temporary folder holding only what they name (made with ``usdface sample``)."""
 
 from __future__ import annotations
 
@@ -35,12 +35,14 @@ def doc_folder(sample_set, tmp_path_factory) -> Path:
     return d
 
 
-SNIPPETS = [(page, i) for page in ("README.md", "docs/index.md", "docs/api.md")
-            for i in range(len(blocks(ROOT / page, "python")))]
+PAGES = ("README.md", "docs/index.md", "docs/api.md", "docs/schemas.md")
+SNIPPETS = [(page, i) for page in PAGES for i in range(len(blocks(ROOT / page, "python")))]
+#: What a snippet prints, where the page says what it gives (a comment beside the print).
+PRINTS = {("docs/schemas.md", 0): "0.5\n"}
 
 
 def test_pages_have_python_snippets():
-    assert {p for p, _ in SNIPPETS} == {"README.md", "docs/index.md", "docs/api.md"}
+    assert {p for p, _ in SNIPPETS} == set(PAGES)
 
 
 @pytest.mark.parametrize("page,index", SNIPPETS, ids=[f"{p}#{i}" for p, i in SNIPPETS])
@@ -51,9 +53,46 @@ def test_python_snippet_runs_as_written(doc_folder, tmp_path, page, index):
     proc = subprocess.run([sys.executable, "-c", code], cwd=work, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, f"{page} snippet {index} failed:\n{code}\n{proc.stderr}"
     assert "Traceback" not in proc.stderr
+    if (page, index) in PRINTS:
+        assert proc.stdout == PRINTS[page, index], proc.stdout
     for out in work.rglob("*.usda"):
         if out.name.startswith("person") or out.parent.name == "out":
             assert_valid_usd(out)
+
+
+ALL_SNIPPETS = [(page, i, code) for page in ["README.md", *sorted(f"docs/{p.name}" for p in
+                                                                  (ROOT / "docs").glob("*.md"))]
+                for i, code in enumerate(blocks(ROOT / page, "python"))]
+
+
+def _undefined_names(code: str) -> list[str]:
+    """The names ``code`` reads but neither imports, defines nor gets from builtins."""
+    import ast
+    import builtins
+
+    tree = ast.parse(code)
+    defined = set(dir(builtins))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            defined.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            defined.add(node.name)
+        elif isinstance(node, ast.Name) and not isinstance(node.ctx, ast.Load):
+            defined.add(node.id)
+        elif isinstance(node, ast.arg):
+            defined.add(node.arg)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            defined.add(node.name)
+    return sorted({n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+                  - defined)
+
+
+@pytest.mark.parametrize("page,index,code", ALL_SNIPPETS, ids=[f"{p}#{i}" for p, i, _ in ALL_SNIPPETS])
+def test_every_python_snippet_imports_what_it_uses(page, index, code):
+    """Every page's Python snippets (also those that need data or a host to run: pyblish, a take) parse and
+    import every name they use: docs/pipeline.md's "personalize with a take" used ``usdface`` without
+    ``import usdface``."""
+    assert _undefined_names(code) == [], f"{page} snippet {index}:\n{code}"
 
 
 def _getting_started() -> list[list[str]]:

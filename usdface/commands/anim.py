@@ -19,9 +19,10 @@ def register(subparsers) -> None:
                     "attributes). Bind it to an avatar's Skeleton with skel:animationSource.")
     imp.add_argument("csv", help="Live Link Face .csv")
     imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
-    imp.add_argument("--timecode-rate", type=positive_float, default=60.0,
+    imp.add_argument("--timecode-rate", type=positive_float, default=None,
                      help="frames per second of the CSV's timecode FF field; also the stage's "
-                          "timeCodesPerSecond (default 60)")
+                          "timeCodesPerSecond (default 60, Live Link Face's; a frame field at or above "
+                          "the rate is refused, a take whose frame fields stay below 30 is warned about)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--json", action="store_true", help="print the result as JSON")
     add_quiet(imp)

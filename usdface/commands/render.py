@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import add_name_map_option
-from .options import add_quiet, finite_float, positive_int
+from .options import add_quiet, finite_float, positive_int, vector3
 
 
 def register(subparsers) -> None:
@@ -32,8 +32,13 @@ def register(subparsers) -> None:
                    help="with --landmarks: the paper's diagnostics as heat maps with the landmarks (neutral "
                         "and global visibility, what expressions hide, relative displacement, importance "
                         "weights); FILE without a layout gets one computed with the landmarks defaults")
-    p.add_argument("--rays", type=positive_int, default=16,
-                   help="hemisphere rays per vertex for --diagnostics (16, as 'usdface landmarks')")
+    p.add_argument("--rays", type=positive_int, default=None,
+                   help="hemisphere rays per vertex for --diagnostics (default: those the authored layout "
+                        "was computed with, else 16, as 'usdface landmarks')")
+    p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
+                   help="with --diagnostics: visibility from this camera position (metres, usdface's "
+                        "internal frame, as 'usdface landmarks --camera'; default: the camera the authored "
+                        "layout was computed with, else the hemisphere)")
     p.add_argument("--capture", action="store_true",
                    help="FILE is a capture (.usda); folders, files written by 'capture import/select' and "
                         "takes always are")
@@ -131,9 +136,34 @@ def run(args) -> int:
     return 0
 
 
+def _layout_setup(path: Path) -> dict:
+    """The visibility set-up (``camera``, ``rays``) recorded by ``usdface landmarks -o`` in ``path``'s
+    provenance (its root layer's ``customLayerData``), for the layouts it authored; {} for any other file."""
+    from pxr import Sdf
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # noqa: BLE001  (the readers before this one said what is wrong with the file)
+        return {}
+    data = dict(layer.customLayerData).get("usdface") if layer else None
+    if not hasattr(data, "get") or data.get("method") != "landmarks":
+        return {}
+    params = data.get("parameters")
+    if not hasattr(params, "get"):
+        return {}
+    setup = {}
+    camera = params.get("camera")
+    if camera is not None and not isinstance(camera, str) and len(camera) == 3:
+        setup["camera"] = [float(x) for x in camera]
+    if isinstance(params.get("rays"), int) and params["rays"] > 0:
+        setup["rays"] = int(params["rays"])
+    return setup
+
+
 def _diagnostics(args, path: Path, rig) -> None:
     """``--landmarks --diagnostics``: the layout authored in FILE (or one computed with the defaults) over
-    the paper's per-vertex diagnostics."""
+    the paper's per-vertex diagnostics, with the visibility it was computed with (a ``--camera`` layout from
+    its camera; ``--camera``/``--rays`` given here win)."""
     import numpy as np
 
     from .. import api, render
@@ -144,6 +174,9 @@ def _diagnostics(args, path: Path, rig) -> None:
     prim = rig.source.prim if rig.source else None
     layouts = read_landmarks(path)
     settings = read_landmark_settings(path).get(prim, {})
+    recorded = _layout_setup(path) if prim in layouts else {}
+    camera = args.camera if args.camera is not None else recorded.get("camera")
+    rays = args.rays if args.rays is not None else recorded.get("rays", 16)
     with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
         if prim in layouts:
             vertices = layouts[prim]
@@ -151,14 +184,16 @@ def _diagnostics(args, path: Path, rig) -> None:
             source = "authored"
         else:
             p.start(f"layout of {rig.name} (none authored: landmarks defaults)")
-            layout = api.compute_landmarks(rig, rays=args.rays)
+            layout = api.compute_landmarks(rig, rays=rays, camera=camera)
             vertices, epsilon, alpha, source = layout.vertices, layout.epsilon, layout.alpha, "computed"
-        p.start(f"visibility of {rig.name} ({rig.n_shapes + 1} poses)")
-        diag = api.landmark_diagnostics(rig, epsilon=epsilon, alpha=alpha, rays=args.rays)
+        seen_from = ("camera at " + ", ".join(f"{x:g}" for x in camera) + " m" if camera is not None
+                     else f"{rays} hemisphere rays")
+        p.start(f"visibility of {rig.name} ({rig.n_shapes + 1} poses, {seen_from})")
+        diag = api.landmark_diagnostics(rig, epsilon=epsilon, alpha=alpha, rays=rays, camera=camera)
         p.start(f"draw {args.output.name}")
         panels = diagnostic_panels(diag, vertices, rig.names)
         summary = (f"{rig.name}: {len(vertices)} landmarks ({source}), epsilon {epsilon:g}, alpha {alpha:g}, "
-                   f"{diag.rays} rays")
+                   f"visibility: {seen_from}")
         render.render_landmark_diagnostics(rig.neutral, rig.triangles, panels, vertices, args.output,
                                            view=args.view, force=args.force,
                                            crop=np.flatnonzero(diag.c.any(axis=0)), title=summary)

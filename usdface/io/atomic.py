@@ -16,9 +16,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import InputFileError, OutputExistsError
+from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, write_fix
 
-__all__ = ["check_output_file", "check_output_dir", "check_not_input",
+__all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
            "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling"]
 
 
@@ -229,13 +229,16 @@ def existing_ancestor(path) -> Path:
     return path
 
 
-def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=()) -> Path:
+def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=(),
+                      fix: str | None = None) -> Path:
     """Validate an output file path before any work; returns it as a Path.
 
     Refuses (InputFileError) a line break in the name, an extension not in ``suffixes`` (lower case, with
-    the dot; None = any), a folder at ``path``, a parent that is a file, and ``path`` touching one of the
-    existing ``inputs`` (:func:`check_not_input`, even with ``force``: inputs are never modified); an existing
-    file needs ``force`` (OutputExistsError)."""
+    the dot; None = any), a folder at ``path``, and ``path`` touching one of the existing ``inputs``
+    (:func:`check_not_input`, even with ``force``: inputs are never modified); an existing file needs
+    ``force`` (OutputExistsError). A place that cannot be written (:func:`check_writable`: a parent that is a
+    file, a read-only folder or file system, a missing permission, an immutable file) raises
+    OutputNotWritableError with ``fix`` (default: by the errno, :func:`usdface.errors.write_fix`)."""
     path = Path(path)
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
@@ -245,44 +248,126 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
                              fix=f"name it e.g. {path.stem or 'out'}{suffixes[0]}")
     if path.is_dir():
         raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
-    parent = existing_ancestor(path.parent)
-    if not parent.is_dir():
-        raise InputFileError(f"{what}'s parent {parent} is a file, not a folder", path=path,
-                             fix="choose another output path")
+    _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
     if path.exists() and not force:
         raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
-    return path
+    return check_writable(path, what=what, fix=fix)
 
 
-def check_writable(path, *, what: str = "output", fix: str = "choose a folder you can write to") -> Path:
-    """Refuse (InputFileError, before any work) an output file whose folder - or its nearest existing
-    ancestor, where the write would create it - cannot be written: a read-only file system or folder. Probed
-    by creating and removing a temporary file there (permission bits do not tell a read-only mount)."""
-    import tempfile
+def _check_parent(path: Path, what: str, fix: str | None) -> Path:
+    """The nearest existing ancestor of ``path``'s folder; OutputNotWritableError when it is a file."""
+    parent = existing_ancestor(Path(path).parent)
+    if not parent.is_dir():
+        raise OutputNotWritableError(f"{what}'s parent {parent} is a file, not a folder", path=path,
+                                     fix=fix or write_fix(errno.ENOTDIR))
+    return parent
 
-    path = Path(path)
-    parent = existing_ancestor(path.absolute().parent)
+
+#: ``FS_IOC_GETFLAGS`` (the Linux ioctl of ``lsattr``) and the inode flags that forbid replacing a file.
+_FS_IOC_GETFLAGS = 0x80086601
+_FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x10, 0x20
+
+
+def _locked_flag(path: Path) -> str:
+    """"immutable" or "append-only" when ``path`` (a file or folder; a link is not followed) carries that
+    inode flag (``chattr +i`` / ``+a``: nobody, root included, may replace or delete it), else "". Linux
+    only; "" wherever the flags cannot be read."""
     try:
-        with tempfile.TemporaryFile(dir=parent):
+        import fcntl
+        import struct
+    except ImportError:                                     # not a POSIX system
+        return ""
+    import stat
+
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode) and not stat.S_ISDIR(os.lstat(path).st_mode):
+            return ""                                       # a link, pipe or device: not opened
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:
+        return ""
+    try:
+        flags = struct.unpack("i", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, b"\0" * 4))[0]
+    except OSError:                                         # a file system without inode flags
+        return ""
+    finally:
+        os.close(fd)
+    return "immutable" if flags & _FS_IMMUTABLE_FL else "append-only" if flags & _FS_APPEND_FL else ""
+
+
+def _probe_folder(folder: Path) -> OSError | None:
+    """The error creating a file in ``folder`` raises, None if it can: permission bits tell neither a
+    read-only mount nor an immutable folder nor root's rights, so a temporary file is made and removed
+    (never visible where the system has O_TMPFILE)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as exc:
-        raise InputFileError(f"{what} cannot be written in {parent}: {exc.strerror or exc}", path=path,
-                             fix=fix) from None
+        return exc
+    return None
+
+
+def check_writable(path, *, what: str = "output", fix: str | None = None, folder: bool = False) -> Path:
+    """Refuse, before any work, an output that cannot be written: OutputNotWritableError naming ``path``,
+    what refuses it and ``fix`` (default: by the errno, :func:`usdface.errors.write_fix`). Returns ``path``.
+
+    * the output's folder - or its nearest existing ancestor, where the write would create the missing
+      ones - must be a folder in which a file can be created (not a read-only folder or file system, an
+      immutable folder, one without write permission);
+    * an existing file the write would replace must not be immutable or append-only (``chattr +i``/``+a``),
+      nor sit in an append-only folder, nor be another user's in a sticky folder (``/tmp``);
+    * with ``folder`` (``path`` is an output folder, written into with ``--force``): an existing ``path``
+      must accept new files and not be immutable or append-only itself.
+    """
+    path = Path(path)
+    real = path.resolve() if folder and path.is_symlink() else path   # a linked folder: where it points
+    parent = _check_parent(real, what, fix)
+    places = [parent] + ([real] if folder and real.is_dir() else [])
+    for place in places:
+        exc = _probe_folder(place)
+        if exc is not None:
+            flag = _locked_flag(place)
+            why = f"{exc.strerror or exc}" + (f", the folder is {flag} (chattr +{flag[0]})" if flag else "")
+            raise OutputNotWritableError(f"{what} cannot be written in {place}: {why}", path=path,
+                                         fix=fix or (f"lift the flag (chattr -{flag[0]} {place}, as root) or "
+                                                     "write the output elsewhere" if flag
+                                                     else write_fix(exc.errno))) from None
+    if not os.path.lexists(real) or real.is_dir() and not folder:
+        return path
+    flag = _locked_flag(real)
+    if flag:
+        raise OutputNotWritableError(f"{what} is {flag} (chattr +{flag[0]}): it cannot be replaced",
+                                     path=path, fix=fix or f"lift the flag (chattr -{flag[0]} {path}, as "
+                                                           "root) or write the output elsewhere")
+    if _locked_flag(parent) == "append-only":
+        raise OutputNotWritableError(f"{what} is in the append-only folder {parent} (chattr +a): it cannot "
+                                     "be replaced", path=path,
+                                     fix=fix or f"lift the flag (chattr -a {parent}, as root) or write the "
+                                                "output elsewhere")
+    if not folder and hasattr(os, "geteuid") and os.geteuid() != 0:
+        st, dst = real.lstat(), parent.stat()
+        if dst.st_mode & 0o1000 and os.geteuid() not in (st.st_uid, dst.st_uid):
+            raise OutputNotWritableError(f"{what} belongs to another user in the sticky folder {parent}: it "
+                                         "cannot be replaced", path=path,
+                                         fix=fix or "write the output elsewhere, or ask its owner to "
+                                                    "remove it")
     return path
 
 
-def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "output folder") -> Path:
+def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "output folder",
+                     fix: str | None = None) -> Path:
     """Validate an output folder before any work; returns it as a Path.
 
     Refuses (InputFileError) a folder that touches one of the existing ``inputs`` (:func:`check_not_input`
     with ``folder=True``: it is, holds or lies inside an input), even with ``force``. An existing file at
     ``path`` is refused (OutputExistsError), even with ``force``: usdface does not delete a file it did not
     write. An existing folder that is not empty needs ``force`` (OutputExistsError); with ``force``
-    :func:`replace_dir_atomically` replaces only the files it writes. A missing or empty folder is always
-    accepted.
+    :func:`replace_dir_atomically` replaces only the files it writes. A missing or empty folder is
+    accepted where it can be written (:func:`check_writable` with ``folder=True``: else
+    OutputNotWritableError, with ``fix``, default by the errno).
     """
     dest = Path(path)
+    _check_parent(dest, what, fix)
     check_not_input(dest, inputs, what=what, folder=True)
     if dest.exists() and not dest.is_dir():
         raise OutputExistsError(f"{what} exists as a file", path=dest,
@@ -291,7 +376,7 @@ def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "outpu
         raise OutputExistsError(f"{what} exists and is not empty", path=dest,
                                 fix="choose a new folder, or pass --force (force=True) to replace the files "
                                     "usdface writes there (other files are kept)")
-    return dest
+    return check_writable(dest, what=what, fix=fix, folder=True)
 
 
 @contextmanager

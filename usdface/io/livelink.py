@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from ..arkit import match_names
-from ..errors import CaptureError, InputFileError
+from ..errors import CaptureError, InputFileError, TimecodeError
 from .atomic import write_text_atomic
 from .capture_folder import order_names
 
 __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_weights", "parse_timecodes",
-           "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS"]
+           "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS", "DEFAULT_TIMECODE_RATE"]
 
 #: Head and eye rotation columns (radians), kept out of the weights.
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
@@ -59,32 +59,78 @@ class LiveLinkTake:
         return float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else 30.0
 
 
-def parse_timecodes(codes, timecode_rate: float = 60.0, path=None) -> np.ndarray:
-    """``HH:MM:SS:FF[.fff]`` strings -> seconds[F] from the first code (a midnight wrap is unwrapped)."""
+#: The default timecode rate: Live Link Face counts the ``FF`` field at 60 per second.
+DEFAULT_TIMECODE_RATE = 60.0
+_COMMON_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 120.0, 240.0)     # timecode rates phones record at
+
+
+def _rate_fix(rate: float) -> str:
+    r = f"{rate:g}"
+    return (f"give the rate the timecodes count at: 'usdface anim import TAKE.csv -o take.usda "
+            f"--timecode-rate {r}' (then pass take.usda where the CSV went), or timecode_rate={r} in Python")
+
+
+def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.ndarray:
+    """``HH:MM:SS:FF[.fff]`` strings -> seconds[F] from the first code (a midnight wrap is unwrapped).
+
+    ``FF`` counts frames at ``timecode_rate`` per second (None: :data:`DEFAULT_TIMECODE_RATE`, 60, the
+    app's; a take whose frame fields all stay below 30 over several seconds is then warned about, it looks
+    like 30 per second). Raises :class:`usdface.errors.TimecodeError` naming the file when a frame field
+    reaches the rate (with the smallest common rate above it) or a field is negative.
+    """
     parts = [c.strip().split(":") for c in codes]
     if any(len(p) != 4 for p in parts):
         bad = next(c for c, p in zip(codes, parts, strict=True) if len(p) != 4)
         raise InputFileError(f"timecode {bad!r} is not HH:MM:SS:FF", path=path,
                              fix="export the take from Live Link Face unchanged")
     try:
-        hms = np.array(parts, dtype=np.float64)
+        hms = np.array(parts, dtype=np.float64).reshape(len(parts), 4)
     except ValueError:
         raise InputFileError("timecode with non-numeric fields", path=path,
                              fix="export the take from Live Link Face unchanged") from None
-    rate = float(timecode_rate)
+    rate = DEFAULT_TIMECODE_RATE if timecode_rate is None else float(timecode_rate)
+    if not np.isfinite(rate) or rate <= 0:
+        raise TimecodeError(f"timecode rate {timecode_rate!r} is not a positive number of frames per second",
+                            path=path, fix=_rate_fix(DEFAULT_TIMECODE_RATE))
+    negative = ~(hms >= 0)           # also NaN
+    if negative.any():
+        i = int(np.flatnonzero(negative.any(axis=1))[0])
+        raise TimecodeError(f"timecode {codes[i].strip()!r} (row {i + 1} of the take) has a negative or "
+                            f"non-numeric field", path=path,
+                            fix="export the take from Live Link Face unchanged")
+    ff = hms[:, 3]
+    if ff.size and ff.max() >= rate:
+        i = int(np.argmax(ff))
+        implied = next((r for r in _COMMON_RATES if r > ff[i]), float(np.floor(ff[i])) + 1.0)
+        given = "the default " if timecode_rate is None else ""
+        raise TimecodeError(f"timecode {codes[i].strip()!r} (row {i + 1} of the take) has frame field "
+                            f"{ff[i]:g}, not below {given}rate {rate:g}: the timecodes count more than "
+                            f"{np.floor(ff[i]):g} frames per second (likely {implied:g})", path=path,
+                            fix=_rate_fix(implied))
     whole = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2]
     whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
+    seconds = np.unique(whole)
+    if timecode_rate is None and len(seconds) >= 3 and len(ff) >= 10 * len(seconds) \
+            and ff.max() < rate / 2:
+        warnings.warn(f"{path or 'take'}: every timecode frame field is below 30 (at most {ff.max():g}) over "
+                      f"{len(seconds)} seconds of {len(ff)} rows: the timecodes look like 30 per second, and "
+                      f"read at the default 60 the frames' times are wrong (fix: {_rate_fix(30.0)})",
+                      UserWarning, stacklevel=3)
     # Differences in frames first (whole seconds are exact), then seconds: keeps time codes clean.
-    frames = (whole - whole[0]) * rate + (hms[:, 3] - hms[0, 3]) if len(whole) else whole
+    frames = (whole - whole[0]) * rate + (ff - ff[0]) if len(whole) else whole
     return frames / rate
 
 
-def read_livelink_take(path, timecode_rate: float = 60.0) -> LiveLinkTake:
+def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake:
     """Read a Live Link Face CSV into a :class:`LiveLinkTake` (see the module doc for the format).
 
-    Raises InputFileError (missing/unreadable, not a Live Link CSV, ragged or non-numeric rows) or
-    CaptureError (NaN/inf weights, the same shape under two spellings), naming the file and the line. Weights
-    outside [0, 1] are clipped with a warning (real takes have ``EyeLookIn*`` up to ~1.06).
+    ``timecode_rate``: frames per second of the timecodes' ``FF`` field (None: 60, the app's, with a warning
+    when the take looks like 30; see :func:`parse_timecodes`).
+
+    Raises InputFileError (missing/unreadable, not a Live Link CSV, ragged or non-numeric rows), TimecodeError
+    (a frame field at or above the rate, a negative field) or CaptureError (NaN/inf weights, the same shape
+    under two spellings), naming the file and the line. Weights outside [0, 1] are clipped with a warning
+    (real takes have ``EyeLookIn*`` up to ~1.06).
     """
     from .usd_open import require_file
 
@@ -168,7 +214,7 @@ def _is_float(v) -> bool:
     return True
 
 
-def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.ndarray, np.ndarray]:
+def read_livelink_csv(path, timecode_rate: float | None = None) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Read a Live Link Face CSV -> (names[K] canonical ARKit, weights[F, K], times[F] seconds from start).
 
     Head/eye angle columns are not weights and are left out (see :func:`read_livelink_take` for them).
@@ -177,7 +223,7 @@ def read_livelink_csv(path, timecode_rate: float = 60.0) -> tuple[list[str], np.
     return take.names, take.weights, take.times
 
 
-def livelink_weights(paths, names, frames: int = 0, timecode_rate: float = 60.0) -> np.ndarray:
+def livelink_weights(paths, names, frames: int = 0, timecode_rate: float | None = None) -> np.ndarray:
     """The weights of one or more takes (Live Link Face CSVs, or USD takes / take folders read with
     :func:`usdface.io.take.read_take`) stacked in file order, as columns of ``names[K]``
     (canonical ARKit; a shape a take lacks is 0) -> ``weights[F, K]``; with ``frames`` > 0 and more rows than

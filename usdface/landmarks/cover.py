@@ -135,6 +135,20 @@ def reduce_set_cover(c: np.ndarray, cost: np.ndarray, max_rounds: int = 10) -> t
     return rows, cols
 
 
+#: Backend options that silence a solver's own log (OR-tools' SuppressOutput does not reach HiGHS, which
+#: printed "Running HiGHS 1.12.0 ..." on stdout at every solve: into a ``--json -`` document, a pipe, a log).
+_QUIET = {"highs": "output_flag=false\nlog_to_console=false"}
+
+
+def quiet_solver(solver, backend: str) -> None:
+    """Keep an OR-tools ``pywraplp`` solver of ``backend`` from printing anything (numeric code never
+    prints): ``SuppressOutput`` for all, and the backend's own log options where it has its own log."""
+    solver.SuppressOutput()
+    if backend in _QUIET:
+        # applied when solving (the HiGHS interface returns False here, having only stored them)
+        solver.SetSolverSpecificParametersAsString(_QUIET[backend])
+
+
 def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time_limit: float = 60.0,
                     reduce: bool = True, cover_times: int = 1) -> CoverSolution:
     """Solve the weighted set cover of Zell & McDonnell 2022, eqs. 5a-c, to a proven optimum.
@@ -170,6 +184,7 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
     solver = pywraplp.Solver.CreateSolver(BACKENDS[backend])
     if solver is None:
         raise LandmarkError(f"OR-tools has no {backend} backend in this build", fix="use --backend scip")
+    quiet_solver(solver, backend)
     solver.SetNumThreads(1)
     solver.SetTimeLimit(int(time_limit * 1000))
     f = [solver.BoolVar(f"f{n}") for n in cols]

@@ -35,7 +35,8 @@ class LandmarkDiagnostics:
     """Per-vertex diagnostics ``[n]`` (NaN outside ``region``), see the module docstring.
 
     ``region[v]`` the vertex indices evaluated; ``r[K, n]`` relative displacement (eq. 2), ``c[K, n]`` the
-    candidate sets (eq. 3) at ``epsilon``; ``alpha`` the visibility weight of eq. 1; ``rays`` per vertex.
+    candidate sets (eq. 3) at ``epsilon``; ``alpha`` the visibility weight of eq. 1; ``rays`` per vertex;
+    ``camera[3]`` (metres) where visibility was seen from a known camera (``rays`` 1), else None.
     """
 
     region: np.ndarray
@@ -48,6 +49,7 @@ class LandmarkDiagnostics:
     epsilon: float
     alpha: float
     rays: int
+    camera: tuple | None = None
 
     @property
     def hidden(self) -> np.ndarray:
@@ -87,7 +89,8 @@ def landmark_diagnostics(neutral: np.ndarray, triangles: np.ndarray, deltas: np.
     displacement = np.full(n, np.nan)
     displacement[region] = peak_r[region]
     return LandmarkDiagnostics(region, neutral_vis, vis, displacement, importance, r, c, eps, a,
-                               1 if camera is not None else int(rays))
+                               1 if camera is not None else int(rays),
+                               None if camera is None else tuple(float(x) for x in np.ravel(camera)))
 
 
 def landmark_importance(diagnostics: LandmarkDiagnostics, shapes) -> np.ndarray:
@@ -116,7 +119,9 @@ def diagnostic_panels(diagnostics: LandmarkDiagnostics, vertices, names) -> list
     d = diagnostics
     v = np.asarray(vertices, dtype=np.int64).ravel()
     panels = [
-        ("neutral visibility\n(ambient: fraction of free rays)", d.neutral_visibility, "magma", 0.0, 1.0),
+        ("neutral visibility\n" + ("(ambient: fraction of free rays)" if d.camera is None
+                                    else "(from the camera: 1 seen, 0 hidden)"), d.neutral_visibility,
+         "magma", 0.0, 1.0),
         ("global visibility l\n(eq. 4: min over all poses)", d.visibility, "magma", 0.0, 1.0),
         ("hidden by expressions\n(neutral - global)", d.hidden, "viridis", 0.0, None),
         ("relative displacement r\n(eq. 2, max over shapes)", d.displacement, "viridis", 0.0, 1.0),

@@ -177,6 +177,38 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     return best
 
 
+def empty_face_region(avatar_file, meshes, face_prim: str, names: list[str], chosen: bool) -> RigError:
+    """The error for a face mesh ``face_prim`` of which no vertex lies on the registered capture surface:
+    the capture covers none of it, so it can move none of it (``--face-mesh Mouth``: the mouth socket, the
+    teeth or an eye, not the skin). Names the other ``meshes`` (:class:`usdface.model.FaceRig`) the shapes
+    in ``names`` move, most moving vertices first, as the ``--face-mesh`` to pick (``chosen``: the mesh was
+    given with ``--face-mesh``; else it was the one the shapes move most)."""
+    ranked = []
+    for m in meshes:
+        idx = [m.index(n) for n in names if n in m.names]
+        if idx:
+            moving = int(moving_vertices(peak_motion(m.deltas[idx]), m.neutral).sum())
+            if moving:
+                ranked.append((-moving, m.key))
+    ranked.sort()
+    others = [f"{key} ({-n} moving vertices)" for n, key in ranked if key != face_prim]
+    listed = f": {', '.join(others)}" if others else " (this avatar has no other mesh the shapes move)"
+    if chosen:
+        message = ("the face mesh given with --face-mesh has no vertex the capture covers: none lies on the "
+                   "registered capture surface, so the capture moves none of it (not the face's skin: a "
+                   "mouth, teeth or eye mesh?)")
+        best = ranked[0][1] if ranked else None
+        fix = (f"pick the skin mesh with --face-mesh (candidates{listed})"
+               + (f"; without --face-mesh usdface picks {best}, the mesh the shapes move most"
+                  if best is not None and best != face_prim else ""))
+    else:
+        message = ("no vertex of the face mesh (the mesh the shapes move most) lies on the registered "
+                   "capture surface: the capture covers and moves none of it")
+        fix = ("check that the capture and the avatar show the same face; if this mesh is not the face's "
+               f"skin, pick the skin mesh with --face-mesh{listed}")
+    return RigError(message, path=avatar_file, prim=face_prim, fix=fix)
+
+
 def _refuse_unmapped_face(avatar: Avatar, face: FaceRig, names: list[str]) -> None:
     """Refuse a face mesh found by its ARKit names when another mesh has more shapes whose names only look
     like the capture's (:func:`usdface.arkit.lookalike`: a studio prefix, ``STU_eyeBlinkLeft``): the real
@@ -587,6 +619,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
         avatar, origin = near_origin(avatar)
+        meshes_read = list(avatar.meshes)         # as read: the face mesh candidates an error can name
         if eyes:
             eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
         avatar, regions = crop_avatar(avatar)
@@ -694,9 +727,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if isinstance(placed, dict) and "translation_m" in placed:
             report["correspondence"]["template_registration"] = _in_stage(placed, origin)
         if not corr.face.any():
-            raise RigError("no avatar vertex lies on the registered capture surface (empty face region)",
-                           path=avatar.file, prim=face_prim,
-                           fix="check that the capture and the avatar are faces")
+            raise empty_face_region(avatar.file, meshes_read, face_prim, cap_names, chosen_face is not None)
         placed_by = corr_transform(corr, sim)                  # the similarity that placed the template
         semantic, disagree = correspondence_semantics(corr, capture.triangles, names, template_deltas,
                                                       avatar_face_deltas, placed_by)
