@@ -90,7 +90,9 @@ def frame_vectors(points: np.ndarray, triangles: np.ndarray, *, axis: int = -2):
         v0 = np.take(p, t[:, 0], axis=axis)
         e1, e2 = np.take(p, t[:, 1], axis=axis) - v0, np.take(p, t[:, 2], axis=axis) - v0
     c = _cross(e1, e2)
-    length = np.sqrt(np.linalg.norm(c, axis=-1, keepdims=True))
+    # sqrt |c|: np.linalg.norm's sum of squares in its order, without its reduction over a 3-long axis (2x)
+    cx, cy, cz = c[..., 0:1], c[..., 1:2], c[..., 2:3]
+    length = np.sqrt(np.sqrt(cx * cx + cy * cy + cz * cz))
     e3 = np.divide(c, length, out=np.zeros_like(c), where=length > 0)
     return e1, e2, e3
 
