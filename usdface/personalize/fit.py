@@ -238,6 +238,8 @@ class PositionFit:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
         self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
+        # Z^2 (the hat diagonals' weights), once for every reg and step; per vertex block for a long take
+        self._Z2 = self.Z ** 2 if self.Z.nbytes <= (64 << 20) else None
         self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
@@ -315,6 +317,11 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
+    def _z2(self, v):
+        """``Z^2`` on the vertices ``v`` (a slice or indices): the kept copy, or squared for the block (for a
+        take's thousands of frames no ``[n,F,r]`` copy is kept)."""
+        return self.Z[v] ** 2 if self._Z2 is None else self._Z2[v]
+
     def _loo_parts(self, regs, c, e0n, v=slice(None)):
         """For ``regs[G]``: the leave-in residuals ``d[n,F,k,G]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
         and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
@@ -327,7 +334,7 @@ class PositionFit:
         gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
         d = np.matmul(Z, gc).reshape(n, F, c.shape[2], len(regs))
         np.subtract(e0n[:, :, :, None], d, out=d)
-        q = np.maximum(1.0 - np.matmul(Z ** 2, g), 1e-9)        # Z^2 per block: no [n,F,r] copy kept
+        q = np.maximum(1.0 - np.matmul(self._z2(v), g), 1e-9)
         return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
 
     def _block_residuals(self, regs, d, v=slice(None)) -> np.ndarray:
@@ -420,7 +427,7 @@ class PositionFit:
         if loo is None:
             g = mu / (mu + reg)
             fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
-            h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                             # [n,F]
+            h = np.matmul(self._z2(v), g[:, :, None])[:, :, 0]                        # [n,F]
             e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
         else:
             e = loo
