@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import vector_lengths
+
 __all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms"]
 
 
@@ -18,7 +20,7 @@ def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count:
     """Indices of vertices that no template shape moves by more than ``rel`` x the largest template
     displacement (``generic_deltas[K,n,3]``, metres). Falls back to the least-moving quarter of the mesh when
     fewer than ``min_count`` qualify."""
-    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1).max(axis=0)   # [n]
+    mag = vector_lengths(generic_deltas).max(axis=0)                                 # [n]
     idx = np.flatnonzero(mag <= rel * mag.max()) if mag.max() > 0 else np.arange(len(mag))
     if len(idx) < min_count:
         idx = np.sort(np.argsort(mag)[: max(min_count, len(mag) // 4)])

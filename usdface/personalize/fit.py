@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import vector_lengths
+
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
            "weight_basis", "reduced_normal_matrix", "data_share"]
 
@@ -73,7 +75,7 @@ def regularization_weights(generic_deltas: np.ndarray, *, clamp: float = D_CLAMP
     (metres; the ratio is unit-free), clamped to ``clamp`` (1e5) where the displacement is (near) zero.
     A shape that moves no vertex at all gets ``clamp`` everywhere.
     """
-    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1)      # [K,n]
+    mag = vector_lengths(generic_deltas)                                             # [K,n]
     peak = mag.max(axis=1, keepdims=True)
     D = np.divide(peak, mag, out=np.full_like(mag, clamp), where=mag > peak / clamp)
     return np.minimum(D, clamp)
