@@ -247,6 +247,8 @@ class PositionFit:
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
         self.has_alt = self.T_alt is not None
         self._prior_parts = {}
+        self._loo_cache = (None, None)          # ((prior/points state, reg), LOO residuals) of the last call
+        self._state = 0
         self.set_points(points)
 
     def _coeffs(self, T):
@@ -274,6 +276,7 @@ class PositionFit:
         self._apply_prior()
 
     def _apply_prior(self) -> None:
+        self._state += 1                                # new frames or prior: cached residuals are stale
         if self._custom is not None:
             self.T, (cT, WT) = self._custom_T, self._custom
         elif self._alt is None or self._mix == 1.0:
@@ -423,14 +426,21 @@ class PositionFit:
         ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison); ``predict_weights[S,F,K]``: ``S`` such
         sets at once, ``[S,F,n,c]`` (one product for all). ``vertices``: only these (indices into this fit's
         vertices; the result is ``[F,len(vertices),c]``). ``loo``: the plain residuals ``e`` at ``reg`` on
-        these vertices if already computed (they do not depend on ``predict_weights``)."""
+        these vertices if already computed (they do not depend on ``predict_weights``). The plain residuals on
+        every vertex are kept (read-only) for the next call with the same ``reg``, frames and prior."""
         v = slice(None) if vertices is None else np.asarray(vertices)
         mu, Z, c = self.mu[v], self.Z[v], self.c[v]
-        if loo is None:
+        key = (self._state, float(reg))
+        if loo is None and vertices is None and self._loo_cache[0] == key:
+            e = self._loo_cache[1]          # the same frames, prior and reg (the alignment test, then pass)
+        elif loo is None:
             g = mu / (mu + reg)
             fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
             h = np.matmul(self._z2(v), g[:, :, None])[:, :, 0]                        # [n,F]
             e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+            if vertices is None:
+                e.flags.writeable = False                                             # kept: read-only
+                self._loo_cache = (key, e)
         else:
             e = loo
         if predict_weights is None:
