@@ -886,9 +886,13 @@ def _check_frames_like_neutral(capture, src) -> None:
     P = np.asarray(frames.points, dtype=np.float64)
     if not len(P) or r0 <= 0:
         return
-    C = P - P.mean(axis=1, keepdims=True)                                          # [F,n,3]
-    radius = np.sqrt(np.mean(np.sum(C * C, axis=2), axis=1))                        # [F]
-    u, _, vt = np.linalg.svd(np.matmul(np.swapaxes(C, 1, 2), c0))                   # [F,3,3] Kabsch
+    # no centred [F,n,3] copy: c0 sums to zero, so P^T c0 is the centred frames' moments, and the RMS radius
+    # is sqrt(mean |p|^2 - |mean p|^2) (a check against a 1.5x threshold: rounding is immaterial)
+    flat = P.reshape(len(P), -1)
+    mean = P.mean(axis=1)                                                            # [F,3]
+    radius = np.sqrt(np.maximum(np.einsum("fi,fi->f", flat, flat) / P.shape[1]
+                                - np.einsum("fc,fc->f", mean, mean), 0.0))          # [F]
+    u, _, vt = np.linalg.svd(np.matmul(np.swapaxes(P, 1, 2), c0))                   # [F,3,3] Kabsch
     flip = np.ones((len(P), 3))
     flip[:, 2] = np.sign(np.linalg.det(u @ vt))                                     # a rotation, not a mirror
     rot = (u * flip[:, None, :]) @ vt
