@@ -266,6 +266,7 @@ class PositionFit:
             return
         self._points = points.copy()                    # a copy: the caller may change its array in place
         self.R = points - self.neutral[None]
+        self._set_frame_groups()
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
         if not hasattr(self, "_main"):
@@ -274,6 +275,28 @@ class PositionFit:
             self._custom_T, self._custom = None, None
             self._mix = 1.0
         self._apply_prior()
+
+    def _set_frame_groups(self) -> None:
+        """Training frames that are one frame (the same weights and points to the bit: a capture app that
+        kept one scan for several shapes) have the same rows of ``Z``, ``e0`` and hence the same
+        leave-one-frame-out residual: the criteria compute it once per distinct frame
+        (``_first[U]``, ``_inverse[F]``; None when every frame is distinct, or for block hold-outs)."""
+        self._first = self._inverse = None
+        F = len(self._points)
+        if self.block > 1 or F < 2:
+            return
+        seen: dict[bytes, int] = {}
+        inverse = np.empty(F, dtype=np.intp)
+        for f in range(F):
+            key = self.W[f].tobytes() + self._points[f].tobytes()
+            inverse[f] = seen.setdefault(key, len(seen))
+        if len(seen) == F:
+            return
+        first = np.empty(len(seen), dtype=np.intp)
+        first[inverse[::-1]] = np.arange(F)[::-1]                       # each group's first frame
+        self._first, self._inverse = first, inverse
+        self._Zu = self.Z[:, first]                                        # [n,U,r]
+        self._Z2u = None if self._Z2 is None else self._Z2[:, first]
 
     def _apply_prior(self) -> None:
         self._state += 1                                # new frames or prior: cached residuals are stale
@@ -322,24 +345,27 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def _z2(self, v):
-        """``Z^2`` on the vertices ``v`` (a slice or indices): the kept copy, or squared for the block (for a
-        take's thousands of frames no ``[n,F,r]`` copy is kept)."""
+    def _z2(self, v, distinct=False):
+        """``Z^2`` on the vertices ``v`` (a slice or indices; ``distinct``: the distinct frames' rows): the
+        kept copy, or squared for the block (for a take's thousands of frames no ``[n,F,r]`` copy is kept)."""
+        if distinct:
+            return self._Zu[v] ** 2 if self._Z2u is None else self._Z2u[v]
         return self.Z[v] ** 2 if self._Z2 is None else self._Z2[v]
 
-    def _loo_parts(self, regs, c, e0n, v=slice(None)):
+    def _loo_parts(self, regs, c, e0n, v=slice(None), distinct=False):
         """For ``regs[G]``: the leave-in residuals ``d[n,F,k,G]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
         and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
         products for the whole grid. The grid is the last (contiguous) axis: the broadcasts run over it.
-        ``v``: only these vertices (a block of :meth:`_loo_blocks`)."""
+        ``v``: only these vertices (a block of :meth:`_loo_blocks`); ``distinct``: on the distinct frames
+        only (:meth:`_set_frame_groups`; ``e0n`` given on them, ``F`` = their number)."""
         regs = np.asarray(regs, dtype=np.float64)
-        Z, mu, c, e0n = self.Z[v], self.mu[v], c[v], e0n[v]
+        Z, mu, c, e0n = (self._Zu if distinct else self.Z)[v], self.mu[v], c[v], e0n[v]
         n, F, r = Z.shape
         g = mu[:, :, None] / (mu[:, :, None] + regs)                                 # [n,r,G]
         gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
         d = np.matmul(Z, gc).reshape(n, F, c.shape[2], len(regs))
         np.subtract(e0n[:, :, :, None], d, out=d)
-        q = np.maximum(1.0 - np.matmul(self._z2(v), g), 1e-9)
+        q = np.maximum(1.0 - np.matmul(self._z2(v, distinct), g), 1e-9)
         return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
 
     def _block_residuals(self, regs, d, v=slice(None)) -> np.ndarray:
@@ -398,11 +424,17 @@ class PositionFit:
             return self.loo_errors(regs)[None]
         k = self.c.shape[2]
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
-        e0n = np.ascontiguousarray(np.concatenate([self.R - self._main[1], self.R - self._alt[1]],
-                                                  axis=2).transpose(1, 0, 2))
+        distinct = self._first is not None
+        R, WT1, WT0 = self.R, self._main[1], self._alt[1]
+        if distinct:                                     # each distinct frame once, counted by its copies
+            R, WT1, WT0 = R[self._first], WT1[self._first], WT0[self._first]
+            count = np.bincount(self._inverse).astype(np.float64)[None, :, None]
+        e0n = np.ascontiguousarray(np.concatenate([R - WT1, R - WT0], axis=2).transpose(1, 0, 2))
         s11 = s00 = s01 = 0.0
         for v in self._loo_blocks(regs, 2 * k):
-            d, q = self._loo_parts(regs, c, e0n, v)
+            d, q = self._loo_parts(regs, c, e0n, v, distinct)
+            if distinct:
+                q *= count
             if self.block > 1:                    # the block residuals are linear in the prior's too
                 d = self._block_residuals(regs, d, v)
                 d1, d0 = d[:, :, :k], d[:, :, k:]
@@ -434,10 +466,13 @@ class PositionFit:
         if loo is None and vertices is None and self._loo_cache[0] == key:
             e = self._loo_cache[1]          # the same frames, prior and reg (the alignment test, then pass)
         elif loo is None:
+            distinct = self._first is not None                    # once per distinct frame, then copied
             g = mu / (mu + reg)
-            fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
-            h = np.matmul(self._z2(v), g[:, :, None])[:, :, 0]                        # [n,F]
-            e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+            fitted = np.matmul((self._Zu if distinct else self.Z)[v], g[:, :, None] * c)     # [n,F,c]
+            h = np.matmul(self._z2(v, distinct), g[:, :, None])[:, :, 0]             # [n,F]
+            e0n = self.e0n[v][:, self._first] if distinct else self.e0n[v]
+            e = (e0n - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+            e = (e[:, self._inverse] if distinct else e).transpose(1, 0, 2)
             if vertices is None:
                 e.flags.writeable = False                                             # kept: read-only
                 self._loo_cache = (key, e)
@@ -459,11 +494,14 @@ class PositionFit:
         return out if Pw.ndim == 3 else out[0]
 
     def _loo_per_frame(self, regs) -> np.ndarray:
-        """``[G,F]``: per ``reg`` and training frame, its leave-one-frame-out mean squared residual."""
+        """``[G,F]``: per ``reg`` and training frame, its leave-one-frame-out mean squared residual (computed
+        once per distinct frame, :meth:`_set_frame_groups`)."""
         k = self.c.shape[2]
         per_frame = 0.0
+        distinct = self._first is not None
+        e0n = self.e0n[:, self._first] if distinct else self.e0n
         for v in self._loo_blocks(regs, k):
-            d, q = self._loo_parts(regs, self.c, self.e0n, v)
+            d, q = self._loo_parts(regs, self.c, e0n, v, distinct)
             if self.block > 1:
                 d = self._block_residuals(regs, d, v)
                 per_frame = per_frame + np.einsum("nfkg,nfkg->gf", d, d)
@@ -471,7 +509,8 @@ class PositionFit:
             d *= d
             sq = _sum_axis2(d)                                                             # [n,F,G]
             per_frame = per_frame + np.einsum("nfg,nfg->gf", sq, q)                        # [G,F]
-        return per_frame / (self.Z.shape[0] * k)
+        per_frame = per_frame / (self.Z.shape[0] * k)
+        return per_frame[:, self._inverse] if distinct else per_frame
 
     def loo_frame_errors(self, reg: float) -> np.ndarray:
         """``[F]``: each training frame's leave-one-frame-out mean squared residual (per vertex coordinate,
