@@ -103,10 +103,11 @@ def reduced_normal_matrix(inv_l: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return np.take(upper, pos.ravel(), axis=1).reshape(len(upper), r, r)
 
 
-def _reduced_solve(W, R, T, D, reg, extra_rhs: bool):
+def _reduced_solve(W, R, T, D, reg, extra_rhs: bool, basis):
     """The r x r systems ``(I + H_v / reg) x_v = P^T e0_v`` (and, with ``extra_rhs``, ``= P^T``) of eqs.
-    (1)+(2), ``e0 = R - W T``. Returns ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
-    P, s, Q = weight_basis(W)
+    (1)+(2), ``e0 = R - W T``, in the weights' ``basis`` (:func:`weight_basis`). Returns
+    ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
+    P, s, Q = basis
     B = Q * s
     inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
     e0 = R - blend(W, T)                                                             # [F,n,c]
@@ -135,8 +136,11 @@ def _direct_system(W, R, T, D, reg, extra):
     return np.linalg.solve(A, rhs)
 
 
-def _reduced_pays(W: np.ndarray) -> bool:
-    return np.linalg.matrix_rank(W) <= REDUCED_MAX_RANK * W.shape[1]
+def _reduced_basis(W: np.ndarray):
+    """:func:`weight_basis` of ``W`` when the r x r path pays (``r <= REDUCED_MAX_RANK K``; its rank is
+    ``np.linalg.matrix_rank``'s, by the same threshold: one SVD for the test and the solve), else None."""
+    basis = weight_basis(W)
+    return basis if len(basis[1]) <= REDUCED_MAX_RANK * W.shape[1] else None
 
 
 def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
@@ -151,10 +155,11 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     W = np.asarray(weights, dtype=np.float64)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    if not _reduced_pays(W):
+    basis = _reduced_basis(W)
+    if basis is None:
         # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal)
         return _direct_system(W, R, T, reg_weights, reg, False).transpose(1, 0, 2)
-    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False)
+    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False, basis)
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
@@ -188,7 +193,8 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
     T = np.asarray(generic_deltas, dtype=np.float64)
     c = R.shape[2]
     Pw = None if predict_weights is None else np.asarray(predict_weights, dtype=np.float64)
-    if not _reduced_pays(W):                                 # the K x K systems: b_v and G_v = A_v^-1 W^T
+    basis = _reduced_basis(W)
+    if basis is None:                                        # the K x K systems: b_v and G_v = A_v^-1 W^T
         X = _direct_system(W, R, T, reg_weights, reg, True)
         b, G = X[:, :, :c], X[:, :, c:]
         e = (R - _left(W, b).transpose(1, 0, 2)) / np.maximum(1.0 - np.einsum("fk,nkf->fn", W, G),
@@ -197,7 +203,7 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
             return e
         cross = np.einsum("fk,nkf->fn", Pw, G)
         return R - _left(Pw, b).transpose(1, 0, 2) + cross[:, :, None] * e
-    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True)
+    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True, basis)
     x, G = X[:, :, :c], X[:, :, c:]                                                  # [n,r,c], [n,r,F]
     Pte0 = _left(P.T, e0.transpose(1, 0, 2))                                         # [n,r,c]
     resid = e0 - _left(P, Pte0 - x).transpose(1, 0, 2)                               # [F,n,c]
