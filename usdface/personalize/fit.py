@@ -286,10 +286,11 @@ class PositionFit:
         """Training frames that are one frame (the same weights and points to the bit: a capture app that
         kept one scan for several shapes) have the same rows of ``Z``, ``e0`` and hence the same
         leave-one-frame-out residual: the criteria compute it once per distinct frame
-        (``_first[U]``, ``_inverse[F]``; None when every frame is distinct, or for block hold-outs)."""
+        (``_first[U]``, ``_inverse[F]``; None when every frame is distinct, for block hold-outs, and when
+        ``Z`` is too large to keep a copy of its distinct rows: a long take's)."""
         self._first = self._inverse = None
         F = len(self._points)
-        if self.block > 1 or F < 2:
+        if self.block > 1 or F < 2 or self._Z2 is None:
             return
         seen: dict[bytes, int] = {}
         inverse = np.empty(F, dtype=np.intp)
