@@ -238,3 +238,39 @@ def test_position_fit_batched_predictions_reuse_and_short_grid_search():
     one_batch = _minimise_log(err, grid, 4)                                      # coarse + fine at once
     separate = _minimise_log(err, grid, 4, errs=err(grid))                       # coarse given: two steps
     assert abs(one_batch[0] - separate[0]) < 1e-12 and abs(one_batch[1] - separate[1]) < 1e-12
+
+
+def test_position_fit_repeated_frames_and_kept_residuals():
+    """Frames repeated to the bit (a capture app's kept scan) are evaluated once: the criteria still equal
+    brute-force leave-one-frame-out refits (each copy left out alone, its twin kept), for either prior of
+    the blend; the residuals kept for the next call at the same reg are dropped when the frames or the
+    prior change."""
+    neutral, pts, W, true, generic = synthetic_fit_problem(noise=0.0005, F=8, K=6)
+    rep = [0, 1, 2, 2, 3, 4, 5, 0, 6, 7, 2]
+    pts, W = pts[rep], W[rep]
+    D = regularization_weights(generic)
+    alt = 0.5 * generic
+    pf = PositionFit(neutral, pts, W, generic, D, alt_deltas=alt)
+    reg = 0.05
+
+    def brute(prior, P):
+        out = []
+        for i in range(len(W)):
+            keep = np.arange(len(W)) != i
+            B = fit_blendshapes(neutral, P[keep], W[keep], prior, D, reg)
+            out.append(P[i] - neutral - np.einsum("k,knc->nc", W[i], B))
+        return np.array(out)                                                    # [F,n,3]
+
+    e_main, e_alt = brute(generic, pts), brute(alt, pts)
+    assert np.abs(pf.loo_residuals(reg) - e_main).max() < 1e-12
+    assert np.allclose(pf.loo_frame_errors(reg), np.mean(e_main ** 2, axis=(1, 2)), rtol=1e-8, atol=0)
+    mix = pf.loo_errors_mix([reg], (0.0, 1.0))[:, 0]
+    assert np.allclose(mix, [np.mean(e_alt ** 2), np.mean(e_main ** 2)], rtol=1e-8, atol=0)
+    kept = pf.loo_residuals(reg)
+    assert pf.loo_residuals(reg) is kept and not kept.flags.writeable
+    pf.set_prior_mix(0.0)                                                       # another prior: recomputed
+    assert np.abs(pf.loo_residuals(reg) - e_alt).max() < 1e-12
+    moved = pts.copy()
+    moved[3] += 0.001                                                           # frame 3 no longer repeats 2
+    pf.set_points(moved)
+    assert np.abs(pf.loo_residuals(reg) - brute(alt, moved)).max() < 1e-12

@@ -23,6 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from .errors import GeometryError
 
 __all__ = [
+    "vector_lengths",
     "triangle_normals", "vertex_normals", "triangle_areas", "frame_vectors", "triangle_frames",
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
@@ -36,6 +37,13 @@ def _edge_vectors(points: np.ndarray, triangles: np.ndarray):
     t = np.asarray(triangles, dtype=np.int64)
     v0 = p[..., t[:, 0], :]
     return v0, p[..., t[:, 1], :] - v0, p[..., t[:, 2], :] - v0
+
+
+def vector_lengths(x: np.ndarray) -> np.ndarray:
+    """``|x|`` over the last axis of ``x[..., 3]`` -> ``[...]``: ``np.linalg.norm(x, axis=-1)`` to the bit
+    (the same squares summed in the same order) without numpy's reduction over a 3-long axis (~5x cheaper)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -90,7 +98,7 @@ def frame_vectors(points: np.ndarray, triangles: np.ndarray, *, axis: int = -2):
         v0 = np.take(p, t[:, 0], axis=axis)
         e1, e2 = np.take(p, t[:, 1], axis=axis) - v0, np.take(p, t[:, 2], axis=axis) - v0
     c = _cross(e1, e2)
-    length = np.sqrt(np.linalg.norm(c, axis=-1, keepdims=True))
+    length = np.sqrt(vector_lengths(c))[..., None]
     e3 = np.divide(c, length, out=np.zeros_like(c), where=length > 0)
     return e1, e2, e3
 

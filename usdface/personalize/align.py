@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import vector_lengths
+
 __all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms"]
 
 
@@ -18,7 +20,7 @@ def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count:
     """Indices of vertices that no template shape moves by more than ``rel`` x the largest template
     displacement (``generic_deltas[K,n,3]``, metres). Falls back to the least-moving quarter of the mesh when
     fewer than ``min_count`` qualify."""
-    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1).max(axis=0)   # [n]
+    mag = vector_lengths(generic_deltas).max(axis=0)                                 # [n]
     idx = np.flatnonzero(mag <= rel * mag.max()) if mag.max() > 0 else np.arange(len(mag))
     if len(idx) < min_count:
         idx = np.sort(np.argsort(mag)[: max(min_count, len(mag) // 4)])
@@ -32,20 +34,34 @@ def _det3(M: np.ndarray) -> np.ndarray:
             + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
 
 
-def _kabsch_prepared(src, srcT, dst, w):
-    """:func:`kabsch` with ``srcT = src^T`` per frame given (contiguous), ``dst[F,m,3]``: no centred copies,
-    ``H = src^T diag(w~) dst - c_s c_d^T`` with ``w~`` the normalised weights."""
-    ws = (w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300))[:, None, :]          # [F,1,m]
-    cs = np.matmul(ws, src)                                                          # [F,1,3]
-    cd = np.matmul(ws, dst)
-    # the weights multiply src^T along its contiguous axis (2x cheaper than weighting dst[F,m,3])
-    H = np.matmul(srcT * ws, dst) - np.swapaxes(cs, 1, 2) * cd                       # [F,3,3]
+def _kabsch_prepared(srcA, dstA, w):
+    """:func:`kabsch` on homogeneous copies ``srcA[F,4,m]``, ``dstA[F,4,m]`` (``src^T``, ``dst^T`` with a row
+    of ones; :func:`_homogeneous`), made once per point set: one batched product gives the weighted moments
+    ``[[sum w s d^T, sum w s], [sum w d^T, sum w]]``, hence ``H = src^T diag(w~) dst - c_s c_d^T`` (``w~`` the
+    normalised weights) without centred copies."""
+    M = np.matmul(srcA * w[:, None, :], np.swapaxes(dstA, 1, 2))                    # [F,4,4]
+    sw = np.maximum(M[:, 3, 3], 1e-300)[:, None]
+    cs, cd = M[:, :3, 3] / sw, M[:, 3, :3] / sw                                      # [F,3]
+    H = M[:, :3, :3] / sw[:, :, None] - cs[:, :, None] * cd[:, None, :]              # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
     V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
     V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
     R = np.matmul(V, Ut)
-    t = cd[:, 0] - np.matmul(cs, np.swapaxes(R, 1, 2))[:, 0]
+    t = cd - np.matmul(R, cs[:, :, None])[:, :, 0]
     return R, t
+
+
+def _homogeneous(src, dst):
+    """``(srcA[F,4,m], dstA[F,4,m])`` of :func:`_kabsch_prepared` for ``src[F,m,3]``, ``dst[F,m,3]``: the
+    coordinate planes and a plane of ones (copied plane-wise: filling a ``[F,m,4]`` array's first three
+    columns is a strided copy 30x slower)."""
+    F, m, _ = src.shape
+    out = []
+    for x in (src, dst):
+        a = np.ones((F, 4, m))
+        a[:, :3] = np.swapaxes(x, 1, 2)
+        out.append(a)
+    return tuple(out)
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
@@ -54,7 +70,7 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None):
     src = np.asarray(src, dtype=np.float64)
     dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), src.shape)
     w = np.ones(src.shape[:2]) if w is None else np.asarray(w, dtype=np.float64)
-    return _kabsch_prepared(src, np.ascontiguousarray(np.swapaxes(src, 1, 2)), dst, w)
+    return _kabsch_prepared(*_homogeneous(src, dst), w)
 
 
 def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
@@ -76,22 +92,16 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     src = P[:, vertices]
-    dst = np.ascontiguousarray(np.broadcast_to(ref[..., vertices, :], src.shape))
-    srcT = np.ascontiguousarray(np.swapaxes(src, 1, 2))
+    srcA, dstA = _homogeneous(src, np.broadcast_to(ref[..., vertices, :], src.shape))
     w = np.ones(src.shape[:2])
-    R, t = _kabsch_prepared(src, srcT, dst, w)
+    R, t = _kabsch_prepared(srcA, dstA, w)
     m = src.shape[1]
-    dstT = np.swapaxes(dst, 1, 2)                                    # [F,3,m] views: coordinate planes
-    d = np.empty((3,) + src.shape[:2])
+    srcT, dstT = srcA[:, :3], dstA[:, :3]                            # coordinate planes [F,3,m]
     for _ in range(iterations if robust else 0):
-        # residual R src + t - dst, one coordinate plane [F,m] at a time (a batched 3 x 3 matmul is 2x slower)
-        for j in range(3):
-            np.multiply(srcT[:, 0], R[:, j, 0, None], out=d[j])
-            d[j] += srcT[:, 1] * R[:, j, 1, None]
-            d[j] += srcT[:, 2] * R[:, j, 2, None]
-            d[j] += t[:, j, None]
-            d[j] -= dstT[:, j]
-        r = np.sqrt(np.einsum("cfm,cfm->fm", d, d))
+        d = np.matmul(R, srcT)                                       # residual R src + t - dst  [F,3,m]
+        d += t[:, :, None]
+        d -= dstT
+        r = np.sqrt(np.einsum("fcm,fcm->fm", d, d))
         # the median (np.median's value): one partition at m // 2; for even m the lower middle is the
         # largest value below it
         part = np.partition(r, m // 2, axis=1)
@@ -99,5 +109,5 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
         med = (0.5 * (lower + part[:, m // 2]))[:, None]
         s = 1.4826 * med + 1e-12
         w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
-        R, t = _kabsch_prepared(src, srcT, dst, w)
+        R, t = _kabsch_prepared(srcA, dstA, w)
     return R, t

@@ -243,6 +243,24 @@ def _generic_shapes(capture: Capture, eyelids: bool) -> np.ndarray:
                                 eyelids=eyelids)
 
 
+#: The process's ``threadpoolctl.ThreadpoolController`` and ``len(sys.modules)`` when it was made.
+_BLAS_CONTROLLER: list = [None, -1]
+
+
+def _blas_controller():
+    """One ``ThreadpoolController`` per process, made again only after new modules were imported (an
+    extension module may have loaded another BLAS): ``threadpool_limits`` lists every loaded library on each
+    call (~1.4 ms, every fit), the controller's ``limit`` only sets the thread counts (~0.04 ms)."""
+    import sys
+
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS_CONTROLLER[0] is None or _BLAS_CONTROLLER[1] != len(sys.modules):
+        _BLAS_CONTROLLER[0] = ThreadpoolController()
+        _BLAS_CONTROLLER[1] = len(sys.modules)
+    return _BLAS_CONTROLLER[0]
+
+
 def single_threaded_blas(func):
     """Run ``func`` with BLAS limited to one thread (``threadpoolctl``): thousands of tiny (K x K) LAPACK
     calls and the mid-sized products of the fit and the transfer run 2-3x slower (seconds at high load) with a
@@ -250,9 +268,7 @@ def single_threaded_blas(func):
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(limits=1, user_api="blas"):
+        with _blas_controller().limit(limits=1, user_api="blas"):
             return func(*args, **kwargs)
 
     return wrapper
@@ -870,9 +886,13 @@ def _check_frames_like_neutral(capture, src) -> None:
     P = np.asarray(frames.points, dtype=np.float64)
     if not len(P) or r0 <= 0:
         return
-    C = P - P.mean(axis=1, keepdims=True)                                          # [F,n,3]
-    radius = np.sqrt(np.mean(np.sum(C * C, axis=2), axis=1))                        # [F]
-    u, _, vt = np.linalg.svd(np.einsum("fni,nj->fij", C, c0))                       # [F,3,3] Kabsch
+    # no centred [F,n,3] copy: c0 sums to zero, so P^T c0 is the centred frames' moments, and the RMS radius
+    # is sqrt(mean |p|^2 - |mean p|^2) (a check against a 1.5x threshold: rounding is immaterial)
+    flat = P.reshape(len(P), -1)
+    mean = P.mean(axis=1)                                                            # [F,3]
+    radius = np.sqrt(np.maximum(np.einsum("fi,fi->f", flat, flat) / P.shape[1]
+                                - np.einsum("fc,fc->f", mean, mean), 0.0))          # [F]
+    u, _, vt = np.linalg.svd(np.matmul(np.swapaxes(P, 1, 2), c0))                   # [F,3,3] Kabsch
     flip = np.ones((len(P), 3))
     flip[:, 2] = np.sign(np.linalg.det(u @ vt))                                     # a rotation, not a mirror
     rot = (u * flip[:, None, :]) @ vt

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import vector_lengths
+
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
            "weight_basis", "reduced_normal_matrix", "data_share"]
 
@@ -73,7 +75,7 @@ def regularization_weights(generic_deltas: np.ndarray, *, clamp: float = D_CLAMP
     (metres; the ratio is unit-free), clamped to ``clamp`` (1e5) where the displacement is (near) zero.
     A shape that moves no vertex at all gets ``clamp`` everywhere.
     """
-    mag = np.linalg.norm(np.asarray(generic_deltas, dtype=np.float64), axis=-1)      # [K,n]
+    mag = vector_lengths(generic_deltas)                                             # [K,n]
     peak = mag.max(axis=1, keepdims=True)
     D = np.divide(peak, mag, out=np.full_like(mag, clamp), where=mag > peak / clamp)
     return np.minimum(D, clamp)
@@ -101,10 +103,11 @@ def reduced_normal_matrix(inv_l: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return np.take(upper, pos.ravel(), axis=1).reshape(len(upper), r, r)
 
 
-def _reduced_solve(W, R, T, D, reg, extra_rhs: bool):
+def _reduced_solve(W, R, T, D, reg, extra_rhs: bool, basis):
     """The r x r systems ``(I + H_v / reg) x_v = P^T e0_v`` (and, with ``extra_rhs``, ``= P^T``) of eqs.
-    (1)+(2), ``e0 = R - W T``. Returns ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
-    P, s, Q = weight_basis(W)
+    (1)+(2), ``e0 = R - W T``, in the weights' ``basis`` (:func:`weight_basis`). Returns
+    ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
+    P, s, Q = basis
     B = Q * s
     inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
     e0 = R - blend(W, T)                                                             # [F,n,c]
@@ -133,8 +136,11 @@ def _direct_system(W, R, T, D, reg, extra):
     return np.linalg.solve(A, rhs)
 
 
-def _reduced_pays(W: np.ndarray) -> bool:
-    return np.linalg.matrix_rank(W) <= REDUCED_MAX_RANK * W.shape[1]
+def _reduced_basis(W: np.ndarray):
+    """:func:`weight_basis` of ``W`` when the r x r path pays (``r <= REDUCED_MAX_RANK K``; its rank is
+    ``np.linalg.matrix_rank``'s, by the same threshold: one SVD for the test and the solve), else None."""
+    basis = weight_basis(W)
+    return basis if len(basis[1]) <= REDUCED_MAX_RANK * W.shape[1] else None
 
 
 def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
@@ -149,10 +155,11 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     W = np.asarray(weights, dtype=np.float64)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    if not _reduced_pays(W):
+    basis = _reduced_basis(W)
+    if basis is None:
         # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal)
         return _direct_system(W, R, T, reg_weights, reg, False).transpose(1, 0, 2)
-    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False)
+    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False, basis)
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
@@ -186,7 +193,8 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
     T = np.asarray(generic_deltas, dtype=np.float64)
     c = R.shape[2]
     Pw = None if predict_weights is None else np.asarray(predict_weights, dtype=np.float64)
-    if not _reduced_pays(W):                                 # the K x K systems: b_v and G_v = A_v^-1 W^T
+    basis = _reduced_basis(W)
+    if basis is None:                                        # the K x K systems: b_v and G_v = A_v^-1 W^T
         X = _direct_system(W, R, T, reg_weights, reg, True)
         b, G = X[:, :, :c], X[:, :, c:]
         e = (R - _left(W, b).transpose(1, 0, 2)) / np.maximum(1.0 - np.einsum("fk,nkf->fn", W, G),
@@ -195,7 +203,7 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
             return e
         cross = np.einsum("fk,nkf->fn", Pw, G)
         return R - _left(Pw, b).transpose(1, 0, 2) + cross[:, :, None] * e
-    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True)
+    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True, basis)
     x, G = X[:, :, :c], X[:, :, c:]                                                  # [n,r,c], [n,r,F]
     Pte0 = _left(P.T, e0.transpose(1, 0, 2))                                         # [n,r,c]
     resid = e0 - _left(P, Pte0 - x).transpose(1, 0, 2)                               # [F,n,c]
@@ -238,11 +246,15 @@ class PositionFit:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
         self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
+        # Z^2 (the hat diagonals' weights), once for every reg and step; per vertex block for a long take
+        self._Z2 = self.Z ** 2 if self.Z.nbytes <= (64 << 20) else None
         self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
         self.has_alt = self.T_alt is not None
         self._prior_parts = {}
+        self._loo_cache = (None, None)          # ((prior/points state, reg), LOO residuals) of the last call
+        self._state = 0
         self.set_points(points)
 
     def _coeffs(self, T):
@@ -260,6 +272,7 @@ class PositionFit:
             return
         self._points = points.copy()                    # a copy: the caller may change its array in place
         self.R = points - self.neutral[None]
+        self._set_frame_groups()
         PtR = _left(self.P.T, self.R.transpose(1, 0, 2))                     # [n,r,c]
         self.cR = np.matmul(np.swapaxes(self.V, 1, 2), PtR)                 # V^T P^T r
         if not hasattr(self, "_main"):
@@ -269,7 +282,31 @@ class PositionFit:
             self._mix = 1.0
         self._apply_prior()
 
+    def _set_frame_groups(self) -> None:
+        """Training frames that are one frame (the same weights and points to the bit: a capture app that
+        kept one scan for several shapes) have the same rows of ``Z``, ``e0`` and hence the same
+        leave-one-frame-out residual: the criteria compute it once per distinct frame
+        (``_first[U]``, ``_inverse[F]``; None when every frame is distinct, for block hold-outs, and when
+        ``Z`` is too large to keep a copy of its distinct rows: a long take's)."""
+        self._first = self._inverse = None
+        F = len(self._points)
+        if self.block > 1 or F < 2 or self._Z2 is None:
+            return
+        seen: dict[bytes, int] = {}
+        inverse = np.empty(F, dtype=np.intp)
+        for f in range(F):
+            key = self.W[f].tobytes() + self._points[f].tobytes()
+            inverse[f] = seen.setdefault(key, len(seen))
+        if len(seen) == F:
+            return
+        first = np.empty(len(seen), dtype=np.intp)
+        first[inverse[::-1]] = np.arange(F)[::-1]                       # each group's first frame
+        self._first, self._inverse = first, inverse
+        self._Zu = self.Z[:, first]                                        # [n,U,r]
+        self._Z2u = None if self._Z2 is None else self._Z2[:, first]
+
     def _apply_prior(self) -> None:
+        self._state += 1                                # new frames or prior: cached residuals are stale
         if self._custom is not None:
             self.T, (cT, WT) = self._custom_T, self._custom
         elif self._alt is None or self._mix == 1.0:
@@ -315,19 +352,27 @@ class PositionFit:
         coef = self.c / (self.mu + reg)[:, :, None]
         return self.T + (self.inv_l[:, :, None] * np.matmul(self.BV, coef)).transpose(1, 0, 2)
 
-    def _loo_parts(self, regs, c, e0n, v=slice(None)):
+    def _z2(self, v, distinct=False):
+        """``Z^2`` on the vertices ``v`` (a slice or indices; ``distinct``: the distinct frames' rows): the
+        kept copy, or squared for the block (for a take's thousands of frames no ``[n,F,r]`` copy is kept)."""
+        if distinct:
+            return self._Zu[v] ** 2 if self._Z2u is None else self._Z2u[v]
+        return self.Z[v] ** 2 if self._Z2 is None else self._Z2[v]
+
+    def _loo_parts(self, regs, c, e0n, v=slice(None), distinct=False):
         """For ``regs[G]``: the leave-in residuals ``d[n,F,k,G]`` of the prior's ``c[n,r,k]``, ``e0n[n,F,k]``
         and the squared LOO factors ``q = (1 - h)^-2`` ``[n,F,G]`` (LOO residual = ``d sqrt(q)``): two batched
         products for the whole grid. The grid is the last (contiguous) axis: the broadcasts run over it.
-        ``v``: only these vertices (a block of :meth:`_loo_blocks`)."""
+        ``v``: only these vertices (a block of :meth:`_loo_blocks`); ``distinct``: on the distinct frames
+        only (:meth:`_set_frame_groups`; ``e0n`` given on them, ``F`` = their number)."""
         regs = np.asarray(regs, dtype=np.float64)
-        Z, mu, c, e0n = self.Z[v], self.mu[v], c[v], e0n[v]
+        Z, mu, c, e0n = (self._Zu if distinct else self.Z)[v], self.mu[v], c[v], e0n[v]
         n, F, r = Z.shape
         g = mu[:, :, None] / (mu[:, :, None] + regs)                                 # [n,r,G]
         gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
         d = np.matmul(Z, gc).reshape(n, F, c.shape[2], len(regs))
         np.subtract(e0n[:, :, :, None], d, out=d)
-        q = np.maximum(1.0 - np.matmul(Z ** 2, g), 1e-9)        # Z^2 per block: no [n,F,r] copy kept
+        q = np.maximum(1.0 - np.matmul(self._z2(v, distinct), g), 1e-9)
         return d, np.reciprocal(q * q, out=q)                                         # [n,F,G]
 
     def _block_residuals(self, regs, d, v=slice(None)) -> np.ndarray:
@@ -386,11 +431,17 @@ class PositionFit:
             return self.loo_errors(regs)[None]
         k = self.c.shape[2]
         c = np.concatenate([self.cR - self._main[0], self.cR - self._alt[0]], axis=2)
-        e0n = np.ascontiguousarray(np.concatenate([self.R - self._main[1], self.R - self._alt[1]],
-                                                  axis=2).transpose(1, 0, 2))
+        distinct = self._first is not None
+        R, WT1, WT0 = self.R, self._main[1], self._alt[1]
+        if distinct:                                     # each distinct frame once, counted by its copies
+            R, WT1, WT0 = R[self._first], WT1[self._first], WT0[self._first]
+            count = np.bincount(self._inverse).astype(np.float64)[None, :, None]
+        e0n = np.ascontiguousarray(np.concatenate([R - WT1, R - WT0], axis=2).transpose(1, 0, 2))
         s11 = s00 = s01 = 0.0
         for v in self._loo_blocks(regs, 2 * k):
-            d, q = self._loo_parts(regs, c, e0n, v)
+            d, q = self._loo_parts(regs, c, e0n, v, distinct)
+            if distinct:
+                q *= count
             if self.block > 1:                    # the block residuals are linear in the prior's too
                 d = self._block_residuals(regs, d, v)
                 d1, d0 = d[:, :, :k], d[:, :, k:]
@@ -414,14 +465,24 @@ class PositionFit:
         ``b^(-i) = b - A^-1 w_i e_i / (1 - h_ii)`` (Sherman-Morrison); ``predict_weights[S,F,K]``: ``S`` such
         sets at once, ``[S,F,n,c]`` (one product for all). ``vertices``: only these (indices into this fit's
         vertices; the result is ``[F,len(vertices),c]``). ``loo``: the plain residuals ``e`` at ``reg`` on
-        these vertices if already computed (they do not depend on ``predict_weights``)."""
+        these vertices if already computed (they do not depend on ``predict_weights``). The plain residuals on
+        every vertex are kept (read-only) for the next call with the same ``reg``, frames and prior."""
         v = slice(None) if vertices is None else np.asarray(vertices)
         mu, Z, c = self.mu[v], self.Z[v], self.c[v]
-        if loo is None:
+        key = (self._state, float(reg))
+        if loo is None and vertices is None and self._loo_cache[0] == key:
+            e = self._loo_cache[1]          # the same frames, prior and reg (the alignment test, then pass)
+        elif loo is None:
+            distinct = self._first is not None                    # once per distinct frame, then copied
             g = mu / (mu + reg)
-            fitted = np.matmul(Z, g[:, :, None] * c)                                  # [n,F,c]
-            h = np.matmul(Z ** 2, g[:, :, None])[:, :, 0]                             # [n,F]
-            e = ((self.e0n[v] - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]).transpose(1, 0, 2)
+            fitted = np.matmul((self._Zu if distinct else self.Z)[v], g[:, :, None] * c)     # [n,F,c]
+            h = np.matmul(self._z2(v, distinct), g[:, :, None])[:, :, 0]             # [n,F]
+            e0n = self.e0n[v][:, self._first] if distinct else self.e0n[v]
+            e = (e0n - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
+            e = (e[:, self._inverse] if distinct else e).transpose(1, 0, 2)
+            if vertices is None:
+                e.flags.writeable = False                                             # kept: read-only
+                self._loo_cache = (key, e)
         else:
             e = loo
         if predict_weights is None:
@@ -440,11 +501,14 @@ class PositionFit:
         return out if Pw.ndim == 3 else out[0]
 
     def _loo_per_frame(self, regs) -> np.ndarray:
-        """``[G,F]``: per ``reg`` and training frame, its leave-one-frame-out mean squared residual."""
+        """``[G,F]``: per ``reg`` and training frame, its leave-one-frame-out mean squared residual (computed
+        once per distinct frame, :meth:`_set_frame_groups`)."""
         k = self.c.shape[2]
         per_frame = 0.0
+        distinct = self._first is not None
+        e0n = self.e0n[:, self._first] if distinct else self.e0n
         for v in self._loo_blocks(regs, k):
-            d, q = self._loo_parts(regs, self.c, self.e0n, v)
+            d, q = self._loo_parts(regs, self.c, e0n, v, distinct)
             if self.block > 1:
                 d = self._block_residuals(regs, d, v)
                 per_frame = per_frame + np.einsum("nfkg,nfkg->gf", d, d)
@@ -452,7 +516,8 @@ class PositionFit:
             d *= d
             sq = _sum_axis2(d)                                                             # [n,F,G]
             per_frame = per_frame + np.einsum("nfg,nfg->gf", sq, q)                        # [G,F]
-        return per_frame / (self.Z.shape[0] * k)
+        per_frame = per_frame / (self.Z.shape[0] * k)
+        return per_frame[:, self._inverse] if distinct else per_frame
 
     def loo_frame_errors(self, reg: float) -> np.ndarray:
         """``[F]``: each training frame's leave-one-frame-out mean squared residual (per vertex coordinate,
