@@ -279,6 +279,26 @@ def test_an_immutable_folder_refuses_outputs_in_it_before_any_work(tmp_path, cha
         check_output_dir(locked / "old")
 
 
+def test_an_append_only_folder_refuses_new_outputs_before_any_work(tmp_path, chattr, samples):
+    """Review: ``chattr +a`` folder: a new file can be made there (the probe passed), but the atomic write's
+    final rename cannot: personalize ran all its work, then failed naming its temp file, and left it behind.
+    Refused up front now, new output or not; a missing subfolder of it is fine (made, then renamed in)."""
+    from usdface.cli import main
+    from usdface.errors import OutputNotWritableError
+
+    folder = tmp_path / "appendonly"
+    folder.mkdir()
+    chattr(folder, "+a")
+    for check in (lambda: atomic.check_output_file(folder / "new.usda"),
+                  lambda: check_output_dir(folder / "capture")):
+        with pytest.raises(OutputNotWritableError, match="append-only") as info:
+            check()
+        assert "chattr -a" in info.value.fix
+    atomic.check_output_file(folder / "sub" / "new.usda")        # the rename happens in the new subfolder
+    assert main(["render", str(samples / "avatar.usda"), "-o", str(folder / "r.png"), "-q"]) == 2
+    assert list(folder.iterdir()) == []                          # refused before any work: nothing left
+
+
 def test_an_output_under_a_regular_file_is_refused_with_the_enotdir_fix(tmp_path):
     """``-o notes.txt/capture``: the folder could never be made (ENOTDIR), found only after the work."""
     import errno

@@ -119,3 +119,22 @@ def test_render_diagnostics_sees_a_camera_layout_from_its_camera(samples, tmp_pa
                  "-q"]) == 0
     assert seen[-1]["camera"] is None and seen[-1]["rays"] == 8
     assert "visibility: 8 hemisphere rays" in capsys.readouterr().out
+    # --rays over the camera layout asks for the hemisphere (it was ignored beside the recorded camera)
+    assert main(["render", str(layer), "--landmarks", "--diagnostics", "-o", str(png), "-q", "--force",
+                 "--rays", "4"]) == 0
+    assert seen[-1]["camera"] is None and seen[-1]["rays"] == 4
+    capsys.readouterr()
+
+
+def test_render_refuses_visibility_options_nothing_would_use(samples, tmp_path, capsys):
+    """Review: ``render --camera`` without ``--diagnostics`` wrote the picture and ignored the camera;
+    ``--rays`` beside ``--camera`` was ignored too. Both refused before any work, naming the fix."""
+    avatar = str(samples / "avatar.usda")
+    for extra, said in ((["--camera", "0,0,1"], "--camera set where --diagnostics sees from"),
+                        (["--rays", "8"], "--rays set where --diagnostics sees from"),
+                        (["--landmarks", "--diagnostics", "--camera", "0,0,1", "--rays", "8"],
+                         "give --camera or --rays, not both")):
+        out = tmp_path / "r.png"
+        assert main(["render", avatar, "-o", str(out), "-q", *extra]) == 2
+        assert said in capsys.readouterr().err
+        assert not out.exists()

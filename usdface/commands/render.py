@@ -33,8 +33,9 @@ def register(subparsers) -> None:
                         "and global visibility, what expressions hide, relative displacement, importance "
                         "weights); FILE without a layout gets one computed with the landmarks defaults")
     p.add_argument("--rays", type=positive_int, default=None,
-                   help="hemisphere rays per vertex for --diagnostics (default: those the authored layout "
-                        "was computed with, else 16, as 'usdface landmarks')")
+                   help="hemisphere rays per vertex for --diagnostics, also over a camera layout's camera "
+                        "(default: those the authored layout was computed with, else 16, as 'usdface "
+                        "landmarks'); not with --camera")
     p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
                    help="with --diagnostics: visibility from this camera position (metres, usdface's "
                         "internal frame, as 'usdface landmarks --camera'; default: the camera the authored "
@@ -83,6 +84,18 @@ def run(args) -> int:
         from ..errors import LandmarkError
 
         raise LandmarkError("--diagnostics draws a landmark layout", fix="pass --landmarks --diagnostics")
+    given = [flag for flag, value in (("--camera", args.camera), ("--rays", args.rays)) if value is not None]
+    if given and not args.diagnostics:
+        from ..errors import OptionError
+
+        named = " and ".join(given)
+        raise OptionError(f"{named} set where --diagnostics sees from; without it nothing would use them",
+                          fix=f"add --landmarks --diagnostics, or drop {named}")
+    if args.camera is not None and args.rays is not None:
+        from ..errors import OptionError
+
+        raise OptionError("--rays counts hemisphere rays; --camera sees from one point, so the rays would be "
+                          "ignored", fix="give --camera or --rays, not both")
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
                       inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
     shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
@@ -175,7 +188,9 @@ def _diagnostics(args, path: Path, rig) -> None:
     layouts = read_landmarks(path)
     settings = read_landmark_settings(path).get(prim, {})
     recorded = _layout_setup(path) if prim in layouts else {}
-    camera = args.camera if args.camera is not None else recorded.get("camera")
+    # given here wins: --rays asks for the hemisphere, also over a camera layout's recorded camera
+    camera = (args.camera if args.camera is not None
+              else None if args.rays is not None else recorded.get("camera"))
     rays = args.rays if args.rays is not None else recorded.get("rays", 16)
     with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
         if prim in layouts:

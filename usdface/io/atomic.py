@@ -314,8 +314,10 @@ def check_writable(path, *, what: str = "output", fix: str | None = None, folder
     * the output's folder - or its nearest existing ancestor, where the write would create the missing
       ones - must be a folder in which a file can be created (not a read-only folder or file system, an
       immutable folder, one without write permission);
+    * the output's folder must not be append-only (``chattr +a``: it takes new files but refuses the write's
+      final rename, new output or not);
     * an existing file the write would replace must not be immutable or append-only (``chattr +i``/``+a``),
-      nor sit in an append-only folder, nor be another user's in a sticky folder (``/tmp``);
+      nor be another user's in a sticky folder (``/tmp``);
     * with ``folder`` (``path`` is an output folder, written into with ``--force``): an existing ``path``
       must accept new files and not be immutable or append-only itself.
     """
@@ -332,6 +334,14 @@ def check_writable(path, *, what: str = "output", fix: str | None = None, folder
                                          fix=fix or (f"lift the flag (chattr -{flag[0]} {place}, as root) or "
                                                      "write the output elsewhere" if flag
                                                      else write_fix(exc.errno))) from None
+    # the write ends with a rename in the output's folder: an append-only folder takes new files (the probe
+    # passes) but no rename, so a new output fails after all the work as surely as a replaced one
+    if parent.absolute() == real.absolute().parent and _locked_flag(parent) == "append-only":
+        raise OutputNotWritableError(f"{what} cannot be written in the append-only folder {parent} "
+                                     "(chattr +a): the atomic write's final rename is refused there",
+                                     path=path,
+                                     fix=fix or f"lift the flag (chattr -a {parent}, as root) or write the "
+                                                "output elsewhere")
     if not os.path.lexists(real) or real.is_dir() and not folder:
         return path
     flag = _locked_flag(real)
@@ -339,11 +349,6 @@ def check_writable(path, *, what: str = "output", fix: str | None = None, folder
         raise OutputNotWritableError(f"{what} is {flag} (chattr +{flag[0]}): it cannot be replaced",
                                      path=path, fix=fix or f"lift the flag (chattr -{flag[0]} {path}, as "
                                                            "root) or write the output elsewhere")
-    if _locked_flag(parent) == "append-only":
-        raise OutputNotWritableError(f"{what} is in the append-only folder {parent} (chattr +a): it cannot "
-                                     "be replaced", path=path,
-                                     fix=fix or f"lift the flag (chattr -a {parent}, as root) or write the "
-                                                "output elsewhere")
     if not folder and hasattr(os, "geteuid") and os.geteuid() != 0:
         st, dst = real.lstat(), parent.stat()
         if dst.st_mode & 0o1000 and os.geteuid() not in (st.st_uid, dst.st_uid):
