@@ -180,27 +180,39 @@ def test_a_take_cut_off_mid_row_keeps_its_complete_rows(tmp_path):
         read_livelink_take(cut)
 
 
-def test_a_frame_field_at_or_above_the_rate_is_refused_with_the_implied_rate(tmp_path, capfd):
+def test_a_frame_field_at_or_above_the_default_rate_reads_at_the_implied_rate(tmp_path, capfd):
     """User trial: a 120 fps take ('10:00:00:95.000') read at the default 60 gave times past the next second
-    and overlapping frames, silently. Refused, naming the file, the implied rate and the option."""
+    and overlapping frames, silently. Read at the implied rate (the next common one above the largest
+    field), with a warning naming the file, the rate and the option; a rate the caller gives that the
+    timecodes contradict is refused. (Refusing the default too left take folders, CSVs given to fit or
+    personalize and landmarks --takes, which take no rate, with no way to read a 120 fps take.)"""
     from usdface.errors import TimecodeError
 
     codes = ["10:00:00:00.000", "10:00:00:59.000", "10:00:00:95.000", "10:00:01:10.000"]
     p = write_csv(tmp_path / "t120.csv", np.full((4, 52), 0.5), codes)
-    with pytest.raises(TimecodeError) as info:
-        read_livelink_take(p)
+    with pytest.warns(UserWarning, match=r"t120.csv: .* more than 95 frames per second: read at 120") as w:
+        take = read_livelink_take(p)
+    np.testing.assert_allclose(take.times, [0, 59 / 120, 95 / 120, 130 / 120])
+    assert "--timecode-rate 120" in str(w[0].message)
+    np.testing.assert_allclose(read_livelink_take(p, timecode_rate=120).times, take.times)
+    with pytest.raises(TimecodeError) as info:                     # a rate given is checked
+        read_livelink_take(p, timecode_rate=60)
     text = str(info.value)
-    assert "t120.csv" in text and "95" in text and "more than 95 frames per second (likely 120)" in text
+    assert "t120.csv" in text and "not below the rate given, 60 (likely 120)" in text
     assert "--timecode-rate 120" in info.value.fix and "timecode_rate=120" in info.value.fix
     assert isinstance(info.value, InputFileError)
-    take = read_livelink_take(p, timecode_rate=120)            # the fix works
-    np.testing.assert_allclose(take.times, [0, 59 / 120, 95 / 120, 130 / 120])
-    with pytest.raises(TimecodeError, match="not below rate 30"):   # an explicit rate is checked too
+    with pytest.raises(TimecodeError, match="not below the rate given, 30"):
         parse_timecodes(["00:00:00:00", "00:00:00:30"], 30)
     out = tmp_path / "t.usda"
-    assert main(["anim", "import", str(p), "-o", str(out)]) == 2 and not out.exists()
-    assert "--timecode-rate 120" in capfd.readouterr().err
-    assert main(["anim", "import", str(p), "-o", str(out), "--timecode-rate", "120", "-q"]) == 0
+    assert main(["anim", "import", str(p), "-o", str(out), "--timecode-rate", "60"]) == 2
+    assert not out.exists() and "--timecode-rate 120" in capfd.readouterr().err
+    assert main(["anim", "import", str(p), "-o", str(out), "-q"]) == 0           # the default: read at 120
+    said = capfd.readouterr()
+    assert "read at 120 per second" in said.out + said.err
+    from usdface.io.take import read_take
+
+    with pytest.warns(UserWarning, match="read at 120"):               # a reader that takes no rate
+        np.testing.assert_allclose(read_take(p).times, take.times)
 
 
 @pytest.mark.parametrize("code", ["10:00:-01:00.000", "10:00:00:-2.000", "-1:00:00:00.000"])

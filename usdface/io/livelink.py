@@ -73,10 +73,13 @@ def _rate_fix(rate: float) -> str:
 def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.ndarray:
     """``HH:MM:SS:FF[.fff]`` strings -> seconds[F] from the first code (a midnight wrap is unwrapped).
 
-    ``FF`` counts frames at ``timecode_rate`` per second (None: :data:`DEFAULT_TIMECODE_RATE`, 60, the
-    app's; a take whose frame fields all stay below 30 over several seconds is then warned about, it looks
-    like 30 per second). Raises :class:`usdface.errors.TimecodeError` naming the file when a frame field
-    reaches the rate (with the smallest common rate above it) or a field is negative.
+    ``FF`` counts frames at ``timecode_rate`` per second. None: :data:`DEFAULT_TIMECODE_RATE`, 60, the
+    app's; a take whose frame fields reach 60 is read at the smallest common rate above its largest field
+    (a 120 fps take: every reader of takes - a take folder, ``fit``/``personalize`` of a CSV, the weights of
+    ``landmarks --takes`` - takes no rate of its own), with a warning naming it and the option; one whose
+    fields all stay below 30 over several seconds is warned about (it looks like 30 per second). Raises
+    :class:`usdface.errors.TimecodeError` naming the file when a frame field reaches a rate the caller gave
+    (the timecodes contradict it) or a field is negative.
     """
     parts = [c.strip().split(":") for c in codes]
     if any(len(p) != 4 for p in parts):
@@ -102,11 +105,14 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     if ff.size and ff.max() >= rate:
         i = int(np.argmax(ff))
         implied = next((r for r in _COMMON_RATES if r > ff[i]), float(np.floor(ff[i])) + 1.0)
-        given = "the default " if timecode_rate is None else ""
-        raise TimecodeError(f"timecode {codes[i].strip()!r} (row {i + 1} of the take) has frame field "
-                            f"{ff[i]:g}, not below {given}rate {rate:g}: the timecodes count more than "
-                            f"{np.floor(ff[i]):g} frames per second (likely {implied:g})", path=path,
-                            fix=_rate_fix(implied))
+        said = (f"timecode {codes[i].strip()!r} (row {i + 1} of the take) has frame field {ff[i]:g}: the "
+                f"timecodes count more than {np.floor(ff[i]):g} frames per second")
+        if timecode_rate is not None:                           # the caller's rate contradicts the take
+            raise TimecodeError(f"{said}, not below the rate given, {rate:g} (likely {implied:g})", path=path,
+                                fix=_rate_fix(implied))
+        warnings.warn(f"{path or 'take'}: {said}: read at {implied:g} per second, not the default "
+                      f"{rate:g} (to set it: {_rate_fix(implied)})", UserWarning, stacklevel=3)
+        rate = implied
     whole = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2]
     whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
     seconds = np.unique(whole)
