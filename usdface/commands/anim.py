@@ -21,8 +21,9 @@ def register(subparsers) -> None:
     imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
     imp.add_argument("--timecode-rate", type=positive_float, default=None,
                      help="frames per second of the CSV's timecode FF field; also the stage's "
-                          "timeCodesPerSecond (default 60, Live Link Face's; a frame field at or above "
-                          "the rate is refused, a take whose frame fields stay below 30 is warned about)")
+                          "timeCodesPerSecond (default 60, Live Link Face's, or the rate larger frame "
+                          "fields imply, with a warning; a frame field at or above a rate given is refused, "
+                          "a take whose frame fields stay below 30 is warned about)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--json", action="store_true", help="print the result as JSON")
     add_quiet(imp)
