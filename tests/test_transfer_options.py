@@ -4,6 +4,7 @@ given (user trial findings; each test failed before its fix)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -215,3 +216,35 @@ def test_weight_bounds_and_unbounded_are_not_given_together(tmp_path, capsys):
                   "--unbounded"])
         assert code.value.code == 2
         assert "not allowed with argument" in capsys.readouterr().err
+
+
+def test_a_batch_wide_join_option_goes_to_the_rows_whose_mode_uses_it(tmp_path, monkeypatch):
+    """Review: ``batch --set falloff=0`` over a manifest of ``offset`` and ``person`` rows stopped the whole
+    batch (the person row 'gave' falloff). A batch-wide join option now goes to the rows whose mode uses it;
+    one that no row uses is refused (it would change nothing); a row's own column is still checked."""
+    from usdface import api
+    from usdface.errors import InputFileError
+    from usdface.pipeline import batch
+
+    manifest = tmp_path / "m.json"
+    rows = [{"avatar": str(A), "capture": str(C),
+             "output": str(tmp_path / f"{name}.usda"), **extra}
+            for name, extra in (("a", {"face_transfer": "offset"}), ("b", {}))]
+    manifest.write_text(json.dumps(rows))
+    seen = {}
+
+    def fake_run(items, **kw):
+        seen["options"] = [dict(item.options) for item in items]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(batch, "run_batch", fake_run)
+    with pytest.raises(KeyboardInterrupt):
+        api.personalize_batch(manifest, options={"falloff": 0.0, "mu": 0.01})
+    assert seen["options"] == [{"falloff": 0.0, "mu": 0.01, "face_transfer": "offset"}, {"mu": 0.01}]
+    with pytest.raises(InputFileError, match="extension_length .* no row's face_transfer uses it") as info:
+        api.personalize_batch(manifest, options={"extension_length": 2.0, "face_transfer": "offset"})
+    assert "extension_length (--extension-length): person" in info.value.fix
+    rows[1]["falloff"] = 0.1                                      # a person row's own falloff: refused
+    manifest.write_text(json.dumps(rows))
+    with pytest.raises(InputFileError, match="item 2: falloff .* is not used by"):
+        api.personalize_batch(manifest)

@@ -840,8 +840,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
 
     items = read_manifest(manifest)
-    for item in items:
-        item.options = {**dict(options or {}), **item.options}
+    _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
     path = Path(report_path) if report_path else manifest.with_name(manifest.stem + ".report.json")
     # the report is rewritten on every run (resume), but never over the manifest or an item's input; it is
@@ -883,6 +882,34 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         raise
     report.report_path = Path(report.write(path))
     return report
+
+
+def _apply_batch_options(items, shared: dict, manifest) -> None:
+    """Give every item the batch-wide ``shared`` options (``--set``) under its own (manifest columns win).
+    A join option a face-transfer mode does not use (``falloff``, ``extension_length``, ``support``:
+    :data:`usdface.transfer.pipeline.MODE_OPTIONS`) goes only to the rows whose mode uses it, so one
+    ``--set falloff=0`` serves a manifest of ``offset`` and ``person`` rows; one that no row's mode uses is
+    refused (it would change nothing). A row's own columns are checked as given."""
+    from .errors import InputFileError
+    from .transfer.pipeline import MODE_OPTIONS, option_name
+
+    restricted = {k for ks in MODE_OPTIONS.values() for k in ks} & set(shared)
+    used = set()
+    for item in items:
+        mode = item.options.get("face_transfer", shared.get("face_transfer", "person"))
+        keep = set(MODE_OPTIONS.get(mode, restricted))
+        used |= restricted & keep
+        item.options = {**{k: v for k, v in shared.items() if k not in restricted or k in keep},
+                        **item.options}
+    unused = sorted(restricted - used)
+    if unused and items:
+        names = ", ".join(option_name(k) for k in unused)
+        raise InputFileError(f"{names} set for the whole batch, but no row's face_transfer uses "
+                             f"{'them' if len(unused) > 1 else 'it'}", path=manifest,
+                             fix="drop it, or give it to rows whose face_transfer uses it: "
+                                 + "; ".join(f"{option_name(k)}: "
+                                             + ", ".join(m for m, ks in MODE_OPTIONS.items() if k in ks)
+                                             for k in unused))
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
