@@ -317,8 +317,7 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     vertex error in mm of ``rig`` with the frames' weights (``usdface evaluate``); see
     :func:`usdface.personalize.evaluate_rig`. ``rig`` defaults to the generic baseline: the template's deltas
     on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used)."""
-    from .model import FaceRig as _FaceRig
-    from .personalize import evaluate_rig
+    from .personalize.evaluate import score_capture_rig, template_rig
 
     if role not in ("test", "train"):
         from .errors import UsdFaceError
@@ -326,13 +325,8 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
         raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
                            "'train'")
     capture = _as_capture(capture)
-    if rig is None:
-        t = capture.template
-        rig = _FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
-                       "generic")
-    rig = getattr(rig, "rig", rig)
-    return evaluate_rig(rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig,
-                        capture.frames.select(role))
+    rig = template_rig(capture) if rig is None else getattr(rig, "rig", rig)
+    return score_capture_rig(rig, capture, role)
 
 
 def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHODS, *,

@@ -52,17 +52,25 @@ def moving_vertices(peak, points=None, *, tolerance: float = MOVING_TOLERANCE) -
     return peak > floor
 
 
-def most_moving_mesh(meshes, names):
-    """The rig of ``meshes`` (:class:`usdface.model.FaceRig`) whose shapes named in ``names`` move the most
-    vertices (:func:`moving_vertices`: float noise of an export is not motion), or None when none of them
-    moves: the face mesh of an avatar, for the ARKit names."""
-    best, score = None, 0
+def meshes_by_motion(meshes, names) -> list:
+    """``[(rig, moving vertices)]`` of the ``meshes`` (:class:`usdface.model.FaceRig`) whose shapes named in
+    ``names`` move any vertex (:func:`moving_vertices`: float noise of an export is not motion), most moving
+    first, ties in the meshes' order."""
+    counted = []
     for rig in meshes:
         idx = [rig.index(n) for n in names if n in rig.names]
         if not idx:
             continue
         shapes = rig.deltas if len(set(idx)) == len(rig.deltas) else rig.deltas[idx]   # no copy of them all
         moving = int(moving_vertices(peak_motion(shapes), rig.neutral).sum())
-        if moving > score:
-            best, score = rig, moving
-    return best
+        if moving:
+            counted.append((rig, moving))
+    return sorted(counted, key=lambda pair: -pair[1])                  # stable: ties in order
+
+
+def most_moving_mesh(meshes, names):
+    """The rig of ``meshes`` whose shapes named in ``names`` move the most vertices (the first of
+    :func:`meshes_by_motion`), or None when none of them moves: the face mesh of an avatar, for the ARKit
+    names."""
+    ranked = meshes_by_motion(meshes, names)
+    return ranked[0][0] if ranked else None

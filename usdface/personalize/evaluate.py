@@ -8,7 +8,8 @@ import numpy as np
 from ..errors import GeometryError
 from ..model import FaceRig, Frames
 
-__all__ = ["evaluate_rig", "reconstruction_errors", "test_expression_errors", "truth_error", "error_colors"]
+__all__ = ["evaluate_rig", "reconstruction_errors", "score_capture_rig", "template_rig",
+           "test_expression_errors", "truth_error", "error_colors"]
 
 
 def reconstruction_errors(neutral: np.ndarray, deltas: np.ndarray, weights: np.ndarray,
@@ -44,22 +45,31 @@ def evaluate_rig(rig: FaceRig, frames: Frames) -> dict:
             "mean_rmse_mm": float(rmse.mean()), "mean_max_mm": float(mx.mean())}
 
 
+def template_rig(capture) -> FaceRig:
+    """The capture's generic template shapes on its neutral (``neutral[n,3]`` m, ``deltas[K,n,3]`` m): the
+    rig eq. (5) scores as "generic" beside a fitted one."""
+    t = capture.template
+    return FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source, "generic")
+
+
+def score_capture_rig(rig: FaceRig, capture, role: str = "test") -> dict:
+    """Eq. (5) (:func:`evaluate_rig`) of ``rig`` on the capture's ``role`` frames (``"test"``, held out, or
+    ``"train"``), its shapes taken in the capture's order."""
+    rig = rig.subset(capture.names) if list(rig.names) != list(capture.names) else rig
+    return evaluate_rig(rig, capture.frames.select(role))
+
+
 def test_expression_errors(capture, rig: FaceRig) -> dict | None:
     """Eq. (5) on the capture's held-out test expressions, the capture's generic template beside the fitted
     ``rig`` (the person's shapes on the capture mesh): ``{"labels": [F], "generic_rmse_mm": [F],
     "personalized_rmse_mm": [F], "generic_max_mm": [F], "personalized_max_mm": [F]}`` (plain lists, mm), or
     None when the capture has no test expressions. ``capture``: a :class:`usdface.model.Capture`
     (``neutral[n,3]`` m, ``template``, ``test`` frames with weights ``[F,K]`` in ``capture.names`` order)."""
-    test = capture.test
-    if len(test) == 0:
+    if len(capture.test) == 0:
         return None
-    t = capture.template
-    generic = FaceRig(capture.neutral, capture.triangles, t.names, t.deltas, t.inbetweens, t.source,
-                      "generic")
-    out = {"labels": [str(s) for s in test.label]}
-    for label, r in (("generic", generic), ("personalized", rig)):
-        r = r.subset(capture.names) if list(r.names) != list(capture.names) else r
-        res = evaluate_rig(r, test)
+    out = {"labels": [str(s) for s in capture.test.label]}
+    for label, r in (("generic", template_rig(capture)), ("personalized", rig)):
+        res = score_capture_rig(r, capture)
         out[f"{label}_rmse_mm"] = [float(v) for v in res["rmse_mm"]]
         out[f"{label}_max_mm"] = [float(v) for v in res["max_mm"]]
     return out

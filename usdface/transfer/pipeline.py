@@ -30,7 +30,7 @@ from ..errors import CaptureError, GeometryError, RigError, UsdFaceError
 from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
-from ..motion import most_moving_mesh, moving_vertices, peak_motion, shape_norms
+from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion, shape_norms
 from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
@@ -183,21 +183,14 @@ def empty_face_region(avatar_file, meshes, face_prim: str, names: list[str], cho
     teeth or an eye, not the skin). Names the other ``meshes`` (:class:`usdface.model.FaceRig`) the shapes
     in ``names`` move, most moving vertices first, as the ``--face-mesh`` to pick (``chosen``: the mesh was
     given with ``--face-mesh``; else it was the one the shapes move most)."""
-    ranked = []
-    for m in meshes:
-        idx = [m.index(n) for n in names if n in m.names]
-        if idx:
-            moving = int(moving_vertices(peak_motion(m.deltas[idx]), m.neutral).sum())
-            if moving:
-                ranked.append((-moving, m.key))
-    ranked.sort()
-    others = [f"{key} ({-n} moving vertices)" for n, key in ranked if key != face_prim]
+    ranked = [(m.key, n) for m, n in meshes_by_motion(meshes, names)]      # the order the automatic pick uses
+    others = [f"{key} ({n} moving vertices)" for key, n in ranked if key != face_prim]
     listed = f": {', '.join(others)}" if others else " (this avatar has no other mesh the shapes move)"
     if chosen:
         message = ("the face mesh given with --face-mesh has no vertex the capture covers: none lies on the "
                    "registered capture surface, so the capture moves none of it (not the face's skin: a "
                    "mouth, teeth or eye mesh?)")
-        best = ranked[0][1] if ranked else None
+        best = ranked[0][0] if ranked else None
         fix = (f"pick the skin mesh with --face-mesh (candidates{listed})"
                + (f"; without --face-mesh usdface picks {best}, the mesh the shapes move most"
                   if best is not None and best != face_prim else ""))
