@@ -97,7 +97,8 @@ def test_json_error_for_a_file_in_the_way_carries_the_fix(tmp_path, capsys):
     captured = capsys.readouterr()
     error = json.loads(captured.out)["error"]
     assert error["fix"] and f"(fix: {error['fix']})" in captured.err and "(-o)" not in error["fix"]
-    assert "a file is in the way" in error["fix"]       # what EEXIST means here, not a generic fix
+    # what it means here, not a generic fix (refused before any work now: the ENOTDIR fix of the preflight)
+    assert "a parent of the path is a file, not a folder" in error["fix"]
 
 
 # ------------------------------------------------------------------ 3. landmarks: the other mode's options
