@@ -194,6 +194,42 @@ def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, monkey
     assert np.abs(np.array(doc["weights"]) - full.weights).max() <= 1e-6         # written to 6 decimals
 
 
+def test_the_correspondence_cache_path_is_checked_like_an_output_before_any_work(samples, tmp_path, capsys,
+                                                                                monkeypatch):
+    """User trial: ``--correspondence`` = ``-o`` ran the whole personalization, wrote the cache there, then
+    refused its own file as "output layer exists" (with --force the layer overwrote the cache); a cache in
+    a folder that cannot be written failed after the work, naming -o. Refused before any work now."""
+    from usdface.transfer import pipeline
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started")
+
+    monkeypatch.setattr(pipeline, "register_face", no_work)
+    base = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-q"]
+    same = tmp_path / "x.usda"
+    for extra in ([], ["--force"]):
+        assert main([*base, "-o", str(same), "--correspondence", str(same), *extra]) == 2
+        assert "--correspondence and -o name the same file" in capsys.readouterr().err
+        assert not same.exists()
+    (tmp_path / "afile").write_text("")
+    assert main([*base, "-o", str(tmp_path / "o.usda"), "--correspondence",
+                 str(tmp_path / "afile" / "c.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "correspondence cache (--correspondence)" in err and "is a file, not a folder" in err
+    assert main(["retarget", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-q",
+                 "-o", str(tmp_path / "m.json"), "--correspondence", str(tmp_path / "m.json")]) == 2
+    assert "--correspondence and -o name the same file" in capsys.readouterr().err
+
+
+def test_a_correspondence_cache_inside_an_input_folder_is_refused(bench, tmp_path, capsys):
+    """User trial: ``-o capture/out.usda`` was refused (inside the input folder); a cache there was written
+    into the input."""
+    cache = bench / "dev1" / "capture" / "corr.npz"
+    assert main(["personalize", str(bench / "dev1" / "avatar.usdc"), str(bench / "dev1" / "capture"), "-q",
+                 "-o", str(tmp_path / "o.usda"), "--correspondence", str(cache)]) == 2
+    assert "is inside the input folder" in capsys.readouterr().err and not cache.exists()
+
+
 def test_personalize_with_artist_pins(samples, tmp_path, capsys):
     """``--pins`` reaches the fit (the option check before any work accepts every argument the fit takes)."""
     pins = tmp_path / "pins.json"

@@ -488,16 +488,31 @@ def _read_truth(path) -> dict:
     return truth
 
 
-def _check_correspondence_cache(path, inputs=()) -> None:
-    """Refuse an existing ``--correspondence`` file that cannot be a cache (not a file, empty, not an npz zip)
-    before any work; a missing one is fine (it will be written). One of the run's ``inputs`` (the avatar, the
-    capture, ...: a swapped or mistyped option) is named as such, never suggested for deletion."""
-    if path is None or not Path(path).exists():
+def _check_correspondence_cache(path, inputs=(), outputs=()) -> None:
+    """Refuse, before any work, a ``--correspondence`` file the run could not use or write: one of the run's
+    ``outputs`` (``-o``: the layer would overwrite the cache, or the cache the layer), a place an output may
+    not be written (a read-only or immutable folder, inside an input folder: :func:`check_output_file`, the
+    cache is written when missing or stale), an existing file that cannot be a cache (not a file, empty, not
+    an npz zip). One of the run's ``inputs`` (the avatar, the capture, ...: a swapped or mistyped option) is
+    named as such, never suggested for deletion."""
+    if path is None:
         return
+    import os
     import zipfile
 
     from .errors import InputFileError
+    from .io.atomic import check_output_file
     from .io.usd_open import require_file
+
+    for out in outputs:
+        if out is not None and Path(os.path.abspath(out)) == Path(os.path.abspath(path)):
+            raise InputFileError("--correspondence and -o name the same file: the layer and the cache would "
+                                 "overwrite each other", path=path,
+                                 fix="give the cache its own name (e.g. avatar.corr.npz)")
+    if not Path(path).exists():
+        check_output_file(path, True, what="correspondence cache (--correspondence)",
+                          inputs=[p for p in inputs if isinstance(p, str | Path)])
+        return
 
     for given in inputs:
         if given is None or not isinstance(given, str | Path) or not Path(given).exists():
@@ -548,7 +563,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     check_mode_options(options.get("face_transfer", "person"), options)   # one the mode would ignore
     _check_correspondence_cache(options.get("correspondence"),
-                                personalize_inputs(avatar_path, capture_path, take=take, **options))
+                                personalize_inputs(avatar_path, capture_path, take=take, **options),
+                                outputs=[out_path])
     if out_path is not None and not options.get("dry_run"):
         from .io.layers import check_output_path
 
@@ -716,7 +732,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
-                                personalize_inputs(avatar_path, capture_path, **options))
+                                personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
