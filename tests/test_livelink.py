@@ -225,9 +225,11 @@ def test_a_negative_timecode_field_is_refused(tmp_path, code):
     assert "neg.csv" in str(info.value) and info.value.fix
 
 
-def test_default_rate_warns_when_the_take_looks_like_30_fps(tmp_path, recwarn):
+def test_a_rate_twice_the_timecodes_is_warned_about(tmp_path, recwarn):
     """Frame fields that never reach 30 over several seconds: the timecodes count at 30, and read at the
-    default 60 every frame's time is wrong. Warned (naming the option); an explicit rate is not warned."""
+    default 60 every frame's time is wrong. Warned (naming the option); so is a rate given that is too high
+    (user trial: ``--timecode-rate 120`` on a 30 fps take packed each second's frames into its first 0.25 s,
+    silently, and the summary said ~60 Hz); the right rate is not warned."""
     times = np.arange(120) / 30.0                                  # 4 s at 30 fps
     p = write_csv(tmp_path / "t30.csv", np.full((120, 52), 0.5),
                   format_timecodes(times, 30.0))
@@ -236,8 +238,12 @@ def test_default_rate_warns_when_the_take_looks_like_30_fps(tmp_path, recwarn):
     recwarn.clear()
     take = read_livelink_take(p, timecode_rate=30)
     np.testing.assert_allclose(take.times, times, atol=1e-9)
-    take = read_livelink_take(p, timecode_rate=60)                 # explicit: the user said so
     assert not [w for w in recwarn if "30 per second" in str(w.message)]
+    for rate in (60, 120):                                          # a rate given, too high for the codes
+        with pytest.warns(UserWarning, match=rf"look like 30 per second, and read at the given rate {rate} "
+                                             rf".*first {30 / rate:.2g} s"):
+            read_livelink_take(p, timecode_rate=rate)
+    recwarn.clear()
     # a real 60-rate take sampled at 30 Hz reaches frame fields up to 58: no warning
     q = write_csv(tmp_path / "t60.csv", np.full((120, 52), 0.5),
                   format_timecodes(times, 60.0))

@@ -47,7 +47,10 @@ def run_import(args) -> int:
         return 0
     for w in caught:
         say_warning(w.message)
-    print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{take.fps:.0f} Hz), "
+    # frames per second over the whole take (the median step hides a wrong rate: bursts and gaps)
+    span = take.times[-1] if len(take.times) > 1 else 0.0
+    mean_hz = (len(take.times) - 1) / span if span > 0 else take.fps
+    print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{mean_hz:.0f} Hz), "
           f"{len(take.names)} shapes")
     if take.name_report.get("missing"):
         print(f"missing shapes: {', '.join(take.name_report['missing'])}")

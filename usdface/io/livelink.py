@@ -77,7 +77,8 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     app's; a take whose frame fields reach 60 is read at the smallest common rate above its largest field
     (a 120 fps take: every reader of takes - a take folder, ``fit``/``personalize`` of a CSV, the weights of
     ``landmarks --takes`` - takes no rate of its own), with a warning naming it and the option; one whose
-    fields all stay below 30 over several seconds is warned about (it looks like 30 per second). Raises
+    fields all stay below half the rate over several seconds - the default's or one given - is warned about
+    (a 30 per second take read at 60 or 120: each second's frames packed into its first half). Raises
     :class:`usdface.errors.TimecodeError` naming the file when a frame field reaches a rate the caller gave
     (the timecodes contradict it) or a field is negative.
     """
@@ -116,12 +117,14 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     whole = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2]
     whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
     seconds = np.unique(whole)
-    if timecode_rate is None and len(seconds) >= 3 and len(ff) >= 10 * len(seconds) \
-            and ff.max() < rate / 2:
-        warnings.warn(f"{path or 'take'}: every timecode frame field is below 30 (at most {ff.max():g}) over "
-                      f"{len(seconds)} seconds of {len(ff)} rows: the timecodes look like 30 per second, and "
-                      f"read at the default 60 the frames' times are wrong (fix: {_rate_fix(30.0)})",
-                      UserWarning, stacklevel=3)
+    if len(seconds) >= 3 and len(ff) >= 10 * len(seconds) and ff.max() < rate / 2:
+        looks = next((r for r in _COMMON_RATES if r > ff.max()), rate)   # the default 60 read at 30: 30
+        which = "the default " if timecode_rate is None else "the given rate "
+        warnings.warn(f"{path or 'take'}: every timecode frame field is below {looks:g} (at most "
+                      f"{ff.max():g}) over {len(seconds)} seconds of {len(ff)} rows: the timecodes look "
+                      f"like {looks:g} per second, and read at {which}{rate:g} the frames' times are wrong "
+                      f"(each second's frames packed into its first {looks / rate:.2g} s) "
+                      f"(fix: {_rate_fix(looks)})", UserWarning, stacklevel=3)
     # Differences in frames first (whole seconds are exact), then seconds: keeps time codes clean.
     frames = (whole - whole[0]) * rate + (ff - ff[0]) if len(whole) else whole
     return frames / rate
