@@ -659,3 +659,30 @@ def test_an_immutable_report_stops_the_batch_before_any_item(tmp_path, capsys):
         assert not any((tmp_path / "out").iterdir())                   # no item ran
     finally:
         subprocess.run(["chattr", "-i", str(report)])
+
+
+def test_an_output_that_cannot_be_written_stops_the_batch_before_any_item(tmp_path, capsys):
+    """User trial: a row whose output folder was immutable failed only when its turn came, after the rows
+    before it had run; the README says every row's paths are checked before the first item."""
+    import json
+    import shutil
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    rows = [{"avatar": str(root / "avatar.usda"), "capture": str(root / "capture.usda"),
+             "output": str(tmp_path / "first.usda")},
+            {"avatar": str(root / "avatar.usda"), "capture": str(root / "capture.usda"),
+             "output": str(locked / "second.usda")}]
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps(rows))
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(locked)]).returncode != 0:
+        pytest.skip("cannot set the immutable flag here")
+    try:
+        assert main(["batch", str(manifest), "-j", "1", "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "item 2: output layer cannot be written in" in err and "immutable" in err, err
+        assert not (tmp_path / "first.usda").exists()                      # no item ran
+    finally:
+        subprocess.run(["chattr", "-i", str(locked)])

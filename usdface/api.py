@@ -860,10 +860,16 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
                       fix="pass --report PATH in a folder you can write to")
     run = load_worker(worker) if worker else personalize_worker
-    if worker is None:                 # every row's options checked before any item runs
+    if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
+        from .io.atomic import check_writable
 
         for item in items:
+            try:
+                check_writable(item.output, what="output layer")
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                                     fix=exc.fix or "fix the manifest's output column") from None
             try:
                 check_personalize_options(**item.options)
             except UsdFaceError as exc:
