@@ -52,3 +52,19 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
 
 def test_evaluate_rejects_unknown_method(samples):
     assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2
+
+
+def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_path, capsys):
+    """User trial: ``personalize rig.usda CAPTURE`` with a ``usdface fit`` result as the avatar ran to the
+    end (52 shapes 'personalized' on the capture mesh, no eyes) with only warnings. The fit marks its file
+    (``customLayerData["usdface"]["format"] = "fit"``); personalize and retarget refuse it as the avatar,
+    other commands read it as the rig it is."""
+    rig = tmp_path / "rig.usda"
+    assert main(["fit", str(samples / "capture.usda"), "-o", str(rig), "-q"]) == 0
+    capsys.readouterr()
+    for cmd, out in (("personalize", "p.usda"), ("retarget", "m.json")):
+        assert main([cmd, str(rig), str(samples / "capture.usda"), "-o", str(tmp_path / out), "-q"]) == 2
+        assert "this is a 'usdface fit' result" in capsys.readouterr().err
+        assert not (tmp_path / out).exists()
+    assert main(["render", str(rig), "-o", str(tmp_path / "r.png"), "-q"]) == 0
+    assert main(["check", str(rig)]) == 0

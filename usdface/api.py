@@ -302,10 +302,13 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     """Write a fitted rig (a ``FitResult`` or its ``FaceRig``) as a UsdSkel rig on the capture mesh, in its
     vertex order (metres, Y up, root ``/Capture``); returns the path written (atomically; an existing file
     needs ``force``)."""
+    from . import __version__
     from .io.avatar_writer import write_rig_usd
 
+    method = str((getattr(fit, "info", None) or {}).get("method", ""))
+    data = {"usdface": {"format": "fit", "formatVersion": 1, "version": __version__, "method": method}}
     return Path(write_rig_usd(getattr(fit, "rig", fit), out_path, meters_per_unit=1.0, root="/Capture",
-                              force=force))
+                              force=force, layer_data=data))
 
 
 #: Test frames whose weights all stay below this show no expression (a take's rests held out).

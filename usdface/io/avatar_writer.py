@@ -83,7 +83,7 @@ def _stage_matrix(up_axis: str, meters_per_unit: float) -> np.ndarray:
 
 def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.01, root: str = "/Avatar",
                   parents=(), parent_scale: float = 1.0, parent_rotate_x_deg: float = 0.0,
-                  sparse_threshold: float = 0.7, force: bool = False) -> Path:
+                  sparse_threshold: float = 0.7, force: bool = False, layer_data: dict | None = None) -> Path:
     """Write ``rigs`` (one :class:`FaceRig` or a list, one Mesh each) as a new UsdSkel asset at ``path``.
 
     Parameters
@@ -94,6 +94,7 @@ def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.
     root : SkelRoot prim path's last component (``"/Avatar"``); it is nested under ``parents`` (Xform names).
     parent_scale, parent_rotate_x_deg : uniform scale and X rotation on the first parent (needs ``parents``).
     sparse_threshold : a shape moving fewer than this fraction of the points gets ``pointIndices``.
+    layer_data : the root layer's ``customLayerData`` (plain values), e.g. what wrote the file.
 
     Shapes whose offsets (and inbetweens) are all exactly zero on a mesh are not authored on that mesh.
     Returns the written path.
@@ -135,6 +136,8 @@ def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.
     skel_root = UsdSkel.Root.Define(stage, skel_root_path)
     top = stage.GetPrimAtPath("/" + (parents[0] if parents else root.strip("/")))
     stage.SetDefaultPrim(top)
+    if layer_data:
+        stage.GetRootLayer().customLayerData = dict(layer_data)
 
     # internal -> stage: inverse up axis / units; world (stage units) -> local: inverse of the parents' xform
     local_to_world = gf_matrix_to_numpy(

@@ -566,6 +566,27 @@ def usdface_output_provenance(path) -> dict | None:
     return data
 
 
+def _refuse_fit_result(path) -> None:
+    """:class:`~usdface.errors.RigError` when ``path`` is a rig written by ``usdface fit`` (its root layer's
+    ``customLayerData["usdface"]["format"] == "fit"``)."""
+    import stat
+
+    from pxr import Sdf
+
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # unreadable: the reader that follows says so
+        return
+    data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
+    if isinstance(data, dict) and data.get("format") == "fit":
+        raise RigError("this is a 'usdface fit' result (the person's shapes on the capture mesh), not an "
+                       "avatar: personalizing it gives the capture mesh back, with no eyes or mouth",
+                       path=path, fix="pass the avatar's file as AVATAR ('personalize AVATAR CAPTURE' fits "
+                                      "the capture itself; render or inspect the fitted rig as it is)")
+
+
 def _has_personalization(path) -> bool:
     """Whether the composed stage of ``path`` carries usdface's personalization variant set (authored by
     ``personalize`` on each SkelRoot, in this layer or one it composes: a landmarks layer over a personalized
@@ -620,9 +641,12 @@ def refuse_usdface_output(path) -> None:
     export --flatten``, which records the variant in ``customLayerData["usdfaceFlatten"]``) is refused too;
     one of the generic variant is the avatar's shapes and is accepted.
 
-    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised."""
+    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised.
+    A ``usdface fit`` result (the person's shapes on the capture mesh, ``format: fit``) is refused too: it
+    is no avatar (no eyes, no mouth, the capture's topology), and personalizing it ran to the end."""
     if not isinstance(path, str | Path):
         return
+    _refuse_fit_result(path)
     data = usdface_output_provenance(path)
     if data is None:
         return                  # not a usdface layer
