@@ -68,3 +68,6 @@ def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_p
         assert not (tmp_path / out).exists()
     assert main(["render", str(rig), "-o", str(tmp_path / "r.png"), "-q"]) == 0
     assert main(["check", str(rig)]) == 0
+    capsys.readouterr()
+    assert main(["inspect", str(rig)]) == 0
+    assert capsys.readouterr().out.startswith(f"{rig}: usdface-fit")

@@ -121,8 +121,11 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     """Report dict for an avatar (see module doc); ``layer_info`` (from
     :func:`usdface.io.usd_rig.read_layer_info`) adds provenance, sublayers and variant selections."""
     layer_info = layer_info or {}
+    written = layer_info.get("usdface") or {}
+    kind = ("usdface-fit" if isinstance(written, dict) and written.get("format") == "fit"
+            else "usdface-layer" if written else "avatar")          # a fit's rig is no layer over an avatar
     out = {
-        "file": avatar.file, "kind": "usdface-layer" if layer_info.get("usdface") else "avatar",
+        "file": avatar.file, "kind": kind,
         "upAxis": avatar.up_axis, "metersPerUnit": avatar.meters_per_unit, "defaultPrim": avatar.default_prim,
         "stageMetadata": dict(avatar.metadata.get("stage", {})),
         "notes": list(avatar.metadata.get("notes", [])),
