@@ -95,8 +95,10 @@ def tf_error_text(exc, path=None, limit: int = 300) -> str:
 def _fix_for(error_type: str) -> str:
     return {
         "ErrorInvalidSublayerPath": "restore the missing sublayer at the path the layer names (relative to "
-                                    "the layer: a layer copied elsewhere needs its sublayers beside it, or "
-                                    "'usdface export LAYER --flatten OUT.usdc' for one self-contained file)",
+                                    "the layer: a layer copied elsewhere needs its sublayers at the same "
+                                    "relative place, e.g. the avatar copied beside it); for one "
+                                    "self-contained file to move, flatten it where it was written, before "
+                                    "moving it ('usdface export LAYER --flatten OUT.usdc')",
         "ErrorSublayerCycle": "remove the sublayer that points back to a layer above it",
         "ErrorUnresolvedPrimPath": "fix the reference/payload prim path or restore the referenced prim",
         "ErrorInvalidAssetPath": "restore the referenced file or fix the asset path",
