@@ -57,3 +57,22 @@ def personalized_sample(samples, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("personalized") / "person.usda"
     api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", out, force=True)
     return out
+
+
+@pytest.fixture
+def read_only_folder(monkeypatch):
+    """``read_only_folder(path)``: the output probe (a temporary file made in the folder) sees ``path`` as on
+    a read-only file system (EROFS), as a mount would show it (root ignores permission bits)."""
+    import errno
+    import tempfile
+
+    real = tempfile.TemporaryFile
+    folders = []
+
+    def read_only(*args, dir=None, **kwargs):
+        if dir is not None and any(Path(dir) == f for f in folders):
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    return lambda path: folders.append(Path(path))

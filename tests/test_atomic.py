@@ -313,23 +313,15 @@ def test_an_output_under_a_regular_file_is_refused_with_the_enotdir_fix(tmp_path
         assert info.value.fix == write_fix(errno.ENOTDIR)
 
 
-def test_a_read_only_place_is_named_with_the_fix_for_its_errno(tmp_path, monkeypatch):
+def test_a_read_only_place_is_named_with_the_fix_for_its_errno(tmp_path, read_only_folder):
     """A read-only file system (EROFS): the fix of the shared errno table (errors.write_fix), the same the
     CLI gives when a write fails later; the table lives in errors.py, the CLI uses it."""
     import errno
-    import tempfile
 
     from usdface import cli
     from usdface.errors import OutputNotWritableError, write_fix
 
-    real = tempfile.TemporaryFile
-
-    def read_only(*args, dir=None, **kwargs):
-        if dir is not None and Path(dir) == tmp_path:
-            raise OSError(errno.EROFS, "Read-only file system")
-        return real(*args, dir=dir, **kwargs)
-
-    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    read_only_folder(tmp_path)
     with pytest.raises(OutputNotWritableError, match="Read-only file system") as info:
         check_output_dir(tmp_path / "out")
     assert info.value.fix == write_fix(errno.EROFS) and "read-only" in info.value.fix

@@ -253,21 +253,12 @@ def test_an_items_warnings_name_it_and_reach_the_report(tmp_path, capsys, jobs):
     assert "UserWarning" not in err and "warnings.warn" not in err
 
 
-def test_a_report_folder_that_refuses_writes_stops_the_batch_before_any_item(tmp_path, capsys, monkeypatch):
+def test_a_report_folder_that_refuses_writes_stops_the_batch_before_any_item(tmp_path, capsys,
+                                                                              read_only_folder):
     """A manifest on a read-only file system: every item ran, then the report could not be written (no
     machine-readable result after hours of work; a user trial). The report's folder is probed first."""
-    import errno
-    import tempfile
-
     manifest = _manifest(tmp_path, ["a"])
-    real = tempfile.TemporaryFile
-
-    def read_only(*args, dir=None, **kwargs):
-        if dir is not None and Path(dir) == tmp_path:
-            raise OSError(errno.EROFS, "Read-only file system")
-        return real(*args, dir=dir, **kwargs)
-
-    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    read_only_folder(tmp_path)
     assert main(["batch", str(manifest), "-j", "1", "--worker", f"{__name__}:stub_worker"]) == 2
     err = capsys.readouterr().err
     assert "batch report cannot be written in" in err and "Read-only file system" in err and "--report" in err
