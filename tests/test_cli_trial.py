@@ -362,3 +362,20 @@ def test_a_failed_write_names_the_output_not_the_temp_file(tmp_path):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
     assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_debug_after_the_command_shows_the_traceback(tmp_path, capsys):
+    """User trial: ``usdface personalize ... --debug`` (added to the failed command line) said
+    'unrecognized arguments: --debug'; it worked only as ``usdface --debug personalize``. Both work now,
+    in sub-commands too; without it the one-line error stays."""
+    from usdface.cli import main
+    from usdface.errors import InputFileError
+
+    line = ["personalize", str(tmp_path / "nothere.usda"), str(tmp_path / "c.usda"),
+            "-o", str(tmp_path / "o.usda")]
+    assert main(line) == 2 and "avatar not found" in capsys.readouterr().err
+    for argv in ([*line, "--debug"], ["--debug", *line]):
+        with pytest.raises(InputFileError, match="avatar not found"):
+            main(argv)
+    with pytest.raises(InputFileError, match="capture not found"):
+        main(["capture", "import", str(tmp_path / "none"), "-o", str(tmp_path / "c.usda"), "--debug"])

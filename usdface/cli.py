@@ -56,7 +56,20 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         mod.register(sub)
+    _debug_anywhere(sub)
     return parser
+
+
+def _debug_anywhere(sub) -> None:
+    """``--debug`` after the command too (``usdface personalize ... --debug``, where one adds it to a failed
+    command line), in every command and sub-command; SUPPRESS keeps the top-level one's value otherwise."""
+    for command in set(sub.choices.values()):
+        if "--debug" not in command._option_string_actions:
+            command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                                 help="show full tracebacks on errors (as 'usdface --debug COMMAND')")
+        for action in command._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                _debug_anywhere(action)
 
 
 def _silence_stdout() -> None:
