@@ -451,6 +451,9 @@ def _layer_with_parameters(path: Path, tmp_path: Path, parameters: dict) -> None
     # the fit's contact mode a layer records: a row that drops contact=on asks the default again
     ("", {"contact": "on"}, "contact=on, the row asks contact=auto"),
     ("contact=on", {"contact": "on"}, ""),
+    # the option the row changed is named, not the approximation that follows from it (a user trial)
+    ("face_transfer=offset", {"face_transfer": "person", "approximation": "field"},
+     "face_transfer=person, the row asks face_transfer=offset"),
 ])
 def test_resume_redoes_an_item_whose_options_changed(tmp_path, row, recorded, stale):
     """Editing a row's option (method dt -> ebfr) and running the batch again reported the old dt layer as

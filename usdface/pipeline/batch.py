@@ -310,8 +310,9 @@ def _personalize_defaults() -> dict:
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
-    """``(option, recorded, asked)`` for the first personalize option whose value a layer's provenance
-    ``record`` holds (``parameters``: every option, resolved) differently from what the row asks, the
+    """``(option, recorded, asked)`` for the first personalize option (those the row sets first) whose value
+    a layer's provenance ``record`` holds (``parameters``: every option, resolved) differently from what the
+    row asks, the
     defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves out (a row
     that drops ``method=dt`` asks for the default again); None when they agree or the layer records none."""
     params = record.get("parameters")
@@ -327,7 +328,8 @@ def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
     defaults = dict(_personalize_defaults())
     # the approximation a row leaves out is its face transfer's (as the API and the CLI resolve it)
     defaults["approximation"] = default_approximation(options.get("face_transfer", defaults["face_transfer"]))
-    for key, was in sorted(params.items()):
+    # the options the row sets first: a changed face_transfer is named, not the approximation that follows it
+    for key, was in sorted(params.items(), key=lambda kv: (kv[0] not in options, kv[0])):
         wanted = options.get(key, defaults.get(key, _MISSING))
         if wanted is not _MISSING and not _same_value(was, wanted):
             return key, str(was), str(wanted)
