@@ -231,3 +231,24 @@ def test_sample_assets_take_acceptance(samples):
     swept = [names.index(n) for n in tt.swept]
     err = lambda d: np.sqrt(np.mean((d[swept] - truth["deltas"][swept]) ** 2))  # noqa: E731
     assert err(fit_sel.rig.deltas) < 0.5 * err(take.template.deltas)  # measured 0.11 vs 0.56 mm
+
+
+def test_held_out_rests_are_warned_about_with_evaluates_fix():
+    """User trial: 'capture select --test-every 10' held out 71 frames, all rests (largest weight 0.02);
+    'evaluate' then said the table cannot tell the methods apart and suggested other options. The selection
+    says so itself, with the same fix."""
+    import warnings
+
+    from usdface.take_select import REST_FIX, select_frames
+
+    t = np.arange(300)
+    w = np.zeros((300, 2))
+    w[:, 0] = np.exp(-0.5 * ((t - 80) / 4.0) ** 2)          # two short expressions in a take of rests
+    w[:, 1] = np.exp(-0.5 * ((t - 220) / 4.0) ** 2)
+    with pytest.warns(UserWarning, match="show no expression") as said:
+        sel = select_frames(w, test_every=10, min_separation=15)
+    assert REST_FIX in str(said[0].message) and len(sel.test) and w[sel.test].max() < 0.15
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                       # test frames near the expressions: no warning
+        sel = select_frames(w, test_every=2, min_separation=3)
+    assert w[sel.test].max() >= 0.15

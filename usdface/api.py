@@ -311,8 +311,6 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
                               force=force, layer_data=data))
 
 
-#: Test frames whose weights all stay below this show no expression (a take's rests held out).
-REST_TEST_WEIGHT = 0.15
 
 
 def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, role: str = "test") -> dict:
@@ -383,11 +381,12 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
                                      "holds out none)"))
         tw = capture.test.weights
         test_peak = float(abs(tw).max()) if tw.size else 0.0
-        if test_peak < REST_TEST_WEIGHT:                    # every method predicts them as the neutral
+        from .take_select import REST_FIX, REST_WEIGHT
+
+        if test_peak < REST_WEIGHT:                         # every method predicts them as the neutral
             warnings.warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
                           f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
-                          "as the neutral, so the table cannot tell the methods apart (hold out frames with "
-                          "expressions: 'usdface capture select TAKE --test-every 5 --min-separation 0.2')",
+                          f"as the neutral, so the table cannot tell the methods apart ({REST_FIX})",
                           UserWarning, stacklevel=2)
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
