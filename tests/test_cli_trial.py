@@ -285,7 +285,17 @@ def test_render_compare_unknown_shape_names_the_layer(personalized_sample, tmp_p
     _no_traceback(res)
     assert f"{personalized_sample}, prim /Avatar/Head: mesh Head has no shape 'nope'" in res.stderr
     assert "--name-map" not in res.stderr  # its shapes are ARKit-named
+    assert "did you mean" not in res.stderr  # nothing close to 'nope'
     assert not (tmp_path / "x.png").exists()
+
+
+def test_render_a_shape_name_typo_gets_the_close_name(samples, tmp_path, capsys):
+    """User trial: ``--shapes jawOpn`` listed the first eight shapes only; the close name is offered."""
+    from usdface.cli import main
+
+    assert main(["render", str(samples / "avatar.usda"), "--shapes", "jawOpn", "-o", str(tmp_path / "x.png"),
+                 "-q"]) == 2
+    assert "has no shape 'jawOpn' (fix: did you mean jawOpen?" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------- 4. --json

@@ -129,8 +129,12 @@ def check_shapes(rig, names, path=None) -> None:
     for name in names or ():
         if resolve_shape(rig, name) is not None:
             continue
+        import difflib
+
         more = " ..." if rig.n_shapes > 8 else ""
-        fix = f"choose from {', '.join(rig.names[:8])}{more}"
+        close = difflib.get_close_matches(name, list(rig.names), n=1, cutoff=0.75)   # a typo: jawOpn
+        fix = ((f"did you mean {close[0]}? " if close else "")
+               + f"choose from {', '.join(rig.names[:8])}{more}")
         if name in ARKIT_SET and not ARKIT_SET & set(rig.names):
             fix += ("; the mesh's shapes have the studio's own names: name them as ARKit shapes with "
                     "--name-map FILE (docs/names.md) or pass the studio names")
