@@ -337,6 +337,10 @@ def _inbetweens(stage) -> Iterable[Issue]:
                             "place inbetweens strictly between 0 and 1 (ARKit weights never leave [0, 1])")
 
 
+#: More channels of one mesh decorated the same way than this are reported in one line.
+GROUP_AFTER = 3
+
+
 def _close_arkit(name: str) -> str | None:
     lowered = {n.lower(): n for n in ARKIT_NAMES}
     hit = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.85)
@@ -352,6 +356,7 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         path = _path(prim)
         fallbacks = [t.name for t in targets] if len(targets) == len(names) else None
         match = match_names(names, fallbacks, name_map)
+        decorated: dict[str, list] = {}
         for given, canonical, how in match.inexact:
             if how in ("spelling", "alias", "name-map"):
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is a non-canonical spelling of "
@@ -361,6 +366,16 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
                 bare = match_name(given)[1]
                 reason = {"suffix": "a DCC numeric suffix", "prefix": "a DCC node or namespace prefix"}.get(
                     bare, "only its target prim is named so")
+                decorated.setdefault(reason, []).append((given, canonical))
+        for reason, pairs in decorated.items():
+            if len(pairs) > GROUP_AFTER:            # one line for a mesh a DCC renamed whole ('.001')
+                shown = ", ".join(f"{g!r} -> {c!r}" for g, c in pairs[:3])
+                yield Issue(WARNING, "ArkitNames", path, f"{len(pairs)} channels look like ARKit names with "
+                            f"{reason}: {shown} (+{len(pairs) - 3} more)",
+                            "rename the channels to their ARKit names; drivers that match by name will miss "
+                            "them")
+                continue
+            for given, canonical in pairs:
                 yield Issue(WARNING, "ArkitNames", path, f"channel {given!r} looks like {canonical!r} "
                             f"({reason})",
                             f"rename the channel to {canonical!r}; drivers that match by name will miss it")
