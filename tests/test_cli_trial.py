@@ -389,3 +389,18 @@ def test_debug_after_the_command_shows_the_traceback(tmp_path, capsys):
             main(argv)
     with pytest.raises(InputFileError, match="capture not found"):
         main(["capture", "import", str(tmp_path / "none"), "-o", str(tmp_path / "c.usda"), "--debug"])
+
+
+def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
+    """User trial: review, export and inspect of a missing file said 'avatar not found' (the avatar
+    reader's noun); they read a layer or any USD file."""
+    from usdface.cli import main
+
+    missing = str(tmp_path / "nothere.usda")
+    for argv, said in ((["review", missing, "-o", str(tmp_path / "r.html")], "USD file not found"),
+                       (["inspect", missing], "USD file not found"),
+                       (["export", missing, "--gltf", str(tmp_path / "x.glb")], "layer not found"),
+                       (["render", missing, "-o", str(tmp_path / "x.png")], "avatar not found")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"nothere.usda: {said}" in err, err

@@ -45,7 +45,7 @@ def exported_variant(path, variant: str = "personalized") -> str:
     from .usd_rig import _open_stage
 
     _check_variant(variant)
-    return variant if _personalization_prims(_open_stage(Path(path))) else AS_AUTHORED
+    return variant if _personalization_prims(_open_stage(Path(path), "layer")) else AS_AUTHORED
 
 
 def variant_stage(path, variant: str = "personalized"):
@@ -59,7 +59,7 @@ def variant_stage(path, variant: str = "personalized"):
 
     _check_variant(variant)
     path = Path(path)
-    stage = _open_stage(path)
+    stage = _open_stage(path, "layer")
     prims = _personalization_prims(stage)
     if not prims and variant == "generic":
         raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,

@@ -120,10 +120,12 @@ def snap_transform(matrix, tolerance: float = SNAP_TOLERANCE) -> tuple[np.ndarra
     return m, change
 
 
-def _open_stage(path: Path):
+def _open_stage(path: Path, what: str = "avatar"):
+    """The stage of ``path``; a missing or unreadable file is named as ``what`` (an avatar, a layer, ...)."""
     from .usd_open import open_usd_stage
 
-    return open_usd_stage(path, "avatar", "pass the avatar's .usd/.usda/.usdc file")
+    return open_usd_stage(path, what, "pass the avatar's .usd/.usda/.usdc file" if what == "avatar"
+                          else "check the path (a .usd/.usda/.usdc file)")
 
 
 def read_stage_metadata(stage, path) -> dict:
@@ -896,7 +898,7 @@ def read_layer_info(path) -> dict:
     from pxr import Usd
 
     path = Path(path)
-    stage = _open_stage(path)
+    stage = _open_stage(path, "USD file")
     root = stage.GetRootLayer()
     meta = {k: _plain(root.pseudoRoot.GetInfo(k)) for k in STAGE_METADATA_KEYS if root.pseudoRoot.HasInfo(k)}
     usdface_data = _plain(dict(root.customLayerData).get("usdface", {}))
