@@ -612,7 +612,6 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
                         if m.source is None or m.source.region is None}
         avatar, origin = near_origin(avatar)
-        meshes_read = list(avatar.meshes)         # as read: the face mesh candidates an error can name
         if eyes:
             eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
         avatar, regions = crop_avatar(avatar)
@@ -720,7 +719,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if isinstance(placed, dict) and "translation_m" in placed:
             report["correspondence"]["template_registration"] = _in_stage(placed, origin)
         if not corr.face.any():
-            raise empty_face_region(avatar.file, meshes_read, face_prim, cap_names, chosen_face is not None)
+            # the meshes as the run holds them, the face whole again (its pieces beyond are no mesh to pick)
+            meshes = [whole_face if m.key == face_prim else m for m in avatar.meshes if m is not beyond]
+            raise empty_face_region(avatar.file, meshes, face_prim, cap_names, chosen_face is not None)
         placed_by = corr_transform(corr, sim)                  # the similarity that placed the template
         semantic, disagree = correspondence_semantics(corr, capture.triangles, names, template_deltas,
                                                       avatar_face_deltas, placed_by)
