@@ -909,9 +909,9 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     ``--set falloff=0`` serves a manifest of ``offset`` and ``person`` rows; one that no row's mode uses is
     refused (it would change nothing). A row's own columns are checked as given."""
     from .errors import InputFileError
-    from .transfer.pipeline import MODE_OPTIONS, option_name
+    from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
-    restricted = {k for ks in MODE_OPTIONS.values() for k in ks} & set(shared)
+    restricted = MODE_ONLY_OPTIONS & set(shared)
     used = set()
     for item in items:
         mode = item.options.get("face_transfer", shared.get("face_transfer", "person"))
@@ -925,8 +925,7 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
         raise InputFileError(f"{names} set for the whole batch, but no row's face_transfer uses "
                              f"{'them' if len(unused) > 1 else 'it'}", path=manifest,
                              fix="drop it, or give it to rows whose face_transfer uses it: "
-                                 + "; ".join(f"{option_name(k)}: "
-                                             + ", ".join(m for m, ks in MODE_OPTIONS.items() if k in ks)
+                                 + "; ".join(f"{option_name(k)}: {', '.join(modes_using(k))}"
                                              for k in unused))
 
 

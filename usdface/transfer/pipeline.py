@@ -61,7 +61,8 @@ from .register import motion_landmarks, register_face
 from .retarget import approximate, namesake_prior, retarget_weights
 
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
-           "default_approximation", "MODE_OPTIONS", "IMPLANT_OPTIONS", "check_mode_options", "option_name"]
+           "default_approximation", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
+           "check_mode_options", "modes_using", "option_name"]
 
 #: Face-region transfer modes (see :func:`implant_shapes`).
 FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
@@ -79,6 +80,8 @@ MODE_OPTIONS = {
     "dt": ("falloff",),
     "dt-offset": ("falloff", "support"),
 }
+#: The options some face-transfer modes use and others not (those :func:`check_mode_options` checks).
+MODE_ONLY_OPTIONS = frozenset(k for ks in MODE_OPTIONS.values() for k in ks)
 #: The implant's options (step 5 and the eyelid repair): ``usdface retarget``, which writes the eq. (4) map
 #: only, takes none of them.
 IMPLANT_OPTIONS = ("face_transfer", "approximation", "extension_length", "falloff", "support", "eyelids",
@@ -103,14 +106,18 @@ def check_mode_options(face_transfer: str, given) -> None:
     used = MODE_OPTIONS.get(face_transfer)
     if used is None:
         return
-    for name in sorted(set(given) & {k for ks in MODE_OPTIONS.values() for k in ks}):
+    for name in sorted(set(given) & MODE_ONLY_OPTIONS):
         if name not in used:
-            modes = [m for m, ks in MODE_OPTIONS.items() if name in ks]
             raise OptionError(
                 f"{option_name(name)} is not used by {option_name('face_transfer')} {face_transfer!r} "
                 f"(it uses {', '.join(option_name(k) for k in used)})",
                 fix=f"drop {option_name(name)}, or choose a {option_name('face_transfer')} that uses it: "
-                    + ", ".join(modes))
+                    + ", ".join(modes_using(name)))
+
+
+def modes_using(name: str) -> list[str]:
+    """The face-transfer modes that use the option ``name`` (:data:`MODE_OPTIONS`)."""
+    return [m for m, ks in MODE_OPTIONS.items() if name in ks]
 
 
 def default_approximation(face_transfer: str) -> str:
