@@ -226,8 +226,9 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     """Convert a Live Link Face CSV into a USD file whose defaultPrim is a ``SkelAnimation`` with the ARKit
     weights as time samples and the head/eye angles (and other numeric columns) as ``usdface:curves:*``
     attributes (``usdface anim import``). ``timecode_rate``: frames per second of the CSV's timecode FF
-    field, also the stage's timeCodesPerSecond (None: 60, the app's, with a warning when the take looks like
-    30; a frame field at or above the rate raises :class:`usdface.errors.TimecodeError`). Returns the path
+    field, also the stage's timeCodesPerSecond (None: 60, the app's, or the rate larger frame fields imply,
+    with a warning; a frame field at or above a rate given raises :class:`usdface.errors.TimecodeError`; see
+    :func:`usdface.io.livelink.parse_timecodes`). Returns the path
     written (atomically; an existing file needs ``force``) and the
     :class:`usdface.io.livelink.LiveLinkTake` read."""
     from . import __version__

@@ -64,6 +64,11 @@ DEFAULT_TIMECODE_RATE = 60.0
 _COMMON_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 120.0, 240.0)     # timecode rates phones record at
 
 
+def _common_rate_above(field: float) -> float:
+    """The smallest common timecode rate above a frame field (the rate timecodes reaching it count at)."""
+    return next((r for r in _COMMON_RATES if r > field), float(np.floor(field)) + 1.0)
+
+
 def _rate_fix(rate: float) -> str:
     r = f"{rate:g}"
     return (f"give the rate the timecodes count at: 'usdface anim import TAKE.csv -o take.usda "
@@ -105,7 +110,7 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     ff = hms[:, 3]
     if ff.size and ff.max() >= rate:
         i = int(np.argmax(ff))
-        implied = next((r for r in _COMMON_RATES if r > ff[i]), float(np.floor(ff[i])) + 1.0)
+        implied = _common_rate_above(ff[i])
         said = (f"timecode {codes[i].strip()!r} (row {i + 1} of the take) has frame field {ff[i]:g}: the "
                 f"timecodes count more than {np.floor(ff[i]):g} frames per second")
         if timecode_rate is not None:                           # the caller's rate contradicts the take
@@ -118,7 +123,7 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
     seconds = np.unique(whole)
     if len(seconds) >= 3 and len(ff) >= 10 * len(seconds) and ff.max() < rate / 2:
-        looks = next((r for r in _COMMON_RATES if r > ff.max()), rate)   # the default 60 read at 30: 30
+        looks = _common_rate_above(ff.max())                     # 30 per second fields read at 60: 30
         which = "the default " if timecode_rate is None else "the given rate "
         warnings.warn(f"{path or 'take'}: every timecode frame field is below {looks:g} (at most "
                       f"{ff.max():g}) over {len(seconds)} seconds of {len(ff)} rows: the timecodes look "

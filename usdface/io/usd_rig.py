@@ -549,21 +549,29 @@ def _from_cwd(path: Path) -> str:
     return shlex.quote(rel if not rel.startswith(".." + os.sep + "..") else str(absolute))
 
 
-def usdface_output_provenance(path) -> dict | None:
-    """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
-    neither a capture nor a take), else None. Reads only the root layer's header-level data."""
+def _usdface_layer_data(path) -> dict:
+    """The root layer's ``customLayerData["usdface"]`` of the file ``path`` (what usdface wrote into it), {}
+    for another file or one that cannot be read (the reader that follows says what it is). Reads only the
+    root layer's header-level data."""
     import stat
 
     from pxr import Sdf
 
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):
-            return None  # a folder, pipe or device: the reader that follows says what it is
+            return {}  # a folder, pipe or device
         layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # unreadable: the reader that follows says so
-        return None
+    except Exception:  # unreadable
+        return {}
     data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
-    if not isinstance(data, dict) or data.get("format") in _NOT_AVATAR or not data.get("inputs"):
+    return data if isinstance(data, dict) else {}
+
+
+def usdface_output_provenance(path) -> dict | None:
+    """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
+    neither a capture nor a take), else None."""
+    data = _usdface_layer_data(path)
+    if data.get("format") in _NOT_AVATAR or not data.get("inputs"):
         return None
     return data
 
@@ -571,18 +579,7 @@ def usdface_output_provenance(path) -> dict | None:
 def _refuse_fit_result(path) -> None:
     """:class:`~usdface.errors.RigError` when ``path`` is a rig written by ``usdface fit`` (its root layer's
     ``customLayerData["usdface"]["format"] == "fit"``)."""
-    import stat
-
-    from pxr import Sdf
-
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
-            return
-        layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # unreadable: the reader that follows says so
-        return
-    data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
-    if isinstance(data, dict) and data.get("format") == "fit":
+    if _usdface_layer_data(path).get("format") == "fit":
         raise RigError("this is a 'usdface fit' result (the person's shapes on the capture mesh), not an "
                        "avatar: personalizing it gives the capture mesh back, with no eyes or mouth",
                        path=path, fix="pass the avatar's file as AVATAR ('personalize AVATAR CAPTURE' fits "
