@@ -152,14 +152,10 @@ def run(args) -> int:
 def _layout_setup(path: Path) -> dict:
     """The visibility set-up (``camera``, ``rays``) recorded by ``usdface landmarks -o`` in ``path``'s
     provenance (its root layer's ``customLayerData``), for the layouts it authored; {} for any other file."""
-    from pxr import Sdf
+    from ..io.usd_rig import usdface_layer_data
 
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # noqa: BLE001  (the readers before this one said what is wrong with the file)
-        return {}
-    data = dict(layer.customLayerData).get("usdface") if layer else None
-    if not hasattr(data, "get") or data.get("method") != "landmarks":
+    data = usdface_layer_data(path)
+    if data.get("method") != "landmarks":
         return {}
     params = data.get("parameters")
     if not hasattr(params, "get"):

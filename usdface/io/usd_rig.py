@@ -549,7 +549,7 @@ def _from_cwd(path: Path) -> str:
     return shlex.quote(rel if not rel.startswith(".." + os.sep + "..") else str(absolute))
 
 
-def _usdface_layer_data(path) -> dict:
+def usdface_layer_data(path) -> dict:
     """The root layer's ``customLayerData["usdface"]`` of the file ``path`` (what usdface wrote into it), {}
     for another file or one that cannot be read (the reader that follows says what it is). Reads only the
     root layer's header-level data."""
@@ -570,7 +570,7 @@ def _usdface_layer_data(path) -> dict:
 def usdface_output_provenance(path) -> dict | None:
     """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
     neither a capture nor a take), else None."""
-    data = _usdface_layer_data(path)
+    data = usdface_layer_data(path)
     if data.get("format") in _NOT_AVATAR or not data.get("inputs"):
         return None
     return data
@@ -579,7 +579,7 @@ def usdface_output_provenance(path) -> dict | None:
 def _refuse_fit_result(path) -> None:
     """:class:`~usdface.errors.RigError` when ``path`` is a rig written by ``usdface fit`` (its root layer's
     ``customLayerData["usdface"]["format"] == "fit"``)."""
-    if _usdface_layer_data(path).get("format") == "fit":
+    if usdface_layer_data(path).get("format") == "fit":
         raise RigError("this is a 'usdface fit' result (the person's shapes on the capture mesh), not an "
                        "avatar: personalizing it gives the capture mesh back, with no eyes or mouth",
                        path=path, fix="pass the avatar's file as AVATAR ('personalize AVATAR CAPTURE' fits "
