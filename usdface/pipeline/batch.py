@@ -312,9 +312,9 @@ def _personalize_defaults() -> dict:
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
     """``(option, recorded, asked)`` for the first personalize option (those the row sets first) whose value
     a layer's provenance ``record`` holds (``parameters``: every option, resolved) differently from what the
-    row asks, the
-    defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves out (a row
-    that drops ``method=dt`` asks for the default again); None when they agree or the layer records none."""
+    row asks, the defaults of :func:`usdface.transfer.personalize_avatar` standing for options the row leaves
+    out (a row that drops ``method=dt`` asks for the default again); None when they agree or the layer
+    records none."""
     params = record.get("parameters")
     if isinstance(params, str):
         try:
