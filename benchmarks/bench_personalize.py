@@ -15,7 +15,12 @@ Prints two tables:
    RMSE grew most (mm); the seam (largest error jump across an edge within two rings of the capture border,
    bench: vertices 0-6705) beside the generic input's; the correspondence's lip/lid side swaps. With
    ``--variants``, the older and the paper's settings too;
-2. time: end-to-end wall time of the ``usdface personalize`` command (fresh process each run), cold
+2. with ``--map``: eq. (4)'s retarget map with ``mu`` chosen by leaving one face region out (the default)
+   and by GCV over the face rows (before): the chosen ``mu``, the RMSE (mm) of the approximations
+   ``A_j = sum_i W_ji B~_i`` against the person's true shapes over the whole face mesh (the map stands in
+   for the person where the capture does not see), beside the namesake map's (each shape its own generic
+   shape), and the weight each row puts on shapes other than its namesake (median / largest row sum);
+3. time: end-to-end wall time of the ``usdface personalize`` command (fresh process each run), cold
    (no correspondence cache) and warm (cache reused), median of ``--repeats`` runs, plus the in-process step
    breakdown of one run, and the import-only time of a fresh process (with and without Open3D).
 """
@@ -143,6 +148,47 @@ def accuracy(case: str, variants: bool) -> list[dict]:
     return rows
 
 
+def map_figures(case: str) -> dict:
+    """Eq. (4)'s map on ``case`` with ``mu`` by face regions (the default) and by GCV over the rows: ``{"mu":
+    (regions, gcv), "error_mm": (regions, gcv, namesake), "off": ((median, max) regions, (median, max)
+    gcv)}`` (see the module's docstring). The map's inputs are the ones personalize forms (the correspondence
+    and the fit), recorded from its call of ``retarget_weights``."""
+    from usdface.transfer import pipeline
+
+    avatar, capture, _, _, truth = _case(case)
+    called = {}
+    real = pipeline.retarget_weights
+
+    def record(*args, **kw):
+        called.update(args=args, kw=kw)
+        return real(*args, **kw)
+
+    pipeline.retarget_weights = record
+    try:
+        res = pipeline.personalize_avatar(avatar, capture, None, map_only=True)
+    finally:
+        pipeline.retarget_weights = real
+    mesh = next(m for m in avatar.meshes if m.key == res.face_mesh or m.source.prim == res.face_mesh)
+    kw = {k: v for k, v in called["kw"].items() if k not in ("positions", "mu", "return_mu")}
+    gcv, mu_gcv = real(*called["args"], mu="auto", return_mu=True, **kw)
+    prior = kw.get("prior")
+    names = list(res.names)
+    true = truth[mesh.source.prim][[mesh.names.index(n) for n in names]]                    # [J,n,3]
+    d = mesh.deltas[[mesh.names.index(n) for n in res.avatar_names]]                      # [K,n,3]
+
+    def error(w):
+        return _rmse(np.einsum("jk,knc->jnc", w, d), true) * 1e3
+
+    def off(w):
+        rest = np.where(prior > 0, 0.0, w) if prior is not None else w
+        sums = rest.sum(axis=1)
+        return float(np.median(sums)), float(sums.max())
+
+    return {"mu": (res.report["retarget"]["mu"], mu_gcv),
+            "error_mm": (error(res.weights), error(gcv), error(prior) if prior is not None else float("nan")),
+            "off": (off(res.weights), off(gcv))}
+
+
 def wall_times(case: str, repeats: int) -> dict:
     """Median wall and CPU seconds (user + sys of the child: about the wall time on an idle machine)."""
     import resource
@@ -194,6 +240,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default="sample,dev1,dev2,dev3")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--variants", action="store_true", help="also score the paper's transfer options")
+    ap.add_argument("--map", action="store_true", help="also compare eq. (4)'s choice of mu (regions, GCV)")
     ap.add_argument("--no-time", action="store_true")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()]
@@ -207,6 +254,15 @@ def main(argv=None) -> int:
             print(f"{r['case']:6} {r['setting']:42} {r['face']:6.3f} {r['whole']:6.3f} {other:>16} "
                   f"{r['worst'][0]:>18} {r['worst'][1]:+7.3f} {r['seam'][0]:7.2f}/{r['seam'][1]:<7.2f} "
                   f"{r['swaps']:5d}")
+    if args.map:
+        print(f"\n{'case':9} {'mu regions':>10} {'mu GCV':>8} {'A_j err mm: regions':>19} {'GCV':>6} "
+              f"{'namesake':>8} {'off-namesake per row: regions':>29} {'GCV':>11}")
+        for case in cases:
+            f = map_figures(case)
+            (om, ox), (gm, gx) = f["off"]
+            print(f"{case:9} {f['mu'][0]:10.1e} {f['mu'][1]:8.1e} {f['error_mm'][0]:19.3f} "
+                  f"{f['error_mm'][1]:6.3f} {f['error_mm'][2]:8.3f} {om:20.2f} / {ox:5.2f} "
+                  f"{gm:5.2f} / {gx:5.2f}")
     cases = [c for c in cases if (BENCH / c).is_dir()]
     if args.no_time or not cases:
         return 0

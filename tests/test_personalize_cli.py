@@ -192,6 +192,26 @@ def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, monkey
     doc = json.loads((tmp_path / "map.json").read_text())
     assert doc["source"] == list(full.names) and doc["target"] == list(full.avatar_names)
     assert np.abs(np.array(doc["weights"]) - full.weights).max() <= 1e-6         # written to 6 decimals
+    # the mu used, as chosen (one face region left out at a time), is recorded with the map and in the layer
+    assert doc["meta"]["mu"] == full.report["retarget"]["mu"]
+    assert doc["meta"]["mu_choice"] == "leave one face region out"
+
+
+def test_retarget_map_rows_stay_on_their_namesake(samples, tmp_path):
+    """With ``mu`` cross-validated over face regions the sample's map is a retargeting table: the median row
+    puts less than 1.0 of weight on shapes other than its namesake (GCV over the rows: 2.4, its
+    ``eyeBlinkLeft`` row drove ``eyeLookDownLeft`` and ``eyeWideLeft`` at 1.0 each), and the layer's
+    provenance records the ``mu`` used."""
+    from usdface.io.usd_rig import usdface_layer_data
+
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q"]) == 0
+    prov = usdface_layer_data(out)
+    assert prov["retargetMuChoice"] == "leave one face region out" and 1e-6 < prov["retargetMu"] < 1.0
+    rows = prov["retargetMap"]
+    off = [sum(v for k, v in row.items() if k != shape) for shape, row in rows.items()]
+    assert np.median(off) < 1.0
 
 
 def test_the_correspondence_cache_path_is_checked_like_an_output_before_any_work(samples, tmp_path, capsys,

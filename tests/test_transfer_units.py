@@ -100,6 +100,13 @@ def test_retarget_weights_on_rows_sums_the_same_products_in_blocks(monkeypatch):
             np.testing.assert_allclose(blocked, copied, rtol=1e-10, atol=1e-12)
             assert mu_rows == pytest.approx(mu, rel=1e-9)
     assert retarget_weights(basis, np.zeros((0, int(rows.sum()), 3)), rows=rows).shape == (0, 6)
+    # by face regions (the products summed per region and block): the same as the copied rows' regions
+    points = rng.normal(size=(50, 3))
+    copied, mu = retarget_weights(basis[:, rows], targets, return_mu=True, positions=points[rows])
+    for r in (rows, np.flatnonzero(rows)):
+        blocked, mu_rows = retarget_weights(basis, targets, return_mu=True, rows=r, positions=points)
+        np.testing.assert_allclose(blocked, copied, rtol=1e-10, atol=1e-12)
+        assert mu_rows == mu
 
 
 def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
@@ -145,6 +152,84 @@ def test_retarget_weights_bounded_and_around_a_prior():
     np.testing.assert_allclose(retarget_weights(basis, targets, mu=1e8, prior=prior), prior, atol=1e-6)
     np.testing.assert_allclose(retarget_weights(basis, targets, mu=1e-12, prior=prior),
                                retarget_weights(basis, targets, mu=1e-12), atol=1e-6)
+
+
+def _bump_fields(n, seed):
+    """Eq. (4) on a face-like square ``[0,1]^2`` sampled ``n x n`` times: six smooth local avatar shapes, and
+    one target that is the first shape plus smooth local motion no avatar shape has (what a person does that
+    the avatar's rig cannot). Returns ``(points[n*n,3], basis[6,n*n,3], targets[1,n*n,3])``."""
+    g = np.linspace(0.0, 1.0, n)
+    x, y = np.meshgrid(g, g)
+    points = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    rng = np.random.default_rng(seed)
+
+    def bumps(count, width):
+        centres, dirs = rng.random((count, 2)), rng.normal(size=(count, 3))
+        return np.stack([np.exp(-np.sum((points[:, :2] - c) ** 2, axis=1) / width)[:, None] * d
+                         for c, d in zip(centres, dirs, strict=True)])
+
+    basis = bumps(6, 0.02)
+    targets = basis[:1] + 0.6 * bumps(3, 0.01).sum(axis=0)[None]
+    return points, basis, targets
+
+
+def test_retarget_mu_by_regions_is_the_brute_force_leave_one_region_out_choice():
+    """``mu="auto"`` with the mesh's points: each region of the face rows (the 3 x 3 split of their extent)
+    predicted by the map solved on the others, one explicit ridge solve per region and ``mu``; the closed
+    form picks the same ``mu``, and the regions do not depend on the units or on how densely they are
+    sampled."""
+    from usdface.transfer.retarget import MU_GRID, face_regions
+
+    points, basis, targets = _bump_fields(30, seed=1)
+    prior = np.eye(1, 6)
+    _, mu = retarget_weights(basis, targets, return_mu=True, positions=points, prior=prior)
+    label = face_regions(points)
+    assert sorted(np.unique(label)) == list(range(9))
+    np.testing.assert_array_equal(face_regions(points * 100.0 + 7.0), label)          # units, placement
+    A = np.moveaxis(basis, 0, -1).reshape(-1, 6)                                      # [3n, K]
+    t = targets[0].ravel()
+    lam_unit = np.trace(A.T @ A) / 6
+    errors = []
+    for m in MU_GRID:
+        e = 0.0
+        for r in range(9):
+            held = np.repeat(label == r, 3)
+            a_in, t_in = A[~held], t[~held]
+            w = prior[0] + np.linalg.solve(a_in.T @ a_in + m * lam_unit * np.eye(6),
+                                           a_in.T @ (t_in - a_in @ prior[0]))
+            e += np.sum((t[held] - A[held] @ w) ** 2)
+        errors.append(e)
+    assert mu == pytest.approx(MU_GRID[int(np.argmin(errors))])
+    assert 0 < int(np.argmin(errors)) < len(MU_GRID) - 1          # an interior minimum: the test can fail
+    # the same surface sampled 2x and 3x as densely: the same regions, the same choice (GCV's drifts)
+    for n in (60, 90):
+        p_n, b_n, t_n = _bump_fields(n, seed=1)
+        assert retarget_weights(b_n, t_n, return_mu=True, positions=p_n, prior=prior)[1] == mu
+
+
+def test_retarget_mu_by_regions_predicts_the_unseen_face_where_gcv_overfits():
+    """The map stands in for the person's shape where the capture does not see it: fitted on the lower 70 %
+    of the square, its prediction of the rest is never worse with the regions' ``mu`` than with GCV over the
+    rows (by more than 1 % of the unseen motion), and much better where GCV, taking the rows for independent
+    observations, picks a tiny ``mu`` that explains the person's extra motion with shapes that move
+    elsewhere."""
+    prior = np.eye(1, 6)
+    worse, ratios = [], []
+    for seed in range(6):
+        points, basis, targets = _bump_fields(40, seed)
+        seen = points[:, 1] < 0.7
+
+        def unseen(w, basis=basis, targets=targets, seen=seen):
+            a = np.einsum("jk,knc->jnc", w, basis)[:, ~seen]
+            return float(np.sqrt(np.mean(np.sum((a - targets[:, ~seen]) ** 2, axis=-1))))
+
+        regions = retarget_weights(basis, targets[:, seen], rows=seen, positions=points, prior=prior)
+        gcv = retarget_weights(basis, targets[:, seen], rows=seen, prior=prior)
+        motion = float(np.sqrt(np.mean(np.sum(targets[:, ~seen] ** 2, axis=-1))))
+        worse.append((unseen(regions) - unseen(gcv)) / motion)
+        ratios.append(unseen(regions) / unseen(gcv))
+    assert max(worse) < 0.01
+    assert min(ratios) < 0.1
 
 
 def test_gradient_operator_exact_on_linear_functions():

@@ -739,7 +739,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
-                "capture": str(getattr(capture_path, "source", capture_path)), "mu": options.get("mu")}
+                "capture": str(getattr(capture_path, "source", capture_path)),
+                "mu": result.report["retarget"]["mu"], "mu_choice": result.report["retarget"]["mu_choice"]}
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)

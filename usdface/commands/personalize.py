@@ -24,7 +24,7 @@ def add_transfer_options(p) -> None:
                    help="fit regularisation: auto (cross-validated), paper, or a number")
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
-                        "(generalized cross-validation on the face rows; default)")
+                        "(cross-validated by leaving out one region of the face at a time; default)")
     bounds = p.add_mutually_exclusive_group()      # --unbounded would drop the bounds given without a word
     bounds.add_argument("--weight-bounds", nargs=2, type=weight_bound, default=(0.0, 1.0),
                         metavar=("LO", "HI"),

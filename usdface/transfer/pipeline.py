@@ -553,7 +553,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     name_map : the studio's {channel: ARKit name} map (dict or JSON/CSV file) for reading ``avatar``
         (:func:`usdface.io.usd_rig.read_avatar`).
     mu : eq. (4) ridge weight (relative, see :func:`retarget_weights`) of the retarget map; ``"auto"`` chooses
-        it by generalized cross-validation on the face rows.
+        it by cross-validation, leaving out one region of the face rows at a time (the 3 x 3 split of their
+        extent, :func:`usdface.transfer.retarget.choose_mu_by_regions`).
     weight_bounds : ``(lo, hi)`` range of the eq. (4) map's weights (default ``(0, 1)``, the range an ARKit
         rig's channels are authored for); None: any real weights, as the paper.
     map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
@@ -778,11 +779,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
         weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f,
-                                            bounds=weight_bounds,
+                                            bounds=weight_bounds, positions=face.neutral,
                                             prior=namesake_prior(names, k_names) if map_prior == "namesake"
                                             else None)
         del mb_face                                                       # [J, face, 3]: not used again
-        report["retarget"] = {"mu": mu_used, "weight_min": float(weights.min()) if weights.size else 0.0,
+        report["retarget"] = {"mu": mu_used,
+                              "mu_choice": "leave one face region out" if mu == "auto" else "given",
+                              "weight_min": float(weights.min()) if weights.size else 0.0,
                               "weight_max": float(weights.max()) if weights.size else 0.0,
                               "bounds": None if weight_bounds is None else list(weight_bounds),
                               "prior": map_prior}
@@ -880,6 +883,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     **({"fitTestExpressions": report["fit"]["test_expressions"]}
                        if "test_expressions" in report.get("fit", {}) else {}),
                     "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
+                    "retargetMu": float(mu_used), "retargetMuChoice": report["retarget"]["mu_choice"],
                     "warnings": list(report["warnings"]),
                     "timings": dict(timings)}
             if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}

@@ -14,12 +14,18 @@ import json
 
 import numpy as np
 
-__all__ = ["retarget_weights", "namesake_prior", "approximate", "weight_map_rows", "weight_map_json",
-           "weight_map_csv"]
+__all__ = ["retarget_weights", "face_regions", "choose_mu_by_regions", "namesake_prior", "approximate",
+           "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
 #: Vertices per block of :func:`retarget_weights`' products over ``rows``.
 ROW_BLOCK = 16384
+#: The face rows are split into FACE_GRID x FACE_GRID regions of their extent for the leave-one-region-out
+#: choice of eq. (4)'s ``mu`` (:func:`face_regions`): the face's thirds from brow to chin times its left,
+#: centre and right - regions the size of a feature (an eye and its brow, the nose, the mouth, a cheek).
+FACE_GRID = 3
+#: The relative ``mu`` values either choice of it searches (:func:`choose_mu`, :func:`choose_mu_by_regions`).
+MU_GRID = np.logspace(-6, 0, 25)
 
 
 def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
@@ -31,7 +37,7 @@ def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
     """
     ev = np.maximum(np.asarray(gram_eigenvalues, dtype=np.float64), 0.0)
     scale = float(ev.sum()) / max(k, 1)
-    grid = np.logspace(-6, 0, 25) if grid is None else np.asarray(grid)
+    grid = MU_GRID if grid is None else np.asarray(grid)
     best, best_mu = np.inf, float(grid[0])
     proj2 = np.sum(np.asarray(projected) ** 2, axis=1)                     # [K] summed over targets
     for m in grid:
@@ -45,8 +51,53 @@ def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
     return best_mu
 
 
+def face_regions(points, grid: int = FACE_GRID) -> np.ndarray:
+    """``[m]`` int: the region of each face row ``points[m,3]`` (the avatar frame: x across the face, y up),
+    the ``grid`` x ``grid`` split of the rows' extent in x and y (:data:`FACE_GRID`: the face's thirds from
+    brow to chin times left, centre and right). It depends on where the rows are, not on how many there are
+    (a subdivided head's face rows fall into the same regions) nor on the units."""
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    if not len(xy):
+        return np.zeros(0, dtype=np.int64)
+    lo, span = xy.min(axis=0), np.ptp(xy, axis=0)
+    cell = np.floor((xy - lo) / np.where(span > 0, span, 1.0) * grid).astype(np.int64)
+    cell = np.clip(cell, 0, grid - 1)
+    return cell[:, 0] * grid + cell[:, 1]
+
+
+def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None) -> float:
+    """Leave-one-region-out cross-validation of the eq. (4) ridge weight ``mu`` (relative, see
+    :func:`retarget_weights`): for each region ``r`` of the face rows (:func:`face_regions`) the map solved on
+    the other regions predicts the targets on ``r``; ``mu`` minimises that prediction error summed over the
+    regions and the targets. This is what the map is for - the approximations ``A_j`` stand in for the
+    person's shapes where the capture does not see them - and, unlike GCV over the rows as independent
+    observations (neighbouring vertices are not: with thousands of rows per target GCV takes the smallest
+    ``mu`` of its grid), it penalises combinations of shapes that match one region by moving another.
+
+    ``grams[R,K,K]``, ``rhs[R,K,J]``, ``tt[R]``: each region's ``B~_r^T B~_r``, ``B~_r^T t_r`` and
+    ``||t_r||^2`` (summed over targets); ``prior[J,K]``: the ridge's centre (None: 0). Closed form per
+    region: one eigendecomposition of the held-in K x K Gram matrix serves every ``mu`` of the grid."""
+    grams = np.asarray(grams, dtype=np.float64)
+    rhs = np.asarray(rhs, dtype=np.float64)
+    n_r, k, n_t = rhs.shape
+    grid = MU_GRID if grid is None else np.asarray(grid, dtype=np.float64)
+    gram, total = grams.sum(axis=0), rhs.sum(axis=0)
+    lam = grid * float(np.trace(gram)) / max(k, 1)                                    # [M]
+    pt = np.zeros((k, n_t)) if prior is None else np.asarray(prior, dtype=np.float64).T  # [K,J]
+    err = np.zeros(len(grid))
+    for r in range(n_r):
+        g_in = gram - grams[r]
+        ev, vec = np.linalg.eigh(g_in)
+        q = vec.T @ (total - rhs[r] - g_in @ pt)                                         # [K,J]
+        w = pt + np.einsum("kl,mlj->mkj", vec, q / (np.maximum(ev, 0.0)[None, :, None] + lam[:, None, None]))
+        # ||t_r - B~_r w||^2 = ||t_r||^2 - 2 w . B~_r^T t_r + w^T B~_r^T B~_r w, per mu, summed over targets
+        err += (float(tt[r]) - 2.0 * np.einsum("mkj,kj->m", w, rhs[r])
+                + np.einsum("mkj,kl,mlj->m", w, grams[r], w))
+    return float(grid[int(np.argmin(err))])
+
+
 def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None, bounds=None,
-                     prior=None):
+                     prior=None, positions=None):
     """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i (w_i - p_ji)^2`` for
     every j, with ``p = 0`` as the paper.
 
@@ -55,8 +106,11 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
     avatar_deltas : ``[K,m,3]`` the avatar's generic shapes B~_i restricted to the face region (metres).
     targets : ``[J,m,3]`` the personalized capture shapes mapped onto the same vertices, ``M B_j`` (metres).
     mu : ridge weight relative to the shapes' mean squared norm, ``mu' = mu * trace(B~^T B~) / K``, so it is
-        unit- and resolution-free; ``"auto"`` (default) chooses it by generalized cross-validation over the
-        face rows (:func:`choose_mu`), which bounds the weights where shapes are nearly collinear.
+        unit- and resolution-free; ``"auto"`` (default) chooses it by leaving out one region of the face at a
+        time (:func:`choose_mu_by_regions`, with ``positions``), else by generalized cross-validation over
+        the rows (:func:`choose_mu`, which takes the smallest ``mu`` when the rows are many).
+    positions : ``[n,3]`` the points of the mesh ``avatar_deltas`` is on (avatar frame, y up): the regions of
+        the face rows for ``mu="auto"`` (:func:`face_regions`).
     return_mu : also return the relative ``mu`` used.
     prior : ``[J,K]`` weights the ridge shrinks towards (None: 0, the paper). With the identity of the shared
         ARKit names (``p_ji = 1`` where avatar shape i is capture shape j) a shape maps to its namesake
@@ -76,45 +130,53 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
     """
     d = np.asarray(avatar_deltas, dtype=np.float64)
     k = d.shape[0]
-    # BLAS products: personalize_avatar caps BLAS at one thread (a multi-threaded BLAS on a busy 2-core
-    # machine took 1.9 s for this 51 x 20k Gram matrix at load 10; single-threaded it is ~2 ms)
     if rows is None:
-        a = d.reshape(k, -1)  # [K, 3m]
-        t = np.asarray(targets, dtype=np.float64).reshape(-1, a.shape[1])  # [J, 3m]
-        gram = a @ a.T
-        rhs = a @ t.T  # [K, J]
-        n_t, n_rows = t.shape
-        tt = float(np.einsum("jv,jv->", t, t))
+        idx = np.arange(d.shape[1])
     else:
         idx = np.asarray(rows)
         idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.int64)
-        t3 = np.asarray(targets, dtype=np.float64)
-        n_t = len(t3)
-        # the targets as the correspondence gives them, vertex-major ([m, J, 3] in memory): read per block
-        # in that order (a [J, 3m] copy of a 180k-vertex face region is a strided 150 MB transpose, 0.7 s)
-        tv = np.moveaxis(t3, 1, 0)                                                            # [m, J, 3]
-        gram, rhs, tt = np.zeros((k, k)), np.zeros((k, n_t)), 0.0
-        for lo in range(0, idx.size, ROW_BLOCK):
-            a = np.take(d, idx[lo:lo + ROW_BLOCK], axis=1).reshape(k, -1)   # C order: no copy to reshape
-            b = tv[lo:lo + ROW_BLOCK].transpose(0, 2, 1)
-            b = b.reshape(3 * len(b), n_t)                                                    # [3b, J]
-            gram += a @ a.T
-            rhs += a @ b
-            tt += float(np.einsum("vj,vj->", b, b))
-        n_rows = 3 * idx.size
+    t3 = np.asarray(targets, dtype=np.float64)
+    n_t = len(t3)
+    # the targets as the correspondence gives them, vertex-major ([m, J, 3] in memory): read per block in that
+    # order (a [J, 3m] copy of a 180k-vertex face region is a strided 150 MB transpose, 0.7 s)
+    tv = np.moveaxis(t3, 1, 0)                                                                # [m, J, 3]
+    # the products per region of the face (one region without positions), summed over blocks of its rows,
+    # never forming avatar_deltas[:, rows] (a production head's face region: 180 MB). BLAS products:
+    # personalize_avatar caps BLAS at one thread (a multi-threaded BLAS on a busy 2-core machine took 1.9 s
+    # for this 51 x 20k Gram matrix at load 10; single-threaded it is ~2 ms)
+    label = (face_regions(np.asarray(positions)[idx]) if positions is not None
+             else np.zeros(idx.size, dtype=np.int64))
+    order = np.argsort(label, kind="stable")
+    starts = np.searchsorted(label[order], np.unique(label))
+    ends = np.append(starts[1:], idx.size)
+    grams, rhss, tts = np.zeros((len(starts), k, k)), np.zeros((len(starts), k, n_t)), np.zeros(len(starts))
+    for r, (a0, a1) in enumerate(zip(starts, ends, strict=True)):
+        for lo in range(a0, a1, ROW_BLOCK):
+            at = order[lo:min(lo + ROW_BLOCK, a1)]
+            a = np.take(d, idx[at], axis=1).reshape(k, -1)          # C order: no copy to reshape
+            b = tv[at].transpose(0, 2, 1).reshape(3 * len(at), n_t)                             # [3b, J]
+            grams[r] += a @ a.T
+            rhss[r] += a @ b
+            tts[r] += float(np.einsum("vj,vj->", b, b))
+    gram, rhs, tt = grams.sum(axis=0), rhss.sum(axis=0), float(tts.sum())
+    n_rows = 3 * idx.size
     p = np.zeros((n_t, k)) if prior is None else np.asarray(prior, dtype=np.float64)      # [J,K]
     # the ridge around p is the plain ridge of the targets' residual from p: t - B~ p
     rhs_p = rhs - gram @ p.T                                                  # [K,J]
     if isinstance(mu, str):
         if mu != "auto":
             raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
-        ev, vec = np.linalg.eigh(gram)
-        proj = vec.T @ rhs_p                                                 # [K,J]: U^T A t  (= s_i u_i^T t)
-        # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
-        inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None] * (ev > 1e-12 * ev.max())[:, None]))
-        tt = tt - 2.0 * float(np.sum(p.T * rhs))                           # ||t - B~ p||^2, no [J, 3m]
-        residual = max(tt + float(np.sum(p.T * (gram @ p.T))) - inside, 0.0)      # temporary
-        mu = choose_mu(ev, proj, residual, n_rows, k)
+        if len(starts) > 1:
+            mu = choose_mu_by_regions(grams, rhss, tts, p)
+        else:
+            ev, vec = np.linalg.eigh(gram)
+            proj = vec.T @ rhs_p                                             # [K,J]: U^T A t  (= s_i u_i^T t)
+            # the part of the targets outside the span of the shapes, from ||t||^2 - ||P t||^2
+            inside = float(np.sum(proj ** 2 / np.maximum(ev, 1e-300)[:, None]
+                                  * (ev > 1e-12 * ev.max())[:, None]))
+            tt = tt - 2.0 * float(np.sum(p.T * rhs))                       # ||t - B~ p||^2, no [J, 3m]
+            residual = max(tt + float(np.sum(p.T * (gram @ p.T))) - inside, 0.0)      # temporary
+            mu = choose_mu(ev, proj, residual, n_rows, k)
     lam = float(mu) * float(np.trace(gram)) / max(k, 1)
     w = p + np.linalg.solve(gram + lam * np.eye(k), rhs_p).T
     if bounds is not None:
