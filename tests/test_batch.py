@@ -680,3 +680,26 @@ def test_an_output_that_cannot_be_written_stops_the_batch_before_any_item(tmp_pa
         assert not (tmp_path / "first.usda").exists()                      # no item ran
     finally:
         subprocess.run(["chattr", "-i", str(locked)])
+
+
+def test_an_avatar_already_personalized_stops_the_batch_before_any_item(tmp_path, capsys):
+    """A row whose avatar is a usdface output layer (personalizing it would stack the personalization) was
+    refused only when its turn came, after the rows before it had run: the batch is refused up front, naming
+    the row, the file and the original avatar to pass instead."""
+    import json
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    layer = tmp_path / "hero.usda"
+    assert main(["personalize", str(root / "avatar.usda"), str(root / "capture.usda"), "-o", str(layer),
+                 "-q"]) == 0
+    rows = [{"avatar": str(root / "avatar.usda"), "capture": str(root / "capture.usda"),
+             "output": str(tmp_path / "first.usda")},
+            {"avatar": str(layer), "capture": str(root / "capture.usda"),
+             "output": str(tmp_path / "second.usda")}]
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps(rows))
+    assert main(["batch", str(manifest), "-j", "1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "item 2:" in err and "hero.usda" in err and "already personalized" in err, err
+    assert "avatar.usda" in err.split("fix:")[-1] and "avatar column" in err, err
+    assert not (tmp_path / "first.usda").exists() and not (tmp_path / "m.report.json").exists()

@@ -867,6 +867,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
         from .io.atomic import check_writable
+        from .io.usd_rig import refuse_usdface_output
 
         for item in items:
             try:
@@ -883,6 +884,12 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            try:              # a row whose avatar is already personalized (a usdface layer, its export)
+                refuse_usdface_output(item.avatar)
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {item.avatar}: {exc.message}", path=manifest,
+                                     fix=f"{exc.fix} in the manifest's avatar column" if exc.fix
+                                     else "fix the manifest's avatar column") from None
             every = item.options.get("every", 1)
             if not isinstance(every, bool) and isinstance(every, int) and every > 1 \
                     and Path(item.capture).exists():
