@@ -738,10 +738,13 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
+        eq4 = result.report["retarget"]
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
                 "capture": str(getattr(capture_path, "source", capture_path)),
-                "mu": result.report["retarget"]["mu"], "mu_choice": result.report["retarget"]["mu_choice"]}
-        text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
+                "mu": eq4["mu"], "mu_choice": eq4["mu_choice"], "weight_bounds": eq4["bounds"],
+                "map_prior": eq4["prior"]}
+        text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
+                               channels=eq4["channels"])
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)

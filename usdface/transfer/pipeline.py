@@ -796,6 +796,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
         if map_only:                 # the map is the product: the implant, eyelids and write are not needed
+            # the face mesh's own channel per shape (a studio's `JawDrop` for jawOpen): what an engine drives
+            tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
+                      if c[1] is not None and c[2] != "conflict"}
+            report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
