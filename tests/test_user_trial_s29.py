@@ -20,3 +20,20 @@ def test_doc_table_rows_stay_in_their_table():
                 continue
             assert lines[i - 1].startswith("|") or (i + 1 < len(lines) and lines[i + 1].startswith("|---")), (
                 f"{page.name}:{i + 1}: a table row outside a table: {line[:60]}")
+
+
+def test_weight_bounds_as_text_are_refused_with_the_manifest_spelling():
+    """A manifest cell or ``--set weight_bounds=01`` reached the check as the string "01", whose characters
+    passed as the bounds (0, 1) (and "0,2" was refused with a fix, ``(0, 1)`` / ``None``, that a manifest
+    cannot spell either): a string is refused, and the fix names the JSON a manifest takes."""
+    import pytest
+
+    from usdface import api
+    from usdface.errors import OptionError
+
+    for text in ("01", "0,2", "(0, 2)", "None"):
+        with pytest.raises(OptionError, match=r"bad weight bounds") as err:
+            api.check_personalize_options(weight_bounds=text)
+        assert "[0, 1] in a batch manifest" in str(err.value) and "null in a batch manifest" in str(err.value)
+    api.check_personalize_options(weight_bounds=[0, 2])
+    api.check_personalize_options(weight_bounds=None)

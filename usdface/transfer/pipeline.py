@@ -964,11 +964,14 @@ def _check_modes(face_transfer: str, approximation: str | None, prior: str, weig
 
         name = option_name("weight_bounds")
         try:
+            if isinstance(weight_bounds, str):     # its characters are no bounds: "01" read as (0, 1)
+                raise TypeError
             lo, hi = (float(b) for b in weight_bounds)
         except (TypeError, ValueError):
             raise OptionError(f"bad weight bounds {weight_bounds!r}: {name} takes two numbers",
-                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
-                                  "weight_bounds=None (--unbounded)") from None
+                              fix="give two finite numbers LO < HI, e.g. (0, 1) ([0, 1] in a batch manifest "
+                                  "or --set); for no bounds use weight_bounds=None (--unbounded), null in a "
+                                  "batch manifest") from None
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} must be finite",
                               fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
