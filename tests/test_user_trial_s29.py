@@ -37,3 +37,18 @@ def test_weight_bounds_as_text_are_refused_with_the_manifest_spelling():
         assert "[0, 1] in a batch manifest" in str(err.value) and "null in a batch manifest" in str(err.value)
     api.check_personalize_options(weight_bounds=[0, 2])
     api.check_personalize_options(weight_bounds=None)
+
+
+def test_support_as_text_is_refused_before_any_work():
+    """``--set support=01`` passed the batch's preflight (the string's two characters as low and high) and
+    the item failed after its fit with ``UFuncTypeError: ufunc 'subtract' did not contain a loop``."""
+    import pytest
+
+    from usdface import api
+    from usdface.errors import UsdFaceError
+
+    for text in ("01", "ab"):
+        with pytest.raises(UsdFaceError, match=r"bad support") as err:
+            api.check_personalize_options(support=text)
+        assert "[0.01, 0.03] in a batch manifest" in str(err.value)
+    api.check_personalize_options(support=[0.01, 0.03])

@@ -1019,10 +1019,13 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
     _number("falloff", falloff, low=0.0, inclusive=True, fix="capture edge lengths >= 0 (0 = harmonic join)")
     if support is not None:
         try:
+            if isinstance(support, str):            # its characters are no fractions: "01" read as (0, 1)
+                raise TypeError
             lo, hi = support
         except (TypeError, ValueError):
             raise UsdFaceError(f"bad support {support!r}", fix="give (low, high) fractions of each shape's "
-                               "peak motion, e.g. (0.01, 0.03), or None") from None
+                               "peak motion, e.g. (0.01, 0.03) ([0.01, 0.03] in a batch manifest), or None"
+                               ) from None
         lo = _number("support low", lo, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         if lo > hi:
