@@ -917,13 +917,14 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
     restricted = MODE_ONLY_OPTIONS & set(shared)
-    used = set()
+    used, taken = set(), set()
     for item in items:
         mode = item.options.get("face_transfer", shared.get("face_transfer", "person"))
         keep = set(MODE_OPTIONS.get(mode, restricted))
         used |= restricted & keep
-        item.options = {**{k: v for k, v in shared.items() if k not in restricted or k in keep},
-                        **item.options}
+        given = {k: v for k, v in shared.items() if k not in restricted or k in keep}
+        taken |= set(given) - set(item.options)
+        item.options = {**given, **item.options}
     unused = sorted(restricted - used)
     if unused and items:
         names = ", ".join(option_name(k) for k in unused)
@@ -932,6 +933,12 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
                              fix="drop it, or give it to rows whose face_transfer uses it: "
                                  + "; ".join(f"{option_name(k)}: {', '.join(modes_using(k))}"
                                              for k in unused))
+    overridden = sorted(set(shared) - taken)     # every row that would take it sets its own: changes nothing
+    if overridden and items:
+        names = ", ".join(f"{k}={shared[k]}" for k in overridden)
+        raise InputFileError(f"--set {names} reaches no row: every row it would apply to sets its own "
+                             f"{', '.join(overridden)} (manifest columns win)", path=manifest,
+                             fix="drop the --set, or empty that column's cells in the rows it should reach")
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
