@@ -52,3 +52,22 @@ def test_support_as_text_is_refused_before_any_work():
             api.check_personalize_options(support=text)
         assert "[0.01, 0.03] in a batch manifest" in str(err.value)
     api.check_personalize_options(support=[0.01, 0.03])
+
+
+def test_a_non_usd_file_where_usd_is_expected_is_named_as_such(tmp_path, capsys):
+    """The retarget map (``map.json``) given to ``render --heatmap``, ``inspect`` or ``check``, or an exported
+    OBJ to ``export``, said USD's "Cannot determine file format for @map.json@ (fix: check that it is a
+    valid USD layer (usdcat FILE))": the message names the file's type and asks for the USD file."""
+    from usdface.cli import main
+
+    bad = tmp_path / "map.json"
+    bad.write_text('{"format": "usdface.retarget/1"}')
+    obj = tmp_path / "neutral.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    for args in (["inspect", str(bad)], ["check", str(bad)], ["export", str(obj), "--gltf",
+                                                                 str(tmp_path / "o.glb")]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert "Cannot determine file format" not in err and "where a USD" in err and "USD USD" not in err
+        assert "pass the USD file here" in err
+    assert not (tmp_path / "o.glb").exists()
