@@ -71,3 +71,24 @@ def test_a_non_usd_file_where_usd_is_expected_is_named_as_such(tmp_path, capsys)
         assert "Cannot determine file format" not in err and "where a USD" in err and "USD USD" not in err
         assert "pass the USD file here" in err
     assert not (tmp_path / "o.glb").exists()
+
+
+def test_a_batch_row_with_dry_run_is_refused(tmp_path):
+    """A manifest row (or ``--set``) with ``dry_run`` true wrote nothing and the report counted the item
+    ``done`` (with its avatars per minute); refused before any work."""
+    import json
+
+    import pytest
+
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps([{"avatar": str(samples / "avatar.usda"),
+                                     "capture": str(samples / "capture.usda"), "output": "a.usda",
+                                     "dry_run": True}]))
+    with pytest.raises(InputFileError, match="item 1: dry_run writes no output") as err:
+        api.personalize_batch(manifest, jobs=1)
+    assert "--dry-run" in err.value.fix
+    assert not (tmp_path / "m.report.json").exists() and not (tmp_path / "a.usda").exists()

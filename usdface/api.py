@@ -886,6 +886,11 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            if item.options.get("dry_run"):              # nothing written, yet the item counted as done
+                raise InputFileError(f"item {item.index + 1}: dry_run writes no output, and the batch would "
+                                     "count the item done without it", path=manifest,
+                                     fix="drop dry_run; preview one item with 'usdface personalize AVATAR "
+                                         "CAPTURE -o OUT --dry-run'")
             every = item.options.get("every", 1)
             if not isinstance(every, bool) and isinstance(every, int) and every > 1 \
                     and Path(item.capture).exists():
