@@ -274,3 +274,18 @@ def test_inspection_animation_timeline():
     np.testing.assert_allclose(times, [0.0, 0.5, 1.5, 1.6])
     np.testing.assert_allclose(weights, [[1.0, 0.0], [0.5, 0.5], [0.2, 0.0], [0.4, 0.0]])
     assert inspection_animation(None, None) is None
+
+
+def test_render_cli_refuses_avatar_options_for_a_capture(samples, tmp_path, capsys):
+    """A capture is drawn as its template shapes: ``--compare``, ``--heatmap``, ``--landmarks``, ``--mesh``
+    and ``--name-map`` given with one were silently ignored (exit 0, a picture of something else)."""
+    names = tmp_path / "names.json"
+    names.write_text('{"JawDrop": "jawOpen"}')
+    capture, png = str(samples / "capture.usda"), str(tmp_path / "c.png")
+    for flags in (["--compare"], ["--heatmap"], ["--landmarks"], ["--mesh", "Mouth"],
+                  ["--name-map", str(names)]):
+        assert main(["render", capture, "-o", png, *flags]) == 2
+        err = capsys.readouterr().err
+        assert f"{flags[0]} not used for a capture" in err and "capture.usda" in err
+    assert not (tmp_path / "c.png").exists()
+    assert main(["render", capture, "-o", png, "--view", "left"]) == 0

@@ -120,6 +120,16 @@ def run(args) -> int:
                               "shapes that move most")
     is_capture, _layer = _capture_file(path)  # _layer held: the file is parsed once
     if path.is_dir() or args.capture or is_capture:
+        unused = [flag for flag, value in (("--compare", args.compare), ("--heatmap", args.heatmap),
+                                           ("--landmarks", args.landmarks or None), ("--mesh", args.mesh),
+                                           ("--name-map", args.name_map)) if value is not None]
+        if unused:                     # a capture draws its template shapes: these were silently ignored
+            from ..errors import OptionError
+
+            named = ", ".join(unused)
+            raise OptionError(f"{named} not used for a capture (it is drawn as its template shapes on the "
+                              "person's neutral)", path=path,
+                              fix=f"drop {named}, or render an avatar or a personalize result")
         capture = api.read_capture(path)
         rig = capture.template
         rig = type(rig)(capture.neutral, rig.triangles, rig.names, rig.deltas, rig.inbetweens, rig.source,
