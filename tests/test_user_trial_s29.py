@@ -92,3 +92,18 @@ def test_a_batch_row_with_dry_run_is_refused(tmp_path):
         api.personalize_batch(manifest, jobs=1)
     assert "--dry-run" in err.value.fix
     assert not (tmp_path / "m.report.json").exists() and not (tmp_path / "a.usda").exists()
+
+
+def test_dry_run_help_says_the_correspondence_cache_is_written(capsys):
+    """``personalize --dry-run --correspondence c.npz`` writes the cache (by design: the real run reuses it)
+    while the help and the docs said "write nothing"."""
+    import pytest
+
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["personalize", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    dry = text[text.index("--dry-run compute"):][:200]
+    assert "write nothing" not in dry and "--correspondence cache is still written" in dry
+    assert "write nothing" not in (DOCS / "troubleshooting.md").read_text().split("--dry-run")[1][:80]
