@@ -107,3 +107,19 @@ def test_dry_run_help_says_the_correspondence_cache_is_written(capsys):
     dry = text[text.index("--dry-run compute"):][:200]
     assert "write nothing" not in dry and "--correspondence cache is still written" in dry
     assert "write nothing" not in (DOCS / "troubleshooting.md").read_text().split("--dry-run")[1][:80]
+
+
+def test_an_empirical_layout_of_another_mesh_names_its_file(tmp_path, capsys):
+    """``landmarks --evaluate --empirical vertex_indices.json`` with indices beyond the mesh said "empirical
+    layout indices out of range ..." without naming the file (the user gives two files and a mesh)."""
+    from usdface.cli import main
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    layout = tmp_path / "vertex_indices.json"
+    layout.write_text("[1, 2, 99999]")
+    take = tmp_path / "take.csv"
+    take.write_text("Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n")
+    assert main(["landmarks", str(samples / "avatar.usda"), "--evaluate", "--takes", str(take),
+                 "--empirical", str(layout), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{layout}, prim /Avatar/Head: empirical layout indices out of range" in err

@@ -689,8 +689,16 @@ def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: Pa
 
     if not takes:
         raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
-    weights = livelink_weights(takes, rig.names, frames)
     indices = _read_vertex_list(empirical) if empirical else None
+    if indices is not None:            # checked before the takes are read, naming the file
+        from .landmarks.baselines import empirical_layout
+
+        try:
+            empirical_layout(indices, rig.n_vertices)
+        except LandmarkError as exc:
+            raise LandmarkError(exc.message, path=empirical, prim=getattr(rig.source, "prim", None),
+                                fix=exc.fix) from None
+    weights = livelink_weights(takes, rig.names, frames)
     return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
 
 
