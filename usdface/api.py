@@ -744,6 +744,9 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
+    if isinstance(options.get("pins"), str | Path):   # a pins file, read as personalize_avatar reads it
+        capture_path = _as_capture(capture_path)
+        _read_pins_option(options, capture_path)
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
         eq4 = result.report["retarget"]
