@@ -375,3 +375,12 @@ def test_usdfaces_own_error_maps_pass_check(tmp_path):
     path = write_error_maps_usd(tmp_path / "errors.usda", tri,
                                 {"dt": [("frame 0", points, np.zeros(3), np.zeros((3, 3)))]})
     assert not has_errors(validate_file(path))
+
+
+@pytest.mark.parametrize("rules", [",", "", " , "])
+def test_cli_rules_that_name_no_rule_are_refused(samples, capsys, rules):
+    """``usdface check FILE --rules ,`` ran none of usdface's rules (a broken rig passed them, exit 0) and
+    ``--rules ''`` all of them; both name no rule and are refused (exit 2) listing the rules."""
+    assert main(["check", str(samples / "avatar.usda"), "--rules", rules]) == 2
+    err = capsys.readouterr().err
+    assert "names no rule" in err and "ArkitNames" in err

@@ -275,3 +275,13 @@ def test_a_flattened_generic_export_personalizes_like_the_avatar(layer, tmp_path
         np.testing.assert_array_equal(generic.mesh(rig.name).deltas, rig.deltas)
         np.testing.assert_allclose(second.mesh(rig.name).deltas, first.mesh(rig.name).deltas, rtol=0,
                                    atol=1e-9)
+
+
+def test_no_skin_without_gltf_is_refused(samples, tmp_path, capsys):
+    """``export LAYER --obj-dir DIR --no-skin`` wrote the OBJs and ignored ``--no-skin`` silently."""
+    from usdface.cli import main
+
+    objs = str(tmp_path / "objs")
+    assert main(["export", str(samples / "avatar.usda"), "--obj-dir", objs, "--no-skin"]) == 2
+    assert "--no-skin applies to the glTF only" in capsys.readouterr().err
+    assert not (tmp_path / "objs").exists()

@@ -93,7 +93,9 @@ def test_symmetric_layout_on_the_sample_head_is_exact(samples):
 
 
 @pytest.mark.parametrize("argv, text", [(["--epsilon", "1.5"], "epsilon"), (["--mesh", "Nope"], "Nope"),
-                                        (["--evaluate"], "--takes")])
+                                        (["--evaluate"], "--takes"),
+                                        # the camera casts one ray per vertex: --rays was silently ignored
+                                        (["--camera", "0,1.6,1"], "--camera sees from one point")])
 def test_bad_input_exits_2_with_one_line(samples, tmp_path, capsys, argv, text):
     assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "2", *argv]) == 2
     err = capsys.readouterr().err

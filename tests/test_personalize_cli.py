@@ -288,3 +288,43 @@ def test_a_dry_run_answers_whether_a_real_run_would_write(samples, tmp_path, cap
     doc = json.loads(capsys.readouterr().out)
     assert "exists" in doc["output_refused"] and doc["ok"] is False
     assert main([*base, "--force"]) == 0
+
+
+def test_retarget_json_records_the_map_settings_and_the_avatar_channels(samples, tmp_path):
+    """The JSON map says how it was solved (``meta``: the bounds and the ridge's centre beside ``mu``: an
+    ``--unbounded --map-prior zero`` map read like the default one) and names the avatar's own channels
+    (``target_channels``): with ``--name-map`` the targets are ARKit names the studio rig does not have, so
+    an engine matching channels by name drove nothing for them."""
+    text = (samples / "avatar.usda").read_text().replace('"jawRight", "jawOpen", "mouthClose"',
+                                                         '"jawRight", "JawDrop", "mouthClose"')
+    (tmp_path / "studio.usda").write_text(text)
+    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--name-map", str(tmp_path / "names.json"), "--unbounded", "--map-prior", "zero",
+                 "--mu", "0.01"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["meta"]["weight_bounds"] is None and doc["meta"]["map_prior"] == "zero"
+    assert doc["meta"]["mu"] == 0.01 and doc["meta"]["mu_choice"] == "given"
+    jaw = doc["target"].index("jawOpen")
+    assert doc["target_channels"][jaw] == "JawDrop"
+    assert [c for c, t in zip(doc["target_channels"], doc["target"], strict=True) if c != t] == ["JawDrop"]
+
+
+def test_retarget_takes_the_fits_pins_and_the_face_mesh(samples, tmp_path, capsys):
+    """``write_retarget_map(..., pins="pins.json")`` failed inside the fit ("pins mask has shape (),
+    expected (52, 1233)": the file was never read), and ``usdface retarget`` offered neither ``--pins`` (a
+    fit option: it changes the map) nor ``--face-mesh`` (the mesh whose shapes the map targets)."""
+    from usdface import api
+
+    pins = tmp_path / "pins.json"
+    pins.write_text('{"pins": {"jawOpen": [1, 2, 3]}}')
+    result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "a.json",
+                                    pins=str(pins))
+    assert result.report["fit"]["pins"] == {"jawOpen": 3}
+    args = ["retarget", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-q"]
+    assert main([*args, "-o", str(tmp_path / "b.json"), "--pins", str(pins), "--face-mesh", "Head"]) == 0
+    doc = json.loads((tmp_path / "b.json").read_text())
+    assert np.abs(np.array(doc["weights"]) - result.weights).max() <= 1e-6
+    assert main([*args, "-o", str(tmp_path / "c.json"), "--face-mesh", "Nope"]) == 2
+    assert "no mesh 'Nope'" in capsys.readouterr().err and not (tmp_path / "c.json").exists()

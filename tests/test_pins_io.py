@@ -29,6 +29,8 @@ def test_json_pins_any_spelling_merged_and_sorted(tmp_path):
     ({"pins": {"jawOpen": [10]}}, "outside"),
     ({"pins": {"jawOpen": [1.5]}}, "not a list"),
     ([1, 2], "not a mapping"),
+    # another JSON file (the retarget map) said "pins name a shape the capture lacks: 'format'"
+    ({"format": "usdface.retarget/1", "source": ["jawOpen"]}, "not a pins file"),
 ])
 def test_json_pins_errors_name_the_file_and_the_fix(tmp_path, doc, match):
     f = tmp_path / "pins.json"

@@ -144,3 +144,28 @@ def test_a_name_mapped_rig_validates_and_publishes(registered, tmp_path, samples
     pyblish.util.publish(context)
     failed = [str(r["error"]) for r in context.data["results"] if not r["success"]]
     assert failed and "jawOpen" in failed[0] and failed[0].count("(fix:") == 1
+
+
+def test_bad_options_fail_validation_not_the_extractor(registered, tmp_path, samples, monkeypatch):
+    """An option the face-transfer mode does not use (``extension_length`` with ``offset``) passed every
+    validator and failed the (slow) extractor, after the other instances' work; it fails validation now, and
+    a studio's own ``personalize`` step (its own options) is not second-guessed."""
+    context = pyblish_api.Context()
+    item = {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+            "output": str(tmp_path / "o.usda")}
+    context.data["usdfaceItems"] = [{**item, "usdfaceOptions": {"face_transfer": "offset",
+                                                                "extension_length": 2}}]
+    ran = []
+    monkeypatch.setattr(plugins.ExtractUsdFacePersonalized, "process", lambda self, instance: ran.append(1))
+    pyblish.util.publish(context)
+    results = _results(context)
+    assert not results[("ValidateUsdFaceOptions", "o")]["success"]
+    assert "extension_length" in str(results[("ValidateUsdFaceOptions", "o")]["error"])
+    assert ran == []
+
+    monkeypatch.setattr(plugins.ExtractUsdFacePersonalized, "personalize",
+                        staticmethod(lambda avatar, capture, output, **options: None))
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{**item, "usdfaceOptions": {"studio_lod": 2}}]
+    pyblish.util.publish(context)
+    assert _results(context)[("ValidateUsdFaceOptions", "o")]["success"] and ran == [1]

@@ -168,12 +168,35 @@ def test_inspection_layer_contents(inspected):
 
 def test_render_cli_on_result(inspected, tmp_path, capsys):
     _avatar, out, _heat = inspected
-    for i, flags in enumerate([[], ["--compare"], ["--heatmap"], ["--landmarks"]]):
+    for i, flags in enumerate([["--shapes", "jawOpen"], ["--shapes", "jawOpen", "--compare"],
+                               ["--shapes", "jawOpen", "--heatmap"], ["--landmarks"]]):
         png = tmp_path / f"{i}.png"
-        assert main(["render", str(out), "-o", str(png), "--shapes", "jawOpen", *flags]) == 0
+        assert main(["render", str(out), "-o", str(png), *flags]) == 0
         assert png.read_bytes()[:8] == PNG
     assert main(["render", str(out), "-o", str(tmp_path / "0.png")]) == 2  # exists, no --force
     assert "--force" in capsys.readouterr().err
+
+
+def test_render_cli_options_a_mode_would_ignore(inspected, tmp_path, capsys, monkeypatch):
+    """``--weight`` with ``--compare``/``--heatmap``/``--landmarks`` and ``--shapes`` with ``--landmarks``
+    were silently ignored, ``--shapes ,`` drew the neutral alone; all refused before any drawing.
+    ``--heatmap --shapes`` is the RMS over those shapes (it was over all of them)."""
+    from usdface import render
+
+    _avatar, out, _heat = inspected
+    for flags, named in ((["--compare", "--weight", "0.5"], "--weight not used by --compare"),
+                         (["--heatmap", "--weight", "0.5"], "--weight not used by --heatmap"),
+                         (["--landmarks", "--shapes", "jawOpen"], "--shapes not used by --landmarks"),
+                         (["--shapes", ","], "names no shape")):
+        assert main(["render", str(out), "-o", str(tmp_path / "x.png"), *flags]) == 2
+        assert named in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+    seen = {}
+    monkeypatch.setattr(render, "render_heatmap", lambda points, tris, values, *a, **k: seen.update(v=values))
+    for key, flags in (("all", []), ("jaw", ["--shapes", "jawOpen"])):
+        assert main(["render", str(out), "-o", str(tmp_path / f"{key}.png"), "--heatmap", *flags]) == 0
+        seen[key] = seen.pop("v")
+    assert not np.allclose(seen["all"], seen["jaw"])
 
 
 def test_render_cli_capture_and_errors(samples, tmp_path, capsys):
@@ -251,3 +274,18 @@ def test_inspection_animation_timeline():
     np.testing.assert_allclose(times, [0.0, 0.5, 1.5, 1.6])
     np.testing.assert_allclose(weights, [[1.0, 0.0], [0.5, 0.5], [0.2, 0.0], [0.4, 0.0]])
     assert inspection_animation(None, None) is None
+
+
+def test_render_cli_refuses_avatar_options_for_a_capture(samples, tmp_path, capsys):
+    """A capture is drawn as its template shapes: ``--compare``, ``--heatmap``, ``--landmarks``, ``--mesh``
+    and ``--name-map`` given with one were silently ignored (exit 0, a picture of something else)."""
+    names = tmp_path / "names.json"
+    names.write_text('{"JawDrop": "jawOpen"}')
+    capture, png = str(samples / "capture.usda"), str(tmp_path / "c.png")
+    for flags in (["--compare"], ["--heatmap"], ["--landmarks"], ["--mesh", "Mouth"],
+                  ["--name-map", str(names)]):
+        assert main(["render", capture, "-o", png, *flags]) == 2
+        err = capsys.readouterr().err
+        assert f"{flags[0]} not used for a capture" in err and "capture.usda" in err
+    assert not (tmp_path / "c.png").exists()
+    assert main(["render", capture, "-o", png, "--view", "left"]) == 0

@@ -248,3 +248,22 @@ def test_a_batch_wide_join_option_goes_to_the_rows_whose_mode_uses_it(tmp_path, 
     manifest.write_text(json.dumps(rows))
     with pytest.raises(InputFileError, match="item 2: falloff .* is not used by"):
         api.personalize_batch(manifest)
+
+
+def test_a_batch_wide_option_every_row_overrides_is_refused(tmp_path):
+    """``batch --set falloff=0.2`` over a manifest whose only ``offset`` row has its own ``falloff`` (and
+    ``--set method=dt`` where every row names its method) ran the batch with the option reaching no row,
+    silently: manifest columns win. Refused before any work, as an option no row's mode uses is."""
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    manifest = tmp_path / "m.json"
+    rows = [{"avatar": str(A), "capture": str(C), "output": str(tmp_path / f"{name}.usda"), **extra}
+            for name, extra in (("a", {"face_transfer": "offset", "falloff": 0.3, "method": "menzel"}),
+                                ("b", {"method": "menzel"}))]
+    manifest.write_text(json.dumps(rows))
+    for options, name in (({"falloff": 0.2}, "falloff"), ({"method": "dt"}, "method")):
+        with pytest.raises(InputFileError, match=f"--set {name}=.* reaches no row: every row") as info:
+            api.personalize_batch(manifest, options=options)
+        assert "manifest columns win" in str(info.value)
+    assert not list(tmp_path.glob("*.usda"))

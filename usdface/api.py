@@ -689,8 +689,16 @@ def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: Pa
 
     if not takes:
         raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
-    weights = livelink_weights(takes, rig.names, frames)
     indices = _read_vertex_list(empirical) if empirical else None
+    if indices is not None:            # checked before the takes are read, naming the file
+        from .landmarks.baselines import empirical_layout
+
+        try:
+            empirical_layout(indices, rig.n_vertices)
+        except LandmarkError as exc:
+            raise LandmarkError(exc.message, path=empirical, prim=getattr(rig.source, "prim", None),
+                                fix=exc.fix) from None
+    weights = livelink_weights(takes, rig.names, frames)
     return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
 
 
@@ -736,12 +744,18 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
+    if isinstance(options.get("pins"), str | Path):   # a pins file, read as personalize_avatar reads it
+        capture_path = _as_capture(capture_path)
+        _read_pins_option(options, capture_path)
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
+        eq4 = result.report["retarget"]
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
                 "capture": str(getattr(capture_path, "source", capture_path)),
-                "mu": result.report["retarget"]["mu"], "mu_choice": result.report["retarget"]["mu_choice"]}
-        text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta)
+                "mu": eq4["mu"], "mu_choice": eq4["mu_choice"], "weight_bounds": eq4["bounds"],
+                "map_prior": eq4["prior"]}
+        text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
+                               channels=eq4["channels"])
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
@@ -890,6 +904,11 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                 raise InputFileError(f"item {item.index + 1}: {item.avatar}: {exc.message}", path=manifest,
                                      fix=f"{exc.fix} in the manifest's avatar column" if exc.fix
                                      else "fix the manifest's avatar column") from None
+            if item.options.get("dry_run"):              # nothing written, yet the item counted as done
+                raise InputFileError(f"item {item.index + 1}: dry_run writes no output, and the batch would "
+                                     "count the item done without it", path=manifest,
+                                     fix="drop dry_run; preview one item with 'usdface personalize AVATAR "
+                                         "CAPTURE -o OUT --dry-run'")
             every = item.options.get("every", 1)
             if not isinstance(every, bool) and isinstance(every, int) and every > 1 \
                     and Path(item.capture).exists():
@@ -921,13 +940,14 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
     restricted = MODE_ONLY_OPTIONS & set(shared)
-    used = set()
+    used, taken = set(), set()
     for item in items:
         mode = item.options.get("face_transfer", shared.get("face_transfer", "person"))
         keep = set(MODE_OPTIONS.get(mode, restricted))
         used |= restricted & keep
-        item.options = {**{k: v for k, v in shared.items() if k not in restricted or k in keep},
-                        **item.options}
+        given = {k: v for k, v in shared.items() if k not in restricted or k in keep}
+        taken |= set(given) - set(item.options)
+        item.options = {**given, **item.options}
     unused = sorted(restricted - used)
     if unused and items:
         names = ", ".join(option_name(k) for k in unused)
@@ -936,6 +956,12 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
                              fix="drop it, or give it to rows whose face_transfer uses it: "
                                  + "; ".join(f"{option_name(k)}: {', '.join(modes_using(k))}"
                                              for k in unused))
+    overridden = sorted(set(shared) - taken)     # every row that would take it sets its own: changes nothing
+    if overridden and items:
+        names = ", ".join(f"{k}={shared[k]}" for k in overridden)
+        raise InputFileError(f"--set {names} reaches no row: every row it would apply to sets its own "
+                             f"{', '.join(overridden)} (manifest columns win)", path=manifest,
+                             fix="drop the --set, or empty that column's cells in the rows it should reach")
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,

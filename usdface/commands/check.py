@@ -46,7 +46,13 @@ def run(args) -> int:
     from ..api import check
 
     _refuse_folder(args.file)
-    rules = [r.strip() for r in args.rules.split(",") if r.strip()] if args.rules else None
+    rules = None if args.rules is None else [r.strip() for r in args.rules.split(",") if r.strip()]
+    if rules == []:                    # ran none of usdface's rules, and a broken rig passed them
+        from ..errors import OptionError
+        from ..pipeline.check import RULES
+
+        raise OptionError(f"--rules {args.rules!r} names no rule",
+                          fix=f"leave --rules out to run all, or name some: {', '.join(sorted(RULES))}")
     issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map)
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
     failed = counts["error"] > 0 or (args.strict and counts["warning"] > 0)

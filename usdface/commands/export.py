@@ -31,6 +31,11 @@ def run(args) -> int:
     from ..api import export_avatar
     from ..io.flatten import AS_AUTHORED, exported_variant
 
+    if args.no_skin and not args.gltf and (args.obj_dir or args.flatten):   # it was silently ignored
+        from ..errors import OptionError
+
+        raise OptionError("--no-skin applies to the glTF only (OBJs carry no skin; a flattened USD keeps the "
+                          "avatar's binding)", fix="drop --no-skin, or add --gltf OUT.glb")
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
                          variant=args.variant, skin=not args.no_skin, force=args.force)
     variant = exported_variant(args.layer, args.variant)

@@ -33,7 +33,8 @@ def register(subparsers) -> None:
     p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
-    p.add_argument("--rays", type=positive_int, default=16, help="hemisphere rays per vertex (16)")
+    p.add_argument("--rays", type=positive_int, default=None,
+                   help="hemisphere rays per vertex (16); not with --camera, which casts one ray per vertex")
     p.add_argument("--spacing", type=nonnegative_float, default=None,
                    help="metres between the skin points whose visibility is ray cast (default: 2%% of the "
                         "face size as a power of two mm, 8 mm on a human head); 0: every vertex, against "
@@ -102,6 +103,11 @@ def refuse_other_mode(args) -> None:
                             "candidate) and would ignore it",
                             fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
                                 "the layout")
+    if args.camera is not None and args.rays is not None:       # the camera's one ray: --rays was ignored
+        raise LandmarkError("--rays counts hemisphere rays; --camera sees from one point, so the rays would "
+                            "be ignored", fix="give --camera or --rays, not both")
+    if args.rays is None:
+        args.rays = 16
     for name, _, default in LAYOUT_ONLY:   # the layout's defaults (None above: 'not given')
         if getattr(args, name) is None:
             setattr(args, name, default)

@@ -111,9 +111,9 @@ def register(subparsers) -> None:
                    help="prim name or path of the face mesh (default: the mesh the capture's shapes "
                         "move most)")
     p.add_argument("--dry-run", action="store_true",
-                   help="compute and print what would change; write nothing (exit status 1 when a real "
-                        "run would refuse to write: an existing output without --force, an instanced "
-                        "avatar)")
+                   help="compute and print what would change; write no layer (a --correspondence cache "
+                        "is still written: the next run reuses it) (exit status 1 when a real run would "
+                        "refuse to write: an existing output without --force, an instanced avatar)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--inspect", action="store_true",
                    help="also write inspection data for usdview into the layer: a displayColor heat map of "

@@ -19,7 +19,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, type=Path, help="PNG to write")
     p.add_argument("--mesh", help="mesh to draw (prim name or path; default: the one with the most shapes)")
     p.add_argument("--shapes", help="comma-separated shape names (default: the shapes that move most)")
-    p.add_argument("--weight", type=finite_float, default=1.0, help="weight of each drawn shape (default 1)")
+    p.add_argument("--weight", type=finite_float, default=None,
+                   help="weight of each drawn shape (default 1; the shape pictures only: --compare draws "
+                        "each shape at 1)")
     p.add_argument("--view", choices=("front", "left", "right"), default="front")
     add_name_map_option(p)
     mode = p.add_mutually_exclusive_group()
@@ -91,6 +93,17 @@ def run(args) -> int:
         named = " and ".join(given)
         raise OptionError(f"{named} set where --diagnostics sees from; without it nothing would use them",
                           fix=f"add --landmarks --diagnostics, or drop {named}")
+    ignored = [flag for flag, value, used in (
+        ("--weight", args.weight, args.compare is None and args.heatmap is None and not args.landmarks),
+        ("--shapes", args.shapes, not args.landmarks)) if value is not None and not used]
+    if ignored:                        # the layout and the heat map draw no shape at a weight
+        from ..errors import OptionError
+
+        named = " and ".join(ignored)
+        mode = "--landmarks" if args.landmarks else "--compare" if args.compare is not None else "--heatmap"
+        raise OptionError(f"{named} not used by {mode} (it would be ignored)",
+                          fix=f"drop {named}, or leave out {mode} to draw the shapes")
+    weight = 1.0 if args.weight is None else args.weight
     if args.camera is not None and args.rays is not None:
         from ..errors import OptionError
 
@@ -98,15 +111,31 @@ def run(args) -> int:
                           "ignored", fix="give --camera or --rays, not both")
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
                       inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
-    shapes = [s.strip() for s in args.shapes.split(",") if s.strip()] if args.shapes else None
+    shapes = None if args.shapes is None else [s.strip() for s in args.shapes.split(",") if s.strip()]
+    if shapes == []:                   # drew the neutral alone (',') or the default shapes ('')
+        from ..errors import OptionError
+
+        raise OptionError(f"--shapes {args.shapes!r} names no shape",
+                          fix="name shapes (--shapes jawOpen,eyeBlinkLeft), or leave --shapes out for the "
+                              "shapes that move most")
     is_capture, _layer = _capture_file(path)  # _layer held: the file is parsed once
     if path.is_dir() or args.capture or is_capture:
+        unused = [flag for flag, value in (("--compare", args.compare), ("--heatmap", args.heatmap),
+                                           ("--landmarks", args.landmarks or None), ("--mesh", args.mesh),
+                                           ("--name-map", args.name_map)) if value is not None]
+        if unused:                     # a capture draws its template shapes: these were silently ignored
+            from ..errors import OptionError
+
+            named = ", ".join(unused)
+            raise OptionError(f"{named} not used for a capture (it is drawn as its template shapes on the "
+                              "person's neutral)", path=path,
+                              fix=f"drop {named}, or render an avatar or a personalize result")
         capture = api.read_capture(path)
         rig = capture.template
         rig = type(rig)(capture.neutral, rig.triangles, rig.names, rig.deltas, rig.inbetweens, rig.source,
                         "capture")
         render.check_shapes(rig, shapes, path)
-        render.render_shapes(rig, shapes, args.output, weight=args.weight, view=args.view, force=args.force,
+        render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
@@ -138,12 +167,15 @@ def run(args) -> int:
                                      force=args.force, title=f"{rig.name}: generic vs personalized")
         else:
             diff = rig.deltas - generic.subset(rig.names).deltas
+            if shapes:                     # the RMS over the shapes asked for (it was over all of them)
+                diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
-                                  label="RMS change over shapes (mm)", force=args.force,
+                                  label=f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)",
+                                  force=args.force,
                                   title=f"{rig.name}: personalized vs generic")
     else:
-        render.render_shapes(rig, shapes, args.output, weight=args.weight, view=args.view, force=args.force,
+        render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
                              title=f"{path.name}: {rig.name}")
     print(f"wrote {args.output}")
     return 0

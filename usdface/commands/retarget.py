@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from .fit import add_pins_option
 from .personalize import add_transfer_options, transfer_kwargs
 
 
@@ -13,6 +14,10 @@ def register(subparsers) -> None:
                     "Engines "
                     "(Live Link, Unity) can drive the avatar with it instead of a hand-made map.")
     add_transfer_options(p)
+    add_pins_option(p)
+    p.add_argument("--face-mesh", metavar="PRIM",
+                   help="prim name or path of the face mesh whose shapes the map targets (default: the mesh "
+                        "the capture's shapes move most)")
     p.add_argument("-o", "--output", required=True, help="map file: .json or .csv")
     p.add_argument("--force", action="store_true", help="overwrite the output")
     p.set_defaults(func=run)
@@ -24,7 +29,8 @@ def run(args) -> int:
     if args.quiet:
         progress.set_enabled(False)
     result = api.write_retarget_map(args.avatar, args.capture, args.output, force=args.force,
-                                    **transfer_kwargs(args))
+                                    face_mesh=args.face_mesh, **transfer_kwargs(args),
+                                    **({"pins": args.pins} if args.pins else {}))
     w = result.weights
     print(f"{w.shape[0]} x {w.shape[1]} retarget map -> {args.output} (weights in [{w.min():.2f}, "
           f"{w.max():.2f}], {int((abs(w) > 0.05).sum())} above 0.05)")

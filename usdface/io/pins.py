@@ -65,6 +65,10 @@ def _read_json(path: Path, names, n: int) -> dict:
                              fix='write JSON like {"pins": {"jawOpen": [12, 13]}}') from None
     if isinstance(doc, dict) and isinstance(doc.get("pins"), dict):
         doc = doc["pins"]
+    elif isinstance(doc, dict) and not all(isinstance(v, list) for v in doc.values()):
+        raise InputFileError("not a pins file: no \"pins\" mapping, and not shape names to vertex lists "
+                             f"(keys {', '.join(list(map(repr, doc))[:3])}...)", path=path,
+                             fix='pass the pins file, JSON like {"pins": {"jawOpen": [12, 13]}}')
     if not isinstance(doc, dict):
         raise InputFileError("pins file is not a mapping of shape names to vertex lists", path=path,
                              fix='write JSON like {"pins": {"jawOpen": [12, 13]}}')

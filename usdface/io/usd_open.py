@@ -125,6 +125,11 @@ def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.
     except Exception as exc:  # pxr.Tf.ErrorException with USD's text
         if type(exc).__name__ != "ErrorException":
             raise
+        if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz"):   # a .json map, an .obj scan
+            kind = f"a {path.suffix} file" if path.suffix else "a file without a USD extension"
+            usd_what = what if what.startswith("USD") else f"USD {what}"
+            raise InputFileError(f"{kind} where a {usd_what} is expected", path=path,
+                                 fix="pass the USD file here (.usd, .usda, .usdc)") from None
         raise InputFileError(f"USD cannot open it: {tf_error_text(exc, path)}", path=path,
                              fix="check that it is a valid USD layer (usdcat FILE)") from None
     if stage is None:

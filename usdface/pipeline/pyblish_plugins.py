@@ -11,6 +11,7 @@ makes them from ``context.data["usdfaceItems"]`` (a list of dicts) or ``context.
   error fails the publish (Pyblish then skips extraction); warnings are logged; the report is stored in
   ``instance.data["usdfaceCheck"]``.
 * :class:`ValidateUsdFaceCapture` (validator): the capture reads (names, topology, weights).
+* :class:`ValidateUsdFaceOptions` (validator): ``usdfaceOptions`` are personalize's, with accepted values.
 * :class:`ExtractUsdFacePersonalized` (extractor): runs ``personalize``, re-checks the written layer, and
   records it in ``instance.data["files"]`` and ``instance.data["representations"]`` (the OpenPype/AYON shape).
 * :class:`ExtractUsdFaceReview` (extractor, with ``instance.data["review"]``): the self-contained review page
@@ -119,6 +120,26 @@ class ValidateUsdFaceCapture(_pyblish.InstancePlugin):
                                fix="add train/<NNN>_<shape>.obj + .json frames")
 
 
+class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
+    """The instance's ``usdfaceOptions`` are ones personalize takes, with values it accepts
+    (:func:`usdface.api.check_personalize_options`, as ``usdface batch`` checks every row), so a typo or an
+    option the face-transfer mode does not use fails validation instead of the extractor. Skipped when a
+    registered extractor swaps in its own ``personalize`` (a studio's step takes its own options)."""
+
+    order = _pyblish.ValidatorOrder
+    families = [FAMILY]
+    label = "Validate personalize options (usdface)"
+
+    def process(self, instance):
+        from ..api import check_personalize_options
+
+        extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
+                                                    if issubclass(p, ExtractUsdFacePersonalized))]
+        if any(p.personalize is not ExtractUsdFacePersonalized.default_personalize for p in extractors):
+            return
+        check_personalize_options(**dict(instance.data.get("usdfaceOptions") or {}))
+
+
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
     """Personalize the avatar from the capture and write the layer; the written layer must pass the check."""
 
@@ -132,6 +153,9 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         from ..api import personalize_avatar
 
         return personalize_avatar(avatar, capture, output, **options)
+
+    #: The built-in step (``personalize`` as shipped): options are validated only for it.
+    default_personalize = personalize
 
     def process(self, instance):
         from ..api import check
@@ -183,8 +207,8 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
 
 
 #: The plugins, in publish order.
-PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ExtractUsdFacePersonalized,
-           ExtractUsdFaceReview)
+PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ValidateUsdFaceOptions,
+           ExtractUsdFacePersonalized, ExtractUsdFaceReview)
 
 
 def register() -> None:

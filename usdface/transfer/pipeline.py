@@ -796,6 +796,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
         if map_only:                 # the map is the product: the implant, eyelids and write are not needed
+            # the face mesh's own channel per shape (a studio's `JawDrop` for jawOpen): what an engine drives
+            tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
+                      if c[1] is not None and c[2] != "conflict"}
+            report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
@@ -960,11 +964,14 @@ def _check_modes(face_transfer: str, approximation: str | None, prior: str, weig
 
         name = option_name("weight_bounds")
         try:
+            if isinstance(weight_bounds, str):     # its characters are no bounds: "01" read as (0, 1)
+                raise TypeError
             lo, hi = (float(b) for b in weight_bounds)
         except (TypeError, ValueError):
             raise OptionError(f"bad weight bounds {weight_bounds!r}: {name} takes two numbers",
-                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
-                                  "weight_bounds=None (--unbounded)") from None
+                              fix="give two finite numbers LO < HI, e.g. (0, 1) ([0, 1] in a batch manifest "
+                                  "or --set); for no bounds use weight_bounds=None (--unbounded), null in a "
+                                  "batch manifest") from None
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} must be finite",
                               fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
@@ -1012,10 +1019,13 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
     _number("falloff", falloff, low=0.0, inclusive=True, fix="capture edge lengths >= 0 (0 = harmonic join)")
     if support is not None:
         try:
+            if isinstance(support, str):            # its characters are no fractions: "01" read as (0, 1)
+                raise TypeError
             lo, hi = support
         except (TypeError, ValueError):
             raise UsdFaceError(f"bad support {support!r}", fix="give (low, high) fractions of each shape's "
-                               "peak motion, e.g. (0.01, 0.03), or None") from None
+                               "peak motion, e.g. (0.01, 0.03) ([0.01, 0.03] in a batch manifest), or None"
+                               ) from None
         lo = _number("support low", lo, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         if lo > hi:

@@ -246,11 +246,15 @@ def weight_map_rows(weights, target_names, avatar_names, *, threshold: float = 0
             for j, t in enumerate(target_names)}
 
 
-def weight_map_json(weights, target_names, avatar_names, *, meta: dict | None = None) -> str:
-    """JSON text: ``{"format": "usdface.retarget/1", "source": [...], "target": [...], "weights": [[...]],
-    "map": {...}}`` (rows = capture/ARKit input shapes, columns = avatar shapes)."""
+def weight_map_json(weights, target_names, avatar_names, *, meta: dict | None = None,
+                    channels=None) -> str:
+    """JSON text: ``{"format": "usdface.retarget/1", "source": [...], "target": [...], "target_channels":
+    [...], "weights": [[...]], "map": {...}}`` (rows = capture/ARKit input shapes, columns = avatar shapes;
+    ``target_channels``: the avatar's own channel name of each ``target`` shape, ``channels`` or the ARKit
+    names)."""
     doc = {"format": "usdface.retarget/1", "equation": "Menzel et al. 2022, eq. 4",
            "source": list(target_names), "target": list(avatar_names),
+           "target_channels": list(avatar_names if channels is None else channels),
            "weights": np.asarray(weights).round(6).tolist(),
            "map": weight_map_rows(np.asarray(weights).round(6), target_names, avatar_names, threshold=1e-6)}
     if meta:
