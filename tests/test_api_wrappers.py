@@ -187,8 +187,13 @@ def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):
     import usdface.transfer as transfer
 
     _forbid(monkeypatch, transfer, "personalize_avatar")
-    with pytest.raises(InputFileError, match="must end in .json or .csv"):
+    with pytest.raises(InputFileError, match="must end in .json or .csv") as err:
         usdface.write_retarget_map("a.usda", "c.usda", tmp_path / "map.txt")
+    assert err.value.fix.startswith("name it e.g. map.json")
+    # '-o .json' (a hidden file's name, no extension): the suggestion was '.json.json'
+    with pytest.raises(InputFileError, match="must end in .json or .csv") as err:
+        usdface.write_retarget_map("a.usda", "c.usda", tmp_path / ".json")
+    assert ".json.json" not in err.value.fix and "out.json" in err.value.fix and "hidden" in err.value.fix
     (tmp_path / "map.json").write_text("{}")
     with pytest.raises(OutputExistsError):
         usdface.write_retarget_map("a.usda", "c.usda", tmp_path / "map.json")

@@ -155,6 +155,16 @@ def test_obj_dir_holds_one_full_target_per_shape(layer, tmp_path):
     assert (out / "EyeLeft" / "neutral.obj").is_file()
 
 
+def test_flatten_to_another_format_names_the_flattened_file(layer, tmp_path):
+    """``--flatten f.usdz`` is refused before any work naming what it is (it said 'output layer', as for a
+    personalize layer), with a USD extension to use instead."""
+    from usdface.errors import InputFileError
+
+    with pytest.raises(InputFileError, match="flattened USD file must end in .usda") as err:
+        api.export_avatar(layer, flatten=tmp_path / "f.usdz")
+    assert err.value.fix == "name it e.g. f.usda" and not (tmp_path / "f.usdz").exists()
+
+
 @pytest.mark.parametrize("variant", ["personalized", "generic"])
 def test_flatten_bakes_the_variant(layer, tmp_path, variant):
     from pxr import Sdf

@@ -1070,7 +1070,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     if obj_dir:
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
-        check_output_path(flatten, force, inputs=[layer_path])
+        check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file")
     from .io.layers import stale_inputs
 
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently

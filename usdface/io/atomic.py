@@ -244,8 +244,12 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
                              fix="choose a file name without line breaks")
     if suffixes is not None and path.suffix.lower() not in suffixes:
+        # '.json' alone is a name without an extension (a hidden file): its stem is the whole name
+        stem = path.stem if path.stem.lower() not in suffixes else ""
         raise InputFileError(f"{what} must end in {' or '.join(suffixes)}", path=path,
-                             fix=f"name it e.g. {path.stem or 'out'}{suffixes[0]}")
+                             fix=f"name it e.g. {stem or 'out'}{suffixes[0]}"
+                                 + (f" ({path.name} is a hidden file's name, with no extension)"
+                                    if not stem and path.name.lower() in suffixes else ""))
     if path.is_dir():
         raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
     _check_parent(path, what, fix)

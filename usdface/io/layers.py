@@ -74,13 +74,13 @@ def file_digest(path) -> str:
     return h.hexdigest()
 
 
-def check_output_path(path, force: bool = False, inputs=()) -> Path:
+def check_output_path(path, force: bool = False, inputs=(), what: str = "output layer") -> Path:
     """Validate an output layer path before any work: a USD extension, not a directory (nor under a file),
     not one of the existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
-    OutputExistsError; returns the path as a Path."""
+    OutputExistsError naming the file as ``what``; returns the path as a Path."""
     from .atomic import check_output_file
 
-    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what="output layer", inputs=inputs)
+    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what=what, inputs=inputs)
 
 
 def _temp_path(path: Path) -> Path:
