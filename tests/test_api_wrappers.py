@@ -183,6 +183,24 @@ def test_evaluate_landmarks_inputs(avatar, tmp_path):
     np.testing.assert_array_equal(sampled, w[[0, 4, 7]])           # evenly sampled, ends kept
 
 
+def test_evaluate_landmarks_takes_an_avatar_file_and_one_take_path(samples, tmp_path, monkeypatch):
+    """As compute_landmarks, the avatar may be its file; one take may be a bare path (a user trial: the file
+    failed with AttributeError "'str' object has no attribute 'names'", a path string was read character
+    by character: 'expected one Live Link .csv in the take folder' for '/')."""
+    import usdface.landmarks.evaluate as evaluate
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.model import FaceRig
+
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    seen = {}
+    monkeypatch.setattr(evaluate, "evaluate_landmarks",
+                        lambda rig, weights, indices, **kw: seen.update(rig=rig, weights=weights))
+    for take in (str(csv), csv):
+        usdface.evaluate_landmarks(str(samples / "avatar.usda"), take)
+        assert isinstance(seen["rig"], FaceRig) and seen["rig"].name == "Head"
+        assert seen["weights"].shape == (4, seen["rig"].n_shapes)
+
+
 def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):
     import usdface.transfer as transfer
 

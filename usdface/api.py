@@ -675,11 +675,14 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     return Path(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
-def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: PathLike | None = None,
-                       frames: int = 400, noise_mm: float = 0.5, **options: Any) -> EvaluationReport:
+def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Sequence[PathLike], *,
+                       empirical: PathLike | None = None, frames: int = 400, noise_mm: float = 0.5,
+                       **options: Any) -> EvaluationReport:
     """Sweep landmark layouts (epsilon x multi-cover) against baselines on test weights read from Live Link
     Face CSV ``takes`` (``usdface landmarks --evaluate``): reconstruction RMSE vs landmark count (Zell &
     McDonnell 2022, Sec. 5), with ``noise_mm`` of tracking noise, ``frames`` test frames evenly sampled.
+    ``rig`` as :func:`compute_landmarks` takes it (a :class:`FaceRig`, or an avatar object or file);
+    ``takes`` one path or a sequence of them.
     ``empirical``: a JSON list of vertex indices (or ICT-FaceKit's ``vertex_indices.json``) scored as an
     extra layout. ``options`` go to :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``,
     ``symmetric``, ``backend``, ...)."""
@@ -687,6 +690,9 @@ def evaluate_landmarks(rig: FaceRig, takes: Sequence[PathLike], *, empirical: Pa
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
 
+    rig = _as_rig(rig)
+    if isinstance(takes, str | Path):      # one take, not its characters
+        takes = [takes]
     if not takes:
         raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
     indices = _read_vertex_list(empirical) if empirical else None
