@@ -245,3 +245,17 @@ def test_sampled_visibility_keeps_every_candidate_in_every_mode(options):
     assert a.problem["candidates"] == b.problem["candidates"]
     assert a.count == b.count and a.objective == b.objective
     np.testing.assert_array_equal(a.vertices, b.vertices)  # the same candidates, the same cover
+
+
+def test_a_mesh_the_grid_finds_no_skin_point_on_samples_its_own_face_vertices():
+    """Blender's simple-blendshape-test-001.usda (a 2 m quad on the plane y = 0, one shape lifting two
+    corners): no grid cube's ball reached the quad, and the layout failed with IndexError 'index 0 is out of
+    bounds for axis 0 with size 0' (a user trial)."""
+    neutral = np.array([[-1.0, 0, -1], [1, 0, -1], [-1, 0, 1], [1, 0, 1]])
+    deltas = np.zeros((1, 4, 3))
+    deltas[0, 2:, 1] = [1.41, 1.54]
+    rig = FaceRig(neutral, np.array([[0, 1, 3], [0, 3, 2]]), ["Key_1"], deltas)
+    _, samples = face_samples(rig)
+    assert len(samples) and set(samples) <= {2, 3}
+    layout = compute_landmarks(rig)
+    assert list(layout.vertices) == [3] and layout.status == "optimal"

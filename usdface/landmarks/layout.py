@@ -112,7 +112,10 @@ def face_samples(rig: FaceRig, spacing: float | str = "auto", r: np.ndarray | No
             raise LandmarkError(f"unknown spacing {spacing!r}", fix="pass metres, 'auto' or None")
         spacing = sampling.sample_spacing(face_size(rig.neutral, share))
     near = np.flatnonzero(share >= FACE_SHARE)
-    return float(spacing), sampling.sample_vertices(rig.neutral, rig.triangles, spacing, near=near)
+    samples = sampling.sample_vertices(rig.neutral, rig.triangles, spacing, near=near)
+    if not len(samples):  # no skin point found (a few large faces lying on the grid's planes): the face's
+        samples = near    # own vertices stand for themselves
+    return float(spacing), samples
 
 
 def nearest_sample(rig: FaceRig, samples: np.ndarray) -> np.ndarray:
