@@ -201,6 +201,20 @@ def test_evaluate_landmarks_takes_an_avatar_file_and_one_take_path(samples, tmp_
         assert seen["weights"].shape == (4, seen["rig"].n_shapes)
 
 
+def test_evaluate_landmarks_refuses_takes_that_move_none_of_the_shapes(avatar, tmp_path, monkeypatch):
+    """A mesh whose channels no take has (Blender's Key_1 against a Live Link take): every test frame was the
+    neutral and the sweep scored tracking noise alone, without a word (a user trial)."""
+    import usdface.landmarks.evaluate as evaluate
+    from usdface.io.livelink import write_livelink_csv
+
+    monkeypatch.setattr(evaluate, "evaluate_landmarks", lambda *a, **k: pytest.fail("evaluated"))
+    rig = usdface.pick_mesh(avatar).subset(["eyeBlinkLeft"])
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    with pytest.raises(LandmarkError, match=r"the takes \(t.csv\) move none of the mesh's 1 shapes") as err:
+        usdface.evaluate_landmarks(rig, [csv])
+    assert "--name-map" in err.value.fix
+
+
 def test_write_retarget_map_refuses_before_work(tmp_path, monkeypatch):
     import usdface.transfer as transfer
 

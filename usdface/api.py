@@ -705,6 +705,13 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
             raise LandmarkError(exc.message, path=empirical, prim=getattr(rig.source, "prim", None),
                                 fix=exc.fix) from None
     weights = livelink_weights(takes, rig.names, frames)
+    if not weights.any():        # every test frame the neutral: the sweep would score tracking noise alone
+        shown = ", ".join(rig.names[:8]) + (f" ... (+{len(rig.names) - 8})" if len(rig.names) > 8 else "")
+        names = ", ".join(Path(t).name for t in takes)
+        raise LandmarkError(f"the takes ({names}) move none of the mesh's {len(rig.names)} shapes ({shown}): "
+                            "every test frame is the neutral", prim=getattr(rig.source, "prim", None),
+                            fix="pass takes with these channels, or map the avatar's channel names to ARKit "
+                                "with --name-map (docs/names.md)")
     return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
 
 
