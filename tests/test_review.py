@@ -114,6 +114,19 @@ def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
         api.write_review(personalized_sample, tmp_path / "t.html", take=tmp_path / "missing.csv")
 
 
+def test_a_weights_only_take_given_as_the_capture_is_sent_to_take(personalized_sample, tmp_path):
+    """A user trial: 'review LAYER --capture take.csv' said 'no meshes to fit' with the fixes of fit and
+    personalize; the page plays such a take with --take."""
+    from usdface.errors import CaptureError
+    from usdface.io.livelink import write_livelink_csv
+
+    csv = write_livelink_csv(tmp_path / "take.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    with pytest.raises(CaptureError, match="scored on its test expressions") as err:
+        api.write_review(personalized_sample, tmp_path / "t.html", capture=csv, fit_errors=False)
+    assert f"--take {csv}" in err.value.fix
+    assert not (tmp_path / "t.html").exists()
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a real browser: Debian's chromium, headless (installed by .ci/system-deps)
 # ---------------------------------------------------------------------------------------------------------

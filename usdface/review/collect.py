@@ -191,7 +191,17 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
             notes.append("the capture recorded in the layer's provenance was not found: no test expressions "
                          "(pass --capture)")
     if isinstance(capture, str | Path):
-        capture = read_capture(capture)
+        from ..errors import CaptureError
+        from ..io.take import WEIGHTS_ONLY_FIX
+
+        try:
+            capture = read_capture(capture)
+        except CaptureError as exc:   # a weights-only take has nothing to score, but the page plays it
+            if exc.fix != WEIGHTS_ONLY_FIX:
+                raise
+            raise CaptureError(f"{exc.message}: a capture is scored on its test expressions", path=exc.path,
+                               prim=exc.prim, fix=f"play it with --take {capture}, and give --capture "
+                                                  "a capture with test frames (or leave it out)") from None
     errors = None
     if capture is not None and len(capture.test):
         test = capture.test
