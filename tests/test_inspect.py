@@ -97,3 +97,16 @@ def test_capture_folder_and_usda(bench, tmp_path):
         pytest.skip("capture.usda writer not available")
     usd_report = inspect_file(out)
     assert usd_report["kind"] == "capture" and usd_report["roles"] == report["roles"]
+
+
+def test_fit_rig_says_what_it_records_not_none(tmp_path):
+    """A user trial: 'inspect rig.usda' of a 'usdface fit' rig printed 'command None, created None' (the rig
+    records its version and method only)."""
+    from usdface import api
+    from usdface.model import FaceRig
+
+    tri = np.array([[0, 1, 2]])
+    rig = FaceRig(np.eye(3), tri, ["jawOpen"], np.full((1, 3, 3), 0.01), name="FaceMask")
+    text = format_report(inspect_file(api.write_fit_rig(rig, tmp_path / "rig.usda")))
+    assert "None" not in text
+    assert "usdface layer: version " in text and "method " in text

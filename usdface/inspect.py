@@ -310,8 +310,11 @@ def format_report(report: dict) -> str:
         lines += _channel_lines(mesh.get("channels", []))
     if report.get("provenance"):
         prov = report["provenance"]
-        lines.append(f"  usdface layer: version {prov.get('version')}, command {prov.get('command')!r}, "
-                     f"created {prov.get('createdAt')}")
+        # what the file records: a fit rig ('usdface fit') has its method, not a command nor a date
+        parts = [f"{label} {prov[key]!r}" if key == "command" else f"{label} {prov[key]}"
+                 for key, label in (("version", "version"), ("method", "method"), ("command", "command"),
+                                    ("createdAt", "created")) if prov.get(key) is not None]
+        lines.append("  usdface layer: " + ", ".join(parts))
         for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
     for prim, sets in report.get("variants", {}).items():
