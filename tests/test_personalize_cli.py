@@ -322,6 +322,7 @@ def test_retarget_takes_the_fits_pins_and_the_face_mesh(samples, tmp_path, capsy
     result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "a.json",
                                     pins=str(pins))
     assert result.report["fit"]["pins"] == {"jawOpen": 3}
+    assert result.out_path == tmp_path / "a.json"          # the map written (it was None: a user trial)
     args = ["retarget", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-q"]
     assert main([*args, "-o", str(tmp_path / "b.json"), "--pins", str(pins), "--face-mesh", "Head"]) == 0
     doc = json.loads((tmp_path / "b.json").read_text())

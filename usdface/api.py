@@ -745,7 +745,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     no implant, no layer, empty ``offsets``);
     the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.pipeline.IMPLANT_OPTIONS`)
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
-    ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``)."""
+    ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``; ``.out_path`` the
+    map file)."""
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
@@ -772,6 +773,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
+    result.out_path = Path(out)       # the map written (a layer's path for personalize_avatar)
     return result
 
 
