@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from usdface.cli import main
 from usdface.io.livelink import write_livelink_csv
@@ -20,3 +21,27 @@ def test_a_folder_of_live_link_csvs_is_not_one_take(tmp_path, capsys):
         assert f"pass the CSV files themselves, e.g. {tmp_path / 'a.csv'}" in err
 
 
+
+
+def test_capture_import_refuses_a_take(tmp_path, capsys):
+    """'capture import take_dir/ -o c.usda' wrote every frame of the take as a capture's training frame: the
+    file then fitted as picked frames (no frame weighting; reg 0.0009 against the take's 0.045) and 'fit
+    c.usda --every 2' said it 'holds frames picked one per shape'."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import CaptureError
+    from usdface.io.take import write_take_folder, write_take_usd
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, template, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    for src in (write_take_usd(take, tmp_path / "take.usdc"), write_take_folder(take, tmp_path / "take_dir")):
+        out = tmp_path / "c.usda"
+        assert main(["capture", "import", str(src), "-o", str(out), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "a take, not a capture" in err and "usdface capture select TAKE" in err, err
+        assert not out.exists()
+        with pytest.raises(CaptureError, match="a take, not a capture"):
+            api.import_capture_folder(src, out)
+        assert not out.exists()

@@ -64,6 +64,7 @@ def run_import(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             capture = api.read_capture(args.source)
+        api.refuse_take_import(capture, args.source)
         for w in caught:
             say_warning(w.message)
         p.start(f"write {Path(args.output).name}")
