@@ -45,3 +45,26 @@ def test_capture_import_refuses_a_take(tmp_path, capsys):
         with pytest.raises(CaptureError, match="a take, not a capture"):
             api.import_capture_folder(src, out)
         assert not out.exists()
+
+
+def test_a_landmarks_layer_says_what_it_is(samples, tmp_path):
+    """A 'usdface landmarks -o lm.usda' layer documented itself as 'personalized blend shapes over ...', and
+    'review lm.usda' (and of a 'usdface fit' rig) called it 'not a usdface layer'."""
+    from pxr import Sdf
+
+    from usdface import api
+    from usdface.errors import InputFileError
+    from usdface.model import FaceRig
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    rig = api.pick_mesh(avatar, "Mouth")
+    layout = api.compute_landmarks(rig, spacing=None)
+    out = api.write_landmarks(avatar, rig, layout, tmp_path / "lm.usda")
+    assert "a landmark layout over" in Sdf.Layer.FindOrOpen(str(out)).documentation
+    with pytest.raises(InputFileError, match=r"\(a landmark layout layer \('usdface landmarks'\)\)"):
+        api.write_review(out, tmp_path / "lm.html")
+    tri = np.array([[0, 1, 2]])
+    fit = api.write_fit_rig(FaceRig(np.eye(3), tri, ["jawOpen"], np.full((1, 3, 3), 0.01), name="FaceMask"),
+                            tmp_path / "rig.usda")
+    with pytest.raises(InputFileError, match=r"\(a 'usdface fit' rig on the capture mesh\)"):
+        api.write_review(fit, tmp_path / "rig.html")

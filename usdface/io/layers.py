@@ -733,7 +733,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         for key in STAGE_METADATA_KEYS:
             if input_layer.pseudoRoot.HasInfo(key):
                 layer.pseudoRoot.SetInfo(key, input_layer.pseudoRoot.GetInfo(key))
-        layer.documentation = f"usdface {__version__}: personalized blend shapes over {input_asset}"
+        what = ("a landmark layout" if (provenance or {}).get("method") == "landmarks" and not offsets
+                else "personalized blend shapes")
+        layer.documentation = f"usdface {__version__}: {what} over {input_asset}"
         layer.subLayerPaths.append(input_asset)
         prov = _provenance(avatar, provenance or {}, out_path)
         stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)

@@ -172,7 +172,12 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     info = read_layer_info(layer_path)
     prov = info.get("usdface") or {}
     if not info.get("variants"):
-        raise InputFileError("no usdfacePersonalization variant set (not a usdface layer)", path=layer_path,
+        command = str(prov.get("command") or "").split()
+        what = ("a 'usdface fit' rig on the capture mesh" if prov.get("format") == "fit" else
+                "a landmark layout layer ('usdface landmarks')" if prov.get("method") == "landmarks" else
+                f"a layer written by '{' '.join(command[:2])}'" if command[:1] == ["usdface"] else
+                "not a usdface layer")
+        raise InputFileError(f"no usdfacePersonalization variant set ({what})", path=layer_path,
                              fix="review a layer written by 'usdface personalize'")
     personalized = read_avatar_variant(layer_path, "personalized")
     generic = read_avatar_variant(layer_path, "generic")
