@@ -68,3 +68,22 @@ def test_a_landmarks_layer_says_what_it_is(samples, tmp_path):
                             tmp_path / "rig.usda")
     with pytest.raises(InputFileError, match=r"\(a 'usdface fit' rig on the capture mesh\)"):
         api.write_review(fit, tmp_path / "rig.html")
+
+
+def test_inspect_reports_a_take_without_its_template(tmp_path, capsys):
+    """'usdface inspect take_dir/' of OBJ frames + CSV without template/ failed ('the take has no template
+    rig'): the inspection of a take 'capture select --template' can still use refused to say what it holds."""
+    from test_take_select import grid_rigs
+
+    from usdface.inspect import format_report, inspect_file
+    from usdface.io.take import write_take_folder, write_take_usd
+    from usdface.sample.take import make_take
+
+    person, _ = grid_rigs(n=4)
+    take, _ = make_take(person, None, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    for src in (write_take_folder(take, tmp_path / "take_dir"), write_take_usd(take, tmp_path / "take.usdc")):
+        report = inspect_file(src)
+        assert report["kind"] == "take" and report["meshes"] and report["frames"] == len(take)
+        assert "meshes but no template rig" in format_report(report)
+    assert main(["inspect", str(tmp_path / "take_dir")]) == 0
+    assert "--template CAPTURE" in capsys.readouterr().out

@@ -185,6 +185,10 @@ def inspect_file(path, name_map=None) -> dict:
     name_map = read_name_map(name_map)
     path = Path(path)
     if path.is_dir():
+        from .io.take import probe_take
+
+        if probe_take(path)[0]:
+            return _summarize_whole_take(path)
         return summarize_capture(io.read_capture(path))
     if path.suffix.lower() == ".csv":      # a Live Link Face recording: a take of weights only
         from .io.take import read_take
@@ -196,7 +200,7 @@ def inspect_file(path, name_map=None) -> dict:
     take, _layer = probe_take(path)  # _layer held: the file is parsed once
     info = read_layer_info(path)
     if take:  # read as every command that takes a capture reads it: whole
-        return summarize_capture(io.read_capture(path), info)
+        return _summarize_whole_take(path, info)
     is_capture = info.get("usdface", {}).get("format") == "capture" or any(
         "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
     if is_capture and hasattr(io, "read_capture"):
@@ -237,6 +241,17 @@ def _never_above_line(report: dict) -> list[str]:
         else []
 
 
+def _summarize_whole_take(path: Path, layer_info: dict | None = None) -> dict:
+    """A take with meshes as ``fit`` / ``personalize`` read it (whole, as a capture); one without its template
+    rig, which they refuse, as a take (``capture select --template`` still picks its frames)."""
+    from .io.take import capture_from_whole_take, read_take
+
+    take = read_take(path)
+    if take.points is not None and take.template is None:
+        return summarize_take(take, layer_info)
+    return summarize_capture(capture_from_whole_take(take), layer_info)
+
+
 def summarize_take(take, layer_info: dict | None = None) -> dict:
     """Report dict for a take of weights only (``usdface anim import``): frames, rate, duration, shapes vs
     ARKit, and the shapes never above :data:`TAKE_PEAK` (what ``capture select`` could not pick)."""
@@ -263,9 +278,15 @@ def format_report(report: dict) -> str:
         kind = "take with meshes"
     lines = [f"{report.get('file')}: {kind}"]
     if report.get("kind") == "take":
-        lines.append(f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), "
-                     f"{report['shapes']} shapes, weights only: it plays on an avatar ('personalize AVATAR "
-                     "CAPTURE --take TAKE'); 'capture select TAKE' shows which frames a capture would keep")
+        head = f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), " \
+               f"{report['shapes']} shapes, "
+        if report.get("meshes"):      # no template rig: read whole by fit / personalize, it is refused
+            lines.append(head + "meshes but no template rig: 'fit' and 'personalize' need one (template/ or "
+                         "the Template prim); 'capture select TAKE -o capture.usda --template CAPTURE' picks "
+                         "its frames with another capture's")
+        else:
+            lines.append(head + "weights only: it plays on an avatar ('personalize AVATAR CAPTURE --take "
+                         "TAKE'); 'capture select TAKE' shows which frames a capture would keep")
         lines += _never_above_line(report)
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
