@@ -87,3 +87,27 @@ def test_inspect_reports_a_take_without_its_template(tmp_path, capsys):
         assert "meshes but no template rig" in format_report(report)
     assert main(["inspect", str(tmp_path / "take_dir")]) == 0
     assert "--template CAPTURE" in capsys.readouterr().out
+
+
+def test_select_capture_frames_takes_a_capture_as_template_and_checks_its_numbers(samples, tmp_path):
+    """select_capture_frames(template=read_capture(...)) failed with TypeError 'expected str, bytes or
+    os.PathLike object, not Capture'; threshold=1.5 gave a table of never-triggered shapes without a word
+    (the command line refuses it)."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import CaptureError
+    from usdface.io.take import write_take_usd
+    from usdface.model import Capture, Frames
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, None, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    src = write_take_usd(take, tmp_path / "take.usdc")
+    empty = Frames(np.zeros((0, *template.neutral.shape)), np.zeros((0, template.n_shapes)), [], [])
+    capture = Capture(template.neutral, template.triangles, template, empty, list(template.names))
+    sel = api.select_capture_frames(src, tmp_path / "c.usda", template=capture)
+    assert sel.out_path is not None and sel.capture.template.n_shapes == template.n_shapes
+    for bad in ({"threshold": 1.5}, {"threshold": -0.1}, {"min_separation": -1}):
+        with pytest.raises(CaptureError, match="threshold|min_separation"):
+            api.select_capture_frames(src, **bad)

@@ -170,11 +170,19 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
 
     ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
-    folder) using ``template`` (a capture path or FaceRig; default the take's own template)."""
+    folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
+    from .errors import CaptureError
     from .io.take import capture_from_take, read_take
+    from .model import Capture
     from .progress import steps
     from .take_select import format_coverage, select_frames
 
+    if isinstance(template, Capture):   # a capture read already: its template rig, as --template CAPTURE
+        template = template.template
+    if not 0.0 <= threshold <= 1.0:        # as the command line's options refuse them
+        raise CaptureError(f"threshold {threshold:g} is outside [0, 1]", fix="pass a weight in [0, 1] (0.5)")
+    if min_separation < 0:
+        raise CaptureError(f"min_separation {min_separation:g} s is below 0", fix="pass seconds >= 0 (0.5)")
     if out_path is not None:
         check_capture_output(out_path, force, inputs=[take, template])
     _refuse_capture_as_take(take)
@@ -196,8 +204,6 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         if out_path is None:
             return CaptureSelection(data, selection, coverage, None, None)
         if len(selection.train) == 0:
-            from .errors import CaptureError
-
             peak = data.weights.max(axis=0) if data.weights.size else None
             best = "" if peak is None else (f" (the highest peak: {data.names[int(peak.argmax())]} "
                                             f"{float(peak.max()):.2f})")
