@@ -111,3 +111,22 @@ def test_select_capture_frames_takes_a_capture_as_template_and_checks_its_number
     for bad in ({"threshold": 1.5}, {"threshold": -0.1}, {"min_separation": -1}):
         with pytest.raises(CaptureError, match="threshold|min_separation"):
             api.select_capture_frames(src, **bad)
+
+
+def test_evaluate_capture_refuses_a_capture_without_test_frames(tmp_path):
+    """evaluate_capture on a take read whole (or a capture picked without --test-every) returned
+    mean_rmse_mm NaN without a word; evaluate_methods refuses it with the fix."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.io.take import write_take_usd
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, template, seed=1)
+    src = write_take_usd(take, tmp_path / "take.usdc")
+    with pytest.raises(FitError, match="no test frames") as err:
+        api.evaluate_capture(src)
+    assert "--test-every 10" in err.value.fix
+    assert np.isfinite(api.evaluate_capture(src, role="train")["mean_rmse_mm"])

@@ -339,7 +339,8 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     """Paper eq. 5 on the capture's held-out ``test`` (or ``train``) expressions: per-frame RMSE and max
     vertex error in mm of ``rig`` with the frames' weights (``usdface evaluate``); see
     :func:`usdface.personalize.evaluate_rig`. ``rig`` defaults to the generic baseline: the template's deltas
-    on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used)."""
+    on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used). A capture without
+    test frames raises :class:`~usdface.errors.FitError` for ``role="test"``, as :func:`evaluate_methods`."""
     from .personalize.evaluate import score_capture_rig, template_rig
 
     if role not in ("test", "train"):
@@ -347,9 +348,29 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
 
         raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
                            "'train'")
+    source = capture if isinstance(capture, str | Path) else None
     capture = _as_capture(capture)
+    if role == "test":      # the mean of no frames was NaN, without a word
+        _refuse_without_test_frames(capture, source)
     rig = template_rig(capture) if rig is None else getattr(rig, "rig", rig)
     return score_capture_rig(rig, capture, role)
+
+
+def _refuse_without_test_frames(capture: Capture, source=None) -> None:
+    """Eq. 5 scores held-out test frames: a capture without them is refused (a FitError with the fix)."""
+    if len(capture.test) == 0:
+        from .errors import FitError
+
+        whole_take = capture.whole_take
+        raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
+                                                           if whole_take else ""),
+                       path=source or capture.source or None,
+                       fix=("hold frames out with 'usdface capture select TAKE -o capture.usda "
+                            "--test-every 10' and evaluate that capture" if whole_take
+                            else "add held-out frames to evaluate on: a test/ folder in a capture "
+                                 "folder, or for a capture picked from a take 'usdface capture select "
+                                 "TAKE -o capture.usda --test-every 10' (lower --min-separation when it "
+                                 "holds out none)"))
 
 
 def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHODS, *,
@@ -366,7 +387,6 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     test frame bar charts, paper Figs. 4-5), ``usd_path`` (colour-coded error maps, Fig. 6); the paths
     written are ``report["_outputs"]``. ``options`` go to the fit (``reg``, ``prior``, ...). Raises
     :class:`~usdface.errors.FitError` if the capture has no test frames."""
-    from .errors import FitError
     from .io.atomic import check_output_file
     from .personalize.report import evaluate_methods as _evaluate
 
@@ -390,17 +410,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             p.start(f"read capture {Path(source).name}")
         capture = _as_capture(capture)
         _check_truth_matches(truth, capture, truth_path)
-        if len(capture.test) == 0:
-            whole_take = capture.whole_take
-            raise FitError("the capture has no test frames" + (" (a take read whole: every frame trains)"
-                                                               if whole_take else ""),
-                           path=source or capture.source or None,
-                           fix=("hold frames out with 'usdface capture select TAKE -o capture.usda "
-                                "--test-every 10' and evaluate that capture" if whole_take
-                                else "add held-out frames to evaluate on: a test/ folder in a capture "
-                                     "folder, or for a capture picked from a take 'usdface capture select "
-                                     "TAKE -o capture.usda --test-every 10' (lower --min-separation when it "
-                                     "holds out none)"))
+        _refuse_without_test_frames(capture, source)
         tw = capture.test.weights
         test_peak = float(abs(tw).max()) if tw.size else 0.0
         from .take_select import REST_FIX, REST_WEIGHT
