@@ -259,3 +259,18 @@ def test_a_mesh_the_grid_finds_no_skin_point_on_samples_its_own_face_vertices():
     assert len(samples) and set(samples) <= {2, 3}
     layout = compute_landmarks(rig)
     assert list(layout.vertices) == [3] and layout.status == "optimal"
+
+
+def test_a_camera_that_cannot_see_the_face_is_said():
+    """'--camera 0,160,35' (centimetres) or a camera behind the head gave layouts of 8 or 0 landmarks with
+    most shapes 'uncoverable' and nothing about the camera (a user trial)."""
+    points, tri, deltas = _face(21, 21)
+    rig = FaceRig(points, tri, ["bump", "fold", "pull"], deltas)
+    centre = points.mean(axis=0)
+    ok = compute_landmarks(rig, camera=centre + [0, 0, 0.4], spacing=None)
+    assert not [w for w in ok.warnings if "camera" in w]
+    for camera, needle in ((centre * 100 + [0, 0, 40], "from afar"),
+                           (centre + [0, 0, -0.4], "no candidate of any shape")):
+        layout = compute_landmarks(rig, camera=camera, spacing=None)
+        assert any(needle in w and "metres in usdface's Y-up frame" in w for w in layout.warnings), \
+            layout.warnings

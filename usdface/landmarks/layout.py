@@ -345,6 +345,15 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     if camera is not None:  # a vertex the camera cannot see in some pose is no candidate
         evaluate_plain(need)
         c &= np.nan_to_num(lookup_plain(), nan=0.0)[None, :] > 0.0
+        face = rig.neutral[need] if len(need) else rig.neutral
+        centre, size = face.mean(axis=0), float(np.linalg.norm(np.ptp(face, axis=0)))
+        far = float(np.linalg.norm(np.asarray(camera, dtype=np.float64) - centre))
+        if not c.any() or far > 20 * size:   # behind the head, or not in metres of the internal frame
+            warnings.append(f"the camera at {', '.join(f'{x:g}' for x in camera)} m sees "
+                            f"{'no candidate of any shape' if not c.any() else 'the face from afar'}: "
+                            f"{far:.3g} m from the face's centre "
+                            f"({', '.join(f'{x:.3f}' for x in centre + 0.0)} m, "
+                            f"the face {size:.3g} m across); --camera is metres in usdface's Y-up frame")
 
     def solve(cc, cost):
         return solve_set_cover(cc, cost, backend=backend, time_limit=time_limit)
