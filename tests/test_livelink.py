@@ -255,3 +255,28 @@ def test_real_takes_read_at_the_default_rate_without_a_rate_warning(shared, recw
     for path in sorted((shared / "data" / "livelinkface").glob("*.csv")):
         read_livelink_take(path)
     assert not [w for w in recwarn if "per second" in str(w.message)]
+
+
+def test_a_take_the_layer_plays_is_among_its_inputs(tmp_path):
+    """``personalize --take`` plays the take in the layer's inspection animation: the take is recorded among
+    the layer's inputs with its digest (it was not), so an edited take makes the layer stale, as an edited
+    capture does."""
+    from pathlib import Path
+
+    from usdface.io.layers import stale_inputs
+    from usdface.io.usd_rig import usdface_layer_data
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    rng = np.random.default_rng(3)
+    codes = [f"10:00:00:{f:02d}.000" for f in range(6)]
+    take = write_csv(tmp_path / "t.csv", rng.random((6, 52)) * 0.5, codes)
+    layer = tmp_path / "hero.usda"
+    assert main(["personalize", str(root / "avatar.usda"), str(root / "capture.usda"), "-o", str(layer),
+                 "--take", str(take), "-q"]) == 0
+    data = usdface_layer_data(layer)
+    assert take.resolve() in [(layer.parent / p).resolve() for p in data["inputs"]]   # relative to it
+    assert len(data["inputDigests"]) == len(data["inputs"])
+    assert stale_inputs(layer) == []
+    write_csv(take, rng.random((6, 52)) * 0.5, codes)                    # the take edited afterwards
+    stale = stale_inputs(layer)
+    assert len(stale) == 1 and "t.csv" in stale[0] and "changed after it was written" in stale[0]

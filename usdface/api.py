@@ -646,7 +646,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         t_inspect[0] = time.perf_counter() - t
         return edit
 
-    result = _personalize(avatar, capture, out_path, layer_edit=inspection, **options)
+    result = _personalize(avatar, capture, out_path, layer_edit=inspection,
+                          extra_inputs=[take] if take is not None else [], **options)
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]
@@ -848,7 +849,8 @@ def _refuse_unknown_options(options) -> None:
     from .transfer import pipeline as _pipeline
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
-        "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command", "map_only"}
+        "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command", "map_only",
+        "extra_inputs"}
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:

@@ -539,7 +539,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
                        weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
-                       map_only: bool = False, **fit_options) -> PersonalizeResult:
+                       map_only: bool = False, extra_inputs=(), **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
@@ -559,6 +559,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         rig's channels are authored for); None: any real weights, as the paper.
     map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
         layer; the result's ``offsets`` and ``approximation`` are empty, ``weights`` the map.
+    extra_inputs : more files the layer is made from, recorded with their digests among its inputs (the take
+        its inspection animation plays), so that editing one makes the layer stale.
     layer_edit : ``layer_edit(offsets, face_prim) -> edit(stage)`` (or None): extra prims and primvars
         authored into the layer in the same atomic write (the inspection data of
         :func:`usdface.api.personalize_avatar`), from the offsets that are written.
@@ -878,7 +880,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "method": method,
                     "inputs": ([str(capture.source)] if capture.source else [])
                     + ([str(name_map)] if isinstance(name_map, str | Path) else [])
-                    + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source),
+                    + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
+                    + [str(p) for p in extra_inputs if isinstance(p, str | Path)],
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": dict(report["registration"]),
