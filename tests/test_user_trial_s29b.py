@@ -130,3 +130,13 @@ def test_evaluate_capture_refuses_a_capture_without_test_frames(tmp_path):
         api.evaluate_capture(src)
     assert "--test-every 10" in err.value.fix
     assert np.isfinite(api.evaluate_capture(src, role="train")["mean_rmse_mm"])
+
+
+@pytest.mark.parametrize("args", [["anim", "import", "{d}/missing.csv", "-o", "{d}/x.usda"],
+                                  ["capture", "select", "{d}/missing.csv", "-o", "{d}/x.usda"]])
+def test_an_actions_error_names_the_command_as_typed(tmp_path, capsys, args):
+    """Errors of the commands with actions said 'usdface anim: error' for 'usdface anim import': they name
+    the command as typed."""
+    argv = [a.format(d=tmp_path) for a in args]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"usdface {argv[0]} {argv[1]}: error: "), argv

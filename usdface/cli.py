@@ -172,7 +172,7 @@ def _main(argv=None) -> int:
         if getattr(args, "json", None) is True:
             _json_error(args, str(exc), type(exc).__name__, exc.path, exc.prim, exc.fix)
         else:
-            print(f"usdface {args.command}: error: {exc}", file=sys.stderr)
+            print(f"usdface {_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         if isinstance(exc, Terminated):
@@ -187,7 +187,7 @@ def _main(argv=None) -> int:
             _json_error(args, text, type(exc).__name__, exc.filename, None,
                         os_error_fix(exc, hasattr(args, "output")))
         else:
-            print(f"usdface {args.command}: error: {text}", file=sys.stderr)
+            print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
         return 2
 
 
@@ -199,7 +199,14 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     doc = {"ok": False, "error": {"command": args.command, "type": kind, "message": text,
                                   "file": None if path is None else str(path), "prim": prim, "fix": fix}}
     print(json.dumps(doc))
-    print(f"usdface {args.command}: error: {text}", file=sys.stderr)
+    print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
+
+
+def _command_name(args) -> str:
+    """The command as typed, with its action for the commands that have actions (``anim import``, ``capture
+    select``: their errors said ``usdface anim: error``)."""
+    action = getattr(args, f"{args.command}_command", None)
+    return f"{args.command} {action}" if isinstance(action, str) else str(args.command)
 
 
 def os_error_fix(exc: OSError, output_option: bool = True) -> str:
