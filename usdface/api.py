@@ -310,6 +310,16 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     return result
 
 
+def _read_pins_file(options: dict, capture: Capture | PathLike) -> Capture | PathLike:
+    """A pins file among ``options`` read against the capture (:func:`_read_pins_option`, which needs its
+    names and vertex count): returns the capture, read for it, or ``capture`` as given when no file is."""
+    if not isinstance(options.get("pins"), str | Path):
+        return capture
+    capture = _as_capture(capture)
+    _read_pins_option(options, capture)
+    return capture
+
+
 def _read_pins_option(options: dict, capture: Capture) -> None:
     """``options["pins"]`` given as a file (JSON or USD primvars, :func:`usdface.io.pins.read_pins`) ->
     the ``{shape: vertex indices}`` mapping the fit takes (in place)."""
@@ -606,9 +616,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
             avatar_path, capture_path, take=take, **options))
     if take is not None:
         inspect = True
-    if isinstance(options.get("pins"), str | Path):
-        capture_path = _as_capture(capture_path)
-        _read_pins_option(options, capture_path)
+    capture_path = _read_pins_file(options, capture_path)
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
     import time
@@ -790,9 +798,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
-    if isinstance(options.get("pins"), str | Path):   # a pins file, read as personalize_avatar reads it
-        capture_path = _as_capture(capture_path)
-        _read_pins_option(options, capture_path)
+    capture_path = _read_pins_file(options, capture_path)     # as personalize_avatar reads it
     result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
     if out.suffix.lower() == ".json":
         eq4 = result.report["retarget"]

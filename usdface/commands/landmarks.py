@@ -7,7 +7,15 @@ import sys
 from pathlib import Path
 
 from . import add_name_map_option, say_warning
-from .options import add_quiet, nonnegative_float, positive_float, positive_int, unit_float, vector3
+from .options import (
+    add_quiet,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    refuse_camera_with_rays,
+    unit_float,
+    vector3,
+)
 
 
 def register(subparsers) -> None:
@@ -103,9 +111,7 @@ def refuse_other_mode(args) -> None:
                             "candidate) and would ignore it",
                             fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
                                 "the layout")
-    if args.camera is not None and args.rays is not None:       # the camera's one ray: --rays was ignored
-        raise LandmarkError("--rays counts hemisphere rays; --camera sees from one point, so the rays would "
-                            "be ignored", fix="give --camera or --rays, not both")
+    refuse_camera_with_rays(args.camera, args.rays, LandmarkError)      # --rays was ignored
     if args.rays is None:
         args.rays = 16
     for name, _, default in LAYOUT_ONLY:   # the layout's defaults (None above: 'not given')

@@ -107,6 +107,17 @@ def vector3(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected X,Y,Z (three finite numbers), got {text!r}") from None
 
 
+def refuse_camera_with_rays(camera, rays, error=None) -> None:
+    """``--camera`` sees from one point (one visibility ray per vertex): ``--rays`` (hemisphere rays) given
+    with it would be ignored, so the pair is refused (``error``: the command's error class, default
+    :class:`usdface.errors.OptionError`)."""
+    if camera is not None and rays is not None:
+        from ..errors import OptionError
+
+        raise (error or OptionError)("--rays counts hemisphere rays; --camera sees from one point, so the "
+                                     "rays would be ignored", fix="give --camera or --rays, not both")
+
+
 def add_quiet(parser) -> None:
     """``--quiet``/``-q``: no progress on stderr (a bar on a terminal, step lines in logs); ``usdface.cli``
     reads it, and ``--json`` (printed on stdout) silences progress too."""

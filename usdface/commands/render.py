@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import add_name_map_option
-from .options import add_quiet, finite_float, positive_int, vector3
+from .options import add_quiet, finite_float, positive_int, refuse_camera_with_rays, vector3
 
 
 def register(subparsers) -> None:
@@ -104,11 +104,7 @@ def run(args) -> int:
         raise OptionError(f"{named} not used by {mode} (it would be ignored)",
                           fix=f"drop {named}, or leave out {mode} to draw the shapes")
     weight = 1.0 if args.weight is None else args.weight
-    if args.camera is not None and args.rays is not None:
-        from ..errors import OptionError
-
-        raise OptionError("--rays counts hemisphere rays; --camera sees from one point, so the rays would be "
-                          "ignored", fix="give --camera or --rays, not both")
+    refuse_camera_with_rays(args.camera, args.rays)
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
                       inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
     shapes = None if args.shapes is None else [s.strip() for s in args.shapes.split(",") if s.strip()]

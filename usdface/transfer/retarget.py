@@ -106,11 +106,10 @@ def _parabola_vertex(x, y) -> float:
     if i == 0 or i == len(y) - 1:
         return float(np.exp(x[i]))
     (x0, x1, x2), (y0, y1, y2) = x[i - 1:i + 2], y[i - 1:i + 2]
-    curve = (y2 - y1) / (x2 - x1) - (y1 - y0) / (x1 - x0)
+    curve = y2 - 2.0 * y1 + y0                                          # an even grid in log mu
     if not curve > 0:
         return float(np.exp(x1))
-    h = x1 - x0                                                         # an even grid in log mu
-    vertex = x1 - 0.5 * h * (y2 - y0) / (y2 - 2.0 * y1 + y0)
+    vertex = x1 - 0.5 * (x1 - x0) * (y2 - y0) / curve
     return float(np.exp(np.clip(vertex, x0, x2)))
 
 
