@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from usdface.cli import main
 from usdface.io.livelink import write_livelink_csv
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 
 
 def test_a_folder_of_live_link_csvs_is_not_one_take(tmp_path, capsys):
@@ -140,3 +144,28 @@ def test_an_actions_error_names_the_command_as_typed(tmp_path, capsys, args):
     argv = [a.format(d=tmp_path) for a in args]
     assert main(argv) == 2
     assert capsys.readouterr().err.startswith(f"usdface {argv[0]} {argv[1]}: error: "), argv
+
+
+def test_fit_rig_records_command_parameters_and_capture(tmp_path, monkeypatch):
+    """A rig written by ``usdface fit`` says what made it, as a personalized layer does: the command line,
+    the options, the capture read (path relative to the rig and its sha256) and when (it recorded only the
+    method: which capture and settings a rig came from was lost)."""
+    import shutil
+
+    from usdface.cli import main
+    from usdface.io.layers import file_digest
+    from usdface.io.usd_rig import usdface_layer_data
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    cap = tmp_path / "cap.usda"
+    shutil.copy(SAMPLE / "capture.usda", cap)
+    out = tmp_path / "rigs" / "rig.usda"
+    monkeypatch.setattr("sys.argv", ["usdface", "fit", str(cap), "-o", str(out), "--reg", "0.05", "-q"])
+    assert main(["fit", str(cap), "-o", str(out), "--reg", "0.05", "-q"]) == 0
+    data = usdface_layer_data(out)
+    assert data["format"] == "fit" and data["method"] == "menzel"
+    assert data["command"].startswith("usdface fit ") and "--reg 0.05" in data["command"]
+    assert data["parameters"]["reg"] == 0.05 and data["parameters"]["method"] == "menzel"
+    assert data["capture"] == "../cap.usda" and data["captureDigest"] == file_digest(cap)
+    assert data["createdAt"] == "2023-11-14T22:13:20Z"
+    assert data["trainRmseMm"] > 0 and data["reg"] == 0.05

@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import json
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -276,7 +277,7 @@ def _as_capture(capture) -> Capture:
 
 
 def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path: PathLike | None = None,
-                force: bool = False, **options: Any) -> FitResult:
+                force: bool = False, command: str | None = None, **options: Any) -> FitResult:
     """Fit personalized blendshapes on the capture mesh (``usdface fit``); returns a ``FitResult`` whose
     ``.rig`` is a :class:`usdface.model.FaceRig` (neutral = the person's neutral, deltas = personalized
     shapes).
@@ -284,7 +285,8 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     :func:`usdface.personalize.fit_personalized_shapes` (``pins`` may also be a file: JSON or USD primvars,
     :func:`usdface.io.pins.read_pins`). With ``out_path`` an existing output is refused
     before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
-    written is ``result.info["out_path"]``."""
+    written is ``result.info["out_path"]``, whose provenance records ``command`` (the CLI's command line),
+    the method and options, and the capture file read (:func:`write_fit_rig`)."""
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
@@ -293,6 +295,9 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
 
         check_output_path(out_path, force, inputs=[capture, options.get("pins")])
     reading = isinstance(capture, str | Path)
+    source = capture if reading else None
+    parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items()
+                  if k != "pins" or isinstance(v, str | Path)}           # a pins file by its path
     with steps("fit", 1 + reading + (out_path is not None)) as p:
         if reading:
             p.start(f"read capture {Path(capture).name}")
@@ -306,7 +311,9 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
                                                                   role="train")["mean_rmse_mm"])
         if out_path is not None:
             p.start(f"write {Path(out_path).name}")
-            result.info["out_path"] = write_fit_rig(result, out_path, force=force)
+            result.info["out_path"] = write_fit_rig(result, out_path, force=force,
+                                                    capture=source, command=command,
+                                                    parameters={"method": method, **parameters})
     return result
 
 
@@ -330,17 +337,40 @@ def _read_pins_option(options: dict, capture: Capture) -> None:
         options["pins"] = read_pins(pins, capture.names, len(capture.neutral))
 
 
-def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool = False) -> Path:
+def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool = False,
+                  capture: PathLike | None = None, command: str | None = None,
+                  parameters: dict | None = None) -> Path:
     """Write a fitted rig (a ``FitResult`` or its ``FaceRig``) as a UsdSkel rig on the capture mesh, in its
     vertex order (metres, Y up, root ``/Capture``); returns the path written (atomically; an existing file
-    needs ``force``)."""
+    needs ``force``).
+
+    The root layer's ``customLayerData["usdface"]`` records what made it, as a personalized layer does: the
+    method, ``command`` (the CLI passes its command line; the API is named otherwise), the fit's
+    ``parameters``, its chosen ``reg`` and training RMSE, ``createdAt`` (UTC; ``SOURCE_DATE_EPOCH`` when set)
+    and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
+    sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
+    move."""
     from . import __version__
     from .io.avatar_writer import write_rig_usd
+    from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
 
-    method = str((getattr(fit, "info", None) or {}).get("method", ""))
-    data = {"usdface": {"format": "fit", "formatVersion": 1, "version": __version__, "method": method}}
-    return Path(write_rig_usd(getattr(fit, "rig", fit), out_path, meters_per_unit=1.0, root="/Capture",
-                              force=force, layer_data=data))
+    out = check_output_path(out_path, force)
+    info = getattr(fit, "info", None) or {}
+    data = {"format": "fit", "formatVersion": 1, "version": __version__,
+            "method": str(info.get("method", "")),
+            "command": command or "usdface.api.write_fit_rig (Python API)", "createdAt": _created_at()}
+    if parameters:
+        # plain values (a pins file's path, not its mapping; numbers, strings, booleans)
+        data["parameters"] = json.loads(json.dumps({k: v for k, v in parameters.items() if v is not None},
+                                                   default=json_default))
+    for key, name in (("reg", "reg"), ("train_rmse_mm", "trainRmseMm")):
+        if isinstance(info.get(key), int | float):
+            data[name] = float(info[key])
+    if capture is not None:
+        data["capture"] = _relative_to_layer(capture, out)
+        data["captureDigest"] = file_digest(capture)
+    return Path(write_rig_usd(getattr(fit, "rig", fit), out, meters_per_unit=1.0, root="/Capture",
+                              force=force, layer_data={"usdface": data}))
 
 
 

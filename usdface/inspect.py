@@ -331,13 +331,15 @@ def format_report(report: dict) -> str:
         lines += _channel_lines(mesh.get("channels", []))
     if report.get("provenance"):
         prov = report["provenance"]
-        # what the file records: a fit rig ('usdface fit') has its method, not a command nor a date
+        # what the file records (a fit rig from before 0.1's provenance has its method only)
         parts = [f"{label} {prov[key]!r}" if key == "command" else f"{label} {prov[key]}"
                  for key, label in (("version", "version"), ("method", "method"), ("command", "command"),
                                     ("createdAt", "created")) if prov.get(key) is not None]
         lines.append("  usdface layer: " + ", ".join(parts))
         for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
+        if prov.get("capture"):              # a fit rig: the capture it was fitted on
+            lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
     for prim, sets in report.get("variants", {}).items():
         for name, v in sets.items():
             lines.append(f"  variant set {prim}:{name} = {v['selection']} (of {', '.join(v['variants'])})")

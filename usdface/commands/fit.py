@@ -3,6 +3,8 @@ rig."""
 
 from __future__ import annotations
 
+import sys
+
 from . import all_warnings, json_path, say_warning
 from .options import add_quiet, positive_int, reg_value
 
@@ -105,7 +107,7 @@ def run(args) -> int:
 
     pins = {"pins": args.pins} if args.pins else {}
     result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
-                             **fit_kwargs(args), **pins)
+                             command=" ".join(["usdface", *sys.argv[1:]]), **fit_kwargs(args), **pins)
     info = result.info
     if args.json:
         import json
