@@ -169,3 +169,30 @@ def test_fit_rig_records_command_parameters_and_capture(tmp_path, monkeypatch):
     assert data["capture"] == "../cap.usda" and data["captureDigest"] == file_digest(cap)
     assert data["createdAt"] == "2023-11-14T22:13:20Z"
     assert data["trainRmseMm"] > 0 and data["reg"] == 0.05
+
+
+def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
+    """``personalize --take`` records the take (relative to the layer, as ``take``) and ``review LAYER``
+    plays it without ``--take`` again (the page had only the test expressions); a take moved away is said
+    in the page's notes."""
+    from usdface.io.livelink import read_livelink_take
+    from usdface.io.usd_rig import usdface_layer_data
+    from usdface.review.collect import collect_review
+
+    take = tmp_path / "takes" / "t.csv"
+    take.parent.mkdir()
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    weights = np.array([[0.0, 0.0, 0.0], [0.8, 0.2, 0.1], [0.3, 1.0, 0.6], [0.0, 0.0, 0.0]])
+    write_livelink_csv(take, names, weights, np.arange(4) / 30.0)
+    assert len(read_livelink_take(take).weights) == 4
+    out = tmp_path / "out" / "person.usda"
+    assert main(["personalize", str(SAMPLE / "avatar.usda"), str(SAMPLE / "capture.usda"), "-o", str(out),
+                 "--take", str(take), "-q"]) == 0
+    assert usdface_layer_data(out)["take"] == "../takes/t.csv"
+    data = collect_review(out, fit_errors=False)
+    played = [s for s in data.sequences if s.title.startswith("take ")]
+    assert [s.title for s in played] == ["take t.csv"] and len(played[0].weights) == 4
+    take.rename(tmp_path / "moved.csv")
+    data = collect_review(out, fit_errors=False)
+    assert not [s for s in data.sequences if s.title.startswith("take ")]
+    assert any("take recorded" in n and "not found" in n for n in data.notes)

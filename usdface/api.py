@@ -685,7 +685,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         return edit
 
     result = _personalize(avatar, capture, out_path, layer_edit=inspection,
-                          extra_inputs=[take] if take is not None else [], **options)
+                          extra_inputs={"take": take} if take is not None else {}, **options)
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]

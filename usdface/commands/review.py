@@ -19,7 +19,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", type=Path, help="HTML file to write (default: <layer>.review.html)")
     p.add_argument("--capture", help="capture whose test expressions are played and scored (default: the one "
                                      "recorded in the layer's provenance, when it still exists)")
-    p.add_argument("--take", help="a Live Link Face CSV (or USD take / take folder) to play")
+    p.add_argument("--take", help="a Live Link Face CSV (or USD take / take folder) to play (default: the "
+                                  "take the layer was written with, 'personalize --take', when it still "
+                                  "exists)")
     p.add_argument("--no-fit-errors", action="store_true",
                    help="skip scoring the fit on the capture's test expressions (eq. 5: the layer's recorded "
                         "figures; another --capture is refitted)")

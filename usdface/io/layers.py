@@ -660,6 +660,8 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
     prov["version"] = __version__
     # recorded relative to the layer (like its sublayer path), so the record stays checkable from anywhere
     prov["inputs"] = [_relative_to_layer(p, out_path) for p in inputs]
+    if prov.get("take"):           # the take the inspection animation plays (personalize --take)
+        prov["take"] = _relative_to_layer(prov["take"], out_path)
     prov["inputDigests"] = [digests[p] for p in inputs]
     prov["createdAt"] = _created_at()
     prov["output"] = out_path.name

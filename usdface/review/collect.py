@@ -33,6 +33,16 @@ def recorded_capture(layer_path, info: dict) -> Path | None:
     return p.resolve() if p.exists() else None
 
 
+def recorded_take(layer_path, info: dict) -> Path | None:
+    """The take a personalize layer's inspection animation plays (``personalize --take``, recorded relative
+    to the layer as ``take`` in its provenance), when it still exists; else None."""
+    if not info.get("take"):
+        return None
+    p = Path(str(info["take"]))
+    p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
+    return p.resolve() if p.exists() else None
+
+
 def _mm(v) -> str:
     return f"{float(v) * 1000.0:.2f} mm"
 
@@ -42,7 +52,8 @@ def _provenance_tables(info: dict) -> list[tuple[str, list[tuple[str, str]]]]:
     inputs = [str(p) for p in info.get("inputs") or []]
     if inputs:             # what the layer was made from, as recorded (relative to the layer)
         labels = (["avatar", "capture"] if _fitted(info) else ["avatar"]) + ["input"] * len(inputs)
-        rows = [(label, path) for label, path in zip(labels, inputs, strict=False)]
+        rows = [("take" if path == info.get("take") else label, path)
+                for label, path in zip(labels, inputs, strict=False)]
         if info.get("command"):
             rows.append(("command", str(info["command"])))
         tables.append(("made from", rows))
@@ -159,9 +170,10 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     ``capture``: the capture (path or :class:`usdface.model.Capture`) whose test expressions are played and
     scored; default the one recorded in the layer's provenance, when it still exists (else no test
     expressions). ``take``: a Live Link Face CSV, USD take or take folder to play (path or
-    :class:`usdface.io.take.Take`). ``fit_errors``: score the generic template and the personalized shapes
-    on the capture's test expressions (eq. 5): the layer's own figures (:func:`_fit_errors`), or one refit
-    (a few seconds) for another capture or an older layer."""
+    :class:`usdface.io.take.Take`); default the take the layer was written with (``personalize --take``,
+    :func:`recorded_take`), when it still exists. ``fit_errors``: score the generic template and the
+    personalized shapes on the capture's test expressions (eq. 5): the layer's own figures
+    (:func:`_fit_errors`), or one refit (a few seconds) for another capture or an older layer."""
     from ..io import read_capture
     from ..io.flatten import read_avatar_variant
     from ..io.take import read_take
@@ -218,6 +230,11 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if whole and not len(capture.test):  # a take fitted whole: it plays itself, there is nothing to score
         notes.append("the capture is a take fitted whole: no held-out test expressions to score (score one "
                      "made by 'usdface capture select TAKE -o capture.usda --test-every 10', with --capture)")
+    if take is None and prov.get("take"):   # the take the layer's inspection animation plays
+        take = recorded_take(layer_path, prov)
+        if take is None:
+            notes.append(f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
+                         "played (pass --take)")
     if take is None and capture is not None:  # a take read whole as the capture: play it
         from ..io.take import whole_take_playback
 

@@ -560,7 +560,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
         layer; the result's ``offsets`` and ``approximation`` are empty, ``weights`` the map.
     extra_inputs : more files the layer is made from, recorded with their digests among its inputs (the take
-        its inspection animation plays), so that editing one makes the layer stale.
+        its inspection animation plays), so that editing one makes the layer stale; a mapping ``{role:
+        path}`` (``{"take": path}``) also records each path under its role in the provenance (relative to
+        the layer, as the inputs), which ``usdface review`` reads back.
     layer_edit : ``layer_edit(offsets, face_prim) -> edit(stage)`` (or None): extra prims and primvars
         authored into the layer in the same atomic write (the inspection data of
         :func:`usdface.api.personalize_avatar`), from the offsets that are written.
@@ -881,7 +883,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "inputs": ([str(capture.source)] if capture.source else [])
                     + ([str(name_map)] if isinstance(name_map, str | Path) else [])
                     + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
-                    + [str(p) for p in extra_inputs if isinstance(p, str | Path)],
+                    + [str(p) for p in (extra_inputs.values() if isinstance(extra_inputs, dict)
+                                        else extra_inputs) if isinstance(p, str | Path)],
+                    **({role: str(p) for role, p in extra_inputs.items() if isinstance(p, str | Path)}
+                       if isinstance(extra_inputs, dict) else {}),
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": dict(report["registration"]),
