@@ -192,6 +192,12 @@ def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
     data = collect_review(out, fit_errors=False)
     played = [s for s in data.sequences if s.title.startswith("take ")]
     assert [s.title for s in played] == ["take t.csv"] and len(played[0].weights) == 4
+    # a flattened copy elsewhere (usdface export --flatten) records the take relative to itself
+    from usdface.api import export_avatar
+
+    flat = tmp_path / "deliver" / "deep" / "person.flat.usda"
+    export_avatar(out, flatten=flat)
+    assert usdface_layer_data(flat)["take"] == "../../takes/t.csv"
     take.rename(tmp_path / "moved.csv")
     data = collect_review(out, fit_errors=False)
     assert not [s for s in data.sequences if s.title.startswith("take ")]

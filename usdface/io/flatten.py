@@ -114,6 +114,8 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     if hasattr(record, "get") and record.get("inputs"):        # provenance paths, relative to the new file
         record = dict(record)
         record["inputs"] = Vt.StringArray([_rebase(p, src, out) for p in record["inputs"]])
+        if record.get("take"):                                  # the take among them (personalize --take)
+            record["take"] = _rebase(record["take"], src, out)
         data["usdface"] = record
     flat.customLayerData = data
     _rebase_provenance_attributes(flat, src, out)
