@@ -202,3 +202,21 @@ def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
     data = collect_review(out, fit_errors=False)
     assert not [s for s in data.sequences if s.title.startswith("take ")]
     assert any("take recorded" in n and "not found" in n for n in data.notes)
+
+
+def test_take_frame_rate_is_the_rate_not_float_noise(tmp_path, capsys):
+    """``inspect --json`` of a Live Link Face CSV said ``"fps": 30.000000000001705`` (one over the median
+    interval of times summed from timecodes); the rate is rounded to 6 decimals, one rule for every take
+    reader (the CSV's and the take folder's had the same code twice)."""
+    import json
+
+    from usdface.io.livelink import median_fps, read_livelink_take
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    csv = tmp_path / "t.csv"
+    write_livelink_csv(csv, names, np.random.default_rng(0).uniform(0, 1, (200, 2)), np.arange(200) / 30.0)
+    assert read_livelink_take(csv).fps == 30.0
+    assert main(["inspect", str(csv), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["fps"] == 30.0
+    assert median_fps(np.arange(5) * (1001 / 30000)) == 29.97003
+    assert median_fps([0.0]) == 30.0 and median_fps([1.0, 1.0, 1.0]) == 30.0

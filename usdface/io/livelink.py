@@ -29,7 +29,7 @@ from .atomic import write_text_atomic
 from .capture_folder import order_names
 
 __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_weights", "parse_timecodes",
-           "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS", "DEFAULT_TIMECODE_RATE"]
+           "median_fps", "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS", "DEFAULT_TIMECODE_RATE"]
 
 #: Head and eye rotation columns (radians), kept out of the weights.
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
@@ -54,9 +54,17 @@ class LiveLinkTake:
 
     @property
     def fps(self) -> float:
-        """Median sampling rate (frames per second)."""
-        dt = np.diff(self.times)
-        return float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else 30.0
+        """Median sampling rate (frames per second), :func:`median_fps`."""
+        return median_fps(self.times)
+
+
+def median_fps(times) -> float:
+    """The frame rate of a take's ``times[F]`` (seconds): one over the median frame interval, rounded to 6
+    decimals (times from timecodes are sums of ``1 / rate`` steps: 30.000000000001705 is 30), or 30 for
+    fewer than two frames or a median interval of zero."""
+    dt = np.diff(np.asarray(times, dtype=np.float64))
+    step = float(np.median(dt)) if dt.size else 0.0
+    return round(1.0 / step, 6) if step > 0 else 30.0
 
 
 #: The default timecode rate: Live Link Face counts the ``FF`` field at 60 per second.

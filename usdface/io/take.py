@@ -60,9 +60,10 @@ class Take:
 
     @property
     def fps(self) -> float:
-        """Median frame rate (frames per second)."""
-        dt = np.diff(self.times)
-        return float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else 30.0
+        """Median frame rate (frames per second), :func:`usdface.io.livelink.median_fps`."""
+        from .livelink import median_fps
+
+        return median_fps(self.times)
 
     def __len__(self) -> int:
         return int(self.weights.shape[0])
