@@ -220,3 +220,21 @@ def test_take_frame_rate_is_the_rate_not_float_noise(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["fps"] == 30.0
     assert median_fps(np.arange(5) * (1001 / 30000)) == 29.97003
     assert median_fps([0.0]) == 30.0 and median_fps([1.0, 1.0, 1.0]) == 30.0
+
+
+def test_landmark_evaluation_summary_without_an_empirical_layout():
+    """``landmarks --evaluate --json`` without ``--empirical`` had ``"summary": {}``: it now names this
+    method's most compact and most accurate layouts, each beside the baselines at (at most) that count."""
+    from usdface.landmarks.evaluate import EvaluationPoint, EvaluationReport, _summary
+
+    pts = [EvaluationPoint("ours", "eps 0.5", 12, 2e-3), EvaluationPoint("ours", "eps 0.9 x4", 40, 1e-3),
+           EvaluationPoint("ours", "eps 0.9 x6", 55, 1.1e-3),
+           EvaluationPoint("random", "seed 0", 10, 5e-3), EvaluationPoint("random", "seed 1", 10, 4e-3),
+           EvaluationPoint("random", "seed 0", 40, 3e-3), EvaluationPoint("pca_kmeans", "", 12, 2.5e-3)]
+    s = _summary(EvaluationReport(pts, frames=10, noise=5e-4), None)
+    assert s["ours_smallest_count"] == 12 and s["ours_rmse_at_smallest_count"] == 2e-3
+    assert s["ours_count_at_best_rmse"] == 40 and s["ours_best_rmse"] == 1e-3
+    assert s["ours_label_at_best_rmse"] == "eps 0.9 x4"
+    assert s["random_rmse_at_10"] == 4e-3 and s["random_rmse_at_40"] == 3e-3
+    assert s["pca_kmeans_rmse_at_12"] == 2.5e-3 and "delta_cluster_rmse_at_12" not in s
+    assert _summary(EvaluationReport([], frames=0, noise=0.0), None) == {}

@@ -58,9 +58,25 @@ class EvaluationReport:
 
 
 def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:
+    """The figures ``landmarks --evaluate`` prints: with an empirical layout, the smallest layout of this
+    method that matches its error and this method's error at its count, beside the baselines'; without
+    one, this method's most compact layout and its most accurate, each beside the baselines at (at most)
+    that count (it was ``{}``: ``--json`` had no summary)."""
     ours = sorted((p for p in report.points if p.method == "ours"), key=lambda p: (p.count, p.rmse))
     out: dict = {}
     emp = [p for p in report.points if p.method == "empirical"]
+    if ours and not emp:
+        compact, accurate = ours[0], min(ours, key=lambda p: (p.rmse, p.count))
+        out = {"ours_smallest_count": compact.count, "ours_rmse_at_smallest_count": compact.rmse,
+               "ours_label_at_smallest_count": compact.label, "ours_best_rmse": accurate.rmse,
+               "ours_count_at_best_rmse": accurate.count, "ours_label_at_best_rmse": accurate.label}
+        for method in ("pca_kmeans", "delta_cluster", "random"):
+            for count in sorted({compact.count, accurate.count}):
+                b = [p for p in report.points if p.method == method and p.count <= count]
+                if b:
+                    top = max(b, key=lambda p: (p.count, -p.rmse))
+                    out[f"{method}_rmse_at_{top.count}"] = top.rmse
+        return out
     if emp and ours:
         e = emp[0]
         match = next((p for p in ours if p.rmse <= e.rmse), None)
