@@ -233,8 +233,8 @@ def test_landmark_evaluation_summary_without_an_empirical_layout():
            EvaluationPoint("random", "seed 0", 40, 3e-3), EvaluationPoint("pca_kmeans", "", 12, 2.5e-3)]
     s = _summary(EvaluationReport(pts, frames=10, noise=5e-4), None)
     assert s["ours_smallest_count"] == 12 and s["ours_rmse_at_smallest_count"] == 2e-3
-    assert s["ours_count_at_best_rmse"] == 40 and s["ours_best_rmse"] == 1e-3
-    assert s["ours_label_at_best_rmse"] == "eps 0.9 x4"
+    assert s["ours_count_at_best"] == 40 and s["ours_best_rmse"] == 1e-3
+    assert s["ours_label_at_best"] == "eps 0.9 x4"
     assert s["random_rmse_at_10"] == 4e-3 and s["random_rmse_at_40"] == 3e-3
     assert s["pca_kmeans_rmse_at_12"] == 2.5e-3 and "delta_cluster_rmse_at_12" not in s
     assert _summary(EvaluationReport([], frames=0, noise=0.0), None) == {}

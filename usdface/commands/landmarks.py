@@ -155,7 +155,7 @@ def run(args) -> int:
         if args.json_out:
             write_text_atomic(args.json_out, json.dumps(report.to_dict(), indent=2), force=args.force)
         for key, value in report.summary.items():
-            mm = "rmse" in key and value is not None
+            mm = "rmse" in key and isinstance(value, float)
             print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
         for method in ("ours", "pca_kmeans", "delta_cluster", "random"):
             best = report.best_per_count(method)

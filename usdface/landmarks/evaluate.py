@@ -69,7 +69,7 @@ def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:
         compact, accurate = ours[0], min(ours, key=lambda p: (p.rmse, p.count))
         out = {"ours_smallest_count": compact.count, "ours_rmse_at_smallest_count": compact.rmse,
                "ours_label_at_smallest_count": compact.label, "ours_best_rmse": accurate.rmse,
-               "ours_count_at_best_rmse": accurate.count, "ours_label_at_best_rmse": accurate.label}
+               "ours_count_at_best": accurate.count, "ours_label_at_best": accurate.label}
         for method in ("pca_kmeans", "delta_cluster", "random"):
             for count in sorted({compact.count, accurate.count}):
                 b = [p for p in report.points if p.method == method and p.count <= count]
