@@ -238,3 +238,39 @@ def test_landmark_evaluation_summary_without_an_empirical_layout():
     assert s["random_rmse_at_10"] == 4e-3 and s["random_rmse_at_40"] == 3e-3
     assert s["pca_kmeans_rmse_at_12"] == 2.5e-3 and "delta_cluster_rmse_at_12" not in s
     assert _summary(EvaluationReport([], frames=0, noise=0.0), None) == {}
+
+
+def _sample_take():
+    from usdface.io import read_capture
+    from usdface.model import FaceRig
+    from usdface.sample.take import make_take
+
+    capture = read_capture(SAMPLE / "capture.usda")
+    ct = np.load(SAMPLE / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
+    return make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
+                     rest_seconds=0.1)[0]
+
+
+def test_a_take_read_whole_is_inspected_as_one_and_not_written_as_a_capture(tmp_path, capsys):
+    """``inspect --json`` of a take with meshes said ``"kind": "capture"`` (the text said "take with
+    meshes"); ``write_capture`` of a take read whole wrote a capture that read back as 209 picked frames (no
+    ``whole_take``: another fit than ``fit TAKE``). It is refused, naming the fix; nothing is written."""
+    import json
+
+    from usdface.api import write_capture
+    from usdface.errors import CaptureError
+    from usdface.io import read_capture
+    from usdface.io.take import write_take_usd
+
+    take = write_take_usd(_sample_take(), tmp_path / "take.usdc")
+    assert main(["inspect", str(take), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["kind"] == "take with meshes"
+    cap = read_capture(take)
+    assert cap.whole_take
+    for out in (tmp_path / "c.usda", tmp_path / "cfolder"):
+        with pytest.raises(CaptureError, match="take read whole") as err:
+            write_capture(cap, out)
+        assert "write_take_usd" in err.value.fix and "capture select" in err.value.fix
+        assert not out.exists()

@@ -140,6 +140,11 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     return out
 
 
+#: ``report["kind"]`` of a take with meshes, read whole as a capture (``fit TAKE``, ``personalize AVATAR
+#: TAKE``).
+TAKE_WITH_MESHES = "take with meshes"
+
+
 def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
     """Report dict for a capture: frames per role with labels, shape names vs ARKit, mesh sizes."""
     frames = capture.frames
@@ -153,7 +158,8 @@ def summarize_capture(capture: Capture, layer_info: dict | None = None) -> dict:
            "shapes": len(capture.names), "arkit": names_vs_arkit(capture.names, report),
            "templateShapes": capture.template.n_shapes}
     whole = capture.whole_take
-    if whole:
+    if whole:            # what the text report says: --json said "capture" for a take read whole
+        out["kind"] = TAKE_WITH_MESHES
         out["take"] = {"frames": int(whole["frames"]), "fps": float(whole["fps"])}
         out["neverAbove"] = _never_above(capture.names, capture.train.weights)
     else:                 # frames stored more than once (one scan for several requested shapes)
@@ -274,8 +280,6 @@ def _names_line(label: str, items, limit: int = 12) -> str:
 def format_report(report: dict) -> str:
     """Human-readable text for :func:`inspect_file`'s dict."""
     kind = report.get("kind")
-    if kind == "capture" and report.get("take"):      # a take with meshes (read whole, as a capture)
-        kind = "take with meshes"
     lines = [f"{report.get('file')}: {kind}"]
     if report.get("kind") == "take":
         head = f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), " \
@@ -290,7 +294,7 @@ def format_report(report: dict) -> str:
         lines += _never_above_line(report)
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
-    if report.get("kind") == "capture":
+    if kind in ("capture", TAKE_WITH_MESHES):
         if report.get("take"):
             lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "
                          "read whole: every frame trains ('fit TAKE', 'personalize AVATAR TAKE')")

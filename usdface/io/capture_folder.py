@@ -250,6 +250,17 @@ def _weights_json(names, row) -> str:
     return json.dumps({"blendShapes": shapes}, indent=1) + "\n"
 
 
+def refuse_whole_take(capture: Capture, path) -> None:
+    """A take read whole (``capture.whole_take``: every frame trains, weighted as a take) is not written as a
+    capture: read back, its hundreds of frames would be fitted as picked frames (equally weighted, no take
+    noise model) - another fit than ``fit TAKE`` gives. :class:`CaptureError` with the fix."""
+    if capture.whole_take:
+        raise CaptureError(f"this capture is a take read whole ({len(capture.train)} frames, every frame "
+                           "trains): written as a capture it would be fitted as picked frames", path=path,
+                           fix="write the take itself (usdface.io.take.write_take_usd / write_take_folder), "
+                               "or pick its frames first ('usdface capture select TAKE -o capture.usda')")
+
+
 def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
     """Write ``capture`` as a capture folder (the layout :func:`read_capture_folder` reads).
 
@@ -259,6 +270,7 @@ def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
     capture. Refuses an existing, non-empty destination unless ``force`` (OutputExistsError). Points and
     weights round-trip exactly; template deltas to float rounding of ``(neutral + delta) - neutral``.
     """
+    refuse_whole_take(capture, path)
     dest = check_output_dir(path, force)
     labels = [f"{r}/{lab}" for r, lab in zip(capture.frames.role, capture.frames.label, strict=True)]
     if len(set(labels)) != len(labels):

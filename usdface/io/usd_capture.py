@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import CaptureError, GeometryError, InputFileError
 from ..model import Capture, FaceRig, Frames
-from .capture_folder import ROLES
+from .capture_folder import ROLES, refuse_whole_take
 from .mesh_io import fan_triangulate
 
 __all__ = ["write_capture_usd", "read_capture_usd", "author_template", "author_frames", "CAPTURE_PRIM",
@@ -232,6 +232,7 @@ def write_capture_usd(capture: Capture, path, force: bool = False, *,
     if path.suffix.lower() not in (".usda", ".usdc", ".usd"):
         raise InputFileError("output must be a .usda, .usdc or .usd file", path=path,
                              fix="name the output capture.usda")
+    refuse_whole_take(capture, path)
     _check_output(path, force)
     if capture.frames.points.shape[1:] != capture.neutral.shape:
         raise GeometryError("frames and neutral have different vertex counts", path=path,
