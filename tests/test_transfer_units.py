@@ -154,6 +154,45 @@ def test_retarget_weights_bounded_and_around_a_prior():
                                retarget_weights(basis, targets, mu=1e-12), atol=1e-6)
 
 
+def test_retarget_weights_hold_what_the_map_drives_elsewhere():
+    """``elsewhere`` (the Gram matrix of the shapes on the other meshes, :func:`driven_gram`): the map
+    minimises the face rows' error plus ``||sum_i (w_i - p_ji) B^else_i||^2`` - checked against the stacked
+    least squares with the other meshes' rows targeting the namesake's motion, unbounded and in [0, 1]; a
+    shape that moves another mesh a lot (a tongue) is no longer taken to match a few face rows."""
+    from scipy.optimize import lsq_linear
+
+    from usdface.transfer.retarget import driven_gram, namesake_prior
+
+    rng = np.random.default_rng(7)
+    names = ["jawOpen", "jawForward", "tongueOut", "mouthClose"]
+    face = rng.normal(size=(4, 60, 3))
+    face[2] = 0.3 * face[1] + 0.02 * rng.normal(size=(60, 3))        # the tongue's face rows: a jaw slide
+    mouth = np.zeros((3, 40, 3))                                         # the Mouth mesh: jawOpen, tongueOut
+    mouth[0, :20] = rng.normal(size=(20, 3))
+    mouth[1] = 5.0 * rng.normal(size=(40, 3))
+    mouth_names = ["jawOpen", "tongueOut", "cheekPuff"]                  # cheekPuff: not a face shape here
+    gram = driven_gram([(mouth_names, mouth), (["jawOpen"], np.zeros((10, 1, 3))[:, 0][None])], names)
+    b = np.zeros((4, 40, 3))
+    b[0], b[2] = mouth[0], mouth[1]
+    B = b.reshape(4, -1)
+    np.testing.assert_allclose(gram, B @ B.T, atol=1e-9)
+    targets = face[1:2] * 1.0 + 0.9 * face[2:3]                         # a person's jawForward row
+    prior = namesake_prior(["jawForward"], names)
+    A = face.reshape(4, -1).T
+    for mu in (1e-3, 0.3):
+        lam = mu * np.trace(A.T @ A) / 4
+        stacked = np.vstack([A, B.T, np.sqrt(lam) * np.eye(4)])
+        rhs = np.concatenate([targets[0].ravel(), B.T @ prior[0], np.sqrt(lam) * prior[0]])
+        free = retarget_weights(face, targets, mu=mu, prior=prior, elsewhere=gram)
+        np.testing.assert_allclose(free[0], np.linalg.lstsq(stacked, rhs, rcond=None)[0], atol=1e-8)
+        boxed = retarget_weights(face, targets, mu=mu, prior=prior, elsewhere=gram, bounds=(0.0, 1.0))
+        np.testing.assert_allclose(boxed[0], lsq_linear(stacked, rhs, bounds=(0, 1)).x, atol=1e-6)
+    face_only = retarget_weights(face, targets, mu=1e-3, prior=prior, bounds=(0.0, 1.0))
+    held = retarget_weights(face, targets, mu=1e-3, prior=prior, bounds=(0.0, 1.0), elsewhere=gram)
+    assert face_only[0, 2] > 0.5 and held[0, 2] < 0.05              # the tongue: taken, then left alone
+    assert held[0, 1] > 0.95                                          # the namesake carries the row
+
+
 def _bump_fields(n, seed):
     """Eq. (4) on a face-like square ``[0,1]^2`` sampled ``n x n`` times: six smooth local avatar shapes, and
     one target that is the first shape plus smooth local motion no avatar shape has (what a person does that

@@ -274,3 +274,22 @@ def test_a_take_read_whole_is_inspected_as_one_and_not_written_as_a_capture(tmp_
             write_capture(cap, out)
         assert "write_take_usd" in err.value.fix and "capture select" in err.value.fix
         assert not out.exists()
+
+
+def test_the_retarget_map_does_not_drive_the_tongue_to_match_a_few_face_rows(tmp_path):
+    """``usdface retarget`` on the sample: the ``jawForward`` row took ``tongueOut`` at 0.82 (matching the
+    lower lip's face rows; an engine driving every mesh with the map put the tongue out on every jaw slide).
+    The map now holds what it drives on the other meshes at the namesake's motion (the Mouth mesh's rows):
+    the tongue stays in, the namesake carries the row. With the paper's zero prior the face rows alone
+    decide, as eq. (4)."""
+    import json
+
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(SAMPLE / "avatar.usda"), str(SAMPLE / "capture.usda"), "-o", str(out),
+                 "-q"]) == 0
+    doc = json.loads(out.read_text())
+    row = dict(zip(doc["target"], doc["weights"][doc["source"].index("jawForward")], strict=True))
+    assert row["tongueOut"] < 0.1 and row["jawForward"] > 0.95          # was 0.82 and 1.0
+    tongue = [doc["weights"][j][doc["target"].index("tongueOut")] for j, s in enumerate(doc["source"])
+              if s != "tongueOut"]
+    assert max(tongue) < 0.1

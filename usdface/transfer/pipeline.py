@@ -58,7 +58,7 @@ from .implant import (
 from .motion_field import dilate
 from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
 from .register import motion_landmarks, register_face
-from .retarget import approximate, namesake_prior, retarget_weights
+from .retarget import approximate, driven_gram, namesake_prior, retarget_weights
 
 __all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
            "default_approximation", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
@@ -782,10 +782,16 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         f = corr.face
         mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        weights, mu_used = retarget_weights(face.deltas, mb_face, mu=mu, return_mu=True, rows=f,
-                                            bounds=weight_bounds, positions=face.neutral,
-                                            prior=namesake_prior(names, k_names) if map_prior == "namesake"
-                                            else None)
+        # the map drives every mesh: with the namesake prior, what the face rows do not see on the other
+        # meshes (teeth, tongue, eyeballs) keeps the namesake's own motion (the paper's zero prior would hold
+        # it still). The face mesh's own rows beyond the face are not among them: a body merged into the
+        # head's mesh (split off as `beyond`) gives the head alone's map
+        namesake = map_prior == "namesake"
+        others = [(m.names, m.deltas) for m in avatar.meshes if m.key != face.key and m is not beyond]
+        weights, mu_used = retarget_weights(
+            face.deltas, mb_face, mu=mu, return_mu=True, rows=f, bounds=weight_bounds,
+            positions=face.neutral, prior=namesake_prior(names, k_names) if namesake else None,
+            elsewhere=driven_gram(others, k_names) if namesake else None)
         del mb_face                                                       # [J, face, 3]: not used again
         report["retarget"] = {"mu": mu_used,
                               "mu_choice": "leave one face region out" if mu == "auto" else "given",

@@ -14,7 +14,8 @@ import json
 
 import numpy as np
 
-__all__ = ["retarget_weights", "face_regions", "choose_mu_by_regions", "namesake_prior", "approximate",
+__all__ = ["retarget_weights", "face_regions", "choose_mu_by_regions", "driven_gram", "namesake_prior",
+           "approximate",
            "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
@@ -65,7 +66,7 @@ def face_regions(points, grid: int = FACE_GRID) -> np.ndarray:
     return cell[:, 0] * grid + cell[:, 1]
 
 
-def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None) -> float:
+def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None, elsewhere=None) -> float:
     """Leave-one-region-out cross-validation of the eq. (4) ridge weight ``mu`` (relative, see
     :func:`retarget_weights`): for each region ``r`` of the face rows (:func:`face_regions`) the map solved on
     the other regions predicts the targets on ``r``; ``mu`` minimises that prediction error summed over the
@@ -76,8 +77,10 @@ def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None) -> float:
     ``mu`` of its grid), it penalises combinations of shapes that match one region by moving another.
 
     ``grams[R,K,K]``, ``rhs[R,K,J]``, ``tt[R]``: each region's ``B~_r^T B~_r``, ``B~_r^T t_r`` and
-    ``||t_r||^2`` (summed over targets); ``prior[J,K]``: the ridge's centre (None: 0). Closed form per
-    region: one eigendecomposition of the held-in K x K Gram matrix serves every ``mu`` of the grid."""
+    ``||t_r||^2`` (summed over targets); ``prior[J,K]``: the ridge's centre (None: 0); ``elsewhere[K,K]``:
+    the Gram matrix of the rows the map drives outside the face (:func:`retarget_weights`), held in by every
+    fold (it is no data of the person's). Closed form per region: one eigendecomposition of the held-in K x K
+    Gram matrix serves every ``mu`` of the grid."""
     grams = np.asarray(grams, dtype=np.float64)
     rhs = np.asarray(rhs, dtype=np.float64)
     n_r, k, n_t = rhs.shape
@@ -86,9 +89,10 @@ def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None) -> float:
     lam = grid * float(np.trace(gram)) / max(k, 1)                                    # [M]
     pt = np.zeros((k, n_t)) if prior is None else np.asarray(prior, dtype=np.float64).T  # [K,J]
     err = np.zeros(len(grid))
+    extra = 0.0 if elsewhere is None else np.asarray(elsewhere, dtype=np.float64)
     for r in range(n_r):
         g_in = gram - grams[r]
-        ev, vec = np.linalg.eigh(g_in)
+        ev, vec = np.linalg.eigh(g_in + extra)
         q = vec.T @ (total - rhs[r] - g_in @ pt)                                         # [K,J]
         w = pt + np.einsum("kl,mlj->mkj", vec, q / (np.maximum(ev, 0.0)[None, :, None] + lam[:, None, None]))
         # ||t_r - B~_r w||^2 = ||t_r||^2 - 2 w . B~_r^T t_r + w^T B~_r^T B~_r w, per mu, summed over targets
@@ -114,7 +118,7 @@ def _parabola_vertex(x, y) -> float:
 
 
 def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None, bounds=None,
-                     prior=None, positions=None):
+                     prior=None, positions=None, elsewhere=None):
     """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i (w_i - p_ji)^2`` for
     every j, with ``p = 0`` as the paper.
 
@@ -139,6 +143,13 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
     rows : optional vertex indices (or a bool mask) of ``avatar_deltas[K,n,3]`` that ``targets[J,m,3]`` are
         on: the products are summed over blocks of those rows, never forming ``avatar_deltas[:, rows]`` (a
         production head's face region: 180 MB); the same weights up to rounding.
+    elsewhere : optional ``[K,K]`` Gram matrix of the avatar's shapes on the rows the map also drives but
+        the face rows do not see (the teeth, tongue and eyeball meshes: :func:`driven_gram`). The objective
+        then adds ``||sum_i (w_i - p_ji) B^else_i||^2``: there the map reproduces the ridge's centre (the
+        namesake's own motion), since the capture says nothing about the person's tongue or eyeballs. An
+        engine drives every mesh with the map: the sample's ``jawForward`` row took ``tongueOut`` at 0.82
+        (a tongue out on every jaw slide) and ``eyeLookDownLeft`` took ``eyeLookOutLeft`` at 1.0 (the
+        eyeball turned outwards), matching a few face rows by moving what the face rows do not hold.
 
     Returns
     -------
@@ -184,7 +195,7 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         if mu != "auto":
             raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
         if len(starts) > 1:
-            mu = choose_mu_by_regions(grams, rhss, tts, p)
+            mu = choose_mu_by_regions(grams, rhss, tts, p, elsewhere=elsewhere)
         else:
             ev, vec = np.linalg.eigh(gram)
             proj = vec.T @ rhs_p                                             # [K,J]: U^T A t  (= s_i u_i^T t)
@@ -195,10 +206,42 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
             residual = max(tt + float(np.sum(p.T * (gram @ p.T))) - inside, 0.0)      # temporary
             mu = choose_mu(ev, proj, residual, n_rows, k)
     lam = float(mu) * float(np.trace(gram)) / max(k, 1)
-    w = p + np.linalg.solve(gram + lam * np.eye(k), rhs_p).T
+    normal = gram + lam * np.eye(k)
+    centre = lam * p.T                                         # the ridge's pull: lam (w - p), [K,J]
+    if elsewhere is not None:                                  # and the rows elsewhere: G_else (w - p)
+        g_else = np.asarray(elsewhere, dtype=np.float64)
+        normal = normal + g_else
+        centre = centre + g_else @ p.T
+    w = p + np.linalg.solve(normal, rhs_p).T
     if bounds is not None:
-        w = _bounded(gram + lam * np.eye(k), rhs + lam * p.T, w, bounds)
+        w = _bounded(normal, rhs + centre, w, bounds)
     return (w, float(mu)) if return_mu else w
+
+
+def driven_gram(meshes, names) -> np.ndarray:
+    """``[K,K]``: ``sum_v B_i(v) . B_k(v)`` of the shapes ``names[K]`` over the vertices of other ``meshes``
+    (an iterable of ``(mesh shape names, deltas)``, ``deltas[s]`` one shape's ``[n,3]`` offsets, metres),
+    matched by name: the rows an engine drives with the map besides the face rows, for
+    :func:`retarget_weights`' ``elsewhere``. Only the vertices some shape moves are gathered (a body mesh's
+    neck, not its 300k vertices), one shape at a time."""
+    index = {n: i for i, n in enumerate(names)}
+    gram = np.zeros((len(names), len(names)))
+    for mesh_names, deltas in meshes:
+        shared = [(index[n], s) for s, n in enumerate(mesh_names) if n in index]
+        if not shared:
+            continue
+        moving = None
+        for _, s in shared:
+            d = np.asarray(deltas[s], dtype=np.float64)
+            hit = np.any(d != 0.0, axis=1)
+            moving = hit if moving is None else moving | hit
+        rows = np.flatnonzero(moving)
+        if not rows.size:
+            continue
+        a = np.stack([np.asarray(deltas[s], dtype=np.float64)[rows].ravel() for _, s in shared])    # [S,3u]
+        at = [i for i, _ in shared]
+        gram[np.ix_(at, at)] += a @ a.T
+    return gram
 
 
 def namesake_prior(target_names, avatar_names) -> np.ndarray:
