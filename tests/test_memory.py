@@ -19,6 +19,22 @@ def test_release_free_memory_keeps_every_value_and_reports_what_it_did(monkeypat
     assert memory.release_free_memory() is False
 
 
+
+def test_a_small_free_heap_is_kept(monkeypatch):
+    """Below ``TRIM_MIN_FREE`` free bytes the heap is not trimmed (its pages would be faulted back in by the
+    next step); at or above it, or when the free heap cannot be told, it is."""
+    calls = []
+    monkeypatch.setattr(memory, "_malloc_trim", lambda: lambda pad: calls.append(pad) or 1)
+    monkeypatch.setattr(memory, "free_heap", lambda: memory.TRIM_MIN_FREE - 1)
+    assert memory.release_free_memory() is False and calls == []
+    assert memory.release_free_memory(0) is True and calls == [0]
+    monkeypatch.setattr(memory, "free_heap", lambda: memory.TRIM_MIN_FREE)
+    assert memory.release_free_memory() is True
+    monkeypatch.setattr(memory, "free_heap", lambda: None)
+    assert memory.release_free_memory() is True and len(calls) == 3
+    monkeypatch.undo()
+    assert memory.free_heap() is None or memory.free_heap() >= 0
+
 def test_float32_offsets_hold_the_readers_values_to_the_last_bit():
     """The reader's conversion (float32 authored offsets @ linear.T: cm to m, Z up to Y up) packed and
     expanded gives the same float64 values; values that are not float32 @ linear.T are refused (None)."""
