@@ -137,7 +137,15 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
                                                     if issubclass(p, ExtractUsdFacePersonalized))]
         if any(p.personalize is not ExtractUsdFacePersonalized.default_personalize for p in extractors):
             return
-        check_personalize_options(**dict(instance.data.get("usdfaceOptions") or {}))
+        options = dict(instance.data.get("usdfaceOptions") or {})
+        check_personalize_options(**options)
+        if options.get("dry_run"):        # nothing written: the extractor failed on the missing layer
+            from ..errors import OptionError
+
+            raise OptionError("usdfaceOptions dry_run=True writes no layer, and a publish is the layer it "
+                              "writes", path=instance.data.get("output"),
+                              fix="drop dry_run from usdfaceOptions; preview with 'usdface personalize "
+                                  "AVATAR CAPTURE --dry-run'")
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
@@ -165,6 +173,8 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         options.setdefault("force", bool(instance.data.get("force", False)))
         if "inspect" in instance.data:
             options.setdefault("inspect", bool(instance.data["inspect"]))
+        if instance.data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in
+            options["take"] = instance.data["take"]                  # the layer as on the review page
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
         result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
         written = Path(getattr(result, "out_path", None) or output)
@@ -197,8 +207,9 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         from ..commands.review import default_output
 
         layer = Path(instance.data["usdfaceLayer"])
-        page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
-                            take=instance.data.get("take"), force=bool(instance.data.get("force", False)))
+        take = instance.data.get("take") or (instance.data.get("usdfaceOptions") or {}).get("take")
+        page = write_review(layer, default_output(layer), capture=instance.data.get("capture"), take=take,
+                            force=bool(instance.data.get("force", False)))
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(

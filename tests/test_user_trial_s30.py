@@ -1,0 +1,97 @@
+"""Defects found by a pipeline TD's trial of the docs (session 30): the Pyblish hook, chained workflows,
+stale figures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+@pytest.fixture
+def pyblish_registered():
+    api = pytest.importorskip("pyblish.api")
+    from usdface.pipeline import pyblish_plugins
+
+    api.deregister_all_plugins()
+    pyblish_plugins.register()
+    yield api
+    api.deregister_all_plugins()
+
+
+def _publish(api, items):
+    import pyblish.util
+
+    context = api.Context()
+    context.data["usdfaceItems"] = items
+    pyblish.util.publish(context)
+    return context, {(r["plugin"].__name__, None if r["instance"] is None else r["instance"].name): r
+                     for r in context.data["results"]}
+
+
+def _small_take(path: Path) -> Path:
+    """A Live Link Face CSV of 30 rows at 30 fps (jawOpen and a smile)."""
+    import csv
+
+    import numpy as np
+
+    from usdface.arkit import ARKIT_NAMES, livelink_name
+    from usdface.io.livelink import ANGLE_COLUMNS
+
+    t = np.arange(30)
+    w = np.zeros((30, len(ARKIT_NAMES)))
+    w[:, ARKIT_NAMES.index("jawOpen")] = np.sin(np.pi * t / 29)
+    w[:, ARKIT_NAMES.index("mouthSmileLeft")] = 0.5 * np.sin(np.pi * t / 29) ** 2
+    with open(path, "w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in ARKIT_NAMES]
+                     + list(ANGLE_COLUMNS))
+        for i, row in enumerate(w):
+            out.writerow([f"10:00:00:{2 * i:02d}.000", 61] + [f"{x:.6f}" for x in row]
+                         + ["0"] * len(ANGLE_COLUMNS))
+    return path
+
+
+def test_publish_with_dry_run_fails_validation_not_the_extractor(pyblish_registered, samples, tmp_path,
+                                                                  monkeypatch):
+    """``usdfaceOptions`` ``{"dry_run": true}`` passed every validator; the extractor then ran the whole
+    personalization, wrote nothing and failed with 'o.usda: file not found (fix: pass an existing .usd file)'.
+    It fails validation now, naming dry_run and the fix (as ``usdface batch`` refuses such a row)."""
+    from usdface.pipeline import pyblish_plugins
+
+    ran = []
+    monkeypatch.setattr(pyblish_plugins.ExtractUsdFacePersonalized, "process",
+                        lambda self, instance: ran.append(1))
+    _, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "o.usda"), "usdfaceOptions": {"dry_run": True}}])
+    result = results[("ValidateUsdFaceOptions", "o")]
+    assert not result["success"]
+    assert "dry_run" in str(result["error"]) and "fix:" in str(result["error"])
+    assert ran == []
+
+
+def test_publish_take_plays_in_the_layer_as_on_the_review_page(pyblish_registered, samples, tmp_path):
+    """Instance data ``take`` reached the review page only: the layer's inspection animation (usdview) played
+    the test expressions without it, where ``usdface personalize --take FILE --review`` plays the take in
+    both. The take now goes to personalize too (it turns the inspection on, as ``--take`` does)."""
+    pytest.importorskip("usdface.transfer")
+    from pxr import Usd
+
+    take = _small_take(tmp_path / "take.csv")
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "person.usda"), "take": str(take), "review": True,
+         "usdfaceOptions": {"method": "dt"}}])
+    assert [str(r["error"]) for r in results.values() if not r["success"]] == []
+    instance = next(iter(context))
+    assert Path(instance.data["usdfaceReview"]).exists()
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    from usdface.io.usd_inspection import ANIMATION_NAME
+
+    anims = [p for p in stage.Traverse() if p.GetName() == ANIMATION_NAME]
+    assert anims, "no inspection animation in the published layer"
+    times = anims[0].GetAttribute("blendShapeWeights").GetTimeSamples()
+    assert len(times) >= 20 + 30     # the 20 test expressions, then the take's 30 frames
