@@ -95,3 +95,23 @@ def test_publish_take_plays_in_the_layer_as_on_the_review_page(pyblish_registere
     assert anims, "no inspection animation in the published layer"
     times = anims[0].GetAttribute("blendShapeWeights").GetTimeSamples()
     assert len(times) >= 20 + 30     # the 20 test expressions, then the take's 30 frames
+
+
+def test_pipeline_batch_examples_run_with_the_example_manifest(tmp_path):
+    """pipeline.md's 'usdface batch people.csv --set method=dt --force' with its own example manifest (whose
+    every row names its method) was refused: '--set method=dt reaches no row'. Every '--set' of the page's
+    batch commands must reach a row of the page's example manifest (the rule of usdface.pipeline.batch)."""
+    import re
+
+    from usdface.pipeline.batch import read_manifest
+
+    text = (DOCS / "pipeline.md").read_text()
+    example = re.search(r"```text\n(avatar,capture,output[^\n]*\n(?:[^\n`]+\n)+)```", text).group(1)
+    manifest = tmp_path / "people.csv"
+    manifest.write_text(example)
+    items = read_manifest(manifest)
+    sets = re.findall(r"usdface batch people\.csv[^\n#]*?--set (\w+)=", text)
+    assert sets, "no '--set' example left on the page"
+    for name in sets:
+        assert any(name not in item.options for item in items), (
+            f"pipeline.md: --set {name}=... reaches no row of the example manifest (each sets {name})")
