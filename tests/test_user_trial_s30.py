@@ -152,3 +152,39 @@ def test_sample_assets_page_states_the_figures_the_sample_gives(samples, persona
     fit = fit_personalized_shapes(capture)
     err = float(np.sqrt(np.mean(np.sum((fit.rig.deltas - cap_truth["deltas"]) ** 2, axis=-1)))) * 1e3
     assert abs(err - _doc_number(text, r"\| menzel \(default\) \| \*\*([0-9.]+)\*\*")) < 0.003, err
+
+
+def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_path):
+    """takes.md's advice for held-out frames that are all rests is '--test-every 5 --min-separation 0.2';
+    given exactly that, 'capture select' warned '(fix: ... --test-every 5 --min-separation 0.2)' again, and
+    without naming the take. It names the take and a --min-separation below the one given."""
+    import csv
+    import re
+
+    import numpy as np
+
+    from usdface import api
+    from usdface.arkit import ARKIT_NAMES, livelink_name
+    from usdface.io.livelink import ANGLE_COLUMNS
+
+    frames = 600                                            # 20 s at 30 fps: short expressions among rests
+    t = np.arange(frames)
+    w = np.zeros((frames, len(ARKIT_NAMES)))
+    for k, name in enumerate(("jawOpen", "eyeBlinkLeft", "mouthSmileLeft", "browInnerUp", "cheekPuff")):
+        w[:, ARKIT_NAMES.index(name)] = 0.9 * np.exp(-0.5 * ((t - 60 - 110 * k) / 2.0) ** 2)
+    take = tmp_path / "rests.csv"
+    with open(take, "w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in ARKIT_NAMES]
+                     + list(ANGLE_COLUMNS))
+        for i, row in enumerate(w):
+            out.writerow([f"10:00:{i // 30:02d}:{2 * (i % 30):02d}.000", 61] + [f"{x:.6f}" for x in row]
+                         + ["0"] * len(ANGLE_COLUMNS))
+    with pytest.warns(UserWarning, match="show no expression") as said:
+        api.select_capture_frames(take, test_every=5, min_separation=0.2)
+    message = next(str(m.message) for m in said if "show no expression" in str(m.message))
+    assert str(take) in message
+    fix = message.split("(fix: ", 1)[1]
+    suggested = float(re.search(r"--min-separation ([0-9.]+)'", fix).group(1))
+    assert suggested < 0.2, fix
+

@@ -190,12 +190,23 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
         p.start(f"select frames ({len(data.times)} frames)")
-        selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
-                                  test_every=test_every,
-                                  min_separation=max(1, round(min_separation * data.fps)))
-        if test_every > 0 and len(selection.test) == 0:
-            import warnings
+        import warnings
 
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            selection = select_frames(data.weights, names=data.names, threshold=threshold,
+                                      per_shape=per_shape, test_every=test_every,
+                                      min_separation=max(1, round(min_separation * data.fps)))
+        for w in caught:
+            message = str(w.message)
+            if "show no expression" in message:     # its fix named the take nowhere, and the options given
+                suggest = (f"--test-every {min(test_every, 5)} "     # (it told '--test-every 5
+                           f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
+                message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
+                           f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
+                           f"{take} -o capture.usda {suggest}')")
+            warnings.warn(message, w.category, stacklevel=2)
+        if test_every > 0 and len(selection.test) == 0:
             warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
                           f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
                           "refuse this capture); lower --min-separation or --test-every", UserWarning,
