@@ -188,3 +188,25 @@ def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_
     suggested = float(re.search(r"--min-separation ([0-9.]+)'", fix).group(1))
     assert suggested < 0.2, fix
 
+
+
+def test_publish_from_a_manifest_writes_the_review_page_and_forces_it(pyblish_registered, samples, tmp_path):
+    """A publish collected from a batch manifest (``context.data["usdfaceManifest"]``) could not ask for the
+    review page: a 'review' column became a personalize option and failed ValidateUsdFaceOptions as unknown.
+    And a 'force' column (or ``usdfaceOptions`` force) replaced the layer but not its review page, so the
+    second publish failed in ExtractUsdFaceReview with 'review page exists'."""
+    pytest.importorskip("usdface.transfer")
+    import pyblish.util
+
+    manifest = tmp_path / "publish.csv"
+    manifest.write_text("avatar,capture,output,method,review,force\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},person.usda,dt,true,true\n")
+    for _ in range(2):                                   # the second publish replaces the layer and the page
+        context = pyblish_registered.Context()
+        context.data["usdfaceManifest"] = str(manifest)
+        pyblish.util.publish(context)
+        assert [str(r["error"]) for r in context.data["results"] if not r["success"]] == []
+        instance = next(iter(context))
+        assert instance.data["usdfaceReview"] == str(tmp_path / "person.review.html")
+        assert "review" not in instance.data["usdfaceOptions"]
+    assert (tmp_path / "person.review.html").stat().st_size > 0

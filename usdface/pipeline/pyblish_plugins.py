@@ -52,8 +52,13 @@ class CollectUsdFaceItems(_pyblish.ContextPlugin):
         if manifest:
             from .batch import read_manifest
 
-            items += [dict(avatar=i.avatar, capture=i.capture, output=i.output, usdfaceOptions=i.options)
-                      for i in read_manifest(manifest)]
+            for i in read_manifest(manifest):
+                options = dict(i.options)
+                # 'review' is the publish's (ExtractUsdFaceReview), not personalize's: a manifest column
+                # 'review' failed ValidateUsdFaceOptions as an unknown personalize option
+                review = {"review": options.pop("review")} if "review" in options else {}
+                items.append(dict(avatar=i.avatar, capture=i.capture, output=i.output, **review,
+                                  usdfaceOptions=options))
         for item in items:
             name = Path(item["output"]).stem
             instance = context.create_instance(name, family=FAMILY)
@@ -207,9 +212,12 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         from ..commands.review import default_output
 
         layer = Path(instance.data["usdfaceLayer"])
-        take = instance.data.get("take") or (instance.data.get("usdfaceOptions") or {}).get("take")
+        options = instance.data.get("usdfaceOptions") or {}
+        take = instance.data.get("take") or options.get("take")
+        # the layer's force (instance data, or usdfaceOptions as a manifest's column gives it) is the page's
+        force = bool(instance.data.get("force", options.get("force", False)))
         page = write_review(layer, default_output(layer), capture=instance.data.get("capture"), take=take,
-                            force=bool(instance.data.get("force", False)))
+                            force=force)
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(
