@@ -210,3 +210,19 @@ def test_publish_from_a_manifest_writes_the_review_page_and_forces_it(pyblish_re
         assert instance.data["usdfaceReview"] == str(tmp_path / "person.review.html")
         assert "review" not in instance.data["usdfaceOptions"]
     assert (tmp_path / "person.review.html").stat().st_size > 0
+
+
+def test_personalize_avatar_landmarks_alone_writes_the_landmarks(samples, tmp_path):
+    """``personalize_avatar(..., landmarks=True)`` without ``inspect=True`` wrote a layer without landmarks
+    and said nothing (so did a batch row or a Pyblish ``usdfaceOptions`` with ``landmarks``), where
+    ``usdface personalize --landmarks`` implies ``--inspect``, as ``take=`` does in the API."""
+    pytest.importorskip("usdface.transfer")
+    from pxr import Usd
+
+    from usdface import api
+
+    out = api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "p.usda",
+                                 landmarks=True, method="dt").out_path
+    stage = Usd.Stage.Open(str(out))
+    points = [p for p in stage.Traverse() if p.GetTypeName() == "Points"]
+    assert points and points[0].GetName().endswith("_landmarks")

@@ -625,8 +625,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
         check_output_path(out_path, options.get("force", False), inputs=personalize_inputs(
             avatar_path, capture_path, take=take, **options))
-    if take is not None:
-        inspect = True
+    if take is not None or landmarks:    # as --take and --landmarks imply --inspect (landmarks=True alone
+        inspect = True                   # wrote no landmarks, without a word)
     capture_path = _read_pins_file(options, capture_path)
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)
