@@ -226,3 +226,22 @@ def test_personalize_avatar_landmarks_alone_writes_the_landmarks(samples, tmp_pa
     stage = Usd.Stage.Open(str(out))
     points = [p for p in stage.Traverse() if p.GetTypeName() == "Points"]
     assert points and points[0].GetName().endswith("_landmarks")
+
+
+def test_a_bad_source_date_epoch_is_one_line_with_the_fix_in_a_fresh_process(samples, tmp_path):
+    """usd-io.md: 'a SOURCE_DATE_EPOCH that is not a whole number is refused before any work'. In a fresh
+    process 'usdface personalize' died instead with numpy's f2py traceback ('ValueError: invalid literal for
+    int()', exit 1: scipy's import reads the variable); the check ran only at the layer's write. The command
+    now refuses it first: one line naming it and the fix, exit 2."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "SOURCE_DATE_EPOCH": "1.5", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    run = subprocess.run([sys.executable, "-m", "usdface", "personalize", str(samples / "avatar.usda"),
+                          str(samples / "capture.usda"), "-o", str(tmp_path / "p.usda")],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 2, run.stderr[-500:]
+    assert "Traceback" not in run.stderr
+    assert "SOURCE_DATE_EPOCH='1.5' is not a time" in run.stderr and "fix:" in run.stderr
+    assert not (tmp_path / "p.usda").exists()

@@ -605,7 +605,10 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
     layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    from .io.layers import source_date_epoch
     from .io.usd_rig import refuse_usdface_output
+
+    source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     from .transfer import personalize_avatar as _personalize
 
     refuse_usdface_output(avatar_path)
