@@ -245,3 +245,19 @@ def test_a_bad_source_date_epoch_is_one_line_with_the_fix_in_a_fresh_process(sam
     assert "Traceback" not in run.stderr
     assert "SOURCE_DATE_EPOCH='1.5' is not a time" in run.stderr and "fix:" in run.stderr
     assert not (tmp_path / "p.usda").exists()
+
+
+def test_publish_records_personalize_warnings_in_the_plugin_log(pyblish_registered, bench, tmp_path):
+    """The personalization's warnings (dev1: 23 training frames repeat another exactly; shapes the capture
+    barely shows) went to stderr as Python warnings, outside the publish's records, so a publish UI showed a
+    clean extraction. They are logged by the extractor and kept in ``instance.data["usdfaceWarnings"]``."""
+    pytest.importorskip("usdface.transfer")
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(bench / "dev1" / "avatar.usdc"), "capture": str(bench / "dev1" / "capture"),
+         "output": str(tmp_path / "person.usda")}])
+    extract = results[("ExtractUsdFacePersonalized", "person")]
+    assert extract["success"], extract["error"]
+    logged = [r.getMessage() for r in extract["records"] if r.levelname == "WARNING"]
+    assert any("repeat another frame exactly" in m for m in logged), logged
+    instance = next(iter(context))
+    assert set(logged) <= set(instance.data["usdfaceWarnings"])

@@ -29,6 +29,8 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
+import warnings
 from pathlib import Path
 
 try:
@@ -37,6 +39,26 @@ except ImportError as exc:  # pragma: no cover - exercised only without the opti
     raise ImportError("usdface's Pyblish plugins need pyblish-base: pip install 'usdface[pipeline]'") from exc
 
 FAMILY = "usdface.avatar"
+
+
+@contextlib.contextmanager
+def _warnings_to_log(plugin, instance, report_warnings=None):
+    """The Python warnings usdface gives while ``plugin`` runs (a capture's repeated frames, the shapes the
+    capture barely shows, ...) go to the plugin's log, which a publish UI shows, and to
+    ``instance.data["usdfaceWarnings"]``; they went to stderr only, outside the publish's records. The
+    host's filters stay (``-W error`` still fails); usdface's own are shown every time. Yields a list to
+    which the caller may add report notes (a personalize result's ``report["warnings"]``)."""
+    notes = [] if report_warnings is None else report_warnings
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.filterwarnings("always", module=r"usdface(\.|$)")
+        try:
+            yield notes
+        finally:
+            said = instance.data.setdefault("usdfaceWarnings", [])
+            for text in dict.fromkeys([str(w.message) for w in caught] + [str(n) for n in notes]):
+                if text not in said:
+                    said.append(text)
+                    plugin.log.warning(text)
 
 
 class CollectUsdFaceItems(_pyblish.ContextPlugin):
@@ -114,7 +136,8 @@ class ValidateUsdFaceCapture(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import read_capture
 
-        capture = read_capture(instance.data["capture"])
+        with _warnings_to_log(self, instance):
+            capture = read_capture(instance.data["capture"])
         instance.data["usdfaceCaptureSummary"] = {
             "vertices": int(capture.neutral.shape[0]), "shapes": len(capture.names),
             "train": len(capture.train), "test": len(capture.test)}
@@ -181,7 +204,11 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         if instance.data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in
             options["take"] = instance.data["take"]                  # the layer as on the review page
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
-        result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
+        with _warnings_to_log(self, instance) as notes:
+            result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
+            report = getattr(result, "report", None)
+            notes += [n for n in (report.get("warnings") or []) if isinstance(n, str)] \
+                if isinstance(report, dict) else []
         written = Path(getattr(result, "out_path", None) or output)
         errors = [i for i in check(written, name_map=options.get("name_map")) if i.severity == "error"]
         if errors:
