@@ -31,8 +31,8 @@ def _publish(api, items):
                      for r in context.data["results"]}
 
 
-def _small_take(path: Path) -> Path:
-    """A Live Link Face CSV of 30 rows at 30 fps (jawOpen and a smile)."""
+def _small_take(path: Path, peak: float = 1.0) -> Path:
+    """A Live Link Face CSV of 30 rows at 30 fps (jawOpen up to ``peak`` and a smile)."""
     import csv
 
     import numpy as np
@@ -42,7 +42,7 @@ def _small_take(path: Path) -> Path:
 
     t = np.arange(30)
     w = np.zeros((30, len(ARKIT_NAMES)))
-    w[:, ARKIT_NAMES.index("jawOpen")] = np.sin(np.pi * t / 29)
+    w[:, ARKIT_NAMES.index("jawOpen")] = peak * np.sin(np.pi * t / 29)
     w[:, ARKIT_NAMES.index("mouthSmileLeft")] = 0.5 * np.sin(np.pi * t / 29) ** 2
     with open(path, "w", newline="") as fh:
         out = csv.writer(fh)
@@ -261,3 +261,4 @@ def test_publish_records_personalize_warnings_in_the_plugin_log(pyblish_register
     assert any("repeat another frame exactly" in m for m in logged), logged
     instance = next(iter(context))
     assert set(logged) <= set(instance.data["usdfaceWarnings"])
+

@@ -243,8 +243,9 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         take = instance.data.get("take") or options.get("take")
         # the layer's force (instance data, or usdfaceOptions as a manifest's column gives it) is the page's
         force = bool(instance.data.get("force", options.get("force", False)))
-        page = write_review(layer, default_output(layer), capture=instance.data.get("capture"), take=take,
-                            force=force)
+        with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
+            page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
+                                take=take, force=force)
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(
