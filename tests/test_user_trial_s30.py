@@ -262,3 +262,18 @@ def test_publish_records_personalize_warnings_in_the_plugin_log(pyblish_register
     instance = next(iter(context))
     assert set(logged) <= set(instance.data["usdfaceWarnings"])
 
+
+
+def test_troubleshooting_quotes_the_check_message_of_the_blender_avatar(bench):
+    """troubleshooting.md quoted "channel 'browDownLeft2' looks like 'browDownLeft' (a DCC numeric suffix)"
+    for the bench's Blender export, as 'real output of usdface on real files'; check has said it once per
+    mesh for years ('50 channels look like ARKit names with a DCC numeric suffix: ...')."""
+    import re
+
+    from usdface.api import check
+
+    text = (DOCS / "troubleshooting.md").read_text()
+    quoted = re.search(r"\*\*`(WARNING \[ArkitNames\] /root/Avatar/Mouth/Mouth: [^`]*)`\*\*", text).group(1)
+    said = [f"{i.severity.upper()} [{i.rule}] {i.prim}: {i.message}"
+            for i in check(bench / "dev1" / "avatar_blender.usdc", pixar=False)]
+    assert any(line.startswith(quoted) for line in said), (quoted, said)
