@@ -277,3 +277,17 @@ def test_troubleshooting_quotes_the_check_message_of_the_blender_avatar(bench):
     said = [f"{i.severity.upper()} [{i.rule}] {i.prim}: {i.message}"
             for i in check(bench / "dev1" / "avatar_blender.usdc", pixar=False)]
     assert any(line.startswith(quoted) for line in said), (quoted, said)
+
+
+def test_dir_of_the_package_lists_the_api():
+    """api.md: 'every function is also available as usdface.<name>'; dir(usdface) (what IPython and a
+    shell's completion offer) listed none of them: they are loaded lazily."""
+    import sys
+
+    import usdface
+    from usdface import api
+
+    names = dir(usdface)
+    assert set(api.__all__) <= set(names) and "__version__" in names
+    assert "personalize_avatar" in names and usdface.personalize_avatar is api.personalize_avatar
+    assert "usdface.api" in sys.modules
