@@ -291,3 +291,18 @@ def test_dir_of_the_package_lists_the_api():
     assert set(api.__all__) <= set(names) and "__version__" in names
     assert "personalize_avatar" in names and usdface.personalize_avatar is api.personalize_avatar
     assert "usdface.api" in sys.modules
+
+
+def test_check_rules_as_a_string_are_rule_names(samples):
+    """``usdface.check(path, rules="ArkitNames")`` (one rule, as a Python user writes it; the CLI's
+    ``--rules ArkitNames,PointIndices`` form) failed with "unknown check rule(s) ['A', 'r', 'k', ...]": the
+    string was read letter by letter. A string is a rule name or comma-separated names."""
+    import pytest as _pytest
+
+    from usdface import api
+    from usdface.errors import UsdFaceError
+
+    assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames") == []
+    assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames, PointIndices") == []
+    with _pytest.raises(UsdFaceError, match=r"\['ArkitName'\]"):
+        api.check(samples / "avatar.usda", pixar=False, rules="ArkitName")
