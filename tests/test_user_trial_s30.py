@@ -306,3 +306,16 @@ def test_check_rules_as_a_string_are_rule_names(samples):
     assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames, PointIndices") == []
     with _pytest.raises(UsdFaceError, match=r"\['ArkitName'\]"):
         api.check(samples / "avatar.usda", pixar=False, rules="ArkitName")
+
+
+def test_evaluate_methods_takes_methods_as_a_string(samples):
+    """``evaluate_methods(capture, methods="menzel")`` failed with 'unknown method(s) in --methods: m, e,
+    n, z, e, l': the string was read letter by letter. One name or comma-separated names, as --methods."""
+    import warnings
+
+    from usdface import api
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = api.evaluate_methods(samples / "capture.usda", methods="dt")
+    assert "dt" in report["methods"] and "menzel" not in report["methods"]

@@ -411,6 +411,8 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     from .io.atomic import check_output_file
     from .personalize.report import evaluate_methods as _evaluate
 
+    if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
+        methods = [m.strip() for m in methods.split(",") if m.strip()]
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
