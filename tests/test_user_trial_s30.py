@@ -319,3 +319,17 @@ def test_evaluate_methods_takes_methods_as_a_string(samples):
         warnings.simplefilter("ignore")
         report = api.evaluate_methods(samples / "capture.usda", methods="dt")
     assert "dt" in report["methods"] and "menzel" not in report["methods"]
+
+
+def test_write_capture_takes_one_input_path(samples, tmp_path):
+    """``write_capture(capture, out, inputs="take.usda")`` (one path) took the string's characters as input
+    paths, '.' and '/' among them, and refused every output as 'inside the input folder /'."""
+    from usdface import api
+
+    capture = api.read_capture(samples / "capture.usda")
+    take = tmp_path / "take.usda"
+    take.write_text("#usda 1.0\n")
+    out = api.write_capture(capture, tmp_path / "c.usda", inputs=str(take), exact=False)
+    assert out.exists()
+    with pytest.raises(Exception, match="input"):
+        api.write_capture(capture, take, force=True, inputs=str(take))

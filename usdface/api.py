@@ -106,7 +106,11 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
     or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``.
     ``source`` and ``inputs`` (other files the capture was made from) are never overwritten, even with
-    ``force`` (:func:`check_capture_output`)."""
+    ``force`` (:func:`check_capture_output`); one path alone is one input."""
+    import os
+
+    if isinstance(inputs, str | os.PathLike):     # its characters were taken as paths: '.' and '/', so
+        inputs = [inputs]                         # every output was 'inside the input folder /'
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
