@@ -333,3 +333,16 @@ def test_write_capture_takes_one_input_path(samples, tmp_path):
     assert out.exists()
     with pytest.raises(Exception, match="input"):
         api.write_capture(capture, take, force=True, inputs=str(take))
+
+
+def test_compute_landmarks_refuses_a_camera_that_is_no_position_with_the_fix(samples):
+    """api.md: bad input raises a UsdFaceError subclass with the fix. ``compute_landmarks(avatar,
+    camera="0,1.6,0.35")`` (the CLI's spelling) died with numpy's 'ValueError: could not convert string to
+    float' from inside the visibility code."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+
+    for bad in ("0,1.6,0.35", (0, 1.6), (0, float("nan"), 1)):
+        with pytest.raises(LandmarkError, match="camera") as err:
+            api.compute_landmarks(samples / "avatar.usda", camera=bad)
+        assert "fix:" in str(err.value)
