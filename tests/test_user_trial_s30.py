@@ -346,3 +346,15 @@ def test_compute_landmarks_refuses_a_camera_that_is_no_position_with_the_fix(sam
         with pytest.raises(LandmarkError, match="camera") as err:
             api.compute_landmarks(samples / "avatar.usda", camera=bad)
         assert "fix:" in str(err.value)
+
+
+def test_a_numeric_string_mu_is_the_number_not_a_late_value_error(samples, tmp_path):
+    """``personalize_avatar(..., mu="0.01")`` passed the options' check (a numeric string counts, as the CLI
+    reads it) and then died after the registration and the fit with retarget's bare 'ValueError: mu must be
+    a number or 'auto', not '0.01''. It is the number 0.01, as ``reg="1e-3"`` is for the fit."""
+    pytest.importorskip("usdface.transfer")
+    from usdface import api
+
+    result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "m.json",
+                                    mu="0.01", method="dt")
+    assert result.report["retarget"]["mu"] == pytest.approx(0.01)
