@@ -358,3 +358,35 @@ def test_a_numeric_string_mu_is_the_number_not_a_late_value_error(samples, tmp_p
     result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "m.json",
                                     mu="0.01", method="dt")
     assert result.report["retarget"]["mu"] == pytest.approx(0.01)
+
+
+def test_rewriting_a_selected_capture_keeps_its_frame_selection_record(tmp_path):
+    """capture-format.md: a capture made by 'usdface capture select' keeps its frame-selection record
+    (customLayerData takeSelection). 'usdface capture import capture.usdc -o capture.usda' (rewriting it, as
+    the command offers) dropped it: the reader did not read it back."""
+    import json
+
+    import numpy as np
+    from pxr import Sdf
+
+    from usdface import api
+    from usdface.io.take import Take, write_take_usd
+    from usdface.sample import build_samples
+
+    data = build_samples(0)
+    capture = data["capture"]
+    rig = capture.template
+    frames = 40
+    t = np.arange(frames)
+    w = np.zeros((frames, len(rig.names)))
+    for k in range(4):                                     # four shapes, one bump each
+        w[:, k] = 0.9 * np.exp(-0.5 * ((t - 5 - 10 * k) / 1.5) ** 2)
+    take = Take(weights=w, names=list(rig.names), times=t / 10.0,
+                points=rig.neutral[None] + np.einsum("fk,knd->fnd", w, rig.deltas),
+                triangles=rig.triangles, neutral=rig.neutral, template=rig)
+    write_take_usd(take, tmp_path / "take.usdc")
+    api.select_capture_frames(tmp_path / "take.usdc", tmp_path / "sel.usdc", threshold=0.5)
+    first = Sdf.Layer.FindOrOpen(str(tmp_path / "sel.usdc")).customLayerData["usdface"]["takeSelection"]
+    api.import_capture_folder(tmp_path / "sel.usdc", tmp_path / "again.usda")
+    again = Sdf.Layer.FindOrOpen(str(tmp_path / "again.usda")).customLayerData["usdface"].get("takeSelection")
+    assert again is not None and json.loads(again) == json.loads(first)
