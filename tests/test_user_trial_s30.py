@@ -390,3 +390,33 @@ def test_rewriting_a_selected_capture_keeps_its_frame_selection_record(tmp_path)
     api.import_capture_folder(tmp_path / "sel.usdc", tmp_path / "again.usda")
     again = Sdf.Layer.FindOrOpen(str(tmp_path / "again.usda")).customLayerData["usdface"].get("takeSelection")
     assert again is not None and json.loads(again) == json.loads(first)
+
+
+def test_publish_layer_and_review_page_play_the_same_take(pyblish_registered, samples, tmp_path, monkeypatch):
+    """With a take both in ``usdfaceOptions`` and in the instance data, the layer's inspection played the
+    options' one and the review page the instance's; both play the one personalize gets."""
+    from types import SimpleNamespace
+
+    from usdface import api
+    from usdface.pipeline import pyblish_plugins
+
+    got = {}
+
+    def personalize(avatar, capture, output, **options):
+        got["layer"] = options.get("take")
+        Path(output).write_text("#usda 1.0\n")
+        return SimpleNamespace(out_path=Path(output), report={"warnings": []})
+
+    def write_review(layer, out, *, capture=None, take=None, force=False):
+        got["page"] = take
+        return Path(out)
+
+    monkeypatch.setattr(pyblish_plugins.ExtractUsdFacePersonalized, "personalize", staticmethod(personalize))
+    monkeypatch.setattr(api, "write_review", write_review)
+    monkeypatch.setattr(api, "check", lambda *a, **k: [])
+    _, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "p.usda"), "take": "instance.csv", "review": True,
+         "usdfaceOptions": {"take": "options.csv"}}])
+    assert [str(r["error"]) for r in results.values() if not r["success"]] == []
+    assert got == {"layer": "options.csv", "page": "options.csv"}

@@ -240,7 +240,7 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
 
         layer = Path(instance.data["usdfaceLayer"])
         options = instance.data.get("usdfaceOptions") or {}
-        take = instance.data.get("take") or options.get("take")
+        take = options.get("take") or instance.data.get("take")   # the take the layer plays (extractor)
         # the layer's force (instance data, or usdfaceOptions as a manifest's column gives it) is the page's
         force = bool(instance.data.get("force", options.get("force", False)))
         with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
