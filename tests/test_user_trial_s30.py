@@ -420,3 +420,17 @@ def test_publish_layer_and_review_page_play_the_same_take(pyblish_registered, sa
          "usdfaceOptions": {"take": "options.csv"}}])
     assert [str(r["error"]) for r in results.values() if not r["success"]] == []
     assert got == {"layer": "options.csv", "page": "options.csv"}
+
+
+def test_landmarks_says_every_file_it_wrote(samples, tmp_path, capsys):
+    """landmarks.md's 'usdface landmarks avatar.usdc -o landmarks.usda --json layout.json --plot layout.png'
+    printed 'wrote landmarks.usda' only; the JSON and the picture were written without a word (evaluate and
+    render name each file they write)."""
+    from usdface.cli import main
+
+    out = [tmp_path / "landmarks.usda", tmp_path / "layout.json", tmp_path / "layout.png"]
+    assert main(["landmarks", str(samples / "avatar.usda"), "-o", str(out[0]), "--json", str(out[1]),
+                 "--plot", str(out[2]), "-q"]) == 0
+    said = capsys.readouterr().out
+    for path in out:
+        assert path.exists() and f"wrote {path}" in said
