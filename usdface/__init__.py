@@ -24,3 +24,9 @@ def __getattr__(name):
 
         return getattr(api, name)
     raise AttributeError(name)
+
+
+def __dir__():
+    """The lazily re-exported API among the module's names (``dir(usdface)``, a shell's completion), which
+    listed none of them."""
+    return sorted(set(globals()) | _API)

@@ -107,7 +107,11 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     ``exact=False`` stores USD geometry as float32 only (half the size, not bit-exact). ``source``: the file
     or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``.
     ``source`` and ``inputs`` (other files the capture was made from) are never overwritten, even with
-    ``force`` (:func:`check_capture_output`)."""
+    ``force`` (:func:`check_capture_output`); one path alone is one input."""
+    import os
+
+    if isinstance(inputs, str | os.PathLike):     # its characters were taken as paths: '.' and '/', so
+        inputs = [inputs]                         # every output was 'inside the input folder /'
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
@@ -191,12 +195,23 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
         p.start(f"select frames ({len(data.times)} frames)")
-        selection = select_frames(data.weights, names=data.names, threshold=threshold, per_shape=per_shape,
-                                  test_every=test_every,
-                                  min_separation=max(1, round(min_separation * data.fps)))
-        if test_every > 0 and len(selection.test) == 0:
-            import warnings
+        import warnings
 
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            selection = select_frames(data.weights, names=data.names, threshold=threshold,
+                                      per_shape=per_shape, test_every=test_every,
+                                      min_separation=max(1, round(min_separation * data.fps)))
+        for w in caught:
+            message = str(w.message)
+            if "show no expression" in message:     # its fix named the take nowhere, and the options given
+                suggest = (f"--test-every {min(test_every, 5)} "     # (it told '--test-every 5
+                           f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
+                message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
+                           f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
+                           f"{take} -o capture.usda {suggest}')")
+            warnings.warn(message, w.category, stacklevel=2)
+        if test_every > 0 and len(selection.test) == 0:
             warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
                           f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
                           "refuse this capture); lower --min-separation or --test-every", UserWarning,
@@ -430,6 +445,8 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     from .io.atomic import check_output_file
     from .personalize.report import evaluate_methods as _evaluate
 
+    if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
+        methods = [m.strip() for m in methods.split(",") if m.strip()]
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
@@ -624,7 +641,10 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
     layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    from .io.layers import source_date_epoch
     from .io.usd_rig import refuse_usdface_output
+
+    source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     from .transfer import personalize_avatar as _personalize
 
     refuse_usdface_output(avatar_path)
@@ -644,8 +664,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
         check_output_path(out_path, options.get("force", False), inputs=personalize_inputs(
             avatar_path, capture_path, take=take, **options))
-    if take is not None:
-        inspect = True
+    if take is not None or landmarks:    # as --take and --landmarks imply --inspect (landmarks=True alone
+        inspect = True                   # wrote no landmarks, without a word)
     capture_path = _read_pins_file(options, capture_path)
     if not inspect:
         return _personalize(avatar_path, capture_path, out_path, **options)

@@ -172,6 +172,10 @@ def _main(argv=None) -> int:
             # third-party import machinery (six's importer under Dask) is not the user's business
             warnings.filterwarnings("ignore", category=ImportWarning)
             warnings.showwarning = lambda message, *_a, **_k: say_warning(message)
+            if os.environ.get("SOURCE_DATE_EPOCH", "").strip():   # before scipy's import reads it
+                from .io.layers import source_date_epoch
+
+                source_date_epoch()
             code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit
         return code

@@ -161,6 +161,9 @@ def run(args) -> int:
             best = report.best_per_count(method)
             print(f"{method} RMSE (mm) by landmark count: "
                   + ", ".join(f"{m}: {v * 1e3:.3f}" for m, v in best.items()))
+        for out in (args.json_out, args.plot):     # as 'evaluate' says each file it wrote
+            if out:
+                print(f"wrote {out}")
         return 0
     with steps("landmarks", 1 + bool(args.output)) as p:
         p.start(f"layout of {rig.name}")
@@ -195,6 +198,7 @@ def run(args) -> int:
         say_warning(w)
     if layout.uncoverable:
         print(f"uncoverable at epsilon {layout.epsilon:g}: {', '.join(layout.uncoverable)}")
-    if args.output:
-        print(f"wrote {args.output}")
+    for out in (args.output, args.json_out, args.plot):   # the JSON and the picture were written unsaid
+        if out:
+            print(f"wrote {out}")
     return 0

@@ -617,21 +617,28 @@ def _reproducible() -> bool:
     return bool(os.environ.get("SOURCE_DATE_EPOCH", "").strip())
 
 
+def source_date_epoch() -> _dt.datetime | None:
+    """``SOURCE_DATE_EPOCH`` (whole seconds since 1970) as a UTC time, None when unset; a value that is not
+    a whole number is refused (:class:`usdface.errors.UsdFaceError`). The command line checks it before
+    any work: numpy's f2py (which scipy imports) reads it with ``int()`` at import and died with a bare
+    ``ValueError`` traceback."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if not epoch:
+        return None
+    try:
+        return _dt.datetime.fromtimestamp(int(epoch), _dt.UTC)
+    except (ValueError, OverflowError, OSError):
+        from ..errors import UsdFaceError
+
+        raise UsdFaceError(f"SOURCE_DATE_EPOCH={epoch!r} is not a time",
+                           fix="set it to whole seconds since 1970-01-01 UTC (e.g. $(git log -1 "
+                               "--format=%ct)), or unset it") from None
+
+
 def _created_at() -> str:
     """The layer's ``createdAt`` (UTC, ISO 8601): now, or ``SOURCE_DATE_EPOCH`` (seconds since 1970) when
     set; a value that is not a whole number is refused (:class:`usdface.errors.UsdFaceError`)."""
-    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
-    if epoch:
-        try:
-            when = _dt.datetime.fromtimestamp(int(epoch), _dt.UTC)
-        except (ValueError, OverflowError, OSError):
-            from ..errors import UsdFaceError
-
-            raise UsdFaceError(f"SOURCE_DATE_EPOCH={epoch!r} is not a time",
-                               fix="set it to whole seconds since 1970-01-01 UTC (e.g. $(git log -1 "
-                                   "--format=%ct)), or unset it") from None
-    else:
-        when = _dt.datetime.now(_dt.UTC)
+    when = source_date_epoch() or _dt.datetime.now(_dt.UTC)
     return when.strftime("%Y-%m-%dT%H:%M:%SZ")
 
 

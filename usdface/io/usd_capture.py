@@ -445,5 +445,25 @@ def read_capture_usd(path) -> Capture:
                 "name_report": {"inexact": match.inexact, "unknown": match.unknown, "missing": match.missing},
                 "counts": {r: int(sum(x == r for x in role)) for r in ROLES},
                 "device": str(root_attr.Get() or "") if root_attr else ""}
+    metadata.update(_take_selection(stage))
     return Capture(neutral, triangles, template, Frames(pts, w, role, label), list(template.names),
                    source=str(path), metadata=metadata)
+
+
+def _take_selection(stage) -> dict:
+    """``{"take": ..., "take_frames": [...]}`` from the frame-selection record a capture made by ``usdface
+    capture select`` keeps (``customLayerData["usdface"]["takeSelection"]``), so that rewriting the capture
+    (``capture import capture.usdc -o capture.usda``, :func:`usdface.api.write_capture`) keeps it; it was
+    dropped. ``{}`` without one (or an unreadable one: it is a record, not the capture's data)."""
+    import json
+
+    data = dict(stage.GetRootLayer().customLayerData).get("usdface")
+    text = data.get("takeSelection") if hasattr(data, "get") else None
+    try:
+        record = json.loads(text) if isinstance(text, str) else None
+    except ValueError:
+        return {}
+    if not isinstance(record, dict):
+        return {}
+    frames = record.pop("take_frames", [])
+    return {"take": record, "take_frames": frames if isinstance(frames, list) else []}

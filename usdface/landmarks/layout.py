@@ -276,6 +276,15 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
         raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
                             fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
+    if camera is not None:                 # a string ('0,1.6,0.35', the CLI's form) died in float()
+        try:
+            camera = np.asarray(camera, dtype=np.float64).reshape(3)
+            ok = bool(np.isfinite(camera).all())
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise LandmarkError(f"camera {camera!r} is not a position", fix="pass three finite numbers "
+                                "(x, y, z) in metres, usdface's Y-up frame, e.g. camera=(0, 1.6, 0.35)")
     mag, static = _validate(rig, ignore_static)
     timings: dict[str, float] = {}
     warnings: list[str] = []

@@ -118,14 +118,17 @@ def _prim_in(text: str) -> str:
 def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
-    ``rules`` selects rule ids from :data:`RULES` (default: all); ``name_map`` ({studio channel: ARKit name},
-    :func:`usdface.io.name_map.read_name_map`; default: the one a usdface layer records,
-    :func:`usdface.io.usd_rig.recorded_name_map`) is used by the name rules. Never modifies the stage.
+    ``rules`` selects rule ids from :data:`RULES` (default: all; a string is one name or comma-separated
+    names); ``name_map`` ({studio channel: ARKit name}, :func:`usdface.io.name_map.read_name_map`; default:
+    the one a usdface layer records, :func:`usdface.io.usd_rig.recorded_name_map`) is used by the name
+    rules. Never modifies the stage.
     """
     if name_map is None:
         from ..io.usd_rig import recorded_name_map
 
         name_map = recorded_name_map(stage)
+    if isinstance(rules, str):        # 'ArkitNames' or 'ArkitNames,PointIndices' (as --rules takes them):
+        rules = [r.strip() for r in rules.split(",") if r.strip()]    # list() made letters of it
     chosen = list(RULES) if rules is None else list(rules)
     unknown = [r for r in chosen if r not in RULES]
     if unknown:

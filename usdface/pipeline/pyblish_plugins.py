@@ -29,6 +29,8 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
+import warnings
 from pathlib import Path
 
 try:
@@ -37,6 +39,26 @@ except ImportError as exc:  # pragma: no cover - exercised only without the opti
     raise ImportError("usdface's Pyblish plugins need pyblish-base: pip install 'usdface[pipeline]'") from exc
 
 FAMILY = "usdface.avatar"
+
+
+@contextlib.contextmanager
+def _warnings_to_log(plugin, instance, report_warnings=None):
+    """The Python warnings usdface gives while ``plugin`` runs (a capture's repeated frames, the shapes the
+    capture barely shows, ...) go to the plugin's log, which a publish UI shows, and to
+    ``instance.data["usdfaceWarnings"]``; they went to stderr only, outside the publish's records. The
+    host's filters stay (``-W error`` still fails); usdface's own are shown every time. Yields a list to
+    which the caller may add report notes (a personalize result's ``report["warnings"]``)."""
+    notes = [] if report_warnings is None else report_warnings
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.filterwarnings("always", module=r"usdface(\.|$)")
+        try:
+            yield notes
+        finally:
+            said = instance.data.setdefault("usdfaceWarnings", [])
+            for text in dict.fromkeys([str(w.message) for w in caught] + [str(n) for n in notes]):
+                if text not in said:
+                    said.append(text)
+                    plugin.log.warning(text)
 
 
 class CollectUsdFaceItems(_pyblish.ContextPlugin):
@@ -52,8 +74,13 @@ class CollectUsdFaceItems(_pyblish.ContextPlugin):
         if manifest:
             from .batch import read_manifest
 
-            items += [dict(avatar=i.avatar, capture=i.capture, output=i.output, usdfaceOptions=i.options)
-                      for i in read_manifest(manifest)]
+            for i in read_manifest(manifest):
+                options = dict(i.options)
+                # 'review' is the publish's (ExtractUsdFaceReview), not personalize's: a manifest column
+                # 'review' failed ValidateUsdFaceOptions as an unknown personalize option
+                review = {"review": options.pop("review")} if "review" in options else {}
+                items.append(dict(avatar=i.avatar, capture=i.capture, output=i.output, **review,
+                                  usdfaceOptions=options))
         for item in items:
             name = Path(item["output"]).stem
             instance = context.create_instance(name, family=FAMILY)
@@ -109,7 +136,8 @@ class ValidateUsdFaceCapture(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import read_capture
 
-        capture = read_capture(instance.data["capture"])
+        with _warnings_to_log(self, instance):
+            capture = read_capture(instance.data["capture"])
         instance.data["usdfaceCaptureSummary"] = {
             "vertices": int(capture.neutral.shape[0]), "shapes": len(capture.names),
             "train": len(capture.train), "test": len(capture.test)}
@@ -137,7 +165,15 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
                                                     if issubclass(p, ExtractUsdFacePersonalized))]
         if any(p.personalize is not ExtractUsdFacePersonalized.default_personalize for p in extractors):
             return
-        check_personalize_options(**dict(instance.data.get("usdfaceOptions") or {}))
+        options = dict(instance.data.get("usdfaceOptions") or {})
+        check_personalize_options(**options)
+        if options.get("dry_run"):        # nothing written: the extractor failed on the missing layer
+            from ..errors import OptionError
+
+            raise OptionError("usdfaceOptions dry_run=True writes no layer, and a publish is the layer it "
+                              "writes", path=instance.data.get("output"),
+                              fix="drop dry_run from usdfaceOptions; preview with 'usdface personalize "
+                                  "AVATAR CAPTURE --dry-run'")
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
@@ -165,8 +201,14 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         options.setdefault("force", bool(instance.data.get("force", False)))
         if "inspect" in instance.data:
             options.setdefault("inspect", bool(instance.data["inspect"]))
+        if instance.data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in
+            options["take"] = instance.data["take"]                  # the layer as on the review page
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
-        result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
+        with _warnings_to_log(self, instance) as notes:
+            result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
+            report = getattr(result, "report", None)
+            notes += [n for n in (report.get("warnings") or []) if isinstance(n, str)] \
+                if isinstance(report, dict) else []
         written = Path(getattr(result, "out_path", None) or output)
         errors = [i for i in check(written, name_map=options.get("name_map")) if i.severity == "error"]
         if errors:
@@ -197,8 +239,13 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         from ..commands.review import default_output
 
         layer = Path(instance.data["usdfaceLayer"])
-        page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
-                            take=instance.data.get("take"), force=bool(instance.data.get("force", False)))
+        options = instance.data.get("usdfaceOptions") or {}
+        take = options.get("take") or instance.data.get("take")   # the take the layer plays (extractor)
+        # the layer's force (instance data, or usdfaceOptions as a manifest's column gives it) is the page's
+        force = bool(instance.data.get("force", options.get("force", False)))
+        with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
+            page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
+                                take=take, force=force)
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(

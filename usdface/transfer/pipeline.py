@@ -594,6 +594,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     report: dict = {"warnings": []}
     approximation = _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
     check_numbers(mu=mu, extension_length=extension_length, falloff=falloff, support=support)
+    # a numeric string passes the check (as the CLI's "0.01" does), and is the number from here on: mu="0.01"
+    # went on to retarget_weights' ValueError after the registration and the fit
+    mu, extension_length, falloff = (float(v) if isinstance(v, str) and v != "auto" else v
+                                     for v in (mu, extension_length, falloff))
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
 
