@@ -31,7 +31,7 @@ from ..memory import release_free_memory
 from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
 from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion, shape_norms
-from ..personalize.api import single_threaded_blas
+from ..personalize.api import WEIGHT_NOISE, single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
@@ -130,8 +130,6 @@ def default_approximation(face_transfer: str) -> str:
 #: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
 #: left a step where the direct result and the field differ), and more on finer meshes.
 SEAM_BAND = 0.2
-#: The phone's weights are uncertain by about this much (ARKit reports, per frame and shape).
-WEIGHT_NOISE = 0.04
 #: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
 #: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
 #: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
@@ -1311,6 +1309,23 @@ def lip_report(points, triangles, names, generic, output) -> dict:
     return out
 
 
+def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.ndarray:
+    """``[K]`` in [0, 1]: how far each shape's personalization ``D = deltas - prior`` (``[K,n,3]`` on the
+    capture, metres) stands above the change the weights' noise makes in it (``sensitivity[K,n,3]``,
+    :func:`usdface.personalize.api.weight_sensitivity`): the positive-part James-Stein factor ``max(0, 1 -
+    s^2 / d^2)`` with ``s^2``, ``d^2`` the mean squared sensitivity and personalization over the vertices the
+    personalization moves (more than ``moving`` of its peak). A shape the weights' errors decide stays near
+    the prior, the avatar's own shape."""
+    d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
+    d2 = np.einsum("knc,knc->kn", d, d)
+    s = np.asarray(sensitivity, dtype=np.float64)
+    s2 = np.einsum("knc,knc->kn", s, s)
+    mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
+    count = np.maximum(mov.sum(axis=1), 1)
+    return np.clip(1.0 - (np.sum(s2 * mov, axis=1) / count)
+                   / np.maximum(np.sum(d2 * mov, axis=1) / count, 1e-300), 0.0, 1.0)
+
+
 def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict]:
     """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
     weakly (:func:`_weak_ramp`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
@@ -1327,7 +1342,14 @@ def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
     ramp, info = _weak_ramp(capture, excitation, cap_idx)
     share = fit.info.get("shape_confidence")
     if CONFIDENCE == "fit" and share is not None:
-        return np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp, info
+        trust = np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp
+        sens = fit.info.get("weight_sensitivity")
+        if sens is not None and fit.info.get("prior_deltas") is not None:
+            # and no more than the personalization stands above what the weights' noise makes of it
+            trust = np.minimum(trust, sensitivity_trust(np.asarray(fit.rig.deltas)[cap_idx],
+                                                        np.asarray(fit.info["prior_deltas"])[cap_idx],
+                                                        np.asarray(sens)[cap_idx]))
+        return trust, info
     loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
     if loo is None:
         return ramp, info
