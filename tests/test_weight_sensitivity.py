@@ -42,7 +42,8 @@ def test_a_spurious_small_weight_of_a_large_shape_makes_the_shape_it_leaks_into_
     assert cap.train.weights[frame, j] > 0.04                 # the spurious weight the test is about
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fit = fit_personalized_shapes(cap)
+        assert "weight_sensitivity" not in fit_personalized_shapes(cap).info      # only when asked for
+        fit = fit_personalized_shapes(cap, sensitivity=True)
     sens = np.asarray(fit.info["weight_sensitivity"])
     assert sens.shape == fit.rig.deltas.shape
     rms = np.sqrt(np.mean(np.sum(sens ** 2, axis=-1), axis=1))
@@ -50,7 +51,7 @@ def test_a_spurious_small_weight_of_a_large_shape_makes_the_shape_it_leaks_into_
     assert "sensitivity" in fit.info["timings"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        assert "weight_sensitivity" not in fit_personalized_shapes(cap, method="dt").info
+        assert "weight_sensitivity" not in fit_personalized_shapes(cap, method="dt", sensitivity=True).info
 
 
 def test_no_shape_of_an_artist_template_capture_lands_worse_than_generic(tmp_path):

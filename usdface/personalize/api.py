@@ -286,7 +286,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                             align: bool | None = None, reweight: bool | None = None, eyelids: bool = True,
                             clamp: float = D_CLAMP, weight_sigma="auto", rounds: int = 2,
                             avatar_prior=None, frame_weights=None, pins=None, contact: str = "auto",
-                            every: int = 1, **options) -> FitResult:
+                            every: int = 1, sensitivity: bool = False, **options) -> FitResult:
     """Personalized blendshapes on the capture mesh.
 
     Parameters
@@ -350,6 +350,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         template's) before and after.
         Menzel/laplacian (``"on"`` with another method is refused).
     eyelids : virtual eyelid triangles in the deformation transfer.
+    sensitivity : also measure each shape's sensitivity to the weights' noise, ``info["weight_sensitivity"]``
+        (:func:`weight_sensitivity`; menzel on a capture of picked frames; one more re-estimation and solve,
+        ~0.03 s on dev1): what the implant trusts a shape by (``personalize`` asks for it).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
@@ -561,7 +564,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         t1 = time.perf_counter()
         res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         # picked frames (a take has its own noise model); menzel (a Laplacian solve costs seconds)
-        if method == "menzel" and frame_weights is None and len(w_cur):
+        if sensitivity and method == "menzel" and frame_weights is None and len(w_cur):
             info["weight_sensitivity"] = weight_sensitivity(
                 capture.neutral, points, w_cur, deltas, res, lambda w: solve(points, w, lam))
             timings["sensitivity"] = time.perf_counter() - t1

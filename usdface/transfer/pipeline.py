@@ -1095,7 +1095,8 @@ def _fit(capture, names, generic_on_capture, prior, method, reg, fit_options):
         full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
         full[[list(capture.names).index(n) for n in names]] = generic_on_capture
         extra["avatar_prior"] = full
-    return fit_personalized_shapes(capture, method=method, reg=reg, **extra, **fit_options)
+    # the implant's trust reads each shape's sensitivity to the weights' noise (sensitivity_trust)
+    return fit_personalized_shapes(capture, method=method, reg=reg, sensitivity=True, **extra, **fit_options)
 
 
 def _repair_lids(avatar, face, regions, eyes, result, generic, report) -> np.ndarray:
