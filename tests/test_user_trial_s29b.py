@@ -293,3 +293,22 @@ def test_the_retarget_map_does_not_drive_the_tongue_to_match_a_few_face_rows(tmp
     tongue = [doc["weights"][j][doc["target"].index("tongueOut")] for j, s in enumerate(doc["source"])
               if s != "tongueOut"]
     assert max(tongue) < 0.1
+
+
+def test_api_arguments_of_the_wrong_kind_are_refused_with_the_fix(tmp_path):
+    """A docs walk-through: ``select_capture_frames(take, per_shape=1.5)`` / ``test_every="5"`` died with
+    numpy's TypeError, ``write_fit_rig("x", out)`` with AttributeError; each is a UsdFaceError naming the
+    argument and the fix, before any work."""
+    import usdface
+    from usdface.errors import CaptureError, UsdFaceError
+
+    take = tmp_path / "t.csv"
+    write_livelink_csv(take, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    for kw, word in (({"per_shape": 1.5}, "per_shape"), ({"test_every": "5"}, "test_every"),
+                     ({"per_shape": True}, "per_shape"), ({"threshold": "x"}, "threshold"),
+                     ({"min_separation": -1}, "min_separation")):
+        with pytest.raises(CaptureError, match=word):
+            usdface.select_capture_frames(take, **kw)
+    with pytest.raises(UsdFaceError, match="FitResult or a FaceRig") as err:
+        usdface.write_fit_rig("x", tmp_path / "o.usda")
+    assert "fit_capture" in err.value.fix and not (tmp_path / "o.usda").exists()

@@ -184,10 +184,22 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
 
     if isinstance(template, Capture):   # a capture read already: its template rig, as --template CAPTURE
         template = template.template
-    if not 0.0 <= threshold <= 1.0:        # as the command line's options refuse them
+    import numpy as np
+
+    from .personalize.api import check_number
+
+    # as the command line's options refuse them (a string or a fraction died in numpy with a TypeError)
+    threshold = check_number("threshold", threshold, low=0.0, inclusive=True, error=CaptureError,
+                             fix="pass a weight in [0, 1] (0.5)")
+    if threshold > 1.0:
         raise CaptureError(f"threshold {threshold:g} is outside [0, 1]", fix="pass a weight in [0, 1] (0.5)")
-    if min_separation < 0:
-        raise CaptureError(f"min_separation {min_separation:g} s is below 0", fix="pass seconds >= 0 (0.5)")
+    min_separation = check_number("min_separation", min_separation, low=0.0, inclusive=True,
+                                  error=CaptureError, fix="pass seconds >= 0 (0.5)")
+    for name, value, low in (("per_shape", per_shape, 1), ("test_every", test_every, 0)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            hint = " (0: no test frames)" if low == 0 else ""
+            raise CaptureError(f"bad {name} {value!r}: expected a whole number >= {low}",
+                               fix=f"pass {name}={max(low, 1)}{hint}")
     if out_path is not None:
         check_capture_output(out_path, force, inputs=[take, template])
     _refuse_capture_as_take(take)
@@ -368,6 +380,13 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     from . import __version__
     from .io.avatar_writer import write_rig_usd
     from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
+    from .model import FaceRig
+
+    if not isinstance(getattr(fit, "rig", fit), FaceRig):
+        from .errors import UsdFaceError
+
+        raise UsdFaceError(f"write_fit_rig takes a FitResult or a FaceRig, not {type(fit).__name__}",
+                           path=out_path, fix="pass what fit_capture / fit_personalized_shapes returned")
 
     out = check_output_path(out_path, force)
     info = getattr(fit, "info", None) or {}
