@@ -1172,8 +1172,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
       (:func:`usdface.io.flatten.flatten_variant`).
 
     Every output is checked before any work (an existing one needs ``force``) and written atomically; the
-    inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
-    usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
+    inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
+    (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
@@ -1218,8 +1218,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
             extras = {"usdface": {"source": Path(layer_path).name,
                                   "variant": exported_variant(layer_path, variant)}}
-            done["gltf"] = Path(write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras,
-                                           force=force))
+            write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, force=force)
+            done["gltf"] = Path(gltf)
         if obj_dir:
             with replace_dir_atomically(obj_dir, force=force) as tmp:
                 for rig in rigs:
@@ -1230,5 +1230,6 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
                         write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles)
             done["obj_dir"] = Path(obj_dir)
     if flatten:
-        done["flatten"] = Path(flatten_variant(layer_path, flatten, variant, force=force))
+        flatten_variant(layer_path, flatten, variant, force=force)
+        done["flatten"] = Path(flatten)                 # as given, as the others (it came back absolute)
     return done
