@@ -326,3 +326,24 @@ def test_export_names_every_output_as_given(tmp_path, monkeypatch):
     done = export_avatar("p.usda", gltf="g.glb", obj_dir="objs", flatten="f.usda")
     assert done == {"gltf": Path("g.glb"), "obj_dir": Path("objs"), "flatten": Path("f.usda")}
     assert all(p.exists() for p in done.values())
+
+
+def test_review_refuses_a_take_as_capture_without_first_warning_about_it(tmp_path):
+    """``review LAYER --capture take.csv`` warned 'take.csv is not among the inputs ... its figures describe
+    that file', then refused the CSV (a weights-only take has no test expressions): only the refusal now."""
+    import warnings
+
+    from usdface.api import write_review
+    from usdface.errors import CaptureError
+
+    layer = tmp_path / "p.usda"
+    assert main(["personalize", str(SAMPLE / "avatar.usda"), str(SAMPLE / "capture.usda"), "-o", str(layer),
+                 "-q"]) == 0
+    take = tmp_path / "t.csv"
+    write_livelink_csv(take, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with pytest.raises(CaptureError, match="--take"):
+            write_review(layer, tmp_path / "r.html", capture=take)
+    assert not [w for w in seen if "among" in str(w.message)]
+    assert not (tmp_path / "r.html").exists()

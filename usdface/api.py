@@ -1145,12 +1145,14 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     record = usdface_output_provenance(layer_path) or {}      # the root layer's header: no stage composed
     # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
     given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
-    for text in stale_inputs(layer_path, given):
-        warnings.warn(text, UserWarning, stacklevel=2)          # the page is a sign-off: say it first
     what = [w for w, given in (("fit figures", fit_errors), ("take", take is not None)) if given]
     with progress.steps("review", 3) as p:          # each step named for what it does while it runs
         p.start(f"read {Path(layer_path).name} (meshes, shapes" + "".join(f", {w}" for w in what) + ")")
         data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+        # the page is a sign-off: said before it is built, once its inputs are known to be usable (a take
+        # given as --capture was warned about as 'not among the inputs', then refused)
+        for text in stale_inputs(layer_path, given):
+            warnings.warn(text, UserWarning, stacklevel=2)
         p.start("build the page")
         page = build_review_html(data)
         p.start(f"write {out.name}")
