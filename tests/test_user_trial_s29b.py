@@ -347,3 +347,17 @@ def test_review_refuses_a_take_as_capture_without_first_warning_about_it(tmp_pat
             write_review(layer, tmp_path / "r.html", capture=take)
     assert not [w for w in seen if "among" in str(w.message)]
     assert not (tmp_path / "r.html").exists()
+
+
+def test_check_notes_name_map_entries_that_match_no_channel(tmp_path, capsys):
+    """``inspect --name-map`` notes map entries that match no channel (a typo in the map); ``check`` with
+    the same map said nothing. A map entry naming a channel as it is (``eyeBlinkLeft`` -> ``eyeBlinkLeft``)
+    is no 'non-canonical spelling'."""
+    import json
+
+    m = tmp_path / "m.json"
+    m.write_text(json.dumps({"JawDrop": "jawOpen", "eyeBlinkLeft": "eyeBlinkLeft"}))
+    assert main(["check", str(SAMPLE / "avatar.usda"), "--name-map", str(m), "--no-pixar", "--json"]) == 0
+    found = [i for i in json.loads(capsys.readouterr().out)["issues"] if "name map" in i["message"]]
+    assert len(found) == 1 and "'JawDrop'" in found[0]["message"]
+    assert "eyeBlinkLeft" not in found[0]["message"]

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import ARKIT_NAMES, ARKIT_SET, HOW_LABELS, OPTIONAL_NAMES, match_name, match_names
+from ..arkit import ARKIT_NAMES, ARKIT_SET, HOW_LABELS, OPTIONAL_NAMES, match_name, match_names, undecorated
 
 ERROR, WARNING, INFO = "error", "warning", "info"
 SEVERITIES = (ERROR, WARNING, INFO)
@@ -354,13 +354,17 @@ def _close_arkit(name: str) -> str | None:
 def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
     UsdSkel = _skel()
     per_skeleton: dict[str, set[str]] = {}
+    tokens: set[str] = set()                       # every channel as authored, for the map's unused entries
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
+        tokens.update(names)
         path = _path(prim)
         fallbacks = [t.name for t in targets] if len(targets) == len(names) else None
         match = match_names(names, fallbacks, name_map)
         decorated: dict[str, list] = {}
         for given, canonical, how in match.inexact:
+            if given == canonical:               # a map entry naming a channel as it is: nothing to say
+                continue
             if how in ("spelling", "alias", "name-map"):
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is a non-canonical spelling of "
                             f"{canonical!r} ({HOW_LABELS[how]})",
@@ -399,6 +403,14 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
         key = str(skel.GetPath()) if skel else path
         per_skeleton.setdefault(key, set()).update(c for c in match.canonical if c in ARKIT_SET)
+    if name_map:      # as 'inspect --name-map' notes them: a typo in the map, or another rig's map
+        tokens |= {bare for t in list(tokens) for bare, _ in undecorated(t)}
+        unused = [k for k in name_map if k not in tokens]
+        if unused:
+            yield Issue(INFO, "ArkitNames", _path(stage.GetPseudoRoot()),
+                        f"name map entries that match no channel: {', '.join(map(repr, unused[:8]))}"
+                        f"{' ...' if len(unused) > 8 else ''}",
+                        "check the map's spelling of the channels (or that it is this rig's map)")
     for key, found in per_skeleton.items():
         missing = [n for n in ARKIT_NAMES if n not in found and n not in OPTIONAL_NAMES]
         if not found:
