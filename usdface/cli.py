@@ -108,13 +108,33 @@ def main(argv=None) -> int:
     if argv is None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        return _main(argv)
+        return _main(argv, program=previous is not None)
     except Terminated:
         print("usdface: terminated", file=sys.stderr)
         return 143
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _import_usd_with_signals_held() -> None:
+    """Import the USD Python modules usdface uses with SIGINT and SIGTERM held back, then let a held signal
+    through.
+
+    USD's C++ module loader (``Tf.PreparePythonModule``) imports the modules a library depends on and
+    catches every Python exception doing so, printing it as a warning: a Ctrl-C or a SIGTERM landing in that
+    first ``from pxr import ...`` (the first ~0.3 s of a run) was swallowed, and the run went on to the end,
+    wrote its output and exited 0, with pxr half-loaded (``Error loading lib gf's module 'pxr.Gf'``). Held
+    back, the signal arrives once the import is done, where ``KeyboardInterrupt``/:class:`Terminated` end
+    the run as at any other moment (exit 130/143, nothing written)."""
+    import signal
+
+    held = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _program_environment() -> None:
@@ -138,7 +158,7 @@ def _subparser(parser: argparse.ArgumentParser, command: str | None):
     return None
 
 
-def _main(argv=None) -> int:
+def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
     _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
@@ -155,6 +175,8 @@ def _main(argv=None) -> int:
     # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it)
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
+        if program:  # the usdface program's main thread (a host application's signals are its own)
+            _import_usd_with_signals_held()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             # third-party import machinery (six's importer under Dask) is not the user's business
