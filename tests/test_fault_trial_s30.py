@@ -26,10 +26,11 @@ def _env() -> dict:
 _SIGNAL_DURING_PXR_IMPORT = textwrap.dedent("""
     import os, signal, sys
     SIG = getattr(signal, sys.argv.pop(1))
+    WHEN = sys.argv.pop(1)
     class Hook:
         fired = False
         def find_spec(self, name, path=None, target=None):
-            if name == "pxr.Gf" and not Hook.fired:
+            if name == WHEN and not Hook.fired:
                 Hook.fired = True
                 os.kill(os.getpid(), SIG)
             return None
@@ -39,25 +40,37 @@ _SIGNAL_DURING_PXR_IMPORT = textwrap.dedent("""
 """)
 
 
+def _signalled(tmp_path, sig: str, when: str, *args) -> subprocess.CompletedProcess:
+    """Run ``usdface ARGS`` as the program, sending itself ``sig`` when module ``when`` is imported."""
+    script = tmp_path / "run.py"
+    script.write_text(_SIGNAL_DURING_PXR_IMPORT)
+    return subprocess.run([sys.executable, str(script), sig, when, *map(str, args)],
+                          capture_output=True, text=True, env=_env(), timeout=600)
+
+
 @pytest.mark.parametrize(("sig", "status"), [("SIGTERM", 143), ("SIGINT", 130)])
 def test_a_signal_during_the_usd_import_stops_the_run(samples, tmp_path, sig, status):
     """A SIGTERM or Ctrl-C in the first ~0.3 s was swallowed by USD's module loader (printed as 'Error
     loading lib gf's module'): the run went on, wrote its output and exited 0."""
-    script = tmp_path / "run.py"
-    script.write_text(_SIGNAL_DURING_PXR_IMPORT)
-    res = subprocess.run([sys.executable, str(script), sig, "inspect", str(samples / "avatar.usda")],
-                         capture_output=True, text=True, env=_env(), timeout=600)
+    res = _signalled(tmp_path, sig, "pxr.Gf", "inspect", samples / "avatar.usda")
     assert res.returncode == status, res.stderr[-2000:]
     assert "Error loading lib" not in res.stderr
 
 
 def test_sigterm_during_the_usd_import_writes_no_output(samples, tmp_path):
-    script = tmp_path / "run.py"
-    script.write_text(_SIGNAL_DURING_PXR_IMPORT)
     out = tmp_path / "out" / "p.usda"
     out.parent.mkdir()
-    res = subprocess.run([sys.executable, str(script), "SIGTERM", "personalize", str(samples / "avatar.usda"),
-                          str(samples / "capture.usda"), "-o", str(out)],
-                         capture_output=True, text=True, env=_env(), timeout=600)
+    res = _signalled(tmp_path, "SIGTERM", "pxr.Gf", "personalize", samples / "avatar.usda",
+                     samples / "capture.usda", "-o", out)
     assert res.returncode == 143, res.stderr[-2000:]
     assert list(out.parent.iterdir()) == []
+
+
+@pytest.mark.parametrize(("sig", "status"), [("SIGTERM", 143), ("SIGINT", 130)])
+def test_a_signal_while_the_command_line_is_read_is_one_line(samples, tmp_path, sig, status):
+    """Ctrl-C while the commands' modules were imported (building the parser) ended in a Python traceback
+    and death by SIGINT; SIGTERM there was already 'usdface: terminated'."""
+    res = _signalled(tmp_path, sig, "usdface.commands.personalize", "inspect", samples / "avatar.usda")
+    assert res.returncode == status, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1] in ("usdface: interrupted", "usdface: terminated")

@@ -112,6 +112,9 @@ def main(argv=None) -> int:
     except Terminated:
         print("usdface: terminated", file=sys.stderr)
         return 143
+    except KeyboardInterrupt:  # before the command ran (reading the command line), one line as after
+        print("usdface: interrupted", file=sys.stderr)
+        return 130
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
