@@ -74,3 +74,50 @@ def test_a_signal_while_the_command_line_is_read_is_one_line(samples, tmp_path, 
     assert res.returncode == status, res.stderr[-2000:]
     assert "Traceback" not in res.stderr
     assert res.stderr.strip().splitlines()[-1] in ("usdface: interrupted", "usdface: terminated")
+
+
+def _long_name(stem_bytes: int, suffix: str) -> str:
+    """A legal file name of ``stem_bytes`` + len(suffix) bytes (255 at most on Linux file systems)."""
+    return "a" * stem_bytes + suffix
+
+
+@pytest.mark.parametrize("total", [240, 250, 255])
+def test_a_long_legal_output_name_is_written(tmp_path, total):
+    """An output whose name is long but legal (up to 255 bytes) failed with 'File name too long (fix: use a
+    shorter path)' after all the work: the hidden temporary name ``.NAME.XXXXXXXX.tmp.usda`` beside it did
+    not fit. The temporary name is cut short; the output keeps its name."""
+    from pxr import Sdf
+
+    from usdface.io.atomic import replace_dir_atomically, temp_sibling, write_text_atomic
+    from usdface.io.layers import atomic_save
+
+    text = tmp_path / _long_name(total - 5, ".json")
+    write_text_atomic(text, "{}")
+    assert text.read_text() == "{}"
+    write_text_atomic(text, "[]", force=True)
+    assert text.read_text() == "[]"
+
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    Sdf.CreatePrimInLayer(layer, "/A")
+    for suffix in (".usda", ".usdc"):
+        out = tmp_path / _long_name(total - len(suffix), suffix)
+        atomic_save(layer, out)
+        atomic_save(layer, out, force=True)
+        assert Sdf.Layer.FindOrOpen(str(out)).GetPrimAtPath("/A")
+
+    folder = tmp_path / ("f" * total)
+    for force in (False, True):
+        with replace_dir_atomically(folder, force=force) as tmp:
+            (tmp / "x.obj").write_text("v 0 0 0\n")
+    assert (folder / "x.obj").exists()
+    assert len(os.fsencode(temp_sibling(tmp_path / ("ö" * 127 + ".usda"), create=False).name)) <= 255
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_long_legal_output_name_through_the_cli(samples, tmp_path):
+    out = tmp_path / _long_name(245, ".usda")
+    res = subprocess.run([sys.executable, "-m", "usdface", "personalize", str(samples / "avatar.usda"),
+                          str(samples / "capture.usda"), "-o", str(out), "-q", "--inspect"],
+                         capture_output=True, text=True, env=_env(), timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]

@@ -69,12 +69,31 @@ def _naming_output(exc: OSError, hidden: Path, shown: Path) -> OSError:
     return OSError(exc.errno, exc.strerror, str(Path(shown) / rel if rel.parts else shown))
 
 
+def hidden_prefix(name: str, folder, room: int) -> str:
+    """``.NAME.``, the start of a temporary file's or folder's name next to the output ``name`` in ``folder``,
+    with NAME cut short where needed so that the whole temporary name - ``room`` more bytes (the random part
+    and the suffix) and 16 to spare (USD's own temporary name while it saves a layer there) - stays within
+    the file system's limit on a name (255 bytes): an output with a long but legal name is written, where
+    ``.NAME.XXXXXXXX.tmp.usda`` failed with 'File name too long' after all the work."""
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    keep = max(limit - room - 16 - 2, 1)
+    raw = os.fsencode(name)
+    if len(raw) > keep:
+        name = raw[:keep].decode("utf-8", "ignore") or "output"   # never half a character
+    return f".{name}."
+
+
 def temp_sibling(path, create: bool = True) -> Path:
     """A new unique hidden file name next to ``path``: ``.NAME.XXXX.tmp<suffix>`` (created empty, or with
     ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
     path = Path(path)
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        suffix = f".tmp{path.suffix}"
+        prefix = hidden_prefix(path.name, path.parent, 8 + len(os.fsencode(suffix)))
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     except OSError as exc:  # name the output, not the hidden temp file nobody asked for
         raise OSError(exc.errno, exc.strerror, str(path)) from None
     try:
@@ -417,7 +436,7 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     tmp = None
     try:
         try:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+            tmp = Path(tempfile.mkdtemp(prefix=hidden_prefix(dest.name, dest.parent, 8), dir=dest.parent))
         except OSError as exc:  # name the output folder, not the hidden temporary one
             raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
@@ -477,7 +496,8 @@ def _merge_into(tmp: Path, dest: Path) -> None:
                                 "writes there, would stay from another run and could be read as part of this "
                                 f"output (e.g. {dest / stale[0]})", path=dest,
                                 fix="delete them (or the sub-folder), or choose a new folder")
-    backup = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+    backup = Path(tempfile.mkdtemp(prefix=hidden_prefix(dest.name, dest.parent, 8 + 4) + "old.",
+                                   dir=dest.parent))
     done: list[tuple[Path, bool]] = []
     made: list[Path] = []
     try:
