@@ -121,3 +121,38 @@ def test_a_long_legal_output_name_through_the_cli(samples, tmp_path):
                          capture_output=True, text=True, env=_env(), timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]
     assert [p.name for p in tmp_path.iterdir()] == [out.name]
+
+
+def test_a_full_disk_names_the_output(tmp_path):
+    """A write that fails on a full disk raises an OSError naming no file (a write or close, ENOSPC): the
+    line said only 'error: No space left on device' (review, render, export --obj-dir, capture import to
+    a folder), not which output failed."""
+    import errno
+
+    from usdface.io.atomic import atomic_file, replace_dir_atomically
+
+    full = OSError(errno.ENOSPC, "No space left on device")
+    out = tmp_path / "page.html"
+    with pytest.raises(OSError) as err, atomic_file(out):
+        raise full
+    assert err.value.filename == str(out) and err.value.errno == errno.ENOSPC
+
+    folder = tmp_path / "objs"
+    with pytest.raises(OSError) as err, replace_dir_atomically(folder):
+        raise full
+    assert err.value.filename == str(folder)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_usd_layer_that_cannot_be_saved_into_an_output_folder_names_it_not_the_hidden_folder(tmp_path):
+    """'usdface sample OUTDIR' on a full disk said 'OUTDIR/../.s.9q28_9rp/avatar.usda: USD could not write
+    the layer': the hidden temporary folder nobody asked for."""
+    from usdface.errors import InputFileError
+    from usdface.io.atomic import replace_dir_atomically
+
+    folder = tmp_path / "s"
+    with pytest.raises(InputFileError) as err, replace_dir_atomically(folder) as tmp:
+        raise InputFileError("USD could not write the layer", path=tmp / "avatar.usda", fix="free disk space")
+    assert err.value.path == str(folder / "avatar.usda")
+    assert str(err.value).startswith(f"{folder / 'avatar.usda'}: USD could not write")
+    assert list(tmp_path.iterdir()) == []

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, write_fix
+from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, write_fix
 
 __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
            "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling"]
@@ -59,9 +59,11 @@ def publish(tmp, path, force: bool = False) -> Path:
 
 def _naming_output(exc: OSError, hidden: Path, shown: Path) -> OSError:
     """``exc`` as raised, or - where it names ``hidden`` (a temporary file or folder nobody asked for) or a
-    file inside it - the same error naming ``shown`` (the output) or the file at the same place in it."""
+    file inside it - the same error naming ``shown`` (the output) or the file at the same place in it. An
+    error naming no file (a write or close that fails on a full disk: ``No space left on device``) names
+    ``shown``, the output being written, so that its line says which output failed."""
     if exc.filename is None:
-        return exc
+        return OSError(exc.errno, exc.strerror or str(exc), str(shown))
     try:
         rel = Path(os.path.abspath(exc.filename)).relative_to(os.path.abspath(hidden))
     except ValueError:
@@ -447,6 +449,10 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             if named is exc:
                 raise
             raise named from None
+        except UsdFaceError as exc:  # so does usdface's own error (USD could not write a layer there)
+            if exc.path is not None:
+                exc.path = _naming_output(OSError(0, "", exc.path), tmp, dest).filename
+            raise
         if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
             # the current folder: a rename would swap it for a new folder under the caller (and the user's
             # shell), whose relative paths would then point into the old, deleted one - filled file by file
