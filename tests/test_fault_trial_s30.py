@@ -156,3 +156,19 @@ def test_a_usd_layer_that_cannot_be_saved_into_an_output_folder_names_it_not_the
     assert err.value.path == str(folder / "avatar.usda")
     assert str(err.value).startswith(f"{folder / 'avatar.usda'}: USD could not write")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("sig", "kind", "status"),
+                         [("SIGTERM", "Terminated", 143), ("SIGINT", "Interrupted", 130)])
+def test_json_of_a_stopped_run_is_a_document(samples, tmp_path, sig, kind, status):
+    """With --json, stdout holds one JSON document; a run stopped by Ctrl-C or SIGTERM printed nothing there
+    (a pipeline reading it got an empty document)."""
+    import json
+
+    out = tmp_path / "out" / "p.usda"
+    res = _signalled(tmp_path, sig, "pxr.Gf", "personalize", samples / "avatar.usda",
+                     samples / "capture.usda", "-o", out, "--json")
+    assert res.returncode == status, res.stderr[-2000:]
+    doc = json.loads(res.stdout)
+    assert doc["ok"] is False and doc["error"]["type"] == kind and doc["error"]["command"] == "personalize"
+    assert not out.exists()

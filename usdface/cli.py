@@ -204,7 +204,10 @@ def _main(argv=None, program: bool = False) -> int:
             print(f"usdface {_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        if isinstance(exc, Terminated):
+        terminated = isinstance(exc, Terminated)
+        if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
+            _json_stopped(args, terminated)
+        if terminated:
             raise
         print("usdface: interrupted", file=sys.stderr)
         return 130
@@ -229,6 +232,27 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
                                   "file": None if path is None else str(path), "prim": prim, "fix": fix}}
     print(json.dumps(doc))
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
+
+
+def _json_stopped(args, terminated: bool) -> None:
+    """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
+    pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
+    import json
+
+    kind, signame = ("Terminated", "SIGTERM") if terminated else ("Interrupted", "SIGINT")
+    batch = args.command == "batch"
+    doc = {"ok": False, "error": {
+        "command": args.command, "type": kind,
+        "message": f"stopped by {signame} before it finished" + (
+            ": the items that finished are kept, the report says which" if batch
+            else "; its output was not written"),
+        "file": None, "prim": None,
+        "fix": "run the same command again (finished items are skipped)" if batch
+        else "run the command again"}}
+    try:
+        print(json.dumps(doc), flush=True)
+    except OSError:
+        pass
 
 
 def _command_name(args) -> str:
