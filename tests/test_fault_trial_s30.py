@@ -172,3 +172,20 @@ def test_json_of_a_stopped_run_is_a_document(samples, tmp_path, sig, kind, statu
     doc = json.loads(res.stdout)
     assert doc["ok"] is False and doc["error"]["type"] == kind and doc["error"]["command"] == "personalize"
     assert not out.exists()
+
+
+@pytest.mark.parametrize("closed", [(1,), (0, 1, 2)])
+def test_a_closed_stdout_is_not_a_failure(samples, tmp_path, closed):
+    """Started with stdout closed (``usdface ... >&-``, a launcher that closes it), Python's sys.stdout is
+    None and the final flush raised AttributeError: a traceback and exit status 1 after the work was done.
+    The program puts /dev/null in place of a closed standard stream."""
+    def close():
+        for fd in closed:
+            os.close(fd)
+
+    res = subprocess.run([sys.executable, "-m", "usdface", "inspect", str(samples / "avatar.usda")],
+                         stdout=subprocess.DEVNULL if 1 not in closed else None,
+                         stderr=subprocess.PIPE if 2 not in closed else None,
+                         env=_env(), timeout=600, preexec_fn=close)
+    assert res.returncode == 0, res.stderr
+    assert not res.stderr or b"Traceback" not in res.stderr

@@ -104,6 +104,7 @@ def main(argv=None) -> int:
 
     if argv is None:
         _program_environment()
+        _standard_streams()
     previous = None
     if argv is None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
@@ -142,6 +143,29 @@ def _import_usd_with_signals_held() -> None:
             signal.signal(signum, handler)
         for signum in dict.fromkeys(held):
             signal.raise_signal(signum)  # now its own handler runs, outside USD's loader
+
+
+def _standard_streams() -> None:
+    """Give the ``usdface`` program a stdin, stdout and stderr when it was started with one closed (``>&-``,
+    a launcher that closes them): /dev/null in their place.
+
+    Python leaves ``sys.stdout`` None then, and the final flush of the output's summary raised
+    AttributeError (a traceback, exit status 1, after the output was written); worse, the next file opened
+    takes the free descriptor 1 or 2, and what C++ code (USD's diagnostics) writes to stdout or stderr went
+    into that file."""
+    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        null = os.open(os.devnull, os.O_RDONLY if fd == 0 else os.O_WRONLY)
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(fd, "r" if fd == 0 else "w", encoding="utf-8", closefd=False,
+                                    **({} if fd == 0 else {"errors": "backslashreplace"})))
 
 
 def _program_environment() -> None:
@@ -190,7 +214,8 @@ def _main(argv=None, program: bool = False) -> int:
             warnings.filterwarnings("ignore", category=ImportWarning)
             warnings.showwarning = lambda message, *_a, **_k: say_warning(message)
             code = int(args.func(args) or 0)
-        sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit
+        if sys.stdout is not None:  # a closed pipe (`usdface inspect x | head`) fails here, not at exit
+            sys.stdout.flush()
         return code
     except BrokenPipeError:
         _silence_stdout()
