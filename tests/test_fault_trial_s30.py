@@ -189,3 +189,52 @@ def test_a_closed_stdout_is_not_a_failure(samples, tmp_path, closed):
                          env=_env(), timeout=600, preexec_fn=close)
     assert res.returncode == 0, res.stderr
     assert not res.stderr or b"Traceback" not in res.stderr
+
+
+@pytest.fixture
+def pyblish_registered():
+    pyblish_api = pytest.importorskip("pyblish.api")
+    from usdface.pipeline import pyblish_plugins
+
+    pyblish_api.deregister_all_plugins()
+    pyblish_plugins.register()
+    yield pyblish_api
+    pyblish_api.deregister_all_plugins()
+
+
+def _publish(pyblish_api, **item):
+    import pyblish.util
+
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    return {r["plugin"].__name__: r["error"] for r in context.data["results"] if r["error"] is not None}
+
+
+def test_pyblish_refuses_an_existing_review_page_before_writing_the_layer(pyblish_registered, samples,
+                                                                          tmp_path):
+    """A publish with review=True whose review page was left by an earlier publish passed validation, wrote
+    the layer, then failed in the review extractor: the failed publish left the layer behind, and its
+    retry failed on it ('output layer exists')."""
+    out = tmp_path / "person.usda"
+    (tmp_path / "person.review.html").write_text("an earlier publish's page")
+    errors = _publish(pyblish_registered, avatar=str(samples / "avatar.usda"),
+                      capture=str(samples / "capture.usda"), output=str(out), review=True)
+    assert "review page exists" in str(errors.get("ValidateUsdFaceOutputs"))
+    assert "ExtractUsdFacePersonalized" not in errors
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["exists", "input"])
+def test_pyblish_validates_the_layer_output(pyblish_registered, samples, tmp_path, case):
+    """An output that exists (no force) or is an input failed only in the extractor, after validation
+    passed."""
+    out = tmp_path / "person.usda"
+    if case == "exists":
+        out.write_text("#usda 1.0\n")
+    else:
+        out = samples / "capture.usda"
+    errors = _publish(pyblish_registered, avatar=str(samples / "avatar.usda"),
+                      capture=str(samples / "capture.usda"), output=str(out), force=case == "input")
+    assert "ValidateUsdFaceOutputs" in errors, errors
+    assert "ExtractUsdFacePersonalized" not in errors
