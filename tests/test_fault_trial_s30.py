@@ -238,3 +238,20 @@ def test_pyblish_validates_the_layer_output(pyblish_registered, samples, tmp_pat
                       capture=str(samples / "capture.usda"), output=str(out), force=case == "input")
     assert "ValidateUsdFaceOutputs" in errors, errors
     assert "ExtractUsdFacePersonalized" not in errors
+
+
+@pytest.mark.parametrize(("option", "where"), [("gltf", "inside"), ("gltf", "same"), ("flatten", "inside")])
+def test_export_refuses_a_file_output_in_its_obj_dir_before_writing(personalized_sample, tmp_path, option,
+                                                                    where):
+    """``export --obj-dir d --gltf d/x.glb`` wrote the glTF, then refused the folder it had just made not
+    empty ('output folder exists and is not empty'): exit 2 with x.glb left behind; ``--gltf x.glb
+    --obj-dir x.glb`` the same ('exists as a file')."""
+    from usdface import api
+    from usdface.errors import OptionError
+
+    folder = tmp_path / "d"
+    suffix = ".glb" if option == "gltf" else ".usdc"
+    out = folder / f"x{suffix}" if where == "inside" else folder
+    with pytest.raises(OptionError, match="--obj-dir folder"):
+        api.export_avatar(personalized_sample, obj_dir=folder, **{option: out})
+    assert list(tmp_path.iterdir()) == []

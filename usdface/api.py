@@ -1136,7 +1136,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written}; a plain avatar (not a
     usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
-    from .errors import UsdFaceError
+    from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
     from .io.flatten import VARIANTS, exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
@@ -1149,6 +1149,15 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     if not (gltf or obj_dir or flatten):
         raise UsdFaceError("nothing to export",
                            fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
+    if obj_dir:   # a file output in the folder output: written first, it made the folder "not empty"
+        folder = Path(obj_dir).resolve()
+        for what, option, out in (("glTF output", "--gltf", gltf),
+                                  ("flattened USD file", "--flatten", flatten)):
+            place = Path(out).resolve() if out else None
+            if place is not None and (place == folder or folder in place.parents):
+                raise OptionError(f"{what} {out} is {'the' if place == folder else 'inside the'} --obj-dir "
+                                  f"folder {obj_dir}: one output would be written into (or over) the other",
+                                  path=out, fix=f"give {option} a path outside the --obj-dir folder")
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
     if obj_dir:
