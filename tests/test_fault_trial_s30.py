@@ -255,3 +255,39 @@ def test_export_refuses_a_file_output_in_its_obj_dir_before_writing(personalized
     with pytest.raises(OptionError, match="--obj-dir folder"):
         api.export_avatar(personalized_sample, obj_dir=folder, **{option: out})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_write_removes_the_folders_it_made(tmp_path, monkeypatch):
+    """-o new/sub/p.usda on a full disk failed, but left new/sub behind (empty folders the write made);
+    the same for a review page, a picture or an export folder. A folder that was there stays."""
+    import errno
+
+    from pxr import Sdf
+
+    from usdface.errors import InputFileError
+    from usdface.io import layers
+    from usdface.io.atomic import atomic_file, replace_dir_atomically
+
+    (tmp_path / "kept").mkdir()
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with pytest.raises(OSError), atomic_file(tmp_path / "kept" / "new" / "sub" / "r.html"):
+        raise full
+    with pytest.raises(OSError), replace_dir_atomically(tmp_path / "new" / "sub" / "objs"):
+        raise full
+    monkeypatch.setattr(layers, "_usd_call", lambda *a, **k: False)   # USD's save fails (a full disk)
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    with pytest.raises(InputFileError, match="could not write"):
+        layers.atomic_save(layer, tmp_path / "new" / "sub" / "p.usda")
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == ["kept"]
+
+
+def test_a_failed_personalize_write_removes_the_folders_it_made(samples, tmp_path, monkeypatch):
+    from usdface import api
+    from usdface.errors import InputFileError
+    from usdface.io import layers
+
+    monkeypatch.setattr(layers, "_usd_call", lambda *a, **k: False)
+    with pytest.raises(InputFileError, match="could not write"):
+        api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda",
+                               tmp_path / "a" / "b" / "p.usda")
+    assert list(tmp_path.iterdir()) == []

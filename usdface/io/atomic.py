@@ -108,6 +108,28 @@ def temp_sibling(path, create: bool = True) -> Path:
     return Path(name)
 
 
+def make_parents(path) -> list[Path]:
+    """Create the missing folders above ``path``; returns those made, deepest first, for
+    :func:`remove_made` to take away again when the write fails (a failure leaves nothing behind)."""
+    missing = []
+    folder = Path(path).parent
+    while not os.path.lexists(folder) and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def remove_made(folders: list[Path]) -> None:
+    """Remove the folders :func:`make_parents` made, deepest first, as long as they are empty (another
+    process may have put something there meanwhile)."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 @contextmanager
 def atomic_file(path, force: bool = False) -> Iterator[Path]:
     """Context manager: yield a temporary file path next to ``path``, ending in ``.tmp<suffix>`` so that
@@ -116,14 +138,17 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
     exclusively unless ``force``); on an exception (or Ctrl-C) it is removed and ``path`` is untouched."""
     path = Path(path)
     tmp = None
+    made: list[Path] = []
+    done = False
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        made = make_parents(path)
         tmp = temp_sibling(path)
         yield tmp
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
         publish(tmp, path, force)
+        done = True
     except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
         named = exc if tmp is None else _naming_output(exc, tmp, path)
         if named is exc:
@@ -132,6 +157,8 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
+        if not done:
+            remove_made(made)
 
 
 def write_text_atomic(path, text: str, force: bool = False) -> Path:
@@ -434,8 +461,9 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     if dest.is_symlink():  # write into the folder the link names, on its file system
         dest = dest.resolve()
     dest = Path(os.path.abspath(dest))  # "." named: its own name for the temporary folder and messages
-    dest.parent.mkdir(parents=True, exist_ok=True)
+    made = make_parents(dest)
     tmp = None
+    done = False
     try:
         try:
             tmp = Path(tempfile.mkdtemp(prefix=hidden_prefix(dest.name, dest.parent, 8), dir=dest.parent))
@@ -457,6 +485,7 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             # the current folder: a rename would swap it for a new folder under the caller (and the user's
             # shell), whose relative paths would then point into the old, deleted one - filled file by file
             _merge_into(tmp, dest)
+            done = True
             return
         try:
             os.rename(tmp, dest)  # a missing or empty dest: the whole folder appears at once
@@ -469,9 +498,12 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
                                         path=dest, fix="choose a new folder or pass --force (force=True)"
                                         ) from None
             _merge_into(tmp, dest)
+        done = True
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+        if not done:
+            remove_made(made)
 
 
 def _merge_into(tmp: Path, dest: Path) -> None:
