@@ -291,3 +291,29 @@ def test_a_failed_personalize_write_removes_the_folders_it_made(samples, tmp_pat
         api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda",
                                tmp_path / "a" / "b" / "p.usda")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samples, tmp_path, monkeypatch):
+    """Ctrl-C while the rows were checked (every avatar is opened: seconds on a large manifest) left the
+    previous run's report standing, which the docs promise never happens."""
+    import json
+
+    from usdface import api
+    from usdface.io import usd_rig
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},a.usda\n")
+    report = tmp_path / "m.report.json"
+    report.write_text(json.dumps({"from": "the last run", "items": []}))
+
+    def stopped(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(usd_rig, "refuse_usdface_output", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        api.personalize_batch(manifest, jobs=1)
+    doc = json.loads(report.read_text())
+    assert "from" not in doc
+    assert [(i["status"], i["error_type"]) for i in doc["items"]] == [("failed", "Interrupted")]
+    assert not (tmp_path / "a.usda").exists()

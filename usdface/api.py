@@ -949,7 +949,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     from .io.atomic import check_output_file
-    from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
+    from .pipeline.batch import read_manifest, run_batch
 
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
@@ -961,6 +961,32 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     check_output_file(path, True, suffixes=(".json",), what="batch report",
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
                       fix="pass --report PATH in a folder you can write to")
+    try:
+        run = _batch_preflight(items, worker, manifest)
+    except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
+        from .pipeline.batch import FAILED, BatchReport, ItemResult
+
+        why = "the batch was stopped before it started (while its rows were checked); run it again"
+        BatchReport([ItemResult(index=i.index, avatar=str(i.avatar), capture=str(i.capture),
+                                output=str(i.output), status=FAILED, error=why, error_type="Interrupted")
+                     for i in items], 0.0, "not started").write(path)
+        raise
+    try:
+        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+    except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
+        partial = getattr(exc, "batch_report", None)
+        if partial is not None:
+            partial.write(path)
+        raise
+    report.report_path = Path(report.write(path))
+    return report
+
+
+def _batch_preflight(items, worker, manifest):
+    """Every row's options, output's place and avatar checked before any item runs (the default worker);
+    returns the worker function."""
+    from .pipeline.batch import load_worker, personalize_worker
+
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
@@ -1003,15 +1029,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                                          f"{item.capture} holds frames picked one per shape", path=manifest,
                                          fix="leave 'every' out for that row, or give the take itself as its "
                                              "capture")
-    try:
-        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
-    except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
-        partial = getattr(exc, "batch_report", None)
-        if partial is not None:
-            partial.write(path)
-        raise
-    report.report_path = Path(report.write(path))
-    return report
+    return run
 
 
 def _apply_batch_options(items, shared: dict, manifest) -> None:
