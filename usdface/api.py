@@ -988,7 +988,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     from .io.atomic import check_output_file
-    from .pipeline.batch import load_worker, personalize_worker, read_manifest, run_batch
+    from .pipeline.batch import read_manifest, run_batch
 
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
@@ -1000,6 +1000,32 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     check_output_file(path, True, suffixes=(".json",), what="batch report",
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
                       fix="pass --report PATH in a folder you can write to")
+    try:
+        run = _batch_preflight(items, worker, manifest)
+    except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
+        from .pipeline.batch import FAILED, BatchReport, ItemResult
+
+        why = "the batch was stopped before it started (while its rows were checked); run it again"
+        BatchReport([ItemResult(index=i.index, avatar=str(i.avatar), capture=str(i.capture),
+                                output=str(i.output), status=FAILED, error=why, error_type="Interrupted")
+                     for i in items], 0.0, "not started").write(path)
+        raise
+    try:
+        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+    except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
+        partial = getattr(exc, "batch_report", None)
+        if partial is not None:
+            partial.write(path)
+        raise
+    report.report_path = Path(report.write(path))
+    return report
+
+
+def _batch_preflight(items, worker, manifest):
+    """Every row's options, output's place and avatar checked before any item runs (the default worker);
+    returns the worker function."""
+    from .pipeline.batch import load_worker, personalize_worker
+
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
@@ -1042,15 +1068,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                                          f"{item.capture} holds frames picked one per shape", path=manifest,
                                          fix="leave 'every' out for that row, or give the take itself as its "
                                              "capture")
-    try:
-        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
-    except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
-        partial = getattr(exc, "batch_report", None)
-        if partial is not None:
-            partial.write(path)
-        raise
-    report.report_path = Path(report.write(path))
-    return report
+    return run
 
 
 def _apply_batch_options(items, shared: dict, manifest) -> None:
@@ -1177,7 +1195,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
-    from .errors import UsdFaceError
+    from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
     from .io.flatten import VARIANTS, exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import GLTF_EXTENSIONS, write_gltf
@@ -1190,6 +1208,15 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     if not (gltf or obj_dir or flatten):
         raise UsdFaceError("nothing to export",
                            fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
+    if obj_dir:   # a file output in the folder output: written first, it made the folder "not empty"
+        folder = Path(obj_dir).resolve()
+        for what, option, out in (("glTF output", "--gltf", gltf),
+                                  ("flattened USD file", "--flatten", flatten)):
+            place = Path(out).resolve() if out else None
+            if place is not None and (place == folder or folder in place.parents):
+                raise OptionError(f"{what} {out} is {'the' if place == folder else 'inside the'} --obj-dir "
+                                  f"folder {obj_dir}: one output would be written into (or over) the other",
+                                  path=out, fix=f"give {option} a path outside the --obj-dir folder")
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
     if obj_dir:

@@ -105,14 +105,18 @@ def main(argv=None) -> int:
 
     if argv is None:
         _program_environment()
+        _standard_streams()
     previous = None
     if argv is None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        return _main(argv)
+        return _main(argv, program=previous is not None)
     except Terminated:
         print("usdface: terminated", file=sys.stderr)
         return 143
+    except KeyboardInterrupt:  # before the command ran (reading the command line), one line as after
+        print("usdface: interrupted", file=sys.stderr)
+        return 130
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -121,6 +125,53 @@ def main(argv=None) -> int:
             # the ~2,000 modules loaded (Open3D's Dash/Plotly among them; 0.15-0.3 s of a personalize run).
             # Shutdown itself is unchanged (atexit, flushes, threads joined, modules torn down)
             gc.freeze()
+
+
+def _import_usd_with_signals_held() -> None:
+    """Import the USD Python modules usdface uses with SIGINT and SIGTERM held back, then let a held signal
+    through.
+
+    USD's C++ module loader (``Tf.PreparePythonModule``) imports the modules a library depends on and
+    catches every Python exception doing so, printing it as a warning: a Ctrl-C or a SIGTERM landing in that
+    first ``from pxr import ...`` (the first ~0.3 s of a run) was swallowed, and the run went on to the end,
+    wrote its output and exited 0, with pxr half-loaded (``Error loading lib gf's module 'pxr.Gf'``). Held
+    back, the signal arrives once the import is done, where ``KeyboardInterrupt``/:class:`Terminated` end
+    the run as at any other moment (exit 130/143, nothing written)."""
+    import signal
+
+    held: list[int] = []
+    previous = {signum: signal.signal(signum, lambda signum, _frame: held.append(signum))
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)  # now its own handler runs, outside USD's loader
+
+
+def _standard_streams() -> None:
+    """Give the ``usdface`` program a stdin, stdout and stderr when it was started with one closed (``>&-``,
+    a launcher that closes them): /dev/null in their place.
+
+    Python leaves ``sys.stdout`` None then, and the final flush of the output's summary raised
+    AttributeError (a traceback, exit status 1, after the output was written); worse, the next file opened
+    takes the free descriptor 1 or 2, and what C++ code (USD's diagnostics) writes to stdout or stderr went
+    into that file."""
+    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        null = os.open(os.devnull, os.O_RDONLY if fd == 0 else os.O_WRONLY)
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(fd, "r" if fd == 0 else "w", encoding="utf-8", closefd=False,
+                                    **({} if fd == 0 else {"errors": "backslashreplace"})))
 
 
 def _program_environment() -> None:
@@ -150,7 +201,7 @@ def _subparser(parser: argparse.ArgumentParser, command: str | None):
     return None
 
 
-def _main(argv=None) -> int:
+def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
     _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
@@ -167,6 +218,8 @@ def _main(argv=None) -> int:
     # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it)
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
+        if program:  # the usdface program's main thread (a host application's signals are its own)
+            _import_usd_with_signals_held()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             # third-party import machinery (six's importer under Dask) is not the user's business
@@ -177,7 +230,8 @@ def _main(argv=None) -> int:
 
                 source_date_epoch()
             code = int(args.func(args) or 0)
-        sys.stdout.flush()  # a closed pipe (`usdface inspect x | head`) fails here, not at interpreter exit
+        if sys.stdout is not None:  # a closed pipe (`usdface inspect x | head`) fails here, not at exit
+            sys.stdout.flush()
         return code
     except BrokenPipeError:
         _silence_stdout()
@@ -191,7 +245,10 @@ def _main(argv=None) -> int:
             print(f"usdface {_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        if isinstance(exc, Terminated):
+        terminated = isinstance(exc, Terminated)
+        if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
+            _json_stopped(args, terminated)
+        if terminated:
             raise
         print("usdface: interrupted", file=sys.stderr)
         return 130
@@ -216,6 +273,27 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
                                   "file": None if path is None else str(path), "prim": prim, "fix": fix}}
     print(json.dumps(doc))
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
+
+
+def _json_stopped(args, terminated: bool) -> None:
+    """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
+    pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
+    import json
+
+    kind, signame = ("Terminated", "SIGTERM") if terminated else ("Interrupted", "SIGINT")
+    batch = args.command == "batch"
+    doc = {"ok": False, "error": {
+        "command": args.command, "type": kind,
+        "message": f"stopped by {signame} before it finished" + (
+            ": the items that finished are kept, the report says which" if batch
+            else "; its output was not written"),
+        "file": None, "prim": None,
+        "fix": "run the same command again (finished items are skipped)" if batch
+        else "run the command again"}}
+    try:
+        print(json.dumps(doc), flush=True)
+    except OSError:
+        pass
 
 
 def _command_name(args) -> str:

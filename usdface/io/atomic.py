@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, write_fix
+from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, write_fix
 
 __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
            "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling"]
@@ -59,9 +59,11 @@ def publish(tmp, path, force: bool = False) -> Path:
 
 def _naming_output(exc: OSError, hidden: Path, shown: Path) -> OSError:
     """``exc`` as raised, or - where it names ``hidden`` (a temporary file or folder nobody asked for) or a
-    file inside it - the same error naming ``shown`` (the output) or the file at the same place in it."""
+    file inside it - the same error naming ``shown`` (the output) or the file at the same place in it. An
+    error naming no file (a write or close that fails on a full disk: ``No space left on device``) names
+    ``shown``, the output being written, so that its line says which output failed."""
     if exc.filename is None:
-        return exc
+        return OSError(exc.errno, exc.strerror or str(exc), str(shown))
     try:
         rel = Path(os.path.abspath(exc.filename)).relative_to(os.path.abspath(hidden))
     except ValueError:
@@ -69,12 +71,31 @@ def _naming_output(exc: OSError, hidden: Path, shown: Path) -> OSError:
     return OSError(exc.errno, exc.strerror, str(Path(shown) / rel if rel.parts else shown))
 
 
+def hidden_prefix(name: str, folder, room: int) -> str:
+    """``.NAME.``, the start of a temporary file's or folder's name next to the output ``name`` in ``folder``,
+    with NAME cut short where needed so that the whole temporary name - ``room`` more bytes (the random part
+    and the suffix) and 16 to spare (USD's own temporary name while it saves a layer there) - stays within
+    the file system's limit on a name (255 bytes): an output with a long but legal name is written, where
+    ``.NAME.XXXXXXXX.tmp.usda`` failed with 'File name too long' after all the work."""
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    keep = max(limit - room - 16 - 2, 1)
+    raw = os.fsencode(name)
+    if len(raw) > keep:
+        name = raw[:keep].decode("utf-8", "ignore") or "output"   # never half a character
+    return f".{name}."
+
+
 def temp_sibling(path, create: bool = True) -> Path:
     """A new unique hidden file name next to ``path``: ``.NAME.XXXX.tmp<suffix>`` (created empty, or with
     ``create=False`` only reserved and removed again, for writers that insist on creating the file)."""
     path = Path(path)
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        suffix = f".tmp{path.suffix}"
+        prefix = hidden_prefix(path.name, path.parent, 8 + len(os.fsencode(suffix)))
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     except OSError as exc:  # name the output, not the hidden temp file nobody asked for
         raise OSError(exc.errno, exc.strerror, str(path)) from None
     try:
@@ -87,6 +108,28 @@ def temp_sibling(path, create: bool = True) -> Path:
     return Path(name)
 
 
+def make_parents(path) -> list[Path]:
+    """Create the missing folders above ``path``; returns those made, deepest first, for
+    :func:`remove_made` to take away again when the write fails (a failure leaves nothing behind)."""
+    missing = []
+    folder = Path(path).parent
+    while not os.path.lexists(folder) and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def remove_made(folders: list[Path]) -> None:
+    """Remove the folders :func:`make_parents` made, deepest first, as long as they are empty (another
+    process may have put something there meanwhile)."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 @contextmanager
 def atomic_file(path, force: bool = False) -> Iterator[Path]:
     """Context manager: yield a temporary file path next to ``path``, ending in ``.tmp<suffix>`` so that
@@ -95,14 +138,17 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
     exclusively unless ``force``); on an exception (or Ctrl-C) it is removed and ``path`` is untouched."""
     path = Path(path)
     tmp = None
+    made: list[Path] = []
+    done = False
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        made = make_parents(path)
         tmp = temp_sibling(path)
         yield tmp
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
         publish(tmp, path, force)
+        done = True
     except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
         named = exc if tmp is None else _naming_output(exc, tmp, path)
         if named is exc:
@@ -111,6 +157,8 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
+        if not done:
+            remove_made(made)
 
 
 def write_text_atomic(path, text: str, force: bool = False) -> Path:
@@ -413,11 +461,12 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
     if dest.is_symlink():  # write into the folder the link names, on its file system
         dest = dest.resolve()
     dest = Path(os.path.abspath(dest))  # "." named: its own name for the temporary folder and messages
-    dest.parent.mkdir(parents=True, exist_ok=True)
+    made = make_parents(dest)
     tmp = None
+    done = False
     try:
         try:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+            tmp = Path(tempfile.mkdtemp(prefix=hidden_prefix(dest.name, dest.parent, 8), dir=dest.parent))
         except OSError as exc:  # name the output folder, not the hidden temporary one
             raise OSError(exc.errno, exc.strerror, str(dest)) from None
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the output is an ordinary folder
@@ -428,10 +477,15 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             if named is exc:
                 raise
             raise named from None
+        except UsdFaceError as exc:  # so does usdface's own error (USD could not write a layer there)
+            if exc.path is not None:
+                exc.path = _naming_output(OSError(0, "", exc.path), tmp, dest).filename
+            raise
         if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
             # the current folder: a rename would swap it for a new folder under the caller (and the user's
             # shell), whose relative paths would then point into the old, deleted one - filled file by file
             _merge_into(tmp, dest)
+            done = True
             return
         try:
             os.rename(tmp, dest)  # a missing or empty dest: the whole folder appears at once
@@ -444,9 +498,12 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
                                         path=dest, fix="choose a new folder or pass --force (force=True)"
                                         ) from None
             _merge_into(tmp, dest)
+        done = True
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+        if not done:
+            remove_made(made)
 
 
 def _merge_into(tmp: Path, dest: Path) -> None:
@@ -477,7 +534,8 @@ def _merge_into(tmp: Path, dest: Path) -> None:
                                 "writes there, would stay from another run and could be read as part of this "
                                 f"output (e.g. {dest / stale[0]})", path=dest,
                                 fix="delete them (or the sub-folder), or choose a new folder")
-    backup = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+    backup = Path(tempfile.mkdtemp(prefix=hidden_prefix(dest.name, dest.parent, 8 + 4) + "old.",
+                                   dir=dest.parent))
     done: list[tuple[Path, bool]] = []
     made: list[Path] = []
     try:

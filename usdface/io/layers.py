@@ -99,12 +99,13 @@ def atomic_save(layer, path, force: bool = False) -> Path:
     """
     from pxr import Sdf
 
-    from .atomic import publish
+    from .atomic import make_parents, publish, remove_made
 
     path = Path(path).absolute()
     tmp = None
+    made: list[Path] = []
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        made = make_parents(path)
         tmp = _temp_path(path)
         if layer.realPath and Path(layer.realPath).parent == path.parent and not layer.anonymous:
             # a failed save leaves a partial file (a full disk: a .usda cut off mid-value): never published
@@ -118,6 +119,11 @@ def atomic_save(layer, path, force: bool = False) -> Path:
                 raise InputFileError("USD could not write the layer", path=path,
                                      fix="check the folder is writable and the disk has space")
             publish(tmp, path, force)
+    except BaseException:
+        if tmp is not None and tmp.exists():
+            tmp.unlink()
+        remove_made(made)     # a failure leaves no folder it made behind either
+        raise
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
@@ -730,15 +736,18 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
     from .usd_rig import refuse_unwritable_shapes
 
     refuse_unwritable_shapes(avatar, [rig.key for rig, _ in resolved], "the layer")
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     input_asset = _relative_asset_path(in_path, out_path.parent)
     input_layer = Sdf.Layer.FindOrOpen(str(in_path))
     if input_layer is None:
         raise InputFileError("USD cannot open the avatar", path=in_path, fix="check the avatar file")
 
-    work = _temp_path(out_path)
-    layer = Sdf.Layer.CreateNew(str(work))
+    from .atomic import make_parents, remove_made
+
+    made = make_parents(out_path)
+    work = None
     try:
+        work = _temp_path(out_path)
+        layer = Sdf.Layer.CreateNew(str(work))
         for key in STAGE_METADATA_KEYS:
             if input_layer.pseudoRoot.HasInfo(key):
                 layer.pseudoRoot.SetInfo(key, input_layer.pseudoRoot.GetInfo(key))
@@ -777,8 +786,13 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
         atomic_save(layer, out_path, force)
+    except BaseException:
+        if work is not None and work.exists():
+            work.unlink()
+        remove_made(made)     # a failed write leaves no folder it made behind either
+        raise
     finally:
-        if work.exists():
+        if work is not None and work.exists():
             work.unlink()
     return out_path
 

@@ -245,7 +245,6 @@ def add_inspection(layer_path, edit: Callable) -> Path:
     (temporary file in the same folder + ``os.replace``). Only the layer itself is changed, never its inputs.
     """
     import os
-    import tempfile
 
     from pxr import Sdf, Usd
 
@@ -259,9 +258,9 @@ def add_inspection(layer_path, edit: Callable) -> Path:
     stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
     stage.SetEditTarget(stage.GetRootLayer())
     edit(stage)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    os.unlink(tmp)
+    from .atomic import temp_sibling
+
+    tmp = str(temp_sibling(path, create=False))
     try:
         if not layer.Export(tmp):
             raise InputFileError("USD could not write the layer", path=path, fix="check permissions")

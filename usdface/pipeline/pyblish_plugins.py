@@ -12,6 +12,9 @@ makes them from ``context.data["usdfaceItems"]`` (a list of dicts) or ``context.
   ``instance.data["usdfaceCheck"]``.
 * :class:`ValidateUsdFaceCapture` (validator): the capture reads (names, topology, weights).
 * :class:`ValidateUsdFaceOptions` (validator): ``usdfaceOptions`` are personalize's, with accepted values.
+* :class:`ValidateUsdFaceOutputs` (validator): the layer and (with ``review``) the review page can be
+  written there (not an input, not an existing file without ``force``, a place that takes them), so a
+  publish fails before any file is written.
 * :class:`ExtractUsdFacePersonalized` (extractor): runs ``personalize``, re-checks the written layer, and
   records it in ``instance.data["files"]`` and ``instance.data["representations"]`` (the OpenPype/AYON shape).
 * :class:`ExtractUsdFaceReview` (extractor, with ``instance.data["review"]``): the self-contained review page
@@ -176,6 +179,39 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
                                   "AVATAR CAPTURE --dry-run'")
 
 
+class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
+    """The files the extractors will write can be written, checked as the extractors check them, before any
+    is: the layer (``output``: a USD name, not an input, not an existing file without ``force``, a place
+    that takes it) and, with ``review``, the review page beside it. Without this, a publish whose review
+    page was left by an earlier one wrote the layer and then failed in the review extractor, leaving the
+    layer behind (and the retry failed on it: 'output layer exists'). The layer is not checked when a
+    registered extractor swaps in its own ``personalize`` (a studio's step decides where it writes)."""
+
+    order = _pyblish.ValidatorOrder
+    families = [FAMILY]
+    label = "Validate outputs (usdface)"
+
+    def process(self, instance):
+        from ..api import personalize_inputs
+        from ..commands.review import default_output
+        from ..io.atomic import check_output_file
+        from ..io.layers import check_output_path
+
+        data = instance.data
+        output = Path(data["output"])
+        options = dict(data.get("usdfaceOptions") or {})
+        force = bool(options.get("force", data.get("force", False)))
+        extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
+                                                    if issubclass(p, ExtractUsdFacePersonalized))]
+        if all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors):
+            check_output_path(output, force, inputs=personalize_inputs(
+                data["avatar"], data["capture"], take=options.get("take"), **options))
+        if data.get("review"):
+            check_output_file(default_output(output), bool(data.get("force", False)),
+                              suffixes=(".html", ".htm"), what="review page",
+                              inputs=[output, data["avatar"], data["capture"], data.get("take")])
+
+
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
     """Personalize the avatar from the capture and write the layer; the written layer must pass the check."""
 
@@ -255,7 +291,7 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
 
 #: The plugins, in publish order.
 PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, ValidateUsdFaceOptions,
-           ExtractUsdFacePersonalized, ExtractUsdFaceReview)
+           ValidateUsdFaceOutputs, ExtractUsdFacePersonalized, ExtractUsdFaceReview)
 
 
 def register() -> None:
