@@ -169,3 +169,26 @@ def test_bad_options_fail_validation_not_the_extractor(registered, tmp_path, sam
     context.data["usdfaceItems"] = [{**item, "usdfaceOptions": {"studio_lod": 2}}]
     pyblish.util.publish(context)
     assert _results(context)[("ValidateUsdFaceOptions", "o")]["success"] and ran == [1]
+
+
+def test_a_take_and_force_among_the_options_validate_as_the_extractors_take_them(registered, tmp_path,
+                                                                                 samples):
+    """``usdfaceOptions`` with a take (a manifest column): the outputs' validator passed it twice to
+    personalize_inputs (a TypeError, the publish failed in validation); and its ``force`` is the review
+    page's too, as both extractors take it (the review extractor preferred the instance's)."""
+    import numpy as np
+
+    from usdface.io.livelink import write_livelink_csv
+
+    take = write_livelink_csv(tmp_path / "t.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    out = tmp_path / "person.usda"
+    out.write_text("#usda 1.0\n")                                  # left by an earlier publish
+    (tmp_path / "person.review.html").write_text("old")
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(samples / "avatar.usda"),
+                                     "capture": str(samples / "capture.usda"), "output": str(out),
+                                     "review": True, "force": False,
+                                     "usdfaceOptions": {"take": str(take), "force": True}}]
+    pyblish.util.publish(context)
+    assert [r["error"] for r in context.data["results"] if not r["success"]] == []
+    assert (tmp_path / "person.review.html").read_text() != "old"

@@ -200,16 +200,17 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
         data = instance.data
         output = Path(data["output"])
         options = dict(data.get("usdfaceOptions") or {})
+        # as the extractors take them: usdfaceOptions' force and take first, then the instance data's
         force = bool(options.get("force", data.get("force", False)))
+        take = options.pop("take", None) or data.get("take")
         extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
                                                     if issubclass(p, ExtractUsdFacePersonalized))]
         if all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors):
             check_output_path(output, force, inputs=personalize_inputs(
-                data["avatar"], data["capture"], take=options.get("take"), **options))
+                data["avatar"], data["capture"], take=take, **options))
         if data.get("review"):
-            check_output_file(default_output(output), bool(data.get("force", False)),
-                              suffixes=(".html", ".htm"), what="review page",
-                              inputs=[output, data["avatar"], data["capture"], data.get("take")])
+            check_output_file(default_output(output), force, suffixes=(".html", ".htm"), what="review page",
+                              inputs=[output, data["avatar"], data["capture"], take])
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
@@ -277,8 +278,9 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         layer = Path(instance.data["usdfaceLayer"])
         options = instance.data.get("usdfaceOptions") or {}
         take = options.get("take") or instance.data.get("take")   # the take the layer plays (extractor)
-        # the layer's force (instance data, or usdfaceOptions as a manifest's column gives it) is the page's
-        force = bool(instance.data.get("force", options.get("force", False)))
+        # the layer's force (usdfaceOptions, as a manifest's column gives it, else the instance data's, as
+        # the layer's extractor takes it) is the page's
+        force = bool(options.get("force", instance.data.get("force", False)))
         with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
             page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
                                 take=take, force=force)
