@@ -15,8 +15,7 @@ import json
 import numpy as np
 
 __all__ = ["retarget_weights", "face_regions", "choose_mu_by_regions", "driven_gram", "namesake_prior",
-           "approximate",
-           "weight_map_rows", "weight_map_json", "weight_map_csv"]
+           "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
 #: Vertices per block of :func:`retarget_weights`' products over ``rows``.
@@ -150,8 +149,8 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         then adds ``||sum_i (w_i - p_ji) B^else_i||^2``: there the map reproduces the ridge's centre (the
         namesake's own motion), since the capture says nothing about the person's tongue or eyeballs. An
         engine drives every mesh with the map: the sample's ``jawForward`` row took ``tongueOut`` at 0.82
-        (a tongue out on every jaw slide) and ``eyeLookDownLeft`` took ``eyeLookOutLeft`` at 1.0 (the
-        eyeball turned outwards), matching a few face rows by moving what the face rows do not hold.
+        (a tongue out on every jaw slide), matching a few face rows by moving what the face rows do not
+        hold; on a rig whose eyeballs carry the ``eyeLook*`` shapes a lid could turn an eyeball so.
 
     Returns
     -------
