@@ -40,12 +40,23 @@ _SIGNAL_DURING_PXR_IMPORT = textwrap.dedent("""
 """)
 
 
+def _interactive_signals() -> None:
+    """In the child: SIGINT and SIGTERM at their defaults, as a terminal's foreground job has them. A run
+    under a background job or nohup (as a CI runner may start the suite) inherits SIGINT ignored, and
+    Python installs no KeyboardInterrupt handler then: Ctrl-C cannot reach such a program at all."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _signalled(tmp_path, sig: str, when: str, *args) -> subprocess.CompletedProcess:
     """Run ``usdface ARGS`` as the program, sending itself ``sig`` when module ``when`` is imported."""
     script = tmp_path / "run.py"
     script.write_text(_SIGNAL_DURING_PXR_IMPORT)
     return subprocess.run([sys.executable, str(script), sig, when, *map(str, args)],
-                          capture_output=True, text=True, env=_env(), timeout=600)
+                          capture_output=True, text=True, env=_env(), timeout=600,
+                          preexec_fn=_interactive_signals)
 
 
 @pytest.mark.parametrize(("sig", "status"), [("SIGTERM", 143), ("SIGINT", 130)])
