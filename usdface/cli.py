@@ -107,7 +107,8 @@ def main(argv=None) -> int:
         _program_environment()
         _standard_streams()
     previous = None
-    if argv is None and threading.current_thread() is threading.main_thread():
+    if (argv is None and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN):   # started ignoring it: it stays so
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return _main(argv, program=previous is not None)
