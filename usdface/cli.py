@@ -107,11 +107,11 @@ def main(argv=None) -> int:
         _program_environment()
         _standard_streams()
     previous = None
-    if (argv is None and threading.current_thread() is threading.main_thread()
-            and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN):   # started ignoring it: it stays so
+    program = argv is None and threading.current_thread() is threading.main_thread()
+    if program and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:  # started ignoring it: it stays
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        return _main(argv, program=previous is not None)
+        return _main(argv, program=program)
     except Terminated:
         print("usdface: terminated", file=sys.stderr)
         return 143
