@@ -76,3 +76,16 @@ def read_only_folder(monkeypatch):
 
     monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
     return lambda path: folders.append(Path(path))
+
+
+@pytest.fixture
+def pyblish_registered():
+    """Pyblish's API with usdface's plugins registered (and only them) for one test; skipped without
+    pyblish."""
+    pyblish_api = pytest.importorskip("pyblish.api")
+    from usdface.pipeline import pyblish_plugins
+
+    pyblish_api.deregister_all_plugins()
+    pyblish_plugins.register()
+    yield pyblish_api
+    pyblish_api.deregister_all_plugins()

@@ -202,17 +202,6 @@ def test_a_closed_stdout_is_not_a_failure(samples, tmp_path, closed):
     assert not res.stderr or b"Traceback" not in res.stderr
 
 
-@pytest.fixture
-def pyblish_registered():
-    pyblish_api = pytest.importorskip("pyblish.api")
-    from usdface.pipeline import pyblish_plugins
-
-    pyblish_api.deregister_all_plugins()
-    pyblish_plugins.register()
-    yield pyblish_api
-    pyblish_api.deregister_all_plugins()
-
-
 def _publish(pyblish_api, **item):
     import pyblish.util
 

@@ -10,17 +10,6 @@ import pytest
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
-@pytest.fixture
-def pyblish_registered():
-    api = pytest.importorskip("pyblish.api")
-    from usdface.pipeline import pyblish_plugins
-
-    api.deregister_all_plugins()
-    pyblish_plugins.register()
-    yield api
-    api.deregister_all_plugins()
-
-
 def _publish(api, items):
     import pyblish.util
 
@@ -33,24 +22,32 @@ def _publish(api, items):
 
 def _small_take(path: Path, peak: float = 1.0) -> Path:
     """A Live Link Face CSV of 30 rows at 30 fps (jawOpen up to ``peak`` and a smile)."""
-    import csv
 
     import numpy as np
 
-    from usdface.arkit import ARKIT_NAMES, livelink_name
-    from usdface.io.livelink import ANGLE_COLUMNS
+    from usdface.arkit import ARKIT_NAMES
 
     t = np.arange(30)
     w = np.zeros((30, len(ARKIT_NAMES)))
     w[:, ARKIT_NAMES.index("jawOpen")] = peak * np.sin(np.pi * t / 29)
     w[:, ARKIT_NAMES.index("mouthSmileLeft")] = 0.5 * np.sin(np.pi * t / 29) ** 2
+    return _livelink_csv(path, w, [f"10:00:00:{2 * i:02d}.000" for i in range(len(w))])
+
+
+def _livelink_csv(path: Path, w, timecodes) -> Path:
+    """``w[F, 52]`` (ARKit order) written as Live Link Face writes a take: its column names, the timecodes,
+    the head and eye angles at 0."""
+    import csv
+
+    from usdface.arkit import ARKIT_NAMES, livelink_name
+    from usdface.io.livelink import ANGLE_COLUMNS
+
     with open(path, "w", newline="") as fh:
         out = csv.writer(fh)
         out.writerow(["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in ARKIT_NAMES]
                      + list(ANGLE_COLUMNS))
-        for i, row in enumerate(w):
-            out.writerow([f"10:00:00:{2 * i:02d}.000", 61] + [f"{x:.6f}" for x in row]
-                         + ["0"] * len(ANGLE_COLUMNS))
+        for code, row in zip(timecodes, w, strict=True):
+            out.writerow([code, 61] + [f"{x:.6f}" for x in row] + ["0"] * len(ANGLE_COLUMNS))
     return path
 
 
@@ -158,14 +155,12 @@ def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_
     """takes.md's advice for held-out frames that are all rests is '--test-every 5 --min-separation 0.2';
     given exactly that, 'capture select' warned '(fix: ... --test-every 5 --min-separation 0.2)' again, and
     without naming the take. It names the take and a --min-separation below the one given."""
-    import csv
     import re
 
     import numpy as np
 
     from usdface import api
-    from usdface.arkit import ARKIT_NAMES, livelink_name
-    from usdface.io.livelink import ANGLE_COLUMNS
+    from usdface.arkit import ARKIT_NAMES
 
     frames = 600                                            # 20 s at 30 fps: short expressions among rests
     t = np.arange(frames)
@@ -173,13 +168,7 @@ def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_
     for k, name in enumerate(("jawOpen", "eyeBlinkLeft", "mouthSmileLeft", "browInnerUp", "cheekPuff")):
         w[:, ARKIT_NAMES.index(name)] = 0.9 * np.exp(-0.5 * ((t - 60 - 110 * k) / 2.0) ** 2)
     take = tmp_path / "rests.csv"
-    with open(take, "w", newline="") as fh:
-        out = csv.writer(fh)
-        out.writerow(["Timecode", "BlendShapeCount"] + [livelink_name(n) for n in ARKIT_NAMES]
-                     + list(ANGLE_COLUMNS))
-        for i, row in enumerate(w):
-            out.writerow([f"10:00:{i // 30:02d}:{2 * (i % 30):02d}.000", 61] + [f"{x:.6f}" for x in row]
-                         + ["0"] * len(ANGLE_COLUMNS))
+    _livelink_csv(take, w, [f"10:00:{i // 30:02d}:{2 * (i % 30):02d}.000" for i in range(len(w))])
     with pytest.warns(UserWarning, match="show no expression") as said:
         api.select_capture_frames(take, test_every=5, min_separation=0.2)
     message = next(str(m.message) for m in said if "show no expression" in str(m.message))
