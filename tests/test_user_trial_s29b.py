@@ -361,3 +361,27 @@ def test_check_notes_name_map_entries_that_match_no_channel(tmp_path, capsys):
     found = [i for i in json.loads(capsys.readouterr().out)["issues"] if "name map" in i["message"]]
     assert len(found) == 1 and "'JawDrop'" in found[0]["message"]
     assert "eyeBlinkLeft" not in found[0]["message"]
+
+
+def test_evaluate_landmarks_takes_the_empirical_indices_themselves(tmp_path, monkeypatch):
+    """``evaluate_landmarks(avatar, take, empirical=[1, 2, 3])`` raised TypeError (it read a path only);
+    the indices themselves are a layout, as a JSON file of them is; anything else names the fix."""
+    import usdface
+    import usdface.landmarks.evaluate as evaluate
+    from usdface.errors import LandmarkError
+
+    csv = tmp_path / "t.csv"
+    write_livelink_csv(csv, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    seen = {}
+    monkeypatch.setattr(evaluate, "evaluate_landmarks",
+                        lambda rig, weights, indices, **kw: seen.update(i=indices))
+    usdface.evaluate_landmarks(str(SAMPLE / "avatar.usda"), csv, empirical=[1, 2, 3])
+    assert seen["i"] == [1, 2, 3]
+    usdface.evaluate_landmarks(str(SAMPLE / "avatar.usda"), csv, empirical=np.array([5, 6]))
+    assert seen["i"] == [5, 6]
+    for bad in ([1.5, 2.0], [], [[1, 2]]):
+        with pytest.raises(LandmarkError, match="no list of vertex indices"):
+            usdface.evaluate_landmarks(str(SAMPLE / "avatar.usda"), csv, empirical=bad)
+    with pytest.raises(LandmarkError, match="out of range") as err:
+        usdface.evaluate_landmarks(str(SAMPLE / "avatar.usda"), csv, empirical=[10 ** 9])
+    assert err.value.path is None

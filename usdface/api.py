@@ -785,16 +785,16 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
 
 
 def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Sequence[PathLike], *,
-                       empirical: PathLike | None = None, frames: int = 400, noise_mm: float = 0.5,
-                       **options: Any) -> EvaluationReport:
+                       empirical: PathLike | Sequence[int] | None = None, frames: int = 400,
+                       noise_mm: float = 0.5, **options: Any) -> EvaluationReport:
     """Sweep landmark layouts (epsilon x multi-cover) against baselines on test weights read from Live Link
     Face CSV ``takes`` (``usdface landmarks --evaluate``): reconstruction RMSE vs landmark count (Zell &
     McDonnell 2022, Sec. 5), with ``noise_mm`` of tracking noise, ``frames`` test frames evenly sampled.
     ``rig`` as :func:`compute_landmarks` takes it (a :class:`FaceRig`, or an avatar object or file);
     ``takes`` one path or a sequence of them.
-    ``empirical``: a JSON list of vertex indices (or ICT-FaceKit's ``vertex_indices.json``) scored as an
-    extra layout. ``options`` go to :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``,
-    ``symmetric``, ``backend``, ...)."""
+    ``empirical``: the vertex indices of a layout scored as an extra one, as a sequence of ints or a JSON
+    file of them (or ICT-FaceKit's ``vertex_indices.json``). ``options`` go to
+    :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``, ``symmetric``, ``backend``, ...)."""
     from .errors import LandmarkError
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
@@ -804,14 +804,15 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
         takes = [takes]
     if not takes:
         raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
-    indices = _read_vertex_list(empirical) if empirical else None
+    indices = _read_vertex_list(empirical) if empirical is not None else None
     if indices is not None:            # checked before the takes are read, naming the file
         from .landmarks.baselines import empirical_layout
 
         try:
             empirical_layout(indices, rig.n_vertices)
         except LandmarkError as exc:
-            raise LandmarkError(exc.message, path=empirical, prim=getattr(rig.source, "prim", None),
+            raise LandmarkError(exc.message, path=empirical if isinstance(empirical, str | Path) else None,
+                                prim=getattr(rig.source, "prim", None),
                                 fix=exc.fix) from None
     weights = livelink_weights(takes, rig.names, frames)
     if not weights.any():        # every test frame the neutral: the sweep would score tracking noise alone
@@ -824,12 +825,21 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     return _evaluate(rig, weights, indices, noise=noise_mm * 1e-3, **options)
 
 
-def _read_vertex_list(path: PathLike) -> list[int]:
-    """An empirical layout: a JSON list of vertex indices, or a dict with ``idx_to_landmark_verts``
-    (ICT-FaceKit) or ``vertices``."""
+def _read_vertex_list(path: PathLike | Sequence[int]) -> list[int]:
+    """An empirical layout: vertex indices given as they are (a sequence of whole numbers), or a JSON file
+    of a list of them or of a dict with ``idx_to_landmark_verts`` (ICT-FaceKit) or ``vertices``."""
     import json
 
-    from .errors import InputFileError
+    import numpy as np
+
+    from .errors import InputFileError, LandmarkError
+
+    if not isinstance(path, str | Path):            # the indices themselves (a list, a numpy array)
+        values = np.asarray(path)
+        if values.ndim != 1 or not values.size or values.dtype.kind not in "iu":
+            raise LandmarkError(f"empirical layout {str(path)[:40]!r} is no list of vertex indices",
+                                fix="pass whole vertex indices (e.g. [12, 480, 3301]) or a JSON file of them")
+        return [int(v) for v in values]
 
     try:
         data = json.loads(Path(path).read_text())
