@@ -317,3 +317,20 @@ def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samp
     assert "from" not in doc
     assert [(i["status"], i["error_type"]) for i in doc["items"]] == [("failed", "Interrupted")]
     assert not (tmp_path / "a.usda").exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_stdout_on_a_full_disk_is_said_as_stdout(samples, tmp_path, json_flag):
+    """``usdface personalize ... > /dev/full`` wrote the layer, then said 'No space left on device (fix:
+    ... write the output elsewhere (-o))', pointing at the output; with --json it ended in a traceback (the
+    error document failed on stdout too), exit 1. It says stdout, exit 2, and the layer stands."""
+    out = tmp_path / "p.usda"
+    with open("/dev/full", "w") as full:
+        res = subprocess.run([sys.executable, "-m", "usdface", "personalize", str(samples / "avatar.usda"),
+                              str(samples / "capture.usda"), "-o", str(out), "-q", *json_flag],
+                             stdout=full, stderr=subprocess.PIPE, text=True, env=_env(), timeout=600)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr
+    assert "could not write to stdout" in res.stderr and "the outputs were written" in res.stderr
+    assert out.exists()

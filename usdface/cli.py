@@ -106,6 +106,8 @@ def main(argv=None) -> int:
     if argv is None:
         _program_environment()
         _standard_streams()
+        if sys.stdout is not None and not isinstance(sys.stdout, _StdoutReporter):
+            sys.stdout = _StdoutReporter(sys.stdout)
     previous = None
     program = argv is None and threading.current_thread() is threading.main_thread()
     if program and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:  # started ignoring it: it stays
@@ -256,6 +258,13 @@ def _main(argv=None, program: bool = False) -> int:
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
+        if isinstance(exc, StdoutError):                  # stdout itself (`> /dev/full`): not the outputs
+            _silence_stdout()
+            written = ("; the outputs were written, its report was not" if getattr(args, "output", None)
+                       else "")
+            print(f"usdface {_command_name(args)}: error: could not write to stdout: {exc.strerror or exc} "
+                  f"(fix: free space where stdout goes, or send it elsewhere{written})", file=sys.stderr)
+            return 2
         text = os_error_text(exc, hasattr(args, "output"))
         if getattr(args, "json", None) is True:
             _json_error(args, text, type(exc).__name__, exc.filename, None,
@@ -263,6 +272,39 @@ def _main(argv=None, program: bool = False) -> int:
         else:
             print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
         return 2
+
+
+class StdoutError(OSError):
+    """A write to the ``usdface`` program's stdout failed (a full disk, ``> /dev/full``): told apart from a
+    failed output, whose fix is another ``-o`` (the outputs were written; the report on stdout was not)."""
+
+
+class _StdoutReporter:
+    """The program's ``sys.stdout``, raising :class:`StdoutError` where a write or flush of it fails (a closed
+    pipe stays ``BrokenPipeError``); everything else is the stream's own."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _call(self, name, *args):
+        try:
+            return getattr(self._stream, name)(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutError(exc.errno, exc.strerror) from exc
+
+    def write(self, text):
+        return self._call("write", text)
+
+    def writelines(self, lines):
+        return self._call("writelines", lines)
+
+    def flush(self):
+        return self._call("flush")
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def _json_error(args, text, kind, path, prim, fix) -> None:
