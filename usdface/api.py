@@ -132,22 +132,12 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
     ``force``; the source's digest is recorded (see :func:`write_capture`). A take is refused (its frames are
     picked with :func:`select_capture_frames`, or it is fitted whole)."""
+    from .io.capture_folder import refuse_whole_take
+
     check_capture_output(out_path, force, inputs=[folder])
     capture = read_capture(folder)
-    refuse_take_import(capture, folder)
+    refuse_whole_take(capture, folder)            # naming the take given, before the write would
     return write_capture(capture, out_path, force=force, exact=exact, source=folder)
-
-
-def refuse_take_import(capture: Capture, source: PathLike) -> None:
-    """``capture import`` of a take read whole: written as a capture, its every frame would pass for a frame
-    picked one per shape, and the take's whole-take fit (frame weighting, ``--every``) would be lost."""
-    if capture.whole_take:
-        from .errors import CaptureError
-
-        raise CaptureError("a take, not a capture: imported, its every frame would become a training "
-                           "frame of a capture and lose the take's whole-take fit (frame weighting, --every)",
-                           path=source, fix="pick its frames with 'usdface capture select TAKE -o "
-                                            "capture.usda', or pass the take itself to fit / personalize")
 
 
 class CaptureSelection(NamedTuple):

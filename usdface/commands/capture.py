@@ -56,6 +56,7 @@ def register(subparsers) -> None:
 
 def run_import(args) -> int:
     from .. import api
+    from ..io.capture_folder import refuse_whole_take
     from ..progress import steps
 
     api.check_capture_output(args.output, args.force, inputs=[args.source])
@@ -64,7 +65,7 @@ def run_import(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             capture = api.read_capture(args.source)
-        api.refuse_take_import(capture, args.source)
+        refuse_whole_take(capture, args.source)
         for w in caught:
             say_warning(w.message)
         p.start(f"write {Path(args.output).name}")

@@ -251,14 +251,18 @@ def _weights_json(names, row) -> str:
 
 
 def refuse_whole_take(capture: Capture, path) -> None:
-    """A take read whole (``capture.whole_take``: every frame trains, weighted as a take) is not written as a
-    capture: read back, its hundreds of frames would be fitted as picked frames (equally weighted, no take
-    noise model) - another fit than ``fit TAKE`` gives. :class:`CaptureError` with the fix."""
+    """A take read whole (``capture.whole_take``: every frame trains, weighted as a take) is not written or
+    imported as a capture (``path``: the output, or the take being imported): read back, its every frame would
+    pass for a frame picked one per shape, fitted equally weighted without the take's noise model - another
+    fit than ``fit TAKE`` gives. :class:`CaptureError` with the fix."""
     if capture.whole_take:
-        raise CaptureError(f"this capture is a take read whole ({len(capture.train)} frames, every frame "
-                           "trains): written as a capture it would be fitted as picked frames", path=path,
-                           fix="write the take itself (usdface.io.take.write_take_usd / write_take_folder), "
-                               "or pick its frames first ('usdface capture select TAKE -o capture.usda')")
+        raise CaptureError(f"a take, not a capture: a take read whole ({len(capture.train)} frames, every "
+                           "frame trains); as a capture its every frame would pass for a frame picked one "
+                           "per shape and lose the take's whole-take fit (frame weighting, --every)",
+                           path=path,
+                           fix="pick its frames with 'usdface capture select TAKE -o capture.usda', pass "
+                               "the take itself to fit / personalize, or write it as a take "
+                               "(usdface.io.take.write_take_usd / write_take_folder)")
 
 
 def write_capture_folder(capture: Capture, path, force: bool = False) -> Path:
