@@ -28,17 +28,18 @@ def recorded_capture(layer_path, info: dict) -> Path | None:
     inputs = list(info.get("inputs") or [])
     if len(inputs) < 2 or not _fitted(info):
         return None       # a landmarks layer records the avatar (and its layers) only: no capture
-    p = Path(inputs[1])
-    p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
-    return p.resolve() if p.exists() else None
+    return _recorded_path(layer_path, inputs[1])
 
 
 def recorded_take(layer_path, info: dict) -> Path | None:
     """The take a personalize layer's inspection animation plays (``personalize --take``, recorded relative
     to the layer as ``take`` in its provenance), when it still exists; else None."""
-    if not info.get("take"):
-        return None
-    p = Path(str(info["take"]))
+    return _recorded_path(layer_path, info["take"]) if info.get("take") else None
+
+
+def _recorded_path(layer_path, recorded) -> Path | None:
+    """A path a layer's provenance records (relative to the layer, or absolute), resolved, when it exists."""
+    p = Path(str(recorded))
     p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
     return p.resolve() if p.exists() else None
 
