@@ -537,7 +537,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
                        weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
-                       map_only: bool = False, extra_inputs=(), **fit_options) -> PersonalizeResult:
+                       map_only: bool = False, extra_inputs: dict | None = None,
+                       **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
@@ -557,10 +558,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         rig's channels are authored for); None: any real weights, as the paper.
     map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
         layer; the result's ``offsets`` and ``approximation`` are empty, ``weights`` the map.
-    extra_inputs : more files the layer is made from, recorded with their digests among its inputs (the take
-        its inspection animation plays), so that editing one makes the layer stale; a mapping ``{role:
-        path}`` (``{"take": path}``) also records each path under its role in the provenance (relative to
-        the layer, as the inputs), which ``usdface review`` reads back.
+    extra_inputs : ``{role: path}``, more files the layer is made from (``{"take": path}``, the take its
+        inspection animation plays): recorded with their digests among its inputs, so that editing one makes
+        the layer stale, and each under its role in the provenance (relative to the layer, as the inputs),
+        which ``usdface review`` reads back.
     layer_edit : ``layer_edit(offsets, face_prim) -> edit(stage)`` (or None): extra prims and primvars
         authored into the layer in the same atomic write (the inspection data of
         :func:`usdface.api.personalize_avatar`), from the offsets that are written.
@@ -884,6 +885,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.layers import write_avatar_layer
             from .retarget import weight_map_rows
 
+            extra = {role: str(p) for role, p in (extra_inputs or {}).items() if isinstance(p, str | Path)}
             prov = {"command": command or "usdface personalize",
                     "parameters": {k: (v if isinstance(v, int | float | str | bool) else str(v))
                                    for k, v in report["options"].items()},
@@ -891,10 +893,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "inputs": ([str(capture.source)] if capture.source else [])
                     + ([str(name_map)] if isinstance(name_map, str | Path) else [])
                     + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
-                    + [str(p) for p in (extra_inputs.values() if isinstance(extra_inputs, dict)
-                                        else extra_inputs) if isinstance(p, str | Path)],
-                    **({role: str(p) for role, p in extra_inputs.items() if isinstance(p, str | Path)}
-                       if isinstance(extra_inputs, dict) else {}),
+                    + list(extra.values()),
+                    **extra,
                     "registrationScale": float(sim.scale),
                     "registrationResidual": float(registration.residual),
                     "registration": dict(report["registration"]),
