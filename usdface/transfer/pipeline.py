@@ -1322,9 +1322,8 @@ def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.
     s = np.asarray(sensitivity, dtype=np.float64)
     s2 = np.einsum("knc,knc->kn", s, s)
     mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
-    count = np.maximum(mov.sum(axis=1), 1)
-    return np.clip(1.0 - (np.sum(s2 * mov, axis=1) / count)
-                   / np.maximum(np.sum(d2 * mov, axis=1) / count, 1e-300), 0.0, 1.0)
+    # the ratio of the means over the same vertices: of their sums
+    return np.clip(1.0 - np.sum(s2 * mov, axis=1) / np.maximum(np.sum(d2 * mov, axis=1), 1e-300), 0.0, 1.0)
 
 
 def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict]:
