@@ -174,6 +174,15 @@ def undecorated(name: str) -> list[tuple[str, str]]:
     return out
 
 
+def unused_map_entries(name_map, channels) -> list[str]:
+    """The entries of ``name_map`` ({studio name: ARKit name}) that match none of ``channels`` (the names as
+    authored) nor their undecorated forms (:func:`undecorated`): a typo in the map, or another rig's map.
+    What ``inspect`` notes and ``check`` reports."""
+    forms = set(channels)
+    forms |= {bare for t in list(forms) for bare, _ in undecorated(t)}
+    return [k for k in name_map or {} if k not in forms]
+
+
 def match_name(name: str, fallback: str | None = None,
                name_map: dict[str, str] | None = None) -> tuple[str | None, str]:
     """Map one name (or a fallback such as a BlendShape prim name) to ARKit.

@@ -764,9 +764,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
             notes.append(f"{key}: channel {token!r} also means {canonical!r}, which {kept!r} maps to better; "
                          f"{token!r} is kept under its own name and not personalized")
     if name_map:
-        forms = {t for m in meshes for t in m.source.channel_tokens}
-        forms |= {bare for t in list(forms) for bare, _ in arkit.undecorated(t)}
-        unused = [k for k in name_map if k not in forms]
+        unused = arkit.unused_map_entries(name_map, [t for m in meshes for t in m.source.channel_tokens])
         if unused:
             notes.append(f"name map entries that match no channel: {', '.join(unused)}")
     static_meshes = {}

@@ -48,7 +48,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import ARKIT_NAMES, ARKIT_SET, HOW_LABELS, OPTIONAL_NAMES, match_name, match_names, undecorated
+from ..arkit import (
+    ARKIT_NAMES,
+    ARKIT_SET,
+    HOW_LABELS,
+    OPTIONAL_NAMES,
+    match_name,
+    match_names,
+    unused_map_entries,
+)
 
 ERROR, WARNING, INFO = "error", "warning", "info"
 SEVERITIES = (ERROR, WARNING, INFO)
@@ -404,8 +412,7 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         key = str(skel.GetPath()) if skel else path
         per_skeleton.setdefault(key, set()).update(c for c in match.canonical if c in ARKIT_SET)
     if name_map:      # as 'inspect --name-map' notes them: a typo in the map, or another rig's map
-        tokens |= {bare for t in list(tokens) for bare, _ in undecorated(t)}
-        unused = [k for k in name_map if k not in tokens]
+        unused = unused_map_entries(name_map, tokens)
         if unused:
             yield Issue(INFO, "ArkitNames", _path(stage.GetPseudoRoot()),
                         f"name map entries that match no channel: {', '.join(map(repr, unused[:8]))}"
