@@ -64,6 +64,28 @@ def _warnings_to_log(plugin, instance, report_warnings=None):
                     plugin.log.warning(text)
 
 
+def _personalize_options(instance) -> dict:
+    """The options the layer's extractor gives ``personalize``: ``usdfaceOptions`` (a manifest's columns)
+    first, then the instance data's ``force``, ``inspect`` and ``take`` - the ``force`` and take the review
+    page and the outputs' validator go by too."""
+    data = instance.data
+    options = dict(data.get("usdfaceOptions") or {})
+    options.setdefault("force", bool(data.get("force", False)))
+    if "inspect" in data:
+        options.setdefault("inspect", bool(data["inspect"]))
+    if data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in the layer as
+        options["take"] = data["take"]                  # on the review page
+    return options
+
+
+def _default_personalize() -> bool:
+    """Whether every registered layer extractor runs the built-in ``personalize`` (a studio's own step takes
+    its own options and decides where it writes: the validators of those leave it alone)."""
+    extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
+                                                if issubclass(p, ExtractUsdFacePersonalized))]
+    return all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors)
+
+
 class CollectUsdFaceItems(_pyblish.ContextPlugin):
     """One ``usdface.avatar`` instance per item of ``context.data["usdfaceItems"]`` or of the batch manifest
     ``context.data["usdfaceManifest"]``."""
@@ -164,9 +186,7 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import check_personalize_options
 
-        extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
-                                                    if issubclass(p, ExtractUsdFacePersonalized))]
-        if any(p.personalize is not ExtractUsdFacePersonalized.default_personalize for p in extractors):
+        if not _default_personalize():
             return
         options = dict(instance.data.get("usdfaceOptions") or {})
         check_personalize_options(**options)
@@ -199,13 +219,9 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
 
         data = instance.data
         output = Path(data["output"])
-        options = dict(data.get("usdfaceOptions") or {})
-        # as the extractors take them: usdfaceOptions' force and take first, then the instance data's
-        force = bool(options.get("force", data.get("force", False)))
-        take = options.pop("take", None) or data.get("take")
-        extractors = [ExtractUsdFacePersonalized, *(p for p in _pyblish.registered_plugins()
-                                                    if issubclass(p, ExtractUsdFacePersonalized))]
-        if all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors):
+        options = _personalize_options(instance)             # as the extractors take force and the take
+        force, take = bool(options["force"]), options.pop("take", None)
+        if _default_personalize():
             check_output_path(output, force, inputs=personalize_inputs(
                 data["avatar"], data["capture"], take=take, **options))
         if data.get("review"):
@@ -234,12 +250,7 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
         from ..api import check
 
         output = Path(instance.data["output"])
-        options = dict(instance.data.get("usdfaceOptions") or {})
-        options.setdefault("force", bool(instance.data.get("force", False)))
-        if "inspect" in instance.data:
-            options.setdefault("inspect", bool(instance.data["inspect"]))
-        if instance.data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in
-            options["take"] = instance.data["take"]                  # the layer as on the review page
+        options = _personalize_options(instance)
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
         with _warnings_to_log(self, instance) as notes:
             result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
@@ -276,14 +287,10 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         from ..commands.review import default_output
 
         layer = Path(instance.data["usdfaceLayer"])
-        options = instance.data.get("usdfaceOptions") or {}
-        take = options.get("take") or instance.data.get("take")   # the take the layer plays (extractor)
-        # the layer's force (usdfaceOptions, as a manifest's column gives it, else the instance data's, as
-        # the layer's extractor takes it) is the page's
-        force = bool(options.get("force", instance.data.get("force", False)))
+        options = _personalize_options(instance)       # the take the layer plays, the layer's force
         with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
             page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
-                                take=take, force=force)
+                                take=options.get("take"), force=bool(options["force"]))
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(
