@@ -104,6 +104,7 @@ def atomic_save(layer, path, force: bool = False) -> Path:
     path = Path(path).absolute()
     tmp = None
     made: list[Path] = []
+    done = False
     try:
         made = make_parents(path)
         tmp = _temp_path(path)
@@ -119,14 +120,12 @@ def atomic_save(layer, path, force: bool = False) -> Path:
                 raise InputFileError("USD could not write the layer", path=path,
                                      fix="check the folder is writable and the disk has space")
             publish(tmp, path, force)
-    except BaseException:
-        if tmp is not None and tmp.exists():
-            tmp.unlink()
-        remove_made(made)     # a failure leaves no folder it made behind either
-        raise
+        done = True
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
+        if not done:
+            remove_made(made)     # a failure leaves no folder it made behind either
     cached = Sdf.Layer.Find(str(path))
     if cached is not None:
         cached.Reload(force=True)
@@ -745,6 +744,7 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
 
     made = make_parents(out_path)
     work = None
+    done = False
     try:
         work = _temp_path(out_path)
         layer = Sdf.Layer.CreateNew(str(work))
@@ -786,14 +786,12 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
         atomic_save(layer, out_path, force)
-    except BaseException:
-        if work is not None and work.exists():
-            work.unlink()
-        remove_made(made)     # a failed write leaves no folder it made behind either
-        raise
+        done = True
     finally:
         if work is not None and work.exists():
             work.unlink()
+        if not done:
+            remove_made(made)     # a failed write leaves no folder it made behind either
     return out_path
 
 
