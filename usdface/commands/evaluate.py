@@ -35,9 +35,8 @@ def run(args) -> int:
 
     from .. import api
 
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     truth = args.truth
-    report = api.evaluate_methods(args.capture, methods, truth=truth, json_path=args.json,
+    report = api.evaluate_methods(args.capture, args.methods, truth=truth, json_path=args.json,
                                   plot_path=args.plot, usd_path=args.usd, force=args.force,
                                   **fit_kwargs(args))
     table = Table(title=f"{Path(args.capture).name}: {len(report['labels'])} test frames (eq. 5)")
