@@ -166,18 +166,17 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
+    import numpy as np
+
     from .errors import CaptureError
     from .io.take import capture_from_take, read_take
     from .model import Capture
+    from .personalize.api import check_number
     from .progress import steps
     from .take_select import format_coverage, select_frames
 
     if isinstance(template, Capture):   # a capture read already: its template rig, as --template CAPTURE
         template = template.template
-    import numpy as np
-
-    from .personalize.api import check_number
-
     # as the command line's options refuse them (a string or a fraction died in numpy with a TypeError)
     threshold = check_number("threshold", threshold, low=0.0, inclusive=True, error=CaptureError,
                              fix="pass a weight in [0, 1] (0.5)")
