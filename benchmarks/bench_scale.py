@@ -10,8 +10,8 @@ body mesh, and head + body merged into one mesh. Each must pass ``usdface check`
 process, ``usdface personalize AVATAR dev1/capture -o ...`` and ``usdface landmarks AVATAR -o ... --json``
 and prints:
 
-* CPU seconds (user + sys of the child, from ``os.wait4``, the same rusage ``/usr/bin/time -v`` reports), the
-  ratio to dev1 measured in the same run, peak RSS (``ru_maxrss``) and wall seconds;
+* CPU seconds (user + sys of the child, from ``os.wait4`` in a small launcher, as ``/usr/bin/time -v``
+  reports them), the ratio to dev1 measured in the same run, peak RSS (``ru_maxrss``) and wall seconds;
 * "same answer": the personalized offsets on the original ``Head`` vertices against dev1's own result, RMS as
   a percentage of dev1's personalization change (output minus generic offsets, RMS over all shapes and
   ``Head`` vertices) and the largest absolute difference in mm; and whether the landmark layout is dev1's.
@@ -47,18 +47,35 @@ def default_cache() -> Path:
     return Path(base) / "usdface" / "bench_scale"
 
 
+#: Runs ``argv[2:]`` in a grandchild and writes its rusage to ``argv[1]``. Linux keeps, in the peak RSS
+#: ``wait4`` reports, the size of the process image a child replaced at ``exec``: a child forked straight
+#: from this script (hundreds of MB once it holds the results it compares) reported this script's size, not
+#: its own (a 477 MB run read 796 MB). The grandchild is forked from this small launcher, as
+#: ``/usr/bin/time`` forks its command.
+LAUNCHER = """import json, os, sys
+pid = os.fork()
+if pid == 0:
+    os.execv(sys.argv[2], sys.argv[2:])
+_, status, ru = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    json.dump({"cpu": ru.ru_utime + ru.ru_stime, "maxrss_kb": ru.ru_maxrss}, f)
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
 def run_measured(cmd: list[str]) -> dict:
-    """Run ``cmd`` in a child process; {"cpu": user+sys s, "rss_mb": peak RSS MB, "wall": s, "rc", "out"}."""
+    """Run ``cmd`` in a grandchild (:data:`LAUNCHER`); {"cpu": user+sys s, "rss_mb": peak RSS MB, "wall":
+    s, "rc", "out"}."""
     t = time.perf_counter()
-    with tempfile.TemporaryFile() as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryDirectory() as tmp:
+        usage_file = Path(tmp) / "rusage.json"
+        rc = subprocess.run([sys.executable, "-S", "-c", LAUNCHER, str(usage_file), *cmd], stdout=out,
+                            stderr=subprocess.STDOUT, cwd=ROOT).returncode
         wall = time.perf_counter() - t
+        usage = json.loads(usage_file.read_text())
         out.seek(0)
         text = out.read().decode(errors="replace")
-    return {"cpu": usage.ru_utime + usage.ru_stime, "rss_mb": usage.ru_maxrss / 1024.0, "wall": wall,
-            "rc": proc.returncode, "out": text}
+    return {"cpu": usage["cpu"], "rss_mb": usage["maxrss_kb"] / 1024.0, "wall": wall, "rc": rc, "out": text}
 
 
 def usdface(*args) -> list[str]:
