@@ -78,6 +78,17 @@ def test_sigterm_during_the_usd_import_writes_no_output(samples, tmp_path):
 
 
 @pytest.mark.parametrize(("sig", "status"), [("SIGTERM", 143), ("SIGINT", 130)])
+def test_a_signal_during_the_numpy_import_stops_the_run(samples, tmp_path, sig, status):
+    """A Ctrl-C while numpy's C extension imported ``datetime`` (``inspect``'s first numpy import) became
+    numpy's "Importing the numpy C-extensions failed ... a bad install" ImportError: a traceback telling the
+    user to reinstall, exit status 1."""
+    res = _signalled(tmp_path, sig, "datetime", "inspect", samples / "avatar.usda")
+    assert res.returncode == status, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr and "numpy" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1] in ("usdface: interrupted", "usdface: terminated")
+
+
+@pytest.mark.parametrize(("sig", "status"), [("SIGTERM", 143), ("SIGINT", 130)])
 def test_a_signal_while_the_command_line_is_read_is_one_line(samples, tmp_path, sig, status):
     """Ctrl-C while the commands' modules were imported (building the parser) ended in a Python traceback
     and death by SIGINT; SIGTERM there was already 'usdface: terminated'."""

@@ -130,28 +130,33 @@ def main(argv=None) -> int:
             gc.freeze()
 
 
-def _import_usd_with_signals_held() -> None:
-    """Import the USD Python modules usdface uses with SIGINT and SIGTERM held back, then let a held signal
-    through.
+def _import_natives_with_signals_held() -> None:
+    """Import numpy and the USD Python modules usdface uses with SIGINT and SIGTERM held back, then let a
+    held signal through.
 
-    USD's C++ module loader (``Tf.PreparePythonModule``) imports the modules a library depends on and
-    catches every Python exception doing so, printing it as a warning: a Ctrl-C or a SIGTERM landing in that
-    first ``from pxr import ...`` (the first ~0.3 s of a run) was swallowed, and the run went on to the end,
-    wrote its output and exited 0, with pxr half-loaded (``Error loading lib gf's module 'pxr.Gf'``). Held
-    back, the signal arrives once the import is done, where ``KeyboardInterrupt``/:class:`Terminated` end
-    the run as at any other moment (exit 130/143, nothing written)."""
+    Both turn a Ctrl-C or SIGTERM that lands inside their native imports into something else. USD's C++
+    module loader (``Tf.PreparePythonModule``) imports the modules a library depends on and catches every
+    Python exception doing so, printing it as a warning: a signal in that first ``from pxr import ...`` (the
+    first ~0.3 s of a run) was swallowed, and the run went on to the end, wrote its output and exited 0, with
+    pxr half-loaded (``Error loading lib gf's module 'pxr.Gf'``). numpy's C extension imports ``datetime``
+    through the C API, which reports the ``KeyboardInterrupt`` as a failed import, and numpy raises that as
+    an ImportError telling the user the installation is broken ("Importing the numpy C-extensions failed",
+    exit status 1). Held back, the signal arrives once the imports are done, where
+    ``KeyboardInterrupt``/:class:`Terminated` end the run as at any other moment (exit 130/143, nothing
+    written)."""
     import signal
 
     held: list[int] = []
     previous = {signum: signal.signal(signum, lambda signum, _frame: held.append(signum))
                 for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
+        import numpy  # noqa: F401
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         for signum in dict.fromkeys(held):
-            signal.raise_signal(signum)  # now its own handler runs, outside USD's loader
+            signal.raise_signal(signum)  # now its own handler runs, outside the native imports
 
 
 def _standard_streams() -> None:
@@ -222,7 +227,7 @@ def _main(argv=None, program: bool = False) -> int:
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
         if program:  # the usdface program's main thread (a host application's signals are its own)
-            _import_usd_with_signals_held()
+            _import_natives_with_signals_held()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             # third-party import machinery (six's importer under Dask) is not the user's business
