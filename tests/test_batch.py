@@ -611,7 +611,23 @@ def test_items_on_threads_side_by_side_keep_their_own_warnings(tmp_path):
     for t in threads:
         t.join()
     assert {i: r["warnings"] for i, r in results.items()} == {i: [f"note of {i}"] for i in range(3)}
-    assert [f for f in warnings.filters if f not in filters] in ([], [warnings.filters[-1]])
+    assert warnings.filters == filters
+
+
+def test_a_batch_in_the_hosts_process_leaves_its_warnings_machinery_as_it_was(tmp_path):
+    """``personalize_batch(..., jobs=1)`` (and ``run_batch``) in a host's process replaced its
+    ``warnings.showwarning`` and appended an ``always`` filter for good: a library must not change its host's
+    process state. Both are in place while an item runs only."""
+    import warnings
+
+    from usdface.api import personalize_batch
+
+    manifest = _manifest(tmp_path, ["a", "b"])
+    filters, show = list(warnings.filters), warnings.showwarning
+    report = personalize_batch(manifest, jobs=1, worker=f"{__name__}:warning_worker")
+    assert [r.status for r in report.results] == [DONE, DONE]
+    assert all(r.warnings for r in report.results)                 # the items' warnings still reach them
+    assert warnings.filters == filters and warnings.showwarning is show
 
 
 def test_a_workers_odd_result_or_a_sidecar_refusal_do_not_break_the_batch(tmp_path):
