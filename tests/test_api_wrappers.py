@@ -319,3 +319,19 @@ def test_inspect_force_keeps_the_old_output_when_the_inspection_fails(samples, t
 
     stage = Usd.Stage.Open(str(out))
     assert stage.GetPrimAtPath("/Avatar/Head").GetAttribute("primvars:" + inspection.HEAT_PRIMVAR)
+
+
+def test_check_takes_a_stage_or_a_layer_and_names_anything_else(samples):
+    """``check`` with an ``Sdf.Layer`` (what a host holds as often as a stage) raised an AttributeError from
+    deep in the rules; it is checked as the stage it opens, and another object is refused by name."""
+    from pxr import Sdf, Usd
+
+    from usdface.errors import UsdFaceError
+
+    path = samples / "avatar.usda"
+    rules = ["StageMetadata", "ArkitNames"]
+    expected = usdface.check(path, pixar=False, rules=rules)
+    assert usdface.check(Usd.Stage.Open(str(path)), pixar=False, rules=rules) == expected
+    assert usdface.check(Sdf.Layer.FindOrOpen(str(path)), pixar=False, rules=rules) == expected
+    with pytest.raises(UsdFaceError, match="not int"):
+        usdface.check(3)

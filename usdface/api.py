@@ -16,6 +16,7 @@ Example::
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -1108,13 +1109,23 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
           rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
     OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
-    :func:`read_avatar`. Never modifies the file."""
+    :func:`read_avatar`. An ``Sdf.Layer`` is checked as the stage it opens; anything else is refused
+    (``UsdFaceError``; it was an ``AttributeError`` from deep in the rules). Never modifies the file."""
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
     name_map = read_name_map(name_map)
-    if isinstance(file_or_stage, str | Path):
+    if isinstance(file_or_stage, str | os.PathLike):
         return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    from pxr import Sdf, Usd
+
+    if isinstance(file_or_stage, Sdf.Layer):
+        file_or_stage = Usd.Stage.Open(file_or_stage, Usd.Stage.LoadAll)
+    if not isinstance(file_or_stage, Usd.Stage):
+        from .errors import UsdFaceError
+
+        raise UsdFaceError(f"check takes a USD file's path, a Usd.Stage or an Sdf.Layer, not "
+                           f"{type(file_or_stage).__name__}", fix="pass the file's path or the open stage")
     return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
 
 
