@@ -719,3 +719,18 @@ def test_an_avatar_already_personalized_stops_the_batch_before_any_item(tmp_path
     assert "item 2:" in err and "hero.usda" in err and "already personalized" in err, err
     assert "avatar.usda" in err.split("fix:")[-1] and "avatar column" in err, err
     assert not (tmp_path / "first.usda").exists() and not (tmp_path / "m.report.json").exists()
+
+
+def test_a_batch_wide_path_option_reaches_the_workers_absolute(tmp_path, monkeypatch):
+    """A path given for every row (``options={"take": ...}``, ``--set take=...``) relative to the current
+    folder reached the workers as given, while every row's own paths are absolute: a Dask worker on another
+    machine (or a worker that changes folder) looked for it in its own folder."""
+    from usdface.api import personalize_batch
+
+    manifest = _manifest(tmp_path, ["a"])
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    personalize_batch(manifest, jobs=1, worker=f"{__name__}:stub_worker", options={"take": "take.csv"})
+    written = json.loads((tmp_path / "out" / "a.usda").read_text())
+    assert written["options"]["take"] == str(here / "take.csv")

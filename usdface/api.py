@@ -1076,10 +1076,16 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     A join option a face-transfer mode does not use (``falloff``, ``extension_length``, ``support``:
     :data:`usdface.transfer.pipeline.MODE_OPTIONS`) goes only to the rows whose mode uses it, so one
     ``--set falloff=0`` serves a manifest of ``offset`` and ``person`` rows; one that no row's mode uses is
-    refused (it would change nothing). A row's own columns are checked as given."""
+    refused (it would change nothing). A row's own columns are checked as given. A path-valued one
+    (``take``, ``name_map``, ``pins``, ``correspondence``) given relative is made absolute against the current
+    folder, where it was given: the items' own paths are absolute, and a relative one reached the workers as
+    it was, so a Dask worker (or a studio worker that changes folder) looked for it in its own folder."""
     from .errors import InputFileError
+    from .pipeline.batch import PATH_OPTIONS
     from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
+    shared = {k: os.path.abspath(v) if k in PATH_OPTIONS and isinstance(v, str | os.PathLike) and str(v)
+              else v for k, v in shared.items()}
     restricted = MODE_ONLY_OPTIONS & set(shared)
     used, taken = set(), set()
     for item in items:
