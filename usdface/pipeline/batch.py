@@ -654,14 +654,13 @@ def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
     """:func:`run_item` on a Dask worker: no progress lines of its own (the batch reports per item; the
     workers' step lines would interleave in its log) and one BLAS thread (the cluster's processes are the
     parallelism), as the local pool's :func:`init_worker` sets up."""
-    from threadpoolctl import threadpool_limits
-
     from .. import progress
+    from ..personalize.api import one_blas_thread
 
     # process-wide and not restored: a Dask worker's threads run items side by side, and one finishing must
     # not turn progress back on under another (an in-process cluster's parent: run_batch restores its own)
     progress.set_enabled(False)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():        # shared by the worker's threads (each its own limit: one left it at 1)
         return run_item(worker, item)
 
 
