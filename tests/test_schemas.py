@@ -121,3 +121,23 @@ def test_late_registration_is_reported():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          cwd=Path(__file__).resolve().parents[1])
     assert "ERR" in out.stdout and "before opening any USD stage" in out.stdout, out.stdout + out.stderr
+
+
+def test_inspect_lists_the_applied_schemas_in_a_host_that_opened_a_stage_first(tmp_path):
+    """In a DCC (a stage opened before usdface registers its schemas) ``inspect_file`` listed no usdface
+    schema on a layer that applies them: ``GetAppliedSchemas`` leaves out what the registry does not know."""
+    import usdface as api
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    layer = tmp_path / "lm.usda"
+    avatar = api.read_avatar(samples / "avatar.usda")
+    face = api.pick_mesh(avatar)
+    api.write_landmarks(avatar, face, api.compute_landmarks(face), layer)
+    expected = api.inspect_file(layer)["schemas"]
+    assert expected and "UsdFaceLandmarksAPI" in [s for v in expected.values() for s in v]
+    code = ("import json, warnings\nwarnings.simplefilter('ignore')\nfrom pxr import Usd\n"
+            f"Usd.Stage.Open({str(samples / 'avatar.usda')!r})\n"
+            f"import usdface\nprint(json.dumps(usdface.inspect_file({str(layer)!r})['schemas']))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == expected, out.stdout + out.stderr

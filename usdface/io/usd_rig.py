@@ -899,7 +899,10 @@ def read_layer_info(path) -> dict:
     usdface_data = _plain(dict(root.customLayerData).get("usdface", {}))
     schemas_found, variants = {}, {}
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        applied = [s for s in prim.GetAppliedSchemas() if s.startswith("UsdFace")]
+        # as authored: GetAppliedSchemas() leaves out the schemas USD's registry does not know, and it does
+        # not know usdface's when a stage was opened before usdface registered them (a DCC): none were listed
+        authored = [*prim.GetAppliedSchemas(), *prim.GetPrimTypeInfo().GetAppliedAPISchemas()]
+        applied = [s for s in dict.fromkeys(authored) if s.startswith("UsdFace")]
         if applied:
             values = {}
             for attr in prim.GetAttributes():
