@@ -335,3 +335,23 @@ def test_check_takes_a_stage_or_a_layer_and_names_anything_else(samples):
     assert usdface.check(Sdf.Layer.FindOrOpen(str(path)), pixar=False, rules=rules) == expected
     with pytest.raises(UsdFaceError, match="not int"):
         usdface.check(3)
+
+
+def test_an_avatar_and_a_capture_read_by_relative_paths_survive_the_host_changing_folder(samples, tmp_path,
+                                                                                          monkeypatch):
+    """``Avatar.file`` and ``Capture.source`` kept a relative path as given: once the host changed folder (a
+    DCC opening a scene), personalizing the objects said 'the avatar's file is gone', and with the avatar
+    read by an absolute path the layer recorded another capture path, with no digest (check: error)."""
+    import os
+
+    monkeypatch.chdir(samples)
+    avatar = usdface.read_avatar("avatar.usda")
+    capture = usdface.read_capture("capture.usda")
+    elsewhere = tmp_path / "scene"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert os.path.samefile(avatar.file, samples / "avatar.usda")
+    assert os.path.samefile(capture.source, samples / "capture.usda")
+    face = usdface.pick_mesh(avatar)
+    layer = usdface.write_landmarks(avatar, face, usdface.compute_landmarks(face), tmp_path / "lm.usda")
+    assert not [i for i in usdface.check(layer, pixar=False) if i.severity == "error"]

@@ -788,7 +788,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                 "instanced_targets": _instanced_targets(stage, meshes),
                 "shared_shapes": _shared_shapes(meshes),
                 "name_map": dict(name_map) if name_map else None}
-    return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
+    return Avatar(meshes=meshes, file=os.path.abspath(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
