@@ -355,3 +355,39 @@ def test_an_avatar_and_a_capture_read_by_relative_paths_survive_the_host_changin
     face = usdface.pick_mesh(avatar)
     layer = usdface.write_landmarks(avatar, face, usdface.compute_landmarks(face), tmp_path / "lm.usda")
     assert not [i for i in usdface.check(layer, pixar=False) if i.severity == "error"]
+
+
+def _doc_parameters(args: str) -> list[str]:
+    """The parameter names of a signature as docs/api.md writes it (``a, b=("x", "y"), *, c=None, **o``)."""
+    names, depth, part = [], 0, ""
+    for ch in args + ",":
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+        if ch == "," and depth == 0:
+            name = part.split("=")[0].strip()
+            if name and name not in ("*", "...") and not name.startswith("**"):
+                names.append(name)
+            part = ""
+        else:
+            part += ch
+    return names
+
+
+def test_the_documented_signatures_name_the_real_parameters():
+    """docs/api.md wrote ``personalize_avatar(avatar, capture, out_path, ...)`` and
+    ``write_retarget_map(avatar, capture, ...)``; a script calling them with those keywords got a TypeError
+    (the parameters are ``avatar_path`` and ``capture_path``)."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    wrong = {}
+    for m in re.finditer(r"^`(\w+)\((.*?)\)(?: -> [^`]*)?`$", doc, re.M):
+        params = inspect.signature(getattr(api, m.group(1))).parameters
+        unknown = [n for n in _doc_parameters(m.group(2)) if n not in params]
+        if unknown:
+            wrong[m.group(1)] = unknown
+    assert wrong == {}
