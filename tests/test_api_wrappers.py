@@ -391,3 +391,32 @@ def test_the_documented_signatures_name_the_real_parameters():
         if unknown:
             wrong[m.group(1)] = unknown
     assert wrong == {}
+
+
+def test_plots_leave_the_hosts_matplotlib_backend_and_figures_alone(capture, avatar, tmp_path):
+    """``evaluate_methods(plot_path=...)`` (and the landmark plots) called ``matplotlib.use("Agg")`` and drew
+    with pyplot: in a host with pyplot imported (a notebook, a DCC) that switched its backend and closed
+    every figure it had open."""
+    import types
+
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    from usdface.landmarks.plots import plot_layout
+    from usdface.render import render_shapes
+
+    before = matplotlib.get_backend()
+    plt.switch_backend("svg")                 # the host's backend (any but Agg), with a figure open
+    try:
+        mine = plt.figure()
+        usdface.evaluate_methods(capture, ["dt"], plot_path=tmp_path / "errors.png")
+        face = usdface.pick_mesh(avatar)
+        layout = types.SimpleNamespace(vertices=[0, 40, 80], rounds=[1, 1, 2], coverage=np.ones((3, 2)),
+                                       count=3, epsilon=0.5)
+        plot_layout(face.neutral, layout, tmp_path / "layout.png")
+        render_shapes(face, ["jawOpen"], tmp_path / "shapes.png")
+        assert matplotlib.get_backend() == "svg" and plt.fignum_exists(mine.number)
+        assert all((tmp_path / n).stat().st_size > 0 for n in ("errors.png", "layout.png", "shapes.png"))
+    finally:
+        plt.close("all")
+        plt.switch_backend(before)
