@@ -319,3 +319,104 @@ def test_inspect_force_keeps_the_old_output_when_the_inspection_fails(samples, t
 
     stage = Usd.Stage.Open(str(out))
     assert stage.GetPrimAtPath("/Avatar/Head").GetAttribute("primvars:" + inspection.HEAT_PRIMVAR)
+
+
+def test_check_takes_a_stage_or_a_layer_and_names_anything_else(samples):
+    """``check`` with an ``Sdf.Layer`` (what a host holds as often as a stage) raised an AttributeError from
+    deep in the rules; it is checked as the stage it opens, and another object is refused by name."""
+    from pxr import Sdf, Usd
+
+    from usdface.errors import UsdFaceError
+
+    path = samples / "avatar.usda"
+    rules = ["StageMetadata", "ArkitNames"]
+    expected = usdface.check(path, pixar=False, rules=rules)
+    assert usdface.check(Usd.Stage.Open(str(path)), pixar=False, rules=rules) == expected
+    assert usdface.check(Sdf.Layer.FindOrOpen(str(path)), pixar=False, rules=rules) == expected
+    with pytest.raises(UsdFaceError, match="not int"):
+        usdface.check(3)
+
+
+def test_an_avatar_and_a_capture_read_by_relative_paths_survive_the_host_changing_folder(samples, tmp_path,
+                                                                                          monkeypatch):
+    """``Avatar.file`` and ``Capture.source`` kept a relative path as given: once the host changed folder (a
+    DCC opening a scene), personalizing the objects said 'the avatar's file is gone', and with the avatar
+    read by an absolute path the layer recorded another capture path, with no digest (check: error)."""
+    import os
+
+    monkeypatch.chdir(samples)
+    avatar = usdface.read_avatar("avatar.usda")
+    capture = usdface.read_capture("capture.usda")
+    elsewhere = tmp_path / "scene"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert os.path.samefile(avatar.file, samples / "avatar.usda")
+    assert os.path.samefile(capture.source, samples / "capture.usda")
+    face = usdface.pick_mesh(avatar)
+    layer = usdface.write_landmarks(avatar, face, usdface.compute_landmarks(face), tmp_path / "lm.usda")
+    assert not [i for i in usdface.check(layer, pixar=False) if i.severity == "error"]
+
+
+def _doc_parameters(args: str) -> list[str]:
+    """The parameter names of a signature as docs/api.md writes it (``a, b=("x", "y"), *, c=None, **o``)."""
+    names, depth, part = [], 0, ""
+    for ch in args + ",":
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+        if ch == "," and depth == 0:
+            name = part.split("=")[0].strip()
+            if name and name not in ("*", "...") and not name.startswith("**"):
+                names.append(name)
+            part = ""
+        else:
+            part += ch
+    return names
+
+
+def test_the_documented_signatures_name_the_real_parameters():
+    """docs/api.md wrote ``personalize_avatar(avatar, capture, out_path, ...)`` and
+    ``write_retarget_map(avatar, capture, ...)``; a script calling them with those keywords got a TypeError
+    (the parameters are ``avatar_path`` and ``capture_path``)."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    wrong = {}
+    for m in re.finditer(r"^`(\w+)\((.*?)\)(?: -> [^`]*)?`$", doc, re.M):
+        params = inspect.signature(getattr(api, m.group(1))).parameters
+        unknown = [n for n in _doc_parameters(m.group(2)) if n not in params]
+        if unknown:
+            wrong[m.group(1)] = unknown
+    assert wrong == {}
+
+
+def test_plots_leave_the_hosts_matplotlib_backend_and_figures_alone(capture, avatar, tmp_path):
+    """``evaluate_methods(plot_path=...)`` (and the landmark plots) called ``matplotlib.use("Agg")`` and drew
+    with pyplot: in a host with pyplot imported (a notebook, a DCC) that switched its backend and closed
+    every figure it had open."""
+    import types
+
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    from usdface.landmarks.plots import plot_layout
+    from usdface.render import render_shapes
+
+    before = matplotlib.get_backend()
+    plt.switch_backend("svg")                 # the host's backend (any but Agg), with a figure open
+    try:
+        mine = plt.figure()
+        usdface.evaluate_methods(capture, ["dt"], plot_path=tmp_path / "errors.png")
+        face = usdface.pick_mesh(avatar)
+        layout = types.SimpleNamespace(vertices=[0, 40, 80], rounds=[1, 1, 2], coverage=np.ones((3, 2)),
+                                       count=3, epsilon=0.5)
+        plot_layout(face.neutral, layout, tmp_path / "layout.png")
+        render_shapes(face, ["jawOpen"], tmp_path / "shapes.png")
+        assert matplotlib.get_backend() == "svg" and plt.fignum_exists(mine.number)
+        assert all((tmp_path / n).stat().st_size > 0 for n in ("errors.png", "layout.png", "shapes.png"))
+    finally:
+        plt.close("all")
+        plt.switch_backend(before)

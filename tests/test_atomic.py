@@ -346,3 +346,39 @@ def test_personalize_into_an_immutable_folder_fails_at_once_writing_nothing(samp
     assert code == 2 and f"{locked / 'person.usda'}: output layer cannot be written in {locked}" in err, err
     assert "fix: lift the flag" in err and "[1/" not in err         # refused before the first step
     assert time.perf_counter() - start < 5 and list(locked.iterdir()) == []
+
+
+def test_quiet_stderr_on_threads_side_by_side_gives_the_process_its_stderr_back():
+    """``quiet_stderr`` (every stage usdface opens) redirects file descriptor 2, which is the process's: two
+    blocks on threads side by side each put back what they found, and the second had found the first's
+    temporary file, so the process's stderr went into an unlinked file for good (a Dask worker's threads)."""
+    import os
+    import threading
+
+    from usdface.io.usd_open import quiet_stderr
+
+    before = os.fstat(2)
+    first_in, second_in, go, go_second = (threading.Event() for _ in range(4))
+
+    def first():
+        with quiet_stderr():
+            first_in.set()
+            go.wait(5)
+
+    def second():
+        with quiet_stderr():
+            second_in.set()
+            go_second.wait(5)
+
+    one = threading.Thread(target=first)
+    one.start()
+    first_in.wait(5)
+    two = threading.Thread(target=second)      # tries to enter while the first redirects
+    two.start()
+    second_in.wait(0.2)
+    go.set()                                   # the first leaves first ...
+    one.join()
+    go_second.set()                            # ... then the second
+    two.join()
+    after = os.fstat(2)
+    assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)

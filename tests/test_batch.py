@@ -611,7 +611,23 @@ def test_items_on_threads_side_by_side_keep_their_own_warnings(tmp_path):
     for t in threads:
         t.join()
     assert {i: r["warnings"] for i, r in results.items()} == {i: [f"note of {i}"] for i in range(3)}
-    assert [f for f in warnings.filters if f not in filters] in ([], [warnings.filters[-1]])
+    assert warnings.filters == filters
+
+
+def test_a_batch_in_the_hosts_process_leaves_its_warnings_machinery_as_it_was(tmp_path):
+    """``personalize_batch(..., jobs=1)`` (and ``run_batch``) in a host's process replaced its
+    ``warnings.showwarning`` and appended an ``always`` filter for good: a library must not change its host's
+    process state. Both are in place while an item runs only."""
+    import warnings
+
+    from usdface.api import personalize_batch
+
+    manifest = _manifest(tmp_path, ["a", "b"])
+    filters, show = list(warnings.filters), warnings.showwarning
+    report = personalize_batch(manifest, jobs=1, worker=f"{__name__}:warning_worker")
+    assert [r.status for r in report.results] == [DONE, DONE]
+    assert all(r.warnings for r in report.results)                 # the items' warnings still reach them
+    assert warnings.filters == filters and warnings.showwarning is show
 
 
 def test_a_workers_odd_result_or_a_sidecar_refusal_do_not_break_the_batch(tmp_path):
@@ -703,3 +719,18 @@ def test_an_avatar_already_personalized_stops_the_batch_before_any_item(tmp_path
     assert "item 2:" in err and "hero.usda" in err and "already personalized" in err, err
     assert "avatar.usda" in err.split("fix:")[-1] and "avatar column" in err, err
     assert not (tmp_path / "first.usda").exists() and not (tmp_path / "m.report.json").exists()
+
+
+def test_a_batch_wide_path_option_reaches_the_workers_absolute(tmp_path, monkeypatch):
+    """A path given for every row (``options={"take": ...}``, ``--set take=...``) relative to the current
+    folder reached the workers as given, while every row's own paths are absolute: a Dask worker on another
+    machine (or a worker that changes folder) looked for it in its own folder."""
+    from usdface.api import personalize_batch
+
+    manifest = _manifest(tmp_path, ["a"])
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    personalize_batch(manifest, jobs=1, worker=f"{__name__}:stub_worker", options={"take": "take.csv"})
+    written = json.loads((tmp_path / "out" / "a.usda").read_text())
+    assert written["options"]["take"] == str(here / "take.csv")

@@ -128,3 +128,39 @@ def test_fast_path_agrees_with_general_parser(lines):
         pytest.fail("fast path accepted what the general parser rejects")
     np.testing.assert_array_equal(fast[0], general[0])
     np.testing.assert_array_equal(fast[1], general[1])
+
+
+def test_obj_reads_on_threads_side_by_side_leave_the_warning_filters_as_they_were(tmp_path, monkeypatch):
+    """Each OBJ read hides numpy's parse warnings with ``warnings.catch_warnings``, which saves and puts back
+    the process's filters: two reads on threads side by side (a capture folder read by a Dask worker's
+    threads) interleaved, the second put back the first's "ignore", and every warning was hidden for good."""
+    import threading
+    import warnings
+
+    path = tmp_path / "tri.obj"
+    write_obj(path, np.eye(3), np.array([[0, 1, 2]]))
+    real = np.fromstring
+    inside, release = {}, {}
+
+    def held(*args, **kwargs):                 # the parse waits until the test lets it go
+        name = threading.current_thread().name
+        inside[name].set()
+        release[name].wait(5)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(np, "fromstring", held)
+    before = list(warnings.filters)
+    threads = {}
+    for name in ("one", "two"):
+        inside[name], release[name] = threading.Event(), threading.Event()
+        threads[name] = threading.Thread(target=read_obj, args=(path,), name=name)
+    threads["one"].start()
+    inside["one"].wait(5)
+    threads["two"].start()                     # tries to parse while the first hides warnings
+    inside["two"].wait(0.2)
+    release["one"].set()                       # the first leaves first ...
+    threads["one"].join()
+    inside["two"].wait(5)
+    release["two"].set()                       # ... then the second
+    threads["two"].join()
+    assert warnings.filters == before

@@ -266,8 +266,30 @@ def test_rule_checker_object():
     assert "ARKit" in checker.GetDescription()
     checker.CheckStage(make_rig(metadata=False))
     assert len(checker.GetFailedChecks()) == 3 and checker.GetErrors() == []
-    checker.ResetCaches()
-    assert checker.GetFailedChecks() == [] and checker.issues == []
+    checker.ResetCaches()             # what a compliance checker calls on every variant it selects
+    assert len(checker.GetFailedChecks()) == 3 and len(checker.issues) == 3
+
+
+def test_rule_checker_keeps_its_findings_through_a_compliance_checkers_variant_walk():
+    """UsdUtils.ComplianceChecker (and checkers in its shape) calls CheckStage first, then ResetCaches each
+    time it selects a variant; a usdface layer has the usdfacePersonalization variant set, and ResetCaches
+    emptied the findings, so the checker reported none on exactly the files usdface writes."""
+    stage = make_rig(metadata=False)
+    root = stage.GetPrimAtPath("/Avatar")
+    variants = root.GetVariantSets().AddVariantSet("usdfacePersonalization")
+    for name in ("personalized", "generic"):
+        variants.AddVariant(name)
+    checker = FaceRigRuleChecker()
+    checker.CheckStage(stage)          # the order of ComplianceChecker.CheckCompliance
+    checker.CheckDiagnostics([])
+    checker.CheckUnresolvedPaths([])
+    checker.CheckDependencies(stage, [], [])
+    for name in variants.GetVariantNames():
+        variants.SetVariantSelection(name)
+        checker.ResetCaches()
+        for prim in stage.Traverse():
+            checker.CheckPrim(prim)
+    assert len(checker.GetFailedChecks()) == 3 and checker.GetErrors() == []
 
 
 def test_issue_is_serialisable():

@@ -274,3 +274,42 @@ def test_position_fit_repeated_frames_and_kept_residuals():
     moved[3] += 0.001                                                           # frame 3 no longer repeats 2
     pf.set_points(moved)
     assert np.abs(pf.loo_residuals(reg) - brute(alt, moved)).max() < 1e-12
+
+
+def test_fits_on_several_threads_leave_the_hosts_blas_threads_as_they_were():
+    """Each fit limited BLAS to one thread with its own threadpool_limits and put back what it found; on
+    threads side by side (a host's pool, a Dask worker's threads) the last one out put back another's 1,
+    and the host's numpy stayed single-threaded for good."""
+    import threading
+
+    from threadpoolctl import threadpool_info
+
+    from usdface.personalize.api import single_threaded_blas
+
+    def counts():
+        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+
+    before = counts()
+    if max(before, default=1) < 2:
+        pytest.skip("the host's BLAS runs one thread already: nothing to put back")
+    first_in, second_in, go = threading.Event(), threading.Event(), threading.Event()
+
+    @single_threaded_blas
+    def first():
+        first_in.set()
+        second_in.wait(5)
+
+    @single_threaded_blas
+    def second():
+        second_in.set()
+        go.wait(5)
+
+    one = threading.Thread(target=first)
+    one.start()
+    first_in.wait(5)
+    two = threading.Thread(target=second)      # enters while the first is inside: finds BLAS at 1
+    two.start()
+    one.join()                                 # the first leaves first (it put back the host's counts),
+    go.set()
+    two.join()                                 # then the second (it put back the 1 it found)
+    assert counts() == before

@@ -285,3 +285,16 @@ def test_review_names_its_steps_for_what_they_do(capsys, tmp_path, personalized_
     assert not any(" step done" in ln or "] page done" in ln for ln in lines), lines
     assert all(LINE.match(ln) or " done in " in ln for ln in lines)
     assert (tmp_path / "r.html").stat().st_size > 0
+
+
+def test_main_called_by_a_host_leaves_its_progress_setting_as_it_was(samples, capsys, monkeypatch):
+    """``usdface.cli.main(argv)`` from a host application set progress for the whole process: ``-q`` turned
+    the host's progress off for good, and a run without it turned it back on after the host had turned it
+    off with ``usdface.progress.set_enabled(False)``."""
+    monkeypatch.setattr(progress, "_ENABLED", progress._ENABLED)       # the test's own change undone
+    avatar = str(samples / "avatar.usda")
+    progress.set_enabled(False)
+    assert main(["check", avatar, "--no-pixar"]) == 0 and progress._ENABLED is False
+    progress.set_enabled(True)
+    assert main(["check", avatar, "--no-pixar", "-q"]) == 0 and progress._ENABLED is True
+    assert main(["inspect", str(samples / "missing.usda"), "--json"]) == 2 and progress._ENABLED is True

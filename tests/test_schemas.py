@@ -121,3 +121,46 @@ def test_late_registration_is_reported():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          cwd=Path(__file__).resolve().parents[1])
     assert "ERR" in out.stdout and "before opening any USD stage" in out.stdout, out.stdout + out.stderr
+
+
+def test_late_registration_is_reported_once():
+    """A host that opened a stage first got the same warning from every place that registers (importing
+    ``usdface.io``, ``register_validators()``, ...): one warning is the news, the rest noise in its log."""
+    code = (
+        "import warnings\n"
+        "warnings.simplefilter('default')\n"
+        "from pxr import Usd\n"
+        "Usd.Stage.CreateInMemory(); Usd.SchemaRegistry()\n"
+        "import usdface.io\n"
+        "from usdface.pipeline.validators import register_validators\n"
+        "register_validators()\n"
+        "from usdface import schemas\n"
+        "schemas.register()\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0 and out.stderr.count("schema registry was created before") == 1, out.stderr
+
+
+def test_inspect_lists_the_applied_schemas_in_a_host_that_opened_a_stage_first(tmp_path):
+    """In a DCC (a stage opened before usdface registers its schemas) ``inspect_file`` listed no usdface
+    schema on a layer that applies them: ``GetAppliedSchemas`` leaves out what the registry does not know."""
+    from usdface.io.usd_rig import read_layer_info
+
+    layer = tmp_path / "lm.usda"
+    layer.write_text('#usda 1.0\n(\n    defaultPrim = "Avatar"\n)\n'
+                     'def Xform "Avatar" (\n    prepend apiSchemas = ["UsdFaceProvenanceAPI"]\n)\n{\n'
+                     '    def Points "Head_landmarks" (\n'
+                     '        prepend apiSchemas = ["UsdFaceLandmarksAPI"]\n    )\n    {\n    }\n}\n')
+    expected = {p: v["schemas"] for p, v in read_layer_info(layer)["schemas"].items()}
+    assert expected == {"/Avatar": ["UsdFaceProvenanceAPI"],
+                        "/Avatar/Head_landmarks": ["UsdFaceLandmarksAPI"]}
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    code = ("import json, warnings\nwarnings.simplefilter('ignore')\nfrom pxr import Usd\n"
+            f"Usd.Stage.Open({str(samples / 'avatar.usda')!r})\n"
+            "from usdface.io.usd_rig import read_layer_info\n"
+            f"info = read_layer_info({str(layer)!r})\n"
+            "print(json.dumps({p: v['schemas'] for p, v in info['schemas'].items()}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == expected, out.stdout + out.stderr

@@ -16,6 +16,7 @@ Example::
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -1075,10 +1076,16 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     A join option a face-transfer mode does not use (``falloff``, ``extension_length``, ``support``:
     :data:`usdface.transfer.pipeline.MODE_OPTIONS`) goes only to the rows whose mode uses it, so one
     ``--set falloff=0`` serves a manifest of ``offset`` and ``person`` rows; one that no row's mode uses is
-    refused (it would change nothing). A row's own columns are checked as given."""
+    refused (it would change nothing). A row's own columns are checked as given. A path-valued one
+    (``take``, ``name_map``, ``pins``, ``correspondence``) given relative is made absolute against the current
+    folder, where it was given: the items' own paths are absolute, and a relative one reached the workers as
+    it was, so a Dask worker (or a studio worker that changes folder) looked for it in its own folder."""
     from .errors import InputFileError
+    from .pipeline.batch import PATH_OPTIONS
     from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
+    shared = {k: os.path.abspath(v) if k in PATH_OPTIONS and isinstance(v, str | os.PathLike) and str(v)
+              else v for k, v in shared.items()}
     restricted = MODE_ONLY_OPTIONS & set(shared)
     used, taken = set(), set()
     for item in items:
@@ -1108,13 +1115,23 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
           rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
     OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
-    :func:`read_avatar`. Never modifies the file."""
+    :func:`read_avatar`. An ``Sdf.Layer`` is checked as the stage it opens; anything else is refused
+    (``UsdFaceError``; it was an ``AttributeError`` from deep in the rules). Never modifies the file."""
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
     name_map = read_name_map(name_map)
-    if isinstance(file_or_stage, str | Path):
+    if isinstance(file_or_stage, str | os.PathLike):
         return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    from pxr import Sdf, Usd
+
+    if isinstance(file_or_stage, Sdf.Layer):
+        file_or_stage = Usd.Stage.Open(file_or_stage, Usd.Stage.LoadAll)
+    if not isinstance(file_or_stage, Usd.Stage):
+        from .errors import UsdFaceError
+
+        raise UsdFaceError(f"check takes a USD file's path, a Usd.Stage or an Sdf.Layer, not "
+                           f"{type(file_or_stage).__name__}", fix="pass the file's path or the open stage")
     return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
 
 

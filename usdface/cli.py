@@ -223,7 +223,10 @@ def _main(argv=None, program: bool = False) -> int:
     from .commands import reset_warnings, say_warning
 
     reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
-    # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it)
+    # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it); a host
+    # calling main(argv) gets its own setting back (usdface.progress.set_enabled): -q turned its progress off
+    # for good, and a run without -q turned it back on after the host had turned it off
+    enabled = progress._ENABLED
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
         if program:  # the usdface program's main thread (a host application's signals are its own)
@@ -277,6 +280,9 @@ def _main(argv=None, program: bool = False) -> int:
         else:
             print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
         return 2
+    finally:
+        if not program:
+            progress.set_enabled(enabled)
 
 
 class StdoutError(OSError):

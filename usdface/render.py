@@ -33,9 +33,8 @@ _SKIN = np.array([0.86, 0.74, 0.66])
 
 
 def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
+    # a Figure of its own, saved by its own canvas: no matplotlib.use, which switched the host's backend
+    # (and, with pyplot imported, closed the host's figures)
     from matplotlib.figure import Figure
 
     ncols = ncols or min(n_panels, 4)

@@ -41,6 +41,7 @@ SCHEMA_NAMES = (CAPTURE_API, LANDMARKS_API, PROVENANCE_API)
 ENV_VAR = "USDFACE_SCHEMAS"
 
 _registered: Path | None = None
+_late: Path | None = None       # registered after USD's schema registry was built: warned about once
 
 
 def schema_dir() -> Path:
@@ -71,9 +72,11 @@ def register(strict: bool = False) -> Path:
     registry was already built without them, warns (``strict=False``; usdface then still works, but applied
     schemas have no fallbacks) or raises :class:`usdface.errors.UsdFaceError` (``strict=True``).
     """
-    global _registered
+    global _registered, _late
     if _registered is not None:
         return _registered
+    if _late is not None and not strict:     # told once: each later call (usdface.io, the validators, ...)
+        return _late                         # repeated the same warning from its own line
     from pxr import Plug, Usd
 
     directory = schema_dir()
@@ -91,6 +94,7 @@ def register(strict: bool = False) -> Path:
         if strict:
             raise error
         warnings.warn(str(error), stacklevel=2)
+        _late = directory
         return directory
     _registered = directory
     return directory

@@ -36,7 +36,7 @@ def read_capture(path):
     if take:
         from .take import capture_from_whole_take, read_take
 
-        return capture_from_whole_take(read_take(path))
+        return _absolute_source(capture_from_whole_take(read_take(path)))
     if path.suffix.lower() == ".csv" and path.is_file():
         from ..errors import CaptureError
         from .take import WEIGHTS_ONLY_FIX
@@ -46,13 +46,24 @@ def read_capture(path):
     if path.is_dir():
         from .capture_folder import read_capture_folder
 
-        return read_capture_folder(path)
+        return _absolute_source(read_capture_folder(path))
     if path.suffix.lower() in USD_EXTENSIONS:
         from .usd_capture import read_capture_usd
 
-        return read_capture_usd(path)
+        return _absolute_source(read_capture_usd(path))
     if not path.exists():
         raise InputFileError("capture not found", path=path,
                              fix="pass a capture folder or a .usda written by 'usdface capture import'")
     raise InputFileError("not a capture folder or USD file", path=path,
                          fix="pass a capture folder (neutral.obj, template/, train/) or a capture .usda")
+
+
+def _absolute_source(capture):
+    """``capture.source`` made absolute (symlinks kept, ``..`` by name), as ``Avatar.file`` is: a relative one
+    named another file once the host changed folder (a DCC opening a scene), and a layer personalized from
+    the ``Capture`` afterwards recorded that other path, without a digest, in its provenance."""
+    import os
+
+    if capture.source and not os.path.isabs(capture.source):
+        capture.source = os.path.abspath(capture.source)
+    return capture

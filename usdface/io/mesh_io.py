@@ -12,6 +12,7 @@ Everything else in an OBJ (normals, UVs, groups, materials) is ignored.
 
 from __future__ import annotations
 
+import threading
 import warnings
 from pathlib import Path
 
@@ -36,9 +37,15 @@ def _read_bytes(path: Path) -> bytes:
                              fix="check the file's permissions") from None
 
 
+#: ``warnings.catch_warnings`` saves and puts back the process's filters: two OBJ reads on threads side by
+#: side (a Dask worker's, a host's pool) interleaved, the second put back the first's "ignore", and every
+#: warning of the process was hidden from then on. One block at a time.
+_CATCH_LOCK = threading.Lock()
+
+
 def _fromstring(text: bytes, dtype, count: int) -> np.ndarray | None:
     """Whitespace-separated numbers -> array, or None if the text does not hold exactly ``count`` of them."""
-    with warnings.catch_warnings():
+    with _CATCH_LOCK, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             out = np.fromstring(text.decode("ascii", "replace"), dtype=dtype, sep=" ")

@@ -10,6 +10,7 @@ import re
 import stat
 import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -43,26 +44,33 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
     return path
 
 
+#: One thread at a time redirects file descriptor 2 (it is the process's): two blocks on threads side by side
+#: (a Dask worker's, a host's pool) each put back what they found, and the second found the first's temporary
+#: file, so the process's stderr went on into an unlinked file after both had ended.
+_STDERR_LOCK = threading.RLock()
+
+
 @contextmanager
 def quiet_stderr():
     """Collect what C++ code (USD's diagnostics) writes to file descriptor 2 while the block runs; yields a
     list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected."""
     out: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):
-        yield out
-        return
-    with tempfile.TemporaryFile() as buf:
-        os.dup2(buf.fileno(), 2)
+    with _STDERR_LOCK:
         try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
             yield out
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            buf.seek(0)
-            out.append(buf.read().decode("utf-8", "replace"))
+            return
+        with tempfile.TemporaryFile() as buf:
+            os.dup2(buf.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                buf.seek(0)
+                out.append(buf.read().decode("utf-8", "replace"))
 
 
 #: One error of a ``Tf.ErrorException``'s text: "Error in 'FUNCTION' at line N in file SOURCE : 'COMMENTARY'".

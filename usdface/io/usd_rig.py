@@ -788,7 +788,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                 "instanced_targets": _instanced_targets(stage, meshes),
                 "shared_shapes": _shared_shapes(meshes),
                 "name_map": dict(name_map) if name_map else None}
-    return Avatar(meshes=meshes, file=str(path), up_axis=meta["upAxis"],
+    return Avatar(meshes=meshes, file=os.path.abspath(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
@@ -899,7 +899,10 @@ def read_layer_info(path) -> dict:
     usdface_data = _plain(dict(root.customLayerData).get("usdface", {}))
     schemas_found, variants = {}, {}
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        applied = [s for s in prim.GetAppliedSchemas() if s.startswith("UsdFace")]
+        # as authored: GetAppliedSchemas() leaves out the schemas USD's registry does not know, and it does
+        # not know usdface's when a stage was opened before usdface registered them (a DCC): none were listed
+        authored = [*prim.GetAppliedSchemas(), *prim.GetPrimTypeInfo().GetAppliedAPISchemas()]
+        applied = [s for s in dict.fromkeys(authored) if s.startswith("UsdFace")]
         if applied:
             values = {}
             for attr in prim.GetAttributes():

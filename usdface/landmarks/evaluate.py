@@ -114,10 +114,10 @@ def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray 
     ``counts`` plus the empirical count. ``noise`` metres of tracking noise (std per coordinate), the same
     noise seed for every layout. RMSE over the vertices that move (:func:`baselines.moving_vertices`).
     """
-    from threadpoolctl import threadpool_limits
+    from ..personalize.api import one_blas_thread
 
     # thousands of small (3m x K) least-squares solves: a multi-threaded BLAS makes each one ~10x slower
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, tikhonov, alpha,
                          rays, symmetric, random_seeds, seed, backend, counts)
 

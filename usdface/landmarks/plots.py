@@ -10,24 +10,23 @@ if TYPE_CHECKING:
     from .evaluate import EvaluationReport
 
 
-def _pyplot():
-    import matplotlib
+def _subplots(figsize):
+    """A figure of its own and its axis, saved by its own canvas: pyplot with ``matplotlib.use("Agg")``
+    switched the host's backend (a notebook's, a DCC's) and closed its figures."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots()
 
 
 def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout",
                 force: bool = False) -> None:
     """Front view (X right, Y up) of ``neutral[n, 3]`` with the layout's landmarks coloured by multi-cover
     round and labelled with the number of shapes each represents -> PNG at ``path``."""
-    plt = _pyplot()
     p = np.asarray(neutral)
     v = np.asarray(layout.vertices, dtype=np.int64)
     front = p[:, 2] > np.percentile(p[:, 2], 40)
-    fig, ax = plt.subplots(figsize=(5, 6))
+    fig, ax = _subplots((5, 6))
     ax.scatter(p[front, 0], p[front, 1], s=0.3, color="0.75")
     sc = ax.scatter(p[v, 0], p[v, 1], c=np.asarray(layout.rounds), cmap="autumn", s=40, edgecolors="k",
                     zorder=3)
@@ -51,8 +50,7 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
 def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layouts",
                     force: bool = False) -> None:
     """Reconstruction RMSE (mm) vs number of landmarks, one curve per method (matplotlib, Agg) -> ``path``."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = _subplots((7, 4.5))
     styles = {"ours": ("tab:red", "o", "this method (best with at most N)"),
               "pca_kmeans": ("tab:blue", "s", "PCA + k-means (Cohen 2002)"),
               "delta_cluster": ("tab:green", "^", "delta clustering (Reverdy 2015)"),
@@ -85,13 +83,8 @@ def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layou
 
 
 def _save(fig, path, force: bool) -> None:
-    """Save ``fig`` as PNG atomically (never over an existing file unless ``force``) and close it."""
-    import matplotlib.pyplot as plt
-
+    """Save ``fig`` as PNG atomically (never over an existing file unless ``force``)."""
     from ..io.atomic import atomic_file
 
-    try:
-        with atomic_file(path, force=force) as tmp:
-            fig.savefig(str(tmp), dpi=120, format="png")
-    finally:
-        plt.close(fig)
+    with atomic_file(path, force=force) as tmp:
+        fig.savefig(str(tmp), dpi=120, format="png")

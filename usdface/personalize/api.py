@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -265,14 +267,39 @@ def _blas_controller():
     return _BLAS_CONTROLLER[0]
 
 
+_BLAS_LOCK = threading.Lock()
+#: Threads inside :func:`one_blas_thread` and the limiter that puts the host's thread counts back.
+_BLAS_USERS: list = [0, None]
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """BLAS limited to one thread while any thread of the process is inside; the host's thread counts are
+    put back when the last one leaves. The limit is process-wide, so calls on several threads at once (a
+    host's thread pool, a Dask worker's threads) share one: each with its own ``threadpool_limits`` put back
+    the counts it found, which another had already lowered, and the host was left with a one-thread BLAS."""
+    with _BLAS_LOCK:
+        if _BLAS_USERS[0] == 0:
+            _BLAS_USERS[1] = _blas_controller().limit(limits=1, user_api="blas")
+        _BLAS_USERS[0] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS[0] -= 1
+            if _BLAS_USERS[0] == 0:
+                limiter, _BLAS_USERS[1] = _BLAS_USERS[1], None
+                limiter.restore_original_limits()
+
+
 def single_threaded_blas(func):
-    """Run ``func`` with BLAS limited to one thread (``threadpoolctl``): thousands of tiny (K x K) LAPACK
-    calls and the mid-sized products of the fit and the transfer run 2-3x slower (seconds at high load) with a
-    multi-threaded BLAS on a busy 2-core machine."""
+    """Run ``func`` with BLAS limited to one thread (:func:`one_blas_thread`): thousands of tiny (K x K)
+    LAPACK calls and the mid-sized products of the fit and the transfer run 2-3x slower (seconds at high
+    load) with a multi-threaded BLAS on a busy 2-core machine."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        with one_blas_thread():
             return func(*args, **kwargs)
 
     return wrapper

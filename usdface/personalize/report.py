@@ -108,9 +108,9 @@ def write_report_json(report: dict, path, force: bool = False) -> Path:
 def plot_errors(report: dict, path, force: bool = False) -> Path:
     """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
     (bottom), methods side by side. Atomic write (temp + rename)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure of its own, not pyplot + matplotlib.use("Agg"): they switched the host's backend and closed
+    # its figures (a notebook's, a DCC's)
+    from matplotlib.figure import Figure
 
     from ..io.atomic import atomic_file
 
@@ -118,7 +118,8 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
     methods = list(report["methods"])
     x = np.arange(len(labels))
     width = 0.8 / max(len(methods), 1)
-    fig, axes = plt.subplots(2, 1, figsize=(max(8, 0.35 * len(labels) * len(methods) / 2), 7), sharex=True)
+    fig = Figure(figsize=(max(8, 0.35 * len(labels) * len(methods) / 2), 7))
+    axes = fig.subplots(2, 1, sharex=True)
     panels = (("rmse_mm", "RMSE (eq. 5)"), ("max_mm", "maximum vertex error"))
     for ax, (key, title) in zip(axes, panels, strict=True):
         for k, m in enumerate(methods):
@@ -132,5 +133,4 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
     fig.tight_layout()
     with atomic_file(path, force=force) as tmp:
         fig.savefig(tmp, dpi=120)
-    plt.close(fig)
     return Path(path)

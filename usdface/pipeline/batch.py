@@ -22,6 +22,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import json
@@ -396,14 +397,15 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     # the item's warnings go to its result (the report, and the batch's own lines naming the item), not to
     # the worker's stdout/stderr unattributed: collected per thread (a Dask worker's threads run items side
     # by side), with the host's warning filters as they are
-    _capture_warnings()
-    caught = _ITEM.notes = []
-    try:
-        value = worker(item)
-    except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
-        value = exc
-    finally:
-        _ITEM.notes = None
+    caught = []
+    with _capture_warnings():
+        _ITEM.notes = caught
+        try:
+            value = worker(item)
+        except BaseException as exc:  # noqa: BLE001  (isolation: anything an item does is reported, not raised)
+            value = exc
+        finally:
+            _ITEM.notes = None
     base["warnings"] = _item_notes(caught, value)
     if isinstance(value, BaseException):
         exc = value
@@ -424,30 +426,48 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
 
 _ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
 _SHOW_LOCK = threading.Lock()
+_SHOW: dict = {"items": 0}     # items running in this process; while any does: the hook and filter installed
 
 
-def _capture_warnings() -> None:
-    """Install (once per process) a :func:`warnings.showwarning` that gives a warning shown while an item
-    runs on this thread to that item (:func:`run_item`) and passes every other one on to what was installed
-    before. The filters stay the host's (``-W error`` still fails the item; hidden warnings stay hidden);
-    usdface's own warnings are shown every time (``always``, appended after the host's filters), so the
-    same note on two items of one process reaches both."""
+@contextlib.contextmanager
+def _capture_warnings():
+    """While an item runs: a :func:`warnings.showwarning` that gives a warning shown while an item runs on
+    this thread to that item (:func:`run_item`) and passes every other one on to what was installed before.
+    The filters stay the host's (``-W error`` still fails the item; hidden warnings stay hidden); usdface's
+    own warnings are shown every time (``always``, appended after the host's filters), so the same note on
+    two items of one process reaches both. Installed by the first item running in the process and removed
+    when the last one ends (items of a Dask worker's threads overlap): a batch run in the host's process
+    (``jobs=1``) left both behind, the host's ``showwarning`` replaced and its filters changed for good."""
     import warnings
 
     with _SHOW_LOCK:
-        if getattr(warnings.showwarning, "_usdface_batch", False):
-            return
-        previous = warnings.showwarning
+        if _SHOW["items"] == 0:
+            previous = warnings.showwarning
 
-        def show(message, category, filename, lineno, file=None, line=None):
-            notes = getattr(_ITEM, "notes", None)
-            if notes is None:
-                return previous(message, category, filename, lineno, file, line)
-            notes.append(str(message))
+            def show(message, category, filename, lineno, file=None, line=None):
+                notes = getattr(_ITEM, "notes", None)
+                if notes is None:
+                    return previous(message, category, filename, lineno, file, line)
+                notes.append(str(message))
 
-        show._usdface_batch = True
-        warnings.showwarning = show
-        warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
+            before = list(warnings.filters)
+            warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
+            added = [f for f in warnings.filters if f not in before]
+            _SHOW.update(previous=previous, show=show, filter=added[0] if added else None)
+            warnings.showwarning = show
+        _SHOW["items"] += 1
+    try:
+        yield
+    finally:
+        with _SHOW_LOCK:
+            _SHOW["items"] -= 1
+            if _SHOW["items"] == 0:
+                if warnings.showwarning is _SHOW["show"]:   # not replaced meanwhile by someone else
+                    warnings.showwarning = _SHOW["previous"]
+                if _SHOW["filter"] in warnings.filters:
+                    warnings.filters.remove(_SHOW["filter"])
+                    getattr(warnings, "_filters_mutated", lambda: None)()
+                _SHOW.update(previous=None, show=None, filter=None)
 
 
 def _item_notes(caught, value) -> list[str]:
@@ -634,14 +654,13 @@ def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
     """:func:`run_item` on a Dask worker: no progress lines of its own (the batch reports per item; the
     workers' step lines would interleave in its log) and one BLAS thread (the cluster's processes are the
     parallelism), as the local pool's :func:`init_worker` sets up."""
-    from threadpoolctl import threadpool_limits
-
     from .. import progress
+    from ..personalize.api import one_blas_thread
 
     # process-wide and not restored: a Dask worker's threads run items side by side, and one finishing must
     # not turn progress back on under another (an in-process cluster's parent: run_batch restores its own)
     progress.set_enabled(False)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():        # shared by the worker's threads (each its own limit: one left it at 1)
         return run_item(worker, item)
 
 

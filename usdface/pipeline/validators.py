@@ -170,6 +170,10 @@ class FaceRigRuleChecker:
     ``CheckDependencies``/``CheckUnresolvedPaths`` (no-ops: the rules are stage-level), ``ResetCaches()``,
     and the results in ``GetFailedChecks()`` (errors), ``GetWarnings()``, ``GetErrors()`` (internal
     failures), as strings. ``issues`` keeps the structured :class:`Issue` list.
+
+    ``ResetCaches()`` keeps the results, as ``BaseRuleChecker``'s does: a compliance checker calls it after
+    ``CheckStage`` each time it selects another variant (a usdface layer's ``usdfacePersonalization``), and
+    it emptied the findings, so such a checker reported none. Results gather over the checker's life.
     """
 
     def __init__(self, verbose: bool = False, consumerLevelChecks: bool = False,  # noqa: N803
@@ -177,17 +181,17 @@ class FaceRigRuleChecker:
         self._verbose = verbose
         self._consumerLevelChecks = consumerLevelChecks
         self._assetLevelChecks = assetLevelChecks
-        self.ResetCaches()
+        self.issues: list[Issue] = []
+        self._failedChecks: list[str] = []
+        self._errors: list[str] = []
+        self._warnings: list[str] = []
 
     @staticmethod
     def GetDescription() -> str:  # noqa: N802
         return "usdface ARKit face-rig rules: " + "; ".join(doc for _fn, doc in RULES.values())
 
     def ResetCaches(self) -> None:  # noqa: N802
-        self.issues: list[Issue] = []
-        self._failedChecks: list[str] = []
-        self._errors: list[str] = []
-        self._warnings: list[str] = []
+        """Nothing to reset: the rules keep no caches (called on every variant selection; not the results)."""
 
     def CheckStage(self, usdStage) -> None:  # noqa: N802, N803
         try:

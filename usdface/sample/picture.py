@@ -48,15 +48,12 @@ def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles
     """Write a PNG: the avatar (Head, Mouth, eyes; cm) neutral and in :data:`SHOWCASE` expressions, and the
     capture mask (metres, scaled for display). ``rigs`` as built by :func:`usdface.sample.build_samples`.
     Atomic (temp + rename); an existing file is replaced only with ``force``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # its own canvas: the host's backend and figures left alone
 
     path = Path(path)
     head = next(r for r in rigs if r.name == "Head")
     center = head.neutral.mean(0) * 100 + np.array([0, 1.0, 0])
-    fig = plt.figure(figsize=(3.2 * len(SHOWCASE), 3.8), dpi=100)
+    fig = Figure(figsize=(3.2 * len(SHOWCASE), 3.8), dpi=100)
     for i, (title, weights) in enumerate(SHOWCASE.items()):
         ax = fig.add_subplot(1, len(SHOWCASE), i + 1, projection="3d")
         if weights is None:
@@ -75,9 +72,6 @@ def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
     from ..io.atomic import atomic_file
 
-    try:
-        with atomic_file(path, force=force) as tmp:
-            fig.savefig(tmp, metadata={"Software": None}, format="png")
-    finally:
-        plt.close(fig)
+    with atomic_file(path, force=force) as tmp:
+        fig.savefig(tmp, metadata={"Software": None}, format="png")
     return path
