@@ -248,13 +248,14 @@ def _main(argv=None, program: bool = False) -> int:
             print(f"usdface {_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        terminated = isinstance(exc, Terminated)
-        if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-            _json_stopped(args, terminated)
-        if terminated:
+        return _stopped(args, exc)
+    except ImportError as exc:
+        # a Ctrl-C or SIGTERM landing in a native module's initialisation (open3d's, imported at the first
+        # registration or ray cast): pybind11 turns it into 'ImportError: initialization failed'
+        stop = _interrupt_behind(exc)
+        if stop is None:
             raise
-        print("usdface: interrupted", file=sys.stderr)
-        return 130
+        return _stopped(args, stop)
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
@@ -272,6 +273,29 @@ def _main(argv=None, program: bool = False) -> int:
         else:
             print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
         return 2
+
+
+def _stopped(args, exc: KeyboardInterrupt) -> int:
+    """A run stopped by Ctrl-C (exit status 130) or SIGTERM (:class:`Terminated`, raised on to :func:`main`:
+    143); with ``--json`` stdout still gets its one document."""
+    terminated = isinstance(exc, Terminated)
+    if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
+        _json_stopped(args, terminated)
+    if terminated:
+        raise exc
+    print("usdface: interrupted", file=sys.stderr)
+    return 130
+
+
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (or :class:`Terminated`) an exception was raised from or while handling."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 class StdoutError(OSError):
