@@ -302,3 +302,16 @@ def test_render_shapes_in_any_arkit_spelling(samples, tmp_path, capsys):
     assert main(["render", str(samples / "avatar.usda"), "-o", str(tmp_path / "x.png"), "--shapes",
                  "jawOpn", "-q"]) == 2
     assert "did you mean jawOpen?" in capsys.readouterr().err
+
+
+def test_heatmap_of_one_shape_is_labelled_with_it(inspected, tmp_path, monkeypatch):
+    """A user trial: '--heatmap --shapes jawOpen' labelled its colour bar 'RMS change over 1 shapes (mm)'."""
+    import usdface.render as render_module
+
+    labels = []
+    monkeypatch.setattr(render_module, "render_heatmap", lambda *a, label="", **k: labels.append(label))
+    _avatar, out, _heat = inspected
+    for i, shapes in enumerate(("jawOpen", "jawOpen,eyeBlinkLeft")):
+        png = tmp_path / f"{i}.png"
+        assert main(["render", str(out), "-o", str(png), "--heatmap", "--shapes", shapes]) == 0
+    assert labels == ["change in jawOpen (mm)", "RMS change over 2 shapes (mm)"]
