@@ -196,12 +196,16 @@ def _program_environment() -> None:
     gc.set_threshold(50_000, *gc.get_threshold()[1:])
 
 
-def _subparser(parser: argparse.ArgumentParser, command: str | None):
-    """The sub-command's own parser (its errors name it: ``usdface export: error: ...``), or None."""
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            return action.choices.get(command)
-    return None
+def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser | None:
+    """The parser of the (sub-)command ``args`` ran, down to its action (``capture import``): its errors name
+    it (``usdface capture import: error: ...``) and its ``--help``; None for no command."""
+    found = None
+    while True:
+        action = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        parser = action.choices.get(getattr(args, action.dest, None)) if action is not None else None
+        if parser is None:
+            return found
+        found = parser
 
 
 def _main(argv=None, program: bool = False) -> int:
@@ -209,7 +213,7 @@ def _main(argv=None, program: bool = False) -> int:
     _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
-        (_subparser(parser, getattr(args, "command", None)) or parser).error(
+        (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
     if not getattr(args, "func", None):
         parser.print_help()
