@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from usdface.errors import OutputExistsError
+from usdface.errors import InputFileError, OutputExistsError
 from usdface.io import atomic
 from usdface.io.atomic import check_output_dir, replace_dir_atomically
 
@@ -382,3 +382,20 @@ def test_quiet_stderr_on_threads_side_by_side_gives_the_process_its_stderr_back(
     two.join()
     after = os.fstat(2)
     assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+
+
+def test_a_new_output_folder_named_like_a_file_is_refused(tmp_path, capsys):
+    """A user trial: 'usdface sample x.usda' wrote a folder x.usda, which every later command then took for
+    a USD file ('USD cannot open it'); capture import already refused 'c.obj'."""
+    from usdface.cli import main
+    from usdface.io.atomic import check_output_dir
+
+    assert main(["sample", str(tmp_path / "x.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "named like a .usda file" in err and "x.usda" in err and not (tmp_path / "x.usda").exists()
+    with pytest.raises(InputFileError, match="named like a .PNG file"):
+        check_output_dir(tmp_path / "pics.PNG")
+    (tmp_path / "v1.2").mkdir()
+    assert check_output_dir(tmp_path / "v1.2") == tmp_path / "v1.2"      # a dotted folder name is fine
+    (tmp_path / "old.usda").mkdir()                     # and an existing folder is the user's choice
+    assert check_output_dir(tmp_path / "old.usda") == tmp_path / "old.usda"

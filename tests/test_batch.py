@@ -734,3 +734,31 @@ def test_a_batch_wide_path_option_reaches_the_workers_absolute(tmp_path, monkeyp
     personalize_batch(manifest, jobs=1, worker=f"{__name__}:stub_worker", options={"take": "take.csv"})
     written = json.loads((tmp_path / "out" / "a.usda").read_text())
     assert written["options"]["take"] == str(here / "take.csv")
+
+
+def second_worker(item: dict) -> None:
+    """Takes one second, then writes ``output``."""
+    import time
+
+    time.sleep(1.0)
+    Path(item["output"]).write_text("done")
+
+
+def test_a_batch_items_progress_line_says_its_own_time(tmp_path, monkeypatch, capsys):
+    """A user trial: on a pool two items that ran side by side for ~19 s each were logged as 'b.usda done
+    (27.3 s)' and 'a.usda done (0.4 s)': the time since the line before, not the item's."""
+    import re
+
+    from usdface import progress
+
+    distributed = pytest.importorskip("distributed")     # two items side by side, without a pool's start-up
+    monkeypatch.setenv("USDFACE_PROGRESS", "plain")
+    monkeypatch.setattr(progress, "_ENABLED", True)
+    items = read_manifest(_manifest(tmp_path, ["a", "b"]))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
+        report = run_batch(items, worker=second_worker, scheduler=cluster.scheduler_address)
+    assert [r.status for r in report.results] == [DONE, DONE]
+    err = capsys.readouterr().err
+    took = [float(t) for t in re.findall(r"batch \[\d/2\] [ab]\.usda done \(([\d.]+) s\)", err)]
+    assert len(took) == 2 and min(took) >= 0.9, took

@@ -345,3 +345,40 @@ def test_stdout_on_a_full_disk_is_said_as_stdout(samples, tmp_path, json_flag):
     assert "Traceback" not in res.stderr
     assert "could not write to stdout" in res.stderr and "the outputs were written" in res.stderr
     assert out.exists()
+
+
+# A signal that lands inside a native module's initialisation: pybind11 (open3d's module) turns the
+# KeyboardInterrupt the handler raised into 'ImportError: initialization failed', chained from it.
+_SIGNAL_DURING_NATIVE_INIT = textwrap.dedent("""
+    import os, signal, sys, time
+    SIG = getattr(signal, sys.argv.pop(1))
+    class Hook:
+        def find_spec(self, name, path=None, target=None):
+            if name == "open3d":
+                try:
+                    os.kill(os.getpid(), SIG)
+                    time.sleep(5)
+                except KeyboardInterrupt as exc:
+                    raise ImportError("initialization failed") from exc
+            return None
+    sys.meta_path.insert(0, Hook())
+    from usdface.cli import main
+    sys.exit(main())
+""")
+
+
+@pytest.mark.parametrize(("sig", "status", "line"), [("SIGTERM", 143, "usdface: terminated"),
+                                                      ("SIGINT", 130, "usdface: interrupted")])
+def test_a_signal_during_open3d_initialisation_stops_the_run(samples, tmp_path, sig, status, line):
+    """A trial: SIGTERM 3 s into 'personalize' (open3d's first import, at the registration) ended in a
+    traceback ending 'ImportError: initialization failed' and exit status 1."""
+    script = tmp_path / "run.py"
+    script.write_text(_SIGNAL_DURING_NATIVE_INIT)
+    out = tmp_path / "out" / "p.usda"
+    out.parent.mkdir()
+    res = subprocess.run([sys.executable, str(script), sig, "personalize", str(samples / "avatar.usda"),
+                          str(samples / "capture.usda"), "-o", str(out)], capture_output=True, text=True,
+                         env=_env(), timeout=600, preexec_fn=_interactive_signals)
+    assert res.returncode == status, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr and res.stderr.strip().splitlines()[-1] == line
+    assert list(out.parent.iterdir()) == []

@@ -280,3 +280,23 @@ def test_a_take_the_layer_plays_is_among_its_inputs(tmp_path):
     write_csv(take, rng.random((6, 52)) * 0.5, codes)                    # the take edited afterwards
     stale = stale_inputs(layer)
     assert len(stale) == 1 and "t.csv" in stale[0] and "changed after it was written" in stale[0]
+
+
+def test_anim_import_of_a_usd_binary_or_empty_file_says_what_it_is(tmp_path, capsys):
+    """A user trial: 'anim import avatar.usdc' said "cannot read the CSV ('utf-8' codec can't decode byte 0xe3
+    in position 16: invalid continuation byte)", and an empty .csv 'no Timecode column in the header'."""
+    from pxr import Sdf
+
+    usd = tmp_path / "take.usdc"
+    Sdf.Layer.CreateNew(str(usd)).Save()
+    binary = tmp_path / "scan.csv"
+    binary.write_bytes(usd.read_bytes())
+    empty = tmp_path / "empty.csv"
+    empty.write_text("\n")
+    for src, words in ((usd, "a USD file where a Live Link Face CSV is expected"),
+                       (binary, "not a text CSV (byte 0x"), (empty, "the CSV is empty")):
+        capsys.readouterr()
+        assert main(["anim", "import", str(src), "-o", str(tmp_path / "out.usda")]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "codec" not in err, err
+        assert not (tmp_path / "out.usda").exists()

@@ -475,3 +475,18 @@ def test_a_second_mesh_with_prefixed_and_corrective_shapes_does_not_stop_the_fac
     path = write_rig_usd(rigs, tmp_path / "beard.usda", meters_per_unit=avatar.meters_per_unit)
     result = personalize_avatar(path, samples / "capture.usda", None, dry_run=True)
     assert result.face_mesh == "/Avatar/Head"
+
+
+def test_a_retarget_map_given_as_the_name_map_is_named(samples, tmp_path, capsys):
+    """A user trial: '--name-map map.json' with the map 'usdface retarget' writes said "name map target
+    'usdface.retarget/1' (for 'format') is not an ARKit name (fix: ... (did you mean 'eyeBlinkLeft, jawOpen,
+    ...'?))"."""
+    retarget_map = tmp_path / "map.json"
+    retarget_map.write_text(json.dumps({"format": "usdface.retarget/1", "source": ["jawOpen"]}))
+    assert main(["inspect", str(samples / "avatar.usda"), "--name-map", str(retarget_map)]) == 2
+    err = capsys.readouterr().err
+    assert "a usdface output (usdface.retarget/1), not a name map" in err and "did you mean" not in err
+    with pytest.raises(InputFileError, match=r"one of the 52 ARKit names \(eyeBlinkLeft, jawOpen, \.\.\.\)"):
+        read_name_map({"Brow_L": "zzzz"})
+    with pytest.raises(InputFileError, match=r"did you mean 'jawOpen'\?"):
+        read_name_map({"Jaw": "jawOpn"})

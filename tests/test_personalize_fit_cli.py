@@ -71,3 +71,26 @@ def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_p
     capsys.readouterr()
     assert main(["inspect", str(rig)]) == 0
     assert capsys.readouterr().out.startswith(f"{rig}: usdface-fit")
+
+
+def test_error_maps_given_where_an_avatar_goes_are_named(tmp_path, capsys):
+    """A user trial: 'inspect errors.usda' (the maps 'evaluate --usd' wrote) said 'no SkelRoot in the stage
+    (fix: put the skinned meshes and their Skeleton under a SkelRoot prim)', for a file usdface wrote."""
+    from pxr import Sdf
+
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    tri = np.array([[0, 1, 2]])
+    pts = np.eye(3)
+    maps = {"dt": [("000", pts, np.zeros(3), np.zeros((3, 3)))]}
+    path = write_error_maps_usd(tmp_path / "errors.usda", tri, maps)
+    assert Sdf.Layer.FindOrOpen(str(path)).customLayerData["usdface"]["format"] == "errorMaps"
+    old = tmp_path / "old.usda"               # written before the maps carried their format
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.customLayerData = {}
+    layer.Export(str(old))
+    for src, command in ((path, ["inspect"]), (old, ["render", "-o", str(tmp_path / "e.png")])):
+        capsys.readouterr()
+        assert main([command[0], str(src), *command[1:]]) == 2
+        err = capsys.readouterr().err
+        assert "error-map file written by 'usdface evaluate --usd'" in err and "SkelRoot" not in err, err

@@ -289,3 +289,29 @@ def test_render_cli_refuses_avatar_options_for_a_capture(samples, tmp_path, caps
         assert f"{flags[0]} not used for a capture" in err and "capture.usda" in err
     assert not (tmp_path / "c.png").exists()
     assert main(["render", capture, "-o", png, "--view", "left"]) == 0
+
+
+def test_render_shapes_in_any_arkit_spelling(samples, tmp_path, capsys):
+    """A user trial: '--shapes eyeBlink_L' (ARKit's raw value) or 'JawOpen' (Live Link's) was refused with
+    'has no shape 'JawOpen' (fix: did you mean jawOpen? ...)', though every reader takes all three."""
+    for i, src in enumerate((samples / "avatar.usda", samples / "capture.usda")):
+        out = tmp_path / f"s{i}.png"
+        assert main(["render", str(src), "-o", str(out), "--shapes", "eyeBlink_L,JawOpen", "-q"]) == 0, \
+            capsys.readouterr().err
+        assert out.is_file()
+    assert main(["render", str(samples / "avatar.usda"), "-o", str(tmp_path / "x.png"), "--shapes",
+                 "jawOpn", "-q"]) == 2
+    assert "did you mean jawOpen?" in capsys.readouterr().err
+
+
+def test_heatmap_of_one_shape_is_labelled_with_it(inspected, tmp_path, monkeypatch):
+    """A user trial: '--heatmap --shapes jawOpen' labelled its colour bar 'RMS change over 1 shapes (mm)'."""
+    import usdface.render as render_module
+
+    labels = []
+    monkeypatch.setattr(render_module, "render_heatmap", lambda *a, label="", **k: labels.append(label))
+    _avatar, out, _heat = inspected
+    for i, shapes in enumerate(("jawOpen", "jawOpen,eyeBlinkLeft")):
+        png = tmp_path / f"{i}.png"
+        assert main(["render", str(out), "-o", str(png), "--heatmap", "--shapes", shapes]) == 0
+    assert labels == ["change in jawOpen (mm)", "RMS change over 2 shapes (mm)"]

@@ -327,3 +327,17 @@ def test_review_scores_the_fit_the_layer_carries(samples, tmp_path):
     assert "menzel refit" in other["title"]
     assert np.allclose(other["columns"]["personalized RMSE"], refit["personalized_rmse_mm"],
                        rtol=1e-12, atol=0)
+
+
+def test_review_of_a_flattened_export_names_the_layer_it_came_from(personalized_sample, tmp_path, capsys):
+    """A user trial: 'review flat.usdc' said 'no usdfacePersonalization variant set (a layer written by
+    'usdface personalize')' with the fix 'review a layer written by usdface personalize': it is one."""
+    from usdface.cli import main
+
+    flat = tmp_path / "flat.usdc"
+    api.export_avatar(personalized_sample, flatten=flat)
+    capsys.readouterr()
+    assert main(["review", str(flat), "-o", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err
+    assert "flattened export of the personalized variant" in err and personalized_sample.name in err
+    assert "written by 'usdface personalize'" not in err and not (tmp_path / "r.html").exists()

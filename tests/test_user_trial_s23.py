@@ -388,3 +388,17 @@ def test_a_flattened_export_elsewhere_keeps_a_provenance_check_can_follow(tmp_pa
     assert set(recorded_inputs(flat)) == {str(A.resolve()), str(C.resolve())}
     issues = api.check(flat)
     assert not [i for i in issues if "not reachable" in i.message], issues
+
+
+@pytest.mark.parametrize("argv", [["capture", "import", "cap", "-o", "c.usda", "--json"],
+                                  ["anim", "import", "t.csv", "-o", "t.usda", "--bogus"]])
+def test_unknown_options_of_an_action_are_named_by_the_action(argv, capsys):
+    """A user trial: 'capture import DIR -o c.usda --json' said "usdface capture: error: unrecognized
+    arguments: --json (see 'usdface capture --help')", a help page that lists only the actions."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    name, err = " ".join(argv[:2]), capsys.readouterr().err
+    assert f"usdface {name}: error: unrecognized arguments" in err and f"see 'usdface {name} --help'" in err

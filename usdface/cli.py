@@ -201,12 +201,16 @@ def _program_environment() -> None:
     gc.set_threshold(50_000, *gc.get_threshold()[1:])
 
 
-def _subparser(parser: argparse.ArgumentParser, command: str | None):
-    """The sub-command's own parser (its errors name it: ``usdface export: error: ...``), or None."""
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            return action.choices.get(command)
-    return None
+def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser | None:
+    """The parser of the (sub-)command ``args`` ran, down to its action (``capture import``): its errors name
+    it (``usdface capture import: error: ...``) and its ``--help``; None for no command."""
+    found = None
+    while True:
+        action = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        parser = action.choices.get(getattr(args, action.dest, None)) if action is not None else None
+        if parser is None:
+            return found
+        found = parser
 
 
 def _main(argv=None, program: bool = False) -> int:
@@ -214,7 +218,7 @@ def _main(argv=None, program: bool = False) -> int:
     _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
-        (_subparser(parser, getattr(args, "command", None)) or parser).error(
+        (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
     if not getattr(args, "func", None):
         parser.print_help()
@@ -256,13 +260,14 @@ def _main(argv=None, program: bool = False) -> int:
             print(f"usdface {_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        terminated = isinstance(exc, Terminated)
-        if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-            _json_stopped(args, terminated)
-        if terminated:
+        return _stopped(args, exc)
+    except ImportError as exc:
+        # a Ctrl-C or SIGTERM landing in a native module's initialisation (open3d's, imported at the first
+        # registration or ray cast): pybind11 turns it into 'ImportError: initialization failed'
+        stop = _interrupt_behind(exc)
+        if stop is None:
             raise
-        print("usdface: interrupted", file=sys.stderr)
-        return 130
+        return _stopped(args, stop)
     except OSError as exc:  # a write that failed: read-only folder or file system, full disk, path clash
         if args.debug:
             raise
@@ -283,6 +288,29 @@ def _main(argv=None, program: bool = False) -> int:
     finally:
         if not program:
             progress.set_enabled(enabled)
+
+
+def _stopped(args, exc: KeyboardInterrupt) -> int:
+    """A run stopped by Ctrl-C (exit status 130) or SIGTERM (:class:`Terminated`, raised on to :func:`main`:
+    143); with ``--json`` stdout still gets its one document."""
+    terminated = isinstance(exc, Terminated)
+    if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
+        _json_stopped(args, terminated)
+    if terminated:
+        raise exc
+    print("usdface: interrupted", file=sys.stderr)
+    return 130
+
+
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (or :class:`Terminated`) an exception was raised from or while handling."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 class StdoutError(OSError):

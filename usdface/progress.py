@@ -133,9 +133,11 @@ class _Steps:
             _LIVE.update(self.task, advance=1)
 
     # the two calls ---------------------------------------------------------------------------------------
-    def __call__(self, label: str | None = None, outcome: str = "done") -> None:
+    def __call__(self, label: str | None = None, outcome: str = "done", seconds: float | None = None) -> None:
         """The step ``label`` (or the one started last) is over; ``outcome`` says how (``done``, or e.g.
-        ``failed`` for a batch item whose error is reported at the end)."""
+        ``failed`` for a batch item whose error is reported at the end). ``seconds``: how long the step ran,
+        when it did not run since the step before ended (a batch item on a pool: by default the time since
+        then)."""
         if self.how == "off":
             return
         if self.running is not None:
@@ -147,8 +149,8 @@ class _Steps:
         if self.how == "plain":
             if (self.every or now - self.t_step >= self.delay or now - self.t_line >= self.delay
                     or outcome != "done"):  # a failure is always said
-                self._line(f"{self._counter(self.done)} {label or 'step'} {outcome} "
-                           f"({now - self.t_step:.1f} s)")
+                took = now - self.t_step if seconds is None else seconds
+                self._line(f"{self._counter(self.done)} {label or 'step'} {outcome} ({took:.1f} s)")
         else:
             text = f"{label} {outcome}" if label and outcome != "done" else label
             _LIVE.update(self.task, advance=1, description=f"{self.title}: {text}" if text else self.title)

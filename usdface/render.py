@@ -107,14 +107,19 @@ def save_figure(fig, out, force: bool = False) -> Path:
 
 
 def resolve_shape(rig, name: str) -> str | None:
-    """The rig's name for a shape asked as ``name``: itself, or the canonical ARKit name of the channel the
-    mesh authors as ``name`` (a studio's own channel name read through a name map); None if neither."""
+    """The rig's name for a shape asked as ``name``: itself, the canonical ARKit name of the channel the
+    mesh authors as ``name`` (a studio's own channel name read through a name map), or the ARKit name
+    ``name`` spells another way (``eyeBlink_L``, ``JawOpen``: the spellings every reader accepts); None if
+    none of these."""
+    from .arkit import normalize_name
+
     if name in rig.names:
         return name
     tokens = list(rig.source.channel_tokens) if rig.source is not None else []
     if name in tokens and len(tokens) == len(rig.names):
         return rig.names[tokens.index(name)]
-    return None
+    canonical = normalize_name(name)
+    return canonical if canonical in rig.names else None
 
 
 def check_shapes(rig, names, path=None) -> None:

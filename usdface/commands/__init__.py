@@ -7,6 +7,17 @@ NAME_MAP_HELP = ('JSON object {"studio_channel": "arkitName"} or two-column CSV 
                  "channel names to ARKit names, for names usdface does not recognise (see docs/names.md)")
 
 
+def command_line() -> str:
+    """The command being run as a shell line that runs it again (a layer's provenance ``command``): the
+    arguments ``usdface.cli.main`` parsed (not the host process's ``sys.argv`` when it was given a list),
+    each quoted as a shell needs (a path with a space stays one argument)."""
+    import shlex
+
+    from ..cli import _argv
+
+    return shlex.join(["usdface", *_argv])
+
+
 def add_name_map_option(p) -> None:
     """``--name-map FILE`` for every command that reads an avatar."""
     p.add_argument("--name-map", metavar="FILE", help=NAME_MAP_HELP)

@@ -3,9 +3,7 @@ rig."""
 
 from __future__ import annotations
 
-import sys
-
-from . import all_warnings, json_path, say_warning
+from . import all_warnings, command_line, json_path, say_warning
 from .options import add_quiet, positive_int, reg_value
 
 METHOD_HELP = "dt | ebfr | menzel (default) | laplacian"
@@ -107,7 +105,7 @@ def run(args) -> int:
 
     pins = {"pins": args.pins} if args.pins else {}
     result = api.fit_capture(args.capture, method=args.method, out_path=args.output, force=args.force,
-                             command=" ".join(["usdface", *sys.argv[1:]]), **fit_kwargs(args), **pins)
+                             command=command_line(), **fit_kwargs(args), **pins)
     info = result.info
     if args.json:
         import json

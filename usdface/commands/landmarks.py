@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
-from . import add_name_map_option, say_warning
+from . import add_name_map_option, command_line, say_warning
 from .options import (
     add_quiet,
     nonnegative_float,
@@ -178,7 +177,7 @@ def run(args) -> int:
             p.start(f"write {Path(args.output).name}")
             params = {k: v for k, v in vars(args).items() if k not in ("func",)}
             api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
-                                provenance={"command": " ".join(["usdface"] + sys.argv[1:]),
+                                provenance={"command": command_line(),
                                             "parameters": params, "timings": layout.timings,
                                             "elapsedSeconds": time.perf_counter() - t0})
     mesh = rig.key

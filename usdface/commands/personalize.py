@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from . import add_name_map_option, all_warnings, json_path, say_warning
+from . import add_name_map_option, all_warnings, command_line, json_path, say_warning
 from .fit import add_contact_option, add_every_option, add_pins_option, take_line
 from .options import mu_value, nonnegative_float, positive_float, reg_value, weight_bound
 
@@ -163,7 +163,7 @@ def run(args) -> int:
         check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                           inputs=inputs)
     result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
-                                command=" ".join(["usdface", *sys.argv[1:]]), inspect=inspect,
+                                command=command_line(), inspect=inspect,
                                 landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
                                 **transfer_kwargs(args), **implant_kwargs(args),
                                 **({"pins": args.pins} if args.pins else {}))

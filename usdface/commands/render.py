@@ -167,7 +167,8 @@ def run(args) -> int:
                 diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
-                                  label=f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)",
+                                  label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
+                                         f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
                                   title=f"{rig.name}: personalized vs generic")
     else:

@@ -411,19 +411,29 @@ def check_writable(path, *, what: str = "output", fix: str | None = None, folder
     return path
 
 
+#: Extensions of the files usdface reads and writes: a new output folder named so would later be read (or
+#: mistaken) as such a file.
+_FILE_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz", ".glb", ".gltf", ".png", ".html", ".htm", ".json",
+                  ".csv", ".obj", ".npz")
+
+
 def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "output folder",
                      fix: str | None = None) -> Path:
     """Validate an output folder before any work; returns it as a Path.
 
-    Refuses (InputFileError) a folder that touches one of the existing ``inputs`` (:func:`check_not_input`
-    with ``folder=True``: it is, holds or lies inside an input), even with ``force``. An existing file at
-    ``path`` is refused (OutputExistsError), even with ``force``: usdface does not delete a file it did not
-    write. An existing folder that is not empty needs ``force`` (OutputExistsError); with ``force``
-    :func:`replace_dir_atomically` replaces only the files it writes. A missing or empty folder is
-    accepted where it can be written (:func:`check_writable` with ``folder=True``: else
-    OutputNotWritableError, with ``fix``, default by the errno).
+    Refuses (InputFileError) a new folder named like a file usdface reads (``x.usda``, ``x.png``: a later
+    command would take it for one), and a folder that touches one of the existing ``inputs``
+    (:func:`check_not_input` with ``folder=True``: it is, holds or lies inside an input), even with ``force``.
+    An existing file at ``path`` is refused (OutputExistsError), even with ``force``: usdface does not
+    delete a file it did not write. An existing folder that is not empty needs ``force``
+    (OutputExistsError); with ``force`` :func:`replace_dir_atomically` replaces only the files it writes.
+    A missing or empty folder is accepted where it can be written (:func:`check_writable` with
+    ``folder=True``: else OutputNotWritableError, with ``fix``, default by the errno).
     """
     dest = Path(path)
+    if dest.suffix.lower() in _FILE_SUFFIXES and not dest.is_dir():   # 'sample x.usda': a folder x.usda
+        raise InputFileError(f"{what} is named like a {dest.suffix} file, but it is written as a folder",
+                             path=dest, fix=f"name the folder without the extension ({dest.with_suffix('')})")
     _check_parent(dest, what, fix)
     check_not_input(dest, inputs, what=what, folder=True)
     if dest.exists() and not dest.is_dir():

@@ -157,13 +157,23 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     from .usd_open import require_file
 
     path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face")
+    if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):  # the UTF-8 decoder's words said only that
+        raise InputFileError("a USD file where a Live Link Face CSV is expected", path=path,
+                             fix="pass the .csv exported by Live Link Face; a USD take is read as it is "
+                                 "('personalize AVATAR CAPTURE --take FILE', 'capture select FILE')")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputFileError("file not found", path=path, fix="check the path") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"not a text CSV (byte {exc.object[exc.start]:#04x} at offset {exc.start} is "
+                             "not UTF-8: a binary file?)", path=path,
+                             fix="pass the .csv exported by Live Link Face") from None
+    except OSError as exc:
         raise InputFileError(f"cannot read the CSV ({exc})", path=path,
                              fix="pass a Live Link Face .csv") from None
+    if not text.strip():
+        raise InputFileError("the CSV is empty", path=path, fix="pass the .csv exported by Live Link Face")
     rows = list(csv.reader(io.StringIO(text)))
     rows = [r for r in rows if r and any(c.strip() for c in r)]
     if not rows or "Timecode" not in [c.strip() for c in rows[0]]:

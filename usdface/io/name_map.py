@@ -33,11 +33,12 @@ CSV_HEADERS = frozenset({"arkit", "arkitname", "arkit_name", "arkit name", "targ
 
 
 def _closest(name: str) -> str:
+    """' (did you mean 'jawOpen'?)' for the nearest ARKit name, or the names' first ones when none is near."""
     lowered = [n.lower() for n in arkit.ARKIT_NAMES]
     hit = difflib.get_close_matches(str(name).lower(), lowered, n=1, cutoff=0.6)
     if not hit:
-        return "eyeBlinkLeft, jawOpen, ..."
-    return next(n for n in arkit.ARKIT_NAMES if n.lower() == hit[0])
+        return " (eyeBlinkLeft, jawOpen, ...)"
+    return f" (did you mean {next(n for n in arkit.ARKIT_NAMES if n.lower() == hit[0])!r}?)"
 
 
 def validate_name_map(pairs, source=None) -> dict[str, str]:
@@ -65,8 +66,7 @@ def validate_name_map(pairs, source=None) -> dict[str, str]:
         canonical = arkit.normalize_name(target)
         if canonical is None:
             raise InputFileError(f"name map target {target!r} (for {key!r}) is not an ARKit name",
-                                 path=label, fix="map it to one of the 52 ARKit names (did you mean "
-                                 f"{_closest(target)!r}?)")
+                                 path=label, fix=f"map it to one of the 52 ARKit names{_closest(target)}")
         if canonical in claimed:
             raise InputFileError(f"name map maps both {claimed[canonical]!r} and {key!r} to {canonical!r}",
                                  path=label, fix="map each ARKit name from one studio channel only")
@@ -87,6 +87,11 @@ def _parse_json(text: str, path: Path) -> list[tuple]:
     if not isinstance(data, list) or not all(isinstance(p, tuple) for p in data):
         raise InputFileError("the JSON name map is not an object", path=path,
                              fix='write the map as one JSON object {"studio_channel": "arkitName"}')
+    kind = dict(data).get("format")
+    if isinstance(kind, str) and kind.startswith("usdface."):   # a retarget map ('map.json'), not names
+        raise InputFileError(f"a usdface output ({kind}), not a name map", path=path,
+                             fix='pass the name map: a JSON object {"studio_channel": "arkitName"} or a '
+                                 "two-column CSV (docs/names.md)")
     return data
 
 

@@ -38,6 +38,7 @@ def write_error_maps_usd(path, triangles: np.ndarray, maps: dict, *, spacing: fl
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     root = UsdGeom.Xform.Define(stage, "/ErrorMaps")
     stage.SetDefaultPrim(root.GetPrim())
+    stage.GetRootLayer().customLayerData = {"usdface": {"format": "errorMaps"}}   # what it is, for readers
     root.GetPrim().SetDocumentation("reconstruction error per vertex: blue = 0 mm, red >= 5 mm "
                                     "(rows: methods, columns: test frames)")
     for row, (method, frames) in enumerate(maps.items()):

@@ -505,6 +505,10 @@ _NOT_AVATAR = {
                   "not an avatar",
                   "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the "
                   "avatar's Skeleton with skel:animationSource"),
+    "errorMaps": ("an error-map file written by 'usdface evaluate --usd' (each method's per-vertex error "
+                  "on the capture's test frames), not an avatar",
+                  "open it in usdview to look at the errors; pass the avatar's .usd file where an avatar is "
+                  "expected"),
 }
 
 
@@ -531,6 +535,8 @@ def _refuse_non_avatar(stage, path: Path) -> None:
     if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
         # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
         kind = "capture" if root.GetChild("Frames").GetAttribute("usdface:frames:role") else "take"
+    if kind not in _NOT_AVATAR and root and root.GetPath() == "/ErrorMaps" and not _skel_roots(stage):
+        kind = "errorMaps"      # written before the maps carried their format
     if kind not in _NOT_AVATAR and _is_weights_take(stage):
         kind = "animation"
         root = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))

@@ -507,7 +507,7 @@ def _run_serial(worker, todo, advance):
     for item in todo:
         res = run_item(worker, item)
         yield res
-        advance(Path(item["output"]).name, res.get("status", DONE))
+        advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
 
 
 #: Thread-count variables set in every pool worker before numpy loads: the pool's processes are the
@@ -585,7 +585,7 @@ def _run_pool(worker, todo, jobs, advance):
                 except Exception as exc:  # the item's result could not come back (pickling...)
                     res = _crashed(item, exc)
                 yield res
-                advance(Path(item["output"]).name, res.get("status", DONE))
+                advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
         except BaseException:        # Ctrl-C, SIGTERM: stop now, not after every queued item has run
             _stop_pool(pool)
             raise
@@ -641,7 +641,7 @@ def _run_isolated(worker, todo, jobs, advance):
                 item = futures[fut]
                 res = fut.result()
                 yield res
-                advance(Path(item["output"]).name, res.get("status", DONE))
+                advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
         except BaseException:        # Ctrl-C, SIGTERM: end the running processes, start no more
             stopping.set()
             threads.shutdown(wait=False, cancel_futures=True)
@@ -700,7 +700,7 @@ def _run_dask(worker, todo, scheduler, advance):
                                     "must be importable on every Dask worker (install it there or put it "
                                     "on their PYTHONPATH), as must usdface")
             yield res
-            advance(Path(item["output"]).name, res.get("status", DONE))
+            advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
     except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the cluster
         client.cancel([f for f in futures if not f.done()])
         raise

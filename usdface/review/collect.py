@@ -179,11 +179,18 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     from ..io.flatten import read_avatar_variant
     from ..io.take import read_take
     from ..io.usd_inspection import read_landmarks
-    from ..io.usd_rig import read_layer_info
+    from ..io.usd_rig import flattened_from, read_layer_info
 
     layer_path = Path(layer_path)
     info = read_layer_info(layer_path)
     prov = info.get("usdface") or {}
+    flat = flattened_from(layer_path) if not info.get("variants") else None
+    if flat is not None:          # its provenance says 'usdface personalize': name what it is instead
+        source = Path(str(flat.get("source", "")))         # recorded relative to the flattened file
+        source = source if source.is_absolute() else layer_path.parent / source
+        raise InputFileError(f"a flattened export of the {flat['variant']} variant ('usdface export "
+                             "--flatten'): one variant baked in, no generic | personalized to compare",
+                             path=layer_path, fix=f"review the layer it was flattened from ({source})")
     if not info.get("variants"):
         command = str(prov.get("command") or "").split()
         what = ("a 'usdface fit' rig on the capture mesh" if prov.get("format") == "fit" else
