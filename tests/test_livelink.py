@@ -300,3 +300,11 @@ def test_anim_import_of_a_usd_binary_or_empty_file_says_what_it_is(tmp_path, cap
         err = capsys.readouterr().err
         assert words in err and "codec" not in err, err
         assert not (tmp_path / "out.usda").exists()
+
+
+def test_anim_import_of_a_one_frame_take_says_so(tmp_path, capsys):
+    """A user trial: a one-frame CSV was reported as '1 frames over 0.00 s (~30 Hz)'."""
+    csv_path = write_csv(tmp_path / "one.csv", np.full((1, len(LL_ORDER)), 0.2), ["12:00:00:01.000"])
+    assert main(["anim", "import", str(csv_path), "-o", str(tmp_path / "one.usda"), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "1 frame (no duration, no rate)" in out and "Hz" not in out, out

@@ -341,3 +341,18 @@ def test_review_of_a_flattened_export_names_the_layer_it_came_from(personalized_
     err = capsys.readouterr().err
     assert "flattened export of the personalized variant" in err and personalized_sample.name in err
     assert "written by 'usdface personalize'" not in err and not (tmp_path / "r.html").exists()
+
+
+def test_a_capture_given_as_the_take_is_refused(personalized_sample, samples, tmp_path, capsys):
+    """A user trial: 'personalize AVATAR CAPTURE --take CAPTURE' played the capture's frames as a recording
+    (and listed the capture twice as an input); 'capture select CAPTURE' already refused a capture."""
+    from usdface.cli import main
+
+    capture = str(samples / "capture.usda")
+    for argv in (["personalize", str(samples / "avatar.usda"), capture, "-o", str(tmp_path / "p.usda")],
+                 ["review", str(personalized_sample), "-o", str(tmp_path / "r.html")]):
+        capsys.readouterr()
+        assert main([*argv, "--take", capture, "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "this is a capture" in err and "--take plays a take" in err, err
+    assert list(tmp_path.iterdir()) == []

@@ -238,26 +238,12 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
 def _refuse_capture_as_take(path: PathLike) -> None:
     """``capture select`` picks frames from a take; a capture (a folder with ``train/``, a USD capture) holds
     frames already picked - read as a take its test frames would become training frames. Refused naming
-    what it is and what reads it."""
-    from .errors import CaptureError
+    what it is and what reads it (:func:`usdface.io.take.refuse_capture_as_take`)."""
+    from .io.take import refuse_capture_as_take
 
-    p = Path(path)
-    is_capture = p.is_dir() and (p / "train").is_dir()
-    if not is_capture and p.is_file() and p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
-        from pxr import Sdf
-
-        try:
-            layer = Sdf.Layer.FindOrOpen(str(p))
-        except Exception:  # noqa: BLE001 - unreadable: the take reader names the problem
-            layer = None
-        data = dict(layer.customLayerData).get("usdface") if layer is not None else None
-        is_capture = hasattr(data, "get") and data.get("format") == "capture"
-    if is_capture:
-        raise CaptureError("this is a capture (its training and test frames are already picked), not a "
-                           "take", path=p,
-                           fix="use it as it is (usdface fit / personalize AVATAR CAPTURE); capture select "
-                               "reads a take: a USD take ('anim import', a time-sampled mesh) or an "
-                               "OBJ-sequence folder with its Live Link CSV")
+    refuse_capture_as_take(path, "use it as it is (usdface fit / personalize AVATAR CAPTURE); capture select "
+                                 "reads a take: a USD take ('anim import', a time-sampled mesh) or an "
+                                 "OBJ-sequence folder with its Live Link CSV")
 
 
 def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float | None = None,
@@ -680,9 +666,11 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         return _personalize(avatar_path, capture_path, out_path, **options)
     import time
 
-    from .io.take import read_take
+    from .io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
 
     start = time.perf_counter()
+    if take is not None:
+        refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
     take_data = read_take(take) if take is not None else None  # a bad take fails before any work
     avatar = (avatar_path if not isinstance(avatar_path, str | Path)
               else read_avatar(avatar_path, options.get("name_map")))

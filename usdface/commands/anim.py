@@ -49,9 +49,11 @@ def run_import(args) -> int:
         say_warning(w.message)
     # frames per second over the whole take (the median step hides a wrong rate: bursts and gaps)
     span = take.times[-1] if len(take.times) > 1 else 0.0
-    mean_hz = (len(take.times) - 1) / span if span > 0 else take.fps
-    print(f"wrote {out}: {len(take.times)} frames over {take.times[-1]:.2f} s (~{mean_hz:.0f} Hz), "
-          f"{len(take.names)} shapes")
+    if span > 0:
+        timing = f"{len(take.times)} frames over {span:.2f} s (~{(len(take.times) - 1) / span:.0f} Hz)"
+    else:                   # one frame (or one time code): no span, no rate
+        timing = f"{len(take.times)} frame{'s' if len(take.times) != 1 else ''} (no duration, no rate)"
+    print(f"wrote {out}: {timing}, {len(take.names)} shapes")
     if take.name_report.get("missing"):
         print(f"missing shapes: {', '.join(take.name_report['missing'])}")
     return 0

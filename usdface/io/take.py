@@ -70,6 +70,32 @@ class Take:
 
 
 # ----------------------------------------------------------------------------------------------- reading
+#: The fix when a capture is given to ``--take`` (personalize, review), which plays a take.
+TAKE_NOT_CAPTURE_FIX = ("pass the capture as CAPTURE (its test expressions already play in the inspection "
+                        "animation and the review page); --take plays a take: a Live Link Face CSV, a USD "
+                        "take ('anim import', a time-sampled mesh) or an OBJ-sequence folder with its CSV")
+
+
+def refuse_capture_as_take(path, fix: str) -> None:
+    """A capture (a folder with ``train/``, a USD file marked ``format = "capture"``) where a take is read:
+    CaptureError naming what it is, with ``fix`` (what the caller reads instead); a capture read as a take
+    would play or pick its frames as if recorded in that order."""
+    p = Path(path)
+    is_capture = p.is_dir() and (p / "train").is_dir()
+    if not is_capture and p.is_file() and p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
+        from pxr import Sdf
+
+        try:
+            layer = Sdf.Layer.FindOrOpen(str(p))
+        except Exception:  # noqa: BLE001 - unreadable: the take reader names the problem
+            layer = None
+        data = dict(layer.customLayerData).get("usdface") if layer is not None else None
+        is_capture = hasattr(data, "get") and data.get("format") == "capture"
+    if is_capture:
+        raise CaptureError("this is a capture (its training and test frames are already picked), not a "
+                           "take", path=p, fix=fix)
+
+
 def read_take(path) -> Take:
     """Read a take: a folder (OBJ sequence + Live Link CSV), a USD take, or a Live Link CSV (weights only)."""
     path = Path(path)

@@ -177,7 +177,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     (:func:`_fit_errors`), or one refit (a few seconds) for another capture or an older layer."""
     from ..io import read_capture
     from ..io.flatten import read_avatar_variant
-    from ..io.take import read_take
+    from ..io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
     from ..io.usd_inspection import read_landmarks
     from ..io.usd_rig import flattened_from, read_layer_info
 
@@ -238,6 +238,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if whole and not len(capture.test):  # a take fitted whole: it plays itself, there is nothing to score
         notes.append("the capture is a take fitted whole: no held-out test expressions to score (score one "
                      "made by 'usdface capture select TAKE -o capture.usda --test-every 10', with --capture)")
+    if isinstance(take, str | Path):         # given: a capture is no take (a recorded one plays as it did)
+        refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
     if take is None and prov.get("take"):   # the take the layer's inspection animation plays
         take = recorded_take(layer_path, prov)
         if take is None:
