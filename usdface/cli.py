@@ -25,7 +25,15 @@ COMMAND_MODULES = (
 
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
 JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch")
-_argv: list[str] = []  # the arguments being parsed, for _Parser.error
+#: ``.argv``: the arguments :func:`main` parses on this thread (for _Parser.error and the command a layer
+#: records): per thread, as a host may run main(argv) on threads side by side, and one module-wide list
+#: gave a run's layer the command another thread had started since.
+_PARSED = threading.local()
+
+
+def parsed_argv() -> list[str]:
+    """The arguments :func:`main` parsed on this thread (``sys.argv[1:]`` for the program); [] outside it."""
+    return getattr(_PARSED, "argv", [])
 
 
 class _Parser(argparse.ArgumentParser):
@@ -33,8 +41,9 @@ class _Parser(argparse.ArgumentParser):
     ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
 
     def error(self, message):
-        command = next((a for a in _argv if not a.startswith("-")), None)
-        if "--json" in _argv and command in JSON_FLAG_COMMANDS:
+        argv = parsed_argv()
+        command = next((a for a in argv if not a.startswith("-")), None)
+        if "--json" in argv and command in JSON_FLAG_COMMANDS:
             import json
 
             print(json.dumps({"ok": False, "error": {
@@ -216,7 +225,7 @@ def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser
 
 def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
-    _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
