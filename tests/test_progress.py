@@ -298,3 +298,45 @@ def test_main_called_by_a_host_leaves_its_progress_setting_as_it_was(samples, ca
     progress.set_enabled(True)
     assert main(["check", avatar, "--no-pixar", "-q"]) == 0 and progress._ENABLED is True
     assert main(["inspect", str(samples / "missing.usda"), "--json"]) == 2 and progress._ENABLED is True
+
+
+def test_main_called_on_two_host_threads_side_by_side_leaves_its_progress_setting(monkeypatch):
+    """Each ``main(argv)`` put back the progress setting it found: a ``-q`` run and one without it on a
+    host's threads side by side, the second found the first's 'off' and put it back last, and the host's
+    progress stayed off for good."""
+    import argparse
+    import threading
+
+    from usdface import cli
+
+    gates = {name: (threading.Event(), threading.Event()) for name in ("a", "b")}
+
+    def run(args):                               # a command that runs until the test lets it end
+        gates[args.name][0].set()
+        gates[args.name][1].wait(5)
+        return 0
+
+    def build_parser():
+        parser = argparse.ArgumentParser(prog="usdface")
+        parser.add_argument("--debug", action="store_true")
+        sub = parser.add_subparsers(dest="command")
+        cmd = sub.add_parser("wait")
+        cmd.add_argument("name")
+        cmd.add_argument("-q", "--quiet", action="store_true")
+        cmd.set_defaults(func=run)
+        return parser
+
+    monkeypatch.setattr(cli, "build_parser", build_parser)
+    monkeypatch.setattr(progress, "_ENABLED", True)
+    codes = []
+    quiet = threading.Thread(target=lambda: codes.append(main(["wait", "a", "-q"])))
+    quiet.start()
+    assert gates["a"][0].wait(5)
+    loud = threading.Thread(target=lambda: codes.append(main(["wait", "b"])))   # enters while -q runs
+    loud.start()
+    assert gates["b"][0].wait(5)
+    gates["a"][1].set()                          # the -q run ends first ...
+    quiet.join()
+    gates["b"][1].set()                          # ... then the other
+    loud.join()
+    assert codes == [0, 0] and progress._ENABLED is True

@@ -19,3 +19,45 @@ def test_fit_records_its_own_arguments_quoted(tmp_path):
     assert main(argv) == 0
     command = Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]["command"]
     assert shlex.split(command) == ["usdface", *argv]
+
+
+def test_main_on_two_host_threads_side_by_side_records_each_its_own_command(monkeypatch):
+    """The arguments main() parsed were one module-wide list: a host running main(argv) on threads side by
+    side, a run's layer recorded the command another thread had started since (landmarks reads it after
+    the sweep, minutes later)."""
+    import argparse
+    import threading
+
+    from usdface import cli
+    from usdface.commands import command_line
+
+    gates = {name: (threading.Event(), threading.Event()) for name in ("a b", "c")}
+    recorded = {}
+
+    def run(args):                               # a command that records its line once the test lets it
+        gates[args.name][0].set()
+        gates[args.name][1].wait(5)
+        recorded[args.name] = command_line()
+        return 0
+
+    def build_parser():
+        parser = argparse.ArgumentParser(prog="usdface")
+        parser.add_argument("--debug", action="store_true")
+        sub = parser.add_subparsers(dest="command")
+        cmd = sub.add_parser("wait")
+        cmd.add_argument("name")
+        cmd.set_defaults(func=run)
+        return parser
+
+    monkeypatch.setattr(cli, "build_parser", build_parser)
+    first = threading.Thread(target=cli.main, args=(["wait", "a b"],))
+    first.start()
+    assert gates["a b"][0].wait(5)
+    second = threading.Thread(target=cli.main, args=(["wait", "c"],))      # parsed while the first runs
+    second.start()
+    assert gates["c"][0].wait(5)
+    gates["a b"][1].set()
+    first.join()
+    gates["c"][1].set()
+    second.join()
+    assert recorded == {"a b": "usdface wait 'a b'", "c": "usdface wait c"}

@@ -10,6 +10,7 @@ import gc
 import importlib
 import os
 import sys
+import threading
 import warnings
 
 from . import __version__
@@ -24,7 +25,15 @@ COMMAND_MODULES = (
 
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
 JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch")
-_argv: list[str] = []  # the arguments being parsed, for _Parser.error
+#: ``.argv``: the arguments :func:`main` parses on this thread (for _Parser.error and the command a layer
+#: records): per thread, as a host may run main(argv) on threads side by side, and one module-wide list
+#: gave a run's layer the command another thread had started since.
+_PARSED = threading.local()
+
+
+def parsed_argv() -> list[str]:
+    """The arguments :func:`main` parsed on this thread (``sys.argv[1:]`` for the program); [] outside it."""
+    return getattr(_PARSED, "argv", [])
 
 
 class _Parser(argparse.ArgumentParser):
@@ -32,8 +41,9 @@ class _Parser(argparse.ArgumentParser):
     ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
 
     def error(self, message):
-        command = next((a for a in _argv if not a.startswith("-")), None)
-        if "--json" in _argv and command in JSON_FLAG_COMMANDS:
+        argv = parsed_argv()
+        command = next((a for a in argv if not a.startswith("-")), None)
+        if "--json" in argv and command in JSON_FLAG_COMMANDS:
             import json
 
             print(json.dumps({"ok": False, "error": {
@@ -215,7 +225,7 @@ def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser
 
 def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
-    _argv[:] = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
@@ -230,7 +240,8 @@ def _main(argv=None, program: bool = False) -> int:
     # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it); a host
     # calling main(argv) gets its own setting back (usdface.progress.set_enabled): -q turned its progress off
     # for good, and a run without -q turned it back on after the host had turned it off
-    enabled = progress._ENABLED
+    if not program:
+        _host_progress(+1)
     progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
     try:
         if program:  # the usdface program's main thread (a host application's signals are its own)
@@ -287,7 +298,27 @@ def _main(argv=None, program: bool = False) -> int:
         return 2
     finally:
         if not program:
-            progress.set_enabled(enabled)
+            _host_progress(-1)
+
+
+#: Runs of :func:`main` called by a host (``argv`` given, or not the main thread) under way, and the host's
+#: progress setting the first one found.
+_HOST_PROGRESS: dict = {"runs": 0, "enabled": True}
+_HOST_PROGRESS_LOCK = threading.Lock()
+
+
+def _host_progress(step: int) -> None:
+    """A host's run of :func:`main` begins (``+1``: the first of runs side by side keeps the host's progress
+    setting) or ends (``-1``: the last one puts it back). Each run putting back what it found, two runs on
+    the host's threads side by side (``-q`` and not) left the second's find, the first's setting, for good."""
+    from . import progress
+
+    with _HOST_PROGRESS_LOCK:
+        if step > 0 and _HOST_PROGRESS["runs"] == 0:
+            _HOST_PROGRESS["enabled"] = progress._ENABLED
+        _HOST_PROGRESS["runs"] += step
+        if step < 0 and _HOST_PROGRESS["runs"] == 0:
+            progress.set_enabled(_HOST_PROGRESS["enabled"])
 
 
 def _stopped(args, exc: KeyboardInterrupt) -> int:

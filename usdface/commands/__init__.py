@@ -13,9 +13,9 @@ def command_line() -> str:
     each quoted as a shell needs (a path with a space stays one argument)."""
     import shlex
 
-    from ..cli import _argv
+    from ..cli import parsed_argv
 
-    return shlex.join(["usdface", *_argv])
+    return shlex.join(["usdface", *parsed_argv()])
 
 
 def add_name_map_option(p) -> None:

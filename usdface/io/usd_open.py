@@ -50,6 +50,18 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
 _STDERR_LOCK = threading.RLock()
 
 
+def _new_stderr_lock() -> None:
+    """A forked child's own lock: a thread that was inside :func:`quiet_stderr` when the host forked (a
+    ``multiprocessing`` pool started while a thread opened a stage) does not exist in the child, and the
+    lock it held was never released there: the child's first stage open waited for good."""
+    global _STDERR_LOCK
+    _STDERR_LOCK = threading.RLock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_new_stderr_lock)
+
+
 @contextmanager
 def quiet_stderr():
     """Collect what C++ code (USD's diagnostics) writes to file descriptor 2 while the block runs; yields a
