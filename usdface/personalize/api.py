@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FitError, GeometryError
-from ..mesh import check_triangles
+from ..mesh import check_triangles, squared_lengths
 from ..model import Capture, FaceRig
 from .align import rigid_transforms
 from .crossval import choose_regularization
@@ -576,7 +576,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         timings["contact"] = time.perf_counter() - t1
         if any(v["applied"] for v in info["contact"]["shapes"].values()):
             res = points - capture.neutral[None] - blend(w_cur, deltas)
-        info["train_rmse_mm"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=-1))) * 1000)
+        info["train_rmse_mm"] = float(np.sqrt(np.mean(squared_lengths(res))) * 1000)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -885,7 +885,7 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     else:                                # diag(A_v^-1 W^T W): one batched r x r solve, no eigh
         cand = _cv_vertices(D, clamp)
         share = data_share(weights, D[:, cand], lam)
-    w = np.sum(generic[:, cand] ** 2, axis=-1).T                             # [m,K]
+    w = squared_lengths(generic[:, cand]).T                                  # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
 
