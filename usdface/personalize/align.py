@@ -45,8 +45,11 @@ def _kabsch_prepared(srcA, dstA, w):
     H = M[:, :3, :3] / sw[:, :, None] - cs[:, :, None] * cd[:, None, :]              # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
     V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
-    V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
     R = np.matmul(V, Ut)
+    mirrored = _det3(R) < 0                                  # no reflection: V's last column turned, again
+    if mirrored.any():
+        V[mirrored, :, 2] *= -1.0
+        R[mirrored] = np.matmul(V[mirrored], Ut[mirrored])
     t = cd - np.matmul(R, cs[:, :, None])[:, :, 0]
     return R, t
 
