@@ -13,7 +13,7 @@ import numpy as np
 
 from ..mesh import vector_lengths
 
-__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms"]
+__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "distinct_frames"]
 
 
 def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count: int = 12) -> np.ndarray:
@@ -89,13 +89,51 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
 
 
+def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
+    """The frames (first axis) equal to the bit in every one of ``arrays`` (each ``[F, ...]``):
+    ``(first[U], inverse[F])``, each distinct frame's first index and each frame's distinct index; None when
+    every frame is distinct. One hash per frame, a match confirmed on the bytes; no copy of all frames."""
+    def frame(f):
+        return b"".join(np.ascontiguousarray(a[f]).tobytes() for a in arrays)
+
+    F = len(arrays[0])
+    by_hash: dict[int, list[int]] = {}
+    first: list[int] = []
+    inverse = np.empty(F, dtype=np.intp)
+    for f in range(F):
+        key = frame(f)
+        known = by_hash.setdefault(hash(key), [])
+        u = next((u for u in known if frame(first[u]) == key), None)
+        if u is None:
+            u = len(first)
+            first.append(f)
+            known.append(u)
+        inverse[f] = u
+    return None if len(first) == F else (np.asarray(first, dtype=np.intp), inverse)
+
+
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
                      iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points)."""
+    """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points).
+
+    Frames that are one frame (the same points on ``vertices``, and the same reference there: a capture app
+    that kept one scan for several shapes) are aligned once and the transform copied (every step works frame
+    by frame, so the copies are the transforms they would get; :func:`distinct_frames`)."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     src = P[:, vertices]
-    srcA, dstA = _homogeneous(src, np.broadcast_to(ref[..., vertices, :], src.shape))
+    dst = np.broadcast_to(ref[..., vertices, :], src.shape)
+    groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+    if groups is not None:
+        src, dst = src[groups[0]], dst[groups[0]]
+    R, t = _robust_kabsch(src, dst, robust, iterations)
+    return (R, t) if groups is None else (R[groups[1]], t[groups[1]])
+
+
+def _robust_kabsch(src, dst, robust, iterations):
+    """:func:`rigid_transforms` on the points ``src[F,m,3]`` and ``dst[F,m,3]`` (m), re-weighted
+    ``iterations`` times with ``robust``: ``(R[F,3,3], t[F,3])``."""
+    srcA, dstA = _homogeneous(src, dst)
     w = np.ones(src.shape[:2])
     R, t = _kabsch_prepared(srcA, dstA, w)
     m = src.shape[1]
