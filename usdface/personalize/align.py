@@ -91,10 +91,11 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
 
 def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
     """The frames (first axis) equal to the bit in every one of ``arrays`` (each ``[F, ...]``, float64):
-    ``(first[U], inverse[F])``, each distinct frame's first index and each frame's distinct index; None when
-    every frame is distinct. One pass: a fingerprint per frame (the wrapped sums of its 64-bit words, equal
-    for equal frames) groups the frames, and each repeat is confirmed bit for bit against its group's first
-    frame (a fingerprint shared by different frames, never seen, gives None: every frame solved)."""
+    ``(first[U], inverse[F])``, each distinct frame's first index (ascending) and each frame's distinct
+    index; None when every frame is distinct. One pass: a fingerprint per frame (the wrapped sums of its
+    64-bit words, equal for equal frames) groups the frames, and each repeat is confirmed bit for bit against
+    its group's first frame (a fingerprint shared by different frames, never seen, gives None: no frame is
+    taken for another)."""
     F = len(arrays[0])
     if F < 2:
         return None
@@ -105,9 +106,14 @@ def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     if len(first) == F:
         return None
+    inverse = inverse.ravel()
     repeat = np.flatnonzero(first[inverse] != np.arange(F))
-    same = all(np.array_equal(w[repeat], w[first[inverse[repeat]]]) for w in words)
-    return (first, inverse.ravel()) if same else None
+    if not all(np.array_equal(w[repeat], w[first[inverse[repeat]]]) for w in words):
+        return None
+    order = np.argsort(first)                                  # the groups in order of their first frame
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inverse]
 
 
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import vector_lengths
+from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
            "weight_basis", "reduced_normal_matrix", "data_share"]
@@ -295,16 +296,11 @@ class PositionFit:
         F = len(self._points)
         if self.block > 1 or F < 2 or self._Z2 is None:
             return
-        seen: dict[bytes, int] = {}
-        inverse = np.empty(F, dtype=np.intp)
-        for f in range(F):
-            key = self.W[f].tobytes() + self._points[f].tobytes()
-            inverse[f] = seen.setdefault(key, len(seen))
-        if len(seen) == F:
+        groups = distinct_frames(self.W, self._points)                  # (each group's first frame, group)
+        if groups is None:
             return
-        first = np.empty(len(seen), dtype=np.intp)
-        first[inverse[::-1]] = np.arange(F)[::-1]                       # each group's first frame
-        self._first, self._inverse = first, inverse
+        self._first, self._inverse = groups
+        first = self._first
         if previous is not None and np.array_equal(previous, first):
             return                                                      # Z's rows of the same frames
         self._Zu = self.Z[:, first]                                        # [n,U,r]
