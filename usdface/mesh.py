@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from .errors import GeometryError
 
 __all__ = [
-    "vector_lengths",
+    "vector_lengths", "squared_lengths",
     "triangle_normals", "vertex_normals", "triangle_areas", "frame_vectors", "triangle_frames",
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
@@ -39,11 +39,18 @@ def _edge_vectors(points: np.ndarray, triangles: np.ndarray):
     return v0, p[..., t[:, 1], :] - v0, p[..., t[:, 2], :] - v0
 
 
+def squared_lengths(x: np.ndarray) -> np.ndarray:
+    """``|x|^2`` over the last axis of ``x[..., 3]`` -> ``[...]`` (units of ``x`` squared):
+    ``np.sum(x ** 2, axis=-1)`` to the bit (the same squares summed in the same order) without numpy's
+    reduction over a 3-long axis (~5x cheaper)."""
+    x = np.asarray(x, dtype=np.float64)
+    return x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2]
+
+
 def vector_lengths(x: np.ndarray) -> np.ndarray:
     """``|x|`` over the last axis of ``x[..., 3]`` -> ``[...]``: ``np.linalg.norm(x, axis=-1)`` to the bit
-    (the same squares summed in the same order) without numpy's reduction over a 3-long axis (~5x cheaper)."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
+    (:func:`squared_lengths`, then the square root)."""
+    return np.sqrt(squared_lengths(x))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

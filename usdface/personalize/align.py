@@ -13,7 +13,7 @@ import numpy as np
 
 from ..mesh import vector_lengths
 
-__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms"]
+__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "distinct_frames"]
 
 
 def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count: int = 12) -> np.ndarray:
@@ -45,8 +45,11 @@ def _kabsch_prepared(srcA, dstA, w):
     H = M[:, :3, :3] / sw[:, :, None] - cs[:, :, None] * cd[:, None, :]              # [F,3,3]
     U, _, Vt = np.linalg.svd(H)
     V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
-    V[:, :, 2] *= np.sign(_det3(np.matmul(V, Ut)))[:, None]                          # no reflection
     R = np.matmul(V, Ut)
+    mirrored = _det3(R) < 0                                  # no reflection: V's last column turned, again
+    if mirrored.any():
+        V[mirrored, :, 2] *= -1.0
+        R[mirrored] = np.matmul(V[mirrored], Ut[mirrored])
     t = cd - np.matmul(R, cs[:, :, None])[:, :, 0]
     return R, t
 
@@ -86,13 +89,55 @@ def rigid_align(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray,
     return np.matmul(P, np.swapaxes(R, 1, 2)) + t[:, None], R, t
 
 
+def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
+    """The frames (first axis) equal to the bit in every one of ``arrays`` (each ``[F, ...]``, float64):
+    ``(first[U], inverse[F])``, each distinct frame's first index (ascending) and each frame's distinct
+    index; None when every frame is distinct. One pass: a fingerprint per frame (the wrapped sums of its
+    64-bit words, equal for equal frames) groups the frames, and each repeat is confirmed bit for bit against
+    its group's first frame (a fingerprint shared by different frames, never seen, gives None: no frame is
+    taken for another)."""
+    F = len(arrays[0])
+    if F < 2:
+        return None
+    words = [np.ascontiguousarray(a, dtype=np.float64).reshape(F, -1).view(np.uint64) for a in arrays]
+    key = words[0].sum(axis=1)
+    for w in words[1:]:
+        key = key * np.uint64(0x9E3779B97F4A7C15) + w.sum(axis=1)
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    if len(first) == F:
+        return None
+    inverse = inverse.ravel()
+    repeat = np.flatnonzero(first[inverse] != np.arange(F))
+    if not all(np.array_equal(w[repeat], w[first[inverse[repeat]]]) for w in words):
+        return None
+    order = np.argsort(first)                                  # the groups in order of their first frame
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inverse]
+
+
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
                      iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points)."""
+    """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points).
+
+    Frames that are one frame (the same points on ``vertices``, and the same reference there: a capture app
+    that kept one scan for several shapes) are aligned once and the transform copied (every step works frame
+    by frame, so the copies are the transforms they would get; :func:`distinct_frames`)."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     src = P[:, vertices]
-    srcA, dstA = _homogeneous(src, np.broadcast_to(ref[..., vertices, :], src.shape))
+    dst = np.broadcast_to(ref[..., vertices, :], src.shape)
+    groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+    if groups is not None:
+        src, dst = src[groups[0]], dst[groups[0]]
+    R, t = _robust_kabsch(src, dst, robust, iterations)
+    return (R, t) if groups is None else (R[groups[1]], t[groups[1]])
+
+
+def _robust_kabsch(src, dst, robust, iterations):
+    """:func:`rigid_transforms` on the points ``src[F,m,3]`` and ``dst[F,m,3]`` (m), re-weighted
+    ``iterations`` times with ``robust``: ``(R[F,3,3], t[F,3])``."""
+    srcA, dstA = _homogeneous(src, dst)
     w = np.ones(src.shape[:2])
     R, t = _kabsch_prepared(srcA, dstA, w)
     m = src.shape[1]

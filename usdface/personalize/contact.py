@@ -117,16 +117,18 @@ def _direction(points, corners, upper, lower) -> np.ndarray:
     return d / max(np.linalg.norm(d), 1e-300)
 
 
-def find_openings(neutral: np.ndarray, triangles: np.ndarray, *, up=(0.0, 1.0, 0.0)) -> list[Opening]:
+def find_openings(neutral: np.ndarray, triangles: np.ndarray, *, up=(0.0, 1.0, 0.0),
+                  loops: list | None = None) -> list[Opening]:
     """The holes of a mesh (mouth, eyes), each split into its upper and lower side.
 
     ``neutral[n,3]``, ``triangles[t,3]``. The outer rim (the loop enclosing the largest area) is no opening;
     holes of fewer than 4 vertices are skipped. A hole is split at its two farthest-apart vertices (the
     corners, as :func:`usdface.personalize.dt.zip_loop` does); the side whose centroid lies further along
     ``up`` (the capture format's +Y) is the upper one. Returns the openings in boundary-loop order.
+    ``loops``: the mesh's :func:`usdface.mesh.boundary_loops` if the caller has them.
     """
     p = np.asarray(neutral, dtype=np.float64)
-    loops = boundary_loops(triangles, len(p))
+    loops = boundary_loops(triangles, len(p)) if loops is None else loops
     if len(loops) < 2:
         return []
     rim = int(np.argmax([_loop_area(p, lp) for lp in loops]))
@@ -338,17 +340,17 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
 
 
 def keep_contact(neutral, triangles, template_neutral, template_deltas, names, deltas, *, mode: str = "auto",
-                 points=None, weights=None, pinned=None, residuals=None):
+                 points=None, weights=None, pinned=None, residuals=None, loops=None):
     """The fit's contact step: pairs from the template (:func:`find_contact_pairs`), then
     :func:`apply_contact` on the fitted ``deltas[K,n,3]``.
 
     ``neutral[n,3]`` (the person's B0), ``template_neutral[n,3]``, ``template_deltas[K,n,3]`` (the template
     rig on the same topology), ``names[K]``; ``points[F,n,3]``, ``weights[F,K]``: the training frames the fit
     used (for ``mode="auto"``'s test); ``residuals[F,n,3]``: the frames minus the fit
-    (``points - neutral - weights @ deltas``) if the caller has them. Returns ``(deltas, {"mode", "shapes":
-    per-shape report})``.
+    (``points - neutral - weights @ deltas``) if the caller has them; ``loops``: the mesh's
+    :func:`usdface.mesh.boundary_loops`, likewise. Returns ``(deltas, {"mode", "shapes": per-shape report})``.
     """
-    openings = find_openings(template_neutral, triangles)
+    openings = find_openings(template_neutral, triangles, loops=loops)
     pairs = find_contact_pairs(template_neutral, template_deltas, triangles, names, openings=openings)
     if residuals is None and points is not None and weights is not None:
         W = np.asarray(weights, dtype=np.float64)

@@ -198,7 +198,7 @@ def _loop_area(points: np.ndarray, loop: np.ndarray) -> np.ndarray:
 
 
 def eyelid_triangles(neutral: np.ndarray, deltas: np.ndarray, triangles: np.ndarray, names=None, *,
-                     close_ratio: float = 0.8) -> np.ndarray:
+                     close_ratio: float = 0.8, loops: list | None = None) -> np.ndarray:
     """Virtual triangles between upper and lower eyelids (Menzel et al. 2022, sec. 3.2), found from the
     template's blink shapes.
 
@@ -206,11 +206,12 @@ def eyelid_triangles(neutral: np.ndarray, deltas: np.ndarray, triangles: np.ndar
     containing "blink"; without names, every shape) shrinks the hole's area below ``close_ratio`` of the
     neutral's (phone face meshes keep a slit open even in a full blink, hence the generous default).
     Each eye hole is zipped (:func:`zip_loop`). ``neutral[n,3]``, ``deltas[K,n,3]`` are the
-    template's; returns ``[k,3]`` (empty when there is no such hole).
+    template's; returns ``[k,3]`` (empty when there is no such hole). ``loops``: the mesh's
+    :func:`usdface.mesh.boundary_loops` if the caller has them.
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     deltas = np.asarray(deltas, dtype=np.float64)
-    loops = boundary_loops(triangles, len(neutral))
+    loops = boundary_loops(triangles, len(neutral)) if loops is None else loops
     if len(loops) < 2 or len(deltas) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     rim = int(np.argmax([_loop_area(neutral, lp) for lp in loops]))   # the outer rim encloses the most
@@ -239,7 +240,7 @@ def eyelid_triangles(neutral: np.ndarray, deltas: np.ndarray, triangles: np.ndar
 def deformation_transfer(source_neutral: np.ndarray, source_deltas: np.ndarray, target_neutral: np.ndarray,
                          triangles: np.ndarray, *, extra_triangles: np.ndarray | None = None,
                          names=None, eyelids: bool = True, fixed=None, fixed_deltas=None,
-                         solver: PoissonSolver | None = None) -> np.ndarray:
+                         solver: PoissonSolver | None = None, loops: list | None = None) -> np.ndarray:
     """Sumner & Popović (2004), eqs. (3)-(5): transfer ``source_deltas[K,n,3]`` (on ``source_neutral[n,3]``)
     onto ``target_neutral[n,3]`` of the same topology; returns target ``deltas[K,n,3]`` (metres).
 
@@ -248,7 +249,8 @@ def deformation_transfer(source_neutral: np.ndarray, source_deltas: np.ndarray, 
     coordinates). The free translation is pinned so that each shape's mass-weighted mean displacement equals
     the source's. ``eyelids=True`` adds :func:`eyelid_triangles` so blinks close fully; ``extra_triangles``
     adds your own virtual triangles. ``fixed`` (vertex indices) with ``fixed_deltas[K,k,3]``: partial
-    transfer with prescribed displacements there (seamless partial DT building block).
+    transfer with prescribed displacements there (seamless partial DT building block). ``loops``: the
+    mesh's :func:`usdface.mesh.boundary_loops` for the eyelids, if the caller has them.
     """
     src = np.asarray(source_neutral, dtype=np.float64)
     tgt = np.asarray(target_neutral, dtype=np.float64)
@@ -259,7 +261,7 @@ def deformation_transfer(source_neutral: np.ndarray, source_deltas: np.ndarray, 
     tris = np.asarray(triangles, dtype=np.int64)
     extra = [] if extra_triangles is None else [np.asarray(extra_triangles, dtype=np.int64).reshape(-1, 3)]
     if eyelids and solver is None:
-        extra.append(eyelid_triangles(src, D, tris, names))
+        extra.append(eyelid_triangles(src, D, tris, names, loops=loops))
     all_tris = np.concatenate([tris] + extra) if extra else tris
     if solver is None:
         solver = PoissonSolver(tgt, all_tris, fixed=fixed)

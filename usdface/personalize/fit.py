@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import vector_lengths
+from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
            "weight_basis", "reduced_normal_matrix", "data_share"]
@@ -287,21 +288,21 @@ class PositionFit:
         kept one scan for several shapes) have the same rows of ``Z``, ``e0`` and hence the same
         leave-one-frame-out residual: the criteria compute it once per distinct frame
         (``_first[U]``, ``_inverse[F]``; None when every frame is distinct, for block hold-outs, and when
-        ``Z`` is too large to keep a copy of its distinct rows: a long take's)."""
+        ``Z`` is too large to keep a copy of its distinct rows: a long take's). ``Z``'s distinct rows are
+        gathered again only when the groups change (new frames usually keep them: an aligned copy of a
+        repeated frame is the same copy)."""
+        previous = getattr(self, "_first", None)
         self._first = self._inverse = None
         F = len(self._points)
         if self.block > 1 or F < 2 or self._Z2 is None:
             return
-        seen: dict[bytes, int] = {}
-        inverse = np.empty(F, dtype=np.intp)
-        for f in range(F):
-            key = self.W[f].tobytes() + self._points[f].tobytes()
-            inverse[f] = seen.setdefault(key, len(seen))
-        if len(seen) == F:
+        groups = distinct_frames(self.W, self._points)                  # (each group's first frame, group)
+        if groups is None:
             return
-        first = np.empty(len(seen), dtype=np.intp)
-        first[inverse[::-1]] = np.arange(F)[::-1]                       # each group's first frame
-        self._first, self._inverse = first, inverse
+        self._first, self._inverse = groups
+        first = self._first
+        if previous is not None and np.array_equal(previous, first):
+            return                                                      # Z's rows of the same frames
         self._Zu = self.Z[:, first]                                        # [n,U,r]
         self._Z2u = None if self._Z2 is None else self._Z2[:, first]
 
