@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
+from forking import child_finishes
 
 from usdface.errors import InputFileError, OutputExistsError
 from usdface.io import atomic
@@ -401,44 +402,6 @@ def test_a_new_output_folder_named_like_a_file_is_refused(tmp_path, capsys):
     assert check_output_dir(tmp_path / "old.usda") == tmp_path / "old.usda"
 
 
-def _child_finishes(block, hold) -> bool:
-    """Fork while another thread is inside ``hold`` (a context manager); True if the child runs ``block``
-    and exits within 3 s (False: it waited for good on a lock held by a thread the child does not have)."""
-    import os
-    import signal
-    import threading
-    import time
-
-    inside, leave = threading.Event(), threading.Event()
-
-    def holder():
-        with hold():
-            inside.set()
-            leave.wait(10)
-
-    thread = threading.Thread(target=holder)
-    thread.start()
-    try:
-        assert inside.wait(5)
-        pid = os.fork()
-        if pid == 0:                                  # the child: nothing of pytest's may run here
-            try:
-                block()
-            finally:
-                os._exit(0)
-        deadline = time.monotonic() + 3
-        while time.monotonic() < deadline:
-            if os.waitpid(pid, os.WNOHANG)[0]:
-                return True
-            time.sleep(0.02)
-        os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
-        return False
-    finally:
-        leave.set()
-        thread.join()
-
-
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
 def test_quiet_stderr_in_a_child_forked_while_another_thread_is_inside():
     """A host forking (``multiprocessing``'s default on Linux) while one of its threads opened a stage: the
@@ -449,4 +412,4 @@ def test_quiet_stderr_in_a_child_forked_while_another_thread_is_inside():
         with quiet_stderr():
             pass
 
-    assert _child_finishes(block, quiet_stderr)
+    assert child_finishes(block, quiet_stderr)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from forking import child_finishes
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -170,40 +171,10 @@ def test_obj_reads_on_threads_side_by_side_leave_the_warning_filters_as_they_wer
 def test_obj_read_in_a_child_forked_while_another_thread_parses(tmp_path):
     """A host forking (``multiprocessing``'s default on Linux) while one of its threads parsed an OBJ: the
     child's first OBJ read waited for good on the lock that thread held."""
-    import os
-    import signal
-    import threading
-    import time
-
     from usdface.io import mesh_io
 
     path = tmp_path / "tri.obj"
     write_obj(path, np.eye(3), np.array([[0, 1, 2]]))
-    held, leave = threading.Event(), threading.Event()
+    assert child_finishes(lambda: read_obj(path), lambda: mesh_io._CATCH_LOCK), \
+        "the forked child waited for good on the OBJ reader's lock"
 
-    def holder():
-        with mesh_io._CATCH_LOCK:              # a parse under way on another thread
-            held.set()
-            leave.wait(10)
-
-    thread = threading.Thread(target=holder)
-    thread.start()
-    try:
-        assert held.wait(5)
-        pid = os.fork()
-        if pid == 0:                           # the child: nothing of pytest's may run here
-            try:
-                read_obj(path)
-            finally:
-                os._exit(0)
-        deadline, done = time.monotonic() + 3, False
-        while not done and time.monotonic() < deadline:
-            done = bool(os.waitpid(pid, os.WNOHANG)[0])
-            time.sleep(0.02)
-        if not done:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-    finally:
-        leave.set()
-        thread.join()
-    assert done, "the forked child waited for good on the OBJ reader's lock"

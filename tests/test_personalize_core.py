@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from forking import child_finishes
 from scipy.spatial.transform import Rotation
 from synthetic_meshes import grid_triangles
 
@@ -320,39 +321,12 @@ def test_a_fit_in_a_child_forked_while_another_thread_sets_the_blas_limit():
     """A host forking (``multiprocessing``'s default on Linux) while one of its threads held the limit's lock
     (setting the thread counts; making a new ThreadpoolController after imports takes milliseconds): the
     child's first fit waited for good on a lock held by a thread it does not have."""
-    import os
-    import signal
-    import threading
-    import time
-
     from usdface.personalize import api
 
-    held, leave = threading.Event(), threading.Event()
+    def block():
+        with api.one_blas_thread():
+            pass
 
-    def holder():
-        with api._BLAS_LOCK:
-            held.set()
-            leave.wait(10)
+    assert child_finishes(block, lambda: api._BLAS_LOCK), \
+        "the forked child waited for good on the BLAS limit's lock"
 
-    thread = threading.Thread(target=holder)
-    thread.start()
-    try:
-        assert held.wait(5)
-        pid = os.fork()
-        if pid == 0:                                  # the child: nothing of pytest's may run here
-            try:
-                with api.one_blas_thread():
-                    pass
-            finally:
-                os._exit(0)
-        deadline, done = time.monotonic() + 3, False
-        while not done and time.monotonic() < deadline:
-            done = bool(os.waitpid(pid, os.WNOHANG)[0])
-            time.sleep(0.02)
-        if not done:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-    finally:
-        leave.set()
-        thread.join()
-    assert done, "the forked child waited for good on the BLAS limit's lock"

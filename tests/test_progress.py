@@ -304,8 +304,9 @@ def test_main_called_on_two_host_threads_side_by_side_leaves_its_progress_settin
     """Each ``main(argv)`` put back the progress setting it found: a ``-q`` run and one without it on a
     host's threads side by side, the second found the first's 'off' and put it back last, and the host's
     progress stayed off for good."""
-    import argparse
     import threading
+
+    from cli_stubs import waiting_parser
 
     from usdface import cli
 
@@ -316,17 +317,7 @@ def test_main_called_on_two_host_threads_side_by_side_leaves_its_progress_settin
         gates[args.name][1].wait(5)
         return 0
 
-    def build_parser():
-        parser = argparse.ArgumentParser(prog="usdface")
-        parser.add_argument("--debug", action="store_true")
-        sub = parser.add_subparsers(dest="command")
-        cmd = sub.add_parser("wait")
-        cmd.add_argument("name")
-        cmd.add_argument("-q", "--quiet", action="store_true")
-        cmd.set_defaults(func=run)
-        return parser
-
-    monkeypatch.setattr(cli, "build_parser", build_parser)
+    monkeypatch.setattr(cli, "build_parser", waiting_parser(run))
     monkeypatch.setattr(progress, "_ENABLED", True)
     codes = []
     quiet = threading.Thread(target=lambda: codes.append(main(["wait", "a", "-q"])))

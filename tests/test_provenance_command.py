@@ -25,8 +25,9 @@ def test_main_on_two_host_threads_side_by_side_records_each_its_own_command(monk
     """The arguments main() parsed were one module-wide list: a host running main(argv) on threads side by
     side, a run's layer recorded the command another thread had started since (landmarks reads it after
     the sweep, minutes later)."""
-    import argparse
     import threading
+
+    from cli_stubs import waiting_parser
 
     from usdface import cli
     from usdface.commands import command_line
@@ -40,16 +41,7 @@ def test_main_on_two_host_threads_side_by_side_records_each_its_own_command(monk
         recorded[args.name] = command_line()
         return 0
 
-    def build_parser():
-        parser = argparse.ArgumentParser(prog="usdface")
-        parser.add_argument("--debug", action="store_true")
-        sub = parser.add_subparsers(dest="command")
-        cmd = sub.add_parser("wait")
-        cmd.add_argument("name")
-        cmd.set_defaults(func=run)
-        return parser
-
-    monkeypatch.setattr(cli, "build_parser", build_parser)
+    monkeypatch.setattr(cli, "build_parser", waiting_parser(run))
     first = threading.Thread(target=cli.main, args=(["wait", "a b"],))
     first.start()
     assert gates["a b"][0].wait(5)
