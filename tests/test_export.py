@@ -201,6 +201,28 @@ def test_export_refuses_and_validates_before_work(layer, tmp_path, samples):
     assert glb.read_bytes()[:4] == b"glTF"
 
 
+@pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()])
+def test_an_export_that_fails_part_way_leaves_no_new_output(layer, tmp_path, monkeypatch, failure):
+    """A user trial: SIGTERM (or a full disk) after the glTF was written left that .glb and the OBJ folder
+    without the flattened file, a partial set a pipeline could take for a finished export. The outputs this
+    call created go; one it replaced with force stays replaced (its old version is gone either way)."""
+    import usdface.io.flatten as flatten_module
+
+    def fail(*_a, **_k):
+        raise failure
+
+    monkeypatch.setattr(flatten_module, "flatten_variant", fail)
+    glb, objs, flat = tmp_path / "a.glb", tmp_path / "objs", tmp_path / "f.usdc"
+    with pytest.raises(type(failure)):
+        api.export_avatar(layer, gltf=glb, obj_dir=objs, flatten=flat)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    old = tmp_path / "old.glb"
+    old.write_bytes(b"old")
+    with pytest.raises(type(failure)):
+        api.export_avatar(layer, gltf=old, obj_dir=objs, flatten=flat, force=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.glb"] and old.read_bytes()[:4] == b"glTF"
+
+
 def test_export_cli(layer, tmp_path):
     cmd = [sys.executable, "-m", "usdface.cli", "export", str(layer), "--gltf", str(tmp_path / "x.glb"),
            "--variant", "generic"]

@@ -1195,17 +1195,17 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     * ``flatten``: one flattened USD file with the variant baked in
       (:func:`usdface.io.flatten.flatten_variant`).
 
-    Every output is checked before any work (an existing one needs ``force``) and written atomically; the
-    inputs are never modified. Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
+    Every output is checked before any work (an existing one needs ``force``) and written atomically, and
+    the set is all or nothing for new outputs: when a later one fails (a full disk, Ctrl-C), the ones this
+    call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
+    Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import OptionError, UsdFaceError
-    from .io.atomic import check_output_dir, check_output_file, replace_dir_atomically
-    from .io.flatten import VARIANTS, exported_variant, flatten_variant, read_avatar_variant
-    from .io.gltf import GLTF_EXTENSIONS, write_gltf
+    from .io.atomic import check_output_dir, check_output_file
+    from .io.flatten import VARIANTS
+    from .io.gltf import GLTF_EXTENSIONS
     from .io.layers import check_output_path
-    from .io.mesh_io import write_obj
-    from .model import FaceRig as _FaceRig
 
     if variant not in VARIANTS:
         raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
@@ -1232,6 +1232,25 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
         warnings.warn(text, UserWarning, stacklevel=2)
     done: dict[str, Path] = {}
+    new = {key: not os.path.lexists(out) for key, out in (("gltf", gltf), ("obj_dir", obj_dir),
+                                                            ("flatten", flatten)) if out}
+    try:
+        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
+    except BaseException:
+        _remove_new_outputs(done, new)
+        raise
+    return done
+
+
+def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
+                    force: bool) -> None:
+    """:func:`export_avatar`'s writes, each output recorded in ``done`` once it is complete."""
+    from .io.atomic import replace_dir_atomically
+    from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
+    from .io.gltf import write_gltf
+    from .io.mesh_io import write_obj
+    from .model import FaceRig as _FaceRig
+
     if gltf or obj_dir:
         avatar = read_avatar_variant(layer_path, variant)
         keyed = [(m.key, m) for m in avatar.meshes] + [
@@ -1265,4 +1284,20 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     if flatten:
         flatten_variant(layer_path, flatten, variant, force=force)
         done["flatten"] = Path(flatten)                 # as given, as the others (it came back absolute)
-    return done
+
+
+def _remove_new_outputs(done: dict, new: dict) -> None:
+    """Remove the outputs in ``done`` that ``new`` says did not exist before the call (a failed export's
+    finished part); an output that replaced an existing one is left."""
+    import shutil
+
+    for key, path in done.items():
+        if not new.get(key):
+            continue
+        try:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+        except OSError:
+            pass
