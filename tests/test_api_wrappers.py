@@ -160,6 +160,20 @@ def test_write_landmarks_reads_back(avatar, tmp_path):
         usdface.write_landmarks(avatar, rig, layout, out)
 
 
+def test_evaluate_methods_that_fail_part_way_leave_no_new_output(capture, tmp_path, monkeypatch):
+    """The report, the plot and the error maps are all or nothing: a plot that failed (a full disk, Ctrl-C)
+    after the JSON report was written left that report behind, as if the run had finished."""
+    import usdface.personalize.report as report_module
+
+    def fail(*_a, **_k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report_module, "plot_errors", fail)
+    with pytest.raises(OSError, match="No space"):
+        usdface.evaluate_methods(capture, ["dt"], json_path=tmp_path / "r.json", plot_path=tmp_path / "p.png")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_evaluate_landmarks_inputs(avatar, tmp_path):
     from usdface.io.livelink import write_livelink_csv
 

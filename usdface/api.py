@@ -435,8 +435,9 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     ``truth``: a ``capture_truth.npz`` path (or its dict: ``names``, ``deltas``). Optional outputs, all
     refused before fitting if they exist (unless ``force``): ``json_path`` (the report), ``plot_path`` (per
     test frame bar charts, paper Figs. 4-5), ``usd_path`` (colour-coded error maps, Fig. 6); the paths
-    written are ``report["_outputs"]``. ``options`` go to the fit (``reg``, ``prior``, ...). Raises
-    :class:`~usdface.errors.FitError` if the capture has no test frames."""
+    written are ``report["_outputs"]``; when a later output fails, the ones this call created are removed.
+    ``options`` go to the fit (``reg``, ``prior``, ...). Raises :class:`~usdface.errors.FitError` if the
+    capture has no test frames."""
     from .io.atomic import check_output_file
     from .personalize.report import evaluate_methods as _evaluate
 
@@ -477,19 +478,25 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         outputs = {}
         if json_path or plot_path or usd_path:
             p.start("write outputs")
-        if json_path:
-            from .personalize.report import write_report_json
+        new = {key: not os.path.lexists(out) for key, out in (("json", json_path), ("plot", plot_path),
+                                                                ("usd", usd_path)) if out}
+        try:                       # all or nothing: a later output that fails takes the new earlier ones
+            if json_path:
+                from .personalize.report import write_report_json
 
-            outputs["json"] = Path(write_report_json(report, json_path, force=force))
-        if plot_path:
-            from .personalize.report import plot_errors
+                outputs["json"] = Path(write_report_json(report, json_path, force=force))
+            if plot_path:
+                from .personalize.report import plot_errors
 
-            outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
-        if usd_path:
-            from .io.usd_error_maps import write_error_maps_usd
+                outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
+            if usd_path:
+                from .io.usd_error_maps import write_error_maps_usd
 
-            outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
-                                                       force=force))
+                outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
+                                                           force=force))
+        except BaseException:
+            _remove_new_outputs(outputs, new)
+            raise
     report["_outputs"] = outputs
     return report
 
@@ -1287,8 +1294,9 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
 
 
 def _remove_new_outputs(done: dict, new: dict) -> None:
-    """Remove the outputs in ``done`` that ``new`` says did not exist before the call (a failed export's
-    finished part); an output that replaced an existing one is left."""
+    """Remove the outputs in ``done`` that ``new`` says did not exist before the call (the finished part of
+    a failed :func:`export_avatar` or :func:`evaluate_methods`); an output that replaced an existing one is
+    left."""
     import shutil
 
     for key, path in done.items():
