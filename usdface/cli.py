@@ -15,6 +15,7 @@ import warnings
 
 from . import __version__
 from .errors import UsdFaceError
+from .locks import ForkSafeLock
 
 #: Sub-command modules, in the order ``usdface --help`` lists them.
 COMMAND_MODULES = (
@@ -111,7 +112,6 @@ def main(argv=None) -> int:
     turned into :class:`Terminated` so the atomic writers clean up; called with ``argv`` from a host
     application, the host's own signal handling is left alone."""
     import signal
-    import threading
 
     if argv is None:
         _program_environment()
@@ -304,7 +304,7 @@ def _main(argv=None, program: bool = False) -> int:
 #: Runs of :func:`main` called by a host (``argv`` given, or not the main thread) under way, and the host's
 #: progress setting the first one found.
 _HOST_PROGRESS: dict = {"runs": 0, "enabled": True}
-_HOST_PROGRESS_LOCK = threading.Lock()
+_HOST_PROGRESS_LOCK = ForkSafeLock()
 
 
 def _host_progress(step: int) -> None:

@@ -12,14 +12,13 @@ Everything else in an OBJ (normals, UVs, groups, materials) is ignored.
 
 from __future__ import annotations
 
-import os
-import threading
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import GeometryError, InputFileError
+from ..locks import ForkSafeLock
 from .atomic import write_text_atomic
 
 __all__ = ["read_obj", "write_obj", "fan_triangulate"]
@@ -41,18 +40,7 @@ def _read_bytes(path: Path) -> bytes:
 #: ``warnings.catch_warnings`` saves and puts back the process's filters: two OBJ reads on threads side by
 #: side (a Dask worker's, a host's pool) interleaved, the second put back the first's "ignore", and every
 #: warning of the process was hidden from then on. One block at a time.
-_CATCH_LOCK = threading.Lock()
-
-
-def _new_catch_lock() -> None:
-    """A forked child's own lock: a thread that was parsing an OBJ when the host forked does not exist in the
-    child, and the lock it held was never released there: the child's first OBJ read waited for good."""
-    global _CATCH_LOCK
-    _CATCH_LOCK = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_new_catch_lock)
+_CATCH_LOCK = ForkSafeLock()     # (a thread parsing an OBJ when a host forks: the child's own lock)
 
 
 def _fromstring(text: bytes, dtype, count: int) -> np.ndarray | None:

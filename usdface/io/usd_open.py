@@ -10,11 +10,11 @@ import re
 import stat
 import sys
 import tempfile
-import threading
 from contextlib import contextmanager
 from pathlib import Path
 
 from ..errors import InputFileError
+from ..locks import ForkSafeLock
 
 __all__ = ["require_file", "open_usd_stage", "quiet_stderr", "tf_error_text"]
 
@@ -47,19 +47,7 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
 #: One thread at a time redirects file descriptor 2 (it is the process's): two blocks on threads side by side
 #: (a Dask worker's, a host's pool) each put back what they found, and the second found the first's temporary
 #: file, so the process's stderr went on into an unlinked file after both had ended.
-_STDERR_LOCK = threading.RLock()
-
-
-def _new_stderr_lock() -> None:
-    """A forked child's own lock: a thread that was inside :func:`quiet_stderr` when the host forked (a
-    ``multiprocessing`` pool started while a thread opened a stage) does not exist in the child, and the
-    lock it held was never released there: the child's first stage open waited for good."""
-    global _STDERR_LOCK
-    _STDERR_LOCK = threading.RLock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_new_stderr_lock)
+_STDERR_LOCK = ForkSafeLock(reentrant=True)   # (a host forking while a thread opens a stage: the child's own)
 
 
 @contextmanager

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import os
-import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -13,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FitError, GeometryError
+from ..locks import ForkSafeLock
 from ..mesh import boundary_loops, check_triangles, squared_lengths
 from ..model import Capture, FaceRig
 from .align import rigid_transforms
@@ -269,21 +268,9 @@ def _blas_controller():
     return _BLAS_CONTROLLER[0]
 
 
-_BLAS_LOCK = threading.Lock()
+_BLAS_LOCK = ForkSafeLock()
 #: Threads inside :func:`one_blas_thread` and the limiter that puts the host's thread counts back.
 _BLAS_USERS: list = [0, None]
-
-
-def _new_blas_lock() -> None:
-    """A forked child's own lock: a thread that was setting or putting back the limit when the host forked
-    (``multiprocessing``'s default on Linux) does not exist in the child, and the lock it held was never
-    released there: the child's first fit waited for good."""
-    global _BLAS_LOCK
-    _BLAS_LOCK = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_new_blas_lock)
 
 
 @contextlib.contextmanager

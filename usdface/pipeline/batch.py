@@ -35,6 +35,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..errors import InputFileError, OutputExistsError
+from ..locks import ForkSafeLock
 
 REQUIRED = ("avatar", "capture", "output")
 DONE, SKIPPED, FAILED = "done", "skipped", "failed"
@@ -425,7 +426,7 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
 
 
 _ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
-_SHOW_LOCK = threading.Lock()
+_SHOW_LOCK = ForkSafeLock()
 _SHOW: dict = {"items": 0}     # items running in this process; while any does: the hook and filter installed
 
 
