@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import warnings
@@ -109,8 +110,6 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     or folder the capture was read from; its sha256 digest is recorded as ``metadata["source_digest"]``.
     ``source`` and ``inputs`` (other files the capture was made from) are never overwritten, even with
     ``force`` (:func:`check_capture_output`); one path alone is one input."""
-    import os
-
     if isinstance(inputs, str | os.PathLike):     # its characters were taken as paths: '.' and '/', so
         inputs = [inputs]                         # every output was 'inside the input folder /'
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
@@ -478,9 +477,8 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         outputs = {}
         if json_path or plot_path or usd_path:
             p.start("write outputs")
-        new = {key: not os.path.lexists(out) for key, out in (("json", json_path), ("plot", plot_path),
-                                                                ("usd", usd_path)) if out}
-        try:                       # all or nothing: a later output that fails takes the new earlier ones
+        # all or nothing: a later output that fails takes the new earlier ones
+        with _new_outputs_kept_on_success(outputs, json=json_path, plot=plot_path, usd=usd_path):
             if json_path:
                 from .personalize.report import write_report_json
 
@@ -494,9 +492,6 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
                 outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
                                                            force=force))
-        except BaseException:
-            _remove_new_outputs(outputs, new)
-            raise
     report["_outputs"] = outputs
     return report
 
@@ -590,7 +585,6 @@ def _check_correspondence_cache(path, inputs=(), outputs=()) -> None:
     named as such, never suggested for deletion."""
     if path is None:
         return
-    import os
     import zipfile
 
     from .errors import InputFileError
@@ -1239,13 +1233,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
         warnings.warn(text, UserWarning, stacklevel=2)
     done: dict[str, Path] = {}
-    new = {key: not os.path.lexists(out) for key, out in (("gltf", gltf), ("obj_dir", obj_dir),
-                                                            ("flatten", flatten)) if out}
-    try:
+    with _new_outputs_kept_on_success(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
         _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
-    except BaseException:
-        _remove_new_outputs(done, new)
-        raise
     return done
 
 
@@ -1293,19 +1282,26 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
         done["flatten"] = Path(flatten)                 # as given, as the others (it came back absolute)
 
 
-def _remove_new_outputs(done: dict, new: dict) -> None:
-    """Remove the outputs in ``done`` that ``new`` says did not exist before the call (the finished part of
-    a failed :func:`export_avatar` or :func:`evaluate_methods`); an output that replaced an existing one is
-    left."""
+@contextlib.contextmanager
+def _new_outputs_kept_on_success(done: dict, **outputs):
+    """Several outputs, all or nothing: ``outputs`` {key: path or None} are the ones the block may write,
+    ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
+    ones that did not exist before it are removed (the finished part of a failed :func:`export_avatar` or
+    :func:`evaluate_methods`); one that replaced an existing file (``force``) is left."""
     import shutil
 
-    for key, path in done.items():
-        if not new.get(key):
-            continue
-        try:
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path)
-            else:
-                path.unlink()
-        except OSError:
-            pass
+    new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
+    try:
+        yield
+    except BaseException:
+        for key, path in done.items():
+            if not new.get(key):
+                continue
+            try:
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+            except OSError:
+                pass
+        raise
