@@ -139,6 +139,15 @@ def test_training_frames_repeated_exactly_warn_by_label():
     assert "001_b = 005_f = 006_g" in text and "6 distinct frames" in text
     assert "002_c" not in text and "003_d" not in text
     assert duplicate_frames(fr.points, fr.weights) == []      # tiny_capture's own frames are distinct
+    # frames whose words sum alike but differ (two coordinates swapped): the fingerprint collides, and the
+    # frames are then grouped by their bytes: the true repeat is found, the swapped frame kept apart
+    swapped = pts.copy()
+    swapped[4] = pts[1]
+    swapped[4, 0, [0, 1]] = pts[1, 0, [1, 0]]
+    assert swapped[4, 0, 0] != swapped[4, 0, 1]
+    w4 = w.copy()
+    w4[4] = w[1]
+    assert duplicate_frames(swapped, w4) == [[1, 5, 6]]
     assert not any("repeat" in s for s in check_capture(tiny_capture(F=8, K=3)))
 
 

@@ -94,8 +94,8 @@ def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
     ``(first[U], inverse[F])``, each distinct frame's first index (ascending) and each frame's distinct
     index; None when every frame is distinct. One pass: a fingerprint per frame (the wrapped sums of its
     64-bit words, equal for equal frames) groups the frames, and each repeat is confirmed bit for bit against
-    its group's first frame (a fingerprint shared by different frames, never seen, gives None: no frame is
-    taken for another)."""
+    its group's first frame; a fingerprint shared by different frames (never seen) falls back to grouping
+    the frames by their bytes, frame by frame (:func:`_distinct_by_bytes`): no frame is taken for another."""
     F = len(arrays[0])
     if F < 2:
         return None
@@ -109,11 +109,22 @@ def distinct_frames(*arrays) -> tuple[np.ndarray, np.ndarray] | None:
     inverse = inverse.ravel()
     repeat = np.flatnonzero(first[inverse] != np.arange(F))
     if not all(np.array_equal(w[repeat], w[first[inverse[repeat]]]) for w in words):
-        return None
+        return _distinct_by_bytes(words)
     order = np.argsort(first)                                  # the groups in order of their first frame
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     return first[order], rank[inverse]
+
+
+def _distinct_by_bytes(words) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`distinct_frames` exactly, one frame's bytes at a time (``words``: each array's ``[F, w]``
+    uint64 view): the groups numbered in order of their first frame."""
+    seen: dict[bytes, int] = {}
+    inverse = np.array([seen.setdefault(b"".join(w[f].tobytes() for w in words), len(seen))
+                        for f in range(len(words[0]))], dtype=np.intp)
+    if len(seen) == len(inverse):
+        return None
+    return np.unique(inverse, return_index=True)[1], inverse
 
 
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,

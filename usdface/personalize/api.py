@@ -14,7 +14,7 @@ from ..errors import FitError, GeometryError
 from ..locks import ForkSafeLock
 from ..mesh import boundary_loops, check_triangles, squared_lengths
 from ..model import Capture, FaceRig
-from .align import rigid_transforms
+from .align import distinct_frames, rigid_transforms
 from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
@@ -219,27 +219,14 @@ def duplicate_frames(points: np.ndarray, weights: np.ndarray) -> list[list[int]]
     """Groups of training frames that are exactly the same frame: ``points[F,n,3]`` and ``weights[F,K]``
     equal to the last bit (a capture app that keeps one frame for several requested shapes writes it once per
     shape). Returns the groups of two or more frame indices, ascending, in order of their first frame; [] if
-    every frame is distinct. One hash per frame (Python's ``hash`` of its bytes: 4x cheaper than
-    ``hashlib.blake2b``; a collision only costs a comparison), a match confirmed exactly; no pairwise
-    comparison and no copy of all frames at once."""
-    F = len(points)
-    if F < 2:
+    every frame is distinct. :func:`.align.distinct_frames` (one vectorised pass, each repeat confirmed bit
+    for bit; no copy of the frames), which the fit's alignment and leave-one-out use too."""
+    groups = distinct_frames(points, weights)
+    if groups is None:
         return []
-    by_hash: dict[int, list[int]] = {}
-    for f in range(F):              # one frame's bytes at a time: no [F, 3n + K] copy of a long take
-        key = hash(np.ascontiguousarray(points[f], dtype=np.float64).tobytes()
-                   + np.ascontiguousarray(weights[f], dtype=np.float64).tobytes())
-        by_hash.setdefault(key, []).append(f)
-    groups = []
-    for members in by_hash.values():       # a hash match is confirmed exactly
-        while len(members) > 1:
-            first = members[0]
-            same = [f for f in members if np.array_equal(points[f], points[first])
-                    and np.array_equal(weights[f], weights[first])]
-            if len(same) > 1:
-                groups.append(same)
-            members = [f for f in members if f not in same]
-    return sorted(groups)
+    inverse = groups[1]
+    members = np.split(np.argsort(inverse, kind="stable"), np.cumsum(np.bincount(inverse))[:-1])
+    return [g.tolist() for g in members if len(g) > 1]
 
 
 def _generic_shapes(capture: Capture, eyelids: bool, loops: list | None = None) -> np.ndarray:
