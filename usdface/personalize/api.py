@@ -17,7 +17,16 @@ from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
 from .crossval import choose_regularization
 from .dt import deformation_transfer
-from .fit import D_CLAMP, PositionFit, blend, data_share, fit_blendshapes, regularization_weights
+from .fit import (
+    D_CLAMP,
+    PositionFit,
+    blend,
+    data_share,
+    estimate_variance,
+    fit_blendshapes,
+    regularization_weights,
+    reliability,
+)
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture", "check_fit_options"]
@@ -518,8 +527,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                       else [prior if prior in ("dt", "template") else _BLEND_NAME.get(alpha, "blend")] * K)
         info["prior_choice"] = choice
         info["prior_deltas"] = prior_deltas          # T_j of eq. (2) as used, [K,n,3] (the implant's P_j)
-        info["shape_confidence"] = _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam,
-                                                     info, clamp)
+        info["shape_confidence"], reliable = _shape_confidence(capture, points, weights, generic, D,
+                                                               prior_deltas, lam, info, clamp)
         D_fit, prior_fit = D, prior_deltas
         if pins is not None:
             mask = _pin_mask(pins, capture, method)
@@ -595,6 +604,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if any(v["applied"] for v in info["contact"]["shapes"].values()):
             res = points - capture.neutral[None] - blend(w_cur, deltas)
         info["train_rmse_mm"] = float(np.sqrt(np.mean(squared_lengths(res))) * 1000)
+        if reliable is not None and frame_weights is None:
+            # no more than the personalization stands above its estimate's noise (a take has its own model)
+            info["shape_reliability"] = reliable(deltas)
+            info["shape_confidence"] = np.minimum(info["shape_confidence"], info["shape_reliability"])
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -895,7 +908,10 @@ def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timing
 
 
 def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info, clamp=D_CLAMP):
-    """``[K]``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over vertices."""
+    """``([K], reliability)``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over
+    the cross-validation's vertices; and ``reliability(deltas) -> [K]`` (None without a cross-validated
+    noise), the James-Stein factor of the fitted shapes' personalization against their estimates' variance
+    there (:func:`.fit.estimate_variance` times the leave-one-frame-out error, :func:`.fit.reliability`)."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         cand = cv["vertices"]
@@ -905,7 +921,13 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
         share = data_share(weights, D[:, cand], lam)
     w = squared_lengths(generic[:, cand]).T                                  # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
-    return np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
+    share = np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
+    loo = (cv or {}).get("loo_rmse_best_mm")
+    if loo is None:
+        return share, None
+    variance = estimate_variance(weights, D[:, cand], lam) * (float(loo) * 1e-3) ** 2       # [m,K] m^2
+    prior = np.asarray(prior_deltas)[:, cand]
+    return share, lambda deltas: reliability(np.asarray(deltas)[:, cand] - prior, variance, w)
 
 
 #: A frame whose mask is turned more than this against the neutral's (degrees), or scaled by more than

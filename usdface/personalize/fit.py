@@ -29,7 +29,7 @@ from ..mesh import vector_lengths
 from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
-           "weight_basis", "reduced_normal_matrix", "data_share"]
+           "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance", "reliability"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -178,6 +178,39 @@ def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.n
     M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
     X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
     return inv_l * np.einsum("kr,nrk->nk", B, X)
+
+
+def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
+    """``[n,K]``: the sampling variance of each fitted shape at each vertex of eqs. (1)+(2) per unit of the
+    frames' noise variance, the diagonal of the ridge estimator's sandwich ``A_v^-1 W^T W A_v^-1`` with
+    ``A_v = W^T W + reg diag(D_v^2)`` (``weights[F,K]``, ``reg_weights[K,n]``, ``reg`` as in
+    :func:`fit_blendshapes`). Times the frames' noise variance per vertex (m^2), it is the expected squared
+    error of a shape's data-driven part. Unlike the hat share (:func:`data_share`, how much of the estimate
+    the data sets) it grows where the data set a shape imprecisely: two shapes always shown together at
+    equal weights (dev1's ``mouthPressLeft`` and ``mouthPressRight``) are each "set by the data" when
+    ``reg`` is small, but only their sum is known, and each one's variance is large."""
+    W = np.asarray(weights, dtype=np.float64)
+    K = W.shape[1]
+    G = W.T @ W                                                                        # [K,K]
+    d2 = np.asarray(reg_weights, dtype=np.float64).T ** 2                              # [n,K]
+    A = np.broadcast_to(G, (len(d2), K, K)).copy()
+    A.reshape(len(d2), -1)[:, ::K + 1] += reg * d2
+    inv = np.linalg.inv(A)                                                             # [n,K,K] symmetric
+    return np.maximum(np.einsum("nik,kl,nli->ni", inv, G, inv), 0.0)
+
+
+def reliability(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
+    """``[K]`` in [0, 1]: the positive-part James-Stein factor ``max(0, 1 - var_j / |D_j|^2)`` (Efron &
+    Morris 1973) of each shape's personalization ``personalization[K,m,3]`` (``D_j = B_j - T_j``, metres)
+    given its estimate's variance ``variance[m,K]`` (m^2, :func:`estimate_variance` times the noise),
+    both averaged over the vertices with ``vertex_weights[m,K]`` (>= 0). A shape whose personalization is
+    no larger than its estimate's noise gets 0 (stays the prior); one far above it keeps it (~1)."""
+    D = np.asarray(personalization, dtype=np.float64)
+    w = np.asarray(vertex_weights, dtype=np.float64)
+    total = np.maximum(w.sum(axis=0), 1e-300)                                          # [K]
+    power = np.einsum("mk,kmc,kmc->k", w, D, D) / total
+    var = np.sum(w * np.asarray(variance, dtype=np.float64), axis=0) / total
+    return np.clip(1.0 - var / np.maximum(power, 1e-300), 0.0, 1.0)
 
 
 def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
