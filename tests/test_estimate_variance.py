@@ -93,3 +93,17 @@ def test_the_fit_caps_its_shape_confidence_by_the_reliability(tmp_path):
         warnings.simplefilter("ignore")
         fixed = fit_personalized_shapes(cap, reg=0.1)         # no cross-validated noise: no reliability
     assert "shape_reliability" not in fixed.info
+
+
+def test_the_decomposed_fit_gives_the_same_variance():
+    """:meth:`PositionFit.estimate_variance` (from the cross-validation's eigen-decomposition, what the fit
+    uses) equals the direct batched solve at every ``reg`` of a grid."""
+    from usdface.personalize.fit import PositionFit
+
+    neutral, T, W = _problem(K=5)
+    rng = np.random.default_rng(3)
+    D = 0.5 + rng.random(T.shape[:2])
+    points = neutral[None] + np.einsum("fk,knc->fnc", W, T)
+    pf = PositionFit(neutral, points, W, T, D)
+    for reg in (1e-4, 1e-2, 1.0):
+        np.testing.assert_allclose(pf.estimate_variance(reg), estimate_variance(W, D, reg), rtol=1e-8)

@@ -916,16 +916,18 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     if cv is not None and "fit" in cv:
         cand = cv["vertices"]
         share = cv["fit"].data_share(lam)                                     # [m,K]
+        spread = cv["fit"].estimate_variance
     else:                                # diag(A_v^-1 W^T W): one batched r x r solve, no eigh
         cand = _cv_vertices(D, clamp)
         share = data_share(weights, D[:, cand], lam)
+        spread = functools.partial(estimate_variance, weights, D[:, cand])
     w = squared_lengths(generic[:, cand]).T                                  # [m,K]
     w = np.where(w.sum(axis=0, keepdims=True) > 0, w, 1.0)
     share = np.clip(np.sum(w * share, axis=0) / np.sum(w, axis=0), 0.0, 1.0)
     loo = (cv or {}).get("loo_rmse_best_mm")
     if loo is None:
         return share, None
-    variance = estimate_variance(weights, D[:, cand], lam) * (float(loo) * 1e-3) ** 2       # [m,K] m^2
+    variance = spread(lam) * (float(loo) * 1e-3) ** 2                                       # [m,K] m^2
     prior = np.asarray(prior_deltas)[:, cand]
     return share, lambda deltas: reliability(np.asarray(deltas)[:, cand] - prior, variance, w)
 

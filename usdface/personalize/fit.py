@@ -189,14 +189,18 @@ def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) 
     the data sets) it grows where the data set a shape imprecisely: two shapes always shown together at
     equal weights (dev1's ``mouthPressLeft`` and ``mouthPressRight``) are each "set by the data" when
     ``reg`` is small, but only their sum is known, and each one's variance is large."""
-    W = np.asarray(weights, dtype=np.float64)
-    K = W.shape[1]
-    G = W.T @ W                                                                        # [K,K]
-    d2 = np.asarray(reg_weights, dtype=np.float64).T ** 2                              # [n,K]
-    A = np.broadcast_to(G, (len(d2), K, K)).copy()
-    A.reshape(len(d2), -1)[:, ::K + 1] += reg * d2
-    inv = np.linalg.inv(A)                                                             # [n,K,K] symmetric
-    return np.maximum(np.einsum("nik,kl,nli->ni", inv, G, inv), 0.0)
+    # in the weights' rank-r basis (W^T W = B B^T, B = Q S) with L_v = reg diag(D_v^2):
+    # A_v^-1 B = L_v^-1 B (I + B^T L_v^-1 B)^-1, so the diagonal is inv_l^2 * sum_r (M_v^-1 B^T)_rk^2
+    _, s, Q = weight_basis(weights)
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
+    r = len(s)
+    if r == 0:
+        return np.zeros_like(inv_l)
+    M = reduced_normal_matrix(inv_l, B)
+    M.reshape(len(M), -1)[:, ::r + 1] += 1.0
+    X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
+    return inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
 
 
 def reliability(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
@@ -380,6 +384,12 @@ class PositionFit:
         zero training weight, -> 1 for a shape isolated in a frame as ``reg`` -> 0. In the reduced basis it
         is ``L_jj^-1 sum_k (B V)_jk^2 / (mu_k + reg)`` (the per-shape effective degrees of freedom)."""
         return self.inv_l * np.matmul(self.BV ** 2, (1.0 / (self.mu + reg))[:, :, None])[:, :, 0]
+
+    def estimate_variance(self, reg: float) -> np.ndarray:
+        """:func:`estimate_variance` from this fit's decomposition, ``[n,K]``: with ``A_v^-1 B = L_v^-1 B V
+        diag(mu + reg)^-1 V^T`` the diagonal of ``A_v^-1 W^T W A_v^-1`` is ``L_jj^-2 sum_k (B V)_jk^2 /
+        (mu_k + reg)^2`` (one product, as :meth:`data_share`)."""
+        return self.inv_l ** 2 * np.matmul(self.BV ** 2, (1.0 / (self.mu + reg) ** 2)[:, :, None])[:, :, 0]
 
     def solve(self, reg: float) -> np.ndarray:
         """Deltas ``[K,n,c]`` minimising E_fit + reg * E_reg."""
