@@ -611,10 +611,10 @@ def shape_confidence(personalization, excitation, noise_rms: float, *, moving=No
     shape moves (``moving[J,n]``). A shape the capture barely shows (a jaw slide at weight 0.08) gets
     ``c ~ 0`` and stays the avatar's; a shape shown at full weight keeps its personalization (``c ~ 1``).
     """
+    from ..personalize.fit import reliability
+
     d = np.asarray(personalization, dtype=np.float64)
-    sq = np.sum(d * d, axis=-1)                                                           # [J,n]
     if moving is None:
-        moving = np.ones(sq.shape, dtype=bool)
-    power = np.sum(sq * moving, axis=1) / np.maximum(np.sum(moving, axis=1), 1)
-    var = noise_rms ** 2 / np.maximum(np.asarray(excitation, dtype=np.float64), 1e-12)
-    return np.clip(1.0 - var / np.maximum(power, 1e-300), 0.0, 1.0)
+        moving = np.ones(d.shape[:2], dtype=bool)
+    var = noise_rms ** 2 / np.maximum(np.asarray(excitation, dtype=np.float64), 1e-12)   # [J], per vertex
+    return reliability(d, np.broadcast_to(var, d.shape[1::-1]), np.asarray(moving).T)

@@ -1317,13 +1317,13 @@ def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.
     s^2 / d^2)`` with ``s^2``, ``d^2`` the mean squared sensitivity and personalization over the vertices the
     personalization moves (more than ``moving`` of its peak). A shape the weights' errors decide stays near
     the prior, the avatar's own shape."""
+    from ..personalize.fit import reliability
+
     d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
     d2 = np.einsum("knc,knc->kn", d, d)
     s = np.asarray(sensitivity, dtype=np.float64)
-    s2 = np.einsum("knc,knc->kn", s, s)
     mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
-    # the ratio of the means over the same vertices: of their sums
-    return np.clip(1.0 - np.sum(s2 * mov, axis=1) / np.maximum(np.sum(d2 * mov, axis=1), 1e-300), 0.0, 1.0)
+    return reliability(d, np.einsum("knc,knc->nk", s, s), mov.T)
 
 
 def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict]:
