@@ -62,6 +62,11 @@ def test_dev1_accuracy_and_input_untouched(bench, dev1_result):
     # estimate variance (the pair is always shown together: only its sum is known); now +0.045
     worst = int(np.argmax(s.per_shape_delta))
     assert s.per_shape_delta[worst] <= 0.05, (head.names[worst], s.per_shape_delta[worst])
+    # and the report says why the pair's partner stays near generic: shown, but not measured apart from noise
+    noise = [w for w in result.report["warnings"] if w.startswith("the capture does not measure these")]
+    assert len(noise) == 1 and "mouthPressRight" in noise[0], result.report["warnings"]
+    barely = [w for w in result.report["warnings"] if w.startswith("the capture barely shows")]
+    assert len(barely) == 1 and "jawLeft" in barely[0] and "mouthPressRight" not in barely[0]
     assert _sha(bench / "dev1" / "avatar.usdc") == before
     assert result.out_path.exists()
     reg = result.report["registration"]

@@ -1167,14 +1167,21 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     f = corr.face
     b_idx = [rig.index(n) for n in names]
     prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
-    conf, excitation = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
+    conf, excitation, weak = _confidence(fit, capture, rig, b_idx, person_deltas, prior_av)
     if excitation:
         report["excitation"] = excitation
     report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
-    low = [n for n, c in zip(names, conf, strict=True) if c < 0.5]
-    if low:
+    low = conf < 0.5
+    barely = [n for n, lo, wk in zip(names, low, weak, strict=True) if lo and wk]
+    noisy = [n for n, lo, wk in zip(names, low, weak, strict=True) if lo and not wk]
+    if barely:
         report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
-                                  "shape): " + ", ".join(low))
+                                  "shape): " + ", ".join(barely))
+    if noisy:
+        # shown, but the fit's estimate is no better than its noise: a shape only ever shown beside
+        # another at nearly the same weights, or one another shape's spurious weight leaks into
+        report["warnings"].append("the capture does not measure these apart from its noise (kept closer to "
+                                  "the avatar's generic shape; record each on its own): " + ", ".join(noisy))
     # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
     # incompatible with the person's and the template's): no personalization from them
     outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
@@ -1326,16 +1333,18 @@ def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.
     return reliability(d, np.einsum("knc,knc->nk", s, s), mov.T)
 
 
-def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict]:
+def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict, np.ndarray]:
     """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
     weakly (:func:`_weak_ramp`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
     the data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``); ``"loo"``: the
     positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
     leave-one-frame-out error as the noise. 1 without training frames (a given rig). Returns ``(trust[J],
-    report)``, the report saying how the excitation was measured (``{}`` for a capture)."""
+    report, weak[J])``, the report saying how the excitation was measured (``{}`` for a capture), ``weak``
+    the shapes the frames show too weakly (ramp below one half), as against those shown but measured no
+    better than their noise."""
     n_shapes = len(b_idx)
     if len(capture.train) == 0 or fit is None:
-        return np.ones(n_shapes), {}
+        return np.ones(n_shapes), {}, np.zeros(n_shapes, dtype=bool)
     w = np.asarray(fit.info.get("train_weights", capture.train.weights), dtype=np.float64)
     cap_idx = [list(capture.names).index(rig.names[i]) for i in b_idx]
     excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
@@ -1349,14 +1358,14 @@ def _confidence(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
             trust = np.minimum(trust, sensitivity_trust(np.asarray(fit.rig.deltas)[cap_idx],
                                                         np.asarray(fit.info["prior_deltas"])[cap_idx],
                                                         np.asarray(sens)[cap_idx]))
-        return trust, info
+        return trust, info, ramp < 0.5
     loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
     if loo is None:
-        return ramp, info
+        return ramp, info, ramp < 0.5
     diff = np.asarray(person_deltas) - np.asarray(prior_av)
     mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
     moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
-    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp, info
+    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp, info, ramp < 0.5
 
 
 def _weak_ramp(capture, excitation, cap_idx) -> tuple[np.ndarray, dict]:
