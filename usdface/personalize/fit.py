@@ -164,20 +164,27 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
-def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
-    """:meth:`PositionFit.data_share` at one ``reg`` without the eigen-decomposition: the diagonal of
-    ``A_v^-1 W^T W = reg^-1 L_v^-1 B (I + H_v / reg)^-1 B^T`` per vertex, ``[n,K]`` in [0, 1], by one batched
-    r x r solve (``weights[F,K]``, ``reg_weights[K,n]``)."""
-    P, s, Q = weight_basis(weights)
+def _reduced_inverse(weights, reg_weights, reg):
+    """``(B[K,r], inv_l[n,K], X[n,r,K])`` of eqs. (1)+(2) at one ``reg`` in the weights' rank-r basis
+    (``W^T W = B B^T``, ``B = Q S``; ``inv_l = 1 / (reg D^2)``): ``X_v = M_v^-1 B^T`` with ``M_v = I + B^T
+    diag(inv_l_v) B``, by one batched r x r solve; ``X`` is None when the weights are all zero."""
+    _, s, Q = weight_basis(weights)
     B = Q * s
     inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
     r = len(s)
     if r == 0:
-        return np.zeros_like(inv_l)
+        return B, inv_l, None
     M = reduced_normal_matrix(inv_l, B)
     M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
-    X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
-    return inv_l * np.einsum("kr,nrk->nk", B, X)
+    return B, inv_l, np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))
+
+
+def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
+    """:meth:`PositionFit.data_share` at one ``reg`` without the eigen-decomposition: the diagonal of
+    ``A_v^-1 W^T W = reg^-1 L_v^-1 B (I + H_v / reg)^-1 B^T`` per vertex, ``[n,K]`` in [0, 1], by one batched
+    r x r solve (``weights[F,K]``, ``reg_weights[K,n]``)."""
+    B, inv_l, X = _reduced_inverse(weights, reg_weights, reg)
+    return np.zeros_like(inv_l) if X is None else inv_l * np.einsum("kr,nrk->nk", B, X)
 
 
 def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
@@ -186,21 +193,14 @@ def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) 
     ``A_v = W^T W + reg diag(D_v^2)`` (``weights[F,K]``, ``reg_weights[K,n]``, ``reg`` as in
     :func:`fit_blendshapes`). Times the frames' noise variance per vertex (m^2), it is the expected squared
     error of a shape's data-driven part. Unlike the hat share (:func:`data_share`, how much of the estimate
-    the data sets) it grows where the data set a shape imprecisely: two shapes always shown together at
-    equal weights (dev1's ``mouthPressLeft`` and ``mouthPressRight``) are each "set by the data" when
-    ``reg`` is small, but only their sum is known, and each one's variance is large."""
-    # in the weights' rank-r basis (W^T W = B B^T, B = Q S) with L_v = reg diag(D_v^2):
-    # A_v^-1 B = L_v^-1 B (I + B^T L_v^-1 B)^-1, so the diagonal is inv_l^2 * sum_r (M_v^-1 B^T)_rk^2
-    _, s, Q = weight_basis(weights)
-    B = Q * s
-    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
-    r = len(s)
-    if r == 0:
-        return np.zeros_like(inv_l)
-    M = reduced_normal_matrix(inv_l, B)
-    M.reshape(len(M), -1)[:, ::r + 1] += 1.0
-    X = np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))               # M^-1 B^T  [n,r,K]
-    return inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
+    the data sets) it grows where the data set a shape imprecisely: two shapes always shown together, at
+    weights equal but for the phone's noise (dev1's ``mouthPressLeft`` and ``mouthPressRight``), are each
+    "set by the data" when ``reg`` is small, but their difference only through that noise, and each one's
+    variance is large. (Shown at exactly equal weights, their difference is the prior's and the variance
+    small: the hat share is then one half.) Since ``A_v^-1 B = L_v^-1 B M_v^-1`` (:func:`_reduced_inverse`),
+    the diagonal is ``inv_l^2 sum_r (M_v^-1 B^T)_rk^2``."""
+    _, inv_l, X = _reduced_inverse(weights, reg_weights, reg)
+    return np.zeros_like(inv_l) if X is None else inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
 
 
 def reliability(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
