@@ -1,6 +1,6 @@
 """The implant trusts a shape no further than its personalization stands above what the weights' noise makes
 of it (:func:`usdface.personalize.api.weight_sensitivity`,
-:func:`usdface.transfer.pipeline.sensitivity_trust`)."""
+:func:`usdface.transfer.trust.sensitivity_trust`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import warnings
 
 import numpy as np
 
-from usdface.transfer.pipeline import sensitivity_trust
+from usdface.transfer.trust import sensitivity_trust
 
 
 def test_sensitivity_trust_is_the_positive_part_james_stein_factor():

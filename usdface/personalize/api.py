@@ -44,7 +44,7 @@ REWEIGHT_SPLIT_AXES = 1
 ACTIVATION_MIN = 0.05
 #: The phone's weights are uncertain by about this much (ARKit reports, per frame and shape): the prior width
 #: of the re-estimation that measures each shape's sensitivity to them (:func:`weight_sensitivity`) and the
-#: implant's scale of a weakly shown shape (``usdface.transfer.pipeline.WEAK_SHAPE``).
+#: implant's scale of a weakly shown shape (``usdface.transfer.trust.WEAK_SHAPE``).
 WEIGHT_NOISE = 0.04
 #: A take read whole must show at least this many distinct poses (:func:`usdface.personalize.takefit.
 #: distinct_poses`), as a capture must hold at least this many shapes.

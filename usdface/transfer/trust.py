@@ -1,0 +1,105 @@
+"""How far the implant trusts each shape's personalization (issue 10: never worse than generic).
+
+A shape's trust ``c_j`` in [0, 1] scales the person's change ``B_j - P_j`` the implant carries onto the
+avatar (0: the avatar's generic shape stays, 1: the person's as fitted). It is the fit's own share of the
+shape the frames set, capped by the shape's reliability (its personalization against its estimate's
+variance, :func:`usdface.personalize.fit.reliability`) and by its sensitivity to the weights' noise
+(:func:`sensitivity_trust`), times a ramp to 0 for shapes the frames show only weakly (:func:`weak_ramp`).
+Arrays in, arrays out: ``fit`` is a :class:`usdface.personalize.FitResult`, ``capture`` a
+:class:`usdface.model.Capture`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..personalize.api import WEIGHT_NOISE
+from ..personalize.fit import reliability
+from .implant import shape_confidence
+
+__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "sensitivity_trust", "shape_trust", "weak_ramp"]
+
+#: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
+#: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
+#: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
+WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
+#: The least weight noise assumed of a take (its measured jitter can be ~0 for computed weights).
+TAKE_NOISE_MIN = 1e-3
+#: The per-shape trust (see :func:`shape_trust`): "fit" (the fit's data share) or "loo" (James-Stein).
+CONFIDENCE = "fit"
+
+
+def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.ndarray:
+    """``[K]`` in [0, 1]: how far each shape's personalization ``D = deltas - prior`` (``[K,n,3]`` on the
+    capture, metres) stands above the change the weights' noise makes in it (``sensitivity[K,n,3]``,
+    :func:`usdface.personalize.api.weight_sensitivity`): the positive-part James-Stein factor ``max(0, 1 -
+    s^2 / d^2)`` with ``s^2``, ``d^2`` the mean squared sensitivity and personalization over the vertices the
+    personalization moves (more than ``moving`` of its peak). A shape the weights' errors decide stays near
+    the prior, the avatar's own shape."""
+    d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
+    d2 = np.einsum("knc,knc->kn", d, d)
+    s = np.asarray(sensitivity, dtype=np.float64)
+    mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
+    return reliability(d, np.einsum("knc,knc->nk", s, s), mov.T)
+
+
+def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict, np.ndarray]:
+    """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
+    weakly (:func:`weak_ramp`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
+    the data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``); ``"loo"``: the
+    positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
+    leave-one-frame-out error as the noise. 1 without training frames (a given rig). Returns ``(trust[J],
+    report, weak[J])``, the report saying how the excitation was measured (``{}`` for a capture), ``weak``
+    the shapes the frames show too weakly (ramp below one half), as against those shown but measured no
+    better than their noise."""
+    n_shapes = len(b_idx)
+    if len(capture.train) == 0 or fit is None:
+        return np.ones(n_shapes), {}, np.zeros(n_shapes, dtype=bool)
+    w = np.asarray(fit.info.get("train_weights", capture.train.weights), dtype=np.float64)
+    cap_idx = [list(capture.names).index(rig.names[i]) for i in b_idx]
+    excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
+    ramp, info = weak_ramp(capture, excitation, cap_idx)
+    share = fit.info.get("shape_confidence")
+    if CONFIDENCE == "fit" and share is not None:
+        trust = np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp
+        sens = fit.info.get("weight_sensitivity")
+        if sens is not None and fit.info.get("prior_deltas") is not None:
+            # and no more than the personalization stands above what the weights' noise makes of it
+            trust = np.minimum(trust, sensitivity_trust(np.asarray(fit.rig.deltas)[cap_idx],
+                                                        np.asarray(fit.info["prior_deltas"])[cap_idx],
+                                                        np.asarray(sens)[cap_idx]))
+        return trust, info, ramp < 0.5
+    loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
+    if loo is None:
+        return ramp, info, ramp < 0.5
+    diff = np.asarray(person_deltas) - np.asarray(prior_av)
+    mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
+    moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
+    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp, info, ramp < 0.5
+
+
+def weak_ramp(capture, excitation, cap_idx) -> tuple[np.ndarray, dict]:
+    """``[J]`` smooth ramp from 0 (the shape stays generic) to 1 over the effective weight a shape is shown
+    at, between 4 and 10 times the weights' noise (:data:`WEAK_SHAPE`): a shape seen at a small effective
+    weight is known only to a fraction of its amplitude, whatever the residuals say (the fit can explain
+    other shapes' non-linear motion with it).
+
+    A capture (one frame per requested shape): the effective weight is the root of the shape's training
+    energy ``excitation[J]``, the noise the phone's nominal :data:`WEIGHT_NOISE`. A take read whole
+    (hundreds of frames): that energy grows with every frame of cross-talk and noise (a shape the take never
+    performs reached trust 0.98 and landed 0.1-2 mm worse than generic), so the effective weight is the
+    part of the shape's weights the other shapes' do not explain, above the noise's own share
+    (:func:`usdface.personalize.takefit.unique_excitation`), and the noise is the take's own, measured from
+    its frame-to-frame jitter (:func:`usdface.personalize.takefit.weight_noise`)."""
+    lo, hi = WEAK_SHAPE
+    effective = np.sqrt(excitation)
+    info = {}
+    if capture.whole_take and len(capture.train) >= 3:
+        from ..personalize.takefit import unique_excitation, weight_noise
+
+        reported = np.asarray(capture.train.weights, dtype=np.float64)       # time order, as the phone said
+        noise = max(weight_noise(reported), TAKE_NOISE_MIN)
+        effective = unique_excitation(reported, noise)[cap_idx]
+        lo, hi = noise * lo / WEIGHT_NOISE, noise * hi / WEIGHT_NOISE
+        info = {"statistic": "unique weight above the take's noise", "weight_noise": round(noise, 5)}
+    t = np.clip((effective - lo) / (hi - lo), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t), info
