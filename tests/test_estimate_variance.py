@@ -1,6 +1,6 @@
 """The fit's per-shape reliability: the sampling variance of the ridge estimate of eqs. (1)+(2)
 (:func:`usdface.personalize.fit.estimate_variance`) and the James-Stein factor it gives each shape's
-personalization (:func:`usdface.personalize.fit.reliability`), the cap on the implant's trust in a shape."""
+personalization (:func:`usdface.personalize.fit.james_stein`), the cap on the implant's trust in a shape."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 
-from usdface.personalize.fit import estimate_variance, fit_blendshapes, reliability
+from usdface.personalize.fit import estimate_variance, fit_blendshapes, james_stein
 
 
 def _problem(seed=0, n=40, K=4, collinear=True):
@@ -60,16 +60,16 @@ def test_a_pair_shown_only_together_is_far_less_certain_than_a_shape_shown_alone
     assert var_apart.max() < 2 * var_apart.min()
 
 
-def test_reliability_is_the_positive_part_james_stein_factor():
+def test_james_stein_is_the_positive_part_james_stein_factor():
     D = np.zeros((3, 20, 3))
     D[:, :, 0] = 1e-3                                        # |D|^2 = 1e-6 m^2 on every vertex
     var = np.array([0.0, 0.25e-6, 2e-6])[None].repeat(20, axis=0)                   # [m,K]
     w = np.ones((20, 3))
-    np.testing.assert_allclose(reliability(D, var, w), [1.0, 0.75, 0.0], atol=1e-12)
+    np.testing.assert_allclose(james_stein(D, var, w), [1.0, 0.75, 0.0], atol=1e-12)
     w[10:, 1] = 0.0                                          # weights pick the vertices that count
     var[10:, 1] = 1.0
-    np.testing.assert_allclose(reliability(D, var, w)[1], 0.75, atol=1e-12)
-    assert reliability(np.zeros_like(D), var + 1e-12, np.ones((20, 3))).tolist() == [0.0, 0.0, 0.0]
+    np.testing.assert_allclose(james_stein(D, var, w)[1], 0.75, atol=1e-12)
+    assert james_stein(np.zeros_like(D), var + 1e-12, np.ones((20, 3))).tolist() == [0.0, 0.0, 0.0]
 
 
 def test_the_fit_caps_its_shape_confidence_by_the_reliability(tmp_path):

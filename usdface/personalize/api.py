@@ -24,8 +24,8 @@ from .fit import (
     data_share,
     estimate_variance,
     fit_blendshapes,
+    james_stein,
     regularization_weights,
-    reliability,
 )
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched
 
@@ -908,10 +908,10 @@ def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timing
 
 
 def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, info, clamp=D_CLAMP):
-    """``([K], reliability)``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over
-    the cross-validation's vertices; and ``reliability(deltas) -> [K]`` (None without a cross-validated
+    """``([K], reliable)``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over
+    the cross-validation's vertices; and ``reliable(deltas) -> [K]`` (None without a cross-validated
     noise), the James-Stein factor of the fitted shapes' personalization against their estimates' variance
-    there (:func:`.fit.estimate_variance` times the leave-one-frame-out error, :func:`.fit.reliability`)."""
+    there (:func:`.fit.estimate_variance` times the leave-one-frame-out error, :func:`.fit.james_stein`)."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         cand = cv["vertices"]
@@ -929,7 +929,7 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
         return share, None
     variance = spread(lam) * (float(loo) * 1e-3) ** 2                                       # [m,K] m^2
     prior = np.asarray(prior_deltas)[:, cand]
-    return share, lambda deltas: reliability(np.asarray(deltas)[:, cand] - prior, variance, w)
+    return share, lambda deltas: james_stein(np.asarray(deltas)[:, cand] - prior, variance, w)
 
 
 #: A frame whose mask is turned more than this against the neutral's (degrees), or scaled by more than

@@ -29,7 +29,7 @@ from ..mesh import vector_lengths
 from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
-           "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance", "reliability"]
+           "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance", "james_stein"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -203,7 +203,7 @@ def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) 
     return np.zeros_like(inv_l) if X is None else inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
 
 
-def reliability(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
+def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
     """``[K]`` in [0, 1]: the positive-part James-Stein factor ``max(0, 1 - var_j / |D_j|^2)`` (Efron &
     Morris 1973) of each shape's personalization ``personalization[K,m,3]`` (``D_j = B_j - T_j``, metres)
     given its estimate's variance ``variance[m,K]`` (m^2, :func:`estimate_variance` times the noise),

@@ -27,6 +27,7 @@ import scipy.sparse as sp
 from ..memory import Float32Offsets, release_free_memory
 from ..mesh import index_set, triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
+from ..personalize.fit import james_stein
 from .motion_field import (
     FieldExtension,
     apply_field,
@@ -611,10 +612,8 @@ def shape_confidence(personalization, excitation, noise_rms: float, *, moving=No
     shape moves (``moving[J,n]``). A shape the capture barely shows (a jaw slide at weight 0.08) gets
     ``c ~ 0`` and stays the avatar's; a shape shown at full weight keeps its personalization (``c ~ 1``).
     """
-    from ..personalize.fit import reliability
-
     d = np.asarray(personalization, dtype=np.float64)
     if moving is None:
         moving = np.ones(d.shape[:2], dtype=bool)
     var = noise_rms ** 2 / np.maximum(np.asarray(excitation, dtype=np.float64), 1e-12)   # [J], per vertex
-    return reliability(d, np.broadcast_to(var, d.shape[1::-1]), np.asarray(moving).T)
+    return james_stein(d, np.broadcast_to(var, d.shape[1::-1]), np.asarray(moving).T)

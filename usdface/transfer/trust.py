@@ -3,7 +3,7 @@
 A shape's trust ``c_j`` in [0, 1] scales the person's change ``B_j - P_j`` the implant carries onto the
 avatar (0: the avatar's generic shape stays, 1: the person's as fitted). It is the fit's own share of the
 shape the frames set, capped by the shape's reliability (its personalization against its estimate's
-variance, :func:`usdface.personalize.fit.reliability`) and by its sensitivity to the weights' noise
+variance, :func:`usdface.personalize.fit.james_stein`) and by its sensitivity to the weights' noise
 (:func:`sensitivity_trust`), times a ramp to 0 for shapes the frames show only weakly (:func:`weak_ramp`).
 Arrays in, arrays out: ``fit`` is a :class:`usdface.personalize.FitResult`, ``capture`` a
 :class:`usdface.model.Capture`."""
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..personalize.api import WEIGHT_NOISE
-from ..personalize.fit import reliability
+from ..personalize.fit import james_stein
 from .implant import shape_confidence
 
 __all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "sensitivity_trust", "shape_trust", "weak_ramp"]
@@ -39,7 +39,7 @@ def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.
     d2 = np.einsum("knc,knc->kn", d, d)
     s = np.asarray(sensitivity, dtype=np.float64)
     mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
-    return reliability(d, np.einsum("knc,knc->nk", s, s), mov.T)
+    return james_stein(d, np.einsum("knc,knc->nk", s, s), mov.T)
 
 
 def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict, np.ndarray]:
