@@ -208,6 +208,30 @@ def test_render_cli_capture_and_errors(samples, tmp_path, capsys):
     assert main(["render", str(avatar), "-o", str(tmp_path / "z.png"), "--mesh", "Nose"]) == 2
 
 
+def test_render_compare_with_another_avatar_is_refused(tmp_path, capsys):
+    """A user trial: ``render person.usda --compare other.usdc`` with an avatar that is not the one the layer
+    was made from ended in a traceback (``ValueError: 'tongueOut' is not in list``, or a broadcast error for
+    another vertex count); now one line naming the generic file, the mesh and the fix."""
+    from usdface.io.avatar_writer import write_rig_usd
+
+    rig = grid_rig()
+    rig.name = "Head"
+    person = write_rig_usd(rig, tmp_path / "person.usda")
+    fewer = FaceRig(rig.neutral, rig.triangles, ["bump"], rig.deltas[:1], name="Head")
+    write_rig_usd(fewer, tmp_path / "fewer.usda")
+    coarse = grid_rig(8)
+    coarse.name = "Head"
+    write_rig_usd(coarse, tmp_path / "coarse.usda")
+    for mode in ("--compare", "--heatmap"):
+        for other, said in (("fewer.usda", "has no shape slide"), ("coarse.usda", "has 64 vertices")):
+            png = tmp_path / f"{mode[2:]}_{other}.png"
+            assert main(["render", str(person), "-o", str(png), mode, str(tmp_path / other)]) == 2
+            err = capsys.readouterr().err
+            assert said in err and other in err and "fix: pass the avatar" in err and "Traceback" not in err
+            assert not png.exists()
+    assert main(["render", str(person), "-o", str(tmp_path / "ok.png"), "--compare", str(person)]) == 0
+
+
 def test_inspection_rejects_bad_input():
     from usdface.io.usd_inspection import inspection_edit
     from usdface.model import Avatar, MeshSource

@@ -62,6 +62,26 @@ def _generic(args, path: Path) -> Path:
     return generic
 
 
+def _matching_generic(generic, rig, generic_path: Path, path: Path):
+    """``generic``'s shapes in ``rig``'s order, once it is the same mesh (vertex count) and has every shape
+    ``rig`` has; else a RigError naming both files (another avatar given as GENERIC ended in a traceback:
+    a ValueError for a missing shape, a broadcast error for another vertex count)."""
+    from ..errors import RigError
+
+    fix = (f"pass the avatar {path.name} was personalized from as GENERIC, or leave GENERIC out to compare "
+           "with the file a usdface layer is over")
+    if generic.n_vertices != rig.n_vertices:
+        raise RigError(f"generic mesh {rig.name!r} has {generic.n_vertices} vertices, {path.name}'s "
+                       f"{rig.n_vertices}: not the same mesh", path=generic_path,
+                       prim=generic.source.prim if generic.source else None, fix=fix)
+    missing = [n for n in rig.names if n not in generic.names]
+    if missing:
+        shown = ", ".join(missing[:6]) + (f" (+{len(missing) - 6})" if len(missing) > 6 else "")
+        raise RigError(f"generic mesh {rig.name!r} has no shape {shown} that {path.name}'s has",
+                       path=generic_path, prim=generic.source.prim if generic.source else None, fix=fix)
+    return generic.subset(rig.names)
+
+
 def _capture_file(path: Path) -> tuple[bool, object]:
     """Whether ``path`` is a capture or take USD file (marked by 'capture import/select' or write_take_usd,
     or a take another tool wrote), drawn like a capture folder without ``--capture``; and the root layer
@@ -157,12 +177,13 @@ def run(args) -> int:
         generic_path = _generic(args, path)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
-        generic = api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name)
+        generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,
+                                    generic_path, path)
         if args.compare is not None:
-            render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
+            render.render_comparison(generic, rig, shapes, args.output, view=args.view,
                                      force=args.force, title=f"{rig.name}: generic vs personalized")
         else:
-            diff = rig.deltas - generic.subset(rig.names).deltas
+            diff = rig.deltas - generic.deltas
             if shapes:                     # the RMS over the shapes asked for (it was over all of them)
                 diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
