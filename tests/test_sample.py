@@ -110,6 +110,25 @@ def test_noise_options_change_only_the_frames_and_the_reported_weights():
         build_samples(0, scan_noise_m=-1.0)
 
 
+def test_negative_seed_is_refused_before_any_work(tmp_path, capsys):
+    """A user trial: ``usdface sample out --seed -1`` ended in a numpy traceback (``ValueError: expected
+    non-negative integer``, exit status 1); now the option is refused in one line (status 2), and the API
+    says which argument is wrong, before the folder is made."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["sample", str(tmp_path / "neg"), "--seed", "-1"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--seed" in err and ">= 0" in err and "Traceback" not in err
+    for seed in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="seed must be a whole number >= 0"):
+            generate_samples(tmp_path / "api", seed=seed)
+        with pytest.raises(ValueError, match="seed must be a whole number >= 0"):
+            build_samples(seed)
+    assert not (tmp_path / "neg").exists() and not (tmp_path / "api").exists()
+
+
 def test_capture_topology_like_arkit(capture):
     n, t = len(capture.neutral), len(capture.triangles)
     assert 1100 <= n <= 1300 and 2000 <= t <= 2500

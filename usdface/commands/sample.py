@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from . import json_path
-from .options import add_quiet, nonnegative_float
+from .options import add_quiet, nonnegative_float, nonnegative_int
 
 
 def register(subparsers) -> None:
@@ -14,7 +14,8 @@ def register(subparsers) -> None:
                     "capture folder) and the ground truth (truth/*.npz). The same seed gives the same bytes "
                     "(see docs/sample-assets.md).")
     parser.add_argument("outdir", help="output folder (e.g. sample_assets)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0: the committed assets)")
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="random seed, a whole number >= 0 (default 0: the committed assets)")
     parser.add_argument("--force", action="store_true",
                         help="write into an existing, non-empty folder: replace the files 'sample' writes, "
                              "keep every other file")
