@@ -309,6 +309,36 @@ def test_a_flattened_generic_export_personalizes_like_the_avatar(layer, tmp_path
                                    atol=1e-9)
 
 
+def test_a_flattened_personalized_export_stays_personalized_when_exported_again(layer, samples, tmp_path,
+                                                                              capsys):
+    """A user trial: exporting a flattened *personalized* file (``export flat.usdc --gltf/--flatten``) printed
+    ``[as authored: a plain avatar, not personalized]``, the glTF's extras said ``"authored"``, and flattening
+    it again recorded ``variant: authored``, so ``personalize`` took that second file for an avatar and
+    stacked the personalization a second time. The variant baked in, and the layer it came from, now carry
+    through: the label, the extras and the record say ``personalized``, and personalize refuses it."""
+    import pygltflib
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import flattened_from
+
+    flat, again, glb = tmp_path / "flat.usdc", tmp_path / "sub" / "again.usdc", tmp_path / "again.glb"
+    assert main(["export", str(layer), "--flatten", str(flat), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(flat), "--flatten", str(again), "--gltf", str(glb), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "not personalized" not in out and "[personalized, as baked into flat.usdc" in out
+    assert pygltflib.GLTF2().load(str(glb)).scenes[0].extras["usdface"]["variant"] == "personalized"
+    record = flattened_from(again)
+    assert record["variant"] == "personalized"
+    assert (again.parent / record["source"]).resolve() == layer.resolve()   # the layer, not flat.usdc
+    with pytest.raises(AlreadyPersonalizedError, match=layer.name):
+        api.personalize_avatar(again, samples / "capture.usda", tmp_path / "twice.usda", dry_run=True)
+    plain = tmp_path / "plain.usdc"                                          # a plain avatar stays "authored"
+    assert main(["export", str(samples / "avatar.usda"), "--flatten", str(plain), "-q"]) == 0
+    assert flattened_from(plain)["variant"] == "authored"
+    assert "[as authored: a plain avatar, not personalized]" in capsys.readouterr().out
+
+
 def test_no_skin_without_gltf_is_refused(samples, tmp_path, capsys):
     """``export LAYER --obj-dir DIR --no-skin`` wrote the OBJs and ignored ``--no-skin`` silently."""
     from usdface.cli import main
