@@ -232,6 +232,21 @@ def test_render_compare_with_another_avatar_is_refused(tmp_path, capsys):
     assert main(["render", str(person), "-o", str(tmp_path / "ok.png"), "--compare", str(person)]) == 0
 
 
+def test_a_mesh_without_shapes_is_named_as_such(samples, tmp_path, capsys):
+    """A user trial: ``landmarks avatar --mesh EyeLeft`` (and render/personalize's mesh options) said "no mesh
+    'EyeLeft' in the avatar" of a mesh that is there, only without blend shapes; now it says so, naming the
+    prim and the meshes that have shapes."""
+    out = tmp_path / "e.png"
+    for argv in (["landmarks", str(samples / "avatar.usda"), "--mesh", "EyeLeft", "-q"],
+                 ["render", str(samples / "avatar.usda"), "--mesh", "/Avatar/EyeRight", "-o", str(out)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "has no blend shapes (a static mesh" in err and "no mesh '" not in err
+        assert "prim /Avatar/Eye" in err and "use one of /Avatar/Head, /Avatar/Mouth" in err
+    assert main(["render", str(samples / "avatar.usda"), "--mesh", "Nose", "-o", str(out)]) == 2
+    assert "no mesh 'Nose'" in capsys.readouterr().err and not out.exists()
+
+
 def test_inspection_rejects_bad_input():
     from usdface.io.usd_inspection import inspection_edit
     from usdface.model import Avatar, MeshSource
