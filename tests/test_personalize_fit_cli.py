@@ -54,6 +54,33 @@ def test_evaluate_rejects_unknown_method(samples):
     assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2
 
 
+def test_evaluate_refuses_a_fit_option_no_chosen_method_uses(samples, tmp_path, capsys, monkeypatch):
+    """A user trial: ``evaluate CAPTURE --methods dt --reg 0.5`` (or ``--contact on``, ``--prior``...) ran
+    and printed dt's table, the option silently ignored (``fit --method dt --reg 0.5`` refuses it). Now
+    refused before any fitting, naming the option and the methods that use it; the defaults and an option
+    one of the chosen methods uses still run."""
+    from usdface.personalize import report
+
+    fitted = []
+    monkeypatch.setattr(report, "fit_personalized_shapes",
+                        lambda *a, **k: fitted.append(k) or (_ for _ in ()).throw(RuntimeError("fitted")))
+    out = tmp_path / "r.json"
+    for flags, named in ((["--methods", "dt", "--reg", "0.5"], "--reg (reg=0.5)"),
+                         (["--methods", "dt,ebfr", "--contact", "on"], "--contact (contact='on')"),
+                         (["--methods", "ebfr", "--prior", "template", "--no-reweight"], "--no-reweight")):
+        assert main(["evaluate", str(samples / "capture.usda"), *flags, "--json", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert named in err and "not used by --methods" in err and "add menzel or laplacian" in err
+    assert fitted == [] and not out.exists()
+    for flags in (["dt,menzel", "--reg", "0.5"], ["dt", "--no-eyelids"]):   # used by a method; every one
+        try:
+            main(["evaluate", str(samples / "capture.usda"), "--methods", *flags])
+        except RuntimeError:
+            pass
+        assert len(fitted) == 1, flags                     # it got as far as the first fit
+        fitted.clear()
+
+
 def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_path, capsys):
     """User trial: ``personalize rig.usda CAPTURE`` with a ``usdface fit`` result as the avatar ran to the
     end (52 shapes 'personalized' on the capture mesh, no eyes) with only warnings. The fit marks its file

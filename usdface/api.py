@@ -442,6 +442,9 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
     if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
         methods = [m.strip() for m in methods.split(",") if m.strip()]
+    from .personalize.report import check_method_options
+
+    check_method_options(list(methods), options)          # an option no chosen method takes: before any work
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
