@@ -339,6 +339,23 @@ def test_a_flattened_personalized_export_stays_personalized_when_exported_again(
     assert "[as authored: a plain avatar, not personalized]" in capsys.readouterr().out
 
 
+def test_inspect_names_a_flattened_export_for_what_it_is(layer, tmp_path, capsys):
+    """A user trial: ``inspect flat.usdc`` of a flattened personalized export reported a ``usdface-layer``
+    with its provenance, and nothing said it was one file with the person's shapes baked in (the very thing
+    personalize refuses it for). Now its kind is ``usdface-flattened``, with the variant and the layer."""
+    from usdface.inspect import format_report, inspect_file
+
+    for variant in ("personalized", "generic"):
+        flat = tmp_path / f"flat.{variant}.usdc"
+        assert main(["export", str(layer), "--flatten", str(flat), "--variant", variant, "-q"]) == 0
+        report = inspect_file(flat)
+        assert report["kind"] == "usdface-flattened" and report["flattened"]["variant"] == variant
+        text = format_report(report)
+        assert f"flattened export (usdface export --flatten) of the {variant} variant of {layer}" in text
+    assert "refuses it as the avatar" in format_report(inspect_file(tmp_path / "flat.personalized.usdc"))
+    assert inspect_file(layer)["kind"] == "usdface-layer" and "flattened" not in inspect_file(layer)
+
+
 def test_no_skin_without_gltf_is_refused(samples, tmp_path, capsys):
     """``export LAYER --obj-dir DIR --no-skin`` wrote the OBJs and ignored ``--no-skin`` silently."""
     from usdface.cli import main

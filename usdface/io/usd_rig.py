@@ -894,7 +894,8 @@ def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:
 def read_layer_info(path) -> dict:
     """What a USD file says about itself, for reports: the root layer's authored stage metadata, sublayers,
     documentation, ``customLayerData["usdface"]`` (plain Python values), the prims that carry a usdface API
-    schema (with that schema's authored attribute values) and the variant selections of usdface variant sets.
+    schema (with that schema's authored attribute values), the variant selections of usdface variant sets
+    and, for a ``usdface export --flatten`` file, what it baked in (``flattened``: ``source``, ``variant``).
     """
     from pxr import Usd
 
@@ -920,9 +921,11 @@ def read_layer_info(path) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
+    flattened = _plain(dict(root.customLayerData).get("usdfaceFlatten", {}))
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": usdface_data, "schemas": schemas_found,
-            "variants": variants}
+            "variants": variants,
+            "flattened": flattened if isinstance(flattened, dict) and flattened.get("variant") else {}}
 
 
 def _plain(value):
