@@ -247,6 +247,24 @@ def test_a_mesh_without_shapes_is_named_as_such(samples, tmp_path, capsys):
     assert "no mesh 'Nose'" in capsys.readouterr().err and not out.exists()
 
 
+def test_render_landmarks_draws_the_mesh_the_layout_is_on(samples, tmp_path, capsys):
+    """A user trial: ``landmarks avatar --mesh Mouth -o lm.usda`` then ``render lm.usda --landmarks`` said
+    "no landmark layout for mesh 'Head' (fix: run 'usdface landmarks' first)" of a file that has one, and
+    ``--diagnostics`` computed a new Head layout instead of drawing the authored one. Without --mesh the
+    mesh that carries the layout is drawn; an explicit other mesh names the one the file has."""
+    lm = tmp_path / "mouth_lm.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Mouth", "-o", str(lm), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    assert main(["render", str(lm), "--landmarks", "--diagnostics", "-o", str(tmp_path / "d.png"), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "Mouth: " in out and "landmarks (authored)" in out
+    assert main(["render", str(lm), "--landmarks", "--mesh", "Head", "-o", str(tmp_path / "h.png")]) == 2
+    err = capsys.readouterr().err
+    assert "no landmark layout for mesh 'Head' (the file has one for /Avatar/Mouth)" in err
+    assert "--mesh /Avatar/Mouth" in err and not (tmp_path / "h.png").exists()
+
+
 def test_inspection_rejects_bad_input():
     from usdface.io.usd_inspection import inspection_edit
     from usdface.model import Avatar, MeshSource

@@ -82,6 +82,20 @@ def _matching_generic(generic, rig, generic_path: Path, path: Path):
     return generic.subset(rig.names)
 
 
+def _mesh_with_layout(avatar, rig, path: Path):
+    """The mesh ``--landmarks`` draws without ``--mesh``: the default one, or, when the file's landmark layout
+    is on another mesh (``usdface landmarks --mesh Mouth -o lm.usda``), that mesh (the one with the most
+    shapes among those with a layout). Before, the default mesh was taken: 'no landmark layout for mesh
+    Head' of a file that has one, and ``--diagnostics`` computed a new layout for the Head instead."""
+    from ..io.usd_inspection import read_landmarks
+
+    layouts = read_landmarks(path)
+    if not layouts or (rig.source is not None and rig.source.prim in layouts):
+        return rig
+    with_layout = [m for m in avatar.meshes if m.source is not None and m.source.prim in layouts]
+    return max(with_layout, key=lambda m: (m.n_shapes, m.n_vertices)) if with_layout else rig
+
+
 def _capture_file(path: Path) -> tuple[bool, object]:
     """Whether ``path`` is a capture or take USD file (marked by 'capture import/select' or write_take_usd,
     or a take another tool wrote), drawn like a capture folder without ``--capture``; and the root layer
@@ -157,6 +171,8 @@ def run(args) -> int:
         return 0
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
+    if args.landmarks and args.mesh is None:
+        rig = _mesh_with_layout(avatar, rig, path)
     render.check_shapes(rig, shapes, path)
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
@@ -169,8 +185,12 @@ def run(args) -> int:
         layouts = read_landmarks(path)
         key = next((k for k in layouts if rig.source and k == rig.source.prim), None)
         if key is None:
-            raise LandmarkError(f"no landmark layout for mesh {rig.name!r}", path=path,
-                                fix="run 'usdface landmarks' (or personalize with landmarks) first")
+            others = ", ".join(layouts)
+            raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
+                                + (f" (the file has one for {others})" if others else ""), path=path,
+                                fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
+                                     f"{rig.name}' first") if others else
+                                    "run 'usdface landmarks' (or personalize with landmarks) first")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
