@@ -50,6 +50,25 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert main(args) == 2                                            # outputs exist, no --force
 
 
+def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatch):
+    """A user trial: the plot numbered the test expressions 1..F while the JSON report and the error maps'
+    prims name them by their labels ('000'...): the plot's 4 was the report's '003'. The plot's ticks are the
+    labels now."""
+    from matplotlib.figure import Figure
+
+    from usdface.personalize.report import plot_errors
+
+    seen = {}
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: seen.update(
+        ticks=[t.get_text() for t in fig.axes[1].get_xticklabels()]))
+    for labels in (["000", "001", "002"], ["003_jawOpen", "007_eyeBlinkLeft"]):
+        n = len(labels)
+        report = {"labels": labels, "methods": {m: {"rmse_mm": [0.1] * n, "max_mm": [0.5] * n}
+                                                for m in ("dt", "menzel")}}
+        plot_errors(report, tmp_path / f"p{n}.png")
+        assert seen["ticks"] == labels
+
+
 def test_evaluate_rejects_unknown_method(samples):
     assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2
 

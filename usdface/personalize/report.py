@@ -148,7 +148,11 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
         ax.set_title(title)
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(ncol=len(methods))
-    axes[1].set_xticks(x, [str(i + 1) for i in range(len(labels))])
+    # the frames' own labels, as the JSON report and the error maps' prims name them (it numbered them from
+    # 1: the JSON's '003' was the plot's 4)
+    long = max((len(str(lab)) for lab in labels), default=0) > 4
+    axes[1].set_xticks(x, [str(lab) for lab in labels], rotation=90 if long else 0,
+                       fontsize="small" if long else None)
     axes[1].set_xlabel("test expression")
     fig.tight_layout()
     with atomic_file(path, force=force) as tmp:
