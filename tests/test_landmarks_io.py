@@ -97,7 +97,8 @@ def test_symmetric_layout_on_the_sample_head_is_exact(samples):
                                         # the camera casts one ray per vertex: --rays was silently ignored
                                         (["--camera", "0,1.6,1"], "--camera sees from one point")])
 def test_bad_input_exits_2_with_one_line(samples, tmp_path, capsys, argv, text):
-    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "2", *argv]) == 2
+    rays = [] if "--evaluate" in argv else ["--rays", "2"]      # refused with --evaluate (it casts none)
+    assert main(["landmarks", str(samples / "avatar.usda"), *rays, *argv]) == 2
     err = capsys.readouterr().err
     assert text in err and "fix:" in err and err.count("\n") == 1
 
@@ -132,3 +133,20 @@ def test_spacing_options_sample_the_visibility_and_optionally_the_candidates(sam
     assert default["candidates"] == every["candidates"] and default["samples"] < default["candidates"]
     assert default["occluder_triangles"] < every["occluder_triangles"]
     assert sampled["candidates"] < default["candidates"]
+
+
+def test_evaluate_refuses_rays_it_would_ignore(samples, tmp_path, monkeypatch, capsys):
+    """A user trial: ``landmarks AVATAR --evaluate --takes T --rays 64`` ran the sweep with the rays ignored
+    (it computes its layouts at alpha 0, casting no ray), and the docs said --rays served both modes. Now
+    refused before any work, as the other layout-only options are; --rays still sets up a layout."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    monkeypatch.chdir(tmp_path)
+    argv = ["landmarks", str(samples / "avatar.usda"), "--evaluate", "--takes", "t.csv", "--rays", "64"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--rays applies only to the layout" in err and "leave out --rays" in err
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "4", "-q"]) == 0

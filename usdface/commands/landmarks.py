@@ -41,7 +41,8 @@ def register(subparsers) -> None:
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
     p.add_argument("--rays", type=positive_int, default=None,
-                   help="hemisphere rays per vertex (16); not with --camera, which casts one ray per vertex")
+                   help="hemisphere rays per vertex (16); not with --camera, which casts one ray per vertex, "
+                        "nor with --evaluate, which casts none")
     p.add_argument("--spacing", type=nonnegative_float, default=None,
                    help="metres between the skin points whose visibility is ray cast (default: 2%% of the "
                         "face size as a power of two mm, 8 mm on a human head); 0: every vertex, against "
@@ -76,11 +77,12 @@ def register(subparsers) -> None:
 
 #: Options only the layout reads (attribute, spelling, default): ``--evaluate`` sweeps epsilon x multi-cover
 #: at the paper's protocol (alpha 0, every vertex a candidate, no camera), so given with it they would be
-#: ignored. ``--radius`` is read by both.
+#: ignored. ``--radius``, ``--symmetric`` and ``--backend`` are read by both.
 LAYOUT_ONLY = (("epsilon", "--epsilon", 0.5), ("alpha", "--alpha", 0.5), ("multicover", "--multicover", 1),
                ("weighting", "--weighting", "quality"), ("no_adaptive", "--no-adaptive", False),
                ("skip_static", "--skip-static", False), ("camera", "--camera", None),
-               ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False))
+               ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False),
+               ("rays", "--rays", None))     # the sweep casts no rays (alpha 0): it was ignored
 
 #: Options only ``--evaluate`` reads (attribute, spelling): given without it they would be ignored.
 EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", "--frames"),
