@@ -150,3 +150,15 @@ def test_evaluate_refuses_rays_it_would_ignore(samples, tmp_path, monkeypatch, c
     assert list(tmp_path.iterdir()) == []
     monkeypatch.undo()
     assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "4", "-q"]) == 0
+
+
+def test_alpha_with_count_weighting_is_refused(samples, monkeypatch, capsys):
+    """A user trial: ``landmarks AVATAR --weighting count --alpha 0.9`` gave the very layout of ``--alpha 0``
+    (the count weighting costs every landmark 1; alpha weighs visibility in eq. 1's quality, which it does
+    not use), and the layer recorded alpha 0.9. Now refused before any work."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    assert main(["landmarks", str(samples / "avatar.usda"), "--weighting", "count", "--alpha", "0.9"]) == 2
+    err = capsys.readouterr().err
+    assert "--weighting count does not use" in err and "leave out --alpha" in err and err.count("\n") == 1

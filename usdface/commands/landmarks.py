@@ -112,6 +112,10 @@ def refuse_other_mode(args) -> None:
                             "candidate) and would ignore it",
                             fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
                                 "the layout")
+    if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
+        raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
+                            "--weighting count does not use (every landmark costs 1)",
+                            fix="leave out --alpha, or use --weighting quality (default) or paper")
     refuse_camera_with_rays(args.camera, args.rays, LandmarkError)      # --rays was ignored
     if args.rays is None:
         args.rays = 16
