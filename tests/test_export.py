@@ -141,6 +141,47 @@ def test_gltf_skin_matches_the_skeleton(layer, tmp_path):
     assert not pygltflib.GLTF2().load(str(no_skin)).skins
 
 
+def _rest_skinning(path: Path) -> list:
+    """Per joint, the glTF joint's world matrix @ its inverse bind matrix (identity when the rest pose leaves
+    the vertices where POSITION puts them, as it must for a rest pose equal to the bind pose)."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    skin = gltf.skins[0]
+    view = gltf.bufferViews[gltf.accessors[skin.inverseBindMatrices].bufferView]
+    ibm = np.frombuffer(gltf.binary_blob(), dtype=np.float32, count=16 * len(skin.joints),
+                        offset=view.byteOffset).reshape(-1, 4, 4).transpose(0, 2, 1)
+    parent = {c: i for i, n in enumerate(gltf.nodes) for c in (n.children or [])}
+
+    def world(i):
+        m = np.asarray(gltf.nodes[i].matrix or np.eye(4).ravel()).reshape(4, 4).T
+        while i in parent:
+            i = parent[i]
+            m = np.asarray(gltf.nodes[i].matrix or np.eye(4).ravel()).reshape(4, 4).T @ m
+        return m
+
+    return [world(j) @ ibm[k] for k, j in enumerate(skin.joints)]
+
+
+def test_gltf_skin_of_a_skeleton_under_a_scaled_turned_prim_rests_in_place(samples, tmp_path):
+    """A user trial: the glTF of the bench's Blender round trip (``avatar_blender.usdc``: Z up, metres, the
+    SkelRoot and its Skeleton under a prim scaled 0.01 and turned 90 degrees) put the joints' world
+    transforms (which include the Skeleton prim's transform) over inverse bind matrices that did not: every
+    glTF viewer drew the skinned avatar a hundredth of its size and turned (joint @ inverse bind was the
+    prim's 0.01 and rotation, not the identity). The bind transforms now get the Skeleton's transform too."""
+    from usdface.io.avatar_writer import write_rig_usd
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    turned = write_rig_usd(avatar.meshes, tmp_path / "turned.usda", up_axis="Z", meters_per_unit=1.0,
+                           parents=("root",), parent_scale=0.01, parent_rotate_x_deg=90.0)
+    out = api.export_avatar(turned, gltf=tmp_path / "t.glb")["gltf"]
+    for product in _rest_skinning(out):
+        np.testing.assert_allclose(product, np.eye(4), atol=1e-6)
+    data, plain = read_gltf(out), read_gltf(api.export_avatar(samples / "avatar.usda",
+                                                              gltf=tmp_path / "p.glb")["gltf"])
+    np.testing.assert_allclose(data["Head"]["positions"], plain["Head"]["positions"], atol=1e-6)
+
+
 def test_obj_dir_holds_one_full_target_per_shape(layer, tmp_path):
     out = api.export_avatar(layer, obj_dir=tmp_path / "objs")["obj_dir"]
     avatar = read_avatar_variant(layer, "personalized")

@@ -54,7 +54,13 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     xf = UsdGeom.XformCache(Usd.TimeCode.Default())
     rest_world = _to_internal(query.ComputeJointWorldTransforms(xf, True), c)
     bind = skel.GetBindTransformsAttr().Get()
-    bind_world = _to_internal(bind, c) if bind else rest_world.copy()
+    # the bind transforms are in the skeleton's space (UsdSkel skins with inv(bind) @ the joints' skeleton-
+    # space transforms), the joints' world transforms above include the Skeleton prim's own transform: the
+    # bind transforms get it too, so a rest pose equal to the bind pose leaves the points where they are.
+    # Without it, a skeleton under a scaled or turned prim (Blender's export: 0.01 and Z up) made every
+    # glTF viewer draw the skinned avatar a hundredth of its size and turned 90 degrees
+    skel_world = xf.GetLocalToWorldTransform(skel.GetPrim())
+    bind_world = _to_internal([b * skel_world for b in bind], c) if bind else rest_world.copy()
     rest_local = np.array([rest_world[j] if p < 0 else np.linalg.inv(rest_world[p]) @ rest_world[j]
                            for j, p in enumerate(parents)])
     influences = {}
