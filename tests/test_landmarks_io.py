@@ -162,3 +162,17 @@ def test_alpha_with_count_weighting_is_refused(samples, monkeypatch, capsys):
     assert main(["landmarks", str(samples / "avatar.usda"), "--weighting", "count", "--alpha", "0.9"]) == 2
     err = capsys.readouterr().err
     assert "--weighting count does not use" in err and "leave out --alpha" in err and err.count("\n") == 1
+
+
+def test_inspect_reports_the_authored_layout(layer_run, capsys):
+    """A user trial: ``inspect lm.usda`` of a landmarks layer said only 'method landmarks' (its provenance):
+    nothing of the layout it holds. It lists each authored layout now: count, epsilon, alpha, multi-cover,
+    symmetry, solver status (``--json``: ``landmarks``)."""
+    _, _, out, data, _, _ = layer_run
+    assert main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert (f"landmark layout /Avatar/Head_landmarks: {data['count']} landmarks, epsilon 0.5, alpha 0.5, "
+            "multi-cover 2, symmetric; solver optimal") in text
+    assert main(["inspect", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["landmarks"]["/Avatar/Head_landmarks"]["count"] == data["count"]

@@ -143,6 +143,14 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         out["schemas"] = {p: v["schemas"] for p, v in layer_info.get("schemas", {}).items()}
         if baked:
             out["flattened"] = dict(flattened)
+        layouts = {}        # the landmark layouts authored (usdface landmarks -o, personalize --landmarks)
+        for prim, v in layer_info.get("schemas", {}).items():
+            if "UsdFaceLandmarksAPI" in v.get("schemas", []):
+                values = v.get("values", {})
+                layouts[prim] = {key: values.get(f"usdface:landmarks:{key}") for key in
+                                 ("count", "epsilon", "alpha", "multicover", "symmetric", "solverStatus")}
+        if layouts:
+            out["landmarks"] = layouts
     return out
 
 
@@ -358,6 +366,15 @@ def format_report(report: dict) -> str:
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on
             lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
+    for prim, lay in report.get("landmarks", {}).items():
+        extra = "".join(f", {key} {lay[key]:g}" for key in ("epsilon", "alpha")
+                        if isinstance(lay.get(key), int | float))
+        if (lay.get("multicover") or 1) > 1:
+            extra += f", multi-cover {lay['multicover']}"
+        if lay.get("symmetric"):
+            extra += ", symmetric"
+        lines.append(f"  landmark layout {prim}: {lay.get('count')} landmarks{extra}; solver "
+                     f"{lay.get('solverStatus')} ('usdface render FILE --landmarks' draws it)")
     for prim, sets in report.get("variants", {}).items():
         for name, v in sets.items():
             lines.append(f"  variant set {prim}:{name} = {v['selection']} (of {', '.join(v['variants'])})")
