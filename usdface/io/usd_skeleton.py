@@ -31,6 +31,7 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     skins one skeleton per mesh; usdface avatars have one)."""
     from pxr import Usd, UsdGeom, UsdSkel
 
+    from .usd_open import quiet_stderr
     from .usd_rig import stage_to_internal
 
     if stage is None:
@@ -66,14 +67,16 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     influences = {}
     skel_root = avatar.meshes[0].source.skel_root
     root = stage.GetPrimAtPath(skel_root) if skel_root else None
-    if root:
-        cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
+    if root:      # UsdSkel's warnings on malformed influences: the avatar's reader kept them as notes
+        with quiet_stderr():
+            cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
     meshes = [(rig.name, rig.source.prim, rig.n_vertices) for rig in avatar.meshes if rig.source]
     meshes += [(prim.rsplit("/", 1)[-1], prim, len(points))
                for prim, (points, _) in sorted(avatar.metadata.get("static_meshes", {}).items())]
     for name, prim_path, n_vertices in meshes:
         prim = stage.GetPrimAtPath(prim_path)
-        sq = cache.GetSkinningQuery(prim) if prim else None
+        with quiet_stderr():
+            sq = cache.GetSkinningQuery(prim) if prim else None
         if not sq or not sq.HasJointInfluences():
             continue
         res = sq.ComputeJointInfluences()
