@@ -176,3 +176,13 @@ def test_inspect_reports_the_authored_layout(layer_run, capsys):
     assert main(["inspect", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["landmarks"]["/Avatar/Head_landmarks"]["count"] == data["count"]
+
+
+def test_a_capture_folder_as_the_avatar_is_not_called_swapped_arguments(sample_capture_folder, capsys):
+    """A user trial: ``landmarks capture/`` (one argument) answered 'avatar is a capture (or take) folder, not
+    an avatar: arguments swapped? (fix: personalize AVATAR CAPTURE: ...)'. The message says what the folder
+    is; the fix asks for the avatar, naming the two-argument commands where a swap is the likely cause."""
+    assert main(["landmarks", str(sample_capture_folder)]) == 2
+    err = capsys.readouterr().err
+    assert "is a capture (or take) folder, not an avatar (fix: pass the avatar's .usd/.usda/.usdc file" in err
+    assert "not an avatar: arguments swapped" not in err

@@ -34,9 +34,11 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
     if stat.S_ISDIR(mode):
         if what == "avatar" and ((path / "train").is_dir() or (path / "neutral.obj").is_file()
                                  or (path / "frames").is_dir()):
-            raise InputFileError("avatar is a capture (or take) folder, not an avatar: arguments swapped?",
-                                 path=path, fix="personalize AVATAR CAPTURE: the avatar's .usd file first, "
-                                                "then the capture folder")
+            # the fix names the two-argument commands: 'arguments swapped?' alone misled 'landmarks FOLDER'
+            raise InputFileError("avatar is a capture (or take) folder, not an avatar", path=path,
+                                 fix="pass the avatar's .usd/.usda/.usdc file here (personalize, retarget: "
+                                     "arguments swapped? the avatar's .usd file first, then the capture "
+                                     "folder)")
         raise InputFileError(f"{what} is a folder, not a file", path=path, fix=fix)
     if not stat.S_ISREG(mode):
         kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
