@@ -186,3 +186,16 @@ def test_a_capture_folder_as_the_avatar_is_not_called_swapped_arguments(sample_c
     err = capsys.readouterr().err
     assert "is a capture (or take) folder, not an avatar (fix: pass the avatar's .usd/.usda/.usdc file" in err
     assert "not an avatar: arguments swapped" not in err
+
+
+def test_an_empty_or_negative_empirical_layout_is_named_for_what_it_is():
+    """A user trial: ``--empirical`` with ``[]`` said 'indices out of range' (of an empty list), and one index
+    out of 68 outside the mesh said the same without naming it. Now: 'lists no vertex index', or the
+    range and the indices outside it."""
+    from usdface.landmarks.baselines import empirical_layout
+
+    with pytest.raises(LandmarkError, match="lists no vertex index"):
+        empirical_layout([], 100)
+    with pytest.raises(LandmarkError, match=r"out of range for a mesh of 100 vertices \(0\.\.99\): -5, 100"):
+        empirical_layout([1, 2, -5, 100], 100)
+    assert empirical_layout([3, 1, 3], 100).tolist() == [1, 3]
