@@ -69,6 +69,16 @@ def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatc
         assert seen["ticks"] == labels
 
 
+def test_evaluate_table_keeps_each_method_on_one_line(samples, capsys, monkeypatch):
+    """A user trial: in a log (80 columns, no terminal) the table with --truth wrapped 'menzel paper' over two
+    rows ('menzel' ... then 'paper' alone), read as a second menzel row. The method column does not wrap."""
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "menzel", "-q",
+                 "--truth", str(samples / "truth" / "capture_truth.npz")]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("│")]
+    assert [row.split("│")[1].strip() for row in rows] == ["menzel", "menzel paper", "template"]
+
+
 def test_evaluate_rejects_unknown_method(samples):
     assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2
 
