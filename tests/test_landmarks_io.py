@@ -199,3 +199,27 @@ def test_an_empty_or_negative_empirical_layout_is_named_for_what_it_is():
     with pytest.raises(LandmarkError, match=r"out of range for a mesh of 100 vertices \(0\.\.99\): -5, 100"):
         empirical_layout([1, 2, -5, 100], 100)
     assert empirical_layout([3, 1, 3], 100).tolist() == [1, 3]
+
+
+def test_a_failed_picture_takes_the_layer_and_json_of_this_run_with_it(samples, tmp_path, monkeypatch,
+                                                                       capsys):
+    """A user trial: ``landmarks AVATAR -o lm.usda --json lm.json --plot lm.png`` whose picture failed (a full
+    disk, Ctrl-C) left the layer and the JSON behind as if the run had finished (export and evaluate are all
+    or nothing). The outputs this run created go with the failure; one replaced with --force stays."""
+    import errno
+
+    from usdface.landmarks import plots
+
+    def full_disk(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(plots, "plot_layout", full_disk)
+    out, js, png = tmp_path / "lm.usda", tmp_path / "lm.json", tmp_path / "lm.png"
+    argv = ["landmarks", str(samples / "avatar.usda"), "--weighting", "count", "-q",
+            "-o", str(out), "--json", str(js), "--plot", str(png)]
+    assert main(argv) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    js.write_text("{}")                                   # an earlier JSON, replaced with --force: stays
+    assert main([*argv, "--force"]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lm.json"] and js.read_text() != "{}"
