@@ -311,3 +311,26 @@ def test_sample_assets_size(samples):
     size = sum(p.stat().st_size for p in samples.rglob("*") if p.is_file())
     assert size < 10e6
     assert not (samples / "capture").exists()
+
+
+def test_a_failed_picture_takes_the_new_sample_folder_with_it(tmp_path, monkeypatch, capsys):
+    """A user trial: ``usdface sample out --picture out.png`` whose picture failed (a full disk, Ctrl-C) left
+    the new sample folder behind as if the run had finished. The folder this run created goes with the
+    failure, as export's outputs do; a folder written into with --force stays."""
+    import errno
+
+    from usdface.cli import main
+    from usdface.sample import picture
+
+    def full_disk(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(picture, "render_sample_picture", full_disk)
+    assert main(["sample", str(tmp_path / "s"), "--picture", str(tmp_path / "s.png"), "-q"]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "mine.txt").write_text("mine")
+    kept = ["sample", str(tmp_path / "kept"), "--force", "--picture", str(tmp_path / "k.png"), "-q"]
+    assert main(kept) == 2
+    assert (tmp_path / "kept" / "mine.txt").read_text() == "mine"
