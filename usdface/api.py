@@ -1204,7 +1204,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
     Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
-    ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
+    ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
+    into it, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file
     from .io.flatten import VARIANTS
