@@ -223,3 +223,30 @@ def test_a_failed_picture_takes_the_layer_and_json_of_this_run_with_it(samples, 
     js.write_text("{}")                                   # an earlier JSON, replaced with --force: stays
     assert main([*argv, "--force"]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["lm.json"] and js.read_text() != "{}"
+
+
+def test_shapes_that_move_nothing(samples, tmp_path, capsys):
+    """User trial, Pixar's ``blendshapesWithNormals.usda`` (shapes of normal offsets only): ``landmarks
+    --skip-static`` ended in a traceback (``IndexError: index 0 is out of bounds`` in the skin sampling: no
+    shape was left to cover), and ``render --landmarks --diagnostics`` of a rig with such a shape refused it
+    with 'pass --skip-static', an option render does not have. Now: every shape static is one LandmarkError
+    line; render's diagnostics lay out the shapes that move (the static ones left out, as --skip-static)."""
+    from pxr import Usd, UsdSkel, Vt
+
+    from usdface.model import FaceRig
+
+    avatar = tmp_path / "avatar.usda"
+    avatar.write_text((samples / "avatar.usda").read_text())
+    stage = Usd.Stage.Open(str(avatar))
+    shape = next(UsdSkel.BlendShape(p) for p in stage.Traverse() if p.IsA(UsdSkel.BlendShape)
+                 and p.GetName() == "eyeLookOutLeft" and "Head" in str(p.GetPath()))
+    shape.GetOffsetsAttr().Set(Vt.Vec3fArray(len(shape.GetOffsetsAttr().Get())))
+    stage.GetRootLayer().Save()
+    assert main(["landmarks", str(avatar), "-q"]) == 2
+    assert "--skip-static" in capsys.readouterr().err
+    png = tmp_path / "d.png"
+    assert main(["render", str(avatar), "--landmarks", "--diagnostics", "-o", str(png), "-q"]) == 0
+    assert "landmarks (computed)" in capsys.readouterr().out and png.is_file()
+    rig = FaceRig(np.eye(3), [[0, 1, 2]], ["jawOpen", "eyeBlinkLeft"], np.zeros((2, 3, 3)), name="Plane")
+    with pytest.raises(LandmarkError, match="every shape of mesh Plane moves no vertex"):
+        compute_landmarks(rig, ignore_static=True)

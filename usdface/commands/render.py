@@ -265,7 +265,7 @@ def _diagnostics(args, path: Path, rig) -> None:
             source = "authored"
         else:
             p.start(f"layout of {rig.name} (none authored: landmarks defaults)")
-            layout = api.compute_landmarks(rig, rays=rays, camera=camera)
+            layout = api.compute_landmarks(rig, rays=rays, camera=camera, ignore_static=True)
             vertices, epsilon, alpha, source = layout.vertices, layout.epsilon, layout.alpha, "computed"
         seen_from = ("camera at " + ", ".join(f"{x:g}" for x in camera) + " m" if camera is not None
                      else f"{rays} hemisphere rays")
