@@ -141,6 +141,47 @@ def test_gltf_skin_matches_the_skeleton(layer, tmp_path):
     assert not pygltflib.GLTF2().load(str(no_skin)).skins
 
 
+def _rest_skinning(path: Path) -> list:
+    """Per joint, the glTF joint's world matrix @ its inverse bind matrix (identity when the rest pose leaves
+    the vertices where POSITION puts them, as it must for a rest pose equal to the bind pose)."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    skin = gltf.skins[0]
+    view = gltf.bufferViews[gltf.accessors[skin.inverseBindMatrices].bufferView]
+    ibm = np.frombuffer(gltf.binary_blob(), dtype=np.float32, count=16 * len(skin.joints),
+                        offset=view.byteOffset).reshape(-1, 4, 4).transpose(0, 2, 1)
+    parent = {c: i for i, n in enumerate(gltf.nodes) for c in (n.children or [])}
+
+    def world(i):
+        m = np.asarray(gltf.nodes[i].matrix or np.eye(4).ravel()).reshape(4, 4).T
+        while i in parent:
+            i = parent[i]
+            m = np.asarray(gltf.nodes[i].matrix or np.eye(4).ravel()).reshape(4, 4).T @ m
+        return m
+
+    return [world(j) @ ibm[k] for k, j in enumerate(skin.joints)]
+
+
+def test_gltf_skin_of_a_skeleton_under_a_scaled_turned_prim_rests_in_place(samples, tmp_path):
+    """A user trial: the glTF of the bench's Blender round trip (``avatar_blender.usdc``: Z up, metres, the
+    SkelRoot and its Skeleton under a prim scaled 0.01 and turned 90 degrees) put the joints' world
+    transforms (which include the Skeleton prim's transform) over inverse bind matrices that did not: every
+    glTF viewer drew the skinned avatar a hundredth of its size and turned (joint @ inverse bind was the
+    prim's 0.01 and rotation, not the identity). The bind transforms now get the Skeleton's transform too."""
+    from usdface.io.avatar_writer import write_rig_usd
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    turned = write_rig_usd(avatar.meshes, tmp_path / "turned.usda", up_axis="Z", meters_per_unit=1.0,
+                           parents=("root",), parent_scale=0.01, parent_rotate_x_deg=90.0)
+    out = api.export_avatar(turned, gltf=tmp_path / "t.glb")["gltf"]
+    for product in _rest_skinning(out):
+        np.testing.assert_allclose(product, np.eye(4), atol=1e-6)
+    data, plain = read_gltf(out), read_gltf(api.export_avatar(samples / "avatar.usda",
+                                                              gltf=tmp_path / "p.glb")["gltf"])
+    np.testing.assert_allclose(data["Head"]["positions"], plain["Head"]["positions"], atol=1e-6)
+
+
 def test_obj_dir_holds_one_full_target_per_shape(layer, tmp_path):
     out = api.export_avatar(layer, obj_dir=tmp_path / "objs")["obj_dir"]
     avatar = read_avatar_variant(layer, "personalized")
@@ -307,6 +348,53 @@ def test_a_flattened_generic_export_personalizes_like_the_avatar(layer, tmp_path
         np.testing.assert_array_equal(generic.mesh(rig.name).deltas, rig.deltas)
         np.testing.assert_allclose(second.mesh(rig.name).deltas, first.mesh(rig.name).deltas, rtol=0,
                                    atol=1e-9)
+
+
+def test_a_flattened_personalized_export_stays_personalized_when_exported_again(layer, samples, tmp_path,
+                                                                              capsys):
+    """A user trial: exporting a flattened *personalized* file (``export flat.usdc --gltf/--flatten``) printed
+    ``[as authored: a plain avatar, not personalized]``, the glTF's extras said ``"authored"``, and flattening
+    it again recorded ``variant: authored``, so ``personalize`` took that second file for an avatar and
+    stacked the personalization a second time. The variant baked in, and the layer it came from, now carry
+    through: the label, the extras and the record say ``personalized``, and personalize refuses it."""
+    import pygltflib
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import flattened_from
+
+    flat, again, glb = tmp_path / "flat.usdc", tmp_path / "sub" / "again.usdc", tmp_path / "again.glb"
+    assert main(["export", str(layer), "--flatten", str(flat), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(flat), "--flatten", str(again), "--gltf", str(glb), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "not personalized" not in out and "[personalized, as baked into flat.usdc" in out
+    assert pygltflib.GLTF2().load(str(glb)).scenes[0].extras["usdface"]["variant"] == "personalized"
+    record = flattened_from(again)
+    assert record["variant"] == "personalized"
+    assert (again.parent / record["source"]).resolve() == layer.resolve()   # the layer, not flat.usdc
+    with pytest.raises(AlreadyPersonalizedError, match=layer.name):
+        api.personalize_avatar(again, samples / "capture.usda", tmp_path / "twice.usda", dry_run=True)
+    plain = tmp_path / "plain.usdc"                                          # a plain avatar stays "authored"
+    assert main(["export", str(samples / "avatar.usda"), "--flatten", str(plain), "-q"]) == 0
+    assert flattened_from(plain)["variant"] == "authored"
+    assert "[as authored: a plain avatar, not personalized]" in capsys.readouterr().out
+
+
+def test_inspect_names_a_flattened_export_for_what_it_is(layer, tmp_path, capsys):
+    """A user trial: ``inspect flat.usdc`` of a flattened personalized export reported a ``usdface-layer``
+    with its provenance, and nothing said it was one file with the person's shapes baked in (the very thing
+    personalize refuses it for). Now its kind is ``usdface-flattened``, with the variant and the layer."""
+    from usdface.inspect import format_report, inspect_file
+
+    for variant in ("personalized", "generic"):
+        flat = tmp_path / f"flat.{variant}.usdc"
+        assert main(["export", str(layer), "--flatten", str(flat), "--variant", variant, "-q"]) == 0
+        report = inspect_file(flat)
+        assert report["kind"] == "usdface-flattened" and report["flattened"]["variant"] == variant
+        text = format_report(report)
+        assert f"flattened export (usdface export --flatten) of the {variant} variant of {layer}" in text
+    assert "refuses it as the avatar" in format_report(inspect_file(tmp_path / "flat.personalized.usdc"))
+    assert inspect_file(layer)["kind"] == "usdface-layer" and "flattened" not in inspect_file(layer)
 
 
 def test_no_skin_without_gltf_is_refused(samples, tmp_path, capsys):

@@ -110,3 +110,34 @@ def test_fit_rig_says_what_it_records_not_none(tmp_path):
     text = format_report(inspect_file(api.write_fit_rig(rig, tmp_path / "rig.usda")))
     assert "None" not in text
     assert "usdface layer: version " in text and "method " in text
+
+
+def test_usdskel_warnings_become_notes_not_terminal_lines(tmp_path, capfd):
+    """A user trial: Pixar's ``jointInfluences.usda`` (and any avatar whose joint influences do not agree
+    with each other) made every command print UsdSkel's C++ warnings (``Warning: in
+    _InitializeJointInfluenceBindings at line 94 of .../skinningQuery.cpp -- jointIndices element size (3)
+    != jointWeights element size (1).``) before usdface's own one-line answer. They are the reader's notes
+    now: ``inspect`` shows them, nothing reaches the terminal."""
+    from pxr import Usd, UsdGeom, UsdSkel, Vt
+
+    from usdface.cli import main
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.model import FaceRig
+
+    neutral = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.1, 0.1, 0]], dtype=float)
+    bump = np.zeros_like(neutral)
+    bump[3, 2] = 0.01
+    tris = [[0, 1, 2], [1, 3, 2]]
+    rigs = [FaceRig(neutral, tris, ["jawOpen"], bump[None], name="Head"),
+            FaceRig(neutral + 1.0, tris, [], np.zeros((0, 4, 3)), name="Eye")]
+    path = write_rig_usd(rigs, tmp_path / "a.usda")
+    stage = Usd.Stage.Open(str(path))
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh):
+            UsdSkel.BindingAPI(prim).CreateJointIndicesPrimvar(True, 3).Set(Vt.IntArray([0, 0, 0]))
+    stage.GetRootLayer().Save()
+    capfd.readouterr()
+    assert main(["inspect", str(path)]) == 0
+    out, err = capfd.readouterr()
+    assert "Warning" not in err and "skinningQuery.cpp" not in err, err
+    assert "note: UsdSkel: jointIndices element size (3) != jointWeights element size (1)" in out

@@ -97,7 +97,8 @@ def test_symmetric_layout_on_the_sample_head_is_exact(samples):
                                         # the camera casts one ray per vertex: --rays was silently ignored
                                         (["--camera", "0,1.6,1"], "--camera sees from one point")])
 def test_bad_input_exits_2_with_one_line(samples, tmp_path, capsys, argv, text):
-    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "2", *argv]) == 2
+    rays = [] if "--evaluate" in argv else ["--rays", "2"]      # refused with --evaluate (it casts none)
+    assert main(["landmarks", str(samples / "avatar.usda"), *rays, *argv]) == 2
     err = capsys.readouterr().err
     assert text in err and "fix:" in err and err.count("\n") == 1
 
@@ -132,3 +133,120 @@ def test_spacing_options_sample_the_visibility_and_optionally_the_candidates(sam
     assert default["candidates"] == every["candidates"] and default["samples"] < default["candidates"]
     assert default["occluder_triangles"] < every["occluder_triangles"]
     assert sampled["candidates"] < default["candidates"]
+
+
+def test_evaluate_refuses_rays_it_would_ignore(samples, tmp_path, monkeypatch, capsys):
+    """A user trial: ``landmarks AVATAR --evaluate --takes T --rays 64`` ran the sweep with the rays ignored
+    (it computes its layouts at alpha 0, casting no ray), and the docs said --rays served both modes. Now
+    refused before any work, as the other layout-only options are; --rays still sets up a layout."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    monkeypatch.chdir(tmp_path)
+    argv = ["landmarks", str(samples / "avatar.usda"), "--evaluate", "--takes", "t.csv", "--rays", "64"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--rays applies only to the layout" in err and "leave out --rays" in err
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "4", "-q"]) == 0
+
+
+def test_alpha_with_count_weighting_is_refused(samples, monkeypatch, capsys):
+    """A user trial: ``landmarks AVATAR --weighting count --alpha 0.9`` gave the very layout of ``--alpha 0``
+    (the count weighting costs every landmark 1; alpha weighs visibility in eq. 1's quality, which it does
+    not use), and the layer recorded alpha 0.9. Now refused before any work."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    assert main(["landmarks", str(samples / "avatar.usda"), "--weighting", "count", "--alpha", "0.9"]) == 2
+    err = capsys.readouterr().err
+    assert "--weighting count does not use" in err and "leave out --alpha" in err and err.count("\n") == 1
+
+
+def test_inspect_reports_the_authored_layout(layer_run, capsys):
+    """A user trial: ``inspect lm.usda`` of a landmarks layer said only 'method landmarks' (its provenance):
+    nothing of the layout it holds. It lists each authored layout now: count, epsilon, alpha, multi-cover,
+    symmetry, solver status (``--json``: ``landmarks``)."""
+    _, _, out, data, _, _ = layer_run
+    assert main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert (f"landmark layout /Avatar/Head_landmarks: {data['count']} landmarks, epsilon 0.5, alpha 0.5, "
+            "multi-cover 2, symmetric; solver optimal") in text
+    assert main(["inspect", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["landmarks"]["/Avatar/Head_landmarks"]["count"] == data["count"]
+
+
+def test_a_capture_folder_as_the_avatar_is_not_called_swapped_arguments(sample_capture_folder, capsys):
+    """A user trial: ``landmarks capture/`` (one argument) answered 'avatar is a capture (or take) folder, not
+    an avatar: arguments swapped? (fix: personalize AVATAR CAPTURE: ...)'. The message says what the folder
+    is; the fix asks for the avatar, naming the two-argument commands where a swap is the likely cause."""
+    assert main(["landmarks", str(sample_capture_folder)]) == 2
+    err = capsys.readouterr().err
+    assert "is a capture (or take) folder, not an avatar (fix: pass the avatar's .usd/.usda/.usdc file" in err
+    assert "not an avatar: arguments swapped" not in err
+
+
+def test_an_empty_or_negative_empirical_layout_is_named_for_what_it_is():
+    """A user trial: ``--empirical`` with ``[]`` said 'indices out of range' (of an empty list), and one index
+    out of 68 outside the mesh said the same without naming it. Now: 'lists no vertex index', or the
+    range and the indices outside it."""
+    from usdface.landmarks.baselines import empirical_layout
+
+    with pytest.raises(LandmarkError, match="lists no vertex index"):
+        empirical_layout([], 100)
+    with pytest.raises(LandmarkError, match=r"out of range for a mesh of 100 vertices \(0\.\.99\): -5, 100"):
+        empirical_layout([1, 2, -5, 100], 100)
+    assert empirical_layout([3, 1, 3], 100).tolist() == [1, 3]
+
+
+def test_a_failed_picture_takes_the_layer_and_json_of_this_run_with_it(samples, tmp_path, monkeypatch,
+                                                                       capsys):
+    """A user trial: ``landmarks AVATAR -o lm.usda --json lm.json --plot lm.png`` whose picture failed (a full
+    disk, Ctrl-C) left the layer and the JSON behind as if the run had finished (export and evaluate are all
+    or nothing). The outputs this run created go with the failure; one replaced with --force stays."""
+    import errno
+
+    from usdface.landmarks import plots
+
+    def full_disk(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(plots, "plot_layout", full_disk)
+    out, js, png = tmp_path / "lm.usda", tmp_path / "lm.json", tmp_path / "lm.png"
+    argv = ["landmarks", str(samples / "avatar.usda"), "--weighting", "count", "-q",
+            "-o", str(out), "--json", str(js), "--plot", str(png)]
+    assert main(argv) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    js.write_text("{}")                                   # an earlier JSON, replaced with --force: stays
+    assert main([*argv, "--force"]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lm.json"] and js.read_text() != "{}"
+
+
+def test_shapes_that_move_nothing(samples, tmp_path, capsys):
+    """User trial, Pixar's ``blendshapesWithNormals.usda`` (shapes of normal offsets only): ``landmarks
+    --skip-static`` ended in a traceback (``IndexError: index 0 is out of bounds`` in the skin sampling: no
+    shape was left to cover), and ``render --landmarks --diagnostics`` of a rig with such a shape refused it
+    with 'pass --skip-static', an option render does not have. Now: every shape static is one LandmarkError
+    line; render's diagnostics lay out the shapes that move (the static ones left out, as --skip-static)."""
+    from pxr import Usd, UsdSkel, Vt
+
+    from usdface.model import FaceRig
+
+    avatar = tmp_path / "avatar.usda"
+    avatar.write_text((samples / "avatar.usda").read_text())
+    stage = Usd.Stage.Open(str(avatar))
+    shape = next(UsdSkel.BlendShape(p) for p in stage.Traverse() if p.IsA(UsdSkel.BlendShape)
+                 and p.GetName() == "eyeLookOutLeft" and "Head" in str(p.GetPath()))
+    shape.GetOffsetsAttr().Set(Vt.Vec3fArray(len(shape.GetOffsetsAttr().Get())))
+    stage.GetRootLayer().Save()
+    assert main(["landmarks", str(avatar), "-q"]) == 2
+    assert "--skip-static" in capsys.readouterr().err
+    png = tmp_path / "d.png"
+    assert main(["render", str(avatar), "--landmarks", "--diagnostics", "-o", str(png), "-q"]) == 0
+    assert "landmarks (computed)" in capsys.readouterr().out and png.is_file()
+    rig = FaceRig(np.eye(3), [[0, 1, 2]], ["jawOpen", "eyeBlinkLeft"], np.zeros((2, 3, 3)), name="Plane")
+    with pytest.raises(LandmarkError, match="every shape of mesh Plane moves no vertex"):
+        compute_landmarks(rig, ignore_static=True)

@@ -50,8 +50,64 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert main(args) == 2                                            # outputs exist, no --force
 
 
+def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatch):
+    """A user trial: the plot numbered the test expressions 1..F while the JSON report and the error maps'
+    prims name them by their labels ('000'...): the plot's 4 was the report's '003'. The plot's ticks are the
+    labels now."""
+    from matplotlib.figure import Figure
+
+    from usdface.personalize.report import plot_errors
+
+    seen = {}
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: seen.update(
+        ticks=[t.get_text() for t in fig.axes[1].get_xticklabels()]))
+    for labels in (["000", "001", "002"], ["003_jawOpen", "007_eyeBlinkLeft"]):
+        n = len(labels)
+        report = {"labels": labels, "methods": {m: {"rmse_mm": [0.1] * n, "max_mm": [0.5] * n}
+                                                for m in ("dt", "menzel")}}
+        plot_errors(report, tmp_path / f"p{n}.png")
+        assert seen["ticks"] == labels
+
+
+def test_evaluate_table_keeps_each_method_on_one_line(samples, capsys, monkeypatch):
+    """A user trial: in a log (80 columns, no terminal) the table with --truth wrapped 'menzel paper' over two
+    rows ('menzel' ... then 'paper' alone), read as a second menzel row. The method column does not wrap."""
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "menzel", "-q",
+                 "--truth", str(samples / "truth" / "capture_truth.npz")]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("│")]
+    assert [row.split("│")[1].strip() for row in rows] == ["menzel", "menzel paper", "template"]
+
+
 def test_evaluate_rejects_unknown_method(samples):
     assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,nope"]) == 2
+
+
+def test_evaluate_refuses_a_fit_option_no_chosen_method_uses(samples, tmp_path, capsys, monkeypatch):
+    """A user trial: ``evaluate CAPTURE --methods dt --reg 0.5`` (or ``--contact on``, ``--prior``...) ran
+    and printed dt's table, the option silently ignored (``fit --method dt --reg 0.5`` refuses it). Now
+    refused before any fitting, naming the option and the methods that use it; the defaults and an option
+    one of the chosen methods uses still run."""
+    from usdface.personalize import report
+
+    fitted = []
+    monkeypatch.setattr(report, "fit_personalized_shapes",
+                        lambda *a, **k: fitted.append(k) or (_ for _ in ()).throw(RuntimeError("fitted")))
+    out = tmp_path / "r.json"
+    for flags, named in ((["--methods", "dt", "--reg", "0.5"], "--reg (reg=0.5)"),
+                         (["--methods", "dt,ebfr", "--contact", "on"], "--contact (contact='on')"),
+                         (["--methods", "ebfr", "--prior", "template", "--no-reweight"], "--no-reweight")):
+        assert main(["evaluate", str(samples / "capture.usda"), *flags, "--json", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert named in err and "not used by --methods" in err and "add menzel or laplacian" in err
+    assert fitted == [] and not out.exists()
+    for flags in (["dt,menzel", "--reg", "0.5"], ["dt", "--no-eyelids"]):   # used by a method; every one
+        try:
+            main(["evaluate", str(samples / "capture.usda"), "--methods", *flags])
+        except RuntimeError:
+            pass
+        assert len(fitted) == 1, flags                     # it got as far as the first fit
+        fitted.clear()
 
 
 def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_path, capsys):

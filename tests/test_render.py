@@ -208,6 +208,63 @@ def test_render_cli_capture_and_errors(samples, tmp_path, capsys):
     assert main(["render", str(avatar), "-o", str(tmp_path / "z.png"), "--mesh", "Nose"]) == 2
 
 
+def test_render_compare_with_another_avatar_is_refused(tmp_path, capsys):
+    """A user trial: ``render person.usda --compare other.usdc`` with an avatar that is not the one the layer
+    was made from ended in a traceback (``ValueError: 'tongueOut' is not in list``, or a broadcast error for
+    another vertex count); now one line naming the generic file, the mesh and the fix."""
+    from usdface.io.avatar_writer import write_rig_usd
+
+    rig = grid_rig()
+    rig.name = "Head"
+    person = write_rig_usd(rig, tmp_path / "person.usda")
+    fewer = FaceRig(rig.neutral, rig.triangles, ["bump"], rig.deltas[:1], name="Head")
+    write_rig_usd(fewer, tmp_path / "fewer.usda")
+    coarse = grid_rig(8)
+    coarse.name = "Head"
+    write_rig_usd(coarse, tmp_path / "coarse.usda")
+    for mode in ("--compare", "--heatmap"):
+        for other, said in (("fewer.usda", "has no shape slide"), ("coarse.usda", "has 64 vertices")):
+            png = tmp_path / f"{mode[2:]}_{other}.png"
+            assert main(["render", str(person), "-o", str(png), mode, str(tmp_path / other)]) == 2
+            err = capsys.readouterr().err
+            assert said in err and other in err and "fix: pass the avatar" in err and "Traceback" not in err
+            assert not png.exists()
+    assert main(["render", str(person), "-o", str(tmp_path / "ok.png"), "--compare", str(person)]) == 0
+
+
+def test_a_mesh_without_shapes_is_named_as_such(samples, tmp_path, capsys):
+    """A user trial: ``landmarks avatar --mesh EyeLeft`` (and render/personalize's mesh options) said "no mesh
+    'EyeLeft' in the avatar" of a mesh that is there, only without blend shapes; now it says so, naming the
+    prim and the meshes that have shapes."""
+    out = tmp_path / "e.png"
+    for argv in (["landmarks", str(samples / "avatar.usda"), "--mesh", "EyeLeft", "-q"],
+                 ["render", str(samples / "avatar.usda"), "--mesh", "/Avatar/EyeRight", "-o", str(out)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "has no blend shapes (a static mesh" in err and "no mesh '" not in err
+        assert "prim /Avatar/Eye" in err and "use one of /Avatar/Head, /Avatar/Mouth" in err
+    assert main(["render", str(samples / "avatar.usda"), "--mesh", "Nose", "-o", str(out)]) == 2
+    assert "no mesh 'Nose'" in capsys.readouterr().err and not out.exists()
+
+
+def test_render_landmarks_draws_the_mesh_the_layout_is_on(samples, tmp_path, capsys):
+    """A user trial: ``landmarks avatar --mesh Mouth -o lm.usda`` then ``render lm.usda --landmarks`` said
+    "no landmark layout for mesh 'Head' (fix: run 'usdface landmarks' first)" of a file that has one, and
+    ``--diagnostics`` computed a new Head layout instead of drawing the authored one. Without --mesh the
+    mesh that carries the layout is drawn; an explicit other mesh names the one the file has."""
+    lm = tmp_path / "mouth_lm.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Mouth", "-o", str(lm), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    assert main(["render", str(lm), "--landmarks", "--diagnostics", "-o", str(tmp_path / "d.png"), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "Mouth: " in out and "landmarks (authored)" in out
+    assert main(["render", str(lm), "--landmarks", "--mesh", "Head", "-o", str(tmp_path / "h.png")]) == 2
+    err = capsys.readouterr().err
+    assert "no landmark layout for mesh 'Head' (the file has one for /Avatar/Mouth)" in err
+    assert "--mesh /Avatar/Mouth" in err and not (tmp_path / "h.png").exists()
+
+
 def test_inspection_rejects_bad_input():
     from usdface.io.usd_inspection import inspection_edit
     from usdface.model import Avatar, MeshSource

@@ -110,6 +110,25 @@ def test_noise_options_change_only_the_frames_and_the_reported_weights():
         build_samples(0, scan_noise_m=-1.0)
 
 
+def test_negative_seed_is_refused_before_any_work(tmp_path, capsys):
+    """A user trial: ``usdface sample out --seed -1`` ended in a numpy traceback (``ValueError: expected
+    non-negative integer``, exit status 1); now the option is refused in one line (status 2), and the API
+    says which argument is wrong, before the folder is made."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["sample", str(tmp_path / "neg"), "--seed", "-1"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--seed" in err and ">= 0" in err and "Traceback" not in err
+    for seed in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="seed must be a whole number >= 0"):
+            generate_samples(tmp_path / "api", seed=seed)
+        with pytest.raises(ValueError, match="seed must be a whole number >= 0"):
+            build_samples(seed)
+    assert not (tmp_path / "neg").exists() and not (tmp_path / "api").exists()
+
+
 def test_capture_topology_like_arkit(capture):
     n, t = len(capture.neutral), len(capture.triangles)
     assert 1100 <= n <= 1300 and 2000 <= t <= 2500
@@ -292,3 +311,26 @@ def test_sample_assets_size(samples):
     size = sum(p.stat().st_size for p in samples.rglob("*") if p.is_file())
     assert size < 10e6
     assert not (samples / "capture").exists()
+
+
+def test_a_failed_picture_takes_the_new_sample_folder_with_it(tmp_path, monkeypatch, capsys):
+    """A user trial: ``usdface sample out --picture out.png`` whose picture failed (a full disk, Ctrl-C) left
+    the new sample folder behind as if the run had finished. The folder this run created goes with the
+    failure, as export's outputs do; a folder written into with --force stays."""
+    import errno
+
+    from usdface.cli import main
+    from usdface.sample import picture
+
+    def full_disk(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(picture, "render_sample_picture", full_disk)
+    assert main(["sample", str(tmp_path / "s"), "--picture", str(tmp_path / "s.png"), "-q"]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "mine.txt").write_text("mine")
+    kept = ["sample", str(tmp_path / "kept"), "--force", "--picture", str(tmp_path / "k.png"), "-q"]
+    assert main(kept) == 2
+    assert (tmp_path / "kept" / "mine.txt").read_text() == "mine"

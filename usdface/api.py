@@ -442,6 +442,9 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
     if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
         methods = [m.strip() for m in methods.split(",") if m.strip()]
+    from .personalize.report import check_method_options
+
+    check_method_options(list(methods), options)          # an option no chosen method takes: before any work
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
@@ -1201,7 +1204,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
     Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
-    ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
+    ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
+    into it, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file
     from .io.flatten import VARIANTS

@@ -19,6 +19,7 @@ Example::
 from __future__ import annotations
 
 import difflib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +123,10 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     :func:`usdface.io.usd_rig.read_layer_info`) adds provenance, sublayers and variant selections."""
     layer_info = layer_info or {}
     written = layer_info.get("usdface") or {}
+    flattened = layer_info.get("flattened") or {}
+    baked = flattened.get("variant") in ("personalized", "generic") and not layer_info.get("variants")
     kind = ("usdface-fit" if isinstance(written, dict) and written.get("format") == "fit"
+            else "usdface-flattened" if baked             # one file, a variant baked in: no layer over one
             else "usdface-layer" if written else "avatar")          # a fit's rig is no layer over an avatar
     out = {
         "file": avatar.file, "kind": kind,
@@ -137,6 +141,16 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         out["provenance"] = layer_info.get("usdface", {})
         out["variants"] = layer_info.get("variants", {})
         out["schemas"] = {p: v["schemas"] for p, v in layer_info.get("schemas", {}).items()}
+        if baked:
+            out["flattened"] = dict(flattened)
+        layouts = {}        # the landmark layouts authored (usdface landmarks -o, personalize --landmarks)
+        for prim, v in layer_info.get("schemas", {}).items():
+            if "UsdFaceLandmarksAPI" in v.get("schemas", []):
+                values = v.get("values", {})
+                layouts[prim] = {key: values.get(f"usdface:landmarks:{key}") for key in
+                                 ("count", "epsilon", "alpha", "multicover", "symmetric", "solverStatus")}
+        if layouts:
+            out["landmarks"] = layouts
     return out
 
 
@@ -317,6 +331,14 @@ def format_report(report: dict) -> str:
     unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(mpu, f"{mpu} m")
     lines.append(f"  units: metersPerUnit {mpu} ({unit}), upAxis {report['upAxis']}, "
                  f"defaultPrim {report.get('defaultPrim')}")
+    flat = report.get("flattened")
+    if flat:      # it read as a usdface layer, and nothing said its shapes were the personalized ones
+        what = ("the person's shapes baked in: personalize refuses it as the avatar"
+                if flat["variant"] == "personalized" else
+                "the avatar's own shapes: it personalizes as the avatar")
+        source = os.path.normpath(Path(str(report.get("file"))).parent / str(flat.get("source")))
+        lines.append(f"  flattened export (usdface export --flatten) of the {flat['variant']} variant of "
+                     f"{source}: {what}")
     for note in report.get("notes", []):
         lines.append(f"  note: {note}")
     for mesh in report["meshes"]:
@@ -344,6 +366,15 @@ def format_report(report: dict) -> str:
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on
             lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
+    for prim, lay in report.get("landmarks", {}).items():
+        extra = "".join(f", {key} {lay[key]:g}" for key in ("epsilon", "alpha")
+                        if isinstance(lay.get(key), int | float))
+        if (lay.get("multicover") or 1) > 1:
+            extra += f", multi-cover {lay['multicover']}"
+        if lay.get("symmetric"):
+            extra += ", symmetric"
+        lines.append(f"  landmark layout {prim}: {lay.get('count')} landmarks{extra}; solver "
+                     f"{lay.get('solverStatus')} ('usdface render FILE --landmarks' draws it)")
     for prim, sets in report.get("variants", {}).items():
         for name, v in sets.items():
             lines.append(f"  variant set {prim}:{name} = {v['selection']} (of {', '.join(v['variants'])})")

@@ -28,8 +28,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from ..api import export_avatar
-    from ..io.flatten import AS_AUTHORED, exported_variant
+    from ..io.flatten import AS_AUTHORED, baked_variant, exported_variant
 
     if args.no_skin and not args.gltf and (args.obj_dir or args.flatten):   # it was silently ignored
         from ..errors import OptionError
@@ -39,7 +41,11 @@ def run(args) -> int:
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
                          variant=args.variant, skin=not args.no_skin, force=args.force)
     variant = exported_variant(args.layer, args.variant)
-    label = "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else variant
+    baked = baked_variant(args.layer)
+    # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
+    label = ("as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
+             f"{variant}, as baked into {Path(args.layer).name} (a flattened export of {baked['source']})"
+             if baked else variant)
     for kind, path in done.items():
         size = (f" ({path.stat().st_size / 1e6:.1f} MB)" if path.is_file() else
                 f" ({sum(1 for _ in path.rglob('*.obj'))} OBJ files)")

@@ -41,7 +41,8 @@ def register(subparsers) -> None:
                    help="known camera position, metres in usdface's internal frame (Y up, as read): "
                         "one visibility ray per vertex instead of the hemisphere")
     p.add_argument("--rays", type=positive_int, default=None,
-                   help="hemisphere rays per vertex (16); not with --camera, which casts one ray per vertex")
+                   help="hemisphere rays per vertex (16); not with --camera, which casts one ray per vertex, "
+                        "nor with --evaluate, which casts none")
     p.add_argument("--spacing", type=nonnegative_float, default=None,
                    help="metres between the skin points whose visibility is ray cast (default: 2%% of the "
                         "face size as a power of two mm, 8 mm on a human head); 0: every vertex, against "
@@ -76,11 +77,12 @@ def register(subparsers) -> None:
 
 #: Options only the layout reads (attribute, spelling, default): ``--evaluate`` sweeps epsilon x multi-cover
 #: at the paper's protocol (alpha 0, every vertex a candidate, no camera), so given with it they would be
-#: ignored. ``--radius`` is read by both.
+#: ignored. ``--radius``, ``--symmetric`` and ``--backend`` are read by both.
 LAYOUT_ONLY = (("epsilon", "--epsilon", 0.5), ("alpha", "--alpha", 0.5), ("multicover", "--multicover", 1),
                ("weighting", "--weighting", "quality"), ("no_adaptive", "--no-adaptive", False),
                ("skip_static", "--skip-static", False), ("camera", "--camera", None),
-               ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False))
+               ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False),
+               ("rays", "--rays", None))     # the sweep casts no rays (alpha 0): it was ignored
 
 #: Options only ``--evaluate`` reads (attribute, spelling): given without it they would be ignored.
 EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", "--frames"),
@@ -110,6 +112,10 @@ def refuse_other_mode(args) -> None:
                             "candidate) and would ignore it",
                             fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
                                 "the layout")
+    if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
+        raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
+                            "--weighting count does not use (every landmark costs 1)",
+                            fix="leave out --alpha, or use --weighting quality (default) or paper")
     refuse_camera_with_rays(args.camera, args.rays, LandmarkError)      # --rays was ignored
     if args.rays is None:
         args.rays = 16
@@ -149,10 +155,17 @@ def run(args) -> int:
                                         noise_mm=0.5 if args.noise is None else args.noise, rays=args.rays,
                                         symmetric=args.symmetric, backend=args.backend,
                                         radius=0.01 if args.radius is None else args.radius)
-        if args.plot:
-            plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}", force=args.force)
-        if args.json_out:
-            write_text_atomic(args.json_out, json.dumps(report.to_dict(), indent=2), force=args.force)
+        done: dict = {}
+        # all or nothing, as export and evaluate: a plot written, then the JSON failing (a full disk,
+        # Ctrl-C), left the plot as if the sweep had finished
+        with api._new_outputs_kept_on_success(done, plot=args.plot, json=args.json_out):
+            if args.plot:
+                plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
+                                force=args.force)
+                done["plot"] = Path(args.plot)
+            if args.json_out:
+                write_text_atomic(args.json_out, json.dumps(report.to_dict(), indent=2), force=args.force)
+                done["json"] = Path(args.json_out)
         for key, value in report.summary.items():
             mm = "rmse" in key and isinstance(value, float)
             print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
@@ -164,31 +177,39 @@ def run(args) -> int:
             if out:
                 print(f"wrote {out}")
         return 0
-    with steps("landmarks", 1 + bool(args.output)) as p:
-        p.start(f"layout of {rig.name}")
-        layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
-                                   multicover=args.multicover,
-                                   radius=0.01 if args.radius is None else args.radius, camera=args.camera,
-                                   rays=args.rays, backend=args.backend, weighting=args.weighting,
-                                   adaptive=not args.no_adaptive, ignore_static=args.skip_static,
-                                   spacing="auto" if args.spacing is None else (args.spacing or None),
-                                   thin_candidates=args.sampled_candidates)
-        if args.output:
-            p.start(f"write {Path(args.output).name}")
-            params = {k: v for k, v in vars(args).items() if k not in ("func",)}
-            api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
-                                provenance={"command": command_line(),
-                                            "parameters": params, "timings": layout.timings,
-                                            "elapsedSeconds": time.perf_counter() - t0})
-    mesh = rig.key
-    if args.json_out:
-        write_text_atomic(args.json_out, json.dumps({"avatar": str(args.avatar), "mesh": mesh,
-                                                     **layout.to_dict()}, indent=2), force=args.force)
-    if args.plot:
-        from ..landmarks.plots import plot_layout
+    done: dict = {}
+    # the layer, the JSON and the picture all or nothing, as export and evaluate: a picture that failed
+    # (a full disk, Ctrl-C) left the layer and the JSON behind as if the run had finished
+    with api._new_outputs_kept_on_success(done, layer=args.output, json=args.json_out, plot=args.plot):
+        with steps("landmarks", 1 + bool(args.output)) as p:
+            p.start(f"layout of {rig.name}")
+            layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
+                                           multicover=args.multicover,
+                                           radius=0.01 if args.radius is None else args.radius,
+                                           camera=args.camera, rays=args.rays, backend=args.backend,
+                                           weighting=args.weighting, adaptive=not args.no_adaptive,
+                                           ignore_static=args.skip_static,
+                                           spacing="auto" if args.spacing is None else (args.spacing or None),
+                                           thin_candidates=args.sampled_candidates)
+            if args.output:
+                p.start(f"write {Path(args.output).name}")
+                params = {k: v for k, v in vars(args).items() if k not in ("func",)}
+                api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
+                                    provenance={"command": command_line(),
+                                                "parameters": params, "timings": layout.timings,
+                                                "elapsedSeconds": time.perf_counter() - t0})
+                done["layer"] = Path(args.output)
+        mesh = rig.key
+        if args.json_out:
+            write_text_atomic(args.json_out, json.dumps({"avatar": str(args.avatar), "mesh": mesh,
+                                                         **layout.to_dict()}, indent=2), force=args.force)
+            done["json"] = Path(args.json_out)
+        if args.plot:
+            from ..landmarks.plots import plot_layout
 
-        plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
-                    force=args.force)
+            plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
+                        force=args.force)
+            done["plot"] = Path(args.plot)
     print(f"{mesh}: {layout.count} landmarks for {len(rig.names)} shapes (epsilon {layout.epsilon:g}, "
           f"alpha {layout.alpha:g}, {layout.weighting}); solver {layout.backend} {layout.status}, "
           f"gap {layout.gap:.2g}; {time.perf_counter() - t0:.2f} s")

@@ -62,6 +62,40 @@ def _generic(args, path: Path) -> Path:
     return generic
 
 
+def _matching_generic(generic, rig, generic_path: Path, path: Path):
+    """``generic``'s shapes in ``rig``'s order, once it is the same mesh (vertex count) and has every shape
+    ``rig`` has; else a RigError naming both files (another avatar given as GENERIC ended in a traceback:
+    a ValueError for a missing shape, a broadcast error for another vertex count)."""
+    from ..errors import RigError
+
+    fix = (f"pass the avatar {path.name} was personalized from as GENERIC, or leave GENERIC out to compare "
+           "with the file a usdface layer is over")
+    if generic.n_vertices != rig.n_vertices:
+        raise RigError(f"generic mesh {rig.name!r} has {generic.n_vertices} vertices, {path.name}'s "
+                       f"{rig.n_vertices}: not the same mesh", path=generic_path,
+                       prim=generic.source.prim if generic.source else None, fix=fix)
+    missing = [n for n in rig.names if n not in generic.names]
+    if missing:
+        shown = ", ".join(missing[:6]) + (f" (+{len(missing) - 6})" if len(missing) > 6 else "")
+        raise RigError(f"generic mesh {rig.name!r} has no shape {shown} that {path.name}'s has",
+                       path=generic_path, prim=generic.source.prim if generic.source else None, fix=fix)
+    return generic.subset(rig.names)
+
+
+def _mesh_with_layout(avatar, rig, path: Path):
+    """The mesh ``--landmarks`` draws without ``--mesh``: the default one, or, when the file's landmark layout
+    is on another mesh (``usdface landmarks --mesh Mouth -o lm.usda``), that mesh (the one with the most
+    shapes among those with a layout). Before, the default mesh was taken: 'no landmark layout for mesh
+    Head' of a file that has one, and ``--diagnostics`` computed a new layout for the Head instead."""
+    from ..io.usd_inspection import read_landmarks
+
+    layouts = read_landmarks(path)
+    if not layouts or (rig.source is not None and rig.source.prim in layouts):
+        return rig
+    with_layout = [m for m in avatar.meshes if m.source is not None and m.source.prim in layouts]
+    return max(with_layout, key=lambda m: (m.n_shapes, m.n_vertices)) if with_layout else rig
+
+
 def _capture_file(path: Path) -> tuple[bool, object]:
     """Whether ``path`` is a capture or take USD file (marked by 'capture import/select' or write_take_usd,
     or a take another tool wrote), drawn like a capture folder without ``--capture``; and the root layer
@@ -137,6 +171,8 @@ def run(args) -> int:
         return 0
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
+    if args.landmarks and args.mesh is None:
+        rig = _mesh_with_layout(avatar, rig, path)
     render.check_shapes(rig, shapes, path)
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
@@ -149,20 +185,25 @@ def run(args) -> int:
         layouts = read_landmarks(path)
         key = next((k for k in layouts if rig.source and k == rig.source.prim), None)
         if key is None:
-            raise LandmarkError(f"no landmark layout for mesh {rig.name!r}", path=path,
-                                fix="run 'usdface landmarks' (or personalize with landmarks) first")
+            others = ", ".join(layouts)
+            raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
+                                + (f" (the file has one for {others})" if others else ""), path=path,
+                                fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
+                                     f"{rig.name}' first") if others else
+                                    "run 'usdface landmarks' (or personalize with landmarks) first")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
         generic_path = _generic(args, path)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
-        generic = api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name)
+        generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,
+                                    generic_path, path)
         if args.compare is not None:
-            render.render_comparison(generic.subset(rig.names), rig, shapes, args.output, view=args.view,
+            render.render_comparison(generic, rig, shapes, args.output, view=args.view,
                                      force=args.force, title=f"{rig.name}: generic vs personalized")
         else:
-            diff = rig.deltas - generic.subset(rig.names).deltas
+            diff = rig.deltas - generic.deltas
             if shapes:                     # the RMS over the shapes asked for (it was over all of them)
                 diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
@@ -224,7 +265,7 @@ def _diagnostics(args, path: Path, rig) -> None:
             source = "authored"
         else:
             p.start(f"layout of {rig.name} (none authored: landmarks defaults)")
-            layout = api.compute_landmarks(rig, rays=rays, camera=camera)
+            layout = api.compute_landmarks(rig, rays=rays, camera=camera, ignore_static=True)
             vertices, epsilon, alpha, source = layout.vertices, layout.epsilon, layout.alpha, "computed"
         seen_from = ("camera at " + ", ".join(f"{x:g}" for x in camera) + " m" if camera is not None
                      else f"{rays} hemisphere rays")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from . import json_path
-from .options import add_quiet, nonnegative_float
+from .options import add_quiet, nonnegative_float, nonnegative_int
 
 
 def register(subparsers) -> None:
@@ -14,7 +14,8 @@ def register(subparsers) -> None:
                     "capture folder) and the ground truth (truth/*.npz). The same seed gives the same bytes "
                     "(see docs/sample-assets.md).")
     parser.add_argument("outdir", help="output folder (e.g. sample_assets)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0: the committed assets)")
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="random seed, a whole number >= 0 (default 0: the committed assets)")
     parser.add_argument("--force", action="store_true",
                         help="write into an existing, non-empty folder: replace the files 'sample' writes, "
                              "keep every other file")
@@ -46,23 +47,31 @@ def run(args) -> int:
         check_output_file(args.picture, args.force, suffixes=(".png",), what="picture")
     noise = {"scan_noise_m": None if args.scan_noise is None else args.scan_noise * 1e-3,
              "weight_noise": args.weight_noise}
-    out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
-                           template=args.template, **noise)
+    from ..api import _new_outputs_kept_on_success
+
+    done: dict = {}
+    # the folder and the picture all or nothing, as export's outputs: a picture that failed (a full disk,
+    # Ctrl-C) left a new sample folder behind as if the run had finished
+    with _new_outputs_kept_on_success(done, folder=args.outdir, picture=args.picture):
+        out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
+                               template=args.template, **noise)
+        done["folder"] = Path(out)
+        picture = None
+        if args.picture:
+            from ..sample import build_samples
+            from ..sample.picture import render_sample_picture
+
+            data = build_samples(args.seed, args.template, **noise)
+            cap = data["capture"]
+            picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
+                                            force=args.force)
+            done["picture"] = Path(picture)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     # what this run wrote (a --force run over an older folder keeps files it does not write: not counted)
     written = [Path(out) / n for n in ("README.txt", "avatar.usda", "capture.usda", "truth")]
     written += [Path(out) / "capture"] if args.folder else []
     size = sum(f.stat().st_size for w in written for f in ([w] if w.is_file() else w.rglob("*"))
                if f.is_file())
-    picture = None
-    if args.picture:
-        from ..sample import build_samples
-        from ..sample.picture import render_sample_picture
-
-        data = build_samples(args.seed, args.template, **noise)
-        cap = data["capture"]
-        picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
-                                        force=args.force)
     if args.json:
         print(json.dumps({"ok": True, "output": json_path(out), "bytes": size, "meta": meta,
                           "picture": str(picture) if picture else None}, default=str))

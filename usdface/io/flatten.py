@@ -16,8 +16,8 @@ from ..errors import InputFileError, RigError, UsdFaceError
 from ..model import Avatar
 from .layers import PERSONALIZATION_VARIANT_SET, check_output_path
 
-__all__ = ["VARIANTS", "AS_AUTHORED", "exported_variant", "variant_stage", "read_avatar_variant",
-           "flatten_variant"]
+__all__ = ["VARIANTS", "AS_AUTHORED", "baked_variant", "exported_variant", "variant_stage",
+           "read_avatar_variant", "flatten_variant"]
 
 #: The variants of ``usdfacePersonalization``.
 VARIANTS = ("personalized", "generic")
@@ -39,13 +39,32 @@ def _personalization_prims(stage) -> list:
             if p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)]
 
 
+def baked_variant(path) -> dict | None:
+    """``{"source", "variant"}`` when ``path`` is a flattened export (``usdface export --flatten``) of a
+    usdface layer's ``personalized`` or ``generic`` variant: a file with no ``usdfacePersonalization``
+    variant set whose ``customLayerData["usdfaceFlatten"]`` records the variant baked in (``source``
+    relative to ``path``'s folder); None for a usdface layer, a plain avatar or a flattened plain avatar."""
+    from .usd_rig import _open_stage, flattened_from
+
+    path = Path(path)
+    if _personalization_prims(_open_stage(path, "layer")):
+        return None
+    baked = flattened_from(path)
+    return baked if baked and baked.get("variant") in VARIANTS else None
+
+
 def exported_variant(path, variant: str = "personalized") -> str:
-    """What exporting ``path`` with ``variant`` actually gives: ``variant`` for a usdface layer, else
-    :data:`AS_AUTHORED` ("authored": a plain avatar has no personalized variant; it exports as authored)."""
+    """What exporting ``path`` with ``variant`` actually gives: ``variant`` for a usdface layer; for a
+    flattened export of a layer, the variant baked into it (:func:`baked_variant`: its shapes are that
+    variant's, exported as authored); else :data:`AS_AUTHORED` ("authored": a plain avatar has no
+    personalized variant; it exports as authored)."""
     from .usd_rig import _open_stage
 
     _check_variant(variant)
-    return variant if _personalization_prims(_open_stage(Path(path), "layer")) else AS_AUTHORED
+    if _personalization_prims(_open_stage(Path(path), "layer")):
+        return variant
+    baked = baked_variant(path)
+    return baked["variant"] if baked else AS_AUTHORED
 
 
 def variant_stage(path, variant: str = "personalized"):
@@ -107,9 +126,14 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     flat = stage.Flatten()
     _bake_redirections(flat, targets)
     data = dict(flat.customLayerData)
-    # the variant actually baked in ("authored" for a plain avatar): personalize refuses a personalized one
-    data["usdfaceFlatten"] = {"source": _rebase(src.name, src, out),
-                              "variant": variant if _personalization_prims(stage) else AS_AUTHORED}
+    # the variant actually baked in ("authored" for a plain avatar): personalize refuses a personalized one.
+    # A flattened export flattened again keeps what the first baked in and the layer it came from (it said
+    # "authored", and personalize then took that file for an avatar and stacked the personalization again)
+    baked = None if _personalization_prims(stage) else baked_variant(src)
+    data["usdfaceFlatten"] = (
+        {"source": _rebase(baked.get("source") or src.name, src, out), "variant": baked["variant"]} if baked
+        else {"source": _rebase(src.name, src, out),
+              "variant": variant if _personalization_prims(stage) else AS_AUTHORED})
     record = data.get("usdface")
     if hasattr(record, "get") and record.get("inputs"):        # provenance paths, relative to the new file
         record = dict(record)

@@ -247,8 +247,13 @@ def avatar_mesh(avatar: Avatar, key: str, context: str = "in the avatar") -> Fac
         return avatar.mesh(key)
     except KeyError:
         meshes = ", ".join(m.key for m in avatar.meshes)
-        raise RigError(f"no mesh {key!r} {context}", path=avatar.file,
-                       fix=f"use one of {meshes}" if meshes else "pass an avatar with a face rig") from None
+        fix = f"use one of {meshes}" if meshes else "pass an avatar with a face rig"
+        static = [p for p in (avatar.metadata or {}).get("static_meshes", {})
+                  if key in (p, p.rsplit("/", 1)[-1])]
+        if static:       # it is there, without shapes (an eye bound to the skeleton): "no mesh" misled
+            raise RigError(f"mesh {key!r} has no blend shapes (a static mesh, as an eye bound to the "
+                           "skeleton only)", path=avatar.file, prim=static[0], fix=fix) from None
+        raise RigError(f"no mesh {key!r} {context}", path=avatar.file, fix=fix) from None
 
 
 def _resolve_offsets(avatar: Avatar, offsets: dict) -> list[tuple[FaceRig, object]]:

@@ -16,7 +16,7 @@ from pathlib import Path
 from ..errors import InputFileError
 from ..locks import ForkSafeLock
 
-__all__ = ["require_file", "open_usd_stage", "quiet_stderr", "tf_error_text"]
+__all__ = ["require_file", "open_usd_stage", "quiet_stderr", "tf_error_text", "diagnostic_notes"]
 
 
 def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
@@ -34,9 +34,11 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
     if stat.S_ISDIR(mode):
         if what == "avatar" and ((path / "train").is_dir() or (path / "neutral.obj").is_file()
                                  or (path / "frames").is_dir()):
-            raise InputFileError("avatar is a capture (or take) folder, not an avatar: arguments swapped?",
-                                 path=path, fix="personalize AVATAR CAPTURE: the avatar's .usd file first, "
-                                                "then the capture folder")
+            # the fix names the two-argument commands: 'arguments swapped?' alone misled 'landmarks FOLDER'
+            raise InputFileError("avatar is a capture (or take) folder, not an avatar", path=path,
+                                 fix="pass the avatar's .usd/.usda/.usdc file here (personalize, retarget: "
+                                     "arguments swapped? the avatar's .usd file first, then the capture "
+                                     "folder)")
         raise InputFileError(f"{what} is a folder, not a file", path=path, fix=fix)
     if not stat.S_ISREG(mode):
         kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
@@ -71,6 +73,21 @@ def quiet_stderr():
                 os.close(saved)
                 buf.seek(0)
                 out.append(buf.read().decode("utf-8", "replace"))
+
+
+#: One diagnostic USD printed on stderr: "Warning: in FUNCTION at line N of SOURCE -- MESSAGE".
+_TF_DIAGNOSTIC = re.compile(r"^\s*(?:Warning|Error|Coding Error|Runtime Error)[^\n]*? -- (.+)$", re.M)
+
+
+def diagnostic_notes(said: list[str], prefix: str = "USD") -> list[str]:
+    """What :func:`quiet_stderr` collected, as notes for a report: each diagnostic's message once
+    (``"USD: jointIndices element size (3) != jointWeights element size (4)."``), other non-empty lines as
+    they are; [] when nothing was printed."""
+    text = "".join(said)
+    found = [m.strip() for m in _TF_DIAGNOSTIC.findall(text)]
+    if not found:
+        found = [line.strip() for line in text.splitlines() if line.strip()]
+    return [f"{prefix}: {m[:300]}" for m in dict.fromkeys(found)]
 
 
 #: One error of a ``Tf.ErrorException``'s text: "Error in 'FUNCTION' at line N in file SOURCE : 'COMMENTARY'".

@@ -728,30 +728,36 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     predicate = Usd.TraverseInstanceProxies()
     found: dict[str, tuple] = {}  # mesh path -> (prim, skel_root, skeleton, animation)
     static: dict[str, tuple] = {}  # mesh path without blend shapes -> (prim, skinning)
-    for root_prim in roots:
-        root = UsdSkel.Root(root_prim)
-        cache.Populate(root, predicate)
-        for binding in cache.ComputeSkelBindings(root, predicate):
-            skel = binding.GetSkeleton()
-            skel_query = cache.GetSkelQuery(skel)
-            anim_query = skel_query.GetAnimQuery() if skel_query else None
-            anim = str(anim_query.GetPrim().GetPath()) if anim_query else None
-            for query in binding.GetSkinningTargets():
-                mesh_prim = query.GetPrim()
-                skinning = (query, skel.GetPrim()) if query.HasJointInfluences() else None
-                if _has_blend_shapes(mesh_prim):
-                    found.setdefault(str(mesh_prim.GetPath()), (mesh_prim, str(root_prim.GetPath()),
-                                                                str(skel.GetPath()), anim, skinning))
-                elif mesh_prim.IsA(UsdGeom.Mesh):
-                    static.setdefault(str(mesh_prim.GetPath()), (mesh_prim, skinning))
-        for prim in Usd.PrimRange(root_prim, predicate):
-            key = str(prim.GetPath())
-            if key not in found and _has_blend_shapes(prim):
-                found[key] = (prim, str(root_prim.GetPath()), None, None, None)
-                notes.append(f"{key}: blend shapes but no skeleton binding "
-                             "(no UsdSkel client will animate them)")
-            elif key not in found and prim.IsA(UsdGeom.Mesh):
-                static.setdefault(key, (prim, None))
+    from .usd_open import diagnostic_notes, quiet_stderr
+
+    # UsdSkel's own warnings on malformed bindings (joint influences of another size or interpolation)
+    # were printed on the terminal, C++ lines before usdface's one-line answer: kept as the reader's notes
+    with quiet_stderr() as said:
+        for root_prim in roots:
+            root = UsdSkel.Root(root_prim)
+            cache.Populate(root, predicate)
+            for binding in cache.ComputeSkelBindings(root, predicate):
+                skel = binding.GetSkeleton()
+                skel_query = cache.GetSkelQuery(skel)
+                anim_query = skel_query.GetAnimQuery() if skel_query else None
+                anim = str(anim_query.GetPrim().GetPath()) if anim_query else None
+                for query in binding.GetSkinningTargets():
+                    mesh_prim = query.GetPrim()
+                    skinning = (query, skel.GetPrim()) if query.HasJointInfluences() else None
+                    if _has_blend_shapes(mesh_prim):
+                        found.setdefault(str(mesh_prim.GetPath()), (mesh_prim, str(root_prim.GetPath()),
+                                                                    str(skel.GetPath()), anim, skinning))
+                    elif mesh_prim.IsA(UsdGeom.Mesh):
+                        static.setdefault(str(mesh_prim.GetPath()), (mesh_prim, skinning))
+            for prim in Usd.PrimRange(root_prim, predicate):
+                key = str(prim.GetPath())
+                if key not in found and _has_blend_shapes(prim):
+                    found[key] = (prim, str(root_prim.GetPath()), None, None, None)
+                    notes.append(f"{key}: blend shapes but no skeleton binding "
+                                 "(no UsdSkel client will animate them)")
+                elif key not in found and prim.IsA(UsdGeom.Mesh):
+                    static.setdefault(key, (prim, None))
+    notes += diagnostic_notes(said, "UsdSkel")
     if not found:
         names = ", ".join(str(r.GetPath()) for r in roots)
         raise RigError(f"no mesh with blend shapes under the SkelRoot(s) {names}", path=path,
@@ -894,7 +900,8 @@ def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:
 def read_layer_info(path) -> dict:
     """What a USD file says about itself, for reports: the root layer's authored stage metadata, sublayers,
     documentation, ``customLayerData["usdface"]`` (plain Python values), the prims that carry a usdface API
-    schema (with that schema's authored attribute values) and the variant selections of usdface variant sets.
+    schema (with that schema's authored attribute values), the variant selections of usdface variant sets
+    and, for a ``usdface export --flatten`` file, what it baked in (``flattened``: ``source``, ``variant``).
     """
     from pxr import Usd
 
@@ -920,9 +927,11 @@ def read_layer_info(path) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
+    flattened = _plain(dict(root.customLayerData).get("usdfaceFlatten", {}))
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": usdface_data, "schemas": schemas_found,
-            "variants": variants}
+            "variants": variants,
+            "flattened": flattened if isinstance(flattened, dict) and flattened.get("variant") else {}}
 
 
 def _plain(value):

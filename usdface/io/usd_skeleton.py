@@ -31,6 +31,7 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     skins one skeleton per mesh; usdface avatars have one)."""
     from pxr import Usd, UsdGeom, UsdSkel
 
+    from .usd_open import quiet_stderr
     from .usd_rig import stage_to_internal
 
     if stage is None:
@@ -54,20 +55,28 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     xf = UsdGeom.XformCache(Usd.TimeCode.Default())
     rest_world = _to_internal(query.ComputeJointWorldTransforms(xf, True), c)
     bind = skel.GetBindTransformsAttr().Get()
-    bind_world = _to_internal(bind, c) if bind else rest_world.copy()
+    # the bind transforms are in the skeleton's space (UsdSkel skins with inv(bind) @ the joints' skeleton-
+    # space transforms), the joints' world transforms above include the Skeleton prim's own transform: the
+    # bind transforms get it too, so a rest pose equal to the bind pose leaves the points where they are.
+    # Without it, a skeleton under a scaled or turned prim (Blender's export: 0.01 and Z up) made every
+    # glTF viewer draw the skinned avatar a hundredth of its size and turned 90 degrees
+    skel_world = xf.GetLocalToWorldTransform(skel.GetPrim())
+    bind_world = _to_internal([b * skel_world for b in bind], c) if bind else rest_world.copy()
     rest_local = np.array([rest_world[j] if p < 0 else np.linalg.inv(rest_world[p]) @ rest_world[j]
                            for j, p in enumerate(parents)])
     influences = {}
     skel_root = avatar.meshes[0].source.skel_root
     root = stage.GetPrimAtPath(skel_root) if skel_root else None
-    if root:
-        cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
+    if root:      # UsdSkel's warnings on malformed influences: the avatar's reader kept them as notes
+        with quiet_stderr():
+            cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
     meshes = [(rig.name, rig.source.prim, rig.n_vertices) for rig in avatar.meshes if rig.source]
     meshes += [(prim.rsplit("/", 1)[-1], prim, len(points))
                for prim, (points, _) in sorted(avatar.metadata.get("static_meshes", {}).items())]
     for name, prim_path, n_vertices in meshes:
         prim = stage.GetPrimAtPath(prim_path)
-        sq = cache.GetSkinningQuery(prim) if prim else None
+        with quiet_stderr():
+            sq = cache.GetSkinningQuery(prim) if prim else None
         if not sq or not sq.HasJointInfluences():
             continue
         res = sq.ComputeJointInfluences()

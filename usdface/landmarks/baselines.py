@@ -33,8 +33,15 @@ def moving_vertices(deltas: np.ndarray, threshold: float = MOVING) -> np.ndarray
 def empirical_layout(indices, n_vertices: int) -> np.ndarray:
     """A given vertex-index layout, validated against ``n_vertices`` -> sorted unique ``[m]``."""
     v = np.unique(np.asarray(indices, dtype=np.int64))
-    if v.size == 0 or v.min() < 0 or v.max() >= n_vertices:
-        raise LandmarkError(f"empirical layout indices out of range for a mesh of {n_vertices} vertices",
+    if v.size == 0:               # it said 'out of range' of an empty list
+        raise LandmarkError("empirical layout lists no vertex index",
+                            fix="give the layout's vertex indices (a JSON list of ints, or ICT-FaceKit's "
+                                "vertex_indices.json)")
+    bad = v[(v < 0) | (v >= n_vertices)]
+    if bad.size:
+        shown = ", ".join(str(int(i)) for i in bad[:5]) + (f" (+{bad.size - 5})" if bad.size > 5 else "")
+        raise LandmarkError(f"empirical layout indices out of range for a mesh of {n_vertices} vertices "
+                            f"(0..{n_vertices - 1}): {shown}",
                             fix="use the layout of the mesh it was made for (e.g. ICT-FaceKit's on Head)")
     return v
 

@@ -94,6 +94,11 @@ def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]
     if static and not ignore_static:
         raise LandmarkError(f"shape(s) moving no vertex: {', '.join(static)}", **where,
                             fix="remove or fix these shapes, or pass --skip-static to leave them out")
+    if len(static) == rig.n_shapes:  # --skip-static left nothing to cover (an IndexError deep in sampling)
+        raise LandmarkError(f"every shape of mesh {rig.name or '?'} moves no vertex ({', '.join(static)}): "
+                            "no landmark can represent any (normal offsets alone, or all-zero offsets?)",
+                            **where, fix="pick a mesh whose shapes move its points (--mesh), or fix the "
+                                         "shapes' offsets")
     return mag, static
 
 

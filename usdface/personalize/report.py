@@ -15,7 +15,7 @@ from ..progress import steps
 from .api import METHODS, fit_personalized_shapes
 from .evaluate import error_colors, evaluate_rig, truth_error
 
-__all__ = ["evaluate_methods", "plot_errors", "write_report_json"]
+__all__ = ["check_method_options", "evaluate_methods", "plot_errors", "write_report_json"]
 
 
 #: The runs a method stands for in the comparison: ``(report key, method, options)``. Each method is shown
@@ -34,6 +34,29 @@ _TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
           "laplacian": ("reg", "prior", "align", "reweight", "eyelids", "contact")}
 
 
+#: The command line's spelling of each fit option, for the refusal of one no chosen method uses.
+_FLAGS = {"reg": "--reg", "prior": "--prior", "align": "--no-align", "reweight": "--no-reweight",
+          "contact": "--contact", "eyelids": "--no-eyelids"}
+
+
+def check_method_options(methods, fit_options: dict) -> None:
+    """Refuse (FitError, before any fitting) an unknown method, no method, and a fit option that none of
+    ``methods`` takes (``--methods dt --reg 0.5``: the number was ignored and the table looked like its
+    answer). ``None`` and the defaults (``reg``/``contact`` "auto") count as not given."""
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise FitError(f"unknown method(s) in --methods: {', '.join(bad) or '(none)'}",
+                       fix=f"use a comma-separated subset of {','.join(METHODS)}")   # an option, not the file
+    given = [k for k, v in fit_options.items()
+             if k in _FLAGS and v is not None and not (k in ("reg", "contact") and v == "auto")]
+    unused = [k for k in given if not any(k in _TAKES[m] for m in methods)]
+    if unused:
+        users = [m for m in METHODS if all(k in _TAKES[m] for k in unused)]
+        named = ", ".join(f"{_FLAGS[k]} ({k}={fit_options[k]!r})" for k in unused)
+        raise FitError(f"{named} not used by --methods {','.join(methods)} (it would be ignored)",
+                       fix=f"drop it, or add {' or '.join(users) or 'a method that uses it'} to --methods")
+
+
 def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, variants: bool = True,
                      **fit_options) -> dict:
     """Fit and score ``methods`` on ``capture``.
@@ -47,10 +70,7 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
     Returns ``{"labels": [F], "methods": {name: {"rmse_mm": [F], "max_mm": [F], "mean_rmse_mm",
     "mean_max_mm", "truth_rmse_mm", "seconds", "info"}}, "_maps": {...}}`` (``_maps`` feeds the USD writer).
     """
-    bad = [m for m in methods if m not in METHODS]
-    if bad or not methods:
-        raise FitError(f"unknown method(s) in --methods: {', '.join(bad) or '(none)'}",
-                       fix=f"use a comma-separated subset of {','.join(METHODS)}")   # an option, not the file
+    check_method_options(methods, fit_options)
     test = capture.test
     order = None
     if truth is not None:
@@ -128,7 +148,11 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
         ax.set_title(title)
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(ncol=len(methods))
-    axes[1].set_xticks(x, [str(i + 1) for i in range(len(labels))])
+    # the frames' own labels, as the JSON report and the error maps' prims name them (it numbered them from
+    # 1: the JSON's '003' was the plot's 4)
+    long = max((len(str(lab)) for lab in labels), default=0) > 4
+    axes[1].set_xticks(x, [str(lab) for lab in labels], rotation=90 if long else 0,
+                       fontsize="small" if long else None)
     axes[1].set_xlabel("test expression")
     fig.tight_layout()
     with atomic_file(path, force=force) as tmp:

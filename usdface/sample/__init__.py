@@ -80,8 +80,11 @@ def artist_fields(generic: dict[str, list[dict]], seed: int) -> dict[str, list[d
     return out
 
 
-def _check_options(template: str, scan_noise_m, weight_noise) -> None:
-    """ValueError for a template not in :data:`TEMPLATES` or a negative noise (None: the default)."""
+def _check_options(template: str, scan_noise_m, weight_noise, seed=0) -> None:
+    """ValueError for a template not in :data:`TEMPLATES`, a negative noise (None: the default) or a seed that
+    is not a whole number >= 0 (numpy's generator takes no other; a negative one failed deep inside it)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a whole number >= 0, not {seed!r}")
     if template not in TEMPLATES:
         raise ValueError(f"template must be one of {TEMPLATES}, not {template!r}")
     if not all(v is None or float(v) >= 0 for v in (scan_noise_m, weight_noise)):
@@ -108,7 +111,7 @@ def build_samples(seed: int = 0, template: str = "generic", *, scan_noise_m: flo
     ``template``: one of :data:`TEMPLATES`; ``scan_noise_m`` (m per coordinate) and ``weight_noise`` (std of
     the phone's weights): None keeps :class:`SampleParams`' (the committed sample's 0.1 mm and 0.01; dev2's
     scan regime is about 0.15 mm and 0.03)."""
-    _check_options(template, scan_noise_m, weight_noise)
+    _check_options(template, scan_noise_m, weight_noise, seed)
     scan_noise = SampleParams.scan_noise_m if scan_noise_m is None else float(scan_noise_m)
     weight_sigma = SampleParams.weight_noise if weight_noise is None else float(weight_noise)
     rng = np.random.default_rng(seed)
@@ -258,7 +261,7 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
     from ..io.usd_capture import write_capture_usd
     from ..progress import steps
 
-    _check_options(template, scan_noise_m, weight_noise)
+    _check_options(template, scan_noise_m, weight_noise, seed)
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
     with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
         p.start("build avatar and capture")
