@@ -23,6 +23,8 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from .namelist import name_list
+
 if TYPE_CHECKING:  # pragma: no cover
     from .io.livelink import LiveLinkTake
     from .io.take import Take
@@ -438,10 +440,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     ``options`` go to the fit (``reg``, ``prior``, ...). Raises :class:`~usdface.errors.FitError` if the
     capture has no test frames."""
     from .io.atomic import check_output_file
+    from .personalize.report import METHODS
     from .personalize.report import evaluate_methods as _evaluate
 
-    if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
-        methods = [m.strip() for m in methods.split(",") if m.strip()]
+    methods = name_list(methods, "methods", "method", fix=f"name some of {', '.join(METHODS)}")
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
