@@ -404,3 +404,20 @@ def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert f"nothere.usda: {said}" in err, err
+
+
+def test_usdface_alone_prints_its_usage_on_stderr_and_exits_2(tmp_path, capsys):
+    """``usdface`` without a command printed the help on stdout and exited 0, so a script's ``usdface $CMD``
+    with ``$CMD`` unset passed; now a usage error (exit 2, as ``usdface capture`` alone); ``--help``: 0."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as code:
+        main([])
+    out, err = capsys.readouterr()
+    assert code.value.code == 2 and out == ""
+    assert err.startswith("usage: usdface ") and "required: COMMAND (see 'usdface --help')" in err
+    res = _usdface(cwd=tmp_path)
+    assert (res.returncode, res.stdout) == (2, "") and "usage: usdface " in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    res = _usdface("--help", cwd=tmp_path)
+    assert res.returncode == 0 and "personalize" in res.stdout and res.stderr == ""

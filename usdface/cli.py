@@ -40,7 +40,8 @@ def parsed_argv() -> list[str]:
 
 class _Parser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2; with
-    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
+    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout; with no command
+    (``usdface`` alone) the usage line before it."""
 
     def error(self, message):
         argv = parsed_argv()
@@ -51,7 +52,8 @@ class _Parser(argparse.ArgumentParser):
             print(json.dumps({"ok": False, "error": {
                 "command": command, "type": "UsageError", "message": message, "file": None, "prim": None,
                 "fix": f"see '{self.prog} --help'"}}))
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+        usage = self.format_usage() if command is None and self._subparsers is not None else ""
+        self.exit(2, f"{usage}{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,7 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Personalized ARKit facial blendshapes from a phone capture, written as a USD layer.")
     parser.add_argument("--version", action="version", version=f"usdface {__version__}")
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    # required: 'usdface' alone is a usage error (exit 2, as 'usdface capture' alone); it printed the help on
+    # stdout and exited 0, so a script's 'usdface $CMD' with $CMD unset passed
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         try:
             mod = importlib.import_module(f"usdface.commands.{name}")
@@ -231,9 +235,6 @@ def _main(argv=None, program: bool = False) -> int:
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 0
     from .commands import reset_warnings
 
     reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
