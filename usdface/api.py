@@ -1012,23 +1012,34 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     return report
 
 
+def _row_error(item, exc, manifest, fix: str):
+    """A row's path refused (``exc``) as the manifest's error: the row, the file, what is wrong, the fix."""
+    from .errors import InputFileError
+
+    named = f"{exc.path}: " if exc.path else ""
+    return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
+
+
 def _batch_preflight(items, worker, manifest):
-    """Every row's options, output's place and avatar checked before any item runs (the default worker);
-    returns the worker function."""
+    """Every row checked before any item runs (the default worker): its output (a layer's extension, not a
+    folder, a place it can be written, no input), its options, its inputs (:func:`usdface.pipeline.batch.
+    check_item_inputs`: present, readable, of the kind read) and an avatar not already personalized; a
+    bad last row failed only at its turn, after the rows before it had run. Returns the worker function."""
     from .pipeline.batch import load_worker, personalize_worker
 
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
-        from .io.atomic import check_writable
+        from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
+        from .pipeline.batch import check_item_inputs
 
         for item in items:
-            try:
-                check_writable(item.output, what="output layer")
+            try:                       # an existing output is resume's (skipped, or redone with force)
+                check_output_path(item.output, True, inputs=personalize_inputs(
+                    item.avatar, item.capture, **item.options))
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
-                                     fix=exc.fix or "fix the manifest's output column") from None
+                raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
                 check_personalize_options(**item.options)
             except UsdFaceError as exc:
@@ -1038,6 +1049,10 @@ def _batch_preflight(items, worker, manifest):
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            try:                       # what the item's readers would refuse, after the rows before it ran
+                check_item_inputs(item)
+            except UsdFaceError as exc:
+                raise _row_error(item, exc, manifest, "fix the manifest's path columns") from None
             try:              # a row whose avatar is already personalized (a usdface layer, its export)
                 refuse_usdface_output(item.avatar)
             except UsdFaceError as exc:
