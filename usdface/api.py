@@ -39,6 +39,13 @@ if TYPE_CHECKING:  # pragma: no cover
 
 PathLike = str | Path
 
+
+def _written(path: PathLike) -> Path:
+    """A written output as every function here returns it: an absolute ``Path`` (symlinks kept, ``..`` left
+    as given, as the layer writers return theirs). Some returned the path as given (``out/x.usda``), others
+    absolute, one function both (``evaluate_methods``' JSON and plot as given, its USD absolute)."""
+    return Path(path).absolute()
+
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "landmark_diagnostics", "read_avatar", "pick_mesh", "read_capture", "write_capture",
@@ -122,10 +129,10 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     if out.suffix.lower() in (".usda", ".usdc", ".usd"):
         from .io.usd_capture import write_capture_usd
 
-        return Path(write_capture_usd(capture, out, force=force, exact=exact))
+        return _written(write_capture_usd(capture, out, force=force, exact=exact))
     from .io.capture_folder import write_capture_folder
 
-    return Path(write_capture_folder(capture, out, force=force))
+    return _written(write_capture_folder(capture, out, force=force))
 
 
 def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = False, *,
@@ -273,7 +280,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
                                   curves={**data.angles, **data.extra}, force=force,
                                   layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
                                               "version": __version__})
-    return Path(out), data
+    return _written(out), data
 
 
 def _as_capture(capture) -> Capture:
@@ -380,8 +387,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     if capture is not None:
         data["capture"] = _relative_to_layer(capture, out)
         data["captureDigest"] = file_digest(capture)
-    return Path(write_rig_usd(getattr(fit, "rig", fit), out, meters_per_unit=1.0, root="/Capture",
-                              force=force, layer_data={"usdface": data}))
+    return _written(write_rig_usd(getattr(fit, "rig", fit), out, meters_per_unit=1.0, root="/Capture",
+                                  force=force, layer_data={"usdface": data}))
 
 
 
@@ -484,16 +491,16 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             if json_path:
                 from .personalize.report import write_report_json
 
-                outputs["json"] = Path(write_report_json(report, json_path, force=force))
+                outputs["json"] = _written(write_report_json(report, json_path, force=force))
             if plot_path:
                 from .personalize.report import plot_errors
 
-                outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
+                outputs["plot"] = _written(plot_errors(report, plot_path, force=force))
             if usd_path:
                 from .io.usd_error_maps import write_error_maps_usd
 
-                outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
-                                                           force=force))
+                outputs["usd"] = _written(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
+                                                               force=force))
     report["_outputs"] = outputs
     return report
 
@@ -762,7 +769,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     written (atomically; an existing file needs ``force``)."""
     from .io.usd_landmarks import write_landmark_layer
 
-    return Path(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
+    return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
 def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Sequence[PathLike], *,
@@ -871,7 +878,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
-    result.out_path = Path(out)       # the map written (a layer's path for personalize_avatar)
+    result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
 
 
@@ -1008,7 +1015,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         if partial is not None:
             partial.write(path)
         raise
-    report.report_path = Path(report.write(path))
+    report.report_path = _written(report.write(path))
     return report
 
 
@@ -1197,7 +1204,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         page = build_review_html(data)
         p.start(f"write {out.name}")
         written = write_text_atomic(out, page, force=force)
-    return written
+    return _written(written)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
@@ -1216,7 +1223,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     Every output is checked before any work (an existing one needs ``force``) and written atomically, and
     the set is all or nothing for new outputs: when a later one fails (a full disk, Ctrl-C), the ones this
     call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
-    Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
+    Returns {"gltf"|"obj_dir"|"flatten": path written, absolute}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import OptionError, UsdFaceError
@@ -1284,7 +1291,7 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
             extras = {"usdface": {"source": Path(layer_path).name,
                                   "variant": exported_variant(layer_path, variant)}}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, force=force)
-            done["gltf"] = Path(gltf)
+            done["gltf"] = _written(gltf)
         if obj_dir:
             with replace_dir_atomically(obj_dir, force=force) as tmp:
                 for rig in rigs:
@@ -1293,10 +1300,10 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
                     write_obj(folder / "neutral.obj", rig.neutral, rig.triangles)
                     for name, delta in zip(rig.names, rig.deltas, strict=True):
                         write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles)
-            done["obj_dir"] = Path(obj_dir)
+            done["obj_dir"] = _written(obj_dir)
     if flatten:
         flatten_variant(layer_path, flatten, variant, force=force)
-        done["flatten"] = Path(flatten)                 # as given, as the others (it came back absolute)
+        done["flatten"] = _written(flatten)
 
 
 @contextlib.contextmanager
