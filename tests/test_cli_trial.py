@@ -348,9 +348,12 @@ def test_export_of_a_plain_avatar_says_as_authored(sample_dir, personalized_samp
 def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
     import os
 
+    # captures that pass the batch's check of every row (present, readable, USD) and fail in the reader: a
+    # missing file no longer runs at all (the batch refuses the manifest before its first item)
+    (tmp_path / "broken.usda").write_text("not USD\n")
     (tmp_path / "m.csv").write_text("avatar,capture,output\n"
-                                    f"{tmp_path / 'missing.usda'},{sample_dir / 'capture.usda'},bad.usda\n"
-                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'nope'},bad2.usda\n")
+                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'broken.usda'},bad.usda\n"
+                                    f"{sample_dir / 'avatar.usda'},{sample_dir / 'avatar.usda'},bad2.usda\n")
     env = dict(os.environ, USDFACE_PROGRESS="plain", USDFACE_PROGRESS_DELAY="0")
     exe = Path(sys.executable).with_name("usdface")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
