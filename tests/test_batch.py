@@ -800,3 +800,23 @@ def test_a_bad_last_row_stops_the_batch_before_the_first_item(tmp_path, capsys, 
     err = capsys.readouterr().err
     assert "people.json: item 3: " in err and said in err and "(fix: " in err, err
     assert not (tmp_path / "out").exists() and not (tmp_path / "people.report.json").exists()
+
+
+def test_a_forced_row_writing_a_layer_its_avatar_composes_stops_the_batch_before_the_first_item(tmp_path,
+                                                                                                capsys):
+    """A row whose output is a layer its avatar sublayers (``--force``: it would be overwritten) ran the
+    rows before it and failed at its turn; refused up front now, as ``usdface personalize`` refuses it."""
+    import shutil
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    for name, copy in (("avatar.usda", "base.usda"), ("avatar.usda", "avatar.usda"),
+                       ("capture.usda", "capture.usda")):
+        shutil.copy(root / name, tmp_path / copy)
+    (tmp_path / "wrapper.usda").write_text('#usda 1.0\n(\n    subLayers = [@./base.usda@]\n)\n')
+    (tmp_path / "m.csv").write_text("avatar,capture,output\navatar.usda,capture.usda,out/first.usda\n"
+                                    "wrapper.usda,capture.usda,base.usda\n")
+    before = (tmp_path / "base.usda").read_bytes()
+    assert main(["batch", str(tmp_path / "m.csv"), "-j", "1", "-q", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "item 2: " in err and "base.usda" in err and "a layer the input" in err, err
+    assert not (tmp_path / "out").exists() and (tmp_path / "base.usda").read_bytes() == before

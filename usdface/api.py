@@ -999,7 +999,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
                       fix="pass --report PATH in a folder you can write to")
     try:
-        run = _batch_preflight(items, worker, manifest)
+        run = _batch_preflight(items, worker, manifest, force)
     except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
         from .pipeline.batch import FAILED, BatchReport, ItemResult
 
@@ -1027,7 +1027,7 @@ def _row_error(item, exc, manifest, fix: str):
     return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
 
 
-def _batch_preflight(items, worker, manifest):
+def _batch_preflight(items, worker, manifest, force: bool = False):
     """Every row checked before any item runs (the default worker): its output (a layer's extension, not a
     folder, a place it can be written, no input), its options, its inputs (:func:`usdface.pipeline.batch.
     check_item_inputs`: present, readable, of the kind read) and an avatar not already personalized; a
@@ -1042,9 +1042,12 @@ def _batch_preflight(items, worker, manifest):
         from .pipeline.batch import check_item_inputs
 
         for item in items:
-            try:                       # an existing output is resume's (skipped, or redone with force)
+            # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
+            # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
+            written = force or not os.path.lexists(item.output)
+            try:
                 check_output_path(item.output, True, inputs=personalize_inputs(
-                    item.avatar, item.capture, **item.options))
+                    item.avatar, item.capture, **item.options) if written else ())
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
