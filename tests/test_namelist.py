@@ -60,9 +60,11 @@ def test_api_evaluate_methods_refuses_a_list_naming_no_method(samples, tmp_path)
 @pytest.mark.parametrize("argv, said", [
     (["check", "{avatar}", "--rules", " , "], "--rules ' , ' names no rule"),
     (["render", "{avatar}", "-o", "{out}", "--shapes", ","], "--shapes ',' names no shape"),
+    (["evaluate", "{capture}", "--methods", " ,", "--plot", "{out}"], "--methods ' ,' names no method"),
 ])
 def test_commands_refuse_an_option_naming_nothing(samples, tmp_path, capsys, argv, said):
-    argv = [a.format(avatar=samples / "avatar.usda", out=tmp_path / "x.png") for a in argv]
+    argv = [a.format(avatar=samples / "avatar.usda", capture=samples / "capture.usda", out=tmp_path / "x.png")
+            for a in argv]
     assert main(argv) == 2
     assert said in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
