@@ -434,3 +434,55 @@ def test_plots_leave_the_hosts_matplotlib_backend_and_figures_alone(capture, ava
     finally:
         plt.close("all")
         plt.switch_backend(before)
+
+
+def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
+    """Given relative output paths, some functions returned them as given (``write_capture``,
+    ``write_fit_rig``, ``write_review``, ``export_avatar``, ``write_retarget_map``, ``import_livelink_take``,
+    ``evaluate_methods``' JSON and plot), others absolute (``personalize_avatar``, ``write_landmarks``,
+    ``evaluate_methods``' USD): a host that changed folder afterwards found the wrong file. Every one is an
+    absolute Path now (docs/api.md)."""
+    import json
+    import shutil
+    import warnings
+    from pathlib import Path
+
+    from usdface.io.livelink import write_livelink_csv
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(samples / name, tmp_path / name)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").mkdir()
+    got = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got["personalize_avatar"] = api.personalize_avatar("avatar.usda", "capture.usda",
+                                                           "out/p.usda").out_path
+        capture = api.read_capture("capture.usda")
+        got["write_capture"] = api.write_capture(capture, "out/c.usda", source="capture.usda")
+        got["write_capture folder"] = api.write_capture(capture, "out/cap", source="capture.usda")
+        got["import_capture_folder"] = api.import_capture_folder("out/cap", "out/imported.usda")
+        fit = api.fit_capture(capture, method="dt", out_path="out/fit.usda")
+        got["fit_capture"] = fit.info["out_path"]
+        got["write_fit_rig"] = api.write_fit_rig(fit, "out/fit2.usda")
+        report = api.evaluate_methods("capture.usda", "dt", json_path="out/e.json", plot_path="out/e.png",
+                                      usd_path="out/e.usda")
+        got.update({f"evaluate_methods {k}": v for k, v in report["_outputs"].items()})
+        got["write_retarget_map"] = api.write_retarget_map("avatar.usda", "capture.usda",
+                                                           "out/m.json").out_path
+        avatar = api.read_avatar("avatar.usda")
+        rig = api.pick_mesh(avatar)
+        got["write_landmarks"] = api.write_landmarks(avatar, rig, api.compute_landmarks(rig), "out/lm.usda")
+        write_livelink_csv(tmp_path / "t.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+        got["import_livelink_take"] = api.import_livelink_take("t.csv", "out/t.usda")[0]
+        got["write_review"] = api.write_review("out/p.usda", "out/r.html", fit_errors=False)
+        got.update({f"export_avatar {k}": v for k, v in api.export_avatar(
+            "out/p.usda", gltf="out/x.glb", obj_dir="out/objs", flatten="out/f.usdc").items()})
+        (tmp_path / "m.json").write_text(json.dumps([{"avatar": "avatar.usda", "capture": "capture.usda",
+                                                      "output": "out/p.usda"}]))
+        got["personalize_batch"] = api.personalize_batch("m.json", jobs=1,
+                                                         report_path="out/b.json").report_path
+    assert len(got) == 17
+    wrong = {k: v for k, v in got.items() if not (isinstance(v, Path) and v.is_absolute() and v.exists()
+                                                  and v.parent.parent == tmp_path)}
+    assert not wrong, wrong

@@ -692,7 +692,8 @@ def test_an_output_that_cannot_be_written_stops_the_batch_before_any_item(tmp_pa
     try:
         assert main(["batch", str(manifest), "-j", "1", "-q"]) == 2
         err = capsys.readouterr().err
-        assert "item 2: output layer cannot be written in" in err and "immutable" in err, err
+        assert f"item 2: {locked / 'second.usda'}: output layer cannot be written in" in err, err
+        assert "immutable" in err, err
         assert not (tmp_path / "first.usda").exists()                      # no item ran
     finally:
         subprocess.run(["chattr", "-i", str(locked)])
@@ -762,3 +763,60 @@ def test_a_batch_items_progress_line_says_its_own_time(tmp_path, monkeypatch, ca
     err = capsys.readouterr().err
     took = [float(t) for t in re.findall(r"batch \[\d/2\] [ab]\.usda done \(([\d.]+) s\)", err)]
     assert len(took) == 2 and min(took) >= 0.9, took
+
+
+@pytest.mark.parametrize("column, value, said", [
+    ("avatar", "missing.usda", "missing.usda: avatar not found"),
+    ("avatar", "folder.usda", "folder.usda: avatar is a folder, not a file"),
+    ("avatar", "notes.txt", "notes.txt: avatar is not a USD file"),
+    ("capture", "missing_capture", "missing_capture: capture not found"),
+    ("capture", "take.csv", "take.csv: a Live Link Face CSV: a take of weights only"),
+    ("capture", "empty_folder", "empty_folder: missing neutral.obj"),
+    ("output", "out/last.txt", "last.txt: output layer must end in .usda or .usdc or .usd"),
+    ("output", "folder.usda", "folder.usda: output layer path is a folder"),
+    ("pins", "missing_pins.json", "missing_pins.json: pins file not found"),
+    ("name_map", "folder.usda", "folder.usda: name map is a folder, not a file"),
+    ("take", "missing_take.csv", "missing_take.csv: take not found"),
+])
+def test_a_bad_last_row_stops_the_batch_before_the_first_item(tmp_path, capsys, column, value, said):
+    """User trial: a manifest whose last row named a missing avatar, a capture that is no capture, an output
+    that is a folder or not a layer... ran every row before it (minutes each) and failed that row at its
+    turn; now the batch is refused before the first item, naming the row, the file and the fix, and nothing
+    is written (no output, no report)."""
+    import shutil
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(root / name, tmp_path / name)
+    (tmp_path / "folder.usda").mkdir()
+    (tmp_path / "empty_folder").mkdir()
+    (tmp_path / "notes.txt").write_text("not USD\n")
+    (tmp_path / "take.csv").write_text("Timecode,BlendShapeCount,jawOpen\n")
+    rows = [{"avatar": "avatar.usda", "capture": "capture.usda", "output": f"out/{n}.usda"} for n in "ab"]
+    rows.append({**rows[0], "output": "out/last.usda", column: value})
+    manifest = tmp_path / "people.json"
+    manifest.write_text(json.dumps(rows))
+    assert main(["batch", str(manifest), "-j", "1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "people.json: item 3: " in err and said in err and "(fix: " in err, err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "people.report.json").exists()
+
+
+def test_a_forced_row_writing_a_layer_its_avatar_composes_stops_the_batch_before_the_first_item(tmp_path,
+                                                                                                capsys):
+    """A row whose output is a layer its avatar sublayers (``--force``: it would be overwritten) ran the
+    rows before it and failed at its turn; refused up front now, as ``usdface personalize`` refuses it."""
+    import shutil
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    for name, copy in (("avatar.usda", "base.usda"), ("avatar.usda", "avatar.usda"),
+                       ("capture.usda", "capture.usda")):
+        shutil.copy(root / name, tmp_path / copy)
+    (tmp_path / "wrapper.usda").write_text('#usda 1.0\n(\n    subLayers = [@./base.usda@]\n)\n')
+    (tmp_path / "m.csv").write_text("avatar,capture,output\navatar.usda,capture.usda,out/first.usda\n"
+                                    "wrapper.usda,capture.usda,base.usda\n")
+    before = (tmp_path / "base.usda").read_bytes()
+    assert main(["batch", str(tmp_path / "m.csv"), "-j", "1", "-q", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "item 2: " in err and "base.usda" in err and "a layer the input" in err, err
+    assert not (tmp_path / "out").exists() and (tmp_path / "base.usda").read_bytes() == before

@@ -348,9 +348,12 @@ def test_export_of_a_plain_avatar_says_as_authored(sample_dir, personalized_samp
 def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
     import os
 
+    # captures that pass the batch's check of every row (present, readable, USD) and fail in the reader: a
+    # missing file no longer runs at all (the batch refuses the manifest before its first item)
+    (tmp_path / "broken.usda").write_text("not USD\n")
     (tmp_path / "m.csv").write_text("avatar,capture,output\n"
-                                    f"{tmp_path / 'missing.usda'},{sample_dir / 'capture.usda'},bad.usda\n"
-                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'nope'},bad2.usda\n")
+                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'broken.usda'},bad.usda\n"
+                                    f"{sample_dir / 'avatar.usda'},{sample_dir / 'avatar.usda'},bad2.usda\n")
     env = dict(os.environ, USDFACE_PROGRESS="plain", USDFACE_PROGRESS_DELAY="0")
     exe = Path(sys.executable).with_name("usdface")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
@@ -404,3 +407,20 @@ def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert f"nothere.usda: {said}" in err, err
+
+
+def test_usdface_alone_prints_its_usage_on_stderr_and_exits_2(tmp_path, capsys):
+    """``usdface`` without a command printed the help on stdout and exited 0, so a script's ``usdface $CMD``
+    with ``$CMD`` unset passed; now a usage error (exit 2, as ``usdface capture`` alone); ``--help``: 0."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as code:
+        main([])
+    out, err = capsys.readouterr()
+    assert code.value.code == 2 and out == ""
+    assert err.startswith("usage: usdface ") and "required: COMMAND (see 'usdface --help')" in err
+    res = _usdface(cwd=tmp_path)
+    assert (res.returncode, res.stdout) == (2, "") and "usage: usdface " in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    res = _usdface("--help", cwd=tmp_path)
+    assert res.returncode == 0 and "personalize" in res.stdout and res.stderr == ""

@@ -327,6 +327,6 @@ def test_a_fit_in_a_child_forked_while_another_thread_sets_the_blas_limit():
         with api.one_blas_thread():
             pass
 
-    assert child_finishes(block, lambda: api._BLAS_LOCK), \
+    assert child_finishes(block, lambda: api._ONE_BLAS_THREAD._lock), \
         "the forked child waited for good on the BLAS limit's lock"
 

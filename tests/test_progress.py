@@ -165,7 +165,7 @@ def test_on_a_terminal_it_is_a_bar(tmp_path):
     err = b"".join(chunks).decode(errors="replace")
     assert "\x1b[" in err and "fit: " in err and "3/3" in err
     assert "usdface: fit [" not in err  # not the plain lines
-    assert out.startswith("wrote f.usda")
+    assert out.startswith(f"wrote {tmp_path / 'f.usda'}")       # the API's path: absolute
 
 
 # ----------------------------------------------------------------------------------------- the commands
@@ -181,7 +181,7 @@ def test_subprocess_log_gets_plain_lines(tmp_path):
     assert "usdface: capture import [1/2] read capture.usda ... (t+0.0 s)" in lines
     assert any(ln.startswith("usdface: capture import [2/2] write c.usda ...") for ln in lines)
     assert "\x1b" not in proc.stderr
-    assert proc.stdout.startswith("wrote c.usda")
+    assert proc.stdout.startswith(f"wrote {tmp_path / 'c.usda'}")
 
 
 def test_fit_names_its_steps_and_json_or_quiet_silence_them(capsys, tmp_path):

@@ -314,9 +314,10 @@ def test_api_arguments_of_the_wrong_kind_are_refused_with_the_fix(tmp_path):
     assert "fit_capture" in err.value.fix and not (tmp_path / "o.usda").exists()
 
 
-def test_export_names_every_output_as_given(tmp_path, monkeypatch):
+def test_export_names_every_output_the_same_way(tmp_path, monkeypatch):
     """``usdface export LAYER --obj-dir d --flatten f.usda`` printed ``obj_dir: d`` but ``flatten:
-    /abs/.../f.usda`` (export_avatar returned the flattened file absolute, the others as given)."""
+    /abs/.../f.usda`` (export_avatar returned the flattened file absolute, the others as given); every output
+    comes back absolute now, as from every API function (docs/api.md)."""
     from usdface.api import export_avatar
 
     monkeypatch.chdir(tmp_path)
@@ -324,7 +325,7 @@ def test_export_names_every_output_as_given(tmp_path, monkeypatch):
     assert main(["personalize", str(SAMPLE / "avatar.usda"), str(SAMPLE / "capture.usda"), "-o", str(layer),
                  "-q"]) == 0
     done = export_avatar("p.usda", gltf="g.glb", obj_dir="objs", flatten="f.usda")
-    assert done == {"gltf": Path("g.glb"), "obj_dir": Path("objs"), "flatten": Path("f.usda")}
+    assert done == {"gltf": tmp_path / "g.glb", "obj_dir": tmp_path / "objs", "flatten": tmp_path / "f.usda"}
     assert all(p.exists() for p in done.values())
 
 

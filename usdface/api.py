@@ -23,6 +23,8 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from .namelist import name_list
+
 if TYPE_CHECKING:  # pragma: no cover
     from .io.livelink import LiveLinkTake
     from .io.take import Take
@@ -36,6 +38,13 @@ if TYPE_CHECKING:  # pragma: no cover
     from .transfer import PersonalizeResult
 
 PathLike = str | Path
+
+
+def _written(path: PathLike) -> Path:
+    """A written output as every function here returns it: an absolute ``Path`` (symlinks kept, ``..`` left
+    as given, as the layer writers return theirs). Some returned the path as given (``out/x.usda``), others
+    absolute, one function both (``evaluate_methods``' JSON and plot as given, its USD absolute)."""
+    return Path(path).absolute()
 
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
@@ -120,10 +129,10 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     if out.suffix.lower() in (".usda", ".usdc", ".usd"):
         from .io.usd_capture import write_capture_usd
 
-        return Path(write_capture_usd(capture, out, force=force, exact=exact))
+        return _written(write_capture_usd(capture, out, force=force, exact=exact))
     from .io.capture_folder import write_capture_folder
 
-    return Path(write_capture_folder(capture, out, force=force))
+    return _written(write_capture_folder(capture, out, force=force))
 
 
 def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = False, *,
@@ -271,7 +280,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
                                   curves={**data.angles, **data.extra}, force=force,
                                   layer_data={"source": str(csv), "startTimecode": data.timecodes[0],
                                               "version": __version__})
-    return Path(out), data
+    return _written(out), data
 
 
 def _as_capture(capture) -> Capture:
@@ -378,8 +387,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     if capture is not None:
         data["capture"] = _relative_to_layer(capture, out)
         data["captureDigest"] = file_digest(capture)
-    return Path(write_rig_usd(getattr(fit, "rig", fit), out, meters_per_unit=1.0, root="/Capture",
-                              force=force, layer_data={"usdface": data}))
+    return _written(write_rig_usd(getattr(fit, "rig", fit), out, meters_per_unit=1.0, root="/Capture",
+                                  force=force, layer_data={"usdface": data}))
 
 
 
@@ -438,12 +447,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     ``options`` go to the fit (``reg``, ``prior``, ...). Raises :class:`~usdface.errors.FitError` if the
     capture has no test frames."""
     from .io.atomic import check_output_file
+    from .personalize.report import METHODS, check_method_options
     from .personalize.report import evaluate_methods as _evaluate
 
-    if isinstance(methods, str):    # "menzel" or "dt,menzel" (as --methods): list() made letters of it
-        methods = [m.strip() for m in methods.split(",") if m.strip()]
-    from .personalize.report import check_method_options
-
+    methods = name_list(methods, "methods", "method", fix=f"name some of {', '.join(METHODS)}")
     check_method_options(list(methods), options)          # an option no chosen method takes: before any work
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
@@ -485,16 +492,16 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             if json_path:
                 from .personalize.report import write_report_json
 
-                outputs["json"] = Path(write_report_json(report, json_path, force=force))
+                outputs["json"] = _written(write_report_json(report, json_path, force=force))
             if plot_path:
                 from .personalize.report import plot_errors
 
-                outputs["plot"] = Path(plot_errors(report, plot_path, force=force))
+                outputs["plot"] = _written(plot_errors(report, plot_path, force=force))
             if usd_path:
                 from .io.usd_error_maps import write_error_maps_usd
 
-                outputs["usd"] = Path(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
-                                                           force=force))
+                outputs["usd"] = _written(write_error_maps_usd(usd_path, capture.triangles, report["_maps"],
+                                                               force=force))
     report["_outputs"] = outputs
     return report
 
@@ -763,7 +770,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     written (atomically; an existing file needs ``force``)."""
     from .io.usd_landmarks import write_landmark_layer
 
-    return Path(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
+    return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
 def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Sequence[PathLike], *,
@@ -872,7 +879,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
-    result.out_path = Path(out)       # the map written (a layer's path for personalize_avatar)
+    result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
 
 
@@ -993,7 +1000,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       inputs=[manifest, *(p for item in items for p in (item.avatar, item.capture))],
                       fix="pass --report PATH in a folder you can write to")
     try:
-        run = _batch_preflight(items, worker, manifest)
+        run = _batch_preflight(items, worker, manifest, force)
     except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
         from .pipeline.batch import FAILED, BatchReport, ItemResult
 
@@ -1009,27 +1016,41 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         if partial is not None:
             partial.write(path)
         raise
-    report.report_path = Path(report.write(path))
+    report.report_path = _written(report.write(path))
     return report
 
 
-def _batch_preflight(items, worker, manifest):
-    """Every row's options, output's place and avatar checked before any item runs (the default worker);
-    returns the worker function."""
+def _row_error(item, exc, manifest, fix: str):
+    """A row's path refused (``exc``) as the manifest's error: the row, the file, what is wrong, the fix."""
+    from .errors import InputFileError
+
+    named = f"{exc.path}: " if exc.path else ""
+    return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
+
+
+def _batch_preflight(items, worker, manifest, force: bool = False):
+    """Every row checked before any item runs (the default worker): its output (a layer's extension, not a
+    folder, a place it can be written, no input), its options, its inputs (:func:`usdface.pipeline.batch.
+    check_item_inputs`: present, readable, of the kind read) and an avatar not already personalized; a
+    bad last row failed only at its turn, after the rows before it had run. Returns the worker function."""
     from .pipeline.batch import load_worker, personalize_worker
 
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
-        from .io.atomic import check_writable
+        from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
+        from .pipeline.batch import check_item_inputs
 
         for item in items:
+            # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
+            # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
+            written = force or not os.path.lexists(item.output)
             try:
-                check_writable(item.output, what="output layer")
+                check_output_path(item.output, True, inputs=personalize_inputs(
+                    item.avatar, item.capture, **item.options) if written else ())
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
-                                     fix=exc.fix or "fix the manifest's output column") from None
+                raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
                 check_personalize_options(**item.options)
             except UsdFaceError as exc:
@@ -1039,6 +1060,10 @@ def _batch_preflight(items, worker, manifest):
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            try:                       # what the item's readers would refuse, after the rows before it ran
+                check_item_inputs(item)
+            except UsdFaceError as exc:
+                raise _row_error(item, exc, manifest, "fix the manifest's path columns") from None
             try:              # a row whose avatar is already personalized (a usdface layer, its export)
                 refuse_usdface_output(item.avatar)
             except UsdFaceError as exc:
@@ -1183,7 +1208,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         page = build_review_html(data)
         p.start(f"write {out.name}")
         written = write_text_atomic(out, page, force=force)
-    return written
+    return _written(written)
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
@@ -1202,7 +1227,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     Every output is checked before any work (an existing one needs ``force``) and written atomically, and
     the set is all or nothing for new outputs: when a later one fails (a full disk, Ctrl-C), the ones this
     call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
-    Returns {"gltf"|"obj_dir"|"flatten": path written, as given}; a plain avatar
+    Returns {"gltf"|"obj_dir"|"flatten": path written, absolute}; a plain avatar
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
@@ -1271,7 +1296,7 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
             extras = {"usdface": {"source": Path(layer_path).name,
                                   "variant": exported_variant(layer_path, variant)}}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, force=force)
-            done["gltf"] = Path(gltf)
+            done["gltf"] = _written(gltf)
         if obj_dir:
             with replace_dir_atomically(obj_dir, force=force) as tmp:
                 for rig in rigs:
@@ -1280,10 +1305,10 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
                     write_obj(folder / "neutral.obj", rig.neutral, rig.triangles)
                     for name, delta in zip(rig.names, rig.deltas, strict=True):
                         write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles)
-            done["obj_dir"] = Path(obj_dir)
+            done["obj_dir"] = _written(obj_dir)
     if flatten:
         flatten_variant(layer_path, flatten, variant, force=force)
-        done["flatten"] = Path(flatten)                 # as given, as the others (it came back absolute)
+        done["flatten"] = _written(flatten)
 
 
 @contextlib.contextmanager

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import importlib
 import os
@@ -13,9 +14,9 @@ import sys
 import threading
 import warnings
 
-from . import __version__
+from . import __version__, progress
 from .errors import UsdFaceError
-from .locks import ForkSafeLock
+from .locks import SharedWhileInside
 
 #: Sub-command modules, in the order ``usdface --help`` lists them.
 COMMAND_MODULES = (
@@ -39,7 +40,8 @@ def parsed_argv() -> list[str]:
 
 class _Parser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2; with
-    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout."""
+    ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout; with no command
+    (``usdface`` alone) the usage line before it."""
 
     def error(self, message):
         argv = parsed_argv()
@@ -50,7 +52,8 @@ class _Parser(argparse.ArgumentParser):
             print(json.dumps({"ok": False, "error": {
                 "command": command, "type": "UsageError", "message": message, "file": None, "prim": None,
                 "fix": f"see '{self.prog} --help'"}}))
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+        usage = self.format_usage() if command is None and self._subparsers is not None else ""
+        self.exit(2, f"{usage}{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,7 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Personalized ARKit facial blendshapes from a phone capture, written as a USD layer.")
     parser.add_argument("--version", action="version", version=f"usdface {__version__}")
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    # required: 'usdface' alone is a usage error (exit 2, as 'usdface capture' alone); it printed the help on
+    # stdout and exited 0, so a script's 'usdface $CMD' with $CMD unset passed
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         try:
             mod = importlib.import_module(f"usdface.commands.{name}")
@@ -230,19 +235,21 @@ def _main(argv=None, program: bool = False) -> int:
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 0
-    from . import progress
-    from .commands import reset_warnings, say_warning
+    from .commands import reset_warnings
 
     reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
     # progress on stderr unless -q, or --json prints a document on stdout (a --json PATH keeps it); a host
     # calling main(argv) gets its own setting back (usdface.progress.set_enabled): -q turned its progress off
     # for good, and a run without -q turned it back on after the host had turned it off
-    if not program:
-        _host_progress(+1)
-    progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
+    with contextlib.nullcontext() if program else _HOST_PROGRESS:
+        progress.set_enabled(not (getattr(args, "quiet", False) or getattr(args, "json", None) is True))
+        return _run(args, program)
+
+
+def _run(args, program: bool) -> int:
+    """The parsed command run, its errors turned into the exit status and the one line (or ``--json``)."""
+    from .commands import say_warning
+
     try:
         if program:  # the usdface program's main thread (a host application's signals are its own)
             _import_natives_with_signals_held()
@@ -296,29 +303,13 @@ def _main(argv=None, program: bool = False) -> int:
         else:
             print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
         return 2
-    finally:
-        if not program:
-            _host_progress(-1)
 
 
-#: Runs of :func:`main` called by a host (``argv`` given, or not the main thread) under way, and the host's
-#: progress setting the first one found.
-_HOST_PROGRESS: dict = {"runs": 0, "enabled": True}
-_HOST_PROGRESS_LOCK = ForkSafeLock()
-
-
-def _host_progress(step: int) -> None:
-    """A host's run of :func:`main` begins (``+1``: the first of runs side by side keeps the host's progress
-    setting) or ends (``-1``: the last one puts it back). Each run putting back what it found, two runs on
-    the host's threads side by side (``-q`` and not) left the second's find, the first's setting, for good."""
-    from . import progress
-
-    with _HOST_PROGRESS_LOCK:
-        if step > 0 and _HOST_PROGRESS["runs"] == 0:
-            _HOST_PROGRESS["enabled"] = progress._ENABLED
-        _HOST_PROGRESS["runs"] += step
-        if step < 0 and _HOST_PROGRESS["runs"] == 0:
-            progress.set_enabled(_HOST_PROGRESS["enabled"])
+#: Runs of :func:`main` called by a host (``argv`` given, or not the main thread) under way: the first of
+#: runs side by side keeps the host's progress setting, the last one out puts it back. Each run putting back
+#: what it found, two runs on the host's threads side by side (``-q`` and not) left the second's find, the
+#: first's setting, for good.
+_HOST_PROGRESS = SharedWhileInside(lambda: progress._ENABLED, lambda enabled: progress.set_enabled(enabled))
 
 
 def _stopped(args, exc: KeyboardInterrupt) -> int:

@@ -4,14 +4,17 @@ A host may fork (``multiprocessing``'s default start on Linux) while one of its 
 keeps around process-wide state (stderr's redirect, the BLAS limit, the warnings filters, progress): that
 thread does not exist in the child, the lock is never released there, and the child's first call waited
 for good. :class:`ForkSafeLock` is replaced by a new lock in the child (``os.register_at_fork``).
+:class:`SharedWhileInside` is that state itself: set by the first thread in, put back by the last one out.
 """
 
 from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
+from typing import Any
 
-__all__ = ["ForkSafeLock"]
+__all__ = ["ForkSafeLock", "SharedWhileInside"]
 
 
 class ForkSafeLock:
@@ -32,3 +35,46 @@ class ForkSafeLock:
 
     def __exit__(self, *exc):
         return self._lock.__exit__(*exc)
+
+
+class SharedWhileInside:
+    """Process-wide state held while any thread is inside ``with shared:``: ``install()`` runs when the first
+    thread enters, ``restore(token)`` (``token``: what ``install`` returned) when the last one leaves, also
+    when it leaves by an exception. Threads side by side share one install (each putting back what it
+    found, the first out put back the host's and the last out the state the first had installed, for good);
+    a thread may enter again while inside. The count's lock is a :class:`ForkSafeLock`.
+
+    Examples
+    --------
+    >>> log = []
+    >>> shared = SharedWhileInside(lambda: log.append("set") or "before", log.append)
+    >>> with shared:
+    ...     with shared:
+    ...         pass
+    >>> log
+    ['set', 'before']
+    """
+
+    def __init__(self, install: Callable[[], Any], restore: Callable[[Any], None]):
+        self._install, self._restore = install, restore
+        self._lock = ForkSafeLock()
+        self._inside = 0
+        self._token = None
+
+    @property
+    def inside(self) -> int:
+        """Threads (entries) inside now."""
+        return self._inside
+
+    def __enter__(self) -> None:
+        with self._lock:
+            if self._inside == 0:
+                self._token = self._install()       # an install that raises counts nobody in
+            self._inside += 1
+
+    def __exit__(self, *exc) -> None:
+        with self._lock:
+            self._inside -= 1
+            if self._inside == 0:
+                token, self._token = self._token, None
+                self._restore(token)

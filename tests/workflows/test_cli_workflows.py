@@ -59,7 +59,7 @@ def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
     proc = run("capture", "select", take_files / "take.usda", "-o", "capture.usda", cwd=tmp_path)
-    assert "wrote capture.usda" in proc.stdout
+    assert f"wrote {tmp_path / 'capture.usda'}" in proc.stdout          # the written path, absolute
     run("personalize", sample_set / "avatar.usda", "capture.usda", "-o", "person.usda", "-q", cwd=tmp_path)
     assert_valid_usd(tmp_path / "person.usda")
     assert digest(take_files, sample_set / "avatar.usda") == before

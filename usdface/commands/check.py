@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
+from ..namelist import name_list
 from . import add_name_map_option
 
 
@@ -46,12 +47,11 @@ def run(args) -> int:
     from ..api import check
 
     _refuse_folder(args.file)
-    rules = None if args.rules is None else [r.strip() for r in args.rules.split(",") if r.strip()]
-    if rules == []:                    # ran none of usdface's rules, and a broken rig passed them
-        from ..errors import OptionError
+    rules = None
+    if args.rules is not None:         # ',' ran none of usdface's rules, and a broken rig passed them
         from ..pipeline.check import RULES
 
-        raise OptionError(f"--rules {args.rules!r} names no rule",
+        rules = name_list(args.rules, "--rules", "rule",
                           fix=f"leave --rules out to run all, or name some: {', '.join(sorted(RULES))}")
     issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map)
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}

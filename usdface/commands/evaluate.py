@@ -34,9 +34,12 @@ def run(args) -> int:
     from rich.table import Table
 
     from .. import api
+    from ..namelist import name_list
 
+    # the option named as typed (the API names its argument 'methods')
+    methods = name_list(args.methods, "--methods", "method", fix=f"name some of {','.join(api.METHODS)}")
     truth = args.truth
-    report = api.evaluate_methods(args.capture, args.methods, truth=truth, json_path=args.json,
+    report = api.evaluate_methods(args.capture, methods, truth=truth, json_path=args.json,
                                   plot_path=args.plot, usd_path=args.usd, force=args.force,
                                   **fit_kwargs(args))
     table = Table(title=f"{Path(args.capture).name}: {len(report['labels'])} test frames (eq. 5)")

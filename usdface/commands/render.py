@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..namelist import name_list
 from . import add_name_map_option
 from .options import add_quiet, finite_float, positive_int, refuse_camera_with_rays, vector3
 
@@ -141,13 +142,10 @@ def run(args) -> int:
     refuse_camera_with_rays(args.camera, args.rays)
     check_output_file(args.output, args.force, suffixes=(".png",), what="picture",
                       inputs=[path, args.compare or None, args.heatmap or None, args.name_map])
-    shapes = None if args.shapes is None else [s.strip() for s in args.shapes.split(",") if s.strip()]
-    if shapes == []:                   # drew the neutral alone (',') or the default shapes ('')
-        from ..errors import OptionError
-
-        raise OptionError(f"--shapes {args.shapes!r} names no shape",
-                          fix="name shapes (--shapes jawOpen,eyeBlinkLeft), or leave --shapes out for the "
-                              "shapes that move most")
+    # ',' drew the neutral alone and '' the default shapes
+    shapes = name_list(args.shapes, "--shapes", "shape",
+                       fix="name shapes (--shapes jawOpen,eyeBlinkLeft), or leave --shapes out for the "
+                           "shapes that move most")
     is_capture, _layer = _capture_file(path)  # _layer held: the file is parsed once
     if path.is_dir() or args.capture or is_capture:
         unused = [flag for flag, value in (("--compare", args.compare), ("--heatmap", args.heatmap),

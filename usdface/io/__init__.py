@@ -13,10 +13,41 @@ from .. import schemas as _schemas
 
 _schemas.register()
 
-__all__ = ["read_capture", "USD_EXTENSIONS"]
+__all__ = ["read_capture", "check_capture_path", "USD_EXTENSIONS"]
 
 #: File extensions read as USD.
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def check_capture_path(path) -> Path:
+    """What :func:`read_capture` refuses about ``path`` without reading a frame (a batch checks every row's
+    capture before its first item): a missing path, a Live Link Face CSV (weights only, no meshes), a file
+    that is not USD or cannot be read, a folder that is neither a take nor a capture folder (no
+    ``neutral.obj``). Raises :class:`usdface.errors.InputFileError` or ``CaptureError`` naming the path and
+    the fix; returns it as a Path."""
+    from ..errors import CaptureError, InputFileError
+    from .take import probe_take
+
+    path = Path(path)
+    if path.is_dir():
+        if not probe_take(path)[0] and not (path / "neutral.obj").is_file():
+            raise CaptureError("missing neutral.obj", path=path,
+                               fix="see docs/capture-format.md: neutral.obj, template/, train/, test/")
+        return path
+    if path.suffix.lower() == ".csv" and path.is_file():
+        from .take import WEIGHTS_ONLY_FIX
+
+        raise CaptureError("a Live Link Face CSV: a take of weights only, no meshes to fit", path=path,
+                           fix=WEIGHTS_ONLY_FIX)
+    if not path.exists():
+        raise InputFileError("capture not found", path=path,
+                             fix="pass a capture folder or a .usda written by 'usdface capture import'")
+    if path.suffix.lower() not in USD_EXTENSIONS:
+        raise InputFileError("not a capture folder or USD file", path=path,
+                             fix="pass a capture folder (neutral.obj, template/, train/) or a capture .usda")
+    from .usd_open import require_readable
+
+    return require_readable(path, "capture", fix="pass a capture folder or a capture .usda you can read")
 
 
 def read_capture(path):
@@ -26,36 +57,23 @@ def read_capture(path):
     a Live Link CSV) -> every frame as a training frame (:func:`usdface.io.take.capture_from_whole_take`,
     whole-take fitting); a directory -> :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``,
     ``.usda``, ``.usdc`` file -> :func:`usdface.io.usd_capture.read_capture_usd`. Anything else raises
-    :class:`usdface.errors.InputFileError`.
+    :class:`usdface.errors.InputFileError` (:func:`check_capture_path`).
     """
-    from ..errors import InputFileError
     from .take import probe_take
 
-    path = Path(path)
+    path = check_capture_path(path)
     take, _layer = probe_take(path)  # _layer held: the file is parsed once
     if take:
         from .take import capture_from_whole_take, read_take
 
         return _absolute_source(capture_from_whole_take(read_take(path)))
-    if path.suffix.lower() == ".csv" and path.is_file():
-        from ..errors import CaptureError
-        from .take import WEIGHTS_ONLY_FIX
-
-        raise CaptureError("a Live Link Face CSV: a take of weights only, no meshes to fit", path=path,
-                           fix=WEIGHTS_ONLY_FIX)
     if path.is_dir():
         from .capture_folder import read_capture_folder
 
         return _absolute_source(read_capture_folder(path))
-    if path.suffix.lower() in USD_EXTENSIONS:
-        from .usd_capture import read_capture_usd
+    from .usd_capture import read_capture_usd
 
-        return _absolute_source(read_capture_usd(path))
-    if not path.exists():
-        raise InputFileError("capture not found", path=path,
-                             fix="pass a capture folder or a .usda written by 'usdface capture import'")
-    raise InputFileError("not a capture folder or USD file", path=path,
-                         fix="pass a capture folder (neutral.obj, template/, train/) or a capture .usda")
+    return _absolute_source(read_capture_usd(path))
 
 
 def _absolute_source(capture):

@@ -16,7 +16,8 @@ from pathlib import Path
 from ..errors import InputFileError
 from ..locks import ForkSafeLock
 
-__all__ = ["require_file", "open_usd_stage", "quiet_stderr", "tf_error_text", "diagnostic_notes"]
+__all__ = ["require_file", "require_readable", "open_usd_stage", "quiet_stderr", "tf_error_text",
+           "diagnostic_notes"]
 
 
 def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
@@ -43,6 +44,18 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
     if not stat.S_ISREG(mode):
         kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
         raise InputFileError(f"{what} is {kind}, not a regular file", path=path, fix=fix)
+    return path
+
+
+def require_readable(path, what: str = "file", fix: str = "check the path") -> Path:
+    """:func:`require_file`, and the file opened for reading (a missing read permission, an unreadable
+    network file), before any work."""
+    path = require_file(path, what, fix)
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise InputFileError(f"{what} cannot be read ({exc.strerror or exc})", path=path, fix=fix) from None
     return path
 
 

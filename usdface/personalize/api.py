@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import time
 import warnings
@@ -11,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FitError, GeometryError
-from ..locks import ForkSafeLock
+from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
@@ -264,29 +263,17 @@ def _blas_controller():
     return _BLAS_CONTROLLER[0]
 
 
-_BLAS_LOCK = ForkSafeLock()
-#: Threads inside :func:`one_blas_thread` and the limiter that puts the host's thread counts back.
-_BLAS_USERS: list = [0, None]
+#: BLAS at one thread while any thread is inside; the host's thread counts put back by the last one out.
+_ONE_BLAS_THREAD = SharedWhileInside(lambda: _blas_controller().limit(limits=1, user_api="blas"),
+                                     lambda limiter: limiter.restore_original_limits())
 
 
-@contextlib.contextmanager
-def one_blas_thread():
+def one_blas_thread() -> SharedWhileInside:
     """BLAS limited to one thread while any thread of the process is inside; the host's thread counts are
     put back when the last one leaves. The limit is process-wide, so calls on several threads at once (a
     host's thread pool, a Dask worker's threads) share one: each with its own ``threadpool_limits`` put back
     the counts it found, which another had already lowered, and the host was left with a one-thread BLAS."""
-    with _BLAS_LOCK:
-        if _BLAS_USERS[0] == 0:
-            _BLAS_USERS[1] = _blas_controller().limit(limits=1, user_api="blas")
-        _BLAS_USERS[0] += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS_USERS[0] -= 1
-            if _BLAS_USERS[0] == 0:
-                limiter, _BLAS_USERS[1] = _BLAS_USERS[1], None
-                limiter.restore_original_limits()
+    return _ONE_BLAS_THREAD
 
 
 def single_threaded_blas(func):

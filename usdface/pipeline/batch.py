@@ -22,7 +22,6 @@ Example::
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import functools
 import json
@@ -35,7 +34,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..errors import InputFileError, OutputExistsError
-from ..locks import ForkSafeLock
+from ..locks import SharedWhileInside
 
 REQUIRED = ("avatar", "capture", "output")
 DONE, SKIPPED, FAILED = "done", "skipped", "failed"
@@ -235,6 +234,29 @@ def read_manifest(path) -> list[BatchItem]:
     return items
 
 
+def check_item_inputs(item: BatchItem) -> None:
+    """The files a personalize item reads, refused as its readers would refuse them but before the batch's
+    first item (a bad last row failed at its turn, after every row before it had run): the avatar a
+    readable USD file, the capture a capture folder, take or capture USD file
+    (:func:`usdface.io.check_capture_path`), and the ``take``, ``name_map`` and ``pins`` a row names existing
+    (the correspondence cache may be missing: the item writes it). Raises the reader's error."""
+    from ..io import USD_EXTENSIONS, check_capture_path
+    from ..io.usd_open import require_readable
+
+    avatar = require_readable(item.avatar, "avatar", fix="give the avatar's .usd/.usda/.usdc file")
+    if avatar.suffix.lower() not in USD_EXTENSIONS:
+        raise InputFileError("avatar is not a USD file", path=avatar,
+                             fix=f"give the avatar's USD file ({', '.join(USD_EXTENSIONS)})")
+    check_capture_path(item.capture)
+    take = item.options.get("take")
+    if isinstance(take, str) and take and not os.path.exists(take):
+        raise InputFileError("take not found", path=take, fix="give a Live Link Face CSV, USD take or folder")
+    for key, what, kinds in (("name_map", "name map", ".json or .csv"),
+                             ("pins", "pins file", ".json or .usd")):
+        if isinstance(item.options.get(key), str) and item.options[key]:
+            require_readable(item.options[key], what, fix=f"give an existing {what} ({kinds})")
+
+
 _DIGESTS: dict = {}
 
 
@@ -399,7 +421,7 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     # the worker's stdout/stderr unattributed: collected per thread (a Dask worker's threads run items side
     # by side), with the host's warning filters as they are
     caught = []
-    with _capture_warnings():
+    with _ITEM_WARNINGS:
         _ITEM.notes = caught
         try:
             value = worker(item)
@@ -426,49 +448,46 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
 
 
 _ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
-_SHOW_LOCK = ForkSafeLock()
-_SHOW: dict = {"items": 0}     # items running in this process; while any does: the hook and filter installed
 
 
-@contextlib.contextmanager
-def _capture_warnings():
-    """While an item runs: a :func:`warnings.showwarning` that gives a warning shown while an item runs on
-    this thread to that item (:func:`run_item`) and passes every other one on to what was installed before.
-    The filters stay the host's (``-W error`` still fails the item; hidden warnings stay hidden); usdface's
-    own warnings are shown every time (``always``, appended after the host's filters), so the same note on
-    two items of one process reaches both. Installed by the first item running in the process and removed
-    when the last one ends (items of a Dask worker's threads overlap): a batch run in the host's process
-    (``jobs=1``) left both behind, the host's ``showwarning`` replaced and its filters changed for good."""
+def _install_item_warnings() -> dict:
+    """A :func:`warnings.showwarning` that gives a warning shown while an item runs on this thread to that
+    item (:func:`run_item`) and passes every other one on to what was installed before, and usdface's own
+    warnings shown every time (``always``, appended after the host's filters: the same note on two items of
+    one process reaches both). The filters stay the host's (``-W error`` still fails the item; hidden
+    warnings stay hidden). Returns what :func:`_remove_item_warnings` takes away."""
     import warnings
 
-    with _SHOW_LOCK:
-        if _SHOW["items"] == 0:
-            previous = warnings.showwarning
+    previous = warnings.showwarning
 
-            def show(message, category, filename, lineno, file=None, line=None):
-                notes = getattr(_ITEM, "notes", None)
-                if notes is None:
-                    return previous(message, category, filename, lineno, file, line)
-                notes.append(str(message))
+    def show(message, category, filename, lineno, file=None, line=None):
+        notes = getattr(_ITEM, "notes", None)
+        if notes is None:
+            return previous(message, category, filename, lineno, file, line)
+        notes.append(str(message))
 
-            before = list(warnings.filters)
-            warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
-            added = [f for f in warnings.filters if f not in before]
-            _SHOW.update(previous=previous, show=show, filter=added[0] if added else None)
-            warnings.showwarning = show
-        _SHOW["items"] += 1
-    try:
-        yield
-    finally:
-        with _SHOW_LOCK:
-            _SHOW["items"] -= 1
-            if _SHOW["items"] == 0:
-                if warnings.showwarning is _SHOW["show"]:   # not replaced meanwhile by someone else
-                    warnings.showwarning = _SHOW["previous"]
-                if _SHOW["filter"] in warnings.filters:
-                    warnings.filters.remove(_SHOW["filter"])
-                    getattr(warnings, "_filters_mutated", lambda: None)()
-                _SHOW.update(previous=None, show=None, filter=None)
+    before = list(warnings.filters)
+    warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
+    added = [f for f in warnings.filters if f not in before]
+    warnings.showwarning = show
+    return {"previous": previous, "show": show, "filter": added[0] if added else None}
+
+
+def _remove_item_warnings(installed: dict) -> None:
+    import warnings
+
+    if warnings.showwarning is installed["show"]:   # not replaced meanwhile by someone else
+        warnings.showwarning = installed["previous"]
+    if installed["filter"] in warnings.filters:
+        warnings.filters.remove(installed["filter"])
+        getattr(warnings, "_filters_mutated", lambda: None)()
+
+
+#: While any item runs in this process, its warnings go to it (:func:`_install_item_warnings`): installed by
+#: the first item running and removed when the last one ends (items of a Dask worker's threads overlap); a
+#: batch run in the host's process (``jobs=1``) left both behind, the host's ``showwarning`` replaced and its
+#: filters changed for good.
+_ITEM_WARNINGS = SharedWhileInside(_install_item_warnings, _remove_item_warnings)
 
 
 def _item_notes(caught, value) -> list[str]:

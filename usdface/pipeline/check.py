@@ -57,6 +57,7 @@ from ..arkit import (
     match_names,
     unused_map_entries,
 )
+from ..namelist import name_list
 
 ERROR, WARNING, INFO = "error", "warning", "info"
 SEVERITIES = (ERROR, WARNING, INFO)
@@ -135,9 +136,10 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         from ..io.usd_rig import recorded_name_map
 
         name_map = recorded_name_map(stage)
-    if isinstance(rules, str):        # 'ArkitNames' or 'ArkitNames,PointIndices' (as --rules takes them):
-        rules = [r.strip() for r in rules.split(",") if r.strip()]    # list() made letters of it
-    chosen = list(RULES) if rules is None else list(rules)
+    chosen = name_list(rules, "rules", "rule",
+                       fix=f"leave rules out (None) to run all, or name some: {', '.join(sorted(RULES))}")
+    if chosen is None:
+        chosen = list(RULES)
     unknown = [r for r in chosen if r not in RULES]
     if unknown:
         from ..errors import UsdFaceError
