@@ -99,3 +99,44 @@ def test_a_child_forked_while_another_thread_holds_the_count_lock_can_enter():
             pass
 
     assert child_finishes(block, lambda: shared._lock)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_a_child_forked_while_another_thread_is_inside_puts_the_state_back():
+    """The thread that installed the state (the BLAS limit of one thread, a host's progress off) does not
+    exist in a forked child, so it never leaves there: the child puts the state back at once, and its own
+    next entry installs it again. The parent's count is untouched."""
+    shared, log = _recording()
+    read, write = os.pipe()
+
+    def block():
+        os.write(write, repr((list(log), shared.inside)).encode() + b"\n")
+        with shared:
+            os.write(write, repr((list(log), shared.inside)).encode() + b"\n")
+
+    assert child_finishes(block, lambda: shared)
+    os.close(write)
+    with os.fdopen(read) as f:
+        lines = f.read().splitlines()
+    assert lines[0] == repr(([("install", 0), ("restore", 0)], 0))
+    assert lines[1] == repr(([("install", 0), ("restore", 0), ("install", 2)], 1))
+    assert log == [("install", 0), ("restore", 0)] and shared.inside == 0     # the parent's, after its thread
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_a_child_forked_by_a_thread_inside_keeps_its_own_entry():
+    """The forking thread itself inside: in the child it is still inside, and its leaving restores there."""
+    shared, log = _recording()
+    read, write = os.pipe()
+    with shared:
+        pid = os.fork()
+        if pid == 0:
+            try:
+                os.write(write, repr((list(log), shared.inside)).encode() + b"\n")
+            finally:
+                os._exit(0)
+        os.waitpid(pid, 0)
+    os.close(write)
+    with os.fdopen(read) as f:
+        assert f.read().splitlines() == [repr(([("install", 0)], 1))]
+    assert log == [("install", 0), ("restore", 0)]

@@ -42,7 +42,9 @@ class SharedWhileInside:
     thread enters, ``restore(token)`` (``token``: what ``install`` returned) when the last one leaves, also
     when it leaves by an exception. Threads side by side share one install (each putting back what it
     found, the first out put back the host's and the last out the state the first had installed, for good);
-    a thread may enter again while inside. The count's lock is a :class:`ForkSafeLock`.
+    a thread may enter again while inside. The count's lock is a :class:`ForkSafeLock`. A child forked while
+    other threads are inside has only the forking thread: it counts that thread's own entries, and if there
+    are none, puts the state back at once (the threads that installed it will never leave there).
 
     Examples
     --------
@@ -60,6 +62,9 @@ class SharedWhileInside:
         self._lock = ForkSafeLock()
         self._inside = 0
         self._token = None
+        self._entries: dict[int, int] = {}          # thread ident -> its entries now
+        if hasattr(os, "register_at_fork"):         # after the lock's own renewal (registered before)
+            os.register_at_fork(after_in_child=self._after_fork)
 
     @property
     def inside(self) -> int:
@@ -71,10 +76,31 @@ class SharedWhileInside:
             if self._inside == 0:
                 self._token = self._install()       # an install that raises counts nobody in
             self._inside += 1
+            me = threading.get_ident()
+            self._entries[me] = self._entries.get(me, 0) + 1
 
     def __exit__(self, *exc) -> None:
         with self._lock:
             self._inside -= 1
+            me = threading.get_ident()
+            if self._entries.get(me, 0) > 1:
+                self._entries[me] -= 1
+            else:
+                self._entries.pop(me, None)
             if self._inside == 0:
                 token, self._token = self._token, None
                 self._restore(token)
+
+    def _after_fork(self) -> None:
+        """In a forked child: only the forking thread's entries are inside; none left, the state goes back."""
+        me = threading.get_ident()
+        own = self._entries.get(me, 0)
+        self._entries = {me: own} if own else {}
+        if self._inside and not own:
+            token, self._token = self._token, None
+            self._inside = 0
+            try:
+                self._restore(token)
+            except Exception:                        # a fork must go on; the child keeps the state then
+                pass
+        self._inside = own
