@@ -107,3 +107,59 @@ def test_the_decomposed_fit_gives_the_same_variance():
     pf = PositionFit(neutral, points, W, T, D)
     for reg in (1e-4, 1e-2, 1.0):
         np.testing.assert_allclose(pf.estimate_variance(reg), estimate_variance(W, D, reg), rtol=1e-8)
+
+
+def test_a_personalization_that_is_only_noise_gets_no_trust():
+    """The person is the prior, the frames carry Gaussian noise of ``sigma`` per coordinate (what
+    ``loo_rmse_best_mm`` measures, :meth:`PositionFit.loo_error`): the fitted personalization ``B_j - T_j``
+    is the estimate's noise alone, so its reliability must be ~0. The variance is that of a vertex's three
+    coordinates together, as ``|B_j - T_j|^2`` is (with one coordinate's, the James-Stein factor of pure
+    noise was ~2/3)."""
+    from usdface.personalize.api import _shape_confidence
+    from usdface.personalize.fit import PositionFit
+
+    neutral, T, W = _problem(n=60, collinear=False)
+    rng = np.random.default_rng(5)
+    D = 0.5 + rng.random(T.shape[:2])
+    reg, sigma = 0.05, 2e-4
+    clean = neutral[None] + np.einsum("fk,knc->fnc", W, T)
+    cand = np.arange(len(neutral))
+    rel = []
+    for _ in range(20):
+        points = clean + rng.normal(size=clean.shape) * sigma
+        pf = PositionFit(neutral, points, W, T, D)
+        info = {"crossval": {"fit": pf, "vertices": cand, "loo_rmse_best_mm": sigma * 1e3}}
+        _, reliable = _shape_confidence(None, points, W, T, D, T, reg, info)
+        rel.append(reliable(pf.solve(reg)))
+    assert np.mean(rel) < 0.2, np.mean(rel, axis=0)        # ~0.05 (clipped fluctuations about 0)
+
+
+def _dense_variance(W, D, reg):
+    """``diag(A_v^-1 W^T W A_v^-1)`` per vertex by dense K x K inverses (pseudo-free: ``A_v`` is definite)."""
+    G = W.T @ W
+    out = np.empty(D.T.shape)
+    for v in range(D.shape[1]):
+        Ai = np.linalg.inv(G + reg * np.diag(D[:, v] ** 2))
+        out[v] = np.diag(Ai @ G @ Ai)
+    return out
+
+
+def test_variance_is_the_dense_sandwich_at_every_reg_rank_deficient_weights_included():
+    """The reduced-basis forms (the batched solve and the cross-validation's eigen-decomposition) equal the
+    dense sandwich for non-uniform ``D``, at ``reg`` from the grid's ends, with weights of full rank, of rank
+    2 < K (a shape never shown, two always at the same weight), and all zero (variance 0)."""
+    from usdface.personalize.fit import PositionFit
+
+    neutral, T, W = _problem(K=5, collinear=False)
+    rng = np.random.default_rng(7)
+    D = 10.0 ** rng.uniform(-1.0, 1.0, size=T.shape[:2])
+    low = np.zeros((6, 5))
+    low[:, 0] = low[:, 1] = rng.random(6)
+    low[:, 3] = rng.random(6)
+    for weights in (W, low, np.zeros_like(low)):
+        points = neutral[None] + np.einsum("fk,knc->fnc", weights, T)
+        pf = PositionFit(neutral, points, weights, T, D)
+        for reg in (1e-5, 1e-2, 1.0, 1e2):
+            dense = _dense_variance(weights, D, reg)
+            np.testing.assert_allclose(estimate_variance(weights, D, reg), dense, rtol=1e-7, atol=1e-12)
+            np.testing.assert_allclose(pf.estimate_variance(reg), dense, rtol=1e-7, atol=1e-12)

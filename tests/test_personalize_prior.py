@@ -94,7 +94,10 @@ def test_shape_confidence_is_zero_without_data_and_one_when_isolated():
         conf = fit(cap, **kw).info["shape_confidence"]
         assert conf.shape == (len(NAMES),) and np.all((conf >= 0) & (conf <= 1))
         assert np.all(conf[NEVER] < 1e-9)
-        assert conf[0] > 0.9                        # isolated at weight 1, clean data
+        # isolated at weight 1, clean data; with a cross-validated reg the reliability's noise is the
+        # leave-one-frame-out error, which holds shape 0's own personalization (frame 0, its only view, left
+        # out): 0.87-0.89 here, 1 - 3 x diag x that error^2 / |B_0 - T_0|^2
+        assert conf[0] > (0.9 if "reg" in kw else 0.85)
 
 
 def test_bad_avatar_prior_is_refused():

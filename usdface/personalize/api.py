@@ -898,7 +898,8 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     """``([K], reliable)``: the data share of each shape (hat-matrix diagonal), |T|^2-weighted mean over
     the cross-validation's vertices; and ``reliable(deltas) -> [K]`` (None without a cross-validated
     noise), the James-Stein factor of the fitted shapes' personalization against their estimates' variance
-    there (:func:`.fit.estimate_variance` times the leave-one-frame-out error, :func:`.fit.james_stein`)."""
+    there (:func:`.fit.estimate_variance` times the leave-one-frame-out error's variance summed over a
+    vertex's coordinates, :func:`.fit.james_stein`)."""
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         cand = cv["vertices"]
@@ -914,7 +915,10 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     loo = (cv or {}).get("loo_rmse_best_mm")
     if loo is None:
         return share, None
-    variance = spread(lam) * (float(loo) * 1e-3) ** 2                                       # [m,K] m^2
+    # the leave-one-frame-out error is per vertex coordinate (PositionFit.loo_error), the personalization's
+    # |B_j - T_j|^2 the sum of a vertex's coordinates: the estimate's variance per vertex is the sum too
+    coords = np.shape(prior_deltas)[-1]
+    variance = spread(lam) * coords * (float(loo) * 1e-3) ** 2                              # [m,K] m^2
     prior = np.asarray(prior_deltas)[:, cand]
     return share, lambda deltas: james_stein(np.asarray(deltas)[:, cand] - prior, variance, w)
 

@@ -189,16 +189,18 @@ def data_share(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.n
 
 def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) -> np.ndarray:
     """``[n,K]``: the sampling variance of each fitted shape at each vertex of eqs. (1)+(2) per unit of the
-    frames' noise variance, the diagonal of the ridge estimator's sandwich ``A_v^-1 W^T W A_v^-1`` with
-    ``A_v = W^T W + reg diag(D_v^2)`` (``weights[F,K]``, ``reg_weights[K,n]``, ``reg`` as in
-    :func:`fit_blendshapes`). Times the frames' noise variance per vertex (m^2), it is the expected squared
-    error of a shape's data-driven part. Unlike the hat share (:func:`data_share`, how much of the estimate
-    the data sets) it grows where the data set a shape imprecisely: two shapes always shown together, at
-    weights equal but for the phone's noise (dev1's ``mouthPressLeft`` and ``mouthPressRight``), are each
-    "set by the data" when ``reg`` is small, but their difference only through that noise, and each one's
-    variance is large. (Shown at exactly equal weights, their difference is the prior's and the variance
-    small: the hat share is then one half.) Since ``A_v^-1 B = L_v^-1 B M_v^-1`` (:func:`_reduced_inverse`),
-    the diagonal is ``inv_l^2 sum_r (M_v^-1 B^T)_rk^2``."""
+    frames' noise variance, the diagonal of the ridge estimator's sandwich ``A_v^-1 W^T W A_v^-1`` with ``A_v
+    = W^T W + reg diag(D_v^2)`` (``weights[F,K]``, ``reg_weights[K,n]``, ``reg`` as in
+    :func:`fit_blendshapes`). Times the frames' noise variance per coordinate (m^2), it is the variance of
+    each coordinate of a shape's data-driven part; times the noise's variance per vertex (the coordinates'
+    sum, 3x that of one), the expected squared length of its error, what :func:`james_stein` compares with.
+    Unlike the hat share (:func:`data_share`, how much of the estimate the data sets) it grows where the data
+    set a shape imprecisely: two shapes always shown together, at weights equal but for the phone's noise
+    (dev1's ``mouthPressLeft`` and ``mouthPressRight``), are each "set by the data" when ``reg`` is small, but
+    their difference only through that noise, and each one's variance is large. (Shown at exactly equal
+    weights, their difference is the prior's and the variance small: the hat share is then one half.) Since
+    ``A_v^-1 B = L_v^-1 B M_v^-1`` (:func:`_reduced_inverse`), the diagonal is ``inv_l^2 sum_r (M_v^-1
+    B^T)_rk^2``."""
     _, inv_l, X = _reduced_inverse(weights, reg_weights, reg)
     return np.zeros_like(inv_l) if X is None else inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
 
