@@ -820,3 +820,24 @@ def test_a_forced_row_writing_a_layer_its_avatar_composes_stops_the_batch_before
     err = capsys.readouterr().err
     assert "item 2: " in err and "base.usda" in err and "a layer the input" in err, err
     assert not (tmp_path / "out").exists() and (tmp_path / "base.usda").read_bytes() == before
+
+
+def test_resume_is_not_refused_for_a_skipped_rows_inputs(tmp_path, capsys):
+    """The pre-check reads only the inputs of rows that will run: a resumed manifest whose done row's
+    capture has since been moved away (resume skips that row without reading it) was refused whole, 'item
+    1: capture not found', before the new pre-check it resumed; a row that will run is still checked."""
+    import shutil
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(root / name, tmp_path / name)
+    (tmp_path / "out").mkdir()
+    for name in ("a", "b"):
+        (tmp_path / "out" / f"{name}.usda").write_text("#usda 1.0\n")       # done (a studio's own layer)
+    (tmp_path / "m.csv").write_text("avatar,capture,output\navatar.usda,moved_away.usda,out/a.usda\n"
+                                    "avatar.usda,capture.usda,out/b.usda\n")
+    assert main(["batch", str(tmp_path / "m.csv"), "-j", "1", "-q"]) == 0, capsys.readouterr().err
+    report = json.loads((tmp_path / "m.report.json").read_text())
+    assert [r["status"] for r in report["items"]] == ["skipped", "skipped"]
+    assert main(["batch", str(tmp_path / "m.csv"), "-j", "1", "-q", "--force"]) == 2
+    assert "item 1: " in capsys.readouterr().err

@@ -1030,8 +1030,9 @@ def _row_error(item, exc, manifest, fix: str):
 
 def _batch_preflight(items, worker, manifest, force: bool = False):
     """Every row checked before any item runs (the default worker): its output (a layer's extension, not a
-    folder, a place it can be written, no input), its options, its inputs (:func:`usdface.pipeline.batch.
-    check_item_inputs`: present, readable, of the kind read) and an avatar not already personalized; a
+    folder, a place it can be written, no input), its options, and for a row that will run (``force`` or no
+    output yet: resume skips the others without reading their inputs) its inputs (:func:`usdface.pipeline.
+    batch.check_item_inputs`: present, readable, of the kind read) and an avatar not already personalized; a
     bad last row failed only at its turn, after the rows before it had run. Returns the worker function."""
     from .pipeline.batch import load_worker, personalize_worker
 
@@ -1060,6 +1061,10 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                 raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
+            # run_batch's own test: resume skips the row (or reports its output stale), reading nothing (a
+            # done row's capture since moved away did not stop the resume)
+            if not force and Path(item.output).exists():
+                continue
             try:                       # what the item's readers would refuse, after the rows before it ran
                 check_item_inputs(item)
             except UsdFaceError as exc:
