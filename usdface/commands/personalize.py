@@ -209,6 +209,9 @@ def run(args) -> int:
                   if v["output"][1] > v["generic"][1] + 0.5]
         print("lips: " + ("lower lip deeper past the upper lip than generic: " + ", ".join(deeper) if deeper
                           else "lower lip past the upper lip no deeper than in the generic shapes (+0.5 mm)"))
+    if rep.get("within_noise"):
+        print("trust: kept near the avatar's generic shape, the capture's difference no larger than its "
+              "noise: " + ", ".join(rep["within_noise"]))
     for w in rep["warnings"]:
         say_warning(w)
     changed = [c for c in rep["changes"] if c["max_change_m"] > 0]

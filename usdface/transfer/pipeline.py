@@ -1169,11 +1169,10 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     if barely:
         report["warnings"].append("the capture barely shows (kept closer to the avatar's generic "
                                   "shape): " + ", ".join(barely))
-    if noisy:
-        # shown, but the fit's estimate is no better than its noise: a shape only ever shown beside
-        # another at nearly the same weights, or one another shape's spurious weight leaks into
-        report["warnings"].append("the capture does not measure these apart from its noise (kept closer to "
-                                  "the avatar's generic shape; record each on its own): " + ", ".join(noisy))
+    # shown, but the person's difference from the prior is no larger than the fit's noise in them (a shape
+    # only ever shown beside another at nearly the same weights, another shape's weight error leaking into
+    # it, or a person who differs little there): kept near the avatar's, as the data cannot tell better
+    report["within_noise"] = noisy
     # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
     # incompatible with the person's and the template's): no personalization from them
     outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
