@@ -163,3 +163,30 @@ def test_variance_is_the_dense_sandwich_at_every_reg_rank_deficient_weights_incl
             dense = _dense_variance(weights, D, reg)
             np.testing.assert_allclose(estimate_variance(weights, D, reg), dense, rtol=1e-7, atol=1e-12)
             np.testing.assert_allclose(pf.estimate_variance(reg), dense, rtol=1e-7, atol=1e-12)
+
+
+def test_the_loo_trust_variant_reads_the_fits_error_per_vertex(monkeypatch):
+    """``CONFIDENCE = "loo"``: the fit reports its leave-one-frame-out error per coordinate; the James-Stein
+    factor of :func:`usdface.transfer.implant.shape_confidence` takes it per vertex (three coordinates), so a
+    personalization whose mean square per vertex is 3 x 2 x that error's square keeps 1 - 1/2 of it."""
+    import types
+
+    from usdface.transfer import trust
+
+    monkeypatch.setattr(trust, "CONFIDENCE", "loo")
+    loo_m = 1e-4
+    d = np.zeros((1, 10, 3))
+    d[0, :, :] = np.sqrt(2.0) * loo_m                              # |D|^2 = 6 loo^2 per vertex
+    class Frames:                                                  # one training frame, jawOpen at 1
+        weights = np.ones((1, 1))
+
+        def __len__(self):
+            return 1
+
+    capture = types.SimpleNamespace(train=Frames(), names=["jawOpen"], whole_take=None)
+    fit = types.SimpleNamespace(info={"crossval": {"loo_rmse_best_mm": loo_m * 1e3}})
+    rig = types.SimpleNamespace(names=["jawOpen"])
+    prior = np.zeros((1, 10, 3))
+    prior[0, :, 1] = 1e-2                                          # moves everywhere: every vertex counts
+    trust_, _, _ = trust.shape_trust(fit, capture, rig, [0], prior + d, prior)
+    np.testing.assert_allclose(trust_, [0.5], atol=1e-9)           # 1 - 3 loo^2 / 6 loo^2 (excitation 1)

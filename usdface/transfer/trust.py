@@ -74,7 +74,9 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
     diff = np.asarray(person_deltas) - np.asarray(prior_av)
     mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
     moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
-    return shape_confidence(diff, excitation, float(loo) * 1e-3, moving=moving) * ramp, info, ramp < 0.5
+    # the fit reports the error per coordinate; the factor wants it per vertex (three coordinates)
+    noise = np.sqrt(3.0) * float(loo) * 1e-3
+    return shape_confidence(diff, excitation, noise, moving=moving) * ramp, info, ramp < 0.5
 
 
 def weak_ramp(capture, excitation, cap_idx) -> tuple[np.ndarray, dict]:
