@@ -329,3 +329,18 @@ def test_retarget_takes_the_fits_pins_and_the_face_mesh(samples, tmp_path, capsy
     assert np.abs(np.array(doc["weights"]) - result.weights).max() <= 1e-6
     assert main([*args, "-o", str(tmp_path / "c.json"), "--face-mesh", "Nope"]) == 2
     assert "no mesh 'Nope'" in capsys.readouterr().err and not (tmp_path / "c.json").exists()
+
+
+def test_retarget_says_which_capture_shapes_the_map_has_no_row_for(samples, tmp_path, capsys):
+    """A studio avatar whose jawOpen is a channel (and prim) named ``JawDrop``, retargeted without a name
+    map, wrote a map with no ``jawOpen`` row and said nothing (a user trial): the phone's jaw then drives
+    nothing. ``personalize`` warns of the same skip; ``retarget`` now does too, with the fix."""
+    (tmp_path / "studio.usda").write_text((samples / "avatar.usda").read_text().replace("jawOpen", "JawDrop"))
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q"]) == 0
+    said = capsys.readouterr()
+    assert "jawOpen" not in json.loads(out.read_text())["source"]
+    text = said.out + said.err
+    assert "capture shapes the avatar lacks (skipped): jawOpen" in text
+    assert "the map has no row for jawOpen" in text and "--name-map" in text
