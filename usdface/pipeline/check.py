@@ -387,8 +387,10 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         for reason, pairs in decorated.items():
             if len(pairs) > GROUP_AFTER:            # one line for a mesh a DCC renamed whole ('.001')
                 shown = ", ".join(f"{g!r} -> {c!r}" for g, c in pairs[:3])
-                yield Issue(WARNING, "ArkitNames", path, f"{len(pairs)} channels look like ARKit names with "
-                            f"{reason}: {shown} (+{len(pairs) - 3} more)",
+                group = (f"{len(pairs)} channels look like ARKit names only by their BlendShape prims' names"
+                         if reason == "only its target prim is named so"
+                         else f"{len(pairs)} channels look like ARKit names with {reason}")
+                yield Issue(WARNING, "ArkitNames", path, f"{group}: {shown} (+{len(pairs) - 3} more)",
                             "rename the channels to their ARKit names; drivers that match by name will miss "
                             "them")
                 continue
