@@ -252,3 +252,27 @@ def test_held_out_rests_are_warned_about_with_evaluates_fix():
         warnings.simplefilter("error")                       # test frames near the expressions: no warning
         sel = select_frames(w, test_every=2, min_separation=3)
     assert w[sel.test].max() >= 0.15
+
+
+def test_one_frame_usd_take_keeps_its_mesh_and_says_why_it_has_no_peak(generated, tmp_path, capsys):
+    """A take of one frame written by ``write_take_usd`` was read as weights only ('a take of weights only
+    (no meshes): nothing to fit' from fit, personalize and inspect), and ``capture select`` said 'no shape
+    peaks above --threshold 0.5 (the highest peak: ... 0.81)' with the fix 'lower --threshold', which cannot
+    help: a weight held at the take's end is no peak (a user trial)."""
+    import dataclasses
+
+    take, truth, _ = generated
+    frame = truth.peak_frames["jawOpen"]
+    one = dataclasses.replace(take, weights=take.weights[frame:frame + 1], times=take.times[frame:frame + 1],
+                              points=take.points[frame:frame + 1])
+    path = write_take_usd(one, tmp_path / "one.usda")
+    got = read_take(path)
+    assert got.points is not None and got.points.shape == (1, *take.points.shape[1:])
+    np.testing.assert_array_equal(got.points[0], take.points[frame])
+    assert main(["fit", str(path), "-o", str(tmp_path / "rig.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "weights only" not in err and "distinct pose" in err
+    assert main(["capture", "select", str(path), "-o", str(tmp_path / "c.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "still rising or held at the take's end (1 frame(s))" in err and "lower --threshold" not in err
+    assert not (tmp_path / "c.usda").exists() and not (tmp_path / "rig.usda").exists()

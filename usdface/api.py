@@ -233,6 +233,15 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
             peak = data.weights.max(axis=0) if data.weights.size else None
             best = "" if peak is None else (f" (the highest peak: {data.names[int(peak.argmax())]} "
                                             f"{float(peak.max()):.2f})")
+            if peak is not None and float(peak.max()) > threshold:
+                # above the threshold but never decreasing after it: lowering the threshold does not help
+                raise CaptureError(f"no shape peaks in the take: {data.names[int(peak.argmax())]} reaches "
+                                   f"{float(peak.max()):.2f} (above --threshold {threshold:g}) but is still "
+                                   f"rising or held at the take's end ({len(data.weights)} frame(s)), and a "
+                                   "shape's frame is kept once its weight starts decreasing: the capture "
+                                   "would have no training frames", path=take,
+                                   fix="record each expression through its peak and back (a take of a few "
+                                       "frames, or one that ends on the expression, has no peaks)")
             raise CaptureError(f"no shape peaks above --threshold {threshold:g} in the take{best}: the "
                                "capture would have no training frames", path=take,
                                fix="lower --threshold (0.5 is the paper's), or record the shapes again")
