@@ -4,6 +4,8 @@ and OBJ sequence + Live Link CSV."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -276,3 +278,24 @@ def test_one_frame_usd_take_keeps_its_mesh_and_says_why_it_has_no_peak(generated
     err = capsys.readouterr().err
     assert "still rising or held at the take's end (1 frame(s))" in err and "lower --threshold" not in err
     assert not (tmp_path / "c.usda").exists() and not (tmp_path / "rig.usda").exists()
+
+
+def test_select_names_the_arkit_shapes_a_take_has_no_weights_for(generated, tmp_path, capsys):
+    """A take folder whose Live Link CSV lacks the ``JawOpen`` column: ``capture select`` printed a coverage
+    table of 51 shapes and '50/51 shapes triggered', and jawOpen appeared nowhere (``anim import`` of the
+    same CSV says 'missing shapes: jawOpen'); a user trial."""
+    import csv
+
+    take, _, _ = generated
+    folder = write_take_folder(take, tmp_path / "take dir")
+    table = folder / "take.csv"
+    rows = list(csv.reader(table.open()))
+    col = rows[0].index("JawOpen")
+    with table.open("w", newline="") as f:
+        csv.writer(f).writerows([r[:col] + r[col + 1:] for r in rows])
+    assert main(["capture", "select", str(folder)]) == 0
+    said = capsys.readouterr()
+    assert "the take has no weights for 1 ARKit shape(s): jawOpen" in said.out + said.err
+    assert main(["capture", "select", str(folder), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["not_in_take"] == ["jawOpen"] and any("jawOpen" in w for w in doc["warnings"])

@@ -91,6 +91,15 @@ def run_select(args) -> int:
                                            threshold=args.threshold, per_shape=args.per_shape,
                                            test_every=args.test_every, min_separation=args.min_separation,
                                            force=args.force)
+    from ..arkit import ARKIT_NAMES
+
+    # ARKit shapes the take has no weights for at all (a CSV without the column): the coverage table,
+    # of the take's own shapes, left them out without a word (a user trial)
+    absent = [n for n in ARKIT_NAMES if n not in set(result.take.names)]
+    absent_text = None if not absent else (
+        f"{args.take}: the take has no weights for {len(absent)} ARKit shape(s): {', '.join(absent)}; they "
+        "cannot be selected (the capture gives them weight 0) (fix: export the take with every ARKit weight, "
+        "or record them in another take)")
     if args.json:
         import json
 
@@ -104,11 +113,14 @@ def run_select(args) -> int:
                           "train_frames": [int(f) for f in sel.train],
                           "test_frames": [int(f) for f in sel.test], "shapes": shapes,
                           "never_triggered": [s["name"] for s in shapes if not s["triggered"]],
-                          "warnings": [str(w.message) for w in caught]}))
+                          "not_in_take": absent,
+                          "warnings": [str(w.message) for w in caught] + ([absent_text] if absent else [])}))
         return 0
     print(result.coverage)
     for w in caught:
         say_warning(w.message)
+    if absent:
+        say_warning(absent_text)
     if result.capture is None:
         return 0
     counts = result.capture.metadata.get("counts", {})
