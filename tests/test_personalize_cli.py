@@ -344,3 +344,21 @@ def test_retarget_says_which_capture_shapes_the_map_has_no_row_for(samples, tmp_
     text = said.out + said.err
     assert "capture shapes the avatar lacks (skipped): jawOpen" in text
     assert "the map has no row for jawOpen" in text and "--name-map" in text
+
+
+def test_personalize_take_without_a_shapes_weights_says_it_stays_still(samples, tmp_path, capsys):
+    """``personalize ... --take take.csv`` with a Live Link CSV that lacks the ``JawOpen`` column played the
+    inspection animation with the jaw still and said nothing (a user trial)."""
+    from usdface.arkit import ARKIT_NAMES
+
+    names = [n[0].upper() + n[1:] for n in ARKIT_NAMES if n != "jawOpen"]
+    rows = [f"00:00:00:{f:02d}.000,{len(names)}," + ",".join(["0.3" if f % 2 else "0.0"] * len(names))
+            for f in range(6)]
+    header = "Timecode,BlendShapeCount," + ",".join(names)
+    (tmp_path / "take.csv").write_text("\n".join([header, *rows]) + "\n")
+    args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--take",
+            str(tmp_path / "take.csv"), "-q", "--json"]
+    assert main([*args, "-o", str(tmp_path / "p.usda")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert any("no weights for 1 of the avatar's ARKit shape(s): jawOpen; they stay still" in w
+               for w in doc["warnings"])

@@ -723,6 +723,18 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     result = _personalize(avatar, capture, out_path, layer_edit=inspection,
                           extra_inputs={"take": take} if take is not None else {}, **options)
+    if take_data is not None and isinstance(getattr(result, "report", None), dict):
+        from .arkit import ARKIT_NAMES
+
+        # a take without some shapes' weights (a CSV without the JawOpen column) played them as still,
+        # without a word (a user trial)
+        shown = set(take_data.names)
+        lacking = [n for n in ARKIT_NAMES if n not in shown and any(n in m.names for m in avatar.meshes)]
+        if lacking:
+            result.report.setdefault("warnings", []).append(
+                f"{take}: the take has no weights for {len(lacking)} of the avatar's ARKit shape(s): "
+                f"{', '.join(lacking)}; they stay still in the inspection animation (fix: export the take "
+                "with every ARKit weight)")
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]
