@@ -299,3 +299,16 @@ def test_select_names_the_arkit_shapes_a_take_has_no_weights_for(generated, tmp_
     assert main(["capture", "select", str(folder), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["not_in_take"] == ["jawOpen"] and any("jawOpen" in w for w in doc["warnings"])
+
+
+def test_inspect_a_one_frame_take_gives_no_rate(generated, tmp_path, capsys):
+    """``inspect`` of a one-frame take said 'a take of 1 frames at 30 fps' (30: the default of a take with
+    no frame interval, not the take's rate; a user trial)."""
+    import dataclasses
+
+    take, _, _ = generated
+    one = dataclasses.replace(take, weights=take.weights[:1], times=take.times[:1], points=take.points[:1])
+    path = write_take_usd(one, tmp_path / "one.usda")
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "a take of 1 frame (no rate)" in out and "30 fps" not in out
