@@ -362,3 +362,11 @@ def test_personalize_take_without_a_shapes_weights_says_it_stays_still(samples, 
     doc = json.loads(capsys.readouterr().out)
     assert any("no weights for 1 of the avatar's ARKit shape(s): jawOpen; they stay still" in w
                for w in doc["warnings"])
+    from usdface.io.usd_anim import write_animation_usd  # a take of no ARKit channel: said in one line
+
+    keys = tmp_path / "keys.usda"
+    write_animation_usd(keys, ["Key_1"], np.array([[0.0], [0.5], [0.0]]), np.arange(3) / 30.0)
+    assert main([*args[:4], str(keys), "-q", "--json", "-o", str(tmp_path / "k.usda")]) == 0
+    warned = json.loads(capsys.readouterr().out)["warnings"]
+    assert any("none of the take's 1 weight channel(s) ('Key_1') is an ARKit shape" in w for w in warned)
+    assert not any("eyeLookDownLeft" in w for w in warned if "take" in w)

@@ -312,3 +312,18 @@ def test_inspect_a_one_frame_take_gives_no_rate(generated, tmp_path, capsys):
     assert main(["inspect", str(path)]) == 0
     out = capsys.readouterr().out
     assert "a take of 1 frame (no rate)" in out and "30 fps" not in out
+
+
+def test_select_on_a_take_of_no_arkit_channel_says_so_in_one_line(tmp_path, capsys):
+    """Blender's 'Key_1' take: the warning of ARKit shapes without weights listed all 52 names; a take none
+    of whose channels is an ARKit shape is told as that, naming its own channels."""
+    from usdface.io.usd_anim import write_animation_usd
+
+    weights = np.array([[0.0, 0.0], [0.6, 0.1], [0.9, 0.2], [0.4, 0.7], [0.0, 0.9], [0.0, 0.1]])
+    path = tmp_path / "keys.usda"
+    write_animation_usd(path, ["Key_1", "Key_2"], weights, np.arange(6) / 30.0)
+    assert main(["capture", "select", str(path)]) == 0
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert "none of the take's 2 weight channel(s) ('Key_1', 'Key_2') is an ARKit shape" in text
+    assert "eyeLookDownLeft" not in text

@@ -730,7 +730,13 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         # without a word (a user trial)
         shown = set(take_data.names)
         lacking = [n for n in ARKIT_NAMES if n not in shown and any(n in m.names for m in avatar.meshes)]
-        if lacking:
+        if lacking and not shown & set(ARKIT_NAMES):   # not a face take: its own channels say more
+            own = list(take_data.names)
+            result.report.setdefault("warnings", []).append(
+                f"{take}: none of the take's {len(own)} weight channel(s) ({', '.join(map(repr, own[:4]))}"
+                f"{', ...' if len(own) > 4 else ''}) is an ARKit shape: the inspection animation plays "
+                "nothing (fix: a face take names its weights as ARKit does: eyeBlinkLeft, jawOpen, ...)")
+        elif lacking:
             result.report.setdefault("warnings", []).append(
                 f"{take}: the take has no weights for {len(lacking)} of the avatar's ARKit shape(s): "
                 f"{', '.join(lacking)}; they stay still in the inspection animation (fix: export the take "

@@ -100,6 +100,11 @@ def run_select(args) -> int:
         f"{args.take}: the take has no weights for {len(absent)} ARKit shape(s): {', '.join(absent)}; they "
         "cannot be selected (the capture gives them weight 0) (fix: export the take with every ARKit weight, "
         "or record them in another take)")
+    if len(absent) == len(ARKIT_NAMES):     # not a face take at all: its own channels say more than 52 names
+        own = list(result.take.names)
+        absent_text = (f"{args.take}: none of the take's {len(own)} weight channel(s) "
+                       f"({', '.join(map(repr, own[:4]))}{', ...' if len(own) > 4 else ''}) is an ARKit "
+                       "shape (fix: a face take names its weights as ARKit does: eyeBlinkLeft, jawOpen, ...)")
     if args.json:
         import json
 
