@@ -329,3 +329,17 @@ def test_rows_that_do_not_run_forward_are_refused(tmp_path, swap):
     (tmp_path / "t.csv").write_text("\n".join([header, *(f"{c},2,0.1,0.2" for c in codes)]) + "\n")
     assert main(["anim", "import", str(tmp_path / "t.csv"), "-o", str(tmp_path / "t.usda")]) == 2
     assert not (tmp_path / "t.usda").exists()
+
+
+def test_anim_import_of_a_take_folder_names_the_csv_in_it(tmp_path, capsys):
+    """``anim import take_dir`` (a folder of OBJ frames and its CSV) said 'Live Link CSV is a folder, not a
+    file (fix: pass the .csv exported by Live Link Face)'; the fix now names the CSV in it (a user trial)."""
+    from usdface.cli import main
+
+    folder = tmp_path / "take dir"
+    (folder / "frames").mkdir(parents=True)
+    (folder / "take.csv").write_text("Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n")
+    assert main(["anim", "import", str(folder), "-o", str(tmp_path / "t.usda")]) == 2
+    err = capsys.readouterr().err
+    assert f"fix: pass the .csv exported by Live Link Face: {folder / 'take.csv'}" in err
+    assert not (tmp_path / "t.usda").exists()

@@ -164,7 +164,10 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     """
     from .usd_open import require_file
 
-    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face")
+    inside = sorted(Path(path).glob("*.csv")) if Path(path).is_dir() else []
+    # a take folder (OBJ frames + its CSV) given to 'anim import': name the CSV in it (a user trial)
+    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face"
+                        + (f": {inside[0]}" if len(inside) == 1 else ""))
     if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):  # the UTF-8 decoder's words said only that
         raise InputFileError("a USD file where a Live Link Face CSV is expected", path=path,
                              fix="pass the .csv exported by Live Link Face; a USD take is read as it is "
