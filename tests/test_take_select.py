@@ -327,3 +327,16 @@ def test_select_on_a_take_of_no_arkit_channel_says_so_in_one_line(tmp_path, caps
     text = said.out + said.err
     assert "none of the take's 2 weight channel(s) ('Key_1', 'Key_2') is an ARKit shape" in text
     assert "eyeLookDownLeft" not in text
+
+
+def test_select_with_output_on_a_weights_only_take_points_to_the_table(tmp_path, capsys):
+    """``capture select recording.csv -o capture.usda``: the fix said only 'record the mesh with the
+    weights'; it now says the coverage table alone is what such a take gives (leave out -o)."""
+    from usdface.io.usd_anim import write_animation_usd
+
+    path = tmp_path / "anim.usda"
+    write_animation_usd(path, ["jawOpen", "eyeBlinkLeft"], np.array([[0.0, 0.0], [0.8, 0.1], [0.1, 0.0]]),
+                        np.arange(3) / 30.0)
+    assert main(["capture", "select", str(path), "-o", str(tmp_path / "c.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "weights only" in err and "without -o" in err and not (tmp_path / "c.usda").exists()

@@ -534,7 +534,9 @@ def _capture(take: Take, frames_idx, roles, labels, template, metadata: dict) ->
     :func:`capture_from_take`)."""
     if take.points is None:
         raise CaptureError("the take has weights only, no meshes", path=take.source or None,
-                           fix="record the mesh with the weights (USD take or OBJ sequence + CSV)")
+                           fix="record the mesh with the weights (USD take or OBJ sequence + CSV); a take of "
+                               "weights only gives its coverage table alone ('usdface capture select TAKE' "
+                               "without -o)")
     if template is None:
         template = take.template
     elif not isinstance(template, FaceRig):
