@@ -95,7 +95,8 @@ def run_select(args) -> int:
 
     # ARKit shapes the take has no weights for at all (a CSV without the column): the coverage table,
     # of the take's own shapes, left them out without a word (a user trial)
-    absent = [n for n in ARKIT_NAMES if n not in set(result.take.names)]
+    taken = getattr(result.take, "names", None)     # None from a studio's stand-in for the API
+    absent = [] if taken is None else [n for n in ARKIT_NAMES if n not in set(taken)]
     absent_text = None if not absent else (
         f"{args.take}: the take has no weights for {len(absent)} ARKit shape(s): {', '.join(absent)}; they "
         "cannot be selected (the capture gives them weight 0) (fix: export the take with every ARKit weight, "
