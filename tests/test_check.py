@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 
@@ -406,3 +407,40 @@ def test_cli_rules_that_name_no_rule_are_refused(samples, capsys, rules):
     assert main(["check", str(samples / "avatar.usda"), "--rules", rules]) == 2
     err = capsys.readouterr().err
     assert "names no rule" in err and "ArkitNames" in err
+
+
+def test_channels_named_arkit_only_by_their_prims_read_as_one_sentence(tmp_path, capsys):
+    """Five Head channels renamed (``JawDrop``, ``Blink_L``, ...) with their BlendShape prims left as
+    ARKit names were one warning that did not parse: '5 channels look like ARKit names with only its target
+    prim is named so' (a user trial)."""
+    from pxr import Usd
+
+    renamed = {"jawOpen": "JawDrop", "eyeBlinkLeft": "Blink_L", "eyeBlinkRight": "Blink_R",
+               "mouthSmileLeft": "SmileL", "browInnerUp": "BrowsWorry"}
+    stage = Usd.Stage.Open(str(Path(__file__).resolve().parents[1] / "sample_assets" / "avatar.usda"))
+    head = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Avatar/Head"))
+    tokens = head.GetBlendShapesAttr().Get()
+    head.GetBlendShapesAttr().Set([renamed.get(t, t) for t in tokens])
+    out = tmp_path / "studio.usda"
+    stage.Export(str(out))
+    issues = [i for i in validate_file(out) if i.rule == "ArkitNames" and i.prim == "/Avatar/Head"]
+    grouped = [i.message for i in issues if i.message.startswith("5 channels")]
+    assert grouped and grouped[0].startswith(
+        "5 channels look like ARKit names only by their BlendShape prims' names: ")
+    assert "with only its target prim" not in grouped[0]
+
+
+def test_missing_arkit_shapes_under_a_studios_own_names_point_to_the_name_map(tmp_path, capsys):
+    """A studio rig whose jawOpen is a channel and prim ``JawDrop``: ``check`` said '1 ARKit shape(s)
+    missing: jawOpen (fix: add the missing shapes)' and 'channel 'JawDrop' is not an ARKit shape (fix: fine
+    for extra shapes)', with no word of ``--name-map``, the fix (a user trial)."""
+    sample = Path(__file__).resolve().parents[1] / "sample_assets" / "avatar.usda"
+    studio = tmp_path / "studio.usda"
+    studio.write_text(sample.read_text().replace("jawOpen", "JawDrop"))
+    assert main(["check", str(studio), "--no-pixar", "--rules", "ArkitNames"]) == 1
+    out = capsys.readouterr().out
+    missing = [line for line in out.splitlines() if "ARKit shape(s) missing: jawOpen" in line]
+    assert missing and "'JawDrop'), map them with --name-map FILE" in missing[0]
+    assert "map it with --name-map FILE" in out
+    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
+    assert main(["check", str(studio), "--no-pixar", "--name-map", str(tmp_path / "names.json")]) == 0

@@ -308,3 +308,38 @@ def test_anim_import_of_a_one_frame_take_says_so(tmp_path, capsys):
     assert main(["anim", "import", str(csv_path), "-o", str(tmp_path / "one.usda"), "-q"]) == 0
     out = capsys.readouterr().out
     assert "1 frame (no duration, no rate)" in out and "Hz" not in out, out
+
+
+@pytest.mark.parametrize("swap", [False, True])
+def test_rows_that_do_not_run_forward_are_refused(tmp_path, swap):
+    """A CSV with a repeated timecode (an edited or merged take) was written as '99 frames' while the USD
+    kept 98 (the two rows' time samples fell on one time code); rows out of order were reordered by USD but
+    not in the take's weights (a user trial). Both are refused, naming the row."""
+    from usdface.cli import main
+    from usdface.errors import TimecodeError
+
+    codes = [f"00:00:01:{f:02d}.000" for f in range(0, 40, 2)]
+    if swap:
+        codes[5], codes[6] = codes[6], codes[5]
+    else:
+        codes[6] = codes[5]
+    with pytest.raises(TimecodeError, match=r"\(row 7 of the take\) (repeats|comes before) the previous"):
+        parse_timecodes(codes, 60, "t.csv")
+    header = "Timecode,BlendShapeCount,EyeBlinkLeft,JawOpen"
+    (tmp_path / "t.csv").write_text("\n".join([header, *(f"{c},2,0.1,0.2" for c in codes)]) + "\n")
+    assert main(["anim", "import", str(tmp_path / "t.csv"), "-o", str(tmp_path / "t.usda")]) == 2
+    assert not (tmp_path / "t.usda").exists()
+
+
+def test_anim_import_of_a_take_folder_names_the_csv_in_it(tmp_path, capsys):
+    """``anim import take_dir`` (a folder of OBJ frames and its CSV) said 'Live Link CSV is a folder, not a
+    file (fix: pass the .csv exported by Live Link Face)'; the fix now names the CSV in it (a user trial)."""
+    from usdface.cli import main
+
+    folder = tmp_path / "take dir"
+    (folder / "frames").mkdir(parents=True)
+    (folder / "take.csv").write_text("Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n")
+    assert main(["anim", "import", str(folder), "-o", str(tmp_path / "t.usda")]) == 2
+    err = capsys.readouterr().err
+    assert f"fix: pass the .csv exported by Live Link Face: {folder / 'take.csv'}" in err
+    assert not (tmp_path / "t.usda").exists()

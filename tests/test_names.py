@@ -149,6 +149,10 @@ BAD_MAPS = {
     "duplicate key": ("m.json", '{"Blink_L": "eyeBlinkLeft", "Blink_L": "eyeBlinkRight"}', "twice", None),
     "csv duplicate key": ("m.csv", "Blink_L,eyeBlinkLeft\nBlink_L,eyeBlinkRight\n", "twice", None),
     "csv three columns": ("m.csv", "Blink_L,eyeBlinkLeft,x\n", "3 cells", "pair per line"),
+    # the file's line, after a header, a comment and a blank line ('CSV row 2' before: a user trial)
+    "csv three columns, line 5": ("m.csv",
+                                  "channel,arkitName\n# c\n\nBlink_L,eyeBlinkLeft\nJawDrop,jawOpen,x\n",
+                                  "line 5 ('JawDrop, jawOpen, x') has 3 cells", None),
     "csv unknown target": ("m.csv", "Blink_L,blink\n", "not an ARKit name", None),
     "not JSON": ("m.json", '{"Blink_L": ', "not valid JSON", "JSON object"),
     "JSON list": ("m.json", '[["Blink_L", "eyeBlinkLeft"]]', "not an object", None),

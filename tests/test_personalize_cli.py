@@ -334,3 +334,44 @@ def test_retarget_takes_the_fits_pins_and_the_face_mesh(samples, tmp_path, capsy
     assert np.abs(np.array(doc["weights"]) - result.weights).max() <= 1e-6
     assert main([*args, "-o", str(tmp_path / "c.json"), "--face-mesh", "Nope"]) == 2
     assert "no mesh 'Nope'" in capsys.readouterr().err and not (tmp_path / "c.json").exists()
+
+
+def test_retarget_says_which_capture_shapes_the_map_has_no_row_for(samples, tmp_path, capsys):
+    """A studio avatar whose jawOpen is a channel (and prim) named ``JawDrop``, retargeted without a name
+    map, wrote a map with no ``jawOpen`` row and said nothing (a user trial): the phone's jaw then drives
+    nothing. ``personalize`` warns of the same skip; ``retarget`` now does too, with the fix."""
+    (tmp_path / "studio.usda").write_text((samples / "avatar.usda").read_text().replace("jawOpen", "JawDrop"))
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q"]) == 0
+    said = capsys.readouterr()
+    assert "jawOpen" not in json.loads(out.read_text())["source"]
+    text = said.out + said.err
+    assert "capture shapes the avatar lacks (skipped): jawOpen" in text
+    assert "the map has no row for jawOpen" in text and "--name-map" in text
+
+
+def test_personalize_take_without_a_shapes_weights_says_it_stays_still(samples, tmp_path, capsys):
+    """``personalize ... --take take.csv`` with a Live Link CSV that lacks the ``JawOpen`` column played the
+    inspection animation with the jaw still and said nothing (a user trial)."""
+    from usdface.arkit import ARKIT_NAMES
+
+    names = [n[0].upper() + n[1:] for n in ARKIT_NAMES if n != "jawOpen"]
+    rows = [f"00:00:00:{f:02d}.000,{len(names)}," + ",".join(["0.3" if f % 2 else "0.0"] * len(names))
+            for f in range(6)]
+    header = "Timecode,BlendShapeCount," + ",".join(names)
+    (tmp_path / "take.csv").write_text("\n".join([header, *rows]) + "\n")
+    args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "--take",
+            str(tmp_path / "take.csv"), "-q", "--json"]
+    assert main([*args, "-o", str(tmp_path / "p.usda")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert any("no weights for 1 of the avatar's ARKit shape(s): jawOpen; they stay still" in w
+               for w in doc["warnings"])
+    from usdface.io.usd_anim import write_animation_usd  # a take of no ARKit channel: said in one line
+
+    keys = tmp_path / "keys.usda"
+    write_animation_usd(keys, ["Key_1"], np.array([[0.0], [0.5], [0.0]]), np.arange(3) / 30.0)
+    assert main([*args[:4], str(keys), "-q", "--json", "-o", str(tmp_path / "k.usda")]) == 0
+    warned = json.loads(capsys.readouterr().out)["warnings"]
+    assert any("none of the take's 1 weight channel(s) ('Key_1') is an ARKit shape" in w for w in warned)
+    assert not any("eyeLookDownLeft" in w for w in warned if "take" in w)

@@ -307,3 +307,29 @@ def test_the_prior_choice_measures_a_takes_standard_error_by_batch_means():
     true_se = float(np.std(errors))                                        # 1 / sqrt(200) = 0.071
     assert abs(se - true_se) < 0.35 * true_se
     assert np.mean(naive) < 0.35 * true_se                                 # the plain formula: ~1/sqrt(12)
+
+
+@pytest.mark.slow
+def test_retarget_says_which_rows_follow_a_shape_the_take_never_shows(tmp_path):
+    """The map of a take that never performs cheekPuff mapped it to mouthRollLower (0.61) over its namesake
+    (0.17) without a word, where personalize keeps cheekPuff generic (a user trial). The map is unchanged;
+    retarget now says which rows follow such a fit, with their strongest entry."""
+    from pathlib import Path
+
+    from usdface import api, read_avatar, read_capture
+    from usdface.io.take import capture_from_whole_take
+    from usdface.model import FaceRig
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    avatar, capture = read_avatar(root / "avatar.usda"), read_capture(root / "capture.usda")
+    ct = np.load(root / "truth" / "capture_truth.npz")
+    person = FaceRig(ct["neutral"], capture.triangles, [str(n) for n in ct["names"]], ct["deltas"])
+    take, _ = make_take(person, capture.template, skip=["jawLeft", "cheekPuff"], fps=15, weight_noise=0.02,
+                        seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = api.write_retarget_map(avatar, capture_from_whole_take(take), tmp_path / "map.json")
+    row = res.weights[res.names.index("cheekPuff")]
+    assert res.avatar_names[int(np.argmax(row))] != "cheekPuff"      # the case: another shape dominates
+    said = [w for w in res.report["warnings"] if w.startswith("map rows of shapes the capture barely shows")]
+    assert said and "cheekPuff -> " in said[0] and "(cheekPuff 0.1" in said[0]

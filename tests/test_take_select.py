@@ -4,6 +4,8 @@ and OBJ sequence + Live Link CSV."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -252,3 +254,89 @@ def test_held_out_rests_are_warned_about_with_evaluates_fix():
         warnings.simplefilter("error")                       # test frames near the expressions: no warning
         sel = select_frames(w, test_every=2, min_separation=3)
     assert w[sel.test].max() >= 0.15
+
+
+def test_one_frame_usd_take_keeps_its_mesh_and_says_why_it_has_no_peak(generated, tmp_path, capsys):
+    """A take of one frame written by ``write_take_usd`` was read as weights only ('a take of weights only
+    (no meshes): nothing to fit' from fit, personalize and inspect), and ``capture select`` said 'no shape
+    peaks above --threshold 0.5 (the highest peak: ... 0.81)' with the fix 'lower --threshold', which cannot
+    help: a weight held at the take's end is no peak (a user trial)."""
+    import dataclasses
+
+    take, truth, _ = generated
+    frame = truth.peak_frames["jawOpen"]
+    one = dataclasses.replace(take, weights=take.weights[frame:frame + 1], times=take.times[frame:frame + 1],
+                              points=take.points[frame:frame + 1])
+    path = write_take_usd(one, tmp_path / "one.usda")
+    got = read_take(path)
+    assert got.points is not None and got.points.shape == (1, *take.points.shape[1:])
+    np.testing.assert_array_equal(got.points[0], take.points[frame])
+    assert main(["fit", str(path), "-o", str(tmp_path / "rig.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "weights only" not in err and "distinct pose" in err
+    assert main(["capture", "select", str(path), "-o", str(tmp_path / "c.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "still rising or held at the take's end (1 frame(s))" in err and "lower --threshold" not in err
+    assert not (tmp_path / "c.usda").exists() and not (tmp_path / "rig.usda").exists()
+
+
+def test_select_names_the_arkit_shapes_a_take_has_no_weights_for(generated, tmp_path, capsys):
+    """A take folder whose Live Link CSV lacks the ``JawOpen`` column: ``capture select`` printed a coverage
+    table of 51 shapes and '50/51 shapes triggered', and jawOpen appeared nowhere (``anim import`` of the
+    same CSV says 'missing shapes: jawOpen'); a user trial."""
+    import csv
+
+    take, _, _ = generated
+    folder = write_take_folder(take, tmp_path / "take dir")
+    table = folder / "take.csv"
+    rows = list(csv.reader(table.open()))
+    col = rows[0].index("JawOpen")
+    with table.open("w", newline="") as f:
+        csv.writer(f).writerows([r[:col] + r[col + 1:] for r in rows])
+    assert main(["capture", "select", str(folder)]) == 0
+    said = capsys.readouterr()
+    assert "the take has no weights for 1 ARKit shape(s): jawOpen" in said.out + said.err
+    assert main(["capture", "select", str(folder), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["not_in_take"] == ["jawOpen"] and any("jawOpen" in w for w in doc["warnings"])
+
+
+def test_inspect_a_one_frame_take_gives_no_rate(generated, tmp_path, capsys):
+    """``inspect`` of a one-frame take said 'a take of 1 frames at 30 fps' (30: the default of a take with
+    no frame interval, not the take's rate; a user trial)."""
+    import dataclasses
+
+    take, _, _ = generated
+    one = dataclasses.replace(take, weights=take.weights[:1], times=take.times[:1], points=take.points[:1])
+    path = write_take_usd(one, tmp_path / "one.usda")
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "a take of 1 frame (no rate)" in out and "30 fps" not in out
+
+
+def test_select_on_a_take_of_no_arkit_channel_says_so_in_one_line(tmp_path, capsys):
+    """Blender's 'Key_1' take: the warning of ARKit shapes without weights listed all 52 names; a take none
+    of whose channels is an ARKit shape is told as that, naming its own channels."""
+    from usdface.io.usd_anim import write_animation_usd
+
+    weights = np.array([[0.0, 0.0], [0.6, 0.1], [0.9, 0.2], [0.4, 0.7], [0.0, 0.9], [0.0, 0.1]])
+    path = tmp_path / "keys.usda"
+    write_animation_usd(path, ["Key_1", "Key_2"], weights, np.arange(6) / 30.0)
+    assert main(["capture", "select", str(path)]) == 0
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert "none of the take's 2 weight channel(s) ('Key_1', 'Key_2') is an ARKit shape" in text
+    assert "eyeLookDownLeft" not in text
+
+
+def test_select_with_output_on_a_weights_only_take_points_to_the_table(tmp_path, capsys):
+    """``capture select recording.csv -o capture.usda``: the fix said only 'record the mesh with the
+    weights'; it now says the coverage table alone is what such a take gives (leave out -o)."""
+    from usdface.io.usd_anim import write_animation_usd
+
+    path = tmp_path / "anim.usda"
+    write_animation_usd(path, ["jawOpen", "eyeBlinkLeft"], np.array([[0.0, 0.0], [0.8, 0.1], [0.1, 0.0]]),
+                        np.arange(3) / 30.0)
+    assert main(["capture", "select", str(path), "-o", str(tmp_path / "c.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "weights only" in err and "without -o" in err and not (tmp_path / "c.usda").exists()

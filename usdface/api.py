@@ -233,6 +233,15 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
             peak = data.weights.max(axis=0) if data.weights.size else None
             best = "" if peak is None else (f" (the highest peak: {data.names[int(peak.argmax())]} "
                                             f"{float(peak.max()):.2f})")
+            if peak is not None and float(peak.max()) > threshold:
+                # above the threshold but never decreasing after it: lowering the threshold does not help
+                raise CaptureError(f"no shape peaks in the take: {data.names[int(peak.argmax())]} reaches "
+                                   f"{float(peak.max()):.2f} (above --threshold {threshold:g}) but is still "
+                                   f"rising or held at the take's end ({len(data.weights)} frame(s)), and a "
+                                   "shape's frame is kept once its weight starts decreasing: the capture "
+                                   "would have no training frames", path=take,
+                                   fix="record each expression through its peak and back (a take of a few "
+                                       "frames, or one that ends on the expression, has no peaks)")
             raise CaptureError(f"no shape peaks above --threshold {threshold:g} in the take{best}: the "
                                "capture would have no training frames", path=take,
                                fix="lower --threshold (0.5 is the paper's), or record the shapes again")
@@ -714,6 +723,24 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     result = _personalize(avatar, capture, out_path, layer_edit=inspection,
                           extra_inputs={"take": take} if take is not None else {}, **options)
+    if take_data is not None and isinstance(getattr(result, "report", None), dict):
+        from .arkit import ARKIT_NAMES
+
+        # a take without some shapes' weights (a CSV without the JawOpen column) played them as still,
+        # without a word (a user trial)
+        shown = set(take_data.names)
+        lacking = [n for n in ARKIT_NAMES if n not in shown and any(n in m.names for m in avatar.meshes)]
+        if lacking and not shown & set(ARKIT_NAMES):   # not a face take: its own channels say more
+            own = list(take_data.names)
+            result.report.setdefault("warnings", []).append(
+                f"{take}: none of the take's {len(own)} weight channel(s) ({', '.join(map(repr, own[:4]))}"
+                f"{', ...' if len(own) > 4 else ''}) is an ARKit shape: the inspection animation plays "
+                "nothing (fix: a face take names its weights as ARKit does: eyeBlinkLeft, jawOpen, ...)")
+        elif lacking:
+            result.report.setdefault("warnings", []).append(
+                f"{take}: the take has no weights for {len(lacking)} of the avatar's ARKit shape(s): "
+                f"{', '.join(lacking)}; they stay still in the inspection animation (fix: export the take "
+                "with every ARKit weight)")
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]

@@ -291,12 +291,18 @@ def _names_line(label: str, items, limit: int = 12) -> str:
     return f"    {label} ({len(items)}): {', '.join(map(str, items[:limit]))}{more}"
 
 
+def _frames_at(frames: int, fps: float) -> str:
+    """'1056 frames at 15 fps'; one frame has no rate ('1 frame at 30 fps' was the default's, not the
+    take's: a user trial)."""
+    return f"{frames} frames at {fps:.3g} fps" if frames > 1 else f"{frames} frame (no rate)"
+
+
 def format_report(report: dict) -> str:
     """Human-readable text for :func:`inspect_file`'s dict."""
     kind = report.get("kind")
     lines = [f"{report.get('file')}: {kind}"]
     if report.get("kind") == "take":
-        head = f"  {report['frames']} frames at {report['fps']:.3g} fps ({report['seconds']:.1f} s), " \
+        head = f"  {_frames_at(report['frames'], report['fps'])} ({report['seconds']:.1f} s), " \
                f"{report['shapes']} shapes, "
         if report.get("meshes"):      # no template rig: read whole by fit / personalize, it is refused
             lines.append(head + "meshes but no template rig: 'fit' and 'personalize' need one (template/ or "
@@ -310,7 +316,7 @@ def format_report(report: dict) -> str:
         return "\n".join(lines)
     if kind in ("capture", TAKE_WITH_MESHES):
         if report.get("take"):
-            lines.append(f"  a take of {report['take']['frames']} frames at {report['take']['fps']:.3g} fps, "
+            lines.append(f"  a take of {_frames_at(report['take']['frames'], report['take']['fps'])}, "
                          "read whole: every frame trains ('fit TAKE', 'personalize AVATAR TAKE')")
             lines += _never_above_line(report)
         lines.append(f"  mesh: {report['vertices']} vertices, {report['triangles']} triangles")

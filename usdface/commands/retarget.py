@@ -31,6 +31,16 @@ def run(args) -> int:
     result = api.write_retarget_map(args.avatar, args.capture, args.output, force=args.force,
                                     face_mesh=args.face_mesh, **transfer_kwargs(args),
                                     **({"pins": args.pins} if args.pins else {}))
+    from . import say_warning
+
+    rep = result.report
+    for text in rep.get("warnings") or []:
+        say_warning(text)
+    lacking = rep.get("capture_shapes_missing_from_avatar") or []
+    if lacking:      # a row the map lacks is a phone weight that drives nothing on the avatar
+        say_warning(f"the map has no row for {', '.join(lacking)}: the phone's weights for them drive "
+                    "nothing on the avatar (fix: if the avatar has these shapes under its own channel names, "
+                    "map them with --name-map FILE, docs/names.md)")
     w = result.weights
     print(f"{w.shape[0]} x {w.shape[1]} retarget map -> {args.output} (weights in [{w.min():.2f}, "
           f"{w.max():.2f}], {int((abs(w) > 0.05).sum())} above 0.05)")

@@ -140,6 +140,14 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
                       f"(fix: {_rate_fix(looks)})", UserWarning, stacklevel=3)
     # Differences in frames first (whole seconds are exact), then seconds: keeps time codes clean.
     frames = (whole - whole[0]) * rate + (ff - ff[0]) if len(whole) else whole
+    back = np.flatnonzero(np.diff(frames) <= 0)
+    if back.size:       # a repeated row: its USD time sample replaced the other's, one frame lost unsaid
+        i = int(back[0]) + 1
+        how = "repeats" if frames[i] == frames[i - 1] else "comes before"
+        raise TimecodeError(f"timecode {codes[i].strip()!r} (row {i + 1} of the take) {how} the previous "
+                            f"row's {codes[i - 1].strip()!r}: a take's rows run forward in time", path=path,
+                            fix="export the take from Live Link Face unchanged (an edited or merged CSV: "
+                                "remove the repeated rows, sort the rows by time)")
     return frames / rate
 
 
@@ -156,7 +164,10 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     """
     from .usd_open import require_file
 
-    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face")
+    inside = sorted(Path(path).glob("*.csv")) if Path(path).is_dir() else []
+    # a take folder (OBJ frames + its CSV) given to 'anim import': name the CSV in it (a user trial)
+    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face"
+                        + (f": {inside[0]}" if len(inside) == 1 else ""))
     if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):  # the UTF-8 decoder's words said only that
         raise InputFileError("a USD file where a Live Link Face CSV is expected", path=path,
                              fix="pass the .csv exported by Live Link Face; a USD take is read as it is "

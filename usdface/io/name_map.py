@@ -96,7 +96,10 @@ def _parse_json(text: str, path: Path) -> list[tuple]:
 
 
 def _parse_csv(text: str, path: Path) -> list[tuple]:
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    kept = [(i + 1, ln) for i, ln in enumerate(text.splitlines())
+            if ln.strip() and not ln.lstrip().startswith("#")]
+    lines = [ln for _, ln in kept]
+    numbers = [i for i, _ in kept]      # the file's line of each row kept (blank lines and comments skipped)
     if not lines:
         return []
     try:
@@ -104,15 +107,17 @@ def _parse_csv(text: str, path: Path) -> list[tuple]:
     except csv.Error:
         dialect = csv.excel
     rows = list(csv.reader(io.StringIO("\n".join(lines)), dialect))
+    if len(rows) != len(numbers):       # a quoted cell over several lines: count rows instead
+        numbers = list(range(1, len(rows) + 1))
     if rows and len(rows[0]) >= 2 and rows[0][1].strip().lower() in CSV_HEADERS:
-        rows = rows[1:]
+        rows, numbers = rows[1:], numbers[1:]
     pairs = []
     for k, row in enumerate(rows):
         cells = [c.strip() for c in row]
         while cells and not cells[-1]:
             cells.pop()
         if len(cells) != 2:
-            raise InputFileError(f"CSV row {k + 1} ({', '.join(row)!r}) has {len(cells)} cells, not 2",
+            raise InputFileError(f"line {numbers[k]} ({', '.join(row)!r}) has {len(cells)} cells, not 2",
                                  path=path, fix="write one 'studio_channel,arkitName' pair per line")
         pairs.append((cells[0], cells[1]))
     return pairs

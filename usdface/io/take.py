@@ -214,7 +214,10 @@ def read_take_usd(path) -> Take:
         meshes = [p for p in Usd.PrimRange(root) if p.IsA(UsdGeom.Mesh)]
         frames = max(meshes, key=lambda p: UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples(), default=None)
     codes = UsdGeom.Mesh(frames).GetPointsAttr().GetTimeSamples() if frames else []
-    if len(codes) < 2:
+    # one time sample is a take of one frame when it is the take's own Frames mesh ('write_take_usd'):
+    # read as weights only, it was refused as 'a take of weights only (no meshes)' (a user trial)
+    own_frames = bool(frames) and frames.GetPath() == root.GetPath().AppendChild("Frames")
+    if len(codes) < (1 if own_frames else 2):
         weights_only = _weights_only_take(stage, path)
         if weights_only is not None:
             return weights_only
@@ -531,7 +534,9 @@ def _capture(take: Take, frames_idx, roles, labels, template, metadata: dict) ->
     :func:`capture_from_take`)."""
     if take.points is None:
         raise CaptureError("the take has weights only, no meshes", path=take.source or None,
-                           fix="record the mesh with the weights (USD take or OBJ sequence + CSV)")
+                           fix="record the mesh with the weights (USD take or OBJ sequence + CSV); a take of "
+                               "weights only gives its coverage table alone ('usdface capture select TAKE' "
+                               "without -o)")
     if template is None:
         template = take.template
     elif not isinstance(template, FaceRig):

@@ -364,6 +364,7 @@ def _close_arkit(name: str) -> str | None:
 def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
     UsdSkel = _skel()
     per_skeleton: dict[str, set[str]] = {}
+    unknown: dict[str, list[str]] = {}             # per skeleton: channels that are no ARKit name
     tokens: set[str] = set()                       # every channel as authored, for the map's unused entries
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
@@ -387,8 +388,10 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         for reason, pairs in decorated.items():
             if len(pairs) > GROUP_AFTER:            # one line for a mesh a DCC renamed whole ('.001')
                 shown = ", ".join(f"{g!r} -> {c!r}" for g, c in pairs[:3])
-                yield Issue(WARNING, "ArkitNames", path, f"{len(pairs)} channels look like ARKit names with "
-                            f"{reason}: {shown} (+{len(pairs) - 3} more)",
+                group = (f"{len(pairs)} channels look like ARKit names only by their BlendShape prims' names"
+                         if reason == "only its target prim is named so"
+                         else f"{len(pairs)} channels look like ARKit names with {reason}")
+                yield Issue(WARNING, "ArkitNames", path, f"{group}: {shown} (+{len(pairs) - 3} more)",
                             "rename the channels to their ARKit names; drivers that match by name will miss "
                             "them")
                 continue
@@ -403,7 +406,8 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
                             f"{close!r}?", f"rename it to {close!r}")
             else:
                 yield Issue(INFO, "ArkitNames", path, f"channel {given!r} is not an ARKit shape",
-                            "fine for extra shapes; usdface keeps it but does not personalize it")
+                            "fine for extra shapes (usdface keeps it but does not personalize it); if it "
+                            "is an ARKit shape under the rig's own name, map it with --name-map FILE")
         kept = {c: k for _g, c, k in match_names(names, fallbacks, name_map, resolve=True).conflicts}
         for dup in sorted(set(match.duplicates)):
             given = [g for g, c in zip(names, match.canonical, strict=True) if c == dup]
@@ -413,6 +417,7 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
         skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
         key = str(skel.GetPath()) if skel else path
         per_skeleton.setdefault(key, set()).update(c for c in match.canonical if c in ARKIT_SET)
+        unknown.setdefault(key, []).extend(g for g in match.unknown if g not in unknown[key])
     if name_map:      # as 'inspect --name-map' notes them: a typo in the map, or another rig's map
         unused = unused_map_entries(name_map, tokens)
         if unused:
@@ -426,9 +431,14 @@ def _arkit_names(stage, name_map: dict | None = None) -> Iterable[Issue]:
             yield Issue(WARNING, "ArkitNames", key, "no channel of the meshes bound here is an ARKit shape",
                         "name the channels with Apple's ARKit names (eyeBlinkLeft, jawOpen, ...)")
         elif missing:
+            # a studio's own channel names (JawDrop) read as missing shapes: the map is the fix
+            own = unknown.get(key) or []
+            mapped = (f"if the rig has them under its own channel names ({', '.join(map(repr, own[:4]))}"
+                      f"{', ...' if len(own) > 4 else ''}), map them with --name-map FILE (docs/names.md); "
+                      "else " if own else "")
             yield Issue(ERROR, "ArkitNames", key, f"{len(missing)} ARKit shape(s) missing: "
                         f"{', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}",
-                        "add the missing shapes (tongueOut is optional)")
+                        f"{mapped}add the missing shapes (tongueOut is optional)")
 
 
 @_rule("AnimationNames", "the bound SkelAnimation names every channel exactly; one weight per name")

@@ -805,6 +805,23 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
                       if c[1] is not None and c[2] != "conflict"}
             report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
+            # the implant keeps a shape the capture barely shows near the generic one; the map's row is
+            # the fit's shape as it is (a take's never-performed cheekPuff mapped to mouthRollLower 0.54,
+            # namesake 0.17, without a word: a user trial). Said, with the shape's strongest entry.
+            trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
+                                      _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
+            untrusted = []
+            for j in np.flatnonzero(trust < 0.5):
+                top = int(np.argmax(weights[j]))
+                if k_names[top] != names[j]:
+                    own = weights[j, k_names.index(names[j])] if names[j] in k_names else 0.0
+                    untrusted.append(f"{names[j]} -> {k_names[top]} {weights[j, top]:.2f} "
+                                     f"({names[j]} {own:.2f})")
+            if untrusted:
+                report["warnings"].append(
+                    "map rows of shapes the capture barely shows follow a fit its frames hardly inform "
+                    "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
+                    + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
