@@ -60,34 +60,31 @@ class SharedWhileInside:
     def __init__(self, install: Callable[[], Any], restore: Callable[[Any], None]):
         self._install, self._restore = install, restore
         self._lock = ForkSafeLock()
-        self._inside = 0
         self._token = None
-        self._entries: dict[int, int] = {}          # thread ident -> its entries now
+        self._entries: dict[int, int] = {}          # thread ident -> its entries now (none: not inside)
         if hasattr(os, "register_at_fork"):         # after the lock's own renewal (registered before)
             os.register_at_fork(after_in_child=self._after_fork)
 
     @property
     def inside(self) -> int:
         """Threads (entries) inside now."""
-        return self._inside
+        return sum(self._entries.values())
 
     def __enter__(self) -> None:
         with self._lock:
-            if self._inside == 0:
+            if not self._entries:
                 self._token = self._install()       # an install that raises counts nobody in
-            self._inside += 1
             me = threading.get_ident()
             self._entries[me] = self._entries.get(me, 0) + 1
 
     def __exit__(self, *exc) -> None:
         with self._lock:
-            self._inside -= 1
             me = threading.get_ident()
-            if self._entries.get(me, 0) > 1:
+            if self._entries[me] > 1:
                 self._entries[me] -= 1
             else:
-                self._entries.pop(me, None)
-            if self._inside == 0:
+                del self._entries[me]
+            if not self._entries:
                 token, self._token = self._token, None
                 self._restore(token)
 
@@ -95,12 +92,11 @@ class SharedWhileInside:
         """In a forked child: only the forking thread's entries are inside; none left, the state goes back."""
         me = threading.get_ident()
         own = self._entries.get(me, 0)
+        others = bool(self._entries) and not own
         self._entries = {me: own} if own else {}
-        if self._inside and not own:
+        if others:
             token, self._token = self._token, None
-            self._inside = 0
             try:
                 self._restore(token)
             except Exception:                        # a fork must go on; the child keeps the state then
                 pass
-        self._inside = own
