@@ -15,7 +15,6 @@ Example::
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import warnings
@@ -455,7 +454,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     written are ``report["_outputs"]``; when a later output fails, the ones this call created are removed.
     ``options`` go to the fit (``reg``, ``prior``, ...). Raises :class:`~usdface.errors.FitError` if the
     capture has no test frames."""
-    from .io.atomic import check_output_file
+    from .io.atomic import check_output_file, outputs_all_or_nothing
     from .personalize.report import METHODS, check_method_options
     from .personalize.report import evaluate_methods as _evaluate
 
@@ -497,7 +496,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         if json_path or plot_path or usd_path:
             p.start("write outputs")
         # all or nothing: a later output that fails takes the new earlier ones
-        with _new_outputs_kept_on_success(outputs, json=json_path, plot=plot_path, usd=usd_path):
+        with outputs_all_or_nothing(outputs, json=json_path, plot=plot_path, usd=usd_path):
             if json_path:
                 from .personalize.report import write_report_json
 
@@ -1264,7 +1263,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     from .errors import OptionError, UsdFaceError
-    from .io.atomic import check_output_dir, check_output_file
+    from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
     from .io.gltf import GLTF_EXTENSIONS
     from .io.layers import check_output_path
@@ -1294,7 +1293,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
         warnings.warn(text, UserWarning, stacklevel=2)
     done: dict[str, Path] = {}
-    with _new_outputs_kept_on_success(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
+    with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
         _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
     return done
 
@@ -1341,28 +1340,3 @@ def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str
     if flatten:
         flatten_variant(layer_path, flatten, variant, force=force)
         done["flatten"] = _written(flatten)
-
-
-@contextlib.contextmanager
-def _new_outputs_kept_on_success(done: dict, **outputs):
-    """Several outputs, all or nothing: ``outputs`` {key: path or None} are the ones the block may write,
-    ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
-    ones that did not exist before it are removed (the finished part of a failed :func:`export_avatar` or
-    :func:`evaluate_methods`); one that replaced an existing file (``force``) is left."""
-    import shutil
-
-    new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
-    try:
-        yield
-    except BaseException:
-        for key, path in done.items():
-            if not new.get(key):
-                continue
-            try:
-                if path.is_dir() and not path.is_symlink():
-                    shutil.rmtree(path)
-                else:
-                    path.unlink()
-            except OSError:
-                pass
-        raise

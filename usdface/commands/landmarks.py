@@ -128,7 +128,7 @@ def run(args) -> int:
     import time
 
     from .. import api
-    from ..io.atomic import check_output_file, write_text_atomic
+    from ..io.atomic import check_output_file, outputs_all_or_nothing, write_text_atomic
     from ..progress import steps
 
     refuse_other_mode(args)
@@ -158,7 +158,7 @@ def run(args) -> int:
         done: dict = {}
         # all or nothing, as export and evaluate: a plot written, then the JSON failing (a full disk,
         # Ctrl-C), left the plot as if the sweep had finished
-        with api._new_outputs_kept_on_success(done, plot=args.plot, json=args.json_out):
+        with outputs_all_or_nothing(done, plot=args.plot, json=args.json_out):
             if args.plot:
                 plot_evaluation(report, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
                                 force=args.force)
@@ -180,7 +180,7 @@ def run(args) -> int:
     done: dict = {}
     # the layer, the JSON and the picture all or nothing, as export and evaluate: a picture that failed
     # (a full disk, Ctrl-C) left the layer and the JSON behind as if the run had finished
-    with api._new_outputs_kept_on_success(done, layer=args.output, json=args.json_out, plot=args.plot):
+    with outputs_all_or_nothing(done, layer=args.output, json=args.json_out, plot=args.plot):
         with steps("landmarks", 1 + bool(args.output)) as p:
             p.start(f"layout of {rig.name}")
             layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,

@@ -47,12 +47,12 @@ def run(args) -> int:
         check_output_file(args.picture, args.force, suffixes=(".png",), what="picture")
     noise = {"scan_noise_m": None if args.scan_noise is None else args.scan_noise * 1e-3,
              "weight_noise": args.weight_noise}
-    from ..api import _new_outputs_kept_on_success
+    from ..io.atomic import outputs_all_or_nothing
 
     done: dict = {}
     # the folder and the picture all or nothing, as export's outputs: a picture that failed (a full disk,
     # Ctrl-C) left a new sample folder behind as if the run had finished
-    with _new_outputs_kept_on_success(done, folder=args.outdir, picture=args.picture):
+    with outputs_all_or_nothing(done, folder=args.outdir, picture=args.picture):
         out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
                                template=args.template, **noise)
         done["folder"] = Path(out)

@@ -19,7 +19,8 @@ from pathlib import Path
 from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, write_fix
 
 __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
-           "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling"]
+           "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling",
+           "outputs_all_or_nothing"]
 
 
 #: errno values meaning "this file system cannot hard-link" (publish then falls back to check + rename).
@@ -582,3 +583,27 @@ def _merge_into(tmp: Path, dest: Path) -> None:
         warnings.warn(f"{dest}: kept {len(others)} file(s) this run did not write (e.g. "
                       f"{others[0].as_posix()}); --force only replaces the files usdface writes: delete "
                       "stale ones yourself", stacklevel=3)
+
+
+@contextmanager
+def outputs_all_or_nothing(done: dict, **outputs):
+    """Several outputs, all or nothing: ``outputs`` {key: path or None} are the ones the block may write,
+    ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
+    ones that did not exist before it are removed (the finished part of a failed
+    :func:`usdface.api.export_avatar`, :func:`~usdface.api.evaluate_methods`, ``landmarks`` or
+    ``sample``); one that replaced an existing file (``force``) is left."""
+    new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
+    try:
+        yield
+    except BaseException:
+        for key, path in done.items():
+            if not new.get(key):
+                continue
+            try:
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+            except OSError:
+                pass
+        raise
