@@ -724,22 +724,17 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                           extra_inputs={"take": take} if take is not None else {}, **options)
     if take_data is not None and isinstance(getattr(result, "report", None), dict):
         from .arkit import ARKIT_NAMES
+        from .io.take import missing_arkit_weights
 
         # a take without some shapes' weights (a CSV without the JawOpen column) played them as still,
         # without a word (a user trial)
-        shown = set(take_data.names)
-        lacking = [n for n in ARKIT_NAMES if n not in shown and any(n in m.names for m in avatar.meshes)]
-        if lacking and not shown & set(ARKIT_NAMES):   # not a face take: its own channels say more
-            own = list(take_data.names)
-            result.report.setdefault("warnings", []).append(
-                f"{take}: none of the take's {len(own)} weight channel(s) ({', '.join(map(repr, own[:4]))}"
-                f"{', ...' if len(own) > 4 else ''}) is an ARKit shape: the inspection animation plays "
-                "nothing (fix: a face take names its weights as ARKit does: eyeBlinkLeft, jawOpen, ...)")
-        elif lacking:
-            result.report.setdefault("warnings", []).append(
-                f"{take}: the take has no weights for {len(lacking)} of the avatar's ARKit shape(s): "
-                f"{', '.join(lacking)}; they stay still in the inspection animation (fix: export the take "
-                "with every ARKit weight)")
+        wanted = [n for n in ARKIT_NAMES if any(n in m.names for m in avatar.meshes)]
+        _, text = missing_arkit_weights(take, take_data.names, wanted, of="of the avatar's ",
+                                        effect="they stay still in the inspection animation",
+                                        effect_none=": the inspection animation plays nothing",
+                                        fix="export the take with every ARKit weight")
+        if text:
+            result.report.setdefault("warnings", []).append(text)
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]

@@ -91,21 +91,14 @@ def run_select(args) -> int:
                                            threshold=args.threshold, per_shape=args.per_shape,
                                            test_every=args.test_every, min_separation=args.min_separation,
                                            force=args.force)
-    from ..arkit import ARKIT_NAMES
+    from ..io.take import missing_arkit_weights
 
     # ARKit shapes the take has no weights for at all (a CSV without the column): the coverage table,
     # of the take's own shapes, left them out without a word (a user trial)
     taken = getattr(result.take, "names", None)     # None from a studio's stand-in for the API
-    absent = [] if taken is None else [n for n in ARKIT_NAMES if n not in set(taken)]
-    absent_text = None if not absent else (
-        f"{args.take}: the take has no weights for {len(absent)} ARKit shape(s): {', '.join(absent)}; they "
-        "cannot be selected (the capture gives them weight 0) (fix: export the take with every ARKit weight, "
-        "or record them in another take)")
-    if len(absent) == len(ARKIT_NAMES):     # not a face take at all: its own channels say more than 52 names
-        own = list(result.take.names)
-        absent_text = (f"{args.take}: none of the take's {len(own)} weight channel(s) "
-                       f"({', '.join(map(repr, own[:4]))}{', ...' if len(own) > 4 else ''}) is an ARKit "
-                       "shape (fix: a face take names its weights as ARKit does: eyeBlinkLeft, jawOpen, ...)")
+    absent, absent_text = ([], None) if taken is None else missing_arkit_weights(
+        args.take, taken, effect="they cannot be selected (the capture gives them weight 0)",
+        fix="export the take with every ARKit weight, or record them in another take")
     if args.json:
         import json
 

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import match_names
+from ..arkit import ARKIT_NAMES, match_names
 from ..errors import CaptureError, GeometryError, InputFileError
 from ..model import Capture, FaceRig, Frames
 from .mesh_io import read_obj
 
 __all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
            "capture_from_take", "capture_from_whole_take", "is_take", "probe_take",
-           "whole_take_playback", "TAKE_PRIM"]
+           "whole_take_playback", "missing_arkit_weights", "TAKE_PRIM"]
 
 TAKE_PRIM = "/Take"
 
@@ -70,6 +70,28 @@ class Take:
 
 
 # ----------------------------------------------------------------------------------------------- reading
+def missing_arkit_weights(take, names, wanted=ARKIT_NAMES, *, of: str = "", effect: str,
+                          effect_none: str = "", fix: str) -> tuple[list[str], str | None]:
+    """The ARKit shapes among ``wanted`` a take (``names``: its weight channels) has no weights for at all
+    (a Live Link CSV without the ``JawOpen`` column), and the warning naming them: ``(absent, text)``,
+    ``([], None)`` when none is missing. ``of`` qualifies the shapes counted (``"of the avatar's "``),
+    ``effect`` says what becomes of them and ``fix`` how to mend it; a take with no ARKit channel at all (a
+    studio's ``Key_1``) is named by its own channels instead, with ``effect_none`` (a user trial: all 52 ARKit
+    names listed said less)."""
+    shown = set(names)
+    absent = [n for n in wanted if n not in shown]
+    if not absent:
+        return [], None
+    if not shown & set(ARKIT_NAMES):          # not a face take at all: its own channels say more
+        own = list(names)
+        preview = ", ".join(map(repr, own[:4])) + (", ..." if len(own) > 4 else "")
+        return absent, (f"{take}: none of the take's {len(own)} weight channel(s) ({preview}) is an ARKit "
+                        f"shape{effect_none} (fix: a face take names its weights as ARKit does: "
+                        "eyeBlinkLeft, jawOpen, ...)")
+    return absent, (f"{take}: the take has no weights for {len(absent)} {of}ARKit shape(s): "
+                    f"{', '.join(absent)}; {effect} (fix: {fix})")
+
+
 #: The fix when a capture is given to ``--take`` (personalize, review), which plays a take.
 TAKE_NOT_CAPTURE_FIX = ("pass the capture as CAPTURE (its test expressions already play in the inspection "
                         "animation and the review page); --take plays a take: a Live Link Face CSV, a USD "
