@@ -339,13 +339,13 @@ def test_field_noise_separates_what_grows_with_the_motion_from_what_does_not():
 
 
 def test_semantic_poses_carry_where_and_how_much_not_the_direction():
-    """The correspondence's poses (``pipeline.pose_by_length``): another artist's ``jawOpen``, hinged or
+    """The correspondence's poses (``face_map.pose_by_length``): another artist's ``jawOpen``, hinged or
     tilted otherwise (here 40 degrees), gives the same pose as the avatar's own direction would: every vertex
     moves by its motion's length, the template's scaled to the avatar's peak, along the avatar's mean
     direction; a rig that does not move gives no pose."""
     from scipy.spatial.transform import Rotation
 
-    from usdface.transfer.pipeline import pose_by_length, semantic_poses
+    from usdface.transfer.face_map import pose_by_length, semantic_poses
 
     rng = np.random.default_rng(2)
     avatar = np.zeros((40, 3))

@@ -36,7 +36,7 @@ def test_every_face_transfer_mode_has_its_default_approximation_in_the_api(mode)
     """``face_transfer='offset'`` (any older mode) without an approximation was refused by the API and by a
     batch row ("'offset' and approximation 'field' do not go together") while the CLI chose 'generic'."""
     from usdface import api
-    from usdface.transfer.pipeline import default_approximation
+    from usdface.transfer.options import default_approximation
 
     assert default_approximation(mode) == ("field" if mode == "person" else "generic")
     api.check_personalize_options(face_transfer=mode)           # batch's check of a row: passes
@@ -103,7 +103,7 @@ def test_the_api_refuses_an_option_the_mode_does_not_use(tmp_path, monkeypatch, 
 
 def test_the_options_each_mode_uses_pass():
     from usdface import api
-    from usdface.transfer.pipeline import MODE_OPTIONS
+    from usdface.transfer.options import MODE_OPTIONS
 
     values = {"extension_length": 2.0, "falloff": 0.3, "support": (0.02, 0.04)}
     for mode, used in MODE_OPTIONS.items():

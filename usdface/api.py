@@ -667,7 +667,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     # own keyword arguments (a given rig, the provenance's command) are not the user's options. The values
     # are checked where they always were (a given rig skips the fit's checks; numpy booleans pass)
     _refuse_unknown_options([k for k in options if k not in ("command", "rig", "layer_edit", "fit_options")])
-    from .transfer.pipeline import check_mode_options
+    from .transfer.options import check_mode_options
 
     check_mode_options(options.get("face_transfer", "person"), options)   # one the mode would ignore
     _check_correspondence_cache(options.get("correspondence"),
@@ -872,7 +872,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     ``.json`` or ``.csv`` K x K weight map (atomically; an existing file needs ``force``, checked before any
     work). ``options`` go to :func:`usdface.transfer.personalize_avatar` (``mu``, ...; it stops after eq. 4:
     no implant, no layer, empty ``offsets``);
-    the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.pipeline.IMPLANT_OPTIONS`)
+    the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.options.IMPLANT_OPTIONS`)
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
     ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``; ``.out_path`` the
     map file)."""
@@ -909,7 +909,7 @@ def _refuse_implant_options(options) -> None:
     :func:`write_retarget_map`: the map is eq. (4) of the fit's shapes on the avatar's, whatever the face
     transfer (``usdface retarget`` does not offer them)."""
     from .errors import OptionError
-    from .transfer.pipeline import IMPLANT_OPTIONS, option_name
+    from .transfer.options import IMPLANT_OPTIONS, option_name
 
     given = [k for k in IMPLANT_OPTIONS if k in options]
     if given:
@@ -959,25 +959,25 @@ def check_personalize_options(**options: Any) -> None:
     (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
     from .errors import UsdFaceError
-    from .transfer import pipeline as _pipeline
+    from .transfer import options as _implant
 
     _refuse_unknown_options(options)
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
             raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
-    _pipeline.check_mode_options(get("face_transfer", "person"), options)
-    _pipeline._check_modes(get("face_transfer", "person"), get("approximation"),
-                           get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
-                           get("map_prior", "namesake"))
-    _pipeline.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),
-                            falloff=get("falloff", 0.15), support=get("support", (0.01, 0.03)))
+    _implant.check_mode_options(get("face_transfer", "person"), options)
+    _implant.check_modes(get("face_transfer", "person"), get("approximation"),
+                         get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
+                         get("map_prior", "namesake"))
+    _implant.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),
+                           falloff=get("falloff", 0.15), support=get("support", (0.01, 0.03)))
     from .personalize.api import check_fit_options
 
     method, reg = get("method", "menzel"), get("reg", "auto")
     fit = _fit_option_names()
     fit_opts = {k: v for k, v in options.items() if k in fit}
-    check_fit_options(method, reg, **_pipeline._fit_prior_options(get("prior", "avatar"), method, reg),
+    check_fit_options(method, reg, **_implant.fit_prior_options(get("prior", "avatar"), method, reg),
                       **fit_opts)
 
 
@@ -1117,7 +1117,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
 def _apply_batch_options(items, shared: dict, manifest) -> None:
     """Give every item the batch-wide ``shared`` options (``--set``) under its own (manifest columns win).
     A join option a face-transfer mode does not use (``falloff``, ``extension_length``, ``support``:
-    :data:`usdface.transfer.pipeline.MODE_OPTIONS`) goes only to the rows whose mode uses it, so one
+    :data:`usdface.transfer.options.MODE_OPTIONS`) goes only to the rows whose mode uses it, so one
     ``--set falloff=0`` serves a manifest of ``offset`` and ``person`` rows; one that no row's mode uses is
     refused (it would change nothing). A row's own columns are checked as given. A path-valued one
     (``take``, ``name_map``, ``pins``, ``correspondence``) given relative is made absolute against the current
@@ -1125,7 +1125,7 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
     it was, so a Dask worker (or a studio worker that changes folder) looked for it in its own folder."""
     from .errors import InputFileError
     from .pipeline.batch import PATH_OPTIONS
-    from .transfer.pipeline import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
+    from .transfer.options import MODE_ONLY_OPTIONS, MODE_OPTIONS, modes_using, option_name
 
     shared = {k: os.path.abspath(v) if k in PATH_OPTIONS and isinstance(v, str | os.PathLike) and str(v)
               else v for k, v in shared.items()}

@@ -717,7 +717,7 @@ def check_number(name: str, value, *, low: float, inclusive: bool, fix: str, key
     """``value`` as a finite float ``> low`` (``>= low`` with ``inclusive``; a numeric string counts), or one
     of the ``keywords`` as given; else ``error`` naming the option, what it expects and ``fix``. The API's
     refusal of what the CLI's argument types refuse (:mod:`usdface.commands.options`), for the fit's options
-    and personalize's (:func:`usdface.transfer.pipeline.check_numbers`)."""
+    and personalize's (:func:`usdface.transfer.options.check_numbers`)."""
     if isinstance(value, str) and value in keywords:
         return value
     number = f"a finite number {'>=' if inclusive else '>'} {low:g}"

@@ -347,7 +347,7 @@ def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
             return None
     if not isinstance(params, dict):
         return None
-    from ..transfer.pipeline import default_approximation
+    from ..transfer.options import default_approximation
 
     defaults = dict(_personalize_defaults())
     # the approximation a row leaves out is its face transfer's (as the API and the CLI resolve it)

@@ -4,6 +4,8 @@ Step 1, :func:`face_deformation_transfer`: deformation transfer (Sumner & Popovi
 capture shape B_j onto the avatar's face region only, through the correspondence map.
 Step 2, :func:`blend_adjacent`: the adjacent region (vertices that move in the approximation A_j but are not
 in the face) is deformed from A_j with the face fixed, so that there is no seam; every other vertex keeps A_j.
+:func:`implant_shapes` composes the two for the face-transfer modes other than ``person`` (the paper's
+``dt`` and the offset modes).
 
 All arrays are internal metres: ``points[m,3]``, ``triangles[t,3]``, shapes ``[J,m,3]``.
 """
@@ -21,10 +23,12 @@ from ..mesh import (
     triangle_areas,
     vertex_areas,
 )
+from .correspond import Correspondence
+from .options import FACE_TRANSFERS
 from .surface import cotangent_laplacian
 
 __all__ = ["deformation_gradients", "face_deformation_transfer", "blend_adjacent", "moving_mask",
-           "personalization_support"]
+           "personalization_support", "implant_shapes", "shape_jacobians"]
 
 
 def personalization_support(person_deltas, template_deltas, *, low: float = 0.01, high: float = 0.03):
@@ -163,3 +167,69 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
         h = h.reshape(free.size, len(js), 3).transpose(1, 0, 2)
         result[np.ix_(js, free)] = approx[np.ix_(js, free)] + h
     return result, adjacent
+
+
+def shape_jacobians(neutral, deltas, triangles):
+    """``[J,t,3,3]``: each shape's deformation gradients on ``triangles`` (``neutral[n,3]``,
+    ``deltas[J,n,3]``)."""
+    return deformation_gradients(neutral, neutral[None] + deltas, triangles)
+
+
+def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_triangles, person_neutral,
+                   person_deltas, template_deltas, avatar_deltas, approx, *, face_transfer: str = "offset",
+                   anchor_weight: float = 1.0, falloff: float | None = None, support=(0.01, 0.03)):
+    """Steps 5 on arrays: the face region from the personalized shapes, seamlessly joined to ``approx``.
+
+    ``person_neutral[n,3]``, ``person_deltas[J,n,3]``, ``template_deltas[J,n,3]``: capture mesh, already in
+    the avatar frame (registered). ``avatar_deltas[J,m,3]`` the avatar's generic shapes for the same J names,
+    ``approx[J,m,3]`` what the adjacent region is blended from. ``face_transfer``:
+
+    * ``"offset"`` (default, most accurate on the bench): face = avatar's generic shape + M (B_j - T_j), i.e.
+      the person's deviation from the generic template, mapped through the correspondence onto the avatar's
+      own generic shape (its detail is kept, only the personalization is transferred);
+    * ``"dt"``: deformation transfer of B_j (Sumner & Popovic) onto the face, anchored to M B_j (the paper);
+    * ``"dt-offset"``: deformation transfer of the gradients' deviation ``S(B_j) - S(T_j)`` onto the generic
+      shape.
+
+    ``support=(low, high)``: for the offset modes, the personalization ``B_j - T_j`` is kept only where B_j or
+    T_j moves more than ``low..high`` of its peak (:func:`personalization_support`); None keeps it everywhere.
+
+    Returns ``(result[J,m,3], adjacent[J,m])``.
+    """
+    # only the face rows of M B_j, M T_j are used (the transfer and the blend read d_face on the face only)
+    f = np.flatnonzero(corr.face)
+
+    def on_face(values_face):
+        full = np.zeros(avatar_deltas.shape[:1] + (len(corr.face), 3))
+        full[:, f] = values_face
+        return full
+
+    if face_transfer == "dt":
+        dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
+                                          shape_jacobians(person_neutral, person_deltas, capture_triangles)
+                                          - np.eye(3),
+                                          on_face(corr.apply(person_deltas, capture_triangles, rows=f)),
+                                          anchor_weight=anchor_weight)
+    elif face_transfer in ("offset", "dt-offset"):
+        if support is not None:
+            # only the personalization inside the shape's support is transferred (personalization_support)
+            keep = personalization_support(person_deltas, template_deltas, low=support[0], high=support[1])
+            offset_f = corr.apply((person_deltas - template_deltas) * keep[..., None], capture_triangles,
+                                  rows=f)
+        else:
+            offset_f = (corr.apply(person_deltas, capture_triangles, rows=f)
+                        - corr.apply(template_deltas, capture_triangles, rows=f))
+        offset = np.array(avatar_deltas, dtype=np.float64, copy=True)
+        offset[:, f] += offset_f                                             # avatar_deltas + M B_j - M T_j
+        if face_transfer == "offset":
+            dface = offset
+        else:
+            jac = (shape_jacobians(person_neutral, person_deltas, capture_triangles)
+                   - shape_jacobians(person_neutral, template_deltas, capture_triangles))
+            dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
+                                              jac, offset, base=avatar_deltas,
+                                              anchor_weight=anchor_weight)
+    else:
+        raise ValueError(f"face_transfer must be one of {FACE_TRANSFERS}")
+    return blend_adjacent(face_neutral, face_triangles, corr.face, dface, approx, falloff=falloff,
+                          face_weight=corr.weight)

@@ -5,7 +5,8 @@ Steps (Menzel et al. 2022, sec. 3.2-3.3), each a pure function on arrays in anot
 
 1. fit the personalized capture shapes B_j (:func:`usdface.personalize.fit_personalized_shapes`);
 2. register the capture neutral onto the avatar face (:mod:`.register`, ICP with scaling);
-3. correspondence map M and face region (:mod:`.correspond`, cached per avatar + template);
+3. correspondence map M and face region (:mod:`.correspond`; guided by the shapes' motion and cached per
+   avatar + template, :mod:`.face_map`);
 4. automatic retargeting, eq. (4) (:mod:`.retarget`): weight map and approximations A_j;
 5. seamless partial transfer (:mod:`.partial_dt`): face from B_j, adjacent region blended from the
    approximation, every other vertex and mesh follows the approximation;
@@ -14,7 +15,8 @@ Steps (Menzel et al. 2022, sec. 3.2-3.3), each a pure function on arrays in anot
 
 Every step works on the part of each mesh its shapes move (:mod:`usdface.submesh`: read that way, or cropped
 after reading; the offsets go back as :class:`usdface.submesh.SparseOffsets`), and the face mesh's separate
-pieces beyond the capture's reach are handled as another mesh (:func:`reached_parts`).
+pieces beyond the capture's reach are handled as another mesh (:func:`.face_map.reached_parts`). The options
+and their checks are :mod:`.options`, the report's figures :mod:`.report`.
 """
 
 from __future__ import annotations
@@ -26,25 +28,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, GeometryError, RigError, UsdFaceError
+from ..errors import CaptureError, RigError
 from ..memory import release_free_memory
-from ..mesh import deformation_gradients
 from ..model import Avatar, Capture, FaceRig
-from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion, shape_norms
+from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
 from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
-from .correspond import (
-    Correspondence,
-    PosedSurface,
-    correspondence_map,
-    geometry_digest,
-    load_correspondence,
-    nonrigid_register,
-    save_correspondence,
-)
 from .eyelids import find_eyeballs, repair_eyelids
+from .face_map import (
+    cached_correspondence,
+    corr_transform,
+    correspondence_semantics,
+    reached_parts,
+    rough_placement,
+    semantic_poses,
+)
 from .implant import (
     avatar_shapes_on_capture,
     extend_personalization,
@@ -55,86 +55,27 @@ from .implant import (
     rigid_shapes,
 )
 from .motion_field import dilate
-from .partial_dt import blend_adjacent, face_deformation_transfer, personalization_support
+from .options import (
+    MODE_OPTIONS,
+    check_modes,
+    check_numbers,
+    fit_prior_options,
+    pins_input,
+    recorded_fit_options,
+)
+from .partial_dt import implant_shapes
 from .register import motion_landmarks, register_face
+from .report import changed_vertices, lip_report, offset_changes
 from .retarget import approximate, driven_gram, namesake_prior, retarget_weights
 from .trust import shape_trust
 
-__all__ = ["PersonalizeResult", "personalize_avatar", "implant_shapes", "FACE_TRANSFERS", "APPROXIMATIONS",
-           "default_approximation", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
-           "check_mode_options", "modes_using", "option_name"]
+__all__ = ["PersonalizeResult", "personalize_avatar"]
 
-#: Face-region transfer modes (see :func:`implant_shapes`).
-FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
-#: What the adjacent region and the other meshes are blended from / follow.
-APPROXIMATIONS = ("field", "generic", "retarget")
-
-
-#: The options of :func:`personalize_avatar` each face-transfer mode uses besides the fit's, eq. (4)'s and
-#: ``eyelids`` (:func:`check_mode_options` refuses the others when given): the person's field reaches
-#: ``extension_length`` face radii; the older modes join over ``falloff`` edge lengths; ``support`` ramps
-#: the personalization of ``person`` and the offset modes (``dt`` transfers the whole deformation).
-MODE_OPTIONS = {
-    "person": ("extension_length", "support"),
-    "offset": ("falloff", "support"),
-    "dt": ("falloff",),
-    "dt-offset": ("falloff", "support"),
-}
-#: The options some face-transfer modes use and others not (those :func:`check_mode_options` checks).
-MODE_ONLY_OPTIONS = frozenset(k for ks in MODE_OPTIONS.values() for k in ks)
-#: The implant's options (step 5 and the eyelid repair): ``usdface retarget``, which writes the eq. (4) map
-#: only, takes none of them.
-IMPLANT_OPTIONS = ("face_transfer", "approximation", "extension_length", "falloff", "support", "eyelids",
-                   "eyes")
-#: Command-line spellings of options whose flag is not ``--`` + the name with dashes (None: API only).
-_FLAGS = {"support": None, "eyes": None, "eyelids": "--no-eyelids", "weight_bounds": "--weight-bounds"}
-
-
-def option_name(name: str) -> str:
-    """``"falloff (--falloff)"``: an option of :func:`personalize_avatar` in both spellings, the API's and the
-    command line's (``"support (Python API only)"`` for one the commands do not offer)."""
-    flag = _FLAGS.get(name, "--" + name.replace("_", "-"))
-    return f"{name} ({flag})" if flag else f"{name} (Python API only)"
-
-
-def check_mode_options(face_transfer: str, given) -> None:
-    """Refuse (:class:`usdface.errors.OptionError`), before any work, an option among ``given`` (the names
-    the caller gave explicitly) that ``face_transfer`` does not use (:data:`MODE_OPTIONS`): it would be
-    ignored without a word. An unknown ``face_transfer`` is left to :func:`_check_modes`."""
-    from ..errors import OptionError
-
-    used = MODE_OPTIONS.get(face_transfer)
-    if used is None:
-        return
-    for name in sorted(set(given) & MODE_ONLY_OPTIONS):
-        if name not in used:
-            raise OptionError(
-                f"{option_name(name)} is not used by {option_name('face_transfer')} {face_transfer!r} "
-                f"(it uses {', '.join(option_name(k) for k in used)})",
-                fix=f"drop {option_name(name)}, or choose a {option_name('face_transfer')} that uses it: "
-                    + ", ".join(modes_using(name)))
-
-
-def modes_using(name: str) -> list[str]:
-    """The face-transfer modes that use the option ``name`` (:data:`MODE_OPTIONS`)."""
-    return [m for m, ks in MODE_OPTIONS.items() if name in ks]
-
-
-def default_approximation(face_transfer: str) -> str:
-    """The approximation a face-transfer mode gets when none is given: ``"field"`` for ``"person"`` (the only
-    one it goes with), ``"generic"`` for the older modes. The one rule the Python API, ``usdface
-    personalize`` and ``usdface batch`` share, so the same mode gives the same result from each."""
-    return "field" if face_transfer == "person" else "generic"
 
 #: Width of the join between the face region and the field beyond, in face radii: 1.1-1.2 cm on a head, so it
 #: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
 #: left a step where the direct result and the field differ), and more on finer meshes.
 SEAM_BAND = 0.2
-#: Priors of the fit (see :func:`personalize_avatar`).
-PRIORS = ("avatar", "template")
-#: What eq. (4)'s ridge shrinks the retarget map towards (see :func:`personalize_avatar`).
-MAP_PRIORS = ("namesake", "zero")
-
 
 @dataclass
 class PersonalizeResult:
@@ -293,144 +234,6 @@ def _packed_generic(rig: FaceRig, names: list[str]):
     return Float32Offsets.pack(rig.deltas, rig.source.to_internal[:3, :3])
 
 
-#: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
-SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
-
-
-def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tuple[list, list]:
-    """The ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of :data:`SEMANTIC_SHAPES` both rigs move,
-    the capture side in the avatar frame (``transform``). Only where and how much each side moves is used,
-    not the direction: each vertex moves by its own motion's length, scaled to the avatar shape's peak motion
-    (two artists' amplitudes differ), along one common direction, the avatar's motion-weighted mean
-    (:func:`pose_by_length`). A posed lower lip is then centimetres from the upper lip on both rigs, while a
-    template ``jawOpen`` hinged or tilted otherwise than the avatar's (another artist's) does not drag the
-    jaw line's correspondence sideways to where the two artists' directions happen to agree.
-    Returns ``(pairs, names)``."""
-    pairs, used = [], []
-    for name in SEMANTIC_SHAPES:
-        if name not in names:
-            continue
-        j = names.index(name)
-        t = np.asarray(template_deltas[j], dtype=np.float64)
-        if transform is not None:
-            t = transform.apply_vectors(t)
-        a = np.asarray(avatar_deltas[j], dtype=np.float64)
-        pair = pose_by_length(t, a)
-        if pair is None:
-            continue
-        pairs.append(pair)
-        used.append(name)
-    return pairs, used
-
-
-def pose_by_length(template_delta, avatar_delta):
-    """``(template[n,3], avatar[m,3])``: one shape of the two rigs as the semantic pose of the
-    correspondence, each vertex moved by its motion's length (the template's scaled to the avatar's peak)
-    along the avatar's motion-weighted mean direction (m); None when either side does not move."""
-    lt = np.linalg.norm(template_delta, axis=1)
-    la = np.linalg.norm(avatar_delta, axis=1)
-    pt, pa = float(lt.max(initial=0.0)), float(la.max(initial=0.0))
-    direction = np.sum(avatar_delta * la[:, None], axis=0)
-    size = float(np.linalg.norm(direction))
-    if pt <= 0 or pa <= 0 or size <= 0:
-        return None
-    direction /= size
-    return (lt * (pa / pt))[:, None] * direction, la[:, None] * direction
-
-
-def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
-                    initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
-                    avatar_landmarks=None, surfaces: dict | None = None):
-    """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
-    and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
-    otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
-    :func:`register_face`. ``surfaces``: a dict
-    that receives the posed avatar face surface the registration built (``"avatar"``, a
-    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
-    names = list(names)
-    sem = [n for n in SEMANTIC_SHAPES if n in names]
-    key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
-                          *[template_deltas[names.index(n)] for n in sem],
-                          *[avatar_deltas[names.index(n)] for n in sem])
-    stale = False
-    if cache is not None:
-        corr = load_correspondence(cache, key)
-        if corr is not None and (corr.source_triangle is not None or not source_triangles):
-            corr.info = {**(corr.info or {}), "cache": "hit"}
-            return corr
-        # rewritten: a cache of another avatar face / template (or version), or this one's without the face
-        # triangles' source triangles a deformation-transfer mode needs ("extended")
-        stale = "extended" if corr is not None else Path(cache).exists()
-    reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
-                          avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                          path=capture.source or None, initial=initial, target=target,
-                          avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
-    placed = reg_t.transform.apply(capture.template.neutral)
-    poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
-    surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
-    if surfaces is not None:
-        surfaces["avatar"] = surface
-    registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
-                                            poses=poses, surface=surface)
-    del surface
-    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses,
-                              source_triangles=source_triangles)
-    corr.registered = registered
-    nr_info["semantic_shapes"] = ",".join(used)
-    corr.key = key
-    corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
-                 "cache": stale if isinstance(stale, str) else "replaced" if stale
-                 else "miss" if cache is not None else "off"}
-    if cache is not None:
-        save_correspondence(corr, cache)
-    return corr
-
-
-#: A separate piece of the face mesh is within the capture's reach when some vertex of it lies within this
-#: share of the placed capture's diagonal of a capture vertex: the registration's first (widest) ICP
-#: correspondence distance (:func:`.register.register_icp`).
-REACH = 0.08
-
-
-def reached_parts(points, triangles, placed, *, reach: float = REACH):
-    """``keep[m]`` bool: the face mesh's connected pieces the capture reaches, or None when it reaches every
-    piece (one connected head).
-
-    ``points[m,3]``, ``triangles[t,3]`` the face mesh (as held: its moving part and margin), ``placed[q,3]``
-    the capture placed on it (or a function returning it, called only for a mesh in several pieces). A
-    connected piece none of whose vertices is within ``reach`` x the capture's
-    diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
-    where the capture lies, and its triangles must not take part in the face's closest-point queries."""
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    from ..mesh import vertex_adjacency
-
-    p = np.asarray(points, dtype=np.float64)
-    count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
-    if count < 2:
-        return None
-    q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)
-    limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
-    near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
-    keep = np.isin(label, np.unique(label[near]))
-    return None if keep.all() or not keep.any() else keep
-
-
-def _rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_deltas, capture) -> np.ndarray:
-    """The person's neutral ``[q,3]`` placed on the face mesh roughly (for :func:`reached_parts`): by the
-    shape-motion landmarks (:func:`.register.motion_initialiser`), else by a full registration."""
-    from .register import RegistrationError, motion_initialiser
-
-    try:
-        return motion_initialiser(person_neutral, template_deltas, face.neutral, avatar_deltas).apply(
-            person_neutral)
-    except RegistrationError:
-        return register_face(person_neutral, template_deltas, face.neutral, avatar_deltas,
-                             avatar_triangles=face.triangles, capture_triangles=capture.triangles,
-                             path=capture.source or None).transform.apply(person_neutral)
-
-
 def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
     """``rig`` as two rigs: on the vertices ``keep[m]`` (sharing its source, so its key) and on the rest (no
     source: another mesh for the steps, named after it); the triangles within each, re-indexed."""
@@ -455,70 +258,6 @@ def _join(reached_values, reached, rest_values, rest) -> np.ndarray:
     idx[axis] = rest
     out[tuple(idx)] = rest_values
     return out
-
-
-def _jacobians(neutral, deltas, triangles):
-    return deformation_gradients(neutral, neutral[None] + deltas, triangles)
-
-
-def implant_shapes(face_neutral, face_triangles, corr: Correspondence, capture_triangles, person_neutral,
-                   person_deltas, template_deltas, avatar_deltas, approx, *, face_transfer: str = "offset",
-                   anchor_weight: float = 1.0, falloff: float | None = None, support=(0.01, 0.03)):
-    """Steps 5 on arrays: the face region from the personalized shapes, seamlessly joined to ``approx``.
-
-    ``person_neutral[n,3]``, ``person_deltas[J,n,3]``, ``template_deltas[J,n,3]``: capture mesh, already in
-    the avatar frame (registered). ``avatar_deltas[J,m,3]`` the avatar's generic shapes for the same J names,
-    ``approx[J,m,3]`` what the adjacent region is blended from. ``face_transfer``:
-
-    * ``"offset"`` (default, most accurate on the bench): face = avatar's generic shape + M (B_j - T_j), i.e.
-      the person's deviation from the generic template, mapped through the correspondence onto the avatar's
-      own generic shape (its detail is kept, only the personalization is transferred);
-    * ``"dt"``: deformation transfer of B_j (Sumner & Popovic) onto the face, anchored to M B_j (the paper);
-    * ``"dt-offset"``: deformation transfer of the gradients' deviation ``S(B_j) - S(T_j)`` onto the generic
-      shape.
-
-    ``support=(low, high)``: for the offset modes, the personalization ``B_j - T_j`` is kept only where B_j or
-    T_j moves more than ``low..high`` of its peak (:func:`personalization_support`); None keeps it everywhere.
-
-    Returns ``(result[J,m,3], adjacent[J,m])``.
-    """
-    # only the face rows of M B_j, M T_j are used (the transfer and the blend read d_face on the face only)
-    f = np.flatnonzero(corr.face)
-
-    def on_face(values_face):
-        full = np.zeros(avatar_deltas.shape[:1] + (len(corr.face), 3))
-        full[:, f] = values_face
-        return full
-
-    if face_transfer == "dt":
-        dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
-                                          _jacobians(person_neutral, person_deltas, capture_triangles)
-                                          - np.eye(3),
-                                          on_face(corr.apply(person_deltas, capture_triangles, rows=f)),
-                                          anchor_weight=anchor_weight)
-    elif face_transfer in ("offset", "dt-offset"):
-        if support is not None:
-            # only the personalization inside the shape's support is transferred (personalization_support)
-            keep = personalization_support(person_deltas, template_deltas, low=support[0], high=support[1])
-            offset_f = corr.apply((person_deltas - template_deltas) * keep[..., None], capture_triangles,
-                                  rows=f)
-        else:
-            offset_f = (corr.apply(person_deltas, capture_triangles, rows=f)
-                        - corr.apply(template_deltas, capture_triangles, rows=f))
-        offset = np.array(avatar_deltas, dtype=np.float64, copy=True)
-        offset[:, f] += offset_f                                             # avatar_deltas + M B_j - M T_j
-        if face_transfer == "offset":
-            dface = offset
-        else:
-            jac = (_jacobians(person_neutral, person_deltas, capture_triangles)
-                   - _jacobians(person_neutral, template_deltas, capture_triangles))
-            dface = face_deformation_transfer(face_neutral, face_triangles, corr.face, corr.source_triangle,
-                                              jac, offset, base=avatar_deltas,
-                                              anchor_weight=anchor_weight)
-    else:
-        raise ValueError(f"face_transfer must be one of {FACE_TRANSFERS}")
-    return blend_adjacent(face_neutral, face_triangles, corr.face, dface, approx, falloff=falloff,
-                          face_weight=corr.weight)
 
 
 @single_threaded_blas
@@ -583,7 +322,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    approximation = _check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
+    approximation = check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
     check_numbers(mu=mu, extension_length=extension_length, falloff=falloff, support=support)
     # a numeric string passes the check (as the CLI's "0.01" does), and is the number from here on: mu="0.01"
     # went on to retarget_weights' ValueError after the registration and the fit
@@ -592,7 +331,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
 
-        check_fit_options(method, reg, **_fit_prior_options(prior, method, reg), **fit_options)
+        check_fit_options(method, reg, **fit_prior_options(prior, method, reg), **fit_options)
     with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -685,7 +424,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # separate pieces of the face mesh beyond the capture's reach (a body merged into the head's mesh,
         # its neck moved by the jaw) cannot say where the capture lies nor what it shows: the steps below
         # see the reached pieces as the face mesh and the rest as another mesh (joined back before write)
-        reached = reached_parts(face.neutral, face.triangles, lambda: _rough_placement(
+        reached = reached_parts(face.neutral, face.triangles, lambda: rough_placement(
             person_neutral0, template_deltas, face, avatar_face_deltas, capture))
         whole_face, beyond = face, None
         if reached is not None:
@@ -717,10 +456,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
         surfaces = {}                              # the posed avatar face, built once for both uses
-        corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
-                               initial=sim, target=registration.target,
-                               source_triangles=face_transfer != "person",   # the deformation transfer's
-                               avatar_peak=face_peak, avatar_landmarks=face_landmarks, surfaces=surfaces)
+        corr = cached_correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence,
+                                     names, initial=sim, target=registration.target,
+                                     # the deformation transfer's
+                                     source_triangles=face_transfer != "person",
+                                     avatar_peak=face_peak, avatar_landmarks=face_landmarks,
+                                     surfaces=surfaces)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         placed = report["correspondence"].get("template_registration")
         if isinstance(placed, dict) and "translation_m" in placed:
@@ -882,9 +623,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                         **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
                                              ("support", support)) if k in MODE_OPTIONS[face_transfer]},
                         "eyelids": eyelids,
-                        **(_recorded_fit_options(method, fit_options) if fit is not None else {})},
+                        **(recorded_fit_options(method, fit_options) if fit is not None else {})},
             "name_report": avatar.name_report,
-            "changes": _changes(avatar, offsets, regions),
+            "changes": offset_changes(avatar, offsets, regions),
         })
 
         # 7. write
@@ -901,7 +642,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "method": method,
                     "inputs": ([str(capture.source)] if capture.source else [])
                     + ([str(name_map)] if isinstance(name_map, str | Path) else [])
-                    + _pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
+                    + pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
                     + list(extra.values()),
                     **extra,
                     "registrationScale": float(sim.scale),
@@ -977,129 +718,14 @@ def near_origin(avatar: Avatar) -> tuple[Avatar, np.ndarray]:
     return dataclasses.replace(avatar, meshes=[moved(m) for m in avatar.meshes], metadata=meta), origin
 
 
-def _check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,
-                 map_prior: str = "namesake") -> str:
-    """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
-    (:class:`usdface.errors.UsdFaceError`); returns the approximation to use (``approximation``, or
-    :func:`default_approximation` of ``face_transfer`` when None)."""
-    if map_prior not in MAP_PRIORS:
-        raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
-    if weight_bounds is not None:
-        from ..errors import OptionError
-
-        name = option_name("weight_bounds")
-        try:
-            if isinstance(weight_bounds, str):     # its characters are no bounds: "01" read as (0, 1)
-                raise TypeError
-            lo, hi = (float(b) for b in weight_bounds)
-        except (TypeError, ValueError):
-            raise OptionError(f"bad weight bounds {weight_bounds!r}: {name} takes two numbers",
-                              fix="give two finite numbers LO < HI, e.g. (0, 1) ([0, 1] in a batch manifest "
-                                  "or --set); for no bounds use weight_bounds=None (--unbounded), null in a "
-                                  "batch manifest") from None
-        if not (np.isfinite(lo) and np.isfinite(hi)):
-            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} must be finite",
-                              fix="give two finite numbers LO < HI, e.g. (0, 1); for no bounds use "
-                                  "weight_bounds=None (--unbounded)")
-        if not lo < hi:
-            raise OptionError(f"bad weight bounds {lo:g} {hi:g}: {name} needs LO < HI",
-                              fix="give LO < HI, e.g. (0, 1) (--weight-bounds 0 1); for no bounds use "
-                                  "weight_bounds=None (--unbounded)")
-    if face_transfer not in FACE_TRANSFERS:
-        raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
-                           fix=f"use one of {', '.join(FACE_TRANSFERS)}")
-    if approximation is None:
-        approximation = default_approximation(face_transfer)
-    if approximation not in APPROXIMATIONS:
-        raise UsdFaceError(f"unknown approximation {approximation!r}",
-                           fix=f"use one of {', '.join(APPROXIMATIONS)}")
-    if prior not in PRIORS:
-        raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
-    if (face_transfer == "person") != (approximation == "field"):
-        from ..errors import OptionError
-
-        raise OptionError(f"{option_name('face_transfer')} {face_transfer!r} and "
-                          f"{option_name('approximation')} {approximation!r} do not go together",
-                          fix="use face_transfer='person' with approximation='field' (the default), or one "
-                              "of the older modes with 'generic' or 'retarget' (leave the approximation out "
-                              "for the mode's default)")
-    return approximation
-
-
-def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.01, 0.03)) -> None:
-    """Refuse, before any work, numeric options of :func:`personalize_avatar` the work would choke on or
-    silently misuse (NaN, inf, zero or negative where a size or a weight is meant, a non-number), as the CLI's
-    argument types do (:mod:`usdface.commands.options`): ``mu`` ``"auto"`` or > 0, ``extension_length`` None
-    or > 0, ``falloff`` >= 0, ``support`` None or ``(low, high)`` with ``0 <= low <= high``."""
-    from ..personalize.api import check_number
-
-    def _number(name, value, **how):
-        return check_number(name, value, error=UsdFaceError, **how)
-
-    _number("mu", mu, low=0.0, inclusive=False, fix="use 'auto' or a number > 0 (the eq. 4 ridge weight)",
-            keywords=("auto",))
-    if extension_length is not None:
-        _number("extension_length", extension_length, low=0.0, inclusive=False,
-                fix="a length in face radii > 0 (1 = the default), or None for no fade")
-    _number("falloff", falloff, low=0.0, inclusive=True, fix="capture edge lengths >= 0 (0 = harmonic join)")
-    if support is not None:
-        try:
-            if isinstance(support, str):            # its characters are no fractions: "01" read as (0, 1)
-                raise TypeError
-            lo, hi = support
-        except (TypeError, ValueError):
-            raise UsdFaceError(f"bad support {support!r}", fix="give (low, high) fractions of each shape's "
-                               "peak motion, e.g. (0.01, 0.03) ([0.01, 0.03] in a batch manifest), or None"
-                               ) from None
-        lo = _number("support low", lo, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
-        hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
-        if lo > hi:
-            raise UsdFaceError(f"bad support {support!r}: low > high", fix="e.g. support=(0.01, 0.03)")
-
-
-def _recorded_fit_options(method: str, fit_options: dict) -> dict:
-    """The fit's options a layer's provenance records besides the method and ``reg``: those given (numbers,
-    words; the artist pins are recorded as ``pins`` and their file among the inputs) and the lip and eyelid
-    ``contact`` (default ``"auto"``) when the method uses it."""
-    from ..personalize.api import METHOD_TAKES
-
-    out = {k: v for k, v in fit_options.items()
-           if k not in ("pins", "contact") and (v is None or isinstance(v, int | float | str | bool))}
-    if "contact" in METHOD_TAKES.get(method, ()):
-        out["contact"] = fit_options.get("contact", "auto")
-    return out
-
-
-def _pins_input(pins, capture_source) -> list[str]:
-    """``[file]`` the artist ``pins`` were read from (:class:`usdface.io.pins.Pins`), for the layer's
-    recorded inputs (with its digest, as the capture's); [] for pins given as arrays, or read from the
-    capture itself."""
-    source = getattr(pins, "source", None)
-    if source is None:
-        return []
-    if capture_source and Path(source).resolve() == Path(capture_source).resolve():
-        return []
-    return [str(source)]
-
-
-def _fit_prior_options(prior: str, method: str, reg) -> dict:
-    """The fit's prior options for personalize's ``prior``: with ``"avatar"`` (menzel / laplacian) the
-    avatar's own shapes on the capture are given, chosen among the priors by cross-validation with
-    ``reg="auto"`` and used as the prior with any other ``reg``; ``{"avatar_prior": True}`` marks that."""
-    if prior != "avatar" or method not in ("menzel", "laplacian"):
-        return {}
-    return {"avatar_prior": True} if isinstance(reg, str) and reg == "auto" else {"avatar_prior": True,
-                                                                                  "prior": "avatar"}
-
-
 def _fit(capture, names, generic_on_capture, prior, method, reg, fit_options):
     """Step 1 (:func:`usdface.personalize.fit_personalized_shapes`), after the correspondence: with
     ``prior="avatar"`` the avatar's own shapes on the capture (``generic_on_capture[J,n,3]``, capture frame,
     metres; NaN rows for the capture's shapes the avatar lacks) are the prior of menzel / laplacian
-    (:func:`_fit_prior_options`)."""
+    (:func:`fit_prior_options`)."""
     from ..personalize import fit_personalized_shapes
 
-    extra = _fit_prior_options(prior, method, reg)
+    extra = fit_prior_options(prior, method, reg)
     if extra.pop("avatar_prior", False):
         full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
         full[[list(capture.names).index(n) for n in names]] = generic_on_capture
@@ -1237,7 +863,7 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
         packed = None                      # (person_face is not called again)
         release_free_memory()              # the field's freed working memory
     generic = _shape_deltas(face, names, view=True)       # the float64 generic offsets again, as read
-    adjacent = _changed(result, generic, weight < 1.0)
+    adjacent = changed_vertices(result, generic, weight < 1.0)
     other = {}
     for m in others:
         sub = _shape_deltas(m, names)
@@ -1250,79 +876,6 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
 def _is_eyeball(m: FaceRig, regions: dict | None = None) -> bool:
     region = (regions or {}).get(m.key)
     return bool(find_eyeballs({m.key: m.neutral if region is None else region.points}))
-
-
-def corr_transform(corr, fallback):
-    """The similarity that placed the capture template for ``corr`` (from its info), else ``fallback``."""
-    from .register import Similarity
-
-    reg = (corr.info or {}).get("template_registration")
-    if not reg:
-        return fallback
-    return Similarity(float(reg["scale"]), np.asarray(reg["rotation"]), np.asarray(reg["translation_m"]))
-
-
-def correspondence_semantics(corr, capture_triangles, names, template_deltas, avatar_deltas, transform,
-                             *, moving: float = 0.1) -> dict:
-    """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
-    face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
-    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
-    more than half the peak on one rig and less than a fifth on the other. Returns ``(figures, swapped[m])``,
-    the second the face-mesh vertices of those swaps."""
-    f = np.flatnonzero(corr.face)
-    sig_total, opposing, swaps = 0, 0, {}
-    disagree = np.zeros(len(corr.face), dtype=bool)
-    for name in SEMANTIC_SHAPES:
-        if name not in names:
-            continue
-        j = names.index(name)
-        mt = corr.apply(transform.apply_vectors(template_deltas[j])[None], capture_triangles, rows=f)[0]
-        a = np.asarray(avatar_deltas[j])[f]
-        na, nm = np.linalg.norm(a, axis=1), np.linalg.norm(mt, axis=1)
-        pa = max(float(na.max()), 1e-300)
-        pm = max(float(np.linalg.norm(transform.apply_vectors(template_deltas[j]), axis=1).max()), 1e-300)
-        ra, rm = na / pa, nm / pm
-        sig = np.maximum(ra, rm) > moving
-        sig_total += int(sig.sum())
-        opposing += int((sig & (np.einsum("ij,ij->i", a, mt) < 0)).sum())
-        swapped = ((ra > 0.5) & (rm < 0.2)) | ((ra < 0.2) & (rm > 0.5))
-        swaps[name] = int(swapped.sum())
-        disagree[f[swapped]] = True
-    return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
-            **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
-
-
-#: Shapes whose lips the lip check looks at (``mouthClose`` posed on ``jawOpen``, as ARKit authors it).
-LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthRollUpper",
-              "mouthPucker", "mouthFunnel", "mouthShrugLower")
-
-
-def lip_report(points, triangles, names, generic, output) -> dict:
-    """Lower-lip vertices past the upper lip (:func:`usdface.personalize.contact.lip_crossings`, the lips
-    found by their motion under the generic ``jawOpen``) per lip shape, generic beside output:
-    ``{shape: {"generic": [count, deepest mm], "output": [count, deepest mm]}}``; ``{}`` without jawOpen.
-    ``generic``/``output`` ``[J,m,3]`` in ``names`` order."""
-    from ..personalize.contact import lip_crossings, lip_pairs_from_motion
-
-    if "jawOpen" not in names:
-        return {}
-    jaw = names.index("jawOpen")
-    try:
-        pairs = lip_pairs_from_motion(points, generic[jaw])
-    except GeometryError:
-        return {}
-    out = {}
-    for name in LIP_SHAPES:
-        if name not in names:
-            continue
-        j = names.index(name)
-        row = {}
-        for label, d in (("generic", generic), ("output", output)):
-            pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
-            c = lip_crossings(points, triangles, pose, openings=[], pairs=pairs)
-            row[label] = [c.count, round(c.max_depth * 1e3, 3)]
-        out[name] = row
-    return out
 
 
 def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
@@ -1343,37 +896,3 @@ def _fit_prior(fit, names, capture, generic_on_capture, sim, prior):
                                                   capture.triangles, names=list(names)))
 
 
-def _changed(result, generic, where) -> np.ndarray:
-    """``[J,m]`` bool: vertices ``where[m]`` whose offset in ``result[J,m,3]`` differs from ``generic[J,m,3]``
-    by more than 1e-9 m, formed shape by shape (no ``[J,m,3]`` difference)."""
-    out = np.zeros(result.shape[:2], dtype=bool)
-    for j in range(len(out)):
-        out[j] = where & (shape_norms(result[j:j + 1] - generic[j:j + 1])[0] > 1e-9)
-    return out
-
-
-def _changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -> list[dict]:
-    """Per mesh and shape: largest and RMS change of the offsets (m) - what ``--dry-run`` prints. A mesh held
-    on its moving part (``regions``, offsets :class:`usdface.submesh.SparseOffsets`) changes nowhere else."""
-    rows = []
-    for m in avatar.meshes:
-        key = m.key
-        new = offsets[key]
-        copies = new.copies if isinstance(new, SparseOffsets) else None
-        new = new.values if isinstance(new, SparseOffsets) else new
-        K, held = m.deltas.shape[:2]
-        n_full = regions[key].n if regions and key in regions else m.n_vertices
-        # a welded part's vertex stands for itself and its copies (written with its offsets)
-        count = (1 + np.bincount(copies[1], minlength=held) if copies is not None
-                 else np.ones(held, dtype=np.int64))
-        peak, rms, moved = np.zeros(K), np.zeros(K), np.zeros(K, dtype=np.int64)
-        for k in range(K):                   # shape by shape: no [K,n] array (the twice-subdivided head's
-            d = new[k] - m.deltas[k]         # 94 MB of them set the run's peak, +125 MB)
-            sq = np.einsum("nc,nc->n", d, d)                             # squared change on the part held
-            peak[k] = np.sqrt(sq.max()) if held else 0.0
-            rms[k] = np.sqrt(sq @ count / max(n_full, 1))
-            moved[k] = (sq > 1e-18) @ count
-        for k, n in enumerate(m.names):
-            rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
-                         "rms_change_m": float(rms[k]), "moved_vertices": int(moved[k])})
-    return rows

@@ -1,0 +1,203 @@
+"""The correspondence of the capture template onto the avatar's face mesh as ``usdface personalize`` forms it:
+guided by what the shapes do (:data:`SEMANTIC_SHAPES` posed by their motion's length, :func:`semantic_poses`),
+cached per avatar face and template (:func:`cached_correspondence`), checked for the shapes' meaning
+(:func:`correspondence_semantics`: lips and lids on the right side), and the face mesh's pieces within the
+capture's reach (:func:`reached_parts`). The registration and the map themselves are :mod:`.register` and
+:mod:`.correspond`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..model import Capture, FaceRig
+from .correspond import (
+    PosedSurface,
+    correspondence_map,
+    geometry_digest,
+    load_correspondence,
+    nonrigid_register,
+    save_correspondence,
+)
+from .register import register_face
+
+__all__ = ["SEMANTIC_SHAPES", "REACH", "semantic_poses", "pose_by_length", "cached_correspondence",
+           "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
+
+#: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
+SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
+
+
+def semantic_poses(names, template_deltas, avatar_deltas, transform=None) -> tuple[list, list]:
+    """The ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs of :data:`SEMANTIC_SHAPES` both rigs move,
+    the capture side in the avatar frame (``transform``). Only where and how much each side moves is used,
+    not the direction: each vertex moves by its own motion's length, scaled to the avatar shape's peak motion
+    (two artists' amplitudes differ), along one common direction, the avatar's motion-weighted mean
+    (:func:`pose_by_length`). A posed lower lip is then centimetres from the upper lip on both rigs, while a
+    template ``jawOpen`` hinged or tilted otherwise than the avatar's (another artist's) does not drag the
+    jaw line's correspondence sideways to where the two artists' directions happen to agree.
+    Returns ``(pairs, names)``."""
+    pairs, used = [], []
+    for name in SEMANTIC_SHAPES:
+        if name not in names:
+            continue
+        j = names.index(name)
+        t = np.asarray(template_deltas[j], dtype=np.float64)
+        if transform is not None:
+            t = transform.apply_vectors(t)
+        a = np.asarray(avatar_deltas[j], dtype=np.float64)
+        pair = pose_by_length(t, a)
+        if pair is None:
+            continue
+        pairs.append(pair)
+        used.append(name)
+    return pairs, used
+
+
+def pose_by_length(template_delta, avatar_delta):
+    """``(template[n,3], avatar[m,3])``: one shape of the two rigs as the semantic pose of the
+    correspondence, each vertex moved by its motion's length (the template's scaled to the avatar's peak)
+    along the avatar's motion-weighted mean direction (m); None when either side does not move."""
+    lt = np.linalg.norm(template_delta, axis=1)
+    la = np.linalg.norm(avatar_delta, axis=1)
+    pt, pa = float(lt.max(initial=0.0)), float(la.max(initial=0.0))
+    direction = np.sum(avatar_delta * la[:, None], axis=0)
+    size = float(np.linalg.norm(direction))
+    if pt <= 0 or pa <= 0 or size <= 0:
+        return None
+    direction /= size
+    return (lt * (pa / pt))[:, None] * direction, la[:, None] * direction
+
+
+def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
+                    initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
+                    avatar_landmarks=None, surfaces: dict | None = None):
+    """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
+    and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
+    otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
+    :func:`register_face`. ``surfaces``: a dict
+    that receives the posed avatar face surface the registration built (``"avatar"``, a
+    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
+    names = list(names)
+    sem = [n for n in SEMANTIC_SHAPES if n in names]
+    key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
+                          *[template_deltas[names.index(n)] for n in sem],
+                          *[avatar_deltas[names.index(n)] for n in sem])
+    stale = False
+    if cache is not None:
+        corr = load_correspondence(cache, key)
+        if corr is not None and (corr.source_triangle is not None or not source_triangles):
+            corr.info = {**(corr.info or {}), "cache": "hit"}
+            return corr
+        # rewritten: a cache of another avatar face / template (or version), or this one's without the face
+        # triangles' source triangles a deformation-transfer mode needs ("extended")
+        stale = "extended" if corr is not None else Path(cache).exists()
+    reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
+                          avatar_triangles=face.triangles, capture_triangles=capture.triangles,
+                          path=capture.source or None, initial=initial, target=target,
+                          avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
+    placed = reg_t.transform.apply(capture.template.neutral)
+    poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
+    surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
+    if surfaces is not None:
+        surfaces["avatar"] = surface
+    registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,
+                                            poses=poses, surface=surface)
+    del surface
+    corr = correspondence_map(registered, capture.triangles, face.neutral, face.triangles, poses=poses,
+                              source_triangles=source_triangles)
+    corr.registered = registered
+    nr_info["semantic_shapes"] = ",".join(used)
+    corr.key = key
+    corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
+                 "cache": stale if isinstance(stale, str) else "replaced" if stale
+                 else "miss" if cache is not None else "off"}
+    if cache is not None:
+        save_correspondence(corr, cache)
+    return corr
+
+
+#: A separate piece of the face mesh is within the capture's reach when some vertex of it lies within this
+#: share of the placed capture's diagonal of a capture vertex: the registration's first (widest) ICP
+#: correspondence distance (:func:`.register.register_icp`).
+REACH = 0.08
+
+
+def reached_parts(points, triangles, placed, *, reach: float = REACH):
+    """``keep[m]`` bool: the face mesh's connected pieces the capture reaches, or None when it reaches every
+    piece (one connected head).
+
+    ``points[m,3]``, ``triangles[t,3]`` the face mesh (as held: its moving part and margin), ``placed[q,3]``
+    the capture placed on it (or a function returning it, called only for a mesh in several pieces). A
+    connected piece none of whose vertices is within ``reach`` x the capture's
+    diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
+    where the capture lies, and its triangles must not take part in the face's closest-point queries."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from ..mesh import vertex_adjacency
+
+    p = np.asarray(points, dtype=np.float64)
+    count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
+    if count < 2:
+        return None
+    q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)
+    limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
+    near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
+    keep = np.isin(label, np.unique(label[near]))
+    return None if keep.all() or not keep.any() else keep
+
+
+def rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_deltas, capture) -> np.ndarray:
+    """The person's neutral ``[q,3]`` placed on the face mesh roughly (for :func:`reached_parts`): by the
+    shape-motion landmarks (:func:`.register.motion_initialiser`), else by a full registration."""
+    from .register import RegistrationError, motion_initialiser
+
+    try:
+        return motion_initialiser(person_neutral, template_deltas, face.neutral, avatar_deltas).apply(
+            person_neutral)
+    except RegistrationError:
+        return register_face(person_neutral, template_deltas, face.neutral, avatar_deltas,
+                             avatar_triangles=face.triangles, capture_triangles=capture.triangles,
+                             path=capture.source or None).transform.apply(person_neutral)
+
+
+def corr_transform(corr, fallback):
+    """The similarity that placed the capture template for ``corr`` (from its info), else ``fallback``."""
+    from .register import Similarity
+
+    reg = (corr.info or {}).get("template_registration")
+    if not reg:
+        return fallback
+    return Similarity(float(reg["scale"]), np.asarray(reg["rotation"]), np.asarray(reg["translation_m"]))
+
+
+def correspondence_semantics(corr, capture_triangles, names, template_deltas, avatar_deltas, transform,
+                             *, moving: float = 0.1) -> dict:
+    """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
+    face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
+    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
+    more than half the peak on one rig and less than a fifth on the other. Returns ``(figures, swapped[m])``,
+    the second the face-mesh vertices of those swaps."""
+    f = np.flatnonzero(corr.face)
+    sig_total, opposing, swaps = 0, 0, {}
+    disagree = np.zeros(len(corr.face), dtype=bool)
+    for name in SEMANTIC_SHAPES:
+        if name not in names:
+            continue
+        j = names.index(name)
+        mt = corr.apply(transform.apply_vectors(template_deltas[j])[None], capture_triangles, rows=f)[0]
+        a = np.asarray(avatar_deltas[j])[f]
+        na, nm = np.linalg.norm(a, axis=1), np.linalg.norm(mt, axis=1)
+        pa = max(float(na.max()), 1e-300)
+        pm = max(float(np.linalg.norm(transform.apply_vectors(template_deltas[j]), axis=1).max()), 1e-300)
+        ra, rm = na / pa, nm / pm
+        sig = np.maximum(ra, rm) > moving
+        sig_total += int(sig.sum())
+        opposing += int((sig & (np.einsum("ij,ij->i", a, mt) < 0)).sum())
+        swapped = ((ra > 0.5) & (rm < 0.2)) | ((ra < 0.2) & (rm > 0.5))
+        swaps[name] = int(swapped.sum())
+        disagree[f[swapped]] = True
+    return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
+            **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
