@@ -107,7 +107,7 @@ def test_anim_import_take_passed_as_avatar_is_named_a_take(livelink_csv, sample_
     take = tmp_path / "take.usdc"
     assert _usdface("anim", "import", livelink_csv, "-o", take, "-q", cwd=tmp_path).returncode == 0
     args = {"personalize": [take, sample_dir / "capture.usda", "--dry-run"],
-            "render": [take, "-o", "x.png"]}[command]     # inspect summarises it (test_user_trial_s23)
+            "render": [take, "-o", "x.png"]}[command]     # inspect summarises it (test_inspect)
     res = _usdface(command, *args, cwd=tmp_path)
     _no_traceback(res)
     assert "this is a take" in res.stderr and "not an avatar" in res.stderr, res.stderr
