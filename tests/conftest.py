@@ -89,3 +89,37 @@ def pyblish_registered():
     pyblish_plugins.register()
     yield pyblish_api
     pyblish_api.deregister_all_plugins()
+
+
+@pytest.fixture(scope="module")
+def weights_take(tmp_path_factory) -> Path:
+    """A weights-only take as ``anim import`` writes it (the sample's test weights as a 30 fps recording)."""
+    import numpy as np
+
+    from usdface.io.usd_anim import write_animation_usd
+
+    rng = np.random.default_rng(0)
+    from usdface.arkit import ARKIT_NAMES
+
+    w = rng.uniform(0.0, 0.45, size=(60, len(ARKIT_NAMES)))
+    w[10, ARKIT_NAMES.index("jawOpen")] = 0.93
+    out = tmp_path_factory.mktemp("take") / "take.usda"
+    write_animation_usd(out, list(ARKIT_NAMES), w, np.arange(60) / 30.0)
+    return out
+
+
+@pytest.fixture(scope="module")
+def livelink_csv(shared, tmp_path_factory) -> Path:
+    """The first 30 frames of a real Live Link Face CSV."""
+    lines = (shared / "data" / "livelinkface" / "facial.csv").read_text().splitlines()[:31]
+    out = tmp_path_factory.mktemp("csv") / "facial.csv"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+@pytest.fixture(scope="module")
+def sample_dir(tmp_path_factory) -> Path:
+    """``usdface sample s2`` (avatar.usda, capture.usda, truth/{capture,avatar}_truth.npz)."""
+    from usdface.sample import generate_samples
+
+    return generate_samples(tmp_path_factory.mktemp("trial") / "s2")

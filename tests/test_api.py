@@ -149,3 +149,17 @@ def test_a_misspelt_option_is_named_before_any_work(samples, tmp_path, monkeypat
         api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "o.usda",
                                methd="dt")
     assert "method" in info.value.fix and not (tmp_path / "o.usda").exists()
+
+
+def test_dir_of_the_package_lists_the_api():
+    """api.md: 'every function is also available as usdface.<name>'; dir(usdface) (what IPython and a
+    shell's completion offer) listed none of them: they are loaded lazily."""
+    import sys
+
+    import usdface
+    from usdface import api
+
+    names = dir(usdface)
+    assert set(api.__all__) <= set(names) and "__version__" in names
+    assert "personalize_avatar" in names and usdface.personalize_avatar is api.personalize_avatar
+    assert "usdface.api" in sys.modules

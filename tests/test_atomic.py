@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+import errno
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+from cli_helpers import _env
 from forking import child_finishes
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
+from usdface.cli import main
 from usdface.errors import InputFileError, OutputExistsError
 from usdface.io import atomic
 from usdface.io.atomic import check_output_dir, replace_dir_atomically
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
 
 
 def _tree(root):
@@ -413,3 +422,238 @@ def test_quiet_stderr_in_a_child_forked_while_another_thread_is_inside():
             pass
 
     assert child_finishes(block, quiet_stderr)
+
+
+def _long_name(stem_bytes: int, suffix: str) -> str:
+    """A legal file name of ``stem_bytes`` + len(suffix) bytes (255 at most on Linux file systems)."""
+    return "a" * stem_bytes + suffix
+
+
+@pytest.mark.parametrize("total", [240, 250, 255])
+def test_a_long_legal_output_name_is_written(tmp_path, total):
+    """An output whose name is long but legal (up to 255 bytes) failed with 'File name too long (fix: use a
+    shorter path)' after all the work: the hidden temporary name ``.NAME.XXXXXXXX.tmp.usda`` beside it did
+    not fit. The temporary name is cut short; the output keeps its name."""
+    from pxr import Sdf
+
+    from usdface.io.atomic import replace_dir_atomically, temp_sibling, write_text_atomic
+    from usdface.io.layers import atomic_save
+
+    text = tmp_path / _long_name(total - 5, ".json")
+    write_text_atomic(text, "{}")
+    assert text.read_text() == "{}"
+    write_text_atomic(text, "[]", force=True)
+    assert text.read_text() == "[]"
+
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    Sdf.CreatePrimInLayer(layer, "/A")
+    for suffix in (".usda", ".usdc"):
+        out = tmp_path / _long_name(total - len(suffix), suffix)
+        atomic_save(layer, out)
+        atomic_save(layer, out, force=True)
+        assert Sdf.Layer.FindOrOpen(str(out)).GetPrimAtPath("/A")
+
+    folder = tmp_path / ("f" * total)
+    for force in (False, True):
+        with replace_dir_atomically(folder, force=force) as tmp:
+            (tmp / "x.obj").write_text("v 0 0 0\n")
+    assert (folder / "x.obj").exists()
+    assert len(os.fsencode(temp_sibling(tmp_path / ("ö" * 127 + ".usda"), create=False).name)) <= 255
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_long_legal_output_name_through_the_cli(samples, tmp_path):
+    out = tmp_path / _long_name(245, ".usda")
+    res = subprocess.run([sys.executable, "-m", "usdface", "personalize", str(samples / "avatar.usda"),
+                          str(samples / "capture.usda"), "-o", str(out), "-q", "--inspect"],
+                         capture_output=True, text=True, env=_env(), timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
+
+
+def test_a_full_disk_names_the_output(tmp_path):
+    """A write that fails on a full disk raises an OSError naming no file (a write or close, ENOSPC): the
+    line said only 'error: No space left on device' (review, render, export --obj-dir, capture import to
+    a folder), not which output failed."""
+    import errno
+
+    from usdface.io.atomic import atomic_file, replace_dir_atomically
+
+    full = OSError(errno.ENOSPC, "No space left on device")
+    out = tmp_path / "page.html"
+    with pytest.raises(OSError) as err, atomic_file(out):
+        raise full
+    assert err.value.filename == str(out) and err.value.errno == errno.ENOSPC
+
+    folder = tmp_path / "objs"
+    with pytest.raises(OSError) as err, replace_dir_atomically(folder):
+        raise full
+    assert err.value.filename == str(folder)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_usd_layer_that_cannot_be_saved_into_an_output_folder_names_it_not_the_hidden_folder(tmp_path):
+    """'usdface sample OUTDIR' on a full disk said 'OUTDIR/../.s.9q28_9rp/avatar.usda: USD could not write
+    the layer': the hidden temporary folder nobody asked for."""
+    from usdface.errors import InputFileError
+    from usdface.io.atomic import replace_dir_atomically
+
+    folder = tmp_path / "s"
+    with pytest.raises(InputFileError) as err, replace_dir_atomically(folder) as tmp:
+        raise InputFileError("USD could not write the layer", path=tmp / "avatar.usda", fix="free disk space")
+    assert err.value.path == str(folder / "avatar.usda")
+    assert str(err.value).startswith(f"{folder / 'avatar.usda'}: USD could not write")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_write_removes_the_folders_it_made(tmp_path, monkeypatch):
+    """-o new/sub/p.usda on a full disk failed, but left new/sub behind (empty folders the write made);
+    the same for a review page, a picture or an export folder. A folder that was there stays."""
+    import errno
+
+    from pxr import Sdf
+
+    from usdface.errors import InputFileError
+    from usdface.io import layers
+    from usdface.io.atomic import atomic_file, replace_dir_atomically
+
+    (tmp_path / "kept").mkdir()
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with pytest.raises(OSError), atomic_file(tmp_path / "kept" / "new" / "sub" / "r.html"):
+        raise full
+    with pytest.raises(OSError), replace_dir_atomically(tmp_path / "new" / "sub" / "objs"):
+        raise full
+    monkeypatch.setattr(layers, "_usd_call", lambda *a, **k: False)   # USD's save fails (a full disk)
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    with pytest.raises(InputFileError, match="could not write"):
+        layers.atomic_save(layer, tmp_path / "new" / "sub" / "p.usda")
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == ["kept"]
+
+
+def test_a_failed_personalize_write_removes_the_folders_it_made(samples, tmp_path, monkeypatch):
+    from usdface import api
+    from usdface.errors import InputFileError
+    from usdface.io import layers
+
+    monkeypatch.setattr(layers, "_usd_call", lambda *a, **k: False)
+    with pytest.raises(InputFileError, match="could not write"):
+        api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda",
+                               tmp_path / "a" / "b" / "p.usda")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_two_writers_of_one_new_output_exactly_one_wins(tmp_path):
+    """The second writer used to replace the first one's file; now the target is created exclusively."""
+    from pxr import Sdf
+
+    from usdface.io.layers import atomic_save
+
+    first, second = Sdf.Layer.CreateAnonymous(".usda"), Sdf.Layer.CreateAnonymous(".usda")
+    first.documentation, second.documentation = "first", "second"
+    out = tmp_path / "out.usda"
+    atomic_save(first, out)  # both passed the "does it exist" check; the first one publishes...
+    with pytest.raises(OutputExistsError):
+        atomic_save(second, out)  # ...and the second one is refused, not silently replacing it
+    assert Sdf.Layer.OpenAsAnonymous(str(out)).documentation == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.usda"]
+    atomic_save(second, out, force=True)
+    assert Sdf.Layer.OpenAsAnonymous(str(out)).documentation == "second"
+
+
+def test_write_text_atomic_is_exclusive_without_force(tmp_path):
+    from usdface.io.atomic import write_text_atomic
+
+    write_text_atomic(tmp_path / "a.json", "1")
+    with pytest.raises(OutputExistsError):
+        write_text_atomic(tmp_path / "a.json", "2")
+    assert (tmp_path / "a.json").read_text() == "1" and len(list(tmp_path.iterdir())) == 1
+
+
+def test_interrupt_while_creating_the_temp_file_leaves_nothing(tmp_path, monkeypatch):
+    """A Ctrl-C just after the temp file was created used to leave a hidden ``.NAME.*.tmp.EXT``."""
+    from usdface.io import atomic
+
+    real_close = os.close
+    calls = []
+
+    def interrupted_close(fd):
+        real_close(fd)
+        if not calls:
+            calls.append(fd)
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(atomic.os, "close", interrupted_close)
+    with pytest.raises(KeyboardInterrupt), atomic.atomic_file(tmp_path / "x.json") as tmp:
+        tmp.write_text("never")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_oserror_on_write_is_one_line_exit_2(tmp_path, monkeypatch, capfd):
+    """A full disk used to end in a traceback (exit 1) with the temp file left behind."""
+    from usdface.io import atomic
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "capture.usda"))
+
+    monkeypatch.setattr(atomic.os, "link", full)
+    monkeypatch.chdir(tmp_path)
+    code = main(["capture", "import", str(SAMPLES / "capture.usda"), "-o", "capture2.usda"])
+    err = capfd.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "No space left" in err and "free disk space" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def _read_only_folder(monkeypatch, folder: Path) -> None:
+    """Make creating files or folders in ``folder`` fail as in a read-only folder (the tests run as root, who
+    may write anywhere): ``tempfile`` raises PermissionError naming the temporary path it tried, as it
+    does."""
+    import errno
+    import os
+    import tempfile
+
+    real_mkstemp, real_mkdtemp = tempfile.mkstemp, tempfile.mkdtemp
+
+    def denied(real, tail):
+        def make(suffix=None, prefix=None, dir=None, *a, **k):
+            if dir is not None and Path(dir).resolve() == folder.resolve():
+                name = os.path.join(dir, f"{prefix or ''}cmx9kqh4{tail(suffix)}")
+                raise PermissionError(errno.EACCES, "Permission denied", name)
+            return real(suffix, prefix, dir, *a, **k)
+
+        return make
+
+    monkeypatch.setattr(tempfile, "mkstemp", denied(real_mkstemp, lambda s: s or ""))
+    monkeypatch.setattr(tempfile, "mkdtemp", denied(real_mkdtemp, lambda s: ""))
+
+
+def test_read_only_output_folder_names_the_output_not_the_temp_file(sample_dir, tmp_path, monkeypatch,
+                                                                    capsys):
+    from usdface.cli import main
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    _read_only_folder(monkeypatch, ro)
+    out = ro / "avatar.personalized.usda"
+    assert main(["personalize", str(sample_dir / "avatar.usda"), str(sample_dir / "capture.usda"),
+                 "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: Permission denied" in err and ".tmp" not in err and "cmx9kqh4" not in err, err
+    assert "(-o)" in err
+
+    assert main(["sample", str(ro / "s"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{ro / 's'}: Permission denied" in err and "cmx9kqh4" not in err, err
+    assert "(-o" not in err  # sample has no -o option
+    assert list(ro.iterdir()) == []
+
+
+def test_a_failed_write_names_the_output_not_the_temp_file(tmp_path):
+    import errno
+
+    from usdface.io.atomic import atomic_file
+
+    out = tmp_path / "report.json"
+    with pytest.raises(OSError) as info, atomic_file(out) as tmp:
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []

@@ -5,13 +5,19 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.cli import main
 from usdface.errors import InputFileError
 from usdface.pipeline.batch import DONE, FAILED, SKIPPED, read_manifest, run_batch
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
 
 
 def stub_worker(item: dict) -> None:
@@ -841,3 +847,92 @@ def test_resume_is_not_refused_for_a_skipped_rows_inputs(tmp_path, capsys):
     assert [r["status"] for r in report["items"]] == ["skipped", "skipped"]
     assert main(["batch", str(tmp_path / "m.csv"), "-j", "1", "-q", "--force"]) == 2
     assert "item 1: " in capsys.readouterr().err
+
+
+def test_batch_report_is_named_as_documented(tmp_path, capsys):
+    """The docs said `MANIFEST.report.json` (read: people.csv.report.json) where batch writes
+    `<manifest stem>.report.json` beside the manifest; docs, --help and the file written now agree."""
+    out = tmp_path / "out" / "anna.usda"
+    out.parent.mkdir()
+    out.write_text("#usda 1.0\n")                        # finished before: skipped, so the batch is instant
+    manifest = tmp_path / "people.csv"
+    manifest.write_text(f"avatar,capture,output\n{SAMPLES / 'avatar.usda'},{SAMPLES / 'capture.usda'},"
+                        "out/anna.usda\n")
+    assert main(["batch", str(manifest), "-j", "1"]) == 0
+    report = tmp_path / "people.report.json"
+    assert f"report: {report}" in capsys.readouterr().out
+    assert json.loads(report.read_text())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "people.csv", "people.report.json"]
+    pipeline = (ROOT / "docs" / "pipeline.md").read_text()
+    assert "`<manifest stem>.report.json` next to the manifest (`people.csv` -> `people.report.json`" \
+        in pipeline
+    for doc in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "usdface" / "commands" / "batch.py",
+                ROOT / "usdface" / "api.py"]:
+        assert "MANIFEST.report.json" not in doc.read_text(), doc
+
+
+def test_a_batch_row_with_dry_run_is_refused(tmp_path):
+    """A manifest row (or ``--set``) with ``dry_run`` true wrote nothing and the report counted the item
+    ``done`` (with its avatars per minute); refused before any work."""
+    import json
+
+    import pytest
+
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps([{"avatar": str(samples / "avatar.usda"),
+                                     "capture": str(samples / "capture.usda"), "output": "a.usda",
+                                     "dry_run": True}]))
+    with pytest.raises(InputFileError, match="item 1: dry_run writes no output") as err:
+        api.personalize_batch(manifest, jobs=1)
+    assert "--dry-run" in err.value.fix
+    assert not (tmp_path / "m.report.json").exists() and not (tmp_path / "a.usda").exists()
+
+
+def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samples, tmp_path, monkeypatch):
+    """Ctrl-C while the rows were checked (every avatar is opened: seconds on a large manifest) left the
+    previous run's report standing, which the docs promise never happens."""
+    import json
+
+    from usdface import api
+    from usdface.io import usd_rig
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},a.usda\n")
+    report = tmp_path / "m.report.json"
+    report.write_text(json.dumps({"from": "the last run", "items": []}))
+
+    def stopped(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(usd_rig, "refuse_usdface_output", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        api.personalize_batch(manifest, jobs=1)
+    doc = json.loads(report.read_text())
+    assert "from" not in doc
+    assert [(i["status"], i["error_type"]) for i in doc["items"]] == [("failed", "Interrupted")]
+    assert not (tmp_path / "a.usda").exists()
+
+
+def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
+    import os
+
+    # captures that pass the batch's check of every row (present, readable, USD) and fail in the reader: a
+    # missing file no longer runs at all (the batch refuses the manifest before its first item)
+    (tmp_path / "broken.usda").write_text("not USD\n")
+    (tmp_path / "m.csv").write_text("avatar,capture,output\n"
+                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'broken.usda'},bad.usda\n"
+                                    f"{sample_dir / 'avatar.usda'},{sample_dir / 'avatar.usda'},bad2.usda\n")
+    env = dict(os.environ, USDFACE_PROGRESS="plain", USDFACE_PROGRESS_DELAY="0")
+    exe = Path(sys.executable).with_name("usdface")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
+                                                                  "sys.exit(main())"]
+    res = subprocess.run(cmd + ["batch", "m.csv", "-j", "1"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 1
+    assert "[1/2] bad.usda failed" in res.stderr and "[2/2] bad2.usda failed" in res.stderr, res.stderr
+    assert "bad.usda done" not in res.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,10 @@ from usdface.errors import CaptureError, GeometryError, InputFileError, OutputEx
 from usdface.io import read_capture
 from usdface.io.capture_folder import read_capture_folder, write_capture_folder
 from usdface.io.usd_capture import read_capture_usd, write_capture_usd
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def assert_same_capture(a, b):
@@ -201,3 +206,16 @@ def test_written_files_pass_pixar_validators(tmp_path):
     for path in (cap, take_path, anim):
         assert pixar_validation_errors(path) == [], path
 
+
+@pytest.mark.parametrize("mpu", ["-0.01", "0"])
+def test_capture_with_a_bad_unit_is_refused(tmp_path, capsys, mpu):
+    """A capture whose metersPerUnit is negative or 0 was fitted as a mirrored or collapsed face (a 'train
+    RMSE 0.002 mm' rig); it is refused like an avatar with the same metadata, naming the file."""
+    text = C.read_text()
+    assert "metersPerUnit = 1\n" in text
+    bad = tmp_path / "capture.usda"
+    bad.write_text(text.replace("metersPerUnit = 1\n", f"metersPerUnit = {mpu}\n", 1))
+    assert main(["fit", str(bad), "-o", str(tmp_path / "rig.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid metersPerUnit" in err and "capture.usda" in err
+    assert not (tmp_path / "rig.usda").exists()

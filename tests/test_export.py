@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import _usdface
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface import api
 from usdface.cli import main
 from usdface.errors import InputFileError, OutputExistsError, UsdFaceError
@@ -19,6 +21,10 @@ from usdface.io.flatten import read_avatar_variant
 from usdface.io.gltf import read_gltf
 from usdface.io.layers import file_digest
 from usdface.io.mesh_io import read_obj
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 @pytest.fixture()
@@ -405,3 +411,107 @@ def test_no_skin_without_gltf_is_refused(samples, tmp_path, capsys):
     assert main(["export", str(samples / "avatar.usda"), "--obj-dir", objs, "--no-skin"]) == 2
     assert "--no-skin applies to the glTF only" in capsys.readouterr().err
     assert not (tmp_path / "objs").exists()
+
+
+def test_a_flattened_export_elsewhere_keeps_a_provenance_check_can_follow(tmp_path):
+    """A flattened file written into another folder copied its provenance paths (relative to the layer's
+    folder), so ``check`` found the inputs 'not reachable' and the stale-input check was off."""
+    from usdface import api
+    from usdface.io.layers import recorded_inputs
+
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(A, C, layer)
+    flat = tmp_path / "deliver" / "x" / "flat.usda"
+    flat.parent.mkdir(parents=True)
+    api.export_avatar(layer, flatten=flat, variant="generic")
+    assert set(recorded_inputs(flat)) == {str(A.resolve()), str(C.resolve())}
+    issues = api.check(flat)
+    assert not [i for i in issues if "not reachable" in i.message], issues
+
+
+def test_export_names_every_output_the_same_way(tmp_path, monkeypatch):
+    """``usdface export LAYER --obj-dir d --flatten f.usda`` printed ``obj_dir: d`` but ``flatten:
+    /abs/.../f.usda`` (export_avatar returned the flattened file absolute, the others as given); every output
+    comes back absolute now, as from every API function (docs/api.md)."""
+    from usdface.api import export_avatar
+
+    monkeypatch.chdir(tmp_path)
+    layer = tmp_path / "p.usda"
+    assert main(["personalize", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o", str(layer),
+                 "-q"]) == 0
+    done = export_avatar("p.usda", gltf="g.glb", obj_dir="objs", flatten="f.usda")
+    assert done == {"gltf": tmp_path / "g.glb", "obj_dir": tmp_path / "objs", "flatten": tmp_path / "f.usda"}
+    assert all(p.exists() for p in done.values())
+
+
+def _two_roots() -> str:
+    root = """
+def SkelRoot "{r}"
+{{
+    def Skeleton "Skel" {{}}
+    def Mesh "Head" (prepend apiSchemas = ["SkelBindingAPI"])
+    {{
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        rel skel:skeleton = </{r}/Skel>
+        uniform token[] skel:blendShapes = ["jawOpen"]
+        rel skel:blendShapeTargets = [</{r}/Head/jawOpen>]
+        def BlendShape "jawOpen"
+        {{
+            uniform vector3f[] offsets = [(0, -1, 0), (0, -1, 0), (0, -1, 0)]
+            uniform vector3f[] inbetweens:half = [(0, -0.2, 0), (0, -0.2, 0), (0, -0.2, 0)] (weight = 0.5)
+        }}
+    }}
+}}
+"""
+    return ('#usda 1.0\n(\n    defaultPrim = "A"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n'
+            + root.format(r="A") + root.format(r="B"))
+
+
+def test_export_keeps_one_node_per_mesh_and_says_inbetweens_are_dropped(tmp_path):
+    """USD review: two SkelRoots with a Head each gave two glTF nodes named 'Head' (and the OBJ export
+    one folder for both); and the glTF/OBJ targets silently dropped inbetweens (a shape with an inbetween
+    at 0.5 plays 2.4 cm off there)."""
+    import pygltflib
+
+    from usdface import api
+
+    path = tmp_path / "two.usda"
+    path.write_text(_two_roots())
+    with pytest.warns(UserWarning, match=r"2 shape\(s\) have inbetweens.*A_Head:jawOpen"):
+        api.export_avatar(path, gltf=tmp_path / "two.glb", obj_dir=tmp_path / "objs")
+    names = [n.name for n in pygltflib.GLTF2().load(str(tmp_path / "two.glb")).nodes]
+    assert names == ["A", "A_Head", "B_Head"]
+    assert sorted(p.name for p in (tmp_path / "objs").iterdir()) == ["A_Head", "B_Head"]
+
+
+@pytest.mark.parametrize(("option", "where"), [("gltf", "inside"), ("gltf", "same"), ("flatten", "inside")])
+def test_export_refuses_a_file_output_in_its_obj_dir_before_writing(personalized_sample, tmp_path, option,
+                                                                    where):
+    """``export --obj-dir d --gltf d/x.glb`` wrote the glTF, then refused the folder it had just made not
+    empty ('output folder exists and is not empty'): exit 2 with x.glb left behind; ``--gltf x.glb
+    --obj-dir x.glb`` the same ('exists as a file')."""
+    from usdface import api
+    from usdface.errors import OptionError
+
+    folder = tmp_path / "d"
+    suffix = ".glb" if option == "gltf" else ".usdc"
+    out = folder / f"x{suffix}" if where == "inside" else folder
+    with pytest.raises(OptionError, match="--obj-dir folder"):
+        api.export_avatar(personalized_sample, obj_dir=folder, **{option: out})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_of_a_plain_avatar_says_as_authored(sample_dir, personalized_sample, tmp_path):
+    import pygltflib
+
+    res = _usdface("export", sample_dir / "avatar.usda", "--gltf", "a.glb", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "[personalized]" not in res.stdout and "as authored" in res.stdout, res.stdout
+    extras = pygltflib.GLTF2().load(str(tmp_path / "a.glb")).scenes[0].extras
+    assert extras["usdface"]["variant"] == "authored"
+    res = _usdface("export", personalized_sample, "--gltf", "p.glb", cwd=tmp_path)
+    assert res.returncode == 0 and "[personalized]" in res.stdout, res.stderr
+    extras = pygltflib.GLTF2().load(str(tmp_path / "p.glb")).scenes[0].extras
+    assert extras["usdface"]["variant"] == "personalized"

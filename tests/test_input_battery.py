@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import _no_traceback, _usdface
 
 import usdface.io  # noqa: F401  (schemas registered before the fixtures open stages)
 from usdface.cli import main
@@ -383,3 +384,32 @@ def test_time_sampled_only_points_are_read_at_their_first_sample(inputs, samples
     assert code == 0, err
     np.testing.assert_array_equal(read_avatar(tmp_path / "o.usda").mesh("Head").deltas,
                                   read_avatar(tmp_path / "ref.usda").mesh("Head").deltas)
+
+
+@pytest.mark.parametrize("content,expected", [
+    ('#usda 1.0\ndef Xform "A" {\n  float x = \n}\n', "line 3, column 3: Expected }"),
+    ("garbage\n", "bad.usda is not a valid usda layer"),
+    ("", "bad.usda is not a valid usda layer"),
+])
+def test_usd_syntax_error_shows_the_parsers_message_with_the_line(sample_dir, tmp_path, content, expected):
+    bad = tmp_path / "bad.usda"
+    bad.write_text(content)
+    for args in (["inspect", bad], ["personalize", bad, sample_dir / "capture.usda", "--dry-run"],
+                 ["personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda", "--pins", bad,
+                  "--dry-run"]):
+        res = _usdface(*args, cwd=tmp_path)
+        _no_traceback(res)
+        assert expected in res.stderr, res.stderr
+        assert "pxrInternal" not in res.stderr and ".cpp" not in res.stderr and "Error in '" not in res.stderr
+
+
+def test_truncated_usdc_says_so(sample_dir, tmp_path):
+    from pxr import Sdf
+
+    whole = tmp_path / "whole.usdc"
+    Sdf.Layer.FindOrOpen(str(sample_dir / "avatar.usda")).Export(str(whole))
+    cut = tmp_path / "cut.usdc"
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])
+    res = _usdface("inspect", cut, cwd=tmp_path)
+    _no_traceback(res)
+    assert "possibly truncated" in res.stderr and "crateFile.cpp" not in res.stderr, res.stderr

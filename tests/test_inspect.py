@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,10 @@ from usdface.cli import main
 from usdface.inspect import format_report, inspect_file, names_vs_arkit
 from usdface.io.layers import write_avatar_layer
 from usdface.io.usd_rig import read_avatar
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def test_names_vs_arkit():
@@ -141,3 +146,91 @@ def test_usdskel_warnings_become_notes_not_terminal_lines(tmp_path, capfd):
     out, err = capfd.readouterr()
     assert "Warning" not in err and "skinningQuery.cpp" not in err, err
     assert "note: UsdSkel: jointIndices element size (3) != jointWeights element size (1)" in out
+
+
+def test_an_avatar_with_an_animated_cache_is_not_a_take(tmp_path, capsys):
+    """``inspect`` took an avatar whose root layer also holds a time-sampled mesh (a hair cache) for a take
+    and failed on it ('no per-frame weights'); read_avatar, check and personalize accept it."""
+    from usdface.cli import main
+    from usdface.io.take import is_take
+
+    cache = ('def Mesh "HairCache"\n    {\n        int[] faceVertexCounts = [3]\n'
+             '        int[] faceVertexIndices = [0, 1, 2]\n'
+             '        point3f[] points.timeSamples = {\n'
+             '            1: [(0, 0, 0), (1, 0, 0), (0, 1, 0)],\n'
+             '            2: [(0, 0, 1), (1, 0, 1), (0, 1, 1)],\n'
+             '            3: [(0, 0, 2), (1, 0, 2), (0, 1, 2)],\n        }\n    }\n')
+    text = A.read_text()
+    at = text.index('def SkelRoot "Avatar"')
+    at = text.index("{", at) + 1
+    path = tmp_path / "avatar_cache.usda"
+    path.write_text(text[:at] + "\n    " + cache + text[at:])
+    assert not is_take(path)
+    assert main(["inspect", str(path)]) == 0
+    assert "avatar" in capsys.readouterr().out.splitlines()[0]
+
+
+def test_inspect_summarises_a_weights_only_take(weights_take, capsys):
+    """``inspect`` refused the take ``anim import`` had just written ('this is a take ..., not an avatar');
+    index.md promises a summary: frames, rate, and the shapes never above 0.5."""
+    from usdface.cli import main
+
+    assert main(["inspect", str(weights_take)]) == 0
+    out = capsys.readouterr().out
+    assert "take" in out.splitlines()[0] and "60 frames at 30 fps" in out
+    assert "never above 0.5 (51)" in out and "jawOpen" not in out.split("never above")[1].split("\n")[0]
+
+
+def test_inspect_reports_a_take_without_its_template(tmp_path, capsys):
+    """'usdface inspect take_dir/' of OBJ frames + CSV without template/ failed ('the take has no template
+    rig'): the inspection of a take 'capture select --template' can still use refused to say what it holds."""
+    from test_take_select import grid_rigs
+
+    from usdface.inspect import format_report, inspect_file
+    from usdface.io.take import write_take_folder, write_take_usd
+    from usdface.sample.take import make_take
+
+    person, _ = grid_rigs(n=4)
+    take, _ = make_take(person, None, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    for src in (write_take_folder(take, tmp_path / "take_dir"), write_take_usd(take, tmp_path / "take.usdc")):
+        report = inspect_file(src)
+        assert report["kind"] == "take" and report["meshes"] and report["frames"] == len(take)
+        assert "meshes but no template rig" in format_report(report)
+    assert main(["inspect", str(tmp_path / "take_dir")]) == 0
+    assert "--template CAPTURE" in capsys.readouterr().out
+
+
+def _sample_take():
+    from usdface.io import read_capture
+    from usdface.model import FaceRig
+    from usdface.sample.take import make_take
+
+    capture = read_capture(SAMPLES / "capture.usda")
+    ct = np.load(SAMPLES / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = FaceRig(ct["neutral"], capture.triangles, names, ct["deltas"])
+    return make_take(person, capture.template.subset(names), seed=1, fps=10, sweep_seconds=0.3,
+                     rest_seconds=0.1)[0]
+
+
+def test_a_take_read_whole_is_inspected_as_one_and_not_written_as_a_capture(tmp_path, capsys):
+    """``inspect --json`` of a take with meshes said ``"kind": "capture"`` (the text said "take with
+    meshes"); ``write_capture`` of a take read whole wrote a capture that read back as 209 picked frames (no
+    ``whole_take``: another fit than ``fit TAKE``). It is refused, naming the fix; nothing is written."""
+    import json
+
+    from usdface.api import write_capture
+    from usdface.errors import CaptureError
+    from usdface.io import read_capture
+    from usdface.io.take import write_take_usd
+
+    take = write_take_usd(_sample_take(), tmp_path / "take.usdc")
+    assert main(["inspect", str(take), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["kind"] == "take with meshes"
+    cap = read_capture(take)
+    assert cap.whole_take
+    for out in (tmp_path / "c.usda", tmp_path / "cfolder"):
+        with pytest.raises(CaptureError, match="take read whole") as err:
+            write_capture(cap, out)
+        assert "write_take_usd" in err.value.fix and "capture select" in err.value.fix
+        assert not out.exists()

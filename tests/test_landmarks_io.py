@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from usdface.cli import main
 from usdface.errors import LandmarkError, OutputExistsError
+from usdface.io.livelink import write_livelink_csv
 from usdface.landmarks import compute_landmarks
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
 
 
 def _digest(path) -> str:
@@ -250,3 +255,147 @@ def test_shapes_that_move_nothing(samples, tmp_path, capsys):
     rig = FaceRig(np.eye(3), [[0, 1, 2]], ["jawOpen", "eyeBlinkLeft"], np.zeros((2, 3, 3)), name="Plane")
     with pytest.raises(LandmarkError, match="every shape of mesh Plane moves no vertex"):
         compute_landmarks(rig, ignore_static=True)
+
+
+@pytest.mark.parametrize("extra, named", [
+    (["--takes", "take.csv"], "--takes"),
+    (["--frames", "100", "--noise", "1"], "--frames/--noise"),
+    (["--empirical", "layout.json"], "--empirical"),
+    (["--evaluate", "--takes", "take.csv", "-o", "layout.usda"], "-o/--output"),
+    (["--evaluate", "--takes", "take.csv", "--epsilon", "0.6", "--alpha", "0.2"], "--epsilon/--alpha"),
+    (["--evaluate", "--takes", "take.csv", "--spacing", "0"], "--spacing"),
+    (["--evaluate", "--takes", "take.csv", "--multicover", "2", "--no-adaptive"],
+     "--multicover/--no-adaptive"),
+])
+def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, capsys, extra, named):
+    """--takes/--frames/--noise/--empirical without --evaluate used to be ignored (a layout was computed and
+    written as if they were not there); -o with --evaluate was ignored too. Now refused before any work
+    (the avatar is not even read: the missing take files are not reached), naming the option and the fix."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert "LandmarkError" not in err and named in err and "(fix: " in err
+    if "--evaluate" not in extra:
+        assert "add --evaluate" in err
+    else:
+        assert f"leave out {named}" in err or "leave out -o" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_empirical_layout_of_another_mesh_names_its_file(tmp_path, capsys):
+    """``landmarks --evaluate --empirical vertex_indices.json`` with indices beyond the mesh said "empirical
+    layout indices out of range ..." without naming the file (the user gives two files and a mesh)."""
+    from usdface.cli import main
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    layout = tmp_path / "vertex_indices.json"
+    layout.write_text("[1, 2, 99999]")
+    take = tmp_path / "take.csv"
+    take.write_text("Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n")
+    assert main(["landmarks", str(samples / "avatar.usda"), "--evaluate", "--takes", str(take),
+                 "--empirical", str(layout), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"{layout}, prim /Avatar/Head: empirical layout indices out of range" in err
+
+
+def test_a_landmarks_layer_says_what_it_is(samples, tmp_path):
+    """A 'usdface landmarks -o lm.usda' layer documented itself as 'personalized blend shapes over ...', and
+    'review lm.usda' (and of a 'usdface fit' rig) called it 'not a usdface layer'."""
+    from pxr import Sdf
+
+    from usdface import api
+    from usdface.errors import InputFileError
+    from usdface.model import FaceRig
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    rig = api.pick_mesh(avatar, "Mouth")
+    layout = api.compute_landmarks(rig, spacing=None)
+    out = api.write_landmarks(avatar, rig, layout, tmp_path / "lm.usda")
+    assert "a landmark layout over" in Sdf.Layer.FindOrOpen(str(out)).documentation
+    with pytest.raises(InputFileError, match=r"\(a landmark layout layer \('usdface landmarks'\)\)"):
+        api.write_review(out, tmp_path / "lm.html")
+    tri = np.array([[0, 1, 2]])
+    fit = api.write_fit_rig(FaceRig(np.eye(3), tri, ["jawOpen"], np.full((1, 3, 3), 0.01), name="FaceMask"),
+                            tmp_path / "rig.usda")
+    with pytest.raises(InputFileError, match=r"\(a 'usdface fit' rig on the capture mesh\)"):
+        api.write_review(fit, tmp_path / "rig.html")
+
+
+def test_landmark_evaluation_summary_without_an_empirical_layout():
+    """``landmarks --evaluate --json`` without ``--empirical`` had ``"summary": {}``: it now names this
+    method's most compact and most accurate layouts, each beside the baselines at (at most) that count."""
+    from usdface.landmarks.evaluate import EvaluationPoint, EvaluationReport, _summary
+
+    pts = [EvaluationPoint("ours", "eps 0.5", 12, 2e-3), EvaluationPoint("ours", "eps 0.9 x4", 40, 1e-3),
+           EvaluationPoint("ours", "eps 0.9 x6", 55, 1.1e-3),
+           EvaluationPoint("random", "seed 0", 10, 5e-3), EvaluationPoint("random", "seed 1", 10, 4e-3),
+           EvaluationPoint("random", "seed 0", 40, 3e-3), EvaluationPoint("pca_kmeans", "", 12, 2.5e-3)]
+    s = _summary(EvaluationReport(pts, frames=10, noise=5e-4), None)
+    assert s["ours_smallest_count"] == 12 and s["ours_rmse_at_smallest_count"] == 2e-3
+    assert s["ours_count_at_best"] == 40 and s["ours_best_rmse"] == 1e-3
+    assert s["ours_label_at_best"] == "eps 0.9 x4"
+    assert s["random_rmse_at_10"] == 4e-3 and s["random_rmse_at_40"] == 3e-3
+    assert s["pca_kmeans_rmse_at_12"] == 2.5e-3 and "delta_cluster_rmse_at_12" not in s
+    assert _summary(EvaluationReport([], frames=0, noise=0.0), None) == {}
+
+
+def test_evaluate_landmarks_takes_the_empirical_indices_themselves(tmp_path, monkeypatch):
+    """``evaluate_landmarks(avatar, take, empirical=[1, 2, 3])`` raised TypeError (it read a path only);
+    the indices themselves are a layout, as a JSON file of them is; anything else names the fix."""
+    import usdface
+    import usdface.landmarks.evaluate as evaluate
+    from usdface.errors import LandmarkError
+
+    csv = tmp_path / "t.csv"
+    write_livelink_csv(csv, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    seen = {}
+    monkeypatch.setattr(evaluate, "evaluate_landmarks",
+                        lambda rig, weights, indices, **kw: seen.update(i=indices))
+    usdface.evaluate_landmarks(str(SAMPLES / "avatar.usda"), csv, empirical=[1, 2, 3])
+    assert seen["i"] == [1, 2, 3]
+    usdface.evaluate_landmarks(str(SAMPLES / "avatar.usda"), csv, empirical=np.array([5, 6]))
+    assert seen["i"] == [5, 6]
+    for bad in ([1.5, 2.0], [], [[1, 2]]):
+        with pytest.raises(LandmarkError, match="no list of vertex indices"):
+            usdface.evaluate_landmarks(str(SAMPLES / "avatar.usda"), csv, empirical=bad)
+    with pytest.raises(LandmarkError, match="out of range") as err:
+        usdface.evaluate_landmarks(str(SAMPLES / "avatar.usda"), csv, empirical=[10 ** 9])
+    assert err.value.path is None
+
+
+def test_landmarks_says_every_file_it_wrote(samples, tmp_path, capsys):
+    """landmarks.md's 'usdface landmarks avatar.usdc -o landmarks.usda --json layout.json --plot layout.png'
+    printed 'wrote landmarks.usda' only; the JSON and the picture were written without a word (evaluate and
+    render name each file they write)."""
+    from usdface.cli import main
+
+    out = [tmp_path / "landmarks.usda", tmp_path / "layout.json", tmp_path / "layout.png"]
+    assert main(["landmarks", str(samples / "avatar.usda"), "-o", str(out[0]), "--json", str(out[1]),
+                 "--plot", str(out[2]), "-q"]) == 0
+    said = capsys.readouterr().out
+    for path in out:
+        assert path.exists() and f"wrote {path}" in said
+
+
+def test_landmarks_evaluate_reads_a_usd_take(tmp_path):
+    """User trial: landmarks --evaluate --takes refused the tool's own `anim import` output ('not a Live
+    Link Face CSV (no Timecode column)' for a .usda); it reads USD takes as every take reader does."""
+    from usdface.io.livelink import livelink_weights, write_livelink_csv
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    w = np.array([[0.0, 0.1], [0.5, 0.2], [0.9, 0.0]])
+    write_livelink_csv(tmp_path / "take.csv", names, w, np.arange(3) / 30.0)
+    assert main(["anim", "import", str(tmp_path / "take.csv"), "-o", str(tmp_path / "take.usda"), "-q"]) == 0
+    from_csv = livelink_weights([tmp_path / "take.csv"], names)
+    from_usd = livelink_weights([tmp_path / "take.usda"], names)
+    np.testing.assert_allclose(from_usd, from_csv, atol=1e-6)
+
+
+def test_landmarks_json_needs_force_and_is_checked_before_work(tmp_path, capfd):
+    (tmp_path / "layout.json").write_text("{}")
+    code = main(["landmarks", str(SAMPLES / "avatar.usda"), "--json", str(tmp_path / "layout.json")])
+    assert code == 2 and "exists" in capfd.readouterr().err
+    assert (tmp_path / "layout.json").read_text() == "{}"

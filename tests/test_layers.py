@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from test_usd_rig import write_rig
 
 import usdface.io  # noqa: F401
 from usdface import schemas
+from usdface.cli import main
 from usdface.errors import GeometryError, InputFileError, OutputExistsError, RigError
 from usdface.io.layers import (
     PERSONALIZATION_VARIANT_SET,
@@ -23,6 +25,10 @@ from usdface.io.layers import (
     write_avatar_layer,
 )
 from usdface.io.usd_rig import read_avatar
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def personalized(avatar, seed=0, scale=0.002):
@@ -463,3 +469,63 @@ def test_an_input_on_another_file_system_is_written_absolute(monkeypatch):
         == "/mnt/lib/hero.usdc"
     assert layers._relative_asset_path(PurePosixPath("/mnt/x/hero.usdc"), PurePosixPath("/mnt/scratch")) \
         == "../x/hero.usdc"
+
+
+def test_source_date_epoch_makes_the_layer_reproducible(tmp_path, monkeypatch):
+    """The same inputs twice gave layers that differed in createdAt and the timings: with SOURCE_DATE_EPOCH
+    (the reproducible-builds convention) the bytes are the same, createdAt is that time."""
+    from usdface.cli import main
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    for sub in ("a", "b"):
+        (tmp_path / sub).mkdir()
+        monkeypatch.chdir(tmp_path / sub)
+        assert main(["personalize", str(A), str(C), "-o", "p.usda", "-q"]) == 0
+    one, two = (tmp_path / "a" / "p.usda").read_bytes(), (tmp_path / "b" / "p.usda").read_bytes()
+    assert one == two and b'createdAt = "2023-11-14T22:13:20Z"' in one
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    monkeypatch.chdir(tmp_path / "a")
+    assert main(["personalize", str(A), str(C), "-o", "q.usda", "-q"]) == 2
+    assert not (tmp_path / "a" / "q.usda").exists()
+
+
+def test_a_bad_source_date_epoch_is_one_line_with_the_fix_in_a_fresh_process(samples, tmp_path):
+    """usd-io.md: 'a SOURCE_DATE_EPOCH that is not a whole number is refused before any work'. In a fresh
+    process 'usdface personalize' died instead with numpy's f2py traceback ('ValueError: invalid literal for
+    int()', exit 1: scipy's import reads the variable); the check ran only at the layer's write. The command
+    now refuses it first: one line naming it and the fix, exit 2."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "SOURCE_DATE_EPOCH": "1.5", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    run = subprocess.run([sys.executable, "-m", "usdface", "personalize", str(samples / "avatar.usda"),
+                          str(samples / "capture.usda"), "-o", str(tmp_path / "p.usda")],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 2, run.stderr[-500:]
+    assert "Traceback" not in run.stderr
+    assert "SOURCE_DATE_EPOCH='1.5' is not a time" in run.stderr and "fix:" in run.stderr
+    assert not (tmp_path / "p.usda").exists()
+
+
+def test_a_moved_latest_link_is_a_changed_input(tmp_path, capsys):
+    """User trial: a layer written from lib/latest/hero.usda (latest -> v003) recorded the resolved v003, so
+    after `ln -sfn v004 latest` check, review and export saw nothing (the layer composes over v004 now).
+    The input is recorded through the link, as the sublayer path is, and check warns."""
+    import os
+
+    (tmp_path / "lib" / "v003").mkdir(parents=True)
+    (tmp_path / "lib" / "v004").mkdir()
+    text = A.read_text()
+    (tmp_path / "lib" / "v003" / "hero.usda").write_text(text)
+    (tmp_path / "lib" / "v004" / "hero.usda").write_text(text + "\n")
+    os.symlink("v003", tmp_path / "lib" / "latest")
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(tmp_path / "lib" / "latest" / "hero.usda"), str(C), "-o", str(out),
+                 "--method", "dt", "-q"]) == 0
+    assert main(["check", str(out)]) == 0
+    assert "changed after" not in capsys.readouterr().out
+    os.unlink(tmp_path / "lib" / "latest")
+    os.symlink("v004", tmp_path / "lib" / "latest")
+    main(["check", str(out)])
+    assert "input 'lib/latest/hero.usda' changed after this layer was written" in capsys.readouterr().out

@@ -6,9 +6,11 @@ import csv
 
 import numpy as np
 import pytest
+from cli_helpers import _usdface
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.arkit import ARKIT_NAMES, livelink_name
 from usdface.cli import main
 from usdface.errors import CaptureError, InputFileError, UsdFaceError
@@ -18,6 +20,7 @@ from usdface.io.livelink import (
     parse_timecodes,
     read_livelink_csv,
     read_livelink_take,
+    write_livelink_csv,
 )
 from usdface.io.usd_anim import read_skel_animation
 
@@ -343,3 +346,85 @@ def test_anim_import_of_a_take_folder_names_the_csv_in_it(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"fix: pass the .csv exported by Live Link Face: {folder / 'take.csv'}" in err
     assert not (tmp_path / "t.usda").exists()
+
+
+def test_take_frame_rate_is_the_rate_not_float_noise(tmp_path, capsys):
+    """``inspect --json`` of a Live Link Face CSV said ``"fps": 30.000000000001705`` (one over the median
+    interval of times summed from timecodes); the rate is rounded to 6 decimals, one rule for every take
+    reader (the CSV's and the take folder's had the same code twice)."""
+    import json
+
+    from usdface.io.livelink import median_fps, read_livelink_take
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    csv = tmp_path / "t.csv"
+    write_livelink_csv(csv, names, np.random.default_rng(0).uniform(0, 1, (200, 2)), np.arange(200) / 30.0)
+    assert read_livelink_take(csv).fps == 30.0
+    assert main(["inspect", str(csv), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["fps"] == 30.0
+    assert median_fps(np.arange(5) * (1001 / 30000)) == 29.97003
+    assert median_fps([0.0]) == 30.0 and median_fps([1.0, 1.0, 1.0]) == 30.0
+
+
+def test_take_written_by_anim_import_is_a_take(tmp_path):
+    """``personalize --take`` refused what ``anim import`` writes ('no mesh with time-sampled points')."""
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.take import read_take
+
+    w = np.linspace(0, 1, 12).reshape(6, 2)
+    write_livelink_csv(tmp_path / "t.csv", ["jawOpen", "eyeBlinkLeft"], w, np.arange(6) / 60)
+    assert main(["anim", "import", str(tmp_path / "t.csv"), "-o", str(tmp_path / "t.usda")]) == 0
+    take = read_take(tmp_path / "t.usda")
+    assert take.names == ["eyeBlinkLeft", "jawOpen"] or set(take.names) == {"jawOpen", "eyeBlinkLeft"}
+    order = [["jawOpen", "eyeBlinkLeft"].index(n) for n in take.names]
+    np.testing.assert_allclose(take.weights, w[:, order], atol=1e-6)
+    np.testing.assert_allclose(take.times, np.arange(6) / 60, atol=1e-9)
+
+
+def test_duplicated_live_link_column_is_refused(tmp_path):
+    from usdface.errors import InputFileError
+    from usdface.io.livelink import read_livelink_take
+
+    p = tmp_path / "dup.csv"
+    p.write_text("Timecode,BlendShapeCount,EyeBlinkLeft,EyeBlinkLeft\n00:00:00:00.000,2,0.1,0.2\n")
+    with pytest.raises(InputFileError, match="duplicated column"):
+        read_livelink_take(p)
+
+
+@pytest.mark.parametrize("suffix", [".usda", ".usdc"])
+def test_anim_import_force_overwrites(livelink_csv, tmp_path, suffix):
+    out = tmp_path / f"t{suffix}"
+    first = _usdface("anim", "import", livelink_csv, "-o", out, "-q", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    out.write_bytes(b"stale")  # so the second write is seen to replace it
+    again = _usdface("anim", "import", livelink_csv, "-o", out, "--force", "-q", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    from pxr import Usd
+
+    assert Usd.Stage.Open(str(out)).GetDefaultPrim().GetTypeName() == "SkelAnimation"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+    refused = _usdface("anim", "import", livelink_csv, "-o", out, "-q", cwd=tmp_path)
+    assert refused.returncode == 2 and "exists" in refused.stderr
+
+
+def test_write_take_usd_force_overwrites(tmp_path):
+    """The other take writer had the same missing ``force``."""
+    from usdface.io.take import read_take_usd, write_take_usd
+
+    take_file = tmp_path / "take.usda"
+    take = _sample_take(tmp_path)
+    write_take_usd(take, take_file)
+    write_take_usd(take, take_file, force=True)
+    assert len(read_take_usd(take_file).times) == len(take.times)
+
+
+def _sample_take(tmp_path):
+    import numpy as np
+
+    from usdface.io.take import Take
+
+    tri = np.array([[0, 1, 2]])
+    pts = np.zeros((3, 3, 3))
+    pts[:, 1, 0] = pts[:, 2, 1] = 0.01
+    return Take(points=pts, triangles=tri, times=np.arange(3) / 30.0, weights=np.zeros((3, 1)),
+                names=["jawOpen"])

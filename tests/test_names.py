@@ -8,6 +8,7 @@ personalize to the same offsets as the original.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,6 +63,8 @@ SPELLINGS = [
 #: CC4 half shapes of a centre ARKit shape, other rigs' names and typos: never guessed.
 UNKNOWN = ["Brow_Raise_Inner_L", "Cheek_Puff_L", "Mouth_Roll_In_Upper_L", "Mouth_Funnel_Up_L", "Blink_Left",
            "jawOpn", "eye_blink", "Eye_L_Look", "blendShape1", "Left", "", "123"]
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 
 
 @pytest.mark.parametrize("given, canonical, how", SPELLINGS, ids=[s[0] or "empty" for s in SPELLINGS])
@@ -494,3 +497,17 @@ def test_a_retarget_map_given_as_the_name_map_is_named(samples, tmp_path, capsys
         read_name_map({"Brow_L": "zzzz"})
     with pytest.raises(InputFileError, match=r"did you mean 'jawOpen'\?"):
         read_name_map({"Jaw": "jawOpn"})
+
+
+def test_check_notes_name_map_entries_that_match_no_channel(tmp_path, capsys):
+    """``inspect --name-map`` notes map entries that match no channel (a typo in the map); ``check`` with
+    the same map said nothing. A map entry naming a channel as it is (``eyeBlinkLeft`` -> ``eyeBlinkLeft``)
+    is no 'non-canonical spelling'."""
+    import json
+
+    m = tmp_path / "m.json"
+    m.write_text(json.dumps({"JawDrop": "jawOpen", "eyeBlinkLeft": "eyeBlinkLeft"}))
+    assert main(["check", str(SAMPLE / "avatar.usda"), "--name-map", str(m), "--no-pixar", "--json"]) == 0
+    found = [i for i in json.loads(capsys.readouterr().out)["issues"] if "name map" in i["message"]]
+    assert len(found) == 1 and "'JawDrop'" in found[0]["message"]
+    assert "eyeBlinkLeft" not in found[0]["message"]

@@ -4,12 +4,19 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+from input_helpers import _capture
 
 from usdface.cli import main
 from usdface.errors import InputFileError
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 @pytest.mark.shared
@@ -375,3 +382,123 @@ def test_personalize_take_without_a_shapes_weights_says_it_stays_still(samples, 
     warned = json.loads(capsys.readouterr().out)["warnings"]
     assert any("none of the take's 1 weight channel(s) ('Key_1') is an ARKit shape" in w for w in warned)
     assert not any("eyeLookDownLeft" in w for w in warned if "take" in w)
+
+
+def test_dry_run_help_says_the_correspondence_cache_is_written(capsys):
+    """``personalize --dry-run --correspondence c.npz`` writes the cache (by design: the real run reuses it)
+    while the help and the docs said "write nothing"."""
+    import pytest
+
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["personalize", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    dry = text[text.index("--dry-run compute"):][:200]
+    assert "write nothing" not in dry and "--correspondence cache is still written" in dry
+    assert "write nothing" not in (DOCS / "troubleshooting.md").read_text().split("--dry-run")[1][:80]
+
+
+def test_the_retarget_map_does_not_drive_the_tongue_to_match_a_few_face_rows(tmp_path):
+    """``usdface retarget`` on the sample: the ``jawForward`` row took ``tongueOut`` at 0.82 (matching the
+    lower lip's face rows; an engine driving every mesh with the map put the tongue out on every jaw slide).
+    The map now holds what it drives on the other meshes at the namesake's motion (the Mouth mesh's rows):
+    the tongue stays in, the namesake carries the row. With the paper's zero prior the face rows alone
+    decide, as eq. (4)."""
+    import json
+
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o", str(out),
+                 "-q"]) == 0
+    doc = json.loads(out.read_text())
+    row = dict(zip(doc["target"], doc["weights"][doc["source"].index("jawForward")], strict=True))
+    assert row["tongueOut"] < 0.1 and row["jawForward"] > 0.95          # was 0.82 and 1.0
+    tongue = [doc["weights"][j][doc["target"].index("tongueOut")] for j, s in enumerate(doc["source"])
+              if s != "tongueOut"]
+    assert max(tongue) < 0.1
+
+
+def test_a_capture_with_too_few_shapes_is_named_not_the_avatar(tmp_path, capsys):
+    """A capture of jawOpen alone was refused with 'only 1 of the capture's shapes exist on the avatar face
+    mesh' naming the avatar, which has all 52; the capture is what is short."""
+    from usdface.api import write_capture
+    from usdface.model import Capture, Frames
+
+    cap = _capture()
+    k = list(cap.names).index("jawOpen")
+    f = cap.frames
+    one = Capture(cap.neutral, cap.triangles, cap.template.subset(["jawOpen"]),
+                  Frames(f.points, f.weights[:, [k]], f.role, f.label), ["jawOpen"])
+    path = tmp_path / "jaw_only.usda"
+    write_capture(one, path)
+    assert main(["personalize", str(A), str(path), "-o", str(tmp_path / "p.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "jaw_only.usda" in err and "the capture has 1 shape(s) (jawOpen)" in err
+    assert "avatar.usda" not in err
+
+
+def test_inspect_of_a_capture_without_test_frames_says_no_animation(tmp_path, capsys):
+    """User trial: with an empty test/ folder, personalize --inspect printed 'test-expression SkelAnimation'
+    although it wrote none."""
+    from usdface.api import write_capture
+    from usdface.model import Capture, Frames
+
+    cap = _capture()
+    f = cap.frames
+    keep = [i for i, r in enumerate(f.role) if r == "train"]
+    train_only = Capture(cap.neutral, cap.triangles, cap.template,
+                         Frames(f.points[keep], f.weights[keep], ["train"] * len(keep),
+                                [f.label[i] for i in keep]), cap.names)
+    path = tmp_path / "train_only.usda"
+    write_capture(train_only, path)
+    assert main(["personalize", str(A), str(path), "-o", str(tmp_path / "p.usda"), "--method", "dt",
+                 "--inspect"]) == 0
+    out = capsys.readouterr().out
+    assert "no SkelAnimation (the capture has no test expressions" in out
+    assert "usdfaceInspection" not in (tmp_path / "p.usda").read_text().split("SkelAnimation")[0][-200:]
+
+
+def test_force_never_overwrites_the_input_capture(tmp_path, capfd):
+    cap = tmp_path / "capture.usda"
+    cap.write_bytes((SAMPLES / "capture.usda").read_bytes())
+    before = cap.read_bytes()
+    code = main(["personalize", str(SAMPLES / "avatar.usda"), str(cap), "-o", str(cap), "--force", "-q"])
+    assert code == 2 and "overwrite an input" in capfd.readouterr().err
+    assert cap.read_bytes() == before
+
+
+def test_bad_take_fails_before_the_layer_is_written(tmp_path, capfd):
+    """A bad --take used to fail after the layer was written (batch then called the item done)."""
+    bad = tmp_path / "take.csv"
+    bad.write_text("Timecode,BlendShapeCount,EyeBlinkLeft\n00:00:00:00.000,1,nan\n")
+    out = tmp_path / "out.usda"
+    code = main(["personalize", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o", str(out),
+                 "--take", str(bad), "-q"])
+    assert code == 2 and "NaN" in capfd.readouterr().err
+    assert not out.exists()
+
+
+def test_correspondence_cache_of_any_name(tmp_path):
+    """``--correspondence corr.cache`` wrote a 0-byte file and a stray ``.corr.cache.*.tmp.cache.npz``."""
+    from usdface.transfer.correspond import Correspondence, load_correspondence, save_correspondence
+
+    corr = Correspondence(np.arange(4), np.full((4, 3), 1 / 3), np.zeros(4), np.ones(4, bool), np.arange(4),
+                          np.ones(4), "key", {"a": 1})
+    save_correspondence(corr, tmp_path / "corr.cache")
+    assert [p.name for p in tmp_path.iterdir()] == ["corr.cache"]
+    back = load_correspondence(tmp_path / "corr.cache", key="key")
+    np.testing.assert_array_equal(back.triangle, corr.triangle)
+
+
+def test_empty_correspondence_file_is_refused_before_work(tmp_path, capfd):
+    (tmp_path / "c.npz").write_bytes(b"")
+    code = main(["personalize", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o",
+                 str(tmp_path / "o.usda"), "--correspondence", str(tmp_path / "c.npz"), "-q"])
+    assert code == 2 and "not a usdface correspondence cache" in capfd.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz"]
+
+
+def test_personalize_without_output_writes_to_the_cwd():
+    from usdface.commands.personalize import _default_output
+
+    assert _default_output("/assets/library/avatar.usdc") == Path("avatar.personalized.usda")

@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
+import pytest
+from cli_helpers import _no_traceback, _usdface
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def test_fit_writes_a_rig_on_the_capture_mesh(samples, tmp_path):
@@ -150,3 +158,63 @@ def test_error_maps_given_where_an_avatar_goes_are_named(tmp_path, capsys):
         assert main([command[0], str(src), *command[1:]]) == 2
         err = capsys.readouterr().err
         assert "error-map file written by 'usdface evaluate --usd'" in err and "SkelRoot" not in err, err
+
+
+def test_evaluate_capture_refuses_a_capture_without_test_frames(tmp_path):
+    """evaluate_capture on a take read whole (or a capture picked without --test-every) returned
+    mean_rmse_mm NaN without a word; evaluate_methods refuses it with the fix."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.io.take import write_take_usd
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, template, seed=1)
+    src = write_take_usd(take, tmp_path / "take.usdc")
+    with pytest.raises(FitError, match="no test frames") as err:
+        api.evaluate_capture(src)
+    assert "--test-every 10" in err.value.fix
+    assert np.isfinite(api.evaluate_capture(src, role="train")["mean_rmse_mm"])
+
+
+def test_evaluate_refuses_another_captures_truth(tmp_path):
+    """User trial: evaluate --truth printed 'vs truth 0.677' against another person's truth file (its neutral
+    6.8 mm from the capture's); a truth whose neutral is not the capture's is refused."""
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    npz = np.load(SAMPLES / "truth" / "capture_truth.npz")
+    other = {k: npz[k] for k in npz.files}
+    other["neutral"] = other["neutral"] + np.array([0.0, 0.004, 0.0])          # another face, 4 mm off
+    np.savez(tmp_path / "other.npz", **other)
+    with pytest.raises(InputFileError, match=r"4.00 mm RMS from the capture's neutral scan"):
+        api.evaluate_methods(C, ["dt"], truth=tmp_path / "other.npz")
+
+
+def test_evaluate_bad_plot_format_fails_before_work(sample_dir, tmp_path):
+    res = _usdface("evaluate", sample_dir / "capture.usda", "--plot", "errors.pgn", "--json", "rep.json",
+                   cwd=tmp_path)
+    _no_traceback(res)
+    assert "errors.pgn" in res.stderr and "'pgn'" in res.stderr and "errors.png" in res.stderr
+    assert list(tmp_path.iterdir()) == []  # rep.json not written
+
+
+def test_evaluate_json_report_must_end_in_json(sample_dir, tmp_path):
+    res = _usdface("evaluate", sample_dir / "capture.usda", "--json", "rep.txt", cwd=tmp_path)
+    _no_traceback(res)
+    assert "rep.txt" in res.stderr and ".json" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_wrong_truth_file_names_the_right_one(sample_dir, tmp_path):
+    capture = sample_dir / "capture.usda"
+    res = _usdface("evaluate", capture, "--truth", sample_dir / "truth" / "avatar_truth.npz",
+                   "--plot", "e.png", cwd=tmp_path)
+    _no_traceback(res)
+    assert "avatar_truth.npz" in res.stderr and "capture_truth.npz" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+    res = _usdface("evaluate", capture, "--truth", capture, cwd=tmp_path)
+    _no_traceback(res)
+    assert "not an .npz" in res.stderr

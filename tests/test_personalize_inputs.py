@@ -3,14 +3,21 @@ warning naming the shapes concerned."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+from input_helpers import _capture
 
+from usdface.cli import main
 from usdface.errors import FitError, GeometryError
 from usdface.model import Capture, FaceRig, Frames
 from usdface.personalize import fit_personalized_shapes
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def tiny_capture(F=6, K=3, n_frame=None, never=None, degenerate=False):
@@ -179,3 +186,43 @@ def test_inspect_of_a_capture_lists_its_repeated_frames(tmp_path):
     assert report["repeatedFrames"] == [["002_x", "004_x"]]
     assert "repeated exactly: 1 training frame(s)" in format_report(report)
     assert summarize_capture(tiny_capture(F=8, K=3))["repeatedFrames"] == []
+
+
+def test_weights_that_activate_nothing_are_refused(tmp_path, capsys):
+    """Every training weight 0 (weights lost on export) crashed with numpy's 'cannot reshape array of size
+    0'; it is a FitError naming the capture and the fix, from the CLI before any output."""
+    from usdface.api import write_capture
+    from usdface.model import Capture, Frames
+
+    cap = _capture()
+    f = cap.frames
+    zero = Capture(cap.neutral, cap.triangles, cap.template,
+                   Frames(f.points, np.zeros_like(f.weights), f.role, f.label), cap.names)
+    path = tmp_path / "zero.usda"
+    write_capture(zero, path)
+    for argv in (["fit", str(path), "-o", str(tmp_path / "o.usda")],
+                 ["personalize", str(A), str(path), "-o", str(tmp_path / "p.usda")]):
+        assert main([*argv, "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "no training frame activates any shape" in err and "zero.usda" in err and "fix:" in err
+    assert not any(tmp_path.glob("[op].usda"))
+
+
+def test_one_frame_fits_and_zero_frame_weights_are_refused():
+    """One training frame: the Laplacian fit's 3-fold CV trained on an empty fold (a reshape crash); ebfr
+    with beta 0 hit a singular matrix; all-zero frame weights passed the check and crashed later."""
+    from usdface.model import Capture, Frames
+    from usdface.personalize import fit_personalized_shapes
+
+    cap = _capture()
+    f = cap.frames
+    one = Capture(cap.neutral, cap.triangles, cap.template,
+                  Frames(f.points[:1], f.weights[:1], ["train"], f.label[:1]), cap.names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit_personalized_shapes(one, "laplacian")
+        assert np.all(np.isfinite(res.rig.deltas))
+        with pytest.raises(FitError, match="bad beta 0"):
+            fit_personalized_shapes(one, "ebfr", beta=0.0, align=False)
+        with pytest.raises(FitError, match="not all 0"):
+            fit_personalized_shapes(cap, frame_weights=np.zeros(len(cap.train)))

@@ -12,6 +12,8 @@ from usdface.cli import main
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_assets"
 
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
+
 
 def test_fit_records_its_own_arguments_quoted(tmp_path):
     out = tmp_path / "my rig.usda"
@@ -53,3 +55,45 @@ def test_main_on_two_host_threads_side_by_side_records_each_its_own_command(monk
     gates["c"][1].set()
     second.join()
     assert recorded == {"a b": "usdface wait 'a b'", "c": "usdface wait c"}
+
+
+def test_api_layers_pass_check_without_a_command(tmp_path):
+    """``write_landmarks`` / ``write_avatar_layer`` with the documented default ``provenance=None`` wrote an
+    empty ``usdface:provenance:command``, which ``check`` calls an error: the API names itself."""
+    from usdface import api
+    from usdface.api import check as check_file
+
+    av = api.read_avatar(A)
+    rig = api.pick_mesh(av)
+    out = api.write_landmarks(av, rig, api.compute_landmarks(A), tmp_path / "lm.usda")
+    assert not [i for i in check_file(out) if i.severity == "error"]
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(out))
+    command = stage.GetPrimAtPath("/Avatar").GetAttribute("usdface:provenance:command").Get()
+    assert "write_landmarks" in command
+
+
+def test_fit_rig_records_command_parameters_and_capture(tmp_path, monkeypatch):
+    """A rig written by ``usdface fit`` says what made it, as a personalized layer does: the command line,
+    the options, the capture read (path relative to the rig and its sha256) and when (it recorded only the
+    method: which capture and settings a rig came from was lost)."""
+    import shutil
+
+    from usdface.cli import main
+    from usdface.io.layers import file_digest
+    from usdface.io.usd_rig import usdface_layer_data
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    cap = tmp_path / "cap.usda"
+    shutil.copy(SAMPLES / "capture.usda", cap)
+    out = tmp_path / "rigs" / "rig.usda"
+    monkeypatch.setattr("sys.argv", ["usdface", "fit", str(cap), "-o", str(out), "--reg", "0.05", "-q"])
+    assert main(["fit", str(cap), "-o", str(out), "--reg", "0.05", "-q"]) == 0
+    data = usdface_layer_data(out)
+    assert data["format"] == "fit" and data["method"] == "menzel"
+    assert data["command"].startswith("usdface fit ") and "--reg 0.05" in data["command"]
+    assert data["parameters"]["reg"] == 0.05 and data["parameters"]["method"] == "menzel"
+    assert data["capture"] == "../cap.usda" and data["captureDigest"] == file_digest(cap)
+    assert data["createdAt"] == "2023-11-14T22:13:20Z"
+    assert data["trainRmseMm"] > 0 and data["reg"] == 0.05

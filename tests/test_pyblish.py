@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from input_helpers import _livelink_csv
 
 pyblish_api = pytest.importorskip("pyblish.api")
 import pyblish.util  # noqa: E402
@@ -192,3 +193,176 @@ def test_a_take_and_force_among_the_options_validate_as_the_extractors_take_them
     pyblish.util.publish(context)
     assert [r["error"] for r in context.data["results"] if not r["success"]] == []
     assert (tmp_path / "person.review.html").read_text() != "old"
+
+
+def _publish(api, items):
+    import pyblish.util
+
+    context = api.Context()
+    context.data["usdfaceItems"] = items
+    pyblish.util.publish(context)
+    return context, {(r["plugin"].__name__, None if r["instance"] is None else r["instance"].name): r
+                     for r in context.data["results"]}
+
+
+def _small_take(path: Path, peak: float = 1.0) -> Path:
+    """A Live Link Face CSV of 30 rows at 30 fps (jawOpen up to ``peak`` and a smile)."""
+
+    import numpy as np
+
+    from usdface.arkit import ARKIT_NAMES
+
+    t = np.arange(30)
+    w = np.zeros((30, len(ARKIT_NAMES)))
+    w[:, ARKIT_NAMES.index("jawOpen")] = peak * np.sin(np.pi * t / 29)
+    w[:, ARKIT_NAMES.index("mouthSmileLeft")] = 0.5 * np.sin(np.pi * t / 29) ** 2
+    return _livelink_csv(path, w, [f"10:00:00:{2 * i:02d}.000" for i in range(len(w))])
+
+
+def test_publish_with_dry_run_fails_validation_not_the_extractor(pyblish_registered, samples, tmp_path,
+                                                                  monkeypatch):
+    """``usdfaceOptions`` ``{"dry_run": true}`` passed every validator; the extractor then ran the whole
+    personalization, wrote nothing and failed with 'o.usda: file not found (fix: pass an existing .usd file)'.
+    It fails validation now, naming dry_run and the fix (as ``usdface batch`` refuses such a row)."""
+    from usdface.pipeline import pyblish_plugins
+
+    ran = []
+    monkeypatch.setattr(pyblish_plugins.ExtractUsdFacePersonalized, "process",
+                        lambda self, instance: ran.append(1))
+    _, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "o.usda"), "usdfaceOptions": {"dry_run": True}}])
+    result = results[("ValidateUsdFaceOptions", "o")]
+    assert not result["success"]
+    assert "dry_run" in str(result["error"]) and "fix:" in str(result["error"])
+    assert ran == []
+
+
+def test_publish_take_plays_in_the_layer_as_on_the_review_page(pyblish_registered, samples, tmp_path):
+    """Instance data ``take`` reached the review page only: the layer's inspection animation (usdview) played
+    the test expressions without it, where ``usdface personalize --take FILE --review`` plays the take in
+    both. The take now goes to personalize too (it turns the inspection on, as ``--take`` does)."""
+    pytest.importorskip("usdface.transfer")
+    from pxr import Usd
+
+    take = _small_take(tmp_path / "take.csv")
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "person.usda"), "take": str(take), "review": True,
+         "usdfaceOptions": {"method": "dt"}}])
+    assert [str(r["error"]) for r in results.values() if not r["success"]] == []
+    instance = next(iter(context))
+    assert Path(instance.data["usdfaceReview"]).exists()
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    from usdface.io.usd_inspection import ANIMATION_NAME
+
+    anims = [p for p in stage.Traverse() if p.GetName() == ANIMATION_NAME]
+    assert anims, "no inspection animation in the published layer"
+    times = anims[0].GetAttribute("blendShapeWeights").GetTimeSamples()
+    assert len(times) >= 20 + 30     # the 20 test expressions, then the take's 30 frames
+
+
+def test_publish_from_a_manifest_writes_the_review_page_and_forces_it(pyblish_registered, samples, tmp_path):
+    """A publish collected from a batch manifest (``context.data["usdfaceManifest"]``) could not ask for the
+    review page: a 'review' column became a personalize option and failed ValidateUsdFaceOptions as unknown.
+    And a 'force' column (or ``usdfaceOptions`` force) replaced the layer but not its review page, so the
+    second publish failed in ExtractUsdFaceReview with 'review page exists'."""
+    pytest.importorskip("usdface.transfer")
+    import pyblish.util
+
+    manifest = tmp_path / "publish.csv"
+    manifest.write_text("avatar,capture,output,method,review,force\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},person.usda,dt,true,true\n")
+    for _ in range(2):                                   # the second publish replaces the layer and the page
+        context = pyblish_registered.Context()
+        context.data["usdfaceManifest"] = str(manifest)
+        pyblish.util.publish(context)
+        assert [str(r["error"]) for r in context.data["results"] if not r["success"]] == []
+        instance = next(iter(context))
+        assert instance.data["usdfaceReview"] == str(tmp_path / "person.review.html")
+        assert "review" not in instance.data["usdfaceOptions"]
+    assert (tmp_path / "person.review.html").stat().st_size > 0
+
+
+def test_publish_records_personalize_warnings_in_the_plugin_log(pyblish_registered, bench, tmp_path):
+    """The personalization's warnings (dev1: 23 training frames repeat another exactly; shapes the capture
+    barely shows) went to stderr as Python warnings, outside the publish's records, so a publish UI showed a
+    clean extraction. They are logged by the extractor and kept in ``instance.data["usdfaceWarnings"]``."""
+    pytest.importorskip("usdface.transfer")
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(bench / "dev1" / "avatar.usdc"), "capture": str(bench / "dev1" / "capture"),
+         "output": str(tmp_path / "person.usda")}])
+    extract = results[("ExtractUsdFacePersonalized", "person")]
+    assert extract["success"], extract["error"]
+    logged = [r.getMessage() for r in extract["records"] if r.levelname == "WARNING"]
+    assert any("repeat another frame exactly" in m for m in logged), logged
+    instance = next(iter(context))
+    assert set(logged) <= set(instance.data["usdfaceWarnings"])
+
+
+def test_publish_layer_and_review_page_play_the_same_take(pyblish_registered, samples, tmp_path, monkeypatch):
+    """With a take both in ``usdfaceOptions`` and in the instance data, the layer's inspection played the
+    options' one and the review page the instance's; both play the one personalize gets."""
+    from types import SimpleNamespace
+
+    from usdface import api
+    from usdface.pipeline import pyblish_plugins
+
+    got = {}
+
+    def personalize(avatar, capture, output, **options):
+        got["layer"] = options.get("take")
+        Path(output).write_text("#usda 1.0\n")
+        return SimpleNamespace(out_path=Path(output), report={"warnings": []})
+
+    def write_review(layer, out, *, capture=None, take=None, force=False):
+        got["page"] = take
+        return Path(out)
+
+    monkeypatch.setattr(pyblish_plugins.ExtractUsdFacePersonalized, "personalize", staticmethod(personalize))
+    monkeypatch.setattr(api, "write_review", write_review)
+    monkeypatch.setattr(api, "check", lambda *a, **k: [])
+    _, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "p.usda"), "take": "instance.csv", "review": True,
+         "usdfaceOptions": {"take": "options.csv"}}])
+    assert [str(r["error"]) for r in results.values() if not r["success"]] == []
+    assert got == {"layer": "options.csv", "page": "options.csv"}
+
+
+def _publish_item(pyblish_api, **item):
+    import pyblish.util
+
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    return {r["plugin"].__name__: r["error"] for r in context.data["results"] if r["error"] is not None}
+
+
+def test_pyblish_refuses_an_existing_review_page_before_writing_the_layer(pyblish_registered, samples,
+                                                                          tmp_path):
+    """A publish with review=True whose review page was left by an earlier publish passed validation, wrote
+    the layer, then failed in the review extractor: the failed publish left the layer behind, and its
+    retry failed on it ('output layer exists')."""
+    out = tmp_path / "person.usda"
+    (tmp_path / "person.review.html").write_text("an earlier publish's page")
+    errors = _publish_item(pyblish_registered, avatar=str(samples / "avatar.usda"),
+                      capture=str(samples / "capture.usda"), output=str(out), review=True)
+    assert "review page exists" in str(errors.get("ValidateUsdFaceOutputs"))
+    assert "ExtractUsdFacePersonalized" not in errors
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["exists", "input"])
+def test_pyblish_validates_the_layer_output(pyblish_registered, samples, tmp_path, case):
+    """An output that exists (no force) or is an input failed only in the extractor, after validation
+    passed."""
+    out = tmp_path / "person.usda"
+    if case == "exists":
+        out.write_text("#usda 1.0\n")
+    else:
+        out = samples / "capture.usda"
+    errors = _publish_item(pyblish_registered, avatar=str(samples / "avatar.usda"),
+                      capture=str(samples / "capture.usda"), output=str(out), force=case == "input")
+    assert "ValidateUsdFaceOutputs" in errors, errors
+    assert "ExtractUsdFacePersonalized" not in errors

@@ -4,8 +4,11 @@ personalized avatar."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from cli_helpers import _no_traceback, _usdface
 
 import usdface.io  # noqa: F401  (schemas before the first stage)
 from usdface.cli import main
@@ -22,6 +25,10 @@ from usdface.render import (
 )
 
 PNG = b"\x89PNG\r\n\x1a\n"
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def grid_rig(n: int = 12) -> FaceRig:
@@ -372,3 +379,68 @@ def test_heatmap_of_one_shape_is_labelled_with_it(inspected, tmp_path, monkeypat
         png = tmp_path / f"{i}.png"
         assert main(["render", str(out), "-o", str(png), "--heatmap", "--shapes", shapes]) == 0
     assert labels == ["change in jawOpen (mm)", "RMS change over 2 shapes (mm)"]
+
+
+def test_render_takes_the_meshs_own_channel_names_on_a_name_mapped_layer(tmp_path):
+    """troubleshooting.md: '--shapes names shapes as the mesh has them'; on a layer written with --name-map
+    only the ARKit name worked ('mesh Head has no shape ch17_ctrl'). Both work now, and a comparison names
+    the shape as ARKit does."""
+    import json
+    import re
+
+    from usdface.arkit import ARKIT_NAMES
+    from usdface.cli import main
+
+    idx = {n: i for i, n in enumerate(ARKIT_NAMES)}
+    words = re.compile(r"\b(" + "|".join(sorted(ARKIT_NAMES, key=len, reverse=True)) + r")\b")
+    studio = tmp_path / "studio.usda"
+    studio.write_text(words.sub(lambda m: f"ch{idx[m.group(1)]:02d}_ctrl", A.read_text()))
+    names = tmp_path / "names.json"
+    names.write_text(json.dumps({f"ch{k:02d}_ctrl": n for n, k in idx.items()}))
+    assert main(["personalize", str(studio), str(C), "-o", str(tmp_path / "p.usda"), "--name-map", str(names),
+                 "-q"]) == 0
+    for shapes in ("ch17_ctrl", "jawOpen", "ch17_ctrl,eyeBlinkLeft"):
+        out = tmp_path / f"{shapes.replace(',', '_')}.png"
+        assert main(["render", str(tmp_path / "p.usda"), "--compare", "--shapes", shapes, "-o", str(out),
+                     "-q"]) == 0
+        assert out.is_file()
+
+
+def _studio_named(avatar: Path, out: Path) -> Path:
+    """``avatar`` with every ARKit shape name replaced by a studio's own (``ch17_ctrl``), everywhere."""
+    import re
+
+    from usdface.arkit import ARKIT_NAMES
+
+    idx = {n: i for i, n in enumerate(ARKIT_NAMES)}
+    words = re.compile(r"\b(" + "|".join(sorted(ARKIT_NAMES, key=len, reverse=True)) + r")\b")
+    out.write_text(words.sub(lambda m: f"ch{idx[m.group(1)]:02d}_ctrl", avatar.read_text()))
+    return out
+
+
+def test_render_unknown_shape_names_the_file_and_the_name_map(sample_dir, tmp_path):
+    studio = _studio_named(sample_dir / "avatar.usda", tmp_path / "studio.usda")
+    res = _usdface("render", studio, "--shapes", "jawOpen", "-o", "x.png", cwd=tmp_path)
+    _no_traceback(res)
+    assert "studio.usda, prim /Avatar/Head: mesh Head has no shape 'jawOpen'" in res.stderr, res.stderr
+    assert "--name-map" in res.stderr and "ch00_ctrl" in res.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_render_compare_unknown_shape_names_the_layer(personalized_sample, tmp_path):
+    res = _usdface("render", personalized_sample, "--compare", "--shapes", "jawOpen,nope", "-o", "x.png",
+                   cwd=tmp_path)
+    _no_traceback(res)
+    assert f"{personalized_sample}, prim /Avatar/Head: mesh Head has no shape 'nope'" in res.stderr
+    assert "--name-map" not in res.stderr  # its shapes are ARKit-named
+    assert "did you mean" not in res.stderr  # nothing close to 'nope'
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_render_a_shape_name_typo_gets_the_close_name(samples, tmp_path, capsys):
+    """User trial: ``--shapes jawOpn`` listed the first eight shapes only; the close name is offered."""
+    from usdface.cli import main
+
+    assert main(["render", str(samples / "avatar.usda"), "--shapes", "jawOpn", "-o", str(tmp_path / "x.png"),
+                 "-q"]) == 2
+    assert "has no shape 'jawOpn' (fix: did you mean jawOpen?" in capsys.readouterr().err

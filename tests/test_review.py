@@ -15,11 +15,16 @@ import numpy as np
 import pytest
 
 from usdface import api
+from usdface.cli import main
 from usdface.errors import InputFileError, OutputExistsError
 from usdface.io.flatten import read_avatar_variant
+from usdface.io.livelink import write_livelink_csv
 from usdface.review.page import SPARSE_TOLERANCE_M, decode_sparse_deltas, encode_sparse_deltas
 
 ROOT = Path(__file__).resolve().parents[1]
+
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def _payload(html: str) -> dict:
@@ -356,3 +361,121 @@ def test_a_capture_given_as_the_take_is_refused(personalized_sample, samples, tm
         err = capsys.readouterr().err
         assert "this is a capture" in err and "--take plays a take" in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_stale_layers_and_other_captures_are_not_exported_or_reviewed_silently(tmp_path):
+    """``check`` warned that a layer's avatar changed after it was written, but ``export`` and ``review``
+    used the layer without a word, and ``review --capture`` scored another person's capture under the
+    layer's name: both warn now (the files are still written: a warning, not a refusal)."""
+    from usdface import api
+
+    avatar, capture = tmp_path / "avatar.usda", tmp_path / "capture.usda"
+    avatar.write_bytes(A.read_bytes())
+    capture.write_bytes(C.read_bytes())
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(avatar, capture, layer)
+    with pytest.warns(UserWarning) as rec:             # the layer's own inputs: no word
+        import warnings
+
+        warnings.warn("sentinel", UserWarning, stacklevel=1)
+        api.export_avatar(layer, gltf=tmp_path / "a.glb")
+    assert [str(w.message) for w in rec] == ["sentinel"]
+    avatar.write_bytes(A.read_bytes() + b"\n")          # the avatar re-exported since
+    with pytest.warns(UserWarning, match="changed after it was written"):
+        api.export_avatar(layer, gltf=tmp_path / "b.glb")
+    assert (tmp_path / "b.glb").is_file()
+    other = tmp_path / "other.usda"
+    other.write_bytes(C.read_bytes())
+    with pytest.warns(UserWarning, match="other.usda is not among the inputs p.usda records"):
+        api.write_review(layer, tmp_path / "r.html", capture=other, fit_errors=False)
+
+
+def test_review_of_a_landmarks_layer(tmp_path, capsys):
+    """``review`` of a ``usdface landmarks`` layer took the avatar (its second recorded input) for the
+    capture ('this is a rig, not a capture') and, given --capture, refit with method 'landmarks'."""
+    from usdface.cli import main
+
+    assert main(["personalize", str(A), str(C), "-o", str(tmp_path / "p.usda"), "-q"]) == 0
+    assert main(["landmarks", str(tmp_path / "p.usda"), "-o", str(tmp_path / "lm.usda"), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["review", str(tmp_path / "lm.usda"), "-o", str(tmp_path / "a.html"), "-q"]) == 0
+    assert main(["review", str(tmp_path / "lm.usda"), "-o", str(tmp_path / "b.html"), "--capture", str(C),
+                 "-q"]) == 0
+    out = capsys.readouterr()
+    assert "not among the inputs" not in out.out + out.err
+    assert "menzel refit" in (tmp_path / "b.html").read_text()
+
+
+def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
+    """``personalize --take`` records the take (relative to the layer, as ``take``) and ``review LAYER``
+    plays it without ``--take`` again (the page had only the test expressions); a take moved away is said
+    in the page's notes."""
+    from usdface.io.livelink import read_livelink_take
+    from usdface.io.usd_rig import usdface_layer_data
+    from usdface.review.collect import collect_review
+
+    take = tmp_path / "takes" / "t.csv"
+    take.parent.mkdir()
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    weights = np.array([[0.0, 0.0, 0.0], [0.8, 0.2, 0.1], [0.3, 1.0, 0.6], [0.0, 0.0, 0.0]])
+    write_livelink_csv(take, names, weights, np.arange(4) / 30.0)
+    assert len(read_livelink_take(take).weights) == 4
+    out = tmp_path / "out" / "person.usda"
+    assert main(["personalize", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o", str(out),
+                 "--take", str(take), "-q"]) == 0
+    assert usdface_layer_data(out)["take"] == "../takes/t.csv"
+    data = collect_review(out, fit_errors=False)
+    played = [s for s in data.sequences if s.title.startswith("take ")]
+    assert [s.title for s in played] == ["take t.csv"] and len(played[0].weights) == 4
+    # a flattened copy elsewhere (usdface export --flatten) records the take relative to itself
+    from usdface.api import export_avatar
+
+    flat = tmp_path / "deliver" / "deep" / "person.flat.usda"
+    export_avatar(out, flatten=flat)
+    assert usdface_layer_data(flat)["take"] == "../../takes/t.csv"
+    take.rename(tmp_path / "moved.csv")
+    data = collect_review(out, fit_errors=False)
+    assert not [s for s in data.sequences if s.title.startswith("take ")]
+    assert any("take recorded" in n and "not found" in n for n in data.notes)
+
+
+def test_review_refuses_a_take_as_capture_without_first_warning_about_it(tmp_path):
+    """``review LAYER --capture take.csv`` warned 'take.csv is not among the inputs ... its figures describe
+    that file', then refused the CSV (a weights-only take has no test expressions): only the refusal now."""
+    import warnings
+
+    from usdface.api import write_review
+    from usdface.errors import CaptureError
+
+    layer = tmp_path / "p.usda"
+    assert main(["personalize", str(SAMPLES / "avatar.usda"), str(SAMPLES / "capture.usda"), "-o", str(layer),
+                 "-q"]) == 0
+    take = tmp_path / "t.csv"
+    write_livelink_csv(take, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with pytest.raises(CaptureError, match="--take"):
+            write_review(layer, tmp_path / "r.html", capture=take)
+    assert not [w for w in seen if "among" in str(w.message)]
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_a_name_mapped_layer_reviews_with_arkit_names(tmp_path):
+    """User trial: the review page of a layer over a studio-named avatar (ch17_ctrl = jawOpen) played a
+    Live Link take with the jaw shut: the variants were read without the name map the layer records (every
+    other reader applies it), so no channel drove ch17_ctrl."""
+    import json
+
+    from usdface.io.flatten import read_avatar_variant
+    from usdface.review.collect import collect_review
+
+    studio = tmp_path / "studio.usda"
+    studio.write_text(A.read_text().replace("jawOpen", "ch17_ctrl"))
+    (tmp_path / "map.json").write_text(json.dumps({"ch17_ctrl": "jawOpen"}))
+    out = tmp_path / "p.usda"
+    assert main(["personalize", str(studio), str(C), "--name-map", str(tmp_path / "map.json"), "-o", str(out),
+                 "--method", "dt", "-q"]) == 0
+    for variant in ("personalized", "generic"):
+        assert "jawOpen" in read_avatar_variant(out, variant).mesh("Head").names
+    data = collect_review(out, fit_errors=False)
+    assert any("jawOpen" in m.names for m in data.meshes)

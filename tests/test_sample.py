@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import _no_traceback, _usdface
 from scipy.spatial import cKDTree
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.arkit import ARKIT_NAMES, mirror_name
 from usdface.cli import main
 from usdface.errors import OutputExistsError
@@ -334,3 +337,19 @@ def test_a_failed_picture_takes_the_new_sample_folder_with_it(tmp_path, monkeypa
     kept = ["sample", str(tmp_path / "kept"), "--force", "--picture", str(tmp_path / "k.png"), "-q"]
     assert main(kept) == 2
     assert (tmp_path / "kept" / "mine.txt").read_text() == "mine"
+
+
+def test_sample_picture_extension_checked_before_the_samples_are_written(tmp_path):
+    res = _usdface("sample", "s4", "--picture", "x.pgn", cwd=tmp_path)
+    _no_traceback(res)
+    assert "x.pgn" in res.stderr and "x.png" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sample_json_still_draws_the_picture(tmp_path):
+    """``sample --json --picture`` returned before drawing the picture; it is drawn and named in the JSON."""
+    res = _usdface("sample", "s5", "--json", "--picture", "s5.png", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["ok"] and Path(doc["picture"]).name == "s5.png"
+    assert (tmp_path / "s5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -42,6 +43,9 @@ TYPES = {
     "usdface:provenance:parameters": Sdf.ValueTypeNames.String,
     "usdface:capture:shapeNames": Sdf.ValueTypeNames.TokenArray,
 }
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
 
 
 def test_registry_finds_all_schemas():
@@ -164,3 +168,33 @@ def test_inspect_lists_the_applied_schemas_in_a_host_that_opened_a_stage_first(t
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          cwd=Path(__file__).resolve().parents[1])
     assert json.loads(out.stdout.strip().splitlines()[-1]) == expected, out.stdout + out.stderr
+
+
+def test_inside_a_dcc_that_opened_a_stage_first(tmp_path):
+    """Inside Maya-USD, Houdini, usdview or a Pyblish host a stage exists before usdface is imported:
+    personalize_avatar failed with 'ApplyAPI: Cannot find a valid schema ... UsdFaceProvenanceAPI'."""
+    script = textwrap.dedent(f"""
+        import warnings
+        from pxr import Usd
+        Usd.Stage.Open({str(SAMPLES / 'avatar.usda')!r})   # the host's scene, before usdface is imported
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            import usdface
+            usdface.personalize_avatar({str(SAMPLES / 'avatar.usda')!r},
+                                       {str(SAMPLES / 'capture.usda')!r}, "person.usda", method="dt")
+        print(len([w for w in said if "PXR_PLUGINPATH_NAME" in str(w.message)]))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[-1] == "1"  # said once, with the fix
+    from pxr import Usd
+
+    import usdface
+
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    prim = stage.GetPrimAtPath("/Avatar")
+    assert "UsdFaceProvenanceAPI" in prim.GetMetadata("apiSchemas").GetAddedOrExplicitItems()
+    assert prim.GetAttribute("usdface:provenance:version").Get() == usdface.__version__
+    assert json.loads(prim.GetAttribute("usdface:provenance:parameters").Get())["method"] == "dt"
+    assert not [i for i in usdface.check(tmp_path / "person.usda") if i.severity == "error"]

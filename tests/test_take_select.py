@@ -5,9 +5,11 @@ and OBJ sequence + Live Link CSV."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+from input_helpers import _livelink_csv
 
 from usdface.arkit import ARKIT_NAMES
 from usdface.cli import main
@@ -19,6 +21,10 @@ from usdface.sample.take import make_take
 from usdface.take_select import format_coverage, select_frames
 
 SKIP = ["jawLeft", "cheekPuff"]  # ARKit order
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def grid_rigs(n=9, seed=0):
@@ -340,3 +346,116 @@ def test_select_with_output_on_a_weights_only_take_points_to_the_table(tmp_path,
     assert main(["capture", "select", str(path), "-o", str(tmp_path / "c.usda")]) == 2
     err = capsys.readouterr().err
     assert "weights only" in err and "without -o" in err and not (tmp_path / "c.usda").exists()
+
+
+def test_capture_select_refuses_a_capture_and_an_empty_selection(weights_take, tmp_path, capsys):
+    """A capture given to ``capture select`` was re-selected (its test frames became training frames), and a
+    threshold no shape reaches wrote a capture of 0 frames with exit 0: both refused, nothing written."""
+    from usdface.cli import main
+
+    assert main(["capture", "select", str(C), "-o", str(tmp_path / "cc.usda")]) == 2
+    assert "this is a capture" in capsys.readouterr().err and not (tmp_path / "cc.usda").exists()
+    assert main(["capture", "select", str(weights_take), "-o", str(tmp_path / "y.usda"),
+                 "--threshold", "0.99"]) == 2
+    err = capsys.readouterr().err
+    assert "no shape peaks above --threshold 0.99" in err and "jawOpen 0.93" in err
+    assert not (tmp_path / "y.usda").exists()
+
+
+def test_select_capture_frames_takes_a_capture_as_template_and_checks_its_numbers(samples, tmp_path):
+    """select_capture_frames(template=read_capture(...)) failed with TypeError 'expected str, bytes or
+    os.PathLike object, not Capture'; threshold=1.5 gave a table of never-triggered shapes without a word
+    (the command line refuses it)."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import CaptureError
+    from usdface.io.take import write_take_usd
+    from usdface.model import Capture, Frames
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, None, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    src = write_take_usd(take, tmp_path / "take.usdc")
+    empty = Frames(np.zeros((0, *template.neutral.shape)), np.zeros((0, template.n_shapes)), [], [])
+    capture = Capture(template.neutral, template.triangles, template, empty, list(template.names))
+    sel = api.select_capture_frames(src, tmp_path / "c.usda", template=capture)
+    assert sel.out_path is not None and sel.capture.template.n_shapes == template.n_shapes
+    for bad in ({"threshold": 1.5}, {"threshold": -0.1}, {"min_separation": -1}):
+        with pytest.raises(CaptureError, match="threshold|min_separation"):
+            api.select_capture_frames(src, **bad)
+
+
+def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_path):
+    """takes.md's advice for held-out frames that are all rests is '--test-every 5 --min-separation 0.2';
+    given exactly that, 'capture select' warned '(fix: ... --test-every 5 --min-separation 0.2)' again, and
+    without naming the take. It names the take and a --min-separation below the one given."""
+    import re
+
+    import numpy as np
+
+    from usdface import api
+    from usdface.arkit import ARKIT_NAMES
+
+    frames = 600                                            # 20 s at 30 fps: short expressions among rests
+    t = np.arange(frames)
+    w = np.zeros((frames, len(ARKIT_NAMES)))
+    for k, name in enumerate(("jawOpen", "eyeBlinkLeft", "mouthSmileLeft", "browInnerUp", "cheekPuff")):
+        w[:, ARKIT_NAMES.index(name)] = 0.9 * np.exp(-0.5 * ((t - 60 - 110 * k) / 2.0) ** 2)
+    take = tmp_path / "rests.csv"
+    _livelink_csv(take, w, [f"10:00:{i // 30:02d}:{2 * (i % 30):02d}.000" for i in range(len(w))])
+    with pytest.warns(UserWarning, match="show no expression") as said:
+        api.select_capture_frames(take, test_every=5, min_separation=0.2)
+    message = next(str(m.message) for m in said if "show no expression" in str(m.message))
+    assert str(take) in message
+    fix = message.split("(fix: ", 1)[1]
+    suggested = float(re.search(r"--min-separation ([0-9.]+)'", fix).group(1))
+    assert suggested < 0.2, fix
+
+
+def test_rewriting_a_selected_capture_keeps_its_frame_selection_record(tmp_path):
+    """capture-format.md: a capture made by 'usdface capture select' keeps its frame-selection record
+    (customLayerData takeSelection). 'usdface capture import capture.usdc -o capture.usda' (rewriting it, as
+    the command offers) dropped it: the reader did not read it back."""
+    import json
+
+    import numpy as np
+    from pxr import Sdf
+
+    from usdface import api
+    from usdface.io.take import Take, write_take_usd
+    from usdface.sample import build_samples
+
+    data = build_samples(0)
+    capture = data["capture"]
+    rig = capture.template
+    frames = 40
+    t = np.arange(frames)
+    w = np.zeros((frames, len(rig.names)))
+    for k in range(4):                                     # four shapes, one bump each
+        w[:, k] = 0.9 * np.exp(-0.5 * ((t - 5 - 10 * k) / 1.5) ** 2)
+    take = Take(weights=w, names=list(rig.names), times=t / 10.0,
+                points=rig.neutral[None] + np.einsum("fk,knd->fnd", w, rig.deltas),
+                triangles=rig.triangles, neutral=rig.neutral, template=rig)
+    write_take_usd(take, tmp_path / "take.usdc")
+    api.select_capture_frames(tmp_path / "take.usdc", tmp_path / "sel.usdc", threshold=0.5)
+    first = Sdf.Layer.FindOrOpen(str(tmp_path / "sel.usdc")).customLayerData["usdface"]["takeSelection"]
+    api.import_capture_folder(tmp_path / "sel.usdc", tmp_path / "again.usda")
+    again = Sdf.Layer.FindOrOpen(str(tmp_path / "again.usda")).customLayerData["usdface"].get("takeSelection")
+    assert again is not None and json.loads(again) == json.loads(first)
+
+
+def test_a_pose_held_from_the_first_frame_is_a_peak_one_at_the_end_is_named():
+    """find_peaks never returns an end sample: a take that starts on a held jawOpen lost it as 'never
+    triggered' although it reached 0.95 and then relaxed (the paper's rule: it peaked). A weight still
+    rising when the take ends has not peaked; the coverage now says so instead of 'never above 0.5'."""
+    from usdface.take_select import format_coverage, select_frames
+
+    w = np.zeros((60, 2))
+    w[:10, 0] = 0.95
+    w[10:20, 0] = np.linspace(0.9, 0.0, 10)             # held from frame 0, then relaxing
+    w[50:, 1] = np.linspace(0.1, 1.0, 10)               # rising to the last frame
+    sel = select_frames(w, names=["jawOpen", "eyeBlinkLeft"], min_separation=5)
+    assert sel.shapes[0].frames == [4] and sel.missing == ["eyeBlinkLeft"]
+    text = format_coverage(sel)
+    assert "above 0.5 only at the take's end" in text and "max 1.00" in text

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import _no_traceback, _usdface
 
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -267,3 +269,61 @@ def test_a_batch_wide_option_every_row_overrides_is_refused(tmp_path):
             api.personalize_batch(manifest, options=options)
         assert "manifest columns win" in str(info.value)
     assert not list(tmp_path.glob("*.usda"))
+
+
+def test_personalize_avatar_landmarks_alone_writes_the_landmarks(samples, tmp_path):
+    """``personalize_avatar(..., landmarks=True)`` without ``inspect=True`` wrote a layer without landmarks
+    and said nothing (so did a batch row or a Pyblish ``usdfaceOptions`` with ``landmarks``), where
+    ``usdface personalize --landmarks`` implies ``--inspect``, as ``take=`` does in the API."""
+    pytest.importorskip("usdface.transfer")
+    from pxr import Usd
+
+    from usdface import api
+
+    out = api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "p.usda",
+                                 landmarks=True, method="dt").out_path
+    stage = Usd.Stage.Open(str(out))
+    points = [p for p in stage.Traverse() if p.GetTypeName() == "Points"]
+    assert points and points[0].GetName().endswith("_landmarks")
+
+
+def test_face_mesh_mouth_says_the_capture_collapsed_not_a_perfect_residual(sample_dir, tmp_path):
+    res = _usdface("personalize", sample_dir / "avatar.usda", sample_dir / "capture.usda",
+                   "--face-mesh", "Mouth", "--dry-run", cwd=tmp_path)
+    _no_traceback(res)
+    assert "shrank the capture to a point" in res.stderr and "--face-mesh" in res.stderr
+    assert "residual 0.00 mm" not in res.stderr and "100% of capture vertices" not in res.stderr
+
+
+def test_face_mesh_mouth_on_a_production_avatar_names_the_skin_meshes(shared, tmp_path, capfd):
+    """User trial: ``--face-mesh Mouth`` on dev1 (the capture registers, but covers none of the mouth
+    socket) said "no avatar vertex lies on the registered capture surface (empty face region) (fix: check that
+    the capture and the avatar are faces)": they were. The message says the chosen mesh has no vertex the
+    capture covers and names the skin mesh to pick."""
+    from usdface.cli import main
+
+    bench = shared / "data" / "bench" / "dev1"
+    code = main(["personalize", str(bench / "avatar.usdc"), str(bench / "capture"), "--face-mesh", "Mouth",
+                 "--dry-run", "-q"])
+    err = capfd.readouterr().err
+    assert code == 2 and "prim /Avatar/Mouth" in err, err
+    assert "empty face region" not in err and "are faces" not in err
+    assert "--face-mesh has no vertex the capture covers" in err
+    assert "pick the skin mesh with --face-mesh (candidates: /Avatar/Head (" in err
+    assert "without --face-mesh usdface picks /Avatar/Head" in err
+
+
+def test_empty_face_region_error_lists_the_meshes_the_shapes_move(samples):
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer.pipeline import empty_face_region
+
+    avatar = read_avatar(samples / "avatar.usda")
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    chosen = empty_face_region(avatar.file, avatar.meshes, "/Avatar/Mouth", names, chosen=True)
+    assert isinstance(chosen, RigError) and chosen.prim == "/Avatar/Mouth"
+    assert "no vertex the capture covers" in chosen.message
+    assert chosen.fix.startswith("pick the skin mesh with --face-mesh (candidates: /Avatar/Head (")
+    assert "/Avatar/Mouth (" not in chosen.fix                          # not the mesh that failed
+    auto = empty_face_region(avatar.file, avatar.meshes, "/Avatar/Head", names, chosen=False)
+    assert "same face" in auto.fix and "--face-mesh" in auto.fix and "/Avatar/Head (" not in auto.fix

@@ -4,9 +4,16 @@ Z-up cm / Y-up m / nested rotated variants written with the sample helper's avat
 from __future__ import annotations
 
 import hashlib
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
+from input_helpers import _capture
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 
 
 def _rmse(a, b):
@@ -97,3 +104,31 @@ def test_sample_variants_same_offsets(samples, sample_fit, sample_result_without
         # float32 points in metres at ~1.6 m from the origin are quantised to ~1.2e-7 m; the non-rigid
         # registration amplifies that ~10x on this coarse head, hence 5e-4 rather than exact equality
         assert np.sqrt(np.mean((back - want) ** 2)) / np.sqrt(np.mean(want ** 2)) < 5e-4
+
+
+def test_a_smaller_capture_gives_the_same_personalization(tmp_path):
+    """Review: the field's smoothing (and the join of the offset modes) took the capture's mean edge as the
+    correspondence measured it on the capture placed on the avatar, then multiplied it by the registration's
+    scale again: a capture 10x smaller than its person (a wrong unit) smoothed over 9 rings instead of 2 and
+    moved the offsets by 12 % of the personalization. The same capture at a tenth of its size (registration
+    scale ~10) now gives the same offsets."""
+    import dataclasses
+
+    from usdface.api import read_avatar
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.transfer import personalize_avatar
+
+    cap, avatar = _capture(), read_avatar(A)
+    s = 0.1
+    t, f = cap.template, cap.frames
+    small = Capture(cap.neutral * s, cap.triangles,
+                    FaceRig(t.neutral * s, t.triangles, list(t.names), t.deltas * s, name=t.name),
+                    Frames(f.points * s, f.weights, f.role, f.label), cap.names)
+    small = dataclasses.replace(small, metadata=dict(cap.metadata or {}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = personalize_avatar(avatar, cap, None, method="dt")
+        b = personalize_avatar(avatar, small, None, method="dt")
+    key = avatar.mesh("Head").key
+    change = np.abs(a.offsets[key] - avatar.mesh("Head").deltas).max()
+    assert np.abs(a.offsets[key] - b.offsets[key]).max() < 1e-3 * change

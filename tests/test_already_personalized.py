@@ -1,0 +1,109 @@
+"""A usdface output given where an avatar goes (a personalized layer or its flattened export) is refused,
+naming the file, the avatar it came from as one can pass it, and the fix; a flattened generic export or a
+plain avatar is accepted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from usdface.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
+
+
+@pytest.fixture(scope="module")
+def person_layer(tmp_path_factory) -> Path:
+    """A usdface layer over the sample avatar (personalized offsets on the Head: the layer carries the
+    personalization variant set and the provenance)."""
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(SAMPLES / "avatar.usda")
+    head = avatar.mesh("Head")
+    return write_avatar_layer(avatar, tmp_path_factory.mktemp("person") / "person.usda",
+                              {head.key: head.deltas * 1.01}, provenance={})
+
+
+def test_flattened_personalized_export_is_not_personalized_again(person_layer, tmp_path, capsys):
+    """A `usdface export --flatten` of the personalized variant lost the variant set the refusal looked for:
+    personalize stacked the personalization a second time. Now it is refused (AlreadyPersonalizedError) naming
+    the file, the layer it came from and the fix (the generic variant, or the original avatar)."""
+    from usdface.io.flatten import flatten_variant
+
+    flat = flatten_variant(person_layer, tmp_path / "flat.usdc", "personalized")
+    for command, out in (("personalize", tmp_path / "p2.usda"), ("retarget", tmp_path / "m.json")):
+        argv = [command, str(flat), str(SAMPLES / "capture.usda"), "-o", str(out)]
+        assert main(argv + (["--json"] if command == "personalize" else [])) == 2
+        captured = capsys.readouterr()
+        assert "flattened export" in captured.err and str(flat) in captured.err
+        assert "--variant generic" in captured.err and "avatar.usda" in captured.err
+        if command == "personalize":
+            error = json.loads(captured.out)["error"]
+            assert error["type"] == "AlreadyPersonalizedError" and error["file"] == str(flat)
+            assert "person.usda --flatten flat.generic.usdc --variant generic" in error["fix"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flat.usdc"]
+
+
+def test_flattened_generic_export_and_plain_avatar_are_accepted(person_layer, tmp_path):
+    """A flattened *generic* export is the avatar's own shapes: accepted. A flattened plain avatar records
+    'authored' (it used to record 'personalized', the variant asked for, which it does not have)."""
+    from pxr import Sdf
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.flatten import flatten_variant
+    from usdface.io.usd_rig import flattened_from, refuse_usdface_output
+
+    generic = flatten_variant(person_layer, tmp_path / "generic.usdc", "generic")
+    flat = flattened_from(generic)            # the source relative to the flattened file (stop 23)
+    assert flat["variant"] == "generic"
+    assert (generic.parent / flat["source"]).resolve() == person_layer.resolve()
+    refuse_usdface_output(generic)                       # no error
+    plain = flatten_variant(SAMPLES / "avatar.usda", tmp_path / "plain.usdc", "personalized")
+    assert dict(Sdf.Layer.FindOrOpen(str(plain)).customLayerData)["usdfaceFlatten"]["variant"] == "authored"
+    refuse_usdface_output(plain)
+    with pytest.raises(AlreadyPersonalizedError):        # the layer itself: refused as before
+        refuse_usdface_output(person_layer)
+
+
+def test_refusal_of_a_flattened_export_names_the_avatar_as_one_can_pass_it(tmp_path, monkeypatch):
+    """User trial: the refusal suggested '(avatar.usda)', the name recorded relative to the layer, which does
+    not exist relative to where the user stands; it is now a path from the current folder."""
+    import re
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import refuse_usdface_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["personalize", str(A), str(C), "-o", str(out / "p.usda"), "--method", "dt", "-q"]) == 0
+    assert main(["export", str(out / "p.usda"), "--flatten", str(out / "flat.usdc"), "-q"]) == 0
+    elsewhere = tmp_path / "shot"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    with pytest.raises(AlreadyPersonalizedError) as err:
+        refuse_usdface_output(Path("../out/flat.usdc"))
+    named = re.search(r"pass the original avatar \((.+)\)\)?$", err.value.fix).group(1).rstrip(")")
+    assert Path(named).resolve() == A.resolve()
+
+
+def test_usdface_output_is_not_personalized_again(tmp_path, capfd):
+    """Issue 10 item 5: personalizing a usdface layer would stack the personalization; name the original."""
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_rig import read_avatar
+
+    avatar = read_avatar(SAMPLES / "avatar.usda")
+    head = avatar.mesh("Head")          # personalized offsets: the layer carries the personalization variants
+    layer = write_avatar_layer(avatar, tmp_path / "person.usda", {head.key: head.deltas * 1.01},
+                               provenance={})
+    for argv in (["personalize", str(layer), str(SAMPLES / "capture.usda"), "-o", str(tmp_path / "p2.usda")],
+                 ["retarget", str(layer), str(SAMPLES / "capture.usda"), "-o", str(tmp_path / "m.json")]):
+        assert main(argv) == 2
+        err = capfd.readouterr().err
+        assert "already personalized" in err and "avatar.usda" in err and str(layer) in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["person.usda"]
+    assert read_avatar(layer).mesh("Head").n_shapes  # reading it (check, render, inspect) is still fine

@@ -1,0 +1,183 @@
+"""The API's arguments checked as the command line checks them: numbers out of range, strings where a list or
+a number goes, arguments of the wrong kind, each refused before any work with a UsdFaceError naming the
+fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdface.errors import UsdFaceError
+from usdface.io.livelink import write_livelink_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
+
+
+@pytest.mark.parametrize("options, needle", [
+    ({"mu": float("nan")}, "bad mu nan"),
+    ({"mu": float("inf")}, "bad mu inf"),
+    ({"mu": -1}, "bad mu -1"),
+    ({"mu": 0.0}, "bad mu 0.0"),
+    ({"mu": "abc"}, "bad mu 'abc'"),
+    ({"mu": True}, "bad mu True"),
+    ({"extension_length": -1.0}, "bad extension_length -1.0"),
+    ({"extension_length": float("nan")}, "bad extension_length nan"),
+    ({"falloff": -1}, "bad falloff -1"),
+    ({"support": (0.05, 0.01)}, "low > high"),
+    ({"support": 0.1}, "bad support 0.1"),
+])
+def test_api_refuses_the_numbers_the_cli_refuses(tmp_path, options, needle):
+    """A script and the CLI behave identically: ``mu=nan`` wrote a "successful" map of 2,704 NaN, ``mu=0``
+    raised numpy's LinAlgError, ``extension_length=-1`` was taken as 1. Refused before any work, nothing
+    written. The implant's options are not the retarget map's (refused as such); falloff is the older
+    modes'."""
+    from usdface import api
+
+    out = tmp_path / "map.json"
+    implant = {"extension_length", "falloff", "support"} & set(options)
+    with pytest.raises(UsdFaceError, match="not used by the retarget map" if implant else needle) as err:
+        api.write_retarget_map(A, C, out, **options)
+    assert err.value.fix and not out.exists()
+    mode = {"face_transfer": "offset"} if "falloff" in options else {}
+    with pytest.raises(UsdFaceError, match=needle):
+        api.personalize_avatar(A, C, tmp_path / "p.usda", **options, **mode)
+    assert not (tmp_path / "p.usda").exists()
+
+
+def test_api_numbers_that_are_fine_pass_the_check():
+    from usdface.transfer.pipeline import check_numbers
+
+    check_numbers(mu="auto", extension_length=None, falloff=0, support=None)
+    check_numbers(mu="1e-3", extension_length=0.5, falloff=0.15, support=(0.0, 0.0))
+    check_numbers(mu=2, extension_length=2, falloff=1, support=[0.01, 0.03])
+
+
+def test_api_refuses_what_it_cannot_use():
+    from usdface import api
+
+    with pytest.raises(UsdFaceError, match="expected a FaceRig, an Avatar or an avatar file"):
+        api.compute_landmarks(3)
+    with pytest.raises(UsdFaceError, match="unknown frame role 'bogus'"):
+        api.evaluate_capture(C, role="bogus")
+
+
+def test_weight_bounds_as_text_are_refused_with_the_manifest_spelling():
+    """A manifest cell or ``--set weight_bounds=01`` reached the check as the string "01", whose characters
+    passed as the bounds (0, 1) (and "0,2" was refused with a fix, ``(0, 1)`` / ``None``, that a manifest
+    cannot spell either): a string is refused, and the fix names the JSON a manifest takes."""
+    import pytest
+
+    from usdface import api
+    from usdface.errors import OptionError
+
+    for text in ("01", "0,2", "(0, 2)", "None"):
+        with pytest.raises(OptionError, match=r"bad weight bounds") as err:
+            api.check_personalize_options(weight_bounds=text)
+        assert "[0, 1] in a batch manifest" in str(err.value) and "null in a batch manifest" in str(err.value)
+    api.check_personalize_options(weight_bounds=[0, 2])
+    api.check_personalize_options(weight_bounds=None)
+
+
+def test_support_as_text_is_refused_before_any_work():
+    """``--set support=01`` passed the batch's preflight (the string's two characters as low and high) and
+    the item failed after its fit with ``UFuncTypeError: ufunc 'subtract' did not contain a loop``."""
+    import pytest
+
+    from usdface import api
+    from usdface.errors import UsdFaceError
+
+    for text in ("01", "ab"):
+        with pytest.raises(UsdFaceError, match=r"bad support") as err:
+            api.check_personalize_options(support=text)
+        assert "[0.01, 0.03] in a batch manifest" in str(err.value)
+    api.check_personalize_options(support=[0.01, 0.03])
+
+
+def test_api_arguments_of_the_wrong_kind_are_refused_with_the_fix(tmp_path):
+    """A docs walk-through: ``select_capture_frames(take, per_shape=1.5)`` / ``test_every="5"`` died with
+    numpy's TypeError, ``write_fit_rig("x", out)`` with AttributeError; each is a UsdFaceError naming the
+    argument and the fix, before any work."""
+    import usdface
+    from usdface.errors import CaptureError, UsdFaceError
+
+    take = tmp_path / "t.csv"
+    write_livelink_csv(take, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    for kw, word in (({"per_shape": 1.5}, "per_shape"), ({"test_every": "5"}, "test_every"),
+                     ({"per_shape": True}, "per_shape"), ({"threshold": "x"}, "threshold"),
+                     ({"min_separation": -1}, "min_separation")):
+        with pytest.raises(CaptureError, match=word):
+            usdface.select_capture_frames(take, **kw)
+    with pytest.raises(UsdFaceError, match="FitResult or a FaceRig") as err:
+        usdface.write_fit_rig("x", tmp_path / "o.usda")
+    assert "fit_capture" in err.value.fix and not (tmp_path / "o.usda").exists()
+
+
+def test_check_rules_as_a_string_are_rule_names(samples):
+    """``usdface.check(path, rules="ArkitNames")`` (one rule, as a Python user writes it; the CLI's
+    ``--rules ArkitNames,PointIndices`` form) failed with "unknown check rule(s) ['A', 'r', 'k', ...]": the
+    string was read letter by letter. A string is a rule name or comma-separated names."""
+    import pytest as _pytest
+
+    from usdface import api
+    from usdface.errors import UsdFaceError
+
+    assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames") == []
+    assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames, PointIndices") == []
+    with _pytest.raises(UsdFaceError, match=r"\['ArkitName'\]"):
+        api.check(samples / "avatar.usda", pixar=False, rules="ArkitName")
+
+
+def test_evaluate_methods_takes_methods_as_a_string(samples):
+    """``evaluate_methods(capture, methods="menzel")`` failed with 'unknown method(s) in --methods: m, e,
+    n, z, e, l': the string was read letter by letter. One name or comma-separated names, as --methods."""
+    import warnings
+
+    from usdface import api
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = api.evaluate_methods(samples / "capture.usda", methods="dt")
+    assert "dt" in report["methods"] and "menzel" not in report["methods"]
+
+
+def test_write_capture_takes_one_input_path(samples, tmp_path):
+    """``write_capture(capture, out, inputs="take.usda")`` (one path) took the string's characters as input
+    paths, '.' and '/' among them, and refused every output as 'inside the input folder /'."""
+    from usdface import api
+
+    capture = api.read_capture(samples / "capture.usda")
+    take = tmp_path / "take.usda"
+    take.write_text("#usda 1.0\n")
+    out = api.write_capture(capture, tmp_path / "c.usda", inputs=str(take), exact=False)
+    assert out.exists()
+    with pytest.raises(Exception, match="input"):
+        api.write_capture(capture, take, force=True, inputs=str(take))
+
+
+def test_compute_landmarks_refuses_a_camera_that_is_no_position_with_the_fix(samples):
+    """api.md: bad input raises a UsdFaceError subclass with the fix. ``compute_landmarks(avatar,
+    camera="0,1.6,0.35")`` (the CLI's spelling) died with numpy's 'ValueError: could not convert string to
+    float' from inside the visibility code."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+
+    for bad in ("0,1.6,0.35", (0, 1.6), (0, float("nan"), 1)):
+        with pytest.raises(LandmarkError, match="camera") as err:
+            api.compute_landmarks(samples / "avatar.usda", camera=bad)
+        assert "fix:" in str(err.value)
+
+
+def test_a_numeric_string_mu_is_the_number_not_a_late_value_error(samples, tmp_path):
+    """``personalize_avatar(..., mu="0.01")`` passed the options' check (a numeric string counts, as the CLI
+    reads it) and then died after the registration and the fit with retarget's bare 'ValueError: mu must be
+    a number or 'auto', not '0.01''. It is the number 0.01, as ``reg="1e-3"`` is for the fit."""
+    pytest.importorskip("usdface.transfer")
+    from usdface import api
+
+    result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "m.json",
+                                    mu="0.01", method="dt")
+    assert result.report["retarget"]["mu"] == pytest.approx(0.01)

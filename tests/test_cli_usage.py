@@ -1,0 +1,132 @@
+"""The command line itself: ``python -m usdface`` and ``usdface`` alone, unknown options named by their
+command or action, ``--debug`` after the command, option values and output extensions checked before any
+work."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from cli_helpers import _usdface
+
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
+from usdface.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
+
+
+def test_python_dash_m_usdface_runs_the_cli():
+    """``python -m usdface`` (a venv without the console script on PATH) is the ``usdface`` command."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "usdface", "--version"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and proc.stdout.startswith("usdface "), proc.stderr
+
+
+def test_unknown_options_are_named_by_their_command(capsys):
+    """``usdface export X --json`` said ``usdface: error: unrecognized arguments``; the command's own parser
+    says it now, and ``-q`` exists on every command that prints progress."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["export", str(A), "--bogus"])
+    assert exit_.value.code == 2
+    assert "usdface export: error: unrecognized arguments: --bogus" in capsys.readouterr().err
+    for command in ("review", "export", "batch"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert "--quiet" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv", [["capture", "import", "cap", "-o", "c.usda", "--json"],
+                                  ["anim", "import", "t.csv", "-o", "t.usda", "--bogus"]])
+def test_unknown_options_of_an_action_are_named_by_the_action(argv, capsys):
+    """A user trial: 'capture import DIR -o c.usda --json' said "usdface capture: error: unrecognized
+    arguments: --json (see 'usdface capture --help')", a help page that lists only the actions."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    name, err = " ".join(argv[:2]), capsys.readouterr().err
+    assert f"usdface {name}: error: unrecognized arguments" in err and f"see 'usdface {name} --help'" in err
+
+
+@pytest.mark.parametrize("args", [["anim", "import", "{d}/missing.csv", "-o", "{d}/x.usda"],
+                                  ["capture", "select", "{d}/missing.csv", "-o", "{d}/x.usda"]])
+def test_an_actions_error_names_the_command_as_typed(tmp_path, capsys, args):
+    """Errors of the commands with actions said 'usdface anim: error' for 'usdface anim import': they name
+    the command as typed."""
+    argv = [a.format(d=tmp_path) for a in args]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"usdface {argv[0]} {argv[1]}: error: "), argv
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["capture", "import", "{S}/capture.usda", "-o", "c.obj"], "as .usda/.usdc/.usd or as a folder"),
+    (["render", "{S}/avatar.usda", "-o", "x.jpg"], "must end in .png"),
+    (["landmarks", "{S}/avatar.usda", "--plot", "x.jpg"], "must end in .png"),
+])
+def test_output_extension_is_checked(tmp_path, monkeypatch, capfd, argv, needle):
+    monkeypatch.chdir(tmp_path)
+    code = main([a.replace("{S}", str(SAMPLES)) for a in argv])
+    assert code == 2 and needle in capfd.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["anim", "import", "t.csv", "-o", "t.usda", "--timecode-rate", "0"],
+    ["anim", "import", "t.csv", "-o", "t.usda", "--timecode-rate", "-60"],
+    ["anim", "import", "t.csv", "-o", "t.usda", "--timecode-rate", "nan"],
+    ["retarget", "a.usda", "c.usda", "-o", "m.json", "--mu", "nan"],
+    ["personalize", "a.usda", "c.usda", "--mu", "-1"],
+    ["personalize", "a.usda", "c.usda", "--falloff", "nan"],
+    ["fit", "c.usda", "-o", "r.usda", "--reg", "inf"],
+    ["landmarks", "a.usda", "--camera", "0,nan,1"],
+    ["capture", "select", "t.usda", "--threshold", "nan"],
+])
+def test_option_values_are_validated(tmp_path, monkeypatch, capfd, argv):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capfd.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1 and "argument --" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_debug_after_the_command_shows_the_traceback(tmp_path, capsys):
+    """User trial: ``usdface personalize ... --debug`` (added to the failed command line) said
+    'unrecognized arguments: --debug'; it worked only as ``usdface --debug personalize``. Both work now,
+    in sub-commands too; without it the one-line error stays."""
+    from usdface.cli import main
+    from usdface.errors import InputFileError
+
+    line = ["personalize", str(tmp_path / "nothere.usda"), str(tmp_path / "c.usda"),
+            "-o", str(tmp_path / "o.usda")]
+    assert main(line) == 2 and "avatar not found" in capsys.readouterr().err
+    for argv in ([*line, "--debug"], ["--debug", *line]):
+        with pytest.raises(InputFileError, match="avatar not found"):
+            main(argv)
+    with pytest.raises(InputFileError, match="capture not found"):
+        main(["capture", "import", str(tmp_path / "none"), "-o", str(tmp_path / "c.usda"), "--debug"])
+
+
+def test_usdface_alone_prints_its_usage_on_stderr_and_exits_2(tmp_path, capsys):
+    """``usdface`` without a command printed the help on stdout and exited 0, so a script's ``usdface $CMD``
+    with ``$CMD`` unset passed; now a usage error (exit 2, as ``usdface capture`` alone); ``--help``: 0."""
+    from usdface.cli import main
+
+    with pytest.raises(SystemExit) as code:
+        main([])
+    out, err = capsys.readouterr()
+    assert code.value.code == 2 and out == ""
+    assert err.startswith("usage: usdface ") and "required: COMMAND (see 'usdface --help')" in err
+    res = _usdface(cwd=tmp_path)
+    assert (res.returncode, res.stdout) == (2, "") and "usage: usdface " in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    res = _usdface("--help", cwd=tmp_path)
+    assert res.returncode == 0 and "personalize" in res.stdout and res.stderr == ""

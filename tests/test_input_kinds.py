@@ -1,0 +1,130 @@
+"""A file given where another kind of file goes (a take or a capture as the avatar, JSON or OBJ where USD
+goes, a folder of takes, a missing file) is named for what it is and for what the command reads, with exit
+status 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_helpers import _no_traceback, _usdface
+
+import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
+from usdface.cli import main
+from usdface.io.livelink import write_livelink_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_assets"
+A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
+
+
+def test_errors_name_what_the_file_is(tmp_path, capsys):
+    """--correspondence naming the avatar said 'delete it'; a capture folder given as the avatar said only
+    'is a folder'; a fitted rig given as the capture said 'not a usdface capture (no /Capture with ...)'."""
+    from usdface.cli import main
+
+    avatar = tmp_path / "avatar.usda"
+    avatar.write_bytes(A.read_bytes())
+    assert main(["personalize", str(avatar), str(C), "-o", str(tmp_path / "p.usda"),
+                 "--correspondence", str(avatar)]) == 2
+    err = capsys.readouterr().err
+    assert "names one of this run's inputs" in err and "delete" not in err
+    assert avatar.read_bytes() == A.read_bytes()
+    cap = tmp_path / "cap"
+    (cap / "train").mkdir(parents=True)
+    assert main(["personalize", str(cap), str(A), "-o", str(tmp_path / "q.usda")]) == 2
+    assert "arguments swapped?" in capsys.readouterr().err
+    assert main(["personalize", str(A), str(A), "-o", str(tmp_path / "r.usda")]) == 2
+    assert "this is a rig" in capsys.readouterr().err
+
+
+def test_a_non_usd_file_where_usd_is_expected_is_named_as_such(tmp_path, capsys):
+    """The retarget map (``map.json``) given to ``render --heatmap``, ``inspect`` or ``check``, or an exported
+    OBJ to ``export``, said USD's "Cannot determine file format for @map.json@ (fix: check that it is a
+    valid USD layer (usdcat FILE))": the message names the file's type and asks for the USD file."""
+    from usdface.cli import main
+
+    bad = tmp_path / "map.json"
+    bad.write_text('{"format": "usdface.retarget/1"}')
+    obj = tmp_path / "neutral.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    for args in (["inspect", str(bad)], ["check", str(bad)], ["export", str(obj), "--gltf",
+                                                                 str(tmp_path / "o.glb")]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert "Cannot determine file format" not in err and "where a USD" in err and "USD USD" not in err
+        assert "pass the USD file here" in err
+    assert not (tmp_path / "o.glb").exists()
+
+
+def test_a_folder_of_live_link_csvs_is_not_one_take(tmp_path, capsys):
+    """'usdface inspect livelinkface/' (four CSVs, no meshes) said 'expected one Live Link .csv in the take
+    folder, found 4 (fix: put exactly one Live Link Face CSV next to the OBJ frames)': there are no frames."""
+    for name in ("a.csv", "b.csv"):
+        write_livelink_csv(tmp_path / name, ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 60)
+    for args in (["inspect", str(tmp_path)], ["capture", "select", str(tmp_path)]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert "a folder of 2 Live Link CSVs (a.csv, b.csv) and no OBJ frames" in err, err
+        assert f"pass the CSV files themselves, e.g. {tmp_path / 'a.csv'}" in err
+
+
+def test_capture_import_refuses_a_take(tmp_path, capsys):
+    """'capture import take_dir/ -o c.usda' wrote every frame of the take as a capture's training frame: the
+    file then fitted as picked frames (no frame weighting; reg 0.0009 against the take's 0.045) and 'fit
+    c.usda --every 2' said it 'holds frames picked one per shape'."""
+    from test_take_select import grid_rigs
+
+    from usdface import api
+    from usdface.errors import CaptureError
+    from usdface.io.take import write_take_folder, write_take_usd
+    from usdface.sample.take import make_take
+
+    person, template = grid_rigs(n=4)
+    take, _ = make_take(person, template, shapes=["jawOpen", "eyeBlinkLeft"], seed=1)
+    for src in (write_take_usd(take, tmp_path / "take.usdc"), write_take_folder(take, tmp_path / "take_dir")):
+        out = tmp_path / "c.usda"
+        assert main(["capture", "import", str(src), "-o", str(out), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "a take, not a capture" in err and "usdface capture select TAKE" in err, err
+        assert not out.exists()
+        with pytest.raises(CaptureError, match="a take, not a capture"):
+            api.import_capture_folder(src, out)
+        assert not out.exists()
+
+
+def test_capture_passed_as_avatar_is_named(capfd):
+    for argv in (["personalize", str(SAMPLES / "capture.usda"), str(SAMPLES / "capture.usda"), "--dry-run"],
+                 ["landmarks", str(SAMPLES / "capture.usda")]):
+        assert main(argv) == 2
+        err = capfd.readouterr().err
+        assert "usdface capture" in err and "not an avatar" in err and "/Capture" in err
+
+
+@pytest.mark.parametrize("command", ["personalize", "render"])
+def test_anim_import_take_passed_as_avatar_is_named_a_take(livelink_csv, sample_dir, tmp_path, command):
+    take = tmp_path / "take.usdc"
+    assert _usdface("anim", "import", livelink_csv, "-o", take, "-q", cwd=tmp_path).returncode == 0
+    args = {"personalize": [take, sample_dir / "capture.usda", "--dry-run"],
+            "render": [take, "-o", "x.png"]}[command]     # inspect summarises it (test_inspect)
+    res = _usdface(command, *args, cwd=tmp_path)
+    _no_traceback(res)
+    assert "this is a take" in res.stderr and "not an avatar" in res.stderr, res.stderr
+    assert "SkelRoot" not in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["take.usdc"]
+
+
+def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
+    """User trial: review, export and inspect of a missing file said 'avatar not found' (the avatar
+    reader's noun); they read a layer or any USD file."""
+    from usdface.cli import main
+
+    missing = str(tmp_path / "nothere.usda")
+    for argv, said in ((["review", missing, "-o", str(tmp_path / "r.html")], "USD file not found"),
+                       (["inspect", missing], "USD file not found"),
+                       (["export", missing, "--gltf", str(tmp_path / "x.glb")], "layer not found"),
+                       (["render", missing, "-o", str(tmp_path / "x.png")], "avatar not found")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"nothere.usda: {said}" in err, err
