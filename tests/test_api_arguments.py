@@ -49,7 +49,7 @@ def test_api_refuses_the_numbers_the_cli_refuses(tmp_path, options, needle):
 
 
 def test_api_numbers_that_are_fine_pass_the_check():
-    from usdface.transfer.pipeline import check_numbers
+    from usdface.transfer.options import check_numbers
 
     check_numbers(mu="auto", extension_length=None, falloff=0, support=None)
     check_numbers(mu="1e-3", extension_length=0.5, falloff=0.15, support=(0.0, 0.0))
