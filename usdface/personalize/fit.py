@@ -514,7 +514,7 @@ class PositionFit:
         these vertices if already computed (they do not depend on ``predict_weights``). The plain residuals on
         every vertex are kept (read-only) for the next call with the same ``reg``, frames and prior."""
         v = slice(None) if vertices is None else np.asarray(vertices)
-        mu, Z, c = self.mu[v], self.Z[v], self.c[v]
+        mu, c = self.mu[v], self.c[v]
         key = (self._state, float(reg))
         if loo is None and vertices is None and self._loo_cache[0] == key:
             e = self._loo_cache[1]          # the same frames, prior and reg (the alignment test, then pass)
@@ -541,7 +541,11 @@ class PositionFit:
         LBV = self.inv_l[v][:, :, None] * self.BV[v]                                  # L^-1 B V  [n,K,r]
         b = self.T[:, v] + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
         pred = blend(P2, b)                                                           # p_i^T b  [SF,n,c]
-        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes(Z, 1, 2))                   # A^-1 w_i  [n,K,F]
+        # A^-1 w_i [n,K,F]: once per distinct frame (the same rows of Z, :meth:`_set_frame_groups`), copied
+        distinct = self._first is not None
+        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes((self._Zu if distinct else self.Z)[v], 1, 2))
+        if distinct:
+            Aw = Aw[:, :, self._inverse]
         cross = np.matmul(P2.reshape(S, F, K).transpose(1, 0, 2), Aw.transpose(2, 1, 0))  # p_i^T A^-1 w_i
         out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross.transpose(1, 0, 2)[..., None] * e
         return out if Pw.ndim == 3 else out[0]
