@@ -1099,6 +1099,7 @@ def _alignment_generalises(pf, points, reg, info):
     Returns ``(helps, {"aligned", "original"} held-out RMSE in mm)``."""
     pf.set_points(points)
     target = points - pf.loo_residuals(reg)
+    groups = pf.frame_groups() or False                 # frames equal in points and weights: equal targets
     nb = pf.neutral - pf.neutral.mean(axis=0)
     axes = np.linalg.svd(nb, full_matrices=False)[2][:2]
     before, after = np.zeros(len(points)), np.zeros(len(points))
@@ -1110,7 +1111,7 @@ def _alignment_generalises(pf, points, reg, info):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
             if len(est) < 6 or len(out) == 0:
                 continue
-            R, t = rigid_transforms(points[:, est], target[:, est], np.arange(len(est)))
+            R, t = rigid_transforms(points, target, est, groups=groups)
             p_out = points[:, out]
             moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
             before += np.sum(unaligned[:, out], axis=(1, 2))
@@ -1141,7 +1142,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     else:
         pf.set_prior_mix(alpha)
     target = points[:, cand] - pf.loo_residuals(reg)
-    R, tr = rigid_transforms(points[:, cand], target, np.arange(len(cand)))
+    R, tr = rigid_transforms(points[:, cand], target, np.arange(len(cand)), groups=pf.frame_groups() or False)
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})

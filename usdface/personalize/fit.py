@@ -335,7 +335,7 @@ class PositionFit:
         F = len(self._points)
         if self.block > 1 or F < 2 or self._Z2 is None:
             return
-        groups = distinct_frames(self.W, self._points)                  # (each group's first frame, group)
+        groups = self.frame_groups()                                    # (each group's first frame, group)
         if groups is None:
             return
         self._first, self._inverse = groups
@@ -344,6 +344,15 @@ class PositionFit:
             return                                                      # Z's rows of the same frames
         self._Zu = self.Z[:, first]                                        # [n,U,r]
         self._Z2u = None if self._Z2 is None else self._Z2[:, first]
+
+    def frame_groups(self):
+        """``(first[U], inverse[F])``: the training frames that are one frame, the same weights and points to
+        the bit (:func:`.align.distinct_frames`; None when every frame is distinct), found once per set of
+        frames - for a caller that works frame by frame on them (the alignment's rigid transforms)."""
+        if getattr(self, "_groups_of", None) is not self._points:
+            self._groups = distinct_frames(self.W, self._points) if len(self._points) > 1 else None
+            self._groups_of = self._points
+        return self._groups
 
     def _apply_prior(self) -> None:
         self._state += 1                                # new frames or prior: cached residuals are stale
