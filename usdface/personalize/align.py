@@ -138,7 +138,8 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
     frame distinct), else None (found here)."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
-    src = P[:, vertices]
+    vertices = np.asarray(vertices)
+    src = P[:, vertices] if vertices.dtype == bool else np.take(P, vertices, axis=1)   # take: 2x cheaper
     dst = np.broadcast_to(ref[..., vertices, :], src.shape)
     if groups is None:
         groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
