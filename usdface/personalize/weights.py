@@ -84,10 +84,10 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     x0 = np.broadcast_to(w0, c.shape)
     # frames that pose the same problem (a capture app's repeated frame: the same points, phone weights and
     # bounds) have the same iterates (every step works row by row): solved once, then copied
-    groups = distinct_frames(*(np.moveaxis(a, 2, 0) for a in (c, lo, hi, x0)))
+    groups = distinct_frames(*(np.moveaxis(arr, 2, 0) for arr in (c, lo, hi, x0)))
     if groups is not None:
         first, inverse = groups
-        c, lo, hi, x0 = (np.ascontiguousarray(a[:, :, first]) for a in (c, lo, hi, x0))
+        c, lo, hi, x0 = (np.ascontiguousarray(arr[:, :, first]) for arr in (c, lo, hi, x0))
     x = np.clip(x0, lo, hi)
     y, tk = x.copy(), 1.0
     # the gradient step y - step (y (G + a I) - c) as one affine map y M + step c (M symmetric)
