@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from synthetic_meshes import grid_triangles
 
 from usdface.errors import GeometryError
-from usdface.personalize.align import kabsch, rigid_align
+from usdface.personalize.align import kabsch, rigid_align, rigid_transforms
 from usdface.personalize.dt import PoissonSolver, deformation_transfer, eyelid_triangles, zip_loop
 from usdface.personalize.fit import PositionFit, fit_blendshapes, regularization_weights
 from usdface.personalize.weights import reestimate_weights
@@ -177,6 +177,29 @@ def test_reestimate_weights_recovers_true_weights_within_bounds():
     assert np.abs(anchored - noisy).max() < 1e-3                      # a strong anchor keeps the phone's
 
 
+def test_reestimate_weights_repeated_frames_solved_once_equal_frame_by_frame():
+    """Frames that pose the same problem (a repeated frame with the same bounds) are iterated once and
+    copied; a repeat with other bounds (held at its phone's weight elsewhere) is its own problem: every
+    frame's weights equal those of the frame solved alone, for every vertex set and prior width."""
+    from usdface.personalize.weights import reestimate_weights_batched
+
+    neutral, pts, W, true, generic = synthetic_fit_problem(F=6)
+    rep = [0, 1, 2, 1, 3, 0, 4, 5, 1]
+    pts, W = pts[rep], np.clip(W[rep] + 0.02, 0, 1)
+    lo, hi = np.zeros(W.shape), np.ones(W.shape)
+    lo[3, 2] = hi[3, 2] = W[3, 2]                                   # frame 3 repeats frame 1, other bounds
+    probs = [(neutral[:15], generic[:, :15], pts[:, :15]), (neutral[15:], generic[:, 15:], pts[:, 15:])]
+    anchors = np.array([[1e-6, 1e-5], [2e-6, 3e-5]])
+    got = reestimate_weights_batched(probs, W, anchors, lower=lo, upper=hi, iterations=80)   # [H,S,F,K]
+    for a, b in ((1, 8), (0, 5)):                                  # repeats (rounding aside: the same)
+        assert np.abs(got[:, :, a] - got[:, :, b]).max() < 1e-12
+    assert np.abs(got[:, :, 3] - got[:, :, 1]).max() > 1e-6
+    for f in range(len(W)):
+        alone = reestimate_weights_batched([(n0, d, p[[f]]) for n0, d, p in probs], W[[f]], anchors,
+                                           lower=lo[[f]], upper=hi[[f]], iterations=80)
+        assert np.abs(alone[:, :, 0] - got[:, :, f]).max() < 1e-12
+
+
 def test_rigid_align_recovers_transform_despite_outliers():
     rng = np.random.default_rng(5)
     ref = rng.normal(size=(200, 3)) * 0.05
@@ -264,6 +287,19 @@ def test_position_fit_repeated_frames_and_kept_residuals():
 
     e_main, e_alt = brute(generic, pts), brute(alt, pts)
     assert np.abs(pf.loo_residuals(reg) - e_main).max() < 1e-12
+    first, inverse = pf.frame_groups()
+    assert first.tolist() == [0, 1, 2, 4, 5, 6, 8, 9]
+    assert first[inverse].tolist() == [0, 1, 2, 2, 4, 5, 6, 0, 8, 9, 2]
+    other = np.clip(W + 0.03, 0, 1)                  # predictions with other weights: repeats computed once
+    pred = pf.loo_residuals(reg, predict_weights=other)
+    for i in range(len(W)):
+        keep = np.arange(len(W)) != i
+        B = fit_blendshapes(neutral, pts[keep], W[keep], generic, D, reg)
+        assert np.abs(pred[i] - (pts[i] - neutral - np.einsum("k,knc->nc", other[i], B))).max() < 1e-12
+    target = pts - pf.loo_residuals(reg)               # the alignment's: repeats have the same targets
+    R, t = rigid_transforms(pts, target, np.arange(len(neutral)), groups=False)     # every frame on its own
+    R2, t2 = rigid_transforms(pts, target, np.arange(len(neutral)), groups=pf.frame_groups())
+    assert np.array_equal(R, R2) and np.array_equal(t, t2)             # the groups given: the same transforms
     assert np.allclose(pf.loo_frame_errors(reg), np.mean(e_main ** 2, axis=(1, 2)), rtol=1e-8, atol=0)
     mix = pf.loo_errors_mix([reg], (0.0, 1.0))[:, 0]
     assert np.allclose(mix, [np.mean(e_alt ** 2), np.mean(e_main ** 2)], rtol=1e-8, atol=0)

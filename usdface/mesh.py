@@ -106,7 +106,12 @@ def frame_vectors(points: np.ndarray, triangles: np.ndarray, *, axis: int = -2):
         e1, e2 = np.take(p, t[:, 1], axis=axis) - v0, np.take(p, t[:, 2], axis=axis) - v0
     c = _cross(e1, e2)
     length = np.sqrt(vector_lengths(c))[..., None]
-    e3 = np.divide(c, length, out=np.zeros_like(c), where=length > 0)
+    # c / length, 0 for a degenerate triangle: one plain division (a masked ``where=`` division over the
+    # broadcast length is buffered, 2x slower on DT's [t, K, 3] frames), the same numbers
+    ok = length > 0
+    e3 = np.divide(c, np.where(ok, length, 1.0))
+    if not ok.all():
+        e3[~np.broadcast_to(ok, e3.shape)] = 0.0
     return e1, e2, e3
 
 

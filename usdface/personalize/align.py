@@ -128,17 +128,22 @@ def _distinct_by_bytes(words) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
-                     iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = 10, groups=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points).
 
     Frames that are one frame (the same points on ``vertices``, and the same reference there: a capture app
     that kept one scan for several shapes) are aligned once and the transform copied (every step works frame
-    by frame, so the copies are the transforms they would get; :func:`distinct_frames`)."""
+    by frame, so the copies are the transforms they would get; :func:`distinct_frames`). ``groups``: such
+    frames if the caller knows them (``(first[U], inverse[F])`` of frames equal in both, or False: every
+    frame distinct), else None (found here)."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
-    src = P[:, vertices]
+    vertices = np.asarray(vertices)
+    src = P[:, vertices] if vertices.dtype == bool else np.take(P, vertices, axis=1)   # take: 2x cheaper
     dst = np.broadcast_to(ref[..., vertices, :], src.shape)
-    groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+    if groups is None:
+        groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+    groups = groups or None
     if groups is not None:
         src, dst = src[groups[0]], dst[groups[0]]
     R, t = _robust_kabsch(src, dst, robust, iterations)

@@ -1099,6 +1099,7 @@ def _alignment_generalises(pf, points, reg, info):
     Returns ``(helps, {"aligned", "original"} held-out RMSE in mm)``."""
     pf.set_points(points)
     target = points - pf.loo_residuals(reg)
+    groups = pf.frame_groups() or False                 # frames equal in points and weights: equal targets
     nb = pf.neutral - pf.neutral.mean(axis=0)
     axes = np.linalg.svd(nb, full_matrices=False)[2][:2]
     before, after = np.zeros(len(points)), np.zeros(len(points))
@@ -1110,11 +1111,11 @@ def _alignment_generalises(pf, points, reg, info):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
             if len(est) < 6 or len(out) == 0:
                 continue
-            R, t = rigid_transforms(points[:, est], target[:, est], np.arange(len(est)))
-            p_out = points[:, out]
+            R, t = rigid_transforms(points, target, est, groups=groups)
+            p_out = np.take(points, out, axis=1)
             moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
-            before += np.sum(unaligned[:, out], axis=(1, 2))
-            after += np.sum((moved - target[:, out]) ** 2, axis=(1, 2))
+            before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
+            after += np.sum((moved - np.take(target, out, axis=1)) ** 2, axis=(1, 2))
             count += p_out.size
     count = max(count, 1)
     return bool(after.sum() < before.sum()), {"aligned": float(np.sqrt(after.sum() / count) * 1000),
@@ -1135,13 +1136,14 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
                                           grid=np.array([np.log10(reg)]), refine=0)
             info["crossval"] = cv
     pf, cand = cv["fit"], cv["vertices"]
-    pf.set_points(points[:, cand])
+    on_cand = np.take(points, cand, axis=1)                       # points[:, cand], gathered once
+    pf.set_points(on_cand)
     if prior_deltas is not None:
         pf.set_prior(prior_deltas[:, cand])
     else:
         pf.set_prior_mix(alpha)
-    target = points[:, cand] - pf.loo_residuals(reg)
-    R, tr = rigid_transforms(points[:, cand], target, np.arange(len(cand)))
+    target = on_cand - pf.loo_residuals(reg)
+    R, tr = rigid_transforms(on_cand, target, np.arange(len(cand)), groups=pf.frame_groups() or False)
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})

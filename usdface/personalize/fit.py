@@ -45,6 +45,12 @@ def _left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
     return (A @ X.transpose(1, 0, 2).reshape(b, n * c)).reshape(A.shape[0], n, c).transpose(1, 0, 2)
 
 
+def _take1(x: np.ndarray, idx) -> np.ndarray:
+    """``x[:, idx]``: for indices a gather by :func:`numpy.take` (the same copy, 2-3x cheaper than fancy
+    indexing along a middle axis); for a slice the view."""
+    return x[:, idx] if isinstance(idx, slice) else np.take(x, idx, axis=1)
+
+
 def _sum_axis2(x: np.ndarray) -> np.ndarray:
     """``x.sum(axis=2)`` of ``x[a,b,k,c]`` with small ``k`` by ``k - 1`` whole-array additions (numpy's
     reduction over a middle axis is several times slower)."""
@@ -335,15 +341,24 @@ class PositionFit:
         F = len(self._points)
         if self.block > 1 or F < 2 or self._Z2 is None:
             return
-        groups = distinct_frames(self.W, self._points)                  # (each group's first frame, group)
+        groups = self.frame_groups()                                    # (each group's first frame, group)
         if groups is None:
             return
         self._first, self._inverse = groups
         first = self._first
         if previous is not None and np.array_equal(previous, first):
             return                                                      # Z's rows of the same frames
-        self._Zu = self.Z[:, first]                                        # [n,U,r]
-        self._Z2u = None if self._Z2 is None else self._Z2[:, first]
+        self._Zu = _take1(self.Z, first)                                   # [n,U,r]
+        self._Z2u = None if self._Z2 is None else _take1(self._Z2, first)
+
+    def frame_groups(self):
+        """``(first[U], inverse[F])``: the training frames that are one frame, the same weights and points to
+        the bit (:func:`.align.distinct_frames`; None when every frame is distinct), found once per set of
+        frames - for a caller that works frame by frame on them (the alignment's rigid transforms)."""
+        if getattr(self, "_groups_of", None) is not self._points:
+            self._groups = distinct_frames(self.W, self._points) if len(self._points) > 1 else None
+            self._groups_of = self._points
+        return self._groups
 
     def _apply_prior(self) -> None:
         self._state += 1                                # new frames or prior: cached residuals are stale
@@ -414,7 +429,9 @@ class PositionFit:
         regs = np.asarray(regs, dtype=np.float64)
         Z, mu, c, e0n = (self._Zu if distinct else self.Z)[v], self.mu[v], c[v], e0n[v]
         n, F, r = Z.shape
-        g = mu[:, :, None] / (mu[:, :, None] + regs)                                 # [n,r,G]
+        # [n,r,G], computed as [G,n,r] (each reg a scalar against whole planes: 2x cheaper than the broadcast
+        # over a 9-long last axis), the same numbers
+        g = np.ascontiguousarray((mu[None] / (mu[None] + regs[:, None, None])).transpose(1, 2, 0))
         gc = (c[:, :, :, None] * g[:, :, None, :]).reshape(n, r, -1)                 # [n,r,k*G]
         d = np.matmul(Z, gc).reshape(n, F, c.shape[2], len(regs))
         np.subtract(e0n[:, :, :, None], d, out=d)
@@ -514,7 +531,7 @@ class PositionFit:
         these vertices if already computed (they do not depend on ``predict_weights``). The plain residuals on
         every vertex are kept (read-only) for the next call with the same ``reg``, frames and prior."""
         v = slice(None) if vertices is None else np.asarray(vertices)
-        mu, Z, c = self.mu[v], self.Z[v], self.c[v]
+        mu, c = self.mu[v], self.c[v]
         key = (self._state, float(reg))
         if loo is None and vertices is None and self._loo_cache[0] == key:
             e = self._loo_cache[1]          # the same frames, prior and reg (the alignment test, then pass)
@@ -523,9 +540,9 @@ class PositionFit:
             g = mu / (mu + reg)
             fitted = np.matmul((self._Zu if distinct else self.Z)[v], g[:, :, None] * c)     # [n,F,c]
             h = np.matmul(self._z2(v, distinct), g[:, :, None])[:, :, 0]             # [n,F]
-            e0n = self.e0n[v][:, self._first] if distinct else self.e0n[v]
+            e0n = _take1(self.e0n[v], self._first) if distinct else self.e0n[v]
             e = (e0n - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
-            e = (e[:, self._inverse] if distinct else e).transpose(1, 0, 2)
+            e = (_take1(e, self._inverse) if distinct else e).transpose(1, 0, 2)
             if vertices is None:
                 e.flags.writeable = False                                             # kept: read-only
                 self._loo_cache = (key, e)
@@ -539,11 +556,16 @@ class PositionFit:
         S = len(P2) // F
         inv = 1.0 / (mu + reg)                                                        # [n,r]
         LBV = self.inv_l[v][:, :, None] * self.BV[v]                                  # L^-1 B V  [n,K,r]
-        b = self.T[:, v] + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
+        b = _take1(self.T, v) + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
         pred = blend(P2, b)                                                           # p_i^T b  [SF,n,c]
-        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes(Z, 1, 2))                   # A^-1 w_i  [n,K,F]
+        # A^-1 w_i [n,K,F]: once per distinct frame (the same rows of Z, :meth:`_set_frame_groups`), copied
+        distinct = self._first is not None
+        Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes((self._Zu if distinct else self.Z)[v], 1, 2))
+        if distinct:
+            Aw = np.take(Aw, self._inverse, axis=2)
         cross = np.matmul(P2.reshape(S, F, K).transpose(1, 0, 2), Aw.transpose(2, 1, 0))  # p_i^T A^-1 w_i
-        out = self.R[:, v] - pred.reshape((S, F) + pred.shape[1:]) + cross.transpose(1, 0, 2)[..., None] * e
+        out = _take1(self.R, v) - pred.reshape((S, F) + pred.shape[1:])
+        out += cross.transpose(1, 0, 2)[..., None] * e
         return out if Pw.ndim == 3 else out[0]
 
     def _loo_per_frame(self, regs) -> np.ndarray:
@@ -552,7 +574,7 @@ class PositionFit:
         k = self.c.shape[2]
         per_frame = 0.0
         distinct = self._first is not None
-        e0n = self.e0n[:, self._first] if distinct else self.e0n
+        e0n = _take1(self.e0n, self._first) if distinct else self.e0n
         for v in self._loo_blocks(regs, k):
             d, q = self._loo_parts(regs, self.c, e0n, v, distinct)
             if self.block > 1:

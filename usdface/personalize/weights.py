@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .align import distinct_frames
+
 __all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched"]
 
 
@@ -63,7 +65,8 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
                                upper=1.0, iterations: int = 150) -> np.ndarray:
     """:func:`reestimate_weights` for ``H`` vertex sets at once: ``problems`` = ``[(neutral[n_h,3],
     deltas[K,n_h,3], points[F,n_h,3]), ...]``, ``anchors[H,S]`` -> weights ``[H,S,F,K]`` (the same iterates as
-    ``H x S`` separate calls, one loop)."""
+    ``H x S`` separate calls, one loop; frames posing the same problem solved once, :func:`.align.
+    distinct_frames`)."""
     w0 = np.asarray(phone_weights, dtype=np.float64)
     a = np.asarray(anchors, dtype=np.float64)[:, :, None, None]                   # [H,S,1,1]
     Gs, cs = [], []
@@ -78,7 +81,14 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     # the bounds as whole [H,S,F,K] arrays: the projection's maximum/minimum run 2x faster than broadcast
     lo = np.ascontiguousarray(np.broadcast_to(lower, c.shape), dtype=np.float64)
     hi = np.ascontiguousarray(np.broadcast_to(upper, c.shape), dtype=np.float64)
-    x = np.clip(np.broadcast_to(w0, c.shape), lo, hi)
+    x0 = np.broadcast_to(w0, c.shape)
+    # frames that pose the same problem (a capture app's repeated frame: the same points, phone weights and
+    # bounds) have the same iterates (every step works row by row): solved once, then copied
+    groups = distinct_frames(*(np.moveaxis(arr, 2, 0) for arr in (c, lo, hi, x0)))
+    if groups is not None:
+        first, inverse = groups
+        c, lo, hi, x0 = (np.ascontiguousarray(arr[:, :, first]) for arr in (c, lo, hi, x0))
+    x = np.clip(x0, lo, hi)
     y, tk = x.copy(), 1.0
     # the gradient step y - step (y (G + a I) - c) as one affine map y M + step c (M symmetric)
     eye = np.eye(G.shape[-1])
@@ -95,4 +105,4 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
         y *= (tk - 1.0) / t_new
         y += x_new
         x, x_new, tk = x_new, x, t_new
-    return x
+    return x if groups is None else x[:, :, inverse]
