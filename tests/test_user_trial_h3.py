@@ -1,0 +1,49 @@
+"""A character TD's first trial on avatars usdface did not make (Pixar's and Blender's UsdSkel files in
+``../shared/data/usd-real-world``, the bench avatars opened in Blender): what it hit, each pinned by a test
+that runs the CLI as the TD did and failed before the fix. Tests on ../shared skip cleanly without it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _usdface(*args, cwd):
+    exe = Path(sys.executable).with_name("usdface")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
+                                                                  "sys.exit(main())"]
+    return subprocess.run(cmd + [str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+def _refused(res) -> None:
+    assert "Traceback" not in res.stderr, res.stderr
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+
+
+@pytest.fixture(scope="module")
+def real_world(shared) -> Path:
+    return shared / "data" / "usd-real-world"
+
+
+def test_capture_on_pixar_test_plane_is_refused_not_a_crash(real_world, bench, tmp_path):
+    """Pixar's 10 cm blend-shape test plane, its six targets named as ARKit shapes with a name map, and
+    dev1's capture: the person's registration shrank the capture to a point with residual exactly 0 and was
+    accepted; the template's registration from it crashed in Open3D ("Invalid max_correspondence_distance",
+    a traceback, exit 1). Now one line naming the collapse, exit 2, nothing written."""
+    plane = (real_world / "openusd-usdskel/pxr/usdImaging/usdImagingGL/testenv"
+             / "testUsdImagingGLSkelBlendShapes/blendshapes.usda")
+    names = tmp_path / "map.json"
+    names.write_text(json.dumps({"targetA": "jawOpen", "targetB": "eyeBlinkLeft", "targetC": "eyeBlinkRight",
+                                 "targetD": "mouthSmileLeft", "targetE": "mouthSmileRight",
+                                 "targetF": "browInnerUp"}))
+    res = _usdface("personalize", plane, bench / "dev1" / "capture", "-o", tmp_path / "p.usda",
+                   "--name-map", names, cwd=tmp_path)
+    _refused(res)
+    assert "shrank the capture to a point" in res.stderr and "Open3D" not in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.json"]
