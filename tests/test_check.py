@@ -343,6 +343,7 @@ def test_pixar_usdskel_scenes(shared):
     issues = validate_file(scene)
     weights = sorted(i.message.split("weight ")[1].split(",")[0] for i in issues if i.rule == "Inbetweens")
     assert len(weights) == 3 and weights[0].startswith("-0.49")
+    assert weights == ["-0.499", "1.5", "1.5"]      # as authored, not the float's -0.49900001287460327
 
 
 def test_provenance_missing_on_a_result_layer(tmp_path):

@@ -339,14 +339,25 @@ def _point_indices(stage) -> Iterable[Issue]:
                         "list each vertex once (sum duplicate offsets)")
 
 
+def _weight_text(w) -> str:
+    """An inbetween weight as authored: USD stores it as a float, so -0.499 reads back as
+    -0.49900001287460327; its shortest float32 spelling is what the file says."""
+    if w is None:
+        return "unset"
+    import numpy as np
+
+    return np.format_float_positional(np.float32(w), trim="-")
+
+
 @_rule("Inbetweens", "inbetween weights strictly inside (0, 1)")
 def _inbetweens(stage) -> Iterable[Issue]:
     for _prim, _n, shape in _shape_targets(stage):
         for ib in shape.GetInbetweens():
             w = ib.GetWeight()
             if w is None or not (0.0 < w < 1.0):
+                name = ib.GetAttr().GetName()
                 yield Issue(WARNING, "Inbetweens", _path(shape.GetPrim()),
-                            f"inbetween {ib.GetAttr().GetName()} has weight {w}, outside (0, 1)",
+                            f"inbetween {name} has weight {_weight_text(w)}, outside (0, 1)",
                             "place inbetweens strictly between 0 and 1 (ARKit weights never leave [0, 1])")
 
 
