@@ -72,3 +72,50 @@ def test_personalized_count_agrees_with_the_review_page(bench, tmp_path):
     dry = _usdface("personalize", case / "avatar.usdc", case / "capture", "--dry-run", "-q", cwd=tmp_path)
     assert dry.returncode == 0, dry.stderr
     assert " 0 vertices" not in dry.stdout and f"{said} of 101 BlendShapes would change" in dry.stdout
+
+
+_CACHE = """#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 0.01
+    defaultPrim = "Root"
+)
+def Xform "Root"
+{
+    def Mesh "Mesh"
+    {
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points.timeSamples = {
+            1: [(0, 0, 0), (1, 0, 0), (0, 1, 0)],
+            2: [(0, 0, 0), (1, 0, 0), (0, 1.5, 0)],
+        }
+    }
+}
+"""
+
+
+def test_check_of_a_point_cache_does_not_call_it_a_take(tmp_path, capsys):
+    """Pixar's lbs.baked.usda (baked skinning: time-sampled points, no blend shapes, no weights): ``check``
+    said "this is a take ... (fix: usdface inspect FILE summarises the take)", and ``inspect`` then refused
+    it as a take without weights. Both now say it is a mesh cache, neither avatar nor take."""
+    from usdface.cli import main
+
+    cache = tmp_path / "cache.usda"
+    cache.write_text(_CACHE)
+    assert main(["check", str(cache), "--no-pixar"]) == 0
+    out = capsys.readouterr().out
+    assert "mesh cache" in out and "this is a take" not in out and "usdface inspect" not in out, out
+    assert main(["inspect", str(cache)]) == 2
+    err = capsys.readouterr().err
+    assert "mesh cache" in err and "pass the file whose meshes carry the blend shapes" in err, err
+
+
+def test_check_of_pixar_baked_skinning(real_world, capsys):
+    from usdface.cli import main
+
+    baked = (real_world / "openusd-usdskel/pxr/usd/usdSkel/testenv/testUsdSkelBakeSkinning/baseline"
+             / "lbs.baked.usda")
+    main(["check", str(baked), "--no-pixar"])
+    out = capsys.readouterr().out
+    assert "mesh cache" in out and "this is a take" not in out, out

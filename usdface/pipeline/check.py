@@ -580,10 +580,19 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
 
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
-    from ..io.take import probe_take
+    from ..io.take import has_frame_weights, probe_take
     from ..io.usd_rig import _is_weights_take
 
-    if _is_weights_take(stage) or (layer.realPath and probe_take(layer.realPath)[0]):
+    weights_take = _is_weights_take(stage)
+    if not weights_take and layer.realPath and probe_take(layer.realPath)[0] and not has_frame_weights(stage):
+        # time-sampled points, no blend shapes, no weights (Pixar's lbs.baked.usda): called a take, with
+        # the fix 'usdface inspect FILE', whose take reader then refused it for lack of weights
+        yield Issue(INFO, "Readable", "/", "this is a mesh cache (time-sampled points, no blend shapes, no "
+                    "per-frame weights: baked skinning or a simulation?), neither an avatar nor a take: "
+                    "check judges avatars and usdface layers",
+                    "pass the avatar whose meshes carry the blend shapes, not a bake of it")
+        return
+    if weights_take or (layer.realPath and probe_take(layer.realPath)[0]):
         yield Issue(INFO, "Readable", "/", "this is a take (a recording: blend-shape weights, and meshes if "
                     "it has them), not an avatar: check judges avatars and usdface layers",
                     "usdface inspect FILE summarises the take")
