@@ -119,3 +119,17 @@ def test_check_of_pixar_baked_skinning(real_world, capsys):
     main(["check", str(baked), "--no-pixar"])
     out = capsys.readouterr().out
     assert "mesh cache" in out and "this is a take" not in out, out
+
+
+def test_no_face_shapes_names_the_prim_the_channels_and_the_unmatched_map(real_world, samples, tmp_path):
+    """Blender's cube with one shape key 'Key_1' and a name map for 'Key_2': personalize said only "the
+    avatar has no face-like blend shapes ... (fix: the avatar needs ARKit-named BlendShapes)": no prim, no
+    channel, nothing about the name map that matched nothing."""
+    names = tmp_path / "map.json"
+    names.write_text(json.dumps({"Key_2": "jawOpen"}))
+    res = _usdface("personalize", real_world / "blender" / "blendshape.usda", samples / "capture.usda",
+                   "-o", tmp_path / "p.usda", "--name-map", names, cwd=tmp_path)
+    _refused(res)
+    assert "prim /root/Cube/Cube" in res.stderr and "Key_1" in res.stderr, res.stderr
+    assert "name map entries that match no channel: Key_2" in res.stderr and "--name-map" in res.stderr
+    assert not (tmp_path / "p.usda").exists()
