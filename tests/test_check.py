@@ -376,6 +376,7 @@ def test_readable_refuses_what_personalize_refuses():
     studio = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"])
     assert [i.message for i in studio if i.severity == ERROR] == [
         "no face-like blend shapes (no ARKit-named shape that moves): personalize finds no face mesh"]
+    assert [i.prim for i in studio if i.severity == ERROR] == ["/Avatar/Head"]     # the mesh, not "/"
     mapped = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"],
                    name_map={"Smile": "mouthSmileLeft", "Frown": "mouthFrownLeft", "Blink": "eyeBlinkLeft"})
     assert not has_errors(mapped)

@@ -627,7 +627,9 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
         refuse_unwritable_shapes(avatar, None, "the personalized layer")
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
-            yield Issue(ERROR, "Readable", "/", "no face-like blend shapes (no ARKit-named shape that "
+            # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
+            where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"
+            yield Issue(ERROR, "Readable", where, "no face-like blend shapes (no ARKit-named shape that "
                         "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
                         "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
     except UsdFaceError as exc:
