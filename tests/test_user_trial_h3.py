@@ -166,3 +166,25 @@ def test_sigterm_during_open3d_work_exits_143_without_a_leak_dump(samples, tmp_p
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 143, (res.returncode, res.stderr)
     assert res.stderr.strip() == "usdface: terminated", res.stderr
+
+
+def test_arkit_named_shapes_that_move_nothing_are_told_so(real_world, samples, tmp_path):
+    """Pixar's normalOffsets-only shapes named as ARKit shapes with a name map: personalize and check said
+    "no face-like blend shapes (no ARKit-named shape that moves) (fix: name the face shapes as ARKit does
+    ...)" of shapes the map had just named jawOpen, eyeBlinkLeft...: the fix was no fix."""
+    from usdface.io.name_map import read_name_map
+    from usdface.pipeline.validators import validate_file
+
+    names = tmp_path / "map.json"
+    names.write_text(json.dumps({"twirl_a": "jawOpen", "twirl_b": "eyeBlinkLeft", "twirl_c": "eyeBlinkRight",
+                                 "twirl_d": "mouthSmileLeft"}))
+    plane = (real_world / "openusd-usdskel/pxr/usd/usdSkel/testenv/testUsdSkelBakeSkinning"
+             / "blendshapesWithNormals.usda")
+    res = _usdface("personalize", plane, samples / "capture.usda", "-o", tmp_path / "p.usda",
+                   "--name-map", names, cwd=tmp_path)
+    _refused(res)
+    assert "ARKit-named blend shapes move no point" in res.stderr and "name the face shapes" not in res.stderr
+    issues = validate_file(plane, pixar=False, name_map=read_name_map(names))
+    readable = [i for i in issues if i.rule == "Readable"]
+    assert [i.prim for i in readable] == ["/TestPlane/Mesh"], readable
+    assert "move no point" in readable[0].message and "point offsets" in readable[0].fix

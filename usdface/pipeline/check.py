@@ -629,9 +629,14 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
             # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
             where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"
-            yield Issue(ERROR, "Readable", where, "no face-like blend shapes (no ARKit-named shape that "
-                        "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
-                        "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
+            if any(n in ARKIT_NAMES for m in avatar.meshes for n in m.names):   # named, moving nothing
+                yield Issue(ERROR, "Readable", where, "the ARKit-named blend shapes move no point (zero "
+                            "offsets, or normalOffsets only): personalize finds no face mesh",
+                            "author the shapes' point offsets")
+            else:
+                yield Issue(ERROR, "Readable", where, "no face-like blend shapes (no ARKit-named shape that "
+                            "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
+                            "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
     except UsdFaceError as exc:
         yield Issue(ERROR, "Readable", exc.prim or "/", exc.message,
                     exc.fix or "repair the rig; usdface inspect FILE shows what it reads")
