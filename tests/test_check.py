@@ -349,6 +349,7 @@ def test_pixar_usdskel_scenes(shared):
     issues = validate_file(scene)
     weights = sorted(i.message.split("weight ")[1].split(",")[0] for i in issues if i.rule == "Inbetweens")
     assert len(weights) == 3 and weights[0].startswith("-0.49")
+    assert weights == ["-0.499", "1.5", "1.5"]      # as authored, not the float's -0.49900001287460327
 
 
 def test_provenance_missing_on_a_result_layer(tmp_path):
@@ -381,6 +382,7 @@ def test_readable_refuses_what_personalize_refuses():
     studio = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"])
     assert [i.message for i in studio if i.severity == ERROR] == [
         "no face-like blend shapes (no ARKit-named shape that moves): personalize finds no face mesh"]
+    assert [i.prim for i in studio if i.severity == ERROR] == ["/Avatar/Head"]     # the mesh, not "/"
     mapped = check(make_rig(names=["Smile", "Frown", "Blink"]), rules=["Readable"],
                    name_map={"Smile": "mouthSmileLeft", "Frown": "mouthFrownLeft", "Blink": "eyeBlinkLeft"})
     assert not has_errors(mapped)

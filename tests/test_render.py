@@ -55,7 +55,19 @@ def test_draw_mesh_culls_back_faces():
     ax = Figure().add_subplot()
     assert len(draw_mesh(ax, rig.neutral, rig.triangles).get_paths()) == len(rig.triangles)
     ax = Figure().add_subplot()  # flipped winding: every triangle faces away from the camera
-    assert len(draw_mesh(ax, rig.neutral, rig.triangles[:, ::-1]).get_paths()) == 0
+    with pytest.warns(UserWarning, match="no face of the mesh faces the camera in the front view"):
+        assert len(draw_mesh(ax, rig.neutral, rig.triangles[:, ::-1]).get_paths()) == 0
+
+
+def test_a_mesh_seen_edge_on_says_why_its_panel_is_empty(tmp_path):
+    """Pixar's Z-up blend-shape test plane lies flat once Y is up: ``usdface render`` drew six empty panels
+    and said nothing. The empty view is now a warning naming the up axis."""
+    rig = grid_rig()
+    yz = [0, 2, 1]                                  # the grid turned to lie in the XZ plane
+    flat = FaceRig(rig.neutral[:, yz], rig.triangles, rig.names, rig.deltas[:, :, yz], name="flat")
+    with pytest.warns(UserWarning, match="seen edge-on or from behind.*upAxis"):
+        render_shapes(flat, ["bump"], tmp_path / "flat.png")
+    assert (tmp_path / "flat.png").read_bytes()[:8] == PNG
 
 
 def test_render_functions_write_pngs(tmp_path):
@@ -316,7 +328,8 @@ def test_add_inspection_to_written_layer(samples, tmp_path):
 
 def test_landmarks_on_the_far_side_are_hidden():
     rig = grid_rig()
-    fig = render_landmarks(rig.neutral, rig.triangles[:, ::-1], [0, 5])  # every face looks away
+    with pytest.warns(UserWarning, match="no face of the mesh faces the camera"):
+        fig = render_landmarks(rig.neutral, rig.triangles[:, ::-1], [0, 5])  # every face looks away
     assert "2 on the far side" in fig.axes[0].get_title()
     fig = render_landmarks(rig.neutral, rig.triangles, [0, 5])
     assert fig.axes[0].get_title() == "2 landmarks"

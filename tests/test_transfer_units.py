@@ -79,6 +79,24 @@ def test_register_face_no_overlap_raises_with_residual():
         register_face(blob, shapes, pts, shapes)
 
 
+def test_register_face_refuses_a_capture_collapsed_with_zero_residual(monkeypatch):
+    """ICP that shrinks the capture onto ONE target point ends with fitness 1 and residual exactly 0, which
+    passed the fitness and residual checks (a trial: dev1's capture on Pixar's 10 cm test plane, scale
+    1e-28 accepted; the template's registration started from it then crashed inside Open3D with "Invalid
+    max_correspondence_distance"). Refused as the collapse it is."""
+    from usdface.transfer import register
+
+    pts, tris = _grid()
+    shapes = _local_shapes(pts)
+
+    def collapsed_icp(source, target, init, **kw):
+        return Similarity(1e-28, np.eye(3), np.asarray(target)[0]), 0.0, 1.0, 0.0
+
+    monkeypatch.setattr(register, "register_icp", collapsed_icp)
+    with pytest.raises(RegistrationError, match=r"shrank the capture to a point"):
+        register_face(pts, shapes, pts * 2.0, shapes * 2.0)
+
+
 def test_retarget_weights_on_rows_sums_the_same_products_in_blocks(monkeypatch):
     """``rows=`` (the pipeline's face region, never copied out of the avatar's offsets) gives the weights of
     the copied rows, in several blocks, bool mask or indices, and the same chosen ``mu``."""

@@ -264,9 +264,14 @@ def read_take_usd(path) -> Take:
         anims = [p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdSkel.Animation)
                  and UsdSkel.Animation(p).GetBlendShapeWeightsAttr().GetNumTimeSamples()]
         if not anims:
-            raise CaptureError("no per-frame weights (no usdface:frames:weights, no SkelAnimation with "
-                               "time-sampled blendShapeWeights)", path=path, prim=frames.GetPath(),
-                               fix="author the phone's weights as a SkelAnimation in the take")
+            # a point cache without weights is as often baked skinning or a simulation (Pixar's
+            # lbs.baked.usda) as a take missing its weights: say both, so neither reader is misled
+            raise CaptureError("time-sampled points but no per-frame weights (no usdface:frames:weights, "
+                               "no SkelAnimation with time-sampled blendShapeWeights): a mesh cache (baked "
+                               "skinning?), not a take usdface can read",
+                               path=path, prim=frames.GetPath(),
+                               fix="for a take, author the phone's weights as a SkelAnimation in it; for an "
+                                   "avatar, pass the file whose meshes carry the blend shapes, not a bake")
         names, _, anim_codes = read_skel_animation(anims[0])
         attr = UsdSkel.Animation(anims[0]).GetBlendShapeWeightsAttr()
         weights = np.stack([np.array(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
@@ -467,6 +472,22 @@ def probe_take(path) -> tuple[bool, object]:
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     return seen["points"] and not seen["role"] and not seen["blend"], layer
+
+
+def has_frame_weights(stage) -> bool:
+    """Whether a stage holds per-frame weights a take is read with: a time-sampled
+    ``usdface:frames:weights`` or a SkelAnimation with time-sampled ``blendShapeWeights``
+    (:func:`read_take_usd`'s two sources). A point cache without them (baked skinning) is no take."""
+    from pxr import Usd, UsdSkel
+
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        attr = prim.GetAttribute("usdface:frames:weights")
+        if attr and attr.GetNumTimeSamples():
+            return True
+        if prim.IsA(UsdSkel.Animation) and \
+                UsdSkel.Animation(prim).GetBlendShapeWeightsAttr().GetNumTimeSamples():
+            return True
+    return False
 
 
 def _in_template(spec_path) -> bool:

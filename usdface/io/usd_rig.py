@@ -789,8 +789,9 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
             notes.append(f"{key}: mesh without blend shapes skipped ({exc.message})")
             continue
         static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3], triangles)
-    if snapped:
-        worst = max(c for _, c in snapped)
+    worst = max((c for _, c in snapped or ()), default=0.0)
+    # a float32 export's noise is told; a double's (cos 90 degrees = 6e-17: Pixar's test plane) is none
+    if worst > 1e-12:
         notes.append(f"world transforms of {', '.join(p for p, _ in snapped)} snapped to exact axis-aligned "
                      f"rotation and scale (float32 export noise, largest change {worst:.1e} relative)")
     default_prim = stage.GetDefaultPrim()

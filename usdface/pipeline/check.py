@@ -339,14 +339,25 @@ def _point_indices(stage) -> Iterable[Issue]:
                         "list each vertex once (sum duplicate offsets)")
 
 
+def _weight_text(w) -> str:
+    """An inbetween weight as authored: USD stores it as a float, so -0.499 reads back as
+    -0.49900001287460327; its shortest float32 spelling is what the file says."""
+    if w is None:
+        return "unset"
+    import numpy as np
+
+    return np.format_float_positional(np.float32(w), trim="-")
+
+
 @_rule("Inbetweens", "inbetween weights strictly inside (0, 1)")
 def _inbetweens(stage) -> Iterable[Issue]:
     for _prim, _n, shape in _shape_targets(stage):
         for ib in shape.GetInbetweens():
             w = ib.GetWeight()
             if w is None or not (0.0 < w < 1.0):
+                name = ib.GetAttr().GetName()
                 yield Issue(WARNING, "Inbetweens", _path(shape.GetPrim()),
-                            f"inbetween {ib.GetAttr().GetName()} has weight {w}, outside (0, 1)",
+                            f"inbetween {name} has weight {_weight_text(w)}, outside (0, 1)",
                             "place inbetweens strictly between 0 and 1 (ARKit weights never leave [0, 1])")
 
 
@@ -569,10 +580,19 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
 
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
-    from ..io.take import probe_take
+    from ..io.take import has_frame_weights, probe_take
     from ..io.usd_rig import _is_weights_take
 
-    if _is_weights_take(stage) or (layer.realPath and probe_take(layer.realPath)[0]):
+    weights_take = _is_weights_take(stage)
+    if not weights_take and layer.realPath and probe_take(layer.realPath)[0] and not has_frame_weights(stage):
+        # time-sampled points, no blend shapes, no weights (Pixar's lbs.baked.usda): called a take, with
+        # the fix 'usdface inspect FILE', whose take reader then refused it for lack of weights
+        yield Issue(INFO, "Readable", "/", "this is a mesh cache (time-sampled points, no blend shapes, no "
+                    "per-frame weights: baked skinning or a simulation?), neither an avatar nor a take: "
+                    "check judges avatars and usdface layers",
+                    "pass the avatar whose meshes carry the blend shapes, not a bake of it")
+        return
+    if weights_take or (layer.realPath and probe_take(layer.realPath)[0]):
         yield Issue(INFO, "Readable", "/", "this is a take (a recording: blend-shape weights, and meshes if "
                     "it has them), not an avatar: check judges avatars and usdface layers",
                     "usdface inspect FILE summarises the take")
@@ -607,9 +627,16 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
         refuse_unwritable_shapes(avatar, None, "the personalized layer")
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
-            yield Issue(ERROR, "Readable", "/", "no face-like blend shapes (no ARKit-named shape that "
-                        "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
-                        "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
+            # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
+            where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"
+            if any(n in ARKIT_NAMES for m in avatar.meshes for n in m.names):   # named, moving nothing
+                yield Issue(ERROR, "Readable", where, "the ARKit-named blend shapes move no point (zero "
+                            "offsets, or normalOffsets only): personalize finds no face mesh",
+                            "author the shapes' point offsets")
+            else:
+                yield Issue(ERROR, "Readable", where, "no face-like blend shapes (no ARKit-named shape that "
+                            "moves): personalize finds no face mesh", "name the face shapes as ARKit does "
+                            "(eyeBlinkLeft, jawOpen, ...) or pass the studio's names with --name-map")
     except UsdFaceError as exc:
         yield Issue(ERROR, "Readable", exc.prim or "/", exc.message,
                     exc.fix or "repair the rig; usdface inspect FILE shows what it reads")

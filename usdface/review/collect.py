@@ -21,6 +21,11 @@ __all__ = ["collect_review", "recorded_capture"]
 TEST_HOLD_S = 0.75
 
 
+#: A shape counts as changed where a vertex's offset moved by more than this (m), as in personalize's report
+#: (``usdface.transfer.pipeline._changes``: ``moved_vertices``).
+CHANGE_TOL_M = 1e-9
+
+
 def recorded_capture(layer_path, info: dict) -> Path | None:
     """The capture a usdface layer was made from (the second input in the provenance of a personalize
     layer, which is recorded relative to the layer), when it still exists; else None (also for a layer of
@@ -268,8 +273,10 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if changes:
         rows = []
         for name, names, top in changes:
-            kept = [n for n, t in zip(names, top, strict=True) if t == 0.0]
-            rows.append((f"{name}: shapes changed", f"{int((top > 0).sum())} of {len(names)} "
+            # changed: some vertex moved by more than 1 nm, the rule of personalize's report (a float32
+            # rounding of an unchanged offset is no change)
+            kept = [n for n, t in zip(names, top, strict=True) if t <= CHANGE_TOL_M]
+            rows.append((f"{name}: shapes changed", f"{int((top > CHANGE_TOL_M).sum())} of {len(names)} "
                          f"(largest change {top.max() * 1000:.2f} mm)"))
             if len(kept) == len(names):
                 why = (" (approximation=generic: meshes and regions the capture does not see keep the "

@@ -109,9 +109,27 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
     best = most_moving_mesh(avatar.meshes, names)
     if best is None:
-        raise RigError("the avatar has no face-like blend shapes (no ARKit-named shape that moves)",
-                       path=avatar.file,
-                       fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
+        # say which channels the avatar has and what a name map did not match (a refusal that named no
+        # prim and no channel left a TD with a Blender export's 'Key_1' guessing)
+        shown = [f"{m.source.prim if m.source else m.name}: {', '.join(m.names[:6])}"
+                 + (f" (+{len(m.names) - 6})" if len(m.names) > 6 else "") for m in avatar.meshes[:3]]
+        unused = [n for n in avatar.metadata.get("notes", []) if n.startswith("name map entries that match")]
+        prim = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else None
+        from ..arkit import ARKIT_NAMES
+
+        if any(n in ARKIT_NAMES for m in avatar.meshes for n in m.names):
+            # ARKit-named, but moving no point (Pixar's normalOffsets-only shapes under a name map): "name
+            # them as ARKit does" was no fix
+            raise RigError("the avatar's ARKit-named blend shapes move no point (zero offsets, or "
+                           "normalOffsets only); its channels: " + "; ".join(shown), path=avatar.file,
+                           prim=prim, fix="author the shapes' point offsets (usdface check AVATAR lists the "
+                                          "shapes that move nothing)")
+        raise RigError("the avatar has no face-like blend shapes (no ARKit-named shape that moves); its "
+                       "channels: " + "; ".join(shown) + ("; " + "; ".join(unused) if unused else ""),
+                       path=avatar.file, prim=prim,
+                       fix="name the face shapes as ARKit does (eyeBlinkLeft, jawOpen, ...) or map the rig's "
+                           "channel names with --name-map FILE ('usdface inspect AVATAR' lists how each was "
+                           "mapped)")
     return best
 
 

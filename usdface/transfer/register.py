@@ -263,7 +263,13 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
             break  # the landmark initialiser converged: no need for the fallback
     result = best[1]
     size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
-    if result.fitness < min_fitness or result.residual > max_residual_ratio * size:
+    # a capture shrunk to a point is no placement whatever its residual: collapsed onto one target point it
+    # has fitness 1 and residual exactly 0 (Pixar's 10 cm test plane under dev1's capture: scale 1e-28,
+    # accepted, and the template's registration from it then crashed in Open3D). Below a thousandth of the
+    # target's size only: a capture shrunk to a few mm on a mouth mesh (dev1 --face-mesh Mouth, 3.6 mm on
+    # 99 mm) goes on to the error that names the skin meshes to pick
+    collapsed = size < 1e-3 * ext_a
+    if collapsed or result.fitness < min_fitness or result.residual > max_residual_ratio * size:
         text = _no_overlap_text(result, size, size0, ext_a, min_fitness, max_residual_ratio)
         if avatar_mesh:        # which avatar mesh it was registered against (a --face-mesh choice, say)
             text = text.replace("the avatar face mesh", f"the avatar mesh {avatar_mesh}", 1).replace(
