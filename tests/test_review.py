@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import _usdface as _usdface_cli
 
 from usdface import api
 from usdface.cli import main
@@ -479,3 +480,28 @@ def test_a_name_mapped_layer_reviews_with_arkit_names(tmp_path):
         assert "jawOpen" in read_avatar_variant(out, variant).mesh("Head").names
     data = collect_review(out, fit_errors=False)
     assert any("jawOpen" in m.names for m in data.meshes)
+
+
+def test_personalized_count_agrees_with_the_review_page(bench, tmp_path):
+    """dev3: personalize said "55 BlendShapes personalized" and its --dry-run listed shapes with "max 0.000,
+    rms 0.000, 0 vertices" as changing (changes of float noise, under 1 nm); the review page of the same
+    layer said 49 + 4 = 53 changed (it counted any float32 difference). Both now count a shape changed
+    where a vertex moved by more than 1 nm, and agree."""
+    import re
+
+    from usdface.review.collect import collect_review
+
+    case = bench / "dev3"
+    out = tmp_path / "p.usda"
+    res = _usdface_cli("personalize", case / "avatar.usdc", case / "capture", "-o", out, "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    said = int(re.search(r"(\d+) BlendShapes personalized", res.stdout).group(1))
+    data = collect_review(out, fit_errors=False)
+    rows = dict(next(rows for title, rows in data.tables if title == "what changed"))
+    page = sum(int(v.split(" of ")[0]) for k, v in rows.items() if k.endswith("shapes changed"))
+    assert said == page, (res.stdout, rows)
+    kept = rows["Head: left generic"].split(", ")
+    assert "cheekSquintRight" in kept and "jawLeft" in kept       # moved by under 1 nm: left generic
+    dry = _usdface_cli("personalize", case / "avatar.usdc", case / "capture", "--dry-run", "-q", cwd=tmp_path)
+    assert dry.returncode == 0, dry.stderr
+    assert " 0 vertices" not in dry.stdout and f"{said} of 101 BlendShapes would change" in dry.stdout
