@@ -192,3 +192,20 @@ def test_a_take_and_force_among_the_options_validate_as_the_extractors_take_them
     pyblish.util.publish(context)
     assert [r["error"] for r in context.data["results"] if not r["success"]] == []
     assert (tmp_path / "person.review.html").read_text() != "old"
+
+
+@pytest.mark.parametrize("item, says", [
+    ({"avatar": "a.usdc", "capture": "capture/", "out": "o.usda"},
+     'usdfaceItems"][0] lacks output (has avatar, capture, out)'),
+    ("a.usdc", 'usdfaceItems"][0] is a str'),
+])
+def test_a_malformed_item_fails_the_collector_naming_it(registered, item, says):
+    """A misspelt key failed the collector with a bare KeyError: 'output'; a path for a dict, TypeError."""
+    from usdface.errors import InputFileError
+
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    error = _results(context)[("CollectUsdFaceItems", None)]["error"]
+    assert isinstance(error, InputFileError) and says in str(error)
+    assert "fix: give" in str(error) and len(context) == 0

@@ -86,6 +86,27 @@ def _default_personalize() -> bool:
     return all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors)
 
 
+def _refuse_malformed_items(items) -> None:
+    """Every item of ``context.data["usdfaceItems"]`` a mapping with a non-empty ``avatar``, ``capture`` and
+    ``output``, checked before any instance is made: a misspelt key (``"out"``) failed the collector with a
+    bare ``KeyError: 'output'``, a path given instead of a dict with ``TypeError: string indices ...``."""
+    from collections.abc import Mapping
+
+    from ..errors import InputFileError
+
+    example = '{"avatar": "hero.usdc", "capture": "captures/anna/", "output": "hero_anna.usda"}'
+    for i, item in enumerate(items):
+        where = f'context.data["usdfaceItems"][{i}]'
+        if not isinstance(item, Mapping):
+            raise InputFileError(f"{where} is a {type(item).__name__} ({item!r:.60}), not a dict",
+                                 fix=f"give each item as a dict, {example}")
+        missing = [k for k in ("avatar", "capture", "output") if not item.get(k)]
+        if missing:
+            has = ", ".join(map(str, item)) or "no keys"
+            raise InputFileError(f"{where} lacks {', '.join(missing)} (has {has})",
+                                 fix=f"give every item an avatar, a capture and an output, {example}")
+
+
 class CollectUsdFaceItems(_pyblish.ContextPlugin):
     """One ``usdface.avatar`` instance per item of ``context.data["usdfaceItems"]`` or of the batch manifest
     ``context.data["usdfaceManifest"]``."""
@@ -106,6 +127,7 @@ class CollectUsdFaceItems(_pyblish.ContextPlugin):
                 review = {"review": options.pop("review")} if "review" in options else {}
                 items.append(dict(avatar=i.avatar, capture=i.capture, output=i.output, **review,
                                   usdfaceOptions=options))
+        _refuse_malformed_items(items)
         for item in items:
             name = Path(item["output"]).stem
             instance = context.create_instance(name, family=FAMILY)
