@@ -39,6 +39,7 @@ from .correspond import (
     Correspondence,
     PosedSurface,
     correspondence_map,
+    correspondence_npz,
     geometry_digest,
     load_correspondence,
     nonrigid_register,
@@ -340,13 +341,16 @@ def pose_by_length(template_delta, avatar_delta):
 
 def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
                     initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
-                    avatar_landmarks=None, surfaces: dict | None = None):
+                    avatar_landmarks=None, surfaces: dict | None = None, pending: list | None = None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
     otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
     :func:`register_face`. ``surfaces``: a dict
     that receives the posed avatar face surface the registration built (``"avatar"``, a
-    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
+    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`).
+    ``pending``: a list that receives ``(cache, npz bytes)`` instead of the cache being written now, for a
+    caller that writes it only once its run succeeds (a run that failed after this step left its cache
+    behind, with the folder made for it)."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -381,7 +385,9 @@ def _correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_del
     corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
                  "cache": stale if isinstance(stale, str) else "replaced" if stale
                  else "miss" if cache is not None else "off"}
-    if cache is not None:
+    if cache is not None and pending is not None:
+        pending.append((cache, correspondence_npz(corr)))
+    elif cache is not None:
         save_correspondence(corr, cache)
     return corr
 
@@ -593,6 +599,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         from ..personalize.api import check_fit_options
 
         check_fit_options(method, reg, **_fit_prior_options(prior, method, reg), **fit_options)
+    pending_cache: list = []                      # the correspondence cache, written once the run succeeds
     with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -718,7 +725,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         surfaces = {}                              # the posed avatar face, built once for both uses
         corr = _correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence, names,
-                               initial=sim, target=registration.target,
+                               initial=sim, target=registration.target, pending=pending_cache,
                                source_triangles=face_transfer != "person",   # the deformation transfer's
                                avatar_peak=face_peak, avatar_landmarks=face_landmarks, surfaces=surfaces)
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
@@ -823,6 +830,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
                     + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
+            _write_pending(pending_cache)
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
             return PersonalizeResult({}, names, k_names, weights, {}, face_prim, face_all,
@@ -919,6 +927,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
+        _write_pending(pending_cache)            # the correspondence cache, once the run has succeeded
         timings["write"] = time.perf_counter() - t
         advance("write")
     timings["total"] = time.perf_counter() - t_start
@@ -936,6 +945,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 #: An avatar whose main mesh's centre lies within this many of its sizes from the origin is left where it is
 #: (the bench heads and an avatar at the stage's origin: their answers unchanged to the bit).
 NEAR_ORIGIN = 20.0
+
+
+def _write_pending(pending: list) -> None:
+    """Write the correspondence caches :func:`_correspondence` held back (``(path, npz bytes)``)."""
+    for path, data in pending:
+        save_correspondence(None, path, data=data)
+    pending.clear()
 
 
 def _in_stage(similarity: dict, origin) -> dict:
