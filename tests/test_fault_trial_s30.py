@@ -232,6 +232,7 @@ def test_pyblish_refuses_an_existing_review_page_before_writing_the_layer(pyblis
     errors = _publish(pyblish_registered, avatar=str(samples / "avatar.usda"),
                       capture=str(samples / "capture.usda"), output=str(out), review=True)
     assert "review page exists" in str(errors.get("ValidateUsdFaceOutputs"))
+    assert "instance's data force=True" in str(errors.get("ValidateUsdFaceOutputs"))
     assert "ExtractUsdFacePersonalized" not in errors
     assert not out.exists()
 
@@ -249,6 +250,9 @@ def test_pyblish_validates_the_layer_output(pyblish_registered, samples, tmp_pat
                       capture=str(samples / "capture.usda"), output=str(out), force=case == "input")
     assert "ValidateUsdFaceOutputs" in errors, errors
     assert "ExtractUsdFacePersonalized" not in errors
+    if case == "exists":     # the fix in the publish's terms, not the command line's '--force'
+        assert "instance's data force=True" in str(errors["ValidateUsdFaceOutputs"])
+        assert "--force" not in str(errors["ValidateUsdFaceOutputs"])
 
 
 @pytest.mark.parametrize(("option", "where"), [("gltf", "inside"), ("gltf", "same"), ("flatten", "inside")])

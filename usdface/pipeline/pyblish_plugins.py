@@ -236,6 +236,7 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import personalize_inputs
         from ..commands.review import default_output
+        from ..errors import OutputExistsError
         from ..io.atomic import check_output_file
         from ..io.layers import check_output_path
 
@@ -243,12 +244,18 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
         output = Path(data["output"])
         options = _personalize_options(instance)             # as the extractors take force and the take
         force, take = bool(options["force"]), options.pop("take", None)
-        if _default_personalize():
-            check_output_path(output, force, inputs=personalize_inputs(
-                data["avatar"], data["capture"], take=take, **options))
-        if data.get("review"):
-            check_output_file(default_output(output), force, suffixes=(".html", ".htm"), what="review page",
-                              inputs=[output, data["avatar"], data["capture"], take])
+        try:
+            if _default_personalize():
+                check_output_path(output, force, inputs=personalize_inputs(
+                    data["avatar"], data["capture"], take=take, **options))
+            if data.get("review"):
+                check_output_file(default_output(output), force, suffixes=(".html", ".htm"),
+                                  what="review page", inputs=[output, data["avatar"], data["capture"], take])
+        except OutputExistsError as exc:     # the fix in a publish's terms: its fix named --force
+            raise OutputExistsError(exc.message, path=exc.path, prim=exc.prim,
+                                    fix="set the instance's data force=True (or force among its "
+                                        "usdfaceOptions) to replace it, or publish to another "
+                                        "output") from None
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
