@@ -494,3 +494,17 @@ def test_a_retarget_map_given_as_the_name_map_is_named(samples, tmp_path, capsys
         read_name_map({"Brow_L": "zzzz"})
     with pytest.raises(InputFileError, match=r"did you mean 'jawOpen'\?"):
         read_name_map({"Jaw": "jawOpn"})
+
+
+def test_an_avatar_without_arkit_names_points_to_the_name_map(shared, samples, tmp_path):
+    """A rig whose channels are no ARKit names (Blender's ``Key_1``) and no name map: personalize's fix
+    said only 'the avatar needs ARKit-named BlendShapes', where 'usdface check' on the same file names
+    --name-map too."""
+    from usdface.api import personalize_avatar
+    from usdface.errors import RigError
+
+    avatar = shared / "data" / "usd-real-world" / "blender" / "blendshape.usda"
+    with pytest.raises(RigError, match="no face-like blend shapes") as info:
+        personalize_avatar(avatar, samples / "capture.usda", tmp_path / "o.usda")
+    assert "--name-map FILE (name_map=)" in str(info.value) and "usdface inspect" in str(info.value)
+    assert not list(tmp_path.iterdir())

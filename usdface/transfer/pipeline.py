@@ -171,7 +171,9 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     if best is None:
         raise RigError("the avatar has no face-like blend shapes (no ARKit-named shape that moves)",
                        path=avatar.file,
-                       fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
+                       fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...): rename "
+                           "them, or pass the studio's names with --name-map FILE (name_map=); "
+                           "'usdface inspect' lists how each channel was mapped")
     return best
 
 
@@ -682,7 +684,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if len(names) < 4:
             raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
                            path=avatar.file, prim=face_prim,
-                           fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
+                           fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...): "
+                               "rename them, or pass the studio's names with --name-map FILE (name_map=); "
+                               "'usdface inspect' lists how each channel was mapped")
         template_deltas = capture.template.deltas[[tmpl_idx[n] for n in names]]
         avatar_face_deltas = _shape_deltas(face, names, view=True)
         person_neutral0 = rig.neutral if rig is not None else capture.neutral
