@@ -45,6 +45,27 @@ def _written(path: PathLike) -> Path:
     absolute, one function both (``evaluate_methods``' JSON and plot as given, its USD absolute)."""
     return Path(path).absolute()
 
+def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok: bool = False) -> None:
+    """Refuse an argument of the wrong kind with :class:`usdface.errors.OptionError` naming the argument, what
+    it takes and the fix, before any work: ``personalize_avatar(None, ...)``, a ``face_mesh`` given as a
+    number, a path for a ``Capture`` died with Python's ``TypeError`` / ``AttributeError`` from deep inside
+    (``'str' object has no attribute 'names'``)."""
+    if (value is None and none_ok) or (value is not None and isinstance(value, kinds)):
+        return
+    from .errors import OptionError
+
+    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({value!r:.60})", fix=fix)
+
+
+_PATH = (str, os.PathLike)
+
+
+def _model(name: str):
+    from . import model
+
+    return getattr(model, name)
+
+
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "landmark_diagnostics", "read_avatar", "pick_mesh", "read_capture", "write_capture",
@@ -64,6 +85,8 @@ def read_avatar(path: PathLike, name_map: dict | PathLike | None = None) -> Avat
     recognise (:mod:`usdface.io.name_map`)."""
     from .io.usd_rig import read_avatar as _read
 
+    _expect(path, _PATH, "read_avatar's path", "the avatar's file (a str or Path)",
+            "pass the avatar's .usd/.usda/.usdc file")
     return _read(path, name_map=name_map)
 
 
@@ -71,6 +94,8 @@ def read_capture(path: PathLike) -> Capture:
     """Read a capture folder (OBJ + JSON) or a capture ``.usda`` (see :func:`usdface.io.read_capture`)."""
     from .io import read_capture as _read
 
+    _expect(path, _PATH, "read_capture's path", "a capture folder or file (a str or Path)",
+            "pass the capture folder or its capture.usda")
     return _read(path)
 
 
@@ -80,6 +105,10 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all)."""
     from .errors import RigError
 
+    _expect(avatar, (_model("Avatar"),), "pick_mesh's avatar", "an Avatar",
+            "pass usdface.read_avatar(PATH), not the path")
+    _expect(name, (str,), "pick_mesh's name", "a prim name or path (a str)",
+            "pass the mesh's prim name ('Head') or path ('/Avatar/Head')", none_ok=True)
     if name:
         from .io.layers import avatar_mesh
 
@@ -120,6 +149,8 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     ``force`` (:func:`check_capture_output`); one path alone is one input."""
     if isinstance(inputs, str | os.PathLike):     # its characters were taken as paths: '.' and '/', so
         inputs = [inputs]                         # every output was 'inside the input folder /'
+    _expect(capture, (_model("Capture"),), "write_capture's capture", "a Capture",
+            "pass usdface.read_capture(PATH) (a capture is copied as a file with import_capture_folder)")
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
@@ -292,7 +323,9 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
 
 
 def _as_capture(capture) -> Capture:
-    return read_capture(capture) if isinstance(capture, str | Path) else capture
+    _expect(capture, (_model("Capture"), *_PATH), "the capture", "a Capture or a capture path",
+            "pass the capture folder, its capture.usda or usdface.read_capture(PATH)")
+    return read_capture(capture) if isinstance(capture, _PATH) else capture
 
 
 def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path: PathLike | None = None,
@@ -414,6 +447,11 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
 
         raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
                            "'train'")
+    from .model import FaceRig
+    from .personalize import FitResult
+
+    _expect(rig, (FaceRig, FitResult), "evaluate_capture's rig", "a FaceRig or a FitResult (or None)",
+            "pass usdface.fit_capture(capture) or its .rig; None scores the generic baseline", none_ok=True)
     source = capture if isinstance(capture, str | Path) else None
     capture = _as_capture(capture)
     if role == "test":      # the mean of no frames was NaN, without a word
@@ -643,6 +681,27 @@ def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) 
     return [avatar_path, capture_path, take, options.get("pins"), options.get("name_map")]
 
 
+def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take=None, face_mesh=None,
+                                    rig=None, **_options) -> None:
+    """The arguments of :func:`personalize_avatar` / :func:`write_retarget_map` of the kind they take."""
+    from .model import FaceRig
+    from .personalize import FitResult
+
+    _expect(avatar_path, (_model("Avatar"), *_PATH), "the avatar", "the avatar's file or an Avatar",
+            "pass the avatar's .usd/.usda/.usdc file (or usdface.read_avatar(PATH))")
+    _expect(capture_path, (_model("Capture"), *_PATH), "the capture", "a capture path or a Capture",
+            "pass the capture folder, its capture.usda or a take (or usdface.read_capture(PATH))")
+    _expect(out_path, _PATH, "the output", "a file path", "pass the layer's path, e.g. 'person.usda' (None: "
+            "no layer, personalize_avatar only)", none_ok=True)
+    _expect(take, _PATH, "take", "a take's file (a Live Link CSV or a USD take)",
+            "pass the take's path", none_ok=True)
+    _expect(face_mesh, (str,), "face_mesh", "a mesh's prim name or path (a str)",
+            "pass e.g. 'Head' or '/Avatar/Head'", none_ok=True)
+    _expect(rig, (FaceRig,), "rig", "a FaceRig (a FitResult's .rig)",
+            "pass usdface.fit_capture(capture).rig" if isinstance(rig, FitResult)
+            else "pass the capture-mesh rig to implant, usdface.fit_capture(capture).rig", none_ok=True)
+
+
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
                        out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        landmarks: bool = False, **options: Any) -> PersonalizeResult:
@@ -661,6 +720,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     from .transfer import personalize_avatar as _personalize
 
+    _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)
     refuse_usdface_output(avatar_path)
     # an option personalize does not take (a typo) is named as such before any work, as batch does (it was
     # a fit error listing the method's options, after reading the inputs; a user trial); the pipeline's
@@ -790,7 +850,14 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     (``usdface landmarks -o``); see :func:`usdface.io.usd_landmarks.write_landmark_layer`. Returns the path
     written (atomically; an existing file needs ``force``)."""
     from .io.usd_landmarks import write_landmark_layer
+    from .landmarks import LandmarkLayout
 
+    _expect(avatar, (_model("Avatar"),), "write_landmarks' avatar", "an Avatar",
+            "pass usdface.read_avatar(PATH)")
+    _expect(rig, (_model("FaceRig"),), "write_landmarks' rig", "a FaceRig (a mesh of the avatar)",
+            "pass usdface.pick_mesh(avatar) (the mesh the layout was computed on)")
+    _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
+            "pass usdface.compute_landmarks(rig)")
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
@@ -882,6 +949,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .transfer.retarget import weight_map_csv, weight_map_json
 
     _refuse_implant_options(options)
+    _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, **options)
     refuse_usdface_output(avatar_path)
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
