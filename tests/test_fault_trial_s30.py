@@ -386,3 +386,40 @@ def test_a_signal_during_open3d_initialisation_stops_the_run(samples, tmp_path, 
     assert res.returncode == status, res.stderr[-2000:]
     assert "Traceback" not in res.stderr and res.stderr.strip().splitlines()[-1] == line
     assert list(out.parent.iterdir()) == []
+
+
+_SIGINT_DURING_OPEN3D_IMPORT = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling
+    class Hook:
+        fired = False
+        def find_spec(self, name, path=None, target=None):
+            if name == "open3d.pybind" and not Hook.fired:     # inside Open3D's native initialisation
+                Hook.fired = True
+                os.kill(os.getpid(), signal.SIGINT)
+            return None
+    sys.meta_path.insert(0, Hook())
+    from usdface.transfer.register import _even
+    points = np.random.default_rng(0).random((200, 3))
+    try:
+        _even(points, 0.1)
+        print("no interrupt")
+    except KeyboardInterrupt:
+        print("interrupted", "open3d" in sys.modules)
+    print("again", len(_even(points, 0.1)) > 0)
+""")
+
+
+def test_an_interrupt_in_open3ds_import_is_a_keyboard_interrupt_after_it(tmp_path):
+    """A host's cancel (Ctrl-C, ``_thread.interrupt_main()``) landing in Open3D's import, made at the first
+    registration of a ``personalize_avatar`` call, came out as ``ImportError: initialization failed``, and
+    every later call in that process failed with ``ImportError: generic_type: cannot initialize type
+    "IntVector"``: one cancelled personalize broke the host's session. The import runs with the signal held
+    back; the KeyboardInterrupt arrives once Open3D is loaded, and the next call works."""
+    script = tmp_path / "run.py"
+    script.write_text(_SIGINT_DURING_OPEN3D_IMPORT)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
+                          timeout=600, preexec_fn=_interactive_signals)
+    assert done.stdout.split("\n")[:2] == ["interrupted True", "again True"], (done.stdout,
+                                                                               done.stderr[-2000:])
