@@ -209,3 +209,29 @@ def test_a_malformed_item_fails_the_collector_naming_it(registered, item, says):
     error = _results(context)[("CollectUsdFaceItems", None)]["error"]
     assert isinstance(error, InputFileError) and says in str(error)
     assert "fix: give" in str(error) and len(context) == 0
+
+
+def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, samples):
+    """A usdface output given as the avatar passed every validator and failed only in the extractor
+    (AlreadyPersonalizedError), after the other instances' extractors had run; usdface batch refuses it
+    before its first item. It fails ValidateUsdFaceRig now, naming the original avatar."""
+    from usdface.api import personalize_avatar
+    from usdface.errors import AlreadyPersonalizedError
+
+    layer = tmp_path / "p.usda"
+    personalize_avatar(samples / "avatar.usda", samples / "capture.usda", layer)
+    calls = []
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+
+    class Extract(plugins.ExtractUsdFacePersonalized):
+        def process(self, instance):
+            calls.append(instance)
+
+    pyblish_api.register_plugin(Extract)
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(layer), "capture": str(samples / "capture.usda"),
+                                     "output": str(tmp_path / "again.usda")}]
+    pyblish.util.publish(context)
+    error = _results(context)[("ValidateUsdFaceRig", "again")]["error"]
+    assert isinstance(error, AlreadyPersonalizedError) and "avatar.usda" in error.fix
+    assert calls == [] and not (tmp_path / "again.usda").exists()

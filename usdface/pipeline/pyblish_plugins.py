@@ -155,6 +155,12 @@ class ValidateUsdFaceRig(_pyblish.InstancePlugin):
         name_map = (instance.data.get("usdfaceOptions") or {}).get("name_map")
         issues = check(instance.data["avatar"], pixar=self.pixar, name_map=name_map)
         instance.data["usdfaceCheck"] = [i.to_dict() for i in issues]
+        if _default_personalize():
+            # an already personalized avatar (a usdface layer, its flattened export) passes the rules; it
+            # failed only in the extractor, after other instances' extractors had run
+            from ..io.usd_rig import refuse_usdface_output
+
+            refuse_usdface_output(instance.data["avatar"])
         for issue in issues:
             if issue.severity == "warning":
                 self.log.warning(str(issue))
