@@ -235,3 +235,36 @@ def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, s
     error = _results(context)[("ValidateUsdFaceRig", "again")]["error"]
     assert isinstance(error, AlreadyPersonalizedError) and "avatar.usda" in error.fix
     assert calls == [] and not (tmp_path / "again.usda").exists()
+
+
+@pytest.mark.parametrize("case, plugin, says", [
+    ("take", "ValidateUsdFaceOptions", "nope.csv: take not found"),
+    ("pins", "ValidateUsdFaceOptions", "nope.json: pins file not found"),
+    ("correspondence", "ValidateUsdFaceOutputs", "is inside the input folder"),
+])
+def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(registered, tmp_path, samples,
+                                                                          sample_capture_folder, case,
+                                                                          plugin, says):
+    """A missing take or pins file, or a correspondence cache inside the capture folder, passed every
+    validator and failed only in the extractor; 'usdface batch' refuses such a row before its first item."""
+    calls = []
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+
+    class Extract(plugins.ExtractUsdFacePersonalized):
+        def process(self, instance):
+            calls.append(instance)
+
+    pyblish_api.register_plugin(Extract)
+    item = {"avatar": str(samples / "avatar.usda"), "capture": str(sample_capture_folder),
+            "output": str(tmp_path / "o.usda")}
+    if case == "take":
+        item["take"] = str(tmp_path / "nope.csv")
+    else:
+        item["usdfaceOptions"] = {"pins": str(tmp_path / "nope.json")} if case == "pins" else {
+            "correspondence": str(sample_capture_folder / "c.npz")}
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    error = _results(context)[(plugin, "o")]["error"]
+    assert error is not None and says in str(error), error
+    assert calls == [] and not (tmp_path / "o.usda").exists()

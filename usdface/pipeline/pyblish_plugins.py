@@ -218,6 +218,13 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
             return
         options = dict(instance.data.get("usdfaceOptions") or {})
         check_personalize_options(**options)
+        # the files the options name (and the instance's take) present and readable, as 'usdface batch'
+        # checks every row's before its first item: a missing take or pins file failed only in the extractor
+        from .batch import BatchItem, check_item_inputs
+
+        data = instance.data
+        check_item_inputs(BatchItem(str(data["avatar"]), str(data["capture"]), str(data["output"]),
+                                    _personalize_options(instance)))
         if options.get("dry_run"):        # nothing written: the extractor failed on the missing layer
             from ..errors import OptionError
 
@@ -240,7 +247,7 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
     label = "Validate outputs (usdface)"
 
     def process(self, instance):
-        from ..api import personalize_inputs
+        from ..api import _check_correspondence_cache, personalize_inputs
         from ..commands.review import default_output
         from ..errors import OutputExistsError
         from ..io.atomic import check_output_file
@@ -252,8 +259,10 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
         force, take = bool(options["force"]), options.pop("take", None)
         try:
             if _default_personalize():
-                check_output_path(output, force, inputs=personalize_inputs(
-                    data["avatar"], data["capture"], take=take, **options))
+                inputs = personalize_inputs(data["avatar"], data["capture"], take=take, **options)
+                check_output_path(output, force, inputs=inputs)
+                # the correspondence cache, an output too: in an input folder, where it cannot be written
+                _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[output])
             if data.get("review"):
                 check_output_file(default_output(output), force, suffixes=(".html", ".htm"),
                                   what="review page", inputs=[output, data["avatar"], data["capture"], take])
