@@ -721,6 +721,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .transfer import personalize_avatar as _personalize
 
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)
+    # the layer's provenance names what wrote it, as write_fit_rig and write_landmarks do ('usdface
+    # personalize' from a script claimed a command line that had never run; the CLI passes its own)
+    options["command"] = options.get("command") or "usdface.api.personalize_avatar (Python API)"
     refuse_usdface_output(avatar_path)
     # an option personalize does not take (a typo) is named as such before any work, as batch does (it was
     # a fit error listing the method's options, after reading the inputs; a user trial); the pipeline's
