@@ -713,7 +713,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     ``displayColor`` heat map of how much each vertex changed (RMS over shapes) and a ``SkelAnimation`` that
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
-    layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    layout of the personalized face mesh as ``Points`` (about 1.5 s more on the bench avatars)."""
     from .io.layers import source_date_epoch
     from .io.usd_rig import refuse_usdface_output
 
