@@ -516,3 +516,17 @@ def test_arguments_of_the_wrong_kind_are_option_errors(tmp_path, monkeypatch, ca
     with pytest.raises(OptionError, match=says) as info:
         call(usdface)
     assert info.value.fix and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("jobs", [0, -1, "2", 1.5, True])
+def test_personalize_batch_refuses_a_job_count_the_command_line_refuses(tmp_path, jobs):
+    """``usdface batch -j 0`` is refused; ``personalize_batch(m, jobs=0)`` ran a process per CPU, jobs=-1
+    in this process, jobs="2" died with ValueError after the manifest was read."""
+    import usdface
+    from usdface.errors import OptionError
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\na.usda,c,o.usda\n")
+    with pytest.raises(OptionError, match="jobs must be a whole number >= 1"):
+        usdface.personalize_batch(manifest, jobs=jobs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]

@@ -1081,6 +1081,13 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
 
+    # as --jobs takes it: jobs=0 ran a process per CPU, a negative count in-process, "2" a ValueError
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
+        from .errors import OptionError
+
+        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
+                          fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
+                              "it out")
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
