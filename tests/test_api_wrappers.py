@@ -502,6 +502,15 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     (lambda u: u.pick_mesh("a.usdc"), "pick_mesh's avatar must be an Avatar"),
     (lambda u: u.write_capture("c", "c.usda"), "write_capture's capture must be a Capture"),
     (lambda u: u.write_landmarks("a.usdc", None, None, "lm.usda"), "write_landmarks' avatar must be an"),
+    (lambda u: u.inspect_file(None), "path must be a path"),
+    (lambda u: u.export_avatar(None, gltf="x.glb"), "layer_path must be a path"),
+    (lambda u: u.write_review(None, "r.html"), "layer_path must be a path"),
+    (lambda u: u.import_livelink_take(None, "t.usda"), "csv must be a path"),
+    (lambda u: u.select_capture_frames(None), "take must be a path"),
+    (lambda u: u.import_capture_folder("c", None), "out_path must be a path"),
+    (lambda u: u.personalize_batch(None), "manifest must be a path"),
+    (lambda u: u.fit_capture("c", out_path=5), "out_path must be a path"),
+    (lambda u: u.write_retarget_map("a.usdc", "c", None), "out_path must be a path"),
 ])
 def test_arguments_of_the_wrong_kind_are_option_errors(tmp_path, monkeypatch, call, says):
     """A docs walk-through with wrong kinds of arguments: None for the avatar or a number for the capture

@@ -60,6 +60,14 @@ def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok:
 _PATH = (str, os.PathLike)
 
 
+def _paths(**named) -> None:
+    """Each ``name=(value, none_ok)`` a path (a str or Path), else :class:`usdface.errors.OptionError` naming
+    the argument (``inspect_file(None)``, ``export_avatar(None, ...)`` died with Python's TypeError)."""
+    for name, (value, none_ok) in named.items():
+        _expect(value, _PATH, name, "a path (a str or Path)" + (" or None" if none_ok else ""),
+                f"pass {name} as a file or folder path", none_ok=none_ok)
+
+
 def _model(name: str):
     from . import model
 
@@ -171,6 +179,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
     ``force``; the source's digest is recorded (see :func:`write_capture`). A take is refused (its frames are
     picked with :func:`select_capture_frames`, or it is fitted whole)."""
+    _paths(folder=(folder, False), out_path=(out_path, False))
     from .io.capture_folder import refuse_whole_take
 
     check_capture_output(out_path, force, inputs=[folder])
@@ -205,6 +214,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
+    _paths(take=(take, False), out_path=(out_path, True))
     import numpy as np
 
     from .errors import CaptureError
@@ -303,6 +313,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     :func:`usdface.io.livelink.parse_timecodes`). Returns the path
     written (atomically; an existing file needs ``force``) and the
     :class:`usdface.io.livelink.LiveLinkTake` read."""
+    _paths(csv=(csv, False), out_path=(out_path, False))
     from . import __version__
     from .io.layers import check_output_path
     from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
@@ -339,6 +350,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
     written is ``result.info["out_path"]``, whose provenance records ``command`` (the CLI's command line),
     the method and options, and the capture file read (:func:`write_fit_rig`)."""
+    _paths(out_path=(out_path, True))
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
@@ -402,6 +414,7 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
     move."""
+    _paths(out_path=(out_path, False))
     from . import __version__
     from .io.avatar_writer import write_rig_usd
     from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
@@ -946,6 +959,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
     ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``; ``.out_path`` the
     map file)."""
+    _paths(out_path=(out_path, False))
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
@@ -1078,6 +1092,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    _paths(manifest=(manifest, False), report_path=(report_path, True))
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
 
@@ -1259,6 +1274,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
 def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
     how each channel maps to ARKit (``name_map`` as for :func:`read_avatar`), provenance."""
+    _paths(path=(path, False))
     from .inspect import inspect_file as _inspect
 
     return _inspect(path, name_map=name_map)
@@ -1281,6 +1297,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     ``fit_errors`` the generic template and the personalized shapes are scored on its test
     expressions (eq. 5: the layer's recorded figures of its own fit, or a refit for another capture).
     Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
+    _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
     from .review.collect import collect_review
@@ -1335,6 +1352,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
+    _paths(layer_path=(layer_path, False))
     from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
