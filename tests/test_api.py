@@ -32,6 +32,18 @@ def test_public_names_are_lazy_and_typed():
         usdface.not_an_api_function  # noqa: B018
 
 
+def test_documented_submodules_after_import_usdface_only():
+    """pipeline.md's ``usdface.progress.set_enabled(False)`` after ``import usdface`` (api.md's
+    ``usdface.errors.UsdFaceError``, README's numerical core ``usdface.personalize``...) raised
+    ``AttributeError: progress``: the submodules were reachable only once something had imported them."""
+    code = ("import sys, usdface; usdface.progress.set_enabled(False); "
+            "print(usdface.errors.UsdFaceError.__name__, callable(usdface.mesh.triangle_normals), "
+            "'progress' in dir(usdface))\n"
+            "try:\n    usdface.nope\nexcept AttributeError as e:\n    print(e)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.splitlines() == ["UsdFaceError True True", "module 'usdface' has no attribute 'nope'"]
+
+
 def test_cli_check_goes_through_the_api(monkeypatch, tmp_path, capsys):
     seen = []
 

@@ -486,3 +486,56 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     wrong = {k: v for k, v in got.items() if not (isinstance(v, Path) and v.is_absolute() and v.exists()
                                                   and v.parent.parent == tmp_path)}
     assert not wrong, wrong
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda u: u.personalize_avatar(None, "c/", "o.usda"), "the avatar must be the avatar's file or an"),
+    (lambda u: u.personalize_avatar("a.usda", 5, "o.usda"), "the capture must be a capture path or a"),
+    (lambda u: u.personalize_avatar("a.usda", "c/", "o.usda", face_mesh=3), "face_mesh must be a mesh's"),
+    (lambda u: u.personalize_avatar("a.usda", "c/", None, rig="x"), "rig must be a FaceRig"),
+    (lambda u: u.personalize_avatar("a.usda", "c/", "o.usda", take=5), "take must be a take's file"),
+    (lambda u: u.write_retarget_map(None, "c/", "m.json"), "the avatar must be"),
+    (lambda u: u.fit_capture(123), "the capture must be a Capture or a capture path"),
+    (lambda u: u.read_capture(None), "read_capture's path must be"),
+    (lambda u: u.read_avatar(None), "read_avatar's path must be"),
+    (lambda u: u.evaluate_capture("c/", rig="x"), "evaluate_capture's rig must be"),
+    (lambda u: u.pick_mesh("a.usdc"), "pick_mesh's avatar must be an Avatar"),
+    (lambda u: u.write_capture("c", "c.usda"), "write_capture's capture must be a Capture"),
+    (lambda u: u.write_landmarks("a.usdc", None, None, "lm.usda"), "write_landmarks' avatar must be an"),
+    (lambda u: u.inspect_file(None), "path must be a path"),
+    (lambda u: u.export_avatar(None, gltf="x.glb"), "layer_path must be a path"),
+    (lambda u: u.write_review(None, "r.html"), "layer_path must be a path"),
+    (lambda u: u.import_livelink_take(None, "t.usda"), "csv must be a path"),
+    (lambda u: u.select_capture_frames(None), "take must be a path"),
+    (lambda u: u.import_capture_folder("c", None), "out_path must be a path"),
+    (lambda u: u.personalize_batch(None), "manifest must be a path"),
+    (lambda u: u.fit_capture("c", out_path=5), "out_path must be a path"),
+    (lambda u: u.write_retarget_map("a.usdc", "c", None), "out_path must be a path"),
+])
+def test_arguments_of_the_wrong_kind_are_option_errors(tmp_path, monkeypatch, call, says):
+    """A docs walk-through with wrong kinds of arguments: None for the avatar or a number for the capture
+    died with 'expected str, bytes or os.PathLike object, not NoneType', a path for the rig or the Avatar
+    with "'str' object has no attribute 'names'" / "... 'meshes'", face_mesh=3 with 'can only concatenate
+    str (not "int") to str'. Each is an OptionError naming the argument, what it takes and the fix, before
+    any file is read or written."""
+    import usdface
+    from usdface.errors import OptionError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(OptionError, match=says) as info:
+        call(usdface)
+    assert info.value.fix and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("jobs", [0, -1, "2", 1.5, True])
+def test_personalize_batch_refuses_a_job_count_the_command_line_refuses(tmp_path, jobs):
+    """``usdface batch -j 0`` is refused; ``personalize_batch(m, jobs=0)`` ran a process per CPU, jobs=-1
+    in this process, jobs="2" died with ValueError after the manifest was read."""
+    import usdface
+    from usdface.errors import OptionError
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\na.usda,c,o.usda\n")
+    with pytest.raises(OptionError, match="jobs must be a whole number >= 1"):
+        usdface.personalize_batch(manifest, jobs=jobs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]

@@ -511,3 +511,17 @@ def test_check_notes_name_map_entries_that_match_no_channel(tmp_path, capsys):
     found = [i for i in json.loads(capsys.readouterr().out)["issues"] if "name map" in i["message"]]
     assert len(found) == 1 and "'JawDrop'" in found[0]["message"]
     assert "eyeBlinkLeft" not in found[0]["message"]
+
+
+def test_an_avatar_without_arkit_names_points_to_the_name_map(shared, samples, tmp_path):
+    """A rig whose channels are no ARKit names (Blender's ``Key_1``) and no name map: personalize's fix
+    said only 'the avatar needs ARKit-named BlendShapes', where 'usdface check' on the same file names
+    --name-map too."""
+    from usdface.api import personalize_avatar
+    from usdface.errors import RigError
+
+    avatar = shared / "data" / "usd-real-world" / "blender" / "blendshape.usda"
+    with pytest.raises(RigError, match="no face-like blend shapes") as info:
+        personalize_avatar(avatar, samples / "capture.usda", tmp_path / "o.usda")
+    assert "--name-map FILE (name_map=)" in str(info.value) and "usdface inspect" in str(info.value)
+    assert not list(tmp_path.iterdir())

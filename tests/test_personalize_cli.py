@@ -502,3 +502,29 @@ def test_personalize_without_output_writes_to_the_cwd():
     from usdface.commands.personalize import _default_output
 
     assert _default_output("/assets/library/avatar.usdc") == Path("avatar.personalized.usda")
+
+
+def test_a_failed_personalize_leaves_no_correspondence_cache(samples, tmp_path, monkeypatch):
+    """A run that failed after the correspondence step (here: the layer's write) left its ``--correspondence``
+    cache behind, and the folder made for it: the one file of a failed run, for a next run to warn about
+    (``cache: replaced``) when it was of a wrong ``--face-mesh``. The cache is written once the run succeeds;
+    the next run reuses it."""
+    import usdface
+    from usdface.errors import UsdFaceError
+    from usdface.io import layers
+
+    cache = tmp_path / "cache" / "c.npz"
+
+    def broken(*args, **kwargs):
+        raise UsdFaceError("the write failed")
+
+    monkeypatch.setattr(layers, "write_avatar_layer", broken)
+    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / "p.usda")
+    with pytest.raises(UsdFaceError, match="the write failed"):
+        usdface.personalize_avatar(*args, correspondence=cache)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "p.usda").exists()
+    monkeypatch.undo()
+    first = usdface.personalize_avatar(*args, correspondence=cache)
+    assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
+    again = usdface.personalize_avatar(*args[:2], tmp_path / "q.usda", correspondence=cache)
+    assert again.report["correspondence"]["cache"] == "hit"

@@ -97,3 +97,23 @@ def test_fit_rig_records_command_parameters_and_capture(tmp_path, monkeypatch):
     assert data["capture"] == "../cap.usda" and data["captureDigest"] == file_digest(cap)
     assert data["createdAt"] == "2023-11-14T22:13:20Z"
     assert data["trainRmseMm"] > 0 and data["reg"] == 0.05
+
+
+def test_a_layer_written_from_python_or_a_batch_names_what_wrote_it(tmp_path):
+    """personalize_avatar from a script recorded 'usdface personalize' (a command line that never ran, and
+    runs nothing again), where write_fit_rig and write_landmarks name the API function; a batch item the
+    same. The layer names the API function, a batch item its batch and row, the CLI its command line."""
+    import usdface
+    from usdface.pipeline.batch import personalize_worker
+
+    def command(path):
+        return Sdf.Layer.FindOrOpen(str(path)).customLayerData["usdface"]["command"]
+
+    args = (SAMPLES / "avatar.usda", SAMPLES / "capture.usda")
+    usdface.personalize_avatar(*args, tmp_path / "api.usda")
+    assert command(tmp_path / "api.usda") == "usdface.api.personalize_avatar (Python API)"
+    personalize_worker({"avatar": str(args[0]), "capture": str(args[1]), "output": str(tmp_path / "b.usda"),
+                        "options": {}, "index": 2})
+    assert command(tmp_path / "b.usda").startswith("usdface batch, item 3")
+    argv = ["personalize", str(args[0]), str(args[1]), "-o", str(tmp_path / "cli.usda"), "-q"]
+    assert main(argv) == 0 and shlex.split(command(tmp_path / "cli.usda")) == ["usdface", *argv]

@@ -349,6 +349,7 @@ def test_pyblish_refuses_an_existing_review_page_before_writing_the_layer(pyblis
     errors = _publish_item(pyblish_registered, avatar=str(samples / "avatar.usda"),
                       capture=str(samples / "capture.usda"), output=str(out), review=True)
     assert "review page exists" in str(errors.get("ValidateUsdFaceOutputs"))
+    assert "instance's data force=True" in str(errors.get("ValidateUsdFaceOutputs"))
     assert "ExtractUsdFacePersonalized" not in errors
     assert not out.exists()
 
@@ -366,3 +367,82 @@ def test_pyblish_validates_the_layer_output(pyblish_registered, samples, tmp_pat
                       capture=str(samples / "capture.usda"), output=str(out), force=case == "input")
     assert "ValidateUsdFaceOutputs" in errors, errors
     assert "ExtractUsdFacePersonalized" not in errors
+    if case == "exists":     # the fix in the publish's terms, not the command line's '--force'
+        assert "instance's data force=True" in str(errors["ValidateUsdFaceOutputs"])
+        assert "--force" not in str(errors["ValidateUsdFaceOutputs"])
+
+
+@pytest.mark.parametrize("item, says", [
+    ({"avatar": "a.usdc", "capture": "capture/", "out": "o.usda"},
+     'usdfaceItems"][0] lacks output (has avatar, capture, out)'),
+    ("a.usdc", 'usdfaceItems"][0] is a str'),
+])
+def test_a_malformed_item_fails_the_collector_naming_it(registered, item, says):
+    """A misspelt key failed the collector with a bare KeyError: 'output'; a path for a dict, TypeError."""
+    from usdface.errors import InputFileError
+
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    error = _results(context)[("CollectUsdFaceItems", None)]["error"]
+    assert isinstance(error, InputFileError) and says in str(error)
+    assert "fix: give" in str(error) and len(context) == 0
+
+
+def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, samples):
+    """A usdface output given as the avatar passed every validator and failed only in the extractor
+    (AlreadyPersonalizedError), after the other instances' extractors had run; usdface batch refuses it
+    before its first item. It fails ValidateUsdFaceRig now, naming the original avatar."""
+    from usdface.api import personalize_avatar
+    from usdface.errors import AlreadyPersonalizedError
+
+    layer = tmp_path / "p.usda"
+    personalize_avatar(samples / "avatar.usda", samples / "capture.usda", layer)
+    calls = []
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+
+    class Extract(plugins.ExtractUsdFacePersonalized):
+        def process(self, instance):
+            calls.append(instance)
+
+    pyblish_api.register_plugin(Extract)
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(layer), "capture": str(samples / "capture.usda"),
+                                     "output": str(tmp_path / "again.usda")}]
+    pyblish.util.publish(context)
+    error = _results(context)[("ValidateUsdFaceRig", "again")]["error"]
+    assert isinstance(error, AlreadyPersonalizedError) and "avatar.usda" in error.fix
+    assert calls == [] and not (tmp_path / "again.usda").exists()
+
+
+@pytest.mark.parametrize("case, plugin, says", [
+    ("take", "ValidateUsdFaceOptions", "nope.csv: take not found"),
+    ("pins", "ValidateUsdFaceOptions", "nope.json: pins file not found"),
+    ("correspondence", "ValidateUsdFaceOutputs", "is inside the input folder"),
+])
+def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(registered, tmp_path, samples,
+                                                                          sample_capture_folder, case,
+                                                                          plugin, says):
+    """A missing take or pins file, or a correspondence cache inside the capture folder, passed every
+    validator and failed only in the extractor; 'usdface batch' refuses such a row before its first item."""
+    calls = []
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+
+    class Extract(plugins.ExtractUsdFacePersonalized):
+        def process(self, instance):
+            calls.append(instance)
+
+    pyblish_api.register_plugin(Extract)
+    item = {"avatar": str(samples / "avatar.usda"), "capture": str(sample_capture_folder),
+            "output": str(tmp_path / "o.usda")}
+    if case == "take":
+        item["take"] = str(tmp_path / "nope.csv")
+    else:
+        item["usdfaceOptions"] = {"pins": str(tmp_path / "nope.json")} if case == "pins" else {
+            "correspondence": str(sample_capture_folder / "c.npz")}
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [item]
+    pyblish.util.publish(context)
+    error = _results(context)[(plugin, "o")]["error"]
+    assert error is not None and says in str(error), error
+    assert calls == [] and not (tmp_path / "o.usda").exists()

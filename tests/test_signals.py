@@ -224,3 +224,40 @@ def test_sigterm_during_open3d_work_exits_143_without_a_leak_dump(samples, tmp_p
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 143, (res.returncode, res.stderr)
     assert res.stderr.strip() == "usdface: terminated", res.stderr
+
+
+_SIGINT_DURING_OPEN3D_IMPORT = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling
+    class Hook:
+        fired = False
+        def find_spec(self, name, path=None, target=None):
+            if name == "open3d.pybind" and not Hook.fired:     # inside Open3D's native initialisation
+                Hook.fired = True
+                os.kill(os.getpid(), signal.SIGINT)
+            return None
+    sys.meta_path.insert(0, Hook())
+    from usdface.transfer.register import _even
+    points = np.random.default_rng(0).random((200, 3))
+    try:
+        _even(points, 0.1)
+        print("no interrupt")
+    except KeyboardInterrupt:
+        print("interrupted", "open3d" in sys.modules)
+    print("again", len(_even(points, 0.1)) > 0)
+""")
+
+
+def test_an_interrupt_in_open3ds_import_is_a_keyboard_interrupt_after_it(tmp_path):
+    """A host's cancel (Ctrl-C, ``_thread.interrupt_main()``) landing in Open3D's import, made at the first
+    registration of a ``personalize_avatar`` call, came out as ``ImportError: initialization failed``, and
+    every later call in that process failed with ``ImportError: generic_type: cannot initialize type
+    "IntVector"``: one cancelled personalize broke the host's session. The import runs with the signal held
+    back; the KeyboardInterrupt arrives once Open3D is loaded, and the next call works."""
+    script = tmp_path / "run.py"
+    script.write_text(_SIGINT_DURING_OPEN3D_IMPORT)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
+                          timeout=600, preexec_fn=_interactive_signals)
+    assert done.stdout.split("\n")[:2] == ["interrupted True", "again True"], (done.stdout,
+                                                                               done.stderr[-2000:])

@@ -18,15 +18,26 @@ _API |= {"write_review", "export_avatar"}  # usdface review / usdface export
 _API |= {"landmark_diagnostics"}  # usdface render --landmarks --diagnostics
 
 
+#: Submodules the docs name as ``usdface.<module>`` after only ``import usdface``
+#: (``usdface.progress.set_enabled(False)``, ``except usdface.errors.UsdFaceError``, the numerical core):
+#: loaded on first use, as the API is; they raised ``AttributeError: progress``.
+_SUBMODULES = {"api", "arkit", "errors", "io", "landmarks", "mesh", "model", "personalize", "pipeline",
+               "progress", "render", "review", "transfer"}
+
+
 def __getattr__(name):
     if name in _API:
         from . import api
 
         return getattr(api, name)
-    raise AttributeError(name)
+    if name in _SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module 'usdface' has no attribute {name!r}")
 
 
 def __dir__():
     """The lazily re-exported API among the module's names (``dir(usdface)``, a shell's completion), which
     listed none of them."""
-    return sorted(set(globals()) | _API)
+    return sorted(set(globals()) | _API | _SUBMODULES)

@@ -45,6 +45,35 @@ def _written(path: PathLike) -> Path:
     absolute, one function both (``evaluate_methods``' JSON and plot as given, its USD absolute)."""
     return Path(path).absolute()
 
+def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok: bool = False) -> None:
+    """Refuse an argument of the wrong kind with :class:`usdface.errors.OptionError` naming the argument, what
+    it takes and the fix, before any work: ``personalize_avatar(None, ...)``, a ``face_mesh`` given as a
+    number, a path for a ``Capture`` died with Python's ``TypeError`` / ``AttributeError`` from deep inside
+    (``'str' object has no attribute 'names'``)."""
+    if (value is None and none_ok) or (value is not None and isinstance(value, kinds)):
+        return
+    from .errors import OptionError
+
+    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({value!r:.60})", fix=fix)
+
+
+_PATH = (str, os.PathLike)
+
+
+def _paths(**named) -> None:
+    """Each ``name=(value, none_ok)`` a path (a str or Path), else :class:`usdface.errors.OptionError` naming
+    the argument (``inspect_file(None)``, ``export_avatar(None, ...)`` died with Python's TypeError)."""
+    for name, (value, none_ok) in named.items():
+        _expect(value, _PATH, name, "a path (a str or Path)" + (" or None" if none_ok else ""),
+                f"pass {name} as a file or folder path", none_ok=none_ok)
+
+
+def _model(name: str):
+    from . import model
+
+    return getattr(model, name)
+
+
 __all__ = [
     "personalize_avatar", "fit_capture", "write_fit_rig", "evaluate_capture", "evaluate_methods",
     "compute_landmarks", "landmark_diagnostics", "read_avatar", "pick_mesh", "read_capture", "write_capture",
@@ -64,6 +93,8 @@ def read_avatar(path: PathLike, name_map: dict | PathLike | None = None) -> Avat
     recognise (:mod:`usdface.io.name_map`)."""
     from .io.usd_rig import read_avatar as _read
 
+    _expect(path, _PATH, "read_avatar's path", "the avatar's file (a str or Path)",
+            "pass the avatar's .usd/.usda/.usdc file")
     return _read(path, name_map=name_map)
 
 
@@ -71,6 +102,8 @@ def read_capture(path: PathLike) -> Capture:
     """Read a capture folder (OBJ + JSON) or a capture ``.usda`` (see :func:`usdface.io.read_capture`)."""
     from .io import read_capture as _read
 
+    _expect(path, _PATH, "read_capture's path", "a capture folder or file (a str or Path)",
+            "pass the capture folder or its capture.usda")
     return _read(path)
 
 
@@ -80,6 +113,10 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all)."""
     from .errors import RigError
 
+    _expect(avatar, (_model("Avatar"),), "pick_mesh's avatar", "an Avatar",
+            "pass usdface.read_avatar(PATH), not the path")
+    _expect(name, (str,), "pick_mesh's name", "a prim name or path (a str)",
+            "pass the mesh's prim name ('Head') or path ('/Avatar/Head')", none_ok=True)
     if name:
         from .io.layers import avatar_mesh
 
@@ -120,6 +157,8 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
     ``force`` (:func:`check_capture_output`); one path alone is one input."""
     if isinstance(inputs, str | os.PathLike):     # its characters were taken as paths: '.' and '/', so
         inputs = [inputs]                         # every output was 'inside the input folder /'
+    _expect(capture, (_model("Capture"),), "write_capture's capture", "a Capture",
+            "pass usdface.read_capture(PATH) (a capture is copied as a file with import_capture_folder)")
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
@@ -140,6 +179,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     (``usdface capture import``); returns the path written. Refuses to overwrite an existing file unless
     ``force``; the source's digest is recorded (see :func:`write_capture`). A take is refused (its frames are
     picked with :func:`select_capture_frames`, or it is fitted whole)."""
+    _paths(folder=(folder, False), out_path=(out_path, False))
     from .io.capture_folder import refuse_whole_take
 
     check_capture_output(out_path, force, inputs=[folder])
@@ -174,6 +214,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``take``: a USD take, an OBJ-sequence folder with a Live Link Face CSV, or a weights-only CSV. With
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
+    _paths(take=(take, False), out_path=(out_path, True))
     import numpy as np
 
     from .errors import CaptureError
@@ -272,6 +313,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     :func:`usdface.io.livelink.parse_timecodes`). Returns the path
     written (atomically; an existing file needs ``force``) and the
     :class:`usdface.io.livelink.LiveLinkTake` read."""
+    _paths(csv=(csv, False), out_path=(out_path, False))
     from . import __version__
     from .io.layers import check_output_path
     from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
@@ -292,7 +334,9 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
 
 
 def _as_capture(capture) -> Capture:
-    return read_capture(capture) if isinstance(capture, str | Path) else capture
+    _expect(capture, (_model("Capture"), *_PATH), "the capture", "a Capture or a capture path",
+            "pass the capture folder, its capture.usda or usdface.read_capture(PATH)")
+    return read_capture(capture) if isinstance(capture, _PATH) else capture
 
 
 def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path: PathLike | None = None,
@@ -306,6 +350,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     before fitting (unless ``force``) and the rig is then written with :func:`write_fit_rig`; the path
     written is ``result.info["out_path"]``, whose provenance records ``command`` (the CLI's command line),
     the method and options, and the capture file read (:func:`write_fit_rig`)."""
+    _paths(out_path=(out_path, True))
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
@@ -369,6 +414,7 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
     move."""
+    _paths(out_path=(out_path, False))
     from . import __version__
     from .io.avatar_writer import write_rig_usd
     from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
@@ -414,6 +460,11 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
 
         raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
                            "'train'")
+    from .model import FaceRig
+    from .personalize import FitResult
+
+    _expect(rig, (FaceRig, FitResult), "evaluate_capture's rig", "a FaceRig or a FitResult (or None)",
+            "pass usdface.fit_capture(capture) or its .rig; None scores the generic baseline", none_ok=True)
     source = capture if isinstance(capture, str | Path) else None
     capture = _as_capture(capture)
     if role == "test":      # the mean of no frames was NaN, without a word
@@ -643,6 +694,27 @@ def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) 
     return [avatar_path, capture_path, take, options.get("pins"), options.get("name_map")]
 
 
+def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take=None, face_mesh=None,
+                                    rig=None, **_options) -> None:
+    """The arguments of :func:`personalize_avatar` / :func:`write_retarget_map` of the kind they take."""
+    from .model import FaceRig
+    from .personalize import FitResult
+
+    _expect(avatar_path, (_model("Avatar"), *_PATH), "the avatar", "the avatar's file or an Avatar",
+            "pass the avatar's .usd/.usda/.usdc file (or usdface.read_avatar(PATH))")
+    _expect(capture_path, (_model("Capture"), *_PATH), "the capture", "a capture path or a Capture",
+            "pass the capture folder, its capture.usda or a take (or usdface.read_capture(PATH))")
+    _expect(out_path, _PATH, "the output", "a file path", "pass the layer's path, e.g. 'person.usda' (None: "
+            "no layer, personalize_avatar only)", none_ok=True)
+    _expect(take, _PATH, "take", "a take's file (a Live Link CSV or a USD take)",
+            "pass the take's path", none_ok=True)
+    _expect(face_mesh, (str,), "face_mesh", "a mesh's prim name or path (a str)",
+            "pass e.g. 'Head' or '/Avatar/Head'", none_ok=True)
+    _expect(rig, (FaceRig,), "rig", "a FaceRig (a FitResult's .rig)",
+            "pass usdface.fit_capture(capture).rig" if isinstance(rig, FitResult)
+            else "pass the capture-mesh rig to implant, usdface.fit_capture(capture).rig", none_ok=True)
+
+
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
                        out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        landmarks: bool = False, **options: Any) -> PersonalizeResult:
@@ -654,13 +726,17 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     ``displayColor`` heat map of how much each vertex changed (RMS over shapes) and a ``SkelAnimation`` that
     plays the capture's test expressions on the personalized avatar, followed by ``take`` (a Live Link Face
     CSV or a take imported with ``usdface anim import``) when given, and with ``landmarks=True`` the landmark
-    layout of the personalized face mesh as ``Points`` (about 10 s more on the bench avatars)."""
+    layout of the personalized face mesh as ``Points`` (about 1.5 s more on the bench avatars)."""
     from .io.layers import source_date_epoch
     from .io.usd_rig import refuse_usdface_output
 
     source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     from .transfer import personalize_avatar as _personalize
 
+    _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)
+    # the layer's provenance names what wrote it, as write_fit_rig and write_landmarks do ('usdface
+    # personalize' from a script claimed a command line that had never run; the CLI passes its own)
+    options["command"] = options.get("command") or "usdface.api.personalize_avatar (Python API)"
     refuse_usdface_output(avatar_path)
     # an option personalize does not take (a typo) is named as such before any work, as batch does (it was
     # a fit error listing the method's options, after reading the inputs; a user trial); the pipeline's
@@ -790,7 +866,14 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     (``usdface landmarks -o``); see :func:`usdface.io.usd_landmarks.write_landmark_layer`. Returns the path
     written (atomically; an existing file needs ``force``)."""
     from .io.usd_landmarks import write_landmark_layer
+    from .landmarks import LandmarkLayout
 
+    _expect(avatar, (_model("Avatar"),), "write_landmarks' avatar", "an Avatar",
+            "pass usdface.read_avatar(PATH)")
+    _expect(rig, (_model("FaceRig"),), "write_landmarks' rig", "a FaceRig (a mesh of the avatar)",
+            "pass usdface.pick_mesh(avatar) (the mesh the layout was computed on)")
+    _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
+            "pass usdface.compute_landmarks(rig)")
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
@@ -876,12 +959,14 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
     ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``; ``.out_path`` the
     map file)."""
+    _paths(out_path=(out_path, False))
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.retarget import weight_map_csv, weight_map_json
 
     _refuse_implant_options(options)
+    _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, **options)
     refuse_usdface_output(avatar_path)
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
@@ -1007,9 +1092,17 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    _paths(manifest=(manifest, False), report_path=(report_path, True))
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
 
+    # as --jobs takes it: jobs=0 ran a process per CPU, a negative count in-process, "2" a ValueError
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
+        from .errors import OptionError
+
+        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
+                          fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
+                              "it out")
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
@@ -1181,6 +1274,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
 def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
     """A summary of a USD avatar, capture or usdface layer (``usdface inspect``): meshes, shapes, units,
     how each channel maps to ARKit (``name_map`` as for :func:`read_avatar`), provenance."""
+    _paths(path=(path, False))
     from .inspect import inspect_file as _inspect
 
     return _inspect(path, name_map=name_map)
@@ -1203,6 +1297,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     ``fit_errors`` the generic template and the personalized shapes are scored on its test
     expressions (eq. 5: the layer's recorded figures of its own fit, or a refit for another capture).
     Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
+    _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
     from .review.collect import collect_review
@@ -1257,6 +1352,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
+    _paths(layer_path=(layer_path, False))
     from .errors import OptionError, UsdFaceError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS

@@ -121,7 +121,7 @@ def register(subparsers) -> None:
                         "expressions on the personalized avatar")
     p.add_argument("--landmarks", action="store_true",
                    help="with the inspection data, the personalized face's landmark layout as Points "
-                        "(about 10 s more on a 14k-vertex head; implies --inspect)")
+                        "(about 1.5 s more on a 14k-vertex head; implies --inspect)")
     p.add_argument("--take", metavar="FILE",
                    help="append this take to the inspection animation: a Live Link Face CSV, a USD take or "
                         "an OBJ-sequence take folder (implies --inspect)")

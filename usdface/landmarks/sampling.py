@@ -25,6 +25,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..errors import LandmarkError
+from ..natives import open3d
 
 #: The candidate spacing as a share of the face size (:func:`usdface.landmarks.visibility.face_size`, the
 #: diagonal of the box around the moving vertices), rounded to a power of two millimetres
@@ -106,7 +107,7 @@ def surface_points(points: np.ndarray, triangles: np.ndarray, spacing: float,
     be sampled finer than ``spacing`` for no cube to be missed). Closest points by Open3D's
     ``RaycastingScene.compute_closest_points``.
     """
-    import open3d as o3d
+    o3d = open3d()
 
     p = np.asarray(points, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import GeometryError
 from ..mesh import vertex_normals
+from ..natives import open3d
 
 
 def hemisphere_directions(count: int) -> np.ndarray:
@@ -39,7 +40,7 @@ def _tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _scene(points: np.ndarray, triangles: np.ndarray):
-    import open3d as o3d
+    o3d = open3d()
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32)),
@@ -236,7 +237,7 @@ class PoseVisibility:
         return _camera_rays(points, normals, self.offset, self.camera)
 
     def _cast(self, scene, rays: np.ndarray) -> np.ndarray:
-        import open3d as o3d
+        o3d = open3d()
 
         self.rays_cast += len(rays)
         if len(rays) == 0:
@@ -252,7 +253,7 @@ class PoseVisibility:
 
     def _neutral_pass(self, todo: np.ndarray):
         """Neutral rays of ``todo``, their first hit (-1: none) and the neutral visibility ``[len(todo)]``."""
-        import open3d as o3d
+        o3d = open3d()
 
         scene, normals = self._neutral()
         n0 = normals[todo]

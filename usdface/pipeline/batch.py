@@ -391,6 +391,8 @@ def personalize_worker(item: dict):
 
     options = dict(item.get("options") or {})
     options.setdefault("force", bool(item.get("force", False)))
+    options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
+                                  "(usdface.pipeline.batch.personalize_worker)")
     return personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
 
 

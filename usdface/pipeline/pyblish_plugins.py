@@ -86,6 +86,27 @@ def _default_personalize() -> bool:
     return all(p.personalize is ExtractUsdFacePersonalized.default_personalize for p in extractors)
 
 
+def _refuse_malformed_items(items) -> None:
+    """Every item of ``context.data["usdfaceItems"]`` a mapping with a non-empty ``avatar``, ``capture`` and
+    ``output``, checked before any instance is made: a misspelt key (``"out"``) failed the collector with a
+    bare ``KeyError: 'output'``, a path given instead of a dict with ``TypeError: string indices ...``."""
+    from collections.abc import Mapping
+
+    from ..errors import InputFileError
+
+    example = '{"avatar": "hero.usdc", "capture": "captures/anna/", "output": "hero_anna.usda"}'
+    for i, item in enumerate(items):
+        where = f'context.data["usdfaceItems"][{i}]'
+        if not isinstance(item, Mapping):
+            raise InputFileError(f"{where} is a {type(item).__name__} ({item!r:.60}), not a dict",
+                                 fix=f"give each item as a dict, {example}")
+        missing = [k for k in ("avatar", "capture", "output") if not item.get(k)]
+        if missing:
+            has = ", ".join(map(str, item)) or "no keys"
+            raise InputFileError(f"{where} lacks {', '.join(missing)} (has {has})",
+                                 fix=f"give every item an avatar, a capture and an output, {example}")
+
+
 class CollectUsdFaceItems(_pyblish.ContextPlugin):
     """One ``usdface.avatar`` instance per item of ``context.data["usdfaceItems"]`` or of the batch manifest
     ``context.data["usdfaceManifest"]``."""
@@ -106,6 +127,7 @@ class CollectUsdFaceItems(_pyblish.ContextPlugin):
                 review = {"review": options.pop("review")} if "review" in options else {}
                 items.append(dict(avatar=i.avatar, capture=i.capture, output=i.output, **review,
                                   usdfaceOptions=options))
+        _refuse_malformed_items(items)
         for item in items:
             name = Path(item["output"]).stem
             instance = context.create_instance(name, family=FAMILY)
@@ -133,6 +155,12 @@ class ValidateUsdFaceRig(_pyblish.InstancePlugin):
         name_map = (instance.data.get("usdfaceOptions") or {}).get("name_map")
         issues = check(instance.data["avatar"], pixar=self.pixar, name_map=name_map)
         instance.data["usdfaceCheck"] = [i.to_dict() for i in issues]
+        if _default_personalize():
+            # an already personalized avatar (a usdface layer, its flattened export) passes the rules; it
+            # failed only in the extractor, after other instances' extractors had run
+            from ..io.usd_rig import refuse_usdface_output
+
+            refuse_usdface_output(instance.data["avatar"])
         for issue in issues:
             if issue.severity == "warning":
                 self.log.warning(str(issue))
@@ -190,6 +218,13 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
             return
         options = dict(instance.data.get("usdfaceOptions") or {})
         check_personalize_options(**options)
+        # the files the options name (and the instance's take) present and readable, as 'usdface batch'
+        # checks every row's before its first item: a missing take or pins file failed only in the extractor
+        from .batch import BatchItem, check_item_inputs
+
+        data = instance.data
+        check_item_inputs(BatchItem(str(data["avatar"]), str(data["capture"]), str(data["output"]),
+                                    _personalize_options(instance)))
         if options.get("dry_run"):        # nothing written: the extractor failed on the missing layer
             from ..errors import OptionError
 
@@ -212,8 +247,9 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
     label = "Validate outputs (usdface)"
 
     def process(self, instance):
-        from ..api import personalize_inputs
+        from ..api import _check_correspondence_cache, personalize_inputs
         from ..commands.review import default_output
+        from ..errors import OutputExistsError
         from ..io.atomic import check_output_file
         from ..io.layers import check_output_path
 
@@ -221,12 +257,20 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
         output = Path(data["output"])
         options = _personalize_options(instance)             # as the extractors take force and the take
         force, take = bool(options["force"]), options.pop("take", None)
-        if _default_personalize():
-            check_output_path(output, force, inputs=personalize_inputs(
-                data["avatar"], data["capture"], take=take, **options))
-        if data.get("review"):
-            check_output_file(default_output(output), force, suffixes=(".html", ".htm"), what="review page",
-                              inputs=[output, data["avatar"], data["capture"], take])
+        try:
+            if _default_personalize():
+                inputs = personalize_inputs(data["avatar"], data["capture"], take=take, **options)
+                check_output_path(output, force, inputs=inputs)
+                # the correspondence cache, an output too: in an input folder, where it cannot be written
+                _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[output])
+            if data.get("review"):
+                check_output_file(default_output(output), force, suffixes=(".html", ".htm"),
+                                  what="review page", inputs=[output, data["avatar"], data["capture"], take])
+        except OutputExistsError as exc:     # the fix in a publish's terms: its fix named --force
+            raise OutputExistsError(exc.message, path=exc.path, prim=exc.prim,
+                                    fix="set the instance's data force=True (or force among its "
+                                        "usdfaceOptions) to replace it, or publish to another "
+                                        "output") from None
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):

@@ -288,22 +288,34 @@ def geometry_digest(*arrays) -> str:
     return h.hexdigest()[:32]
 
 
-def save_correspondence(corr: Correspondence, path) -> Path:
-    """Write the map to ``path`` (``.npz``) atomically."""
+def correspondence_npz(corr: Correspondence) -> bytes:
+    """The map as the ``.npz`` bytes :func:`save_correspondence` writes (taken when the map is made, written
+    once the run that made it has succeeded)."""
+    import io
+
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
+                        face=corr.face,
+                        source_triangle=(corr.source_triangle if corr.source_triangle is not None
+                                         else np.zeros(0, dtype=np.int64)),
+                        has_source_triangle=np.array(corr.source_triangle is not None),
+                        weight=corr.weight if corr.weight is not None else corr.face.astype(float),
+                        registered=(corr.registered if corr.registered is not None
+                                    else np.zeros((0, 3))),
+                        key=np.array(corr.key), version=np.array(CACHE_VERSION),
+                        info=np.array(json.dumps(corr.info or {})))
+    return buffer.getvalue()
+
+
+def save_correspondence(corr: Correspondence | None, path, *, data: bytes | None = None) -> Path:
+    """Write the map to ``path`` (``.npz``) atomically; ``data``: its bytes taken earlier
+    (:func:`correspondence_npz`), written as they are."""
     from ..io.atomic import atomic_file
 
     path = Path(path)
+    data = correspondence_npz(corr) if data is None else data
     with atomic_file(path, force=True) as tmp, open(tmp, "wb") as f:  # a file object: no ".npz" appended
-        np.savez_compressed(f, triangle=corr.triangle, barycentric=corr.barycentric, distance=corr.distance,
-                            face=corr.face,
-                            source_triangle=(corr.source_triangle if corr.source_triangle is not None
-                                             else np.zeros(0, dtype=np.int64)),
-                            has_source_triangle=np.array(corr.source_triangle is not None),
-                            weight=corr.weight if corr.weight is not None else corr.face.astype(float),
-                            registered=(corr.registered if corr.registered is not None
-                                        else np.zeros((0, 3))),
-                            key=np.array(corr.key), version=np.array(CACHE_VERSION),
-                            info=np.array(json.dumps(corr.info or {})))
+        f.write(data)
     return path
 
 

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..natives import open3d
+
 __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
 
 _EYE_NAME = re.compile(r"eye", re.IGNORECASE)
@@ -99,7 +101,7 @@ class _EyeSurface:
     """One Open3D raycasting scene of a closed eye mesh (built once, queried several times)."""
 
     def __init__(self, points, triangles):
-        import open3d as o3d
+        o3d = open3d()
 
         self._o3d = o3d
         p = np.asarray(points, dtype=np.float64)

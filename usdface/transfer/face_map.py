@@ -15,6 +15,7 @@ from ..model import Capture, FaceRig
 from .correspond import (
     PosedSurface,
     correspondence_map,
+    correspondence_npz,
     geometry_digest,
     load_correspondence,
     nonrigid_register,
@@ -72,13 +73,16 @@ def pose_by_length(template_delta, avatar_delta):
 
 def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
                     initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
-                    avatar_landmarks=None, surfaces: dict | None = None):
+                    avatar_landmarks=None, surfaces: dict | None = None, pending: list | None = None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
     otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
     :func:`register_face`. ``surfaces``: a dict
     that receives the posed avatar face surface the registration built (``"avatar"``, a
-    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`)."""
+    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`).
+    ``pending``: a list that receives ``(cache, npz bytes)`` instead of the cache being written now, for a
+    caller that writes it only once its run succeeds (a run that failed after this step left its cache
+    behind, with the folder made for it)."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
@@ -113,7 +117,9 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
                  "cache": stale if isinstance(stale, str) else "replaced" if stale
                  else "miss" if cache is not None else "off"}
-    if cache is not None:
+    if cache is not None and pending is not None:
+        pending.append((cache, correspondence_npz(corr)))
+    elif cache is not None:
         save_correspondence(corr, cache)
     return corr
 

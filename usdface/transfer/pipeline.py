@@ -36,6 +36,7 @@ from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
+from .correspond import save_correspondence
 from .eyelids import find_eyeballs, repair_eyelids
 from .face_map import (
     cached_correspondence,
@@ -128,8 +129,8 @@ def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
                        "channels: " + "; ".join(shown) + ("; " + "; ".join(unused) if unused else ""),
                        path=avatar.file, prim=prim,
                        fix="name the face shapes as ARKit does (eyeBlinkLeft, jawOpen, ...) or map the rig's "
-                           "channel names with --name-map FILE ('usdface inspect AVATAR' lists how each was "
-                           "mapped)")
+                           "channel names with --name-map FILE (name_map=); 'usdface inspect AVATAR' lists "
+                           "how each was mapped")
     return best
 
 
@@ -350,6 +351,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         from ..personalize.api import check_fit_options
 
         check_fit_options(method, reg, **fit_prior_options(prior, method, reg), **fit_options)
+    pending_cache: list = []                      # the correspondence cache, written once the run succeeds
     with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -432,7 +434,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if len(names) < 4:
             raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
                            path=avatar.file, prim=face_prim,
-                           fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...)")
+                           fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...): "
+                               "rename them, or pass the studio's names with --name-map FILE (name_map=); "
+                               "'usdface inspect' lists how each channel was mapped")
         template_deltas = capture.template.deltas[[tmpl_idx[n] for n in names]]
         avatar_face_deltas = _shape_deltas(face, names, view=True)
         person_neutral0 = rig.neutral if rig is not None else capture.neutral
@@ -475,7 +479,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         surfaces = {}                              # the posed avatar face, built once for both uses
         corr = cached_correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence,
-                                     names, initial=sim, target=registration.target,
+                                     names, initial=sim, target=registration.target, pending=pending_cache,
                                      # the deformation transfer's
                                      source_triangles=face_transfer != "person",
                                      avatar_peak=face_peak, avatar_landmarks=face_landmarks,
@@ -582,6 +586,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
                     + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
+            _write_pending(pending_cache)
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
             return PersonalizeResult({}, names, k_names, weights, {}, face_prim, face_all,
@@ -678,6 +683,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
+        _write_pending(pending_cache)            # the correspondence cache, once the run has succeeded
         timings["write"] = time.perf_counter() - t
         advance("write")
     timings["total"] = time.perf_counter() - t_start
@@ -695,6 +701,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 #: An avatar whose main mesh's centre lies within this many of its sizes from the origin is left where it is
 #: (the bench heads and an avatar at the stage's origin: their answers unchanged to the bit).
 NEAR_ORIGIN = 20.0
+
+
+def _write_pending(pending: list) -> None:
+    """Write the correspondence caches :func:`.face_map.cached_correspondence` held back (``(path, npz
+    bytes)``)."""
+    for path, data in pending:
+        save_correspondence(None, path, data=data)
+    pending.clear()
 
 
 def _in_stage(similarity: dict, origin) -> dict:

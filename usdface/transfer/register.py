@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import RegistrationError
 from ..motion import moving_vertices, peak_motion, shape_norms
+from ..natives import open3d
 
 #: ICP target sample spacing on the avatar surface, in placed capture edge lengths.
 SAMPLE_SPACING = 0.15
@@ -143,7 +144,7 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
     ``scales`` times the diagonal of the initially placed source. Returns ``(similarity, inlier_rmse_m,
     fitness, final_max_distance_m)``.
     """
-    import open3d as o3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     src = np.asarray(source, dtype=np.float64)
@@ -178,7 +179,7 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
 def _even(points, spacing: float) -> np.ndarray:
     """``points[k,3]`` thinned to one per ``spacing``-sized voxel (Open3D ``voxel_down_sample``, the mean of
     each voxel): the same density whatever the mesh they were sampled from."""
-    import open3d as o3d
+    o3d = open3d()
 
     origin = points.mean(axis=0)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - origin))

@@ -23,6 +23,7 @@ from ..mesh import (
 from ..mesh import (
     cotangent_laplacian as _cotangent_laplacian,
 )
+from ..natives import open3d
 
 __all__ = ["triangle_normals", "vertex_normals", "triangle_areas", "gradient_operator", "cotangent_laplacian",
            "boundary_vertices", "closest_points", "SurfaceQuery", "mean_edge_length", "vertex_adjacency",
@@ -44,7 +45,7 @@ class SurfaceQuery:
     """
 
     def __init__(self, points, triangles):
-        import open3d as o3d
+        o3d = open3d()
 
         self._o3d = o3d
         self.points = np.asarray(points, dtype=np.float64)
@@ -97,7 +98,7 @@ def decimate(points, triangles, edge: float):
     lips, stay apart), and the vertices sit where the quadric error is least, so on a subdivided mesh
     they are the original corners. Returns ``(points[p,3], triangles[s,3])``; the input unchanged when it
     is not finer than that."""
-    import open3d as o3d
+    o3d = open3d()
 
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles)

@@ -1,0 +1,43 @@
+"""Native modules imported lazily, with a host's interrupt held back while they initialise.
+
+Open3D is imported at the first registration or ray cast, inside an API call. A ``KeyboardInterrupt`` (a
+host's cancel: Ctrl-C, ``_thread.interrupt_main()``) that lands in its pybind11 initialisation came out as
+``ImportError: initialization failed``, and left the process unable to import Open3D again (every later
+call: ``ImportError: generic_type: cannot initialize type "IntVector": an object with that name is already
+defined``), so one cancelled personalize broke every later one in the host's session. The ``usdface``
+program holds the signals around its own native imports (:func:`usdface.cli.main`); this does the same for
+Open3D wherever it is imported.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+
+def open3d():
+    """The ``open3d`` module; its first import runs with SIGINT and SIGTERM held back (in the main thread,
+    where Python delivers them, and only for handlers Python manages), then lets a held signal through, so
+    the interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a later call imports
+    nothing again."""
+    if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
+        import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
+
+        return o3d
+    import signal
+
+    held: list[int] = []
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(signum)
+        if handler is None or handler == signal.SIG_IGN:   # set outside Python, or ignored: left alone
+            continue
+        previous[signum] = signal.signal(signum, lambda got, _frame: held.append(got))
+    try:
+        import open3d as o3d
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)   # now the host's handler runs, outside the native import
+    return o3d
