@@ -528,3 +528,28 @@ def test_a_failed_personalize_leaves_no_correspondence_cache(samples, tmp_path, 
     assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
     again = usdface.personalize_avatar(*args[:2], tmp_path / "q.usda", correspondence=cache)
     assert again.report["correspondence"]["cache"] == "hit"
+
+
+def test_a_failed_retarget_map_write_leaves_no_correspondence_cache(samples, tmp_path, monkeypatch):
+    """``usdface retarget``'s run succeeds when its map is written: a map whose write failed left the
+    ``--correspondence`` cache behind (and the folder made for it), written before the map, as a failed
+    layer write of personalize did. The next run writes it and reuses it."""
+    import usdface
+    from usdface.errors import UsdFaceError
+    from usdface.io import atomic
+
+    cache = tmp_path / "cache" / "c.npz"
+
+    def broken(*args, **kwargs):
+        raise UsdFaceError("the write failed")
+
+    monkeypatch.setattr(atomic, "write_text_atomic", broken)
+    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / "map.json")
+    with pytest.raises(UsdFaceError, match="the write failed"):
+        usdface.write_retarget_map(*args, correspondence=cache)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "map.json").exists()
+    monkeypatch.undo()
+    first = usdface.write_retarget_map(*args, correspondence=cache)
+    assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
+    again = usdface.write_retarget_map(*args[:2], tmp_path / "map2.csv", correspondence=cache)
+    assert again.report["correspondence"]["cache"] == "hit"

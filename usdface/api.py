@@ -963,6 +963,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
+    from .transfer.correspond import save_correspondence
     from .transfer.retarget import weight_map_csv, weight_map_json
 
     _refuse_implant_options(options)
@@ -973,7 +974,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
     capture_path = _read_pins_file(options, capture_path)     # as personalize_avatar reads it
-    result = _personalize(avatar_path, capture_path, None, map_only=True, **options)
+    pending: list = []             # the correspondence cache: written once the map is, as personalize's
+    result = _personalize(avatar_path, capture_path, None, map_only=True, pending_cache=pending, **options)
     if out.suffix.lower() == ".json":
         eq4 = result.report["retarget"]
         meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
@@ -985,6 +987,8 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     write_text_atomic(out, text, force=force)
+    for cache, data in pending:
+        save_correspondence(None, cache, data=data)
     result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
 
@@ -1030,7 +1034,7 @@ def _refuse_unknown_options(options) -> None:
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
         "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command", "map_only",
-        "extra_inputs"}
+        "extra_inputs", "pending_cache"}
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:

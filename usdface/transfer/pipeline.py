@@ -288,7 +288,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
                        weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
                        map_only: bool = False, extra_inputs: dict | None = None,
-                       **fit_options) -> PersonalizeResult:
+                       pending_cache: list | None = None, **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
     :class:`Capture`) and, unless ``dry_run`` or ``out_path`` is None, write the layer to ``out_path``.
 
@@ -308,6 +308,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         rig's channels are authored for); None: any real weights, as the paper.
     map_only : stop after eq. (4) (``usdface retarget``: the weight map is the product): no implant, no
         layer; the result's ``offsets`` and ``approximation`` are empty, ``weights`` the map.
+    pending_cache : a list that receives the ``correspondence`` cache's ``(path, npz bytes)`` for the caller
+        to write once its own run has succeeded (:func:`usdface.api.write_retarget_map` writes its map after
+        this returns); None (default): written here once the layer is (or, ``map_only``, the map made).
     extra_inputs : ``{role: path}``, more files the layer is made from (``{"take": path}``, the take its
         inspection animation plays): recorded with their digests among its inputs, so that editing one makes
         the layer stale, and each under its role in the provenance (relative to the layer, as the inputs),
@@ -351,7 +354,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         from ..personalize.api import check_fit_options
 
         check_fit_options(method, reg, **fit_prior_options(prior, method, reg), **fit_options)
-    pending_cache: list = []                      # the correspondence cache, written once the run succeeds
+    own_cache = pending_cache is None             # the correspondence cache, written once the run succeeds
+    pending_cache = [] if own_cache else pending_cache
     with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
         advance.start("read")
         t = time.perf_counter()
@@ -586,7 +590,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                     "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
                     + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
-            _write_pending(pending_cache)
+            if own_cache:
+                _write_pending(pending_cache)
             timings["total"] = time.perf_counter() - t_start
             report["timings"] = timings
             return PersonalizeResult({}, names, k_names, weights, {}, face_prim, face_all,
@@ -683,7 +688,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                 prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
-        _write_pending(pending_cache)            # the correspondence cache, once the run has succeeded
+        if own_cache:                            # the correspondence cache, once the run has succeeded
+            _write_pending(pending_cache)
         timings["write"] = time.perf_counter() - t
         advance("write")
     timings["total"] = time.perf_counter() - t_start
