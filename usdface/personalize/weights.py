@@ -65,8 +65,8 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
                                upper=1.0, iterations: int = 150) -> np.ndarray:
     """:func:`reestimate_weights` for ``H`` vertex sets at once: ``problems`` = ``[(neutral[n_h,3],
     deltas[K,n_h,3], points[F,n_h,3]), ...]``, ``anchors[H,S]`` -> weights ``[H,S,F,K]`` (the same iterates as
-    ``H x S`` separate calls, one loop; frames posing the same problem solved once, :func:`.align.
-    distinct_frames`)."""
+    ``H x S`` separate calls, one loop; frames posing the same problem solved once,
+    :func:`.align.distinct_frames`)."""
     w0 = np.asarray(phone_weights, dtype=np.float64)
     a = np.asarray(anchors, dtype=np.float64)[:, :, None, None]                   # [H,S,1,1]
     Gs, cs = [], []

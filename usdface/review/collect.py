@@ -22,7 +22,7 @@ TEST_HOLD_S = 0.75
 
 
 #: A shape counts as changed where a vertex's offset moved by more than this (m), as in personalize's report
-#: (``usdface.transfer.pipeline._changes``: ``moved_vertices``).
+#: (``usdface.transfer.report.offset_changes``: ``moved_vertices``).
 CHANGE_TOL_M = 1e-9
 
 

@@ -79,7 +79,8 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
     :func:`register_face`. ``surfaces``: a dict
     that receives the posed avatar face surface the registration built (``"avatar"``, a
-    :class:`PosedSurface`), for the avatar's shapes on the capture (:func:`avatar_shapes_on_capture`).
+    :class:`PosedSurface`), for the avatar's shapes on the capture
+    (:func:`.implant.avatar_shapes_on_capture`).
     ``pending``: a list that receives ``(cache, npz bytes)`` instead of the cache being written now, for a
     caller that writes it only once its run succeeds (a run that failed after this step left its cache
     behind, with the folder made for it)."""

@@ -27,10 +27,10 @@ FACE_TRANSFERS = ("person", "offset", "dt", "dt-offset")
 APPROXIMATIONS = ("field", "generic", "retarget")
 
 
-#: The options of :func:`personalize_avatar` each face-transfer mode uses besides the fit's, eq. (4)'s and
-#: ``eyelids`` (:func:`check_mode_options` refuses the others when given): the person's field reaches
-#: ``extension_length`` face radii; the older modes join over ``falloff`` edge lengths; ``support`` ramps
-#: the personalization of ``person`` and the offset modes (``dt`` transfers the whole deformation).
+#: The options of :func:`.pipeline.personalize_avatar` each face-transfer mode uses besides the fit's,
+#: eq. (4)'s and ``eyelids`` (:func:`check_mode_options` refuses the others when given): the person's field
+#: reaches ``extension_length`` face radii; the older modes join over ``falloff`` edge lengths; ``support``
+#: ramps the personalization of ``person`` and the offset modes (``dt`` transfers the whole deformation).
 MODE_OPTIONS = {
     "person": ("extension_length", "support"),
     "offset": ("falloff", "support"),
@@ -54,8 +54,8 @@ _FLAGS = {"support": None, "eyes": None, "eyelids": "--no-eyelids", "weight_boun
 
 
 def option_name(name: str) -> str:
-    """``"falloff (--falloff)"``: an option of :func:`personalize_avatar` in both spellings, the API's and the
-    command line's (``"support (Python API only)"`` for one the commands do not offer)."""
+    """``"falloff (--falloff)"``: an option of :func:`.pipeline.personalize_avatar` in both spellings, the
+    API's and the command line's (``"support (Python API only)"`` for one the commands do not offer)."""
     flag = _FLAGS.get(name, "--" + name.replace("_", "-"))
     return f"{name} ({flag})" if flag else f"{name} (Python API only)"
 
@@ -90,11 +90,11 @@ def default_approximation(face_transfer: str) -> str:
     return "field" if face_transfer == "person" else "generic"
 
 
-#: Priors of the fit (see :func:`personalize_avatar`).
+#: Priors of the fit (see :func:`.pipeline.personalize_avatar`).
 PRIORS = ("avatar", "template")
 
 
-#: What eq. (4)'s ridge shrinks the retarget map towards (see :func:`personalize_avatar`).
+#: What eq. (4)'s ridge shrinks the retarget map towards (see :func:`.pipeline.personalize_avatar`).
 MAP_PRIORS = ("namesake", "zero")
 
 
@@ -148,10 +148,10 @@ def check_modes(face_transfer: str, approximation: str | None, prior: str, weigh
 
 
 def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.01, 0.03)) -> None:
-    """Refuse, before any work, numeric options of :func:`personalize_avatar` the work would choke on or
-    silently misuse (NaN, inf, zero or negative where a size or a weight is meant, a non-number), as the CLI's
-    argument types do (:mod:`usdface.commands.options`): ``mu`` ``"auto"`` or > 0, ``extension_length`` None
-    or > 0, ``falloff`` >= 0, ``support`` None or ``(low, high)`` with ``0 <= low <= high``."""
+    """Refuse, before any work, numeric options of :func:`.pipeline.personalize_avatar` the work would choke
+    on or silently misuse (NaN, inf, zero or negative where a size or a weight is meant, a non-number), as the
+    CLI's argument types do (:mod:`usdface.commands.options`): ``mu`` ``"auto"`` or > 0, ``extension_length``
+    None or > 0, ``falloff`` >= 0, ``support`` None or ``(low, high)`` with ``0 <= low <= high``."""
     from ..personalize.api import check_number
 
     def _number(name, value, **how):

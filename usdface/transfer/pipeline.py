@@ -330,12 +330,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     approximation : beyond the face region and on the other meshes: ``"field"`` the person's motion as a
         rotation + scale field of the generic motion, extended smoothly (:mod:`.motion_field`; the only one
         ``"person"`` goes with); ``"generic"`` the avatar's generic shape; ``"retarget"`` the eq. (4)
-        approximation A_j (the paper). None (default): :func:`default_approximation` of ``face_transfer``.
+        approximation A_j (the paper). None (default): :func:`.options.default_approximation` of
+        ``face_transfer``.
     extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
         to the generic motion, in face radii (RMS radius of the face region; None = no fade).
     falloff, support : the join of the older modes (:func:`implant_shapes`); ``support`` also ramps the
         person's personalization. Which mode uses which: :data:`MODE_OPTIONS` (the API and the commands
-        refuse one the mode does not use, :func:`check_mode_options`; this function takes them all).
+        refuse one the mode does not use, :func:`.options.check_mode_options`; this function takes them
+        all).
     face_mesh : prim path (or name) of the face mesh; default: the mesh the shared ARKit shapes move most.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
