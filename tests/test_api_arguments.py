@@ -181,3 +181,32 @@ def test_a_numeric_string_mu_is_the_number_not_a_late_value_error(samples, tmp_p
     result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "m.json",
                                     mu="0.01", method="dt")
     assert result.report["retarget"]["mu"] == pytest.approx(0.01)
+
+
+class _FsPath:
+    """A path object that is no ``pathlib.Path`` (an asset system's), an ``os.PathLike`` the checks take."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __fspath__(self):
+        return self.path
+
+
+def test_a_path_like_that_is_no_pathlib_path_is_read_as_a_path(tmp_path):
+    """The argument checks take any ``os.PathLike``; personalize with ``inspect=True`` then took such an
+    avatar for an ``Avatar`` ('object has no attribute mesh'), and fit_capture fitted such a capture but
+    wrote a rig that recorded no capture file (its provenance lost the input a str or Path records)."""
+    import os
+
+    import usdface
+    from usdface.io.usd_rig import usdface_layer_data
+
+    assert isinstance(_FsPath(A), os.PathLike)
+    out = usdface.personalize_avatar(_FsPath(A), _FsPath(C), _FsPath(tmp_path / "p.usda"),
+                                     inspect=True).out_path
+    assert out == (tmp_path / "p.usda").absolute() and out.is_file()
+    usdface.fit_capture(C, "dt", out_path=tmp_path / "a.usda")
+    usdface.fit_capture(_FsPath(C), "dt", out_path=tmp_path / "b.usda")
+    recorded = [usdface_layer_data(tmp_path / f"{k}.usda") for k in "ab"]
+    assert recorded[0]["captureDigest"] and recorded[1].get("captureDigest") == recorded[0]["captureDigest"]

@@ -358,7 +358,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
         from .io.layers import check_output_path
 
         check_output_path(out_path, force, inputs=[capture, options.get("pins")])
-    reading = isinstance(capture, str | Path)
+    reading = isinstance(capture, _PATH)            # any os.PathLike, as _as_capture reads it
     source = capture if reading else None
     parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items()
                   if k != "pins" or isinstance(v, str | Path)}           # a pins file by its path
@@ -767,7 +767,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     if take is not None:
         refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
     take_data = read_take(take) if take is not None else None  # a bad take fails before any work
-    avatar = (avatar_path if not isinstance(avatar_path, str | Path)
+    avatar = (avatar_path if not isinstance(avatar_path, _PATH)       # any os.PathLike, as the check takes
               else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)
     read_s = time.perf_counter() - start
