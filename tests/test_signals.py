@@ -261,3 +261,43 @@ def test_an_interrupt_in_open3ds_import_is_a_keyboard_interrupt_after_it(tmp_pat
                           timeout=600, preexec_fn=_interactive_signals)
     assert done.stdout.split("\n")[:2] == ["interrupted True", "again True"], (done.stdout,
                                                                                done.stderr[-2000:])
+
+
+_SIGINT_AND_SIGTERM_DURING_OPEN3D_IMPORT = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling
+    terms = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: terms.append(signum))   # and its SIGTERM handler
+    class Hook:
+        fired = False
+        def find_spec(self, name, path=None, target=None):
+            if name == "open3d.pybind" and not Hook.fired:     # inside Open3D's native initialisation
+                Hook.fired = True
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGTERM)
+            return None
+    sys.meta_path.insert(0, Hook())
+    from usdface.transfer.register import _even
+    points = np.random.default_rng(0).random((200, 3))
+    try:
+        _even(points, 0.1)
+        print("no interrupt")
+    except KeyboardInterrupt:
+        print("interrupted", "open3d" in sys.modules)
+    print("terminations", len(terms))
+    os.kill(os.getpid(), signal.SIGTERM)                        # the host's handler is back
+    print("terminations", len(terms))
+""")
+
+
+def test_every_signal_held_back_in_open3ds_import_reaches_the_host(tmp_path):
+    """A Ctrl-C and a SIGTERM both landing in Open3D's import, which holds them back: the SIGINT was let
+    through first, its KeyboardInterrupt left the loop, and the SIGTERM never reached the host's handler
+    (a termination request dropped). Each held signal reaches its handler once the import is done."""
+    script = tmp_path / "run.py"
+    script.write_text(_SIGINT_AND_SIGTERM_DURING_OPEN3D_IMPORT)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
+                          timeout=600, preexec_fn=_interactive_signals)
+    assert done.stdout.split("\n")[:3] == ["interrupted True", "terminations 1", "terminations 2"], (
+        done.stdout, done.stderr[-2000:])

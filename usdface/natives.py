@@ -17,9 +17,9 @@ import threading
 
 def open3d():
     """The ``open3d`` module; its first import runs with SIGINT and SIGTERM held back (in the main thread,
-    where Python delivers them, and only for handlers Python manages), then lets a held signal through, so
-    the interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a later call imports
-    nothing again."""
+    where Python delivers them, and only for handlers Python manages), then lets each held signal through
+    (SIGTERM first), so the interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a later
+    call imports nothing again."""
     if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
         import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
 
@@ -38,6 +38,14 @@ def open3d():
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-        for signum in dict.fromkeys(held):
-            signal.raise_signal(signum)   # now the host's handler runs, outside the native import
+        raised = None
+        # now the host's handlers run, outside the native import: each held signal, a termination first
+        # (a KeyboardInterrupt from the first let through dropped the others)
+        for signum in sorted(set(held), key=lambda s: s != signal.SIGTERM):
+            try:
+                signal.raise_signal(signum)
+            except BaseException as exc:
+                raised = raised or exc
+        if raised is not None:
+            raise raised
     return o3d
