@@ -327,3 +327,20 @@ def test_empty_face_region_error_lists_the_meshes_the_shapes_move(samples):
     assert "/Avatar/Mouth (" not in chosen.fix                          # not the mesh that failed
     auto = empty_face_region(avatar.file, avatar.meshes, "/Avatar/Head", names, chosen=False)
     assert "same face" in auto.fix and "--face-mesh" in auto.fix and "/Avatar/Head (" not in auto.fix
+
+
+@pytest.mark.parametrize("name, module", [("option_name", "options"), ("FACE_TRANSFERS", "options"),
+                                          ("pose_by_length", "face_map"), ("LIP_SHAPES", "report")])
+def test_names_moved_out_of_the_pipeline_module_still_import_with_a_warning(name, module):
+    """transfer/pipeline.py was split by concept (stop 33): a studio script that imports a moved name from
+    ``usdface.transfer.pipeline`` gets the object from its new module, with a DeprecationWarning naming it;
+    an unknown name is still an AttributeError."""
+    import importlib
+
+    from usdface.transfer import pipeline
+
+    with pytest.warns(DeprecationWarning, match=f"moved to usdface.transfer.{module}.{name}"):
+        got = getattr(pipeline, name)
+    assert got is getattr(importlib.import_module(f"usdface.transfer.{module}"), name)
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        pipeline.not_a_name  # noqa: B018

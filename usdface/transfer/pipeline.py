@@ -72,6 +72,29 @@ from .trust import shape_trust
 
 __all__ = ["PersonalizeResult", "personalize_avatar"]
 
+#: Names this module held until stop 33, and the module that holds each now: still importable from here,
+#: with a DeprecationWarning (:func:`__getattr__`), so a studio script written against the older layout keeps
+#: working.
+#: (The moved names this module still imports for its own use, as ``implant_shapes``, import as before.)
+MOVED = {**dict.fromkeys(("FACE_TRANSFERS", "APPROXIMATIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS", "PRIORS",
+                          "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
+                          "default_approximation"), "options"),
+         **dict.fromkeys(("SEMANTIC_SHAPES", "pose_by_length"), "face_map"),
+         "LIP_SHAPES": "report"}
+
+
+def __getattr__(name: str):
+    """A name of :data:`MOVED`, from its module now, with a DeprecationWarning naming where it lives."""
+    if name in MOVED:
+        import importlib
+        import warnings
+
+        module = f"{__package__}.{MOVED[name]}"
+        warnings.warn(f"usdface.transfer.pipeline.{name} moved to {module}.{name}; import it from there",
+                      DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(module), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: Width of the join between the face region and the field beyond, in face radii: 1.1-1.2 cm on a head, so it
 #: spans several edge rings even of a coarse 24k-vertex head (three; a 7 mm join spanned fewer than two and
