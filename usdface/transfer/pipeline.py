@@ -76,8 +76,8 @@ __all__ = ["PersonalizeResult", "personalize_avatar"]
 #: with a DeprecationWarning (:func:`__getattr__`), so a studio script written against the older layout keeps
 #: working.
 #: (The moved names this module still imports for its own use, as ``implant_shapes``, import as before.)
-MOVED = {**dict.fromkeys(("FACE_TRANSFERS", "APPROXIMATIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS", "PRIORS",
-                          "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
+MOVED = {**dict.fromkeys(("FACE_TRANSFERS", "APPROXIMATIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
+                          "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
                           "default_approximation"), "options"),
          **dict.fromkeys(("SEMANTIC_SHAPES", "pose_by_length"), "face_map"),
          "LIP_SHAPES": "report"}
