@@ -399,3 +399,27 @@ def test_landmarks_json_needs_force_and_is_checked_before_work(tmp_path, capfd):
     code = main(["landmarks", str(SAMPLES / "avatar.usda"), "--json", str(tmp_path / "layout.json")])
     assert code == 2 and "exists" in capfd.readouterr().err
     assert (tmp_path / "layout.json").read_text() == "{}"
+
+
+def test_evaluate_landmarks_without_takes_names_the_api_argument(tmp_path, capfd):
+    """A user trial: ``evaluate_landmarks(rig, None)`` said "--evaluate needs test weights (fix: pass
+    --takes ...)", the command line's flags to a script. The API names its argument (the flag in
+    parentheses at most); the command line keeps its own words, before the avatar is read."""
+    import usdface
+    from usdface.errors import OptionError
+
+    avatar = str(SAMPLES / "avatar.usda")
+    for takes in (None, 3):
+        with pytest.raises(OptionError, match="evaluate_landmarks' takes must be") as err:
+            usdface.evaluate_landmarks(avatar, takes)
+        assert "--" not in str(err.value).split("(fix:")[0] and "takes=" in err.value.fix
+    with pytest.raises(OptionError, match="each of evaluate_landmarks' takes"):
+        usdface.evaluate_landmarks(avatar, [None])
+    for takes in ([], ()):
+        with pytest.raises(LandmarkError, match="takes is empty") as err:
+            usdface.evaluate_landmarks(avatar, takes)
+        fix = err.value.fix
+        assert fix.startswith("pass takes=") and "(usdface landmarks --evaluate --takes" in fix
+    assert main(["landmarks", str(tmp_path / "missing.usda"), "--evaluate", "-q"]) == 2
+    err = capfd.readouterr().err
+    assert "--evaluate needs test weights" in err and "pass --takes" in err and "missing.usda" not in err

@@ -892,11 +892,20 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
 
-    rig = _as_rig(rig)
-    if isinstance(takes, str | Path):      # one take, not its characters
+    if isinstance(takes, _PATH):            # one take, not its characters
         takes = [takes]
+    elif isinstance(takes, Iterable) and not isinstance(takes, str | bytes):
+        takes = list(takes)
+    # named as this function's argument (it said "pass --takes", the command line's flag, to a script)
+    _expect(takes, (list, tuple), "evaluate_landmarks' takes", "a take's path or a list of them",
+            "pass takes='take.csv' or takes=['take1.csv', 'take2.csv'] (Live Link Face CSVs or USD takes)")
+    for take in takes:
+        _expect(take, _PATH, "each of evaluate_landmarks' takes", "a path (a str or Path)",
+                "pass the takes as file paths (Live Link Face CSVs or USD takes)")
     if not takes:
-        raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
+        raise LandmarkError("evaluate_landmarks' takes is empty: the sweep needs test weights",
+                            fix="pass takes=['take1.csv', ...] (usdface landmarks --evaluate --takes ...)")
+    rig = _as_rig(rig)
     indices = _read_vertex_list(empirical) if empirical is not None else None
     if indices is not None:            # checked before the takes are read, naming the file
         from .landmarks.baselines import empirical_layout

@@ -99,6 +99,8 @@ def refuse_other_mode(args) -> None:
         raise LandmarkError("-o/--output writes a landmark layout layer, which --evaluate does not compute",
                             fix="leave out -o to evaluate (the results go to --json/--plot), or leave out "
                                 "--evaluate to write the layout layer")
+    if args.evaluate and not args.takes:     # before the avatar is read, in the command line's terms
+        raise LandmarkError("--evaluate needs test weights", fix="pass --takes take1.csv [take2.csv ...]")
     given = [flag for name, flag in EVALUATE_ONLY if getattr(args, name) not in (None, [])]
     if given and not args.evaluate:
         raise LandmarkError(f"{'/'.join(given)} applies only to --evaluate (the layout would ignore it)",
