@@ -783,6 +783,10 @@ def test_a_batch_items_progress_line_says_its_own_time(tmp_path, monkeypatch, ca
     ("pins", "missing_pins.json", "missing_pins.json: pins file not found"),
     ("name_map", "folder.usda", "folder.usda: name map is a folder, not a file"),
     ("take", "missing_take.csv", "missing_take.csv: take not found"),
+    ("take", "avatar.usda", "avatar.usda: this is an avatar, not a take"),
+    ("take", "capture.usda", "capture.usda: this is a capture"),
+    ("take", "notes.txt", "notes.txt: not a take"),
+    ("take", "empty_folder", "empty_folder: not a take: a folder with no frames/"),
 ])
 def test_a_bad_last_row_stops_the_batch_before_the_first_item(tmp_path, capsys, column, value, said):
     """User trial: a manifest whose last row named a missing avatar, a capture that is no capture, an output

@@ -446,3 +446,28 @@ def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(registe
     error = _results(context)[(plugin, "o")]["error"]
     assert error is not None and says in str(error), error
     assert calls == [] and not (tmp_path / "o.usda").exists()
+
+
+@pytest.mark.parametrize("take, says", [
+    ("avatar.usda", "avatar.usda, prim /Avatar: this is an avatar, not a take"),
+    ("capture.usda", "capture.usda: this is a capture"),
+    ("notes.csv", "notes.csv: not a Live Link Face CSV"),
+])
+def test_a_take_of_another_kind_fails_validation(registered, tmp_path, samples, take, says):
+    """A user trial: the avatar given as the instance's take passed every validator and failed only in the
+    extractor (after other instances' extractors had run); the take's kind is read before the first one."""
+    calls = []
+    monkey = type("Extract", (plugins.ExtractUsdFacePersonalized,),
+                  {"process": lambda self, instance: calls.append(instance)})
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+    pyblish_api.register_plugin(monkey)
+    (tmp_path / "notes.csv").write_text("name,value\njaw,1\n")
+    path = tmp_path / take if take == "notes.csv" else samples / take
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(samples / "avatar.usda"),
+                                     "capture": str(samples / "capture.usda"),
+                                     "output": str(tmp_path / "o.usda"), "take": str(path)}]
+    pyblish.util.publish(context)
+    error = _results(context)[("ValidateUsdFaceOptions", "o")]["error"]
+    assert error is not None and says in str(error) and "(fix: " in str(error), error
+    assert calls == [] and not (tmp_path / "o.usda").exists()

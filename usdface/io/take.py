@@ -31,7 +31,7 @@ from ..model import Capture, FaceRig, Frames
 from .mesh_io import read_obj
 
 __all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
-           "capture_from_take", "capture_from_whole_take", "is_take", "probe_take",
+           "capture_from_take", "capture_from_whole_take", "is_take", "probe_take", "check_take_path",
            "whole_take_playback", "missing_arkit_weights", "TAKE_PRIM"]
 
 TAKE_PRIM = "/Take"
@@ -472,6 +472,74 @@ def probe_take(path) -> tuple[bool, object]:
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     return seen["points"] and not seen["role"] and not seen["blend"], layer
+
+
+#: The fix when a file that is no take is given where a take is read (``--take``, a manifest's ``take``).
+TAKE_FIX = ("give a take: a Live Link Face CSV, a USD take ('usdface anim import', a time-sampled mesh with "
+            "its weights) or an OBJ-sequence folder with its CSV")
+
+
+def check_take_path(path, fix: str = TAKE_FIX) -> Path:
+    """What :func:`read_take` refuses about the kind of ``path`` without reading its frames (``usdface batch``
+    and the Pyblish validators check a take before the first item / extractor; an avatar given as the take
+    failed only at the item): a missing path, a capture (:func:`refuse_capture_as_take`), a folder with no
+    OBJ frames and no CSV, a CSV without a Live Link ``Timecode`` header or frames, a file neither CSV nor
+    USD, and a USD file with no time-sampled mesh and no per-frame weights (an avatar, a fitted rig: named
+    as such). Raises :class:`usdface.errors.InputFileError` / ``CaptureError`` naming the path and ``fix``;
+    returns it as a Path."""
+    import os
+
+    p = Path(path)
+    if not os.path.exists(p):
+        raise InputFileError("take not found", path=p, fix=fix)
+    refuse_capture_as_take(p, TAKE_NOT_CAPTURE_FIX)
+    if p.is_dir():
+        if not probe_take(p)[0]:
+            raise InputFileError("not a take: a folder with no frames/ folder and no Live Link CSV", path=p,
+                                 fix=fix)
+        return p
+    suffix = p.suffix.lower()
+    if suffix == ".csv":                       # the header and the first frame only, as the reader sees them
+        try:
+            with open(p, encoding="utf-8-sig", newline="") as f:
+                lines = [line for line in (f.readline() for _ in range(64)) if line.strip()][:2]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputFileError(f"cannot read the take as a Live Link Face CSV ({exc})", path=p,
+                                 fix=fix) from None
+        if not lines or "Timecode" not in [c.strip() for c in lines[0].split(",")]:
+            raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=p,
+                                 fix=fix)
+        if len(lines) < 2:
+            raise InputFileError("the take's CSV has a header but no frames", path=p,
+                                 fix="record a take first")
+        return p
+    if suffix not in (".usd", ".usda", ".usdc", ".usdz"):
+        raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc/.usdz or a Live Link .csv)",
+                             path=p, fix=fix)
+    take, _layer = probe_take(p)               # the layer held: the stage below parses the file once
+    if take:
+        return p
+    from pxr import UsdSkel
+
+    from .usd_open import open_usd_stage
+    from .usd_rig import usdface_layer_data
+
+    stage = open_usd_stage(p, "take", fix)
+    if has_frame_weights(stage):               # a weights-only take (a SkelAnimation, 'anim import')
+        return p
+    data = usdface_layer_data(p)
+    kind = data.get("format")
+    if kind == "fit":
+        what = "a 'usdface fit' rig (the person's shapes on the capture mesh)"
+    elif kind == "errorMaps":
+        what = "an error-map file written by 'usdface evaluate --usd'"
+    elif any(p_.IsA(UsdSkel.Root) for p_ in stage.Traverse()):
+        what = "a usdface output layer (a personalized avatar)" if data.get("inputs") else "an avatar"
+    else:
+        what = "a USD file"
+    raise CaptureError(f"this is {what}, not a take: no mesh with time-sampled points and no SkelAnimation "
+                       "with time-sampled blendShapeWeights", path=p,
+                       prim=stage.GetDefaultPrim().GetPath() if stage.GetDefaultPrim() else None, fix=fix)
 
 
 def has_frame_weights(stage) -> bool:

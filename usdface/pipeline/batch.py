@@ -238,9 +238,11 @@ def check_item_inputs(item: BatchItem) -> None:
     """The files a personalize item reads, refused as its readers would refuse them but before the batch's
     first item (a bad last row failed at its turn, after every row before it had run): the avatar a
     readable USD file, the capture a capture folder, take or capture USD file
-    (:func:`usdface.io.check_capture_path`), and the ``take``, ``name_map`` and ``pins`` a row names existing
-    (the correspondence cache may be missing: the item writes it). Raises the reader's error."""
+    (:func:`usdface.io.check_capture_path`), the ``take`` a take (:func:`usdface.io.take.check_take_path`:
+    an avatar given as the take failed only at the item), and the ``name_map`` and ``pins`` a row names
+    existing (the correspondence cache may be missing: the item writes it). Raises the reader's error."""
     from ..io import USD_EXTENSIONS, check_capture_path
+    from ..io.take import check_take_path
     from ..io.usd_open import require_readable
 
     avatar = require_readable(item.avatar, "avatar", fix="give the avatar's .usd/.usda/.usdc file")
@@ -249,8 +251,8 @@ def check_item_inputs(item: BatchItem) -> None:
                              fix=f"give the avatar's USD file ({', '.join(USD_EXTENSIONS)})")
     check_capture_path(item.capture)
     take = item.options.get("take")
-    if isinstance(take, str) and take and not os.path.exists(take):
-        raise InputFileError("take not found", path=take, fix="give a Live Link Face CSV, USD take or folder")
+    if isinstance(take, str) and take:
+        check_take_path(take)
     for key, what, kinds in (("name_map", "name map", ".json or .csv"),
                              ("pins", "pins file", ".json or .usd")):
         if isinstance(item.options.get(key), str) and item.options[key]:

@@ -219,7 +219,8 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
         options = dict(instance.data.get("usdfaceOptions") or {})
         check_personalize_options(**options)
         # the files the options name (and the instance's take) present and readable, as 'usdface batch'
-        # checks every row's before its first item: a missing take or pins file failed only in the extractor
+        # checks every row's before its first item: a missing take or pins file failed only in the extractor,
+        # and so did a take of another kind (the avatar given as the take)
         from .batch import BatchItem, check_item_inputs
 
         data = instance.data
