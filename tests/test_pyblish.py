@@ -471,3 +471,63 @@ def test_a_take_of_another_kind_fails_validation(registered, tmp_path, samples, 
     error = _results(context)[("ValidateUsdFaceOptions", "o")]["error"]
     assert error is not None and says in str(error) and "(fix: " in str(error), error
     assert calls == [] and not (tmp_path / "o.usda").exists()
+
+
+def _writes_a_layer(avatar, capture, output, **options):
+    """A personalize step that writes a (trivial) layer at once."""
+    from types import SimpleNamespace
+
+    Path(output).write_text("#usda 1.0\n")
+    return SimpleNamespace(out_path=Path(output), report={"warnings": []})
+
+
+def test_a_layer_failing_its_recheck_is_set_aside(pyblish_registered, samples, tmp_path, monkeypatch):
+    """A user trial: the written layer failed the extractor's re-check and stayed at the output, where the
+    retry failed on it ('output layer exists'); it is set aside as ``<layer>.failed`` (as batch sets aside a
+    failed item's output) for 'usdface check', and the error says so."""
+    from usdface import api
+    from usdface.pipeline.check import Issue
+
+    monkeypatch.setattr(plugins.ExtractUsdFacePersonalized, "personalize", staticmethod(_writes_a_layer))
+    monkeypatch.setattr(api, "check", lambda path, **k: [Issue("error", "Readable", "/", "broken")]
+                        if Path(path).name == "p.usda" else [])
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "p.usda"), "review": True}])
+    error = str(results[("ExtractUsdFacePersonalized", "p")]["error"])
+    assert "fails the check" in error and "set aside as p.usda.failed, not published" in error, error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.usda.failed"]
+    instance = next(iter(context))
+    assert not instance.data.get("files") and not instance.data.get("representations")
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_a_failed_review_page_takes_the_new_layer_with_it(pyblish_registered, samples, tmp_path, monkeypatch,
+                                                          force):
+    """A user trial: the review extractor failed (a full disk) after the layer was written, and the layer
+    stayed on disk and among the instance's files; the layer this publish made is removed and withdrawn,
+    one that replaced an earlier layer (force) is left, and the error says which."""
+    from usdface import api
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(plugins.ExtractUsdFacePersonalized, "personalize", staticmethod(_writes_a_layer))
+    monkeypatch.setattr(api, "check", lambda *a, **k: [])
+    monkeypatch.setattr(api, "write_review", no_space)
+    if force:
+        (tmp_path / "p.usda").write_text("#usda 1.0\n# the earlier layer\n")
+    context, results = _publish(pyblish_registered, [
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "p.usda"), "review": True, "force": force}])
+    error = results[("ExtractUsdFaceReview", "p")]["error"]
+    said = " ".join([str(error), *getattr(error, "__notes__", [])])
+    instance = next(iter(context))
+    assert not instance.data.get("files") and not instance.data.get("representations")
+    assert "usdfaceLayer" not in instance.data
+    if force:
+        assert "replaced the earlier one (force) and is left there" in said, said
+        assert (tmp_path / "p.usda").read_text() == "#usda 1.0\n"
+    else:
+        assert "p.usda this publish wrote was removed" in said, said
+        assert list(tmp_path.iterdir()) == []

@@ -444,7 +444,7 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
         theirs = isinstance(exc, OutputExistsError) and exc.path is not None and \
             Path(exc.path).absolute() == out.absolute()
         if not existed and out.exists() and not theirs:
-            error += f" (its output was written before the failure: moved to {_set_aside(out).name})"
+            error += f" (its output was written before the failure: moved to {set_aside(out).name})"
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
                     traceback="".join(traceback.format_exception(exc)))
@@ -506,9 +506,10 @@ def _item_notes(caught, value) -> list[str]:
         return [str(n) for n in caught]
 
 
-def _set_aside(out: Path) -> Path:
+def set_aside(out: Path) -> Path:
     """Move the output a failed item left to ``<output>.failed`` (replacing an earlier one), so that resume,
-    which takes an existing output as finished, runs the item again; returns the new path."""
+    which takes an existing output as finished, runs the item again; returns the new path (the Pyblish layer
+    extractor sets aside a layer that fails its re-check the same way)."""
     import shutil
 
     aside = out.with_name(out.name + ".failed")

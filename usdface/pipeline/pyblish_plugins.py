@@ -17,8 +17,12 @@ makes them from ``context.data["usdfaceItems"]`` (a list of dicts) or ``context.
   publish fails before any file is written.
 * :class:`ExtractUsdFacePersonalized` (extractor): runs ``personalize``, re-checks the written layer, and
   records it in ``instance.data["files"]`` and ``instance.data["representations"]`` (the OpenPype/AYON shape).
+  A layer that fails the re-check is set aside as ``<layer>.failed`` (as ``usdface batch`` sets aside a
+  failed item's output), to look at with ``usdface check``; the error says so.
 * :class:`ExtractUsdFaceReview` (extractor, with ``instance.data["review"]``): the self-contained review page
-  (``usdface review``) beside the layer, attached as a ``review`` representation.
+  (``usdface review``) beside the layer, attached as a ``review`` representation. When it fails, the layer
+  this publish wrote is removed (all or nothing, as the API's several outputs) and taken off the instance's
+  files and representations; one that replaced an earlier layer (``force``) is left, and the error says so.
 
 Example::
 
@@ -33,6 +37,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 from pathlib import Path
 
@@ -62,6 +67,18 @@ def _warnings_to_log(plugin, instance, report_warnings=None):
                 if text not in said:
                     said.append(text)
                     plugin.log.warning(text)
+
+
+def _say_what_was_left(exc: BaseException, note: str) -> None:
+    """Add ``note`` (what a failed extractor removed or left on disk, and why) to ``exc``'s message: a
+    :class:`usdface.errors.UsdFaceError`'s text before its fix, any other exception's as a note."""
+    from ..errors import UsdFaceError
+
+    if isinstance(exc, UsdFaceError):
+        exc.message = f"{exc.message} ({note})"
+        exc.args = (str(exc),)
+    else:
+        exc.add_note(note)
 
 
 def _personalize_options(instance) -> dict:
@@ -296,6 +313,7 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
 
         output = Path(instance.data["output"])
         options = _personalize_options(instance)
+        existed = os.path.lexists(output)          # a layer replaced (force) is not removed on a failure
         self.log.info("personalizing %s with %s", instance.data["avatar"], instance.data["capture"])
         with _warnings_to_log(self, instance) as notes:
             result = self.personalize(instance.data["avatar"], instance.data["capture"], output, **options)
@@ -303,13 +321,26 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
             notes += [n for n in (report.get("warnings") or []) if isinstance(n, str)] \
                 if isinstance(report, dict) else []
         written = Path(getattr(result, "out_path", None) or output)
-        errors = [i for i in check(written, name_map=options.get("name_map")) if i.severity == "error"]
-        if errors:
-            from ..errors import UsdFaceError
+        try:
+            errors = [i for i in check(written, name_map=options.get("name_map")) if i.severity == "error"]
+            if errors:
+                from ..errors import UsdFaceError
 
-            raise UsdFaceError(f"the written layer fails the check: {errors[0]}", path=written,
-                               fix="run 'usdface check' on it; report the problem to the usdface maintainers")
+                raise UsdFaceError(f"the written layer fails the check: {errors[0]}", path=written,
+                                   fix="run 'usdface check' on the set-aside layer; report the problem to "
+                                       "the usdface maintainers")
+        except BaseException as exc:
+            # a layer that fails (or breaks) the check is no publish: it stayed at the output, where the
+            # retry then failed on it ('output layer exists'); kept aside for 'usdface check', as batch does
+            if os.path.lexists(written):
+                from .batch import set_aside
+
+                aside = set_aside(written)
+                _say_what_was_left(exc, f"the layer was set aside as {aside.name}, not published")
+            raise
         instance.data["usdfaceLayer"] = str(written)
+        # whether this publish made the file (a later extractor's failure removes it) or replaced one (force)
+        instance.data["usdfaceLayerNew"] = not existed or written.absolute() != output.absolute()
         instance.data.setdefault("files", []).append(str(written))
         instance.data.setdefault("representations", []).append(
             {"name": "usd", "ext": written.suffix.lstrip("."), "files": written.name,
@@ -333,14 +364,42 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
 
         layer = Path(instance.data["usdfaceLayer"])
         options = _personalize_options(instance)       # the take the layer plays, the layer's force
-        with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
-            page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
-                                take=options.get("take"), force=bool(options["force"]))
+        try:
+            with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
+                page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
+                                    take=options.get("take"), force=bool(options["force"]))
+        except BaseException as exc:
+            # the publish failed after the layer was written: the layer stayed on disk (and in the
+            # instance's files, for an integrator), and the retry failed on it ('output layer exists')
+            _say_what_was_left(exc, _withdraw_layer(instance, layer))
+            raise
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
         instance.data.setdefault("representations", []).append(
             {"name": "review", "ext": "html", "files": page.name, "stagingDir": str(page.parent)})
         self.log.info("wrote %s", page)
+
+
+def _withdraw_layer(instance, layer: Path) -> str:
+    """Take the layer the layer extractor wrote off the instance's files and representations, and remove it
+    when this publish made it (``instance.data["usdfaceLayerNew"]``); one that replaced an earlier layer
+    (``force``) is left. Returns what was done, for the error."""
+    data = instance.data
+    data.pop("usdfaceLayer", None)
+    data["files"] = [f for f in data.get("files", []) if Path(f) != layer]
+    data["representations"] = [r for r in data.get("representations", [])
+                               if not (r.get("name") == "usd" and r.get("files") == layer.name
+                                       and Path(r.get("stagingDir", "")) == layer.parent)]
+    if not data.pop("usdfaceLayerNew", False):      # replaced an earlier one, or not known to be new
+        return (f"the layer {layer.name} this publish wrote replaced the earlier one (force) and is left "
+                "there, not published")
+    try:
+        layer.unlink()
+    except FileNotFoundError:
+        pass
+    except OSError as err:
+        return f"the layer {layer.name} this publish wrote could not be removed ({err}): delete it"
+    return f"the layer {layer.name} this publish wrote was removed: a failed publish leaves nothing"
 
 
 #: The plugins, in publish order.
