@@ -515,3 +515,55 @@ def test_export_of_a_plain_avatar_says_as_authored(sample_dir, personalized_samp
     assert res.returncode == 0 and "[personalized]" in res.stdout, res.stderr
     extras = pygltflib.GLTF2().load(str(tmp_path / "p.glb")).scenes[0].extras
     assert extras["usdface"]["variant"] == "personalized"
+
+
+def _matrices(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(joint node matrices[J, 4, 4], inverse bind matrices[J, 4, 4])`` of the first skin (column
+    vectors)."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    skin = gltf.skins[0]
+    view = gltf.bufferViews[gltf.accessors[skin.inverseBindMatrices].bufferView]
+    ibm = np.frombuffer(gltf.binary_blob(), dtype=np.float32, count=16 * len(skin.joints),
+                        offset=view.byteOffset).reshape(-1, 4, 4).transpose(0, 2, 1)
+    nodes = np.array([np.asarray(gltf.nodes[j].matrix).reshape(4, 4).T for j in skin.joints])
+    return nodes, ibm
+
+
+def test_gltf_skin_of_a_scaled_skeleton_carries_no_scale(samples, tmp_path):
+    """A user trial: ``export --gltf`` of a layer over a Blender avatar (its Skeleton under a prim scaled
+    0.01, as the bench's ``avatar_blender.usdc``) put the 0.01 in the root joint's node and 100 in the
+    inverse bind matrices: valid glTF (joint @ inverse bind is the identity), but Blender's importer builds
+    its bind pose from the inverse bind matrices with the scale dropped (edit bones have none) and the mesh
+    was 100 times too large without its Armature modifier. The scale cancels in the skinning: each joint's
+    is taken out of both, so no joint node and no inverse bind matrix is scaled, and the rest pose and the
+    points (metres) are as before."""
+    from usdface.io.avatar_writer import write_rig_usd
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    turned = write_rig_usd(avatar.meshes, tmp_path / "turned.usda", up_axis="Z", meters_per_unit=1.0,
+                           parents=("root",), parent_scale=0.01, parent_rotate_x_deg=90.0)
+    out = api.export_avatar(turned, gltf=tmp_path / "t.glb")["gltf"]
+    nodes, ibm = _matrices(out)
+    for m in (*nodes, *ibm):       # rotation + translation only: orthonormal 3 x 3
+        np.testing.assert_allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-5)
+    for product in _rest_skinning(out):
+        np.testing.assert_allclose(product, np.eye(4), atol=1e-6)
+    plain = read_gltf(api.export_avatar(samples / "avatar.usda", gltf=tmp_path / "p.glb")["gltf"])
+    np.testing.assert_allclose(read_gltf(out)["Head"]["positions"], plain["Head"]["positions"], atol=1e-6)
+
+
+def test_gltf_skin_of_the_bench_blender_avatar_carries_no_scale(bench, tmp_path):
+    """The same on the bench's Blender round trip itself (``../shared``; skipped without it)."""
+    path = bench / "dev1" / "avatar_blender.usdc"
+    if not path.is_file():
+        pytest.skip("needs ../shared/data/bench/dev1/avatar_blender.usdc")
+    out = api.export_avatar(path, gltf=tmp_path / "b.glb")["gltf"]
+    nodes, ibm = _matrices(out)
+    for m in (*nodes, *ibm):
+        np.testing.assert_allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-5)
+    for product in _rest_skinning(out):
+        np.testing.assert_allclose(product, np.eye(4), atol=1e-5)
+    head = read_gltf(out)["Head"]["positions"]
+    assert 0.1 < float(np.ptp(head, axis=0).max()) < 1.0     # a head's size in metres

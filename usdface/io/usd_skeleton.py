@@ -5,7 +5,9 @@ influences (mapped to the skeleton's joint order, constant influences expanded p
 Frames: a USD matrix ``M`` (row vectors, stage units and up axis) becomes ``C @ M.T @ inv(C)`` with
 ``C = stage_to_internal(up_axis, metersPerUnit)``, so that it maps internal points to internal points; at the
 rest pose ``world_rest @ inv(bind_world)`` then leaves the internal neutral points where they are when rest
-equals bind, as UsdSkel does.
+equals bind, as UsdSkel does. Each joint's uniform scale (a skeleton under a prim scaled 0.01) is taken out
+of both its rest and bind transforms (:func:`_unscaled`): the skinning is unchanged, and neither the joint
+nodes nor the inverse bind matrices are scaled (Blender's glTF importer drops that scale from its bind pose).
 """
 
 from __future__ import annotations
@@ -23,6 +25,21 @@ __all__ = ["read_gltf_skin"]
 def _to_internal(matrices, c: np.ndarray) -> np.ndarray:
     m = np.asarray([np.asarray(x, dtype=np.float64) for x in matrices]).reshape(-1, 4, 4)
     return c @ np.transpose(m, (0, 2, 1)) @ np.linalg.inv(c)
+
+
+def _unscaled(rest_world: np.ndarray, bind_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rest_world[J, 4, 4]`` and ``bind_world[J, 4, 4]`` with each joint's uniform bind scale ``s_j``
+    (``cbrt(|det|)`` of its bind transform's 3 x 3) taken out of both: ``M_j @ diag(1/s_j, 1/s_j, 1/s_j,
+    1)``. The skinning ``rest_j @ inv(bind_j)`` is unchanged (the factor cancels) and so are the points, but
+    neither the joint nodes nor the inverse bind matrices carry the scale of a skeleton under a scaled prim
+    (Blender's export: 0.01): Blender's glTF importer builds its bind pose from the inverse bind matrices
+    with their scale dropped (edit bones have none) and put the 0.01 in the pose, so the mesh without its
+    Armature modifier was 100 times too large; the joints' translations stay in metres."""
+    scale = np.cbrt(np.abs(np.linalg.det(bind_world[:, :3, :3])))
+    factor = np.where(np.isfinite(scale) & (scale > 0), 1.0 / np.where(scale > 0, scale, 1.0), 1.0)
+    unscale = np.tile(np.eye(4), (len(factor), 1, 1))
+    unscale[:, :3, :3] *= factor[:, None, None]
+    return rest_world @ unscale, bind_world @ unscale
 
 
 def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
@@ -62,6 +79,7 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     # glTF viewer draw the skinned avatar a hundredth of its size and turned 90 degrees
     skel_world = xf.GetLocalToWorldTransform(skel.GetPrim())
     bind_world = _to_internal([b * skel_world for b in bind], c) if bind else rest_world.copy()
+    rest_world, bind_world = _unscaled(rest_world, bind_world)
     rest_local = np.array([rest_world[j] if p < 0 else np.linalg.inv(rest_world[p]) @ rest_world[j]
                            for j, p in enumerate(parents)])
     influences = {}
