@@ -553,3 +553,25 @@ def test_a_failed_retarget_map_write_leaves_no_correspondence_cache(samples, tmp
     assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
     again = usdface.write_retarget_map(*args[:2], tmp_path / "map2.csv", correspondence=cache)
     assert again.report["correspondence"]["cache"] == "hit"
+
+
+def test_a_retarget_cache_that_cannot_be_written_takes_the_new_map_with_it(samples, tmp_path, monkeypatch):
+    """The map is written, then the ``--correspondence`` cache: a cache whose write failed (a full disk)
+    left the new map behind, the one file of a failed run. The map goes with it (all or nothing, as the
+    API's several outputs); a map that replaced an earlier one (``force``) stays."""
+    import usdface
+    from usdface.errors import UsdFaceError
+    from usdface.transfer import correspond
+
+    def broken(*args, **kwargs):
+        raise UsdFaceError("the cache write failed")
+
+    monkeypatch.setattr(correspond, "save_correspondence", broken)
+    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / "map.json")
+    with pytest.raises(UsdFaceError, match="the cache write failed"):
+        usdface.write_retarget_map(*args, correspondence=tmp_path / "cache" / "c.npz")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "map.json").write_text("{}")
+    with pytest.raises(UsdFaceError, match="the cache write failed"):
+        usdface.write_retarget_map(*args, correspondence=tmp_path / "cache" / "c.npz", force=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["map.json"]

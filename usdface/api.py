@@ -967,9 +967,10 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     the implant's (``face_transfer``, ``falloff``, ...: :data:`usdface.transfer.options.IMPLANT_OPTIONS`)
     do not change the map and are refused (:class:`usdface.errors.OptionError`). Returns the
     ``PersonalizeResult`` (``.weights[K_capture, K_avatar]``, ``.names``, ``.avatar_names``; ``.out_path`` the
-    map file)."""
+    map file). A ``correspondence`` cache is written after the map (as personalize writes it after the
+    layer), and a cache that cannot be written takes a new map with it: a run that fails leaves neither."""
     _paths(out_path=(out_path, False))
-    from .io.atomic import check_output_file, write_text_atomic
+    from .io.atomic import check_output_file, outputs_all_or_nothing, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
     from .transfer.correspond import save_correspondence
@@ -995,9 +996,11 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                                channels=eq4["channels"])
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
-    write_text_atomic(out, text, force=force)
-    for cache, data in pending:
-        save_correspondence(None, cache, data=data)
+    done: dict = {}
+    with outputs_all_or_nothing(done, map=out):   # a cache that cannot be written takes a new map with it
+        done["map"] = write_text_atomic(out, text, force=force)
+        for cache, data in pending:
+            save_correspondence(None, cache, data=data)
     result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
 
