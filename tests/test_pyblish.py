@@ -23,6 +23,21 @@ def registered():
     pyblish_api.deregister_all_plugins()
 
 
+@pytest.fixture
+def extractions(registered) -> list:
+    """The personalize extractor replaced by one that records its instances and writes nothing: a publish
+    whose validators refuse an item must leave this list empty."""
+    calls = []
+    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+
+    class Extract(plugins.ExtractUsdFacePersonalized):
+        def process(self, instance):
+            calls.append(instance)
+
+    pyblish_api.register_plugin(Extract)
+    return calls
+
+
 def _results(context):
     # an Instance is a list (of its members): empty means falsy, so compare with None
     return {(r["plugin"].__name__, None if r["instance"] is None else r["instance"].name): r
@@ -389,7 +404,7 @@ def test_a_malformed_item_fails_the_collector_naming_it(registered, item, says):
     assert "fix: give" in str(error) and len(context) == 0
 
 
-def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, samples):
+def test_an_already_personalized_avatar_fails_validation(extractions, tmp_path, samples):
     """A usdface output given as the avatar passed every validator and failed only in the extractor
     (AlreadyPersonalizedError), after the other instances' extractors had run; usdface batch refuses it
     before its first item. It fails ValidateUsdFaceRig now, naming the original avatar."""
@@ -398,14 +413,7 @@ def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, s
 
     layer = tmp_path / "p.usda"
     personalize_avatar(samples / "avatar.usda", samples / "capture.usda", layer)
-    calls = []
-    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
-
-    class Extract(plugins.ExtractUsdFacePersonalized):
-        def process(self, instance):
-            calls.append(instance)
-
-    pyblish_api.register_plugin(Extract)
+    calls = extractions
     context = pyblish_api.Context()
     context.data["usdfaceItems"] = [{"avatar": str(layer), "capture": str(samples / "capture.usda"),
                                      "output": str(tmp_path / "again.usda")}]
@@ -420,19 +428,12 @@ def test_an_already_personalized_avatar_fails_validation(registered, tmp_path, s
     ("pins", "ValidateUsdFaceOptions", "nope.json: pins file not found"),
     ("correspondence", "ValidateUsdFaceOutputs", "is inside the input folder"),
 ])
-def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(registered, tmp_path, samples,
+def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(extractions, tmp_path, samples,
                                                                           sample_capture_folder, case,
                                                                           plugin, says):
     """A missing take or pins file, or a correspondence cache inside the capture folder, passed every
     validator and failed only in the extractor; 'usdface batch' refuses such a row before its first item."""
-    calls = []
-    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
-
-    class Extract(plugins.ExtractUsdFacePersonalized):
-        def process(self, instance):
-            calls.append(instance)
-
-    pyblish_api.register_plugin(Extract)
+    calls = extractions
     item = {"avatar": str(samples / "avatar.usda"), "capture": str(sample_capture_folder),
             "output": str(tmp_path / "o.usda")}
     if case == "take":
@@ -453,14 +454,10 @@ def test_missing_option_files_and_a_cache_in_the_capture_fail_validation(registe
     ("capture.usda", "capture.usda: this is a capture"),
     ("notes.csv", "notes.csv: not a Live Link Face CSV"),
 ])
-def test_a_take_of_another_kind_fails_validation(registered, tmp_path, samples, take, says):
+def test_a_take_of_another_kind_fails_validation(extractions, tmp_path, samples, take, says):
     """A user trial: the avatar given as the instance's take passed every validator and failed only in the
     extractor (after other instances' extractors had run); the take's kind is read before the first one."""
-    calls = []
-    monkey = type("Extract", (plugins.ExtractUsdFacePersonalized,),
-                  {"process": lambda self, instance: calls.append(instance)})
-    pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
-    pyblish_api.register_plugin(monkey)
+    calls = extractions
     (tmp_path / "notes.csv").write_text("name,value\njaw,1\n")
     path = tmp_path / take if take == "notes.csv" else samples / take
     context = pyblish_api.Context()

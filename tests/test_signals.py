@@ -226,27 +226,34 @@ def test_sigterm_during_open3d_work_exits_143_without_a_leak_dump(samples, tmp_p
     assert res.stderr.strip() == "usdface: terminated", res.stderr
 
 
-_SIGINT_DURING_OPEN3D_IMPORT = textwrap.dedent("""
-    import os, signal, sys
-    import numpy as np
-    signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling
-    class Hook:
-        fired = False
-        def find_spec(self, name, path=None, target=None):
-            if name == "open3d.pybind" and not Hook.fired:     # inside Open3D's native initialisation
-                Hook.fired = True
-                os.kill(os.getpid(), signal.SIGINT)
-            return None
-    sys.meta_path.insert(0, Hook())
-    from usdface.transfer.register import _even
-    points = np.random.default_rng(0).random((200, 3))
-    try:
-        _even(points, 0.1)
-        print("no interrupt")
-    except KeyboardInterrupt:
-        print("interrupted", "open3d" in sys.modules)
-    print("again", len(_even(points, 0.1)) > 0)
-""")
+def _signals_during_open3d_import(*signals: str, after: str = "") -> str:
+    """A script for a subprocess: a host with Python's own Ctrl-C handling and a SIGTERM handler that counts
+    (``terms``) sends itself ``signals`` (names, as ``"SIGINT"``) from inside Open3D's native initialisation
+    (an import hook on ``open3d.pybind``), during usdface's first use of Open3D; it prints "interrupted
+    <open3d loaded>" for a KeyboardInterrupt, then runs ``after``."""
+    kills = "".join(f"            os.kill(os.getpid(), signal.{name})\n" for name in signals)
+    return (
+        "import os, signal, sys\n"
+        "import numpy as np\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling\n"
+        "terms = []\n"
+        "signal.signal(signal.SIGTERM, lambda signum, frame: terms.append(signum))   # its SIGTERM handler\n"
+        "class Hook:\n"
+        "    fired = False\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'open3d.pybind' and not Hook.fired:     # inside Open3D's native initialisation\n"
+        "            Hook.fired = True\n"
+        + kills
+        + "        return None\n"
+        "sys.meta_path.insert(0, Hook())\n"
+        "from usdface.transfer.register import _even\n"
+        "points = np.random.default_rng(0).random((200, 3))\n"
+        "try:\n"
+        "    _even(points, 0.1)\n"
+        "    print('no interrupt')\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted', 'open3d' in sys.modules)\n"
+        + textwrap.dedent(after))
 
 
 def test_an_interrupt_in_open3ds_import_is_a_keyboard_interrupt_after_it(tmp_path):
@@ -256,39 +263,12 @@ def test_an_interrupt_in_open3ds_import_is_a_keyboard_interrupt_after_it(tmp_pat
     "IntVector"``: one cancelled personalize broke the host's session. The import runs with the signal held
     back; the KeyboardInterrupt arrives once Open3D is loaded, and the next call works."""
     script = tmp_path / "run.py"
-    script.write_text(_SIGINT_DURING_OPEN3D_IMPORT)
+    script.write_text(_signals_during_open3d_import(
+        "SIGINT", after='print("again", len(_even(points, 0.1)) > 0)\n'))
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
                           timeout=600, preexec_fn=_interactive_signals)
     assert done.stdout.split("\n")[:2] == ["interrupted True", "again True"], (done.stdout,
                                                                                done.stderr[-2000:])
-
-
-_SIGINT_AND_SIGTERM_DURING_OPEN3D_IMPORT = textwrap.dedent("""
-    import os, signal, sys
-    import numpy as np
-    signal.signal(signal.SIGINT, signal.default_int_handler)    # a host's Python Ctrl-C handling
-    terms = []
-    signal.signal(signal.SIGTERM, lambda signum, frame: terms.append(signum))   # and its SIGTERM handler
-    class Hook:
-        fired = False
-        def find_spec(self, name, path=None, target=None):
-            if name == "open3d.pybind" and not Hook.fired:     # inside Open3D's native initialisation
-                Hook.fired = True
-                os.kill(os.getpid(), signal.SIGINT)
-                os.kill(os.getpid(), signal.SIGTERM)
-            return None
-    sys.meta_path.insert(0, Hook())
-    from usdface.transfer.register import _even
-    points = np.random.default_rng(0).random((200, 3))
-    try:
-        _even(points, 0.1)
-        print("no interrupt")
-    except KeyboardInterrupt:
-        print("interrupted", "open3d" in sys.modules)
-    print("terminations", len(terms))
-    os.kill(os.getpid(), signal.SIGTERM)                        # the host's handler is back
-    print("terminations", len(terms))
-""")
 
 
 def test_every_signal_held_back_in_open3ds_import_reaches_the_host(tmp_path):
@@ -296,7 +276,11 @@ def test_every_signal_held_back_in_open3ds_import_reaches_the_host(tmp_path):
     through first, its KeyboardInterrupt left the loop, and the SIGTERM never reached the host's handler
     (a termination request dropped). Each held signal reaches its handler once the import is done."""
     script = tmp_path / "run.py"
-    script.write_text(_SIGINT_AND_SIGTERM_DURING_OPEN3D_IMPORT)
+    script.write_text(_signals_during_open3d_import("SIGINT", "SIGTERM", after="""
+        print("terminations", len(terms))
+        os.kill(os.getpid(), signal.SIGTERM)                        # the host's handler is back
+        print("terminations", len(terms))
+    """))
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
                           timeout=600, preexec_fn=_interactive_signals)
     assert done.stdout.split("\n")[:3] == ["interrupted True", "terminations 1", "terminations 2"], (
