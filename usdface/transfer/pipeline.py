@@ -66,7 +66,7 @@ from .options import (
 )
 from .partial_dt import implant_shapes
 from .register import motion_landmarks, register_face
-from .report import changed_vertices, lip_report, offset_changes
+from .report import changed_vertices, layer_provenance, lip_report, offset_changes, untrusted_map_rows
 from .retarget import approximate, driven_gram, namesake_prior, retarget_weights
 from .trust import shape_trust
 
@@ -602,13 +602,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             # namesake 0.17, without a word: a user trial). Said, with the shape's strongest entry.
             trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
                                       _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
-            untrusted = []
-            for j in np.flatnonzero(trust < 0.5):
-                top = int(np.argmax(weights[j]))
-                if k_names[top] != names[j]:
-                    own = weights[j, k_names.index(names[j])] if names[j] in k_names else 0.0
-                    untrusted.append(f"{names[j]} -> {k_names[top]} {weights[j, top]:.2f} "
-                                     f"({names[j]} {own:.2f})")
+            untrusted = untrusted_map_rows(weights, names, k_names, trust)
             if untrusted:
                 report["warnings"].append(
                     "map rows of shapes the capture barely shows follow a fit its frames hardly inform "
@@ -688,29 +682,14 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.layers import write_avatar_layer
             from .retarget import weight_map_rows
 
-            extra = {role: str(p) for role, p in (extra_inputs or {}).items() if isinstance(p, str | Path)}
-            prov = {"command": command or "usdface personalize",
-                    "parameters": {k: (v if isinstance(v, int | float | str | bool) else str(v))
-                                   for k, v in report["options"].items()},
-                    "method": method,
-                    "inputs": ([str(capture.source)] if capture.source else [])
-                    + ([str(name_map)] if isinstance(name_map, str | Path) else [])
-                    + pins_input(fit_options.get("pins") if fit is not None else None, capture.source)
-                    + list(extra.values()),
-                    **extra,
-                    "registrationScale": float(sim.scale),
-                    "registrationResidual": float(registration.residual),
-                    "registration": dict(report["registration"]),
-                    "correspondence": {k: v for k, v in report["correspondence"].items()
-                                       if isinstance(v, int | float | str)},
-                    **({"fitTestExpressions": report["fit"]["test_expressions"]}
-                       if "test_expressions" in report.get("fit", {}) else {}),
-                    "retargetMap": weight_map_rows(np.round(weights, 6), names, k_names, threshold=1e-6),
-                    "retargetMu": float(mu_used), "retargetMuChoice": report["retarget"]["mu_choice"],
-                    "warnings": list(report["warnings"]),
-                    "timings": dict(timings)}
-            if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}
-                prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
+            inputs = (([str(capture.source)] if capture.source else [])
+                      + ([str(name_map)] if isinstance(name_map, str | Path) else [])
+                      + pins_input(fit_options.get("pins") if fit is not None else None, capture.source))
+            prov = layer_provenance(report, timings, command=command, method=method, inputs=inputs,
+                                    extra_inputs=extra_inputs, registration=registration,
+                                    retarget_map=weight_map_rows(np.round(weights, 6), names, k_names,
+                                                                 threshold=1e-6),
+                                    mu=mu_used)
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
         if own_cache:                            # the correspondence cache, once the run has succeeded

@@ -1,8 +1,11 @@
-"""Figures ``usdface personalize`` reports about its result: the lips in the lip shapes, generic beside
-output (:func:`lip_report`), and how much each mesh's shapes changed (:func:`offset_changes`, what
-``--dry-run`` prints)."""
+"""What ``usdface personalize`` reports about its result: the lips in the lip shapes, generic beside output
+(:func:`lip_report`), how much each mesh's shapes changed (:func:`offset_changes`, what ``--dry-run``
+prints), the retarget map's rows that follow shapes the capture barely shows (:func:`untrusted_map_rows`),
+and the record the layer keeps of what made it (:func:`layer_provenance`)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -11,7 +14,8 @@ from ..model import Avatar
 from ..motion import shape_norms
 from ..submesh import SparseOffsets
 
-__all__ = ["LIP_SHAPES", "lip_report", "changed_vertices", "offset_changes"]
+__all__ = ["LIP_SHAPES", "lip_report", "changed_vertices", "offset_changes", "untrusted_map_rows",
+           "layer_provenance"]
 
 #: Shapes whose lips the lip check looks at (``mouthClose`` posed on ``jawOpen``, as ARKit authors it).
 LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthRollUpper",
@@ -80,3 +84,49 @@ def offset_changes(avatar: Avatar, offsets: dict, regions: dict | None = None) -
             rows.append({"mesh": key, "shape": n, "max_change_m": float(peak[k]),
                          "rms_change_m": float(rms[k]), "moved_vertices": int(moved[k])})
     return rows
+
+
+def untrusted_map_rows(weights, names, k_names, trust) -> list[str]:
+    """The eq. (4) map's rows ``weights[J,K]`` (capture shapes ``names``, avatar shapes ``k_names``) of shapes
+    the implant barely trusts (``trust[J] < 0.5``: the capture barely shows them) whose strongest entry is
+    another shape than their namesake, as ``"cheekPuff -> mouthRollLower 0.54 (cheekPuff 0.17)"``: the
+    map's row is the fit's shape as it is, which the implant keeps near the generic one."""
+    rows = []
+    for j in np.flatnonzero(np.asarray(trust) < 0.5):
+        top = int(np.argmax(weights[j]))
+        if k_names[top] != names[j]:
+            own = weights[j, k_names.index(names[j])] if names[j] in k_names else 0.0
+            rows.append(f"{names[j]} -> {k_names[top]} {weights[j, top]:.2f} ({names[j]} {own:.2f})")
+    return rows
+
+
+def layer_provenance(report: dict, timings: dict, *, command: str, method: str, inputs: list,
+                     extra_inputs: dict | None, registration, retarget_map, mu: float) -> dict:
+    """The provenance a personalized layer records (:func:`usdface.io.layers.write_avatar_layer`): the command
+    (``"usdface personalize"`` when none is given), the options the run used (``report["options"]``, other
+    values as text), the method, the input files (``inputs`` and ``extra_inputs`` ``{role: path}``, each also
+    under its role), the registration (``registration``: a
+    :class:`usdface.transfer.register.Registration`), the correspondence's figures, the fit's test
+    expressions, the eq. (4) map (``retarget_map`` rows, ``mu``), the warnings, the step timings and the
+    artist pins."""
+    extra = {role: str(p) for role, p in (extra_inputs or {}).items() if isinstance(p, str | Path)}
+    prov = {"command": command or "usdface personalize",
+            "parameters": {k: (v if isinstance(v, int | float | str | bool) else str(v))
+                           for k, v in report["options"].items()},
+            "method": method,
+            "inputs": list(inputs) + list(extra.values()),
+            **extra,
+            "registrationScale": float(registration.transform.scale),
+            "registrationResidual": float(registration.residual),
+            "registration": dict(report["registration"]),
+            "correspondence": {k: v for k, v in report["correspondence"].items()
+                               if isinstance(v, int | float | str)},
+            **({"fitTestExpressions": report["fit"]["test_expressions"]}
+               if "test_expressions" in report.get("fit", {}) else {}),
+            "retargetMap": retarget_map,
+            "retargetMu": float(mu), "retargetMuChoice": report["retarget"]["mu_choice"],
+            "warnings": list(report["warnings"]),
+            "timings": dict(timings)}
+    if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}
+        prov["pins"] = {str(k): int(v) for k, v in report["fit"]["pins"].items()}
+    return prov
