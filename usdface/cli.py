@@ -168,19 +168,11 @@ def _import_natives_with_signals_held() -> None:
     exit status 1). Held back, the signal arrives once the imports are done, where
     ``KeyboardInterrupt``/:class:`Terminated` end the run as at any other moment (exit 130/143, nothing
     written)."""
-    import signal
+    from .natives import signals_held
 
-    held: list[int] = []
-    previous = {signum: signal.signal(signum, lambda signum, _frame: held.append(signum))
-                for signum in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with signals_held():                  # each held signal let through after, to the handler it had
         import numpy  # noqa: F401
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-        for signum in dict.fromkeys(held):
-            signal.raise_signal(signum)  # now its own handler runs, outside the native imports
 
 
 def _standard_streams() -> None:

@@ -11,19 +11,19 @@ Open3D wherever it is imported.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 
 
-def open3d():
-    """The ``open3d`` module; its first import runs with SIGINT and SIGTERM held back (in the main thread,
-    where Python delivers them, and only for handlers Python manages), then lets each held signal through
-    (SIGTERM first), so the interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a later
-    call imports nothing again."""
-    if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
-        import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
-
-        return o3d
+@contextlib.contextmanager
+def signals_held():
+    """Hold SIGINT and SIGTERM back inside the block (only those whose handlers Python manages: one set
+    outside Python, or ignored, is left alone), then let each held signal through to the handler that was
+    there before, a termination first: a ``KeyboardInterrupt`` from the first let through dropped the
+    others. For native imports a signal landing inside breaks (:func:`open3d`,
+    :func:`usdface.cli._import_natives_with_signals_held`). The main thread only (where Python delivers
+    signals and may set handlers)."""
     import signal
 
     held: list[int] = []
@@ -34,13 +34,12 @@ def open3d():
             continue
         previous[signum] = signal.signal(signum, lambda got, _frame: held.append(got))
     try:
-        import open3d as o3d
+        yield
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         raised = None
-        # now the host's handlers run, outside the native import: each held signal, a termination first
-        # (a KeyboardInterrupt from the first let through dropped the others)
+        # now the host's handlers run, outside the block: each held signal, a termination first
         for signum in sorted(set(held), key=lambda s: s != signal.SIGTERM):
             try:
                 signal.raise_signal(signum)
@@ -48,4 +47,16 @@ def open3d():
                 raised = raised or exc
         if raised is not None:
             raise raised
+
+
+def open3d():
+    """The ``open3d`` module; its first import runs with SIGINT and SIGTERM held back (:func:`signals_held`,
+    in the main thread), so an interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a
+    later call imports nothing again."""
+    if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
+        import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
+
+        return o3d
+    with signals_held():
+        import open3d as o3d
     return o3d
