@@ -504,54 +504,36 @@ def test_personalize_without_output_writes_to_the_cwd():
     assert _default_output("/assets/library/avatar.usdc") == Path("avatar.personalized.usda")
 
 
-def test_a_failed_personalize_leaves_no_correspondence_cache(samples, tmp_path, monkeypatch):
-    """A run that failed after the correspondence step (here: the layer's write) left its ``--correspondence``
-    cache behind, and the folder made for it: the one file of a failed run, for a next run to warn about
-    (``cache: replaced``) when it was of a wrong ``--face-mesh``. The cache is written once the run succeeds;
-    the next run reuses it."""
+@pytest.mark.parametrize("command, module, writer, output, again_output", [
+    ("personalize_avatar", "layers", "write_avatar_layer", "p.usda", "q.usda"),
+    ("write_retarget_map", "atomic", "write_text_atomic", "map.json", "map2.csv"),
+])
+def test_a_failed_run_leaves_no_correspondence_cache(samples, tmp_path, monkeypatch, command, module, writer,
+                                                     output, again_output):
+    """A run that failed after the correspondence step (here: the write of its product, personalize's layer
+    or ``usdface retarget``'s map) left its ``--correspondence`` cache behind, and the folder made for it:
+    the one file of a failed run, for a next run to warn about (``cache: replaced``) when it was of a wrong
+    ``--face-mesh``. The cache is written once the run succeeds; the next run writes it and reuses it."""
+    import importlib
+
     import usdface
     from usdface.errors import UsdFaceError
-    from usdface.io import layers
 
     cache = tmp_path / "cache" / "c.npz"
 
     def broken(*args, **kwargs):
         raise UsdFaceError("the write failed")
 
-    monkeypatch.setattr(layers, "write_avatar_layer", broken)
-    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / "p.usda")
+    monkeypatch.setattr(importlib.import_module(f"usdface.io.{module}"), writer, broken)
+    run = getattr(usdface, command)
+    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / output)
     with pytest.raises(UsdFaceError, match="the write failed"):
-        usdface.personalize_avatar(*args, correspondence=cache)
-    assert not (tmp_path / "cache").exists() and not (tmp_path / "p.usda").exists()
+        run(*args, correspondence=cache)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / output).exists()
     monkeypatch.undo()
-    first = usdface.personalize_avatar(*args, correspondence=cache)
+    first = run(*args, correspondence=cache)
     assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
-    again = usdface.personalize_avatar(*args[:2], tmp_path / "q.usda", correspondence=cache)
-    assert again.report["correspondence"]["cache"] == "hit"
-
-
-def test_a_failed_retarget_map_write_leaves_no_correspondence_cache(samples, tmp_path, monkeypatch):
-    """``usdface retarget``'s run succeeds when its map is written: a map whose write failed left the
-    ``--correspondence`` cache behind (and the folder made for it), written before the map, as a failed
-    layer write of personalize did. The next run writes it and reuses it."""
-    import usdface
-    from usdface.errors import UsdFaceError
-    from usdface.io import atomic
-
-    cache = tmp_path / "cache" / "c.npz"
-
-    def broken(*args, **kwargs):
-        raise UsdFaceError("the write failed")
-
-    monkeypatch.setattr(atomic, "write_text_atomic", broken)
-    args = (samples / "avatar.usda", samples / "capture.usda", tmp_path / "map.json")
-    with pytest.raises(UsdFaceError, match="the write failed"):
-        usdface.write_retarget_map(*args, correspondence=cache)
-    assert not (tmp_path / "cache").exists() and not (tmp_path / "map.json").exists()
-    monkeypatch.undo()
-    first = usdface.write_retarget_map(*args, correspondence=cache)
-    assert cache.is_file() and first.report["correspondence"]["cache"] == "miss"
-    again = usdface.write_retarget_map(*args[:2], tmp_path / "map2.csv", correspondence=cache)
+    again = run(*args[:2], tmp_path / again_output, correspondence=cache)
     assert again.report["correspondence"]["cache"] == "hit"
 
 
