@@ -76,6 +76,33 @@ def test_personalize_skips_the_stacks_it_does_not_use():
     assert found == sorted(used)
 
 
+def test_personalize_leaves_open3ds_visualization_unloaded(tmp_path):
+    """Open3D's ``__init__`` imports ``open3d.visualization``, and with it Dash and Plotly (0.4 s of a cold
+    run): usdface defers that subpackage to its first use, which still works."""
+    avatar, capture = SAMPLE / "avatar.usda", SAMPLE / "capture.usda"
+    if not (avatar.exists() and capture.exists()):
+        pytest.skip("no sample avatar/capture")
+    pytest.importorskip("open3d")
+    found = _heavy_modules(["personalize", str(avatar), str(capture), "-o", str(tmp_path / "out.usda"), "-q"],
+                           ("open3d", "dash", "plotly"))
+    assert found == ["open3d"]
+    assert (tmp_path / "out.usda").is_file()
+
+
+def test_open3ds_deferred_visualization_loads_on_first_use():
+    pytest.importorskip("open3d")
+    probe = ("import sys\n"
+             "from usdface.natives import open3d\n"
+             "o3d = open3d()\n"
+             "before = 'dash' in sys.modules\n"
+             "draw = o3d.visualization.draw_geometries\n"
+             "import open3d.visualization.rendering as rendering\n"
+             "print(before, 'dash' in sys.modules, callable(draw), rendering.__name__)\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                         cwd=ROOT).stdout.split()
+    assert out == ["False", "True", "True", "open3d.pybind.visualization.rendering"]
+
+
 _HUGEPAGE_PROBE = """
 import os, sys
 sys.argv = ["usdface", "--version"]

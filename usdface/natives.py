@@ -12,8 +12,17 @@ Open3D wherever it is imported.
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
+import importlib.machinery
+import importlib.util
 import sys
 import threading
+
+#: Open3D's subpackages its ``__init__`` imports that usdface never uses, loaded on first use instead
+#: (:class:`_Deferred`): ``open3d.visualization`` imports Dash and Plotly unconditionally, 0.40 of the 0.75 s
+#: the first ``import open3d`` takes (``python -X importtime``), a tenth of a cold ``personalize`` of a bench
+#: head.
+DEFERRED = ("open3d.visualization",)
 
 
 @contextlib.contextmanager
@@ -49,14 +58,41 @@ def signals_held():
             raise raised
 
 
+class _Deferred(importlib.abc.MetaPathFinder):
+    """Finds the :data:`DEFERRED` modules as the import system would, with the standard library's
+    ``importlib.util.LazyLoader``: the module is in ``sys.modules`` at once and runs its code at its first
+    attribute access (``open3d.visualization.draw_geometries`` works as before, a moment later)."""
+
+    def find_spec(self, name, path, target=None):
+        if name not in DEFERRED:
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
+        if spec is not None and spec.loader is not None:
+            spec.loader = importlib.util.LazyLoader(spec.loader)
+        return spec
+
+
+def _import_open3d():
+    """``import open3d`` with its :data:`DEFERRED` subpackages loaded on first use."""
+    finder = _Deferred()
+    sys.meta_path.insert(0, finder)
+    try:
+        import open3d as o3d
+    finally:
+        sys.meta_path.remove(finder)
+    return o3d
+
+
 def open3d():
     """The ``open3d`` module; its first import runs with SIGINT and SIGTERM held back (:func:`signals_held`,
     in the main thread), so an interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a
-    later call imports nothing again."""
+    later call imports nothing again. usdface imports it here only, with ``open3d.visualization`` (Dash,
+    Plotly) deferred to its first use (:data:`DEFERRED`)."""
     if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
-        import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
+        if "open3d" in sys.modules:
+            import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
 
-        return o3d
+            return o3d
+        return _import_open3d()
     with signals_held():
-        import open3d as o3d
-    return o3d
+        return _import_open3d()
