@@ -13,6 +13,7 @@ from cli_helpers import _no_traceback, _usdface
 
 import usdface.io  # noqa: F401  (registers the schemas before a test opens a stage)
 from usdface.cli import main
+from usdface.transfer.options import MODE_OPTIONS
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_assets"
@@ -99,7 +100,7 @@ def test_the_api_refuses_an_option_the_mode_does_not_use(tmp_path, monkeypatch, 
         text = str(err.value)
         assert f"{name} ({flag}) is not used by face_transfer (--face-transfer) {mode!r}" in text
         assert "fix: drop" in text and all(m in text.split("fix:")[1] for m, used in
-                                           pipeline.MODE_OPTIONS.items() if name in used)
+                                           MODE_OPTIONS.items() if name in used)
     assert not (tmp_path / "p.usda").exists()
 
 

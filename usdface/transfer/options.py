@@ -16,7 +16,7 @@ from ..errors import UsdFaceError
 __all__ = ["FACE_TRANSFERS", "APPROXIMATIONS", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
            "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
            "default_approximation", "check_modes", "check_numbers", "recorded_fit_options", "pins_input",
-           "fit_prior_options"]
+           "fit_prior_options", "run_options"]
 
 #: Face-region transfer modes (see :func:`usdface.transfer.partial_dt.implant_shapes` and ``"person"``,
 #: :func:`usdface.transfer.pipeline.personalize_avatar`).
@@ -211,3 +211,17 @@ def fit_prior_options(prior: str, method: str, reg) -> dict:
         return {}
     return {"avatar_prior": True} if isinstance(reg, str) and reg == "auto" else {"avatar_prior": True,
                                                                                   "prior": "avatar"}
+
+
+def run_options(*, method: str, reg, mu, weight_bounds, map_prior: str, face_transfer: str,
+                approximation: str, prior: str, extension_length, falloff, support, eyelids: bool,
+                fit_options: dict | None) -> dict:
+    """The options a personalize run used, as its report and layer record them: of the mode's own
+    (:data:`MODE_OPTIONS`), those it uses; the fit's (:func:`recorded_fit_options`) when it fitted
+    (``fit_options`` None: a given rig)."""
+    return {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds, "map_prior": map_prior,
+            "face_transfer": face_transfer, "approximation": approximation, "prior": prior,
+            **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
+                                 ("support", support)) if k in MODE_OPTIONS[face_transfer]},
+            "eyelids": eyelids,
+            **(recorded_fit_options(method, fit_options) if fit_options is not None else {})}

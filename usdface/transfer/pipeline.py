@@ -57,12 +57,11 @@ from .implant import (
 )
 from .motion_field import dilate
 from .options import (
-    MODE_OPTIONS,
     check_modes,
     check_numbers,
     fit_prior_options,
     pins_input,
-    recorded_fit_options,
+    run_options,
 )
 from .partial_dt import implant_shapes
 from .register import motion_landmarks, register_face
@@ -76,9 +75,9 @@ __all__ = ["PersonalizeResult", "personalize_avatar"]
 #: with a DeprecationWarning (:func:`__getattr__`), so a studio script written against the older layout keeps
 #: working.
 #: (The moved names this module still imports for its own use, as ``implant_shapes``, import as before.)
-MOVED = {**dict.fromkeys(("FACE_TRANSFERS", "APPROXIMATIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
-                          "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
-                          "default_approximation"), "options"),
+MOVED = {**dict.fromkeys(("FACE_TRANSFERS", "APPROXIMATIONS", "MODE_OPTIONS", "MODE_ONLY_OPTIONS",
+                          "IMPLANT_OPTIONS", "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options",
+                          "modes_using", "default_approximation"), "options"),
          **dict.fromkeys(("SEMANTIC_SHAPES", "pose_by_length"), "face_map"),
          "LIP_SHAPES": "report"}
 
@@ -358,9 +357,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     extension_length : with ``"field"``, how far the person's field reaches beyond the face before it fades
         to the generic motion, in face radii (RMS radius of the face region; None = no fade).
     falloff, support : the join of the older modes (:func:`implant_shapes`); ``support`` also ramps the
-        person's personalization. Which mode uses which: :data:`MODE_OPTIONS` (the API and the commands
-        refuse one the mode does not use, :func:`.options.check_mode_options`; this function takes them
-        all).
+        person's personalization. Which mode uses which: :data:`.options.MODE_OPTIONS` (the API and the
+        commands refuse one the mode does not use, :func:`.options.check_mode_options`; this function takes
+        them all).
     face_mesh : prim path (or name) of the face mesh; default: the mesh the shared ARKit shapes move most.
     eyelids : step 6; ``eyes`` = {name: (points[n,3], triangles[t,3])} internal metres, closed eye meshes
         (else taken from ``avatar.metadata["static_meshes"]`` when the reader provides it, or from avatar
@@ -388,44 +387,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             from ..io.layers import check_output_path
 
             check_output_path(out_path, force)
-        if not isinstance(avatar, Avatar):
-            from ..io.usd_rig import read_avatar
-
-            avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
-        if out_path is not None:                  # an override under an instance would change nothing
-            from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
-
-            try:
-                refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
-                refuse_unwritable_shapes(avatar, None, "the personalized layer")     # every mesh
-            except RigError as exc:
-                if not dry_run:
-                    raise
-                report["warnings"].append(f"a real run would refuse: {exc.message} (fix: {exc.fix})")
-                report["would_refuse"] = f"{exc.message} (fix: {exc.fix})"
-        # every step works on the part of each mesh its shapes move; scattered back at the end (write)
-        generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
-                        if m.source is None or m.source.region is None}
-        avatar, origin = near_origin(avatar)
+        avatar, generic_full, origin, regions = _read_avatar(avatar, name_map, out_path is not None, dry_run,
+                                                             report)
         if eyes:
             eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
-        avatar, regions = crop_avatar(avatar)
-        if not isinstance(capture, Capture):
-            from ..io import read_capture
-
-            capture = read_capture(capture)
-        if rig is None and fit_options.get("every", 1) != 1:   # a take's thinning: refused on a capture now
-            from ..personalize.api import check_every
-
-            check_every(fit_options["every"], capture)
-        if rig is None and capture.whole_take:                # a take of one held pose: refused now
-            from ..personalize.api import check_take_poses
-
-            check_take_poses(capture, fit_options.get("every", 1))
-        if rig is None:                                       # proven exchanged sides: refused now
-            from ..personalize.api import refuse_swapped_sides
-
-            refuse_swapped_sides(capture)
+        capture = _read_capture(capture, fitted=rig is None, every=fit_options.get("every", 1))
         chosen_face = None
         if face_mesh:  # checked before the fit
             from ..io.layers import avatar_mesh
@@ -442,30 +408,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if chosen_face is None:
             _refuse_unmapped_face(avatar, face, cap_names)
         face_prim = face.key
-        avatar_all = sorted({n for m in avatar.meshes for n in m.names})
+        names = _shapes_in_common(avatar, face, capture, cap_names, report)
         tmpl_idx = {n: i for i, n in enumerate(capture.template.names)}
-        names = [n for n in cap_names if n in face.names and n in tmpl_idx]
-        report["capture_shapes_missing_from_avatar"] = [n for n in cap_names if n not in face.names]
-        report["avatar_shapes_missing_from_capture"] = [n for n in avatar_all if n not in cap_names]
-        if report["capture_shapes_missing_from_avatar"]:
-            report["warnings"].append("capture shapes the avatar lacks (skipped): "
-                                      + ", ".join(report["capture_shapes_missing_from_avatar"]))
-        if report["avatar_shapes_missing_from_capture"]:
-            report["warnings"].append("avatar shapes the capture lacks (kept generic): "
-                                      + ", ".join(report["avatar_shapes_missing_from_capture"]))
-        if len(names) < 4 and len(cap_names) < 4:      # the capture is what is short
-            shown = ", ".join(cap_names) or "none"
-            raise CaptureError(f"the capture has {len(cap_names)} shape(s) ({shown}); personalizing needs at "
-                               "least 4 ARKit-named shapes",
-                               path=getattr(capture, "source", None) or None,
-                               fix="capture the ARKit expressions (eyeBlinkLeft, jawOpen, ...) with their "
-                               "template shapes")
-        if len(names) < 4:
-            raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
-                           path=avatar.file, prim=face_prim,
-                           fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...): "
-                               "rename them, or pass the studio's names with --name-map FILE (name_map=); "
-                               "'usdface inspect' lists how each channel was mapped")
         template_deltas = capture.template.deltas[[tmpl_idx[n] for n in names]]
         avatar_face_deltas = _shape_deltas(face, names, view=True)
         person_neutral0 = rig.neutral if rig is not None else capture.neutral
@@ -479,17 +423,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             person_neutral0, template_deltas, face, avatar_face_deltas, capture))
         whole_face, beyond = face, None
         if reached is not None:
-            # the still vertices beyond are left as they are (out of the part worked on and written)
-            keep = reached | moving_vertices(peak_motion(face.deltas), face.neutral)
-            whole_face, region = crop_rig(face, keep, regions.get(face_prim))
-            if not region.whole:
-                regions[face_prim] = region
-            reached = reached[keep]
-            face, beyond = _split_rig(whole_face, reached)
+            avatar, whole_face, face, beyond, reached = _split_beyond_reach(avatar, face, reached, regions)
             avatar_face_deltas = _shape_deltas(face, names, view=True)
             rest = np.flatnonzero(~reached)
-            avatar = dataclasses.replace(avatar, meshes=[face if m.key == face_prim else m
-                                                         for m in avatar.meshes] + [beyond])
         # the face's peak motion, once for both registrations (the person's and the template's)
         face_peak = peak_motion(avatar_face_deltas)
         face_landmarks = motion_landmarks(face.neutral, avatar_face_deltas)         # the same for both too
@@ -567,19 +503,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         # 4. retargeting, eq. (4): the weight map (and the paper's approximations A_j)
         t = time.perf_counter()
         f = corr.face
-        mb_face = corr.apply(person_deltas, capture.triangles, rows=f)          # M B_j on the face region
         k_names = list(face.names)
-        # the map drives every mesh: with the namesake prior, what the face rows do not see on the other
-        # meshes (teeth, tongue, eyeballs) keeps the namesake's own motion (the paper's zero prior would hold
-        # it still). The face mesh's own rows beyond the face are not among them: a body merged into the
-        # head's mesh (split off as `beyond`) gives the head alone's map
-        namesake = map_prior == "namesake"
-        others = [(m.names, m.deltas) for m in avatar.meshes if m.key != face.key and m is not beyond]
-        weights, mu_used = retarget_weights(
-            face.deltas, mb_face, mu=mu, return_mu=True, rows=f, bounds=weight_bounds,
-            positions=face.neutral, prior=namesake_prior(names, k_names) if namesake else None,
-            elsewhere=driven_gram(others, k_names) if namesake else None)
-        del mb_face                                                       # [J, face, 3]: not used again
+        weights, mu_used = _retarget_map(avatar, face, beyond, corr, capture.triangles, person_deltas, names,
+                                         mu, weight_bounds, map_prior)
         report["retarget"] = {"mu": mu_used,
                               "mu_choice": "leave one face region out" if mu == "auto" else "given",
                               "weight_min": float(weights.min()) if weights.size else 0.0,
@@ -597,17 +523,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
                       if c[1] is not None and c[2] != "conflict"}
             report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
-            # the implant keeps a shape the capture barely shows near the generic one; the map's row is
-            # the fit's shape as it is (a take's never-performed cheekPuff mapped to mouthRollLower 0.54,
-            # namesake 0.17, without a word: a user trial). Said, with the shape's strongest entry.
             trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
                                       _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
-            untrusted = untrusted_map_rows(weights, names, k_names, trust)
-            if untrusted:
-                report["warnings"].append(
-                    "map rows of shapes the capture barely shows follow a fit its frames hardly inform "
-                    "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
-                    + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
+            _warn_untrusted_rows(report, weights, names, k_names, trust)
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             if own_cache:
                 _write_pending(pending_cache)
@@ -662,15 +580,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         report.update({
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
-            # the options the run used: of the mode's own, those it uses (MODE_OPTIONS)
-            "options": {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds,
-                        "map_prior": map_prior,
-                        "face_transfer": face_transfer,
-                        "approximation": approximation, "prior": prior,
-                        **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
-                                             ("support", support)) if k in MODE_OPTIONS[face_transfer]},
-                        "eyelids": eyelids,
-                        **(recorded_fit_options(method, fit_options) if fit is not None else {})},
+            "options": run_options(method=method, reg=reg, mu=mu, weight_bounds=weight_bounds,
+                                   map_prior=map_prior, face_transfer=face_transfer,
+                                   approximation=approximation, prior=prior,
+                                   extension_length=extension_length, falloff=falloff, support=support,
+                                   eyelids=eyelids,
+                                   fit_options=fit_options if fit is not None else None),
             "name_report": avatar.name_report,
             "changes": offset_changes(avatar, offsets, regions),
         })
@@ -711,6 +626,134 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 #: An avatar whose main mesh's centre lies within this many of its sizes from the origin is left where it is
 #: (the bench heads and an avatar at the stage's origin: their answers unchanged to the bit).
 NEAR_ORIGIN = 20.0
+
+
+def _read_avatar(avatar, name_map, writes: bool, dry_run: bool, report: dict):
+    """Step 0, the avatar: read (a path) and checked for a layer (``writes``: instanced or unwritable
+    shapes refused, or, with ``dry_run``, said in ``report``), moved near the origin (:func:`near_origin`)
+    and cropped to what its shapes move (:func:`usdface.submesh.crop_avatar`). Returns ``(avatar,
+    generic_full {mesh key: the caller's whole-mesh deltas}, origin[3], regions)``."""
+    if not isinstance(avatar, Avatar):
+        from ..io.usd_rig import read_avatar
+
+        avatar = read_avatar(avatar, name_map=name_map, moving_only=True)
+    if writes:                                    # an override under an instance would change nothing
+        from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
+
+        try:
+            refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+            refuse_unwritable_shapes(avatar, None, "the personalized layer")     # every mesh
+        except RigError as exc:
+            if not dry_run:
+                raise
+            report["warnings"].append(f"a real run would refuse: {exc.message} (fix: {exc.fix})")
+            report["would_refuse"] = f"{exc.message} (fix: {exc.fix})"
+    # every step works on the part of each mesh its shapes move; scattered back at the end (write)
+    generic_full = {m.key: m.deltas for m in avatar.meshes       # the caller's whole-mesh arrays
+                    if m.source is None or m.source.region is None}
+    avatar, origin = near_origin(avatar)
+    avatar, regions = crop_avatar(avatar)
+    return avatar, generic_full, origin, regions
+
+
+def _read_capture(capture, *, fitted: bool, every: int) -> Capture:
+    """Step 0, the capture: read (a path) and, when it is to be ``fitted``, refused now for what the fit
+    would refuse later: a thinning (``every``) of what is not a take, a take of one held pose, proven
+    exchanged sides."""
+    if not isinstance(capture, Capture):
+        from ..io import read_capture
+
+        capture = read_capture(capture)
+    if not fitted:
+        return capture
+    from ..personalize.api import check_every, check_take_poses, refuse_swapped_sides
+
+    if every != 1:                                    # a take's thinning: refused on a capture now
+        check_every(every, capture)
+    if capture.whole_take:                            # a take of one held pose: refused now
+        check_take_poses(capture, every)
+    refuse_swapped_sides(capture)                     # proven exchanged sides: refused now
+    return capture
+
+
+def _shapes_in_common(avatar: Avatar, face: FaceRig, capture: Capture, cap_names: list[str],
+                      report: dict) -> list[str]:
+    """The shapes personalized: the capture's (``cap_names``) that the face mesh and the capture's template
+    have, in the capture's order; the others each way said in ``report``. Refused below 4 (the capture's
+    fault when it has fewer, :class:`CaptureError`; else the avatar's, :class:`RigError`)."""
+    avatar_all = sorted({n for m in avatar.meshes for n in m.names})
+    in_template = set(capture.template.names)
+    names = [n for n in cap_names if n in face.names and n in in_template]
+    report["capture_shapes_missing_from_avatar"] = [n for n in cap_names if n not in face.names]
+    report["avatar_shapes_missing_from_capture"] = [n for n in avatar_all if n not in cap_names]
+    if report["capture_shapes_missing_from_avatar"]:
+        report["warnings"].append("capture shapes the avatar lacks (skipped): "
+                                  + ", ".join(report["capture_shapes_missing_from_avatar"]))
+    if report["avatar_shapes_missing_from_capture"]:
+        report["warnings"].append("avatar shapes the capture lacks (kept generic): "
+                                  + ", ".join(report["avatar_shapes_missing_from_capture"]))
+    if len(names) < 4 and len(cap_names) < 4:      # the capture is what is short
+        shown = ", ".join(cap_names) or "none"
+        raise CaptureError(f"the capture has {len(cap_names)} shape(s) ({shown}); personalizing needs at "
+                           "least 4 ARKit-named shapes",
+                           path=getattr(capture, "source", None) or None,
+                           fix="capture the ARKit expressions (eyeBlinkLeft, jawOpen, ...) with their "
+                           "template shapes")
+    if len(names) < 4:
+        raise RigError(f"only {len(names)} of the capture's shapes exist on the avatar face mesh",
+                       path=avatar.file, prim=face.key,
+                       fix="the avatar needs ARKit-named BlendShapes (eyeBlinkLeft, jawOpen, ...): "
+                           "rename them, or pass the studio's names with --name-map FILE (name_map=); "
+                           "'usdface inspect' lists how each channel was mapped")
+    return names
+
+
+def _split_beyond_reach(avatar: Avatar, face: FaceRig, reached, regions: dict):
+    """The face mesh's separate pieces beyond the capture's reach (``reached[m]`` False: a body merged into
+    the head's mesh) split off as another mesh, its still vertices left out (not worked on, not written;
+    ``regions`` updated with the face's crop). Returns ``(avatar, whole_face, face, beyond, reached)``: the
+    avatar with the reached face and the piece beyond as two meshes, the face mesh cropped whole (joined back
+    before the write) and ``reached`` on its vertices."""
+    keep = reached | moving_vertices(peak_motion(face.deltas), face.neutral)
+    whole_face, region = crop_rig(face, keep, regions.get(face.key))
+    if not region.whole:
+        regions[face.key] = region
+    reached = reached[keep]
+    part, beyond = _split_rig(whole_face, reached)
+    avatar = dataclasses.replace(avatar, meshes=[part if m.key == face.key else m
+                                                 for m in avatar.meshes] + [beyond])
+    return avatar, whole_face, part, beyond, reached
+
+
+def _retarget_map(avatar: Avatar, face: FaceRig, beyond, corr, capture_triangles, person_deltas,
+                  names: list[str], mu, weight_bounds, map_prior: str):
+    """Step 4, eq. (4)'s weight map (:func:`usdface.transfer.retarget.retarget_weights`) from the person's
+    shapes ``person_deltas[J,n,3]`` (avatar frame, metres) carried onto the face rows by the correspondence
+    ``corr``. The map drives every mesh: with the namesake prior, what the face rows do not see on the other
+    meshes (teeth, tongue, eyeballs) keeps the namesake's own motion (the paper's zero prior would hold it
+    still); the face mesh's own rows beyond the face are not among them (a body merged into the head's mesh,
+    split off as ``beyond``, gives the head alone's map). Returns ``(weights[J,K], mu)``."""
+    k_names = list(face.names)
+    mb_face = corr.apply(person_deltas, capture_triangles, rows=corr.face)     # M B_j on the face region
+    namesake = map_prior == "namesake"
+    others = [(m.names, m.deltas) for m in avatar.meshes if m.key != face.key and m is not beyond]
+    return retarget_weights(
+        face.deltas, mb_face, mu=mu, return_mu=True, rows=corr.face, bounds=weight_bounds,
+        positions=face.neutral, prior=namesake_prior(names, k_names) if namesake else None,
+        elsewhere=driven_gram(others, k_names) if namesake else None)
+
+
+def _warn_untrusted_rows(report: dict, weights, names: list[str], k_names: list[str], trust) -> None:
+    """The map's rows of shapes the capture barely shows (``trust[J]``, :func:`.trust.shape_trust`), said in
+    ``report``: the implant keeps such a shape near the generic one, but the map's row is the fit's shape as
+    it is (a take's never-performed cheekPuff mapped to mouthRollLower 0.54, namesake 0.17, without a word: a
+    user trial), with the shape's strongest entry (:func:`.report.untrusted_map_rows`)."""
+    untrusted = untrusted_map_rows(weights, names, k_names, trust)
+    if untrusted:
+        report["warnings"].append(
+            "map rows of shapes the capture barely shows follow a fit its frames hardly inform "
+            "(personalize keeps these shapes near the avatar's generic ones): " + ", ".join(untrusted)
+            + " (fix: record those expressions, or give their rows the namesake's weight 1 by hand)")
 
 
 def _write_pending(pending: list) -> None:
