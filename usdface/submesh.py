@@ -86,7 +86,7 @@ MARGIN = 0.75
 def with_margin(points, moving, margin: float = MARGIN) -> np.ndarray:
     """``[n]`` bool: ``moving[n]`` plus every vertex of ``points[n,3]`` within ``margin`` RMS radii of the
     moving vertices (their RMS distance from their centroid)."""
-    from scipy.spatial import cKDTree
+    from .mesh import distances_within
 
     p = np.asarray(points, dtype=np.float64)
     moving = np.asarray(moving, dtype=bool)
@@ -98,7 +98,7 @@ def with_margin(points, moving, margin: float = MARGIN) -> np.ndarray:
     lo, hi = mp.min(axis=0) - reach, mp.max(axis=0) + reach
     cand = np.flatnonzero(~moving & (p >= lo).all(axis=1) & (p <= hi).all(axis=1))
     if cand.size:
-        d = cKDTree(mp).query(p[cand], distance_upper_bound=reach)[0]
+        d = distances_within(mp, p[cand], reach)
         keep[cand[np.isfinite(d)]] = True
     return keep
 

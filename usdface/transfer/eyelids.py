@@ -205,15 +205,22 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             js, ks = js[moved], ks[moved]
             if js.size == 0:
                 continue
+        q = pos[js, ks]
+        d = surf.signed_distance(q)
+        # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far
+        # outside the eye is fine whatever its bound, and its neutral's and generic shape's distances are not
+        # needed (most of the lid vertices near the eye, in most shapes)
+        doubt = d < (max(clearance, 0.0) if ref_all is not None else 0.0) - tolerance
+        js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
+        if js.size == 0:
+            continue
         verts = np.unique(ks)
         d0 = np.zeros(near.size)
         d0[verts] = surf.signed_distance(x0[near[verts]])
         required = np.minimum(d0[ks], 0.0)
-        q = pos[js, ks]
         if ref_all is not None:
             d_ref = surf.signed_distance(x0[near[ks]] + ref_all[js, near[ks]])
             required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
-        d = surf.signed_distance(q)
         bad = d < required - tolerance
         count += int(bad.sum())
         if not bad.any():

@@ -141,9 +141,8 @@ def reached_parts(points, triangles, placed, *, reach: float = REACH):
     diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
     where the capture lies, and its triangles must not take part in the face's closest-point queries."""
     from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
 
-    from ..mesh import vertex_adjacency
+    from ..mesh import distances_within, vertex_adjacency
 
     p = np.asarray(points, dtype=np.float64)
     count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
@@ -151,7 +150,7 @@ def reached_parts(points, triangles, placed, *, reach: float = REACH):
         return None
     q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)
     limit = reach * float(np.linalg.norm(np.ptp(q, axis=0)))
-    near = np.isfinite(cKDTree(q).query(p, distance_upper_bound=limit)[0])
+    near = np.isfinite(distances_within(q, p, limit))
     keep = np.isin(label, np.unique(label[near]))
     return None if keep.all() or not keep.any() else keep
 

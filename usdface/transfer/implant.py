@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
-from ..mesh import index_set, triangle_areas, vertex_areas, vertex_normals
+from ..mesh import distances_within, index_set, triangle_areas, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.fit import james_stein
 from .motion_field import (
@@ -174,15 +174,13 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
     """``[m]`` in [0,1]: ``face_weight`` times a smooth ramp from 0 at the region's edge (the nearest vertex
     of weight < 1) to 1 at ``band`` metres inside it: the join between the face and what lies beyond is that
     wide whatever the mesh resolution."""
-    from scipy.spatial import cKDTree
-
     w = np.clip(np.asarray(face_weight, dtype=np.float64), 0.0, 1.0)
     inner = w >= 1.0 - 1e-9
     if not inner.any() or inner.all() or band <= 0:
         return w
     pts = np.asarray(points, dtype=np.float64)
     d = np.zeros(len(pts))                          # 0 on the rim (weight < 1): the join starts there
-    d[inner] = cKDTree(pts[~inner]).query(pts[inner], distance_upper_bound=band)[0]   # inf beyond the band
+    d[inner] = distances_within(pts[~inner], pts[inner], band)   # inf beyond the band
     t = np.clip(d / band, 0.0, 1.0)
     return w * t * t * (3.0 - 2.0 * t)
 
@@ -438,8 +436,6 @@ class FieldProxy:
           (``strip_known``) and the proxy's interpolated field around them (``strip_out``).
 
         ``fading[n]``: the vertices whose screening applies (not the sockets' pockets)."""
-        from scipy.spatial import cKDTree
-
         from ..mesh import spd_lu, triangle_normals
         from .surface import cotangent_laplacian
 
@@ -452,7 +448,7 @@ class FieldProxy:
         free = np.flatnonzero(~known)
         edge = float(np.sqrt(np.mean(np.sum((self.points[self.triangles[:, 0]]
                                              - self.points[self.triangles[:, 1]]) ** 2, axis=1))))
-        d = cKDTree(x[known]).query(x[free], distance_upper_bound=edge)[0]
+        d = distances_within(x[known], x[free], edge)
         self.strip = np.union1d(free[d < edge],
                                 self.need[~known_need & (known_corner.any(axis=1) | ~facing)])
         self.need_position = np.full(len(x), -1)
@@ -502,7 +498,7 @@ def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:
     region = np.ones(len(x), dtype=bool)
     if need.size < len(x):
         inside = w >= 1.0
-        region[inside] = cKDTree(x[need]).query(x[inside], distance_upper_bound=2.0 * edge)[0] < 2.0 * edge
+        region[inside] = distances_within(x[need], x[inside], 2.0 * edge) < 2.0 * edge
     tri = np.asarray(triangles)
     tri = tri[region[tri].all(axis=1)]
     local = np.cumsum(region) - 1

@@ -69,15 +69,21 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     cos = np.clip(np.einsum("...c,...c->...", ah, ph), -1.0, 1.0)
     scale = npp / np.maximum(na, 1e-300)
     valid = ok & (cos > -0.5) & (scale < max_scale) & (scale > 1.0 / max_scale)
+    # Rodrigues for the rotation taking ah onto ph, R = I + [v]x + [v]x^2 / (1 + cos) with v = ah x ph, entry
+    # by entry: [v]x^2 = v v^T - |v|^2 I (each entry the same sum of the same products as the 3x3 matrix
+    # product, so the same values to the last bit, without the [J,m,3,3] temporaries)
     v = np.cross(ah, ph)
-    vx = np.zeros(a.shape + (3,))
-    vx[..., 0, 1], vx[..., 0, 2] = -v[..., 2], v[..., 1]
-    vx[..., 1, 0], vx[..., 1, 2] = v[..., 2], -v[..., 0]
-    vx[..., 2, 0], vx[..., 2, 1] = -v[..., 1], v[..., 0]
-    # Rodrigues for the rotation taking ah onto ph: I + [v]x + [v]x^2 / (1 + cos)
-    vx2 = np.einsum("...ij,...jk->...ik", vx, vx)
-    rot = np.eye(3) + vx + vx2 / np.maximum(1.0 + cos, 1e-3)[..., None, None]
-    phi = scale[..., None, None] * rot - np.eye(3)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    den = np.maximum(1.0 + cos, 1e-3)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y / den, x * z / den, y * z / den
+    phi = np.empty(a.shape + (3,))                               # s R - I
+    phi[..., 0, 0] = scale * (1.0 + -(zz + yy) / den) - 1.0
+    phi[..., 1, 1] = scale * (1.0 + -(zz + xx) / den) - 1.0
+    phi[..., 2, 2] = scale * (1.0 + -(yy + xx) / den) - 1.0
+    phi[..., 0, 1], phi[..., 1, 0] = scale * (-z + xy), scale * (z + xy)
+    phi[..., 0, 2], phi[..., 2, 0] = scale * (y + xz), scale * (-y + xz)
+    phi[..., 1, 2], phi[..., 2, 1] = scale * (-x + yz), scale * (x + yz)
     phi[~valid] = 0.0
     return phi, valid
 

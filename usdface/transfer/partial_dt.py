@@ -143,9 +143,9 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
     stiff[soft] = alpha[soft] / (1.0 - alpha[soft]) * mass[soft] / length ** 2
     solve_set = adjacent | soft[None, :]
     if falloff and face.any():
-        from scipy.spatial import cKDTree
+        from ..mesh import distances_within
 
-        dist = cKDTree(x0[face]).query(x0, distance_upper_bound=band * falloff)[0]
+        dist = distances_within(x0[face], x0, band * falloff)
         solve_set = solve_set & np.isfinite(dist)[None, :]
     groups: dict[bytes, list[int]] = {}
     for j in range(approx.shape[0]):
