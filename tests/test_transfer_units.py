@@ -391,6 +391,41 @@ def test_repair_eyelids_moves_penetrating_vertices_to_surface():
     np.testing.assert_array_equal(again, fixed)
 
 
+def test_repair_eyelids_keeps_one_smooth_margin():
+    """A smooth personalized lid that cuts into the eye (a bump 1.6 mm deep on a lid 1 mm off the eyeball)
+    comes out of the repair as smooth as it went in, not as a plateau whose rim creases (moved vertex by
+    vertex, a lid margin showed notches in Blender on dev1), every vertex keeping its bound."""
+    import scipy.spatial
+
+    from usdface.transfer.eyelids import _EyeSurface
+
+    d = np.random.default_rng(4).normal(size=(3000, 3))
+    sphere = 0.012 * d / np.linalg.norm(d, axis=1, keepdims=True) + np.array([0.03, 1.6, 0.1])
+    tris = scipy.spatial.ConvexHull(sphere).simplices
+    c, r, rms = fit_sphere(sphere)
+    side = np.linspace(-0.6, 0.6, 31)
+    u, v = (a.ravel() for a in np.meshgrid(side, side))
+    dirs = np.stack([u, v, np.ones(u.size)], 1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lid = c + (r + 0.001) * dirs                          # a lid 1 mm off the eyeball, 0.5 mm edges
+    shapes = -(0.0016 * np.exp(-(u ** 2 + v ** 2) / 0.08))[None, :, None] * dirs[None]
+    eyes = [(Eyeball("eye", c, r, rms), sphere, tris)]
+
+    def roughness(offsets):                               # the largest change of the grid Laplacian
+        x = (lid + offsets).reshape(31, 31, 3) - lid.reshape(31, 31, 3)
+        lap = 4 * x[1:-1, 1:-1] - x[2:, 1:-1] - x[:-2, 1:-1] - x[1:-1, 2:] - x[1:-1, :-2]
+        return np.linalg.norm(lap, axis=-1).max()
+
+    generic = np.zeros_like(shapes)
+    smooth, count = repair_eyelids(lid, shapes, eyes, reference=generic)
+    stepped, count2 = repair_eyelids(lid, shapes, eyes, reference=generic, smooth=False)
+    assert count == count2 > 50
+    dist = _EyeSurface(sphere, tris).signed_distance(lid + smooth[0])
+    assert dist.min() >= 3e-4 - 5e-5                                 # the bound (0.3 mm) holds everywhere
+    assert roughness(smooth[0]) < 0.7 * roughness(stepped[0])        # 0.18 mm against 0.31 (input 0.13)
+    assert roughness(smooth[0]) < 1.5 * roughness(shapes[0])
+
+
 def test_correspondence_cache_round_trip_and_key(tmp_path):
     corr = Correspondence(np.array([0, 1]), np.array([[1, 0, 0], [0.2, 0.3, 0.5]]), np.array([0.0, 1e-3]),
                           np.array([True, False]), np.array([0, -1]), key="abc", info={"face_vertices": 1})

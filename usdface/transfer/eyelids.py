@@ -128,19 +128,92 @@ class _EyeSurface:
         return c.astype(np.float64) + self.origin
 
 
-def _largest_share(surf, generic, personalized, bound, steps: int = 12):
-    """``[q,3]``: the point ``generic + t (personalized - generic)`` with the largest ``t`` in [0, 1] whose
-    signed distance from the eye (:class:`_EyeSurface`) is at least ``bound[q]`` (bisection; ``t = 0``, the
-    generic shape's position, meets it by definition): where neither step of :func:`repair_eyelids` reaches
-    the bound (a grazing corner of a non-star-shaped eye mesh), as much of the personalization as keeps the
-    lid off the eye, not all or nothing."""
+def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
+    """``[q]``: the largest ``t`` in [0, 1] (to ``2^-steps``) for which ``generic + t (personalized -
+    generic)`` (``[q,3]``) lies at least ``bound[q]`` from the eye (:class:`_EyeSurface`; signed distance,
+    bisection; ``t = 0``, the generic shape's position, meets it by definition)."""
     lo, hi = np.zeros(len(generic)), np.ones(len(generic))
     step = personalized - generic
     for _ in range(steps):
         mid = 0.5 * (lo + hi)
         ok = surf.signed_distance(generic + mid[:, None] * step) >= bound
         lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
-    return generic + lo[:, None] * step
+    return lo
+
+
+def _largest_share(surf, generic, personalized, bound, steps: int = 12):
+    """``[q,3]``: the point ``generic + t (personalized - generic)`` with the largest ``t`` of :func:`_share`:
+    where neither step of :func:`repair_eyelids` reaches the bound (a grazing corner of a non-star-shaped
+    eye mesh), as much of the personalization as keeps the lid off the eye, not all or nothing."""
+    return generic + _share(surf, generic, personalized, bound, steps)[:, None] * (personalized - generic)
+
+
+#: The correction that moves a lid vertex off the eye is spread over this many eyeball radii around it
+#: (:func:`_spread_corrections`): the lid keeps one smooth margin, at the scale of the eye's own curvature,
+#: whatever the mesh's resolution.
+SPREAD_RADIUS = 0.5
+#: Rounds of spreading (:func:`repair_eyelids`): what one round leaves short of its bound is spread again,
+#: then moved onto its bound alone.
+SPREAD_ROUNDS = 3
+
+
+def _spread_corrections(out, x0, near, js, ks, correction, radius: float) -> None:
+    """The smooth part of :func:`repair_eyelids`, in place: in shape ``js[p]`` the lid around the vertex
+    ``near[ks[p]]`` that cuts into the eye (``near[k]``: indices into ``x0[n,3]``, the neutral, metres),
+    whose move onto its bound is ``correction[p,3]``, moves with it: each near vertex within ``radius`` of
+    such vertices moves by ``sum_p w_p c_p / max(1, sum_p w_p)`` with ``w = 1 - smoothstep(distance /
+    radius)``. A vertex among others that cut in takes their mean correction, one alone its own, and the lid
+    around fades from them to nothing: one smooth margin instead of vertices each moved its own way (a
+    notched lid margin in a blink, seen in Blender on dev1, where neighbouring margin vertices reached their
+    bounds along different lines). The corrections point out of the eye; a vertex the mean leaves short of
+    its bound is corrected again (:func:`repair_eyelids`)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(x0[near])
+    pairs = tree.sparse_distance_matrix(tree, radius, output_type="coo_matrix")
+    rows = np.concatenate([pairs.row, np.arange(near.size)])          # each vertex its own neighbour too
+    cols = np.concatenate([pairs.col, np.arange(near.size)])
+    t = np.clip(np.concatenate([pairs.data, np.zeros(near.size)]) / radius, 0.0, 1.0)
+    falloff = 1.0 - t * t * (3.0 - 2.0 * t)
+    for j in np.unique(js):                                          # the few shapes that cut into the eye
+        mine = js == j
+        at = np.full(near.size, -1)
+        at[ks[mine]] = np.arange(mine.sum())
+        reach = at[cols] >= 0
+        w = falloff[reach]
+        total = np.bincount(rows[reach], weights=w, minlength=near.size)
+        moved = np.stack([np.bincount(rows[reach], weights=w * correction[mine][at[cols[reach]], c],
+                                      minlength=near.size) for c in range(3)], axis=1)
+        v = np.flatnonzero(total > 0)
+        out[j, near[v]] += moved[v] / np.maximum(total[v], 1.0)[:, None]
+
+
+def _onto_bound(surf, eye, q, d, required, tolerance: float, generic=None) -> np.ndarray:
+    """``[p,3]``: the positions ``q[p,3]`` (signed distances ``d[p]``) moved onto their bounds
+    ``required[p]``: along the line to the closest point on the eye mesh, then - since a step off one part of
+    a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
+    along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where that
+    still falls short, the largest share of the personalization that keeps the bound
+    (:func:`_largest_share`)."""
+    start = q
+    closest = surf.closest_points(q)
+    ok = np.abs(d) > 1e-9
+    radial = q - eye.center
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
+    direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
+    q = closest + direction * required[:, None]
+    for _ in range(8):
+        d = surf.signed_distance(q)
+        short = d < required - 1e-6
+        if not short.any():
+            break
+        q[short] += radial[short] * (required[short] - d[short])[:, None]
+    if generic is not None:
+        d = surf.signed_distance(q)
+        short = np.flatnonzero(d < required - tolerance)
+        if short.size:
+            q[short] = _largest_share(surf, generic[short], start[short], required[short] - tolerance)
+    return q
 
 
 def _signed_distance(points, triangles, queries):
@@ -149,8 +222,33 @@ def _signed_distance(points, triangles, queries):
     return surf.signed_distance(queries), surf.closest_points(queries)
 
 
+def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float):
+    """The (shape ``js``, near vertex ``ks``) pairs of :func:`repair_eyelids` whose personalized position
+    violates its bound: ``(js, ks, position[p,3], signed distance[p], bound[p])``, or None."""
+    q = x0[near[ks]] + out[js, near[ks]]
+    d = surf.signed_distance(q)
+    # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far outside
+    # the eye is fine whatever its bound, and its neutral's and generic shape's distances are not needed
+    # (most of the lid vertices near the eye, in most shapes)
+    doubt = d < (max(clearance, 0.0) if reference is not None else 0.0) - tolerance
+    js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
+    if js.size == 0:
+        return None
+    verts = np.unique(ks)
+    d0 = np.zeros(near.size)
+    d0[verts] = surf.signed_distance(x0[near[verts]])
+    required = np.minimum(d0[ks], 0.0)
+    if reference is not None:
+        d_ref = surf.signed_distance(x0[near[ks]] + reference[js, near[ks]])
+        required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
+    bad = d < required - tolerance
+    if not bad.any():
+        return None
+    return js[bad], ks[bad], q[bad], d[bad], required[bad]
+
+
 def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5,
-                   clearance: float = 3e-4, overwrite: bool = False):
+                   clearance: float = 3e-4, overwrite: bool = False, smooth: bool = True):
     """Keep eyelid vertices off the eyeballs: a personalized shape may not bring a vertex closer to (or deeper
     into) an eyeball than the avatar's own generic shape does.
 
@@ -170,8 +268,11 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
 
     A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
     on the eye mesh to the bound (then radially from the eyeball's centre; with ``reference``, where that does
-    not reach the bound either, the largest share of its personalization that does: :func:`_largest_share`).
-    Returns ``(repaired shapes[J,n,3], number of repaired vertex-shape pairs)``.
+    not reach the bound either, the largest share of its personalization that does: :func:`_onto_bound`).
+    With ``smooth`` (default) those corrections are spread over the lid within :data:`SPREAD_RADIUS` eyeball
+    radii first (:func:`_spread_corrections`: the margin stays one smooth curve), for up to
+    :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone. Returns
+    ``(repaired shapes[J,n,3], number of vertex-shape pairs that violated their bound)``.
 
     Distance queries are limited to (shape, vertex) pairs within the eye's bounding sphere plus ``clearance``;
     one raycasting scene per eye.
@@ -205,48 +306,29 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             js, ks = js[moved], ks[moved]
             if js.size == 0:
                 continue
-        q = pos[js, ks]
-        d = surf.signed_distance(q)
-        # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far
-        # outside the eye is fine whatever its bound, and its neutral's and generic shape's distances are not
-        # needed (most of the lid vertices near the eye, in most shapes)
-        doubt = d < (max(clearance, 0.0) if ref_all is not None else 0.0) - tolerance
-        js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
-        if js.size == 0:
+        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
+        if found is None:
             continue
-        verts = np.unique(ks)
-        d0 = np.zeros(near.size)
-        d0[verts] = surf.signed_distance(x0[near[verts]])
-        required = np.minimum(d0[ks], 0.0)
-        if ref_all is not None:
-            d_ref = surf.signed_distance(x0[near[ks]] + ref_all[js, near[ks]])
-            required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
-        bad = d < required - tolerance
-        count += int(bad.sum())
-        if not bad.any():
-            continue
-        js, ks, q, d, required = js[bad], ks[bad], q[bad], d[bad], required[bad]
-        start = q.copy()                                   # the personalized positions
-        # first onto the bound along the line to the closest point, then - since a step off one part of a
-        # non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
-        # along which the distance to a star-shaped eye grows, until the bound holds
-        closest = surf.closest_points(q)
-        ok = np.abs(d) > 1e-9
-        radial = q - eye.center
-        radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
-        direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
-        q = closest + direction * required[:, None]
-        for _ in range(8):
-            d = surf.signed_distance(q)
-            short = d < required - 1e-6
-            if not short.any():
+        js, ks, q, d, required = found
+        count += js.size
+        fixed = _onto_bound(surf, eye, q, d, required, tolerance,
+                            None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
+        for _ in range(SPREAD_ROUNDS if smooth else 0):
+            # the corrections spread smoothly over the lid around the vertices that cut in; where that
+            # leaves a vertex short of its bound, its own correction is spread again, and after the last
+            # round it is moved as they were
+            _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius)
+            pos = x0[near][None] + out[:, near]
+            js, ks = np.nonzero(np.sum((pos - center) ** 2, axis=-1) <= bound ** 2)
+            if ref_all is not None:
+                moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+                js, ks = js[moved], ks[moved]
+            found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
+            if found is None:
                 break
-            q[short] += radial[short] * (required[short] - d[short])[:, None]
-        if ref_all is not None:
-            d = surf.signed_distance(q)
-            short = np.flatnonzero(d < required - tolerance)
-            if short.size:
-                q[short] = _largest_share(surf, x0[near[ks[short]]] + ref_all[js[short], near[ks[short]]],
-                                          start[short], required[short] - tolerance)
-        out[js, near[ks]] = q - x0[near[ks]]
+            js, ks, q, d, required = found
+            fixed = _onto_bound(surf, eye, q, d, required, tolerance,
+                                None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
+        else:
+            out[js, near[ks]] = fixed - x0[near[ks]]
     return out, count
