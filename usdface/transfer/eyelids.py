@@ -157,7 +157,7 @@ SPREAD_RADIUS = 0.5
 SPREAD_ROUNDS = 3
 
 
-def _spread_corrections(out, x0, near, js, ks, correction, radius: float) -> None:
+def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=None):
     """The smooth part of :func:`repair_eyelids`, in place: in shape ``js[p]`` the lid around the vertex
     ``near[ks[p]]`` that cuts into the eye (``near[k]``: indices into ``x0[n,3]``, the neutral, metres),
     whose move onto its bound is ``correction[p,3]``, moves with it: each near vertex within ``radius`` of
@@ -166,26 +166,27 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float) -> Non
     around fades from them to nothing: one smooth margin instead of vertices each moved its own way (a
     notched lid margin in a blink, seen in Blender on dev1, where neighbouring margin vertices reached their
     bounds along different lines). The corrections point out of the eye; a vertex the mean leaves short of
-    its bound is corrected again (:func:`repair_eyelids`)."""
+    its bound is corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of ``x0[near]`` (built
+    here without). Cost: the pairs within ``radius`` of the corrected vertices only. Returns the (shape,
+    near vertex) pairs it moved, ``(js[m], ks[m])``."""
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(x0[near])
-    pairs = tree.sparse_distance_matrix(tree, radius, output_type="coo_matrix")
-    rows = np.concatenate([pairs.row, np.arange(near.size)])          # each vertex its own neighbour too
-    cols = np.concatenate([pairs.col, np.arange(near.size)])
-    t = np.clip(np.concatenate([pairs.data, np.zeros(near.size)]) / radius, 0.0, 1.0)
-    falloff = 1.0 - t * t * (3.0 - 2.0 * t)
+    tree = cKDTree(x0[near]) if tree is None else tree
+    moved_js, moved_ks = [], []
     for j in np.unique(js):                                          # the few shapes that cut into the eye
-        mine = js == j
-        at = np.full(near.size, -1)
-        at[ks[mine]] = np.arange(mine.sum())
-        reach = at[cols] >= 0
-        w = falloff[reach]
-        total = np.bincount(rows[reach], weights=w, minlength=near.size)
-        moved = np.stack([np.bincount(rows[reach], weights=w * correction[mine][at[cols[reach]], c],
-                                      minlength=near.size) for c in range(3)], axis=1)
+        mine = np.flatnonzero(js == j)
+        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, radius, output_type="ndarray")
+        t = np.clip(pairs["v"] / radius, 0.0, 1.0)                 # each corrected vertex with itself too
+        w = 1.0 - t * t * (3.0 - 2.0 * t)
+        to = pairs["j"]
+        total = np.bincount(to, weights=w, minlength=near.size)
+        shift = np.stack([np.bincount(to, weights=w * correction[mine[pairs["i"]], c], minlength=near.size)
+                          for c in range(3)], axis=1)
         v = np.flatnonzero(total > 0)
-        out[j, near[v]] += moved[v] / np.maximum(total[v], 1.0)[:, None]
+        out[j, near[v]] += shift[v] / np.maximum(total[v], 1.0)[:, None]
+        moved_js.append(np.full(v.size, j))
+        moved_ks.append(v)
+    return np.concatenate(moved_js), np.concatenate(moved_ks)
 
 
 def _onto_bound(surf, eye, q, d, required, tolerance: float, generic=None) -> np.ndarray:
@@ -313,16 +314,20 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         count += js.size
         fixed = _onto_bound(surf, eye, q, d, required, tolerance,
                             None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
-        for _ in range(SPREAD_ROUNDS if smooth else 0):
+        if not smooth:
+            out[js, near[ks]] = fixed - x0[near[ks]]
+            continue
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(x0[near])
+        spread_js, spread_ks = [], []
+        for _ in range(SPREAD_ROUNDS):
             # the corrections spread smoothly over the lid around the vertices that cut in; where that
-            # leaves a vertex short of its bound, its own correction is spread again, and after the last
-            # round it is moved as they were
-            _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius)
-            pos = x0[near][None] + out[:, near]
-            js, ks = np.nonzero(np.sum((pos - center) ** 2, axis=-1) <= bound ** 2)
-            if ref_all is not None:
-                moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
-                js, ks = js[moved], ks[moved]
+            # leaves one of them short of its bound, its own correction is spread again, and after the last
+            # round it is moved as before
+            mj, mk = _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius, tree)
+            spread_js.append(mj)
+            spread_ks.append(mk)
             found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
             if found is None:
                 break
@@ -331,4 +336,18 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                                 None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
         else:
             out[js, near[ks]] = fixed - x0[near[ks]]
+        # the lid the corrections carried along moved out of the eye; checked once all the same (a vertex
+        # still short of its bound is moved alone)
+        pair = np.unique(np.concatenate(spread_js) * near.size + np.concatenate(spread_ks))
+        js, ks = pair // near.size, pair % near.size
+        inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
+        js, ks = js[inside], ks[inside]                  # as above: beyond the bounding sphere all is fine
+        if ref_all is not None:
+            moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+            js, ks = js[moved], ks[moved]
+        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
+        if found is not None:
+            js, ks, q, d, required = found
+            out[js, near[ks]] = _onto_bound(surf, eye, q, d, required, tolerance, None if ref_all is None
+                                            else x0[near[ks]] + ref_all[js, near[ks]]) - x0[near[ks]]
     return out, count
