@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import match_names
+from ..arkit import livelink_name, lookalike, match_names
 from ..errors import CaptureError, InputFileError, TimecodeError
 from .atomic import write_text_atomic
 from .capture_folder import order_names
@@ -35,6 +35,22 @@ __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
                  "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
 _IGNORED = ("BlendShapeCount",)
+#: the header's bookkeeping columns, by their lower-case spelling
+_BOOKKEEPING = {"timecode": "Timecode", "blendshapecount": "BlendShapeCount"}
+
+
+def _drop_unnamed_empty_columns(rows: list[list[str]]) -> list[list[str]]:
+    """Leave out the columns with no name in the header and no value in any row: the empty last column of
+    a CSV whose lines end with a comma (a spreadsheet or a script wrote it so). It was read as a column
+    named '' whose '' is not a number, 'the CSV is damaged'."""
+    header = rows[0]
+    drop = {j for j, c in enumerate(header) if not c.strip()
+            and all(j >= len(r) or not r[j].strip() for r in rows[1:])}
+    if not drop:
+        return rows
+    width = len(header)
+    # a row keeps its length relative to the header, so that a cut-off or ragged row is still told
+    return [[c for j, c in enumerate(r) if j not in drop or j >= width] for r in rows]
 
 
 @dataclass
@@ -187,10 +203,22 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
         raise InputFileError("the CSV is empty", path=path, fix="pass the .csv exported by Live Link Face")
     rows = list(csv.reader(io.StringIO(text)))
     rows = [r for r in rows if r and any(c.strip() for c in r)]
-    if not rows or "Timecode" not in [c.strip() for c in rows[0]]:
+    if rows:
+        rows = _drop_unnamed_empty_columns(rows)
+    # the two bookkeeping columns in any letter case: writers spell them 'BlendshapeCount' too, which was
+    # warned about as an unknown column; a 'timecode' header was refused as having no Timecode column
+    header = [_BOOKKEEPING.get(c.strip().lower(), c.strip()) for c in rows[0]] if rows else []
+    if "Timecode" not in header:
+        first = text.lstrip("\ufeff").splitlines()[0] if text.strip() else ""
+        sep = next((s for s in (";", "\t", "|") if s in first and "," not in first), None)
+        if sep is not None and "timecode" in first.lower():
+            said = {";": "semicolons", "\t": "tabs", "|": "'|'"}[sep]
+            raise InputFileError(f"not a Live Link Face CSV: its fields are separated by {said}, not commas "
+                                 "(a spreadsheet saved it with another list separator)", path=path,
+                                 fix="export it again from Live Link Face, or save it from the spreadsheet "
+                                     "as CSV with comma separators")
         raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path,
                              fix="pass the .csv exported by Live Link Face")
-    header = [c.strip() for c in rows[0]]
     twice = sorted({c for c in header if header.count(c) > 1})
     if twice:
         raise InputFileError(f"duplicated column(s) in the header: {', '.join(twice)}", path=path,
@@ -229,8 +257,13 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
                            fix="keep one column per shape")
     extra = {n: numeric[n] for n in match.unknown}
     if extra:
+        # a misspelt weight ('JawOpn') is set aside and its shape reads as 0 in every frame: name the shape
+        looks = {n: a for n in extra if (a := lookalike(n)) is not None and a not in set(match.canonical)}
+        said = ", ".join(f"{n} (looks like {looks[n]}: misspelt?)" if n in looks else n for n in extra)
+        fix = (f" (fix: rename the column{'s' if len(looks) > 1 else ''} "
+               + ", ".join(f"{n} -> {livelink_name(a)}" for n, a in looks.items()) + ")") if looks else ""
         warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
-                      f"not used as weights): {', '.join(extra)}", UserWarning, stacklevel=2)
+                      f"not used as weights): {said}{fix}", UserWarning, stacklevel=2)
     by_name = {c: numeric[n] for n, c in zip(match.names, match.canonical, strict=True) if n not in extra}
     names = order_names(by_name)
     weights = np.stack([by_name[n] for n in names], axis=1) if names else np.zeros((len(body), 0))
@@ -311,7 +344,6 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     <angles>``): ``weights[F, K]`` for canonical ``names[K]``, ``times[F]`` seconds, optional ``angles``
     {column: [F]}. Written atomically. Used to make test takes; :func:`read_livelink_take` reads it back."""
 
-    from ..arkit import livelink_name
 
     path = Path(path)
     weights = np.asarray(weights, dtype=np.float64)
