@@ -462,7 +462,9 @@ def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
     export_avatar(out, flatten=flat)
     assert usdface_layer_data(flat)["take"] == "../../takes/t.csv"
     take.rename(tmp_path / "moved.csv")
-    data = collect_review(out, fit_errors=False)
+    # said where the command runs too: the page alone said it, and 'review' printed only 'wrote ...'
+    with pytest.warns(UserWarning, match=r"person.usda: the take recorded .*\(../takes/t.csv\) was not"):
+        data = collect_review(out, fit_errors=False)
     assert not [s for s in data.sequences if s.title.startswith("take ")]
     assert any("take recorded" in n and "not found" in n for n in data.notes)
 

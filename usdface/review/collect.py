@@ -170,6 +170,22 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
             "columns": {k: [float(v) for v in scored[key]] for k, key in columns.items()}}
 
 
+def _named(prov: dict, k: int) -> str:
+    """` (<path>)`: the k-th input the provenance records, as recorded, or '' when it records none."""
+    inputs = list(prov.get("inputs") or [])
+    return f" ({inputs[k]})" if len(inputs) > k else ""
+
+
+def _gone(notes: list, text: str, layer_path: Path) -> None:
+    """A recorded input that is no longer there: a note on the page and a warning where the command runs
+    (the page silently lost its take's playback, or its test expressions and eq. 5 table; only the page
+    said so)."""
+    import warnings
+
+    notes.append(text)
+    warnings.warn(f"{Path(layer_path).name}: {text}", UserWarning, stacklevel=3)
+
+
 def _input_kind(path: Path, prov: dict | None) -> str | None:
     """What ``path`` given as the layer is when it is an input of 'personalize' rather than its layer:
     "capture", "take" (meshes and weights), "weights" (a Live Link CSV, an 'anim import' SkelAnimation),
@@ -278,8 +294,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if capture is None:
         capture = recorded_capture(layer_path, prov)
         if capture is None:
-            notes.append("the capture recorded in the layer's provenance was not found: no test expressions "
-                         "(pass --capture)")
+            _gone(notes, f"the capture recorded in the layer's provenance{_named(prov, 1)} was not found: no "
+                         "test expressions (pass --capture)", layer_path)
     if isinstance(capture, str | Path):
         from ..errors import CaptureError
         from ..io.take import WEIGHTS_ONLY_FIX
@@ -308,8 +324,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if take is None and prov.get("take"):   # the take the layer's inspection animation plays
         take = recorded_take(layer_path, prov)
         if take is None:
-            notes.append(f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
-                         "played (pass --take)")
+            _gone(notes, f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
+                         "played (pass --take)", layer_path)
     if take is None and capture is not None:  # a take read whole as the capture: play it
         from ..io.take import whole_take_playback
 
