@@ -465,3 +465,16 @@ def test_a_misspelt_weight_column_is_named_with_the_shape_it_looks_like(tmp_path
     with pytest.warns(UserWarning, match=r"JawOpn \(looks like jawOpen: misspelt\?\).*JawOpn -> JawOpen"):
         take = read_livelink_take(p)
     assert "jawOpen" not in take.names and "JawOpn" in take.extra
+
+
+def test_the_take_preflight_judges_a_csv_header_as_the_reader_does(tmp_path):
+    """``usdface batch`` and the Pyblish validators check a take before any work
+    (``usdface.io.take.check_take_path``): with its own header test, a take the reader reads (a 'timecode'
+    header) would be refused there, and a semicolon-separated one refused without saying why."""
+    from usdface.io.take import check_take_path
+
+    lower = _header_variant(tmp_path, lambda t: t.replace("Timecode", "timecode", 1), "lower.csv")
+    assert check_take_path(lower) == lower and len(read_livelink_take(lower).weights) == 3
+    semi = _header_variant(tmp_path, lambda t: t.replace(",", ";"), "semi.csv")
+    with pytest.raises(InputFileError, match="separated by semicolons"):
+        check_take_path(semi)

@@ -39,6 +39,24 @@ _IGNORED = ("BlendShapeCount",)
 _BOOKKEEPING = {"timecode": "Timecode", "blendshapecount": "BlendShapeCount"}
 
 
+def livelink_header(fields, first_line: str, path, fix: str) -> list[str]:
+    """The header row ``fields`` of a Live Link Face CSV with its bookkeeping columns spelled as the app
+    does (``Timecode``, ``BlendShapeCount`` in any letter case: other writers spell ``BlendshapeCount``).
+    Raises InputFileError naming ``path`` when it has no ``Timecode`` column, saying so when ``first_line``
+    (the file's first line) separates its fields by semicolons or tabs (a spreadsheet's list separator)."""
+    header = [_BOOKKEEPING.get(c.strip().lower(), c.strip()) for c in fields]
+    if "Timecode" in header:
+        return header
+    sep = next((s for s in (";", "\t", "|") if s in first_line and "," not in first_line), None)
+    if sep is not None and "timecode" in first_line.lower():
+        said = {";": "semicolons", "\t": "tabs", "|": "'|'"}[sep]
+        raise InputFileError(f"not a Live Link Face CSV: its fields are separated by {said}, not commas (a "
+                             "spreadsheet saved it with another list separator)", path=path,
+                             fix="export it again from Live Link Face, or save it from the spreadsheet as "
+                                 "CSV with comma separators")
+    raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path, fix=fix)
+
+
 def _drop_unnamed_empty_columns(rows: list[list[str]]) -> list[list[str]]:
     """Leave out the columns with no name in the header and no value in any row: the empty last column of
     a CSV whose lines end with a comma (a spreadsheet or a script wrote it so). It was read as a column
@@ -207,18 +225,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
         rows = _drop_unnamed_empty_columns(rows)
     # the two bookkeeping columns in any letter case: writers spell them 'BlendshapeCount' too, which was
     # warned about as an unknown column; a 'timecode' header was refused as having no Timecode column
-    header = [_BOOKKEEPING.get(c.strip().lower(), c.strip()) for c in rows[0]] if rows else []
-    if "Timecode" not in header:
-        first = text.lstrip("\ufeff").splitlines()[0] if text.strip() else ""
-        sep = next((s for s in (";", "\t", "|") if s in first and "," not in first), None)
-        if sep is not None and "timecode" in first.lower():
-            said = {";": "semicolons", "\t": "tabs", "|": "'|'"}[sep]
-            raise InputFileError(f"not a Live Link Face CSV: its fields are separated by {said}, not commas "
-                                 "(a spreadsheet saved it with another list separator)", path=path,
-                                 fix="export it again from Live Link Face, or save it from the spreadsheet "
-                                     "as CSV with comma separators")
-        raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path,
-                             fix="pass the .csv exported by Live Link Face")
+    header = livelink_header(rows[0] if rows else [], text.lstrip("\ufeff").split("\n", 1)[0], path,
+                             "pass the .csv exported by Live Link Face")
     twice = sorted({c for c in header if header.count(c) > 1})
     if twice:
         raise InputFileError(f"duplicated column(s) in the header: {', '.join(twice)}", path=path,
