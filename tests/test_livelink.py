@@ -478,3 +478,15 @@ def test_the_take_preflight_judges_a_csv_header_as_the_reader_does(tmp_path):
     semi = _header_variant(tmp_path, lambda t: t.replace(",", ";"), "semi.csv")
     with pytest.raises(InputFileError, match="separated by semicolons"):
         check_take_path(semi)
+
+
+def test_a_csv_of_no_arkit_weight_is_refused_naming_its_columns(tmp_path, capsys):
+    """A CSV of head/eye angles only (or of another tool's curves) was written by 'anim import' as a take of
+    '0 shapes' and played by 'personalize --take' as one holding every shape still."""
+    p = tmp_path / "angles.csv"
+    p.write_text("Timecode,BlendShapeCount,HeadYaw,CTRL_jaw\n10:00:00:00.0,2,0.1,0.2\n10:00:00:02.0,2,0.1,0.3\n")
+    with pytest.warns(UserWarning, match="CTRL_jaw"), pytest.raises(CaptureError) as err:
+        read_livelink_take(p)
+    assert "no ARKit weight column" in err.value.message and "HeadYaw, CTRL_jaw" in err.value.message
+    assert main(["anim", "import", str(p), "-o", str(tmp_path / "t.usda")]) == 2
+    assert "no ARKit weight column" in capsys.readouterr().err and not (tmp_path / "t.usda").exists()

@@ -273,6 +273,13 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
         warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
                       f"not used as weights): {said}{fix}", UserWarning, stacklevel=2)
     by_name = {c: numeric[n] for n, c in zip(match.names, match.canonical, strict=True) if n not in extra}
+    if not by_name:
+        # a take of no weight at all played as one that holds every shape still, and 'anim import' wrote
+        # '0 shapes' as a success
+        has = ", ".join([*angles, *extra][:8]) or "none"
+        raise CaptureError(f"no ARKit weight column in the CSV (its other columns: {has})", path=path,
+                           fix="pass the .csv Live Link Face exported in ARKit mode (52 weight columns such "
+                               "as EyeBlinkLeft, JawOpen)")
     names = order_names(by_name)
     weights = np.stack([by_name[n] for n in names], axis=1) if names else np.zeros((len(body), 0))
     if not np.isfinite(weights).all():
