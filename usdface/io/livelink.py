@@ -57,6 +57,12 @@ def livelink_header(fields, first_line: str, path, fix: str) -> list[str]:
     raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path, fix=fix)
 
 
+def _column(name: str) -> str:
+    """A header name as a message says it: an empty one (a row index written by pandas' ``to_csv``, a
+    spreadsheet's blank header cell) was said as nothing at all."""
+    return name if name else "a column with no name"
+
+
 def _drop_unnamed_empty_columns(rows: list[list[str]]) -> list[list[str]]:
     """Leave out the columns with no name in the header and no value in any row: the empty last column of
     a CSV whose lines end with a comma (a spreadsheet or a script wrote it so). It was read as a column
@@ -229,7 +235,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
                              "pass the .csv exported by Live Link Face")
     twice = sorted({c for c in header if header.count(c) > 1})
     if twice:
-        raise InputFileError(f"duplicated column(s) in the header: {', '.join(twice)}", path=path,
+        raise InputFileError(f"duplicated column(s) in the header: {', '.join(map(_column, twice))}",
+                             path=path,
                              fix="keep one column per name (the CSV was edited or merged); export it again")
     body = rows[1:]
     if not body:
@@ -267,7 +274,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     if extra:
         # a misspelt weight ('JawOpn') is set aside and its shape reads as 0 in every frame: name the shape
         looks = {n: a for n in extra if (a := lookalike(n)) is not None and a not in set(match.canonical)}
-        said = ", ".join(f"{n} (looks like {looks[n]}: misspelt?)" if n in looks else n for n in extra)
+        said = ", ".join(f"{n} (looks like {looks[n]}: misspelt?)" if n in looks else
+                         f"{_column(n)} (column {header.index(n) + 1})" if not n else n for n in extra)
         fix = (f" (fix: rename the column{'s' if len(looks) > 1 else ''} "
                + ", ".join(f"{n} -> {livelink_name(a)}" for n, a in looks.items()) + ")") if looks else ""
         warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
