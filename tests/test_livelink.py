@@ -495,8 +495,11 @@ def test_a_csv_of_no_arkit_weight_is_refused_naming_its_columns(tmp_path, capsys
 def test_an_unnamed_column_is_named_by_its_place(tmp_path):
     """pandas' ``to_csv`` writes its row index as a first column with no name: the warning about columns
     that are no weights ended in nothing ('not used as weights): ')."""
-    p = _header_variant(tmp_path, lambda t: "\n".join(("," if i == 0 else f"{i - 1},") + line if line else line
-                                                      for i, line in enumerate(t.split("\n"))))
+    def indexed(text):
+        return "\n".join(("," if i == 0 else f"{i - 1},") + line if line else line
+                         for i, line in enumerate(text.split("\n")))
+
+    p = _header_variant(tmp_path, indexed)
     with pytest.warns(UserWarning, match=r"not used as weights\): a column with no name \(column 1\)"):
         take = read_livelink_take(p)
     assert take.weights.shape == (3, 52)
