@@ -101,3 +101,21 @@ def test_json_failures_are_ok_false_also_for_usage_errors(sample_dir, tmp_path):
         assert res.returncode == 2 and "Traceback" not in res.stderr
         doc = json.loads(res.stdout)
         assert doc["ok"] is False and doc["error"]["message"] and doc["error"]["command"] == args[0], doc
+
+
+def test_a_json_error_names_the_command_with_its_action(tmp_path, capsys):
+    """'capture select' and 'anim import' errors said "command": "capture" / "anim" in their JSON (the line on
+    stderr says 'usdface capture select: error'), so a pipeline could not tell capture import from select."""
+    csv = tmp_path / "angles.csv"
+    csv.write_text("Timecode,BlendShapeCount,HeadYaw\n10:00:00:00.0,1,0.1\n10:00:00:02.0,1,0.2\n")
+    anim = ["anim", "import", str(csv), "-o", str(tmp_path / "t.usda"), "--json"]
+    select = ["capture", "select", str(csv), "--json"]
+    for argv, command in ((select, "capture select"), (anim, "anim import"),
+                          (["anim", "import", "--json"], "anim import")):              # a usage error
+        try:
+            status = main(argv)
+        except SystemExit as exc:          # argparse's usage error
+            status = exc.code
+        out, err = capsys.readouterr()
+        assert status == 2 and json.loads(out)["error"]["command"] == command, (argv, out)
+        assert f"usdface {command}: error" in err

@@ -42,6 +42,16 @@ def test_cli_writes_layer_json_and_plot(layer_run):
     assert data["symmetric"] is True
 
 
+def test_layer_provenance_records_the_radius_and_spacing_used(layer_run):
+    """The layer's provenance recorded the options as typed: radius and spacing left out were '' (not
+    given), so the layer did not say which exclusion radius and skin sampling its layout was computed with."""
+    from usdface.io.usd_rig import usdface_layer_data
+
+    _, _, out, data, _, _ = layer_run
+    params = usdface_layer_data(out)["parameters"]
+    assert params["radius"] == 0.01 and params["spacing"] == data["problem"]["spacing"] > 0
+
+
 def test_layer_content_round_trips(layer_run):
     from pxr import Usd, UsdGeom
 
@@ -423,3 +433,21 @@ def test_evaluate_landmarks_without_takes_names_the_api_argument(tmp_path, capfd
     assert main(["landmarks", str(tmp_path / "missing.usda"), "--evaluate", "-q"]) == 2
     err = capfd.readouterr().err
     assert "--evaluate needs test weights" in err and "pass --takes" in err and "missing.usda" not in err
+
+
+def test_evaluation_plot_labels_its_errors_as_plain_millimetres(monkeypatch, tmp_path):
+    """The --evaluate plot's log axis read '3x10^-1', '2x10^0' (matplotlib's labels of minor ticks, which
+    are most of them on errors spanning a decade): plain numbers now (a user trial)."""
+    from usdface.landmarks import plots
+    from usdface.landmarks.evaluate import EvaluationPoint, EvaluationReport
+
+    points = [EvaluationPoint("ours", f"l{n}", n, r * 1e-3) for n, r in ((10, 1.5), (20, 0.5), (68, 0.27))]
+    points += [EvaluationPoint("random", f"r{n}", n, r * 1e-3) for n, r in ((8, 3.3), (68, 0.75))]
+    saved = {}
+    monkeypatch.setattr(plots, "_save", lambda fig, path, force: saved.setdefault("fig", fig))
+    plots.plot_evaluation(EvaluationReport(points, frames=400, noise=5e-4), tmp_path / "e.png")
+    ax = saved["fig"].axes[0]
+    saved["fig"].canvas.draw()
+    labels = {t.get_text() for minor in (False, True) for t in ax.get_yticklabels(minor=minor)} - {""}
+    assert {"0.3", "0.5", "1", "2", "3"} <= labels, labels
+    assert not [t for t in labels if "times" in t or "e-" in t or "^" in t], labels

@@ -428,3 +428,78 @@ def _sample_take(tmp_path):
     pts[:, 1, 0] = pts[:, 2, 1] = 0.01
     return Take(points=pts, triangles=tri, times=np.arange(3) / 30.0, weights=np.zeros((3, 1)),
                 names=["jawOpen"])
+
+
+def _header_variant(tmp_path, edit, name="t.csv"):
+    codes = ["10:00:00:00.0", "10:00:00:02.0", "10:00:00:04.0"]
+    p = write_csv(tmp_path / name, np.full((3, 52), 0.5), codes)
+    p.write_text(edit(p.read_text()))
+    return p
+
+
+@pytest.mark.parametrize("edit", [
+    lambda t: t.replace("BlendShapeCount", "BlendshapeCount", 1),   # another writer's spelling
+    lambda t: t.replace("Timecode", "timecode", 1),
+    lambda t: t.replace("\r\n", ",\r\n").replace("\n", ",\n") if "\r\n" in t else t.replace("\n", ",\n"),
+])
+def test_a_header_in_another_letter_case_or_lines_ending_in_a_comma_read_as_exported(tmp_path, edit, recwarn):
+    """'BlendshapeCount' was warned about as a column that is no weight, a 'timecode' header refused as
+    having no Timecode column, and lines ending with a comma (an empty last column) refused as 'column '':
+    '' is not a number, the CSV is damaged' (a user trial)."""
+    take = read_livelink_take(_header_variant(tmp_path, edit))
+    assert take.weights.shape == (3, 52) and np.allclose(take.weights, 0.5)
+    np.testing.assert_allclose(take.times, [0, 2 / 60, 4 / 60])
+    assert not take.extra and not [w for w in recwarn if "neither ARKit" in str(w.message)]
+
+
+def test_a_semicolon_separated_csv_says_so(tmp_path):
+    p = _header_variant(tmp_path, lambda t: t.replace(",", ";"))
+    with pytest.raises(InputFileError, match="separated by semicolons") as info:
+        read_livelink_take(p)
+    assert "t.csv" in str(info.value) and "comma" in info.value.fix
+
+
+def test_a_misspelt_weight_column_is_named_with_the_shape_it_looks_like(tmp_path):
+    """'JawOpn' was warned about only as a column that is no weight; jawOpen then read 0 in every frame."""
+    p = _header_variant(tmp_path, lambda t: t.replace("JawOpen", "JawOpn", 1))
+    with pytest.warns(UserWarning, match=r"JawOpn \(looks like jawOpen: misspelt\?\).*JawOpn -> JawOpen"):
+        take = read_livelink_take(p)
+    assert "jawOpen" not in take.names and "JawOpn" in take.extra
+
+
+def test_the_take_preflight_judges_a_csv_header_as_the_reader_does(tmp_path):
+    """``usdface batch`` and the Pyblish validators check a take before any work
+    (``usdface.io.take.check_take_path``): with its own header test, a take the reader reads (a 'timecode'
+    header) would be refused there, and a semicolon-separated one refused without saying why."""
+    from usdface.io.take import check_take_path
+
+    lower = _header_variant(tmp_path, lambda t: t.replace("Timecode", "timecode", 1), "lower.csv")
+    assert check_take_path(lower) == lower and len(read_livelink_take(lower).weights) == 3
+    semi = _header_variant(tmp_path, lambda t: t.replace(",", ";"), "semi.csv")
+    with pytest.raises(InputFileError, match="separated by semicolons"):
+        check_take_path(semi)
+
+
+def test_a_csv_of_no_arkit_weight_is_refused_naming_its_columns(tmp_path, capsys):
+    """A CSV of head/eye angles only (or of another tool's curves) was written by 'anim import' as a take of
+    '0 shapes' and played by 'personalize --take' as one holding every shape still."""
+    p = tmp_path / "angles.csv"
+    p.write_text("Timecode,BlendShapeCount,HeadYaw,CTRL_jaw\n10:00:00:00.0,2,0.1,0.2\n10:00:00:02.0,2,0.1,0.3\n")
+    with pytest.warns(UserWarning, match="CTRL_jaw"), pytest.raises(CaptureError) as err:
+        read_livelink_take(p)
+    assert "no ARKit weight column" in err.value.message and "HeadYaw, CTRL_jaw" in err.value.message
+    assert main(["anim", "import", str(p), "-o", str(tmp_path / "t.usda")]) == 2
+    assert "no ARKit weight column" in capsys.readouterr().err and not (tmp_path / "t.usda").exists()
+
+
+def test_an_unnamed_column_is_named_by_its_place(tmp_path):
+    """pandas' ``to_csv`` writes its row index as a first column with no name: the warning about columns
+    that are no weights ended in nothing ('not used as weights): ')."""
+    def indexed(text):
+        return "\n".join(("," if i == 0 else f"{i - 1},") + line if line else line
+                         for i, line in enumerate(text.split("\n")))
+
+    p = _header_variant(tmp_path, indexed)
+    with pytest.warns(UserWarning, match=r"not used as weights\): a column with no name \(column 1\)"):
+        take = read_livelink_take(p)
+    assert take.weights.shape == (3, 52)

@@ -49,8 +49,11 @@ class _Parser(argparse.ArgumentParser):
         if "--json" in argv and command in JSON_FLAG_COMMANDS:
             import json
 
+            # the command as the line on stderr names it: 'capture select', not 'capture'
+            named = self.prog.removeprefix("usdface").strip()
+            named = named if named.split(" ")[0] == command else command
             print(json.dumps({"ok": False, "error": {
-                "command": command, "type": "UsageError", "message": message, "file": None, "prim": None,
+                "command": named, "type": "UsageError", "message": message, "file": None, "prim": None,
                 "fix": f"see '{self.prog} --help'"}}))
         usage = self.format_usage() if command is None and self._subparsers is not None else ""
         self.exit(2, f"{usage}{self.prog}: error: {message} (see '{self.prog} --help')\n")
@@ -374,7 +377,9 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     usual one line on stderr."""
     import json
 
-    doc = {"ok": False, "error": {"command": args.command, "type": kind, "message": text,
+    # the command as the line on stderr names it ('capture select', 'anim import'): it said 'capture' for
+    # both capture actions
+    doc = {"ok": False, "error": {"command": _command_name(args), "type": kind, "message": text,
                                   "file": None if path is None else str(path), "prim": prim, "fix": fix}}
     print(json.dumps(doc))
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
@@ -388,7 +393,7 @@ def _json_stopped(args, terminated: bool) -> None:
     kind, signame = ("Terminated", "SIGTERM") if terminated else ("Interrupted", "SIGINT")
     batch = args.command == "batch"
     doc = {"ok": False, "error": {
-        "command": args.command, "type": kind,
+        "command": _command_name(args), "type": kind,
         "message": f"stopped by {signame} before it finished" + (
             ": the items that finished are kept, the report says which" if batch
             else "; its output was not written"),

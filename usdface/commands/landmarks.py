@@ -196,6 +196,10 @@ def run(args) -> int:
             if args.output:
                 p.start(f"write {Path(args.output).name}")
                 params = {k: v for k, v in vars(args).items() if k not in ("func",)}
+                # the values the layout was computed with, not 'not given' (recorded as ''): the default
+                # radius and the skin sampling's spacing (2 % of the face, rounded; 0 = every vertex)
+                params["radius"] = 0.01 if args.radius is None else args.radius
+                params["spacing"] = float(layout.problem.get("spacing") or 0.0)
                 api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
                                     provenance={"command": command_line(),
                                                 "parameters": params, "timings": layout.timings,

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import match_names
+from ..arkit import livelink_name, lookalike, match_names
 from ..errors import CaptureError, InputFileError, TimecodeError
 from .atomic import write_text_atomic
 from .capture_folder import order_names
@@ -35,6 +35,46 @@ __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
                  "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
 _IGNORED = ("BlendShapeCount",)
+#: the header's bookkeeping columns, by their lower-case spelling
+_BOOKKEEPING = {"timecode": "Timecode", "blendshapecount": "BlendShapeCount"}
+
+
+def livelink_header(fields, first_line: str, path, fix: str) -> list[str]:
+    """The header row ``fields`` of a Live Link Face CSV with its bookkeeping columns spelled as the app
+    does (``Timecode``, ``BlendShapeCount`` in any letter case: other writers spell ``BlendshapeCount``).
+    Raises InputFileError naming ``path`` when it has no ``Timecode`` column, saying so when ``first_line``
+    (the file's first line) separates its fields by semicolons or tabs (a spreadsheet's list separator)."""
+    header = [_BOOKKEEPING.get(c.strip().lower(), c.strip()) for c in fields]
+    if "Timecode" in header:
+        return header
+    sep = next((s for s in (";", "\t", "|") if s in first_line and "," not in first_line), None)
+    if sep is not None and "timecode" in first_line.lower():
+        said = {";": "semicolons", "\t": "tabs", "|": "'|'"}[sep]
+        raise InputFileError(f"not a Live Link Face CSV: its fields are separated by {said}, not commas (a "
+                             "spreadsheet saved it with another list separator)", path=path,
+                             fix="export it again from Live Link Face, or save it from the spreadsheet as "
+                                 "CSV with comma separators")
+    raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path, fix=fix)
+
+
+def _column(name: str) -> str:
+    """A header name as a message says it: an empty one (a row index written by pandas' ``to_csv``, a
+    spreadsheet's blank header cell) was said as nothing at all."""
+    return name if name else "a column with no name"
+
+
+def _drop_unnamed_empty_columns(rows: list[list[str]]) -> list[list[str]]:
+    """Leave out the columns with no name in the header and no value in any row: the empty last column of
+    a CSV whose lines end with a comma (a spreadsheet or a script wrote it so). It was read as a column
+    named '' whose '' is not a number, 'the CSV is damaged'."""
+    header = rows[0]
+    drop = {j for j, c in enumerate(header) if not c.strip()
+            and all(j >= len(r) or not r[j].strip() for r in rows[1:])}
+    if not drop:
+        return rows
+    width = len(header)
+    # a row keeps its length relative to the header, so that a cut-off or ragged row is still told
+    return [[c for j, c in enumerate(r) if j not in drop or j >= width] for r in rows]
 
 
 @dataclass
@@ -187,13 +227,16 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
         raise InputFileError("the CSV is empty", path=path, fix="pass the .csv exported by Live Link Face")
     rows = list(csv.reader(io.StringIO(text)))
     rows = [r for r in rows if r and any(c.strip() for c in r)]
-    if not rows or "Timecode" not in [c.strip() for c in rows[0]]:
-        raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=path,
-                             fix="pass the .csv exported by Live Link Face")
-    header = [c.strip() for c in rows[0]]
+    if rows:
+        rows = _drop_unnamed_empty_columns(rows)
+    # the two bookkeeping columns in any letter case: writers spell them 'BlendshapeCount' too, which was
+    # warned about as an unknown column; a 'timecode' header was refused as having no Timecode column
+    header = livelink_header(rows[0] if rows else [], text.lstrip("\ufeff").split("\n", 1)[0], path,
+                             "pass the .csv exported by Live Link Face")
     twice = sorted({c for c in header if header.count(c) > 1})
     if twice:
-        raise InputFileError(f"duplicated column(s) in the header: {', '.join(twice)}", path=path,
+        raise InputFileError(f"duplicated column(s) in the header: {', '.join(map(_column, twice))}",
+                             path=path,
                              fix="keep one column per name (the CSV was edited or merged); export it again")
     body = rows[1:]
     if not body:
@@ -229,9 +272,22 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
                            fix="keep one column per shape")
     extra = {n: numeric[n] for n in match.unknown}
     if extra:
+        # a misspelt weight ('JawOpn') is set aside and its shape reads as 0 in every frame: name the shape
+        looks = {n: a for n in extra if (a := lookalike(n)) is not None and a not in set(match.canonical)}
+        said = ", ".join(f"{n} (looks like {looks[n]}: misspelt?)" if n in looks else
+                         f"{_column(n)} (column {header.index(n) + 1})" if not n else n for n in extra)
+        fix = (f" (fix: rename the column{'s' if len(looks) > 1 else ''} "
+               + ", ".join(f"{n} -> {livelink_name(a)}" for n, a in looks.items()) + ")") if looks else ""
         warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
-                      f"not used as weights): {', '.join(extra)}", UserWarning, stacklevel=2)
+                      f"not used as weights): {said}{fix}", UserWarning, stacklevel=2)
     by_name = {c: numeric[n] for n, c in zip(match.names, match.canonical, strict=True) if n not in extra}
+    if not by_name:
+        # a take of no weight at all played as one that holds every shape still, and 'anim import' wrote
+        # '0 shapes' as a success
+        has = ", ".join([*angles, *extra][:8]) or "none"
+        raise CaptureError(f"no ARKit weight column in the CSV (its other columns: {has})", path=path,
+                           fix="pass the .csv Live Link Face exported in ARKit mode (52 weight columns such "
+                               "as EyeBlinkLeft, JawOpen)")
     names = order_names(by_name)
     weights = np.stack([by_name[n] for n in names], axis=1) if names else np.zeros((len(body), 0))
     if not np.isfinite(weights).all():
@@ -311,7 +367,6 @@ def write_livelink_csv(path, names, weights, times, angles: dict | None = None,
     <angles>``): ``weights[F, K]`` for canonical ``names[K]``, ``times[F]`` seconds, optional ``angles``
     {column: [F]}. Written atomically. Used to make test takes; :func:`read_livelink_take` reads it back."""
 
-    from ..arkit import livelink_name
 
     path = Path(path)
     weights = np.asarray(weights, dtype=np.float64)

@@ -506,9 +506,12 @@ def check_take_path(path, fix: str = TAKE_FIX) -> Path:
         except (OSError, UnicodeDecodeError) as exc:
             raise InputFileError(f"cannot read the take as a Live Link Face CSV ({exc})", path=p,
                                  fix=fix) from None
-        if not lines or "Timecode" not in [c.strip() for c in lines[0].split(",")]:
-            raise InputFileError("not a Live Link Face CSV (no 'Timecode' column in the header)", path=p,
-                                 fix=fix)
+        import csv
+
+        from .livelink import livelink_header
+
+        # judged as the reader judges it ('timecode' in any letter case, a spreadsheet's separator named)
+        livelink_header(next(csv.reader([lines[0]]), []) if lines else [], lines[0] if lines else "", p, fix)
         if len(lines) < 2:
             raise InputFileError("the take's CSV has a header but no frames", path=p,
                                  fix="record a take first")

@@ -153,7 +153,8 @@ def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.
 
     path = require_file(path, what, fix)
     if path.suffix.lower() == ".csv":  # USD would say only 'Cannot determine file format'
-        raise InputFileError(f"a CSV file (a Live Link Face take?) where a USD {what} is expected", path=path,
+        usd_what = what if what.startswith("USD") else f"USD {what}"        # not 'a USD USD file'
+        raise InputFileError(f"a CSV file (a Live Link Face take?) where a {usd_what} is expected", path=path,
                              fix="pass the USD file here; a Live Link take plays on the avatar with "
                                  "'personalize AVATAR CAPTURE --take FILE', becomes USD with 'usdface anim "
                                  "import FILE -o take.usda', and 'capture select FILE' shows its coverage")

@@ -75,6 +75,15 @@ def plot_evaluation(report: EvaluationReport, path, title: str = "Landmark layou
     ax.set_xlabel("number of landmarks")
     ax.set_ylabel(f"reconstruction RMSE (mm), {report.noise * 1e3:g} mm tracking noise")
     ax.set_yscale("log")
+    from matplotlib.ticker import FuncFormatter
+
+    # the errors span about one decade, so most labels are minor ticks: plain numbers (0.3, 2, at 1, 2, 3
+    # and 5 of each decade), not matplotlib's default 3x10^-1 and 2x10^0
+    def plain(v, _pos, marks=(1, 2, 3, 5)):
+        return f"{v:g}" if v > 0 and round(v / 10 ** np.floor(np.log10(v)), 6) in marks else ""
+
+    ax.yaxis.set_major_formatter(FuncFormatter(plain))
+    ax.yaxis.set_minor_formatter(FuncFormatter(plain))
     ax.set_title(f"{title} ({report.frames} frames)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)

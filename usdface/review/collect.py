@@ -170,6 +170,80 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
             "columns": {k: [float(v) for v in scored[key]] for k, key in columns.items()}}
 
 
+def _named(prov: dict, k: int) -> str:
+    """` (<path>)`: the k-th input the provenance records, as recorded, or '' when it records none."""
+    inputs = list(prov.get("inputs") or [])
+    return f" ({inputs[k]})" if len(inputs) > k else ""
+
+
+def _gone(notes: list, text: str, layer_path: Path) -> None:
+    """A recorded input that is no longer there: a note on the page and a warning where the command runs
+    (the page silently lost its take's playback, or its test expressions and eq. 5 table; only the page
+    said so)."""
+    import warnings
+
+    notes.append(text)
+    warnings.warn(f"{Path(layer_path).name}: {text}", UserWarning, stacklevel=3)
+
+
+def _input_kind(path: Path, prov: dict | None) -> str | None:
+    """What ``path`` given as the layer is when it is an input of 'personalize' rather than its layer:
+    "capture", "take" (meshes and weights), "weights" (a Live Link CSV, an 'anim import' SkelAnimation),
+    "avatar" (blend shapes, not personalized), or None. ``prov``: the root layer's usdface data of a USD file
+    whose stage opened (None: only folders and CSVs are looked at)."""
+    from ..io.take import probe_take
+
+    if path.is_dir():
+        if (path / "train").is_dir():
+            return "capture"
+        if (path / "frames").is_dir() or (probe_take(path)[0] and any(path.glob("*.obj"))):
+            return "take"
+        if any(path.glob("*.csv")):
+            return "weights"
+        return "capture" if (path / "neutral.obj").is_file() else None
+    if path.suffix.lower() == ".csv":
+        return "weights"
+    if prov is None:
+        return None
+    if prov.get("format") in ("capture", "take"):
+        return str(prov["format"])
+    if probe_take(path)[0]:
+        return "take"
+    from pxr import Usd, UsdSkel
+
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)       # already open: read_layer_info opened it
+    prims = list(stage.Traverse())
+    if any(p.IsA(UsdSkel.Root) for p in prims):
+        return "avatar" if not prov and any(p.IsA(UsdSkel.BlendShape) for p in prims) else None
+    return "weights" if any(p.IsA(UsdSkel.Animation) for p in prims) else None
+
+
+def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
+    """An input of 'personalize' given to 'review' where its layer goes: say what it is and where it goes
+    (a Live Link CSV was 'a USD USD file is expected', a capture folder 'USD file is a folder', a capture,
+    a take and a plain avatar 'not a usdface layer')."""
+    kind = _input_kind(path, prov)
+    if kind is None:
+        return
+    csvs = sorted(path.glob("*.csv")) if kind == "weights" and path.is_dir() else []
+    take = csvs[0] if len(csvs) == 1 else path / "TAKE.csv" if csvs else path
+    what, fix = {
+        "capture": ("a capture, not a layer written by 'usdface personalize'",
+                    f"personalize an avatar with it ('usdface personalize AVATAR {path} -o person.usda "
+                    f"--review'), or score a layer on it ('usdface review LAYER --capture {path}')"),
+        "take": ("a recorded take (meshes and weights), not a layer written by 'usdface personalize'",
+                 f"personalize an avatar with it ('usdface personalize AVATAR {path} -o person.usda "
+                 f"--review'), or play it on a layer ('usdface review LAYER --take {path}')"),
+        "weights": ("a take of weights only (a Live Link Face CSV or an 'anim import' SkelAnimation), not a "
+                    "layer written by 'usdface personalize'",
+                    f"play it on a personalized layer: 'usdface review LAYER --take {take}'"),
+        "avatar": ("an avatar that is not personalized (no usdfacePersonalization variant set)",
+                   f"personalize it first: 'usdface personalize {path} CAPTURE -o person.usda --review' "
+                   "writes the layer and its review page"),
+    }[kind]
+    raise InputFileError(f"this is {what}", path=path, fix=fix)
+
+
 def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = True) -> ReviewData:
     """Everything :func:`usdface.review.page.build_review_html` needs for the usdface layer ``layer_path``.
 
@@ -187,6 +261,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     from ..io.usd_rig import flattened_from, read_layer_info
 
     layer_path = Path(layer_path)
+    _refuse_capture_or_take(layer_path, None)       # folders and CSVs: no USD reader says what they are
     info = read_layer_info(layer_path)
     prov = info.get("usdface") or {}
     flat = flattened_from(layer_path) if not info.get("variants") else None
@@ -197,6 +272,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                              "--flatten'): one variant baked in, no generic | personalized to compare",
                              path=layer_path, fix=f"review the layer it was flattened from ({source})")
     if not info.get("variants"):
+        _refuse_capture_or_take(layer_path, prov)
         command = str(prov.get("command") or "").split()
         what = ("a 'usdface fit' rig on the capture mesh" if prov.get("format") == "fit" else
                 "a landmark layout layer ('usdface landmarks')" if prov.get("method") == "landmarks" else
@@ -218,8 +294,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if capture is None:
         capture = recorded_capture(layer_path, prov)
         if capture is None:
-            notes.append("the capture recorded in the layer's provenance was not found: no test expressions "
-                         "(pass --capture)")
+            _gone(notes, f"the capture recorded in the layer's provenance{_named(prov, 1)} was not found: no "
+                         "test expressions (pass --capture)", layer_path)
     if isinstance(capture, str | Path):
         from ..errors import CaptureError
         from ..io.take import WEIGHTS_ONLY_FIX
@@ -248,8 +324,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if take is None and prov.get("take"):   # the take the layer's inspection animation plays
         take = recorded_take(layer_path, prov)
         if take is None:
-            notes.append(f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
-                         "played (pass --take)")
+            _gone(notes, f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
+                         "played (pass --take)", layer_path)
     if take is None and capture is not None:  # a take read whole as the capture: play it
         from ..io.take import whole_take_playback
 
