@@ -451,3 +451,19 @@ def test_evaluation_plot_labels_its_errors_as_plain_millimetres(monkeypatch, tmp
     labels = {t.get_text() for minor in (False, True) for t in ax.get_yticklabels(minor=minor)} - {""}
     assert {"0.3", "0.5", "1", "2", "3"} <= labels, labels
     assert not [t for t in labels if "times" in t or "e-" in t or "^" in t], labels
+
+
+def test_evaluate_says_when_the_takes_hold_fewer_frames_than_asked(samples, tmp_path, capsys):
+    """A user trial: ``--evaluate`` with takes shorter than ``--frames`` evaluated fewer test frames without
+    a word on the terminal (only the plot's title gave the count)."""
+    from usdface.io.livelink import write_livelink_csv
+
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    w = np.random.default_rng(1).uniform(0, 1, size=(12, 3))
+    write_livelink_csv(tmp_path / "take.csv", names, w, np.arange(12) / 30.0)
+    argv = ["landmarks", str(samples / "avatar.usda"), "--evaluate", "--takes", str(tmp_path / "take.csv")]
+    assert main([*argv, "--frames", "8"]) == 0
+    assert "test frame(s) evaluated" not in capsys.readouterr().out
+    assert main([*argv, "--frames", "50"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: the takes hold 12 frame(s): 12 test frame(s) evaluated, not 50 (--frames)" in out

@@ -152,8 +152,8 @@ def run(args) -> int:
     if args.evaluate:
         from ..landmarks.plots import plot_evaluation
 
-        report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical,
-                                        frames=400 if args.frames is None else args.frames,
+        asked = 400 if args.frames is None else args.frames
+        report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical, frames=asked,
                                         noise_mm=0.5 if args.noise is None else args.noise, rays=args.rays,
                                         symmetric=args.symmetric, backend=args.backend,
                                         radius=0.01 if args.radius is None else args.radius)
@@ -168,6 +168,9 @@ def run(args) -> int:
             if args.json_out:
                 write_text_atomic(args.json_out, json.dumps(report.to_dict(), indent=2), force=args.force)
                 done["json"] = Path(args.json_out)
+        if report.frames < asked:           # only the plot's title said so
+            say_warning(f"the takes hold {report.frames} frame(s): {report.frames} test frame(s) evaluated, "
+                        f"not {asked} (--frames); give longer or more takes for a steadier figure")
         for key, value in report.summary.items():
             mm = "rmse" in key and isinstance(value, float)
             print(f"{key}: {value * 1e3:.4f} mm" if mm else f"{key}: {value}")
