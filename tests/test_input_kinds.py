@@ -39,6 +39,16 @@ def test_errors_name_what_the_file_is(tmp_path, capsys):
     assert "this is a rig" in capsys.readouterr().err
 
 
+def test_an_avatar_given_as_the_take_is_named_an_avatar(tmp_path, capsys):
+    """'personalize AVATAR CAPTURE --take AVATAR' said only 'no mesh with time-sampled points and no
+    SkelAnimation ...': the take's kind is judged as batch and Pyblish judge it (io.take.check_take_path),
+    naming an avatar as such, before any work."""
+    assert main(["personalize", str(A), str(C), "--take", str(A), "-o", str(tmp_path / "p.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "this is an avatar, not a take" in err and "give a take" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_non_usd_file_where_usd_is_expected_is_named_as_such(tmp_path, capsys):
     """The retarget map (``map.json``) given to ``render --heatmap``, ``inspect`` or ``check``, or an exported
     OBJ to ``export``, said USD's "Cannot determine file format for @map.json@ (fix: check that it is a

@@ -761,11 +761,11 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         return _personalize(avatar_path, capture_path, out_path, **options)
     import time
 
-    from .io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
+    from .io.take import check_take_path, read_take
 
     start = time.perf_counter()
-    if take is not None:
-        refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
+    if take is not None:                 # of the wrong kind (a capture, an avatar, a fit rig): named as such
+        check_take_path(take)
     take_data = read_take(take) if take is not None else None  # a bad take fails before any work
     avatar = (avatar_path if not isinstance(avatar_path, _PATH)       # any os.PathLike, as the check takes
               else read_avatar(avatar_path, options.get("name_map")))
