@@ -175,3 +175,56 @@ def test_a_host_calling_main_keeps_its_garbage_collector():
     with pytest.raises(SystemExit):
         main(["--version"])
     assert gc.get_threshold() == before and gc.get_freeze_count() == frozen
+
+
+def _deferred_package(tmp_path, monkeypatch, name: str, body: str):
+    """A package ``name`` (its ``__init__``: ``body``) imported as :mod:`usdface.natives` imports Open3D's
+    deferred subpackage, and ``gate``, a module the package's code signals through."""
+    import importlib
+
+    from usdface import natives
+
+    (tmp_path / name).mkdir()
+    (tmp_path / name / "__init__.py").write_text(body)
+    (tmp_path / f"{name}_gate.py").write_text("import threading\nstarted = threading.Event()\ntries = []\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(natives, "DEFERRED", (name,))
+    for module in (name, f"{name}_gate"):
+        monkeypatch.delitem(sys.modules, module, raising=False)
+    finder = natives._Deferred()
+    sys.meta_path.insert(0, finder)
+    try:
+        module = __import__(name)
+    finally:
+        sys.meta_path.remove(finder)
+    return module, importlib.import_module(f"{name}_gate")
+
+
+def test_a_deferred_subpackage_loads_once_for_threads_that_use_it_at_once(tmp_path, monkeypatch):
+    """Python 3.11's ``LazyLoader`` marks the module loaded before it runs its code: a second thread using it
+    meanwhile found half a module (``AttributeError``) instead of waiting."""
+    import threading
+
+    module, gate = _deferred_package(tmp_path, monkeypatch, "usdface_slow_pkg",
+                                     "import time\nfrom usdface_slow_pkg_gate import started, tries\n"
+                                     "tries.append(1)\nstarted.set()\ntime.sleep(0.5)\nvalue = 42\n")
+    first = threading.Thread(target=lambda: module.value)
+    first.start()
+    assert gate.started.wait(10)
+    try:
+        assert module.value == 42                     # waits for the first thread's load
+    finally:
+        first.join()
+    assert gate.tries == [1]
+
+
+def test_a_deferred_subpackage_interrupted_in_its_load_loads_at_the_next_use(tmp_path, monkeypatch):
+    """An interrupt (a host's cancel) inside the deferred load left the module half run for good (every
+    later use: ``AttributeError``), where an interrupted eager import can be tried again."""
+    module, gate = _deferred_package(tmp_path, monkeypatch, "usdface_cut_pkg",
+                                     "from usdface_cut_pkg_gate import tries\ntries.append(1)\n"
+                                     "if len(tries) == 1:\n    raise KeyboardInterrupt\nvalue = 42\n")
+    with pytest.raises(KeyboardInterrupt):
+        _ = module.value
+    assert module.value == 42
+    assert gate.tries == [1, 1]

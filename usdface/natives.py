@@ -17,6 +17,7 @@ import importlib.machinery
 import importlib.util
 import sys
 import threading
+import types
 
 #: Open3D's subpackages its ``__init__`` imports that usdface never uses, loaded on first use instead
 #: (:class:`_Deferred`): ``open3d.visualization`` imports Dash and Plotly unconditionally, 0.40 of the 0.75 s
@@ -58,9 +59,55 @@ def signals_held():
             raise raised
 
 
+class _LazyModule(types.ModuleType):
+    """A :data:`DEFERRED` module not run yet: its first attribute access runs it, as the standard library's
+    ``importlib.util._LazyModule`` does, but (Python 3.11's does neither) under a lock, so another thread
+    using it meanwhile waits for the whole module instead of finding half of it, and, should its code raise
+    (a host's ``KeyboardInterrupt``), left as it was before, to run at the next access, as an eager import
+    that failed can be tried again."""
+
+    def __getattribute__(self, attr):
+        spec = object.__getattribute__(self, "__spec__")
+        state = spec.loader_state
+        with state["lock"]:
+            if object.__getattribute__(self, "__class__") is _LazyModule:
+                if state["loading"]:                      # from inside the load, in its own thread
+                    return types.ModuleType.__getattribute__(self, attr)
+                state["loading"] = True
+                attrs = object.__getattribute__(self, "__dict__")
+                before = dict(attrs)
+                then = state["__dict__"]
+                # what was set on it meanwhile (a submodule imported) stays, as after an eager import
+                updated = {k: v for k, v in attrs.items() if k not in then or then[k] is not v}
+                try:
+                    spec.loader.exec_module(self)
+                except BaseException:
+                    attrs.clear()
+                    attrs.update(before)
+                    raise
+                finally:
+                    state["loading"] = False
+                attrs.update(updated)
+                object.__setattr__(self, "__class__", types.ModuleType)
+        return getattr(self, attr)
+
+    def __delattr__(self, attr):
+        self.__getattribute__(attr)                       # loaded first, as the standard library's
+        delattr(self, attr)
+
+
+class _LazyLoader(importlib.util.LazyLoader):
+    """``importlib.util.LazyLoader`` with :class:`_LazyModule`."""
+
+    def exec_module(self, module):
+        super().exec_module(module)
+        object.__getattribute__(module, "__spec__").loader_state.update(lock=threading.RLock(), loading=False)
+        object.__setattr__(module, "__class__", _LazyModule)
+
+
 class _Deferred(importlib.abc.MetaPathFinder):
-    """Finds the :data:`DEFERRED` modules as the import system would, with the standard library's
-    ``importlib.util.LazyLoader``: the module is in ``sys.modules`` at once and runs its code at its first
+    """Finds the :data:`DEFERRED` modules as the import system would, with a lazy loader
+    (:class:`_LazyLoader`): the module is in ``sys.modules`` at once and runs its code at its first
     attribute access (``open3d.visualization.draw_geometries`` works as before, a moment later)."""
 
     def find_spec(self, name, path, target=None):
@@ -68,7 +115,7 @@ class _Deferred(importlib.abc.MetaPathFinder):
             return None
         spec = importlib.machinery.PathFinder.find_spec(name, path, target)
         if spec is not None and spec.loader is not None:
-            spec.loader = importlib.util.LazyLoader(spec.loader)
+            spec.loader = _LazyLoader(spec.loader)
         return spec
 
 
