@@ -424,6 +424,12 @@ def test_repair_eyelids_keeps_one_smooth_margin():
     assert dist.min() >= 3e-4 - 5e-5                                 # the bound (0.3 mm) holds everywhere
     assert roughness(smooth[0]) < 0.7 * roughness(stepped[0])        # 0.18 mm against 0.31 (input 0.13)
     assert roughness(smooth[0]) < 1.5 * roughness(shapes[0])
+    # the spread adds no motion where the shape has none (a review: it moved vertices the shape left still)
+    still = np.abs(u) > 0.3                                          # within the spread's 6 mm of the bump
+    part = np.where(still[None, :, None], 0.0, shapes)
+    fixed, _ = repair_eyelids(lid, part, eyes, reference=generic)
+    assert np.array_equal(fixed[0, still], part[0, still])
+    assert np.abs(fixed[0, ~still] - part[0, ~still]).max() > 1e-4
 
 
 def test_correspondence_cache_round_trip_and_key(tmp_path):

@@ -152,6 +152,9 @@ def _largest_share(surf, generic, personalized, bound, steps: int = 12):
 #: (:func:`_spread_corrections`): the lid keeps one smooth margin, at the scale of the eye's own curvature,
 #: whatever the mesh's resolution.
 SPREAD_RADIUS = 0.5
+#: A near vertex whose offset in a shape is below this share of the shape's largest near the eye is one the
+#: shape leaves still, and the spread leaves it so (:func:`_spread_corrections`).
+STILL = 1e-6
 #: Rounds of spreading (:func:`repair_eyelids`): what one round leaves short of its bound is spread again,
 #: then moved onto its bound alone.
 SPREAD_ROUNDS = 3
@@ -163,7 +166,8 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
     whose move onto its bound is ``correction[p,3]``, moves with it: each near vertex within ``radius`` of
     such vertices moves by ``sum_p w_p c_p / max(1, sum_p w_p)`` with ``w = 1 - smoothstep(distance /
     radius)``. A vertex among others that cut in takes their mean correction, one alone its own, and the lid
-    around fades from them to nothing: one smooth margin instead of vertices each moved its own way (a
+    around fades from them to nothing (only the vertices the shape moves: none the shape leaves still,
+    :data:`STILL`): one smooth margin instead of vertices each moved its own way (a
     notched lid margin in a blink, seen in Blender on dev1, where neighbouring margin vertices reached their
     bounds along different lines). The corrections point out of the eye; a vertex the mean leaves short of
     its bound is corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of ``x0[near]`` (built
@@ -176,7 +180,11 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
         pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, radius, output_type="ndarray")
-        t = np.clip(pairs["v"] / radius, 0.0, 1.0)                 # each corrected vertex with itself too
+        # only to the vertices the shape moves: the repair adds no motion where the artist's shape has none
+        # (the corrected vertices move, each counted once with itself too)
+        mag = np.sqrt(np.einsum("kc,kc->k", out[j, near], out[j, near]))
+        pairs = pairs[mag[pairs["j"]] > STILL * max(float(mag.max()), 1e-300)]
+        t = np.clip(pairs["v"] / radius, 0.0, 1.0)
         w = 1.0 - t * t * (3.0 - 2.0 * t)
         to = pairs["j"]
         total = np.bincount(to, weights=w, minlength=near.size)
