@@ -228,9 +228,12 @@ def local_offsets(rig: FaceRig, deltas: np.ndarray) -> np.ndarray:
 def effective_point_set(primary: np.ndarray, extra=(), rtol: float = SPARSE_RELATIVE_TOLERANCE) -> np.ndarray:
     """Boolean ``[n]``: points whose offset (primary ``[n,3]`` or any ``extra[n,3]``) is non-zero in effect,
     i.e. longer than ``rtol`` times the largest offset of that array."""
+    # (imported here: scipy is not imported with this module, see the CLI's SOURCE_DATE_EPOCH check)
+    from ..mesh import vector_lengths
+
     moved = np.zeros(len(primary), dtype=bool)
     for arr in (primary, *extra):
-        norms = np.linalg.norm(arr, axis=1)
+        norms = vector_lengths(arr)                 # np.linalg.norm(arr, axis=1) to the bit
         peak = norms.max() if norms.size else 0.0
         if peak > 0:
             moved |= norms > rtol * peak

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mesh import vector_lengths
 from ..natives import open3d
 
 __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
@@ -183,7 +184,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     count = 0
     for eye, pts, tris in eyeballs:
         pts = np.asarray(pts, dtype=np.float64)
-        r0 = np.linalg.norm(x0 - eye.center, axis=1)
+        r0 = vector_lengths(x0 - eye.center)
         near = np.flatnonzero(r0 < 1.5 * eye.radius)
         if near.size == 0:
             continue
@@ -201,7 +202,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                 continue
         if ref_all is not None:
             # a vertex the personalization leaves where the generic shape has it is fine by definition
-            moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+            moved = vector_lengths(out[js, near[ks]] - ref_all[js, near[ks]]) > 1e-9
             js, ks = js[moved], ks[moved]
             if js.size == 0:
                 continue
@@ -233,7 +234,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         closest = surf.closest_points(q)
         ok = np.abs(d) > 1e-9
         radial = q - eye.center
-        radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
+        radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
         direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
         q = closest + direction * required[:, None]
         for _ in range(8):

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import spd_lu, triangle_areas, vertex_adjacency, vertex_areas
+from ..mesh import spd_lu, triangle_areas, vector_lengths, vertex_adjacency, vertex_areas
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -61,8 +61,8 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     """
     a = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
-    na = np.linalg.norm(a, axis=-1)
-    npp = np.linalg.norm(p, axis=-1)
+    na = vector_lengths(a)
+    npp = vector_lengths(p)
     ok = (na > 1e-12) & (npp > 1e-12)
     ah = a / np.maximum(na, 1e-300)[..., None]
     ph = p / np.maximum(npp, 1e-300)[..., None]
