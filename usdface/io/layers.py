@@ -427,8 +427,6 @@ def _author_shape(layer, rig: FaceRig, k: int, support: tuple, ib_types: dict, s
     n = src.region.n if src.region is not None else rig.n_vertices
     points, new_primary, old_primary, ib_old = support
     new_primary_local = local_offsets(rig, new_primary)
-    old_primary_local = local_offsets(rig, old_primary)
-    diff = new_primary_local - old_primary_local
     m = n if points is None else points.size
     old_idx = src.point_indices[k]
     if points is None:
@@ -446,6 +444,8 @@ def _author_shape(layer, rig: FaceRig, k: int, support: tuple, ib_types: dict, s
         return out
 
     ibs = rig.inbetweens.get(rig.names[k], [])
+    # each inbetween moves by its weight's share of the primary's change (the old offsets read for it only)
+    diff = new_primary_local - local_offsets(rig, old_primary) if ibs else None
     ib_new = [local_offsets(rig, old) + ib.weight * diff for ib, old in zip(ibs, ib_old, strict=True)]
     normals_dense = None
     ib_normals_dense = []
