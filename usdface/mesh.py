@@ -390,7 +390,7 @@ def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     e = np.concatenate([p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 1]], p[t[:, 0]] - p[t[:, 2]]])
-    return float(np.linalg.norm(e, axis=1).mean())
+    return float(vector_lengths(e).mean())
 
 
 def mesh_scale(points: np.ndarray, triangles: np.ndarray) -> float:

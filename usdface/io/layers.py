@@ -228,9 +228,12 @@ def local_offsets(rig: FaceRig, deltas: np.ndarray) -> np.ndarray:
 def effective_point_set(primary: np.ndarray, extra=(), rtol: float = SPARSE_RELATIVE_TOLERANCE) -> np.ndarray:
     """Boolean ``[n]``: points whose offset (primary ``[n,3]`` or any ``extra[n,3]``) is non-zero in effect,
     i.e. longer than ``rtol`` times the largest offset of that array."""
+    # (imported here: scipy is not imported with this module, see the CLI's SOURCE_DATE_EPOCH check)
+    from ..mesh import vector_lengths
+
     moved = np.zeros(len(primary), dtype=bool)
     for arr in (primary, *extra):
-        norms = np.linalg.norm(arr, axis=1)
+        norms = vector_lengths(arr)                 # np.linalg.norm(arr, axis=1) to the bit
         peak = norms.max() if norms.size else 0.0
         if peak > 0:
             moved |= norms > rtol * peak
@@ -424,8 +427,6 @@ def _author_shape(layer, rig: FaceRig, k: int, support: tuple, ib_types: dict, s
     n = src.region.n if src.region is not None else rig.n_vertices
     points, new_primary, old_primary, ib_old = support
     new_primary_local = local_offsets(rig, new_primary)
-    old_primary_local = local_offsets(rig, old_primary)
-    diff = new_primary_local - old_primary_local
     m = n if points is None else points.size
     old_idx = src.point_indices[k]
     if points is None:
@@ -443,6 +444,8 @@ def _author_shape(layer, rig: FaceRig, k: int, support: tuple, ib_types: dict, s
         return out
 
     ibs = rig.inbetweens.get(rig.names[k], [])
+    # each inbetween moves by its weight's share of the primary's change (the old offsets read for it only)
+    diff = new_primary_local - local_offsets(rig, old_primary) if ibs else None
     ib_new = [local_offsets(rig, old) + ib.weight * diff for ib, old in zip(ibs, ib_old, strict=True)]
     normals_dense = None
     ib_normals_dense = []

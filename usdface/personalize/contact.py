@@ -424,7 +424,8 @@ def lip_pairs_from_motion(neutral: np.ndarray, opening_delta: np.ndarray, *,
         raise GeometryError("lip check: the opening shape moves nothing (or everything alike)",
                             fix="pass the rig's jawOpen offsets as opening_delta")
     r = CONTACT_RADIUS * face_size(p) if radius is None else float(radius)
-    dist, j = cKDTree(p[upper]).query(p[lower])
+    # (searched just past the radius: the same nearest vertex for every pair kept, inf for the others)
+    dist, j = cKDTree(p[upper]).query(p[lower], distance_upper_bound=r * (1.0 + 1e-9))
     keep = dist <= r
     lo, up = lower[keep], upper[j[keep]]
     rel = d[up] - d[lo]

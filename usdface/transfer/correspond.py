@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InputFileError
-from ..mesh import spd_lu
+from ..mesh import spd_lu, vector_lengths
 from .surface import (
     SurfaceQuery,
     boundary_vertices,
@@ -144,7 +144,7 @@ class PosedSurface:
                 np.minimum(c2, best)
         out_tri[sel], out_bary[sel] = tri, bary
         out_closest[sel] = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
-        out_dist[sel] = np.linalg.norm(out_closest[sel] - q, axis=1)
+        out_dist[sel] = vector_lengths(out_closest[sel] - q)
         return out_tri, out_bary, out_closest, out_dist
 
 
@@ -231,7 +231,7 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
     # triangle normal would jump when the closest point moves over a crease)
     cn = np.einsum("mk,mkc->mc", bary, vertex_normals(reg, ctri)[ctri[tri]])
-    cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-300)
+    cn /= np.maximum(vector_lengths(cn)[:, None], 1e-300)
     cosang = np.einsum("ij,ij->i", an, cn)
     # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
     # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.

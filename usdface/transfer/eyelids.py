@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mesh import vector_lengths
 from ..natives import open3d
 
 __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
@@ -182,7 +183,7 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
         pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, radius, output_type="ndarray")
         # only to the vertices the shape moves: the repair adds no motion where the artist's shape has none
         # (the corrected vertices move, each counted once with itself too)
-        mag = np.sqrt(np.einsum("kc,kc->k", out[j, near], out[j, near]))
+        mag = vector_lengths(out[j, near])
         pairs = pairs[mag[pairs["j"]] > STILL * max(float(mag.max()), 1e-300)]
         t = np.clip(pairs["v"] / radius, 0.0, 1.0)
         w = 1.0 - t * t * (3.0 - 2.0 * t)
@@ -208,7 +209,7 @@ def _onto_bound(surf, eye, q, d, required, tolerance: float, generic=None) -> np
     closest = surf.closest_points(q)
     ok = np.abs(d) > 1e-9
     radial = q - eye.center
-    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
+    radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
     direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
     q = closest + direction * required[:, None]
     for _ in range(8):
@@ -293,7 +294,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     count = 0
     for eye, pts, tris in eyeballs:
         pts = np.asarray(pts, dtype=np.float64)
-        r0 = np.linalg.norm(x0 - eye.center, axis=1)
+        r0 = vector_lengths(x0 - eye.center)
         near = np.flatnonzero(r0 < 1.5 * eye.radius)
         if near.size == 0:
             continue
@@ -311,7 +312,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                 continue
         if ref_all is not None:
             # a vertex the personalization leaves where the generic shape has it is fine by definition
-            moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+            moved = vector_lengths(out[js, near[ks]] - ref_all[js, near[ks]]) > 1e-9
             js, ks = js[moved], ks[moved]
             if js.size == 0:
                 continue
@@ -351,7 +352,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
         js, ks = js[inside], ks[inside]                  # as above: beyond the bounding sphere all is fine
         if ref_all is not None:
-            moved = np.linalg.norm(out[js, near[ks]] - ref_all[js, near[ks]], axis=-1) > 1e-9
+            moved = vector_lengths(out[js, near[ks]] - ref_all[js, near[ks]]) > 1e-9
             js, ks = js[moved], ks[moved]
         found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
         if found is not None:

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..memory import Float32Offsets, release_free_memory
-from ..mesh import distances_within, index_set, triangle_areas, vertex_areas, vertex_normals
+from ..mesh import distances_within, index_set, triangle_areas, vertex_adjacency, vertex_areas, vertex_normals
 from ..motion import moving_vertices, peak_motion, shape_norms
 from ..personalize.fit import james_stein
 from .motion_field import (
@@ -239,6 +239,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         rings = max(rings, int(round(smoothing / mean_edge_length(x, sub_tri))))
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
+    adjacency = None                                 # the mesh's vertex adjacency, where one is made
     if proxy is None:
         ext = FieldExtension(x, sub_tri, known, length=length)
         beyond, mass = ext.beyond, ext.mass
@@ -246,7 +247,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
         # face's rim and what lies beyond)
         fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
-        beyond = ~known & ~pockets(sub_tri, known, fine_mass)
+        adjacency = vertex_adjacency(sub_tri, domain.size)          # (and the smoothing's, below)
+        beyond = ~known & ~pockets(sub_tri, known, fine_mass, adjacency=adjacency)
         del fine_mass
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
                              in_pocket=~(known | beyond)[proxy.fine])
@@ -290,7 +292,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
     # the smoothing on the vertices it reads only (the columns of its rows' neighbourhoods), in their order:
     # the same sums as on the whole mesh
-    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows).tocsc()
+    smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows, adjacency=adjacency).tocsc()
+    del adjacency
     reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
     smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk
     known_r = known[reach]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import spd_lu, triangle_areas, vertex_adjacency, vertex_areas
+from ..mesh import spd_lu, triangle_areas, vector_lengths, vertex_adjacency, vertex_areas
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -61,8 +61,8 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     """
     a = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
-    na = np.linalg.norm(a, axis=-1)
-    npp = np.linalg.norm(p, axis=-1)
+    na = vector_lengths(a)
+    npp = vector_lengths(p)
     ok = (na > 1e-12) & (npp > 1e-12)
     ah = a / np.maximum(na, 1e-300)[..., None]
     ph = p / np.maximum(npp, 1e-300)[..., None]
@@ -88,11 +88,13 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     return phi, valid
 
 
-def neighbourhood_matrix(triangles, n: int, rings: int, rows=None) -> sp.csr_matrix:
+def neighbourhood_matrix(triangles, n: int, rings: int, rows=None, *, adjacency=None) -> sp.csr_matrix:
     """``[n,n]`` boolean sparse matrix: vertices within ``rings`` edge rings of each other (self included);
     ``rows`` (indices): only those rows, ``[len(rows), n]`` (the cost of the rows that are used). Boolean
-    (one byte a value): a 9-ring neighbourhood of a 225k-vertex head holds 16M entries."""
-    adj = (vertex_adjacency(triangles, n) + sp.eye(n)).astype(bool).tocsr()
+    (one byte a value): a 9-ring neighbourhood of a 225k-vertex head holds 16M entries. ``adjacency``: the
+    mesh's :func:`usdface.mesh.vertex_adjacency` when the caller has it."""
+    adj = vertex_adjacency(triangles, n) if adjacency is None else adjacency
+    adj = (adj + sp.eye(n)).astype(bool).tocsr()
     out = adj if rows is None else adj[np.asarray(rows, dtype=np.int64)]
     ring = out                                     # the vertices first reached at the last step (and more)
     for _ in range(rings - 1):                     # grown from the outer ring only: rows x rings, not rings^2
@@ -180,10 +182,11 @@ def reliability(motion2, noise2, spread2) -> np.ndarray:
     return np.where(total > 0, signal / np.maximum(total, 1e-300), 1.0)
 
 
-def pockets(triangles, known, mass) -> np.ndarray:
+def pockets(triangles, known, mass, *, adjacency=None) -> np.ndarray:
     """``[m]`` bool: the unknown vertices of the pockets behind the known region's holes - each connected
     part of the unknown vertices whose area (``mass[m]``, lumped vertex areas) is smaller than the known
-    region's (the mouth and eye sockets behind a face; not the rest of the head beyond it)."""
+    region's (the mouth and eye sockets behind a face; not the rest of the head beyond it). ``adjacency``:
+    the mesh's :func:`usdface.mesh.vertex_adjacency` when the caller has it."""
     from scipy.sparse.csgraph import connected_components
 
     known = np.asarray(known, dtype=bool)
@@ -191,7 +194,7 @@ def pockets(triangles, known, mass) -> np.ndarray:
     free = np.flatnonzero(~known)
     if free.size == 0 or not known.any():
         return out
-    adj = vertex_adjacency(np.asarray(triangles), known.size).tocsr()
+    adj = (vertex_adjacency(np.asarray(triangles), known.size) if adjacency is None else adjacency).tocsr()
     n_parts, label = connected_components(adj[free][:, free], directed=False)
     part_area = np.bincount(label, weights=np.asarray(mass, dtype=np.float64)[free], minlength=n_parts)
     out[free] = part_area[label] < float(np.sum(np.asarray(mass)[known]))

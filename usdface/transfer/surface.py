@@ -17,6 +17,7 @@ from ..mesh import (
     mean_edge_length,
     triangle_areas,
     triangle_normals,
+    vector_lengths,
     vertex_adjacency,
     vertex_normals,
 )
@@ -66,7 +67,7 @@ class SurfaceQuery:
         bary = np.clip(bary, 0.0, 1.0)
         bary /= bary.sum(axis=1, keepdims=True)
         closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
-        return tri, bary, closest, np.linalg.norm(closest - (q + self.origin), axis=1)
+        return tri, bary, closest, vector_lengths(closest - (q + self.origin))
 
 
 def closest_points(points, triangles, queries):
