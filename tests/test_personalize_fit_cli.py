@@ -118,6 +118,30 @@ def test_evaluate_refuses_a_fit_option_no_chosen_method_uses(samples, tmp_path, 
         fitted.clear()
 
 
+def test_fit_refuses_an_option_its_method_ignores_as_evaluate_does(samples, tmp_path, capsys, monkeypatch):
+    """A user trial: ``fit --method dt --no-align`` (``--no-reweight``, ``--contact off``) wrote dt's rig, the
+    flag silently ignored, while ``evaluate --methods dt`` with the same flag refuses it (docs/fit.md: "as
+    ``fit`` refuses it"); ``--reg 0`` passed the option check ("a number >= 0") and was refused only after the
+    capture was read and DT run ("positive number"). Both are refused before any work now."""
+    from usdface.personalize import api as fit_api
+
+    monkeypatch.setattr(fit_api, "deformation_transfer", lambda *a, **k: pytest.fail("work started"))
+    out = tmp_path / "rig.usda"
+    for method, flags, named in (("dt", ["--no-align"], "align=False"),
+                                 ("dt", ["--no-reweight"], "reweight=False"),
+                                 ("ebfr", ["--no-reweight"], "reweight=False"),
+                                 ("dt", ["--contact", "off"], "contact='off'"),
+                                 ("ebfr", ["--contact", "off"], "contact='off'")):
+        assert main(["fit", str(samples / "capture.usda"), "-o", str(out), "--method", method, *flags]) == 2
+        err = capsys.readouterr().err
+        assert named in err and f"method {method!r}" in err, (method, flags, err)
+    with pytest.raises(SystemExit) as stop:
+        main(["fit", str(samples / "capture.usda"), "-o", str(out), "--reg", "0"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--reg: expected auto, paper or a number > 0, got '0'" in err
+    assert not out.exists()
+
+
 def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_path, capsys):
     """User trial: ``personalize rig.usda CAPTURE`` with a ``usdface fit`` result as the avatar ran to the
     end (52 shapes 'personalized' on the capture mesh, no eyes) with only warnings. The fit marks its file

@@ -98,7 +98,8 @@ def test_options_a_method_cannot_use_are_refused():
     cap = tiny_capture()
     for method, kw in (("dt", {"reg": 0.1}), ("dt", {"align": True}), ("dt", {"prior": "dt"}),
                        ("ebfr", {"reg": "paper"}), ("ebfr", {"clamp": 10.0}), ("ebfr", {"reweight": True}),
-                       ("ebfr", {"prior": "template"}), ("menzel", {"beta": 0.5}), ("dt", {"beta": 0.5})):
+                       ("ebfr", {"prior": "template"}), ("menzel", {"beta": 0.5}), ("dt", {"beta": 0.5}),
+                       ("dt", {"align": False}), ("dt", {"reweight": False}), ("ebfr", {"reweight": False})):
         with pytest.raises(FitError, match="not used by method"):
             fit_personalized_shapes(cap, method=method, **kw)
 
