@@ -48,6 +48,9 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert len(rep["methods"]["menzel"]["rmse_mm"]) == n_test
     assert rep["methods"]["menzel"]["mean_rmse_mm"] < rep["methods"]["dt"]["mean_rmse_mm"]
     assert rep["methods"]["menzel"]["truth_rmse_mm"] < rep["template"]["truth_rmse_mm"]
+    # the per-frame numbers and the fits' summaries, not eq. 2's prior shapes [K,n,3] (12 MB on dev2)
+    assert "prior_deltas" not in rep["methods"]["menzel"]["info"] and j.stat().st_size < 200_000
+    assert "shape_confidence" in rep["methods"]["menzel"]["info"]
     assert png.stat().st_size > 1000
     stage = Usd.Stage.Open(str(usd))
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]

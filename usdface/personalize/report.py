@@ -101,7 +101,7 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
             row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
                    "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
                    "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
-                   "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
+                   "info": report_info(res.info)}
             report["methods"][key] = row
             report["_maps"][key] = [(lab, pts, err, error_colors(err)) for lab, pts, err
                                     in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
@@ -114,6 +114,18 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
                               "truth_rmse_mm": truth_error(capture.template.deltas, true_deltas),
                               "seconds": None}
     return report
+
+
+#: Per-frame and per-vertex arrays of a fit's ``info`` that a report leaves out (the rig holds the shapes).
+_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity")
+
+
+def report_info(info: dict) -> dict:
+    """A fit's ``info`` as the report keeps it: its summaries, without :data:`_BULK_INFO` (eq. 2's prior
+    shapes, ``[K,n,3]``, made ``--json`` 12 MB on a 1,200-vertex capture, 3/4 of it that array) nor any
+    other per-vertex array (ndim >= 3)."""
+    return {k: v for k, v in info.items()
+            if k not in _BULK_INFO and not (isinstance(v, np.ndarray) and v.ndim >= 3)}
 
 
 def write_report_json(report: dict, path, force: bool = False) -> Path:
