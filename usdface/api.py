@@ -413,7 +413,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     ``parameters``, its chosen ``reg`` and training RMSE, ``createdAt`` (UTC; ``SOURCE_DATE_EPOCH`` when set)
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
-    move."""
+    move. A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its
+    sha256 as ``pinsDigest``)."""
     _paths(out_path=(out_path, False))
     from . import __version__
     from .io.avatar_writer import write_rig_usd
@@ -435,6 +436,12 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         # plain values (a pins file's path, not its mapping; numbers, strings, booleans)
         data["parameters"] = json.loads(json.dumps({k: v for k, v in parameters.items() if v is not None},
                                                    default=json_default))
+        pins = parameters.get("pins")
+        if isinstance(pins, str | Path) and Path(pins).is_file():
+            # a pins file as the capture is recorded: relative to the rig, with its sha256 (it was the path as
+            # typed, relative to the folder the command ran in: from the rig's folder another file)
+            data["parameters"]["pins"] = _relative_to_layer(pins, out)
+            data["pinsDigest"] = file_digest(pins)
     for key, name in (("reg", "reg"), ("train_rmse_mm", "trainRmseMm")):
         if isinstance(info.get(key), int | float):
             data[name] = float(info[key])

@@ -372,6 +372,9 @@ def format_report(report: dict) -> str:
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on
             lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
+        if prov.get("pinsDigest"):           # ... and the pins file it kept
+            pins = (prov.get("parameters") or {}).get("pins")
+            lines.append(f"    pins {pins} sha256 {str(prov['pinsDigest'])[:16]}...")
     for prim, lay in report.get("landmarks", {}).items():
         extra = "".join(f", {key} {lay[key]:g}" for key in ("epsilon", "alpha")
                         if isinstance(lay.get(key), int | float))
