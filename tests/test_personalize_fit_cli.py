@@ -58,7 +58,36 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert len(meshes) == 3 * n_test
     colors = UsdGeom.PrimvarsAPI(meshes[0]).GetPrimvar("displayColor")
     assert colors.GetInterpolation() == "vertex"
+    # no two error maps overlap (rows were spaced by the face's width, and a face is taller: dev1's rows
+    # overlapped by 2 cm in usdview)
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"])
+    boxes = [cache.ComputeWorldBound(m).ComputeAlignedRange() for m in meshes]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a.IntersectWith(b).IsEmpty() or min(a.IntersectWith(b).GetSize()[:2]) <= 0
     assert main(args) == 2                                            # outputs exist, no --force
+
+
+def test_error_maps_of_a_face_taller_than_wide_do_not_overlap(tmp_path):
+    """The error maps' rows (methods) were spaced by 1.2 x the mesh's width: a face mask taller than that
+    (dev1's: 0.15 m wide, 0.21 m tall with the jaw open) ran into the next method's row in usdview."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    tris = np.array([[0, 1, 2]])
+    tall = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.05, 0.3, 0.0]])
+    frame = [("000", tall, np.zeros(3), np.zeros((3, 3))),
+             ("001", tall * [1.5, 1, 1], np.zeros(3), np.zeros((3, 3)))]
+    out = write_error_maps_usd(tmp_path / "e.usda", tris, {"dt": frame, "menzel": frame})
+    stage = Usd.Stage.Open(str(out))
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"])
+    boxes = [cache.ComputeWorldBound(p).ComputeAlignedRange() for p in stage.Traverse()
+             if p.IsA(UsdGeom.Mesh)]
+    assert len(boxes) == 4
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a.IntersectWith(b).IsEmpty() or min(a.IntersectWith(b).GetSize()[:2]) <= 0
 
 
 def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatch):
