@@ -109,6 +109,33 @@ def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatc
         assert seen["ticks"] == labels
 
 
+def test_evaluate_plot_of_many_test_frames_wraps_onto_rows(tmp_path, monkeypatch):
+    """A user trial: 'capture select take --test-every 5' held out 222 test frames and 'evaluate --plot' drew
+    them in one row, a 23,310 x 840 pixel picture no viewer shows readably. Past PLOT_MAX_WIDTH_IN a row the
+    frames wrap onto further RMSE / max-error pairs, every frame labelled once, in order."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    from usdface.personalize.report import PLOT_MAX_WIDTH_IN, plot_errors
+
+    labels = [f"{i:03d}" for i in range(222)]
+    rng = np.random.default_rng(0)
+    report = {"labels": labels, "methods": {m: {"rmse_mm": rng.random(222).tolist(),
+                                                "max_mm": rng.random(222).tolist()}
+                                            for m in ("dt", "ebfr", "ebfr tuned", "menzel", "menzel paper")}}
+    seen, real = {}, Figure.savefig
+
+    def spy(fig, *a, **k):
+        seen["ticks"] = [t.get_text() for ax in fig.axes[1::2] for t in ax.get_xticklabels()]
+        seen["axes"] = len(fig.axes)
+        return real(fig, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", spy)
+    width, _ = Image.open(plot_errors(report, tmp_path / "p.png")).size
+    assert width <= PLOT_MAX_WIDTH_IN * 120 + 10 and seen["axes"] > 2
+    assert seen["ticks"] == labels
+
+
 def test_evaluate_table_keeps_each_method_on_one_line(samples, capsys, monkeypatch):
     """A user trial: in a log (80 columns, no terminal) the table with --truth wrapped 'menzel paper' over two
     rows ('menzel' ... then 'paper' alone), read as a second menzel row. The method column does not wrap."""
