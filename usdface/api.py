@@ -259,7 +259,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                            f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
                            f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
-                           f"{take} -o capture.usda {suggest}')")
+                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
             warnings.warn(message, w.category, stacklevel=2)
         if test_every > 0 and len(selection.test) == 0:
             warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
@@ -290,6 +290,22 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         p.start(f"write {Path(out_path).name}")
         written = write_capture(capture, out_path, force=force, inputs=[take, template])
     return CaptureSelection(data, selection, coverage, capture, written)
+
+
+def _select_again(take, out_path, template, threshold, per_shape) -> str:
+    """The arguments of ``capture select`` that repeat this selection (the take, its output, the template and
+    the options given), for a fix that suggests other test-frame options: it said ``-o capture.usda`` and
+    dropped ``--template`` (a take without its own template then failed) whatever the run was given."""
+    parts = [str(take), "-o", str(out_path) if out_path is not None else "capture.usda"]
+    if template is not None:
+        parts += ["--template", str(template) if isinstance(template, str | os.PathLike) else "CAPTURE"]
+    if threshold != 0.5:
+        parts += ["--threshold", f"{threshold:g}"]
+    if per_shape != 1:
+        parts += ["--per-shape", str(per_shape)]
+    if out_path is not None:
+        parts.append("--force")                      # this run writes it
+    return " ".join(parts)
 
 
 def _refuse_capture_as_take(path: PathLike) -> None:
