@@ -700,7 +700,11 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
                        fix="use menzel or laplacian, or drop it")
     auto = isinstance(reg, str) and reg == "auto"
     prior = prior or ("auto" if auto else "dt")
-    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
+    if prior == "auto" and not auto:
+        # 'bad prior' for a valid prior named the wrong option: it is the reg that rules 'auto' out
+        raise FitError(f"prior='auto' is chosen by the cross-validation, which reg={reg!r} turns off",
+                       fix="drop --reg (reg='auto'), or choose the prior: 'dt' or 'template'")
+    if prior not in ("auto", "dt", "template", "avatar"):
         raise FitError(f"bad prior {prior!r}",
                        fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
     if avatar_prior and method not in ("menzel", "laplacian"):
