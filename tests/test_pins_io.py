@@ -22,6 +22,8 @@ def test_json_pins_any_spelling_merged_and_sorted(tmp_path):
     assert pins["eyeBlinkLeft"].tolist() == [2, 5, 9] and pins["jawOpen"].size == 0
     f.write_text(json.dumps({"mouthClose": [0]}))                      # the inner mapping alone
     assert read_pins(f, NAMES, 10)["mouthClose"].tolist() == [0]
+    f.write_text(json.dumps({"comment": "by Ann", "pins": {"jawOpen": [1]}}))     # other keys: notes
+    assert read_pins(f, NAMES, 10)["jawOpen"].tolist() == [1]
 
 
 @pytest.mark.parametrize("doc, match", [
@@ -31,6 +33,10 @@ def test_json_pins_any_spelling_merged_and_sorted(tmp_path):
     ([1, 2], "not a mapping"),
     # another JSON file (the retarget map) said "pins name a shape the capture lacks: 'format'"
     ({"format": "usdface.retarget/1", "source": ["jawOpen"]}, "not a pins file"),
+    # "pins" as a list said "pins name a shape the capture lacks: 'pins'"
+    ({"pins": [1, 2]}, '"pins" is a list, not a mapping'),
+    # a shape beside the "pins" mapping was dropped without a word (the artist's jawOpen pins lost)
+    ({"jawOpen": [3], "pins": {"mouthClose": [4]}}, "'jawOpen' beside the \"pins\" mapping"),
 ])
 def test_json_pins_errors_name_the_file_and_the_fix(tmp_path, doc, match):
     f = tmp_path / "pins.json"
