@@ -1006,15 +1006,18 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
+    given_capture, pins_file = capture_path, options.get("pins")
     capture_path = _read_pins_file(options, capture_path)     # as personalize_avatar reads it
     pending: list = []             # the correspondence cache: written once the map is, as personalize's
     result = _personalize(avatar_path, capture_path, None, map_only=True, pending_cache=pending, **options)
     if out.suffix.lower() == ".json":
         eq4 = result.report["retarget"]
-        meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
-                "capture": str(getattr(capture_path, "source", capture_path)),
+        meta = {"avatar": _map_input(getattr(avatar_path, "file", avatar_path), out),
+                "capture": _map_input(getattr(given_capture, "source", given_capture), out),
                 "mu": eq4["mu"], "mu_choice": eq4["mu_choice"], "weight_bounds": eq4["bounds"],
                 "map_prior": eq4["prior"]}
+        if isinstance(pins_file, str | os.PathLike):
+            meta["pins"] = _map_input(pins_file, out)
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
                                channels=eq4["channels"])
     else:
@@ -1026,6 +1029,17 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
             save_correspondence(None, cache, data=data)
     result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
+
+
+def _map_input(path, out: Path) -> str | None:
+    """An input of a retarget map as its ``meta`` records it: relative to the map's folder, as a layer records
+    its inputs (the avatar was recorded as typed, relative to the folder the command ran in, and the capture
+    absolute once a pins file had made it be read first), or None for an object not read from a file."""
+    from .io.layers import _relative_to_layer
+
+    if path is None or str(path) == "":
+        return None
+    return _relative_to_layer(path, out)
 
 
 def _refuse_implant_options(options) -> None:
