@@ -236,11 +236,15 @@ def test_error_maps_given_where_an_avatar_goes_are_named(tmp_path, capsys):
     layer = Sdf.Layer.FindOrOpen(str(path))
     layer.customLayerData = {}
     layer.Export(str(old))
-    for src, command in ((path, ["inspect"]), (old, ["render", "-o", str(tmp_path / "e.png")])):
+    for src, command in ((path, ["render", "-o", str(tmp_path / "e.png")]),
+                         (old, ["render", "-o", str(tmp_path / "e.png")])):
         capsys.readouterr()
         assert main([command[0], str(src), *command[1:]]) == 2
         err = capsys.readouterr().err
         assert "error-map file written by 'usdface evaluate --usd'" in err and "SkelRoot" not in err, err
+    for src in (path, old):                  # inspect summarises them (tests/test_inspect.py)
+        assert main(["inspect", str(src)]) == 0
+        assert "error maps" in capsys.readouterr().out
 
 
 def test_evaluate_capture_refuses_a_capture_without_test_frames(tmp_path):

@@ -64,3 +64,25 @@ def write_error_maps_usd(path, triangles: np.ndarray, maps: dict, *, spacing: fl
                 Vt.FloatArray.FromNumpy(np.asarray(err, dtype=np.float32)))
             UsdGeom.XformCommonAPI(mesh).SetTranslate(Gf.Vec3d(col * step_x, -row * step_y, 0.0))
     return atomic_save(stage.GetRootLayer(), path, force)
+
+
+def read_error_maps(path) -> dict[str, dict[str, np.ndarray]]:
+    """The per-vertex errors of an error-map file (:func:`write_error_maps_usd`):
+    ``{method prim name: {frame prim name: error_mm[n]}}``, in the file's order (``usdface inspect``)."""
+    from pxr import UsdGeom
+
+    from .usd_open import open_usd_stage
+
+    stage = open_usd_stage(path, "error-map file", "pass a file written by 'usdface evaluate --usd'")
+    root = stage.GetDefaultPrim() or stage.GetPrimAtPath("/ErrorMaps")
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for group in (root.GetChildren() if root else []):
+        frames = {}
+        for prim in group.GetChildren():
+            pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("usdface:errorMm") if prim.IsA(UsdGeom.Mesh) else None
+            values = pv.Get() if pv else None
+            if values is not None:
+                frames[prim.GetName()] = np.asarray(values, dtype=np.float64)
+        if frames:
+            out[group.GetName()] = frames
+    return out
