@@ -168,6 +168,20 @@ def test_missing_layout(tmp_path, folder):
     _expect(CaptureError, folder, "neutral.obj", "cap")
 
 
+def test_a_captures_subfolder_is_named_with_its_capture(folder):
+    """A user trial: 'usdface fit capture/train -o rig.usda' (tab completion stops in the subfolder) said
+    only 'missing neutral.obj'. It says which capture the folder belongs to and to pass that."""
+    from usdface.io import check_capture_path  # what fit / personalize check first
+
+    for sub in ("train", "test", "template"):
+        with pytest.raises(CaptureError) as err:
+            read_capture_folder(folder / sub)
+        assert f"this is the {sub}/ folder of the capture {folder}" in str(err.value)
+        assert f"pass the capture folder itself: {folder}" in str(err.value)
+    with pytest.raises(CaptureError, match="this is the train/ folder of the capture"):
+        check_capture_path(folder / "train")
+
+
 def test_weights_outside_unit_interval_clipped_with_warning(folder):
     js = folder / "train" / "001_jawOpen.json"
     js.write_text('{"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": -0.2}}')

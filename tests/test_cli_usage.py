@@ -130,3 +130,14 @@ def test_usdface_alone_prints_its_usage_on_stderr_and_exits_2(tmp_path, capsys):
     assert "Traceback" not in res.stderr
     res = _usdface("--help", cwd=tmp_path)
     assert res.returncode == 0 and "personalize" in res.stdout and res.stderr == ""
+
+
+def test_help_pages_say_what_the_options_take(capsys):
+    """'capture import --help' said '-o: output .usda/.usdc' (it writes a capture folder too) and 'fit
+    --help' '--reg ... or a number' (0 and below are refused)."""
+    for argv, said in ((["capture", "import", "--help"], "a capture folder"),
+                       (["fit", "--help"], "or a number > 0"),
+                       (["personalize", "--help"], "or a number > 0")):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert said in " ".join(capsys.readouterr().out.split()), argv

@@ -234,3 +234,26 @@ def test_a_take_read_whole_is_inspected_as_one_and_not_written_as_a_capture(tmp_
             write_capture(cap, out)
         assert "write_take_usd" in err.value.fix and "capture select" in err.value.fix
         assert not out.exists()
+
+
+def test_inspect_summarises_an_error_map_file(tmp_path, capsys):
+    """A user trial: 'usdface inspect errors.usda' (written by 'evaluate --usd') stopped with "this is an
+    error-map file ..., not an avatar" (exit 2), from the command that summarises avatars, layers, captures
+    and takes. It summarises it: per method the test frames, their mean RMSE and the largest vertex error."""
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    tris = np.array([[0, 1, 2]])
+    pts = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    colors = np.zeros((3, 3))
+    maps = {"dt": [("000", pts, np.array([1.0, 2.0, 2.0]), colors), ("001", pts, np.array([0.0, 0.0, 3.0]),
+                                                                          colors)],
+            "menzel paper": [("000", pts, np.array([0.5, 0.5, 0.5]), colors)]}
+    out = write_error_maps_usd(tmp_path / "errors.usda", tris, maps)
+    report = inspect_file(out)
+    assert report["kind"] == "errorMaps" and list(report["methods"]) == ["dt", "menzel_paper"]
+    dt = report["methods"]["dt"]
+    assert dt["frames"] == 2 and dt["maxMm"] == 3.0
+    assert np.isclose(dt["meanRmseMm"], (np.sqrt(3.0) + np.sqrt(3.0)) / 2)
+    assert main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "error maps" in text and "menzel_paper: 1 test frame(s), mean RMSE 0.500 mm" in text

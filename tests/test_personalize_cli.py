@@ -209,6 +209,25 @@ def test_retarget_computes_the_map_without_the_implant(samples, tmp_path, monkey
     assert doc["meta"]["mu_choice"] == "leave one face region out"
 
 
+def test_retarget_map_records_its_inputs_relative_to_the_map(samples, tmp_path, monkeypatch):
+    """A user trial: 'retarget sa/avatar.usda sa/capture.usda -o sub/map.json --pins pins.json' recorded the
+    avatar as typed ('sa/avatar.usda', relative to the folder the command ran in: from the map's folder no
+    such file), the capture absolute (the pins had it read first) and the pins not at all. All three are
+    relative to the map's folder now, as a layer records its inputs."""
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(samples / name, tmp_path / name)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "pins.json").write_text(json.dumps({"pins": {"jawOpen": [12, 13]}}))
+    monkeypatch.chdir(tmp_path)
+    assert main(["retarget", "avatar.usda", "capture.usda", "-o", "sub/map.json", "--pins", "pins.json",
+                 "-q"]) == 0
+    meta = json.loads((tmp_path / "sub" / "map.json").read_text())["meta"]
+    assert (meta["avatar"], meta["capture"], meta["pins"]) == ("../avatar.usda", "../capture.usda",
+                                                               "../pins.json")
+
+
 def test_retarget_map_rows_stay_on_their_namesake(samples, tmp_path):
     """With ``mu`` cross-validated over face regions the sample's map is a retargeting table: the median row
     puts less than 1.0 of weight on shapes other than its namesake (GCV over the rows: 2.4, its

@@ -48,6 +48,9 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert len(rep["methods"]["menzel"]["rmse_mm"]) == n_test
     assert rep["methods"]["menzel"]["mean_rmse_mm"] < rep["methods"]["dt"]["mean_rmse_mm"]
     assert rep["methods"]["menzel"]["truth_rmse_mm"] < rep["template"]["truth_rmse_mm"]
+    # the per-frame numbers and the fits' summaries, not eq. 2's prior shapes [K,n,3] (12 MB on dev2)
+    assert "prior_deltas" not in rep["methods"]["menzel"]["info"] and j.stat().st_size < 200_000
+    assert "shape_confidence" in rep["methods"]["menzel"]["info"]
     assert png.stat().st_size > 1000
     stage = Usd.Stage.Open(str(usd))
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
@@ -55,7 +58,36 @@ def test_evaluate_outputs(samples, tmp_path, capsys):
     assert len(meshes) == 3 * n_test
     colors = UsdGeom.PrimvarsAPI(meshes[0]).GetPrimvar("displayColor")
     assert colors.GetInterpolation() == "vertex"
+    # no two error maps overlap (rows were spaced by the face's width, and a face is taller: dev1's rows
+    # overlapped by 2 cm in usdview)
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"])
+    boxes = [cache.ComputeWorldBound(m).ComputeAlignedRange() for m in meshes]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a.IntersectWith(b).IsEmpty() or min(a.IntersectWith(b).GetSize()[:2]) <= 0
     assert main(args) == 2                                            # outputs exist, no --force
+
+
+def test_error_maps_of_a_face_taller_than_wide_do_not_overlap(tmp_path):
+    """The error maps' rows (methods) were spaced by 1.2 x the mesh's width: a face mask taller than that
+    (dev1's: 0.15 m wide, 0.21 m tall with the jaw open) ran into the next method's row in usdview."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    tris = np.array([[0, 1, 2]])
+    tall = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.05, 0.3, 0.0]])
+    frame = [("000", tall, np.zeros(3), np.zeros((3, 3))),
+             ("001", tall * [1.5, 1, 1], np.zeros(3), np.zeros((3, 3)))]
+    out = write_error_maps_usd(tmp_path / "e.usda", tris, {"dt": frame, "menzel": frame})
+    stage = Usd.Stage.Open(str(out))
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"])
+    boxes = [cache.ComputeWorldBound(p).ComputeAlignedRange() for p in stage.Traverse()
+             if p.IsA(UsdGeom.Mesh)]
+    assert len(boxes) == 4
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a.IntersectWith(b).IsEmpty() or min(a.IntersectWith(b).GetSize()[:2]) <= 0
 
 
 def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatch):
@@ -75,6 +107,33 @@ def test_evaluate_plot_labels_the_frames_as_the_report_does(tmp_path, monkeypatc
                                                 for m in ("dt", "menzel")}}
         plot_errors(report, tmp_path / f"p{n}.png")
         assert seen["ticks"] == labels
+
+
+def test_evaluate_plot_of_many_test_frames_wraps_onto_rows(tmp_path, monkeypatch):
+    """A user trial: 'capture select take --test-every 5' held out 222 test frames and 'evaluate --plot' drew
+    them in one row, a 23,310 x 840 pixel picture no viewer shows readably. Past PLOT_MAX_WIDTH_IN a row the
+    frames wrap onto further RMSE / max-error pairs, every frame labelled once, in order."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    from usdface.personalize.report import PLOT_MAX_WIDTH_IN, plot_errors
+
+    labels = [f"{i:03d}" for i in range(222)]
+    rng = np.random.default_rng(0)
+    report = {"labels": labels, "methods": {m: {"rmse_mm": rng.random(222).tolist(),
+                                                "max_mm": rng.random(222).tolist()}
+                                            for m in ("dt", "ebfr", "ebfr tuned", "menzel", "menzel paper")}}
+    seen, real = {}, Figure.savefig
+
+    def spy(fig, *a, **k):
+        seen["ticks"] = [t.get_text() for ax in fig.axes[1::2] for t in ax.get_xticklabels()]
+        seen["axes"] = len(fig.axes)
+        return real(fig, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", spy)
+    width, _ = Image.open(plot_errors(report, tmp_path / "p.png")).size
+    assert width <= PLOT_MAX_WIDTH_IN * 120 + 10 and seen["axes"] > 2
+    assert seen["ticks"] == labels
 
 
 def test_evaluate_table_keeps_each_method_on_one_line(samples, capsys, monkeypatch):
@@ -118,6 +177,30 @@ def test_evaluate_refuses_a_fit_option_no_chosen_method_uses(samples, tmp_path, 
         fitted.clear()
 
 
+def test_fit_refuses_an_option_its_method_ignores_as_evaluate_does(samples, tmp_path, capsys, monkeypatch):
+    """A user trial: ``fit --method dt --no-align`` (``--no-reweight``, ``--contact off``) wrote dt's rig, the
+    flag silently ignored, while ``evaluate --methods dt`` with the same flag refuses it (docs/fit.md: "as
+    ``fit`` refuses it"); ``--reg 0`` passed the option check ("a number >= 0") and was refused only after the
+    capture was read and DT run ("positive number"). Both are refused before any work now."""
+    from usdface.personalize import api as fit_api
+
+    monkeypatch.setattr(fit_api, "deformation_transfer", lambda *a, **k: pytest.fail("work started"))
+    out = tmp_path / "rig.usda"
+    for method, flags, named in (("dt", ["--no-align"], "align=False"),
+                                 ("dt", ["--no-reweight"], "reweight=False"),
+                                 ("ebfr", ["--no-reweight"], "reweight=False"),
+                                 ("dt", ["--contact", "off"], "contact='off'"),
+                                 ("ebfr", ["--contact", "off"], "contact='off'")):
+        assert main(["fit", str(samples / "capture.usda"), "-o", str(out), "--method", method, *flags]) == 2
+        err = capsys.readouterr().err
+        assert named in err and f"method {method!r}" in err, (method, flags, err)
+    with pytest.raises(SystemExit) as stop:
+        main(["fit", str(samples / "capture.usda"), "-o", str(out), "--reg", "0"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--reg: expected auto, paper or a number > 0, got '0'" in err
+    assert not out.exists()
+
+
 def test_a_fit_result_is_refused_as_the_avatar_but_still_rendered(samples, tmp_path, capsys):
     """User trial: ``personalize rig.usda CAPTURE`` with a ``usdface fit`` result as the avatar ran to the
     end (52 shapes 'personalized' on the capture mesh, no eyes) with only warnings. The fit marks its file
@@ -153,11 +236,15 @@ def test_error_maps_given_where_an_avatar_goes_are_named(tmp_path, capsys):
     layer = Sdf.Layer.FindOrOpen(str(path))
     layer.customLayerData = {}
     layer.Export(str(old))
-    for src, command in ((path, ["inspect"]), (old, ["render", "-o", str(tmp_path / "e.png")])):
+    for src, command in ((path, ["render", "-o", str(tmp_path / "e.png")]),
+                         (old, ["render", "-o", str(tmp_path / "e.png")])):
         capsys.readouterr()
         assert main([command[0], str(src), *command[1:]]) == 2
         err = capsys.readouterr().err
         assert "error-map file written by 'usdface evaluate --usd'" in err and "SkelRoot" not in err, err
+    for src in (path, old):                  # inspect summarises them (tests/test_inspect.py)
+        assert main(["inspect", str(src)]) == 0
+        assert "error maps" in capsys.readouterr().out
 
 
 def test_evaluate_capture_refuses_a_capture_without_test_frames(tmp_path):

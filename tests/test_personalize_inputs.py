@@ -94,11 +94,20 @@ def test_unknown_method_options_are_named():
         fit_personalized_shapes(tiny_capture(), method="menzel", bogus=1)
 
 
+def test_prior_auto_with_a_fixed_reg_names_the_reg():
+    """'fit --reg paper --prior auto' said "bad prior 'auto'" with a fix listing 'auto' among the good ones:
+    the prior is fine, the fixed reg turns the cross-validation that chooses it off."""
+    for reg in ("paper", 0.01):
+        with pytest.raises(FitError, match=r"prior='auto' is chosen by the cross-validation, which reg="):
+            fit_personalized_shapes(tiny_capture(), prior="auto", reg=reg)
+
+
 def test_options_a_method_cannot_use_are_refused():
     cap = tiny_capture()
     for method, kw in (("dt", {"reg": 0.1}), ("dt", {"align": True}), ("dt", {"prior": "dt"}),
                        ("ebfr", {"reg": "paper"}), ("ebfr", {"clamp": 10.0}), ("ebfr", {"reweight": True}),
-                       ("ebfr", {"prior": "template"}), ("menzel", {"beta": 0.5}), ("dt", {"beta": 0.5})):
+                       ("ebfr", {"prior": "template"}), ("menzel", {"beta": 0.5}), ("dt", {"beta": 0.5}),
+                       ("dt", {"align": False}), ("dt", {"reweight": False}), ("ebfr", {"reweight": False})):
         with pytest.raises(FitError, match="not used by method"):
             fit_personalized_shapes(cap, method=method, **kw)
 

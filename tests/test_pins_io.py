@@ -22,6 +22,8 @@ def test_json_pins_any_spelling_merged_and_sorted(tmp_path):
     assert pins["eyeBlinkLeft"].tolist() == [2, 5, 9] and pins["jawOpen"].size == 0
     f.write_text(json.dumps({"mouthClose": [0]}))                      # the inner mapping alone
     assert read_pins(f, NAMES, 10)["mouthClose"].tolist() == [0]
+    f.write_text(json.dumps({"comment": "by Ann", "pins": {"jawOpen": [1]}}))     # other keys: notes
+    assert read_pins(f, NAMES, 10)["jawOpen"].tolist() == [1]
 
 
 @pytest.mark.parametrize("doc, match", [
@@ -31,6 +33,10 @@ def test_json_pins_any_spelling_merged_and_sorted(tmp_path):
     ([1, 2], "not a mapping"),
     # another JSON file (the retarget map) said "pins name a shape the capture lacks: 'format'"
     ({"format": "usdface.retarget/1", "source": ["jawOpen"]}, "not a pins file"),
+    # "pins" as a list said "pins name a shape the capture lacks: 'pins'"
+    ({"pins": [1, 2]}, '"pins" is a list, not a mapping'),
+    # a shape beside the "pins" mapping was dropped without a word (the artist's jawOpen pins lost)
+    ({"jawOpen": [3], "pins": {"mouthClose": [4]}}, "'jawOpen' beside the \"pins\" mapping"),
 ])
 def test_json_pins_errors_name_the_file_and_the_fix(tmp_path, doc, match):
     f = tmp_path / "pins.json"
@@ -101,3 +107,27 @@ def test_fit_command_pins_from_a_json_file(samples, tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"pins": {"jawOpen": [10 ** 6]}}))
     assert main(args + ["--force", "--pins", str(bad)]) == 2
+
+
+def test_fit_rig_records_its_pins_file_relative_to_the_rig(samples, tmp_path, monkeypatch, capsys):
+    """A user trial: ``fit CAPTURE -o sub/rig.usda --pins pins.json`` recorded ``parameters.pins`` as typed
+    ('pins.json', relative to the folder the command ran in) beside the capture recorded relative to the rig
+    ('../...'): from the rig's folder it named a file that is not there, and no digest said whether the pins
+    changed. Recorded as the capture is now: relative to the rig, with ``pinsDigest``."""
+    from pxr import Sdf
+
+    from usdface.cli import main
+    from usdface.io.layers import file_digest
+
+    f = tmp_path / "pins.json"
+    f.write_text(json.dumps({"pins": {"jawOpen": [12, 13]}}))
+    (tmp_path / "sub").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert main(["fit", str(samples / "capture.usda"), "-o", "sub/rig.usda", "--reg", "0.01", "--no-align",
+                 "--no-reweight", "-q", "--pins", "pins.json"]) == 0
+    data = Sdf.Layer.FindOrOpen(str(tmp_path / "sub" / "rig.usda")).customLayerData["usdface"]
+    assert data["parameters"]["pins"] == "../pins.json"
+    assert (tmp_path / "sub" / data["parameters"]["pins"]).resolve() == f.resolve()
+    assert data["pinsDigest"] == file_digest(f)
+    assert main(["inspect", "sub/rig.usda"]) == 0
+    assert f"pins ../pins.json sha256 {file_digest(f)[:16]}" in capsys.readouterr().out

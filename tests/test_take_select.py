@@ -459,3 +459,29 @@ def test_a_pose_held_from_the_first_frame_is_a_peak_one_at_the_end_is_named():
     assert sel.shapes[0].frames == [4] and sel.missing == ["eyeBlinkLeft"]
     text = format_coverage(sel)
     assert "above 0.5 only at the take's end" in text and "max 1.00" in text
+
+
+def test_capture_select_rest_warning_repeats_the_runs_output_and_template(generated, tmp_path):
+    """The fix of the all-rests warning said "'usdface capture select TAKE -o capture.usda --test-every 5
+    ...'" whatever the run was given: run as suggested after '-o sel/ --template CAPTURE' it wrote another
+    file, without the template (a take without its own fails). It repeats the run's output (with --force,
+    which the run wrote) and template now."""
+    import dataclasses
+    import re
+
+    from usdface import api
+    from usdface.io.take import write_take_usd
+
+    take, _, _ = generated
+    template = tmp_path / "template_capture.usda"
+    api.write_capture(Capture(take.template.neutral, take.template.triangles, take.template,
+                              Frames(np.zeros((0, *take.template.neutral.shape)),
+                                     np.zeros((0, take.template.n_shapes)), [], []),
+                              list(take.template.names)), template)
+    src = write_take_usd(dataclasses.replace(take, template=None), tmp_path / "take.usdc")
+    out = tmp_path / "sel"
+    with pytest.warns(UserWarning, match="show no expression") as said:
+        api.select_capture_frames(src, out, template=template, test_every=40)
+    message = next(str(m.message) for m in said if "show no expression" in str(m.message))
+    command = re.search(r"'usdface capture select ([^']*)'", message).group(1)
+    assert command.startswith(f"{src} -o {out} --template {template} --force --test-every 5"), message

@@ -259,7 +259,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                            f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
                            f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
-                           f"{take} -o capture.usda {suggest}')")
+                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
             warnings.warn(message, w.category, stacklevel=2)
         if test_every > 0 and len(selection.test) == 0:
             warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
@@ -290,6 +290,22 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
         p.start(f"write {Path(out_path).name}")
         written = write_capture(capture, out_path, force=force, inputs=[take, template])
     return CaptureSelection(data, selection, coverage, capture, written)
+
+
+def _select_again(take, out_path, template, threshold, per_shape) -> str:
+    """The arguments of ``capture select`` that repeat this selection (the take, its output, the template and
+    the options given), for a fix that suggests other test-frame options: it said ``-o capture.usda`` and
+    dropped ``--template`` (a take without its own template then failed) whatever the run was given."""
+    parts = [str(take), "-o", str(out_path) if out_path is not None else "capture.usda"]
+    if template is not None:
+        parts += ["--template", str(template) if isinstance(template, str | os.PathLike) else "CAPTURE"]
+    if threshold != 0.5:
+        parts += ["--threshold", f"{threshold:g}"]
+    if per_shape != 1:
+        parts += ["--per-shape", str(per_shape)]
+    if out_path is not None:
+        parts.append("--force")                      # this run writes it
+    return " ".join(parts)
 
 
 def _refuse_capture_as_take(path: PathLike) -> None:
@@ -413,7 +429,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     ``parameters``, its chosen ``reg`` and training RMSE, ``createdAt`` (UTC; ``SOURCE_DATE_EPOCH`` when set)
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
-    move."""
+    move. A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its
+    sha256 as ``pinsDigest``)."""
     _paths(out_path=(out_path, False))
     from . import __version__
     from .io.avatar_writer import write_rig_usd
@@ -435,6 +452,12 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         # plain values (a pins file's path, not its mapping; numbers, strings, booleans)
         data["parameters"] = json.loads(json.dumps({k: v for k, v in parameters.items() if v is not None},
                                                    default=json_default))
+        pins = parameters.get("pins")
+        if isinstance(pins, str | Path) and Path(pins).is_file():
+            # a pins file as the capture is recorded: relative to the rig, with its sha256 (it was the path as
+            # typed, relative to the folder the command ran in: from the rig's folder another file)
+            data["parameters"]["pins"] = _relative_to_layer(pins, out)
+            data["pinsDigest"] = file_digest(pins)
     for key, name in (("reg", "reg"), ("train_rmse_mm", "trainRmseMm")):
         if isinstance(info.get(key), int | float):
             data[name] = float(info[key])
@@ -983,15 +1006,18 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, **options), outputs=[out])
+    given_capture, pins_file = capture_path, options.get("pins")
     capture_path = _read_pins_file(options, capture_path)     # as personalize_avatar reads it
     pending: list = []             # the correspondence cache: written once the map is, as personalize's
     result = _personalize(avatar_path, capture_path, None, map_only=True, pending_cache=pending, **options)
     if out.suffix.lower() == ".json":
         eq4 = result.report["retarget"]
-        meta = {"avatar": str(getattr(avatar_path, "file", avatar_path)),
-                "capture": str(getattr(capture_path, "source", capture_path)),
+        meta = {"avatar": _map_input(getattr(avatar_path, "file", avatar_path), out),
+                "capture": _map_input(getattr(given_capture, "source", given_capture), out),
                 "mu": eq4["mu"], "mu_choice": eq4["mu_choice"], "weight_bounds": eq4["bounds"],
                 "map_prior": eq4["prior"]}
+        if isinstance(pins_file, str | os.PathLike):
+            meta["pins"] = _map_input(pins_file, out)
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
                                channels=eq4["channels"])
     else:
@@ -1003,6 +1029,17 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
             save_correspondence(None, cache, data=data)
     result.out_path = _written(out)       # the map written (a layer's path for personalize_avatar)
     return result
+
+
+def _map_input(path, out: Path) -> str | None:
+    """An input of a retarget map as its ``meta`` records it: relative to the map's folder, as a layer records
+    its inputs (the avatar was recorded as typed, relative to the folder the command ran in, and the capture
+    absolute once a pins file had made it be read first), or None for an object not read from a file."""
+    from .io.layers import _relative_to_layer
+
+    if path is None or str(path) == "":
+        return None
+    return _relative_to_layer(path, out)
 
 
 def _refuse_implant_options(options) -> None:

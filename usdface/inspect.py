@@ -229,7 +229,47 @@ def inspect_file(path, name_map=None) -> dict:
         from .io.take import read_take
 
         return summarize_take(read_take(path), info)
+    if _is_error_maps(path, info):
+        return summarize_error_maps(path, info)
     return summarize_avatar(read_avatar(path, name_map=name_map), info)
+
+
+def _is_error_maps(path: Path, info: dict) -> bool:
+    """An error-map file of ``usdface evaluate --usd``: marked so, or (written before the maps carried their
+    format) a default prim ``/ErrorMaps`` and no SkelRoot, as the avatar reader tells it."""
+    if info.get("usdface", {}).get("format") == "errorMaps":
+        return True
+    if info.get("usdface"):
+        return False
+    from pxr import UsdSkel
+
+    from .io.usd_open import open_usd_stage
+
+    try:
+        stage = open_usd_stage(path, "file", "check the path")
+    except Exception:  # noqa: BLE001 - unreadable: the avatar reader names the problem
+        return False
+    root = stage.GetDefaultPrim()
+    return bool(root) and str(root.GetPath()) == "/ErrorMaps" and not any(
+        p.IsA(UsdSkel.Root) for p in stage.Traverse())
+
+
+def summarize_error_maps(path, layer_info: dict | None = None) -> dict:
+    """Report dict for an error-map file (``usdface evaluate --usd``): per method the test frames, the mean
+    of their per-vertex RMS error and the largest vertex error, mm (inspect refused the file as 'not an
+    avatar')."""
+    from .io.usd_error_maps import read_error_maps
+
+    methods = {}
+    for method, frames in read_error_maps(path).items():
+        errs = list(frames.values())
+        methods[method] = {"frames": len(errs),
+                           "meanRmseMm": float(np.mean([np.sqrt(np.mean(e ** 2)) for e in errs])),
+                           "maxMm": float(max(e.max() for e in errs))}
+    out = {"file": str(path), "kind": "errorMaps", "methods": methods}
+    if layer_info:
+        out["stageMetadata"] = layer_info.get("stage", {})
+    return out
 
 
 def _weights_only_take(path: Path) -> bool:
@@ -314,6 +354,13 @@ def format_report(report: dict) -> str:
         lines += _never_above_line(report)
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
+    if kind == "errorMaps":
+        lines[0] = (f"{report.get('file')}: error maps ('usdface evaluate --usd'; displayColor 0 mm blue, "
+                    ">= 5 mm red)")
+        for method, m in report["methods"].items():
+            lines.append(f"  {method}: {m['frames']} test frame(s), mean RMSE {m['meanRmseMm']:.3f} mm, "
+                         f"largest vertex error {m['maxMm']:.3f} mm")
+        return "\n".join(lines)
     if kind in ("capture", TAKE_WITH_MESHES):
         if report.get("take"):
             lines.append(f"  a take of {_frames_at(report['take']['frames'], report['take']['fps'])}, "
@@ -372,6 +419,9 @@ def format_report(report: dict) -> str:
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on
             lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
+        if prov.get("pinsDigest"):           # ... and the pins file it kept
+            pins = (prov.get("parameters") or {}).get("pins")
+            lines.append(f"    pins {pins} sha256 {str(prov['pinsDigest'])[:16]}...")
     for prim, lay in report.get("landmarks", {}).items():
         extra = "".join(f", {key} {lay[key]:g}" for key in ("epsilon", "alpha")
                         if isinstance(lay.get(key), int | float))

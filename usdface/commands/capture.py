@@ -21,7 +21,8 @@ def register(subparsers) -> None:
         description="Read a capture folder (neutral.obj, template/, train/, test/) and write it as a USD "
                     "capture one can open and scrub (see docs/capture-format.md).")
     imp.add_argument("source", help="capture folder (or a capture .usda to rewrite)")
-    imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
+    imp.add_argument("-o", "--output", required=True,
+                     help="output .usda/.usdc/.usd, or a name without extension: a capture folder")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--no-exact", dest="exact", action="store_false",
                      help="store geometry as float32 only (half the size; not bit-exact)")

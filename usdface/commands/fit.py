@@ -15,7 +15,7 @@ def add_fit_options(parser) -> None:
     parser.add_argument("--reg", default="auto", type=reg_value,
                         help="E_reg weight: 'auto' (leave-one-frame-out cross-validation, default), 'paper' "
                              "(1, the paper's plain sum, and no alignment/re-estimation: the paper's "
-                             "method) or a number")
+                             "method) or a number > 0")
     parser.add_argument("--prior", choices=("auto", "dt", "template"), default=None,
                         help="generic shapes T_j: deformation transfer (paper), raw template, or a blend "
                              "chosen by cross-validation (default with --reg auto)")

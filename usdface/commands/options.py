@@ -92,8 +92,9 @@ def _keyword_or(number, keywords: tuple[str, ...], expected: str):
 
 #: ``auto`` or a finite number > 0 (the eq. (4) ridge weight).
 mu_value = _keyword_or(positive_float, ("auto",), "auto or a number > 0")
-#: ``auto``, ``paper`` or a finite number >= 0 (the fit's E_reg weight).
-reg_value = _keyword_or(nonnegative_float, ("auto", "paper"), "auto, paper or a number >= 0")
+#: ``auto``, ``paper`` or a finite number > 0 (the fit's E_reg weight; 0 would leave a shape no frame shows
+#: undetermined, and the fit refuses it).
+reg_value = _keyword_or(positive_float, ("auto", "paper"), "auto, paper or a number > 0")
 
 
 def vector3(text: str) -> list[float]:

@@ -21,7 +21,7 @@ def add_transfer_options(p) -> None:
     p.add_argument("--method", default="menzel", choices=["menzel", "dt", "ebfr", "laplacian"],
                    help="capture fit method (default: menzel, the paper's eqs. 1-3)")
     p.add_argument("--reg", default="auto", type=reg_value,
-                   help="fit regularisation: auto (cross-validated), paper, or a number")
+                   help="fit regularisation: auto (cross-validated), paper, or a number > 0")
     p.add_argument("--mu", type=mu_value, default="auto",
                    help="eq. (4) ridge weight relative to the shapes' mean squared norm, or auto "
                         "(cross-validated by leaving out one region of the face at a time; default)")

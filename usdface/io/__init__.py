@@ -31,8 +31,9 @@ def check_capture_path(path) -> Path:
     path = Path(path)
     if path.is_dir():
         if not probe_take(path)[0] and not (path / "neutral.obj").is_file():
-            raise CaptureError("missing neutral.obj", path=path,
-                               fix="see docs/capture-format.md: neutral.obj, template/, train/, test/")
+            from .capture_folder import missing_layout
+
+            raise missing_layout(path, "neutral.obj")
         return path
     if path.suffix.lower() == ".csv" and path.is_file():
         from .take import WEIGHTS_ONLY_FIX

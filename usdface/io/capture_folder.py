@@ -93,12 +93,26 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what):
                             fix="every capture mesh must share the neutral's topology (same faces)")
 
 
+def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureError:
+    """The refusal of a capture folder without ``what`` (``neutral.obj``, ``template/neutral.obj``); when the
+    folder is a capture's own ``train/``, ``test/`` or ``template/`` (tab completion stops there: 'usdface fit
+    capture/train' said only 'missing neutral.obj'), it names the capture to pass instead."""
+    folder = Path(root).absolute()
+    parent = folder.parent
+    if (folder.name in ("train", "test", "template") and (parent / "neutral.obj").is_file()
+            and (parent / "template").is_dir()):
+        return CaptureError(f"missing {what}: this is the {folder.name}/ folder of the capture {parent}",
+                            path=root, fix=f"pass the capture folder itself: {parent}")
+    return CaptureError(f"missing {what}", path=root,
+                        fix=fix or "see docs/capture-format.md: neutral.obj, template/, train/, test/")
+
+
 def _template(root: Path, neutral, triangles, report: dict) -> FaceRig:
     tdir = root / "template"
     tneutral_path = tdir / "neutral.obj"
     if not tneutral_path.is_file():
-        raise CaptureError("missing template/neutral.obj", path=root,
-                           fix="add the template rig: template/neutral.obj + template/<shape>.obj")
+        raise missing_layout(root, "template/neutral.obj",
+                             fix="add the template rig: template/neutral.obj + template/<shape>.obj")
     tneutral, ttris = read_obj(tneutral_path)
     _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj")
     files = sorted(p for p in tdir.glob("*.obj") if p.stem != "neutral")
@@ -192,8 +206,7 @@ def read_capture_folder(path) -> Capture:
                              fix="pass the capture folder (neutral.obj, template/, train/, test/)")
     neutral_path = root / "neutral.obj"
     if not neutral_path.is_file():
-        raise CaptureError("missing neutral.obj", path=root,
-                           fix="see docs/capture-format.md: neutral.obj, template/, train/, test/")
+        raise missing_layout(root, "neutral.obj")
     neutral, triangles = read_obj(neutral_path)
     report: dict = {}
     template = _template(root, neutral, triangles, report)

@@ -63,7 +63,19 @@ def _read_json(path: Path, names, n: int) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputFileError(f"cannot read pins: {exc}", path=path,
                              fix='write JSON like {"pins": {"jawOpen": [12, 13]}}') from None
+    if isinstance(doc, dict) and "pins" in doc and not isinstance(doc["pins"], dict):
+        # it was read as a shape named 'pins' ("pins name a shape the capture lacks: 'pins'")
+        raise InputFileError(f"\"pins\" is a {type(doc['pins']).__name__}, not a mapping of shape names to "
+                             "vertex lists", path=path, fix='write JSON like {"pins": {"jawOpen": [12, 13]}}')
     if isinstance(doc, dict) and isinstance(doc.get("pins"), dict):
+        index = _shape_index(names)
+        beside = [k for k in doc if k != "pins" and (str(k) in index or normalize_name(k) in index)]
+        if beside:
+            # shapes beside the "pins" mapping were dropped without a word (an artist's pins lost)
+            raise InputFileError(f"shape(s) {', '.join(map(repr, beside))} beside the \"pins\" mapping, "
+                                 "outside it: they would be ignored", path=path,
+                                 fix="move them into \"pins\" (or drop the \"pins\" level and list every "
+                                     "shape at the top)")
         doc = doc["pins"]
     elif isinstance(doc, dict) and not all(isinstance(v, list) for v in doc.values()):
         raise InputFileError("not a pins file: no \"pins\" mapping, and not shape names to vertex lists "

@@ -695,11 +695,16 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
     _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_sigma, options)
     if contact not in ("auto", "on", "off"):
         raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
-    if contact == "on" and method not in ("menzel", "laplacian"):
-        raise FitError(f"contact is not used by method {method!r}", fix="use menzel or laplacian, or drop it")
+    if contact != "auto" and method not in ("menzel", "laplacian"):
+        raise FitError(f"contact={contact!r} is not used by method {method!r}",
+                       fix="use menzel or laplacian, or drop it")
     auto = isinstance(reg, str) and reg == "auto"
     prior = prior or ("auto" if auto else "dt")
-    if prior not in ("auto", "dt", "template", "avatar") or (prior == "auto" and not auto):
+    if prior == "auto" and not auto:
+        # 'bad prior' for a valid prior named the wrong option: it is the reg that rules 'auto' out
+        raise FitError(f"prior='auto' is chosen by the cross-validation, which reg={reg!r} turns off",
+                       fix="drop --reg (reg='auto'), or choose the prior: 'dt' or 'template'")
+    if prior not in ("auto", "dt", "template", "avatar"):
         raise FitError(f"bad prior {prior!r}",
                        fix="use 'dt', 'template', 'avatar' or 'auto' (with reg='auto')")
     if avatar_prior and method not in ("menzel", "laplacian"):
@@ -736,10 +741,11 @@ def check_number(name: str, value, *, low: float, inclusive: bool, fix: str, key
 
 def _check_fit_values(reg, align, reweight, clamp, weight_sigma, eyelids, rounds, options) -> None:
     """The option *values* :func:`fit_personalized_shapes` would choke on later, refused now (FitError): a
-    ``reg`` that is not "auto", "paper" or a finite number >= 0; a ``clamp`` not > 0; ``weight_sigma`` not
+    ``reg`` that is not "auto", "paper" or a finite number > 0 (0 was let through here and refused after the
+    deformation transfer); a ``clamp`` not > 0; ``weight_sigma`` not
     "auto" or > 0; ``rounds`` not a whole number >= 1; ``align``/``reweight``/``eyelids`` not booleans (a
     manifest's string "False" would count as true); ebfr's ``beta`` not "auto" or a number > 0."""
-    check_number("reg", reg, low=0.0, inclusive=True, fix="use 'auto', 'paper' or a number >= 0",
+    check_number("reg", reg, low=0.0, inclusive=False, fix="use 'auto', 'paper' or a number > 0",
                  keywords=("auto", "paper"))
     check_number("clamp", clamp, low=0.0, inclusive=False, fix="a number > 0 (eq. 3's clamp, 1e5)")
     check_number("weight_sigma", weight_sigma, low=0.0, inclusive=False, fix="use 'auto' or a number > 0",
@@ -765,12 +771,13 @@ def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_si
             bad.append(f"prior={prior!r}")
         if clamp != D_CLAMP:
             bad.append("clamp")
-        if reweight:
-            bad.append("reweight")
+        # given at all (``--no-reweight``, ``--no-align`` too): evaluate refuses them for these methods
+        if reweight is not None:
+            bad.append(f"reweight={reweight!r}")
         if not (isinstance(weight_sigma, str) and weight_sigma == "auto"):
             bad.append("weight_sigma")
-        if method == "dt" and align:
-            bad.append("align")
+        if method == "dt" and align is not None:
+            bad.append(f"align={align!r}")
     allowed = METHOD_OPTIONS[method]
     bad += sorted(set(options) - set(allowed))
     if bad:

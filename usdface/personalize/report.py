@@ -101,7 +101,7 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
             row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
                    "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
                    "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
-                   "info": {k: v for k, v in res.info.items() if k != "train_weights"}}
+                   "info": report_info(res.info)}
             report["methods"][key] = row
             report["_maps"][key] = [(lab, pts, err, error_colors(err)) for lab, pts, err
                                     in zip(test.label, test.points, ev["vertex_mm"], strict=True)]
@@ -116,6 +116,18 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
     return report
 
 
+#: Per-frame and per-vertex arrays of a fit's ``info`` that a report leaves out (the rig holds the shapes).
+_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity")
+
+
+def report_info(info: dict) -> dict:
+    """A fit's ``info`` as the report keeps it: its summaries, without :data:`_BULK_INFO` (eq. 2's prior
+    shapes, ``[K,n,3]``, made ``--json`` 12 MB on a 1,200-vertex capture, 3/4 of it that array) nor any
+    other per-vertex array (ndim >= 3)."""
+    return {k: v for k, v in info.items()
+            if k not in _BULK_INFO and not (isinstance(v, np.ndarray) and v.ndim >= 3)}
+
+
 def write_report_json(report: dict, path, force: bool = False) -> Path:
     """Write the report (without the error maps) as JSON; atomic (temp + rename)."""
     from ..io.atomic import write_text_atomic
@@ -125,35 +137,57 @@ def write_report_json(report: dict, path, force: bool = False) -> Path:
     return write_text_atomic(path, json.dumps(data, indent=1, default=json_default), force=force)
 
 
+#: The widest a plot's row of test frames gets, inches (at 120 dpi: 4,800 px); more frames wrap onto further
+#: rows (a take's 222 test frames made one 23,000-pixel-wide picture).
+PLOT_MAX_WIDTH_IN = 40.0
+
+
 def plot_errors(report: dict, path, force: bool = False) -> Path:
     """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
-    (bottom), methods side by side. Atomic write (temp + rename)."""
+    (bottom), methods side by side; frames beyond :data:`PLOT_MAX_WIDTH_IN` of a row wrap onto further
+    RMSE / max-error pairs. Atomic write (temp + rename)."""
     # a Figure of its own, not pyplot + matplotlib.use("Agg"): they switched the host's backend and closed
     # its figures (a notebook's, a DCC's)
     from matplotlib.figure import Figure
 
     from ..io.atomic import atomic_file
 
-    labels = report["labels"]
+    labels = [str(lab) for lab in report["labels"]]
     methods = list(report["methods"])
-    x = np.arange(len(labels))
     width = 0.8 / max(len(methods), 1)
-    fig = Figure(figsize=(max(8, 0.35 * len(labels) * len(methods) / 2), 7))
-    axes = fig.subplots(2, 1, sharex=True)
+    per_frame = 0.35 * max(len(methods), 1) / 2                  # inches of one frame's group of bars
+    per_row = max(1, int(PLOT_MAX_WIDTH_IN // per_frame))
+    chunks = [range(s, min(s + per_row, len(labels))) for s in range(0, len(labels), per_row)] or [range(0)]
+    fig = Figure(figsize=(max(8.0, per_frame * len(chunks[0])), 7 * len(chunks)))
+    axes = fig.subplots(2 * len(chunks), 1, squeeze=False)[:, 0]
     panels = (("rmse_mm", "RMSE (eq. 5)"), ("max_mm", "maximum vertex error"))
-    for ax, (key, title) in zip(axes, panels, strict=True):
-        for k, m in enumerate(methods):
-            ax.bar(x + (k - (len(methods) - 1) / 2) * width, report["methods"][m][key], width, label=m)
-        ax.set_ylabel("mm")
-        ax.set_title(title)
-        ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(ncol=len(methods))
     # the frames' own labels, as the JSON report and the error maps' prims name them (it numbered them from
     # 1: the JSON's '003' was the plot's 4)
-    long = max((len(str(lab)) for lab in labels), default=0) > 4
-    axes[1].set_xticks(x, [str(lab) for lab in labels], rotation=90 if long else 0,
-                       fontsize="small" if long else None)
-    axes[1].set_xlabel("test expression")
+    long = max((len(lab) for lab in labels), default=0) > 4
+    for c, frames in enumerate(chunks):
+        x = np.arange(len(frames))
+        pair = axes[2 * c:2 * c + 2]
+        for ax, (key, title) in zip(pair, panels, strict=True):
+            for k, m in enumerate(methods):
+                values = np.asarray(report["methods"][m][key], dtype=float)[list(frames)]
+                ax.bar(x + (k - (len(methods) - 1) / 2) * width, values, width, label=m)
+            ax.set_ylabel("mm")
+            ax.set_title(title if len(chunks) == 1 else
+                         f"{title}, test expressions {labels[frames[0]]}-{labels[frames[-1]]}"
+                         if len(frames) else title)
+            ax.grid(axis="y", alpha=0.3)
+            ax.set_xlim(-0.5, per_row - 0.5 if len(chunks) > 1 else max(len(frames), 1) - 0.5)
+        pair[0].set_xticks(x, [])
+        pair[1].set_xticks(x, [labels[i] for i in frames], rotation=90 if long else 0,
+                           fontsize="small" if long else None)
+        pair[1].set_xlabel("test expression")
+    if len(chunks) > 1:                                  # one scale per quantity over the wrapped rows
+        for key, row_axes in (("rmse_mm", axes[0::2]), ("max_mm", axes[1::2])):
+            top = max((float(np.nanmax(report["methods"][m][key])) for m in methods
+                       if len(report["methods"][m][key])), default=0.0)
+            for ax in row_axes:
+                ax.set_ylim(0.0, 1.05 * top or 1.0)
+    axes[0].legend(ncol=len(methods))
     fig.tight_layout()
     with atomic_file(path, force=force) as tmp:
         fig.savefig(tmp, dpi=120)
