@@ -342,6 +342,27 @@ def test_retarget_json_records_the_map_settings_and_the_avatar_channels(samples,
     assert [c for c, t in zip(doc["target_channels"], doc["target"], strict=True) if c != t] == ["JawDrop"]
 
 
+def test_retarget_json_names_the_other_meshes_channels(samples, tmp_path):
+    """The map's columns drive every mesh, but ``target_channels`` named only the face mesh's: a Blender
+    export's teeth mesh (``jawOpen2``) or a studio's (``JawDrop``) had no names for an engine to drive
+    (a trial). ``mesh_channels``: each other mesh's own channel per target, None where it has no such
+    shape."""
+    text = (samples / "avatar.usda").read_text().replace('"jawRight", "jawOpen", "tongueOut"]',
+                                                         '"jawRight", "JawDrop", "tongueOut"]')
+    (tmp_path / "studio.usda").write_text(text)
+    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--name-map", str(tmp_path / "names.json")]) == 0
+    doc = json.loads(out.read_text())
+    mouth = doc["mesh_channels"]["/Avatar/Mouth"]
+    assert len(mouth) == len(doc["target"]) and "/Avatar/Head" not in doc["mesh_channels"]
+    assert {t: c for t, c in zip(doc["target"], mouth, strict=True) if c is not None} == {
+        "jawForward": "jawForward", "jawLeft": "jawLeft", "jawRight": "jawRight", "jawOpen": "JawDrop",
+        "tongueOut": "tongueOut"}
+    assert doc["target_channels"][doc["target"].index("jawOpen")] == "jawOpen"      # the Head's own
+
+
 def test_retarget_takes_the_fits_pins_and_the_face_mesh(samples, tmp_path, capsys):
     """``write_retarget_map(..., pins="pins.json")`` failed inside the fit ("pins mask has shape (),
     expected (52, 1233)": the file was never read), and ``usdface retarget`` offered neither ``--pins`` (a

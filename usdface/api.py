@@ -1019,7 +1019,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         if isinstance(pins_file, str | os.PathLike):
             meta["pins"] = _map_input(pins_file, out)
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
-                               channels=eq4["channels"])
+                               channels=eq4["channels"], mesh_channels=eq4.get("mesh_channels"))
     else:
         text = weight_map_csv(result.weights, result.names, result.avatar_names)
     done: dict = {}

@@ -523,6 +523,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
                       if c[1] is not None and c[2] != "conflict"}
             report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
+            report["retarget"]["mesh_channels"] = _mesh_channels(avatar, k_names, (face_prim, beyond))
             trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
                                       _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
             _warn_untrusted_rows(report, weights, names, k_names, trust)
@@ -741,6 +742,23 @@ def _retarget_map(avatar: Avatar, face: FaceRig, beyond, corr, capture_triangles
         face.deltas, mb_face, mu=mu, return_mu=True, rows=corr.face, bounds=weight_bounds,
         positions=face.neutral, prior=namesake_prior(names, k_names) if namesake else None,
         elsewhere=driven_gram(others, k_names) if namesake else None)
+
+
+def _mesh_channels(avatar: Avatar, names: list[str], skip) -> dict:
+    """``{mesh prim: [channel]}``: for each mesh with blend shapes but the face (``skip``: its prim and the
+    piece split off it, or None), its own channel name for each of the map's target shapes ``names`` (a
+    Blender export's ``jawOpen2`` on the teeth mesh), None where it has no such shape: the map's columns
+    drive every mesh, and an engine drives each by its own names."""
+    face_prim, beyond = skip
+    out = {}
+    for m in avatar.meshes:
+        if m.key == face_prim or m is beyond or not m.names:
+            continue
+        tokens = {c[1]: c[0] for c in avatar.name_report.get(m.key, {}).get("channels", ())
+                  if c[1] is not None and c[2] != "conflict"}
+        have = set(m.names)
+        out[m.key] = [tokens.get(n, n) if n in have else None for n in names]
+    return out
 
 
 def _warn_untrusted_rows(report: dict, weights, names: list[str], k_names: list[str], trust) -> None:

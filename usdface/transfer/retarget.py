@@ -290,14 +290,16 @@ def weight_map_rows(weights, target_names, avatar_names, *, threshold: float = 0
 
 
 def weight_map_json(weights, target_names, avatar_names, *, meta: dict | None = None,
-                    channels=None) -> str:
+                    channels=None, mesh_channels: dict | None = None) -> str:
     """JSON text: ``{"format": "usdface.retarget/1", "source": [...], "target": [...], "target_channels":
-    [...], "weights": [[...]], "map": {...}}`` (rows = capture/ARKit input shapes, columns = avatar shapes;
-    ``target_channels``: the avatar's own channel name of each ``target`` shape, ``channels`` or the ARKit
-    names)."""
+    [...], "mesh_channels": {...}, "weights": [[...]], "map": {...}}`` (rows = capture/ARKit input shapes,
+    columns = avatar shapes; ``target_channels``: the face mesh's own channel name of each ``target`` shape,
+    ``channels`` or the ARKit names; ``mesh_channels``: ``{mesh prim: [channel or None per target]}`` of the
+    other meshes the columns drive, when given)."""
     doc = {"format": "usdface.retarget/1", "equation": "Menzel et al. 2022, eq. 4",
            "source": list(target_names), "target": list(avatar_names),
            "target_channels": list(avatar_names if channels is None else channels),
+           **({"mesh_channels": mesh_channels} if mesh_channels else {}),
            "weights": np.asarray(weights).round(6).tolist(),
            "map": weight_map_rows(np.asarray(weights).round(6), target_names, avatar_names, threshold=1e-6)}
     if meta:
