@@ -257,3 +257,26 @@ def test_inspect_summarises_an_error_map_file(tmp_path, capsys):
     assert main(["inspect", str(out)]) == 0
     text = capsys.readouterr().out
     assert "error maps" in text and "menzel_paper: 1 test frame(s), mean RMSE 0.500 mm" in text
+
+
+def test_inspect_names_a_layers_inspection_animation(tmp_path, capsys):
+    """A trial: 'inspect' of a 'personalize --take' layer said nothing of the animation it plays (the
+    capture's test expressions, then the take); it names the SkelAnimation, its frames and seconds and the
+    take, and a layer without one says nothing."""
+    from usdface.io.livelink import write_livelink_csv
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    w = np.random.default_rng(2).uniform(0, 1, size=(30, 2))
+    write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], w, np.arange(30) / 30.0)
+    for name, extra in (("p.usda", ["--take", str(tmp_path / "take.csv")]), ("q.usda", [])):
+        assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"),
+                     "-o", str(tmp_path / name), "-q", *extra]) == 0
+    capsys.readouterr()
+    played = inspect_file(tmp_path / "p.usda")["inspectionAnimation"]
+    assert played["prim"].endswith("/usdfaceInspection") and played["frames"] > 30 and played["seconds"] > 1
+    assert main(["inspect", str(tmp_path / "p.usda")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "inspection animation" in x)
+    assert f"{played['frames']} frames" in line and "test expressions, then the take" in line
+    assert "take.csv" in line
+    assert "inspectionAnimation" not in inspect_file(tmp_path / "q.usda")
+

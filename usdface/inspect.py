@@ -151,7 +151,33 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
                                  ("count", "epsilon", "alpha", "multicover", "symmetric", "solverStatus")}
         if layouts:
             out["landmarks"] = layouts
+        played = _inspection_animation(avatar)
+        if played:
+            out["inspectionAnimation"] = played
     return out
+
+
+def _inspection_animation(avatar: Avatar) -> dict | None:
+    """The inspection animation a ``personalize --inspect/--take`` layer plays (a SkelAnimation
+    ``usdfaceInspection`` bound to the avatar's Skeleton): its prim, frames and seconds; None without one."""
+    from .io.usd_inspection import ANIMATION_NAME
+
+    paths = {m.source.animation for m in avatar.meshes if m.source is not None and m.source.animation}
+    path = next((p for p in sorted(paths) if str(p).rsplit("/", 1)[-1] == ANIMATION_NAME), None)
+    if path is None or not avatar.file:
+        return None
+    from pxr import UsdSkel
+
+    from .io.usd_open import open_usd_stage
+
+    stage = open_usd_stage(avatar.file, "layer", "check the path")
+    anim = UsdSkel.Animation(stage.GetPrimAtPath(str(path)))
+    if not anim:
+        return None
+    times = anim.GetBlendShapeWeightsAttr().GetTimeSamples()
+    rate = stage.GetTimeCodesPerSecond() or 24.0
+    return {"prim": str(path), "frames": len(times),
+            "seconds": round((times[-1] - times[0]) / rate, 3) if len(times) > 1 else 0.0}
 
 
 #: ``report["kind"]`` of a take with meshes, read whole as a capture (``fit TAKE``, ``personalize AVATAR
@@ -422,6 +448,14 @@ def format_report(report: dict) -> str:
         if prov.get("pinsDigest"):           # ... and the pins file it kept
             pins = (prov.get("parameters") or {}).get("pins")
             lines.append(f"    pins {pins} sha256 {str(prov['pinsDigest'])[:16]}...")
+    if report.get("inspectionAnimation"):
+        played = report["inspectionAnimation"]
+        prov = report.get("provenance") or {}
+        parts = (["the capture's test expressions"] if prov.get("fitTestExpressions") else []) + (
+            [f"the take {prov['take']}"] if prov.get("take") else [])
+        what = ", then ".join(parts) or "recorded frames"
+        lines.append(f"  inspection animation {played['prim']}: {played['frames']} frames, "
+                     f"{played['seconds']:g} s ({what}; usdview plays it on the personalized avatar)")
     for prim, lay in report.get("landmarks", {}).items():
         extra = "".join(f", {key} {lay[key]:g}" for key in ("epsilon", "alpha")
                         if isinstance(lay.get(key), int | float))
