@@ -117,3 +117,6 @@ def test_a_layer_written_from_python_or_a_batch_names_what_wrote_it(tmp_path):
     assert command(tmp_path / "b.usda").startswith("usdface batch, item 3")
     argv = ["personalize", str(args[0]), str(args[1]), "-o", str(tmp_path / "cli.usda"), "-q"]
     assert main(argv) == 0 and shlex.split(command(tmp_path / "cli.usda")) == ["usdface", *argv]
+    # a rig written by fit_capture names fit_capture, the function that ran (it named its writer)
+    usdface.fit_capture(args[1], out_path=tmp_path / "rig.usda", reg=0.05)
+    assert command(tmp_path / "rig.usda") == "usdface.api.fit_capture (Python API)"

@@ -391,9 +391,10 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
                                                                   role="train")["mean_rmse_mm"])
         if out_path is not None:
             p.start(f"write {Path(out_path).name}")
-            result.info["out_path"] = write_fit_rig(result, out_path, force=force,
-                                                    capture=source, command=command,
-                                                    parameters={"method": method, **parameters})
+            result.info["out_path"] = write_fit_rig(
+                result, out_path, force=force, capture=source,
+                command=command or "usdface.api.fit_capture (Python API)",   # what ran, not its writer
+                parameters={"method": method, **parameters})
     return result
 
 
