@@ -49,6 +49,16 @@ def test_an_avatar_given_as_the_take_is_named_an_avatar(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_output_folder_asks_for_a_file_inside_it(tmp_path, capsys):
+    """'fit CAP -o sub/' (an existing folder) said 'must end in .usda ... (fix: name it e.g. sub.usda)', a
+    sibling of the folder; it says the path is a folder and names a file inside it."""
+    (tmp_path / "sub").mkdir()
+    assert main(["fit", str(C), "-o", str(tmp_path / "sub"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "output layer path is a folder" in err and f"e.g. {tmp_path / 'sub' / 'out.usda'}" in err
+    assert list((tmp_path / "sub").iterdir()) == []
+
+
 def test_a_non_usd_file_where_usd_is_expected_is_named_as_such(tmp_path, capsys):
     """The retarget map (``map.json``) given to ``render --heatmap``, ``inspect`` or ``check``, or an exported
     OBJ to ``export``, said USD's "Cannot determine file format for @map.json@ (fix: check that it is a

@@ -292,6 +292,10 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
                              fix="choose a file name without line breaks")
+    if path.is_dir():           # a folder (sub/): a file inside it, not a sibling named like it
+        inside = path / f"out{suffixes[0] if suffixes else ''}"
+        raise InputFileError(f"{what} path is a folder", path=path, fix=f"give a file name inside it, e.g. "
+                             f"{inside}")
     if suffixes is not None and path.suffix.lower() not in suffixes:
         # '.json' alone is a name without an extension (a hidden file): its stem is the whole name
         stem = path.stem if path.stem.lower() not in suffixes else ""
@@ -299,8 +303,6 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
                              fix=f"name it e.g. {stem or 'out'}{suffixes[0]}"
                                  + (f" ({path.name} is a hidden file's name, with no extension)"
                                     if not stem and path.name.lower() in suffixes else ""))
-    if path.is_dir():
-        raise InputFileError(f"{what} path is a folder", path=path, fix="give a file name inside it")
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
     if path.exists() and not force:
