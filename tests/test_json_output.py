@@ -82,6 +82,7 @@ def test_every_json_success_says_ok_and_output(sample_dir, livelink_csv, tmp_pat
         "sample": ["sample", "s3", "--json"],
         "anim import": ["anim", "import", livelink_csv, "-o", "t.usda", "--json"],
         "fit": ["fit", capture, "-o", "rig.usda", "--json"],
+        "retarget": ["retarget", avatar, capture, "-o", "map.json", "--json"],
     }
     for what, args in runs.items():
         res = _usdface(*args, cwd=tmp_path)
@@ -90,6 +91,14 @@ def test_every_json_success_says_ok_and_output(sample_dir, livelink_csv, tmp_pat
         assert doc["ok"] is True and "output" in doc, (what, list(doc)[:5])
     assert json.loads(_usdface(*runs["personalize"], "--force", cwd=tmp_path).stdout)["output"].endswith(
         "p.usda")
+    # retarget had no --json (a trial): the map's size and settings, and an existing map refused as JSON
+    res = _usdface(*runs["retarget"], "--force", cwd=tmp_path)
+    doc = json.loads(res.stdout)
+    assert len(doc["sources"]) == len(json.loads((tmp_path / "map.json").read_text())["source"])
+    assert doc["weight_bounds"] == [0.0, 1.0] and doc["mu_choice"] == "leave one face region out"
+    assert "usdface: retarget" not in res.stderr                     # no progress beside the document
+    fail = _usdface(*runs["retarget"], cwd=tmp_path)
+    assert fail.returncode == 2 and json.loads(fail.stdout)["error"]["type"] == "OutputExistsError"
 
 
 def test_json_failures_are_ok_false_also_for_usage_errors(sample_dir, tmp_path):

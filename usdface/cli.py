@@ -26,7 +26,8 @@ COMMAND_MODULES = (
 
 
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
-JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch")
+JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch",
+                      "retarget")
 #: ``.argv``: the arguments :func:`main` parses on this thread (for _Parser.error and the command a layer
 #: records): per thread, as a host may run main(argv) on threads side by side, and one module-wide list
 #: gave a run's layer the command another thread had started since.

@@ -20,6 +20,9 @@ def register(subparsers) -> None:
                         "the capture's shapes move most)")
     p.add_argument("-o", "--output", required=True, help="map file: .json or .csv")
     p.add_argument("--force", action="store_true", help="overwrite the output")
+    p.add_argument("--json", action="store_true",
+                   help="print the result as JSON (the map file, its size, the settings it was solved with, "
+                        "the shapes it has no row for, the warnings)")
     p.set_defaults(func=run)
 
 
@@ -42,6 +45,20 @@ def run(args) -> int:
                     "nothing on the avatar (fix: if the avatar has these shapes under its own channel names, "
                     "map them with --name-map FILE, docs/names.md)")
     w = result.weights
+    if args.json:
+        import json
+
+        from . import all_warnings, json_path
+
+        eq4 = rep.get("retarget") or {}
+        print(json.dumps({"ok": True, "output": json_path(args.output), "sources": list(result.names),
+                          "targets": list(result.avatar_names), "mu": eq4.get("mu"),
+                          "mu_choice": eq4.get("mu_choice"), "weight_bounds": eq4.get("bounds"),
+                          "map_prior": eq4.get("prior"), "weight_min": float(w.min()) if w.size else 0.0,
+                          "weight_max": float(w.max()) if w.size else 0.0,
+                          "above_0_05": int((abs(w) > 0.05).sum()), "no_row": list(lacking),
+                          "warnings": all_warnings(rep.get("warnings"))}))
+        return 0
     print(f"{w.shape[0]} x {w.shape[1]} retarget map -> {args.output} (weights in [{w.min():.2f}, "
           f"{w.max():.2f}], {int((abs(w) > 0.05).sum())} above 0.05)")
     return 0
