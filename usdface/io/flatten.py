@@ -188,9 +188,14 @@ def _bake_redirections(layer, redirections: dict) -> None:
             continue                              # an original not in the flattened file: keep the scope
         for scoped, original in pairs:
             src, dst = layer.GetPrimAtPath(scoped), layer.GetPrimAtPath(original)
+            # the original's own properties go first, also those the chosen values lack: the layer
+            # authors the personalized shapes' sparse pointIndices on the original prims (outside the
+            # variants), and the generic variant's dense shape has none; kept, they paired the generic
+            # dense offsets with the sparse indices (a --variant generic export that check refused and
+            # readers could not read)
+            for name in [prop.name for prop in dst.properties]:
+                del dst.properties[name]
             for prop in list(src.properties):
-                if prop.name in dst.properties:
-                    del dst.properties[prop.name]
                 Sdf.CopySpec(layer, prop.path, layer, dst.path.AppendProperty(prop.name))
         rel = layer.GetRelationshipAtPath(Sdf.Path(mesh).AppendProperty("skel:blendShapeTargets"))
         rel.targetPathList.explicitItems = [Sdf.Path(original) for _, original in pairs]
