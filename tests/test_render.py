@@ -457,3 +457,27 @@ def test_render_a_shape_name_typo_gets_the_close_name(samples, tmp_path, capsys)
     assert main(["render", str(samples / "avatar.usda"), "--shapes", "jawOpn", "-o", str(tmp_path / "x.png"),
                  "-q"]) == 2
     assert "has no shape 'jawOpn' (fix: did you mean jawOpen?" in capsys.readouterr().err
+
+
+def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personalized_sample, tmp_path, capsys):
+    """A user trial: ``render flat.usdc --compare`` (or ``--heatmap``) of a flattened personalized export was
+    'not a usdface layer (no sublayer to compare with)'; the file records the avatar it was personalized from,
+    which is now the generic it is compared with (the same picture as the layer's); a recorded avatar that is
+    gone is named."""
+    import shutil
+
+    flat = tmp_path / "flat.usdc"
+    assert main(["export", str(personalized_sample), "--flatten", str(flat), "-q"]) == 0
+    from_layer, from_flat = tmp_path / "layer.png", tmp_path / "flat.png"
+    assert main(["render", str(personalized_sample), "-o", str(from_layer), "--heatmap", "-q"]) == 0
+    assert main(["render", str(flat), "-o", str(from_flat), "--heatmap", "-q"]) == 0
+    assert from_flat.read_bytes() == from_layer.read_bytes()
+    assert main(["render", str(flat), "-o", str(tmp_path / "c.png"), "--compare", "-q"]) == 0
+    # a copy elsewhere: the provenance's relative path to the avatar no longer leads to it
+    moved = tmp_path / "elsewhere" / "deeper" / "flat.usdc"
+    moved.parent.mkdir(parents=True)
+    shutil.copy(flat, moved)
+    capsys.readouterr()
+    assert main(["render", str(moved), "-o", str(tmp_path / "m.png"), "--compare", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "flattened export" in err and "is not there to compare with" in err and "--compare GENERIC" in err
