@@ -596,3 +596,25 @@ def test_gltf_skin_of_the_bench_blender_avatar_carries_no_scale(bench, tmp_path)
         np.testing.assert_allclose(product, np.eye(4), atol=1e-5)
     head = read_gltf(out)["Head"]["positions"]
     assert 0.1 < float(np.ptp(head, axis=0).max()) < 1.0     # a head's size in metres
+
+
+def test_export_variant_generic_of_a_flattened_export(layer, tmp_path, capsys):
+    """A user trial: ``export flat.usdc --variant generic`` of a flattened *personalized* export said 'no
+    usdfacePersonalization variant set (not a usdface layer)' of a file usdface wrote; it now says what the
+    file is and names the layer it was flattened from. A flattened *generic* export's generic is what is
+    baked in (it was refused the same way)."""
+    flat, gflat = tmp_path / "flat.usdc", tmp_path / "flat.generic.usdc"
+    assert main(["export", str(layer), "--flatten", str(flat), "-q"]) == 0
+    assert main(["export", str(layer), "--flatten", str(gflat), "--variant", "generic", "-q"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "g.glb"
+    assert main(["export", str(flat), "--gltf", str(out), "--variant", "generic", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "a flattened export of the personalized variant of" in err and "not a usdface layer" not in err
+    assert layer.name in err and not out.exists()
+    assert main(["export", str(gflat), "--gltf", str(out), "--variant", "generic"]) == 0
+    assert "[generic, as baked into flat.generic.usdc" in capsys.readouterr().out
+    generic = read_avatar_variant(layer, "generic")
+    got = read_gltf(out)
+    for rig in generic.meshes:
+        np.testing.assert_array_equal(got[rig.name]["targets"], rig.deltas.astype(np.float32))
