@@ -481,3 +481,21 @@ def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personali
     assert main(["render", str(moved), "-o", str(tmp_path / "m.png"), "--compare", "-q"]) == 2
     err = capsys.readouterr().err
     assert "flattened export" in err and "is not there to compare with" in err and "--compare GENERIC" in err
+
+
+def test_comparison_difference_title_clears_its_colour_bar():
+    """A user trial: ``render person.usda --compare --mesh Mouth --view right`` (a wide mesh) drew the
+    difference panel's title 'difference (max 6.95 mm)' into the colour bar beside it."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    wide, generic = grid_rig(), grid_rig()
+    wide.neutral = wide.neutral * [4.0, 1.0, 1.0]
+    generic.neutral, generic.deltas = wide.neutral.copy(), generic.deltas * 0.5
+    fig = render_comparison(generic, wide, ["bump"])
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    title = fig.axes[2].title.get_window_extent(renderer)
+    bar = fig.axes[-1].get_window_extent(renderer)
+    assert "max" in fig.axes[2].get_title()
+    assert title.x1 < bar.x0 or title.y0 > bar.y1
