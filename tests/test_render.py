@@ -499,3 +499,23 @@ def test_comparison_difference_title_clears_its_colour_bar():
     bar = fig.axes[-1].get_window_extent(renderer)
     assert "max" in fig.axes[2].get_title()
     assert title.x1 < bar.x0 or title.y0 > bar.y1
+
+
+def test_render_compare_of_a_stale_layer_warns(tmp_path, capsys):
+    """A user trial: ``render p.usda --compare`` (and ``--heatmap``) of a layer whose avatar was edited
+    since compared with the edited avatar without a word (export and review warn, check warns): the picture
+    showed the edit as personalization. It warns now, and still draws."""
+    from usdface import api
+
+    avatar, capture = tmp_path / "avatar.usda", tmp_path / "capture.usda"
+    avatar.write_bytes(A.read_bytes())
+    capture.write_bytes(C.read_bytes())
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(avatar, capture, layer)
+    avatar.write_bytes(A.read_bytes() + b"\n")          # the avatar re-exported since
+    for mode in ("--compare", "--heatmap"):
+        png = tmp_path / f"{mode[2:]}.png"
+        capsys.readouterr()
+        assert main(["render", str(layer), "-o", str(png), mode, "-q"]) == 0
+        assert "warning: p.usda was made from" in capsys.readouterr().out
+        assert png.read_bytes().startswith(PNG)

@@ -215,7 +215,15 @@ def run(args) -> int:
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
+        import warnings
+
+        from ..io.layers import stale_inputs
+
         generic_path = _generic(args, path)
+        # as export and review do: a layer whose avatar changed since is compared with the avatar as it is
+        # now, and the picture shows the edit as personalization (it said nothing)
+        for text in stale_inputs(path):
+            warnings.warn(text, UserWarning, stacklevel=2)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
         generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,
