@@ -124,6 +124,8 @@ def test_failure_isolation_report_and_resume(tmp_path):
     assert Path(items[0].output).stat().st_mtime_ns == stamp
     forced = run_batch(items, worker=stub_worker, jobs=1, force=True, progress=False)
     assert forced.count(DONE) == 3
+    # a trial's note: the summary said '... failed in 0.1 s on in-process'
+    assert "in this process" in forced.summary() and "on in-process" not in forced.summary()
 
 
 def dying_worker(item: dict) -> None:

@@ -417,6 +417,23 @@ def test_cli_rules_that_name_no_rule_are_refused(samples, capsys, rules):
     assert "names no rule" in err and "ArkitNames" in err
 
 
+def test_cli_a_rule_named_twice_runs_once(tmp_path, capsys):
+    """A user trial: ``check FILE --no-pixar --rules ArkitNames,ArkitNames`` printed every finding twice and
+    counted it twice (2 warnings of a file with one)."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.model import FaceRig
+
+    tri = np.array([[0, 1, 2]])
+    rig = FaceRig(np.array([[0.0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]]), tri, ["Key_1"],
+                  np.array([[[0.0, 0, 0.001], [0, 0, 0], [0, 0, 0]]]), name="Head")
+    path = write_rig_usd(rig, tmp_path / "cube.usda")
+    assert main(["check", str(path), "--no-pixar", "--rules", "ArkitNames"]) in (0, 1)
+    once = capsys.readouterr().out
+    assert main(["check", str(path), "--no-pixar", "--rules", "ArkitNames,ArkitNames"]) in (0, 1)
+    assert capsys.readouterr().out == once
+    assert once.count("'Key_1' is not an ARKit shape") == 1
+
+
 def test_channels_named_arkit_only_by_their_prims_read_as_one_sentence(tmp_path, capsys):
     """Five Head channels renamed (``JawDrop``, ``Blink_L``, ...) with their BlendShape prims left as
     ARKit names were one warning that did not parse: '5 channels look like ARKit names with only its target

@@ -356,6 +356,35 @@ def test_a_flattened_generic_export_personalizes_like_the_avatar(layer, tmp_path
                                    atol=1e-9)
 
 
+def test_a_flattened_generic_export_of_an_avatar_with_dense_shapes_is_valid(samples, tmp_path):
+    """An avatar whose shapes are dense (offsets for every point, no pointIndices, as dev1's): the layer
+    authors the personalized shapes' sparse pointIndices on the original BlendShape prims, and the generic
+    variant's baked shapes kept them: dense offsets with sparse indices, a --variant generic export that
+    check refused (BlendShapeOffsets errors) and that no reader could read."""
+    from pxr import Sdf, Usd, UsdSkel, Vt
+
+    avatar = tmp_path / "dense.usda"
+    assert Sdf.Layer.FindOrOpen(str(samples / "avatar.usda")).Export(str(avatar))
+    stage = Usd.Stage.Open(str(avatar))
+    n_points = len(stage.GetPrimAtPath("/Avatar/Head").GetAttribute("points").Get())
+    for prim in stage.Traverse():
+        shape = UsdSkel.BlendShape(prim)
+        idx = shape.GetPointIndicesAttr().Get() if prim.IsA(UsdSkel.BlendShape) else None
+        if idx and "/Avatar/Head/" in str(prim.GetPath()):
+            dense = np.zeros((n_points, 3), np.float32)
+            dense[np.asarray(idx)] = np.asarray(shape.GetOffsetsAttr().Get())
+            shape.GetOffsetsAttr().Set(Vt.Vec3fArray.FromNumpy(dense))
+            prim.RemoveProperty("pointIndices")
+    stage.GetRootLayer().Save()
+    out, flat = tmp_path / "person.usda", tmp_path / "flat.generic.usdc"
+    assert main(["personalize", str(avatar), str(samples / "capture.usda"), "-o", str(out), "-q"]) == 0
+    assert main(["export", str(out), "--flatten", str(flat), "--variant", "generic", "-q"]) == 0
+    assert [i for i in api.check(flat) if i.severity == "error"] == []
+    original, again = api.read_avatar(avatar), api.read_avatar(flat)
+    for rig in original.meshes:
+        np.testing.assert_array_equal(again.mesh(rig.name).deltas, rig.deltas)
+
+
 def test_a_flattened_personalized_export_stays_personalized_when_exported_again(layer, samples, tmp_path,
                                                                               capsys):
     """A user trial: exporting a flattened *personalized* file (``export flat.usdc --gltf/--flatten``) printed
@@ -567,3 +596,25 @@ def test_gltf_skin_of_the_bench_blender_avatar_carries_no_scale(bench, tmp_path)
         np.testing.assert_allclose(product, np.eye(4), atol=1e-5)
     head = read_gltf(out)["Head"]["positions"]
     assert 0.1 < float(np.ptp(head, axis=0).max()) < 1.0     # a head's size in metres
+
+
+def test_export_variant_generic_of_a_flattened_export(layer, tmp_path, capsys):
+    """A user trial: ``export flat.usdc --variant generic`` of a flattened *personalized* export said 'no
+    usdfacePersonalization variant set (not a usdface layer)' of a file usdface wrote; it now says what the
+    file is and names the layer it was flattened from. A flattened *generic* export's generic is what is
+    baked in (it was refused the same way)."""
+    flat, gflat = tmp_path / "flat.usdc", tmp_path / "flat.generic.usdc"
+    assert main(["export", str(layer), "--flatten", str(flat), "-q"]) == 0
+    assert main(["export", str(layer), "--flatten", str(gflat), "--variant", "generic", "-q"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "g.glb"
+    assert main(["export", str(flat), "--gltf", str(out), "--variant", "generic", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "a flattened export of the personalized variant of" in err and "not a usdface layer" not in err
+    assert layer.name in err and not out.exists()
+    assert main(["export", str(gflat), "--gltf", str(out), "--variant", "generic"]) == 0
+    assert "[generic, as baked into flat.generic.usdc" in capsys.readouterr().out
+    generic = read_avatar_variant(layer, "generic")
+    got = read_gltf(out)
+    for rig in generic.meshes:
+        np.testing.assert_array_equal(got[rig.name]["targets"], rig.deltas.astype(np.float32))

@@ -17,6 +17,8 @@ from usdface.namelist import name_list
     (["ArkitNames", " PointIndices"], ["ArkitNames", "PointIndices"]),       # a list where a string is usual
     (("dt", "ebfr,menzel"), ["dt", "ebfr", "menzel"]),                       # items comma-separated too
     ((n for n in ("dt", "menzel")), ["dt", "menzel"]),
+    ("ArkitNames,PointIndices,ArkitNames", ["ArkitNames", "PointIndices"]),  # a repeat once, first place
+    (["dt", "menzel,dt"], ["dt", "menzel"]),
     (None, None),                                                            # the caller's default
 ])
 def test_names(value, names):

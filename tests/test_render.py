@@ -457,3 +457,65 @@ def test_render_a_shape_name_typo_gets_the_close_name(samples, tmp_path, capsys)
     assert main(["render", str(samples / "avatar.usda"), "--shapes", "jawOpn", "-o", str(tmp_path / "x.png"),
                  "-q"]) == 2
     assert "has no shape 'jawOpn' (fix: did you mean jawOpen?" in capsys.readouterr().err
+
+
+def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personalized_sample, tmp_path, capsys):
+    """A user trial: ``render flat.usdc --compare`` (or ``--heatmap``) of a flattened personalized export was
+    'not a usdface layer (no sublayer to compare with)'; the file records the avatar it was personalized from,
+    which is now the generic it is compared with (the same picture as the layer's); a recorded avatar that is
+    gone is named."""
+    import shutil
+
+    flat = tmp_path / "flat.usdc"
+    assert main(["export", str(personalized_sample), "--flatten", str(flat), "-q"]) == 0
+    from_layer, from_flat = tmp_path / "layer.png", tmp_path / "flat.png"
+    assert main(["render", str(personalized_sample), "-o", str(from_layer), "--heatmap", "-q"]) == 0
+    assert main(["render", str(flat), "-o", str(from_flat), "--heatmap", "-q"]) == 0
+    assert from_flat.read_bytes() == from_layer.read_bytes()
+    assert main(["render", str(flat), "-o", str(tmp_path / "c.png"), "--compare", "-q"]) == 0
+    # a copy elsewhere: the provenance's relative path to the avatar no longer leads to it
+    moved = tmp_path / "elsewhere" / "deeper" / "flat.usdc"
+    moved.parent.mkdir(parents=True)
+    shutil.copy(flat, moved)
+    capsys.readouterr()
+    assert main(["render", str(moved), "-o", str(tmp_path / "m.png"), "--compare", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "flattened export" in err and "is not there to compare with" in err and "--compare GENERIC" in err
+
+
+def test_comparison_difference_title_clears_its_colour_bar():
+    """A user trial: ``render person.usda --compare --mesh Mouth --view right`` (a wide mesh) drew the
+    difference panel's title 'difference (max 6.95 mm)' into the colour bar beside it."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    wide, generic = grid_rig(), grid_rig()
+    wide.neutral = wide.neutral * [4.0, 1.0, 1.0]
+    generic.neutral, generic.deltas = wide.neutral.copy(), generic.deltas * 0.5
+    fig = render_comparison(generic, wide, ["bump"])
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    title = fig.axes[2].title.get_window_extent(renderer)
+    bar = fig.axes[-1].get_window_extent(renderer)
+    assert "max" in fig.axes[2].get_title()
+    assert title.x1 < bar.x0 or title.y0 > bar.y1
+
+
+def test_render_compare_of_a_stale_layer_warns(tmp_path, capsys):
+    """A user trial: ``render p.usda --compare`` (and ``--heatmap``) of a layer whose avatar was edited
+    since compared with the edited avatar without a word (export and review warn, check warns): the picture
+    showed the edit as personalization. It warns now, and still draws."""
+    from usdface import api
+
+    avatar, capture = tmp_path / "avatar.usda", tmp_path / "capture.usda"
+    avatar.write_bytes(A.read_bytes())
+    capture.write_bytes(C.read_bytes())
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(avatar, capture, layer)
+    avatar.write_bytes(A.read_bytes() + b"\n")          # the avatar re-exported since
+    for mode in ("--compare", "--heatmap"):
+        png = tmp_path / f"{mode[2:]}.png"
+        capsys.readouterr()
+        assert main(["render", str(layer), "-o", str(png), mode, "-q"]) == 0
+        assert "warning: p.usda was made from" in capsys.readouterr().out
+        assert png.read_bytes().startswith(PNG)

@@ -372,6 +372,13 @@ def test_review_of_a_flattened_export_names_the_layer_it_came_from(personalized_
     err = capsys.readouterr().err
     assert "flattened export of the personalized variant" in err and personalized_sample.name in err
     assert "written by 'usdface personalize'" not in err and not (tmp_path / "r.html").exists()
+    # one in a subfolder named the layer through it ('sub/../person.usda'): the path as one can pass it
+    sub = tmp_path / "sub" / "flat.usdc"
+    api.export_avatar(personalized_sample, flatten=sub)
+    capsys.readouterr()
+    assert main(["review", str(sub), "-o", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err
+    assert "/../" not in err and f"{personalized_sample.name})" in err
 
 
 def test_a_capture_given_as_the_take_is_refused(personalized_sample, samples, tmp_path, capsys):

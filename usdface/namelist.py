@@ -15,8 +15,8 @@ __all__ = ["name_list"]
 
 
 def name_list(value: str | Iterable[str] | None, what: str, noun: str, fix: str) -> list[str] | None:
-    """The names in ``value``, in order, each stripped, empty items dropped; ``None`` stays ``None`` (the
-    caller's default: all rules, the default shapes...).
+    """The names in ``value``, in order, each stripped, empty items and repeats dropped; ``None`` stays
+    ``None`` (the caller's default: all rules, the default shapes...).
 
     ``value``: one string, a name or comma-separated names (``"dt, menzel"``; ``list()`` of it made letters),
     or an iterable of such strings (``["dt", "menzel"]``). ``what`` names the option or argument and ``noun``
@@ -31,6 +31,8 @@ def name_list(value: str | Iterable[str] | None, what: str, noun: str, fix: str)
     ['dt', 'menzel']
     >>> name_list(["dt", "ebfr,menzel"], "methods", "method", "name some")
     ['dt', 'ebfr', 'menzel']
+    >>> name_list("dt,menzel,dt", "--methods", "method", "name some")
+    ['dt', 'menzel']
     """
     if value is None:
         return None
@@ -39,7 +41,10 @@ def name_list(value: str | Iterable[str] | None, what: str, noun: str, fix: str)
     if items is None or not all(isinstance(item, str) for item in items):
         raise OptionError(f"{what} takes a {noun} name, comma-separated names or a list of names, not "
                           f"{value!r}", fix=f"give {what} as a string such as 'a,b' or a list of strings")
-    names = [name.strip() for item in items for name in item.split(",") if name.strip()]
+    # a name given twice once: '--rules ArkitNames,ArkitNames' ran the rule twice and reported (and counted)
+    # each finding twice, '--shapes jawOpen,jawOpen' drew the shape twice and called the heat map an RMS
+    # over 2 shapes
+    names = list(dict.fromkeys(name.strip() for item in items for name in item.split(",") if name.strip()))
     if not names:
         raise OptionError(f"{what} {value!r} names no {noun}", fix=fix)
     return names

@@ -219,7 +219,8 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
         axes[3 * row + 1].set_title(f"{name}: personalized")
         coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
                          view=view)
-        axes[3 * row + 2].set_title(f"difference (max {diff_mm.max():.2f} mm)")
+        # two lines: on one, a wide mesh's title ran into the colour bar beside the panel (the Mouth)
+        axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
     if title:
         fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)

@@ -56,11 +56,34 @@ def _generic(args, path: Path) -> Path:
     from ..io.usd_rig import generic_input
 
     given = args.compare if args.compare is not None else args.heatmap
-    generic = Path(given) if given else generic_input(path)
+    generic = Path(given) if given else generic_input(path) or _flattened_original(path)
     if generic is None:
         raise InputFileError("not a usdface layer (no sublayer to compare with)", path=path,
                              fix="pass the generic avatar explicitly: --compare GENERIC.usdc")
     return generic
+
+
+def _flattened_original(path: Path) -> Path | None:
+    """The avatar a flattened export of a personalized layer (``usdface export --flatten``) was personalized
+    from, as its provenance records it (relative to the flattened file): the generic to compare with, as a
+    layer's first sublayer is. A recorded avatar that is no longer there is refused naming it (before, any
+    flattened export was 'not a usdface layer (no sublayer to compare with)', which it is, flattened)."""
+    from ..errors import InputFileError
+    from ..io.usd_rig import _from_cwd, flattened_from, usdface_output_provenance
+
+    flat = flattened_from(path)
+    if flat is None or flat["variant"] != "personalized":
+        return None
+    inputs = (usdface_output_provenance(path) or {}).get("inputs") or []
+    if not inputs:
+        return None
+    original = Path(path).parent / str(inputs[0])
+    if not original.is_file():
+        raise InputFileError(f"a flattened export of the personalized layer {flat.get('source', '?')}: the "
+                             f"avatar it was personalized from, {_from_cwd(original)}, is not there to "
+                             "compare with", path=path,
+                             fix="pass the generic avatar explicitly: --compare GENERIC.usdc")
+    return original
 
 
 def _matching_generic(generic, rig, generic_path: Path, path: Path):
@@ -192,7 +215,15 @@ def run(args) -> int:
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
+        import warnings
+
+        from ..io.layers import stale_inputs
+
         generic_path = _generic(args, path)
+        # as export and review do: a layer whose avatar changed since is compared with the avatar as it is
+        # now, and the picture shows the edit as personalization (it said nothing)
+        for text in stale_inputs(path):
+            warnings.warn(text, UserWarning, stacklevel=2)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
         generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,

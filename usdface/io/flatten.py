@@ -70,17 +70,28 @@ def exported_variant(path, variant: str = "personalized") -> str:
 def variant_stage(path, variant: str = "personalized"):
     """Open ``path`` with ``variant`` selected on every prim that has the ``usdfacePersonalization`` variant
     set (authored in the session layer). Raises :class:`~usdface.errors.InputFileError` when the file has no
-    such variant set (not a usdface layer) and ``generic`` was asked for; ``personalized`` of a plain avatar
-    is the avatar as authored."""
+    such variant set (not a usdface layer) and ``generic`` was asked for, or is a flattened export of the
+    personalized variant (naming the layer it came from); ``personalized`` of a plain avatar is the avatar as
+    authored, and either variant of a flattened *generic* export is the generic baked in."""
     from pxr import Usd
 
-    from .usd_rig import _open_stage
+    from .usd_rig import _from_cwd, _open_stage
 
     _check_variant(variant)
     path = Path(path)
     stage = _open_stage(path, "layer")
     prims = _personalization_prims(stage)
-    if not prims and variant == "generic":
+    baked = baked_variant(path) if not prims and variant == "generic" else None
+    if baked is not None and baked["variant"] == "personalized":
+        # a flattened export of the personalized variant: it was 'not a usdface layer', of a file usdface
+        # wrote and that names the layer it came from
+        source = Path(str(baked.get("source", "LAYER")))        # relative to the flattened file
+        source = source if source.is_absolute() else path.parent / source
+        raise InputFileError(f"a flattened export of the personalized variant of {baked.get('source', '?')}: "
+                             "only the person's shapes are baked in, the generic variant is not in it",
+                             path=path, fix=f"export the generic variant of the layer it was flattened from "
+                                            f"({_from_cwd(source)}) or use the original avatar")
+    if not prims and variant == "generic" and baked is None:
         raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,
                              fix="pass a layer written by 'usdface personalize'")
     with Usd.EditContext(stage, stage.GetSessionLayer()):
@@ -188,9 +199,14 @@ def _bake_redirections(layer, redirections: dict) -> None:
             continue                              # an original not in the flattened file: keep the scope
         for scoped, original in pairs:
             src, dst = layer.GetPrimAtPath(scoped), layer.GetPrimAtPath(original)
+            # the original's own properties go first, also those the chosen values lack: the layer
+            # authors the personalized shapes' sparse pointIndices on the original prims (outside the
+            # variants), and the generic variant's dense shape has none; kept, they paired the generic
+            # dense offsets with the sparse indices (a --variant generic export that check refused and
+            # readers could not read)
+            for name in [prop.name for prop in dst.properties]:
+                del dst.properties[name]
             for prop in list(src.properties):
-                if prop.name in dst.properties:
-                    del dst.properties[prop.name]
                 Sdf.CopySpec(layer, prop.path, layer, dst.path.AppendProperty(prop.name))
         rel = layer.GetRelationshipAtPath(Sdf.Path(mesh).AppendProperty("skel:blendShapeTargets"))
         rel.targetPathList.explicitItems = [Sdf.Path(original) for _, original in pairs]

@@ -94,7 +94,8 @@ class BatchReport:
 
     def summary(self) -> str:
         text = (f"{self.count(DONE)} done, {self.count(SKIPPED)} skipped, {self.count(FAILED)} failed "
-                f"in {self.seconds:.1f} s on {self.where}")
+                f"in {self.seconds:.1f} s ")
+        text += "in this process" if self.where == "in-process" else f"on {self.where}"  # not 'on in-process'
         if self.count(DONE):
             text += f" ({self.throughput_per_minute:.2f} avatars/minute)"
         return text

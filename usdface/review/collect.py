@@ -258,7 +258,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     from ..io.flatten import read_avatar_variant
     from ..io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
     from ..io.usd_inspection import read_landmarks
-    from ..io.usd_rig import flattened_from, read_layer_info
+    from ..io.usd_rig import _from_cwd, flattened_from, read_layer_info
 
     layer_path = Path(layer_path)
     _refuse_capture_or_take(layer_path, None)       # folders and CSVs: no USD reader says what they are
@@ -270,7 +270,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         source = source if source.is_absolute() else layer_path.parent / source
         raise InputFileError(f"a flattened export of the {flat['variant']} variant ('usdface export "
                              "--flatten'): one variant baked in, no generic | personalized to compare",
-                             path=layer_path, fix=f"review the layer it was flattened from ({source})")
+                             path=layer_path,
+                             fix=f"review the layer it was flattened from ({_from_cwd(source)})")
     if not info.get("variants"):
         _refuse_capture_or_take(layer_path, prov)
         command = str(prov.get("command") or "").split()
