@@ -321,20 +321,25 @@ def test_a_dry_run_answers_whether_a_real_run_would_write(samples, tmp_path, cap
     assert main([*base, "--force"]) == 0
 
 
+def _studio_map(samples, tmp_path, channels: str, *options) -> dict:
+    """The retarget JSON map of the sample avatar with its ``jawOpen`` channel in the ``skel:blendShapes``
+    list that reads ``channels`` renamed ``JawDrop`` (a studio's name, mapped back by ``--name-map``)."""
+    text = (samples / "avatar.usda").read_text().replace(channels, channels.replace('"jawOpen"', '"JawDrop"'))
+    (tmp_path / "studio.usda").write_text(text)
+    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
+    out = tmp_path / "map.json"
+    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--name-map", str(tmp_path / "names.json"), *options]) == 0
+    return json.loads(out.read_text())
+
+
 def test_retarget_json_records_the_map_settings_and_the_avatar_channels(samples, tmp_path):
     """The JSON map says how it was solved (``meta``: the bounds and the ridge's centre beside ``mu``: an
     ``--unbounded --map-prior zero`` map read like the default one) and names the avatar's own channels
     (``target_channels``): with ``--name-map`` the targets are ARKit names the studio rig does not have, so
     an engine matching channels by name drove nothing for them."""
-    text = (samples / "avatar.usda").read_text().replace('"jawRight", "jawOpen", "mouthClose"',
-                                                         '"jawRight", "JawDrop", "mouthClose"')
-    (tmp_path / "studio.usda").write_text(text)
-    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
-    out = tmp_path / "map.json"
-    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
-                 "-q", "--name-map", str(tmp_path / "names.json"), "--unbounded", "--map-prior", "zero",
-                 "--mu", "0.01"]) == 0
-    doc = json.loads(out.read_text())
+    doc = _studio_map(samples, tmp_path, '"jawRight", "jawOpen", "mouthClose"', "--unbounded", "--map-prior",
+                      "zero", "--mu", "0.01")
     assert doc["meta"]["weight_bounds"] is None and doc["meta"]["map_prior"] == "zero"
     assert doc["meta"]["mu"] == 0.01 and doc["meta"]["mu_choice"] == "given"
     jaw = doc["target"].index("jawOpen")
@@ -347,14 +352,7 @@ def test_retarget_json_names_the_other_meshes_channels(samples, tmp_path):
     export's teeth mesh (``jawOpen2``) or a studio's (``JawDrop``) had no names for an engine to drive
     (a trial). ``mesh_channels``: each other mesh's own channel per target, None where it has no such
     shape."""
-    text = (samples / "avatar.usda").read_text().replace('"jawRight", "jawOpen", "tongueOut"]',
-                                                         '"jawRight", "JawDrop", "tongueOut"]')
-    (tmp_path / "studio.usda").write_text(text)
-    (tmp_path / "names.json").write_text('{"JawDrop": "jawOpen"}')
-    out = tmp_path / "map.json"
-    assert main(["retarget", str(tmp_path / "studio.usda"), str(samples / "capture.usda"), "-o", str(out),
-                 "-q", "--name-map", str(tmp_path / "names.json")]) == 0
-    doc = json.loads(out.read_text())
+    doc = _studio_map(samples, tmp_path, '"jawRight", "jawOpen", "tongueOut"]')
     mouth = doc["mesh_channels"]["/Avatar/Mouth"]
     assert len(mouth) == len(doc["target"]) and "/Avatar/Head" not in doc["mesh_channels"]
     assert {t: c for t, c in zip(doc["target"], mouth, strict=True) if c is not None} == {
