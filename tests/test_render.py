@@ -78,6 +78,10 @@ def test_render_functions_write_pngs(tmp_path):
     with pytest.raises(OutputExistsError):
         render_shapes(rig, None, tmp_path / "s.png")
     render_shapes(rig, ["slide"], tmp_path / "s.png", force=True)
+    # a panel drawn at another weight says so (it showed the millimetres only: a trial's note)
+    assert [ax.get_title() for ax in render_shapes(rig, ["bump"], weight=0.5).axes[1:2]] == [
+        f"bump at 0.5 ({500 * np.linalg.norm(rig.deltas[0], axis=1).max():.1f} mm)"]
+    assert render_shapes(rig, ["bump"]).axes[1].get_title().startswith("bump (")
     render_comparison(rig, rig, ["bump"], tmp_path / "c.png")
     render_heatmap(rig.neutral, rig.triangles, np.linalg.norm(rig.deltas[0], axis=1), tmp_path / "h.png")
     render_landmarks(rig.neutral, rig.triangles, [0, 5, 77], tmp_path / "l.png", labels=["a", "b", "c"])

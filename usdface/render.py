@@ -186,7 +186,9 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         moved = rig.evaluate(w)
         disp_mm = 1000.0 * np.linalg.norm(moved - rig.neutral, axis=1)
         draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view)
-        ax.set_title(f"{name} ({disp_mm.max():.1f} mm)")
+        # the weight when it is not 1: a panel at 0.5 read as the full shape's motion (a trial's note)
+        at = "" if weight == 1.0 else f" at {weight:g}"
+        ax.set_title(f"{name}{at} ({disp_mm.max():.1f} mm)")
     if title:
         fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
     if out is not None:
