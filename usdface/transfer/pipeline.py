@@ -519,11 +519,12 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         timings["retarget"] = time.perf_counter() - t
         advance("retarget")
         if map_only:                 # the map is the product: the implant, eyelids and write are not needed
-            # the face mesh's own channel per shape (a studio's `JawDrop` for jawOpen): what an engine drives
-            tokens = {c[1]: c[0] for c in avatar.name_report.get(face_prim, {}).get("channels", ())
-                      if c[1] is not None and c[2] != "conflict"}
-            report["retarget"]["channels"] = [tokens.get(n, n) for n in k_names]
-            report["retarget"]["mesh_channels"] = _mesh_channels(avatar, k_names, (face_prim, beyond))
+            # each mesh's own channel per shape (a studio's `JawDrop` for jawOpen, a Blender export's
+            # `jawOpen2` on the teeth): what an engine drives; the map's columns drive every mesh
+            report["retarget"]["channels"] = _own_channels(avatar, face, k_names)
+            report["retarget"]["mesh_channels"] = {m.key: _own_channels(avatar, m, k_names)
+                                                   for m in avatar.meshes
+                                                   if m.key != face_prim and m is not beyond and m.names}
             trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
                                       _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
             _warn_untrusted_rows(report, weights, names, k_names, trust)
@@ -744,21 +745,13 @@ def _retarget_map(avatar: Avatar, face: FaceRig, beyond, corr, capture_triangles
         elsewhere=driven_gram(others, k_names) if namesake else None)
 
 
-def _mesh_channels(avatar: Avatar, names: list[str], skip) -> dict:
-    """``{mesh prim: [channel]}``: for each mesh with blend shapes but the face (``skip``: its prim and the
-    piece split off it, or None), its own channel name for each of the map's target shapes ``names`` (a
-    Blender export's ``jawOpen2`` on the teeth mesh), None where it has no such shape: the map's columns
-    drive every mesh, and an engine drives each by its own names."""
-    face_prim, beyond = skip
-    out = {}
-    for m in avatar.meshes:
-        if m.key == face_prim or m is beyond or not m.names:
-            continue
-        tokens = {c[1]: c[0] for c in avatar.name_report.get(m.key, {}).get("channels", ())
-                  if c[1] is not None and c[2] != "conflict"}
-        have = set(m.names)
-        out[m.key] = [tokens.get(n, n) if n in have else None for n in names]
-    return out
+def _own_channels(avatar: Avatar, mesh: FaceRig, names: list[str]) -> list:
+    """``mesh``'s own channel name (its ``skel:blendShapes`` token, as the reader mapped it) for each ARKit
+    name of ``names``, None where the mesh has no such shape."""
+    tokens = {c[1]: c[0] for c in avatar.name_report.get(mesh.key, {}).get("channels", ())
+              if c[1] is not None and c[2] != "conflict"}
+    have = set(mesh.names)
+    return [tokens.get(n, n) if n in have else None for n in names]
 
 
 def _warn_untrusted_rows(report: dict, weights, names: list[str], k_names: list[str], trust) -> None:
