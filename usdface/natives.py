@@ -135,11 +135,11 @@ def open3d():
     in the main thread), so an interrupt arrives once the import is done, as ``KeyboardInterrupt``, and a
     later call imports nothing again. usdface imports it here only, with ``open3d.visualization`` (Dash,
     Plotly) deferred to its first use (:data:`DEFERRED`)."""
-    if "open3d" in sys.modules or threading.current_thread() is not threading.main_thread():
-        if "open3d" in sys.modules:
-            import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
+    if "open3d" in sys.modules:
+        import open3d as o3d  # loaded (or being loaded by another thread: the import lock waits)
 
-            return o3d
+        return o3d
+    if threading.current_thread() is not threading.main_thread():
         return _import_open3d()
     with signals_held():
         return _import_open3d()
