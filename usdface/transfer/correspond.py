@@ -35,7 +35,7 @@ from .surface import (
 )
 
 __all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
-           "save_correspondence", "load_correspondence"]
+           "save_correspondence", "load_correspondence", "ramp_down", "ramp_up"]
 
 CACHE_VERSION = 5
 
@@ -186,7 +186,7 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
             t_id, _, c, d = target.closest_points(x, src_poses)
             nx = vertex_normals(x, tri)
             # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry
-            w = _ramp_down(d, 2.0 * edge, 4.0 * edge) * _ramp_up(
+            w = ramp_down(d, 2.0 * edge, 4.0 * edge) * ramp_up(
                 np.einsum("ij,ij->i", nx, t_normals[t_id]), cos_max - 0.1, cos_max + 0.1)
             used = float((w > 0.5).mean())
             a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
@@ -235,8 +235,8 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     cosang = np.einsum("ij,ij->i", an, cn)
     # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
     # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.
-    w_dist = _ramp_down(dist, 0.7 * limit, 1.3 * limit)
-    w_normal = _ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
+    w_dist = ramp_down(dist, 0.7 * limit, 1.3 * limit)
+    w_normal = ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
     weight = w_dist * w_normal
     if exclude_border:
         # Clamped onto the capture's border (open border, eye and mouth holes): the closest point is on a
@@ -246,11 +246,11 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
         near_border = np.zeros(len(ap))
         for k in range(3):
             a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
-            on_border_edge = (border[a] & border[b]) * _ramp_down(bary[:, k], 5e-4, 2e-3)
+            on_border_edge = (border[a] & border[b]) * ramp_down(bary[:, k], 5e-4, 2e-3)
             near_border = np.maximum(near_border, on_border_edge)
         vtx = corners[np.arange(len(ap)), np.argmax(bary, axis=1)]
-        near_border = np.maximum(near_border, border[vtx] * _ramp_up(bary.max(axis=1), 1 - 2e-3, 1 - 5e-4))
-        weight = weight * (1.0 - near_border * _ramp_up(dist, 0.02 * edge, 0.08 * edge))
+        near_border = np.maximum(near_border, border[vtx] * ramp_up(bary.max(axis=1), 1 - 2e-3, 1 - 5e-4))
+        weight = weight * (1.0 - near_border * ramp_up(dist, 0.02 * edge, 0.08 * edge))
     if candidates is not None:
         weight = weight * np.asarray(candidates, dtype=bool)
     face = weight > 0
@@ -266,15 +266,15 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)
 
 
-def _ramp_down(x, lo, hi):
+def ramp_down(x, lo, hi):
     """1 below ``lo``, 0 above ``hi``, smooth (C1) in between."""
     t = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
-def _ramp_up(x, lo, hi):
+def ramp_up(x, lo, hi):
     """0 below ``lo``, 1 above ``hi``, smooth (C1) in between."""
-    return 1.0 - _ramp_down(x, lo, hi)
+    return 1.0 - ramp_down(x, lo, hi)
 
 
 def geometry_digest(*arrays) -> str:

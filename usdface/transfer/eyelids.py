@@ -15,6 +15,7 @@ import numpy as np
 
 from ..mesh import vector_lengths
 from ..natives import open3d
+from .correspond import ramp_down
 
 __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
 
@@ -161,7 +162,7 @@ STILL = 1e-6
 SPREAD_ROUNDS = 3
 
 
-def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=None):
+def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     """The smooth part of :func:`repair_eyelids`, in place: in shape ``js[p]`` the lid around the vertex
     ``near[ks[p]]`` that cuts into the eye (``near[k]``: indices into ``x0[n,3]``, the neutral, metres),
     whose move onto its bound is ``correction[p,3]``, moves with it: each near vertex within ``radius`` of
@@ -174,12 +175,11 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
     leaves still, :data:`STILL`). One smooth margin instead of vertices each moved its own way (a notched lid
     margin in a blink, seen in Blender on dev1, where neighbouring margin vertices reached their bounds along
     different lines). The corrections point out of the eye; a vertex the mean leaves short of its bound is
-    corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of ``x0[near]`` (built here without).
+    corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of ``x0[near]`` (one for every round).
     Cost: the pairs within ``radius`` of the corrected vertices only. Returns the (shape,
     near vertex) pairs it moved, ``(js[m], ks[m])``."""
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(x0[near]) if tree is None else tree
     moved_js, moved_ks = [], []
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
@@ -188,8 +188,7 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
         # (the corrected vertices move, each counted once with itself too)
         mag = vector_lengths(out[j, near])
         pairs = pairs[mag[pairs["j"]] > STILL * max(float(mag.max()), 1e-300)]
-        t = np.clip(pairs["v"] / radius, 0.0, 1.0)
-        w = 1.0 - t * t * (3.0 - 2.0 * t)
+        w = ramp_down(pairs["v"], 0.0, radius)
         to = pairs["j"]
         total = np.bincount(to, weights=w, minlength=near.size)
         shift = np.stack([np.bincount(to, weights=w * correction[mine[pairs["i"]], c], minlength=near.size)
@@ -197,15 +196,14 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree=N
         nearest = np.full(near.size, np.inf)                      # to the nearest corrected vertex
         np.minimum.at(nearest, to, pairs["v"])
         v = np.flatnonzero(total > 0)
-        t = np.clip(nearest[v] / radius, 0.0, 1.0)
-        fade = 1.0 - t * t * (3.0 - 2.0 * t)
+        fade = ramp_down(nearest[v], 0.0, radius)
         out[j, near[v]] += shift[v] / total[v][:, None] * fade[:, None]
         moved_js.append(np.full(v.size, j))
         moved_ks.append(v)
     return np.concatenate(moved_js), np.concatenate(moved_ks)
 
 
-def _onto_bound(surf, eye, q, d, required, tolerance: float, generic=None) -> np.ndarray:
+def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndarray:
     """``[p,3]``: the positions ``q[p,3]`` (signed distances ``d[p]``) moved onto their bounds
     ``required[p]``: along the line to the closest point on the eye mesh, then - since a step off one part of
     a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
@@ -241,7 +239,14 @@ def _signed_distance(points, triangles, queries):
 
 def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float):
     """The (shape ``js``, near vertex ``ks``) pairs of :func:`repair_eyelids` whose personalized position
-    violates its bound: ``(js, ks, position[p,3], signed distance[p], bound[p])``, or None."""
+    violates its bound: ``(js, ks, position[p,3], signed distance[p], bound[p], generic position[p,3] or
+    None without a reference)``, or None."""
+    if reference is not None:
+        # a vertex the personalization leaves where the generic shape has it is fine by definition
+        moved = vector_lengths(out[js, near[ks]] - reference[js, near[ks]]) > 1e-9
+        js, ks = js[moved], ks[moved]
+    if js.size == 0:
+        return None
     q = x0[near[ks]] + out[js, near[ks]]
     d = surf.signed_distance(q)
     # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far outside
@@ -255,13 +260,15 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolera
     d0 = np.zeros(near.size)
     d0[verts] = surf.signed_distance(x0[near[verts]])
     required = np.minimum(d0[ks], 0.0)
+    generic = None
     if reference is not None:
-        d_ref = surf.signed_distance(x0[near[ks]] + reference[js, near[ks]])
+        generic = x0[near[ks]] + reference[js, near[ks]]
+        d_ref = surf.signed_distance(generic)
         required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
     bad = d < required - tolerance
     if not bad.any():
         return None
-    return js[bad], ks[bad], q[bad], d[bad], required[bad]
+    return js[bad], ks[bad], q[bad], d[bad], required[bad], None if generic is None else generic[bad]
 
 
 def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: float = 5e-5,
@@ -317,19 +324,12 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             js, ks = js[inside], ks[inside]
             if js.size == 0:
                 continue
-        if ref_all is not None:
-            # a vertex the personalization leaves where the generic shape has it is fine by definition
-            moved = vector_lengths(out[js, near[ks]] - ref_all[js, near[ks]]) > 1e-9
-            js, ks = js[moved], ks[moved]
-            if js.size == 0:
-                continue
         found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
         if found is None:
             continue
-        js, ks, q, d, required = found
+        js, ks, q, d, required, generic = found
         count += js.size
-        fixed = _onto_bound(surf, eye, q, d, required, tolerance,
-                            None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
+        fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
         if not smooth:
             out[js, near[ks]] = fixed - x0[near[ks]]
             continue
@@ -347,9 +347,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
             if found is None:
                 break
-            js, ks, q, d, required = found
-            fixed = _onto_bound(surf, eye, q, d, required, tolerance,
-                                None if ref_all is None else x0[near[ks]] + ref_all[js, near[ks]])
+            js, ks, q, d, required, generic = found
+            fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
         else:
             out[js, near[ks]] = fixed - x0[near[ks]]
         # the lid the corrections carried along moved out of the eye; checked once all the same (a vertex
@@ -357,13 +356,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         pair = np.unique(np.concatenate(spread_js) * near.size + np.concatenate(spread_ks))
         js, ks = pair // near.size, pair % near.size
         inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
-        js, ks = js[inside], ks[inside]                  # as above: beyond the bounding sphere all is fine
-        if ref_all is not None:
-            moved = vector_lengths(out[js, near[ks]] - ref_all[js, near[ks]]) > 1e-9
-            js, ks = js[moved], ks[moved]
-        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
-        if found is not None:
-            js, ks, q, d, required = found
-            out[js, near[ks]] = _onto_bound(surf, eye, q, d, required, tolerance, None if ref_all is None
-                                            else x0[near[ks]] + ref_all[js, near[ks]]) - x0[near[ks]]
+        found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance, tolerance)
+        if found is not None:                  # (as above: beyond the bounding sphere all is fine)
+            js, ks, q, d, required, generic = found
+            out[js, near[ks]] = _onto_bound(surf, eye, q, d, required, generic, tolerance) - x0[near[ks]]
     return out, count
