@@ -261,23 +261,18 @@ def inspect_file(path, name_map=None) -> dict:
 
 
 def _is_error_maps(path: Path, info: dict) -> bool:
-    """An error-map file of ``usdface evaluate --usd``: marked so, or (written before the maps carried their
-    format) a default prim ``/ErrorMaps`` and no SkelRoot, as the avatar reader tells it."""
-    if info.get("usdface", {}).get("format") == "errorMaps":
-        return True
+    """An error-map file of ``usdface evaluate --usd`` (:func:`usdface.io.usd_error_maps.is_error_maps`):
+    another usdface file is not one, and an unreadable file is left to the avatar reader to name."""
     if info.get("usdface"):
-        return False
-    from pxr import UsdSkel
-
+        return info["usdface"].get("format") == "errorMaps"
+    from .io.usd_error_maps import is_error_maps
     from .io.usd_open import open_usd_stage
 
     try:
         stage = open_usd_stage(path, "file", "check the path")
     except Exception:  # noqa: BLE001 - unreadable: the avatar reader names the problem
         return False
-    root = stage.GetDefaultPrim()
-    return bool(root) and str(root.GetPath()) == "/ErrorMaps" and not any(
-        p.IsA(UsdSkel.Root) for p in stage.Traverse())
+    return is_error_maps(stage)
 
 
 def summarize_error_maps(path, layer_info: dict | None = None) -> dict:

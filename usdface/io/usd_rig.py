@@ -529,13 +529,15 @@ def _refuse_non_avatar(stage, path: Path) -> None:
     otherwise be read as a face)."""
     from pxr import UsdSkel
 
+    from .usd_error_maps import is_error_maps
+
     data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
     kind = str(data.get("format", "")) if hasattr(data, "get") else ""
     root = stage.GetDefaultPrim()
     if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
         # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
         kind = "capture" if root.GetChild("Frames").GetAttribute("usdface:frames:role") else "take"
-    if kind not in _NOT_AVATAR and root and root.GetPath() == "/ErrorMaps" and not _skel_roots(stage):
+    if kind not in _NOT_AVATAR and is_error_maps(stage):
         kind = "errorMaps"      # written before the maps carried their format
     if kind not in _NOT_AVATAR and _is_weights_take(stage):
         kind = "animation"
