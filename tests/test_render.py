@@ -463,7 +463,8 @@ def test_render_a_shape_name_typo_gets_the_close_name(samples, tmp_path, capsys)
     assert "has no shape 'jawOpn' (fix: did you mean jawOpen?" in capsys.readouterr().err
 
 
-def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personalized_sample, tmp_path, capsys):
+def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personalized_sample, samples, tmp_path,
+                                                                       capsys):
     """A user trial: ``render flat.usdc --compare`` (or ``--heatmap``) of a flattened personalized export was
     'not a usdface layer (no sublayer to compare with)'; the file records the avatar it was personalized from,
     which is now the generic it is compared with (the same picture as the layer's); a recorded avatar that is
@@ -477,10 +478,20 @@ def test_render_compare_of_a_flattened_export_uses_the_recorded_avatar(personali
     assert main(["render", str(flat), "-o", str(from_flat), "--heatmap", "-q"]) == 0
     assert from_flat.read_bytes() == from_layer.read_bytes()
     assert main(["render", str(flat), "-o", str(tmp_path / "c.png"), "--compare", "-q"]) == 0
-    # a copy elsewhere: the provenance's relative path to the avatar no longer leads to it
+    # an avatar and its flattened export in one project (the provenance records the avatar relative to the
+    # export), the export then copied to a folder of another depth: the recorded avatar is not there. (The
+    # fixture's layer records the avatar by an absolute path when the checkout and the temporary folder
+    # share no folder below the root, as on CI's machine, so the copy is made here.)
+    project = tmp_path / "project"
+    project.mkdir()
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(samples / name, project / name)
+    assert main(["personalize", str(project / "avatar.usda"), str(project / "capture.usda"),
+                 "-o", str(project / "person.usda"), "-q"]) == 0
+    assert main(["export", str(project / "person.usda"), "--flatten", str(project / "flat.usdc"), "-q"]) == 0
     moved = tmp_path / "elsewhere" / "deeper" / "flat.usdc"
     moved.parent.mkdir(parents=True)
-    shutil.copy(flat, moved)
+    shutil.copy(project / "flat.usdc", moved)
     capsys.readouterr()
     assert main(["render", str(moved), "-o", str(tmp_path / "m.png"), "--compare", "-q"]) == 2
     err = capsys.readouterr().err
