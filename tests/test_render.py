@@ -534,3 +534,23 @@ def test_render_compare_of_a_stale_layer_warns(tmp_path, capsys):
         assert main(["render", str(layer), "-o", str(png), mode, "-q"]) == 0
         assert "warning: p.usda was made from" in capsys.readouterr().out
         assert png.read_bytes().startswith(PNG)
+
+
+@pytest.mark.parametrize("panels", [1, 3])
+def test_the_figure_title_sits_on_the_panels(panels):
+    """A trial's note: ``render --compare``'s title stood a blank band (~8 % of the picture) above the
+    first row, equal-aspect panels not filling their grid cells; it now sits just above the panels' own
+    titles, never over them."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    rig = grid_rig()
+    generic = grid_rig()
+    generic.deltas = generic.deltas * 0.5
+    for fig in (render_comparison(generic, rig, ["bump"] * panels, title="Head: generic vs personalized"),
+                render_shapes(rig, ["bump"] * panels, title="Head")):
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        to_fig = fig.transFigure.inverted()
+        top = max(ax.get_tightbbox(renderer).transformed(to_fig).y1 for ax in fig.axes)
+        assert fig._suptitle is not None, "no figure title"
+        title = fig._suptitle.get_window_extent(renderer).transformed(to_fig)
+        assert top <= title.y0 <= top + 0.03, (top, title.y0)

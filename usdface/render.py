@@ -47,6 +47,17 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
     return fig, axes
 
 
+def _title_above_panels(fig, axes, title: str) -> None:
+    """``title`` just above the highest panel (its own title included). Equal-aspect panels do not fill
+    their grid cells, so a title at the figure's top stood a blank band above the first row (saved
+    tight, the band stayed: a trial's note on ``render --compare``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    top = max(ax.get_tightbbox(renderer).transformed(fig.transFigure.inverted()).y1 for ax in axes)
+    fig.suptitle(title, y=top + 0.01, va="bottom")
+
+
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
               color=_SKIN):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
@@ -190,7 +201,7 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         at = "" if weight == 1.0 else f" at {weight:g}"
         ax.set_title(f"{name}{at} ({disp_mm.max():.1f} mm)")
     if title:
-        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
+        _title_above_panels(fig, axes, title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -225,7 +236,7 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
         axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
     if title:
-        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
+        _title_above_panels(fig, axes, title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -333,7 +344,7 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
             ax.set_xlim(lo[0] - pad, hi[0] + pad)
             ax.set_ylim(lo[1] - pad, hi[1] + pad)
     if title:
-        fig.suptitle(title, y=1.0, va="bottom")  # above the panels' own titles (saved tight)
+        _title_above_panels(fig, axes, title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
