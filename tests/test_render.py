@@ -539,8 +539,8 @@ def test_render_compare_of_a_stale_layer_warns(tmp_path, capsys):
 @pytest.mark.parametrize("panels", [1, 3])
 def test_the_figure_title_sits_on_the_panels(panels):
     """A trial's note: ``render --compare``'s title stood a blank band (~8 % of the picture) above the
-    first row, equal-aspect panels not filling their grid cells; it now sits just above the panels' own
-    titles, never over them."""
+    first row, and ``--diagnostics`` a band between its rows, equal-aspect panels not filling their grid
+    cells; the title now sits just above the panels' own titles, never over them, and the rows touch."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     rig = grid_rig()
@@ -548,9 +548,21 @@ def test_the_figure_title_sits_on_the_panels(panels):
     generic.deltas = generic.deltas * 0.5
     for fig in (render_comparison(generic, rig, ["bump"] * panels, title="Head: generic vs personalized"),
                 render_shapes(rig, ["bump"] * panels, title="Head")):
-        renderer = FigureCanvasAgg(fig).get_renderer()
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()                                         # the layout runs at the draw
+        renderer = canvas.get_renderer()
         to_fig = fig.transFigure.inverted()
-        top = max(ax.get_tightbbox(renderer).transformed(to_fig).y1 for ax in fig.axes)
-        assert fig._suptitle is not None, "no figure title"
+        boxes = [ax.get_tightbbox(renderer).transformed(to_fig) for ax in fig.axes]
         title = fig._suptitle.get_window_extent(renderer).transformed(to_fig)
+        top = max(b.y1 for b in boxes)
         assert top <= title.y0 <= top + 0.03, (top, title.y0)
+        # rows: the panels' vertical extents, top to bottom; the gap between one and the next is small
+        rows = sorted({(round(b.y0, 2), round(b.y1, 2)) for b in boxes}, key=lambda r: -r[1])
+        spans = []
+        for y0, y1 in rows:
+            if spans and y1 > spans[-1][0]:                      # overlaps the row above: the same row
+                spans[-1] = (min(spans[-1][0], y0), spans[-1][1])
+            else:
+                spans.append((y0, y1))
+        gaps = [upper[0] - lower[1] for upper, lower in zip(spans, spans[1:], strict=False)]
+        assert all(g < 0.04 for g in gaps), gaps

@@ -39,23 +39,14 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
 
     ncols = ncols or min(n_panels, 4)
     nrows = int(np.ceil(n_panels / ncols))
-    fig = Figure(figsize=(size * ncols, size * 1.15 * nrows), dpi=100)
+    # "compressed": equal-aspect panels packed without the blank bands their grid cells left between the
+    # rows and under the figure's title (a trial's note on render --compare and --diagnostics)
+    fig = Figure(figsize=(size * ncols, size * 1.15 * nrows), dpi=100, layout="compressed")
     axes = [fig.add_subplot(nrows, ncols, i + 1) for i in range(n_panels)]
     for ax in axes:
         ax.set_aspect("equal")
         ax.set_axis_off()
     return fig, axes
-
-
-def _title_above_panels(fig, axes, title: str) -> None:
-    """``title`` just above the highest panel (its own title included). Equal-aspect panels do not fill
-    their grid cells, so a title at the figure's top stood a blank band above the first row (saved
-    tight, the band stayed: a trial's note on ``render --compare``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    renderer = FigureCanvasAgg(fig).get_renderer()
-    top = max(ax.get_tightbbox(renderer).transformed(fig.transFigure.inverted()).y1 for ax in axes)
-    fig.suptitle(title, y=top + 0.01, va="bottom")
 
 
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
@@ -201,7 +192,7 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         at = "" if weight == 1.0 else f" at {weight:g}"
         ax.set_title(f"{name}{at} ({disp_mm.max():.1f} mm)")
     if title:
-        _title_above_panels(fig, axes, title)
+        fig.suptitle(title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -236,7 +227,7 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
         axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
     if title:
-        _title_above_panels(fig, axes, title)
+        fig.suptitle(title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
@@ -344,7 +335,7 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
             ax.set_xlim(lo[0] - pad, hi[0] + pad)
             ax.set_ylim(lo[1] - pad, hi[1] + pad)
     if title:
-        _title_above_panels(fig, axes, title)
+        fig.suptitle(title)
     if out is not None:
         save_figure(fig, out, force)
     return fig
