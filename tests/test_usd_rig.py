@@ -676,3 +676,39 @@ def test_check_names_the_layer_that_retyped_the_skelroot(samples, tmp_path):
     said = [i for i in usdface.check(shot, pixar=False)
             if i.rule == "SkelBinding" and "SkelRoot" in i.message]
     assert said and all("/Hero is a SkelRoot in" in i.message and "'over'" in i.fix for i in said), said
+
+
+def _wrapper(path: Path, target: Path, meters_per_unit: float, scale: float | None = None) -> Path:
+    """A layer of ``meters_per_unit`` whose /Avatar references ``target``'s, scaled by ``scale`` if given."""
+    op = (f'    double3 xformOp:scale = ({scale}, {scale}, {scale})\n'
+          '    uniform token[] xformOpOrder = ["xformOp:scale"]\n') if scale else ""
+    path.write_text(f'#usda 1.0\n(\n    defaultPrim = "Avatar"\n    metersPerUnit = {meters_per_unit}\n'
+                    f'    upAxis = "Y"\n)\n\ndef "Avatar" (\n    prepend references = @{target}@\n)\n'
+                    f'{{\n{op}}}\n')
+    return path
+
+
+def test_a_wrapper_of_another_unit_is_warned_about(tmp_path):
+    """A user trial: a metres wrapper referencing the centimetre sample avatar read it 100x too large,
+    silently (registration scale 100, eyelid repair skipped for 'eyeballs' of a metre). USD does not
+    convert units across references: the reader now says so, naming the layers and both fixes; a wrapper
+    of the avatar's unit, or one whose reference is scaled by the ratio, is read without a word."""
+    import warnings
+
+    avatar = Path(__file__).resolve().parents[1] / "sample_assets" / "avatar.usda"
+    if not avatar.exists():
+        pytest.skip("sample_assets not generated yet")
+    with pytest.warns(UserWarning, match=r"/Avatar/Head.*take their points from .*avatar\.usda "
+                                         r"\(metersPerUnit 0\.01\).*read 100x too large.*"
+                                         r"metersPerUnit = 0\.01 in wrapper\.usda.*by 0\.01"):
+        big = read_avatar(_wrapper(tmp_path / "wrapper.usda", avatar, 1))
+    plain = read_avatar(avatar)
+    head = big.meshes[0]
+    assert head.name == plain.meshes[0].name
+    assert np.allclose(head.neutral - head.neutral.mean(0),
+                       100 * (plain.meshes[0].neutral - plain.meshes[0].neutral.mean(0)), atol=1e-6)
+    for name, mpu, scale in (("same.usda", 0.01, None), ("scaled.usda", 1, 0.01)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            ok = read_avatar(_wrapper(tmp_path / name, avatar, mpu, scale))
+        assert np.allclose(ok.meshes[0].neutral, plain.meshes[0].neutral, atol=1e-6)

@@ -791,6 +791,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
             notes.append(f"{key}: mesh without blend shapes skipped ({exc.message})")
             continue
         static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3], triangles)
+    _warn_foreign_units([found[k][0] for k in found], meta, path, notes)
     worst = max((c for _, c in snapped or ()), default=0.0)
     # a float32 export's noise is told; a double's (cos 90 degrees = 6e-17: Pixar's test plane) is none
     if worst > 1e-12:
@@ -807,6 +808,49 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                   meters_per_unit=meta["metersPerUnit"],
                   default_prim=str(default_prim.GetPath()) if default_prim else None, metadata=metadata,
                   name_report=report)
+
+
+def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
+    """Warn (and note) when a face mesh's points come from a layer that authors another ``metersPerUnit``
+    than the stage's and no transform on the way makes up for it: USD does not convert units across
+    references or sublayers, so a metres wrapper over a centimetre avatar reads it 100x too large (the
+    registration then scales the capture by 100, the eyelid repair finds no eyeballs of a plausible size;
+    it ran silently). A reference scaled by the ratio (``xformOp:scale``), as USD asks, is not warned about.
+    """
+    from pxr import Usd, UsdGeom
+
+    stage_mpu = float(meta["metersPerUnit"])
+    cache = UsdGeom.XformCache()
+    seen = {}
+    for prim in mesh_prims:
+        stack = prim.GetAttribute("points").GetPropertyStack(Usd.TimeCode.Default())
+        layer = stack[0].layer if stack else None
+        if layer is None or not layer.pseudoRoot.HasInfo("metersPerUnit"):
+            continue
+        layer_mpu = float(layer.pseudoRoot.GetInfo("metersPerUnit"))
+        if not math.isfinite(layer_mpu) or layer_mpu <= 0:
+            continue
+        ratio = layer_mpu / stage_mpu
+        if abs(math.log(ratio)) < 1e-6:
+            continue
+        linear = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)[:3, :3]
+        scale = abs(np.linalg.det(linear)) ** (1.0 / 3.0)
+        if scale > 0 and abs(math.log(scale / ratio)) < abs(math.log(scale)):
+            continue                              # a transform makes up for the other unit
+        seen.setdefault((layer.identifier, layer_mpu, ratio), []).append(str(prim.GetPath()))
+    if not seen:
+        return
+    import warnings
+
+    for (layer, layer_mpu, ratio), prims in seen.items():
+        text = (f"{path}: {', '.join(prims)} take their points from {layer} (metersPerUnit {layer_mpu:g}), "
+                f"composed into a stage of metersPerUnit {stage_mpu:g}; USD does not convert units across "
+                f"references or sublayers, so they are read {1.0 / ratio:g}x "
+                f"{'too large' if ratio < 1 else 'too small'} (fix: author metersPerUnit = {layer_mpu:g} "
+                f"in {Path(path).name}, or scale the prim that brings the avatar in by {ratio:g} with an "
+                "xformOp:scale)")
+        notes.append(text)
+        warnings.warn(text, UserWarning, stacklevel=3)
 
 
 def recorded_name_map(stage) -> dict | None:
