@@ -712,3 +712,15 @@ def test_a_wrapper_of_another_unit_is_warned_about(tmp_path):
             warnings.simplefilter("error")
             ok = read_avatar(_wrapper(tmp_path / name, avatar, mpu, scale))
         assert np.allclose(ok.meshes[0].neutral, plain.meshes[0].neutral, atol=1e-6)
+
+
+def test_check_reports_a_wrapper_of_another_unit(tmp_path, capsys):
+    """``usdface check`` runs the reader: the wrapper's unit mismatch is a warning of its report."""
+    from usdface.cli import main
+
+    avatar = Path(__file__).resolve().parents[1] / "sample_assets" / "avatar.usda"
+    if not avatar.exists():
+        pytest.skip("sample_assets not generated yet")
+    assert main(["check", str(_wrapper(tmp_path / "wrapper.usda", avatar, 1))]) == 0
+    out = capsys.readouterr().out
+    assert "WARNING" in out and "read 100x too large" in out and "1 warning(s)" in out, out

@@ -810,18 +810,16 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                   name_report=report)
 
 
-def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
-    """Warn (and note) when a face mesh's points come from a layer that authors another ``metersPerUnit``
-    than the stage's and no transform on the way makes up for it: USD does not convert units across
-    references or sublayers, so a metres wrapper over a centimetre avatar reads it 100x too large (the
-    registration then scales the capture by 100, the eyelid repair finds no eyeballs of a plausible size;
-    it ran silently). A reference scaled by the ratio (``xformOp:scale``), as USD asks, is not warned about.
-    """
+def foreign_units(mesh_prims, stage_mpu: float) -> dict:
+    """``{(layer identifier, its metersPerUnit, ratio to the stage's): [mesh prim paths]}`` for the meshes
+    whose points come from a layer that authors another ``metersPerUnit`` than the stage's and that no
+    transform on the way makes up for (the world scale nearer 1 than the ratio). USD does not convert units
+    across references or sublayers, so a metres wrapper over a centimetre avatar composes it 100x too
+    large; a reference scaled by the ratio (``xformOp:scale``), as USD asks, is not listed."""
     from pxr import Usd, UsdGeom
 
-    stage_mpu = float(meta["metersPerUnit"])
     cache = UsdGeom.XformCache()
-    seen = {}
+    found: dict = {}
     for prim in mesh_prims:
         stack = prim.GetAttribute("points").GetPropertyStack(Usd.TimeCode.Default())
         layer = stack[0].layer if stack else None
@@ -830,27 +828,32 @@ def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
         layer_mpu = float(layer.pseudoRoot.GetInfo("metersPerUnit"))
         if not math.isfinite(layer_mpu) or layer_mpu <= 0:
             continue
-        ratio = layer_mpu / stage_mpu
+        ratio = layer_mpu / float(stage_mpu)
         if abs(math.log(ratio)) < 1e-6:
             continue
         linear = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)[:3, :3]
         scale = abs(np.linalg.det(linear)) ** (1.0 / 3.0)
         if scale > 0 and abs(math.log(scale / ratio)) < abs(math.log(scale)):
             continue                              # a transform makes up for the other unit
-        seen.setdefault((layer.identifier, layer_mpu, ratio), []).append(str(prim.GetPath()))
-    if not seen:
-        return
+        found.setdefault((layer.identifier, layer_mpu, ratio), []).append(str(prim.GetPath()))
+    return found
+
+
+def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
+    """Warn (and note) each :func:`foreign_units` entry: unwarned, a metres wrapper over a centimetre avatar
+    was read 100x too large and personalized that way (the registration scaled the capture by 100, the
+    eyelid repair found no eyeballs of a plausible size)."""
     import warnings
 
-    for (layer, layer_mpu, ratio), prims in seen.items():
-        text = (f"{path}: {', '.join(prims)} take their points from {layer} (metersPerUnit {layer_mpu:g}), "
-                f"composed into a stage of metersPerUnit {stage_mpu:g}; USD does not convert units across "
-                f"references or sublayers, so they are read {1.0 / ratio:g}x "
-                f"{'too large' if ratio < 1 else 'too small'} (fix: author metersPerUnit = {layer_mpu:g} "
-                f"in {Path(path).name}, or scale the prim that brings the avatar in by {ratio:g} with an "
-                "xformOp:scale)")
-        notes.append(text)
-        warnings.warn(text, UserWarning, stacklevel=3)
+    stage_mpu = float(meta["metersPerUnit"])
+    for (layer, layer_mpu, ratio), prims in foreign_units(mesh_prims, stage_mpu).items():
+        notes.append(f"{path}: {', '.join(prims)} take their points from {layer} (metersPerUnit "
+                     f"{layer_mpu:g}), composed into a stage of metersPerUnit {stage_mpu:g}; USD does not "
+                     f"convert units across references or sublayers, so they are read {1.0 / ratio:g}x "
+                     f"{'too large' if ratio < 1 else 'too small'} (fix: author metersPerUnit = "
+                     f"{layer_mpu:g} in {Path(path).name}, or scale the prim that brings the avatar in by "
+                     f"{ratio:g} with an xformOp:scale)")
+        warnings.warn(notes[-1], UserWarning, stacklevel=3)
 
 
 def recorded_name_map(stage) -> dict | None:
