@@ -165,7 +165,7 @@ def test_personalize_refuses_a_fit_option_before_any_work(samples, tmp_path, cap
     monkeypatch.setattr(pipeline, "crop_avatar", lambda *a, **k: pytest.fail("work started"))
     assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o",
                  str(tmp_path / "p.usda"), "--method", "ebfr", "--reg", "0.01"]) == 2
-    assert "not used by method 'ebfr': reg=0.01" in capsys.readouterr().err
+    assert "not used by method 'ebfr': --reg (reg=0.01)" in capsys.readouterr().err
     assert not (tmp_path / "p.usda").exists()
 
 

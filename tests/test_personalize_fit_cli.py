@@ -305,3 +305,23 @@ def test_evaluate_wrong_truth_file_names_the_right_one(sample_dir, tmp_path):
     res = _usdface("evaluate", capture, "--truth", capture, cwd=tmp_path)
     _no_traceback(res)
     assert "not an .npz" in res.stderr
+
+
+@pytest.mark.parametrize("argv,named,takes", [
+    (["--method", "dt", "--no-align"], "--no-align (align=False)", "--no-eyelids (eyelids)"),
+    (["--method", "ebfr", "--no-reweight", "--prior", "dt"], "--prior (prior='dt'), --no-reweight "
+     "(reweight=False)", "--no-align (align), --no-eyelids (eyelids)"),
+    (["--method", "dt", "--contact", "off"], "--contact (contact='off') is not used by method 'dt'", None),
+])
+def test_fit_refusal_names_the_flags_the_user_typed(samples, tmp_path, capsys, argv, named, takes):
+    """fit.md: 'usdface fit --method dt --no-align' is refused, as evaluate refuses it; fit said
+    "option(s) not used by method 'dt': align=False (fix: drop them; dt takes eyelids)", names the command
+    line has no flag for (evaluate and personalize name both: '--reg (reg=0.5)'). The refusal names the
+    flag given and the flags the method takes, before anything is written."""
+    out = tmp_path / "rig.usda"
+    assert main(["fit", str(samples / "capture.usda"), "-o", str(out), "-q", *argv]) == 2
+    err = capsys.readouterr().err
+    assert named in err, err
+    if takes:
+        assert f"takes {takes}" in err, err
+    assert not out.exists()

@@ -288,6 +288,27 @@ def test_render_landmarks_draws_the_mesh_the_layout_is_on(samples, tmp_path, cap
     assert "--mesh /Avatar/Mouth" in err and not (tmp_path / "h.png").exists()
 
 
+def test_render_landmarks_without_a_layout_names_the_commands_that_make_one(samples, tmp_path, capsys):
+    """pipeline.md's 'usdface render person.usda -o landmarks.png --landmarks' on a layer written without
+    --landmarks said "(fix: run 'usdface landmarks' (or personalize with landmarks) first)": run as told, the
+    layout goes into another file, and the layer still has none. The fix names the file to write and to draw,
+    and following it draws the layout."""
+    import re
+    import shutil
+
+    avatar = shutil.copy(samples / "avatar.usda", tmp_path / "avatar.usda")
+    assert main(["render", str(avatar), "--landmarks", "-o", str(tmp_path / "l.png")]) == 2
+    err = capsys.readouterr().err
+    assert "no landmark layout for mesh 'Head'" in err and not (tmp_path / "l.png").exists()
+    told = re.search(r"'usdface landmarks (\S+) -o (\S+)', then 'usdface render (\S+) --landmarks'", err)
+    assert told, err
+    assert "--landmarks" in err.split("or personalize with", 1)[1] and "--diagnostics" in err
+    assert Path(told.group(1)) == avatar and told.group(2) == told.group(3)
+    assert main(["landmarks", told.group(1), "-o", told.group(2), "-q"]) == 0
+    assert main(["render", told.group(3), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    assert (tmp_path / "l.png").read_bytes()[:4] == b"\x89PNG"
+
+
 def test_inspection_rejects_bad_input():
     from usdface.io.usd_inspection import inspection_edit
     from usdface.model import Avatar, MeshSource

@@ -206,3 +206,89 @@ def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
         f.write("\n")                                       # an edit of the referenced avatar
     edited = json.loads(run("check", "p.usda", "--json", cwd=tmp_path).stdout)
     assert [i for i in edited["issues"] if "avatar.usda" in i["message"] and "changed" in i["message"]]
+
+
+def _livelink_take(kind, take_files, tmp_path):
+    """The Live Link Face CSV the chain plays: the generated take's (always there) or a real recording from
+    ../shared (skipped without it)."""
+    import shutil
+
+    from wfutil import SHARED
+
+    if kind == "generated":
+        return shutil.copy(take_files / "take.csv", tmp_path / "take.csv")
+    real = SHARED / "data" / "livelinkface" / "facial.csv"
+    if not real.exists():
+        pytest.skip("../shared data not present")
+    return shutil.copy(real, tmp_path / "take.csv")
+
+
+@pytest.mark.parametrize("kind", ["generated", pytest.param("livelink", marks=pytest.mark.shared)])
+def test_documented_chain_from_capture_folder_to_retarget(sample_set, take_files, tmp_path, kind):
+    """README's command table and docs/ as one session, through the CLI on files: ``capture import`` ->
+    ``personalize`` -> ``anim import`` -> ``personalize --take`` -> ``review`` -> ``check`` -> ``retarget``.
+    Each step is only covered alone elsewhere; here every step reads what the one before wrote, as a user's
+    session does, and what each gives is checked: the layer is closer to the person than the avatar, the take
+    plays after the test expressions in usdview and on the review page (without --take again: the layer
+    records it), the result checks clean, and the map's weights are the documented [0, 1]."""
+    import numpy as np
+
+    from usdface.io import read_capture
+    from usdface.io.usd_rig import read_avatar
+
+    avatar, folder = sample_set / "avatar.usda", sample_set / "capture"
+    csv = _livelink_take(kind, take_files, tmp_path)
+    before = digest(avatar, folder, csv)
+
+    run("capture", "import", folder, "-o", "capture.usda", cwd=tmp_path)
+    summary = json.loads(run("inspect", "capture.usda", "--json", cwd=tmp_path).stdout)
+    assert summary["kind"] == "capture"
+    assert {r: v["count"] for r, v in summary["roles"].items()} == {"train": 52, "test": 20}
+
+    run("personalize", avatar, "capture.usda", "-o", "person.usda", "-q", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "person.usda")
+    truth = np.load(sample_set / "truth" / "avatar_truth.npz")
+    generic, person = read_avatar(avatar).mesh("Head"), read_avatar(tmp_path / "person.usda").mesh("Head")
+    assert person.names == generic.names
+    true = np.stack([truth[f"Head/{n}"] for n in generic.names]) / 100                  # cm -> m
+
+    def rmse(d):
+        return float(np.sqrt(np.mean(np.sum((d - true) ** 2, axis=-1))))
+
+    assert rmse(person.deltas) < 0.5 * rmse(generic.deltas)          # 0.097 vs 0.343 mm (sample-assets.md)
+
+    run("anim", "import", "take.csv", "-o", "take.usda", cwd=tmp_path)
+    take = json.loads(run("inspect", "take.usda", "--json", cwd=tmp_path).stdout)
+    rows = len(csv.read_text().strip().splitlines()) - 1
+    assert take["kind"] == "take" and take["frames"] == rows and take["shapes"] == 52
+
+    run("personalize", avatar, "capture.usda", "--take", "take.usda", "-o", "person_take.usda", "-q",
+        cwd=tmp_path)
+    layer = json.loads(run("inspect", "person_take.usda", "--json", cwd=tmp_path).stdout)
+    assert layer["inspectionAnimation"]["frames"] == 20 + rows        # test expressions, then the take
+    assert layer["provenance"]["take"] == "take.usda"
+    # the personalization is the same with or without the take to play
+    with_take = read_avatar(tmp_path / "person_take.usda").mesh("Head")
+    assert np.array_equal(with_take.deltas, person.deltas)
+
+    run("review", "person_take.usda", "-o", "person.review.html", cwd=tmp_path)
+    html = (tmp_path / "person.review.html").read_text()
+    start = html.index("window.USDFACE_DATA = ") + len("window.USDFACE_DATA = ")
+    page = json.JSONDecoder().raw_decode(html, start)[0]
+    assert [(s["title"], s["frames"]) for s in page["sequences"]] == [("test expressions", 20),
+                                                                     ("take take.usda", rows)]
+
+    report = json.loads(run("check", "person_take.usda", "--json", cwd=tmp_path).stdout)
+    assert report["ok"] and report["counts"]["error"] == 0, report
+
+    run("retarget", avatar, "capture.usda", "-o", "map.json", cwd=tmp_path)
+    retarget = json.loads((tmp_path / "map.json").read_text())
+    weights = np.array(retarget["weights"])
+    assert retarget["source"] == read_capture(tmp_path / "capture.usda").names
+    assert retarget["target"] == generic.names and weights.shape == (52, 52)
+    assert weights.min() >= 0 and weights.max() <= 1                 # the default --weight-bounds 0 1
+    # the default namesake prior: each capture shape drives mostly its namesake (sample: 0.94 on average)
+    assert np.mean(np.diag(weights)) > 0.8 and np.mean(np.argmax(weights, axis=1) == np.arange(52)) > 0.9
+
+    assert digest(avatar, folder, csv) == before
+    no_temp_left(tmp_path)

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from wfutil import ROOT, assert_valid_usd, run, usdface_cmd
+from wfutil import ROOT, assert_valid_usd, digest, run, usdface_cmd
 
 
 def blocks(page: Path, lang: str) -> list[str]:
@@ -146,3 +146,124 @@ def test_readme_setup_command_personalizes(tmp_path):
     run(*argv[1:], cwd=tmp_path)
     assert_valid_usd(tmp_path / "out" / "avatar_personalized.usda")
     assert usdface_cmd()
+
+
+# --- every page's shell block, line by line, in order, as a reader pastes it ---
+
+#: Per page: the files the page's commands name as the reader's own (made below from the sample set and a
+#: generated take), and the lines that are not pasted (with why). A page's blocks run one after the other in
+#: one folder, so a command that writes what an earlier one wrote is refused as it is for the reader.
+PAGE_FILES = {
+    "docs/capture-format.md": ["capture", "take.csv"],
+    "docs/fit.md": ["capture", "capture.usda", "truth"],
+    "docs/personalize.md": ["avatar.usdc", "capture", "capture.usda", "take.usdc"],
+    "docs/takes.md": ["avatar.usdc", "take.usda", "take.usdc", "take_dir", "recording.csv", "other_capture",
+                      "long_take.usdc"],
+    "docs/landmarks.md": ["avatar.usdc"],
+    "docs/names.md": ["sample_assets"],
+    "docs/review.md": ["sample_assets", "take.csv"],
+    "docs/pipeline.md": ["avatar.usdc", "person.usda", "lm.usda", "capture", "capture.usda"],
+    "docs/usd-io.md": ["avatar.usdc", "person.usda", "capture"],
+    "docs/sample-assets.md": [],
+}
+NOT_PASTED = {
+    "--evaluate --takes": "the sweep needs the ICT layout's avatar and takes 1-2 min (test_landmarks_bench)",
+    "usdface batch": "run by test_batch_with_manifest; --scheduler needs a cluster",
+    "avatar_blender.usdc": "the bench's Blender export: test_bench_blender_export (../shared)",
+}
+
+
+def _page_lines(page: str) -> list[str]:
+    """The page's shell lines that run usdface (or make its input, as names.md's printf), comments and
+    continuation backslashes removed; the personalize page's usage block has no language tag."""
+    found, block, lang = [], None, None
+    for line in (ROOT / page).read_text(encoding="utf-8").splitlines():
+        if line.startswith("```"):
+            if block is None:
+                block, lang = [], line[3:].strip()
+            else:
+                if lang in ("bash", ""):
+                    found.append("\n".join(block))
+                block = None
+        elif block is not None:
+            block.append(line)
+    lines = []
+    for block in found:
+        for line in block.replace("\\\n", " ").splitlines():
+            line = re.sub(r"\s+#.*$", "", line).strip()
+            if line.startswith(("usdface ", "printf ")):
+                lines.append(line)
+    return lines
+
+
+@pytest.fixture(scope="module")
+def page_inputs(sample_set, sample_take, tmp_path_factory) -> Path:
+    """Every file PAGE_FILES names, once."""
+    from pxr import Usd
+
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.take import write_take_folder, write_take_usd
+
+    d = tmp_path_factory.mktemp("page_inputs")
+    (d / "sample_assets").mkdir()
+    for name in ("avatar.usda", "capture.usda", "truth"):
+        src = sample_set / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, d / "sample_assets" / name)
+    Usd.Stage.Open(str(sample_set / "avatar.usda")).Export(str(d / "avatar.usdc"))
+    shutil.copytree(sample_set / "capture", d / "capture")
+    shutil.copytree(sample_set / "capture", d / "other_capture")
+    shutil.copytree(sample_set / "truth", d / "truth")
+    shutil.copy(sample_set / "capture.usda", d / "capture.usda")
+    take = sample_take
+    write_take_usd(take, d / "take.usda")
+    write_take_usd(take, d / "take.usdc")
+    write_take_usd(take, d / "long_take.usdc")
+    write_take_folder(take, d / "take_dir")
+    write_livelink_csv(d / "recording.csv", take.names, take.weights, take.times)
+    write_livelink_csv(d / "take.csv", take.names, take.weights, take.times)
+    run("personalize", "avatar.usdc", "capture.usda", "-o", "person.usda", "-q", cwd=d)
+    run("landmarks", "avatar.usdc", "-o", "lm.usda", "-q", cwd=d)
+    return d
+
+
+def test_every_page_with_commands_is_run():
+    """A page whose shell block runs usdface is in PAGE_FILES (index.md and README.md: the tests above)."""
+    pages = {f"docs/{p.name}" for p in (ROOT / "docs").glob("*.md") if any(
+        line.startswith("usdface ") for line in _page_lines(f"docs/{p.name}"))}
+    assert pages - {"docs/index.md"} == set(PAGE_FILES)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("page", sorted(PAGE_FILES))
+def test_page_commands_paste_and_run_in_order(page, page_inputs, tmp_path):
+    """Run the page's shell lines in order, in a folder holding only the files they name: docs/fit.md wrote
+    ``rig.usda`` three times (the second refused: 'output layer exists'), takes.md ``capture.usda`` three
+    times and ``person.usda`` three times, review.md its page twice, pipeline.md drew landmarks from a layer
+    that has none and wrote ``capture.png`` twice. Each line exits 0, without a traceback, and no input
+    changes."""
+    import os
+
+    work = tmp_path / "work"
+    work.mkdir()
+    for name in PAGE_FILES[page]:
+        src = page_inputs / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+    before = digest(*(work / name for name in PAGE_FILES[page]))
+    shim = tmp_path / "bin"
+    shim.mkdir()
+    (shim / "usdface").write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m usdface "$@"\n')
+    (shim / "usdface").chmod(0o755)
+    env = dict(os.environ, PATH=f"{shim}{os.pathsep}{os.environ['PATH']}", USDFACE_PROGRESS="off",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    ran = 0
+    for line in _page_lines(page):
+        if any(key in line for key in NOT_PASTED):
+            continue
+        line = line.replace("/tmp/", f"{tmp_path}/tmp/")      # sample-assets.md's scratch folders
+        proc = subprocess.run(line, shell=True, cwd=work, env=env, capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, f"{page}: {line}\n-> {proc.returncode}\n{proc.stderr[-2000:]}"
+        assert "Traceback" not in proc.stderr, f"{page}: {line}\n{proc.stderr}"
+        ran += 1
+    assert ran >= 2, f"{page}: {ran} command(s) run"
+    assert digest(*(work / name for name in PAGE_FILES[page])) == before

@@ -207,11 +207,15 @@ def run(args) -> int:
         key = next((k for k in layouts if rig.source and k == rig.source.prim), None)
         if key is None:
             others = ", ".join(layouts)
+            lm = path.with_name(f"{path.stem}.landmarks.usda")
+            # the layout 'usdface landmarks' writes goes into a new file: that file is the one to draw
+            write_one = (f"write a layout and draw that file: 'usdface landmarks {path} -o {lm}', then "
+                         f"'usdface render {lm} --landmarks' (or personalize with --landmarks); or add "
+                         "--diagnostics to compute one with the defaults")
             raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
                                 + (f" (the file has one for {others})" if others else ""), path=path,
                                 fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
-                                     f"{rig.name}' first") if others else
-                                    "run 'usdface landmarks' (or personalize with landmarks) first")
+                                     f"{rig.name}' first") if others else write_one)
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:

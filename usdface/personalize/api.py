@@ -639,6 +639,17 @@ _POSITION_FIT_TAKES = ("reg", "prior", "align", "reweight", "clamp", "weight_sig
 METHOD_TAKES = {"menzel": _POSITION_FIT_TAKES, "laplacian": _POSITION_FIT_TAKES, "ebfr": ("align", "eyelids"),
                 "dt": ("eyelids",)}
 
+#: The command line's spelling of each fit option (``fit``, ``evaluate``, ``personalize``), named beside the
+#: option in a refusal: ``fit --method dt --no-align`` was told ``align=False``, a name it never typed.
+FIT_FLAGS = {"reg": "--reg", "prior": "--prior", "align": "--no-align", "reweight": "--no-reweight",
+             "contact": "--contact", "eyelids": "--no-eyelids", "pins": "--pins", "every": "--every"}
+
+
+def _spelt(name: str, value=None, show_value: bool = True) -> str:
+    """``name=value`` (or ``name``) with its command-line flag, as ``--no-align (align=False)``."""
+    given = f"{name}={value!r}" if show_value else name
+    return f"{FIT_FLAGS[name]} ({given})" if name in FIT_FLAGS else given
+
 
 def check_take_poses(capture: Capture, every: int = 1) -> float:
     """The distinct poses a take read whole shows (:func:`usdface.personalize.takefit.distinct_poses`, every
@@ -696,7 +707,7 @@ def check_fit_options(method: str = "menzel", reg="auto", *, prior: str | None =
     if contact not in ("auto", "on", "off"):
         raise FitError(f"bad contact {contact!r}", fix="use 'auto', 'on' or 'off'")
     if contact != "auto" and method not in ("menzel", "laplacian"):
-        raise FitError(f"contact={contact!r} is not used by method {method!r}",
+        raise FitError(f"{_spelt('contact', contact)} is not used by method {method!r}",
                        fix="use menzel or laplacian, or drop it")
     auto = isinstance(reg, str) and reg == "auto"
     prior = prior or ("auto" if auto else "dt")
@@ -766,23 +777,24 @@ def _refuse_unused_options(method, reg, prior, align, reweight, clamp, weight_si
     bad = []
     if method in ("dt", "ebfr"):
         if not (isinstance(reg, str) and reg == "auto"):
-            bad.append(f"reg={reg!r}")
+            bad.append(_spelt("reg", reg))
         if prior is not None:
-            bad.append(f"prior={prior!r}")
+            bad.append(_spelt("prior", prior))
         if clamp != D_CLAMP:
             bad.append("clamp")
         # given at all (``--no-reweight``, ``--no-align`` too): evaluate refuses them for these methods
         if reweight is not None:
-            bad.append(f"reweight={reweight!r}")
+            bad.append(_spelt("reweight", reweight))
         if not (isinstance(weight_sigma, str) and weight_sigma == "auto"):
             bad.append("weight_sigma")
         if method == "dt" and align is not None:
-            bad.append(f"align={align!r}")
+            bad.append(_spelt("align", align))
     allowed = METHOD_OPTIONS[method]
     bad += sorted(set(options) - set(allowed))
     if bad:
+        takes = [_spelt(n, show_value=False) for n in METHOD_TAKES[method] + allowed]
         raise FitError(f"option(s) not used by method {method!r}: {', '.join(bad)}",
-                       fix=f"drop them; {method} takes {', '.join(METHOD_TAKES[method] + allowed)}")
+                       fix=f"drop them; {method} takes {', '.join(takes)}")
 
 
 def _pin_mask(pins, capture, method) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import FitError
 from ..model import Capture
 from ..progress import steps
-from .api import METHODS, fit_personalized_shapes
+from .api import FIT_FLAGS, METHODS, fit_personalized_shapes
 from .evaluate import error_colors, evaluate_rig, truth_error
 
 __all__ = ["check_method_options", "evaluate_methods", "plot_errors", "write_report_json"]
@@ -35,8 +35,7 @@ _TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
 
 
 #: The command line's spelling of each fit option, for the refusal of one no chosen method uses.
-_FLAGS = {"reg": "--reg", "prior": "--prior", "align": "--no-align", "reweight": "--no-reweight",
-          "contact": "--contact", "eyelids": "--no-eyelids"}
+_FLAGS = {k: FIT_FLAGS[k] for k in ("reg", "prior", "align", "reweight", "contact", "eyelids")}
 
 
 def check_method_options(methods, fit_options: dict) -> None:
