@@ -285,3 +285,28 @@ def test_every_signal_held_back_in_open3ds_import_reaches_the_host(tmp_path):
                           timeout=600, preexec_fn=_interactive_signals)
     assert done.stdout.split("\n")[:3] == ["interrupted True", "terminations 1", "terminations 2"], (
         done.stdout, done.stderr[-2000:])
+
+
+def test_python_m_usdface_stopped_inside_an_exec_exits_130(samples, tmp_path):
+    """``python -m usdface`` stopped by a Ctrl-C that landed inside an ``exec`` of a string (SciPy's first
+    import runs one, dataclasses and namedtuples are made by one) printed ``usdface: interrupted`` and then
+    died by SIGINT (returncode -2) instead of exiting 130: CPython records such an interrupt as unhandled and,
+    under ``-m``, acts on the record after the program's ``sys.exit``. The hook sends the signal from inside
+    an ``exec`` while the command line is read (deterministic)."""
+    (tmp_path / "run_m.py").write_text(textwrap.dedent("""
+        import runpy, sys
+        class Hook:
+            fired = False
+            def find_spec(self, name, path=None, target=None):
+                if name == "usdface.commands.personalize" and not Hook.fired:
+                    Hook.fired = True
+                    exec("import os, signal; os.kill(os.getpid(), signal.SIGINT)")
+                return None
+        sys.meta_path.insert(0, Hook())
+        runpy.run_module("usdface", run_name="__main__", alter_sys=True)
+    """))
+    res = subprocess.run([sys.executable, "-m", "run_m", "inspect", str(samples / "avatar.usda")],
+                         cwd=tmp_path, capture_output=True, text=True, env=_env(), timeout=600,
+                         preexec_fn=_interactive_signals)
+    assert res.returncode == 130, (res.returncode, res.stderr[-2000:])
+    assert res.stderr.strip().splitlines()[-1] == "usdface: interrupted"

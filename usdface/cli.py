@@ -146,6 +146,7 @@ def main(argv=None) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
         if argv is None:
+            _forget_interrupts_handled_inside_exec()
             if stopped:
                 # the stopped run's frames (Open3D point clouds and registrations among their locals) hang
                 # in reference cycles through the traceback: frozen below, they outlived the interpreter,
@@ -156,6 +157,21 @@ def main(argv=None) -> int:
             # the ~2,000 modules loaded (Open3D's Dash/Plotly among them; 0.15-0.3 s of a personalize run).
             # Shutdown itself is unchanged (atexit, flushes, threads joined, modules torn down)
             gc.freeze()
+
+
+def _forget_interrupts_handled_inside_exec() -> None:
+    """Clear CPython's record of a ``KeyboardInterrupt`` that left an ``exec``/``eval`` of a string, once the
+    program has handled it (exit status 130 or 143, or a run that went on).
+
+    CPython notes a ``KeyboardInterrupt`` leaving any ``exec(str)``/``eval(str)`` as "unhandled"
+    (``_Py_UnhandledKeyboardInterrupt``), even when the caller catches it, and under ``python -m`` (not the
+    console script) the interpreter reads that note after the program's ``sys.exit``: it then kills itself
+    with SIGINT instead of exiting with the program's status. SciPy's first import runs ``exec("from numpy
+    import *")``; dataclasses and namedtuples are built with ``exec``: a Ctrl-C landing there made ``python -m
+    usdface personalize ...`` die by SIGINT (a farm's ``returncode`` -2, ``WIFSIGNALED``) although it had
+    printed ``usdface: interrupted`` and cleaned up, about one run in seven stopped ~0.5 s after its start.
+    Every ``exec`` of a string clears the note before it runs, and this one raises nothing."""
+    exec("pass")   # a fixed string: it only clears the note
 
 
 def _import_natives_with_signals_held() -> None:
