@@ -303,6 +303,10 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
                              fix=f"name it e.g. {stem or 'out'}{suffixes[0]}"
                                  + (f" ({path.name} is a hidden file's name, with no extension)"
                                     if not stem and path.name.lower() in suffixes else ""))
+    if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):    # written by USD: a name it can take
+        from .usd_open import require_usd_path
+
+        require_usd_path(path, what)
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
     if path.exists() and not force:

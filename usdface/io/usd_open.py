@@ -17,7 +17,32 @@ from ..errors import InputFileError
 from ..locks import ForkSafeLock
 
 __all__ = ["require_file", "require_readable", "open_usd_stage", "quiet_stderr", "tf_error_text",
-           "diagnostic_notes"]
+           "diagnostic_notes", "require_usd_path"]
+
+
+def require_usd_path(path, what: str = "file") -> Path:
+    """``path`` as a Path if USD can be given it: USD takes a path as UTF-8 text, and Python hands it the
+    UTF-8 encoding of the name as Python decoded it from the file system, in the locale's encoding. Under a
+    locale that is not UTF-8 (``LANG=en_US`` as ISO-8859-1 on an older farm node; ``LC_ALL=C`` with
+    ``PYTHONUTF8=0``) a name with a non-ASCII character anywhere in its absolute path (``/proj/Zoë/a.usda``;
+    the current folder for a relative one) reached USD as other bytes: an input was "USD cannot open it:
+    Failed to open layer" (a valid file), an output failed after all the work, naming a hidden temporary
+    file ("No such file or directory"), or the run ended in a UnicodeEncodeError traceback. Refused
+    (InputFileError) before any work instead, naming the path and the way out."""
+    path = Path(path)
+    text = os.fspath(path.absolute())
+    try:
+        same = os.fsencode(text) == text.encode("utf-8")
+    except UnicodeEncodeError:           # bytes the locale's encoding could not decode (surrogates)
+        same = False
+    if not same:
+        raise InputFileError(
+            f"{what} path cannot be given to USD: its full path ({text}) has non-ASCII characters and Python "
+            f"reads file names as {sys.getfilesystemencoding()} here (the locale), while USD takes them as "
+            "UTF-8", path=path,
+            fix="run in Python's UTF-8 mode (PYTHONUTF8=1, or python -X utf8) or under a UTF-8 locale "
+                "(LC_ALL=C.UTF-8), or use a path of ASCII characters only")
+    return path
 
 
 def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
@@ -151,7 +176,7 @@ def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.
     for the first composition error (missing/cyclic sublayer, dangling reference)."""
     from pxr import Usd
 
-    path = require_file(path, what, fix)
+    path = require_usd_path(require_file(path, what, fix), what)
     if path.suffix.lower() == ".csv":  # USD would say only 'Cannot determine file format'
         usd_what = what if what.startswith("USD") else f"USD {what}"        # not 'a USD USD file'
         raise InputFileError(f"a CSV file (a Live Link Face take?) where a {usd_what} is expected", path=path,
