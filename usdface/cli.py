@@ -249,6 +249,29 @@ def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser
         found = parser
 
 
+def _empty_argument(argv: list[str]) -> str | None:
+    """The usage error for the first empty argument of a command line (``-o ""``, ``--output=``, a positional
+    ``""``), or None.
+
+    A farm's job template or a script whose variable was unset (``-o "$OUT"``) passes an empty value, and
+    Python reads an empty path as the current folder: ``capture import CAP -o ""`` wrote the capture's
+    ``neutral.obj``, ``template/``, ``train/`` and ``test/`` into the current folder (it was empty, so it was
+    taken as a new output folder), ``personalize -o ""`` wrote the default ``<avatar>.personalized.usda``
+    there, and the other commands said ``.: output path is a folder``. No usdface argument means anything
+    when empty."""
+    for i, token in enumerate(argv):
+        if token.startswith("--") and token.endswith("=") and len(token) > 3:
+            name = token[:-1]
+        elif token == "":
+            before = argv[i - 1] if i else ""
+            name = before if before.startswith("-") and before != "--" and "=" not in before else None
+        else:
+            continue
+        what = f"argument {name}: empty value" if name else "an empty argument"
+        return f"{what} (an unset variable in the command line?)"
+    return None
+
+
 def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
     _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
@@ -256,6 +279,9 @@ def _main(argv=None, program: bool = False) -> int:
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
+    empty = _empty_argument(_PARSED.argv)
+    if empty is not None:
+        (_subparser(parser, args) or parser).error(empty)
     from .commands import reset_warnings
 
     reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
