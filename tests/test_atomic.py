@@ -657,3 +657,23 @@ def test_a_failed_write_names_the_output_not_the_temp_file(tmp_path):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
     assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unexpanded_tilde_would_not_become_a_folder(tmp_path, monkeypatch):
+    """``-o "~/renders/p.usda"`` (quoted, or from a job template or a manifest: no shell expands it) made a
+    folder literally named ``~`` in the current folder. Refused before any work; a ``~`` folder that exists
+    is the user's, and a file named ``~x.usda`` makes no folder."""
+    from usdface.io.atomic import check_output_file
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputFileError, match="folder named '~'.*not expanded"):
+        check_output_file("~/renders/p.usda", suffixes=(".usda",))
+    with pytest.raises(InputFileError, match="folder named '~'"):
+        check_output_dir("~/caps/c1")
+    with pytest.raises(InputFileError, match="folder named '~me'"):
+        check_output_file(tmp_path / "out" / "~me" / "p.usda", suffixes=(".usda",))
+    assert list(tmp_path.iterdir()) == []
+    check_output_file("~x.usda", suffixes=(".usda",))
+    (tmp_path / "~").mkdir()
+    check_output_file("~/renders/p.usda", suffixes=(".usda",))
+    check_output_dir("~/caps/c1")
