@@ -394,6 +394,27 @@ def test_quiet_stderr_on_threads_side_by_side_gives_the_process_its_stderr_back(
     assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
 
 
+def test_what_other_threads_write_to_stderr_during_quiet_stderr_is_not_lost(capfd):
+    """``quiet_stderr`` (every stage usdface opens or saves) redirects file descriptor 2, the process's: a
+    host's log lines written by its other threads meanwhile went into the buffer with USD's warnings and
+    were lost (6 of 341 lines of a thread logging every 2 ms while the API read a bench avatar three times).
+    USD's diagnostics stay quiet; the other lines reach stderr when the block ends."""
+    import threading
+
+    from usdface.io.usd_open import quiet_stderr
+
+    with quiet_stderr() as said:
+        os.write(2, b"Warning: in _ReportErrors at line 3196 of stage.cpp -- In </A>: a USD warning\n")
+        other = threading.Thread(target=lambda: os.write(2, b"host: a log line\n"))
+        other.start()
+        other.join()
+        os.write(2, b"Coding Error: in Foo at line 1 of bar.cpp -- a second one\n    its second line\n")
+    err = capfd.readouterr().err
+    assert "host: a log line" in err, err
+    assert "USD warning" not in err and "second" not in err, err
+    assert "a USD warning" in said[0] and "host: a log line" in said[0]
+
+
 def test_a_new_output_folder_named_like_a_file_is_refused(tmp_path, capsys):
     """A user trial: 'usdface sample x.usda' wrote a folder x.usda, which every later command then took for
     a USD file ('USD cannot open it'); capture import already refused 'c.obj'."""

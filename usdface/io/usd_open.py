@@ -93,7 +93,11 @@ _STDERR_LOCK = ForkSafeLock(reentrant=True)   # (a host forking while a thread o
 @contextmanager
 def quiet_stderr():
     """Collect what C++ code (USD's diagnostics) writes to file descriptor 2 while the block runs; yields a
-    list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected."""
+    list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected.
+
+    File descriptor 2 is the whole process's: what the host's other threads wrote meanwhile (its log lines,
+    a progress timer's) went into the buffer too and was lost. Lines that are not USD's diagnostics
+    (:func:`_others_lines`) are written to the real stderr once the block ends."""
     out: list[str] = []
     with _STDERR_LOCK:
         try:
@@ -110,7 +114,32 @@ def quiet_stderr():
                 os.dup2(saved, 2)
                 os.close(saved)
                 buf.seek(0)
-                out.append(buf.read().decode("utf-8", "replace"))
+                text = buf.read().decode("utf-8", "replace")
+                out.append(text)
+                others = _others_lines(text)
+                if others:
+                    try:
+                        os.write(2, others.encode("utf-8", "replace"))
+                    except OSError:
+                        pass
+
+
+#: The first line of a diagnostic USD's default handler prints ("Warning: in FUNCTION at line N of FILE --
+#: ...", "Coding Error: ...", "Runtime Error: ...").
+_TF_LINE = re.compile(r"^(?:Warning|Error|Coding Error|Runtime Error|Fatal Error|Status)(?: in |: )")
+
+
+def _others_lines(text: str) -> str:
+    """The lines of ``text`` that are not USD's diagnostics (a diagnostic's first line, :data:`_TF_LINE`,
+    and the indented or empty lines that continue it): what other threads wrote meanwhile."""
+    kept, in_usd = [], False
+    for line in text.splitlines(keepends=True):
+        if _TF_LINE.match(line):
+            in_usd = True
+        elif not (in_usd and (not line.strip() or line[:1].isspace())):
+            in_usd = False
+            kept.append(line)
+    return "".join(kept)
 
 
 #: One diagnostic USD printed on stderr: "Warning: in FUNCTION at line N of SOURCE -- MESSAGE".
