@@ -53,6 +53,35 @@ def test_sigterm_leaves_no_temporary_files(tmp_path):
     assert sorted(os.listdir(tmp_path)) == []
 
 
+@pytest.mark.parametrize(("sig", "status"), [("SIGHUP", 129), ("SIGXCPU", 152)])
+def test_a_hangup_or_cpu_limit_stops_the_run_like_sigterm(tmp_path, sig, status):
+    """SIGHUP (the terminal or ssh session the run came from closed) and SIGXCPU (a batch system's CPU-time
+    limit) killed the program by their default action: an export stopped mid-write left its hidden
+    temporary folder of OBJs (``.objs.wzp9wxkc``) behind. They stop it as SIGTERM does, with one line, exit
+    status 128 + the signal and nothing left."""
+    import os
+
+    proc = _python(SIGTERM_AT_TENTH_OBJ.replace("signal.SIGTERM", f"signal.{sig}")
+                   + f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+                   "sys.exit(main())\n", tmp_path)
+    assert proc.returncode == status, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"usdface: terminated ({sig})"
+    assert "Traceback" not in proc.stderr
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_a_hangup_ignored_at_start_stays_ignored(tmp_path):
+    """``nohup usdface ...``: SIGHUP ignored when the program starts is left ignored, and the run ends."""
+    import os
+
+    proc = _python("import signal\nsignal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+                   + SIGTERM_AT_TENTH_OBJ.replace("signal.SIGTERM", "signal.SIGHUP")
+                   + f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+                   "sys.exit(main())\n", tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == ["objs"]
+
+
 def test_a_host_calling_main_keeps_its_own_sigterm_handling(tmp_path):
     """Called in-process with arguments (a DCC, a farm wrapper), ``main`` leaves SIGTERM to the host: the
     host's handler runs (the review found it swallowed and the host's SIG_IGN lost)."""

@@ -105,12 +105,33 @@ def _silence_stdout() -> None:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (a farm's or a queue's kill, a Dask worker's shutdown) raised in the main thread, so that the
-    atomic writers' clean-up runs exactly as on Ctrl-C and no temporary file is left behind."""
+    """SIGTERM (a farm's or a queue's kill, a Dask worker's shutdown), or another signal that asks the program
+    to stop (:data:`STOP_SIGNALS`), raised in the main thread, so that the atomic writers' clean-up runs
+    exactly as on Ctrl-C and no temporary file is left behind. ``signum``: the signal."""
+
+    def __init__(self, signum: int | None = None):
+        import signal
+
+        super().__init__()
+        self.signum = int(signal.SIGTERM if signum is None else signum)
+
+    @property
+    def signame(self) -> str:
+        import signal
+
+        return signal.Signals(self.signum).name
+
+
+#: The signals the ``usdface`` program turns into :class:`Terminated`: SIGTERM (a farm's or a queue's kill),
+#: SIGHUP (the terminal or ssh session the run was started from closed; ``kill -HUP``) and SIGXCPU (a batch
+#: system's CPU-time limit, ``ulimit -t``, reached). By their default action SIGHUP and SIGXCPU killed the
+#: process at once: a write under way left its hidden temporary file or folder behind (``.objs.wzp9wxkc/``
+#: full of OBJs, ``.p.usda.XXXXXXXX.tmp.usda``). One started ignored (``nohup``) stays ignored.
+STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGXCPU")
 
 
 def _on_sigterm(signum, frame):
-    raise Terminated()
+    raise Terminated(signum)
 
 
 def main(argv=None) -> int:
@@ -127,24 +148,27 @@ def main(argv=None) -> int:
         _standard_streams()
         if sys.stdout is not None and not isinstance(sys.stdout, _StdoutReporter):
             sys.stdout = _StdoutReporter(sys.stdout)
-    previous = None
+    previous = {}
     program = argv is None and threading.current_thread() is threading.main_thread()
-    if program and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:  # started ignoring it: it stays
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    for name in STOP_SIGNALS if program else ():
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:  # started ignored: stays
+            previous[signum] = signal.signal(signum, _on_sigterm)
     stopped = False
     try:
         return _main(argv, program=program)
-    except Terminated:
+    except Terminated as exc:
         stopped = True
-        print("usdface: terminated", file=sys.stderr)
-        return 143
+        print("usdface: terminated" + ("" if exc.signum == signal.SIGTERM else f" ({exc.signame})"),
+              file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:  # before the command ran (reading the command line), one line as after
         stopped = True
         print("usdface: interrupted", file=sys.stderr)
         return 130
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if argv is None:
             _forget_interrupts_handled_inside_exec()
             if stopped:
@@ -364,7 +388,7 @@ def _stopped(args, exc: KeyboardInterrupt) -> int:
     143); with ``--json`` stdout still gets its one document."""
     terminated = isinstance(exc, Terminated)
     if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-        _json_stopped(args, terminated)
+        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT")
     if terminated:
         raise exc
     print("usdface: interrupted", file=sys.stderr)
@@ -428,12 +452,12 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
 
 
-def _json_stopped(args, terminated: bool) -> None:
+def _json_stopped(args, terminated: bool, signame: str = "SIGTERM") -> None:
     """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
     pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
     import json
 
-    kind, signame = ("Terminated", "SIGTERM") if terminated else ("Interrupted", "SIGINT")
+    kind, signame = ("Terminated", signame) if terminated else ("Interrupted", "SIGINT")
     batch = args.command == "batch"
     doc = {"ok": False, "error": {
         "command": _command_name(args), "type": kind,
