@@ -415,6 +415,32 @@ def test_what_other_threads_write_to_stderr_during_quiet_stderr_is_not_lost(capf
     assert "a USD warning" in said[0] and "host: a log line" in said[0]
 
 
+def test_without_a_temporary_folder_stages_still_open(monkeypatch, capfd):
+    """With no usable temporary folder (``/tmp`` read-only or full, ``TMPDIR`` naming nothing writable) every
+    command that opens a stage failed, ``inspect: error: No usable temporary directory found in ['/tmp',
+    ...] (fix: check the path)``: the capture of USD's stderr needed a temporary file. It falls back to an
+    in-memory file (Linux), else shows USD's warnings instead of collecting them."""
+    import tempfile
+
+    from usdface.io import usd_open
+
+    def no_temporary_folder(*a, **k):
+        raise FileNotFoundError(2, "No usable temporary directory found in ['/tmp', '/var/tmp']")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", no_temporary_folder)
+    with usd_open.quiet_stderr() as said:
+        os.write(2, b"Warning: in F at line 1 of x.cpp -- a USD warning\n")
+    err = capfd.readouterr().err
+    if hasattr(os, "memfd_create"):
+        assert "a USD warning" in said[0] and "a USD warning" not in err
+    assert main(["inspect", str(SAMPLES / "avatar.usda")]) == 0
+    assert "temporary" not in capfd.readouterr().err
+    monkeypatch.delattr(os, "memfd_create", raising=False)      # nowhere to collect: shown, not an error
+    with usd_open.quiet_stderr() as said:
+        os.write(2, b"Warning: in F at line 1 of x.cpp -- shown\n")
+    assert said == [] and "shown" in capfd.readouterr().err
+
+
 def test_a_new_output_folder_named_like_a_file_is_refused(tmp_path, capsys):
     """A user trial: 'usdface sample x.usda' wrote a folder x.usda, which every later command then took for
     a USD file ('USD cannot open it'); capture import already refused 'c.obj'."""

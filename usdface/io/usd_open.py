@@ -102,11 +102,19 @@ def quiet_stderr():
     with _STDERR_LOCK:
         try:
             sys.stderr.flush()
-            saved = os.dup(2)
+            buf = _capture_file()
         except (OSError, ValueError, AttributeError):
+            buf = None
+        if buf is None:
             yield out
             return
-        with tempfile.TemporaryFile() as buf:
+        try:
+            saved = os.dup(2)
+        except OSError:
+            buf.close()
+            yield out
+            return
+        with buf:
             os.dup2(buf.fileno(), 2)
             try:
                 yield out
@@ -122,6 +130,25 @@ def quiet_stderr():
                         os.write(2, others.encode("utf-8", "replace"))
                     except OSError:
                         pass
+
+
+def _capture_file():
+    """A file for :func:`quiet_stderr` to collect into: a temporary file in the temporary folder, else (no
+    usable one: ``/tmp`` read-only or full, ``TMPDIR`` naming nothing writable) an anonymous in-memory file
+    (``memfd_create``, Linux), else None (USD's warnings are then shown, not collected). It was
+    ``tempfile.TemporaryFile()`` alone, and without a temporary folder every command that opens a stage
+    failed: ``usdface inspect: error: No usable temporary directory found in ['/tmp', '/var/tmp', ...] (fix:
+    check the path)``, although the inputs and the output's folder were fine."""
+    try:
+        return tempfile.TemporaryFile()
+    except OSError:
+        pass
+    if hasattr(os, "memfd_create"):
+        try:
+            return os.fdopen(os.memfd_create("usdface-stderr"), "w+b")
+        except OSError:
+            pass
+    return None
 
 
 #: The first line of a diagnostic USD's default handler prints ("Warning: in FUNCTION at line N of FILE --
