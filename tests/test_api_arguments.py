@@ -210,3 +210,17 @@ def test_a_path_like_that_is_no_pathlib_path_is_read_as_a_path(tmp_path):
     usdface.fit_capture(_FsPath(C), "dt", out_path=tmp_path / "b.usda")
     recorded = [usdface_layer_data(tmp_path / f"{k}.usda") for k in "ab"]
     assert recorded[0]["captureDigest"] and recorded[1].get("captureDigest") == recorded[0]["captureDigest"]
+
+
+def test_an_empty_output_path_is_refused_not_the_current_folder(tmp_path, monkeypatch):
+    """``import_capture_folder(folder, "")`` (an unset variable) wrote the capture folder's files into the
+    current folder: ``Path("")`` is ``.``."""
+    import usdface
+    from usdface.errors import OptionError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(OptionError, match="out_path is an empty string"):
+        usdface.import_capture_folder(tmp_path, "")
+    with pytest.raises(OptionError, match="out_path is an empty string"):
+        usdface.personalize_avatar("a.usda", "c.usda", "")
+    assert list(tmp_path.iterdir()) == []

@@ -394,6 +394,53 @@ def test_quiet_stderr_on_threads_side_by_side_gives_the_process_its_stderr_back(
     assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
 
 
+def test_what_other_threads_write_to_stderr_during_quiet_stderr_is_not_lost(capfd):
+    """``quiet_stderr`` (every stage usdface opens or saves) redirects file descriptor 2, the process's: a
+    host's log lines written by its other threads meanwhile went into the buffer with USD's warnings and
+    were lost (6 of 341 lines of a thread logging every 2 ms while the API read a bench avatar three times).
+    USD's diagnostics stay quiet; the other lines reach stderr when the block ends."""
+    import threading
+
+    from usdface.io.usd_open import quiet_stderr
+
+    with quiet_stderr() as said:
+        os.write(2, b"Warning: in _ReportErrors at line 3196 of stage.cpp -- In </A>: a USD warning\n")
+        other = threading.Thread(target=lambda: os.write(2, b"host: a log line\n"))
+        other.start()
+        other.join()
+        os.write(2, b"Coding Error: in Foo at line 1 of bar.cpp -- a second one\n    its second line\n")
+    err = capfd.readouterr().err
+    assert "host: a log line" in err, err
+    assert "USD warning" not in err and "second" not in err, err
+    assert "a USD warning" in said[0] and "host: a log line" in said[0]
+
+
+def test_without_a_temporary_folder_stages_still_open(monkeypatch, capfd):
+    """With no usable temporary folder (``/tmp`` read-only or full, ``TMPDIR`` naming nothing writable) every
+    command that opens a stage failed, ``inspect: error: No usable temporary directory found in ['/tmp',
+    ...] (fix: check the path)``: the capture of USD's stderr needed a temporary file. It falls back to an
+    in-memory file (Linux), else shows USD's warnings instead of collecting them."""
+    import tempfile
+
+    from usdface.io import usd_open
+
+    def no_temporary_folder(*a, **k):
+        raise FileNotFoundError(2, "No usable temporary directory found in ['/tmp', '/var/tmp']")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", no_temporary_folder)
+    with usd_open.quiet_stderr() as said:
+        os.write(2, b"Warning: in F at line 1 of x.cpp -- a USD warning\n")
+    err = capfd.readouterr().err
+    if hasattr(os, "memfd_create"):
+        assert "a USD warning" in said[0] and "a USD warning" not in err
+    assert main(["inspect", str(SAMPLES / "avatar.usda")]) == 0
+    assert "temporary" not in capfd.readouterr().err
+    monkeypatch.delattr(os, "memfd_create", raising=False)      # nowhere to collect: shown, not an error
+    with usd_open.quiet_stderr() as said:
+        os.write(2, b"Warning: in F at line 1 of x.cpp -- shown\n")
+    assert said == [] and "shown" in capfd.readouterr().err
+
+
 def test_a_new_output_folder_named_like_a_file_is_refused(tmp_path, capsys):
     """A user trial: 'usdface sample x.usda' wrote a folder x.usda, which every later command then took for
     a USD file ('USD cannot open it'); capture import already refused 'c.obj'."""
@@ -657,3 +704,23 @@ def test_a_failed_write_names_the_output_not_the_temp_file(tmp_path):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
     assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unexpanded_tilde_would_not_become_a_folder(tmp_path, monkeypatch):
+    """``-o "~/renders/p.usda"`` (quoted, or from a job template or a manifest: no shell expands it) made a
+    folder literally named ``~`` in the current folder. Refused before any work; a ``~`` folder that exists
+    is the user's, and a file named ``~x.usda`` makes no folder."""
+    from usdface.io.atomic import check_output_file
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputFileError, match="folder named '~'.*not expanded"):
+        check_output_file("~/renders/p.usda", suffixes=(".usda",))
+    with pytest.raises(InputFileError, match="folder named '~'"):
+        check_output_dir("~/caps/c1")
+    with pytest.raises(InputFileError, match="folder named '~me'"):
+        check_output_file(tmp_path / "out" / "~me" / "p.usda", suffixes=(".usda",))
+    assert list(tmp_path.iterdir()) == []
+    check_output_file("~x.usda", suffixes=(".usda",))
+    (tmp_path / "~").mkdir()
+    check_output_file("~/renders/p.usda", suffixes=(".usda",))
+    check_output_dir("~/caps/c1")

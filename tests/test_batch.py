@@ -392,6 +392,47 @@ def slow_worker(item: dict) -> None:
     stub_worker(item)
 
 
+def slow_writing_worker(item: dict) -> None:
+    """Starts the atomic write of ``output``, marks that it did, then takes 30 s to finish it."""
+    import time
+
+    from usdface.io.atomic import atomic_file
+
+    with atomic_file(item["output"]) as tmp:
+        Path(tmp).write_text("half")
+        Path(item["output"] + ".started").write_text("")
+        time.sleep(30)
+
+
+@pytest.mark.parametrize("kill", ["SIGTERM", "SIGKILL"])
+def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
+    """The pool's workers had no SIGTERM handling: a batch stopped (SIGTERM to the parent, which ends its
+    workers with SIGTERM; or SIGKILL, which they get as SIGTERM through PR_SET_PDEATHSIG) while items were
+    writing left each write's hidden temporary file in the output folder (``out/.a.usda.t5_8lor8.tmp.usda``).
+    The workers' writes clean up, then the workers end."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    if kill == "SIGKILL" and not sys.platform.startswith("linux"):
+        pytest.skip("the workers follow a killed parent on Linux only")
+    manifest = _manifest(tmp_path, ["a", "b"])
+    proc = _spawn_batch(manifest, "slow_writing_worker", tmp_path, stdout=subprocess.PIPE,
+                        stderr=subprocess.PIPE, text=True)
+    out = tmp_path / "out"
+    deadline = time.monotonic() + 60
+    while len(list(out.glob("*.started"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert len(list(out.glob("*.started"))) == 2
+    proc.send_signal(getattr(signal, kill))
+    proc.communicate(timeout=60)
+    deadline = time.monotonic() + 15          # the workers clean up after the parent's end (SIGKILL)
+    while any(p.name.startswith(".") for p in out.iterdir()) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert sorted(p.name for p in out.iterdir()) == ["a.usda.started", "b.usda.started"]
+
+
 def test_sigterm_stops_a_batch_now(tmp_path):
     """A terminated batch (SIGTERM to the parent, as a queue's kill) ran every queued item to its end before
     exiting (33 s for four 15 s items on two processes); it stops the pool and exits 143 at once."""

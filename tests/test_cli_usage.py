@@ -141,3 +141,27 @@ def test_help_pages_say_what_the_options_take(capsys):
         with pytest.raises(SystemExit):
             main(argv)
         assert said in " ".join(capsys.readouterr().out.split()), argv
+
+
+@pytest.mark.parametrize("argv", [
+    ["capture", "import", "CAP", "-o", ""],
+    ["personalize", "a.usda", "c.usda", "-o", ""],
+    ["personalize", "a.usda", "c.usda", "--output="],
+    ["export", "p.usda", "--obj-dir", ""],
+    ["personalize", "", "c.usda"],
+])
+def test_an_empty_argument_is_a_usage_error(tmp_path, monkeypatch, capfd, argv):
+    """An unset variable in a job template (``-o "$OUT"``) passes an empty value, which Python reads as the
+    current folder: ``capture import CAP -o ""`` wrote the capture's OBJs and sub-folders into the current
+    folder, ``personalize -o ""`` wrote its default output there. Refused before anything is read."""
+    cap = tmp_path / "in" / "CAP"
+    cap.mkdir(parents=True)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    with pytest.raises(SystemExit) as exc:
+        main([str(cap) if a == "CAP" else a for a in argv])
+    err = capfd.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1, err
+    assert "empty" in err and "unset variable" in err, err
+    assert list(work.iterdir()) == []

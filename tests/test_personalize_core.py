@@ -366,3 +366,37 @@ def test_a_fit_in_a_child_forked_while_another_thread_sets_the_blas_limit():
     assert child_finishes(block, lambda: api._ONE_BLAS_THREAD._lock), \
         "the forked child waited for good on the BLAS limit's lock"
 
+
+
+@pytest.mark.parametrize("first_on", ["main", "thread"])
+def test_a_fit_on_any_thread_runs_with_one_blas_thread(first_on):
+    """threadpoolctl lets only the first thread that set OpenBLAS's thread count (while it lives) set it
+    again: after a personalize on a host's main thread, one on the host's worker thread (a thread pool, a
+    DCC's background job) ran with the multi-threaded BLAS (its fit 4-6x slower on a busy machine), and a
+    long-lived pool thread that went first did the same to the main thread's. Each thread sees one BLAS
+    thread inside, and the host's counts are back after each."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_info
+
+    from usdface.personalize.api import single_threaded_blas
+
+    def counts():
+        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+
+    before = counts()
+    if max(before, default=1) < 2:
+        pytest.skip("the host's BLAS runs one thread already: no limit to see")
+
+    @single_threaded_blas
+    def inside():
+        return counts(), threading.current_thread().name
+
+    with ThreadPoolExecutor(1) as pool:        # its thread lives on between the calls, as a host's pool
+        on_thread = lambda: pool.submit(inside).result()   # noqa: E731
+        calls = [inside, on_thread] if first_on == "main" else [on_thread, inside]
+        for call in calls:
+            seen, name = call()
+            assert max(seen) == 1, f"BLAS ran {seen} threads inside a fit on {name}"
+            assert counts() == before

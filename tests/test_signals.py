@@ -53,6 +53,35 @@ def test_sigterm_leaves_no_temporary_files(tmp_path):
     assert sorted(os.listdir(tmp_path)) == []
 
 
+@pytest.mark.parametrize(("sig", "status"), [("SIGHUP", 129), ("SIGXCPU", 152)])
+def test_a_hangup_or_cpu_limit_stops_the_run_like_sigterm(tmp_path, sig, status):
+    """SIGHUP (the terminal or ssh session the run came from closed) and SIGXCPU (a batch system's CPU-time
+    limit) killed the program by their default action: an export stopped mid-write left its hidden
+    temporary folder of OBJs (``.objs.wzp9wxkc``) behind. They stop it as SIGTERM does, with one line, exit
+    status 128 + the signal and nothing left."""
+    import os
+
+    proc = _python(SIGTERM_AT_TENTH_OBJ.replace("signal.SIGTERM", f"signal.{sig}")
+                   + f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+                   "sys.exit(main())\n", tmp_path)
+    assert proc.returncode == status, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"usdface: terminated ({sig})"
+    assert "Traceback" not in proc.stderr
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_a_hangup_ignored_at_start_stays_ignored(tmp_path):
+    """``nohup usdface ...``: SIGHUP ignored when the program starts is left ignored, and the run ends."""
+    import os
+
+    proc = _python("import signal\nsignal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+                   + SIGTERM_AT_TENTH_OBJ.replace("signal.SIGTERM", "signal.SIGHUP")
+                   + f"sys.argv = ['usdface', 'export', {str(A)!r}, '--obj-dir', 'objs', '-q']\n"
+                   "sys.exit(main())\n", tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == ["objs"]
+
+
 def test_a_host_calling_main_keeps_its_own_sigterm_handling(tmp_path):
     """Called in-process with arguments (a DCC, a farm wrapper), ``main`` leaves SIGTERM to the host: the
     host's handler runs (the review found it swallowed and the host's SIG_IGN lost)."""
@@ -285,3 +314,28 @@ def test_every_signal_held_back_in_open3ds_import_reaches_the_host(tmp_path):
                           timeout=600, preexec_fn=_interactive_signals)
     assert done.stdout.split("\n")[:3] == ["interrupted True", "terminations 1", "terminations 2"], (
         done.stdout, done.stderr[-2000:])
+
+
+def test_python_m_usdface_stopped_inside_an_exec_exits_130(samples, tmp_path):
+    """``python -m usdface`` stopped by a Ctrl-C that landed inside an ``exec`` of a string (SciPy's first
+    import runs one, dataclasses and namedtuples are made by one) printed ``usdface: interrupted`` and then
+    died by SIGINT (returncode -2) instead of exiting 130: CPython records such an interrupt as unhandled and,
+    under ``-m``, acts on the record after the program's ``sys.exit``. The hook sends the signal from inside
+    an ``exec`` while the command line is read (deterministic)."""
+    (tmp_path / "run_m.py").write_text(textwrap.dedent("""
+        import runpy, sys
+        class Hook:
+            fired = False
+            def find_spec(self, name, path=None, target=None):
+                if name == "usdface.commands.personalize" and not Hook.fired:
+                    Hook.fired = True
+                    exec("import os, signal; os.kill(os.getpid(), signal.SIGINT)")
+                return None
+        sys.meta_path.insert(0, Hook())
+        runpy.run_module("usdface", run_name="__main__", alter_sys=True)
+    """))
+    res = subprocess.run([sys.executable, "-m", "run_m", "inspect", str(samples / "avatar.usda")],
+                         cwd=tmp_path, capture_output=True, text=True, env=_env(), timeout=600,
+                         preexec_fn=_interactive_signals)
+    assert res.returncode == 130, (res.returncode, res.stderr[-2000:])
+    assert res.stderr.strip().splitlines()[-1] == "usdface: interrupted"

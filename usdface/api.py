@@ -66,6 +66,12 @@ def _paths(**named) -> None:
     for name, (value, none_ok) in named.items():
         _expect(value, _PATH, name, "a path (a str or Path)" + (" or None" if none_ok else ""),
                 f"pass {name} as a file or folder path", none_ok=none_ok)
+        if isinstance(value, str) and not value:    # Path("") is the current folder: written into it
+            from .errors import OptionError
+
+            raise OptionError(f"{name} is an empty string",
+                              fix=f"pass {name} as a file or folder path (an unset variable?); for the "
+                                  "current folder say '.'")
 
 
 def _model(name: str):
@@ -755,6 +761,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     from .io.usd_rig import refuse_usdface_output
 
     source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
+    _paths(out_path=(out_path, True))
     from .transfer import personalize_avatar as _personalize
 
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)

@@ -105,12 +105,33 @@ def _silence_stdout() -> None:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (a farm's or a queue's kill, a Dask worker's shutdown) raised in the main thread, so that the
-    atomic writers' clean-up runs exactly as on Ctrl-C and no temporary file is left behind."""
+    """SIGTERM (a farm's or a queue's kill, a Dask worker's shutdown), or another signal that asks the program
+    to stop (:data:`STOP_SIGNALS`), raised in the main thread, so that the atomic writers' clean-up runs
+    exactly as on Ctrl-C and no temporary file is left behind. ``signum``: the signal."""
+
+    def __init__(self, signum: int | None = None):
+        import signal
+
+        super().__init__()
+        self.signum = int(signal.SIGTERM if signum is None else signum)
+
+    @property
+    def signame(self) -> str:
+        import signal
+
+        return signal.Signals(self.signum).name
+
+
+#: The signals the ``usdface`` program turns into :class:`Terminated`: SIGTERM (a farm's or a queue's kill),
+#: SIGHUP (the terminal or ssh session the run was started from closed; ``kill -HUP``) and SIGXCPU (a batch
+#: system's CPU-time limit, ``ulimit -t``, reached). By their default action SIGHUP and SIGXCPU killed the
+#: process at once: a write under way left its hidden temporary file or folder behind (``.objs.wzp9wxkc/``
+#: full of OBJs, ``.p.usda.XXXXXXXX.tmp.usda``). One started ignored (``nohup``) stays ignored.
+STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGXCPU")
 
 
 def _on_sigterm(signum, frame):
-    raise Terminated()
+    raise Terminated(signum)
 
 
 def main(argv=None) -> int:
@@ -127,25 +148,29 @@ def main(argv=None) -> int:
         _standard_streams()
         if sys.stdout is not None and not isinstance(sys.stdout, _StdoutReporter):
             sys.stdout = _StdoutReporter(sys.stdout)
-    previous = None
+    previous = {}
     program = argv is None and threading.current_thread() is threading.main_thread()
-    if program and signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:  # started ignoring it: it stays
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    for name in STOP_SIGNALS if program else ():
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:  # started ignored: stays
+            previous[signum] = signal.signal(signum, _on_sigterm)
     stopped = False
     try:
         return _main(argv, program=program)
-    except Terminated:
+    except Terminated as exc:
         stopped = True
-        print("usdface: terminated", file=sys.stderr)
-        return 143
+        print("usdface: terminated" + ("" if exc.signum == signal.SIGTERM else f" ({exc.signame})"),
+              file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:  # before the command ran (reading the command line), one line as after
         stopped = True
         print("usdface: interrupted", file=sys.stderr)
         return 130
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if argv is None:
+            _forget_interrupts_handled_inside_exec()
             if stopped:
                 # the stopped run's frames (Open3D point clouds and registrations among their locals) hang
                 # in reference cycles through the traceback: frozen below, they outlived the interpreter,
@@ -156,6 +181,21 @@ def main(argv=None) -> int:
             # the ~2,000 modules loaded (Open3D's Dash/Plotly among them; 0.15-0.3 s of a personalize run).
             # Shutdown itself is unchanged (atexit, flushes, threads joined, modules torn down)
             gc.freeze()
+
+
+def _forget_interrupts_handled_inside_exec() -> None:
+    """Clear CPython's record of a ``KeyboardInterrupt`` that left an ``exec``/``eval`` of a string, once the
+    program has handled it (exit status 130 or 143, or a run that went on).
+
+    CPython notes a ``KeyboardInterrupt`` leaving any ``exec(str)``/``eval(str)`` as "unhandled"
+    (``_Py_UnhandledKeyboardInterrupt``), even when the caller catches it, and under ``python -m`` (not the
+    console script) the interpreter reads that note after the program's ``sys.exit``: it then kills itself
+    with SIGINT instead of exiting with the program's status. SciPy's first import runs ``exec("from numpy
+    import *")``; dataclasses and namedtuples are built with ``exec``: a Ctrl-C landing there made ``python -m
+    usdface personalize ...`` die by SIGINT (a farm's ``returncode`` -2, ``WIFSIGNALED``) although it had
+    printed ``usdface: interrupted`` and cleaned up, about one run in seven stopped ~0.5 s after its start.
+    Every ``exec`` of a string clears the note before it runs, and this one raises nothing."""
+    exec("pass")   # a fixed string: it only clears the note
 
 
 def _import_natives_with_signals_held() -> None:
@@ -233,6 +273,29 @@ def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser
         found = parser
 
 
+def _empty_argument(argv: list[str]) -> str | None:
+    """The usage error for the first empty argument of a command line (``-o ""``, ``--output=``, a positional
+    ``""``), or None.
+
+    A farm's job template or a script whose variable was unset (``-o "$OUT"``) passes an empty value, and
+    Python reads an empty path as the current folder: ``capture import CAP -o ""`` wrote the capture's
+    ``neutral.obj``, ``template/``, ``train/`` and ``test/`` into the current folder (it was empty, so it was
+    taken as a new output folder), ``personalize -o ""`` wrote the default ``<avatar>.personalized.usda``
+    there, and the other commands said ``.: output path is a folder``. No usdface argument means anything
+    when empty."""
+    for i, token in enumerate(argv):
+        if token.startswith("--") and token.endswith("=") and len(token) > 3:
+            name = token[:-1]
+        elif token == "":
+            before = argv[i - 1] if i else ""
+            name = before if before.startswith("-") and before != "--" and "=" not in before else None
+        else:
+            continue
+        what = f"argument {name}: empty value" if name else "an empty argument"
+        return f"{what} (an unset variable in the command line?)"
+    return None
+
+
 def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
     _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
@@ -240,6 +303,9 @@ def _main(argv=None, program: bool = False) -> int:
     if extra:          # the sub-command's parser reports them, so the error line names the command
         (_subparser(parser, args) or parser).error(
             "unrecognized arguments: " + " ".join(extra))
+    empty = _empty_argument(_PARSED.argv)
+    if empty is not None:
+        (_subparser(parser, args) or parser).error(empty)
     from .commands import reset_warnings
 
     reset_warnings(json_on_stdout=getattr(args, "json", None) is True)
@@ -322,7 +388,7 @@ def _stopped(args, exc: KeyboardInterrupt) -> int:
     143); with ``--json`` stdout still gets its one document."""
     terminated = isinstance(exc, Terminated)
     if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-        _json_stopped(args, terminated)
+        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT")
     if terminated:
         raise exc
     print("usdface: interrupted", file=sys.stderr)
@@ -386,12 +452,12 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
 
 
-def _json_stopped(args, terminated: bool) -> None:
+def _json_stopped(args, terminated: bool, signame: str = "SIGTERM") -> None:
     """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
     pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
     import json
 
-    kind, signame = ("Terminated", "SIGTERM") if terminated else ("Interrupted", "SIGINT")
+    kind, signame = ("Terminated", signame) if terminated else ("Interrupted", "SIGINT")
     batch = args.command == "batch"
     doc = {"ok": False, "error": {
         "command": _command_name(args), "type": kind,

@@ -28,17 +28,18 @@ DEFERRED = ("open3d.visualization",)
 
 @contextlib.contextmanager
 def signals_held():
-    """Hold SIGINT and SIGTERM back inside the block (only those whose handlers Python manages: one set
-    outside Python, or ignored, is left alone), then let each held signal through to the handler that was
-    there before, a termination first: a ``KeyboardInterrupt`` from the first let through dropped the
-    others. For native imports a signal landing inside breaks (:func:`open3d`,
+    """Hold SIGINT, SIGTERM, SIGHUP and SIGXCPU back inside the block (only those whose handlers Python
+    manages: one set outside Python, or ignored, is left alone), then let each held signal through to the
+    handler that was there before, a termination first: a ``KeyboardInterrupt`` from the first let through
+    dropped the others. For native imports a signal landing inside breaks (:func:`open3d`,
     :func:`usdface.cli._import_natives_with_signals_held`). The main thread only (where Python delivers
     signals and may set handlers)."""
     import signal
 
     held: list[int] = []
     previous = {}
-    for signum in (signal.SIGINT, signal.SIGTERM):
+    names = ("SIGINT", "SIGTERM", "SIGHUP", "SIGXCPU")      # the usdface program stops on each
+    for signum in [getattr(signal, name) for name in names if hasattr(signal, name)]:
         handler = signal.getsignal(signum)
         if handler is None or handler == signal.SIG_IGN:   # set outside Python, or ignored: left alone
             continue
@@ -50,7 +51,7 @@ def signals_held():
             signal.signal(signum, handler)
         raised = None
         # now the host's handlers run, outside the block: each held signal, a termination first
-        for signum in sorted(set(held), key=lambda s: s != signal.SIGTERM):
+        for signum in sorted(set(held), key=lambda s: s == signal.SIGINT):
             try:
                 signal.raise_signal(signum)
             except BaseException as exc:

@@ -303,11 +303,37 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
                              fix=f"name it e.g. {stem or 'out'}{suffixes[0]}"
                                  + (f" ({path.name} is a hidden file's name, with no extension)"
                                     if not stem and path.name.lower() in suffixes else ""))
+    if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):    # written by USD: a name it can take
+        from .usd_open import require_usd_path
+
+        require_usd_path(path, what)
+    _refuse_unexpanded_home(path, what)
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
     if path.exists() and not force:
         raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
     return check_writable(path, what=what, fix=fix)
+
+
+def _refuse_unexpanded_home(path: Path, what: str, folder: bool = False) -> None:
+    """Refuse (InputFileError) an output whose write would create a folder named like a home folder, ``~``
+    or ``~name``: a ``~`` the shell did not expand (quoted, ``-o "~/renders/p.usda"``, or given by a job
+    template or a batch manifest that runs no shell). usdface does not expand it either, and the write made
+    a folder literally named ``~`` in the current folder (or beside the manifest), one a later ``rm -rf ~``
+    meant for it would take the home folder with it. A ``~`` folder that exists already is the user's."""
+    path = Path(path)
+    new_folders = []
+    for part in ([path] if folder else []) + list(path.parents):
+        if part.exists() or part == part.parent:
+            break
+        new_folders.append(part)
+    tilde = next((p for p in reversed(new_folders) if p.name.startswith("~")), None)
+    if tilde is not None:
+        raise InputFileError(f"{what} path would create a folder named {tilde.name!r} in "
+                             f"{tilde.parent.absolute()}: a '~' is not expanded to the home folder here "
+                             "(only an unquoted ~ is, by the shell)",
+                             path=path, fix="write the home folder out (e.g. $HOME/... unquoted, or the full "
+                                            "path), or leave the ~ unquoted for the shell to expand")
 
 
 def _check_parent(path: Path, what: str, fix: str | None) -> Path:
@@ -437,6 +463,7 @@ def check_output_dir(path, force: bool = False, *, inputs=(), what: str = "outpu
     if dest.suffix.lower() in _FILE_SUFFIXES and not dest.is_dir():   # 'sample x.usda': a folder x.usda
         raise InputFileError(f"{what} is named like a {dest.suffix} file, but it is written as a folder",
                              path=dest, fix=f"name the folder without the extension ({dest.with_suffix('')})")
+    _refuse_unexpanded_home(dest, what, folder=True)
     _check_parent(dest, what, fix)
     check_not_input(dest, inputs, what=what, folder=True)
     if dest.exists() and not dest.is_dir():

@@ -17,7 +17,32 @@ from ..errors import InputFileError
 from ..locks import ForkSafeLock
 
 __all__ = ["require_file", "require_readable", "open_usd_stage", "quiet_stderr", "tf_error_text",
-           "diagnostic_notes"]
+           "diagnostic_notes", "require_usd_path"]
+
+
+def require_usd_path(path, what: str = "file") -> Path:
+    """``path`` as a Path if USD can be given it: USD takes a path as UTF-8 text, and Python hands it the
+    UTF-8 encoding of the name as Python decoded it from the file system, in the locale's encoding. Under a
+    locale that is not UTF-8 (``LANG=en_US`` as ISO-8859-1 on an older farm node; ``LC_ALL=C`` with
+    ``PYTHONUTF8=0``) a name with a non-ASCII character anywhere in its absolute path (``/proj/Zoë/a.usda``;
+    the current folder for a relative one) reached USD as other bytes: an input was "USD cannot open it:
+    Failed to open layer" (a valid file), an output failed after all the work, naming a hidden temporary
+    file ("No such file or directory"), or the run ended in a UnicodeEncodeError traceback. Refused
+    (InputFileError) before any work instead, naming the path and the way out."""
+    path = Path(path)
+    text = os.fspath(path.absolute())
+    try:
+        same = os.fsencode(text) == text.encode("utf-8")
+    except UnicodeEncodeError:           # bytes the locale's encoding could not decode (surrogates)
+        same = False
+    if not same:
+        raise InputFileError(
+            f"{what} path cannot be given to USD: its full path ({text}) has non-ASCII characters and Python "
+            f"reads file names as {sys.getfilesystemencoding()} here (the locale), while USD takes them as "
+            "UTF-8", path=path,
+            fix="run in Python's UTF-8 mode (PYTHONUTF8=1, or python -X utf8) or under a UTF-8 locale "
+                "(LC_ALL=C.UTF-8), or use a path of ASCII characters only")
+    return path
 
 
 def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
@@ -68,16 +93,28 @@ _STDERR_LOCK = ForkSafeLock(reentrant=True)   # (a host forking while a thread o
 @contextmanager
 def quiet_stderr():
     """Collect what C++ code (USD's diagnostics) writes to file descriptor 2 while the block runs; yields a
-    list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected."""
+    list that receives the text afterwards. Falls back to doing nothing when fd 2 cannot be redirected.
+
+    File descriptor 2 is the whole process's: what the host's other threads wrote meanwhile (its log lines,
+    a progress timer's) went into the buffer too and was lost. Lines that are not USD's diagnostics
+    (:func:`_others_lines`) are written to the real stderr once the block ends."""
     out: list[str] = []
     with _STDERR_LOCK:
         try:
             sys.stderr.flush()
-            saved = os.dup(2)
+            buf = _capture_file()
         except (OSError, ValueError, AttributeError):
+            buf = None
+        if buf is None:
             yield out
             return
-        with tempfile.TemporaryFile() as buf:
+        try:
+            saved = os.dup(2)
+        except OSError:
+            buf.close()
+            yield out
+            return
+        with buf:
             os.dup2(buf.fileno(), 2)
             try:
                 yield out
@@ -85,7 +122,51 @@ def quiet_stderr():
                 os.dup2(saved, 2)
                 os.close(saved)
                 buf.seek(0)
-                out.append(buf.read().decode("utf-8", "replace"))
+                text = buf.read().decode("utf-8", "replace")
+                out.append(text)
+                others = _others_lines(text)
+                if others:
+                    try:
+                        os.write(2, others.encode("utf-8", "replace"))
+                    except OSError:
+                        pass
+
+
+def _capture_file():
+    """A file for :func:`quiet_stderr` to collect into: a temporary file in the temporary folder, else (no
+    usable one: ``/tmp`` read-only or full, ``TMPDIR`` naming nothing writable) an anonymous in-memory file
+    (``memfd_create``, Linux), else None (USD's warnings are then shown, not collected). It was
+    ``tempfile.TemporaryFile()`` alone, and without a temporary folder every command that opens a stage
+    failed: ``usdface inspect: error: No usable temporary directory found in ['/tmp', '/var/tmp', ...] (fix:
+    check the path)``, although the inputs and the output's folder were fine."""
+    try:
+        return tempfile.TemporaryFile()
+    except OSError:
+        pass
+    if hasattr(os, "memfd_create"):
+        try:
+            return os.fdopen(os.memfd_create("usdface-stderr"), "w+b")
+        except OSError:
+            pass
+    return None
+
+
+#: The first line of a diagnostic USD's default handler prints ("Warning: in FUNCTION at line N of FILE --
+#: ...", "Coding Error: ...", "Runtime Error: ...").
+_TF_LINE = re.compile(r"^(?:Warning|Error|Coding Error|Runtime Error|Fatal Error|Status)(?: in |: )")
+
+
+def _others_lines(text: str) -> str:
+    """The lines of ``text`` that are not USD's diagnostics (a diagnostic's first line, :data:`_TF_LINE`,
+    and the indented or empty lines that continue it): what other threads wrote meanwhile."""
+    kept, in_usd = [], False
+    for line in text.splitlines(keepends=True):
+        if _TF_LINE.match(line):
+            in_usd = True
+        elif not (in_usd and (not line.strip() or line[:1].isspace())):
+            in_usd = False
+            kept.append(line)
+    return "".join(kept)
 
 
 #: One diagnostic USD printed on stderr: "Warning: in FUNCTION at line N of SOURCE -- MESSAGE".
@@ -151,7 +232,7 @@ def open_usd_stage(path, what: str = "file", fix: str = "pass an existing .usd/.
     for the first composition error (missing/cyclic sublayer, dangling reference)."""
     from pxr import Usd
 
-    path = require_file(path, what, fix)
+    path = require_usd_path(require_file(path, what, fix), what)
     if path.suffix.lower() == ".csv":  # USD would say only 'Cannot determine file format'
         usd_what = what if what.startswith("USD") else f"USD {what}"        # not 'a USD USD file'
         raise InputFileError(f"a CSV file (a Live Link Face take?) where a {usd_what} is expected", path=path,

@@ -263,9 +263,44 @@ def _blas_controller():
     return _BLAS_CONTROLLER[0]
 
 
+def _blas_control(take: bool) -> None:
+    """Make the calling thread the one that may set OpenBLAS's thread count (``take``), or give that up.
+
+    threadpoolctl (3.8 here) lets only one thread change the process-wide thread count of an OpenBLAS
+    built on pthreads, the first that did while it is alive, and silently ignores every other thread's
+    limit. A host's main thread outlives everything: after one ``personalize_avatar`` there, every later one
+    on the host's worker threads (a thread pool, a DCC's background job, a Dask worker's threads) ran with
+    the multi-threaded BLAS, its fit 4-6x slower on a busy 2-core machine, and when the last one out was on
+    another thread than the first in, the host's thread counts were not put back. The limit is
+    process-wide by design here (:data:`_ONE_BLAS_THREAD`), so the thread that sets or puts back the counts
+    takes control for that moment and gives it up afterwards."""
+    try:
+        from threadpoolctl import OpenBLASController
+    except ImportError:                      # an older threadpoolctl: every thread may set the counts
+        return
+    clear = getattr(OpenBLASController, "clear_controlling_thread", None)
+    if clear is not None:
+        clear(force=take)                    # giving up (force=False) clears only this thread's control
+
+
+def _limit_blas():
+    _blas_control(take=True)
+    try:
+        return _blas_controller().limit(limits=1, user_api="blas")
+    finally:
+        _blas_control(take=False)
+
+
+def _restore_blas(limiter) -> None:
+    _blas_control(take=True)
+    try:
+        limiter.restore_original_limits()
+    finally:
+        _blas_control(take=False)
+
+
 #: BLAS at one thread while any thread is inside; the host's thread counts put back by the last one out.
-_ONE_BLAS_THREAD = SharedWhileInside(lambda: _blas_controller().limit(limits=1, user_api="blas"),
-                                     lambda limiter: limiter.restore_original_limits())
+_ONE_BLAS_THREAD = SharedWhileInside(_limit_blas, _restore_blas)
 
 
 def one_blas_thread() -> SharedWhileInside:

@@ -584,6 +584,51 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")  # for any BLAS loaded before the variables were set
+    _stop_cleanly_on_signals()
+
+
+class _WorkerStopped(KeyboardInterrupt):
+    """A pool worker's SIGTERM (the batch stopped: ``_stop_pool``'s ``terminate()``, or the parent's death
+    through ``PR_SET_PDEATHSIG``) or SIGHUP, raised inside an item so that its atomic writes clean up."""
+
+
+#: Whether this pool worker process is inside an item now (:func:`_pool_item`).
+_IN_ITEM = threading.Event()
+
+
+def _stop_cleanly_on_signals() -> None:
+    """Pool worker: SIGTERM and SIGHUP end the process once the running item's writes have cleaned up.
+
+    By their default action they killed the worker at once: a batch stopped (Ctrl-C, a farm's SIGTERM) while
+    an item was writing left the write's hidden temporary file in the output folder
+    (``out/.anna.usda.t5_8lor8.tmp.usda``). Inside an item the signal raises :class:`_WorkerStopped`, whose
+    way out runs the writers' clean-up (:func:`_pool_item` then ends the process); between items there is
+    nothing to clean up and the process ends at once. A signal ignored at start stays ignored."""
+    import signal
+
+    def stop(signum, frame):
+        if _IN_ITEM.is_set():
+            raise _WorkerStopped()
+        os._exit(128 + signum)
+
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, stop)
+
+
+def _pool_item(worker: Callable[[dict], object], item: dict) -> dict:
+    """:func:`run_item` in a pool worker process; stopped by a signal (:func:`_stop_cleanly_on_signals`),
+    the process ends once the item's clean-up has run (the pool is being shut down: no result is wanted)."""
+    _IN_ITEM.set()
+    try:
+        return run_item(worker, item)
+    except _WorkerStopped:
+        import signal
+
+        os._exit(128 + signal.SIGTERM)
+    finally:
+        _IN_ITEM.clear()
 
 
 def _run_pool(worker, todo, jobs, advance):
@@ -599,7 +644,7 @@ def _run_pool(worker, todo, jobs, advance):
     # spawn, not fork: USD and Open3D start threads, and forking a threaded process can deadlock.
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                              initializer=init_worker) as pool:
-        futures = {pool.submit(run_item, worker, item): item for item in todo}
+        futures = {pool.submit(_pool_item, worker, item): item for item in todo}
         try:
             for fut in as_completed(futures):
                 item = futures[fut]
@@ -645,7 +690,7 @@ def _one_process(worker, item, pools: list, stopping) -> dict:
                              initializer=init_worker) as pool:
         pools.append(pool)
         try:
-            return pool.submit(run_item, worker, item).result()
+            return pool.submit(_pool_item, worker, item).result()
         except Exception as exc:  # the process died (BrokenProcessPool) or the result did not come back
             return _crashed(item, exc)
         finally:
