@@ -580,10 +580,10 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
 
     layer = stage.GetRootLayer()
     data = dict(layer.customLayerData).get("usdface") or {}
+    from ..io.file_kind import is_weights_take
     from ..io.take import has_frame_weights, probe_take
-    from ..io.usd_rig import _is_weights_take
 
-    weights_take = _is_weights_take(stage)
+    weights_take = is_weights_take(stage)
     if not weights_take and layer.realPath and probe_take(layer.realPath)[0] and not has_frame_weights(stage):
         # time-sampled points, no blend shapes, no weights (Pixar's lbs.baked.usda): called a take, with
         # the fix 'usdface inspect FILE', whose take reader then refused it for lack of weights
