@@ -10,8 +10,8 @@ The cheap facts come first and decide most files without composing a stage:
   export; ``usdface.inputs``: a layer written over an avatar), else whether the layer itself *defines* a take
   (a mesh with time-sampled ``points``, no capture ``usdface:frames:role``, no blend shapes outside the take's
   own ``Template`` rig);
-* only when asked (``compose=True``), the composed stage (whether it has a SkelRoot, a
-  BlendShape prim), which decides a file the root layer left undecided, or judged a take by its specs alone
+* only when asked (``compose=True``), the composed stage (whether it has a SkelRoot, a BlendShape, a
+  SkelAnimation prim), which decides a file the root layer left undecided, or judged a take by its specs alone
   (then only with a kind that is no avatar): usdface's capture/take layout (default prim with
   ``Frames`` and ``Template``), a ``UsdFaceCaptureAPI`` prim, an error-map file written before the maps
   carried their format (default prim ``/ErrorMaps``, no SkelRoot), a take of weights only (a SkelAnimation as
@@ -91,8 +91,8 @@ class FileKind:
     flattened : ``customLayerData["usdfaceFlatten"]`` (``source``, ``variant``) when it names a variant, else
         None.
     meshes : for a folder, whether it holds OBJ frames (``frames/`` or a ``*.obj``); else False.
-    skel_root, blend_shapes : whether the composed stage has a SkelRoot / a BlendShape prim (instance proxies
-        included); None when no stage was looked at.
+    skel_root, blend_shapes, skel_animation : whether the composed stage has a SkelRoot / a BlendShape / a
+        SkelAnimation prim anywhere (instance proxies included); None when no stage was looked at.
     layer : the root ``Sdf.Layer`` opened to tell (None for folders and other files): hold the FileKind while
         the file is read and USD parses it once (a stage opened later finds the layer in USD's registry).
     """
@@ -105,6 +105,7 @@ class FileKind:
     meshes: bool = False
     skel_root: bool | None = None
     blend_shapes: bool | None = None
+    skel_animation: bool | None = None
     layer: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -226,18 +227,20 @@ def _open(path: Path):
 
 
 def _composed(stage):
-    """``((kind, by) or None, {"skel_root": bool, "blend_shapes": bool})`` from the composed stage."""
+    """``((kind, by) or None, {"skel_root": ..., "blend_shapes": ..., "skel_animation": ...})`` from the
+    composed stage."""
     from pxr import Usd, UsdSkel
 
-    skel_root = blend_shapes = capture_api = False
+    skel_root = blend_shapes = skel_animation = capture_api = False
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         skel_root = skel_root or prim.IsA(UsdSkel.Root)
         blend_shapes = blend_shapes or prim.IsA(UsdSkel.BlendShape)
+        skel_animation = skel_animation or prim.IsA(UsdSkel.Animation)
         # as authored: GetAppliedSchemas() leaves out schemas USD's registry does not know (usdface's, in a
         # host that opened a stage before usdface registered them)
         capture_api = capture_api or "UsdFaceCaptureAPI" in (
             *prim.GetAppliedSchemas(), *prim.GetPrimTypeInfo().GetAppliedAPISchemas())
-    facts = {"skel_root": skel_root, "blend_shapes": blend_shapes}
+    facts = {"skel_root": skel_root, "blend_shapes": blend_shapes, "skel_animation": skel_animation}
     root = stage.GetDefaultPrim()
     if root and root.GetChild("Frames") and root.GetChild("Template"):
         # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
