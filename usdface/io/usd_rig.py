@@ -46,6 +46,7 @@ import numpy as np
 from .. import arkit
 from ..errors import AlreadyPersonalizedError, GeometryError, InputFileError, RigError, UsdFaceError
 from ..model import Avatar, FaceRig, Inbetween, MeshSource
+from .file_kind import Kind
 from .file_kind import plain as _plain
 from .mesh_io import fan_triangulate
 
@@ -496,20 +497,23 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
+#: What :func:`_refuse_non_avatar` says of each kind that is no avatar, and its fix.
 _NOT_AVATAR = {
-    "capture": ("a usdface capture (written by 'usdface capture import/select'), not an avatar",
-                "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
-    "take": ("a usdface take (a recording), not an avatar",
-             "pass the avatar's .usd file; a take goes where a capture goes ('personalize AVATAR TAKE', "
-             "'fit TAKE', 'capture select TAKE') or to 'personalize AVATAR CAPTURE --take TAKE'"),
-    "animation": ("a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), "
-                  "not an avatar",
-                  "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the "
-                  "avatar's Skeleton with skel:animationSource"),
-    "errorMaps": ("an error-map file written by 'usdface evaluate --usd' (each method's per-vertex error "
-                  "on the capture's test frames), not an avatar",
-                  "open it in usdview to look at the errors; pass the avatar's .usd file where an avatar is "
-                  "expected"),
+    Kind.CAPTURE: (
+        "a usdface capture (written by 'usdface capture import/select'), not an avatar",
+        "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
+    Kind.TAKE: (
+        "a usdface take (a recording), not an avatar",
+        "pass the avatar's .usd file; a take goes where a capture goes ('personalize AVATAR TAKE', "
+        "'fit TAKE', 'capture select TAKE') or to 'personalize AVATAR CAPTURE --take TAKE'"),
+    Kind.WEIGHTS_TAKE: (
+        "a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), not an avatar",
+        "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the avatar's "
+        "Skeleton with skel:animationSource"),
+    Kind.ERROR_MAPS: (
+        "an error-map file written by 'usdface evaluate --usd' (each method's per-vertex error on the "
+        "capture's test frames), not an avatar",
+        "open it in usdview to look at the errors; pass the avatar's .usd file where an avatar is expected"),
 }
 
 
@@ -518,7 +522,7 @@ def _refuse_non_avatar(stage, path: Path) -> None:
     (:func:`usdface.io.file_kind.file_kind` on the composed stage): say what the file is (a capture's template
     rig would otherwise be read as a face). A file only the root layer's specs call a take (a mesh cache) is
     left to the reader, which says what it lacks."""
-    from .file_kind import NOT_AVATAR, Kind, file_kind, top_animation
+    from .file_kind import NOT_AVATAR, file_kind, top_animation
 
     found = file_kind(path, stage=stage, compose=True)
     if found.kind not in NOT_AVATAR or found.by == "layer specs":
@@ -526,7 +530,7 @@ def _refuse_non_avatar(stage, path: Path) -> None:
     root = stage.GetDefaultPrim()
     if not root and found.kind is Kind.WEIGHTS_TAKE and found.by == "stage":
         root = top_animation(stage)
-    what, fix = _NOT_AVATAR[found.kind.value]
+    what, fix = _NOT_AVATAR[found.kind]
     raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
 
 
