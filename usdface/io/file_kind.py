@@ -1,5 +1,6 @@
 """What kind of input a path is, told by one rule: :func:`file_kind` (the avatar reader's refusals,
-``inspect``'s dispatch, ``review``'s refusal of a personalize input, the take checks and ``render`` ask it).
+``inspect``'s dispatch, ``review``'s refusal of a personalize input, the take and capture checks, ``check``'s
+Readable rule and ``render`` ask it).
 
 The cheap facts come first and decide most files without composing a stage:
 
@@ -50,7 +51,7 @@ class Kind(StrEnum):
     CAPTURE_FOLDER = "capture folder"   #: a folder with ``train/``, or ``neutral.obj`` and no take in it
     TAKE_FOLDER = "take folder"         #: a folder with ``frames/`` or a ``*.csv`` and no ``train/``
     FOLDER = "folder"                   #: any other folder
-    LIVELINK_CSV = "Live Link CSV"      #: a ``.csv`` (a Live Link Face take of weights only)
+    LIVELINK_CSV = "Live Link CSV"      #: a ``.csv`` that is no folder (its reader judges the content)
     CAPTURE = "capture"                 #: a capture USD file ('capture import/select')
     TAKE = "take"                       #: a USD take (meshes, and their weights)
     WEIGHTS_TAKE = "animation"          #: a USD take of weights only (a SkelAnimation, 'anim import')
@@ -58,7 +59,7 @@ class Kind(StrEnum):
     ERROR_MAPS = "errorMaps"            #: an error-map file ('evaluate --usd')
     FLATTENED = "flattened"             #: a flattened export of a usdface layer ('export --flatten')
     LAYER = "usdface layer"             #: a layer usdface wrote over an avatar (personalize, landmarks)
-    AVATAR = "avatar"                   #: a USD file with a SkelRoot (told from the composed stage only)
+    AVATAR = "avatar"                   #: composed only: a SkelRoot in a file the root layer left open
     USD = "USD"                         #: a USD file none of the above (or not composed, or unreadable)
     OTHER = "other"                     #: a file that is neither USD nor CSV, or no regular file
 
@@ -90,11 +91,13 @@ class FileKind:
     usdface : the root layer's ``customLayerData["usdface"]`` as plain Python values, {} without one.
     flattened : ``customLayerData["usdfaceFlatten"]`` (``source``, ``variant``) when it names a variant, else
         None.
-    meshes : for a folder, whether it holds OBJ frames (``frames/`` or a ``*.obj``); else False.
+    meshes : for a folder, whether it holds OBJ meshes (``frames/``, or any ``*.obj``: ``neutral.obj``
+        counts); else False.
     skel_root, blend_shapes, skel_animation : whether the composed stage has a SkelRoot / a BlendShape / a
         SkelAnimation prim anywhere (instance proxies included); None when no stage was looked at.
-    layer : the root ``Sdf.Layer`` opened to tell (None for folders and other files): hold the FileKind while
-        the file is read and USD parses it once (a stage opened later finds the layer in USD's registry).
+    layer : the root ``Sdf.Layer`` opened to tell (None for folders, other files and unreadable ones): hold
+        the FileKind while the file is read and USD parses it once (a stage opened later finds the layer in
+        USD's registry).
     """
 
     path: Path
@@ -115,9 +118,9 @@ class FileKind:
 
     @property
     def provenance(self) -> dict | None:
-        """The provenance of a file usdface wrote from inputs over an avatar (``personalize``, ``landmarks``,
-        ``fit``, a flattened export of such a layer): ``usdface`` when it records ``inputs`` and the file is
-        none of :data:`NOT_AVATAR`, else None."""
+        """The provenance of a file usdface wrote from recorded inputs (a ``personalize`` or ``landmarks``
+        layer, a flattened export of one, a ``fit`` result): ``usdface`` when it records ``inputs`` and the
+        file is none of :data:`NOT_AVATAR`, else None."""
         if self.kind in NOT_AVATAR or not self.usdface.get("inputs"):
             return None
         return self.usdface
