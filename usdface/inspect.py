@@ -247,7 +247,8 @@ def inspect_file(path, name_map=None) -> dict:
         return _summarize_whole_take(path, info)
     if found.kind is Kind.USD:      # the root layer leaves it open: ask the composed stage
         found = file_kind(path, compose=True)
-    if found.kind is Kind.CAPTURE and hasattr(io, "read_capture"):
+    if found.kind is Kind.CAPTURE and found.by in ("format", "schema") and hasattr(io, "read_capture"):
+        # (one told only by its layout is left to the avatar reader, which refuses it as a capture)
         return summarize_capture(io.read_capture(path), info)
     if found.kind is Kind.WEIGHTS_TAKE:
         from .io.take import read_take

@@ -14,9 +14,9 @@ The cheap facts come first and decide most files without composing a stage:
 * only when asked (``compose=True``), the composed stage (whether it has a SkelRoot, a BlendShape, a
   SkelAnimation prim), which decides a file the root layer left undecided, or judged a take by its specs alone
   (then only with a kind that is no avatar): usdface's capture/take layout (default prim with
-  ``Frames`` and ``Template``), a ``UsdFaceCaptureAPI`` prim, an error-map file written before the maps
-  carried their format (default prim ``/ErrorMaps``, no SkelRoot), a take of weights only (a SkelAnimation as
-  the default prim, or else a top-level prim, and no SkelRoot), an avatar (a SkelRoot).
+  ``Frames`` and ``Template``), an error-map file written before the maps carried their format (default prim
+  ``/ErrorMaps``, no SkelRoot), a take of weights only (a SkelAnimation as the default prim, or else a
+  top-level prim, and no SkelRoot), a ``UsdFaceCaptureAPI`` prim, an avatar (a SkelRoot).
 
 What decided the answer is kept in :attr:`FileKind.by`, so a caller can weigh the evidence (the avatar reader
 does not refuse a mesh cache that only the layer-spec test calls a take).
@@ -84,9 +84,9 @@ class FileKind:
         or a USD file whose root layer cannot be opened); ``"train/"``, ``"frames/"``, ``"*.csv"``,
         ``"neutral.obj"`` (what a folder holds); ``"format"`` (``usdface.format`` in the root layer),
         ``"flatten"`` (``usdfaceFlatten``), ``"inputs"`` (``usdface.inputs``), ``"layer specs"`` (the root
-        layer defines a take); ``"layout"`` (default prim with ``Frames`` and ``Template``), ``"schema"`` (a
-        ``UsdFaceCaptureAPI`` prim), ``"legacy"`` (default prim ``/ErrorMaps``, no SkelRoot), ``"stage"``
-        (weights only; a SkelRoot), from the composed stage; ``"nothing"`` (a readable USD file none of
+        layer defines a take); ``"layout"`` (default prim with ``Frames`` and ``Template``), ``"legacy"``
+        (default prim ``/ErrorMaps``, no SkelRoot), ``"stage"`` (weights only; a SkelRoot), ``"schema"`` (a
+        ``UsdFaceCaptureAPI`` prim), from the composed stage; ``"nothing"`` (a readable USD file none of
         these describe).
     usdface : the root layer's ``customLayerData["usdface"]`` as plain Python values, {} without one.
     flattened : ``customLayerData["usdfaceFlatten"]`` (``source``, ``variant``) when it names a variant, else
@@ -248,12 +248,12 @@ def _composed(stage):
         # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
         role = root.GetChild("Frames").GetAttribute("usdface:frames:role")
         return ((Kind.CAPTURE if role else Kind.TAKE), "layout"), facts
-    if capture_api:
-        return (Kind.CAPTURE, "schema"), facts
     if root and str(root.GetPath()) == "/ErrorMaps" and not skel_root:
         return (Kind.ERROR_MAPS, "legacy"), facts        # written before the maps carried their format
     if top_animation(stage) is not None and not skel_root:
         return (Kind.WEIGHTS_TAKE, "stage"), facts
+    if capture_api:
+        return (Kind.CAPTURE, "schema"), facts
     if skel_root:
         return (Kind.AVATAR, "stage"), facts
     return None, facts

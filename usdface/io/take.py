@@ -493,7 +493,7 @@ def check_take_path(path, fix: str = TAKE_FIX) -> Path:
     found = file_kind(p, stage=stage, compose=True)
     if found.kind is Kind.FIT:
         what = "a 'usdface fit' rig (the person's shapes on the capture mesh)"
-    elif found.kind is Kind.ERROR_MAPS:
+    elif found.kind is Kind.ERROR_MAPS and found.by == "format":      # one that says so
         what = "an error-map file written by 'usdface evaluate --usd'"
     elif found.skel_root:
         what = ("a usdface output layer (a personalized avatar)" if found.usdface.get("inputs")

@@ -520,12 +520,14 @@ _NOT_AVATAR = {
 def _refuse_non_avatar(stage, path: Path) -> None:
     """A capture, take, weights-only take or error-map file passed where an avatar is expected
     (:func:`usdface.io.file_kind.file_kind` on the composed stage): say what the file is (a capture's template
-    rig would otherwise be read as a face). A file only the root layer's specs call a take (a mesh cache) is
-    left to the reader, which says what it lacks."""
+    rig would otherwise be read as a face). Told by the record usdface wrote, usdface's capture/take layout,
+    a legacy error-map file or a weights-only stage; a file only the root layer's specs call a take (a mesh
+    cache) or only a ``UsdFaceCaptureAPI`` prim calls a capture is left to the reader, which says what it
+    lacks."""
     from .file_kind import NOT_AVATAR, file_kind, top_animation
 
     found = file_kind(path, stage=stage, compose=True)
-    if found.kind not in NOT_AVATAR or found.by == "layer specs":
+    if found.kind not in NOT_AVATAR or found.by in ("layer specs", "schema"):
         return
     root = stage.GetDefaultPrim()
     if not root and found.kind is Kind.WEIGHTS_TAKE and found.by == "stage":
