@@ -226,53 +226,37 @@ def inspect_file(path, name_map=None) -> dict:
     """
     import usdface.io as io
 
+    from .io.file_kind import Kind, file_kind
     from .io.name_map import read_name_map
 
     name_map = read_name_map(name_map)
     path = Path(path)
-    if path.is_dir():
-        from .io.take import probe_take
-
-        if probe_take(path)[0]:
-            return _summarize_whole_take(path)
+    found = file_kind(path)  # held: the root layer is parsed once
+    if found.kind is Kind.TAKE_FOLDER:
+        return _summarize_whole_take(path)
+    if found.kind in (Kind.CAPTURE_FOLDER, Kind.FOLDER):
         return summarize_capture(io.read_capture(path))
-    if path.suffix.lower() == ".csv":      # a Live Link Face recording: a take of weights only
-        from .io.take import read_take
+    if found.kind is Kind.LIVELINK_CSV or (found.kind is Kind.MISSING and path.suffix.lower() == ".csv"):
+        from .io.take import read_take  # a Live Link Face recording (a missing one named by its reader)
 
         return summarize_take(read_take(path))
-    from .io.take import probe_take
     from .io.usd_rig import read_avatar, read_layer_info
 
-    take, _layer = probe_take(path)  # _layer held: the file is parsed once
     info = read_layer_info(path)
-    if take:  # read as every command that takes a capture reads it: whole
+    if found.kind is Kind.TAKE:  # read as every command that takes a capture reads it: whole
         return _summarize_whole_take(path, info)
-    is_capture = info.get("usdface", {}).get("format") == "capture" or any(
-        "UsdFaceCaptureAPI" in v["schemas"] for v in info.get("schemas", {}).values())
-    if is_capture and hasattr(io, "read_capture"):
+    if found.kind is Kind.USD:      # the root layer leaves it open: ask the composed stage
+        found = file_kind(path, compose=True)
+    if found.kind is Kind.CAPTURE and found.by in ("format", "schema") and hasattr(io, "read_capture"):
+        # (one told only by its layout is left to the avatar reader, which refuses it as a capture)
         return summarize_capture(io.read_capture(path), info)
-    if _weights_only_take(path):
+    if found.kind is Kind.WEIGHTS_TAKE:
         from .io.take import read_take
 
         return summarize_take(read_take(path), info)
-    if _is_error_maps(path, info):
+    if found.kind is Kind.ERROR_MAPS:
         return summarize_error_maps(path, info)
     return summarize_avatar(read_avatar(path, name_map=name_map), info)
-
-
-def _is_error_maps(path: Path, info: dict) -> bool:
-    """An error-map file of ``usdface evaluate --usd`` (:func:`usdface.io.usd_error_maps.is_error_maps`):
-    another usdface file is not one, and an unreadable file is left to the avatar reader to name."""
-    if info.get("usdface"):
-        return info["usdface"].get("format") == "errorMaps"
-    from .io.usd_error_maps import is_error_maps
-    from .io.usd_open import open_usd_stage
-
-    try:
-        stage = open_usd_stage(path, "file", "check the path")
-    except Exception:  # noqa: BLE001 - unreadable: the avatar reader names the problem
-        return False
-    return is_error_maps(stage)
 
 
 def summarize_error_maps(path, layer_info: dict | None = None) -> dict:
@@ -291,17 +275,6 @@ def summarize_error_maps(path, layer_info: dict | None = None) -> dict:
     if layer_info:
         out["stageMetadata"] = layer_info.get("stage", {})
     return out
-
-
-def _weights_only_take(path: Path) -> bool:
-    """A take of weights only (``usdface anim import``: a SkelAnimation and no SkelRoot)."""
-    from .io.usd_open import open_usd_stage
-    from .io.usd_rig import _is_weights_take
-
-    try:
-        return _is_weights_take(open_usd_stage(path, "file", "check the path"))
-    except Exception:  # noqa: BLE001 - unreadable: the avatar reader names the problem
-        return False
 
 
 #: A shape whose weight never exceeds this in a take is one ``capture select`` cannot pick (its default

@@ -69,12 +69,14 @@ def _flattened_original(path: Path) -> Path | None:
     layer's first sublayer is. A recorded avatar that is no longer there is refused naming it (before, any
     flattened export was 'not a usdface layer (no sublayer to compare with)', which it is, flattened)."""
     from ..errors import InputFileError
-    from ..io.usd_rig import _from_cwd, flattened_from, usdface_output_provenance
+    from ..io.file_kind import file_kind
+    from ..io.usd_rig import _from_cwd
 
-    flat = flattened_from(path)
+    found = file_kind(path)             # the root layer, read once
+    flat = found.flattened
     if flat is None or flat["variant"] != "personalized":
         return None
-    inputs = (usdface_output_provenance(path) or {}).get("inputs") or []
+    inputs = (found.provenance or {}).get("inputs") or []
     if not inputs:
         return None
     original = Path(path).parent / str(inputs[0])
@@ -121,16 +123,13 @@ def _mesh_with_layout(avatar, rig, path: Path):
 
 
 def _capture_file(path: Path) -> tuple[bool, object]:
-    """Whether ``path`` is a capture or take USD file (marked by 'capture import/select' or write_take_usd,
-    or a take another tool wrote), drawn like a capture folder without ``--capture``; and the root layer
-    opened to tell (None for folders and other files)."""
-    from ..io.take import probe_take
+    """Whether ``path`` is a capture or take (:func:`usdface.io.file_kind.file_kind`: marked by 'capture
+    import/select' or write_take_usd, a take another tool wrote, a take folder), drawn like a capture folder
+    without ``--capture``; and the root layer opened to tell (None for folders and other files)."""
+    from ..io.file_kind import Kind, file_kind
 
-    take, layer = probe_take(path)
-    if take or layer is None:
-        return take, layer
-    data = dict(layer.customLayerData).get("usdface") or {}
-    return (hasattr(data, "get") and data.get("format") == "capture"), layer
+    found = file_kind(path)
+    return found.kind in (Kind.CAPTURE, Kind.TAKE, Kind.TAKE_FOLDER), found.layer
 
 
 def run(args) -> int:

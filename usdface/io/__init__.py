@@ -25,22 +25,28 @@ def check_capture_path(path) -> Path:
     that is not USD or cannot be read, a folder that is neither a take nor a capture folder (no
     ``neutral.obj``). Raises :class:`usdface.errors.InputFileError` or ``CaptureError`` naming the path and
     the fix; returns it as a Path."""
+    return _checked_capture(path).path
+
+
+def _checked_capture(path):
+    """:func:`check_capture_path`, returning what :func:`usdface.io.file_kind.file_kind` found."""
     from ..errors import CaptureError, InputFileError
-    from .take import probe_take
+    from .file_kind import Kind, file_kind
 
     path = Path(path)
-    if path.is_dir():
-        if not probe_take(path)[0] and not (path / "neutral.obj").is_file():
+    found = file_kind(path)
+    if found.kind in (Kind.CAPTURE_FOLDER, Kind.TAKE_FOLDER, Kind.FOLDER):
+        if found.kind is not Kind.TAKE_FOLDER and not (path / "neutral.obj").is_file():
             from .capture_folder import missing_layout
 
             raise missing_layout(path, "neutral.obj")
-        return path
-    if path.suffix.lower() == ".csv" and path.is_file():
+        return found
+    if found.kind is Kind.LIVELINK_CSV and path.is_file():
         from .take import WEIGHTS_ONLY_FIX
 
         raise CaptureError("a Live Link Face CSV: a take of weights only, no meshes to fit", path=path,
                            fix=WEIGHTS_ONLY_FIX)
-    if not path.exists():
+    if found.kind is Kind.MISSING:
         raise InputFileError("capture not found", path=path,
                              fix="pass a capture folder or a .usda written by 'usdface capture import'")
     if path.suffix.lower() not in USD_EXTENSIONS:
@@ -48,27 +54,29 @@ def check_capture_path(path) -> Path:
                              fix="pass a capture folder (neutral.obj, template/, train/) or a capture .usda")
     from .usd_open import require_readable
 
-    return require_readable(path, "capture", fix="pass a capture folder or a capture .usda you can read")
+    require_readable(path, "capture", fix="pass a capture folder or a capture .usda you can read")
+    return found
 
 
 def read_capture(path):
     """Read a capture folder or a capture USD file into a :class:`usdface.model.Capture`.
 
-    Dispatches on the path: a take (:func:`usdface.io.take.is_take`: a USD take, an OBJ-sequence folder with
-    a Live Link CSV) -> every frame as a training frame (:func:`usdface.io.take.capture_from_whole_take`,
-    whole-take fitting); a directory -> :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``,
-    ``.usda``, ``.usdc`` file -> :func:`usdface.io.usd_capture.read_capture_usd`. Anything else raises
+    Dispatches on what :func:`usdface.io.file_kind.file_kind` finds: a take (a USD take, an OBJ-sequence
+    folder with a Live Link CSV) -> every frame as a training frame
+    (:func:`usdface.io.take.capture_from_whole_take`, whole-take fitting); a folder ->
+    :func:`usdface.io.capture_folder.read_capture_folder`; a ``.usd``, ``.usda``, ``.usdc`` file ->
+    :func:`usdface.io.usd_capture.read_capture_usd`. Anything else raises
     :class:`usdface.errors.InputFileError` (:func:`check_capture_path`).
     """
-    from .take import probe_take
+    from .file_kind import Kind
 
-    path = check_capture_path(path)
-    take, _layer = probe_take(path)  # _layer held: the file is parsed once
-    if take:
+    found = _checked_capture(path)      # held: the root layer is parsed once
+    path = found.path
+    if found.kind in (Kind.TAKE, Kind.TAKE_FOLDER):
         from .take import capture_from_whole_take, read_take
 
         return _absolute_source(capture_from_whole_take(read_take(path)))
-    if path.is_dir():
+    if found.kind in (Kind.CAPTURE_FOLDER, Kind.FOLDER):
         from .capture_folder import read_capture_folder
 
         return _absolute_source(read_capture_folder(path))

@@ -99,23 +99,22 @@ TAKE_NOT_CAPTURE_FIX = ("pass the capture as CAPTURE (its test expressions alrea
 
 
 def refuse_capture_as_take(path, fix: str) -> None:
-    """A capture (a folder with ``train/``, a USD file marked ``format = "capture"``) where a take is read:
-    CaptureError naming what it is, with ``fix`` (what the caller reads instead); a capture read as a take
-    would play or pick its frames as if recorded in that order."""
-    p = Path(path)
-    is_capture = p.is_dir() and (p / "train").is_dir()
-    if not is_capture and p.is_file() and p.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
-        from pxr import Sdf
+    """A capture (a folder with ``train/``, a USD file marked ``format = "capture"``:
+    :func:`usdface.io.file_kind.file_kind`) where a take is read: CaptureError naming what it is, with ``fix``
+    (what the caller reads instead); a capture read as a take would play or pick its frames as if recorded
+    in that order."""
+    from .file_kind import file_kind
 
-        try:
-            layer = Sdf.Layer.FindOrOpen(str(p))
-        except Exception:  # noqa: BLE001 - unreadable: the take reader names the problem
-            layer = None
-        data = dict(layer.customLayerData).get("usdface") if layer is not None else None
-        is_capture = hasattr(data, "get") and data.get("format") == "capture"
-    if is_capture:
+    _refuse_capture(file_kind(path), fix)
+
+
+def _refuse_capture(found, fix: str) -> None:
+    """:func:`refuse_capture_as_take` for what :func:`usdface.io.file_kind.file_kind` found."""
+    from .file_kind import Kind
+
+    if found.kind is Kind.CAPTURE or (found.kind is Kind.CAPTURE_FOLDER and found.by == "train/"):
         raise CaptureError("this is a capture (its training and test frames are already picked), not a "
-                           "take", path=p, fix=fix)
+                           "take", path=found.path, fix=fix)
 
 
 def read_take(path) -> Take:
@@ -417,61 +416,26 @@ def write_take_folder(take: Take, path, force: bool = False) -> Path:
 
 # ---------------------------------------------------------------------------------------- take -> capture
 def is_take(path) -> bool:
-    """True when ``path`` is a take rather than a capture: a folder with ``frames/`` or a Live Link CSV and
-    no ``train/``; a USD file marked ``format = "take"`` by :func:`write_take_usd`, or, unmarked, one whose
-    root layer *defines* a mesh with time-sampled ``points`` and has no capture ``usdface:frames:role`` and
-    no blend shapes outside the take's own ``Template`` rig (an avatar with an animated cache mesh is an
-    avatar, and so is a shot file whose cache is an ``over`` of a referenced avatar); arcs and sublayers
-    elsewhere (a take's looks, its template in a file of its own) do not change the answer. A capture (or
-    anything else) is False, so its reader reports what is wrong with it."""
+    """True when ``path`` is a take rather than a capture (:func:`usdface.io.file_kind.file_kind`: a
+    :attr:`~usdface.io.file_kind.Kind.TAKE_FOLDER` or a :attr:`~usdface.io.file_kind.Kind.TAKE`): a folder
+    with ``frames/`` or a Live Link CSV and no ``train/``; a USD file marked ``format = "take"`` by
+    :func:`write_take_usd`, or, unmarked, one whose root layer *defines* a mesh with time-sampled ``points``
+    and has no capture ``usdface:frames:role`` and no blend shapes outside the take's own ``Template`` rig (an
+    avatar with an animated cache mesh is an avatar, and so is a shot file whose cache is an ``over`` of a
+    referenced avatar); arcs and sublayers elsewhere (a take's looks, its template in a file of its own) do
+    not change the answer. A capture (or anything else) is False, so its reader reports what is wrong with
+    it."""
     return probe_take(path)[0]
 
 
 def probe_take(path) -> tuple[bool, object]:
-    """:func:`is_take` and the USD root layer it opened (None for folders): hold it while the file is read
-    so that USD parses it once (the stage reader finds the open layer in USD's registry)."""
-    path = Path(path)
-    if path.is_dir():
-        take = not (path / "train").is_dir() and ((path / "frames").is_dir() or any(path.glob("*.csv")))
-        return take, None
-    if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz") or not path.is_file():
-        return False, None
-    from pxr import Sdf
+    """:func:`is_take` and the USD root layer it opened (None for folders and files that are not USD): hold
+    it while the file is read so that USD parses it once (the stage reader finds the open layer in USD's
+    registry)."""
+    from .file_kind import Kind, file_kind
 
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # noqa: BLE001 - unreadable: the capture reader names the problem
-        return False, None
-    if layer is None:
-        return False, None
-    kind = (dict(layer.customLayerData).get("usdface") or {}).get("format")
-    if kind in ("take", "capture"):
-        return kind == "take", layer
-    # the layer's own specs, not a composed stage: opening one here would report its composition errors
-    # (a missing sublayer) a second time, outside the reader that names them with their fix
-    # an avatar (blend shapes bound to a mesh outside a take's own Template rig) is not a take even where one
-    # of its meshes is an animated cache (a hair cache, a baked ground truth); nor is a shot file whose
-    # animated mesh is an ``over`` of something it composes (a cache over a referenced avatar): a take
-    # *defines* its frames mesh
-    seen = {"role": False, "points": False, "blend": False}
-
-    def visit(spec_path):
-        if spec_path.IsPropertyPath():
-            if spec_path.name == "usdface:frames:role":
-                seen["role"] = True
-            elif spec_path.name == "points" and layer.GetNumTimeSamplesForPath(spec_path) > 1:
-                owner = layer.GetPrimAtPath(spec_path.GetPrimPath())
-                if owner is not None and owner.specifier == Sdf.SpecifierDef:
-                    seen["points"] = True
-            elif spec_path.name == "skel:blendShapes" and not _in_template(spec_path):
-                seen["blend"] = True
-        elif spec_path.IsPrimPath():
-            spec = layer.GetPrimAtPath(spec_path)
-            if spec is not None and spec.typeName == "BlendShape" and not _in_template(spec_path):
-                seen["blend"] = True
-
-    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-    return seen["points"] and not seen["role"] and not seen["blend"], layer
+    found = file_kind(path)
+    return found.kind in (Kind.TAKE, Kind.TAKE_FOLDER), found.layer
 
 
 #: The fix when a file that is no take is given where a take is read (``--take``, a manifest's ``take``).
@@ -487,19 +451,19 @@ def check_take_path(path, fix: str = TAKE_FIX) -> Path:
     USD, and a USD file with no time-sampled mesh and no per-frame weights (an avatar, a fitted rig: named
     as such). Raises :class:`usdface.errors.InputFileError` / ``CaptureError`` naming the path and ``fix``;
     returns it as a Path."""
-    import os
+    from .file_kind import Kind, file_kind
 
     p = Path(path)
-    if not os.path.exists(p):
+    found = file_kind(p)                       # held: the stage below parses the file once
+    if found.kind is Kind.MISSING:
         raise InputFileError("take not found", path=p, fix=fix)
-    refuse_capture_as_take(p, TAKE_NOT_CAPTURE_FIX)
-    if p.is_dir():
-        if not probe_take(p)[0]:
-            raise InputFileError("not a take: a folder with no frames/ folder and no Live Link CSV", path=p,
-                                 fix=fix)
+    _refuse_capture(found, TAKE_NOT_CAPTURE_FIX)
+    if found.kind in (Kind.CAPTURE_FOLDER, Kind.FOLDER):
+        raise InputFileError("not a take: a folder with no frames/ folder and no Live Link CSV", path=p,
+                             fix=fix)
+    if found.kind is Kind.TAKE_FOLDER:
         return p
-    suffix = p.suffix.lower()
-    if suffix == ".csv":                       # the header and the first frame only, as the reader sees them
+    if found.kind is Kind.LIVELINK_CSV:        # the header and the first frame only, as the reader sees them
         try:
             with open(p, encoding="utf-8-sig", newline="") as f:
                 lines = [line for line in (f.readline() for _ in range(64)) if line.strip()][:2]
@@ -516,28 +480,24 @@ def check_take_path(path, fix: str = TAKE_FIX) -> Path:
             raise InputFileError("the take's CSV has a header but no frames", path=p,
                                  fix="record a take first")
         return p
-    if suffix not in (".usd", ".usda", ".usdc", ".usdz"):
+    if found.kind is Kind.OTHER:
         raise InputFileError("not a take (expected a folder, a .usd/.usda/.usdc/.usdz or a Live Link .csv)",
                              path=p, fix=fix)
-    take, _layer = probe_take(p)               # the layer held: the stage below parses the file once
-    if take:
+    if found.kind is Kind.TAKE:
         return p
-    from pxr import UsdSkel
-
     from .usd_open import open_usd_stage
-    from .usd_rig import usdface_layer_data
 
     stage = open_usd_stage(p, "take", fix)
     if has_frame_weights(stage):               # a weights-only take (a SkelAnimation, 'anim import')
         return p
-    data = usdface_layer_data(p)
-    kind = data.get("format")
-    if kind == "fit":
+    found = file_kind(p, stage=stage, compose=True)
+    if found.kind is Kind.FIT:
         what = "a 'usdface fit' rig (the person's shapes on the capture mesh)"
-    elif kind == "errorMaps":
+    elif found.kind is Kind.ERROR_MAPS and found.by == "format":      # one that says so
         what = "an error-map file written by 'usdface evaluate --usd'"
-    elif any(p_.IsA(UsdSkel.Root) for p_ in stage.Traverse()):
-        what = "a usdface output layer (a personalized avatar)" if data.get("inputs") else "an avatar"
+    elif found.skel_root:
+        what = ("a usdface output layer (a personalized avatar)" if found.usdface.get("inputs")
+                else "an avatar")
     else:
         what = "a USD file"
     raise CaptureError(f"this is {what}, not a take: no mesh with time-sampled points and no SkelAnimation "
@@ -559,12 +519,6 @@ def has_frame_weights(stage) -> bool:
                 UsdSkel.Animation(prim).GetBlendShapeWeightsAttr().GetNumTimeSamples():
             return True
     return False
-
-
-def _in_template(spec_path) -> bool:
-    """Whether a spec path lies in a take's own template rig, ``/<root>/Template/...`` (read_take_usd)."""
-    prefixes = spec_path.GetPrefixes()
-    return len(prefixes) > 1 and prefixes[1].name == "Template"
 
 
 def capture_from_whole_take(take: Take, template=None) -> Capture:

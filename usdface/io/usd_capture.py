@@ -351,10 +351,10 @@ def read_capture_usd(path) -> Capture:
     stage = open_usd_stage(path, "capture file", "pass a capture .usda written by 'usdface capture import'")
     root = stage.GetDefaultPrim() or stage.GetPrimAtPath(CAPTURE_PRIM)
     if not root or not root.GetChild("Frames"):
+        from .file_kind import is_weights_take
         from .take import WEIGHTS_ONLY_FIX
-        from .usd_rig import _is_weights_take
 
-        if _is_weights_take(stage):
+        if is_weights_take(stage):
             from pxr import UsdSkel
 
             anim = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))

@@ -86,18 +86,3 @@ def read_error_maps(path) -> dict[str, dict[str, np.ndarray]]:
         if frames:
             out[group.GetName()] = frames
     return out
-
-
-def is_error_maps(stage) -> bool:
-    """Whether ``stage`` is an error-map file (:func:`write_error_maps_usd`): marked so in its root layer's
-    ``customLayerData``, or, written before the maps carried their format, a default prim ``/ErrorMaps`` and
-    no SkelRoot (the avatar reader's refusal and ``usdface inspect`` tell it by this one rule)."""
-    from pxr import Usd, UsdSkel
-
-    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
-    if hasattr(data, "get") and data.get("format") == "errorMaps":
-        return True
-    root = stage.GetDefaultPrim()
-    return bool(root) and str(root.GetPath()) == "/ErrorMaps" and not any(
-        p.IsA(UsdSkel.Root) for p in stage.Traverse(Usd.TraverseInstanceProxies()))
-

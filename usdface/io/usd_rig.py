@@ -46,6 +46,8 @@ import numpy as np
 from .. import arkit
 from ..errors import AlreadyPersonalizedError, GeometryError, InputFileError, RigError, UsdFaceError
 from ..model import Avatar, FaceRig, Inbetween, MeshSource
+from .file_kind import Kind
+from .file_kind import plain as _plain
 from .mesh_io import fan_triangulate
 
 #: Root-layer metadata that describes how to interpret the stage; a layer written over the avatar repeats it.
@@ -495,56 +497,43 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
 
 
+#: What :func:`_refuse_non_avatar` says of each kind that is no avatar, and its fix.
 _NOT_AVATAR = {
-    "capture": ("a usdface capture (written by 'usdface capture import/select'), not an avatar",
-                "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
-    "take": ("a usdface take (a recording), not an avatar",
-             "pass the avatar's .usd file; a take goes where a capture goes ('personalize AVATAR TAKE', "
-             "'fit TAKE', 'capture select TAKE') or to 'personalize AVATAR CAPTURE --take TAKE'"),
-    "animation": ("a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), "
-                  "not an avatar",
-                  "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the "
-                  "avatar's Skeleton with skel:animationSource"),
-    "errorMaps": ("an error-map file written by 'usdface evaluate --usd' (each method's per-vertex error "
-                  "on the capture's test frames), not an avatar",
-                  "open it in usdview to look at the errors; pass the avatar's .usd file where an avatar is "
-                  "expected"),
+    Kind.CAPTURE: (
+        "a usdface capture (written by 'usdface capture import/select'), not an avatar",
+        "pass the avatar's file where an avatar is expected (personalize: AVATAR, then CAPTURE)"),
+    Kind.TAKE: (
+        "a usdface take (a recording), not an avatar",
+        "pass the avatar's .usd file; a take goes where a capture goes ('personalize AVATAR TAKE', "
+        "'fit TAKE', 'capture select TAKE') or to 'personalize AVATAR CAPTURE --take TAKE'"),
+    Kind.WEIGHTS_TAKE: (
+        "a take (a SkelAnimation of blend-shape weights, e.g. from 'usdface anim import'), not an avatar",
+        "pass the avatar's .usd file; a take goes to 'personalize --take' or is bound to the avatar's "
+        "Skeleton with skel:animationSource"),
+    Kind.ERROR_MAPS: (
+        "an error-map file written by 'usdface evaluate --usd' (each method's per-vertex error on the "
+        "capture's test frames), not an avatar",
+        "open it in usdview to look at the errors; pass the avatar's .usd file where an avatar is expected"),
 }
 
 
-def _is_weights_take(stage) -> bool:
-    """A weights-only take (``usdface anim import``, :func:`usdface.io.usd_anim.write_animation_usd`, or any
-    file whose default prim, or else a top-level prim, is a SkelAnimation) with no SkelRoot anywhere."""
-    from pxr import UsdSkel
-
-    root = stage.GetDefaultPrim()
-    tops = [root] if root else list(stage.GetPseudoRoot().GetChildren())
-    if not any(p.IsA(UsdSkel.Animation) for p in tops):
-        return False
-    return not any(p.IsA(UsdSkel.Root) for p in stage.Traverse())
-
-
 def _refuse_non_avatar(stage, path: Path) -> None:
-    """A capture or take passed where an avatar is expected: say what the file is (its template rig would
-    otherwise be read as a face)."""
-    from pxr import UsdSkel
+    """A capture, take, weights-only take or error-map file passed where an avatar is expected
+    (:func:`usdface.io.file_kind.file_kind` on the composed stage): say what the file is (a capture's template
+    rig would otherwise be read as a face). Told by the record usdface wrote, usdface's capture/take layout,
+    a legacy error-map file or a weights-only stage; a file only the root layer's specs call a take (a mesh
+    cache) or only a ``UsdFaceCaptureAPI`` prim calls a capture is left to the reader, which says what it
+    lacks."""
+    from .file_kind import NOT_AVATAR, file_kind, top_animation
 
-    from .usd_error_maps import is_error_maps
-
-    data = dict(stage.GetRootLayer().customLayerData).get("usdface") or {}
-    kind = str(data.get("format", "")) if hasattr(data, "get") else ""
+    found = file_kind(path, stage=stage, compose=True)
+    if found.kind not in NOT_AVATAR or found.by in ("layer specs", "schema"):
+        return
     root = stage.GetDefaultPrim()
-    if kind not in _NOT_AVATAR and root and root.GetChild("Frames") and root.GetChild("Template"):
-        # a capture's frames carry their roles (train/test); a take's (usdface's or another tool's) do not
-        kind = "capture" if root.GetChild("Frames").GetAttribute("usdface:frames:role") else "take"
-    if kind not in _NOT_AVATAR and is_error_maps(stage):
-        kind = "errorMaps"      # written before the maps carried their format
-    if kind not in _NOT_AVATAR and _is_weights_take(stage):
-        kind = "animation"
-        root = root or next(p for p in stage.GetPseudoRoot().GetChildren() if p.IsA(UsdSkel.Animation))
-    if kind in _NOT_AVATAR:
-        what, fix = _NOT_AVATAR[kind]
-        raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
+    if not root and found.kind is Kind.WEIGHTS_TAKE and found.by == "stage":
+        root = top_animation(stage)
+    what, fix = _NOT_AVATAR[found.kind]
+    raise RigError(f"this is {what}", path=path, prim=root.GetPath() if root else None, fix=fix)
 
 
 def _from_cwd(path: Path) -> str:
@@ -560,38 +549,19 @@ def _from_cwd(path: Path) -> str:
 def usdface_layer_data(path) -> dict:
     """The root layer's ``customLayerData["usdface"]`` of the file ``path`` (what usdface wrote into it), {}
     for another file or one that cannot be read (the reader that follows says what it is). Reads only the
-    root layer's header-level data."""
-    import stat
+    root layer (:func:`usdface.io.file_kind.file_kind`)."""
+    from .file_kind import file_kind
 
-    from pxr import Sdf
-
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
-            return {}  # a folder, pipe or device
-        layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # unreadable
-        return {}
-    data = _plain(dict(layer.customLayerData).get("usdface", {})) if layer else {}
-    return data if isinstance(data, dict) else {}
+    return file_kind(path).usdface
 
 
 def usdface_output_provenance(path) -> dict | None:
     """``customLayerData["usdface"]`` of a layer written by ``usdface personalize`` (it has ``inputs`` and is
-    neither a capture nor a take), else None."""
-    data = usdface_layer_data(path)
-    if data.get("format") in _NOT_AVATAR or not data.get("inputs"):
-        return None
-    return data
+    neither a capture, a take nor an error-map file: :attr:`usdface.io.file_kind.FileKind.provenance`), else
+    None."""
+    from .file_kind import file_kind
 
-
-def _refuse_fit_result(path) -> None:
-    """:class:`~usdface.errors.RigError` when ``path`` is a rig written by ``usdface fit`` (its root layer's
-    ``customLayerData["usdface"]["format"] == "fit"``)."""
-    if usdface_layer_data(path).get("format") == "fit":
-        raise RigError("this is a 'usdface fit' result (the person's shapes on the capture mesh), not an "
-                       "avatar: personalizing it gives the capture mesh back, with no eyes or mouth",
-                       path=path, fix="pass the avatar's file as AVATAR ('personalize AVATAR CAPTURE' fits "
-                                      "the capture itself; render or inspect the fitted rig as it is)")
+    return file_kind(path).provenance
 
 
 def _has_personalization(path) -> bool:
@@ -626,19 +596,11 @@ def generic_input(layer_path) -> Path | None:
 
 def flattened_from(path) -> dict | None:
     """``customLayerData["usdfaceFlatten"]`` of a ``usdface export --flatten`` file: ``source`` (the layer's
-    file name) and ``variant`` (``personalized``, ``generic`` or ``authored``: the one baked in), or None."""
-    import stat
+    file name) and ``variant`` (``personalized``, ``generic`` or ``authored``: the one baked in), or None
+    (:attr:`usdface.io.file_kind.FileKind.flattened`)."""
+    from .file_kind import file_kind
 
-    from pxr import Sdf
-
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
-            return None
-        layer = Sdf.Layer.FindOrOpen(str(path))
-    except Exception:  # unreadable: the reader that follows says so
-        return None
-    data = _plain(dict(layer.customLayerData).get("usdfaceFlatten", {})) if layer else {}
-    return data if isinstance(data, dict) and data.get("variant") else None
+    return file_kind(path).flattened
 
 
 def refuse_usdface_output(path) -> None:
@@ -651,13 +613,20 @@ def refuse_usdface_output(path) -> None:
     A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised.
     A ``usdface fit`` result (the person's shapes on the capture mesh, ``format: fit``) is refused too: it
     is no avatar (no eyes, no mouth, the capture's topology), and personalizing it ran to the end."""
+    from .file_kind import Kind, file_kind
+
     if not isinstance(path, str | Path):
         return
-    _refuse_fit_result(path)
-    data = usdface_output_provenance(path)
+    found = file_kind(path)             # the root layer, read once
+    if found.kind is Kind.FIT:
+        raise RigError("this is a 'usdface fit' result (the person's shapes on the capture mesh), not an "
+                       "avatar: personalizing it gives the capture mesh back, with no eyes or mouth",
+                       path=path, fix="pass the avatar's file as AVATAR ('personalize AVATAR CAPTURE' fits "
+                                      "the capture itself; render or inspect the fitted rig as it is)")
+    data = found.provenance
     if data is None:
         return                  # not a usdface layer
-    flat = flattened_from(path)
+    flat = found.flattened
     if flat is not None and flat["variant"] == "personalized":
         inputs = data.get("inputs") or []
         # the provenance records the original relative to the flattened file: say it as one can pass it
@@ -955,11 +924,13 @@ def read_layer_info(path) -> dict:
     """
     from pxr import Usd
 
+    from .file_kind import file_kind
+
     path = Path(path)
     stage = _open_stage(path, "USD file")
     root = stage.GetRootLayer()
     meta = {k: _plain(root.pseudoRoot.GetInfo(k)) for k in STAGE_METADATA_KEYS if root.pseudoRoot.HasInfo(k)}
-    usdface_data = _plain(dict(root.customLayerData).get("usdface", {}))
+    found = file_kind(path, stage=stage)
     schemas_found, variants = {}, {}
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         # as authored: GetAppliedSchemas() leaves out the schemas USD's registry does not know, and it does
@@ -977,20 +948,6 @@ def read_layer_info(path) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
-    flattened = _plain(dict(root.customLayerData).get("usdfaceFlatten", {}))
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
-            "documentation": root.documentation or "", "usdface": usdface_data, "schemas": schemas_found,
-            "variants": variants,
-            "flattened": flattened if isinstance(flattened, dict) and flattened.get("variant") else {}}
-
-
-def _plain(value):
-    """USD values (VtArrays, dictionaries, tokens) -> plain Python for JSON."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (str, bool, int, float)) or value is None:
-        return value
-    try:
-        return [_plain(v) for v in value]
-    except TypeError:
-        return str(value)
+            "documentation": root.documentation or "", "usdface": found.usdface, "schemas": schemas_found,
+            "variants": variants, "flattened": found.flattened or {}}

@@ -575,16 +575,16 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
     error, so a publish validator never passes a rig the tools then reject."""
     from ..arkit import ARKIT_NAMES
     from ..errors import UsdFaceError
+    from ..io.file_kind import Kind, file_kind, is_weights_take
+    from ..io.take import has_frame_weights
     from ..io.usd_rig import _read_avatar_stage
     from ..motion import most_moving_mesh
 
     layer = stage.GetRootLayer()
-    data = dict(layer.customLayerData).get("usdface") or {}
-    from ..io.take import has_frame_weights, probe_take
-    from ..io.usd_rig import _is_weights_take
-
-    weights_take = _is_weights_take(stage)
-    if not weights_take and layer.realPath and probe_take(layer.realPath)[0] and not has_frame_weights(stage):
+    found = file_kind(layer.realPath, stage=stage)      # its root layer: a capture's or take's record
+    take = bool(layer.realPath) and found.kind is Kind.TAKE     # marked, or its layer defines one
+    weights_take = is_weights_take(stage)
+    if not weights_take and take and not has_frame_weights(stage):
         # time-sampled points, no blend shapes, no weights (Pixar's lbs.baked.usda): called a take, with
         # the fix 'usdface inspect FILE', whose take reader then refused it for lack of weights
         yield Issue(INFO, "Readable", "/", "this is a mesh cache (time-sampled points, no blend shapes, no "
@@ -592,14 +592,14 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
                     "check judges avatars and usdface layers",
                     "pass the avatar whose meshes carry the blend shapes, not a bake of it")
         return
-    if weights_take or (layer.realPath and probe_take(layer.realPath)[0]):
+    if weights_take or take:
         yield Issue(INFO, "Readable", "/", "this is a take (a recording: blend-shape weights, and meshes if "
                     "it has them), not an avatar: check judges avatars and usdface layers",
                     "usdface inspect FILE summarises the take")
         return
-    if hasattr(data, "get") and data.get("format") in ("capture", "take"):
+    if found.kind in (Kind.CAPTURE, Kind.TAKE) and found.by == "format":
         # not an avatar: the capture/take readers own those files; said, so "0 errors" is not read as a pass
-        kind = data.get("format")
+        kind = found.format
         yield Issue(INFO, "Readable", "/", f"this is a usdface {kind}, not an avatar: check judges avatars "
                     "and usdface layers", f"usdface inspect FILE summarises the {kind}")
         return

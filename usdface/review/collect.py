@@ -191,31 +191,23 @@ def _input_kind(path: Path, prov: dict | None) -> str | None:
     "capture", "take" (meshes and weights), "weights" (a Live Link CSV, an 'anim import' SkelAnimation),
     "avatar" (blend shapes, not personalized), or None. ``prov``: the root layer's usdface data of a USD file
     whose stage opened (None: only folders and CSVs are looked at)."""
-    from ..io.take import probe_take
+    from ..io.file_kind import Kind, file_kind
 
-    if path.is_dir():
-        if (path / "train").is_dir():
-            return "capture"
-        if (path / "frames").is_dir() or (probe_take(path)[0] and any(path.glob("*.obj"))):
-            return "take"
-        if any(path.glob("*.csv")):
-            return "weights"
-        return "capture" if (path / "neutral.obj").is_file() else None
-    if path.suffix.lower() == ".csv":
+    found = file_kind(path)
+    if found.kind is Kind.CAPTURE_FOLDER:
+        return "capture"
+    if found.kind is Kind.TAKE_FOLDER:
+        return "take" if found.meshes else "weights"
+    if found.kind is Kind.LIVELINK_CSV or (found.kind is Kind.MISSING and path.suffix.lower() == ".csv"):
         return "weights"
-    if prov is None:
+    if prov is None or found.kind is Kind.FOLDER:
         return None
-    if prov.get("format") in ("capture", "take"):
-        return str(prov["format"])
-    if probe_take(path)[0]:
-        return "take"
-    from pxr import Usd, UsdSkel
-
-    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)       # already open: read_layer_info opened it
-    prims = list(stage.Traverse())
-    if any(p.IsA(UsdSkel.Root) for p in prims):
-        return "avatar" if not prov and any(p.IsA(UsdSkel.BlendShape) for p in prims) else None
-    return "weights" if any(p.IsA(UsdSkel.Animation) for p in prims) else None
+    if found.kind in (Kind.CAPTURE, Kind.TAKE):        # marked so, or a take by the root layer's specs
+        return str(found.kind)
+    found = file_kind(path, compose=True)      # the root layer is held by the first answer: not parsed again
+    if found.skel_root:
+        return "avatar" if not prov and found.blend_shapes else None
+    return "weights" if found.skel_animation else None
 
 
 def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
@@ -258,13 +250,13 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     from ..io.flatten import read_avatar_variant
     from ..io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
     from ..io.usd_inspection import read_landmarks
-    from ..io.usd_rig import _from_cwd, flattened_from, read_layer_info
+    from ..io.usd_rig import _from_cwd, read_layer_info
 
     layer_path = Path(layer_path)
     _refuse_capture_or_take(layer_path, None)       # folders and CSVs: no USD reader says what they are
     info = read_layer_info(layer_path)
     prov = info.get("usdface") or {}
-    flat = flattened_from(layer_path) if not info.get("variants") else None
+    flat = (info.get("flattened") or None) if not info.get("variants") else None
     if flat is not None:          # its provenance says 'usdface personalize': name what it is instead
         source = Path(str(flat.get("source", "")))         # recorded relative to the flattened file
         source = source if source.is_absolute() else layer_path.parent / source
