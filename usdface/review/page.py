@@ -183,7 +183,7 @@ def _figure(data: ReviewData):
                 name=f"{m.name} ({variant})",
                 color=_COLORS[m.role], flatshading=False, lighting=lighting,
                 lightposition={"x": 2e4, "y": 3e4, "z": 6e4}, hoverinfo="skip", showscale=False,
-                scene=scene, colorbar={"title": {"text": "mm"}, "len": 0.6, "x": 1.0}))
+                scene=scene, colorbar={"title": {"text": "mm"}, "len": 0.6, "x": 0.96, "xanchor": "right"}))
         for m in data.meshes:
             if m.landmarks is not None and len(m.landmarks):
                 lm = np.asarray(m.landmarks, dtype=np.int64)
