@@ -339,3 +339,28 @@ def test_a_misspelt_template_file_is_refused_with_the_rename(tmp_path):
     (folder / "template" / "jawOpen.obj").rename(folder / "template" / "jawOpn.obj")
     with pytest.raises(CaptureError, match=r"rename template/jawOpn.obj to template/jawOpen.obj"):
         read_capture(folder)
+
+
+def test_a_capture_behind_a_folder_one_may_not_enter_is_not_called_missing(tmp_path, monkeypatch):
+    """A capture inside a folder without execute permission cannot be stat'ed (EACCES): it is there, and
+    the refusal says so and how to fix it, not 'capture not found' (root ignores permission bits: the
+    file system's answer is simulated)."""
+    import os
+
+    from usdface.errors import InputFileError
+    from usdface.io import check_capture_path
+
+    hidden = tmp_path / "locked" / "capture.usda"
+    real_stat = os.stat
+
+    def stat(path, *args, **kwargs):
+        if str(path).startswith(str(tmp_path / "locked")):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_stat(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", stat)
+    with pytest.raises(InputFileError, match="permission denied") as err:
+        check_capture_path(hidden)
+    assert "not found" not in str(err.value) and "permission" in err.value.fix
+    with pytest.raises(InputFileError, match="capture not found"):
+        check_capture_path(tmp_path / "absent.usda")

@@ -7,6 +7,7 @@ schemas (:func:`usdface.schemas.register`), which must happen before the first U
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from .. import schemas as _schemas
@@ -47,6 +48,14 @@ def _checked_capture(path):
         raise CaptureError("a Live Link Face CSV: a take of weights only, no meshes to fit", path=path,
                            fix=WEIGHTS_ONLY_FIX)
     if found.kind is Kind.MISSING:
+        try:
+            os.stat(path)
+        except PermissionError:     # a folder on the way one may not enter: there, not "not found"
+            raise InputFileError("cannot reach the capture (permission denied)", path=path,
+                                 fix="ask for read and execute permission on its folders, or copy the "
+                                     "capture somewhere you can read") from None
+        except (OSError, ValueError):
+            pass
         raise InputFileError("capture not found", path=path,
                              fix="pass a capture folder or a .usda written by 'usdface capture import'")
     if path.suffix.lower() not in USD_EXTENSIONS:
