@@ -66,3 +66,29 @@ def test_warning_said_once(tmp_path, monkeypatch, capfd):
         say_warning("same text")
     out = capfd.readouterr()
     assert out.out.count("same text") == 1 and "UserWarning" not in out.err
+
+
+def test_a_home_folder_matplotlib_cannot_write_adds_no_lines(tmp_path):
+    """A farm's render user whose home folder cannot be written: every ``render`` (and ``evaluate --plot``,
+    ``landmarks --plot``) printed matplotlib's two lines ``mkdir -p failed for path ~/.config/matplotlib``
+    and ``Matplotlib created a temporary cache directory ... set the MPLCONFIGDIR environment variable``,
+    which ``-q`` did not silence. The program gives matplotlib a private folder for the run, removed at
+    exit. (The home folder is a regular file here: root, who runs CI, may write into read-only folders.)"""
+    import os
+    import subprocess
+    import sys
+
+    from cli_helpers import _env
+
+    home = tmp_path / "home"
+    home.write_text("not a folder")
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    env = {k: v for k, v in _env().items() if k not in ("MPLCONFIGDIR", "XDG_CONFIG_HOME", "XDG_CACHE_HOME")}
+    env.update(HOME=str(home), TMPDIR=str(temp))
+    res = subprocess.run([sys.executable, "-c", "import sys; from usdface.cli import main; sys.exit(main())",
+                          "render", str(SAMPLES / "avatar.usda"), "-o", str(tmp_path / "a.png"), "-q"],
+                         capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "matplotlib" not in res.stderr.lower() and "MPLCONFIGDIR" not in res.stderr, res.stderr
+    assert (tmp_path / "a.png").is_file() and os.listdir(temp) == []

@@ -259,6 +259,42 @@ def _program_environment() -> None:
     arrays are freed by reference counting as before; the peak RSS of a dev1 run is unchanged."""
     os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     gc.set_threshold(50_000, *gc.get_threshold()[1:])
+    _matplotlib_config_dir()
+
+
+def _matplotlib_config_dir() -> None:
+    """A private ``MPLCONFIGDIR`` for this run, removed at exit, when matplotlib's own folders cannot be
+    written (a farm's render user with a read-only or missing home folder).
+
+    matplotlib then made a temporary folder itself, but said so on stderr in two lines that are not
+    usdface's and that ``-q`` did not silence (``mkdir -p failed for path ~/.config/matplotlib: [Errno 30]
+    Read-only file system`` and ``Matplotlib created a temporary cache directory at /tmp/matplotlib-... it
+    is highly recommended to set the MPLCONFIGDIR environment variable ...``), in every ``render``,
+    ``evaluate --plot`` and ``landmarks --plot`` log. A ``MPLCONFIGDIR`` the user set is kept."""
+    if os.environ.get("MPLCONFIGDIR") or not sys.platform.startswith(("linux", "freebsd")):
+        return
+    home = os.path.expanduser("~")
+    bases = (os.environ.get("XDG_CONFIG_HOME") or os.path.join(home, ".config"),
+             os.environ.get("XDG_CACHE_HOME") or os.path.join(home, ".cache"))
+
+    def writable(folder: str) -> bool:              # it, or the nearest existing folder it would be made in
+        folder = os.path.abspath(folder)
+        while not os.path.lexists(folder) and os.path.dirname(folder) != folder:
+            folder = os.path.dirname(folder)
+        return os.path.isdir(folder) and os.access(folder, os.W_OK)
+
+    if all(writable(os.path.join(base, "matplotlib")) for base in bases):
+        return
+    import atexit
+    import shutil
+    import tempfile
+
+    try:
+        private = tempfile.mkdtemp(prefix="usdface-matplotlib-")
+    except OSError:                                 # no temporary folder either: matplotlib's own way
+        return
+    os.environ["MPLCONFIGDIR"] = private
+    atexit.register(shutil.rmtree, private, ignore_errors=True)
 
 
 def _subparser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser | None:
