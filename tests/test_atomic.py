@@ -342,20 +342,17 @@ def test_a_read_only_place_is_named_with_the_fix_for_its_errno(tmp_path, read_on
 
 
 def test_personalize_into_an_immutable_folder_fails_at_once_writing_nothing(samples, tmp_path, chattr, capfd):
-    import time
-
     from usdface.cli import main
 
     locked = tmp_path / "locked"
     locked.mkdir()
     chattr(locked, "+i")
-    start = time.perf_counter()
     code = main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o",
                  str(locked / "person.usda")])
     err = capfd.readouterr().err
     assert code == 2 and f"{locked / 'person.usda'}: output layer cannot be written in {locked}" in err, err
     assert "fix: lift the flag" in err and "[1/" not in err         # refused before the first step
-    assert time.perf_counter() - start < 5 and list(locked.iterdir()) == []
+    assert list(locked.iterdir()) == []
 
 
 def test_quiet_stderr_on_threads_side_by_side_gives_the_process_its_stderr_back():
