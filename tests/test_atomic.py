@@ -721,3 +721,39 @@ def test_an_unexpanded_tilde_would_not_become_a_folder(tmp_path, monkeypatch):
     (tmp_path / "~").mkdir()
     check_output_file("~/renders/p.usda", suffixes=(".usda",))
     check_output_dir("~/caps/c1")
+
+
+def test_a_forced_replacement_keeps_the_replaced_files_permissions(tmp_path, samples):
+    """A pipeline user's note: a group-writable publish (0664) became 0644 at the first --force (the new
+    file got the umask's mode). The replacement keeps the replaced file's bits, for a plain file and a USD
+    layer; a new file still gets the umask's; a symbolic link is replaced, its target untouched."""
+    import os
+    import stat
+
+    from usdface.cli import main
+    from usdface.io.atomic import write_text_atomic
+
+    old = os.umask(0o022)
+    try:
+        text = tmp_path / "notes.txt"
+        text.write_text("old")
+        os.chmod(text, 0o664)
+        write_text_atomic(text, "new", force=True)
+        assert text.read_text() == "new" and stat.S_IMODE(text.stat().st_mode) == 0o664
+        fresh = write_text_atomic(tmp_path / "fresh.txt", "x")
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o644
+        layer = tmp_path / "person.usda"
+        args = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(layer),
+                "-q"]
+        assert main(args) == 0
+        os.chmod(layer, 0o660)
+        assert main([*args, "--force"]) == 0
+        assert stat.S_IMODE(layer.stat().st_mode) == 0o660
+        target = tmp_path / "v001.txt"
+        target.write_text("v1")
+        link = tmp_path / "latest.txt"
+        link.symlink_to(target)
+        write_text_atomic(link, "v2", force=True)
+        assert not link.is_symlink() and link.read_text() == "v2" and target.read_text() == "v1"
+    finally:
+        os.umask(old)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,12 +31,22 @@ _NO_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EM
 def publish(tmp, path, force: bool = False) -> Path:
     """Move the finished temporary file ``tmp`` to ``path`` (same folder, so atomic).
 
-    With ``force`` an existing ``path`` is replaced (``os.replace``). Without it the target is created
-    *exclusively*: ``os.link`` fails if ``path`` exists, so of two processes writing the same new output
-    exactly one wins and the other gets :class:`~usdface.errors.OutputExistsError`; ``tmp`` is removed either
-    way. On a file system without hard links the existence check and the rename are two steps."""
+    With ``force`` an existing ``path`` is replaced (``os.replace``), the new file taking the replaced one's
+    permission bits (a symbolic link at ``path`` is replaced by the file, its target left as it was).
+    Without it the target is created *exclusively*: ``os.link`` fails if ``path`` exists, so of two
+    processes writing the same new output exactly one wins and the other gets
+    :class:`~usdface.errors.OutputExistsError`; ``tmp`` is removed either way. On a file system without
+    hard links the existence check and the rename are two steps."""
     tmp, path = Path(tmp), Path(path)
     if force:
+        try:
+            replaced = os.stat(path)
+        except OSError:
+            replaced = None
+        if replaced is not None and stat.S_ISREG(replaced.st_mode):
+            # the file replaced keeps its permissions (a group-writable publish stayed group-writable only
+            # until the first --force, which gave it the umask's 0644: a pipeline user's note)
+            os.chmod(tmp, stat.S_IMODE(replaced.st_mode))
         os.replace(tmp, path)
         return path
     try:
