@@ -757,3 +757,23 @@ def test_a_forced_replacement_keeps_the_replaced_files_permissions(tmp_path, sam
         assert not link.is_symlink() and link.read_text() == "v2" and target.read_text() == "v1"
     finally:
         os.umask(old)
+
+
+def test_the_umask_is_read_without_being_changed(monkeypatch):
+    """Setting the umask to 0 and back to learn it opened a window in which a host's other threads made
+    world-writable files; it is read from /proc where there is one."""
+    import os
+
+    from usdface.io.atomic import current_umask
+
+    old = os.umask(0o027)
+    try:
+        calls = []
+        real = os.umask
+        monkeypatch.setattr(os, "umask", lambda m: calls.append(m) or real(m))
+        assert current_umask() == 0o027
+        if os.path.exists("/proc/self/status"):
+            assert calls == []
+    finally:
+        monkeypatch.undo()
+        os.umask(old)

@@ -28,6 +28,22 @@ __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_wr
 _NO_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS}
 
 
+def current_umask() -> int:
+    """The process's umask, read without changing it (Linux: ``/proc/self/status``): setting it to 0 and back,
+    the only portable way, leaves a moment in which a host's other threads create world-writable files.
+    Elsewhere that way, as before."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def publish(tmp, path, force: bool = False) -> Path:
     """Move the finished temporary file ``tmp`` to ``path`` (same folder, so atomic).
 
@@ -156,9 +172,7 @@ def atomic_file(path, force: bool = False) -> Iterator[Path]:
         made = make_parents(path)
         tmp = temp_sibling(path)
         yield tmp
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
+        os.chmod(tmp, 0o666 & ~current_umask())
         publish(tmp, path, force)
         done = True
     except OSError as exc:  # a failed write names the output, not the hidden temp file nobody asked for
