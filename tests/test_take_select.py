@@ -485,3 +485,38 @@ def test_capture_select_rest_warning_repeats_the_runs_output_and_template(genera
     message = next(str(m.message) for m in said if "show no expression" in str(m.message))
     command = re.search(r"'usdface capture select ([^']*)'", message).group(1)
     assert command.startswith(f"{src} -o {out} --template {template} --force --test-every 5"), message
+
+
+def test_evaluate_rest_fix_halves_the_separation_the_capture_was_made_with(generated, tmp_path, monkeypatch):
+    """takes.md: when every held-out frame is a rest, 'capture select' and 'evaluate' warn 'with that same
+    fix'. capture select halves the --min-separation it was given; evaluate said "'usdface capture select
+    TAKE -o capture.usda --test-every 5 --min-separation 0.2'" whatever the capture was made with (from 0.2,
+    as the page suggests, it gave back the same capture; and another file than the one evaluated). The
+    capture now records its take and test-frame options, and evaluate's fix names that take (from where
+    evaluate runs), the capture evaluated (--force) and half the separation it was made with."""
+    import re
+    import shlex
+
+    from usdface import api
+    from usdface.io import read_capture
+    from usdface.io.take import write_take_usd
+
+    take, _, _ = generated
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "takes").mkdir()
+    src = write_take_usd(take, tmp_path / "takes" / "take.usdc")
+    with pytest.warns(UserWarning, match="show no expression"):
+        api.select_capture_frames("takes/take.usdc", "capture.usda", test_every=40, min_separation=0.4)
+    record = read_capture("capture.usda").metadata["take"]
+    assert record["min_separation"] == 0.4 and record["test_every"] == 40
+    assert (tmp_path / record["path"]).resolve() == src.resolve()        # relative to the capture
+    monkeypatch.chdir(tmp_path / "takes")                                   # evaluate from elsewhere
+    with pytest.warns(UserWarning, match="cannot tell the methods apart") as said:
+        api.evaluate_methods("../capture.usda", ["dt"])
+    message = next(str(m.message) for m in said if "cannot tell the methods apart" in str(m.message))
+    argv = shlex.split(re.search(r"'usdface capture select ([^']*)'", message).group(1))
+    assert Path(argv[0]).resolve() == src.resolve(), message
+    assert argv[argv.index("-o") + 1] == "../capture.usda" and "--force" in argv
+    assert "made with" in message and "--min-separation 0.4 s" in message
+    assert float(argv[argv.index("--min-separation") + 1]) == 0.2, message       # half, at most 0.2
+    assert int(argv[argv.index("--test-every") + 1]) == 5

@@ -293,9 +293,37 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                                fix="lower --threshold (0.5 is the paper's), or record the shapes again")
         p.start("build capture")
         capture = capture_from_take(data, selection, template=template)
+        # the test-frame options and the take (relative to the capture), in the capture's selection record:
+        # evaluate's fix for rest-only test frames names them (it repeated the options this run was given)
+        capture.metadata["take"].update(
+            min_separation=float(min_separation), test_every=int(test_every),
+            path=os.path.relpath(Path(take).absolute(), Path(out_path).absolute().parent))
         p.start(f"write {Path(out_path).name}")
         written = write_capture(capture, out_path, force=force, inputs=[take, template])
     return CaptureSelection(data, selection, coverage, capture, written)
+
+
+def _rest_fix(capture, source) -> str | None:
+    """For a capture ``capture select`` made (its selection record keeps the take and the test-frame
+    options), the ``capture select`` run that holds out frames nearer the expressions: half the
+    ``--min-separation`` it was made with. The generic fix told ``--min-separation 0.2`` to a capture made
+    with 0.2, which gave the same capture again. None for other captures."""
+    record = (capture.metadata or {}).get("take") if isinstance(capture.metadata, dict) else None
+    if source is None or not isinstance(record, dict) or "min_separation" not in record:
+        return None
+    try:
+        separation, every = float(record["min_separation"]), int(record.get("test_every") or 5)
+        threshold, per_shape = float(record.get("threshold", 0.5)), int(record.get("per_shape", 1))
+    except (TypeError, ValueError):
+        return None                                   # a record, not the capture's data: the generic fix
+    take = record.get("path")
+    found = Path(source).absolute().parent / take if isinstance(take, str) else None
+    # a capture rewritten elsewhere ('capture import sel.usdc -o elsewhere/sel.usda') keeps the record
+    take = os.path.relpath(found) if found is not None and found.exists() else "TAKE"
+    again = _select_again(take, source, None, threshold, per_shape)
+    return (f"hold out frames nearer the expressions than the --min-separation {separation:g} s it was made "
+            f"with: 'usdface capture select {again} --test-every {min(every, 5)} "
+            f"--min-separation {min(0.2, separation / 2):g}'")
 
 
 def _select_again(take, out_path, template, threshold, per_shape) -> str:
@@ -569,8 +597,8 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         if test_peak < REST_WEIGHT:                         # every method predicts them as the neutral
             warnings.warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
                           f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
-                          f"as the neutral, so the table cannot tell the methods apart ({REST_FIX})",
-                          UserWarning, stacklevel=2)
+                          f"as the neutral, so the table cannot tell the methods apart "
+                          f"({_rest_fix(capture, source) or REST_FIX})", UserWarning, stacklevel=2)
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}
