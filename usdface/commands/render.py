@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..namelist import name_list
 from . import add_name_map_option
-from .options import add_quiet, finite_float, positive_int, refuse_camera_with_rays, vector3
+from .options import add_quiet, finite_float, nonnegative_int, positive_int, refuse_camera_with_rays, vector3
 
 
 def register(subparsers) -> None:
@@ -46,6 +46,10 @@ def register(subparsers) -> None:
     p.add_argument("--capture", action="store_true",
                    help="FILE is a capture (.usda); folders, files written by 'capture import/select' and "
                         "takes always are")
+    p.add_argument("--max-vertices", type=nonnegative_int, default=None, metavar="N",
+                   help="draw a mesh of more vertices decimated to about N of its own vertices (default "
+                        "60000: a panel shows no more; the figures in the titles are the full mesh's); 0 "
+                        "draws every triangle")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -187,6 +191,7 @@ def run(args) -> int:
                         "capture")
         render.check_shapes(rig, shapes, path)
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
+                             max_vertices=args.max_vertices,
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
@@ -230,22 +235,39 @@ def run(args) -> int:
                                     generic_path, path)
         if args.compare is not None:
             render.render_comparison(generic, rig, shapes, args.output, view=args.view,
-                                     force=args.force, title=f"{rig.name}: generic vs personalized")
+                                     force=args.force, max_vertices=args.max_vertices,
+                                     title=f"{rig.name}: generic vs personalized")
         else:
             diff = rig.deltas - generic.deltas
             if shapes:                     # the RMS over the shapes asked for (it was over all of them)
                 diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
+                                  max_vertices=args.max_vertices,
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
                                   title=f"{rig.name}: personalized vs generic")
     else:
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
+                             max_vertices=args.max_vertices,
                              title=f"{path.name}: {rig.name}")
+    _decimated_note(rig, args.max_vertices)
     print(f"wrote {args.output}")
     return 0
+
+
+def _decimated_note(rig, max_vertices) -> None:
+    """Say when the picture shows the mesh decimated (``--max-vertices``)."""
+    import sys
+
+    from ..mesh import DISPLAY_MAX_VERTICES
+
+    limit = DISPLAY_MAX_VERTICES if max_vertices is None else max_vertices
+    if limit and rig.n_vertices > limit:
+        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) drawn decimated to about {limit:,} of its "
+              "vertices (the titles' figures are the full mesh's; --max-vertices 0 draws every triangle)",
+              file=sys.stderr)
 
 
 def _layout_setup(path: Path) -> dict:
@@ -306,5 +328,6 @@ def _diagnostics(args, path: Path, rig) -> None:
                    f"visibility: {seen_from}")
         render.render_landmark_diagnostics(rig.neutral, rig.triangles, panels, vertices, args.output,
                                            view=args.view, force=args.force,
+                                           max_vertices=args.max_vertices,
                                            crop=np.flatnonzero(diag.c.any(axis=0)), title=summary)
     print(summary)
