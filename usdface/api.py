@@ -1341,7 +1341,8 @@ __all__ += ["write_review", "export_avatar"]
 
 
 def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike | Capture | None = None,
-                 take: PathLike | None = None, fit_errors: bool = True, force: bool = False) -> Path:
+                 take: PathLike | None = None, fit_errors: bool = True, force: bool = False,
+                 max_vertices: int | None = None) -> Path:
     """Write the review page of a usdface layer (``usdface review``): ONE self-contained HTML file (plotly.js
     and the mesh data inside, no network needed to view it) with generic | personalized side by side, a
     slider per shape, presets, a change heat map (mm), the landmarks when the layer has them, playback of
@@ -1350,6 +1351,8 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     ``capture`` defaults to the capture recorded in the layer's provenance (when it still exists); with
     ``fit_errors`` the generic template and the personalized shapes are scored on its test
     expressions (eq. 5: the layer's recorded figures of its own fit, or a refit for another capture).
+    A mesh of more than ``max_vertices`` vertices (default 60,000; 0: no limit) is shown decimated to about
+    that many of its own vertices (the page says so; its tables are the full mesh's figures).
     Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     from .errors import InputFileError
@@ -1374,7 +1377,8 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     what = [w for w, given in (("fit figures", fit_errors), ("take", take is not None)) if given]
     with progress.steps("review", 3) as p:          # each step named for what it does while it runs
         p.start(f"read {Path(layer_path).name} (meshes, shapes" + "".join(f", {w}" for w in what) + ")")
-        data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors)
+        data = collect_review(layer_path, capture=capture, take=take, fit_errors=fit_errors,
+                              max_vertices=max_vertices)
         # the page is a sign-off: said before it is built, once its inputs are known to be usable (a take
         # given as --capture was warned about as 'not among the inputs', then refused)
         for text in stale_inputs(layer_path, given):
