@@ -138,7 +138,6 @@ def _capture_file(path: Path) -> tuple[bool, object]:
 
 
 def run(args) -> int:
-    import numpy as np
 
     from .. import api, render
     from ..io.atomic import check_output_file
@@ -195,6 +194,22 @@ def run(args) -> int:
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
+    from ..progress import steps
+
+    comparing = args.compare is not None or args.heatmap is not None
+    # each step named on stderr while it runs: a 225k-vertex head's --compare read two avatars and drew
+    # for ~50 s without a word
+    with steps("render", 1 + comparing + (not args.diagnostics)) as p:
+        p.start(f"read {path.name}")
+        return _render_avatar(args, path, shapes, weight, p)
+
+
+def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
+    """``run`` for an avatar or a usdface layer (``p``: the command's progress steps)."""
+    import numpy as np
+
+    from .. import api, render
+
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks and args.mesh is None:
@@ -203,6 +218,7 @@ def run(args) -> int:
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
     if args.diagnostics:
+        p()                                    # read: its own steps follow
         _diagnostics(args, path, rig)
     elif args.landmarks:
         from ..errors import LandmarkError
@@ -217,6 +233,7 @@ def run(args) -> int:
                                 fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
                                      f"{rig.name}' first") if others else
                                     "run 'usdface landmarks' (or personalize with landmarks) first")
+        p.start(f"draw {args.output.name}")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
@@ -231,8 +248,10 @@ def run(args) -> int:
             warnings.warn(text, UserWarning, stacklevel=2)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
+        p.start(f"read the generic {Path(generic_path).name}")
         generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,
                                     generic_path, path)
+        p.start(f"draw {args.output.name}")
         if args.compare is not None:
             render.render_comparison(generic, rig, shapes, args.output, view=args.view,
                                      force=args.force, max_vertices=args.max_vertices,
@@ -249,6 +268,7 @@ def run(args) -> int:
                                   force=args.force,
                                   title=f"{rig.name}: personalized vs generic")
     else:
+        p.start(f"draw {args.output.name}")
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
                              max_vertices=args.max_vertices,
                              title=f"{path.name}: {rig.name}")
