@@ -118,6 +118,30 @@ def test_a_dense_mesh_is_drawn_decimated_with_the_full_mesh_figures(tmp_path):
     assert (tmp_path / "c.png").read_bytes()[:8] == PNG
 
 
+def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
+    """A face on a head-and-body mesh (314k vertices, 15 % moving) was drawn as the whole body: the face a
+    few per cent of each panel, the panels so narrow that their titles ran into each other. The view is
+    framed on the vertices the shapes move when they are less than half of the mesh."""
+    from usdface.render import moving_region
+
+    rig = grid_rig(40)
+    local = np.zeros_like(rig.deltas)
+    near = np.linalg.norm(rig.neutral[:, :2] - 0.05, axis=1) < 0.02       # a corner of the grid moves
+    local[:, near, 2] = 0.003
+    still = FaceRig(rig.neutral, rig.triangles, rig.names, local, name="body")
+    crop = moving_region(still.deltas)
+    np.testing.assert_array_equal(crop, np.flatnonzero(near))
+    assert moving_region(rig.deltas) is None                      # 'slide' moves everything: the whole mesh
+    for fig, axes in ((render_shapes(still, ["bump"]), [0, 1]), (render_comparison(still, still, ["bump"]),
+                                                                 [0, 1, 2])):
+        for i in axes:
+            lo, hi = fig.axes[i].get_xlim()
+            assert hi - lo < 0.06, (i, lo, hi)                     # the 4 cm patch, not the 20 cm grid
+    heat = render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
+                          crop=moving_region(local))
+    assert np.diff(heat.axes[0].get_ylim())[0] < 0.06
+
+
 def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, capsys):
     """The note names the mesh, its vertex count and the option that draws every triangle."""
     _avatar, layer, _heat = inspected

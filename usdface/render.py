@@ -60,16 +60,36 @@ def display_mesh(points, triangles, max_vertices: int | None = None):
     return display_subset(points, triangles, limit)
 
 
+def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
+    """The vertices that shapes ``deltas[K, n, 3]`` move by more than ``tolerance`` (metres), to frame the
+    view on when they are less than half of the mesh (a face on a head-and-body mesh: the face was a few
+    per cent of a picture of the whole body, and the panels' titles ran into each other); ``None`` when
+    they are most of it, or nothing moves."""
+    deltas = np.asarray(deltas)
+    if deltas.ndim != 3 or not deltas.shape[0] or not deltas.shape[1]:
+        return None
+    moved = np.zeros(deltas.shape[1], dtype=bool)
+    for d in deltas:                                         # shape by shape: no [K, n, 3] temporaries
+        moved |= np.abs(d).max(axis=1) > tolerance
+    count = int(moved.sum())
+    return np.flatnonzero(moved) if 0 < count < 0.5 * deltas.shape[1] else None
+
+
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
-              color=_SKIN, display=None):
+              color=_SKIN, display=None, crop=None):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
     map with shading; faces with a NaN value drawn as plain skin). ``display``: ``(keep, triangles)`` of
-    :func:`display_mesh`, drawn instead of the full mesh (``points[keep]``, ``values[keep]``). Returns the
-    ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
+    :func:`display_mesh`, drawn instead of the full mesh (``points[keep]``, ``values[keep]``). ``crop``:
+    vertex indices of ``points`` the view is framed on (:func:`moving_region`; default the whole mesh).
+    Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
     from .mesh import index_set
 
+    framed = None
+    if crop is not None and len(crop):
+        framed = np.asarray(points, dtype=np.float64)[np.asarray(crop, dtype=np.int64)]
+        framed = (framed @ VIEWS[view].T)[:, :2]
     if display is not None:
         keep, triangles = display
         points = np.asarray(points)[keep]
@@ -115,7 +135,7 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
         coll.set_norm(norm)
         coll.set_array(None)
     ax.add_collection(coll)
-    xy = p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
+    xy = framed if framed is not None else p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     pad = 0.04 * float(np.max(hi - lo) or 1.0)
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
@@ -200,7 +220,8 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
     shapes = list(shapes) if shapes is not None else default_shapes(rig)
     fig, axes = _figure(1 + len(shapes))
     display = display_mesh(rig.neutral, rig.triangles, max_vertices)
-    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display)
+    crop = moving_region(rig.deltas)
+    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display, crop=crop)
     axes[0].set_title("neutral")
     for ax, name in zip(axes[1:], shapes, strict=True):
         k = _shape_index(rig, name)
@@ -208,7 +229,8 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         w[k] = weight
         moved = rig.evaluate(w)
         disp_mm = 1000.0 * np.linalg.norm(moved - rig.neutral, axis=1)
-        draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view, display=display)
+        draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view, display=display,
+                  crop=crop)
         # the weight when it is not 1: a panel at 0.5 read as the full shape's motion (a trial's note)
         at = "" if weight == 1.0 else f" at {weight:g}"
         ax.set_title(f"{name}{at} ({disp_mm.max():.1f} mm)")
@@ -235,16 +257,17 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
     shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
     fig, axes = _figure(3 * len(shapes), ncols=3)
     display = display_mesh(personalized.neutral, personalized.triangles, max_vertices)
+    crop = moving_region(personalized.deltas)
     for row, name in enumerate(shapes):
         a = generic.evaluate(_one_hot(generic, name))
         b = personalized.evaluate(_one_hot(personalized, name))
         diff_mm = 1000.0 * np.linalg.norm(b - a, axis=1)
-        draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display)
+        draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display, crop=crop)
         axes[3 * row].set_title(f"{name}: generic")
-        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display)
+        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display, crop=crop)
         axes[3 * row + 1].set_title(f"{name}: personalized")
         coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
-                         view=view, display=display)
+                         view=view, display=display, crop=crop)
         # two lines: on one, a wide mesh's title ran into the colour bar beside the panel (the Mouth)
         axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
@@ -274,15 +297,16 @@ def _one_hot(rig, name: str) -> np.ndarray:
 
 def render_heatmap(points, triangles, values, out=None, *, label: str = "error (mm)", scale: float = 1000.0,
                    view: str = "front", vmax: float | None = None, force: bool = False,
-                   title: str | None = None, max_vertices: int | None = None):
-    """A per-vertex heat map: ``values[n]`` (metres by default, drawn as ``values * scale``) on the mesh."""
+                   title: str | None = None, max_vertices: int | None = None, crop=None):
+    """A per-vertex heat map: ``values[n]`` (metres by default, drawn as ``values * scale``) on the mesh
+    (``crop``: vertex indices to frame the view on, as :func:`draw_mesh`)."""
     values = np.asarray(values, dtype=np.float64).ravel()
     if values.shape[0] != np.asarray(points).shape[0]:
         raise UsdFaceError(f"{values.shape[0]} heat-map values for {np.asarray(points).shape[0]} vertices",
                            fix="give one value per vertex")
     fig, axes = _figure(1, size=5.0)
     coll = draw_mesh(axes[0], points, triangles, values=values * scale, cmap="magma", vmin=0.0,
-                     vmax=vmax, view=view, display=display_mesh(points, triangles, max_vertices))
+                     vmax=vmax, view=view, display=display_mesh(points, triangles, max_vertices), crop=crop)
     fig.colorbar(coll, ax=axes[0], shrink=0.8, label=label)
     axes[0].set_title(title or f"max {np.nanmax(values * scale):.2f}, mean {np.nanmean(values * scale):.2f}")
     if out is not None:

@@ -262,7 +262,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                 diff = diff[[rig.names.index(s) for s in shapes]]
             rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
-                                  max_vertices=args.max_vertices,
+                                  max_vertices=args.max_vertices, crop=render.moving_region(rig.deltas),
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
