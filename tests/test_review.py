@@ -145,6 +145,27 @@ def test_a_dense_mesh_is_shown_decimated_with_the_full_mesh_figures(personalized
     assert np.abs(mesh.neutral[mesh.landmarks] - corners).max() < 0.02   # the nearest kept vertex
 
 
+def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
+    """The merged head-and-body avatar's page showed the whole body (the face a few per cent of the view):
+    when a mesh's shapes move less than half of it, the view is cut to the box of what moves."""
+    from synthetic_meshes import grid_triangles
+
+    from usdface.review.page import ReviewData, ReviewMesh, _figure
+
+    u, v = np.meshgrid(np.linspace(0, 1.0, 30), np.linspace(0, 2.0, 30))
+    neutral = np.c_[u.ravel(), v.ravel(), np.zeros(900)]
+    deltas = np.zeros((1, 900, 3))
+    top = neutral[:, 1] > 1.8                                 # the "face": the top tenth moves
+    deltas[0, top, 2] = 0.01
+    mesh = ReviewMesh("Head", neutral, grid_triangles(30, 30), ["jawOpen"], deltas, deltas * 1.1)
+    scene = _figure(ReviewData("t", [mesh])).layout.scene
+    assert scene.aspectmode == "manual" and scene.yaxis.range[0] > 1.7 and scene.yaxis.range[1] < 2.2
+    assert scene.xaxis.range[0] < 0 and scene.xaxis.range[1] > 1.0
+    deltas[0, :, 2] = 0.01                                     # everything moves: the whole mesh, as before
+    scene = _figure(ReviewData("t", [mesh])).layout.scene
+    assert scene.aspectmode == "data" and scene.yaxis.range is None
+
+
 def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
     page = tmp_path / "r.html"
     page.write_text("keep")
