@@ -305,6 +305,11 @@ def test_render_and_export_name_their_steps(capsys, tmp_path, personalized_sampl
                                "flatten the personalized variant into f.usdc"), 1):
         assert any(ln.startswith(f"usdface: export [{n}/3] {label} done (") for ln in lines), (label, lines)
     assert all(LINE.match(ln) or " done in " in ln for ln in lines)
+    _out, err = run_cli(capsys, "render", layer, "-o", tmp_path / "d.png", "--landmarks", "--diagnostics",
+                        "--rays", "4")
+    lines = progress_lines(err)
+    assert any(ln.startswith("usdface: render > diagnostics [1/") for ln in lines), lines
+    assert not any("render > render" in ln for ln in lines), lines
 
 
 def test_main_called_by_a_host_leaves_its_progress_setting_as_it_was(samples, capsys, monkeypatch):

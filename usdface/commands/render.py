@@ -329,7 +329,7 @@ def _diagnostics(args, path: Path, rig) -> None:
     camera = (args.camera if args.camera is not None
               else None if args.rays is not None else recorded.get("camera"))
     rays = args.rays if args.rays is not None else recorded.get("rays", 16)
-    with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
+    with steps("diagnostics", 2 + (prim not in layouts)) as p:       # inside render's own block
         if prim in layouts:
             vertices = layouts[prim]
             epsilon, alpha = settings.get("epsilon", 0.5), settings.get("alpha", 0.5)
