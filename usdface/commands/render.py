@@ -206,7 +206,6 @@ def run(args) -> int:
 
 def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     """``run`` for an avatar or a usdface layer (``p``: the command's progress steps)."""
-    import numpy as np
 
     from .. import api, render
 
@@ -257,10 +256,11 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                      force=args.force, max_vertices=args.max_vertices,
                                      title=f"{rig.name}: generic vs personalized")
         else:
-            diff = rig.deltas - generic.deltas
-            if shapes:                     # the RMS over the shapes asked for (it was over all of them)
-                diff = diff[[rig.names.index(s) for s in shapes]]
-            rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
+            from ..review.collect import shape_changes
+
+            # the RMS over the shapes asked for (it was over all of them); shape by shape
+            ks = [rig.names.index(s) for s in shapes] if shapes else list(range(rig.n_shapes))
+            rms = shape_changes([rig.deltas[k] for k in ks], [generic.deltas[k] for k in ks])[0]
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
                                   max_vertices=args.max_vertices, crop=render.moving_region(rig.deltas),
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
