@@ -15,6 +15,7 @@ from usdface.mesh import (
     check_triangles,
     cotangent_laplacian,
     deformation_gradients,
+    display_subset,
     gradient_operator,
     harmonic_fill,
     mesh_scale,
@@ -152,3 +153,22 @@ def test_cotangent_laplacian_ignores_degenerate_triangles():
     dirty = np.vstack([tris, [[0, 1, 0]], [row], [[5, 5, 5]]])
     L = cotangent_laplacian(pts, dirty)
     assert abs(L - clean).max() < 1e-12
+
+
+def test_display_subset_is_a_decimated_mesh_of_the_meshs_own_vertices():
+    """Pictures and the review page of a 225k-vertex head draw a decimated copy: its vertices are a subset
+    of the mesh's (so any per-vertex array is drawn as ``a[keep]``), about as many as asked, and its
+    triangles are valid and face the same way."""
+    from synthetic_meshes import grid_triangles
+
+    n = 50
+    u, v = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
+    points = np.c_[u.ravel(), v.ravel(), 0.2 * np.sin(2 * u.ravel()) * np.cos(v.ravel())]
+    tris = grid_triangles(n, n)
+    assert display_subset(points, tris, n * n) is None and display_subset(points, tris, 0) is None
+    keep, small = display_subset(points, tris, 500)
+    assert 300 <= len(keep) <= 600 and np.all(np.diff(keep) > 0) and keep.max() < n * n
+    assert small.min() == 0 and small.max() == len(keep) - 1
+    assert np.all((small[:, 0] != small[:, 1]) & (small[:, 1] != small[:, 2]) & (small[:, 0] != small[:, 2]))
+    up = triangle_normals(points, tris)[:, 2].mean() > 0
+    assert (np.mean(triangle_normals(points[keep], small)[:, 2] > 0) > 0.95) == up

@@ -287,6 +287,31 @@ def test_review_names_its_steps_for_what_they_do(capsys, tmp_path, personalized_
     assert (tmp_path / "r.html").stat().st_size > 0
 
 
+def test_render_and_export_name_their_steps(capsys, tmp_path, personalized_sample):
+    """Trial on a 225k-vertex head: ``render --compare`` (two avatars read, 9 panels drawn: ~50 s) and
+    ``export --gltf`` (~30 CPU-s) said nothing until they were done. Each step is named while it runs."""
+    layer = personalized_sample
+    _out, err = run_cli(capsys, "render", layer, "-o", tmp_path / "c.png", "--compare", "--shapes", "jawOpen")
+    lines = progress_lines(err)
+    for n, label in enumerate((f"read {layer.name}", "read the generic avatar.usda", "draw c.png"), 1):
+        assert any(ln.startswith(f"usdface: render [{n}/3] {label} ...") for ln in lines), (label, lines)
+        assert any(ln.startswith(f"usdface: render [{n}/3] {label} done (") for ln in lines), (label, lines)
+    _out, err = run_cli(capsys, "render", layer, "-o", tmp_path / "s.png")
+    assert any(ln.startswith("usdface: render [2/2] draw s.png done (") for ln in progress_lines(err))
+    _out, err = run_cli(capsys, "export", layer, "--gltf", tmp_path / "a.glb",
+                        "--flatten", tmp_path / "f.usdc")
+    lines = progress_lines(err)
+    for n, label in enumerate((f"read the personalized variant of {layer.name}", "write a.glb",
+                               "flatten the personalized variant into f.usdc"), 1):
+        assert any(ln.startswith(f"usdface: export [{n}/3] {label} done (") for ln in lines), (label, lines)
+    assert all(LINE.match(ln) or " done in " in ln for ln in lines)
+    _out, err = run_cli(capsys, "render", layer, "-o", tmp_path / "d.png", "--landmarks", "--diagnostics",
+                        "--rays", "4")
+    lines = progress_lines(err)
+    assert any(ln.startswith("usdface: render > diagnostics [1/") for ln in lines), lines
+    assert not any("render > render" in ln for ln in lines), lines
+
+
 def test_main_called_by_a_host_leaves_its_progress_setting_as_it_was(samples, capsys, monkeypatch):
     """``usdface.cli.main(argv)`` from a host application set progress for the whole process: ``-q`` turned
     the host's progress off for good, and a run without it turned it back on after the host had turned it

@@ -95,6 +95,63 @@ def test_render_functions_write_pngs(tmp_path):
         render_landmarks(rig.neutral, rig.triangles, [10_000])
 
 
+def test_a_dense_mesh_is_drawn_decimated_with_the_full_mesh_figures(tmp_path):
+    """A 225k-vertex head took ~30 CPU-s per 'render --compare' (9 panels of 450k sub-pixel triangles
+    through matplotlib, one Python Path per triangle); a mesh of more than ``max_vertices`` vertices is now
+    drawn on a decimated subset of its own vertices, and the titles keep the full mesh's figures."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    rig = grid_rig(40)                                 # 1,600 vertices, 3,042 triangles
+    full = render_comparison(rig, rig, ["bump"], max_vertices=0)
+    small = render_comparison(rig, rig, ["bump"], tmp_path / "c.png", max_vertices=400)
+    drawn = [len(ax.collections[0].get_paths()) for ax in small.axes[:3]]
+    assert all(0 < d < 1000 for d in drawn), drawn
+    assert len(full.axes[0].collections[0].get_paths()) == len(rig.triangles)
+    assert [ax.get_title() for ax in small.axes[:3]] == [ax.get_title() for ax in full.axes[:3]]
+    shapes = render_shapes(rig, ["bump"], max_vertices=400)
+    top = 1000 * np.linalg.norm(rig.deltas[0], axis=1).max()
+    assert shapes.axes[1].get_title() == f"bump ({top:.1f} mm)"                 # the full mesh's maximum
+    heat = render_heatmap(rig.neutral, rig.triangles, np.linalg.norm(rig.deltas[0], axis=1),
+                          max_vertices=400)
+    assert len(heat.axes[0].collections[0].get_paths()) < 1000
+    assert (tmp_path / "c.png").read_bytes()[:8] == PNG
+
+
+def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
+    """A face on a head-and-body mesh (314k vertices, 15 % moving) was drawn as the whole body: the face a
+    few per cent of each panel, the panels so narrow that their titles ran into each other. The view is
+    framed on the vertices the shapes move when they are less than half of the mesh."""
+    from usdface.render import moving_region
+
+    rig = grid_rig(40)
+    local = np.zeros_like(rig.deltas)
+    near = np.linalg.norm(rig.neutral[:, :2] - 0.05, axis=1) < 0.02       # a corner of the grid moves
+    local[:, near, 2] = 0.003
+    still = FaceRig(rig.neutral, rig.triangles, rig.names, local, name="body")
+    crop = moving_region(still.deltas)
+    np.testing.assert_array_equal(crop, np.flatnonzero(near))
+    assert moving_region(rig.deltas) is None                      # 'slide' moves everything: the whole mesh
+    for fig, axes in ((render_shapes(still, ["bump"]), [0, 1]), (render_comparison(still, still, ["bump"]),
+                                                                 [0, 1, 2])):
+        for i in axes:
+            lo, hi = fig.axes[i].get_xlim()
+            assert hi - lo < 0.06, (i, lo, hi)                     # the 4 cm patch, not the 20 cm grid
+    heat = render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
+                          crop=moving_region(local))
+    assert np.diff(heat.axes[0].get_ylim())[0] < 0.06
+
+
+def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, capsys):
+    """The note names the mesh, its vertex count and the option that draws every triangle."""
+    _avatar, layer, _heat = inspected
+    assert main(["render", str(layer), "-o", str(tmp_path / "d.png"), "--max-vertices", "500", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "drawn decimated to about 500 of its vertices" in err and "--max-vertices 0" in err
+    assert main(["render", str(layer), "-o", str(tmp_path / "e.png"), "-q"]) == 0
+    assert "decimated" not in capsys.readouterr().err                          # the sample head: 4k vertices
+
+
 def test_heat_colors_monotone():
     colors = heat_colors([0.0, 0.5, 1.0], vmax=1.0)
     brightness = colors.sum(axis=1)
@@ -349,6 +406,34 @@ def test_add_inspection_to_written_layer(samples, tmp_path):
     values = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Avatar/Head")).GetPrimvar(HEAT_PRIMVAR).Get()
     np.testing.assert_allclose(np.asarray(values), heat, rtol=1e-6, atol=1e-9)
     assert file_digest(src) == before and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_change_heat_holds_no_copy_of_the_offsets():
+    """``personalize --inspect`` of a 225k-vertex head peaked at 1.78 GB (1.11 GB without): the heat map
+    formed the whole [K, n, 3] difference, its squares and norms at once. It goes shape by shape now."""
+    import tracemalloc
+    from types import SimpleNamespace
+
+    from usdface.io.usd_inspection import change_heat
+    from usdface.model import Avatar
+
+    k, n = 8, 20_000
+    rng = np.random.default_rng(1)
+    generic = rng.normal(size=(k, n, 3)) * 1e-3
+    rig = FaceRig(rng.normal(size=(n, 3)), np.array([[0, 1, 2]]), [f"s{i}" for i in range(k)], generic,
+                  name="Head", source=SimpleNamespace(prim="/Avatar/Head"))
+    new = generic.copy()
+    new[3] += 2e-3
+    avatar = Avatar([rig])
+    change_heat(avatar, {"Head": new[:1]})                        # the lazy imports, before measuring
+    tracemalloc.start()
+    try:
+        heat = change_heat(avatar, {"Head": new})["/Avatar/Head"]
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_allclose(heat, np.full(n, np.sqrt(3 * 4e-6 / k)), rtol=1e-12)
+    assert peak < 0.4 * generic.nbytes, peak                      # all at once: 3-4x the offsets
 
 
 def test_landmarks_on_the_far_side_are_hidden():

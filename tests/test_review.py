@@ -104,6 +104,91 @@ def test_page_figures(review):
     assert personalized_rmse < generic_rmse  # the person's own shapes explain their test expressions better
 
 
+def test_a_dense_mesh_is_shown_decimated_with_the_full_mesh_figures(personalized_sample, tmp_path):
+    """A 225k-vertex head made a 124 MB page (every vertex of both variants, plotly re-converting the whole
+    mesh on each pose: seconds per slider move); a mesh of more than ``max_vertices`` vertices is now shown
+    on a decimated subset of its own vertices: the page's data are the full mesh's at those vertices, the
+    landmarks on the nearest kept vertex, the 'what changed' figures those of the full mesh, and a note says
+    so."""
+    from usdface.review.collect import _decimate_for_display
+    from usdface.review.page import ReviewMesh
+
+    full = api.write_review(personalized_sample, tmp_path / "full.html", max_vertices=0, fit_errors=False)
+    small = api.write_review(personalized_sample, tmp_path / "small.html", max_vertices=1500,
+                             fit_errors=False)
+    assert small.stat().st_size < full.stat().st_size
+    big, little = _payload(full.read_text()), _payload(small.read_text())
+    head = next(m for m in big["meshes"] if m["name"] == "Head")
+    shown = next(m for m in little["meshes"] if m["name"] == "Head")
+    assert head["n"] > 1500 >= shown["n"] * 0.8
+    html = small.read_text()
+    assert "Head (" in html and "is shown decimated to" in html and "--max-vertices 0" in html
+    changed = re.findall(r"Head: shapes changed</th><td>([^<]*)<", html)
+    assert changed and changed == re.findall(r"Head: shapes changed</th><td>([^<]*)<", full.read_text())
+
+    rng = np.random.default_rng(0)
+    from synthetic_meshes import grid_triangles
+
+    u, v = np.meshgrid(np.linspace(0, 0.1, 30), np.linspace(0, 0.1, 30))
+    neutral = np.c_[u.ravel(), v.ravel(), np.zeros(900)]
+    generic, personalized = rng.normal(size=(2, 2, 900, 3)) * 1e-3
+    mesh = ReviewMesh("Head", neutral, grid_triangles(30, 30), ["a", "b"], generic, personalized,
+                      heat=np.arange(900.0), landmarks=np.array([0, 455, 899]))
+    notes = _decimate_for_display([mesh], 200)
+    assert len(notes) == 1 and "900 vertices" in notes[0]
+    keep = np.flatnonzero((neutral[:, None] == mesh.neutral[None]).all(axis=2).any(axis=1))
+    assert len(keep) == len(mesh.neutral) < 300
+    np.testing.assert_array_equal(mesh.generic, generic[:, keep])
+    np.testing.assert_array_equal(mesh.personalized, personalized[:, keep])
+    np.testing.assert_array_equal(mesh.heat, keep.astype(float))
+    corners = neutral[[0, 455, 899]]
+    assert np.abs(mesh.neutral[mesh.landmarks] - corners).max() < 0.02   # the nearest kept vertex
+
+
+def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
+    """The merged head-and-body avatar's page showed the whole body (the face a few per cent of the view):
+    when a mesh's shapes move less than half of it, the view is cut to the box of what moves."""
+    from synthetic_meshes import grid_triangles
+
+    from usdface.review.page import ReviewData, ReviewMesh, _figure
+
+    u, v = np.meshgrid(np.linspace(0, 1.0, 30), np.linspace(0, 2.0, 30))
+    neutral = np.c_[u.ravel(), v.ravel(), np.zeros(900)]
+    deltas = np.zeros((1, 900, 3))
+    top = neutral[:, 1] > 1.8                                 # the "face": the top tenth moves
+    deltas[0, top, 2] = 0.01
+    mesh = ReviewMesh("Head", neutral, grid_triangles(30, 30), ["jawOpen"], deltas, deltas * 1.1)
+    scene = _figure(ReviewData("t", [mesh])).layout.scene
+    assert scene.aspectmode == "manual" and scene.yaxis.range[0] > 1.7 and scene.yaxis.range[1] < 2.2
+    assert scene.xaxis.range[0] < 0 and scene.xaxis.range[1] > 1.0
+    deltas[0, :, 2] = 0.01                                     # everything moves: the whole mesh, as before
+    scene = _figure(ReviewData("t", [mesh])).layout.scene
+    assert scene.aspectmode == "data" and scene.yaxis.range is None
+
+
+def test_shape_changes_go_shape_by_shape():
+    """The review of a 225k-vertex head peaked at 2.0 GB, ~1 GB of it the heat map's and the 'what changed'
+    table's [K, n, 3] difference, squares and norms at once; shape by shape the same figures."""
+    import tracemalloc
+
+    from usdface.review.collect import shape_changes
+
+    rng = np.random.default_rng(2)
+    generic = rng.normal(size=(12, 20_000, 3))
+    personalized = generic + rng.normal(size=generic.shape) * 0.1
+    shape_changes(personalized[:1], generic[:1])
+    tracemalloc.start()
+    try:
+        rms, largest = shape_changes(personalized, generic)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    norms = np.linalg.norm(personalized - generic, axis=2)
+    np.testing.assert_allclose(rms, np.sqrt((norms ** 2).mean(axis=0)), rtol=1e-12)
+    np.testing.assert_allclose(largest, norms.max(axis=1), rtol=1e-12)
+    assert peak < 4 * generic[0].nbytes, peak              # a few one-shape arrays (all at once: 12+)
+
+
 def test_review_refuses_and_validates(personalized_sample, samples, tmp_path):
     page = tmp_path / "r.html"
     page.write_text("keep")

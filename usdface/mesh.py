@@ -28,8 +28,14 @@ __all__ = [
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
     "boundary_edges", "boundary_vertices", "boundary_loops", "mean_edge_length", "mesh_scale",
-    "check_triangles", "spd_lu", "vertex_areas", "index_set", "distances_within",
+    "check_triangles", "spd_lu", "vertex_areas", "index_set", "distances_within", "display_subset",
+    "DISPLAY_MAX_VERTICES",
 ]
+
+#: Meshes with more vertices than this are drawn by ``usdface render`` and shown by ``usdface review`` on a
+#: decimated subset of their vertices (:func:`display_subset`): a 320-pixel panel or a browser's WebGL mesh
+#: shows no more, and a 225k-vertex head took minutes to draw and made a 124 MB page.
+DISPLAY_MAX_VERTICES = 60_000
 
 
 def _edge_vectors(points: np.ndarray, triangles: np.ndarray):
@@ -230,6 +236,37 @@ def index_set(indices, n: int) -> np.ndarray:
     mask = np.zeros(n, dtype=bool)
     mask[np.asarray(indices).ravel()] = True
     return np.flatnonzero(mask)
+
+
+def display_subset(points, triangles, max_vertices: int = DISPLAY_MAX_VERTICES):
+    """A coarser copy of a mesh for pictures and viewers, made of its own vertices: ``(keep[m], tris[s, 3])``
+    with ``tris`` indexing ``keep`` (so any per-vertex array ``a`` is drawn as ``a[keep]``), or ``None`` when
+    the triangles use ``max_vertices`` vertices or fewer (or ``max_vertices <= 0``: no limit).
+
+    Open3D's quadric edge collapse (Garland & Heckbert 1997) to about ``max_vertices`` vertices, each of its
+    vertices then snapped to the nearest vertex of the mesh (a KD-tree), triangles that collapse on the way
+    dropped. Edge collapses keep the connectivity (closed lips stay apart); on a subdivided mesh the kept
+    vertices are near the original corners."""
+    from scipy.spatial import cKDTree
+
+    from .natives import open3d
+
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    used = index_set(t, len(p))
+    if max_vertices <= 0 or len(used) <= max_vertices:
+        return None
+    o3d = open3d()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(p),
+                                     o3d.utility.Vector3iVector(t.astype(np.int32)))
+    coarse = mesh.simplify_quadric_decimation(max(1, int(len(t) * max_vertices / len(used))))
+    near = used[cKDTree(p[used]).query(np.asarray(coarse.vertices))[1]]
+    tri = near[np.asarray(coarse.triangles, dtype=np.int64)]
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+    keep = index_set(tri, len(p))
+    local = np.full(len(p), -1, dtype=np.int64)
+    local[keep] = np.arange(len(keep))
+    return keep, local[tri]
 
 
 def distances_within(points, queries, bound: float) -> np.ndarray:

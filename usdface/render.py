@@ -49,13 +49,51 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
     return fig, axes
 
 
+def display_mesh(points, triangles, max_vertices: int | None = None):
+    """``(keep, triangles)`` of the decimated copy a mesh of more than ``max_vertices`` vertices (default
+    :data:`usdface.mesh.DISPLAY_MAX_VERTICES`; 0: no limit) is drawn on (:func:`usdface.mesh.display_subset`:
+    a subset of its own vertices), for ``draw_mesh(..., display=...)``; ``None`` for a smaller mesh. Made
+    once from the neutral and used for every pose of the mesh."""
+    from .mesh import DISPLAY_MAX_VERTICES, display_subset
+
+    limit = DISPLAY_MAX_VERTICES if max_vertices is None else int(max_vertices)
+    return display_subset(points, triangles, limit)
+
+
+def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
+    """The vertices that shapes ``deltas[K, n, 3]`` move by more than ``tolerance`` (metres), to frame the
+    view on when they are less than half of the mesh (a face on a head-and-body mesh: the face was a few
+    per cent of a picture of the whole body, and the panels' titles ran into each other); ``None`` when
+    they are most of it, or nothing moves."""
+    deltas = np.asarray(deltas)
+    if deltas.ndim != 3 or not deltas.shape[0] or not deltas.shape[1]:
+        return None
+    moved = np.zeros(deltas.shape[1], dtype=bool)
+    for d in deltas:                                         # shape by shape: no [K, n, 3] temporaries
+        moved |= np.abs(d).max(axis=1) > tolerance
+    count = int(moved.sum())
+    return np.flatnonzero(moved) if 0 < count < 0.5 * deltas.shape[1] else None
+
+
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
-              color=_SKIN):
+              color=_SKIN, display=None, crop=None):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
-    map with shading; faces with a NaN value drawn as plain skin). Returns the ``PolyCollection`` (a
-    colour-bar mappable when ``values`` is given)."""
+    map with shading; faces with a NaN value drawn as plain skin). ``display``: ``(keep, triangles)`` of
+    :func:`display_mesh`, drawn instead of the full mesh (``points[keep]``, ``values[keep]``). ``crop``:
+    vertex indices of ``points`` the view is framed on (:func:`moving_region`; default the whole mesh).
+    Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
+    from .mesh import index_set
+
+    framed = None
+    if crop is not None and len(crop):
+        framed = np.asarray(points, dtype=np.float64)[np.asarray(crop, dtype=np.int64)]
+        framed = (framed @ VIEWS[view].T)[:, :2]
+    if display is not None:
+        keep, triangles = display
+        points = np.asarray(points)[keep]
+        values = None if values is None else np.asarray(values).ravel()[keep]
     rot = VIEWS[view]
     p = np.asarray(points, dtype=np.float64) @ rot.T
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -97,7 +135,7 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
         coll.set_norm(norm)
         coll.set_array(None)
     ax.add_collection(coll)
-    xy = p[np.unique(tri)][:, :2] if len(tri) else p[:, :2]
+    xy = framed if framed is not None else p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     pad = 0.04 * float(np.max(hi - lo) or 1.0)
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
@@ -174,12 +212,16 @@ def default_shapes(rig, count: int = 5) -> list[str]:
 
 
 def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str = "front",
-                  force: bool = False, title: str | None = None):
+                  force: bool = False, title: str | None = None, max_vertices: int | None = None):
     """Neutral plus each shape of ``shapes`` (default: :func:`default_shapes`) at ``weight``; the heat of
-    each panel is the vertex displacement in mm. Returns the figure; saved to ``out`` when given."""
+    each panel is the vertex displacement in mm (its maximum over the full mesh; a mesh of more than
+    ``max_vertices`` is drawn decimated, :func:`display_mesh`). Returns the figure; saved to ``out`` when
+    given."""
     shapes = list(shapes) if shapes is not None else default_shapes(rig)
     fig, axes = _figure(1 + len(shapes))
-    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view)
+    display = display_mesh(rig.neutral, rig.triangles, max_vertices)
+    crop = moving_region(rig.deltas)
+    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display, crop=crop)
     axes[0].set_title("neutral")
     for ax, name in zip(axes[1:], shapes, strict=True):
         k = _shape_index(rig, name)
@@ -187,7 +229,8 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
         w[k] = weight
         moved = rig.evaluate(w)
         disp_mm = 1000.0 * np.linalg.norm(moved - rig.neutral, axis=1)
-        draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view)
+        draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", view=view, display=display,
+                  crop=crop)
         # the weight when it is not 1: a panel at 0.5 read as the full shape's motion (a trial's note)
         at = "" if weight == 1.0 else f" at {weight:g}"
         ax.set_title(f"{name}{at} ({disp_mm.max():.1f} mm)")
@@ -199,7 +242,7 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
 
 
 def render_comparison(generic, personalized, shapes=None, out=None, *, view: str = "front",
-                      force: bool = False, title: str | None = None):
+                      force: bool = False, title: str | None = None, max_vertices: int | None = None):
     """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
     distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count)."""
     if generic.n_vertices != personalized.n_vertices:
@@ -213,16 +256,18 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
                                "avatar the layer was made over, --mesh the same mesh)")
     shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
     fig, axes = _figure(3 * len(shapes), ncols=3)
+    display = display_mesh(personalized.neutral, personalized.triangles, max_vertices)
+    crop = moving_region(personalized.deltas)
     for row, name in enumerate(shapes):
         a = generic.evaluate(_one_hot(generic, name))
         b = personalized.evaluate(_one_hot(personalized, name))
         diff_mm = 1000.0 * np.linalg.norm(b - a, axis=1)
-        draw_mesh(axes[3 * row], a, generic.triangles, view=view)
+        draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display, crop=crop)
         axes[3 * row].set_title(f"{name}: generic")
-        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view)
+        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display, crop=crop)
         axes[3 * row + 1].set_title(f"{name}: personalized")
         coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
-                         view=view)
+                         view=view, display=display, crop=crop)
         # two lines: on one, a wide mesh's title ran into the colour bar beside the panel (the Mouth)
         axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
         fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
@@ -252,15 +297,16 @@ def _one_hot(rig, name: str) -> np.ndarray:
 
 def render_heatmap(points, triangles, values, out=None, *, label: str = "error (mm)", scale: float = 1000.0,
                    view: str = "front", vmax: float | None = None, force: bool = False,
-                   title: str | None = None):
-    """A per-vertex heat map: ``values[n]`` (metres by default, drawn as ``values * scale``) on the mesh."""
+                   title: str | None = None, max_vertices: int | None = None, crop=None):
+    """A per-vertex heat map: ``values[n]`` (metres by default, drawn as ``values * scale``) on the mesh
+    (``crop``: vertex indices to frame the view on, as :func:`draw_mesh`)."""
     values = np.asarray(values, dtype=np.float64).ravel()
     if values.shape[0] != np.asarray(points).shape[0]:
         raise UsdFaceError(f"{values.shape[0]} heat-map values for {np.asarray(points).shape[0]} vertices",
                            fix="give one value per vertex")
     fig, axes = _figure(1, size=5.0)
     coll = draw_mesh(axes[0], points, triangles, values=values * scale, cmap="magma", vmin=0.0,
-                     vmax=vmax, view=view)
+                     vmax=vmax, view=view, display=display_mesh(points, triangles, max_vertices), crop=crop)
     fig.colorbar(coll, ax=axes[0], shrink=0.8, label=label)
     axes[0].set_title(title or f"max {np.nanmax(values * scale):.2f}, mean {np.nanmean(values * scale):.2f}")
     if out is not None:
@@ -269,11 +315,11 @@ def render_heatmap(points, triangles, values, out=None, *, label: str = "error (
 
 
 def render_landmarks(points, triangles, indices, out=None, *, labels=None, view: str = "front",
-                     force: bool = False, title: str | None = None):
+                     force: bool = False, title: str | None = None, max_vertices: int | None = None):
     """Landmark vertices ``indices[m]`` as dots on the mesh (optionally numbered with ``labels[m]``)."""
     indices = _check_landmarks(points, indices)
     fig, axes = _figure(1, size=5.0)
-    draw_mesh(axes[0], points, triangles, view=view)
+    draw_mesh(axes[0], points, triangles, view=view, display=display_mesh(points, triangles, max_vertices))
     hidden = _landmark_dots(axes[0], points, triangles, indices, view, labels, colour="#1f77b4",
                             edge="white")
     far = f" ({hidden} on the far side)" if hidden else ""
@@ -310,7 +356,8 @@ def _landmark_dots(ax, points, triangles, indices, view: str, labels=None, colou
 
 
 def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *, view: str = "front",
-                                force: bool = False, title: str | None = None, crop=None):
+                                force: bool = False, title: str | None = None, crop=None,
+                                max_vertices: int | None = None):
     """Heat maps of per-vertex diagnostics with the landmarks ``indices[m]`` dotted on each (Zell & McDonnell
     2022, Figs. 3 and 5). ``panels``: a list of ``(title, values[n], colour map, vmin, vmax)``; NaN values
     (not evaluated) are drawn as plain skin. ``crop[v]``: vertex indices the view is framed on (default all).
@@ -319,12 +366,14 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
     indices = _check_landmarks(points, indices)
     fig, axes = _figure(len(panels), ncols=min(len(panels), 3), size=4.0)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    display = display_mesh(points, tri, max_vertices)
     for ax, (name, values, cmap, vmin, vmax) in zip(axes, panels, strict=True):
         values = np.asarray(values, dtype=np.float64).ravel()
         if values.shape[0] != len(points):
             raise UsdFaceError(f"{values.shape[0]} values for {len(points)} vertices in panel {name!r}",
                                fix="give one value per vertex")
-        coll = draw_mesh(ax, points, tri, values=values, cmap=cmap, vmin=vmin, vmax=vmax, view=view)
+        coll = draw_mesh(ax, points, tri, values=values, cmap=cmap, vmin=vmin, vmax=vmax, view=view,
+                         display=display)
         fig.colorbar(coll, ax=ax, shrink=0.7)
         _landmark_dots(ax, points, tri, indices, view)
         ax.set_title(name, fontsize=9)

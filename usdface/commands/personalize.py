@@ -10,6 +10,10 @@ from . import add_name_map_option, all_warnings, command_line, json_path, say_wa
 from .fit import add_contact_option, add_every_option, add_pins_option, take_line
 from .options import mu_value, nonnegative_float, positive_float, reg_value, weight_bound
 
+#: A .usda layer larger than this gets a note that .usdc holds it in about a third of the bytes and reads
+#: faster (bytes; the 225k-vertex head's layer was 358 MB of text, 100 MB as .usdc, read 2.2x faster).
+TEXT_LAYER_NOTE_BYTES = 50_000_000
+
 
 def add_transfer_options(p) -> None:
     """Options shared by ``personalize`` and ``retarget``: the inputs, the fit and eq. (4)'s map (the
@@ -226,6 +230,7 @@ def run(args) -> int:
         print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}")
     else:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
+        _text_layer_note(result.out_path)
         if inspect:
             extra = " + landmark Points" if args.landmarks else ""
             if whole_take:  # the capture is a take read whole: no test expressions
@@ -246,3 +251,16 @@ def run(args) -> int:
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))
     return 1 if args.dry_run and refusal else 0
+
+
+def _text_layer_note(path) -> None:
+    """A note when the layer written is a large ``.usda``: text is ~3.6x the bytes of ``.usdc`` for offsets
+    and ~2x slower to read back (``review``, ``render``, ``export`` and every DCC read it)."""
+    path = Path(path)
+    if path.suffix.lower() != ".usda" or not path.is_file():
+        return
+    size = path.stat().st_size
+    if size > TEXT_LAYER_NOTE_BYTES:
+        print(f"note: {path.name} is {size / 1e6:,.0f} MB of text (.usda); as .usdc (binary, -o "
+              f"{path.with_suffix('.usdc').name}) the same layer is about a third of that and reads about "
+              "twice as fast")

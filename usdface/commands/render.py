@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..namelist import name_list
 from . import add_name_map_option
-from .options import add_quiet, finite_float, positive_int, refuse_camera_with_rays, vector3
+from .options import add_quiet, finite_float, nonnegative_int, positive_int, refuse_camera_with_rays, vector3
 
 
 def register(subparsers) -> None:
@@ -46,6 +46,10 @@ def register(subparsers) -> None:
     p.add_argument("--capture", action="store_true",
                    help="FILE is a capture (.usda); folders, files written by 'capture import/select' and "
                         "takes always are")
+    p.add_argument("--max-vertices", type=nonnegative_int, default=None, metavar="N",
+                   help="draw a mesh of more vertices decimated to about N of its own vertices (default "
+                        "60000: a panel shows no more; the figures in the titles are the full mesh's); 0 "
+                        "draws every triangle")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -133,7 +137,6 @@ def _capture_file(path: Path) -> tuple[bool, object]:
 
 
 def run(args) -> int:
-    import numpy as np
 
     from .. import api, render
     from ..io.atomic import check_output_file
@@ -186,9 +189,25 @@ def run(args) -> int:
                         "capture")
         render.check_shapes(rig, shapes, path)
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
+                             max_vertices=args.max_vertices,
                              title=f"{path.name}: template shapes on the person's neutral")
         print(f"wrote {args.output}")
         return 0
+    from ..progress import steps
+
+    comparing = args.compare is not None or args.heatmap is not None
+    # each step named on stderr while it runs: a 225k-vertex head's --compare read two avatars and drew
+    # for ~50 s without a word
+    with steps("render", 1 + comparing + (not args.diagnostics)) as p:
+        p.start(f"read {path.name}")
+        return _render_avatar(args, path, shapes, weight, p)
+
+
+def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
+    """``run`` for an avatar or a usdface layer (``p``: the command's progress steps)."""
+
+    from .. import api, render
+
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks and args.mesh is None:
@@ -197,6 +216,7 @@ def run(args) -> int:
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
     if args.diagnostics:
+        p()                                    # read: its own steps follow
         _diagnostics(args, path, rig)
     elif args.landmarks:
         from ..errors import LandmarkError
@@ -215,6 +235,7 @@ def run(args) -> int:
                                 + (f" (the file has one for {others})" if others else ""), path=path,
                                 fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
                                      f"{rig.name}' first") if others else write_one)
+        p.start(f"draw {args.output.name}")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
@@ -229,26 +250,47 @@ def run(args) -> int:
             warnings.warn(text, UserWarning, stacklevel=2)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
+        p.start(f"read the generic {Path(generic_path).name}")
         generic = _matching_generic(api.pick_mesh(api.read_avatar(generic_path, name_map), rig.name), rig,
                                     generic_path, path)
+        p.start(f"draw {args.output.name}")
         if args.compare is not None:
             render.render_comparison(generic, rig, shapes, args.output, view=args.view,
-                                     force=args.force, title=f"{rig.name}: generic vs personalized")
+                                     force=args.force, max_vertices=args.max_vertices,
+                                     title=f"{rig.name}: generic vs personalized")
         else:
-            diff = rig.deltas - generic.deltas
-            if shapes:                     # the RMS over the shapes asked for (it was over all of them)
-                diff = diff[[rig.names.index(s) for s in shapes]]
-            rms = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0))
+            from ..review.collect import shape_changes
+
+            # the RMS over the shapes asked for (it was over all of them); shape by shape
+            ks = [rig.names.index(s) for s in shapes] if shapes else list(range(rig.n_shapes))
+            rms = shape_changes([rig.deltas[k] for k in ks], [generic.deltas[k] for k in ks])[0]
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
+                                  max_vertices=args.max_vertices, crop=render.moving_region(rig.deltas),
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
                                   title=f"{rig.name}: personalized vs generic")
     else:
+        p.start(f"draw {args.output.name}")
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
+                             max_vertices=args.max_vertices,
                              title=f"{path.name}: {rig.name}")
+    _decimated_note(rig, args.max_vertices)
     print(f"wrote {args.output}")
     return 0
+
+
+def _decimated_note(rig, max_vertices) -> None:
+    """Say when the picture shows the mesh decimated (``--max-vertices``)."""
+    import sys
+
+    from ..mesh import DISPLAY_MAX_VERTICES
+
+    limit = DISPLAY_MAX_VERTICES if max_vertices is None else max_vertices
+    if limit and rig.n_vertices > limit:
+        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) drawn decimated to about {limit:,} of its "
+              "vertices (the titles' figures are the full mesh's; --max-vertices 0 draws every triangle)",
+              file=sys.stderr)
 
 
 def _layout_setup(path: Path) -> dict:
@@ -290,7 +332,7 @@ def _diagnostics(args, path: Path, rig) -> None:
     camera = (args.camera if args.camera is not None
               else None if args.rays is not None else recorded.get("camera"))
     rays = args.rays if args.rays is not None else recorded.get("rays", 16)
-    with steps("render --diagnostics", 2 + (prim not in layouts)) as p:
+    with steps("diagnostics", 2 + (prim not in layouts)) as p:       # inside render's own block
         if prim in layouts:
             vertices = layouts[prim]
             epsilon, alpha = settings.get("epsilon", 0.5), settings.get("alpha", 0.5)
@@ -309,5 +351,6 @@ def _diagnostics(args, path: Path, rig) -> None:
                    f"visibility: {seen_from}")
         render.render_landmark_diagnostics(rig.neutral, rig.triangles, panels, vertices, args.output,
                                            view=args.view, force=args.force,
+                                           max_vertices=args.max_vertices,
                                            crop=np.flatnonzero(diag.c.any(axis=0)), title=summary)
     print(summary)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .options import add_quiet
+from .options import add_quiet, nonnegative_int
 
 
 def register(subparsers) -> None:
@@ -25,6 +25,10 @@ def register(subparsers) -> None:
     p.add_argument("--no-fit-errors", action="store_true",
                    help="skip scoring the fit on the capture's test expressions (eq. 5: the layer's recorded "
                         "figures; another --capture is refitted)")
+    p.add_argument("--max-vertices", type=nonnegative_int, default=None, metavar="N",
+                   help="show a mesh of more vertices decimated to about N of its own vertices (default "
+                        "60000: a 225k-vertex head made a 124 MB page that updated a pose in seconds); 0 "
+                        "shows every vertex")
     p.add_argument("--force", action="store_true", help="overwrite the HTML file")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -41,6 +45,6 @@ def run(args) -> int:
 
     out = args.output or default_output(args.layer)
     path = write_review(args.layer, out, capture=args.capture, take=args.take,
-                        fit_errors=not args.no_fit_errors, force=args.force)
+                        fit_errors=not args.no_fit_errors, force=args.force, max_vertices=args.max_vertices)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0

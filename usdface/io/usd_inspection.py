@@ -202,9 +202,13 @@ def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
     heat = {}
     for key, deltas in offsets.items():
         rig = _rig(avatar, key)
-        diff = np.array(deltas, dtype=np.float64) - rig.deltas
-        heat[rig.source.prim] = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if len(diff) else \
-            np.zeros(rig.n_vertices)
+        # shape by shape: the whole [K, n, 3] difference, its squares and norms were ~670 MB of temporaries
+        # on a 225k-vertex head ('personalize --inspect' peaked at 1.78 GB against 1.11 GB without)
+        total = np.zeros(rig.n_vertices)
+        for k in range(len(deltas)):
+            d = np.asarray(deltas[k], dtype=np.float64) - rig.deltas[k]
+            total += np.einsum("ij,ij->i", d, d)
+        heat[rig.source.prim] = np.sqrt(total / len(deltas)) if len(deltas) else total
     return heat
 
 

@@ -110,6 +110,21 @@ def _parse_matrix(text: str):
     return json.loads(text)
 
 
+def shape_changes(personalized, generic) -> tuple[np.ndarray, np.ndarray]:
+    """``(rms[n], largest[K])``: per vertex the RMS over shapes of ``|personalized - generic|`` and per shape
+    the largest vertex change (metres), for offsets ``[K, n, 3]``; shape by shape (the whole difference,
+    its squares and norms at once were ~1 GB of temporaries on a 225k-vertex head's review)."""
+    K = len(personalized)
+    n = len(personalized[0]) if K else 0
+    total, largest = np.zeros(n), np.zeros(K)
+    for k in range(K):
+        d = np.asarray(personalized[k], dtype=np.float64) - generic[k]
+        sq = np.einsum("ij,ij->i", d, d)
+        total += sq
+        largest[k] = np.sqrt(sq.max()) if n else 0.0
+    return np.sqrt(total / max(K, 1)), largest
+
+
 def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
     meshes = []
     for rig in personalized.meshes:
@@ -122,8 +137,7 @@ def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
             raise RigError(f"mesh {rig.name!r} differs between the variants", path=personalized.file,
                            fix="review a layer written by 'usdface personalize'")
         g = gen.subset(rig.names).deltas
-        diff = rig.deltas - g
-        heat = np.sqrt((np.linalg.norm(diff, axis=2) ** 2).mean(axis=0)) if rig.n_shapes else None
+        heat = shape_changes(rig.deltas, g)[0] if rig.n_shapes else None
         meshes.append(ReviewMesh(rig.name, rig.neutral, rig.triangles, list(rig.names), g, rig.deltas, heat))
     for prim, (points, triangles) in sorted(personalized.metadata.get("static_meshes", {}).items()):
         meshes.append(ReviewMesh(prim.rsplit("/", 1)[-1], points, triangles))
@@ -236,7 +250,41 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
     raise InputFileError(f"this is {what}", path=path, fix=fix)
 
 
-def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = True) -> ReviewData:
+def _decimate_for_display(meshes: list[ReviewMesh], max_vertices: int | None) -> list[str]:
+    """Replace each mesh of more than ``max_vertices`` vertices (default
+    :data:`usdface.mesh.DISPLAY_MAX_VERTICES`, 0: no limit) by a decimated subset of its own vertices
+    (:func:`usdface.mesh.display_subset`: neutral, both variants' deltas, heat and landmarks indexed the
+    same way; a landmark on the nearest kept vertex). Returns the page's notes naming them."""
+    from ..mesh import DISPLAY_MAX_VERTICES, display_subset
+
+    limit = DISPLAY_MAX_VERTICES if max_vertices is None else int(max_vertices)
+    notes = []
+    for m in meshes:
+        display = display_subset(m.neutral, m.triangles, limit)
+        if display is None:
+            continue
+        keep, triangles = display
+        n = len(m.neutral)
+        neutral = np.asarray(m.neutral)[keep]
+        if m.landmarks is not None and len(m.landmarks):
+            from scipy.spatial import cKDTree
+
+            m.landmarks = cKDTree(neutral).query(np.asarray(m.neutral)[np.asarray(m.landmarks)])[1]
+        m.neutral, m.triangles = neutral, triangles
+        if m.generic is not None:
+            m.generic = np.asarray(m.generic)[:, keep]
+        if m.personalized is not None:
+            m.personalized = np.asarray(m.personalized)[:, keep]
+        if m.heat is not None:
+            m.heat = np.asarray(m.heat)[keep]
+        notes.append(f"{m.name} ({n:,} vertices) is shown decimated to {len(keep):,} of its vertices (the "
+                     "tables' figures are the full mesh's; 'usdface review --max-vertices 0' shows every "
+                     "vertex, in a larger and slower page)")
+    return notes
+
+
+def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = True,
+                   max_vertices: int | None = None) -> ReviewData:
     """Everything :func:`usdface.review.page.build_review_html` needs for the usdface layer ``layer_path``.
 
     ``capture``: the capture (path or :class:`usdface.model.Capture`) whose test expressions are played and
@@ -245,7 +293,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     :class:`usdface.io.take.Take`); default the take the layer was written with (``personalize --take``,
     :func:`recorded_take`), when it still exists. ``fit_errors``: score the generic template and the
     personalized shapes on the capture's test expressions (eq. 5): the layer's own figures
-    (:func:`_fit_errors`), or one refit (a few seconds) for another capture or an older layer."""
+    (:func:`_fit_errors`), or one refit (a few seconds) for another capture or an older layer.
+    ``max_vertices``: meshes with more vertices are shown decimated (:func:`_decimate_for_display`)."""
     from ..io import read_capture
     from ..io.flatten import read_avatar_variant
     from ..io.take import TAKE_NOT_CAPTURE_FIX, read_take, refuse_capture_as_take
@@ -337,7 +386,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     changes = []
     for m in meshes:
         if m.names:
-            top = np.linalg.norm(m.personalized - m.generic, axis=2).max(axis=1)
+            top = shape_changes(m.personalized, m.generic)[1]
             changes.append((m.name, m.names, top))
     if changes:
         rows = []
@@ -357,5 +406,6 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         tables.append(("what changed", rows))
     for w in prov.get("warnings") or []:
         notes.append(f"warning: {w}")
+    notes.extend(_decimate_for_display(meshes, max_vertices))   # after every figure of the full meshes
     title = f"usdface review: {layer_path.name}"
     return ReviewData(title, meshes, sequences, tables, errors, notes)

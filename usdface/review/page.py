@@ -169,6 +169,26 @@ def _payload(data: ReviewData) -> dict:
             "presets": {p: v for p, v in presets.items() if v}}
 
 
+def _framed_ranges(meshes) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(lo[3], hi[3])`` the page's view is cut to when a mesh's shapes move less than half of it
+    (:func:`usdface.render.moving_region`: a face on a head-and-body mesh, drawn as the whole body, was a
+    few per cent of the view): the box of its moving vertices and of the other meshes, 10 % larger; ``None``
+    when every mesh moves mostly (the view shows everything, as before)."""
+    from ..render import moving_region
+
+    parts, cropped = [], False
+    for m in meshes:
+        region = moving_region(m.generic) if m.names and m.generic is not None else None
+        cropped |= region is not None
+        parts.append(np.asarray(m.neutral)[region] if region is not None else np.asarray(m.neutral))
+    if not cropped:
+        return None
+    points = np.concatenate(parts)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = 0.05 * float((hi - lo).max() or 1.0)
+    return lo - pad, hi + pad
+
+
 def _figure(data: ReviewData):
     import plotly.graph_objects as go
 
@@ -192,10 +212,18 @@ def _figure(data: ReviewData):
                                            name=f"{m.name} landmarks ({variant})", hoverinfo="skip",
                                            marker={"size": 2.5, "color": "#2f7df6"}))
     axis = {"visible": False, "showspikes": False}
+    framed = _framed_ranges(data.meshes)
     camera = {"up": {"x": 0, "y": 1, "z": 0}, "eye": {"x": 0.0, "y": 0.05, "z": 1.5},
               "center": {"x": 0, "y": 0, "z": 0}, "projection": {"type": "perspective"}}
     scene = {"xaxis": axis, "yaxis": axis, "zaxis": axis, "aspectmode": "data", "camera": camera,
              "dragmode": "orbit", "bgcolor": "#1d2127"}
+    if framed is not None:            # the moving part of a larger still mesh: the rest is cut off
+        lo, hi = framed
+        size = hi - lo
+        scene.update({f"{c}axis": {**axis, "range": [float(lo[i]), float(hi[i])], "autorange": False}
+                      for i, c in enumerate("xyz")})
+        scene.update(aspectmode="manual",
+                     aspectratio={c: float(size[i] / size.max()) for i, c in enumerate("xyz")})
     fig.update_layout(
         scene={**scene, "domain": {"x": [0.0, 0.5], "y": [0.0, 1.0]}},
         scene2={**scene, "domain": {"x": [0.5, 1.0], "y": [0.0, 1.0]}},
