@@ -222,7 +222,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     w0 = np.clip(np.asarray(face_weight, dtype=np.float64), 0.0, 1.0)
     n_shapes, m = g.shape[:2]
     # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
-    # motion, and so the result, is 0 whatever the field
+    # motion is float noise at most, and the result keeps it as authored whatever the field
     peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
     domain = np.flatnonzero(moving_vertices(peak, points) | (w0 > 0))
     peak = peak[domain]
@@ -393,10 +393,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
                                               + (1.0 - wn)[None, :, None] * outside)
             del fc
         del gd, pd, f, outside, phi
-    if out is not None:                                           # elsewhere 0, as a fresh result
-        rest = np.ones(m, dtype=bool)
-        rest[domain] = False
-        result[:, rest] = 0.0
+    # elsewhere (the generic motion below the float noise floor: :func:`moving_vertices`) the generic
+    # offsets as authored: a subdivided head's back carried µm of export noise that the result set to 0,
+    # so shapes kept generic came out changed and the count of personalized shapes grew with the resolution
+    rest = np.ones(m, dtype=bool)
+    rest[domain] = False
+    rest = np.flatnonzero(rest)
+    if rest.size:
+        for k in range(n_shapes):                                 # shape by shape: no [J,rest,3] copy
+            result[k, rest] = _offsets_at(g, slice(k, k + 1), rest)[0]
     points_kept = x[kept] if proxy is None else proxy.points[kept]
     return result, FieldOnMesh(points_kept, field, rings, generic=skin)
 
