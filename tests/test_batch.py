@@ -352,7 +352,7 @@ def test_manifest_refuses_an_item_writing_its_own_avatar(tmp_path):
 @pytest.mark.parametrize("column, value, needle", [
     ("review", "true", "unknown personalize option(s): review"),
     ("mu", "-1", "bad mu -1"),
-    ("beta", "0.5", "menzel takes reg, prior"),
+    ("beta", "0.5", "menzel takes --reg (reg), --prior (prior)"),
 ])
 def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, value, needle):
     """A column personalize does not take (a CLI flag, a typo, another method's option) failed every item

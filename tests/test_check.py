@@ -411,7 +411,14 @@ def test_usdfaces_own_error_maps_pass_check(tmp_path):
 @pytest.mark.parametrize("rules", [",", "", " , "])
 def test_cli_rules_that_name_no_rule_are_refused(samples, capsys, rules):
     """``usdface check FILE --rules ,`` ran none of usdface's rules (a broken rig passed them, exit 0) and
-    ``--rules ''`` all of them; both name no rule and are refused (exit 2) listing the rules."""
+    ``--rules ''`` all of them; both name no rule and are refused (exit 2) listing the rules; the empty
+    value as every empty argument is, at the command line (an unset variable in a job template)."""
+    if not rules:
+        with pytest.raises(SystemExit) as done:
+            main(["check", str(samples / "avatar.usda"), "--rules", rules])
+        assert done.value.code == 2
+        assert "argument --rules: empty value" in capsys.readouterr().err
+        return
     assert main(["check", str(samples / "avatar.usda"), "--rules", rules]) == 2
     err = capsys.readouterr().err
     assert "names no rule" in err and "ArkitNames" in err
