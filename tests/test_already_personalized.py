@@ -107,3 +107,67 @@ def test_usdface_output_is_not_personalized_again(tmp_path, capfd):
         assert "already personalized" in err and "avatar.usda" in err and str(layer) in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["person.usda"]
     assert read_avatar(layer).mesh("Head").n_shapes  # reading it (check, render, inspect) is still fine
+
+
+def _dcc_export(layer: Path, out: Path, blender_layout: bool = True) -> Path:
+    """What Blender 5 writes back for a usdface layer (the round trip studios make): the composed stage with
+    the selected variant baked in, no variant set, no customLayerData, no provenance schema; each
+    ``usdfaceShapes`` scope an Empty written back as an ``Xform`` beside the mesh, the second one renamed
+    ``usdfaceShapes_001`` (prims as in the real export of the sample's layer)."""
+    from pxr import Sdf, Usd
+
+    flat = Usd.Stage.Open(str(layer)).Flatten()
+    flat.customLayerData = {}
+    flat.subLayerPaths.clear()
+    root = flat.GetPrimAtPath("/Avatar")
+    if root.HasInfo("apiSchemas"):
+        root.ClearInfo("apiSchemas")
+    for name in [n for n in root.properties.keys() if n.startswith("usdface:")]:
+        root.RemoveProperty(root.properties[name])
+    if blender_layout:                  # Blender's second scope, beside the Mouth
+        Sdf.PrimSpec(root, "usdfaceShapes_001", Sdf.SpecifierDef, "Xform")
+    flat.Export(str(out))
+    return out
+
+
+def test_dcc_export_of_a_personalized_layer_is_not_personalized_again(person_layer, tmp_path, capfd):
+    """Blender round trip (h5): Blender's re-export of a personalized layer has neither the variant set nor
+    the provenance, so it was personalized again as a plain avatar (the personalization stacked, silently;
+    the docs called it undetectable). It keeps the usdfaceShapes scopes (Blender's Empties), and is now
+    refused (AlreadyPersonalizedError) naming the file, the scope prim and the fix, before any output."""
+    from pxr import Usd
+
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import dcc_export_marks, refuse_usdface_output
+
+    export = _dcc_export(person_layer, tmp_path / "blender.usda")
+    stage = Usd.Stage.Open(str(export))
+    assert not any(p.GetVariantSets().GetNames() for p in stage.Traverse())      # as Blender's export
+    marks = dcc_export_marks(export)
+    assert "/Avatar/usdfaceShapes_001" in marks and "/Avatar/Head/usdfaceShapes" in marks
+    for argv in (["personalize", str(export), str(C), "-o", str(tmp_path / "p2.usda")],
+                 ["retarget", str(export), str(C), "-o", str(tmp_path / "m.json")]):
+        assert main(argv) == 2
+        err = capfd.readouterr().err
+        assert "DCC export" in err and "usdfaceShapes" in err and str(export) in err
+        assert "export the original avatar" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blender.usda"]
+    with pytest.raises(AlreadyPersonalizedError) as caught:
+        refuse_usdface_output(str(export))
+    assert caught.value.prim == marks[0]
+    # a crate export is found the same way
+    crate = _dcc_export(person_layer, tmp_path / "blender.usdc", blender_layout=False)
+    assert dcc_export_marks(crate) == ["/Avatar/Head/usdfaceShapes"]
+
+
+def test_plain_avatar_and_usdface_outputs_have_no_dcc_export_marks(person_layer, tmp_path):
+    """The marks are only a DCC export's: the avatar has none, the layer itself is refused as a usdface layer
+    (its scopes live in its variant), a flattened generic export drops the scopes and is accepted."""
+    from usdface.io.flatten import flatten_variant
+    from usdface.io.usd_rig import dcc_export_marks, refuse_usdface_output
+
+    generic = flatten_variant(person_layer, tmp_path / "generic.usda", "generic")
+    for path in (A, person_layer, generic):
+        assert dcc_export_marks(path) == []
+    refuse_usdface_output(A)
+    refuse_usdface_output(generic)
