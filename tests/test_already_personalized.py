@@ -171,3 +171,29 @@ def test_plain_avatar_and_usdface_outputs_have_no_dcc_export_marks(person_layer,
         assert dcc_export_marks(path) == []
     refuse_usdface_output(A)
     refuse_usdface_output(generic)
+
+
+def test_review_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): 'usdface review' of Blender's re-export said 'an avatar that is not
+    personalized ... (fix: personalize it first)', advice that stacked the personalization; it now says
+    what the file is and points at the usdface layer."""
+    export = _dcc_export(person_layer, tmp_path / "blender.usda")
+    assert main(["review", str(export), "-o", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err
+    assert "DCC export" in err and "usdfaceShapes" in err and "personalize it first" not in err
+    assert "review the usdface layer it was exported from" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blender.usda"]
+
+
+def test_export_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): 'usdface export' of Blender's re-export labelled it 'a plain avatar, not
+    personalized' (its shapes are the personalized ones), and '--variant generic' said 'not a usdface
+    layer, pass a layer written by usdface personalize'. Both now say what it is."""
+    export = _dcc_export(person_layer, tmp_path / "blender.usda")
+    assert main(["export", str(export), "--gltf", str(tmp_path / "p.glb")]) == 0
+    out = capsys.readouterr().out
+    assert "DCC export of a usdface layer" in out and "not personalized" not in out
+    assert main(["export", str(export), "--gltf", str(tmp_path / "g.glb"), "--variant", "generic"]) == 2
+    err = capsys.readouterr().err
+    assert "DCC export" in err and "the generic shapes are not in it" in err and "usdfaceShapes" in err
+    assert not (tmp_path / "g.glb").exists()

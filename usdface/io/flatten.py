@@ -92,6 +92,16 @@ def variant_stage(path, variant: str = "personalized"):
                              path=path, fix=f"export the generic variant of the layer it was flattened from "
                                             f"({_from_cwd(source)}) or use the original avatar")
     if not prims and variant == "generic" and baked is None:
+        from .usd_rig import dcc_export_marks
+
+        marks = dcc_export_marks(path)
+        if marks:           # Blender's export of a usdface layer: its shapes are the variant it composed
+            raise InputFileError(
+                f"this looks like a DCC export (Blender, ...) of a usdface output layer (it has {marks[0]}): "
+                "the DCC baked in the variant it composed ('personalized' unless switched) and dropped the "
+                "variant set, so the generic shapes are not in it", path=path, prim=marks[0],
+                fix="export the generic variant of the usdface layer itself ('usdface export person.usda "
+                    "--variant generic ...') or use the original avatar")
         raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,
                              fix="pass a layer written by 'usdface personalize'")
     with Usd.EditContext(stage, stage.GetSessionLayer()):
