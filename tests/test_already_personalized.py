@@ -197,3 +197,17 @@ def test_export_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_pat
     err = capsys.readouterr().err
     assert "DCC export" in err and "the generic shapes are not in it" in err and "usdfaceShapes" in err
     assert not (tmp_path / "g.glb").exists()
+
+
+def test_inspect_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): 'usdface inspect' called Blender's re-export of a personalized layer a plain
+    'avatar' with nothing more; it now says it is a DCC export whose shapes are the personalized ones, in
+    the text and the JSON (dccExport); the plain avatar has no such entry."""
+    export = _dcc_export(person_layer, tmp_path / "blender.usda")
+    assert main(["inspect", str(export)]) == 0
+    assert "DCC export of a usdface output layer" in capsys.readouterr().out
+    assert main(["inspect", str(export), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert "/Avatar/Head/usdfaceShapes" in report["dccExport"]["usdfaceShapes"]
+    assert main(["inspect", str(A), "--json"]) == 0
+    assert "dccExport" not in json.loads(capsys.readouterr().out)
