@@ -211,3 +211,35 @@ def test_inspect_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_pa
     assert "/Avatar/Head/usdfaceShapes" in report["dccExport"]["usdfaceShapes"]
     assert main(["inspect", str(A), "--json"]) == 0
     assert "dccExport" not in json.loads(capsys.readouterr().out)
+
+
+def test_flattened_personalized_export_is_marked_for_a_dcc_round_trip(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): a flattened export of the personalized variant has no usdfaceShapes scope,
+    and a DCC drops its customLayerData record, so its DCC export was a plain avatar again. The flattened
+    export now carries an empty Scope usdfacePersonalized under the SkelRoot (a DCC keeps it: Blender
+    writes it back as an Xform); without the record (the DCC export) it is refused. The generic export has
+    no mark and the flattened file itself is refused by its record, as before."""
+    from pxr import Sdf
+
+    from usdface.io.flatten import PERSONALIZED_MARK, flatten_variant
+    from usdface.io.usd_rig import dcc_export_marks
+
+    flat = flatten_variant(person_layer, tmp_path / "flat.usda", "personalized")
+    generic = flatten_variant(person_layer, tmp_path / "generic.usda", "generic")
+    layer = Sdf.Layer.FindOrOpen(str(flat))
+    assert layer.GetPrimAtPath(f"/Avatar/{PERSONALIZED_MARK}").typeName == "Scope"
+    assert Sdf.Layer.FindOrOpen(str(generic)).GetPrimAtPath(f"/Avatar/{PERSONALIZED_MARK}") is None
+    assert dcc_export_marks(flat) == [] and dcc_export_marks(generic) == []
+    again = flatten_variant(flat, tmp_path / "again.usda", "personalized")       # kept, not doubled
+    assert list(Sdf.Layer.FindOrOpen(str(again)).GetPrimAtPath("/Avatar").nameChildren.keys()).count(
+        PERSONALIZED_MARK) == 1
+    dcc = tmp_path / "blender.usda"                     # what the DCC keeps: the prims, not the record
+    exported = Sdf.Layer.CreateAnonymous(".usda")
+    exported.TransferContent(layer)
+    exported.customLayerData = {}
+    exported.Export(str(dcc))
+    assert dcc_export_marks(dcc) == [f"/Avatar/{PERSONALIZED_MARK}"]
+    assert main(["personalize", str(dcc), str(C), "-o", str(tmp_path / "p2.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "DCC export" in err and PERSONALIZED_MARK in err
+    assert not (tmp_path / "p2.usda").exists()

@@ -163,8 +163,31 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
             record["take"] = _rebase(record["take"], src, out)
         data["usdface"] = record
     flat.customLayerData = data
+    if data["usdfaceFlatten"]["variant"] == "personalized":
+        _mark_personalized(flat, stage)
     _rebase_provenance_attributes(flat, src, out)
     return atomic_save(flat, out, force)
+
+
+#: an empty Scope under each SkelRoot of a flattened export of the ``personalized`` variant: a DCC keeps
+#: it (Blender: an Empty, written back as an Xform) where it drops ``customLayerData``, so a DCC's export
+#: of the flattened file is still refused as personalized (:func:`usdface.io.usd_rig.dcc_export_marks`)
+PERSONALIZED_MARK = "usdfacePersonalized"
+
+
+def _mark_personalized(layer, stage) -> None:
+    """:data:`PERSONALIZED_MARK` under each prim that had the personalization variant set (a flattened export
+    flattened again keeps the marks Flatten copied)."""
+    from pxr import Sdf
+
+    for prim in _personalization_prims(stage):
+        parent = layer.GetPrimAtPath(prim.GetPath())
+        if parent is None or PERSONALIZED_MARK in parent.nameChildren:
+            continue
+        mark = Sdf.PrimSpec(parent, PERSONALIZED_MARK, Sdf.SpecifierDef, "Scope")
+        mark.documentation = ("usdface: the blend shapes of this avatar are a person's personalized ones "
+                              "(usdface export --flatten of the personalized variant); delete this prim only "
+                              "if they are the generic ones")
 
 
 def _shape_redirections(stage) -> dict[str, list[tuple[str, str]]]:

@@ -576,9 +576,10 @@ def _has_personalization(path) -> bool:
                for p in stage.Traverse(Usd.TraverseInstanceProxies()))
 
 
-# the scope personalize's variant puts under each mesh (layers.SHAPES_SCOPE), as a DCC renames a second one
-# (Blender: usdfaceShapes.001 for the object, usdfaceShapes_001 for the prim it exports)
-_SHAPES_SCOPE_COPY = re.compile(r"usdfaceShapes(?:[._]?\d+)?")
+# the scope personalize's variant puts under each mesh (layers.SHAPES_SCOPE) and the mark of a flattened
+# personalized export (flatten.PERSONALIZED_MARK), as a DCC renames a second one (Blender: usdfaceShapes.001
+# for the object, usdfaceShapes_001 for the prim it exports)
+_SHAPES_SCOPE_COPY = re.compile(r"usdface(?:Shapes|Personalized)(?:[._]?\d+)?")
 
 
 def _may_hold_scope_copies(path: Path) -> bool:
@@ -592,20 +593,21 @@ def _may_hold_scope_copies(path: Path) -> bool:
             text = head + handle.read()
     except OSError:
         return False                              # the reader that follows says why
-    return b"usdfaceShapes" in text or b"@" in text
+    return b"usdfaceShapes" in text or b"usdfacePersonalized" in text or b"@" in text
 
 
 def dcc_export_marks(path) -> list[str]:
-    """Prim paths of usdface's ``usdfaceShapes`` scopes (or a DCC's renamed copies: ``usdfaceShapes_001``)
-    under a SkelRoot of the composed stage of ``path`` when it has no personalization variant set: what a
-    DCC's export of a usdface output layer keeps of it. Blender 5 imports the selected variant (the
-    ``personalized`` one unless switched), turns each scope into an Empty and writes it back as an ``Xform``
-    beside the mesh, and drops the variant set, ``customLayerData`` and the provenance schema. [] for any
-    other file (a plain avatar, a usdface layer, a flattened export: its scopes are dropped)."""
+    """Prim paths of usdface's ``usdfaceShapes`` scopes and ``usdfacePersonalized`` marks (or a DCC's renamed
+    copies: ``usdfaceShapes_001``) under a SkelRoot of the composed stage of ``path`` when it has no
+    personalization variant set and is no flattened export (its ``customLayerData`` kept): what a DCC's
+    export of a usdface output layer, or of its flattened personalized export, keeps of it. Blender 5
+    imports the selected variant (the ``personalized`` one unless switched), turns each scope into an Empty
+    and writes it back as an ``Xform`` beside the mesh, and drops the variant set, ``customLayerData`` and
+    the provenance schema. [] for any other file (a plain avatar, a usdface layer, a flattened export)."""
     from pxr import Usd, UsdSkel
 
     path = Path(path)
-    if not _may_hold_scope_copies(path):
+    if not _may_hold_scope_copies(path) or flattened_from(path) is not None:
         return []
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
@@ -631,13 +633,14 @@ def refuse_dcc_export(path) -> None:
         return
     shown = ", ".join(marks[:2]) + (f" (+{len(marks) - 2} more)" if len(marks) > 2 else "")
     raise AlreadyPersonalizedError(
-        f"this looks like a DCC export (Blender, ...) of a usdface output layer: it has {shown}, the scope "
-        "only usdface's personalization variant creates, but no variant set or provenance (the DCC composed "
-        "the selected variant, 'personalized' unless switched, and dropped the rest); personalizing it again "
-        "would stack the personalization on the personalized shapes", path=path, prim=marks[0],
+        f"this looks like a DCC export (Blender, ...) of a usdface output layer: it has {shown}, which "
+        "usdface writes only into a personalized layer (the variant's scopes) or its flattened personalized "
+        "export, but no variant set or provenance (the DCC composed the selected variant, 'personalized' "
+        "unless switched, and dropped the rest); personalizing it again would stack the personalization on "
+        "the personalized shapes", path=path, prim=marks[0],
         fix="export the original avatar (the one the usdface layer sublayers) from the DCC, or personalize "
-            "that avatar itself; if this export was made with the 'generic' variant selected, delete the "
-            "usdfaceShapes prims from it first")
+            "that avatar itself; if this export holds the generic shapes (the 'generic' variant selected), "
+            "delete those prims from it first")
 
 
 def generic_input(layer_path) -> Path | None:

@@ -240,7 +240,8 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
         if marks:       # Blender's export of a personalized layer: 'personalize it first' would stack it
             raise InputFileError(
                 f"this looks like a DCC export (Blender, ...) of a usdface output layer (it has {marks[0]}, "
-                "the scope only usdface's personalization variant creates): the DCC kept one variant and "
+                "which usdface writes only into a personalized layer or its flattened export): the DCC kept "
+                "one variant and "
                 "dropped the variant set and the fit figures, so there is no generic | personalized to "
                 "compare", path=path, prim=marks[0],
                 fix="review the usdface layer it was exported from ('usdface review person.usda'); to "
