@@ -604,7 +604,7 @@ def dcc_export_marks(path) -> list[str]:
     imports the selected variant (the ``personalized`` one unless switched), turns each scope into an Empty
     and writes it back as an ``Xform`` beside the mesh, and drops the variant set, ``customLayerData`` and
     the provenance schema. [] for any other file (a plain avatar, a usdface layer, a flattened export)."""
-    from pxr import Usd, UsdSkel
+    from pxr import Usd
 
     path = Path(path)
     if not _may_hold_scope_copies(path) or flattened_from(path) is not None:
@@ -613,6 +613,14 @@ def dcc_export_marks(path) -> list[str]:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
     except Exception:                           # noqa: BLE001 - unreadable: the reader names it
         return []
+    return dcc_export_marks_in(stage)
+
+
+def dcc_export_marks_in(stage) -> list[str]:
+    """:func:`dcc_export_marks` of an open stage (``usdface check``'s Provenance rule), whatever its root
+    layer records."""
+    from pxr import Usd, UsdSkel
+
     marks = []
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         if prim.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET):
