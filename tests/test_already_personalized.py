@@ -243,3 +243,37 @@ def test_flattened_personalized_export_is_marked_for_a_dcc_round_trip(person_lay
     err = capsys.readouterr().err
     assert "DCC export" in err and PERSONALIZED_MARK in err
     assert not (tmp_path / "p2.usda").exists()
+
+
+def test_personalized_gltf_marks_its_nodes_for_a_dcc_round_trip(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): glTF -> Blender -> USD lost what the glTF said of its variant (scene extras,
+    which Blender keeps only on its scene), so the export was a plain avatar again. The glTF's root and mesh
+    nodes now carry extras {"usdfaceVariant": variant}; Blender makes them object custom properties and its
+    USD exporter writes 'userProperties:usdfaceVariant' (seen with bpy 5.0.1), which is refused when it says
+    personalized. The generic glTF says generic and is not refused."""
+    import pygltflib
+    from pxr import Sdf
+
+    for variant in ("personalized", "generic"):
+        glb = tmp_path / f"{variant}.glb"
+        assert main(["export", str(person_layer), "--gltf", str(glb), "--variant", variant, "-q"]) == 0
+        doc = pygltflib.GLTF2().load(str(glb))
+        assert all((n.extras or {}).get("usdfaceVariant") == variant for n in doc.nodes
+                   if n.mesh is not None or n.name == "Avatar")
+    capsys.readouterr()
+    from usdface.io.usd_rig import dcc_export_marks
+
+    for value, refused in (("personalized", True), ("generic", False)):
+        out = tmp_path / f"blender_{value}.usda"
+        layer = Sdf.Layer.CreateNew(str(out))
+        layer.TransferContent(Sdf.Layer.FindOrOpen(str(A)))
+        attr = Sdf.AttributeSpec(layer.GetPrimAtPath("/Avatar"), "userProperties:usdfaceVariant",
+                                 Sdf.ValueTypeNames.String)
+        attr.custom, attr.default = True, value
+        layer.Save()
+        assert bool(dcc_export_marks(out)) is refused
+        code = main(["personalize", str(out), str(C), "-o", str(tmp_path / f"p_{value}.usda"), "--dry-run"])
+        err = capsys.readouterr().err
+        assert code == (2 if refused else 0)
+        if refused:
+            assert "/Avatar.userProperties:usdfaceVariant" in err and "glTF" in err

@@ -593,7 +593,7 @@ def _may_hold_scope_copies(path: Path) -> bool:
             text = head + handle.read()
     except OSError:
         return False                              # the reader that follows says why
-    return b"usdfaceShapes" in text or b"usdfacePersonalized" in text or b"@" in text
+    return any(word in text for word in (b"usdfaceShapes", b"usdfacePersonalized", b"usdfaceVariant", b"@"))
 
 
 def dcc_export_marks(path) -> list[str]:
@@ -616,9 +616,15 @@ def dcc_export_marks(path) -> list[str]:
     return dcc_export_marks_in(stage)
 
 
+#: the glTF's node extras key (``usdface export --gltf``): Blender makes it an object custom property and
+#: writes it back to USD as ``userProperties:usdfaceVariant``
+VARIANT_PROPERTY = "usdfaceVariant"
+
+
 def dcc_export_marks_in(stage) -> list[str]:
     """:func:`dcc_export_marks` of an open stage (``usdface check``'s Provenance rule), whatever its root
-    layer records."""
+    layer records; also the ``userProperties:usdfaceVariant = "personalized"`` attributes a DCC's USD export
+    of usdface's personalized glTF carries (as property paths)."""
     from pxr import Usd, UsdSkel
 
     marks = []
@@ -627,6 +633,10 @@ def dcc_export_marks_in(stage) -> list[str]:
             return []                           # a usdface layer (refused as one) or a layer over it
         if _SHAPES_SCOPE_COPY.fullmatch(prim.GetName()) and UsdSkel.Root.Find(prim):
             marks.append(str(prim.GetPath()))
+        for name in (f"userProperties:{VARIANT_PROPERTY}", VARIANT_PROPERTY):
+            attr = prim.GetAttribute(name)
+            if attr and attr.HasAuthoredValue() and str(attr.Get()) == "personalized":
+                marks.append(str(attr.GetPath()))
     return marks
 
 
@@ -642,13 +652,13 @@ def refuse_dcc_export(path) -> None:
     shown = ", ".join(marks[:2]) + (f" (+{len(marks) - 2} more)" if len(marks) > 2 else "")
     raise AlreadyPersonalizedError(
         f"this looks like a DCC export (Blender, ...) of a usdface output layer: it has {shown}, which "
-        "usdface writes only into a personalized layer (the variant's scopes) or its flattened personalized "
-        "export, but no variant set or provenance (the DCC composed the selected variant, 'personalized' "
-        "unless switched, and dropped the rest); personalizing it again would stack the personalization on "
-        "the personalized shapes", path=path, prim=marks[0],
+        "usdface writes only into a personalized layer (the variant's scopes), its flattened personalized "
+        "export or its personalized glTF, but no variant set or provenance (the DCC composed the selected "
+        "variant, 'personalized' unless switched, and dropped the rest); personalizing it again would stack "
+        "the personalization on the personalized shapes", path=path, prim=marks[0],
         fix="export the original avatar (the one the usdface layer sublayers) from the DCC, or personalize "
             "that avatar itself; if this export holds the generic shapes (the 'generic' variant selected), "
-            "delete those prims from it first")
+            "delete those prims (or properties) from it first")
 
 
 def generic_input(layer_path) -> Path | None:
