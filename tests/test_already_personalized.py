@@ -277,3 +277,15 @@ def test_personalized_gltf_marks_its_nodes_for_a_dcc_round_trip(person_layer, tm
         assert code == (2 if refused else 0)
         if refused:
             assert "/Avatar.userProperties:usdfaceVariant" in err and "glTF" in err
+
+
+def test_render_compare_names_a_dcc_export_of_a_personalized_layer(person_layer, tmp_path, capsys):
+    """Blender round trip (h5): 'render --compare' of Blender's re-export said 'not a usdface layer (no
+    sublayer to compare with)'; it now says it is a DCC export of one and to pass the original avatar, and
+    with the avatar given it draws."""
+    export = _dcc_export(person_layer, tmp_path / "blender.usda")
+    assert main(["render", str(export), "-o", str(tmp_path / "c.png"), "--compare"]) == 2
+    err = capsys.readouterr().err
+    assert "DCC export" in err and "--compare AVATAR.usdc" in err and "usdfaceShapes" in err
+    assert main(["render", str(export), "-o", str(tmp_path / "c.png"), "--compare", str(A), "-q",
+                 "--shapes", "jawOpen"]) == 0
