@@ -721,3 +721,26 @@ def test_check_says_what_is_wrong_with_the_file(tmp_path, monkeypatch, capfd, te
     err = capfd.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found" not in err
     assert any(w in err for w in ("folder", "named pipe", "cycles"))
+
+
+def test_provenance_warns_about_a_dcc_export_of_a_personalized_layer(tmp_path):
+    """Blender round trip (h5): Blender's export of a personalized layer passed 'usdface check' with only
+    its renamed channels (a warning), though its shapes are the personalized ones and its provenance is
+    gone; the Provenance rule now warns, naming the usdfaceShapes prim Blender kept. The plain avatar and a
+    Blender export of it (no such prim) stay clean."""
+    from pxr import Sdf, Usd
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    layer = Sdf.Layer.FindOrOpen(str(samples / "avatar.usda"))
+    for name, marked in (("blender.usda", True), ("plain.usda", False)):
+        out = Sdf.Layer.CreateNew(str(tmp_path / name))
+        out.TransferContent(layer)
+        if marked:          # Blender writes each variant scope back as an Xform beside the mesh
+            Sdf.PrimSpec(out.GetPrimAtPath("/Avatar"), "usdfaceShapes_001", Sdf.SpecifierDef, "Xform")
+        out.Save()
+        issues = [i for i in check(Usd.Stage.Open(str(tmp_path / name))) if i.rule == "Provenance"]
+        if marked:
+            assert [(i.severity, i.prim) for i in issues] == [(WARNING, "/Avatar/usdfaceShapes_001")]
+            assert "DCC export" in issues[0].message and "export the original avatar" in issues[0].fix
+        else:
+            assert issues == []

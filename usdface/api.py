@@ -1499,6 +1499,7 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
     from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import write_gltf
     from .io.mesh_io import write_obj
+    from .io.usd_rig import VARIANT_PROPERTY
     from .model import FaceRig as _FaceRig
 
     if gltf or obj_dir:
@@ -1520,9 +1521,13 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             p.start(f"write {Path(gltf).name}")
             skeleton = read_gltf_skin(layer_path, avatar) if skin else None
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
-            extras = {"usdface": {"source": Path(layer_path).name,
-                                  "variant": exported_variant(layer_path, variant)}}
-            write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, force=force)
+            given = exported_variant(layer_path, variant)
+            extras = {"usdface": {"source": Path(layer_path).name, "variant": given}}
+            # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
+            # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
+            marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
+            write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
+                       force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             p.start(f"write {sum(len(r.names) + 1 for r in rigs)} OBJs to {Path(obj_dir).name}")

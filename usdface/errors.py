@@ -54,7 +54,8 @@ class RigError(UsdFaceError):
 
 class AlreadyPersonalizedError(RigError):
     """An avatar given to ``personalize``/``retarget`` is already personalized: a usdface output layer, or a
-    flattened export of its personalized variant (``usdface export --flatten``); personalizing it again would
+    flattened export of its personalized variant (``usdface export --flatten``), or a DCC's export of such a
+    layer (Blender's, recognised by the ``usdfaceShapes`` scopes it keeps); personalizing it again would
     stack the personalization on the personalized shapes."""
 
 

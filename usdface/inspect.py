@@ -156,6 +156,12 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         played = _inspection_animation(avatar)
         if played:
             out["inspectionAnimation"] = played
+    if kind == "avatar" and avatar.file:      # a DCC's export of a usdface layer reads as a plain avatar
+        from .io.usd_rig import dcc_export_marks
+
+        marks = dcc_export_marks(avatar.file)
+        if marks:
+            out["dccExport"] = {"usdfaceShapes": marks}
     return out
 
 
@@ -388,6 +394,11 @@ def format_report(report: dict) -> str:
         source = os.path.normpath(Path(str(report.get("file"))).parent / str(flat.get("source")))
         lines.append(f"  flattened export (usdface export --flatten) of the {flat['variant']} variant of "
                      f"{source}: {what}")
+    dcc = report.get("dccExport")
+    if dcc:       # read as a plain avatar, its shapes are the personalized ones (Blender's re-export)
+        lines.append(f"  DCC export of a usdface output layer (it has {dcc['usdfaceShapes'][0]}): the "
+                     "variant the DCC composed baked in (personalized unless switched), no variant set or "
+                     "provenance: personalize refuses it as the avatar")
     for note in report.get("notes", []):
         lines.append(f"  note: {note}")
     for mesh in report["meshes"]:

@@ -43,7 +43,12 @@ def run(args) -> int:
     variant = exported_variant(args.layer, args.variant)
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
-    label = ("as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
+    from ..io.usd_rig import dcc_export_marks
+
+    dcc = variant == AS_AUTHORED and dcc_export_marks(args.layer)
+    label = ("as authored: a DCC export of a usdface layer, the variant the DCC composed (personalized "
+             "unless switched)" if dcc else
+             "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
              f"{variant}, as baked into {Path(args.layer).name} (a flattened export of {baked['source']})"
              if baked else variant)
     for kind, path in done.items():

@@ -62,6 +62,16 @@ def _generic(args, path: Path) -> Path:
     given = args.compare if args.compare is not None else args.heatmap
     generic = Path(given) if given else generic_input(path) or _flattened_original(path)
     if generic is None:
+        from ..io.usd_rig import dcc_export_marks
+
+        marks = dcc_export_marks(path)
+        if marks:       # Blender's export of a personalized layer: its shapes are personalized, not generic
+            raise InputFileError("a DCC export (Blender, ...) of a usdface output layer (it has "
+                                 f"{marks[0]}): the personalized shapes with no sublayer or variant to "
+                                 "compare with",
+                                 path=path, prim=marks[0],
+                                 fix="pass the original avatar explicitly: --compare AVATAR.usdc, or draw "
+                                     "the usdface layer it was exported from")
         raise InputFileError("not a usdface layer (no sublayer to compare with)", path=path,
                              fix="pass the generic avatar explicitly: --compare GENERIC.usdc")
     return generic

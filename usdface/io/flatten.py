@@ -92,6 +92,16 @@ def variant_stage(path, variant: str = "personalized"):
                              path=path, fix=f"export the generic variant of the layer it was flattened from "
                                             f"({_from_cwd(source)}) or use the original avatar")
     if not prims and variant == "generic" and baked is None:
+        from .usd_rig import dcc_export_marks
+
+        marks = dcc_export_marks(path)
+        if marks:           # Blender's export of a usdface layer: its shapes are the variant it composed
+            raise InputFileError(
+                f"this looks like a DCC export (Blender, ...) of a usdface output layer (it has {marks[0]}): "
+                "the DCC baked in the variant it composed ('personalized' unless switched) and dropped the "
+                "variant set, so the generic shapes are not in it", path=path, prim=marks[0],
+                fix="export the generic variant of the usdface layer itself ('usdface export person.usda "
+                    "--variant generic ...') or use the original avatar")
         raise InputFileError(f"no {PERSONALIZATION_VARIANT_SET} variant set (not a usdface layer)", path=path,
                              fix="pass a layer written by 'usdface personalize'")
     with Usd.EditContext(stage, stage.GetSessionLayer()):
@@ -153,8 +163,31 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
             record["take"] = _rebase(record["take"], src, out)
         data["usdface"] = record
     flat.customLayerData = data
+    if data["usdfaceFlatten"]["variant"] == "personalized":
+        _mark_personalized(flat, stage)
     _rebase_provenance_attributes(flat, src, out)
     return atomic_save(flat, out, force)
+
+
+#: an empty Scope under each SkelRoot of a flattened export of the ``personalized`` variant: a DCC keeps
+#: it (Blender: an Empty, written back as an Xform) where it drops ``customLayerData``, so a DCC's export
+#: of the flattened file is still refused as personalized (:func:`usdface.io.usd_rig.dcc_export_marks`)
+PERSONALIZED_MARK = "usdfacePersonalized"
+
+
+def _mark_personalized(layer, stage) -> None:
+    """:data:`PERSONALIZED_MARK` under each prim that had the personalization variant set (a flattened export
+    flattened again keeps the marks Flatten copied)."""
+    from pxr import Sdf
+
+    for prim in _personalization_prims(stage):
+        parent = layer.GetPrimAtPath(prim.GetPath())
+        if parent is None or PERSONALIZED_MARK in parent.nameChildren:
+            continue
+        mark = Sdf.PrimSpec(parent, PERSONALIZED_MARK, Sdf.SpecifierDef, "Scope")
+        mark.documentation = ("usdface: the blend shapes of this avatar are a person's personalized ones "
+                              "(usdface export --flatten of the personalized variant); delete this prim only "
+                              "if they are the generic ones")
 
 
 def _shape_redirections(stage) -> dict[str, list[tuple[str, str]]]:

@@ -159,11 +159,13 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
 
 
 def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
-               extras: dict | None = None, force: bool = False) -> Path:
+               extras: dict | None = None, node_extras: dict | None = None, force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
     ``root_name`` with one node per mesh (and the ``skin``'s joints), morph targets as described in the module
     doc. ``.glb``: binary; ``.gltf``: JSON with the buffer embedded as a data URI. ``extras`` go to the
-    scene's ``extras``. Returns the path written (atomically; an existing file needs ``force``)."""
+    scene's ``extras``; ``node_extras`` to the root node's and every mesh node's (Blender's importer makes
+    node extras object custom properties, which its USD exporter writes as ``userProperties:<key>``, where
+    the scene's are lost). Returns the path written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
     from .. import __version__
@@ -180,7 +182,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     _check(rigs)
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator=f"usdface {__version__}"))
     blob = _Blob(gltf)
-    gltf.nodes.append(pygltflib.Node(name=root_name))
+    gltf.nodes.append(pygltflib.Node(name=root_name, extras=dict(node_extras or {})))
     root_children: list[int] = []
     skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
     for rig in rigs:
@@ -203,7 +205,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
             mesh.weights = [0.0] * rig.n_shapes
             mesh.extras = {"targetNames": list(rig.names)}
         gltf.meshes.append(mesh)
-        node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1)
+        node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1, extras=dict(node_extras or {}))
         if skin_index is not None and rig.name in skin.influences:
             node.skin = skin_index
         gltf.nodes.append(node)

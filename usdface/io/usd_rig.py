@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shlex
 from pathlib import Path
 
@@ -575,6 +576,91 @@ def _has_personalization(path) -> bool:
                for p in stage.Traverse(Usd.TraverseInstanceProxies()))
 
 
+# the scope personalize's variant puts under each mesh (layers.SHAPES_SCOPE) and the mark of a flattened
+# personalized export (flatten.PERSONALIZED_MARK), as a DCC renames a second one (Blender: usdfaceShapes.001
+# for the object, usdfaceShapes_001 for the prim it exports)
+_SHAPES_SCOPE_COPY = re.compile(r"usdface(?:Shapes|Personalized)(?:[._]?\d+)?")
+
+
+def _may_hold_scope_copies(path: Path) -> bool:
+    """Cheap pre-test of :func:`dcc_export_marks`: a crate file opens lazily (ms), a text file is opened only
+    when it names the scope or an asset (a reference, a sublayer: the scope may come from there)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(8)
+            if not head.startswith(b"#usda"):
+                return True                       # crate, usdz: opening them is cheap
+            text = head + handle.read()
+    except OSError:
+        return False                              # the reader that follows says why
+    return any(word in text for word in (b"usdfaceShapes", b"usdfacePersonalized", b"usdfaceVariant", b"@"))
+
+
+def dcc_export_marks(path) -> list[str]:
+    """Prim paths of usdface's ``usdfaceShapes`` scopes and ``usdfacePersonalized`` marks (or a DCC's renamed
+    copies: ``usdfaceShapes_001``) under a SkelRoot of the composed stage of ``path`` when it has no
+    personalization variant set and is no flattened export (its ``customLayerData`` kept): what a DCC's
+    export of a usdface output layer, or of its flattened personalized export, keeps of it. Blender 5
+    imports the selected variant (the ``personalized`` one unless switched), turns each scope into an Empty
+    and writes it back as an ``Xform`` beside the mesh, and drops the variant set, ``customLayerData`` and
+    the provenance schema. [] for any other file (a plain avatar, a usdface layer, a flattened export)."""
+    from pxr import Usd
+
+    path = Path(path)
+    if not _may_hold_scope_copies(path) or flattened_from(path) is not None:
+        return []
+    try:
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    except Exception:                           # noqa: BLE001 - unreadable: the reader names it
+        return []
+    return dcc_export_marks_in(stage)
+
+
+#: the glTF's node extras key (``usdface export --gltf``): Blender makes it an object custom property and
+#: writes it back to USD as ``userProperties:usdfaceVariant``
+VARIANT_PROPERTY = "usdfaceVariant"
+
+
+def dcc_export_marks_in(stage) -> list[str]:
+    """:func:`dcc_export_marks` of an open stage (``usdface check``'s Provenance rule), whatever its root
+    layer records; also the ``userProperties:usdfaceVariant = "personalized"`` attributes a DCC's USD export
+    of usdface's personalized glTF carries (as property paths)."""
+    from pxr import Usd, UsdSkel
+
+    marks = []
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        if prim.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET):
+            return []                           # a usdface layer (refused as one) or a layer over it
+        if _SHAPES_SCOPE_COPY.fullmatch(prim.GetName()) and UsdSkel.Root.Find(prim):
+            marks.append(str(prim.GetPath()))
+        for name in (f"userProperties:{VARIANT_PROPERTY}", VARIANT_PROPERTY):
+            attr = prim.GetAttribute(name)
+            if attr and attr.HasAuthoredValue() and str(attr.Get()) == "personalized":
+                marks.append(str(attr.GetPath()))
+    return marks
+
+
+def refuse_dcc_export(path) -> None:
+    """Refuse (:class:`~usdface.errors.AlreadyPersonalizedError`) a DCC export of a usdface output layer
+    (:func:`dcc_export_marks`): its shapes are the variant the DCC composed, personalized by default, and
+    personalizing them again would stack the personalization."""
+    if not isinstance(path, str | Path):
+        return
+    marks = dcc_export_marks(path)
+    if not marks:
+        return
+    shown = ", ".join(marks[:2]) + (f" (+{len(marks) - 2} more)" if len(marks) > 2 else "")
+    raise AlreadyPersonalizedError(
+        f"this looks like a DCC export (Blender, ...) of a usdface output layer: it has {shown}, which "
+        "usdface writes only into a personalized layer (the variant's scopes), its flattened personalized "
+        "export or its personalized glTF, but no variant set or provenance (the DCC composed the selected "
+        "variant, 'personalized' unless switched, and dropped the rest); personalizing it again would stack "
+        "the personalization on the personalized shapes", path=path, prim=marks[0],
+        fix="export the original avatar (the one the usdface layer sublayers) from the DCC, or personalize "
+            "that avatar itself; if this export holds the generic shapes (the 'generic' variant selected), "
+            "delete those prims (or properties) from it first")
+
+
 def generic_input(layer_path) -> Path | None:
     """The generic avatar under a usdface layer: its first sublayer (resolved), followed down while that is
     itself a personalized layer (a landmarks layer over a personalized avatar compares with the avatar under
@@ -610,7 +696,8 @@ def refuse_usdface_output(path) -> None:
     export --flatten``, which records the variant in ``customLayerData["usdfaceFlatten"]``) is refused too;
     one of the generic variant is the avatar's shapes and is accepted.
 
-    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) cannot be recognised.
+    A DCC export of such a layer (Blender flattens it and drops ``customLayerData``) is recognised by the
+    ``usdfaceShapes`` scopes it keeps (:func:`dcc_export_marks`) and refused too.
     A ``usdface fit`` result (the person's shapes on the capture mesh, ``format: fit``) is refused too: it
     is no avatar (no eyes, no mouth, the capture's topology), and personalizing it ran to the end."""
     from .file_kind import Kind, file_kind
@@ -625,7 +712,8 @@ def refuse_usdface_output(path) -> None:
                                       "the capture itself; render or inspect the fitted rig as it is)")
     data = found.provenance
     if data is None:
-        return                  # not a usdface layer
+        refuse_dcc_export(path)  # not a usdface layer: but perhaps a DCC's export of one
+        return
     flat = found.flattened
     if flat is not None and flat["variant"] == "personalized":
         inputs = data.get("inputs") or []
@@ -643,6 +731,7 @@ def refuse_usdface_output(path) -> None:
             fix=f"flatten the generic variant instead (usdface export {source} --flatten "
                 f"{shlex.quote(generic)} --variant generic) or pass the original avatar{original}")
     if not _has_personalization(path):
+        refuse_dcc_export(path)     # a landmarks layer over a DCC export of a personalized layer
         return          # one that personalizes nothing (a landmarks layer), or a flattened generic one
     original = generic_input(path) or Path(path).parent / str(data["inputs"][0])
     raise AlreadyPersonalizedError(

@@ -526,6 +526,17 @@ def _provenance(stage) -> Iterable[Issue]:
             yield Issue(ERROR, "Provenance", "/", f"layer {root.identifier} was written by usdface but has "
                         "no UsdFaceProvenanceAPI prim",
                         "re-run usdface personalize; do not hand-edit the layer")
+        elif not record and "usdfaceFlatten" not in (root.customLayerData or {}):
+            from ..io.usd_rig import dcc_export_marks_in
+
+            marks = dcc_export_marks_in(stage)      # Blender's export of a personalized layer
+            if marks:
+                yield Issue(WARNING, "Provenance", marks[0],
+                            f"a DCC export (Blender, ...) of a usdface output layer: it has {marks[0]}, "
+                            "which usdface writes only into a personalized layer or its flattened export, "
+                            "but no provenance or variant set; its shapes are the personalized ones and "
+                            "personalize refuses it as an avatar",
+                            "publish the usdface layer itself, or export the original avatar from the DCC")
         return
     base = Path(root.realPath).parent if root.realPath else Path.cwd()
     for prim in prov_prims:

@@ -247,6 +247,19 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
                    f"personalize it first: 'usdface personalize {path} CAPTURE -o person.usda --review' "
                    "writes the layer and its review page"),
     }[kind]
+    if kind == "avatar":
+        from ..io.usd_rig import dcc_export_marks
+
+        marks = dcc_export_marks(path)
+        if marks:       # Blender's export of a personalized layer: 'personalize it first' would stack it
+            raise InputFileError(
+                f"this looks like a DCC export (Blender, ...) of a usdface output layer (it has {marks[0]}, "
+                "which usdface writes only into a personalized layer or its flattened export): the DCC kept "
+                "one variant and "
+                "dropped the variant set and the fit figures, so there is no generic | personalized to "
+                "compare", path=path, prim=marks[0],
+                fix="review the usdface layer it was exported from ('usdface review person.usda'); to "
+                    "compare in the DCC, import the original avatar beside the export")
     raise InputFileError(f"this is {what}", path=path, fix=fix)
 
 
