@@ -19,13 +19,10 @@ def blocks(page: Path, lang: str) -> list[str]:
     return re.findall(rf"```{lang}\n(.*?)```", page.read_text(encoding="utf-8"), flags=re.S)
 
 
-@pytest.fixture(scope="module")
-def doc_folder(sample_set, tmp_path_factory) -> Path:
-    """What the snippets refer to: ``sample_assets/`` (as in the repository root), ``avatar.usdc``,
-    ``capture/``, an empty ``out/``."""
+def _sample_folder(sample_set: Path, d: Path) -> Path:
+    """``d`` holding ``sample_assets/`` (as in the repository root), ``avatar.usdc`` and ``capture/``."""
     from pxr import Usd
 
-    d = tmp_path_factory.mktemp("docs")
     (d / "sample_assets").mkdir()
     for name in ("avatar.usda", "capture.usda", "truth"):
         src = sample_set / name
@@ -33,6 +30,13 @@ def doc_folder(sample_set, tmp_path_factory) -> Path:
     Usd.Stage.Open(str(sample_set / "avatar.usda")).Export(str(d / "avatar.usdc"))
     shutil.copytree(sample_set / "capture", d / "capture")
     return d
+
+
+@pytest.fixture(scope="module")
+def doc_folder(sample_set, tmp_path_factory) -> Path:
+    """What the snippets refer to: ``sample_assets/`` (as in the repository root), ``avatar.usdc``,
+    ``capture/``, an empty ``out/``."""
+    return _sample_folder(sample_set, tmp_path_factory.mktemp("docs"))
 
 
 PAGES = ("README.md", "docs/index.md", "docs/api.md", "docs/schemas.md")
@@ -199,18 +203,10 @@ def _page_lines(page: str) -> list[str]:
 @pytest.fixture(scope="module")
 def page_inputs(sample_set, sample_take, tmp_path_factory) -> Path:
     """Every file PAGE_FILES names, once."""
-    from pxr import Usd
-
     from usdface.io.livelink import write_livelink_csv
     from usdface.io.take import write_take_folder, write_take_usd
 
-    d = tmp_path_factory.mktemp("page_inputs")
-    (d / "sample_assets").mkdir()
-    for name in ("avatar.usda", "capture.usda", "truth"):
-        src = sample_set / name
-        (shutil.copytree if src.is_dir() else shutil.copy)(src, d / "sample_assets" / name)
-    Usd.Stage.Open(str(sample_set / "avatar.usda")).Export(str(d / "avatar.usdc"))
-    shutil.copytree(sample_set / "capture", d / "capture")
+    d = _sample_folder(sample_set, tmp_path_factory.mktemp("page_inputs"))
     shutil.copytree(sample_set / "capture", d / "other_capture")
     shutil.copytree(sample_set / "truth", d / "truth")
     shutil.copy(sample_set / "capture.usda", d / "capture.usda")
