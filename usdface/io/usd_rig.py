@@ -40,6 +40,7 @@ import math
 import os
 import re
 import shlex
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -586,6 +587,8 @@ def _may_hold_scope_copies(path: Path) -> bool:
     """Cheap pre-test of :func:`dcc_export_marks`: a crate file opens lazily (ms), a text file is opened only
     when it names the scope or an asset (a reference, a sublayer: the scope may come from there)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False                          # a pipe or a device: opening it would wait for a writer
         with open(path, "rb") as handle:
             head = handle.read(8)
             if not head.startswith(b"#usda"):
@@ -609,8 +612,11 @@ def dcc_export_marks(path) -> list[str]:
     path = Path(path)
     if not _may_hold_scope_copies(path) or flattened_from(path) is not None:
         return []
+    from .usd_open import quiet_stderr
+
     try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+        with quiet_stderr():                    # a composition error: the reader that follows names it
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
     except Exception:                           # noqa: BLE001 - unreadable: the reader names it
         return []
     return dcc_export_marks_in(stage)
