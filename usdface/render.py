@@ -76,12 +76,13 @@ def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
 
 
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
-              color=_SKIN, display=None, crop=None):
+              color=_SKIN, display=None, crop=None, pad: float = 0.04):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
     map with shading; faces with a NaN value drawn as plain skin). ``display``: ``(keep, triangles)`` of
     :func:`display_mesh`, drawn instead of the full mesh (``points[keep]``, ``values[keep]``). ``crop``:
-    vertex indices of ``points`` the view is framed on (:func:`moving_region`; default the whole mesh).
-    Returns the ``PolyCollection`` (a colour-bar mappable when ``values`` is given)."""
+    vertex indices of ``points`` the view is framed on (:func:`moving_region`; default the whole mesh), with
+    a margin of ``pad`` times its extent. Returns the ``PolyCollection`` (a colour-bar mappable when
+    ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
     from .mesh import index_set
@@ -137,9 +138,9 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
     ax.add_collection(coll)
     xy = framed if framed is not None else p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
-    pad = 0.04 * float(np.max(hi - lo) or 1.0)
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    margin = pad * float(np.max(hi - lo) or 1.0)
+    ax.set_xlim(lo[0] - margin, hi[0] + margin)
+    ax.set_ylim(lo[1] - margin, hi[1] + margin)
     return coll
 
 
@@ -373,16 +374,10 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
             raise UsdFaceError(f"{values.shape[0]} values for {len(points)} vertices in panel {name!r}",
                                fix="give one value per vertex")
         coll = draw_mesh(ax, points, tri, values=values, cmap=cmap, vmin=vmin, vmax=vmax, view=view,
-                         display=display)
+                         display=display, crop=crop, pad=0.06 if crop is not None and len(crop) else 0.04)
         fig.colorbar(coll, ax=ax, shrink=0.7)
         _landmark_dots(ax, points, tri, indices, view)
         ax.set_title(name, fontsize=9)
-        if crop is not None and len(crop):
-            xy = (points[np.asarray(crop, dtype=np.int64)] @ VIEWS[view].T)[:, :2]
-            lo, hi = xy.min(axis=0), xy.max(axis=0)
-            pad = 0.06 * float(np.max(hi - lo) or 1.0)
-            ax.set_xlim(lo[0] - pad, hi[0] + pad)
-            ax.set_ylim(lo[1] - pad, hi[1] + pad)
     if title:
         fig.suptitle(title)
     if out is not None:
