@@ -269,7 +269,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                      force=args.force, max_vertices=args.max_vertices,
                                      title=f"{rig.name}: generic vs personalized")
         else:
-            from ..review.collect import shape_changes
+            from ..motion import shape_changes
 
             # the RMS over the shapes asked for (it was over all of them); shape by shape
             ks = [rig.names.index(s) for s in shapes] if shapes else list(range(rig.n_shapes))

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputFileError, RigError
+from ..motion import shape_changes
 from .page import ReviewData, ReviewMesh, Sequence
 
 __all__ = ["collect_review", "recorded_capture"]
@@ -108,21 +109,6 @@ def _parse_matrix(text: str):
     import json
 
     return json.loads(text)
-
-
-def shape_changes(personalized, generic) -> tuple[np.ndarray, np.ndarray]:
-    """``(rms[n], largest[K])``: per vertex the RMS over shapes of ``|personalized - generic|`` and per shape
-    the largest vertex change (metres), for offsets ``[K, n, 3]``; shape by shape (the whole difference,
-    its squares and norms at once were ~1 GB of temporaries on a 225k-vertex head's review)."""
-    K = len(personalized)
-    n = len(personalized[0]) if K else 0
-    total, largest = np.zeros(n), np.zeros(K)
-    for k in range(K):
-        d = np.asarray(personalized[k], dtype=np.float64) - generic[k]
-        sq = np.einsum("ij,ij->i", d, d)
-        total += sq
-        largest[k] = np.sqrt(sq.max()) if n else 0.0
-    return np.sqrt(total / max(K, 1)), largest
 
 
 def _mesh_pairs(personalized, generic) -> list[ReviewMesh]:
