@@ -1,16 +1,19 @@
 """Correspondence map M between the avatar face and the capture mesh (Menzel et al. 2022, sec. 3.3).
 
-1. :func:`nonrigid_register` - the capture template, already placed by the similarity of
-   :mod:`usdface.transfer.register`, is deformed onto the avatar face surface: alternate closest points on
-   the avatar (Open3D ``RaycastingScene``; pairs rejected by distance and normal tests) and a sparse
-   least-squares solve that keeps the displacement smooth (Laplacian stiffness, relaxed over the iterations).
+1. :func:`nonrigid_register` - a face on the capture topology (the template's neutral or the person's,
+   whichever lies closer to the avatar: :func:`usdface.transfer.face_map.choose_source`), already placed by
+   the similarity of :mod:`usdface.transfer.register`, is deformed onto the avatar face surface: alternate
+   closest points on the avatar (Open3D ``RaycastingScene``; pairs rejected by distance and normal tests) and
+   a sparse least-squares solve that keeps the displacement smooth (Laplacian stiffness, relaxed over the
+   iterations).
 2. :func:`correspondence_map` - for every avatar face-mesh vertex, the closest point on the registered capture
    surface (triangle + barycentric coordinates). The face region is computed automatically: the vertex is
    within a distance tolerance of the capture surface, its normal agrees with the capture triangle's normal,
    and the closest point is not clamped onto the capture's open border or a hole (eyes, mouth).
 
-The map is a function of the avatar's face mesh and the capture template only, so it is computed once per
-avatar and cached (:func:`save_correspondence` / :func:`load_correspondence`, keyed by a digest of both).
+The map is a function of the avatar's face mesh, the capture template and the person's neutral only, so it is
+computed once per avatar and capture and cached (:func:`save_correspondence` / :func:`load_correspondence`,
+keyed by a digest of them).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from .surface import (
 __all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
            "save_correspondence", "load_correspondence", "ramp_down", "ramp_up"]
 
-CACHE_VERSION = 5
+CACHE_VERSION = 6
 
 
 @dataclass
@@ -50,7 +53,7 @@ class Correspondence:
     triangles not entirely in the face; None when not computed: only the deformation-transfer modes read
     it), ``weight[m]`` in [0,1] the face membership (1 = fully face, the region's rim ramps down to 0;
     ``face = weight > 0``), ``key`` the digest it belongs to, ``info`` figures for the report,
-    ``registered[n,3]`` the capture template deformed
+    ``registered[n,3]`` the capture face deformed
     onto the avatar face (the inverse map's source).
     """
 

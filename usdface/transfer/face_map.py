@@ -1,9 +1,10 @@
-"""The correspondence of the capture template onto the avatar's face mesh as ``usdface personalize`` forms it:
+"""The correspondence of the capture mesh onto the avatar's face mesh as ``usdface personalize`` forms it:
 guided by what the shapes do (:data:`SEMANTIC_SHAPES` posed by their motion's length, :func:`semantic_poses`),
-cached per avatar face and template (:func:`cached_correspondence`), checked for the shapes' meaning
-(:func:`correspondence_semantics`: lips and lids on the right side), and the face mesh's pieces within the
-capture's reach (:func:`reached_parts`). The registration and the map themselves are :mod:`.register` and
-:mod:`.correspond`."""
+registered from the template's neutral or the person's, whichever lies closer to the avatar
+(:func:`choose_source`), cached per avatar face, template and neutral (:func:`cached_correspondence`), checked
+for the shapes' meaning (:func:`correspondence_semantics`: lips and lids on the right side), and the face
+mesh's pieces within the capture's reach (:func:`reached_parts`). The registration and the map themselves are
+:mod:`.register` and :mod:`.correspond`."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from .correspond import (
 from .register import register_face
 
 __all__ = ["SEMANTIC_SHAPES", "REACH", "semantic_poses", "pose_by_length", "cached_correspondence",
-           "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
+           "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
 
 #: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
 SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
@@ -73,7 +74,8 @@ def pose_by_length(template_delta, avatar_delta):
 
 def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avatar_deltas, cache, names=(),
                     initial=None, target=None, source_triangles: bool = True, avatar_peak=None,
-                    avatar_landmarks=None, surfaces: dict | None = None, pending: list | None = None):
+                    avatar_landmarks=None, surfaces: dict | None = None, pending: list | None = None,
+                    person=None):
     """The correspondence (:func:`correspondence_map`), from the ``cache`` file when it holds this avatar face
     and template's (and, with ``source_triangles``, the face triangles' source triangles); written there
     otherwise. ``avatar_peak``, ``avatar_landmarks``: the face's peak motion and motion landmarks, for
@@ -83,12 +85,21 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     (:func:`.implant.avatar_shapes_on_capture`).
     ``pending``: a list that receives ``(cache, npz bytes)`` instead of the cache being written now, for a
     caller that writes it only once its run succeeds (a run that failed after this step left its cache
-    behind, with the folder made for it)."""
+    behind, with the folder made for it).
+
+    ``person``: ``(neutral[n,3], registration)``, the person's neutral on the capture topology and its
+    :func:`register_face` result (``initial`` is its similarity). The map is registered from whichever of the
+    two capture-topology faces, the template's neutral or the person's, lies closer to the avatar face after
+    the similarity (:func:`choose_source`): both index the same points of a face (the capture mesh's vertex
+    ``i`` is one landmark on every face it shows), so either gives the anatomical correspondence, and the
+    closer one leaves the non-rigid step less to slide. For an avatar of the person (a digital double, the
+    bench cases) that is the person's scan: 2.5-3.7x less residual than the template on dev1-dev3."""
     names = list(names)
     sem = [n for n in SEMANTIC_SHAPES if n in names]
     key = geometry_digest(face.neutral, face.triangles, capture.template.neutral, capture.triangles,
                           *[template_deltas[names.index(n)] for n in sem],
-                          *[avatar_deltas[names.index(n)] for n in sem])
+                          *[avatar_deltas[names.index(n)] for n in sem],
+                          *([person[0]] if person is not None else []))
     stale = False
     if cache is not None:
         corr = load_correspondence(cache, key)
@@ -102,8 +113,9 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target,
                           avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
-    placed = reg_t.transform.apply(capture.template.neutral)
-    poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_t.transform)
+    source, reg_s = choose_source(capture.template.neutral, reg_t, person)
+    placed = reg_s.transform.apply(person[0] if source == "person" else capture.template.neutral)
+    poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_s.transform)
     surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
     if surfaces is not None:
         surfaces["avatar"] = surface
@@ -115,7 +127,8 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     corr.registered = registered
     nr_info["semantic_shapes"] = ",".join(used)
     corr.key = key
-    corr.info = {**corr.info, **nr_info, "template_registration": reg_t.as_dict(),
+    corr.info = {**corr.info, **nr_info, "source": source, "template_registration": reg_t.as_dict(),
+                 "placement": reg_s.as_dict(),
                  "cache": stale if isinstance(stale, str) else "replaced" if stale
                  else "miss" if cache is not None else "off"}
     if cache is not None and pending is not None:
@@ -169,11 +182,27 @@ def rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_delta
                              path=capture.source or None).transform.apply(person_neutral)
 
 
+def choose_source(template_neutral, template_registration, person=None):
+    """``(source, registration)``: the capture-topology face the correspondence is registered from,
+    ``"person"`` when the person's neutral (``person = (neutral[n,3], registration)``) lies closer to the
+    avatar face after its similarity registration than the template's neutral (as :func:`register_face`
+    ranks its candidates: more of it within the final distance, then a lower ICP residual, the RMS distance of
+    the placed face to the avatar's surface), else ``"template"``; and that face's registration."""
+    def rank(r):
+        return round(r.fitness, 2), -r.residual
+
+    if person is not None and rank(person[1]) > rank(template_registration):
+        return "person", person[1]
+    return "template", template_registration
+
+
 def corr_transform(corr, fallback):
-    """The similarity that placed the capture template for ``corr`` (from its info), else ``fallback``."""
+    """The similarity that placed the capture face the map ``corr`` was registered from (the template's
+    neutral or the person's, :func:`choose_source`; from its info), else ``fallback``."""
     from .register import Similarity
 
-    reg = (corr.info or {}).get("template_registration")
+    info = corr.info or {}
+    reg = info.get("placement") or info.get("template_registration")
     if not reg:
         return fallback
     return Similarity(float(reg["scale"]), np.asarray(reg["rotation"]), np.asarray(reg["translation_m"]))

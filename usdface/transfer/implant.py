@@ -64,9 +64,10 @@ def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar
                              surface=None):
     """``G[J,n,3]``: the avatar's generic shapes sampled at the capture vertices (the inverse map N).
 
-    ``registered[n,3]``: the capture template deformed onto the avatar face (avatar frame); each capture
-    vertex takes the avatar's motion at its closest avatar surface point, found in the semantic ``poses`` too
-    (:class:`usdface.transfer.correspond.PosedSurface`: ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs).
+    ``registered[n,3]``: the capture face (the template's or the person's neutral) deformed onto the avatar
+    face (avatar frame); each capture vertex takes the avatar's motion at its closest avatar surface point,
+    found in the semantic ``poses`` too (:class:`usdface.transfer.correspond.PosedSurface`:
+    ``(capture_deltas[n,3], avatar_deltas[m,3])`` pairs).
     ``surface``: a :class:`usdface.transfer.correspond.PosedSurface` built for the correspondence, used when
     it is this avatar surface in these poses (:meth:`~usdface.transfer.correspond.PosedSurface.serves`):
     its ray-casting scenes are not built twice.

@@ -448,7 +448,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                      # the deformation transfer's
                                      source_triangles=face_transfer != "person",
                                      avatar_peak=face_peak, avatar_landmarks=face_landmarks,
-                                     surfaces=surfaces)
+                                     surfaces=surfaces, person=(person_neutral0, registration))
         report["correspondence"] = {k: v for k, v in (corr.info or {}).items()}
         placed = report["correspondence"].get("template_registration")
         if isinstance(placed, dict) and "translation_m" in placed:
