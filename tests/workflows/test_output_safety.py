@@ -262,10 +262,12 @@ def test_correspondence_cache_of_another_avatar_is_rewritten_with_a_warning(proj
     proc = run("personalize", "sa/avatar.usda", "artist/capture.usda", "-o", "b.usda", "--correspondence",
                "c.npz", "-q", cwd=project)
     assert "cache: replaced" in proc.stdout
-    assert "warning: --correspondence c.npz held the map of another avatar face or template" in proc.stdout
+    assert "warning: --correspondence c.npz held the map of another avatar face, template" in proc.stdout
     proc = run("personalize", "sa/avatar.usda", "artist/capture.usda", "-o", "c.usda", "--correspondence",
                "c.npz", "-q", cwd=project)
     assert "cache: hit" in proc.stdout and "warning: --correspondence" not in proc.stdout
+    # which face the map was registered from, as the cache recorded it (the sample's avatar is the person's)
+    assert "on /Avatar/Head, from the person's scan (cache: hit)" in proc.stdout
 
 
 # ------------------------------------------------------------------- the one check, directly

@@ -193,12 +193,14 @@ def run(args) -> int:
     print(f"registration: scale {reg['scale']:.4f}, rotation {angle:.1f} deg, translation ({move}) cm, "
           f"residual {reg['residual_m'] * 1000:.2f} mm, fitness {reg['fitness']:.2f} ({reg['initialiser']})")
     cor = rep["correspondence"]
-    print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']} (cache: "
+    source = {"person": ", from the person's scan", "template": ", from the template's neutral"}.get(
+        cor.get("source"), "")
+    print(f"correspondence: {rep['face_vertices']} face vertices on {rep['face_mesh']}{source} (cache: "
           f"{cor.get('cache', 'off')}); {len(rep['shapes'])} shapes implanted")
     if cor.get("cache") == "replaced":
-        say_warning(f"--correspondence {args.correspondence} held the map of another avatar face or template "
-                    "(or an older usdface): it was rewritten for this one; give each avatar its own file "
-                    "to keep both")
+        say_warning(f"--correspondence {args.correspondence} held the map of another avatar face, template "
+                    "or person's neutral scan (or an older usdface): it was rewritten for this one; give "
+                    "each avatar and capture its own file to keep both")
     whole_take = rep.get("whole_take")
     fit_line = take_line(rep.get("fit") or {})
     if fit_line:
