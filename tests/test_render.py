@@ -672,3 +672,23 @@ def test_the_figure_title_sits_on_the_panels(panels):
                 spans.append((y0, y1))
         gaps = [upper[0] - lower[1] for upper, lower in zip(spans, spans[1:], strict=False)]
         assert all(g < 0.04 for g in gaps), gaps
+
+
+def test_the_comparison_panels_titles_do_not_run_into_each_other():
+    """dev3's ``render --compare --shapes browDownRight``: "browDownRight: generic" ran into
+    "browDownRight: personalized" beside it; each panel's title stays within its own column."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    rig = grid_rig()
+    rig.neutral = rig.neutral * [0.4, 1.0, 1.0]             # a head's proportions: taller than wide
+    generic = grid_rig()
+    generic.neutral = rig.neutral
+    generic.deltas = generic.deltas * 0.5
+    rig.names = generic.names = ["browDownRight" if n == "bump" else n for n in rig.names]
+    fig = render_comparison(generic, rig, ["browDownRight", "slide", "browDownRight"])   # a 3-row figure
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    titles = [ax.title.get_window_extent(renderer) for ax in fig.axes[:3]]
+    for left, right in zip(titles, titles[1:], strict=False):
+        assert left.x1 < right.x0, (left, right)

@@ -264,9 +264,11 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
         b = personalized.evaluate(_one_hot(personalized, name))
         diff_mm = 1000.0 * np.linalg.norm(b - a, axis=1)
         draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display, crop=crop)
-        axes[3 * row].set_title(f"{name}: generic")
+        # the shape's name on a line of its own: "browDownRight: generic" ran into "browDownRight:
+        # personalized" beside it on a head (dev3's --compare)
+        axes[3 * row].set_title(f"{name}\ngeneric")
         draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display, crop=crop)
-        axes[3 * row + 1].set_title(f"{name}: personalized")
+        axes[3 * row + 1].set_title(f"{name}\npersonalized")
         coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
                          view=view, display=display, crop=crop)
         # two lines: on one, a wide mesh's title ran into the colour bar beside the panel (the Mouth)
