@@ -130,12 +130,14 @@ def test_head_merged_with_a_large_static_part_gives_the_head_alones_offsets(samp
     a = np.asarray(alone.offsets["/Avatar/Head"])
     m = np.asarray(merged.offsets["/Avatar/Head"])
     assert m.shape[1] == n + 9600 + strip.size
-    # the head alone's answer to 0.1 um: the part worked on holds the head but not all of its far, still
+    # the head alone's answer to 1 um: the part worked on holds the head but not all of its far, still
     # skin, and the non-rigid registration's solve amplifies the rounding of sums over fewer vertices to
-    # ~2e-8 m (with the moving strip in the registration the bench's merged head was 0.15 mm off)
-    np.testing.assert_allclose(m[:, :n], a, rtol=0, atol=1e-7)
+    # ~2e-8 m from the template's neutral, up to 2e-7 m at a few vertices from the person's scan (which lies
+    # on the avatar's surface) (with the moving strip in the registration the bench's merged head was 0.15 mm
+    # off)
+    np.testing.assert_allclose(m[:, :n], a, rtol=0, atol=1e-6)
     np.testing.assert_allclose(np.asarray(merged.offsets["/Avatar/Mouth"]),
-                               np.asarray(alone.offsets["/Avatar/Mouth"]), rtol=0, atol=1e-7)
+                               np.asarray(alone.offsets["/Avatar/Mouth"]), rtol=0, atol=1e-6)
     generic = read_avatar(path).mesh("Head").deltas
     np.testing.assert_array_equal(m[:, n:strip[0]], 0.0)                        # the static sheet stays
     assert np.abs(m[:, strip] - generic[:, strip]).max() < 1e-3                  # the strip follows the field
@@ -216,12 +218,13 @@ def test_merged_mesh_in_the_papers_mode_also_gives_the_head_alones_offsets(sampl
     opts = {"face_transfer": "offset", "approximation": "retarget"}
     alone = personalize_avatar(samples / "avatar.usda", capture, None, **opts)
     merged = personalize_avatar(path, capture, None, **opts)
+    # to 1 um, as the default mode above (the registration's rounding)
     np.testing.assert_allclose(np.asarray(merged.offsets["/Avatar/Head"])[:, :n],
-                               np.asarray(alone.offsets["/Avatar/Head"]), rtol=0, atol=1e-7)
+                               np.asarray(alone.offsets["/Avatar/Head"]), rtol=0, atol=1e-6)
     approx = np.asarray(merged.approximation["/Avatar/Head"])
     assert approx.shape == (len(merged.names), n + 9600 + strip.size, 3)
     np.testing.assert_allclose(approx[:, :n], np.asarray(alone.approximation["/Avatar/Head"]), rtol=0,
-                               atol=1e-7)
+                               atol=1e-6)
     assert merged.face.shape == (n + 9600 + strip.size,) and not merged.face[n:].any()
 
 
