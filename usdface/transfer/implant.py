@@ -138,7 +138,7 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
 
 
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),
-                         outliers=None):
+                         outliers=None, matrix=None):
     """``M (s_j (B_j - P_j))`` on the avatar vertices ``rows``: the person's change of each shape,
     interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame); at
     the capture vertices ``outliers[J,n]`` (:func:`mapping_outliers`), where the difference is a mapping
@@ -149,7 +149,9 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
     ``s_j`` (:func:`usdface.transfer.partial_dt.personalization_support`, ``support=(low, high)`` fractions of
     the shape's peak motion; None = everywhere) keeps the change where the person's or the prior shape moves:
     elsewhere neither moves and the difference is fit noise (0.1 mm-level on scans), which would make every
-    shape move the whole face a little. Returns ``[J,len(rows),3]``."""
+    shape move the whole face a little. ``matrix``: M on ``rows`` (``corr.matrix(capture_triangles, n,
+    face_only=False, rows=rows)``) when the caller has it (several batches of shapes). Returns
+    ``[J,len(rows),3]``."""
     b = np.asarray(person_deltas, dtype=np.float64)
     p = np.asarray(prior_deltas, dtype=np.float64)
     diff = b - p
@@ -161,7 +163,7 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
         from ..mesh import harmonic_fill
 
         diff = harmonic_fill(diff, outliers, capture_triangles, length=OUTLIER_FILL_EDGES)
-    return corr.apply(diff, capture_triangles, rows=rows)
+    return corr.apply(diff, capture_triangles, rows=rows, matrix=matrix)
 
 
 def face_radius(points) -> float:
