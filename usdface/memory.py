@@ -151,7 +151,7 @@ class Float32Offsets:
             return self._expand(a)
         out = np.empty(a.shape)
         for k in range(len(a)):                      # shape by shape: no copy of them all
-            out[k] = self._expand(a[k])
+            self._expand(a[k], out=out[k])
         return out
 
     def take(self, shapes, vertices) -> np.ndarray:
@@ -160,15 +160,19 @@ class Float32Offsets:
         a = self.authored[shapes]
         out = np.empty((len(a), len(vertices), 3))
         for k in range(len(a)):
-            out[k] = self._expand(a[k][vertices])
+            self._expand(a[k][vertices], out=out[k])
         return out
 
-    def _expand(self, a) -> np.ndarray:
-        """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``."""
+    def _expand(self, a, out=None) -> np.ndarray:
+        """One shape's float64 offsets ``[n,3]`` from its float32 ``a[n,3]``, written into ``out`` (float64
+        ``[n,3]``) when given (no temporary)."""
         if self._axes is not None:
             scale = self.linear[np.arange(3), self._axes]
-            return (a if (self._axes == np.arange(3)).all() else a[:, self._axes]) * scale
-        return a.astype(np.float64) @ self.linear.T
+            return np.multiply(a if (self._axes == np.arange(3)).all() else a[:, self._axes], scale, out=out)
+        if out is None:
+            return a.astype(np.float64) @ self.linear.T
+        out[...] = a.astype(np.float64) @ self.linear.T
+        return out
 
     def expand(self) -> np.ndarray:
         """The float64 ``[K,n,3]`` array."""

@@ -113,8 +113,12 @@ MAX_SHARE = 0.5
 def moving_part(peak, points) -> np.ndarray | None:
     """``keep[n]`` bool, the part of a mesh worked on: the vertices some shape moves (:func:`moving_region`
     of ``peak[n]``) and :func:`with_margin` around them; None when that is more than :data:`MAX_SHARE` of
-    the mesh (or nothing moves): keep the whole mesh."""
-    keep = with_margin(points, moving_region(peak, points))
+    the mesh (or nothing moves): keep the whole mesh. The margin is not searched when what moves is already
+    more than that share (a subdivided head: it only adds vertices)."""
+    moving = moving_region(peak, points)
+    if moving.sum() > MAX_SHARE * moving.size:
+        return None
+    keep = with_margin(points, moving)
     if not keep.any() or keep.sum() > MAX_SHARE * keep.size:
         return None
     return keep

@@ -409,6 +409,8 @@ def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving
         inside = at >= 0
         if sub is None and idx is None:
             deltas[k] = off
+        elif sub is None:                 # every listed point kept: no masked copies of them
+            deltas[k, at] = off
         else:
             deltas[k, at[inside]] = off[inside]
         rest = []

@@ -78,14 +78,18 @@ class Correspondence:
         r = np.repeat(np.arange(len(tri)), 3)
         return sp.csr_matrix((w.ravel(), (r, tri.ravel())), shape=(len(tri), n_capture))
 
-    def apply(self, capture_values, capture_triangles, rows=None) -> np.ndarray:
+    def apply(self, capture_values, capture_triangles, rows=None, *, matrix=None) -> np.ndarray:
         """``M @ values``: interpolate per-capture-vertex values ``[..., n_capture, c]`` at the avatar
         vertices -> ``[..., m, c]`` (every vertex; use ``face`` to select the region). ``rows``: optional
-        avatar vertex indices (or a bool mask): only those are interpolated -> ``[..., len(rows), c]``."""
+        avatar vertex indices (or a bool mask): only those are interpolated -> ``[..., len(rows), c]``.
+        ``matrix``: ``self.matrix(capture_triangles, n_capture, face_only=False, rows=rows)`` when the caller
+        applies the map to several batches (built once)."""
         v = np.asarray(capture_values, dtype=np.float64)
         lead, (n, c) = v.shape[:-2], v.shape[-2:]
         flat = np.moveaxis(v.reshape(-1, n, c), 1, 0).reshape(n, -1)  # [n, F*c]
-        out = self.matrix(capture_triangles, n, face_only=False, rows=rows) @ flat  # [m, F*c]
+        if matrix is None:
+            matrix = self.matrix(capture_triangles, n, face_only=False, rows=rows)
+        out = matrix @ flat  # [m, F*c]
         return np.moveaxis(out.reshape(-1, int(np.prod(lead, dtype=int)), c), 1, 0).reshape(*lead, -1, c)
 
 

@@ -184,17 +184,23 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
         pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, radius, output_type="ndarray")
+        # the record fields as contiguous arrays, read once (each strided read of the millions of pairs of a
+        # subdivided head's lid cost as much as the arithmetic on it)
+        fr, to, dist = (np.ascontiguousarray(pairs[k]) for k in ("i", "j", "v"))
+        del pairs
         # only to the vertices the shape moves: the repair adds no motion where the artist's shape has none
         # (the corrected vertices move, each counted once with itself too)
         mag = vector_lengths(out[j, near])
-        pairs = pairs[mag[pairs["j"]] > STILL * max(float(mag.max()), 1e-300)]
-        w = ramp_down(pairs["v"], 0.0, radius)
-        to = pairs["j"]
+        moves = mag[to] > STILL * max(float(mag.max()), 1e-300)
+        if not moves.all():                                       # (most shapes: all of them)
+            fr, to, dist = fr[moves], to[moves], dist[moves]
+        w = ramp_down(dist, 0.0, radius)
         total = np.bincount(to, weights=w, minlength=near.size)
-        shift = np.stack([np.bincount(to, weights=w * correction[mine[pairs["i"]], c], minlength=near.size)
-                          for c in range(3)], axis=1)
+        own = correction[mine]
+        shift = np.stack([np.bincount(to, weights=w * own[fr, c], minlength=near.size) for c in range(3)],
+                         axis=1)
         nearest = np.full(near.size, np.inf)                      # to the nearest corrected vertex
-        np.minimum.at(nearest, to, pairs["v"])
+        np.minimum.at(nearest, to, dist)
         v = np.flatnonzero(total > 0)
         fade = ramp_down(nearest[v], 0.0, radius)
         out[j, near[v]] += shift[v] / total[v][:, None] * fade[:, None]

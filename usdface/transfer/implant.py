@@ -139,7 +139,7 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
 
 
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),
-                         outliers=None):
+                         outliers=None, matrix=None):
     """``M (s_j (B_j - P_j))`` on the avatar vertices ``rows``: the person's change of each shape,
     interpolated from the capture (``person_deltas``/``prior_deltas`` ``[J,n,3]`` in the avatar frame); at
     the capture vertices ``outliers[J,n]`` (:func:`mapping_outliers`), where the difference is a mapping
@@ -150,7 +150,9 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
     ``s_j`` (:func:`usdface.transfer.partial_dt.personalization_support`, ``support=(low, high)`` fractions of
     the shape's peak motion; None = everywhere) keeps the change where the person's or the prior shape moves:
     elsewhere neither moves and the difference is fit noise (0.1 mm-level on scans), which would make every
-    shape move the whole face a little. Returns ``[J,len(rows),3]``."""
+    shape move the whole face a little. ``matrix``: M on ``rows`` (``corr.matrix(capture_triangles, n,
+    face_only=False, rows=rows)``) when the caller has it (several batches of shapes). Returns
+    ``[J,len(rows),3]``."""
     b = np.asarray(person_deltas, dtype=np.float64)
     p = np.asarray(prior_deltas, dtype=np.float64)
     diff = b - p
@@ -162,7 +164,7 @@ def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, r
         from ..mesh import harmonic_fill
 
         diff = harmonic_fill(diff, outliers, capture_triangles, length=OUTLIER_FILL_EDGES)
-    return corr.apply(diff, capture_triangles, rows=rows)
+    return corr.apply(diff, capture_triangles, rows=rows, matrix=matrix)
 
 
 def face_radius(points) -> float:
@@ -307,12 +309,27 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # the offsets are read only where they are used (the smoothing's columns, the vertices that read the
         # field, those the field is kept at), and each shape's largest motion over the moving part (the
         # motion weights' scale) from them and the vertices whose peak over the shapes could exceed it
-        used = index_set(np.concatenate([reach, proxy.need, proxy.fine[kept]]), domain.size)
-        at_reach, at_need, at_kept = (np.searchsorted(used, v) for v in (reach, proxy.need, proxy.fine[kept]))
+        # ``need`` first: the join reads its rows as the leading slice of each shape's offsets (no gather)
         others = np.ones(domain.size, dtype=bool)
+        others[proxy.need] = False
+        besides = index_set(np.concatenate([reach, proxy.fine[kept]]), domain.size)
+        used = np.concatenate([proxy.need, besides[others[besides]]])
+        del besides
+        position = np.full(domain.size, -1)
+        position[used] = np.arange(used.size)
+        at_reach, at_kept = position[reach], position[proxy.fine[kept]]
+        del position
         others[used] = False
         others = np.flatnonzero(others)
         used_m, peak_others = domain[used], peak[others]
+        n_need = proxy.need.size
+        need_m = domain[proxy.need]                         # the join's rows, and their face weight ramp
+        wn = w[proxy.need][None, :, None]
+        wn_c = 1.0 - wn
+        strip_k, direct_r = np.searchsorted(rows, proxy.strip_known), np.searchsorted(rows, proxy.direct)
+        at_strip = proxy.need_position[proxy.strip]
+        at_strip_out = proxy.need_position[proxy.strip_out] if proxy.strip.size else None
+        at_direct = proxy.need_position[proxy.direct]
     del peak
     release_free_memory()                            # its construction's products
     # the person's array last: the factorization's and the smoother's working memory are gone by then
@@ -377,21 +394,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             skin[js] = gd[:, at_kept]
             f = proxy.prolong @ fc                                # [need, k*9]
             if proxy.strip.size:                                  # next to the face: the fine solve
-                at = proxy.need_position
-                vk = (phi[:, np.searchsorted(rows, proxy.strip_known)].transpose(1, 0, 2, 3)
-                      .reshape(proxy.strip_known.size, -1))
-                f[at[proxy.strip]] = proxy.strip_solve(-(proxy.a_sk @ vk
-                                                         + proxy.a_so @ f[at[proxy.strip_out]]))
+                vk = phi[:, strip_k].transpose(1, 0, 2, 3).reshape(strip_k.size, -1)
+                f[at_strip] = proxy.strip_solve(-(proxy.a_sk @ vk + proxy.a_so @ f[at_strip_out]))
             if proxy.direct.size:                                 # the join's rim: its own field
-                f[proxy.need_position[proxy.direct]] = (phi[:, np.searchsorted(rows, proxy.direct)]
-                                                        .transpose(1, 0, 2, 3).reshape(proxy.direct.size, -1))
-            f = f.reshape(proxy.need.size, k, 3, 3).transpose(1, 0, 2, 3)
-            outside = apply_field(gd[:, at_need], f)
-            wn = w[proxy.need]
+                f[at_direct] = phi[:, direct_r].transpose(1, 0, 2, 3).reshape(direct_r.size, -1)
+            f = f.reshape(n_need, k, 3, 3).transpose(1, 0, 2, 3)
+            outside = apply_field(gd[:, :n_need], f)
             if result is not p:                                   # the person's shapes, then the join's
                 result[js, domain] = p[js][:, domain]
-            result[js, domain[proxy.need]] = (wn[None, :, None] * pd[:, at_need]
-                                              + (1.0 - wn)[None, :, None] * outside)
+            result[js, need_m] = wn * pd[:, :n_need] + wn_c * outside
             del fc
         del gd, pd, f, outside, phi
     # elsewhere (the generic motion below the float noise floor: :func:`moving_vertices`) the generic

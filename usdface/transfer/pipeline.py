@@ -940,12 +940,15 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
             """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by
             the field once its extension is factorized (:func:`extend_personalization`)."""
             out = packed.expand() if packed is not None else _shape_deltas(face, names, view=True).copy()
+            rows = np.flatnonzero(f)
+            interpolation = corr.matrix(capture.triangles, person_deltas.shape[1], face_only=False, rows=rows)
             for lo in range(0, len(names), 8):
                 js = slice(lo, lo + 8)
                 change = face_personalization(corr, capture.triangles, person_deltas[js],
-                                              prior_av[js], f, support=support, outliers=outliers[js])
+                                              prior_av[js], rows, support=support, outliers=outliers[js],
+                                              matrix=interpolation)
                 change *= conf[js, None, None]
-                out[js, f] += change
+                out[js, rows] += change
             return out
 
         release_free_memory()              # the read's and the fit's freed blocks, before the peak
