@@ -23,6 +23,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from shared_data import BENCH
+
 from usdface.pipeline.batch import read_manifest, run_batch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,7 +69,7 @@ def main(argv=None) -> int:
     parser.add_argument("--items", type=int, default=4)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--bench", type=Path, default=ROOT.parent / "shared" / "data" / "bench")
+    parser.add_argument("--bench", type=Path, default=BENCH)
     parser.add_argument("--case", choices=("bench", "sample"))
     parser.add_argument("--only", choices=("in-process", "pool", "dask"), action="append")
     args = parser.parse_args(argv)

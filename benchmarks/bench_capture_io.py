@@ -16,9 +16,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 
 
 def median_time(fn, repeat):

@@ -25,8 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from shared_data import BENCH
+
 ROOT = Path(__file__).resolve().parents[1]
-BENCH = ROOT.parent / "shared" / "data" / "bench"
 
 
 def _inputs(case: str) -> tuple[Path, Path]:

@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+from shared_data import BENCH
 
 from usdface.io import read_capture
 from usdface.personalize import fit_personalized_shapes, truth_error
 from usdface.personalize.contact import apply_contact, find_contact_pairs, find_openings, lip_crossings
 
-BENCH = Path(__file__).resolve().parents[2] / "shared" / "data" / "bench"
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 MODES = ("off", "auto", "on")
 LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthRollUpper",

@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+from shared_data import BENCH
 
 from usdface.io import read_capture
 from usdface.personalize import evaluate_rig, fit_personalized_shapes, truth_error
-
-BENCH = Path(__file__).resolve().parents[2] / "shared" / "data" / "bench"
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 

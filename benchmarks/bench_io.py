@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from shared_data import BENCH
+
 import usdface.io  # noqa: F401  (schemas registered before any stage)
 from usdface.io.layers import write_avatar_layer
 from usdface.io.usd_rig import read_avatar
@@ -36,7 +38,7 @@ def timed(fn, repeat: int) -> tuple[float, float]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=7)
-    parser.add_argument("--bench", type=Path, default=ROOT.parent / "shared" / "data" / "bench")
+    parser.add_argument("--bench", type=Path, default=BENCH)
     args = parser.parse_args(argv)
     dev1 = args.bench / "dev1"
     if not (dev1 / "avatar.usdc").exists():

@@ -27,9 +27,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from shared_data import SHARED as SHARED_ROOT
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = SHARED_ROOT / "data"
 
 
 def median_time(fn, repeat: int):

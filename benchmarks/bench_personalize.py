@@ -36,9 +36,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from shared_data import BENCH
 
 ROOT = Path(__file__).resolve().parents[1]
-BENCH = ROOT.parent / "shared" / "data" / "bench"
 
 
 #: A mesh whose generic offsets are this close to the truth (RMS, mm as the scores) is one the truth keeps

@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from shared_data import BENCH
+
 from usdface import api
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +60,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--bench", type=Path, default=ROOT.parent / "shared" / "data" / "bench")
+    ap.add_argument("--bench", type=Path, default=BENCH)
     args = ap.parse_args(argv)
     cases = [("sample", ROOT / "sample_assets" / "avatar.usda", ROOT / "sample_assets" / "capture.usda")]
     if (args.bench / "dev1" / "avatar.usdc").exists():

@@ -36,6 +36,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from scale_avatars import VARIANTS, build_scale_avatars  # noqa: E402
+from shared_data import BENCH  # noqa: E402
 
 ROOT = HERE.parent
 LABELS = {"dev1": "dev1", "subdiv1": "Head subdivided once", "subdiv2": "Head subdivided twice",
@@ -130,7 +131,7 @@ def vertex_counts(path: Path) -> tuple[int, int]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--bench", type=Path, default=ROOT.parent / "shared" / "data" / "bench")
+    parser.add_argument("--bench", type=Path, default=BENCH)
     parser.add_argument("--cache", type=Path, default=default_cache())
     parser.add_argument("--only", nargs="+", choices=VARIANTS, help="variants to run (dev1 always runs)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["personalize", "landmarks", "check"])
