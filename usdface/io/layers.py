@@ -624,6 +624,28 @@ def stale_inputs(layer_path, given=()) -> list[str]:
     return out
 
 
+def mesh_topology(prim) -> dict | None:
+    """``{"points": n, "topology": sha256}`` of a ``UsdGeom.Mesh`` prim as composed (its point count and the
+    digest of its ``faceVertexCounts`` and ``faceVertexIndices``), None for a prim that is not a mesh with
+    points. A layer records it for every mesh it personalizes (``customLayerData["usdface"]["meshes"]``), so
+    ``usdface check`` tells an avatar whose mesh was re-modelled after the layer was written: the layer's
+    ``pointIndices`` and offsets address the old vertices (an edge loop added shifts every index after it,
+    and nothing else in the composed stage shows it)."""
+    from pxr import UsdGeom
+
+    if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
+        return None
+    mesh = UsdGeom.Mesh(prim)
+    points = mesh.GetPointsAttr().Get()
+    if points is None:
+        return None
+    h = hashlib.sha256()
+    for attr in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
+        h.update(np.asarray(attr.Get() if attr.Get() is not None else [], dtype=np.int64).tobytes())
+        h.update(b"|")
+    return {"points": len(points), "topology": h.hexdigest()}
+
+
 def _reproducible() -> bool:
     """Whether ``SOURCE_DATE_EPOCH`` is set (the reproducible-builds convention): then a layer's
     ``createdAt`` is that time and it records no timings, so the same inputs give the same bytes."""
@@ -791,6 +813,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         if _reproducible():          # the same inputs give the same bytes: no clock readings in the layer
             prov["timings"] = {}
             prov.pop("elapsedSeconds", None)
+        # each personalized mesh's point count and topology as the avatar had them (check: re-modelled?)
+        meshes = {r.source.prim: mesh_topology(stage.GetPrimAtPath(r.source.prim)) for r in rigs}
+        prov["meshes"] = {k: v for k, v in meshes.items() if v is not None}
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
         atomic_save(layer, out_path, force)
