@@ -744,3 +744,18 @@ def test_provenance_warns_about_a_dcc_export_of_a_personalized_layer(tmp_path):
             assert "DCC export" in issues[0].message and "export the original avatar" in issues[0].fix
         else:
             assert issues == []
+
+
+def test_a_reader_warning_that_carries_its_fix_is_told_with_that_fix_once(samples, tmp_path):
+    """The reader's unit warning ends in its own '(fix: author metersPerUnit ...)'; the Readable issue added a
+    second, generic one after it: '... (fix: author metersPerUnit = 1 ...) (fix: author what the reader
+    assumed (see the message), or accept it)'. Now the issue's fix is the reader's own."""
+    from pxr import Usd
+
+    wrapper = tmp_path / "wrapper.usda"
+    wrapper.write_text(f'#usda 1.0\n(\n    defaultPrim = "Avatar"\n    metersPerUnit = 1\n    upAxis = "Y"\n'
+                       f'    subLayers = [@{samples / "avatar.usda"}@]\n)\n')
+    issues = [i for i in check(Usd.Stage.Open(str(wrapper)), rules="Readable") if i.severity == WARNING]
+    assert issues and "read 100x too large" in issues[0].message, issues
+    assert "(fix:" not in issues[0].message and "metersPerUnit" in issues[0].fix, issues[0]
+    assert str(issues[0]).count("(fix:") == 1

@@ -120,6 +120,16 @@ _NAME_MAP_RULES = {"ArkitNames", "Readable"}
 READER_RULES = {"SkelBinding", "BlendShapeArrays", "BlendShapeOffsets", "PointIndices", "Inbetweens"}
 
 
+def _split_fix(text: str) -> tuple[str, str]:
+    """``(message, fix)`` of a reader's warning that ends in its own ``(fix: ...)``; else ``(text, "")``
+    (the issue's fix was printed after the message's own: '(fix: author ...) (fix: author what the reader
+    assumed ...)')."""
+    head, sep, tail = text.rpartition(" (fix: ")
+    if sep and tail.endswith(")"):
+        return head, tail[:-1]
+    return text, ""
+
+
 def _prim_in(text: str) -> str:
     """The prim a reader's message names (``file, prim /A/B: ...``), else ``/``."""
     import re
@@ -764,9 +774,9 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
             avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
         for w in said:
             if issubclass(w.category, UserWarning):
-                text = str(w.message)
+                text, own_fix = _split_fix(str(w.message))    # a warning that carries its fix: told once
                 yield Issue(WARNING, "Readable", _prim_in(text), text,
-                            "author what the reader assumed (see the message), or accept it")
+                            own_fix or "author what the reader assumed (see the message), or accept it")
         from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
