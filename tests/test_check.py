@@ -759,3 +759,21 @@ def test_a_reader_warning_that_carries_its_fix_is_told_with_that_fix_once(sample
     assert issues and "read 100x too large" in issues[0].message, issues
     assert "(fix:" not in issues[0].message and "metersPerUnit" in issues[0].fix, issues[0]
     assert str(issues[0]).count("(fix:") == 1
+
+
+@pytest.mark.parametrize("how", ["subLayers", "references"])
+def test_provenance_inputs_are_checked_from_the_layer_that_records_them(personalized_sample, tmp_path, how):
+    """A shot in another folder that sublayers or references the published layer: its recorded inputs
+    (paths relative to that layer) were resolved against the shot's folder, so each was 'not reachable from
+    here; digest unchecked' (info) and a changed avatar went unnoticed under every shot."""
+    shot = tmp_path / "shots" / "sq010" / "shot.usda"
+    shot.parent.mkdir(parents=True)
+    head = '#usda 1.0\n(\n    defaultPrim = "{}"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n'
+    if how == "subLayers":
+        shot.write_text(head.format("Avatar") + f"    subLayers = [@{personalized_sample}@]\n)\n")
+    else:
+        shot.write_text(head.format("World") + ')\ndef Xform "World"\n{\n'
+                        f'    def "Hero" (prepend references = @{personalized_sample}@)\n'
+                        '    {\n    }\n}\n')
+    issues = check(Usd.Stage.Open(str(shot)), rules="Provenance")
+    assert issues == [], issues

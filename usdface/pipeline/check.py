@@ -522,6 +522,16 @@ def _digest(path: Path) -> str | None:
     return h.hexdigest()
 
 
+def _provenance_base(prim) -> Path | None:
+    """The folder of the layer that authored ``prim``'s ``usdface:provenance:inputs`` (its strongest spec),
+    which the recorded paths are relative to; None when it has no real path."""
+    attr = prim.GetAttribute("usdface:provenance:inputs")
+    for spec in (attr.GetPropertyStack() if attr else []):
+        if spec.layer.realPath:
+            return Path(spec.layer.realPath).parent
+    return None
+
+
 @_rule("Provenance", "a usdface layer's provenance present, consistent, and its inputs unchanged")
 def _provenance(stage) -> Iterable[Issue]:
     from pxr import Usd
@@ -575,6 +585,10 @@ def _provenance(stage) -> Iterable[Issue]:
                 yield Issue(ERROR, "Provenance", path, f"usdface:provenance:{name} is empty",
                             "re-run the usdface command that wrote the layer (personalize, landmarks) to "
                             "rewrite its provenance")
+        # the recorded paths are relative to the layer that wrote them, not to the stage's root layer: a
+        # shot that sublayers or references the published layer from another folder checked them against
+        # its own folder and said 'not reachable from here; digest unchecked' for inputs right there
+        folder = _provenance_base(prim) or base
         inputs = list(get("inputs") or [])
         digests = list(get("inputDigests") or [])
         if len(inputs) != len(digests):
@@ -591,7 +605,7 @@ def _provenance(stage) -> Iterable[Issue]:
                             f"digest of input {given!r} is not a sha256 hex string",
                             "re-run usdface personalize to rewrite the layer's provenance")
                 continue
-            file = Path(given) if Path(given).is_absolute() else base / given
+            file = Path(given) if Path(given).is_absolute() else folder / given
             if not file.exists():
                 yield Issue(INFO, "Provenance", path,
                             f"input {given!r} not reachable from here; digest unchecked", "")
