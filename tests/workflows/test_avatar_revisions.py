@@ -136,3 +136,36 @@ def test_an_unchanged_or_resculpted_avatar_is_no_avatar_match_error(published, t
     proc = run("check", "pub/v001/person.usda", "--json", cwd=tmp_path)
     issues = json.loads(proc.stdout)["issues"]
     assert [i["rule"] for i in issues] == ["Provenance"] and "changed after" in issues[0]["message"], issues
+
+
+@pytest.mark.parametrize("revision", list(REVISIONS))
+def test_export_refuses_a_layer_its_revised_avatar_no_longer_fits(published, tmp_path, revision):
+    """Exported, such a layer was a generic face (its overrides on a renamed mesh), or offsets on shifted
+    vertices / in the old units, labelled '[personalized]', with only the 'changed after' warning. Now
+    refused before any work, naming the prim and the fix; no output is written."""
+    revise, prim, needle = REVISIONS[revision]
+    revise(_project(published, tmp_path))
+    proc = run("export", "pub/v001/person.usda", "--gltf", "out.glb", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert needle in proc.stderr and "refusing to make an export" in proc.stderr, proc.stderr
+    assert "re-run usdface personalize on the revised avatar" in proc.stderr, proc.stderr
+    assert not (tmp_path / "out.glb").exists()
+
+
+def test_review_render_and_inspect_name_the_revision(published, tmp_path):
+    """review and render --compare refuse the re-modelled avatar's layer as export does; inspect of a layer
+    whose avatar gained a shape said 'skel:blendShapes has 53 entries but skel:blendShapeTargets has 52 (fix:
+    give exactly one BlendShape target per channel token)', a fix for an avatar, not for a published layer."""
+    avatar = _project(published, tmp_path)
+    original = avatar.read_bytes()
+    _remodel(avatar)
+    for args in (["review", "pub/v001/person.usda", "-o", "r.html"],
+                 ["render", "pub/v001/person.usda", "-o", "r.png", "--compare", "--shapes", "jawOpen"]):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "3780 -> 3783 points" in proc.stderr, proc.stderr
+        assert "re-run usdface personalize on the revised avatar" in proc.stderr, proc.stderr
+    avatar.write_bytes(original)
+    _channels("add")(avatar)
+    proc = run("inspect", "pub/v001/person.usda", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2 and "added jawOpenWide" in proc.stderr, proc.stderr
+    assert "re-run usdface personalize on the revised avatar" in proc.stderr, proc.stderr

@@ -489,14 +489,32 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
         name_map = recorded_name_map(stage)
     try:
         return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only)
-    except UsdFaceError:
+    except UsdFaceError as exc:
+        _refuse_revised_avatar(stage, path, exc)
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
+        _refuse_revised_avatar(stage, path, exc)
         from .usd_open import tf_error_text
 
         what = tf_error_text(exc, path, 200) if isinstance(exc, Tf.ErrorException) else str(exc).strip()[:200]
         raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {what})", path=path,
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
+
+
+def _refuse_revised_avatar(stage, path: Path, exc: Exception) -> None:
+    """A usdface layer the reader refused because its avatar was revised after it was written (a shape added
+    or removed: 'skel:blendShapes has 53 entries but skel:blendShapeTargets has 52', fix 'give exactly one
+    BlendShape target per channel token', which is no fix for a published layer): that is said instead,
+    with the fix (re-run personalize on the revised avatar). Returns for any other refusal."""
+    from .layers import avatar_mismatches
+
+    try:
+        found = avatar_mismatches(stage)
+    except Exception:  # noqa: BLE001  (the reader's own error stands)
+        return
+    if found:
+        prim, message, fix = found[0]
+        raise RigError(message, path=path, prim=None if prim == "/" else prim, fix=fix) from exc
 
 
 #: What :func:`_refuse_non_avatar` says of each kind that is no avatar, and its fix.

@@ -522,6 +522,13 @@ def _digest(path: Path) -> str | None:
     return h.hexdigest()
 
 
+def _prim_specs(layer) -> list:
+    """Every prim spec of ``layer`` outside variants, parents first."""
+    from ..io.layers import prim_specs
+
+    return prim_specs(layer)
+
+
 def _provenance_base(prim) -> Path | None:
     """The folder of the layer that authored ``prim``'s ``usdface:provenance:inputs`` (its strongest spec),
     which the recorded paths are relative to; None when it has no real path."""
@@ -617,45 +624,6 @@ def _provenance(stage) -> Iterable[Issue]:
                             "re-run usdface personalize on the current inputs")
 
 
-def _layer_avatar(stage):
-    """``(record, avatar_layer, avatar_stage, asset)`` for a usdface personalize layer: its provenance record,
-    the avatar layer it sublayers opened alone and composed without it, the sublayer path as written; None
-    for any other file, or when the avatar cannot be opened (USD's composition error says so)."""
-    from pxr import Sdf, Usd
-
-    root = stage.GetRootLayer()
-    record = (root.customLayerData or {}).get("usdface")
-    if not (isinstance(record, dict) and "inputs" in record and root.subLayerPaths):
-        return None
-    asset = root.subLayerPaths[0]
-    avatar_layer = Sdf.Layer.FindOrOpen(Sdf.ComputeAssetPathRelativeToLayer(root, asset))
-    if avatar_layer is None:
-        return None
-    return record, avatar_layer, Usd.Stage.Open(avatar_layer, Usd.Stage.LoadAll), asset
-
-
-def _orphan_overs(layer, avatar_stage, stage) -> list[str]:
-    """The top-most prims the layer overrides (``over``, outside its variants) that neither the avatar alone
-    nor the layer itself defines: prims renamed, moved or deleted in the avatar after the layer was written
-    (their overrides now apply to nothing)."""
-    from pxr import Sdf
-
-    out: list[str] = []
-
-    def walk(spec):
-        for child in spec.nameChildren:
-            if child.specifier == Sdf.SpecifierOver:
-                there = avatar_stage.GetPrimAtPath(child.path)
-                here = stage.GetPrimAtPath(child.path)
-                if not (there and there.IsDefined()) and not (here and here.IsDefined()):
-                    out.append(str(child.path))
-                    continue                                  # its children are gone with it
-            walk(child)
-
-    walk(layer.pseudoRoot)
-    return out
-
-
 @_rule("AvatarMatch", "a usdface layer still fits the avatar it sublayers: its prims, channels, mesh "
                       "topology and units are the avatar's (an avatar revised after the layer was written "
                       "is told, with what changed)")
@@ -663,78 +631,12 @@ def _avatar_match(stage) -> Iterable[Issue]:
     """A personalized layer holds overrides written for the avatar as it was: revised upstream (a mesh
     renamed, the SkelRoot moved, a shape added or removed, the mesh re-modelled, units or axis changed), the
     layer composes over the new avatar without a USD error, and what it does is wrong or nothing. Each such
-    change is an error naming the prim and the fix (re-run personalize on the revised avatar)."""
-    from pxr import UsdSkel
+    change is an error naming the prim and the fix (re-run personalize on the revised avatar):
+    :func:`usdface.io.layers.avatar_mismatches`."""
+    from ..io.layers import avatar_mismatches
 
-    found = _layer_avatar(stage)
-    if found is None:
-        return
-    record, avatar_layer, avatar_stage, asset = found
-    root = stage.GetRootLayer()
-    name = Path(root.realPath or root.identifier).name
-    fix = (f"re-run usdface personalize on the revised avatar ({asset}) with the capture, --force to "
-           f"replace {name} (or publish a new version); a layer cannot be carried over to a changed avatar")
-    for key, what in (("metersPerUnit", "metersPerUnit"), ("upAxis", "upAxis")):
-        if root.pseudoRoot.HasInfo(key) and avatar_layer.pseudoRoot.HasInfo(key):
-            mine, theirs = root.pseudoRoot.GetInfo(key), avatar_layer.pseudoRoot.GetInfo(key)
-            if mine != theirs:
-                yield Issue(ERROR, "AvatarMatch", "/",
-                            f"{name} was written over {asset} with {what} {mine}, but the avatar now "
-                            f"authors {what} {theirs} (re-exported in other units or axis): the layer's "
-                            "offsets are in the old ones, and its stage metadata overrides the avatar's", fix)
-    for path in _orphan_overs(root, avatar_stage, stage):
-        yield Issue(ERROR, "AvatarMatch", path,
-                    f"{name} overrides {path}, which {asset} no longer has (renamed, moved or deleted in "
-                    "the avatar after the layer was written): its personalization applies to nothing", fix)
-    recorded = record.get("meshes") if isinstance(record.get("meshes"), dict) else {}
-    for spec_path in _blend_shape_target_specs(root):
-        mesh = avatar_stage.GetPrimAtPath(spec_path)
-        if not (mesh and mesh.IsDefined()):
-            continue                                      # told above as an orphan
-        binding = UsdSkel.BindingAPI(mesh)
-        now = [t.name for t in binding.GetBlendShapeTargetsRel().GetTargets()]
-        written = [t.name for t in root.GetRelationshipAtPath(
-            f"{spec_path}.skel:blendShapeTargets").targetPathList.GetAddedOrExplicitItems()]
-        if now != written:
-            added = [n for n in now if n not in written]
-            removed = [n for n in written if n not in now]
-            change = "; ".join(filter(None, (added and f"added {', '.join(added)}",
-                                             removed and f"removed {', '.join(removed)}")))
-            yield Issue(ERROR, "AvatarMatch", spec_path,
-                        f"{asset}'s {spec_path} now has {len(now)} blend shapes ({change or 'reordered'}), "
-                        f"but {name}'s skel:blendShapeTargets list the {len(written)} it was written for: "
-                        "the mesh's channels and targets no longer pair up", fix)
-        before = recorded.get(spec_path)
-        from ..io.layers import mesh_topology
-
-        after = mesh_topology(mesh)
-        if isinstance(before, dict) and after is not None and (
-                before.get("points") != after["points"] or before.get("topology") != after["topology"]):
-            points = (f"{before.get('points')} -> {after['points']} points"
-                      if before.get("points") != after["points"]
-                      else f"{after['points']} points, faces changed")
-            yield Issue(ERROR, "AvatarMatch", spec_path,
-                        f"{asset}'s {spec_path} was re-modelled after {name} was written ({points}): the "
-                        "layer's pointIndices and offsets address the old vertices", fix)
-
-
-def _prim_specs(layer) -> list:
-    """Every prim spec of ``layer`` outside variants, parents first."""
-    out: list = []
-
-    def walk(spec):
-        for child in spec.nameChildren:
-            out.append(child)
-            walk(child)
-
-    walk(layer.pseudoRoot)
-    return out
-
-
-def _blend_shape_target_specs(layer) -> list[str]:
-    """Prim paths (outside variants) where ``layer`` authors ``skel:blendShapeTargets``: the meshes a usdface
-    layer personalized."""
-    return [str(spec.path) for spec in _prim_specs(layer) if "skel:blendShapeTargets" in spec.relationships]
+    for prim, message, fix in avatar_mismatches(stage):
+        yield Issue(ERROR, "AvatarMatch", prim, message, fix)
 
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
