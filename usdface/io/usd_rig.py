@@ -664,6 +664,38 @@ def dcc_export_marks_in(stage) -> list[str]:
     return marks
 
 
+def composed_personalization(path) -> tuple[str, str] | None:
+    """``(prim, layer)`` when the composed stage of ``path`` (a file that is no usdface layer itself: a
+    shot that sublayers or references a published personalized layer) has a SkelRoot whose
+    ``usdfacePersonalization`` variant set selects ``personalized``: the prim, and the usdface layer that
+    authors the variant set (the one it composes). None for any other file (a plain avatar, a shot over a
+    plain avatar, one that selects ``generic``)."""
+    from pxr import Usd
+
+    path = Path(path)
+    if not _may_hold_scope_copies(path):          # a text file naming no asset composes no other layer
+        return None
+    from .usd_open import quiet_stderr
+
+    try:
+        with quiet_stderr():                      # a composition error: the reader that follows names it
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    except Exception:                             # noqa: BLE001 - unreadable: the reader names it
+        return None
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        vset = prim.GetVariantSets().GetVariantSet(PERSONALIZATION_VARIANT_SET)
+        if not prim.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET):
+            continue
+        if vset.GetVariantSelection() != "personalized":
+            continue
+        layers = [spec.layer for spec in prim.GetPrimStack()
+                  if PERSONALIZATION_VARIANT_SET in spec.variantSets
+                  and "usdface" in (spec.layer.customLayerData or {})]
+        source = layers[0].realPath or layers[0].identifier if layers else "?"
+        return str(prim.GetPath()), source
+    return None
+
+
 def refuse_dcc_export(path) -> None:
     """Refuse (:class:`~usdface.errors.AlreadyPersonalizedError`) a DCC export of a usdface output layer
     (:func:`dcc_export_marks`): its shapes are the variant the DCC composed, personalized by default, and
@@ -683,6 +715,24 @@ def refuse_dcc_export(path) -> None:
         fix="export the original avatar (the one the usdface layer sublayers) from the DCC, or personalize "
             "that avatar itself; if this export holds the generic shapes (the 'generic' variant selected), "
             "delete those prims (or properties) from it first")
+
+
+def _refuse_composed_personalization(path) -> None:
+    """A file that sublayers or references a personalized usdface layer (a shot over the published layer,
+    :func:`composed_personalization`) holds the personalized shapes where the avatar's were: personalized
+    again, the personalization was stacked on them without a word. Refused naming the layer and the avatar
+    under it."""
+    found = composed_personalization(path)
+    if found is None:
+        return
+    prim, layer = found
+    original = generic_input(layer) if layer != "?" else None
+    raise AlreadyPersonalizedError(
+        f"this file composes the usdface output layer {layer} (sublayered or referenced; its "
+        f"usdfacePersonalization variant on {prim} selects 'personalized'): its shapes are already "
+        "personalized, and personalizing them again would stack the personalization", path=path, prim=prim,
+        fix=f"pass the original avatar{f' ({original})' if original else ''}, or a shot that composes it "
+            "instead of the personalized layer")
 
 
 def generic_input(layer_path) -> Path | None:
@@ -737,6 +787,7 @@ def refuse_usdface_output(path) -> None:
     data = found.provenance
     if data is None:
         refuse_dcc_export(path)  # not a usdface layer: but perhaps a DCC's export of one
+        _refuse_composed_personalization(path)      # or a shot over a published personalized layer
         return
     flat = found.flattened
     if flat is not None and flat["variant"] == "personalized":
