@@ -169,3 +169,18 @@ def test_review_render_and_inspect_name_the_revision(published, tmp_path):
     proc = run("inspect", "pub/v001/person.usda", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "added jawOpenWide" in proc.stderr, proc.stderr
     assert "re-run usdface personalize on the revised avatar" in proc.stderr, proc.stderr
+
+
+def test_inspect_notes_a_revised_avatar_and_a_changed_input(published, tmp_path):
+    """inspect of a layer over a re-modelled (or renamed, re-sculpted) avatar listed its meshes and shapes
+    as its result, with no word of the revision: now its notes say what check's AvatarMatch and Provenance
+    say (JSON: in ``notes``)."""
+    avatar = _project(published, tmp_path)
+    _remodel(avatar)
+    proc = run("inspect", "pub/v001/person.usda", "--json", cwd=tmp_path)
+    notes = json.loads(proc.stdout)["notes"]
+    assert any("3780 -> 3783 points" in n and "re-run usdface personalize on the revised avatar" in n
+               for n in notes), notes
+    assert any("changed after it was written" in n for n in notes), notes
+    proc = run("inspect", "pub/v001/person.usda", cwd=tmp_path)
+    assert "note: ../../lib/avatar.usda's /Avatar/Head was re-modelled" in proc.stdout, proc.stdout

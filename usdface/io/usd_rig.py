@@ -1080,11 +1080,14 @@ def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:
                            "run on the referenced avatar asset itself")
 
 
-def read_layer_info(path) -> dict:
+def read_layer_info(path, revisions: bool = False) -> dict:
     """What a USD file says about itself, for reports: the root layer's authored stage metadata, sublayers,
     documentation, ``customLayerData["usdface"]`` (plain Python values), the prims that carry a usdface API
     schema (with that schema's authored attribute values), the variant selections of usdface variant sets
     and, for a ``usdface export --flatten`` file, what it baked in (``flattened``: ``source``, ``variant``).
+    With ``revisions``, for a usdface layer also how its avatar was revised since it was written
+    (``avatarRevised``: :func:`usdface.io.layers.avatar_mismatches`) and which recorded inputs changed
+    (``staleInputs``: :func:`usdface.io.layers.stale_inputs`), as text.
     """
     from pxr import Usd
 
@@ -1112,6 +1115,14 @@ def read_layer_info(path) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
+    from .layers import avatar_mismatches, stale_inputs
+
+    # a published layer whose avatar was revised since: said, as check's AvatarMatch and Provenance say it
+    # (inspect listed the layer's meshes and shapes as if they were its result)
+    revised = ([f"{message} (fix: {fix})" for _, message, fix in avatar_mismatches(stage)]
+               if revisions else [])
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": found.usdface, "schemas": schemas_found,
-            "variants": variants, "flattened": found.flattened or {}}
+            "variants": variants, "flattened": found.flattened or {},
+            "avatarRevised": revised,
+            "staleInputs": stale_inputs(path) if revisions and found.usdface else []}
