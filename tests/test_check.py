@@ -777,3 +777,27 @@ def test_provenance_inputs_are_checked_from_the_layer_that_records_them(personal
                         '    {\n    }\n}\n')
     issues = check(Usd.Stage.Open(str(shot)), rules="Provenance")
     assert issues == [], issues
+
+
+def test_two_personalized_layers_stacked_in_a_shot_are_warned_about(personalized_sample, tmp_path):
+    """A shot that sublayers v002 over v001 of one avatar's personalization checked clean: only v002's
+    shapes, provenance and variant set show, v001's inputs go unchecked. Now a Provenance warning names
+    both; one personalized layer (or a landmarks layer over it) is no stacking."""
+    import shutil
+
+    v1 = tmp_path / "v001" / "person.usda"
+    v1.parent.mkdir()
+    shutil.copy(personalized_sample, v1)
+    text = v1.read_text()
+    sub = re.search(r"subLayers = \[\s*@([^@]+)@", text).group(1)
+    absolute = (personalized_sample.parent / sub).resolve()
+    v1.write_text(text.replace(f"@{sub}@", f"@{absolute}@"))
+    head = '#usda 1.0\n(\n    defaultPrim = "Avatar"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n'
+    shot = tmp_path / "shot.usda"
+    shot.write_text(head + f"    subLayers = [@{personalized_sample}@, @{v1}@]\n)\n")
+    found = [i for i in check(Usd.Stage.Open(str(shot)), rules="Provenance") if i.severity == WARNING]
+    assert len(found) == 1 and "2 usdface layers personalize /Avatar" in found[0].message, found
+    assert str(personalized_sample) in found[0].message and str(v1) in found[0].message, found
+    one = tmp_path / "one.usda"
+    one.write_text(head + f"    subLayers = [@{personalized_sample}@]\n)\n")
+    assert check(Usd.Stage.Open(str(one)), rules="Provenance") == []

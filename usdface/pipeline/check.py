@@ -529,6 +529,20 @@ def _prim_specs(layer) -> list:
     return prim_specs(layer)
 
 
+def _personalizing_layers(prim) -> list[str]:
+    """The usdface layers (identifiers, strongest first) that author the personalization variant set on
+    ``prim``: more than one when a shot stacks two personalized layers of one avatar (v002 over v001)."""
+    from ..io.usd_rig import PERSONALIZATION_VARIANT_SET
+
+    out: list[str] = []
+    for spec in prim.GetPrimStack():
+        layer = spec.layer
+        if (PERSONALIZATION_VARIANT_SET in spec.variantSets and "usdface" in (layer.customLayerData or {})
+                and layer.identifier not in out):
+            out.append(layer.identifier)
+    return out
+
+
 def _provenance_base(prim) -> Path | None:
     """The folder of the layer that authored ``prim``'s ``usdface:provenance:inputs`` (its strongest spec),
     which the recorded paths are relative to; None when it has no real path."""
@@ -582,6 +596,16 @@ def _provenance(stage) -> Iterable[Issue]:
     base = Path(root.realPath).parent if root.realPath else Path.cwd()
     for prim in prov_prims:
         path = _path(prim)
+        stacked = _personalizing_layers(prim)
+        if len(stacked) > 1:
+            shown, hidden = stacked[0], stacked[1:]
+            yield Issue(WARNING, "Provenance", path,
+                        f"{len(stacked)} usdface layers personalize {path}: {shown} (the stronger: its "
+                        f"shapes, provenance and variant set show) over {', '.join(hidden)} (overridden: "
+                        "none of its shapes shows where the stronger authors them, and its inputs go "
+                        "unchecked)",
+                        "compose one personalized layer per avatar (to switch versions, swap the sublayer or "
+                        "reference, e.g. v001 -> v002)")
 
         def get(name, prim=prim):
             attr = prim.GetAttribute(f"usdface:provenance:{name}")
