@@ -424,6 +424,8 @@ def format_report(report: dict) -> str:
                  for key, label in (("version", "version"), ("method", "method"), ("command", "command"),
                                     ("createdAt", "created")) if prov.get(key) is not None]
         lines.append("  usdface layer: " + ", ".join(parts))
+        if prov.get("workingDirectory"):      # where the command ran (its relative paths start there)
+            lines.append(f"    command run in {prov['workingDirectory']}")
         for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on

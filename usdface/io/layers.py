@@ -820,6 +820,11 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
         prov["nameMap"] = dict(avatar.metadata["name_map"])   # read back by every reader of the layer
     # what wrote the layer: the CLI passes its command line; a script that gives none is named as the API
     prov["command"] = prov.get("command") or "usdface.io.layers.write_avatar_layer (Python API)"
+    if str(prov["command"]).startswith("usdface ") and "workingDirectory" not in prov and not _reproducible():
+        # the command's relative paths are relative to where it ran: without it the recorded line could
+        # not be run again (the inputs are recorded relative to the layer, the command as typed); not
+        # with SOURCE_DATE_EPOCH, whose layers are the same bytes wherever the same command ran
+        prov["workingDirectory"] = os.getcwd()
     prov.setdefault("parameters", {})
     prov.setdefault("timings", {})
     prov["version"] = __version__
