@@ -289,3 +289,50 @@ def test_render_compare_names_a_dcc_export_of_a_personalized_layer(person_layer,
     assert "DCC export" in err and "--compare AVATAR.usdc" in err and "usdfaceShapes" in err
     assert main(["render", str(export), "-o", str(tmp_path / "c.png"), "--compare", str(A), "-q",
                  "--shapes", "jawOpen"]) == 0
+
+
+def _shot(folder: Path, layer: Path, how: str, variant: str | None = None) -> Path:
+    """A shot layer in ``folder`` that sublayers or references ``layer`` (optionally selecting a variant
+    of usdfacePersonalization), as a shot or a character asset brings the published layer in."""
+    head = '#usda 1.0\n(\n    defaultPrim = "{}"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n'
+    select = (f'    variants = {{\n        string usdfacePersonalization = "{variant}"\n    }}\n'
+              if variant else "")
+    shot = folder / f"shot_{how}_{variant}_{layer.stem}.usda"
+    if how == "subLayers":
+        body = head.format("Avatar") + f"    subLayers = [@{layer}@]\n)\n"
+        if variant:
+            body += f'over "Avatar" (\n{select})\n{{\n}}\n'
+    else:
+        body = (head.format("World") + ')\ndef Xform "World"\n{\n'
+                f'    def "Hero" (\n        prepend references = @{layer}@\n{select}    )\n'
+                '    {\n    }\n}\n')
+    shot.write_text(body)
+    return shot
+
+
+@pytest.mark.parametrize("how", ["subLayers", "references"])
+def test_a_shot_over_a_personalized_layer_is_refused_as_the_avatar(person_layer, tmp_path, how):
+    """A shot (or character asset) that sublayers or references the published personalized layer holds the
+    personalized shapes where the avatar's were: personalize, retarget and batch took it as a plain avatar
+    and stacked the personalization ('46 BlendShapes personalized', no warning). Now refused, naming the
+    layer it composes and the original avatar; the same shot over the plain avatar, or selecting the generic
+    variant, is still an avatar."""
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import refuse_usdface_output
+
+    with pytest.raises(AlreadyPersonalizedError) as err:
+        refuse_usdface_output(_shot(tmp_path, person_layer, how))
+    text = str(err.value)
+    assert str(person_layer) in text and "stack the personalization" in text, text
+    assert str(A) in err.value.fix and err.value.prim in ("/Avatar", "/World/Hero"), err.value
+    refuse_usdface_output(_shot(tmp_path, A, how))                            # the plain avatar: accepted
+    refuse_usdface_output(_shot(tmp_path, person_layer, how, "generic"))     # its generic shapes: accepted
+
+
+def test_personalize_refuses_a_shot_over_a_personalized_layer_at_the_command_line(person_layer, tmp_path,
+                                                                                    capsys):
+    shot = _shot(tmp_path, person_layer, "references")
+    assert main(["personalize", str(shot), str(C), "-o", str(tmp_path / "again.usda")]) == 2
+    err = capsys.readouterr().err
+    assert "composes the usdface output layer" in err and "pass the original avatar" in err, err
+    assert not (tmp_path / "again.usda").exists()

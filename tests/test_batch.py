@@ -543,6 +543,25 @@ def test_resume_of_a_real_layer_skips_the_same_row_and_redoes_an_edited_one(tmp_
     assert again.status == FAILED and "method=dt, the row asks method=ebfr" in again.error
 
 
+def test_resume_redoes_an_item_whose_face_mesh_changed(tmp_path):
+    """A row edited to name another face mesh (face_mesh=Mouth) was skipped as done: the layer recorded the
+    options but not the face mesh it personalized. It now records it (faceMesh, the resolved prim), and a
+    row naming another is stale; the same mesh by name or path is the layer's result."""
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.csv"
+    head = f"avatar,capture,output,face_mesh\n{root / 'avatar.usda'},{root / 'capture.usda'},out/p.usda,"
+    manifest.write_text(head + "\n")
+    first = run_batch(read_manifest(manifest), jobs=1, progress=False)
+    assert first.results[0].status == DONE, first.results[0].error
+    for mesh in ("Head", "/Avatar/Head"):
+        manifest.write_text(head + mesh + "\n")
+        assert run_batch(read_manifest(manifest), jobs=1, progress=False).results[0].status == SKIPPED
+    manifest.write_text(head + "Mouth\n")
+    again = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert again.status == FAILED and again.error_type == "StaleOutput", again.error
+    assert "face_mesh=/Avatar/Head, the row asks face_mesh=Mouth" in again.error
+
+
 def test_every_item_gets_its_progress_line(tmp_path, monkeypatch, capsys):
     """User trial: `batch -j 2` printed `batch [1/3] p1.usda done` only, since items finishing within the
     progress delay of the last line were not printed; a farm log must list every item."""

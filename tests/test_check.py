@@ -744,3 +744,60 @@ def test_provenance_warns_about_a_dcc_export_of_a_personalized_layer(tmp_path):
             assert "DCC export" in issues[0].message and "export the original avatar" in issues[0].fix
         else:
             assert issues == []
+
+
+def test_a_reader_warning_that_carries_its_fix_is_told_with_that_fix_once(samples, tmp_path):
+    """The reader's unit warning ends in its own '(fix: author metersPerUnit ...)'; the Readable issue added a
+    second, generic one after it: '... (fix: author metersPerUnit = 1 ...) (fix: author what the reader
+    assumed (see the message), or accept it)'. Now the issue's fix is the reader's own."""
+    from pxr import Usd
+
+    wrapper = tmp_path / "wrapper.usda"
+    wrapper.write_text(f'#usda 1.0\n(\n    defaultPrim = "Avatar"\n    metersPerUnit = 1\n    upAxis = "Y"\n'
+                       f'    subLayers = [@{samples / "avatar.usda"}@]\n)\n')
+    issues = [i for i in check(Usd.Stage.Open(str(wrapper)), rules="Readable") if i.severity == WARNING]
+    assert issues and "read 100x too large" in issues[0].message, issues
+    assert "(fix:" not in issues[0].message and "metersPerUnit" in issues[0].fix, issues[0]
+    assert str(issues[0]).count("(fix:") == 1
+
+
+@pytest.mark.parametrize("how", ["subLayers", "references"])
+def test_provenance_inputs_are_checked_from_the_layer_that_records_them(personalized_sample, tmp_path, how):
+    """A shot in another folder that sublayers or references the published layer: its recorded inputs
+    (paths relative to that layer) were resolved against the shot's folder, so each was 'not reachable from
+    here; digest unchecked' (info) and a changed avatar went unnoticed under every shot."""
+    shot = tmp_path / "shots" / "sq010" / "shot.usda"
+    shot.parent.mkdir(parents=True)
+    head = '#usda 1.0\n(\n    defaultPrim = "{}"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n'
+    if how == "subLayers":
+        shot.write_text(head.format("Avatar") + f"    subLayers = [@{personalized_sample}@]\n)\n")
+    else:
+        shot.write_text(head.format("World") + ')\ndef Xform "World"\n{\n'
+                        f'    def "Hero" (prepend references = @{personalized_sample}@)\n'
+                        '    {\n    }\n}\n')
+    issues = check(Usd.Stage.Open(str(shot)), rules="Provenance")
+    assert issues == [], issues
+
+
+def test_two_personalized_layers_stacked_in_a_shot_are_warned_about(personalized_sample, tmp_path):
+    """A shot that sublayers v002 over v001 of one avatar's personalization checked clean: only v002's
+    shapes, provenance and variant set show, v001's inputs go unchecked. Now a Provenance warning names
+    both; one personalized layer (or a landmarks layer over it) is no stacking."""
+    import shutil
+
+    v1 = tmp_path / "v001" / "person.usda"
+    v1.parent.mkdir()
+    shutil.copy(personalized_sample, v1)
+    text = v1.read_text()
+    sub = re.search(r"subLayers = \[\s*@([^@]+)@", text).group(1)
+    absolute = (personalized_sample.parent / sub).resolve()
+    v1.write_text(text.replace(f"@{sub}@", f"@{absolute}@"))
+    head = '#usda 1.0\n(\n    defaultPrim = "Avatar"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n'
+    shot = tmp_path / "shot.usda"
+    shot.write_text(head + f"    subLayers = [@{personalized_sample}@, @{v1}@]\n)\n")
+    found = [i for i in check(Usd.Stage.Open(str(shot)), rules="Provenance") if i.severity == WARNING]
+    assert len(found) == 1 and "2 usdface layers personalize /Avatar" in found[0].message, found
+    assert str(personalized_sample) in found[0].message and str(v1) in found[0].message, found
+    one = tmp_path / "one.usda"
+    one.write_text(head + f"    subLayers = [@{personalized_sample}@]\n)\n")
+    assert check(Usd.Stage.Open(str(one)), rules="Provenance") == []

@@ -120,3 +120,37 @@ def test_a_layer_written_from_python_or_a_batch_names_what_wrote_it(tmp_path):
     # a rig written by fit_capture names fit_capture, the function that ran (it named its writer)
     usdface.fit_capture(args[1], out_path=tmp_path / "rig.usda", reg=0.05)
     assert command(tmp_path / "rig.usda") == "usdface.api.fit_capture (Python API)"
+
+
+def test_personalize_records_where_its_command_ran(tmp_path, monkeypatch, capsys):
+    """The layer recorded the command as typed (relative paths: 'usdface personalize lib/avatar.usda ...
+    -o pub/v001/p.usda') but not the folder it ran in, so the record could not be run again from anywhere
+    else (the inputs are recorded relative to the layer, the command line is not). It records the working
+    folder now, and inspect shows it; from there the recorded line runs again."""
+    import os
+    import shutil
+
+    (tmp_path / "lib").mkdir()
+    shutil.copy(A, tmp_path / "lib" / "avatar.usda")
+    monkeypatch.chdir(tmp_path)
+    argv = ["personalize", "lib/avatar.usda", str(C), "-o", "pub/v001/p.usda", "-q"]
+    assert main(argv) == 0
+    record = Sdf.Layer.FindOrOpen(str(tmp_path / "pub" / "v001" / "p.usda")).customLayerData["usdface"]
+    assert shlex.split(record["command"]) == ["usdface", *argv]
+    assert os.path.samefile(record["workingDirectory"], tmp_path)
+    capsys.readouterr()
+    assert main(["inspect", "pub/v001/p.usda"]) == 0
+    assert f"command run in {record['workingDirectory']}" in capsys.readouterr().out
+
+
+def test_a_reproducible_layer_records_no_working_directory(tmp_path, monkeypatch):
+    """With SOURCE_DATE_EPOCH the same command gives the same bytes wherever it ran: no workingDirectory."""
+    from usdface.io.layers import write_avatar_layer
+    from usdface.io.usd_rig import read_avatar
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    avatar = read_avatar(A)
+    head = avatar.mesh("Head")
+    out = write_avatar_layer(avatar, tmp_path / "p.usda", {head.key: head.deltas},
+                             provenance={"command": "usdface personalize a.usda c.usda -o p.usda"})
+    assert "workingDirectory" not in Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]

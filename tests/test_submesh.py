@@ -258,3 +258,34 @@ def test_packed_generic_offsets_give_the_same_offsets(samples, tmp_path, monkeyp
         np.testing.assert_array_equal(np.asarray(packed.offsets[key]), np.asarray(plain.offsets[key]))
     for m in avatar.meshes:                                # the caller's avatar is given back as read
         np.testing.assert_array_equal(m.deltas, generic[m.key])
+
+
+def test_a_still_piece_of_the_head_mesh_beyond_the_capture_is_no_empty_mesh(samples, tmp_path):
+    """A small separate piece in the Head mesh that no shape moves and the capture does not reach (a helper
+    card an artist added behind the head) left an empty 'beyond the capture' mesh once its still vertices
+    were cropped away: personalize died with numpy's 'zero-size array to reduction operation maximum'.
+    Now the piece is left out like any still vertex and the head's answer is the head alone's."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer import personalize_avatar
+
+    avatar = read_avatar(samples / "avatar.usda")
+    head = avatar.mesh("Head")
+    n = head.n_vertices
+    card = head.neutral[0] + np.array([[0.0, 0.0, -0.01], [0.0, 0.01, -0.01], [0.01, 0.0, -0.01]])
+    merged = FaceRig(np.concatenate([head.neutral, card]),
+                     np.concatenate([head.triangles, [[n, n + 1, n + 2]]]),
+                     head.names, np.concatenate([head.deltas, np.zeros((head.n_shapes, 3, 3))], axis=1),
+                     name="Head")
+    others = [FaceRig(m.neutral, m.triangles, m.names, m.deltas, name=m.name) for m in avatar.meshes
+              if m.name != "Head"]
+    others += [FaceRig(p, t, [], np.zeros((0, len(p), 3)), name=k.rsplit("/", 1)[-1])
+               for k, (p, t) in avatar.metadata["static_meshes"].items()]
+    path = write_rig_usd([merged] + others, tmp_path / "card.usda", meters_per_unit=avatar.meters_per_unit)
+    capture = samples / "capture.usda"
+    alone = personalize_avatar(samples / "avatar.usda", capture, None)
+    with_card = personalize_avatar(path, capture, None)
+    m = np.asarray(with_card.offsets["/Avatar/Head"])
+    assert m.shape[1] == n + 3
+    np.testing.assert_array_equal(m[:, n:], 0.0)                       # the card stays
+    np.testing.assert_allclose(m[:, :n], np.asarray(alone.offsets["/Avatar/Head"]), rtol=0, atol=1e-7)

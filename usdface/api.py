@@ -1402,9 +1402,11 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     if isinstance(capture, str | Path) and not Path(capture).exists():
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
     from . import progress
-    from .io.layers import stale_inputs
+    from .io.layers import refuse_avatar_mismatch, stale_inputs
     from .io.usd_rig import usdface_output_provenance
     from .review.collect import _fitted
+
+    refuse_avatar_mismatch(layer_path, "a review page")    # a sign-off of a layer that no longer fits
 
     record = usdface_output_provenance(layer_path) or {}      # the root layer's header: no stage composed
     # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
@@ -1472,8 +1474,11 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
         check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file")
-    from .io.layers import stale_inputs
+    from .io.layers import refuse_avatar_mismatch, stale_inputs
 
+    # a layer its revised avatar no longer fits (overrides on nothing, offsets on shifted vertices) is
+    # refused: exported, it was a generic or broken face labelled [personalized]
+    refuse_avatar_mismatch(layer_path, "an export")
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
         warnings.warn(text, UserWarning, stacklevel=2)
     done: dict[str, Path] = {}

@@ -139,6 +139,8 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
                    for m in avatar.meshes],
     }
     if layer_info:
+        # the avatar revised or an input changed since the layer was written: its meshes are not its result
+        out["notes"] += [*layer_info.get("avatarRevised", []), *layer_info.get("staleInputs", [])]
         out["subLayers"] = layer_info.get("subLayers", [])
         out["provenance"] = layer_info.get("usdface", {})
         out["variants"] = layer_info.get("variants", {})
@@ -250,7 +252,7 @@ def inspect_file(path, name_map=None) -> dict:
         return summarize_take(read_take(path))
     from .io.usd_rig import read_avatar, read_layer_info
 
-    info = read_layer_info(path)
+    info = read_layer_info(path, revisions=True)
     if found.kind is Kind.TAKE:  # read as every command that takes a capture reads it: whole
         return _summarize_whole_take(path, info)
     if found.kind is Kind.USD:      # the root layer leaves it open: ask the composed stage
@@ -422,6 +424,8 @@ def format_report(report: dict) -> str:
                  for key, label in (("version", "version"), ("method", "method"), ("command", "command"),
                                     ("createdAt", "created")) if prov.get(key) is not None]
         lines.append("  usdface layer: " + ", ".join(parts))
+        if prov.get("workingDirectory"):      # where the command ran (its relative paths start there)
+            lines.append(f"    command run in {prov['workingDirectory']}")
         for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
             lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
         if prov.get("capture"):              # a fit rig: the capture it was fitted on

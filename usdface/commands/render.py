@@ -251,8 +251,9 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     elif args.compare is not None or args.heatmap is not None:
         import warnings
 
-        from ..io.layers import stale_inputs
+        from ..io.layers import refuse_avatar_mismatch, stale_inputs
 
+        refuse_avatar_mismatch(path, "a comparison")        # its 'personalized' is not the layer's answer
         generic_path = _generic(args, path)
         # as export and review do: a layer whose avatar changed since is compared with the avatar as it is
         # now, and the picture shows the edit as personalization (it said nothing)

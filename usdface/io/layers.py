@@ -624,6 +624,151 @@ def stale_inputs(layer_path, given=()) -> list[str]:
     return out
 
 
+def mesh_topology(prim) -> dict | None:
+    """``{"points": n, "topology": sha256}`` of a ``UsdGeom.Mesh`` prim as composed (its point count and the
+    digest of its ``faceVertexCounts`` and ``faceVertexIndices``), None for a prim that is not a mesh with
+    points. A layer records it for every mesh it personalizes (``customLayerData["usdface"]["meshes"]``), so
+    ``usdface check`` tells an avatar whose mesh was re-modelled after the layer was written: the layer's
+    ``pointIndices`` and offsets address the old vertices (an edge loop added shifts every index after it,
+    and nothing else in the composed stage shows it)."""
+    from pxr import UsdGeom
+
+    if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
+        return None
+    mesh = UsdGeom.Mesh(prim)
+    points = mesh.GetPointsAttr().Get()
+    if points is None:
+        return None
+    h = hashlib.sha256()
+    for attr in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
+        h.update(np.asarray(attr.Get() if attr.Get() is not None else [], dtype=np.int64).tobytes())
+        h.update(b"|")
+    return {"points": len(points), "topology": h.hexdigest()}
+
+
+def prim_specs(layer) -> list:
+    """Every prim spec of the ``Sdf.Layer`` outside variants, parents first."""
+    out: list = []
+
+    def walk(spec):
+        for child in spec.nameChildren:
+            out.append(child)
+            walk(child)
+
+    walk(layer.pseudoRoot)
+    return out
+
+
+def _orphan_overs(layer, avatar_stage, stage) -> list[str]:
+    """The top-most prims ``layer`` overrides (``over``, outside its variants) that neither the avatar alone
+    nor the layer itself defines: prims renamed, moved or deleted in the avatar after the layer was written
+    (their overrides now apply to nothing)."""
+    from pxr import Sdf
+
+    out: list[str] = []
+
+    def walk(spec):
+        for child in spec.nameChildren:
+            if child.specifier == Sdf.SpecifierOver:
+                there = avatar_stage.GetPrimAtPath(child.path)
+                here = stage.GetPrimAtPath(child.path)
+                if not (there and there.IsDefined()) and not (here and here.IsDefined()):
+                    out.append(str(child.path))
+                    continue                                  # its children are gone with it
+            walk(child)
+
+    walk(layer.pseudoRoot)
+    return out
+
+
+def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
+    """``[(prim, message, fix)]``: how a usdface personalize layer (the root layer of ``stage``) no longer
+    fits the avatar it sublayers, opened alone: a prim it overrides gone (a mesh or the SkelRoot renamed or
+    moved, a shape deleted), a personalized mesh whose blend shapes are not those its
+    ``skel:blendShapeTargets`` list (a shape added or removed), a mesh whose point count or faces differ
+    from those recorded when the layer was written (re-modelled: :func:`mesh_topology`), the avatar's
+    ``metersPerUnit`` / ``upAxis`` not those the layer repeats (re-exported in other units or axis). USD
+    composes all of these without a word. [] for a layer that fits, and for any other file."""
+    from pxr import Sdf, Usd, UsdSkel
+
+    root = stage.GetRootLayer()
+    record = (root.customLayerData or {}).get("usdface")
+    if not (isinstance(record, dict) and "inputs" in record and root.subLayerPaths):
+        return []
+    asset = root.subLayerPaths[0]
+    avatar_layer = Sdf.Layer.FindOrOpen(Sdf.ComputeAssetPathRelativeToLayer(root, asset))
+    if avatar_layer is None:
+        return []                                         # USD's composition error says so
+    avatar_stage = Usd.Stage.Open(avatar_layer, Usd.Stage.LoadAll)
+    name = Path(root.realPath or root.identifier).name
+    fix = (f"re-run usdface personalize on the revised avatar ({asset}) with the capture, --force to "
+           f"replace {name} (or publish a new version); a layer cannot be carried over to a changed avatar")
+    out = []
+    for key in ("metersPerUnit", "upAxis"):
+        if root.pseudoRoot.HasInfo(key) and avatar_layer.pseudoRoot.HasInfo(key):
+            mine, theirs = root.pseudoRoot.GetInfo(key), avatar_layer.pseudoRoot.GetInfo(key)
+            if mine != theirs:
+                out.append(("/", f"{name} was written over {asset} with {key} {mine}, but the avatar now "
+                            f"authors {key} {theirs} (re-exported in other units or axis): the layer's "
+                            "offsets are in the old ones, and its stage metadata overrides the avatar's",
+                            fix))
+    recorded = record.get("meshes") if isinstance(record.get("meshes"), dict) else {}
+    for spec in prim_specs(root):
+        if "skel:blendShapeTargets" not in spec.relationships:
+            continue
+        path = str(spec.path)
+        mesh = avatar_stage.GetPrimAtPath(path)
+        if not (mesh and mesh.IsDefined()):
+            continue                                      # told above as gone
+        now = [t.name for t in UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel().GetTargets()]
+        written = [t.name for t in spec.relationships["skel:blendShapeTargets"]
+                   .targetPathList.GetAddedOrExplicitItems()]
+        if now != written:
+            added = [n for n in now if n not in written]
+            removed = [n for n in written if n not in now]
+            change = "; ".join(filter(None, (added and f"added {', '.join(added)}",
+                                             removed and f"removed {', '.join(removed)}")))
+            out.append((path, f"{asset}'s {path} now has {len(now)} blend shapes ({change or 'reordered'}), "
+                        f"but {name}'s skel:blendShapeTargets list the {len(written)} it was written for: "
+                        "the mesh's channels and targets no longer pair up", fix))
+        before, after = recorded.get(path), mesh_topology(mesh)
+        if isinstance(before, dict) and after is not None and (
+                before.get("points") != after["points"] or before.get("topology") != after["topology"]):
+            points = (f"{before.get('points')} -> {after['points']} points"
+                      if before.get("points") != after["points"]
+                      else f"{after['points']} points, faces changed")
+            out.append((path, f"{asset}'s {path} was re-modelled after {name} was written ({points}): the "
+                        "layer's pointIndices and offsets address the old vertices", fix))
+    # after the meshes' own findings: a shape removed is told as such first, its override's loss second
+    for path in _orphan_overs(root, avatar_stage, stage):
+        out.append((path, f"{name} overrides {path}, which {asset} no longer has (renamed, moved or deleted "
+                    "in the avatar after the layer was written): its personalization applies to nothing",
+                    fix))
+    return out
+
+
+def refuse_avatar_mismatch(layer_path, what: str) -> None:
+    """Raise :class:`usdface.errors.RigError` (naming the layer, the prim and the fix) when the usdface layer
+    at ``layer_path`` no longer fits its revised avatar (:func:`avatar_mismatches`): ``what`` (an export, a
+    review page, a comparison) would deliver overrides that land on nothing or on the wrong vertices, labelled
+    personalized. A layer whose inputs merely changed (a re-sculpted shape) is only warned about."""
+    from pxr import Usd
+
+    if Path(layer_path).suffix.lower() not in (".usda", ".usdc", ".usd") or not Path(layer_path).is_file():
+        return                                   # not a layer (a take's CSV, a folder): its reader says so
+    try:
+        stage = Usd.Stage.Open(str(layer_path))
+        found = avatar_mismatches(stage) if stage is not None else []
+    except Exception:  # noqa: BLE001  (a file USD cannot open: the reader after this names it)
+        return
+    if found:
+        prim, message, fix = found[0]
+        more = (f" (and {len(found) - 1} more: usdface check {Path(layer_path).name})"
+                if len(found) > 1 else "")
+        raise RigError(f"{message}{more}; refusing to make {what} of it", path=layer_path,
+                       prim=None if prim == "/" else prim, fix=fix)
+
+
 def _reproducible() -> bool:
     """Whether ``SOURCE_DATE_EPOCH`` is set (the reproducible-builds convention): then a layer's
     ``createdAt`` is that time and it records no timings, so the same inputs give the same bytes."""
@@ -675,6 +820,11 @@ def _provenance(avatar: Avatar, provenance: dict, out_path: Path) -> dict:
         prov["nameMap"] = dict(avatar.metadata["name_map"])   # read back by every reader of the layer
     # what wrote the layer: the CLI passes its command line; a script that gives none is named as the API
     prov["command"] = prov.get("command") or "usdface.io.layers.write_avatar_layer (Python API)"
+    if str(prov["command"]).startswith("usdface ") and "workingDirectory" not in prov and not _reproducible():
+        # the command's relative paths are relative to where it ran: without it the recorded line could
+        # not be run again (the inputs are recorded relative to the layer, the command as typed); not
+        # with SOURCE_DATE_EPOCH, whose layers are the same bytes wherever the same command ran
+        prov["workingDirectory"] = os.getcwd()
     prov.setdefault("parameters", {})
     prov.setdefault("timings", {})
     prov["version"] = __version__
@@ -791,6 +941,9 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
         if _reproducible():          # the same inputs give the same bytes: no clock readings in the layer
             prov["timings"] = {}
             prov.pop("elapsedSeconds", None)
+        # each personalized mesh's point count and topology as the avatar had them (check: re-modelled?)
+        meshes = {r.source.prim: mesh_topology(stage.GetPrimAtPath(r.source.prim)) for r in rigs}
+        prov["meshes"] = {k: v for k, v in meshes.items() if v is not None}
         _apply_provenance_schema(stage, roots, prov)
         layer.customLayerData = {"usdface": _usd_value(prov)}
         atomic_save(layer, out_path, force)

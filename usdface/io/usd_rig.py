@@ -491,14 +491,32 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
         name_map = recorded_name_map(stage)
     try:
         return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only)
-    except UsdFaceError:
+    except UsdFaceError as exc:
+        _refuse_revised_avatar(stage, path, exc)
         raise
     except (Tf.ErrorException, ValueError, TypeError, IndexError, KeyError) as exc:
+        _refuse_revised_avatar(stage, path, exc)
         from .usd_open import tf_error_text
 
         what = tf_error_text(exc, path, 200) if isinstance(exc, Tf.ErrorException) else str(exc).strip()[:200]
         raise RigError(f"malformed UsdSkel data ({type(exc).__name__}: {what})", path=path,
                        fix="re-export the avatar; run `usdface inspect` on it for details") from None
+
+
+def _refuse_revised_avatar(stage, path: Path, exc: Exception) -> None:
+    """A usdface layer the reader refused because its avatar was revised after it was written (a shape added
+    or removed: 'skel:blendShapes has 53 entries but skel:blendShapeTargets has 52', fix 'give exactly one
+    BlendShape target per channel token', which is no fix for a published layer): that is said instead,
+    with the fix (re-run personalize on the revised avatar). Returns for any other refusal."""
+    from .layers import avatar_mismatches
+
+    try:
+        found = avatar_mismatches(stage)
+    except Exception:  # noqa: BLE001  (the reader's own error stands)
+        return
+    if found:
+        prim, message, fix = found[0]
+        raise RigError(message, path=path, prim=None if prim == "/" else prim, fix=fix) from exc
 
 
 #: What :func:`_refuse_non_avatar` says of each kind that is no avatar, and its fix.
@@ -648,6 +666,38 @@ def dcc_export_marks_in(stage) -> list[str]:
     return marks
 
 
+def composed_personalization(path) -> tuple[str, str] | None:
+    """``(prim, layer)`` when the composed stage of ``path`` (a file that is no usdface layer itself: a
+    shot that sublayers or references a published personalized layer) has a SkelRoot whose
+    ``usdfacePersonalization`` variant set selects ``personalized``: the prim, and the usdface layer that
+    authors the variant set (the one it composes). None for any other file (a plain avatar, a shot over a
+    plain avatar, one that selects ``generic``)."""
+    from pxr import Usd
+
+    path = Path(path)
+    if not _may_hold_scope_copies(path):          # a text file naming no asset composes no other layer
+        return None
+    from .usd_open import quiet_stderr
+
+    try:
+        with quiet_stderr():                      # a composition error: the reader that follows names it
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    except Exception:                             # noqa: BLE001 - unreadable: the reader names it
+        return None
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        vset = prim.GetVariantSets().GetVariantSet(PERSONALIZATION_VARIANT_SET)
+        if not prim.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET):
+            continue
+        if vset.GetVariantSelection() != "personalized":
+            continue
+        layers = [spec.layer for spec in prim.GetPrimStack()
+                  if PERSONALIZATION_VARIANT_SET in spec.variantSets
+                  and "usdface" in (spec.layer.customLayerData or {})]
+        source = layers[0].realPath or layers[0].identifier if layers else "?"
+        return str(prim.GetPath()), source
+    return None
+
+
 def refuse_dcc_export(path) -> None:
     """Refuse (:class:`~usdface.errors.AlreadyPersonalizedError`) a DCC export of a usdface output layer
     (:func:`dcc_export_marks`): its shapes are the variant the DCC composed, personalized by default, and
@@ -667,6 +717,24 @@ def refuse_dcc_export(path) -> None:
         fix="export the original avatar (the one the usdface layer sublayers) from the DCC, or personalize "
             "that avatar itself; if this export holds the generic shapes (the 'generic' variant selected), "
             "delete those prims (or properties) from it first")
+
+
+def _refuse_composed_personalization(path) -> None:
+    """A file that sublayers or references a personalized usdface layer (a shot over the published layer,
+    :func:`composed_personalization`) holds the personalized shapes where the avatar's were: personalized
+    again, the personalization was stacked on them without a word. Refused naming the layer and the avatar
+    under it."""
+    found = composed_personalization(path)
+    if found is None:
+        return
+    prim, layer = found
+    original = generic_input(layer) if layer != "?" else None
+    raise AlreadyPersonalizedError(
+        f"this file composes the usdface output layer {layer} (sublayered or referenced; its "
+        f"usdfacePersonalization variant on {prim} selects 'personalized'): its shapes are already "
+        "personalized, and personalizing them again would stack the personalization", path=path, prim=prim,
+        fix=f"pass the original avatar{f' ({original})' if original else ''}, or a shot that composes it "
+            "instead of the personalized layer")
 
 
 def generic_input(layer_path) -> Path | None:
@@ -721,6 +789,7 @@ def refuse_usdface_output(path) -> None:
     data = found.provenance
     if data is None:
         refuse_dcc_export(path)  # not a usdface layer: but perhaps a DCC's export of one
+        _refuse_composed_personalization(path)      # or a shot over a published personalized layer
         return
     flat = found.flattened
     if flat is not None and flat["variant"] == "personalized":
@@ -1013,11 +1082,14 @@ def refuse_instanced(avatar, keys=None, what: str = "the output layer") -> None:
                            "run on the referenced avatar asset itself")
 
 
-def read_layer_info(path) -> dict:
+def read_layer_info(path, revisions: bool = False) -> dict:
     """What a USD file says about itself, for reports: the root layer's authored stage metadata, sublayers,
     documentation, ``customLayerData["usdface"]`` (plain Python values), the prims that carry a usdface API
     schema (with that schema's authored attribute values), the variant selections of usdface variant sets
     and, for a ``usdface export --flatten`` file, what it baked in (``flattened``: ``source``, ``variant``).
+    With ``revisions``, for a usdface layer also how its avatar was revised since it was written
+    (``avatarRevised``: :func:`usdface.io.layers.avatar_mismatches`) and which recorded inputs changed
+    (``staleInputs``: :func:`usdface.io.layers.stale_inputs`), as text.
     """
     from pxr import Usd
 
@@ -1045,6 +1117,14 @@ def read_layer_info(path) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
+    from .layers import avatar_mismatches, stale_inputs
+
+    # a published layer whose avatar was revised since: said, as check's AvatarMatch and Provenance say it
+    # (inspect listed the layer's meshes and shapes as if they were its result)
+    revised = ([f"{message} (fix: {fix})" for _, message, fix in avatar_mismatches(stage)]
+               if revisions else [])
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": found.usdface, "schemas": schemas_found,
-            "variants": variants, "flattened": found.flattened or {}}
+            "variants": variants, "flattened": found.flattened or {},
+            "avatarRevised": revised,
+            "staleInputs": stale_inputs(path) if revisions and found.usdface else []}

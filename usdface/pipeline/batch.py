@@ -309,7 +309,7 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
-    changed = _changed_option(item.options or {}, record)
+    changed = _changed_option(item.options or {}, record) or _changed_face_mesh(item.options or {}, record)
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
@@ -334,6 +334,20 @@ def _personalize_defaults() -> dict:
                 if v.default is not _inspect.Parameter.empty}
 
     return {**defaults(fit_personalized_shapes), **defaults(personalize_avatar)}
+
+
+def _changed_face_mesh(options: dict, record: dict) -> tuple[str, str, str] | None:
+    """``("face_mesh", recorded, asked)`` when the row names a face mesh (a prim name or path) that is not
+    the one the layer records having personalized (``faceMesh``); None when they agree, the row names none
+    (the automatic choice is the avatar's, unchanged when its digest is) or the layer records none (written
+    before it was recorded). Not among ``parameters``: the resolved prim is no option value, and an edited
+    row's face mesh was ignored by resume (the old layer skipped as done)."""
+    asked, was = options.get("face_mesh"), record.get("faceMesh")
+    if not asked or not isinstance(was, str) or not was:
+        return None
+    asked = str(asked)
+    same = was == asked if asked.startswith("/") else was.rsplit("/", 1)[-1] == asked
+    return None if same else ("face_mesh", was, asked)
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:

@@ -28,6 +28,10 @@ Rules (id: what it checks; severity of a violation):
 * ``Provenance``: a usdface layer's ``usdface:provenance:*`` attributes are present and consistent (version,
   command, one sha256 digest per input: error) and every input that is still reachable has the recorded digest
   (warning: the input changed after the layer was written).
+* ``AvatarMatch``: a usdface layer still fits the avatar it sublayers: the prims it overrides exist, each
+  personalized mesh's blend shapes are those its ``skel:blendShapeTargets`` list, its point count and faces
+  are those recorded at writing, the avatar's units and up axis are those the layer repeats (error: the
+  avatar was revised after the layer was written; re-run personalize).
 
 Example::
 
@@ -114,6 +118,16 @@ _NAME_MAP_RULES = {"ArkitNames", "Readable"}
 #: non-canonical name) it still runs, so that what the reader refuses is told at once, not after the first
 #: error is fixed.
 READER_RULES = {"SkelBinding", "BlendShapeArrays", "BlendShapeOffsets", "PointIndices", "Inbetweens"}
+
+
+def _split_fix(text: str) -> tuple[str, str]:
+    """``(message, fix)`` of a reader's warning that ends in its own ``(fix: ...)``; else ``(text, "")``
+    (the issue's fix was printed after the message's own: '(fix: author ...) (fix: author what the reader
+    assumed ...)')."""
+    head, sep, tail = text.rpartition(" (fix: ")
+    if sep and tail.endswith(")"):
+        return head, tail[:-1]
+    return text, ""
 
 
 def _prim_in(text: str) -> str:
@@ -508,6 +522,37 @@ def _digest(path: Path) -> str | None:
     return h.hexdigest()
 
 
+def _prim_specs(layer) -> list:
+    """Every prim spec of ``layer`` outside variants, parents first."""
+    from ..io.layers import prim_specs
+
+    return prim_specs(layer)
+
+
+def _personalizing_layers(prim) -> list[str]:
+    """The usdface layers (identifiers, strongest first) that author the personalization variant set on
+    ``prim``: more than one when a shot stacks two personalized layers of one avatar (v002 over v001)."""
+    from ..io.usd_rig import PERSONALIZATION_VARIANT_SET
+
+    out: list[str] = []
+    for spec in prim.GetPrimStack():
+        layer = spec.layer
+        if (PERSONALIZATION_VARIANT_SET in spec.variantSets and "usdface" in (layer.customLayerData or {})
+                and layer.identifier not in out):
+            out.append(layer.identifier)
+    return out
+
+
+def _provenance_base(prim) -> Path | None:
+    """The folder of the layer that authored ``prim``'s ``usdface:provenance:inputs`` (its strongest spec),
+    which the recorded paths are relative to; None when it has no real path."""
+    attr = prim.GetAttribute("usdface:provenance:inputs")
+    for spec in (attr.GetPropertyStack() if attr else []):
+        if spec.layer.realPath:
+            return Path(spec.layer.realPath).parent
+    return None
+
+
 @_rule("Provenance", "a usdface layer's provenance present, consistent, and its inputs unchanged")
 def _provenance(stage) -> Iterable[Issue]:
     from pxr import Usd
@@ -523,9 +568,19 @@ def _provenance(stage) -> Iterable[Issue]:
                      and bool(root.subLayerPaths))
     if not prov_prims:
         if looks_usdface:
-            yield Issue(ERROR, "Provenance", "/", f"layer {root.identifier} was written by usdface but has "
-                        "no UsdFaceProvenanceAPI prim",
-                        "re-run usdface personalize; do not hand-edit the layer")
+            # the prims it wrote the provenance on, gone from the composed stage: the avatar's SkelRoot was
+            # renamed or moved after the layer was written (AvatarMatch names it), no hand edit
+            kept = [str(p.path) for p in _prim_specs(root) if "usdface:provenance:version" in p.attributes]
+            if kept:
+                yield Issue(ERROR, "Provenance", kept[0],
+                            f"layer {root.identifier} records its provenance on {', '.join(kept)}, which the "
+                            "avatar it sublayers no longer defines (its SkelRoot renamed or moved after the "
+                            "layer was written)",
+                            "re-run usdface personalize on the revised avatar (--force to replace the layer)")
+            else:
+                yield Issue(ERROR, "Provenance", "/", f"layer {root.identifier} was written by usdface but "
+                            "has no UsdFaceProvenanceAPI prim",
+                            "re-run usdface personalize; do not hand-edit the layer")
         elif not record and "usdfaceFlatten" not in (root.customLayerData or {}):
             from ..io.usd_rig import dcc_export_marks_in
 
@@ -541,6 +596,16 @@ def _provenance(stage) -> Iterable[Issue]:
     base = Path(root.realPath).parent if root.realPath else Path.cwd()
     for prim in prov_prims:
         path = _path(prim)
+        stacked = _personalizing_layers(prim)
+        if len(stacked) > 1:
+            shown, hidden = stacked[0], stacked[1:]
+            yield Issue(WARNING, "Provenance", path,
+                        f"{len(stacked)} usdface layers personalize {path}: {shown} (the stronger: its "
+                        f"shapes, provenance and variant set show) over {', '.join(hidden)} (overridden: "
+                        "none of its shapes shows where the stronger authors them, and its inputs go "
+                        "unchecked)",
+                        "compose one personalized layer per avatar (to switch versions, swap the sublayer or "
+                        "reference, e.g. v001 -> v002)")
 
         def get(name, prim=prim):
             attr = prim.GetAttribute(f"usdface:provenance:{name}")
@@ -551,6 +616,10 @@ def _provenance(stage) -> Iterable[Issue]:
                 yield Issue(ERROR, "Provenance", path, f"usdface:provenance:{name} is empty",
                             "re-run the usdface command that wrote the layer (personalize, landmarks) to "
                             "rewrite its provenance")
+        # the recorded paths are relative to the layer that wrote them, not to the stage's root layer: a
+        # shot that sublayers or references the published layer from another folder checked them against
+        # its own folder and said 'not reachable from here; digest unchecked' for inputs right there
+        folder = _provenance_base(prim) or base
         inputs = list(get("inputs") or [])
         digests = list(get("inputDigests") or [])
         if len(inputs) != len(digests):
@@ -567,7 +636,7 @@ def _provenance(stage) -> Iterable[Issue]:
                             f"digest of input {given!r} is not a sha256 hex string",
                             "re-run usdface personalize to rewrite the layer's provenance")
                 continue
-            file = Path(given) if Path(given).is_absolute() else base / given
+            file = Path(given) if Path(given).is_absolute() else folder / given
             if not file.exists():
                 yield Issue(INFO, "Provenance", path,
                             f"input {given!r} not reachable from here; digest unchecked", "")
@@ -577,6 +646,21 @@ def _provenance(stage) -> Iterable[Issue]:
                 yield Issue(WARNING, "Provenance", path,
                             f"input {given!r} changed after this layer was written (sha256 differs)",
                             "re-run usdface personalize on the current inputs")
+
+
+@_rule("AvatarMatch", "a usdface layer still fits the avatar it sublayers: its prims, channels, mesh "
+                      "topology and units are the avatar's (an avatar revised after the layer was written "
+                      "is told, with what changed)")
+def _avatar_match(stage) -> Iterable[Issue]:
+    """A personalized layer holds overrides written for the avatar as it was: revised upstream (a mesh
+    renamed, the SkelRoot moved, a shape added or removed, the mesh re-modelled, units or axis changed), the
+    layer composes over the new avatar without a USD error, and what it does is wrong or nothing. Each such
+    change is an error naming the prim and the fix (re-run personalize on the revised avatar):
+    :func:`usdface.io.layers.avatar_mismatches`."""
+    from ..io.layers import avatar_mismatches
+
+    for prim, message, fix in avatar_mismatches(stage):
+        yield Issue(ERROR, "AvatarMatch", prim, message, fix)
 
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
@@ -630,9 +714,9 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
             avatar = _read_avatar_stage(stage, Path(layer.realPath or layer.identifier), name_map=name_map)
         for w in said:
             if issubclass(w.category, UserWarning):
-                text = str(w.message)
+                text, own_fix = _split_fix(str(w.message))    # a warning that carries its fix: told once
                 yield Issue(WARNING, "Readable", _prim_in(text), text,
-                            "author what the reader assumed (see the message), or accept it")
+                            own_fix or "author what the reader assumed (see the message), or accept it")
         from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
         refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize

@@ -721,6 +721,13 @@ def _split_beyond_reach(avatar: Avatar, face: FaceRig, reached, regions: dict):
     if not region.whole:
         regions[face.key] = region
     reached = reached[keep]
+    if reached.all():
+        # the pieces beyond the reach are all still (a helper piece or card in the head's mesh that no shape
+        # moves): cropped away with the still vertices, they leave nothing beyond; an empty mesh there
+        # crashed the steps after the field (numpy's max over zero vertices)
+        avatar = dataclasses.replace(avatar, meshes=[whole_face if m.key == face.key else m
+                                                     for m in avatar.meshes])
+        return avatar, whole_face, whole_face, None, reached
     part, beyond = _split_rig(whole_face, reached)
     avatar = dataclasses.replace(avatar, meshes=[part if m.key == face.key else m
                                                  for m in avatar.meshes] + [beyond])

@@ -114,6 +114,9 @@ def layer_provenance(report: dict, timings: dict, *, command: str, method: str, 
             "parameters": {k: (v if isinstance(v, int | float | str | bool) else str(v))
                            for k, v in report["options"].items()},
             "method": method,
+            # the face mesh the run personalized (given with --face-mesh or found): a batch row that names
+            # another is not this layer's result, and the record says what to pass to reproduce it
+            **({"faceMesh": str(report["face_mesh"])} if report.get("face_mesh") else {}),
             "inputs": list(inputs) + list(extra.values()),
             **extra,
             "registrationScale": float(registration.transform.scale),
