@@ -142,7 +142,7 @@ def _generic_on_capture(samples, monkeypatch, source):
 
     chosen = face_map.choose_source
     if source == "template":
-        monkeypatch.setattr(face_map, "choose_source", lambda t, reg, person=None: ("template", reg))
+        monkeypatch.setattr(face_map, "choose_source", lambda reg, person=None: ("template", reg))
     got = {}
     real = pipeline.avatar_shapes_on_capture
 
@@ -186,10 +186,10 @@ def test_choose_source_ranks_as_the_registration_does():
         return Registration(Similarity(1.0, np.eye(3), np.zeros(3)), residual, fitness, "test", 0.01)
 
     t = reg(1.2e-3)
-    assert choose_source(None, t) == ("template", t)
+    assert choose_source(t) == ("template", t)
     p = reg(0.4e-3)
-    assert choose_source(None, t, (np.zeros((3, 3)), p)) == ("person", p)
-    assert choose_source(None, t, (np.zeros((3, 3)), reg(1.5e-3)))[0] == "template"
+    assert choose_source(t, (np.zeros((3, 3)), p)) == ("person", p)
+    assert choose_source(t, (np.zeros((3, 3)), reg(1.5e-3)))[0] == "template"
     # a lower residual over fewer of the vertices is no closer face
-    assert choose_source(None, t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.9)))[0] == "template"
-    assert choose_source(None, t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.996)))[0] == "person"
+    assert choose_source(t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.9)))[0] == "template"
+    assert choose_source(t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.996)))[0] == "person"

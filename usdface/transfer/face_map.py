@@ -113,7 +113,7 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target,
                           avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
-    source, reg_s = choose_source(capture.template.neutral, reg_t, person)
+    source, reg_s = choose_source(reg_t, person)
     placed = reg_s.transform.apply(person[0] if source == "person" else capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_s.transform)
     surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
@@ -182,16 +182,14 @@ def rough_placement(person_neutral, template_deltas, face: FaceRig, avatar_delta
                              path=capture.source or None).transform.apply(person_neutral)
 
 
-def choose_source(template_neutral, template_registration, person=None):
+def choose_source(template_registration, person=None):
     """``(source, registration)``: the capture-topology face the correspondence is registered from,
     ``"person"`` when the person's neutral (``person = (neutral[n,3], registration)``) lies closer to the
-    avatar face after its similarity registration than the template's neutral (as :func:`register_face`
-    ranks its candidates: more of it within the final distance, then a lower ICP residual, the RMS distance of
-    the placed face to the avatar's surface), else ``"template"``; and that face's registration."""
-    def rank(r):
-        return round(r.fitness, 2), -r.residual
-
-    if person is not None and rank(person[1]) > rank(template_registration):
+    avatar face after its similarity registration than the template's neutral
+    (:meth:`.register.Registration.rank`, the order :func:`register_face` ranks its candidates by: more of
+    it within the final distance, then a lower ICP residual, the RMS distance of the placed face to the
+    avatar's surface), else ``"template"``; and that face's registration."""
+    if person is not None and person[1].rank() > template_registration.rank():
         return "person", person[1]
     return "template", template_registration
 

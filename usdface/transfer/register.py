@@ -80,6 +80,11 @@ class Registration:
     max_distance: float
     target: np.ndarray | None = None
 
+    def rank(self) -> tuple[float, float]:
+        """The order of two registrations of a face, higher is better: more of it within the final distance
+        (fitness to two decimals), then the lower ICP residual."""
+        return round(self.fitness, 2), -self.residual
+
     def as_dict(self) -> dict:
         return {**self.transform.as_dict(), "residual_m": self.residual, "fitness": self.fitness,
                 "initialiser": self.initialiser, "max_distance_m": self.max_distance}
@@ -257,12 +262,12 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     size0 = float(np.linalg.norm(np.ptp(cn, axis=0)))
     for name, init in candidates:
         sim, rmse, fit, dist = register_icp(cn, target, init)
-        key = (round(fit, 2), -rmse)
-        if best is None or key > best[0]:
-            best = (key, Registration(sim, rmse, fit, name, dist, target))
+        reg = Registration(sim, rmse, fit, name, dist, target)
+        if best is None or reg.rank() > best.rank():
+            best = reg
         if fit >= 0.95 and rmse < 0.02 * size0 * sim.scale:
             break  # the landmark initialiser converged: no need for the fallback
-    result = best[1]
+    result = best
     size = float(np.linalg.norm(np.ptp(result.transform.apply(cn), axis=0)))
     # a capture shrunk to a point is no placement whatever its residual: collapsed onto one target point it
     # has fitness 1 and residual exactly 0 (Pixar's 10 cm test plane under dev1's capture: scale 1e-28,
