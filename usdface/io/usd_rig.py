@@ -685,10 +685,9 @@ def composed_personalization(path) -> tuple[str, str] | None:
     except Exception:                             # noqa: BLE001 - unreadable: the reader names it
         return None
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        vset = prim.GetVariantSets().GetVariantSet(PERSONALIZATION_VARIANT_SET)
-        if not prim.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET):
-            continue
-        if vset.GetVariantSelection() != "personalized":
+        sets = prim.GetVariantSets()
+        if (not sets.HasVariantSet(PERSONALIZATION_VARIANT_SET)
+                or sets.GetVariantSelection(PERSONALIZATION_VARIANT_SET) != "personalized"):
             continue
         layers = [spec.layer for spec in prim.GetPrimStack()
                   if PERSONALIZATION_VARIANT_SET in spec.variantSets
