@@ -31,6 +31,7 @@ from ..personalize.fit import james_stein
 from .motion_field import (
     FieldExtension,
     apply_field,
+    data_stiffness,
     dilate,
     field_noise,
     motion_weights,
@@ -234,17 +235,28 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     tri = np.asarray(triangles)
     sub_tri = local[tri[(local[tri] >= 0).all(axis=1)]]
     x = np.asarray(points, dtype=np.float64)[domain]
-    known = w0[domain] >= 1.0 - 1e-9
+    s = w0[domain]                                   # the face weight: the measured field's confidence
+    known = s >= 1.0 - 1e-9
     w = seam_ramp(points, w0, band)[domain]
-    if smoothing and len(sub_tri):
+    data = None
+    if len(sub_tri):
         from ..mesh import mean_edge_length
 
-        rings = max(rings, int(round(smoothing / mean_edge_length(x, sub_tri))))
+        edge = mean_edge_length(x, sub_tri)
+        if smoothing:
+            rings = max(rings, int(round(smoothing / edge)))
+        # the rim's vertices of weight in (0,1) hold their measured field with a stiffness that grows without
+        # bound as the weight -> 1 (the known set's Dirichlet value in the limit): continuous in the weight
+        soft = (s > 0.0) & ~known
+        if soft.any():
+            data = data_stiffness(s, smoothing or rings * edge)
+    else:
+        soft = np.zeros(domain.size, dtype=bool)
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
     adjacency = None                                 # the mesh's vertex adjacency, where one is made
     if proxy is None:
-        ext = FieldExtension(x, sub_tri, known, length=length)
+        ext = FieldExtension(x, sub_tri, known, length=length, data=data)
         beyond, mass = ext.beyond, ext.mass
     else:
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
@@ -254,8 +266,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         beyond = ~known & ~pockets(sub_tri, known, fine_mass, adjacency=adjacency)
         del fine_mass
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
-                             in_pocket=~(known | beyond)[proxy.fine])
-        proxy.near_face(x, sub_tri, known, known | beyond, length)
+                             in_pocket=~(known | beyond)[proxy.fine],
+                             data=None if data is None else data[proxy.fine])
+        proxy.near_face(x, sub_tri, known, known | beyond, length, data=data)
     release_free_memory()                            # the factorization's working memory
     if keep_at is None:
         kept = np.arange(domain.size if proxy is None else len(proxy.points))
@@ -284,12 +297,13 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         touches_free[sub_tri[(~known)[sub_tri].any(axis=1)].ravel()] = True
         is_kept = np.zeros(domain.size, dtype=bool)
         is_kept[kept] = True
-        rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept))
+        rows = np.flatnonzero(known & ((w < 1.0) | touches_free | is_kept) | soft)
     else:
         # on the proxy: its known vertices the extension reads, that the join interpolates from and that
         # other meshes follow; each smoothed at its fine vertex, exactly as on the fine mesh
         rows_c = proxy.rows(kept)
-        rows = index_set(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct]), domain.size)
+        rows = index_set(np.concatenate([proxy.fine[rows_c], proxy.strip_known, proxy.direct,
+                                         proxy.strip_soft]), domain.size)
         at_row = np.searchsorted(rows, proxy.fine[rows_c])
         mass = np.zeros(domain.size)
         np.add.at(mass, rows[at_row], ext.mass[rows_c])           # the proxy's area each row stands for
@@ -299,7 +313,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     del adjacency
     reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
     smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk
-    known_r = known[reach]
+    s_r = s[reach]                                              # > 0: measured (1 on the known set)
     sel = np.flatnonzero(toward[rows] > 0)                      # the rows whose field is shrunk
     shrunk = rows[sel]
     patch = sp.csr_matrix(smoother)[sel] if shrunk.size else None
@@ -330,6 +344,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         at_strip = proxy.need_position[proxy.strip]
         at_strip_out = proxy.need_position[proxy.strip_out] if proxy.strip.size else None
         at_direct = proxy.need_position[proxy.direct]
+        soft_r = np.searchsorted(rows, proxy.strip_soft)
     del peak
     release_free_memory()                            # its construction's products
     # the person's array last: the factorization's and the smoother's working memory are gone by then
@@ -356,22 +371,24 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         k = gd.shape[0]
         phi = np.zeros((k, reach.size, 3, 3))
         valid = np.zeros((k, reach.size), dtype=bool)
-        jj, vv = np.nonzero((mw > 0) & known_r[None])   # measured where known and the shape moves (sparse)
+        jj, vv = np.nonzero((mw > 0) & (s_r > 0)[None])   # measured where the person's shape is and moves
         # the person model of :func:`mapping_outliers`: a vertex whose personalized motion is more than
         # MAX_RATIO times longer or shorter than the generic says nothing about the field (a mapping error
         # the capture-side test did not catch); its neighbours' field fills in
         phi[jj, vv], valid[jj, vv] = rotation_scale(gr[jj, vv], pr[jj, vv], max_scale=MAX_RATIO)
-        mw = mw * valid
+        mw = mw * valid * s_r[None]                     # the rim's measurements count as much as they are
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother)          # [k, rows, 3, 3]
         if shrunk.size:
             # the generic motion and the personalization averaged over the patch each value of the field was
             # averaged on (the capture's resolution), where the field was measured; the noise of that
             # average, estimated on the values that are carried beyond the face
-            measured = (mw > 0)[..., None]
+            measured = (mw > 0) * s_r[None]                      # (1 on the known set)
+            measured = measured[..., None]
             a_bar, d_bar = ((patch @ (v * measured).transpose(1, 0, 2).reshape(reach.size, k * 3))
                             .reshape(shrunk.size, k, 3).transpose(1, 0, 2) / patch_size[:, None]
                             for v in (gr, pr - gr))
-            noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk_r, 0], mass[shrunk])
+            noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk_r, 0] > 0,
+                                          mass[shrunk] * s[shrunk])
             motion2 = np.einsum("jvc,jvc->jv", a_bar, a_bar)
             keep = 1.0 - toward[shrunk] * (1.0 - reliability(motion2, noise2, spread2))
             phi[:, sel] *= keep[..., None, None]
@@ -395,7 +412,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             f = proxy.prolong @ fc                                # [need, k*9]
             if proxy.strip.size:                                  # next to the face: the fine solve
                 vk = phi[:, strip_k].transpose(1, 0, 2, 3).reshape(strip_k.size, -1)
-                f[at_strip] = proxy.strip_solve(-(proxy.a_sk @ vk + proxy.a_so @ f[at_strip_out]))
+                rhs = -(proxy.a_sk @ vk + proxy.a_so @ f[at_strip_out])
+                if soft_r.size:                                   # the rim's data term
+                    rhs[proxy.strip_soft_at] += proxy.strip_data[:, None] * phi[:, soft_r].transpose(
+                        1, 0, 2, 3).reshape(soft_r.size, -1)
+                f[at_strip] = proxy.strip_solve(rhs)
             if proxy.direct.size:                                 # the join's rim: its own field
                 f[at_direct] = phi[:, direct_r].transpose(1, 0, 2, 3).reshape(direct_r.size, -1)
             f = f.reshape(n_need, k, 3, 3).transpose(1, 0, 2, 3)
@@ -443,7 +464,7 @@ class FieldProxy:
         self.need, self.prolong = need, prolong
         self.normals = normals
 
-    def near_face(self, x, triangles, known, fading, length):
+    def near_face(self, x, triangles, known, fading, length, data=None):
         """Where the proxy's interpolation would mix the face's measured field with the extension's, or
         reads a proxy triangle facing away from the vertex (the other lip), the fine mesh answers itself:
 
@@ -455,7 +476,11 @@ class FieldProxy:
           :class:`usdface.transfer.motion_field.FieldExtension`) from the fine known values next to them
           (``strip_known``) and the proxy's interpolated field around them (``strip_out``).
 
-        ``fading[n]``: the vertices whose screening applies (not the sockets' pockets)."""
+        ``fading[n]``: the vertices whose screening applies (not the sockets' pockets); ``data[n]`` (1/m^2,
+        optional): the data term's stiffness (:func:`usdface.transfer.motion_field.data_stiffness`), held
+        on the proxy's vertices as on their fine ones (``soft``) and in the strip (``strip_soft``, the fine
+        vertices where it is set, at ``strip_soft_at`` in the strip, with ``strip_data`` its mass-weighted
+        diagonal)."""
         from ..mesh import spd_lu, triangle_normals
         from .surface import cotangent_laplacian
 
@@ -473,6 +498,9 @@ class FieldProxy:
                                 self.need[~known_need & (known_corner.any(axis=1) | ~facing)])
         self.need_position = np.full(len(x), -1)
         self.need_position[self.need] = np.arange(self.need.size)
+        self.soft = (np.zeros(len(self.points), dtype=bool) if data is None else data[self.fine] > 0)
+        self.strip_soft = self.strip_soft_at = np.zeros(0, dtype=np.int64)
+        self.strip_data = np.zeros(0)
         if not self.strip.size:
             self.strip_known = np.zeros(0, dtype=np.int64)
             return
@@ -480,8 +508,8 @@ class FieldProxy:
         in_strip[self.strip] = True
         tri = triangles[in_strip[triangles].any(axis=1)]              # the rows of the strip need only these
         lap = cotangent_laplacian(x, tri)
+        mass = vertex_areas(tri, triangle_areas(x, tri), len(x))
         if length:
-            mass = vertex_areas(tri, triangle_areas(x, tri), len(x))
             lap = (lap + sp.diags(np.where(fading, mass, 0.0) / length ** 2)).tocsr()
         rows = lap[self.strip]
         around = np.flatnonzero(np.diff(rows.tocsc().indptr) > 0)
@@ -490,7 +518,10 @@ class FieldProxy:
         self.a_sk, self.a_so = rows[:, self.strip_known].tocsr(), rows[:, self.strip_out].tocsr()
         a_ss = rows[:, self.strip]
         reg = 1e-12 * float(np.abs(a_ss.diagonal()).mean() or 1.0)   # as FieldExtension: a closed pocket
-        self.strip_solve = spd_lu((a_ss + reg * sp.eye(self.strip.size)).tocsc()).solve
+        diag = np.zeros(self.strip.size) if data is None else mass[self.strip] * data[self.strip]
+        self.strip_soft_at = np.flatnonzero(diag > 0)
+        self.strip_soft, self.strip_data = self.strip[self.strip_soft_at], diag[self.strip_soft_at]
+        self.strip_solve = spd_lu((a_ss + sp.diags(diag + reg)).tocsc()).solve
 
     def rows(self, kept) -> np.ndarray:
         """The proxy's known vertices whose field is read: next to an unknown one (the extension's boundary
@@ -499,7 +530,7 @@ class FieldProxy:
         used[self.triangles[(~self.known)[self.triangles].any(axis=1)].ravel()] = True
         used[self.prolong.indices] = True
         used[kept] = True
-        return np.flatnonzero(self.known & used)
+        return np.flatnonzero(self.known & used | self.soft)
 
 
 def _field_proxy(x, triangles, known, w, smoothing) -> FieldProxy | None:

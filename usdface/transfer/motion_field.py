@@ -33,8 +33,9 @@ from ..mesh import spd_lu, triangle_areas, vector_lengths, vertex_adjacency, ver
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
-__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "neighbourhood_matrix",
-           "dilate", "apply_field", "motion_weights", "pockets", "field_noise", "reliability"]
+__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "data_stiffness",
+           "neighbourhood_matrix", "dilate", "apply_field", "motion_weights", "pockets", "field_noise",
+           "reliability"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -203,12 +204,13 @@ def pockets(triangles, known, mass, *, adjacency=None) -> np.ndarray:
 
 class FieldExtension:
     """Screened harmonic extension on one mesh, factorized once: :meth:`extend` maps ``values[m,c]`` given on
-    ``known[m]`` to every vertex (see :func:`extend_field`). ``mass[m]``: lumped vertex areas; ``beyond[m]``:
-    the unknown vertices outside the :func:`pockets` (where the field fades); ``in_pocket[m]`` (bool,
-    optional): the pockets as found on another mesh of the same surface (a proxy of it), instead of on this
-    one."""
+    ``known[m]`` (and, as data, where ``data[m] > 0``) to every vertex (see :func:`extend_field`).
+    ``mass[m]``: lumped vertex areas; ``beyond[m]``: the unknown vertices outside the :func:`pockets` (where
+    the field fades); ``in_pocket[m]`` (bool, optional): the pockets as found on another mesh of the same
+    surface (a proxy of it), instead of on this one; ``data[m]`` (1/m^2, optional): the stiffness per unit
+    area of a data term at unknown vertices (:func:`data_stiffness`), the same for every right-hand side."""
 
-    def __init__(self, points, triangles, known, *, length: float | None, in_pocket=None):
+    def __init__(self, points, triangles, known, *, length: float | None, in_pocket=None, data=None):
         x0 = np.asarray(points, dtype=np.float64)
         tri = np.asarray(triangles)
         self.known = np.asarray(known, dtype=bool)
@@ -223,8 +225,11 @@ class FieldExtension:
         else:
             in_pocket = np.zeros(self.n, dtype=bool)
         self.beyond = ~self.known & ~in_pocket
+        # the data term's diagonal at the unknown vertices (mass-weighted: the same energy at any resolution)
+        self.data = (np.zeros(self.free.size) if data is None
+                     else self.mass[self.free] * np.asarray(data, dtype=np.float64)[self.free])
         self._solve = None
-        if self.free.size == 0 or self.kidx.size == 0:
+        if self.free.size == 0 or self.kidx.size == 0 and not self.data.any():
             return
         lap = cotangent_laplacian(x0, tri)
         if length:
@@ -233,27 +238,48 @@ class FieldExtension:
         a_ff = lap[self.free][:, self.free]
         reg = 1e-12 * float(np.abs(a_ff.diagonal()).mean() or 1.0)
         self._a_fk = lap[self.free][:, self.kidx].tocsr()
-        self._solve = spd_lu((a_ff + reg * sp.eye(self.free.size)).tocsc()).solve
+        self._solve = spd_lu((a_ff + sp.diags(self.data + reg)).tocsc()).solve
 
     def extend(self, values) -> np.ndarray:
+        """``values[m,c]``: read on the known vertices and, as the data, where the data term is set."""
         vals = np.asarray(values, dtype=np.float64)
         out = np.zeros((self.n, vals.shape[1]))
         out[self.known] = vals[self.known]
         if self._solve is not None:
-            out[self.free] = self._solve(-(self._a_fk @ vals[self.kidx]))
+            rhs = -(self._a_fk @ vals[self.kidx])
+            if self.data.any():
+                rhs += self.data[:, None] * vals[self.free]
+            out[self.free] = self._solve(rhs)
         return out
 
 
-def extend_field(points, triangles, known, values, *, length: float | None) -> np.ndarray:
+def data_stiffness(weight, length: float) -> np.ndarray:
+    """``[m]`` (1/m^2): the stiffness per unit area of the data term of a field measured with confidence
+    ``weight[m]`` in [0,1] (the face weight): ``w / (1 - w) / length^2``, 0 at ``w = 0`` (no measurement) and
+    growing without bound as ``w -> 1`` (the measured value, Dirichlet, in the limit), so the extension's
+    value at a vertex is continuous in its weight. ``length`` (m): the resolution the field is measured at;
+    where ``w = 1/2`` the data hold the field over that length (the screened problem's healing length
+    ``length * sqrt((1 - w) / w)``), at any mesh resolution. Infinite (returned as 0: the caller's known set)
+    at ``w >= 1``."""
+    w = np.clip(np.asarray(weight, dtype=np.float64), 0.0, 1.0)
+    soft = (w > 0.0) & (w < 1.0 - 1e-9)
+    out = np.zeros(w.shape)
+    out[soft] = w[soft] / (1.0 - w[soft]) / length ** 2
+    return out
+
+
+def extend_field(points, triangles, known, values, *, length: float | None, data=None) -> np.ndarray:
     """Screened harmonic extension of ``values[m,c]`` given on ``known[m]`` to every vertex of the mesh.
 
-    Minimises ``x^T (L + Mass / length^2) x`` over the unknown vertices with ``x = values`` on ``known``
-    (cotangent Laplacian ``L``, lumped vertex areas, 0 on the :func:`pockets`): the known values fill the
-    pockets behind the region's holes (a mouth or eye socket) without fading, and fade to 0 over about
-    ``length`` metres elsewhere; ``length=None`` is plain harmonic.
+    Minimises ``x^T (L + Mass / length^2) x + sum_v mass_v data_v |x_v - values_v|^2`` over the unknown
+    vertices with ``x = values`` on ``known`` (cotangent Laplacian ``L``, lumped vertex areas, 0 on the
+    :func:`pockets`): the known values fill the pockets behind the region's holes (a mouth or eye socket)
+    without fading, and fade to 0 over about ``length`` metres elsewhere; ``length=None`` is plain harmonic.
+    ``data[m]`` (1/m^2, optional, :func:`data_stiffness`): a data term at the unknown vertices where it is
+    positive (values measured there with less than full confidence).
     One sparse factorization for all ``c`` channels (:class:`FieldExtension`). Returns ``[m,c]``.
     """
-    return FieldExtension(points, triangles, known, length=length).extend(values)
+    return FieldExtension(points, triangles, known, length=length, data=data).extend(values)
 
 
 def apply_field(generic, phi) -> np.ndarray:
