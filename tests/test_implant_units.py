@@ -365,3 +365,44 @@ def test_semantic_poses_carry_where_and_how_much_not_the_direction():
     pairs, used = semantic_poses(["jawOpen", "mouthClose"], template[None].repeat(2, 0),
                                  avatar[None].repeat(2, 0))
     assert used == ["jawOpen"] and len(pairs) == 1
+
+
+def test_the_field_is_continuous_as_a_rim_vertex_weight_leaves_one():
+    """The face weight is continuous, and so is the field in it: a rim vertex whose weight falls from 1 to
+    0.999 changes the field by a small share of what dropping the vertex from the face (weight 0) does.
+    With the extension's known set a threshold (``w >= 1``: measured, otherwise extended), 0.999 was weight
+    0 to the field, and the vertex's value jumped (docs/personalize.md, step 5): the ratio was 1."""
+    from usdface.transfer.implant import extend_personalization
+
+    pts, tri = _sheet(41)
+    x, y = pts[:, 0], pts[:, 1]
+    generic = np.zeros((1, len(pts), 3))
+    generic[0, :, 2] = 0.004 * np.exp(-((x - 0.04) ** 2 + (y - 0.05) ** 2) / 0.002)
+    generic[0, :, 0] = 0.001
+    person = generic.copy()
+    person[0, :, 2] *= 1.0 + 8.0 * (x - 0.03) + 3.0 * (y - 0.05)        # a field that varies over the face
+    weight = np.clip((0.05 - x) / 0.004, 0.0, 1.0)                      # a ramp at the rim, 1 inside
+    v = np.flatnonzero(np.isclose(x, 0.045) & np.isclose(y, 0.05))[0]
+    assert weight[v] == 1.0 and weight[v + 2] == 0.0 < weight[v + 1] < 1.0
+    # (the reliability shrink off: its ramp, as the join's, still starts at the first vertex below 1)
+    kw = {"length": 0.05, "band": 0.01, "smoothing": 0.005, "shrink": False}
+    fields, results = {}, {}
+    for wv in (1.0, 0.999, 0.0):
+        w = weight.copy()
+        w[v] = wv
+        results[wv], field = extend_personalization(pts, tri, generic, person, w, **kw)
+        fields[wv] = field.phi[0].astype(np.float64)
+    step = np.abs(fields[0.999] - fields[1.0]).max()
+    drop = np.abs(fields[0.0] - fields[1.0]).max()
+    assert drop > 1e-3                                            # dropping the vertex changes the field
+    assert step < 0.02 * drop, (step, drop)
+    # without the join's ramp (band 0: the result is w * person + (1 - w) * field) the result too
+    kw["band"] = 0.0
+    for wv in (1.0, 0.999, 0.0):
+        w = weight.copy()
+        w[v] = wv
+        results[wv] = extend_personalization(pts, tri, generic, person, w, **kw)[0]
+    step = np.abs(results[0.999] - results[1.0]).max()
+    drop = np.abs(results[0.0] - results[1.0]).max()
+    assert drop > 1e-5
+    assert step < 0.02 * drop, (step, drop)
