@@ -196,11 +196,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
     ``face_weight[m] > 0``). The rotation + scale field
-    (:func:`usdface.transfer.motion_field.rotation_scale`) is measured where the face weight is 1, averaged
-    with motion weights over ``rings`` edge rings, or over as many as span ``smoothing`` metres (the
-    resolution the field was measured at: the same patch of skin whatever the mesh's resolution), extended
-    by a screened harmonic solve (``length`` m, one factorization for every shape) and applied to the
-    generic motion; the result ramps from ``person`` to the
+    (:func:`usdface.transfer.motion_field.rotation_scale`) is measured where the face weight is above 0,
+    averaged with motion weights times the face weight over ``rings`` edge rings, or over as many as span
+    ``smoothing`` metres (the resolution the field was measured at: the same patch of skin whatever the
+    mesh's resolution), extended by a screened harmonic solve (``length`` m, one factorization for every
+    shape) that takes it as known where the weight is 1 and holds it at the rim's vertices of weight
+    ``0 < w < 1`` by a data term of stiffness ``w / (1 - w) / smoothing^2`` per unit area
+    (:func:`usdface.transfer.motion_field.data_stiffness`: the known value in the limit ``w -> 1``, so the
+    field is continuous in the weight), and applied to the generic motion; the result ramps from ``person``
+    to the
     field over ``band`` metres inside the face region (:func:`seam_ramp`). With ``shrink`` (default), what
     is carried beyond the face (not into the sockets behind its holes) is the field times its reliability
     (:func:`usdface.transfer.motion_field.reliability`, the shape's noise estimated on the face by
