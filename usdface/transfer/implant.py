@@ -204,8 +204,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     ``0 < w < 1`` by a data term of stiffness ``w / (1 - w) / smoothing^2`` per unit area
     (:func:`usdface.transfer.motion_field.data_stiffness`: the known value in the limit ``w -> 1``, so the
     field is continuous in the weight), and applied to the generic motion; the result ramps from ``person``
-    to the
-    field over ``band`` metres inside the face region (:func:`seam_ramp`). With ``shrink`` (default), what
+    to the field over ``band`` metres inside the face region (:func:`seam_ramp`, which still starts at the
+    first vertex of weight below 1). With ``shrink`` (default), what
     is carried beyond the face (not into the sockets behind its holes) is the field times its reliability
     (:func:`usdface.transfer.motion_field.reliability`, the shape's noise estimated on the face by
     :func:`usdface.transfer.motion_field.field_noise`), ramped in over the same ``band`` inside the face, so
