@@ -44,6 +44,31 @@ def test_bench_obj_matches_independent_parse(bench):
     np.testing.assert_array_equal(tris, ref_f)
 
 
+def test_face_block_read_once_for_meshes_of_one_topology(tmp_path):
+    """``read_obj(faces=...)``: a mesh whose face block is the bytes of the first one's gets the same
+    triangles (its own array) without parsing them again; another topology's is parsed as always, and a bad
+    vertex block is still refused."""
+    same = [tmp_path / f"{k}.obj" for k in range(3)]
+    for k, p in enumerate(same):
+        p.write_text(f"v 0 0 {k}\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")
+    other = tmp_path / "other.obj"
+    other.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 4 3\n")
+    faces: dict = {}
+    for p in [*same, other]:
+        points, tris = read_obj(p, faces=faces)
+        ref_points, ref_tris = read_obj(p)
+        np.testing.assert_array_equal(points, ref_points)
+        assert tris.dtype == ref_tris.dtype and np.array_equal(tris, ref_tris)
+    assert len(faces) == 1                               # the first topology's only
+    a, b = read_obj(same[1], faces=faces)[1], read_obj(same[2], faces=faces)[1]
+    a[0, 0] = 99
+    assert b[0, 0] == 0 and next(iter(faces.values()))[0, 0] == 0     # each its own array
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 x\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")
+    with pytest.raises(InputFileError, match="not a number"):
+        read_obj(bad, faces=faces)
+
+
 @pytest.mark.parametrize("text, error, words", [
     ("", GeometryError, "no vertices"),
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", GeometryError, "no faces"),

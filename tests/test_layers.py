@@ -288,6 +288,22 @@ def test_atomic_save_and_digest(tmp_path):
         file_digest(tmp_path / "missing")
 
 
+def test_digests_ahead(tmp_path):
+    """The inputs' digests computed on a background thread are :func:`file_digest`'s; a path it was not
+    given, an empty one (an in-memory input) or a missing one gives None (the writer digests it itself)."""
+    from usdface.io.layers import DigestsAhead
+
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "cap" / "a.obj").write_text("v 0 0 0\n")
+    (tmp_path / "avatar.usda").write_text("#usda 1.0\n")
+    given = [tmp_path / "avatar.usda", str(tmp_path / "cap"), "", None, tmp_path / "missing"]
+    ahead = DigestsAhead(given)
+    assert ahead.get(tmp_path / "avatar.usda") == file_digest(tmp_path / "avatar.usda")
+    assert ahead.get(tmp_path / "cap") == file_digest(tmp_path / "cap")
+    assert ahead.get(tmp_path / "missing") is None and ahead.get("") is None
+    assert ahead.get(tmp_path / "other") is None
+
+
 def test_primvars_and_edit_callback(rig_file, tmp_path):
     from pxr import Usd, UsdGeom
 

@@ -139,11 +139,15 @@ def fan_triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.stack([idx[first], idx[first + corner], idx[first + corner + 1]], axis=1)
 
 
-def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
+def read_obj(path, *, faces: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Read an OBJ mesh.
 
     Returns ``points[n, 3]`` float64 (file units, file order) and ``triangles[t, 3]`` int64 (0-based; polygons
     are fan-triangulated).
+
+    ``faces``: a dict the caller keeps across the reads of many meshes of one topology (a capture's frames):
+    it holds the first face block parsed, and a file whose face block is the same bytes gets a copy of its
+    triangles without parsing it again (the same array; the vertices are parsed and checked as always).
 
     Raises InputFileError (missing, unreadable, malformed) and GeometryError (no vertices, no faces, NaN/inf,
     face indices out of range, faces with fewer than 3 vertices), each naming the file.
@@ -157,7 +161,7 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     if b"\0" in data[:4096]:
         raise InputFileError("not a text OBJ file (binary content)", path=path,
                              fix="pass a Wavefront .obj file")
-    fast = _fast_parse(data)
+    fast = _fast_parse(data, faces)
     if fast is not None:
         points, triangles = fast
     else:
@@ -175,24 +179,38 @@ _V_CHARS = b"0123456789.-+eE v\n\r\t"
 _F_CHARS = b"0123456789 f\n\r\t"
 
 
-def _fast_parse(data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+def _fast_parse(data: bytes, faces: dict | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Whole-buffer parse of the common layout: a block of ``v x y z`` records, then ``f a b c ...`` records
     (what most exporters and :func:`write_obj` write). Each record keyword becomes a marker value (NaN for
     ``v``, 0 for ``f``; neither can occur otherwise in these character sets), so one numeric parse per block
-    also checks every record's length. Returns None (use the general parser) on anything else."""
+    also checks every record's length. Returns None (use the general parser) on anything else. ``faces``:
+    :func:`read_obj`'s (the face block parsed before, ``{bytes: triangles}``)."""
     fpos = data.find(b"\nf ")
     if fpos < 0 or not data.startswith(b"v "):
         return None
     vblock, fblock = data[:fpos + 1], data[fpos + 1:]
-    if vblock.translate(None, _V_CHARS) or fblock.translate(None, _F_CHARS):
+    known = faces.get(fblock) if faces else None           # the same bytes: the same triangles
+    if vblock.translate(None, _V_CHARS) or (known is None and fblock.translate(None, _F_CHARS)):
         return None
-    n_v, n_f = vblock.count(b"v"), fblock.count(b"f")
+    n_v = vblock.count(b"v")
     vals = _fromstring(vblock.replace(b"v", b"nan"), np.float64, 4 * n_v)
     if vals is None:
         return None
     rec = vals.reshape(-1, 4)
     if not np.isnan(rec[:, 0]).all() or np.isnan(rec[:, 1:]).any():
         return None
+    if known is not None:
+        return rec[:, 1:].copy(), known.copy()
+    tris = _parse_faces(fblock)
+    if tris is not None and faces is not None and not faces:
+        faces[fblock] = tris.copy()                         # the first one only: one topology's
+    return None if tris is None else (rec[:, 1:].copy(), tris)
+
+
+def _parse_faces(fblock: bytes) -> np.ndarray | None:
+    """:func:`_fast_parse`'s face block (``f a b c ...`` records, checked for its characters) -> triangles
+    ``[t,3]`` (0-based, fan-triangulated), or None for the general parser."""
+    n_f = fblock.count(b"f")
     idx = _fromstring(fblock.replace(b"f", b"0"), np.int64, len(fblock.split()))
     if idx is None:
         return None
@@ -203,8 +221,7 @@ def _fast_parse(data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
     if counts.min() < 3:
         return None
     corners = np.delete(idx, marks) - 1
-    tris = corners.reshape(-1, 3) if (counts == 3).all() else fan_triangulate(counts, corners)
-    return rec[:, 1:].copy(), tris
+    return corners.reshape(-1, 3) if (counts == 3).all() else fan_triangulate(counts, corners)
 
 
 def _general_parse(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -196,23 +196,24 @@ def read_take_folder(path) -> Take:
                            f"no CSV row ({len(ll.times)} rows for {len(objs)} frames)", path=csvs[0],
                            fix="the CSV must cover every OBJ frame (row k = frame k): export the whole "
                                "take's weights, or remove the frames past its end")
-    first, triangles = read_obj(objs[0])
+    faces: dict = {}                  # the first frame's face block: the others' are the same bytes
+    first, triangles = read_obj(objs[0], faces=faces)
     points = np.empty((len(objs),) + first.shape)
     points[0] = first
     for i, p in enumerate(objs[1:], start=1):
-        pts, tris = read_obj(p)
+        pts, tris = read_obj(p, faces=faces)
         if pts.shape != first.shape or not np.array_equal(tris, triangles):
             raise GeometryError(f"topology differs from {objs[0].name}", path=p,
                                 fix="every frame of a take must share vertices and faces")
         points[i] = pts
     neutral = template = None
     if (root / "neutral.obj").is_file():
-        neutral, ntris = read_obj(root / "neutral.obj")
+        neutral, ntris = read_obj(root / "neutral.obj", faces=faces)
         if neutral.shape != first.shape or not np.array_equal(ntris, triangles):
             raise GeometryError("neutral.obj topology differs from the frames'", path=root / "neutral.obj",
                                 fix="the neutral must share the frames' vertices and faces")
     if (root / "template").is_dir():
-        template = _template(root, first if neutral is None else neutral, triangles, {})
+        template = _template(root, first if neutral is None else neutral, triangles, {}, faces)
     meta = {"name_report": ll.name_report, "frame_files": [p.name for p in objs], "csv": str(csvs[0])}
     return Take(ll.weights[rows], ll.names, ll.times[rows], points, triangles, neutral, template, str(root),
                 meta)

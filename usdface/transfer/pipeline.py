@@ -392,6 +392,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         if eyes:
             eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
         capture = _read_capture(capture, fitted=rig is None, every=fit_options.get("every", 1))
+        digests = None
+        if out_path is not None and not dry_run:   # the layer's input digests, beside the work from here on
+            from ..io.layers import DigestsAhead
+
+            digests = DigestsAhead([avatar.file, capture.source])
         chosen_face = None
         if face_mesh:  # checked before the fit
             from ..io.layers import avatar_mesh
@@ -608,7 +613,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                                                  threshold=1e-6),
                                     mu=mu_used)
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
-            written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit)
+            written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit,
+                                         digests=digests)
         if own_cache:                            # the correspondence cache, once the run has succeeded
             _write_pending(pending_cache)
         timings["write"] = time.perf_counter() - t
