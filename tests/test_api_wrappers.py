@@ -488,6 +488,16 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     assert not wrong, wrong
 
 
+def _write_landmarks_to_none(usdface):
+    """write_landmarks with every argument right but the output: None died with Python's TypeError
+    ('expected str, bytes or os.PathLike object, not NoneType') from the layer writer."""
+    from usdface.landmarks import LandmarkLayout
+    from usdface.model import Avatar, FaceRig
+
+    rig = FaceRig.__new__(FaceRig)
+    usdface.write_landmarks(Avatar.__new__(Avatar), rig, LandmarkLayout.__new__(LandmarkLayout), None)
+
+
 @pytest.mark.parametrize("call, says", [
     (lambda u: u.personalize_avatar(None, "c/", "o.usda"), "the avatar must be the avatar's file or an"),
     (lambda u: u.personalize_avatar("a.usda", 5, "o.usda"), "the capture must be a capture path or a"),
@@ -502,6 +512,10 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     (lambda u: u.pick_mesh("a.usdc"), "pick_mesh's avatar must be an Avatar"),
     (lambda u: u.write_capture("c", "c.usda"), "write_capture's capture must be a Capture"),
     (lambda u: u.write_landmarks("a.usdc", None, None, "lm.usda"), "write_landmarks' avatar must be an"),
+    (lambda u: u.compute_landmarks(None), "the rig must be a FaceRig, an Avatar or an avatar file"),
+    (lambda u: u.landmark_diagnostics(None), "the rig must be a FaceRig, an Avatar or an avatar file"),
+    (lambda u: u.evaluate_landmarks(None, "t.csv"), "the rig must be a FaceRig, an Avatar or an avatar"),
+    (lambda u: u.write_fit_rig(None, "fit.usda"), "write_fit_rig's fit must be a FitResult or a FaceRig"),
     (lambda u: u.inspect_file(None), "path must be a path"),
     (lambda u: u.export_avatar(None, gltf="x.glb"), "layer_path must be a path"),
     (lambda u: u.write_review(None, "r.html"), "layer_path must be a path"),
@@ -511,6 +525,7 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     (lambda u: u.personalize_batch(None), "manifest must be a path"),
     (lambda u: u.fit_capture("c", out_path=5), "out_path must be a path"),
     (lambda u: u.write_retarget_map("a.usdc", "c", None), "out_path must be a path"),
+    (_write_landmarks_to_none, "out_path must be a path"),
 ])
 def test_arguments_of_the_wrong_kind_are_option_errors(tmp_path, monkeypatch, call, says):
     """A docs walk-through with wrong kinds of arguments: None for the avatar or a number for the capture

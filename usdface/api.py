@@ -473,10 +473,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     from .model import FaceRig
 
     if not isinstance(getattr(fit, "rig", fit), FaceRig):
-        from .errors import UsdFaceError
-
-        raise UsdFaceError(f"write_fit_rig takes a FitResult or a FaceRig, not {type(fit).__name__}",
-                           path=out_path, fix="pass what fit_capture / fit_personalized_shapes returned")
+        _expect(fit, (), "write_fit_rig's fit", "a FitResult or a FaceRig",
+                "pass what fit_capture / fit_personalized_shapes returned")
 
     out = check_output_path(out_path, force)
     info = getattr(fit, "info", None) or {}
@@ -890,12 +888,10 @@ def _as_rig(rig) -> FaceRig:
         return rig
     if isinstance(rig, Avatar):
         return pick_mesh(rig)
-    if isinstance(rig, str | Path):
+    if isinstance(rig, _PATH):
         return pick_mesh(read_avatar(rig))
-    from .errors import UsdFaceError
-
-    raise UsdFaceError(f"expected a FaceRig, an Avatar or an avatar file, got {type(rig).__name__}",
-                       fix="pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
+    _expect(rig, (), "the rig", "a FaceRig, an Avatar or an avatar file",
+            "pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
 
 
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
@@ -933,6 +929,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
             "pass usdface.pick_mesh(avatar) (the mesh the layout was computed on)")
     _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
             "pass usdface.compute_landmarks(rig)")
+    _paths(out_path=(out_path, False))
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
