@@ -1224,7 +1224,8 @@ def _row_error(item, exc, manifest, fix: str):
     """A row's path refused (``exc``) as the manifest's error: the row, the file, what is wrong, the fix."""
     from .errors import InputFileError
 
-    named = f"{exc.path}: " if exc.path else ""
+    where = [w for w in (exc.path, exc.prim and f"prim {exc.prim}") if w]     # as UsdFaceError names them
+    named = f"{', '.join(where)}: " if where else ""
     return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
 
 
