@@ -453,6 +453,7 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert time.monotonic() - start < 15 and "terminated" in err
+    assert f"report: {report}" in err     # where this run's report is (it said only 'usdface: terminated')
     assert not list((tmp_path / "out").glob("*.usda"))
     # the report is this run's (nothing finished), not the earlier run's "4 done"
     data = json.loads(report.read_text())

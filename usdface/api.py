@@ -1201,13 +1201,14 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       fix="pass --report PATH in a folder you can write to")
     try:
         run = _batch_preflight(items, worker, manifest, force)
-    except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
+    except KeyboardInterrupt as exc:   # stopped before the first item: this run's report, not the last run's
         from .pipeline.batch import FAILED, BatchReport, ItemResult
 
         why = "the batch was stopped before it started (while its rows were checked); run it again"
         BatchReport([ItemResult(index=i.index, avatar=str(i.avatar), capture=str(i.capture),
                                 output=str(i.output), status=FAILED, error=why, error_type="Interrupted")
                      for i in items], 0.0, "not started").write(path)
+        exc.report_path = _written(path)  # the command line names it (it printed only 'interrupted')
         raise
     try:
         report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
@@ -1215,6 +1216,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         partial = getattr(exc, "batch_report", None)
         if partial is not None:
             partial.write(path)
+            exc.report_path = _written(path)
         raise
     report.report_path = _written(report.write(path))
     return report
