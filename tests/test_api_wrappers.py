@@ -512,6 +512,13 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     assert not wrong, wrong
 
 
+def _an_avatar():
+    """An (empty) Avatar: a wrong kind of argument where a capture or its rig goes."""
+    from usdface.model import Avatar
+
+    return Avatar(meshes=[], file="avatar.usda")
+
+
 def _write_landmarks_to_none(usdface):
     """write_landmarks with every argument right but the output: None died with Python's TypeError
     ('expected str, bytes or os.PathLike object, not NoneType') from the layer writer."""
@@ -545,6 +552,9 @@ def _write_landmarks_to_none(usdface):
     (lambda u: u.write_review(None, "r.html"), "layer_path must be a path"),
     (lambda u: u.import_livelink_take(None, "t.usda"), "csv must be a path"),
     (lambda u: u.select_capture_frames(None), "take must be a path"),
+    (lambda u: u.select_capture_frames("t.usda", "c.usda", template=3), "template must be a capture path"),
+    (lambda u: u.select_capture_frames("t.usda", "c.usda", template=_an_avatar()),
+     "template must be a capture path, a Capture or a FaceRig"),
     (lambda u: u.import_capture_folder("c", None), "out_path must be a path"),
     (lambda u: u.personalize_batch(None), "manifest must be a path"),
     (lambda u: u.fit_capture("c", out_path=5), "out_path must be a path"),

@@ -230,6 +230,10 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     from .progress import steps
     from .take_select import format_coverage, select_frames
 
+    _expect(template, (Capture, _model("FaceRig"), *_PATH), "select_capture_frames' template",
+            "a capture path, a Capture or a FaceRig (or None: the take's own)",
+            "pass the capture whose template rig to use (its folder or capture.usda), or leave it out",
+            none_ok=True)   # an Avatar or a number died with Python's TypeError from Path()
     if isinstance(template, Capture):   # a capture read already: its template rig, as --template CAPTURE
         template = template.template
     # as the command line's options refuse them (a string or a fraction died in numpy with a TypeError)
