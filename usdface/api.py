@@ -898,12 +898,30 @@ def _as_rig(rig) -> FaceRig:
             "pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
 
 
+def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) -> None:
+    """An option ``func`` (the core function ``options`` go to) does not take, refused before any work as
+    the other API functions refuse theirs (:class:`usdface.errors.OptionError` naming it and what it takes):
+    ``compute_landmarks(avatar, epsilom=0.4)`` died with Python's TypeError from the core function, after the
+    avatar was read. ``given``: the core's parameters the API function fills itself."""
+    import inspect
+
+    params = [n for n, p in inspect.signature(func).parameters.items()
+              if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD]
+    unknown = [k for k in options if k not in params or k in given]
+    if unknown:
+        from .errors import OptionError
+
+        raise OptionError(f"{what} does not take {', '.join(map(str, unknown))}",
+                          fix=f"drop it, or use one of: {', '.join(n for n in params if n not in given)}")
+
+
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
                       **options: Any):
     """A landmark layout for ``rig`` (``usdface landmarks``): a :class:`FaceRig`, or an avatar (object or
     file: its face mesh, :func:`pick_mesh`); see :func:`usdface.landmarks.compute_landmarks`."""
     from .landmarks import compute_landmarks as _landmarks
 
+    _refuse_unknown_keywords(_landmarks, options, "compute_landmarks", given=("rig", "epsilon", "alpha"))
     return _landmarks(_as_rig(rig), epsilon=epsilon, alpha=alpha, **options)
 
 
@@ -914,6 +932,8 @@ def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5,
     :func:`usdface.landmarks.diagnostics.landmark_diagnostics`."""
     from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
 
+    _refuse_unknown_keywords(_diagnostics, options, "landmark_diagnostics",
+                             given=("neutral", "triangles", "deltas", "epsilon", "alpha"))
     rig = _as_rig(rig)
     return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
 
@@ -952,6 +972,8 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
 
+    _refuse_unknown_keywords(_evaluate, options, "evaluate_landmarks",
+                             given=("rig", "weights", "empirical", "noise"))
     if isinstance(takes, _PATH):            # one take, not its characters
         takes = [takes]
     elif isinstance(takes, Iterable) and not isinstance(takes, str | bytes):
