@@ -1133,11 +1133,12 @@ def _fit_option_names() -> set[str]:
 
 
 def _refuse_unknown_options(options) -> None:
-    """Refuse (:class:`usdface.errors.UsdFaceError`) a name among ``options`` that :func:`personalize_avatar`
-    does not take (a typo, a CLI flag such as ``review``), listing the ones it takes."""
+    """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
+    a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
+    ``review``), listing the ones it takes."""
     import inspect as _inspect
 
-    from .errors import UsdFaceError
+    from .errors import OptionError
     from .transfer import pipeline as _pipeline
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
@@ -1146,8 +1147,8 @@ def _refuse_unknown_options(options) -> None:
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:
-        raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
-                           fix="drop them, or use one of: " + ", ".join(sorted(known)))
+        raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
+                          fix="drop them, or use one of: " + ", ".join(sorted(known)))
 
 
 def check_personalize_options(**options: Any) -> None:
