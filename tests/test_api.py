@@ -153,11 +153,12 @@ def test_a_misspelt_option_is_named_before_any_work(samples, tmp_path, monkeypat
     """``personalize_avatar(..., methd="dt")`` read both inputs and then raised a fit error listing the
     method's options (a user trial): the API refuses an option personalize does not take up front, as
     ``usdface batch`` does, and reads nothing."""
-    from usdface.errors import UsdFaceError
+    from usdface.errors import OptionError
     from usdface.io import usd_rig
 
     monkeypatch.setattr(usd_rig, "read_avatar", lambda *a, **k: pytest.fail("read the avatar"))
-    with pytest.raises(UsdFaceError, match=r"unknown personalize option\(s\): methd") as info:
+    # an OptionError, as every API function's refusal of an option it does not take (was a bare UsdFaceError)
+    with pytest.raises(OptionError, match=r"unknown personalize option\(s\): methd") as info:
         api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "o.usda",
                                methd="dt")
     assert "method" in info.value.fix and not (tmp_path / "o.usda").exists()

@@ -59,7 +59,7 @@ def test_api_numbers_that_are_fine_pass_the_check():
 def test_api_refuses_what_it_cannot_use():
     from usdface import api
 
-    with pytest.raises(UsdFaceError, match="expected a FaceRig, an Avatar or an avatar file"):
+    with pytest.raises(UsdFaceError, match="must be a FaceRig, an Avatar or an avatar file"):
         api.compute_landmarks(3)
     with pytest.raises(UsdFaceError, match="unknown frame role 'bogus'"):
         api.evaluate_capture(C, role="bogus")

@@ -407,6 +407,30 @@ def test_the_documented_signatures_name_the_real_parameters():
     assert wrong == {}
 
 
+def test_every_api_function_and_parameter_is_documented():
+    """``usdface.write_review``, ``export_avatar`` and ``landmark_diagnostics`` are re-exported as the API
+    (``usdface.<name>``) but docs/api.md gave them no entry, and its ``check`` / ``inspect_file`` entries left
+    out ``name_map`` (which the page's own text says they take): a TD scripting from the page could not
+    find them."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    documented: dict[str, set] = {}
+    for m in re.finditer(r"^`(\w+)\((.*?)\)(?: -> [^`]*)?`", doc, re.M):
+        documented.setdefault(m.group(1), set()).update(_doc_parameters(m.group(2)))
+    assert sorted(usdface._API - set(documented)) == []
+    missing = {}
+    for name, names in documented.items():
+        params = inspect.signature(getattr(api, name)).parameters.values()
+        left = [p.name for p in params
+                if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name not in names]
+        if left:
+            missing[name] = left
+    assert missing == {}
+
+
 def test_plots_leave_the_hosts_matplotlib_backend_and_figures_alone(capture, avatar, tmp_path):
     """``evaluate_methods(plot_path=...)`` (and the landmark plots) called ``matplotlib.use("Agg")`` and drew
     with pyplot: in a host with pyplot imported (a notebook, a DCC) that switched its backend and closed
@@ -488,6 +512,23 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     assert not wrong, wrong
 
 
+def _an_avatar():
+    """An (empty) Avatar: a wrong kind of argument where a capture or its rig goes."""
+    from usdface.model import Avatar
+
+    return Avatar(meshes=[], file="avatar.usda")
+
+
+def _write_landmarks_to_none(usdface):
+    """write_landmarks with every argument right but the output: None died with Python's TypeError
+    ('expected str, bytes or os.PathLike object, not NoneType') from the layer writer."""
+    from usdface.landmarks import LandmarkLayout
+    from usdface.model import Avatar, FaceRig
+
+    rig = FaceRig.__new__(FaceRig)
+    usdface.write_landmarks(Avatar.__new__(Avatar), rig, LandmarkLayout.__new__(LandmarkLayout), None)
+
+
 @pytest.mark.parametrize("call, says", [
     (lambda u: u.personalize_avatar(None, "c/", "o.usda"), "the avatar must be the avatar's file or an"),
     (lambda u: u.personalize_avatar("a.usda", 5, "o.usda"), "the capture must be a capture path or a"),
@@ -502,15 +543,26 @@ def test_every_output_path_comes_back_absolute(samples, tmp_path, monkeypatch):
     (lambda u: u.pick_mesh("a.usdc"), "pick_mesh's avatar must be an Avatar"),
     (lambda u: u.write_capture("c", "c.usda"), "write_capture's capture must be a Capture"),
     (lambda u: u.write_landmarks("a.usdc", None, None, "lm.usda"), "write_landmarks' avatar must be an"),
+    (lambda u: u.compute_landmarks(None), "the rig must be a FaceRig, an Avatar or an avatar file"),
+    (lambda u: u.compute_landmarks("a.usda", epsilom=0.4), "compute_landmarks does not take epsilom"),
+    (lambda u: u.landmark_diagnostics("a.usda", foo=1), "landmark_diagnostics does not take foo"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", noise=1), "evaluate_landmarks does not take noise"),
+    (lambda u: u.landmark_diagnostics(None), "the rig must be a FaceRig, an Avatar or an avatar file"),
+    (lambda u: u.evaluate_landmarks(None, "t.csv"), "the rig must be a FaceRig, an Avatar or an avatar"),
+    (lambda u: u.write_fit_rig(None, "fit.usda"), "write_fit_rig's fit must be a FitResult or a FaceRig"),
     (lambda u: u.inspect_file(None), "path must be a path"),
     (lambda u: u.export_avatar(None, gltf="x.glb"), "layer_path must be a path"),
     (lambda u: u.write_review(None, "r.html"), "layer_path must be a path"),
     (lambda u: u.import_livelink_take(None, "t.usda"), "csv must be a path"),
     (lambda u: u.select_capture_frames(None), "take must be a path"),
+    (lambda u: u.select_capture_frames("t.usda", "c.usda", template=3), "template must be a capture path"),
+    (lambda u: u.select_capture_frames("t.usda", "c.usda", template=_an_avatar()),
+     "template must be a capture path, a Capture or a FaceRig"),
     (lambda u: u.import_capture_folder("c", None), "out_path must be a path"),
     (lambda u: u.personalize_batch(None), "manifest must be a path"),
     (lambda u: u.fit_capture("c", out_path=5), "out_path must be a path"),
     (lambda u: u.write_retarget_map("a.usdc", "c", None), "out_path must be a path"),
+    (_write_landmarks_to_none, "out_path must be a path"),
 ])
 def test_arguments_of_the_wrong_kind_are_option_errors(tmp_path, monkeypatch, call, says):
     """A docs walk-through with wrong kinds of arguments: None for the avatar or a number for the capture

@@ -453,6 +453,7 @@ def test_sigterm_stops_a_batch_now(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert time.monotonic() - start < 15 and "terminated" in err
+    assert f"report: {report}" in err     # where this run's report is (it said only 'usdface: terminated')
     assert not list((tmp_path / "out").glob("*.usda"))
     # the report is this run's (nothing finished), not the earlier run's "4 done"
     data = json.loads(report.read_text())
@@ -840,12 +841,15 @@ def test_a_batch_items_progress_line_says_its_own_time(tmp_path, monkeypatch, ca
     ("capture", "missing_capture", "missing_capture: capture not found"),
     ("capture", "take.csv", "take.csv: a Live Link Face CSV: a take of weights only"),
     ("capture", "empty_folder", "empty_folder: missing neutral.obj"),
+    ("avatar", "capture.usda", "capture.usda, prim /Capture: this is a usdface capture"),
+    ("capture", "avatar.usda", "avatar.usda, prim /Avatar: this is a rig (meshes with blend shapes"),
+    ("capture", "fit.usda", "fit.usda, prim /Capture: this is a rig (meshes with blend shapes"),
     ("output", "out/last.txt", "last.txt: output layer must end in .usda or .usdc or .usd"),
     ("output", "folder.usda", "folder.usda: output layer path is a folder"),
     ("pins", "missing_pins.json", "missing_pins.json: pins file not found"),
     ("name_map", "folder.usda", "folder.usda: name map is a folder, not a file"),
     ("take", "missing_take.csv", "missing_take.csv: take not found"),
-    ("take", "avatar.usda", "avatar.usda: this is an avatar, not a take"),
+    ("take", "avatar.usda", "avatar.usda, prim /Avatar: this is an avatar, not a take"),
     ("take", "capture.usda", "capture.usda: this is a capture"),
     ("take", "notes.txt", "notes.txt: not a take"),
     ("take", "empty_folder", "empty_folder: not a take: a folder with no frames/"),
@@ -854,7 +858,8 @@ def test_a_bad_last_row_stops_the_batch_before_the_first_item(tmp_path, capsys, 
     """User trial: a manifest whose last row named a missing avatar, a capture that is no capture, an output
     that is a folder or not a layer... ran every row before it (minutes each) and failed that row at its
     turn; now the batch is refused before the first item, naming the row, the file and the fix, and nothing
-    is written (no output, no report)."""
+    is written (no output, no report). So is a row whose avatar and capture columns are swapped (a capture
+    as the avatar, an avatar or a fitted rig as the capture), which also ran only at its turn."""
     import shutil
 
     root = Path(__file__).resolve().parents[1] / "sample_assets"
@@ -864,6 +869,9 @@ def test_a_bad_last_row_stops_the_batch_before_the_first_item(tmp_path, capsys, 
     (tmp_path / "empty_folder").mkdir()
     (tmp_path / "notes.txt").write_text("not USD\n")
     (tmp_path / "take.csv").write_text("Timecode,BlendShapeCount,jawOpen\n")
+    (tmp_path / "fit.usda").write_text('#usda 1.0\n(\n    customLayerData = {\n        dictionary usdface = '
+                                       '{\n            string format = "fit"\n        }\n    }\n    '
+                                       'defaultPrim = "Capture"\n)\ndef SkelRoot "Capture" {}\n')
     rows = [{"avatar": "avatar.usda", "capture": "capture.usda", "output": f"out/{n}.usda"} for n in "ab"]
     rows.append({**rows[0], "output": "out/last.usda", column: value})
     manifest = tmp_path / "people.json"

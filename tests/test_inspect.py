@@ -259,6 +259,24 @@ def test_inspect_summarises_an_error_map_file(tmp_path, capsys):
     assert "error maps" in text and "menzel_paper: 1 test frame(s), mean RMSE 0.500 mm" in text
 
 
+def test_the_file_inspected_is_named_absolute_whatever_its_kind(weights_take, tmp_path, monkeypatch):
+    """A script's ``inspect_file("take.usda")["file"]`` came back as given (``take.usda``) for a take, a Live
+    Link CSV and an error-map file, and absolute for an avatar or a capture: a host that changed folder
+    afterwards no longer found the file (and ``usdface inspect`` headed one line relative, one absolute)."""
+    import shutil
+
+    from usdface.io.usd_error_maps import write_error_maps_usd
+
+    shutil.copy(weights_take, tmp_path / "take.usda")
+    (tmp_path / "take.csv").write_text("Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n"
+                                       "00:00:00:01.000,1,0.2\n")
+    tris, pts = np.array([[0, 1, 2]]), np.eye(3) * 0.1
+    write_error_maps_usd(tmp_path / "errors.usda", tris, {"dt": [("000", pts, np.ones(3), np.zeros((3, 3)))]})
+    monkeypatch.chdir(tmp_path)
+    for name in ("take.usda", "take.csv", "errors.usda"):
+        assert inspect_file(name)["file"] == str(tmp_path / name), name
+
+
 def test_inspect_names_a_layers_inspection_animation(tmp_path, capsys):
     """A trial: 'inspect' of a 'personalize --take' layer said nothing of the animation it plays (the
     capture's test expressions, then the take); it names the SkelAnimation, its frames and seconds and the

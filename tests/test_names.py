@@ -188,6 +188,22 @@ def test_unreadable_name_map(tmp_path, kind):
     assert str(path) in str(info.value) and "--name-map" in str(info.value)
 
 
+@pytest.mark.parametrize("given", [3, [("Blink_L", "eyeBlinkLeft")]])
+def test_a_name_map_of_the_wrong_kind_is_an_option_error(samples, given):
+    """``read_avatar(path, name_map=3)`` (or a list of pairs) died with Python's TypeError ('expected str,
+    bytes or os.PathLike object, not int') from deep in the name-map reader; every function taking
+    ``name_map`` (read_avatar, check, inspect_file, personalize_avatar) reads it there."""
+    import usdface
+    from usdface.errors import OptionError
+
+    for call in (lambda: read_name_map(given),
+                 lambda: usdface.read_avatar(samples / "avatar.usda", name_map=given),
+                 lambda: usdface.check(samples / "avatar.usda", name_map=given)):
+        with pytest.raises(OptionError, match="name_map must be a .* dict or a JSON / CSV file's") as info:
+            call()
+        assert info.value.fix
+
+
 def test_bad_name_map_stops_every_command_before_work(samples, tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text('{"Blink_L": "blinky"}')

@@ -177,6 +177,23 @@ def test_evaluate_refuses_a_fit_option_no_chosen_method_uses(samples, tmp_path, 
         fitted.clear()
 
 
+@pytest.mark.parametrize("options", [{"regg": 5}, {"pins": "pins.json"}, {"clamp": False}])
+def test_evaluate_methods_refuses_an_option_it_passes_to_no_fit(samples, monkeypatch, options):
+    """A user trial: ``usdface.evaluate_methods(capture, "dt,menzel", regg=5)`` (a typo) or ``pins=...`` /
+    ``clamp=...`` (fit options evaluate does not pass on) ran and returned the table of the defaults, the
+    option dropped without a word. Refused before any fitting, naming it and what evaluate passes."""
+    import usdface
+    from usdface.errors import FitError
+    from usdface.personalize import report
+
+    monkeypatch.setattr(report, "fit_personalized_shapes",
+                        lambda *a, **k: (_ for _ in ()).throw(RuntimeError("fitted")))
+    named = next(iter(options))
+    with pytest.raises(FitError, match=rf"option\(s\) evaluate does not take: {named}") as info:
+        usdface.evaluate_methods(samples / "capture.usda", "dt,menzel", **options)
+    assert "reg, prior" in info.value.fix
+
+
 def test_fit_refuses_an_option_its_method_ignores_as_evaluate_does(samples, tmp_path, capsys, monkeypatch):
     """A user trial: ``fit --method dt --no-align`` (``--no-reweight``, ``--contact off``) wrote dt's rig, the
     flag silently ignored, while ``evaluate --methods dt`` with the same flag refuses it (docs/fit.md: "as

@@ -470,6 +470,21 @@ def test_a_take_of_another_kind_fails_validation(extractions, tmp_path, samples,
     assert calls == [] and not (tmp_path / "o.usda").exists()
 
 
+def test_an_instance_with_avatar_and_capture_swapped_fails_validation(extractions, tmp_path, samples):
+    """A user trial: the capture given as the avatar passed every validator (usdface check only notes 'this
+    is a usdface capture, not an avatar') and failed only in the extractor, after other instances'
+    extractors had run; the avatar's kind is read before the first one, as 'usdface batch' reads it."""
+    calls = extractions
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [{"avatar": str(samples / "capture.usda"),
+                                     "capture": str(samples / "avatar.usda"),
+                                     "output": str(tmp_path / "o.usda")}]
+    pyblish.util.publish(context)
+    error = _results(context)[("ValidateUsdFaceOptions", "o")]["error"]
+    assert error is not None and "capture.usda, prim /Capture: this is a usdface capture" in str(error), error
+    assert "(fix: " in str(error) and calls == [] and not (tmp_path / "o.usda").exists()
+
+
 def _writes_a_layer(avatar, capture, output, **options):
     """A personalize step that writes a (trivial) layer at once."""
     from types import SimpleNamespace

@@ -230,6 +230,10 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     from .progress import steps
     from .take_select import format_coverage, select_frames
 
+    _expect(template, (Capture, _model("FaceRig"), *_PATH), "select_capture_frames' template",
+            "a capture path, a Capture or a FaceRig (or None: the take's own)",
+            "pass the capture whose template rig to use (its folder or capture.usda), or leave it out",
+            none_ok=True)   # an Avatar or a number died with Python's TypeError from Path()
     if isinstance(template, Capture):   # a capture read already: its template rig, as --template CAPTURE
         template = template.template
     # as the command line's options refuse them (a string or a fraction died in numpy with a TypeError)
@@ -473,10 +477,8 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     from .model import FaceRig
 
     if not isinstance(getattr(fit, "rig", fit), FaceRig):
-        from .errors import UsdFaceError
-
-        raise UsdFaceError(f"write_fit_rig takes a FitResult or a FaceRig, not {type(fit).__name__}",
-                           path=out_path, fix="pass what fit_capture / fit_personalized_shapes returned")
+        _expect(fit, (), "write_fit_rig's fit", "a FitResult or a FaceRig",
+                "pass what fit_capture / fit_personalized_shapes returned")
 
     out = check_output_path(out_path, force)
     info = getattr(fit, "info", None) or {}
@@ -890,12 +892,27 @@ def _as_rig(rig) -> FaceRig:
         return rig
     if isinstance(rig, Avatar):
         return pick_mesh(rig)
-    if isinstance(rig, str | Path):
+    if isinstance(rig, _PATH):
         return pick_mesh(read_avatar(rig))
-    from .errors import UsdFaceError
+    _expect(rig, (), "the rig", "a FaceRig, an Avatar or an avatar file",
+            "pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
 
-    raise UsdFaceError(f"expected a FaceRig, an Avatar or an avatar file, got {type(rig).__name__}",
-                       fix="pass usdface.pick_mesh(usdface.read_avatar(PATH)), the avatar or its path")
+
+def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) -> None:
+    """An option ``func`` (the core function ``options`` go to) does not take, refused before any work as
+    the other API functions refuse theirs (:class:`usdface.errors.OptionError` naming it and what it takes):
+    ``compute_landmarks(avatar, epsilom=0.4)`` died with Python's TypeError from the core function, after the
+    avatar was read. ``given``: the core's parameters the API function fills itself."""
+    import inspect
+
+    params = [n for n, p in inspect.signature(func).parameters.items()
+              if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD]
+    unknown = [k for k in options if k not in params or k in given]
+    if unknown:
+        from .errors import OptionError
+
+        raise OptionError(f"{what} does not take {', '.join(map(str, unknown))}",
+                          fix=f"drop it, or use one of: {', '.join(n for n in params if n not in given)}")
 
 
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
@@ -904,6 +921,7 @@ def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, al
     file: its face mesh, :func:`pick_mesh`); see :func:`usdface.landmarks.compute_landmarks`."""
     from .landmarks import compute_landmarks as _landmarks
 
+    _refuse_unknown_keywords(_landmarks, options, "compute_landmarks", given=("rig", "epsilon", "alpha"))
     return _landmarks(_as_rig(rig), epsilon=epsilon, alpha=alpha, **options)
 
 
@@ -914,6 +932,8 @@ def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5,
     :func:`usdface.landmarks.diagnostics.landmark_diagnostics`."""
     from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
 
+    _refuse_unknown_keywords(_diagnostics, options, "landmark_diagnostics",
+                             given=("neutral", "triangles", "deltas", "epsilon", "alpha"))
     rig = _as_rig(rig)
     return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
 
@@ -933,6 +953,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
             "pass usdface.pick_mesh(avatar) (the mesh the layout was computed on)")
     _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
             "pass usdface.compute_landmarks(rig)")
+    _paths(out_path=(out_path, False))
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
@@ -951,6 +972,8 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
 
+    _refuse_unknown_keywords(_evaluate, options, "evaluate_landmarks",
+                             given=("rig", "weights", "empirical", "noise"))
     if isinstance(takes, _PATH):            # one take, not its characters
         takes = [takes]
     elif isinstance(takes, Iterable) and not isinstance(takes, str | bytes):
@@ -1110,11 +1133,12 @@ def _fit_option_names() -> set[str]:
 
 
 def _refuse_unknown_options(options) -> None:
-    """Refuse (:class:`usdface.errors.UsdFaceError`) a name among ``options`` that :func:`personalize_avatar`
-    does not take (a typo, a CLI flag such as ``review``), listing the ones it takes."""
+    """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
+    a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
+    ``review``), listing the ones it takes."""
     import inspect as _inspect
 
-    from .errors import UsdFaceError
+    from .errors import OptionError
     from .transfer import pipeline as _pipeline
 
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
@@ -1123,8 +1147,8 @@ def _refuse_unknown_options(options) -> None:
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:
-        raise UsdFaceError(f"unknown personalize option(s): {', '.join(unknown)}",
-                           fix="drop them, or use one of: " + ", ".join(sorted(known)))
+        raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
+                          fix="drop them, or use one of: " + ", ".join(sorted(known)))
 
 
 def check_personalize_options(**options: Any) -> None:
@@ -1204,13 +1228,14 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       fix="pass --report PATH in a folder you can write to")
     try:
         run = _batch_preflight(items, worker, manifest, force)
-    except KeyboardInterrupt:          # stopped before the first item: this run's report, not the last run's
+    except KeyboardInterrupt as exc:   # stopped before the first item: this run's report, not the last run's
         from .pipeline.batch import FAILED, BatchReport, ItemResult
 
         why = "the batch was stopped before it started (while its rows were checked); run it again"
         BatchReport([ItemResult(index=i.index, avatar=str(i.avatar), capture=str(i.capture),
                                 output=str(i.output), status=FAILED, error=why, error_type="Interrupted")
                      for i in items], 0.0, "not started").write(path)
+        exc.report_path = _written(path)  # the command line names it (it printed only 'interrupted')
         raise
     try:
         report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
@@ -1218,6 +1243,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         partial = getattr(exc, "batch_report", None)
         if partial is not None:
             partial.write(path)
+            exc.report_path = _written(path)
         raise
     report.report_path = _written(report.write(path))
     return report
@@ -1227,7 +1253,8 @@ def _row_error(item, exc, manifest, fix: str):
     """A row's path refused (``exc``) as the manifest's error: the row, the file, what is wrong, the fix."""
     from .errors import InputFileError
 
-    named = f"{exc.path}: " if exc.path else ""
+    where = [w for w in (exc.path, exc.prim and f"prim {exc.prim}") if w]     # as UsdFaceError names them
+    named = f"{', '.join(where)}: " if where else ""
     return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
 
 

@@ -423,8 +423,11 @@ def _stopped(args, exc: KeyboardInterrupt) -> int:
     """A run stopped by Ctrl-C (exit status 130) or SIGTERM (:class:`Terminated`, raised on to :func:`main`:
     143); with ``--json`` stdout still gets its one document."""
     terminated = isinstance(exc, Terminated)
+    report = getattr(exc, "report_path", None)    # a stopped batch's report of what finished
     if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT")
+        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT", report)
+    if report is not None:
+        print(f"report: {report}", file=sys.stderr)
     if terminated:
         raise exc
     print("usdface: interrupted", file=sys.stderr)
@@ -488,7 +491,7 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
 
 
-def _json_stopped(args, terminated: bool, signame: str = "SIGTERM") -> None:
+def _json_stopped(args, terminated: bool, signame: str = "SIGTERM", report=None) -> None:
     """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
     pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
     import json
@@ -500,7 +503,7 @@ def _json_stopped(args, terminated: bool, signame: str = "SIGTERM") -> None:
         "message": f"stopped by {signame} before it finished" + (
             ": the items that finished are kept, the report says which" if batch
             else "; its output was not written"),
-        "file": None, "prim": None,
+        "file": None if report is None else str(report), "prim": None,
         "fix": "run the same command again (finished items are skipped)" if batch
         else "run the command again"}}
     try:

@@ -281,7 +281,7 @@ def summarize_error_maps(path, layer_info: dict | None = None) -> dict:
         methods[method] = {"frames": len(errs),
                            "meanRmseMm": float(np.mean([np.sqrt(np.mean(e ** 2)) for e in errs])),
                            "maxMm": float(max(e.max() for e in errs))}
-    out = {"file": str(path), "kind": "errorMaps", "methods": methods}
+    out = {"file": str(Path(path).absolute()), "kind": "errorMaps", "methods": methods}
     if layer_info:
         out["stageMetadata"] = layer_info.get("stage", {})
     return out
@@ -319,7 +319,8 @@ def _summarize_whole_take(path: Path, layer_info: dict | None = None) -> dict:
 def summarize_take(take, layer_info: dict | None = None) -> dict:
     """Report dict for a take of weights only (``usdface anim import``): frames, rate, duration, shapes vs
     ARKit, and the shapes never above :data:`TAKE_PEAK` (what ``capture select`` could not pick)."""
-    out = {"file": take.source, "kind": "take", "frames": len(take.weights), "fps": float(take.fps),
+    source = str(Path(take.source).absolute()) if take.source else take.source   # as an avatar's: absolute
+    out = {"file": source, "kind": "take", "frames": len(take.weights), "fps": float(take.fps),
            "seconds": float(take.times[-1] - take.times[0]) if len(take.times) else 0.0,
            "shapes": len(take.names), "meshes": take.points is not None,
            "neverAbove": _never_above(take.names, take.weights),

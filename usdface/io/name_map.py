@@ -23,6 +23,7 @@ import csv
 import difflib
 import io
 import json
+import os
 from pathlib import Path
 
 from .. import arkit
@@ -134,6 +135,12 @@ def read_name_map(source) -> dict[str, str] | None:
         return None
     if isinstance(source, dict):
         return validate_name_map(source)
+    if not isinstance(source, str | os.PathLike):     # died with Python's TypeError from Path()
+        from ..errors import OptionError
+
+        raise OptionError("name_map must be a {studio channel: ARKit name} dict or a JSON / CSV file's "
+                          f"path, not {type(source).__name__} ({source!r:.60})",
+                          fix='pass e.g. {"Blink_L": "eyeBlinkLeft"} or "names.json"')
     path = Path(source)
     if not path.is_file():
         raise InputFileError("name map not found" if not path.exists() else "name map is not a file",

@@ -336,6 +336,33 @@ def _template(stage, root, path, triangles, n) -> FaceRig:
     return FaceRig(neutral, tris, names, deltas, name="template")
 
 
+#: What :func:`read_capture_usd` says of a rig given where a capture goes, and its fix.
+RIG_NOT_CAPTURE = ("this is a rig (meshes with blend shapes: an avatar, or a 'usdface fit' result), not a "
+                   "capture: it holds no captured frames")
+RIG_NOT_CAPTURE_FIX = ("pass the capture (folder or capture.usda) where a capture goes, e.g. personalize "
+                       "AVATAR CAPTURE; a fitted rig is implanted with the API (personalize_avatar(..., "
+                       "rig=...))")
+
+
+def refuse_rig_as_capture(path) -> None:
+    """:func:`read_capture_usd`'s refusal of a rig given as the capture (an avatar, a usdface layer or its
+    flattened export, a ``usdface fit`` result: a manifest's avatar and capture columns swapped), told
+    without reading a frame: by the root layer's usdface record, else by the composed stage (a SkelRoot with
+    blend shapes, no capture or take layout). ``usdface batch`` asks it of every row before its first item
+    (such a row failed only at its turn, after every row before it had run)."""
+    from .file_kind import Kind, file_kind
+
+    found = file_kind(path)
+    if found.kind is Kind.USD and found.by == "nothing":
+        found = file_kind(path, compose=True)
+    rig = found.kind in (Kind.LAYER, Kind.FLATTENED, Kind.FIT) or (found.kind is Kind.AVATAR
+                                                                    and found.blend_shapes)
+    if rig:
+        root = found.layer.defaultPrim if found.layer is not None else ""
+        raise CaptureError(RIG_NOT_CAPTURE, path=path, prim=f"/{root}" if root else None,
+                           fix=RIG_NOT_CAPTURE_FIX)
+
+
 def read_capture_usd(path) -> Capture:
     """Read a capture USD file written by :func:`write_capture_usd` into a :class:`~usdface.model.Capture`.
 
@@ -363,12 +390,8 @@ def read_capture_usd(path) -> Capture:
         from pxr import Usd, UsdSkel
 
         if any(p.IsA(UsdSkel.BlendShape) for p in stage.Traverse(Usd.TraverseInstanceProxies())):
-            raise CaptureError("this is a rig (meshes with blend shapes: an avatar, or a 'usdface fit' "
-                               "result), not a capture: it holds no captured frames", path=path,
-                               prim=root.GetPath() if root else None,
-                               fix="pass the capture (folder or capture.usda) where a capture goes, e.g. "
-                                   "personalize AVATAR CAPTURE; a fitted rig is implanted with the API "
-                                   "(personalize_avatar(..., rig=...))")
+            raise CaptureError(RIG_NOT_CAPTURE, path=path, prim=root.GetPath() if root else None,
+                               fix=RIG_NOT_CAPTURE_FIX)
         raise CaptureError("not a usdface capture (no Frames mesh of captured expressions under the default "
                            "prim or /Capture)", path=path, prim=root.GetPath() if root else None,
                            fix="make capture files with 'usdface capture import DIR -o capture.usda'")

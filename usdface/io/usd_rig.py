@@ -539,6 +539,20 @@ _NOT_AVATAR = {
 }
 
 
+def refuse_recorded_non_avatar(path) -> None:
+    """:func:`_refuse_non_avatar`'s refusal told from the root layer's usdface record alone (no stage
+    composed): a capture, take or error-map file usdface wrote, given as the avatar (a manifest's avatar and
+    capture columns swapped). ``usdface batch`` asks it of every row before its first item (such a row failed
+    only at its turn, after every row before it had run)."""
+    from .file_kind import NOT_AVATAR, file_kind
+
+    found = file_kind(path)
+    if found.kind in NOT_AVATAR and found.by == "format":
+        what, fix = _NOT_AVATAR[found.kind]
+        root = found.layer.defaultPrim if found.layer is not None else ""
+        raise RigError(f"this is {what}", path=path, prim=f"/{root}" if root else None, fix=fix)
+
+
 def _refuse_non_avatar(stage, path: Path) -> None:
     """A capture, take, weights-only take or error-map file passed where an avatar is expected
     (:func:`usdface.io.file_kind.file_kind` on the composed stage): say what the file is (a capture's template

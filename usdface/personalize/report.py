@@ -46,6 +46,13 @@ def check_method_options(methods, fit_options: dict) -> None:
     if bad or not methods:
         raise FitError(f"unknown method(s) in --methods: {', '.join(bad) or '(none)'}",
                        fix=f"use a comma-separated subset of {','.join(METHODS)}")   # an option, not the file
+    # an option evaluate passes to no fit (a typo, 'regg'; a fit option it does not pass, 'pins'): dropped
+    # without a word, the table looked like its answer (evaluate_methods(c, "menzel", regg=5) ran at reg auto)
+    unknown = [k for k in fit_options if k not in _FLAGS]
+    if unknown:
+        raise FitError(f"option(s) evaluate does not take: {', '.join(unknown)} (they would be ignored)",
+                       fix=f"drop them; evaluate passes {', '.join(_FLAGS)} to the methods that take them "
+                           "(for the fit's other options fit one method with fit_capture / usdface fit)")
     given = [k for k, v in fit_options.items()
              if k in _FLAGS and v is not None and not (k in ("reg", "contact") and v == "auto")]
     unused = [k for k in given if not any(k in _TAKES[m] for m in methods)]

@@ -239,18 +239,24 @@ def check_item_inputs(item: BatchItem) -> None:
     """The files a personalize item reads, refused as its readers would refuse them but before the batch's
     first item (a bad last row failed at its turn, after every row before it had run): the avatar a
     readable USD file, the capture a capture folder, take or capture USD file
-    (:func:`usdface.io.check_capture_path`), the ``take`` a take (:func:`usdface.io.take.check_take_path`:
+    (:func:`usdface.io.check_capture_path`; not a rig, :func:`usdface.io.usd_capture.refuse_rig_as_capture`,
+    nor a capture or take as the avatar), the ``take`` a take (:func:`usdface.io.take.check_take_path`:
     an avatar given as the take failed only at the item), and the ``name_map`` and ``pins`` a row names
     existing (the correspondence cache may be missing: the item writes it). Raises the reader's error."""
     from ..io import USD_EXTENSIONS, check_capture_path
     from ..io.take import check_take_path
+    from ..io.usd_capture import refuse_rig_as_capture
     from ..io.usd_open import require_readable
+    from ..io.usd_rig import refuse_recorded_non_avatar
 
     avatar = require_readable(item.avatar, "avatar", fix="give the avatar's .usd/.usda/.usdc file")
     if avatar.suffix.lower() not in USD_EXTENSIONS:
         raise InputFileError("avatar is not a USD file", path=avatar,
                              fix=f"give the avatar's USD file ({', '.join(USD_EXTENSIONS)})")
-    check_capture_path(item.capture)
+    refuse_recorded_non_avatar(avatar)             # a capture or take in the avatar column
+    capture = check_capture_path(item.capture)
+    if capture.is_file():
+        refuse_rig_as_capture(capture)             # an avatar (or a fit) in the capture column
     take = item.options.get("take")
     if isinstance(take, str) and take:
         check_take_path(take)
