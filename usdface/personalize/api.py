@@ -25,8 +25,9 @@ from .fit import (
     fit_blendshapes,
     james_stein,
     regularization_weights,
+    weight_leak_variance,
 )
-from .weights import held_weights, reestimate_weights, reestimate_weights_batched
+from .weights import held_weights, reestimate_weights, reestimate_weights_batched, weight_noise
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture", "check_fit_options"]
 
@@ -398,7 +399,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     eyelids : virtual eyelid triangles in the deformation transfer.
     sensitivity : also measure each shape's sensitivity to the weights' noise, ``info["weight_sensitivity"]``
         (:func:`weight_sensitivity`; menzel on a capture of picked frames; one more re-estimation and solve,
-        ~0.03 s on dev1): what the implant trusts a shape by (``personalize`` asks for it).
+        ~0.03 s on dev1), and the weights' noise as the capture shows it, ``info["weight_noise"]``
+        (:func:`.weights.weight_noise`), with the error it puts into each shape at each vertex,
+        ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` times its square; ~0.04 s):
+        what the implant trusts a shape by (``personalize`` asks for it).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
@@ -616,6 +620,11 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if sensitivity and method == "menzel" and frame_weights is None and len(w_cur):
             info["weight_sensitivity"] = weight_sensitivity(
                 capture.neutral, points, w_cur, deltas, res, lambda w: solve(points, w, lam))
+            # the weights' noise as this capture shows it, and what it puts into each shape (the leak)
+            free = ~held_weights(w_cur, ACTIVATION_MIN)
+            info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free)
+            info["weight_leak"] = info["weight_noise"] ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas,
+                                                                                   free)
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,

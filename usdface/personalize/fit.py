@@ -211,6 +211,39 @@ def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) 
     return np.zeros_like(inv_l) if X is None else inv_l * inv_l * np.einsum("nrk,nrk->nk", X, X)
 
 
+def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float, deltas: np.ndarray,
+                         free: np.ndarray) -> np.ndarray:
+    """``[n,K]`` (m^2 per unit of the weights' noise variance): the expected squared error each fitted shape
+    of eqs. (1)+(2) takes at each vertex from independent errors of unit variance in the weights the frames
+    report (``weights[F,K]``, the entries ``free[F,K]`` may err; ``reg_weights[K,n]``, ``reg`` as in
+    :func:`fit_blendshapes`; ``deltas[K,n,3]`` the fitted shapes, metres). To first order a weight error
+    ``e_fk`` is the frame error ``-e_fk B_k`` (the frame explained with the wrong weight), so frame ``f``'s
+    noise variance at vertex ``v`` is ``E_fv = sum_k free_fk |B_kv|^2`` and each shape's error variance is
+    ``sum_f (A_v^-1 W^T)_jf^2 E_fv`` (the ridge's sandwich with per-frame noise, :func:`estimate_variance`
+    with one noise level for every frame). A shape seen in one frame, beside a large shape whose weight
+    errs there, takes that error whole: the leak that makes it worse than the prior."""
+    W = np.asarray(weights, dtype=np.float64)
+    D = np.asarray(deltas, dtype=np.float64)
+    energy = np.asarray(free, dtype=np.float64) @ np.einsum("knc,knc->kn", D, D)        # [F,n]
+    basis = _reduced_basis(W)
+    if basis is None:
+        L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                   # [n,K]
+        n, K = L.shape
+        A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+        A.reshape(n, -1)[:, ::K + 1] += L
+        G = np.linalg.solve(A, np.broadcast_to(W.T, (n, K, len(W))))                # [n,K,F]
+    else:
+        P, s, Q = basis
+        B = Q * s
+        inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)        # [n,K]
+        r = len(s)
+        M = reduced_normal_matrix(inv_l, B)
+        M.reshape(len(M), -1)[:, ::r + 1] += 1.0
+        # A_v^-1 W^T = diag(inv_l_v) B M_v^-1 P^T (W^T = B P^T, A_v^-1 B = L_v^-1 B M_v^-1)
+        G = inv_l[:, :, None] * _left(B, np.linalg.solve(M, np.broadcast_to(P.T, (len(M), r, len(W)))))
+    return np.einsum("nkf,nkf,fn->nk", G, G, energy)
+
+
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
     """``[K]`` in [0, 1]: the positive-part James-Stein factor ``max(0, 1 - var_j / |D_j|^2)`` (Efron &
     Morris 1973) of each shape's personalization ``personalization[K,m,3]`` (``D_j = B_j - T_j``, metres)

@@ -22,7 +22,7 @@ import numpy as np
 
 from .align import distinct_frames
 
-__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched"]
+__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched", "weight_noise"]
 
 
 def peak_frames(weights: np.ndarray) -> np.ndarray:
@@ -106,3 +106,29 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
         y += x_new
         x, x_new, tk = x_new, x, t_new
     return x if groups is None else x[:, :, inverse]
+
+
+def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, deltas: np.ndarray,
+                 free: np.ndarray) -> float:
+    """The weights' noise as the capture itself shows it (a std, in weight units): each training frame's
+    weights re-estimated by least squares on the fitted shapes, minus the weights the shapes were fitted
+    with, over the entries that may err (``free[F,K]``, e.g. not :func:`held_weights`); the robust std
+    (1.4826 x the median absolute deviation) of those differences.
+
+    ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]``, ``deltas[K,n,3]`` the fitted shapes. Had
+    the phone reported each frame's weights exactly, the fitted shapes would explain every frame with them
+    and the differences would be the scan noise's and the non-linear motion's small share (dev1 and dev3,
+    whose weights are the phone mesh's own: 0.001); weights reported with noise leave the frames
+    inconsistent with one another, and the shapes fitted to all of them explain no frame with its reported
+    weights (a generated capture with the phone's weights +-0.01: 0.016; +-0.03: 0.03-0.05). The median
+    keeps a few frames of large non-linear motion from setting it."""
+    W = np.asarray(weights, dtype=np.float64)
+    mask = np.asarray(free, dtype=bool)
+    if not mask.any():
+        return 0.0
+    Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
+    Y = Y.reshape(len(W), -1)
+    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)
+    estimate = np.linalg.lstsq(A.T, Y.T, rcond=None)[0].T                          # [F,K]
+    diff = (estimate - W)[mask]
+    return float(1.4826 * np.median(np.abs(diff - np.median(diff))))

@@ -1,12 +1,14 @@
 """How far the implant trusts each shape's personalization (issue 10: never worse than generic).
 
 A shape's trust ``c_j`` in [0, 1] scales the person's change ``B_j - P_j`` the implant carries onto the
-avatar (0: the avatar's generic shape stays, 1: the person's as fitted). It is the fit's own share of the
-shape the frames set, capped by the shape's reliability (its personalization against its estimate's
-variance, :func:`usdface.personalize.fit.james_stein`) and by its sensitivity to the weights' noise
-(:func:`sensitivity_trust`), times a ramp to 0 for shapes the frames show only weakly (:func:`weak_ramp`).
-Arrays in, arrays out: ``fit`` is a :class:`usdface.personalize.FitResult`, ``capture`` a
-:class:`usdface.model.Capture`."""
+avatar (0: the avatar's generic shape stays, 1: the person's as fitted). It is the smallest of three
+positive-part James-Stein factors, each the personalization against one of its estimate's errors: the
+frames' noise (the shape's reliability, :func:`usdface.personalize.fit.james_stein`), the change a
+re-estimation of the weights makes (:func:`sensitivity_trust`) and the error the weights' noise, as the
+capture shows it, leaks into the shape (:func:`leak_trust`); times a ramp to 0 for shapes the frames show
+only weakly (:func:`weak_ramp`). Without the measured noise (a take read whole, another method) the fit's
+share of the shape the frames set stands in for the last. Arrays in, arrays out: ``fit`` is a
+:class:`usdface.personalize.FitResult`, ``capture`` a :class:`usdface.model.Capture`."""
 
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ from ..personalize.api import WEIGHT_NOISE
 from ..personalize.fit import james_stein
 from .implant import shape_confidence
 
-__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "sensitivity_trust", "shape_trust", "weak_ramp"]
+__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitivity_trust", "shape_trust",
+           "weak_ramp"]
 
 #: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
 #: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
@@ -24,8 +27,10 @@ __all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "sensitivity_trust", "s
 WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
 #: The least weight noise assumed of a take (its measured jitter can be ~0 for computed weights).
 TAKE_NOISE_MIN = 1e-3
-#: The per-shape trust (see :func:`shape_trust`): "fit" (the fit's data share) or "loo" (James-Stein).
-CONFIDENCE = "fit"
+#: The per-shape trust (see :func:`shape_trust`): "noise" (the estimate's errors, the weights' noise
+#: measured on the capture), "fit" (capped by the fit's data share, as before stop 37) or "loo" (James-Stein
+#: with the leave-one-frame-out error).
+CONFIDENCE = "noise"
 
 
 def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.ndarray:
@@ -35,17 +40,38 @@ def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.
     s^2 / d^2)`` with ``s^2``, ``d^2`` the mean squared sensitivity and personalization over the vertices the
     personalization moves (more than ``moving`` of its peak). A shape the weights' errors decide stays near
     the prior, the avatar's own shape."""
+    s = np.asarray(sensitivity, dtype=np.float64)
+    return _moving_james_stein(deltas, prior, np.einsum("knc,knc->nk", s, s), moving)
+
+
+def leak_trust(deltas, prior, leak, *, moving: float = 0.1) -> np.ndarray:
+    """``[K]`` in [0, 1]: how far each shape's personalization ``D = deltas - prior`` (``[K,n,3]`` on the
+    capture, metres) stands above the error the weights' noise leaks into it, ``leak[n,K]`` (m^2, the
+    expected squared error at each vertex, ``FitResult.info["weight_leak"]``,
+    :func:`usdface.personalize.fit.weight_leak_variance`): ``max(0, 1 - l^2 / d^2)`` over the vertices the
+    personalization moves, as :func:`sensitivity_trust`. A shape the frames show once, beside a large shape
+    whose weight errs in that frame by the noise the capture shows, stays near the prior; on a capture whose
+    weights are exact (the phone mesh's own) nothing leaks and the shape keeps its personalization."""
+    return _moving_james_stein(deltas, prior, leak, moving)
+
+
+def _moving_james_stein(deltas, prior, variance, moving) -> np.ndarray:
+    """The James-Stein factor of ``deltas - prior`` against ``variance[n,K]`` over the vertices where the
+    personalization moves more than ``moving`` of its peak."""
     d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
     d2 = np.einsum("knc,knc->kn", d, d)
-    s = np.asarray(sensitivity, dtype=np.float64)
     mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
-    return james_stein(d, np.einsum("knc,knc->nk", s, s), mov.T)
+    return james_stein(d, np.asarray(variance, dtype=np.float64), mov.T)
 
 
 def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict, np.ndarray]:
     """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
-    weakly (:func:`weak_ramp`). ``CONFIDENCE = "fit"`` (default): the fit's own share of each shape set by
-    the data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``); ``"loo"``: the
+    weakly (:func:`weak_ramp`). ``CONFIDENCE = "noise"`` (default): the smallest of the shape's reliability
+    (``FitResult.info["shape_reliability"]``), :func:`leak_trust` and :func:`sensitivity_trust`; where the
+    fit did not measure the weights' noise (no ``weight_leak``: a take read whole, laplacian) or the frames'
+    (no ``shape_reliability``: a fixed ``reg``), as ``"fit"``: the fit's own share of each shape set by the
+    data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``, already no more than
+    the reliability), capped by :func:`sensitivity_trust`; ``"loo"``: the
     positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
     leave-one-frame-out error as the noise. 1 without training frames (a given rig). Returns ``(trust[J],
     report, weak[J])``, the report saying how the excitation was measured (``{}`` for a capture), ``weak``
@@ -59,15 +85,21 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
     excitation = np.sum(w[:, cap_idx] ** 2, axis=0)
     ramp, info = weak_ramp(capture, excitation, cap_idx)
     share = fit.info.get("shape_confidence")
-    if CONFIDENCE == "fit" and share is not None:
-        trust = np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0) * ramp
-        sens = fit.info.get("weight_sensitivity")
-        if sens is not None and fit.info.get("prior_deltas") is not None:
-            # and no more than the personalization stands above what the weights' noise makes of it
-            trust = np.minimum(trust, sensitivity_trust(np.asarray(fit.rig.deltas)[cap_idx],
-                                                        np.asarray(fit.info["prior_deltas"])[cap_idx],
-                                                        np.asarray(sens)[cap_idx]))
-        return trust, info, ramp < 0.5
+    if CONFIDENCE in ("noise", "fit") and share is not None:
+        trust = np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0)
+        prior = fit.info.get("prior_deltas")
+        leak = fit.info.get("weight_leak")
+        if prior is not None:
+            fitted, prior = np.asarray(fit.rig.deltas)[cap_idx], np.asarray(prior)[cap_idx]
+            if CONFIDENCE == "noise" and leak is not None and fit.info.get("shape_reliability") is not None:
+                # the share stood in for the weights' noise; measured, the errors set the trust themselves
+                trust = np.minimum(np.clip(np.asarray(fit.info["shape_reliability"])[cap_idx], 0.0, 1.0),
+                                   leak_trust(fitted, prior, np.asarray(leak)[:, cap_idx]))
+            sens = fit.info.get("weight_sensitivity")
+            if sens is not None:
+                # and no more than the personalization stands above what the weights' noise makes of it
+                trust = np.minimum(trust, sensitivity_trust(fitted, prior, np.asarray(sens)[cap_idx]))
+        return trust * ramp, info, ramp < 0.5
     loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
     if loo is None:
         return ramp, info, ramp < 0.5
