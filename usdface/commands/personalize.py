@@ -205,6 +205,10 @@ def run(args) -> int:
     fit_line = take_line(rep.get("fit") or {})
     if fit_line:
         print(f"fit: {fit_line}")
+    noise = (rep.get("fit") or {}).get("weight_noise")
+    if noise is not None:
+        print(f"fit: the phone's weights are off by ~{noise:.3f} as the frames show it; each shape is trusted "
+              "above what that leaks into it")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "

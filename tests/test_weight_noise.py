@@ -1,0 +1,130 @@
+"""The phone weights' noise as the capture shows it (:func:`usdface.personalize.weights.weight_noise`), the
+error it leaks into each fitted shape (:func:`usdface.personalize.fit.weight_leak_variance`) and the trust
+the implant draws from it (:func:`usdface.transfer.trust.leak_trust`)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+
+from usdface.personalize.fit import fit_blendshapes, weight_leak_variance
+from usdface.personalize.weights import held_weights, weight_noise
+from usdface.transfer.trust import leak_trust
+
+
+def _rig(seed=0, n=300, shapes=12, frames=20):
+    """Random shapes ``[K,n,3]`` (~5 mm), a neutral and sparse weights ``[F,K]`` in [0, 1]: every shape has
+    a frame of its own at 0.6-1.0, beside a few others at up to 0.3."""
+    rng = np.random.default_rng(seed)
+    deltas = rng.normal(size=(shapes, n, 3)) * 5e-3
+    neutral = rng.normal(size=(n, 3)) * 0.05
+    weights = np.where(rng.random((frames, shapes)) < 0.25, rng.uniform(0.0, 0.3, (frames, shapes)), 0.0)
+    weights[np.arange(shapes), np.arange(shapes)] = rng.uniform(0.6, 1.0, shapes)
+    return rng, neutral, deltas, weights
+
+
+def test_the_weights_noise_is_read_back_from_the_frames():
+    """Frames made from known shapes: with the weights they were made with, the estimate is zero (to
+    rounding); with the weights reported with Gaussian noise of std 0.02, it is that std within 25 %."""
+    rng, neutral, deltas, weights = _rig()
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    free = ~held_weights(weights)
+    assert weight_noise(neutral, points, weights, deltas, free) < 1e-9
+    reported = weights + rng.normal(size=weights.shape) * 0.02
+    est = weight_noise(neutral, points, reported, deltas, free)
+    assert 0.015 < est < 0.025, est
+    assert weight_noise(neutral, points, reported, deltas, np.zeros_like(free)) == 0.0     # nothing may err
+
+
+def test_the_leak_variance_is_what_random_weight_errors_put_into_the_fitted_shapes():
+    """First-order formula against Monte Carlo: 400 draws of weight errors (std 1e-3, the free entries
+    only), each fit refitted; the mean squared change of every shape, summed over the vertices, within 10 %
+    of the formula's, and zero for errors in no entry."""
+    rng, neutral, deltas, weights = _rig(seed=1, n=60)
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    points += rng.normal(size=points.shape) * 1e-4
+    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
+    reg, sigma = 1e-2, 1e-3
+    fitted = fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg)
+    free = ~held_weights(weights)
+    formula = sigma ** 2 * weight_leak_variance(weights, reg_weights, reg, fitted, free)       # [n,K]
+    draws = np.zeros(formula.shape[::-1])
+    for _ in range(400):
+        w = weights + sigma * rng.normal(size=weights.shape) * free
+        d = fit_blendshapes(neutral, points, w, np.zeros_like(deltas), reg_weights, reg) - fitted
+        draws += np.einsum("knc,knc->kn", d, d) / 400
+    np.testing.assert_allclose(formula.sum(axis=0), draws.sum(axis=1), rtol=0.10)
+    assert not weight_leak_variance(weights, reg_weights, reg, fitted, np.zeros_like(free)).any()
+
+
+def test_leak_trust_is_the_positive_part_james_stein_factor():
+    prior = np.zeros((3, 40, 3))
+    d = np.zeros((3, 40, 3))
+    d[:, :8] = 1e-3                                   # each personalization: 8 vertices, 3e-6 m^2 each
+    leak = np.zeros((40, 3))
+    leak[:8, 1] = 0.75e-6                             # shape 1: a quarter of its power is leak
+    leak[:8, 2] = 6e-6                                # shape 2: more than all of it
+    leak[8:] = 1.0                                    # where the personalization is still: not counted
+    np.testing.assert_allclose(leak_trust(d, prior, leak), [1.0, 0.75, 0.0], atol=1e-12)
+
+
+def _score(tmp_path, name, **sample):
+    """(the fit, the Head's per-shape face RMSE minus generic's [mm], its names) of a generated case."""
+    from usdface.io import read_capture
+    from usdface.io.usd_rig import read_avatar
+    from usdface.sample import covered_vertices, generate_samples
+    from usdface.transfer import personalize_avatar
+    from usdface.transfer import pipeline as pipe
+    from usdface.transfer.scoring import score_mesh
+
+    d = generate_samples(tmp_path / name, **sample)
+    avatar, capture = read_avatar(d / "avatar.usda"), read_capture(d / "capture.usda")
+    head = avatar.mesh("Head")
+    meta = json.loads((d / "truth" / "meta.json").read_text())
+    face = covered_vertices(head.neutral, meta, np.load(d / "truth" / "capture_truth.npz")["neutral"],
+                            capture.triangles)
+    npz = np.load(d / "truth" / "avatar_truth.npz")
+    truth = np.array([npz[f"Head/{n}"] for n in head.names]) @ head.source.to_internal[:3, :3].T
+    fits = []
+    original = pipe._fit
+
+    def recording(*args, **kwargs):
+        fits.append(original(*args, **kwargs))
+        return fits[-1]
+
+    pipe._fit = recording
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = personalize_avatar(avatar, capture, None)
+    finally:
+        pipe._fit = original
+    score = score_mesh(head.names, head.deltas, res.offsets[head.source.prim], truth, face=face)
+    return fits[0], np.asarray(score.per_shape_delta), list(head.names)
+
+
+def test_a_shape_seen_once_beside_an_erring_jaw_weight_stays_near_generic(tmp_path):
+    """Issue 10's per-shape rule on a generated capture in the scan regime (another artist's template, scan
+    noise 0.15 mm, the phone's weights +-0.03; seed 1): the phone reports ``jawOpen`` 0.08 in the frame of
+    ``jawForward`` (truth 0.02), the one frame that shows it, and the fit gives it the jaw's difference.
+    With the fit's data share as the guard it landed 0.15 mm worse than generic; the leak measured from the
+    capture's own noise keeps it within 0.05 mm, and the capture's noise reads as the phone's."""
+    fit, delta, names = _score(tmp_path, "n1", seed=1, template="artist", scan_noise_m=1.5e-4,
+                               weight_noise=0.03)
+    assert 0.015 < fit.info["weight_noise"] < 0.08, fit.info["weight_noise"]
+    worst = int(np.argmax(delta))
+    assert delta[names.index("jawForward")] <= 0.05
+    assert delta[worst] <= 0.11, (names[worst], delta[worst])    # noisy:4-like leaks remain (docs: gaps)
+
+
+def test_exact_weights_leak_nothing(tmp_path):
+    """A generated capture whose phone weights are exact and whose frames carry no scan noise (as dev1 and
+    dev3's phone meshes): the weights' noise reads near zero, nothing leaks into any shape (its leak trust
+    is 1), and no shape lands more than 0.05 mm worse than generic."""
+    fit, delta, names = _score(tmp_path, "g0", seed=2, template="generic", weight_noise=0.0, scan_noise_m=0.0)
+    assert fit.info["weight_noise"] < 0.004, fit.info["weight_noise"]
+    trust = leak_trust(fit.rig.deltas, fit.info["prior_deltas"], fit.info["weight_leak"])
+    assert trust.min() > 0.99, trust.min()
+    assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
