@@ -112,23 +112,30 @@ def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, d
                  free: np.ndarray) -> float:
     """The weights' noise as the capture itself shows it (a std, in weight units): each training frame's
     weights re-estimated by least squares on the fitted shapes, minus the weights the shapes were fitted
-    with, over the entries that may err (``free[F,K]``, e.g. not :func:`held_weights`); the robust std
-    (1.4826 x the median absolute deviation) of those differences.
+    with, over the entries that may err (``free[F,K]``, e.g. not :func:`held_weights`); the robust variance
+    of those differences (1.4826 x their median absolute deviation, squared) less the part the frames' scan
+    noise explains (the least-squares estimate's own variance, ``s^2 [(A A^T)^-1]_kk`` with ``s`` the
+    residual's std per coordinate and ``A`` the shapes as rows; its median over the entries).
 
     ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]``, ``deltas[K,n,3]`` the fitted shapes. Had
     the phone reported each frame's weights exactly, the fitted shapes would explain every frame with them
-    and the differences would be the scan noise's and the non-linear motion's small share (dev1 and dev3,
-    whose weights are the phone mesh's own: 0.001); weights reported with noise leave the frames
+    and the differences would be the scan noise's share and the non-linear motion's (dev1 and dev3, whose
+    weights are the phone mesh's own: 0.001 and 0.0005); weights reported with noise leave the frames
     inconsistent with one another, and the shapes fitted to all of them explain no frame with its reported
-    weights (a generated capture with the phone's weights +-0.01: 0.016; +-0.03: 0.03-0.05). The median
-    keeps a few frames of large non-linear motion from setting it."""
+    weights (generated captures with scan noise 0.1 mm and the phone's weights +-0.01: 0.011-0.016, +-0.03
+    at 0.15 mm: 0.036-0.041; the scan noise alone would read 0.011-0.027). The median keeps a few frames of
+    large non-linear motion from setting it."""
     W = np.asarray(weights, dtype=np.float64)
     mask = np.asarray(free, dtype=bool)
     if not mask.any():
         return 0.0
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
-    Y = Y.reshape(len(W), -1)
-    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)
+    Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
+    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
     estimate = np.linalg.lstsq(A.T, Y.T, rcond=None)[0].T                          # [F,K]
     diff = (estimate - W)[mask]
-    return float(1.4826 * np.median(np.abs(diff - np.median(diff))))
+    spread = (1.4826 * np.median(np.abs(diff - np.median(diff)))) ** 2
+    dof = max(A.shape[1] - np.linalg.matrix_rank(A), 1)
+    scan = np.sum((Y - estimate @ A) ** 2) / (len(W) * dof)                           # per coordinate, m^2
+    own = scan * np.diag(np.linalg.pinv(A @ A.T))                                   # [K]
+    return float(np.sqrt(max(0.0, spread - np.median(np.broadcast_to(own, W.shape)[mask]))))
