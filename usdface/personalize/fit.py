@@ -232,16 +232,23 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
         A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
         A.reshape(n, -1)[:, ::K + 1] += L
         G = np.linalg.solve(A, np.broadcast_to(W.T, (n, K, len(W))))                # [n,K,F]
-    else:
-        P, s, Q = basis
-        B = Q * s
-        inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)        # [n,K]
-        r = len(s)
-        M = reduced_normal_matrix(inv_l, B)
-        M.reshape(len(M), -1)[:, ::r + 1] += 1.0
-        # A_v^-1 W^T = diag(inv_l_v) B M_v^-1 P^T (W^T = B P^T, A_v^-1 B = L_v^-1 B M_v^-1)
-        G = inv_l[:, :, None] * _left(B, np.linalg.solve(M, np.broadcast_to(P.T, (len(M), r, len(W)))))
-    return np.einsum("nkf,nkf,fn->nk", G, G, energy)
+        return np.einsum("nkf,nkf,fn->nk", G, G, energy)
+    P, s, Q = basis
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)            # [n,K]
+    n, r = len(inv_l), len(s)
+    if r == 0:
+        return np.zeros_like(inv_l)
+    M = reduced_normal_matrix(inv_l, B)
+    M.reshape(n, -1)[:, ::r + 1] += 1.0
+    # A_v^-1 W^T = diag(inv_l_v) B M_v^-1 P^T (W^T = B P^T, A_v^-1 B = L_v^-1 B M_v^-1), so the sum over the
+    # frames is inv_l_vj^2 (B C_v B^T)_jj with C_v = M_v^-1 (P^T diag(E_v) P) M_v^-1: r x r per vertex, no
+    # [n,K,F] array
+    pp = (P[:, :, None] * P[:, None, :]).reshape(len(P), r * r)                       # [F, r^2]
+    inv_m = np.linalg.inv(M)                            # one batched inverse, then two stacked products
+    C = inv_m @ (energy.T @ pp).reshape(n, r, r) @ inv_m
+    bb = (B[:, :, None] * B[:, None, :]).reshape(len(B), r * r)                       # [K, r^2]
+    return inv_l ** 2 * (C.reshape(n, r * r) @ bb.T)
 
 
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:

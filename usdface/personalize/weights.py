@@ -132,10 +132,15 @@ def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, d
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
     A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
-    estimate = np.linalg.lstsq(A.T, Y.T, rcond=None)[0].T                          # [F,K]
+    # one thin SVD A^T = U S V^T for the estimate (pseudo-inverse), its rank and (A A^T)^+'s diagonal
+    U, sv, Vt = np.linalg.svd(A.T, full_matrices=False)
+    keep = sv > (sv[0] if sv.size else 0.0) * max(A.shape) * np.finfo(np.float64).eps
+    U, sv, Vt = U[:, keep], sv[keep], Vt[keep]
+    coef = (Y @ U) / sv                                                              # [F, rank]
+    estimate = coef @ Vt                                                             # [F,K]
     diff = (estimate - W)[mask]
     spread = (1.4826 * np.median(np.abs(diff - np.median(diff)))) ** 2
-    dof = max(A.shape[1] - np.linalg.matrix_rank(A), 1)
-    scan = np.sum((Y - estimate @ A) ** 2) / (len(W) * dof)                           # per coordinate, m^2
-    own = scan * np.diag(np.linalg.pinv(A @ A.T))                                   # [K]
+    dof = max(A.shape[1] - len(sv), 1)
+    scan = max(float(np.sum(Y * Y) - np.sum(coef * coef * sv * sv)), 0.0) / (len(W) * dof)   # m^2 a coord.
+    own = scan * np.sum((Vt / sv[:, None]) ** 2, axis=0)                              # [K]
     return float(np.sqrt(max(0.0, spread - np.median(np.broadcast_to(own, W.shape)[mask]))))
