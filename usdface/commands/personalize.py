@@ -207,7 +207,7 @@ def run(args) -> int:
         print(f"fit: {fit_line}")
     noise = (rep.get("fit") or {}).get("weight_noise")
     if noise is not None:
-        print(f"fit: the phone's weights are off by ~{noise:.3f} as the frames show it; each shape is "
+        print(f"fit: the phone's weights are off by ~{noise:.2g} as the frames show it; each shape is "
               "trusted above what that leaks into it")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
