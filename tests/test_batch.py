@@ -995,12 +995,14 @@ def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samp
 def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
     import os
 
-    # captures that pass the batch's check of every row (present, readable, USD) and fail in the reader: a
-    # missing file no longer runs at all (the batch refuses the manifest before its first item)
+    # captures that pass the batch's check of every row (present, readable, USD, not an avatar) and fail in
+    # the reader: a missing file, or an avatar given as the capture, no longer runs at all (the batch refuses
+    # the manifest before its first item)
     (tmp_path / "broken.usda").write_text("not USD\n")
+    (tmp_path / "broken2.usda").write_text("#usda 1.0\nnot USD either\n")
     (tmp_path / "m.csv").write_text("avatar,capture,output\n"
                                     f"{sample_dir / 'avatar.usda'},{tmp_path / 'broken.usda'},bad.usda\n"
-                                    f"{sample_dir / 'avatar.usda'},{sample_dir / 'avatar.usda'},bad2.usda\n")
+                                    f"{sample_dir / 'avatar.usda'},{tmp_path / 'broken2.usda'},bad2.usda\n")
     env = dict(os.environ, USDFACE_PROGRESS="plain", USDFACE_PROGRESS_DELAY="0")
     exe = Path(sys.executable).with_name("usdface")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from usdface.cli import main; "
