@@ -591,3 +591,37 @@ def test_personalize_batch_refuses_a_job_count_the_command_line_refuses(tmp_path
     with pytest.raises(OptionError, match="jobs must be a whole number >= 1"):
         usdface.personalize_batch(manifest, jobs=jobs)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+
+def test_warnings_name_the_callers_line_not_usdfaces(tmp_path):
+    """User trial: a warning of the API named usdface's own line (``usdface/io/take.py:131``, the reader
+    several calls down that noticed), so a TD's script that read a hundred takes could not tell which of its
+    calls it was. Whatever the depth, the warning names the script's line; its category is UsdFaceWarning
+    (a UserWarning), for a filter to silence usdface's alone."""
+    import json
+    import sys
+    import warnings
+
+    from input_helpers import _capture
+
+    from usdface.errors import UsdFaceWarning
+    from usdface.io.livelink import write_livelink_csv
+
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen", "eyeBlinkLeft"],
+                             np.array([[0.2, 1.5], [0.4, 0.1]]), np.arange(2) / 30.0, timecode_rate=30.0)
+    folder = tmp_path / "cap"
+    usdface.write_capture(_capture(), folder)
+    first = sorted((folder / "train").glob("*.json"))[0]
+    data = json.loads(first.read_text())
+    data["blendShapes"]["notAShape"] = 0.5
+    first.write_text(json.dumps(data))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        here = sys._getframe().f_lineno
+        usdface.import_livelink_take(csv, tmp_path / "t.usda", timecode_rate=30.0)          # here + 1
+        usdface.read_capture(folder)                                                         # here + 2
+    where = {("outside [0, 1]" if "outside [0, 1]" in str(w.message) else "notAShape"): (w.filename, w.lineno)
+             for w in said if issubclass(w.category, UsdFaceWarning)}
+    assert where == {"outside [0, 1]": (__file__, here + 1), "notAShape": (__file__, here + 2)}, \
+        [(str(w.message)[:60], w.filename, w.lineno) for w in said]
+

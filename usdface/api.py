@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from .errors import warn
 from .namelist import name_list
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -270,12 +270,11 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
                            f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
                            f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
-            warnings.warn(message, w.category, stacklevel=2)
+            warn(message, w.category)
         if test_every > 0 and len(selection.test) == 0:
-            warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
-                          f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
-                          "refuse this capture); lower --min-separation or --test-every", UserWarning,
-                          stacklevel=2)
+            warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
+                 f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
+                 "refuse this capture); lower --min-separation or --test-every")
         coverage = format_coverage(selection, data.times)
         if out_path is None:
             return CaptureSelection(data, selection, coverage, None, None)
@@ -597,10 +596,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         from .take_select import REST_FIX, REST_WEIGHT
 
         if test_peak < REST_WEIGHT:                         # every method predicts them as the neutral
-            warnings.warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
-                          f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
-                          f"as the neutral, so the table cannot tell the methods apart "
-                          f"({_rest_fix(capture, source) or REST_FIX})", UserWarning, stacklevel=2)
+            warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
+                 f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
+                 f"as the neutral, so the table cannot tell the methods apart "
+                 f"({_rest_fix(capture, source) or REST_FIX})")
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}
@@ -1446,7 +1445,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         # the page is a sign-off: said before it is built, once its inputs are known to be usable (a take
         # given as --capture was warned about as 'not among the inputs', then refused)
         for text in stale_inputs(layer_path, given):
-            warnings.warn(text, UserWarning, stacklevel=2)
+            warn(text)
         p.start("build the page")
         page = build_review_html(data)
         p.start(f"write {out.name}")
@@ -1507,7 +1506,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     # refused: exported, it was a generic or broken face labelled [personalized]
     refuse_avatar_mismatch(layer_path, "an export")
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
-        warnings.warn(text, UserWarning, stacklevel=2)
+        warn(text)
     done: dict[str, Path] = {}
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
         _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
@@ -1544,9 +1543,9 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
         with_inbetweens = [f"{rig.name}:{n}" for rig in rigs for n in rig.inbetweens]
         if with_inbetweens:           # glTF morph targets and full target OBJs are the primary shapes only
             more = " ..." if len(with_inbetweens) > 4 else ""
-            warnings.warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
-                          f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
-                          "and 1 there", UserWarning, stacklevel=2)
+            warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
+                 f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
+                 "and 1 there")
         if gltf:
             from .io.usd_skeleton import read_gltf_skin
 
