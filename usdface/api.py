@@ -515,10 +515,10 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     from .personalize.evaluate import score_capture_rig, template_rig
 
     if role not in ("test", "train"):
-        from .errors import UsdFaceError
+        from .errors import OptionError
 
-        raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
-                           "'train'")
+        raise OptionError(f"bad role {role!r}: not a frame role evaluate_capture scores ('test' or 'train')",
+                          fix="use role='test' (the held-out frames, eq. 5) or role='train'")
     from .model import FaceRig
     from .personalize import FitResult
 
@@ -1153,15 +1153,15 @@ def _refuse_unknown_options(options) -> None:
 def check_personalize_options(**options: Any) -> None:
     """Refuse, before any work, what :func:`personalize_avatar` would refuse or ignore among ``options``: an
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
-    (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
+    (:class:`usdface.errors.OptionError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
-    from .errors import UsdFaceError
+    from .errors import OptionError
     from .transfer import options as _implant
 
     _refuse_unknown_options(options)
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
-            raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
+            raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
     _implant.check_mode_options(get("face_transfer", "person"), options)
     _implant.check_modes(get("face_transfer", "person"), get("approximation"),
@@ -1474,17 +1474,17 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    from .errors import OptionError, UsdFaceError
+    from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
     from .io.gltf import GLTF_EXTENSIONS
     from .io.layers import check_output_path
 
     if variant not in VARIANTS:
-        raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+        raise OptionError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
     if not (gltf or obj_dir or flatten):
-        raise UsdFaceError("nothing to export",
-                           fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
+        raise OptionError("nothing to export: no gltf, obj_dir or flatten output given",
+                          fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
     if obj_dir:   # a file output in the folder output: written first, it made the folder "not empty"
         folder = Path(obj_dir).resolve()
         for what, option, out in (("glTF output", "--gltf", gltf),
