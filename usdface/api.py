@@ -901,17 +901,25 @@ def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) 
     """An option ``func`` (the core function ``options`` go to) does not take, refused before any work as
     the other API functions refuse theirs (:class:`usdface.errors.OptionError` naming it and what it takes):
     ``compute_landmarks(avatar, epsilom=0.4)`` died with Python's TypeError from the core function, after the
-    avatar was read. ``given``: the core's parameters the API function fills itself."""
+    avatar was read. ``given``: the core's parameters the API function fills itself. A boolean option given
+    as anything else (``symmetric="yes"``, which counted as true, and ``"no"`` too) is refused as well."""
     import inspect
 
-    params = [n for n, p in inspect.signature(func).parameters.items()
-              if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD]
+    import numpy as np
+
+    from .errors import OptionError
+
+    signature = inspect.signature(func).parameters
+    params = [n for n, p in signature.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
     unknown = [k for k in options if k not in params or k in given]
     if unknown:
-        from .errors import OptionError
-
         raise OptionError(f"{what} does not take {', '.join(map(str, unknown))}",
                           fix=f"drop it, or use one of: {', '.join(n for n in params if n not in given)}")
+    annotations = {n: p.annotation for n, p in signature.items()}
+    for name, value in options.items():     # symmetric="yes" was taken as true, and "no" too
+        if annotations[name] in ("bool", bool) and not isinstance(value, bool | np.bool_):
+            raise OptionError(f"bad {name} {value!r}: {what}'s {name} is a boolean",
+                              fix=f"pass {name}=True or {name}=False")
 
 
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
@@ -967,12 +975,21 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     ``empirical``: the vertex indices of a layout scored as an extra one, as a sequence of ints or a JSON
     file of them (or ICT-FaceKit's ``vertex_indices.json``). ``options`` go to
     :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``, ``symmetric``, ``backend``, ...)."""
-    from .errors import LandmarkError
+    import numpy as np
+
+    from .errors import LandmarkError, OptionError
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
+    from .personalize.api import check_number
 
     _refuse_unknown_keywords(_evaluate, options, "evaluate_landmarks",
                              given=("rig", "weights", "empirical", "noise"))
+    if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1:
+        # 0 read every frame of the takes, a float died in numpy after reading them
+        raise OptionError(f"bad frames {frames!r}: evaluate_landmarks' frames is a whole number >= 1",
+                          fix="pass frames=400 (the default; --frames), the test frames taken from the takes")
+    noise_mm = check_number("noise_mm", noise_mm, low=0.0, inclusive=True, error=OptionError,
+                            fix="the tracking noise in mm >= 0, e.g. noise_mm=0.5 (the default, --noise)")
     if isinstance(takes, _PATH):            # one take, not its characters
         takes = [takes]
     elif isinstance(takes, Iterable) and not isinstance(takes, str | bytes):
