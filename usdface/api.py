@@ -147,10 +147,10 @@ def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> 
     if usd:
         from .io.layers import check_output_path
 
-        return check_output_path(out, force, inputs=inputs)
+        return check_output_path(out, force, inputs=inputs, what="capture file")
     from .io.atomic import check_output_dir
 
-    return check_output_dir(out, force, inputs=inputs)
+    return check_output_dir(out, force, inputs=inputs, what="capture folder")
 
 
 def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
@@ -373,7 +373,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     from .io.usd_anim import write_animation_usd
     from .progress import steps
 
-    check_output_path(out_path, force, inputs=[csv])
+    check_output_path(out_path, force, inputs=[csv], what="take file")
     with steps("anim import", 2) as p:
         p.start(f"read {Path(csv).name}")
         data = read_livelink_take(csv, timecode_rate)
@@ -410,7 +410,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     if out_path is not None:
         from .io.layers import check_output_path
 
-        check_output_path(out_path, force, inputs=[capture, options.get("pins")])
+        check_output_path(out_path, force, inputs=[capture, options.get("pins")], what="fit rig file")
     reading = isinstance(capture, _PATH)            # any os.PathLike, as _as_capture reads it
     source = capture if reading else None
     parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items()
@@ -479,7 +479,7 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         _expect(fit, (), "write_fit_rig's fit", "a FitResult or a FaceRig",
                 "pass what fit_capture / fit_personalized_shapes returned")
 
-    out = check_output_path(out_path, force)
+    out = check_output_path(out_path, force, what="fit rig file")
     info = getattr(fit, "info", None) or {}
     data = {"format": "fit", "formatVersion": 1, "version": __version__,
             "method": str(info.get("method", "")),
@@ -578,7 +578,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     if usd_path:
         from .io.layers import check_output_path
 
-        check_output_path(usd_path, force, inputs=inputs)
+        check_output_path(usd_path, force, inputs=inputs, what="error-map file")
     truth_path = truth if isinstance(truth, str | Path) else None
     if truth_path is not None:
         truth = _read_truth(truth_path)

@@ -354,7 +354,7 @@ def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) ->
     from .usd_anim import author_skel_animation
 
     path = Path(path)
-    uc._check_output(path, force)
+    uc._check_output(path, force, what="take file")
     if take.points is None:
         raise CaptureError("the take has no meshes", path=path,
                            fix="use 'usdface anim import' for weights only")

@@ -47,10 +47,12 @@ _ROLE_COLOR = {"train": (0.35, 0.55, 0.85), "test": (0.9, 0.55, 0.25)}
 
 
 # ----------------------------------------------------------------------------------------------- writing
-def _check_output(path: Path, force: bool) -> None:
+def _check_output(path: Path, force: bool, what: str = "capture file") -> None:
+    """:func:`.layers.check_output_path` naming the file for what it is (it said 'output layer exists' of a
+    capture)."""
     from .layers import check_output_path
 
-    check_output_path(path, force)
+    check_output_path(path, force, what=what)
 
 
 def _save(stage, path: Path, force: bool = False) -> None:
