@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdface.errors import UsdFaceError
+from usdface.errors import OptionError, UsdFaceError
 from usdface.io.livelink import write_livelink_csv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,7 +43,7 @@ def test_api_refuses_the_numbers_the_cli_refuses(tmp_path, options, needle):
         api.write_retarget_map(A, C, out, **options)
     assert err.value.fix and not out.exists()
     mode = {"face_transfer": "offset"} if "falloff" in options else {}
-    with pytest.raises(UsdFaceError, match=needle):
+    with pytest.raises(OptionError, match=needle):
         api.personalize_avatar(A, C, tmp_path / "p.usda", **options, **mode)
     assert not (tmp_path / "p.usda").exists()
 
@@ -61,8 +61,34 @@ def test_api_refuses_what_it_cannot_use():
 
     with pytest.raises(UsdFaceError, match="must be a FaceRig, an Avatar or an avatar file"):
         api.compute_landmarks(3)
-    with pytest.raises(UsdFaceError, match="unknown frame role 'bogus'"):
+    with pytest.raises(OptionError, match="bad role 'bogus': not a frame role") as err:
         api.evaluate_capture(C, role="bogus")
+    assert "role='train'" in err.value.fix
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda api, tmp: api.evaluate_capture(C, role="val"), r"bad role 'val'"),
+    (lambda api, tmp: api.write_retarget_map(A, C, tmp / "m.json", mu=-1), r"bad mu -1"),
+    (lambda api, tmp: api.check_personalize_options(face_transfer="persn"), r"unknown face transfer 'persn' "
+                                                                            r"\(face_transfer \(--face-"),
+    (lambda api, tmp: api.check_personalize_options(prior="x"), r"unknown prior 'x' \(prior"),
+    (lambda api, tmp: api.check_personalize_options(approximation="x"), r"unknown approximation 'x'"),
+    (lambda api, tmp: api.check_personalize_options(map_prior="x"), r"unknown map prior 'x'"),
+    (lambda api, tmp: api.check_personalize_options(support=(0.05, 0.01)), r"low > high"),
+    (lambda api, tmp: api.check_personalize_options(dry_run="yes"), r"bad dry_run 'yes': not a boolean"),
+    (lambda api, tmp: api.export_avatar(A, flatten=tmp / "f.usdc", variant="x"), r"unknown variant 'x'"),
+    (lambda api, tmp: api.export_avatar(A), r"nothing to export"),
+    (lambda api, tmp: api.check(A, rules=["NoSuchRule"]), r"unknown check rule"),
+])
+def test_bad_option_values_are_option_errors(tmp_path, call, needle):
+    """User trial: ``evaluate_capture(role="val")``, ``mu=-1`` and the other option values out of their set
+    or range raised a bare UsdFaceError, which a script cannot tell from a failed step: an OptionError (a
+    UsdFaceError, so ``except UsdFaceError`` still catches it) naming the option and the fix."""
+    from usdface import api
+
+    with pytest.raises(OptionError, match=needle) as err:
+        call(api, tmp_path)
+    assert err.value.fix and not any(tmp_path.iterdir())
 
 
 def test_weight_bounds_as_text_are_refused_with_the_manifest_spelling():

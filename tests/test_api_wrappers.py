@@ -547,6 +547,14 @@ def _write_landmarks_to_none(usdface):
     (lambda u: u.compute_landmarks("a.usda", epsilom=0.4), "compute_landmarks does not take epsilom"),
     (lambda u: u.landmark_diagnostics("a.usda", foo=1), "landmark_diagnostics does not take foo"),
     (lambda u: u.evaluate_landmarks("a.usda", "t.csv", noise=1), "evaluate_landmarks does not take noise"),
+    # user trial: symmetric="yes" counted as true (and "no" too), frames=0 read every frame, each unremarked
+    (lambda u: u.compute_landmarks("a.usda", symmetric="yes"), "bad symmetric 'yes': compute_landmarks'"),
+    (lambda u: u.compute_landmarks("a.usda", adaptive="False"), "bad adaptive 'False'"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", symmetric="no"), "bad symmetric 'no'"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", frames=0), "bad frames 0: .* whole number >= 1"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", frames=2.5), "bad frames 2.5"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", frames=True), "bad frames True"),
+    (lambda u: u.evaluate_landmarks("a.usda", "t.csv", noise_mm=-1), "bad noise_mm -1"),
     (lambda u: u.landmark_diagnostics(None), "the rig must be a FaceRig, an Avatar or an avatar file"),
     (lambda u: u.evaluate_landmarks(None, "t.csv"), "the rig must be a FaceRig, an Avatar or an avatar"),
     (lambda u: u.write_fit_rig(None, "fit.usda"), "write_fit_rig's fit must be a FitResult or a FaceRig"),
@@ -591,3 +599,37 @@ def test_personalize_batch_refuses_a_job_count_the_command_line_refuses(tmp_path
     with pytest.raises(OptionError, match="jobs must be a whole number >= 1"):
         usdface.personalize_batch(manifest, jobs=jobs)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+
+def test_warnings_name_the_callers_line_not_usdfaces(tmp_path):
+    """User trial: a warning of the API named usdface's own line (``usdface/io/take.py:131``, the reader
+    several calls down that noticed), so a TD's script that read a hundred takes could not tell which of its
+    calls it was. Whatever the depth, the warning names the script's line; its category is UsdFaceWarning
+    (a UserWarning), for a filter to silence usdface's alone."""
+    import json
+    import sys
+    import warnings
+
+    from input_helpers import _capture
+
+    from usdface.errors import UsdFaceWarning
+    from usdface.io.livelink import write_livelink_csv
+
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen", "eyeBlinkLeft"],
+                             np.array([[0.2, 1.5], [0.4, 0.1]]), np.arange(2) / 30.0, timecode_rate=30.0)
+    folder = tmp_path / "cap"
+    usdface.write_capture(_capture(), folder)
+    first = sorted((folder / "train").glob("*.json"))[0]
+    data = json.loads(first.read_text())
+    data["blendShapes"]["notAShape"] = 0.5
+    first.write_text(json.dumps(data))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        here = sys._getframe().f_lineno
+        usdface.import_livelink_take(csv, tmp_path / "t.usda", timecode_rate=30.0)          # here + 1
+        usdface.read_capture(folder)                                                         # here + 2
+    where = {("outside [0, 1]" if "outside [0, 1]" in str(w.message) else "notAShape"): (w.filename, w.lineno)
+             for w in said if issubclass(w.category, UsdFaceWarning)}
+    assert where == {"outside [0, 1]": (__file__, here + 1), "notAShape": (__file__, here + 2)}, \
+        [(str(w.message)[:60], w.filename, w.lineno) for w in said]
+

@@ -219,3 +219,27 @@ def test_capture_with_a_bad_unit_is_refused(tmp_path, capsys, mpu):
     err = capsys.readouterr().err
     assert "invalid metersPerUnit" in err and "capture.usda" in err
     assert not (tmp_path / "rig.usda").exists()
+
+
+def test_an_existing_output_is_named_for_what_it_is(tmp_path, capsys):
+    """User trial: ``usdface capture import`` onto an existing ``cap.usda`` said 'cap.usda: output layer
+    exists': a capture is no layer over an avatar. The refusal names the file for what it is (a capture
+    file or folder, a take file, a fit rig file)."""
+    from usdface.io.livelink import write_livelink_csv
+
+    csv = write_livelink_csv(tmp_path / "t.csv", ["jawOpen"], np.full((4, 1), 0.5), np.arange(4) / 30.0)
+    for name in ("cap.usda", "take.usda", "rig.usda"):
+        (tmp_path / name).write_text("#usda 1.0\n")
+    (tmp_path / "capf").mkdir()
+    (tmp_path / "capf" / "keep.txt").write_text("x")
+    for argv, says in ((["capture", "import", str(C), "-o", str(tmp_path / "cap.usda")],
+                        "cap.usda: capture file exists"),
+                       (["capture", "import", str(C), "-o", str(tmp_path / "capf")],
+                        "capf: capture folder exists"),
+                       (["anim", "import", str(csv), "-o", str(tmp_path / "take.usda")],
+                        "take.usda: take file exists"),
+                       (["fit", str(C), "-o", str(tmp_path / "rig.usda")],
+                        "rig.usda: fit rig file exists")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert says in err and "output layer" not in err and "--force" in err, err

@@ -55,7 +55,7 @@ def test_an_output_folder_asks_for_a_file_inside_it(tmp_path, capsys):
     (tmp_path / "sub").mkdir()
     assert main(["fit", str(C), "-o", str(tmp_path / "sub"), "-q"]) == 2
     err = capsys.readouterr().err
-    assert "output layer path is a folder" in err and f"e.g. {tmp_path / 'sub' / 'out.usda'}" in err
+    assert "fit rig file path is a folder" in err and f"e.g. {tmp_path / 'sub' / 'out.usda'}" in err
     assert list((tmp_path / "sub").iterdir()) == []
 
 

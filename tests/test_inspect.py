@@ -322,3 +322,22 @@ def test_shape_storage_holds_no_copy_of_the_offsets():
         tracemalloc.stop()
     assert storage["zeroShapes"] == ["s0"]
     assert peak < 0.2 * deltas.nbytes, peak
+
+
+def test_a_file_without_blend_shapes_is_described_not_refused(shared, capsys):
+    """User trial: ``usdface inspect skintest-blender-4.1.usda`` (a skinned grid, no shape keys) exited 2
+    with the avatar reader's refusal, 'no mesh with blend shapes'. inspect describes a file: its meshes,
+    skeleton and units, and why it is no face rig (the reader's message and fix, as a note); exit 0."""
+    path = shared / "data/usd-real-world/blender/skintest-blender-4.1.usda"
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == f"{path}: meshes without blend shapes", out
+    assert "mesh /root/Armature/Grid/Grid: 121 vertices, 100 faces, no blend shapes, skinned by " \
+           "/root/Armature/Armature_001" in out and "skeleton /root/Armature/Armature_001: 2 joints" in out
+    assert "no mesh with blend shapes" in out and "fix: export the avatar with its shape keys" in out
+    assert main(["inspect", "--json", str(path)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and doc["kind"] == "meshes without blend shapes" and doc["metersPerUnit"] == 1.0
+    assert [m["prim"] for m in doc["meshes"]] == ["/root/Armature/Grid/Grid"]
+    assert main(["personalize", str(path), str(C), "-o", "never.usda", "--dry-run"]) == 2   # still no avatar
+    assert "no mesh with blend shapes" in capsys.readouterr().err

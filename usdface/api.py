@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from .errors import warn
 from .namelist import name_list
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -147,10 +147,10 @@ def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> 
     if usd:
         from .io.layers import check_output_path
 
-        return check_output_path(out, force, inputs=inputs)
+        return check_output_path(out, force, inputs=inputs, what="capture file")
     from .io.atomic import check_output_dir
 
-    return check_output_dir(out, force, inputs=inputs)
+    return check_output_dir(out, force, inputs=inputs, what="capture folder")
 
 
 def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, exact: bool = True,
@@ -270,12 +270,11 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
                            f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
                            f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
-            warnings.warn(message, w.category, stacklevel=2)
+            warn(message, w.category)
         if test_every > 0 and len(selection.test) == 0:
-            warnings.warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
-                          f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
-                          "refuse this capture); lower --min-separation or --test-every", UserWarning,
-                          stacklevel=2)
+            warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
+                 f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
+                 "refuse this capture); lower --min-separation or --test-every")
         coverage = format_coverage(selection, data.times)
         if out_path is None:
             return CaptureSelection(data, selection, coverage, None, None)
@@ -374,7 +373,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     from .io.usd_anim import write_animation_usd
     from .progress import steps
 
-    check_output_path(out_path, force, inputs=[csv])
+    check_output_path(out_path, force, inputs=[csv], what="take file")
     with steps("anim import", 2) as p:
         p.start(f"read {Path(csv).name}")
         data = read_livelink_take(csv, timecode_rate)
@@ -411,7 +410,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     if out_path is not None:
         from .io.layers import check_output_path
 
-        check_output_path(out_path, force, inputs=[capture, options.get("pins")])
+        check_output_path(out_path, force, inputs=[capture, options.get("pins")], what="fit rig file")
     reading = isinstance(capture, _PATH)            # any os.PathLike, as _as_capture reads it
     source = capture if reading else None
     parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items()
@@ -480,7 +479,7 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         _expect(fit, (), "write_fit_rig's fit", "a FitResult or a FaceRig",
                 "pass what fit_capture / fit_personalized_shapes returned")
 
-    out = check_output_path(out_path, force)
+    out = check_output_path(out_path, force, what="fit rig file")
     info = getattr(fit, "info", None) or {}
     data = {"format": "fit", "formatVersion": 1, "version": __version__,
             "method": str(info.get("method", "")),
@@ -516,10 +515,10 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     from .personalize.evaluate import score_capture_rig, template_rig
 
     if role not in ("test", "train"):
-        from .errors import UsdFaceError
+        from .errors import OptionError
 
-        raise UsdFaceError(f"unknown frame role {role!r}", fix="use role='test' (held-out frames, eq. 5) or "
-                           "'train'")
+        raise OptionError(f"bad role {role!r}: not a frame role evaluate_capture scores ('test' or 'train')",
+                          fix="use role='test' (the held-out frames, eq. 5) or role='train'")
     from .model import FaceRig
     from .personalize import FitResult
 
@@ -579,7 +578,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
     if usd_path:
         from .io.layers import check_output_path
 
-        check_output_path(usd_path, force, inputs=inputs)
+        check_output_path(usd_path, force, inputs=inputs, what="error-map file")
     truth_path = truth if isinstance(truth, str | Path) else None
     if truth_path is not None:
         truth = _read_truth(truth_path)
@@ -597,10 +596,10 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
         from .take_select import REST_FIX, REST_WEIGHT
 
         if test_peak < REST_WEIGHT:                         # every method predicts them as the neutral
-            warnings.warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
-                          f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
-                          f"as the neutral, so the table cannot tell the methods apart "
-                          f"({_rest_fix(capture, source) or REST_FIX})", UserWarning, stacklevel=2)
+            warn(f"{source or capture.source or 'the capture'}: its {len(capture.test)} test frames "
+                 f"show no expression (largest weight {test_peak:.2f}): every method predicts them "
+                 f"as the neutral, so the table cannot tell the methods apart "
+                 f"({_rest_fix(capture, source) or REST_FIX})")
         p.start("fit and score the methods")
         report = _evaluate(capture, list(methods), truth=truth, **options)
         outputs = {}
@@ -902,17 +901,25 @@ def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) 
     """An option ``func`` (the core function ``options`` go to) does not take, refused before any work as
     the other API functions refuse theirs (:class:`usdface.errors.OptionError` naming it and what it takes):
     ``compute_landmarks(avatar, epsilom=0.4)`` died with Python's TypeError from the core function, after the
-    avatar was read. ``given``: the core's parameters the API function fills itself."""
+    avatar was read. ``given``: the core's parameters the API function fills itself. A boolean option given
+    as anything else (``symmetric="yes"``, which counted as true, and ``"no"`` too) is refused as well."""
     import inspect
 
-    params = [n for n, p in inspect.signature(func).parameters.items()
-              if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD]
+    import numpy as np
+
+    from .errors import OptionError
+
+    signature = inspect.signature(func).parameters
+    params = [n for n, p in signature.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
     unknown = [k for k in options if k not in params or k in given]
     if unknown:
-        from .errors import OptionError
-
         raise OptionError(f"{what} does not take {', '.join(map(str, unknown))}",
                           fix=f"drop it, or use one of: {', '.join(n for n in params if n not in given)}")
+    annotations = {n: p.annotation for n, p in signature.items()}
+    for name, value in options.items():     # symmetric="yes" was taken as true, and "no" too
+        if annotations[name] in ("bool", bool) and not isinstance(value, bool | np.bool_):
+            raise OptionError(f"bad {name} {value!r}: {what}'s {name} is a boolean",
+                              fix=f"pass {name}=True or {name}=False")
 
 
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
@@ -968,12 +975,21 @@ def evaluate_landmarks(rig: FaceRig | Avatar | PathLike, takes: PathLike | Seque
     ``empirical``: the vertex indices of a layout scored as an extra one, as a sequence of ints or a JSON
     file of them (or ICT-FaceKit's ``vertex_indices.json``). ``options`` go to
     :func:`usdface.landmarks.evaluate.evaluate_landmarks` (``rays``, ``symmetric``, ``backend``, ...)."""
-    from .errors import LandmarkError
+    import numpy as np
+
+    from .errors import LandmarkError, OptionError
     from .io.livelink import livelink_weights
     from .landmarks.evaluate import evaluate_landmarks as _evaluate
+    from .personalize.api import check_number
 
     _refuse_unknown_keywords(_evaluate, options, "evaluate_landmarks",
                              given=("rig", "weights", "empirical", "noise"))
+    if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1:
+        # 0 read every frame of the takes, a float died in numpy after reading them
+        raise OptionError(f"bad frames {frames!r}: evaluate_landmarks' frames is a whole number >= 1",
+                          fix="pass frames=400 (the default; --frames), the test frames taken from the takes")
+    noise_mm = check_number("noise_mm", noise_mm, low=0.0, inclusive=True, error=OptionError,
+                            fix="the tracking noise in mm >= 0, e.g. noise_mm=0.5 (the default, --noise)")
     if isinstance(takes, _PATH):            # one take, not its characters
         takes = [takes]
     elif isinstance(takes, Iterable) and not isinstance(takes, str | bytes):
@@ -1154,15 +1170,15 @@ def _refuse_unknown_options(options) -> None:
 def check_personalize_options(**options: Any) -> None:
     """Refuse, before any work, what :func:`personalize_avatar` would refuse or ignore among ``options``: an
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
-    (:class:`usdface.errors.UsdFaceError` naming it and the fix). ``usdface batch`` runs it on every manifest
+    (:class:`usdface.errors.OptionError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
-    from .errors import UsdFaceError
+    from .errors import OptionError
     from .transfer import options as _implant
 
     _refuse_unknown_options(options)
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
-            raise UsdFaceError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
+            raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
     _implant.check_mode_options(get("face_transfer", "person"), options)
     _implant.check_modes(get("face_transfer", "person"), get("approximation"),
@@ -1446,7 +1462,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
         # the page is a sign-off: said before it is built, once its inputs are known to be usable (a take
         # given as --capture was warned about as 'not among the inputs', then refused)
         for text in stale_inputs(layer_path, given):
-            warnings.warn(text, UserWarning, stacklevel=2)
+            warn(text)
         p.start("build the page")
         page = build_review_html(data)
         p.start(f"write {out.name}")
@@ -1475,17 +1491,17 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    from .errors import OptionError, UsdFaceError
+    from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
     from .io.gltf import GLTF_EXTENSIONS
     from .io.layers import check_output_path
 
     if variant not in VARIANTS:
-        raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+        raise OptionError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
     if not (gltf or obj_dir or flatten):
-        raise UsdFaceError("nothing to export",
-                           fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
+        raise OptionError("nothing to export: no gltf, obj_dir or flatten output given",
+                          fix="pass --gltf OUT.glb, --obj-dir DIR and/or --flatten OUT.usdc")
     if obj_dir:   # a file output in the folder output: written first, it made the folder "not empty"
         folder = Path(obj_dir).resolve()
         for what, option, out in (("glTF output", "--gltf", gltf),
@@ -1507,7 +1523,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     # refused: exported, it was a generic or broken face labelled [personalized]
     refuse_avatar_mismatch(layer_path, "an export")
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
-        warnings.warn(text, UserWarning, stacklevel=2)
+        warn(text)
     done: dict[str, Path] = {}
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
         _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
@@ -1544,9 +1560,9 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
         with_inbetweens = [f"{rig.name}:{n}" for rig in rigs for n in rig.inbetweens]
         if with_inbetweens:           # glTF morph targets and full target OBJs are the primary shapes only
             more = " ..." if len(with_inbetweens) > 4 else ""
-            warnings.warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
-                          f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
-                          "and 1 there", UserWarning, stacklevel=2)
+            warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
+                 f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
+                 "and 1 there")
         if gltf:
             from .io.usd_skeleton import read_gltf_skin
 

@@ -7,6 +7,9 @@ Every user-facing failure is a :class:`UsdFaceError` subclass whose message name
 from __future__ import annotations
 
 import errno
+import os
+import sys
+import warnings
 
 
 class UsdFaceError(Exception):
@@ -118,3 +121,37 @@ class FitError(UsdFaceError):
 
 class LandmarkError(UsdFaceError):
     """A landmark layout cannot be computed (no shapes, bad epsilon...)."""
+
+
+class UsdFaceWarning(UserWarning):
+    """Category of the warnings usdface issues (a :class:`UserWarning`): ``warnings.filterwarnings("ignore",
+    category=UsdFaceWarning)`` silences them, ``"error"`` makes them raise. They name the line of the
+    caller's code (a script's call of the API), not usdface's own (:func:`warn`), so a filter by
+    ``module=`` matches the caller's module."""
+
+
+#: usdface's own folder: frames whose file is in it are not the caller's (:func:`warn`).
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def _importlib_frame(frame) -> bool:
+    """A frame of the import machinery, which :func:`warnings.warn` does not count in ``stacklevel``."""
+    name = frame.f_code.co_filename
+    return "importlib" in name and "_bootstrap" in name
+
+
+def warn(message, category: type[Warning] = UsdFaceWarning) -> None:
+    """Issue a warning at the caller's line: the first frame outside the usdface package (a script's call of
+    :func:`usdface.api.personalize_avatar`, not the reader several calls down that noticed), whatever the
+    depth of the call inside usdface. (``skip_file_prefixes`` of Python 3.12 does this; 3.11 is supported.)"""
+    level, frame = 1, sys._getframe(0)                 # stacklevel 1 is this function
+    while True:
+        back = frame.f_back
+        while back is not None and _importlib_frame(back):
+            back = back.f_back
+        if back is None:
+            break
+        frame, level = back, level + 1
+        if not os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+            break
+    warnings.warn(message, category, stacklevel=level)

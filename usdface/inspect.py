@@ -266,7 +266,67 @@ def inspect_file(path, name_map=None) -> dict:
         return summarize_take(read_take(path), info)
     if found.kind is Kind.ERROR_MAPS:
         return summarize_error_maps(path, info)
-    return summarize_avatar(read_avatar(path, name_map=name_map), info)
+    from .errors import RigError
+
+    try:
+        avatar = read_avatar(path, name_map=name_map)
+    except RigError as exc:         # meshes and no blend shape: said what the file is, not refused
+        described = summarize_meshes_without_shapes(path, exc, info)
+        if described is None:
+            raise
+        return described
+    return summarize_avatar(avatar, info)
+
+
+#: ``inspect``'s kind of a USD file with meshes but no blend shape (:func:`summarize_meshes_without_shapes`).
+NO_BLEND_SHAPES = "meshes without blend shapes"
+
+
+def summarize_meshes_without_shapes(path, refusal, layer_info: dict | None = None) -> dict | None:
+    """Report dict for a USD file whose meshes carry no blend shape (a skinning test, a prop, a static
+    scan): what it holds - units, per mesh its vertices, faces, SkelRoot and skeleton, each skeleton's joints
+    - and, as a note, why it is no face rig (``refusal``, the avatar reader's RigError, with its fix). None
+    when the file has a mesh with blend shapes or no mesh at all (the reader's refusal stands: it is what is
+    wrong with the file)."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from .io.usd_open import open_usd_stage
+    from .io.usd_rig import _has_blend_shapes, read_stage_metadata
+
+    stage = open_usd_stage(path)
+    prims = list(stage.Traverse(Usd.TraverseInstanceProxies()))
+    meshes = [p for p in prims if p.IsA(UsdGeom.Mesh)]
+    if not meshes or any(_has_blend_shapes(p) for p in prims):
+        return None
+    meta = read_stage_metadata(stage, path)
+    mpu = meta["metersPerUnit"]
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render])
+    rows = []
+    for prim in meshes:
+        mesh = UsdGeom.Mesh(prim)
+        points = mesh.GetPointsAttr().Get()
+        counts = mesh.GetFaceVertexCountsAttr().Get()
+        root = next((a for a in prim.GetPath().GetAncestorsRange()
+                     if stage.GetPrimAtPath(a).IsA(UsdSkel.Root)), None)
+        skeleton = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        box = cache.ComputeWorldBound(prim).ComputeAlignedRange()
+        rows.append({"prim": str(prim.GetPath()), "vertices": len(points) if points is not None else 0,
+                     "faces": len(counts) if counts is not None else 0,
+                     "skelRoot": None if root is None else str(root),
+                     "skeleton": str(skeleton.GetPath()) if skeleton else None,
+                     "boundsMetres": None if box.IsEmpty() else
+                     [[round(float(v) * mpu, 4) + 0.0 for v in box.GetMin()],
+                      [round(float(v) * mpu, 4) + 0.0 for v in box.GetMax()]]})
+    skeletons = {str(p.GetPath()): len(UsdSkel.Skeleton(p).GetJointsAttr().Get() or [])
+                 for p in prims if p.IsA(UsdSkel.Skeleton)}
+    fix = f" (fix: {refusal.fix})" if refusal.fix else ""
+    out = {"file": str(Path(path).absolute()), "kind": NO_BLEND_SHAPES, "upAxis": meta["upAxis"],
+           "metersPerUnit": mpu, "defaultPrim": stage.GetRootLayer().defaultPrim or None,
+           "stageMetadata": dict(meta["authored"]), "meshes": rows, "skeletons": skeletons,
+           "notes": [f"no BlendShape: not a face rig usdface can personalize ({refusal.message}){fix}"]}
+    if layer_info:
+        out["subLayers"] = layer_info.get("subLayers", [])
+    return out
 
 
 def summarize_error_maps(path, layer_info: dict | None = None) -> dict:
@@ -358,6 +418,20 @@ def format_report(report: dict) -> str:
                          "TAKE'); 'capture select TAKE' shows which frames a capture would keep")
         lines += _never_above_line(report)
         lines += _arkit_lines(report["arkit"])
+        return "\n".join(lines)
+    if kind == NO_BLEND_SHAPES:
+        mpu = report["metersPerUnit"]
+        lines.append(f"  units: metersPerUnit {mpu}, upAxis {report['upAxis']}, "
+                     f"defaultPrim {report.get('defaultPrim')}")
+        for note in report.get("notes", []):
+            lines.append(f"  note: {note}")
+        for mesh in report["meshes"]:
+            bound = ("" if mesh["skeleton"] is None else f", skinned by {mesh['skeleton']}") + (
+                "" if mesh["skelRoot"] is None else f" under SkelRoot {mesh['skelRoot']}")
+            lines.append(f"  mesh {mesh['prim']}: {mesh['vertices']} vertices, {mesh['faces']} faces, "
+                         f"no blend shapes{bound}")
+        for skel, joints in report.get("skeletons", {}).items():
+            lines.append(f"  skeleton {skel}: {joints} joints")
         return "\n".join(lines)
     if kind == "errorMaps":
         lines[0] = (f"{report.get('file')}: error maps ('usdface evaluate --usd'; displayColor 0 mm blue, "

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import OutputExistsError, UsdFaceError
+from .errors import OutputExistsError, UsdFaceError, warn
 
 #: View name -> rotation applied to points before dropping z (camera looks down -z of the rotated frame).
 VIEWS = {
@@ -107,12 +107,11 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
     if len(tri) and not front.any():
         # every face edge-on or turned away (Pixar's Z-up test plane, lying flat once Y is up): the panel
         # came out blank and nothing said why
-        import warnings
 
-        warnings.warn(f"no face of the mesh faces the camera in the {view} view (it is seen edge-on or "
-                      "from behind: the face is expected to look down +Z with Y up, after the file's up "
-                      "axis); its panel is empty (check the file's upAxis; --view left or right shows a face "
-                      "turned sideways)", UserWarning, stacklevel=2)
+        warn(f"no face of the mesh faces the camera in the {view} view (it is seen edge-on or "
+             "from behind: the face is expected to look down +Z with Y up, after the file's up "
+             "axis); its panel is empty (check the file's upAxis; --view left or right shows a face "
+             "turned sideways)")
     order = np.argsort(corners[front][:, :, 2].mean(axis=1))    # far to near
     faces = np.flatnonzero(front)[order]
     shade = 0.35 + 0.65 * np.clip(normals[faces] @ _LIGHT, 0.0, 1.0)

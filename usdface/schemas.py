@@ -29,8 +29,9 @@ Example::
 from __future__ import annotations
 
 import os
-import warnings
 from pathlib import Path
+
+from .errors import warn
 
 CAPTURE_API = "UsdFaceCaptureAPI"
 LANDMARKS_API = "UsdFaceLandmarksAPI"
@@ -93,7 +94,7 @@ def register(strict: bool = False) -> Path:
                 "opening any USD stage")
         if strict:
             raise error
-        warnings.warn(str(error), stacklevel=2)
+        warn(str(error))
         _late = directory
         return directory
     _registered = directory

@@ -20,13 +20,12 @@ whole weight vector and the mesh of that frame. :func:`select_frames` applies th
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.signal import find_peaks
 
-from .errors import CaptureError
+from .errors import CaptureError, warn
 
 #: Test frames whose weights all stay below this show no expression (a take's rests held out).
 REST_WEIGHT = 0.15
@@ -164,10 +163,9 @@ def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_ever
         candidates = np.flatnonzero(far)
         test = candidates[test_every // 2::test_every]
         if len(test) and w[test].max() < REST_WEIGHT:
-            warnings.warn(f"the {len(test)} held-out test frames show no expression (largest weight "
-                          f"{w[test].max():.2f}): every fitting method predicts them as the neutral, so "
-                          f"'usdface evaluate' cannot tell the methods apart (fix: {REST_FIX})", UserWarning,
-                          stacklevel=2)
+            warn(f"the {len(test)} held-out test frames show no expression (largest weight "
+                 f"{w[test].max():.2f}): every fitting method predicts them as the neutral, so "
+                 f"'usdface evaluate' cannot tell the methods apart (fix: {REST_FIX})")
     return Selection(names, picks, train_arr, train_shape, test, float(threshold), int(per_shape))
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..errors import warn
 from ..namelist import name_list
 from . import add_name_map_option
 from .options import add_quiet, finite_float, nonnegative_int, positive_int, refuse_camera_with_rays, vector3
@@ -249,7 +250,6 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
-        import warnings
 
         from ..io.layers import refuse_avatar_mismatch, stale_inputs
 
@@ -258,7 +258,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
         # as export and review do: a layer whose avatar changed since is compared with the avatar as it is
         # now, and the picture shows the edit as personalization (it said nothing)
         for text in stale_inputs(path):
-            warnings.warn(text, UserWarning, stacklevel=2)
+            warn(text)
         # the avatar under the layer with the layer's channel names: the map given, else the one it records
         name_map = args.name_map or (avatar.metadata or {}).get("name_map")
         p.start(f"read the generic {Path(generic_path).name}")

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, write_fix
+from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, warn, write_fix
 
 __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
            "replace_dir_atomically", "atomic_file", "write_text_atomic", "publish", "temp_sibling",
@@ -574,7 +574,6 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
 def _merge_into(tmp: Path, dest: Path) -> None:
     """Move every file under ``tmp`` to the same place under ``dest``, replacing only those files; all or
     nothing (see :func:`replace_dir_atomically`)."""
-    import warnings
 
     files = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if not p.is_dir())
     written = {rel.as_posix() for rel in files}
@@ -634,9 +633,9 @@ def _merge_into(tmp: Path, dest: Path) -> None:
     finally:
         shutil.rmtree(backup, ignore_errors=True)
     if others:
-        warnings.warn(f"{dest}: kept {len(others)} file(s) this run did not write (e.g. "
-                      f"{others[0].as_posix()}); --force only replaces the files usdface writes: delete "
-                      "stale ones yourself", stacklevel=3)
+        warn(f"{dest}: kept {len(others)} file(s) this run did not write (e.g. "
+             f"{others[0].as_posix()}); --force only replaces the files usdface writes: delete "
+             "stale ones yourself")
 
 
 @contextmanager

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..arkit import ARKIT_NAMES, match_names
-from ..errors import CaptureError, GeometryError, InputFileError
+from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
 from .atomic import check_output_dir, replace_dir_atomically
 from .mesh_io import read_obj, write_obj
@@ -126,8 +125,8 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
         raise CaptureError(f"the same shape has several template files: {', '.join(spellings)}", path=tdir,
                            fix="keep one file per shape")
     if match.unknown:
-        warnings.warn(f"{tdir}: template shapes that are not ARKit names (kept as they are): "
-                      f"{', '.join(match.unknown)}", UserWarning, stacklevel=3)
+        warn(f"{tdir}: template shapes that are not ARKit names (kept as they are): "
+             f"{', '.join(match.unknown)}")
     report.update(inexact=match.inexact, unknown=match.unknown, missing=match.missing)
     by_name = dict(zip(match.canonical, files, strict=True))
     names = order_names(by_name)
@@ -176,13 +175,12 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
         raise CaptureError("no frames: train/ and test/ hold no .obj files", path=root,
                            fix="add train/<NNN>_<shape>.obj + .json frames")
     if clipped:
-        warnings.warn(f"{root}: weights outside [0, 1] clipped in {len(clipped)} frame(s): "
-                      f"{', '.join(clipped[:5])}{' ...' if len(clipped) > 5 else ''}",
-                      UserWarning, stacklevel=3)
+        warn(f"{root}: weights outside [0, 1] clipped in {len(clipped)} frame(s): "
+             f"{', '.join(clipped[:5])}{' ...' if len(clipped) > 5 else ''}")
     if extra:
-        warnings.warn(f"{root}: frame weights for shapes the template lacks (kept in "
-                      f"metadata['extra_weights'], "
-                      f"not fitted): {', '.join(sorted(extra))}", UserWarning, stacklevel=3)
+        warn(f"{root}: frame weights for shapes the template lacks (kept in "
+             f"metadata['extra_weights'], "
+             f"not fitted): {', '.join(sorted(extra))}")
         metadata["extra_weights"] = {n: np.array([v.get(f, 0.0) for f in range(len(points))])
                                      for n, v in sorted(extra.items())}
     metadata["weights_absent"] = sorted(absent, key=names.index)  # template shapes some JSON did not list (0)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputFileError, RigError, UsdFaceError
+from ..errors import InputFileError, OptionError, RigError, UsdFaceError
 from ..model import Avatar
 from .layers import PERSONALIZATION_VARIANT_SET, check_output_path
 
@@ -25,7 +25,7 @@ VARIANTS = ("personalized", "generic")
 
 def _check_variant(variant: str) -> None:
     if variant not in VARIANTS:
-        raise UsdFaceError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
+        raise OptionError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
 
 
 #: What :func:`exported_variant` says of a plain avatar (no ``usdfacePersonalization`` variant set).

@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import csv
 import io
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..arkit import livelink_name, lookalike, match_names
-from ..errors import CaptureError, InputFileError, TimecodeError
+from ..errors import CaptureError, InputFileError, TimecodeError, warn
 from .atomic import write_text_atomic
 from .capture_folder import order_names
 
@@ -164,8 +163,8 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
         if timecode_rate is not None:                           # the caller's rate contradicts the take
             raise TimecodeError(f"{said}, not below the rate given, {rate:g} (likely {implied:g})", path=path,
                                 fix=_rate_fix(implied))
-        warnings.warn(f"{path or 'take'}: {said}: read at {implied:g} per second, not the default "
-                      f"{rate:g} (to set it: {_rate_fix(implied)})", UserWarning, stacklevel=3)
+        warn(f"{path or 'take'}: {said}: read at {implied:g} per second, not the default "
+             f"{rate:g} (to set it: {_rate_fix(implied)})")
         rate = implied
     whole = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2]
     whole = whole + 86400 * np.concatenate([[0], np.cumsum(np.diff(whole) < -43200)])  # past midnight
@@ -173,11 +172,11 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     if len(seconds) >= 3 and len(ff) >= 10 * len(seconds) and ff.max() < rate / 2:
         looks = _common_rate_above(ff.max())                     # 30 per second fields read at 60: 30
         which = "the default " if timecode_rate is None else "the given rate "
-        warnings.warn(f"{path or 'take'}: every timecode frame field is below {looks:g} (at most "
-                      f"{ff.max():g}) over {len(seconds)} seconds of {len(ff)} rows: the timecodes look "
-                      f"like {looks:g} per second, and read at {which}{rate:g} the frames' times are wrong "
-                      f"(each second's frames packed into its first {looks / rate:.2g} s) "
-                      f"(fix: {_rate_fix(looks)})", UserWarning, stacklevel=3)
+        warn(f"{path or 'take'}: every timecode frame field is below {looks:g} (at most "
+             f"{ff.max():g}) over {len(seconds)} seconds of {len(ff)} rows: the timecodes look "
+             f"like {looks:g} per second, and read at {which}{rate:g} the frames' times are wrong "
+             f"(each second's frames packed into its first {looks / rate:.2g} s) "
+             f"(fix: {_rate_fix(looks)})")
     # Differences in frames first (whole seconds are exact), then seconds: keeps time codes clean.
     frames = (whole - whole[0]) * rate + (ff - ff[0]) if len(whole) else whole
     back = np.flatnonzero(np.diff(frames) <= 0)
@@ -245,8 +244,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     if ragged == [len(body) - 1] and len(body) > 1 and len(body[-1]) < len(header) \
             and not text.endswith(("\n", "\r")):
         # the recording stopped mid-row (an app crash, a copy cut short): the complete rows are the take
-        warnings.warn(f"{path}: the last line is cut off ({len(body[-1])} of {len(header)} fields, no line "
-                      f"end): dropped; {len(body) - 1} complete frames read", UserWarning, stacklevel=3)
+        warn(f"{path}: the last line is cut off ({len(body[-1])} of {len(header)} fields, no line "
+             f"end): dropped; {len(body) - 1} complete frames read")
         body, ragged = body[:-1], []
     if ragged:
         raise InputFileError(f"line {ragged[0] + 2} has {len(body[ragged[0]])} fields, the header "
@@ -278,8 +277,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
                          f"{_column(n)} (column {header.index(n) + 1})" if not n else n for n in extra)
         fix = (f" (fix: rename the column{'s' if len(looks) > 1 else ''} "
                + ", ".join(f"{n} -> {livelink_name(a)}" for n, a in looks.items()) + ")") if looks else ""
-        warnings.warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
-                      f"not used as weights): {said}{fix}", UserWarning, stacklevel=2)
+        warn(f"{path}: columns that are neither ARKit weights nor head/eye angles (kept in 'extra', "
+             f"not used as weights): {said}{fix}")
     by_name = {c: numeric[n] for n, c in zip(match.names, match.canonical, strict=True) if n not in extra}
     if not by_name:
         # a take of no weight at all played as one that holds every shape still, and 'anim import' wrote
@@ -297,9 +296,8 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     if weights.size and (weights.min() < 0 or weights.max() > 1):
         out = (weights < 0) | (weights > 1)
         cols = [names[k] for k in np.flatnonzero(out.any(axis=0))]
-        warnings.warn(f"{path}: weights outside [0, 1] (range {weights.min():.4g} .. {weights.max():.4g}) "
-                      f"clipped in {int(out.any(axis=1).sum())} frame(s): {', '.join(cols)}", UserWarning,
-                      stacklevel=2)
+        warn(f"{path}: weights outside [0, 1] (range {weights.min():.4g} .. {weights.max():.4g}) "
+             f"clipped in {int(out.any(axis=1).sum())} frame(s): {', '.join(cols)}")
         weights = np.clip(weights, 0.0, 1.0)
     report = {"inexact": match.inexact, "unknown": match.unknown, "missing": match.missing}
     return LiveLinkTake(names, weights, times, angles, extra, table[:, t_col].tolist(), report, str(path))

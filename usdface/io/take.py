@@ -19,14 +19,13 @@ A take comes in three forms (:func:`read_take` dispatches):
 from __future__ import annotations
 
 import re
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..arkit import ARKIT_NAMES, match_names
-from ..errors import CaptureError, GeometryError, InputFileError
+from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
 from .mesh_io import read_obj
 
@@ -184,12 +183,11 @@ def read_take_folder(path) -> Take:
         # one row for every later mesh when the first file is the one missing; said, not guessed silently
         gaps = np.flatnonzero(np.diff(numbers) > 1)
         after = ", ".join(str(int(numbers[i])) for i in gaps[:5])
-        warnings.warn(f"{root}: {len(objs)} OBJ frames for {len(ll.times)} rows of {csvs[0].name}: frame "
-                      f"{int(numbers[0])} read as row 0, frame n as row n - {int(numbers[0])}"
-                      + (f"; frames missing after {after}" if after else "")
-                      + " (if a frame file is missing at the start, every later mesh is paired with the "
-                        "wrong weights: restore it, or trim the CSV to the frames)",
-                      UserWarning, stacklevel=2)
+        warn(f"{root}: {len(objs)} OBJ frames for {len(ll.times)} rows of {csvs[0].name}: frame "
+             f"{int(numbers[0])} read as row 0, frame n as row n - {int(numbers[0])}"
+             + (f"; frames missing after {after}" if after else "")
+             + " (if a frame file is missing at the start, every later mesh is paired with the "
+               "wrong weights: restore it, or trim the CSV to the frames)")
     if rows.max() >= len(ll.times):
         late = objs[int(rows.argmax())]
         raise CaptureError(f"OBJ frame {late.relative_to(root) if late.is_relative_to(root) else late} has "
@@ -276,8 +274,7 @@ def read_take_usd(path) -> Take:
         attr = UsdSkel.Animation(anims[0]).GetBlendShapeWeightsAttr()
         weights = np.stack([np.array(attr.Get(c), dtype=np.float64) for c in codes.tolist()])
         if not np.isin(codes, anim_codes).all():
-            warnings.warn(f"{path}: weights time samples differ from the mesh's; USD interpolated them",
-                          UserWarning, stacklevel=2)
+            warn(f"{path}: weights time samples differ from the mesh's; USD interpolated them")
             meta["weights_interpolated"] = True
         meta["weights_source"] = str(anims[0].GetPath())
     if weights.shape[1] != len(names):
@@ -288,7 +285,7 @@ def read_take_usd(path) -> Take:
                            fix="repair the take's weights")
     names = _canonical(names, path, frames.GetPath())
     if weights.min() < 0 or weights.max() > 1:
-        warnings.warn(f"{path}: weights outside [0, 1] clipped", UserWarning, stacklevel=2)
+        warn(f"{path}: weights outside [0, 1] clipped")
         weights = np.clip(weights, 0.0, 1.0)
     neutral = template = None
     rp = root.GetPath()
@@ -357,7 +354,7 @@ def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) ->
     from .usd_anim import author_skel_animation
 
     path = Path(path)
-    uc._check_output(path, force)
+    uc._check_output(path, force, what="take file")
     if take.points is None:
         raise CaptureError("the take has no meshes", path=path,
                            fix="use 'usdface anim import' for weights only")
@@ -625,8 +622,8 @@ def _capture(take: Take, frames_idx, roles, labels, template, metadata: dict) ->
         f0 = int(np.argmin(take.weights.max(axis=1)))
         neutral = take.points[f0]
         metadata["neutral_frame"] = f0
-        warnings.warn(f"{take.source}: the take has no neutral mesh; using frame {f0} (weights all "
-                      f"<= {take.weights[f0].max():.2f}) as the neutral", UserWarning, stacklevel=2)
+        warn(f"{take.source}: the take has no neutral mesh; using frame {f0} (weights all "
+             f"<= {take.weights[f0].max():.2f}) as the neutral")
     index = {nm: k for k, nm in enumerate(take.names)}
     cols = np.array([index.get(nm, -1) for nm in template.names])
     extra = [nm for nm in take.names if nm not in set(template.names)]

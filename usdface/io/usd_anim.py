@@ -90,7 +90,7 @@ def write_animation_usd(path, names, weights, times=None, time_codes_per_second:
     from .usd_capture import _check_output, _save
 
     path = Path(path)
-    _check_output(path, force)
+    _check_output(path, force, what="animation file")
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)

@@ -26,12 +26,11 @@ then the float32-quantised capture (exactly).
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, GeometryError, InputFileError
+from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
 from .capture_folder import ROLES, refuse_whole_take
 from .mesh_io import fan_triangulate
@@ -48,10 +47,12 @@ _ROLE_COLOR = {"train": (0.35, 0.55, 0.85), "test": (0.9, 0.55, 0.25)}
 
 
 # ----------------------------------------------------------------------------------------------- writing
-def _check_output(path: Path, force: bool) -> None:
+def _check_output(path: Path, force: bool, what: str = "capture file") -> None:
+    """:func:`.layers.check_output_path` naming the file for what it is (it said 'output layer exists' of a
+    capture)."""
     from .layers import check_output_path
 
-    check_output_path(path, force)
+    check_output_path(path, force, what=what)
 
 
 def _save(stage, path: Path, force: bool = False) -> None:
@@ -259,8 +260,8 @@ def _points(prim, path, time=None) -> np.ndarray:
         p64 = np.array(exact, dtype=np.float64)
         if np.array_equal(p64.astype(np.float32), p32, equal_nan=True):     # NaN: refused below, not "edited"
             return _finite(p64, path, prim, t)
-        warnings.warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
-                      f"points", UserWarning, stacklevel=3)
+        warn(f"{path}: {prim.GetPath()} points were edited after import; using the edited float32 "
+             f"points")
     return _finite(p32.astype(np.float64), path, prim, t)
 
 
@@ -443,7 +444,7 @@ def read_capture_usd(path) -> Capture:
     pts = np.stack(points) if points else np.zeros((0,) + neutral.shape)
     w = np.stack(weights) if weights else np.zeros((0, len(names)))
     if w.size and (w.min() < 0 or w.max() > 1):
-        warnings.warn(f"{path}: weights outside [0, 1] clipped", UserWarning, stacklevel=2)
+        warn(f"{path}: weights outside [0, 1] clipped")
         w = np.clip(w, 0.0, 1.0)
     w = w[:, [names.index(n) for n in template.names]]
 

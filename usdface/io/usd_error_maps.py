@@ -32,7 +32,7 @@ def write_error_maps_usd(path, triangles: np.ndarray, maps: dict, *, spacing: fl
 
     from .layers import atomic_save, check_output_path
 
-    path = check_output_path(path, force)
+    path = check_output_path(path, force, what="error-map file")
     tris = np.asarray(triangles, dtype=np.int64)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)

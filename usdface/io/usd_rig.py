@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import arkit
-from ..errors import AlreadyPersonalizedError, GeometryError, InputFileError, RigError, UsdFaceError
+from ..errors import AlreadyPersonalizedError, GeometryError, InputFileError, RigError, UsdFaceError, warn
 from ..model import Avatar, FaceRig, Inbetween, MeshSource
 from .file_kind import Kind
 from .file_kind import plain as _plain
@@ -204,12 +204,11 @@ def _mesh_geometry(mesh_prim, path):
     samples = attr.GetTimeSamples() if len(points) == 0 else []
     if len(points) == 0 and samples:
         # a cache export: the points only time-sampled; the first sample is taken as the rest pose
-        import warnings
 
         points = _array(attr.Get(samples[0]), np.float64, 3, "points", path, prim)
-        warnings.warn(f"{path}, prim {prim}: points have no default value, only {len(samples)} time "
-                      f"sample(s): the sample at time {samples[0]:g} is read as the rest pose (author the "
-                      "rest points as a default value to choose it)", stacklevel=2)
+        warn(f"{path}, prim {prim}: points have no default value, only {len(samples)} time "
+             f"sample(s): the sample at time {samples[0]:g} is read as the rest pose (author the "
+             "rest points as a default value to choose it)")
     if len(points) == 0:
         raise GeometryError("mesh has no points (at the default time)", path=path, prim=prim,
                             fix="author the rest-pose points as a default (non time-sampled) value")
@@ -991,7 +990,6 @@ def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
     """Warn (and note) each :func:`foreign_units` entry: unwarned, a metres wrapper over a centimetre avatar
     was read 100x too large and personalized that way (the registration scaled the capture by 100, the
     eyelid repair found no eyeballs of a plausible size)."""
-    import warnings
 
     stage_mpu = float(meta["metersPerUnit"])
     for (layer, layer_mpu, ratio), prims in foreign_units(mesh_prims, stage_mpu).items():
@@ -1001,7 +999,7 @@ def _warn_foreign_units(mesh_prims, meta, path, notes: list) -> None:
                      f"{'too large' if ratio < 1 else 'too small'} (fix: author metersPerUnit = "
                      f"{layer_mpu:g} in {Path(path).name}, or scale the prim that brings the avatar in by "
                      f"{ratio:g} with an xformOp:scale)")
-        warnings.warn(notes[-1], UserWarning, stacklevel=3)
+        warn(notes[-1])
 
 
 def recorded_name_map(stage) -> dict | None:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import functools
 import time
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import FitError, GeometryError
+from ..errors import warn as _warn
 from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, squared_lengths
 from ..model import Capture, FaceRig
@@ -435,7 +435,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     t0 = time.perf_counter()
     warn = check_capture(capture)
     for w in warn:
-        warnings.warn(w, stacklevel=3)  # past the single-threaded-BLAS wrapper: the caller's line
+        _warn(w)                                # at the caller's line
     info: dict = {"method": method, "warnings": warn, "timings": timings}
     t1 = time.perf_counter()
     # the mesh's holes, found once for the eyelids of the transfer and the contact step's openings
@@ -1006,9 +1006,9 @@ def _check_frames_like_neutral(capture, src) -> None:
     r0 = np.sqrt(np.mean(np.sum(c0 * c0, axis=1)))
     diagonal = float(np.linalg.norm(np.ptp(n0, axis=0)))
     if not FACE_DIAGONAL_M[0] <= diagonal <= FACE_DIAGONAL_M[1]:
-        warnings.warn(f"{src or 'capture'}: the neutral scan is {diagonal:.3g} m across (a face mask in "
-                      "metres is ~0.15-0.3 m): are its units right? (OBJ captures are read as metres; a USD "
-                      "capture's metersPerUnit says its unit)", UserWarning, stacklevel=3)
+        _warn(f"{src or 'capture'}: the neutral scan is {diagonal:.3g} m across (a face mask in "
+              "metres is ~0.15-0.3 m): are its units right? (OBJ captures are read as metres; a USD "
+              "capture's metersPerUnit says its unit)")
     frames = capture.frames
     P = np.asarray(frames.points, dtype=np.float64)
     if not len(P) or r0 <= 0:

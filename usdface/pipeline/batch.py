@@ -491,11 +491,15 @@ def _install_item_warnings() -> dict:
             return previous(message, category, filename, lineno, file, line)
         notes.append(str(message))
 
+    from ..errors import UsdFaceWarning
+
     before = list(warnings.filters)
     warnings.filterwarnings("always", module=r"usdface(\.|$)", append=True)
+    # usdface's own warnings name the caller's line (usdface.errors.warn), in the host's module: by category
+    warnings.filterwarnings("always", category=UsdFaceWarning, append=True)
     added = [f for f in warnings.filters if f not in before]
     warnings.showwarning = show
-    return {"previous": previous, "show": show, "filter": added[0] if added else None}
+    return {"previous": previous, "show": show, "filters": added}
 
 
 def _remove_item_warnings(installed: dict) -> None:
@@ -503,9 +507,10 @@ def _remove_item_warnings(installed: dict) -> None:
 
     if warnings.showwarning is installed["show"]:   # not replaced meanwhile by someone else
         warnings.showwarning = installed["previous"]
-    if installed["filter"] in warnings.filters:
-        warnings.filters.remove(installed["filter"])
-        getattr(warnings, "_filters_mutated", lambda: None)()
+    for added in installed["filters"]:
+        if added in warnings.filters:
+            warnings.filters.remove(added)
+            getattr(warnings, "_filters_mutated", lambda: None)()
 
 
 #: While any item runs in this process, its warnings go to it (:func:`_install_item_warnings`): installed by

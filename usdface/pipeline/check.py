@@ -156,9 +156,9 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         chosen = list(RULES)
     unknown = [r for r in chosen if r not in RULES]
     if unknown:
-        from ..errors import UsdFaceError
+        from ..errors import OptionError
 
-        raise UsdFaceError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
+        raise OptionError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
     issues: list[Issue] = []
     for rule_id in chosen:
         if rule_id == "Readable" and any(i.severity == ERROR and i.rule in READER_RULES for i in issues):

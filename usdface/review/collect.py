@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError, RigError
+from ..errors import InputFileError, RigError, warn
 from ..motion import shape_changes
 from .page import ReviewData, ReviewMesh, Sequence
 
@@ -180,10 +180,9 @@ def _gone(notes: list, text: str, layer_path: Path) -> None:
     """A recorded input that is no longer there: a note on the page and a warning where the command runs
     (the page silently lost its take's playback, or its test expressions and eq. 5 table; only the page
     said so)."""
-    import warnings
 
     notes.append(text)
-    warnings.warn(f"{Path(layer_path).name}: {text}", UserWarning, stacklevel=3)
+    warn(f"{Path(layer_path).name}: {text}")
 
 
 def _input_kind(path: Path, prov: dict | None) -> str | None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UsdFaceError
+from ..errors import OptionError
 
 __all__ = ["FACE_TRANSFERS", "APPROXIMATIONS", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
            "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
@@ -101,13 +101,12 @@ MAP_PRIORS = ("namesake", "zero")
 def check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,
                  map_prior: str = "namesake") -> str:
     """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
-    (:class:`usdface.errors.UsdFaceError`); returns the approximation to use (``approximation``, or
+    (:class:`usdface.errors.OptionError`); returns the approximation to use (``approximation``, or
     :func:`default_approximation` of ``face_transfer`` when None)."""
     if map_prior not in MAP_PRIORS:
-        raise UsdFaceError(f"unknown map prior {map_prior!r}", fix=f"use one of {', '.join(MAP_PRIORS)}")
+        raise OptionError(f"unknown map prior {map_prior!r} ({option_name('map_prior')})",
+                          fix=f"use one of {', '.join(MAP_PRIORS)}")
     if weight_bounds is not None:
-        from ..errors import OptionError
-
         name = option_name("weight_bounds")
         try:
             if isinstance(weight_bounds, str):     # its characters are no bounds: "01" read as (0, 1)
@@ -127,18 +126,17 @@ def check_modes(face_transfer: str, approximation: str | None, prior: str, weigh
                               fix="give LO < HI, e.g. (0, 1) (--weight-bounds 0 1); for no bounds use "
                                   "weight_bounds=None (--unbounded)")
     if face_transfer not in FACE_TRANSFERS:
-        raise UsdFaceError(f"unknown face transfer {face_transfer!r}",
-                           fix=f"use one of {', '.join(FACE_TRANSFERS)}")
+        raise OptionError(f"unknown face transfer {face_transfer!r} ({option_name('face_transfer')})",
+                          fix=f"use one of {', '.join(FACE_TRANSFERS)}")
     if approximation is None:
         approximation = default_approximation(face_transfer)
     if approximation not in APPROXIMATIONS:
-        raise UsdFaceError(f"unknown approximation {approximation!r}",
-                           fix=f"use one of {', '.join(APPROXIMATIONS)}")
+        raise OptionError(f"unknown approximation {approximation!r} ({option_name('approximation')})",
+                          fix=f"use one of {', '.join(APPROXIMATIONS)}")
     if prior not in PRIORS:
-        raise UsdFaceError(f"unknown prior {prior!r}", fix=f"use one of {', '.join(PRIORS)}")
+        raise OptionError(f"unknown prior {prior!r} ({option_name('prior')})",
+                          fix=f"use one of {', '.join(PRIORS)}")
     if (face_transfer == "person") != (approximation == "field"):
-        from ..errors import OptionError
-
         raise OptionError(f"{option_name('face_transfer')} {face_transfer!r} and "
                           f"{option_name('approximation')} {approximation!r} do not go together",
                           fix="use face_transfer='person' with approximation='field' (the default), or one "
@@ -155,7 +153,7 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
     from ..personalize.api import check_number
 
     def _number(name, value, **how):
-        return check_number(name, value, error=UsdFaceError, **how)
+        return check_number(name, value, error=OptionError, **how)
 
     _number("mu", mu, low=0.0, inclusive=False, fix="use 'auto' or a number > 0 (the eq. 4 ridge weight)",
             keywords=("auto",))
@@ -169,13 +167,13 @@ def check_numbers(*, mu="auto", extension_length=1.0, falloff=0.15, support=(0.0
                 raise TypeError
             lo, hi = support
         except (TypeError, ValueError):
-            raise UsdFaceError(f"bad support {support!r}", fix="give (low, high) fractions of each shape's "
-                               "peak motion, e.g. (0.01, 0.03) ([0.01, 0.03] in a batch manifest), or None"
-                               ) from None
+            raise OptionError(f"bad support {support!r}", fix="give (low, high) fractions of each shape's "
+                              "peak motion, e.g. (0.01, 0.03) ([0.01, 0.03] in a batch manifest), or None"
+                              ) from None
         lo = _number("support low", lo, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         hi = _number("support high", hi, low=0.0, inclusive=True, fix="e.g. support=(0.01, 0.03)")
         if lo > hi:
-            raise UsdFaceError(f"bad support {support!r}: low > high", fix="e.g. support=(0.01, 0.03)")
+            raise OptionError(f"bad support {support!r}: low > high", fix="e.g. support=(0.01, 0.03)")
 
 
 def recorded_fit_options(method: str, fit_options: dict) -> dict:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, RigError
+from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
 from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
@@ -86,11 +86,10 @@ def __getattr__(name: str):
     """A name of :data:`MOVED`, from its module now, with a DeprecationWarning naming where it lives."""
     if name in MOVED:
         import importlib
-        import warnings
 
         module = f"{__package__}.{MOVED[name]}"
-        warnings.warn(f"usdface.transfer.pipeline.{name} moved to {module}.{name}; import it from there",
-                      DeprecationWarning, stacklevel=2)
+        warn(f"usdface.transfer.pipeline.{name} moved to {module}.{name}; import it from there",
+             DeprecationWarning)
         return getattr(importlib.import_module(module), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
