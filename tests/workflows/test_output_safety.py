@@ -115,7 +115,7 @@ def test_capture_select_into_the_takes_folder_is_refused(take_file, tmp_path):
     (t3 / "notes.txt").write_text("session notes")
     before = tree(t3)
     proc = run("capture", "select", "t3/take.usdc", "-o", "t3", "--force", cwd=tmp_path, ok=False)
-    refused(proc, "t3: output folder holds the input t3/take.usdc")
+    refused(proc, "t3: capture folder holds the input t3/take.usdc")
     assert tree(t3) == before
     # a folder elsewhere is fine, and --force there keeps what usdface does not write
     (tmp_path / "cap").mkdir()
@@ -132,7 +132,7 @@ def test_capture_import_into_the_project_folder_is_refused(sample_set, tmp_path)
     shutil.copy(sample_set / "avatar.usda", proj / "avatar.usda")
     before = tree(proj)
     proc = run("capture", "import", "proj/cap", "-o", "proj", "--force", cwd=tmp_path, ok=False)
-    refused(proc, "proj: output folder holds the input folder proj/cap")
+    refused(proc, "proj: capture folder holds the input folder proj/cap")
     # the input folder itself, and a folder inside it, are refused too
     proc = run("capture", "import", "proj/cap", "-o", "proj/cap", "--force", cwd=tmp_path, ok=False)
     refused(proc, "would overwrite an input: it is the input folder proj/cap")
