@@ -110,18 +110,36 @@ def reduced_normal_matrix(inv_l: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return np.take(upper, pos.ravel(), axis=1).reshape(len(upper), r, r)
 
 
+def _reduced_matrices(s, Q, D, reg):
+    """``(B[K,r], inv_l[n,K], M[n,r,r])`` of eqs. (1)+(2) at ``reg`` in the weights' rank-r basis (``s``,
+    ``Q`` of :func:`weight_basis`): ``B = Q S`` (``W^T W = B B^T``), ``inv_l = 1 / (reg D^2)`` and ``M_v = I +
+    B^T diag(inv_l_v) B``."""
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
+    r = len(s)
+    M = reduced_normal_matrix(inv_l, B)
+    M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
+    return B, inv_l, M
+
+
+def _direct_matrices(W, D, reg):
+    """``(A[n,K,K], L[n,K])``: the K x K systems ``A_v = W^T W + L_v`` of eqs. (1)+(2), ``L = reg D^2``."""
+    L = reg * np.asarray(D, dtype=np.float64).T ** 2                                 # [n,K]
+    n, K = L.shape
+    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
+    A.reshape(n, -1)[:, ::K + 1] += L                                                # the diagonals
+    return A, L
+
+
 def _reduced_solve(W, R, T, D, reg, extra_rhs: bool, basis):
     """The r x r systems ``(I + H_v / reg) x_v = P^T e0_v`` (and, with ``extra_rhs``, ``= P^T``) of eqs.
     (1)+(2), ``e0 = R - W T``, in the weights' ``basis`` (:func:`weight_basis`). Returns
     ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
     P, s, Q = basis
-    B = Q * s
-    inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
+    B, inv_l, M = _reduced_matrices(s, Q, D, reg)
     e0 = R - blend(W, T)                                                             # [F,n,c]
     F, n, c = e0.shape
     r = len(s)
-    M = reduced_normal_matrix(inv_l, B)
-    M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
     rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
     if extra_rhs:
         rhs = np.concatenate([rhs, np.broadcast_to(P.T, (n, r, F))], axis=2)
@@ -133,10 +151,8 @@ def _direct_system(W, R, T, D, reg, extra):
     """The K x K systems ``A_v = W^T W + reg L_v`` of eqs. (1)+(2) with right-hand sides
     ``W^T r_v + reg L_v t_v`` (and ``W^T`` with ``extra``), solved in one batched LAPACK call:
     ``[n,K,c(+F)]``."""
-    L = reg * np.asarray(D, dtype=np.float64).T ** 2                                 # [n,K]
+    A, L = _direct_matrices(W, D, reg)
     n, K = L.shape
-    A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
-    A.reshape(n, -1)[:, ::K + 1] += L                                                # the diagonals
     rhs = project(W, R) + L[:, :, None] * T.transpose(1, 0, 2)                      # [n,K,c]
     if extra:
         rhs = np.concatenate([rhs, np.broadcast_to(W.T, (n, K, len(W)))], axis=2)
@@ -175,13 +191,10 @@ def _reduced_inverse(weights, reg_weights, reg):
     (``W^T W = B B^T``, ``B = Q S``; ``inv_l = 1 / (reg D^2)``): ``X_v = M_v^-1 B^T`` with ``M_v = I + B^T
     diag(inv_l_v) B``, by one batched r x r solve; ``X`` is None when the weights are all zero."""
     _, s, Q = weight_basis(weights)
-    B = Q * s
-    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)          # [n,K]
+    B, inv_l, M = _reduced_matrices(s, Q, reg_weights, reg)
     r = len(s)
     if r == 0:
         return B, inv_l, None
-    M = reduced_normal_matrix(inv_l, B)
-    M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                          # the diagonals
     return B, inv_l, np.linalg.solve(M, np.broadcast_to(B.T, (len(M), r, len(B))))
 
 
@@ -227,20 +240,14 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     energy = np.asarray(free, dtype=np.float64) @ np.einsum("knc,knc->kn", D, D)        # [F,n]
     basis = _reduced_basis(W)
     if basis is None:
-        L = reg * np.asarray(reg_weights, dtype=np.float64).T ** 2                   # [n,K]
-        n, K = L.shape
-        A = np.broadcast_to(W.T @ W, (n, K, K)).copy()
-        A.reshape(n, -1)[:, ::K + 1] += L
-        G = np.linalg.solve(A, np.broadcast_to(W.T, (n, K, len(W))))                # [n,K,F]
+        A, L = _direct_matrices(W, reg_weights, reg)
+        G = np.linalg.solve(A, np.broadcast_to(W.T, L.shape + (len(W),)))           # [n,K,F]
         return np.einsum("nkf,nkf,fn->nk", G, G, energy)
     P, s, Q = basis
-    B = Q * s
-    inv_l = 1.0 / (reg * np.asarray(reg_weights, dtype=np.float64).T ** 2)            # [n,K]
+    B, inv_l, M = _reduced_matrices(s, Q, reg_weights, reg)
     n, r = len(inv_l), len(s)
     if r == 0:
         return np.zeros_like(inv_l)
-    M = reduced_normal_matrix(inv_l, B)
-    M.reshape(n, -1)[:, ::r + 1] += 1.0
     # A_v^-1 W^T = diag(inv_l_v) B M_v^-1 P^T (W^T = B P^T, A_v^-1 B = L_v^-1 B M_v^-1), so the sum over the
     # frames is inv_l_vj^2 (B C_v B^T)_jj with C_v = M_v^-1 (P^T diag(E_v) P) M_v^-1: r x r per vertex, no
     # [n,K,F] array

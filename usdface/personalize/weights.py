@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .align import distinct_frames
+from .fit import weight_basis
 
 __all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched", "weight_noise"]
 
@@ -132,10 +133,10 @@ def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, d
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
     A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
-    # one thin SVD A^T = U S V^T for the estimate (pseudo-inverse), its rank and (A A^T)^+'s diagonal
-    U, sv, Vt = np.linalg.svd(A.T, full_matrices=False)
-    keep = sv > (sv[0] if sv.size else 0.0) * max(A.shape) * np.finfo(np.float64).eps
-    U, sv, Vt = U[:, keep], sv[keep], Vt[keep]
+    # one thin SVD A^T = U S V^T to its numerical rank for the estimate (pseudo-inverse), the rank and
+    # (A A^T)^+'s diagonal
+    U, sv, V = weight_basis(A.T)
+    Vt = V.T
     coef = (Y @ U) / sv                                                              # [F, rank]
     estimate = coef @ Vt                                                             # [F,K]
     diff = (estimate - W)[mask]
