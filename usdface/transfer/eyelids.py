@@ -15,7 +15,7 @@ import numpy as np
 
 from ..mesh import vector_lengths
 from ..natives import open3d
-from .correspond import ramp_down
+from .correspond import ramp_down, ramp_up
 
 __all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
 
@@ -154,86 +154,122 @@ def _largest_share(surf, generic, personalized, bound, steps: int = 12):
 #: (:func:`_spread_corrections`): the lid keeps one smooth margin, at the scale of the eye's own curvature,
 #: whatever the mesh's resolution.
 SPREAD_RADIUS = 0.5
-#: A near vertex whose offset in a shape is below this share of the shape's largest near the eye is one the
-#: shape leaves still, and the spread leaves it so (:func:`_spread_corrections`).
-STILL = 1e-6
 #: Rounds of spreading (:func:`repair_eyelids`): what one round leaves short of its bound is spread again,
 #: then moved onto its bound alone.
 SPREAD_ROUNDS = 3
 
 
+def _amount(excess, tolerance: float) -> np.ndarray:
+    """How far (m) a vertex ``excess[p]`` m short of its bound is moved towards it: 0 for ``excess <= 0``,
+    ``excess`` (onto the bound) from ``tolerance`` on, ``excess x smoothstep(excess / tolerance)`` between:
+    a vertex that barely violates its bound is barely moved, so the repair is a continuous function of the
+    positions (Lipschitz constant 1.69 in the excess), with at most 0.26 ``tolerance`` left short."""
+    e = np.maximum(np.asarray(excess, dtype=np.float64), 0.0)
+    return e if tolerance <= 0 else e * ramp_up(e, 0.0, tolerance)
+
+
 def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     """The smooth part of :func:`repair_eyelids`, in place: in shape ``js[p]`` the lid around the vertex
     ``near[ks[p]]`` that cuts into the eye (``near[k]``: indices into ``x0[n,3]``, the neutral, metres),
-    whose move onto its bound is ``correction[p,3]``, moves with it: each near vertex within ``radius`` of
-    such vertices moves by their weighted mean correction ``sum_p w_p c_p / sum_p w_p``, ``w = 1 -
-    smoothstep(distance / radius)``, times the same falloff of its distance to the nearest of them: a vertex
-    among others that cut in takes their mean correction, one alone its own, and the lid around fades from
-    them to nothing over ``radius`` whatever the mesh's resolution (a normalisation by ``max(1, sum w)`` made
-    the result depend on how many vertices lie within ``radius``: the twice-subdivided bench head 2.0 % of the
-    personalization from dev1's own, 1.4 % with this); only the vertices the shape moves (none the shape
-    leaves still, :data:`STILL`). One smooth margin instead of vertices each moved its own way (a notched lid
-    margin in a blink, seen in Blender on dev1, where neighbouring margin vertices reached their bounds along
-    different lines). The corrections point out of the eye; a vertex the mean leaves short of its bound is
-    corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of ``x0[near]`` (one for every round).
-    Cost: the pairs within ``radius`` of the corrected vertices only. Returns the (shape,
-    near vertex) pairs it moved, ``(js[m], ks[m])``."""
+    whose move towards its bound is ``correction[p,3]`` (length ``m_p``), moves with it. A near vertex ``i``
+    moves by the mean correction ``sum_p a_ip c_p / sum_p a_ip`` with ``a_ip = w(d_ip) m_p``, ``w = 1 -
+    smoothstep(distance / radius)``, times the fade ``max_p a_ip / max_p w'(d_ip) m_p`` (``w'`` is 1 up to
+    ``radius`` and falls to 0 at 1.5 ``radius``): a vertex among others that cut in takes their mean
+    correction, one alone its own, and the lid around fades from the largest corrections near it to nothing
+    over ``radius`` whatever the mesh's resolution (a normalisation by ``max(1, sum w)`` made the result
+    depend on how many vertices lie within ``radius``). Every weight is in proportion to its correction, so a
+    vertex that barely cuts in barely counts: the output is a continuous function of the corrections (before,
+    a vertex's membership in the corrected set switched the mean and the fade's nearest corrected vertex).
+    A vertex's shift is at most as long as the shape's offset there (the projection onto that ball: the
+    repair adds no motion where the artist's shape has none, and little where it has little, continuously;
+    a vertex it leaves short of its bound is moved alone). One smooth margin instead of vertices each moved
+    its own way (a notched lid margin in a blink, seen in Blender on dev1, where neighbouring margin vertices
+    reached their bounds along different lines). The corrections point out of the eye; a vertex the mean
+    leaves short of its bound is corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of
+    ``x0[near]`` (one for every round). Cost: the pairs within 1.5 ``radius`` of the corrected vertices
+    only. Returns the (shape, near vertex) pairs it moved, ``(js[m], ks[m])``."""
     from scipy.spatial import cKDTree
 
     moved_js, moved_ks = [], []
+    size = np.asarray(vector_lengths(correction), dtype=np.float64)
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
-        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, radius, output_type="ndarray")
+        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, 1.5 * radius, output_type="ndarray")
         # the record fields as contiguous arrays, read once (each strided read of the millions of pairs of a
         # subdivided head's lid cost as much as the arithmetic on it)
         fr, to, dist = (np.ascontiguousarray(pairs[k]) for k in ("i", "j", "v"))
         del pairs
-        # only to the vertices the shape moves: the repair adds no motion where the artist's shape has none
-        # (the corrected vertices move, each counted once with itself too)
+        # only to the vertices the shape moves, each by at most as much as the shape does
         mag = vector_lengths(out[j, near])
-        moves = mag[to] > STILL * max(float(mag.max()), 1e-300)
-        if not moves.all():                                       # (most shapes: all of them)
-            fr, to, dist = fr[moves], to[moves], dist[moves]
-        w = ramp_down(dist, 0.0, radius)
-        total = np.bincount(to, weights=w, minlength=near.size)
+        keep = mag[to] > 0
+        if not keep.all():                                        # (most shapes: all of them)
+            fr, to, dist = fr[keep], to[keep], dist[keep]
+        m = size[mine][fr]
+        a = ramp_down(dist, 0.0, radius) * m
+        total = np.bincount(to, weights=a, minlength=near.size)
         own = correction[mine]
-        shift = np.stack([np.bincount(to, weights=w * own[fr, c], minlength=near.size) for c in range(3)],
+        shift = np.stack([np.bincount(to, weights=a * own[fr, c], minlength=near.size) for c in range(3)],
                          axis=1)
-        nearest = np.full(near.size, np.inf)                      # to the nearest corrected vertex
-        np.minimum.at(nearest, to, dist)
+        top = np.zeros(near.size)                                 # the largest weighted correction ...
+        np.maximum.at(top, to, a)
+        scale = np.zeros(near.size)                               # ... against the largest near it
+        np.maximum.at(scale, to, ramp_down(dist, radius, 1.5 * radius) * m)
         v = np.flatnonzero(total > 0)
-        fade = ramp_down(nearest[v], 0.0, radius)
-        out[j, near[v]] += shift[v] / total[v][:, None] * fade[:, None]
+        step = shift[v] * (top[v] / (scale[v] * total[v]))[:, None]
+        size_v = vector_lengths(step)
+        out[j, near[v]] += step * np.minimum(1.0, mag[v] / np.maximum(size_v, 1e-300))[:, None]
         moved_js.append(np.full(v.size, j))
         moved_ks.append(v)
     return np.concatenate(moved_js), np.concatenate(moved_ks)
 
 
+#: The step (m) of the central differences that give the direction out of the eye (:func:`_outward`): the
+#: eye mesh's normal averaged over this much, so the direction turns within 0.1 mm of a facet's edge
+#: instead of jumping there (the clearance is 0.3 mm).
+GRADIENT_STEP = 1e-4
+
+
+def _outward(surf, q, radial) -> np.ndarray:
+    """``[p,3]`` unit directions out of the eye at ``q[p,3]``: the signed distance's gradient by central
+    differences (:data:`GRADIENT_STEP`), towards where the eye mesh is farthest, whatever its shape (the
+    bench avatars' eyes have a shell 0.5 mm thick around the eyeball: a lid vertex inside the shell goes
+    back into the gap, not through the shell). The line to the closest point on the mesh, used before, is
+    the same direction but jumps where the closest facet changes inside the mesh: a brow vertex 3.3 mm into
+    the sample's eye (its facets 15 degrees apart) went back 0.44 mm elsewhere when its float32 position
+    changed by 40 um. Where the differences cancel (midway between two sheets of the mesh, its medial axis)
+    the direction turns smoothly to ``radial[p,3]``, the unit line from the eyeball's centre."""
+    h = GRADIENT_STEP
+    step = np.concatenate([np.eye(3), -np.eye(3)]) * h
+    sd = surf.signed_distance((q[:, None, :] + step[None]).reshape(-1, 3)).reshape(-1, 6)
+    grad = (sd[:, :3] - sd[:, 3:]) / (2.0 * h)
+    out = grad + 0.7 * ramp_down(vector_lengths(grad), 0.3, 0.7)[:, None] * radial
+    return out / np.maximum(vector_lengths(out)[:, None], 1e-300)
+
+
 def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndarray:
-    """``[p,3]``: the positions ``q[p,3]`` (signed distances ``d[p]``) moved onto their bounds
-    ``required[p]``: along the line to the closest point on the eye mesh, then - since a step off one part of
-    a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's centre,
-    along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where that
-    still falls short, the largest share of the personalization that keeps the bound
-    (:func:`_largest_share`)."""
+    """``[p,3]``: the positions ``q[p,3]`` (signed distances ``d[p]``) moved towards their bounds
+    ``required[p]`` by :func:`_amount` of their excess (onto the bound when it exceeds ``tolerance``): along
+    the direction out of the eye (:func:`_outward`, continuous in the position), then - since a step off one
+    part of a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's
+    centre, along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where
+    that still falls short by more than ``tolerance`` (a grazing corner of a non-star-shaped eye mesh), the
+    largest share of the personalization that keeps the bound (:func:`_largest_share`; the one step that is
+    not continuous)."""
     start = q
-    closest = surf.closest_points(q)
-    ok = np.abs(d) > 1e-9
+    target = d + _amount(required - d, tolerance)
     radial = q - eye.center
     radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
-    direction = np.where(ok[:, None], (q - closest) / np.where(ok, d, 1.0)[:, None], radial)
-    q = closest + direction * required[:, None]
+    q = q + _outward(surf, q, radial) * (target - d)[:, None]
     for _ in range(8):
-        d = surf.signed_distance(q)
-        short = d < required - 1e-6
-        if not short.any():
+        short = np.maximum(target - surf.signed_distance(q), 0.0)
+        q += radial * short[:, None]                # (a continuous step: 0 where the bound is met)
+        if short.max() < 1e-7:
             break
-        q[short] += radial[short] * (required[short] - d[short])[:, None]
     if generic is not None:
         d = surf.signed_distance(q)
-        short = np.flatnonzero(d < required - tolerance)
+        short = np.flatnonzero(d < target - tolerance)
         if short.size:
-            q[short] = _largest_share(surf, generic[short], start[short], required[short] - tolerance)
+            q[short] = _largest_share(surf, generic[short], start[short], target[short] - tolerance)
     return q
 
 
@@ -243,10 +279,10 @@ def _signed_distance(points, triangles, queries):
     return surf.signed_distance(queries), surf.closest_points(queries)
 
 
-def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float):
+def _violations(surf, x0, out, near, js, ks, reference, clearance: float):
     """The (shape ``js``, near vertex ``ks``) pairs of :func:`repair_eyelids` whose personalized position
-    violates its bound: ``(js, ks, position[p,3], signed distance[p], bound[p], generic position[p,3] or
-    None without a reference)``, or None."""
+    violates its bound, by any amount: ``(js, ks, position[p,3], signed distance[p], bound[p], generic
+    position[p,3] or None without a reference)``, or None."""
     if reference is not None:
         # a vertex the personalization leaves where the generic shape has it is fine by definition
         moved = vector_lengths(out[js, near[ks]] - reference[js, near[ks]]) > 1e-9
@@ -258,7 +294,7 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolera
     # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far outside
     # the eye is fine whatever its bound, and its neutral's and generic shape's distances are not needed
     # (most of the lid vertices near the eye, in most shapes)
-    doubt = d < (max(clearance, 0.0) if reference is not None else 0.0) - tolerance
+    doubt = d < (max(clearance, 0.0) if reference is not None else 0.0)
     js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
     if js.size == 0:
         return None
@@ -271,7 +307,7 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolera
         generic = x0[near[ks]] + reference[js, near[ks]]
         d_ref = surf.signed_distance(generic)
         required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
-    bad = d < required - tolerance
+    bad = d < required
     if not bad.any():
         return None
     return js[bad], ks[bad], q[bad], d[bad], required[bad], None if generic is None else generic[bad]
@@ -293,16 +329,20 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         Where the generic shape (or the neutral) tucks a vertex inside on purpose (eye sockets, lids modelled
         behind the eyeball), it may go as deep as the deeper of the two, no deeper. Without ``reference``
         only penetration deeper than the neutral's is repaired.
+    tolerance : metres. A vertex short of its bound by more than this moves onto it; one short by less, by
+        a share that rises smoothly from 0 (:func:`_amount`: at most 0.26 ``tolerance`` left short), so that
+        the output is a continuous function of the input positions.
     overwrite : repair ``shapes`` in place (a float64 array the caller does not need unrepaired) instead of
         a copy: one ``[J,n,3]`` array fewer.
 
-    A vertex that violates its bound, by more than ``tolerance`` m, moves along the line to its closest point
-    on the eye mesh to the bound (then radially from the eyeball's centre; with ``reference``, where that does
-    not reach the bound either, the largest share of its personalization that does: :func:`_onto_bound`).
-    With ``smooth`` (default) those corrections are spread over the lid within :data:`SPREAD_RADIUS` eyeball
-    radii first (:func:`_spread_corrections`: the margin stays one smooth curve), for up to
-    :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone. Returns
-    ``(repaired shapes[J,n,3], number of vertex-shape pairs that violated their bound)``.
+    A vertex that violates its bound moves towards it out of the eye (the signed distance's gradient, then
+    radially from the eyeball's centre; with ``reference``, where that does not reach the bound, the largest
+    share of its personalization that does: :func:`_onto_bound`). With ``smooth``
+    (default) those corrections are spread over the lid within :data:`SPREAD_RADIUS` eyeball radii first
+    (:func:`_spread_corrections`: the margin stays one smooth curve, each correction weighted by its size),
+    for up to :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone.
+    Returns ``(repaired shapes[J,n,3], number of vertex-shape pairs that violated their bound by more than
+    tolerance)``.
 
     Distance queries are limited to (shape, vertex) pairs within the eye's bounding sphere plus ``clearance``;
     one raycasting scene per eye.
@@ -325,45 +365,37 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
         if js.size == 0:
             continue
         surf = _EyeSurface(pts, tris)
-        if margin <= 0 and tolerance >= 0:
+        if margin <= 0:
             inside = surf.inside(pos[js, ks])
             js, ks = js[inside], ks[inside]
             if js.size == 0:
                 continue
-        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
+        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance)
         if found is None:
             continue
         js, ks, q, d, required, generic = found
-        count += js.size
-        fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
-        if not smooth:
-            out[js, near[ks]] = fixed - x0[near[ks]]
-            continue
-        from scipy.spatial import cKDTree
+        count += int(np.count_nonzero(d < required - tolerance))
+        if smooth:
+            from scipy.spatial import cKDTree
 
-        tree = cKDTree(x0[near])
-        spread_js, spread_ks = [], []
-        for _ in range(SPREAD_ROUNDS):
-            # the corrections spread smoothly over the lid around the vertices that cut in; where that
-            # leaves one of them short of its bound, its own correction is spread again, and after the last
-            # round it is moved as before
-            mj, mk = _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius, tree)
-            spread_js.append(mj)
-            spread_ks.append(mk)
-            found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance)
-            if found is None:
-                break
-            js, ks, q, d, required, generic = found
-            fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
-        else:
-            out[js, near[ks]] = fixed - x0[near[ks]]
-        # the lid the corrections carried along moved out of the eye; checked once all the same (a vertex
-        # still short of its bound is moved alone)
-        pair = np.unique(np.concatenate(spread_js) * near.size + np.concatenate(spread_ks))
-        js, ks = pair // near.size, pair % near.size
-        inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
-        found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance, tolerance)
-        if found is not None:                  # (as above: beyond the bounding sphere all is fine)
-            js, ks, q, d, required, generic = found
+            tree = cKDTree(x0[near])
+            # the pairs whose distance can have changed: those that violated their bound and those the
+            # spread moved (the rest keep a distance that meets it)
+            touched = [js * near.size + ks]
+            for _ in range(SPREAD_ROUNDS):
+                # the corrections spread smoothly over the lid around the vertices that cut in; what that
+                # leaves short of its bound is spread again, and after the last round moved alone
+                fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
+                mj, mk = _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius,
+                                             tree)
+                touched.append(mj * near.size + mk)
+                pair = np.unique(np.concatenate(touched))
+                js, ks = pair // near.size, pair % near.size
+                inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
+                found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance)
+                if found is None:              # (as above: beyond the bounding sphere all is fine)
+                    break
+                js, ks, q, d, required, generic = found
+        if found is not None:
             out[js, near[ks]] = _onto_bound(surf, eye, q, d, required, generic, tolerance) - x0[near[ks]]
     return out, count
