@@ -174,7 +174,7 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     whose move towards its bound is ``correction[p,3]`` (length ``m_p``), moves with it. A near vertex ``i``
     moves by the mean correction ``sum_p a_ip c_p / sum_p a_ip`` with ``a_ip = w(d_ip) m_p``, ``w = 1 -
     smoothstep(distance / radius)``, times the fade ``max_p a_ip / max_p w'(d_ip) m_p`` (``w'`` is 1 up to
-    ``radius`` and falls to 0 at 1.5 ``radius``): a vertex among others that cut in takes their mean
+    ``radius`` and falls to 0 at 1.25 ``radius``): a vertex among others that cut in takes their mean
     correction, one alone its own, and the lid around fades from the largest corrections near it to nothing
     over ``radius`` whatever the mesh's resolution (a normalisation by ``max(1, sum w)`` made the result
     depend on how many vertices lie within ``radius``). Every weight is in proportion to its correction, so a
@@ -186,15 +186,16 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     its own way (a notched lid margin in a blink, seen in Blender on dev1, where neighbouring margin vertices
     reached their bounds along different lines). The corrections point out of the eye; a vertex the mean
     leaves short of its bound is corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of
-    ``x0[near]`` (one for every round). Cost: the pairs within 1.5 ``radius`` of the corrected vertices
-    only. Returns the (shape, near vertex) pairs it moved, ``(js[m], ks[m])``."""
+    ``x0[near]`` (one for every round). Cost: the pairs within 1.25 ``radius`` of the corrected vertices
+    only. Returns the (shape, near vertex) pairs it moved by :data:`UNMOVED` or more, ``(js[m], ks[m])``."""
     from scipy.spatial import cKDTree
 
-    moved_js, moved_ks = [], []
-    size = np.asarray(vector_lengths(correction), dtype=np.float64)
+    moved_js, moved_ks = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    size = vector_lengths(correction)
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
-        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, 1.5 * radius, output_type="ndarray")
+        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, 1.25 * radius,
+                                                                   output_type="ndarray")
         # the record fields as contiguous arrays, read once (each strided read of the millions of pairs of a
         # subdivided head's lid cost as much as the arithmetic on it)
         fr, to, dist = (np.ascontiguousarray(pairs[k]) for k in ("i", "j", "v"))
@@ -213,35 +214,38 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
         top = np.zeros(near.size)                                 # the largest weighted correction ...
         np.maximum.at(top, to, a)
         scale = np.zeros(near.size)                               # ... against the largest near it
-        np.maximum.at(scale, to, ramp_down(dist, radius, 1.5 * radius) * m)
+        np.maximum.at(scale, to, ramp_down(dist, radius, 1.25 * radius) * m)
         v = np.flatnonzero(total > 0)
         step = shift[v] * (top[v] / (scale[v] * total[v]))[:, None]
         size_v = vector_lengths(step)
-        out[j, near[v]] += step * np.minimum(1.0, mag[v] / np.maximum(size_v, 1e-300))[:, None]
+        cap = np.minimum(1.0, mag[v] / np.maximum(size_v, 1e-300))
+        out[j, near[v]] += step * cap[:, None]
+        v = v[size_v * cap >= UNMOVED]
         moved_js.append(np.full(v.size, j))
         moved_ks.append(v)
     return np.concatenate(moved_js), np.concatenate(moved_ks)
 
 
-#: The step (m) of the central differences that give the direction out of the eye (:func:`_outward`): the
+#: The step (m) of the differences that give the direction out of the eye (:func:`_outward`): the
 #: eye mesh's normal averaged over this much, so the direction turns within 0.1 mm of a facet's edge
 #: instead of jumping there (the clearance is 0.3 mm).
 GRADIENT_STEP = 1e-4
 
 
-def _outward(surf, q, radial) -> np.ndarray:
-    """``[p,3]`` unit directions out of the eye at ``q[p,3]``: the signed distance's gradient by central
-    differences (:data:`GRADIENT_STEP`), towards where the eye mesh is farthest, whatever its shape (the
-    bench avatars' eyes have a shell 0.5 mm thick around the eyeball: a lid vertex inside the shell goes
-    back into the gap, not through the shell). The line to the closest point on the mesh, used before, is
-    the same direction but jumps where the closest facet changes inside the mesh: a brow vertex 3.3 mm into
-    the sample's eye (its facets 15 degrees apart) went back 0.44 mm elsewhere when its float32 position
-    changed by 40 um. Where the differences cancel (midway between two sheets of the mesh, its medial axis)
-    the direction turns smoothly to ``radial[p,3]``, the unit line from the eyeball's centre."""
+def _outward(surf, q, d, radial) -> np.ndarray:
+    """``[p,3]`` unit directions out of the eye at ``q[p,3]`` (signed distances ``d[p]``): the signed
+    distance's gradient by forward differences (:data:`GRADIENT_STEP`): the shortest way to more distance
+    from the eye mesh, whatever its shape (the bench avatars' eyes have a shell 0.5 mm thick about 2 mm
+    outside the eyeball: a lid vertex inside the shell goes back into the gap, not out through the shell;
+    radially it did, and dev3's face ratio went 0.292 -> 0.305). The line to the closest point on the mesh,
+    used before, is the same direction but jumps where the closest facet changes inside the mesh: a brow
+    vertex 3.3 mm into the sample's eye (its facets 15 degrees apart) went back 0.44 mm elsewhere when its
+    float32 position changed by 40 um. Where the differences cancel (midway between two sheets of the mesh,
+    its medial axis) the direction turns smoothly to ``radial[p,3]``, the unit line from the eyeball's
+    centre."""
     h = GRADIENT_STEP
-    step = np.concatenate([np.eye(3), -np.eye(3)]) * h
-    sd = surf.signed_distance((q[:, None, :] + step[None]).reshape(-1, 3)).reshape(-1, 6)
-    grad = (sd[:, :3] - sd[:, 3:]) / (2.0 * h)
+    grad = (surf.signed_distance((q[:, None, :] + h * np.eye(3)[None]).reshape(-1, 3)).reshape(-1, 3)
+            - d[:, None]) / h
     out = grad + 0.7 * ramp_down(vector_lengths(grad), 0.3, 0.7)[:, None] * radial
     return out / np.maximum(vector_lengths(out)[:, None], 1e-300)
 
@@ -252,24 +256,28 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
     the direction out of the eye (:func:`_outward`, continuous in the position), then - since a step off one
     part of a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's
     centre, along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where
-    that still falls short by more than ``tolerance`` (a grazing corner of a non-star-shaped eye mesh), the
-    largest share of the personalization that keeps the bound (:func:`_largest_share`; the one step that is
-    not continuous)."""
+    that still falls short of the bound by more than ``tolerance`` (a grazing corner of a non-star-shaped
+    eye mesh, the bench eyes' shell), the largest share of the personalization that keeps it less
+    ``tolerance`` (:func:`_largest_share`; the one step that is not continuous)."""
     start = q
     target = d + _amount(required - d, tolerance)
     radial = q - eye.center
     radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
-    q = q + _outward(surf, q, radial) * (target - d)[:, None]
-    for _ in range(8):
-        short = np.maximum(target - surf.signed_distance(q), 0.0)
-        q += radial * short[:, None]                # (a continuous step: 0 where the bound is met)
-        if short.max() < 1e-7:
+    q = q + _outward(surf, q, d, radial) * (target - d)[:, None]
+    d, active = np.empty(len(q)), np.arange(len(q))
+    for _ in range(8):                              # (only the points still short are measured again)
+        d[active] = surf.signed_distance(q[active])
+        short = np.maximum(target[active] - d[active], 0.0)
+        q[active] += radial[active] * short[:, None]   # (a continuous step: 0 where the bound is met)
+        d[active] += short
+        active = active[short > 1e-7]
+        if active.size == 0:
             break
     if generic is not None:
-        d = surf.signed_distance(q)
-        short = np.flatnonzero(d < target - tolerance)
+        d[active] = surf.signed_distance(q[active])
+        short = np.flatnonzero(d < required - tolerance)
         if short.size:
-            q[short] = _largest_share(surf, generic[short], start[short], target[short] - tolerance)
+            q[short] = _largest_share(surf, generic[short], start[short], required[short] - tolerance)
     return q
 
 
@@ -279,10 +287,24 @@ def _signed_distance(points, triangles, queries):
     return surf.signed_distance(queries), surf.closest_points(queries)
 
 
-def _violations(surf, x0, out, near, js, ks, reference, clearance: float):
+#: A correction shorter than this (m) is not made (:func:`_violations`): a vertex short of its bound by less
+#: than ~2 um (:func:`_amount`), most often one the personalization leaves about where the generic shape has
+#: it, costs the repair's queries and moves nothing.
+NEGLIGIBLE = 1e-8
+
+
+#: A vertex the spread moves by less than this (m) is not measured again (:func:`_spread_corrections`): it
+#: can have come at most that much closer to the eye, and a vertex short of its bound by ~3 um is moved
+#: ~30 nm (:func:`_amount`).
+UNMOVED = 1e-6
+
+
+def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float, known):
     """The (shape ``js``, near vertex ``ks``) pairs of :func:`repair_eyelids` whose personalized position
-    violates its bound, by any amount: ``(js, ks, position[p,3], signed distance[p], bound[p], generic
-    position[p,3] or None without a reference)``, or None."""
+    violates its bound, by any amount that calls for a correction (:data:`NEGLIGIBLE`): ``(js, ks,
+    position[p,3], signed distance[p], bound[p], generic position[p,3] or None without a reference)``, or
+    None. ``known``: ``(d0[k], d_ref[J,k])``, the signed distances of the neutral and of the generic shapes'
+    near vertices, NaN until measured (they do not change from one round to the next)."""
     if reference is not None:
         # a vertex the personalization leaves where the generic shape has it is fine by definition
         moved = vector_lengths(out[js, near[ks]] - reference[js, near[ks]]) > 1e-9
@@ -298,16 +320,20 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float):
     js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
     if js.size == 0:
         return None
-    verts = np.unique(ks)
-    d0 = np.zeros(near.size)
-    d0[verts] = surf.signed_distance(x0[near[verts]])
+    d0, d_ref = known
+    new = np.unique(ks[np.isnan(d0[ks])])
+    if new.size:
+        d0[new] = surf.signed_distance(x0[near[new]])
     required = np.minimum(d0[ks], 0.0)
     generic = None
     if reference is not None:
         generic = x0[near[ks]] + reference[js, near[ks]]
-        d_ref = surf.signed_distance(generic)
-        required = np.where(d_ref > 0, np.minimum(d_ref, clearance), np.minimum(required, d_ref))
-    bad = d < required
+        new = np.flatnonzero(np.isnan(d_ref[js, ks]))
+        if new.size:
+            d_ref[js[new], ks[new]] = surf.signed_distance(generic[new])
+        dr = d_ref[js, ks]
+        required = np.where(dr > 0, np.minimum(dr, clearance), np.minimum(required, dr))
+    bad = _amount(required - d, tolerance) >= NEGLIGIBLE
     if not bad.any():
         return None
     return js[bad], ks[bad], q[bad], d[bad], required[bad], None if generic is None else generic[bad]
@@ -337,10 +363,13 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
 
     A vertex that violates its bound moves towards it out of the eye (the signed distance's gradient, then
     radially from the eyeball's centre; with ``reference``, where that does not reach the bound, the largest
-    share of its personalization that does: :func:`_onto_bound`). With ``smooth``
-    (default) those corrections are spread over the lid within :data:`SPREAD_RADIUS` eyeball radii first
-    (:func:`_spread_corrections`: the margin stays one smooth curve, each correction weighted by its size),
-    for up to :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone.
+    share of its personalization that does: :func:`_onto_bound`). With ``smooth`` (default) those
+    corrections are spread over the lid within :data:`SPREAD_RADIUS` eyeball radii first
+    (:func:`_spread_corrections`: the margin stays one smooth curve, each correction weighted by its size;
+    the share spread rises smoothly from 0 for a vertex ``tolerance`` short to all of it at twice that), for
+    up to :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone. Every
+    step is continuous in the positions (tests/test_eyelids_continuity.py) but the fallback to the largest
+    share, and jumps below :data:`NEGLIGIBLE` / :data:`UNMOVED`.
     Returns ``(repaired shapes[J,n,3], number of vertex-shape pairs that violated their bound by more than
     tolerance)``.
 
@@ -370,7 +399,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             js, ks = js[inside], ks[inside]
             if js.size == 0:
                 continue
-        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance)
+        known = (np.full(near.size, np.nan), np.full((out.shape[0], near.size), np.nan))
+        found = _violations(surf, x0, out, near, js, ks, ref_all, clearance, tolerance, known)
         if found is None:
             continue
         js, ks, q, d, required, generic = found
@@ -379,20 +409,28 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
             from scipy.spatial import cKDTree
 
             tree = cKDTree(x0[near])
-            # the pairs whose distance can have changed: those that violated their bound and those the
-            # spread moved (the rest keep a distance that meets it)
-            touched = [js * near.size + ks]
             for _ in range(SPREAD_ROUNDS):
                 # the corrections spread smoothly over the lid around the vertices that cut in; what that
-                # leaves short of its bound is spread again, and after the last round moved alone
-                fixed = _onto_bound(surf, eye, q, d, required, generic, tolerance)
-                mj, mk = _spread_corrections(out, x0, near, js, ks, fixed - q, SPREAD_RADIUS * eye.radius,
+                # leaves short of its bound is spread again, and after the last round moved alone; spread,
+                # the corrections of the vertices more than the tolerance short, in full from twice it (a
+                # smooth share: the few that matter, not the many a few um short that cost the spread's
+                # pairs: a twice-subdivided head's lid 22 s against 5 s)
+                share = ramp_up(required - d, tolerance, 2.0 * tolerance)
+                src = np.flatnonzero(share > 0)
+                if src.size == 0:
+                    break
+                fixed = _onto_bound(surf, eye, q[src], d[src], required[src],
+                                    None if generic is None else generic[src], tolerance)
+                mj, mk = _spread_corrections(out, x0, near, js[src], ks[src],
+                                             (fixed - q[src]) * share[src, None], SPREAD_RADIUS * eye.radius,
                                              tree)
-                touched.append(mj * near.size + mk)
-                pair = np.unique(np.concatenate(touched))
+                # measured again: the pairs the spread moved and those that violated their bound (every
+                # other pair keeps the distance it met its bound with)
+                pair = np.unique(np.concatenate([js * near.size + ks, mj * near.size + mk]))
                 js, ks = pair // near.size, pair % near.size
                 inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
-                found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance)
+                found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance,
+                                    tolerance, known)
                 if found is None:              # (as above: beyond the bounding sphere all is fine)
                     break
                 js, ks, q, d, required, generic = found
