@@ -417,7 +417,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                 # the corrections of the vertices more than the tolerance short, in full from twice it (a
                 # smooth share: the few that matter, not the many a few um short that cost the spread's
                 # pairs: a twice-subdivided head's lid 22 s against 5 s)
-                share = ramp_up(required - d, tolerance, 2.0 * tolerance)
+                share = (ramp_up(required - d, tolerance, 2.0 * tolerance) if tolerance > 0
+                         else (required > d).astype(np.float64))
                 src = np.flatnonzero(share > 0)
                 if src.size == 0:
                     break
