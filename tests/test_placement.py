@@ -82,8 +82,9 @@ def test_points_far_from_the_origin_however_placed(samples, tmp_path, how):
     # 0.30 %. The leak trust (stop 37) trusts shapes further (browDownRight 0.97), and the eyelid repair then
     # moved one brow vertex 0.44 mm in browDownRight (pushed 3.3 mm into the eye, it went back along the
     # line to its closest point on the eye mesh, which jumps across the eye's medial axis; and the repair's
-    # decisions were discrete). The repair is continuous since stop 38 (radially, by a smooth amount of each
-    # vertex's excess, spread in proportion to it: tests/test_eyelids_continuity.py): 0.19 mm worst,
+    # decisions were discrete). The repair is continuous since stop 38 (along the signed distance's gradient
+    # over 0.05 mm, by a smooth amount of each vertex's excess, spread in proportion to it:
+    # tests/test_eyelids_continuity.py): 0.19 mm worst,
     # mouthLowerDownLeft at the rim (as without the repair), the 4th worst vertex 0.17 mm
     diff = np.linalg.norm(there - here, axis=-1)
     assert diff.max() < 2.5e-4, diff.max()
