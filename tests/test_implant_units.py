@@ -160,10 +160,10 @@ def test_the_field_fills_a_socket_without_fading_and_fades_outside():
 
 
 def test_the_field_is_not_measured_where_the_person_moves_more_than_the_person_model_allows():
-    """Known vertices whose personalized motion is more than ``MAX_RATIO`` times the generic (a mapping error
-    the capture-side test missed) do not set the field: an unknown patch next to them takes the field of the
-    consistent neighbours (scale 0.9), not a blend with the outlier's 3x."""
-    from usdface.transfer.implant import MAX_RATIO, extend_personalization
+    """Known vertices whose personalized motion is ``FIELD_RATIO_MAX`` times the generic or more (a mapping
+    error the capture-side test missed) do not set the field: an unknown patch next to them takes the field of
+    the consistent neighbours (scale 0.9), not a blend with the outlier's 5x."""
+    from usdface.transfer.implant import FIELD_RATIO_MAX, extend_personalization
 
     pts, tri = _sheet(41)
     generic = np.zeros((1, len(pts), 3))
@@ -171,10 +171,47 @@ def test_the_field_is_not_measured_where_the_person_moves_more_than_the_person_m
     weight = (pts[:, 0] < 0.05).astype(float)
     person = 0.9 * generic
     rim = np.flatnonzero(np.isclose(pts[:, 0], 0.0475) & (np.abs(pts[:, 1] - 0.05) < 0.01))
-    person[0, rim] = (MAX_RATIO + 1.0) * generic[0, rim]
+    person[0, rim] = (FIELD_RATIO_MAX + 1.0) * generic[0, rim]
     result, _ = extend_personalization(pts, tri, generic, person, weight, length=None)
     beyond = pts[:, 0] > 0.06
     assert np.allclose(result[0, beyond, 2], 0.9 * 0.004, rtol=1e-6)
+
+
+def test_a_person_moving_half_the_generic_carries_the_field():
+    """A person whose motion is 0.45x the generic's (dev3's mouthFunnel: 0.49x at the lips) is the person,
+    within the person model's range: the field beyond the face carries that scale, and the result is
+    continuous in the ratio where it crosses MAX_RATIO (a hard cut there made neighbours at 0.5005x and
+    0.4992x all and nothing: a 3.6 mm crease)."""
+    from usdface.transfer.implant import MAX_RATIO, extend_personalization
+
+    pts, tri = _sheet(41)
+    generic = np.zeros((1, len(pts), 3))
+    generic[0, :, 2] = 0.004
+    weight = (pts[:, 0] < 0.05).astype(float)
+    next_to = (pts[:, 0] > 0.052) & (pts[:, 0] < 0.056)        # just beyond the face, where the field reaches
+
+    def beyond(ratio):
+        result, _ = extend_personalization(pts, tri, generic, ratio * generic, weight, length=0.05)
+        return result[0, next_to, 2]
+
+    # the field carries the person's 0.45x (screened towards the generic with the distance; before, the
+    # generic's 0.004 itself)
+    assert np.all(beyond(0.45) < 0.55 * 0.004) and np.all(beyond(0.45) > 0.45 * 0.004)
+    eps = 1e-4
+    below, above = beyond(1.0 / MAX_RATIO - eps), beyond(1.0 / MAX_RATIO + eps)
+    assert np.abs(below - above).max() < 10 * eps * 0.004
+
+
+def test_the_field_measurement_weight_is_smooth_in_the_ratio():
+    """:func:`scale_weight`: 1 within [1/2, 2], 0 from 4 (and 1/4) on, the same for a ratio and its inverse,
+    and without jumps between."""
+    from usdface.transfer.motion_field import scale_weight
+
+    s = np.exp(np.linspace(np.log(0.1), np.log(10.0), 20001))
+    w = scale_weight(s, 2.0, 4.0)
+    assert np.all(w[(s >= 0.5) & (s <= 2.0)] == 1.0) and np.all(w[(s >= 4.0) | (s <= 0.25)] == 0.0)
+    np.testing.assert_allclose(w, scale_weight(1.0 / s, 2.0, 4.0), atol=1e-12)
+    assert np.abs(np.diff(w)).max() < 1e-3
 
 
 def test_the_field_written_over_the_person_array_is_the_same_result():

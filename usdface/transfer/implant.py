@@ -92,6 +92,9 @@ MAX_ANGLE_DEG = 60.0
 MAX_RATIO = 2.0
 #: ... judged where either moves more than this fraction of the shape's peak motion.
 SIGNIFICANT = 0.1
+#: The motion field's measurements fade out between MAX_RATIO and this factor
+#: (:func:`extend_personalization`).
+FIELD_RATIO_MAX = 2.0 * MAX_RATIO
 #: Where a capture vertex is a mapping outlier, the person's change is taken from its neighbours, fading to
 #: none (the generic) over this many capture edges: the resolution the capture measures at (the field's
 #: average covers one capture edge too). 0 inside (the first version) left holes, and so creases, in a
@@ -374,12 +377,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             mw = motion_weights(gr, peak=top)
         k = gd.shape[0]
         phi = np.zeros((k, reach.size, 3, 3))
-        valid = np.zeros((k, reach.size), dtype=bool)
+        valid = np.zeros((k, reach.size))
         jj, vv = np.nonzero((mw > 0) & (s_r > 0)[None])   # measured where the person's shape is and moves
-        # the person model of :func:`mapping_outliers`: a vertex whose personalized motion is more than
-        # MAX_RATIO times longer or shorter than the generic says nothing about the field (a mapping error
-        # the capture-side test did not catch); its neighbours' field fills in
-        phi[jj, vv], valid[jj, vv] = rotation_scale(gr[jj, vv], pr[jj, vv], max_scale=MAX_RATIO)
+        # the person model of :func:`mapping_outliers`: a personalized motion up to MAX_RATIO times longer
+        # or shorter than the generic is the person's (dev3's mouthFunnel moves the lips 0.49x the generic),
+        # one FIELD_RATIO_MAX times is a mapping error the capture-side test did not catch (its neighbours'
+        # field fills in); between, the measurement's weight falls smoothly (a hard cut at MAX_RATIO made
+        # neighbours at 0.5005x and 0.4992x all and nothing: a 3.6 mm crease in a trusted mouthFunnel)
+        phi[jj, vv], valid[jj, vv] = rotation_scale(gr[jj, vv], pr[jj, vv], max_scale=FIELD_RATIO_MAX,
+                                                    full_scale=MAX_RATIO)
         mw = mw * valid * s_r[None]                     # the rim's measurements count as much as they are
         phi = smooth_field(phi, mw, sub_tri, neighbourhood=smoother)          # [k, rows, 3, 3]
         if shrunk.size:

@@ -33,9 +33,9 @@ from ..mesh import spd_lu, triangle_areas, vector_lengths, vertex_adjacency, ver
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
-__all__ = ["rotation_scale", "smooth_field", "extend_field", "FieldExtension", "data_stiffness",
-           "neighbourhood_matrix", "dilate", "apply_field", "motion_weights", "pockets", "field_noise",
-           "reliability"]
+__all__ = ["rotation_scale", "scale_weight", "smooth_field", "extend_field", "FieldExtension",
+           "data_stiffness", "neighbourhood_matrix", "dilate", "apply_field", "motion_weights", "pockets",
+           "field_noise", "reliability"]
 
 #: Below this fraction of a shape's peak motion a vertex's own field is not trusted (noise-level motion).
 MOTION_FLOOR = 0.02
@@ -52,13 +52,17 @@ def motion_weights(generic, *, floor: float = MOTION_FLOOR, peak=None) -> np.nda
     return rel * rel * ramp
 
 
-def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def rotation_scale(generic, person, *, max_scale: float = 4.0,
+                   full_scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per shape and vertex the minimal rotation ``R`` (about ``a x p``) and the scale ``s = |p|/|a|`` with
     ``s R a = p`` for ``a = generic[j,v]``, ``p = person[j,v]`` (both ``[J,m,3]``).
 
     Returns ``(phi[J,m,3,3] = s R - I, valid[J,m])``; ``phi`` is 0 where the generic shape does not move the
     vertex, where the motions point apart by more than 120 degrees (no small change explains it), or where the
-    scale leaves ``[1/max_scale, max_scale]``.
+    scale leaves ``[1/max_scale, max_scale]``. Without ``full_scale``, ``valid`` is boolean; with it, a float
+    weight in [0, 1] (:func:`scale_weight`): 1 within ``[1/full_scale, full_scale]``, falling smoothly in
+    ``|log s|`` to 0 at ``max_scale``, so a measurement near the bound counts for little instead of switching
+    between all and nothing.
     """
     a = np.asarray(generic, dtype=np.float64)
     p = np.asarray(person, dtype=np.float64)
@@ -70,6 +74,8 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     cos = np.clip(np.einsum("...c,...c->...", ah, ph), -1.0, 1.0)
     scale = npp / np.maximum(na, 1e-300)
     valid = ok & (cos > -0.5) & (scale < max_scale) & (scale > 1.0 / max_scale)
+    if full_scale is not None:
+        valid = valid * scale_weight(scale, full_scale, max_scale)
     # Rodrigues for the rotation taking ah onto ph, R = I + [v]x + [v]x^2 / (1 + cos) with v = ah x ph, entry
     # by entry: [v]x^2 = v v^T - |v|^2 I (each entry the same sum of the same products as the 3x3 matrix
     # product, so the same values to the last bit, without the [J,m,3,3] temporaries)
@@ -85,8 +91,17 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0) -> tuple[np.ndarr
     phi[..., 0, 1], phi[..., 1, 0] = scale * (-z + xy), scale * (z + xy)
     phi[..., 0, 2], phi[..., 2, 0] = scale * (y + xz), scale * (-y + xz)
     phi[..., 1, 2], phi[..., 2, 1] = scale * (-x + yz), scale * (x + yz)
-    phi[~valid] = 0.0
+    phi[valid == 0] = 0.0
     return phi, valid
+
+
+def scale_weight(scale, full_scale: float, max_scale: float) -> np.ndarray:
+    """``[...]`` in [0, 1]: 1 where ``scale`` (> 0) is within ``[1/full_scale, full_scale]``, 0 outside
+    ``(1/max_scale, max_scale)``, between them a smoothstep in ``|log scale|`` (continuous with its
+    derivative, symmetric in a scale and its inverse)."""
+    lo, hi = np.log(full_scale), np.log(max_scale)
+    t = np.clip((np.abs(np.log(np.maximum(scale, 1e-300))) - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def neighbourhood_matrix(triangles, n: int, rings: int, rows=None, *, adjacency=None) -> sp.csr_matrix:
