@@ -12,7 +12,8 @@ from scipy.sparse.csgraph import shortest_path
 from synthetic_meshes import grid_triangles
 
 from usdface.mesh import spd_lu, vertex_adjacency
-from usdface.transfer.motion_field import FieldExtension, neighbourhood_matrix, smooth_field
+from usdface.motion import shape_norms
+from usdface.transfer.motion_field import FieldExtension, motion_weights, neighbourhood_matrix, smooth_field
 
 
 def _sheet(n=30, seed=0):
@@ -73,6 +74,18 @@ def test_smoothing_on_rows_equals_the_dense_weighted_average():
     assert not got[:, others].any()
     assert (den <= 1e-12).any() and (den > 1e-12).any()                    # both branches exercised
 
+
+
+def test_motion_weights_from_the_callers_norms_are_the_same_to_the_bit():
+    # the field's loop has each shape's norms at the vertices it reads and gives them (the offsets not
+    # read again): the same weights to the last bit, with and without the shapes' peaks
+    rng = np.random.default_rng(4)
+    g = rng.normal(size=(3, 200, 3)) * rng.uniform(0.0, 1.0, size=(3, 200, 1)) ** 4
+    top = shape_norms(g).max(axis=1) * 1.5
+    for peak in (None, top):
+        want = motion_weights(g, peak=peak)
+        got = motion_weights(None, peak=peak, norms=shape_norms(g))
+        assert np.array_equal(got, want) and (want > 0).any() and (want == 0).any()
 
 def _bump(n, size=0.1):
     """A curved ``n`` x ``n`` sheet (a bump 1 cm high, m): a surface the quadric decimation cannot flatten."""

@@ -323,7 +323,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     s_r = s[reach]                                              # > 0: measured (1 on the known set)
     sel = np.flatnonzero(toward[rows] > 0)                      # the rows whose field is shrunk
     shrunk = rows[sel]
-    patch = sp.csr_matrix(smoother)[sel] if shrunk.size else None
+    # (float64 once: a boolean matrix is converted at every product)
+    patch = sp.csr_matrix(smoother)[sel].astype(np.float64) if shrunk.size else None
     patch_size = np.asarray(patch.sum(axis=1)).ravel() if shrunk.size else None
     shrunk_r = np.searchsorted(reach, shrunk)
     if proxy is not None:
@@ -370,11 +371,13 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         else:                                                     # gd, pd: at the ``used`` vertices only
             gd, pd = _offsets_at(g, js, used_m), p[js][:, used_m]
             gr, pr = gd[:, at_reach], pd[:, at_reach]
-            top = shape_norms(gd).max(axis=1)                     # [k] a lower bound of each shape's peak
+            mag = shape_norms(gd)                                 # (read once: the weights' too)
+            top = mag.max(axis=1)                                 # [k] a lower bound of each shape's peak
             cand = others[peak_others >= top.min() * (1.0 - 1e-9)]
             if cand.size:
                 top = np.maximum(top, shape_norms(_offsets_at(g, js, domain[cand])).max(axis=1))
-            mw = motion_weights(gr, peak=top)
+            mw = motion_weights(gr, peak=top, norms=mag[:, at_reach])
+            del mag
         k = gd.shape[0]
         phi = np.zeros((k, reach.size, 3, 3))
         valid = np.zeros((k, reach.size))
@@ -394,9 +397,12 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             # average, estimated on the values that are carried beyond the face
             measured = (mw > 0) * s_r[None]                      # (1 on the known set)
             measured = measured[..., None]
-            a_bar, d_bar = ((patch @ (v * measured).transpose(1, 0, 2).reshape(reach.size, k * 3))
-                            .reshape(shrunk.size, k, 3).transpose(1, 0, 2) / patch_size[:, None]
-                            for v in (gr, pr - gr))
+            # both averages by one product (the same sums: each output column is summed on its own)
+            both = np.concatenate([gr * measured, (pr - gr) * measured], axis=-1)       # [k, reach, 6]
+            both = (patch @ both.transpose(1, 0, 2).reshape(reach.size, k * 6)).reshape(shrunk.size, k, 6)
+            a_bar, d_bar = (np.ascontiguousarray(both[..., c].transpose(1, 0, 2)) / patch_size[:, None]
+                            for c in (slice(0, 3), slice(3, 6)))
+            del both
             noise2, spread2 = field_noise(a_bar, d_bar, measured[:, shrunk_r, 0] > 0,
                                           mass[shrunk] * s[shrunk])
             motion2 = np.einsum("jvc,jvc->jv", a_bar, a_bar)

@@ -41,11 +41,12 @@ __all__ = ["rotation_scale", "scale_weight", "smooth_field", "extend_field", "Fi
 MOTION_FLOOR = 0.02
 
 
-def motion_weights(generic, *, floor: float = MOTION_FLOOR, peak=None) -> np.ndarray:
+def motion_weights(generic, *, floor: float = MOTION_FLOOR, peak=None, norms=None) -> np.ndarray:
     """``[J,m]`` confidence of each vertex's field: ``(|A_j(v)| / peak_j)^2`` ramped to 0 below ``floor``.
     ``peak[J]``: each shape's largest motion when ``generic`` holds only some vertices of the mesh (default:
-    the largest over ``generic``)."""
-    mag = shape_norms(generic)
+    the largest over ``generic``); ``norms[J,m]``: :func:`usdface.motion.shape_norms` of ``generic`` when the
+    caller has them (``generic`` is then not read)."""
+    mag = shape_norms(generic) if norms is None else np.asarray(norms, dtype=np.float64)
     top = mag.max(axis=-1, keepdims=True) if peak is None else np.asarray(peak, dtype=np.float64)[:, None]
     rel = mag / np.maximum(top, 1e-300)
     ramp = np.clip((rel - floor) / floor, 0.0, 1.0)
