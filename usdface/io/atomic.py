@@ -644,8 +644,15 @@ def outputs_all_or_nothing(done: dict, **outputs):
     ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
     ones that did not exist before it are removed (the finished part of a failed
     :func:`usdface.api.export_avatar`, :func:`~usdface.api.evaluate_methods`, ``landmarks`` or
-    ``sample``); one that replaced an existing file (``force``) is left."""
+    ``sample``); one that replaced an existing file (``force``) is left, and so are the folders made for
+    them, when empty again (an interrupted ``-o new/out.usda --review`` left ``new/``)."""
     new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
+    missing = set()
+    for out in outputs.values():
+        folder = Path(out).parent if out else None
+        while folder is not None and not os.path.lexists(folder) and folder != folder.parent:
+            missing.add(folder)
+            folder = folder.parent
     try:
         yield
     except BaseException:
@@ -657,6 +664,11 @@ def outputs_all_or_nothing(done: dict, **outputs):
                     shutil.rmtree(path)
                 else:
                     path.unlink()
+            except OSError:
+                pass
+        for folder in sorted(missing, key=lambda f: len(f.parts), reverse=True):  # deepest first
+            try:
+                folder.rmdir()          # only when empty: another process may have put something there
             except OSError:
                 pass
         raise
