@@ -190,6 +190,26 @@ def test_layers_stacked_over_usdface_layers(sample_set, tmp_path):
     assert not (tmp_path / "pp.usda").exists()
 
 
+def test_review_of_a_landmarks_layer_reviews_the_personalization_under_it(sample_set, tmp_path):
+    """``review`` of a landmark layout stacked over a personalize layer (``landmarks p.usda -o lm.usda``)
+    plays and scores the capture that personalize layer records, found relative to it (it took the
+    landmarks layer's second input, the avatar, for the capture: "the capture recorded in the layer's
+    provenance (avatar.usda) was not found", and the page had no test expressions, eq. 5 table or
+    registration)."""
+    import re
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, tmp_path / name)
+    run("personalize", "avatar.usda", "capture.usda", "-o", "pers/p.usda", "-q", cwd=tmp_path)
+    run("landmarks", "pers/p.usda", "-o", "lm.usda", "-q", cwd=tmp_path)
+    proc = run("review", "lm.usda", "-q", cwd=tmp_path)
+    assert "not found" not in proc.stdout + proc.stderr, proc.stdout
+    page = (tmp_path / "lm.review.html").read_text(encoding="utf-8")
+    assert "<caption>eq. 5 on the capture" in page and "<caption>registration" in page
+    assert re.search(r'"title":\s*"test expressions"', page)
+
+
 def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
     """A shot that references the avatar: the layer's provenance records the referenced avatar's digest
     too, so ``check`` notices when that file changes after personalizing (it hashed only the shot)."""
