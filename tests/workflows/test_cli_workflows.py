@@ -8,6 +8,7 @@ session with ``usdface sample DIR --folder``; the ``shared`` tests use the bench
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 from wfutil import assert_valid_usd, digest, no_temp_left, run
@@ -208,6 +209,32 @@ def test_review_of_a_landmarks_layer_reviews_the_personalization_under_it(sample
     page = (tmp_path / "lm.review.html").read_text(encoding="utf-8")
     assert "<caption>eq. 5 on the capture" in page and "<caption>registration" in page
     assert re.search(r'"title":\s*"test expressions"', page)
+
+
+@pytest.mark.parametrize("argv", [
+    ["export", "p.usda", "--gltf", "p.glb"],
+    ["review", "p.usda"],
+    ["render", "p.usda", "--compare", "-o", "c.png"],
+    ["personalize", "p.usda", "capture.usda", "-o", "again.usda"],
+    ["retarget", "p.usda", "capture.usda", "-o", "map.json"],
+])
+def test_a_layer_whose_avatar_moved_is_refused_in_one_line(sample_set, tmp_path, argv):
+    """A layer whose avatar was moved away (a layer copied without it): one line naming the missing sublayer
+    and the fix, and nothing written. ``export``, ``review``, ``personalize`` and ``retarget`` printed USD's
+    own ``Warning: in _ReportErrors at line 3326 of .../stage.cpp -- Could not load sublayer ...`` first
+    (a stage opened for a check before the reader, without its diagnostics held back)."""
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, tmp_path / name)
+    run("personalize", "avatar.usda", "capture.usda", "-o", "p.usda", "-q", cwd=tmp_path)
+    (tmp_path / "avatar.usda").rename(tmp_path / "moved.usda")
+    before = sorted(os.listdir(tmp_path))
+    proc = run(*argv, "-q", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Could not load sublayer" in lines[0] and "(fix: " in lines[0], proc.stderr
+    assert sorted(os.listdir(tmp_path)) == before
 
 
 def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
