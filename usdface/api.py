@@ -832,7 +832,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     capture = _as_capture(capture_path)
     read_s = time.perf_counter() - start
     t_inspect = [0.0]
-    frames_played = [0]                 # what the inspection animation plays (0: no SkelAnimation written)
+    frames_played = [0, 0]              # what the inspection animation plays (0: no SkelAnimation written),
+    #                                     of it the capture's test expressions
 
     def inspection(offsets, face_prim):
         """The inspection data, authored in the same atomic write as the layer (no second save)."""
@@ -843,6 +844,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         t = time.perf_counter()
         animation = inspection_animation(capture, take_data)
         frames_played[0] = 0 if animation is None else len(animation[1])
+        frames_played[1] = len(capture.test) if capture is not None else 0
         layouts = None
         if landmarks:
             from .model import FaceRig as _FaceRig
@@ -874,7 +876,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]
-        result.report["inspection"] = {"animation_frames": frames_played[0]}
+        result.report["inspection"] = {"animation_frames": frames_played[0], "test_frames": frames_played[1]}
     if timings is not None:  # the reading done here, and the whole call, belong in the report
         timings["read"] = float(timings.get("read", 0.0)) + read_s
         timings.pop("total", None)

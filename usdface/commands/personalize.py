@@ -259,6 +259,9 @@ def run(args) -> int:
             if whole_take:  # the capture is a take read whole: no test expressions
                 anim = f"SkelAnimation of the take {args.take}" if args.take else \
                     f"SkelAnimation of the take {args.capture}"
+            elif args.take and not (result.report.get("inspection") or {}).get("test_frames", 1):
+                # a capture without test frames ('capture select' that held out none): the take alone
+                anim = f"SkelAnimation of the take {args.take} (the capture has no test expressions)"
             else:
                 anim = "test-expression SkelAnimation" + (f" + take {args.take}" if args.take else "")
             if not (result.report.get("inspection") or {}).get("animation_frames", 1):
