@@ -629,6 +629,9 @@ def _check_evaluate_suffixes(json_path, plot_path) -> None:
     matplotlib cannot write (``errors.pgn``), so a typo fails at once and leaves no output behind."""
     from .errors import InputFileError
 
+    if json_path and str(json_path) == "-":      # as every output file (io.atomic.check_output_file)
+        raise InputFileError("JSON report is written to a file, not to standard output ('-')", path=json_path,
+                             fix="name a file, e.g. report.json")
     if json_path and Path(json_path).suffix.lower() != ".json":
         raise InputFileError("JSON report must end in .json", path=json_path,
                              fix=f"name it e.g. {Path(json_path).stem or 'report'}.json")

@@ -317,6 +317,9 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
                              fix="choose a file name without line breaks")
+    if str(path) == "-":        # the Unix 'standard output': 'landmarks --json -' was told to name it -.json
+        raise InputFileError(f"{what} is written to a file, not to standard output ('-')", path=path,
+                             fix=f"name a file, e.g. out{suffixes[0] if suffixes else ''}")
     if path.is_dir():           # a folder (sub/): a file inside it, not a sibling named like it
         inside = path / f"out{suffixes[0] if suffixes else ''}"
         raise InputFileError(f"{what} path is a folder", path=path, fix=f"give a file name inside it, e.g. "
