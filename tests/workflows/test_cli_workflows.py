@@ -237,6 +237,29 @@ def test_a_layer_whose_avatar_moved_is_refused_in_one_line(sample_set, tmp_path,
     assert sorted(os.listdir(tmp_path)) == before
 
 
+def test_a_capture_folder_copied_from_a_mac_reads_as_the_original(sample_set, tmp_path):
+    """macOS leaves an AppleDouble file (``._jawOpen.obj``, binary) beside every file it copies to a
+    non-Apple disk, and ``.DS_Store`` in each folder: they are not the capture's. ``capture import`` and
+    ``personalize`` refused the folder ("the same shape has several template files: ._jawOpen.obj,
+    jawOpen.obj"; in train/, "._000.obj: not a text OBJ file"); now it reads as the original does."""
+    import shutil
+
+    mac = tmp_path / "from mac"
+    shutil.copytree(sample_set / "capture", mac)
+    for f in [p for p in mac.rglob("*") if p.is_file()]:
+        (f.parent / f"._{f.name}").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        ")
+    for d in [mac, *[p for p in mac.rglob("*") if p.is_dir()]]:
+        (d / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")
+    run("capture", "import", sample_set / "capture", "-o", "clean.usda", "-q", cwd=tmp_path)
+    run("capture", "import", mac, "-o", "mac.usda", "-q", cwd=tmp_path)
+    clean, copied = (json.loads(run("inspect", f, "--json", cwd=tmp_path).stdout)
+                     for f in ("clean.usda", "mac.usda"))
+    assert copied["frames"] == clean["frames"] and copied["roles"] == clean["roles"]
+    assert copied["vertices"] == clean["vertices"]
+    run("personalize", sample_set / "avatar.usda", mac, "-o", "p.usda", "-q", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "p.usda")
+
+
 def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
     """A shot that references the avatar: the layer's provenance records the referenced avatar's digest
     too, so ``check`` notices when that file changes after personalizing (it hashed only the shot)."""

@@ -28,6 +28,7 @@ from ..arkit import ARKIT_NAMES, match_names
 from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
 from .atomic import check_output_dir, replace_dir_atomically
+from .file_kind import folder_files
 from .mesh_io import read_obj, write_obj
 
 __all__ = ["read_capture_folder", "write_capture_folder", "read_weights_json", "order_names",
@@ -115,7 +116,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
                              fix="add the template rig: template/neutral.obj + template/<shape>.obj")
     tneutral, ttris = read_obj(tneutral_path, faces=faces)
     _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj")
-    files = sorted(p for p in tdir.glob("*.obj") if p.stem != "neutral")
+    files = [p for p in folder_files(tdir, "*.obj") if p.stem != "neutral"]
     if not files:
         raise CaptureError("template has no shapes", path=tdir,
                            fix="add one template/<shape>.obj per ARKit shape")
@@ -147,12 +148,12 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
         folder = root / role
         if not folder.is_dir():
             continue
-        orphans = sorted(j for j in folder.glob("*.json") if not j.with_suffix(".obj").is_file())
+        orphans = [j for j in folder_files(folder, "*.json") if not j.with_suffix(".obj").is_file()]
         if orphans:                     # a frame's weights without its scan (as its scan without weights)
             raise CaptureError(f"{role}/{orphans[0].name} has no scan {orphans[0].with_suffix('.obj').name} "
                                f"({len(orphans)} such weight file(s))", path=root,
                                fix="restore the frame's OBJ, or remove its .json too")
-        for obj in sorted(folder.glob("*.obj")):
+        for obj in folder_files(folder, "*.obj"):
             pts, tris = read_obj(obj, faces=faces)
             _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
             w = read_weights_json(obj.with_suffix(".json"))

@@ -233,7 +233,9 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
     kind = _input_kind(path, prov)
     if kind is None:
         return
-    csvs = sorted(path.glob("*.csv")) if kind == "weights" and path.is_dir() else []
+    from ..io.file_kind import folder_files
+
+    csvs = folder_files(path, "*.csv") if kind == "weights" and path.is_dir() else []
     take = csvs[0] if len(csvs) == 1 else path / "TAKE.csv" if csvs else path
     what, fix = {
         "capture": ("a capture, not a layer written by 'usdface personalize'",
