@@ -260,6 +260,26 @@ def test_a_capture_folder_copied_from_a_mac_reads_as_the_original(sample_set, tm
     assert_valid_usd(tmp_path / "p.usda")
 
 
+@pytest.mark.parametrize("renamed", ["template/jawOpen.obj", "train/000_eyeBlinkLeft.obj", "neutral.obj"])
+def test_an_upper_case_extension_in_a_capture_folder_is_named(sample_set, tmp_path, renamed):
+    """A capture folder with ``.OBJ`` files (some Windows tools): the reader takes ``*.obj``, so
+    ``template/jawOpen.OBJ`` was left out without a word (the capture imported without jawOpen, its frames'
+    weights set aside), a frame's ``.OBJ`` was "no scan" beside its ``.json``, and ``neutral.OBJ`` "missing
+    neutral.obj". Refused, naming the file and the rename; nothing written."""
+    import shutil
+
+    folder = tmp_path / "capture"
+    shutil.copytree(sample_set / "capture", folder)
+    path = folder / renamed
+    path.rename(path.with_suffix(".OBJ"))
+    for argv in (["capture", "import", "capture", "-o", "c.usda"],
+                 ["personalize", sample_set / "avatar.usda", "capture", "-o", "p.usda"]):
+        proc = run(*argv, "-q", cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert f"{path.stem}.OBJ" in proc.stderr and f"(e.g. {path.name})" in proc.stderr, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == ["capture"]
+
+
 def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):
     """A shot that references the avatar: the layer's provenance records the referenced avatar's digest
     too, so ``check`` notices when that file changes after personalizing (it hashed only the shot)."""

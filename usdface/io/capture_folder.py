@@ -108,6 +108,25 @@ def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureErro
                         fix=fix or "see docs/capture-format.md: neutral.obj, template/, train/, test/")
 
 
+def refuse_suffix_case(folders, suffixes: tuple[str, ...]) -> None:
+    """Refuse (CaptureError) files in ``folders`` whose extension is one of ``suffixes`` in another case
+    (``jawOpen.OBJ``, ``000.JSON``, as some Windows tools write them): the folder is read by lower-case
+    extension, so a template target so named was left out without a word (the capture lost ``jawOpen``,
+    its frames' weights set aside as a shape the template lacks), a frame's scan was reported missing
+    beside its ``.json``, and a ``NEUTRAL.OBJ`` folder was told it has no ``neutral.obj``."""
+    for folder in folders:
+        if not Path(folder).is_dir():
+            continue
+        odd = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes
+                     and p.suffix not in suffixes and not p.name.startswith("."))
+        if odd:
+            more = f" (and {len(odd) - 1} more)" if len(odd) > 1 else ""
+            raise CaptureError(f"{odd[0].name}{more}: a {odd[0].suffix} extension is read only in lower case "
+                               f"({odd[0].suffix.lower()})", path=folder,
+                               fix=f"rename the files to lower-case extensions (e.g. "
+                                   f"{odd[0].with_suffix(odd[0].suffix.lower()).name})")
+
+
 def _template(root: Path, neutral, triangles, report: dict, faces: dict | None = None) -> FaceRig:
     tdir = root / "template"
     tneutral_path = tdir / "neutral.obj"
@@ -205,6 +224,7 @@ def read_capture_folder(path) -> Capture:
     if not root.is_dir():
         raise InputFileError("capture folder not found" if not root.exists() else "not a folder", path=root,
                              fix="pass the capture folder (neutral.obj, template/, train/, test/)")
+    refuse_suffix_case([root, root / "template", *(root / role for role in ROLES)], (".obj", ".json"))
     neutral_path = root / "neutral.obj"
     if not neutral_path.is_file():
         raise missing_layout(root, "neutral.obj")

@@ -152,13 +152,14 @@ def _frame_number(p: Path) -> int | None:
 
 def read_take_folder(path) -> Take:
     """Read an OBJ-sequence take folder with its Live Link Face CSV (see the module doc)."""
-    from .capture_folder import _template
+    from .capture_folder import _template, refuse_suffix_case
     from .file_kind import folder_files
     from .livelink import read_livelink_take
 
     root = Path(path)
-    csvs = folder_files(root, "*.csv")
     frame_dir = root / "frames" if (root / "frames").is_dir() else root
+    refuse_suffix_case([root, frame_dir, root / "template"], (".obj", ".csv"))
+    csvs = folder_files(root, "*.csv")
     if len(csvs) > 1 and not any(p.name != "neutral.obj" for p in folder_files(frame_dir, "*.obj")):
         names = ", ".join(p.name for p in csvs[:4]) + (" ..." if len(csvs) > 4 else "")
         raise CaptureError(f"a folder of {len(csvs)} Live Link CSVs ({names}) and no OBJ frames, not one "
