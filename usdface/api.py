@@ -629,6 +629,9 @@ def _check_evaluate_suffixes(json_path, plot_path) -> None:
     matplotlib cannot write (``errors.pgn``), so a typo fails at once and leaves no output behind."""
     from .errors import InputFileError
 
+    if json_path and str(json_path) == "-":      # as every output file (io.atomic.check_output_file)
+        raise InputFileError("JSON report is written to a file, not to standard output ('-')", path=json_path,
+                             fix="name a file, e.g. report.json")
     if json_path and Path(json_path).suffix.lower() != ".json":
         raise InputFileError("JSON report must end in .json", path=json_path,
                              fix=f"name it e.g. {Path(json_path).stem or 'report'}.json")
@@ -832,7 +835,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     capture = _as_capture(capture_path)
     read_s = time.perf_counter() - start
     t_inspect = [0.0]
-    frames_played = [0]                 # what the inspection animation plays (0: no SkelAnimation written)
+    frames_played = [0, 0]              # what the inspection animation plays (0: no SkelAnimation written),
+    #                                     of it the capture's test expressions
 
     def inspection(offsets, face_prim):
         """The inspection data, authored in the same atomic write as the layer (no second save)."""
@@ -843,6 +847,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         t = time.perf_counter()
         animation = inspection_animation(capture, take_data)
         frames_played[0] = 0 if animation is None else len(animation[1])
+        frames_played[1] = len(capture.test) if capture is not None else 0
         layouts = None
         if landmarks:
             from .model import FaceRig as _FaceRig
@@ -874,7 +879,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     timings = result.report.get("timings") if isinstance(getattr(result, "report", None), dict) else None
     if timings is not None and getattr(result, "out_path", None):
         timings["inspect"] = t_inspect[0]
-        result.report["inspection"] = {"animation_frames": frames_played[0]}
+        result.report["inspection"] = {"animation_frames": frames_played[0], "test_frames": frames_played[1]}
     if timings is not None:  # the reading done here, and the whole call, belong in the report
         timings["read"] = float(timings.get("read", 0.0)) + read_s
         timings.pop("total", None)

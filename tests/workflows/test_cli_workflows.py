@@ -8,6 +8,7 @@ session with ``usdface sample DIR --folder``; the ``shared`` tests use the bench
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 from wfutil import assert_valid_usd, digest, no_temp_left, run
@@ -188,6 +189,95 @@ def test_layers_stacked_over_usdface_layers(sample_set, tmp_path):
     assert again.returncode == 2 and "already personalized" in again.stderr
     assert str((tmp_path / "lm.usda").resolve()) in again.stderr
     assert not (tmp_path / "pp.usda").exists()
+
+
+def test_review_of_a_landmarks_layer_reviews_the_personalization_under_it(sample_set, tmp_path):
+    """``review`` of a landmark layout stacked over a personalize layer (``landmarks p.usda -o lm.usda``)
+    plays and scores the capture that personalize layer records, found relative to it (it took the
+    landmarks layer's second input, the avatar, for the capture: "the capture recorded in the layer's
+    provenance (avatar.usda) was not found", and the page had no test expressions, eq. 5 table or
+    registration)."""
+    import re
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, tmp_path / name)
+    run("personalize", "avatar.usda", "capture.usda", "-o", "pers/p.usda", "-q", cwd=tmp_path)
+    run("landmarks", "pers/p.usda", "-o", "lm.usda", "-q", cwd=tmp_path)
+    proc = run("review", "lm.usda", "-q", cwd=tmp_path)
+    assert "not found" not in proc.stdout + proc.stderr, proc.stdout
+    page = (tmp_path / "lm.review.html").read_text(encoding="utf-8")
+    assert "<caption>eq. 5 on the capture" in page and "<caption>registration" in page
+    assert re.search(r'"title":\s*"test expressions"', page)
+
+
+@pytest.mark.parametrize("argv", [
+    ["export", "p.usda", "--gltf", "p.glb"],
+    ["review", "p.usda"],
+    ["render", "p.usda", "--compare", "-o", "c.png"],
+    ["personalize", "p.usda", "capture.usda", "-o", "again.usda"],
+    ["retarget", "p.usda", "capture.usda", "-o", "map.json"],
+])
+def test_a_layer_whose_avatar_moved_is_refused_in_one_line(sample_set, tmp_path, argv):
+    """A layer whose avatar was moved away (a layer copied without it): one line naming the missing sublayer
+    and the fix, and nothing written. ``export``, ``review``, ``personalize`` and ``retarget`` printed USD's
+    own ``Warning: in _ReportErrors at line 3326 of .../stage.cpp -- Could not load sublayer ...`` first
+    (a stage opened for a check before the reader, without its diagnostics held back)."""
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, tmp_path / name)
+    run("personalize", "avatar.usda", "capture.usda", "-o", "p.usda", "-q", cwd=tmp_path)
+    (tmp_path / "avatar.usda").rename(tmp_path / "moved.usda")
+    before = sorted(os.listdir(tmp_path))
+    proc = run(*argv, "-q", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Could not load sublayer" in lines[0] and "(fix: " in lines[0], proc.stderr
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_a_capture_folder_copied_from_a_mac_reads_as_the_original(sample_set, tmp_path):
+    """macOS leaves an AppleDouble file (``._jawOpen.obj``, binary) beside every file it copies to a
+    non-Apple disk, and ``.DS_Store`` in each folder: they are not the capture's. ``capture import`` and
+    ``personalize`` refused the folder ("the same shape has several template files: ._jawOpen.obj,
+    jawOpen.obj"; in train/, "._000.obj: not a text OBJ file"); now it reads as the original does."""
+    import shutil
+
+    mac = tmp_path / "from mac"
+    shutil.copytree(sample_set / "capture", mac)
+    for f in [p for p in mac.rglob("*") if p.is_file()]:
+        (f.parent / f"._{f.name}").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        ")
+    for d in [mac, *[p for p in mac.rglob("*") if p.is_dir()]]:
+        (d / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")
+    run("capture", "import", sample_set / "capture", "-o", "clean.usda", "-q", cwd=tmp_path)
+    run("capture", "import", mac, "-o", "mac.usda", "-q", cwd=tmp_path)
+    clean, copied = (json.loads(run("inspect", f, "--json", cwd=tmp_path).stdout)
+                     for f in ("clean.usda", "mac.usda"))
+    assert copied["frames"] == clean["frames"] and copied["roles"] == clean["roles"]
+    assert copied["vertices"] == clean["vertices"]
+    run("personalize", sample_set / "avatar.usda", mac, "-o", "p.usda", "-q", cwd=tmp_path)
+    assert_valid_usd(tmp_path / "p.usda")
+
+
+@pytest.mark.parametrize("renamed", ["template/jawOpen.obj", "train/000_eyeBlinkLeft.obj", "neutral.obj"])
+def test_an_upper_case_extension_in_a_capture_folder_is_named(sample_set, tmp_path, renamed):
+    """A capture folder with ``.OBJ`` files (some Windows tools): the reader takes ``*.obj``, so
+    ``template/jawOpen.OBJ`` was left out without a word (the capture imported without jawOpen, its frames'
+    weights set aside), a frame's ``.OBJ`` was "no scan" beside its ``.json``, and ``neutral.OBJ`` "missing
+    neutral.obj". Refused, naming the file and the rename; nothing written."""
+    import shutil
+
+    folder = tmp_path / "capture"
+    shutil.copytree(sample_set / "capture", folder)
+    path = folder / renamed
+    path.rename(path.with_suffix(".OBJ"))
+    for argv in (["capture", "import", "capture", "-o", "c.usda"],
+                 ["personalize", sample_set / "avatar.usda", "capture", "-o", "p.usda"]):
+        proc = run(*argv, "-q", cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert f"{path.stem}.OBJ" in proc.stderr and f"(e.g. {path.name})" in proc.stderr, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == ["capture"]
 
 
 def test_provenance_covers_the_layers_the_avatar_composes(sample_set, tmp_path):

@@ -237,6 +237,23 @@ def test_every_output_option_is_checked_before_work(project, argv, needle):
     assert tree(project) == before
 
 
+@pytest.mark.parametrize("argv", [
+    ["landmarks", "sa/avatar.usda", "--json", "-"],
+    ["evaluate", "sa/capture.usda", "--json", "-"],
+    ["render", "out/person.usda", "-o", "-"],
+    ["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "-"],
+])
+def test_a_dash_for_standard_output_is_named(project, argv):
+    """``--json -`` (or ``-o -``), the Unix way to ask for standard output, where a command writes a file
+    (``landmarks`` and ``evaluate`` take ``--json FILE``; the others print with a ``--json`` flag): refused
+    before any work saying so; it was told ``-: output must end in .json (fix: name it e.g. -.json)``."""
+    before = tree(project)
+    proc = run(*argv, cwd=project, ok=False)
+    refused(proc, "not to standard output ('-')")
+    assert "-.json" not in proc.stderr
+    assert tree(project) == before
+
+
 # ------------------------------------------------------------------- 3. dry run and correspondence cache
 def test_dry_run_says_an_existing_output_would_be_refused(project):
     proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/person.usda", "--dry-run",

@@ -226,6 +226,26 @@ def test_personalize_take_inspect_plays_the_take(scan_take, sample_set, tmp_path
     assert "SkelAnimation of the take" in text and "test-expression" not in text, text
 
 
+def test_personalize_take_with_a_capture_of_no_test_frames_says_it_plays_the_take(scan_take, sample_set,
+                                                                                 tmp_path):
+    """personalize AVATAR CAPTURE --take TAKE where the capture holds out no test frames ('capture select'
+    without --test-every): the summary says the SkelAnimation plays the take (it said 'test-expression
+    SkelAnimation + take'), and the layer's animation is the take's frames alone."""
+    from pxr import Usd, UsdSkel
+
+    from usdface.io import read_capture
+
+    d, take, _ = scan_take
+    assert len(read_capture(d / "peaks.usda").test) == 0
+    text = run("personalize", sample_set / "avatar.usda", d / "peaks.usda", "--take", d / "take.usdc",
+               "-o", "person.usda", "-q", cwd=tmp_path).stdout
+    assert "SkelAnimation of the take" in text and "no test expressions" in text, text
+    assert "test-expression" not in text, text
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Avatar/Skel/usdfaceInspection"))
+    assert anim.GetBlendShapeWeightsAttr().GetNumTimeSamples() == len(take)
+
+
 def test_review_of_a_take_layer_plays_the_take(scan_take, sample_set, tmp_path):
     """usdface review of a layer personalized from a take: the recorded capture is that take, read whole,
     so the page plays it (there are no test expressions) and says why nothing is scored."""

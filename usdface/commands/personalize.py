@@ -144,7 +144,7 @@ def run(args) -> int:
     from .. import progress
     from ..api import personalize_avatar, personalize_inputs
     from ..errors import UsdFaceError
-    from ..io.atomic import check_output_file
+    from ..io.atomic import check_output_file, outputs_all_or_nothing
     from ..io.layers import check_output_path
     from .review import default_output
 
@@ -166,11 +166,26 @@ def run(args) -> int:
     elif args.review:  # refuse an existing review page (or an input) before the work, like the layer
         check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                           inputs=inputs)
-    result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
-                                command=command_line(), inspect=inspect,
-                                landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
-                                **transfer_kwargs(args), **implant_kwargs(args),
-                                **({"pins": args.pins} if args.pins else {}))
+    page = None
+    done = {}
+    # the layer and its review page all or nothing, as export's outputs (and the Pyblish publish's): a page
+    # that failed (a full disk, Ctrl-C, a take it cannot play) left the new layer behind under exit status
+    # 130 or 2, and the rerun refused it ('output layer exists')
+    review = default_output(out) if args.review and not args.dry_run else None
+    with outputs_all_or_nothing(done, layer=out if review else None, review=review):
+        result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
+                                    command=command_line(), inspect=inspect,
+                                    landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
+                                    **transfer_kwargs(args), **implant_kwargs(args),
+                                    **({"pins": args.pins} if args.pins else {}))
+        if review and result.out_path:
+            # written before either report: --json returned before it, and the page was never written
+            from ..api import write_review
+
+            done["layer"] = Path(result.out_path)
+            page = write_review(result.out_path, default_output(result.out_path), capture=args.capture,
+                                take=args.take, force=args.force)
+            done["review"] = page
     rep = result.report
     # a dry run says whether a real run would write: exit status 1 when it would refuse (a preflight)
     refusal = refusal or rep.pop("would_refuse", None)
@@ -178,6 +193,8 @@ def run(args) -> int:
         # ok: a real run would do what is asked (a dry run a real run would refuse: false, exit 1)
         doc = {"ok": not (args.dry_run and refusal), "output": json_path(result.out_path)}
         doc.update((k, v) for k, v in rep.items() if k not in ("name_report", "ok", "output"))
+        if args.review:
+            doc["review"] = json_path(page)
         doc["warnings"] = all_warnings(rep.get("warnings"))
         if args.dry_run:
             doc["would_write"] = None if refusal else str(out)
@@ -242,17 +259,16 @@ def run(args) -> int:
             if whole_take:  # the capture is a take read whole: no test expressions
                 anim = f"SkelAnimation of the take {args.take}" if args.take else \
                     f"SkelAnimation of the take {args.capture}"
+            elif args.take and not (result.report.get("inspection") or {}).get("test_frames", 1):
+                # a capture without test frames ('capture select' that held out none): the take alone
+                anim = f"SkelAnimation of the take {args.take} (the capture has no test expressions)"
             else:
                 anim = "test-expression SkelAnimation" + (f" + take {args.take}" if args.take else "")
             if not (result.report.get("inspection") or {}).get("animation_frames", 1):
                 anim = ("no SkelAnimation (the capture has no test expressions; --take TAKE plays a "
                         "recording)")
             print(f"inspection: change heat map (displayColor), {anim}{extra}")
-    if args.review and not args.dry_run and result.out_path:
-        from ..api import write_review
-
-        page = write_review(result.out_path, default_output(result.out_path), capture=args.capture,
-                            take=args.take, force=args.force)
+    if page is not None:
         print(f"review page: {page} ({page.stat().st_size / 1e6:.1f} MB)")
     t = rep["timings"]
     print("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()))

@@ -38,8 +38,9 @@ def _checked_capture(path):
     found = file_kind(path)
     if found.kind in (Kind.CAPTURE_FOLDER, Kind.TAKE_FOLDER, Kind.FOLDER):
         if found.kind is not Kind.TAKE_FOLDER and not (path / "neutral.obj").is_file():
-            from .capture_folder import missing_layout
+            from .capture_folder import missing_layout, refuse_suffix_case
 
+            refuse_suffix_case([path], (".obj",))       # NEUTRAL.OBJ: named for what it is
             raise missing_layout(path, "neutral.obj")
         return found
     if found.kind is Kind.LIVELINK_CSV and path.is_file():

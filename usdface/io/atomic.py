@@ -317,6 +317,9 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
                              fix="choose a file name without line breaks")
+    if str(path) == "-":        # the Unix 'standard output': 'landmarks --json -' was told to name it -.json
+        raise InputFileError(f"{what} is written to a file, not to standard output ('-')", path=path,
+                             fix=f"name a file, e.g. out{suffixes[0] if suffixes else ''}")
     if path.is_dir():           # a folder (sub/): a file inside it, not a sibling named like it
         inside = path / f"out{suffixes[0] if suffixes else ''}"
         raise InputFileError(f"{what} path is a folder", path=path, fix=f"give a file name inside it, e.g. "
@@ -644,8 +647,15 @@ def outputs_all_or_nothing(done: dict, **outputs):
     ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
     ones that did not exist before it are removed (the finished part of a failed
     :func:`usdface.api.export_avatar`, :func:`~usdface.api.evaluate_methods`, ``landmarks`` or
-    ``sample``); one that replaced an existing file (``force``) is left."""
+    ``sample``); one that replaced an existing file (``force``) is left, and so are the folders made for
+    them, when empty again (an interrupted ``-o new/out.usda --review`` left ``new/``)."""
     new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
+    missing = set()
+    for out in outputs.values():
+        folder = Path(out).parent if out else None
+        while folder is not None and not os.path.lexists(folder) and folder != folder.parent:
+            missing.add(folder)
+            folder = folder.parent
     try:
         yield
     except BaseException:
@@ -657,6 +667,11 @@ def outputs_all_or_nothing(done: dict, **outputs):
                     shutil.rmtree(path)
                 else:
                     path.unlink()
+            except OSError:
+                pass
+        for folder in sorted(missing, key=lambda f: len(f.parts), reverse=True):  # deepest first
+            try:
+                folder.rmdir()          # only when empty: another process may have put something there
             except OSError:
                 pass
         raise

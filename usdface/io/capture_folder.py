@@ -28,6 +28,7 @@ from ..arkit import ARKIT_NAMES, match_names
 from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
 from .atomic import check_output_dir, replace_dir_atomically
+from .file_kind import folder_files
 from .mesh_io import read_obj, write_obj
 
 __all__ = ["read_capture_folder", "write_capture_folder", "read_weights_json", "order_names",
@@ -107,6 +108,25 @@ def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureErro
                         fix=fix or "see docs/capture-format.md: neutral.obj, template/, train/, test/")
 
 
+def refuse_suffix_case(folders, suffixes: tuple[str, ...]) -> None:
+    """Refuse (CaptureError) files in ``folders`` whose extension is one of ``suffixes`` in another case
+    (``jawOpen.OBJ``, ``000.JSON``, as some Windows tools write them): the folder is read by lower-case
+    extension, so a template target so named was left out without a word (the capture lost ``jawOpen``,
+    its frames' weights set aside as a shape the template lacks), a frame's scan was reported missing
+    beside its ``.json``, and a ``NEUTRAL.OBJ`` folder was told it has no ``neutral.obj``."""
+    for folder in folders:
+        if not Path(folder).is_dir():
+            continue
+        odd = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes
+                     and p.suffix not in suffixes and not p.name.startswith("."))
+        if odd:
+            more = f" (and {len(odd) - 1} more)" if len(odd) > 1 else ""
+            raise CaptureError(f"{odd[0].name}{more}: a {odd[0].suffix} extension is read only in lower case "
+                               f"({odd[0].suffix.lower()})", path=folder,
+                               fix=f"rename the files to lower-case extensions (e.g. "
+                                   f"{odd[0].with_suffix(odd[0].suffix.lower()).name})")
+
+
 def _template(root: Path, neutral, triangles, report: dict, faces: dict | None = None) -> FaceRig:
     tdir = root / "template"
     tneutral_path = tdir / "neutral.obj"
@@ -115,7 +135,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
                              fix="add the template rig: template/neutral.obj + template/<shape>.obj")
     tneutral, ttris = read_obj(tneutral_path, faces=faces)
     _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj")
-    files = sorted(p for p in tdir.glob("*.obj") if p.stem != "neutral")
+    files = [p for p in folder_files(tdir, "*.obj") if p.stem != "neutral"]
     if not files:
         raise CaptureError("template has no shapes", path=tdir,
                            fix="add one template/<shape>.obj per ARKit shape")
@@ -147,12 +167,12 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
         folder = root / role
         if not folder.is_dir():
             continue
-        orphans = sorted(j for j in folder.glob("*.json") if not j.with_suffix(".obj").is_file())
+        orphans = [j for j in folder_files(folder, "*.json") if not j.with_suffix(".obj").is_file()]
         if orphans:                     # a frame's weights without its scan (as its scan without weights)
             raise CaptureError(f"{role}/{orphans[0].name} has no scan {orphans[0].with_suffix('.obj').name} "
                                f"({len(orphans)} such weight file(s))", path=root,
                                fix="restore the frame's OBJ, or remove its .json too")
-        for obj in sorted(folder.glob("*.obj")):
+        for obj in folder_files(folder, "*.obj"):
             pts, tris = read_obj(obj, faces=faces)
             _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
             w = read_weights_json(obj.with_suffix(".json"))
@@ -204,6 +224,7 @@ def read_capture_folder(path) -> Capture:
     if not root.is_dir():
         raise InputFileError("capture folder not found" if not root.exists() else "not a folder", path=root,
                              fix="pass the capture folder (neutral.obj, template/, train/, test/)")
+    refuse_suffix_case([root, root / "template", *(root / role for role in ROLES)], (".obj", ".json"))
     neutral_path = root / "neutral.obj"
     if not neutral_path.is_file():
         raise missing_layout(root, "neutral.obj")

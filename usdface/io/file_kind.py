@@ -38,7 +38,7 @@ from enum import StrEnum
 from pathlib import Path
 
 __all__ = ["Kind", "FileKind", "file_kind", "is_weights_take", "top_animation", "USD_SUFFIXES", "NOT_AVATAR",
-           "plain"]
+           "plain", "folder_files"]
 
 #: The file name endings USD files are told by.
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -178,12 +178,20 @@ def file_kind(path, *, stage=None, compose: bool = False) -> FileKind:
     return _usd_kind(path, layer, None, compose)
 
 
+def folder_files(folder, pattern: str) -> list[Path]:
+    """The files of ``folder`` matching ``pattern`` (``"*.obj"``), sorted, without hidden ones: a name
+    starting with a dot is a system's, not the capture's (macOS writes ``._000.obj`` AppleDouble files beside
+    every file copied to a non-Apple disk; ``Path.glob`` matches them: a capture folder copied from a Mac was
+    refused, "the same shape has several template files: ._jawOpen.obj, jawOpen.obj")."""
+    return sorted(p for p in Path(folder).glob(pattern) if not p.name.startswith("."))
+
+
 def _folder_kind(path: Path) -> FileKind:
     frames = (path / "frames").is_dir()
-    meshes = frames or any(path.glob("*.obj"))
+    meshes = frames or bool(folder_files(path, "*.obj"))
     if (path / "train").is_dir():
         return FileKind(path, Kind.CAPTURE_FOLDER, "train/", meshes=meshes)
-    if frames or any(path.glob("*.csv")):
+    if frames or folder_files(path, "*.csv"):
         return FileKind(path, Kind.TAKE_FOLDER, "frames/" if frames else "*.csv", meshes=meshes)
     if (path / "neutral.obj").is_file():
         return FileKind(path, Kind.CAPTURE_FOLDER, "neutral.obj", meshes=meshes)

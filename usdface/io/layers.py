@@ -786,8 +786,11 @@ def refuse_avatar_mismatch(layer_path, what: str) -> None:
 
     if Path(layer_path).suffix.lower() not in (".usda", ".usdc", ".usd") or not Path(layer_path).is_file():
         return                                   # not a layer (a take's CSV, a folder): its reader says so
+    from .usd_open import quiet_stderr
+
     try:
-        stage = Usd.Stage.Open(str(layer_path))
+        with quiet_stderr():    # a missing sublayer: the reader names it in one line later
+            stage = Usd.Stage.Open(str(layer_path))
         found = avatar_mismatches(stage) if stage is not None else []
     except Exception:  # noqa: BLE001  (a file USD cannot open: the reader after this names it)
         return

@@ -201,9 +201,10 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     under two spellings), naming the file and the line. Weights outside [0, 1] are clipped with a warning
     (real takes have ``EyeLookIn*`` up to ~1.06).
     """
+    from .file_kind import folder_files
     from .usd_open import require_file
 
-    inside = sorted(Path(path).glob("*.csv")) if Path(path).is_dir() else []
+    inside = folder_files(path, "*.csv") if Path(path).is_dir() else []
     # a take folder (OBJ frames + its CSV) given to 'anim import': name the CSV in it (a user trial)
     path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face"
                         + (f": {inside[0]}" if len(inside) == 1 else ""))

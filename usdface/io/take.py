@@ -152,13 +152,15 @@ def _frame_number(p: Path) -> int | None:
 
 def read_take_folder(path) -> Take:
     """Read an OBJ-sequence take folder with its Live Link Face CSV (see the module doc)."""
-    from .capture_folder import _template
+    from .capture_folder import _template, refuse_suffix_case
+    from .file_kind import folder_files
     from .livelink import read_livelink_take
 
     root = Path(path)
-    csvs = sorted(root.glob("*.csv"))
     frame_dir = root / "frames" if (root / "frames").is_dir() else root
-    if len(csvs) > 1 and not any(p.name != "neutral.obj" for p in frame_dir.glob("*.obj")):
+    refuse_suffix_case([root, frame_dir, root / "template"], (".obj", ".csv"))
+    csvs = folder_files(root, "*.csv")
+    if len(csvs) > 1 and not any(p.name != "neutral.obj" for p in folder_files(frame_dir, "*.obj")):
         names = ", ".join(p.name for p in csvs[:4]) + (" ..." if len(csvs) > 4 else "")
         raise CaptureError(f"a folder of {len(csvs)} Live Link CSVs ({names}) and no OBJ frames, not one "
                            "take", path=root, fix=f"pass the CSV files themselves, e.g. {csvs[0]}")
@@ -166,7 +168,7 @@ def read_take_folder(path) -> Take:
         raise CaptureError(f"expected one Live Link .csv in the take folder, found {len(csvs)}", path=root,
                            fix="put exactly one Live Link Face CSV next to the OBJ frames")
     ll = read_livelink_take(csvs[0])
-    objs = [p for p in frame_dir.glob("*.obj") if p.name != "neutral.obj"]
+    objs = [p for p in folder_files(frame_dir, "*.obj") if p.name != "neutral.obj"]
     if not objs:
         raise CaptureError("no OBJ frames", path=frame_dir, fix="put the take's meshes in frames/NNNN.obj")
     numbers = [_frame_number(p) for p in objs]

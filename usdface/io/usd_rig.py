@@ -605,7 +605,10 @@ def _has_personalization(path) -> bool:
     avatar has it, a landmarks layer over the plain avatar has not)."""
     from pxr import Usd
 
-    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    from .usd_open import quiet_stderr
+
+    with quiet_stderr():    # a missing sublayer: the reader names it in one line later
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
     return any(p.GetVariantSets().HasVariantSet(PERSONALIZATION_VARIANT_SET)
                for p in stage.Traverse(Usd.TraverseInstanceProxies()))
 

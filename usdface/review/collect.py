@@ -50,6 +50,23 @@ def _recorded_path(layer_path, recorded) -> Path | None:
     return p.resolve() if p.exists() else None
 
 
+def _personalize_layer_below(layer_path) -> tuple[Path, dict] | None:
+    """(path, provenance) of the first layer of the layer stack of ``layer_path`` below its root layer that
+    ``usdface personalize`` wrote, or None: what a layer stacked over a personalization reviews."""
+    from pxr import Usd
+
+    from ..io.usd_rig import usdface_output_provenance
+
+    stage = Usd.Stage.Open(str(layer_path), Usd.Stage.LoadNone)
+    for layer in stage.GetLayerStack(includeSessionLayers=False)[1:]:
+        if not layer.realPath:
+            continue
+        record = usdface_output_provenance(layer.realPath) or {}
+        if record.get("inputs") and _fitted(record):
+            return Path(layer.realPath), record
+    return None
+
+
 def _mm(v) -> str:
     return f"{float(v) * 1000.0:.2f} mm"
 
@@ -216,7 +233,9 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
     kind = _input_kind(path, prov)
     if kind is None:
         return
-    csvs = sorted(path.glob("*.csv")) if kind == "weights" and path.is_dir() else []
+    from ..io.file_kind import folder_files
+
+    csvs = folder_files(path, "*.csv") if kind == "weights" and path.is_dir() else []
     take = csvs[0] if len(csvs) == 1 else path / "TAKE.csv" if csvs else path
     what, fix = {
         "capture": ("a capture, not a layer written by 'usdface personalize'",
@@ -328,11 +347,18 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         if rig.source and rig.source.prim in layouts:
             m.landmarks = layouts[rig.source.prim]
 
+    # a layer stacked over the personalize layer (a landmark layout: 'usdface landmarks LAYER -o OUT')
+    # reviews that personalization: its capture, take and figures are the personalize layer's (the
+    # landmarks layer's own inputs are the layer and the avatar, and its avatar was named as a capture that
+    # 'was not found', with no test expressions)
+    made_from = layer_path
+    if not _fitted(prov):
+        made_from, prov = _personalize_layer_below(layer_path) or (layer_path, prov)
     notes = []
     sequences = []
     recorded = capture is None
     if capture is None:
-        capture = recorded_capture(layer_path, prov)
+        capture = recorded_capture(made_from, prov)
         if capture is None:
             _gone(notes, f"the capture recorded in the layer's provenance{_named(prov, 1)} was not found: no "
                          "test expressions (pass --capture)", layer_path)
@@ -362,7 +388,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     if isinstance(take, str | Path):         # given: a capture is no take (a recorded one plays as it did)
         refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
     if take is None and prov.get("take"):   # the take the layer's inspection animation plays
-        take = recorded_take(layer_path, prov)
+        take = recorded_take(made_from, prov)
         if take is None:
             _gone(notes, f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
                          "played (pass --take)", layer_path)
