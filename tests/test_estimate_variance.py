@@ -190,3 +190,31 @@ def test_the_loo_trust_variant_reads_the_fits_error_per_vertex(monkeypatch):
     prior[0, :, 1] = 1e-2                                          # moves everywhere: every vertex counts
     trust_, _, _ = trust.shape_trust(fit, capture, rig, [0], prior + d, prior)
     np.testing.assert_allclose(trust_, [0.5], atol=1e-9)           # 1 - 3 loo^2 / 6 loo^2 (excitation 1)
+
+
+def test_the_trust_undoes_the_ridges_own_shrink():
+    """The ridge fit returns about ``h D + e`` for a personalization ``D`` (``h`` the data share); the
+    James-Stein factor is the best scale of that for ``hD``, and :func:`usdface.transfer.trust.unshrunk`
+    (factor / h, at most 1) the best for ``D``: over noise draws, the unshrunk scale brings the fitted
+    personalization nearer the person's than the factor does, and it never exceeds 1 (0 without data)."""
+    from usdface.personalize.fit import data_share
+    from usdface.transfer.trust import unshrunk
+
+    neutral, T, W = _problem(collinear=False)
+    rng = np.random.default_rng(5)
+    change = rng.normal(size=T.shape) * 4e-4                      # the person's personalization D, metres
+    clean = neutral[None] + np.einsum("fk,knc->fnc", W, T + change)
+    D = np.ones(T.shape[:2])
+    reg, sigma = 0.5, 1e-4                                         # a ridge that shrinks (h ~ 0.7)
+    h = data_share(W, D, reg).mean(axis=0)                         # [K]
+    assert 0.5 < h.min() and h.max() < 0.9
+    variance = estimate_variance(W, D, reg) * 3 * sigma ** 2       # [n,K] m^2 per vertex
+    errors = {"factor": 0.0, "unshrunk": 0.0}
+    for _ in range(50):
+        fitted = fit_blendshapes(neutral, clean + rng.normal(size=clean.shape) * sigma, W, T, D, reg)
+        factor = james_stein(fitted - T, variance, np.ones(variance.shape))
+        for name, scale in (("factor", factor), ("unshrunk", unshrunk(factor, h))):
+            errors[name] += float(np.sum((scale[:, None, None] * (fitted - T) - change) ** 2))
+        assert np.all(unshrunk(factor, h) <= 1.0)
+    assert errors["unshrunk"] < 0.9 * errors["factor"], errors          # measured 0.85
+    np.testing.assert_array_equal(unshrunk([0.3, 0.8, 0.2], [0.0, 0.5, 0.4]), [0.0, 1.0, 0.5])

@@ -555,6 +555,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         info["prior_deltas"] = prior_deltas          # T_j of eq. (2) as used, [K,n,3] (the implant's P_j)
         info["shape_confidence"], reliable = _shape_confidence(capture, points, weights, generic, D,
                                                                prior_deltas, lam, info, clamp)
+        # the data share itself (shape_confidence is capped by the reliability below): how far the ridge
+        # shrinks each shape's personalization towards its prior (the implant's trust undoes it)
+        info["data_share"] = np.array(info["shape_confidence"], dtype=np.float64)
         D_fit, prior_fit = D, prior_deltas
         if pins is not None:
             mask = _pin_mask(pins, capture, method)
