@@ -157,6 +157,9 @@ SPREAD_RADIUS = 0.5
 #: Rounds of spreading (:func:`repair_eyelids`): what one round leaves short of its bound is spread again,
 #: then moved onto its bound alone.
 SPREAD_ROUNDS = 3
+#: Corrections spread at a time (:func:`_spread_corrections`): their pairs within 1.25 :data:`SPREAD_RADIUS`
+#: (~2,000 a correction on a twice-subdivided head's lid) are the repair's largest arrays.
+SPREAD_CHUNK = 256
 
 
 def _amount(excess, tolerance: float) -> np.ndarray:
@@ -192,31 +195,45 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
 
     moved_js, moved_ks = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
     size = vector_lengths(correction)
+    reach = 1.25 * radius
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
-        pairs = cKDTree(x0[near[ks[mine]]]).sparse_distance_matrix(tree, 1.25 * radius,
-                                                                   output_type="ndarray")
-        # the record fields as contiguous arrays, read once (each strided read of the millions of pairs of a
-        # subdivided head's lid cost as much as the arithmetic on it)
-        fr, to, dist = (np.ascontiguousarray(pairs[k]) for k in ("i", "j", "v"))
-        del pairs
+        own, m_own = correction[mine].T.copy(), size[mine]               # ([3,P]: one column at a time)
         # only to the vertices the shape moves, each by at most as much as the shape does
         mag = vector_lengths(out[j, near])
-        keep = mag[to] > 0
-        if not keep.all():                                        # (most shapes: all of them)
-            fr, to, dist = fr[keep], to[keep], dist[keep]
-        m = size[mine][fr]
-        a = ramp_down(dist, 0.0, radius) * m
-        total = np.bincount(to, weights=a, minlength=near.size)
-        own = correction[mine]
-        shift = np.stack([np.bincount(to, weights=a * own[fr, c], minlength=near.size) for c in range(3)],
-                         axis=1)
+        still = None if mag.min() > 0 else ~(mag > 0)             # (most shapes: none still)
+        total = np.zeros(near.size)
+        shift = np.zeros((3, near.size))
         top = np.zeros(near.size)                                 # the largest weighted correction ...
-        np.maximum.at(top, to, a)
         scale = np.zeros(near.size)                               # ... against the largest near it
-        np.maximum.at(scale, to, ramp_down(dist, radius, 1.25 * radius) * m)
+        for lo in range(0, mine.size, SPREAD_CHUNK):              # (pairs of a few hundred sources at a time)
+            part = slice(lo, lo + SPREAD_CHUNK)
+            pairs = cKDTree(x0[near[ks[mine[part]]]]).sparse_distance_matrix(tree, reach,
+                                                                             output_type="ndarray")
+            # the record fields as contiguous arrays, read once (each strided read of the millions of pairs
+            # of a subdivided head's lid cost as much as the arithmetic on it)
+            fr, to, dist = (np.ascontiguousarray(pairs[k]) for k in ("i", "j", "v"))
+            del pairs
+            if still is not None:
+                keep = ~still[to]
+                fr, to, dist = fr[keep], to[keep], dist[keep]
+            fr += lo
+            m = m_own[fr]
+            # beyond ``radius`` a pair's weight is 0 (to the bit) and its fade's w'(d) m; within it w(d) m and
+            # m (w' = 1): the sums and the largest weight over the pairs within ``radius`` only
+            inner = dist <= radius
+            outer = ~inner
+            np.maximum.at(scale, to[outer], ramp_down(dist[outer], radius, reach) * m[outer])
+            fr, to, m = fr[inner], to[inner], m[inner]
+            a = ramp_down(dist[inner], 0.0, radius) * m
+            del dist, inner, outer
+            np.maximum.at(scale, to, m)
+            np.maximum.at(top, to, a)
+            total += np.bincount(to, weights=a, minlength=near.size)
+            for c in range(3):
+                shift[c] += np.bincount(to, weights=a * own[c][fr], minlength=near.size)
         v = np.flatnonzero(total > 0)
-        step = shift[v] * (top[v] / (scale[v] * total[v]))[:, None]
+        step = shift[:, v].T * (top[v] / (scale[v] * total[v]))[:, None]
         size_v = vector_lengths(step)
         cap = np.minimum(1.0, mag[v] / np.maximum(size_v, 1e-300))
         out[j, near[v]] += step * cap[:, None]
@@ -301,25 +318,38 @@ NEGLIGIBLE = 1e-8
 UNMOVED = 1e-6
 
 
-def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float, known):
+def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolerance: float, known,
+                last=None):
     """The (shape ``js``, near vertex ``ks``) pairs of :func:`repair_eyelids` whose personalized position
     violates its bound, by any amount that calls for a correction (:data:`NEGLIGIBLE`): ``(js, ks,
     position[p,3], signed distance[p], bound[p], generic position[p,3] or None without a reference)``, or
     None. ``known``: ``(d0[k], d_ref[J,k])``, the signed distances of the neutral and of the generic shapes'
-    near vertices, NaN until measured (they do not change from one round to the next)."""
+    near vertices, NaN until measured (they do not change from one round to the next). ``last``: ``(key[p],
+    position[p,3], signed distance[p])`` of pairs measured before (``key = js x near.size + ks``, ascending):
+    a pair at the very same position keeps its distance (a vertex short of its bound by less than the
+    tolerance and beyond the spread's reach is checked every round)."""
+    vertex = near[ks]
+    offset = out[js, vertex]                      # (each [J,n,3] array read once at the pairs)
     if reference is not None:
+        generic = reference[js, vertex]
         # a vertex the personalization leaves where the generic shape has it is fine by definition
-        moved = vector_lengths(out[js, near[ks]] - reference[js, near[ks]]) > 1e-9
-        js, ks = js[moved], ks[moved]
+        moved = vector_lengths(offset - generic) > 1e-9
+        js, ks, vertex, offset, generic = js[moved], ks[moved], vertex[moved], offset[moved], generic[moved]
     if js.size == 0:
         return None
-    q = x0[near[ks]] + out[js, near[ks]]
-    d = surf.signed_distance(q)
+    q = x0[vertex] + offset
+    d = np.full(len(q), np.nan)
+    if last is not None and last[0].size:
+        at = np.minimum(np.searchsorted(last[0], js * near.size + ks), last[0].size - 1)
+        same = (last[0][at] == js * near.size + ks) & (last[1][at] == q).all(axis=1)
+        d[same] = last[2][at[same]]
+    measure = np.isnan(d)
+    d[measure] = surf.signed_distance(q[measure])
     # a pair's bound is at most the clearance (with a reference; 0 without): one at least that far outside
     # the eye is fine whatever its bound, and its neutral's and generic shape's distances are not needed
     # (most of the lid vertices near the eye, in most shapes)
     doubt = d < (max(clearance, 0.0) if reference is not None else 0.0)
-    js, ks, q, d = js[doubt], ks[doubt], q[doubt], d[doubt]
+    js, ks, q, d, vertex = js[doubt], ks[doubt], q[doubt], d[doubt], vertex[doubt]
     if js.size == 0:
         return None
     d0, d_ref = known
@@ -327,9 +357,10 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolera
     if new.size:
         d0[new] = surf.signed_distance(x0[near[new]])
     required = np.minimum(d0[ks], 0.0)
-    generic = None
-    if reference is not None:
-        generic = x0[near[ks]] + reference[js, near[ks]]
+    if reference is None:
+        generic = None
+    else:
+        generic = x0[vertex] + generic[doubt]
         new = np.flatnonzero(np.isnan(d_ref[js, ks]))
         if new.size:
             d_ref[js[new], ks[new]] = surf.signed_distance(generic[new])
@@ -424,6 +455,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                     break
                 fixed = _onto_bound(surf, eye, q[src], d[src], required[src],
                                     None if generic is None else generic[src], tolerance)
+                last = (js * near.size + ks, q, d)          # (js, ks ascending: as measured)
                 mj, mk = _spread_corrections(out, x0, near, js[src], ks[src],
                                              (fixed - q[src]) * share[src, None], SPREAD_RADIUS * eye.radius,
                                              tree)
@@ -433,7 +465,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
                 js, ks = pair // near.size, pair % near.size
                 inside = np.sum((x0[near[ks]] + out[js, near[ks]] - center) ** 2, axis=-1) <= bound ** 2
                 found = _violations(surf, x0, out, near, js[inside], ks[inside], ref_all, clearance,
-                                    tolerance, known)
+                                    tolerance, known, last)
                 if found is None:              # (as above: beyond the bounding sphere all is fine)
                     break
                 js, ks, q, d, required, generic = found
