@@ -24,6 +24,15 @@ SIGINT_IN_THE_PAGE = ("import os, signal, sys\n"
                       "from usdface.cli import main\n")
 
 
+def _interactive_signals() -> None:
+    """In the child: SIGINT at its default, as a terminal's foreground job has it. A suite started under a
+    background job or nohup (as CI starts it) passes SIGINT on ignored, and Python then installs no
+    KeyboardInterrupt handler: the page's Ctrl-C would not arrive (tests/test_signals.py does the same)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_json_review_writes_the_page_and_names_it(sample_set, tmp_path):
     """``--json --review``: the page is written beside the layer and the document names it (``review``)."""
     proc = run("personalize", sample_set / "avatar.usda", sample_set / "capture.usda", "-o", "p.usda",
@@ -43,7 +52,8 @@ def test_a_review_page_stopped_takes_the_new_layer_and_its_folder(sample_set, tm
             "--review", "-q", "-o", str(out)]
     proc = subprocess.run([sys.executable, "-c", SIGINT_IN_THE_PAGE + f"sys.argv = {argv!r}\n"
                            "sys.exit(main())\n"], cwd=tmp_path, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+                          env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          preexec_fn=_interactive_signals)
     assert proc.returncode == 130, proc.stderr
     assert "interrupted" in proc.stderr and "Traceback" not in proc.stderr
     assert sorted(os.listdir(tmp_path)) == [], list(Path(tmp_path).rglob("*"))
@@ -61,7 +71,8 @@ def test_a_review_page_stopped_leaves_a_layer_it_replaced(sample_set, tmp_path):
             "--review", "--force", "-q", "-o", "p.usda"]
     proc = subprocess.run([sys.executable, "-c", SIGINT_IN_THE_PAGE + f"sys.argv = {argv!r}\n"
                            "sys.exit(main())\n"], cwd=tmp_path, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+                          env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          preexec_fn=_interactive_signals)
     assert proc.returncode == 130, proc.stderr
     assert sorted(os.listdir(tmp_path)) == ["p.usda"]
     assert_valid_usd(tmp_path / "p.usda", checked=False)
