@@ -1153,10 +1153,11 @@ def _fit_option_names() -> set[str]:
             | {k for ks in METHOD_OPTIONS.values() for k in ks})
 
 
-def _refuse_unknown_options(options) -> None:
+def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
     """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
     a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
-    ``review``), listing the ones it takes."""
+    ``review``), listing the ones it takes, less ``unlisted`` (ones the caller refuses with its own message,
+    such as ``dry_run`` for a batch item: a list offering them sent the user from one refusal to the next)."""
     import inspect as _inspect
 
     from .errors import OptionError
@@ -1169,7 +1170,7 @@ def _refuse_unknown_options(options) -> None:
     unknown = sorted(set(options) - known)
     if unknown:
         raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
-                          fix="drop them, or use one of: " + ", ".join(sorted(known)))
+                          fix="drop them, or use one of: " + ", ".join(sorted(known - set(unlisted))))
 
 
 def check_personalize_options(**options: Any) -> None:
@@ -1177,10 +1178,16 @@ def check_personalize_options(**options: Any) -> None:
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
     (:class:`usdface.errors.OptionError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
+    _check_options(options)
+
+
+def _check_options(options: dict, unlisted: Iterable[str] = ()) -> None:
+    """:func:`check_personalize_options` on the dict ``options``; an unknown name's refusal lists the taken
+    options less ``unlisted`` (``usdface batch`` leaves out ``dry_run``, which it refuses for an item)."""
     from .errors import OptionError
     from .transfer import options as _implant
 
-    _refuse_unknown_options(options)
+    _refuse_unknown_options(options, unlisted)
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
             raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
@@ -1304,7 +1311,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
-                check_personalize_options(**item.options)
+                _check_options(item.options, unlisted=("dry_run",))   # refused for an item just below
             except UsdFaceError as exc:
                 raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
