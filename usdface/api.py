@@ -777,6 +777,13 @@ def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take
             else "pass the capture-mesh rig to implant, usdface.fit_capture(capture).rig", none_ok=True)
 
 
+def personalized_name(avatar: PathLike | Avatar) -> str:
+    """``<avatar stem>.personalized.usda``: ``usdface personalize``'s default output name (in the current
+    folder), and the file an output given as a folder (``-o newdir/``) is told to name inside it."""
+    file = avatar if isinstance(avatar, str | os.PathLike) else getattr(avatar, "file", None)
+    return f"{Path(file).stem if file else 'avatar'}.personalized.usda"
+
+
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
                        out_path: PathLike | None, *, inspect: bool = False, take: PathLike | None = None,
                        landmarks: bool = False, **options: Any) -> PersonalizeResult:
@@ -816,7 +823,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         from .io.layers import check_output_path
 
         check_output_path(out_path, options.get("force", False), inputs=personalize_inputs(
-            avatar_path, capture_path, take=take, **options))
+            avatar_path, capture_path, take=take, **options), example=personalized_name(avatar_path))
     if take is not None or landmarks:    # as --take and --landmarks imply --inspect (landmarks=True alone
         inspect = True                   # wrote no landmarks, without a word)
     capture_path = _read_pins_file(options, capture_path)
@@ -1524,11 +1531,13 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
                                   f"folder {obj_dir}: one output would be written into (or over) the other",
                                   path=out, fix=f"give {option} a path outside the --obj-dir folder")
     if gltf:
-        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
+        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path],
+                          example=f"{Path(layer_path).stem}.glb")            # newdir/: a file inside it
     if obj_dir:
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
-        check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file")
+        check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file",
+                          example=f"{Path(layer_path).stem}.usdc")
     from .io.layers import refuse_avatar_mismatch, stale_inputs
 
     # a layer its revised avatar no longer fits (overrides on nothing, offsets on shifted vertices) is

@@ -139,7 +139,8 @@ def run(args) -> int:
     if args.output:
         from ..io.layers import check_output_path
 
-        check_output_path(args.output, args.force, inputs=inputs)
+        check_output_path(args.output, args.force, inputs=inputs,    # newdir/: a file inside it
+                          example=f"{Path(args.avatar).stem}.landmarks.usda")
     for out, suffix in ((args.json_out, ".json"), (args.plot, ".png")):
         if out:
             check_output_file(out, args.force, suffixes=(suffix,), inputs=inputs)

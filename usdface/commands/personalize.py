@@ -137,7 +137,9 @@ def register(subparsers) -> None:
 def _default_output(avatar: str) -> Path:
     """``<avatar stem>.personalized.usda`` in the current folder (the avatar's folder is often a read-only
     asset library)."""
-    return Path(Path(avatar).stem + ".personalized.usda")
+    from ..api import personalized_name
+
+    return Path(personalized_name(avatar))
 
 
 def run(args) -> int:
@@ -157,7 +159,8 @@ def run(args) -> int:
     refusal = None
     if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
         try:
-            check_output_path(out, args.force, inputs=inputs)
+            check_output_path(args.output or out, args.force, inputs=inputs,   # as given: newdir/ a folder
+                              example=_default_output(args.avatar).name)
             if args.review:
                 check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                                   inputs=inputs)
@@ -173,7 +176,8 @@ def run(args) -> int:
     # 130 or 2, and the rerun refused it ('output layer exists')
     review = default_output(out) if args.review and not args.dry_run else None
     with outputs_all_or_nothing(done, layer=out if review else None, review=review):
-        result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
+        result = personalize_avatar(args.avatar, args.capture, args.output or out, force=args.force,
+                                    dry_run=args.dry_run,
                                     command=command_line(), inspect=inspect,
                                     landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
                                     **transfer_kwargs(args), **implant_kwargs(args),
