@@ -202,6 +202,8 @@ def run(args) -> int:
         doc["warnings"] = all_warnings(rep.get("warnings"))
         if args.dry_run:
             doc["would_write"] = None if refusal else str(out)
+            if args.review:    # 'review': null alone said nothing of the page a real run would write
+                doc["would_write_review"] = None if refusal else str(default_output(out))
             doc["output_refused"] = refusal
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
@@ -254,7 +256,8 @@ def run(args) -> int:
         for c in changed:
             print(f"  {c['mesh']}/{c['shape']}: max {c['max_change_m'] * 1000:.3f}, "
                   f"rms {c['rms_change_m'] * 1000:.3f}, {c['moved_vertices']} vertices")
-        print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}")
+        print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}"
+              + (f" and its review page {default_output(out)}" if args.review else ""))
     else:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
         _text_layer_note(result.out_path)
