@@ -407,6 +407,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
+    refuse_missing_inputs(capture_path=capture)          # before the output's problems
     if out_path is not None:
         from .io.layers import check_output_path
 
@@ -756,6 +757,25 @@ def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) 
     return [avatar_path, capture_path, take, options.get("pins"), options.get("name_map")]
 
 
+def refuse_missing_inputs(avatar_path=None, capture_path=None, take=None) -> None:
+    """A missing avatar, capture or take (given as paths; None: not read) named as their readers name it,
+    before the output is checked: 'personalize MISSING.usda CAPTURE' in a folder one cannot write to was
+    told that the layer could not be written there (a user trial). What an existing input is, its reader
+    says, as before."""
+    if isinstance(avatar_path, str | os.PathLike) and not Path(avatar_path).exists():
+        from .io.usd_open import require_file
+
+        require_file(avatar_path, "avatar", "pass the avatar's .usd/.usda/.usdc file")
+    if isinstance(capture_path, str | os.PathLike) and not Path(capture_path).exists():
+        from .io import check_capture_path
+
+        check_capture_path(capture_path)
+    if isinstance(take, str | os.PathLike) and not Path(take).exists():
+        from .io.take import check_take_path
+
+        check_take_path(take)
+
+
 def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take=None, face_mesh=None,
                                     rig=None, **_options) -> None:
     """The arguments of :func:`personalize_avatar` / :func:`write_retarget_map` of the kind they take."""
@@ -819,6 +839,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, take=take, **options),
                                 outputs=[out_path])
+    refuse_missing_inputs(avatar_path, capture_path, take)   # said before any output problem
     if out_path is not None and not options.get("dry_run"):
         from .io.layers import check_output_path
 
@@ -1089,6 +1110,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     _refuse_implant_options(options)
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, **options)
     refuse_usdface_output(avatar_path)
+    refuse_missing_inputs(avatar_path, capture_path)    # before the output's problems
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
@@ -1454,15 +1476,20 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
+    from .io.usd_open import require_file
     from .review.collect import collect_review
     from .review.page import build_review_html
 
-    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
-                            inputs=[layer_path, capture, take])
+    # a missing input first, then the output ('review MISSING.usda' in a folder one cannot write to was
+    # told that the page could not be written there); what an existing input is, its readers say
+    if not Path(layer_path).exists():
+        require_file(layer_path, "USD file", "check the path (a .usd/.usda/.usdc file)")
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
     if isinstance(capture, str | Path) and not Path(capture).exists():
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
+    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
+                            inputs=[layer_path, capture, take])
     from . import progress
     from .io.layers import refuse_avatar_mismatch, stale_inputs
     from .io.usd_rig import usdface_output_provenance
@@ -1530,6 +1557,10 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
                 raise OptionError(f"{what} {out} is {'the' if place == folder else 'inside the'} --obj-dir "
                                   f"folder {obj_dir}: one output would be written into (or over) the other",
                                   path=out, fix=f"give {option} a path outside the --obj-dir folder")
+    if not Path(layer_path).exists():                   # a missing layer before the outputs' problems
+        from .io.usd_open import require_file
+
+        require_file(layer_path, "layer", "check the path (a .usd/.usda/.usdc file)")
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path],
                           example=f"{Path(layer_path).stem}.glb")            # newdir/: a file inside it

@@ -136,6 +136,7 @@ def run(args) -> int:
     refuse_other_mode(args)
     t0 = time.perf_counter()
     inputs = [args.avatar, args.name_map, args.empirical, *args.takes]
+    api.refuse_missing_inputs(avatar_path=args.avatar)         # a missing avatar before the outputs
     if args.output:
         from ..io.layers import check_output_path
 

@@ -144,7 +144,7 @@ def _default_output(avatar: str) -> Path:
 
 def run(args) -> int:
     from .. import progress
-    from ..api import personalize_avatar, personalize_inputs
+    from ..api import personalize_avatar, personalize_inputs, refuse_missing_inputs
     from ..errors import UsdFaceError
     from ..io.atomic import check_output_file, outputs_all_or_nothing
     from ..io.layers import check_output_path
@@ -157,6 +157,7 @@ def run(args) -> int:
     inputs = personalize_inputs(args.avatar, args.capture, take=args.take, pins=args.pins,
                                 name_map=args.name_map)
     refusal = None
+    refuse_missing_inputs(args.avatar, args.capture, args.take)   # before the review page's check
     if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
         try:
             check_output_path(args.output or out, args.force, inputs=inputs,   # as given: newdir/ a folder
