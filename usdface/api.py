@@ -1207,12 +1207,13 @@ def check_personalize_options(**options: Any) -> None:
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
     (:class:`usdface.errors.OptionError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
-    _check_options(options)
+    check_item_options(options, unlisted=())
 
 
-def _check_options(options: dict, unlisted: Iterable[str] = ()) -> None:
-    """:func:`check_personalize_options` on the dict ``options``; an unknown name's refusal lists the taken
-    options less ``unlisted`` (``usdface batch`` leaves out ``dry_run``, which it refuses for an item)."""
+def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) -> None:
+    """:func:`check_personalize_options` on the dict ``options`` of a batch row or a Pyblish instance; an
+    unknown name's refusal lists the options taken less ``unlisted`` (``dry_run``, which both refuse with a
+    message of its own: a list offering it sent the user from one refusal to the next)."""
     from .errors import OptionError
     from .transfer import options as _implant
 
@@ -1340,7 +1341,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
-                _check_options(item.options, unlisted=("dry_run",))   # refused for an item just below
+                check_item_options(item.options)        # dry_run not offered: refused for an item below
             except UsdFaceError as exc:
                 raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
