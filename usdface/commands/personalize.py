@@ -157,7 +157,8 @@ def run(args) -> int:
     inputs = personalize_inputs(args.avatar, args.capture, take=args.take, pins=args.pins,
                                 name_map=args.name_map)
     refusal = None
-    refuse_missing_inputs(args.avatar, args.capture, args.take)   # before the review page's check
+    if args.review:      # a missing input before the page's problems (the API says it before the layer's)
+        refuse_missing_inputs(args.avatar, args.capture, args.take)
     if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
         try:
             check_output_path(args.output or out, args.force, inputs=inputs,   # as given: newdir/ a folder
