@@ -158,7 +158,6 @@ def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
     (["personalize", "MISSING.usda", str(C), "--review"], "MISSING.usda: avatar not found"),
     (["personalize", str(A), "MISSING", "--dry-run"], "MISSING: capture not found"),
     (["personalize", str(A), str(C), "--take", "nope.csv", "-o", "p.usda"], "nope.csv: take not found"),
-    (["retarget", str(A), "MISSING", "-o", "m.json"], "MISSING: capture not found"),
     (["landmarks", "MISSING.usda", "-o", "l.usda"], "MISSING.usda: avatar not found"),
     (["export", "MISSING.usda", "--gltf", "a.glb"], "MISSING.usda: layer not found"),
     (["fit", "MISSING", "-o", "f.usda"], "MISSING: capture not found"),

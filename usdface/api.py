@@ -1110,7 +1110,6 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     _refuse_implant_options(options)
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, **options)
     refuse_usdface_output(avatar_path)
-    refuse_missing_inputs(avatar_path, capture_path)    # before the output's problems
     out = check_output_file(out_path, force, suffixes=(".json", ".csv"), what="retarget map",
                             inputs=personalize_inputs(avatar_path, capture_path, **options))
     _check_correspondence_cache(options.get("correspondence"),
