@@ -966,6 +966,22 @@ def test_a_batch_row_with_dry_run_is_refused(tmp_path):
     assert not (tmp_path / "m.report.json").exists() and not (tmp_path / "a.usda").exists()
 
 
+def test_a_batch_rows_unknown_option_lists_only_what_a_row_takes(tmp_path, capsys):
+    """``usdface batch`` on a row with a typo listed ``dry_run`` among the options to use instead, which the
+    batch then refuses for a row: the list names only what a row takes."""
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps([{"avatar": str(samples / "avatar.usda"),
+                                     "capture": str(samples / "capture.usda"), "output": "a.usda",
+                                     "methd": "menzel"}]))
+    assert main(["batch", str(manifest), "-j", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown personalize option(s): methd" in err and "use one of: " in err
+    taken = err.split("use one of: ")[1]
+    assert "method" in taken and "force" in taken and "dry_run" not in taken
+    assert not (tmp_path / "a.usda").exists() and not (tmp_path / "m.report.json").exists()
+
+
 def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samples, tmp_path, monkeypatch):
     """Ctrl-C while the rows were checked (every avatar is opened: seconds on a large manifest) left the
     previous run's report standing, which the docs promise never happens."""

@@ -148,3 +148,32 @@ def test_a_missing_file_is_named_for_what_the_command_reads(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert f"nothere.usda: {said}" in err, err
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["review", "MISSING.usda"], "MISSING.usda: USD file not found"),
+    (["review", "MISSING.usda", "-o", "r.html"], "MISSING.usda: USD file not found"),
+    (["review", str(A), "--take", "nope.csv"], "nope.csv: take not found"),
+    (["personalize", "MISSING.usda", str(C)], "MISSING.usda: avatar not found"),
+    (["personalize", "MISSING.usda", str(C), "--review"], "MISSING.usda: avatar not found"),
+    (["personalize", str(A), "MISSING", "--dry-run"], "MISSING: capture not found"),
+    (["personalize", str(A), str(C), "--take", "nope.csv", "-o", "p.usda"], "nope.csv: take not found"),
+    (["landmarks", "MISSING.usda", "-o", "l.usda"], "MISSING.usda: avatar not found"),
+    (["export", "MISSING.usda", "--gltf", "a.glb"], "MISSING.usda: layer not found"),
+    (["fit", "MISSING", "-o", "f.usda"], "MISSING: capture not found"),
+    (["capture", "import", "MISSING", "-o", "c.usda"], "MISSING: capture not found"),
+])
+def test_a_missing_input_is_said_before_an_output_that_cannot_be_written(tmp_path, monkeypatch, capsys,
+                                                                           read_only_folder, argv, needle):
+    """A user trial: 'review MISSING.usda' in a folder one cannot write to said that the page could not be
+    written there, of a page that could never be made; the missing input is the first thing said (review,
+    personalize with its layer and --review page, and the other commands that read one)."""
+    monkeypatch.chdir(tmp_path)
+    read_only_folder(tmp_path)
+    read_only_folder(".")                          # as the outputs named relative to it are probed
+    assert main([*argv, "-q"]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "cannot be written" not in err, err
+    assert list(tmp_path.iterdir()) == []
+    assert main(["personalize", str(A), str(C), "-q"]) == 2    # the folder is one that cannot be written
+    assert "cannot be written in " in capsys.readouterr().err

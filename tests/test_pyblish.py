@@ -251,6 +251,12 @@ def test_publish_with_dry_run_fails_validation_not_the_extractor(pyblish_registe
     assert not result["success"]
     assert "dry_run" in str(result["error"]) and "fix:" in str(result["error"])
     assert ran == []
+    _, results = _publish(pyblish_registered, [                  # a typo's refusal does not offer dry_run
+        {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
+         "output": str(tmp_path / "o.usda"), "usdfaceOptions": {"methd": "menzel"}}])
+    error = str(results[("ValidateUsdFaceOptions", "o")]["error"])
+    assert "unknown personalize option(s): methd" in error and "dry_run" not in error.split("use one of")[1]
+    assert ran == []
 
 
 def test_publish_take_plays_in_the_layer_as_on_the_review_page(pyblish_registered, samples, tmp_path):

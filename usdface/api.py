@@ -407,6 +407,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
+    refuse_missing_inputs(capture_path=capture)          # before the output's problems
     if out_path is not None:
         from .io.layers import check_output_path
 
@@ -756,6 +757,25 @@ def personalize_inputs(avatar_path, capture_path, *, take=None, **options: Any) 
     return [avatar_path, capture_path, take, options.get("pins"), options.get("name_map")]
 
 
+def refuse_missing_inputs(avatar_path=None, capture_path=None, take=None) -> None:
+    """A missing avatar, capture or take (given as paths; None: not read) named as their readers name it,
+    before the output is checked: 'personalize MISSING.usda CAPTURE' in a folder one cannot write to was
+    told that the layer could not be written there (a user trial). What an existing input is, its reader
+    says, as before."""
+    if isinstance(avatar_path, str | os.PathLike) and not Path(avatar_path).exists():
+        from .io.usd_open import require_file
+
+        require_file(avatar_path, "avatar", "pass the avatar's .usd/.usda/.usdc file")
+    if isinstance(capture_path, str | os.PathLike) and not Path(capture_path).exists():
+        from .io import check_capture_path
+
+        check_capture_path(capture_path)
+    if isinstance(take, str | os.PathLike) and not Path(take).exists():
+        from .io.take import check_take_path
+
+        check_take_path(take)
+
+
 def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take=None, face_mesh=None,
                                     rig=None, **_options) -> None:
     """The arguments of :func:`personalize_avatar` / :func:`write_retarget_map` of the kind they take."""
@@ -775,6 +795,13 @@ def _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, *, take
     _expect(rig, (FaceRig,), "rig", "a FaceRig (a FitResult's .rig)",
             "pass usdface.fit_capture(capture).rig" if isinstance(rig, FitResult)
             else "pass the capture-mesh rig to implant, usdface.fit_capture(capture).rig", none_ok=True)
+
+
+def personalized_name(avatar: PathLike | Avatar) -> str:
+    """``<avatar stem>.personalized.usda``: ``usdface personalize``'s default output name (in the current
+    folder), and the file an output given as a folder (``-o newdir/``) is told to name inside it."""
+    file = avatar if isinstance(avatar, str | os.PathLike) else getattr(avatar, "file", None)
+    return f"{Path(file).stem if file else 'avatar'}.personalized.usda"
 
 
 def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | Capture,
@@ -812,11 +839,12 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     _check_correspondence_cache(options.get("correspondence"),
                                 personalize_inputs(avatar_path, capture_path, take=take, **options),
                                 outputs=[out_path])
+    refuse_missing_inputs(avatar_path, capture_path, take)   # said before any output problem
     if out_path is not None and not options.get("dry_run"):
         from .io.layers import check_output_path
 
         check_output_path(out_path, options.get("force", False), inputs=personalize_inputs(
-            avatar_path, capture_path, take=take, **options))
+            avatar_path, capture_path, take=take, **options), example=personalized_name(avatar_path))
     if take is not None or landmarks:    # as --take and --landmarks imply --inspect (landmarks=True alone
         inspect = True                   # wrote no landmarks, without a word)
     capture_path = _read_pins_file(options, capture_path)
@@ -1153,10 +1181,11 @@ def _fit_option_names() -> set[str]:
             | {k for ks in METHOD_OPTIONS.values() for k in ks})
 
 
-def _refuse_unknown_options(options) -> None:
+def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
     """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
     a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
-    ``review``), listing the ones it takes."""
+    ``review``), listing the ones it takes, less ``unlisted`` (ones the caller refuses with its own message,
+    such as ``dry_run`` for a batch item: a list offering them sent the user from one refusal to the next)."""
     import inspect as _inspect
 
     from .errors import OptionError
@@ -1169,7 +1198,7 @@ def _refuse_unknown_options(options) -> None:
     unknown = sorted(set(options) - known)
     if unknown:
         raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
-                          fix="drop them, or use one of: " + ", ".join(sorted(known)))
+                          fix="drop them, or use one of: " + ", ".join(sorted(known - set(unlisted))))
 
 
 def check_personalize_options(**options: Any) -> None:
@@ -1177,10 +1206,17 @@ def check_personalize_options(**options: Any) -> None:
     option it does not take (a CLI flag such as ``review``, a typo), a bad mode, number or fit option
     (:class:`usdface.errors.OptionError` naming it and the fix). ``usdface batch`` runs it on every manifest
     row before the first item starts."""
+    check_item_options(options, unlisted=())
+
+
+def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) -> None:
+    """:func:`check_personalize_options` on the dict ``options`` of a batch row or a Pyblish instance; an
+    unknown name's refusal lists the options taken less ``unlisted`` (``dry_run``, which both refuse with a
+    message of its own: a list offering it sent the user from one refusal to the next)."""
     from .errors import OptionError
     from .transfer import options as _implant
 
-    _refuse_unknown_options(options)
+    _refuse_unknown_options(options, unlisted)
     for name in ("inspect", "landmarks", "dry_run", "force"):
         if name in options and not isinstance(options[name], bool):
             raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
@@ -1304,7 +1340,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             try:
-                check_personalize_options(**item.options)
+                check_item_options(item.options)        # dry_run not offered: refused for an item below
             except UsdFaceError as exc:
                 raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
@@ -1440,15 +1476,20 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
+    from .io.usd_open import require_file
     from .review.collect import collect_review
     from .review.page import build_review_html
 
-    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
-                            inputs=[layer_path, capture, take])
+    # a missing input first, then the output ('review MISSING.usda' in a folder one cannot write to was
+    # told that the page could not be written there); what an existing input is, its readers say
+    if not Path(layer_path).exists():
+        require_file(layer_path, "USD file", "check the path (a .usd/.usda/.usdc file)")
     if take is not None and not Path(take).exists():
         raise InputFileError("take not found", path=take, fix="pass a Live Link Face CSV, USD take or folder")
     if isinstance(capture, str | Path) and not Path(capture).exists():
         raise InputFileError("capture not found", path=capture, fix="pass a capture folder or capture .usda")
+    out = check_output_file(out_path, force, suffixes=(".html", ".htm"), what="review page",
+                            inputs=[layer_path, capture, take])
     from . import progress
     from .io.layers import refuse_avatar_mismatch, stale_inputs
     from .io.usd_rig import usdface_output_provenance
@@ -1516,12 +1557,18 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
                 raise OptionError(f"{what} {out} is {'the' if place == folder else 'inside the'} --obj-dir "
                                   f"folder {obj_dir}: one output would be written into (or over) the other",
                                   path=out, fix=f"give {option} a path outside the --obj-dir folder")
+    if not Path(layer_path).exists():                   # a missing layer before the outputs' problems
+        from .io.usd_open import require_file
+
+        require_file(layer_path, "layer", "check the path (a .usd/.usda/.usdc file)")
     if gltf:
-        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path])
+        check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path],
+                          example=f"{Path(layer_path).stem}.glb")            # newdir/: a file inside it
     if obj_dir:
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
-        check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file")
+        check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file",
+                          example=f"{Path(layer_path).stem}.usdc")
     from .io.layers import refuse_avatar_mismatch, stale_inputs
 
     # a layer its revised avatar no longer fits (overrides on nothing, offsets on shifted vertices) is

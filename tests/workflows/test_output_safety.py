@@ -254,6 +254,26 @@ def test_a_dash_for_standard_output_is_named(project, argv):
     assert tree(project) == before
 
 
+@pytest.mark.parametrize("argv,what,inside", [
+    (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "newdir/"], "output layer",
+     "newdir/avatar.personalized.usda"),
+    (["landmarks", "sa/avatar.usda", "-o", "newdir/"], "output layer", "newdir/avatar.landmarks.usda"),
+    (["export", "out/person.usda", "--gltf", "newdir/"], "glTF output", "newdir/person.glb"),
+    (["export", "out/person.usda", "--flatten", "newdir/"], "flattened USD file", "newdir/person.usdc"),
+    (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/"], "output layer",
+     "out/avatar.personalized.usda"),
+])
+def test_an_output_given_as_a_folder_is_told_to_name_a_file_inside_it(project, argv, what, inside):
+    """``-o newdir/`` (a folder, by its trailing slash) was told 'name it e.g. newdir.usda', a sibling of the
+    folder the user meant; it is named a folder and the fix names a file inside it (the command's own name
+    for its output where it has one). An existing folder (``out/``) gets the same file name."""
+    before = tree(project)
+    proc = run(*argv, cwd=project, ok=False)
+    refused(proc, f"{what} path ", "a folder", f"e.g. {inside}")
+    assert "newdir.usda" not in proc.stderr and "newdir.glb" not in proc.stderr
+    assert tree(project) == before and not (project / "newdir").exists()
+
+
 # ------------------------------------------------------------------- 3. dry run and correspondence cache
 def test_dry_run_says_an_existing_output_would_be_refused(project):
     proc = run("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/person.usda", "--dry-run",

@@ -44,6 +44,24 @@ def test_json_review_writes_the_page_and_names_it(sample_set, tmp_path):
     assert_valid_usd(tmp_path / "p.usda", checked=False)
 
 
+def test_a_dry_run_with_review_names_the_page_it_would_write(sample_set, tmp_path):
+    """``--dry-run --json --review`` said ``"review": null`` and nothing of the page: the page a real run
+    would write is named beside the layer's ``would_write`` (``would_write_review``), and the text says it;
+    a page that exists makes it a refusal (null, exit 1). Nothing is written."""
+    args = ("personalize", sample_set / "avatar.usda", sample_set / "capture.usda", "-o", "p.usda",
+            "--review", "--dry-run", "-q")
+    doc = json.loads(run(*args, "--json", cwd=tmp_path).stdout)
+    assert doc["ok"] and doc["review"] is None and doc["output_refused"] is None
+    assert doc["would_write"] == "p.usda" and doc["would_write_review"] == "p.review.html"
+    assert "would write p.usda and its review page p.review.html" in run(*args, cwd=tmp_path).stdout
+    assert sorted(os.listdir(tmp_path)) == []
+    (tmp_path / "p.review.html").write_text("<p>mine</p>")
+    proc = run(*args, "--json", cwd=tmp_path, ok=False)
+    doc = json.loads(proc.stdout)
+    assert proc.returncode == 1 and doc["would_write_review"] is None and "review page exists" in \
+        doc["output_refused"]
+
+
 def test_a_review_page_stopped_takes_the_new_layer_and_its_folder(sample_set, tmp_path):
     """Ctrl-C while the page is built: exit status 130, and neither the layer nor the folder made for it is
     left (the output is the pair); a rerun is not refused."""

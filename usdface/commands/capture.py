@@ -60,6 +60,7 @@ def run_import(args) -> int:
     from ..io.capture_folder import refuse_whole_take
     from ..progress import steps
 
+    api.refuse_missing_inputs(capture_path=args.source)     # a missing source before the output's problems
     api.check_capture_output(args.output, args.force, inputs=[args.source])
     with steps("capture import", 2) as p:
         p.start(f"read {Path(args.source).name}")

@@ -136,10 +136,12 @@ def run(args) -> int:
     refuse_other_mode(args)
     t0 = time.perf_counter()
     inputs = [args.avatar, args.name_map, args.empirical, *args.takes]
+    api.refuse_missing_inputs(avatar_path=args.avatar)         # a missing avatar before the outputs
     if args.output:
         from ..io.layers import check_output_path
 
-        check_output_path(args.output, args.force, inputs=inputs)
+        check_output_path(args.output, args.force, inputs=inputs,    # newdir/: a file inside it
+                          example=f"{Path(args.avatar).stem}.landmarks.usda")
     for out, suffix in ((args.json_out, ".json"), (args.plot, ".png")):
         if out:
             check_output_file(out, args.force, suffixes=(suffix,), inputs=inputs)

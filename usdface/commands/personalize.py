@@ -137,12 +137,14 @@ def register(subparsers) -> None:
 def _default_output(avatar: str) -> Path:
     """``<avatar stem>.personalized.usda`` in the current folder (the avatar's folder is often a read-only
     asset library)."""
-    return Path(Path(avatar).stem + ".personalized.usda")
+    from ..api import personalized_name
+
+    return Path(personalized_name(avatar))
 
 
 def run(args) -> int:
     from .. import progress
-    from ..api import personalize_avatar, personalize_inputs
+    from ..api import personalize_avatar, personalize_inputs, refuse_missing_inputs
     from ..errors import UsdFaceError
     from ..io.atomic import check_output_file, outputs_all_or_nothing
     from ..io.layers import check_output_path
@@ -155,9 +157,12 @@ def run(args) -> int:
     inputs = personalize_inputs(args.avatar, args.capture, take=args.take, pins=args.pins,
                                 name_map=args.name_map)
     refusal = None
+    if args.review:      # a missing input before the page's problems (the API says it before the layer's)
+        refuse_missing_inputs(args.avatar, args.capture, args.take)
     if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
         try:
-            check_output_path(out, args.force, inputs=inputs)
+            check_output_path(args.output or out, args.force, inputs=inputs,   # as given: newdir/ a folder
+                              example=_default_output(args.avatar).name)
             if args.review:
                 check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                                   inputs=inputs)
@@ -173,7 +178,8 @@ def run(args) -> int:
     # 130 or 2, and the rerun refused it ('output layer exists')
     review = default_output(out) if args.review and not args.dry_run else None
     with outputs_all_or_nothing(done, layer=out if review else None, review=review):
-        result = personalize_avatar(args.avatar, args.capture, out, force=args.force, dry_run=args.dry_run,
+        result = personalize_avatar(args.avatar, args.capture, args.output or out, force=args.force,
+                                    dry_run=args.dry_run,
                                     command=command_line(), inspect=inspect,
                                     landmarks=args.landmarks, take=args.take, face_mesh=args.face_mesh,
                                     **transfer_kwargs(args), **implant_kwargs(args),
@@ -198,6 +204,8 @@ def run(args) -> int:
         doc["warnings"] = all_warnings(rep.get("warnings"))
         if args.dry_run:
             doc["would_write"] = None if refusal else str(out)
+            if args.review:    # 'review': null alone said nothing of the page a real run would write
+                doc["would_write_review"] = None if refusal else str(default_output(out))
             doc["output_refused"] = refusal
         json.dump(doc, sys.stdout, indent=1, default=str)
         print()
@@ -250,7 +258,8 @@ def run(args) -> int:
         for c in changed:
             print(f"  {c['mesh']}/{c['shape']}: max {c['max_change_m'] * 1000:.3f}, "
                   f"rms {c['rms_change_m'] * 1000:.3f}, {c['moved_vertices']} vertices")
-        print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}")
+        print(f"a real run would refuse to write: {refusal}" if refusal else f"would write {out}"
+              + (f" and its review page {default_output(out)}" if args.review else ""))
     else:
         print(f"{len(changed)} BlendShapes personalized -> {result.out_path}")
         _text_layer_note(result.out_path)

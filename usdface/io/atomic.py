@@ -304,15 +304,18 @@ def existing_ancestor(path) -> Path:
 
 
 def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "output", inputs=(),
-                      fix: str | None = None) -> Path:
+                      fix: str | None = None, example: str | None = None) -> Path:
     """Validate an output file path before any work; returns it as a Path.
 
     Refuses (InputFileError) a line break in the name, an extension not in ``suffixes`` (lower case, with
-    the dot; None = any), a folder at ``path``, and ``path`` touching one of the existing ``inputs``
+    the dot; None = any), a folder at ``path`` or a name ending in a separator (``newdir/``: a folder, whose
+    fix names a file inside it, ``example`` or ``out<suffix>``), and ``path`` touching one of the existing
+    ``inputs``
     (:func:`check_not_input`, even with ``force``: inputs are never modified); an existing file needs
     ``force`` (OutputExistsError). A place that cannot be written (:func:`check_writable`: a parent that is a
     file, a read-only folder or file system, a missing permission, an immutable file) raises
     OutputNotWritableError with ``fix`` (default: by the errno, :func:`usdface.errors.write_fix`)."""
+    raw = os.fspath(path) if isinstance(path, str | os.PathLike) else str(path)
     path = Path(path)
     if "\n" in str(path) or "\r" in str(path):
         raise InputFileError(f"{what} path contains a line break", path=repr(str(path)),
@@ -320,10 +323,15 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     if str(path) == "-":        # the Unix 'standard output': 'landmarks --json -' was told to name it -.json
         raise InputFileError(f"{what} is written to a file, not to standard output ('-')", path=path,
                              fix=f"name a file, e.g. out{suffixes[0] if suffixes else ''}")
-    if path.is_dir():           # a folder (sub/): a file inside it, not a sibling named like it
-        inside = path / f"out{suffixes[0] if suffixes else ''}"
-        raise InputFileError(f"{what} path is a folder", path=path, fix=f"give a file name inside it, e.g. "
-                             f"{inside}")
+    # a folder (sub/), or a name given as one (newdir/, Path drops the '/'): a file inside it, not a sibling
+    # named like it ('name it e.g. newdir.usda' answered a user who meant the folder)
+    slash = raw.endswith(("/", os.sep)) and not path.is_dir()
+    if path.is_dir() or slash:
+        inside = path / (example or f"out{suffixes[0] if suffixes else ''}")
+        raise InputFileError(f"{what} path {'names' if slash else 'is'} a folder"
+                             + (f" (it ends in '{raw[-1]}'), not a file" if slash else ""), path=raw,
+                             fix=f"give a file name inside it, e.g. {inside}"
+                                 + ("; the missing folder is made" if slash else ""))
     if suffixes is not None and path.suffix.lower() not in suffixes:
         # '.json' alone is a name without an extension (a hidden file): its stem is the whole name
         stem = path.stem if path.stem.lower() not in suffixes else ""

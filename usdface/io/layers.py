@@ -104,13 +104,16 @@ class DigestsAhead:
         return self._found.get(str(path))
 
 
-def check_output_path(path, force: bool = False, inputs=(), what: str = "output layer") -> Path:
+def check_output_path(path, force: bool = False, inputs=(), what: str = "output layer",
+                      example: str | None = None) -> Path:
     """Validate an output layer path before any work: a USD extension, not a directory (nor under a file),
     not one of the existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
-    OutputExistsError naming the file as ``what``; returns the path as a Path."""
+    OutputExistsError naming the file as ``what`` (a folder's fix names ``example`` inside it); returns the
+    path as a Path."""
     from .atomic import check_output_file
 
-    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what=what, inputs=inputs)
+    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what=what, inputs=inputs,
+                             example=example)
 
 
 def _temp_path(path: Path) -> Path:

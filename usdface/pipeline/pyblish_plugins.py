@@ -229,12 +229,12 @@ class ValidateUsdFaceOptions(_pyblish.InstancePlugin):
     label = "Validate personalize options (usdface)"
 
     def process(self, instance):
-        from ..api import check_personalize_options
+        from ..api import check_item_options
 
         if not _default_personalize():
             return
         options = dict(instance.data.get("usdfaceOptions") or {})
-        check_personalize_options(**options)
+        check_item_options(options)        # as check_personalize_options; dry_run, refused below, not offered
         # the files the options name (and the instance's take) present and readable, as 'usdface batch'
         # checks every row's before its first item: a missing take or pins file failed only in the extractor,
         # and so did a take of another kind (the avatar given as the take)
