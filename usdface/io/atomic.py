@@ -655,8 +655,8 @@ def outputs_all_or_nothing(done: dict, **outputs):
     ``done`` {key: Path} the ones it has finished. When the block fails (a full disk, Ctrl-C) the finished
     ones that did not exist before it are removed (the finished part of a failed
     :func:`usdface.api.export_avatar`, :func:`~usdface.api.evaluate_methods`, ``landmarks`` or
-    ``sample``); one that replaced an existing file (``force``) is left, and so are the folders made for
-    them, when empty again (an interrupted ``-o new/out.usda --review`` left ``new/``)."""
+    ``sample``); one that replaced an existing file (``force``) is left. The folders the block made for them
+    are removed too, once empty again (an interrupted ``-o new/out.usda --review`` left ``new/``)."""
     new = {key: not os.path.lexists(out) for key, out in outputs.items() if out}
     missing = set()
     for out in outputs.values():

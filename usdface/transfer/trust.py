@@ -3,7 +3,8 @@
 A shape's trust ``c_j`` in [0, 1] scales the person's change ``B_j - P_j`` the implant carries onto the
 avatar (0: the avatar's generic shape stays, 1: the person's as fitted). It is the smallest of three
 positive-part James-Stein factors, each the personalization against one of its estimate's errors: the
-frames' noise (the shape's reliability, :func:`usdface.personalize.fit.james_stein`), the change a
+frames' noise (the shape's reliability, :func:`usdface.personalize.fit.james_stein`, taken as the scale
+of the person's shape rather than of the fit's shrunk estimate: :func:`unshrunk`), the change a
 re-estimation of the weights makes (:func:`sensitivity_trust`) and the error the weights' noise, as the
 capture shows it, leaks into the shape (:func:`leak_trust`); times a ramp to 0 for shapes the frames show
 only weakly (:func:`weak_ramp`). Without the measured noise (a take read whole, another method) the fit's
