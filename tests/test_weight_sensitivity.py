@@ -79,3 +79,40 @@ def test_no_shape_of_an_artist_template_capture_lands_worse_than_generic(tmp_pat
     worst = int(np.argmax(score.per_shape_delta))
     assert score.per_shape_delta[worst] <= 0.05, (head.names[worst], score.per_shape_delta[worst])
     assert score.face_ratio < 0.35
+
+
+def test_the_weights_error_budget_sums_the_expected_leak_and_the_seen_sensitivity():
+    """:func:`usdface.transfer.trust.weight_error_trust` is the James-Stein factor of the personalization
+    against the leak's expected variance plus the sensitivity's square; :func:`shape_trust` takes it in
+    place of the smaller of the two factors: a shape whose fitted personalization is one frame's weight
+    error, three fifths of it seen by the re-estimation and a fifth expected as the leak (each factor alone
+    keeping 0.4-0.8 of it), stays at 0.2 of it, and a clean shape keeps its full personalization."""
+    import types
+
+    from usdface.transfer import trust
+
+    prior = np.zeros((2, 10, 3))
+    prior[:, :, 1] = 1e-2                                           # both move everywhere
+    d = np.zeros((2, 10, 3))
+    d[:, :, 0] = 1e-3                                               # |D|^2 = 1e-6 per vertex
+    leak = np.zeros((10, 2))
+    leak[:, 0] = 0.2e-6                                             # shape 0: leak factor 0.8
+    s = np.zeros((2, 10, 3))
+    s[0, :, 0] = np.sqrt(0.6) * 1e-3                                # shape 0: sensitivity factor 0.4
+    np.testing.assert_allclose(trust.leak_trust(prior + d, prior, leak), [0.8, 1.0], atol=1e-12)
+    np.testing.assert_allclose(sensitivity_trust(prior + d, prior, s), [0.4, 1.0], atol=1e-12)
+    np.testing.assert_allclose(trust.weight_error_trust(prior + d, prior, leak, s), [0.2, 1.0], atol=1e-12)
+
+    class Frames:                                                   # one training frame per shape, at 1
+        weights = np.eye(2)
+
+        def __len__(self):
+            return 2
+
+    capture = types.SimpleNamespace(train=Frames(), names=["jawOpen", "mouthShrugLower"], whole_take=None)
+    fit = types.SimpleNamespace(rig=types.SimpleNamespace(deltas=prior + d), info={
+        "shape_confidence": np.ones(2), "prior_deltas": prior, "weight_leak": leak, "weight_sensitivity": s,
+        "shape_reliability": np.ones(2), "data_share": np.ones(2)})
+    rig = types.SimpleNamespace(names=["jawOpen", "mouthShrugLower"])
+    got, _, _ = trust.shape_trust(fit, capture, rig, [0, 1], prior + d, prior)
+    np.testing.assert_allclose(got, [0.2, 1.0], atol=1e-12)
