@@ -237,6 +237,28 @@ def test_a_layer_whose_avatar_moved_is_refused_in_one_line(sample_set, tmp_path,
     assert sorted(os.listdir(tmp_path)) == before
 
 
+@pytest.mark.parametrize("argv", [["review", "lm.usda"], ["export", "lm.usda", "--gltf", "lm.glb"]])
+def test_a_layer_over_a_layer_whose_avatar_moved_is_refused_in_one_line(sample_set, tmp_path, argv):
+    """A landmark layout stacked over a personalize layer whose avatar was moved away: the missing sublayer
+    named in one line, as for the personalize layer itself. ``review`` printed USD's ``Could not load
+    sublayer`` warning and then said the layout overrides ``/Avatar``, "which ./p.usda no longer has" (the
+    prims were in the lost avatar, not gone from it)."""
+    import shutil
+
+    for name in ("avatar.usda", "capture.usda"):
+        shutil.copy(sample_set / name, tmp_path / name)
+    run("personalize", "avatar.usda", "capture.usda", "-o", "p.usda", "-q", cwd=tmp_path)
+    run("landmarks", "p.usda", "-o", "lm.usda", "-q", cwd=tmp_path)
+    (tmp_path / "avatar.usda").rename(tmp_path / "moved.usda")
+    before = sorted(os.listdir(tmp_path))
+    proc = run(*argv, "-q", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Could not load sublayer" in lines[0], lines
+    assert "no longer has" not in lines[0], lines
+    assert sorted(os.listdir(tmp_path)) == before
+
+
 def test_a_capture_folder_copied_from_a_mac_reads_as_the_original(sample_set, tmp_path):
     """macOS leaves an AppleDouble file (``._jawOpen.obj``, binary) beside every file it copies to a
     non-Apple disk, and ``.DS_Store`` in each folder: they are not the capture's. ``capture import`` and

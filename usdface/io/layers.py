@@ -732,7 +732,12 @@ def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
     avatar_layer = Sdf.Layer.FindOrOpen(Sdf.ComputeAssetPathRelativeToLayer(root, asset))
     if avatar_layer is None:
         return []                                         # USD's composition error says so
-    avatar_stage = Usd.Stage.Open(avatar_layer, Usd.Stage.LoadAll)
+    from .usd_open import quiet_stderr
+
+    with quiet_stderr():       # a layer over a layer whose own avatar is gone: its reader names that
+        avatar_stage = Usd.Stage.Open(avatar_layer, Usd.Stage.LoadAll)
+    if avatar_stage is None or avatar_stage.GetCompositionErrors():
+        return []              # (not "overrides prims the avatar no longer has": they are in the lost file)
     name = Path(root.realPath or root.identifier).name
     fix = (f"re-run usdface personalize on the revised avatar ({asset}) with the capture, --force to "
            f"replace {name} (or publish a new version); a layer cannot be carried over to a changed avatar")
