@@ -261,15 +261,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         soft = np.zeros(domain.size, dtype=bool)
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
-    adjacency = None                                 # the mesh's vertex adjacency, where one is made
+    # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
+    adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
     if proxy is None:
-        ext = FieldExtension(x, sub_tri, known, length=length, data=data)
+        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency)
         beyond, mass = ext.beyond, ext.mass
     else:
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
         # face's rim and what lies beyond)
         fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
-        adjacency = vertex_adjacency(sub_tri, domain.size)          # (and the smoothing's, below)
         beyond = ~known & ~pockets(sub_tri, known, fine_mass, adjacency=adjacency)
         del fine_mass
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
