@@ -166,7 +166,7 @@ print(json.dumps([os.environ.get("OPENBLAS_NUM_THREADS"), loaded,
 @pytest.mark.parametrize(("preset", "how", "expected"), [
     (None, "program", ["1", False, [1]]),      # started at one thread: no workers, no limit to set
     ("2", "program", ["2", True, [2]]),        # the user's count kept: limited during the run, put back after
-    (None, "host", [None, True, None]),        # a host calling main(argv): its own BLAS, limited during the run
+    (None, "host", [None, True, None]),        # a host calling main(argv): its own BLAS, limited in the run
 ])
 def test_the_program_starts_blas_at_one_thread_for_personalize(tmp_path, preset, how, expected):
     """``usdface personalize`` runs its numerical work at one BLAS thread; the program's own process starts

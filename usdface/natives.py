@@ -40,10 +40,10 @@ def start_blas_single_threaded() -> bool:
     (:func:`usdface.personalize.api.single_threaded_blas`); nothing once numpy is loaded (a host's).
 
     Each OpenBLAS loaded (numpy's, SciPy's) otherwise starts a worker thread per further core at its load,
-    which such a run never uses but which spins waiting for work after its start, and the run's
-    ``threadpoolctl`` limit costs the controller's listing of the loaded libraries (~0.04 s of a cold
-    ``personalize``, the import included). The same single-threaded BLAS code runs either way: the same
-    results to the bit. Open3D's OpenMP threads are not BLAS and keep every core."""
+    which such a run never uses but which spins waiting for work after its start (~0.03 CPU-s each of a cold
+    dev1 ``personalize`` on a 2-core machine), and the run's ``threadpoolctl`` limit costs its import and
+    the listing of the loaded libraries (10-15 ms). The same single-threaded BLAS code runs either way: the
+    same results to the bit. Open3D's own worker threads (TBB) are not BLAS and keep every core."""
     if "numpy" in sys.modules:
         return _BLAS_SINGLE[0]
     for name in BLAS_THREAD_ENV:
