@@ -145,6 +145,54 @@ def test_a_host_calling_main_keeps_its_numpy_settings(monkeypatch):
     assert "NUMPY_MADVISE_HUGEPAGE" not in os.environ
 
 
+_BLAS_PROBE = """
+import json, os, sys
+argv = json.loads(sys.argv[1])
+from usdface.cli import main
+if sys.argv[2] == "program":
+    sys.argv = ["usdface"] + argv
+    argv = None
+try:
+    main(argv)
+except SystemExit:
+    pass
+loaded = "threadpoolctl" in sys.modules
+from threadpoolctl import threadpool_info
+print(json.dumps([os.environ.get("OPENBLAS_NUM_THREADS"), loaded,
+                  sorted({i["num_threads"] for i in threadpool_info() if i["internal_api"] == "openblas"})]))
+"""
+
+
+@pytest.mark.parametrize(("preset", "how", "expected"), [
+    (None, "program", ["1", False, [1]]),      # started at one thread: no workers, no limit to set
+    ("2", "program", ["2", True, [2]]),        # the user's count kept: limited during the run, put back after
+    (None, "host", [None, True, None]),        # a host calling main(argv): its own BLAS, limited in the run
+])
+def test_the_program_starts_blas_at_one_thread_for_personalize(tmp_path, preset, how, expected):
+    """``usdface personalize`` runs its numerical work at one BLAS thread; the program's own process starts
+    every OpenBLAS with one thread (``OPENBLAS_NUM_THREADS=1`` before numpy loads), so no idle worker spins
+    beside the run and no ``threadpoolctl`` limit is needed (docs/scale.md, Cold start). A count the user set
+    is kept, and a host calling ``main(argv)`` keeps its own BLAS."""
+    import os
+
+    pytest.importorskip("threadpoolctl")
+    avatar, capture = SAMPLE / "avatar.usda", SAMPLE / "capture.usda"
+    if not (avatar.exists() and capture.exists()):
+        pytest.skip("no sample avatar/capture")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                                            "BLIS_NUM_THREADS")}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    argv = ["personalize", str(avatar), str(capture), "-o", str(tmp_path / "out.usda"), "-q"]
+    out = subprocess.run([sys.executable, "-c", _BLAS_PROBE, json.dumps(argv), how], capture_output=True,
+                         text=True, check=True, cwd=ROOT, env=env).stdout
+    env_value, loaded, threads = json.loads(out.strip().splitlines()[-1])
+    assert (tmp_path / "out.usda").is_file()
+    assert [env_value, loaded] == expected[:2]
+    if expected[2] is not None:
+        assert threads == expected[2]
+
+
 _GC_PROBE = """
 import gc, sys
 sys.argv = ["usdface", "--version"]

@@ -28,6 +28,10 @@ COMMAND_MODULES = (
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
 JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch",
                       "retarget")
+#: Commands whose numerical work all runs with BLAS at one thread (``personalize_avatar`` is
+#: :func:`usdface.personalize.api.single_threaded_blas`): the program starts their BLAS with one thread
+#: (:func:`_one_blas_thread_environment`).
+ONE_BLAS_THREAD_COMMANDS = ("personalize", "retarget")
 #: ``.argv``: the arguments :func:`main` parses on this thread (for _Parser.error and the command a layer
 #: records): per thread, as a host may run main(argv) on threads side by side, and one module-wide list
 #: gave a run's layer the command another thread had started since.
@@ -198,6 +202,16 @@ def _forget_interrupts_handled_inside_exec() -> None:
     exec("pass")   # a fixed string: it only clears the note
 
 
+def _one_blas_thread_environment(command: str | None) -> None:
+    """Start BLAS with one thread in the program's own process when its ``command`` runs all its numerical
+    work at one BLAS thread anyway (:data:`ONE_BLAS_THREAD_COMMANDS`), before numpy is imported
+    (:func:`usdface.natives.start_blas_single_threaded`; a thread count the user set is kept)."""
+    if command in ONE_BLAS_THREAD_COMMANDS:
+        from .natives import start_blas_single_threaded
+
+        start_blas_single_threaded()
+
+
 def _import_natives_with_signals_held() -> None:
     """Import numpy and the USD Python modules usdface uses with SIGINT and SIGTERM held back, then let a
     held signal through.
@@ -359,6 +373,7 @@ def _run(args, program: bool) -> int:
 
     try:
         if program:  # the usdface program's main thread (a host application's signals are its own)
+            _one_blas_thread_environment(getattr(args, "command", None))
             _import_natives_with_signals_held()
         with warnings.catch_warnings():
             warnings.simplefilter("default")

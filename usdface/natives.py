@@ -15,6 +15,7 @@ import contextlib
 import importlib.abc
 import importlib.machinery
 import importlib.util
+import os
 import sys
 import threading
 import types
@@ -24,6 +25,37 @@ import types
 #: the first ``import open3d`` takes (``python -X importtime``), a tenth of a cold ``personalize`` of a bench
 #: head.
 DEFERRED = ("open3d.visualization",)
+
+
+#: The BLAS thread-count variables (OpenBLAS, MKL, BLIS) :func:`start_blas_single_threaded` sets to 1.
+BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+#: True once :func:`start_blas_single_threaded` saw every BLAS of the process start with one thread.
+_BLAS_SINGLE = [False]
+
+
+def start_blas_single_threaded() -> bool:
+    """Before numpy is imported, ask every BLAS the process will load to start with one thread (each of
+    :data:`BLAS_THREAD_ENV` set to 1 unless the user set it); returns :func:`blas_started_single_threaded`.
+    For the ``usdface`` program's own process, whose command runs its numerical work at one BLAS thread anyway
+    (:func:`usdface.personalize.api.single_threaded_blas`); nothing once numpy is loaded (a host's).
+
+    Each OpenBLAS loaded (numpy's, SciPy's) otherwise starts a worker thread per further core at its load,
+    which such a run never uses but which spins waiting for work after its start (~0.03 CPU-s each of a cold
+    dev1 ``personalize`` on a 2-core machine), and the run's ``threadpoolctl`` limit costs its import and
+    the listing of the loaded libraries (10-15 ms). The same single-threaded BLAS code runs either way: the
+    same results to the bit. Open3D's own worker threads (TBB) are not BLAS and keep every core."""
+    if "numpy" in sys.modules:
+        return _BLAS_SINGLE[0]
+    for name in BLAS_THREAD_ENV:
+        os.environ.setdefault(name, "1")
+    _BLAS_SINGLE[0] = all(os.environ[name] == "1" for name in BLAS_THREAD_ENV)
+    return _BLAS_SINGLE[0]
+
+
+def blas_started_single_threaded() -> bool:
+    """True when :func:`start_blas_single_threaded` ran before numpy's import with every BLAS thread count 1:
+    each BLAS of the process runs on one thread already, and nothing in usdface raises the count."""
+    return _BLAS_SINGLE[0]
 
 
 @contextlib.contextmanager

@@ -285,6 +285,10 @@ def _blas_control(take: bool) -> None:
 
 
 def _limit_blas():
+    from ..natives import blas_started_single_threaded
+
+    if blas_started_single_threaded():     # the program started every BLAS at one thread: nothing to limit
+        return None
     _blas_control(take=True)
     try:
         return _blas_controller().limit(limits=1, user_api="blas")
@@ -293,6 +297,8 @@ def _limit_blas():
 
 
 def _restore_blas(limiter) -> None:
+    if limiter is None:
+        return
     _blas_control(take=True)
     try:
         limiter.restore_original_limits()

@@ -194,7 +194,7 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
                            band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
-                           out=None, overwrite: bool = False, shrink: bool = True):
+                           out=None, overwrite: bool = False, shrink: bool = True, peak=None):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -218,6 +218,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]``
     array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
     written): one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same).
+    ``peak[m]``: :func:`usdface.motion.peak_motion` of ``generic`` when the caller has it.
 
     On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
     solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
@@ -234,7 +235,8 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     n_shapes, m = g.shape[:2]
     # work on the part of the mesh that moves (a merged head + body mesh: the head): elsewhere the generic
     # motion is float noise at most, and the result keeps it as authored whatever the field
-    peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
+    if peak is None:
+        peak = peak_motion(g) if isinstance(g, np.ndarray) else g.peak_motion()
     domain = np.flatnonzero(moving_vertices(peak, points) | (w0 > 0))
     peak = peak[domain]
     local = np.full(m, -1)
@@ -261,15 +263,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         soft = np.zeros(domain.size, dtype=bool)
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
-    adjacency = None                                 # the mesh's vertex adjacency, where one is made
+    # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
+    adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
     if proxy is None:
-        ext = FieldExtension(x, sub_tri, known, length=length, data=data)
+        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency)
         beyond, mass = ext.beyond, ext.mass
     else:
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
         # face's rim and what lies beyond)
         fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
-        adjacency = vertex_adjacency(sub_tri, domain.size)          # (and the smoothing's, below)
         beyond = ~known & ~pockets(sub_tri, known, fine_mass, adjacency=adjacency)
         del fine_mass
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,

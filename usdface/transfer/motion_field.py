@@ -224,9 +224,12 @@ class FieldExtension:
     ``mass[m]``: lumped vertex areas; ``beyond[m]``: the unknown vertices outside the :func:`pockets` (where
     the field fades); ``in_pocket[m]`` (bool, optional): the pockets as found on another mesh of the same
     surface (a proxy of it), instead of on this one; ``data[m]`` (1/m^2, optional): the stiffness per unit
-    area of a data term at unknown vertices (:func:`data_stiffness`), the same for every right-hand side."""
+    area of a data term at unknown vertices (:func:`data_stiffness`), the same for every right-hand side.
+    ``adjacency``: the mesh's :func:`usdface.mesh.vertex_adjacency` when the caller has it (for the
+    :func:`pockets`)."""
 
-    def __init__(self, points, triangles, known, *, length: float | None, in_pocket=None, data=None):
+    def __init__(self, points, triangles, known, *, length: float | None, in_pocket=None, data=None,
+                 adjacency=None):
         x0 = np.asarray(points, dtype=np.float64)
         tri = np.asarray(triangles)
         self.known = np.asarray(known, dtype=bool)
@@ -237,7 +240,7 @@ class FieldExtension:
         if in_pocket is not None:
             in_pocket = np.asarray(in_pocket, dtype=bool) & ~self.known
         elif len(tri):
-            in_pocket = pockets(tri, self.known, self.mass)
+            in_pocket = pockets(tri, self.known, self.mass, adjacency=adjacency)
         else:
             in_pocket = np.zeros(self.n, dtype=bool)
         self.beyond = ~self.known & ~in_pocket

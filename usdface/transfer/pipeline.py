@@ -547,7 +547,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             avatar_face_deltas = None           # held by the implant (packed at the run's peak); read after
             result, adjacent, other, avatar_face_deltas = _implant_person(
                 avatar, face, whole_face, generic_full, regions, capture, corr, disagree, sim, names, fit,
-                rig, prior, generic_on_capture, person_deltas, tmpl_av, extension_length, support, report)
+                rig, prior, generic_on_capture, person_deltas, tmpl_av, extension_length, support, report,
+                face_peak)
         else:
             base = {m.key: (approx_eq4[m.key] if approximation == "retarget" else _shape_deltas(m, names))
                     for m in avatar.meshes}
@@ -896,14 +897,15 @@ def _layer_offsets(avatar, face, result, other, names, regions, generic_full) ->
 
 def _implant_person(avatar, face, whole_face, generic_full, regions, capture, corr, disagree, sim, names, fit,
                     rig, prior, generic_on_capture, person_deltas, tmpl_av, extension_length, support,
-                    report) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+                    report, face_peak=None) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     """Step 5 of the default transfer: the person's motion on the face region (``A_j + c_j M s_j (B_j -
     P_j)``, :func:`usdface.transfer.implant.face_personalization`), extended as a rotation + scale field of
     the generic motion beyond it and onto the meshes that follow the skin (:mod:`.motion_field`).
     ``person_deltas[J,n,3]`` / ``tmpl_av[J,n,3]``: the person's and the template's capture shapes in the
     avatar frame (metres). Returns ``(result[J,m,3], adjacent[J,m] bool, {mesh key: [J,n_mesh,3]}, the
     face's generic offsets [J,m,3])`` and adds the confidence, mapping outliers and extension figures to
-    ``report``.
+    ``report``. ``face_peak[m]``: :func:`usdface.motion.peak_motion` of the face's generic offsets of
+    ``names`` when the caller has it.
 
     The face's generic offsets are held packed during the field (the run's peak) when they are large
     (:class:`_HeldPacked`): the caller lets go of its own references to them first."""
@@ -970,7 +972,7 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
                                                _shape_deltas(face, names, view=True) if packed is None
                                                else packed, person_face, weight, length=length,
                                                band=SEAM_BAND * radius, smoothing=smoothing,
-                                               keep_at=keep_at, overwrite=True)
+                                               keep_at=keep_at, overwrite=True, peak=face_peak)
         packed = None                      # (person_face is not called again)
         release_free_memory()              # the field's freed working memory
     generic = _shape_deltas(face, names, view=True)       # the float64 generic offsets again, as read
