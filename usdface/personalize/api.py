@@ -402,8 +402,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         (:func:`weight_sensitivity`; menzel on a capture of picked frames; one more re-estimation and solve,
         ~0.03 s on dev1), and the weights' noise as the capture shows it, ``info["weight_noise"]``
         (:func:`.weights.weight_noise`), with the error it puts into each shape at each vertex,
-        ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` times its square; ~0.04 s):
-        what the implant trusts a shape by (``personalize`` asks for it).
+        ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` times its square, from the final
+        fit's own factorization, :class:`.fit.FitSystem`; ~0.02 s): what the implant trusts a shape by
+        (``personalize`` asks for it).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
