@@ -120,6 +120,8 @@ def timing(case: str, repeat: int, console: Console, laplacian: bool = True) -> 
         "menzel fixed reg + align + reweight": {"method": "menzel", "reg": 1e-3},
         "menzel auto, no options": {"method": "menzel", "align": False, "reweight": False},
         "menzel default (auto + align + reweight)": {"method": "menzel"},
+        # what ``personalize`` runs: the default plus the weights' sensitivity, noise and leak
+        "menzel default + sensitivity (personalize)": {"method": "menzel", "sensitivity": True},
         "ebfr": {"method": "ebfr", "align": False},
         "dt": {"method": "dt"},
     }

@@ -9,7 +9,7 @@ import warnings
 
 import numpy as np
 
-from usdface.personalize.fit import fit_blendshapes, weight_leak_variance
+from usdface.personalize.fit import FitSystem, fit_blendshapes, weight_leak_variance
 from usdface.personalize.weights import held_weights, weight_noise
 from usdface.transfer.trust import leak_trust
 
@@ -75,6 +75,32 @@ def test_the_leak_variance_is_what_random_weight_errors_put_into_the_fitted_shap
         draws += np.einsum("knc,knc->kn", d, d) / 400
     np.testing.assert_allclose(formula.sum(axis=0), draws.sum(axis=1), rtol=0.10)
     assert not weight_leak_variance(weights, reg_weights, reg, fitted, np.zeros_like(free)).any()
+
+
+def test_the_fits_kept_gain_gives_the_fit_and_the_leak_of_a_fresh_solve():
+    """The final fit's :class:`FitSystem` with ``gain`` (what ``fit_personalized_shapes`` keeps for the
+    leak): the fit through it equals the plain fit and the leak from it equals the leak computed afresh
+    (within rounding), in the weights' rank-r basis (8 frames: r = 8 < 0.75 K) and with the K x K systems
+    (24 frames: r = K); a system of other weights is not used (the leak is the fresh one)."""
+    rng, neutral, deltas, weights = _rig(seed=2, n=80)
+    for W in (np.concatenate([weights, weights]), weights[:8]):            # r = 12 = K; r = 8 < 0.75 K
+        points = neutral[None] + np.einsum("fk,knc->fnc", W, deltas) + rng.normal(size=(len(W), 80, 3)) * 1e-4
+        T = deltas * 0.8
+        reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
+        free = ~held_weights(W)
+        plain = fit_blendshapes(neutral, points, W, T, reg_weights, 1e-2)
+        system = FitSystem(W, reg_weights, 1e-2, gain=True)
+        assert (system.basis is None) == (len(W) > len(deltas))
+        kept = fit_blendshapes(neutral, points, W, T, reg_weights, 1e-2, system=system)
+        assert system.inverse is not None or system.G is not None
+        np.testing.assert_allclose(kept, plain, rtol=0, atol=1e-12 * np.abs(plain).max())
+        fresh = weight_leak_variance(W, reg_weights, 1e-2, plain, free)
+        np.testing.assert_allclose(weight_leak_variance(W, reg_weights, 1e-2, plain, free, system=system),
+                                   fresh, rtol=1e-9, atol=0)
+        other = FitSystem(W * 0.5, reg_weights, 1e-2, gain=True)
+        fit_blendshapes(neutral, points, W * 0.5, T, reg_weights, 1e-2, system=other)
+        np.testing.assert_array_equal(weight_leak_variance(W, reg_weights, 1e-2, plain, free, system=other),
+                                      fresh)
 
 
 def test_leak_trust_is_the_positive_part_james_stein_factor():

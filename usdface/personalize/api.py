@@ -18,6 +18,7 @@ from .crossval import choose_regularization
 from .dt import deformation_transfer
 from .fit import (
     D_CLAMP,
+    FitSystem,
     PositionFit,
     blend,
     data_share,
@@ -407,8 +408,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         (:func:`weight_sensitivity`; menzel on a capture of picked frames; one more re-estimation and solve,
         ~0.03 s on dev1), and the weights' noise as the capture shows it, ``info["weight_noise"]``
         (:func:`.weights.weight_noise`), with the error it puts into each shape at each vertex,
-        ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` times its square; ~0.04 s):
-        what the implant trusts a shape by (``personalize`` asks for it).
+        ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` times its square, from the final
+        fit's own factorization, :class:`.fit.FitSystem`; ~0.02 s): what the implant trusts a shape by
+        (``personalize`` asks for it).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
@@ -573,10 +575,12 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             prior_fit = np.where(mask[:, :, None], tmpl.deltas, prior_deltas)
             info["pins"] = {capture.names[k]: int(mask[k].sum()) for k in np.flatnonzero(mask.any(axis=1))}
         solve = _make_solver(method, capture, D_fit, prior_fit, options, clamp, (points, weights, lam), info)
-        t1 = time.perf_counter()
-        deltas = solve(points, weights, lam)
-        timings["fit"] = time.perf_counter() - t1
-        w_cur = weights
+        # the weights' leak (sensitivity) needs the gain A_v^-1 W^T of the final fit's systems: the final
+        # full-mesh solve keeps it from its own factorization (FitSystem), so the re-estimation test (which
+        # works on the prepared CV fit only) runs first: it says which solve is the final one
+        leak = sensitivity and method == "menzel" and frame_weights is None and len(weights) > 0
+        final_system = None
+        sigma = None
         if reweight:
             t1 = time.perf_counter()
             # held at the phone's values (bounds lo = hi, :func:`.weights.held_weights`): every weight of a
@@ -586,18 +590,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             held = held_weights(weights, ACTIVATION_MIN)
             lo = np.where(held, weights, 0.0)
             hi = np.where(held, weights, 1.0)
-
-            def reestimate(neutral, P, fit_fn, deltas, sigma, last_fit=True, n_rounds=rounds):
-                """``n_rounds`` alternations of weight re-estimation (prior std ``sigma``) and the shape fit
-                ``fit_fn(w)``; returns the weights and the shapes fitted with them (None without
-                ``last_fit``)."""
-                w = weights
-                for r in range(n_rounds):
-                    res = P - neutral[None] - blend(w, deltas)
-                    w = reestimate_weights(neutral, deltas, P, weights, anchor=float(np.mean(res ** 2))
-                                           / sigma ** 2, lower=lo, upper=hi)
-                    deltas = fit_fn(w) if last_fit or r < n_rounds - 1 else None
-                return w, deltas
 
             def first_weights(parts, sigmas):
                 """The first re-estimation on each vertex set ``v`` of ``parts = [(v, phone-weight shapes
@@ -612,28 +604,58 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             sigmas = WEIGHT_SIGMAS if weight_sigma == "auto" else (float(weight_sigma),)
             sigma, loo = _reweight_helps(capture, points, weights, D, prior_deltas, lam, info, first_weights,
                                          sigmas, clamp)
+            timings["reweight"] = time.perf_counter() - t1
+
+        def fit(w, final):
+            """The full-mesh fit with weights ``w``; the final one keeps its system for the leak."""
+            nonlocal final_system
+            if not (leak and final):
+                return solve(points, w, lam)
+            final_system = FitSystem(w, D_fit, lam, gain=True)
+            return fit_blendshapes(capture.neutral, points, w, prior_fit, D_fit, lam, system=final_system)
+
+        t1 = time.perf_counter()
+        deltas = fit(weights, sigma is None)
+        timings["fit"] = time.perf_counter() - t1
+        w_cur = weights
+        if reweight:
+            t1 = time.perf_counter()
+
+            def reestimate(neutral, P, deltas, sigma, n_rounds=rounds):
+                """``n_rounds`` alternations of weight re-estimation (prior std ``sigma``) and the shape fit
+                with the new weights; returns the weights and the shapes fitted with them."""
+                w = weights
+                for r in range(n_rounds):
+                    res = P - neutral[None] - blend(w, deltas)
+                    w = reestimate_weights(neutral, deltas, P, weights, anchor=float(np.mean(res ** 2))
+                                           / sigma ** 2, lower=lo, upper=hi)
+                    deltas = fit(w, r == n_rounds - 1)
+                return w, deltas
+
             if sigma is not None:
-                w_cur, deltas = reestimate(capture.neutral, points, lambda w: solve(points, w, lam), deltas,
-                                           sigma)
+                w_cur, deltas = reestimate(capture.neutral, points, deltas, sigma)
                 info["train_weights"] = w_cur
             info["reweight"] = {"rounds": rounds, "weight_sigma": sigma, "applied": sigma is not None,
                                 "held_out_rmse_mm": loo,
                                 "mean_abs_change": float(np.abs(w_cur - weights).mean()),
                                 "max_abs_change": float(np.abs(w_cur - weights).max())}
-            timings["reweight"] = time.perf_counter() - t1
+            timings["reweight"] += time.perf_counter() - t1
         from .contact import keep_contact
 
         t1 = time.perf_counter()
         res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         # picked frames (a take has its own noise model); menzel (a Laplacian solve costs seconds)
         if sensitivity and method == "menzel" and frame_weights is None and len(w_cur):
+            # the entries re-estimation holds (the phone's weights: the same as the test's above)
+            held_cur = held if reweight and w_cur is weights else held_weights(w_cur, ACTIVATION_MIN)
             info["weight_sensitivity"] = weight_sensitivity(
-                capture.neutral, points, w_cur, deltas, res, lambda w: solve(points, w, lam))
-            # the weights' noise as this capture shows it, and what it puts into each shape (the leak)
-            free = ~held_weights(w_cur, ACTIVATION_MIN)
+                capture.neutral, points, w_cur, deltas, res, lambda w: solve(points, w, lam), held=held_cur)
+            # the weights' noise as this capture shows it, and what it puts into each shape (the leak), from
+            # the final fit's own systems (final_system: its gain kept)
+            free = ~held_cur
             info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free)
             info["weight_leak"] = info["weight_noise"] ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas,
-                                                                                   free)
+                                                                                   free, system=final_system)
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
@@ -658,7 +680,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     return FitResult(rig, info)
 
 
-def weight_sensitivity(neutral, points, weights, deltas, residuals, solve) -> np.ndarray:
+def weight_sensitivity(neutral, points, weights, deltas, residuals, solve, *, held=None) -> np.ndarray:
     """``[K,n,3]`` (metres): how much each fitted shape changes when the training frames' weights are
     re-estimated from the geometry within the phone's uncertainty (:data:`WEIGHT_NOISE`, the prior width of
     :func:`.weights.reestimate_weights`; each shape's weight in its peak frame and shapes never activated
@@ -668,8 +690,9 @@ def weight_sensitivity(neutral, points, weights, deltas, residuals, solve) -> np
     subtract 5 % of a 16 mm jaw from that frame's shape (a generated capture's ``mouthShrugLower``: 0.40 mm
     from the truth; 0.10 mm with that one weight at 0), and the geometry re-estimates it at 0.01.
     ``points[F,n,3]``, ``weights[F,K]``, ``deltas[K,n,3]`` the fit's, ``residuals[F,n,3]`` its training
-    residuals (their mean square over ``WEIGHT_NOISE^2`` anchors the weights)."""
-    held = held_weights(weights, ACTIVATION_MIN)
+    residuals (their mean square over ``WEIGHT_NOISE^2`` anchors the weights); ``held``: the weights'
+    :func:`.weights.held_weights` at :data:`ACTIVATION_MIN` if the caller has them."""
+    held = held_weights(weights, ACTIVATION_MIN) if held is None else held
     lo, hi = np.where(held, weights, 0.0), np.where(held, weights, 1.0)
     anchor = float(np.mean(np.asarray(residuals) ** 2)) / WEIGHT_NOISE ** 2
     alt = reestimate_weights(neutral, deltas, points, weights, anchor=anchor, lower=lo, upper=hi)

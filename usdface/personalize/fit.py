@@ -28,8 +28,9 @@ import numpy as np
 from ..mesh import vector_lengths
 from .align import distinct_frames
 
-__all__ = ["regularization_weights", "fit_blendshapes", "loo_residuals", "PositionFit", "blend", "project",
-           "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance", "james_stein"]
+__all__ = ["regularization_weights", "fit_blendshapes", "FitSystem", "loo_residuals", "PositionFit", "blend",
+           "project", "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance",
+           "james_stein"]
 
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
@@ -166,23 +167,77 @@ def _reduced_basis(W: np.ndarray):
     return basis if len(basis[1]) <= REDUCED_MAX_RANK * W.shape[1] else None
 
 
+class FitSystem:
+    """Eqs. (1)+(2)'s per-vertex systems at one ``weights[F,K]``, ``reg_weights[K,n]`` (D of eq. 3) and
+    ``reg``, built once for the fit (:func:`fit_blendshapes`) and the extras that need the same matrices
+    (:func:`weight_leak_variance`): in the weights' rank-r basis when it pays (:func:`_reduced_basis`:
+    ``basis = (P, s, Q)``, ``B = Q S``, ``inv_l[n,K] = 1 / (reg D^2)``, ``M[n,r,r] = I + B^T diag(inv_l_v)
+    B``), else the K x K systems (``basis`` None, ``A[n,K,K] = W^T W + reg diag(D_v^2)``, ``L[n,K]``).
+
+    ``gain=True`` keeps the ridge's gain ``A_v^-1 W^T`` from the fit's own factorization, for the weights'
+    leak: ``inverse = M^-1`` ``[n,r,r]`` (the fit applies it, one batched inverse instead of an LU solve
+    and then the inverse; the same products up to rounding) or ``G = A^-1 W^T`` ``[n,K,F]`` (extra
+    right-hand sides of the fit's one LU solve). Both None until the fit ran (or without ``gain``)."""
+
+    def __init__(self, weights, reg_weights, reg: float, *, gain: bool = False):
+        self.weights = np.asarray(weights, dtype=np.float64)
+        self.reg_weights = reg_weights
+        self.reg = float(reg)
+        self.gain = bool(gain)
+        self.inverse = self.G = None
+        self.basis = _reduced_basis(self.weights)
+        if self.basis is None:
+            self.A, self.L = _direct_matrices(self.weights, reg_weights, reg)
+        else:
+            _, s, Q = self.basis
+            self.B, self.inv_l, self.M = _reduced_matrices(s, Q, reg_weights, reg)
+
+    def holds(self, weights, reg_weights, reg: float) -> bool:
+        """Whether these are this system's ``weights``, ``reg_weights`` and ``reg`` (to the bit)."""
+        return (float(reg) == self.reg
+                and (reg_weights is self.reg_weights or np.array_equal(reg_weights, self.reg_weights))
+                and np.array_equal(np.asarray(weights, dtype=np.float64), self.weights))
+
+
 def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,
-                    reg_weights: np.ndarray, reg: float = 1.0) -> np.ndarray:
+                    reg_weights: np.ndarray, reg: float = 1.0, *,
+                    system: FitSystem | None = None) -> np.ndarray:
     """Menzel et al. (2022), eqs. (1)+(2): personalized ``deltas[K,n,3]`` (metres) at a fixed balance ``reg``.
 
     ``neutral[n,3]`` = B0, ``points[F,n,3]`` = training meshes S_i, ``weights[F,K]`` = w_ij,
     ``generic_deltas[K,n,3]`` = T_j, ``reg_weights[K,n]`` = D_j diagonals (eq. 3, > 0). ``reg`` multiplies
     E_reg (1 = the paper). Solved exactly, n batched systems in one LAPACK call: r x r in the weights' rank-r
     basis (module docstring) when ``r <= REDUCED_MAX_RANK K``, else the K x K systems themselves.
+    ``system``: the :class:`FitSystem` of these ``weights``, ``reg_weights`` and ``reg`` if the caller
+    built it (with ``gain``, it keeps the gain for :func:`weight_leak_variance`).
     """
     W = np.asarray(weights, dtype=np.float64)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    basis = _reduced_basis(W)
-    if basis is None:
+    sys_ = FitSystem(W, reg_weights, reg) if system is None else system
+    if sys_.basis is None:
         # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal)
-        return _direct_system(W, R, T, reg_weights, reg, False).transpose(1, 0, 2)
-    _, B, inv_l, _, X = _reduced_solve(W, R, T, reg_weights, reg, False, basis)
+        n, K = sys_.L.shape
+        rhs = project(W, R) + sys_.L[:, :, None] * T.transpose(1, 0, 2)                  # [n,K,c]
+        if not sys_.gain:
+            return np.linalg.solve(sys_.A, rhs).transpose(1, 0, 2)
+        c = rhs.shape[2]
+        X = np.linalg.solve(sys_.A, np.concatenate([rhs, np.broadcast_to(W.T, (n, K, len(W)))], axis=2))
+        sys_.G = X[:, :, c:]                                                             # A^-1 W^T
+        return X[:, :, :c].transpose(1, 0, 2)
+    P, s, _ = sys_.basis
+    B, inv_l, M = sys_.B, sys_.inv_l, sys_.M
+    e0 = R - blend(W, T)                                                             # [F,n,c]
+    F, n, c = e0.shape
+    r = len(s)
+    rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
+    if not r:
+        X = rhs
+    elif sys_.gain:
+        sys_.inverse = np.linalg.inv(M)                  # M^-1, kept for the leak (weight_leak_variance)
+        X = np.matmul(sys_.inverse, rhs)
+    else:
+        X = np.linalg.solve(M, rhs)
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
@@ -225,7 +280,7 @@ def estimate_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float) 
 
 
 def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float, deltas: np.ndarray,
-                         free: np.ndarray) -> np.ndarray:
+                         free: np.ndarray, *, system: FitSystem | None = None) -> np.ndarray:
     """``[n,K]`` (m^2 per unit of the weights' noise variance): the expected squared error each fitted shape
     of eqs. (1)+(2) takes at each vertex from independent errors of unit variance in the weights the frames
     report (``weights[F,K]``, the entries ``free[F,K]`` may err; ``reg_weights[K,n]``, ``reg`` as in
@@ -234,17 +289,23 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     noise variance at vertex ``v`` is ``E_fv = sum_k free_fk |B_kv|^2`` and each shape's error variance is
     ``sum_f (A_v^-1 W^T)_jf^2 E_fv`` (the ridge's sandwich with per-frame noise, :func:`estimate_variance`
     with one noise level for every frame). A shape seen in one frame, beside a large shape whose weight
-    errs there, takes that error whole: the leak that makes it worse than the prior."""
+    errs there, takes that error whole: the leak that makes it worse than the prior.
+
+    ``system``: the fit's :class:`FitSystem` (of these ``weights``, ``reg_weights`` and ``reg``; built with
+    ``gain`` and used by the fit, it holds the gain already): its matrices and factorization are reused
+    instead of being built again."""
     W = np.asarray(weights, dtype=np.float64)
     D = np.asarray(deltas, dtype=np.float64)
     energy = np.asarray(free, dtype=np.float64) @ np.einsum("knc,knc->kn", D, D)        # [F,n]
-    basis = _reduced_basis(W)
-    if basis is None:
-        A, L = _direct_matrices(W, reg_weights, reg)
-        G = np.linalg.solve(A, np.broadcast_to(W.T, L.shape + (len(W),)))           # [n,K,F]
+    if system is None or not system.holds(W, reg_weights, reg):
+        system = FitSystem(W, reg_weights, reg)
+    if system.basis is None:
+        G = system.G                                                                 # [n,K,F]
+        if G is None:
+            G = np.linalg.solve(system.A, np.broadcast_to(W.T, system.L.shape + (len(W),)))
         return np.einsum("nkf,nkf,fn->nk", G, G, energy)
-    P, s, Q = basis
-    B, inv_l, M = _reduced_matrices(s, Q, reg_weights, reg)
+    P, s, _ = system.basis
+    B, inv_l, M = system.B, system.inv_l, system.M
     n, r = len(inv_l), len(s)
     if r == 0:
         return np.zeros_like(inv_l)
@@ -252,7 +313,8 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     # frames is inv_l_vj^2 (B C_v B^T)_jj with C_v = M_v^-1 (P^T diag(E_v) P) M_v^-1: r x r per vertex, no
     # [n,K,F] array
     pp = (P[:, :, None] * P[:, None, :]).reshape(len(P), r * r)                       # [F, r^2]
-    inv_m = np.linalg.inv(M)                            # one batched inverse, then two stacked products
+    # one batched inverse (the fit's, if it kept it), then two stacked products
+    inv_m = np.linalg.inv(M) if system.inverse is None else system.inverse
     C = inv_m @ (energy.T @ pp).reshape(n, r, r) @ inv_m
     bb = (B[:, :, None] * B[:, None, :]).reshape(len(B), r * r)                       # [K, r^2]
     return inv_l ** 2 * (C.reshape(n, r * r) @ bb.T)
