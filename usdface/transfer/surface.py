@@ -108,9 +108,9 @@ def decimate(points, triangles, edge: float):
         return p, t
     # the vertices in space-filling-curve order and the triangles by their corners' places in it: the
     # decimation's quadrics, edges and collapses then touch memory in order (a subdivided head lists its
-    # midpoints after every original vertex: a sixth of the decimation's 4 CPU-s), and its result depends on
-    # the surface, not on the order an export lists it in (collapses of equal cost, a flat patch's, go in
-    # this order)
+    # midpoints after every original vertex: a sixth of the decimation's 4 CPU-s), and its result no longer
+    # depends on how an export numbers the vertices or orders the triangles (collapses of equal cost, a flat
+    # patch's, go in this order)
     order = spatial_order(p, 2.0 * edge)
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
