@@ -20,6 +20,9 @@ Prints two tables:
    ``A_j = sum_i W_ji B~_i`` against the person's true shapes over the whole face mesh (the map stands in
    for the person where the capture does not see), beside the namesake map's (each shape its own generic
    shape), and the weight each row puts on shapes other than its namesake (median / largest row sum);
+   the gaze cross-terms (weights above 0.05 in a gaze channel's column from a capture shape of another name,
+   which turn an engine's eyes: with the default ``map_gaze="namesake"`` none) and the map with
+   ``map_gaze="free"`` (eq. 4 as it was before stop 39) beside it;
 3. time: end-to-end wall time of the ``usdface personalize`` command (fresh process each run), cold
    (no correspondence cache) and warm (cache reused), median of ``--repeats`` runs, plus the in-process step
    breakdown of one run, and the import-only time of a fresh process (with and without Open3D).
@@ -174,7 +177,10 @@ def map_figures(case: str) -> dict:
     # before the rows elsewhere were held: the face rows alone (what the map drives on the other meshes was
     # not seen)
     face_only = real(*called["args"], mu="auto", positions=called["kw"].get("positions"),
-                     **{k: v for k, v in kw.items() if k != "elsewhere"})
+                     **{k: v for k, v in kw.items() if k not in ("elsewhere", "held")})
+    # the gaze channels free (before stop 39): any capture shape may drive them
+    free = real(*called["args"], mu="auto", positions=called["kw"].get("positions"),
+                **{k: v for k, v in kw.items() if k != "held"})
     prior = kw.get("prior")
     names = list(res.names)
     true = truth[mesh.source.prim][[mesh.names.index(n) for n in names]]                    # [J,n,3]
@@ -203,13 +209,24 @@ def map_figures(case: str) -> dict:
         sums = rest.sum(axis=1)
         return float(np.median(sums)), float(sums.max())
 
+    from usdface.arkit import GAZE_NAMES
+
+    gaze_col = np.array([n in GAZE_NAMES for n in res.avatar_names])
+    other_row = np.array([[s != t for t in res.avatar_names] for s in names])
+
+    def gaze_cross(w):
+        """(count above 0.05, largest) of the weights in a gaze channel's column from another shape."""
+        cross = np.where(gaze_col[None, :] & other_row, w, 0.0)
+        return int((cross > 0.05).sum()), float(cross.max(initial=0.0))
+
     nan = float("nan")
     return {"mu": (res.report["retarget"]["mu"], mu_gcv),
             "error_mm": (error(res.weights), error(gcv), error(prior) if prior is not None else nan,
                          error(face_only)),
             "elsewhere_mm": (error_elsewhere(res.weights), error_elsewhere(face_only),
                              error_elsewhere(prior) if prior is not None else nan) if others else (nan,) * 3,
-            "off": (off(res.weights), off(gcv), off(face_only))}
+            "off": (off(res.weights), off(gcv), off(face_only)),
+            "gaze": (gaze_cross(res.weights), gaze_cross(free)), "free_error_mm": error(free)}
 
 
 def wall_times(case: str, repeats: int) -> dict:
@@ -280,14 +297,18 @@ def main(argv=None) -> int:
     if args.map:
         print(f"\n{'case':9} {'mu regions':>10} {'mu GCV':>8} {'A_j err mm: regions':>19} {'GCV':>6} "
               f"{'namesake':>8} {'face rows only':>14} {'other meshes mm: map':>20} {'face rows only':>14} "
-              f"{'namesake':>8} {'off-namesake per row: regions':>29} {'GCV':>11} {'face rows only':>14}")
+              f"{'namesake':>8} {'off-namesake per row: regions':>29} {'GCV':>11} {'face rows only':>14} "
+              f"{'gaze cross >0.05 (max): map':>27} {'gaze free':>12} {'A_j err mm gaze free':>20}")
         for case in cases:
             f = map_figures(case)
             (om, ox), (gm, gx), (fm, fx) = f["off"]
             e, o = f["error_mm"], f["elsewhere_mm"]
             print(f"{case:9} {f['mu'][0]:10.1e} {f['mu'][1]:8.1e} {e[0]:19.3f} {e[1]:6.3f} {e[2]:8.3f} "
                   f"{e[3]:14.3f} {o[0]:20.3f} {o[1]:14.3f} {o[2]:8.3f} {om:20.2f} / {ox:5.2f} "
-                  f"{gm:5.2f} / {gx:5.2f} {fm:6.2f} / {fx:5.2f}")
+                  f"{gm:5.2f} / {gx:5.2f} {fm:6.2f} / {fx:5.2f} "
+                  f"{f['gaze'][0][0]:20d} ({f['gaze'][0][1]:4.2f}) "
+                  f"{f['gaze'][1][0]:5d} ({f['gaze'][1][1]:4.2f}) "
+                  f"{f['free_error_mm']:20.3f}")
     cases = [c for c in cases if (BENCH / c).is_dir()]
     if args.no_time or not cases:
         return 0

@@ -1123,7 +1123,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
         meta = {"avatar": _map_input(getattr(avatar_path, "file", avatar_path), out),
                 "capture": _map_input(getattr(given_capture, "source", given_capture), out),
                 "mu": eq4["mu"], "mu_choice": eq4["mu_choice"], "weight_bounds": eq4["bounds"],
-                "map_prior": eq4["prior"]}
+                "map_prior": eq4["prior"], "map_gaze": eq4["gaze"]}
         if isinstance(pins_file, str | os.PathLike):
             meta["pins"] = _map_input(pins_file, out)
         text = weight_map_json(result.weights, result.names, result.avatar_names, meta=meta,
@@ -1224,7 +1224,7 @@ def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) ->
     _implant.check_mode_options(get("face_transfer", "person"), options)
     _implant.check_modes(get("face_transfer", "person"), get("approximation"),
                          get("prior", "avatar"), get("weight_bounds", (0.0, 1.0)),
-                         get("map_prior", "namesake"))
+                         get("map_prior", "namesake"), get("map_gaze", "namesake"))
     _implant.check_numbers(mu=get("mu", "auto"), extension_length=get("extension_length", 1.0),
                            falloff=get("falloff", 0.15), support=get("support", (0.01, 0.03)))
     from .personalize.api import check_fit_options

@@ -38,6 +38,9 @@ ARKIT_NAMES: tuple[str, ...] = (
     "cheekPuff", "cheekSquintLeft", "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
 )
 ARKIT_SET = frozenset(ARKIT_NAMES)
+#: The gaze channels: in an engine (Live Link, Unity's ARKit face) they drive the eyes' rotation (the eye
+#: bones or the eyeball meshes), not only the lid skin their blend shapes move on the face mesh.
+GAZE_NAMES = frozenset(f"eyeLook{d}{s}" for d in ("Down", "In", "Out", "Up") for s in ("Left", "Right"))
 #: Shapes a complete rig may omit.
 OPTIONAL_NAMES = frozenset({"tongueOut"})
 #: Similarity (difflib ratio) above which an unknown name is taken as a likely misspelling of an ARKit name.

@@ -40,7 +40,7 @@ def admm_box_start(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, start:
 
 
 def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, start: np.ndarray,
-                      max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      max_iter: int | None = None, hold=None) -> tuple[np.ndarray, np.ndarray]:
     """min_w 1/2 w^T G w - c^T w subject to lo <= w <= hi, for every row of ``c[F, K]`` at once.
 
     ``gram[K, K]`` = A^T A positive definite (A of full column rank), ``c[F, K]`` = A^T b_f, ``start[F, K]``
@@ -48,7 +48,9 @@ def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, sta
     BVLS) vectorized over frames: per iteration one batched K x K solve with the bound variables held, a step
     to the first bound crossed or, when the step is feasible, the release of the most violating bound
     variable; it stops at the KKT point, the unique optimum. Returns ``(w[F, K], converged[F])``; frames not
-    converged within ``max_iter`` (default 10 K) iterations keep their last feasible iterate.
+    converged within ``max_iter`` (default 10 K) iterations keep their last feasible iterate. ``hold[F, K]``
+    (bool, optional): entries held at their ``start`` value, never solved for nor released (the reduced
+    problem on the other entries; the retarget map's gaze constraint holds entries at 0).
     """
     gram = np.asarray(gram, dtype=np.float64)
     c = np.asarray(c, dtype=np.float64)
@@ -56,6 +58,10 @@ def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, sta
     w = np.clip(np.asarray(start, dtype=np.float64), lo, hi)
     fixed = (w <= lo) | (w >= hi)
     w[fixed] = np.where(w[fixed] <= lo, lo, hi)
+    if hold is not None:
+        hold = np.asarray(hold, dtype=bool)
+        fixed |= hold
+        w[hold] = np.asarray(start, dtype=np.float64)[hold]
     running = np.ones(f_count, dtype=bool)
     eye = np.eye(k)
     tol = 1e-12 * max(float(np.abs(c).max(initial=0.0)), float(np.abs(gram).max(initial=0.0)), 1e-300)
@@ -76,6 +82,8 @@ def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, sta
             w[ok] = zk
             g = zk @ gram - c[ok]
             wrong = fixed[ok] & (((zk <= lo) & (g < -tol)) | ((zk >= hi) & (g > tol)))
+            if hold is not None:
+                wrong &= ~hold[ok]
             score = np.where(wrong, np.abs(g), -1.0)
             release = score.max(axis=1) > 0
             fixed[ok[release], score[release].argmax(axis=1)] = False
@@ -92,6 +100,8 @@ def box_least_squares(gram: np.ndarray, c: np.ndarray, lo: float, hi: float, sta
             hit = bc & (t <= step[:, None])
             hit |= ~fixed[cr] & ((new <= lo) | (new >= hi))
             new = np.where(hit, np.where(zc < lo, lo, hi), np.clip(new, lo, hi))
+            if hold is not None:                      # a held value outside [lo, hi] stays as it is
+                new = np.where(hold[cr], wc, new)
             w[cr] = new
             fixed[cr] |= hit
     return w, ~running

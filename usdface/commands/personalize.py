@@ -40,6 +40,10 @@ def add_transfer_options(p) -> None:
     p.add_argument("--map-prior", default="namesake", choices=["namesake", "zero"],
                    help="what eq. (4)'s ridge shrinks each row of the map towards: the avatar shape of the "
                         "same ARKit name (default, as a hand-made retargeting table) or zero (the paper)")
+    p.add_argument("--map-gaze", default="namesake", choices=["namesake", "free"],
+                   help="the map's gaze channels (eyeLook*, which an engine turns the eyes with): driven by "
+                        "their namesake capture shape alone (default: no blink turns the eyes) or free "
+                        "(eq. 4 as it is: any shape may drive them)")
     p.add_argument("--prior", default="avatar", choices=["avatar", "template"],
                    help="what the fit shrinks towards where the capture does not inform a shape: the "
                         "avatar's own generic shapes on the capture mesh (default) or the capture's template")
@@ -87,7 +91,7 @@ def transfer_kwargs(args) -> dict:
             "prior": args.prior, "name_map": args.name_map, "contact": args.contact,
             **({"every": args.every} if getattr(args, "every", 1) != 1 else {}),
             "weight_bounds": None if args.unbounded else tuple(args.weight_bounds),
-            "map_prior": args.map_prior}
+            "map_prior": args.map_prior, "map_gaze": args.map_gaze}
 
 
 def implant_kwargs(args) -> dict:

@@ -54,7 +54,8 @@ def run(args) -> int:
         print(json.dumps({"ok": True, "output": json_path(args.output), "sources": list(result.names),
                           "targets": list(result.avatar_names), "mu": eq4.get("mu"),
                           "mu_choice": eq4.get("mu_choice"), "weight_bounds": eq4.get("bounds"),
-                          "map_prior": eq4.get("prior"), "weight_min": float(w.min()) if w.size else 0.0,
+                          "map_prior": eq4.get("prior"), "map_gaze": eq4.get("gaze"),
+                          "weight_min": float(w.min()) if w.size else 0.0,
                           "weight_max": float(w.max()) if w.size else 0.0,
                           "above_0_05": int((abs(w) > 0.05).sum()), "no_row": list(lacking),
                           "warnings": all_warnings(rep.get("warnings"))}))

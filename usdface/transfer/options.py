@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import OptionError
 
 __all__ = ["FACE_TRANSFERS", "APPROXIMATIONS", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
-           "PRIORS", "MAP_PRIORS", "option_name", "check_mode_options", "modes_using",
+           "PRIORS", "MAP_PRIORS", "MAP_GAZES", "option_name", "check_mode_options", "modes_using",
            "default_approximation", "check_modes", "check_numbers", "recorded_fit_options", "pins_input",
            "fit_prior_options", "run_options"]
 
@@ -98,14 +98,22 @@ PRIORS = ("avatar", "template")
 MAP_PRIORS = ("namesake", "zero")
 
 
+#: How the retarget map treats the gaze channels (:func:`usdface.transfer.retarget.gaze_held`).
+MAP_GAZES = ("namesake", "free")
+
+
 def check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,
-                 map_prior: str = "namesake") -> str:
+                 map_prior: str = "namesake", map_gaze: str = "namesake") -> str:
     """Refuse unknown or mismatched transfer modes and a bad retarget map setting before any work
     (:class:`usdface.errors.OptionError`); returns the approximation to use (``approximation``, or
     :func:`default_approximation` of ``face_transfer`` when None)."""
     if map_prior not in MAP_PRIORS:
         raise OptionError(f"unknown map prior {map_prior!r} ({option_name('map_prior')})",
                           fix=f"use one of {', '.join(MAP_PRIORS)}")
+    if map_gaze not in MAP_GAZES:
+        raise OptionError(f"unknown map gaze {map_gaze!r} ({option_name('map_gaze')})",
+                          fix=f"use one of {', '.join(MAP_GAZES)} (namesake: a gaze channel driven by its "
+                              "namesake alone; free: eq. 4 as it is)")
     if weight_bounds is not None:
         name = option_name("weight_bounds")
         try:
@@ -212,12 +220,14 @@ def fit_prior_options(prior: str, method: str, reg) -> dict:
 
 
 def run_options(*, method: str, reg, mu, weight_bounds, map_prior: str, face_transfer: str,
+                map_gaze: str = "namesake",
                 approximation: str, prior: str, extension_length, falloff, support, eyelids: bool,
                 fit_options: dict | None) -> dict:
     """The options a personalize run used, as its report and layer record them: of the mode's own
     (:data:`MODE_OPTIONS`), those it uses; the fit's (:func:`recorded_fit_options`) when it fitted
     (``fit_options`` None: a given rig)."""
     return {"method": method, "reg": reg, "mu": mu, "weight_bounds": weight_bounds, "map_prior": map_prior,
+            "map_gaze": map_gaze,
             "face_transfer": face_transfer, "approximation": approximation, "prior": prior,
             **{k: v for k, v in (("extension_length", extension_length), ("falloff", falloff),
                                  ("support", support)) if k in MODE_OPTIONS[face_transfer]},

@@ -66,7 +66,7 @@ from .options import (
 from .partial_dt import implant_shapes
 from .register import motion_landmarks, register_face
 from .report import changed_vertices, layer_provenance, lip_report, offset_changes, untrusted_map_rows
-from .retarget import approximate, driven_gram, namesake_prior, retarget_weights
+from .retarget import approximate, driven_gram, gaze_held, namesake_prior, retarget_weights
 from .trust import shape_trust
 
 __all__ = ["PersonalizeResult", "personalize_avatar"]
@@ -307,7 +307,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                        support=(0.01, 0.03), eyelids: bool = True, eyes: dict | None = None,
                        rig: FaceRig | None = None, prior: str = "avatar", face_mesh: str | None = None,
                        name_map=None, extension_length: float | None = 1.0, command: str = "",
-                       weight_bounds=(0.0, 1.0), map_prior: str = "namesake", layer_edit=None,
+                       weight_bounds=(0.0, 1.0), map_prior: str = "namesake", map_gaze: str = "namesake",
+                       layer_edit=None,
                        map_only: bool = False, extra_inputs: dict | None = None,
                        pending_cache: list | None = None, **fit_options) -> PersonalizeResult:
     """Personalize ``avatar`` (path or :class:`Avatar`) from ``capture`` (folder / capture USD path or
@@ -341,6 +342,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         :func:`usdface.api.personalize_avatar`), from the offsets that are written.
     map_prior : what eq. (4)'s ridge shrinks each row towards: ``"namesake"`` (default: the avatar shape of
         the same ARKit name, weight 1, as a hand-made retargeting table) or ``"zero"`` (the paper).
+    map_gaze : how eq. (4)'s map treats the gaze channels (``eyeLook*``, which an engine turns the eyes with):
+        ``"namesake"`` (default): a gaze channel is driven by its namesake capture shape alone (the other
+        rows' entries held at 0, :func:`usdface.transfer.retarget.gaze_held`); ``"free"``: eq. (4) as it is.
     correspondence : cache file for step 3, reused when it belongs to this avatar face and template (same
         geometry, topology and semantic shapes), rewritten otherwise.
     force : overwrite an existing output layer.
@@ -367,7 +371,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     report: dict = {"warnings": []}
-    approximation = check_modes(face_transfer, approximation, prior, weight_bounds, map_prior)
+    approximation = check_modes(face_transfer, approximation, prior, weight_bounds, map_prior, map_gaze)
     check_numbers(mu=mu, extension_length=extension_length, falloff=falloff, support=support)
     # a numeric string passes the check (as the CLI's "0.01" does), and is the number from here on: mu="0.01"
     # went on to retarget_weights' ValueError after the registration and the fit
@@ -509,13 +513,13 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         f = corr.face
         k_names = list(face.names)
         weights, mu_used = _retarget_map(avatar, face, beyond, corr, capture.triangles, person_deltas, names,
-                                         mu, weight_bounds, map_prior)
+                                         mu, weight_bounds, map_prior, map_gaze)
         report["retarget"] = {"mu": mu_used,
                               "mu_choice": "leave one face region out" if mu == "auto" else "given",
                               "weight_min": float(weights.min()) if weights.size else 0.0,
                               "weight_max": float(weights.max()) if weights.size else 0.0,
                               "bounds": None if weight_bounds is None else list(weight_bounds),
-                              "prior": map_prior}
+                              "prior": map_prior, "gaze": map_gaze}
         approx_eq4 = {}
         if approximation == "retarget" and not map_only:
             for m in avatar.meshes:
@@ -588,7 +592,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             "face_mesh": face_prim, "shapes": names, "face_vertices": int(f.sum()),
             "adjacent_vertices_max": int(adjacent.sum(axis=1).max()) if adjacent.size else 0,
             "options": run_options(method=method, reg=reg, mu=mu, weight_bounds=weight_bounds,
-                                   map_prior=map_prior, face_transfer=face_transfer,
+                                   map_prior=map_prior, map_gaze=map_gaze, face_transfer=face_transfer,
                                    approximation=approximation, prior=prior,
                                    extension_length=extension_length, falloff=falloff, support=support,
                                    eyelids=eyelids,
@@ -741,13 +745,15 @@ def _split_beyond_reach(avatar: Avatar, face: FaceRig, reached, regions: dict):
 
 
 def _retarget_map(avatar: Avatar, face: FaceRig, beyond, corr, capture_triangles, person_deltas,
-                  names: list[str], mu, weight_bounds, map_prior: str):
+                  names: list[str], mu, weight_bounds, map_prior: str, map_gaze: str = "namesake"):
     """Step 4, eq. (4)'s weight map (:func:`usdface.transfer.retarget.retarget_weights`) from the person's
     shapes ``person_deltas[J,n,3]`` (avatar frame, metres) carried onto the face rows by the correspondence
     ``corr``. The map drives every mesh: with the namesake prior, what the face rows do not see on the other
     meshes (teeth, tongue, eyeballs) keeps the namesake's own motion (the paper's zero prior would hold it
     still); the face mesh's own rows beyond the face are not among them (a body merged into the head's mesh,
-    split off as ``beyond``, gives the head alone's map). Returns ``(weights[J,K], mu)``."""
+    split off as ``beyond``, gives the head alone's map). ``map_gaze="namesake"`` holds every entry of a gaze
+    channel's column at 0 but its namesake's (:func:`usdface.transfer.retarget.gaze_held`). Returns
+    ``(weights[J,K], mu)``."""
     k_names = list(face.names)
     mb_face = corr.apply(person_deltas, capture_triangles, rows=corr.face)     # M B_j on the face region
     namesake = map_prior == "namesake"
@@ -755,7 +761,8 @@ def _retarget_map(avatar: Avatar, face: FaceRig, beyond, corr, capture_triangles
     return retarget_weights(
         face.deltas, mb_face, mu=mu, return_mu=True, rows=corr.face, bounds=weight_bounds,
         positions=face.neutral, prior=namesake_prior(names, k_names) if namesake else None,
-        elsewhere=driven_gram(others, k_names) if namesake else None)
+        elsewhere=driven_gram(others, k_names) if namesake else None,
+        held=gaze_held(names, k_names, map_gaze))
 
 
 def _own_channels(avatar: Avatar, mesh: FaceRig, names: list[str]) -> list:

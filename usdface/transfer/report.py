@@ -128,6 +128,7 @@ def layer_provenance(report: dict, timings: dict, *, command: str, method: str, 
                if "test_expressions" in report.get("fit", {}) else {}),
             "retargetMap": retarget_map,
             "retargetMu": float(mu), "retargetMuChoice": report["retarget"]["mu_choice"],
+            "retargetGaze": report["retarget"].get("gaze", "namesake"),
             "warnings": list(report["warnings"]),
             "timings": dict(timings)}
     if (report.get("fit") or {}).get("pins"):          # the artist pins: {shape: pinned vertices}

@@ -15,7 +15,7 @@ import json
 import numpy as np
 
 __all__ = ["retarget_weights", "face_regions", "choose_mu_by_regions", "driven_gram", "namesake_prior",
-           "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
+           "gaze_held", "GAZE_CHOICES", "approximate", "weight_map_rows", "weight_map_json", "weight_map_csv"]
 
 
 #: Vertices per block of :func:`retarget_weights`' products over ``rows``.
@@ -26,6 +26,43 @@ ROW_BLOCK = 16384
 FACE_GRID = 3
 #: The relative ``mu`` values either choice of it searches (:func:`choose_mu`, :func:`choose_mu_by_regions`).
 MU_GRID = np.logspace(-6, 0, 25)
+#: How the map treats the gaze channels (:func:`gaze_held`): ``"namesake"`` (default) a gaze channel is
+#: driven by its namesake capture shape alone; ``"free"`` eq. (4) as it is, any shape may drive any channel.
+GAZE_CHOICES = ("namesake", "free")
+
+
+def gaze_held(target_names, avatar_names, gaze: str = "namesake"):
+    """``[J,K]`` bool, True where the map's weight ``W[j,k]`` is held at 0 (:func:`retarget_weights`'
+    ``held``), or None (nothing held, ``gaze="free"``). With ``"namesake"`` a gaze channel k
+    (:data:`usdface.arkit.GAZE_NAMES`, the canonical ``eyeLook*`` names) is driven only by the capture shape
+    of its own name: every other row's entry in its column is held at 0. In an engine the gaze channels turn
+    the eyes (eye bones, eyeball meshes), which the face rows eq. (4) is fitted on do not see: a blink that
+    took ``eyeLookDownLeft`` 0.30 to match the lid skin turned the avatar's eyes down on every blink.
+
+    A gaze capture shape may still drive the lid channels (``eyeLookUpLeft`` -> ``eyeWideLeft``): that is the
+    person's lid following the gaze, skin the face rows do see, and it turns no eye. Only its entries in the
+    other gaze channels are held (they are gaze columns)."""
+    if gaze not in GAZE_CHOICES:
+        raise ValueError(f"gaze must be one of {', '.join(GAZE_CHOICES)}, not {gaze!r}")
+    if gaze == "free":
+        return None
+    from ..arkit import GAZE_NAMES
+
+    rows = np.asarray(list(target_names), dtype=object)
+    cols = np.asarray(list(avatar_names), dtype=object)
+    gaze_col = np.array([n in GAZE_NAMES for n in cols], dtype=bool)
+    return gaze_col[None, :] & (rows[:, None] != cols[None, :])
+
+
+def _free_groups(held, k: int, n_t: int) -> list:
+    """The rows ``[J]`` of the map grouped by which of their ``k`` entries are solved for (``~held[J,K]``):
+    ``[(rows, free columns)]``, one group of all rows and columns when ``held`` is None. Each group's rows
+    share one reduced system (the held entries' rows and columns removed)."""
+    if held is None:
+        return [(np.arange(n_t), np.arange(k))]
+    patterns, group = np.unique(~np.asarray(held, dtype=bool), axis=0, return_inverse=True)
+    group = np.asarray(group).reshape(-1)
+    return [(np.flatnonzero(group == g), np.flatnonzero(patterns[g])) for g in range(len(patterns))]
 
 
 def choose_mu(gram_eigenvalues, projected, residual_ss, n_rows: int, k: int,
@@ -65,7 +102,7 @@ def face_regions(points, grid: int = FACE_GRID) -> np.ndarray:
     return cell[:, 0] * grid + cell[:, 1]
 
 
-def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None, elsewhere=None) -> float:
+def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None, elsewhere=None, held=None) -> float:
     """Leave-one-region-out cross-validation of the eq. (4) ridge weight ``mu`` (relative, see
     :func:`retarget_weights`): for each region ``r`` of the face rows (:func:`face_regions`) the map solved on
     the other regions predicts the targets on ``r``; ``mu`` minimises that prediction error summed over the
@@ -78,8 +115,11 @@ def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None, elsewhere=None) 
     ``grams[R,K,K]``, ``rhs[R,K,J]``, ``tt[R]``: each region's ``B~_r^T B~_r``, ``B~_r^T t_r`` and
     ``||t_r||^2`` (summed over targets); ``prior[J,K]``: the ridge's centre (None: 0); ``elsewhere[K,K]``:
     the Gram matrix of the rows the map drives outside the face (:func:`retarget_weights`), held in by every
-    fold (it is no data of the person's). Closed form per region: one eigendecomposition of the held-in K x K
-    Gram matrix serves every ``mu`` of the grid."""
+    fold (it is no data of the person's); ``held[J,K]``: entries of the map held at 0 (:func:`gaze_held`),
+    so that every fold solves the map as :func:`retarget_weights` does (the rows that share which entries
+    are free share one reduced system; ``prior`` is 0 at the held entries). Closed form per region: one
+    eigendecomposition of the held-in K x K Gram matrix (per group of rows, its free rows and columns)
+    serves every ``mu`` of the grid."""
     grams = np.asarray(grams, dtype=np.float64)
     rhs = np.asarray(rhs, dtype=np.float64)
     n_r, k, n_t = rhs.shape
@@ -87,18 +127,32 @@ def choose_mu_by_regions(grams, rhs, tt, prior=None, grid=None, elsewhere=None) 
     gram, total = grams.sum(axis=0), rhs.sum(axis=0)
     lam = grid * float(np.trace(gram)) / max(k, 1)                                    # [M]
     pt = np.zeros((k, n_t)) if prior is None else np.asarray(prior, dtype=np.float64).T  # [K,J]
+    if held is not None:
+        pt = np.where(np.asarray(held, dtype=bool).T, 0.0, pt)
     err = np.zeros(len(grid))
     extra = 0.0 if elsewhere is None else np.asarray(elsewhere, dtype=np.float64)
+    groups = [(slice(None), slice(None))] if held is None else _free_groups(held, k, n_t)
     for r in range(n_r):
         g_in = gram - grams[r]
-        ev, vec = np.linalg.eigh(g_in + extra)
-        q = vec.T @ (total - rhs[r] - g_in @ pt)                                         # [K,J]
-        w = pt + np.einsum("kl,mlj->mkj", vec, q / (np.maximum(ev, 0.0)[None, :, None] + lam[:, None, None]))
-        # ||t_r - B~_r w||^2 = ||t_r||^2 - 2 w . B~_r^T t_r + w^T B~_r^T B~_r w, per mu, summed over targets
-        # (the quadratic term by one batched product: a three-operand einsum looped in C over M K^2 J terms,
-        # 0.1 s of dev1's run)
-        err += (float(tt[r]) - 2.0 * np.einsum("mkj,kj->m", w, rhs[r])
-                + np.einsum("mkj,mkj->m", np.matmul(grams[r], w), w))
+        h_in = g_in + extra
+        shifted = total - rhs[r] - g_in @ pt                                             # [K,J]
+        for i, (rows, cols) in enumerate(groups):
+            whole = held is None
+            ev, vec = np.linalg.eigh(h_in if whole else h_in[np.ix_(cols, cols)])
+            q = vec.T @ (shifted if whole else shifted[np.ix_(cols, rows)])             # [F,J_g]
+            step = np.einsum("kl,mlj->mkj", vec, q / (np.maximum(ev, 0.0)[None, :, None]
+                                                      + lam[:, None, None]))
+            if whole:
+                w = pt + step
+            else:                                  # the held entries stay at 0 (= the prior there)
+                w = np.repeat(pt[None, :, rows], len(grid), axis=0)
+                w[:, cols, :] += step
+            rhs_r = rhs[r] if whole else rhs[r][:, rows]
+            # ||t_r - B~_r w||^2 = ||t_r||^2 - 2 w . B~_r^T t_r + w^T B~_r^T B~_r w, per mu, summed over
+            # targets (the quadratic term by one batched product: a three-operand einsum looped in C over
+            # M K^2 J terms, 0.1 s of dev1's run); ||t_r||^2 once per region
+            err += ((float(tt[r]) if i == 0 else 0.0) - 2.0 * np.einsum("mkj,kj->m", w, rhs_r)
+                    + np.einsum("mkj,mkj->m", np.matmul(grams[r], w), w))
     return _parabola_vertex(np.log(grid), err)
 
 
@@ -119,7 +173,7 @@ def _parabola_vertex(x, y) -> float:
 
 
 def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = False, rows=None, bounds=None,
-                     prior=None, positions=None, elsewhere=None):
+                     prior=None, positions=None, elsewhere=None, held=None):
     """Menzel et al. 2022, eq. (4): ``argmin_w ||sum_i w_i B~_i - M B_j||^2 + mu' sum_i (w_i - p_ji)^2`` for
     every j, with ``p = 0`` as the paper.
 
@@ -151,6 +205,12 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         engine drives every mesh with the map: the sample's ``jawForward`` row took ``tongueOut`` at 0.82
         (a tongue out on every jaw slide), matching a few face rows by moving what the face rows do not
         hold; on a rig whose eyeballs carry the ``eyeLook*`` shapes a lid could turn an eyeball so.
+    held : optional ``[J,K]`` bool: entries of the map held at 0, the rest solved for (:func:`gaze_held`: a
+        gaze channel driven by its namesake alone). Each row is the same objective minimised over its free
+        entries - the reduced system of the normal equations, all rows at once (a batched solve with the held
+        rows and columns replaced by the identity; the bounded solve holds them too) - and ``mu="auto"``'s
+        folds solve the same reduced systems (:func:`choose_mu_by_regions`; GCV, without ``positions``,
+        chooses it without them). ``prior`` is taken as 0 at the held entries.
 
     Returns
     -------
@@ -190,13 +250,18 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
     gram, rhs, tt = grams.sum(axis=0), rhss.sum(axis=0), float(tts.sum())
     n_rows = 3 * idx.size
     p = np.zeros((n_t, k)) if prior is None else np.asarray(prior, dtype=np.float64)      # [J,K]
+    if held is not None:
+        held = np.asarray(held, dtype=bool)
+        if held.shape != (n_t, k):
+            raise ValueError(f"held must be [J,K] = {(n_t, k)}, not {held.shape}")
+        p = np.where(held, 0.0, p)
     # the ridge around p is the plain ridge of the targets' residual from p: t - B~ p
     rhs_p = rhs - gram @ p.T                                                  # [K,J]
     if isinstance(mu, str):
         if mu != "auto":
             raise ValueError(f"mu must be a number or 'auto', not {mu!r}")
         if len(starts) > 1:
-            mu = choose_mu_by_regions(grams, rhss, tts, p, elsewhere=elsewhere)
+            mu = choose_mu_by_regions(grams, rhss, tts, p, elsewhere=elsewhere, held=held)
         else:
             ev, vec = np.linalg.eigh(gram)
             proj = vec.T @ rhs_p                                             # [K,J]: U^T A t  (= s_i u_i^T t)
@@ -213,9 +278,14 @@ def retarget_weights(avatar_deltas, targets, mu="auto", *, return_mu: bool = Fal
         g_else = np.asarray(elsewhere, dtype=np.float64)
         normal = normal + g_else
         centre = centre + g_else @ p.T
-    w = p + np.linalg.solve(normal, rhs_p).T
+    if held is None:
+        w = p + np.linalg.solve(normal, rhs_p).T
+    else:                    # per row, the reduced system on its free entries: held rows/columns -> identity
+        free = ~held
+        system = np.where(free[:, :, None] & free[:, None, :], normal[None], np.eye(k)[None])   # [J,K,K]
+        w = np.linalg.solve(system, np.where(free, (rhs + centre).T, 0.0)[..., None])[..., 0]
     if bounds is not None:
-        w = _bounded(normal, rhs + centre, w, bounds)
+        w = _bounded(normal, rhs + centre, w, bounds, held)
     return (w, float(mu)) if return_mu else w
 
 
@@ -256,21 +326,24 @@ def namesake_prior(target_names, avatar_names) -> np.ndarray:
     return p
 
 
-def _bounded(normal, rhs, start, bounds) -> np.ndarray:
+def _bounded(normal, rhs, start, bounds, held=None) -> np.ndarray:
     """``argmin_{lo <= w <= hi} w^T N w - 2 w^T rhs_j`` for every column j of ``rhs[K,J]`` (``N[K,K]``
     symmetric positive definite), all rows at once by the exact active-set method of
     :func:`usdface.bounded_lsq.box_least_squares`; ``start[J,K]``: the unbounded solutions (kept where they
-    are inside the bounds). Returns ``[J,K]``."""
+    are inside the bounds); ``held[J,K]``: entries held at their ``start`` value (0). Returns ``[J,K]``."""
     from ..bounded_lsq import box_least_squares
 
     lo, hi = (float(b) for b in bounds)
     if not lo < hi:
         raise ValueError(f"weight bounds must have lo < hi, not {bounds!r}")
     out = np.array(start, dtype=np.float64, copy=True)
-    outside = np.flatnonzero(((out < lo) | (out > hi)).any(axis=1))
+    bad = (out < lo) | (out > hi)
+    if held is not None:
+        bad &= ~held
+    outside = np.flatnonzero(bad.any(axis=1))
     if outside.size:
         out[outside], _ = box_least_squares(normal, np.asarray(rhs, dtype=np.float64)[:, outside].T, lo, hi,
-                                            out[outside])
+                                            out[outside], hold=None if held is None else held[outside])
     return out
 
 
