@@ -131,7 +131,7 @@ def accuracy(case: str, variants: bool) -> list[dict]:
                      ("paper: dt + retarget (eq. 4) + harmonic", {"face_transfer": "dt",
                                                                   "approximation": "retarget", "falloff": 0,
                                                                   "prior": "template", "weight_bounds": None,
-                                                                  "map_prior": "zero"})]
+                                                                  "map_prior": "zero", "map_gaze": "free"})]
     rows = []
     for label, opts in settings:
         res = personalize_avatar(avatar, capture, None, **opts)

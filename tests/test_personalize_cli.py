@@ -171,14 +171,15 @@ def test_personalize_refuses_a_fit_option_before_any_work(samples, tmp_path, cap
 
 def test_retarget_map_is_bounded_by_default_and_the_papers_on_request(samples, tmp_path, capsys):
     """The map an engine drives the avatar with: weights in [0, 1] by default (the sample's eq. 4 map went
-    from -4.2 to 12.0, `cheekSquintRight` -> `eyeLookUpRight` 11.95); ``--unbounded --map-prior zero`` is
-    the paper's eq. (4)."""
+    from -4.2 to 12.0, `cheekSquintRight` -> `eyeLookUpRight` 11.95); ``--unbounded --map-prior zero
+    --map-gaze free`` is the paper's eq. (4)."""
     base = ["retarget", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-q"]
     assert main([*base, "-o", str(tmp_path / "map.json")]) == 0
     doc = json.loads((tmp_path / "map.json").read_text())
     w = np.array(doc["weights"])
     assert w.min() >= 0.0 and w.max() <= 1.0
-    assert main([*base, "-o", str(tmp_path / "paper.json"), "--unbounded", "--map-prior", "zero"]) == 0
+    assert main([*base, "-o", str(tmp_path / "paper.json"), "--unbounded", "--map-prior", "zero",
+                 "--map-gaze", "free"]) == 0
     paper = np.array(json.loads((tmp_path / "paper.json").read_text())["weights"])
     assert paper.max() > 1.5 and paper.min() < -0.5
     assert main([*base, "-o", str(tmp_path / "bad.json"), "--weight-bounds", "1", "0"]) == 2
