@@ -9,10 +9,11 @@ import json
 
 import numpy as np
 import pytest
+from region_cv import parabola_mu, region_errors
 
 from usdface.arkit import GAZE_NAMES
 from usdface.cli import main
-from usdface.transfer.retarget import MU_GRID, face_regions, gaze_held, retarget_weights
+from usdface.transfer.retarget import gaze_held, retarget_weights
 
 
 def test_gaze_held_holds_a_gaze_column_but_its_namesake():
@@ -84,25 +85,8 @@ def test_mu_by_regions_folds_solve_the_held_map():
     held[0, 1] = held[1, [3, 4]] = True
     _, mu = retarget_weights(basis, targets, return_mu=True, positions=points, prior=prior, held=held)
     _, mu_free = retarget_weights(basis, targets, return_mu=True, positions=points, prior=prior)
-    label = face_regions(points)
-    A = np.moveaxis(basis, 0, -1).reshape(-1, 5)
-    lam_unit = np.trace(A.T @ A) / 5
-    errors = []
-    for m in MU_GRID:
-        e = 0.0
-        for r in range(9):
-            out = np.repeat(label == r, 3)
-            for j in range(2):
-                f = ~held[j]
-                a_in, t_in = A[~out][:, f], targets[j].ravel()[~out]
-                w = np.linalg.solve(a_in.T @ a_in + m * lam_unit * np.eye(f.sum()),
-                                    a_in.T @ t_in + m * lam_unit * prior[j, f])
-                e += np.sum((targets[j].ravel()[out] - A[out][:, f] @ w) ** 2)
-        errors.append(e)
-    best = int(np.argmin(errors))
-    assert 0 < best < len(MU_GRID) - 1
-    a, b, _ = np.polyfit(np.log(MU_GRID[best - 1:best + 2]), errors[best - 1:best + 2], 2)
-    assert mu == pytest.approx(np.exp(-b / (2 * a)), rel=1e-6)
+    _, expected = parabola_mu(region_errors(basis, targets, prior, points, held=held))
+    assert mu == pytest.approx(expected, rel=1e-6)
     assert mu != pytest.approx(mu_free, rel=1e-3)
 
 

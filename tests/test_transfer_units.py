@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from region_cv import parabola_mu, region_errors
 
 from usdface.errors import RegistrationError
 from usdface.transfer.correspond import (
@@ -244,23 +245,8 @@ def test_retarget_mu_by_regions_is_the_brute_force_leave_one_region_out_choice()
     label = face_regions(points)
     assert sorted(np.unique(label)) == list(range(9))
     np.testing.assert_array_equal(face_regions(points * 100.0 + 7.0), label)          # units, placement
-    A = np.moveaxis(basis, 0, -1).reshape(-1, 6)                                      # [3n, K]
-    t = targets[0].ravel()
-    lam_unit = np.trace(A.T @ A) / 6
-    errors = []
-    for m in MU_GRID:
-        e = 0.0
-        for r in range(9):
-            held = np.repeat(label == r, 3)
-            a_in, t_in = A[~held], t[~held]
-            w = prior[0] + np.linalg.solve(a_in.T @ a_in + m * lam_unit * np.eye(6),
-                                           a_in.T @ (t_in - a_in @ prior[0]))
-            e += np.sum((t[held] - A[held] @ w) ** 2)
-        errors.append(e)
-    best = int(np.argmin(errors))
-    assert 0 < best < len(MU_GRID) - 1                            # an interior minimum: the test can fail
-    a, b, _ = np.polyfit(np.log(MU_GRID[best - 1:best + 2]), errors[best - 1:best + 2], 2)
-    assert mu == pytest.approx(np.exp(-b / (2 * a)), rel=1e-6)
+    best, expected = parabola_mu(region_errors(basis, targets, prior, points))    # (asserts an interior
+    assert mu == pytest.approx(expected, rel=1e-6)                                  # minimum: it can fail)
     assert MU_GRID[best - 1] <= mu <= MU_GRID[best + 1]
     # the same surface sampled 2x and 3x as densely: the same regions, nearly the same choice (within 2 %),
     # where GCV over the rows moves by a decade
