@@ -237,7 +237,7 @@ def run(args) -> int:
     noise = (rep.get("fit") or {}).get("weight_noise")
     if noise is not None:
         print(f"fit: the phone's weights are off by ~{noise:.2g} as the frames show it; each shape is "
-              "trusted above what that leaks into it")
+              "trusted above what that leaks into it and what re-estimating the weights changes")
     eyes = rep.get("eyelids")
     if eyes and eyes["eyeballs"]:
         print(f"eyelids: {eyes['repaired_vertex_shapes']} vertex-shape pairs moved back onto the eyeballs "
