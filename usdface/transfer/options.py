@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import OptionError
+from .retarget import GAZE_CHOICES
 
 __all__ = ["FACE_TRANSFERS", "APPROXIMATIONS", "MODE_OPTIONS", "MODE_ONLY_OPTIONS", "IMPLANT_OPTIONS",
            "PRIORS", "MAP_PRIORS", "MAP_GAZES", "option_name", "check_mode_options", "modes_using",
@@ -99,7 +100,7 @@ MAP_PRIORS = ("namesake", "zero")
 
 
 #: How the retarget map treats the gaze channels (:func:`usdface.transfer.retarget.gaze_held`).
-MAP_GAZES = ("namesake", "free")
+MAP_GAZES = GAZE_CHOICES
 
 
 def check_modes(face_transfer: str, approximation: str | None, prior: str, weight_bounds=None,

@@ -90,8 +90,8 @@ def unshrunk(factor, share) -> np.ndarray:
     Only the frames' noise is undone so: its energy is spread over every vertex and frame, so its expected
     size, which the factor reads, is what a capture has. The weights' leak (:func:`leak_trust`) and their
     sensitivity (:func:`sensitivity_trust`) are one weight error of one frame each, a single draw whose
-    energy has one degree of freedom (one capture in twelve three times its expectation): their factors,
-    read from the expectation, stay caps."""
+    energy has one degree of freedom (one capture in twelve three times its expectation): their budget
+    (:func:`weight_error_trust`), read from the expectation, stays a cap."""
     f = np.asarray(factor, dtype=np.float64)
     h = np.asarray(share, dtype=np.float64)
     return np.where(h > 0, np.minimum(1.0, f / np.maximum(h, 1e-300)), 0.0)
@@ -132,6 +132,7 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
         trust = np.clip(np.asarray(share, dtype=np.float64)[cap_idx], 0.0, 1.0)
         prior = fit.info.get("prior_deltas")
         leak = fit.info.get("weight_leak")
+        sens = fit.info.get("weight_sensitivity")
         if prior is not None:
             fitted, prior = np.asarray(fit.rig.deltas)[cap_idx], np.asarray(prior)[cap_idx]
             if CONFIDENCE == "noise" and leak is not None and fit.info.get("shape_reliability") is not None:
@@ -139,12 +140,10 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
                 reliability = np.clip(np.asarray(fit.info["shape_reliability"])[cap_idx], 0.0, 1.0)
                 if fit.info.get("data_share") is not None:
                     reliability = unshrunk(reliability, np.asarray(fit.info["data_share"])[cap_idx])
-                sens = fit.info.get("weight_sensitivity")
                 leak = np.asarray(leak)[:, cap_idx]
                 weights_error = (leak_trust(fitted, prior, leak) if sens is None else
                                  weight_error_trust(fitted, prior, leak, np.asarray(sens)[cap_idx]))
                 return np.minimum(reliability, weights_error) * ramp, info, ramp < 0.5
-            sens = fit.info.get("weight_sensitivity")
             if sens is not None:
                 # and no more than the personalization stands above what the weights' noise makes of it
                 trust = np.minimum(trust, sensitivity_trust(fitted, prior, np.asarray(sens)[cap_idx]))
