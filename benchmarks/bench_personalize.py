@@ -6,7 +6,10 @@ A case is a bench case (``dev1``), ``sample``, a folder written by ``usdface sam
 ``generic:SEED`` / ``noisy:SEED``: generated here (``usdface sample --template artist --seed SEED``; noisy:
 the same with ``--scan-noise 0.15 --weight-noise 0.03``, dev2's regime) into a temporary folder, removed
 at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whose template is another
-artist's rig without ``../shared``. The time table is for the bench cases only.
+artist's rig without ``../shared``. ``dev1/minus3`` is a bench case whose capture misses every third
+requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that failed
+to record them), so that the shapes it names are seen only beside others (the capture folder linked into a
+temporary folder, the avatar and truth the case's own). The time table is for the bench cases only.
 
 Prints two tables:
 1. accuracy (issue 10's figures, :mod:`usdface.transfer.scoring`): RMSE vs ``truth/avatar_truth.npz`` as a
@@ -87,8 +90,37 @@ def _folder(case: str) -> Path:
     return _MADE[case]
 
 
+def _minus(case: str) -> tuple[str, int] | None:
+    """``("dev1", 3)`` for ``"dev1/minus3"`` (a bench case whose capture misses every third requested frame);
+    None for any other case."""
+    base, _, tail = case.partition("/minus")
+    return (base, int(tail)) if tail.isdigit() and int(tail) >= 2 else None
+
+
+def _capture_minus(base: str, k: int) -> Path:
+    """The capture folder of bench case ``base`` without the training frames whose number ``NNN`` is 1 modulo
+    ``k`` (links in a temporary folder removed at exit; the test frames, template and neutral kept)."""
+    import atexit
+    import shutil
+
+    src = BENCH / base / "capture"
+    tmp = Path(tempfile.mkdtemp(prefix="usdface-bench-minus-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+    dst = tmp / "capture"
+    (dst / "train").mkdir(parents=True)
+    for item in src.iterdir():
+        if item.name != "train":
+            (dst / item.name).symlink_to(item.resolve())
+    for f in sorted((src / "train").iterdir()):
+        number = f.name.split("_", 1)[0]
+        if not (number.isdigit() and int(number) % k == 1):
+            (dst / "train" / f.name).symlink_to(f.resolve())
+    return dst
+
+
 def _case(case: str):
-    """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case or the sample."""
+    """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case, one missing frames
+    (:func:`_minus`) or the sample."""
     import json
 
     from usdface.io import read_capture
@@ -104,8 +136,10 @@ def _case(case: str):
         covered = covered_vertices(avatar.mesh("Head").neutral, meta, ct["neutral"], capture.triangles)
         face = covered
     else:
-        d = BENCH / case
-        avatar, capture = read_avatar(d / "avatar.usdc"), read_capture(d / "capture")
+        minus = _minus(case)
+        d = BENCH / (minus[0] if minus else case)
+        avatar = read_avatar(d / "avatar.usdc")
+        capture = read_capture(_capture_minus(*minus) if minus else d / "capture")
         idx = np.arange(avatar.mesh("Head").n_vertices)
         face, covered = idx <= 9408, idx <= 6705
     npz = np.load(d / "truth" / "avatar_truth.npz")
@@ -283,7 +317,8 @@ def main(argv=None) -> int:
     ap.add_argument("--map", action="store_true", help="also compare eq. (4)'s choice of mu (regions, GCV)")
     ap.add_argument("--no-time", action="store_true")
     args = ap.parse_args(argv)
-    cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()]
+    cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()
+             or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir())]
     if not BENCH.is_dir():
         print(f"{BENCH} not found: only the sample is benchmarked")
     print(f"{'case':6} {'setting':42} {'face':>6} {'whole':>6} {'other meshes':>16} {'worst shape (mm)':>26} "
