@@ -218,3 +218,32 @@ def test_the_trust_undoes_the_ridges_own_shrink():
         assert np.all(unshrunk(factor, h) <= 1.0)
     assert errors["unshrunk"] < 0.9 * errors["factor"], errors          # measured 0.85
     np.testing.assert_array_equal(unshrunk([0.3, 0.8, 0.2], [0.0, 0.5, 0.4]), [0.0, 1.0, 0.5])
+
+
+def test_the_loo_trust_reads_the_fits_error_in_the_avatar_frame(monkeypatch):
+    """The personalization reaches :func:`usdface.transfer.trust.shape_trust` in the avatar frame (the
+    registration's similarity, scale ``s``), the fit's leave-one-frame-out error in capture metres: the trust
+    must not depend on ``s`` (it compared ``s D`` with the unscaled noise: at ``s = 2`` the factor 1 - 1/2
+    read 1 - 1/8)."""
+    import types
+
+    from usdface.transfer import trust
+
+    monkeypatch.setattr(trust, "CONFIDENCE", "loo")
+    loo_m = 1e-4
+    d = np.full((1, 10, 3), np.sqrt(2.0) * loo_m)                  # |D|^2 = 6 loo^2 per vertex (capture)
+
+    class Frames:
+        weights = np.ones((1, 1))
+
+        def __len__(self):
+            return 1
+
+    capture = types.SimpleNamespace(train=Frames(), names=["jawOpen"], whole_take=None)
+    fit = types.SimpleNamespace(info={"crossval": {"loo_rmse_best_mm": loo_m * 1e3}})
+    rig = types.SimpleNamespace(names=["jawOpen"])
+    prior = np.zeros((1, 10, 3))
+    prior[0, :, 1] = 1e-2
+    for s in (0.5, 1.0, 2.0):
+        got, _, _ = trust.shape_trust(fit, capture, rig, [0], s * (prior + d), s * prior, scale=s)
+        np.testing.assert_allclose(got, [0.5], atol=1e-9)

@@ -534,7 +534,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                                    for m in avatar.meshes
                                                    if m.key != face_prim and m is not beyond and m.names}
             trust, _, _ = shape_trust(fit, capture, rig, b_idx, person_deltas,
-                                      _fit_prior(fit, names, capture, generic_on_capture, sim, prior))
+                                      _fit_prior(fit, names, capture, generic_on_capture, sim, prior),
+                                      scale=sim.scale)
             _warn_untrusted_rows(report, weights, names, k_names, trust)
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             if own_cache:
@@ -919,7 +920,7 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     f = corr.face
     b_idx = [rig.index(n) for n in names]
     prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
-    conf, excitation, weak = shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av)
+    conf, excitation, weak = shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, scale=sim.scale)
     if excitation:
         report["excitation"] = excitation
     report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}

@@ -106,7 +106,8 @@ def _moving_james_stein(deltas, prior, variance, moving) -> np.ndarray:
     return james_stein(d, np.asarray(variance, dtype=np.float64), mov.T)
 
 
-def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.ndarray, dict, np.ndarray]:
+def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
+                scale: float = 1.0) -> tuple[np.ndarray, dict, np.ndarray]:
     """Per-shape trust in the personalization, times a ramp to 0 for shapes the training frames show only
     weakly (:func:`weak_ramp`). ``CONFIDENCE = "noise"`` (default): the smaller of the shape's reliability
     (``FitResult.info["shape_reliability"]``, as the person's scale: :func:`unshrunk`) and
@@ -116,7 +117,9 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
     data rather than the prior (the hat matrix, ``FitResult.info["shape_confidence"]``, already no more than
     the reliability), capped by :func:`sensitivity_trust`; ``"loo"``: the
     positive-part James-Stein factor (:func:`usdface.transfer.implant.shape_confidence`) with the fit's
-    leave-one-frame-out error as the noise. 1 without training frames (a given rig). Returns ``(trust[J],
+    leave-one-frame-out error as the noise (capture metres; ``person_deltas``, ``prior_av`` ``[J,n,3]`` are in
+    the avatar frame, ``scale`` its metres per capture metre, the registration's similarity scale, so the
+    noise is taken times ``scale``). 1 without training frames (a given rig). Returns ``(trust[J],
     report, weak[J])``, the report saying how the excitation was measured (``{}`` for a capture), ``weak``
     the shapes the frames show too weakly (ramp below one half), as against those shown but measured no
     better than their noise."""
@@ -154,8 +157,9 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av) -> tuple[np.n
     diff = np.asarray(person_deltas) - np.asarray(prior_av)
     mag = np.maximum(np.linalg.norm(person_deltas, axis=-1), np.linalg.norm(prior_av, axis=-1))
     moving = mag > 0.1 * np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
-    # the fit reports the error per coordinate; the factor wants it per vertex (three coordinates)
-    noise = np.sqrt(3.0) * float(loo) * 1e-3
+    # the fit reports the error per coordinate; the factor wants it per vertex (three coordinates), in the
+    # frame of the personalization (the avatar's: the registration scales the capture by ``scale``)
+    noise = np.sqrt(3.0) * float(loo) * 1e-3 * float(scale)
     return shape_confidence(diff, excitation, noise, moving=moving) * ramp, info, ramp < 0.5
 
 
