@@ -347,6 +347,24 @@ def test_blend_adjacent_is_seamless_and_local():
     assert adjacent.shape == (3, n)
 
 
+def test_blend_adjacent_keeps_a_loose_vertex_a_shape_alone_moves():
+    """A vertex in no triangle (a loose point an export left in the mesh) that a shape alone moves outside
+    the face: its adjacent-region system had an all-zero diagonal, so the regularisation was 0 and the
+    factorization 'exactly singular'; it keeps A_j (nothing joins it to the face)."""
+    pts, tris = _grid(6)
+    pts = np.vstack([pts, pts.max(axis=0) + 1.0])                 # the loose vertex
+    face = np.zeros(len(pts), dtype=bool)
+    face[:18] = True
+    approx = np.zeros((1, len(pts), 3))
+    approx[0, -1, 2] = 0.01
+    dface = np.zeros_like(approx)
+    dface[0, face, 2] = 0.001
+    for falloff in (None, 0.01):
+        out, adjacent = blend_adjacent(pts, tris, face, dface, approx, falloff=falloff)
+        assert adjacent[0, -1] and adjacent[0].sum() == 1
+        np.testing.assert_array_equal(out[0, -1], approx[0, -1])
+
+
 def test_repair_eyelids_moves_penetrating_vertices_to_surface():
     rng = np.random.default_rng(4)
     d = rng.normal(size=(400, 3))

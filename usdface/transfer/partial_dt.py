@@ -157,7 +157,8 @@ def blend_adjacent(points, triangles, face, face_displacements, approximations, 
             continue
         l_ff = lap[free][:, free] + sp.diags(stiff[free])
         l_fb = lap[free][:, fidx]
-        reg = 1e-12 * float(np.abs(l_ff.diagonal()).mean())
+        # (1 where the diagonal is all 0: vertices in no triangle, which keep A_j; as FieldExtension)
+        reg = 1e-12 * float(np.abs(l_ff.diagonal()).mean() or 1.0)
         solve = spd_lu(l_ff + reg * sp.eye(free.size)).solve
         h_face = dface[js][:, fidx] - approx[js][:, fidx]  # [g,F,3]
         h_soft = (dface[js][:, free] - approx[js][:, free]) * stiff[free][None, :, None]  # [g,free,3]
