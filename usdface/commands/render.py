@@ -3,6 +3,7 @@ landmarks)."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 from ..errors import warn
@@ -239,8 +240,9 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
             others = ", ".join(layouts)
             lm = path.with_name(f"{path.stem}.landmarks.usda")
             # the layout 'usdface landmarks' writes goes into a new file: that file is the one to draw
-            write_one = (f"write a layout and draw that file: 'usdface landmarks {path} -o {lm}', then "
-                         f"'usdface render {lm} --landmarks' (or personalize with --landmarks); or add "
+            src, out = shlex.quote(str(path)), shlex.quote(str(lm))     # one word each, pasted in a shell
+            write_one = (f"write a layout and draw that file: 'usdface landmarks {src} -o {out}', then "
+                         f"'usdface render {out} --landmarks' (or personalize with --landmarks); or add "
                          "--diagnostics to compute one with the defaults")
             raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
                                 + (f" (the file has one for {others})" if others else ""), path=path,

@@ -32,6 +32,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import shlex
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -804,7 +805,7 @@ def refuse_avatar_mismatch(layer_path, what: str) -> None:
         return
     if found:
         prim, message, fix = found[0]
-        more = (f" (and {len(found) - 1} more: usdface check {Path(layer_path).name})"
+        more = (f" (and {len(found) - 1} more: usdface check {shlex.quote(str(layer_path))})"
                 if len(found) > 1 else "")
         raise RigError(f"{message}{more}; refusing to make {what} of it", path=layer_path,
                        prim=None if prim == "/" else prim, fix=fix)
