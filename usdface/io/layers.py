@@ -740,7 +740,12 @@ def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
     if avatar_stage is None or avatar_stage.GetCompositionErrors():
         return []              # (not "overrides prims the avatar no longer has": they are in the lost file)
     name = Path(root.realPath or root.identifier).name
-    fix = (f"re-run usdface personalize on the revised avatar ({asset}) with the capture, --force to "
+    from .usd_rig import _from_cwd
+
+    # the avatar by a path that opens from where the command runs (the sublayer path is the layer folder's:
+    # '../../lib/avatar.usda' from pub/v001/, no file from the project folder the re-run is typed in)
+    revised = _from_cwd(Path(avatar_layer.realPath)) if avatar_layer.realPath else asset
+    fix = (f"re-run usdface personalize on the revised avatar ({revised}) with the capture, --force to "
            f"replace {name} (or publish a new version); a layer cannot be carried over to a changed avatar")
     out = []
     for key in ("metersPerUnit", "upAxis"):
