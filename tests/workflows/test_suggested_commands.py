@@ -58,15 +58,39 @@ def test_review_of_a_plain_avatar_suggests_personalize_on_that_path(sample_set, 
     assert argv[2] == "hero assets/hero v2.usda", argv
 
 
-def test_render_landmarks_without_a_layout_suggests_commands_on_that_path(sample_set, tmp_path):
+def _layout_commands(text: str) -> tuple[list[str], list[str]]:
+    """The ``usdface landmarks ...`` and ``usdface render ... --landmarks`` a render refusal tells, split."""
+    found = re.search(r"'(usdface landmarks .*?)', then '(usdface render .*?--landmarks(?: --mesh \S+)?)'",
+                      text)
+    assert found, text
+    return shlex.split(found.group(1)), shlex.split(found.group(2))
+
+
+def test_render_landmarks_without_a_layout_tells_commands_that_run_as_written(sample_set, tmp_path):
+    """No layout in the file: both commands told, pasted whole, draw one (the render command lacked its
+    -o, which render requires)."""
     (tmp_path / "hero assets").mkdir()
     shutil.copy(sample_set / "avatar.usda", tmp_path / "hero assets" / "hero v2.usda")
     proc = run("render", "hero assets/hero v2.usda", "-o", "lm.png", "--landmarks", cwd=tmp_path, ok=False)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
-    write = _fix_command(proc.stderr.split("', then")[0] + "'", "landmarks")
+    write, draw = _layout_commands(proc.stderr)
     assert write[2] == "hero assets/hero v2.usda", write
-    layout = write[write.index("-o") + 1]
-    draw = _fix_command("'" + proc.stderr.split("', then '")[1], "render")
-    assert draw[2] == layout, (write, draw)
-    run(*write[1:], cwd=tmp_path)                 # both, pasted, draw the layout
-    run(*draw[1:], "-o", "lm.png", cwd=tmp_path)
+    assert draw[2] == write[write.index("-o") + 1], (write, draw)
+    run(*write[1:], cwd=tmp_path)
+    run(*draw[1:], cwd=tmp_path)
+    assert (tmp_path / "lm.png").stat().st_size > 0
+
+
+def test_render_landmarks_of_another_mesh_tells_commands_that_run_as_written(sample_set, tmp_path):
+    """A layout of the Mouth drawn with --mesh Head: the fix told 'usdface landmarks --mesh Head' (no file,
+    no output), which pasted stops at its missing argument. Now the two commands, pasted, draw a Head
+    layout."""
+    run("landmarks", sample_set / "avatar.usda", "--mesh", "Mouth", "-o", "lm mouth.usda", cwd=tmp_path)
+    proc = run("render", "lm mouth.usda", "-o", "head.png", "--landmarks", "--mesh", "Head", cwd=tmp_path,
+               ok=False)
+    assert proc.returncode == 2 and "the file has one for /Avatar/Mouth" in proc.stderr, proc.stderr
+    write, draw = _layout_commands(proc.stderr)
+    assert write[2] == "lm mouth.usda" and write[write.index("--mesh") + 1] == "Head", write
+    run(*write[1:], cwd=tmp_path)
+    run(*draw[1:], cwd=tmp_path)
+    assert (tmp_path / "head.png").stat().st_size > 0
