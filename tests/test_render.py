@@ -357,12 +357,14 @@ def test_render_landmarks_without_a_layout_names_the_commands_that_make_one(samp
     assert main(["render", str(avatar), "--landmarks", "-o", str(tmp_path / "l.png")]) == 2
     err = capsys.readouterr().err
     assert "no landmark layout for mesh 'Head'" in err and not (tmp_path / "l.png").exists()
-    told = re.search(r"'usdface landmarks (\S+) -o (\S+)', then 'usdface render (\S+) --landmarks'", err)
+    told = re.search(r"'usdface landmarks (\S+) -o (\S+)', then 'usdface render (\S+) -o (\S+) --landmarks'",
+                     err)
     assert told, err
     assert "--landmarks" in err.split("or personalize with", 1)[1] and "--diagnostics" in err
     assert Path(told.group(1)) == avatar and told.group(2) == told.group(3)
     assert main(["landmarks", told.group(1), "-o", told.group(2), "-q"]) == 0
-    assert main(["render", told.group(3), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    assert Path(told.group(4)) == tmp_path / "l.png"        # the picture asked for (render needs its -o)
+    assert main(["render", told.group(3), "--landmarks", "-o", told.group(4)]) == 0
     assert (tmp_path / "l.png").read_bytes()[:4] == b"\x89PNG"
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -332,7 +333,8 @@ def _rest_fix(capture, source) -> str | None:
 def _select_again(take, out_path, template, threshold, per_shape) -> str:
     """The arguments of ``capture select`` that repeat this selection (the take, its output, the template and
     the options given), for a fix that suggests other test-frame options: it said ``-o capture.usda`` and
-    dropped ``--template`` (a take without its own template then failed) whatever the run was given."""
+    dropped ``--template`` (a take without its own template then failed) whatever the run was given.
+    Shell-quoted: a path with a space (``shoot day/take.usdc``) is one word of the pasted command."""
     parts = [str(take), "-o", str(out_path) if out_path is not None else "capture.usda"]
     if template is not None:
         parts += ["--template", str(template) if isinstance(template, str | os.PathLike) else "CAPTURE"]
@@ -342,7 +344,7 @@ def _select_again(take, out_path, template, threshold, per_shape) -> str:
         parts += ["--per-shape", str(per_shape)]
     if out_path is not None:
         parts.append("--force")                      # this run writes it
-    return " ".join(parts)
+    return shlex.join(parts)         # a path with a space stays one word of the pasted command
 
 
 def _refuse_capture_as_take(path: PathLike) -> None:

@@ -524,7 +524,7 @@ def format_report(report: dict) -> str:
         if lay.get("symmetric"):
             extra += ", symmetric"
         lines.append(f"  landmark layout {prim}: {lay.get('count')} landmarks{extra}; solver "
-                     f"{lay.get('solverStatus')} ('usdface render FILE --landmarks' draws it)")
+                     f"{lay.get('solverStatus')} ('usdface render FILE -o OUT.png --landmarks' draws it)")
     for prim, sets in report.get("variants", {}).items():
         for name, v in sets.items():
             lines.append(f"  variant set {prim}:{name} = {v['selection']} (of {', '.join(v['variants'])})")

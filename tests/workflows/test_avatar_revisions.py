@@ -184,3 +184,23 @@ def test_inspect_notes_a_revised_avatar_and_a_changed_input(published, tmp_path)
     assert any("changed after it was written" in n for n in notes), notes
     proc = run("inspect", "pub/v001/person.usda", cwd=tmp_path)
     assert "note: ../../lib/avatar.usda's /Avatar/Head was re-modelled" in proc.stdout, proc.stdout
+
+
+def test_the_fix_names_the_revised_avatar_from_where_the_command_runs(published, sample_set, tmp_path):
+    """The fix named the avatar by the layer's sublayer path (``../../lib/avatar.usda``, relative to
+    ``pub/v001/``), which from the folder the command ran in is no file: the re-run it told failed with
+    'avatar not found'. Now the path opens from there, and the re-run it tells, pasted, restores the layer."""
+    import re
+    import shlex
+
+    _remodel(_project(published, tmp_path))
+    proc = run("review", "pub/v001/person.usda", "-o", "r.html", cwd=tmp_path, ok=False)
+    assert proc.returncode == 2, proc.stderr
+    found = re.search(r"re-run usdface personalize on the revised avatar \((.+?)\) with the capture",
+                      proc.stderr)
+    assert found, proc.stderr
+    avatar = shlex.split(found.group(1))[0]
+    assert (tmp_path / avatar).resolve() == (tmp_path / "lib" / "avatar.usda").resolve(), avatar
+    run("personalize", avatar, sample_set / "capture.usda", "-o", "pub/v001/person.usda", "--force", "-q",
+        cwd=tmp_path)
+    run("review", "pub/v001/person.usda", "-o", "r.html", cwd=tmp_path)

@@ -3,6 +3,7 @@ landmarks)."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 from ..errors import warn
@@ -239,13 +240,18 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
             others = ", ".join(layouts)
             lm = path.with_name(f"{path.stem}.landmarks.usda")
             # the layout 'usdface landmarks' writes goes into a new file: that file is the one to draw
-            write_one = (f"write a layout and draw that file: 'usdface landmarks {path} -o {lm}', then "
-                         f"'usdface render {lm} --landmarks' (or personalize with --landmarks); or add "
-                         "--diagnostics to compute one with the defaults")
+            src, out = shlex.quote(str(path)), shlex.quote(str(lm))     # one word each, pasted in a shell
+            # both commands whole (the mesh asked for, render's -o): 'usdface landmarks --mesh Head' and
+            # 'usdface render LM --landmarks' were told, which pasted stop at their missing arguments
+            mesh = f" --mesh {shlex.quote(args.mesh)}" if args.mesh is not None else ""
+            write = (f"'usdface landmarks {src}{mesh} -o {out}', then 'usdface render {out} -o "
+                     f"{shlex.quote(str(args.output))} --landmarks{mesh}'")
+            write_one = (f"write a layout and draw that file: {write} (or personalize with --landmarks); or "
+                         "add --diagnostics to compute one with the defaults")
             raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
                                 + (f" (the file has one for {others})" if others else ""), path=path,
-                                fix=(f"pass --mesh {next(iter(layouts))}, or run 'usdface landmarks --mesh "
-                                     f"{rig.name}' first") if others else write_one)
+                                fix=(f"pass --mesh {next(iter(layouts))}, or write a {rig.name} layout and "
+                                     f"draw that file: {write}") if others else write_one)
         p.start(f"draw {args.output.name}")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")

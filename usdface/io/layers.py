@@ -32,6 +32,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import shlex
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -739,7 +740,12 @@ def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
     if avatar_stage is None or avatar_stage.GetCompositionErrors():
         return []              # (not "overrides prims the avatar no longer has": they are in the lost file)
     name = Path(root.realPath or root.identifier).name
-    fix = (f"re-run usdface personalize on the revised avatar ({asset}) with the capture, --force to "
+    from .usd_rig import _from_cwd
+
+    # the avatar by a path that opens from where the command runs (the sublayer path is the layer folder's:
+    # '../../lib/avatar.usda' from pub/v001/, no file from the project folder the re-run is typed in)
+    revised = _from_cwd(Path(avatar_layer.realPath)) if avatar_layer.realPath else asset
+    fix = (f"re-run usdface personalize on the revised avatar ({revised}) with the capture, --force to "
            f"replace {name} (or publish a new version); a layer cannot be carried over to a changed avatar")
     out = []
     for key in ("metersPerUnit", "upAxis"):
@@ -804,7 +810,7 @@ def refuse_avatar_mismatch(layer_path, what: str) -> None:
         return
     if found:
         prim, message, fix = found[0]
-        more = (f" (and {len(found) - 1} more: usdface check {Path(layer_path).name})"
+        more = (f" (and {len(found) - 1} more: usdface check {shlex.quote(str(layer_path))})"
                 if len(found) > 1 else "")
         raise RigError(f"{message}{more}; refusing to make {what} of it", path=layer_path,
                        prim=None if prim == "/" else prim, fix=fix)

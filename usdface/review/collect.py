@@ -8,6 +8,7 @@ numpy arrays and text.
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -237,18 +238,20 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
 
     csvs = folder_files(path, "*.csv") if kind == "weights" and path.is_dir() else []
     take = csvs[0] if len(csvs) == 1 else path / "TAKE.csv" if csvs else path
+    word = shlex.quote(str(path))             # one word of the pasted command (a folder with a space)
     what, fix = {
         "capture": ("a capture, not a layer written by 'usdface personalize'",
-                    f"personalize an avatar with it ('usdface personalize AVATAR {path} -o person.usda "
-                    f"--review'), or score a layer on it ('usdface review LAYER --capture {path}')"),
+                    f"personalize an avatar with it ('usdface personalize AVATAR {word} -o person.usda "
+                    f"--review'), or score a layer on it ('usdface review LAYER --capture {word}')"),
         "take": ("a recorded take (meshes and weights), not a layer written by 'usdface personalize'",
-                 f"personalize an avatar with it ('usdface personalize AVATAR {path} -o person.usda "
-                 f"--review'), or play it on a layer ('usdface review LAYER --take {path}')"),
+                 f"personalize an avatar with it ('usdface personalize AVATAR {word} -o person.usda "
+                 f"--review'), or play it on a layer ('usdface review LAYER --take {word}')"),
         "weights": ("a take of weights only (a Live Link Face CSV or an 'anim import' SkelAnimation), not a "
                     "layer written by 'usdface personalize'",
-                    f"play it on a personalized layer: 'usdface review LAYER --take {take}'"),
+                    "play it on a personalized layer: 'usdface review LAYER --take "
+                    f"{shlex.quote(str(take))}'"),
         "avatar": ("an avatar that is not personalized (no usdfacePersonalization variant set)",
-                   f"personalize it first: 'usdface personalize {path} CAPTURE -o person.usda --review' "
+                   f"personalize it first: 'usdface personalize {word} CAPTURE -o person.usda --review' "
                    "writes the layer and its review page"),
     }[kind]
     if kind == "avatar":
