@@ -80,3 +80,18 @@ def test_the_sparse_product_adds_the_pairs_in_their_order():
     for c in range(4):
         want = np.bincount(to, weights=a * own[fr, c], minlength=rows)
         assert got[:, c].tobytes() == want.tobytes()
+
+
+def test_the_ramp_computed_in_its_input_gives_the_same_bits():
+    """``ramp_down(x, lo, hi, overwrite=True)`` (the spread's weights, computed in the pairs' distances) is
+    the plain ramp to the bit - below ``lo``, above ``hi``, at both ends and between - and is ``x`` itself."""
+    rng = np.random.default_rng(11)
+    lo, hi = 0.0075, 1.25 * 0.0075
+    ends = [0.0, lo, hi, np.nextafter(lo, 1), np.nextafter(hi, 0)]
+    x = np.concatenate([rng.uniform(0.0, 0.012, 10_000), ends])
+    for a, b in [(lo, hi), (0.0, lo)]:
+        want = ramp_down(x, a, b)
+        work = x.copy()
+        got = ramp_down(work, a, b, overwrite=True)
+        assert got is work
+        assert got.tobytes() == want.tobytes()

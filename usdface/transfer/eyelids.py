@@ -226,10 +226,13 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
             # m (w' = 1): the sums and the largest weight over the pairs within ``radius`` only
             inner = dist <= radius
             outer = ~inner
-            np.maximum.at(scale, to[outer], ramp_down(dist[outer], radius, reach) * m[outer])
+            fade = ramp_down(dist[outer], radius, reach, overwrite=True)     # (in the compressed copy)
+            fade *= m[outer]
+            np.maximum.at(scale, to[outer], fade)
             fr, to, m = fr[inner], to[inner], m[inner]
-            a = ramp_down(dist[inner], 0.0, radius) * m
-            del dist, inner, outer
+            a = ramp_down(dist[inner], 0.0, radius, overwrite=True)
+            a *= m
+            del dist, inner, outer, fade
             np.maximum.at(scale, to, m)
             np.maximum.at(top, to, a)
             # sum_p a_ip [1, c_p] in one pass over the pairs, in their order (scipy's COO product adds
