@@ -273,10 +273,22 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)
 
 
-def ramp_down(x, lo, hi):
-    """1 below ``lo``, 0 above ``hi``, smooth (C1) in between."""
-    t = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
-    return 1.0 - t * t * (3.0 - 2.0 * t)
+def ramp_down(x, lo, hi, *, overwrite: bool = False):
+    """1 below ``lo``, 0 above ``hi``, smooth (C1) in between: ``1 - t^2 (3 - 2 t)``, ``t = clip((x - lo) /
+    (hi - lo), 0, 1)``. ``overwrite``: ``x`` is a float64 array the caller does not need, computed in it
+    (the same operations in the same order, so the same bits; two temporaries instead of six)."""
+    if not (overwrite and isinstance(x, np.ndarray) and x.dtype == np.float64):
+        t = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+        return 1.0 - t * t * (3.0 - 2.0 * t)
+    t = x
+    t -= lo
+    t /= hi - lo
+    np.clip(t, 0.0, 1.0, out=t)
+    u = 2.0 * t
+    np.subtract(3.0, u, out=u)
+    t *= t
+    t *= u
+    return np.subtract(1.0, t, out=t)
 
 
 def ramp_up(x, lo, hi):

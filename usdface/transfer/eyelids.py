@@ -191,6 +191,7 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     leaves short of its bound is corrected again (:func:`repair_eyelids`). ``tree``: a ``cKDTree`` of
     ``x0[near]`` (one for every round). Cost: the pairs within 1.25 ``radius`` of the corrected vertices
     only. Returns the (shape, near vertex) pairs it moved by :data:`UNMOVED` or more, ``(js[m], ks[m])``."""
+    from scipy.sparse import coo_matrix
     from scipy.spatial import cKDTree
 
     moved_js, moved_ks = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
@@ -198,7 +199,9 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     reach = 1.25 * radius
     for j in np.unique(js):                                          # the few shapes that cut into the eye
         mine = np.flatnonzero(js == j)
-        own, m_own = correction[mine].T.copy(), size[mine]               # ([3,P]: one column at a time)
+        m_own = size[mine]
+        # [P,4]: 1 and the correction, so one product gives the weights' sum and the weighted corrections
+        own = np.column_stack([np.ones(mine.size), correction[mine]])
         # only to the vertices the shape moves, each by at most as much as the shape does
         mag = vector_lengths(out[j, near])
         still = None if mag.min() > 0 else ~(mag > 0)             # (most shapes: none still)
@@ -223,15 +226,20 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
             # m (w' = 1): the sums and the largest weight over the pairs within ``radius`` only
             inner = dist <= radius
             outer = ~inner
-            np.maximum.at(scale, to[outer], ramp_down(dist[outer], radius, reach) * m[outer])
+            fade = ramp_down(dist[outer], radius, reach, overwrite=True)     # (in the compressed copy)
+            fade *= m[outer]
+            np.maximum.at(scale, to[outer], fade)
             fr, to, m = fr[inner], to[inner], m[inner]
-            a = ramp_down(dist[inner], 0.0, radius) * m
-            del dist, inner, outer
+            a = ramp_down(dist[inner], 0.0, radius, overwrite=True)
+            a *= m
+            del dist, inner, outer, fade
             np.maximum.at(scale, to, m)
             np.maximum.at(top, to, a)
-            total += np.bincount(to, weights=a, minlength=near.size)
-            for c in range(3):
-                shift[c] += np.bincount(to, weights=a * own[c][fr], minlength=near.size)
+            # sum_p a_ip [1, c_p] in one pass over the pairs, in their order (scipy's COO product adds
+            # a_ip x own[p] to row i pair by pair: the same bits as a bincount of each column)
+            sums = coo_matrix((a, (to, fr)), shape=(near.size, mine.size)) @ own
+            total += sums[:, 0]
+            shift += sums[:, 1:].T
         v = np.flatnonzero(total > 0)
         step = shift[:, v].T * (top[v] / (scale[v] * total[v]))[:, None]
         size_v = vector_lengths(step)
