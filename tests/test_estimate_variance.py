@@ -165,18 +165,16 @@ def test_variance_is_the_dense_sandwich_at_every_reg_rank_deficient_weights_incl
             np.testing.assert_allclose(pf.estimate_variance(reg), dense, rtol=1e-7, atol=1e-12)
 
 
-def test_the_loo_trust_variant_reads_the_fits_error_per_vertex(monkeypatch):
-    """``CONFIDENCE = "loo"``: the fit reports its leave-one-frame-out error per coordinate; the James-Stein
-    factor of :func:`usdface.transfer.implant.shape_confidence` takes it per vertex (three coordinates), so a
-    personalization whose mean square per vertex is 3 x 2 x that error's square keeps 1 - 1/2 of it."""
+
+def _loo_case():
+    """A one-shape, one-frame fit whose leave-one-frame-out error is 0.1 mm per coordinate and whose
+    personalization ``d`` has 6 x its square per vertex (three coordinates): ``(fit, capture, rig, prior,
+    d)`` for :func:`usdface.transfer.trust.shape_trust` with ``CONFIDENCE = "loo"``."""
     import types
 
-    from usdface.transfer import trust
-
-    monkeypatch.setattr(trust, "CONFIDENCE", "loo")
     loo_m = 1e-4
-    d = np.zeros((1, 10, 3))
-    d[0, :, :] = np.sqrt(2.0) * loo_m                              # |D|^2 = 6 loo^2 per vertex
+    d = np.full((1, 10, 3), np.sqrt(2.0) * loo_m)                  # |D|^2 = 6 loo^2 per vertex
+
     class Frames:                                                  # one training frame, jawOpen at 1
         weights = np.ones((1, 1))
 
@@ -188,6 +186,17 @@ def test_the_loo_trust_variant_reads_the_fits_error_per_vertex(monkeypatch):
     rig = types.SimpleNamespace(names=["jawOpen"])
     prior = np.zeros((1, 10, 3))
     prior[0, :, 1] = 1e-2                                          # moves everywhere: every vertex counts
+    return fit, capture, rig, prior, d
+
+def test_the_loo_trust_variant_reads_the_fits_error_per_vertex(monkeypatch):
+    """``CONFIDENCE = "loo"``: the fit reports its leave-one-frame-out error per coordinate; the James-Stein
+    factor of :func:`usdface.transfer.implant.shape_confidence` takes it per vertex (three coordinates), so a
+    personalization whose mean square per vertex is 3 x 2 x that error's square keeps 1 - 1/2 of it."""
+
+    from usdface.transfer import trust
+
+    monkeypatch.setattr(trust, "CONFIDENCE", "loo")
+    fit, capture, rig, prior, d = _loo_case()
     trust_, _, _ = trust.shape_trust(fit, capture, rig, [0], prior + d, prior)
     np.testing.assert_allclose(trust_, [0.5], atol=1e-9)           # 1 - 3 loo^2 / 6 loo^2 (excitation 1)
 
@@ -225,25 +234,11 @@ def test_the_loo_trust_reads_the_fits_error_in_the_avatar_frame(monkeypatch):
     registration's similarity, scale ``s``), the fit's leave-one-frame-out error in capture metres: the trust
     must not depend on ``s`` (it compared ``s D`` with the unscaled noise: at ``s = 2`` the factor 1 - 1/2
     read 1 - 1/8)."""
-    import types
 
     from usdface.transfer import trust
 
     monkeypatch.setattr(trust, "CONFIDENCE", "loo")
-    loo_m = 1e-4
-    d = np.full((1, 10, 3), np.sqrt(2.0) * loo_m)                  # |D|^2 = 6 loo^2 per vertex (capture)
-
-    class Frames:
-        weights = np.ones((1, 1))
-
-        def __len__(self):
-            return 1
-
-    capture = types.SimpleNamespace(train=Frames(), names=["jawOpen"], whole_take=None)
-    fit = types.SimpleNamespace(info={"crossval": {"loo_rmse_best_mm": loo_m * 1e3}})
-    rig = types.SimpleNamespace(names=["jawOpen"])
-    prior = np.zeros((1, 10, 3))
-    prior[0, :, 1] = 1e-2
+    fit, capture, rig, prior, d = _loo_case()                      # (in the capture's metres)
     for s in (0.5, 1.0, 2.0):
         got, _, _ = trust.shape_trust(fit, capture, rig, [0], s * (prior + d), s * prior, scale=s)
         np.testing.assert_allclose(got, [0.5], atol=1e-9)
