@@ -153,7 +153,7 @@ def test_check_rules_as_a_string_are_rule_names(samples):
 
     assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames") == []
     assert api.check(samples / "avatar.usda", pixar=False, rules="ArkitNames, PointIndices") == []
-    with _pytest.raises(UsdFaceError, match=r"\['ArkitName'\]"):
+    with _pytest.raises(UsdFaceError, match=r"rule\(s\) 'ArkitName' \(did you mean ArkitNames\?\) \(fix"):
         api.check(samples / "avatar.usda", pixar=False, rules="ArkitName")
 
 

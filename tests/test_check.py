@@ -424,6 +424,17 @@ def test_cli_rules_that_name_no_rule_are_refused(samples, capsys, rules):
     assert "names no rule" in err and "ArkitNames" in err
 
 
+def test_cli_a_misspelt_rule_is_named_with_the_rule_meant(samples, capsys):
+    """``--rules ArkitName`` (the rule is ArkitNames) was refused listing all eleven rules: the user had to
+    find the one meant. A close name is said with it, case-insensitively; a name like no rule only listed."""
+    assert main(["check", str(samples / "avatar.usda"), "--rules", "ArkitName,pointindices,Foo"]) == 2
+    err = capsys.readouterr().err
+    assert "'ArkitName' (did you mean ArkitNames?)" in err
+    assert "'pointindices' (did you mean PointIndices?)" in err
+    assert "'Foo' (fix: choose from" in err                        # like no rule: only the list
+    assert "choose from" in err
+
+
 def test_cli_a_rule_named_twice_runs_once(tmp_path, capsys):
     """A user trial: ``check FILE --no-pixar --rules ArkitNames,ArkitNames`` printed every finding twice and
     counted it twice (2 warnings of a file with one)."""

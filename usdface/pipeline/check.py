@@ -158,7 +158,12 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
     if unknown:
         from ..errors import OptionError
 
-        raise OptionError(f"unknown check rule(s) {unknown}", fix=f"choose from {sorted(RULES)}")
+        # a rule misspelt (ArkitName, pointindices) is named with the one meant, as a shape name is
+        lowered = {r.lower(): r for r in RULES}
+        meant = {u: lowered[hit[0]] for u in unknown
+                 if (hit := difflib.get_close_matches(u.lower(), list(lowered), n=1, cutoff=0.8))}
+        said = ", ".join(f"{u!r} (did you mean {meant[u]}?)" if u in meant else repr(u) for u in unknown)
+        raise OptionError(f"unknown check rule(s) {said}", fix=f"choose from {sorted(RULES)}")
     issues: list[Issue] = []
     for rule_id in chosen:
         if rule_id == "Readable" and any(i.severity == ERROR and i.rule in READER_RULES for i in issues):
