@@ -520,3 +520,14 @@ def test_evaluate_rest_fix_halves_the_separation_the_capture_was_made_with(gener
     assert "made with" in message and "--min-separation 0.4 s" in message
     assert float(argv[argv.index("--min-separation") + 1]) == 0.2, message       # half, at most 0.2
     assert int(argv[argv.index("--test-every") + 1]) == 5
+
+
+def test_cli_select_names_an_avatar_given_as_the_take(samples, tmp_path, capsys):
+    """``capture select AVATAR`` was told only what the file lacks ("no mesh with time-sampled points ..."),
+    where the other commands that read a take say what it is: an avatar, not a take. Refused before any
+    output, with the kinds of take it reads."""
+    out = tmp_path / "capture.usda"
+    assert main(["capture", "select", str(samples / "avatar.usda"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "this is an avatar, not a take" in err and "Live Link Face CSV" in err
+    assert not out.exists()
