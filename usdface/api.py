@@ -254,7 +254,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     _refuse_capture_as_take(take)
     from .io.take import check_take_path
 
-    check_take_path(take)           # an avatar or a fitted rig is named as one (it was told only what it lacks)
+    check_take_path(take)           # an avatar or a fitted rig named as one (told only what it lacked)
     with steps("capture select", 2 if out_path is None else 4) as p:
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
