@@ -132,27 +132,34 @@ def _direct_matrices(W, D, reg):
     return A, L
 
 
-def _reduced_solve(W, R, T, D, reg, extra_rhs: bool, basis):
+def _reduced_solve(W, R, T, system, extra_rhs: bool):
     """The r x r systems ``(I + H_v / reg) x_v = P^T e0_v`` (and, with ``extra_rhs``, ``= P^T``) of eqs.
-    (1)+(2), ``e0 = R - W T``, in the weights' ``basis`` (:func:`weight_basis`). Returns
-    ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
-    P, s, Q = basis
-    B, inv_l, M = _reduced_matrices(s, Q, D, reg)
+    (1)+(2), ``e0 = R - W T``, in the weights' basis of ``system`` (a :class:`FitSystem` with ``basis``).
+    With the system's ``gain`` the batched inverse ``M^-1`` is kept in it and applied (the weights' leak
+    reuses it), else one batched LU solve. Returns ``(P, B, inv_l, e0, X)`` with ``X[n,r,c(+F)]``."""
+    P, s, _ = system.basis
+    B, inv_l, M = system.B, system.inv_l, system.M
     e0 = R - blend(W, T)                                                             # [F,n,c]
     F, n, c = e0.shape
     r = len(s)
     rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
     if extra_rhs:
         rhs = np.concatenate([rhs, np.broadcast_to(P.T, (n, r, F))], axis=2)
-    X = np.linalg.solve(M, rhs) if r else rhs
+    if not r:
+        X = rhs
+    elif system.gain:
+        system.inverse = np.linalg.inv(M)               # M^-1, kept for the leak (weight_leak_variance)
+        X = np.matmul(system.inverse, rhs)
+    else:
+        X = np.linalg.solve(M, rhs)
     return P, B, inv_l, e0, X
 
 
-def _direct_system(W, R, T, D, reg, extra):
-    """The K x K systems ``A_v = W^T W + reg L_v`` of eqs. (1)+(2) with right-hand sides
-    ``W^T r_v + reg L_v t_v`` (and ``W^T`` with ``extra``), solved in one batched LAPACK call:
-    ``[n,K,c(+F)]``."""
-    A, L = _direct_matrices(W, D, reg)
+def _direct_system(W, R, T, system, extra):
+    """The K x K systems ``A_v = W^T W + reg L_v`` of eqs. (1)+(2) (those of ``system``, a
+    :class:`FitSystem` without ``basis``) with right-hand sides ``W^T r_v + reg L_v t_v`` (and ``W^T`` with
+    ``extra``), solved in one batched LAPACK call: ``[n,K,c(+F)]``."""
+    A, L = system.A, system.L
     n, K = L.shape
     rhs = project(W, R) + L[:, :, None] * T.transpose(1, 0, 2)                      # [n,K,c]
     if extra:
@@ -216,28 +223,14 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     T = np.asarray(generic_deltas, dtype=np.float64)
     sys_ = FitSystem(W, reg_weights, reg) if system is None else system
     if sys_.basis is None:
-        # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal)
-        n, K = sys_.L.shape
-        rhs = project(W, R) + sys_.L[:, :, None] * T.transpose(1, 0, 2)                  # [n,K,c]
-        if not sys_.gain:
-            return np.linalg.solve(sys_.A, rhs).transpose(1, 0, 2)
-        c = rhs.shape[2]
-        X = np.linalg.solve(sys_.A, np.concatenate([rhs, np.broadcast_to(W.T, (n, K, len(W)))], axis=2))
-        sys_.G = X[:, :, c:]                                                             # A^-1 W^T
+        # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal);
+        # with the gain, A^-1 W^T as extra right-hand sides of the same solve
+        c = R.shape[2]
+        X = _direct_system(W, R, T, sys_, sys_.gain)
+        if sys_.gain:
+            sys_.G = X[:, :, c:]                                                         # A^-1 W^T
         return X[:, :, :c].transpose(1, 0, 2)
-    P, s, _ = sys_.basis
-    B, inv_l, M = sys_.B, sys_.inv_l, sys_.M
-    e0 = R - blend(W, T)                                                             # [F,n,c]
-    F, n, c = e0.shape
-    r = len(s)
-    rhs = (P.T @ e0.reshape(F, -1)).reshape(r, n, c).transpose(1, 0, 2)              # [n,r,c]
-    if not r:
-        X = rhs
-    elif sys_.gain:
-        sys_.inverse = np.linalg.inv(M)                  # M^-1, kept for the leak (weight_leak_variance)
-        X = np.matmul(sys_.inverse, rhs)
-    else:
-        X = np.linalg.solve(M, rhs)
+    _, B, inv_l, _, X = _reduced_solve(W, R, T, sys_, False)
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
@@ -348,9 +341,9 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
     T = np.asarray(generic_deltas, dtype=np.float64)
     c = R.shape[2]
     Pw = None if predict_weights is None else np.asarray(predict_weights, dtype=np.float64)
-    basis = _reduced_basis(W)
-    if basis is None:                                        # the K x K systems: b_v and G_v = A_v^-1 W^T
-        X = _direct_system(W, R, T, reg_weights, reg, True)
+    system = FitSystem(W, reg_weights, reg)
+    if system.basis is None:                                 # the K x K systems: b_v and G_v = A_v^-1 W^T
+        X = _direct_system(W, R, T, system, True)
         b, G = X[:, :, :c], X[:, :, c:]
         e = (R - _left(W, b).transpose(1, 0, 2)) / np.maximum(1.0 - np.einsum("fk,nkf->fn", W, G),
                                                               1e-9)[:, :, None]
@@ -358,7 +351,7 @@ def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, 
             return e
         cross = np.einsum("fk,nkf->fn", Pw, G)
         return R - _left(Pw, b).transpose(1, 0, 2) + cross[:, :, None] * e
-    P, B, inv_l, e0, X = _reduced_solve(W, R, T, reg_weights, reg, True, basis)
+    P, B, inv_l, e0, X = _reduced_solve(W, R, T, system, True)
     x, G = X[:, :, :c], X[:, :, c:]                                                  # [n,r,c], [n,r,F]
     Pte0 = _left(P.T, e0.transpose(1, 0, 2))                                         # [n,r,c]
     resid = e0 - _left(P, Pte0 - x).transpose(1, 0, 2)                               # [F,n,c]
