@@ -251,10 +251,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                                fix=f"pass {name}={max(low, 1)}{hint}")
     if out_path is not None:
         check_capture_output(out_path, force, inputs=[take, template])
-    _refuse_capture_as_take(take)
-    from .io.take import check_take_path
-
-    check_take_path(take)           # an avatar or a fitted rig named as one (told only what it lacked)
+    _check_select_take(take)
     with steps("capture select", 2 if out_path is None else 4) as p:
         p.start(f"read take {Path(take).name}")
         data = read_take(take)
@@ -350,15 +347,16 @@ def _select_again(take, out_path, template, threshold, per_shape) -> str:
     return shlex.join(parts)         # a path with a space stays one word of the pasted command
 
 
-def _refuse_capture_as_take(path: PathLike) -> None:
-    """``capture select`` picks frames from a take; a capture (a folder with ``train/``, a USD capture) holds
-    frames already picked - read as a take its test frames would become training frames. Refused naming
-    what it is and what reads it (:func:`usdface.io.take.refuse_capture_as_take`)."""
-    from .io.take import refuse_capture_as_take
+def _check_select_take(path: PathLike) -> None:
+    """What ``capture select`` reads must be a take (:func:`usdface.io.take.check_take_path`, one look at
+    the file): a capture (a folder with ``train/``, a USD capture) holds frames already picked - read as a
+    take its test frames would become training frames - and is refused naming what it is and what reads it;
+    an avatar or a fitted rig is named as one (it was told only what it lacks)."""
+    from .io.take import check_take_path
 
-    refuse_capture_as_take(path, "use it as it is (usdface fit / personalize AVATAR CAPTURE); capture select "
-                                 "reads a take: a USD take ('anim import', a time-sampled mesh) or an "
-                                 "OBJ-sequence folder with its Live Link CSV")
+    check_take_path(path, capture_fix="use it as it is (usdface fit / personalize AVATAR CAPTURE); capture "
+                                      "select reads a take: a USD take ('anim import', a time-sampled mesh) "
+                                      "or an OBJ-sequence folder with its Live Link CSV")
 
 
 def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: float | None = None,

@@ -443,21 +443,21 @@ TAKE_FIX = ("give a take: a Live Link Face CSV, a USD take ('usdface anim import
             "its weights) or an OBJ-sequence folder with its CSV")
 
 
-def check_take_path(path, fix: str = TAKE_FIX) -> Path:
+def check_take_path(path, fix: str = TAKE_FIX, *, capture_fix: str = TAKE_NOT_CAPTURE_FIX) -> Path:
     """What :func:`read_take` refuses about the kind of ``path`` without reading its frames (``usdface batch``
     and the Pyblish validators check a take before the first item / extractor; an avatar given as the take
     failed only at the item): a missing path, a capture (:func:`refuse_capture_as_take`), a folder with no
     OBJ frames and no CSV, a CSV without a Live Link ``Timecode`` header or frames, a file neither CSV nor
     USD, and a USD file with no time-sampled mesh and no per-frame weights (an avatar, a fitted rig: named
-    as such). Raises :class:`usdface.errors.InputFileError` / ``CaptureError`` naming the path and ``fix``;
-    returns it as a Path."""
+    as such). Raises :class:`usdface.errors.InputFileError` / ``CaptureError`` naming the path and ``fix``
+    (``capture_fix`` for a capture: what the caller reads instead); returns it as a Path."""
     from .file_kind import Kind, file_kind
 
     p = Path(path)
     found = file_kind(p)                       # held: the stage below parses the file once
     if found.kind is Kind.MISSING:
         raise InputFileError("take not found", path=p, fix=fix)
-    _refuse_capture(found, TAKE_NOT_CAPTURE_FIX)
+    _refuse_capture(found, capture_fix)
     if found.kind in (Kind.CAPTURE_FOLDER, Kind.FOLDER):
         raise InputFileError("not a take: a folder with no frames/ folder and no Live Link CSV", path=p,
                              fix=fix)
