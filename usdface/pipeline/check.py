@@ -159,9 +159,7 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         from ..errors import OptionError
 
         # a rule misspelt (ArkitName, pointindices) is named with the one meant, as a shape name is
-        lowered = {r.lower(): r for r in RULES}
-        meant = {u: lowered[hit[0]] for u in unknown
-                 if (hit := difflib.get_close_matches(u.lower(), list(lowered), n=1, cutoff=0.8))}
+        meant = {u: hit for u in unknown if (hit := _closest(u, RULES, 0.8))}
         said = ", ".join(f"{u!r} (did you mean {meant[u]}?)" if u in meant else repr(u) for u in unknown)
         raise OptionError(f"unknown check rule(s) {said}", fix=f"choose from {sorted(RULES)}")
     issues: list[Issue] = []
@@ -384,10 +382,16 @@ def _inbetweens(stage) -> Iterable[Issue]:
 GROUP_AFTER = 3
 
 
-def _close_arkit(name: str) -> str | None:
-    lowered = {n.lower(): n for n in ARKIT_NAMES}
-    hit = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.85)
+def _closest(name: str, choices: Iterable[str], cutoff: float) -> str | None:
+    """The one of ``choices`` ``name`` is most likely a misspelling of (case-insensitive, difflib ratio at
+    least ``cutoff``), or None."""
+    lowered = {n.lower(): n for n in choices}
+    hit = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=cutoff)
     return lowered[hit[0]] if hit else None
+
+
+def _close_arkit(name: str) -> str | None:
+    return _closest(name, ARKIT_NAMES, 0.85)
 
 
 @_rule("ArkitNames", "ARKit names canonical, unique per mesh, complete per skeleton (tongueOut optional)")
