@@ -138,6 +138,39 @@ def test_an_unchanged_or_resculpted_avatar_is_no_avatar_match_error(published, t
     assert [i["rule"] for i in issues] == ["Provenance"] and "changed after" in issues[0]["message"], issues
 
 
+def _resculpt(avatar) -> None:
+    """The avatar's jawOpen re-sculpted (30% wider): same prims, channels, topology and units."""
+    from pxr import Gf, Sdf, Vt
+
+    layer = Sdf.Layer.FindOrOpen(str(avatar))
+    offsets = layer.GetAttributeAtPath("/Avatar/Head/jawOpen.offsets")
+    offsets.default = Vt.Vec3fArray([Gf.Vec3f(v) * 1.3 for v in offsets.default])
+    layer.Save()
+
+
+@pytest.mark.parametrize("where", [".", "pub", "pub/v001"])
+def test_check_names_a_changed_input_as_it_opens_from_where_check_runs(published, tmp_path, where):
+    """check's Provenance warning named the changed avatar by the path the layer records, relative to the
+    layer's folder ('input '../../lib/avatar.usda' changed'), which from the project folder is no file
+    (review's and export's warning name the file itself). Now it names the file as it opens from where check
+    runs, one shell word, as the avatar-revised fix does."""
+    import shlex
+
+    _resculpt(_project(published, tmp_path))
+    cwd = tmp_path / where
+    layer = (tmp_path / "pub" / "v001" / "person.usda").relative_to(cwd)
+    proc = run("check", layer, "--json", cwd=cwd)
+    (issue,) = json.loads(proc.stdout)["issues"]
+    assert issue["rule"] == "Provenance" and issue["severity"] == "warning", issue
+    named = issue["message"].removeprefix("input ").split(" changed after this layer was written")[0]
+    assert named != issue["message"], issue
+    assert (cwd / shlex.split(named)[0]).resolve() == (tmp_path / "lib" / "avatar.usda").resolve(), named
+    assert named == {".": "lib/avatar.usda", "pub": "../lib/avatar.usda"}.get(
+        where, str(tmp_path / "lib" / "avatar.usda")), named      # two folders up: absolute
+    text = run("check", layer, cwd=cwd).stdout
+    assert f"input {named} changed after this layer was written" in text, text
+
+
 @pytest.mark.parametrize("revision", list(REVISIONS))
 def test_export_refuses_a_layer_its_revised_avatar_no_longer_fits(published, tmp_path, revision):
     """Exported, such a layer was a generic face (its overrides on a renamed mesh), or offsets on shifted

@@ -566,6 +566,8 @@ def _provenance_base(prim) -> Path | None:
 def _provenance(stage) -> Iterable[Issue]:
     from pxr import Usd
 
+    from ..io.usd_rig import _from_cwd
+
     prov_prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
                   if "UsdFaceProvenanceAPI" in p.GetAppliedSchemas()
                   or p.GetAttribute("usdface:provenance:version").HasAuthoredValue()]
@@ -652,8 +654,10 @@ def _provenance(stage) -> Iterable[Issue]:
                 continue
             now = _digest(file)
             if now is not None and now != digest:
+                # named as it opens from where the command runs (as review's and export's warning and the
+                # avatar-revised fix name it), not by the path recorded relative to the layer's folder
                 yield Issue(WARNING, "Provenance", path,
-                            f"input {given!r} changed after this layer was written (sha256 differs)",
+                            f"input {_from_cwd(file)} changed after this layer was written (sha256 differs)",
                             "re-run usdface personalize on the current inputs")
 
 
