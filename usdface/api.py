@@ -1564,6 +1564,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         from .io.usd_open import require_file
 
         require_file(layer_path, "layer", "check the path (a .usd/.usda/.usdc file)")
+    _refuse_export_input(layer_path, gltf=gltf, obj_dir=obj_dir, flatten=flatten, variant=variant)
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path],
                           example=f"{Path(layer_path).stem}.glb")            # newdir/: a file inside it
@@ -1583,6 +1584,49 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
         _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
     return done
+
+
+def _refuse_export_input(layer_path, **outputs) -> None:
+    """A personalize input given to ``export`` where its layer goes (a capture file or folder, a take, a
+    weights take, an error-map file): say what it is, that export takes a layer written by ``usdface
+    personalize`` (or an avatar), and the two commands to run (personalize with it, then this export of the
+    layer), each path one shell word. The avatar reader's own refusal told export's user the fix of
+    personalize's ('personalize: AVATAR, then CAPTURE'), and ``--flatten`` of a capture wrote the capture
+    flattened, as 'a plain avatar'."""
+    import shlex
+
+    from .errors import RigError
+    from .io.file_kind import Kind, file_kind
+    from .io.usd_rig import non_avatar_input
+
+    path = Path(layer_path)
+    if path.is_dir():
+        kind = file_kind(path).kind
+        if kind is not Kind.CAPTURE_FOLDER and not (kind is Kind.TAKE_FOLDER and file_kind(path).meshes):
+            return                                  # another folder: the reader says it is one
+        found = (Kind.CAPTURE if kind is Kind.CAPTURE_FOLDER else Kind.TAKE,
+                 f"a {kind} ('usdface personalize' reads it with the avatar), not an avatar", None)
+    else:
+        found = non_avatar_input(path)
+    if found is None:
+        return
+    kind, what, prim = found
+    word = shlex.quote(str(path))
+    personalize = {
+        Kind.CAPTURE: f"usdface personalize AVATAR {word} -o person.usda",
+        Kind.TAKE: f"usdface personalize AVATAR {word} -o person.usda",
+        Kind.WEIGHTS_TAKE: f"usdface personalize AVATAR CAPTURE --take {word} -o person.usda",
+    }.get(kind)
+    options = [f"--{name.replace('_', '-')} {shlex.quote(str(out))}" for name, out in outputs.items()
+               if out and name != "variant"]
+    if outputs.get("variant") == "generic":
+        options.append("--variant generic")
+    export = " ".join(["usdface export person.usda", *options])
+    what = what.removesuffix("not an avatar") + "not a layer written by 'usdface personalize' (nor an avatar)"
+    fix = (f"export takes the layer personalize writes: run '{personalize}' first, then '{export}'"
+           if personalize else f"open it in usdview to look at the errors; export takes a layer written by "
+                               f"'usdface personalize' (or an avatar): '{export}'")
+    raise RigError(f"this is {what}", path=path, prim=prim, fix=fix)
 
 
 def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,

@@ -94,3 +94,31 @@ def test_render_landmarks_of_another_mesh_tells_commands_that_run_as_written(sam
     run(*write[1:], cwd=tmp_path)
     run(*draw[1:], cwd=tmp_path)
     assert (tmp_path / "head.png").stat().st_size > 0
+
+
+def test_export_of_a_capture_tells_its_own_fix_which_runs_as_written(sample_set, tmp_path):
+    """``export CAPTURE`` (a capture where the personalized layer goes) was told the avatar reader's shared
+    fix, "personalize: AVATAR, then CAPTURE", which says nothing of export; ``--flatten`` wrote the capture
+    flattened as "a plain avatar". Now export says what the file is, that it takes the layer personalize
+    writes, and the two commands to run: pasted (AVATAR filled in), they write the outputs asked for."""
+    (tmp_path / "shoot day").mkdir()
+    shutil.copy(sample_set / "capture.usda", tmp_path / "shoot day" / "anna cap.usda")
+    shutil.copy(sample_set / "avatar.usda", tmp_path / "hero.usda")
+    for given in ("shoot day/anna cap.usda", sample_set / "capture"):      # a capture file, a capture folder
+        proc = run("export", given, "--gltf", "out dir/anna.glb", "--flatten", "anna flat.usdc", cwd=tmp_path,
+                   ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "not a layer written by 'usdface personalize'" in proc.stderr, proc.stderr
+        assert "personalize: AVATAR, then CAPTURE" not in proc.stderr, proc.stderr
+        assert not (tmp_path / "out dir").exists() and not (tmp_path / "anna flat.usdc").exists()
+    found = re.search(r"run '(usdface personalize .*)' first, then '(usdface export .*)'\)$",
+                      proc.stderr.strip())
+    assert found, proc.stderr
+    personalize, export = map(shlex.split, found.groups())
+    assert personalize[2:4] == ["AVATAR", str(sample_set / "capture")], personalize
+    personalize[2] = "hero.usda"
+    run(*personalize[1:], "-q", "--method", "dt", cwd=tmp_path)
+    assert export[1:] == ["export", "person.usda", "--gltf", "out dir/anna.glb", "--flatten",
+                          "anna flat.usdc"], export
+    run(*export[1:], cwd=tmp_path)
+    assert (tmp_path / "out dir" / "anna.glb").is_file() and (tmp_path / "anna flat.usdc").is_file()

@@ -552,6 +552,22 @@ def refuse_recorded_non_avatar(path) -> None:
         raise RigError(f"this is {what}", path=path, prim=f"/{root}" if root else None, fix=fix)
 
 
+def non_avatar_input(path) -> tuple[Kind, str, str | None] | None:
+    """``(kind, what it is, its root prim or None)`` when ``path`` is a file the avatar reader refuses as no
+    avatar (:data:`_NOT_AVATAR`, told as :func:`_refuse_non_avatar` tells it), for a command that says so
+    with its own fix before any work (``export``); None for anything else (an avatar, a usdface layer, a
+    file the readers judge). Reads the root layer; composes only a USD file its root layer leaves open."""
+    from .file_kind import NOT_AVATAR, file_kind
+
+    found = file_kind(path)
+    if found.kind is Kind.USD and found.by == "nothing" or found.by == "layer specs":
+        found = file_kind(path, compose=True)
+    if found.kind not in NOT_AVATAR or found.by in ("layer specs", "schema"):
+        return None
+    root = found.layer.defaultPrim if found.layer is not None else ""
+    return found.kind, _NOT_AVATAR[found.kind][0], f"/{root}" if root else None
+
+
 def _refuse_non_avatar(stage, path: Path) -> None:
     """A capture, take, weights-only take or error-map file passed where an avatar is expected
     (:func:`usdface.io.file_kind.file_kind` on the composed stage): say what the file is (a capture's template
