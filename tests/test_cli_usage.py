@@ -165,3 +165,63 @@ def test_an_empty_argument_is_a_usage_error(tmp_path, monkeypatch, capfd, argv):
     assert exc.value.code == 2 and len(err.splitlines()) == 1, err
     assert "empty" in err and "unset variable" in err, err
     assert list(work.iterdir()) == []
+
+
+def _commands_as_typed() -> list[list[str]]:
+    """Every command and action of the parser (``["personalize"]``, ``["capture", "import"]``, ...)."""
+    import argparse
+
+    from usdface.cli import build_parser
+
+    def walk(parser, words):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            return [words]
+        return [w for name, p in subs[0].choices.items() for w in walk(p, words + [name])]
+
+    return walk(build_parser(), [])
+
+
+@pytest.mark.parametrize("command", _commands_as_typed(), ids=" ".join)
+def test_an_unknown_option_is_said_before_missing_arguments(command, tmp_path, monkeypatch, capsys):
+    """``usdface personalize --hlep`` said 'the following arguments are required: avatar, capture' (argparse
+    checks the required arguments inside the parse, the unknown ones after it): the misspelt flag, the
+    mistake, went unsaid. Now every command and action says the unknown option first, with the option it
+    most looks like, one line, exit status 2, as argparse."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main([*command, "--hlep"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    name = " ".join(command)
+    said = f"usdface {name}: error: unrecognized arguments: --hlep (did you mean --help?)"
+    assert err.startswith(said), err
+    assert "required" not in err and f"see 'usdface {name} --help'" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_missing_arguments_are_still_said_without_an_unknown_option(capsys):
+    """Without an unknown option, argparse's own message stands (and a value that only looks like an
+    option, a negative number, is not called unknown)."""
+    for argv, said in ((["personalize"], "the following arguments are required: avatar, capture"),
+                       (["personalize", "a.usda"], "the following arguments are required: capture"),
+                       (["render", "a.usda", "-1"], "the following arguments are required: -o/--output"),
+                       (["capture"], "the following arguments are required: ACTION")):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 2 and said in capsys.readouterr().err, argv
+
+
+def test_an_unknown_option_is_said_first_by_the_program_and_in_json(tmp_path):
+    """As a user runs it: the ``usdface`` program, and ``--json``'s error document."""
+    import json
+
+    proc = _usdface("personalize", "--hlep", cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip() == ("usdface personalize: error: unrecognized arguments: --hlep (did you mean "
+                                   "--help?) (see 'usdface personalize --help')"), proc.stderr
+    proc = _usdface("personalize", "--hlep", "--forse", "--json", cwd=tmp_path)
+    doc = json.loads(proc.stdout)["error"]
+    assert proc.returncode == 2 and doc["type"] == "UsageError", proc.stdout
+    assert doc["message"] == ("unrecognized arguments: --hlep --forse (--hlep: did you mean --help?; "
+                              "--forse: did you mean --force?)"), doc

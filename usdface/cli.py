@@ -43,12 +43,76 @@ def parsed_argv() -> list[str]:
     return getattr(_PARSED, "argv", [])
 
 
+class _Probe(Exception):
+    """An error of :meth:`_Parser._unknown_first`'s second parse (its answer is then the first error)."""
+
+
+#: The usage errors argparse reports before the arguments it does not know (checked inside the parse, the
+#: unknown ones only after it): :meth:`_Parser._unknown_first` reorders them.
+_MISSING = ("the following arguments are required", "one of the arguments ")
+
+
 class _Parser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors are one line (with a pointer to ``--help``), exit status 2; with
     ``--json`` (a command that prints JSON) also ``{"ok": false, "error": {...}}`` on stdout; with no command
-    (``usdface`` alone) the usage line before it."""
+    (``usdface`` alone) the usage line before it. An unknown option is said before missing arguments
+    (:meth:`_unknown_first`), with the option it most looks like (:meth:`unrecognized`)."""
+
+    def __init__(self, *args, **kwargs):
+        if sys.version_info >= (3, 14):     # argparse's own "did you mean" for a misspelt command (3.14+)
+            kwargs.setdefault("suggest_on_error", True)
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):
+        # the arguments this (sub-)command's parser was given: _unknown_first parses them again
+        self._given = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def unrecognized(self, extras: list[str]) -> str:
+        """argparse's ``unrecognized arguments: ...``, with the option each unknown one most looks like
+        (``--hlep``: ``did you mean --help?``; argparse of Python 3.11 offers none for options)."""
+        import difflib
+
+        options = [t.split("=", 1)[0] for t in extras if self._unknown_option(t)]
+        hints = [(option, close[0]) for option in options
+                 for close in [difflib.get_close_matches(option, list(self._option_string_actions), n=1)]
+                 if close]
+        said = ("; ".join(f"{o}: did you mean {c}?" for o, c in hints) if len(options) > 1 else
+                f"did you mean {hints[0][1]}?" if hints else "")
+        return "unrecognized arguments: " + " ".join(extras) + (f" ({said})" if said else "")
+
+    def _unknown_option(self, token: str) -> bool:
+        return (len(token) > 1 and token[0] in self.prefix_chars and token != "--"
+                and not self._negative_number_matcher.match(token))
+
+    def _unknown_first(self, message: str) -> str:
+        """``message``, or the unknown options of this parser's arguments when argparse was about to say
+        that required ones are missing: it checks those inside the parse and the unknown ones after it, so
+        ``personalize --hlep`` was told 'the following arguments are required: avatar, capture' where the
+        flag was the mistake. The arguments are parsed once more with nothing required (argparse is still
+        the parser; this only orders its errors)."""
+        given = getattr(self, "_given", None)
+        if not message.startswith(_MISSING) or given is None or getattr(self, "_probing", False):
+            return message
+        required = [a for a in self._actions if a.required]
+        groups = [g for g in self._mutually_exclusive_groups if g.required]
+        self._probing = True
+        try:
+            for item in required + groups:
+                item.required = False
+            _, extras = argparse.ArgumentParser.parse_known_args(self, given, None)
+        except (_Probe, SystemExit):
+            return message
+        finally:
+            self._probing = False
+            for item in required + groups:
+                item.required = True
+        return self.unrecognized(extras) if any(map(self._unknown_option, extras)) else message
 
     def error(self, message):
+        if getattr(self, "_probing", False):
+            raise _Probe(message)
+        message = self._unknown_first(message)
         argv = parsed_argv()
         command = next((a for a in argv if not a.startswith("-")), None)
         if "--json" in argv and command in JSON_FLAG_COMMANDS:
@@ -351,8 +415,8 @@ def _main(argv=None, program: bool = False) -> int:
     _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
-        (_subparser(parser, args) or parser).error(
-            "unrecognized arguments: " + " ".join(extra))
+        named = _subparser(parser, args) or parser
+        named.error(named.unrecognized(extra))
     empty = _empty_argument(_PARSED.argv)
     if empty is not None:
         (_subparser(parser, args) or parser).error(empty)
