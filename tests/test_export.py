@@ -203,13 +203,88 @@ def test_obj_dir_holds_one_full_target_per_shape(layer, tmp_path):
 
 
 def test_flatten_to_another_format_names_the_flattened_file(layer, tmp_path):
-    """``--flatten f.usdz`` is refused before any work naming what it is (it said 'output layer', as for a
+    """``--flatten f.abc`` is refused before any work naming what it is (it said 'output layer', as for a
     personalize layer), with a USD extension to use instead."""
     from usdface.errors import InputFileError
 
-    with pytest.raises(InputFileError, match="flattened USD file must end in .usda") as err:
-        api.export_avatar(layer, flatten=tmp_path / "f.usdz")
-    assert err.value.fix == "name it e.g. f.usda" and not (tmp_path / "f.usdz").exists()
+    with pytest.raises(InputFileError, match="flattened USD file must end in .usda or .usdc or .usd or "
+                                             ".usdz") as err:
+        api.export_avatar(layer, flatten=tmp_path / "f.abc")
+    assert err.value.fix == "name it e.g. f.usda" and not (tmp_path / "f.abc").exists()
+
+
+def _composed_values(path) -> dict:
+    """{attribute path: value as authored on the composed stage (arrays as numpy)} of every prim of the
+    stage ``path`` opens, and its root layer's customLayerData."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path))
+    out = {"customLayerData": dict(stage.GetRootLayer().customLayerData)}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        out[str(prim.GetPath())] = str(prim.GetTypeName())
+        for attr in prim.GetAuthoredAttributes():
+            value = attr.Get()
+            out[str(attr.GetPath())] = np.asarray(value) if hasattr(value, "__len__") and not isinstance(
+                value, str) else value
+    return out
+
+
+def test_flatten_packages_a_usdz_that_composes_exactly_as_the_usdc(layer, tmp_path, monkeypatch):
+    """A ``.usdz`` flattened export (it was refused: 'must end in .usda', a USD name to use instead) is
+    packaged by USD itself (``UsdUtils.CreateNewUsdzPackage``: one ``<stem>.usdc`` inside), atomically and
+    refused over an existing file without --force, as the other outputs. Opened with ``Usd.Stage.Open`` it
+    composes exactly what the ``.usdc`` export composes: every prim, every attribute (the personalized
+    offsets, pointIndices, points), the record of what it is; check passes it and personalize refuses it as
+    a personalized avatar, as the ``.usdc``."""
+    import zipfile
+
+    from pxr import Usd, UsdSkel
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", str(layer), "--flatten", "f.usdc", "-q"]) == 0
+    assert main(["export", str(layer), "--flatten", "f.usdz", "-q"]) == 0
+    assert zipfile.ZipFile(tmp_path / "f.usdz").namelist() == ["f.usdc"]
+    flat, packed = _composed_values(tmp_path / "f.usdc"), _composed_values(tmp_path / "f.usdz")
+    assert flat.keys() == packed.keys()
+    for key, value in flat.items():
+        same = np.array_equal(value, packed[key]) if isinstance(value, np.ndarray) else value == packed[key]
+        assert same, key
+    stage = Usd.Stage.Open(str(tmp_path / "f.usdz"))
+    shapes = [UsdSkel.BlendShape(p) for p in stage.Traverse() if p.IsA(UsdSkel.BlendShape)]
+    assert len(shapes) > 50 and all(np.asarray(s.GetOffsetsAttr().Get()).size for s in shapes)
+    got = api.read_avatar(tmp_path / "f.usdz").mesh("Head")
+    expect = read_avatar_variant(layer, "personalized").mesh("Head")
+    assert got.names == expect.names
+    np.testing.assert_array_equal(got.deltas, expect.deltas)        # the person's shapes, exactly
+    before = (tmp_path / "f.usdz").read_bytes()
+    assert main(["export", str(layer), "--flatten", "f.usdz", "-q"]) == 2          # exists: --force
+    assert (tmp_path / "f.usdz").read_bytes() == before
+    assert main(["export", str(layer), "--flatten", "f.usdz", "-q", "--force"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.usdc", "f.usdz"]      # no temporary left
+    assert main(["check", "f.usdz"]) == 0
+    assert main(["personalize", "f.usdz", str(C), "-o", "q.usda", "-q"]) == 2
+    assert not (tmp_path / "q.usda").exists()
+
+
+@pytest.mark.parametrize("command", ["personalize", "landmarks"])
+def test_a_usdz_layer_over_the_avatar_is_refused_with_why_and_the_export_that_packages_it(
+        command, tmp_path, capfd, monkeypatch):
+    """``personalize -o p.usdz`` was told only to use a USD name. A layer over the avatar stays refused as a
+    .usdz (it sublayers the avatar by its path; a package holds its files inside it), now saying why, and
+    the fix names the layer to write and the export that packages the result."""
+    import shlex
+
+    monkeypatch.chdir(tmp_path)
+    argv = [command, str(A), *([str(C)] if command == "personalize" else []), "-o", "my p.usdz", "-q"]
+    assert main(argv) == 2
+    err = capfd.readouterr().err
+    assert "cannot be a .usdz package: the layer sublayers the avatar by its path" in err, err
+    assert "run 'usdface export 'my p.usda' --flatten 'my p.usdz'' after it" in err, err
+    assert list(tmp_path.iterdir()) == []
+    if command == "personalize":            # the fix, pasted: the layer, then its packaged export
+        assert main([command, str(A), str(C), "-o", "my p.usda", "-q", "--method", "dt"]) == 0
+        assert main(shlex.split("export 'my p.usda' --flatten 'my p.usdz' -q")) == 0
+        assert api.read_avatar(tmp_path / "my p.usdz").mesh("Head").deltas.shape[0] > 50
 
 
 @pytest.mark.parametrize("variant", ["personalized", "generic"])

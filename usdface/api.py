@@ -1529,7 +1529,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
       joints (see :mod:`usdface.io.gltf`);
     * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
       ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``);
-    * ``flatten``: one flattened USD file with the variant baked in
+    * ``flatten``: one flattened USD file with the variant baked in (``.usdz``: packaged by USD)
       (:func:`usdface.io.flatten.flatten_variant`).
 
     Every output is checked before any work (an existing one needs ``force``) and written atomically, and
@@ -1572,7 +1572,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         check_output_dir(obj_dir, force, inputs=[layer_path])
     if flatten:
         check_output_path(flatten, force, inputs=[layer_path], what="flattened USD file",
-                          example=f"{Path(layer_path).stem}.usdc")
+                          example=f"{Path(layer_path).stem}.usdc", usdz=True)
     from .io.layers import refuse_avatar_mismatch, stale_inputs
 
     # a layer its revised avatar no longer fits (overrides on nothing, offsets on shifted vertices) is

@@ -18,7 +18,8 @@ def register(subparsers) -> None:
                    help="glTF file to write (.glb binary, or .gltf with embedded data)")
     p.add_argument("--obj-dir", metavar="DIR",
                    help="folder to write: <mesh>/neutral.obj + <mesh>/<shape>.obj")
-    p.add_argument("--flatten", metavar="OUT", help="flattened USD file to write (.usdc/.usda/.usd)")
+    p.add_argument("--flatten", metavar="OUT",
+                   help="flattened USD file to write (.usdc/.usda/.usd, or .usdz: packaged by USD)")
     p.add_argument("--variant", choices=("personalized", "generic"), default="personalized",
                    help="which usdfacePersonalization variant to export (default: personalized)")
     p.add_argument("--no-skin", action="store_true", help="glTF without the skeleton and skin")

@@ -103,7 +103,7 @@ def write_rig_usd(rigs, path, *, up_axis: str = "Y", meters_per_unit: float = 0.
 
     from .layers import atomic_save, check_output_path
 
-    path = check_output_path(path, force)
+    path = check_output_path(path, force, over_avatar=False)       # an avatar of its own, no layer over one
     rigs = [rigs] if isinstance(rigs, FaceRig) else list(rigs)
     if not rigs:
         raise RigError("nothing to write: no meshes", path=path, fix="pass at least one FaceRig")

@@ -133,15 +133,16 @@ def read_avatar_variant(path, variant: str = "personalized") -> Avatar:
 
 def flatten_variant(path, out_path, variant: str = "personalized", *, force: bool = False) -> Path:
     """Write ``path`` composed with ``variant`` selected as ONE flattened USD file (``.usda``/``.usdc``/
-    ``.usd``): every sublayer and reference resolved into it, the variant selection baked in. Returns the
-    path written (atomically; an existing file needs ``force``). The input is never modified."""
+    ``.usd``, or a ``.usdz`` package of it: :func:`usdface.io.layers.atomic_save_usdz`): every sublayer and
+    reference resolved into it, the variant selection baked in. Returns the path written (atomically; an
+    existing file needs ``force``). The input is never modified."""
     from pxr import Vt
 
-    from .layers import atomic_save
+    from .layers import atomic_save, atomic_save_usdz
 
     _check_variant(variant)
     src = Path(path).absolute()
-    out = check_output_path(out_path, force, inputs=[src]).absolute()
+    out = check_output_path(out_path, force, inputs=[src], what="flattened USD file", usdz=True).absolute()
     stage = variant_stage(src, variant)
     targets = _shape_redirections(stage)
     flat = stage.Flatten()
@@ -166,6 +167,8 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     if data["usdfaceFlatten"]["variant"] == "personalized":
         _mark_personalized(flat, stage)
     _rebase_provenance_attributes(flat, src, out)
+    if out.suffix.lower() == ".usdz":           # one self-contained file: packaged by USD (recorded paths
+        return atomic_save_usdz(flat, out, force)   # are relative to the package's folder, as for a .usdc)
     return atomic_save(flat, out, force)
 
 

@@ -105,16 +105,44 @@ class DigestsAhead:
         return self._found.get(str(path))
 
 
+#: What a self-contained output (``export --flatten``) may be written as: a layer, or a ``.usdz`` package
+#: of it (:func:`atomic_save_usdz`).
+PACKAGE_EXTENSIONS = (*LAYER_EXTENSIONS, ".usdz")
+
+
 def check_output_path(path, force: bool = False, inputs=(), what: str = "output layer",
-                      example: str | None = None) -> Path:
-    """Validate an output layer path before any work: a USD extension, not a directory (nor under a file),
-    not one of the existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
+                      example: str | None = None, usdz: bool = False, over_avatar: bool = True) -> Path:
+    """Validate an output layer path before any work: a USD extension (``.usdz`` too with ``usdz``: a
+    self-contained output, :func:`atomic_save_usdz`), not a directory (nor under a file), not one of the
+    existing ``inputs``, and not an existing file unless ``force``. Raises InputFileError /
     OutputExistsError naming the file as ``what`` (a folder's fix names ``example`` inside it); returns the
-    path as a Path."""
+    path as a Path. A ``.usdz`` output layer (``over_avatar``: a layer written over an avatar) is refused
+    with the reason (:func:`_refuse_usdz_layer`)."""
     from .atomic import check_output_file
 
-    return check_output_file(path, force, suffixes=LAYER_EXTENSIONS, what=what, inputs=inputs,
-                             example=example)
+    if not usdz and over_avatar and what == "output layer":
+        _refuse_usdz_layer(path)
+    return check_output_file(path, force, suffixes=PACKAGE_EXTENSIONS if usdz else LAYER_EXTENSIONS,
+                             what=what, inputs=inputs, example=example)
+
+
+def _refuse_usdz_layer(path) -> None:
+    """A ``.usdz`` given as the layer written over an avatar (``personalize -o``, ``landmarks -o``): a layer
+    sublayers the avatar by its path and holds only overrides, where a package holds its layers and every
+    file they use inside it (``UsdUtils.CreateNewUsdzPackage`` would copy the avatar in): the result would
+    be no layer over the avatar, and would not follow its revisions. The fix: the layer, then its flattened
+    export packaged as the ``.usdz`` asked for."""
+    raw = os.fspath(path) if isinstance(path, str | os.PathLike) else str(path)
+    p = Path(raw)
+    if p.suffix.lower() != ".usdz" or raw.endswith(("/", os.sep)) or p.is_dir():
+        return                                      # a folder named x.usdz: check_output_file says so
+    layer = shlex.quote(str(p.with_suffix(".usda")))
+    raise InputFileError(
+        "output layer cannot be a .usdz package: the layer sublayers the avatar by its path and holds only "
+        "the overrides, while a .usdz holds its layers and every file they use inside it (USD would package "
+        "the avatar in: no longer a layer over the avatar, nor following its revisions)", path=path,
+        fix=f"write the layer as {layer}; for one self-contained .usdz of the result, run 'usdface export "
+            f"{layer} --flatten {shlex.quote(raw)}' after it")
 
 
 def _temp_path(path: Path) -> Path:
@@ -160,6 +188,48 @@ def atomic_save(layer, path, force: bool = False) -> Path:
             tmp.unlink()
         if not done:
             remove_made(made)     # a failure leaves no folder it made behind either
+    cached = Sdf.Layer.Find(str(path))
+    if cached is not None:
+        cached.Reload(force=True)
+    return path
+
+
+def atomic_save_usdz(layer, path, force: bool = False) -> Path:
+    """Write ``layer`` as the ``.usdz`` package ``path``, packaged by USD itself
+    (``UsdUtils.CreateNewUsdzPackage``: the layer as ``<stem>.usdc`` inside, with every file its asset paths
+    name, e.g. textures), atomically as :func:`atomic_save`: the layer exported to a hidden temporary
+    ``.usdc`` beside ``path`` (its relative asset paths resolve as from ``path``'s folder), packaged to a
+    hidden temporary ``.usdz`` beside it, then published (exclusive unless ``force``); the temporaries are
+    removed whatever happens. For a self-contained layer (a flattened export): a layer that sublayers or
+    references files would be packaged with them, no longer over them."""
+    from pxr import Sdf, UsdUtils
+
+    from .atomic import make_parents, publish, remove_made, temp_sibling
+
+    path = Path(path).absolute()
+    inner = package = None
+    made: list[Path] = []
+    done = False
+    try:
+        made = make_parents(path)
+        inner = temp_sibling(path.with_suffix(".usdc"), create=False)
+        package = temp_sibling(path, create=False)
+        if not _usd_call(layer.Export, str(inner)):
+            raise InputFileError("USD could not write the layer to package", path=path,
+                                 fix="check the folder is writable and the disk has space")
+        if not _usd_call(UsdUtils.CreateNewUsdzPackage, Sdf.AssetPath(str(inner)), str(package),
+                         f"{path.stem}.usdc"):
+            raise InputFileError("USD could not package the layer as .usdz", path=path,
+                                 fix="check the folder is writable and the disk has space; or write a "
+                                     ".usdc instead")
+        publish(package, path, force)
+        done = True
+    finally:
+        for tmp in (inner, package):
+            if tmp is not None and tmp.exists():
+                tmp.unlink()
+        if not done:
+            remove_made(made)
     cached = Sdf.Layer.Find(str(path))
     if cached is not None:
         cached.Reload(force=True)
