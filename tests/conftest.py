@@ -10,6 +10,10 @@ import pytest
 # as the usdface program does for itself (usdface.cli._program_environment, docs/scale.md): numpy's
 # transparent-huge-page madvise stalls in memory compaction on this machine class; read when numpy is imported
 os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+# a step's plain progress line appears once it has run 2 s (usdface.progress.delay): on a loaded machine (the
+# suite on every core beside other work) a render's draw crossed that, and a test of a one-line error saw two
+# lines; the tests of the progress itself set their own delay
+os.environ.setdefault("USDFACE_PROGRESS_DELAY", "3600")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))
