@@ -225,3 +225,28 @@ def test_an_unknown_option_is_said_first_by_the_program_and_in_json(tmp_path):
     assert proc.returncode == 2 and doc["type"] == "UsageError", proc.stdout
     assert doc["message"] == ("unrecognized arguments: --hlep --forse (--hlep: did you mean --help?; "
                               "--forse: did you mean --force?)"), doc
+
+
+@pytest.mark.parametrize("argv, close", [
+    (["personalise", "a.usda", "b.usda"], "'personalize'"),       # the British spelling, a command
+    (["capture", "improt", "x"], "'import'"),                     # an action
+    (["fit", "c.usda", "--method", "menzle"], "'menzel'"),        # an option's choices
+])
+def test_a_misspelt_choice_is_told_the_one_it_looks_like(argv, close, tmp_path, monkeypatch, capsys):
+    """A user trial: ``usdface personalise`` was told the fourteen commands and not which one it meant
+    (argparse before 3.14 lists the choices, with no "did you mean"); nothing is read or written."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "invalid choice" in err, err
+    assert f"did you mean {close}?" in err and err.count("did you mean") == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_choice_like_none_gets_no_guess(capsys):
+    """A value like no choice is refused with the choices alone (no guess that would mislead)."""
+    with pytest.raises(SystemExit):
+        main(["xyzzy"])
+    err = capsys.readouterr().err
+    assert "invalid choice: 'xyzzy'" in err and "did you mean" not in err, err

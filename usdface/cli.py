@@ -81,6 +81,25 @@ class _Parser(argparse.ArgumentParser):
                 f"did you mean {hints[0][1]}?" if hints else "")
         return "unrecognized arguments: " + " ".join(extras) + (f" ({said})" if said else "")
 
+    def _closest_choice(self, message: str) -> str:
+        """``message``, with the choice a misspelt one most looks like when argparse refused a value that
+        is not among an argument's choices (``usdface personalise``: ``did you mean 'personalize'?``;
+        ``capture improt``, ``fit --method menzle``): argparse of Python 3.11-3.13 lists the choices but
+        says none is close, and 3.14 says it itself (``maybe you meant``)."""
+        import difflib
+        import re
+
+        hit = re.match(r"argument (?P<name>.+?): invalid choice: '(?P<value>[^']*)'", message)
+        if hit is None or "maybe you meant" in message:
+            return message
+        for action in self._actions:
+            names = {"/".join(action.option_strings), action.metavar, action.dest}
+            choices = [c for c in (action.choices or ()) if isinstance(c, str)]
+            if hit["name"] in names and choices:
+                close = difflib.get_close_matches(hit["value"], choices, n=1)
+                return f"{message}; did you mean '{close[0]}'?" if close else message
+        return message
+
     def _unknown_option(self, token: str) -> bool:
         return (len(token) > 1 and token[0] in self.prefix_chars and token != "--"
                 and not self._negative_number_matcher.match(token))
@@ -112,7 +131,7 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         if getattr(self, "_probing", False):
             raise _Probe(message)
-        message = self._unknown_first(message)
+        message = self._closest_choice(self._unknown_first(message))
         argv = parsed_argv()
         command = next((a for a in argv if not a.startswith("-")), None)
         if "--json" in argv and command in JSON_FLAG_COMMANDS:
