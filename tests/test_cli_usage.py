@@ -250,3 +250,20 @@ def test_a_choice_like_none_gets_no_guess(capsys):
         main(["xyzzy"])
     err = capsys.readouterr().err
     assert "invalid choice: 'xyzzy'" in err and "did you mean" not in err, err
+
+
+def test_an_unknown_option_before_the_command_is_said_first(tmp_path, monkeypatch, capsys):
+    """``usdface --hlep personalize`` was told the command's missing arguments (argparse sets an unknown
+    option of ``usdface`` aside and parses on); usdface's own options and their abbreviations still work."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["--hlep", "personalize"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.strip() == (
+        "usdface: error: unrecognized arguments: --hlep (did you mean --help?) (see 'usdface --help')"), err
+    assert main(["--deb", "check", str(A), "-q"]) == 0           # --debug, abbreviated as argparse allows
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version", "check"])
+    assert exit_.value.code == 0 and "usdface" in capsys.readouterr().out
+    assert list(tmp_path.iterdir()) == []

@@ -429,9 +429,25 @@ def _empty_argument(argv: list[str]) -> str | None:
     return None
 
 
+def _unknown_before_the_command(parser: _Parser, argv: list[str]) -> None:
+    """Refuse an option before the command that ``usdface`` itself does not take (``usdface --hlep
+    personalize``): argparse sets it aside and parses on, so the command's parser said its required
+    arguments were missing. usdface's own options take no value, so what precedes the first plain word is
+    options only; one is known when it is an option of ``parser`` or a unique prefix of one (argparse's
+    abbreviations: ``--deb``)."""
+    for token in argv:
+        if not parser._unknown_option(token):
+            return
+        name = token.split("=", 1)[0]
+        if len([o for o in parser._option_string_actions if o.startswith(name)]) != 1 and \
+                name not in parser._option_string_actions:
+            parser.error(parser.unrecognized([token]))
+
+
 def _main(argv=None, program: bool = False) -> int:
     parser = build_parser()
     _PARSED.argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    _unknown_before_the_command(parser, _PARSED.argv)
     args, extra = parser.parse_known_args(argv)
     if extra:          # the sub-command's parser reports them, so the error line names the command
         named = _subparser(parser, args) or parser
