@@ -434,7 +434,10 @@ def _unknown_before_the_command(parser: _Parser, argv: list[str]) -> None:
     personalize``): argparse sets it aside and parses on, so the command's parser said its required
     arguments were missing. usdface's own options take no value, so what precedes the first plain word is
     options only; one is known when it is an option of ``parser`` or a unique prefix of one (argparse's
-    abbreviations: ``--deb``)."""
+    abbreviations: ``--deb``). A parser of another class (a host's or a test's ``build_parser``) is left to
+    argparse."""
+    if not isinstance(parser, _Parser):
+        return
     for token in argv:
         if not parser._unknown_option(token):
             return
