@@ -1601,8 +1601,9 @@ def _refuse_export_input(layer_path, **outputs) -> None:
 
     path = Path(layer_path)
     if path.is_dir():
-        kind = file_kind(path).kind
-        if kind is not Kind.CAPTURE_FOLDER and not (kind is Kind.TAKE_FOLDER and file_kind(path).meshes):
+        folder = file_kind(path)                    # one look at the folder
+        kind = folder.kind
+        if kind is not Kind.CAPTURE_FOLDER and not (kind is Kind.TAKE_FOLDER and folder.meshes):
             return                                  # another folder: the reader says it is one
         found = (Kind.CAPTURE if kind is Kind.CAPTURE_FOLDER else Kind.TAKE,
                  f"a {kind} ('usdface personalize' reads it with the avatar), not an avatar", None)
