@@ -404,6 +404,50 @@ def slow_writing_worker(item: dict) -> None:
         time.sleep(30)
 
 
+def twice_stopped_writing_worker(item: dict) -> None:
+    """Starts the atomic write of ``output``, is sent SIGTERM, and is sent SIGTERM again while the write's
+    clean-up runs (as the last thing before the temporary file is removed)."""
+    import os
+    import pathlib
+    import signal
+    import time
+
+    from usdface.io.atomic import atomic_file
+
+    unlink = pathlib.Path.unlink
+
+    def unlink_after_another_sigterm(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return unlink(self, *args, **kwargs)
+
+    pathlib.Path.unlink = unlink_after_another_sigterm
+    with atomic_file(item["output"]) as tmp:
+        Path(tmp).write_text("half")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+
+
+def test_a_second_sigterm_during_the_clean_up_still_removes_the_temporary_file(tmp_path):
+    """A pool worker can be sent SIGTERM more than once: ``PR_SET_PDEATHSIG`` fires each time the worker's
+    parent *thread* exits, and a SIGKILLed batch's threads exit one by one (seen: the SIGKILL test below
+    failed once in six parallel CI runs, one worker's ``.b.usda.*.tmp.usda`` left). The second signal raised
+    again inside the write's clean-up, before the temporary file was removed. Only the first one stops the
+    item now; the worker still ends with 143."""
+    import subprocess
+    import sys
+
+    tests = Path(__file__).resolve().parent
+    (tmp_path / "out").mkdir()
+    item = {"index": 1, "avatar": "a.usda", "capture": "c", "output": str(tmp_path / "out" / "a.usda")}
+    code = ("from usdface.pipeline import batch\nimport test_batch\n"
+            "batch._stop_cleanly_on_signals()\n"
+            f"batch._pool_item(test_batch.twice_stopped_writing_worker, {item!r})\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 143, proc.stderr
+    assert list((tmp_path / "out").iterdir()) == []
+
+
 @pytest.mark.parametrize("kill", ["SIGTERM", "SIGKILL"])
 def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
     """The pool's workers had no SIGTERM handling: a batch stopped (SIGTERM to the parent, which ends its

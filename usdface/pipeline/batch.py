@@ -619,6 +619,8 @@ class _WorkerStopped(KeyboardInterrupt):
 
 #: Whether this pool worker process is inside an item now (:func:`_pool_item`).
 _IN_ITEM = threading.Event()
+#: Whether this pool worker process has been told to stop (:func:`_stop_cleanly_on_signals`).
+_STOPPING = threading.Event()
 
 
 def _stop_cleanly_on_signals() -> None:
@@ -628,11 +630,19 @@ def _stop_cleanly_on_signals() -> None:
     an item was writing left the write's hidden temporary file in the output folder
     (``out/.anna.usda.t5_8lor8.tmp.usda``). Inside an item the signal raises :class:`_WorkerStopped`, whose
     way out runs the writers' clean-up (:func:`_pool_item` then ends the process); between items there is
-    nothing to clean up and the process ends at once. A signal ignored at start stays ignored."""
+    nothing to clean up and the process ends at once. A signal ignored at start stays ignored.
+
+    Only the first signal stops the item: a worker can be signalled more than once (``PR_SET_PDEATHSIG`` fires
+    each time the worker's parent *thread* exits, and a killed batch's threads exit one by one, each passing
+    the worker on to the next; or a farm sends SIGTERM twice), and a second raise inside the clean-up skipped
+    it, leaving the temporary file. Later signals are ignored while the clean-up runs."""
     import signal
 
     def stop(signum, frame):
+        if _STOPPING.is_set():       # already stopping: let the clean-up finish, then the process ends
+            return
         if _IN_ITEM.is_set():
+            _STOPPING.set()
             raise _WorkerStopped()
         os._exit(128 + signum)
 
