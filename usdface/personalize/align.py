@@ -139,13 +139,18 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     vertices = np.asarray(vertices)
-    src = P[:, vertices] if vertices.dtype == bool else np.take(P, vertices, axis=1)   # take: 2x cheaper
-    dst = np.broadcast_to(ref[..., vertices, :], src.shape)
+    if vertices.dtype == bool:
+        vertices = np.flatnonzero(vertices)
+    if groups:                            # the distinct frames known: gather only theirs (the same numbers)
+        ref = ref[groups[0]] if ref.ndim == 3 and len(ref) == len(P) else ref
+        P = P[groups[0]]
+    src = np.take(P, vertices, axis=1)                              # take: 2x cheaper than fancy indexing
+    dst = np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
     if groups is None:
         groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+        if groups is not None:
+            src, dst = src[groups[0]], dst[groups[0]]
     groups = groups or None
-    if groups is not None:
-        src, dst = src[groups[0]], dst[groups[0]]
     R, t = _robust_kabsch(src, dst, robust, iterations)
     return (R, t) if groups is None else (R[groups[1]], t[groups[1]])
 

@@ -104,7 +104,7 @@ def check_capture(capture: Capture) -> list[str]:
                        path=src, fix="the frames' blendshape weights are missing or zero: export them with "
                        "the scans (weights.json / the take's weight channels)")
     warn = []
-    swapped = refuse_swapped_sides(capture)
+    swapped = refuse_swapped_sides(capture, train=train)
     if swapped is not None:
         warn.append(_swapped_message(swapped, capture) + " (fix: turn the app's mirroring off and export "
                     "again, or exchange the Left/Right weight names)")
@@ -151,12 +151,13 @@ def _swapped_message(swapped: dict, capture: Capture) -> str:
             "motion")
 
 
-def refuse_swapped_sides(capture: Capture) -> dict | None:
+def refuse_swapped_sides(capture: Capture, *, train=None) -> dict | None:
     """:func:`swapped_sides` on the capture's training frames: refused (:class:`FitError`) when the
     exchanged labels are proven (:data:`SIDES_PROVEN_FRAMES`, :data:`SIDES_PROVEN_RATIO`: a user trial's
     mirrored take was personalized 2.85x further from the person than generic, jawLeft 5.7 mm worse, after a
-    warning); the weaker finding is returned for a warning, None when the sides look right."""
-    train = capture.train
+    warning); the weaker finding is returned for a warning, None when the sides look right. ``train``: the
+    capture's training frames if the caller has them (``capture.train`` copies them)."""
+    train = capture.train if train is None else train
     if len(train) == 0:
         return None
     found = swapped_sides(train.points, capture.neutral, capture.template.deltas, train.weights,

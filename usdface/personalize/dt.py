@@ -122,9 +122,12 @@ class PoissonSolver:
         u = self.area[:, None, None] * np.einsum("tij,tkj->tki", inverse_rest_frames(source, tri), self.C)
         e1, e2, e3 = frame_vectors(np.ascontiguousarray(P.transpose(1, 0, 2)), tri, axis=0)   # [t,m,3]
         contrib = np.empty((3, t, m, 3))
-        for k in range(3):
-            contrib[k] = (e1 * u[:, k, 0, None, None] + e2 * u[:, k, 1, None, None]
-                          + e3 * u[:, k, 2, None, None])
+        term = np.empty((t, m, 3))
+        for k in range(3):                # e1 u_k0 + e2 u_k1 + e3 u_k2, summed in that order, in place
+            c = contrib[k]
+            np.multiply(e1, u[:, k, 0, None, None], out=c)
+            c += np.multiply(e2, u[:, k, 1, None, None], out=term)
+            c += np.multiply(e3, u[:, k, 2, None, None], out=term)
         if self._scatter is None:      # [n, 3t]: contribution (k, f) goes to vertex tri[f, k]
             self._scatter = sp.csr_matrix((np.ones(3 * t), (tri.T.ravel(), np.arange(3 * t))),
                                           shape=(n, 3 * t))

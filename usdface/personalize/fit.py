@@ -451,7 +451,7 @@ class PositionFit:
         if previous is not None and np.array_equal(previous, first):
             return                                                      # Z's rows of the same frames
         self._Zu = _take1(self.Z, first)                                   # [n,U,r]
-        self._Z2u = None if self._Z2 is None else _take1(self._Z2, first)
+        self._Z2u = None if self._Z2 is None else self._Zu ** 2          # = Z^2's rows, squared once
 
     def frame_groups(self):
         """``(first[U], inverse[F])``: the training frames that are one frame, the same weights and points to
@@ -476,6 +476,14 @@ class PositionFit:
         self.c = self.cR - cT                                                # V^T P^T (r - W t)  [n,r,c]
         self.e0 = self.R - WT                                                # r - W t  [F,n,c]
         self.e0n = np.ascontiguousarray(self.e0.transpose(1, 0, 2))          # the same, [n,F,c]
+        self._e0nu = None                                                    # its distinct frames' rows
+
+    def _e0n_distinct(self) -> np.ndarray:
+        """``e0n`` on the distinct frames only (:meth:`_set_frame_groups`), ``[n,U,c]``: gathered once per
+        prior and frames (every criterion of the searches asked for it again)."""
+        if self._e0nu is None:
+            self._e0nu = _take1(self.e0n, self._first)
+        return self._e0nu
 
     def set_prior_mix(self, alpha: float) -> None:
         """Use the prior ``alpha * generic_deltas + (1 - alpha) * alt_deltas`` (eq. 2's T_j) from now on."""
@@ -642,7 +650,7 @@ class PositionFit:
             g = mu / (mu + reg)
             fitted = np.matmul((self._Zu if distinct else self.Z)[v], g[:, :, None] * c)     # [n,F,c]
             h = np.matmul(self._z2(v, distinct), g[:, :, None])[:, :, 0]             # [n,F]
-            e0n = _take1(self.e0n[v], self._first) if distinct else self.e0n[v]
+            e0n = (self._e0n_distinct() if distinct else self.e0n)[v]
             e = (e0n - fitted) / np.maximum(1.0 - h, 1e-9)[:, :, None]
             e = (_take1(e, self._inverse) if distinct else e).transpose(1, 0, 2)
             if vertices is None:
@@ -660,12 +668,16 @@ class PositionFit:
         LBV = self.inv_l[v][:, :, None] * self.BV[v]                                  # L^-1 B V  [n,K,r]
         b = _take1(self.T, v) + np.matmul(LBV, c * inv[:, :, None]).transpose(1, 0, 2)    # the fit, [K,n,c]
         pred = blend(P2, b)                                                           # p_i^T b  [SF,n,c]
-        # A^-1 w_i [n,K,F]: once per distinct frame (the same rows of Z, :meth:`_set_frame_groups`), copied
+        # A^-1 w_i: once per distinct frame (the same rows of Z, :meth:`_set_frame_groups`), then copied;
+        # frame-major and contiguous ([F,K,n], the frames' copies whole blocks), so that the per-frame
+        # products p_i^T A^-1 w_i are plain BLAS calls (the strided [n,K,F] view took 4x as long; the same
+        # numbers)
         distinct = self._first is not None
         Aw = np.matmul(LBV * inv[:, None, :], np.swapaxes((self._Zu if distinct else self.Z)[v], 1, 2))
+        Aw = np.ascontiguousarray(Aw.transpose(2, 1, 0))                                  # [U or F,K,n]
         if distinct:
-            Aw = np.take(Aw, self._inverse, axis=2)
-        cross = np.matmul(P2.reshape(S, F, K).transpose(1, 0, 2), Aw.transpose(2, 1, 0))  # p_i^T A^-1 w_i
+            Aw = np.take(Aw, self._inverse, axis=0)
+        cross = np.matmul(np.ascontiguousarray(P2.reshape(S, F, K).transpose(1, 0, 2)), Aw)   # [F,S,n]
         out = _take1(self.R, v) - pred.reshape((S, F) + pred.shape[1:])
         out += cross.transpose(1, 0, 2)[..., None] * e
         return out if Pw.ndim == 3 else out[0]
@@ -676,7 +688,7 @@ class PositionFit:
         k = self.c.shape[2]
         per_frame = 0.0
         distinct = self._first is not None
-        e0n = _take1(self.e0n, self._first) if distinct else self.e0n
+        e0n = self._e0n_distinct() if distinct else self.e0n
         for v in self._loo_blocks(regs, k):
             d, q = self._loo_parts(regs, self.c, e0n, v, distinct)
             if self.block > 1:

@@ -18,6 +18,8 @@ are re-estimated; the peak frame fixes the scale they are measured in.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .align import distinct_frames
@@ -101,7 +103,7 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
         x_new += c
         np.maximum(x_new, lo, out=x_new)                                        # = np.clip, cheaper
         np.minimum(x_new, hi, out=x_new)
-        t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
+        t_new = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * tk * tk))               # a Python float
         np.subtract(x_new, x, out=y)                                            # y = x_new + m (x_new - x)
         y *= (tk - 1.0) / t_new
         y += x_new
