@@ -250,3 +250,113 @@ def test_an_empty_output_path_is_refused_not_the_current_folder(tmp_path, monkey
     with pytest.raises(OptionError, match="out_path is an empty string"):
         usdface.personalize_avatar("a.usda", "c.usda", "")
     assert list(tmp_path.iterdir()) == []
+
+
+def _flag_calls(out: Path, layer: Path):
+    """(call, argument) pairs: each documented API function's boolean arguments given as the string ``"no"``
+    (a config file's or an environment variable's spelling), which Python counts as true."""
+    from usdface import api
+
+    take = ROOT / "tests" / "does-not-matter.csv"
+    return [
+        (lambda: api.personalize_avatar(A, C, out / "p.usda", force="no"), "force"),
+        (lambda: api.personalize_avatar(A, C, out / "p.usda", inspect="no"), "inspect"),
+        (lambda: api.personalize_avatar(A, C, out / "p.usda", landmarks="no"), "landmarks"),
+        (lambda: api.personalize_avatar(A, C, out / "p.usda", dry_run="no"), "dry_run"),
+        (lambda: api.write_retarget_map(A, C, out / "m.json", force="no"), "force"),
+        (lambda: api.fit_capture(C, out_path=out / "r.usda", force="no"), "force"),
+        (lambda: api.import_capture_folder(C, out / "c.usda", force="no"), "force"),
+        (lambda: api.import_capture_folder(C, out / "c.usda", exact="no"), "exact"),
+        (lambda: api.write_capture(api.read_capture(C), out / "c.usda", exact="no"), "exact"),
+        (lambda: api.select_capture_frames(take, out / "c.usda", force="no"), "force"),
+        (lambda: api.import_livelink_take(take, out / "t.usda", force="no"), "force"),
+        (lambda: api.evaluate_methods(C, "dt", json_path=out / "e.json", force="no"), "force"),
+        (lambda: api.personalize_batch(out / "m.csv", force="no"), "force"),
+        (lambda: api.check(A, pixar="no"), "pixar"),
+        (lambda: api.write_review(layer, out / "r.html", fit_errors="no"), "fit_errors"),
+        (lambda: api.write_review(layer, out / "r.html", force="no"), "force"),
+        (lambda: api.export_avatar(layer, gltf=out / "x.glb", skin="no"), "skin"),
+        (lambda: api.export_avatar(layer, gltf=out / "x.glb", force="no"), "force"),
+    ]
+
+
+def test_boolean_arguments_given_as_strings_are_refused_before_any_work(tmp_path):
+    """A user trial: ``force="no"`` counted as true and replaced an existing layer, ``skin="no"`` exported the
+    skin, ``pixar="no"`` ran Pixar's validators, ``inspect="no"`` wrote the inspection data (the landmark
+    functions' booleans were already refused so). Each is an OptionError naming the function, the argument
+    and the fix, and nothing is written or replaced."""
+    layer = tmp_path / "existing.usda"
+    layer.write_text("#usda 1.0\n")             # an existing output a truthy "no" would have replaced
+    for index, (call, name) in enumerate(_flag_calls(tmp_path, layer)):
+        with pytest.raises(OptionError, match=rf"bad {name} 'no': \w+'s? {name} is a boolean") as err:
+            call()
+        assert err.value.fix == f"pass {name}=True or {name}=False", index
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing.usda"]
+    assert layer.read_text() == "#usda 1.0\n"
+
+
+def test_an_existing_layer_is_not_replaced_by_force_no(tmp_path):
+    """The case that mattered: ``personalize_avatar(..., force="no")`` over an existing output replaced it."""
+    from usdface import api
+
+    out = tmp_path / "person.usda"
+    out.write_text("#usda 1.0\n# the studio's published layer\n")
+    with pytest.raises(OptionError, match="personalize_avatar's force is a boolean"):
+        api.personalize_avatar(A, C, out, force="no")
+    assert out.read_text() == "#usda 1.0\n# the studio's published layer\n"
+
+
+@pytest.mark.parametrize("value", [-1, "1000", 2.5, True])
+def test_write_review_refuses_a_max_vertices_the_cli_refuses(personalized_sample, tmp_path, value):
+    """``max_vertices=-1`` and ``"1000"`` were taken without a word (``--max-vertices -1`` is refused)."""
+    from usdface import api
+
+    with pytest.raises(OptionError, match=r"bad max_vertices .*whole number >= 0 or None") as err:
+        api.write_review(personalized_sample, tmp_path / "r.html", max_vertices=value)
+    assert "--max-vertices" in err.value.fix and not (tmp_path / "r.html").exists()
+
+
+@pytest.mark.parametrize("radius", [-1, "x", float("nan"), True])
+def test_compute_landmarks_refuses_a_radius_that_is_no_length(samples, radius):
+    """``radius=-1`` and ``radius="x"`` were taken without a word (``--radius -1`` is refused)."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+
+    with pytest.raises(LandmarkError, match="multi-cover radius .* is not a length >= 0 in metres") as err:
+        api.compute_landmarks(samples / "avatar.usda", radius=radius, multicover=2)
+    assert "--radius" in err.value.fix
+
+
+def test_compute_landmarks_takes_the_radii_it_documents(samples):
+    from usdface import api
+
+    rig = api.pick_mesh(api.read_avatar(samples / "avatar.usda"))
+    for radius in (0, 0.01, None, np.float32(0.02)):
+        assert len(api.compute_landmarks(rig, radius=radius, multicover=2).vertices) > 0
+
+
+def test_write_landmarks_refuses_a_rig_or_layout_of_another_mesh(samples, tmp_path):
+    """A user trial: ``write_landmarks(avatar, other_avatar.mesh("Head"), layout, out)`` with the bench's
+    ``/Avatar/Head`` over the sample's (same prim path, 14,062 vertices against 3,780) died with numpy's
+    ``IndexError: index 4164 is out of bounds`` while the layer was being authored. Now a RigError naming
+    the avatar, the prim and the fix, before anything is written."""
+    from usdface import api
+    from usdface.errors import RigError
+    from usdface.model import FaceRig
+
+    avatar = api.read_avatar(samples / "avatar.usda")
+    head, mouth = avatar.mesh("Head"), avatar.mesh("Mouth")
+    layout = api.compute_landmarks(head)
+    keep = np.all(head.triangles < 1000, axis=1)       # another avatar's head at the same prim path
+    foreign = FaceRig(head.neutral[:1000], head.triangles[keep], head.names, head.deltas[:, :1000], {},
+                      head.source, head.name)
+    out = tmp_path / "lm.usda"
+    with pytest.raises(RigError, match=r"prim /Avatar/Head: the rig has 1000 vertices, the avatar's mesh "
+                                       r"3780: not this avatar's mesh") as err:
+        api.write_landmarks(avatar, foreign, layout, out)
+    assert "compute_landmarks(pick_mesh(avatar))" in err.value.fix
+    with pytest.raises(RigError, match=r"prim /Avatar/Mouth: the layout's vertex indices reach \d+, the mesh "
+                                       r"has 164 vertices"):
+        api.write_landmarks(avatar, mouth, layout, out)     # the Head's layout on the Mouth
+    assert not out.exists()
+    assert api.write_landmarks(avatar, head, layout, out) == out    # the right pair is written

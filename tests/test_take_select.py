@@ -531,3 +531,27 @@ def test_cli_select_names_an_avatar_given_as_the_take(samples, tmp_path, capsys)
     err = capsys.readouterr().err
     assert "this is an avatar, not a take" in err and "Live Link Face CSV" in err
     assert not out.exists()
+
+
+def test_cli_select_names_a_template_of_another_mesh(generated, samples, tmp_path, capsys):
+    """``capture select take_dir/ -o capture/ --template other_capture/`` (docs/takes.md) with a template
+    capture of another mesh said ``take_dir: template has 1233 vertices, the take 81 (fix: the template must be
+    on the take's topology)``: the take named, the template given (the file to change) not. Now the
+    template's capture is named, with the fix (another template, or none: the take's own)."""
+    take, _, _ = generated
+    path = write_take_usd(take, tmp_path / "take.usda")
+    other = samples / "capture.usda"
+    out = tmp_path / "capture.usda"
+    assert main(["capture", "select", str(path), "-o", str(out), "--template", str(other)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    n = take.points.shape[1]
+    assert f"the template given (capture {other}) has 1233 vertices, the take {n}" in err, err
+    assert f"a capture recorded on the take's mesh ({n} vertices)" in err and "take's own template" in err
+    assert not out.exists()
+    from usdface import api
+    from usdface.errors import GeometryError
+
+    with pytest.raises(GeometryError, match=r"the template given \(capture .*capture.usda\) has 1233"):
+        api.select_capture_frames(path, out, template=other)
+    with pytest.raises(GeometryError, match=r"the template given has 1233"):   # a Capture read from elsewhere
+        api.select_capture_frames(path, out, template=read_capture(other))

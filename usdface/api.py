@@ -19,6 +19,7 @@ import json
 import os
 import shlex
 from collections.abc import Iterable, Sequence
+from numbers import Integral
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -56,6 +57,23 @@ def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok:
     from .errors import OptionError
 
     raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({value!r:.60})", fix=fix)
+
+
+def _flags(what: str, **named) -> None:
+    """Each ``name=value`` a boolean (``True``/``False``, numpy's too), else
+    :class:`usdface.errors.OptionError` naming the function, the argument and the fix, before any work:
+    ``force="no"`` counted as true and replaced an existing output, ``skin="no"`` exported the skin,
+    ``pixar="no"`` ran Pixar's validators (a user trial; the landmark functions' booleans were refused so
+    already)."""
+    import numpy as np
+
+    for name, value in named.items():
+        if not isinstance(value, bool | np.bool_):
+            from .errors import OptionError
+
+            whose = what + ("'" if what.endswith("s") else "'s")     # select_capture_frames' force
+            raise OptionError(f"bad {name} {value!r:.60}: {whose} {name} is a boolean",
+                              fix=f"pass {name}=True or {name}=False")
 
 
 _PATH = (str, os.PathLike)
@@ -166,6 +184,7 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
         inputs = [inputs]                         # every output was 'inside the input folder /'
     _expect(capture, (_model("Capture"),), "write_capture's capture", "a Capture",
             "pass usdface.read_capture(PATH) (a capture is copied as a file with import_capture_folder)")
+    _flags("write_capture", force=force, exact=exact)
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
@@ -187,6 +206,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     ``force``; the source's digest is recorded (see :func:`write_capture`). A take is refused (its frames are
     picked with :func:`select_capture_frames`, or it is fitted whole)."""
     _paths(folder=(folder, False), out_path=(out_path, False))
+    _flags("import_capture_folder", force=force, exact=exact)
     from .io.capture_folder import refuse_whole_take
 
     check_capture_output(out_path, force, inputs=[folder])
@@ -222,6 +242,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
     _paths(take=(take, False), out_path=(out_path, True))
+    _flags("select_capture_frames", force=force)
     import numpy as np
 
     from .errors import CaptureError
@@ -370,6 +391,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     written (atomically; an existing file needs ``force``) and the
     :class:`usdface.io.livelink.LiveLinkTake` read."""
     _paths(csv=(csv, False), out_path=(out_path, False))
+    _flags("import_livelink_take", force=force)
     from . import __version__
     from .io.layers import check_output_path
     from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
@@ -407,6 +429,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     written is ``result.info["out_path"]``, whose provenance records ``command`` (the CLI's command line),
     the method and options, and the capture file read (:func:`write_fit_rig`)."""
     _paths(out_path=(out_path, True))
+    _flags("fit_capture", force=force)
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
@@ -474,6 +497,7 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     move. A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its
     sha256 as ``pinsDigest``)."""
     _paths(out_path=(out_path, False))
+    _flags("write_fit_rig", force=force)
     from . import __version__
     from .io.avatar_writer import write_rig_usd
     from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
@@ -574,6 +598,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
     methods = name_list(methods, "methods", "method", fix=f"name some of {', '.join(METHODS)}")
     check_method_options(list(methods), options)          # an option no chosen method takes: before any work
+    _flags("evaluate_methods", force=force)
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
@@ -824,6 +849,8 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     _paths(out_path=(out_path, True))
+    _flags("personalize_avatar", inspect=inspect, landmarks=landmarks, force=options.get("force", False),
+           dry_run=options.get("dry_run", False))
     from .transfer import personalize_avatar as _personalize
 
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)
@@ -997,6 +1024,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
             "pass usdface.compute_landmarks(rig)")
     _paths(out_path=(out_path, False))
+    _flags("write_landmarks", force=force)
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
@@ -1104,6 +1132,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     map file). A ``correspondence`` cache is written after the map (as personalize writes it after the
     layer), and a cache that cannot be written takes a new map with it: a run that fails leaves neither."""
     _paths(out_path=(out_path, False))
+    _flags("write_retarget_map", force=force)
     from .io.atomic import check_output_file, outputs_all_or_nothing, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
@@ -1266,6 +1295,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
+    _flags("personalize_batch", force=force)
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
 
@@ -1432,6 +1462,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
+    _flags("check", pixar=pixar)
     name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | os.PathLike):
         return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
@@ -1477,6 +1508,14 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     that many of its own vertices (the page says so; its tables are the full mesh's figures).
     Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
+    _flags("write_review", fit_errors=fit_errors, force=force)
+    if max_vertices is not None and (isinstance(max_vertices, bool) or not isinstance(max_vertices, Integral)
+                                     or max_vertices < 0):   # -1 and "1000" were taken (the CLI refuses them)
+        from .errors import OptionError
+
+        raise OptionError(f"bad max_vertices {max_vertices!r:.60}: write_review's max_vertices is a whole "
+                          "number >= 0 or None",
+                          fix="pass max_vertices=60000 (the default, None; --max-vertices) or 0 (no limit)")
     from .errors import InputFileError
     from .io.atomic import check_output_file, write_text_atomic
     from .io.usd_open import require_file
@@ -1540,6 +1579,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
+    _flags("export_avatar", skin=skin, force=force)
     from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS

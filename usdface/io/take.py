@@ -605,19 +605,31 @@ def _capture(take: Take, frames_idx, roles, labels, template, metadata: dict) ->
                            fix="record the mesh with the weights (USD take or OBJ sequence + CSV); a take of "
                                "weights only gives its coverage table alone ('usdface capture select TAKE' "
                                "without -o)")
+    given = None                          # where a template given for the take's own came from
     if template is None:
         template = take.template
     elif not isinstance(template, FaceRig):
         from . import read_capture
 
-        template = read_capture(template).template
+        if isinstance(template, Capture):
+            given, template = f"capture {template.source}" if template.source else "", template.template
+        else:
+            given, template = f"capture {template}", read_capture(template).template
+    else:
+        given = f"rig {template.source.file}" if template.source is not None and template.source.file else ""
     if template is None:
         raise CaptureError("the take has no template rig", path=take.source or None,
                            fix="pass --template with a capture folder or capture.usda on the same topology")
     n = take.points.shape[1]
-    if template.n_vertices != n:
-        raise GeometryError(f"template has {template.n_vertices} vertices, the take {n}",
-                            path=take.source or None, fix="the template must be on the take's topology")
+    if template.n_vertices != n:          # the template given was a path the message did not name
+        if given is None:
+            raise GeometryError(f"template has {template.n_vertices} vertices, the take {n}",
+                                path=take.source or None, fix="the template must be on the take's topology")
+        raise GeometryError(f"the template given{' (' + given + ')' if given else ''} has "
+                            f"{template.n_vertices} vertices, the take {n}: a template of another mesh",
+                            path=take.source or None,
+                            fix=f"pass --template (template=) a capture recorded on the take's mesh ({n} "
+                                "vertices), or leave it out to use the take's own template")
     if take.neutral is not None:
         neutral = take.neutral
     else:

@@ -102,11 +102,34 @@ def write_landmark_layer(avatar: Avatar, rig: FaceRig, layout, out_path, *, forc
     if rig.source is None or not rig.source.prim:
         raise RigError("the rig has no source mesh prim", path=avatar.file,
                        fix="read the avatar with usdface.io.usd_rig.read_avatar")
+    _refuse_foreign_rig(avatar, rig, layout)
     prov = dict(provenance or {})
     prov.setdefault("method", "landmarks")
     prov["command"] = prov.get("command") or "usdface.api.write_landmarks (Python API)"
     return write_avatar_layer(avatar, out_path, {}, provenance=prov, force=force, variants=False,
                               edit=lambda stage: author_landmarks(stage, rig, layout, avatar.meters_per_unit))
+
+
+def _refuse_foreign_rig(avatar: Avatar, rig: FaceRig, layout) -> None:
+    """Refuse, before any write, a ``rig`` that is no mesh of ``avatar`` as read (another avatar's mesh at the
+    same prim path, the bench's ``/Avatar/Head`` over the sample's) or a ``layout`` whose vertices it lacks:
+    the layer died with numpy's ``IndexError`` while it was being authored (a user trial)."""
+    mesh = next((m for m in avatar.meshes if m.source is not None and m.source.prim == rig.source.prim), None)
+    if mesh is None:
+        meshes = ", ".join(m.source.prim for m in avatar.meshes if m.source is not None)
+        raise RigError("the rig's mesh is no mesh with blend shapes of this avatar", path=avatar.file,
+                       prim=rig.source.prim, fix="pass a mesh of this avatar (usdface.pick_mesh(avatar)), "
+                       f"the one the layout was computed on; its meshes: {meshes}")
+    if mesh.n_vertices != rig.n_vertices:
+        raise RigError(f"the rig has {rig.n_vertices} vertices, the avatar's mesh {mesh.n_vertices}: not "
+                       f"this avatar's mesh (the rig was read from {rig.source.file or 'elsewhere'})",
+                       path=avatar.file, prim=rig.source.prim,
+                       fix="compute the layout on this avatar's mesh: compute_landmarks(pick_mesh(avatar))")
+    vertices = np.asarray(layout.vertices, dtype=np.int64)
+    if vertices.size and (vertices.min() < 0 or vertices.max() >= rig.n_vertices):
+        raise RigError(f"the layout's vertex indices reach {int(vertices.max())}, the mesh has "
+                       f"{rig.n_vertices} vertices: a layout of another mesh", path=avatar.file,
+                       prim=rig.source.prim, fix="compute the layout on this mesh: compute_landmarks(rig)")
 
 
 _author = author_landmarks  # former private name, used by usdface.io.usd_inspection

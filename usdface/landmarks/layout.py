@@ -267,7 +267,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     samples : precomputed sample vertices at ``spacing`` (:func:`face_samples`; a sweep computes them once).
 
     Returns a :class:`LandmarkLayout`. Raises :class:`LandmarkError` on a rig without shapes, epsilon outside
-    (0, 1], or a shape that moves no vertex (unless ``ignore_static``).
+    (0, 1], a radius that is no length >= 0, or a shape that moves no vertex (unless ``ignore_static``).
     """
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
@@ -277,6 +277,16 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
     if int(multicover) < 1:
         raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    if radius is not None:                 # -1 and 'x' were taken without a word (the CLI refuses -1)
+        try:
+            ok = (not isinstance(radius, str | bool) and bool(np.isfinite(float(radius)))
+                  and float(radius) >= 0.0)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise LandmarkError(f"multi-cover radius {radius!r:.60} is not a length >= 0 in metres",
+                                fix="pass metres >= 0 (radius=0.01, the default; --radius) or None (5 % of "
+                                    "the face size)")
     if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
             or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
         raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
