@@ -360,3 +360,23 @@ def test_write_landmarks_refuses_a_rig_or_layout_of_another_mesh(samples, tmp_pa
         api.write_landmarks(avatar, mouth, layout, out)     # the Head's layout on the Mouth
     assert not out.exists()
     assert api.write_landmarks(avatar, head, layout, out) == out    # the right pair is written
+
+
+def test_evaluate_capture_refuses_a_rig_of_another_capture_naming_the_capture(samples):
+    """A user trial: ``evaluate_capture(capture, fit_of_another_capture)`` raised Python's ``ValueError:
+    'tongueOut' is not in list`` (the bench's rig has no tongueOut), and a rig on another mesh a GeometryError
+    naming no file. Both are FitErrors naming the capture, what differs and the fix."""
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.model import FaceRig
+
+    capture = samples / "capture.usda"
+    rig = api.fit_capture(capture, method="dt").rig
+    with pytest.raises(FitError, match=r"capture.usda: the rig lacks 42 of the capture's shapes: ") as err:
+        api.evaluate_capture(capture, rig.subset(rig.names[:10]))
+    assert "fit_capture(capture)" in err.value.fix
+    keep = np.all(rig.triangles < 1000, axis=1)
+    other = FaceRig(rig.neutral[:1000], rig.triangles[keep], rig.names, rig.deltas[:, :1000])
+    with pytest.raises(FitError, match=r"capture.usda: the rig has 1000 vertices, the capture mesh 1233"):
+        api.evaluate_capture(capture, other)
+    assert api.evaluate_capture(capture, rig)["mean_rmse_mm"] > 0      # its own rig is scored

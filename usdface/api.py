@@ -557,7 +557,27 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     if role == "test":      # the mean of no frames was NaN, without a word
         _refuse_without_test_frames(capture, source)
     rig = template_rig(capture) if rig is None else getattr(rig, "rig", rig)
+    _refuse_rig_of_another_capture(rig, capture, source)
     return score_capture_rig(rig, capture, role)
+
+
+def _refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, source) -> None:
+    """A rig fitted on another capture (another person's mesh, or without some of this capture's shapes) is
+    refused naming the capture, what differs and the fix: it was Python's ``ValueError: 'tongueOut' is not in
+    list`` from the shape lookup, or a GeometryError naming no file (a user trial)."""
+    from .errors import FitError
+
+    where = source if source is not None else (capture.source or None)
+    n = capture.neutral.shape[0]
+    fix = ("score the rig fitted on this capture: evaluate_capture(capture, fit_capture(capture)), or None "
+           "for the generic baseline")
+    if rig.n_vertices != n:
+        raise FitError(f"the rig has {rig.n_vertices} vertices, the capture mesh {n}: a rig fitted on "
+                       "another capture", path=where, fix=fix)
+    missing = [name for name in capture.names if name not in set(rig.names)]
+    if missing:
+        shown = ", ".join(missing[:5]) + (f" (+{len(missing) - 5} more)" if len(missing) > 5 else "")
+        raise FitError(f"the rig lacks {len(missing)} of the capture's shapes: {shown}", path=where, fix=fix)
 
 
 def _refuse_without_test_frames(capture: Capture, source=None) -> None:
