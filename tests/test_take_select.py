@@ -535,9 +535,9 @@ def test_cli_select_names_an_avatar_given_as_the_take(samples, tmp_path, capsys)
 
 def test_cli_select_names_a_template_of_another_mesh(generated, samples, tmp_path, capsys):
     """``capture select take_dir/ -o capture/ --template other_capture/`` (docs/takes.md) with a template
-    capture of another mesh said ``take_dir: template has 1233 vertices, the take 81 (fix: the template must be
-    on the take's topology)``: the take named, the template given (the file to change) not. Now the
-    template's capture is named, with the fix (another template, or none: the take's own)."""
+    capture of another mesh said ``take_dir: template has 1233 vertices, the take 81 (fix: the template
+    must be on the take's topology)``: the take named, the template given (the file to change) not. Now
+    the template's capture is named, with the fix (another template, or none: the take's own)."""
     take, _, _ = generated
     path = write_take_usd(take, tmp_path / "take.usda")
     other = samples / "capture.usda"

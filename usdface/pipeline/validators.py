@@ -178,6 +178,12 @@ class FaceRigRuleChecker:
 
     def __init__(self, verbose: bool = False, consumerLevelChecks: bool = False,  # noqa: N803
                  assetLevelChecks: bool = True):  # noqa: N803
+        from .. import schemas
+
+        # as register_validators: a compliance checker makes its rule objects before it opens the stage,
+        # and the stage's schema registry then takes no plugins (the checker, made first, opened a stage
+        # and warned that the registry was created before usdface registered its schemas; a user trial)
+        schemas.register()
         self._verbose = verbose
         self._consumerLevelChecks = consumerLevelChecks
         self._assetLevelChecks = assetLevelChecks
