@@ -252,3 +252,35 @@ def test_the_api_pages_beyond_the_stable_api_table_names_what_exists_where_it_sa
                 except (AttributeError, ImportError):
                     missing.append(f"{module_name}: {dotted}")
     assert not missing, missing
+
+
+@pytest.mark.shared
+def test_the_usd_io_snippet_runs_as_written_on_the_blender_avatar(bench, tmp_path):
+    """docs/usd-io.md's reading-and-writing script, run as written (in a fresh process, in a folder with the
+    bench's Blender round trip as ``avatar_blender.usdc``): it reads the avatar, the name report and the eyes
+    the doc names, and writes the layer. A variant a TD types wrong - the avatar's path where the Avatar goes,
+    ``None`` for the offsets, a string as the provenance - is an OptionError naming the argument (it was
+    Python's ``AttributeError: 'str' object has no attribute 'file'``)."""
+    import re
+    import subprocess
+    import sys
+
+    doc = (DOCS / "usd-io.md").read_text()
+    snippet = next(b for b in re.findall(r"```python\n(.*?)```", doc, re.S) if "write_avatar_layer(" in b)
+    (tmp_path / "avatar_blender.usdc").symlink_to(bench / "dev1" / "avatar_blender.usdc")
+    probe = snippet + (
+        "\nprint(head.neutral.shape[1], head.deltas.shape[0] == len(head.names), len(points))"
+        "\nprint(avatar.name_report['/root/Avatar/Mouth/Mouth']['inexact'][0])"
+        "\nfrom usdface.errors import OptionError"
+        "\nfor call in (lambda: write_avatar_layer('avatar_blender.usdc', 'b.usda', {}),"
+        "\n             lambda: write_avatar_layer(avatar, 'b.usda', None),"
+        "\n             lambda: write_avatar_layer(avatar, 'b.usda', new, provenance='my script')):"
+        "\n    try:\n        call()\n    except OptionError as e:\n        print(e)\n")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert lines[0].startswith("3 True ") and lines[1] == "['eyeBlinkLeft2', 'eyeBlinkLeft', 'fallback']"
+    assert [line.split(" must be ")[0] for line in lines[2:]] == [
+        "write_avatar_layer's avatar", "write_avatar_layer's offsets", "write_avatar_layer's provenance"]
+    assert (tmp_path / "person.usda").exists() and not (tmp_path / "b.usda").exists()

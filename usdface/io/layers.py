@@ -974,6 +974,28 @@ def _apply_provenance_schema(stage, roots, prov: dict):
             schemas.schema_attribute(prim, f"usdface:provenance:{key}", schemas.PROVENANCE_API).Set(value)
 
 
+def _check_layer_arguments(avatar, offsets, provenance, primvars) -> None:
+    """:func:`write_avatar_layer`'s arguments of the wrong kind refused as :class:`OptionError` naming the
+    argument and the fix, before any work (docs/usd-io.md's script): the avatar's path, ``None`` for the
+    offsets or a string as the provenance died with Python's ``AttributeError`` (``'str' object has no
+    attribute 'file'``; a user trial)."""
+    from collections.abc import Mapping
+
+    from ..errors import OptionError
+
+    for name, value, kinds, none_ok, expected, fix in (
+            ("avatar", avatar, (Avatar,), False, "an Avatar", "pass usdface.io.usd_rig.read_avatar(PATH)"),
+            ("offsets", offsets, (Mapping,), False, "a {mesh prim path: deltas[K,n,3]} dict",
+             "pass {} for none, or {rig.source.prim: deltas} per mesh"),
+            ("provenance", provenance, (Mapping,), True, "a dict or None",
+             'pass e.g. {"command": "my script", "method": "menzel"}'),
+            ("primvars", primvars, (Mapping,), True, "a {mesh: {name: (values, interpolation)}} dict or None",
+             "pass None, or a dict per mesh")):
+        if not ((value is None and none_ok) or isinstance(value, kinds)):
+            raise OptionError(f"write_avatar_layer's {name} must be {expected}, not {type(value).__name__} "
+                              f"({value!r:.60})", fix=fix)
+
+
 def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: dict | None = None,
                        force: bool = False, variants: bool = True, primvars: dict | None = None,
                        edit: Callable | None = None, digests: DigestsAhead | None = None) -> Path:
@@ -1001,6 +1023,7 @@ def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: d
     """
     from pxr import Sdf, Usd
 
+    _check_layer_arguments(avatar, offsets, provenance, primvars)
     start = time.perf_counter()
     in_path = Path(avatar.file).absolute()
     if not in_path.is_file():
