@@ -555,3 +555,28 @@ def test_cli_select_names_a_template_of_another_mesh(generated, samples, tmp_pat
         api.select_capture_frames(path, out, template=other)
     with pytest.raises(GeometryError, match=r"the template given has 1233"):   # a Capture read from elsewhere
         api.select_capture_frames(path, out, template=read_capture(other))
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"min_separation": 0.5}, r"bad min_separation 0.5: select_frames' min_separation is a whole number >= 1 "
+                              r"of frames"),
+    ({"per_shape": 0}, r"bad per_shape 0: select_frames' per_shape is a whole number >= 1"),
+    ({"test_every": -1}, r"bad test_every -1: select_frames' test_every is a whole number >= 0"),
+    ({"test_every": 2.5}, r"bad test_every 2.5"),
+    ({"threshold": 2}, r"threshold 2 is outside \[0, 1\]"),
+    ({"threshold": "0.5"}, r"threshold '0.5' is outside \[0, 1\]"),
+])
+def test_select_frames_names_the_number_that_is_wrong(kwargs, needle):
+    """docs/takes.md's script calls ``select_frames`` with ``min_separation`` in frames; given the CLI's
+    seconds (0.5) it said "per_shape and min_separation must be >= 1, test_every >= 0 (fix: e.g.
+    --per-shape 1 --test-every 40)", naming neither the one that was wrong nor the unit, and ``threshold=2``
+    picked no frame without a word (a user trial). Each is named, with its fix."""
+    w = np.zeros((9, 2))
+    w[:, 0] = [0, .3, .8, .6, 0, 0, 0, 0, 0]
+    with pytest.raises(CaptureError, match=needle) as err:
+        select_frames(w, names=["jawOpen", "eyeBlinkLeft"], **kwargs)
+    assert err.value.fix
+    if "min_separation" in kwargs:
+        assert "round(seconds * take.fps)" in err.value.fix
+    sel = select_frames(w, names=["jawOpen", "eyeBlinkLeft"], min_separation=np.int64(2), per_shape=1.0)
+    assert sel.train.tolist() == [2]       # whole numbers of any type pass

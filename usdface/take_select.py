@@ -85,6 +85,32 @@ class Selection:
         return [f"{t:03d}" for t in range(len(self.test))]
 
 
+def _whole(value, low: int) -> bool:
+    """``value`` a whole number (an int, numpy's, or a float such as 15.0) >= ``low``."""
+    return (not isinstance(value, bool) and isinstance(value, int | float | np.integer | np.floating)
+            and bool(np.isfinite(value)) and float(value).is_integer() and value >= low)
+
+
+def _check_counts(threshold, per_shape, test_every, min_separation) -> tuple[int, int, int]:
+    """:func:`select_frames`' numbers, each refused naming it (they were refused together as "per_shape and
+    min_separation must be >= 1, test_every >= 0" with a command line's fix, whichever was wrong; a
+    ``min_separation=0.5`` meant as the CLI's seconds was one of them, and ``threshold=2`` picked nothing
+    without a word: a user trial of docs/takes.md's script). Returns them as ints (15.0 is 15)."""
+    if not (not isinstance(threshold, bool) and isinstance(threshold, int | float | np.integer | np.floating)
+            and 0.0 <= threshold <= 1.0):
+        raise CaptureError(f"threshold {threshold!r} is outside [0, 1]", fix="pass a weight in [0, 1] (0.5)")
+    for name, value, low, fix in (
+            ("per_shape", per_shape, 1, "pass per_shape=1 (one peak per shape; 2: Hable's two)"),
+            ("test_every", test_every, 0, "pass test_every=40 (0: no test frames)"),
+            ("min_separation", min_separation, 1,
+             "pass frames here: min_separation=max(1, round(seconds * take.fps)) (the command line's "
+             "--min-separation and select_capture_frames take seconds)")):
+        if not _whole(value, low):
+            raise CaptureError(f"bad {name} {value!r}: select_frames' {name} is a whole number >= {low}"
+                               + (" of frames" if name == "min_separation" else ""), fix=fix)
+    return int(per_shape), int(test_every), int(min_separation)
+
+
 def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_every: int = 0, *, names=None,
                   min_separation: int = 15) -> Selection:
     """Pick training frames from a continuous take by Menzel et al.'s rule (section 3.1).
@@ -120,9 +146,7 @@ def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_ever
                            fix="pass one name per column")
     if not np.isfinite(w).all():
         raise CaptureError("weights contain NaN or infinite values", fix="repair the take's weights")
-    if per_shape < 1 or min_separation < 1 or test_every < 0:
-        raise CaptureError("per_shape and min_separation must be >= 1, test_every >= 0",
-                           fix="e.g. --per-shape 1 --test-every 40")
+    per_shape, test_every, min_separation = _check_counts(threshold, per_shape, test_every, min_separation)
     picks, train, train_shape = [], [], []
     # Rival weight at every frame and shape: the largest *other* weight (top-2 trick, no K x K loop).
     if n_shapes > 1:
