@@ -380,3 +380,15 @@ def test_evaluate_capture_refuses_a_rig_of_another_capture_naming_the_capture(sa
     with pytest.raises(FitError, match=r"capture.usda: the rig has 1000 vertices, the capture mesh 1233"):
         api.evaluate_capture(capture, other)
     assert api.evaluate_capture(capture, rig)["mean_rmse_mm"] > 0      # its own rig is scored
+
+
+def test_the_core_compute_landmarks_names_a_path_given_for_the_rig(samples):
+    """docs/landmarks.md's script imports ``usdface.landmarks.compute_landmarks`` (a FaceRig in), while
+    ``usdface.compute_landmarks`` also takes the avatar's file; the avatar's path given to the first died
+    with ``AttributeError: 'str' object has no attribute 'source'`` (a user trial)."""
+    from usdface.errors import LandmarkError
+    from usdface.landmarks import compute_landmarks
+
+    with pytest.raises(LandmarkError, match=r"takes a FaceRig, not str \('.*avatar.usda'\)") as err:
+        compute_landmarks(str(samples / "avatar.usda"))
+    assert "usdface.compute_landmarks" in err.value.fix and ".mesh('Head')" in err.value.fix

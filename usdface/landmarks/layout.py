@@ -269,6 +269,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     Returns a :class:`LandmarkLayout`. Raises :class:`LandmarkError` on a rig without shapes, epsilon outside
     (0, 1], a radius that is no length >= 0, or a shape that moves no vertex (unless ``ignore_static``).
     """
+    if not isinstance(rig, FaceRig):      # an avatar's path (as usdface.compute_landmarks takes it) died with
+        raise LandmarkError(             # AttributeError: 'str' object has no attribute 'source'
+            f"usdface.landmarks.compute_landmarks takes a FaceRig, not {type(rig).__name__} ({rig!r:.60})",
+            fix="pass read_avatar(PATH).mesh('Head') (docs/landmarks.md), or call usdface.compute_landmarks, "
+                "which also takes an avatar or its file")
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
     if weighting not in WEIGHTINGS:
