@@ -392,3 +392,24 @@ def test_the_core_compute_landmarks_names_a_path_given_for_the_rig(samples):
     with pytest.raises(LandmarkError, match=r"takes a FaceRig, not str \('.*avatar.usda'\)") as err:
         compute_landmarks(str(samples / "avatar.usda"))
     assert "usdface.compute_landmarks" in err.value.fix and ".mesh('Head')" in err.value.fix
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"options": ["inspect"]}, r"personalize_batch's options must be a \{option: value\} dict \(or None\), "
+                               r"not list"),
+    ({"scheduler": 8786}, r"personalize_batch's scheduler must be a Dask scheduler's address \(or None\), "
+                          r"not int"),
+    ({"worker": len}, r"personalize_batch's worker must be a 'module:function' string \(or None\)"),
+])
+def test_personalize_batch_refuses_arguments_of_the_wrong_kind(tmp_path, kwargs, needle):
+    """``options=["inspect"]`` died with Python's ``ValueError: dictionary update sequence element #0 has
+    length 7``; ``scheduler=8786`` (the port alone) was taken. OptionErrors naming the argument, before any
+    item runs and before the report is written."""
+    from usdface import api
+
+    manifest = tmp_path / "people.csv"
+    manifest.write_text(f"avatar,capture,output\n{A},{C},out.usda\n")
+    with pytest.raises(OptionError, match=needle) as err:
+        api.personalize_batch(manifest, jobs=1, **kwargs)
+    assert err.value.fix
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["people.csv"]

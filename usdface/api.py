@@ -1326,6 +1326,15 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
                           fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
                               "it out")
+    # options=["inspect"] died with Python's ValueError (dict update sequence), scheduler=8786 was taken
+    from collections.abc import Mapping
+
+    _expect(options, (Mapping,), "personalize_batch's options", "a {option: value} dict (or None)",
+            'pass e.g. options={"inspect": True}, as --set inspect=true', none_ok=True)
+    _expect(scheduler, (str,), "personalize_batch's scheduler", "a Dask scheduler's address (or None)",
+            "pass scheduler='tcp://host:8786', or None for the local process pool", none_ok=True)
+    _expect(worker, (str,), "personalize_batch's worker", "a 'module:function' string (or None)",
+            "pass worker='studio.usdface_steps:run', or None for personalize", none_ok=True)
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
