@@ -413,3 +413,24 @@ def test_personalize_batch_refuses_arguments_of_the_wrong_kind(tmp_path, kwargs,
         api.personalize_batch(manifest, jobs=1, **kwargs)
     assert err.value.fix
     assert sorted(p.name for p in tmp_path.iterdir()) == ["people.csv"]
+
+
+def test_write_fit_rig_refuses_a_capture_that_is_no_path_or_not_there(samples, tmp_path):
+    """``write_fit_rig(fit, out, capture=...)`` records the capture the rig was fitted on: a missing one said
+    ``nope.usda: cannot digest: not found (fix: check the path)``, a ``Capture`` object died with Python's
+    ``TypeError: expected str, bytes or os.PathLike object, not Capture`` (a user trial). Both refused
+    before the output is checked or written, the second in one line."""
+    from usdface import api
+    from usdface.errors import InputFileError
+
+    capture = samples / "capture.usda"
+    fit = api.fit_capture(capture, method="dt")
+    out = tmp_path / "rig.usda"
+    with pytest.raises(InputFileError, match=r"nope.usda: capture not found \(the file the rig") as err:
+        api.write_fit_rig(fit, out, capture=tmp_path / "nope.usda")
+    assert "fitted on" in err.value.fix
+    with pytest.raises(OptionError, match=r"capture must be a path \(a str or Path\) or None, not Capture") \
+            as err:
+        api.write_fit_rig(fit, out, capture=api.read_capture(capture))
+    assert "\n" not in str(err.value) and not out.exists()
+    assert api.write_fit_rig(fit, out, capture=capture) == out

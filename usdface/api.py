@@ -56,7 +56,8 @@ def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok:
         return
     from .errors import OptionError
 
-    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({value!r:.60})", fix=fix)
+    shown = " ".join(repr(value).split())[:60]      # one line: a Capture's repr spans several (its arrays)
+    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({shown})", fix=fix)
 
 
 def _flags(what: str, **named) -> None:
@@ -506,6 +507,15 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     if not isinstance(getattr(fit, "rig", fit), FaceRig):
         _expect(fit, (), "write_fit_rig's fit", "a FitResult or a FaceRig",
                 "pass what fit_capture / fit_personalized_shapes returned")
+    # the capture recorded as the rig's source: a path (a Capture died in the path arithmetic), and one that
+    # is there (it said 'cannot digest: not found (fix: check the path)', a user trial); before the output
+    _paths(capture=(capture, True))
+    if capture is not None and not Path(capture).exists():
+        from .errors import InputFileError
+
+        raise InputFileError("capture not found (the file the rig records as fitted on)", path=capture,
+                             fix="pass the capture file or folder the rig was fitted on, or leave capture "
+                                 "out")
 
     out = check_output_path(out_path, force, what="fit rig file")
     info = getattr(fit, "info", None) or {}
