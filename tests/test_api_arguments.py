@@ -434,3 +434,25 @@ def test_write_fit_rig_refuses_a_capture_that_is_no_path_or_not_there(samples, t
         api.write_fit_rig(fit, out, capture=api.read_capture(capture))
     assert "\n" not in str(err.value) and not out.exists()
     assert api.write_fit_rig(fit, out, capture=capture) == out
+
+
+def test_personalize_refuses_a_rig_of_another_capture_naming_the_capture(samples, tmp_path):
+    """A user trial (stop 42): ``personalize_avatar(avatar, capture, out, rig=fit_of_another_capture)`` --
+    the rig ``read_capture``'s own fix suggests -- ended in the registration with numpy's ``ValueError:
+    matmul: ... (1203 vs 1233)``, naming nothing. It is a FitError naming the capture and the fix, raised
+    before any output; the capture's own rig is implanted."""
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.model import FaceRig
+
+    capture = samples / "capture.usda"
+    rig = api.fit_capture(capture, method="dt").rig
+    keep = np.all(rig.triangles < 1000, axis=1)
+    other = FaceRig(rig.neutral[:1000], rig.triangles[keep], rig.names, rig.deltas[:, :1000])
+    out = tmp_path / "p.usda"
+    with pytest.raises(FitError, match=r"capture.usda: the rig given to implant has 1000 vertices, the "
+                                       r"capture mesh 1233") as err:
+        api.personalize_avatar(samples / "avatar.usda", capture, out, rig=other)
+    assert "fit_capture(capture).rig" in err.value.fix
+    assert not list(tmp_path.iterdir())
+    assert api.personalize_avatar(samples / "avatar.usda", capture, out, rig=rig).out_path == out

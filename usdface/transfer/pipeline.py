@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, RigError, warn
+from ..errors import CaptureError, FitError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
 from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
@@ -394,7 +394,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                                              report)
         if eyes:
             eyes = {k: (np.asarray(p, dtype=np.float64) - origin, t) for k, (p, t) in eyes.items()}
-        capture = _read_capture(capture, fitted=rig is None, every=fit_options.get("every", 1))
+        capture = _read_capture(capture, fitted=rig is None, every=fit_options.get("every", 1), rig=rig)
         digests = None
         if out_path is not None and not dry_run:   # the layer's input digests, beside the work from here on
             from ..io.layers import DigestsAhead
@@ -669,14 +669,21 @@ def _read_avatar(avatar, name_map, writes: bool, dry_run: bool, report: dict):
     return avatar, generic_full, origin, regions
 
 
-def _read_capture(capture, *, fitted: bool, every: int) -> Capture:
+def _read_capture(capture, *, fitted: bool, every: int, rig: FaceRig | None = None) -> Capture:
     """Step 0, the capture: read (a path) and, when it is to be ``fitted``, refused now for what the fit
     would refuse later: a thinning (``every``) of what is not a take, a take of one held pose, proven
-    exchanged sides."""
+    exchanged sides. A given ``rig`` (implanted instead of a fit) must be on the capture's mesh."""
     if not isinstance(capture, Capture):
         from ..io import read_capture
 
         capture = read_capture(capture)
+    if rig is not None and rig.n_vertices != capture.neutral.shape[0]:
+        # numpy's 'matmul: ... (1203 vs 1233)' in the registration, naming nothing (a user trial)
+        raise FitError(f"the rig given to implant has {rig.n_vertices} vertices, the capture mesh "
+                       f"{capture.neutral.shape[0]}: a rig fitted on another capture",
+                       path=capture.source or None,
+                       fix="implant the rig fitted on this capture (usdface.fit_capture(capture).rig), or "
+                           "leave rig= out and the capture is fitted")
     if not fitted:
         return capture
     from ..personalize.api import check_every, check_take_poses, refuse_swapped_sides
