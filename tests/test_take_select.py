@@ -580,3 +580,17 @@ def test_select_frames_names_the_number_that_is_wrong(kwargs, needle):
         assert "round(seconds * take.fps)" in err.value.fix
     sel = select_frames(w, names=["jawOpen", "eyeBlinkLeft"], min_separation=np.int64(2), per_shape=1.0)
     assert sel.train.tolist() == [2]       # whole numbers of any type pass
+
+
+def test_read_take_refuses_a_capture(samples, sample_capture_folder):
+    """A user trial (stop 42): ``usdface.io.take.read_take("capture.usda")`` (the function docs/takes.md
+    imports) read the sample capture as a take of its 72 training and test frames without a word, where the
+    CLI and the API refuse a capture given as a take. Now refused, file and folder alike, naming the path and
+    read_capture."""
+    from usdface.errors import CaptureError
+    from usdface.io.take import read_take
+
+    for capture in (samples / "capture.usda", sample_capture_folder):
+        with pytest.raises(CaptureError, match="this is a capture .* not a take") as err:
+            read_take(capture)
+        assert str(capture) in str(err.value) and "read_capture" in err.value.fix

@@ -116,13 +116,26 @@ def _refuse_capture(found, fix: str) -> None:
                            "take", path=found.path, fix=fix)
 
 
+#: The fix when :func:`read_take` is given a capture.
+READ_CAPTURE_FIX = ("read a capture with usdface.read_capture(PATH); read_take reads a take: a Live Link "
+                    "Face CSV, a USD take ('usdface anim import') or an OBJ-sequence folder with its CSV")
+
+
 def read_take(path) -> Take:
-    """Read a take: a folder (OBJ sequence + Live Link CSV), a USD take, or a Live Link CSV (weights only)."""
+    """Read a take: a folder (OBJ sequence + Live Link CSV), a USD take, or a Live Link CSV (weights only).
+    A capture (file or folder) is refused (:class:`CaptureError`): its picked frames read as a take's."""
+    from .file_kind import file_kind
+
     path = Path(path)
+    suffix = path.suffix.lower()
+    usd = suffix in (".usd", ".usda", ".usdc", ".usdz")
+    if path.is_dir() or (usd and path.is_file()):
+        # a capture.usda read as a take of its 72 training and test frames, without a word (a user trial)
+        found = file_kind(path)                  # held while the take is read: its layer is parsed once
+        _refuse_capture(found, READ_CAPTURE_FIX)
     if path.is_dir():
         return read_take_folder(path)
-    suffix = path.suffix.lower()
-    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
+    if usd:
         return read_take_usd(path)
     if suffix == ".csv":
         from .livelink import read_livelink_take
