@@ -400,6 +400,8 @@ def test_the_core_compute_landmarks_names_a_path_given_for_the_rig(samples):
     ({"scheduler": 8786}, r"personalize_batch's scheduler must be a Dask scheduler's address \(or None\), "
                           r"not int"),
     ({"worker": len}, r"personalize_batch's worker must be a 'module:function' string \(or None\)"),
+    # was blamed on the manifest ('people.csv: item 1: bad inspect'), which has no such column (stop 42)
+    ({"options": {"inspect": "true"}}, r"^personalize_batch's options: bad inspect 'true': not a boolean"),
 ])
 def test_personalize_batch_refuses_arguments_of_the_wrong_kind(tmp_path, kwargs, needle):
     """``options=["inspect"]`` died with Python's ``ValueError: dictionary update sequence element #0 has

@@ -1271,6 +1271,10 @@ def check_personalize_options(**options: Any) -> None:
     check_item_options(options, unlisted=())
 
 
+#: The personalize options that are booleans (a batch row's and a Pyblish instance's are checked as such).
+BOOLEAN_OPTIONS = ("inspect", "landmarks", "dry_run", "force")
+
+
 def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) -> None:
     """:func:`check_personalize_options` on the dict ``options`` of a batch row or a Pyblish instance; an
     unknown name's refusal lists the options taken less ``unlisted`` (``dry_run``, which both refuse with a
@@ -1279,7 +1283,7 @@ def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) ->
     from .transfer import options as _implant
 
     _refuse_unknown_options(options, unlisted)
-    for name in ("inspect", "landmarks", "dry_run", "force"):
+    for name in BOOLEAN_OPTIONS:
         if name in options and not isinstance(options[name], bool):
             raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
     get = options.get
@@ -1326,13 +1330,12 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
     _flags("personalize_batch", force=force)
+    from .errors import OptionError
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
 
     # as --jobs takes it: jobs=0 ran a process per CPU, a negative count in-process, "2" a ValueError
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
-        from .errors import OptionError
-
         raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
                           fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
                               "it out")
@@ -1345,6 +1348,11 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
             "pass scheduler='tcp://host:8786', or None for the local process pool", none_ok=True)
     _expect(worker, (str,), "personalize_batch's worker", "a 'module:function' string (or None)",
             "pass worker='studio.usdface_steps:run', or None for personalize", none_ok=True)
+    for name in BOOLEAN_OPTIONS:      # told as the options= given, not as the manifest's first row
+        value = (options or {}).get(name)
+        if value is not None and not isinstance(value, bool):
+            raise OptionError(f"personalize_batch's options: bad {name} {value!r}: not a boolean",
+                              fix=f'pass options={{"{name}": True}} (or False), as --set {name}=true')
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
