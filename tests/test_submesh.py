@@ -64,6 +64,50 @@ def test_peak_of_sparse_shapes_and_the_part_kept():
     assert moving_part(np.ones(len(points)), points) is None
 
 
+def test_a_rigs_peak_motion_is_kept_per_offsets_array_and_follows_its_crops():
+    from usdface.motion import peak_motion
+    from usdface.submesh import weld_rig
+
+    points, tri = _grid(12, 10)
+    rng = np.random.default_rng(5)
+    deltas = rng.normal(size=(4, len(points), 3)) * 1e-3
+    deltas[:, 40:] = 0.0                                         # the rest still
+    rig = FaceRig(points, tri, ["a", "b", "c", "d"], deltas)
+    peak = rig.peak_motion()
+    np.testing.assert_array_equal(peak, peak_motion(rig.deltas))
+    assert rig.peak_motion() is peak                             # computed once
+    with pytest.raises(ValueError):
+        peak[0] = 1.0                                            # shared: read-only
+    # a crop (and a weld) carries it to its vertices: the same values as measured anew
+    keep = np.zeros(len(points), dtype=bool)
+    keep[:60] = True
+    part, _ = crop_rig(rig, keep)
+    kept = part.__dict__["_peak"][1]
+    np.testing.assert_array_equal(kept, peak_motion(part.deltas))
+    assert part.peak_motion() is kept
+    welded_points = points.copy()
+    welded_points[1] = welded_points[0]                          # vertex 1 a copy of vertex 0 ...
+    copied = deltas.copy()
+    copied[:, 1] = copied[:, 0]                                  # ... moving alike
+    twin = FaceRig(welded_points, tri, rig.names, copied)
+    twin.peak_motion()
+    welded, _ = weld_rig(twin)
+    assert welded.n_vertices == len(points) - 1
+    np.testing.assert_array_equal(welded.peak_motion(), peak_motion(welded.deltas))
+    # new offsets are measured anew, not answered from the old ones
+    rig.deltas = 2.0 * rig.deltas
+    np.testing.assert_array_equal(rig.peak_motion(), 2.0 * peak)
+
+
+def test_the_readers_peak_motion_is_the_placed_offsets(samples):
+    from usdface.io.usd_rig import read_avatar
+    from usdface.motion import peak_motion
+
+    for moving_only in (True, False):
+        for rig in read_avatar(samples / "avatar.usda", moving_only=moving_only).meshes:
+            np.testing.assert_array_equal(rig.peak_motion(), peak_motion(rig.deltas))
+
+
 def test_crop_rig_of_a_part_keeps_full_mesh_indices_and_the_noise_outside():
     from usdface.model import MeshSource
 

@@ -101,22 +101,24 @@ class Float32Offsets:
                       and (nonzero.sum(axis=0) == 1).all() else None)
 
     @classmethod
-    def pack(cls, deltas, linear) -> Float32Offsets | None:
+    def pack(cls, deltas, linear, peak=None) -> Float32Offsets | None:
         """``deltas[K,n,3]`` (float64) as float32 authored values, or None where one shape's values are not
-        exactly ``float32 @ linear.T`` (offsets not read from float32, a singular map)."""
+        exactly ``float32 @ linear.T`` (offsets not read from float32, a singular map). ``peak[n]``:
+        :func:`usdface.motion.peak_motion` of ``deltas`` when the caller has it (else computed here)."""
         d = np.asarray(deltas)
         lin = np.asarray(linear, dtype=np.float64)
         if d.dtype != np.float64 or d.ndim != 3 or d.shape[-1] != 3 or abs(np.linalg.det(lin)) < 1e-300:
             return None
         inverse = np.linalg.inv(lin).T
         out = cls(np.empty(d.shape, dtype=np.float32), lin)
-        square = np.zeros(d.shape[1])
+        square = np.zeros(d.shape[1]) if peak is None else None
         for k in range(len(d)):
             out.authored[k] = d[k] @ inverse
             if not np.array_equal(out[k], d[k]):
                 return None
-            np.maximum(square, np.einsum("nc,nc->n", d[k], d[k]), out=square)
-        out.peak = np.sqrt(square)
+            if square is not None:
+                np.maximum(square, np.einsum("nc,nc->n", d[k], d[k]), out=square)
+        out.peak = np.sqrt(square) if peak is None else peak
         return out
 
     def peak_motion(self) -> np.ndarray:

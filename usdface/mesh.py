@@ -76,10 +76,10 @@ def triangle_normals(points: np.ndarray, triangles: np.ndarray, *, unit: bool = 
     triangles get a zero normal.
     """
     _, e1, e2 = _edge_vectors(points, triangles)
-    c = np.cross(e1, e2)
+    c = _cross(e1, e2)                                   # (np.cross and np.linalg.norm to the bit, cheaper)
     if not unit:
         return c
-    length = np.linalg.norm(c, axis=-1, keepdims=True)
+    length = vector_lengths(c)[..., None]
     return np.divide(c, length, out=np.zeros_like(c), where=length > 0)
 
 
@@ -90,12 +90,12 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     fn = triangle_normals(p, t, unit=False)
     idx, w = t.T.ravel(), np.concatenate([fn, fn, fn])   # corner k of every triangle, k = 0, 1, 2
     vn = np.stack([np.bincount(idx, weights=w[:, c], minlength=len(p)) for c in range(3)], axis=1)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+    return vn / np.maximum(vector_lengths(vn)[:, None], 1e-300)
 
 
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Per-triangle areas ``[t]`` (units of points squared)."""
-    return 0.5 * np.linalg.norm(triangle_normals(points, triangles, unit=False), axis=-1)
+    return 0.5 * vector_lengths(triangle_normals(points, triangles, unit=False))
 
 
 def frame_vectors(points: np.ndarray, triangles: np.ndarray, *, axis: int = -2):
@@ -317,14 +317,14 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray, *,
     n = len(p)
     if len(t):
         e1, e2 = p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]
-        area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
-        scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+        area2 = vector_lengths(_cross(e1, e2))
+        scale = vector_lengths(e1) * vector_lengths(e2)
         t = t[(area2 > 1e-12 * scale) & (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     rows, cols, vals = [], [], []
     for k in range(3):
         i, j, o = t[:, (k + 1) % 3], t[:, (k + 2) % 3], t[:, k]
         a, b = p[i] - p[o], p[j] - p[o]
-        cross = np.linalg.norm(np.cross(a, b), axis=1)
+        cross = vector_lengths(_cross(a, b))
         cot = np.einsum("ij,ij->i", a, b) / np.maximum(cross, 1e-300)
         rows += [i, j]
         cols += [j, i]

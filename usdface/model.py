@@ -90,6 +90,31 @@ class FaceRig:
                 f"rig {self.name!r}: deltas have {self.deltas.shape[1]} vertices, "
                 f"neutral {self.neutral.shape[0]}")
 
+    def peak_motion(self) -> np.ndarray:
+        """``[n]`` the largest offset of each vertex over the shapes (metres;
+        :func:`usdface.motion.peak_motion` of ``deltas``, inbetweens not counted), computed once per offsets
+        array and kept while ``deltas`` is that array (a production head's 225k vertices x 51 shapes: ~0.1 s
+        a pass, which the face mesh's choice, the crop, the registration and the packing each took).
+        Read-only; the rig's offsets are not written in place anywhere (a step that changes them assigns a
+        new array, which is measured anew)."""
+        from .motion import peak_motion
+
+        kept = self.__dict__.get("_peak")
+        if kept is not None and kept[0]() is self.deltas:
+            return kept[1]
+        peak = peak_motion(self.deltas)
+        self._keep_peak(peak)
+        return peak
+
+    def _keep_peak(self, peak) -> None:
+        """Keep ``peak[n]`` as :meth:`peak_motion` of the current ``deltas`` (a weak reference to them: the
+        offsets are not kept alive for it)."""
+        import weakref
+
+        peak = np.asarray(peak, dtype=np.float64)
+        peak.flags.writeable = False
+        self.__dict__["_peak"] = (weakref.ref(self.deltas), peak)
+
     @property
     def n_vertices(self) -> int:
         return int(self.neutral.shape[0])

@@ -64,8 +64,9 @@ def meshes_by_motion(meshes, names) -> list:
         idx = [rig.index(n) for n in names if n in rig.names]
         if not idx:
             continue
-        shapes = rig.deltas if len(set(idx)) == len(rig.deltas) else rig.deltas[idx]   # no copy of them all
-        moving = int(moving_vertices(peak_motion(shapes), rig.neutral).sum())
+        # all the rig's shapes: its peak motion, computed once (:meth:`usdface.model.FaceRig.peak_motion`)
+        peak = rig.peak_motion() if len(set(idx)) == len(rig.deltas) else peak_motion(rig.deltas[idx])
+        moving = int(moving_vertices(peak, rig.neutral).sum())
         if moving:
             counted.append((rig, moving))
     return sorted(counted, key=lambda pair: -pair[1])                  # stable: ties in order

@@ -303,7 +303,11 @@ def rig_on(rig, vertices, triangles, source, name):
     v = np.asarray(vertices, dtype=np.int64)
     ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
            for k, lst in rig.inbetweens.items()}
-    return FaceRig(rig.neutral[v], triangles, rig.names, rig.deltas[:, v], ibs, source, name)
+    out = FaceRig(rig.neutral[v], triangles, rig.names, rig.deltas[:, v], ibs, source, name)
+    kept = rig.__dict__.get("_peak")
+    if kept is not None and kept[0]() is rig.deltas:       # its peak motion there (a max: the same values)
+        out._keep_peak(kept[1][v])
+    return out
 
 
 class SparseOffsets:
@@ -365,8 +369,6 @@ def crop_avatar(avatar) -> tuple:
     the meshes' prim paths (their names without a source); meshes kept whole have no entry."""
     import dataclasses
 
-    from .motion import peak_motion
-
     meshes, regions = [], {}
     for m in avatar.meshes:
         key = m.key
@@ -374,7 +376,7 @@ def crop_avatar(avatar) -> tuple:
         if m.source is not None and m.source.region is not None:        # read on its moving part
             region = m.source.region
         else:
-            peak = peak_motion(m.deltas)
+            peak = m.peak_motion().copy()          # (kept on the rig for the steps after)
             for ibs in m.inbetweens.values():
                 for b in ibs:
                     np.maximum(peak, np.sqrt(np.einsum("nc,nc->n", b.offsets, b.offsets)), out=peak)

@@ -368,9 +368,11 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
         file=file_label, prim=prim, shape_prims=targets, channel_tokens=tokens, point_indices=point_indices,
         normal_offsets=normal_offsets, to_internal=to_internal, face_vertex_counts=counts,
         face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
-    neutral, triangles, deltas = _place_offsets(source, neutral, triangles, sparse, inbetweens,
-                                                match.canonical, moving_only)
+    neutral, triangles, deltas, peak = _place_offsets(source, neutral, triangles, sparse, inbetweens,
+                                                      match.canonical, moving_only)
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
+    if peak is not None and rig.deltas.shape == deltas.shape:    # the peak motion the crop measured: kept
+        rig._keep_peak(peak)
     report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
               "missing": list(match.missing), "conflicts": [list(x) for x in match.conflicts],
               "channels": [list(x) for x in match.channels]}
@@ -380,22 +382,27 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
 def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving_only):
     """The rig's arrays from the shapes as read (``sparse``: per shape ``(indices or None, offsets[k,3])``,
     inbetween offsets in ``inbetweens`` aligned the same way, replaced in place by their placed form):
-    ``(neutral, triangles, deltas[K,s,3])`` on every vertex, or with ``moving_only`` on the part some shape
-    or inbetween moves and its margin (:func:`usdface.submesh.moving_part`; the crop and the authored points
-    outside it are recorded on ``source.region`` / ``source.residue``), never forming ``[K,n,3]`` for the
-    rest. ``sparse`` is emptied as the shapes are placed."""
+    ``(neutral, triangles, deltas[K,s,3], peak)`` on every vertex, or with ``moving_only`` on the part some
+    shape or inbetween moves and its margin (:func:`usdface.submesh.moving_part`; the crop and the authored
+    points outside it are recorded on ``source.region`` / ``source.residue``), never forming ``[K,n,3]`` for
+    the rest. ``sparse`` is emptied as the shapes are placed. ``peak[n]``: the largest offset of each vertex
+    over the shapes (:meth:`usdface.model.FaceRig.peak_motion` of ``deltas``, the same values) when the crop
+    measured it on the whole mesh without inbetweens, else None."""
     from ..submesh import crop, moving_part, outside_offsets, peak_of_shapes
 
     n = len(neutral)
     ibs_of = [inbetweens.get(name, []) for name in names]
-    sub = None
+    sub = peak = None
     if moving_only and n:
         shapes = list(sparse) + [(idx, b.offsets) for (idx, _), ibs in zip(sparse, ibs_of, strict=True)
                                  for b in ibs]
-        keep = moving_part(peak_of_shapes(n, shapes), neutral)
-        del shapes
+        peak = peak_of_shapes(n, shapes)
+        keep = moving_part(peak, neutral)
         if keep is not None:
             sub = crop(triangles, keep, neutral)
+        if sub is not None or len(shapes) != len(sparse):        # another crop, or inbetweens in it
+            peak = None
+        del shapes
     vertices = np.arange(n) if sub is None else sub.vertices
     local = np.full(n, -1, dtype=np.int64)
     local[vertices] = np.arange(vertices.size)
@@ -421,9 +428,9 @@ def _place_offsets(source, neutral, triangles, sparse, inbetweens, names, moving
         if sub is not None:
             residue.append(outside_offsets(rows[~inside], off[~inside], rest))
     if sub is None:
-        return neutral, triangles, deltas
+        return neutral, triangles, deltas, peak
     source.region, source.residue = sub, residue
-    return neutral[sub.vertices], sub.triangles, deltas
+    return neutral[sub.vertices], sub.triangles, deltas, None
 
 
 def _skel_roots(stage):

@@ -271,7 +271,7 @@ def _packed_generic(rig: FaceRig, names: list[str]):
     if (rig.source is None or list(names) != list(rig.names) or rig.deltas.dtype != np.float64
             or rig.deltas.nbytes < PACK_BYTES):
         return None
-    return Float32Offsets.pack(rig.deltas, rig.source.to_internal[:3, :3])
+    return Float32Offsets.pack(rig.deltas, rig.source.to_internal[:3, :3], peak=rig.peak_motion())
 
 
 def _split_rig(rig: FaceRig, keep) -> tuple[FaceRig, FaceRig]:
@@ -434,8 +434,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             avatar, whole_face, face, beyond, reached = _split_beyond_reach(avatar, face, reached, regions)
             avatar_face_deltas = _shape_deltas(face, names, view=True)
             rest = np.flatnonzero(~reached)
-        # the face's peak motion, once for both registrations (the person's and the template's)
-        face_peak = peak_motion(avatar_face_deltas)
+        # the face's peak motion, once for both registrations (the person's and the template's): the rig's
+        # own when every shape is personalized (computed once, :meth:`usdface.model.FaceRig.peak_motion`)
+        face_peak = (face.peak_motion() if len(set(names)) == face.n_shapes
+                     else peak_motion(avatar_face_deltas))
         face_landmarks = motion_landmarks(face.neutral, avatar_face_deltas)         # the same for both too
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
@@ -734,7 +736,7 @@ def _split_beyond_reach(avatar: Avatar, face: FaceRig, reached, regions: dict):
     ``regions`` updated with the face's crop). Returns ``(avatar, whole_face, face, beyond, reached)``: the
     avatar with the reached face and the piece beyond as two meshes, the face mesh cropped whole (joined back
     before the write) and ``reached`` on its vertices."""
-    keep = reached | moving_vertices(peak_motion(face.deltas), face.neutral)
+    keep = reached | moving_vertices(face.peak_motion(), face.neutral)
     whole_face, region = crop_rig(face, keep, regions.get(face.key))
     if not region.whole:
         regions[face.key] = region

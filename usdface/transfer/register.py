@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import RegistrationError
-from ..motion import moving_vertices, peak_motion, shape_norms
+from ..motion import moving_vertices, peak_motion
 from ..natives import open3d
 
 #: ICP target sample spacing on the avatar surface, in placed capture edge lengths.
@@ -96,11 +96,16 @@ def motion_landmarks(neutral, deltas, *, power: float = 2.0) -> tuple[np.ndarray
     Returns ``(landmarks[K,3], strength[K])`` where strength is the shape's largest vertex motion (m); shapes
     that do not move get strength 0.
     """
-    mag = shape_norms(deltas)  # [K,n]
-    w = mag ** power
+    d = np.asarray(deltas, dtype=np.float64)
+    # one [K,n] array, its norms and their powers in place (at 225k vertices x 51 shapes each copy is 92 MB;
+    # the squares themselves are not the norms squared to the last bit, and the registration follows them)
+    w = np.einsum("knc,knc->kn", d, d)
+    np.sqrt(w, out=w)
+    top = w.max(axis=1)
+    w = np.square(w, out=w) if power == 2.0 else w ** power     # (``** 2`` is numpy's square)
     tot = w.sum(axis=1)
     lm = (w @ np.asarray(neutral)) / np.maximum(tot, 1e-300)[:, None]
-    return lm, np.where(tot > 0, mag.max(axis=1), 0.0)
+    return lm, np.where(tot > 0, top, 0.0)
 
 
 def similarity_from_pairs(src, dst, weights=None) -> Similarity:
