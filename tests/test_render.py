@@ -80,8 +80,8 @@ def test_render_functions_write_pngs(tmp_path):
     render_shapes(rig, ["slide"], tmp_path / "s.png", force=True)
     # a panel drawn at another weight says so (it showed the millimetres only: a trial's note)
     assert [ax.get_title() for ax in render_shapes(rig, ["bump"], weight=0.5).axes[1:2]] == [
-        f"bump at 0.5 ({500 * np.linalg.norm(rig.deltas[0], axis=1).max():.1f} mm)"]
-    assert render_shapes(rig, ["bump"]).axes[1].get_title().startswith("bump (")
+        f"bump at 0.5\n(max {500 * np.linalg.norm(rig.deltas[0], axis=1).max():.1f} mm)"]
+    assert render_shapes(rig, ["bump"]).axes[1].get_title().startswith("bump\n(max ")
     render_comparison(rig, rig, ["bump"], tmp_path / "c.png")
     render_heatmap(rig.neutral, rig.triangles, np.linalg.norm(rig.deltas[0], axis=1), tmp_path / "h.png")
     render_landmarks(rig.neutral, rig.triangles, [0, 5, 77], tmp_path / "l.png", labels=["a", "b", "c"])
@@ -111,7 +111,7 @@ def test_a_dense_mesh_is_drawn_decimated_with_the_full_mesh_figures(tmp_path):
     assert [ax.get_title() for ax in small.axes[:3]] == [ax.get_title() for ax in full.axes[:3]]
     shapes = render_shapes(rig, ["bump"], max_vertices=400)
     top = 1000 * np.linalg.norm(rig.deltas[0], axis=1).max()
-    assert shapes.axes[1].get_title() == f"bump ({top:.1f} mm)"                 # the full mesh's maximum
+    assert shapes.axes[1].get_title() == f"bump\n(max {top:.1f} mm)"           # the full mesh's maximum
     heat = render_heatmap(rig.neutral, rig.triangles, np.linalg.norm(rig.deltas[0], axis=1),
                           max_vertices=400)
     assert len(heat.axes[0].collections[0].get_paths()) < 1000
@@ -694,3 +694,42 @@ def test_the_comparison_panels_titles_do_not_run_into_each_other():
     titles = [ax.title.get_window_extent(renderer) for ax in fig.axes[:3]]
     for left, right in zip(titles, titles[1:], strict=False):
         assert left.x1 < right.x0, (left, right)
+
+
+def _panel_scales(fig):
+    """(title, colour-map norm) of every panel of ``fig`` drawn with values."""
+    out = []
+    for ax in fig.axes:
+        for coll in ax.collections:
+            if coll.norm.vmin is not None and ax.get_title():     # a neutral panel's has no scale
+                out.append((ax.get_title(), coll.norm))
+    return out
+
+
+def test_render_colours_run_from_zero_to_the_titles_maximum(inspected, tmp_path, monkeypatch):
+    """A trial (stop 42): ``render``'s shape panels had no colour bar and coloured from the smallest to the
+    largest visible triangle's mean (Pixar's targetC, 138.9 mm, drawn without its top colour), and
+    ``--compare``'s difference bar ended at 2.65 under a title of 2.89 mm. Every heat panel of the shapes,
+    ``--compare`` and ``--heatmap`` pictures now runs from 0 to the maximum its title states, with a bar."""
+    import re
+
+    from usdface import render
+
+    figures = []
+    real = render.save_figure
+    monkeypatch.setattr(render, "save_figure", lambda fig, out, force=False: (figures.append(fig),
+                                                                              real(fig, out, force))[1])
+    _avatar, out, _heat = inspected
+    for i, flags in enumerate([["--shapes", "jawOpen,eyeBlinkLeft"], ["--shapes", "jawOpen", "--compare"],
+                               ["--heatmap"]]):
+        assert main(["render", str(out), "-o", str(tmp_path / f"{i}.png"), "-q", *flags]) == 0
+    shapes, compare, heat = figures
+    for fig, expected in ((shapes, 2), (compare, 1), (heat, 1)):
+        bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+        assert len(bars) == expected                    # one colour bar per heat panel
+        scales = _panel_scales(fig)
+        assert len(scales) == expected
+        for title, norm in scales:
+            top = float(re.search(r"max ([0-9.]+) mm", title or fig.get_suptitle()).group(1))
+            assert norm.vmin == 0.0
+            assert norm.vmax == pytest.approx(top, abs=0.051)

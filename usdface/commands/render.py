@@ -286,7 +286,8 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
-                                  title=f"{rig.name}: personalized vs generic")
+                                  title=f"{rig.name}: personalized vs generic "
+                                        f"(max {1000 * rms.max():.2f} mm)")
     else:
         p.start(f"draw {args.output.name}")
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
