@@ -467,3 +467,23 @@ def test_evaluate_says_when_the_takes_hold_fewer_frames_than_asked(samples, tmp_
     assert main([*argv, "--frames", "50"]) == 0
     out = capsys.readouterr().out
     assert "warning: the takes hold 12 frame(s): 12 test frame(s) evaluated, not 50 (--frames)" in out
+
+
+def test_layout_plot_says_what_its_numbers_and_rounds_are(samples, tmp_path, monkeypatch):
+    """A trial (stop 42): ``landmarks AVATAR --multicover 3 --plot lm.png`` printed a number beside every
+    dot with nothing saying what it counts, and its 'multi-cover round' bar read 1.25, 1.75, 2.25 ...; the
+    picture now says the number is the shapes a landmark represents, and the bar has whole rounds only."""
+    from usdface.landmarks import plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, force: figures.append(fig))
+    assert main(["landmarks", str(samples / "avatar.usda"), "--rays", "4", "--symmetric", "--multicover", "3",
+                 "--plot", str(tmp_path / "lm.png"), "-q"]) == 0
+    (fig,) = figures
+    ax = fig.axes[0]
+    assert "shapes it represents" in ax.get_xlabel() and "symmetric" in ax.get_xlabel()
+    numbers = [int(t.get_text()) for t in ax.texts]
+    assert numbers and all(n >= 1 for n in numbers)
+    (bar,) = fig.axes[1:]
+    ticks = bar.get_yticks()
+    assert len(ticks) >= 2 and np.allclose(ticks, np.round(ticks))

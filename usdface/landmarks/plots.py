@@ -32,8 +32,13 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
                     zorder=3)
     for i, n in zip(v, np.asarray(layout.coverage).sum(axis=1), strict=True):
         ax.annotate(str(int(n)), p[i, :2], fontsize=6, xytext=(3, 3), textcoords="offset points")
-    if np.asarray(layout.rounds).max(initial=1) > 1:
-        fig.colorbar(sc, ax=ax, label="multi-cover round")
+    rounds = int(np.asarray(layout.rounds).max(initial=1))
+    if rounds > 1:
+        # whole rounds only: the bar's default ticks read 1.25, 1.75, 2.25 ... (a trial's note)
+        fig.colorbar(sc, ax=ax, label="multi-cover round", ticks=np.arange(1, rounds + 1))
+    # what the figure beside each dot is: a trial's TD could not tell (a vertex index? a rank?)
+    ax.set_xlabel("number beside a landmark: the shapes it represents"
+                  + ("; symmetric layout" if getattr(layout, "symmetric", False) else ""), fontsize=8)
     if v.size:  # frame the face around the landmarks
         lo, hi = p[v, :2].min(axis=0), p[v, :2].max(axis=0)
         pad = 0.4 * max(float((hi - lo).max()), 1e-3)
