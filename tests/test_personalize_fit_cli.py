@@ -342,3 +342,23 @@ def test_fit_refusal_names_the_flags_the_user_typed(samples, tmp_path, capsys, a
     if takes:
         assert f"takes {takes}" in err, err
     assert not out.exists()
+
+
+def test_python_m_usdface_cli_records_the_whole_command(samples, tmp_path):
+    """A trial (stop 42): ``python -m usdface.cli fit CAPTURE -o "my rig.usda"`` recorded the command as
+    ``usdface`` alone (``inspect``: ``command 'usdface'``; the review page likewise): run as ``__main__`` the
+    module was a second copy of ``usdface.cli`` whose parsed arguments the provenance never saw."""
+    import os
+    import subprocess
+    import sys
+
+    from pxr import Sdf
+
+    out = tmp_path / "my rig.usda"
+    res = subprocess.run([sys.executable, "-m", "usdface.cli", "fit", str(samples / "capture.usda"), "-o",
+                          out.name, "--method", "dt", "-q"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600, env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                             [str(ROOT), os.environ.get("PYTHONPATH", "")])})
+    assert res.returncode == 0, res.stderr
+    command = Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]["command"]
+    assert command.startswith("usdface fit ") and "'my rig.usda'" in command and "--method dt" in command

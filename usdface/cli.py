@@ -654,4 +654,9 @@ def os_error_text(exc: OSError, output_option: bool = True) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # ``python -m usdface.cli``: this file runs as ``__main__``, a second copy of the module beside the
+    # ``usdface.cli`` the commands import; its ``main`` kept the parsed arguments where
+    # ``commands.command_line`` never looked, and every layer recorded its command as ``usdface`` alone
+    from usdface.cli import main as _main
+
+    sys.exit(_main())
