@@ -626,3 +626,15 @@ def test_personalized_count_agrees_with_the_review_page(bench, tmp_path):
     dry = _usdface_cli("personalize", case / "avatar.usdc", case / "capture", "--dry-run", "-q", cwd=tmp_path)
     assert dry.returncode == 0, dry.stderr
     assert " 0 vertices" not in dry.stdout and f"{said} of 101 BlendShapes would change" in dry.stdout
+
+
+def test_page_registration_figures_are_rounded_with_units(review):
+    """A trial (stop 42): the review page's registration table showed ``fitness 0.9983779399837794``, a
+    bare 16-digit fraction beside figures in mm and degrees; it is a percentage of capture points matched."""
+    html = review.read_text()
+    start = html.index("registration (capture")
+    reg = html[start:html.index("</table>", start)]
+    fitness = re.search(r"<th>fitness</th><td>([^<]*)</td>", reg).group(1)
+    assert re.fullmatch(r"\d{1,3}\.\d % of capture points matched", fitness), fitness
+    for cell in re.findall(r"<td>([^<]*)</td>", reg):
+        assert not re.search(r"\d\.\d{5,}", cell), cell              # no unrounded figure

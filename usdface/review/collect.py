@@ -96,9 +96,10 @@ def _provenance_tables(info: dict) -> list[tuple[str, list[tuple[str, str]]]]:
         for key, label in (("residual_m", "ICP residual"), ("max_distance_m", "max distance")):
             if key in reg:
                 rows.append((label, _mm(reg[key])))
-        for key in ("fitness", "initialiser"):
-            if key in reg:
-                rows.append((key, str(reg[key])))
+        if "fitness" in reg:   # ICP's share of capture points with an avatar point in reach (was 0.99837...)
+            rows.append(("fitness", f"{float(reg['fitness']) * 100:.1f} % of capture points matched"))
+        if "initialiser" in reg:
+            rows.append(("initialiser", str(reg["initialiser"])))
         tables.append(("registration (capture -> avatar)", rows))
     cor = info.get("correspondence") or {}
     if cor:
