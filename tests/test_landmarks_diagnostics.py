@@ -138,3 +138,28 @@ def test_render_refuses_visibility_options_nothing_would_use(samples, tmp_path, 
         assert main(["render", avatar, "-o", str(out), "-q", *extra]) == 2
         assert said in capsys.readouterr().err
         assert not out.exists()
+
+
+def test_render_diagnostics_rings_the_landmark_fig5_shows(samples, tmp_path, monkeypatch):
+    """A trial (stop 42): the Fig. 5 panel was titled 'weights of landmark 1121' (a vertex index) over a
+    dozen identical dots, so a TD could not tell which landmark the weights were of; that one is ringed."""
+    import re
+
+    from usdface import render
+    from usdface.io.usd_rig import read_avatar
+
+    figures = []
+    monkeypatch.setattr(render, "save_figure", lambda fig, out, force=False: figures.append(fig))
+    avatar = samples / "avatar.usda"
+    assert main(["render", str(avatar), "--landmarks", "--diagnostics", "--rays", "4", "-q",
+                 "-o", str(tmp_path / "d.png")]) == 0
+    (fig,) = figures
+    panels = [ax for ax in fig.axes if ax.get_title()]
+    fig5 = panels[-1]
+    vertex = int(re.search(r"ringed landmark \((\d+)\)", fig5.get_title()).group(1))
+    head = read_avatar(avatar).mesh("Head")
+    rings = [c for c in fig5.collections if len(c.get_facecolors()) == 0 and c.get_offsets().shape[0] == 1]
+    assert len(rings) == 1
+    np.testing.assert_allclose(rings[0].get_offsets()[0], head.neutral[vertex, :2])   # the front view: x, y
+    for ax in panels[:-1]:                                    # the other panels ring nothing
+        assert not [c for c in ax.collections if len(c.get_facecolors()) == 0]

@@ -371,7 +371,8 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
                                 force: bool = False, title: str | None = None, crop=None,
                                 max_vertices: int | None = None):
     """Heat maps of per-vertex diagnostics with the landmarks ``indices[m]`` dotted on each (Zell & McDonnell
-    2022, Figs. 3 and 5). ``panels``: a list of ``(title, values[n], colour map, vmin, vmax)``; NaN values
+    2022, Figs. 3 and 5). ``panels``: a list of ``(title, values[n], colour map, vmin, vmax)``, optionally
+    with a sixth item, a landmark vertex to ring on that panel (Fig. 5's); NaN values
     (not evaluated) are drawn as plain skin. ``crop[v]``: vertex indices the view is framed on (default all).
     Returns the figure; saved to ``out`` when given."""
     points = np.asarray(points, dtype=np.float64)
@@ -379,7 +380,7 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
     fig, axes = _figure(len(panels), ncols=min(len(panels), 3), size=4.0)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     display = display_mesh(points, tri, max_vertices)
-    for ax, (name, values, cmap, vmin, vmax) in zip(axes, panels, strict=True):
+    for ax, (name, values, cmap, vmin, vmax, *ringed) in zip(axes, panels, strict=True):
         values = np.asarray(values, dtype=np.float64).ravel()
         if values.shape[0] != len(points):
             raise UsdFaceError(f"{values.shape[0]} values for {len(points)} vertices in panel {name!r}",
@@ -388,6 +389,10 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
                          display=display, crop=crop, pad=0.06 if crop is not None and len(crop) else 0.04)
         fig.colorbar(coll, ax=ax, shrink=0.7)
         _landmark_dots(ax, points, tri, indices, view)
+        if ringed:
+            ring = (points[_check_landmarks(points, ringed[:1])] @ VIEWS[view].T)[:, :2]
+            ax.scatter(ring[:, 0], ring[:, 1], s=160, facecolors="none", edgecolors="#00c8ff", linewidths=2.0,
+                       zorder=4)
         ax.set_title(name, fontsize=9)
     if title:
         fig.suptitle(title)

@@ -115,7 +115,8 @@ def diagnostic_panels(diagnostics: LandmarkDiagnostics, vertices, names) -> list
     """The pictures of ``usdface render --landmarks --diagnostics``: ``(title, values[n], colour map, vmin,
     vmax)`` per panel, for the layout ``vertices[m]`` and shape ``names[K]``: neutral and global visibility
     (eq. 4), what the expressions hide, the relative displacement (eq. 2), the best importance weight
-    (eq. 1) and Fig. 5's normalised weights of the landmark that represents the most shapes."""
+    (eq. 1) and Fig. 5's normalised weights of the landmark that represents the most shapes (its panel has a
+    sixth item: that landmark's vertex, ringed in the picture)."""
     d = diagnostics
     v = np.asarray(vertices, dtype=np.int64).ravel()
     panels = [
@@ -133,6 +134,8 @@ def diagnostic_panels(diagnostics: LandmarkDiagnostics, vertices, names) -> list
         best = int(v[int(np.argmax(counts))])
         ks = np.flatnonzero(d.c[:, best])
         label = ", ".join(names[k] for k in ks[:2]) + (f" +{ks.size - 2}" if ks.size > 2 else "")
-        panels.append((f"Fig. 5: weights of landmark {best}\n({label}), normalised",
-                       landmark_importance(d, ks), "magma_r", 0.0, 1.0))
+        # the landmark ringed on its panel (a sixth item): the title named a vertex index, and a TD could
+        # not tell which of the dots it was
+        panels.append((f"Fig. 5: weights of the ringed landmark ({best})\n({label}), normalised",
+                       landmark_importance(d, ks), "magma_r", 0.0, 1.0, best))
     return panels
