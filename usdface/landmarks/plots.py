@@ -25,7 +25,11 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
     round and labelled with the number of shapes each represents -> PNG at ``path``."""
     p = np.asarray(neutral)
     v = np.asarray(layout.vertices, dtype=np.int64)
-    front = p[:, 2] > np.percentile(p[:, 2], 40)
+    front = p[:, 2] > np.percentile(p[:, 2], 40)        # a head: its face half, not the back of it
+    if np.ptp(p[:, 2]) < 0.25 * max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1]))):
+        # a thin mesh (a mask, Pixar's blend-shape test plane) has no back: every point (the 40 % cut drew
+        # a flat plane's landmark off the points drawn, or no point at all)
+        front = np.ones(len(p), dtype=bool)
     fig, ax = _subplots((5, 6))
     ax.scatter(p[front, 0], p[front, 1], s=0.3, color="0.75")
     sc = ax.scatter(p[v, 0], p[v, 1], c=np.asarray(layout.rounds), cmap="autumn", s=40, edgecolors="k",
@@ -41,6 +45,9 @@ def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout
                   + ("; symmetric layout" if getattr(layout, "symmetric", False) else ""), fontsize=8)
     if v.size:  # frame the face around the landmarks
         lo, hi = p[v, :2].min(axis=0), p[v, :2].max(axis=0)
+        if float((hi - lo).max()) <= 1e-9:
+            # one landmark (or all on one point): the frame was 0.4 mm around it, a dot on a blank panel
+            lo, hi = p[front, :2].min(axis=0), p[front, :2].max(axis=0)
         pad = 0.4 * max(float((hi - lo).max()), 1e-3)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
