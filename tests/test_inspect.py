@@ -335,6 +335,8 @@ def test_a_file_without_blend_shapes_is_described_not_refused(shared, capsys):
     assert "mesh /root/Armature/Grid/Grid: 121 vertices, 100 faces, no blend shapes, skinned by " \
            "/root/Armature/Armature_001" in out and "skeleton /root/Armature/Armature_001: 2 joints" in out
     assert "no mesh with blend shapes" in out and "fix: export the avatar with its shape keys" in out
+    # as an avatar's (stop 42: 'metersPerUnit 1.0, upAxis Z, defaultPrim root')
+    assert "  units: metersPerUnit 1.0 (m), upAxis Z, defaultPrim /root" in out.splitlines()
     assert main(["inspect", "--json", str(path)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["ok"] and doc["kind"] == "meshes without blend shapes" and doc["metersPerUnit"] == 1.0

@@ -420,9 +420,7 @@ def format_report(report: dict) -> str:
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
     if kind == NO_BLEND_SHAPES:
-        mpu = report["metersPerUnit"]
-        lines.append(f"  units: metersPerUnit {mpu}, upAxis {report['upAxis']}, "
-                     f"defaultPrim {report.get('defaultPrim')}")
+        lines.append(_units_line(report))
         for note in report.get("notes", []):
             lines.append(f"  note: {note}")
         for mesh in report["meshes"]:
@@ -459,10 +457,7 @@ def format_report(report: dict) -> str:
         lines.append(f"  shapes: {report['shapes']} (template {report['templateShapes']})")
         lines += _arkit_lines(report["arkit"])
         return "\n".join(lines)
-    mpu = report["metersPerUnit"]
-    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(mpu, f"{mpu} m")
-    lines.append(f"  units: metersPerUnit {mpu} ({unit}), upAxis {report['upAxis']}, "
-                 f"defaultPrim {report.get('defaultPrim')}")
+    lines.append(_units_line(report))
     flat = report.get("flattened")
     if flat:      # it read as a usdface layer, and nothing said its shapes were the personalized ones
         what = ("the person's shapes baked in: personalize refuses it as the avatar"
@@ -570,3 +565,15 @@ def _channel_lines(channels: list[dict]) -> list[str]:
         else:
             lines.append(f"      {c['channel']}: unmapped (not an ARKit shape; map it with --name-map)")
     return lines
+
+
+def _units_line(report: dict) -> str:
+    """The ``units:`` line of an avatar and of a file without blend shapes alike: the latter printed
+    ``metersPerUnit 1.0, ... defaultPrim root`` where an avatar prints ``metersPerUnit 1.0 (m), ...
+    defaultPrim /root`` (a trial's note, stop 42)."""
+    mpu = report["metersPerUnit"]
+    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(mpu, f"{mpu} m")
+    prim = report.get("defaultPrim")
+    if isinstance(prim, str) and prim and not prim.startswith("/"):
+        prim = "/" + prim                                   # the root layer's defaultPrim is a name
+    return f"  units: metersPerUnit {mpu} ({unit}), upAxis {report['upAxis']}, defaultPrim {prim}"
