@@ -332,10 +332,25 @@ def test_render_landmarks_draws_the_mesh_the_layout_is_on(samples, tmp_path, cap
     "no landmark layout for mesh 'Head' (fix: run 'usdface landmarks' first)" of a file that has one, and
     ``--diagnostics`` computed a new Head layout instead of drawing the authored one. Without --mesh the
     mesh that carries the layout is drawn; an explicit other mesh names the one the file has."""
+    import re
+
     lm = tmp_path / "mouth_lm.usda"
     assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Mouth", "-o", str(lm), "-q"]) == 0
     capsys.readouterr()
-    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    from usdface import render
+
+    figures = []
+    real = render.save_figure
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(render, "save_figure", lambda fig, out, force=False: (figures.append(fig),
+                                                                         real(fig, out, force))[1])
+        assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png")]) == 0
+    # the picture names the file it drew (stop 42: 'Mouth: 3 landmarks', where the shapes picture names it)
+        assert main(["render", str(lm), "--landmarks", "--view", "left", "-o", str(tmp_path / "s.png")]) == 0
+    front, side = (f.axes[0].get_title() for f in figures)
+    assert front.startswith("mouth_lm.usda\nMouth: ") and "far side" not in front
+    # the side view says how many of the title's landmarks it cannot show (the note was dropped with a title)
+    assert re.search(r"Mouth: \d+ landmarks \(\d+ on the far side\)$", side), side
     assert main(["render", str(lm), "--landmarks", "--diagnostics", "-o", str(tmp_path / "d.png"), "-q"]) == 0
     out = capsys.readouterr().out
     assert "Mouth: " in out and "landmarks (authored)" in out

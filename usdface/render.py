@@ -335,7 +335,9 @@ def render_landmarks(points, triangles, indices, out=None, *, labels=None, view:
     hidden = _landmark_dots(axes[0], points, triangles, indices, view, labels, colour="#1f77b4",
                             edge="white")
     far = f" ({hidden} on the far side)" if hidden else ""
-    axes[0].set_title(title or f"{indices.size} landmarks{far}")
+    # the far-side note with a title given too: 'render --landmarks --view left' titled 'Head: 10 landmarks'
+    # over the 6 dots a side view shows, and nothing said where the others were (stop 42)
+    axes[0].set_title((title or f"{indices.size} landmarks") + far)
     if out is not None:
         save_figure(fig, out, force)
     return fig

@@ -254,7 +254,9 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                      f"draw that file: {write}") if others else write_one)
         p.start(f"draw {args.output.name}")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
-                                force=args.force, title=f"{rig.name}: {len(layouts[key])} landmarks")
+                                force=args.force,
+                                # the file's name, as the shapes picture's 'avatar.usdc: Head' (stop 42)
+                                title=f"{path.name}\n{rig.name}: {len(layouts[key])} landmarks")
     elif args.compare is not None or args.heatmap is not None:
 
         from ..io.layers import refuse_avatar_mismatch, stale_inputs
