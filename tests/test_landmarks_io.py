@@ -517,3 +517,29 @@ def test_layout_plot_of_a_flat_mesh_with_one_landmark_shows_the_mesh(tmp_path, m
     assert len(mesh.get_offsets()) == n * n                    # the whole plane drawn
     (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
     assert x1 - x0 >= 0.2 and y1 - y0 >= 0.2                    # the view holds the 20 cm plane, not 0.4 mm
+
+
+def test_layout_plot_of_a_mask_draws_every_point_that_faces_the_viewer(tmp_path, monkeypatch):
+    """A trial (stop 42): ``landmarks rig.usda --plot`` of a ``usdface fit`` rig (the capture mask, an open
+    surface with no back) drew only the front 60 % of its points in Z, its cheeks half empty. The points drawn
+    are those whose normal faces the viewer: all of a mask, the face side of a head."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.landmarks import plots
+    from usdface.model import FaceRig
+
+    n = 15                                           # a hemispherical cap facing +Z, 10 cm radius
+    u, v = np.meshgrid(np.linspace(-0.07, 0.07, n), np.linspace(-0.07, 0.07, n))
+    neutral = np.c_[u.ravel(), v.ravel(), np.sqrt(0.01 - u.ravel() ** 2 - v.ravel() ** 2)]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
+    a = (j * n + i).ravel()
+    tris = np.r_[np.c_[a, a + 1, a + n], np.c_[a + 1, a + n + 1, a + n]]
+    shapes = np.zeros((2, n * n, 3))
+    shapes[0, :, 2] = 0.01 * (neutral[:, 0] > 0.03)
+    shapes[1, :, 2] = 0.01 * (neutral[:, 0] < -0.03)
+    rig = FaceRig(neutral, tris, ["eyeBlinkLeft", "eyeBlinkRight"], shapes, name="FaceMask")
+    avatar = write_rig_usd(rig, tmp_path / "mask.usda")
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, force: figures.append(fig))
+    assert main(["landmarks", str(avatar), "--rays", "4", "--plot", str(tmp_path / "m.png"), "-q"]) == 0
+    (fig,) = figures
+    assert len(fig.axes[0].collections[0].get_offsets()) == n * n

@@ -219,7 +219,7 @@ def run(args) -> int:
             from ..landmarks.plots import plot_layout
 
             plot_layout(rig.neutral, layout, args.plot, title=f"{Path(args.avatar).name} {rig.name}",
-                        force=args.force)
+                        force=args.force, triangles=rig.triangles)
             done["plot"] = Path(args.plot)
     print(f"{mesh}: {layout.count} landmarks for {len(rig.names)} shapes (epsilon {layout.epsilon:g}, "
           f"alpha {layout.alpha:g}, {layout.weighting}); solver {layout.backend} {layout.status}, "

@@ -20,13 +20,23 @@ def _subplots(figsize):
 
 
 def plot_layout(neutral: np.ndarray, layout, path, title: str = "Landmark layout",
-                force: bool = False) -> None:
+                force: bool = False, triangles: np.ndarray | None = None) -> None:
     """Front view (X right, Y up) of ``neutral[n, 3]`` with the layout's landmarks coloured by multi-cover
-    round and labelled with the number of shapes each represents -> PNG at ``path``."""
+    round and labelled with the number of shapes each represents -> PNG at ``path``. With the mesh's
+    ``triangles[t, 3]`` the points drawn are those whose normal faces the viewer (+Z); without, the front
+    60 % in Z (all of a thin mesh)."""
     p = np.asarray(neutral)
     v = np.asarray(layout.vertices, dtype=np.int64)
     front = p[:, 2] > np.percentile(p[:, 2], 40)        # a head: its face half, not the back of it
-    if np.ptp(p[:, 2]) < 0.25 * max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1]))):
+    facing = None
+    if triangles is not None and len(triangles):
+        from ..mesh import vertex_normals
+
+        # a capture mask (no back to hide) lost 40 % of its points, its cheeks drawn half empty
+        facing = vertex_normals(p, np.asarray(triangles, dtype=np.int64).reshape(-1, 3))[:, 2] > 0.0
+    if facing is not None and facing.mean() >= 0.1:     # not a mesh wound the other way round
+        front = facing
+    elif np.ptp(p[:, 2]) < 0.25 * max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1]))):
         # a thin mesh (a mask, Pixar's blend-shape test plane) has no back: every point (the 40 % cut drew
         # a flat plane's landmark off the points drawn, or no point at all)
         front = np.ones(len(p), dtype=bool)
