@@ -353,3 +353,18 @@ def test_sample_json_still_draws_the_picture(tmp_path):
     doc = json.loads(res.stdout)
     assert doc["ok"] and Path(doc["picture"]).name == "s5.png"
     assert (tmp_path / "s5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sample_picture_heads_fill_their_panels(tmp_path):
+    """A trial (stop 42): ``sample out --picture p.png`` drew each head in about a quarter of its panel (the
+    3D axes' margins: the head half the picture's height); it is two thirds of it now, nothing cut off."""
+    import matplotlib.image
+
+    assert main(["sample", str(tmp_path / "s"), "--picture", str(tmp_path / "p.png"), "-q"]) == 0
+    image = matplotlib.image.imread(tmp_path / "p.png")[:, :, :3]
+    height, width = image.shape[:2]
+    panel = (image[:, : width // 5] < 0.9).any(axis=2)          # the neutral's panel, ink where not white
+    panel[:60] = False                                          # its title
+    rows, cols = np.flatnonzero(panel.any(axis=1)), np.flatnonzero(panel.any(axis=0))
+    assert rows.max() - rows.min() >= 0.6 * height, (rows.min(), rows.max(), height)
+    assert rows.max() < height - 5 and cols.min() > 5 and cols.max() < width // 5 - 5   # not cut off
