@@ -812,3 +812,16 @@ def test_two_personalized_layers_stacked_in_a_shot_are_warned_about(personalized
     one = tmp_path / "one.usda"
     one.write_text(head + f"    subLayers = [@{personalized_sample}@]\n)\n")
     assert check(Usd.Stage.Open(str(one)), rules="Provenance") == []
+
+
+def test_check_says_an_error_map_file_is_not_an_avatar(samples, tmp_path, capsys):
+    """A trial (stop 42): ``check errors.usda`` of ``evaluate --usd``'s error maps printed '0 error(s),
+    0 warning(s), 0 info', a pass of a file that is no avatar, where a take or a capture is said to be one;
+    it is told, with the command that summarises it."""
+    maps = tmp_path / "errors.usda"
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt", "--usd", str(maps), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["check", str(maps)]) == 0
+    out = capsys.readouterr().out
+    assert "error-map file ('usdface evaluate --usd'), not an avatar" in out and "1 info" in out
+    assert "usdface inspect FILE" in out

@@ -711,6 +711,14 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         yield Issue(INFO, "Readable", "/", f"this is a usdface {kind}, not an avatar: check judges avatars "
                     "and usdface layers", f"usdface inspect FILE summarises the {kind}")
         return
+    recorded = dict(layer.customLayerData or {}).get("usdface")
+    if hasattr(recorded, "get") and recorded.get("format") == "errorMaps":
+        # 'usdface evaluate --usd': '0 error(s), 0 warning(s), 0 info' read as a pass of a file that is none
+        # of the things check judges (a trial, stop 42), as a capture's is said
+        yield Issue(INFO, "Readable", "/", "this is a usdface error-map file ('usdface evaluate --usd'), not "
+                    "an avatar: check judges avatars and usdface layers",
+                    "usdface inspect FILE summarises the error maps")
+        return
     if not _blend_shape_meshes(stage):
         from pxr import Usd, UsdGeom, UsdSkel
 
