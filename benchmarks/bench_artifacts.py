@@ -18,17 +18,21 @@ Measures (pure numpy on ``offsets[K,n,3]``, metres):
 - Mouth rigidity: per shape, the residual (mm) of the best rigid motion (Kabsch) of the Mouth's moving body
   (the vertices the generic shape moves by more than 10 % of its peak: lower teeth, gums and tongue under
   the jaw shapes) and of each connected piece that is not in it (an upper tooth must not be dragged), for
-  out, generic and truth.
+  out, generic and truth; and (``affine``) the residual of the best affine map from the generic pose in
+  the same pieces (a uniform change of the jaw's motion - it opens 4 % less: what a linear rig does at a
+  weight below 1, and what dev3's truth does - is not a tear; what is left is).
 
 A value is FLAGGED (:func:`flag`) when, for that shape, the personalized value exceeds ``FACTOR`` (2) times
 the larger of the generic's and the truth's at the same edge/vertex (the output is twice as rough as both
 references there), AND exceeds the 99.9th percentile over the mesh of the references' values for that
 shape (``max(generic, truth)`` per element: as rough as the roughest 0.1 % of what the artist or the person
-has anywhere in that shape), AND the jump is above ``FLOOR_MM`` (0.02 mm, the float32 rounding of the
-files is 1e-5 mm). A flagged element is an artifact of the method: the truth does not have it. Beside the
-counts, the table gives the roughest personalized element relative to the shape's percentile (where the
-output is roughest) and who has that feature: ``person`` when the truth's value there is at least half the
-output's, ``generic`` when the generic's is, else ``new``.
+has anywhere in that shape), AND the jump (spike, residual) is above ``FLOOR_MM`` (0.05 mm: less does not
+show on a face; the float32 rounding of the files is 1e-5 mm). A flagged element is an artifact of the
+method: neither the artist nor the person has it. :func:`score` puts the three tests in one number, flagged
+when > 1; the table gives per mesh and kind the count of flagged elements (all shapes) and the element of
+largest score (the one nearest to, or furthest past, the bar) with who has that feature there:
+``person`` when the truth's value there is at least half the output's, ``generic`` when the generic's is,
+else ``new``.
 
 Where: ``mask`` = the vertices the capture covers (bench: Head 0-6705; generated: ``covered_vertices``),
 ``band`` = within two edge rings of the mask's border (the seam figure's edges), ``face`` = the rest of the
@@ -54,8 +58,8 @@ from usdface.transfer.scoring import border_band_edges
 FACTOR = 2.0
 #: ... and above this percentile (over the mesh, per shape) of the references' values
 PERCENTILE = 99.9
-#: ... and the jump / spike is above this (mm): below it nothing shows
-FLOOR_MM = 0.02
+#: ... and the jump / spike / residual is above this (mm): below it nothing shows
+FLOOR_MM = 0.05
 #: a Mouth vertex is in the shape's moving body when its generic motion exceeds this fraction of the peak
 BODY = 0.1
 
@@ -94,13 +98,23 @@ def flag(out, generic, truth=None, size=None, *, factor: float = FACTOR, percent
     ``factor`` times the larger reference (``generic``, ``truth``: ``[K,e]``, truth optional) at the same
     element, exceeds the ``percentile`` over the elements of the references' values in that shape, and
     ``size[K,e]`` (the jump or spike in the offsets' units; default ``out``) is above ``floor``."""
+    return score(out, generic, truth, size, factor=factor, percentile=percentile, floor=floor) > 1.0
+
+
+def score(out, generic, truth=None, size=None, *, factor: float = FACTOR, percentile: float = PERCENTILE,
+          floor: float = FLOOR_MM * 1e-3) -> np.ndarray:
+    """``[K,e]`` how far each element is from the bar of :func:`flag` (flagged when > 1):
+    ``min(out / max(factor x reference, percentile of the references), size / floor)``."""
     ref = np.asarray(generic, dtype=np.float64)
     if truth is not None:
         ref = np.maximum(ref, np.asarray(truth, dtype=np.float64))
     out = np.asarray(out, dtype=np.float64)
     size = out if size is None else np.asarray(size, dtype=np.float64)
     level = np.percentile(ref, percentile, axis=1, keepdims=True) if ref.shape[1] else ref[:, :0]
-    return (out > factor * ref) & (out > level) & (size > floor)
+    bar = np.maximum(factor * ref, level)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        over = np.where(bar > 0, out / np.where(bar > 0, bar, 1.0), np.where(out > 0, np.inf, 0.0))
+    return np.minimum(over, size / floor)
 
 
 def rigid_residual(points, offsets, groups) -> np.ndarray:
@@ -132,6 +146,29 @@ def rigid_residual(points, offsets, groups) -> np.ndarray:
     return out
 
 
+def affine_residual(source, target, groups) -> np.ndarray:
+    """``[n]`` distance of each ``target[n,3]`` point from the best affine map (least squares) of its
+    group's ``source[n,3]`` points, ``groups[n]`` int labels (negative: not scored, 0). With the generic
+    pose as the source: what is left of a Mouth shape once any uniform change of the generic motion (a jaw
+    that opens 4 % less, as a linear rig's weight below 1 does) is taken out - a tear or a crease."""
+    p = np.asarray(source, dtype=np.float64)
+    q = np.asarray(target, dtype=np.float64)
+    g = np.asarray(groups)
+    keep = g >= 0
+    out = np.zeros(len(p))
+    if not keep.any():
+        return out
+    _, gi = np.unique(g[keep], return_inverse=True)
+    G, m = int(gi.max()) + 1, int(keep.sum())
+    S = sp.csr_matrix((np.ones(m), (gi, np.arange(m))), shape=(G, m))
+    a = np.column_stack([p[keep], np.ones(m)])                                         # [m,4]
+    M = (S @ np.einsum("ni,nj->nij", a, a).reshape(m, 16)).reshape(G, 4, 4)
+    B = (S @ np.einsum("ni,nj->nij", a, q[keep]).reshape(m, 12)).reshape(G, 4, 3)
+    coef = np.einsum("gij,gjk->gik", np.linalg.pinv(M), B)                           # [G,4,3]
+    out[keep] = np.linalg.norm(np.einsum("ni,nij->nj", a, coef[gi]) - q[keep], axis=-1)
+    return out
+
+
 def mouth_groups(generic, triangles) -> np.ndarray:
     """``[K,n]`` int: per shape of ``generic[K,n,3]`` the rigid pieces of the Mouth: 0 = the moving body
     (generic motion above :data:`BODY` of the shape's peak: the jaw's teeth, gums and tongue move as one),
@@ -146,12 +183,19 @@ def mouth_groups(generic, triangles) -> np.ndarray:
     return np.where(body, 0, 1 + piece[None, :])
 
 
-def mouth_rigidity(points, triangles, generic, sets: dict) -> dict:
-    """``{label: [K,n]}`` the non-rigid residual (same units as the offsets) of each offset set
-    ``sets[label][K,n,3]`` in the Mouth's rigid pieces (:func:`mouth_groups` of ``generic``)."""
+def mouth_rigidity(points, triangles, generic, sets: dict) -> tuple[dict, dict]:
+    """``({label: [K,n]}, {label: [K,n]})``: per offset set ``sets[label][K,n,3]`` the non-rigid residual
+    (same units as the offsets) in the Mouth's rigid pieces (:func:`mouth_groups` of ``generic``), and the
+    residual of the best affine map from the generic pose ``points + generic`` in the same pieces
+    (:func:`affine_residual`; 0 for the generic itself)."""
     groups = mouth_groups(generic, triangles)
-    return {label: np.stack([rigid_residual(points, d[k], groups[k]) for k in range(len(d))])
-            for label, d in sets.items()}
+    x = np.asarray(points, dtype=np.float64)
+    g = np.asarray(generic, dtype=np.float64)
+    rigid = {label: np.stack([rigid_residual(x, d[k], groups[k]) for k in range(len(d))])
+             for label, d in sets.items()}
+    affine = {label: np.stack([affine_residual(x + g[k], x + d[k], groups[k]) for k in range(len(d))])
+              for label, d in sets.items()}
+    return rigid, affine
 
 
 @dataclass
@@ -165,7 +209,7 @@ class Finding:
     out_mm: float
     generic_mm: float
     truth_mm: float
-    score: float        # out / max(FACTOR x reference here, the shape's percentile): > 1 flagged
+    score: float        # :func:`score` of that element: > 1 flagged
     where: str
     owner: str          # person / generic / new
     flagged: int        # how many elements of this kind are flagged on this mesh (all shapes)
@@ -188,18 +232,13 @@ def _regions(n, triangles, face, covered) -> np.ndarray:
 
 
 def _worst(kind, mesh, names, out, gen, tru, size_out, size_gen, size_tru, flags, where, index) -> Finding:
-    """The element nearest to being flagged: largest ``score = out / max(FACTOR x reference at the element,
-    the shape's percentile of the references)`` (> 1 on both counts when flagged), where the output moves
-    it more than the floor."""
-    ref = np.maximum(gen, tru) if tru is not None else gen
-    level = np.percentile(ref, PERCENTILE, axis=1, keepdims=True)
-    bar = np.maximum(np.maximum(FACTOR * ref, level), 1e-12)
-    score = np.where(size_out > FLOOR_MM * 1e-3, out / bar, 0.0)
-    k, e = np.unravel_index(int(np.argmax(score)), score.shape)
+    """The element nearest to being flagged (largest :func:`score`)."""
+    sc = score(out, gen, tru, size_out)
+    k, e = np.unravel_index(int(np.argmax(sc)), sc.shape)
     o, g = size_out[k, e] * 1e3, size_gen[k, e] * 1e3
     t = size_tru[k, e] * 1e3 if size_tru is not None else float("nan")
     owner = _owner(out[k, e], gen[k, e], tru[k, e] if tru is not None else None)
-    return Finding(mesh, kind, names[k], index(e), o, g, t, float(score[k, e]), where(e), owner,
+    return Finding(mesh, kind, names[k], index(e), o, g, t, float(sc[k, e]), where(e), owner,
                    int(flags.sum()))
 
 
@@ -226,11 +265,12 @@ def check_mesh(name, names, points, triangles, out, generic, truth, where=None) 
         found.append(_worst(kind, name, names, vals["out"][0], vals["gen"][0], tv[0], vals["out"][1],
                             vals["gen"][1], tv[1], flags, where_e, index))
     if name == "Mouth":
-        res = mouth_rigidity(points, triangles, generic, sets)
-        tr = res.get("tru")
-        flags = flag(res["out"], res["gen"], tr)
-        found.append(_worst("rigid", name, names, res["out"], res["gen"], tr, res["out"], res["gen"], tr,
-                            flags, at_vertex, str))
+        rigid, affine = mouth_rigidity(points, triangles, generic, sets)
+        for kind, res in (("rigid", rigid), ("affine", affine)):
+            tr = res.get("tru")
+            flags = flag(res["out"], res["gen"], tr)
+            found.append(_worst(kind, name, names, res["out"], res["gen"], tr, res["out"], res["gen"], tr,
+                                flags, at_vertex, str))
     return found
 
 
@@ -263,7 +303,8 @@ def main(argv=None) -> int:
              or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir())]
     print(f"flagged: out > {FACTOR:g} x max(generic, truth) at the element, > the shape's {PERCENTILE:g}th "
           f"percentile of max(generic, truth), jump > {FLOOR_MM:g} mm; "
-          f"worst: the largest score = out / max({FACTOR:g} x reference there, that percentile): > 1 flagged")
+          f"worst: the largest score = min(out / max({FACTOR:g} x reference there, that percentile), "
+          f"jump / {FLOOR_MM:g} mm): > 1 flagged")
     print(f"{'case':9} {'mesh':6} {'kind':6} {'flagged':>7} {'worst shape':>20} {'index':>11} "
           f"{'out mm':>7} {'gen mm':>7} {'truth mm':>8} {'score':>9} {'owner':>7}  where")
     for case in cases:
