@@ -87,7 +87,8 @@ def umbrella_spike(points, offsets, triangles) -> tuple[np.ndarray, np.ndarray]:
     total = np.bincount(e.ravel(), weights=np.repeat(length, 2), minlength=n)
     count = np.bincount(e.ravel(), minlength=n)
     mean_length = total / np.maximum(count, 1)
-    lap = np.stack([L @ d[k] for k in range(len(d))]) if len(d) else np.zeros_like(d)   # [K,n,3]
+    K = d.shape[0]
+    lap = (L @ d.transpose(1, 0, 2).reshape(n, 3 * K)).reshape(n, K, 3).transpose(1, 0, 2)   # [K,n,3]
     size = np.linalg.norm(lap, axis=-1)
     return size / np.maximum(mean_length, 1e-12), size
 
@@ -200,7 +201,8 @@ def mouth_rigidity(points, triangles, generic, sets: dict) -> tuple[dict, dict]:
 
 @dataclass
 class Finding:
-    """The roughest element of one kind (``edge`` / ``vertex`` / ``rigid``) on one mesh of one case."""
+    """One of the roughest elements of a kind (``edge`` / ``vertex`` / ``rigid`` / ``affine``) on one mesh of
+    one case (figures in mm)."""
 
     mesh: str
     kind: str
@@ -231,20 +233,29 @@ def _regions(n, triangles, face, covered) -> np.ndarray:
     return where
 
 
-def _worst(kind, mesh, names, out, gen, tru, size_out, size_gen, size_tru, flags, where, index) -> Finding:
-    """The element nearest to being flagged (largest :func:`score`)."""
+def _worst(kind, mesh, names, out, gen, tru, size_out, size_gen, size_tru, where, index,
+           top: int = 1) -> list[Finding]:
+    """The ``top`` elements (shape, element) nearest to being flagged or furthest past it: the largest
+    :func:`score` (of equal scores, the largest jump). ``out``/``gen``/``tru`` ``[K,e]`` the scored values,
+    ``size_*`` ``[K,e]`` the jumps (m); ``where(e)`` and ``index(e)`` name an element."""
     sc = score(out, gen, tru, size_out)
-    k, e = np.unravel_index(int(np.argmax(sc)), sc.shape)
-    o, g = size_out[k, e] * 1e3, size_gen[k, e] * 1e3
-    t = size_tru[k, e] * 1e3 if size_tru is not None else float("nan")
-    owner = _owner(out[k, e], gen[k, e], tru[k, e] if tru is not None else None)
-    return Finding(mesh, kind, names[k], index(e), o, g, t, float(sc[k, e]), where(e), owner,
-                   int(flags.sum()))
+    flagged = int((sc > 1.0).sum())
+    order = np.lexsort((size_out.ravel(), sc.ravel()))[::-1][:top]          # ties: the larger jump first
+    found = []
+    for k, e in zip(*np.unravel_index(order, sc.shape), strict=True):
+        o, g = size_out[k, e] * 1e3, size_gen[k, e] * 1e3
+        t = size_tru[k, e] * 1e3 if size_tru is not None else float("nan")
+        owner = _owner(out[k, e], gen[k, e], tru[k, e] if tru is not None else None)
+        found.append(Finding(mesh, kind, names[k], index(e), o, g, t, float(sc[k, e]), where(e), owner,
+                             flagged))
+    return found
 
 
-def check_mesh(name, names, points, triangles, out, generic, truth, where=None) -> list[Finding]:
-    """The findings (edge, vertex; and rigid for the Mouth) of one mesh: ``out``, ``generic``, ``truth``
-    ``[K,n,3]`` (m, truth may be None), ``where[n]`` region labels (default: the mesh's name)."""
+def check_mesh(name, names, points, triangles, out, generic, truth, where=None, *,
+               top: int = 1) -> list[Finding]:
+    """The ``top`` findings of each kind (edge, vertex; rigid and affine for the Mouth) of one mesh:
+    ``out``, ``generic``, ``truth`` ``[K,n,3]`` (m, truth may be None), ``where[n]`` region labels (default:
+    the mesh's name)."""
     e = mesh_edges(triangles)
     gen_motion = np.linalg.norm(np.asarray(generic, dtype=np.float64), axis=-1)             # [K,n]
     feature = np.asarray(names, dtype=object)[np.argmax(gen_motion, axis=0)]
@@ -261,21 +272,19 @@ def check_mesh(name, names, points, triangles, out, generic, truth, where=None) 
             ("edge", strain, lambda i: f"{e[i, 0]}-{e[i, 1]}", lambda i: at_vertex(e[i, 0])),
             ("vertex", spike, str, at_vertex)):
         tv = vals.get("tru", (None, None))
-        flags = flag(vals["out"][0], vals["gen"][0], tv[0], vals["out"][1])
-        found.append(_worst(kind, name, names, vals["out"][0], vals["gen"][0], tv[0], vals["out"][1],
-                            vals["gen"][1], tv[1], flags, where_e, index))
+        found += _worst(kind, name, names, vals["out"][0], vals["gen"][0], tv[0], vals["out"][1],
+                        vals["gen"][1], tv[1], where_e, index, top)
     if name == "Mouth":
         rigid, affine = mouth_rigidity(points, triangles, generic, sets)
         for kind, res in (("rigid", rigid), ("affine", affine)):
             tr = res.get("tru")
-            flags = flag(res["out"], res["gen"], tr)
-            found.append(_worst(kind, name, names, res["out"], res["gen"], tr, res["out"], res["gen"], tr,
-                                flags, at_vertex, str))
+            found += _worst(kind, name, names, res["out"], res["gen"], tr, res["out"], res["gen"], tr,
+                            at_vertex, str, top)
     return found
 
 
-def check_case(case: str) -> list[Finding]:
-    """Personalize ``case`` (defaults) and check every mesh with shapes."""
+def check_case(case: str, top: int = 1) -> list[Finding]:
+    """Personalize ``case`` (defaults) and check every mesh with shapes (:func:`check_mesh`)."""
     from bench_personalize import _case
 
     from usdface.transfer import personalize_avatar
@@ -289,13 +298,14 @@ def check_case(case: str) -> list[Finding]:
             continue
         where = _regions(m.n_vertices, m.triangles, face, covered) if m.name == "Head" else None
         found += check_mesh(m.name, list(m.names), m.neutral, m.triangles, res.offsets[key], m.deltas,
-                            truth.get(key), where)
+                            truth.get(key), where, top=top)
     return found
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default="sample,dev1,dev2,dev3")
+    ap.add_argument("--top", type=int, default=1, help="the N elements of largest score per mesh and kind")
     args = ap.parse_args(argv)
     from bench_personalize import BENCH, _generated, _minus
 
@@ -308,7 +318,7 @@ def main(argv=None) -> int:
     print(f"{'case':9} {'mesh':6} {'kind':6} {'flagged':>7} {'worst shape':>20} {'index':>11} "
           f"{'out mm':>7} {'gen mm':>7} {'truth mm':>8} {'score':>9} {'owner':>7}  where")
     for case in cases:
-        for f in check_case(case):
+        for f in check_case(case, args.top):
             print(f"{case:9} {f.mesh:6} {f.kind:6} {f.flagged:7d} {f.shape:>20} {f.index:>11} "
                   f"{f.out_mm:7.3f} {f.generic_mm:7.3f} {f.truth_mm:8.3f} {f.score:9.2f} {f.owner:>7}  "
                   f"{f.where}")

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from synthetic_meshes import grid_triangles
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -104,3 +105,42 @@ def test_rigid_residual_is_zero_for_a_rigid_motion_and_sees_a_stretch():
     assert res[:100].max() > 1e-3 and res[100:].max() < 1e-12
     groups[:100] = -1                                           # not scored
     assert ba.rigid_residual(p, stretched, groups)[:100].max() == 0.0
+
+
+def test_affine_residual_is_zero_for_a_uniform_change_and_sees_a_bend():
+    """A jaw that opens 4 % less (an affine map of the generic pose) is no tear; a bend of one body is."""
+    rng = np.random.default_rng(1)
+    source = rng.normal(size=(300, 3)) * 0.02
+    groups = np.repeat([0, 1, 2], 100)
+    A = np.array([[0.96, 0.01, 0.0], [0.0, 1.02, 0.03], [0.0, 0.0, 0.99]])
+    target = source @ A.T + [0.002, 0.0, -0.001]
+    assert ba.affine_residual(source, target, groups).max() < 1e-12
+    bent = target.copy()
+    bent[200:, 2] += 0.002 * np.sin(source[200:, 0] / 0.01)                      # only the third body
+    res = ba.affine_residual(source, bent, groups)
+    assert res[:200].max() < 1e-12 and res[200:].max() > 5e-4
+
+
+def test_the_score_is_above_one_exactly_where_flagged_and_the_spike_is_the_worst():
+    spike = np.zeros((N * N, 3))
+    v = 12 * N + 17
+    spike[v, 2] = 0.5e-3
+    points, tri, out, generic, truth = _three_sets(spike)
+    o, g, t = (ba.umbrella_spike(points, x, tri) for x in (out, generic, truth))
+    sc = ba.score(o[0], g[0], t[0], o[1])
+    np.testing.assert_array_equal(sc > 1.0, ba.flag(o[0], g[0], t[0], o[1]))
+    worst = ba._worst("vertex", "Head", ["s"], o[0], g[0], t[0], o[1], g[1], t[1], lambda i: "mask", str, 2)
+    assert [w.index for w in worst][0] == str(v) and worst[0].owner == "new"
+    assert worst[0].out_mm == pytest.approx(o[1][0, v] * 1e3) and worst[0].flagged == int((sc > 1).sum())
+
+
+def test_the_umbrella_is_the_mesh_modules_laplacian_shape_by_shape():
+    from usdface.mesh import uniform_laplacian
+
+    points, tri = _grid()
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(3, N * N, 3)) * 1e-3
+    _, size = ba.umbrella_spike(points, d, tri)
+    L = uniform_laplacian(tri, N * N)
+    np.testing.assert_allclose(size, np.stack([np.linalg.norm(L @ d[k], axis=1) for k in range(3)]),
+                               rtol=1e-12, atol=1e-18)
