@@ -32,7 +32,9 @@ method: neither the artist nor the person has it. :func:`score` puts the three t
 when > 1; the table gives per mesh and kind the count of flagged elements (all shapes) and the element of
 largest score (the one nearest to, or furthest past, the bar) with who has that feature there:
 ``person`` when the truth's value there is at least half the output's, ``generic`` when the generic's is,
-else ``new``.
+else ``new``. Every case the bench knows has a truth; :func:`check_mesh` without one compares with the generic
+alone, which flags the person's own features too (the sample: 637 Head edges instead of 1, and every Mouth
+vertex the personalization moves non-affinely), so its flags then mean "changed", not "artifact".
 
 Where: ``mask`` = the vertices the capture covers (bench: Head 0-6705; generated: ``covered_vertices``),
 ``band`` = within two edge rings of the mask's border (the seam figure's edges), ``face`` = the rest of the
