@@ -362,3 +362,16 @@ def test_python_m_usdface_cli_records_the_whole_command(samples, tmp_path):
     assert res.returncode == 0, res.stderr
     command = Sdf.Layer.FindOrOpen(str(out)).customLayerData["usdface"]["command"]
     assert command.startswith("usdface fit ") and "'my rig.usda'" in command and "--method dt" in command
+
+
+def test_evaluate_table_has_a_dt_ratio_only_when_dt_ran(samples, capsys):
+    """A trial (stop 42): ``evaluate CAPTURE --methods menzel,ebfr`` printed a 'vs dt (RMSE)' column of '-'
+    in every row; the column is there when dt is one of the methods, each row's ratio to it."""
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "menzel", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "vs dt" not in out and " - " not in "".join(ln for ln in out.splitlines() if ln.startswith("│"))
+    assert main(["evaluate", str(samples / "capture.usda"), "--methods", "dt,menzel", "-q"]) == 0
+    out = capsys.readouterr().out
+    rows = [[c.strip() for c in ln.split("│")[1:-1]] for ln in out.splitlines() if ln.startswith("│")]
+    assert "vs dt" in out and rows[0][0] == "dt" and rows[0][3] == "1.00x"
+    assert all(r[3].endswith("x") for r in rows)

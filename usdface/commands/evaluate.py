@@ -43,20 +43,22 @@ def run(args) -> int:
                                   plot_path=args.plot, usd_path=args.usd, force=args.force,
                                   **fit_kwargs(args))
     table = Table(title=f"{Path(args.capture).name}: {len(report['labels'])} test frames (eq. 5)")
-    for col in ("method", "mean RMSE mm", "mean max mm", "vs dt (RMSE)"):   # a method on one line: in an
+    base = report["methods"].get("dt", {}).get("mean_rmse_mm")
+    # the ratio to DT only when DT ran: '--methods menzel,ebfr' printed a 'vs dt (RMSE)' column of '-' only
+    ratio = ["vs dt (RMSE)"] if base else []
+    for col in ("method", "mean RMSE mm", "mean max mm", *ratio):   # a method on one line: in an
         table.add_column(col, justify="right" if col != "method" else "left",   # 80-column log 'menzel
                          no_wrap=col == "method")                                 # paper' was two rows
 
     if truth is not None:
         table.add_column("vs truth mm", justify="right")
     table.add_column("fit s", justify="right")
-    base = report["methods"].get("dt", {}).get("mean_rmse_mm")
     rows = list(report["methods"].items())
     if truth is not None and "template" in report:
         rows.append(("template", report["template"]))
     for name, r in rows:
         cells = [name, f"{r['mean_rmse_mm']:.3f}", f"{r['mean_max_mm']:.3f}",
-                 f"{r['mean_rmse_mm'] / base:.2f}x" if base else "-"]
+                 *([f"{r['mean_rmse_mm'] / base:.2f}x"] if base else [])]
         if truth is not None:
             cells.append(f"{r['truth_rmse_mm']:.3f}" if r.get("truth_rmse_mm") is not None else "-")
         cells.append(f"{r['seconds']:.2f}" if r.get("seconds") is not None else "-")
