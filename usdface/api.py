@@ -673,7 +673,9 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
             if plot_path:
                 from .personalize.report import plot_errors
 
-                outputs["plot"] = _written(plot_errors(report, plot_path, force=force))
+                outputs["plot"] = _written(plot_errors(
+                    report, plot_path, force=force,
+                    title=f"{source or capture.source or 'capture'}: test-frame errors (eq. 5)"))  # as given
             if usd_path:
                 from .io.usd_error_maps import write_error_maps_usd
 

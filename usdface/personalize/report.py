@@ -148,10 +148,11 @@ def write_report_json(report: dict, path, force: bool = False) -> Path:
 PLOT_MAX_WIDTH_IN = 40.0
 
 
-def plot_errors(report: dict, path, force: bool = False) -> Path:
+def plot_errors(report: dict, path, force: bool = False, title: str | None = None) -> Path:
     """Bar charts like Menzel et al. (2022), Figs. 4-5: per test expression, RMSE (top) and max error
     (bottom), methods side by side; frames beyond :data:`PLOT_MAX_WIDTH_IN` of a row wrap onto further
-    RMSE / max-error pairs. Atomic write (temp + rename)."""
+    RMSE / max-error pairs; ``title`` above them (what was evaluated: the picture alone did not say which
+    capture it scores). Atomic write (temp + rename)."""
     # a Figure of its own, not pyplot + matplotlib.use("Agg"): they switched the host's backend and closed
     # its figures (a notebook's, a DCC's)
     from matplotlib.figure import Figure
@@ -173,14 +174,14 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
     for c, frames in enumerate(chunks):
         x = np.arange(len(frames))
         pair = axes[2 * c:2 * c + 2]
-        for ax, (key, title) in zip(pair, panels, strict=True):
+        for ax, (key, panel) in zip(pair, panels, strict=True):
             for k, m in enumerate(methods):
                 values = np.asarray(report["methods"][m][key], dtype=float)[list(frames)]
                 ax.bar(x + (k - (len(methods) - 1) / 2) * width, values, width, label=m)
             ax.set_ylabel("mm")
-            ax.set_title(title if len(chunks) == 1 else
-                         f"{title}, test expressions {labels[frames[0]]}-{labels[frames[-1]]}"
-                         if len(frames) else title)
+            ax.set_title(panel if len(chunks) == 1 else
+                         f"{panel}, test expressions {labels[frames[0]]}-{labels[frames[-1]]}"
+                         if len(frames) else panel)
             ax.grid(axis="y", alpha=0.3)
             ax.set_xlim(-0.5, per_row - 0.5 if len(chunks) > 1 else max(len(frames), 1) - 0.5)
         pair[0].set_xticks(x, [])
@@ -194,6 +195,8 @@ def plot_errors(report: dict, path, force: bool = False) -> Path:
             for ax in row_axes:
                 ax.set_ylim(0.0, 1.05 * top or 1.0)
     axes[0].legend(ncol=len(methods))
+    if title:
+        fig.suptitle(title)
     fig.tight_layout()
     with atomic_file(path, force=force) as tmp:
         fig.savefig(tmp, dpi=120)
