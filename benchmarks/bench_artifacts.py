@@ -120,20 +120,29 @@ def score(out, generic, truth=None, size=None, *, factor: float = FACTOR, percen
     return np.minimum(over, size / floor)
 
 
+def _grouping(groups):
+    """``(keep[n] bool, gi[m] group index of each kept vertex, S[G,m] 0/1 sparse sum over each group)`` for
+    ``groups[n]`` int labels (negative: not scored); ``S`` None when no vertex is scored."""
+    g = np.asarray(groups)
+    keep = g >= 0
+    if not keep.any():
+        return keep, None, None
+    _, gi = np.unique(g[keep], return_inverse=True)
+    G, m = int(gi.max()) + 1, int(keep.sum())
+    return keep, gi, sp.csr_matrix((np.ones(m), (gi, np.arange(m))), shape=(G, m))
+
+
 def rigid_residual(points, offsets, groups) -> np.ndarray:
     """``[n]`` distance of each vertex's moved position ``points + offsets`` (``[n,3]``, ``[n,3]``) from the
     best rigid motion (rotation + translation, least squares: Kabsch) of its group, ``groups[n]`` int
     labels (negative: not scored, 0). One small SVD per group, vectorized."""
     p = np.asarray(points, dtype=np.float64)
     q = p + np.asarray(offsets, dtype=np.float64)
-    g = np.asarray(groups)
-    keep = g >= 0
     out = np.zeros(len(p))
-    if not keep.any():
+    keep, gi, S = _grouping(groups)
+    if S is None:
         return out
-    labels, gi = np.unique(g[keep], return_inverse=True)
-    G, m = len(labels), int(keep.sum())
-    S = sp.csr_matrix((np.ones(m), (gi, np.arange(m))), shape=(G, m))
+    G, m = S.shape
     count = np.asarray(S.sum(axis=1))
     pk, qk = p[keep], q[keep]
     cp, cq = (S @ pk) / count, (S @ qk) / count                                        # [G,3]
@@ -156,14 +165,11 @@ def affine_residual(source, target, groups) -> np.ndarray:
     that opens 4 % less, as a linear rig's weight below 1 does) is taken out - a tear or a crease."""
     p = np.asarray(source, dtype=np.float64)
     q = np.asarray(target, dtype=np.float64)
-    g = np.asarray(groups)
-    keep = g >= 0
     out = np.zeros(len(p))
-    if not keep.any():
+    keep, gi, S = _grouping(groups)
+    if S is None:
         return out
-    _, gi = np.unique(g[keep], return_inverse=True)
-    G, m = int(gi.max()) + 1, int(keep.sum())
-    S = sp.csr_matrix((np.ones(m), (gi, np.arange(m))), shape=(G, m))
+    G, m = S.shape
     a = np.column_stack([p[keep], np.ones(m)])                                         # [m,4]
     M = (S @ np.einsum("ni,nj->nij", a, a).reshape(m, 16)).reshape(G, 4, 4)
     B = (S @ np.einsum("ni,nj->nij", a, q[keep]).reshape(m, 12)).reshape(G, 4, 3)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_render import grid_rig
 
 from usdface.cli import main
 from usdface.errors import LandmarkError, OutputExistsError
@@ -498,15 +499,10 @@ def test_layout_plot_of_a_flat_mesh_with_one_landmark_shows_the_mesh(tmp_path, m
     from usdface.landmarks import plots
     from usdface.model import FaceRig
 
-    n = 9
-    u, v = np.meshgrid(np.linspace(-0.1, 0.1, n), np.linspace(-0.1, 0.1, n))
-    neutral = np.c_[u.ravel(), v.ravel(), np.zeros(n * n)]
-    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
-    a = (j * n + i).ravel()
-    tris = np.r_[np.c_[a, a + 1, a + n], np.c_[a + 1, a + n + 1, a + n]]
-    bump = np.zeros_like(neutral)
-    bump[:, 2] = 0.02 * np.exp(-(neutral[:, 0] ** 2 + neutral[:, 1] ** 2) / 0.002)
-    avatar = write_rig_usd(FaceRig(neutral, tris, ["jawOpen"], bump[None], name="Plane"), tmp_path / "p.usda")
+    grid = grid_rig(9)                                     # a flat 9 x 9 sheet, its 'bump' as jawOpen
+    neutral, tris = grid.neutral, grid.triangles
+    avatar = write_rig_usd(FaceRig(neutral, tris, ["jawOpen"], grid.deltas[:1], name="Plane"),
+                           tmp_path / "p.usda")
     figures = []
     monkeypatch.setattr(plots, "_save", lambda fig, path, force: figures.append(fig))
     assert main(["landmarks", str(avatar), "--rays", "4", "--plot", str(tmp_path / "p.png"), "-q"]) == 0
@@ -514,7 +510,7 @@ def test_layout_plot_of_a_flat_mesh_with_one_landmark_shows_the_mesh(tmp_path, m
     ax = fig.axes[0]
     mesh, dots = ax.collections[0], ax.collections[1]
     assert len(dots.get_offsets()) == 1
-    assert len(mesh.get_offsets()) == n * n                    # the whole plane drawn
+    assert len(mesh.get_offsets()) == len(neutral)             # the whole plane drawn
     (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
     assert x1 - x0 >= 0.2 and y1 - y0 >= 0.2                    # the view holds the 20 cm plane, not 0.4 mm
 
