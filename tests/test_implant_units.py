@@ -265,7 +265,9 @@ def test_the_field_from_packed_generic_offsets_and_a_late_person_array_is_the_sa
 def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
     """Per shape: the jaw shape moves the mesh's lower part rigidly (``rigid_shapes`` True), the tongue's own
     shape bends it (False). Following a field that differs between the head vertices nearest to the mesh,
-    the jaw shape stays one affine motion (no crease on the tongue), the tongue shape follows per vertex."""
+    the jaw shape stays one affine motion (no crease on the tongue); the tongue shape follows a field that
+    is a linear function of position (stop 42: read vertex by vertex it jumped from +0.2 to -0.2 where the
+    nearest head vertex changed, a tear through the tongue)."""
     from usdface.transfer.implant import FieldOnMesh, follow_field, rigid_shapes
 
     rng = np.random.default_rng(3)
@@ -286,8 +288,29 @@ def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
     x = np.column_stack([pts[lower], np.ones(lower.sum())])
     coef = np.linalg.lstsq(x, out[0, lower], rcond=None)[0]
     assert np.abs(x @ coef - out[0, lower]).max() < 1e-12                         # still one affine body
-    left = lower & (pts[:, 0] < -0.005)
-    assert np.allclose(out[1, left], 1.2 * tongue[left])      # per vertex: its nearest field
+    bent = lower & (np.abs(tongue[:, 2]) > 1e-4)
+    scale = out[1, bent, 2] / tongue[bent, 2]                   # 1 + the field there (phi is a multiple of I)
+    x = np.column_stack([pts[bent], np.ones(bent.sum())])
+    fit = x @ np.linalg.lstsq(x, scale, rcond=None)[0]
+    assert np.abs(fit - scale).max() < 1e-9                     # linear in position: no step at x = 0
+    assert scale[pts[bent, 0] < -0.015].mean() > 1.1 > 0.9 > scale[pts[bent, 0] > 0.015].mean()  # +0.2 / -0.2
+    np.testing.assert_array_equal(out[1, ~lower], 0.0)          # what the shape does not move stays still
+
+
+def test_another_meshs_field_linear_in_position_is_followed_exactly():
+    """``linear_field`` keeps a field that is already a linear function of position (read at the mesh's own
+    points): following it is the per-vertex result, whatever the motion's weights."""
+    from usdface.transfer.implant import FieldOnMesh, follow_field, linear_field
+
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(-0.02, 0.02, size=(120, 3))
+    a, b = rng.normal(size=(3, 3)) * 0.1, rng.normal(size=(3, 3, 3)) * 5.0
+    phi = (a + np.einsum("kc,cab->kab", pts, b))[None]                        # [1,k,3,3]
+    deltas = rng.normal(size=(1, 120, 3)) * 1e-3
+    w = rng.uniform(0.1, 1.0, size=(1, 120))
+    np.testing.assert_allclose(linear_field(pts, phi, w), phi, atol=1e-12)
+    out = follow_field(pts, deltas, FieldOnMesh(pts.copy(), phi.astype(np.float64)), rigid=False)
+    np.testing.assert_allclose(out, deltas + np.einsum("jkab,jkb->jka", phi, deltas), atol=1e-15)
 
 
 def test_a_mesh_follows_the_field_only_in_shapes_that_move_it_with_the_skin():

@@ -58,7 +58,7 @@ PROXY_NEAREST = 8
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
            "extend_personalization",
            "seam_ramp",
-           "attached_shapes", "follow_field", "rigid_shapes", "shape_confidence"]
+           "attached_shapes", "follow_field", "linear_field", "rigid_shapes", "shape_confidence"]
 
 
 def avatar_shapes_on_capture(registered, avatar_points, avatar_triangles, avatar_deltas, *, poses=None,
@@ -641,29 +641,58 @@ def attached_shapes(deltas, skin, *, max_angle_deg: float = MAX_ANGLE_DEG, max_r
 
 
 def follow_field(points, deltas, field, *, rigid=False):
-    """Another mesh's shapes personalized by the head's field: ``deltas[J,k,3]`` on ``points[k,3]`` follow
-    the field (:class:`FieldOnMesh`) at the nearest head vertex; in a shape that moves the mesh as one body
-    (``rigid``: bool, or ``[J]`` bool from :func:`rigid_shapes`) it takes one field, the motion-weighted mean
-    over its vertices, so the jaw's teeth and tongue stay one body (no crease where their nearest head
-    vertices change). With the head's generic motion in the field (``field.generic``), a shape in which the
+    """Another mesh's shapes personalized by the head's field: ``deltas[J,k,3]`` on ``points[k,3]`` (m)
+    follow the field (:class:`FieldOnMesh`) read at each vertex's nearest head vertex, as a smooth function
+    of position. In a shape that moves the mesh as one body (``rigid``: bool, or ``[J]`` bool from
+    :func:`rigid_shapes`) it takes one field, the motion-weighted mean over its vertices, so the jaw's teeth
+    and tongue stay one body; in any other shape, the motion-weighted linear function of position closest
+    to those readings (:func:`linear_field`). Read vertex by vertex, the field jumped where the nearest head
+    vertex changed (the upper lip's field beside the lower lip's): the mesh tore there (stop 42,
+    ``benchmarks/bench_artifacts.py``: non-affine steps of 0.6-3.9 mm on the generated Mouth, where the truth
+    has 0.05-0.30). With the head's generic motion in the field (``field.generic``), a shape in which the
     mesh does not move with that skin (:func:`attached_shapes`) keeps its generic motion."""
     d = np.asarray(deltas, dtype=np.float64)
     moving = np.flatnonzero(peak_motion(d) > 0)
     out = d.copy()
     if moving.size == 0:
         return out
-    nn = field.nearest(np.asarray(points, dtype=np.float64)[moving])
+    x = np.asarray(points, dtype=np.float64)[moving]
+    nn = field.nearest(x)
     phi = field.phi[:, nn].astype(np.float64)                                         # [J,k,3,3]
     dm = d[:, moving]
     if field.generic is not None:
         phi[~attached_shapes(dm, field.generic[:, nn])] = 0.0
+    w = np.sum(dm * dm, axis=-1)                                                      # [J,k]
     one = np.broadcast_to(np.asarray(rigid, dtype=bool), (len(d),))
     if one.any():
-        w = np.sum(dm[one] * dm[one], axis=-1)                                           # [r,k]
-        mean = np.einsum("jk,jkab->jab", w, phi[one]) / np.maximum(w.sum(axis=1), 1e-300)[:, None, None]
+        wo = w[one]
+        mean = np.einsum("jk,jkab->jab", wo, phi[one]) / np.maximum(wo.sum(axis=1), 1e-300)[:, None, None]
         phi[one] = mean[:, None]
+    rest = ~one & (w.max(axis=1) > 0)
+    if rest.any():
+        phi[rest] = linear_field(x, phi[rest], w[rest])
     out[:, moving] = apply_field(dm, phi)
     return out
+
+
+def linear_field(points, phi, weights) -> np.ndarray:
+    """``[J,k,3,3]``: per shape, the field ``phi[J,k,3,3]`` read at ``points[k,3]`` (m) replaced by the linear
+    function of position ``A_j + sum_c B_jc x_c`` closest to it in the least squares weighted by
+    ``weights[J,k]`` (the shape's squared motion: the vertices that move most say most). A field that is
+    already linear in position is kept (exact); a constant one stays that constant. Coordinates are centred
+    and scaled to the points' extent; a direction the weighted points do not span (a flat or single moving
+    piece) gets no slope (the pseudo-inverse's least-norm solution)."""
+    x = np.asarray(points, dtype=np.float64)
+    f = np.asarray(phi, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / np.maximum(w.max(axis=1, keepdims=True), 1e-300)
+    centre = x.mean(axis=0)
+    scale = float(np.abs(x - centre).max()) or 1.0
+    X = np.column_stack([np.ones(len(x)), (x - centre) / scale])                      # [k,4]
+    M = np.einsum("jk,ka,kb->jab", w, X, X)                                           # [J,4,4]
+    B = np.einsum("jk,ka,jkn->jan", w, X, f.reshape(len(f), len(x), 9))               # [J,4,9]
+    coef = np.linalg.pinv(M, rcond=1e-10, hermitian=True) @ B                         # [J,4,9]
+    return np.einsum("ka,jan->jkn", X, coef).reshape(f.shape)
 
 
 def shape_confidence(personalization, excitation, noise_rms: float, *, moving=None) -> np.ndarray:
