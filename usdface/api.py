@@ -23,7 +23,7 @@ from numbers import Integral
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from .errors import warn
+from .errors import expect_kind, warn
 from .namelist import name_list
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -47,17 +47,7 @@ def _written(path: PathLike) -> Path:
     absolute, one function both (``evaluate_methods``' JSON and plot as given, its USD absolute)."""
     return Path(path).absolute()
 
-def _expect(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok: bool = False) -> None:
-    """Refuse an argument of the wrong kind with :class:`usdface.errors.OptionError` naming the argument, what
-    it takes and the fix, before any work: ``personalize_avatar(None, ...)``, a ``face_mesh`` given as a
-    number, a path for a ``Capture`` died with Python's ``TypeError`` / ``AttributeError`` from deep inside
-    (``'str' object has no attribute 'names'``)."""
-    if (value is None and none_ok) or (value is not None and isinstance(value, kinds)):
-        return
-    from .errors import OptionError
-
-    shown = " ".join(repr(value).split())[:60]      # one line: a Capture's repr spans several (its arrays)
-    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({shown})", fix=fix)
+_expect = expect_kind        # (usdface.errors: the io writers refuse their arguments alike)
 
 
 def _flags(what: str, **named) -> None:
@@ -576,14 +566,12 @@ def _refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, source) -> No
     refused naming the capture, what differs and the fix: it was Python's ``ValueError: 'tongueOut' is not in
     list`` from the shape lookup, or a GeometryError naming no file (a user trial)."""
     from .errors import FitError
+    from .personalize.api import refuse_rig_of_another_capture
 
     where = source if source is not None else (capture.source or None)
-    n = capture.neutral.shape[0]
     fix = ("score the rig fitted on this capture: evaluate_capture(capture, fit_capture(capture)), or None "
            "for the generic baseline")
-    if rig.n_vertices != n:
-        raise FitError(f"the rig has {rig.n_vertices} vertices, the capture mesh {n}: a rig fitted on "
-                       "another capture", path=where, fix=fix)
+    refuse_rig_of_another_capture(rig, capture, fix=fix, path=where)
     missing = [name for name in capture.names if name not in set(rig.names)]
     if missing:
         shown = ", ".join(missing[:5]) + (f" (+{len(missing) - 5} more)" if len(missing) > 5 else "")

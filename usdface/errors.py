@@ -103,6 +103,17 @@ _WRITE_FIXES = {
 }
 
 
+def expect_kind(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok: bool = False) -> None:
+    """Refuse an argument of the wrong kind with :class:`OptionError` naming the argument (``what``), what it
+    takes and the fix, before any work: ``personalize_avatar(None, ...)``, a ``face_mesh`` given as a
+    number, a path for a ``Capture`` died with Python's ``TypeError`` / ``AttributeError`` from deep inside
+    (``'str' object has no attribute 'names'``)."""
+    if (value is None and none_ok) or (value is not None and isinstance(value, kinds)):
+        return
+    shown = " ".join(repr(value).split())[:60]      # one line: a Capture's repr spans several (its arrays)
+    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({shown})", fix=fix)
+
+
 def write_fix(err: int | None, output_option: bool = False) -> str:
     """What to do about a write that failed with errno ``err`` (one sentence, the ``fix`` of an error);
     ``output_option``: name ``-o`` (the command has that option). Shared by the output checks and the CLI's

@@ -981,7 +981,7 @@ def _check_layer_arguments(avatar, offsets, provenance, primvars) -> None:
     attribute 'file'``; a user trial)."""
     from collections.abc import Mapping
 
-    from ..errors import OptionError
+    from ..errors import expect_kind
 
     for name, value, kinds, none_ok, expected, fix in (
             ("avatar", avatar, (Avatar,), False, "an Avatar", "pass usdface.io.usd_rig.read_avatar(PATH)"),
@@ -991,9 +991,7 @@ def _check_layer_arguments(avatar, offsets, provenance, primvars) -> None:
              'pass e.g. {"command": "my script", "method": "menzel"}'),
             ("primvars", primvars, (Mapping,), True, "a {mesh: {name: (values, interpolation)}} dict or None",
              "pass None, or a dict per mesh")):
-        if not ((value is None and none_ok) or isinstance(value, kinds)):
-            raise OptionError(f"write_avatar_layer's {name} must be {expected}, not {type(value).__name__} "
-                              f"({value!r:.60})", fix=fix)
+        expect_kind(value, kinds, f"write_avatar_layer's {name}", expected, fix, none_ok=none_ok)
 
 
 def write_avatar_layer(avatar: Avatar, out_path, offsets: dict, *, provenance: dict | None = None,
