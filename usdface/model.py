@@ -99,12 +99,16 @@ class FaceRig:
         new array, which is measured anew)."""
         from .motion import peak_motion
 
-        kept = self.__dict__.get("_peak")
-        if kept is not None and kept[0]() is self.deltas:
-            return kept[1]
-        peak = peak_motion(self.deltas)
-        self._keep_peak(peak)
+        peak = self.kept_peak()
+        if peak is None:
+            peak = peak_motion(self.deltas)
+            self._keep_peak(peak)
         return peak
+
+    def kept_peak(self) -> np.ndarray | None:
+        """:meth:`peak_motion` if it is kept for the current ``deltas``, else None (nothing computed)."""
+        kept = self.__dict__.get("_peak")
+        return kept[1] if kept is not None and kept[0]() is self.deltas else None
 
     def _keep_peak(self, peak) -> None:
         """Keep ``peak[n]`` as :meth:`peak_motion` of the current ``deltas`` (a weak reference to them: the

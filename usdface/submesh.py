@@ -304,9 +304,9 @@ def rig_on(rig, vertices, triangles, source, name):
     ibs = {k: [Inbetween(b.name, b.weight, b.offsets[v], b.normal_offsets) for b in lst]
            for k, lst in rig.inbetweens.items()}
     out = FaceRig(rig.neutral[v], triangles, rig.names, rig.deltas[:, v], ibs, source, name)
-    kept = rig.__dict__.get("_peak")
-    if kept is not None and kept[0]() is rig.deltas:       # its peak motion there (a max: the same values)
-        out._keep_peak(kept[1][v])
+    kept = rig.kept_peak()
+    if kept is not None:                                    # its peak motion there (a max: the same values)
+        out._keep_peak(kept[v])
     return out
 
 
