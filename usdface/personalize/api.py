@@ -151,6 +151,18 @@ def _swapped_message(swapped: dict, capture: Capture) -> str:
             "motion")
 
 
+def refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, *, fix: str, what: str = "the rig",
+                                  path=None) -> None:
+    """A capture-mesh ``rig`` whose vertex count is not the capture mesh's (a rig fitted on another capture:
+    scored by ``evaluate_capture``, implanted by ``personalize_avatar(rig=)``) refused with
+    :class:`FitError` naming the capture (``path``, default its source), both counts and ``fix``: it died
+    in numpy (``matmul: ... (1203 vs 1233)``) or as a GeometryError naming no file."""
+    n = capture.neutral.shape[0]
+    if rig.n_vertices != n:
+        raise FitError(f"{what} has {rig.n_vertices} vertices, the capture mesh {n}: a rig fitted on another "
+                       "capture", path=path if path is not None else (capture.source or None), fix=fix)
+
+
 def refuse_swapped_sides(capture: Capture, *, train=None) -> dict | None:
     """:func:`swapped_sides` on the capture's training frames: refused (:class:`FitError`) when the
     exchanged labels are proven (:data:`SIDES_PROVEN_FRAMES`, :data:`SIDES_PROVEN_RATIO`: a user trial's

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, FitError, RigError, warn
+from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
 from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
@@ -679,13 +679,12 @@ def _read_capture(capture, *, fitted: bool, every: int, rig: FaceRig | None = No
         from ..io import read_capture
 
         capture = read_capture(capture)
-    if rig is not None and rig.n_vertices != capture.neutral.shape[0]:
-        # numpy's 'matmul: ... (1203 vs 1233)' in the registration, naming nothing (a user trial)
-        raise FitError(f"the rig given to implant has {rig.n_vertices} vertices, the capture mesh "
-                       f"{capture.neutral.shape[0]}: a rig fitted on another capture",
-                       path=capture.source or None,
-                       fix="implant the rig fitted on this capture (usdface.fit_capture(capture).rig), or "
-                           "leave rig= out and the capture is fitted")
+    if rig is not None:        # numpy's 'matmul: ... (1203 vs 1233)' in the registration (a user trial)
+        from ..personalize.api import refuse_rig_of_another_capture
+
+        refuse_rig_of_another_capture(rig, capture, what="the rig given to implant",
+                                      fix="implant the rig fitted on this capture (usdface.fit_capture("
+                                          "capture).rig), or leave rig= out and the capture is fitted")
     if not fitted:
         return capture
     from ..personalize.api import check_every, check_take_poses, refuse_swapped_sides
