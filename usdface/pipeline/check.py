@@ -711,8 +711,7 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         yield Issue(INFO, "Readable", "/", f"this is a usdface {kind}, not an avatar: check judges avatars "
                     "and usdface layers", f"usdface inspect FILE summarises the {kind}")
         return
-    recorded = dict(layer.customLayerData or {}).get("usdface")
-    if hasattr(recorded, "get") and recorded.get("format") == "errorMaps":
+    if found.kind is Kind.ERROR_MAPS and found.by == "format":      # (the file's kind, read above)
         # 'usdface evaluate --usd': '0 error(s), 0 warning(s), 0 info' read as a pass of a file that is none
         # of the things check judges (a trial, stop 42), as a capture's is said
         yield Issue(INFO, "Readable", "/", "this is a usdface error-map file ('usdface evaluate --usd'), not "
