@@ -395,6 +395,49 @@ def test_repair_eyelids_moves_penetrating_vertices_to_surface():
     np.testing.assert_array_equal(again, fixed)
 
 
+def _hull_sphere(center, radius, n=600, seed=1):
+    import scipy.spatial
+
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    pts = radius * d / np.linalg.norm(d, axis=1, keepdims=True) + center
+    return pts, scipy.spatial.ConvexHull(pts).simplices
+
+
+def test_repair_eyelids_keeps_lids_out_of_an_eyeball_inside_a_closed_shell():
+    """An eye modelled as an eyeball inside a closed shell 2 mm out (the bench avatars' eyes; the avatar's
+    own lids sit between the two) has no inside by ray parity as one mesh: a point in the eyeball is inside
+    both sheets, so "outside". Against the whole mesh the repair let a lid the generic shape keeps 0.6 mm off
+    the eyeball go 0.2 mm into it; surface by surface (eye_surfaces) it comes out of the eyeball, and a lid
+    the generic shape keeps between the sheets goes no deeper into the shell than it."""
+    from usdface.transfer.eyelids import eye_surfaces
+
+    c = np.array([0.03, 1.6, 0.1])
+    inner, ti = _hull_sphere(c, 0.012)
+    outer, to = _hull_sphere(c, 0.014, seed=2)
+    pts, tris = np.vstack([inner, outer]), np.vstack([ti, to + len(inner)])
+    # the eyeball first, then the shell that encloses it
+    (p1, t1), (p2, t2) = eye_surfaces(pts, tris)
+    np.testing.assert_array_equal(p1, inner)
+    np.testing.assert_array_equal(t1, ti)
+    np.testing.assert_array_equal(p2, outer)
+    np.testing.assert_array_equal(t2, to)
+    # one piece, or pieces side by side (a cornea lens in front of the eyeball), bound the lids as one
+    assert len(eye_surfaces(inner, ti)) == 1
+    lens, tl = _hull_sphere(c + [0, 0, 0.0136], 0.0012, n=200, seed=3)
+    assert len(eye_surfaces(np.vstack([inner, lens]), np.vstack([ti, tl + len(inner)]))) == 1
+    eye = Eyeball("eye", c, 0.013, 0.0)
+    lid = c + np.array([[0.0, 0.0, 0.0135], [0.0, 0.0145, 0.0]])   # between the sheets; outside the shell
+    generic = np.array([[[0, 0, -0.0009], [0, 0, 0.0]]])             # 0.6 mm off the eyeball; as is
+    person = np.array([[[0, 0, -0.0017], [0, 0.001, 0.0]]])          # 0.2 mm into the eyeball; away from it
+    fixed, count = repair_eyelids(lid, person, [(eye, pts, tris)], reference=generic)
+    assert count == 2                         # into the eyeball, and deeper into the shell than the generic
+    # out of the eyeball, and no deeper into the shell than the generic shape keeps it (12.6 mm from the
+    # centre): moved along the way out of both, never further in
+    z = np.linalg.norm(lid[0] + fixed[0, 0] - c)
+    assert 0.0126 - 5e-5 <= z <= 0.0126 + 3e-4
+    np.testing.assert_array_equal(fixed[0, 1], person[0, 1])              # within its bounds: untouched
+
+
 def test_repair_eyelids_keeps_one_smooth_margin():
     """A smooth personalized lid that cuts into the eye (a bump 1.6 mm deep on a lid 1 mm off the eyeball)
     comes out of the repair as smooth as it went in, not as a plateau whose rim creases (moved vertex by

@@ -17,7 +17,7 @@ from ..mesh import vector_lengths
 from ..natives import open3d
 from .correspond import ramp_down, ramp_up
 
-__all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "repair_eyelids", "NAMED_RADIUS"]
+__all__ = ["Eyeball", "fit_sphere", "find_eyeballs", "eye_surfaces", "repair_eyelids", "NAMED_RADIUS"]
 
 _EYE_NAME = re.compile(r"eye", re.IGNORECASE)
 _NOT_EYE = re.compile(r"lash|brow|lid|socket|shadow|occlusion|tear", re.IGNORECASE)
@@ -128,6 +128,54 @@ class _EyeSurface:
         """Closest surface points ``[q,3]``."""
         c = self.scene.compute_closest_points(self._tensor(queries))["points"].numpy()
         return c.astype(np.float64) + self.origin
+
+
+def eye_surfaces(points, triangles) -> list:
+    """``[(points[p,3], triangles[s,3]), ...]``: the surfaces of an eye mesh ``points[n,3]`` /
+    ``triangles[t,3]`` that bound the lids one at a time: the eyeball (its pieces that enclose no other
+    piece: the eyeball, a cornea lens in front of it) first, then each closed piece that encloses another
+    (most of that piece's vertices inside it), from the inner to the outer; the mesh itself when it is one
+    piece or no piece encloses another.
+
+    An eye modelled as an eyeball inside a closed shell (a cornea, tear-film or occlusion layer all round it:
+    the bench avatars' eyes, a shell 2 mm out that the avatar's own lids sit inside) has no inside by ray
+    parity as one mesh: a point between the two sheets is inside, at its distance from the *nearer* sheet,
+    and a point inside the eyeball is inside both, so outside. Bounded by the whole mesh, the repair let a lid
+    the generic shape keeps between the sheets go into the eyeball (dev1's `eyeBlinkLeft`: 23 lid vertices
+    up to 0.70 mm closer to it than allowed) and sent lid vertices near the eyeball towards it as "out"
+    (neighbours repaired in opposite directions: lid-margin steps). Each surface on its own has an inside,
+    and every repair moves a lid out of it: away from the eyeball."""
+    from scipy.sparse.csgraph import connected_components
+
+    from ..mesh import boundary_edges, vertex_adjacency
+
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles)
+    count, label = connected_components(vertex_adjacency(t, len(p)), directed=False)
+    if count < 2:
+        return [(p, t)]
+    piece = label[t[:, 0]]                                        # [t] each triangle's piece
+    present = [c for c in range(count) if np.any(piece == c)]
+    encloses = {}
+    for c in present:
+        if len(boundary_edges(t[piece == c])):
+            continue                                              # (an open piece has no inside)
+        shell = _EyeSurface(p, t[piece == c])
+        inner = [o for o in present if o != c and shell.inside(p[label == o]).mean() > 0.5]
+        if inner:
+            encloses[c] = len(inner)
+    if not encloses:
+        return [(p, t)]
+
+    def part(cs):
+        keep = np.isin(piece, cs)
+        used = np.unique(t[keep])
+        local = np.full(len(p), -1)
+        local[used] = np.arange(used.size)
+        return p[used], local[t[keep]]
+
+    return [part([c for c in present if c not in encloses])] + [part([c]) for c in
+                                                                 sorted(encloses, key=encloses.get)]
 
 
 def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
@@ -389,7 +437,8 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     ----------
     neutral : ``[n,3]`` face-mesh neutral (metres).
     shapes : ``[J,n,3]`` personalized offsets.
-    eyeballs : list of ``(Eyeball, points[m,3], triangles[t,3])``, closed eye meshes.
+    eyeballs : list of ``(Eyeball, points[m,3], triangles[t,3])``, closed eye meshes (an eyeball inside a
+        closed shell bounds the lids surface by surface: :func:`eye_surfaces`).
     reference : ``[J,n,3]`` the avatar's generic offsets (optional).
     clearance : metres. Where the generic shape keeps a vertex outside the eyeball, the personalized one keeps
         at least ``min(generic clearance, clearance)`` (0.3 mm: a closed lid shows no eyeball through it).
@@ -422,8 +471,9 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     ref_all = None if reference is None else np.asarray(reference, dtype=np.float64)
     margin = clearance if ref_all is not None else 0.0
     count = 0
-    for eye, pts, tris in eyeballs:
-        pts = np.asarray(pts, dtype=np.float64)
+    # each closed surface of an eye on its own, the eyeball first (eye_surfaces: nested shells have no inside
+    # as one mesh)
+    for eye, pts, tris in [(e, *surface) for e, p, t in eyeballs for surface in eye_surfaces(p, t)]:
         r0 = vector_lengths(x0 - eye.center)
         near = np.flatnonzero(r0 < 1.5 * eye.radius)
         if near.size == 0:
