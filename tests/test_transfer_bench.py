@@ -192,8 +192,8 @@ def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
     idx = [head.index(n) for n in res.names]
     eyes = {k: v for k, v in eyes.items() if "Eye" in k}
     for eye in find_eyeballs({k: v[0] for k, v in eyes.items()}):
-        # each surface of the eye on its own: the bench eyes are an eyeball inside a closed shell 2 mm out (the
-        # avatar's own lids sit between the two), which have no inside by ray parity as one mesh (eye_surfaces)
+        # each surface of the eye on its own: the bench eyes are an eyeball inside a closed shell 2 mm out
+        # (the avatar's own lids sit between the two), with no inside by ray parity as one mesh (eye_surfaces)
         surfaces = eye_surfaces(*eyes[eye.name])
         assert len(surfaces) == 2
         for pts, tris in surfaces:
@@ -204,8 +204,8 @@ def test_eyelid_repair_on_dev1_eyes(bench, dev1, dev1_result):
                 gen = _signed_distance(pts, tris, (head.neutral[near][None] + head.deltas[idx][:, near])
                                        .reshape(-1, 3))[0]
                 deep = np.minimum(np.minimum(d0, 0.0)[None].repeat(len(idx), 0).ravel(), gen)
-                # issue 10: a lid the generic shape keeps off the eyeball keeps min(its clearance, 0.3 mm); one it
-                # tucks in goes no deeper than the generic shape / the neutral
+                # issue 10: a lid the generic shape keeps off the eyeball keeps min(its clearance, 0.3 mm);
+                # one it tucks in goes no deeper than the generic shape / the neutral
                 required = np.where(gen > 0, np.minimum(gen, 3e-4), deep)
                 moved = (np.linalg.norm(out[:, near] - head.deltas[idx][:, near], axis=-1) > 1e-9).ravel()
                 assert (d[moved] >= required[moved] - 6e-5).all()
