@@ -132,10 +132,11 @@ class _EyeSurface:
 
 def eye_surfaces(points, triangles) -> list:
     """``[(points[p,3], triangles[s,3]), ...]``: the surfaces of an eye mesh ``points[n,3]`` /
-    ``triangles[t,3]`` that bound the lids one at a time: the eyeball (its pieces that enclose no other
-    piece: the eyeball, a cornea lens in front of it) first, then each closed piece that encloses another
-    (most of that piece's vertices inside it), from the inner to the outer; the mesh itself when it is one
-    piece or no piece encloses another.
+    ``triangles[t,3]`` that bound the lids one at a time: each closed piece that encloses another (most of
+    that piece's vertices inside it), from the outer to the inner, then the eyeball (the pieces that enclose
+    no other: the eyeball, a cornea lens in front of it) last, so the repair that keeps a lid off the eyeball
+    is the one no later step undoes (it moves the lid outwards: out of the shells' depth too); the mesh
+    itself when it is one piece or no piece encloses another.
 
     An eye modelled as an eyeball inside a closed shell (a cornea, tear-film or occlusion layer all round it:
     the bench avatars' eyes, a shell 2 mm out that the avatar's own lids sit inside) has no inside by ray
@@ -174,8 +175,8 @@ def eye_surfaces(points, triangles) -> list:
         local[used] = np.arange(used.size)
         return p[used], local[t[keep]]
 
-    return [part([c for c in present if c not in encloses])] + [part([c]) for c in
-                                                                 sorted(encloses, key=encloses.get)]
+    shells = sorted(encloses, key=encloses.get, reverse=True)
+    return [part([c]) for c in shells] + [part([c for c in present if c not in encloses])]
 
 
 def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
@@ -471,7 +472,7 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     ref_all = None if reference is None else np.asarray(reference, dtype=np.float64)
     margin = clearance if ref_all is not None else 0.0
     count = 0
-    # each closed surface of an eye on its own, the eyeball first (eye_surfaces: nested shells have no inside
+    # each closed surface of an eye on its own, the eyeball last (eye_surfaces: nested shells have no inside
     # as one mesh)
     for eye, pts, tris in [(e, *surface) for e, p, t in eyeballs for surface in eye_surfaces(p, t)]:
         r0 = vector_lengths(x0 - eye.center)
