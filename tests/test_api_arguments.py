@@ -470,6 +470,36 @@ def test_write_fit_rig_refuses_a_capture_that_is_no_path_or_not_there(samples, t
     assert api.write_fit_rig(fit, out, capture=capture) == out
 
 
+def test_write_fit_rig_refuses_a_capture_the_rig_was_not_fitted_on(samples, tmp_path):
+    """``write_fit_rig(fit, out, capture=OTHER)`` recorded OTHER as the rig's source, unchecked (stop 43): a
+    capture of another vertex count, or of the same mesh with another neutral (another person on the same
+    phone mesh: bench dev1 and dev3 share 1,203 vertices), is refused as ``evaluate_capture`` and
+    ``personalize_avatar(rig=)`` refuse a rig of another capture, naming the capture; nothing written. The
+    capture it was fitted on, written again (float32 points), is accepted."""
+    import dataclasses
+
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.model import FaceRig
+
+    capture = api.read_capture(samples / "capture.usda")
+    fit = api.fit_capture(capture, method="dt")
+    out = tmp_path / "rig.usda"
+    neutral = capture.neutral.copy()
+    neutral[7, 0] += 0.0005                                  # one vertex 0.5 mm away: another scan
+    other = api.write_capture(dataclasses.replace(capture, neutral=neutral), tmp_path / "other.usda")
+    with pytest.raises(FitError, match=r"other.usda: the rig's neutral is 0.5 mm from the capture's neutral "
+                                       r".*a rig fitted on another capture") as err:
+        api.write_fit_rig(fit, out, capture=other)
+    assert "fitted on" in err.value.fix and not out.exists()
+    tri = np.array([[0, 1, 2]])
+    with pytest.raises(FitError, match=r"capture.usda: the rig has 3 vertices, the capture mesh 1233"):
+        api.write_fit_rig(FaceRig(np.eye(3), tri, ["jawOpen"], np.full((1, 3, 3), 0.01)), out,
+                          capture=samples / "capture.usda")
+    same = api.write_capture(capture, tmp_path / "same.usda", exact=False)     # float32: rounded points
+    assert api.write_fit_rig(fit, out, capture=same) == out
+
+
 def test_personalize_refuses_a_rig_of_another_capture_naming_the_capture(samples, tmp_path):
     """A user trial (stop 42): ``personalize_avatar(avatar, capture, out, rig=fit_of_another_capture)`` --
     the rig ``read_capture``'s own fix suggests -- ended in the registration with numpy's ``ValueError:

@@ -446,10 +446,10 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
                                                                   role="train")["mean_rmse_mm"])
         if out_path is not None:
             p.start(f"write {Path(out_path).name}")
-            result.info["out_path"] = write_fit_rig(
-                result, out_path, force=force, capture=source,
-                command=command or "usdface.api.fit_capture (Python API)",   # what ran, not its writer
-                parameters={"method": method, **parameters})
+            result.info["out_path"] = _write_fit_rig(
+                result, out_path, force, source,
+                command or "usdface.api.fit_capture (Python API)",   # what ran, not its writer
+                {"method": method, **parameters})
     return result
 
 
@@ -485,13 +485,13 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     ``parameters``, its chosen ``reg`` and training RMSE, ``createdAt`` (UTC; ``SOURCE_DATE_EPOCH`` when set)
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
-    move. A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its
-    sha256 as ``pinsDigest``)."""
+    move. A ``capture`` the rig was not fitted on (another vertex count, or another neutral: the person's
+    scan a fitted rig keeps) is refused with :class:`usdface.errors.FitError` before the output is checked
+    (:func:`usdface.personalize.api.refuse_rig_of_another_capture`); it was recorded as the rig's source.
+    A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its sha256 as
+    ``pinsDigest``)."""
     _paths(out_path=(out_path, False))
     (force,) = _flags("write_fit_rig", force=force)
-    from . import __version__
-    from .io.avatar_writer import write_rig_usd
-    from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
     from .model import FaceRig
 
     if not isinstance(getattr(fit, "rig", fit), FaceRig):
@@ -506,6 +506,21 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         raise InputFileError("capture not found (the file the rig records as fitted on)", path=capture,
                              fix="pass the capture file or folder the rig was fitted on, or leave capture "
                                  "out")
+    if capture is not None:     # recorded as the rig's source: the capture it was fitted on, or refused
+        from .personalize.api import refuse_rig_of_another_capture
+
+        refuse_rig_of_another_capture(
+            getattr(fit, "rig", fit), _as_capture(capture), path=capture, same_neutral=True,
+            fix="pass the capture file or folder the rig was fitted on, or leave capture out")
+    return _write_fit_rig(fit, out_path, force, capture, command, parameters)
+
+
+def _write_fit_rig(fit, out_path, force: bool, capture, command, parameters) -> Path:
+    """:func:`write_fit_rig` once its arguments are checked (``fit_capture`` writes the rig of the capture it
+    has just read and fitted: not read again)."""
+    from . import __version__
+    from .io.avatar_writer import write_rig_usd
+    from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
 
     out = check_output_path(out_path, force, what="fit rig file")
     info = getattr(fit, "info", None) or {}
