@@ -75,8 +75,8 @@ def test_api_refuses_what_it_cannot_use():
     (lambda api, tmp: api.check_personalize_options(approximation="x"), r"unknown approximation 'x'"),
     (lambda api, tmp: api.check_personalize_options(map_prior="x"), r"unknown map prior 'x'"),
     (lambda api, tmp: api.check_personalize_options(support=(0.05, 0.01)), r"low > high"),
-    (lambda api, tmp: api.check_personalize_options(dry_run="yes"), r"bad dry_run 'yes': personalize's dry_run is a "
-                                                                         r"boolean"),
+    (lambda api, tmp: api.check_personalize_options(dry_run="yes"),
+     r"bad dry_run 'yes': personalize's dry_run is a boolean"),
     (lambda api, tmp: api.export_avatar(A, flatten=tmp / "f.usdc", variant="x"), r"unknown variant 'x'"),
     (lambda api, tmp: api.export_avatar(A), r"nothing to export"),
     (lambda api, tmp: api.check(A, rules=["NoSuchRule"]), r"unknown check rule"),
@@ -298,10 +298,10 @@ def test_boolean_arguments_given_as_strings_are_refused_before_any_work(tmp_path
 
 def test_one_boolean_check_none_is_the_default(tmp_path):
     """Stop 43: the API's arguments (``_flags``), a batch row's / Pyblish instance's options
-    (``check_item_options``) and ``personalize_batch(options=)`` checked booleans three ways: ``None`` refused,
-    refused, and let through to be refused by the row check with a third message. One check now
-    (``usdface.errors.expect_flag``): ``None`` is the default everywhere, anything else but a boolean refused
-    with one message."""
+    (``check_item_options``) and ``personalize_batch(options=)`` checked booleans three ways: ``None``
+    refused, refused, and let through to be refused by the row check with a third message. One check now
+    (``usdface.errors.expect_flag``): ``None`` is the default everywhere, anything else but a boolean
+    refused with one message."""
     from usdface import api
     from usdface.landmarks import compute_landmarks as core_landmarks
 
@@ -433,7 +433,8 @@ def test_the_core_compute_landmarks_names_a_path_given_for_the_rig(samples):
                           r"not int"),
     ({"worker": len}, r"personalize_batch's worker must be a 'module:function' string \(or None\)"),
     # was blamed on the manifest ('people.csv: item 1: bad inspect'), which has no such column (stop 42)
-    ({"options": {"inspect": "true"}}, r"^bad inspect 'true': personalize_batch's options' inspect is a boolean"),
+    ({"options": {"inspect": "true"}},
+     r"^bad inspect 'true': personalize_batch's options' inspect is a boolean"),
 ])
 def test_personalize_batch_refuses_arguments_of_the_wrong_kind(tmp_path, kwargs, needle):
     """``options=["inspect"]`` died with Python's ``ValueError: dictionary update sequence element #0 has

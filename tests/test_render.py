@@ -372,8 +372,8 @@ def test_render_landmarks_without_a_layout_names_the_commands_that_make_one(samp
     assert main(["render", str(avatar), "--landmarks", "-o", str(tmp_path / "l.png")]) == 2
     err = capsys.readouterr().err
     assert "no landmark layout for mesh 'Head'" in err and not (tmp_path / "l.png").exists()
-    told = re.search(r"'usdface landmarks (\S+) -o (\S+)', then 'usdface render (\S+) -o (\S+) --landmarks'",
-                     err)
+    told = re.search(r"\(usdface landmarks (\S+) -o (\S+)\), then draw that file "
+                     r"\(usdface render (\S+) -o (\S+) --landmarks\)", err)
     assert told, err
     assert "--landmarks" in err.split("or personalize with", 1)[1] and "--diagnostics" in err
     assert Path(told.group(1)) == avatar and told.group(2) == told.group(3)

@@ -281,8 +281,8 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                 suggest = (f"--test-every {min(test_every, 5)} "     # (it told '--test-every 5
                            f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
-                           f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
-                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
+                           f"expressions than --min-separation {min_separation:g} s (usdface capture select "
+                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}))")
             warn(message, w.category)
         if test_every > 0 and len(selection.test) == 0:
             warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
@@ -338,8 +338,8 @@ def _rest_fix(capture, source) -> str | None:
     take = os.path.relpath(found) if found is not None and found.exists() else "TAKE"
     again = _select_again(take, source, None, threshold, per_shape)
     return (f"hold out frames nearer the expressions than the --min-separation {separation:g} s it was made "
-            f"with: 'usdface capture select {again} --test-every {min(every, 5)} "
-            f"--min-separation {min(0.2, separation / 2):g}'")
+            f"with (usdface capture select {again} --test-every {min(every, 5)} "
+            f"--min-separation {min(0.2, separation / 2):g})")
 
 
 def _select_again(take, out_path, template, threshold, per_shape) -> str:
@@ -1722,9 +1722,10 @@ def _refuse_export_input(layer_path, **outputs) -> None:
         options.append("--variant generic")
     export = " ".join(["usdface export person.usda", *options])
     what = what.removesuffix("not an avatar") + "not a layer written by 'usdface personalize' (nor an avatar)"
-    fix = (f"export takes the layer personalize writes: run '{personalize}' first, then '{export}'"
-           if personalize else f"open it in usdview to look at the errors; export takes a layer written by "
-                               f"'usdface personalize' (or an avatar): '{export}'")
+    fix = (f"export takes the layer personalize writes: personalize first ({personalize}), then export "
+           f"({export})" if personalize else
+           f"open it in usdview to look at the errors; export takes a layer written by 'usdface personalize' "
+           f"(or an avatar) ({export})")
     raise RigError(f"this is {what}", path=path, prim=prim, fix=fix)
 
 
