@@ -748,3 +748,26 @@ def test_render_colours_run_from_zero_to_the_titles_maximum(inspected, tmp_path,
             top = float(re.search(r"max ([0-9.]+) mm", title or fig.get_suptitle()).group(1))
             assert norm.vmin == 0.0
             assert norm.vmax == pytest.approx(top, abs=0.051)
+
+
+def test_a_mid_line_landmark_is_on_both_profiles():
+    """Stop 43: a side view hid a landmark whose vertex normal does not face the camera, so one on the
+    face's mid-line (upper lip, chin: its normal edge-on to a profile camera) was counted on the far side
+    of both profiles, though it sits on the outline. A landmark now shows where it is a corner of a face the
+    picture draws: on a roof whose ridge runs down the middle (x = 0), a ridge vertex shows from the left
+    and from the right, an eave vertex only from its own side, and none from behind."""
+    y = np.array([0.0, 1.0])
+    points = np.array([[x, yy, z] for yy in y for x, z in ((-1.0, 0.0), (0.0, 1.0), (1.0, 0.0))])
+    # 0 1 2 at y = 0, 3 4 5 at y = 1: two slopes facing +z (the face's look), the person's left at +x
+    triangles = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])
+    ridge, right_eave, left_eave = 1, 0, 2
+    for view, hidden in (("front", 0), ("left", 1), ("right", 1)):
+        fig = render_landmarks(points, triangles, [ridge, left_eave, right_eave], view=view)
+        title = fig.axes[0].get_title()
+        assert title == "3 landmarks" + (f" ({hidden} on the far side)" if hidden else ""), (view, title)
+    from usdface.render import _landmark_dots
+
+    fig = render_landmarks(points, triangles, [ridge], view="left")
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([ridge]), "right") == 0
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([right_eave]), "left") == 1
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([left_eave]), "right") == 1

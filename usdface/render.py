@@ -355,11 +355,21 @@ def _check_landmarks(points, indices) -> np.ndarray:
 def _landmark_dots(ax, points, triangles, indices, view: str, labels=None, colour: str = "#00c8ff",
                    edge: str = "black") -> int:
     """Landmarks ``indices[m]`` as dots on ``ax``, those on the far side of the view hidden; returns how many
-    are hidden."""
-    from .mesh import vertex_normals
+    are hidden.
+
+    A landmark is on the near side when it is a corner of a face the picture draws (one facing the camera,
+    :func:`draw_mesh`'s test): a landmark on the silhouette belongs to the side it is seen from, so one on
+    the face's mid-line (upper lip, chin) is shown in both profiles, on the outline, and one in the middle
+    of a face turned away in neither. It was hidden where its vertex normal did not face the camera: a
+    mid-line normal is edge-on in a profile, so a side view counted the upper lip and chin as on the far
+    side of both (stop 43)."""
+    from .mesh import triangle_normals
 
     rotated = np.asarray(points, dtype=np.float64) @ VIEWS[view].T
-    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    near = np.zeros(len(rotated), dtype=bool)
+    near[tri[triangle_normals(rotated, tri)[:, 2] > 0.0].ravel()] = True
+    visible = near[indices]
     xy = rotated[indices][:, :2]
     ax.scatter(xy[visible, 0], xy[visible, 1], s=16, c=colour, edgecolors=edge, linewidths=0.7, zorder=3)
     if labels is not None:
