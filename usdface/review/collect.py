@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputFileError, RigError, warn
 from ..motion import shape_changes
-from .page import ReviewData, ReviewMesh, Sequence
+from .page import Listing, ReviewData, ReviewMesh, Sequence
 
 __all__ = ["collect_review", "recorded_capture"]
 
@@ -431,8 +431,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                        "avatar's generic shapes)"
                        if (prov.get("parameters") or {}).get("approximation") == "generic" else "")
                 rows.append((f"{name}: left generic", f"all {len(names)} shapes{why}"))
-            elif kept:
-                rows.append((f"{name}: left generic", ", ".join(kept)))
+            elif kept:      # the count and the first few; the whole list one click away
+                rows.append((f"{name}: left generic", Listing(kept)))
         tables.append(("what changed", rows))
     for w in prov.get("warnings") or []:
         notes.append(f"warning: {w}")
