@@ -1283,7 +1283,7 @@ def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=No
     ``laplacian_weight="auto"`` (default): the weight is chosen on ``cv_data = (points, weights, reg)`` by
     :meth:`LaplacianFit.choose_weight`."""
     if method == "laplacian":
-        from .laplacian import LaplacianFit
+        from .laplacian import LAPLACIAN_GRID, LaplacianFit
         opts = dict(options)
         mu = opts.pop("laplacian_weight", "auto")
         lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp,
@@ -1291,7 +1291,11 @@ def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=No
         if isinstance(mu, str):
             if mu != "auto":
                 raise FitError(f"bad laplacian_weight {mu!r}", fix="use 'auto' or a number >= 0")
-            cv = lf.choose_weight(*cv_data)
+            from ..progress import steps
+
+            # nearly all of the method's time (~26 CPU-s on dev3): a step per weight, not one silent step
+            with steps("laplacian weight", len(LAPLACIAN_GRID)) as p:
+                cv = lf.choose_weight(*cv_data, progress=p.start)
             if info is not None:
                 info["laplacian_cv"] = cv
         if info is not None:
