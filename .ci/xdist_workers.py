@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import os
 
-#: Peak memory of one worker, MB: a test file's in-process personalize of a bench head (dev1 ~370 MB peak
-#: RSS, docs/scale.md) with its module fixtures, beside the CLI process a test runs (the same again): about
-#: 1 GB (stop 43: the largest single process of test_review.py + test_transfer_bench.py, see history.md).
+#: Peak memory of one worker, MB: a worker process and the CLI process one of its tests runs and waits on.
+#: A personalize of a bench head peaks at ~370 MB RSS (docs/scale.md); the largest single process of
+#: ``pytest tests/test_review.py tests/test_transfer_bench.py`` (the bench personalizations, in-process and
+#: through the CLI) peaked at 563 MB (stop 43, ``/usr/bin/time -v``): the two together ~1.1 GB at most.
 WORKER_MB = 1024
 
 
