@@ -75,7 +75,8 @@ def test_api_refuses_what_it_cannot_use():
     (lambda api, tmp: api.check_personalize_options(approximation="x"), r"unknown approximation 'x'"),
     (lambda api, tmp: api.check_personalize_options(map_prior="x"), r"unknown map prior 'x'"),
     (lambda api, tmp: api.check_personalize_options(support=(0.05, 0.01)), r"low > high"),
-    (lambda api, tmp: api.check_personalize_options(dry_run="yes"), r"bad dry_run 'yes': not a boolean"),
+    (lambda api, tmp: api.check_personalize_options(dry_run="yes"),
+     r"bad dry_run 'yes': personalize's dry_run is a boolean"),
     (lambda api, tmp: api.export_avatar(A, flatten=tmp / "f.usdc", variant="x"), r"unknown variant 'x'"),
     (lambda api, tmp: api.export_avatar(A), r"nothing to export"),
     (lambda api, tmp: api.check(A, rules=["NoSuchRule"]), r"unknown check rule"),
@@ -295,6 +296,37 @@ def test_boolean_arguments_given_as_strings_are_refused_before_any_work(tmp_path
     assert layer.read_text() == "#usda 1.0\n"
 
 
+def test_one_boolean_check_none_is_the_default(tmp_path):
+    """Stop 43: the API's arguments (``_flags``), a batch row's / Pyblish instance's options
+    (``check_item_options``) and ``personalize_batch(options=)`` checked booleans three ways: ``None``
+    refused, refused, and let through to be refused by the row check with a third message. One check now
+    (``usdface.errors.expect_flag``): ``None`` is the default everywhere, anything else but a boolean
+    refused with one message."""
+    from usdface import api
+    from usdface.landmarks import compute_landmarks as core_landmarks
+
+    assert api._flags("check", pixar=None) == (True,)                 # the signature's defaults
+    assert api._flags("export_avatar", skin=None, force=None) == (True, False)
+    assert api._flags("write_capture", force=np.True_, exact=None) == (True, True)
+    assert api._flags("personalize_avatar", inspect=None, landmarks=None, force=None,
+                      dry_run=None) == (False,) * 4
+    api.check_item_options({"inspect": None, "force": None, "landmarks": None})   # a JSON row's null
+    options = {"symmetric": None}
+    api._refuse_unknown_keywords(core_landmarks, options, "compute_landmarks")
+    assert options == {"symmetric": False}
+    manifest = tmp_path / "people.csv"
+    (tmp_path / "done.usda").write_text("#usda 1.0\n")          # resumed: skipped after the checks
+    manifest.write_text(f"avatar,capture,output\n{A},{C},done.usda\n")
+    api.personalize_batch(manifest, jobs=1, options={"inspect": None})   # was refused as the row's
+    style = r"^bad inspect 'yes': .+ inspect is a boolean \(True or False; None: the default, False\)"
+    for call in (lambda: api._flags("personalize_avatar", inspect="yes"),
+                 lambda: api.check_item_options({"inspect": "yes"}),
+                 lambda: api.personalize_batch(manifest, jobs=1, options={"inspect": "yes"})):
+        with pytest.raises(OptionError, match=style) as err:
+            call()
+        assert err.value.fix
+
+
 def test_an_existing_layer_is_not_replaced_by_force_no(tmp_path):
     """The case that mattered: ``personalize_avatar(..., force="no")`` over an existing output replaced it."""
     from usdface import api
@@ -401,7 +433,8 @@ def test_the_core_compute_landmarks_names_a_path_given_for_the_rig(samples):
                           r"not int"),
     ({"worker": len}, r"personalize_batch's worker must be a 'module:function' string \(or None\)"),
     # was blamed on the manifest ('people.csv: item 1: bad inspect'), which has no such column (stop 42)
-    ({"options": {"inspect": "true"}}, r"^personalize_batch's options: bad inspect 'true': not a boolean"),
+    ({"options": {"inspect": "true"}},
+     r"^bad inspect 'true': personalize_batch's options' inspect is a boolean"),
 ])
 def test_personalize_batch_refuses_arguments_of_the_wrong_kind(tmp_path, kwargs, needle):
     """``options=["inspect"]`` died with Python's ``ValueError: dictionary update sequence element #0 has
@@ -436,6 +469,36 @@ def test_write_fit_rig_refuses_a_capture_that_is_no_path_or_not_there(samples, t
         api.write_fit_rig(fit, out, capture=api.read_capture(capture))
     assert "\n" not in str(err.value) and not out.exists()
     assert api.write_fit_rig(fit, out, capture=capture) == out
+
+
+def test_write_fit_rig_refuses_a_capture_the_rig_was_not_fitted_on(samples, tmp_path):
+    """``write_fit_rig(fit, out, capture=OTHER)`` recorded OTHER as the rig's source, unchecked (stop 43): a
+    capture of another vertex count, or of the same mesh with another neutral (another person on the same
+    phone mesh: bench dev1 and dev3 share 1,203 vertices), is refused as ``evaluate_capture`` and
+    ``personalize_avatar(rig=)`` refuse a rig of another capture, naming the capture; nothing written. The
+    capture it was fitted on, written again (float32 points), is accepted."""
+    import dataclasses
+
+    from usdface import api
+    from usdface.errors import FitError
+    from usdface.model import FaceRig
+
+    capture = api.read_capture(samples / "capture.usda")
+    fit = api.fit_capture(capture, method="dt")
+    out = tmp_path / "rig.usda"
+    neutral = capture.neutral.copy()
+    neutral[7, 0] += 0.0005                                  # one vertex 0.5 mm away: another scan
+    other = api.write_capture(dataclasses.replace(capture, neutral=neutral), tmp_path / "other.usda")
+    with pytest.raises(FitError, match=r"other.usda: the rig's neutral is 0.5 mm from the capture's neutral "
+                                       r".*a rig fitted on another capture") as err:
+        api.write_fit_rig(fit, out, capture=other)
+    assert "fitted on" in err.value.fix and not out.exists()
+    tri = np.array([[0, 1, 2]])
+    with pytest.raises(FitError, match=r"capture.usda: the rig has 3 vertices, the capture mesh 1233"):
+        api.write_fit_rig(FaceRig(np.eye(3), tri, ["jawOpen"], np.full((1, 3, 3), 0.01)), out,
+                          capture=samples / "capture.usda")
+    same = api.write_capture(capture, tmp_path / "same.usda", exact=False)     # float32: rounded points
+    assert api.write_fit_rig(fit, out, capture=same) == out
 
 
 def test_personalize_refuses_a_rig_of_another_capture_naming_the_capture(samples, tmp_path):

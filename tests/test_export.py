@@ -279,7 +279,8 @@ def test_a_usdz_layer_over_the_avatar_is_refused_with_why_and_the_export_that_pa
     assert main(argv) == 2
     err = capfd.readouterr().err
     assert "cannot be a .usdz package: the layer sublayers the avatar by its path" in err, err
-    assert "run 'usdface export 'my p.usda' --flatten 'my p.usdz'' after it" in err, err
+    # the command as pasted: in parentheses, not in quotes around its own quoted paths (stop 43)
+    assert "export it after that (usdface export 'my p.usda' --flatten 'my p.usdz')" in err, err
     assert list(tmp_path.iterdir()) == []
     if command == "personalize":            # the fix, pasted: the layer, then its packaged export
         assert main([command, str(A), str(C), "-o", "my p.usda", "-q", "--method", "dt"]) == 0

@@ -353,6 +353,25 @@ def test_landmark_evaluation_summary_without_an_empirical_layout():
     assert _summary(EvaluationReport([], frames=0, noise=0.0), None) == {}
 
 
+def test_landmark_evaluation_json_names_its_units():
+    """Stop 43: ``landmarks --evaluate --json`` wrote every RMSE and the noise in metres (``"rmse":
+    0.00157``) under keys without a unit, beside a printed summary in mm. The JSON says its units
+    (``"units"``); the keys stay as they were, so readers of the old JSON go on working."""
+    import json
+
+    from usdface.landmarks.evaluate import EvaluationPoint, EvaluationReport, _summary
+
+    pts = [EvaluationPoint("ours", "eps 0.5", 12, 2e-3), EvaluationPoint("random", "seed 0", 10, 4e-3)]
+    report = EvaluationReport(pts, frames=10, noise=5e-4)
+    report.summary = _summary(report, None)
+    data = json.loads(json.dumps(report.to_dict()))
+    assert data["units"] == {"rmse": "m", "noise": "m"}
+    assert data["noise"] == 5e-4 and data["points"][0]["rmse"] == 2e-3            # the keys of before
+    lengths = [k for k in data["summary"] if "rmse" in k] + [k for p in data["points"] for k in p
+                                                            if k == "rmse"]
+    assert lengths and all(any(unit in k for unit in data["units"]) for k in lengths)
+
+
 def test_evaluate_landmarks_takes_the_empirical_indices_themselves(tmp_path, monkeypatch):
     """``evaluate_landmarks(avatar, take, empirical=[1, 2, 3])`` raised TypeError (it read a path only);
     the indices themselves are a layout, as a JSON file of them is; anything else names the fix."""

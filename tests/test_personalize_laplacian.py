@@ -66,3 +66,21 @@ def test_laplacian_weight_is_chosen_by_its_own_cross_validation():
         X = direct_solve(neutral, tris, pts[fold != k], W[fold != k], T, D, 1e-3, cv["mu"])
         sse += np.sum((pts[fold == k] - neutral - np.einsum("fk,knc->fnc", W[fold == k], X)) ** 2)
     assert np.isclose(np.sqrt(sse / pts.size) * 1000, min(cv["cv_rmse_mm"]), rtol=1e-4)
+
+
+def test_the_weight_cross_validation_shows_its_progress(monkeypatch, capsys):
+    """Stop 43: ``fit --method laplacian`` spent ~26 CPU-s on dev3 in one silent step (``fit laplacian``),
+    nearly all of it in the weight's cross-validation. Each weight's fits are a step of their own now."""
+    from test_personalize_inputs import tiny_capture
+
+    from usdface import progress
+    from usdface.personalize.api import fit_personalized_shapes
+    from usdface.personalize.laplacian import LAPLACIAN_GRID
+
+    monkeypatch.setenv("USDFACE_PROGRESS", "plain")
+    monkeypatch.setenv("USDFACE_PROGRESS_DELAY", "0")
+    monkeypatch.setattr(progress, "_ENABLED", True)
+    fit_personalized_shapes(tiny_capture(), method="laplacian")
+    err = capsys.readouterr().err
+    for i, mu in enumerate(LAPLACIAN_GRID, 1):
+        assert f"laplacian weight [{i}/{len(LAPLACIAN_GRID)}] mu {mu:g}: all frames + 3 folds" in err, err

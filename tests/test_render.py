@@ -372,8 +372,8 @@ def test_render_landmarks_without_a_layout_names_the_commands_that_make_one(samp
     assert main(["render", str(avatar), "--landmarks", "-o", str(tmp_path / "l.png")]) == 2
     err = capsys.readouterr().err
     assert "no landmark layout for mesh 'Head'" in err and not (tmp_path / "l.png").exists()
-    told = re.search(r"'usdface landmarks (\S+) -o (\S+)', then 'usdface render (\S+) -o (\S+) --landmarks'",
-                     err)
+    told = re.search(r"\(usdface landmarks (\S+) -o (\S+)\), then draw that file "
+                     r"\(usdface render (\S+) -o (\S+) --landmarks\)", err)
     assert told, err
     assert "--landmarks" in err.split("or personalize with", 1)[1] and "--diagnostics" in err
     assert Path(told.group(1)) == avatar and told.group(2) == told.group(3)
@@ -725,7 +725,8 @@ def test_render_colours_run_from_zero_to_the_titles_maximum(inspected, tmp_path,
     """A trial (stop 42): ``render``'s shape panels had no colour bar and coloured from the smallest to the
     largest visible triangle's mean (Pixar's targetC, 138.9 mm, drawn without its top colour), and
     ``--compare``'s difference bar ended at 2.65 under a title of 2.89 mm. Every heat panel of the shapes,
-    ``--compare`` and ``--heatmap`` pictures now runs from 0 to the maximum its title states, with a bar."""
+    ``--compare`` and ``--heatmap`` pictures now runs from 0 to the largest maximum its picture's titles state
+    (one scale per picture, stop 43), with one bar."""
     import re
 
     from usdface import render
@@ -741,10 +742,53 @@ def test_render_colours_run_from_zero_to_the_titles_maximum(inspected, tmp_path,
     shapes, compare, heat = figures
     for fig, expected in ((shapes, 2), (compare, 1), (heat, 1)):
         bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
-        assert len(bars) == expected                    # one colour bar per heat panel
+        assert len(bars) == 1                           # one colour bar per picture
         scales = _panel_scales(fig)
         assert len(scales) == expected
-        for title, norm in scales:
-            top = float(re.search(r"max ([0-9.]+) mm", title or fig.get_suptitle()).group(1))
+        top = max(float(re.search(r"max ([0-9.]+) mm", title or fig.get_suptitle()).group(1))
+                  for title, _ in scales)
+        for _, norm in scales:
             assert norm.vmin == 0.0
             assert norm.vmax == pytest.approx(top, abs=0.051)
+
+
+def test_a_mid_line_landmark_is_on_both_profiles():
+    """Stop 43: a side view hid a landmark whose vertex normal does not face the camera, so one on the
+    face's mid-line (upper lip, chin: its normal edge-on to a profile camera) was counted on the far side
+    of both profiles, though it sits on the outline. A landmark now shows where it is a corner of a face the
+    picture draws: on a roof whose ridge runs down the middle (x = 0), a ridge vertex shows from the left
+    and from the right, an eave vertex only from its own side, and none from behind."""
+    y = np.array([0.0, 1.0])
+    points = np.array([[x, yy, z] for yy in y for x, z in ((-1.0, 0.0), (0.0, 1.0), (1.0, 0.0))])
+    # 0 1 2 at y = 0, 3 4 5 at y = 1: two slopes facing +z (the face's look), the person's left at +x
+    triangles = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])
+    ridge, right_eave, left_eave = 1, 0, 2
+    for view, hidden in (("front", 0), ("left", 1), ("right", 1)):
+        fig = render_landmarks(points, triangles, [ridge, left_eave, right_eave], view=view)
+        title = fig.axes[0].get_title()
+        assert title == "3 landmarks" + (f" ({hidden} on the far side)" if hidden else ""), (view, title)
+    from usdface.render import _landmark_dots
+
+    fig = render_landmarks(points, triangles, [ridge], view="left")
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([ridge]), "right") == 0
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([right_eave]), "left") == 1
+    assert _landmark_dots(fig.axes[0], points, triangles, np.array([left_eave]), "right") == 1
+
+
+def test_the_panels_of_a_picture_share_one_length_and_colour_scale():
+    """Stop 43: ``render --mesh Mouth`` framed each panel on its own pose and coloured it to its own maximum,
+    so the bench Mouth's jawOpen (42 mm) was drawn smaller than the neutral beside it and a 3 mm shape as
+    bright as it: panels that could not be compared. Every panel of a shapes or ``--compare`` picture now
+    has the same view limits (the union of its poses) and every heat panel the same colour norm."""
+    rig = grid_rig()
+    rig.deltas[1] *= 40.0                                   # one shape moving far more than the other
+    for fig, heat in ((render_shapes(rig, rig.names[:2]), 2),
+                      (render_comparison(grid_rig(), rig, rig.names[:2]), 2)):
+        panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+        assert len({(ax.get_xlim(), ax.get_ylim()) for ax in panels}) == 1
+        norms = {(c.norm.vmin, c.norm.vmax) for ax in panels for c in ax.collections
+                 if c.norm.vmin is not None}
+        assert len(norms) == 1 and len([ax for ax in panels if "max" in ax.get_title()]) == heat
+    moved = rig.neutral + rig.deltas[1]
+    (x0, x1) = render_shapes(rig, rig.names[:2]).axes[0].get_xlim()
+    assert x0 <= moved[:, 0].min() and moved[:, 0].max() <= x1      # the neutral panel holds the big pose

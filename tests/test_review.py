@@ -621,7 +621,7 @@ def test_personalized_count_agrees_with_the_review_page(bench, tmp_path):
     rows = dict(next(rows for title, rows in data.tables if title == "what changed"))
     page = sum(int(v.split(" of ")[0]) for k, v in rows.items() if k.endswith("shapes changed"))
     assert said == page, (res.stdout, rows)
-    kept = rows["Head: left generic"].split(", ")
+    kept = rows["Head: left generic"].names
     assert "jawLeft" in kept and len(kept) >= 2                  # moved by under 1 nm: left generic
     dry = _usdface_cli("personalize", case / "avatar.usdc", case / "capture", "--dry-run", "-q", cwd=tmp_path)
     assert dry.returncode == 0, dry.stderr
@@ -638,3 +638,23 @@ def test_page_registration_figures_are_rounded_with_units(review):
     assert re.fullmatch(r"\d{1,3}\.\d % of capture points matched", fitness), fitness
     for cell in re.findall(r"<td>([^<]*)</td>", reg):
         assert not re.search(r"\d\.\d{5,}", cell), cell              # no unrounded figure
+
+
+def test_a_long_left_generic_list_is_summarized_with_the_whole_list_a_click_away(personalized_sample):
+    """Stop 43: dev3's review listed the 46 Mouth shapes left generic on one line of "what changed". The
+    cell says how many and names the first five; the whole list is in the cell's details (one click)."""
+    from usdface.review.collect import collect_review
+    from usdface.review.page import LISTING_SHOWN, Listing, ReviewData, _tables_html
+
+    names = [f"shape{i:02d}" for i in range(46)]
+    cell = Listing(names)
+    assert str(cell) == "46: shape00, shape01, shape02, shape03, shape04 (+41 more)" and LISTING_SHOWN == 5
+    page = _tables_html(ReviewData("t", [], tables=[("what changed", [("Mouth: left generic", cell)])]))
+    summary, details = re.search(r"<details><summary>(.*)</summary>(.*)</details>", page).groups()
+    assert summary == str(cell) and details.split(", ") == names
+    short = _tables_html(ReviewData("t", [], tables=[("x", [("k", Listing(["a", "b"]))])]))
+    assert "<td>2: a, b</td>" in short and "<details>" not in short
+    rows = dict(next(rows for title, rows in collect_review(personalized_sample, fit_errors=False).tables
+                     if title == "what changed"))
+    left = [v for k, v in rows.items() if k.endswith("left generic")]
+    assert left and all(isinstance(v, Listing) or v.startswith("all ") for v in left), rows

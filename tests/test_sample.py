@@ -368,3 +368,21 @@ def test_sample_picture_heads_fill_their_panels(tmp_path):
     rows, cols = np.flatnonzero(panel.any(axis=1)), np.flatnonzero(panel.any(axis=0))
     assert rows.max() - rows.min() >= 0.6 * height, (rows.min(), rows.max(), height)
     assert rows.max() < height - 5 and cols.min() > 5 and cols.max() < width // 5 - 5   # not cut off
+
+
+def test_sample_picture_says_which_sample_it_shows(tmp_path, monkeypatch):
+    """Stop 43: ``sample out --seed 3 --template artist --picture p.png`` drew a picture with no title, which
+    looked like the default sample's. It is titled with the seed, the template and the noise, over what the
+    panels show (as the render pictures name their file and mesh)."""
+    from usdface.sample import picture
+
+    titles = []
+    real = picture.render_sample_picture
+    monkeypatch.setattr(picture, "render_sample_picture",
+                        lambda *a, **kw: (titles.append(kw.get("title")), real(*a, **kw))[1])
+    argv = ["sample", str(tmp_path / "s"), "--seed", "3", "--template", "artist", "--weight-noise", "0.03",
+            "--picture", str(tmp_path / "p.png"), "-q"]
+    assert main(argv) == 0
+    assert titles == ["usdface sample, seed 3: artist template, scan noise 0.1 mm, weight noise 0.03\n"
+                      "the avatar neutral and in expressions; the person's capture mask"]
+    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

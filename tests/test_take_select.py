@@ -409,7 +409,7 @@ def test_capture_select_rest_warning_names_the_take_and_a_fix_not_yet_tried(tmp_
     message = next(str(m.message) for m in said if "show no expression" in str(m.message))
     assert str(take) in message
     fix = message.split("(fix: ", 1)[1]
-    suggested = float(re.search(r"--min-separation ([0-9.]+)'", fix).group(1))
+    suggested = float(re.search(r"--min-separation ([0-9.]+)\)", fix).group(1))
     assert suggested < 0.2, fix
 
 
@@ -483,7 +483,7 @@ def test_capture_select_rest_warning_repeats_the_runs_output_and_template(genera
     with pytest.warns(UserWarning, match="show no expression") as said:
         api.select_capture_frames(src, out, template=template, test_every=40)
     message = next(str(m.message) for m in said if "show no expression" in str(m.message))
-    command = re.search(r"'usdface capture select ([^']*)'", message).group(1)
+    command = re.search(r"\(usdface capture select ([^()]*)\)", message).group(1)
     assert command.startswith(f"{src} -o {out} --template {template} --force --test-every 5"), message
 
 
@@ -514,7 +514,7 @@ def test_evaluate_rest_fix_halves_the_separation_the_capture_was_made_with(gener
     with pytest.warns(UserWarning, match="cannot tell the methods apart") as said:
         api.evaluate_methods("../capture.usda", ["dt"])
     message = next(str(m.message) for m in said if "cannot tell the methods apart" in str(m.message))
-    argv = shlex.split(re.search(r"'usdface capture select ([^']*)'", message).group(1))
+    argv = shlex.split(re.search(r"\(usdface capture select ([^()]*)\)", message).group(1))
     assert Path(argv[0]).resolve() == src.resolve(), message
     assert argv[argv.index("-o") + 1] == "../capture.usda" and "--force" in argv
     assert "made with" in message and "--min-separation 0.4 s" in message

@@ -50,21 +50,21 @@ def _written(path: PathLike) -> Path:
 _expect = expect_kind        # (usdface.errors: the io writers refuse their arguments alike)
 
 
-def _flags(what: str, **named) -> None:
-    """Each ``name=value`` a boolean (``True``/``False``, numpy's too), else
-    :class:`usdface.errors.OptionError` naming the function, the argument and the fix, before any work:
-    ``force="no"`` counted as true and replaced an existing output, ``skin="no"`` exported the skin,
-    ``pixar="no"`` ran Pixar's validators (a user trial; the landmark functions' booleans were refused so
-    already)."""
-    import numpy as np
+def _flags(what: str, **named) -> tuple[bool, ...]:
+    """The values of the API function ``what``'s boolean arguments ``name=value``, in the order given, as
+    :func:`usdface.errors.expect_flag` takes them: ``None`` is the argument's default (its signature's; an
+    option given in ``**options``, such as ``personalize_avatar``'s ``force``, defaults to ``False``), any
+    value but a boolean an :class:`usdface.errors.OptionError` naming the function, the argument and the fix,
+    before any work (``force="no"`` counted as true and replaced an existing output, ``skin="no"`` exported
+    the skin, ``pixar="no"`` ran Pixar's validators: a user trial)."""
+    import inspect
 
-    for name, value in named.items():
-        if not isinstance(value, bool | np.bool_):
-            from .errors import OptionError
+    from .errors import expect_flag
 
-            whose = what + ("'" if what.endswith("s") else "'s")     # select_capture_frames' force
-            raise OptionError(f"bad {name} {value!r:.60}: {whose} {name} is a boolean",
-                              fix=f"pass {name}=True or {name}=False")
+    params = inspect.signature(globals()[what]).parameters
+    whose = what + ("'" if what.endswith("s") else "'s")     # select_capture_frames' force
+    return tuple(expect_flag(value, name, whose, params[name].default if name in params else False)
+                 for name, value in named.items())
 
 
 _PATH = (str, os.PathLike)
@@ -175,7 +175,7 @@ def write_capture(capture: Capture, out_path: PathLike, force: bool = False, *, 
         inputs = [inputs]                         # every output was 'inside the input folder /'
     _expect(capture, (_model("Capture"),), "write_capture's capture", "a Capture",
             "pass usdface.read_capture(PATH) (a capture is copied as a file with import_capture_folder)")
-    _flags("write_capture", force=force, exact=exact)
+    force, exact = _flags("write_capture", force=force, exact=exact)
     out = check_capture_output(out_path, force, inputs=[source, *inputs])
     if source is not None:
         from .io.layers import file_digest
@@ -197,7 +197,7 @@ def import_capture_folder(folder: PathLike, out_path: PathLike, force: bool = Fa
     ``force``; the source's digest is recorded (see :func:`write_capture`). A take is refused (its frames are
     picked with :func:`select_capture_frames`, or it is fitted whole)."""
     _paths(folder=(folder, False), out_path=(out_path, False))
-    _flags("import_capture_folder", force=force, exact=exact)
+    force, exact = _flags("import_capture_folder", force=force, exact=exact)
     from .io.capture_folder import refuse_whole_take
 
     check_capture_output(out_path, force, inputs=[folder])
@@ -233,7 +233,7 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     ``out_path`` the selected frames are written as a capture (:func:`write_capture`: ``.usd*`` file or
     folder) using ``template`` (a capture path, a Capture or a FaceRig; default the take's own template)."""
     _paths(take=(take, False), out_path=(out_path, True))
-    _flags("select_capture_frames", force=force)
+    (force,) = _flags("select_capture_frames", force=force)
     import numpy as np
 
     from .errors import CaptureError
@@ -281,8 +281,8 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
                 suggest = (f"--test-every {min(test_every, 5)} "     # (it told '--test-every 5
                            f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
-                           f"expressions than --min-separation {min_separation:g} s: 'usdface capture select "
-                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}')")
+                           f"expressions than --min-separation {min_separation:g} s (usdface capture select "
+                           f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}))")
             warn(message, w.category)
         if test_every > 0 and len(selection.test) == 0:
             warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
@@ -338,8 +338,8 @@ def _rest_fix(capture, source) -> str | None:
     take = os.path.relpath(found) if found is not None and found.exists() else "TAKE"
     again = _select_again(take, source, None, threshold, per_shape)
     return (f"hold out frames nearer the expressions than the --min-separation {separation:g} s it was made "
-            f"with: 'usdface capture select {again} --test-every {min(every, 5)} "
-            f"--min-separation {min(0.2, separation / 2):g}'")
+            f"with (usdface capture select {again} --test-every {min(every, 5)} "
+            f"--min-separation {min(0.2, separation / 2):g})")
 
 
 def _select_again(take, out_path, template, threshold, per_shape) -> str:
@@ -382,7 +382,7 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     written (atomically; an existing file needs ``force``) and the
     :class:`usdface.io.livelink.LiveLinkTake` read."""
     _paths(csv=(csv, False), out_path=(out_path, False))
-    _flags("import_livelink_take", force=force)
+    (force,) = _flags("import_livelink_take", force=force)
     from . import __version__
     from .io.layers import check_output_path
     from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
@@ -420,7 +420,7 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
     written is ``result.info["out_path"]``, whose provenance records ``command`` (the CLI's command line),
     the method and options, and the capture file read (:func:`write_fit_rig`)."""
     _paths(out_path=(out_path, True))
-    _flags("fit_capture", force=force)
+    (force,) = _flags("fit_capture", force=force)
     from .personalize import fit_personalized_shapes
     from .progress import steps
 
@@ -446,10 +446,10 @@ def fit_capture(capture: Capture | PathLike, method: str = "menzel", *, out_path
                                                                   role="train")["mean_rmse_mm"])
         if out_path is not None:
             p.start(f"write {Path(out_path).name}")
-            result.info["out_path"] = write_fit_rig(
-                result, out_path, force=force, capture=source,
-                command=command or "usdface.api.fit_capture (Python API)",   # what ran, not its writer
-                parameters={"method": method, **parameters})
+            result.info["out_path"] = _write_fit_rig(
+                result, out_path, force, source,
+                command or "usdface.api.fit_capture (Python API)",   # what ran, not its writer
+                {"method": method, **parameters})
     return result
 
 
@@ -485,13 +485,13 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
     ``parameters``, its chosen ``reg`` and training RMSE, ``createdAt`` (UTC; ``SOURCE_DATE_EPOCH`` when set)
     and, when the capture was read from ``capture`` (a file or folder), its path relative to the rig and its
     sha256 (``capture``, ``captureDigest``): which capture a rig came from stays answerable after files
-    move. A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its
-    sha256 as ``pinsDigest``)."""
+    move. A ``capture`` the rig was not fitted on (another vertex count, or another neutral: the person's
+    scan a fitted rig keeps) is refused with :class:`usdface.errors.FitError` before the output is checked
+    (:func:`usdface.personalize.api.refuse_rig_of_another_capture`); it was recorded as the rig's source.
+    A pins file among ``parameters`` (``pins``) is recorded the same way (relative to the rig, its sha256 as
+    ``pinsDigest``)."""
     _paths(out_path=(out_path, False))
-    _flags("write_fit_rig", force=force)
-    from . import __version__
-    from .io.avatar_writer import write_rig_usd
-    from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
+    (force,) = _flags("write_fit_rig", force=force)
     from .model import FaceRig
 
     if not isinstance(getattr(fit, "rig", fit), FaceRig):
@@ -506,6 +506,21 @@ def write_fit_rig(fit: FitResult | FaceRig, out_path: PathLike, *, force: bool =
         raise InputFileError("capture not found (the file the rig records as fitted on)", path=capture,
                              fix="pass the capture file or folder the rig was fitted on, or leave capture "
                                  "out")
+    if capture is not None:     # recorded as the rig's source: the capture it was fitted on, or refused
+        from .personalize.api import refuse_rig_of_another_capture
+
+        refuse_rig_of_another_capture(
+            getattr(fit, "rig", fit), _as_capture(capture), path=capture, same_neutral=True,
+            fix="pass the capture file or folder the rig was fitted on, or leave capture out")
+    return _write_fit_rig(fit, out_path, force, capture, command, parameters)
+
+
+def _write_fit_rig(fit, out_path, force: bool, capture, command, parameters) -> Path:
+    """:func:`write_fit_rig` once its arguments are checked (``fit_capture`` writes the rig of the capture it
+    has just read and fitted: not read again)."""
+    from . import __version__
+    from .io.avatar_writer import write_rig_usd
+    from .io.layers import _created_at, _relative_to_layer, check_output_path, file_digest, json_default
 
     out = check_output_path(out_path, force, what="fit rig file")
     info = getattr(fit, "info", None) or {}
@@ -616,7 +631,7 @@ def evaluate_methods(capture: Capture | PathLike, methods: Sequence[str] = METHO
 
     methods = name_list(methods, "methods", "method", fix=f"name some of {', '.join(METHODS)}")
     check_method_options(list(methods), options)          # an option no chosen method takes: before any work
-    _flags("evaluate_methods", force=force)
+    (force,) = _flags("evaluate_methods", force=force)
     _check_evaluate_suffixes(json_path, plot_path)       # a plot format matplotlib writes, a .json report
     inputs = [capture, truth]
     for out, what in ((json_path, "JSON report"), (plot_path, "plot")):
@@ -869,8 +884,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
 
     source_date_epoch()                  # a bad SOURCE_DATE_EPOCH: before any work, not at the write
     _paths(out_path=(out_path, True))
-    _flags("personalize_avatar", inspect=inspect, landmarks=landmarks, force=options.get("force", False),
-           dry_run=options.get("dry_run", False))
+    inspect, landmarks, force, dry_run = _flags("personalize_avatar", inspect=inspect, landmarks=landmarks,
+                                                force=options.get("force"), dry_run=options.get("dry_run"))
+    options.update({k: v for k, v in (("force", force), ("dry_run", dry_run)) if k in options})
     from .transfer import personalize_avatar as _personalize
 
     _refuse_wrong_personalize_kinds(avatar_path, capture_path, out_path, take=take, **options)
@@ -985,10 +1001,9 @@ def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) 
     the other API functions refuse theirs (:class:`usdface.errors.OptionError` naming it and what it takes):
     ``compute_landmarks(avatar, epsilom=0.4)`` died with Python's TypeError from the core function, after the
     avatar was read. ``given``: the core's parameters the API function fills itself. A boolean option given
-    as anything else (``symmetric="yes"``, which counted as true, and ``"no"`` too) is refused as well."""
+    as anything else (``symmetric="yes"``, which counted as true, and ``"no"`` too) is refused as well, and
+    one given as ``None`` is set to the core's default in ``options`` (:func:`usdface.errors.expect_flag`)."""
     import inspect
-
-    import numpy as np
 
     from .errors import OptionError
 
@@ -998,11 +1013,11 @@ def _refuse_unknown_keywords(func, options: dict, what: str, given: tuple = ()) 
     if unknown:
         raise OptionError(f"{what} does not take {', '.join(map(str, unknown))}",
                           fix=f"drop it, or use one of: {', '.join(n for n in params if n not in given)}")
-    annotations = {n: p.annotation for n, p in signature.items()}
-    for name, value in options.items():     # symmetric="yes" was taken as true, and "no" too
-        if annotations[name] in ("bool", bool) and not isinstance(value, bool | np.bool_):
-            raise OptionError(f"bad {name} {value!r}: {what}'s {name} is a boolean",
-                              fix=f"pass {name}=True or {name}=False")
+    from .errors import expect_flag
+
+    for name, value in options.items():     # symmetric="yes" was taken as true, and "no" too; None: default
+        if signature[name].annotation in ("bool", bool):
+            options[name] = expect_flag(value, name, f"{what}'s", signature[name].default)
 
 
 def compute_landmarks(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5, alpha: float = 0.5,
@@ -1044,7 +1059,7 @@ def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_pa
     _expect(layout, (LandmarkLayout,), "write_landmarks' layout", "a LandmarkLayout",
             "pass usdface.compute_landmarks(rig)")
     _paths(out_path=(out_path, False))
-    _flags("write_landmarks", force=force)
+    (force,) = _flags("write_landmarks", force=force)
     return _written(write_landmark_layer(avatar, rig, layout, out_path, force=force, provenance=provenance))
 
 
@@ -1152,7 +1167,7 @@ def write_retarget_map(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     map file). A ``correspondence`` cache is written after the map (as personalize writes it after the
     layer), and a cache that cannot be written takes a new map with it: a run that fails leaves neither."""
     _paths(out_path=(out_path, False))
-    _flags("write_retarget_map", force=force)
+    (force,) = _flags("write_retarget_map", force=force)
     from .io.atomic import check_output_file, outputs_all_or_nothing, write_text_atomic
     from .io.usd_rig import refuse_usdface_output
     from .transfer import personalize_avatar as _personalize
@@ -1265,17 +1280,25 @@ def check_personalize_options(**options: Any) -> None:
 BOOLEAN_OPTIONS = ("inspect", "landmarks", "dry_run", "force")
 
 
+def _item_flags(options, whose: str, fix) -> None:
+    """The :data:`BOOLEAN_OPTIONS` among the personalize ``options`` (a dict, a batch row's, a Pyblish
+    instance's or ``personalize_batch(options=)``) checked by :func:`usdface.errors.expect_flag`,
+    ``fix(name)`` saying how to give one there; ``None`` is the default (False), as
+    :func:`personalize_avatar` takes it."""
+    from .errors import expect_flag
+
+    for name in BOOLEAN_OPTIONS:
+        expect_flag(options.get(name), name, whose, False, fix(name))
+
+
 def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) -> None:
     """:func:`check_personalize_options` on the dict ``options`` of a batch row or a Pyblish instance; an
     unknown name's refusal lists the options taken less ``unlisted`` (``dry_run``, which both refuse with a
     message of its own: a list offering it sent the user from one refusal to the next)."""
-    from .errors import OptionError
     from .transfer import options as _implant
 
     _refuse_unknown_options(options, unlisted)
-    for name in BOOLEAN_OPTIONS:
-        if name in options and not isinstance(options[name], bool):
-            raise OptionError(f"bad {name} {options[name]!r}: not a boolean", fix=f"{name}=true or false")
+    _item_flags(options, "personalize's", lambda name: f"{name}=true or false, or leave it out (the default)")
     get = options.get
     _implant.check_mode_options(get("face_transfer", "person"), options)
     _implant.check_modes(get("face_transfer", "person"), get("approximation"),
@@ -1319,7 +1342,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
-    _flags("personalize_batch", force=force)
+    (force,) = _flags("personalize_batch", force=force)
     from .errors import OptionError
     from .io.atomic import check_output_file
     from .pipeline.batch import read_manifest, run_batch
@@ -1338,11 +1361,9 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
             "pass scheduler='tcp://host:8786', or None for the local process pool", none_ok=True)
     _expect(worker, (str,), "personalize_batch's worker", "a 'module:function' string (or None)",
             "pass worker='studio.usdface_steps:run', or None for personalize", none_ok=True)
-    for name in BOOLEAN_OPTIONS:      # told as the options= given, not as the manifest's first row
-        value = (options or {}).get(name)
-        if value is not None and not isinstance(value, bool):
-            raise OptionError(f"personalize_batch's options: bad {name} {value!r}: not a boolean",
-                              fix=f'pass options={{"{name}": True}} (or False), as --set {name}=true')
+    # told as the options= given, not as the manifest's first row
+    _item_flags(options or {}, "personalize_batch's options'",
+                lambda name: f'pass options={{"{name}": True}} (or False), as --set {name}=true')
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
@@ -1499,7 +1520,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
-    _flags("check", pixar=pixar)
+    (pixar,) = _flags("check", pixar=pixar)
     name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | os.PathLike):
         return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
@@ -1545,7 +1566,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     that many of its own vertices (the page says so; its tables are the full mesh's figures).
     Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
-    _flags("write_review", fit_errors=fit_errors, force=force)
+    fit_errors, force = _flags("write_review", fit_errors=fit_errors, force=force)
     if max_vertices is not None and (isinstance(max_vertices, bool) or not isinstance(max_vertices, Integral)
                                      or max_vertices < 0):   # -1 and "1000" were taken (the CLI refuses them)
         from .errors import OptionError
@@ -1616,7 +1637,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    _flags("export_avatar", skin=skin, force=force)
+    skin, force = _flags("export_avatar", skin=skin, force=force)
     from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
@@ -1701,9 +1722,10 @@ def _refuse_export_input(layer_path, **outputs) -> None:
         options.append("--variant generic")
     export = " ".join(["usdface export person.usda", *options])
     what = what.removesuffix("not an avatar") + "not a layer written by 'usdface personalize' (nor an avatar)"
-    fix = (f"export takes the layer personalize writes: run '{personalize}' first, then '{export}'"
-           if personalize else f"open it in usdview to look at the errors; export takes a layer written by "
-                               f"'usdface personalize' (or an avatar): '{export}'")
+    fix = (f"export takes the layer personalize writes: personalize first ({personalize}), then export "
+           f"({export})" if personalize else
+           f"open it in usdview to look at the errors; export takes a layer written by 'usdface personalize' "
+           f"(or an avatar) ({export})")
     raise RigError(f"this is {what}", path=path, prim=prim, fix=fix)
 
 

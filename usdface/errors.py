@@ -114,6 +114,29 @@ def expect_kind(value, kinds: tuple, what: str, expected: str, fix: str, *, none
     raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({shown})", fix=fix)
 
 
+def expect_flag(value, name: str, whose: str, default: bool, fix: str | None = None) -> bool:
+    """The value of the boolean option ``name``: ``True``/``False`` (numpy's too) as a Python ``bool``,
+    ``None`` as ``default`` (the option left out: a JSON manifest's ``null``, a script's ``force=None``),
+    anything else refused with :class:`OptionError` before any work (``force="no"`` counted as true and
+    replaced an existing output). ``whose``: the owner as the message names it (``"write_capture's"``,
+    ``"personalize's"``); ``fix``: how to give it where it was given (default: as a Python argument).
+
+    The one check of a boolean option: the API's arguments, a batch row's or a Pyblish instance's
+    personalize options and ``personalize_batch(options=)`` differed on ``None`` (refused, refused,
+    accepted and then refused by the row check) and in their messages."""
+    if value is None:
+        return default
+    if isinstance(value, bool):
+        return value
+    import numpy as np
+
+    if isinstance(value, np.bool_):
+        return bool(value)
+    shown = " ".join(repr(value).split())[:60]
+    raise OptionError(f"bad {name} {shown}: {whose} {name} is a boolean (True or False; None: the default, "
+                      f"{default})", fix=fix or f"pass {name}=True or {name}=False")
+
+
 def write_fix(err: int | None, output_option: bool = False) -> str:
     """What to do about a write that failed with errno ``err`` (one sentence, the ``fix`` of an error);
     ``output_option``: name ``-o`` (the command has that option). Shared by the output checks and the CLI's

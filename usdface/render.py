@@ -76,13 +76,14 @@ def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
 
 
 def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vmax=None, view="front",
-              color=_SKIN, display=None, crop=None, pad: float = 0.04):
+              color=_SKIN, display=None, crop=None, pad: float = 0.04, frame=None):
     """Draw ``points[n,3]``/``triangles[t,3]`` on a matplotlib axis, flat shaded (``values[n]`` -> colour
     map with shading; faces with a NaN value drawn as plain skin). ``display``: ``(keep, triangles)`` of
     :func:`display_mesh`, drawn instead of the full mesh (``points[keep]``, ``values[keep]``). ``crop``:
     vertex indices of ``points`` the view is framed on (:func:`moving_region`; default the whole mesh), with
-    a margin of ``pad`` times its extent. Returns the ``PolyCollection`` (a colour-bar mappable when
-    ``values`` is given)."""
+    a margin of ``pad`` times its extent; ``frame``: ``(lo[2], hi[2])`` in the view's plane, the limits of a
+    picture whose panels share one (:func:`shared_frame`), instead. Returns the ``PolyCollection`` (a
+    colour-bar mappable when ``values`` is given)."""
     from matplotlib.collections import PolyCollection
 
     from .mesh import index_set
@@ -135,12 +136,38 @@ def draw_mesh(ax, points, triangles, *, values=None, cmap="magma", vmin=None, vm
         coll.set_norm(norm)
         coll.set_array(None)
     ax.add_collection(coll)
-    xy = framed if framed is not None else p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    margin = pad * float(np.max(hi - lo) or 1.0)
-    ax.set_xlim(lo[0] - margin, hi[0] + margin)
-    ax.set_ylim(lo[1] - margin, hi[1] + margin)
+    if frame is None:
+        xy = framed if framed is not None else p[index_set(tri, len(p))][:, :2] if len(tri) else p[:, :2]
+        frame = _with_margin(xy.min(axis=0), xy.max(axis=0), pad)
+    (x0, y0), (x1, y1) = frame
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
     return coll
+
+
+def _with_margin(lo, hi, pad: float):
+    margin = pad * float(np.max(hi - lo) or 1.0)
+    return lo - margin, hi + margin
+
+
+def shared_frame(poses, triangles, view: str = "front", crop=None, pad: float = 0.04):
+    """The view limits ``(lo[2], hi[2])`` (metres, in the view's plane) that hold every pose of ``poses``
+    (an iterable of ``points[n, 3]`` of one mesh, ``triangles[t, 3]``): its vertices in a triangle, or the
+    ``crop`` vertices (:func:`moving_region`), with a margin of ``pad`` times the extent. The panels of one
+    picture drawn in it share one length scale: each was framed on its own pose, so a shape that moves a lot
+    (the bench Mouth's jawOpen, 42 mm) was drawn smaller than the neutral beside it."""
+    from .mesh import index_set
+
+    rot = VIEWS[view]
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for points in poses:
+        points = np.asarray(points, dtype=np.float64)
+        keep = (np.asarray(crop, dtype=np.int64) if crop is not None and len(crop)
+                else index_set(tri, len(points)) if len(tri) else slice(None))
+        xy = (points[keep] @ rot.T)[:, :2]
+        lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
+    return _with_margin(lo, hi, pad)
 
 
 def save_figure(fig, out, force: bool = False) -> Path:
@@ -214,32 +241,36 @@ def default_shapes(rig, count: int = 5) -> list[str]:
 def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str = "front",
                   force: bool = False, title: str | None = None, max_vertices: int | None = None):
     """Neutral plus each shape of ``shapes`` (default: :func:`default_shapes`) at ``weight``; the heat of
-    each panel is the vertex displacement in mm, coloured from 0 to its maximum over the full mesh (the
-    panel's title; a colour bar beside it; a mesh of more than ``max_vertices`` is drawn decimated,
-    :func:`display_mesh`). Returns the figure; saved to ``out`` when given."""
+    each panel is the vertex displacement in mm over the full mesh (the panel's largest in its title). The
+    panels share one length scale (:func:`shared_frame`) and one colour scale, from 0 to the largest
+    displacement of them all, with one colour bar, so they compare (stop 43: each was framed on its own pose
+    and coloured to its own maximum). A mesh of more than ``max_vertices`` is drawn decimated
+    (:func:`display_mesh`). Returns the figure; saved to ``out`` when given."""
     shapes = list(shapes) if shapes is not None else default_shapes(rig)
     fig, axes = _figure(1 + len(shapes))
     display = display_mesh(rig.neutral, rig.triangles, max_vertices)
     crop = moving_region(rig.deltas)
-    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display, crop=crop)
-    axes[0].set_title("neutral")
-    for ax, name in zip(axes[1:], shapes, strict=True):
-        k = _shape_index(rig, name)
+    poses = []
+    for name in shapes:
         w = np.zeros(rig.n_shapes)
-        w[k] = weight
-        moved = rig.evaluate(w)
-        disp_mm = 1000.0 * np.linalg.norm(moved - rig.neutral, axis=1)
-        # the colours from 0 to the panel's largest displacement (the title's figure), with a colour bar in
-        # mm: they ran from the smallest to the largest visible triangle's mean, without a bar, so a panel's
-        # top colour was neither 0-based nor the title's figure (a trial's note: Pixar's targetC, 138.9 mm,
-        # drawn green and purple, no colour reaching the top)
-        top = float(disp_mm.max())
+        w[_shape_index(rig, name)] = weight
+        poses.append(rig.evaluate(w))
+    frame = shared_frame([rig.neutral, *poses], rig.triangles, view, crop)
+    draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display, frame=frame)
+    axes[0].set_title("neutral")
+    moved_mm = [1000.0 * np.linalg.norm(moved - rig.neutral, axis=1) for moved in poses]
+    # from 0 (a trial's note: the colours ran from the smallest to the largest visible triangle's mean,
+    # without a bar; Pixar's targetC, 138.9 mm, drawn with no colour reaching the top) to the largest panel's
+    top = max((float(d.max()) for d in moved_mm), default=0.0)
+    coll = None
+    for ax, name, moved, disp_mm in zip(axes[1:], shapes, poses, moved_mm, strict=True):
         coll = draw_mesh(ax, moved, rig.triangles, values=disp_mm, cmap="viridis", vmin=0.0, vmax=top,
-                         view=view, display=display, crop=crop)
-        fig.colorbar(coll, ax=ax, shrink=0.7, label="mm moved")
+                         view=view, display=display, frame=frame)
         # the weight when it is not 1: a panel at 0.5 read as the full shape's motion (a trial's note)
         at = "" if weight == 1.0 else f" at {weight:g}"
-        ax.set_title(f"{name}{at}\n(max {top:.1f} mm)")
+        ax.set_title(f"{name}{at}\n(max {disp_mm.max():.1f} mm)")
+    if coll is not None:
+        fig.colorbar(coll, ax=axes, shrink=0.7, label="mm moved")
     if title:
         fig.suptitle(title)
     if out is not None:
@@ -250,7 +281,10 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
 def render_comparison(generic, personalized, shapes=None, out=None, *, view: str = "front",
                       force: bool = False, title: str | None = None, max_vertices: int | None = None):
     """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
-    distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count)."""
+    distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count). Every
+    panel shares one length scale (:func:`shared_frame`) and the difference panels one colour scale, from 0 to
+    the largest difference of them all, with one colour bar (stop 43: each was framed and coloured on its
+    own)."""
     if generic.n_vertices != personalized.n_vertices:
         def where(rig):
             src = rig.source
@@ -264,23 +298,27 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
     fig, axes = _figure(3 * len(shapes), ncols=3)
     display = display_mesh(personalized.neutral, personalized.triangles, max_vertices)
     crop = moving_region(personalized.deltas)
-    for row, name in enumerate(shapes):
-        a = generic.evaluate(_one_hot(generic, name))
-        b = personalized.evaluate(_one_hot(personalized, name))
-        diff_mm = 1000.0 * np.linalg.norm(b - a, axis=1)
-        draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display, crop=crop)
+    pairs = [(generic.evaluate(_one_hot(generic, name)), personalized.evaluate(_one_hot(personalized, name)))
+             for name in shapes]
+    frame = shared_frame([p for pair in pairs for p in pair], personalized.triangles, view, crop)
+    diffs_mm = [1000.0 * np.linalg.norm(b - a, axis=1) for a, b in pairs]
+    # from 0 (the bar ended at the largest visible triangle's mean: 2.65 under a title of 2.89 mm on the
+    # sample's eyeBlinkLeft) to the largest difference of the picture's rows
+    top = max((float(d.max()) for d in diffs_mm), default=0.0)
+    coll = None
+    for row, (name, (a, b), diff_mm) in enumerate(zip(shapes, pairs, diffs_mm, strict=True)):
+        draw_mesh(axes[3 * row], a, generic.triangles, view=view, display=display, frame=frame)
         # the shape's name on a line of its own: "browDownRight: generic" ran into "browDownRight:
         # personalized" beside it on a head (dev3's --compare)
         axes[3 * row].set_title(f"{name}\ngeneric")
-        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display, crop=crop)
+        draw_mesh(axes[3 * row + 1], b, personalized.triangles, view=view, display=display, frame=frame)
         axes[3 * row + 1].set_title(f"{name}\npersonalized")
-        # 0 to the title's maximum: the bar ended at the largest visible triangle's mean (2.65 under a
-        # title of 2.89 mm on the sample's eyeBlinkLeft)
         coll = draw_mesh(axes[3 * row + 2], b, personalized.triangles, values=diff_mm, cmap="magma",
-                         vmin=0.0, vmax=float(diff_mm.max()), view=view, display=display, crop=crop)
+                         vmin=0.0, vmax=top, view=view, display=display, frame=frame)
         # two lines: on one, a wide mesh's title ran into the colour bar beside the panel (the Mouth)
         axes[3 * row + 2].set_title(f"difference\n(max {diff_mm.max():.2f} mm)")
-        fig.colorbar(coll, ax=axes[3 * row + 2], shrink=0.7, label="mm")
+    if coll is not None:
+        fig.colorbar(coll, ax=axes, shrink=0.7, label="mm")
     if title:
         fig.suptitle(title)
     if out is not None:
@@ -355,11 +393,21 @@ def _check_landmarks(points, indices) -> np.ndarray:
 def _landmark_dots(ax, points, triangles, indices, view: str, labels=None, colour: str = "#00c8ff",
                    edge: str = "black") -> int:
     """Landmarks ``indices[m]`` as dots on ``ax``, those on the far side of the view hidden; returns how many
-    are hidden."""
-    from .mesh import vertex_normals
+    are hidden.
+
+    A landmark is on the near side when it is a corner of a face the picture draws (one facing the camera,
+    :func:`draw_mesh`'s test): a landmark on the silhouette belongs to the side it is seen from, so one on
+    the face's mid-line (upper lip, chin) is shown in both profiles, on the outline, and one in the middle
+    of a face turned away in neither. It was hidden where its vertex normal did not face the camera: a
+    mid-line normal is edge-on in a profile, so a side view counted the upper lip and chin as on the far
+    side of both (stop 43)."""
+    from .mesh import triangle_normals
 
     rotated = np.asarray(points, dtype=np.float64) @ VIEWS[view].T
-    visible = vertex_normals(rotated, triangles)[indices, 2] > 0.0
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    near = np.zeros(len(rotated), dtype=bool)
+    near[tri[triangle_normals(rotated, tri)[:, 2] > 0.0].ravel()] = True
+    visible = near[indices]
     xy = rotated[indices][:, :2]
     ax.scatter(xy[visible, 0], xy[visible, 1], s=16, c=colour, edgecolors=edge, linewidths=0.7, zorder=3)
     if labels is not None:

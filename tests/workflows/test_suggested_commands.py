@@ -18,8 +18,9 @@ from usdface.sample.take import make_take
 
 
 def _fix_command(text: str, command: str) -> list[str]:
-    """The ``'usdface COMMAND ...'`` a message suggests, split as a shell splits it."""
-    found = re.search(rf"'(usdface {command} .*)'", text)
+    """The ``(usdface COMMAND ...)`` a message suggests, split as a shell splits it: a command is set in
+    parentheses, never in quotes of its own (stop 43: ``'usdface personalize 'a b.usda' ...'``)."""
+    found = re.search(rf"\((usdface {command} (?:'[^']*'|[^'()])*)\)", text)
     assert found, text
     return shlex.split(found.group(1))
 
@@ -60,10 +61,7 @@ def test_review_of_a_plain_avatar_suggests_personalize_on_that_path(sample_set, 
 
 def _layout_commands(text: str) -> tuple[list[str], list[str]]:
     """The ``usdface landmarks ...`` and ``usdface render ... --landmarks`` a render refusal tells, split."""
-    found = re.search(r"'(usdface landmarks .*?)', then '(usdface render .*?--landmarks(?: --mesh \S+)?)'",
-                      text)
-    assert found, text
-    return shlex.split(found.group(1)), shlex.split(found.group(2))
+    return _fix_command(text, "landmarks"), _fix_command(text, "render")
 
 
 def test_render_landmarks_without_a_layout_tells_commands_that_run_as_written(sample_set, tmp_path):
@@ -111,10 +109,7 @@ def test_export_of_a_capture_tells_its_own_fix_which_runs_as_written(sample_set,
         assert "not a layer written by 'usdface personalize'" in proc.stderr, proc.stderr
         assert "personalize: AVATAR, then CAPTURE" not in proc.stderr, proc.stderr
         assert not (tmp_path / "out dir").exists() and not (tmp_path / "anna flat.usdc").exists()
-    found = re.search(r"run '(usdface personalize .*)' first, then '(usdface export .*)'\)$",
-                      proc.stderr.strip())
-    assert found, proc.stderr
-    personalize, export = map(shlex.split, found.groups())
+    personalize, export = _fix_command(proc.stderr, "personalize"), _fix_command(proc.stderr, "export")
     assert personalize[2:4] == ["AVATAR", str(sample_set / "capture")], personalize
     personalize[2] = "hero.usda"
     run(*personalize[1:], "-q", "--method", "dt", cwd=tmp_path)

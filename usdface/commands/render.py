@@ -244,14 +244,16 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
             # both commands whole (the mesh asked for, render's -o): 'usdface landmarks --mesh Head' and
             # 'usdface render LM --landmarks' were told, which pasted stop at their missing arguments
             mesh = f" --mesh {shlex.quote(args.mesh)}" if args.mesh is not None else ""
-            write = (f"'usdface landmarks {src}{mesh} -o {out}', then 'usdface render {out} -o "
-                     f"{shlex.quote(str(args.output))} --landmarks{mesh}'")
-            write_one = (f"write a layout and draw that file: {write} (or personalize with --landmarks); or "
-                         "add --diagnostics to compute one with the defaults")
+            # each command in parentheses, never in quotes of its own (a quoted path inside one read
+            # 'usdface landmarks 'a b.usda' ...')
+            write = (f"layout into a file (usdface landmarks {src}{mesh} -o {out}), then draw that file "
+                     f"(usdface render {out} -o {shlex.quote(str(args.output))} --landmarks{mesh})")
+            write_one = (f"write a {write} (or personalize with --landmarks); or add --diagnostics to "
+                         "compute one with the defaults")
             raise LandmarkError(f"no landmark layout for mesh {rig.name!r}"
                                 + (f" (the file has one for {others})" if others else ""), path=path,
-                                fix=(f"pass --mesh {next(iter(layouts))}, or write a {rig.name} layout and "
-                                     f"draw that file: {write}") if others else write_one)
+                                fix=(f"pass --mesh {next(iter(layouts))}, or write a {rig.name} {write}")
+                                if others else write_one)
         p.start(f"draw {args.output.name}")
         render.render_landmarks(rig.neutral, rig.triangles, layouts[key], args.output, view=args.view,
                                 force=args.force,

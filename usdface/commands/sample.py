@@ -59,12 +59,12 @@ def run(args) -> int:
         picture = None
         if args.picture:
             from ..sample import build_samples
-            from ..sample.picture import render_sample_picture
+            from ..sample.picture import render_sample_picture, sample_title
 
             data = build_samples(args.seed, args.template, **noise)
             cap = data["capture"]
             picture = render_sample_picture(data["rigs"], cap.neutral, cap.triangles, args.picture,
-                                            force=args.force)
+                                            force=args.force, title=sample_title(data["meta"]))
             done["picture"] = Path(picture)
     meta = json.loads((Path(out) / "truth" / "meta.json").read_text())
     # what this run wrote (a --force run over an older folder keeps files it does not write: not counted)

@@ -141,8 +141,8 @@ def _refuse_usdz_layer(path) -> None:
         "output layer cannot be a .usdz package: the layer sublayers the avatar by its path and holds only "
         "the overrides, while a .usdz holds its layers and every file they use inside it (USD would package "
         "the avatar in: no longer a layer over the avatar, nor following its revisions)", path=path,
-        fix=f"write the layer as {layer}; for one self-contained .usdz of the result, run 'usdface export "
-            f"{layer} --flatten {shlex.quote(raw)}' after it")
+        fix=f"write the layer as {layer}; for one self-contained .usdz of the result, export it after that "
+            f"(usdface export {layer} --flatten {shlex.quote(raw)})")
 
 
 def _temp_path(path: Path) -> Path:

@@ -53,8 +53,17 @@ class EvaluationReport:
         return dict(sorted(out.items()))
 
     def to_dict(self) -> dict:
-        return {"frames": self.frames, "noise": self.noise, "summary": self.summary,
-                "points": [asdict(p) for p in self.points]}
+        """The report as ``landmarks --evaluate --json`` writes it, with :data:`JSON_UNITS` as ``"units"``
+        (the keys stay those of before: the unit is said in the JSON, not added to every key)."""
+        return {"units": dict(JSON_UNITS), "frames": self.frames, "noise": self.noise,
+                "summary": self.summary, "points": [asdict(p) for p in self.points]}
+
+
+#: The units of the evaluation JSON's lengths (``"units"`` in it): ``"rmse"`` covers every key with ``rmse``
+#: in its name (``points[].rmse``, the summary's ``ours_best_rmse``, ``random_rmse_at_40``, ...), ``"noise"``
+#: the tracking noise (std per coordinate). Metres, as every array of the core; the printed summary is in mm.
+#: It wrote metres under keys without a unit, beside a printed summary in mm (stop 43).
+JSON_UNITS = {"rmse": "m", "noise": "m"}
 
 
 def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:

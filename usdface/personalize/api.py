@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import FitError, GeometryError
 from ..errors import warn as _warn
 from ..locks import SharedWhileInside
-from ..mesh import boundary_loops, check_triangles, squared_lengths
+from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
 from .crossval import choose_regularization
@@ -151,16 +151,31 @@ def _swapped_message(swapped: dict, capture: Capture) -> str:
             "motion")
 
 
+#: A fitted rig's neutral is its capture's own neutral (the person's scan, B0): two agree to this share of the
+#: capture mesh's edge length (:func:`usdface.mesh.mesh_scale`, ~3 mm on a phone mask: ~3 um), far above a
+#: float32 file's rounding (~1e-8 m) and far below any two scans' difference (scan noise alone ~0.15 mm).
+SAME_NEUTRAL = 1e-3
+
+
 def refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, *, fix: str, what: str = "the rig",
-                                  path=None) -> None:
+                                  path=None, same_neutral: bool = False) -> None:
     """A capture-mesh ``rig`` whose vertex count is not the capture mesh's (a rig fitted on another capture:
     scored by ``evaluate_capture``, implanted by ``personalize_avatar(rig=)``) refused with
     :class:`FitError` naming the capture (``path``, default its source), both counts and ``fix``: it died
-    in numpy (``matmul: ... (1203 vs 1233)``) or as a GeometryError naming no file."""
+    in numpy (``matmul: ... (1203 vs 1233)``) or as a GeometryError naming no file. ``same_neutral``: the
+    rig is one *fitted on* the capture (``write_fit_rig(capture=)`` records it as its source), so its neutral
+    must also be the capture's (within :data:`SAME_NEUTRAL` of an edge): another capture of the same phone
+    mesh (bench dev1 and dev3, 1,203 vertices each; every ARKit face mesh has 1,220) has the count."""
+    where = path if path is not None else (capture.source or None)
     n = capture.neutral.shape[0]
     if rig.n_vertices != n:
         raise FitError(f"{what} has {rig.n_vertices} vertices, the capture mesh {n}: a rig fitted on another "
-                       "capture", path=path if path is not None else (capture.source or None), fix=fix)
+                       "capture", path=where, fix=fix)
+    if same_neutral:
+        moved = float(np.sqrt(np.max(squared_lengths(rig.neutral - capture.neutral))))
+        if moved > SAME_NEUTRAL * mesh_scale(capture.neutral, capture.triangles):
+            raise FitError(f"{what}'s neutral is {moved * 1e3:.3g} mm from the capture's neutral at its "
+                           "furthest vertex: a rig fitted on another capture", path=where, fix=fix)
 
 
 def refuse_swapped_sides(capture: Capture, *, train=None) -> dict | None:
@@ -1268,7 +1283,7 @@ def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=No
     ``laplacian_weight="auto"`` (default): the weight is chosen on ``cv_data = (points, weights, reg)`` by
     :meth:`LaplacianFit.choose_weight`."""
     if method == "laplacian":
-        from .laplacian import LaplacianFit
+        from .laplacian import LAPLACIAN_GRID, LaplacianFit
         opts = dict(options)
         mu = opts.pop("laplacian_weight", "auto")
         lf = LaplacianFit(capture.neutral, capture.triangles, generic, D, clamp=clamp,
@@ -1276,7 +1291,11 @@ def _make_solver(method, capture, D, generic, options, clamp=D_CLAMP, cv_data=No
         if isinstance(mu, str):
             if mu != "auto":
                 raise FitError(f"bad laplacian_weight {mu!r}", fix="use 'auto' or a number >= 0")
-            cv = lf.choose_weight(*cv_data)
+            from ..progress import steps
+
+            # nearly all of the method's time (~26 CPU-s on dev3): a step per weight, not one silent step
+            with steps("laplacian weight", len(LAPLACIAN_GRID)) as p:
+                cv = lf.choose_weight(*cv_data, progress=p.start)
             if info is not None:
                 info["laplacian_cv"] = cv
         if info is not None:

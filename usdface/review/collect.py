@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputFileError, RigError, warn
 from ..motion import shape_changes
-from .page import ReviewData, ReviewMesh, Sequence
+from .page import Listing, ReviewData, ReviewMesh, Sequence
 
 __all__ = ["collect_review", "recorded_capture"]
 
@@ -239,21 +239,23 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
 
     csvs = folder_files(path, "*.csv") if kind == "weights" and path.is_dir() else []
     take = csvs[0] if len(csvs) == 1 else path / "TAKE.csv" if csvs else path
-    word = shlex.quote(str(path))             # one word of the pasted command (a folder with a space)
+    # one word of the pasted command (a folder with a space); a command is never set in quotes of its own
+    # (a quoted path inside read 'usdface personalize 'a b.usda' ...'): in parentheses, as pasted
+    word = shlex.quote(str(path))
     what, fix = {
         "capture": ("a capture, not a layer written by 'usdface personalize'",
-                    f"personalize an avatar with it ('usdface personalize AVATAR {word} -o person.usda "
-                    f"--review'), or score a layer on it ('usdface review LAYER --capture {word}')"),
+                    f"personalize an avatar with it (usdface personalize AVATAR {word} -o person.usda "
+                    f"--review), or score a layer on it (usdface review LAYER --capture {word})"),
         "take": ("a recorded take (meshes and weights), not a layer written by 'usdface personalize'",
-                 f"personalize an avatar with it ('usdface personalize AVATAR {word} -o person.usda "
-                 f"--review'), or play it on a layer ('usdface review LAYER --take {word}')"),
+                 f"personalize an avatar with it (usdface personalize AVATAR {word} -o person.usda "
+                 f"--review), or play it on a layer (usdface review LAYER --take {word})"),
         "weights": ("a take of weights only (a Live Link Face CSV or an 'anim import' SkelAnimation), not a "
                     "layer written by 'usdface personalize'",
-                    "play it on a personalized layer: 'usdface review LAYER --take "
-                    f"{shlex.quote(str(take))}'"),
+                    "play it on a personalized layer (usdface review LAYER --take "
+                    f"{shlex.quote(str(take))})"),
         "avatar": ("an avatar that is not personalized (no usdfacePersonalization variant set)",
-                   f"personalize it first: 'usdface personalize {word} CAPTURE -o person.usda --review' "
-                   "writes the layer and its review page"),
+                   "personalize it first, which writes the layer and its review page (usdface personalize "
+                   f"{word} CAPTURE -o person.usda --review)"),
     }[kind]
     if kind == "avatar":
         from ..io.usd_rig import dcc_export_marks
@@ -429,8 +431,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                        "avatar's generic shapes)"
                        if (prov.get("parameters") or {}).get("approximation") == "generic" else "")
                 rows.append((f"{name}: left generic", f"all {len(names)} shapes{why}"))
-            elif kept:
-                rows.append((f"{name}: left generic", ", ".join(kept)))
+            elif kept:      # the count and the first few; the whole list one click away
+                rows.append((f"{name}: left generic", Listing(kept)))
         tables.append(("what changed", rows))
     for w in prov.get("warnings") or []:
         notes.append(f"warning: {w}")

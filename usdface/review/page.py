@@ -79,14 +79,39 @@ class Sequence:
 
 
 @dataclass
+class Listing:
+    """A list of names for a table cell: its count and the first :data:`LISTING_SHOWN` in the cell, the whole
+    list one click away (an HTML ``<details>``). dev3's review listed the 46 Mouth shapes left generic on one
+    line of the table (stop 43)."""
+
+    names: list[str]
+
+    def __str__(self) -> str:
+        shown = ", ".join(self.names[:LISTING_SHOWN])
+        more = len(self.names) - LISTING_SHOWN
+        return f"{len(self.names)}: {shown}" + (f" (+{more} more)" if more > 0 else "")
+
+    def html(self) -> str:
+        if len(self.names) <= LISTING_SHOWN:
+            return html.escape(str(self))
+        return (f"<details><summary>{html.escape(str(self))}</summary>"
+                f"{html.escape(', '.join(self.names))}</details>")
+
+
+#: The names a :class:`Listing` shows before its count of more (the rest in its details).
+LISTING_SHOWN = 5
+
+
+@dataclass
 class ReviewData:
-    """Everything the page shows. ``tables``: [(title, [(label, value), ...])] of text figures;
-    ``errors``: optional eq. 5 table {"labels": [F], "columns": {name: [F] mm}}."""
+    """Everything the page shows. ``tables``: [(title, [(label, value), ...])] of text figures (a value a
+    ``str`` or a :class:`Listing`); ``errors``: optional eq. 5 table {"labels": [F], "columns": {name: [F]
+    mm}}."""
 
     title: str
     meshes: list[ReviewMesh]
     sequences: list[Sequence] = field(default_factory=list)
-    tables: list[tuple[str, list[tuple[str, str]]]] = field(default_factory=list)
+    tables: list[tuple[str, list[tuple[str, str | Listing]]]] = field(default_factory=list)
     errors: dict | None = None
     notes: list[str] = field(default_factory=list)
 
@@ -240,7 +265,8 @@ def _figure(data: ReviewData):
 def _tables_html(data: ReviewData) -> str:
     parts = []
     for title, rows in data.tables:
-        body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>"
+        body = "".join(f"<tr><th>{html.escape(str(k))}</th>"
+                       f"<td>{v.html() if isinstance(v, Listing) else html.escape(str(v))}</td></tr>"
                        for k, v in rows)
         parts.append(f"<table class='figs'><caption>{html.escape(title)}</caption>{body}</table>")
     if data.errors:

@@ -43,18 +43,31 @@ def _frame(ax, center, half):
     ax.set_axis_off()
 
 
+def sample_title(meta: dict) -> str:
+    """What a sample picture shows, from the build's ``meta`` (:func:`usdface.sample.build_samples`): the
+    seed, the capture's template and the frames' noise, which tell one sample's picture from another's (a
+    ``--seed 3 --template artist`` picture looked like the default sample's, stop 43)."""
+    noise = meta.get("noise") or {}
+    scan_mm, weights = 1e3 * float(noise.get("scan_m", 0.0)), float(noise.get("weights", 0.0))
+    return (f"usdface sample, seed {meta.get('seed', 0)}: {meta.get('template', 'generic')} template, scan "
+            f"noise {scan_mm:g} mm, weight noise {weights:g}\nthe avatar neutral and in expressions; the "
+            "person's capture mask")
+
+
 def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles, path,
-                          force: bool = True) -> Path:
+                          force: bool = True, title: str | None = None) -> Path:
     """Write a PNG: the avatar (Head, Mouth, eyes; cm) neutral and in :data:`SHOWCASE` expressions, and the
-    capture mask (metres, scaled for display). ``rigs`` as built by :func:`usdface.sample.build_samples`.
-    Atomic (temp + rename); an existing file is replaced only with ``force``."""
+    capture mask (metres, scaled for display), under ``title`` (:func:`sample_title`) when given, in a band
+    of its own above the panels. ``rigs`` as built by :func:`usdface.sample.build_samples`. Atomic (temp +
+    rename); an existing file is replaced only with ``force``."""
     from matplotlib.figure import Figure  # its own canvas: the host's backend and figures left alone
 
     path = Path(path)
     head = next(r for r in rigs if r.name == "Head")
     center = head.neutral.mean(0) * 100 + np.array([0, 1.0, 0])
-    fig = Figure(figsize=(3.2 * len(SHOWCASE), 3.8), dpi=100)
-    for i, (title, weights) in enumerate(SHOWCASE.items()):
+    band = 0.55 if title else 0.0           # inches for the title's two lines: the panels kept as they were
+    fig = Figure(figsize=(3.2 * len(SHOWCASE), 3.8 + band), dpi=100)
+    for i, (label, weights) in enumerate(SHOWCASE.items()):
         ax = fig.add_subplot(1, len(SHOWCASE), i + 1, projection="3d")
         if weights is None:
             pts = np.asarray(capture_points) * 100.0
@@ -68,8 +81,10 @@ def render_sample_picture(rigs: list[FaceRig], capture_points, capture_triangles
                 meshes.append((pts, rig.triangles, _COLORS.get(rig.name, (0.95, 0.95, 0.93))))
             _draw(ax, meshes)
             _frame(ax, center, 10.5)
-        ax.set_title(title, fontsize=11)
-    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
+        ax.set_title(label, fontsize=11)
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92 * 3.8 / (3.8 + band), wspace=0)
+    if title:
+        fig.suptitle(title, fontsize=11, y=1.0 - 0.08 / (3.8 + band), va="top")
     from ..io.atomic import atomic_file
 
     with atomic_file(path, force=force) as tmp:
