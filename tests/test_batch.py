@@ -525,6 +525,40 @@ def test_a_dask_batch_stopped_stops_the_items_running_on_the_cluster(tmp_path):
     assert [(r["status"], r["error_type"]) for r in report["items"]] == [(FAILED, "Interrupted")]
 
 
+def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):
+    """A user trial: the Dask scheduler stopped while an item ran (a farm's scheduler restarted). The batch
+    reported the item as ``worker crashed: usdface-item-1-... cancelled for reason:
+    scheduler-connection-lost`` (``FutureCancelledError``), though no worker crashed, and the item ran on in
+    its worker and wrote its output after the report called it failed. The report now says what happened
+    and what the item may still do."""
+    import subprocess
+    import time
+
+    distributed = pytest.importorskip("distributed")
+    manifest = _manifest(tmp_path, ["a"])
+    out = tmp_path / "out"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:      # reachable from another process
+        proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (out / "a.usda.started").exists(), proc.communicate(timeout=60)
+        cluster.sync(cluster.scheduler.close)     # the scheduler stops; the worker's item runs on
+        _, err = proc.communicate(timeout=120)    # the client tries to reconnect for 20 s
+        (out / "a.usda.go").write_text("")
+        deadline = time.monotonic() + 60
+        while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert proc.returncode == 1, err
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    item = report["items"][0]
+    assert (item["status"], item["error_type"]) == (FAILED, "SchedulerLost"), item
+    assert "connection to the Dask scheduler was lost" in item["error"] and "crashed" not in item["error"]
+    assert "may still be running on its worker" in item["error"]
+
+
 def test_sigterm_stops_a_batch_now(tmp_path):
     """A terminated batch (SIGTERM to the parent, as a queue's kill) ran every queued item to its end before
     exiting (33 s for four 15 s items on two processes); it stops the pool and exits 143 at once."""

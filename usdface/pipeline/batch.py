@@ -780,6 +780,13 @@ def run_item_quiet(worker: Callable[[dict], object], item: dict, stop: str | Non
 
 #: A stopped batch's error for the items that had not finished.
 STOPPED_ERROR = "the batch was stopped before this item finished (run it again to resume)"
+#: The error of the items whose results a Dask batch lost with its scheduler (``FutureCancelledError``,
+#: reason ``scheduler-connection-lost``, after the client's 20 s of trying to reconnect): no worker crashed,
+#: and an item running then runs on in its worker (nothing can tell it to stop), writing its output.
+SCHEDULER_LOST_ERROR = ("the connection to the Dask scheduler was lost before this item's result came back "
+                        "(the scheduler stopped, or the network to it failed); the item may still be running "
+                        "on its worker and write its output: run the batch again once the scheduler is back "
+                        "(an output finished meanwhile is then taken as done, one stale or cut off is told)")
 #: Seconds a Dask item's watcher waits on its batch's stop event at a time (a long poll on the scheduler).
 STOP_POLL_SECONDS = 1.0
 
@@ -864,7 +871,9 @@ def _run_dask(worker, todo, scheduler, advance):
                 res = fut.result()
             except Exception as exc:  # worker lost, unpicklable result...
                 res = _crashed(item, exc)
-                if "deserializ" in str(exc).lower():    # the workers cannot import what the task names
+                if getattr(exc, "reason", None) == "scheduler-connection-lost":   # no worker crashed
+                    res.update(error=SCHEDULER_LOST_ERROR, error_type="SchedulerLost")
+                elif "deserializ" in str(exc).lower():    # the workers cannot import what the task names
                     res["error"] = (f"the Dask workers cannot load the task ({exc}); a --worker module "
                                     "must be importable on every Dask worker (install it there or put it "
                                     "on their PYTHONPATH), as must usdface")
