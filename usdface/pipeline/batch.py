@@ -616,7 +616,8 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
 
 class _WorkerStopped(KeyboardInterrupt):
     """A pool worker's SIGTERM (the batch stopped: ``_stop_pool``'s ``terminate()``, or the parent's death
-    through ``PR_SET_PDEATHSIG``) or SIGHUP, raised inside an item so that its atomic writes clean up."""
+    through ``PR_SET_PDEATHSIG``) or SIGHUP, or a Dask batch's stop event (:func:`_stopped_by`), raised
+    inside an item so that its atomic writes clean up."""
 
 
 #: Whether this pool worker process is inside an item now (:func:`_pool_item`).
