@@ -369,15 +369,16 @@ def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, val
     assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
 
 
-def _spawn_batch(manifest: Path, worker: str, cwd: Path, **popen):
-    """``usdface batch MANIFEST -j 2 -q --worker test_batch:WORKER`` in a child process (signals reach it
-    alone)."""
+def _spawn_batch(manifest: Path, worker: str, cwd: Path, *where, **popen):
+    """``usdface batch MANIFEST -j 2 -q --worker test_batch:WORKER`` (or ``where``: other options, e.g.
+    ``--scheduler ADDRESS``) in a child process (signals reach it alone)."""
     import subprocess
     import sys
 
     tests = Path(__file__).resolve().parent
+    where = list(where) or ["-j", "2"]
     code = ("import sys\nfrom usdface.cli import main\n"
-            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, '-j', '2', '-q', '--worker', "
+            f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, *{where!r}, '-q', '--worker', "
             f"'{Path(__file__).stem}:{worker}']\nsys.exit(main())\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
     return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, env=env, **popen)
@@ -390,6 +391,20 @@ def slow_worker(item: dict) -> None:
     Path(item["output"] + ".started").write_text("")
     time.sleep(30)
     stub_worker(item)
+
+
+def gated_worker(item: dict) -> None:
+    """Marks that it started, waits for ``<output>.go`` to appear, then writes ``output``; marks that it
+    ended, whatever ended it."""
+    import time
+
+    try:
+        Path(item["output"] + ".started").write_text("")
+        while not Path(item["output"] + ".go").exists():
+            time.sleep(0.05)
+        stub_worker(item)
+    finally:
+        Path(item["output"] + ".ended").write_text("")
 
 
 def slow_writing_worker(item: dict) -> None:
@@ -475,6 +490,73 @@ def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
     while any(p.name.startswith(".") for p in out.iterdir()) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert sorted(p.name for p in out.iterdir()) == ["a.usda.started", "b.usda.started"]
+
+
+def test_a_dask_batch_stopped_stops_the_items_running_on_the_cluster(tmp_path):
+    """A user trial: ``usdface batch --scheduler ...`` stopped with Ctrl-C while items ran on the cluster
+    reported them ``failed`` (``Interrupted``), yet each ran on in its Dask worker (``Client.cancel`` does
+    not stop a running task) and wrote its output afterwards (dev1: ``a.usda`` appeared ~15 s after the
+    batch had exited). The running item now stops, and writes nothing."""
+    import signal
+    import subprocess
+    import time
+
+    distributed = pytest.importorskip("distributed")
+    manifest = _manifest(tmp_path, ["a"])
+    out = tmp_path / "out"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:      # reachable from another process
+        proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (out / "a.usda.started").exists(), proc.communicate(timeout=60)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        (out / "a.usda.go").write_text("")       # an item still running would now write its output
+        deadline = time.monotonic() + 60
+        while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert proc.returncode == 130, err
+    assert (out / "a.usda.ended").exists()
+    assert not (out / "a.usda").exists()
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [(r["status"], r["error_type"]) for r in report["items"]] == [(FAILED, "Interrupted")]
+
+
+def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):
+    """A user trial: the Dask scheduler stopped while an item ran (a farm's scheduler restarted). The batch
+    reported the item as ``worker crashed: usdface-item-1-... cancelled for reason:
+    scheduler-connection-lost`` (``FutureCancelledError``), though no worker crashed, and the item ran on in
+    its worker and wrote its output after the report called it failed. The report now says what happened
+    and what the item may still do."""
+    import subprocess
+    import time
+
+    distributed = pytest.importorskip("distributed")
+    manifest = _manifest(tmp_path, ["a"])
+    out = tmp_path / "out"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:      # reachable from another process
+        proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (out / "a.usda.started").exists(), proc.communicate(timeout=60)
+        cluster.sync(cluster.scheduler.close)     # the scheduler stops; the worker's item runs on
+        _, err = proc.communicate(timeout=120)    # the client tries to reconnect for 20 s
+        (out / "a.usda.go").write_text("")
+        deadline = time.monotonic() + 60
+        while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert proc.returncode == 1, err
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    item = report["items"][0]
+    assert (item["status"], item["error_type"]) == (FAILED, "SchedulerLost"), item
+    assert "connection to the Dask scheduler was lost" in item["error"] and "crashed" not in item["error"]
+    assert "may still be running on its worker" in item["error"]
 
 
 def test_sigterm_stops_a_batch_now(tmp_path):

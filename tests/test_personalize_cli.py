@@ -118,6 +118,50 @@ def test_personalize_inspection_layer_on_the_sample(samples, tmp_path, capsys):
     assert last[channels.index("eyeBlinkLeft")] == pytest.approx(1.0, abs=1e-6)
 
 
+def test_inspection_animation_keeps_the_avatars_frame_rate_and_first_frame(samples, tmp_path):
+    """personalize --take over an avatar authored at 30 time codes per second from frame 1001 (a shot's
+    convention): the layer plays the inspection animation on that timeline. It wrote timeCodesPerSecond 24
+    and startTimeCode 0 over the avatar's 30 and 1001 (a user trial: the personalized layer changed the
+    stage's frame rate and frame range only when --inspect/--take was given)."""
+    from cli_helpers import _usdface
+    from pxr import Sdf, Usd, UsdSkel
+
+    from usdface.io import read_capture
+    from usdface.io.livelink import write_livelink_csv
+    from usdface.io.usd_inspection import ANIMATION_NAME
+
+    layer = Sdf.Layer.FindOrOpen(str(samples / "avatar.usda"))
+    shot = Sdf.Layer.CreateAnonymous(".usda")
+    shot.TransferContent(layer)
+    shot.timeCodesPerSecond, shot.framesPerSecond = 30.0, 30.0
+    shot.startTimeCode, shot.endTimeCode = 1001.0, 1100.0
+    shot.Export(str(tmp_path / "avatar.usda"))
+    take_weights = np.array([[0.0, 0.0], [0.5, 0.2], [1.0, 0.4], [0.5, 0.6], [0.0, 1.0]])
+    write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], take_weights, np.arange(5) / 30.0)
+    res = _usdface("personalize", "avatar.usda", samples / "capture.usda", "--take", "take.csv", "-o",
+                   "person.usda", "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    stage = Usd.Stage.Open(str(tmp_path / "person.usda"))
+    assert stage.GetTimeCodesPerSecond() == 30.0 and stage.GetFramesPerSecond() == 30.0
+    anim = UsdSkel.Animation(stage.GetPrimAtPath(f"/Avatar/Skel/{ANIMATION_NAME}"))
+    codes = anim.GetBlendShapeWeightsAttr().GetTimeSamples()
+    n_test = len(read_capture(samples / "capture.usda").test)
+    # test expressions every 0.5 s from frame 1001, the take 1 s after the last one, in 30 fps time codes
+    assert codes[0] == stage.GetStartTimeCode() == 1001.0
+    assert codes[1] - codes[0] == pytest.approx(15.0)
+    take_start = 1001.0 + ((n_test - 1) * 0.5 + 1.0) * 30.0
+    assert codes[n_test:] == pytest.approx(take_start + np.arange(5), abs=1e-6)
+    assert stage.GetEndTimeCode() == pytest.approx(codes[-1])
+    # the sample avatar authors no timeline: USD's 24 time codes per second from 0, as before
+    res = _usdface("personalize", samples / "avatar.usda", samples / "capture.usda", "--inspect", "-o",
+                   "plain.usda", "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    stage = Usd.Stage.Open(str(tmp_path / "plain.usda"))
+    codes = UsdSkel.Animation(stage.GetPrimAtPath(f"/Avatar/Skel/{ANIMATION_NAME}")).GetBlendShapeWeightsAttr(
+    ).GetTimeSamples()
+    assert stage.GetTimeCodesPerSecond() == 24.0 and codes[0] == 0.0 and codes[1] == pytest.approx(12.0)
+
+
 class _ClosedPipe:
     def write(self, text):
         raise BrokenPipeError(32, "Broken pipe")

@@ -951,7 +951,7 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
                                     face.inbetweens, face.source, face.name)
             layouts = {face_prim: compute_landmarks(personalized)}
         edit = inspection_edit(avatar, heat=change_heat(avatar, offsets), landmarks=layouts,
-                               animation=animation, fps=24.0)
+                               animation=animation)
         t_inspect[0] = time.perf_counter() - t
         return edit
 

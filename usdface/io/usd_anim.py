@@ -15,13 +15,15 @@ __all__ = ["author_skel_animation", "read_skel_animation"]
 
 
 def author_skel_animation(stage, prim_path, names, weights, time_codes_per_second: float = 24.0, *,
-                          times=None, set_stage_range: bool = True):
+                          times=None, set_stage_range: bool = True, start_time_code: float = 0.0):
     """Define a ``SkelAnimation`` at ``prim_path`` holding ``weights[F, K]`` for the channels ``names[K]``.
 
-    Frame ``f`` is authored at time code ``f`` (or ``times[f] * time_codes_per_second`` when ``times[F]`` in
-    seconds is given). With ``set_stage_range`` the stage's ``timeCodesPerSecond``, ``framesPerSecond`` and
-    start/end time codes are set to cover the animation. Weights are authored as float[] (the UsdSkel type).
-    Returns the ``UsdSkel.Animation``.
+    Frame ``f`` is authored at time code ``start_time_code + f`` (or ``start_time_code + times[f] *
+    time_codes_per_second`` when ``times[F]`` in seconds is given). With ``set_stage_range`` the stage's
+    ``timeCodesPerSecond`` and start/end time codes are set to cover the animation, and its
+    ``framesPerSecond`` to the same rate unless the root layer already authors one for that
+    ``timeCodesPerSecond`` (a layer over an avatar keeps the avatar's playback rate). Weights are authored
+    as float[] (the UsdSkel type). Returns the ``UsdSkel.Animation``.
     """
     from pxr import Sdf, UsdSkel, Vt
 
@@ -33,8 +35,9 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
     if not np.isfinite(weights).all():
         raise CaptureError("weights contain NaN or infinite values", prim=prim_path,
                            fix="repair the weights before authoring the animation")
-    codes = (np.arange(len(weights), dtype=np.float64) if times is None
-             else np.round(np.array(times, dtype=np.float64) * float(time_codes_per_second), 9))
+    codes = float(start_time_code) + (
+        np.arange(len(weights), dtype=np.float64) if times is None
+        else np.round(np.array(times, dtype=np.float64) * float(time_codes_per_second), 9))
     anim = UsdSkel.Animation.Define(stage, Sdf.Path(str(prim_path)))
     anim.CreateBlendShapesAttr(Vt.TokenArray(names))
     attr = anim.CreateBlendShapeWeightsAttr()
@@ -42,8 +45,11 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
     for code, row in zip(codes.tolist(), w32, strict=True):
         attr.Set(Vt.FloatArray.FromNumpy(row), code)
     if set_stage_range and len(codes):
-        stage.SetTimeCodesPerSecond(float(time_codes_per_second))
-        stage.SetFramesPerSecond(float(time_codes_per_second))
+        rate = float(time_codes_per_second)
+        keep_fps = stage.GetRootLayer().HasFramesPerSecond() and stage.GetTimeCodesPerSecond() == rate
+        stage.SetTimeCodesPerSecond(rate)
+        if not keep_fps:
+            stage.SetFramesPerSecond(rate)
         stage.SetStartTimeCode(float(codes.min()))
         stage.SetEndTimeCode(float(codes.max()))
     return anim

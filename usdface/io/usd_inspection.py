@@ -86,7 +86,7 @@ def _author_landmarks(stage, avatar: Avatar, landmarks: dict):
         _author(stage, rig, layout, avatar.meters_per_unit)
 
 
-def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=None):
+def _author_animation(stage, avatar: Avatar, names, weights, fps: float | None, times=None):
     from pxr import Sdf, UsdSkel
 
     from .usd_anim import author_skel_animation
@@ -107,12 +107,16 @@ def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=N
     if not by_skeleton:
         raise RigError("no Skeleton bound to the avatar's meshes; cannot add an animation", path=avatar.file,
                        fix="bind the meshes to a Skeleton (rel skel:skeleton)")
+    # the avatar's own timeline: its rate and first frame (a 30 fps shot from frame 1001 stays one; the root
+    # layer repeats the avatar's metadata, so the stage reads them), unless a rate is given
+    rate = float(fps) if fps else stage.GetTimeCodesPerSecond()
+    origin = stage.GetStartTimeCode() if stage.GetRootLayer().HasStartTimeCode() else 0.0
     for skeleton, tokens in by_skeleton.items():
         cols = np.array([column.get(t, -1) for t in tokens])
         w = np.zeros((weights.shape[0], len(tokens)))
         w[:, cols >= 0] = weights[:, cols[cols >= 0]]
         anim_path = Sdf.Path(skeleton).AppendChild(ANIMATION_NAME)
-        author_skel_animation(stage, anim_path, tokens, w, fps, times=times)
+        author_skel_animation(stage, anim_path, tokens, w, rate, times=times, start_time_code=origin)
         binding = UsdSkel.BindingAPI.Apply(stage.GetPrimAtPath(skeleton))
         rel = binding.CreateAnimationSourceRel()
         old = rel.GetTargets()
@@ -123,7 +127,7 @@ def _author_animation(stage, avatar: Avatar, names, weights, fps: float, times=N
 
 def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: float | None = None,
                     landmarks: dict | None = None, animation: tuple | None = None,
-                    fps: float = 24.0) -> Callable:
+                    fps: float | None = None) -> Callable:
     """The ``edit(stage)`` callback for :func:`usdface.io.layers.write_avatar_layer` that authors inspection
     data.
 
@@ -136,7 +140,9 @@ def inspection_edit(avatar: Avatar, *, heat: dict | None = None, heat_vmax: floa
     animation : (names[K], weights[F, K]) or (names, weights, times[F] seconds): weights per frame (frame f at
         time code f when no times); names in any ARKit spelling, mapped onto the avatar's channel tokens (a
         channel with no column stays at 0).
-    fps : time codes per second of the animation.
+    fps : time codes per second of the animation (None: the avatar's ``timeCodesPerSecond``, which the layer
+        repeats; USD's 24 when the avatar authors none). The animation starts at the avatar's
+        ``startTimeCode`` when it authors one (a shot's frame 1001), else at 0.
     """
 
     def edit(stage) -> None:
