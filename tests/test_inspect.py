@@ -76,6 +76,10 @@ def test_cli_text_json_and_errors(tmp_path, capsys):
     assert main(["inspect", str(tmp_path / "missing.usda")]) == 2
     err = capsys.readouterr().err
     assert "missing.usda" in err and "fix:" in err and "Traceback" not in err
+    # -q as every other command takes it (a wrapper passing it to each): the same report, nothing on stderr
+    assert main(["inspect", "-q", str(path)]) == 0
+    captured = capsys.readouterr()
+    assert "mesh /Avatar/Head: 30 vertices" in captured.out and captured.err == ""
 
 
 def test_bench_avatar_blender_renaming(bench):

@@ -6,6 +6,7 @@ import json
 import sys
 
 from . import add_name_map_option
+from .options import add_quiet
 
 
 def register(subparsers) -> None:
@@ -20,6 +21,7 @@ def register(subparsers) -> None:
     p.add_argument("file", help="avatar or layer (.usd/.usda/.usdc), capture.usda, or a capture folder")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     add_name_map_option(p)
+    add_quiet(p)          # (inspect shows no progress: taken so a wrapper can pass -q to every command)
     p.set_defaults(func=run)
 
 
