@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -492,32 +493,49 @@ def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
     assert sorted(p.name for p in out.iterdir()) == ["a.usda.started", "b.usda.started"]
 
 
-def test_a_dask_batch_stopped_stops_the_items_running_on_the_cluster(tmp_path):
-    """A user trial: ``usdface batch --scheduler ...`` stopped with Ctrl-C while items ran on the cluster
-    reported them ``failed`` (``Interrupted``), yet each ran on in its Dask worker (``Client.cancel`` does
-    not stop a running task) and wrote its output afterwards (dev1: ``a.usda`` appeared ~15 s after the
-    batch had exited). The running item now stops, and writes nothing."""
-    import signal
-    import subprocess
+@contextlib.contextmanager
+def _dask_item_running(tmp_path):
+    """``(cluster, batch process, output folder)`` once the one item of a ``usdface batch --scheduler``
+    child process (``gated_worker``: it waits for ``a.usda.go`` before writing) runs on a one-worker TCP
+    ``LocalCluster`` (reachable from another process)."""
     import time
 
     distributed = pytest.importorskip("distributed")
     manifest = _manifest(tmp_path, ["a"])
     out = tmp_path / "out"
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
-                                  dashboard_address=None) as cluster:      # reachable from another process
+                                  dashboard_address=None) as cluster:
         proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 120
         while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.1)
         assert (out / "a.usda.started").exists(), proc.communicate(timeout=60)
+        yield cluster, proc, out
+
+
+def _let_the_item_end(out) -> None:
+    """Open the gated item's gate (an item still running would now write its output) and wait until it
+    has ended."""
+    import time
+
+    (out / "a.usda.go").write_text("")
+    deadline = time.monotonic() + 60
+    while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
+def test_a_dask_batch_stopped_stops_the_items_running_on_the_cluster(tmp_path):
+    """A user trial: ``usdface batch --scheduler ...`` stopped with Ctrl-C while items ran on the cluster
+    reported them ``failed`` (``Interrupted``), yet each ran on in its Dask worker (``Client.cancel`` does
+    not stop a running task) and wrote its output afterwards (dev1: ``a.usda`` appeared ~15 s after the
+    batch had exited). The running item now stops, and writes nothing."""
+    import signal
+
+    with _dask_item_running(tmp_path) as (_, proc, out):
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
-        (out / "a.usda.go").write_text("")       # an item still running would now write its output
-        deadline = time.monotonic() + 60
-        while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
+        _let_the_item_end(out)
     assert proc.returncode == 130, err
     assert (out / "a.usda.ended").exists()
     assert not (out / "a.usda").exists()
@@ -531,26 +549,10 @@ def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):
     scheduler-connection-lost`` (``FutureCancelledError``), though no worker crashed, and the item ran on in
     its worker and wrote its output after the report called it failed. The report now says what happened
     and what the item may still do."""
-    import subprocess
-    import time
-
-    distributed = pytest.importorskip("distributed")
-    manifest = _manifest(tmp_path, ["a"])
-    out = tmp_path / "out"
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
-                                  dashboard_address=None) as cluster:      # reachable from another process
-        proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 120
-        while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert (out / "a.usda.started").exists(), proc.communicate(timeout=60)
+    with _dask_item_running(tmp_path) as (cluster, proc, out):
         cluster.sync(cluster.scheduler.close)     # the scheduler stops; the worker's item runs on
         _, err = proc.communicate(timeout=120)    # the client tries to reconnect for 20 s
-        (out / "a.usda.go").write_text("")
-        deadline = time.monotonic() + 60
-        while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
+        _let_the_item_end(out)
     assert proc.returncode == 1, err
     report = json.loads((tmp_path / "people.report.json").read_text())
     item = report["items"][0]
