@@ -525,24 +525,6 @@ def _let_the_item_end(out) -> None:
         time.sleep(0.1)
 
 
-def test_a_dask_batch_stopped_stops_the_items_running_on_the_cluster(tmp_path):
-    """A user trial: ``usdface batch --scheduler ...`` stopped with Ctrl-C while items ran on the cluster
-    reported them ``failed`` (``Interrupted``), yet each ran on in its Dask worker (``Client.cancel`` does
-    not stop a running task) and wrote its output afterwards (dev1: ``a.usda`` appeared ~15 s after the
-    batch had exited). The running item now stops, and writes nothing."""
-    import signal
-
-    with _dask_item_running(tmp_path) as (_, proc, out):
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-        _let_the_item_end(out)
-    assert proc.returncode == 130, err
-    assert (out / "a.usda.ended").exists()
-    assert not (out / "a.usda").exists()
-    report = json.loads((tmp_path / "people.report.json").read_text())
-    assert [(r["status"], r["error_type"]) for r in report["items"]] == [(FAILED, "Interrupted")]
-
-
 def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):
     """A user trial: the Dask scheduler stopped while an item ran (a farm's scheduler restarted). The batch
     reported the item as ``worker crashed: usdface-item-1-... cancelled for reason:

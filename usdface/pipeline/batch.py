@@ -29,9 +29,7 @@ import os
 import threading
 import time
 import traceback
-import uuid
 from collections.abc import Callable, Iterable
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -616,8 +614,7 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
 
 class _WorkerStopped(KeyboardInterrupt):
     """A pool worker's SIGTERM (the batch stopped: ``_stop_pool``'s ``terminate()``, or the parent's death
-    through ``PR_SET_PDEATHSIG``) or SIGHUP, or a Dask batch's stop event (:func:`_stopped_by`), raised
-    inside an item so that its atomic writes clean up."""
+    through ``PR_SET_PDEATHSIG``) or SIGHUP, raised inside an item so that its atomic writes clean up."""
 
 
 #: Whether this pool worker process is inside an item now (:func:`_pool_item`).
@@ -759,28 +756,20 @@ def _run_isolated(worker, todo, jobs, advance):
             raise
 
 
-def run_item_quiet(worker: Callable[[dict], object], item: dict, stop: str | None = None) -> dict:
+def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
     """:func:`run_item` on a Dask worker: no progress lines of its own (the batch reports per item; the
     workers' step lines would interleave in its log) and one BLAS thread (the cluster's processes are the
-    parallelism), as the local pool's :func:`init_worker` sets up. ``stop`` names the batch's
-    ``distributed.Event``: set (the batch was stopped), the item stops where it is, its atomic writes
-    cleaning up (:func:`_stopped_by`), and its result is ``failed`` with ``Interrupted``."""
+    parallelism), as the local pool's :func:`init_worker` sets up."""
     from .. import progress
     from ..personalize.api import one_blas_thread
 
     # process-wide and not restored: a Dask worker's threads run items side by side, and one finishing must
     # not turn progress back on under another (an in-process cluster's parent: run_batch restores its own)
     progress.set_enabled(False)
-    try:
-        with one_blas_thread(), _stopped_by(stop):  # shared by the worker's threads (each its own limit)
-            return run_item(worker, item)
-    except _WorkerStopped:
-        return dict({k: item[k] for k in ("index", "avatar", "capture", "output")}, status=FAILED,
-                    error=STOPPED_ERROR, error_type="Interrupted")
+    with one_blas_thread():        # shared by the worker's threads (each its own limit: one left it at 1)
+        return run_item(worker, item)
 
 
-#: A stopped batch's error for the items that had not finished.
-STOPPED_ERROR = "the batch was stopped before this item finished (run it again to resume)"
 #: The error of the items whose results a Dask batch lost with its scheduler (``FutureCancelledError``,
 #: reason ``scheduler-connection-lost``, after the client's 20 s of trying to reconnect): no worker crashed,
 #: and an item running then runs on in its worker (nothing can tell it to stop), writing its output.
@@ -788,56 +777,6 @@ SCHEDULER_LOST_ERROR = ("the connection to the Dask scheduler was lost before th
                         "(the scheduler stopped, or the network to it failed); the item may still be running "
                         "on its worker and write its output: run the batch again once the scheduler is back "
                         "(an output finished meanwhile is then taken as done, one stale or cut off is told)")
-#: Seconds a Dask item's watcher waits on its batch's stop event at a time (a long poll on the scheduler).
-STOP_POLL_SECONDS = 1.0
-
-
-@contextmanager
-def _stopped_by(event_name: str | None):
-    """On a Dask worker, while the item in the ``with`` block runs on this thread: a watcher thread waits on
-    the batch's ``distributed.Event`` ``event_name``, and once the batch sets it (stopped: Ctrl-C,
-    SIGTERM) raises :class:`_WorkerStopped` inside this thread (``PyThreadState_SetAsyncExc``, taken at the
-    item's next Python instruction), so that the item stops and its atomic writes clean up, as a local pool
-    worker's item stops on SIGTERM.
-
-    Dask cannot stop a task that is running (``Client.cancel`` only forgets it): a batch stopped while items
-    ran on the cluster reported them ``failed`` (``Interrupted``), and each ran on to its end and wrote its
-    output seconds or minutes later. ``None``: nothing to watch (an item run outside a batch)."""
-    if not event_name:
-        yield
-        return
-    import ctypes
-
-    from distributed import Event
-
-    event = Event(event_name)
-    if event.client is None:     # bound here, in the task's thread (outside a worker: nothing to watch)
-        yield
-        return
-    target = threading.get_ident()
-    lock = threading.Lock()
-    done = threading.Event()
-
-    def watch():
-        while not done.is_set():
-            try:
-                fired = event.wait(timeout=STOP_POLL_SECONDS)
-            except Exception:  # noqa: BLE001  (the scheduler is gone: no batch left to stop for)
-                return
-            with lock:
-                if done.is_set():
-                    return
-                if fired:
-                    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(target),
-                                                               ctypes.py_object(_WorkerStopped))
-                    return
-
-    threading.Thread(target=watch, name="usdface-batch-stop", daemon=True).start()
-    try:
-        yield
-    finally:
-        with lock:              # no stop is raised in this thread once the item is over
-            done.set()
 
 
 def _run_dask(worker, todo, scheduler, advance):
@@ -861,9 +800,8 @@ def _run_dask(worker, todo, scheduler, advance):
     else:
         client = scheduler
     futures = []
-    stop = f"usdface-batch-stop-{uuid.uuid4().hex}"     # set when this batch stops: its running items end
     try:
-        futures = [client.submit(run_item_quiet, worker, item, stop, pure=False,
+        futures = [client.submit(run_item_quiet, worker, item, pure=False,
                                  key=f"usdface-item-{item['index']}-{time.time_ns()}") for item in todo]
         by_key = {f.key: item for f, item in zip(futures, todo, strict=True)}
         for fut in as_completed(futures):
@@ -880,13 +818,7 @@ def _run_dask(worker, todo, scheduler, advance):
                                     "on their PYTHONPATH), as must usdface")
             yield res
             advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
-    except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the
-        try:                  # cluster, and those running stop (_stopped_by; Dask's cancel forgets them)
-            from distributed import Event
-
-            Event(stop, client=client).set()
-        except Exception:  # noqa: BLE001  (the scheduler is unreachable: nothing more to tell it)
-            pass
+    except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the cluster
         client.cancel([f for f in futures if not f.done()])
         raise
     finally:
@@ -942,7 +874,8 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
             for item in items:
                 results.setdefault(item.index, dict(
                     index=item.index, avatar=item.avatar, capture=item.capture, output=item.output,
-                    status=FAILED, error=STOPPED_ERROR, error_type="Interrupted"))
+                    status=FAILED, error="the batch was stopped before this item finished (run it again to "
+                    "resume)", error_type="Interrupted"))
             exc.batch_report = BatchReport([ItemResult(**results[item.index]) for item in items],
                                            time.perf_counter() - start, where)
             raise
