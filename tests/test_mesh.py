@@ -14,6 +14,7 @@ from usdface.mesh import (
     boundary_loops,
     check_triangles,
     cotangent_laplacian,
+    cross,
     deformation_gradients,
     display_subset,
     gradient_operator,
@@ -41,6 +42,15 @@ def grid(nx=6, ny=5, hole=False):
             a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i, (j + 1) * nx + i + 1
             tris += [[a, b, d], [a, d, c]]
     return pts, np.array(tris)
+
+
+def test_cross_is_numpys_to_the_bit():
+    """``mesh.cross`` (the normals', areas', Laplacian's and motion field's cross product) gives
+    ``np.cross``'s values bit for bit, broadcast over stacks as ``np.cross`` does."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(4, 50, 3)), rng.normal(size=(50, 3))
+    assert np.array_equal(cross(a, b), np.cross(a, b))
+    assert np.array_equal(cross(a[0], b), np.cross(a[0], b))
 
 
 def test_single_triangle_normal_area_frame():

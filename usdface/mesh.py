@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from .errors import GeometryError
 
 __all__ = [
-    "vector_lengths", "squared_lengths",
+    "vector_lengths", "squared_lengths", "cross",
     "triangle_normals", "vertex_normals", "triangle_areas", "frame_vectors", "triangle_frames",
     "inverse_rest_frames", "deformation_gradients", "gradient_coefficients", "gradient_operator",
     "apply_gradient", "cotangent_laplacian", "uniform_laplacian", "vertex_adjacency", "edges",
@@ -59,9 +59,9 @@ def vector_lengths(x: np.ndarray) -> np.ndarray:
     return np.sqrt(squared_lengths(x))
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` over the last axis (same arithmetic), without its axis shuffling: 3-4x faster on big
-    stacks of vectors."""
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of ``a[..., 3]`` and ``b[..., 3]`` over the last axis, to the bit (the same products and
+    differences), without its axis shuffling: 3-4x faster on big stacks of vectors."""
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
     out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
@@ -76,7 +76,7 @@ def triangle_normals(points: np.ndarray, triangles: np.ndarray, *, unit: bool = 
     triangles get a zero normal.
     """
     _, e1, e2 = _edge_vectors(points, triangles)
-    c = _cross(e1, e2)                                   # (np.cross and np.linalg.norm to the bit, cheaper)
+    c = cross(e1, e2)                                   # (np.cross and np.linalg.norm to the bit, cheaper)
     if not unit:
         return c
     length = vector_lengths(c)[..., None]
@@ -110,7 +110,7 @@ def frame_vectors(points: np.ndarray, triangles: np.ndarray, *, axis: int = -2):
         t = np.asarray(triangles, dtype=np.int64)
         v0 = np.take(p, t[:, 0], axis=axis)
         e1, e2 = np.take(p, t[:, 1], axis=axis) - v0, np.take(p, t[:, 2], axis=axis) - v0
-    c = _cross(e1, e2)
+    c = cross(e1, e2)
     length = np.sqrt(vector_lengths(c))[..., None]
     # c / length, 0 for a degenerate triangle: one plain division (a masked ``where=`` division over the
     # broadcast length is buffered, 2x slower on DT's [t, K, 3] frames), the same numbers
@@ -317,15 +317,15 @@ def cotangent_laplacian(points: np.ndarray, triangles: np.ndarray, *,
     n = len(p)
     if len(t):
         e1, e2 = p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]
-        area2 = vector_lengths(_cross(e1, e2))
+        area2 = vector_lengths(cross(e1, e2))
         scale = vector_lengths(e1) * vector_lengths(e2)
         t = t[(area2 > 1e-12 * scale) & (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     rows, cols, vals = [], [], []
     for k in range(3):
         i, j, o = t[:, (k + 1) % 3], t[:, (k + 2) % 3], t[:, k]
         a, b = p[i] - p[o], p[j] - p[o]
-        cross = vector_lengths(_cross(a, b))
-        cot = np.einsum("ij,ij->i", a, b) / np.maximum(cross, 1e-300)
+        sine = vector_lengths(cross(a, b))                     # |a| |b| sin of the angle at o
+        cot = np.einsum("ij,ij->i", a, b) / np.maximum(sine, 1e-300)
         rows += [i, j]
         cols += [j, i]
         vals += [0.5 * cot, 0.5 * cot]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh import _cross, spd_lu, triangle_areas, vector_lengths, vertex_adjacency, vertex_areas
+from ..mesh import cross, spd_lu, triangle_areas, vector_lengths, vertex_adjacency, vertex_areas
 from ..motion import shape_norms
 from .surface import cotangent_laplacian
 
@@ -80,7 +80,7 @@ def rotation_scale(generic, person, *, max_scale: float = 4.0,
     # Rodrigues for the rotation taking ah onto ph, R = I + [v]x + [v]x^2 / (1 + cos) with v = ah x ph, entry
     # by entry: [v]x^2 = v v^T - |v|^2 I (each entry the same sum of the same products as the 3x3 matrix
     # product, so the same values to the last bit, without the [J,m,3,3] temporaries)
-    v = _cross(ah, ph)                                            # (np.cross to the bit)
+    v = cross(ah, ph)                                             # (np.cross to the bit)
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     den = np.maximum(1.0 + cos, 1e-3)
     xx, yy, zz = x * x, y * y, z * z
