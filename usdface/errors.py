@@ -103,6 +103,12 @@ _WRITE_FIXES = {
 }
 
 
+def _shown(value) -> str:
+    """``value`` as a refusal shows it: its repr on one line (a Capture's spans several: its arrays), at most
+    60 characters."""
+    return " ".join(repr(value).split())[:60]
+
+
 def expect_kind(value, kinds: tuple, what: str, expected: str, fix: str, *, none_ok: bool = False) -> None:
     """Refuse an argument of the wrong kind with :class:`OptionError` naming the argument (``what``), what it
     takes and the fix, before any work: ``personalize_avatar(None, ...)``, a ``face_mesh`` given as a
@@ -110,8 +116,7 @@ def expect_kind(value, kinds: tuple, what: str, expected: str, fix: str, *, none
     (``'str' object has no attribute 'names'``)."""
     if (value is None and none_ok) or (value is not None and isinstance(value, kinds)):
         return
-    shown = " ".join(repr(value).split())[:60]      # one line: a Capture's repr spans several (its arrays)
-    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({shown})", fix=fix)
+    raise OptionError(f"{what} must be {expected}, not {type(value).__name__} ({_shown(value)})", fix=fix)
 
 
 def expect_flag(value, name: str, whose: str, default: bool, fix: str | None = None) -> bool:
@@ -132,9 +137,8 @@ def expect_flag(value, name: str, whose: str, default: bool, fix: str | None = N
 
     if isinstance(value, np.bool_):
         return bool(value)
-    shown = " ".join(repr(value).split())[:60]
-    raise OptionError(f"bad {name} {shown}: {whose} {name} is a boolean (True or False; None: the default, "
-                      f"{default})", fix=fix or f"pass {name}=True or {name}=False")
+    raise OptionError(f"bad {name} {_shown(value)}: {whose} {name} is a boolean (True or False; None: the "
+                      f"default, {default})", fix=fix or f"pass {name}=True or {name}=False")
 
 
 def write_fix(err: int | None, output_option: bool = False) -> str:
