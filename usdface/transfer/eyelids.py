@@ -156,7 +156,7 @@ def eye_surfaces(points, triangles) -> list:
     if count < 2:
         return [(p, t)]
     piece = label[t[:, 0]]                                        # [t] each triangle's piece
-    present = [c for c in range(count) if np.any(piece == c)]
+    present = np.unique(piece).tolist()                           # the pieces with triangles
     encloses = {}
     for c in present:
         if len(boundary_edges(t[piece == c])):
