@@ -85,10 +85,14 @@ class Selection:
         return [f"{t:03d}" for t in range(len(self.test))]
 
 
+def _number(value) -> bool:
+    """``value`` a real number: an int or a float, Python's or numpy's, not a bool."""
+    return not isinstance(value, bool) and isinstance(value, int | float | np.integer | np.floating)
+
+
 def _whole(value, low: int) -> bool:
     """``value`` a whole number (an int, numpy's, or a float such as 15.0) >= ``low``."""
-    return (not isinstance(value, bool) and isinstance(value, int | float | np.integer | np.floating)
-            and bool(np.isfinite(value)) and float(value).is_integer() and value >= low)
+    return _number(value) and bool(np.isfinite(value)) and float(value).is_integer() and value >= low
 
 
 def _check_counts(threshold, per_shape, test_every, min_separation) -> tuple[int, int, int]:
@@ -96,8 +100,7 @@ def _check_counts(threshold, per_shape, test_every, min_separation) -> tuple[int
     min_separation must be >= 1, test_every >= 0" with a command line's fix, whichever was wrong; a
     ``min_separation=0.5`` meant as the CLI's seconds was one of them, and ``threshold=2`` picked nothing
     without a word: a user trial of docs/takes.md's script). Returns them as ints (15.0 is 15)."""
-    if not (not isinstance(threshold, bool) and isinstance(threshold, int | float | np.integer | np.floating)
-            and 0.0 <= threshold <= 1.0):
+    if not (_number(threshold) and 0.0 <= threshold <= 1.0):
         raise CaptureError(f"threshold {threshold!r} is outside [0, 1]", fix="pass a weight in [0, 1] (0.5)")
     for name, value, low, fix in (
             ("per_shape", per_shape, 1, "pass per_shape=1 (one peak per shape; 2: Hable's two)"),
