@@ -102,7 +102,7 @@ class FaceRig:
         peak = self.kept_peak()
         if peak is None:
             peak = peak_motion(self.deltas)
-            self._keep_peak(peak)
+            self.keep_peak(peak)
         return peak
 
     def kept_peak(self) -> np.ndarray | None:
@@ -110,7 +110,7 @@ class FaceRig:
         kept = self.__dict__.get("_peak")
         return kept[1] if kept is not None and kept[0]() is self.deltas else None
 
-    def _keep_peak(self, peak) -> None:
+    def keep_peak(self, peak) -> None:
         """Keep ``peak[n]`` as :meth:`peak_motion` of the current ``deltas`` (a weak reference to them: the
         offsets are not kept alive for it)."""
         import weakref

@@ -306,7 +306,7 @@ def rig_on(rig, vertices, triangles, source, name):
     out = FaceRig(rig.neutral[v], triangles, rig.names, rig.deltas[:, v], ibs, source, name)
     kept = rig.kept_peak()
     if kept is not None:                                    # its peak motion there (a max: the same values)
-        out._keep_peak(kept[v])
+        out.keep_peak(kept[v])
     return out
 
 

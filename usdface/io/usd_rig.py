@@ -372,7 +372,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                                                       match.canonical, moving_only)
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
     if peak is not None and rig.deltas.shape == deltas.shape:    # the peak motion the crop measured: kept
-        rig._keep_peak(peak)
+        rig.keep_peak(peak)
     report = {"inexact": [list(x) for x in match.inexact], "unknown": list(match.unknown),
               "missing": list(match.missing), "conflicts": [list(x) for x in match.conflicts],
               "channels": [list(x) for x in match.channels]}
