@@ -495,7 +495,7 @@ def test_a_person_moving_further_than_the_avatar_anywhere_near_is_not_a_mapping_
 
     places, tri, points, deltas, p, edge = _avatar_and_capture(raise_)
     b, t = 2.5 * p, 2.2 * p @ _rotation(5).T
-    assert mapping_outliers(b, p, t).sum() >= 9                          # the witnesses alone: the raise's top
+    assert mapping_outliers(b, p, t).sum() >= 9                   # the witnesses alone: the raise's top
     assert not mapping_outliers(b, p, t, triangles=tri, avatar=(places, points, deltas, edge)).any()
 
 
