@@ -85,6 +85,7 @@ def _validate_gltf(path: Path) -> dict:
         for k, t in enumerate(targets):
             acc = doc["accessors"][t["POSITION"]]
             assert acc["count"] == n and acc["type"] == "VEC3"
+            assert set(t) == {"POSITION", "NORMAL"} and doc["accessors"][t["NORMAL"]]["count"] == n
             np.testing.assert_array_equal(acc["min"], arrays["targets"][k].min(axis=0))
             np.testing.assert_array_equal(acc["max"], arrays["targets"][k].max(axis=0))
     return doc
@@ -124,6 +125,32 @@ def test_gltf_variants_differ_and_generic_is_the_input_avatar(layer, samples, tm
                                   .astype(np.float32))
     change = np.abs(per["Head"]["targets"] - gen["Head"]["targets"]).max()
     assert change > 1e-4  # personalization moved the face by more than 0.1 mm somewhere
+
+
+def test_gltf_targets_carry_the_posed_normals(layer, tmp_path):
+    """A user trial (stop 44): the morph targets carried POSITION only, so an engine (three.js, Babylon.js,
+    Unity glTFast: each adds NORMAL target deltas when there are any, else keeps the base NORMAL) shaded every
+    shape with the neutral's normals: a blink's closed lid, the open jaw's chin and lips lit as at rest
+    (dev3's personalized jawOpen turns 2,535 Head normals by more than 10 degrees, up to 129). Each target now
+    has NORMAL deltas: neutral normals + delta, normalised, are the posed mesh's own vertex normals."""
+    from usdface.mesh import vertex_normals
+
+    data = read_gltf(api.export_avatar(layer, gltf=tmp_path / "n.glb")["gltf"])
+    head = read_avatar_variant(layer, "personalized").mesh("Head")
+    got = data["Head"]
+    assert got["target_normals"].shape == got["targets"].shape
+    turned = 0
+    for k, name in enumerate(got["target_names"]):
+        posed = vertex_normals(head.neutral + head.deltas[head.index(name)], head.triangles)
+        blended = got["normals"] + got["target_normals"][k]
+        blended /= np.linalg.norm(blended, axis=1, keepdims=True)
+        np.testing.assert_allclose(blended, posed, atol=1e-5)
+        rest = np.degrees(np.arccos(np.clip((got["normals"] * posed).sum(axis=1), -1, 1)))
+        turned = max(turned, rest.max())
+        moving = np.any(head.deltas[head.index(name)][head.triangles] != 0, axis=(1, 2))
+        still = np.setdiff1d(np.arange(len(posed)), head.triangles[moving])
+        assert not got["target_normals"][k][still].any()   # zero where no adjacent triangle moves
+    assert turned > 20                                     # the shapes do turn normals a lot (29.8 degrees)
 
 
 def test_gltf_skin_matches_the_skeleton(layer, tmp_path):

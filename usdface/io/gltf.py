@@ -5,8 +5,11 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
 * one glTF mesh per rig, one triangle primitive: ``POSITION`` (float32, metres, Y up, the internal frame
   usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral) and
   ``indices`` (uint16 or uint32);
-* one morph target per shape (``POSITION`` deltas, float32), stored as a *sparse* accessor (the moved
-  vertices only: indices + values, zeros elsewhere) unless dense is smaller; the target names in
+* one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the area-weighted vertex
+  normals of the neutral plus the shape, minus the neutral's: an engine adds them, weighted as the positions,
+  and normalises, so a shape is shaded as posed and not with the neutral's normals), each stored as a
+  *sparse* accessor (the changed vertices only: indices + values, zeros elsewhere) unless dense is smaller;
+  the target names in
   ``mesh.extras.targetNames`` (the convention three.js, Babylon.js, Unity glTFast and Blender read), default
   ``mesh.weights`` all 0;
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
@@ -84,7 +87,8 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
     def target(self, delta: np.ndarray) -> int:
-        """A morph target's POSITION accessor: sparse (moved vertices only) unless dense is smaller."""
+        """A morph target's POSITION or NORMAL accessor: sparse (changed vertices only) unless dense is
+        smaller."""
         import pygltflib
 
         n = delta.shape[0]
@@ -189,14 +193,16 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
         neutral = np.asarray(rig.neutral, dtype=np.float32)
         tris = np.asarray(rig.triangles, dtype=np.int64)
         itype = np.uint16 if len(neutral) <= 65535 else np.uint32
+        normals = vertex_normals(rig.neutral, tris)
         attrs = pygltflib.Attributes(
             POSITION=blob.accessor(neutral, "VEC3", target=_ARRAY_BUFFER, bounds=True),
-            NORMAL=blob.accessor(vertex_normals(rig.neutral, tris).astype(np.float32), "VEC3",
-                                 target=_ARRAY_BUFFER))
+            NORMAL=blob.accessor(normals.astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
         if skin is not None and rig.name in skin.influences:
             attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, *skin.influences[rig.name])
-        deltas = np.asarray(rig.deltas, dtype=np.float32)
-        targets = [{"POSITION": blob.target(d)} for d in deltas]
+        deltas = np.asarray(rig.deltas, dtype=np.float64)
+        targets = [{"POSITION": blob.target(d.astype(np.float32)),
+                    "NORMAL": blob.target((vertex_normals(rig.neutral + d, tris) - normals)
+                                          .astype(np.float32))} for d in deltas]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
             tris.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
             targets=targets or None)
@@ -251,14 +257,15 @@ def _read_accessor(gltf, blob: bytes, index: int) -> np.ndarray:
     return out if width > 1 else out.ravel()
 
 
-def _target(t) -> int:
-    return t["POSITION"] if isinstance(t, dict) else t.POSITION
+def _target(t, attribute: str = "POSITION") -> int | None:
+    return t.get(attribute) if isinstance(t, dict) else getattr(t, attribute, None)
 
 
 def read_gltf(path) -> dict:
     """Read a glTF written by :func:`write_gltf` (or any glTF with plain triangle primitives) back into
     arrays: {mesh name: {"positions": float32[n, 3], "normals", "indices": [t, 3], "target_names": [K],
-    "targets": float32[K, n, 3], "joints", "weights" (when skinned)}} for the first primitive of each mesh."""
+    "targets": float32[K, n, 3], "target_normals": float32[K, n, 3] (when the targets have NORMAL), "joints",
+    "weights" (when skinned)}} for the first primitive of each mesh."""
     import pygltflib
 
     path = Path(path)
@@ -282,6 +289,9 @@ def read_gltf(path) -> dict:
                  if prim.targets else np.zeros((0, len(positions), 3), dtype=np.float32)}
         if a.NORMAL is not None:
             entry["normals"] = _read_accessor(gltf, blob, a.NORMAL)
+        if prim.targets and all(_target(t, "NORMAL") is not None for t in prim.targets):
+            entry["target_normals"] = np.stack([_read_accessor(gltf, blob, _target(t, "NORMAL"))
+                                                for t in prim.targets])
         if a.JOINTS_0 is not None:
             entry["joints"] = _read_accessor(gltf, blob, a.JOINTS_0)
             entry["weights"] = _read_accessor(gltf, blob, a.WEIGHTS_0)
