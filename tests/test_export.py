@@ -153,6 +153,29 @@ def test_gltf_targets_carry_the_posed_normals(layer, tmp_path):
     assert turned > 20                                     # the shapes do turn normals a lot (29.8 degrees)
 
 
+def test_gltf_skinned_meshes_are_scene_roots(layer, tmp_path):
+    """A user trial (stop 44): the skinned mesh nodes were children of the root node, which the Khronos
+    glTF-Validator warns of once per mesh (NODE_SKINNED_MESH_NON_ROOT: a skinned mesh is placed by its joints
+    alone, its parents' transforms do not apply). They are now root nodes of the scene, without transforms of
+    their own; the joints and any unskinned mesh stay under the root node."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(api.export_avatar(layer, gltf=tmp_path / "r.glb")["gltf"]))
+    parent = {c for n in gltf.nodes for c in (n.children or [])}
+    skinned = [i for i, n in enumerate(gltf.nodes) if n.skin is not None]
+    assert sorted(gltf.nodes[i].name for i in skinned) == ["EyeLeft", "EyeRight", "Head", "Mouth"]
+    for i in skinned:
+        node = gltf.nodes[i]
+        assert i not in parent and i in gltf.scenes[0].nodes
+        assert (node.matrix, node.translation, node.rotation, node.scale) == (None, None, None, None)
+        assert node.extras["usdfaceVariant"] == "personalized"
+    root = gltf.nodes[gltf.scenes[0].nodes[0]]
+    assert root.name == "Avatar" and [gltf.nodes[c].name for c in root.children] == ["root"]
+    no_skin = api.export_avatar(layer, gltf=tmp_path / "u.glb", skin=False)["gltf"]
+    unskinned = pygltflib.GLTF2().load(str(no_skin))
+    assert unskinned.scenes[0].nodes == [0] and len(unskinned.nodes[0].children) == 4
+
+
 def test_gltf_skin_matches_the_skeleton(layer, tmp_path):
     import pygltflib
 

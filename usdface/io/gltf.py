@@ -165,11 +165,13 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
 def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
                extras: dict | None = None, node_extras: dict | None = None, force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
-    ``root_name`` with one node per mesh (and the ``skin``'s joints), morph targets as described in the module
-    doc. ``.glb``: binary; ``.gltf``: JSON with the buffer embedded as a data URI. ``extras`` go to the
-    scene's ``extras``; ``node_extras`` to the root node's and every mesh node's (Blender's importer makes
-    node extras object custom properties, which its USD exporter writes as ``userProperties:<key>``, where
-    the scene's are lost). Returns the path written (atomically; an existing file needs ``force``)."""
+    ``root_name`` with the ``skin``'s joints and the meshes it does not skin, each skinned mesh a root node of
+    the scene beside it (glTF places a skinned mesh by its joints alone, and the Khronos validator warns of a
+    skinned mesh under a parent), morph targets as described in the module doc. ``.glb``: binary; ``.gltf``:
+    JSON with the buffer embedded as a data URI. ``extras`` go to the scene's ``extras``; ``node_extras`` to
+    the root node's and every mesh node's (Blender's importer makes node extras object custom properties,
+    which its USD exporter writes as ``userProperties:<key>``, where the scene's are lost). Returns the path
+    written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
     from .. import __version__
@@ -188,6 +190,8 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     blob = _Blob(gltf)
     gltf.nodes.append(pygltflib.Node(name=root_name, extras=dict(node_extras or {})))
     root_children: list[int] = []
+    scene_nodes = [0]       # the root, and the skinned meshes: glTF skins them by the joints alone, so the
+    #                         Khronos validator warns of a parent (NODE_SKINNED_MESH_NON_ROOT)
     skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
     for rig in rigs:
         neutral = np.asarray(rig.neutral, dtype=np.float32)
@@ -212,12 +216,14 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
             mesh.extras = {"targetNames": list(rig.names)}
         gltf.meshes.append(mesh)
         node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1, extras=dict(node_extras or {}))
+        gltf.nodes.append(node)
         if skin_index is not None and rig.name in skin.influences:
             node.skin = skin_index
-        gltf.nodes.append(node)
-        root_children.append(len(gltf.nodes) - 1)
+            scene_nodes.append(len(gltf.nodes) - 1)
+        else:
+            root_children.append(len(gltf.nodes) - 1)
     gltf.nodes[0].children = root_children
-    gltf.scenes = [pygltflib.Scene(name=root_name, nodes=[0], extras=dict(extras or {}))]
+    gltf.scenes = [pygltflib.Scene(name=root_name, nodes=scene_nodes, extras=dict(extras or {}))]
     gltf.scene = 0
     gltf.buffers = [pygltflib.Buffer(byteLength=len(blob.data))]
     gltf.set_binary_blob(bytes(blob.data))
