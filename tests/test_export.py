@@ -153,6 +153,27 @@ def test_gltf_targets_carry_the_posed_normals(layer, tmp_path):
     assert turned > 20                                     # the shapes do turn normals a lot (29.8 degrees)
 
 
+def test_gltf_normals_are_unit_at_a_loose_vertex(samples, tmp_path):
+    """A user trial (stop 44): a vertex no triangle uses (a loose vertex a DCC keeps after faces were
+    deleted) got a zero NORMAL: invalid glTF (the Khronos validator's ACCESSOR_NON_UNIT error), and an engine
+    normalising it shades NaN. It now gets a unit normal, in every pose."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.model import FaceRig
+
+    rigs = []
+    for m in api.read_avatar(samples / "avatar.usda").meshes:
+        if m.name == "Head":   # one more vertex, in no triangle, moved by no shape
+            m = FaceRig(np.vstack([m.neutral, m.neutral[:1] + 0.001]), m.triangles, m.names,
+                        np.concatenate([m.deltas, np.zeros((m.n_shapes, 1, 3))], axis=1), name=m.name)
+        rigs.append(m)
+    loose = write_rig_usd(rigs, tmp_path / "loose.usda")
+    head = read_gltf(api.export_avatar(loose, gltf=tmp_path / "loose.glb")["gltf"])["Head"]
+    np.testing.assert_allclose(np.linalg.norm(head["normals"], axis=1), 1.0, atol=1e-6)
+    posed = head["normals"][None] + head["target_normals"]
+    np.testing.assert_allclose(np.linalg.norm(posed, axis=2), 1.0, atol=1e-6)
+    assert not head["target_normals"][:, -1].any()
+
+
 def test_gltf_skinned_meshes_are_scene_roots(layer, tmp_path):
     """A user trial (stop 44): the skinned mesh nodes were children of the root node, which the Khronos
     glTF-Validator warns of once per mesh (NODE_SKINNED_MESH_NON_ROOT: a skinned mesh is placed by its joints

@@ -3,8 +3,8 @@
 Written with pygltflib (the container: JSON, buffers, GLB chunks); this module only lays out the arrays:
 
 * one glTF mesh per rig, one triangle primitive: ``POSITION`` (float32, metres, Y up, the internal frame
-  usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral) and
-  ``indices`` (uint16 or uint32);
+  usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral;
+  +Z at a vertex no triangle of any area touches, which has none) and ``indices`` (uint16 or uint32);
 * one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the area-weighted vertex
   normals of the neutral plus the shape, minus the neutral's: an engine adds them, weighted as the positions,
   and normalises, so a shape is shaded as posed and not with the neutral's normals), each stored as a
@@ -113,6 +113,21 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
 
+#: The normal given to a vertex no triangle of any area touches (a loose vertex, one among degenerate
+#: triangles only): glTF requires unit normals (the Khronos validator's ACCESSOR_NON_UNIT error, and engines
+#: normalise a zero normal into NaN), and such a vertex has no direction of its own; +Z is glTF's front.
+UNDEFINED_NORMAL = np.array([0.0, 0.0, 1.0])
+
+
+def _unit_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[n, 3]``, :data:`UNDEFINED_NORMAL` where there is none."""
+    from ..mesh import vertex_normals
+
+    normals = vertex_normals(points, triangles)
+    normals[~np.any(normals, axis=1)] = UNDEFINED_NORMAL
+    return normals
+
+
 def _check(rigs) -> None:
     for rig in rigs:
         p = np.asarray(rig.neutral)
@@ -175,7 +190,6 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     import pygltflib
 
     from .. import __version__
-    from ..mesh import vertex_normals
     from .atomic import atomic_file
 
     path = Path(path)
@@ -197,7 +211,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
         neutral = np.asarray(rig.neutral, dtype=np.float32)
         tris = np.asarray(rig.triangles, dtype=np.int64)
         itype = np.uint16 if len(neutral) <= 65535 else np.uint32
-        normals = vertex_normals(rig.neutral, tris)
+        normals = _unit_normals(rig.neutral, tris)
         attrs = pygltflib.Attributes(
             POSITION=blob.accessor(neutral, "VEC3", target=_ARRAY_BUFFER, bounds=True),
             NORMAL=blob.accessor(normals.astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
@@ -205,7 +219,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
             attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, *skin.influences[rig.name])
         deltas = np.asarray(rig.deltas, dtype=np.float64)
         targets = [{"POSITION": blob.target(d.astype(np.float32)),
-                    "NORMAL": blob.target((vertex_normals(rig.neutral + d, tris) - normals)
+                    "NORMAL": blob.target((_unit_normals(rig.neutral + d, tris) - normals)
                                           .astype(np.float32))} for d in deltas]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
             tris.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
