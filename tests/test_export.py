@@ -337,6 +337,53 @@ def test_flatten_packages_a_usdz_that_composes_exactly_as_the_usdc(layer, tmp_pa
     assert not (tmp_path / "q.usda").exists()
 
 
+_TEXTURED = """#usda 1.0
+(
+    defaultPrim = "Avatar"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+    subLayers = [@./avatar.usda@]
+)
+over "Avatar"
+{
+    def Material "Skin"
+    {
+        def Shader "Tex"
+        {
+            uniform token info:id = "UsdUVTexture"
+            asset inputs:file = @./tex/skin.png@
+        }
+    }
+}
+"""
+
+
+def test_flatten_keeps_texture_paths_relative(samples, tmp_path):
+    """A user trial (stop 44): ``Stage.Flatten`` anchors every asset path, so a flattened export named its
+    textures by absolute path (``@/proj/lib/tex/skin.png@``): a delivery copied or mounted elsewhere with its
+    textures lost them (or read the old copy). They are now relative to the flattened file by the rule of the
+    layer's sublayer path, and a ``.usdz`` still packages them."""
+    from pxr import Usd
+
+    lib, deliver = tmp_path / "proj" / "lib", tmp_path / "proj" / "deliver"
+    (lib / "tex").mkdir(parents=True)
+    (lib / "tex" / "skin.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    shutil.copy(samples / "avatar.usda", lib / "avatar.usda")
+    (lib / "hero.usda").write_text(_TEXTURED)
+    done = api.export_avatar(lib / "hero.usda", flatten=deliver / "flat.usdc")["flatten"]
+    stage = Usd.Stage.Open(str(done))
+    assert stage.GetAttributeAtPath("/Avatar/Skin/Tex.inputs:file").Get().path == "../lib/tex/skin.png"
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(tmp_path / "proj", moved)
+    stage = Usd.Stage.Open(str(moved / "deliver" / "flat.usdc"))
+    resolved = stage.GetAttributeAtPath("/Avatar/Skin/Tex.inputs:file").Get().resolvedPath
+    assert Path(resolved) == moved / "lib" / "tex" / "skin.png"
+    package = api.export_avatar(lib / "hero.usda", flatten=deliver / "flat.usdz")["flatten"]
+    import zipfile
+
+    assert any(n.endswith("skin.png") for n in zipfile.ZipFile(package).namelist())
+
+
 @pytest.mark.parametrize("command", ["personalize", "landmarks"])
 def test_a_usdz_layer_over_the_avatar_is_refused_with_why_and_the_export_that_packages_it(
         command, tmp_path, capfd, monkeypatch):
