@@ -537,6 +537,10 @@ def test_check_passes_a_crowd_instancing_the_personalized_layer(personalized_sam
     assert "already personalized" in capsys.readouterr().err
     assert main(["check", str(crowd("generic")), "--no-pixar"]) == 1
     assert "instanceable prim /Crowd0" in capsys.readouterr().out
+    from usdface import api
+
+    flat = api.export_avatar(mixed, flatten=tmp_path / "crowd_flat.usdc")["flatten"]   # its flattened export
+    assert main(["check", str(flat), "--no-pixar"]) == 0, capsys.readouterr().out
 
 
 def test_check_runs_the_reader_after_an_unrelated_error(tmp_path):

@@ -751,10 +751,13 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
                             own_fix or "author what the reader assumed (see the message), or accept it")
         from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
-        # as personalize, unless the file composes a usdface layer's personalized variant: personalize
-        # refuses it as already personalized before it would get there (check passes such a shot when it
-        # is not instanced), and a crowd instancing the published layer shows each instance's variant
-        if not any(_brings_personalization(stage, m) for m in avatar.meshes):
+        # as personalize, unless the file composes a usdface layer's personalized variant (or is the
+        # flattened export of one): personalize refuses it as already personalized before it would get
+        # there (check passes such a shot when it is not instanced), and a crowd instancing the published
+        # layer shows each instance's variant
+        flattened = (layer.customLayerData or {}).get("usdfaceFlatten") or {}
+        if (not any(_brings_personalization(stage, m) for m in avatar.meshes)
+                and flattened.get("variant") != "personalized"):
             refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
             refuse_unwritable_shapes(avatar, None, "the personalized layer")
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
