@@ -174,6 +174,47 @@ def test_gltf_normals_are_unit_at_a_loose_vertex(samples, tmp_path):
     assert not head["target_normals"][:, -1].any()
 
 
+def _left_handed_copy(source: Path, out: Path) -> Path:
+    """``source`` with every mesh's faces reversed and ``orientation = "leftHanded"``: the same surface, its
+    outside the same, as USD defines it."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(source))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh):
+            mesh = UsdGeom.Mesh(prim)
+            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+            faces = np.split(idx, np.cumsum(counts)[:-1])
+            mesh.GetFaceVertexIndicesAttr().Set(np.concatenate([f[::-1] for f in faces]).tolist())
+            mesh.GetOrientationAttr().Set(UsdGeom.Tokens.leftHanded)
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_a_left_handed_avatar_is_read_and_exported_outside_out(samples, tmp_path):
+    """A user trial (stop 44): ``orientation = "leftHanded"`` (faces wound clockwise, as some exporters
+    write them) was ignored: the avatar was read with its triangles inside out, so its vertex normals (the
+    glTF's NORMAL, what personalize's correspondence and eyelid repair use) pointed inwards and an engine
+    culled the glTF's front faces. The reader now winds every mesh counter-clockwise seen from outside."""
+    from usdface.mesh import vertex_normals
+
+    right = api.read_avatar(samples / "avatar.usda")
+    left = api.read_avatar(_left_handed_copy(samples / "avatar.usda", tmp_path / "left.usda"))
+    for mesh in ("Head", "Mouth"):
+        np.testing.assert_allclose(vertex_normals(left.mesh(mesh).neutral, left.mesh(mesh).triangles),
+                                   vertex_normals(right.mesh(mesh).neutral, right.mesh(mesh).triangles),
+                                   atol=1e-9)
+    eyes = left.metadata["static_meshes"]
+    for key, (points, tris) in right.metadata["static_meshes"].items():
+        np.testing.assert_allclose(vertex_normals(*eyes[key]), vertex_normals(points, tris), atol=1e-9)
+    glb = read_gltf(api.export_avatar(tmp_path / "left.usda", gltf=tmp_path / "left.glb")["gltf"])
+    plain = read_gltf(api.export_avatar(samples / "avatar.usda", gltf=tmp_path / "right.glb")["gltf"])
+    np.testing.assert_allclose(glb["Head"]["normals"], plain["Head"]["normals"], atol=1e-6)
+
+
 def test_gltf_skinned_meshes_are_scene_roots(layer, tmp_path):
     """A user trial (stop 44): the skinned mesh nodes were children of the root node, which the Khronos
     glTF-Validator warns of once per mesh (NODE_SKINNED_MESH_NON_ROOT: a skinned mesh is placed by its joints
