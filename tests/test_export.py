@@ -215,6 +215,65 @@ def test_a_left_handed_avatar_is_read_and_exported_outside_out(samples, tmp_path
     np.testing.assert_allclose(glb["Head"]["normals"], plain["Head"]["normals"], atol=1e-6)
 
 
+def _textured_sample(samples, out: Path) -> Path:
+    """The sample avatar with texture coordinates: per face corner on Head (``faceVarying``, a seam down the
+    middle of the face: the corners of the faces left of x = 0 have u + 1), per point on Mouth
+    (``vertex``)."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(samples / "avatar.usda"))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    for name, interpolation in (("Head", UsdGeom.Tokens.faceVarying), ("Mouth", UsdGeom.Tokens.vertex)):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+        st = points[:, :2] * 0.01 + 0.5
+        if interpolation == UsdGeom.Tokens.faceVarying:
+            face = np.repeat(np.arange(len(counts)), counts)
+            centre_x = np.bincount(face, points[idx, 0]) / counts
+            st = st[idx] + np.column_stack([centre_x[face] < 0, np.zeros(len(idx))])
+        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                interpolation).Set(st.astype(np.float32).tolist())
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_gltf_carries_the_texture_coordinates(samples, tmp_path):
+    """A user trial (stop 44): the glTF had no TEXCOORD_0, so a textured avatar arrived in an engine without
+    texture coordinates and could not be textured there. The mesh's ``st`` primvar is now written, the
+    points split where their corners' coordinates differ (a UV seam), each copy with its point's position,
+    offsets and normal."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.mesh_io import fan_triangulate
+
+    textured = _textured_sample(samples, tmp_path / "textured.usda")
+    data = read_gltf(api.export_avatar(textured, gltf=tmp_path / "t.glb")["gltf"])
+    avatar = api.read_avatar(textured)
+    stage = Usd.Stage.Open(str(textured))
+    for name in ("Head", "Mouth"):
+        rig, got = avatar.mesh(name), data[name]
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get())
+        counts, idx = mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()
+        per_corner = len(st) == len(idx)
+        corner = st[fan_triangulate(counts, np.arange(len(idx)))] if per_corner else st[rig.triangles]
+        tris = got["indices"]
+        assert len(tris) == len(rig.triangles)
+        np.testing.assert_array_equal(got["positions"][tris], rig.neutral.astype(np.float32)[rig.triangles])
+        np.testing.assert_array_equal(got["texcoords"][tris][..., 0], corner[..., 0])
+        np.testing.assert_allclose(got["texcoords"][tris][..., 1], 1.0 - corner[..., 1], atol=1e-6)
+        deltas = rig.deltas.astype(np.float32)
+        np.testing.assert_array_equal(got["targets"][:, tris], deltas[:, rig.triangles])
+        pairs = len(np.unique(np.column_stack([rig.triangles.ravel(), corner.reshape(-1, 2)]), axis=0))
+        assert len(got["positions"]) == pairs
+    assert len(data["Head"]["positions"]) > avatar.mesh("Head").n_vertices            # the seam split points
+    assert len(data["Mouth"]["positions"]) == avatar.mesh("Mouth").n_vertices          # per point: none
+    assert "texcoords" not in data["EyeLeft"]
+
+
 def test_gltf_skinned_meshes_are_scene_roots(layer, tmp_path):
     """A user trial (stop 44): the skinned mesh nodes were children of the root node, which the Khronos
     glTF-Validator warns of once per mesh (NODE_SKINNED_MESH_NON_ROOT: a skinned mesh is placed by its joints

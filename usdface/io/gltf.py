@@ -12,6 +12,9 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
   the target names in
   ``mesh.extras.targetNames`` (the convention three.js, Babylon.js, Unity glTFast and Blender read), default
   ``mesh.weights`` all 0;
+* ``TEXCOORD_0`` when the avatar's mesh has texture coordinates (its ``st`` primvar), the points split into
+  one vertex per distinct (point, coordinates) pair, as glTF has one value per vertex (a point on a UV seam
+  becomes two vertices with its position, normal, offsets and joints);
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
 * optionally a skin: joint nodes (local rest transforms), ``inverseBindMatrices`` and per-vertex ``JOINTS_0``
   / ``WEIGHTS_0`` (:class:`GltfSkin`).
@@ -128,6 +131,19 @@ def _unit_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return normals
 
 
+def _split_at_seams(triangles: np.ndarray, corner_uv: np.ndarray, n: int):
+    """glTF's one value per vertex from texture coordinates per triangle corner: one vertex per distinct
+    (point, coordinates) pair, so a point on a UV seam becomes as many vertices as it has coordinates there.
+    Returns ``(point[m], triangles[t, 3] over the new vertices, uv[m, 2])``; every new vertex of ``point[i]``
+    takes that point's position, normal, offsets and joints. Points no triangle uses stay (coordinates 0)."""
+    rows = np.column_stack([triangles.reshape(-1).astype(np.float64), np.asarray(corner_uv).reshape(-1, 2)])
+    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
+    loose = np.setdiff1d(np.arange(n), triangles)
+    point = np.concatenate([unique[:, 0].astype(np.int64), loose])
+    uv = np.vstack([unique[:, 1:], np.zeros((len(loose), 2))])
+    return point, np.asarray(inverse).reshape(-1, 3), uv
+
+
 def _check(rigs) -> None:
     for rig in rigs:
         p = np.asarray(rig.neutral)
@@ -178,15 +194,18 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
 
 
 def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
-               extras: dict | None = None, node_extras: dict | None = None, force: bool = False) -> Path:
+               extras: dict | None = None, node_extras: dict | None = None, texcoords: dict | None = None,
+               force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
     ``root_name`` with the ``skin``'s joints and the meshes it does not skin, each skinned mesh a root node of
     the scene beside it (glTF places a skinned mesh by its joints alone, and the Khronos validator warns of a
     skinned mesh under a parent), morph targets as described in the module doc. ``.glb``: binary; ``.gltf``:
     JSON with the buffer embedded as a data URI. ``extras`` go to the scene's ``extras``; ``node_extras`` to
     the root node's and every mesh node's (Blender's importer makes node extras object custom properties,
-    which its USD exporter writes as ``userProperties:<key>``, where the scene's are lost). Returns the path
-    written (atomically; an existing file needs ``force``)."""
+    which its USD exporter writes as ``userProperties:<key>``, where the scene's are lost). ``texcoords``
+    ``{rig name: uv[t, 3, 2]}`` per triangle corner (:func:`usdface.io.usd_texcoords.read_texcoords`) become
+    ``TEXCOORD_0``, the vertices split where their corners' coordinates differ (:func:`_split_at_seams`).
+    Returns the path written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
     from .. import __version__
@@ -208,21 +227,29 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     #                         Khronos validator warns of a parent (NODE_SKINNED_MESH_NON_ROOT)
     skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
     for rig in rigs:
-        neutral = np.asarray(rig.neutral, dtype=np.float32)
         tris = np.asarray(rig.triangles, dtype=np.int64)
+        normals = _unit_normals(rig.neutral, tris)          # on the mesh as authored: no seams in the shading
+        uv = (texcoords or {}).get(rig.name)
+        keep, tris_out, uv = (_split_at_seams(tris, uv, len(rig.neutral)) if uv is not None else
+                              (slice(None), tris, None))
+        neutral = np.asarray(rig.neutral, dtype=np.float32)[keep]
         itype = np.uint16 if len(neutral) <= 65535 else np.uint32
-        normals = _unit_normals(rig.neutral, tris)
         attrs = pygltflib.Attributes(
             POSITION=blob.accessor(neutral, "VEC3", target=_ARRAY_BUFFER, bounds=True),
-            NORMAL=blob.accessor(normals.astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
+            NORMAL=blob.accessor(normals[keep].astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
+        if uv is not None:                                  # glTF's v runs down the image, USD's t up
+            attrs.TEXCOORD_0 = blob.accessor(np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32),
+                                             "VEC2", target=_ARRAY_BUFFER)
         if skin is not None and rig.name in skin.influences:
-            attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, *skin.influences[rig.name])
+            joints, weights = skin.influences[rig.name]
+            attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, np.asarray(joints)[keep],
+                                                                 np.asarray(weights)[keep])
         deltas = np.asarray(rig.deltas, dtype=np.float64)
-        targets = [{"POSITION": blob.target(d.astype(np.float32)),
-                    "NORMAL": blob.target((_unit_normals(rig.neutral + d, tris) - normals)
+        targets = [{"POSITION": blob.target(d[keep].astype(np.float32)),
+                    "NORMAL": blob.target((_unit_normals(rig.neutral + d, tris) - normals)[keep]
                                           .astype(np.float32))} for d in deltas]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
-            tris.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
+            tris_out.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
             targets=targets or None)
         mesh = pygltflib.Mesh(name=rig.name, primitives=[prim])
         if rig.n_shapes:
@@ -284,8 +311,9 @@ def _target(t, attribute: str = "POSITION") -> int | None:
 def read_gltf(path) -> dict:
     """Read a glTF written by :func:`write_gltf` (or any glTF with plain triangle primitives) back into
     arrays: {mesh name: {"positions": float32[n, 3], "normals", "indices": [t, 3], "target_names": [K],
-    "targets": float32[K, n, 3], "target_normals": float32[K, n, 3] (when the targets have NORMAL), "joints",
-    "weights" (when skinned)}} for the first primitive of each mesh."""
+    "targets": float32[K, n, 3], "target_normals": float32[K, n, 3] (when the targets have NORMAL),
+    "texcoords": float32[n, 2] (glTF's, v down), "joints", "weights" (when skinned)}} for the first
+    primitive of each mesh."""
     import pygltflib
 
     path = Path(path)
@@ -312,6 +340,8 @@ def read_gltf(path) -> dict:
         if prim.targets and all(_target(t, "NORMAL") is not None for t in prim.targets):
             entry["target_normals"] = np.stack([_read_accessor(gltf, blob, _target(t, "NORMAL"))
                                                 for t in prim.targets])
+        if a.TEXCOORD_0 is not None:
+            entry["texcoords"] = _read_accessor(gltf, blob, a.TEXCOORD_0)
         if a.JOINTS_0 is not None:
             entry["joints"] = _read_accessor(gltf, blob, a.JOINTS_0)
             entry["weights"] = _read_accessor(gltf, blob, a.WEIGHTS_0)
