@@ -1335,8 +1335,10 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       worker: str | None = None, options: dict | None = None, force: bool = False,
                       report_path: PathLike | None = None) -> BatchReport:
     """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
-    local processes (default: CPU count; 1 = in this process) or a Dask ``scheduler`` address. Items whose
-    output exists are skipped (resume) unless ``force``; a failing item is recorded and the batch goes on.
+    local processes (default: one a CPU this process may use, as many as the memory holds,
+    :func:`usdface.pipeline.batch.default_jobs`; 1 = in this process) or a Dask ``scheduler`` address.
+    Items whose output exists are skipped (resume) unless ``force``; a failing item is recorded and the
+    batch goes on.
     ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
@@ -1349,7 +1351,8 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
 
     # as --jobs takes it: jobs=0 ran a process per CPU, a negative count in-process, "2" a ValueError
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
-        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
+        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per usable CPU), not "
+                          f"{jobs!r}",
                           fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
                               "it out")
     # options=["inspect"] died with Python's ValueError (dict update sequence), scheduler=8786 was taken
