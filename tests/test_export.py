@@ -215,6 +215,18 @@ def test_a_left_handed_avatar_is_read_and_exported_outside_out(samples, tmp_path
     np.testing.assert_allclose(glb["Head"]["normals"], plain["Head"]["normals"], atol=1e-6)
 
 
+def test_a_left_handed_avatar_personalizes_as_the_right_handed_one(samples, tmp_path):
+    """The same trial: personalize refused the left-handed copy of the sample ('no vertex of the face mesh
+    ... lies on the registered capture surface'): its inward normals defeated the correspondence. Wound
+    outward, it gives the right-handed sample's offsets."""
+    left = _left_handed_copy(samples / "avatar.usda", tmp_path / "left.usda")
+    api.personalize_avatar(left, samples / "capture.usda", tmp_path / "l.usda")
+    api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "r.usda")
+    got, want = (read_avatar_variant(tmp_path / f"{s}.usda", "personalized") for s in "lr")
+    for mesh in ("Head", "Mouth"):
+        np.testing.assert_allclose(got.mesh(mesh).deltas, want.mesh(mesh).deltas, atol=1e-9)
+
+
 def _textured_sample(samples, out: Path) -> Path:
     """The sample avatar with texture coordinates: per face corner on Head (``faceVarying``, a seam down the
     middle of the face: the corners of the faces left of x = 0 have u + 1), per point on Mouth
