@@ -1776,8 +1776,12 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
             # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
             marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
+            from .io.usd_texcoords import read_texcoords
+
+            uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
+                                              for (prim, _), rig in zip(keyed, rigs, strict=True)])
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       force=force)
+                       texcoords=uvs, force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             p.start(f"write {sum(len(r.names) + 1 for r in rigs)} OBJs to {Path(obj_dir).name}")
