@@ -152,6 +152,18 @@ def test_inspection_animation_keeps_the_avatars_frame_rate_and_first_frame(sampl
     take_start = 1001.0 + ((n_test - 1) * 0.5 + 1.0) * 30.0
     assert codes[n_test:] == pytest.approx(take_start + np.arange(5), abs=1e-6)
     assert stage.GetEndTimeCode() == pytest.approx(codes[-1])
+    # a take whose samples fall between frames: the range is whole frames around them (h32's trial: the
+    # layer ended at 1994.978, and usdview's frame slider stopped at 1994, short of the last sample)
+    write_livelink_csv(tmp_path / "off.csv", ["jawOpen", "eyeBlinkLeft"], take_weights,
+                       np.array([0.0, 1.0, 2.0, 3.0, 4.5]) / 30.0)
+    res = _usdface("personalize", "avatar.usda", samples / "capture.usda", "--take", "off.csv", "-o",
+                   "off.usda", "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    stage = Usd.Stage.Open(str(tmp_path / "off.usda"))
+    codes = UsdSkel.Animation(stage.GetPrimAtPath(f"/Avatar/Skel/{ANIMATION_NAME}")).GetBlendShapeWeightsAttr(
+    ).GetTimeSamples()
+    assert codes[-1] % 1 > 0.1 and stage.GetEndTimeCode() == np.ceil(codes[-1])
+    assert stage.GetStartTimeCode() == np.floor(codes[0]) == 1001.0
     # the sample avatar authors no timeline: USD's 24 time codes per second from 0, as before
     res = _usdface("personalize", samples / "avatar.usda", samples / "capture.usda", "--inspect", "-o",
                    "plain.usda", "-q", cwd=tmp_path)

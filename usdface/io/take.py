@@ -393,8 +393,8 @@ def write_take_usd(take: Take, path, force: bool = False, exact: bool = True) ->
                      codes, exact)
     stage.SetTimeCodesPerSecond(fps)
     stage.SetFramesPerSecond(fps)
-    stage.SetStartTimeCode(float(codes[0]))
-    stage.SetEndTimeCode(float(codes[-1]))
+    stage.SetStartTimeCode(float(np.floor(codes[0] + 1e-6)))    # whole frames around the samples (as
+    stage.SetEndTimeCode(float(np.ceil(codes[-1] - 1e-6)))      # usd_anim.author_skel_animation)
     stage.GetRootLayer().customLayerData = {"usdface": {"format": "take", "formatVersion": 1,
                                                         "source": str(take.source or "")}}
     uc._save(stage, path, force)

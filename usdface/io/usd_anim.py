@@ -50,8 +50,10 @@ def author_skel_animation(stage, prim_path, names, weights, time_codes_per_secon
         stage.SetTimeCodesPerSecond(rate)
         if not keep_fps:
             stage.SetFramesPerSecond(rate)
-        stage.SetStartTimeCode(float(codes.min()))
-        stage.SetEndTimeCode(float(codes.max()))
+        # whole frames around the samples: a take's times fall between frames (its last sample at
+        # 1994.978), and a viewer's frame slider, which steps by whole frames, stopped short of it
+        stage.SetStartTimeCode(float(np.floor(codes.min() + 1e-6)))
+        stage.SetEndTimeCode(float(np.ceil(codes.max() - 1e-6)))
     return anim
 
 
