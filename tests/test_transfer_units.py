@@ -14,7 +14,7 @@ from usdface.transfer.correspond import (
     save_correspondence,
 )
 from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
-from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients
+from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients, implant_shapes
 from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
 from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
 from usdface.transfer.surface import closest_points, gradient_operator
@@ -344,7 +344,70 @@ def test_blend_adjacent_is_seamless_and_local():
         assert outside.any()
         np.testing.assert_array_equal(out[outside], approx[outside])  # exactly A_j elsewhere
         assert np.abs(out - approx).max() <= 0.002 + 1e-12  # harmonic: maximum principle, no overshoot
+        # the correction runs from the face's +2 mm towards 0: never below 0 (a correction of the wrong
+        # sign also stays within 2 mm) and, at the adjacent vertices next to the face, a good part of the way
+        corr = (out - approx)[adjacent]
+        assert corr.min() >= -1e-12
+        ring = np.zeros(n, dtype=bool)
+        ring[tris[face[tris].any(axis=1)].ravel()] = True
+        near = adjacent & ring[None, :]
+        assert near.any() and (out - approx)[near].mean() > 0.0005
     assert adjacent.shape == (3, n)
+
+
+def test_blend_adjacent_rim_weight_goes_from_free_to_fixed():
+    """A face vertex of weight w on the region's rim is held to the face's offset by ``w / (1 - w)``: at w
+    near 1 it is the face's (as a fixed vertex), at w near 0 it is what the join gives it as a free vertex."""
+    pts, tris = _grid(12)
+    n = len(pts)
+    r = np.linalg.norm(pts[:, :2], axis=1)
+    face = r < 0.04
+    approx = np.zeros((1, n, 3))
+    approx[0, r < 0.07, 2] = 0.001
+    dface = approx.copy()
+    dface[0, face, 2] = 0.005
+    rim = np.flatnonzero(face & (r > 0.02))
+    assert rim.size
+    results = {}
+    for w_rim in (1e-6, 0.5, 1 - 1e-6):
+        weight = face.astype(float)
+        weight[rim] = w_rim
+        results[w_rim], _ = blend_adjacent(pts, tris, face, dface, approx, face_weight=weight)
+    free_rim = face & ~np.isin(np.arange(n), rim)
+    free, _ = blend_adjacent(pts, tris, free_rim, dface, approx)       # the rim not in the face at all
+    np.testing.assert_allclose(results[1 - 1e-6][0, rim], dface[0, rim], atol=1e-8)
+    np.testing.assert_allclose(results[1e-6][0, rim], free[0, rim], atol=1e-8)
+    z = [results[w][0, rim, 2] for w in (1e-6, 0.5, 1 - 1e-6)]
+    assert np.all(z[0] < z[1]) and np.all(z[1] < z[2])                 # monotone in the weight
+
+
+def _identity_correspondence(pts, tris):
+    """The correspondence of a mesh onto itself: each vertex is a corner of its first triangle."""
+    n = len(pts)
+    first = np.full(n, -1)
+    flat = tris.ravel()
+    order = np.arange(flat.size)[::-1]
+    first[flat[order]] = order // 3                                    # any triangle of the vertex will do
+    bary = (tris[first] == np.arange(n)[:, None]).astype(float)
+    return Correspondence(first, bary, np.zeros(n), np.ones(n, dtype=bool), np.arange(len(tris)))
+
+
+@pytest.mark.parametrize("mode", ["offset", "dt", "dt-offset"])
+def test_implant_onto_the_capture_itself_gives_each_modes_exact_answer(mode):
+    """The avatar face = the capture mesh, mapped onto itself: ``offset`` and ``dt-offset`` must give the
+    avatar's shape plus the personalization ``B - T`` exactly, ``dt`` the person's shape ``B`` (every
+    deformation gradient is matched exactly, so the least squares leave no residual)."""
+    pts, tris = _grid(14)
+    person = _local_shapes(pts, k=3, seed=2)
+    template = _local_shapes(pts, k=3, seed=3)
+    avatar = _local_shapes(pts, k=3, seed=4)
+    corr = _identity_correspondence(pts, tris)
+    np.testing.assert_array_equal(corr.apply(pts, tris), pts)
+    out, adjacent = implant_shapes(pts, tris, corr, tris, pts, person, template, avatar, avatar,
+                                   face_transfer=mode, support=None)
+    want = person if mode == "dt" else avatar + person - template
+    assert not adjacent.any()
+    np.testing.assert_allclose(out, want, atol=1e-9 * np.abs(want).max())
 
 
 def test_blend_adjacent_keeps_a_loose_vertex_a_shape_alone_moves():
