@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from region_cv import parabola_mu, region_errors
+from synthetic_meshes import identity_correspondence
 
 from usdface.errors import RegistrationError
 from usdface.transfer.correspond import (
@@ -381,17 +382,6 @@ def test_blend_adjacent_rim_weight_goes_from_free_to_fixed():
     assert np.all(z[0] < z[1]) and np.all(z[1] < z[2])                 # monotone in the weight
 
 
-def _identity_correspondence(pts, tris):
-    """The correspondence of a mesh onto itself: each vertex is a corner of its first triangle."""
-    n = len(pts)
-    first = np.full(n, -1)
-    flat = tris.ravel()
-    order = np.arange(flat.size)[::-1]
-    first[flat[order]] = order // 3                                    # any triangle of the vertex will do
-    bary = (tris[first] == np.arange(n)[:, None]).astype(float)
-    return Correspondence(first, bary, np.zeros(n), np.ones(n, dtype=bool), np.arange(len(tris)))
-
-
 @pytest.mark.parametrize("mode", ["offset", "dt", "dt-offset"])
 def test_implant_onto_the_capture_itself_gives_each_modes_exact_answer(mode):
     """The avatar face = the capture mesh, mapped onto itself: ``offset`` and ``dt-offset`` must give the
@@ -401,7 +391,7 @@ def test_implant_onto_the_capture_itself_gives_each_modes_exact_answer(mode):
     person = _local_shapes(pts, k=3, seed=2)
     template = _local_shapes(pts, k=3, seed=3)
     avatar = _local_shapes(pts, k=3, seed=4)
-    corr = _identity_correspondence(pts, tris)
+    corr = identity_correspondence(pts, tris)
     np.testing.assert_array_equal(corr.apply(pts, tris), pts)
     out, adjacent = implant_shapes(pts, tris, corr, tris, pts, person, template, avatar, avatar,
                                    face_transfer=mode, support=None)
