@@ -47,6 +47,23 @@ def _local_shapes(pts, k=8, seed=0):
     return w[..., None] * rng.normal(size=(k, 1, 3)) * 0.01
 
 
+def test_similarity_from_pairs_of_mirrored_points_is_the_best_proper_similarity():
+    """Landmarks whose best orthogonal fit is a reflection (a capture mirrored left-right): the rotation stays
+    proper and the scale is the least-squares scale for that rotation, ``sum <b, R a> / sum |a|^2``
+    (Umeyama's ``tr(D S) / var``, the smallest singular value subtracted), not the sum of the singular
+    values (which scales the capture too large)."""
+    rng = np.random.default_rng(6)
+    src = rng.normal(size=(12, 3)) * [0.05, 0.03, 0.02]
+    dst = 1.3 * src * [-1.0, 1.0, 1.0] + [0.1, 1.6, 0.05]                   # mirrored in x, scaled 1.3
+    est = similarity_from_pairs(src, dst)
+    assert np.linalg.det(est.rotation) == pytest.approx(1.0)
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    best = float(np.sum(b * (a @ est.rotation.T)) / np.sum(a * a))
+    assert est.scale == pytest.approx(best, rel=1e-12)
+    assert est.scale < 1.3                                         # the mirror is not matched in full
+    np.testing.assert_allclose(est.apply(src).mean(axis=0), dst.mean(axis=0), atol=1e-15)
+
+
 def test_similarity_from_pairs_recovers_known_transform():
     rng = np.random.default_rng(1)
     src = rng.normal(size=(30, 3))
