@@ -264,6 +264,37 @@ def test_position_fit_batched_predictions_reuse_and_short_grid_search():
     assert abs(one_batch[0] - separate[0]) < 1e-12 and abs(one_batch[1] - separate[1]) < 1e-12
 
 
+def test_the_reg_search_finds_a_parabolas_vertex_and_never_returns_a_worse_point():
+    """``_minimise_log`` (the choice of ``reg``): on an error that is a parabola in ``log10 reg`` the vertex
+    through the best fine point's neighbours is the exact minimum; on any error the point returned is no
+    worse than every point the search evaluated (coarse and fine grids). Both on the full REG_GRID (coarse,
+    then a fine grid) and on a short grid (one batched union grid)."""
+    from usdface.personalize.crossval import REG_GRID, _minimise_log
+
+    seen = []
+
+    def parabola(x):
+        x = np.asarray(x, dtype=np.float64)
+        seen.append(x)
+        return 2.0 + 0.3 * (x + 1.63) ** 2                   # above the nearest coarse point
+
+    for grid in (REG_GRID, np.log10(0.004) + np.array([-1.0, 0.0, 1.0])):
+        best, err, _ = _minimise_log(parabola, grid, 4)
+        assert best == pytest.approx(-1.63, abs=1e-9) and err == pytest.approx(2.0, abs=1e-12)
+
+    def bumpy(x):
+        x = np.asarray(x, dtype=np.float64)
+        seen.append(x)
+        return (x + 2.3) ** 2 + 0.2 * np.sin(13 * x)
+
+    for grid in (REG_GRID, np.log10(0.004) + np.array([-1.0, 0.0, 1.0])):
+        seen.clear()
+        best, err, _ = _minimise_log(bumpy, grid, 4)
+        tried = np.concatenate(seen)
+        assert err == pytest.approx(float(bumpy(np.array([best]))[0]), abs=1e-15)
+        assert err <= bumpy(tried).min() + 1e-15
+
+
 def test_position_fit_repeated_frames_and_kept_residuals():
     """Frames repeated to the bit (a capture app's kept scan) are evaluated once: the criteria still equal
     brute-force leave-one-frame-out refits (each copy left out alone, its twin kept), for either prior of
