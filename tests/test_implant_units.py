@@ -139,6 +139,42 @@ def test_the_face_carries_the_persons_change_from_the_prior():
                                   (person - prior)[:, rows])
 
 
+def test_rotation_scale_turns_and_scales_the_generic_motion_onto_the_persons():
+    """``phi = s R - I`` with ``s R a = p`` exactly, ``R`` a proper rotation about ``a x p`` (the minimal
+    one); 0 where the motions point more than 120 degrees apart or the scale leaves the bounds. The scale
+    weight falls as a smoothstep in ``|log s|``, the same for a scale and its inverse."""
+    from usdface.transfer.motion_field import rotation_scale, scale_weight
+
+    rng = np.random.default_rng(12)
+    a = rng.normal(size=(1, 200, 3)) * 1e-3
+    axis = rng.normal(size=(200, 3))
+    axis -= np.einsum("vc,vc->v", axis, a[0])[:, None] * a[0] / np.sum(a[0] ** 2, axis=1)[:, None]
+    axis /= np.linalg.norm(axis, axis=1)[:, None]                            # perpendicular to a
+    angle = rng.uniform(0.0, np.radians(115.0), size=200)
+    scale = np.exp(rng.uniform(-1.2, 1.2, size=200))
+    turned = np.stack([_rotation_about(ax, t) @ v for ax, t, v in zip(axis, angle, a[0], strict=True)])
+    p = (scale[:, None] * turned)[None]
+    phi, valid = rotation_scale(a, p)
+    assert valid.all()
+    np.testing.assert_allclose(a + np.einsum("jvab,jvb->jva", phi, a), p, rtol=0, atol=1e-15)
+    R = (phi[0] + np.eye(3)) / scale[:, None, None]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(np.einsum("vab,vb->va", R, axis), axis, atol=1e-12)    # about a x p
+    far = np.stack([_rotation_about(ax, np.radians(125.0)) @ v for ax, v in zip(axis, a[0], strict=True)])
+    phi_far, valid_far = rotation_scale(a, far[None])
+    assert not valid_far.any() and not phi_far.any()
+    w = scale_weight(np.array([1.5, 2.0, np.exp(0.25 * np.log(2.0) + 0.75 * np.log(1.5))]), 1.5, 2.0)
+    np.testing.assert_allclose(w, [1.0, 0.0, 0.84375], rtol=1e-12)        # t = 0.25: 1 - t^2 (3 - 2 t)
+    np.testing.assert_allclose(scale_weight(1.0 / np.array([1.3, 1.7]), 1.5, 2.0),
+                               scale_weight(np.array([1.3, 1.7]), 1.5, 2.0), rtol=1e-12)
+
+
+def _rotation_about(axis, angle):
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
 def _sheet(n, size=0.1):
     xs, ys = np.meshgrid(np.linspace(0.0, size, n), np.linspace(0.0, size, n))
     return np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), grid_triangles(n, n)
