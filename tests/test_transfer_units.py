@@ -676,3 +676,25 @@ def test_personalize_repairs_the_lids_of_a_larger_character(samples, tmp_path, c
     doc = json.loads(capsys.readouterr().out)
     assert len(doc["eyelids"]["eyeballs"]) == 2, doc["warnings"]
     assert not [w for w in doc["warnings"] if "no eyeball" in w]
+
+
+def test_score_mesh_figures_on_a_case_worked_by_hand():
+    """The bench's figures (mm): face RMSE over the face region only, whole over every vertex, per shape the
+    output's face RMSE minus the generic's (negative: better than generic), the seam the largest jump of the
+    error across an edge near the border of what the capture covers."""
+    from usdface.transfer.scoring import score_mesh
+
+    truth = np.zeros((2, 4, 3))
+    generic = np.zeros((2, 4, 3))
+    generic[:, :, 0] = 0.001                                           # 1 mm off everywhere
+    output = np.zeros((2, 4, 3))
+    output[:, 2:, 0] = 0.002                                           # exact on the face, 2 mm off beyond
+    face = np.array([True, True, False, False])
+    tris = np.array([[0, 1, 2], [1, 3, 2]])
+    s = score_mesh(["a", "b"], generic, output, truth, face=face, covered=face, triangles=tris)
+    assert s.face_out == 0.0 and s.face_generic == pytest.approx(1.0)
+    assert s.whole_out == pytest.approx(np.sqrt(2.0)) and s.whole_generic == pytest.approx(1.0)
+    np.testing.assert_allclose(s.per_shape_delta, [-1.0, -1.0])
+    assert s.seam_out == pytest.approx(2.0) and s.seam_generic == 0.0   # across edges 0-2, 1-2, 1-3
+    assert s.face_ratio == 0.0 and s.whole_ratio == pytest.approx(np.sqrt(2.0))
+
