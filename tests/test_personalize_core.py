@@ -214,6 +214,23 @@ def test_rigid_align_recovers_transform_despite_outliers():
     assert np.isclose(np.linalg.det(R_k[0]), 1.0)
 
 
+def test_kabsch_of_a_mirrored_frame_is_the_best_proper_rotation():
+    """Static vertices whose best orthogonal fit is a reflection (a near-flat forehead patch, a mirrored
+    scan): the rotation stays proper and is the weighted least-squares optimum among rotations (scipy's
+    ``align_vectors``, Markley's solution), the smallest singular direction turned (any other turned column
+    also gives a proper rotation, a worse one)."""
+    rng = np.random.default_rng(9)
+    src = rng.normal(size=(40, 3)) * [0.05, 0.03, 0.004]              # a thin patch
+    dst = src * [1.0, 1.0, -1.0] @ Rotation.from_euler("xyz", [5, -3, 20], degrees=True).as_matrix().T
+    w = rng.uniform(0.5, 1.5, size=40)
+    R_k, t_k = kabsch(src[None], dst, w[None])
+    assert np.isclose(np.linalg.det(R_k[0]), 1.0)
+    cs, cd = np.average(src, axis=0, weights=w), np.average(dst, axis=0, weights=w)
+    best, _ = Rotation.align_vectors(dst - cd, src - cs, weights=w)
+    np.testing.assert_allclose(R_k[0], best.as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(t_k[0], cd - R_k[0] @ cs, atol=1e-12)
+
+
 def test_poisson_solver_reports_disconnected_free_part():
     pts, tris = bumpy_grid(4, 4)
     extra = np.array([[100.0, 0, 0], [101, 0, 0], [100, 1, 0]])
