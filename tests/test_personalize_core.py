@@ -177,6 +177,27 @@ def test_reestimate_weights_recovers_true_weights_within_bounds():
     assert np.abs(anchored - noisy).max() < 1e-3                      # a strong anchor keeps the phone's
 
 
+def test_reestimate_weights_reaches_the_bounded_optimum_in_its_default_iterations():
+    """With its default iterations, on shapes that are far from orthogonal (a pair 80 % alike, the Gram
+    matrix's condition ~60), the re-estimation is the exact anchored, bounded least squares
+    (:func:`usdface.bounded_lsq.box_least_squares`) to within 1e-3, 1/40 of the phone's weight noise (it is
+    ~2e-4 away; without the accelerated steps it stopped 2-6e-3 short)."""
+    from usdface.bounded_lsq import box_least_squares
+
+    neutral, pts, W, true, generic = synthetic_fit_problem(F=20)
+    rng = np.random.default_rng(3)
+    true = true.copy()
+    true[1] = 0.8 * true[0] + 0.2 * true[1]
+    pts = neutral + np.einsum("fk,knc->fnc", W, true) + rng.normal(size=pts.shape) * 1e-4
+    noisy = np.clip(W + rng.normal(0, 0.05, W.shape), 0, 1)
+    B, r = true.reshape(len(true), -1), (pts - neutral).reshape(len(pts), -1)
+    for anchor in (1e-6, 1e-5):
+        G, c = B @ B.T + anchor * np.eye(len(B)), r @ B.T + anchor * noisy
+        exact, converged = box_least_squares(G, c, 0.0, 1.0, np.linalg.solve(G, c.T).T)
+        assert converged.all()
+        assert np.abs(reestimate_weights(neutral, true, pts, noisy, anchor=anchor) - exact).max() < 1e-3
+
+
 def test_reestimate_weights_repeated_frames_solved_once_equal_frame_by_frame():
     """Frames that pose the same problem (a repeated frame with the same bounds) are iterated once and
     copied; a repeat with other bounds (held at its phone's weight elsewhere) is its own problem: every
