@@ -1,11 +1,13 @@
-"""How many pytest-xdist workers this machine holds: one a core (what ``-n auto`` takes), but no more than the
-memory available holds at :data:`WORKER_MB` each. ``-n auto`` alone started a worker per core whatever the
-memory: a many-core runner with little memory per core (a CI container with a memory limit) would swap or
-have workers killed. Prints the count (``.ci/run`` passes it as ``-n``)."""
+"""How many pytest-xdist workers this machine holds: one a core this process may use (its affinity and a
+container's CPU quota; ``-n auto`` takes the machine's cores), but no more than the memory available holds
+at :data:`WORKER_MB` each. ``-n auto`` alone started a worker per core whatever the memory: a many-core
+runner with little memory per core (a CI container with a memory limit) would swap or have workers killed.
+Prints the count (``.ci/run`` passes it as ``-n``). The machine's figures are :mod:`usdface.resources`'
+(installed before this runs), as ``usdface batch`` reads them."""
 
 from __future__ import annotations
 
-import os
+from usdface.resources import available_memory_mb, pool_size, usable_cores
 
 #: Peak memory of one worker, MB: a worker process and the CLI process one of its tests runs and waits on.
 #: A personalize of a bench head peaks at ~370 MB RSS (docs/scale.md); the largest single process of
@@ -14,40 +16,10 @@ import os
 WORKER_MB = 1024
 
 
-def cores() -> int:
-    """The cores this process may run on (its affinity; else the machine's)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
-def available_mb() -> int | None:
-    """Memory available for new work, MB: Linux's ``MemAvailable``, lowered to a cgroup v2 limit (a
-    container's ``memory.max``) less what the cgroup already uses; None when neither can be read."""
-    found = []
-    try:
-        with open("/proc/meminfo") as fh:
-            found += [int(line.split()[1]) // 1024 for line in fh if line.startswith("MemAvailable:")]
-    except OSError:
-        pass
-    try:
-        with open("/sys/fs/cgroup/memory.max") as fh:
-            limit = fh.read().strip()
-        with open("/sys/fs/cgroup/memory.current") as fh:
-            used = int(fh.read().strip())
-        if limit.isdigit():
-            found.append(max(int(limit) - used, 0) // (1 << 20))
-    except (OSError, ValueError):
-        pass
-    return min(found) if found else None
-
-
-def workers(n_cores: int, memory_mb: int | None, worker_mb: int = WORKER_MB) -> int:
-    """``min(n_cores, memory_mb // worker_mb)``, at least 1; ``n_cores`` when the memory is unknown."""
-    fit = n_cores if memory_mb is None else memory_mb // worker_mb
-    return max(1, min(n_cores, fit))
+def workers() -> int:
+    """The worker count for this machine (:func:`usdface.resources.pool_size` at :data:`WORKER_MB`)."""
+    return pool_size(usable_cores(), available_memory_mb(), WORKER_MB)
 
 
 if __name__ == "__main__":
-    print(workers(cores(), available_mb()))
+    print(workers())

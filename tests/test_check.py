@@ -511,6 +511,38 @@ def test_check_refuses_the_instanced_avatar_personalize_refuses(tmp_path, capsys
     assert main(["personalize", str(shot), str(C), "-o", str(tmp_path / "o.usda"), "-q"]) == 2
 
 
+def test_check_passes_a_crowd_instancing_the_personalized_layer(personalized_sample, tmp_path, capsys):
+    """A user trial (stop 44): a shot instancing the published personalized layer (a crowd: ``instanceable``
+    references, one selecting ``generic``) failed check with 'the personalized layer would change nothing',
+    though every instance shows its variant's offsets (UsdSkel over the instance proxies: the layer's, to
+    the bit) and personalize refuses the file as already personalized, as it does without instancing (which
+    check passes). An instanced reference that only selects ``generic`` stays refused, as personalize
+    refuses it."""
+    from usdface.cli import main
+
+    def crowd(*selections):
+        body = "".join(f'def "Crowd{i}" (\n    instanceable = true\n'
+                       f'    prepend references = @{personalized_sample}@\n'
+                       f'    variants = {{ string usdfacePersonalization = "{v}" }}\n)\n{{\n}}\n'
+                       for i, v in enumerate(selections))
+        path = tmp_path / f"crowd_{'_'.join(selections)}.usda"
+        head = '#usda 1.0\n(\n    defaultPrim = "Crowd0"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n'
+        path.write_text(head + body)
+        return path
+
+    mixed = crowd("personalized", "generic")
+    assert main(["check", str(mixed), "--no-pixar"]) == 0, capsys.readouterr().out
+    capsys.readouterr()
+    assert main(["personalize", str(mixed), str(C), "-o", str(tmp_path / "o.usda"), "-q"]) == 2
+    assert "already personalized" in capsys.readouterr().err
+    assert main(["check", str(crowd("generic")), "--no-pixar"]) == 1
+    assert "instanceable prim /Crowd0" in capsys.readouterr().out
+    from usdface import api
+
+    flat = api.export_avatar(mixed, flatten=tmp_path / "crowd_flat.usdc")["flatten"]   # its flattened export
+    assert main(["check", str(flat), "--no-pixar"]) == 0, capsys.readouterr().out
+
+
 def test_check_runs_the_reader_after_an_unrelated_error(tmp_path):
     """A missing metersPerUnit (an error of the StageMetadata rule the reader tolerates) no longer hides what
     the reader refuses: both are told in one run, not the second after the first is fixed."""

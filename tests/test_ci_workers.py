@@ -5,20 +5,22 @@ from __future__ import annotations
 import runpy
 from pathlib import Path
 
+from usdface.resources import available_memory_mb, pool_size, usable_cores
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_ci_runs_no_more_workers_than_the_memory_holds():
     """Stop 43: ``.ci/run`` ran the suite with ``-n auto``, a worker per core whatever the memory (a 16-core
     runner limited to 4 GB would start 16 workers of ~1 GB). The count is the cores, capped at the memory
-    available over a worker's ~1 GB, never below one; ``.ci/run`` passes it."""
+    available over a worker's ~1 GB, never below one (tests/test_resources.py: ``pool_size``); ``.ci/run``
+    passes it."""
     script = ROOT / ".ci" / "xdist_workers.py"
     ns = runpy.run_path(str(script))
-    workers, per = ns["workers"], ns["WORKER_MB"]
-    assert per == 1024
-    assert workers(16, 4 * 1024) == 4 and workers(2, 24 * 1024) == 2
-    assert workers(8, 300) == 1 and workers(8, None) == 8
-    assert 1 <= workers(ns["cores"](), ns["available_mb"]()) <= ns["cores"]()
+    assert ns["WORKER_MB"] == 1024
+    cores, memory = usable_cores(), available_memory_mb()
+    assert ns["workers"]() == pool_size(cores, memory, 1024)
+    assert 1 <= ns["workers"]() <= cores
     run = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if "pytest" in line
            and not line.startswith("#")]
     assert len(run) == 1 and "-n auto" not in run[0]

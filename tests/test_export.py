@@ -85,6 +85,7 @@ def _validate_gltf(path: Path) -> dict:
         for k, t in enumerate(targets):
             acc = doc["accessors"][t["POSITION"]]
             assert acc["count"] == n and acc["type"] == "VEC3"
+            assert set(t) == {"POSITION", "NORMAL"} and doc["accessors"][t["NORMAL"]]["count"] == n
             np.testing.assert_array_equal(acc["min"], arrays["targets"][k].min(axis=0))
             np.testing.assert_array_equal(acc["max"], arrays["targets"][k].max(axis=0))
     return doc
@@ -124,6 +125,188 @@ def test_gltf_variants_differ_and_generic_is_the_input_avatar(layer, samples, tm
                                   .astype(np.float32))
     change = np.abs(per["Head"]["targets"] - gen["Head"]["targets"]).max()
     assert change > 1e-4  # personalization moved the face by more than 0.1 mm somewhere
+
+
+def test_gltf_targets_carry_the_posed_normals(layer, tmp_path):
+    """A user trial (stop 44): the morph targets carried POSITION only, so an engine (three.js, Babylon.js,
+    Unity glTFast: each adds NORMAL target deltas when there are any, else keeps the base NORMAL) shaded every
+    shape with the neutral's normals: a blink's closed lid, the open jaw's chin and lips lit as at rest
+    (dev3's personalized jawOpen turns 2,535 Head normals by more than 10 degrees, up to 129). Each target now
+    has NORMAL deltas: neutral normals + delta, normalised, are the posed mesh's own vertex normals."""
+    from usdface.mesh import vertex_normals
+
+    data = read_gltf(api.export_avatar(layer, gltf=tmp_path / "n.glb")["gltf"])
+    head = read_avatar_variant(layer, "personalized").mesh("Head")
+    got = data["Head"]
+    assert got["target_normals"].shape == got["targets"].shape
+    turned = 0
+    for k, name in enumerate(got["target_names"]):
+        posed = vertex_normals(head.neutral + head.deltas[head.index(name)], head.triangles)
+        blended = got["normals"] + got["target_normals"][k]
+        blended /= np.linalg.norm(blended, axis=1, keepdims=True)
+        np.testing.assert_allclose(blended, posed, atol=1e-5)
+        rest = np.degrees(np.arccos(np.clip((got["normals"] * posed).sum(axis=1), -1, 1)))
+        turned = max(turned, rest.max())
+        moving = np.any(head.deltas[head.index(name)][head.triangles] != 0, axis=(1, 2))
+        still = np.setdiff1d(np.arange(len(posed)), head.triangles[moving])
+        assert not got["target_normals"][k][still].any()   # zero where no adjacent triangle moves
+    assert turned > 20                                     # the shapes do turn normals a lot (29.8 degrees)
+
+
+def test_gltf_normals_are_unit_at_a_loose_vertex(samples, tmp_path):
+    """A user trial (stop 44): a vertex no triangle uses (a loose vertex a DCC keeps after faces were
+    deleted) got a zero NORMAL: invalid glTF (the Khronos validator's ACCESSOR_NON_UNIT error), and an engine
+    normalising it shades NaN. It now gets a unit normal, in every pose."""
+    from usdface.io.avatar_writer import write_rig_usd
+    from usdface.model import FaceRig
+
+    rigs = []
+    for m in api.read_avatar(samples / "avatar.usda").meshes:
+        if m.name == "Head":   # one more vertex, in no triangle, moved by no shape
+            m = FaceRig(np.vstack([m.neutral, m.neutral[:1] + 0.001]), m.triangles, m.names,
+                        np.concatenate([m.deltas, np.zeros((m.n_shapes, 1, 3))], axis=1), name=m.name)
+        rigs.append(m)
+    loose = write_rig_usd(rigs, tmp_path / "loose.usda")
+    head = read_gltf(api.export_avatar(loose, gltf=tmp_path / "loose.glb")["gltf"])["Head"]
+    np.testing.assert_allclose(np.linalg.norm(head["normals"], axis=1), 1.0, atol=1e-6)
+    posed = head["normals"][None] + head["target_normals"]
+    np.testing.assert_allclose(np.linalg.norm(posed, axis=2), 1.0, atol=1e-6)
+    assert not head["target_normals"][:, -1].any()
+
+
+def _left_handed_copy(source: Path, out: Path) -> Path:
+    """``source`` with every mesh's faces reversed and ``orientation = "leftHanded"``: the same surface, its
+    outside the same, as USD defines it."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(source))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh):
+            mesh = UsdGeom.Mesh(prim)
+            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+            faces = np.split(idx, np.cumsum(counts)[:-1])
+            mesh.GetFaceVertexIndicesAttr().Set(np.concatenate([f[::-1] for f in faces]).tolist())
+            mesh.GetOrientationAttr().Set(UsdGeom.Tokens.leftHanded)
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_a_left_handed_avatar_is_read_and_exported_outside_out(samples, tmp_path):
+    """A user trial (stop 44): ``orientation = "leftHanded"`` (faces wound clockwise, as some exporters
+    write them) was ignored: the avatar was read with its triangles inside out, so its vertex normals (the
+    glTF's NORMAL, what personalize's correspondence and eyelid repair use) pointed inwards and an engine
+    culled the glTF's front faces. The reader now winds every mesh counter-clockwise seen from outside."""
+    from usdface.mesh import vertex_normals
+
+    right = api.read_avatar(samples / "avatar.usda")
+    left = api.read_avatar(_left_handed_copy(samples / "avatar.usda", tmp_path / "left.usda"))
+    for mesh in ("Head", "Mouth"):
+        np.testing.assert_allclose(vertex_normals(left.mesh(mesh).neutral, left.mesh(mesh).triangles),
+                                   vertex_normals(right.mesh(mesh).neutral, right.mesh(mesh).triangles),
+                                   atol=1e-9)
+    eyes = left.metadata["static_meshes"]
+    for key, (points, tris) in right.metadata["static_meshes"].items():
+        np.testing.assert_allclose(vertex_normals(*eyes[key]), vertex_normals(points, tris), atol=1e-9)
+    glb = read_gltf(api.export_avatar(tmp_path / "left.usda", gltf=tmp_path / "left.glb")["gltf"])
+    plain = read_gltf(api.export_avatar(samples / "avatar.usda", gltf=tmp_path / "right.glb")["gltf"])
+    np.testing.assert_allclose(glb["Head"]["normals"], plain["Head"]["normals"], atol=1e-6)
+
+
+def test_a_left_handed_avatar_personalizes_as_the_right_handed_one(samples, tmp_path):
+    """The same trial: personalize refused the left-handed copy of the sample ('no vertex of the face mesh
+    ... lies on the registered capture surface'): its inward normals defeated the correspondence. Wound
+    outward, it gives the right-handed sample's offsets."""
+    left = _left_handed_copy(samples / "avatar.usda", tmp_path / "left.usda")
+    api.personalize_avatar(left, samples / "capture.usda", tmp_path / "l.usda")
+    api.personalize_avatar(samples / "avatar.usda", samples / "capture.usda", tmp_path / "r.usda")
+    got, want = (read_avatar_variant(tmp_path / f"{s}.usda", "personalized") for s in "lr")
+    for mesh in ("Head", "Mouth"):
+        np.testing.assert_allclose(got.mesh(mesh).deltas, want.mesh(mesh).deltas, atol=1e-9)
+
+
+def _textured_sample(samples, out: Path) -> Path:
+    """The sample avatar with texture coordinates: per face corner on Head (``faceVarying``, a seam down the
+    middle of the face: the corners of the faces left of x = 0 have u + 1), per point on Mouth
+    (``vertex``)."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(samples / "avatar.usda"))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    for name, interpolation in (("Head", UsdGeom.Tokens.faceVarying), ("Mouth", UsdGeom.Tokens.vertex)):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+        st = points[:, :2] * 0.01 + 0.5
+        if interpolation == UsdGeom.Tokens.faceVarying:
+            face = np.repeat(np.arange(len(counts)), counts)
+            centre_x = np.bincount(face, points[idx, 0]) / counts
+            st = st[idx] + np.column_stack([centre_x[face] < 0, np.zeros(len(idx))])
+        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                interpolation).Set(st.astype(np.float32).tolist())
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_gltf_carries_the_texture_coordinates(samples, tmp_path):
+    """A user trial (stop 44): the glTF had no TEXCOORD_0, so a textured avatar arrived in an engine without
+    texture coordinates and could not be textured there. The mesh's ``st`` primvar is now written, the
+    points split where their corners' coordinates differ (a UV seam), each copy with its point's position,
+    offsets and normal."""
+    from pxr import Usd, UsdGeom
+
+    from usdface.io.mesh_io import fan_triangulate
+
+    textured = _textured_sample(samples, tmp_path / "textured.usda")
+    data = read_gltf(api.export_avatar(textured, gltf=tmp_path / "t.glb")["gltf"])
+    avatar = api.read_avatar(textured)
+    stage = Usd.Stage.Open(str(textured))
+    for name in ("Head", "Mouth"):
+        rig, got = avatar.mesh(name), data[name]
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get())
+        counts, idx = mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()
+        per_corner = len(st) == len(idx)
+        corner = st[fan_triangulate(counts, np.arange(len(idx)))] if per_corner else st[rig.triangles]
+        tris = got["indices"]
+        assert len(tris) == len(rig.triangles)
+        np.testing.assert_array_equal(got["positions"][tris], rig.neutral.astype(np.float32)[rig.triangles])
+        np.testing.assert_array_equal(got["texcoords"][tris][..., 0], corner[..., 0])
+        np.testing.assert_allclose(got["texcoords"][tris][..., 1], 1.0 - corner[..., 1], atol=1e-6)
+        deltas = rig.deltas.astype(np.float32)
+        np.testing.assert_array_equal(got["targets"][:, tris], deltas[:, rig.triangles])
+        pairs = len(np.unique(np.column_stack([rig.triangles.ravel(), corner.reshape(-1, 2)]), axis=0))
+        assert len(got["positions"]) == pairs
+    assert len(data["Head"]["positions"]) > avatar.mesh("Head").n_vertices            # the seam split points
+    assert len(data["Mouth"]["positions"]) == avatar.mesh("Mouth").n_vertices          # per point: none
+    assert "texcoords" not in data["EyeLeft"]
+
+
+def test_gltf_skinned_meshes_are_scene_roots(layer, tmp_path):
+    """A user trial (stop 44): the skinned mesh nodes were children of the root node, which the Khronos
+    glTF-Validator warns of once per mesh (NODE_SKINNED_MESH_NON_ROOT: a skinned mesh is placed by its joints
+    alone, its parents' transforms do not apply). They are now root nodes of the scene, without transforms of
+    their own; the joints and any unskinned mesh stay under the root node."""
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(api.export_avatar(layer, gltf=tmp_path / "r.glb")["gltf"]))
+    parent = {c for n in gltf.nodes for c in (n.children or [])}
+    skinned = [i for i, n in enumerate(gltf.nodes) if n.skin is not None]
+    assert sorted(gltf.nodes[i].name for i in skinned) == ["EyeLeft", "EyeRight", "Head", "Mouth"]
+    for i in skinned:
+        node = gltf.nodes[i]
+        assert i not in parent and i in gltf.scenes[0].nodes
+        assert (node.matrix, node.translation, node.rotation, node.scale) == (None, None, None, None)
+        assert node.extras["usdfaceVariant"] == "personalized"
+    root = gltf.nodes[gltf.scenes[0].nodes[0]]
+    assert root.name == "Avatar" and [gltf.nodes[c].name for c in root.children] == ["root"]
+    no_skin = api.export_avatar(layer, gltf=tmp_path / "u.glb", skin=False)["gltf"]
+    unskinned = pygltflib.GLTF2().load(str(no_skin))
+    assert unskinned.scenes[0].nodes == [0] and len(unskinned.nodes[0].children) == 4
 
 
 def test_gltf_skin_matches_the_skeleton(layer, tmp_path):
@@ -264,6 +447,53 @@ def test_flatten_packages_a_usdz_that_composes_exactly_as_the_usdc(layer, tmp_pa
     assert main(["check", "f.usdz"]) == 0
     assert main(["personalize", "f.usdz", str(C), "-o", "q.usda", "-q"]) == 2
     assert not (tmp_path / "q.usda").exists()
+
+
+_TEXTURED = """#usda 1.0
+(
+    defaultPrim = "Avatar"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+    subLayers = [@./avatar.usda@]
+)
+over "Avatar"
+{
+    def Material "Skin"
+    {
+        def Shader "Tex"
+        {
+            uniform token info:id = "UsdUVTexture"
+            asset inputs:file = @./tex/skin.png@
+        }
+    }
+}
+"""
+
+
+def test_flatten_keeps_texture_paths_relative(samples, tmp_path):
+    """A user trial (stop 44): ``Stage.Flatten`` anchors every asset path, so a flattened export named its
+    textures by absolute path (``@/proj/lib/tex/skin.png@``): a delivery copied or mounted elsewhere with its
+    textures lost them (or read the old copy). They are now relative to the flattened file by the rule of the
+    layer's sublayer path, and a ``.usdz`` still packages them."""
+    from pxr import Usd
+
+    lib, deliver = tmp_path / "proj" / "lib", tmp_path / "proj" / "deliver"
+    (lib / "tex").mkdir(parents=True)
+    (lib / "tex" / "skin.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    shutil.copy(samples / "avatar.usda", lib / "avatar.usda")
+    (lib / "hero.usda").write_text(_TEXTURED)
+    done = api.export_avatar(lib / "hero.usda", flatten=deliver / "flat.usdc")["flatten"]
+    stage = Usd.Stage.Open(str(done))
+    assert stage.GetAttributeAtPath("/Avatar/Skin/Tex.inputs:file").Get().path == "../lib/tex/skin.png"
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(tmp_path / "proj", moved)
+    stage = Usd.Stage.Open(str(moved / "deliver" / "flat.usdc"))
+    resolved = stage.GetAttributeAtPath("/Avatar/Skin/Tex.inputs:file").Get().resolvedPath
+    assert Path(resolved) == moved / "lib" / "tex" / "skin.png"
+    package = api.export_avatar(lib / "hero.usda", flatten=deliver / "flat.usdz")["flatten"]
+    import zipfile
+
+    assert any(n.endswith("skin.png") for n in zipfile.ZipFile(package).namelist())
 
 
 @pytest.mark.parametrize("command", ["personalize", "landmarks"])

@@ -540,3 +540,65 @@ def test_the_field_is_continuous_as_a_rim_vertex_weight_leaves_one():
     drop = np.abs(results[0.0] - results[1.0]).max()
     assert drop > 1e-5
     assert step < 0.02 * drop, (step, drop)
+
+
+def _grid(n, spacing):
+    """``[n*n,3]`` points of a flat square grid in the z = 0 plane, ``spacing`` apart, centred on 0."""
+    g = (np.arange(n) - (n - 1) / 2) * spacing
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+
+
+def _avatar_and_capture(motion):
+    """A fine avatar grid (1 mm) under a coarse capture grid (6 mm edges) lying on it, the avatar's generic
+    shape ``motion(points) -> [m,3]`` (m) on both: ``(capture places, triangles, avatar points, avatar deltas
+    [1,m,3], P [1,n,3] = the avatar's motion at the capture's places, capture edge)``."""
+    avatar = _grid(61, 0.001)
+    capture = _grid(9, 0.006)
+    tri = grid_triangles(9, 9)
+    return capture, tri, avatar, motion(avatar)[None], motion(capture)[None], 0.006
+
+
+def test_a_person_moving_further_than_the_avatar_anywhere_near_is_not_a_mapping_error():
+    """A brow raise, smooth over centimetres: the person raises it 2.5x the avatar's generic shape (more than
+    MAX_RATIO) and the capture's template 2.2x. Three witnesses alone call the avatar's P the odd one out;
+    but no slip of the map within a capture edge finds motion like the person's on the avatar, so it is the
+    person, kept (the old rule left a hole, the generic raise, in the person's)."""
+    def raise_(x):
+        return np.exp(-np.sum(x ** 2, axis=1) / (2 * 0.02 ** 2))[:, None] * np.array([0.0, 0.004, 0.001])
+
+    places, tri, points, deltas, p, edge = _avatar_and_capture(raise_)
+    b, t = 2.5 * p, 2.2 * p @ _rotation(5).T
+    assert mapping_outliers(b, p, t).sum() >= 9                   # the witnesses alone: the raise's top
+    assert not mapping_outliers(b, p, t, triangles=tri, avatar=(places, points, deltas, edge)).any()
+
+
+def test_a_slip_onto_a_still_part_stays_a_mapping_error():
+    """A lid: the avatar's shape moves 9 mm above a margin (y > 0, over 0.5 mm) and nothing below. A capture
+    vertex of the lid placed 2 mm below the margin reads P = 0 where the person and the template move 8.5 mm:
+    within a capture edge of its place the avatar moves that far, so a slip of the map explains it."""
+    def lid(x):
+        return (1.0 / (1.0 + np.exp(-x[:, 1] / 0.0005)))[:, None] * np.array([0.0, -0.009, 0.0])
+
+    places, tri, points, deltas, p, edge = _avatar_and_capture(lid)
+    v = int(np.argmin(np.linalg.norm(places, axis=1)))             # on the margin, placed 2 mm below it
+    places[v] = [0.0, -0.002, 0.0]
+    p[0, v] = lid(places[v:v + 1])[0]                               # 0.16 mm
+    b, t = p.copy(), p.copy()
+    b[0, v] = t[0, v] = [0.0, -0.0085, 0.0]                   # the person's and the template's lid there
+    out = mapping_outliers(b, p, t, avatar=(places, points, deltas, edge))
+    assert out[0, v] and out.sum() == 1
+    # the same vertex where the avatar never moves that far within a capture edge: not the map's error
+    far = mapping_outliers(b, p, t, avatar=(places, points, 0.5 * deltas, edge))
+    assert not far[0, v]
+
+
+def test_map_reach_is_the_largest_change_of_the_avatars_motion_near_the_place():
+    from usdface.transfer.implant import map_reach
+
+    points = np.array([[0.0, 0, 0], [0.001, 0, 0], [0.003, 0, 0], [0.02, 0, 0]])
+    deltas = np.array([[[0.0, 0, 0], [0.0, 0.001, 0], [0.0, 0.004, 0], [0.0, 0.05, 0]]])
+    places = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    prior = np.array([[[0.0, 0.0005, 0], [0.0, 0, 0]]])
+    got = map_reach(places, prior, points, deltas, 0.0035, [0, 0], [0, 1])
+    np.testing.assert_allclose(got, [0.0035, 0.0])           # |0.004 - 0.0005| within reach; nothing near

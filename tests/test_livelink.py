@@ -458,15 +458,19 @@ def _header_variant(tmp_path, edit, name="t.csv"):
     lambda t: t.replace("BlendShapeCount", "BlendshapeCount", 1),   # another writer's spelling
     lambda t: t.replace("Timecode", "timecode", 1),
     lambda t: t.replace("\r\n", ",\r\n").replace("\n", ",\n") if "\r\n" in t else t.replace("\n", ",\n"),
+    lambda t: t.split("\n", 1)[0].lower() + "\n" + t.split("\n", 1)[1],     # the whole header in lower case
 ])
 def test_a_header_in_another_letter_case_or_lines_ending_in_a_comma_read_as_exported(tmp_path, edit, recwarn):
     """'BlendshapeCount' was warned about as a column that is no weight, a 'timecode' header refused as
     having no Timecode column, and lines ending with a comma (an empty last column) refused as 'column '':
-    '' is not a number, the CSV is damaged' (a user trial)."""
+    '' is not a number, the CSV is damaged' (a user trial). A header in lower case (stop 43's trial) read
+    its weights but set the nine head and eye angles aside as unknown columns ('headyaw'), with a warning:
+    they are the angles, in any letter case."""
     take = read_livelink_take(_header_variant(tmp_path, edit))
     assert take.weights.shape == (3, 52) and np.allclose(take.weights, 0.5)
     np.testing.assert_allclose(take.times, [0, 2 / 60, 4 / 60])
     assert not take.extra and not [w for w in recwarn if "neither ARKit" in str(w.message)]
+    assert list(take.angles) == list(ANGLE_COLUMNS)
 
 
 def test_a_semicolon_separated_csv_says_so(tmp_path):

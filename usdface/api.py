@@ -1335,8 +1335,10 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
                       worker: str | None = None, options: dict | None = None, force: bool = False,
                       report_path: PathLike | None = None) -> BatchReport:
     """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
-    local processes (default: CPU count; 1 = in this process) or a Dask ``scheduler`` address. Items whose
-    output exists are skipped (resume) unless ``force``; a failing item is recorded and the batch goes on.
+    local processes (default: one a CPU this process may use, as many as the memory holds,
+    :func:`usdface.pipeline.batch.default_jobs`; 1 = in this process) or a Dask ``scheduler`` address.
+    Items whose output exists are skipped (resume) unless ``force``; a failing item is recorded and the
+    batch goes on.
     ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
@@ -1349,7 +1351,8 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
 
     # as --jobs takes it: jobs=0 ran a process per CPU, a negative count in-process, "2" a ValueError
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
-        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per CPU), not {jobs!r}",
+        raise OptionError(f"jobs must be a whole number >= 1 (or None: one process per usable CPU), not "
+                          f"{jobs!r}",
                           fix="pass jobs=1 to run in this process, jobs=N for N worker processes, or leave "
                               "it out")
     # options=["inspect"] died with Python's ValueError (dict update sequence), scheduler=8786 was taken
@@ -1773,8 +1776,12 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
             # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
             marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
+            from .io.usd_texcoords import read_texcoords
+
+            uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
+                                              for (prim, _), rig in zip(keyed, rigs, strict=True)])
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       force=force)
+                       texcoords=uvs, force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             p.start(f"write {sum(len(r.names) + 1 for r in rigs)} OBJs to {Path(obj_dir).name}")

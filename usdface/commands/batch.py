@@ -28,7 +28,8 @@ def register(subparsers) -> None:
                     "Exit status 1 when any item failed.")
     p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list")
     p.add_argument("-j", "--jobs", type=positive_int, default=None,
-                   help="local worker processes (default: CPU count; 1 = in this process)")
+                   help="local worker processes (default: one a CPU this process may use, no more than the "
+                        "available memory holds at ~1.2 GB each; 1 = in this process)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786): run the items on that cluster")
     p.add_argument("--force", action="store_true", help="redo items whose output already exists")

@@ -10,6 +10,7 @@ one layer, no sublayers or references, for places that do not take layers.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from ..errors import InputFileError, OptionError, RigError, UsdFaceError
@@ -167,6 +168,7 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     if data["usdfaceFlatten"]["variant"] == "personalized":
         _mark_personalized(flat, stage)
     _rebase_provenance_attributes(flat, src, out)
+    _relative_asset_paths(flat, out)
     if out.suffix.lower() == ".usdz":           # one self-contained file: packaged by USD (recorded paths
         return atomic_save_usdz(flat, out, force)   # are relative to the package's folder, as for a .usdc)
     return atomic_save(flat, out, force)
@@ -257,6 +259,24 @@ def _rebase(path, src: Path, out: Path) -> str:
 
     p = Path(str(path))
     return _relative_to_layer(p if p.is_absolute() else src.parent / p, out)
+
+
+def _relative_asset_paths(layer, out: Path) -> None:
+    """The flattened layer's asset paths (textures, any ``asset`` value), which ``Stage.Flatten`` anchors as
+    absolute paths, relative to ``out``'s folder again by the rule of the layer's sublayer path
+    (:func:`usdface.io.layers._relative_asset_path`: relative within one project, absolute across file
+    systems or with only the root in common), so a delivery copied or mounted elsewhere with its textures
+    finds them. Paths into a package (``a.usdz[tex.png]``) and non-file paths are kept."""
+    from pxr import UsdUtils
+
+    from .layers import _relative_asset_path
+
+    def rebase(asset: str) -> str:
+        if not asset or "[" in asset or not os.path.isabs(asset):
+            return asset
+        return _relative_asset_path(Path(asset), out.parent)
+
+    UsdUtils.ModifyAssetPaths(layer, rebase)
 
 
 def _rebase_provenance_attributes(layer, src: Path, out: Path) -> None:

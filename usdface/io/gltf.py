@@ -3,12 +3,18 @@
 Written with pygltflib (the container: JSON, buffers, GLB chunks); this module only lays out the arrays:
 
 * one glTF mesh per rig, one triangle primitive: ``POSITION`` (float32, metres, Y up, the internal frame
-  usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral) and
-  ``indices`` (uint16 or uint32);
-* one morph target per shape (``POSITION`` deltas, float32), stored as a *sparse* accessor (the moved
-  vertices only: indices + values, zeros elsewhere) unless dense is smaller; the target names in
+  usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral;
+  +Z at a vertex no triangle of any area touches, which has none) and ``indices`` (uint16 or uint32);
+* one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the area-weighted vertex
+  normals of the neutral plus the shape, minus the neutral's: an engine adds them, weighted as the positions,
+  and normalises, so a shape is shaded as posed and not with the neutral's normals), each stored as a
+  *sparse* accessor (the changed vertices only: indices + values, zeros elsewhere) unless dense is smaller;
+  the target names in
   ``mesh.extras.targetNames`` (the convention three.js, Babylon.js, Unity glTFast and Blender read), default
   ``mesh.weights`` all 0;
+* ``TEXCOORD_0`` when the avatar's mesh has texture coordinates (its ``st`` primvar), the points split into
+  one vertex per distinct (point, coordinates) pair, as glTF has one value per vertex (a point on a UV seam
+  becomes two vertices with its position, normal, offsets and joints);
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
 * optionally a skin: joint nodes (local rest transforms), ``inverseBindMatrices`` and per-vertex ``JOINTS_0``
   / ``WEIGHTS_0`` (:class:`GltfSkin`).
@@ -84,7 +90,8 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
     def target(self, delta: np.ndarray) -> int:
-        """A morph target's POSITION accessor: sparse (moved vertices only) unless dense is smaller."""
+        """A morph target's POSITION or NORMAL accessor: sparse (changed vertices only) unless dense is
+        smaller."""
         import pygltflib
 
         n = delta.shape[0]
@@ -107,6 +114,34 @@ class _Blob:
                                      sparse=sparse)
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
+
+
+#: The normal given to a vertex no triangle of any area touches (a loose vertex, one among degenerate
+#: triangles only): glTF requires unit normals (the Khronos validator's ACCESSOR_NON_UNIT error, and engines
+#: normalise a zero normal into NaN), and such a vertex has no direction of its own; +Z is glTF's front.
+UNDEFINED_NORMAL = np.array([0.0, 0.0, 1.0])
+
+
+def _unit_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[n, 3]``, :data:`UNDEFINED_NORMAL` where there is none."""
+    from ..mesh import vertex_normals
+
+    normals = vertex_normals(points, triangles)
+    normals[~np.any(normals, axis=1)] = UNDEFINED_NORMAL
+    return normals
+
+
+def _split_at_seams(triangles: np.ndarray, corner_uv: np.ndarray, n: int):
+    """glTF's one value per vertex from texture coordinates per triangle corner: one vertex per distinct
+    (point, coordinates) pair, so a point on a UV seam becomes as many vertices as it has coordinates there.
+    Returns ``(point[m], triangles[t, 3] over the new vertices, uv[m, 2])``; every new vertex of ``point[i]``
+    takes that point's position, normal, offsets and joints. Points no triangle uses stay (coordinates 0)."""
+    rows = np.column_stack([triangles.reshape(-1).astype(np.float64), np.asarray(corner_uv).reshape(-1, 2)])
+    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
+    loose = np.setdiff1d(np.arange(n), triangles)
+    point = np.concatenate([unique[:, 0].astype(np.int64), loose])
+    uv = np.vstack([unique[:, 1:], np.zeros((len(loose), 2))])
+    return point, np.asarray(inverse).reshape(-1, 3), uv
 
 
 def _check(rigs) -> None:
@@ -159,17 +194,21 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
 
 
 def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
-               extras: dict | None = None, node_extras: dict | None = None, force: bool = False) -> Path:
+               extras: dict | None = None, node_extras: dict | None = None, texcoords: dict | None = None,
+               force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
-    ``root_name`` with one node per mesh (and the ``skin``'s joints), morph targets as described in the module
-    doc. ``.glb``: binary; ``.gltf``: JSON with the buffer embedded as a data URI. ``extras`` go to the
-    scene's ``extras``; ``node_extras`` to the root node's and every mesh node's (Blender's importer makes
-    node extras object custom properties, which its USD exporter writes as ``userProperties:<key>``, where
-    the scene's are lost). Returns the path written (atomically; an existing file needs ``force``)."""
+    ``root_name`` with the ``skin``'s joints and the meshes it does not skin, each skinned mesh a root node of
+    the scene beside it (glTF places a skinned mesh by its joints alone, and the Khronos validator warns of a
+    skinned mesh under a parent), morph targets as described in the module doc. ``.glb``: binary; ``.gltf``:
+    JSON with the buffer embedded as a data URI. ``extras`` go to the scene's ``extras``; ``node_extras`` to
+    the root node's and every mesh node's (Blender's importer makes node extras object custom properties,
+    which its USD exporter writes as ``userProperties:<key>``, where the scene's are lost). ``texcoords``
+    ``{rig name: uv[t, 3, 2]}`` per triangle corner (:func:`usdface.io.usd_texcoords.read_texcoords`) become
+    ``TEXCOORD_0``, the vertices split where their corners' coordinates differ (:func:`_split_at_seams`).
+    Returns the path written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
     from .. import __version__
-    from ..mesh import vertex_normals
     from .atomic import atomic_file
 
     path = Path(path)
@@ -184,21 +223,33 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     blob = _Blob(gltf)
     gltf.nodes.append(pygltflib.Node(name=root_name, extras=dict(node_extras or {})))
     root_children: list[int] = []
+    scene_nodes = [0]       # the root, and the skinned meshes: glTF skins them by the joints alone, so the
+    #                         Khronos validator warns of a parent (NODE_SKINNED_MESH_NON_ROOT)
     skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
     for rig in rigs:
-        neutral = np.asarray(rig.neutral, dtype=np.float32)
         tris = np.asarray(rig.triangles, dtype=np.int64)
+        normals = _unit_normals(rig.neutral, tris)          # on the mesh as authored: no seams in the shading
+        uv = (texcoords or {}).get(rig.name)
+        keep, tris_out, uv = (_split_at_seams(tris, uv, len(rig.neutral)) if uv is not None else
+                              (slice(None), tris, None))
+        neutral = np.asarray(rig.neutral, dtype=np.float32)[keep]
         itype = np.uint16 if len(neutral) <= 65535 else np.uint32
         attrs = pygltflib.Attributes(
             POSITION=blob.accessor(neutral, "VEC3", target=_ARRAY_BUFFER, bounds=True),
-            NORMAL=blob.accessor(vertex_normals(rig.neutral, tris).astype(np.float32), "VEC3",
-                                 target=_ARRAY_BUFFER))
+            NORMAL=blob.accessor(normals[keep].astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
+        if uv is not None:                                  # glTF's v runs down the image, USD's t up
+            attrs.TEXCOORD_0 = blob.accessor(np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32),
+                                             "VEC2", target=_ARRAY_BUFFER)
         if skin is not None and rig.name in skin.influences:
-            attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, *skin.influences[rig.name])
-        deltas = np.asarray(rig.deltas, dtype=np.float32)
-        targets = [{"POSITION": blob.target(d)} for d in deltas]
+            joints, weights = skin.influences[rig.name]
+            attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, np.asarray(joints)[keep],
+                                                                 np.asarray(weights)[keep])
+        deltas = np.asarray(rig.deltas, dtype=np.float64)
+        targets = [{"POSITION": blob.target(d[keep].astype(np.float32)),
+                    "NORMAL": blob.target((_unit_normals(rig.neutral + d, tris) - normals)[keep]
+                                          .astype(np.float32))} for d in deltas]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
-            tris.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
+            tris_out.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
             targets=targets or None)
         mesh = pygltflib.Mesh(name=rig.name, primitives=[prim])
         if rig.n_shapes:
@@ -206,12 +257,14 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
             mesh.extras = {"targetNames": list(rig.names)}
         gltf.meshes.append(mesh)
         node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1, extras=dict(node_extras or {}))
+        gltf.nodes.append(node)
         if skin_index is not None and rig.name in skin.influences:
             node.skin = skin_index
-        gltf.nodes.append(node)
-        root_children.append(len(gltf.nodes) - 1)
+            scene_nodes.append(len(gltf.nodes) - 1)
+        else:
+            root_children.append(len(gltf.nodes) - 1)
     gltf.nodes[0].children = root_children
-    gltf.scenes = [pygltflib.Scene(name=root_name, nodes=[0], extras=dict(extras or {}))]
+    gltf.scenes = [pygltflib.Scene(name=root_name, nodes=scene_nodes, extras=dict(extras or {}))]
     gltf.scene = 0
     gltf.buffers = [pygltflib.Buffer(byteLength=len(blob.data))]
     gltf.set_binary_blob(bytes(blob.data))
@@ -251,14 +304,16 @@ def _read_accessor(gltf, blob: bytes, index: int) -> np.ndarray:
     return out if width > 1 else out.ravel()
 
 
-def _target(t) -> int:
-    return t["POSITION"] if isinstance(t, dict) else t.POSITION
+def _target(t, attribute: str = "POSITION") -> int | None:
+    return t.get(attribute) if isinstance(t, dict) else getattr(t, attribute, None)
 
 
 def read_gltf(path) -> dict:
     """Read a glTF written by :func:`write_gltf` (or any glTF with plain triangle primitives) back into
     arrays: {mesh name: {"positions": float32[n, 3], "normals", "indices": [t, 3], "target_names": [K],
-    "targets": float32[K, n, 3], "joints", "weights" (when skinned)}} for the first primitive of each mesh."""
+    "targets": float32[K, n, 3], "target_normals": float32[K, n, 3] (when the targets have NORMAL),
+    "texcoords": float32[n, 2] (glTF's, v down), "joints", "weights" (when skinned)}} for the first
+    primitive of each mesh."""
     import pygltflib
 
     path = Path(path)
@@ -282,6 +337,11 @@ def read_gltf(path) -> dict:
                  if prim.targets else np.zeros((0, len(positions), 3), dtype=np.float32)}
         if a.NORMAL is not None:
             entry["normals"] = _read_accessor(gltf, blob, a.NORMAL)
+        if prim.targets and all(_target(t, "NORMAL") is not None for t in prim.targets):
+            entry["target_normals"] = np.stack([_read_accessor(gltf, blob, _target(t, "NORMAL"))
+                                                for t in prim.targets])
+        if a.TEXCOORD_0 is not None:
+            entry["texcoords"] = _read_accessor(gltf, blob, a.TEXCOORD_0)
         if a.JOINTS_0 is not None:
             entry["joints"] = _read_accessor(gltf, blob, a.JOINTS_0)
             entry["weights"] = _read_accessor(gltf, blob, a.WEIGHTS_0)

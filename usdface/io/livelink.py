@@ -34,13 +34,14 @@ __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_
 ANGLE_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
                  "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
 _IGNORED = ("BlendShapeCount",)
-#: the header's bookkeeping columns, by their lower-case spelling
-_BOOKKEEPING = {"timecode": "Timecode", "blendshapecount": "BlendShapeCount"}
+#: the header's bookkeeping and angle columns, by their lower-case spelling
+_BOOKKEEPING = {c.lower(): c for c in ("Timecode", "BlendShapeCount", *ANGLE_COLUMNS)}
 
 
 def livelink_header(fields, first_line: str, path, fix: str) -> list[str]:
-    """The header row ``fields`` of a Live Link Face CSV with its bookkeeping columns spelled as the app
-    does (``Timecode``, ``BlendShapeCount`` in any letter case: other writers spell ``BlendshapeCount``).
+    """The header row ``fields`` of a Live Link Face CSV with its bookkeeping and angle columns spelled as
+    the app does (``Timecode``, ``BlendShapeCount``, ``HeadYaw``, ... in any letter case: other writers spell
+    ``BlendshapeCount``).
     Raises InputFileError naming ``path`` when it has no ``Timecode`` column, saying so when ``first_line``
     (the file's first line) separates its fields by semicolons or tabs (a spreadsheet's list separator)."""
     header = [_BOOKKEEPING.get(c.strip().lower(), c.strip()) for c in fields]

@@ -234,6 +234,16 @@ def _mesh_geometry(mesh_prim, path):
     return points, counts, indices, fan_triangulate(counts, indices)
 
 
+def outward_triangles(triangles: np.ndarray, mesh_prim, linear: np.ndarray) -> np.ndarray:
+    """``triangles`` wound counter-clockwise seen from outside in the internal frame (right-handed, what
+    normals, glTF and OBJ assume): reversed for a mesh whose ``orientation`` is ``leftHanded`` (its faces
+    wind clockwise) or whose placement ``linear`` mirrors (negative determinant), not for both."""
+    from pxr import UsdGeom
+
+    left = UsdGeom.Mesh(mesh_prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
+    return triangles[:, ::-1].copy() if left != bool(np.linalg.det(linear) < 0) else triangles
+
+
 def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None = None) -> np.ndarray:
     """``to_internal[4,4]``: mesh-local authored coordinates -> internal metres, Y up (column vectors).
 
@@ -290,6 +300,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                             fix="fix the xformOps of the mesh and its ancestors")
     linear = to_internal[:3, :3]
     neutral = points @ linear.T + to_internal[:3, 3]
+    triangles = outward_triangles(triangles, mesh_prim, linear)
 
     shape_prims = [stage.GetPrimAtPath(t) for t in targets]
     match = arkit.match_names(tokens, fallbacks=[p.GetName() if p else None for p in shape_prims],
@@ -963,7 +974,8 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
         except UsdFaceError as exc:  # an unusable prop mesh must not stop the face from being read
             notes.append(f"{key}: mesh without blend shapes skipped ({exc.message})")
             continue
-        static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3], triangles)
+        static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3],
+                              outward_triangles(triangles, prim, to_internal[:3, :3]))
     _warn_foreign_units([found[k][0] for k in found], meta, path, notes)
     worst = max((c for _, c in snapped or ()), default=0.0)
     # a float32 export's noise is told; a double's (cos 90 degrees = 6e-17: Pixar's test plane) is none

@@ -9,7 +9,8 @@ a Dask cluster, with failure isolation, a report and resume.
 * **Resume**: an item whose output already exists is ``skipped`` (outputs are written atomically, so an
   existing output is a finished one); ``force=True`` redoes everything.
 * **Where**: ``jobs=1`` runs in this process; otherwise a local ``ProcessPoolExecutor`` (spawned workers,
-  ``jobs`` defaults to the CPU count); ``scheduler="tcp://host:8786"`` (or a ``distributed.Client``) sends the
+  ``jobs`` defaults to :func:`default_jobs`: the cores this process may use, as many as the memory
+  holds); ``scheduler="tcp://host:8786"`` (or a ``distributed.Client``) sends the
   items to a Dask cluster instead.
 
 Example::
@@ -826,6 +827,17 @@ def _run_dask(worker, todo, scheduler, advance):
             client.close()
 
 
+def default_jobs() -> int:
+    """The local pool's size when the caller names none: one worker a core this process may use (its CPU
+    affinity and a container's CPU quota, :func:`usdface.resources.usable_cores`), but no more than the
+    memory available holds at :data:`usdface.resources.PERSONALIZE_WORKER_MB` each. It was
+    ``os.cpu_count()``: the machine's cores, so a farm slot limited to 4 CPUs of a 64-core host started 64
+    workers of up to ~1.2 GB."""
+    from ..resources import PERSONALIZE_WORKER_MB, available_memory_mb, pool_size, usable_cores
+
+    return pool_size(usable_cores(), available_memory_mb(), PERSONALIZE_WORKER_MB)
+
+
 def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = personalize_worker,
               jobs: int | None = None, scheduler=None, force: bool = False,
               progress: bool = True) -> BatchReport:
@@ -834,7 +846,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "force"}`` and must write
     ``output``; it must be importable by name (a module-level function) to run in worker processes. Items
     whose output exists are skipped unless ``force``. ``jobs=1`` runs in-process; ``jobs=None`` uses
-    ``os.cpu_count()`` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
+    :func:`default_jobs` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
     """
     from ..progress import steps
 
@@ -852,7 +864,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
                                        error=stale or "", error_type="StaleOutput" if stale else "")
         else:
             todo.append(dict(item.to_dict(), force=force))
-    jobs = max(1, int(jobs or os.cpu_count() or 1))
+    jobs = max(1, int(jobs or default_jobs()))
     where = (f"dask {scheduler if isinstance(scheduler, str) else 'client'}" if scheduler is not None
              else ("in-process" if jobs == 1 or len(todo) <= 1 else f"local pool, {jobs} processes"))
     if todo:

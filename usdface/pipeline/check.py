@@ -178,6 +178,18 @@ def _skel():
     return UsdSkel
 
 
+def _brings_personalization(stage, rig) -> bool:
+    """Whether ``rig``'s SkelRoot composes a usdface layer with its ``personalized`` variant selected (an
+    instance of the published layer, which personalize refuses as already personalized, not an avatar a
+    layer would be written over)."""
+    from ..io.layers import PERSONALIZATION_VARIANT_SET
+
+    root = stage.GetPrimAtPath(rig.source.skel_root) if rig.source and rig.source.skel_root else None
+    sets = root.GetVariantSets() if root else None
+    return bool(sets) and sets.HasVariantSet(PERSONALIZATION_VARIANT_SET) and \
+        sets.GetVariantSelection(PERSONALIZATION_VARIANT_SET) == "personalized"
+
+
 def _blend_shape_meshes(stage):
     """Every Mesh with blend-shape bindings, as the reader finds them
     (:func:`usdface.io.usd_rig._has_blend_shapes`): UsdSkel ignores ``skel:blendShapes`` on other prims (a
@@ -739,8 +751,15 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
                             own_fix or "author what the reader assumed (see the message), or accept it")
         from ..io.usd_rig import refuse_instanced, refuse_unwritable_shapes
 
-        refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")  # as personalize
-        refuse_unwritable_shapes(avatar, None, "the personalized layer")
+        # as personalize, unless the file composes a usdface layer's personalized variant (or is the
+        # flattened export of one): personalize refuses it as already personalized before it would get
+        # there (check passes such a shot when it is not instanced), and a crowd instancing the published
+        # layer shows each instance's variant
+        flattened = (layer.customLayerData or {}).get("usdfaceFlatten") or {}
+        if (not any(_brings_personalization(stage, m) for m in avatar.meshes)
+                and flattened.get("variant") != "personalized"):
+            refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
+            refuse_unwritable_shapes(avatar, None, "the personalized layer")
         if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
             # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
             where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"

@@ -55,7 +55,7 @@ PROXY_MIN_RINGS = 4
 #: A proxy vertex takes its known value at the nearest of this many fine vertices that faces its way.
 PROXY_NEAREST = 8
 
-__all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "face_radius",
+__all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "map_reach", "face_radius",
            "extend_personalization",
            "seam_ramp",
            "attached_shapes", "follow_field", "linear_field", "rigid_shapes", "shape_confidence"]
@@ -112,7 +112,7 @@ def _same_motion(a, b, na, nb, max_angle_deg: float, max_ratio: float) -> np.nda
 
 def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_deg: float = MAX_ANGLE_DEG,
                      max_ratio: float = MAX_RATIO, significant: float = SIGNIFICANT, triangles=None,
-                     rings: int = 1) -> np.ndarray:
+                     rings: int = 1, avatar=None) -> np.ndarray:
     """``[J,n]`` bool: capture vertices where the prior's motion ``P_j`` (the avatar's generic shape sampled
     through the correspondence) is not the motion of the same point of the face, so ``B_j - P_j`` there is
     a mapping error, not the person.
@@ -127,6 +127,14 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     off lands where the avatar's lid does not move: its 9 mm "personalization" would tear the blink.
     With the capture's ``triangles``, the vertices within ``rings`` edge rings of an outlier are outliers of
     that shape too (the map's errors are spatially coherent, as on the avatar side).
+    With ``avatar = (places[n,3], points[m,3], deltas[J,m,3], radius)`` - where the map puts each capture
+    vertex on the avatar, the avatar's vertices and generic shapes, and how far the map may be off (one
+    capture edge: the resolution the capture measures at) - a vertex is an outlier only where a map error
+    that small could have made the difference: the avatar's generic motion somewhere within ``radius`` of
+    the vertex's place differs from ``P`` by at least ``|B - P|`` (:func:`map_reach`). Where the avatar's
+    motion is the same all around (a brow raise, smooth over centimetres) and the person moves 2.5 times
+    as far, no slip of the map gives the person's motion: that is the person, not the map (the three
+    witnesses alone called it a mapping error whenever the template too moved further than the avatar).
     All ``[J,n,3]``, one frame (m).
     """
     b = np.asarray(person_deltas, dtype=np.float64)
@@ -139,7 +147,39 @@ def mapping_outliers(person_deltas, prior_deltas, template_deltas, *, max_angle_
     odd = (np.minimum(shape_norms(p - b), shape_norms(p - t))
            > np.maximum(shape_norms(b - t), significant * peak))
     out = incompatible & odd
+    if avatar is not None and out.any():
+        places, points, deltas, radius = avatar
+        j, v = np.nonzero(out)
+        out[j, v] = np.linalg.norm(b[j, v] - p[j, v], axis=-1) <= map_reach(places, p, points, deltas, radius,
+                                                                             j, v)
     return dilate(out, triangles, rings) if triangles is not None else out
+
+
+def map_reach(places, prior_deltas, points, deltas, radius: float, shapes, vertices) -> np.ndarray:
+    """``[k]``: for each pair ``(shapes[k], vertices[k])``, the largest change from the prior's motion
+    ``prior_deltas[j, v]`` that a map error within ``radius`` could make: ``max |A_j(a) - P_j(v)|`` over the
+    avatar vertices ``a`` within ``radius`` of the capture vertex's place ``places[v]`` (0 where none is).
+    ``points[m,3]`` and ``deltas[J,m,3]`` the avatar's vertices and generic shapes (any array that indexes
+    as ``deltas[j, a]``: read only at the vertices near the places asked about)."""
+    from scipy.spatial import cKDTree
+
+    shapes, vertices = np.asarray(shapes, dtype=np.intp), np.asarray(vertices, dtype=np.intp)
+    out = np.zeros(len(vertices))
+    if not len(vertices):
+        return out
+    near = cKDTree(np.asarray(points, dtype=np.float64)).query_ball_point(
+        np.asarray(places, dtype=np.float64)[vertices], radius)
+    counts = np.array([len(n) for n in near])
+    pair = np.repeat(np.arange(len(vertices)), counts)                # pair -> the (shape, vertex) asked
+    a = np.concatenate([np.asarray(n, dtype=np.intp) for n in near])
+    if not len(a):
+        return out
+    moved = np.asarray(deltas[shapes[pair], a], dtype=np.float64)
+    change = np.linalg.norm(moved - np.asarray(prior_deltas, dtype=np.float64)[shapes[pair], vertices[pair]],
+                            axis=-1)
+    has = counts > 0                  # the pairs come grouped by place: one maximum per non-empty group
+    out[has] = np.maximum.reduceat(change, np.cumsum(np.r_[0, counts[:-1]])[has])
+    return out
 
 
 def face_personalization(corr, capture_triangles, person_deltas, prior_deltas, rows, *, support=(0.01, 0.03),

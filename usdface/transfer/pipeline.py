@@ -67,6 +67,7 @@ from .partial_dt import implant_shapes
 from .register import motion_landmarks, register_face
 from .report import changed_vertices, layer_provenance, lip_report, offset_changes, untrusted_map_rows
 from .retarget import approximate, driven_gram, gaze_held, namesake_prior, retarget_weights
+from .surface import mean_edge_length
 from .trust import shape_trust
 
 __all__ = ["PersonalizeResult", "personalize_avatar"]
@@ -944,7 +945,14 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     report["within_noise"] = noisy
     # capture vertices the correspondence got wrong for a shape (the avatar's motion there is
     # incompatible with the person's and the template's): no personalization from them
-    outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles)
+    # ... where a slip of the map within the capture's resolution (one placed capture edge) could have made
+    # the difference: the avatar's motion near the vertex's place reaches the person's
+    places = corr.registered if corr.registered is not None and len(corr.registered) == len(capture.neutral) \
+        else None
+    near = None if places is None else (places, face.neutral, _shape_deltas(face, names, view=True),
+                                        mean_edge_length(places, capture.triangles))
+    outliers = mapping_outliers(person_deltas, prior_av, tmpl_av, triangles=capture.triangles, avatar=near)
+    near = None
     report["correspondence"]["mapping_outliers"] = int(outliers.sum())
     weight = corr.weight if corr.weight is not None else corr.face.astype(float)
     # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
