@@ -311,3 +311,28 @@ def test_bench_dev1_auto_keeps_the_fit_and_on_closes_the_lips(bench):
     k = cap.names.index("mouthClose")
     changed = np.flatnonzero(np.abs(on.rig.deltas - off.rig.deltas).max(axis=(1, 2)) > 0)
     assert changed.tolist() == [k]                                 # only the contact shape is corrected
+
+
+def test_contact_test_is_the_likelihood_ratio_of_the_fit_with_the_correction():
+    """``contact_test``: ``dE`` is the fit term's increase with the correction, ``sum_i |r_i - w_i c|^2 -
+    |r_i|^2`` computed the long way; the threshold ``sigma^2 chi2_{0.95}(dof)`` (scipy's quantile). Frames
+    whose residuals are the correction (the sides do touch) agree with contact; frames whose residuals are
+    the opposite motion (held apart) do not."""
+    from scipy.stats import chi2
+
+    from usdface.personalize.contact import CONTACT_ALPHA, contact_test
+
+    rng = np.random.default_rng(21)
+    F, n = 9, 30
+    weights = rng.random((F, 3))
+    c = np.zeros((n, 3))
+    c[:6, 1] = -0.001                                                   # the lower lip 1 mm up, 6 pairs
+    noise = rng.normal(size=(F, n, 3)) * 5e-5
+    for sign, agrees in ((1.0, True), (-1.0, False)):
+        r = sign * weights[:, 1, None, None] * c + noise
+        out = contact_test(weights, r, c, 1, 6)
+        long_way = sum(np.sum((r[i] - weights[i, 1] * c) ** 2) - np.sum(r[i] ** 2) for i in range(F))
+        assert out["delta_mm2"] == pytest.approx(long_way * 1e6, rel=1e-9)
+        sigma2 = np.mean(r[:, :6] ** 2)                                  # where the correction acts
+        assert out["threshold_mm2"] == pytest.approx(sigma2 * chi2.ppf(1 - CONTACT_ALPHA, 6) * 1e6, rel=1e-9)
+        assert out["agrees"] is agrees

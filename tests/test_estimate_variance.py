@@ -242,3 +242,22 @@ def test_the_loo_trust_reads_the_fits_error_in_the_avatar_frame(monkeypatch):
     for s in (0.5, 1.0, 2.0):
         got, _, _ = trust.shape_trust(fit, capture, rig, [0], s * (prior + d), s * prior, scale=s)
         np.testing.assert_allclose(got, [0.5], atol=1e-9)
+
+
+def test_the_weak_shape_ramp_reads_the_effective_weight_against_the_phones_noise():
+    """A capture's shape is trusted from 0 at an effective weight (the root of its training energy) of 4
+    weight-noise units to 1 at 10, smoothly (WEAK_SHAPE): 7 units is the ramp's middle. Shown at 0.1 in one
+    frame and at 0.2 in another, the effective weight is sqrt(0.01 + 0.04) = 5.6 units."""
+    from types import SimpleNamespace
+
+    from usdface.personalize.api import WEIGHT_NOISE
+    from usdface.transfer.trust import weak_ramp
+
+    capture = SimpleNamespace(whole_take=False, train=[])
+    units = np.array([2.0, 4.0, 7.0, 10.0, 15.0])
+    ramp, info = weak_ramp(capture, (units * WEIGHT_NOISE) ** 2, list(range(5)))
+    np.testing.assert_allclose(ramp, [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-12)
+    assert info == {}
+    two, _ = weak_ramp(capture, np.array([0.1 ** 2 + 0.2 ** 2]), [0])
+    t = (np.sqrt(0.05) / WEIGHT_NOISE - 4.0) / 6.0
+    np.testing.assert_allclose(two, [t * t * (3 - 2 * t)], rtol=1e-12)

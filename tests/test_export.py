@@ -924,3 +924,27 @@ def test_export_variant_generic_of_a_flattened_export(layer, tmp_path, capsys):
     got = read_gltf(out)
     for rig in generic.meshes:
         np.testing.assert_array_equal(got[rig.name]["targets"], rig.deltas.astype(np.float32))
+
+
+def test_gltf_skin_keeps_each_vertexs_four_largest_influences_with_their_joints(tmp_path):
+    """glTF takes 4 influences a vertex: the 4 largest of the skeleton's, each with its own joint, the
+    weights renormalised to 1 (a one-joint skeleton, the only one tested before, cannot tell the joints
+    apart)."""
+    from usdface.io.gltf import GltfSkin, write_gltf
+    from usdface.model import FaceRig
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(5, 3)) * 0.01
+    rig = FaceRig(pts, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4]]), [], np.zeros((0, 5, 3)), name="Face")
+    indices = np.array([rng.permutation(7)[:6] for _ in range(5)])
+    weights = rng.random((5, 6)) + np.arange(6) * 1e-3                  # no ties
+    skin = GltfSkin([f"j{k}" for k in range(7)], [-1] * 7, np.tile(np.eye(4), (7, 1, 1)),
+                    np.tile(np.eye(4), (7, 1, 1)), {"Face": (indices, weights)})
+    data = read_gltf(write_gltf(tmp_path / "s.glb", [rig], skin=skin))["Face"]
+    for v in range(5):
+        top = np.argsort(-weights[v])[:4]
+        want = dict(zip(indices[v, top].tolist(), (weights[v, top] / weights[v, top].sum()).tolist(),
+                        strict=True))
+        got = dict(zip(data["joints"][v].tolist(), data["weights"][v].tolist(), strict=True))
+        assert got.keys() == want.keys()
+        assert all(abs(got[j] - want[j]) < 1e-6 for j in want)

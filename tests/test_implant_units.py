@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from synthetic_meshes import grid_triangles
+from synthetic_meshes import grid_triangles, identity_correspondence
 
 from usdface.transfer.implant import mapping_outliers
 
@@ -120,6 +120,59 @@ def test_field_is_averaged_over_the_same_patch_of_skin_at_every_resolution():
         rings[n] = (field.rings, plain.rings)
     assert rings[21][1] == rings[41][1] == 2                 # without: the same rings, half the skin
     assert rings[21][0] >= 2 and rings[41][0] == 2 * rings[21][0]
+
+
+def test_the_face_carries_the_persons_change_from_the_prior():
+    """``M (B_j - P_j)``: through a correspondence of the capture onto itself it is the person's change from
+    the prior, to the bit where both shapes move (the support is 1), on any subset of the rows."""
+    from usdface.transfer.implant import face_personalization
+
+    pts, tris = _sheet(8)
+    corr = identity_correspondence(pts, tris)
+    rng = np.random.default_rng(4)
+    prior = np.tile(rng.normal(size=(2, 1, 3)) * 1e-3, (1, len(pts), 1))    # both shapes move every vertex
+    person = prior + rng.normal(size=prior.shape) * 1e-4
+    out = face_personalization(corr, tris, person, prior, np.arange(len(pts)))
+    np.testing.assert_array_equal(out, person - prior)
+    rows = np.array([5, 17, 40])
+    np.testing.assert_array_equal(face_personalization(corr, tris, person, prior, rows, support=None),
+                                  (person - prior)[:, rows])
+
+
+def test_rotation_scale_turns_and_scales_the_generic_motion_onto_the_persons():
+    """``phi = s R - I`` with ``s R a = p`` exactly, ``R`` a proper rotation about ``a x p`` (the minimal
+    one); 0 where the motions point more than 120 degrees apart or the scale leaves the bounds. The scale
+    weight falls as a smoothstep in ``|log s|``, the same for a scale and its inverse."""
+    from usdface.transfer.motion_field import rotation_scale, scale_weight
+
+    rng = np.random.default_rng(12)
+    a = rng.normal(size=(1, 200, 3)) * 1e-3
+    axis = rng.normal(size=(200, 3))
+    axis -= np.einsum("vc,vc->v", axis, a[0])[:, None] * a[0] / np.sum(a[0] ** 2, axis=1)[:, None]
+    axis /= np.linalg.norm(axis, axis=1)[:, None]                            # perpendicular to a
+    angle = rng.uniform(0.0, np.radians(115.0), size=200)
+    scale = np.exp(rng.uniform(-1.2, 1.2, size=200))
+    turned = np.stack([_rotation_about(ax, t) @ v for ax, t, v in zip(axis, angle, a[0], strict=True)])
+    p = (scale[:, None] * turned)[None]
+    phi, valid = rotation_scale(a, p)
+    assert valid.all()
+    np.testing.assert_allclose(a + np.einsum("jvab,jvb->jva", phi, a), p, rtol=0, atol=1e-15)
+    R = (phi[0] + np.eye(3)) / scale[:, None, None]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(np.einsum("vab,vb->va", R, axis), axis, atol=1e-12)    # about a x p
+    far = np.stack([_rotation_about(ax, np.radians(125.0)) @ v for ax, v in zip(axis, a[0], strict=True)])
+    phi_far, valid_far = rotation_scale(a, far[None])
+    assert not valid_far.any() and not phi_far.any()
+    w = scale_weight(np.array([1.5, 2.0, np.exp(0.25 * np.log(2.0) + 0.75 * np.log(1.5))]), 1.5, 2.0)
+    np.testing.assert_allclose(w, [1.0, 0.0, 0.84375], rtol=1e-12)        # t = 0.25: 1 - t^2 (3 - 2 t)
+    np.testing.assert_allclose(scale_weight(1.0 / np.array([1.3, 1.7]), 1.5, 2.0),
+                               scale_weight(np.array([1.3, 1.7]), 1.5, 2.0), rtol=1e-12)
+
+
+def _rotation_about(axis, angle):
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
 def _sheet(n, size=0.1):
@@ -295,6 +348,27 @@ def test_a_jaw_shape_moves_the_teeth_and_tongue_as_one_body():
     assert np.abs(fit - scale).max() < 1e-9                     # linear in position: no step at x = 0
     assert scale[pts[bent, 0] < -0.015].mean() > 1.1 > 0.9 > scale[pts[bent, 0] > 0.015].mean()  # +0.2 / -0.2
     np.testing.assert_array_equal(out[1, ~lower], 0.0)          # what the shape does not move stays still
+
+
+def test_a_rigid_shape_takes_the_motion_weighted_mean_of_the_field():
+    """In a shape that moves the mesh as one body, the one field is the mean of the readings weighted by the
+    squared motion: the vertices that move most say most. A mesh scaled about its left end reads +0.2 at its
+    still left half and -0.2 at its moving right half: the body takes nearly the right half's -0.2, not the
+    plain mean's 0."""
+    from usdface.transfer.implant import FieldOnMesh, follow_field, rigid_shapes
+
+    rng = np.random.default_rng(8)
+    pts = np.column_stack([np.linspace(-0.02, 0.02, 20), rng.uniform(-1e-3, 1e-3, size=(20, 2))])
+    deltas = (0.1 * (pts - [-0.021, 0.0, 0.0]))[None]                 # an affine motion, still at the left
+    assert rigid_shapes(pts, deltas).tolist() == [True]
+    head = np.array([[-0.03, 0.0, 0.0], [0.03, 0.0, 0.0]])
+    phi = np.zeros((1, 2, 3, 3))
+    phi[0, 0], phi[0, 1] = 0.2 * np.eye(3), -0.2 * np.eye(3)
+    out = follow_field(pts, deltas, FieldOnMesh(head, phi), rigid=True)
+    w = np.sum(deltas[0] ** 2, axis=1)
+    m = np.sum(w * np.where(pts[:, 0] < 0.0, 0.2, -0.2)) / w.sum()
+    assert m < -0.1
+    np.testing.assert_allclose(out[0], (1.0 + m) * deltas[0], rtol=1e-12)
 
 
 def test_another_meshs_field_linear_in_position_is_followed_exactly():

@@ -150,6 +150,21 @@ def test_backends_agree(backend):
     assert sol.status == "optimal" and sol.objective == pytest.approx(ref.objective)
 
 
+def test_quality_costs_never_trade_a_landmark_for_quality():
+    """``"quality"``'s tie-break stays below one landmark: two poor landmarks (quality 0, 0.5) that cover four
+    shapes beat three perfect ones, and among the two-landmark covers the better one wins (a quality term as
+    large as a landmark, delta = 1, chose the three)."""
+    c = np.zeros((4, 6), dtype=bool)
+    c[[0, 1], 0] = c[[2, 3], 1] = True                     # two poor columns cover everything
+    c[0, 2] = c[[1, 2], 3] = c[3, 4] = True                # three perfect ones too
+    c[[0, 1], 5] = True                                    # a better twin of column 0
+    q = np.where(c, 1.0, 0.0)
+    q[:, :2], q[[0, 1], 5] = 0.0, 0.5
+    sol = solve_set_cover(c, set_cover_costs(c, q, "quality"))
+    assert sol.status == "optimal" and sol.selected.tolist() == [1, 5]
+    assert len(solve_set_cover(c, set_cover_costs(c, q, "count")).selected) == 2
+
+
 def test_quality_weighting_keeps_the_minimum_count():
     rig = random_rig(30, seed=1)
     counts = {w: compute_landmarks(rig, 0.5, weighting=w, rays=8).count

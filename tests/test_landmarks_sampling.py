@@ -22,7 +22,14 @@ from usdface.landmarks.visibility import PoseVisibility  # noqa: E402
 from usdface.mesh import edges  # noqa: E402
 from usdface.model import FaceRig  # noqa: E402
 
-DEV1 = Path(__file__).resolve().parents[2] / "shared" / "data" / "bench" / "dev1" / "avatar.usdc"
+
+@pytest.fixture
+def dev1_avatar(bench) -> Path:
+    """dev1 bench avatar (the conftest's ``bench``: ``USDFACE_SHARED`` or ../shared), else skip."""
+    path = bench / "dev1" / "avatar.usdc"
+    if not path.is_file():
+        pytest.skip("needs ../shared (dev1 bench avatar)")
+    return path
 
 
 def _face(nx: int = 41, ny: int = 41):
@@ -151,11 +158,10 @@ def test_occluder_visibility_within_tolerance_of_the_full_mesh():
     assert (diff <= 1.0 / 16 + 1e-9).mean() >= VIS_SHARE
 
 
-@pytest.mark.skipif(not DEV1.is_file(), reason="needs ../shared (dev1 bench avatar)")
-def test_occluder_visibility_within_tolerance_on_the_dev_head():
+def test_occluder_visibility_within_tolerance_on_the_dev_head(dev1_avatar):
     from usdface.io.usd_rig import read_avatar
 
-    head = read_avatar(DEV1).mesh("Head")
+    head = read_avatar(dev1_avatar).mesh("Head")
     approx, exact, _ = _visibility_pair(head)
     diff = np.abs(approx - exact)
     assert diff.mean() <= VIS_MEAN / 2  # measured 0.0011 over its 2,192 face samples
@@ -216,11 +222,10 @@ def test_default_layout_takes_visibility_from_the_samples_and_keeps_every_candid
 SAMPLED_MEAN, SAMPLED_SHARE = 0.06, 0.85
 
 
-@pytest.mark.skipif(not DEV1.is_file(), reason="needs ../shared (dev1 bench avatar)")
-def test_sampled_visibility_within_tolerance_on_the_dev_head():
+def test_sampled_visibility_within_tolerance_on_the_dev_head(dev1_avatar):
     from usdface.io.usd_rig import read_avatar
 
-    head = read_avatar(DEV1).mesh("Head")
+    head = read_avatar(dev1_avatar).mesh("Head")
     mag = cand.displacement_magnitudes(head.deltas)
     need = np.flatnonzero(cand.candidate_sets(cand.relative_displacement(mag), 0.5).any(axis=0))
     spacing, samples = face_samples(head)

@@ -218,6 +218,23 @@ def test_a_frame_field_at_or_above_the_default_rate_reads_at_the_implied_rate(tm
         np.testing.assert_allclose(read_take(p).times, take.times)
 
 
+def test_timecodes_round_trip_from_a_start_past_the_hour():
+    """A take stamped with the time of day (Live Link Face's timecodes are wall-clock): formatted from a
+    start past the hour, the codes read back to the same times, and each field is its own (minutes 0-59)."""
+    times = np.array([0.0, 1 / 60, 2.5, 3600.25, 7322.5])
+    codes = format_timecodes(times, 60.0, start="13:45:59:30.000")
+    assert codes[0] == "13:45:59:30.000" and codes[3] == "14:45:59:45.000" and codes[4] == "15:48:02:00.000"
+    np.testing.assert_allclose(parse_timecodes(codes, 60.0), times, rtol=0, atol=1e-9)
+
+
+def test_a_frame_field_equal_to_a_common_rate_reads_at_the_next_one():
+    """A field of 60 is the 61st frame of its second: the timecodes count above 60 per second (120), not at
+    60."""
+    with pytest.warns(UserWarning, match="read at 120"):
+        times = parse_timecodes(["00:00:01:59.000", "00:00:01:60.000"])
+    np.testing.assert_allclose(times, [0.0, 1 / 120], rtol=1e-12)
+
+
 @pytest.mark.parametrize("code", ["10:00:-01:00.000", "10:00:00:-2.000", "-1:00:00:00.000"])
 def test_a_negative_timecode_field_is_refused(tmp_path, code):
     from usdface.errors import TimecodeError

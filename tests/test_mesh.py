@@ -59,6 +59,18 @@ def test_single_triangle_normal_area_frame():
     V = triangle_frames(TRI, T1)[0]
     assert np.allclose(V[:, 2], [0, 0, 1])          # 4th vertex: normal / sqrt(|e1 x e2|) = 1
     assert np.allclose(V[:, 0], [1, 0, 0]) and np.allclose(V[:, 1], [0, 1, 0])
+    # on the unit triangle |e1 x e2| = 1, where a unit normal and Sumner's scaled one agree: legs of 2 tell
+    V2 = triangle_frames(2.0 * TRI, T1)[0]
+    assert np.allclose(V2[:, 2], [0, 0, 2])         # (e1 x e2) / sqrt(|e1 x e2|) = (0, 0, 4) / 2
+
+
+def test_uniform_scale_gives_the_scaled_identity():
+    # Sumner & Popovic's 4th vertex scales with the edges, so a uniform scale s has Q = s I exactly
+    # (a unit normal would leave Q's normal column at 1, and EBFR's |Q - I| would see a stretch as less)
+    R = Rotation.from_euler("xyz", [10, 40, -25], degrees=True).as_matrix()
+    tri = TRI @ R.T * 0.013                         # a mm-scale triangle, not in a coordinate plane
+    Q = deformation_gradients(tri, 1.7 * tri + [0.2, -0.1, 0.3], T1)
+    assert np.allclose(Q[0], 1.7 * np.eye(3), atol=1e-12)
 
 
 def test_known_rotation_gives_the_rotation():

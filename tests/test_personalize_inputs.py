@@ -167,16 +167,13 @@ def test_training_frames_repeated_exactly_warn_by_label():
     assert not any("repeat" in s for s in check_capture(tiny_capture(F=8, K=3)))
 
 
-@pytest.mark.skipif(not (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bench" / "dev1"
-                         / "capture").is_dir(), reason="needs ../shared")
-def test_dev1_capture_repeats_its_rest_frame():
+def test_dev1_capture_repeats_its_rest_frame(bench):
     """dev1's training frames as the phone app picked them: 23 of 51 repeat another (one frame stands for 12
     requested shapes the take never triggered)."""
     from usdface.io import read_capture
     from usdface.personalize.api import duplicate_frames
 
-    train = read_capture(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bench" / "dev1"
-                         / "capture").train
+    train = read_capture(bench / "dev1" / "capture").train
     groups = duplicate_frames(train.points, train.weights)
     assert sum(len(g) - 1 for g in groups) == 23 and max(len(g) for g in groups) == 12
     assert [train.label[i] for i in groups[0]] == ["000_eyeBlinkLeft", "007_eyeBlinkRight"]

@@ -154,6 +154,14 @@ def test_a_take_folder_with_fewer_frames_than_rows_says_how_it_pairs_them(tmp_pa
     frames[5].unlink()
     with pytest.warns(UserWarning, match=r"OBJ frames for \d+ rows .*frame 1 read as row 0.*missing after 4"):
         read_take(folder)
+    # a frame missing inside the take: every other mesh keeps its own row's weights *and time*
+    whole = read_take(write_take_folder(take, tmp_path / "take2"))
+    sorted((tmp_path / "take2" / "frames").glob("*.obj"))[5].unlink()
+    with pytest.warns(UserWarning, match="missing after 4"):
+        gap = read_take(tmp_path / "take2")
+    np.testing.assert_array_equal(gap.times, np.delete(whole.times, 5))
+    np.testing.assert_array_equal(gap.weights, np.delete(whole.weights, 5, axis=0))
+    np.testing.assert_array_equal(gap.points, np.delete(whole.points, 5, axis=0))
 
 
 @pytest.mark.parametrize("block", [4, 9], ids=["block-below-rank", "block-above-rank"])

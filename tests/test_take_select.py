@@ -202,6 +202,7 @@ def test_generic_usd_take_with_skel_animation(tmp_path):
         authored = (pts[f] @ to_cm_zup.T).astype(np.float32)
         mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(authored), float(codes[f]))
     author_skel_animation(stage, "/World/Anim", ["eyeBlink_L", "jawOpen"], w, 24, times=codes / 24)
+    stage.SetFramesPerSecond(30)                 # played at 30: the time codes still count 24 per second
     stage.Save()
     take = read_take(path)
     assert take.names == ["eyeBlinkLeft", "jawOpen"] and take.metadata["weights_source"] == "/World/Anim"
@@ -209,6 +210,26 @@ def test_generic_usd_take_with_skel_animation(tmp_path):
     np.testing.assert_allclose(take.points, pts, atol=1e-6)  # back to metres, Y up
     np.testing.assert_allclose(take.times, np.arange(6) * 2 / 24)
     assert take.template is None and take.neutral is None
+
+
+def test_a_weights_only_usd_take_counts_its_times_from_its_first_sample(tmp_path):
+    """A SkelAnimation alone (a take another tool wrote, or a shot's animation from frame 1001) is a take
+    whose times start at 0 at its first sample and count the stage's timeCodesPerSecond, whatever rate the
+    stage plays at."""
+    from pxr import Usd
+
+    from usdface.io.usd_anim import author_skel_animation
+
+    w = np.random.default_rng(3).random((5, 2))
+    path = tmp_path / "anim.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    author_skel_animation(stage, "/Anim", ["jawOpen", "eyeBlinkLeft"], w, 24, times=np.arange(5) * 2 / 24,
+                          start_time_code=1001)
+    stage.SetFramesPerSecond(30)
+    stage.Save()
+    take = read_take(path)
+    np.testing.assert_allclose(take.weights, w, atol=1e-7)
+    np.testing.assert_allclose(take.times, np.arange(5) * 2 / 24, rtol=0, atol=1e-12)
 
 
 @pytest.mark.slow

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from region_cv import parabola_mu, region_errors
+from synthetic_meshes import identity_correspondence
 
 from usdface.errors import RegistrationError
 from usdface.transfer.correspond import (
@@ -14,7 +15,7 @@ from usdface.transfer.correspond import (
     save_correspondence,
 )
 from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
-from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients
+from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients, implant_shapes
 from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
 from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
 from usdface.transfer.surface import closest_points, gradient_operator
@@ -44,6 +45,23 @@ def _local_shapes(pts, k=8, seed=0):
     w = np.exp(-np.sum((pts[None] - centers[:, None]) ** 2, -1) / (2 * 0.02 ** 2))
     w[w < 1e-3] = 0.0
     return w[..., None] * rng.normal(size=(k, 1, 3)) * 0.01
+
+
+def test_similarity_from_pairs_of_mirrored_points_is_the_best_proper_similarity():
+    """Landmarks whose best orthogonal fit is a reflection (a capture mirrored left-right): the rotation stays
+    proper and the scale is the least-squares scale for that rotation, ``sum <b, R a> / sum |a|^2``
+    (Umeyama's ``tr(D S) / var``, the smallest singular value subtracted), not the sum of the singular
+    values (which scales the capture too large)."""
+    rng = np.random.default_rng(6)
+    src = rng.normal(size=(12, 3)) * [0.05, 0.03, 0.02]
+    dst = 1.3 * src * [-1.0, 1.0, 1.0] + [0.1, 1.6, 0.05]                   # mirrored in x, scaled 1.3
+    est = similarity_from_pairs(src, dst)
+    assert np.linalg.det(est.rotation) == pytest.approx(1.0)
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    best = float(np.sum(b * (a @ est.rotation.T)) / np.sum(a * a))
+    assert est.scale == pytest.approx(best, rel=1e-12)
+    assert est.scale < 1.3                                         # the mirror is not matched in full
+    np.testing.assert_allclose(est.apply(src).mean(axis=0), dst.mean(axis=0), atol=1e-15)
 
 
 def test_similarity_from_pairs_recovers_known_transform():
@@ -344,7 +362,59 @@ def test_blend_adjacent_is_seamless_and_local():
         assert outside.any()
         np.testing.assert_array_equal(out[outside], approx[outside])  # exactly A_j elsewhere
         assert np.abs(out - approx).max() <= 0.002 + 1e-12  # harmonic: maximum principle, no overshoot
+        # the correction runs from the face's +2 mm towards 0: never below 0 (a correction of the wrong
+        # sign also stays within 2 mm) and, at the adjacent vertices next to the face, a good part of the way
+        corr = (out - approx)[adjacent]
+        assert corr.min() >= -1e-12
+        ring = np.zeros(n, dtype=bool)
+        ring[tris[face[tris].any(axis=1)].ravel()] = True
+        near = adjacent & ring[None, :]
+        assert near.any() and (out - approx)[near].mean() > 0.0005
     assert adjacent.shape == (3, n)
+
+
+def test_blend_adjacent_rim_weight_goes_from_free_to_fixed():
+    """A face vertex of weight w on the region's rim is held to the face's offset by ``w / (1 - w)``: at w
+    near 1 it is the face's (as a fixed vertex), at w near 0 it is what the join gives it as a free vertex."""
+    pts, tris = _grid(12)
+    n = len(pts)
+    r = np.linalg.norm(pts[:, :2], axis=1)
+    face = r < 0.04
+    approx = np.zeros((1, n, 3))
+    approx[0, r < 0.07, 2] = 0.001
+    dface = approx.copy()
+    dface[0, face, 2] = 0.005
+    rim = np.flatnonzero(face & (r > 0.02))
+    assert rim.size
+    results = {}
+    for w_rim in (1e-6, 0.5, 1 - 1e-6):
+        weight = face.astype(float)
+        weight[rim] = w_rim
+        results[w_rim], _ = blend_adjacent(pts, tris, face, dface, approx, face_weight=weight)
+    free_rim = face & ~np.isin(np.arange(n), rim)
+    free, _ = blend_adjacent(pts, tris, free_rim, dface, approx)       # the rim not in the face at all
+    np.testing.assert_allclose(results[1 - 1e-6][0, rim], dface[0, rim], atol=1e-8)
+    np.testing.assert_allclose(results[1e-6][0, rim], free[0, rim], atol=1e-8)
+    z = [results[w][0, rim, 2] for w in (1e-6, 0.5, 1 - 1e-6)]
+    assert np.all(z[0] < z[1]) and np.all(z[1] < z[2])                 # monotone in the weight
+
+
+@pytest.mark.parametrize("mode", ["offset", "dt", "dt-offset"])
+def test_implant_onto_the_capture_itself_gives_each_modes_exact_answer(mode):
+    """The avatar face = the capture mesh, mapped onto itself: ``offset`` and ``dt-offset`` must give the
+    avatar's shape plus the personalization ``B - T`` exactly, ``dt`` the person's shape ``B`` (every
+    deformation gradient is matched exactly, so the least squares leave no residual)."""
+    pts, tris = _grid(14)
+    person = _local_shapes(pts, k=3, seed=2)
+    template = _local_shapes(pts, k=3, seed=3)
+    avatar = _local_shapes(pts, k=3, seed=4)
+    corr = identity_correspondence(pts, tris)
+    np.testing.assert_array_equal(corr.apply(pts, tris), pts)
+    out, adjacent = implant_shapes(pts, tris, corr, tris, pts, person, template, avatar, avatar,
+                                   face_transfer=mode, support=None)
+    want = person if mode == "dt" else avatar + person - template
+    assert not adjacent.any()
+    np.testing.assert_allclose(out, want, atol=1e-9 * np.abs(want).max())
 
 
 def test_blend_adjacent_keeps_a_loose_vertex_a_shape_alone_moves():
@@ -606,3 +676,25 @@ def test_personalize_repairs_the_lids_of_a_larger_character(samples, tmp_path, c
     doc = json.loads(capsys.readouterr().out)
     assert len(doc["eyelids"]["eyeballs"]) == 2, doc["warnings"]
     assert not [w for w in doc["warnings"] if "no eyeball" in w]
+
+
+def test_score_mesh_figures_on_a_case_worked_by_hand():
+    """The bench's figures (mm): face RMSE over the face region only, whole over every vertex, per shape the
+    output's face RMSE minus the generic's (negative: better than generic), the seam the largest jump of the
+    error across an edge near the border of what the capture covers."""
+    from usdface.transfer.scoring import score_mesh
+
+    truth = np.zeros((2, 4, 3))
+    generic = np.zeros((2, 4, 3))
+    generic[:, :, 0] = 0.001                                           # 1 mm off everywhere
+    output = np.zeros((2, 4, 3))
+    output[:, 2:, 0] = 0.002                                           # exact on the face, 2 mm off beyond
+    face = np.array([True, True, False, False])
+    tris = np.array([[0, 1, 2], [1, 3, 2]])
+    s = score_mesh(["a", "b"], generic, output, truth, face=face, covered=face, triangles=tris)
+    assert s.face_out == 0.0 and s.face_generic == pytest.approx(1.0)
+    assert s.whole_out == pytest.approx(np.sqrt(2.0)) and s.whole_generic == pytest.approx(1.0)
+    np.testing.assert_allclose(s.per_shape_delta, [-1.0, -1.0])
+    assert s.seam_out == pytest.approx(2.0) and s.seam_generic == 0.0   # across edges 0-2, 1-2, 1-3
+    assert s.face_ratio == 0.0 and s.whole_ratio == pytest.approx(np.sqrt(2.0))
+

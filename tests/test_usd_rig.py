@@ -496,6 +496,37 @@ def test_errors_are_usdface_errors():
     assert Path(__file__).exists()
 
 
+def test_a_meshs_own_joint_order_maps_its_influences_to_the_skeletons_joints(tmp_path):
+    """A mesh may list its own ``skel:joints`` (a subset, in its own order): its ``jointIndices`` index that
+    list, and the glTF skin's influences are the skeleton's joint indices it names."""
+    from pxr import Gf, UsdGeom, UsdSkel, Vt
+
+    from usdface.io.usd_skeleton import read_gltf_skin
+
+    path = tmp_path / "joints.usda"
+    write_rig(path, "y_cm")
+    n = {}
+
+    def skin(stage):
+        skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Avatar/Skel"))
+        skel.GetJointsAttr().Set(["root", "root/jaw", "root/jaw/tip"])
+        skel.GetBindTransformsAttr().Set(Vt.Matrix4dArray([Gf.Matrix4d(1)] * 3))
+        skel.GetRestTransformsAttr().Set(Vt.Matrix4dArray([Gf.Matrix4d(1)] * 3))
+        head = stage.GetPrimAtPath("/Avatar/Head")
+        n["head"] = len(UsdGeom.Mesh(head).GetPointsAttr().Get())
+        binding = UsdSkel.BindingAPI(head)
+        binding.CreateJointsAttr(["root/jaw/tip", "root"])                  # the mesh's own order
+        binding.CreateJointIndicesPrimvar(False, 1).Set(Vt.IntArray([v % 2 for v in range(n["head"])]))
+        binding.CreateJointWeightsPrimvar(False, 1).Set(Vt.FloatArray([1.0] * n["head"]))
+    edit_stage(path, skin)
+    avatar = read_avatar(path)
+    gskin = read_gltf_skin(path, avatar)
+    assert gskin.joints == ["root", "root/jaw", "root/jaw/tip"]
+    idx, w = gskin.influences["Head"]
+    assert idx[:, 0].tolist() == [2 if v % 2 == 0 else 0 for v in range(n["head"])]   # tip, root, tip, ...
+    np.testing.assert_array_equal(w[:, 0], 1.0)
+
+
 def test_skinned_mesh_is_placed_the_usdskel_way(tmp_path):
     """A mesh with joint influences ignores its own xformOps: world = Skeleton world * geomBindTransform (bind
     pose); the reader agrees with UsdSkel's own skinning of the rest pose."""
