@@ -197,6 +197,23 @@ def test_head_merged_with_a_large_static_part_gives_the_head_alones_offsets(samp
     np.testing.assert_allclose(back, m, rtol=0, atol=2e-7)                       # float32 in the file
 
 
+def test_retarget_map_of_a_head_merged_with_a_body_is_the_head_alones(samples, tmp_path):
+    """``usdface retarget`` of a head and body as one mesh, a piece beyond the capture's reach (the bench's
+    merged avatar): the map stopped with numpy's shape mismatch, the face region (on the reached part) put on
+    the worked-on crop (reached + beyond) without joining the piece beyond back first."""
+    from usdface.api import write_retarget_map
+
+    path, n, strip = _merged_avatar(samples, tmp_path)
+    capture = samples / "capture.usda"
+    alone = write_retarget_map(samples / "avatar.usda", capture, tmp_path / "alone.json")
+    merged = write_retarget_map(path, capture, tmp_path / "merged.json")
+    assert merged.avatar_names == alone.avatar_names and merged.names == alone.names
+    np.testing.assert_allclose(merged.weights, alone.weights, rtol=0, atol=1e-6)
+    assert merged.face.shape == (n + 9600 + strip.size,)
+    np.testing.assert_array_equal(merged.face[:n], alone.face)
+    assert not merged.face[n:].any()
+
+
 def test_read_moving_only_is_the_dense_read_on_its_part(samples, tmp_path):
     from usdface.io.usd_rig import read_avatar
 
