@@ -203,3 +203,32 @@ def test_obj_read_in_a_child_forked_while_another_thread_parses(tmp_path):
     assert child_finishes(lambda: read_obj(path), lambda: mesh_io._CATCH_LOCK), \
         "the forked child waited for good on the OBJ reader's lock"
 
+
+
+def test_obj_writer_writes_write_objs_bytes_formatting_each_topology_once(tmp_path):
+    """``ObjWriter`` (``export --obj-dir``'s many targets of one mesh) writes exactly the bytes of the
+    per-file formula: rows it reuses are the neutral's to the bit (a ``-0.0`` moved by ``+0.0`` becomes
+    ``0.0`` and is written so), the others are formatted again."""
+    from usdface.io.mesh_io import ObjWriter
+
+    rng = np.random.default_rng(3)
+    neutral = rng.normal(size=(40, 3))
+    neutral[0] = [-0.0, 1.0, 2.0]
+    tris = rng.integers(0, 40, size=(70, 3))
+
+    def reference(points):   # write_obj's text before ObjWriter: every row formatted per file
+        return ("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
+                + "".join(f"f {a} {b} {c}\n" for a, b, c in (tris + 1).tolist()))
+
+    delta = np.zeros_like(neutral)
+    delta[[0, 5, 7]] = [[0.0, 0.0, 0.0], [1e-17, 0.0, 0.0], [0.25, -3.0, 1e-9]]
+    writer = ObjWriter(neutral, tris)
+    for k, points in enumerate([neutral, neutral + delta, neutral + 0.0 * delta]):
+        path = writer.write(tmp_path / f"t{k}.obj", points)
+        assert path.read_text() == reference(points)
+        back, faces = read_obj(path)
+        assert back.tobytes() == points.tobytes() and (faces == tris).all()
+    assert (tmp_path / "t1.obj").read_text().startswith("v 0.0 1.0 2.0\n")   # -0.0 + 0.0 is 0.0
+    assert write_obj(tmp_path / "one.obj", neutral, tris).read_text() == reference(neutral)
+    with pytest.raises(GeometryError, match=r"points must be \[40,3\] like the neutral"):
+        writer.write(tmp_path / "bad.obj", neutral[:-1])

@@ -49,6 +49,36 @@ def test_sparse_offsets_densify_onto_their_base_and_check_shapes():
         SparseOffsets([1, 2, 3], values, 5)
 
 
+def test_one_shape_of_sparse_offsets_is_its_row_without_the_dense_array(monkeypatch):
+    """``offsets[k]`` (the shape-by-shape loops: ``personalize --inspect``'s heat map, ``shape_changes``)
+    forms shape k's [n,3] row only: densifying all K shapes for each one cost K x [K,n,3] copies, 24 CPU-s on
+    the 314k-vertex head + body mesh. The same values as the dense array's row, base, copies and zeros."""
+    from usdface.motion import shape_changes
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(4, 7, 3))
+    values = rng.normal(size=(4, 3, 3))
+    copies = (np.array([6]), np.array([0]))                 # vertex 6 a welded copy of vertices[0] = 1
+    with_base = SparseOffsets([1, 3, 4], values, 7, base=base, copies=copies)
+    zero_based = SparseOffsets([1, 3, 4], values, 7)
+    dense = {id(o): o.dense() for o in (with_base, zero_based)}
+
+    def refused(self):
+        raise AssertionError("one shape densified the whole [K,n,3] array")
+
+    monkeypatch.setattr(SparseOffsets, "dense", refused)
+    for off in (with_base, zero_based):
+        for k in (0, 3, -1):
+            assert off[k].tobytes() == dense[id(off)][k].tobytes()
+        with pytest.raises(IndexError):
+            off[4]
+    rms, largest = shape_changes(with_base, base)
+    monkeypatch.undo()
+    ref_rms, ref_largest = shape_changes(np.asarray(with_base), base)
+    assert rms.tobytes() == ref_rms.tobytes() and largest.tobytes() == ref_largest.tobytes()
+    assert rms[[0, 2, 5]].max() == 0.0 and rms[6] > 0
+
+
 def test_peak_of_sparse_shapes_and_the_part_kept():
     points, tri = _grid(30, 30)
     # one shape moving a 3x3 patch, one dense shape moving a single vertex; float noise elsewhere
@@ -195,6 +225,23 @@ def test_head_merged_with_a_large_static_part_gives_the_head_alones_offsets(samp
             assert idx.size and (idx < n).sum() + np.isin(idx, strip).sum() == idx.size, prim.GetPath()
     back = read_avatar(tmp_path / "out.usda").mesh("Head").deltas
     np.testing.assert_allclose(back, m, rtol=0, atol=2e-7)                       # float32 in the file
+
+
+def test_retarget_map_of_a_head_merged_with_a_body_is_the_head_alones(samples, tmp_path):
+    """``usdface retarget`` of a head and body as one mesh, a piece beyond the capture's reach (the bench's
+    merged avatar): the map stopped with numpy's shape mismatch, the face region (on the reached part) put on
+    the worked-on crop (reached + beyond) without joining the piece beyond back first."""
+    from usdface.api import write_retarget_map
+
+    path, n, strip = _merged_avatar(samples, tmp_path)
+    capture = samples / "capture.usda"
+    alone = write_retarget_map(samples / "avatar.usda", capture, tmp_path / "alone.json")
+    merged = write_retarget_map(path, capture, tmp_path / "merged.json")
+    assert merged.avatar_names == alone.avatar_names and merged.names == alone.names
+    np.testing.assert_allclose(merged.weights, alone.weights, rtol=0, atol=1e-6)
+    assert merged.face.shape == (n + 9600 + strip.size,)
+    np.testing.assert_array_equal(merged.face[:n], alone.face)
+    assert not merged.face[n:].any()
 
 
 def test_read_moving_only_is_the_dense_read_on_its_part(samples, tmp_path):

@@ -540,6 +540,8 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                                       _fit_prior(fit, names, capture, generic_on_capture, sim, prior),
                                       scale=sim.scale)
             _warn_untrusted_rows(report, weights, names, k_names, trust)
+            if beyond is not None:   # the face mesh in one piece again (a body merged into the head's mesh)
+                f = _join(f, reached, False, rest)
             face_all = scatter(f[:, None], regions[face_prim])[:, 0] if face_prim in regions else f
             if own_cache:
                 _write_pending(pending_cache)
