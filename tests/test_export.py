@@ -924,3 +924,57 @@ def test_export_variant_generic_of_a_flattened_export(layer, tmp_path, capsys):
     got = read_gltf(out)
     for rig in generic.meshes:
         np.testing.assert_array_equal(got[rig.name]["targets"], rig.deltas.astype(np.float32))
+
+
+def test_gltf_skins_each_avatar_of_a_shot_by_its_own_skeleton(layer, tmp_path):
+    """A user trial (stop 44): a shot with two SkelRoots (the personalized layer referenced twice, the second
+    hero moved 30 cm) exported one skin (the first skeleton's) that no mesh used: every mesh placed right but
+    unskinned, so posing either skeleton moved nothing. Each skeleton is now its own glTF skin, each mesh
+    skinned by the skeleton UsdSkel binds it to, and every skin's joints at rest times its inverse bind
+    matrices is the identity (the points stay where POSITION puts them)."""
+    import pygltflib
+
+    shot = tmp_path / "shot.usda"
+    shot.write_text(f'''#usda 1.0
+(
+    defaultPrim = "World"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+)
+def Xform "World"
+{{
+    def "HeroA" (prepend references = @{layer.as_posix()}@) {{}}
+    def "HeroB" (prepend references = @{layer.as_posix()}@)
+    {{
+        double3 xformOp:translate = (30, 0, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }}
+}}
+''')
+    path = api.export_avatar(shot, gltf=tmp_path / "two.glb")["gltf"]
+    gltf = pygltflib.GLTF2().load(str(path))
+    assert len(gltf.skins) == 2
+    assert sorted(s.name for s in gltf.skins) == ["World_HeroA_Skel", "World_HeroB_Skel"]
+    assert not set(gltf.skins[0].joints) & set(gltf.skins[1].joints)
+    meshes = [n for n in gltf.nodes if n.mesh is not None]
+    assert len(meshes) == 8
+    for node in meshes:                                 # every mesh skinned, by its own avatar's skeleton
+        hero = node.name.split("_")[1]
+        assert node.skin is not None and gltf.skins[node.skin].name == f"World_{hero}_Skel", node.name
+    blob = gltf.binary_blob()
+    data = read_gltf(path)
+    for index, skin in enumerate(gltf.skins):
+        ibm = _read_accessor_matrices(gltf, blob, skin.inverseBindMatrices)
+        world = np.stack([np.asarray(gltf.nodes[j].matrix).reshape(4, 4).T for j in skin.joints])
+        np.testing.assert_allclose(world @ ibm, np.broadcast_to(np.eye(4), world.shape), atol=1e-6)
+        shift = 0.3 if gltf.skins[index].name.endswith("HeroB_Skel") else 0.0
+        np.testing.assert_allclose(world[0][:3, 3], [shift, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(data["World_HeroB_Head"]["positions"] - data["World_HeroA_Head"]["positions"],
+                               np.broadcast_to([0.3, 0, 0], data["World_HeroA_Head"]["positions"].shape),
+                               atol=1e-6)
+
+
+def _read_accessor_matrices(gltf, blob, index) -> np.ndarray:
+    from usdface.io.gltf import _read_accessor
+
+    return _read_accessor(gltf, blob, index).reshape(-1, 4, 4).transpose(0, 2, 1)

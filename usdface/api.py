@@ -1766,10 +1766,13 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                  f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
                  "and 1 there")
         if gltf:
-            from .io.usd_skeleton import read_gltf_skin
+            from .io.usd_skeleton import read_gltf_skins
 
             p.start(f"write {Path(gltf).name}")
-            skeleton = read_gltf_skin(layer_path, avatar) if skin else None
+            # one skin per skeleton (a shot with two avatars: each mesh skinned by its own), keyed by the
+            # meshes' names in the glTF (A_Head, B_Head when two share a name)
+            names = {str(prim): rig.name for (prim, _), rig in zip(keyed, rigs, strict=True)}
+            skeleton = read_gltf_skins(layer_path, avatar, names=names) if skin else None
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
             given = exported_variant(layer_path, variant)
             extras = {"usdface": {"source": Path(layer_path).name, "variant": given}}

@@ -16,8 +16,8 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
   one vertex per distinct (point, coordinates) pair, as glTF has one value per vertex (a point on a UV seam
   becomes two vertices with its position, normal, offsets and joints);
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
-* optionally a skin: joint nodes (local rest transforms), ``inverseBindMatrices`` and per-vertex ``JOINTS_0``
-  / ``WEIGHTS_0`` (:class:`GltfSkin`).
+* optionally skins, one per skeleton: joint nodes (local rest transforms), ``inverseBindMatrices`` and
+  per-vertex ``JOINTS_0`` / ``WEIGHTS_0`` (:class:`GltfSkin`).
 
 Arrays: ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. Every written value is the
 float32 rounding of the input, so :func:`read_gltf` gives back ``float32(neutral)`` and ``float32(deltas)``
@@ -193,11 +193,13 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
             blob.accessor(w.astype(np.float32), "VEC4", target=_ARRAY_BUFFER))
 
 
-def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
+def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, root_name: str = "Avatar",
                extras: dict | None = None, node_extras: dict | None = None, texcoords: dict | None = None,
                force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
-    ``root_name`` with the ``skin``'s joints and the meshes it does not skin, each skinned mesh a root node of
+    ``root_name`` with the joints of each ``skin`` (one :class:`GltfSkin`, or a list: one glTF skin per
+    skeleton, each mesh skinned by the skin whose ``influences`` name it, the first that does) and the meshes
+    no skin names, each skinned mesh a root node of
     the scene beside it (glTF places a skinned mesh by its joints alone, and the Khronos validator warns of a
     skinned mesh under a parent), morph targets as described in the module doc. ``.glb``: binary; ``.gltf``:
     JSON with the buffer embedded as a data URI. ``extras`` go to the scene's ``extras``; ``node_extras`` to
@@ -225,7 +227,12 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     root_children: list[int] = []
     scene_nodes = [0]       # the root, and the skinned meshes: glTF skins them by the joints alone, so the
     #                         Khronos validator warns of a parent (NODE_SKINNED_MESH_NON_ROOT)
-    skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
+    skins = [] if skin is None else [skin] if isinstance(skin, GltfSkin) else list(skin)
+    skin_of = {}                                            # mesh name -> (glTF skin index, GltfSkin)
+    for one in skins:
+        index = _skin(gltf, blob, one, root_children)
+        for name in one.influences:
+            skin_of.setdefault(name, (index, one))
     for rig in rigs:
         tris = np.asarray(rig.triangles, dtype=np.int64)
         normals = _unit_normals(rig.neutral, tris)          # on the mesh as authored: no seams in the shading
@@ -240,8 +247,9 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
         if uv is not None:                                  # glTF's v runs down the image, USD's t up
             attrs.TEXCOORD_0 = blob.accessor(np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32),
                                              "VEC2", target=_ARRAY_BUFFER)
-        if skin is not None and rig.name in skin.influences:
-            joints, weights = skin.influences[rig.name]
+        skin_index, owner = skin_of.get(rig.name, (None, None))
+        if owner is not None:
+            joints, weights = owner.influences[rig.name]
             attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, np.asarray(joints)[keep],
                                                                  np.asarray(weights)[keep])
         deltas = np.asarray(rig.deltas, dtype=np.float64)
@@ -258,7 +266,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
         gltf.meshes.append(mesh)
         node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1, extras=dict(node_extras or {}))
         gltf.nodes.append(node)
-        if skin_index is not None and rig.name in skin.influences:
+        if skin_index is not None:
             node.skin = skin_index
             scene_nodes.append(len(gltf.nodes) - 1)
         else:
