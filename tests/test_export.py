@@ -978,3 +978,86 @@ def _read_accessor_matrices(gltf, blob, index) -> np.ndarray:
     from usdface.io.gltf import _read_accessor
 
     return _read_accessor(gltf, blob, index).reshape(-1, 4, 4).transpose(0, 2, 1)
+
+
+def _faceted_sample(samples, out: Path) -> Path:
+    """The sample avatar turned (``rotateXYZ = (90, 0, 30)`` on its SkelRoot) with authored normals: per
+    face corner on Head, each face's corners the normal of its first fan triangle (every edge a hard edge,
+    as a DCC's flat shading), none on Mouth; and ``normalOffsets`` on Head's first shape, (0, 0.5, 0) at
+    each of its points."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(samples / "avatar.usda"))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar")).AddRotateXYZOp().Set(Gf.Vec3f(90, 0, 30))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
+    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    a, b, c = (points[idx[start + i]] for i in range(3))
+    face = np.cross(b - a, c - a)
+    face /= np.linalg.norm(face, axis=1, keepdims=True)
+    mesh.CreateNormalsAttr().Set(np.repeat(face, counts, axis=0).astype(np.float32).tolist())
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    first = UsdSkel.BindingAPI(mesh.GetPrim()).GetBlendShapeTargetsRel().GetForwardedTargets()[0]
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath(first))
+    n = len(shape.GetOffsetsAttr().Get())
+    shape.CreateNormalOffsetsAttr().Set([(0.0, 0.5, 0.0)] * n)
+    assert shape.GetNormalOffsetsAttr().GetTypeName() == Sdf.ValueTypeNames.Vector3fArray
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_gltf_carries_the_authored_normals_and_normal_offsets(samples, tmp_path):
+    """A user trial (stop 44): the glTF's NORMALs were computed from the triangles (smooth, area-weighted),
+    so an avatar's authored normals (hard edges, a DCC's custom normals) were lost, and a shape's authored
+    ``normalOffsets`` too. The authored normals are now the glTF's, in its frame (the avatar turned), split
+    at a hard edge as at a UV seam; a shape's ``normalOffsets`` are its target's NORMAL deltas. A mesh
+    without normals (Mouth) and a shape without offsets keep the computed ones."""
+    from usdface.io.gltf import _unit_normals
+
+    faceted = _faceted_sample(samples, tmp_path / "faceted.usda")
+    data = read_gltf(api.export_avatar(faceted, gltf=tmp_path / "f.glb")["gltf"])
+    avatar = api.read_avatar(faceted)
+    rig, got = avatar.mesh("Head"), data["Head"]
+    tris = got["indices"]
+    assert len(tris) == len(rig.triangles)
+    np.testing.assert_array_equal(got["positions"][tris], rig.neutral.astype(np.float32)[rig.triangles])
+    # a face's first fan triangle: its corners carry that triangle's own normal, in the glTF's frame
+    p = got["positions"].astype(np.float64)[tris]
+    flat = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+    normals = got["normals"][tris]
+    cos = np.einsum("tcj,tj->tc", normals, flat)
+    assert np.median(cos) > 1 - 1e-6                      # most faces are triangles or planar quads
+    assert len(got["positions"]) > 2 * rig.n_vertices   # every hard edge split: one vertex per face corner
+    np.testing.assert_allclose(np.linalg.norm(got["normals"], axis=1), 1.0, atol=1e-6)
+    # the first shape's normalOffsets (0, 0.5, 0) turned as the avatar; the next keeps the computed deltas
+    linear = rig.source.to_internal[:3, :3]
+    turned = np.array([0.0, 0.5, 0.0]) @ np.linalg.inv(linear) * np.cbrt(np.linalg.det(linear))
+    first = got["targets"][0]
+    moved = np.zeros(rig.n_vertices, dtype=bool)
+    moved[rig.source.point_indices[0]] = True
+    split_moved = moved[_points_of(got["positions"], rig.neutral)]
+    np.testing.assert_allclose(got["target_normals"][0][split_moved],
+                               np.broadcast_to(turned, (split_moved.sum(), 3)), atol=1e-6)
+    assert not np.any(got["target_normals"][0][~split_moved])
+    assert np.abs(first).max() > 0
+    computed = _unit_normals(rig.neutral + rig.deltas[1], rig.triangles) - _unit_normals(rig.neutral,
+                                                                                        rig.triangles)
+    np.testing.assert_allclose(got["target_normals"][1], computed[_points_of(got["positions"], rig.neutral)],
+                               atol=1e-6)
+    mouth = avatar.mesh("Mouth")                        # no authored normals: computed, unsplit
+    np.testing.assert_allclose(data["Mouth"]["normals"], _unit_normals(mouth.neutral, mouth.triangles),
+                               atol=1e-6)
+
+
+def _points_of(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """The point of ``neutral`` each (split) glTF vertex is a copy of, by position."""
+    from scipy.spatial import cKDTree
+
+    dist, index = cKDTree(neutral).query(positions.astype(np.float64))
+    assert dist.max() < 1e-6
+    return index

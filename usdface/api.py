@@ -1779,12 +1779,19 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
             # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
             marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
-            from .io.usd_texcoords import read_texcoords
+            from .io.usd_texcoords import normal_offsets, read_normals, read_texcoords
 
             uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
                                               for (prim, _), rig in zip(keyed, rigs, strict=True)])
+            # the meshes' authored normals (hard edges, a DCC's custom normals) and the shapes' normalOffsets
+            placed = {m.key: m.source.to_internal for m in avatar.meshes if m.source}
+            placed.update(avatar.metadata.get("static_to_internal", {}))
+            normals = read_normals(layer_path, [(prim, rig.name, rig.triangles, placed[prim])
+                                                for (prim, _), rig in zip(keyed, rigs, strict=True)
+                                                if prim in placed])
+            offsets = {rig.name: found for rig in rigs if (found := normal_offsets(rig)) is not None}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       texcoords=uvs, force=force)
+                       texcoords=uvs, normals=normals, target_normals=offsets, force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             p.start(f"write {sum(len(r.names) + 1 for r in rigs)} OBJs to {Path(obj_dir).name}")
