@@ -1061,3 +1061,38 @@ def _points_of(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     dist, index = cKDTree(neutral).query(positions.astype(np.float64))
     assert dist.max() < 1e-6
     return index
+
+
+def test_obj_export_writes_the_texture_coordinates(samples, tmp_path):
+    """A user trial (stop 44): the OBJs of ``export --obj-dir`` had no ``vt``, so a textured avatar's
+    targets arrived in a DCC without texture coordinates. They are now written from the mesh's ``st``
+    (OBJ's v is up, as USD's t), one ``vt`` per distinct pair and ``f a/ta ...`` (a seam needs no split
+    point); the positions and faces read back exactly, a mesh without coordinates has no ``vt``."""
+    from usdface.io.mesh_io import fan_triangulate
+
+    textured = _textured_sample(samples, tmp_path / "textured.usda")
+    out = api.export_avatar(textured, obj_dir=tmp_path / "objs")["obj_dir"]
+    avatar = api.read_avatar(textured)
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(textured))
+    for name in ("Head", "Mouth"):
+        rig = avatar.mesh(name)
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get(), dtype=np.float64)
+        counts, idx = mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()
+        per_corner = len(st) == len(idx)
+        corner = st[fan_triangulate(counts, np.arange(len(idx)))] if per_corner else st[rig.triangles]
+        for file in ("neutral.obj", f"{rig.names[0]}.obj"):
+            text = (out / name / file).read_text()
+            vt = np.array([line.split()[1:] for line in text.splitlines() if line.startswith("vt ")], float)
+            faces = [line.split()[1:] for line in text.splitlines() if line.startswith("f ")]
+            pairs = np.array([[c.split("/") for c in f] for f in faces], dtype=np.int64) - 1
+            np.testing.assert_array_equal(pairs[..., 0], rig.triangles)
+            np.testing.assert_array_equal(vt[pairs[..., 1]], corner.astype(np.float32))
+            points, tris = read_obj(out / name / file)
+            want = rig.neutral + (rig.deltas[0] if file != "neutral.obj" else 0.0)
+            np.testing.assert_array_equal(points, want)
+            np.testing.assert_array_equal(tris, rig.triangles)
+    assert len(vt) < 3 * len(rig.triangles)                 # shared corners share a vt
+    assert "vt " not in (out / "EyeLeft" / "neutral.obj").read_text()

@@ -1628,7 +1628,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
       ``mesh.extras.targetNames``, metres, Y up, with the skin and skeleton when ``skin`` and the avatar has
       joints (see :mod:`usdface.io.gltf`);
     * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
-      ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``);
+      ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``), with ``vt`` texture
+      coordinates when the mesh has them;
     * ``flatten``: one flattened USD file with the variant baked in (``.usdz``: packaged by USD)
       (:func:`usdface.io.flatten.flatten_variant`).
 
@@ -1765,6 +1766,10 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
                  f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
                  "and 1 there")
+        from .io.usd_texcoords import read_texcoords
+
+        uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
+                                          for (prim, _), rig in zip(keyed, rigs, strict=True)])
         if gltf:
             from .io.usd_skeleton import read_gltf_skins
 
@@ -1779,10 +1784,8 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
             # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
             marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
-            from .io.usd_texcoords import normal_offsets, read_normals, read_texcoords
+            from .io.usd_texcoords import normal_offsets, read_normals
 
-            uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
-                                              for (prim, _), rig in zip(keyed, rigs, strict=True)])
             # the meshes' authored normals (hard edges, a DCC's custom normals) and the shapes' normalOffsets
             placed = {m.key: m.source.to_internal for m in avatar.meshes if m.source}
             placed.update(avatar.metadata.get("static_to_internal", {}))
@@ -1799,9 +1802,10 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                 for rig in rigs:
                     folder = tmp / rig.name
                     folder.mkdir()
-                    write_obj(folder / "neutral.obj", rig.neutral, rig.triangles)
+                    uv = uvs.get(rig.name)              # vt: the same texture coordinates as the glTF
+                    write_obj(folder / "neutral.obj", rig.neutral, rig.triangles, uv)
                     for name, delta in zip(rig.names, rig.deltas, strict=True):
-                        write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles)
+                        write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles, uv)
             done["obj_dir"] = _written(obj_dir)
     if flatten:
         p.start(f"flatten the {variant} variant into {Path(flatten).name}")

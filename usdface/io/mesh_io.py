@@ -238,11 +238,14 @@ def _general_parse(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _vertex_rows(v_lines, path), _face_triangles(f_lines, lines, path)
 
 
-def write_obj(path, points, triangles) -> Path:
+def write_obj(path, points, triangles, uv=None) -> Path:
     """Write ``points[n, 3]`` and ``triangles[t, 3]`` (0-based) as an OBJ, atomically (temp file + rename).
 
     Coordinates are written as the shortest decimal that reads back to the identical float64, so
-    ``read_obj(write_obj(p, V, F))`` returns exactly ``V`` and ``F``.
+    ``read_obj(write_obj(p, V, F))`` returns exactly ``V`` and ``F``. ``uv[t, 3, 2]``: texture coordinates
+    per triangle corner (USD's ``(s, t)``, which is OBJ's ``(u, v)``, v up), written as one ``vt`` per
+    distinct pair and ``f a/ta b/tb c/tc`` (OBJ indexes positions and coordinates apart: a UV seam needs no
+    split point).
     """
     path = Path(path)
     points = np.asarray(points, dtype=np.float64)
@@ -258,5 +261,16 @@ def write_obj(path, points, triangles) -> Path:
     if triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):
         raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
     text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
-    text += "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
+    if uv is None:
+        text += "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
+        return write_text_atomic(path, text, force=True)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv) != triangles.size or not np.isfinite(uv).all():
+        raise GeometryError(f"texture coordinates must be finite, one pair per triangle corner "
+                            f"({triangles.size}), got {len(uv)}", path=path,
+                            fix="pass uv[t, 3, 2] for triangles[t, 3]")
+    values, corner = np.unique(uv, axis=0, return_inverse=True)
+    text += "".join(f"vt {u!r} {v!r}\n" for u, v in values.tolist())
+    rows = np.column_stack([triangles.reshape(-1) + 1, np.asarray(corner).reshape(-1) + 1]).reshape(-1, 6)
+    text += "".join(f"f {a}/{ta} {b}/{tb} {c}/{tc}\n" for a, ta, b, tb, c, tc in rows.tolist())
     return write_text_atomic(path, text, force=True)
