@@ -1749,7 +1749,7 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
     from .io.atomic import replace_dir_atomically
     from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import write_gltf
-    from .io.mesh_io import write_obj
+    from .io.mesh_io import write_objs
     from .io.usd_rig import VARIANT_PROPERTY
     from .model import FaceRig as _FaceRig
 
@@ -1802,10 +1802,11 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                 for rig in rigs:
                     folder = tmp / rig.name
                     folder.mkdir()
-                    uv = uvs.get(rig.name)              # vt: the same texture coordinates as the glTF
-                    write_obj(folder / "neutral.obj", rig.neutral, rig.triangles, uv)
-                    for name, delta in zip(rig.names, rig.deltas, strict=True):
-                        write_obj(folder / f"{name}.obj", rig.neutral + delta, rig.triangles, uv)
+                    # vt: the same texture coordinates as the glTF; faces formatted once per mesh
+                    write_objs([(folder / "neutral.obj", rig.neutral)] +
+                               [(folder / f"{name}.obj", rig.neutral + delta)
+                                for name, delta in zip(rig.names, rig.deltas, strict=True)],
+                               rig.triangles, uvs.get(rig.name))
             done["obj_dir"] = _written(obj_dir)
     if flatten:
         p.start(f"flatten the {variant} variant into {Path(flatten).name}")

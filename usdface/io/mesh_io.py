@@ -21,7 +21,7 @@ from ..errors import GeometryError, InputFileError
 from ..locks import ForkSafeLock
 from .atomic import write_text_atomic
 
-__all__ = ["read_obj", "write_obj", "fan_triangulate"]
+__all__ = ["read_obj", "write_obj", "write_objs", "fan_triangulate"]
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -247,30 +247,48 @@ def write_obj(path, points, triangles, uv=None) -> Path:
     distinct pair and ``f a/ta b/tb c/tc`` (OBJ indexes positions and coordinates apart: a UV seam needs no
     split point).
     """
-    path = Path(path)
-    points = np.asarray(points, dtype=np.float64)
+    return write_objs([(path, points)], triangles, uv)[0]
+
+
+def write_objs(items, triangles, uv=None) -> list[Path]:
+    """:func:`write_obj` of several meshes sharing one topology (a neutral and its full target meshes):
+    ``items`` ``[(path, points[n, 3])]``, ``triangles[t, 3]`` and ``uv`` as there; the faces and texture
+    coordinates are formatted once. Returns the paths written."""
+    items = [(Path(path), np.asarray(points, dtype=np.float64)) for path, points in items]
     triangles = np.asarray(triangles, dtype=np.int64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise GeometryError(f"points must be a non-empty [n,3] array, got {points.shape}", path=path,
-                            fix="pass mesh vertices as an [n,3] array")
-    if not np.isfinite(points).all():
-        raise GeometryError("points contain NaN or infinite values", path=path, fix="repair the mesh first")
+    out = []
+    topology = None
+    for path, points in items:
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+            raise GeometryError(f"points must be a non-empty [n,3] array, got {points.shape}", path=path,
+                                fix="pass mesh vertices as an [n,3] array")
+        if not np.isfinite(points).all():
+            raise GeometryError("points contain NaN or infinite values", path=path,
+                                fix="repair the mesh first")
+        if topology is None:
+            topology = _obj_topology(path, len(points), triangles, uv)
+        elif triangles.size and triangles.max() >= len(points):
+            raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
+        text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
+        out.append(write_text_atomic(path, text + topology, force=True))
+    return out
+
+
+def _obj_topology(path: Path, n: int, triangles: np.ndarray, uv) -> str:
+    """The ``vt`` and ``f`` records of :func:`write_objs`, checked against ``n`` points."""
     if triangles.ndim != 2 or triangles.shape[1] != 3:
         raise GeometryError(f"triangles must be [t,3], got {triangles.shape}", path=path,
                             fix="pass faces as a [t,3] index array")
-    if triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= n):
         raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
-    text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
     if uv is None:
-        text += "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
-        return write_text_atomic(path, text, force=True)
+        return "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if len(uv) != triangles.size or not np.isfinite(uv).all():
         raise GeometryError(f"texture coordinates must be finite, one pair per triangle corner "
                             f"({triangles.size}), got {len(uv)}", path=path,
                             fix="pass uv[t, 3, 2] for triangles[t, 3]")
     values, corner = np.unique(uv, axis=0, return_inverse=True)
-    text += "".join(f"vt {u!r} {v!r}\n" for u, v in values.tolist())
+    text = "".join(f"vt {u!r} {v!r}\n" for u, v in values.tolist())
     rows = np.column_stack([triangles.reshape(-1) + 1, np.asarray(corner).reshape(-1) + 1]).reshape(-1, 6)
-    text += "".join(f"f {a}/{ta} {b}/{tb} {c}/{tc}\n" for a, ta, b, tb, c, tc in rows.tolist())
-    return write_text_atomic(path, text, force=True)
+    return text + "".join(f"f {a}/{ta} {b}/{tb} {c}/{tc}\n" for a, ta, b, tb, c, tc in rows.tolist())
