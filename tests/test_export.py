@@ -956,6 +956,9 @@ def Xform "World"
     assert len(gltf.skins) == 2
     assert sorted(s.name for s in gltf.skins) == ["World_HeroA_Skel", "World_HeroB_Skel"]
     assert not set(gltf.skins[0].joints) & set(gltf.skins[1].joints)
+    for skin in gltf.skins:               # each skeleton under a node of its own: Blender makes 2 armatures
+        group = [n for n in gltf.nodes if n.name == skin.name and n.mesh is None]
+        assert len(group) == 1 and skin.skeleton in group[0].children
     meshes = [n for n in gltf.nodes if n.mesh is not None]
     assert len(meshes) == 8
     for node in meshes:                                 # every mesh skinned, by its own avatar's skeleton

@@ -19,7 +19,8 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
   becomes two vertices with its position, normal, offsets and joints);
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
 * optionally skins, one per skeleton: joint nodes (local rest transforms), ``inverseBindMatrices`` and
-  per-vertex ``JOINTS_0`` / ``WEIGHTS_0`` (:class:`GltfSkin`).
+  per-vertex ``JOINTS_0`` / ``WEIGHTS_0`` (:class:`GltfSkin`); with several, each skeleton's joints under a
+  node of its name.
 
 Arrays: ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. Every written value is the
 float32 rounding of the input, so :func:`read_gltf` gives back ``float32(neutral)`` and ``float32(deltas)``
@@ -248,7 +249,12 @@ def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, roo
     skins = [] if skin is None else [skin] if isinstance(skin, GltfSkin) else list(skin)
     skin_of = {}                                            # mesh name -> (glTF skin index, GltfSkin)
     for one in skins:
-        index = _skin(gltf, blob, one, root_children)
+        parent = root_children
+        if len(skins) > 1:   # a node per skeleton holding its joints: Blender's importer makes an armature
+            gltf.nodes.append(pygltflib.Node(name=one.name))   # of each (of all in one, joints side by side)
+            root_children.append(len(gltf.nodes) - 1)
+            parent = gltf.nodes[-1].children
+        index = _skin(gltf, blob, one, parent)
         for name in one.influences:
             skin_of.setdefault(name, (index, one))
     for rig in rigs:
