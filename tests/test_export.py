@@ -961,3 +961,178 @@ def test_gltf_skin_keeps_each_vertexs_four_largest_influences_with_their_joints(
         got = dict(zip(data["joints"][v].tolist(), data["weights"][v].tolist(), strict=True))
         assert got.keys() == want.keys()
         assert all(abs(got[j] - want[j]) < 1e-6 for j in want)
+
+
+def test_gltf_skins_each_avatar_of_a_shot_by_its_own_skeleton(layer, tmp_path):
+    """A user trial (stop 44): a shot with two SkelRoots (the personalized layer referenced twice, the second
+    hero moved 30 cm) exported one skin (the first skeleton's) that no mesh used: every mesh placed right but
+    unskinned, so posing either skeleton moved nothing. Each skeleton is now its own glTF skin, each mesh
+    skinned by the skeleton UsdSkel binds it to, and every skin's joints at rest times its inverse bind
+    matrices is the identity (the points stay where POSITION puts them)."""
+    import pygltflib
+
+    shot = tmp_path / "shot.usda"
+    shot.write_text(f'''#usda 1.0
+(
+    defaultPrim = "World"
+    metersPerUnit = 0.01
+    upAxis = "Y"
+)
+def Xform "World"
+{{
+    def "HeroA" (prepend references = @{layer.as_posix()}@) {{}}
+    def "HeroB" (prepend references = @{layer.as_posix()}@)
+    {{
+        double3 xformOp:translate = (30, 0, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }}
+}}
+''')
+    path = api.export_avatar(shot, gltf=tmp_path / "two.glb")["gltf"]
+    gltf = pygltflib.GLTF2().load(str(path))
+    assert len(gltf.skins) == 2
+    assert sorted(s.name for s in gltf.skins) == ["World_HeroA_Skel", "World_HeroB_Skel"]
+    assert not set(gltf.skins[0].joints) & set(gltf.skins[1].joints)
+    for skin in gltf.skins:               # each skeleton under a node of its own: Blender makes 2 armatures
+        group = [n for n in gltf.nodes if n.name == skin.name and n.mesh is None]
+        assert len(group) == 1 and skin.skeleton in group[0].children
+    meshes = [n for n in gltf.nodes if n.mesh is not None]
+    assert len(meshes) == 8
+    for node in meshes:                                 # every mesh skinned, by its own avatar's skeleton
+        hero = node.name.split("_")[1]
+        assert node.skin is not None and gltf.skins[node.skin].name == f"World_{hero}_Skel", node.name
+    blob = gltf.binary_blob()
+    data = read_gltf(path)
+    for index, skin in enumerate(gltf.skins):
+        ibm = _read_accessor_matrices(gltf, blob, skin.inverseBindMatrices)
+        world = np.stack([np.asarray(gltf.nodes[j].matrix).reshape(4, 4).T for j in skin.joints])
+        np.testing.assert_allclose(world @ ibm, np.broadcast_to(np.eye(4), world.shape), atol=1e-6)
+        shift = 0.3 if gltf.skins[index].name.endswith("HeroB_Skel") else 0.0
+        np.testing.assert_allclose(world[0][:3, 3], [shift, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(data["World_HeroB_Head"]["positions"] - data["World_HeroA_Head"]["positions"],
+                               np.broadcast_to([0.3, 0, 0], data["World_HeroA_Head"]["positions"].shape),
+                               atol=1e-6)
+
+
+def _read_accessor_matrices(gltf, blob, index) -> np.ndarray:
+    from usdface.io.gltf import _read_accessor
+
+    return _read_accessor(gltf, blob, index).reshape(-1, 4, 4).transpose(0, 2, 1)
+
+
+def _faceted_sample(samples, out: Path) -> Path:
+    """The sample avatar turned (``rotateXYZ = (90, 0, 30)`` on its SkelRoot) with authored normals: per
+    face corner on Head, each face's corners the normal of its first fan triangle (every edge a hard edge,
+    as a DCC's flat shading), none on Mouth; and ``normalOffsets`` on Head's first shape, (0, 0.5, 0) at
+    each of its points."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(samples / "avatar.usda"))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Avatar")).AddRotateXYZOp().Set(Gf.Vec3f(90, 0, 30))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
+    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    a, b, c = (points[idx[start + i]] for i in range(3))
+    face = np.cross(b - a, c - a)
+    face /= np.linalg.norm(face, axis=1, keepdims=True)
+    mesh.CreateNormalsAttr().Set(np.repeat(face, counts, axis=0).astype(np.float32).tolist())
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    first = UsdSkel.BindingAPI(mesh.GetPrim()).GetBlendShapeTargetsRel().GetForwardedTargets()[0]
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath(first))
+    n = len(shape.GetOffsetsAttr().Get())
+    shape.CreateNormalOffsetsAttr().Set([(0.0, 0.5, 0.0)] * n)
+    assert shape.GetNormalOffsetsAttr().GetTypeName() == Sdf.ValueTypeNames.Vector3fArray
+    stage.GetRootLayer().Save()
+    return out
+
+
+def test_gltf_carries_the_authored_normals_and_normal_offsets(samples, tmp_path):
+    """A user trial (stop 44): the glTF's NORMALs were computed from the triangles (smooth, area-weighted),
+    so an avatar's authored normals (hard edges, a DCC's custom normals) were lost, and a shape's authored
+    ``normalOffsets`` too. The authored normals are now the glTF's, in its frame (the avatar turned), split
+    at a hard edge as at a UV seam; a shape's ``normalOffsets`` are its target's NORMAL deltas. A mesh
+    without normals (Mouth) and a shape without offsets keep the computed ones."""
+    from usdface.io.gltf import _unit_normals
+
+    faceted = _faceted_sample(samples, tmp_path / "faceted.usda")
+    data = read_gltf(api.export_avatar(faceted, gltf=tmp_path / "f.glb")["gltf"])
+    avatar = api.read_avatar(faceted)
+    rig, got = avatar.mesh("Head"), data["Head"]
+    tris = got["indices"]
+    assert len(tris) == len(rig.triangles)
+    np.testing.assert_array_equal(got["positions"][tris], rig.neutral.astype(np.float32)[rig.triangles])
+    # a face's first fan triangle: its corners carry that triangle's own normal, in the glTF's frame
+    p = got["positions"].astype(np.float64)[tris]
+    flat = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+    normals = got["normals"][tris]
+    cos = np.einsum("tcj,tj->tc", normals, flat)
+    assert np.median(cos) > 1 - 1e-6                      # most faces are triangles or planar quads
+    assert len(got["positions"]) > 2 * rig.n_vertices   # every hard edge split: one vertex per face corner
+    np.testing.assert_allclose(np.linalg.norm(got["normals"], axis=1), 1.0, atol=1e-6)
+    # the first shape's normalOffsets (0, 0.5, 0) turned as the avatar; the next keeps the computed deltas
+    linear = rig.source.to_internal[:3, :3]
+    turned = np.array([0.0, 0.5, 0.0]) @ np.linalg.inv(linear) * np.cbrt(np.linalg.det(linear))
+    first = got["targets"][0]
+    moved = np.zeros(rig.n_vertices, dtype=bool)
+    moved[rig.source.point_indices[0]] = True
+    split_moved = moved[_points_of(got["positions"], rig.neutral)]
+    np.testing.assert_allclose(got["target_normals"][0][split_moved],
+                               np.broadcast_to(turned, (split_moved.sum(), 3)), atol=1e-6)
+    assert not np.any(got["target_normals"][0][~split_moved])
+    assert np.abs(first).max() > 0
+    computed = _unit_normals(rig.neutral + rig.deltas[1], rig.triangles) - _unit_normals(rig.neutral,
+                                                                                        rig.triangles)
+    np.testing.assert_allclose(got["target_normals"][1], computed[_points_of(got["positions"], rig.neutral)],
+                               atol=1e-6)
+    mouth = avatar.mesh("Mouth")                        # no authored normals: computed, unsplit
+    np.testing.assert_allclose(data["Mouth"]["normals"], _unit_normals(mouth.neutral, mouth.triangles),
+                               atol=1e-6)
+
+
+def _points_of(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """The point of ``neutral`` each (split) glTF vertex is a copy of, by position."""
+    from scipy.spatial import cKDTree
+
+    dist, index = cKDTree(neutral).query(positions.astype(np.float64))
+    assert dist.max() < 1e-6
+    return index
+
+
+def test_obj_export_writes_the_texture_coordinates(samples, tmp_path):
+    """A user trial (stop 44): the OBJs of ``export --obj-dir`` had no ``vt``, so a textured avatar's
+    targets arrived in a DCC without texture coordinates. They are now written from the mesh's ``st``
+    (OBJ's v is up, as USD's t), one ``vt`` per distinct pair and ``f a/ta ...`` (a seam needs no split
+    point); the positions and faces read back exactly, a mesh without coordinates has no ``vt``."""
+    from usdface.io.mesh_io import fan_triangulate
+
+    textured = _textured_sample(samples, tmp_path / "textured.usda")
+    out = api.export_avatar(textured, obj_dir=tmp_path / "objs")["obj_dir"]
+    avatar = api.read_avatar(textured)
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(textured))
+    for name in ("Head", "Mouth"):
+        rig = avatar.mesh(name)
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Avatar/{name}"))
+        st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get(), dtype=np.float64)
+        counts, idx = mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()
+        per_corner = len(st) == len(idx)
+        corner = st[fan_triangulate(counts, np.arange(len(idx)))] if per_corner else st[rig.triangles]
+        for file in ("neutral.obj", f"{rig.names[0]}.obj"):
+            text = (out / name / file).read_text()
+            vt = np.array([line.split()[1:] for line in text.splitlines() if line.startswith("vt ")], float)
+            faces = [line.split()[1:] for line in text.splitlines() if line.startswith("f ")]
+            pairs = np.array([[c.split("/") for c in f] for f in faces], dtype=np.int64) - 1
+            np.testing.assert_array_equal(pairs[..., 0], rig.triangles)
+            np.testing.assert_array_equal(vt[pairs[..., 1]], corner.astype(np.float32))
+            points, tris = read_obj(out / name / file)
+            want = rig.neutral + (rig.deltas[0] if file != "neutral.obj" else 0.0)
+            np.testing.assert_array_equal(points, want)
+            np.testing.assert_array_equal(tris, rig.triangles)
+    assert len(vt) < 3 * len(rig.triangles)                 # shared corners share a vt
+    assert "vt " not in (out / "EyeLeft" / "neutral.obj").read_text()

@@ -20,13 +20,13 @@ A, C = SAMPLES / "avatar.usda", SAMPLES / "capture.usda"
 #: A prologue that makes the export's tenth OBJ write send SIGTERM to its own process (deterministic).
 SIGTERM_AT_TENTH_OBJ = ("import os, signal, sys\n"
                         "import usdface.io.mesh_io as m\n"
-                        "real, n = m.write_obj, [0]\n"
-                        "def write_obj(*a, **k):\n"
+                        "real, n = m.write_text_atomic, [0]\n"   # each OBJ file's write
+                        "def write_text_atomic(*a, **k):\n"
                         "    n[0] += 1\n"
                         "    if n[0] == 10:\n"
                         "        os.kill(os.getpid(), signal.SIGTERM)\n"
                         "    return real(*a, **k)\n"
-                        "m.write_obj = write_obj\n"
+                        "m.write_text_atomic = write_text_atomic\n"
                         "from usdface.cli import main\n")
 
 

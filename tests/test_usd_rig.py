@@ -501,7 +501,7 @@ def test_a_meshs_own_joint_order_maps_its_influences_to_the_skeletons_joints(tmp
     list, and the glTF skin's influences are the skeleton's joint indices it names."""
     from pxr import Gf, UsdGeom, UsdSkel, Vt
 
-    from usdface.io.usd_skeleton import read_gltf_skin
+    from usdface.io.usd_skeleton import read_gltf_skins
 
     path = tmp_path / "joints.usda"
     write_rig(path, "y_cm")
@@ -520,7 +520,7 @@ def test_a_meshs_own_joint_order_maps_its_influences_to_the_skeletons_joints(tmp
         binding.CreateJointWeightsPrimvar(False, 1).Set(Vt.FloatArray([1.0] * n["head"]))
     edit_stage(path, skin)
     avatar = read_avatar(path)
-    gskin = read_gltf_skin(path, avatar)
+    (gskin,) = read_gltf_skins(path, avatar)
     assert gskin.joints == ["root", "root/jaw", "root/jaw/tip"]
     idx, w = gskin.influences["Head"]
     assert idx[:, 0].tolist() == [2 if v % 2 == 0 else 0 for v in range(n["head"])]   # tip, root, tip, ...

@@ -1628,7 +1628,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
       ``mesh.extras.targetNames``, metres, Y up, with the skin and skeleton when ``skin`` and the avatar has
       joints (see :mod:`usdface.io.gltf`);
     * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
-      ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``);
+      ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``), with ``vt`` texture
+      coordinates when the mesh has them;
     * ``flatten``: one flattened USD file with the variant baked in (``.usdz``: packaged by USD)
       (:func:`usdface.io.flatten.flatten_variant`).
 
@@ -1766,23 +1767,35 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
             warn(f"{len(with_inbetweens)} shape(s) have inbetweens, which glTF and OBJ targets do "
                  f"not carry ({', '.join(with_inbetweens[:4])}{more}): they play linearly between 0 "
                  "and 1 there")
+        from .io.usd_texcoords import read_texcoords
+
+        uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
+                                          for (prim, _), rig in zip(keyed, rigs, strict=True)])
         if gltf:
-            from .io.usd_skeleton import read_gltf_skin
+            from .io.usd_skeleton import read_gltf_skins
 
             p.start(f"write {Path(gltf).name}")
-            skeleton = read_gltf_skin(layer_path, avatar) if skin else None
+            # one skin per skeleton (a shot with two avatars: each mesh skinned by its own), keyed by the
+            # meshes' names in the glTF (A_Head, B_Head when two share a name)
+            names = {str(prim): rig.name for (prim, _), rig in zip(keyed, rigs, strict=True)}
+            skeleton = read_gltf_skins(layer_path, avatar, names=names) if skin else None
             root = (avatar.default_prim or "/Avatar").rsplit("/", 1)[-1]
             given = exported_variant(layer_path, variant)
             extras = {"usdface": {"source": Path(layer_path).name, "variant": given}}
             # on the nodes too: what a DCC keeps (Blender: custom properties, exported as userProperties),
             # so a DCC's USD export of the personalized glTF is refused as personalized (dcc_export_marks)
             marks = {VARIANT_PROPERTY: given} if given in ("personalized", "generic") else None
-            from .io.usd_texcoords import read_texcoords
+            from .io.usd_texcoords import normal_offsets, read_normals
 
-            uvs = read_texcoords(layer_path, [(prim, rig.name, rig.triangles)
-                                              for (prim, _), rig in zip(keyed, rigs, strict=True)])
+            # the meshes' authored normals (hard edges, a DCC's custom normals) and the shapes' normalOffsets
+            placed = {m.key: m.source.to_internal for m in avatar.meshes if m.source}
+            placed.update(avatar.metadata.get("static_to_internal", {}))
+            normals = read_normals(layer_path, [(prim, rig.name, rig.triangles, placed[prim])
+                                                for (prim, _), rig in zip(keyed, rigs, strict=True)
+                                                if prim in placed])
+            offsets = {rig.name: found for rig in rigs if (found := normal_offsets(rig)) is not None}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       texcoords=uvs, force=force)
+                       texcoords=uvs, normals=normals, target_normals=offsets, force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             count = sum(len(r.names) + 1 for r in rigs)
@@ -1792,7 +1805,9 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                 for rig in rigs:
                     folder = tmp / rig.name
                     folder.mkdir()
-                    objs = ObjWriter(rig.neutral, rig.triangles, path=folder / "neutral.obj")
+                    # vt: the same texture coordinates as the glTF; faces, vt and unmoved rows formatted once
+                    objs = ObjWriter(rig.neutral, rig.triangles, uv=uvs.get(rig.name),
+                                     path=folder / "neutral.obj")
                     objs.write(folder / "neutral.obj", rig.neutral)
                     wrote(f"{rig.name}/neutral.obj")
                     for name, delta in zip(rig.names, rig.deltas, strict=True):

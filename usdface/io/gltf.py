@@ -3,11 +3,13 @@
 Written with pygltflib (the container: JSON, buffers, GLB chunks); this module only lays out the arrays:
 
 * one glTF mesh per rig, one triangle primitive: ``POSITION`` (float32, metres, Y up, the internal frame
-  usdface reads avatars into, which is glTF's), ``NORMAL`` (area-weighted vertex normals of the neutral;
-  +Z at a vertex no triangle of any area touches, which has none) and ``indices`` (uint16 or uint32);
-* one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the area-weighted vertex
-  normals of the neutral plus the shape, minus the neutral's: an engine adds them, weighted as the positions,
-  and normalises, so a shape is shaded as posed and not with the neutral's normals), each stored as a
+  usdface reads avatars into, which is glTF's), ``NORMAL`` (the mesh's authored normals when it has some,
+  split at a hard edge as at a UV seam; else area-weighted vertex normals of the neutral; +Z at a vertex no
+  triangle of any area touches, which has none) and ``indices`` (uint16 or uint32);
+* one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the shape's authored
+  ``normalOffsets`` when it has some, else the area-weighted vertex normals of the neutral plus the shape,
+  minus the neutral's: an engine adds them, weighted as the positions, and normalises, so a shape is shaded
+  as posed and not with the neutral's normals), each stored as a
   *sparse* accessor (the changed vertices only: indices + values, zeros elsewhere) unless dense is smaller;
   the target names in
   ``mesh.extras.targetNames`` (the convention three.js, Babylon.js, Unity glTFast and Blender read), default
@@ -16,8 +18,9 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
   one vertex per distinct (point, coordinates) pair, as glTF has one value per vertex (a point on a UV seam
   becomes two vertices with its position, normal, offsets and joints);
 * meshes without shapes (eyes bound to the skeleton only) as plain meshes;
-* optionally a skin: joint nodes (local rest transforms), ``inverseBindMatrices`` and per-vertex ``JOINTS_0``
-  / ``WEIGHTS_0`` (:class:`GltfSkin`).
+* optionally skins, one per skeleton: joint nodes (local rest transforms), ``inverseBindMatrices`` and
+  per-vertex ``JOINTS_0`` / ``WEIGHTS_0`` (:class:`GltfSkin`); with several, each skeleton's joints under a
+  node of its name.
 
 Arrays: ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres. Every written value is the
 float32 rounding of the input, so :func:`read_gltf` gives back ``float32(neutral)`` and ``float32(deltas)``
@@ -131,17 +134,28 @@ def _unit_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return normals
 
 
-def _split_at_seams(triangles: np.ndarray, corner_uv: np.ndarray, n: int):
-    """glTF's one value per vertex from texture coordinates per triangle corner: one vertex per distinct
-    (point, coordinates) pair, so a point on a UV seam becomes as many vertices as it has coordinates there.
-    Returns ``(point[m], triangles[t, 3] over the new vertices, uv[m, 2])``; every new vertex of ``point[i]``
-    takes that point's position, normal, offsets and joints. Points no triangle uses stay (coordinates 0)."""
-    rows = np.column_stack([triangles.reshape(-1).astype(np.float64), np.asarray(corner_uv).reshape(-1, 2)])
+def _split_at_seams(triangles: np.ndarray, corner_values: np.ndarray, n: int):
+    """glTF's one value per vertex from values per triangle corner (``corner_values[t, 3, w]``: texture
+    coordinates, authored normals, side by side): one vertex per distinct (point, values) pair, so a point
+    on a UV seam or a hard edge becomes as many vertices as it has values there. Returns ``(point[m],
+    triangles[t, 3] over the new vertices, values[m, w])``; every new vertex of ``point[i]`` takes that
+    point's position, offsets and joints. Points no triangle uses stay, with NaN values."""
+    corner_values = np.asarray(corner_values, dtype=np.float64)
+    width = corner_values.shape[-1]
+    rows = np.column_stack([triangles.reshape(-1).astype(np.float64), corner_values.reshape(-1, width)])
     unique, inverse = np.unique(rows, axis=0, return_inverse=True)
     loose = np.setdiff1d(np.arange(n), triangles)
     point = np.concatenate([unique[:, 0].astype(np.int64), loose])
-    uv = np.vstack([unique[:, 1:], np.zeros((len(loose), 2))])
-    return point, np.asarray(inverse).reshape(-1, 3), uv
+    values = np.vstack([unique[:, 1:], np.full((len(loose), width), np.nan)])
+    return point, np.asarray(inverse).reshape(-1, 3), values
+
+
+def _normal_delta(neutral, triangles, delta, computed, given) -> np.ndarray:
+    """A shape's ``NORMAL`` target per point: its authored normal offsets ``given`` when there are some,
+    else the posed area-weighted normals minus the neutral's ``computed``."""
+    if given is not None:
+        return np.asarray(given, dtype=np.float64)
+    return _unit_normals(neutral + delta, triangles) - computed
 
 
 def _check(rigs) -> None:
@@ -193,11 +207,13 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
             blob.accessor(w.astype(np.float32), "VEC4", target=_ARRAY_BUFFER))
 
 
-def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Avatar",
+def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, root_name: str = "Avatar",
                extras: dict | None = None, node_extras: dict | None = None, texcoords: dict | None = None,
-               force: bool = False) -> Path:
+               normals: dict | None = None, target_normals: dict | None = None, force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
-    ``root_name`` with the ``skin``'s joints and the meshes it does not skin, each skinned mesh a root node of
+    ``root_name`` with the joints of each ``skin`` (one :class:`GltfSkin`, or a list: one glTF skin per
+    skeleton, each mesh skinned by the skin whose ``influences`` name it, the first that does) and the meshes
+    no skin names, each skinned mesh a root node of
     the scene beside it (glTF places a skinned mesh by its joints alone, and the Khronos validator warns of a
     skinned mesh under a parent), morph targets as described in the module doc. ``.glb``: binary; ``.gltf``:
     JSON with the buffer embedded as a data URI. ``extras`` go to the scene's ``extras``; ``node_extras`` to
@@ -205,6 +221,11 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     which its USD exporter writes as ``userProperties:<key>``, where the scene's are lost). ``texcoords``
     ``{rig name: uv[t, 3, 2]}`` per triangle corner (:func:`usdface.io.usd_texcoords.read_texcoords`) become
     ``TEXCOORD_0``, the vertices split where their corners' coordinates differ (:func:`_split_at_seams`).
+    ``normals`` ``{rig name: normals[t, 3, 3]}`` per triangle corner (the mesh's authored normals, unit, NaN
+    where a corner has none: :func:`usdface.io.usd_texcoords.read_normals`) are its ``NORMAL`` instead of the
+    computed ones, the vertices split where they differ (a hard edge); ``target_normals`` ``{rig name: [K]
+    per-point normal offsets[n, 3] or None}`` (the shapes' ``normalOffsets``,
+    :func:`usdface.io.usd_texcoords.normal_offsets`) are the targets' ``NORMAL`` deltas where given.
     Returns the path written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
@@ -225,29 +246,54 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
     root_children: list[int] = []
     scene_nodes = [0]       # the root, and the skinned meshes: glTF skins them by the joints alone, so the
     #                         Khronos validator warns of a parent (NODE_SKINNED_MESH_NON_ROOT)
-    skin_index = _skin(gltf, blob, skin, root_children) if skin is not None else None
+    skins = [] if skin is None else [skin] if isinstance(skin, GltfSkin) else list(skin)
+    skin_of = {}                                            # mesh name -> (glTF skin index, GltfSkin)
+    for one in skins:
+        parent = root_children
+        if len(skins) > 1:   # a node per skeleton holding its joints: Blender's importer makes an armature
+            gltf.nodes.append(pygltflib.Node(name=one.name))   # of each (of all in one, joints side by side)
+            root_children.append(len(gltf.nodes) - 1)
+            parent = gltf.nodes[-1].children
+        index = _skin(gltf, blob, one, parent)
+        for name in one.influences:
+            skin_of.setdefault(name, (index, one))
     for rig in rigs:
         tris = np.asarray(rig.triangles, dtype=np.int64)
-        normals = _unit_normals(rig.neutral, tris)          # on the mesh as authored: no seams in the shading
+        computed = _unit_normals(rig.neutral, tris)         # on the mesh as authored: no seams in the shading
         uv = (texcoords or {}).get(rig.name)
-        keep, tris_out, uv = (_split_at_seams(tris, uv, len(rig.neutral)) if uv is not None else
-                              (slice(None), tris, None))
+        corner_normals = (normals or {}).get(rig.name)
+        if corner_normals is not None:                      # a corner without a direction: the computed one
+            corner_normals = np.where(np.isnan(corner_normals), computed[tris], corner_normals)
+        if uv is not None or corner_normals is not None:
+            parts = [np.asarray(a, dtype=np.float64) for a in (uv, corner_normals) if a is not None]
+            keep, tris_out, values = _split_at_seams(tris, np.concatenate(parts, axis=-1), len(rig.neutral))
+            if uv is not None:
+                uv = np.nan_to_num(values[:, :2])
+            vertex_normals = computed[keep]
+            if corner_normals is not None:
+                authored = values[:, -3:]
+                vertex_normals = np.where(np.isnan(authored), vertex_normals, authored)
+        else:
+            keep, tris_out, vertex_normals = slice(None), tris, computed
         neutral = np.asarray(rig.neutral, dtype=np.float32)[keep]
         itype = np.uint16 if len(neutral) <= 65535 else np.uint32
         attrs = pygltflib.Attributes(
             POSITION=blob.accessor(neutral, "VEC3", target=_ARRAY_BUFFER, bounds=True),
-            NORMAL=blob.accessor(normals[keep].astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
+            NORMAL=blob.accessor(vertex_normals.astype(np.float32), "VEC3", target=_ARRAY_BUFFER))
         if uv is not None:                                  # glTF's v runs down the image, USD's t up
             attrs.TEXCOORD_0 = blob.accessor(np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32),
                                              "VEC2", target=_ARRAY_BUFFER)
-        if skin is not None and rig.name in skin.influences:
-            joints, weights = skin.influences[rig.name]
+        skin_index, owner = skin_of.get(rig.name, (None, None))
+        if owner is not None:
+            joints, weights = owner.influences[rig.name]
             attrs.JOINTS_0, attrs.WEIGHTS_0 = _joints_attributes(blob, np.asarray(joints)[keep],
                                                                  np.asarray(weights)[keep])
         deltas = np.asarray(rig.deltas, dtype=np.float64)
+        offsets = (target_normals or {}).get(rig.name) or [None] * len(deltas)
         targets = [{"POSITION": blob.target(d[keep].astype(np.float32)),
-                    "NORMAL": blob.target((_unit_normals(rig.neutral + d, tris) - normals)[keep]
-                                          .astype(np.float32))} for d in deltas]
+                    "NORMAL": blob.target(_normal_delta(rig.neutral, tris, d, computed, given)[keep]
+                                          .astype(np.float32))}
+                   for d, given in zip(deltas, offsets, strict=True)]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
             tris_out.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,
             targets=targets or None)
@@ -258,7 +304,7 @@ def write_gltf(path, rigs, *, skin: GltfSkin | None = None, root_name: str = "Av
         gltf.meshes.append(mesh)
         node = pygltflib.Node(name=rig.name, mesh=len(gltf.meshes) - 1, extras=dict(node_extras or {}))
         gltf.nodes.append(node)
-        if skin_index is not None and rig.name in skin.influences:
+        if skin_index is not None:
             node.skin = skin_index
             scene_nodes.append(len(gltf.nodes) - 1)
         else:

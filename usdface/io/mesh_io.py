@@ -238,19 +238,23 @@ def _general_parse(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _vertex_rows(v_lines, path), _face_triangles(f_lines, lines, path)
 
 
-def write_obj(path, points, triangles) -> Path:
+def write_obj(path, points, triangles, uv=None) -> Path:
     """Write ``points[n, 3]`` and ``triangles[t, 3]`` (0-based) as an OBJ, atomically (temp file + rename).
 
     Coordinates are written as the shortest decimal that reads back to the identical float64, so
-    ``read_obj(write_obj(p, V, F))`` returns exactly ``V`` and ``F``. Many OBJs of one topology (a shape's
-    targets): :class:`ObjWriter`, which formats the faces and the unmoved vertices once.
+    ``read_obj(write_obj(p, V, F))`` returns exactly ``V`` and ``F``. ``uv[t, 3, 2]``: texture coordinates
+    per triangle corner (USD's ``(s, t)``, which is OBJ's ``(u, v)``, v up), written as one ``vt`` per
+    distinct pair and ``f a/ta b/tb c/tc`` (OBJ indexes positions and coordinates apart: a UV seam needs no
+    split point). Many OBJs of one topology (a shape's targets): :class:`ObjWriter`, which formats the faces,
+    the texture coordinates and the unmoved vertices once.
     """
-    return ObjWriter(points, triangles, path=path).write(path, points)
+    return ObjWriter(points, triangles, uv=uv, path=path).write(path, points)
 
 
 class ObjWriter:
-    """OBJs of one mesh topology: the neutral ``points[n, 3]`` and ``triangles[t, 3]`` (0-based) formatted
-    once, each target written with only the vertex rows that differ from the neutral formatted again.
+    """OBJs of one mesh topology: the neutral ``points[n, 3]``, ``triangles[t, 3]`` (0-based) and optional
+    ``uv[t, 3, 2]`` (as :func:`write_obj`) formatted once, each target written with only the vertex rows
+    that differ from the neutral formatted again.
 
     ``write(path, points)`` writes the same bytes as :func:`write_obj` (every vertex row is the shortest
     decimal of its float64, a row is reused only where its three values are the neutral's to the bit, so
@@ -259,17 +263,11 @@ class ObjWriter:
     head spent ~55 CPU-s there (docs/scale.md).
     """
 
-    def __init__(self, points, triangles, *, path=None):
+    def __init__(self, points, triangles, *, uv=None, path=None):
         points = self._points(points, path)
-        triangles = np.asarray(triangles, dtype=np.int64)
-        if triangles.ndim != 2 or triangles.shape[1] != 3:
-            raise GeometryError(f"triangles must be [t,3], got {triangles.shape}", path=path,
-                                fix="pass faces as a [t,3] index array")
-        if triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):
-            raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
         self.neutral = points.copy()
         self._rows = self._format(self.neutral)
-        self._faces = "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
+        self._faces = _obj_topology(path, len(points), np.asarray(triangles, dtype=np.int64), uv)
 
     @staticmethod
     def _points(points, path) -> np.ndarray:
@@ -305,3 +303,23 @@ class ObjWriter:
     def write(self, path, points) -> Path:
         """Write the OBJ of ``points`` on this topology to ``path``, atomically (temp file + rename)."""
         return write_text_atomic(Path(path), self.text(points, path=path), force=True)
+
+
+def _obj_topology(path, n: int, triangles: np.ndarray, uv) -> str:
+    """The ``vt`` and ``f`` records of :class:`ObjWriter`, checked against ``n`` points."""
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise GeometryError(f"triangles must be [t,3], got {triangles.shape}", path=path,
+                            fix="pass faces as a [t,3] index array")
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= n):
+        raise GeometryError("triangle index out of range", path=path, fix="check the face indices")
+    if uv is None:
+        return "".join(f"f {a} {b} {c}\n" for a, b, c in (triangles + 1).tolist())
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv) != triangles.size or not np.isfinite(uv).all():
+        raise GeometryError(f"texture coordinates must be finite, one pair per triangle corner "
+                            f"({triangles.size}), got {len(uv)}", path=path,
+                            fix="pass uv[t, 3, 2] for triangles[t, 3]")
+    values, corner = np.unique(uv, axis=0, return_inverse=True)
+    text = "".join(f"vt {u!r} {v!r}\n" for u, v in values.tolist())
+    rows = np.column_stack([triangles.reshape(-1) + 1, np.asarray(corner).reshape(-1) + 1]).reshape(-1, 6)
+    return text + "".join(f"f {a}/{ta} {b}/{tb} {c}/{tc}\n" for a, ta, b, tb, c, tc in rows.tolist())

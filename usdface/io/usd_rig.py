@@ -486,7 +486,7 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
     where the channel maps to one, inbetweens by name), ``up_axis``, ``meters_per_unit``, ``default_prim``,
     ``metadata`` (``stage``: the root layer's authored stage metadata, ``notes``: non-fatal findings,
     ``static_meshes``: {prim path: (points[n,3] metres Y up, triangles[t,3])} for every mesh under a SkelRoot
-    without blend shapes) and
+    without blend shapes, ``static_to_internal``: {prim path: to_internal[4,4]} their placements) and
     ``name_report`` (mesh prim path -> {inexact: [[token, canonical, how]], unknown, missing, conflicts:
     [[token, canonical, kept token]], channels: [[token, canonical or None, how]] for every channel}). When
     two channels of a mesh mean the same ARKit shape the better mapping keeps it (exact, name map,
@@ -965,7 +965,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
         unused = arkit.unused_map_entries(name_map, [t for m in meshes for t in m.source.channel_tokens])
         if unused:
             notes.append(f"name map entries that match no channel: {', '.join(unused)}")
-    static_meshes = {}
+    static_meshes, static_to_internal = {}, {}
     for key in sorted(static, key=lambda k: order.get(k, len(order))):
         prim, skinning = static[key]
         try:
@@ -976,6 +976,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
             continue
         static_meshes[key] = (points @ to_internal[:3, :3].T + to_internal[:3, 3],
                               outward_triangles(triangles, prim, to_internal[:3, :3]))
+        static_to_internal[key] = to_internal
     _warn_foreign_units([found[k][0] for k in found], meta, path, notes)
     worst = max((c for _, c in snapped or ()), default=0.0)
     # a float32 export's noise is told; a double's (cos 90 degrees = 6e-17: Pixar's test plane) is none
@@ -984,6 +985,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                      f"rotation and scale (float32 export noise, largest change {worst:.1e} relative)")
     default_prim = stage.GetDefaultPrim()
     metadata = {"stage": meta["authored"], "notes": notes, "static_meshes": static_meshes,
+                "static_to_internal": static_to_internal,
                 "documentation": stage.GetRootLayer().documentation or "",
                 "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static]),
                 "instanced_targets": _instanced_targets(stage, meshes),

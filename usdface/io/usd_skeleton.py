@@ -19,7 +19,7 @@ import numpy as np
 from ..model import Avatar
 from .gltf import GltfSkin
 
-__all__ = ["read_gltf_skin"]
+__all__ = ["read_gltf_skins"]
 
 
 def _to_internal(matrices, c: np.ndarray) -> np.ndarray:
@@ -42,34 +42,14 @@ def _unscaled(rest_world: np.ndarray, bind_world: np.ndarray) -> tuple[np.ndarra
     return rest_world @ unscale, bind_world @ unscale
 
 
-def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
-    """The skeleton bound to ``avatar``'s meshes in the USD file ``path`` (or the open ``stage``), or None
-    when the meshes are not bound to a Skeleton with joints. Only the first Skeleton found is exported (glTF
-    skins one skeleton per mesh; usdface avatars have one)."""
-    from pxr import Usd, UsdGeom, UsdSkel
-
-    from .usd_open import quiet_stderr
-    from .usd_rig import stage_to_internal
-
-    if stage is None:
-        from .usd_rig import _open_stage
-
-        stage = _open_stage(Path(path))
-    skel_paths = [m.source.skeleton for m in avatar.meshes if m.source and m.source.skeleton]
-    if not skel_paths:
-        return None
-    skel = UsdSkel.Skeleton(stage.GetPrimAtPath(skel_paths[0]))
-    if not skel:
-        return None
-    cache = UsdSkel.Cache()
-    query = cache.GetSkelQuery(skel)
+def _skeleton_skin(skel, query, c: np.ndarray, xf) -> GltfSkin | None:
+    """One UsdSkel ``Skeleton`` (its ``SkelQuery``) as a :class:`GltfSkin` without influences, or None when
+    it has no joints."""
     joints = [str(j) for j in query.GetJointOrder()]
     if not joints:
         return None
-    c = stage_to_internal(avatar.up_axis, avatar.meters_per_unit)
     topology = query.GetTopology()
     parents = [int(topology.GetParent(j)) for j in range(len(joints))]
-    xf = UsdGeom.XformCache(Usd.TimeCode.Default())
     rest_world = _to_internal(query.ComputeJointWorldTransforms(xf, True), c)
     bind = skel.GetBindTransformsAttr().Get()
     # the bind transforms are in the skeleton's space (UsdSkel skins with inv(bind) @ the joints' skeleton-
@@ -82,36 +62,87 @@ def read_gltf_skin(path, avatar: Avatar, stage=None) -> GltfSkin | None:
     rest_world, bind_world = _unscaled(rest_world, bind_world)
     rest_local = np.array([rest_world[j] if p < 0 else np.linalg.inv(rest_world[p]) @ rest_world[j]
                            for j, p in enumerate(parents)])
-    influences = {}
-    skel_root = avatar.meshes[0].source.skel_root
-    root = stage.GetPrimAtPath(skel_root) if skel_root else None
-    if root:      # UsdSkel's warnings on malformed influences: the avatar's reader kept them as notes
-        with quiet_stderr():
-            cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
-    meshes = [(rig.name, rig.source.prim, rig.n_vertices) for rig in avatar.meshes if rig.source]
-    meshes += [(prim.rsplit("/", 1)[-1], prim, len(points))
-               for prim, (points, _) in sorted(avatar.metadata.get("static_meshes", {}).items())]
-    for name, prim_path, n_vertices in meshes:
-        prim = stage.GetPrimAtPath(prim_path)
-        with quiet_stderr():
-            sq = cache.GetSkinningQuery(prim) if prim else None
-        if not sq or not sq.HasJointInfluences():
+    return GltfSkin(joints, parents, rest_local, bind_world, {}, name=str(skel.GetPrim().GetName()))
+
+
+def _influences(sq, joints: list[str], n_vertices: int):
+    """``(joint_indices[n, m], joint_weights[n, m])`` of a mesh's ``SkinningQuery`` in its skeleton's
+    joint order (constant influences expanded per vertex), or None."""
+    if not sq or not sq.HasJointInfluences():
+        return None
+    res = sq.ComputeJointInfluences()
+    if not res:
+        return None
+    idx, w = res
+    size = sq.GetNumInfluencesPerComponent()
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1, size)
+    w = np.asarray(w, dtype=np.float64).reshape(-1, size)
+    order = sq.GetJointOrder()
+    if order:  # the mesh's own joint list -> skeleton joint indices
+        remap = np.array([joints.index(str(j)) for j in order], dtype=np.int64)
+        idx = remap[idx]
+    if sq.IsRigidlyDeformed() or len(idx) == 1:
+        idx = np.repeat(idx[:1], n_vertices, axis=0)
+        w = np.repeat(w[:1], n_vertices, axis=0)
+    return (idx, w) if len(idx) == n_vertices else None
+
+
+def read_gltf_skins(path, avatar: Avatar, stage=None, names: dict | None = None) -> list[GltfSkin]:
+    """One :class:`GltfSkin` per Skeleton with joints that skins some of ``avatar``'s meshes in the USD file
+    ``path`` (or the open ``stage``), each with the influences of the meshes that Skeleton skins, keyed by
+    ``names`` ``{mesh prim path: name in the glTF}`` (default: the prim's name). A shot with two SkelRoots
+    (two avatars, or one referenced twice) gives two skins, each mesh skinned by its own skeleton, as
+    UsdSkel binds them. Empty when no mesh is bound to a Skeleton with joints."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from .usd_open import quiet_stderr
+    from .usd_rig import stage_to_internal
+
+    if stage is None:
+        from .usd_rig import _open_stage
+
+        stage = _open_stage(Path(path))
+    names = dict(names or {})
+    sizes = {rig.source.prim: rig.n_vertices for rig in avatar.meshes if rig.source}
+    sizes.update({prim: len(points)
+                  for prim, (points, _) in avatar.metadata.get("static_meshes", {}).items()})
+    roots = list(dict.fromkeys(rig.source.skel_root for rig in avatar.meshes
+                               if rig.source and rig.source.skel_root))
+    c = stage_to_internal(avatar.up_axis, avatar.meters_per_unit)
+    xf = UsdGeom.XformCache(Usd.TimeCode.Default())
+    cache = UsdSkel.Cache()
+    predicate = Usd.TraverseInstanceProxies()
+    skins: dict[str, GltfSkin] = {}
+    taken: set[str] = set()
+    for root_path in roots:
+        root = stage.GetPrimAtPath(root_path)
+        if not root:
             continue
-        res = sq.ComputeJointInfluences()
-        if not res:
-            continue
-        idx, w = res
-        size = sq.GetNumInfluencesPerComponent()
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1, size)
-        w = np.asarray(w, dtype=np.float64).reshape(-1, size)
-        order = sq.GetJointOrder()
-        if order:  # the mesh's own joint list -> skeleton joint indices
-            remap = np.array([joints.index(str(j)) for j in order], dtype=np.int64)
-            idx = remap[idx]
-        if sq.IsRigidlyDeformed() or len(idx) == 1:
-            idx = np.repeat(idx[:1], n_vertices, axis=0)
-            w = np.repeat(w[:1], n_vertices, axis=0)
-        if len(idx) == n_vertices:
-            influences[name] = (idx, w)
-    return GltfSkin(joints, parents, rest_local, bind_world, influences,
-                    name=str(skel.GetPrim().GetName()))
+        # UsdSkel's warnings on malformed influences: the avatar's reader kept them as notes
+        with quiet_stderr():
+            cache.Populate(UsdSkel.Root(root), predicate)
+            bindings = cache.ComputeSkelBindings(UsdSkel.Root(root), predicate)
+        for binding in bindings:
+            skel = binding.GetSkeleton()
+            key = str(skel.GetPath())
+            if key not in skins:
+                query = cache.GetSkelQuery(skel)
+                made = _skeleton_skin(skel, query, c, xf) if query else None
+                if made is None:
+                    continue
+                skins[key] = made
+            skin = skins[key]
+            for sq in binding.GetSkinningTargets():
+                prim = str(sq.GetPrim().GetPath())
+                if prim not in sizes or prim in taken:
+                    continue
+                with quiet_stderr():
+                    found = _influences(sq, skin.joints, sizes[prim])
+                if found is not None:
+                    skin.influences[names.get(prim, prim.rsplit("/", 1)[-1])] = found
+                    taken.add(prim)
+    out = {path: skin for path, skin in skins.items() if skin.influences}
+    if len({skin.name for skin in out.values()}) < len(out):     # two avatars' "Skel": named by prim path
+        for path, skin in out.items():
+            skin.name = path.strip("/").replace("/", "_")
+    return list(out.values())
