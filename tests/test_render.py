@@ -18,6 +18,7 @@ from usdface.render import (
     default_shapes,
     draw_mesh,
     heat_colors,
+    moving_region,
     render_comparison,
     render_heatmap,
     render_landmarks,
@@ -140,6 +141,29 @@ def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
     heat = render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
                           crop=moving_region(local))
     assert np.diff(heat.axes[0].get_ylim())[0] < 0.06
+
+
+def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path):
+    """The pictures of a face on a head-and-body mesh decimated the whole mesh (most of 'render''s CPU on
+    the merged bench avatar: the body) though each panel is framed on the face, which lost vertices too. The
+    mesh is now cut to the frame first: under the limit, the picture is the one of every triangle."""
+    import matplotlib.image
+
+    rig = grid_rig(60)                                                  # 3,600 vertices
+    local = np.zeros_like(rig.deltas)
+    near = np.linalg.norm(rig.neutral[:, :2] - 0.06, axis=1) < 0.02     # a corner of the grid moves
+    local[0, near, 2] = 0.004 * (1 - np.linalg.norm(rig.neutral[near, :2] - 0.06, axis=1) / 0.02)
+    still = FaceRig(rig.neutral, rig.triangles, rig.names, local, name="body")
+    pictures = []
+    for limit in (0, 1000):                                       # every triangle, then over the limit
+        out = tmp_path / f"s{limit}.png"
+        render_shapes(still, ["bump"], out, max_vertices=limit)
+        render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
+                       tmp_path / f"h{limit}.png", max_vertices=limit, crop=moving_region(local))
+        pictures.append([matplotlib.image.imread(out), matplotlib.image.imread(tmp_path / f"h{limit}.png")])
+    for whole, cut in zip(*pictures, strict=True):   # the same pixels, up to the order of coplanar ties
+        off = np.abs(whole - cut).max(axis=-1)
+        assert off.max() <= 1.01 / 255 and np.mean(off > 0) < 1e-3, (off.max(), np.mean(off > 0))
 
 
 def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, capsys):

@@ -219,6 +219,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     """``run`` for an avatar or a usdface layer (``p``: the command's progress steps)."""
 
     from .. import api, render
+    from ..mesh import DISPLAY_MAX_VERTICES
 
     avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
@@ -297,22 +298,28 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
                              max_vertices=args.max_vertices,
                              title=f"{path.name}: {rig.name}")
-    _decimated_note(rig, args.max_vertices)
+    limit = DISPLAY_MAX_VERTICES if args.max_vertices is None else args.max_vertices
+    # the pictures of shapes framed on what moves (a face on a body) are cut to their frame first
+    framed = (not args.landmarks and 0 < limit < rig.n_vertices
+              and render.moving_region(rig.deltas) is not None)
+    _decimated_note(rig, args.max_vertices, framed)
     print(f"wrote {args.output}")
     return 0
 
 
-def _decimated_note(rig, max_vertices) -> None:
-    """Say when the picture shows the mesh decimated (``--max-vertices``)."""
+def _decimated_note(rig, max_vertices, framed: bool = False) -> None:
+    """Say when the picture shows the mesh decimated (``--max-vertices``), or, ``framed`` on the part that
+    moves of a larger still mesh (a face on a body), cut to the picture's frame."""
     import sys
 
     from ..mesh import DISPLAY_MAX_VERTICES
 
     limit = DISPLAY_MAX_VERTICES if max_vertices is None else max_vertices
     if limit and rig.n_vertices > limit:
-        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) drawn decimated to about {limit:,} of its "
-              "vertices (the titles' figures are the full mesh's; --max-vertices 0 draws every triangle)",
-              file=sys.stderr)
+        how = (f"drawn on its part in the picture's frame (decimated only where that part has more than "
+               f"{limit:,} vertices)" if framed else f"drawn decimated to about {limit:,} of its vertices")
+        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) {how} (the titles' figures are the full "
+              "mesh's; --max-vertices 0 draws every triangle)", file=sys.stderr)
 
 
 def _layout_setup(path: Path) -> dict:
