@@ -262,10 +262,13 @@ def display_subset(points, triangles, max_vertices: int = DISPLAY_MAX_VERTICES, 
     Open3D's quadric edge collapse (Garland & Heckbert 1997) to about ``max_vertices`` vertices, each of its
     vertices then snapped to the nearest vertex of the mesh (a KD-tree), triangles that collapse on the way
     dropped. Edge collapses keep the connectivity (closed lips stay apart); on a subdivided mesh the kept
-    vertices are near the original corners."""
+    vertices are near the original corners. The collapse holds Python's GIL for its seconds (the progress
+    timer thread cannot run): the running step's progress line is printed before it starts
+    (:func:`usdface.progress.announce`)."""
     from scipy.spatial import cKDTree
 
     from .natives import open3d
+    from .progress import announce
 
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -283,6 +286,7 @@ def display_subset(points, triangles, max_vertices: int = DISPLAY_MAX_VERTICES, 
         p, t, back, used = p[used], local[t], used, np.arange(len(used))
     else:
         back = np.arange(n)
+    announce()
     o3d = open3d()
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(p),
                                      o3d.utility.Vector3iVector(t.astype(np.int32)))
