@@ -176,6 +176,34 @@ def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, cap
     assert "decimated" not in capsys.readouterr().err                          # the sample head: 4k vertices
 
 
+def test_render_landmarks_reads_the_neutral_not_the_shapes(samples, tmp_path, monkeypatch):
+    """'render l.usda --landmarks' draws the neutral, but read every shape's offsets (a 225k-vertex head: 51
+    dense shapes, 793 MB peak for a picture of the neutral). The reader's ``shapes=False`` reads the meshes,
+    their channels and targets, no offsets: the same neutral, triangles and names, zero deltas that hold no
+    memory; the picture is the same."""
+    from usdface.io import usd_rig
+
+    lm = tmp_path / "mouth_lm.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Mouth", "-o", str(lm), "-q"]) == 0
+    full, bare = usd_rig.read_avatar(lm), usd_rig.read_avatar(lm, shapes=False)
+    for a, b in zip(full.meshes, bare.meshes, strict=True):
+        assert (a.name, a.names, b.inbetweens) == (b.name, b.names, {})
+        np.testing.assert_array_equal(a.neutral, b.neutral)
+        np.testing.assert_array_equal(a.triangles, b.triangles)
+        assert b.deltas.shape == a.deltas.shape and not b.deltas.any() and b.deltas.strides[:2] == (0, 0)
+    read = []
+    real = usd_rig._array
+    monkeypatch.setattr(usd_rig, "_array", lambda value, dtype, width, what, *rest: (
+        read.append(what), real(value, dtype, width, what, *rest))[1])
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png"), "-q"]) == 0
+    assert read and "offsets" not in read, read                  # the mesh read, none of its shapes
+    assert main(["render", str(lm), "-o", str(tmp_path / "s.png"), "-q"]) == 0
+    assert "offsets" in read                                      # the shapes' picture reads them
+    monkeypatch.setattr(usd_rig, "read_avatar", lambda path, **kw: full)     # the full read's picture
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "f.png"), "-q"]) == 0
+    assert (tmp_path / "f.png").read_bytes() == (tmp_path / "l.png").read_bytes()
+
+
 def test_heat_colors_monotone():
     colors = heat_colors([0.0, 0.5, 1.0], vmax=1.0)
     brightness = colors.sum(axis=1)

@@ -221,7 +221,14 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     from .. import api, render
     from ..mesh import DISPLAY_MAX_VERTICES
 
-    avatar = api.read_avatar(path, args.name_map)
+    if args.landmarks and not args.diagnostics:
+        from ..io.usd_rig import read_avatar
+
+        # the layout's picture is the neutral: no shape's offsets read (a 225k-vertex head's 51 dense shapes
+        # were most of the command's memory)
+        avatar = read_avatar(path, name_map=args.name_map, shapes=False)
+    else:
+        avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks and args.mesh is None:
         rig = _mesh_with_layout(avatar, rig, path)
