@@ -143,7 +143,7 @@ def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
     assert np.diff(heat.axes[0].get_ylim())[0] < 0.06
 
 
-def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path):
+def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path, capsys):
     """The pictures of a face on a head-and-body mesh decimated the whole mesh (most of 'render''s CPU on
     the merged bench avatar: the body) though each panel is framed on the face, which lost vertices too. The
     mesh is now cut to the frame first: under the limit, the picture is the one of every triangle."""
@@ -164,6 +164,12 @@ def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path):
     for whole, cut in zip(*pictures, strict=True):   # the same pixels, up to the order of coplanar ties
         off = np.abs(whole - cut).max(axis=-1)
         assert off.max() <= 1.01 / 255 and np.mean(off > 0) < 1e-3, (off.max(), np.mean(off > 0))
+    from usdface.commands.render import _decimated_note
+
+    _decimated_note(still, 1000, framed=True)                    # the command's note says which it is
+    assert "body (3,600 vertices) drawn on its part in the picture's frame" in capsys.readouterr().err
+    _decimated_note(still, 1000)
+    assert "drawn decimated to about 1,000 of its vertices" in capsys.readouterr().err
 
 
 def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, capsys):

@@ -255,16 +255,19 @@ def default_shapes(rig, count: int = 5) -> list[str]:
 
 
 def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str = "front",
-                  force: bool = False, title: str | None = None, max_vertices: int | None = None):
+                  force: bool = False, title: str | None = None, max_vertices: int | None = None,
+                  crop="moving"):
     """Neutral plus each shape of ``shapes`` (default: :func:`default_shapes`) at ``weight``; the heat of
     each panel is the vertex displacement in mm over the full mesh (the panel's largest in its title). The
     panels share one length scale (:func:`shared_frame`) and one colour scale, from 0 to the largest
     displacement of them all, with one colour bar, so they compare (stop 43: each was framed on its own pose
     and coloured to its own maximum). A mesh of more than ``max_vertices`` is drawn decimated
-    (:func:`display_mesh`). Returns the figure; saved to ``out`` when given."""
+    (:func:`display_mesh`). ``crop``: the vertices the panels are framed on, by default
+    :func:`moving_region` of the rig's shapes (``None``: the whole mesh). Returns the figure; saved to
+    ``out`` when given."""
     shapes = list(shapes) if shapes is not None else default_shapes(rig)
     fig, axes = _figure(1 + len(shapes))
-    crop = moving_region(rig.deltas)
+    crop = moving_region(rig.deltas) if isinstance(crop, str) else crop
     poses = []
     for name in shapes:
         w = np.zeros(rig.n_shapes)
@@ -296,12 +299,13 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
 
 
 def render_comparison(generic, personalized, shapes=None, out=None, *, view: str = "front",
-                      force: bool = False, title: str | None = None, max_vertices: int | None = None):
+                      force: bool = False, title: str | None = None, max_vertices: int | None = None,
+                      crop="moving"):
     """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
     distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count). Every
     panel shares one length scale (:func:`shared_frame`) and the difference panels one colour scale, from 0 to
     the largest difference of them all, with one colour bar (stop 43: each was framed and coloured on its
-    own)."""
+    own). ``crop``: as :func:`render_shapes`' (default: what the personalized shapes move)."""
     if generic.n_vertices != personalized.n_vertices:
         def where(rig):
             src = rig.source
@@ -313,7 +317,7 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
                                "avatar the layer was made over, --mesh the same mesh)")
     shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
     fig, axes = _figure(3 * len(shapes), ncols=3)
-    crop = moving_region(personalized.deltas)
+    crop = moving_region(personalized.deltas) if isinstance(crop, str) else crop
     pairs = [(generic.evaluate(_one_hot(generic, name)), personalized.evaluate(_one_hot(personalized, name)))
              for name in shapes]
     frame = shared_frame([p for pair in pairs for p in pair], personalized.triangles, view, crop)

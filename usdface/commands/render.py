@@ -219,7 +219,6 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     """``run`` for an avatar or a usdface layer (``p``: the command's progress steps)."""
 
     from .. import api, render
-    from ..mesh import DISPLAY_MAX_VERTICES
 
     if args.landmarks and not args.diagnostics:
         from ..io.usd_rig import read_avatar
@@ -235,6 +234,8 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     render.check_shapes(rig, shapes, path)
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
+    # what the shapes move, once: the pictures of a face on a still body are framed (and cut) on it
+    crop = None if args.landmarks else render.moving_region(rig.deltas)
     if args.diagnostics:
         p()                                    # read: its own steps follow
         _diagnostics(args, path, rig)
@@ -284,7 +285,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                     generic_path, path)
         p.start(f"draw {args.output.name}")
         if args.compare is not None:
-            render.render_comparison(generic, rig, shapes, args.output, view=args.view,
+            render.render_comparison(generic, rig, shapes, args.output, view=args.view, crop=crop,
                                      force=args.force, max_vertices=args.max_vertices,
                                      title=f"{rig.name}: generic vs personalized")
         else:
@@ -294,7 +295,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
             ks = [rig.names.index(s) for s in shapes] if shapes else list(range(rig.n_shapes))
             rms = shape_changes([rig.deltas[k] for k in ks], [generic.deltas[k] for k in ks])[0]
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
-                                  max_vertices=args.max_vertices, crop=render.moving_region(rig.deltas),
+                                  max_vertices=args.max_vertices, crop=crop,
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
@@ -303,13 +304,9 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     else:
         p.start(f"draw {args.output.name}")
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
-                             max_vertices=args.max_vertices,
+                             max_vertices=args.max_vertices, crop=crop,
                              title=f"{path.name}: {rig.name}")
-    limit = DISPLAY_MAX_VERTICES if args.max_vertices is None else args.max_vertices
-    # the pictures of shapes framed on what moves (a face on a body) are cut to their frame first
-    framed = (not args.landmarks and 0 < limit < rig.n_vertices
-              and render.moving_region(rig.deltas) is not None)
-    _decimated_note(rig, args.max_vertices, framed)
+    _decimated_note(rig, args.max_vertices, crop is not None)
     print(f"wrote {args.output}")
     return 0
 
