@@ -87,6 +87,8 @@ def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
     moved = np.zeros(deltas.shape[1], dtype=bool)
     for d in deltas:                                         # shape by shape: no [K, n, 3] temporaries
         moved |= np.abs(d).max(axis=1) > tolerance
+        if moved.sum() >= 0.5 * deltas.shape[1]:             # most of the mesh already: the answer is None
+            return None                                      # (a head: after a shape or two, not 51)
     count = int(moved.sum())
     return np.flatnonzero(moved) if 0 < count < 0.5 * deltas.shape[1] else None
 
