@@ -111,6 +111,47 @@ def test_quick_steps_print_nothing_and_a_slow_one_is_named_while_it_runs(capsys,
     assert progress_lines(capsys.readouterr().err)[0].startswith("usdface: job [1/1] slow done (")
 
 
+def test_a_long_native_call_names_the_running_step_before_it_starts(capsys, monkeypatch):
+    """Open3D's decimation of a large mesh holds Python's GIL for its seconds, so the timer thread could not
+    print the running step's line: 'render''s draw and 'review''s read (10-19 s) showed it only when the
+    call had ended, up to 8 s late. :func:`usdface.progress.announce` prints it before such a call, once,
+    in every open block; a mesh under the display limit (no decimation) prints nothing."""
+    from synthetic_meshes import grid_triangles
+
+    from usdface import natives
+    from usdface.mesh import display_subset
+
+    monkeypatch.setenv("USDFACE_PROGRESS_DELAY", "60")           # no timer line within the test
+    u, v = np.meshgrid(np.linspace(0, 1, 40), np.linspace(0, 1, 40))
+    points, tris = np.c_[u.ravel(), v.ravel(), np.zeros(1600)], grid_triangles(40, 40)
+    said = []
+    real = natives.open3d
+
+    def watched():                    # what stderr held when the native call was about to start
+        said.extend(progress_lines(capsys.readouterr().err))
+        return real()
+
+    monkeypatch.setattr(natives, "open3d", watched)
+    with progress.steps("render", 1) as p:
+        p.start("draw")
+        assert display_subset(points, tris, 2000) is None                 # under the limit: quiet
+        assert capsys.readouterr().err == ""
+        with progress.steps("inner", 1) as q:
+            q.start("decimate")
+            display_subset(points, tris, 400)
+            progress.announce()                                            # once: already out
+    assert said == ["usdface: render [1/1] draw ... (t+0.0 s)",
+                    "usdface: render > inner [1/1] decimate ... (t+0.0 s)"]
+    err = [ln.split(" (")[0].split(" in ")[0] for ln in progress_lines(capsys.readouterr().err)]
+    assert err == ["usdface: render > inner [1/1] decimate done", "usdface: render > inner done",
+                   "usdface: render [1/1] draw done", "usdface: render done"]       # each said once
+    monkeypatch.setenv("USDFACE_PROGRESS", "off")
+    with progress.steps("job", 1) as p:
+        p.start("hidden")
+        progress.announce()
+    assert capsys.readouterr().err == ""
+
+
 def test_nested_blocks_prefix_the_outer_title_and_off_prints_nothing(capsys):
     with progress.steps("outer", 1) as p:
         p.start("inner work")

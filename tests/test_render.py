@@ -18,6 +18,7 @@ from usdface.render import (
     default_shapes,
     draw_mesh,
     heat_colors,
+    moving_region,
     render_comparison,
     render_heatmap,
     render_landmarks,
@@ -142,6 +143,35 @@ def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
     assert np.diff(heat.axes[0].get_ylim())[0] < 0.06
 
 
+def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path, capsys):
+    """The pictures of a face on a head-and-body mesh decimated the whole mesh (most of 'render''s CPU on
+    the merged bench avatar: the body) though each panel is framed on the face, which lost vertices too. The
+    mesh is now cut to the frame first: under the limit, the picture is the one of every triangle."""
+    import matplotlib.image
+
+    rig = grid_rig(60)                                                  # 3,600 vertices
+    local = np.zeros_like(rig.deltas)
+    near = np.linalg.norm(rig.neutral[:, :2] - 0.06, axis=1) < 0.02     # a corner of the grid moves
+    local[0, near, 2] = 0.004 * (1 - np.linalg.norm(rig.neutral[near, :2] - 0.06, axis=1) / 0.02)
+    still = FaceRig(rig.neutral, rig.triangles, rig.names, local, name="body")
+    pictures = []
+    for limit in (0, 1000):                                       # every triangle, then over the limit
+        out = tmp_path / f"s{limit}.png"
+        render_shapes(still, ["bump"], out, max_vertices=limit)
+        render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
+                       tmp_path / f"h{limit}.png", max_vertices=limit, crop=moving_region(local))
+        pictures.append([matplotlib.image.imread(out), matplotlib.image.imread(tmp_path / f"h{limit}.png")])
+    for whole, cut in zip(*pictures, strict=True):   # the same pixels, up to the order of coplanar ties
+        off = np.abs(whole - cut).max(axis=-1)
+        assert off.max() <= 1.01 / 255 and np.mean(off > 0) < 1e-3, (off.max(), np.mean(off > 0))
+    from usdface.commands.render import _decimated_note
+
+    _decimated_note(still, 1000, framed=True)                    # the command's note says which it is
+    assert "body (3,600 vertices) drawn on its part in the picture's frame" in capsys.readouterr().err
+    _decimated_note(still, 1000)
+    assert "drawn decimated to about 1,000 of its vertices" in capsys.readouterr().err
+
+
 def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, capsys):
     """The note names the mesh, its vertex count and the option that draws every triangle."""
     _avatar, layer, _heat = inspected
@@ -150,6 +180,34 @@ def test_render_cli_says_when_it_draws_a_mesh_decimated(inspected, tmp_path, cap
     assert "drawn decimated to about 500 of its vertices" in err and "--max-vertices 0" in err
     assert main(["render", str(layer), "-o", str(tmp_path / "e.png"), "-q"]) == 0
     assert "decimated" not in capsys.readouterr().err                          # the sample head: 4k vertices
+
+
+def test_render_landmarks_reads_the_neutral_not_the_shapes(samples, tmp_path, monkeypatch):
+    """'render l.usda --landmarks' draws the neutral, but read every shape's offsets (a 225k-vertex head: 51
+    dense shapes, 793 MB peak for a picture of the neutral). The reader's ``shapes=False`` reads the meshes,
+    their channels and targets, no offsets: the same neutral, triangles and names, zero deltas that hold no
+    memory; the picture is the same."""
+    from usdface.io import usd_rig
+
+    lm = tmp_path / "mouth_lm.usda"
+    assert main(["landmarks", str(samples / "avatar.usda"), "--mesh", "Mouth", "-o", str(lm), "-q"]) == 0
+    full, bare = usd_rig.read_avatar(lm), usd_rig.read_avatar(lm, shapes=False)
+    for a, b in zip(full.meshes, bare.meshes, strict=True):
+        assert (a.name, a.names, b.inbetweens) == (b.name, b.names, {})
+        np.testing.assert_array_equal(a.neutral, b.neutral)
+        np.testing.assert_array_equal(a.triangles, b.triangles)
+        assert b.deltas.shape == a.deltas.shape and not b.deltas.any() and b.deltas.strides[:2] == (0, 0)
+    read = []
+    real = usd_rig._array
+    monkeypatch.setattr(usd_rig, "_array", lambda value, dtype, width, what, *rest: (
+        read.append(what), real(value, dtype, width, what, *rest))[1])
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "l.png"), "-q"]) == 0
+    assert read and "offsets" not in read, read                  # the mesh read, none of its shapes
+    assert main(["render", str(lm), "-o", str(tmp_path / "s.png"), "-q"]) == 0
+    assert "offsets" in read                                      # the shapes' picture reads them
+    monkeypatch.setattr(usd_rig, "read_avatar", lambda path, **kw: full)     # the full read's picture
+    assert main(["render", str(lm), "--landmarks", "-o", str(tmp_path / "f.png"), "-q"]) == 0
+    assert (tmp_path / "f.png").read_bytes() == (tmp_path / "l.png").read_bytes()
 
 
 def test_heat_colors_monotone():

@@ -166,6 +166,43 @@ def test_a_face_on_a_large_still_mesh_is_framed_on_what_moves():
     assert scene.aspectmode == "data" and scene.yaxis.range is None
 
 
+def test_a_face_on_a_large_still_mesh_is_cut_to_the_views_box_not_decimated():
+    """The merged head-and-body page decimated the whole 314k-vertex mesh (5.8 of its 10.1 CPU-s on the
+    still body, which the view cuts off) and showed the face on 13.6k of its 14.1k vertices. A mesh over the
+    limit keeps the triangles that meet the views' box, every vertex of them when they are under it: the
+    face is shown whole and the view is the same box."""
+    from synthetic_meshes import grid_triangles
+
+    from usdface.mesh import triangles_in_box
+    from usdface.review.collect import _decimate_for_display
+    from usdface.review.page import ReviewData, ReviewMesh, _figure, _framed_ranges
+
+    u, v = np.meshgrid(np.linspace(0, 1.0, 40), np.linspace(0, 2.0, 40))
+    neutral = np.c_[u.ravel(), v.ravel(), 0.05 * np.sin(3 * u.ravel())]
+    tris = grid_triangles(40, 40)
+    deltas = np.zeros((1, 1600, 3))
+    top = neutral[:, 1] > 1.85                                # the "face": the top of the sheet moves
+    deltas[0, top, 2] = 0.01
+    full = ReviewMesh("Head", neutral, tris, ["jawOpen"], deltas, deltas * 1.1, heat=np.arange(1600.0),
+                      landmarks=np.flatnonzero(top)[:3])
+    mesh = ReviewMesh("Head", neutral, tris, ["jawOpen"], deltas, deltas * 1.1, heat=np.arange(1600.0),
+                      landmarks=np.flatnonzero(top)[:3])
+    box = _framed_ranges([full])
+    notes = _decimate_for_display([mesh], 400, box)               # 1,600 vertices over a limit of 400
+    visible = triangles_in_box(neutral, tris, *box)
+    shown = np.unique(tris[visible])
+    assert 0 < len(shown) < 400 and "cut to the part in the views' box" in notes[0]
+    np.testing.assert_array_equal(mesh.neutral, neutral[shown])           # every vertex in the box
+    np.testing.assert_array_equal(shown[mesh.triangles], tris[visible])   # and every triangle meeting it
+    np.testing.assert_array_equal(mesh.generic, deltas[:, shown])
+    np.testing.assert_array_equal(mesh.heat, shown.astype(float))
+    np.testing.assert_array_equal(shown[mesh.landmarks], full.landmarks)  # on their own vertices
+    whole, cut = _figure(ReviewData("t", [full])).layout.scene, \
+        _figure(ReviewData("t", [mesh], view_box=box)).layout.scene
+    assert cut.aspectmode == "manual" and cut.yaxis.range == whole.yaxis.range \
+        and cut.xaxis.range == whole.xaxis.range
+
+
 def test_shape_changes_go_shape_by_shape():
     """The review of a 225k-vertex head peaked at 2.0 GB, ~1 GB of it the heat map's and the 'what changed'
     table's [K, n, 3] difference, squares and norms at once; shape by shape the same figures."""

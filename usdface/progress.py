@@ -186,6 +186,17 @@ class _Steps:
             self._line(f"done in {time.perf_counter() - self.t0:.1f} s")
 
 
+def announce() -> None:
+    """Print the running step's plain line now, in every open ``steps()`` block that has not printed it yet:
+    called before a native call that holds Python's GIL for seconds (Open3D's quadric decimation of a large
+    mesh), during which the timer thread that prints it after :func:`delay` seconds cannot run (its line
+    came when the call had ended, 8 s late, in a 19 s step). A step that is not running, or whose line is
+    out, prints nothing; bar mode and ``off`` print nothing."""
+    for s in _STACK:
+        if s.how == "plain" and s.running is not None:
+            s._announce(s.running)
+
+
 @contextlib.contextmanager
 def steps(title: str, total: int, *, every: bool = False):
     """A progress block over ``total`` named steps (see the module docstring). ``every``: in plain mode a

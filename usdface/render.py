@@ -49,15 +49,31 @@ def _figure(n_panels: int, ncols: int | None = None, size: float = 3.2):
     return fig, axes
 
 
-def display_mesh(points, triangles, max_vertices: int | None = None):
+def display_mesh(points, triangles, max_vertices: int | None = None, *, view: str = "front", frame=None):
     """``(keep, triangles)`` of the decimated copy a mesh of more than ``max_vertices`` vertices (default
     :data:`usdface.mesh.DISPLAY_MAX_VERTICES`; 0: no limit) is drawn on (:func:`usdface.mesh.display_subset`:
     a subset of its own vertices), for ``draw_mesh(..., display=...)``; ``None`` for a smaller mesh. Made
-    once from the neutral and used for every pose of the mesh."""
-    from .mesh import DISPLAY_MAX_VERTICES, display_subset
+    once from the neutral and used for every pose of the mesh. ``frame``: ``(lo[2], hi[2])`` in ``view``'s
+    plane the picture is cut to (a face on a head-and-body mesh, :func:`moving_region`): such a mesh drops
+    the triangles beyond it first and is decimated only if the rest is still over the limit (the face drawn
+    with every vertex; the body's decimation cost most of the picture)."""
+    from .mesh import DISPLAY_MAX_VERTICES, display_subset, triangles_in_box
 
     limit = DISPLAY_MAX_VERTICES if max_vertices is None else int(max_vertices)
-    return display_subset(points, triangles, limit)
+    visible = None
+    if frame is not None and 0 < limit < len(points):
+        xy = (np.asarray(points, dtype=np.float64) @ VIEWS[view].T)[:, :2]
+        visible = triangles_in_box(xy, triangles, *frame)
+    return display_subset(points, triangles, limit, visible=visible)
+
+
+def crop_frame(points, crop, view: str = "front", pad: float = 0.04):
+    """The frame ``(lo[2], hi[2])`` :func:`draw_mesh` gives the ``crop`` vertices of ``points`` in ``view``'s
+    plane (their box with a margin of ``pad`` times its extent); ``None`` without a crop (the whole mesh)."""
+    if crop is None or not len(crop):
+        return None
+    xy = (np.asarray(points, dtype=np.float64)[np.asarray(crop, dtype=np.int64)] @ VIEWS[view].T)[:, :2]
+    return _with_margin(xy.min(axis=0), xy.max(axis=0), pad)
 
 
 def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
@@ -71,6 +87,8 @@ def moving_region(deltas, tolerance: float = 1e-6) -> np.ndarray | None:
     moved = np.zeros(deltas.shape[1], dtype=bool)
     for d in deltas:                                         # shape by shape: no [K, n, 3] temporaries
         moved |= np.abs(d).max(axis=1) > tolerance
+        if moved.sum() >= 0.5 * deltas.shape[1]:             # most of the mesh already: the answer is None
+            return None                                      # (a head: after a shape or two, not 51)
     count = int(moved.sum())
     return np.flatnonzero(moved) if 0 < count < 0.5 * deltas.shape[1] else None
 
@@ -239,23 +257,27 @@ def default_shapes(rig, count: int = 5) -> list[str]:
 
 
 def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str = "front",
-                  force: bool = False, title: str | None = None, max_vertices: int | None = None):
+                  force: bool = False, title: str | None = None, max_vertices: int | None = None,
+                  crop="moving"):
     """Neutral plus each shape of ``shapes`` (default: :func:`default_shapes`) at ``weight``; the heat of
     each panel is the vertex displacement in mm over the full mesh (the panel's largest in its title). The
     panels share one length scale (:func:`shared_frame`) and one colour scale, from 0 to the largest
     displacement of them all, with one colour bar, so they compare (stop 43: each was framed on its own pose
     and coloured to its own maximum). A mesh of more than ``max_vertices`` is drawn decimated
-    (:func:`display_mesh`). Returns the figure; saved to ``out`` when given."""
+    (:func:`display_mesh`). ``crop``: the vertices the panels are framed on, by default
+    :func:`moving_region` of the rig's shapes (``None``: the whole mesh). Returns the figure; saved to
+    ``out`` when given."""
     shapes = list(shapes) if shapes is not None else default_shapes(rig)
     fig, axes = _figure(1 + len(shapes))
-    display = display_mesh(rig.neutral, rig.triangles, max_vertices)
-    crop = moving_region(rig.deltas)
+    crop = moving_region(rig.deltas) if isinstance(crop, str) else crop
     poses = []
     for name in shapes:
         w = np.zeros(rig.n_shapes)
         w[_shape_index(rig, name)] = weight
         poses.append(rig.evaluate(w))
     frame = shared_frame([rig.neutral, *poses], rig.triangles, view, crop)
+    display = display_mesh(rig.neutral, rig.triangles, max_vertices, view=view,
+                           frame=frame if crop is not None else None)
     draw_mesh(axes[0], rig.neutral, rig.triangles, view=view, display=display, frame=frame)
     axes[0].set_title("neutral")
     moved_mm = [1000.0 * np.linalg.norm(moved - rig.neutral, axis=1) for moved in poses]
@@ -279,12 +301,13 @@ def render_shapes(rig, shapes=None, out=None, *, weight: float = 1.0, view: str 
 
 
 def render_comparison(generic, personalized, shapes=None, out=None, *, view: str = "front",
-                      force: bool = False, title: str | None = None, max_vertices: int | None = None):
+                      force: bool = False, title: str | None = None, max_vertices: int | None = None,
+                      crop="moving"):
     """Generic vs personalized, side by side, one row per shape: generic, personalized, and the per-vertex
     distance between the two deformed meshes (mm). Both rigs must share the mesh (same vertex count). Every
     panel shares one length scale (:func:`shared_frame`) and the difference panels one colour scale, from 0 to
     the largest difference of them all, with one colour bar (stop 43: each was framed and coloured on its
-    own)."""
+    own). ``crop``: as :func:`render_shapes`' (default: what the personalized shapes move)."""
     if generic.n_vertices != personalized.n_vertices:
         def where(rig):
             src = rig.source
@@ -296,11 +319,12 @@ def render_comparison(generic, personalized, shapes=None, out=None, *, view: str
                                "avatar the layer was made over, --mesh the same mesh)")
     shapes = list(shapes) if shapes is not None else default_shapes(personalized, 3)
     fig, axes = _figure(3 * len(shapes), ncols=3)
-    display = display_mesh(personalized.neutral, personalized.triangles, max_vertices)
-    crop = moving_region(personalized.deltas)
+    crop = moving_region(personalized.deltas) if isinstance(crop, str) else crop
     pairs = [(generic.evaluate(_one_hot(generic, name)), personalized.evaluate(_one_hot(personalized, name)))
              for name in shapes]
     frame = shared_frame([p for pair in pairs for p in pair], personalized.triangles, view, crop)
+    display = display_mesh(personalized.neutral, personalized.triangles, max_vertices, view=view,
+                           frame=frame if crop is not None else None)
     diffs_mm = [1000.0 * np.linalg.norm(b - a, axis=1) for a, b in pairs]
     # from 0 (the bar ended at the largest visible triangle's mean: 2.65 under a title of 2.89 mm on the
     # sample's eyeBlinkLeft) to the largest difference of the picture's rows
@@ -355,8 +379,10 @@ def render_heatmap(points, triangles, values, out=None, *, label: str = "error (
     fig, axes = _figure(1, size=5.0)
     if vmax is None and np.isfinite(values).any():   # the bar's top is the largest vertex's value, as the
         vmax = float(np.nanmax(values * scale))        # default title says (not the largest triangle mean)
+    frame = crop_frame(points, crop, view)
     coll = draw_mesh(axes[0], points, triangles, values=values * scale, cmap="magma", vmin=0.0,
-                     vmax=vmax, view=view, display=display_mesh(points, triangles, max_vertices), crop=crop)
+                     vmax=vmax, view=view, display=display_mesh(points, triangles, max_vertices, view=view,
+                                                                frame=frame), frame=frame)
     fig.colorbar(coll, ax=axes[0], shrink=0.8, label=label)
     axes[0].set_title(title or f"max {np.nanmax(values * scale):.2f}, mean {np.nanmean(values * scale):.2f}")
     if out is not None:
@@ -429,14 +455,15 @@ def render_landmark_diagnostics(points, triangles, panels, indices, out=None, *,
     indices = _check_landmarks(points, indices)
     fig, axes = _figure(len(panels), ncols=min(len(panels), 3), size=4.0)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    display = display_mesh(points, tri, max_vertices)
+    frame = crop_frame(points, crop, view, pad=0.06)
+    display = display_mesh(points, tri, max_vertices, view=view, frame=frame)
     for ax, (name, values, cmap, vmin, vmax, *ringed) in zip(axes, panels, strict=True):
         values = np.asarray(values, dtype=np.float64).ravel()
         if values.shape[0] != len(points):
             raise UsdFaceError(f"{values.shape[0]} values for {len(points)} vertices in panel {name!r}",
                                fix="give one value per vertex")
         coll = draw_mesh(ax, points, tri, values=values, cmap=cmap, vmin=vmin, vmax=vmax, view=view,
-                         display=display, crop=crop, pad=0.06 if crop is not None and len(crop) else 0.04)
+                         display=display, frame=frame)
         fig.colorbar(coll, ax=ax, shrink=0.7)
         _landmark_dots(ax, points, tri, indices, view)
         if ringed:

@@ -220,13 +220,22 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
 
     from .. import api, render
 
-    avatar = api.read_avatar(path, args.name_map)
+    if args.landmarks and not args.diagnostics:
+        from ..io.usd_rig import read_avatar
+
+        # the layout's picture is the neutral: no shape's offsets read (a 225k-vertex head's 51 dense shapes
+        # were most of the command's memory)
+        avatar = read_avatar(path, name_map=args.name_map, shapes=False)
+    else:
+        avatar = api.read_avatar(path, args.name_map)
     rig = api.pick_mesh(avatar, args.mesh)
     if args.landmarks and args.mesh is None:
         rig = _mesh_with_layout(avatar, rig, path)
     render.check_shapes(rig, shapes, path)
     if shapes:            # the mesh's own channel names as the names the rig reads them under
         shapes = [render.resolve_shape(rig, s) for s in shapes]
+    # what the shapes move, once: the pictures of a face on a still body are framed (and cut) on it
+    crop = None if args.landmarks else render.moving_region(rig.deltas)
     if args.diagnostics:
         p()                                    # read: its own steps follow
         _diagnostics(args, path, rig)
@@ -276,7 +285,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
                                     generic_path, path)
         p.start(f"draw {args.output.name}")
         if args.compare is not None:
-            render.render_comparison(generic, rig, shapes, args.output, view=args.view,
+            render.render_comparison(generic, rig, shapes, args.output, view=args.view, crop=crop,
                                      force=args.force, max_vertices=args.max_vertices,
                                      title=f"{rig.name}: generic vs personalized")
         else:
@@ -286,7 +295,7 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
             ks = [rig.names.index(s) for s in shapes] if shapes else list(range(rig.n_shapes))
             rms = shape_changes([rig.deltas[k] for k in ks], [generic.deltas[k] for k in ks])[0]
             render.render_heatmap(rig.neutral, rig.triangles, rms, args.output, view=args.view,
-                                  max_vertices=args.max_vertices, crop=render.moving_region(rig.deltas),
+                                  max_vertices=args.max_vertices, crop=crop,
                                   label=(f"change in {shapes[0]} (mm)" if shapes and len(shapes) == 1 else
                                          f"RMS change over {len(shapes) if shapes else 'all'} shapes (mm)"),
                                   force=args.force,
@@ -295,24 +304,26 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
     else:
         p.start(f"draw {args.output.name}")
         render.render_shapes(rig, shapes, args.output, weight=weight, view=args.view, force=args.force,
-                             max_vertices=args.max_vertices,
+                             max_vertices=args.max_vertices, crop=crop,
                              title=f"{path.name}: {rig.name}")
-    _decimated_note(rig, args.max_vertices)
+    _decimated_note(rig, args.max_vertices, crop is not None)
     print(f"wrote {args.output}")
     return 0
 
 
-def _decimated_note(rig, max_vertices) -> None:
-    """Say when the picture shows the mesh decimated (``--max-vertices``)."""
+def _decimated_note(rig, max_vertices, framed: bool = False) -> None:
+    """Say when the picture shows the mesh decimated (``--max-vertices``), or, ``framed`` on the part that
+    moves of a larger still mesh (a face on a body), cut to the picture's frame."""
     import sys
 
     from ..mesh import DISPLAY_MAX_VERTICES
 
     limit = DISPLAY_MAX_VERTICES if max_vertices is None else max_vertices
     if limit and rig.n_vertices > limit:
-        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) drawn decimated to about {limit:,} of its "
-              "vertices (the titles' figures are the full mesh's; --max-vertices 0 draws every triangle)",
-              file=sys.stderr)
+        how = (f"drawn on its part in the picture's frame (decimated only where that part has more than "
+               f"{limit:,} vertices)" if framed else f"drawn decimated to about {limit:,} of its vertices")
+        print(f"note: {rig.name} ({rig.n_vertices:,} vertices) {how} (the titles' figures are the full "
+              "mesh's; --max-vertices 0 draws every triangle)", file=sys.stderr)
 
 
 def _layout_setup(path: Path) -> dict:

@@ -274,9 +274,10 @@ def _mesh_to_internal(mesh_prim, stage_meta, skinning=None, snapped: list | None
 
 def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animation, file_label,
                skinning=None, snapped: list | None = None, name_map: dict | None = None,
-               moving_only: bool = False) -> tuple:
+               moving_only: bool = False, shapes: bool = True) -> tuple:
     """One mesh with blend shapes -> (FaceRig, name-report entry); ``skinning`` = (SkinningQuery, Skeleton
-    prim) when joint influences bind it to a skeleton."""
+    prim) when joint influences bind it to a skeleton; ``shapes=False``: no offsets read (see
+    :func:`read_avatar`)."""
     from pxr import UsdSkel
 
     prim = str(mesh_prim.GetPath())
@@ -318,6 +319,8 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
             raise RigError(f"blend shape target {target} of channel {tokens[k]!r} is missing or not a "
                            "BlendShape", path=path, prim=prim,
                            fix="point skel:blendShapeTargets at BlendShape prims")
+        if not shapes:
+            continue
         shape = UsdSkel.BlendShape(shape_prim)
         idx_attr = shape.GetPointIndicesAttr()
         idx = None
@@ -375,12 +378,17 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
                                fix="give each inbetween of a shape a distinct weight")
             inbetweens[match.canonical[k]] = ibs
 
+    if not shapes:                        # every shape unread: a read-only zero array, no memory
+        point_indices, normal_offsets = [None] * len(targets), [None] * len(targets)
     source = MeshSource(
         file=file_label, prim=prim, shape_prims=targets, channel_tokens=tokens, point_indices=point_indices,
         normal_offsets=normal_offsets, to_internal=to_internal, face_vertex_counts=counts,
         face_vertex_indices=indices, skel_root=skel_root, skeleton=skeleton, animation=animation)
-    neutral, triangles, deltas, peak = _place_offsets(source, neutral, triangles, sparse, inbetweens,
-                                                      match.canonical, moving_only)
+    if shapes:
+        neutral, triangles, deltas, peak = _place_offsets(source, neutral, triangles, sparse, inbetweens,
+                                                          match.canonical, moving_only)
+    else:
+        deltas, peak = np.broadcast_to(np.zeros(3), (len(targets), n, 3)), None
     rig = FaceRig(neutral, triangles, match.canonical, deltas, inbetweens, source, mesh_prim.GetName())
     if peak is not None and rig.deltas.shape == deltas.shape:    # the peak motion the crop measured: kept
         rig.keep_peak(peak)
@@ -461,7 +469,8 @@ def _has_blend_shapes(prim) -> bool:
                 or binding.GetBlendShapeTargetsRel().GetTargets())
 
 
-def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_only: bool = False) -> Avatar:
+def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_only: bool = False,
+                shapes: bool = True) -> Avatar:
     """Read a UsdSkel avatar: every skinned mesh with blend shapes, in internal metres / Y up.
 
     Parameters
@@ -479,6 +488,10 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
         ``rig.source.residue`` the authored float noise outside it; the file's sparse ``pointIndices`` are
         never made dense for the rest of the mesh. What ``personalize`` reads (a full-body mesh whose face
         shapes move 5 % of it costs about 5 %).
+    shapes : ``False``: the meshes' neutral, triangles and channel names only, no shape's offsets read (a
+        picture of the neutral: ``render --landmarks``); each rig's ``deltas`` is a read-only array of zeros
+        that holds no memory, and its inbetweens are empty. The channels and their targets are checked as
+        always.
 
     Returns
     -------
@@ -507,7 +520,7 @@ def read_avatar(path, *, snap_transforms: bool = True, name_map=None, moving_onl
     if name_map is None:                       # a usdface layer over a studio-named avatar carries its map
         name_map = recorded_name_map(stage)
     try:
-        return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only)
+        return _read_avatar_stage(stage, path, snap_transforms, name_map, moving_only, shapes)
     except UsdFaceError as exc:
         _refuse_revised_avatar(stage, path, exc)
         raise
@@ -884,7 +897,8 @@ def _overridden_skel_root(meshes):
 
 
 def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
-                       name_map: dict | None = None, moving_only: bool = False) -> Avatar:
+                       name_map: dict | None = None, moving_only: bool = False,
+                       shapes: bool = True) -> Avatar:
     from pxr import Usd, UsdGeom, UsdSkel
 
     _refuse_non_avatar(stage, path)
@@ -955,7 +969,7 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
     for key in sorted(found, key=lambda k: order.get(k, len(order))):
         prim, skel_root, skeleton, anim, skinning = found[key]
         rig, entry = _read_mesh(stage, prim, path, meta, skel_root, skeleton, anim, str(path), skinning,
-                                snapped, name_map, moving_only)
+                                snapped, name_map, moving_only, shapes)
         meshes.append(rig)
         report[key] = entry
         for token, canonical, kept in entry["conflicts"]:

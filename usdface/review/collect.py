@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputFileError, RigError, warn
 from ..motion import shape_changes
-from .page import Listing, ReviewData, ReviewMesh, Sequence
+from .page import Listing, ReviewData, ReviewMesh, Sequence, _framed_ranges
 
 __all__ = ["collect_review", "recorded_capture"]
 
@@ -273,21 +273,30 @@ def _refuse_capture_or_take(path: Path, prov: dict | None) -> None:
     raise InputFileError(f"this is {what}", path=path, fix=fix)
 
 
-def _decimate_for_display(meshes: list[ReviewMesh], max_vertices: int | None) -> list[str]:
+def _decimate_for_display(meshes: list[ReviewMesh], max_vertices: int | None, box=None) -> list[str]:
     """Replace each mesh of more than ``max_vertices`` vertices (default
     :data:`usdface.mesh.DISPLAY_MAX_VERTICES`, 0: no limit) by a decimated subset of its own vertices
     (:func:`usdface.mesh.display_subset`: neutral, both variants' deltas, heat and landmarks indexed the
-    same way; a landmark on the nearest kept vertex). Returns the page's notes naming them."""
-    from ..mesh import DISPLAY_MAX_VERTICES, display_subset
+    same way; a landmark on the nearest kept vertex). ``box``: ``(lo[3], hi[3])`` the page's views are cut
+    to (:func:`usdface.review.page._framed_ranges`): such a mesh keeps only the triangles that meet it
+    (nothing beyond it is ever shown), decimated only if they are still over the limit. Returns the page's
+    notes naming them."""
+    from ..mesh import DISPLAY_MAX_VERTICES, display_subset, index_set, triangles_in_box
 
     limit = DISPLAY_MAX_VERTICES if max_vertices is None else int(max_vertices)
     notes = []
     for m in meshes:
-        display = display_subset(m.neutral, m.triangles, limit)
+        visible = (triangles_in_box(m.neutral, m.triangles, *box)
+                   if box is not None and 0 < limit < len(m.neutral) else None)
+        display = display_subset(m.neutral, m.triangles, limit, visible=visible)
         if display is None:
             continue
         keep, triangles = display
         n = len(m.neutral)
+        whole = ("decimated to" if visible is None else
+                 "cut to the part in the views' box," if len(keep) == len(index_set(
+                     np.asarray(m.triangles)[visible], n)) else
+                 "cut to the part in the views' box and decimated to")   # the part alone over the limit
         neutral = np.asarray(m.neutral)[keep]
         if m.landmarks is not None and len(m.landmarks):
             from scipy.spatial import cKDTree
@@ -300,7 +309,7 @@ def _decimate_for_display(meshes: list[ReviewMesh], max_vertices: int | None) ->
             m.personalized = np.asarray(m.personalized)[:, keep]
         if m.heat is not None:
             m.heat = np.asarray(m.heat)[keep]
-        notes.append(f"{m.name} ({n:,} vertices) is shown decimated to {len(keep):,} of its vertices (the "
+        notes.append(f"{m.name} ({n:,} vertices) is shown {whole} {len(keep):,} of its vertices (the "
                      "tables' figures are the full mesh's; 'usdface review --max-vertices 0' shows every "
                      "vertex, in a larger and slower page)")
     return notes
@@ -436,6 +445,8 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         tables.append(("what changed", rows))
     for w in prov.get("warnings") or []:
         notes.append(f"warning: {w}")
-    notes.extend(_decimate_for_display(meshes, max_vertices))   # after every figure of the full meshes
+    # the views' box from the full meshes (what moves), before the meshes beyond it are cut off
+    box = _framed_ranges(meshes)
+    notes.extend(_decimate_for_display(meshes, max_vertices, box))   # after every figure of the full meshes
     title = f"usdface review: {layer_path.name}"
-    return ReviewData(title, meshes, sequences, tables, errors, notes)
+    return ReviewData(title, meshes, sequences, tables, errors, notes, view_box=box)

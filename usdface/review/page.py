@@ -114,6 +114,9 @@ class ReviewData:
     tables: list[tuple[str, list[tuple[str, str | Listing]]]] = field(default_factory=list)
     errors: dict | None = None
     notes: list[str] = field(default_factory=list)
+    #: ``(lo[3], hi[3])`` the views are cut to, from the full meshes (:func:`_framed_ranges`; the meshes may
+    #: be cut to it since); ``None``: computed from ``meshes``
+    view_box: tuple | None = None
 
 
 def _b64(array: np.ndarray) -> str:
@@ -237,7 +240,7 @@ def _figure(data: ReviewData):
                                            name=f"{m.name} landmarks ({variant})", hoverinfo="skip",
                                            marker={"size": 2.5, "color": "#2f7df6"}))
     axis = {"visible": False, "showspikes": False}
-    framed = _framed_ranges(data.meshes)
+    framed = data.view_box if data.view_box is not None else _framed_ranges(data.meshes)
     camera = {"up": {"x": 0, "y": 1, "z": 0}, "eye": {"x": 0.0, "y": 0.05, "z": 1.5},
               "center": {"x": 0, "y": 0, "z": 0}, "projection": {"type": "perspective"}}
     scene = {"xaxis": axis, "yaxis": axis, "zaxis": axis, "aspectmode": "data", "camera": camera,
