@@ -358,9 +358,8 @@ class SparseOffsets:
             k = range(len(self))[item]             # negative indices, and IndexError past the end
             out = (np.zeros((self.n, 3)) if self.base is None
                    else np.array(self.base[k], dtype=np.float64, copy=True))
-            out[self.vertices] = self.values[k]
-            if self.copies is not None:
-                out[self.copies[0]] = self.values[k][self.copies[1]]
+            vertices, values = self.shape_row(k)
+            out[vertices] = values
             return out
         return self.dense()[item]
 
