@@ -175,7 +175,7 @@ def test_a_face_on_a_large_still_mesh_is_cut_to_the_views_box_not_decimated():
 
     from usdface.mesh import triangles_in_box
     from usdface.review.collect import _decimate_for_display
-    from usdface.review.page import ReviewData, ReviewMesh, _figure, _framed_ranges
+    from usdface.review.page import ReviewData, ReviewMesh, _figure, framed_ranges
 
     u, v = np.meshgrid(np.linspace(0, 1.0, 40), np.linspace(0, 2.0, 40))
     neutral = np.c_[u.ravel(), v.ravel(), 0.05 * np.sin(3 * u.ravel())]
@@ -187,7 +187,7 @@ def test_a_face_on_a_large_still_mesh_is_cut_to_the_views_box_not_decimated():
                       landmarks=np.flatnonzero(top)[:3])
     mesh = ReviewMesh("Head", neutral, tris, ["jawOpen"], deltas, deltas * 1.1, heat=np.arange(1600.0),
                       landmarks=np.flatnonzero(top)[:3])
-    box = _framed_ranges([full])
+    box = framed_ranges([full])
     notes = _decimate_for_display([mesh], 400, box)               # 1,600 vertices over a limit of 400
     visible = triangles_in_box(neutral, tris, *box)
     shown = np.unique(tris[visible])

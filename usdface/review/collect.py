@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputFileError, RigError, warn
 from ..motion import shape_changes
-from .page import Listing, ReviewData, ReviewMesh, Sequence, _framed_ranges
+from .page import Listing, ReviewData, ReviewMesh, Sequence, framed_ranges
 
 __all__ = ["collect_review", "recorded_capture"]
 
@@ -278,7 +278,7 @@ def _decimate_for_display(meshes: list[ReviewMesh], max_vertices: int | None, bo
     :data:`usdface.mesh.DISPLAY_MAX_VERTICES`, 0: no limit) by a decimated subset of its own vertices
     (:func:`usdface.mesh.display_subset`: neutral, both variants' deltas, heat and landmarks indexed the
     same way; a landmark on the nearest kept vertex). ``box``: ``(lo[3], hi[3])`` the page's views are cut
-    to (:func:`usdface.review.page._framed_ranges`): such a mesh keeps only the triangles that meet it
+    to (:func:`usdface.review.page.framed_ranges`): such a mesh keeps only the triangles that meet it
     (nothing beyond it is ever shown), decimated only if they are still over the limit. Returns the page's
     notes naming them."""
     from ..mesh import DISPLAY_MAX_VERTICES, display_subset, index_set, triangles_in_box
@@ -446,7 +446,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     for w in prov.get("warnings") or []:
         notes.append(f"warning: {w}")
     # the views' box from the full meshes (what moves), before the meshes beyond it are cut off
-    box = _framed_ranges(meshes)
+    box = framed_ranges(meshes)
     notes.extend(_decimate_for_display(meshes, max_vertices, box))   # after every figure of the full meshes
     title = f"usdface review: {layer_path.name}"
     return ReviewData(title, meshes, sequences, tables, errors, notes, view_box=box)

@@ -23,7 +23,7 @@ from importlib import resources
 import numpy as np
 
 __all__ = ["ReviewMesh", "Sequence", "ReviewData", "build_review_html", "encode_sparse_deltas",
-           "decode_sparse_deltas", "PRESETS", "SPARSE_TOLERANCE_M"]
+           "decode_sparse_deltas", "framed_ranges", "PRESETS", "SPARSE_TOLERANCE_M"]
 
 #: A vertex offset shorter than this is left out of a shape's sparse deltas in the page (metres; 0.01 mm,
 #: far below what a screen shows, and below the float32 noise of a cm-scale avatar's BlendShape offsets).
@@ -114,7 +114,7 @@ class ReviewData:
     tables: list[tuple[str, list[tuple[str, str | Listing]]]] = field(default_factory=list)
     errors: dict | None = None
     notes: list[str] = field(default_factory=list)
-    #: ``(lo[3], hi[3])`` the views are cut to, from the full meshes (:func:`_framed_ranges`; the meshes may
+    #: ``(lo[3], hi[3])`` the views are cut to, from the full meshes (:func:`framed_ranges`; the meshes may
     #: be cut to it since); ``None``: computed from ``meshes``
     view_box: tuple | None = None
 
@@ -197,7 +197,7 @@ def _payload(data: ReviewData) -> dict:
             "presets": {p: v for p, v in presets.items() if v}}
 
 
-def _framed_ranges(meshes) -> tuple[np.ndarray, np.ndarray] | None:
+def framed_ranges(meshes) -> tuple[np.ndarray, np.ndarray] | None:
     """``(lo[3], hi[3])`` the page's view is cut to when a mesh's shapes move less than half of it
     (:func:`usdface.render.moving_region`: a face on a head-and-body mesh, drawn as the whole body, was a
     few per cent of the view): the box of its moving vertices and of the other meshes, 10 % larger; ``None``
@@ -240,7 +240,7 @@ def _figure(data: ReviewData):
                                            name=f"{m.name} landmarks ({variant})", hoverinfo="skip",
                                            marker={"size": 2.5, "color": "#2f7df6"}))
     axis = {"visible": False, "showspikes": False}
-    framed = data.view_box if data.view_box is not None else _framed_ranges(data.meshes)
+    framed = data.view_box if data.view_box is not None else framed_ranges(data.meshes)
     camera = {"up": {"x": 0, "y": 1, "z": 0}, "eye": {"x": 0.0, "y": 0.05, "z": 1.5},
               "center": {"x": 0, "y": 0, "z": 0}, "projection": {"type": "perspective"}}
     scene = {"xaxis": axis, "yaxis": axis, "zaxis": axis, "aspectmode": "data", "camera": camera,
