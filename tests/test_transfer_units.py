@@ -698,3 +698,26 @@ def test_score_mesh_figures_on_a_case_worked_by_hand():
     assert s.seam_out == pytest.approx(2.0) and s.seam_generic == 0.0   # across edges 0-2, 1-2, 1-3
     assert s.face_ratio == 0.0 and s.whole_ratio == pytest.approx(np.sqrt(2.0))
 
+
+
+@pytest.mark.parametrize("rings", [1, 2])
+def test_border_band_edges_are_the_rings_around_the_crossing(rings):
+    """A 7 x 3 grid whose left 3 columns the capture covers: the seam is between columns 2 and 3; the band
+    of ``rings`` rings is the edges with both ends in columns 3 - rings .. 2 + rings (a column is one ring
+    on this grid). With one ring only the crossing edges' ends: a rule that grew the band from the edges
+    inside the covered part instead gave columns 0..2."""
+    from usdface.mesh import edges as mesh_edges
+    from usdface.transfer.scoring import border_band_edges
+
+    nx, ny = 7, 3
+    col = np.tile(np.arange(nx), ny)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
+    a = (j * nx + i).ravel()
+    tri = np.concatenate([np.stack([a, a + 1, a + nx + 1], 1), np.stack([a, a + nx + 1, a + nx], 1)])
+    covered = col < 3
+    band = border_band_edges(tri, covered, rings=rings)
+    lo, hi = 3 - rings, 2 + rings
+    e = mesh_edges(tri)
+    want = e[(col[e] >= lo).all(axis=1) & (col[e] <= hi).all(axis=1)]
+    assert {tuple(sorted(x)) for x in band.tolist()} == {tuple(sorted(x)) for x in want.tolist()}
+    assert len(band) == len(want) and len(want) > 0
