@@ -547,3 +547,96 @@ def test_no_backend_prints_its_solver_log():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "" and proc.stderr == "", (proc.stdout, proc.stderr)
+
+
+def _floor_and_panel(panel_x0: float, shift: float, roof: bool = False):
+    """A 10 x 10 cm floor at z = 0 (11 x 11 vertices) and, 5 mm above it, a 20 x 4 cm panel from
+    x = ``panel_x0`` to ``panel_x0 + 0.04`` (its own 4 vertices); one shape slides the panel by ``shift``
+    along x. ``roof``: a still roof 2 cm up over x < 0, above the panel. -> (points, triangles, deltas[1])."""
+    floor, tri = grid_mesh(11, 11, width=0.1, height=0.1)
+    floor[:, 2] = 0.0
+    x0, x1 = panel_x0, panel_x0 + 0.04
+    panel = np.array([[x0, -0.05, 0.005], [x1, -0.05, 0.005], [x1, 0.15, 0.005], [x0, 0.15, 0.005]])
+    points = np.concatenate([floor, panel])
+    n = len(floor)
+    tri = np.concatenate([tri, np.array([[n, n + 2, n + 1], [n, n + 3, n + 2]])])
+    if roof:
+        top = panel.copy()
+        top[:, 0] = [-0.2, 0.0, 0.0, -0.2]
+        top[:, 2] = 0.02
+        points = np.concatenate([points, top])
+        tri = np.concatenate([tri, np.array([[0, 2, 1], [0, 3, 2]]) + n + 4])
+    deltas = np.zeros((1,) + points.shape)
+    deltas[0, n:n + 4, 0] = shift
+    return points, tri, deltas
+
+
+@pytest.mark.parametrize("roof", [False, True])
+def test_pose_visibility_recasts_rays_a_moving_occluder_blocked(roof):
+    """A panel over the left of a vertex slides over its right: in the neutral the left rays are blocked,
+    in the pose the right ones; l is the neutral's (about half free), not both halves blocked at once. A ray
+    the neutral found blocked by a triangle the shape moves is cast again in the pose (the exact shortcut
+    keeps only rays blocked by triangles the shape leaves in place). With a still roof over the left, the
+    pose's left rays are blocked by it (the scene of the triangles no shape moves, with "union"): l ~ 0."""
+    points, tri, deltas = _floor_and_panel(-0.04, 0.04, roof)
+    v = 5 * 11 + 5                                  # the floor's centre vertex, x = 0
+    assert abs(points[v, 0]) < 1e-12
+    poses = [points, points + deltas[0]]
+    for strategy in ("full", "union"):
+        pv = PoseVisibility(points, tri, deltas, rays=32)
+        pv.strategy = strategy
+        got = pv([v])[0]
+        brute = min(_brute_pose_visibility(p, tri, pv.offset, 32)[v] for p in poses)
+        assert got == brute
+        assert (got < 0.2) if roof else (0.3 < got < 0.7)
+
+
+def test_camera_visibility_ignores_what_lies_beyond_the_camera():
+    """One ray per vertex to the camera, stopped at it: a wall behind the camera (in the neutral and in a
+    pose) hides nothing. Seen through, the whole floor read as hidden."""
+    floor, tri = grid_mesh(11, 11, width=0.1, height=0.1)
+    floor[:, 2] = 0.0
+    wall = floor.copy()
+    wall[:, :2] *= 20.0                             # 2 x 2 m, 1 m behind a camera 0.5 m above the floor
+    wall[:, 2] = 1.5
+    points = np.concatenate([floor, wall])
+    tris = np.concatenate([tri, tri + len(floor)])
+    deltas = np.zeros((1,) + points.shape)
+    deltas[0, 60, 2] = 0.002                        # a shape that moves the floor: its poses are cast
+    camera = [0.0, 0.05, 0.5]
+    floor_v = np.arange(len(floor))
+    pv = PoseVisibility(points, tris, deltas, camera=camera)
+    np.testing.assert_array_equal(pv.upper_bound(floor_v), 1.0)
+    np.testing.assert_array_equal(pv(floor_v), 1.0)
+
+
+def test_cost_forms_exact_on_a_small_case():
+    """Eq. 5a's three forms on 2 shapes x 3 columns, by hand: ``paper`` m sum_k c (2 - q); ``quality``
+    m (1 + delta (1 - mean q over the shapes covered)), delta = 1 / (2K + 1); ``count`` m."""
+    from usdface.landmarks.cover import set_cover_costs
+
+    c = np.array([[1, 0, 1], [1, 1, 0]], dtype=bool)
+    q = np.array([[0.5, 0.3, 1.0], [0.25, 0.9, 0.7]])
+    m = np.array([1.0, 2.0, 1.0])
+    np.testing.assert_allclose(set_cover_costs(c, q, "paper", m), [3.25, 2.2, 1.0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(set_cover_costs(c, q, "quality", m), [1.125, 2.04, 1.0], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(set_cover_costs(c, q, "count", m), m)
+
+
+def test_multicover_asks_a_shape_with_few_candidates_for_what_it_has():
+    """``cover_times = 3``: a shape with one candidate is covered once (min(N, |C_k|)), not made infeasible;
+    the shape with four candidates three times."""
+    from usdface.landmarks.cover import solve_set_cover
+
+    c = np.array([[1, 1, 1, 1], [1, 0, 0, 0]], dtype=bool)
+    sol = solve_set_cover(c, np.array([1.0, 1.0, 1.0, 1.1]), cover_times=3)
+    assert sol.status == "optimal"
+    np.testing.assert_array_equal(sol.selected, [0, 1, 2])
+
+
+def test_a_shape_moving_no_more_than_the_tolerance_is_static():
+    """``static_shapes``: max |dv| <= tolerance is still (the boundary included), above it moves."""
+    from usdface.landmarks.candidates import STATIC_TOLERANCE, static_shapes
+
+    mag = np.array([[0.0, STATIC_TOLERANCE], [0.0, np.nextafter(STATIC_TOLERANCE, 1.0)], [0.0, 0.0]])
+    np.testing.assert_array_equal(static_shapes(mag), [0, 2])
