@@ -721,3 +721,122 @@ def test_border_band_edges_are_the_rings_around_the_crossing(rings):
     want = e[(col[e] >= lo).all(axis=1) & (col[e] <= hi).all(axis=1)]
     assert {tuple(sorted(x)) for x in band.tolist()} == {tuple(sorted(x)) for x in want.tolist()}
     assert len(band) == len(want) and len(want) > 0
+
+
+def test_motion_landmarks_are_the_squared_motion_weighted_centroids():
+    """Shape 0 moves vertex 0 by 1 mm and vertex 1 by 2 mm: its landmark is (1 p0 + 4 p1) / 5 and its
+    strength the largest motion, 2 mm; a shape that moves nothing has strength 0."""
+    from usdface.transfer.register import motion_landmarks
+
+    neutral = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    deltas = np.zeros((2, 3, 3))
+    deltas[0, 0] = [1e-3, 0.0, 0.0]
+    deltas[0, 1] = [0.0, 0.0, 2e-3]
+    lm, strength = motion_landmarks(neutral, deltas)
+    np.testing.assert_allclose(lm[0], [0.8, 0.0, 0.0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(strength, [2e-3, 0.0], rtol=0, atol=1e-18)
+
+
+def test_motion_initialiser_pairs_only_shapes_that_move_on_both_and_needs_four():
+    """Shapes that move on one side only are left out of the pairs (a zero landmark would pull the
+    similarity); with fewer than 4 shapes moving on both it refuses."""
+    from usdface.transfer.register import motion_initialiser
+
+    pts, _ = _grid()
+    shapes = _local_shapes(pts, k=6)
+    true = Similarity(1.3, _rotation([0, 1, 0], 0.4), np.array([0.1, 1.5, 0.02]))
+    avatar, avatar_shapes = true.apply(pts), true.apply_vectors(shapes)
+    avatar_shapes[1] = 0.0                                   # the avatar lacks this shape's motion
+    est = motion_initialiser(pts, shapes, avatar, avatar_shapes)
+    assert est.scale == pytest.approx(true.scale, rel=1e-9)
+    np.testing.assert_allclose(est.apply(pts), avatar, atol=1e-9)
+    avatar_shapes[2:4] = 0.0                                 # 3 shapes left on both sides
+    with pytest.raises(RegistrationError, match="only 3 shapes move"):
+        motion_initialiser(pts, shapes, avatar, avatar_shapes)
+
+
+def test_similarity_inverse_vectors_undoes_apply_vectors():
+    s = Similarity(2.5, _rotation([1, 2, 3], 0.7), np.array([1.0, -2.0, 0.5]))
+    v = np.random.default_rng(2).normal(size=(7, 3))
+    np.testing.assert_allclose(s.inverse_vectors(s.apply_vectors(v)), v, atol=1e-14)
+
+
+def test_registration_rank_prefers_fitness_then_the_lower_residual():
+    from usdface.transfer.register import Registration
+
+    def reg(fitness, residual):
+        return Registration(Similarity(), residual, fitness, "x", 0.0)
+
+    assert reg(0.9, 2e-3).rank() > reg(0.9, 3e-3).rank()
+    assert reg(0.95, 3e-3).rank() > reg(0.9, 1e-3).rank()
+    assert reg(0.901, 3e-3).rank() < reg(0.899, 1e-3).rank()     # fitness to two decimals: a tie
+
+
+def test_register_face_falls_back_when_the_first_placement_does_not_converge(monkeypatch):
+    """A given placement far off (``initial``) does not converge (ICP, stood in for, leaves it with a low
+    fitness); the shape-motion landmarks are tried next and win."""
+    from usdface.transfer import register
+
+    pts, _ = _grid(12)
+    shapes = _local_shapes(pts)
+    true = Similarity(1.07, _rotation([0, 0, 1], 0.3), np.array([0.3, 1.5, 0.1]))
+    avatar, avatar_shapes = true.apply(pts), true.apply_vectors(shapes)
+    far = Similarity(0.5, _rotation([1, 0, 0], 2.5), np.array([5.0, -3.0, 2.0]))
+
+    def icp(source, target, init, **kw):
+        close = np.abs(init.apply(source) - avatar).max() < 1e-6
+        return init, 0.0, 1.0 if close else 0.2, 1e-3
+
+    monkeypatch.setattr(register, "register_icp", icp)
+    reg = register_face(pts, shapes, avatar, avatar_shapes, initial=far, target=avatar)
+    assert reg.initialiser == "shape-motion landmarks"
+    np.testing.assert_allclose(reg.transform.apply(pts), avatar, atol=1e-6)
+
+
+def _icp_to(scale, fitness=1.0, residual=0.0, seen=None):
+    """A stand-in for ``register_icp``: the capture scaled by ``scale`` onto the target's centroid (the
+    initial similarities it is given are appended to ``seen``)."""
+    def icp(source, target, init, **kw):
+        if seen is not None:
+            seen.append(init)
+        t = np.asarray(target).mean(axis=0) - scale * np.asarray(source).mean(axis=0)
+        return Similarity(scale, np.eye(3), t), residual, fitness, 1e-3
+    return icp
+
+
+def test_register_face_keeps_a_small_capture_and_refuses_one_below_a_thousandth(monkeypatch):
+    """A capture placed at 1 % of the target's size is no collapse (a mouth mesh picked for the face goes on
+    to the error naming the skin meshes); below a thousandth it is, whatever its residual and fitness. With
+    a low fitness the text says which: shrunk to a point below a fifth of the target's size."""
+    from usdface.transfer import register
+
+    pts, _ = _grid()
+    shapes = _local_shapes(pts)
+    monkeypatch.setattr(register, "register_icp", _icp_to(0.01))
+    assert register_face(pts, shapes, pts, shapes).transform.scale == 0.01
+    monkeypatch.setattr(register, "register_icp", _icp_to(5e-4))
+    with pytest.raises(RegistrationError, match="shrank the capture to a point"):
+        register_face(pts, shapes, pts, shapes)
+    monkeypatch.setattr(register, "register_icp", _icp_to(0.1, fitness=0.1))
+    with pytest.raises(RegistrationError, match="shrank the capture to a point"):
+        register_face(pts, shapes, pts, shapes)
+    monkeypatch.setattr(register, "register_icp", _icp_to(0.5, fitness=0.1))
+    with pytest.raises(RegistrationError, match=r"only 10% of capture vertices"):
+        register_face(pts, shapes, pts, shapes)
+
+
+def test_centroid_placement_puts_the_capture_centroid_on_the_targets(monkeypatch):
+    """Without shape-motion landmarks (fewer than 4 shapes move) the fallback placement scales the capture
+    to the target's extent and puts its centroid on the target's centroid."""
+    from usdface.transfer import register
+
+    pts, _ = _grid()
+    shapes = _local_shapes(pts)
+    shapes[3:] = 0.0
+    avatar = 3.0 * pts + [1.0, 2.0, 3.0]
+    seen = []
+    monkeypatch.setattr(register, "register_icp", _icp_to(3.0, seen=seen))
+    register_face(pts, shapes, avatar, 3.0 * shapes, target=avatar)
+    (init,) = seen
+    assert init.scale == pytest.approx(3.0, rel=1e-12)
+    np.testing.assert_allclose(init.apply(pts).mean(axis=0), avatar.mean(axis=0), atol=1e-12)
