@@ -840,3 +840,112 @@ def test_centroid_placement_puts_the_capture_centroid_on_the_targets(monkeypatch
     (init,) = seen
     assert init.scale == pytest.approx(3.0, rel=1e-12)
     np.testing.assert_allclose(init.apply(pts).mean(axis=0), avatar.mean(axis=0), atol=1e-12)
+
+
+def _flat_grid(n=9, h=0.01):
+    """A flat n x n grid in z = 0 with spacing ``h`` metres: (points, triangles)."""
+    u, v = np.meshgrid(np.arange(n) * h, np.arange(n) * h)
+    pts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    return pts, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+
+
+def test_posed_surface_takes_the_side_that_moves_with_the_query():
+    """Two sheets 0.1 mm apart (closed lips); a pose opens them 1 cm. A query a little nearer the lower
+    sheet in the neutral that moves with the upper one in the pose is matched to the upper sheet (the
+    nearest point in all poses at once), also when only queries within 1 mm are searched."""
+    from usdface.transfer.correspond import PosedSurface
+
+    pts, tri = _flat_grid(5)
+    upper = pts + [0.0, 0.0, 1e-4]
+    both = np.concatenate([pts, upper])
+    tris = np.concatenate([tri, tri + len(pts)])
+    opening = np.zeros_like(both)
+    opening[len(pts):, 2] = 0.01
+    surface = PosedSurface(both, tris, [opening])
+    q = np.array([[0.015, 0.015, 0.4e-4]])
+    plain = PosedSurface(both, tris).closest_points(q)[0]
+    assert plain[0] < len(tri)                                   # the lower sheet, alone in the neutral
+    for within in (None, 1e-3):
+        t, bary, closest, dist = surface.closest_points(q, [np.array([[0.0, 0.0, 0.01]])], within=within)
+        assert t[0] >= len(tri)                                   # the upper sheet
+        assert dist[0] == pytest.approx(0.6e-4, abs=1e-9)
+        np.testing.assert_allclose(closest[0], [0.015, 0.015, 1e-4], atol=1e-9)
+
+
+def test_correspondence_map_region_on_a_flat_capture():
+    """The capture a flat grid (spacing h). An avatar on it (distance 0): every vertex in the face with
+    weight 1, its border too (on the surface, not clamped off it). An avatar 0.2 h above it and shifted
+    0.3 h past its right border: every vertex whose closest point is inside has weight 1 (the normals
+    agree, the distance is under 0.35 h), the column past the border none (clamped onto a border edge); a
+    face triangle has the capture triangle under its centroid, one not all in the face -1; the map's matrix
+    has empty rows outside the face and rows summing to 1 in it."""
+    from usdface.transfer.correspond import correspondence_map
+
+    h, n = 0.01, 9
+    pts, tri = _flat_grid(n, h)
+    on = correspondence_map(pts, tri, pts, tri)
+    np.testing.assert_array_equal(on.weight, 1.0)
+    avatar = pts + [0.3 * h, 0.0, 0.2 * h]
+    corr = correspondence_map(pts, tri, avatar, tri)
+    edge = (n - 1) * h
+    past = np.isclose(pts[:, 0], edge) | np.isclose(pts[:, 1], 0.0) | np.isclose(pts[:, 1], edge)
+    np.testing.assert_array_equal(corr.weight[~past], 1.0)
+    np.testing.assert_array_equal(corr.weight[past], 0.0)
+    in_face = corr.face[tri].all(axis=1)
+    assert (corr.source_triangle[~in_face] == -1).all() and (corr.source_triangle[in_face] >= 0).all()
+    centroids = avatar[tri[in_face]].mean(axis=1)
+    under = pts[tri[corr.source_triangle[in_face]]].mean(axis=1)
+    assert np.abs(under[:, :2] - centroids[:, :2]).max() < h
+    rows = np.asarray(corr.matrix(tri, len(pts)).sum(axis=1)).ravel()
+    np.testing.assert_allclose(rows, corr.face.astype(float), atol=1e-12)
+
+
+def test_ramps_are_smoothsteps():
+    from usdface.transfer.correspond import ramp_down, ramp_up
+
+    x = np.array([-1.0, 0.0, 0.25, 0.5, 0.75, 1.0, 2.0])
+    want = np.array([1.0, 1.0, 0.84375, 0.5, 0.15625, 0.0, 0.0])        # 1 - t^2 (3 - 2t)
+    np.testing.assert_allclose(ramp_down(x, 0.0, 1.0), want, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ramp_down(x.copy(), 0.0, 1.0, overwrite=True), want, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ramp_up(x, 0.0, 1.0), 1.0 - want, rtol=0, atol=1e-15)
+
+
+def test_geometry_digest_tells_a_micrometre_apart():
+    """The cache key rounds to 1e-9 (a float32 re-export's noise is below it), not to millimetres: a vertex
+    moved by a micrometre is another geometry."""
+    pts, tri = _flat_grid(4)
+    moved = pts.copy()
+    moved[5, 0] += 1e-6
+    assert geometry_digest(pts, tri) == geometry_digest(pts + 1e-12, tri)
+    assert geometry_digest(pts, tri) != geometry_digest(moved, tri)
+
+
+def test_nonrigid_register_lands_on_a_parallel_surface():
+    """A flat template half an edge below a flat target: the closest points pull every vertex onto the
+    target plane (the normals agree), the Laplacian keeps it flat."""
+    from usdface.transfer.correspond import nonrigid_register
+
+    h = 0.01
+    pts, tri = _flat_grid(9, h)
+    target = pts + [0.0, 0.0, 0.5 * h]
+    x, info = nonrigid_register(pts, tri, target, tri)
+    np.testing.assert_allclose(x[:, 2], 0.5 * h, atol=1e-4 * h)
+    assert info["nonrigid_matched"] == 1.0
+
+
+def test_nonrigid_register_settles_at_a_fixed_stiffness():
+    """The stiffness holds the displacement to the template (``||L (x - x0)||``): at one stiffness the
+    result settles once the closest points do - 4 or 12 iterations give the same bump, half of the
+    target's 3 mm; a smoothness measured from the previous iterate instead crept onto the target."""
+    from usdface.transfer.correspond import nonrigid_register
+
+    h = 0.01
+    pts, tri = _flat_grid(9, h)
+    target = pts.copy()
+    target[:, 2] = 0.3 * h * np.exp(-((pts[:, 0] - 0.04) ** 2 + (pts[:, 1] - 0.04) ** 2) / (2 * h * h))
+    x4, _ = nonrigid_register(pts, tri, target, tri, stiffness=(3.0,), iterations_per_level=4)
+    x12, _ = nonrigid_register(pts, tri, target, tri, stiffness=(3.0,), iterations_per_level=12)
+    assert np.abs(x4[:, 2] - x12[:, 2]).max() < 0.005 * h
+    assert 0.1 * h < x12[40, 2] < 0.2 * h
