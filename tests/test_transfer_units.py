@@ -949,3 +949,99 @@ def test_nonrigid_register_settles_at_a_fixed_stiffness():
     x12, _ = nonrigid_register(pts, tri, target, tri, stiffness=(3.0,), iterations_per_level=12)
     assert np.abs(x4[:, 2] - x12[:, 2]).max() < 0.005 * h
     assert 0.1 * h < x12[40, 2] < 0.2 * h
+
+
+def _unit_sphere_points(count=400, seed=5):
+    d = np.random.default_rng(seed).normal(size=(count, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_find_eyeballs_rules_on_place_roundness_and_order():
+    """Only spheres under this face's lids (centre within two radii of a face vertex); a named eye may be
+    twice as rough as one found by geometry alone (0.18 r: named yes, unnamed no); of several, the two
+    roundest (rms / radius) in that order."""
+    unit = _unit_sphere_points()
+    r = 0.012
+    eye = r * unit
+    face = np.array([[0.0, 0.0, r + 0.005]])                       # a lid 5 mm in front of the eye
+    assert [e.name for e in find_eyeballs({"EyeL": eye}, face=face)] == ["EyeL"]
+    far = eye + [0.0, 0.0, -5 * r]                                 # its centre 5 radii behind the lid
+    why: list = []
+    assert find_eyeballs({"EyeL": far}, face=face, rejected=why) == []
+    assert "not under this face's lids" in why[0]
+    rough = r * unit * np.where(np.arange(len(unit)) % 2, 1.18, 0.82)[:, None]
+    c, rr, rms = fit_sphere(rough)
+    assert 0.12 < rms / rr < 0.24
+    assert [e.name for e in find_eyeballs({"EyeL": rough})] == ["EyeL"]
+    assert find_eyeballs({"Ball": rough}) == []
+    a = r * unit * np.where(np.arange(len(unit)) % 2, 1.02, 0.98)[:, None] + [0.05, 0, 0]
+    b = r * unit * np.where(np.arange(len(unit)) % 2, 1.05, 0.95)[:, None] + [0.1, 0, 0]
+    c3 = r * unit * np.where(np.arange(len(unit)) % 2, 1.09, 0.91)[:, None] + [0.15, 0, 0]
+    assert [e.name for e in find_eyeballs({"B3": c3, "B1": a, "B2": b})] == ["B1", "B2"]
+
+
+def test_eye_surfaces_a_shell_encloses_a_piece_mostly_inside_it():
+    """An eyeball (r 0.9) off-centre in a shell (r 1) by 0.3: most, not all, of its vertices inside the
+    shell; the lids are bounded by the shell, then the eyeball."""
+    import open3d as o3d
+
+    from usdface.transfer.eyelids import eye_surfaces
+
+    def sphere(radius, centre):
+        m = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=12)
+        return np.asarray(m.vertices) + centre, np.asarray(m.triangles)
+
+    shell_p, shell_t = sphere(0.012, [0.0, 0.0, 0.0])
+    ball_p, ball_t = sphere(0.0108, [0.0, 0.0, 0.0036])
+    outside = np.linalg.norm(ball_p, axis=1) > 0.012
+    assert 0.01 < outside.mean() < 0.5
+    points = np.concatenate([shell_p, ball_p])
+    tris = np.concatenate([shell_t, ball_t + len(shell_p)])
+    parts = eye_surfaces(points, tris)
+    assert [len(p) for p, _ in parts] == [len(shell_p), len(ball_p)]
+    np.testing.assert_array_equal(parts[0][0], shell_p)
+
+
+def test_share_is_the_largest_step_that_keeps_the_bound():
+    """From a generic point 2 mm above an eye's pole to a personalized one 2 mm inside it, the largest share
+    that stays 1 mm out is a quarter (to 2^-12)."""
+    import open3d as o3d
+
+    from usdface.transfer.eyelids import _EyeSurface, _share
+
+    r = 0.012
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=20)
+    surf = _EyeSurface(np.asarray(m.vertices), np.asarray(m.triangles))
+    pole = np.asarray(m.vertices)[np.argmax(np.asarray(m.vertices)[:, 2])]
+    generic = (pole + [0.0, 0.0, 0.002])[None]
+    personalized = (pole - [0.0, 0.0, 0.002])[None]
+    t = _share(surf, generic, personalized, np.array([0.001]))
+    assert abs(t[0] - 0.25) <= 2.0 ** -12
+
+
+def test_amount_rises_smoothly_to_the_whole_excess():
+    """``_amount``: nothing for no excess, ``e x smoothstep(e / tolerance)`` below the tolerance, the whole
+    excess from it on."""
+    from usdface.transfer.eyelids import _amount
+
+    tol = 1e-4
+    got = _amount(np.array([-1e-4, 0.0, 0.25 * tol, 0.5 * tol, tol, 3 * tol]), tol)
+    want = [0.0, 0.0, 0.25 * tol * 0.15625, 0.5 * tol * 0.5, tol, 3 * tol]
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+
+
+def test_outward_turns_to_the_radial_line_where_the_distance_has_no_slope():
+    """Midway between two sheets of an eye mesh (a closed slab 2 mm thick) the signed distance's
+    differences cancel: the direction out of the eye is the radial line given, not the noise."""
+    from usdface.transfer.eyelids import GRADIENT_STEP, _EyeSurface, _outward
+
+    w, s = 0.002, 0.02
+    corners = np.array([[x, y, z] for z in (0.0, w) for y in (-s, s) for x in (-s, s)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    surf = _EyeSurface(corners, tris)
+    q = np.array([[0.001, -0.002, 0.5 * w - 0.5 * GRADIENT_STEP]])
+    d = surf.signed_distance(q)
+    assert d[0] == pytest.approx(-(0.5 * w - 0.5 * GRADIENT_STEP), abs=1e-8)
+    radial = np.array([[0.6, 0.0, 0.8]])
+    np.testing.assert_allclose(_outward(surf, q, d, radial), radial, atol=0.02)
