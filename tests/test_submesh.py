@@ -380,3 +380,17 @@ def test_a_still_piece_of_the_head_mesh_beyond_the_capture_is_no_empty_mesh(samp
     assert m.shape[1] == n + 3
     np.testing.assert_array_equal(m[:, n:], 0.0)                       # the card stays
     np.testing.assert_allclose(m[:, :n], np.asarray(alone.offsets["/Avatar/Head"]), rtol=0, atol=1e-7)
+
+
+def test_outside_offsets_keeps_a_point_only_an_inbetween_moves():
+    """A point outside the crop whose offset is zero but an inbetween's is not is kept (with both), one
+    still in all of them is not."""
+    from usdface.submesh import outside_offsets
+
+    idx = np.array([3, 7, 9])
+    off = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1e-3, 0.0, 0.0]])
+    ib = np.array([[0.0, 2e-3, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    rows, kept, (kept_ib,) = outside_offsets(idx, off, [ib])
+    np.testing.assert_array_equal(rows, [3, 9])
+    np.testing.assert_array_equal(kept, off[[0, 2]])
+    np.testing.assert_array_equal(kept_ib, ib[[0, 2]])
