@@ -216,3 +216,22 @@ def test_a_clump_of_parked_vertices_is_one_point():
     rep = coincident_vertices(points, deltas)
     np.testing.assert_array_equal(rep[:1999], 0)
     assert rep[1999] == 1999 and (rep[2000:] == np.arange(2000, 5000)).all()
+
+
+def test_a_copy_follows_its_twin_when_the_twin_is_the_first_vertex_kept():
+    """Cropping a welded part again from the seam's row up: the lowest kept vertex (local index 0) is a
+    seam vertex, and its copy follows it like every other copy (none join the residue)."""
+    from usdface.model import MeshSource
+
+    points, tri = _grid(8, 6)
+    n = len(points)
+    deltas = np.zeros((1, n, 3))
+    deltas[0, :, 2] = 0.001 * points[:, 0] + 0.002
+    src = MeshSource(file="x.usda", prim="/Avatar/Head", point_indices=[None], normal_offsets=[None])
+    rig, seam = _split(FaceRig(points, tri, ["jawOpen"], deltas, name="Head"), 0.021)
+    welded, region = weld_rig(dataclasses.replace(rig, source=src))
+    keep = welded.neutral[:, 1] >= welded.neutral[seam, 1].min() - 1e-9
+    part, sub = crop_rig(welded, keep, region)
+    assert sub.vertices[0] == seam.min()                         # the first kept vertex is on the seam
+    np.testing.assert_array_equal(np.sort(sub.copies[0]), np.sort(region.copies[0]))
+    assert not set(region.copies[0].tolist()) & set(part.source.residue[0][0].tolist())
