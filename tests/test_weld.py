@@ -235,3 +235,16 @@ def test_a_copy_follows_its_twin_when_the_twin_is_the_first_vertex_kept():
     assert sub.vertices[0] == seam.min()                         # the first kept vertex is on the seam
     np.testing.assert_array_equal(np.sort(sub.copies[0]), np.sort(region.copies[0]))
     assert not set(region.copies[0].tolist()) & set(part.source.residue[0][0].tolist())
+
+
+def test_weld_drops_every_triangle_two_of_whose_corners_become_one():
+    """A sliver whose first and last corners are copies of one point (a zero-area triangle across a seam) is
+    dropped by the weld, as one whose neighbouring corners are; the others are kept, re-indexed."""
+    points = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.0],
+                       [0.0, 0.0, 0.0]])
+    deltas = np.zeros((1, 5, 3))
+    deltas[0, :, 2] = 0.001
+    tri = np.array([[0, 1, 2], [3, 1, 0], [1, 4, 0], [3, 1, 2]])
+    welded, region = weld_rig(FaceRig(points, tri, ["jawOpen"], deltas, name="Head"))
+    np.testing.assert_array_equal(welded.triangles, [[0, 1, 2], [0, 1, 2]])
+    np.testing.assert_array_equal(np.sort(region.copies[0]), [3, 4])
