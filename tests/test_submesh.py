@@ -394,3 +394,15 @@ def test_outside_offsets_keeps_a_point_only_an_inbetween_moves():
     np.testing.assert_array_equal(rows, [3, 9])
     np.testing.assert_array_equal(kept, off[[0, 2]])
     np.testing.assert_array_equal(kept_ib, ib[[0, 2]])
+
+
+def test_moving_part_is_the_whole_mesh_once_its_margin_makes_it_most_of_it():
+    """45 % of a 10 x 10 grid moves: under half, but with its margin the part is most of the mesh, so the
+    whole mesh is kept (None)."""
+    u, v = np.meshgrid(np.arange(10) * 0.01, np.arange(10) * 0.01)
+    points = np.stack([u.ravel(), v.ravel(), np.zeros(100)], axis=1)
+    peak = np.where(np.arange(100) < 45, 1e-3, 0.0)
+    assert moving_part(peak, points) is None
+    few = np.where(np.arange(100) < 12, 1e-3, 0.0)                   # a part with its margin under half
+    keep = moving_part(few, points)
+    assert keep is not None and 12 < keep.sum() <= 50
