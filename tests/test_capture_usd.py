@@ -243,3 +243,42 @@ def test_an_existing_output_is_named_for_what_it_is(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert says in err and "output layer" not in err and "--force" in err, err
+
+
+def test_edited_template_offsets_win_over_their_float64_twin(tmp_path):
+    """A template blend shape's float32 offsets edited after import (its float64 twin left as written): the
+    edited offsets are read, as for the points."""
+    from pxr import Usd, UsdSkel, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    mesh = stage.GetPrimAtPath("/Capture/Template/Mesh")
+    target = UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel().GetTargets()[0]
+    edited = (cap.template.deltas[0] + 0.001).astype(np.float32)
+    UsdSkel.BlendShape(stage.GetPrimAtPath(target)).GetOffsetsAttr().Set(Vt.Vec3fArray.FromNumpy(edited))
+    stage.GetRootLayer().Save()
+    got = read_capture_usd(out)
+    np.testing.assert_array_equal(got.template.deltas[0], edited.astype(np.float64))
+    np.testing.assert_array_equal(got.template.deltas[1:], cap.template.deltas[1:])
+
+
+def test_a_sparse_template_shape_is_read_at_its_point_indices(tmp_path):
+    """A template blend shape authored sparse (``pointIndices``, as another tool writes it): its offsets land
+    on those points, zero elsewhere."""
+    from pxr import Usd, UsdSkel, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    mesh = stage.GetPrimAtPath("/Capture/Template/Mesh")
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath(UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel()
+                                                   .GetTargets()[0]))
+    offsets = np.array([[0.001, 0.0, 0.0], [0.0, 0.0, -0.002]], dtype=np.float32)
+    shape.GetOffsetsAttr().Set(Vt.Vec3fArray.FromNumpy(offsets))
+    shape.CreatePointIndicesAttr().Set(Vt.IntArray([2, 5]))
+    stage.GetRootLayer().Save()
+    got = read_capture_usd(out).template.deltas[0]
+    want = np.zeros_like(got)
+    want[[2, 5]] = offsets.astype(np.float64)
+    np.testing.assert_array_equal(got, want)
