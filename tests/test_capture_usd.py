@@ -282,3 +282,57 @@ def test_a_sparse_template_shape_is_read_at_its_point_indices(tmp_path):
     want = np.zeros_like(got)
     want[[2, 5]] = offsets.astype(np.float64)
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_point_index_past_the_mesh_is_refused(tmp_path):
+    from pxr import Usd, UsdSkel, Vt
+
+    cap = tiny_capture()
+    n = len(cap.neutral)
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    mesh = stage.GetPrimAtPath("/Capture/Template/Mesh")
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath(UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel()
+                                                   .GetTargets()[0]))
+    shape.GetOffsetsAttr().Set(Vt.Vec3fArray.FromNumpy(np.zeros((2, 3), dtype=np.float32)))
+    shape.CreatePointIndicesAttr().Set(Vt.IntArray([2, n]))
+    stage.GetRootLayer().Save()
+    with pytest.raises(CaptureError, match="offsets/pointIndices do not match the mesh"):
+        read_capture_usd(out)
+
+
+def test_a_z_up_capture_is_turned_y_up(tmp_path):
+    """Z up: (x, y, z) is read as (x, z, -y), the points and the template's offsets alike."""
+    from pxr import Usd, UsdGeom
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    stage.GetRootLayer().Save()
+    got = read_capture_usd(out)
+
+    def turned(a):
+        return np.stack([a[..., 0], a[..., 2], -a[..., 1]], axis=-1)
+
+    np.testing.assert_array_equal(got.neutral, turned(cap.neutral))
+    np.testing.assert_array_equal(got.frames.points, turned(cap.frames.points))
+    np.testing.assert_array_equal(got.template.deltas, turned(cap.template.deltas))
+
+
+def test_weights_columns_are_matched_to_the_template_by_name(tmp_path):
+    """``usdface:frames:names`` in another order than the template's shapes (with the weights in that
+    order): each column goes to its shape by name."""
+    from pxr import Usd, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    frames = stage.GetPrimAtPath("/Capture/Frames")
+    names = list(frames.GetAttribute("usdface:frames:names").Get())
+    frames.GetAttribute("usdface:frames:names").Set(Vt.TokenArray(names[::-1]))
+    w_attr = frames.GetAttribute("usdface:frames:weights")
+    for t in w_attr.GetTimeSamples():
+        w_attr.Set(Vt.DoubleArray(list(w_attr.Get(t))[::-1]), t)
+    stage.GetRootLayer().Save()
+    np.testing.assert_array_equal(read_capture_usd(out).frames.weights, cap.frames.weights)
