@@ -336,3 +336,40 @@ def test_weights_columns_are_matched_to_the_template_by_name(tmp_path):
         w_attr.Set(Vt.DoubleArray(list(w_attr.Get(t))[::-1]), t)
     stage.GetRootLayer().Save()
     np.testing.assert_array_equal(read_capture_usd(out).frames.weights, cap.frames.weights)
+
+
+def test_frame_weights_outside_the_unit_interval_are_clipped_with_a_warning(tmp_path):
+    from pxr import Usd, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    w_attr = stage.GetPrimAtPath("/Capture/Frames").GetAttribute("usdface:frames:weights")
+    row = list(w_attr.Get(1))
+    row[0], row[-1] = 1.5, -0.25
+    w_attr.Set(Vt.DoubleArray(row), 1)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"outside \[0, 1\] clipped"):
+        got = read_capture_usd(out)
+    assert got.frames.weights[1, 0] == 1.0 and got.frames.weights[1, -1] == 0.0
+    np.testing.assert_array_equal(got.frames.weights[1, 1:-1], cap.frames.weights[1, 1:-1])
+
+
+def test_a_face_index_past_the_neutrals_points_is_refused(tmp_path):
+    from pxr import Usd, UsdGeom, Vt
+
+    cap = tiny_capture()
+    out = write_capture_usd(cap, tmp_path / "c.usda")
+    stage = Usd.Stage.Open(str(out))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/Capture/Neutral")).GetFaceVertexIndicesAttr()
+    idx = list(attr.Get())
+    idx[0] = len(cap.neutral)
+    attr.Set(Vt.IntArray(idx))
+    stage.GetRootLayer().Save()
+    with pytest.raises(GeometryError, match="face index out of range"):
+        read_capture_usd(out)
+
+
+def test_the_frame_counts_are_per_role(tmp_path):
+    got = read_capture_usd(write_capture_usd(tiny_capture(), tmp_path / "c.usda"))
+    assert got.metadata["counts"] == {"train": 3, "test": 2}
