@@ -373,3 +373,13 @@ def test_a_face_index_past_the_neutrals_points_is_refused(tmp_path):
 def test_the_frame_counts_are_per_role(tmp_path):
     got = read_capture_usd(write_capture_usd(tiny_capture(), tmp_path / "c.usda"))
     assert got.metadata["counts"] == {"train": 3, "test": 2}
+
+
+def test_the_take_selection_record_round_trips(tmp_path):
+    """A capture made by ``capture select`` keeps its record: the take's entries and the frames picked,
+    each once (the frames not repeated inside the take's entries)."""
+    cap = tiny_capture()
+    cap.metadata = {"take": {"path": "take.csv", "threshold": 0.5}, "take_frames": [3, 17, 40, 41, 90]}
+    got = read_capture_usd(write_capture_usd(cap, tmp_path / "c.usda"))
+    assert got.metadata["take"] == {"path": "take.csv", "threshold": 0.5}
+    assert got.metadata["take_frames"] == [3, 17, 40, 41, 90]
