@@ -364,3 +364,13 @@ def test_a_capture_behind_a_folder_one_may_not_enter_is_not_called_missing(tmp_p
     assert "not found" not in str(err.value) and "permission" in err.value.fix
     with pytest.raises(InputFileError, match="capture not found"):
         check_capture_path(tmp_path / "absent.usda")
+
+
+def test_a_weight_above_one_alone_is_clipped_too(folder):
+    js = folder / "train" / "001_jawOpen.json"
+    js.write_text('{"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": 0.2}}')
+    with pytest.warns(UserWarning, match="clipped"):
+        got = read_capture_folder(folder)
+    row = got.frames.weights[got.frames.label.index("001_jawOpen")]
+    np.testing.assert_array_equal(row, [0.2, 1.0, 0.0])
+    assert got.metadata["weights_clipped"] == ["001_jawOpen.json"]
