@@ -374,3 +374,20 @@ def test_a_weight_above_one_alone_is_clipped_too(folder):
     row = got.frames.weights[got.frames.label.index("001_jawOpen")]
     np.testing.assert_array_equal(row, [0.2, 1.0, 0.0])
     assert got.metadata["weights_clipped"] == ["001_jawOpen.json"]
+
+
+def test_extra_and_absent_weights_are_recorded_per_frame(folder):
+    """A frame's weight for a shape the template lacks is kept in ``extra_weights`` at that frame's row (0
+    in the others, not fitted); a template shape a frame's JSON leaves out is named in ``weights_absent``."""
+    import warnings
+
+    js = folder / "train" / "001_jawOpen.json"
+    js.write_text('{"blendShapes": {"jawOpen": 0.7, "eyeBlinkLeft": 0.1, "tongueOut": 0.4}}')
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = read_capture_folder(folder)
+    f = got.frames.label.index("001_jawOpen")
+    extra = got.metadata["extra_weights"]["tongueOut"]
+    assert extra[f] == 0.4 and extra.sum() == 0.4 and len(extra) == len(got.frames.label)
+    missing = [n for n in got.names if n not in ("jawOpen", "eyeBlinkLeft")]
+    assert set(missing) <= set(got.metadata["weights_absent"]) and missing
