@@ -391,3 +391,12 @@ def test_extra_and_absent_weights_are_recorded_per_frame(folder):
     assert extra[f] == 0.4 and extra.sum() == 0.4 and len(extra) == len(got.frames.label)
     missing = [n for n in got.names if n not in ("jawOpen", "eyeBlinkLeft")]
     assert set(missing) <= set(got.metadata["weights_absent"]) and missing
+
+
+def test_two_frames_with_one_role_and_label_are_refused(tmp_path):
+    """They would be written to one file, the second over the first."""
+    cap = tiny_capture()
+    cap.frames.label[1] = cap.frames.label[0]
+    with pytest.raises(CaptureError, match="share a role and label"):
+        write_capture_folder(cap, tmp_path / "cap")
+    assert not (tmp_path / "cap").exists()
