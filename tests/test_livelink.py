@@ -524,3 +524,13 @@ def test_an_unnamed_column_is_named_by_its_place(tmp_path):
     with pytest.warns(UserWarning, match=r"not used as weights\): a column with no name \(column 1\)"):
         take = read_livelink_take(p)
     assert take.weights.shape == (3, 52)
+
+
+def test_median_fps_is_not_moved_by_a_gap():
+    """A 30 fps take with one second missing in the middle is still 30 fps (the median interval), and a
+    single frame is the 30 fps default."""
+    from usdface.io.livelink import median_fps
+
+    times = np.concatenate([np.arange(60) / 30.0, 3.0 + np.arange(60) / 30.0])
+    assert median_fps(times) == 30.0
+    assert median_fps([0.5]) == 30.0
