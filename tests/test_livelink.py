@@ -534,3 +534,11 @@ def test_median_fps_is_not_moved_by_a_gap():
     times = np.concatenate([np.arange(60) / 30.0, 3.0 + np.arange(60) / 30.0])
     assert median_fps(times) == 30.0
     assert median_fps([0.5]) == 30.0
+
+
+def test_timecodes_past_midnight_keep_running_forward():
+    """Every row after midnight is a day later, not the first one alone."""
+    from usdface.io.livelink import parse_timecodes
+
+    codes = ["23:59:59:58", "23:59:59:59", "00:00:00:00", "00:00:00:01", "00:00:00:02"]
+    np.testing.assert_allclose(parse_timecodes(codes, 60.0), np.arange(5) / 60.0, rtol=0, atol=1e-12)
