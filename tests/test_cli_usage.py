@@ -267,3 +267,35 @@ def test_an_unknown_option_before_the_command_is_said_first(tmp_path, monkeypatc
         main(["--version", "check"])
     assert exit_.value.code == 0 and "usdface" in capsys.readouterr().out
     assert list(tmp_path.iterdir()) == []
+
+
+def test_option_value_types_at_their_boundaries():
+    """Each argparse type of ``commands/options.py`` at the edges of what it takes: 0 and 1 for a unit
+    value, 0 for a non-negative one (not for a positive one), the lowest whole number, three numbers for a
+    vector, keywords as given; inf and NaN nowhere."""
+    import argparse
+
+    from usdface.commands import options as o
+
+    def refused(fn, text):
+        with pytest.raises(argparse.ArgumentTypeError):
+            fn(text)
+
+    assert o.unit_float("0") == 0.0 and o.unit_float("1") == 1.0
+    refused(o.unit_float, "1.0000001")
+    refused(o.unit_float, "-1e-9")
+    assert o.nonnegative_float("0") == 0.0
+    refused(o.nonnegative_float, "-1e-300")
+    assert o.positive_float("1e-300") == 1e-300
+    refused(o.positive_float, "0")
+    assert o.positive_int("1") == 1 and o.nonnegative_int("0") == 0
+    refused(o.positive_int, "0")
+    refused(o.nonnegative_int, "-1")
+    assert o.vector3("1,2,3") == [1.0, 2.0, 3.0]
+    refused(o.vector3, "1,2")
+    refused(o.vector3, "1,2,3,4")
+    for fn in (o.finite_float, o.weight_bound, o.positive_float, o.nonnegative_float, o.unit_float):
+        for bad in ("inf", "-inf", "nan"):
+            refused(fn, bad)
+    assert o.mu_value("auto") == "auto" and o.reg_value("paper") == "paper" and o.mu_value("2") == 2.0
+    refused(o.mu_value, "0")
