@@ -542,3 +542,16 @@ def test_timecodes_past_midnight_keep_running_forward():
 
     codes = ["23:59:59:58", "23:59:59:59", "00:00:00:00", "00:00:00:01", "00:00:00:02"]
     np.testing.assert_allclose(parse_timecodes(codes, 60.0), np.arange(5) / 60.0, rtol=0, atol=1e-12)
+
+
+def test_livelink_weights_samples_frames_evenly_first_and_last_kept(tmp_path):
+    from usdface.io.livelink import livelink_weights, write_livelink_csv
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    w = np.stack([np.arange(10) / 10.0, np.zeros(10)], axis=1)
+    path = write_livelink_csv(tmp_path / "t.csv", names, w, np.arange(10) / 60.0)
+    got = livelink_weights([path], ["eyeBlinkLeft", "jawOpen", "mouthClose"], frames=4)
+    np.testing.assert_array_equal(got[:, 1], [0.0, 0.3, 0.6, 0.9])
+    np.testing.assert_array_equal(got[:, [0, 2]], 0.0)
+    assert len(livelink_weights([path], names, frames=10)) == 10
+    assert len(livelink_weights([path], names, frames=9)) == 9
