@@ -555,3 +555,17 @@ def test_livelink_weights_samples_frames_evenly_first_and_last_kept(tmp_path):
     np.testing.assert_array_equal(got[:, [0, 2]], 0.0)
     assert len(livelink_weights([path], names, frames=10)) == 10
     assert len(livelink_weights([path], names, frames=9)) == 9
+
+
+def test_format_timecodes_wraps_at_midnight():
+    from usdface.io.livelink import format_timecodes
+
+    assert format_timecodes([0.0, 1.0], 60.0, start="23:59:59:30") == ["23:59:59:30.000", "00:00:00:30.000"]
+
+
+def test_a_nan_timecode_field_is_refused():
+    from usdface.errors import TimecodeError
+    from usdface.io.livelink import parse_timecodes
+
+    with pytest.raises(TimecodeError, match="negative or non-numeric"):
+        parse_timecodes(["00:00:01:00", "00:00:01:nan"], 60.0)
