@@ -569,3 +569,39 @@ def test_a_nan_timecode_field_is_refused():
 
     with pytest.raises(TimecodeError, match="negative or non-numeric"):
         parse_timecodes(["00:00:01:00", "00:00:01:nan"], 60.0)
+
+
+def test_animation_time_codes_range_rate_and_curves(tmp_path):
+    """A take at 60 time codes per second: samples at ``times x 60``, the curves at the same codes, the
+    stage's range the whole frames around them, its playback rate 60; authored after ``start_time_code``
+    they shift by it; a layer with its own framesPerSecond for that rate keeps it; an animation with
+    unsampled weights reads as one frame at code 0."""
+    from pxr import Usd, UsdSkel, Vt
+
+    from usdface.io.usd_anim import author_skel_animation, read_skel_animation, write_animation_usd
+
+    names = ["jawOpen", "eyeBlinkLeft"]
+    w = np.array([[0.1, 0.0], [0.5, 0.2], [0.9, 1.0]])
+    times = np.array([0.0, 1.0, 2.5]) / 60.0
+    curves = {"HeadYaw": [0.1, 0.2, 0.3]}
+    path = write_animation_usd(tmp_path / "t.usda", names, w, times, 60.0, curves=curves)
+    stage = Usd.Stage.Open(str(path))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetFramesPerSecond()) == (0.0, 3.0, 60.0)
+    prim = stage.GetDefaultPrim()
+    got_names, got_w, codes = read_skel_animation(prim)
+    np.testing.assert_allclose(codes, [0.0, 1.0, 2.5], atol=1e-9)
+    np.testing.assert_allclose(got_w, w, atol=1e-7)
+    np.testing.assert_allclose(prim.GetAttribute("usdface:curves:HeadYaw").GetTimeSamples(), codes, atol=1e-9)
+    other = Usd.Stage.CreateInMemory()
+    other.SetTimeCodesPerSecond(60.0)
+    other.SetFramesPerSecond(30.0)
+    anim = author_skel_animation(other, "/A", names, w, 60.0, start_time_code=10.0)
+    np.testing.assert_array_equal(anim.GetBlendShapeWeightsAttr().GetTimeSamples(), [10.0, 11.0, 12.0])
+    assert (other.GetStartTimeCode(), other.GetEndTimeCode()) == (10.0, 12.0)
+    assert other.GetFramesPerSecond() == 30.0
+    still = UsdSkel.Animation.Define(other, "/Still")
+    still.CreateBlendShapesAttr(Vt.TokenArray(names))
+    still.CreateBlendShapeWeightsAttr().Set(Vt.FloatArray([0.25, 0.5]))
+    _, sw, scodes = read_skel_animation(still.GetPrim())
+    np.testing.assert_array_equal(scodes, [0.0])
+    np.testing.assert_allclose(sw, [[0.25, 0.5]])
