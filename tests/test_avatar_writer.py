@@ -166,3 +166,15 @@ def test_written_file_passes_pixar_validators(tmp_path):
                   if not v.GetMetadata().name.startswith("usdface")]
     errors = UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(path)))
     assert [f"{e.GetName()}: {e.GetMessage()}" for e in errors] == []
+
+
+def test_sparse_point_indices_at_the_threshold_is_dense():
+    """Offsets on 7 of 10 points at the 0.7 threshold are written dense (None), on 6 sparse (their
+    indices), an inbetween's points counting too."""
+    from usdface.io.avatar_writer import sparse_point_indices
+
+    off = np.zeros((2, 10, 3))
+    off[0, :6, 0] = 1e-3
+    np.testing.assert_array_equal(sparse_point_indices(off), np.arange(6))
+    off[1, 8, 1] = 1e-3
+    assert sparse_point_indices(off) is None

@@ -79,3 +79,9 @@ def test_the_batchs_default_pool_is_what_the_process_may_use(monkeypatch, tmp_pa
 
 def _touch(item: dict) -> None:
     open(item["output"], "w").close()
+
+
+def test_an_unreadable_cpu_quota_is_no_quota(tmp_path):
+    """``cpu.max`` holding neither ``max`` nor a number (a damaged or unknown file) leaves the cores as
+    they are, without an error."""
+    assert usable_cores(_cgroup(tmp_path, cpu_max="abc 100000")) == _affinity()
