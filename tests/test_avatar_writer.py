@@ -178,3 +178,13 @@ def test_sparse_point_indices_at_the_threshold_is_dense():
     np.testing.assert_array_equal(sparse_point_indices(off), np.arange(6))
     off[1, 8, 1] = 1e-3
     assert sparse_point_indices(off) is None
+
+
+def test_a_triangle_index_equal_to_the_point_count_is_refused(tmp_path):
+    rig = grid_rig()
+    tris = rig.triangles.copy()
+    tris[0, 0] = rig.n_vertices
+    bad = FaceRig(rig.neutral, tris, rig.names, rig.deltas, name="Head")
+    with pytest.raises(GeometryError, match="triangle indices out of range"):
+        write_rig_usd([bad], tmp_path / "a.usda")
+    assert not (tmp_path / "a.usda").exists()

@@ -547,3 +547,14 @@ def test_a_moved_latest_link_is_a_changed_input(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     main(["check", str(out)])
     assert "input lib/latest/hero.usda changed after this layer was written" in capsys.readouterr().out
+
+
+def test_effective_point_set_is_relative_to_each_arrays_peak():
+    """The threshold is 1e-9 of the array's own largest offset, whatever the units: on offsets of 0.1 mm a
+    point at 1e-12 m (1e-8 of the peak) counts, one at 1e-14 m does not."""
+    a = np.zeros((4, 3))
+    a[0, 0] = 1e-4
+    a[1, 1] = 1e-12
+    a[2, 2] = 1e-14
+    assert effective_point_set(a).tolist() == [True, True, False, False]
+    assert effective_point_set(a * 1e6).tolist() == [True, True, False, False]
