@@ -558,3 +558,32 @@ def test_effective_point_set_is_relative_to_each_arrays_peak():
     a[2, 2] = 1e-14
     assert effective_point_set(a).tolist() == [True, True, False, False]
     assert effective_point_set(a * 1e6).tolist() == [True, True, False, False]
+
+
+def test_sparse_offsets_on_another_part_are_put_on_the_rigs_region():
+    """Offsets given on another part of the mesh than the rig's region (a welded part): each region vertex
+    takes the value given for it, the rig's own offset where none is; a vertex outside the region may be
+    given only its unchanged (base) value."""
+    from usdface.errors import GeometryError
+    from usdface.io.layers import _on_region
+    from usdface.model import FaceRig, MeshSource
+    from usdface.submesh import SparseOffsets, SubMesh
+
+    region = SubMesh(np.array([0, 1, 2, 3]), np.array([[0, 1, 2], [1, 3, 2]]), 6)
+    own = np.arange(24, dtype=float).reshape(2, 4, 3) * 1e-3
+    src = MeshSource(file="a.usda", prim="/A/Head", point_indices=[None, None], normal_offsets=[None, None],
+                     region=region)
+    rig = FaceRig(np.zeros((4, 3)), region.triangles, ["jawOpen", "mouthClose"], own, source=src, name="Head")
+    given = np.full((2, 3, 3), 0.5)
+    given[:, 2] = 0.0                                  # vertex 4, outside the region: not moved
+    out = _on_region(rig, SparseOffsets(np.array([0, 2, 4]), given, 6), "a.usda")
+    np.testing.assert_array_equal(out.vertices, region.vertices)
+    np.testing.assert_array_equal(out.values[:, [0, 2]], 0.5)
+    np.testing.assert_array_equal(out.values[:, [1, 3]], own[:, [1, 3]])
+    given[:, 2] = 0.5
+    base = np.zeros((2, 6, 3))
+    base[:, 4] = 0.5                                   # vertex 4 given its unchanged value: fine
+    _on_region(rig, SparseOffsets(np.array([0, 2, 4]), given, 6, base=base), "a.usda")
+    base[:, 4] = 0.25
+    with pytest.raises(GeometryError, match="move vertices the rig does not hold"):
+        _on_region(rig, SparseOffsets(np.array([0, 2, 4]), given, 6, base=base), "a.usda")
