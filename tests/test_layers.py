@@ -587,3 +587,30 @@ def test_sparse_offsets_on_another_part_are_put_on_the_rigs_region():
     base[:, 4] = 0.25
     with pytest.raises(GeometryError, match="move vertices the rig does not hold"):
         _on_region(rig, SparseOffsets(np.array([0, 2, 4]), given, 6, base=base), "a.usda")
+
+
+def test_shape_support_on_a_region_adds_residue_and_normal_offset_points_in_order():
+    """A rig on part of its mesh (points 0-3 of 6): shape 0's support is its region, the authored point 5
+    outside it (kept as it was) and point 4, which has only a normal offset (written with zero motion);
+    point 1's normal offset adds nothing (it is in the region). Ascending, each point once."""
+    from usdface.io.layers import _shape_support
+    from usdface.model import FaceRig, MeshSource
+    from usdface.submesh import SparseOffsets, SubMesh
+
+    region = SubMesh(np.array([0, 1, 2, 3]), np.array([[0, 1, 2], [1, 3, 2]]), 6)
+    own = np.full((1, 4, 3), 1e-3)
+    normals = np.zeros((6, 3))
+    normals[[1, 4], 2] = 0.1
+    residue = [(np.array([5]), np.array([[2e-3, 0.0, 0.0]]), [])]
+    src = MeshSource(file="a.usda", prim="/A/Head", point_indices=[None], normal_offsets=[normals],
+                     region=region, residue=residue)
+    rig = FaceRig(np.zeros((4, 3)), region.triangles, ["jawOpen"], own, source=src, name="Head")
+    new = SparseOffsets(region.vertices, np.full((1, 4, 3), 4e-3), 6)
+    points, values_new, values_old, ibs = _shape_support(rig, 0, new)
+    np.testing.assert_array_equal(points, [0, 1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(values_new[:4], 4e-3)
+    np.testing.assert_array_equal(values_new[4], 0.0)
+    np.testing.assert_array_equal(values_new[5], [2e-3, 0.0, 0.0])
+    np.testing.assert_array_equal(values_old[:4], 1e-3)
+    np.testing.assert_array_equal(values_old[5], [2e-3, 0.0, 0.0])
+    assert ibs == []
