@@ -1138,3 +1138,18 @@ def test_batch_progress_says_failed_for_a_failed_item(sample_dir, tmp_path):
     assert res.returncode == 1
     assert "[1/2] bad.usda failed" in res.stderr and "[2/2] bad2.usda failed" in res.stderr, res.stderr
     assert "bad.usda done" not in res.stderr
+
+
+def test_manifest_values_options_and_throughput_by_hand():
+    """Cells: ``TRUE``/``false`` in any case are booleans, numbers numbers, words words; recorded and
+    asked option values are the same setting as numbers (``1e-3`` is ``0.001``; a pair is not its first
+    number) or as words in any case; throughput is done items per minute."""
+    from usdface.pipeline.batch import BatchReport, ItemResult, _coerce, _same_value
+
+    assert _coerce("TRUE") is True and _coerce(" False ") is False
+    assert _coerce("1e-3") == 0.001 and _coerce("dt") == "dt"
+    assert _same_value("1e-3", 0.001) and _same_value("(0.01, 0.03)", "0.01,0.03")
+    assert not _same_value("(0.01, 0.03)", "0.01") and not _same_value("0.01", "0.03")
+    assert _same_value("DT", "dt") and _same_value(True, "true") and not _same_value("dt", "ebfr")
+    done = [ItemResult(i, "a", "c", "o", DONE) for i in range(3)]
+    assert BatchReport(done + [ItemResult(3, "a", "c", "o", FAILED)], 90.0).throughput_per_minute == 2.0
