@@ -640,3 +640,13 @@ def test_a_shape_moving_no_more_than_the_tolerance_is_static():
 
     mag = np.array([[0.0, STATIC_TOLERANCE], [0.0, np.nextafter(STATIC_TOLERANCE, 1.0)], [0.0, 0.0]])
     np.testing.assert_array_equal(static_shapes(mag), [0, 2])
+
+
+def test_tikhonov_weight_is_lambda_not_its_square():
+    """min |D w - b|^2 + lambda |w|^2 with unit landmark deltas: w = b / (1 + lambda); at lambda = 4 that is
+    0.1 for b = 0.5 (lambda 1 cannot tell lambda from lambda^2)."""
+    d = np.zeros((2, 1, 3))
+    d[0, 0, 0] = 1.0
+    d[1, 0, 1] = 1.0
+    np.testing.assert_allclose(solve_weights(d, np.array([[[0.5, 0.5, 0.0]]]), tikhonov=4.0), [[0.1, 0.1]],
+                               rtol=0, atol=1e-12)
