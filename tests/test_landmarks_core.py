@@ -650,3 +650,12 @@ def test_tikhonov_weight_is_lambda_not_its_square():
     d[1, 0, 1] = 1.0
     np.testing.assert_allclose(solve_weights(d, np.array([[[0.5, 0.5, 0.0]]]), tikhonov=4.0), [[0.1, 0.1]],
                                rtol=0, atol=1e-12)
+
+
+def test_tracking_noise_is_drawn_for_every_frame():
+    """Two frames of the same weights are tracked with independent noise of the given deviation."""
+    rig = random_rig(4, seed=1)
+    v = np.arange(0, rig.n_vertices, 7)
+    pos = tracked_landmarks(rig.neutral, rig.deltas, v, np.full((2, 4), 0.5), noise=1e-3, seed=3)
+    diff = (pos[1] - pos[0]).ravel()
+    assert 0.8 * np.sqrt(2) * 1e-3 < diff.std() < 1.2 * np.sqrt(2) * 1e-3
