@@ -1045,3 +1045,17 @@ def test_outward_turns_to_the_radial_line_where_the_distance_has_no_slope():
     assert d[0] == pytest.approx(-(0.5 * w - 0.5 * GRADIENT_STEP), abs=1e-8)
     radial = np.array([[0.6, 0.0, 0.8]])
     np.testing.assert_allclose(_outward(surf, q, d, radial), radial, atol=0.02)
+
+
+def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch):
+    """With the avatar's triangles the ICP target is sampled on its face surface: the triangles whose three
+    corners move, none reaching past the moving vertices (here the left half of the patch)."""
+    from usdface.transfer import register
+
+    pts, tris = _grid()
+    left = pts[:, 0] < 0
+    shapes = _local_shapes(pts) * left[None, :, None]
+    monkeypatch.setattr(register, "register_icp", _icp_to(1.0))
+    reg = register_face(pts, shapes, pts, shapes, avatar_triangles=tris, capture_triangles=tris)
+    assert len(reg.target) > 100
+    assert reg.target[:, 0].max() <= pts[left, 0].max() + 1e-12
