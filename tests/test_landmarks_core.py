@@ -659,3 +659,16 @@ def test_tracking_noise_is_drawn_for_every_frame():
     pos = tracked_landmarks(rig.neutral, rig.deltas, v, np.full((2, 4), 0.5), noise=1e-3, seed=3)
     diff = (pos[1] - pos[0]).ravel()
     assert 0.8 * np.sqrt(2) * 1e-3 < diff.std() < 1.2 * np.sqrt(2) * 1e-3
+
+
+def test_evaluation_sweep_and_summary_by_hand():
+    """The sweep skips the non-adaptive single cover when share 0.1 is swept (the same layout); the summary's
+    match is the smallest layout of this method at most as wrong as the empirical one (a tie counts)."""
+    from usdface.landmarks.evaluate import EvaluationPoint, EvaluationReport, _summary, _sweep
+
+    assert _sweep((0.5,), (1, 2), (0.1, None)) == [(0.5, 0.1, 1), (0.5, 0.1, 2), (0.5, None, 2)]
+    assert _sweep((0.5,), (1,), (None,)) == [(0.5, None, 1)]
+    points = [EvaluationPoint("ours", "a", 8, 2e-3), EvaluationPoint("ours", "b", 12, 1e-3),
+              EvaluationPoint("ours", "c", 20, 0.5e-3), EvaluationPoint("empirical", "68 points", 68, 1e-3)]
+    s = _summary(EvaluationReport(points, 10, 0.5e-3), 68)
+    assert (s["match_count"], s["match_rmse"], s["ours_at_empirical_count"]) == (12, 1e-3, 20)
