@@ -672,3 +672,5 @@ def test_evaluation_sweep_and_summary_by_hand():
               EvaluationPoint("ours", "c", 20, 0.5e-3), EvaluationPoint("empirical", "68 points", 68, 1e-3)]
     s = _summary(EvaluationReport(points, 10, 0.5e-3), 68)
     assert (s["match_count"], s["match_rmse"], s["ours_at_empirical_count"]) == (12, 1e-3, 20)
+    points.append(EvaluationPoint("ours", "d", 12, 3e-3))             # a worse layout of the same count
+    assert EvaluationReport(points, 10, 0.5e-3).best_per_count() == {8: 2e-3, 12: 1e-3, 20: 0.5e-3}
