@@ -1621,12 +1621,13 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
                   flatten: PathLike | None = None, variant: str = "personalized", skin: bool = True,
-                  force: bool = False) -> dict[str, Path]:
+                  morph_normals: bool = True, force: bool = False) -> dict[str, Path]:
     """Deliver one variant (``personalized`` or ``generic``) of a usdface layer (``usdface export``):
 
     * ``gltf``: glTF 2.0 (``.glb`` or ``.gltf``), one morph target per shape, names in
       ``mesh.extras.targetNames``, metres, Y up, with the skin and skeleton when ``skin`` and the avatar has
-      joints (see :mod:`usdface.io.gltf`);
+      joints (see :mod:`usdface.io.gltf`), each target with its ``NORMAL`` deltas unless
+      ``morph_normals=False`` (``POSITION`` only: about half the file, for engines that recompute normals);
     * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
       ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``), with ``vt`` texture
       coordinates when the mesh has them;
@@ -1641,7 +1642,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    skin, force = _flags("export_avatar", skin=skin, force=force)
+    skin, morph_normals, force = _flags("export_avatar", skin=skin, morph_normals=morph_normals, force=force)
     from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
@@ -1684,7 +1685,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         warn(text)
     done: dict[str, Path] = {}
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
-        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
+        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force,
+                        morph_normals=morph_normals)
     return done
 
 
@@ -1734,18 +1736,18 @@ def _refuse_export_input(layer_path, **outputs) -> None:
 
 
 def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                    force: bool) -> None:
+                    force: bool, *, morph_normals: bool = True) -> None:
     """:func:`export_avatar`'s writes, each output recorded in ``done`` once it is complete; each step named
     on stderr while it runs (a 225k-vertex head's glTF export ran 30 CPU-s without a word)."""
     from .progress import steps
 
     count = 2 * bool(gltf or obj_dir) + bool(gltf and obj_dir) + bool(flatten)
     with steps("export", count) as p:
-        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
+        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, force, morph_normals)
 
 
 def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                  force: bool) -> None:
+                  force: bool, morph_normals: bool = True) -> None:
     from .io.atomic import replace_dir_atomically
     from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import write_gltf
@@ -1795,7 +1797,8 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                                                 if prim in placed])
             offsets = {rig.name: found for rig in rigs if (found := normal_offsets(rig)) is not None}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       texcoords=uvs, normals=normals, target_normals=offsets, force=force)
+                       texcoords=uvs, normals=normals, target_normals=offsets, morph_normals=morph_normals,
+                       force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             count = sum(len(r.names) + 1 for r in rigs)
