@@ -14,7 +14,7 @@ from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
-from .crossval import choose_regularization
+from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
     D_CLAMP,
@@ -526,7 +526,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         from .ebfr import ebfr_blendshapes
         if align:
             D = regularization_weights(generic, clamp=clamp)
-            cand = _cv_vertices(D, clamp)
+            cand = cv_vertices(D, clamp)
             pf = PositionFit(capture.neutral[cand], points[:, cand], weights, generic[:, cand], D[:, cand])
             reg_a, _ = choose_regularization(None, None, None, None, None, fit=pf, vertices=cand)
             helps, test = _alignment_generalises(pf, points[:, cand], reg_a, info)
@@ -559,7 +559,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         if align:
             cv = info.get("crossval")
             if cv is None or "fit" not in cv:
-                cand = _cv_vertices(D, clamp)
+                cand = cv_vertices(D, clamp)
                 pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
                                  D[:, cand])
                 info["crossval"] = {"fit": pf, "vertices": cand}
@@ -1029,7 +1029,7 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
         share = cv["fit"].data_share(lam)                                     # [m,K]
         spread = cv["fit"].estimate_variance
     else:                                # diag(A_v^-1 W^T W): one batched r x r solve, no eigh
-        cand = _cv_vertices(D, clamp)
+        cand = cv_vertices(D, clamp)
         share = data_share(weights, D[:, cand], lam)
         spread = functools.partial(estimate_variance, weights, D[:, cand])
     w = squared_lengths(generic[:, cand]).T                                  # [m,K]
@@ -1095,16 +1095,6 @@ def _check_frames_like_neutral(capture, src) -> None:
                             fix="export every frame as the neutral is (same units, same up axis)")
 
 
-def _cv_vertices(D, clamp=D_CLAMP, max_vertices=300, seed=0):
-    """The deterministic vertex subsample of :func:`choose_regularization` (moving vertices)."""
-    idx = np.arange(D.shape[1])
-    moving = D.min(axis=0) < clamp
-    cand = idx[moving] if moving.any() else idx
-    if len(cand) > max_vertices:
-        cand = np.sort(np.random.default_rng(seed).choice(cand, max_vertices, replace=False))
-    return cand
-
-
 def _balance(reg, neutral, points, weights, generic, D, alt, prior, info, timings, fit=None, vertices=None,
              **search):
     """(reg, alpha): the E_reg weight and the prior blend (alpha * DT + (1 - alpha) * template)."""
@@ -1162,7 +1152,7 @@ def _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp=D_CLAMP
         pf.set_points(points[:, cand])
         pf.set_prior(prior_deltas[:, cand])
         return pf, cand
-    cand = _cv_vertices(D, clamp)
+    cand = cv_vertices(D, clamp)
     pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
     info["crossval"] = {"fit": pf, "vertices": cand}
     return pf, cand
