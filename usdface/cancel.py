@@ -75,9 +75,9 @@ def dask_task_cancelled() -> Callable[[], bool] | None:
 
         worker = get_worker()
         key = worker.get_current_task()
+        tasks = worker.state.tasks          # the worker's state machine (distributed 2022.8 and later)
     except (ImportError, ValueError, AttributeError):   # not on a Dask worker's task thread
         return None
-    tasks = worker.state.tasks
 
     def cancelled() -> bool:
         ts = tasks.get(key)
