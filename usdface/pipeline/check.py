@@ -269,13 +269,29 @@ def _skel_binding(stage) -> Iterable[Issue]:
                         "bind a Skeleton with rel skel:skeleton on the mesh or its SkelRoot")
 
 
+def _sampled_only(attr) -> bool:
+    from ..io.usd_rig import time_sampled_only
+
+    return time_sampled_only(attr)
+
+
+def _sampled_issue(rule: str, path: str, what: str) -> Issue:
+    """The error of a blend-shape attribute authored only as time samples (a cache export): UsdSkel reads it
+    at the default time, where it is missing. Worded as the reader's refusal (``usd_rig._default_only``)."""
+    return Issue(ERROR, rule, path, f"{what} are time-sampled only, with no default value: UsdSkel reads the "
+                 "default (they are uniform)", f"author {what} as a default value, not time samples (a cache "
+                 "export's setting: export the rest pose or mark the attribute static)")
+
+
 @_rule("BlendShapeArrays", "skel:blendShapes and skel:blendShapeTargets same length; targets are BlendShapes")
 def _blend_shape_arrays(stage) -> Iterable[Issue]:
     UsdSkel = _skel()
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
         path = _path(prim)
-        if len(names) != len(targets):
+        if _sampled_only(prim.GetAttribute("skel:blendShapes")):
+            yield _sampled_issue("BlendShapeArrays", path, "skel:blendShapes")
+        elif len(names) != len(targets):
             yield Issue(ERROR, "BlendShapeArrays", path,
                         f"skel:blendShapes has {len(names)} names but skel:blendShapeTargets "
                         f"{len(targets)} targets",
@@ -306,6 +322,16 @@ def _shape_targets(stage):
 def _blend_shape_offsets(stage) -> Iterable[Issue]:
     for prim, n, shape in _shape_targets(stage):
         path = _path(shape.GetPrim())
+        sampled = [what for attr, what in ((shape.GetPointIndicesAttr(), "pointIndices"),
+                                           (shape.GetOffsetsAttr(), "offsets"),
+                                           (shape.GetNormalOffsetsAttr(), "normalOffsets"))
+                   + tuple((ib.GetAttr(), f"{ib.GetAttr().GetName()} offsets")
+                           for ib in shape.GetInbetweens())
+                   if _sampled_only(attr)]
+        if sampled:     # read at the default time they are missing: every count below would mislead
+            for what in sampled:
+                yield _sampled_issue("BlendShapeOffsets", path, what)
+            continue
         offsets = shape.GetOffsetsAttr().Get()
         indices_attr = shape.GetPointIndicesAttr()
         indices = indices_attr.Get() if indices_attr.HasAuthoredValue() else None
@@ -314,10 +340,6 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
             if normals is not None and len(normals):
                 yield Issue(WARNING, "BlendShapeOffsets", path, "BlendShape has normalOffsets only; it moves "
                             "no points", "author offsets unless a shading-only shape is intended")
-            elif shape.GetOffsetsAttr().GetNumTimeSamples():
-                yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape offsets are time-sampled only (no "
-                            "default value); UsdSkel reads the default", "author the offsets as a default "
-                            "value (uniform vector3f[] offsets = [...])")
             else:
                 yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape has no offsets",
                             "author offsets (one per pointIndices entry, or one per mesh point)")
@@ -349,7 +371,7 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
 def _point_indices(stage) -> Iterable[Issue]:
     for prim, n, shape in _shape_targets(stage):
         attr = shape.GetPointIndicesAttr()
-        if not attr.HasAuthoredValue():
+        if not attr.HasAuthoredValue() or attr.Get() is None:   # time-sampled only: BlendShapeOffsets tells
             continue
         idx = np.asarray(attr.Get(), dtype=np.int64)
         path = _path(shape.GetPrim())
