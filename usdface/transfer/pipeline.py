@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
-from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
+from ..motion import meshes_by_motion, moving_vertices, peak_motion
 from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
@@ -127,10 +127,31 @@ class PersonalizeResult:
     fit: object | None = None
 
 
+def _refuse_several_characters(avatar: Avatar, ranked: list) -> None:
+    """A stage whose face rigs lie under more than one SkelRoot (a shot with two characters, or one avatar
+    referenced twice) has no one face mesh to pick: until stop 45 the mesh the shapes move most was taken,
+    the first in the file on a tie, and the person's shapes went to whichever character that was, without
+    a word. Refused naming each SkelRoot's face mesh, so the TD says which (``--face-mesh``)."""
+    firsts: dict = {}
+    for rig, _ in ranked:
+        root = rig.source.skel_root if rig.source is not None else None
+        if root:
+            firsts.setdefault(root, rig.source.prim)
+    if len(firsts) > 1:
+        listed = ", ".join(firsts.values())
+        raise RigError(f"the stage holds {len(firsts)} characters' face rigs (SkelRoots "
+                       f"{', '.join(firsts)}): which one is the person's is not for usdface to guess",
+                       path=avatar.file, prim=next(iter(firsts)),
+                       fix=f"name the face mesh with --face-mesh (face_mesh=): one of {listed}; or "
+                           "personalize the character's own avatar asset and reference the layer in the shot")
+
+
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
     export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
-    best = most_moving_mesh(avatar.meshes, names)
+    ranked = meshes_by_motion(avatar.meshes, names)
+    best = ranked[0][0] if ranked else None
+    _refuse_several_characters(avatar, ranked)
     if best is None:
         # say which channels the avatar has and what a name map did not match (a refusal that named no
         # prim and no channel left a TD with a Blender export's 'Key_1' guessing)

@@ -1,0 +1,80 @@
+"""A shot with two characters (the avatar referenced twice, as a layout artist builds it) has no one face
+mesh: until stop 45 ``usdface personalize shot.usda capture -o out.usda`` took the first character in the
+file (the two tie) and put the person's shapes on it without a word. It is refused before any output, naming
+each character's face mesh; ``--face-mesh`` picks one, and then that one (and only it) is personalized."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import usdface.io  # noqa: F401  (schemas before the first stage)
+from usdface.cli import main
+
+pxr = pytest.importorskip("pxr")
+from pxr import Gf, Usd, UsdGeom  # noqa: E402
+
+
+def _shot(path, avatar, names=("Extra", "Hero")):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, "Y")
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/Shot").GetPrim())
+    for i, name in enumerate(names):
+        prim = stage.DefinePrim(f"/Shot/{name}")
+        prim.GetReferences().AddReference(str(avatar))
+        UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(60.0 * i, 0, 0))
+    stage.Save()
+    return path
+
+
+def test_a_shot_with_two_characters_is_refused_then_personalizes_the_one_named(samples, tmp_path, capsys):
+    from usdface.io.usd_rig import read_avatar
+
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda")
+    out = tmp_path / "publish" / "hero_anna.usda"
+    capture = str(samples / "capture.usda")
+
+    assert main(["personalize", str(shot), capture, "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "2 characters' face rigs" in err and "/Shot/Extra/Head" in err and "/Shot/Hero/Head" in err, err
+    assert "--face-mesh" in err
+    assert not out.exists() and not any(p.name.startswith(".") for p in tmp_path.rglob("*"))
+
+    assert main(["personalize", str(shot), capture, "-o", str(out), "-q", "--face-mesh", "/Shot/Hero/Head",
+                 "--method", "dt"]) == 0
+    generic = {m.source.prim: np.asarray(m.deltas) for m in read_avatar(shot).meshes}
+    layer = {m.source.prim: np.asarray(m.deltas) for m in read_avatar(out).meshes}
+    assert np.abs(layer["/Shot/Hero/Head"] - generic["/Shot/Hero/Head"]).max() > 1e-4   # the one named
+    assert np.array_equal(layer["/Shot/Extra/Head"], generic["/Shot/Extra/Head"])       # the other: generic
+
+
+def test_one_character_in_a_shot_needs_no_face_mesh(samples, tmp_path):
+    """The refusal is for several characters only: one avatar referenced into a shot personalizes as
+    before."""
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda", names=("Hero",))
+    out = tmp_path / "hero.usda"
+    assert main(["personalize", str(shot), str(samples / "capture.usda"), "-o", str(out), "-q",
+                 "--method", "dt"]) == 0
+    assert out.exists()
+
+
+def test_a_mesh_name_two_characters_share_is_refused_naming_their_paths(samples, tmp_path, capsys):
+    """'--face-mesh Head' on the two-character shot took the first Head in the file; so did 'render --mesh
+    Head' and 'landmarks --mesh Head'. A name several meshes carry is refused, listing their paths; a path
+    (or a path's unique tail, 'Extra/Head') picks one."""
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda")
+    out = tmp_path / "p.usda"
+    capture = str(samples / "capture.usda")
+    assert main(["personalize", str(shot), capture, "-o", str(out), "-q", "--face-mesh", "Head"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "2 meshes are named 'Head' (/Shot/Extra/Head, /Shot/Hero/Head)" in err, err
+    assert not out.exists()
+    assert main(["render", str(shot), "-o", str(tmp_path / "r.png"), "--shapes", "jawOpen", "--mesh", "Head",
+                 "-q"]) == 2
+    assert "2 meshes are named 'Head'" in capsys.readouterr().err
+    assert not (tmp_path / "r.png").exists()
+
+    assert main(["personalize", str(shot), capture, "-o", str(out), "-q", "--face-mesh", "Extra/Head",
+                 "--method", "dt", "--dry-run"]) == 0
+    assert "/Shot/Extra/Head" in capsys.readouterr().out
