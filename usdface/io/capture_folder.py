@@ -85,13 +85,26 @@ def read_weights_json(path) -> dict[str, float]:
     return out
 
 
-def _check_topology(points, triangles, ref_points, ref_triangles, path, what):
+def _check_topology(points, triangles, ref_points, ref_triangles, path, what, ref_path=None):
+    """Refuse a capture mesh whose topology is not ``what``'s (the reference at ``ref_path``); when either
+    file ends in the middle of a line, the one cut off is named (a neutral.obj cut inside its last face read,
+    and the first mesh compared with it was blamed)."""
+    from .mesh_io import cut_off, ends_mid_line
+
+    error = None
     if points.shape != ref_points.shape:
-        raise GeometryError(f"{len(points)} vertices, but {what} has {len(ref_points)}", path=path,
-                            fix="capture meshes must share the neutral's topology (vertices, order)")
-    if not np.array_equal(triangles, ref_triangles):
-        raise GeometryError(f"faces differ from {what}'s", path=path,
-                            fix="every capture mesh must share the neutral's topology (same faces)")
+        error = GeometryError(f"{len(points)} vertices, but {what} has {len(ref_points)}", path=path,
+                              fix="capture meshes must share the neutral's topology (vertices, order)")
+    elif not np.array_equal(triangles, ref_triangles):
+        error = GeometryError(f"faces differ from {what}'s", path=path,
+                              fix="every capture mesh must share the neutral's topology (same faces)")
+    if error is not None:          # a file cut off inside its faces parses, with faces missing or wrong
+        if ref_path is not None and ends_mid_line(ref_path) and not ends_mid_line(path):
+            other = Path(path).relative_to(Path(ref_path).parent) if Path(path).is_relative_to(
+                Path(ref_path).parent) else Path(path).name
+            raise cut_off(GeometryError(f"its faces differ from {other}'s",
+                                        path=ref_path), b"x", ref_path)
+        raise cut_off(error, b"x" if ends_mid_line(path) else b"\n", path)
 
 
 def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureError:
@@ -134,7 +147,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
         raise missing_layout(root, "template/neutral.obj",
                              fix="add the template rig: template/neutral.obj + template/<shape>.obj")
     tneutral, ttris = read_obj(tneutral_path, faces=faces)
-    _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj")
+    _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj", root / "neutral.obj")
     files = [p for p in folder_files(tdir, "*.obj") if p.stem != "neutral"]
     if not files:
         raise CaptureError("template has no shapes", path=tdir,
@@ -153,7 +166,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
     targets = np.empty((len(names),) + tneutral.shape)
     for k, name in enumerate(names):
         pts, tris = read_obj(by_name[name], faces=faces)
-        _check_topology(pts, tris, tneutral, ttris, by_name[name], "template/neutral.obj")
+        _check_topology(pts, tris, tneutral, ttris, by_name[name], "template/neutral.obj", tneutral_path)
         targets[k] = pts
     return FaceRig(tneutral, ttris, names, targets - tneutral, name="template")
 
@@ -174,7 +187,7 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
                                fix="restore the frame's OBJ, or remove its .json too")
         for obj in folder_files(folder, "*.obj"):
             pts, tris = read_obj(obj, faces=faces)
-            _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj")
+            _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj", root / "neutral.obj")
             w = read_weights_json(obj.with_suffix(".json"))
             _refuse_misspelt_weight(root, f"{role}/{obj.with_suffix('.json').name}", w, index)
             row = np.zeros(len(names))
