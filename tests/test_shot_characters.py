@@ -78,3 +78,23 @@ def test_a_mesh_name_two_characters_share_is_refused_naming_their_paths(samples,
     assert main(["personalize", str(shot), capture, "-o", str(out), "-q", "--face-mesh", "Extra/Head",
                  "--method", "dt", "--dry-run"]) == 0
     assert "/Shot/Extra/Head" in capsys.readouterr().out
+
+
+def test_one_character_split_into_skelroots_is_not_taken_for_two(samples, tmp_path):
+    """Blender writes a SkelRoot per mesh with shape keys and no armature: a head and its mouth interior in
+    two SkelRoots around one place are one character, personalized as before (the refusal is for face rigs
+    apart from each other)."""
+    stage = Usd.Stage.CreateNew(str(tmp_path / "split.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, "Y")
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/root").GetPrim())
+    for name, off in (("Head", ("Mouth",)), ("Mouth", ("Head", "EyeLeft", "EyeRight"))):
+        prim = stage.DefinePrim(f"/root/{name}")
+        prim.GetReferences().AddReference(str(samples / "avatar.usda"))
+        for child in off:
+            stage.GetPrimAtPath(f"/root/{name}/{child}").SetActive(False)
+    stage.Save()
+    out = tmp_path / "split_p.usda"
+    assert main(["personalize", str(tmp_path / "split.usda"), str(samples / "capture.usda"), "-o", str(out),
+                 "-q", "--method", "dt"]) == 0
+    assert out.exists()

@@ -128,20 +128,32 @@ class PersonalizeResult:
 
 
 def _refuse_several_characters(avatar: Avatar, ranked: list) -> None:
-    """A stage whose face rigs lie under more than one SkelRoot (a shot with two characters, or one avatar
-    referenced twice) has no one face mesh to pick: until stop 45 the mesh the shapes move most was taken,
-    the first in the file on a tie, and the person's shapes went to whichever character that was, without
-    a word. Refused naming each SkelRoot's face mesh, so the TD says which (``--face-mesh``)."""
-    firsts: dict = {}
-    for rig, _ in ranked:
-        root = rig.source.skel_root if rig.source is not None else None
-        if root:
-            firsts.setdefault(root, rig.source.prim)
-    if len(firsts) > 1:
-        listed = ", ".join(firsts.values())
-        raise RigError(f"the stage holds {len(firsts)} characters' face rigs (SkelRoots "
-                       f"{', '.join(firsts)}): which one is the person's is not for usdface to guess",
-                       path=avatar.file, prim=next(iter(firsts)),
+    """A stage with several characters (a shot with the hero and an extra, one avatar referenced twice side
+    by side) has no one face mesh to pick: until stop 45 the mesh the shapes move most was taken, the first
+    in the file on a tie, and the person's shapes went to whichever character that was, without a word.
+    Refused naming each character's face mesh, so the TD says which (``--face-mesh``). Another character is
+    another SkelRoot whose most moving mesh lies apart from the face mesh (bounding boxes disjoint): a rig
+    split into several SkelRoots around one head (Blender writes one per mesh with shape keys and no
+    armature: teeth, lashes) overlaps the head and is one character."""
+    if not ranked:
+        return
+    face = ranked[0][0]
+    root = face.source.skel_root if face.source is not None else None
+    lo, hi = face.neutral.min(axis=0), face.neutral.max(axis=0)
+    others: dict = {}
+    for rig, _ in ranked[1:]:
+        other = rig.source.skel_root if rig.source is not None else None
+        if not other or not root or other == root or other in others:
+            continue
+        olo, ohi = rig.neutral.min(axis=0), rig.neutral.max(axis=0)
+        apart = bool(np.any(olo > hi) or np.any(ohi < lo))
+        others[other] = rig.source.prim if apart else None
+    apart = {r: prim for r, prim in others.items() if prim}
+    if apart:
+        listed = ", ".join([face.source.prim, *apart.values()])
+        raise RigError(f"the stage holds {len(apart) + 1} characters' face rigs (SkelRoots "
+                       f"{', '.join([root, *apart])}): which one is the person's is not for usdface to guess",
+                       path=avatar.file, prim=root,
                        fix=f"name the face mesh with --face-mesh (face_mesh=): one of {listed}; or "
                            "personalize the character's own avatar asset and reference the layer in the shot")
 
