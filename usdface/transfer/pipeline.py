@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
-from ..motion import meshes_by_motion, moving_vertices, peak_motion
+from ..motion import meshes_by_motion, moving_vertices, peak_motion, refuse_several_characters
 from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
@@ -127,43 +127,12 @@ class PersonalizeResult:
     fit: object | None = None
 
 
-def _refuse_several_characters(avatar: Avatar, ranked: list) -> None:
-    """A stage with several characters (a shot with the hero and an extra, one avatar referenced twice side
-    by side) has no one face mesh to pick: until stop 45 the mesh the shapes move most was taken, the first
-    in the file on a tie, and the person's shapes went to whichever character that was, without a word.
-    Refused naming each character's face mesh, so the TD says which (``--face-mesh``). Another character is
-    another SkelRoot whose most moving mesh lies apart from the face mesh (bounding boxes disjoint): a rig
-    split into several SkelRoots around one head (Blender writes one per mesh with shape keys and no
-    armature: teeth, lashes) overlaps the head and is one character."""
-    if not ranked:
-        return
-    face = ranked[0][0]
-    root = face.source.skel_root if face.source is not None else None
-    lo, hi = face.neutral.min(axis=0), face.neutral.max(axis=0)
-    others: dict = {}
-    for rig, _ in ranked[1:]:
-        other = rig.source.skel_root if rig.source is not None else None
-        if not other or not root or other == root or other in others:
-            continue
-        olo, ohi = rig.neutral.min(axis=0), rig.neutral.max(axis=0)
-        apart = bool(np.any(olo > hi) or np.any(ohi < lo))
-        others[other] = rig.source.prim if apart else None
-    apart = {r: prim for r, prim in others.items() if prim}
-    if apart:
-        listed = ", ".join([face.source.prim, *apart.values()])
-        raise RigError(f"the stage holds {len(apart) + 1} characters' face rigs (SkelRoots "
-                       f"{', '.join([root, *apart])}): which one is the person's is not for usdface to guess",
-                       path=avatar.file, prim=root,
-                       fix=f"name the face mesh with --face-mesh (face_mesh=): one of {listed}; or "
-                           "personalize the character's own avatar asset and reference the layer in the shot")
-
-
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
     export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
     ranked = meshes_by_motion(avatar.meshes, names)
     best = ranked[0][0] if ranked else None
-    _refuse_several_characters(avatar, ranked)
+    refuse_several_characters(avatar, ranked)
     if best is None:
         # say which channels the avatar has and what a name map did not match (a refusal that named no
         # prim and no channel left a TD with a Blender export's 'Key_1' guessing)
