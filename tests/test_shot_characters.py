@@ -98,3 +98,60 @@ def test_one_character_split_into_skelroots_is_not_taken_for_two(samples, tmp_pa
     assert main(["personalize", str(tmp_path / "split.usda"), str(samples / "capture.usda"), "-o", str(out),
                  "-q", "--method", "dt"]) == 0
     assert out.exists()
+
+
+def test_check_fails_a_two_character_shot_unless_the_face_mesh_is_named(samples, tmp_path, capsys):
+    """'usdface check shot.usda' passed the shot personalize then refused (and so did Pyblish's validator):
+    the preflight says it now, with the same test, and --face-mesh (face_mesh=) names the one meant; the
+    layer personalizing one character checks clean without it."""
+    import json
+
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda")
+    assert main(["check", str(shot), "--no-pixar", "--json"]) == 1
+    issues = json.loads(capsys.readouterr().out)["issues"]
+    errors = [i for i in issues if i["severity"] == "error"]
+    assert [i["rule"] for i in errors] == ["Readable"], errors
+    assert "2 characters' face rigs" in errors[0]["message"]
+    assert "/Shot/Extra/Head" in errors[0]["fix"] and "/Shot/Hero/Head" in errors[0]["fix"]
+    assert "--face-mesh" in errors[0]["fix"]
+
+    assert main(["check", str(shot), "--no-pixar", "--face-mesh", "/Shot/Hero/Head"]) == 0
+    capsys.readouterr()
+    assert main(["check", str(shot), "--no-pixar", "--face-mesh", "Head"]) == 1     # two carry it
+    assert "2 meshes are named 'Head'" in capsys.readouterr().out
+
+    one = _shot(tmp_path / "one.usda", samples / "avatar.usda", names=("Hero",))
+    assert main(["check", str(one), "--no-pixar"]) == 0                             # one character: as before
+    out = tmp_path / "hero_p.usda"
+    assert main(["personalize", str(shot), str(samples / "capture.usda"), "-o", str(out), "-q",
+                 "--face-mesh", "/Shot/Hero/Head", "--method", "dt"]) == 0
+    capsys.readouterr()
+    assert main(["check", str(out), "--no-pixar"]) == 0, capsys.readouterr().out   # the layer is no input
+
+
+def test_pyblish_validator_fails_a_two_character_shot_unless_the_face_mesh_is_named(samples, tmp_path):
+    pyblish_api = pytest.importorskip("pyblish.api")
+    import pyblish.util
+
+    from usdface.pipeline import pyblish_plugins as plugins
+
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda")
+    pyblish_api.deregister_all_plugins()
+    plugins.register()
+    try:
+        pyblish_api.deregister_plugin(plugins.ExtractUsdFacePersonalized)
+        pyblish_api.deregister_plugin(plugins.ValidateUsdFaceCapture)
+        context = pyblish_api.Context()
+        item = {"avatar": str(shot), "capture": str(samples / "capture.usda")}
+        context.data["usdfaceItems"] = [dict(item, output=str(tmp_path / "any.usda")),
+                                        dict(item, output=str(tmp_path / "hero.usda"),
+                                             usdfaceOptions={"face_mesh": "/Shot/Hero/Head"})]
+        pyblish.util.publish(context)
+        results = {(r["plugin"].__name__, None if r["instance"] is None else r["instance"].name): r
+                   for r in context.data["results"]}
+    finally:
+        pyblish_api.deregister_all_plugins()
+    failed = results[("ValidateUsdFaceRig", "any")]
+    assert not failed["success"] and "2 characters' face rigs" in str(failed["error"]), failed["error"]
+    hero = results[("ValidateUsdFaceRig", "hero")]
+    assert hero["success"], hero["error"]

@@ -1515,18 +1515,21 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
-          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
+          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None,
+          face_mesh: str | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
     OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
-    :func:`read_avatar`. An ``Sdf.Layer`` is checked as the stage it opens; anything else is refused
-    (``UsdFaceError``; it was an ``AttributeError`` from deep in the rules). Never modifies the file."""
+    :func:`read_avatar`; ``face_mesh``: as for :func:`personalize` (a stage holding several characters' face
+    rigs, a shot, is an error without it, as personalize refuses it). An ``Sdf.Layer`` is checked as the
+    stage it opens; anything else is refused (``UsdFaceError``; it was an ``AttributeError`` from deep in the
+    rules). Never modifies the file."""
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
     (pixar,) = _flags("check", pixar=pixar)
     name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | os.PathLike):
-        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map, face_mesh=face_mesh)
     from pxr import Sdf, Usd
 
     if isinstance(file_or_stage, Sdf.Layer):
@@ -1536,7 +1539,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
 
         raise UsdFaceError(f"check takes a USD file's path, a Usd.Stage or an Sdf.Layer, not "
                            f"{type(file_or_stage).__name__}", fix="pass the file's path or the open stage")
-    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map, face_mesh=face_mesh)
 
 
 def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:

@@ -138,13 +138,16 @@ def _prim_in(text: str) -> str:
     return hit.group(1) if hit else "/"
 
 
-def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
+def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None,
+          face_mesh: str | None = None) -> list[Issue]:
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
     ``rules`` selects rule ids from :data:`RULES` (default: all; a string is one name or comma-separated
     names); ``name_map`` ({studio channel: ARKit name}, :func:`usdface.io.name_map.read_name_map`; default:
     the one a usdface layer records, :func:`usdface.io.usd_rig.recorded_name_map`) is used by the name
-    rules. Never modifies the stage.
+    rules; ``face_mesh`` (personalize's ``--face-mesh``: a prim name or path) is the face mesh ``Readable``
+    checks a stage with several characters' face rigs by (without it such a stage is an error, as personalize
+    refuses it). Never modifies the stage.
     """
     if name_map is None:
         from ..io.usd_rig import recorded_name_map
@@ -167,7 +170,11 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         if rule_id == "Readable" and any(i.severity == ERROR and i.rule in READER_RULES for i in issues):
             continue  # the reader would only repeat a finding already made
         fn = RULES[rule_id][0]
-        issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map else fn(stage))
+        if rule_id == "Readable" and face_mesh:
+            issues.extend(fn(stage, name_map=name_map, face_mesh=face_mesh))
+        else:
+            issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map
+                          else fn(stage))
     return sort_issues(issues)
 
 
@@ -712,15 +719,17 @@ def _avatar_match(stage) -> Iterable[Issue]:
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
                    "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, ...)")
-def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
+def _readable(stage, name_map: dict | None = None, face_mesh: str | None = None) -> Iterable[Issue]:
     """Run the reader every usdface command uses (``usdface.io.usd_rig``) on the stage; a refusal is an
-    error, so a publish validator never passes a rig the tools then reject."""
+    error, so a publish validator never passes a rig the tools then reject. A stage with several characters'
+    face rigs (a shot) is refused as personalize refuses it (:func:`usdface.motion.refuse_several_characters`)
+    unless ``face_mesh`` names one (then that name must name one mesh, as personalize's ``--face-mesh``)."""
     from ..arkit import ARKIT_NAMES
     from ..errors import UsdFaceError
     from ..io.file_kind import Kind, file_kind, is_weights_take
     from ..io.take import has_frame_weights
     from ..io.usd_rig import _read_avatar_stage
-    from ..motion import most_moving_mesh
+    from ..motion import meshes_by_motion, refuse_several_characters
 
     layer = stage.GetRootLayer()
     found = file_kind(layer.realPath, stage=stage)      # its root layer: a capture's or take's record
@@ -778,11 +787,20 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         # there (check passes such a shot when it is not instanced), and a crowd instancing the published
         # layer shows each instance's variant
         flattened = (layer.customLayerData or {}).get("usdfaceFlatten") or {}
+        ranked = meshes_by_motion(avatar.meshes, ARKIT_NAMES)
         if (not any(_brings_personalization(stage, m) for m in avatar.meshes)
                 and flattened.get("variant") != "personalized"):
             refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
             refuse_unwritable_shapes(avatar, None, "the personalized layer")
-        if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
+            # a shot with two characters: personalize refuses it unless --face-mesh names one (a layer
+            # personalizing one of them, checked after it is written, is not refused: it is not an input)
+            if face_mesh:
+                from ..io.layers import avatar_mesh
+
+                avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
+            else:
+                refuse_several_characters(avatar, ranked)
+        if not ranked:
             # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
             where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"
             if any(n in ARKIT_NAMES for m in avatar.meshes for n in m.names):   # named, moving nothing
