@@ -155,3 +155,24 @@ def test_pyblish_validator_fails_a_two_character_shot_unless_the_face_mesh_is_na
     assert not failed["success"] and "2 characters' face rigs" in str(failed["error"]), failed["error"]
     hero = results[("ValidateUsdFaceRig", "hero")]
     assert hero["success"], hero["error"]
+
+
+def test_landmarks_and_render_without_mesh_refuse_a_two_character_shot(samples, tmp_path, capsys):
+    """'landmarks' and 'render' without --mesh took the first character's Head of a shot, without a word;
+    they refuse as personalize does, naming the face meshes and --mesh, before writing anything."""
+    shot = _shot(tmp_path / "shot.usda", samples / "avatar.usda")
+    picture, layout = tmp_path / "r.png", tmp_path / "lm.usda"
+    assert main(["render", str(shot), "-o", str(picture), "--shapes", "jawOpen", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "2 characters' face rigs" in err and "/Shot/Extra/Head, /Shot/Hero/Head" in err, err
+    assert "--mesh" in err and not picture.exists()
+    assert main(["landmarks", str(shot), "-o", str(layout), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "2 characters' face rigs" in err and "--mesh" in err, err
+    assert not layout.exists()
+
+    assert main(["render", str(shot), "-o", str(picture), "--shapes", "jawOpen", "-q",
+                 "--mesh", "/Shot/Hero/Head"]) == 0
+    assert picture.exists()
+    one = _shot(tmp_path / "one.usda", samples / "avatar.usda", names=("Hero",))
+    assert main(["render", str(one), "-o", str(tmp_path / "one.png"), "--shapes", "jawOpen", "-q"]) == 0

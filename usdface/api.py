@@ -126,7 +126,9 @@ def read_capture(path: PathLike) -> Capture:
 def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     """The mesh of ``avatar`` to work on: the one whose prim name or path is ``name``, or by default the one
     with the most shapes (then the most vertices). Raises :class:`~usdface.errors.RigError` naming the
-    avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all)."""
+    avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all), and, without
+    ``name``, when the avatar holds several characters' face rigs (a shot: the first character was taken
+    until stop 45), by personalize's test (:func:`usdface.motion.refuse_several_characters`)."""
     from .errors import RigError
 
     _expect(avatar, (_model("Avatar"),), "pick_mesh's avatar", "an Avatar",
@@ -139,7 +141,14 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
         return avatar_mesh(avatar, name)
     if not avatar.meshes:
         raise RigError("no mesh with blend shapes", path=avatar.file, fix="pass an avatar with a face rig")
-    return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
+    from .motion import refuse_several_characters
+
+    # the default order (a stable sort: the first in the file on a tie, as max took); the meshes' bounds
+    # tell the characters apart, so it holds for an avatar read without its offsets (render --landmarks)
+    ordered = sorted(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices), reverse=True)
+    refuse_several_characters(avatar, [(m, None) for m in ordered], option="--mesh (pick_mesh's name=)",
+                              also="")
+    return ordered[0]
 
 
 def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> Path:
