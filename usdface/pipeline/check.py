@@ -28,6 +28,9 @@ Rules (id: what it checks; severity of a violation):
 * ``Provenance``: a usdface layer's ``usdface:provenance:*`` attributes are present and consistent (version,
   command, one sha256 digest per input: error) and every input that is still reachable has the recorded digest
   (warning: the input changed after the layer was written).
+* ``Readable`` (runs last): the avatar reader every command uses accepts the rig and finds one face mesh in
+  it (error): a stage holding several characters' face rigs (a shot) is refused as personalize refuses it,
+  unless ``face_mesh=`` names one.
 * ``AvatarMatch``: a usdface layer still fits the avatar it sublayers: the prims it overrides exist, each
   personalized mesh's blend shapes are those its ``skel:blendShapeTargets`` list, its point count and faces
   are those recorded at writing, the avatar's units and up axis are those the layer repeats (error: the
@@ -718,7 +721,8 @@ def _avatar_match(stage) -> Iterable[Issue]:
 
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
-                   "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, ...)")
+                   "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, several "
+                   "characters' face rigs without face_mesh, ...)")
 def _readable(stage, name_map: dict | None = None, face_mesh: str | None = None) -> Iterable[Issue]:
     """Run the reader every usdface command uses (``usdface.io.usd_rig``) on the stage; a refusal is an
     error, so a publish validator never passes a rig the tools then reject. A stage with several characters'
