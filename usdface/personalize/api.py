@@ -686,6 +686,19 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                                                                    free, system=final_system)
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
+        elif sensitivity and method == "menzel" and frame_weights is not None and len(w_cur):
+            # a take read whole: no re-estimation, so every weight the phone reports errs, at the noise the
+            # take shows frame to frame (takefit.weight_noise); in the frame-weighted fit (points and weights
+            # scaled by sqrt(omega), takefit.weighted_frames) frame f's error counts omega_f times
+            from .takefit import weight_noise as take_weight_noise
+
+            jitter = take_weight_noise(train.weights[::every] if every > 1 else train.weights)
+            if np.isfinite(jitter):
+                erring = np.broadcast_to(omega[:, None], w_cur.shape)
+                # (no gain kept: the K x K systems' per-vertex form, not the [n,K,F] gain of a long take)
+                info["weight_leak"] = jitter ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas, erring)
+            timings["sensitivity"] = time.perf_counter() - t1
+            t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
                                                capture.names, deltas, mode=contact, points=points,
                                                weights=w_cur, pinned=mask if pins is not None else None,
