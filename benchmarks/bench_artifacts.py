@@ -315,10 +315,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default="sample,dev1,dev2,dev3")
     ap.add_argument("--top", type=int, default=1, help="the N elements of largest score per mesh and kind")
     args = ap.parse_args(argv)
-    from bench_personalize import BENCH, _generated, _minus
+    from bench_personalize import _known
 
-    cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()
-             or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir())]
+    cases = [c for c in args.cases.split(",") if _known(c)]
     print(f"flagged: out > {FACTOR:g} x max(generic, truth) at the element, > the shape's {PERCENTILE:g}th "
           f"percentile of max(generic, truth), jump > {FLOOR_MM:g} mm; "
           f"worst: the largest score = min(out / max({FACTOR:g} x reference there, that percentile), "

@@ -9,7 +9,10 @@ at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whos
 artist's rig without ``../shared``. ``dev1/minus3`` is a bench case whose capture misses every third
 requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that failed
 to record them), so that the shapes it names are seen only beside others (the capture folder linked into a
-temporary folder, the avatar and truth the case's own). The time table is for the bench cases only.
+temporary folder, the avatar and truth the case's own). Any case ending in ``/weightsS``
+(``artist:31/weights0.9``, ``dev1/minus3/weights1.1``) is that case with every training weight the phone
+reported times ``S``, clipped to [0, 1]: a phone that under- or over-reports (docs/personalize.md, known
+gaps). The time table is for the bench cases only.
 
 Prints two tables:
 1. accuracy (issue 10's figures, :mod:`usdface.transfer.scoring`): RMSE vs ``truth/avatar_truth.npz`` as a
@@ -118,9 +121,47 @@ def _capture_minus(base: str, k: int) -> Path:
     return dst
 
 
+def _weights(case: str) -> tuple[str, float] | None:
+    """``("artist:31", 0.9)`` for ``"artist:31/weights0.9"`` (the case with the phone's training weights times
+    0.9); None for a case without that ending or with a factor that is not a number above 0."""
+    base, sep, tail = case.rpartition("/weights")
+    try:
+        factor = float(tail)
+    except ValueError:
+        return None
+    return (base, factor) if sep and base and np.isfinite(factor) and factor > 0 else None
+
+
+def _known(case: str) -> bool:
+    """Can :func:`_case` read ``case`` (the sample, a generated case, a bench case that is there, one missing
+    frames, any of them with ``/weightsS``)?"""
+    weights = _weights(case)
+    c = weights[0] if weights else case
+    return (c == "sample" or _generated(c) or (BENCH / c).is_dir()
+            or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir()))
+
+
+def scale_training_weights(capture, factor: float):
+    """``capture`` with the weights of its training frames times ``factor``, clipped to [0, 1] and rounded to
+    the 4 decimals the phone reports (test frames, points and template unchanged; a new Capture)."""
+    import dataclasses
+
+    from usdface.model import Frames
+
+    fr = capture.frames
+    w = fr.weights.copy()
+    train = np.array([r == "train" for r in fr.role], dtype=bool)
+    w[train] = np.round(np.clip(w[train] * factor, 0.0, 1.0), 4)
+    return dataclasses.replace(capture, frames=Frames(fr.points, w, list(fr.role), list(fr.label)))
+
+
 def _case(case: str):
     """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case, one missing frames
-    (:func:`_minus`) or the sample."""
+    (:func:`_minus`) or the sample, or any of them with the phone's weights scaled (:func:`_weights`)."""
+    weights = _weights(case)
+    if weights:
+        avatar, capture, face, covered, truth = _case(weights[0])
+        return avatar, scale_training_weights(capture, weights[1]), face, covered, truth
     import json
 
     from usdface.io import read_capture
@@ -317,8 +358,7 @@ def main(argv=None) -> int:
     ap.add_argument("--map", action="store_true", help="also compare eq. (4)'s choice of mu (regions, GCV)")
     ap.add_argument("--no-time", action="store_true")
     args = ap.parse_args(argv)
-    cases = [c for c in args.cases.split(",") if c == "sample" or _generated(c) or (BENCH / c).is_dir()
-             or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir())]
+    cases = [c for c in args.cases.split(",") if _known(c)]
     if not BENCH.is_dir():
         print(f"{BENCH} not found: only the sample is benchmarked")
     print(f"{'case':6} {'setting':42} {'face':>6} {'whole':>6} {'other meshes':>16} {'worst shape (mm)':>26} "

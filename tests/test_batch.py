@@ -408,6 +408,21 @@ def gated_worker(item: dict) -> None:
         Path(item["output"] + ".ended").write_text("")
 
 
+def gated_publishing_worker(item: dict) -> None:
+    """:func:`gated_worker` writing ``output`` as usdface does (atomically, :func:`write_text_atomic`)."""
+    import time
+
+    from usdface.io.atomic import write_text_atomic
+
+    try:
+        Path(item["output"] + ".started").write_text("")
+        while not Path(item["output"] + ".go").exists():
+            time.sleep(0.05)
+        write_text_atomic(item["output"], "written")
+    finally:
+        Path(item["output"] + ".ended").write_text("")
+
+
 def slow_writing_worker(item: dict) -> None:
     """Starts the atomic write of ``output``, marks that it did, then takes 30 s to finish it."""
     import time
@@ -494,7 +509,7 @@ def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
 
 
 @contextlib.contextmanager
-def _dask_item_running(tmp_path):
+def _dask_item_running(tmp_path, worker: str = "gated_worker"):
     """``(cluster, batch process, output folder)`` once the one item of a ``usdface batch --scheduler``
     child process (``gated_worker``: it waits for ``a.usda.go`` before writing) runs on a one-worker TCP
     ``LocalCluster`` (reachable from another process)."""
@@ -505,7 +520,7 @@ def _dask_item_running(tmp_path):
     out = tmp_path / "out"
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
                                   dashboard_address=None) as cluster:
-        proc = _spawn_batch(manifest, "gated_worker", tmp_path, "--scheduler", cluster.scheduler_address,
+        proc = _spawn_batch(manifest, worker, tmp_path, "--scheduler", cluster.scheduler_address,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 120
         while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -523,6 +538,31 @@ def _let_the_item_end(out) -> None:
     deadline = time.monotonic() + 60
     while not (out / "a.usda.ended").exists() and time.monotonic() < deadline:
         time.sleep(0.1)
+
+
+@pytest.mark.parametrize("how", ["SIGINT", "SIGKILL"])
+def test_a_dask_batch_stopped_writes_nothing_afterwards(tmp_path, how):
+    """Dask cannot interrupt a running task: a batch stopped with Ctrl-C (its futures cancelled) or killed
+    (its client gone, the scheduler releases them) left its item running on the cluster, and the item wrote
+    its output ~15 s after the batch had exited (the next run would skip it as done). The item now stops at
+    its next safe point once the worker holds its task as no longer wanted (usdface.cancel), and publishes
+    nothing."""
+    import signal
+    import time
+
+    from usdface.cancel import _DASK_UNWANTED
+
+    with _dask_item_running(tmp_path, "gated_publishing_worker") as (cluster, proc, out):
+        proc.send_signal(getattr(signal, how))
+        proc.communicate(timeout=120)
+        worker = next(iter(cluster.workers.values()))
+        deadline = time.monotonic() + 60          # the scheduler tells the worker the task is not wanted
+        while time.monotonic() < deadline and any(
+                ts.state not in _DASK_UNWANTED for ts in list(worker.state.tasks.values())):
+            time.sleep(0.1)
+        _let_the_item_end(out)
+        assert (out / "a.usda.ended").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["a.usda.ended", "a.usda.go", "a.usda.started"]
 
 
 def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):

@@ -35,3 +35,33 @@ def test_capture_minus_drops_every_kth_requested_frame_and_keeps_the_rest(tmp_pa
     assert sorted(p.name for p in out.iterdir()) == ["neutral.obj", "template", "test", "train"]
     assert (out / "train" / "002_mouthClose.obj").read_text() == "2\n"     # the case's own files
     assert (out / "neutral.obj").resolve() == (capture / "neutral.obj").resolve()
+
+
+def test_weights_names_a_case_and_a_factor():
+    assert bench_personalize._weights("artist:31/weights0.9") == ("artist:31", 0.9)
+    assert bench_personalize._weights("dev1/minus3/weights1.1") == ("dev1/minus3", 1.1)
+    for other in ("artist:31", "dev1/minus3", "sample/weights", "sample/weightsx", "sample/weights-1",
+                  "sample/weights0", "/weights0.9", "sample/weightsnan"):
+        assert bench_personalize._weights(other) is None
+    assert bench_personalize._known("sample/weights0.8") and bench_personalize._known("artist:2/weights1.2")
+    assert not bench_personalize._known("nonexistent-case/weights0.9")
+
+
+def test_scaled_weights_change_the_training_frames_only_within_the_phones_range():
+    import numpy as np
+
+    from usdface.model import Capture, FaceRig, Frames
+
+    tri = np.array([[0, 1, 2]])
+    pts = np.eye(3)
+    weights = np.array([[0.95, 0.1], [0.5, 0.0], [0.9, 0.6]])
+    capture = Capture(pts, tri, FaceRig(pts, tri, ["a", "b"], np.zeros((2, 3, 3))),
+                      Frames(np.stack([pts] * 3), weights, ["train", "train", "test"], ["0_a", "1_b", "0"]),
+                      ["a", "b"])
+    out = bench_personalize.scale_training_weights(capture, 1.2)
+    np.testing.assert_array_equal(out.frames.weights, [[1.0, 0.12], [0.6, 0.0], [0.9, 0.6]])
+    np.testing.assert_array_equal(capture.frames.weights, weights)          # the input is not changed
+    np.testing.assert_array_equal(out.frames.points, capture.frames.points)
+    assert out.frames.role == capture.frames.role and out.names == capture.names
+    low = bench_personalize.scale_training_weights(capture, 0.5).frames.weights
+    np.testing.assert_array_equal(low, [[0.475, 0.05], [0.25, 0.0], [0.9, 0.6]])

@@ -85,7 +85,8 @@ def _validate_gltf(path: Path) -> dict:
         for k, t in enumerate(targets):
             acc = doc["accessors"][t["POSITION"]]
             assert acc["count"] == n and acc["type"] == "VEC3"
-            assert set(t) == {"POSITION", "NORMAL"} and doc["accessors"][t["NORMAL"]]["count"] == n
+            assert set(t) in ({"POSITION", "NORMAL"}, {"POSITION"}) and set(t) == set(targets[0])
+            assert "NORMAL" not in t or doc["accessors"][t["NORMAL"]]["count"] == n
             np.testing.assert_array_equal(acc["min"], arrays["targets"][k].min(axis=0))
             np.testing.assert_array_equal(acc["max"], arrays["targets"][k].max(axis=0))
     return doc
@@ -151,6 +152,29 @@ def test_gltf_targets_carry_the_posed_normals(layer, tmp_path):
         still = np.setdiff1d(np.arange(len(posed)), head.triangles[moving])
         assert not got["target_normals"][k][still].any()   # zero where no adjacent triangle moves
     assert turned > 20                                     # the shapes do turn normals a lot (29.8 degrees)
+
+
+def test_gltf_without_morph_normals_keeps_the_positions_and_halves_the_targets(layer, tmp_path):
+    """A TD's option (stop 45): the NORMAL deltas (stop 44) doubled dev1's .glb (8.9 -> 19.7 MB), which an
+    engine that recomputes a posed mesh's normals does not need. ``morph_normals=False`` /
+    ``--no-morph-normals`` writes POSITION targets only: the same positions, base normals and names; no
+    target has a NORMAL; the file is smaller by about the NORMAL deltas' bytes. Refused without a glTF."""
+    full = api.export_avatar(layer, gltf=tmp_path / "n.glb")["gltf"]
+    lean = tmp_path / "p.glb"
+    assert main(["export", str(layer), "--gltf", str(lean), "--no-morph-normals", "-q"]) == 0
+    doc = _validate_gltf(lean)
+    a, b = read_gltf(full), read_gltf(lean)
+    for name in a:
+        for key in ("positions", "indices", "normals", "targets"):
+            np.testing.assert_array_equal(b[name][key], a[name][key])
+        assert b[name]["target_names"] == a[name]["target_names"]
+        assert "target_normals" not in b[name]
+        assert ("target_normals" in a[name]) == bool(a[name]["target_names"])
+    assert not any("NORMAL" in t for m in doc["meshes"] for prim in m["primitives"]
+                   for t in prim.get("targets", []))
+    assert lean.stat().st_size < 0.75 * full.stat().st_size
+    assert main(["export", str(layer), "--obj-dir", str(tmp_path / "objs"), "--no-morph-normals"]) == 2
+    assert not (tmp_path / "objs").exists()
 
 
 def test_gltf_normals_are_unit_at_a_loose_vertex(samples, tmp_path):

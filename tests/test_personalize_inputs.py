@@ -114,7 +114,7 @@ def test_options_a_method_cannot_use_are_refused():
 
 def test_user_clamp_is_honoured_by_the_cross_validation_and_laplacian():
     """A user clamp changes eq. (3)'s weights and the vertices the CV treats as static."""
-    from usdface.personalize.api import _cv_vertices
+    from usdface.personalize.crossval import cv_vertices
     from usdface.personalize.fit import regularization_weights
     from usdface.personalize.laplacian import region_masks
 
@@ -124,8 +124,8 @@ def test_user_clamp_is_honoured_by_the_cross_validation_and_laplacian():
     D = regularization_weights(deltas, clamp=50.0)
     static = np.flatnonzero(D.min(axis=0) >= 50.0)
     assert set(range(5)) <= set(static.tolist())
-    assert set(_cv_vertices(D, 50.0).tolist()) == set(range(len(D[0]))) - set(static.tolist())
-    assert set(_cv_vertices(D, 1e5).tolist()) == set(range(len(D[0])))    # the old hard-coded clamp
+    assert set(cv_vertices(D, 50.0).tolist()) == set(range(len(D[0]))) - set(static.tolist())
+    assert set(cv_vertices(D, 1e5).tolist()) == set(range(len(D[0])))    # the old hard-coded clamp
     cap.frames.points[:] += np.random.default_rng(1).normal(size=cap.frames.points.shape) * 1e-3
     kw = {"method": "laplacian", "reg": 1e-3, "mask_threshold": 0.5, "align": False, "reweight": False}
     a = fit_personalized_shapes(cap, clamp=50.0, **kw)

@@ -134,6 +134,44 @@ def test_a_smaller_capture_gives_the_same_personalization(tmp_path):
     assert np.abs(a.offsets[key] - b.offsets[key]).max() < 1e-3 * change
 
 
+def test_a_capture_turned_moved_and_in_centimetres_gives_the_same_personalization():
+    """The capture's frame is the phone app's: turned, placed anywhere, in another unit. With the default
+    method (the fit, its alignment and trust, the map, the field, the eyelids) the offsets are those of the
+    capture as it was, to 1e-4 of the personalization (dev3 in a copy turned 35 degrees, moved 0.8 m or at
+    100x: within 1.5e-4 mm)."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from usdface.api import read_avatar
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.transfer import personalize_avatar
+
+    cap, avatar = _capture(), read_avatar(A)
+    R = Rotation.from_rotvec(np.radians(35.0) * np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2]))
+    s, shift = 100.0, np.array([40.0, -20.0, 70.0])
+
+    def place(p):
+        return s * R.apply(np.asarray(p).reshape(-1, 3)).reshape(np.shape(p)) + shift
+
+    t, f = cap.template, cap.frames
+    moved = Capture(place(cap.neutral), cap.triangles,
+                    FaceRig(place(t.neutral), t.triangles, list(t.names),
+                            s * R.apply(t.deltas.reshape(-1, 3)).reshape(t.deltas.shape), name=t.name),
+                    Frames(place(f.points), f.weights, f.role, f.label), cap.names)
+    moved = dataclasses.replace(moved, metadata=dict(cap.metadata or {}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = personalize_avatar(avatar, cap, None)
+        b = personalize_avatar(avatar, moved, None)
+    for mesh in avatar.meshes:
+        if mesh.key not in a.offsets:
+            continue
+        change = np.abs(a.offsets[mesh.key] - mesh.deltas).max()
+        assert change > 1e-4, mesh.name                        # the sample's person moves each mesh
+        assert np.abs(a.offsets[mesh.key] - b.offsets[mesh.key]).max() < 1e-4 * change, mesh.name
+
+
 def _generic_on_capture(samples, monkeypatch, source):
     """The avatar's generic shapes the map puts on the capture of the sample folder ``samples`` (capture
     frame, m), with the map registered from the ``source`` face (``"template"``: forced; None: personalize's

@@ -173,3 +173,63 @@ def test_exact_weights_leak_nothing(tmp_path):
     trust = leak_trust(fit.rig.deltas, fit.info["prior_deltas"], fit.info["weight_leak"])
     assert trust.min() > 0.99, trust.min()
     assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
+
+
+def test_the_leak_without_the_fits_gain_is_the_same_sum_per_vertex():
+    """A take of thousands of frames keeps no ``[n,K,F]`` gain (gigabytes): the leak is then formed per
+    vertex as ``diag(A^-1 (W^T diag(E) W) A^-1)``, in blocks; it equals the gain's sum."""
+    rng = np.random.default_rng(2)
+    F, K, n = 300, 6, 40
+    W, D = rng.random((F, K)), rng.random((K, n)) + 0.1
+    B, free = rng.normal(size=(K, n, 3)), rng.random((F, K))
+    kept = FitSystem(W, D, 1e-3, gain=True)
+    fit_blendshapes(np.zeros((n, 3)), rng.normal(size=(F, n, 3)), W, np.zeros((K, n, 3)), D, 1e-3,
+                    system=kept)
+    assert kept.basis is None and kept.G is not None
+    np.testing.assert_allclose(weight_leak_variance(W, D, 1e-3, B, free),
+                               weight_leak_variance(W, D, 1e-3, B, free, system=kept), rtol=1e-10)
+
+
+def test_a_whole_takes_trust_counts_the_leak_of_the_weights_noise_it_shows():
+    """A take read whole has no re-estimation and no reliability (its leave-one-frame-out error keeps each
+    frame's neighbours), so its trust was the data share alone: a small shape always performed beside a large
+    one took the large one's weight noise whole (generated takes with the phone's weights +-0.02-0.03, stop
+    45: `mouthShrugLower` +0.094 mm, trust 0.999). The fit now measures the take's weight noise (frame-to-
+    frame jitter) and its leak, and the trust is no more than the leak's James-Stein factor."""
+    from synthetic_meshes import grid_triangles
+
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.personalize import fit_personalized_shapes
+    from usdface.personalize.takefit import weight_noise as take_weight_noise
+    from usdface.transfer.trust import shape_trust
+
+    rng = np.random.default_rng(4)
+    nx, ny = 9, 8
+    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
+    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
+    tris = grid_triangles(nx, ny)
+    names = ["jawOpen", "mouthShrugLower", "eyeBlinkLeft"]
+    n = len(neutral)
+    avatar = rng.normal(size=(3, n, 3)) * np.array([0.01, 0.0005, 0.003])[:, None, None]
+    true = avatar + rng.normal(size=(3, n, 3)) * np.array([0.001, 0.00002, 0.0003])[:, None, None]
+    t = np.arange(1200) / 30.0                               # a smooth take, 40 s at 30 fps
+    smooth = np.stack([np.sin(0.7 * t) ** 2, 0.3 * np.sin(0.7 * t) ** 2 + 0.5 * np.sin(0.23 * t) ** 2,
+                       np.sin(1.3 * t + 1) ** 2], axis=1)
+    phone = np.clip(smooth + 0.03 * rng.standard_normal(smooth.shape), 0, 1)
+    pts = neutral + np.einsum("fk,knc->fnc", smooth, true) + 2e-5 * rng.standard_normal((len(t), n, 3))
+    cap = Capture(neutral, tris, FaceRig(neutral, tris, names, avatar.copy()),
+                  Frames(pts, phone, ["train"] * len(t), [f"f{i:05d}" for i in range(len(t))]), names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_personalized_shapes(cap, avatar_prior=avatar, frame_weights=np.ones(len(t)),
+                                      sensitivity=True)
+    assert abs(take_weight_noise(phone) - 0.03) < 0.005
+    leak = fit.info["weight_leak"]
+    assert leak.shape == (n, 3)
+    share = np.asarray(fit.info["shape_confidence"])
+    trust, _, _ = shape_trust(fit, cap, cap.template, [0, 1, 2], None, None)
+    fitted = fit.rig.deltas[1]
+    # the small shape's fitted change is mostly the jaw's leaked weight noise, not the person's change
+    assert np.linalg.norm(fitted - true[1]) > np.linalg.norm(true[1] - avatar[1])
+    assert share[1] > 0.9 and trust[1] < 0.75                 # the share alone kept it whole
+    assert trust[0] > 0.9                                     # the jaw stands far above its own leak

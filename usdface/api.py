@@ -126,7 +126,9 @@ def read_capture(path: PathLike) -> Capture:
 def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
     """The mesh of ``avatar`` to work on: the one whose prim name or path is ``name``, or by default the one
     with the most shapes (then the most vertices). Raises :class:`~usdface.errors.RigError` naming the
-    avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all)."""
+    avatar file and its meshes when there is no such mesh (or no mesh with blend shapes at all), and, without
+    ``name``, when the avatar holds several characters' face rigs (a shot: the first character was taken
+    until stop 45), by personalize's test (:func:`usdface.motion.refuse_several_characters`)."""
     from .errors import RigError
 
     _expect(avatar, (_model("Avatar"),), "pick_mesh's avatar", "an Avatar",
@@ -139,7 +141,14 @@ def pick_mesh(avatar: Avatar, name: str | None = None) -> FaceRig:
         return avatar_mesh(avatar, name)
     if not avatar.meshes:
         raise RigError("no mesh with blend shapes", path=avatar.file, fix="pass an avatar with a face rig")
-    return max(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices))
+    from .motion import refuse_several_characters
+
+    # the default order (a stable sort: the first in the file on a tie, as max took); the meshes' bounds
+    # tell the characters apart, so it holds for an avatar read without its offsets (render --landmarks)
+    ordered = sorted(avatar.meshes, key=lambda m: (m.n_shapes, m.n_vertices), reverse=True)
+    refuse_several_characters(avatar, [(m, None) for m in ordered], option="--mesh (pick_mesh's name=)",
+                              also="")
+    return ordered[0]
 
 
 def check_capture_output(out_path: PathLike, force: bool = False, inputs=()) -> Path:
@@ -1515,18 +1524,21 @@ def _apply_batch_options(items, shared: dict, manifest) -> None:
 
 
 def check(file_or_stage: PathLike | Any, pixar: bool = True,
-          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None) -> list[Issue]:
+          rules: Iterable[str] | None = None, name_map: dict | PathLike | None = None,
+          face_mesh: str | None = None) -> list[Issue]:
     """Validate a face-rig USD file (or an open ``Usd.Stage``): usdface's face-rig rules plus, with ``pixar``,
     OpenUSD's own validators, merged and sorted errors first (``usdface check``). ``name_map``: as for
-    :func:`read_avatar`. An ``Sdf.Layer`` is checked as the stage it opens; anything else is refused
-    (``UsdFaceError``; it was an ``AttributeError`` from deep in the rules). Never modifies the file."""
+    :func:`read_avatar`; ``face_mesh``: as for :func:`personalize` (a stage holding several characters' face
+    rigs, a shot, is an error without it, as personalize refuses it). An ``Sdf.Layer`` is checked as the
+    stage it opens; anything else is refused (``UsdFaceError``; it was an ``AttributeError`` from deep in the
+    rules). Never modifies the file."""
     from .io.name_map import read_name_map
     from .pipeline.validators import validate_file, validate_stage
 
     (pixar,) = _flags("check", pixar=pixar)
     name_map = read_name_map(name_map)
     if isinstance(file_or_stage, str | os.PathLike):
-        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+        return validate_file(file_or_stage, pixar=pixar, rules=rules, name_map=name_map, face_mesh=face_mesh)
     from pxr import Sdf, Usd
 
     if isinstance(file_or_stage, Sdf.Layer):
@@ -1536,7 +1548,7 @@ def check(file_or_stage: PathLike | Any, pixar: bool = True,
 
         raise UsdFaceError(f"check takes a USD file's path, a Usd.Stage or an Sdf.Layer, not "
                            f"{type(file_or_stage).__name__}", fix="pass the file's path or the open stage")
-    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(file_or_stage, pixar=pixar, rules=rules, name_map=name_map, face_mesh=face_mesh)
 
 
 def inspect_file(path: PathLike, name_map: dict | PathLike | None = None) -> dict:
@@ -1621,12 +1633,13 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
                   flatten: PathLike | None = None, variant: str = "personalized", skin: bool = True,
-                  force: bool = False) -> dict[str, Path]:
+                  morph_normals: bool = True, force: bool = False) -> dict[str, Path]:
     """Deliver one variant (``personalized`` or ``generic``) of a usdface layer (``usdface export``):
 
     * ``gltf``: glTF 2.0 (``.glb`` or ``.gltf``), one morph target per shape, names in
       ``mesh.extras.targetNames``, metres, Y up, with the skin and skeleton when ``skin`` and the avatar has
-      joints (see :mod:`usdface.io.gltf`);
+      joints (see :mod:`usdface.io.gltf`), each target with its ``NORMAL`` deltas unless
+      ``morph_normals=False`` (``POSITION`` only: about half the file, for engines that recompute normals);
     * ``obj_dir``: a folder with one sub-folder per mesh: ``neutral.obj`` and one full target mesh
       ``<shape>.obj`` per shape (metres, Y up, like a capture folder's ``template/``), with ``vt`` texture
       coordinates when the mesh has them;
@@ -1641,7 +1654,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    skin, force = _flags("export_avatar", skin=skin, force=force)
+    skin, morph_normals, force = _flags("export_avatar", skin=skin, morph_normals=morph_normals, force=force)
     from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
@@ -1684,7 +1697,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         warn(text)
     done: dict[str, Path] = {}
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
-        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
+        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force,
+                        morph_normals=morph_normals)
     return done
 
 
@@ -1734,18 +1748,18 @@ def _refuse_export_input(layer_path, **outputs) -> None:
 
 
 def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                    force: bool) -> None:
+                    force: bool, *, morph_normals: bool = True) -> None:
     """:func:`export_avatar`'s writes, each output recorded in ``done`` once it is complete; each step named
     on stderr while it runs (a 225k-vertex head's glTF export ran 30 CPU-s without a word)."""
     from .progress import steps
 
     count = 2 * bool(gltf or obj_dir) + bool(gltf and obj_dir) + bool(flatten)
     with steps("export", count) as p:
-        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, force)
+        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, force, morph_normals)
 
 
 def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                  force: bool) -> None:
+                  force: bool, morph_normals: bool = True) -> None:
     from .io.atomic import replace_dir_atomically
     from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import write_gltf
@@ -1795,7 +1809,8 @@ def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: st
                                                 if prim in placed])
             offsets = {rig.name: found for rig in rigs if (found := normal_offsets(rig)) is not None}
             write_gltf(gltf, rigs, skin=skeleton, root_name=root, extras=extras, node_extras=marks,
-                       texcoords=uvs, normals=normals, target_normals=offsets, force=force)
+                       texcoords=uvs, normals=normals, target_normals=offsets, morph_normals=morph_normals,
+                       force=force)
             done["gltf"] = _written(gltf)
         if obj_dir:
             count = sum(len(r.names) + 1 for r in rigs)

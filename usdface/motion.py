@@ -8,6 +8,8 @@ dense offsets costs 0.1-0.2 s, and the pipeline used to take it a dozen times.
 * :func:`moving_vertices` - the vertices some shape moves, with a tolerance: float noise of a DCC export
   (offsets re-stored in float32 around head-sized coordinates) is not motion;
 * :func:`most_moving_mesh` - the mesh whose named shapes move the most vertices (an avatar's face mesh);
+* :func:`refuse_several_characters` - refuse a stage holding several characters' face rigs (a shot), where
+  no one face mesh is to be picked (personalize, check, landmarks, render);
 * :func:`shape_changes` - how far one set of shapes moves each vertex from another (RMS over shapes), and
   each shape's largest change: the personalization's heat map (``--inspect``, ``review``, ``render``).
 
@@ -78,6 +80,53 @@ def most_moving_mesh(meshes, names):
     names."""
     ranked = meshes_by_motion(meshes, names)
     return ranked[0][0] if ranked else None
+
+
+#: What the refusal of several characters tells personalize's caller to do besides naming the face mesh.
+OWN_AVATAR = "; or personalize the character's own avatar asset and reference the layer in the shot"
+
+
+def several_characters(ranked) -> dict:
+    """``{SkelRoot path: face mesh prim}`` of the characters in ``ranked`` (:func:`meshes_by_motion` of an
+    avatar's meshes), the first (most moving) one's first, when there are several; ``{}`` for one character.
+    Another character is another SkelRoot whose most moving mesh lies apart from the first's face mesh
+    (bounding boxes disjoint): a rig split into several SkelRoots around one head (Blender writes one per mesh
+    with shape keys and no armature: teeth, lashes) overlaps the head and is one character."""
+    if not ranked:
+        return {}
+    face = ranked[0][0]
+    root = face.source.skel_root if face.source is not None else None
+    lo, hi = face.neutral.min(axis=0), face.neutral.max(axis=0)
+    others: dict = {}
+    for rig, _ in ranked[1:]:
+        other = rig.source.skel_root if rig.source is not None else None
+        if not other or not root or other == root or other in others:
+            continue
+        olo, ohi = rig.neutral.min(axis=0), rig.neutral.max(axis=0)
+        apart = bool(np.any(olo > hi) or np.any(ohi < lo))
+        others[other] = rig.source.prim if apart else None
+    apart = {r: prim for r, prim in others.items() if prim}
+    return {root: face.source.prim, **apart} if apart else {}
+
+
+def refuse_several_characters(avatar, ranked, option: str = "--face-mesh (face_mesh=)",
+                              also: str = OWN_AVATAR) -> None:
+    """A stage with several characters (a shot with the hero and an extra, one avatar referenced twice side
+    by side) has no one face mesh to pick: until stop 45 the mesh the shapes move most was taken, the first
+    in the file on a tie, and the person's shapes went to whichever character that was, without a word.
+    Refused (:class:`~usdface.errors.RigError`) naming each character's face mesh, so the TD says which with
+    ``option`` (personalize's ``--face-mesh``, ``landmarks``/``render``'s ``--mesh``); ``also`` ends the fix.
+    The one test personalize, ``check`` (rule ``Readable``), ``landmarks`` and ``render`` make
+    (:func:`several_characters`)."""
+    found = several_characters(ranked)
+    if found:
+        from .errors import RigError
+
+        roots, prims = list(found), list(found.values())
+        raise RigError(f"the stage holds {len(found)} characters' face rigs (SkelRoots {', '.join(roots)}): "
+                       "which one is the person's is not for usdface to guess", path=avatar.file,
+                       prim=roots[0],
+                       fix=f"name the face mesh with {option}: one of {', '.join(prims)}{also}")
 
 
 def shape_changes(personalized, generic) -> tuple[np.ndarray, np.ndarray]:

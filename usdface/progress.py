@@ -29,6 +29,8 @@ import sys
 import threading
 import time
 
+from .cancel import checkpoint
+
 _ENABLED = True
 _STACK: list[_Steps] = []  # open steps() blocks, outermost first
 _LIVE = None  # the rich Progress shared by nested blocks in bar mode
@@ -137,7 +139,10 @@ class _Steps:
         """The step ``label`` (or the one started last) is over; ``outcome`` says how (``done``, or e.g.
         ``failed`` for a batch item whose error is reported at the end). ``seconds``: how long the step ran,
         when it did not run since the step before ended (a batch item on a pool: by default the time since
-        then)."""
+        then).
+
+        Each step is a safe point for work its host has stopped (:func:`usdface.cancel.checkpoint`)."""
+        checkpoint()
         if self.how == "off":
             return
         if self.running is not None:
@@ -157,7 +162,9 @@ class _Steps:
         self.t_step = now
 
     def start(self, label: str) -> None:
-        """The step ``label`` begins (ending the one started before, if any)."""
+        """The step ``label`` begins (ending the one started before, if any); a safe point to stop, as the
+        end of a step is."""
+        checkpoint()
         if self.how == "off":
             return
         if self.running is not None:

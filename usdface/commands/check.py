@@ -19,6 +19,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--no-pixar", action="store_true", help="run only usdface's face-rig rules")
     add_name_map_option(p)
+    p.add_argument("--face-mesh", metavar="PRIM",
+                   help="the face mesh personalize will be given (--face-mesh): a file holding several "
+                        "characters' face rigs (a shot) is an error without it, as personalize refuses it")
     p.add_argument("--rules", help="comma-separated usdface rule ids to run (default: all)")
     p.add_argument("--strict", action="store_true", help="warnings also make the exit status non-zero")
     p.add_argument("--quiet", "-q", action="store_true", help="hide info-level findings in the text report")
@@ -53,7 +56,8 @@ def run(args) -> int:
 
         rules = name_list(args.rules, "--rules", "rule",
                           fix=f"leave --rules out to run all, or name some: {', '.join(sorted(RULES))}")
-    issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map)
+    issues = check(args.file, pixar=not args.no_pixar, rules=rules, name_map=args.name_map,
+                   face_mesh=args.face_mesh)
     counts = {s: sum(i.severity == s for i in issues) for s in ("error", "warning", "info")}
     failed = counts["error"] > 0 or (args.strict and counts["warning"] > 0)
     if args.json:

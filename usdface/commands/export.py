@@ -23,6 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--variant", choices=("personalized", "generic"), default="personalized",
                    help="which usdfacePersonalization variant to export (default: personalized)")
     p.add_argument("--no-skin", action="store_true", help="glTF without the skeleton and skin")
+    p.add_argument("--no-morph-normals", action="store_true",
+                   help="glTF morph targets without NORMAL deltas (POSITION only: about half the file, for "
+                        "engines that recompute the normals of a posed mesh)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -39,8 +42,15 @@ def run(args) -> int:
 
         raise OptionError("--no-skin applies to the glTF only (OBJs carry no skin; a flattened USD keeps the "
                           "avatar's binding)", fix="drop --no-skin, or add --gltf OUT.glb")
+    if args.no_morph_normals and not args.gltf:
+        from ..errors import OptionError
+
+        raise OptionError("--no-morph-normals applies to the glTF only (OBJ targets and a flattened USD "
+                          "carry the shapes as authored)",
+                          fix="drop --no-morph-normals, or add --gltf OUT.glb")
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
-                         variant=args.variant, skin=not args.no_skin, force=args.force)
+                         variant=args.variant, skin=not args.no_skin, morph_normals=not args.no_morph_normals,
+                         force=args.force)
     variant = exported_variant(args.layer, args.variant)
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it

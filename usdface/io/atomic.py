@@ -52,7 +52,14 @@ def publish(tmp, path, force: bool = False) -> Path:
     Without it the target is created *exclusively*: ``os.link`` fails if ``path`` exists, so of two
     processes writing the same new output exactly one wins and the other gets
     :class:`~usdface.errors.OutputExistsError`; ``tmp`` is removed either way. On a file system without
-    hard links the existence check and the rename are two steps."""
+    hard links the existence check and the rename are two steps.
+
+    Work whose host has stopped it (:func:`usdface.cancel.stop_when`: a Dask batch stopped) raises
+    :class:`~usdface.cancel.Cancelled` here, before the output appears; the caller's clean-up removes
+    ``tmp``."""
+    from ..cancel import checkpoint
+
+    checkpoint()
     tmp, path = Path(tmp), Path(path)
     if force:
         try:
@@ -557,6 +564,9 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             if exc.path is not None:
                 exc.path = _naming_output(OSError(0, "", exc.path), tmp, dest).filename
             raise
+        from ..cancel import checkpoint
+
+        checkpoint()      # work its host stopped meanwhile publishes nothing (the folder is removed below)
         if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
             # the current folder: a rename would swap it for a new folder under the caller (and the user's
             # shell), whose relative paths would then point into the old, deleted one - filled file by file

@@ -6,7 +6,8 @@ Written with pygltflib (the container: JSON, buffers, GLB chunks); this module o
   usdface reads avatars into, which is glTF's), ``NORMAL`` (the mesh's authored normals when it has some,
   split at a hard edge as at a UV seam; else area-weighted vertex normals of the neutral; +Z at a vertex no
   triangle of any area touches, which has none) and ``indices`` (uint16 or uint32);
-* one morph target per shape: ``POSITION`` deltas (float32) and ``NORMAL`` deltas (the shape's authored
+* one morph target per shape: ``POSITION`` deltas (float32) and (unless ``morph_normals=False``) ``NORMAL``
+  deltas (the shape's authored
   ``normalOffsets`` when it has some, else the area-weighted vertex normals of the neutral plus the shape,
   minus the neutral's: an engine adds them, weighted as the positions, and normalises, so a shape is shaded
   as posed and not with the neutral's normals), each stored as a
@@ -209,7 +210,8 @@ def _joints_attributes(blob: _Blob, indices: np.ndarray, weights: np.ndarray) ->
 
 def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, root_name: str = "Avatar",
                extras: dict | None = None, node_extras: dict | None = None, texcoords: dict | None = None,
-               normals: dict | None = None, target_normals: dict | None = None, force: bool = False) -> Path:
+               normals: dict | None = None, target_normals: dict | None = None, morph_normals: bool = True,
+               force: bool = False) -> Path:
     """Write ``rigs`` (:class:`usdface.model.FaceRig`, shapes or none) as one glTF 2.0 scene: a root node
     ``root_name`` with the joints of each ``skin`` (one :class:`GltfSkin`, or a list: one glTF skin per
     skeleton, each mesh skinned by the skin whose ``influences`` name it, the first that does) and the meshes
@@ -226,6 +228,8 @@ def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, roo
     computed ones, the vertices split where they differ (a hard edge); ``target_normals`` ``{rig name: [K]
     per-point normal offsets[n, 3] or None}`` (the shapes' ``normalOffsets``,
     :func:`usdface.io.usd_texcoords.normal_offsets`) are the targets' ``NORMAL`` deltas where given.
+    ``morph_normals=False``: the targets carry ``POSITION`` deltas only (about half the file; an engine that
+    recomputes a posed mesh's normals, or shades the shapes with the neutral's, needs no more).
     Returns the path written (atomically; an existing file needs ``force``)."""
     import pygltflib
 
@@ -290,9 +294,9 @@ def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, roo
                                                                  np.asarray(weights)[keep])
         deltas = np.asarray(rig.deltas, dtype=np.float64)
         offsets = (target_normals or {}).get(rig.name) or [None] * len(deltas)
-        targets = [{"POSITION": blob.target(d[keep].astype(np.float32)),
-                    "NORMAL": blob.target(_normal_delta(rig.neutral, tris, d, computed, given)[keep]
-                                          .astype(np.float32))}
+        targets = [{"POSITION": blob.target(d[keep].astype(np.float32))} | (
+                   {"NORMAL": blob.target(_normal_delta(rig.neutral, tris, d, computed, given)[keep]
+                                          .astype(np.float32))} if morph_normals else {})
                    for d, given in zip(deltas, offsets, strict=True)]
         prim = pygltflib.Primitive(attributes=attrs, indices=blob.accessor(
             tris_out.ravel().astype(itype), "SCALAR", target=_ELEMENT_ARRAY_BUFFER, bounds=True), mode=4,

@@ -349,7 +349,14 @@ def effective_point_set(primary: np.ndarray, extra=(), rtol: float = SPARSE_RELA
 # ---------------------------------------------------------------------------------------------------------
 def avatar_mesh(avatar: Avatar, key: str, context: str = "in the avatar") -> FaceRig:
     """``avatar.mesh(key)`` (prim name or path), raising :class:`~usdface.errors.RigError` naming the avatar
-    file and the meshes it does have when there is no such mesh."""
+    file and the meshes it does have when there is no such mesh, and when a name (not a path) names meshes
+    of several characters (two SkelRoots with a ``Head``: the first was taken until stop 45)."""
+    same = [m.source.prim for m in avatar.meshes if m.source is not None and m.source.prim != key
+            and (m.name == key or m.source.prim.endswith("/" + key.lstrip("/")))]
+    if len(same) > 1:
+        raise RigError(f"{len(same)} meshes are named {key!r} ({', '.join(same)}): which one is meant is "
+                       "not for usdface to guess", path=avatar.file, prim=same[0],
+                       fix=f"give the mesh's prim path: one of {', '.join(same)}")
     try:
         return avatar.mesh(key)
     except KeyError:

@@ -25,7 +25,7 @@ import numpy as np
 from ..arkit import livelink_name, lookalike, match_names
 from ..errors import CaptureError, InputFileError, TimecodeError, warn
 from .atomic import write_text_atomic
-from .capture_folder import order_names
+from .capture_folder import order_names, refuse_weights_scale
 
 __all__ = ["LiveLinkTake", "read_livelink_csv", "read_livelink_take", "livelink_weights", "parse_timecodes",
            "median_fps", "format_timecodes", "write_livelink_csv", "ANGLE_COLUMNS", "DEFAULT_TIMECODE_RATE"]
@@ -295,6 +295,7 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
         f, k = np.argwhere(~np.isfinite(weights))[0]
         raise CaptureError(f"line {f + 2}, {names[k]}: weight is NaN or infinite", path=path,
                            fix="repair or re-export the take")
+    refuse_weights_scale(weights, names, path, frame=lambda f: f"line {f + 2}", fix_where="the CSV's weights")
     if weights.size and (weights.min() < 0 or weights.max() > 1):
         out = (weights < 0) | (weights > 1)
         cols = [names[k] for k in np.flatnonzero(out.any(axis=0))]

@@ -161,18 +161,48 @@ def read_obj(path, *, faces: dict | None = None) -> tuple[np.ndarray, np.ndarray
     if b"\0" in data[:4096]:
         raise InputFileError("not a text OBJ file (binary content)", path=path,
                              fix="pass a Wavefront .obj file")
-    fast = _fast_parse(data, faces)
-    if fast is not None:
-        points, triangles = fast
-    else:
-        points, triangles = _general_parse(data, path)
-    if not np.isfinite(points).all():
-        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
-        raise GeometryError(f"vertex {bad} is NaN or infinite", path=path, fix="repair or re-export the mesh")
-    if triangles.min() < 0 or triangles.max() >= len(points):
-        raise GeometryError(f"face index out of range (mesh has {len(points)} vertices)", path=path,
-                            fix="repair or re-export the mesh")
+    try:
+        fast = _fast_parse(data, faces)
+        if fast is not None:
+            points, triangles = fast
+        else:
+            points, triangles = _general_parse(data, path)
+        if not np.isfinite(points).all():
+            bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+            raise GeometryError(f"vertex {bad} is NaN or infinite", path=path,
+                                fix="repair or re-export the mesh")
+        if triangles.min() < 0 or triangles.max() >= len(points):
+            raise GeometryError(f"face index out of range (mesh has {len(points)} vertices)", path=path,
+                                fix="repair or re-export the mesh")
+    except (GeometryError, InputFileError) as error:
+        raise cut_off(error, data, path) from None
     return points, triangles
+
+
+def cut_off(error, data: bytes, path) -> Exception:
+    """``error`` as raised, or, for a file that ends in the middle of a line (the tell of an interrupted copy
+    or write, a full disk), an :class:`InputFileError` saying so: a frame cut inside its vertices read as
+    'mesh has no faces (fix: export the mesh with its faces, not as points)', one cut inside its faces as
+    'face 1794 has 2 vertices (fix: remove points/lines from the mesh ...)', sending the TD to the DCC for
+    a file that only needed copying again."""
+    if not data or data.endswith((b"\n", b"\r")):
+        return error
+    return InputFileError("the file ends in the middle of a line, so it was probably cut off (an interrupted "
+                          f"copy or write, a full disk): {error.message}", path=path,
+                          fix="copy or export the file again")
+
+
+def ends_mid_line(path) -> bool:
+    """Whether the file's last byte is not a line end (see :func:`cut_off`); False when it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            if f.tell() == 0:
+                return False
+            f.seek(-1, 2)
+            return f.read(1) not in (b"\n", b"\r")
+    except OSError:
+        return False
 
 
 _V_CHARS = b"0123456789.-+eE v\n\r\t"

@@ -27,6 +27,7 @@ import numpy as np
 from ..arkit import ARKIT_NAMES, match_names
 from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
+from .capture_folder import refuse_weights_scale
 from .mesh_io import read_obj
 
 __all__ = ["Take", "read_take", "read_take_usd", "read_take_folder", "write_take_usd", "write_take_folder",
@@ -299,6 +300,7 @@ def read_take_usd(path) -> Take:
         raise CaptureError("weights contain NaN or infinite values", path=path, prim=frames.GetPath(),
                            fix="repair the take's weights")
     names = _canonical(names, path, frames.GetPath())
+    refuse_weights_scale(weights, names, path, prim=frames.GetPath(), fix_where="the take's weights")
     if weights.min() < 0 or weights.max() > 1:
         warn(f"{path}: weights outside [0, 1] clipped")
         weights = np.clip(weights, 0.0, 1.0)
@@ -351,6 +353,8 @@ def _weights_only_take(stage, path) -> Take | None:
         raise CaptureError(f"invalid timeCodesPerSecond {tcps!r}", path=path,
                            fix="set a positive timeCodesPerSecond (e.g. 60)")
     names = _canonical(names, path, prim)
+    refuse_weights_scale(weights, names, path, frame=lambda f: f"time {codes[f]:g}", prim=prim,
+                         fix_where="the take's weights")
     if weights.min() < 0 or weights.max() > 1:
         weights = np.clip(weights, 0.0, 1.0)
     times = (codes - codes[0]) / tcps

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import CaptureError, GeometryError, InputFileError, warn
 from ..model import Capture, FaceRig, Frames
-from .capture_folder import ROLES, refuse_whole_take
+from .capture_folder import ROLES, refuse_weights_scale, refuse_whole_take
 from .mesh_io import fan_triangulate
 
 __all__ = ["write_capture_usd", "read_capture_usd", "author_template", "author_frames", "CAPTURE_PRIM",
@@ -443,6 +443,7 @@ def read_capture_usd(path) -> Capture:
                             prim=fprim.GetPath(), fix="every frame must share the neutral's topology")
     pts = np.stack(points) if points else np.zeros((0,) + neutral.shape)
     w = np.stack(weights) if weights else np.zeros((0, len(names)))
+    refuse_weights_scale(w, names, path, fix_where="the capture's weights")
     if w.size and (w.min() < 0 or w.max() > 1):
         warn(f"{path}: weights outside [0, 1] clipped")
         w = np.clip(w, 0.0, 1.0)

@@ -174,6 +174,30 @@ def _array(value, dtype, width, what, path, prim) -> np.ndarray:
     return arr
 
 
+def time_sampled_only(attr) -> bool:
+    """True when ``attr`` has time samples but no default value, as a cache export writes every attribute.
+    UsdSkel reads a blend shape's arrays (``offsets``, ``pointIndices``, ``normalOffsets``, inbetweens) and
+    the channel names ``skel:blendShapes`` at the default time only, so such an attribute is unauthored to it;
+    usdface reads the rest mesh's topology there too. ``usdface check`` uses the same test."""
+    return bool(attr) and attr.GetNumTimeSamples() > 0 and attr.Get() is None
+
+
+def _default_only(attr, what, path, prim, error=None):
+    """Refuse ``attr`` (named ``what``) authored only as time samples (:func:`time_sampled_only`): it reads as
+    empty at the default time, and the error that followed named a count mismatch ('71 offsets but 0
+    pointIndices') or a mesh without faces instead of the time samples."""
+    if time_sampled_only(attr):
+        raise (error or RigError)(
+            f"{what} are time-sampled only ({attr.GetNumTimeSamples()} sample(s)), with no default value: "
+            f"{TIME_SAMPLED_READS.get(what, 'UsdSkel reads the default (they are uniform)')}",
+            path=path, prim=prim, fix=f"author {what} as a default value, not time samples (a cache "
+            "export's setting: export the rest pose or mark the attribute static)")
+
+
+TIME_SAMPLED_READS = {"faceVertexCounts": "usdface reads the rest mesh's topology at the default time",
+                      "faceVertexIndices": "usdface reads the rest mesh's topology at the default time"}
+
+
 def _check_finite(arr, what, path, prim):
     if arr.size and not np.isfinite(arr).all():
         bad = int(np.flatnonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0])
@@ -213,6 +237,8 @@ def _mesh_geometry(mesh_prim, path):
         raise GeometryError("mesh has no points (at the default time)", path=path, prim=prim,
                             fix="author the rest-pose points as a default (non time-sampled) value")
     _check_finite(points, "points", path, prim)
+    for topology in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
+        _default_only(topology, topology.GetName(), path, prim, GeometryError)
     counts = _array(mesh.GetFaceVertexCountsAttr().Get(Usd.TimeCode.Default()), np.int64, 0,
                     "faceVertexCounts", path, prim)
     indices = _array(mesh.GetFaceVertexIndicesAttr().Get(Usd.TimeCode.Default()), np.int64, 0,
@@ -282,6 +308,7 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
 
     prim = str(mesh_prim.GetPath())
     binding = UsdSkel.BindingAPI(mesh_prim)
+    _default_only(binding.GetBlendShapesAttr(), "skel:blendShapes", path, prim)
     tokens_value = binding.GetBlendShapesAttr().Get()
     tokens = [str(t) for t in tokens_value] if tokens_value is not None else []
     targets = [str(t) for t in binding.GetBlendShapeTargetsRel().GetForwardedTargets()]
@@ -323,13 +350,12 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
             continue
         shape = UsdSkel.BlendShape(shape_prim)
         idx_attr = shape.GetPointIndicesAttr()
+        for attr, what in ((idx_attr, "pointIndices"), (shape.GetOffsetsAttr(), "offsets"),
+                           (shape.GetNormalOffsetsAttr(), "normalOffsets")):
+            _default_only(attr, what, path, target)
         idx = None
         if idx_attr.HasAuthoredValue():
             idx = _array(idx_attr.Get(), np.int64, 0, "pointIndices", path, target)
-        if shape.GetOffsetsAttr().GetNumTimeSamples() and shape.GetOffsetsAttr().Get() is None:
-            raise RigError("offsets are time-sampled only, with no default value: UsdSkel reads the "
-                           "default (offsets are uniform)", path=path, prim=target,
-                           fix="author the offsets as a default value (uniform vector3f[] offsets = [...])")
         if shape.GetOffsetsAttr().HasAuthoredValue():
             offsets = _array(shape.GetOffsetsAttr().Get(), np.float64, 3, "offsets", path, target)
             _check_finite(offsets, "offsets", path, target)
@@ -362,6 +388,8 @@ def _read_mesh(stage, mesh_prim, path, stage_meta, skel_root, skeleton, animatio
             if weight is None or not math.isfinite(weight) or weight in (0.0, 1.0):
                 raise RigError(f"inbetween {ib_name} has invalid weight {weight!r}", path=path, prim=target,
                                fix="give each inbetween a finite weight other than 0 and 1")
+            _default_only(ib.GetAttr(), f"{ib_name} offsets", path, target)
+            _default_only(ib.GetNormalOffsetsAttr(), f"{ib_name} normalOffsets", path, target)
             ib_offsets = _array(ib.GetOffsets(), np.float64, 3, ib_name, path, target)
             _check_finite(ib_offsets, ib_name, path, target)
             if len(ib_offsets) != len(offsets):

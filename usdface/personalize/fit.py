@@ -294,9 +294,19 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
         system = FitSystem(W, reg_weights, reg)
     if system.basis is None:
         G = system.G                                                                 # [n,K,F]
-        if G is None:
-            G = np.linalg.solve(system.A, np.broadcast_to(W.T, system.L.shape + (len(W),)))
-        return np.einsum("nkf,nkf,fn->nk", G, G, energy)
+        if G is not None:
+            return np.einsum("nkf,nkf,fn->nk", G, G, energy)
+        # without the fit's gain (a take of thousands of frames: [n,K,F] would be gigabytes) the same sum per
+        # vertex as diag(A_v^-1 (W^T diag(E_v) W) A_v^-1), over blocks of vertices of at most ~64 MB
+        n, K = system.L.shape
+        out = np.empty((n, K))
+        step = max(1, int(64e6 // (8 * max(len(W), 1) * max(K, 1))))
+        for lo in range(0, n, step):
+            v = slice(lo, min(lo + step, n))
+            C = (W.T[None] * energy[:, v].T[:, None, :]) @ W                            # [c,K,K]
+            inv = np.linalg.inv(system.A[v])
+            out[v] = np.einsum("cjk,ckl,cjl->cj", inv, C, inv)
+        return out
     P, s, _ = system.basis
     B, inv_l, M = system.B, system.inv_l, system.M
     n, r = len(inv_l), len(s)

@@ -760,14 +760,22 @@ def _run_isolated(worker, todo, jobs, advance):
 def run_item_quiet(worker: Callable[[dict], object], item: dict) -> dict:
     """:func:`run_item` on a Dask worker: no progress lines of its own (the batch reports per item; the
     workers' step lines would interleave in its log) and one BLAS thread (the cluster's processes are the
-    parallelism), as the local pool's :func:`init_worker` sets up."""
+    parallelism), as the local pool's :func:`init_worker` sets up.
+
+    Dask cannot interrupt a running task: a batch stopped (Ctrl-C, SIGTERM, killed) cancels its futures, or
+    its client's disconnection releases them, but the task ran on and wrote its output after the batch had
+    exited. The item runs under :func:`usdface.cancel.stop_when` with the worker's own record of the task
+    (:func:`usdface.cancel.dask_task_cancelled`): once no client wants it, it stops at its next step and
+    publishes nothing."""
     from .. import progress
+    from ..cancel import dask_task_cancelled, stop_when
     from ..personalize.api import one_blas_thread
 
     # process-wide and not restored: a Dask worker's threads run items side by side, and one finishing must
     # not turn progress back on under another (an in-process cluster's parent: run_batch restores its own)
     progress.set_enabled(False)
-    with one_blas_thread():        # shared by the worker's threads (each its own limit: one left it at 1)
+    # one BLAS thread shared by the worker's threads (each its own limit: one left it at 1)
+    with one_blas_thread(), stop_when(dask_task_cancelled()):
         return run_item(worker, item)
 
 

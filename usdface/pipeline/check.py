@@ -28,6 +28,9 @@ Rules (id: what it checks; severity of a violation):
 * ``Provenance``: a usdface layer's ``usdface:provenance:*`` attributes are present and consistent (version,
   command, one sha256 digest per input: error) and every input that is still reachable has the recorded digest
   (warning: the input changed after the layer was written).
+* ``Readable`` (runs last): the avatar reader every command uses accepts the rig and finds one face mesh in
+  it (error): a stage holding several characters' face rigs (a shot) is refused as personalize refuses it,
+  unless ``face_mesh=`` names one.
 * ``AvatarMatch``: a usdface layer still fits the avatar it sublayers: the prims it overrides exist, each
   personalized mesh's blend shapes are those its ``skel:blendShapeTargets`` list, its point count and faces
   are those recorded at writing, the avatar's units and up axis are those the layer repeats (error: the
@@ -138,13 +141,16 @@ def _prim_in(text: str) -> str:
     return hit.group(1) if hit else "/"
 
 
-def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None) -> list[Issue]:
+def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = None,
+          face_mesh: str | None = None) -> list[Issue]:
     """Run the face-rig rules on an open ``Usd.Stage``; returns the issues sorted errors first.
 
     ``rules`` selects rule ids from :data:`RULES` (default: all; a string is one name or comma-separated
     names); ``name_map`` ({studio channel: ARKit name}, :func:`usdface.io.name_map.read_name_map`; default:
     the one a usdface layer records, :func:`usdface.io.usd_rig.recorded_name_map`) is used by the name
-    rules. Never modifies the stage.
+    rules; ``face_mesh`` (personalize's ``--face-mesh``: a prim name or path) is the face mesh ``Readable``
+    checks a stage with several characters' face rigs by (without it such a stage is an error, as personalize
+    refuses it). Never modifies the stage.
     """
     if name_map is None:
         from ..io.usd_rig import recorded_name_map
@@ -167,7 +173,11 @@ def check(stage, rules: Iterable[str] | None = None, name_map: dict | None = Non
         if rule_id == "Readable" and any(i.severity == ERROR and i.rule in READER_RULES for i in issues):
             continue  # the reader would only repeat a finding already made
         fn = RULES[rule_id][0]
-        issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map else fn(stage))
+        if rule_id == "Readable" and face_mesh:
+            issues.extend(fn(stage, name_map=name_map, face_mesh=face_mesh))
+        else:
+            issues.extend(fn(stage, name_map=name_map) if rule_id in _NAME_MAP_RULES and name_map
+                          else fn(stage))
     return sort_issues(issues)
 
 
@@ -269,13 +279,29 @@ def _skel_binding(stage) -> Iterable[Issue]:
                         "bind a Skeleton with rel skel:skeleton on the mesh or its SkelRoot")
 
 
+def _sampled_only(attr) -> bool:
+    from ..io.usd_rig import time_sampled_only
+
+    return time_sampled_only(attr)
+
+
+def _sampled_issue(rule: str, path: str, what: str) -> Issue:
+    """The error of a blend-shape attribute authored only as time samples (a cache export): UsdSkel reads it
+    at the default time, where it is missing. Worded as the reader's refusal (``usd_rig._default_only``)."""
+    return Issue(ERROR, rule, path, f"{what} are time-sampled only, with no default value: UsdSkel reads the "
+                 "default (they are uniform)", f"author {what} as a default value, not time samples (a cache "
+                 "export's setting: export the rest pose or mark the attribute static)")
+
+
 @_rule("BlendShapeArrays", "skel:blendShapes and skel:blendShapeTargets same length; targets are BlendShapes")
 def _blend_shape_arrays(stage) -> Iterable[Issue]:
     UsdSkel = _skel()
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
         path = _path(prim)
-        if len(names) != len(targets):
+        if _sampled_only(prim.GetAttribute("skel:blendShapes")):
+            yield _sampled_issue("BlendShapeArrays", path, "skel:blendShapes")
+        elif len(names) != len(targets):
             yield Issue(ERROR, "BlendShapeArrays", path,
                         f"skel:blendShapes has {len(names)} names but skel:blendShapeTargets "
                         f"{len(targets)} targets",
@@ -306,6 +332,16 @@ def _shape_targets(stage):
 def _blend_shape_offsets(stage) -> Iterable[Issue]:
     for prim, n, shape in _shape_targets(stage):
         path = _path(shape.GetPrim())
+        sampled = [what for attr, what in ((shape.GetPointIndicesAttr(), "pointIndices"),
+                                           (shape.GetOffsetsAttr(), "offsets"),
+                                           (shape.GetNormalOffsetsAttr(), "normalOffsets"))
+                   + tuple((ib.GetAttr(), f"{ib.GetAttr().GetName()} offsets")
+                           for ib in shape.GetInbetweens())
+                   if _sampled_only(attr)]
+        if sampled:     # read at the default time they are missing: every count below would mislead
+            for what in sampled:
+                yield _sampled_issue("BlendShapeOffsets", path, what)
+            continue
         offsets = shape.GetOffsetsAttr().Get()
         indices_attr = shape.GetPointIndicesAttr()
         indices = indices_attr.Get() if indices_attr.HasAuthoredValue() else None
@@ -314,10 +350,6 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
             if normals is not None and len(normals):
                 yield Issue(WARNING, "BlendShapeOffsets", path, "BlendShape has normalOffsets only; it moves "
                             "no points", "author offsets unless a shading-only shape is intended")
-            elif shape.GetOffsetsAttr().GetNumTimeSamples():
-                yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape offsets are time-sampled only (no "
-                            "default value); UsdSkel reads the default", "author the offsets as a default "
-                            "value (uniform vector3f[] offsets = [...])")
             else:
                 yield Issue(ERROR, "BlendShapeOffsets", path, "BlendShape has no offsets",
                             "author offsets (one per pointIndices entry, or one per mesh point)")
@@ -349,7 +381,7 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
 def _point_indices(stage) -> Iterable[Issue]:
     for prim, n, shape in _shape_targets(stage):
         attr = shape.GetPointIndicesAttr()
-        if not attr.HasAuthoredValue():
+        if not attr.HasAuthoredValue() or attr.Get() is None:   # time-sampled only: BlendShapeOffsets tells
             continue
         idx = np.asarray(attr.Get(), dtype=np.int64)
         path = _path(shape.GetPrim())
@@ -689,16 +721,19 @@ def _avatar_match(stage) -> Iterable[Issue]:
 
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
-                   "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, ...)")
-def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
+                   "here too: NaN/inf points, bad faces, meshes without faces, bad units or up axis, several "
+                   "characters' face rigs without face_mesh, ...)")
+def _readable(stage, name_map: dict | None = None, face_mesh: str | None = None) -> Iterable[Issue]:
     """Run the reader every usdface command uses (``usdface.io.usd_rig``) on the stage; a refusal is an
-    error, so a publish validator never passes a rig the tools then reject."""
+    error, so a publish validator never passes a rig the tools then reject. A stage with several characters'
+    face rigs (a shot) is refused as personalize refuses it (:func:`usdface.motion.refuse_several_characters`)
+    unless ``face_mesh`` names one (then that name must name one mesh, as personalize's ``--face-mesh``)."""
     from ..arkit import ARKIT_NAMES
     from ..errors import UsdFaceError
     from ..io.file_kind import Kind, file_kind, is_weights_take
     from ..io.take import has_frame_weights
     from ..io.usd_rig import _read_avatar_stage
-    from ..motion import most_moving_mesh
+    from ..motion import meshes_by_motion, refuse_several_characters
 
     layer = stage.GetRootLayer()
     found = file_kind(layer.realPath, stage=stage)      # its root layer: a capture's or take's record
@@ -756,11 +791,20 @@ def _readable(stage, name_map: dict | None = None) -> Iterable[Issue]:
         # there (check passes such a shot when it is not instanced), and a crowd instancing the published
         # layer shows each instance's variant
         flattened = (layer.customLayerData or {}).get("usdfaceFlatten") or {}
+        ranked = meshes_by_motion(avatar.meshes, ARKIT_NAMES)
         if (not any(_brings_personalization(stage, m) for m in avatar.meshes)
                 and flattened.get("variant") != "personalized"):
             refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer")
             refuse_unwritable_shapes(avatar, None, "the personalized layer")
-        if most_moving_mesh(avatar.meshes, ARKIT_NAMES) is None:
+            # a shot with two characters: personalize refuses it unless --face-mesh names one (a layer
+            # personalizing one of them, checked after it is written, is not refused: it is not an input)
+            if face_mesh:
+                from ..io.layers import avatar_mesh
+
+                avatar_mesh(avatar, face_mesh, "with blend shapes in the avatar (--face-mesh)")
+            else:
+                refuse_several_characters(avatar, ranked)
+        if not ranked:
             # on the mesh with blend shapes (it said "/"), as personalize's refusal names it
             where = avatar.meshes[0].source.prim if avatar.meshes and avatar.meshes[0].source else "/"
             if any(n in ARKIT_NAMES for m in avatar.meshes for n in m.names):   # named, moving nothing

@@ -168,9 +168,12 @@ class ValidateUsdFaceRig(_pyblish.InstancePlugin):
     def process(self, instance):
         from ..api import check
 
-        # the studio's control names read as ARKit's, as personalize will (usdfaceOptions' name_map)
-        name_map = (instance.data.get("usdfaceOptions") or {}).get("name_map")
-        issues = check(instance.data["avatar"], pixar=self.pixar, name_map=name_map)
+        # the studio's control names read as ARKit's, as personalize will (usdfaceOptions' name_map); the
+        # face mesh personalize will take (a shot with two characters fails here without one, not in the
+        # extractor)
+        options = instance.data.get("usdfaceOptions") or {}
+        name_map, face_mesh = options.get("name_map"), options.get("face_mesh")
+        issues = check(instance.data["avatar"], pixar=self.pixar, name_map=name_map, face_mesh=face_mesh)
         instance.data["usdfaceCheck"] = [i.to_dict() for i in issues]
         if _default_personalize():
             # an already personalized avatar (a usdface layer, its flattened export) passes the rules; it

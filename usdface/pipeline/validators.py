@@ -140,10 +140,11 @@ def merge_issues(ours: list[Issue], pixar: list[Issue]) -> list[Issue]:
     return sort_issues(kept)
 
 
-def validate_stage(stage, pixar: bool = True, rules=None, name_map=None) -> list[Issue]:
+def validate_stage(stage, pixar: bool = True, rules=None, name_map=None, face_mesh=None) -> list[Issue]:
     """Face-rig rules (and, with ``pixar=True``, OpenUSD's own validators) on an open stage, merged;
-    ``name_map``: the studio's {channel: ARKit name} map (:func:`usdface.io.name_map.read_name_map`)."""
-    ours = check(stage, rules, name_map=name_map)
+    ``name_map``: the studio's {channel: ARKit name} map (:func:`usdface.io.name_map.read_name_map`);
+    ``face_mesh``: personalize's ``--face-mesh`` (a stage with several characters names the one meant)."""
+    ours = check(stage, rules, name_map=name_map, face_mesh=face_mesh)
     return merge_issues(ours, run_pixar_validators(stage)) if pixar else ours
 
 
@@ -156,9 +157,9 @@ def open_stage(path):
     return open_usd_stage(path, "file", "pass an existing .usd/.usda/.usdc file")
 
 
-def validate_file(path, pixar: bool = True, rules=None, name_map=None) -> list[Issue]:
+def validate_file(path, pixar: bool = True, rules=None, name_map=None, face_mesh=None) -> list[Issue]:
     """Open ``path`` and run :func:`validate_stage`. The file is never modified."""
-    return validate_stage(open_stage(path), pixar=pixar, rules=rules, name_map=name_map)
+    return validate_stage(open_stage(path), pixar=pixar, rules=rules, name_map=name_map, face_mesh=face_mesh)
 
 
 class FaceRigRuleChecker:

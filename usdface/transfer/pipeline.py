@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
-from ..motion import meshes_by_motion, most_moving_mesh, moving_vertices, peak_motion
+from ..motion import meshes_by_motion, moving_vertices, peak_motion, refuse_several_characters
 from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
@@ -130,7 +130,9 @@ class PersonalizeResult:
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
     export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
-    best = most_moving_mesh(avatar.meshes, names)
+    ranked = meshes_by_motion(avatar.meshes, names)
+    best = ranked[0][0] if ranked else None
+    refuse_several_characters(avatar, ranked)
     if best is None:
         # say which channels the avatar has and what a name map did not match (a refusal that named no
         # prim and no channel left a TD with a Blender export's 'Key_1' guessing)
