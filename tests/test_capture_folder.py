@@ -182,13 +182,15 @@ def test_a_captures_subfolder_is_named_with_its_capture(folder):
         check_capture_path(folder / "train")
 
 
-def test_weights_outside_unit_interval_clipped_with_warning(folder):
+@pytest.mark.parametrize("blink, expect", [(-0.2, [0.0, 1.0, 0.0]), (0.2, [0.2, 1.0, 0.0])])
+def test_weights_outside_unit_interval_clipped_with_warning(folder, blink, expect):
+    """A weight above 1 is clipped, with a negative one beside it or alone."""
     js = folder / "train" / "001_jawOpen.json"
-    js.write_text('{"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": -0.2}}')
+    js.write_text(json.dumps({"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": blink}}))
     with pytest.warns(UserWarning, match="clipped"):
         got = read_capture_folder(folder)
     row = got.frames.weights[got.frames.label.index("001_jawOpen")]
-    np.testing.assert_array_equal(row, [0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(row, expect)
     assert got.metadata["weights_clipped"] == ["001_jawOpen.json"]
 
 
@@ -364,16 +366,6 @@ def test_a_capture_behind_a_folder_one_may_not_enter_is_not_called_missing(tmp_p
     assert "not found" not in str(err.value) and "permission" in err.value.fix
     with pytest.raises(InputFileError, match="capture not found"):
         check_capture_path(tmp_path / "absent.usda")
-
-
-def test_a_weight_above_one_alone_is_clipped_too(folder):
-    js = folder / "train" / "001_jawOpen.json"
-    js.write_text('{"blendShapes": {"jawOpen": 1.3, "eyeBlinkLeft": 0.2}}')
-    with pytest.warns(UserWarning, match="clipped"):
-        got = read_capture_folder(folder)
-    row = got.frames.weights[got.frames.label.index("001_jawOpen")]
-    np.testing.assert_array_equal(row, [0.2, 1.0, 0.0])
-    assert got.metadata["weights_clipped"] == ["001_jawOpen.json"]
 
 
 def test_extra_and_absent_weights_are_recorded_per_frame(folder):
