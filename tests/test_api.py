@@ -47,15 +47,17 @@ def test_documented_submodules_after_import_usdface_only():
 def test_cli_check_goes_through_the_api(monkeypatch, tmp_path, capsys):
     seen = []
 
-    def fake_check(path, pixar=True, rules=None, name_map=None):
-        seen.append((str(path), pixar, rules, name_map))
+    def fake_check(path, pixar=True, rules=None, name_map=None, face_mesh=None):
+        seen.append((str(path), pixar, rules, name_map, face_mesh))
         return []
 
     monkeypatch.setattr(api, "check", fake_check)
     assert main(["check", str(tmp_path / "x.usda"), "--no-pixar", "--rules", "ArkitNames"]) == 0
     assert main(["check", str(tmp_path / "x.usda"), "--name-map", "m.csv"]) == 0
-    assert seen == [(str(tmp_path / "x.usda"), False, ["ArkitNames"], None),
-                    (str(tmp_path / "x.usda"), True, None, "m.csv")]
+    assert main(["check", str(tmp_path / "x.usda"), "--face-mesh", "/Shot/Hero/Head"]) == 0
+    assert seen == [(str(tmp_path / "x.usda"), False, ["ArkitNames"], None, None),
+                    (str(tmp_path / "x.usda"), True, None, "m.csv", None),
+                    (str(tmp_path / "x.usda"), True, None, None, "/Shot/Hero/Head")]
 
 
 def test_check_accepts_a_stage():

@@ -174,6 +174,7 @@ NOT_PASTED = {
     "--evaluate --takes": "the sweep needs the ICT layout's avatar and takes 1-2 min (test_landmarks_bench)",
     "usdface batch": "run by test_batch_with_manifest; --scheduler needs a cluster",
     "avatar_blender.usdc": "the bench's Blender export: test_bench_blender_export (../shared)",
+    "shot.usda": "a shot with two characters: tests/test_shot_characters.py",
 }
 
 
