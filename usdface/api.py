@@ -1697,8 +1697,7 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
         warn(text)
     done: dict[str, Path] = {}
     with outputs_all_or_nothing(done, gltf=gltf, obj_dir=obj_dir, flatten=flatten):
-        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, force,
-                        morph_normals=morph_normals)
+        _export_outputs(layer_path, done, gltf, obj_dir, flatten, variant, skin, morph_normals, force)
     return done
 
 
@@ -1748,18 +1747,18 @@ def _refuse_export_input(layer_path, **outputs) -> None:
 
 
 def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                    force: bool, *, morph_normals: bool = True) -> None:
+                    morph_normals: bool, force: bool) -> None:
     """:func:`export_avatar`'s writes, each output recorded in ``done`` once it is complete; each step named
     on stderr while it runs (a 225k-vertex head's glTF export ran 30 CPU-s without a word)."""
     from .progress import steps
 
     count = 2 * bool(gltf or obj_dir) + bool(gltf and obj_dir) + bool(flatten)
     with steps("export", count) as p:
-        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, force, morph_normals)
+        _export_steps(p, layer_path, done, gltf, obj_dir, flatten, variant, skin, morph_normals, force)
 
 
 def _export_steps(p, layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,
-                  force: bool, morph_normals: bool = True) -> None:
+                  morph_normals: bool, force: bool) -> None:
     from .io.atomic import replace_dir_atomically
     from .io.flatten import exported_variant, flatten_variant, read_avatar_variant
     from .io.gltf import write_gltf

@@ -7,7 +7,8 @@ dense offsets costs 0.1-0.2 s, and the pipeline used to take it a dozen times.
 * :func:`peak_motion` - the largest motion of each vertex over the shapes, ``[n]``;
 * :func:`moving_vertices` - the vertices some shape moves, with a tolerance: float noise of a DCC export
   (offsets re-stored in float32 around head-sized coordinates) is not motion;
-* :func:`most_moving_mesh` - the mesh whose named shapes move the most vertices (an avatar's face mesh);
+* :func:`meshes_by_motion` - the meshes by how many vertices their named shapes move, the most first (the
+  first is an avatar's face mesh);
 * :func:`refuse_several_characters` - refuse a stage holding several characters' face rigs (a shot), where
   no one face mesh is to be picked (personalize, check, landmarks, render);
 * :func:`shape_changes` - how far one set of shapes moves each vertex from another (RMS over shapes), and
@@ -72,14 +73,6 @@ def meshes_by_motion(meshes, names) -> list:
         if moving:
             counted.append((rig, moving))
     return sorted(counted, key=lambda pair: -pair[1])                  # stable: ties in order
-
-
-def most_moving_mesh(meshes, names):
-    """The rig of ``meshes`` whose shapes named in ``names`` move the most vertices (the first of
-    :func:`meshes_by_motion`), or None when none of them moves: the face mesh of an avatar, for the ARKit
-    names."""
-    ranked = meshes_by_motion(meshes, names)
-    return ranked[0][0] if ranked else None
 
 
 #: What the refusal of several characters tells personalize's caller to do besides naming the face mesh.

@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from ..cancel import checkpoint
 from ..errors import InputFileError, OutputExistsError, OutputNotWritableError, UsdFaceError, warn, write_fix
 
 __all__ = ["check_output_file", "check_output_dir", "check_not_input", "check_writable",
@@ -57,8 +58,6 @@ def publish(tmp, path, force: bool = False) -> Path:
     Work whose host has stopped it (:func:`usdface.cancel.stop_when`: a Dask batch stopped) raises
     :class:`~usdface.cancel.Cancelled` here, before the output appears; the caller's clean-up removes
     ``tmp``."""
-    from ..cancel import checkpoint
-
     checkpoint()
     tmp, path = Path(tmp), Path(path)
     if force:
@@ -564,8 +563,6 @@ def replace_dir_atomically(path, force: bool = False) -> Iterator[Path]:
             if exc.path is not None:
                 exc.path = _naming_output(OSError(0, "", exc.path), tmp, dest).filename
             raise
-        from ..cancel import checkpoint
-
         checkpoint()      # work its host stopped meanwhile publishes nothing (the folder is removed below)
         if dest.is_dir() and dest.resolve() == Path.cwd().resolve():
             # the current folder: a rename would swap it for a new folder under the caller (and the user's

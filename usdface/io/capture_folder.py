@@ -52,20 +52,16 @@ WEIGHT_SCALE_LIMIT = 2.0
 
 def refuse_weights_scale(weights, names, path, *, frame=lambda f: f"frame {f}", prim=None,
                          fix_where: str = "the weights") -> None:
-    """:func:`refuse_weight_scale` of ``weights[F, K]`` (columns ``names``), naming the largest weight's frame
-    (``frame(f)``: the row's label) and shape."""
+    """Refuse weights ``weights[F, K]`` (columns ``names``) on another scale than ARKit's 0..1 (see
+    :data:`WEIGHT_SCALE_LIMIT`), naming the largest weight, its frame (``frame(f)``: the row's label;
+    ``None``: the file is the frame) and shape: until stop 45 a capture written in percent was clipped to 1
+    with a warning and fitted (train RMSE 2.0 mm against the same capture's 0.2)."""
     weights = np.asarray(weights)
-    if weights.size and weights.max() > WEIGHT_SCALE_LIMIT:
-        f, k = np.unravel_index(int(np.argmax(weights)), weights.shape)
-        refuse_weight_scale(float(weights[f, k]), f"{frame(int(f))}, {names[k]}", path, fix_where, prim=prim)
-
-
-def refuse_weight_scale(largest: float, where, path, fix_where: str = "the weights", prim=None) -> None:
-    """Refuse weights on another scale than ARKit's 0..1 (see :data:`WEIGHT_SCALE_LIMIT`), naming the
-    largest and where it is: until stop 45 a capture written in percent was clipped to 1 with a warning and
-    fitted (train RMSE 2.0 mm against the same capture's 0.2)."""
-    if not largest > WEIGHT_SCALE_LIMIT:
+    if not (weights.size and weights.max() > WEIGHT_SCALE_LIMIT):
         return
+    f, k = np.unravel_index(int(np.argmax(weights)), weights.shape)
+    largest = float(weights[f, k])
+    where = names[k] if frame is None else f"{frame(int(f))}, {names[k]}"
     percent = largest <= 100 * WEIGHT_SCALE_LIMIT
     raise CaptureError(f"weight {largest:.4g} ({where}): ARKit weights run from 0 to 1 (a phone overshoots "
                        f"by a few per cent), so these are on another scale"
@@ -119,7 +115,7 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what, re
     """Refuse a capture mesh whose topology is not ``what``'s (the reference at ``ref_path``); when either
     file ends in the middle of a line, the one cut off is named (a neutral.obj cut inside its last face read,
     and the first mesh compared with it was blamed)."""
-    from .mesh_io import cut_off, ends_mid_line
+    from .mesh_io import cut_off_error, ends_mid_line
 
     error = None
     if points.shape != ref_points.shape:
@@ -132,9 +128,8 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what, re
         if ref_path is not None and ends_mid_line(ref_path) and not ends_mid_line(path):
             other = Path(path).relative_to(Path(ref_path).parent) if Path(path).is_relative_to(
                 Path(ref_path).parent) else Path(path).name
-            raise cut_off(GeometryError(f"its faces differ from {other}'s",
-                                        path=ref_path), b"x", ref_path)
-        raise cut_off(error, b"x" if ends_mid_line(path) else b"\n", path)
+            raise cut_off_error(GeometryError(f"its faces differ from {other}'s", path=ref_path), ref_path)
+        raise cut_off_error(error, path) if ends_mid_line(path) else error
 
 
 def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureError:
@@ -227,10 +222,8 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
                 else:
                     extra.setdefault(name, {})[len(points)] = value
             absent.update(n for n in names if n not in w)
-            if row.size and row.max() > WEIGHT_SCALE_LIMIT:
-                k = int(np.argmax(row))
-                refuse_weight_scale(float(row[k]), names[k], obj.with_suffix(".json"),
-                                    "every frame's weights")
+            refuse_weights_scale(row[None], names, obj.with_suffix(".json"), frame=None,
+                                 fix_where="every frame's weights")
             if row.min() < 0.0 or row.max() > 1.0:
                 clipped.append(obj.with_suffix(".json").name)
                 row = np.clip(row, 0.0, 1.0)

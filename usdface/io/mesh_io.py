@@ -187,6 +187,12 @@ def cut_off(error, data: bytes, path) -> Exception:
     a file that only needed copying again."""
     if not data or data.endswith((b"\n", b"\r")):
         return error
+    return cut_off_error(error, path)
+
+
+def cut_off_error(error, path) -> InputFileError:
+    """``error`` (a :class:`~usdface.errors.UsdFaceError`) said of ``path``, a file known to be cut off
+    (:func:`cut_off`, :func:`ends_mid_line`)."""
     return InputFileError("the file ends in the middle of a line, so it was probably cut off (an interrupted "
                           f"copy or write, a full disk): {error.message}", path=path,
                           fix="copy or export the file again")

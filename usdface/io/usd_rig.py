@@ -190,8 +190,13 @@ def _default_only(attr, what, path, prim, error=None):
         raise (error or RigError)(
             f"{what} are time-sampled only ({attr.GetNumTimeSamples()} sample(s)), with no default value: "
             f"{TIME_SAMPLED_READS.get(what, 'UsdSkel reads the default (they are uniform)')}",
-            path=path, prim=prim, fix=f"author {what} as a default value, not time samples (a cache "
-            "export's setting: export the rest pose or mark the attribute static)")
+            path=path, prim=prim, fix=time_sampled_fix(what))
+
+
+def time_sampled_fix(what: str) -> str:
+    """The fix for ``what`` authored only as time samples (the reader's refusal and ``check``'s error)."""
+    return (f"author {what} as a default value, not time samples (a cache export's setting: export the rest "
+            "pose or mark the attribute static)")
 
 
 TIME_SAMPLED_READS = {"faceVertexCounts": "usdface reads the rest mesh's topology at the default time",

@@ -279,27 +279,25 @@ def _skel_binding(stage) -> Iterable[Issue]:
                         "bind a Skeleton with rel skel:skeleton on the mesh or its SkelRoot")
 
 
-def _sampled_only(attr) -> bool:
-    from ..io.usd_rig import time_sampled_only
-
-    return time_sampled_only(attr)
-
-
 def _sampled_issue(rule: str, path: str, what: str) -> Issue:
-    """The error of a blend-shape attribute authored only as time samples (a cache export): UsdSkel reads it
-    at the default time, where it is missing. Worded as the reader's refusal (``usd_rig._default_only``)."""
+    """The error of a blend-shape attribute authored only as time samples (a cache export,
+    :func:`usdface.io.usd_rig.time_sampled_only`): UsdSkel reads it at the default time, where it is
+    missing. Worded as the reader's refusal (``usd_rig._default_only``)."""
+    from ..io.usd_rig import time_sampled_fix
+
     return Issue(ERROR, rule, path, f"{what} are time-sampled only, with no default value: UsdSkel reads the "
-                 "default (they are uniform)", f"author {what} as a default value, not time samples (a cache "
-                 "export's setting: export the rest pose or mark the attribute static)")
+                 "default (they are uniform)", time_sampled_fix(what))
 
 
 @_rule("BlendShapeArrays", "skel:blendShapes and skel:blendShapeTargets same length; targets are BlendShapes")
 def _blend_shape_arrays(stage) -> Iterable[Issue]:
+    from ..io.usd_rig import time_sampled_only
+
     UsdSkel = _skel()
     for prim in _blend_shape_meshes(stage):
         names, targets = _channels(prim)
         path = _path(prim)
-        if _sampled_only(prim.GetAttribute("skel:blendShapes")):
+        if time_sampled_only(prim.GetAttribute("skel:blendShapes")):
             yield _sampled_issue("BlendShapeArrays", path, "skel:blendShapes")
         elif len(names) != len(targets):
             yield Issue(ERROR, "BlendShapeArrays", path,
@@ -330,6 +328,8 @@ def _shape_targets(stage):
 
 @_rule("BlendShapeOffsets", "offsets, normalOffsets, inbetweens match pointIndices (or point count); finite")
 def _blend_shape_offsets(stage) -> Iterable[Issue]:
+    from ..io.usd_rig import time_sampled_only
+
     for prim, n, shape in _shape_targets(stage):
         path = _path(shape.GetPrim())
         sampled = [what for attr, what in ((shape.GetPointIndicesAttr(), "pointIndices"),
@@ -337,7 +337,7 @@ def _blend_shape_offsets(stage) -> Iterable[Issue]:
                                            (shape.GetNormalOffsetsAttr(), "normalOffsets"))
                    + tuple((ib.GetAttr(), f"{ib.GetAttr().GetName()} offsets")
                            for ib in shape.GetInbetweens())
-                   if _sampled_only(attr)]
+                   if time_sampled_only(attr)]
         if sampled:     # read at the default time they are missing: every count below would mislead
             for what in sampled:
                 yield _sampled_issue("BlendShapeOffsets", path, what)

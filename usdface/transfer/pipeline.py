@@ -129,7 +129,7 @@ class PersonalizeResult:
 
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
-    export is not motion (:func:`usdface.motion.most_moving_mesh`)."""
+    export is not motion (the first of :func:`usdface.motion.meshes_by_motion`)."""
     ranked = meshes_by_motion(avatar.meshes, names)
     best = ranked[0][0] if ranked else None
     refuse_several_characters(avatar, ranked)
