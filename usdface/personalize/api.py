@@ -24,8 +24,10 @@ from .fit import (
     data_share,
     estimate_variance,
     fit_blendshapes,
+    frame_error_variance,
     james_stein,
     regularization_weights,
+    take_frame_noise,
     weight_leak_variance,
 )
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched, weight_noise
@@ -697,6 +699,14 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                 erring = np.broadcast_to(omega[:, None], w_cur.shape)
                 # (no gain kept: the K x K systems' per-vertex form, not the [n,K,F] gain of a long take)
                 info["weight_leak"] = jitter ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas, erring)
+            # and no leave-one-frame-out reliability (a frame's neighbours predict it), but hundreds of
+            # frames for ~50 shapes: the residual measures the scans' noise, and its sandwich the error it
+            # leaves in each shape (a shape performed once, a small one, was its noise: trust 0.95)
+            noise = take_frame_noise(res, w_cur, omega)
+            if np.isfinite(noise):
+                info["frame_noise_mm"] = float(np.sqrt(noise) * 1e3)
+                energy = np.broadcast_to(3.0 * noise * omega[:, None], (len(omega), len(capture.neutral)))
+                info["frame_variance"] = frame_error_variance(w_cur, D_fit, lam, energy)
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,

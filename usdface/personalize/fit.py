@@ -280,16 +280,27 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     :func:`fit_blendshapes`; ``deltas[K,n,3]`` the fitted shapes, metres). To first order a weight error
     ``e_fk`` is the frame error ``-e_fk B_k`` (the frame explained with the wrong weight), so frame ``f``'s
     noise variance at vertex ``v`` is ``E_fv = sum_k free_fk |B_kv|^2`` and each shape's error variance is
-    ``sum_f (A_v^-1 W^T)_jf^2 E_fv`` (the ridge's sandwich with per-frame noise, :func:`estimate_variance`
-    with one noise level for every frame). A shape seen in one frame, beside a large shape whose weight
-    errs there, takes that error whole: the leak that makes it worse than the prior.
+    ``sum_f (A_v^-1 W^T)_jf^2 E_fv`` (:func:`frame_error_variance`). A shape seen in one frame, beside a
+    large shape whose weight errs there, takes that error whole: the leak that makes it worse than the prior.
 
     ``system``: the fit's :class:`FitSystem` (of these ``weights``, ``reg_weights`` and ``reg``; built with
     ``gain`` and used by the fit, it holds the gain already): its matrices and factorization are reused
     instead of being built again."""
-    W = np.asarray(weights, dtype=np.float64)
     D = np.asarray(deltas, dtype=np.float64)
     energy = np.asarray(free, dtype=np.float64) @ np.einsum("knc,knc->kn", D, D)        # [F,n]
+    return frame_error_variance(weights, reg_weights, reg, energy, system=system)
+
+
+def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float, energy: np.ndarray, *,
+                         system: FitSystem | None = None) -> np.ndarray:
+    """``[n,K]`` (m^2): the variance each fitted shape of eqs. (1)+(2) takes at each vertex from independent
+    errors in the frames, frame ``f``'s at vertex ``v`` of variance ``energy[F,n]`` (m^2, summed over the
+    vertex's coordinates): ``sum_f (A_v^-1 W^T)_jf^2 E_fv``, the ridge's sandwich with per-frame noise
+    (``weights[F,K]``, ``reg_weights[K,n]``, ``reg`` as in :func:`fit_blendshapes`). The weights' leak
+    (:func:`weight_leak_variance`) and a take's scan noise (:func:`take_frame_noise`) are two such energies.
+    ``system`` as in :func:`weight_leak_variance`."""
+    W = np.asarray(weights, dtype=np.float64)
+    energy = np.asarray(energy, dtype=np.float64)
     if system is None or not system.holds(W, reg_weights, reg):
         system = FitSystem(W, reg_weights, reg)
     if system.basis is None:
@@ -321,6 +332,25 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     C = inv_m @ (energy.T @ pp).reshape(n, r, r) @ inv_m
     bb = (B[:, :, None] * B[:, None, :]).reshape(len(B), r * r)                       # [K, r^2]
     return inv_l ** 2 * (C.reshape(n, r * r) @ bb.T)
+
+
+def take_frame_noise(residuals: np.ndarray, weights: np.ndarray, omega: np.ndarray) -> float:
+    """The scan noise of a take read whole, m^2 per coordinate, from the frame-weighted fit's residuals
+    ``residuals[F,n,3]`` (metres; frames and ``weights[F,K]`` scaled by ``sqrt(omega[F])``,
+    :func:`usdface.personalize.takefit.weighted_frames`): ``sum |r|^2 / (3 n sum_f omega_f (1 - h_f))``,
+    ``h_f = w_f^T (W^T W)^+ w_f`` the unregularized hat diagonal (at least the ridge's: the fit's own degrees
+    of freedom, counted at most). A take has hundreds of frames for ~50 shapes, so its residual is a sound
+    measure of what the shapes do not explain: scan noise, and what the weights' noise and the model's
+    misfit add (counted again beside :func:`weight_leak_variance`: on the cautious side)."""
+    r = np.asarray(residuals, dtype=np.float64)
+    W = np.asarray(weights, dtype=np.float64)
+    om = np.asarray(omega, dtype=np.float64)
+    h = np.einsum("fk,kl,fl->f", W, np.linalg.pinv(W.T @ W), W) if W.size else np.zeros(len(r))
+    dof = float(np.sum(om * np.clip(1.0 - h, 0.0, 1.0)))
+    n = r.shape[1] if r.ndim == 3 else 0
+    if dof <= 0 or n == 0:
+        return float("nan")
+    return float(np.einsum("fnc,fnc->", r, r) / (3.0 * n * dof))
 
 
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:

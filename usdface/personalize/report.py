@@ -123,7 +123,7 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
 
 
 #: Per-frame and per-vertex arrays of a fit's ``info`` that a report leaves out (the rig holds the shapes).
-_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity", "weight_leak")
+_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity", "weight_leak", "frame_variance")
 
 
 def report_info(info: dict) -> dict:

@@ -151,9 +151,13 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
                 # and no more than the personalization stands above what the weights' noise makes of it
                 trust = np.minimum(trust, sensitivity_trust(fitted, prior, np.asarray(sens)[cap_idx]))
             elif CONFIDENCE == "noise" and leak is not None:
-                # a take read whole: no reliability (its leave-one-frame-out error keeps the frame's
-                # neighbours) and no re-estimation, but the leak of the noise its weights show
-                trust = np.minimum(trust, leak_trust(fitted, prior, np.asarray(leak)[:, cap_idx]))
+                # a take read whole: no leave-one-frame-out reliability (a frame's neighbours predict it)
+                # and no re-estimation, but the leak of the noise its weights show and the error its scans'
+                # noise leaves (measured from the residual of its hundreds of frames): one error budget
+                variance = np.asarray(leak)[:, cap_idx]
+                if fit.info.get("frame_variance") is not None:
+                    variance = variance + np.asarray(fit.info["frame_variance"])[:, cap_idx]
+                trust = np.minimum(trust, leak_trust(fitted, prior, variance))
         return trust * ramp, info, ramp < 0.5
     loo = (fit.info.get("crossval") or {}).get("loo_rmse_best_mm")
     if loo is None:
