@@ -237,8 +237,9 @@ def test_a_whole_takes_trust_counts_the_leak_of_the_weights_noise_it_shows():
 
 def test_a_takes_scan_noise_is_read_back_from_its_residual_and_its_error_in_each_shape_is_the_sandwich():
     """A frame-weighted fit (36 frames, 12 shapes, weights as the phone said them exactly):
-    :func:`take_frame_noise` reads the scans' noise (std 0.3 mm per coordinate) from the weighted residual
-    within 5 %, the fit's degrees of freedom counted (without them it reads ~18 % low on these frames); and
+    :func:`take_frame_noise` reads the scans' noise (std 0.3 mm per coordinate) from the weighted
+    least-squares residual within 5 %, its degrees of freedom counted (the fit's residual over the frames
+    reads ~18 % low on these frames), and 0 from noiseless frames; and
     :func:`frame_error_variance` with that noise, each frame's counted with its weight, is the spread of the
     fitted shapes over 300 draws of the scan noise, within 10 % (summed over the vertices)."""
     from usdface.personalize.fit import frame_error_variance, take_frame_noise
@@ -256,11 +257,13 @@ def test_a_takes_scan_noise_is_read_back_from_its_residual_and_its_error_in_each
         return P, W, fit_blendshapes(neutral, P, W, prior, reg_weights, reg)
 
     P, W, fitted = fit(rng.normal(size=clean.shape) * sigma)
-    res = P - neutral[None] - np.einsum("fk,knc->fnc", W, fitted)
-    est = take_frame_noise(res, W, omega)
+    est = take_frame_noise(P - neutral[None], W, omega)
     assert abs(np.sqrt(est) - sigma) < 0.05 * sigma, np.sqrt(est)
+    res = P - neutral[None] - np.einsum("fk,knc->fnc", W, fitted)
     naive = np.sum(res * res) / (3 * res.shape[1] * omega.sum())
     assert np.sqrt(naive) < 0.9 * sigma                          # the premise: the dof matter here
+    P0, W0 = weighted_frames(neutral, clean, weights, omega)                   # noiseless frames
+    assert take_frame_noise(P0 - neutral[None], W0, omega) < 1e-6 * sigma ** 2
     energy = np.broadcast_to(3 * sigma ** 2 * omega[:, None], (len(omega), len(neutral)))
     formula = frame_error_variance(W, reg_weights, reg, energy)                            # [n,K]
     draws = np.array([fit(rng.normal(size=clean.shape) * sigma)[2] for _ in range(300)])

@@ -700,9 +700,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                 # (no gain kept: the K x K systems' per-vertex form, not the [n,K,F] gain of a long take)
                 info["weight_leak"] = jitter ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas, erring)
             # and no leave-one-frame-out reliability (a frame's neighbours predict it), but hundreds of
-            # frames for ~50 shapes: the residual measures the scans' noise, and its sandwich the error it
-            # leaves in each shape (a shape performed once, a small one, was its noise: trust 0.95)
-            noise = take_frame_noise(res, w_cur, omega)
+            # frames for ~50 shapes: their least-squares residual measures the scans' noise, and its
+            # sandwich the error it leaves in each shape (a small shape performed once was its noise)
+            noise = take_frame_noise(points - capture.neutral[None], w_cur, omega)
             if np.isfinite(noise):
                 info["frame_noise_mm"] = float(np.sqrt(noise) * 1e3)
                 energy = np.broadcast_to(3.0 * noise * omega[:, None], (len(omega), len(capture.neutral)))

@@ -334,23 +334,31 @@ def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     return inv_l ** 2 * (C.reshape(n, r * r) @ bb.T)
 
 
-def take_frame_noise(residuals: np.ndarray, weights: np.ndarray, omega: np.ndarray) -> float:
-    """The scan noise of a take read whole, m^2 per coordinate, from the frame-weighted fit's residuals
-    ``residuals[F,n,3]`` (metres; frames and ``weights[F,K]`` scaled by ``sqrt(omega[F])``,
-    :func:`usdface.personalize.takefit.weighted_frames`): ``sum |r|^2 / (3 n sum_f omega_f (1 - h_f))``,
-    ``h_f = w_f^T (W^T W)^+ w_f`` the unregularized hat diagonal (at least the ridge's: the fit's own degrees
-    of freedom, counted at most). A take has hundreds of frames for ~50 shapes, so its residual is a sound
-    measure of what the shapes do not explain: scan noise, and what the weights' noise and the model's
-    misfit add (counted again beside :func:`weight_leak_variance`: on the cautious side)."""
-    r = np.asarray(residuals, dtype=np.float64)
+def take_frame_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray) -> float:
+    """The scan noise of a take read whole, m^2 per coordinate, from its frames' ``offsets[F,n,3]`` (metres,
+    frame minus neutral) and ``weights[F,K]``, both scaled by ``sqrt(omega[F])`` as the frame-weighted fit
+    has them (:func:`usdface.personalize.takefit.weighted_frames`): the least-squares residual of the
+    offsets on the weights (no prior, no regularization: the ridge's shrink towards the prior would count as
+    noise, by 50 % on a take thinned to 281 frames), ``|R|^2 - |U^T R|^2`` with ``U`` the weights' left
+    singular vectors, over its expectation ``3 n sum_f omega_f (1 - h_f)`` per unit variance (``h_f =
+    |U_f|^2`` the leverage; the residual of a projection, so exact). A take has hundreds of frames for ~50
+    shapes, so this measures what the shapes do not explain: the scans' noise, and what the weights' noise and
+    the model's misfit add (the first counted again beside :func:`weight_leak_variance`: on the cautious
+    side). NaN without a degree of freedom left."""
     W = np.asarray(weights, dtype=np.float64)
+    F = len(W)
+    R = np.asarray(offsets, dtype=np.float64).reshape(F, -1)
     om = np.asarray(omega, dtype=np.float64)
-    h = np.einsum("fk,kl,fl->f", W, np.linalg.pinv(W.T @ W), W) if W.size else np.zeros(len(r))
-    dof = float(np.sum(om * np.clip(1.0 - h, 0.0, 1.0)))
-    n = r.shape[1] if r.ndim == 3 else 0
-    if dof <= 0 or n == 0:
+    if not F or not R.shape[1]:
         return float("nan")
-    return float(np.einsum("fnc,fnc->", r, r) / (3.0 * n * dof))
+    U, s, _ = np.linalg.svd(W, full_matrices=False)
+    U = U[:, s > (s[0] if len(s) else 0.0) * max(W.shape) * np.finfo(float).eps] if len(s) else U[:, :0]
+    explained = U.T @ R                                                                   # [r, 3n]
+    rss = float(np.einsum("fi,fi->", R, R) - np.einsum("ri,ri->", explained, explained))
+    dof = float(np.sum(om * np.clip(1.0 - np.einsum("fr,fr->f", U, U), 0.0, 1.0)))
+    if dof <= 0:
+        return float("nan")
+    return max(rss, 0.0) / (R.shape[1] * dof)
 
 
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
