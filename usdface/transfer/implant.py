@@ -238,27 +238,27 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
-    ``face_weight[m] > 0``). The rotation + scale field
-    (:func:`usdface.transfer.motion_field.rotation_scale`) is measured where the face weight is above 0,
-    averaged with motion weights times the face weight over ``rings`` edge rings, or over as many as span
-    ``smoothing`` metres (the resolution the field was measured at: the same patch of skin whatever the
-    mesh's resolution), extended by a screened harmonic solve (``length`` m, one factorization for every
-    shape) that takes it as known where the weight is 1 and holds it at the rim's vertices of weight
-    ``0 < w < 1`` by a data term of stiffness ``w / (1 - w) / smoothing^2`` per unit area
+    ``face_weight[m] > 0``). The rotation + scale field (:func:`usdface.transfer.motion_field.rotation_scale`)
+    is measured where the face weight is above 0, averaged with motion weights times the face weight over
+    ``rings`` edge rings, or, given ``smoothing`` metres (the resolution the field was measured at), over as
+    many as span it, at least one (the same patch of skin whatever the mesh's resolution; ``rings`` is then
+    not used), extended by a screened harmonic solve (``length`` m, one factorization for every shape) that
+    takes it as known where the weight is 1 and holds it at the rim's vertices of weight ``0 < w < 1`` by a
+    data term of stiffness ``w / (1 - w) / smoothing^2`` per unit area
     (:func:`usdface.transfer.motion_field.data_stiffness`: the known value in the limit ``w -> 1``, so the
-    field is continuous in the weight), and applied to the generic motion; the result ramps from ``person``
-    to the field over ``band`` metres inside the face region (:func:`seam_ramp`, which still starts at the
-    first vertex of weight below 1). With ``shrink`` (default), what
-    is carried beyond the face (not into the sockets behind its holes) is the field times its reliability
+    field is continuous in the weight), and applied to the generic motion; the result ramps from ``person`` to
+    the field over ``band`` metres inside the face region (:func:`seam_ramp`, which still starts at the first
+    vertex of weight below 1). With ``shrink`` (default), what is carried beyond the face (not into the
+    sockets behind its holes) is the field times its reliability
     (:func:`usdface.transfer.motion_field.reliability`, the shape's noise estimated on the face by
     :func:`usdface.transfer.motion_field.field_noise`), ramped in over the same ``band`` inside the face, so
     the field stays one continuous function and the join absorbs the difference. Returns ``(result[J,m,3],
     field)``: the field (:class:`FieldOnMesh`, ``.rings`` the smoothing used) kept at the vertices nearest to
     ``keep_at[q,3]`` (the other meshes' points; None: every vertex of the moving part), so a production head
-    does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]``
-    array to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is
-    written): one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same).
-    ``peak[m]``: :func:`usdface.motion.peak_motion` of ``generic`` when the caller has it.
+    does not hold ``J x m x 9`` values for a few thousand teeth vertices. ``out``: a float64 ``[J,m,3]`` array
+    to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is written):
+    one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same). ``peak[m]``:
+    :func:`usdface.motion.peak_motion` of ``generic`` when the caller has it.
 
     On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
     solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
@@ -293,7 +293,10 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
 
         edge = mean_edge_length(x, sub_tri)
         if smoothing:
-            rings = max(rings, int(round(smoothing / edge)))
+            # the rings that span the capture's resolution, at least the one ring: a floor of ``rings`` (2)
+            # averaged a mesh about as coarse as the capture over two capture edges, and at the face's rim,
+            # where the average is one-sided, pulled the field carried beyond in from twice as deep inside
+            rings = max(1, int(round(smoothing / edge)))
         # the rim's vertices of weight in (0,1) hold their measured field with a stiffness that grows without
         # bound as the weight -> 1 (the known set's Dirichlet value in the limit): continuous in the weight
         soft = (s > 0.0) & ~known
