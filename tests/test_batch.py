@@ -370,9 +370,21 @@ def test_manifest_options_are_checked_before_any_item_runs(tmp_path, column, val
     assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
 
 
+def _interactive_signals() -> None:
+    """In the child: SIGINT and SIGTERM at their defaults, as a terminal's foreground job has them. A suite
+    started as a background job or under nohup (as CI starts it) passes SIGINT on ignored, and Python then
+    installs no KeyboardInterrupt handler: the child ignored the test's Ctrl-C and never ended (stop 45's
+    Dask SIGINT test in CI; tests/test_signals.py does the same)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _spawn_batch(manifest: Path, worker: str, cwd: Path, *where, **popen):
-    """``usdface batch MANIFEST -j 2 -q --worker test_batch:WORKER`` (or ``where``: other options, e.g.
-    ``--scheduler ADDRESS``) in a child process (signals reach it alone)."""
+    """``usdface batch MANIFEST -j 2 -q --worker test_batch:WORKER`` (a ``WORKER`` with a colon: as given;
+    ``where``: other options, e.g. ``--scheduler ADDRESS``) in a child process (signals reach it alone),
+    with SIGINT and SIGTERM at their defaults whatever the suite was started with."""
     import subprocess
     import sys
 
@@ -380,9 +392,11 @@ def _spawn_batch(manifest: Path, worker: str, cwd: Path, *where, **popen):
     where = list(where) or ["-j", "2"]
     code = ("import sys\nfrom usdface.cli import main\n"
             f"sys.argv = ['usdface', 'batch', {str(manifest)!r}, *{where!r}, '-q', '--worker', "
-            f"'{Path(__file__).stem}:{worker}']\nsys.exit(main())\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)])}
-    return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, env=env, **popen)
+            f"{worker if ':' in worker else Path(__file__).stem + ':' + worker!r}]\nsys.exit(main())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)]),
+           **popen.pop("env", {})}
+    return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, env=env,
+                            **{"preexec_fn": _interactive_signals, **popen})
 
 
 def slow_worker(item: dict) -> None:
@@ -509,10 +523,10 @@ def test_a_batch_stopped_mid_write_leaves_no_temporary_files(tmp_path, kill):
 
 
 @contextlib.contextmanager
-def _dask_item_running(tmp_path, worker: str = "gated_worker"):
+def _dask_item_running(tmp_path, worker: str = "gated_worker", **popen):
     """``(cluster, batch process, output folder)`` once the one item of a ``usdface batch --scheduler``
     child process (``gated_worker``: it waits for ``a.usda.go`` before writing) runs on a one-worker TCP
-    ``LocalCluster`` (reachable from another process)."""
+    ``LocalCluster`` (reachable from another process). ``popen``: more of the child's ``Popen`` options."""
     import time
 
     distributed = pytest.importorskip("distributed")
@@ -521,7 +535,7 @@ def _dask_item_running(tmp_path, worker: str = "gated_worker"):
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
                                   dashboard_address=None) as cluster:
         proc = _spawn_batch(manifest, worker, tmp_path, "--scheduler", cluster.scheduler_address,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
         deadline = time.monotonic() + 120
         while not (out / "a.usda.started").exists() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -575,11 +589,113 @@ def test_a_killed_dask_batch_writes_nothing_afterwards(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["a.usda.ended", "a.usda.go", "a.usda.started"]
 
 
+def _session_processes(sid: int) -> list[int]:
+    """The processes of session ``sid`` still running (Linux ``/proc``; zombies not counted)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] not in ("Z", "X"):
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="Linux /proc")
+def test_ctrl_c_stops_a_dask_batch_and_its_running_item(tmp_path):
+    """The user's Ctrl-C on ``usdface batch --scheduler`` while an item runs on the cluster: the batch exits
+    130 ('interrupted', the report names the item Interrupted), leaves no process of its own behind, and the
+    item, told by the scheduler that its future is cancelled, publishes nothing. Stop 45's CI run of this
+    case never ended: CI starts the suite as a background job, so the child inherited SIGINT ignored and
+    Python installed no KeyboardInterrupt handler (the test's Ctrl-C never arrived; not the load, nor Dask).
+    The children now get SIGINT at its default (``_interactive_signals``), as a terminal's job has it."""
+    import signal
+    import time
+
+    with _dask_item_running(tmp_path, "gated_publishing_worker", start_new_session=True) as (cluster, proc,
+                                                                                             out):
+        start = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)          # a hang guard, not a measure of speed
+        took = time.monotonic() - start
+        _wait_until_not_wanted(next(iter(cluster.workers.values())))
+        _let_the_item_end(out)
+        assert (out / "a.usda.ended").exists()
+    assert proc.returncode == 130, err
+    assert err.strip().endswith("usdface: interrupted") and "Traceback" not in err, err
+    assert took < 60, took
+    assert not _session_processes(proc.pid)               # nothing of the batch's left running
+    assert sorted(p.name for p in out.iterdir()) == ["a.usda.ended", "a.usda.go", "a.usda.started"]
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [(r["status"], r["error_type"]) for r in report["items"]] == [(FAILED, "Interrupted")]
+
+
+#: A ``--worker`` module whose import leaves a thread the interpreter joins at exit, for ever: what a
+#: library's worker thread that does not end (an executor's, a client's) does to a stopped program.
+_STUCK_AT_EXIT = """
+import threading
+threading.Thread(target=threading.Event().wait, name="never ends").start()
+from test_batch import slow_worker
+"""
+
+
+def _stopped_batch_stuck_at_exit(tmp_path, stop_seconds, *signals):
+    """``usdface batch`` (in its process, ``-j 1``) of ``slow_worker`` items, its worker module
+    (:data:`_STUCK_AT_EXIT`) leaving a thread joined at exit for ever; ``signals`` sent 1 s apart once the
+    first item runs. The finished process: (return code, stderr, seconds from the first signal)."""
+    import signal
+    import time
+
+    (tmp_path / "stuck_at_exit.py").write_text(_STUCK_AT_EXIT)
+    manifest = _manifest(tmp_path, ["a", "b"])
+    proc = _spawn_batch(manifest, "stuck_at_exit:slow_worker", tmp_path, "-j", "1", stdout=subprocess.PIPE,
+                        stderr=subprocess.PIPE, text=True, env={"USDFACE_STOP_SECONDS": str(stop_seconds)})
+    deadline = time.monotonic() + 120
+    while not list((tmp_path / "out").glob("*.started")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    start = time.monotonic()
+    try:
+        for n, sig in enumerate(signals):
+            if n:
+                time.sleep(1)
+            proc.send_signal(getattr(signal, sig))
+        _, err = proc.communicate(timeout=120)          # a hang guard
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=60)
+    return proc.returncode, err, time.monotonic() - start
+
+
+def test_a_stop_ends_the_program_within_its_bound_whatever_it_waits_for(tmp_path):
+    """A stopped program that waited at exit for a thread that never ends (the interpreter joins every
+    non-daemon thread, without a timeout) never ended: Ctrl-C did nothing more. The stop now has its bound
+    (``USDFACE_STOP_SECONDS``, 30 s by default): past it the program exits with the stop's status, saying
+    so; the report of what finished was written before, and no output appeared."""
+    code, err, took = _stopped_batch_stuck_at_exit(tmp_path, 3, "SIGINT")
+    assert code == 130, err
+    assert "usdface: interrupted: still stopping after 3 s" in err, err
+    assert 3 <= took < 60, took
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert {r["error_type"] for r in report["items"]} == {"Interrupted"}
+    assert not list((tmp_path / "out").glob("*.usda"))
+
+
+def test_a_second_ctrl_c_ends_a_stop_at_once(tmp_path):
+    """Ctrl-C pressed again while the first one's stop waits (here, at exit, for a thread that never ends)
+    ends the program at once (exit status 130), long before the stop's bound; it raised a second
+    KeyboardInterrupt inside the interpreter's shutdown (a traceback)."""
+    code, err, took = _stopped_batch_stuck_at_exit(tmp_path, 600, "SIGINT", "SIGINT")
+    assert code == 130, err
+    assert "usdface: interrupted: interrupted again" in err and "Traceback" not in err, err
+    assert took < 60, took
+
+
 def test_a_cancelled_dask_item_writes_nothing(tmp_path):
     """What a batch stopped with Ctrl-C or SIGTERM does to its running items (``_run_dask``: the futures not
     done are cancelled): the item stops at its next safe point and publishes nothing. In this process (a
-    Client on an in-process cluster), without a signal: a CLI batch given SIGINT under CI's load once did
-    not exit within 120 s (stop 45, not understood; the kill above covers the CLI)."""
+    Client on an in-process cluster), without a signal (the CLI's Ctrl-C: the test above)."""
     import time
 
     distributed = pytest.importorskip("distributed")

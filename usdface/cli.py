@@ -217,8 +217,74 @@ class Terminated(KeyboardInterrupt):
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGXCPU")
 
 
+#: How long the ``usdface`` program may take to end once a stop signal has reached it (Ctrl-C, SIGTERM, ...):
+#: the stop's clean-up (a write's temporary file removed, a batch's report written, its pool or its Dask
+#: client closed) takes well under a second, and a Dask client's close is given 10 s
+#: (:data:`usdface.pipeline.batch.DASK_CLOSE_SECONDS`) and its thread 10 s more. Counted from when the
+#: program takes the signal (Python runs its handler once the native call under way returns). Past it the
+#: program exits at once with the stop's status, whatever it was waiting for (a thread joined at exit, a
+#: cluster that does not answer). ``USDFACE_STOP_SECONDS`` sets another bound (a farm's grace before its
+#: SIGKILL).
+STOP_SECONDS = 30.0
+
+
+class _Stop:
+    """The ``usdface`` program's stop under way: the first stop signal starts a watchdog that ends the process
+    :data:`STOP_SECONDS` later if it has not ended by then; a second Ctrl-C after a Ctrl-C ends it at once.
+
+    Nothing in the stop path may wait without end: a Ctrl-C or a farm's SIGTERM ends the run within a bound
+    the user can count on. ``os._exit``, not ``sys.exit``: the exit itself may be what waits (the
+    interpreter joins every non-daemon thread at exit, without a timeout). Outputs are published only
+    complete (temporary file, then rename), so an exit forced here leaves no half-written output; a write
+    under way at that moment may leave its hidden temporary file."""
+
+    def __init__(self) -> None:
+        self.status: int | None = None          # the exit status of the stop under way
+        self.signum: int | None = None
+
+    def begin(self, signum: int) -> None:
+        if self.status is not None:
+            return
+        self.signum, self.status = signum, 128 + signum
+        try:
+            seconds = float(os.environ.get("USDFACE_STOP_SECONDS", STOP_SECONDS))
+        except ValueError:
+            seconds = STOP_SECONDS
+        threading.Thread(target=self._watch, args=(max(seconds, 0.0),), name="usdface stop watchdog",
+                         daemon=True).start()
+
+    def _watch(self, seconds: float) -> None:
+        import time
+
+        time.sleep(seconds)
+        self.exit_now(f"still stopping after {seconds:g} s; exiting without waiting any longer")
+
+    def exit_now(self, why: str) -> None:
+        """End the process at once with the stop's status, saying why on stderr."""
+        status = self.status or 130
+        what = "interrupted" if status == 130 else "terminated"
+        with contextlib.suppress(OSError):
+            os.write(2, f"usdface: {what}: {why}\n".encode())
+        os._exit(status)
+
+
+_STOP = _Stop()
+
+
 def _on_sigterm(signum, frame):
+    _STOP.begin(signum)
     raise Terminated(signum)
+
+
+def _on_sigint(signum, frame):
+    """Ctrl-C: ``KeyboardInterrupt``, as Python's own handler; a second Ctrl-C while the first one's stop
+    runs (the user insists: a clean-up that waits on something) ends the process at once."""
+    import signal
+
+    if _STOP.signum == signal.SIGINT:
+        _STOP.exit_now("interrupted again; exiting without waiting for the clean-up")
+    _STOP.begin(signum)
+    raise KeyboardInterrupt
 
 
 def main(argv=None) -> int:
@@ -241,6 +307,10 @@ def main(argv=None) -> int:
         signum = getattr(signal, name, None)
         if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:  # started ignored: stays
             previous[signum] = signal.signal(signum, _on_sigterm)
+    # Ctrl-C as Python's own handler has it (KeyboardInterrupt), with the stop's bound; a SIGINT ignored at
+    # start (a background job of a script, nohup) stays ignored, and one a launcher set is its own
+    if program and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
     stopped = False
     try:
         return _main(argv, program=program)
@@ -254,8 +324,9 @@ def main(argv=None) -> int:
         print("usdface: interrupted", file=sys.stderr)
         return 130
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        if _STOP.status is None:      # stopped, the program is ending: a second Ctrl-C still ends it now
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
         if argv is None:
             _forget_interrupts_handled_inside_exec()
             if stopped:

@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import json
@@ -828,11 +829,27 @@ def _run_dask(worker, todo, scheduler, advance):
             yield res
             advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
     except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the cluster
-        client.cancel([f for f in futures if not f.done()])
+        with contextlib.suppress(Exception):   # a client closing or broken: its close releases them
+            client.cancel([f for f in futures if not f.done()])
         raise
     finally:
         if own:
-            client.close()
+            _close_client(client)
+
+
+#: How long a batch waits for its own Dask client to close (distributed's default: twice the connection
+#: timeout, 40 s, then 10 s for its thread). The scheduler releases a closed or disconnected client's
+#: futures either way (a running item then stops at its next safe point).
+DASK_CLOSE_SECONDS = 10.0
+
+
+def _close_client(client) -> None:
+    """Close the batch's own Dask client within :data:`DASK_CLOSE_SECONDS`. A close that fails or times out
+    (a scheduler that does not answer) is let go: it must not turn a finished batch into an error, nor a
+    stopped one (Ctrl-C) into "timed out"; the process's exit drops the connection, and the scheduler then
+    releases the client's futures."""
+    with contextlib.suppress(Exception):
+        client.close(timeout=DASK_CLOSE_SECONDS)
 
 
 def default_jobs() -> int:
