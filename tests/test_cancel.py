@@ -89,3 +89,28 @@ def test_personalize_stopped_at_a_step_writes_nothing(tmp_path):
 
 def test_outside_a_dask_task_there_is_nothing_to_watch():
     assert cancel.dask_task_cancelled() is None
+
+
+def test_a_dask_task_is_unwanted_once_its_worker_cancels_releases_or_forgets_it(monkeypatch):
+    """The test :func:`cancel.dask_task_cancelled` gives a Dask task reads the worker's record of the task
+    each time it is asked (the state changes while the task runs): a task executing is wanted; cancelled (its
+    future cancelled), released (its client gone) or forgotten, or no longer in the worker's record at all,
+    it is not. A stand-in worker (no cluster: the end-to-end runs are in ``test_batch.py``)."""
+    from types import SimpleNamespace
+
+    distributed = pytest.importorskip("distributed")
+    task = SimpleNamespace(state="executing")
+    tasks = {"usdface-item-1": task}
+    worker = SimpleNamespace(get_current_task=lambda: "usdface-item-1", state=SimpleNamespace(tasks=tasks))
+    monkeypatch.setattr(distributed, "get_worker", lambda: worker)
+    test = cancel.dask_task_cancelled()
+    assert test is not None and test() is False
+    for state in ("cancelled", "released", "forgotten"):
+        task.state = state
+        assert test() is True, state
+    task.state = "executing"
+    assert test() is False
+    tasks["usdface-item-1"] = SimpleNamespace(state="released")     # the record replaced: read anew
+    assert test() is True
+    del tasks["usdface-item-1"]
+    assert test() is True

@@ -261,3 +261,81 @@ def test_the_weak_shape_ramp_reads_the_effective_weight_against_the_phones_noise
     two, _ = weak_ramp(capture, np.array([0.1 ** 2 + 0.2 ** 2]), [0])
     t = (np.sqrt(0.05) / WEIGHT_NOISE - 4.0) / 6.0
     np.testing.assert_allclose(two, [t * t * (3 - 2 * t)], rtol=1e-12)
+
+
+def test_a_whole_takes_weak_shape_ramp_reads_the_unique_weight_against_the_takes_own_noise():
+    """A take read whole (3 frames or more): the effective weight is the shape's weight beyond what the
+    other shapes' explain and the noise's share (``unique_excitation`` at the take's measured noise), the
+    ramp's ends 4 and 10 times *that* noise, and the noise no less than TAKE_NOISE_MIN (a take of computed
+    weights, without jitter: a ramp over 0 would divide by 0). The given excitation is not read."""
+    from usdface.personalize.takefit import unique_excitation, weight_noise
+    from usdface.transfer.trust import TAKE_NOISE_MIN, weak_ramp
+
+    class Train(list):
+        weights = None
+
+    def take(weights):
+        train = Train(range(len(weights)))
+        train.weights = np.asarray(weights, dtype=np.float64)
+        return type("Capture", (), {"whole_take": True, "train": train})()
+
+    def smoothstep(x, lo, hi):
+        t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+        return t * t * (3 - 2 * t)
+
+    rng = np.random.default_rng(3)
+    f = np.arange(60)
+    W = np.c_[0.5 + 0.5 * np.sin(f / 5.0), 0.3 + 0.3 * np.cos(f / 7.0), 0.07 * np.sin(f / 2.3)]
+    W = W + 0.04 * rng.standard_normal(W.shape)                 # jitter: 0.04, the phone's 0.01 x 4
+    noise = weight_noise(W)
+    assert 0.03 < noise < 0.05                                  # measured 0.044
+    ramp, info = weak_ramp(take(W), np.full(3, 1e6), [2, 0])
+    expected = smoothstep(unique_excitation(W, noise)[[2, 0]], 4 * noise, 10 * noise)
+    np.testing.assert_allclose(ramp, expected, rtol=1e-12)
+    assert 0.0 < ramp[0] < 1.0 and ramp[1] == 1.0              # 0.07 under 0.04 noise: partly shown
+    assert info["weight_noise"] == round(noise, 5)
+    smooth = np.c_[np.linspace(0, 1, 3), np.full(3, 0.002)]      # three frames, no jitter
+    ramp, info = weak_ramp(take(smooth), np.zeros(2), [0, 1])
+    assert info["weight_noise"] == TAKE_NOISE_MIN
+    expected = smoothstep(unique_excitation(smooth, TAKE_NOISE_MIN), 4e-3, 1e-2)
+    np.testing.assert_allclose(ramp, expected, rtol=1e-12)
+    assert ramp[0] == 1.0
+
+
+def _trust_of(info, *, whole_take=False):
+    """``shape_trust`` of two shapes fitted as 1 mm on each of 4 vertices (prior 0), each shown at weight 1
+    (the weak-shape ramp 1), with the fit's ``info`` (arrays over the capture's two shapes) added."""
+    from types import SimpleNamespace
+
+    from usdface.transfer.trust import shape_trust
+
+    names = ["jawOpen", "tongueOut"]
+    weights = np.eye(2)
+    deltas = np.full((2, 4, 3), 1e-3 / np.sqrt(3))               # |D| = 1 mm at each vertex
+    capture = SimpleNamespace(names=names, whole_take=whole_take,
+                              train=type("Train", (list,), {"weights": weights})([0, 1]))
+    fit = SimpleNamespace(rig=SimpleNamespace(deltas=deltas),
+                          info={"train_weights": weights, "prior_deltas": np.zeros_like(deltas), **info})
+    # the avatar's rig names them in the other order: its shapes [1, 0] are the capture's [0, 1]
+    trust, report, weak = shape_trust(fit, capture, SimpleNamespace(names=names[::-1]), [1, 0], None, None)
+    assert report == {} and not weak.any()
+    return trust
+
+
+def test_the_trust_of_each_path_is_the_smaller_of_its_factors():
+    """``shape_trust`` per path, on constructed factors (the personalization's power 1 mm^2 a vertex):
+    measured frames' and weights' noise: the reliability as the person's scale (factor / data share: 0.3 /
+    0.5), capped by the weights' budget (here none); no reliability, a re-estimation: the data share capped
+    by the sensitivity's James-Stein factor (1 - 0.75); a take read whole: the share capped by the factor of
+    the leak and the scans' error together (1 - (0.25 + 0.25))."""
+    z = np.zeros((4, 2))
+    noise = _trust_of({"shape_confidence": [0.2, 0.2], "shape_reliability": [0.3, 0.9],
+                       "data_share": [0.5, 0.6], "weight_leak": z, "weight_sensitivity": np.zeros((2, 4, 3))})
+    np.testing.assert_allclose(noise, [0.6, 1.0], rtol=1e-12)
+    sens = np.zeros((2, 4, 3))
+    sens[0, :, 0] = np.sqrt(0.75) * 1e-3
+    fit = _trust_of({"shape_confidence": [0.5, 0.5], "weight_sensitivity": sens})
+    np.testing.assert_allclose(fit, [0.25, 0.5], rtol=1e-12)
+    quarter = np.c_[np.full(4, 0.25e-6), np.zeros(4)]
+    take = _trust_of({"shape_confidence": [0.9, 0.9], "weight_leak": quarter, "frame_variance": quarter})
+    np.testing.assert_allclose(take, [0.5, 0.9], rtol=1e-12)

@@ -114,6 +114,18 @@ def test_leak_trust_is_the_positive_part_james_stein_factor():
     np.testing.assert_allclose(leak_trust(d, prior, leak), [1.0, 0.75, 0.0], atol=1e-12)
 
 
+def test_the_trust_counts_the_vertices_moving_over_a_tenth_of_the_peak_displacement():
+    """"Moving": more than ``moving`` (0.1) of the peak *displacement*, so of its square 0.01. Vertices at
+    1, 0.2 and 0.05 of the peak: the first two are counted (power (1 + 0.04) / 2 of the peak's square), the
+    third, and the leak there, not."""
+    prior = np.zeros((1, 3, 3))
+    d = np.zeros((1, 3, 3))
+    d[0, :, 0] = [1e-3, 0.2e-3, 0.05e-3]
+    leak = np.array([[0.2e-6], [0.0], [1.0]])
+    expected = 1.0 - (0.2e-6 / 2) / ((1e-6 + 0.04e-6) / 2)
+    np.testing.assert_allclose(leak_trust(d, prior, leak), [expected], rtol=1e-12)
+
+
 def _score(tmp_path, name, **sample):
     """(the fit, the Head's per-shape face RMSE minus generic's [mm], its names) of a generated case."""
     from usdface.io import read_capture
@@ -314,3 +326,23 @@ def test_a_whole_takes_trust_counts_its_scans_noise():
     assert np.linalg.norm(fitted - true[1]) > np.linalg.norm(true[1] - avatar[1])
     assert share[1] > 0.5 and trust[1] < 0.5 * share[1]
     assert trust[0] > 0.9
+
+
+def test_a_takes_scan_noise_counts_only_the_shapes_the_weights_show_and_needs_a_degree_of_freedom():
+    """:func:`take_frame_noise` by hand. Weights of rank 1 (the second shape never shown): the first frame
+    is the shown shape's alone (leverage 1), the other two are residual: their offsets' energy over ``3 n``
+    coordinates times their weights (2 + 0.5). As many independent frames as shapes: no degree of freedom
+    is left, NaN. Offsets the weights explain exactly: 0."""
+    from usdface.personalize.fit import take_frame_noise
+
+    W = np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    omega = np.array([1.0, 2.0, 0.5])
+    R = np.zeros((3, 4, 3))
+    R[0] = 5e-3                                     # the shown shape: explained
+    R[1, 0, 0], R[2, 3, 1] = 3e-4, -2e-4            # unexplained
+    expected = (3e-4 ** 2 + 2e-4 ** 2) / (3 * 4 * (2.0 + 0.5))
+    np.testing.assert_allclose(take_frame_noise(R, W, omega), expected, rtol=1e-12)
+    assert np.isnan(take_frame_noise(R[:2], np.eye(2), omega[:2]))
+    exact = take_frame_noise(R[:1] * np.array([1.0, 2.0, -1.0])[:, None, None],
+                             np.array([[1.0], [2.0], [-1.0]]), omega)
+    assert 0.0 <= exact < 1e-24                     # a rounding's negative energy is none
