@@ -339,3 +339,18 @@ def test_the_trust_of_each_path_is_the_smaller_of_its_factors():
     quarter = np.c_[np.full(4, 0.25e-6), np.zeros(4)]
     take = _trust_of({"shape_confidence": [0.9, 0.9], "weight_leak": quarter, "frame_variance": quarter})
     np.testing.assert_allclose(take, [0.5, 0.9], rtol=1e-12)
+
+
+def test_a_given_rig_is_trusted_whole():
+    """No training frames (a rig given as it is) or no fit: every shape's trust is 1, none weak."""
+    from types import SimpleNamespace
+
+    from usdface.transfer.trust import shape_trust
+
+    rig = SimpleNamespace(names=["jawOpen", "tongueOut"])
+    fit = SimpleNamespace(info={}, rig=None)
+    for capture, f in ((SimpleNamespace(train=[], names=rig.names), fit),
+                       (SimpleNamespace(train=[0], names=rig.names), None)):
+        trust, report, weak = shape_trust(f, capture, rig, [0, 1], None, None)
+        np.testing.assert_array_equal(trust, [1.0, 1.0])
+        assert report == {} and not weak.any()

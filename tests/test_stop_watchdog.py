@@ -38,7 +38,8 @@ def exits(monkeypatch):
     rec = _Exits()
     monkeypatch.setattr(os, "_exit", rec)
     monkeypatch.delenv("USDFACE_STOP_SECONDS", raising=False)
-    return rec
+    yield rec
+    _settle()              # pass or fail, no watchdog outlives the recorder (it would end pytest)
 
 
 def _watchdogs():
