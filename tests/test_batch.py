@@ -721,6 +721,77 @@ def test_a_cancelled_dask_item_writes_nothing(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["a.usda.ended", "a.usda.go", "a.usda.started"]
 
 
+def test_a_batch_stopped_on_a_callers_dask_client_cancels_its_items_and_leaves_the_client_open(tmp_path):
+    """A batch run on the caller's own ``distributed.Client`` (``run_batch(scheduler=client)``: a host
+    application's) and stopped while an item runs: the client is the caller's and stays open, so nothing
+    releases the item but the batch's cancel of its futures not done; the item then stops at its next safe
+    point and publishes nothing. The client is left open for its owner."""
+    distributed = pytest.importorskip("distributed")
+    from usdface.pipeline.batch import _run_dask
+
+    out = tmp_path / "out"
+    out.mkdir()
+    todo = [{"index": i, "avatar": str(tmp_path / f"{n}.usdc"), "capture": str(tmp_path / f"{n}_capture"),
+             "output": str(out / f"{n}.usda"), "options": {}} for i, n in enumerate(["a", "b"], 1)]
+
+    def worker(item):
+        return (gated_publishing_worker if item["index"] == 1 else stub_worker)(item)
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        try:
+            results = _run_dask(worker, todo, client, lambda *a, **k: None)
+            assert next(results)["index"] == 2                  # b done; a runs, gated
+            results.close()                                     # the batch stopped (Ctrl-C) at this point
+            _wait_until_not_wanted(next(iter(cluster.workers.values())))
+        finally:
+            _let_the_item_end(out)
+        assert client.status == "running"
+        assert client.submit(sum, [1, 2]).result(timeout=60) == 3
+    assert sorted(p.name for p in out.iterdir()) == ["a.usda.ended", "a.usda.go", "a.usda.started", "b.usda"]
+
+
+def progress_mode_worker(item: dict) -> None:
+    """Writes ``output``: the progress mode the item runs under."""
+    from usdface import progress
+
+    Path(item["output"]).write_text(progress.mode())
+
+
+def test_a_dask_item_runs_without_progress_lines_of_its_own(tmp_path, monkeypatch):
+    """``run_item_quiet`` (a Dask task): the workers' step lines would interleave in the batch's log, so the
+    item runs with progress off (process-wide: it is not turned back on)."""
+    from usdface import progress
+    from usdface.pipeline.batch import run_item_quiet
+
+    monkeypatch.setenv("USDFACE_PROGRESS", "plain")
+    monkeypatch.setattr(progress, "_ENABLED", True)
+    item = {"index": 1, "avatar": "a.usdc", "capture": "a_capture", "output": str(tmp_path / "a.txt"),
+            "options": {}}
+    assert run_item_quiet(progress_mode_worker, item)["status"] == DONE
+    assert (tmp_path / "a.txt").read_text() == "off"
+
+
+def test_a_dask_client_that_cannot_close_is_let_go():
+    """The batch's own client closed within DASK_CLOSE_SECONDS; a close that fails or times out (a scheduler
+    that does not answer) does not turn the batch's end into an error."""
+    from usdface.pipeline import batch
+
+    asked = []
+
+    class Client:
+        def __init__(self, error):
+            self.error = error
+
+        def close(self, timeout=None):
+            asked.append(timeout)
+            raise self.error
+
+    for error in (TimeoutError("no answer"), OSError("connection reset"), RuntimeError("closed loop")):
+        batch._close_client(Client(error))
+    assert asked == [batch.DASK_CLOSE_SECONDS] * 3
+
+
 def test_a_dask_batch_that_loses_its_scheduler_says_so(tmp_path):
     """A user trial: the Dask scheduler stopped while an item ran (a farm's scheduler restarted). The batch
     reported the item as ``worker crashed: usdface-item-1-... cancelled for reason:

@@ -302,24 +302,25 @@ def test_a_whole_takes_weak_shape_ramp_reads_the_unique_weight_against_the_takes
     assert ramp[0] == 1.0
 
 
-def _trust_of(info, *, whole_take=False):
+def _trust_of(info, *, whole_take=False, weights=None):
     """``shape_trust`` of two shapes fitted as 1 mm on each of 4 vertices (prior 0), each shown at weight 1
-    (the weak-shape ramp 1), with the fit's ``info`` (arrays over the capture's two shapes) added."""
+    (the weak-shape ramp 1) unless ``weights[F,2]``, with the fit's ``info`` (arrays over the capture's two
+    shapes) added."""
     from types import SimpleNamespace
 
     from usdface.transfer.trust import shape_trust
 
     names = ["jawOpen", "tongueOut"]
-    weights = np.eye(2)
+    weights = np.eye(2) if weights is None else np.asarray(weights, dtype=np.float64)
     deltas = np.full((2, 4, 3), 1e-3 / np.sqrt(3))               # |D| = 1 mm at each vertex
     capture = SimpleNamespace(names=names, whole_take=whole_take,
-                              train=type("Train", (list,), {"weights": weights})([0, 1]))
+                              train=type("Train", (list,), {"weights": weights})(range(len(weights))))
     fit = SimpleNamespace(rig=SimpleNamespace(deltas=deltas),
                           info={"train_weights": weights, "prior_deltas": np.zeros_like(deltas), **info})
     # the avatar's rig names them in the other order: its shapes [1, 0] are the capture's [0, 1]
     trust, report, weak = shape_trust(fit, capture, SimpleNamespace(names=names[::-1]), [1, 0], None, None)
-    assert report == {} and not weak.any()
-    return trust
+    assert report == {}
+    return trust, weak
 
 
 def test_the_trust_of_each_path_is_the_smaller_of_its_factors():
@@ -329,16 +330,29 @@ def test_the_trust_of_each_path_is_the_smaller_of_its_factors():
     by the sensitivity's James-Stein factor (1 - 0.75); a take read whole: the share capped by the factor of
     the leak and the scans' error together (1 - (0.25 + 0.25))."""
     z = np.zeros((4, 2))
-    noise = _trust_of({"shape_confidence": [0.2, 0.2], "shape_reliability": [0.3, 0.9],
+    noise, _ = _trust_of({"shape_confidence": [0.2, 0.2], "shape_reliability": [0.3, 0.9],
                        "data_share": [0.5, 0.6], "weight_leak": z, "weight_sensitivity": np.zeros((2, 4, 3))})
     np.testing.assert_allclose(noise, [0.6, 1.0], rtol=1e-12)
     sens = np.zeros((2, 4, 3))
     sens[0, :, 0] = np.sqrt(0.75) * 1e-3
-    fit = _trust_of({"shape_confidence": [0.5, 0.5], "weight_sensitivity": sens})
+    fit, _ = _trust_of({"shape_confidence": [0.5, 0.5], "weight_sensitivity": sens})
     np.testing.assert_allclose(fit, [0.25, 0.5], rtol=1e-12)
     quarter = np.c_[np.full(4, 0.25e-6), np.zeros(4)]
-    take = _trust_of({"shape_confidence": [0.9, 0.9], "weight_leak": quarter, "frame_variance": quarter})
+    take, weak = _trust_of({"shape_confidence": [0.9, 0.9], "weight_leak": quarter,
+                            "frame_variance": quarter})
     np.testing.assert_allclose(take, [0.5, 0.9], rtol=1e-12)
+    assert not weak.any()
+
+
+def test_a_captures_weak_shape_ramp_reads_the_root_of_the_training_energy():
+    """A shape shown at 0.12 and 0.16 in two frames: effective weight sqrt(0.0144 + 0.0256) = 0.2, 5 noise
+    units (the ramp at 1/6 of its way, weak); its weights' sum, 0.28 (7 units), would be the middle."""
+    from usdface.personalize.api import WEIGHT_NOISE
+
+    trust, weak = _trust_of({"shape_confidence": [1.0, 1.0]}, weights=[[0.12, 1.0], [0.16, 0.0]])
+    t = (0.2 / WEIGHT_NOISE - 4.0) / 6.0
+    np.testing.assert_allclose(trust, [t * t * (3 - 2 * t), 1.0], rtol=1e-9)
+    assert weak.tolist() == [True, False]
 
 
 def test_a_given_rig_is_trusted_whole():
