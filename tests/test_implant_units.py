@@ -633,3 +633,34 @@ def test_map_reach_is_the_largest_change_of_the_avatars_motion_near_the_place():
     prior = np.array([[[0.0, 0.0005, 0], [0.0, 0, 0]]])
     got = map_reach(places, prior, points, deltas, 0.0035, [0, 0], [0, 1])
     np.testing.assert_allclose(got, [0.0035, 0.0])           # |0.004 - 0.0005| within reach; nothing near
+
+
+def test_the_rims_data_term_holds_the_field_over_the_smoothing_not_the_rings_it_rounds_to():
+    """The soft rim's stiffness ``w / (1 - w) / smoothing^2`` reads the smoothing given (the resolution the
+    field was measured at), not the edge rings it rounds to: two smoothings that round to the same one ring
+    average the field alike but hold it at the rim differently (beyond the face and at the soft rim's
+    vertices), and inside the face (weight 1, outside the join band) they agree."""
+    from usdface.mesh import mean_edge_length
+    from usdface.transfer.implant import extend_personalization
+
+    n = 21
+    xs, ys = np.meshgrid(np.linspace(0.0, 0.1, n), np.linspace(0.0, 0.1, n))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    tri = grid_triangles(n, n)
+    edge = mean_edge_length(pts, tri)
+    x = pts[:, 0]
+    generic = np.zeros((1, len(pts), 3))
+    generic[0, :, 2] = 0.004
+    weight = np.clip((0.06 - x) / 0.02, 0.0, 1.0)                   # 1 up to 4 cm, a soft rim to 6 cm
+    person = generic * (1.0 + 10.0 * x)[None, :, None]
+    outs = []
+    for smoothing in (0.6 * edge, 1.4 * edge):
+        out, field = extend_personalization(pts, tri, generic, person, weight, length=0.05,
+                                            smoothing=smoothing, shrink=False)
+        assert field.rings == 1
+        outs.append(out[0, :, 2])
+    soft = (weight > 0) & (weight < 1)
+    beyond = weight == 0
+    assert np.abs(outs[0] - outs[1])[soft].max() > 1e-5            # measured 0.19 mm
+    assert np.abs(outs[0] - outs[1])[beyond].max() > 1e-5          # 0.23 mm
+    np.testing.assert_allclose(outs[0][x < 0.03], outs[1][x < 0.03], atol=1e-12)

@@ -346,3 +346,27 @@ def test_a_takes_scan_noise_counts_only_the_shapes_the_weights_show_and_needs_a_
     exact = take_frame_noise(R[:1] * np.array([1.0, 2.0, -1.0])[:, None, None],
                              np.array([[1.0], [2.0], [-1.0]]), omega)
     assert 0.0 <= exact < 1e-24                     # a rounding's negative energy is none
+
+
+def test_the_frames_error_variance_is_the_dense_sandwich_with_each_frames_own_noise():
+    """:func:`frame_error_variance` against ``sum_f (A_v^-1 W^T)_jf^2 E_fv`` by dense K x K inverses
+    (``A_v = W^T W + reg diag(D_v^2)``), each frame and vertex its own noise energy, for weights of rank 2 of
+    5 shapes (the r x r basis: a shape never shown, two always together) and of full rank (the K x K
+    systems, no gain kept): the noise's weighting by frame and vertex and both inverses of the sandwich."""
+    from usdface.personalize.fit import frame_error_variance
+
+    rng = np.random.default_rng(11)
+    K, n, F = 5, 7, 9
+    D = 10.0 ** rng.uniform(-1.0, 1.0, size=(K, n))
+    energy = 10.0 ** rng.uniform(-8.0, -6.0, size=(F, n))
+    low = np.zeros((F, K))
+    low[:, 0] = low[:, 1] = rng.random(F)
+    low[:, 3] = rng.random(F)
+    for W in (low, rng.random((F, K))):
+        for reg in (1e-3, 1.0):
+            dense = np.empty((n, K))
+            for v in range(n):
+                gain = np.linalg.inv(W.T @ W + reg * np.diag(D[:, v] ** 2)) @ W.T          # [K,F]
+                dense[v] = (gain ** 2) @ energy[:, v]
+            np.testing.assert_allclose(frame_error_variance(W, D, reg, energy), dense, rtol=1e-7,
+                                       atol=1e-20)
