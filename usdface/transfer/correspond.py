@@ -29,7 +29,6 @@ import scipy.sparse as sp
 from ..errors import InputFileError
 from ..mesh import spd_lu, vector_lengths
 from .surface import (
-    NearSurfaceQuery,
     SurfaceQuery,
     boundary_vertices,
     cotangent_laplacian,
@@ -105,23 +104,12 @@ class PosedSurface:
     the neutral pose.
     """
 
-    def __init__(self, points, triangles, poses=(), *, near=None):
+    def __init__(self, points, triangles, poses=()):
         self.points = np.asarray(points, dtype=np.float64)
         self.triangles = np.asarray(triangles)
         self.poses = [np.asarray(d, dtype=np.float64) for d in poses]
-        if near is None:
-            self.queries = [SurfaceQuery(self.points, self.triangles)]
-            self.queries += [SurfaceQuery(self.points + d, self.triangles) for d in self.poses]
-        else:
-            # ``near = (anchors[a,3], anchor_poses [p][a,3], radius)``: the queries lie near the anchors in
-            # each pose (a capture face on a production head): each pose's scene holds the triangles near
-            # them only (:class:`usdface.transfer.surface.NearSurfaceQuery`: the same answers)
-            anchors, anchor_poses, radius = near
-            anchors = np.asarray(anchors, dtype=np.float64)
-            self.queries = [NearSurfaceQuery(self.points, self.triangles, anchors, radius)]
-            self.queries += [NearSurfaceQuery(self.points + d, self.triangles,
-                                              anchors + np.asarray(a, dtype=np.float64), radius)
-                             for d, a in zip(self.poses, anchor_poses, strict=True)]
+        self.queries = [SurfaceQuery(self.points, self.triangles)]
+        self.queries += [SurfaceQuery(self.points + d, self.triangles) for d in self.poses]
 
     def serves(self, points, triangles, poses) -> bool:
         """True when this is the surface of ``points``/``triangles`` in the poses ``poses`` (``[p][m,3]``)

@@ -23,7 +23,6 @@ from .correspond import (
     save_correspondence,
 )
 from .register import register_face
-from .surface import mean_edge_length
 
 __all__ = ["SEMANTIC_SHAPES", "REACH", "semantic_poses", "pose_by_length", "cached_correspondence",
            "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
@@ -117,11 +116,7 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     source, reg_s = choose_source(reg_t, person)
     placed = reg_s.transform.apply(person[0] if source == "person" else capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_s.transform)
-    # the registration's queries are the placed capture's vertices, moved by less than a capture edge: the
-    # posed scenes hold only the avatar triangles within one placed capture edge of them (exact: a query
-    # the scenes cannot answer is answered by the whole face mesh)
-    surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses],
-                           near=(placed, [p[0] for p in poses], mean_edge_length(placed, capture.triangles)))
+    surface = PosedSurface(face.neutral, face.triangles, [p[1] for p in poses])
     if surfaces is not None:
         surfaces["avatar"] = surface
     registered, nr_info = nonrigid_register(placed, capture.triangles, face.neutral, face.triangles,

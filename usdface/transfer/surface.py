@@ -27,8 +27,8 @@ from ..mesh import (
 from ..natives import open3d
 
 __all__ = ["triangle_normals", "vertex_normals", "triangle_areas", "gradient_operator", "cotangent_laplacian",
-           "boundary_vertices", "closest_points", "SurfaceQuery", "NearSurfaceQuery", "mean_edge_length",
-           "vertex_adjacency", "surface_samples", "decimate", "spatial_order", "prolongation"]
+           "boundary_vertices", "closest_points", "SurfaceQuery", "mean_edge_length", "vertex_adjacency",
+           "surface_samples", "decimate", "spatial_order", "prolongation"]
 
 
 def cotangent_laplacian(points, triangles):
@@ -68,62 +68,6 @@ class SurfaceQuery:
         bary /= bary.sum(axis=1, keepdims=True)
         closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
         return tri, bary, closest, vector_lengths(closest - (q + self.origin))
-
-
-class NearSurfaceQuery:
-    """Closest points on a triangle mesh for queries that lie near some ``anchors[a,3]`` (m): the scene
-    holds only the triangles that have a point within ``radius`` (m) of an anchor, so a production head's
-    back and neck are not built into it for a capture face's queries (Open3D builds its BVH per scene: ~0.3
-    CPU-s for a 449k-triangle head, for 1,203 queries).
-
-    The answer is the whole mesh's: a query ``q`` whose closest point in the scene lies ``d`` away and whose
-    nearest anchor lies ``e`` away has its closest point on the whole mesh within ``d + e`` of that anchor,
-    so, when ``d + e <= radius``, on a triangle in the scene (a triangle is left out only when every point
-    of it is farther than ``radius`` from every anchor: its nearest corner's distance less its longest
-    edge). Any other query is answered by the whole mesh, built when first needed. Ties (a closest point
-    on an edge shared by two triangles) may name the other triangle. Same interface as
-    :class:`SurfaceQuery`."""
-
-    def __init__(self, points, triangles, anchors, radius: float):
-        from scipy.spatial import cKDTree
-
-        self.points = np.asarray(points, dtype=np.float64)
-        self.triangles = np.asarray(triangles)
-        self.radius = float(radius)
-        anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
-        corners = self.points[self.triangles]                                       # [t,3,3]
-        longest = np.sqrt(np.max(np.sum((corners - corners[:, [1, 2, 0]]) ** 2, axis=-1), axis=1))
-        self.tree = cKDTree(anchors) if len(anchors) else None
-        if self.tree is None or not len(self.triangles):
-            keep = np.zeros(len(self.triangles), dtype=bool)
-        else:
-            near = self.tree.query(self.points, distance_upper_bound=self.radius + float(longest.max()))[0]
-            keep = near[self.triangles].min(axis=1) - longest <= self.radius
-        self.kept = np.flatnonzero(keep)
-        self._whole = SurfaceQuery(self.points, self.triangles) if keep.all() else None
-        self._part = (None if self._whole is not None or not self.kept.size
-                      else SurfaceQuery(self.points, self.triangles[self.kept]))
-
-    def closest_points(self, queries):
-        """``(triangle[q], barycentric[q,3], closest[q,3], distance[q])`` on the whole mesh, as
-        :meth:`SurfaceQuery.closest_points`."""
-        q = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
-        if self._part is None:
-            return self.whole().closest_points(q)
-        tri, bary, closest, dist = self._part.closest_points(q)
-        tri = self.kept[tri]
-        # proven only where the answer and the nearest anchor lie within the radius (less float32's rounding
-        # of the scene's coordinates: a micrometre in a metre)
-        doubt = np.flatnonzero(dist + self.tree.query(q)[0] > self.radius - 1e-6 * max(self.radius, 1.0))
-        if doubt.size:
-            tri[doubt], bary[doubt], closest[doubt], dist[doubt] = self.whole().closest_points(q[doubt])
-        return tri, bary, closest, dist
-
-    def whole(self) -> SurfaceQuery:
-        """The whole mesh's query, built on first use."""
-        if self._whole is None:
-            self._whole = SurfaceQuery(self.points, self.triangles)
-        return self._whole
 
 
 def closest_points(points, triangles, queries):
