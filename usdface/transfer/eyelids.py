@@ -403,7 +403,8 @@ def _violations(surf, x0, out, near, js, ks, reference, clearance: float, tolera
     # the signed distance is 1-Lipschitz: a pair whose neutral lies ``d0`` from the eye and whose offset is
     # shorter than ``d0`` less the most any bound asks (the clearance with a reference, 0 without) is at
     # least that far from the eye, fine whatever its bound: not measured (the neutral's distance is one query
-    # a vertex, the pairs' one a vertex and shape; a twice-subdivided head's lids: most of the pairs)
+    # a vertex, the pairs' one a vertex and shape; on the twice-subdivided bench head a tenth of the first
+    # measurement's pairs: most lie inside the bench eye's shell, which no bound clears)
     d0 = known[0]
     new = np.unique(ks[np.isnan(d0[ks])])
     if new.size:
