@@ -93,3 +93,41 @@ def test_a_vertex_inside_a_coarse_eye_mesh_goes_back_the_same_way_whichever_face
         moved = np.linalg.norm(repair_eyelids(noisy[0], noisy[1], eyes, reference=noisy[2], smooth=smooth)[0]
                                - base, axis=-1).max()
         assert moved < 8 * noise, (seed, moved / noise)
+
+
+def test_pairs_the_lipschitz_bound_clears_are_not_measured_and_the_result_is_the_same(monkeypatch):
+    """The signed distance is 1-Lipschitz: a (shape, lid vertex) pair whose neutral lies ``d0`` outside the
+    eye and whose offset is shorter than ``d0`` less the clearance cannot come within the clearance, so it
+    is not measured (one query a vertex for ``d0`` instead of one a vertex and shape). Shapes that barely
+    move the lid (most of a production head's 51 near an eye) and one that pushes a patch into the eye: the
+    same repair to the bit as with every pair measured, with fewer queries."""
+    from usdface.transfer import eyelids
+
+    lid, dirs, rho, eyes = _lid_and_eye()
+    # the eye stretched to 14 mm along x (a cornea's bulge): the lid, 1 mm off its side, is inside the
+    # eye's bounding sphere, where every pair was measured
+    eye, sphere, tris = eyes[0]
+    sphere = eye.center + (sphere - eye.center) * [14.0 / 12.0, 1.0, 1.0]
+    eyes = [(eye, sphere, tris)]
+    patch = ramp_down(rho, 0.2, 0.45)
+    rng = np.random.default_rng(7)
+    small = [rng.normal(scale=1e-4, size=lid.shape) for _ in range(6)]        # 0.1 mm wobbles, 1 mm off
+    shapes = np.stack(small + [-(0.0016 * patch)[:, None] * dirs])
+    generic = np.zeros_like(shapes)
+    counted = []
+    measure = eyelids._EyeSurface.signed_distance
+
+    def counting(self, queries):
+        counted.append(len(np.asarray(queries).reshape(-1, 3)))
+        return measure(self, queries)
+
+    monkeypatch.setattr(eyelids._EyeSurface, "signed_distance", counting)
+    got, count = repair_eyelids(lid, shapes, eyes, reference=generic)
+    with_bound = sum(counted)
+    counted.clear()
+    monkeypatch.setattr(eyelids, "LIPSCHITZ_SLACK", np.inf)                 # every pair measured
+    want, want_count = repair_eyelids(lid, shapes, eyes, reference=generic)
+    every = sum(counted)
+    assert count == want_count > 50 and np.array_equal(got, want)
+    print(f"signed-distance queries {every} -> {with_bound}")
+    assert with_bound < every - 5 * len(lid)              # the six small shapes' pairs: not measured

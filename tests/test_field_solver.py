@@ -288,3 +288,45 @@ def test_what_the_generic_barely_moves_keeps_its_offsets_as_authored():
     got, _ = implant.extend_personalization(pts, tri, generic, person, weight, length=0.03, band=0.004)
     np.testing.assert_array_equal(got[:, far], generic[:, far])
     assert np.abs(got[0] - generic[0]).max() < 1e-15
+
+
+def test_the_join_beyond_the_face_is_evaluated_only_where_the_shape_moves():
+    """On a proxy, the field is applied at the fine vertices beyond the face where the shape (or the
+    person's shape) moves by more than ``STILL`` of its peak; elsewhere the result is the person's offset
+    as given (the field would change it by at most that share times its turn and scale). A narrow shape on
+    the twice-subdivided bump: most vertices beyond the face move less than that (but not 0), keep the
+    person's offsets to the bit, and every vertex is within 6 ``STILL`` x peak of the field applied
+    everywhere (``STILL < 0``)."""
+    import usdface.transfer.implant as implant
+
+    pts, tri = _subdivide(*_bump(21), 2)
+    generic, person, weight = _bump_shapes(pts)
+    narrow = 0.004 * np.exp(-np.sum((pts[:, :2] - [0.06, 0.05]) ** 2, axis=1) / 0.0001)
+    g = np.concatenate([generic, (narrow[:, None] * [0.0, 0.3, 1.0])[None]])
+    angle = 0.3 + 4.0 * pts[:, 0]
+    p = g.copy()
+    p[2, :, 0] = np.cos(angle) * g[2, :, 0] - np.sin(angle) * g[2, :, 1]
+    p[2, :, 1] = np.sin(angle) * g[2, :, 0] + np.cos(angle) * g[2, :, 1]
+    p[:2] = person
+    options = dict(length=0.03, band=0.005, smoothing=0.01)
+    got, field = implant.extend_personalization(pts, tri, g, p.copy(), weight, **options)
+    assert field.rings >= implant.PROXY_MIN_RINGS
+    saved = implant.STILL
+    try:
+        implant.STILL = -1.0
+        everywhere, _ = implant.extend_personalization(pts, tri, g, p.copy(), weight, **options)
+    finally:
+        implant.STILL = saved
+    peak = shape_norms(g).max(axis=1)
+    floor = implant.STILL * peak[2]
+    moves = np.linalg.norm(g[2], axis=1)
+    # (half the floor: the shape's peak is measured where the field is used; a proxy edge and more from
+    # the face: the strip next to it is solved on the fine mesh in every shape)
+    still = ((moves <= 0.5 * floor) & (np.linalg.norm(p[2] - g[2], axis=1) <= 0.5 * floor)
+             & (pts[:, 0] > 0.05 + options["smoothing"]) & (moves > 0))
+    assert still.sum() > len(pts) / 5
+    assert np.array_equal(got[2, still], p[2, still])                     # the person's offsets as given
+    assert not np.array_equal(everywhere[2, still], p[2, still])          # (the field does change them)
+    err = shape_norms(got - everywhere).max(axis=1)
+    print("largest change from the field applied everywhere, share of the peak:", err / peak)
+    assert np.all(err <= 6 * implant.STILL * peak)

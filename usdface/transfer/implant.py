@@ -54,6 +54,11 @@ PROXY_RINGS = 3
 PROXY_MIN_RINGS = 4
 #: A proxy vertex takes its known value at the nearest of this many fine vertices that faces its way.
 PROXY_NEAREST = 8
+#: On a proxy, the field is evaluated at the fine vertices beyond the face that a shape moves (or
+#: personalizes) by more than this share of its peak motion: elsewhere it would change the offset by at
+#: most this share times the field's turn and scale (the person's shape there is the generic one). A bench
+#: head's shape moves about half of it by more than 1e-4 of its peak (dev1: 49 % on average).
+STILL = 1e-4
 
 __all__ = ["avatar_shapes_on_capture", "face_personalization", "mapping_outliers", "map_reach", "face_radius",
            "extend_personalization",
@@ -263,7 +268,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
     solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
     of the smoothing no longer grows with the resolution) and interpolated to the fine vertices, which solve
-    it themselves next to the face; the field is then kept at the proxy's vertices.
+    it themselves next to the face; the field is then kept at the proxy's vertices. Beyond the face it is
+    interpolated and applied only where the shape (or the person's shape) moves by more than :data:`STILL`
+    of its peak; elsewhere the result is the person's offset as given.
 
     Memory (a production head's peak is here): ``generic`` may be a :class:`usdface.memory.Float32Offsets`
     (read shape by shape, half the bytes) and ``person`` a callable that returns the array, called once the
@@ -398,6 +405,11 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         at_strip_out = proxy.need_position[proxy.strip_out] if proxy.strip.size else None
         at_direct = proxy.need_position[proxy.direct]
         soft_r = np.searchsorted(rows, proxy.strip_soft)
+        # the join's rows the fine mesh answers itself (the strip, the strip's neighbours it reads, the
+        # direct rows) and those in the face's ramp: the field is evaluated there in every shape
+        always = index_set(np.concatenate([at_strip, at_strip_out if at_strip_out is not None
+                                           else np.zeros(0, dtype=np.int64), at_direct,
+                                           np.flatnonzero(w[proxy.need] > 0.0)]), n_need)
     del peak
     release_free_memory()                            # its construction's products
     # the person's array last: the factorization's and the smoother's working memory are gone by then
@@ -422,7 +434,12 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             if cand.size:
                 top = np.maximum(top, shape_norms(_offsets_at(g, js, domain[cand])).max(axis=1))
             mw = motion_weights(gr, peak=top, norms=mag[:, at_reach])
-            del mag
+            # the join's rows the shape moves (or personalizes) by more than STILL of its peak: elsewhere the
+            # field would change its offset by at most that share times the field's turn and scale
+            floor = STILL * top[:, None]
+            moves = (mag[:, :n_need] > floor) | (shape_norms(pd[:, :n_need] - gd[:, :n_need]) > floor)
+            act = index_set(np.concatenate([np.flatnonzero(moves.any(axis=0)), always]), n_need)
+            del mag, moves
         k = gd.shape[0]
         phi = np.zeros((k, reach.size, 3, 3))
         valid = np.zeros((k, reach.size))
@@ -470,21 +487,23 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
             del flat
             field[js] = fc[kept].reshape(kept.size, k, 3, 3).transpose(1, 0, 2, 3)
             skin[js] = gd[:, at_kept]
-            f = proxy.prolong @ fc                                # [need, k*9]
+            at = np.full(n_need, -1)
+            at[act] = np.arange(act.size)
+            f = proxy.prolong[act] @ fc                           # [act, k*9]
             if proxy.strip.size:                                  # next to the face: the fine solve
                 vk = phi[:, strip_k].transpose(1, 0, 2, 3).reshape(strip_k.size, -1)
-                rhs = -(proxy.a_sk @ vk + proxy.a_so @ f[at_strip_out])
+                rhs = -(proxy.a_sk @ vk + proxy.a_so @ f[at[at_strip_out]])
                 if soft_r.size:                                   # the rim's data term
                     rhs[proxy.strip_soft_at] += proxy.strip_data[:, None] * phi[:, soft_r].transpose(
                         1, 0, 2, 3).reshape(soft_r.size, -1)
-                f[at_strip] = proxy.strip_solve(rhs)
+                f[at[at_strip]] = proxy.strip_solve(rhs)
             if proxy.direct.size:                                 # the join's rim: its own field
-                f[at_direct] = phi[:, direct_r].transpose(1, 0, 2, 3).reshape(direct_r.size, -1)
-            f = f.reshape(n_need, k, 3, 3).transpose(1, 0, 2, 3)
-            outside = apply_field(gd[:, :n_need], f)
+                f[at[at_direct]] = phi[:, direct_r].transpose(1, 0, 2, 3).reshape(direct_r.size, -1)
+            f = f.reshape(act.size, k, 3, 3).transpose(1, 0, 2, 3)
+            outside = apply_field(gd[:, act], f)
             if result is not p:                                   # the person's shapes, then the join's
                 result[js, domain] = p[js][:, domain]
-            result[js, need_m] = wn * pd[:, :n_need] + wn_c * outside
+            result[js, need_m[act]] = wn[:, act] * pd[:, act] + wn_c[:, act] * outside
             del fc
         del gd, pd, f, outside, phi
     # elsewhere (the generic motion below the float noise floor: :func:`moving_vertices`) the generic
