@@ -341,3 +341,14 @@ def test_retarget_says_which_rows_follow_a_shape_the_take_never_shows(tmp_path):
     assert res.avatar_names[int(np.argmax(row))] != "cheekPuff"      # the case: another shape dominates
     said = [w for w in res.report["warnings"] if w.startswith("map rows of shapes the capture barely shows")]
     assert said and "cheekPuff -> " in said[0] and "(cheekPuff 0.1" in said[0]
+
+
+def test_a_pose_at_exactly_the_radius_is_a_neighbour():
+    """``pose_counts`` counts the frames *within* ``radius`` (RMS over the weights), the radius itself
+    included: three poses 0.25 apart (RMS; binary-exact values) at radius 0.25 are each the neighbours of the
+    next, the ends 0.5 apart are not."""
+    from usdface.personalize.takefit import pose_counts
+
+    W = np.array([[0.0, 0.0], [0.25, 0.25], [0.5, 0.5]])
+    np.testing.assert_array_equal(pose_counts(W, 0.25), [2, 3, 2])
+    np.testing.assert_array_equal(pose_counts(W, 0.2), [1, 1, 1])
