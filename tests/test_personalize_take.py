@@ -352,3 +352,15 @@ def test_a_pose_at_exactly_the_radius_is_a_neighbour():
     W = np.array([[0.0, 0.0], [0.25, 0.25], [0.5, 0.5]])
     np.testing.assert_array_equal(pose_counts(W, 0.25), [2, 3, 2])
     np.testing.assert_array_equal(pose_counts(W, 0.2), [1, 1, 1])
+
+
+def test_a_takes_cv_block_keeps_at_least_min_folds_blocks():
+    """``cv_block``: the weights' half-correlation time, but at most ``F // MIN_FOLDS`` frames (at least
+    MIN_FOLDS blocks to hold out): one steady sweep over 12 frames stays correlated over 3 of them, so its
+    blocks are 12 // 5 = 2 frames; over 30 frames (6) the cap is not reached."""
+    from usdface.personalize.takefit import HALF_CORRELATION, MIN_FOLDS, correlation_frames, cv_block
+
+    short, long = np.arange(12.0)[:, None], np.arange(30.0)[:, None]
+    assert correlation_frames(short, HALF_CORRELATION) == 3
+    assert cv_block(short) == 12 // MIN_FOLDS == 2
+    assert correlation_frames(long, HALF_CORRELATION) == cv_block(long) == 6
