@@ -15,6 +15,7 @@ arrays out: ``fit`` is a :class:`usdface.personalize.FitResult`, ``capture`` a
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..personalize.api import WEIGHT_NOISE
 from ..personalize.fit import james_stein
@@ -239,9 +240,10 @@ def denoise_personalization(diff, triangles, variance,
         residual = ((1.0 - h) ** 2) @ c2                                     # [G, J]
         q = (u * u).T @ var                                                  # [n, J] u_i^T V u_i
     else:
-        mu = np.asarray(metric @ u)                                          # [m, n] M U
-        p_mat = mu.T @ mu                                                    # U^T M^T M U
-        q = (u * (u @ p_mat)).T @ var                                        # [n, J] u_i^T V M^T M u_i
+        gram = sp.csr_matrix(metric.T @ metric) if sp.issparse(metric) else np.asarray(metric.T @ metric)
+        qu = np.asarray(gram @ u)                                            # [n, n] M^T M U (never M U)
+        p_mat = u.T @ qu                                                     # U^T M^T M U
+        q = (u * qu).T @ var                                                 # [n, J] u_i^T V M^T M u_i
         residual = np.empty((len(SMOOTHING_GRID), n_shapes))
         for g, hg in enumerate(h):                                           # a few dozen strengths
             x = (1.0 - hg)[:, None] * c
