@@ -22,7 +22,7 @@ from ..personalize.fit import james_stein
 from .implant import shape_confidence
 
 __all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitivity_trust", "shape_trust",
-           "unshrunk", "weak_ramp", "weight_error_trust"]
+           "unshrunk", "weak_ramp", "weight_error_trust", "denoise_personalization"]
 
 #: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
 #: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
