@@ -17,7 +17,7 @@ CORE = ["mesh.py", "motion.py", "model.py", "submesh.py", "bounded_lsq.py", "ark
         "take_select.py", *(f"personalize/{n}" for n in ("align.py", "api.py", "contact.py", "crossval.py",
                                                           "dt.py", "ebfr.py", "evaluate.py", "fit.py",
                                                           "laplacian.py", "takefit.py", "weights.py")),
-        *(f"transfer/{n}" for n in ("correspond.py", "eyelids.py", "face_map.py", "implant.py",
+        *(f"transfer/{n}" for n in ("correspond.py", "denoise.py", "eyelids.py", "face_map.py", "implant.py",
                                     "motion_field.py", "options.py", "partial_dt.py", "register.py",
                                     "report.py", "retarget.py", "scoring.py", "surface.py", "trust.py")),
         *(f"landmarks/{n}" for n in ("baselines.py", "candidates.py", "cover.py", "diagnostics.py",

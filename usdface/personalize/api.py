@@ -28,6 +28,7 @@ from .fit import (
     james_stein,
     regularization_weights,
     take_frame_noise,
+    take_white_noise,
     weight_leak_variance,
 )
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched, weight_noise
@@ -707,6 +708,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                 info["frame_noise_mm"] = float(np.sqrt(noise) * 1e3)
                 energy = np.broadcast_to(3.0 * noise * omega[:, None], (len(omega), len(capture.neutral)))
                 info["frame_variance"] = frame_error_variance(w_cur, D_fit, lam, energy)
+                # of which independent from vertex to vertex (the scans' own): what smoothing can remove
+                white = take_white_noise(points - capture.neutral[None], w_cur, omega, capture.triangles)
+                if np.isfinite(white):
+                    info["frame_white_noise_mm"] = float(np.sqrt(min(white, noise)) * 1e3)
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,

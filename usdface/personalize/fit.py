@@ -361,6 +361,40 @@ def take_frame_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray
     return max(rss, 0.0) / (R.shape[1] * dof)
 
 
+def take_white_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray, triangles) -> float:
+    """The part of :func:`take_frame_noise` that is independent from vertex to vertex (the scans' own), m^2
+    per coordinate: the same least-squares residual ``R`` (``offsets[F,n,3]``, ``weights[F,K]`` scaled by
+    ``sqrt(omega)``), read through the mesh's umbrella Laplacian ``L``
+    (:func:`usdface.mesh.uniform_laplacian`), ``|R L^T|^2`` over its expectation for white noise
+    ``3 sum_f omega_f (1 - h_f) tr(L L^T)``. What the
+    weights' noise and the model's misfit leave in the residual moves neighbouring vertices alike (a shape's
+    motion times a weight's error) and the Laplacian cancels it; on a phone-noise take (0.1 mm scans, weights
+    +-0.02) it was most of :func:`take_frame_noise`. The smoothing of
+    :func:`usdface.transfer.denoise.denoise_personalization` is set by this part alone. NaN without a degree
+    of freedom left."""
+    from ..mesh import uniform_laplacian
+
+    W = np.asarray(weights, dtype=np.float64)
+    F = len(W)
+    off = np.asarray(offsets, dtype=np.float64)
+    om = np.asarray(omega, dtype=np.float64)
+    if not F or not off.size:
+        return float("nan")
+    n = off.shape[1]
+    lap = uniform_laplacian(np.asarray(triangles), n)
+    U, s, _ = np.linalg.svd(W, full_matrices=False)
+    U = U[:, s > (s[0] if len(s) else 0.0) * max(W.shape) * np.finfo(float).eps] if len(s) else U[:, :0]
+    # L acts on the vertices, the projection on the frames: they commute, so the residual of the rough part
+    rough = (lap @ off.transpose(1, 0, 2).reshape(n, -1)).reshape(n, F, 3).transpose(1, 0, 2).reshape(F, -1)
+    explained = U.T @ rough
+    rss = float(np.einsum("fi,fi->", rough, rough) - np.einsum("ri,ri->", explained, explained))
+    dof = float(np.sum(om * np.clip(1.0 - np.einsum("fr,fr->f", U, U), 0.0, 1.0)))
+    trace = float(lap.multiply(lap).sum())
+    if dof <= 0 or trace <= 0:
+        return float("nan")
+    return max(rss, 0.0) / (3.0 * trace * dof)
+
+
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
     """``[K]`` in [0, 1]: the positive-part James-Stein factor ``max(0, 1 - var_j / |D_j|^2)`` (Efron &
     Morris 1973) of each shape's personalization ``personalization[K,m,3]`` (``D_j = B_j - T_j``, metres)

@@ -37,6 +37,7 @@ from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
 from .correspond import save_correspondence
+from .denoise import denoise_personalization
 from .eyelids import find_eyeballs, repair_eyelids
 from .face_map import (
     cached_correspondence,
@@ -934,6 +935,22 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     b_idx = [rig.index(n) for n in names]
     prior_av = _fit_prior(fit, names, capture, generic_on_capture, sim, prior)
     conf, excitation, weak = shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, scale=sim.scale)
+    info = fit.info if fit is not None and capture.whole_take else {}
+    if (info.get("frame_variance") is not None and info.get("frame_white_noise_mm")
+            and info.get("frame_noise_mm")):
+        # a take's scan noise left in each fitted shape, the part independent from vertex to vertex (the
+        # scans' own): smoothed out of the person's change by as much as lowers its estimated error on the
+        # avatar's face, where the interpolation has averaged some of it already (Stein's unbiased risk
+        # estimate). The trust stays the unsmoothed change's: the smoothing's bias is in no variance
+        cap_idx = [list(capture.names).index(n) for n in names]
+        white = (info["frame_white_noise_mm"] / info["frame_noise_mm"]) ** 2
+        onto = corr.matrix(capture.triangles, person_deltas.shape[1], face_only=False, rows=np.flatnonzero(f))
+        smooth, lam = denoise_personalization(
+            person_deltas - prior_av, capture.triangles,
+            np.asarray(info["frame_variance"])[:, cap_idx] * white * float(sim.scale) ** 2, metric=onto)
+        person_deltas = prior_av + smooth
+        del onto, smooth
+        report["denoised"] = {n: round(float(v), 4) for n, v in zip(names, lam, strict=True) if v > 0}
     if excitation:
         report["excitation"] = excitation
     report["shape_confidence"] = {n: round(float(c), 3) for n, c in zip(names, conf, strict=True)}
