@@ -202,24 +202,45 @@ def test_the_leak_without_the_fits_gain_is_the_same_sum_per_vertex():
                                weight_leak_variance(W, D, 1e-3, B, free, system=kept), rtol=1e-10)
 
 
+def _sheet(nx=9, ny=8):
+    """A wavy 0.1 x 0.08 m sheet of ``nx x ny`` vertices: ``(neutral[n,3], triangles, x[n], y[n])``."""
+    from synthetic_meshes import grid_triangles
+
+    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
+    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
+    return neutral, grid_triangles(nx, ny), xs.ravel(), ys.ravel()
+
+
+def _fit_take(neutral, tris, names, avatar, true, curves, reported, point_noise, rng):
+    """A take read whole on the sheet: frames of the person's ``true[K,n,3]`` at the weight curves
+    ``curves[F,K]`` plus scan noise of std ``point_noise`` (m), ``reported[F,K]`` the phone's weights,
+    fitted with every frame weighted 1, the avatar prior and the sensitivity (the leak, the scans' noise):
+    ``(capture, fit)``."""
+    from usdface.model import Capture, FaceRig, Frames
+    from usdface.personalize import fit_personalized_shapes
+
+    F = len(curves)
+    pts = neutral + np.einsum("fk,knc->fnc", curves, true) + point_noise * rng.standard_normal(
+        (F, len(neutral), 3))
+    cap = Capture(neutral, tris, FaceRig(neutral, tris, names, avatar.copy()),
+                  Frames(pts, reported, ["train"] * F, [f"f{i:05d}" for i in range(F)]), names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_personalized_shapes(cap, avatar_prior=avatar, frame_weights=np.ones(F), sensitivity=True)
+    return cap, fit
+
+
 def test_a_whole_takes_trust_counts_the_leak_of_the_weights_noise_it_shows():
     """A take read whole has no re-estimation and no reliability (its leave-one-frame-out error keeps each
     frame's neighbours), so its trust was the data share alone: a small shape always performed beside a large
     one took the large one's weight noise whole (generated takes with the phone's weights +-0.02-0.03, stop
     45: `mouthShrugLower` +0.094 mm, trust 0.999). The fit now measures the take's weight noise (frame-to-
     frame jitter) and its leak, and the trust is no more than the leak's James-Stein factor."""
-    from synthetic_meshes import grid_triangles
-
-    from usdface.model import Capture, FaceRig, Frames
-    from usdface.personalize import fit_personalized_shapes
     from usdface.personalize.takefit import weight_noise as take_weight_noise
     from usdface.transfer.trust import shape_trust
 
     rng = np.random.default_rng(4)
-    nx, ny = 9, 8
-    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
-    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
-    tris = grid_triangles(nx, ny)
+    neutral, tris, _, _ = _sheet()
     names = ["jawOpen", "mouthShrugLower", "eyeBlinkLeft"]
     n = len(neutral)
     avatar = rng.normal(size=(3, n, 3)) * np.array([0.01, 0.0005, 0.003])[:, None, None]
@@ -228,13 +249,7 @@ def test_a_whole_takes_trust_counts_the_leak_of_the_weights_noise_it_shows():
     smooth = np.stack([np.sin(0.7 * t) ** 2, 0.3 * np.sin(0.7 * t) ** 2 + 0.5 * np.sin(0.23 * t) ** 2,
                        np.sin(1.3 * t + 1) ** 2], axis=1)
     phone = np.clip(smooth + 0.03 * rng.standard_normal(smooth.shape), 0, 1)
-    pts = neutral + np.einsum("fk,knc->fnc", smooth, true) + 2e-5 * rng.standard_normal((len(t), n, 3))
-    cap = Capture(neutral, tris, FaceRig(neutral, tris, names, avatar.copy()),
-                  Frames(pts, phone, ["train"] * len(t), [f"f{i:05d}" for i in range(len(t))]), names)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fit = fit_personalized_shapes(cap, avatar_prior=avatar, frame_weights=np.ones(len(t)),
-                                      sensitivity=True)
+    cap, fit = _fit_take(neutral, tris, names, avatar, true, smooth, phone, 2e-5, rng)
     assert abs(take_weight_noise(phone) - 0.03) < 0.005
     leak = fit.info["weight_leak"]
     assert leak.shape == (n, 3)
@@ -292,17 +307,10 @@ def test_a_whole_takes_trust_counts_its_scans_noise():
     the noise from its residual (``frame_noise_mm``) and the trust is no more than the James-Stein factor
     of the personalization against the leak and the noise's error together; the jaw, far above its
     noise, keeps its trust."""
-    from synthetic_meshes import grid_triangles
-
-    from usdface.model import Capture, FaceRig, Frames
-    from usdface.personalize import fit_personalized_shapes
     from usdface.transfer.trust import shape_trust
 
     rng = np.random.default_rng(8)
-    nx, ny = 9, 8
-    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
-    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
-    tris = grid_triangles(nx, ny)
+    neutral, tris, _, _ = _sheet()
     names = ["jawOpen", "tongueOut", "eyeBlinkLeft"]
     n = len(neutral)
     avatar = rng.normal(size=(3, n, 3)) * np.array([0.01, 0.0005, 0.003])[:, None, None]
@@ -310,13 +318,7 @@ def test_a_whole_takes_trust_counts_its_scans_noise():
     t = np.arange(1200) / 30.0                                   # 40 s at 30 fps
     small = np.exp(-0.5 * ((t - 20.0) / 0.15) ** 2)              # tongueOut: once, for ~0.5 s
     smooth = np.stack([np.sin(0.7 * t) ** 2, small, np.sin(1.3 * t + 1) ** 2], axis=1)
-    pts = neutral + np.einsum("fk,knc->fnc", smooth, true) + 3e-4 * rng.standard_normal((len(t), n, 3))
-    cap = Capture(neutral, tris, FaceRig(neutral, tris, names, avatar.copy()),
-                  Frames(pts, smooth, ["train"] * len(t), [f"f{i:05d}" for i in range(len(t))]), names)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fit = fit_personalized_shapes(cap, avatar_prior=avatar, frame_weights=np.ones(len(t)),
-                                      sensitivity=True)
+    cap, fit = _fit_take(neutral, tris, names, avatar, true, smooth, smooth, 3e-4, rng)
     assert abs(fit.info["frame_noise_mm"] - 0.3) < 0.03
     assert fit.info["frame_variance"].shape == (n, 3)
     share = np.asarray(fit.info["shape_confidence"])
@@ -381,21 +383,14 @@ def test_a_takes_scan_noise_is_smoothed_out_of_a_weakly_shown_shapes_change():
     unbiased estimate of its error, the noise's variance per vertex the fit's own (``frame_variance``): the
     weak shape's error falls by a third and its largest jump across an edge to a third; the jaw, measured
     far above its noise, is left as it was; without noise nothing changes."""
-    from synthetic_meshes import grid_triangles
-
     from usdface.mesh import edges as mesh_edges
-    from usdface.model import Capture, FaceRig, Frames
-    from usdface.personalize import fit_personalized_shapes
     from usdface.transfer.denoise import denoise_personalization
 
     rng = np.random.default_rng(12)
-    nx, ny = 16, 14
-    xs, ys = np.meshgrid(np.linspace(0, 0.1, nx), np.linspace(0, 0.08, ny))
-    neutral = np.c_[xs.ravel(), ys.ravel(), 0.01 * np.sin(20 * xs.ravel())]
-    tris = grid_triangles(nx, ny)
+    neutral, tris, x, y = _sheet(16, 14)
     names = ["jawOpen", "cheekPuff", "eyeBlinkLeft"]
     n = len(neutral)
-    bump = np.exp(-(((xs.ravel() - 0.05) / 0.03) ** 2 + ((ys.ravel() - 0.04) / 0.025) ** 2))
+    bump = np.exp(-(((x - 0.05) / 0.03) ** 2 + ((y - 0.04) / 0.025) ** 2))
     avatar = np.stack([np.outer(bump, [0.0, -0.01, 0.002]), np.outer(bump, [0.0, 0.0, 0.004]),
                        np.outer(np.roll(bump, 40), [0.0, -0.003, 0.0])])
     true = avatar * np.array([1.2, 0.6, 0.9])[:, None, None]            # the person: smooth changes
@@ -403,13 +398,7 @@ def test_a_takes_scan_noise_is_smoothed_out_of_a_weakly_shown_shapes_change():
     jaw, blink = np.sin(0.7 * t) ** 2, np.sin(1.3 * t + 1) ** 2
     puff = 0.1 * np.sin(0.31 * t + 2) ** 2 * (t > 20)                   # only ever at a tenth
     smooth = np.stack([jaw, puff, blink], axis=1)
-    pts = neutral + np.einsum("fk,knc->fnc", smooth, true) + 3e-4 * rng.standard_normal((len(t), n, 3))
-    cap = Capture(neutral, tris, FaceRig(neutral, tris, names, avatar.copy()),
-                  Frames(pts, smooth, ["train"] * len(t), [f"f{i:05d}" for i in range(len(t))]), names)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fit = fit_personalized_shapes(cap, avatar_prior=avatar, frame_weights=np.ones(len(t)),
-                                      sensitivity=True)
+    _, fit = _fit_take(neutral, tris, names, avatar, true, smooth, smooth, 3e-4, rng)
     prior = np.asarray(fit.info["prior_deltas"])
     diff = fit.rig.deltas - prior
     smoothed, lam = denoise_personalization(diff, tris, fit.info["frame_variance"])
