@@ -703,15 +703,17 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # and no leave-one-frame-out reliability (a frame's neighbours predict it), but hundreds of
             # frames for ~50 shapes: their least-squares residual measures the scans' noise, and its
             # sandwich the error it leaves in each shape (a small shape performed once was its noise)
-            noise = take_frame_noise(points - capture.neutral[None], w_cur, omega)
+            offsets = points - capture.neutral[None]                 # the weighted frames' motion, once
+            noise = take_frame_noise(offsets, w_cur, omega)
             if np.isfinite(noise):
                 info["frame_noise_mm"] = float(np.sqrt(noise) * 1e3)
                 energy = np.broadcast_to(3.0 * noise * omega[:, None], (len(omega), len(capture.neutral)))
                 info["frame_variance"] = frame_error_variance(w_cur, D_fit, lam, energy)
                 # of which independent from vertex to vertex (the scans' own): what smoothing can remove
-                white = take_white_noise(points - capture.neutral[None], w_cur, omega, capture.triangles)
+                white = take_white_noise(offsets, w_cur, omega, capture.triangles)
                 if np.isfinite(white):
                     info["frame_white_noise_mm"] = float(np.sqrt(min(white, noise)) * 1e3)
+            del offsets
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,

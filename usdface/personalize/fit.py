@@ -345,20 +345,26 @@ def take_frame_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray
     shapes, so this measures what the shapes do not explain: the scans' noise, and what the weights' noise and
     the model's misfit add (the first counted again beside :func:`weight_leak_variance`: on the cautious
     side). NaN without a degree of freedom left."""
-    W = np.asarray(weights, dtype=np.float64)
-    F = len(W)
+    F = len(weights)
     R = np.asarray(offsets, dtype=np.float64).reshape(F, -1)
-    om = np.asarray(omega, dtype=np.float64)
     if not F or not R.shape[1]:
         return float("nan")
-    U, s, _ = np.linalg.svd(W, full_matrices=False)
-    U = U[:, s > (s[0] if len(s) else 0.0) * max(W.shape) * np.finfo(float).eps] if len(s) else U[:, :0]
-    explained = U.T @ R                                                                   # [r, 3n]
-    rss = float(np.einsum("fi,fi->", R, R) - np.einsum("ri,ri->", explained, explained))
+    rss, dof = _unexplained(R, weights, omega)
+    return rss / (R.shape[1] * dof) if dof > 0 else float("nan")
+
+
+def _unexplained(rows: np.ndarray, weights: np.ndarray, omega: np.ndarray) -> tuple[float, float]:
+    """``(rss, dof)`` of ``rows[F,m]`` regressed on ``weights[F,K]`` by least squares (both scaled by
+    ``sqrt(omega[F])``): the residual's energy ``|R|^2 - |U^T R|^2`` (``U`` the weights' left singular
+    vectors, :func:`weight_basis`) and its expectation per column and unit noise variance, ``sum_f omega_f
+    (1 - h_f)`` (``h_f = |U_f|^2`` the leverage). The common part of :func:`take_frame_noise` and
+    :func:`take_white_noise`."""
+    U = weight_basis(weights)[0]
+    explained = U.T @ rows                                                                # [r, m]
+    rss = float(np.einsum("fi,fi->", rows, rows) - np.einsum("ri,ri->", explained, explained))
+    om = np.asarray(omega, dtype=np.float64)
     dof = float(np.sum(om * np.clip(1.0 - np.einsum("fr,fr->f", U, U), 0.0, 1.0)))
-    if dof <= 0:
-        return float("nan")
-    return max(rss, 0.0) / (R.shape[1] * dof)
+    return max(rss, 0.0), dof
 
 
 def take_white_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray, triangles) -> float:
@@ -374,25 +380,19 @@ def take_white_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray
     of freedom left."""
     from ..mesh import uniform_laplacian
 
-    W = np.asarray(weights, dtype=np.float64)
-    F = len(W)
+    F = len(weights)
     off = np.asarray(offsets, dtype=np.float64)
-    om = np.asarray(omega, dtype=np.float64)
     if not F or not off.size:
         return float("nan")
     n = off.shape[1]
     lap = uniform_laplacian(np.asarray(triangles), n)
-    U, s, _ = np.linalg.svd(W, full_matrices=False)
-    U = U[:, s > (s[0] if len(s) else 0.0) * max(W.shape) * np.finfo(float).eps] if len(s) else U[:, :0]
     # L acts on the vertices, the projection on the frames: they commute, so the residual of the rough part
     rough = (lap @ off.transpose(1, 0, 2).reshape(n, -1)).reshape(n, F, 3).transpose(1, 0, 2).reshape(F, -1)
-    explained = U.T @ rough
-    rss = float(np.einsum("fi,fi->", rough, rough) - np.einsum("ri,ri->", explained, explained))
-    dof = float(np.sum(om * np.clip(1.0 - np.einsum("fr,fr->f", U, U), 0.0, 1.0)))
+    rss, dof = _unexplained(rough, weights, omega)
     trace = float(lap.multiply(lap).sum())
     if dof <= 0 or trace <= 0:
         return float("nan")
-    return max(rss, 0.0) / (3.0 * trace * dof)
+    return rss / (3.0 * trace * dof)
 
 
 def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:

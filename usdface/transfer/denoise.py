@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse import csgraph
 
 __all__ = ["SMOOTHING_GRID", "DENOISE_MAX_VERTICES", "denoise_personalization"]
 
@@ -43,8 +44,7 @@ def denoise_personalization(diff, triangles, variance,
     lam = np.zeros(n_shapes)
     if n_shapes == 0 or n > DENOISE_MAX_VERTICES or not np.any(var > 0):
         return d, lam
-    a = vertex_adjacency(np.asarray(triangles), n).astype(np.float64)
-    lap = (np.diag(np.asarray(a.sum(axis=1)).ravel()) - a.toarray())
+    lap = csgraph.laplacian(vertex_adjacency(np.asarray(triangles), n).astype(np.float64)).toarray()
     ev, u = np.linalg.eigh(lap)
     ev = np.clip(ev, 0.0, None)
     c = u.T @ d.transpose(1, 0, 2).reshape(n, -1)                            # [n, J*3] spectral coefficients
