@@ -12,7 +12,13 @@ to record them), so that the shapes it names are seen only beside others (the ca
 temporary folder, the avatar and truth the case's own). Any case ending in ``/weightsS``
 (``artist:31/weights0.9``, ``dev1/minus3/weights1.1``) is that case with every training weight the phone
 reported times ``S``, clipped to [0, 1]: a phone that under- or over-reports (docs/personalize.md, known
-gaps). The time table is for the bench cases only.
+gaps). A bench case ending in ``/templateSRC`` or ``/templateSRCxS`` (``dev1/template3``,
+``dev2/template3x0.5``, ``dev3/template1x-1``) is that case with its capture's template rig replaced by ``T +
+S (T_SRC - T)``, where ``T_SRC`` is bench case ``devSRC``'s template (the bench cases share the capture mesh
+and the template's neutral): S = 1 takes dev3's other-artist template for dev1's person, S = -1 an artist who
+departs from the avatar's generic shapes the other way; the person, frames and truth are the case's own, so
+the template is the only thing that changes (the hidden cases come with other templates). The time table is
+for the bench cases only.
 
 Prints two tables:
 1. accuracy (issue 10's figures, :mod:`usdface.transfer.scoring`): RMSE vs ``truth/avatar_truth.npz`` as a
@@ -132,11 +138,47 @@ def _weights(case: str) -> tuple[str, float] | None:
     return (base, factor) if sep and base and np.isfinite(factor) and factor > 0 else None
 
 
+def _template(case: str) -> tuple[str, str, float] | None:
+    """``("dev1", "dev3", 0.5)`` for ``"dev1/template3x0.5"`` (bench case dev1 with its capture template moved
+    half way to dev3's; ``"dev1/template3"``: all the way); None for any case without that ending, with a
+    source that is not a bench case name's number, or a factor that is not a finite number."""
+    base, sep, tail = case.rpartition("/template")
+    src, _, factor = tail.partition("x")
+    try:
+        s = float(factor) if factor else 1.0
+    except ValueError:
+        return None
+    return (base, f"dev{src}", s) if sep and base and src.isdigit() and np.isfinite(s) else None
+
+
+def swap_template(capture, source, factor: float):
+    """``capture`` with its template's deltas ``T + factor (T_source - T)``: ``source`` another capture of the
+    same mesh (its template's shapes matched by name, in any ARKit spelling); frames, neutral and names
+    unchanged (a new Capture). Raises ValueError when the meshes or the shapes differ."""
+    import dataclasses
+
+    from usdface.arkit import normalize_name
+
+    t, ts = capture.template, source.template
+    if t.deltas.shape[1:] != ts.deltas.shape[1:] or not np.allclose(t.neutral, ts.neutral, atol=1e-6):
+        raise ValueError("the two captures' templates are not on the same mesh")
+    where = {normalize_name(n): i for i, n in enumerate(ts.names)}
+    missing = [n for n in t.names if normalize_name(n) not in where]
+    if missing:
+        raise ValueError(f"the source template has no {', '.join(missing)}")
+    other = ts.deltas[[where[normalize_name(n)] for n in t.names]]
+    template = dataclasses.replace(t, deltas=t.deltas + factor * (other - t.deltas))
+    return dataclasses.replace(capture, template=template)
+
+
 def _known(case: str) -> bool:
     """Can :func:`_case` read ``case`` (the sample, a generated case, a bench case that is there, one missing
     frames, any of them with ``/weightsS``)?"""
     weights = _weights(case)
     c = weights[0] if weights else case
+    template = _template(c)
+    if template:
+        return all((BENCH / name).is_dir() for name in template[:2])
     return (c == "sample" or _generated(c) or (BENCH / c).is_dir()
             or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir()))
 
@@ -157,11 +199,19 @@ def scale_training_weights(capture, factor: float):
 
 def _case(case: str):
     """(avatar, capture, face[n], covered[n], truth {prim: [K,n,3]}) of a bench case, one missing frames
-    (:func:`_minus`) or the sample, or any of them with the phone's weights scaled (:func:`_weights`)."""
+    (:func:`_minus`) or the sample, or any of them with the phone's weights scaled (:func:`_weights`), or a
+    bench case with another template (:func:`_template`)."""
     weights = _weights(case)
     if weights:
         avatar, capture, face, covered, truth = _case(weights[0])
         return avatar, scale_training_weights(capture, weights[1]), face, covered, truth
+    template = _template(case)
+    if template:
+        from usdface.io import read_capture
+
+        avatar, capture, face, covered, truth = _case(template[0])
+        source = read_capture(BENCH / template[1] / "capture")
+        return avatar, swap_template(capture, source, template[2]), face, covered, truth
     import json
 
     from usdface.io import read_capture

@@ -65,3 +65,40 @@ def test_scaled_weights_change_the_training_frames_only_within_the_phones_range(
     assert out.frames.role == capture.frames.role and out.names == capture.names
     low = bench_personalize.scale_training_weights(capture, 0.5).frames.weights
     np.testing.assert_array_equal(low, [[0.475, 0.05], [0.25, 0.0], [0.9, 0.6]])
+
+
+def test_template_names_a_bench_case_a_source_and_a_factor():
+    assert bench_personalize._template("dev1/template3") == ("dev1", "dev3", 1.0)
+    assert bench_personalize._template("dev2/template3x0.5") == ("dev2", "dev3", 0.5)
+    assert bench_personalize._template("dev3/template1x-1") == ("dev3", "dev1", -1.0)
+    for other in ("dev1", "dev1/template", "dev1/templatex0.5", "dev1/template3xq", "/template3",
+                  "dev1/template3xnan", "dev1/templatea"):
+        assert bench_personalize._template(other) is None
+
+
+def test_swapped_template_moves_the_template_only_and_matches_names_in_any_spelling():
+    import numpy as np
+    import pytest
+
+    from usdface.model import Capture, FaceRig, Frames
+
+    tri = np.array([[0, 1, 2]])
+    pts = np.eye(3)
+    mine = np.arange(18, dtype=float).reshape(2, 3, 3)
+    theirs = -np.arange(18, dtype=float).reshape(2, 3, 3)
+    frames = Frames(np.stack([pts] * 2), np.array([[1.0, 0.0], [0.0, 1.0]]), ["train"] * 2, ["0_a", "1_b"])
+    capture = Capture(pts, tri, FaceRig(pts, tri, ["eyeBlinkLeft", "jawOpen"], mine), frames,
+                      ["eyeBlinkLeft", "jawOpen"])
+    # the source names the shapes in ARKit's raw spelling and in another order
+    source = Capture(pts, tri, FaceRig(pts, tri, ["jawOpen", "eyeBlink_L"], theirs[::-1]), frames,
+                     ["jawOpen", "eyeBlink_L"])
+    half = bench_personalize.swap_template(capture, source, 0.5)
+    np.testing.assert_allclose(half.template.deltas, np.zeros_like(mine))       # half way from x to -x
+    np.testing.assert_array_equal(bench_personalize.swap_template(capture, source, 1.0).template.deltas,
+                                  theirs)
+    np.testing.assert_array_equal(capture.template.deltas, mine)                # the input is not changed
+    assert half.frames is capture.frames and half.names == capture.names
+    other_mesh = Capture(pts * 2, tri, FaceRig(pts * 2, tri, ["jawOpen", "eyeBlink_L"], theirs), frames,
+                         ["jawOpen", "eyeBlink_L"])
+    with pytest.raises(ValueError, match="same mesh"):
+        bench_personalize.swap_template(capture, other_mesh, 1.0)
