@@ -231,3 +231,36 @@ def test_choose_source_ranks_as_the_registration_does():
     # a lower residual over fewer of the vertices is no closer face
     assert choose_source(t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.9)))[0] == "template"
     assert choose_source(t, (np.zeros((3, 3)), reg(0.4e-3, fitness=0.996)))[0] == "person"
+
+
+def test_a_template_near_the_person_does_not_hide_the_person(samples):
+    """The implant carries each shape's change from the fit's prior, so the prior is its reference. Before
+    stop 47 the fit's cross-validation could take the capture's template as the prior, and a template that
+    already holds part of the person then hid that part from the avatar: with the sample's template moved
+    half way to the person's true shapes the face error went from 0.25 to ~0.6 of the generic's, the
+    better the template the worse the avatar. The prior is now the avatar's own shapes: a template nearer
+    the person changes the result by little either way."""
+    import dataclasses
+
+    from usdface.io import read_capture
+    from usdface.io.usd_rig import read_avatar
+    from usdface.transfer import personalize_avatar
+    from usdface.transfer.scoring import score_mesh
+
+    avatar = read_avatar(samples / "avatar.usda")
+    capture = read_capture(samples / "capture.usda")
+    ct = np.load(samples / "truth" / "capture_truth.npz")
+    names = [str(n) for n in ct["names"]]
+    person = ct["deltas"][[names.index(n) for n in capture.template.names]]
+    npz = np.load(samples / "truth" / "avatar_truth.npz")
+    head = avatar.mesh("Head")
+    truth = np.array([npz[f"Head/{n}"] for n in head.names]) @ head.source.to_internal[:3, :3].T
+    ratios = []
+    own = capture.template.deltas
+    for share in (0.0, 0.5):
+        template = dataclasses.replace(capture.template, deltas=own + share * (person - own))
+        res = personalize_avatar(avatar, dataclasses.replace(capture, template=template), None)
+        assert set(res.report["fit"]["prior_choice"]) == {"avatar"}
+        ratios.append(score_mesh(head.names, head.deltas, res.offsets[head.source.prim], truth).whole_ratio)
+    assert ratios[0] < 0.35, ratios
+    assert ratios[1] < ratios[0] + 0.05, ratios          # before: 0.27 -> 0.6

@@ -1012,8 +1012,10 @@ def _choose_priors(capture, generic, avatar, avatar_ok, lam, alpha, info, timing
     standard error (the rule before stop 45) still flipped: 2 of 13 generated takes crossed it by chance
     (1.36 and 1.47 standard errors; the avatar's face error 1.95x and 1.20x generic, stop 45). On a capture
     of a few dozen frames the plain comparison stands: there a template that is the avatar's own rig wins by
-    0.5-1 standard error and is the better reference (no correspondence error), measured on the sample and
-    generated cases."""
+    0.5-1 standard error and is the better fit (no correspondence error), measured on the sample and
+    generated cases. ``usdface personalize`` no longer asks (stop 47): there the prior is also the implant's
+    reference, and a template that wins because it holds part of the person hides that part from the avatar
+    (:func:`usdface.transfer.options.fit_prior_options`)."""
     t1 = time.perf_counter()
     cv = info["crossval"]
     pf, cand = cv["fit"], cv["vertices"]

@@ -212,12 +212,19 @@ def pins_input(pins, capture_source) -> list[str]:
 
 def fit_prior_options(prior: str, method: str, reg) -> dict:
     """The fit's prior options for personalize's ``prior``: with ``"avatar"`` (menzel / laplacian) the
-    avatar's own shapes on the capture are given, chosen among the priors by cross-validation with
-    ``reg="auto"`` and used as the prior with any other ``reg``; ``{"avatar_prior": True}`` marks that."""
+    avatar's own shapes on the capture are given and are the prior at every ``reg`` (``"auto"`` chooses the
+    regularization's weight for that prior).
+
+    Not chosen among the priors by cross-validation (as before stop 47; the fit API still offers that with
+    ``prior="auto"``): the implant carries each shape's change from the prior the fit shrank towards
+    (``A_j + c_j M (B_j - P_j)``), so the prior is also the implant's reference. A template prior that wins
+    the fit's held-out score does so because it already holds part of the person; that part is then not in
+    ``B_j - P_j`` and never reaches the avatar. With the template a quarter of the way from the capture's
+    own to the person's true shapes, dev1's face went 0.29 -> 0.42 of the generic's error (dev2 half way:
+    0.85 -> 0.97); with the avatar prior 0.28 and 0.85 (docs/personalize.md, step 4)."""
     if prior != "avatar" or method not in ("menzel", "laplacian"):
         return {}
-    return {"avatar_prior": True} if isinstance(reg, str) and reg == "auto" else {"avatar_prior": True,
-                                                                                  "prior": "avatar"}
+    return {"avatar_prior": True, "prior": "avatar"}
 
 
 def run_options(*, method: str, reg, mu, weight_bounds, map_prior: str, face_transfer: str,
