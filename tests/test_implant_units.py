@@ -159,8 +159,9 @@ def test_the_field_is_measured_just_past_the_capture_border():
     next one just past it is left out of the face (clamped onto the border). A raise that grows towards the
     border was carried beyond from that last vertex (one-sided), lower than what the capture measured at its
     border: the error stepped across the rim. The avatar vertices within one capture edge past the border
-    now measure the field from the capture's value there (:func:`border_reach`), averaged along the border
-    and shrunk only for the share the capture does not measure; the face region's result is unchanged."""
+    now measure the field from the capture's value there (:func:`border_reach`), averaged with the face's
+    values and shrunk only for the share not measured past the border; the face region's result is
+    unchanged, and a border weight nowhere above the face weight changes nothing."""
     from usdface.transfer.correspond import border_reach, correspondence_map
     from usdface.transfer.implant import extend_personalization
     from usdface.transfer.scoring import border_band_edges, seam_jump
@@ -212,6 +213,9 @@ def test_the_field_is_measured_just_past_the_capture_border():
     deep = (x < 0.0455 - 0.0165) & (av[:, 1] < 0.1 - 0.0165)
     np.testing.assert_array_equal(after[:, deep], before[:, deep])
     np.testing.assert_array_equal(after[:, deep], person[:, deep])
+    below, _ = extend_personalization(av, atri, generic, person, corr.weight,
+                                      border_weight=np.minimum(reach, corr.weight), **kw)
+    np.testing.assert_array_equal(below, before)
 
 
 def test_the_face_carries_the_persons_change_from_the_prior():

@@ -291,12 +291,12 @@ def border_reach(corr: Correspondence, capture_triangles, avatar_points, avatar_
                  max_angle_deg: float = 60.0) -> np.ndarray:
     """``[m]`` in [0,1): how well the capture's value at its border measures each avatar vertex just past
     it - the vertices :func:`correspondence_map` leaves out of the face because their closest point is
-    clamped onto the capture's border: ``1 - d / e`` (smooth, :func:`ramp_down`) for a vertex ``d`` metres
-    from its closest point, ``e`` one registered capture edge (the resolution the capture measures at),
-    times the normal test; 0 elsewhere (on the surface, or without ``corr.registered``). A value at the
-    border stands for the skin around it over the capture's resolution: a raise that keeps growing past
-    the border is measured there, not only at the last avatar vertex inside it (up to one avatar edge
-    further in). Where the face region already has a weight, the larger of the two measures the field."""
+    clamped onto the capture's border, as far as its border test leaves them out (the same ramp, 0.02-0.08
+    capture edge): ``1 - d / e`` (smooth, :func:`ramp_down`) for a vertex ``d`` metres from its closest
+    point, ``e`` one registered capture edge (the resolution the capture measures at), times the normal
+    test; 0 elsewhere (on the surface, or without ``corr.registered``). A value at the border stands for the
+    skin around it over the capture's resolution: a raise that keeps growing past the border is measured
+    there, not only at the last avatar vertex inside it (up to one avatar edge further in)."""
     reg = corr.registered
     ctri = np.asarray(capture_triangles)
     m = len(corr.triangle)
@@ -306,7 +306,9 @@ def border_reach(corr: Correspondence, capture_triangles, avatar_points, avatar_
     edge = mean_edge_length(reg, ctri)
     tri, bary = np.asarray(corr.triangle), np.asarray(corr.barycentric, dtype=np.float64)
     near = _on_border(ctri, len(reg), tri, bary)
-    out = near * ramp_down(np.asarray(corr.distance, dtype=np.float64), 0.0, edge)
+    dist = np.asarray(corr.distance, dtype=np.float64)
+    # where the face's border test (:func:`correspondence_map`) takes the vertex out, and as far as it does
+    out = near * ramp_up(dist, 0.02 * edge, 0.08 * edge) * ramp_down(dist, 0.0, edge)
     sel = np.flatnonzero(out > 0)
     if sel.size:
         an = vertex_normals(np.asarray(avatar_points, dtype=np.float64), avatar_triangles)[sel]

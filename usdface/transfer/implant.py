@@ -268,14 +268,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
 
     ``border_weight[m]`` in [0,1) (optional; :func:`usdface.transfer.correspond.border_reach`): the vertices
     just past the capture's border whose ``person`` offsets hold the capture's value at the border, and how
-    well that value measures them. Beyond the face (not in the sockets behind its holes, which the lips and
-    lids around them fill) the field is measured there too, with that confidence where it exceeds the face
-    weight: held by the rim's data term, averaged over its patch with the other values measured past the
-    border only (the face's inside would pull it inwards: the one-sided average at the rim), and shrunk by
-    its reliability for the share ``1 - weight`` of it that the capture does not measure. The result there
-    stays the field's (the face region and its join are the face weight's). A raise that keeps growing
-    towards the capture's border is then carried beyond from what the capture measured there, not from the
-    last avatar vertex inside it, up to one avatar edge further in.
+    well that value measures them (``r``). Beyond the face (not in the sockets behind its holes, which the
+    lips and lids around them fill) the field is measured there too, with the confidence ``max(w, r)``
+    (``w`` the face weight); the share of it from past the border, ``q = (r - w) / (1 - w)`` where ``r >
+    w``, is averaged with the face's values at ``1 - q`` only (in full they would make the rim's one-sided
+    average again) and shrunk by its reliability for its share ``1 - q`` only (a value the capture measures
+    there is not extrapolated); all continuous in ``w`` and ``r``. The result there stays the field's (the
+    face region and its join are the face weight's). A raise that keeps growing towards the capture's
+    border is then carried beyond from what the capture measured there, not from the last avatar vertex
+    inside it, up to one avatar edge further in.
 
     On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
     solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
@@ -310,15 +311,20 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
     adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
     in_pocket = None
-    past = np.zeros(domain.size, dtype=bool)         # measured past the capture's border (beyond the face)
+    # the share of each vertex's measurement that comes from past the capture's border (beyond the face):
+    # qb = (r - w) / (1 - w) where the border's confidence r exceeds the face weight w, so the confidence
+    # max(w, r) = w + qb (1 - w) and everything below is continuous in both
+    qb = np.zeros(domain.size)
     if border_weight is not None and len(sub_tri) and known.any():
         r = np.clip(np.asarray(border_weight, dtype=np.float64)[domain], 0.0, 1.0 - 1e-6)
         if (r > s).any():
             fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
             in_pocket = pockets(sub_tri, known, fine_mass, adjacency=adjacency)
             del fine_mass
-            past = (r > s) & ~known & ~in_pocket
-            s = np.where(past, r, s)
+            over = (r > s) & ~known & ~in_pocket
+            qb[over] = (r[over] - s[over]) / (1.0 - s[over])
+            s = np.where(over, r, s)
+    past = qb > 0.0
     if len(sub_tri):
         from ..mesh import mean_edge_length
 
@@ -374,8 +380,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # how much of the reliability shrink applies: 1 beyond the face, ramping to 0 over the band inside it
     # (and 0 around the sockets: their values are surrounded by the capture and not extrapolated)
     toward = 1.0 - seam_ramp(x, (~beyond).astype(np.float64), band) if shrink else np.zeros(domain.size)
-    # past the border, the share of the value the capture measures is not extrapolated: shrunk for the rest
-    toward[past] = np.minimum(toward[past], 1.0 - s[past])
+    # past the border, the share of the value the capture measures there is not extrapolated: shrunk for
+    # the rest
+    toward[past] = np.minimum(toward[past], 1.0 - qb[past])
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
     if proxy is None:
@@ -397,12 +404,14 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # the same sums as on the whole mesh
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows, adjacency=adjacency).tocsc()
     if past.any():
-        # a value measured past the border is averaged with the others measured there only: with the face's
-        # (up to one avatar edge further in, on one side) it would be the rim's one-sided average again
+        # a value measured past the border is averaged with the others measured there: with the face's (up to
+        # one avatar edge further in, on one side) it would be the rim's one-sided average again. Row i
+        # takes column j at 1 - q_i (1 - q_j): the face's values by the share not measured past the border
         e = smoother.tocoo()
-        hold = ~past[rows[e.row]] | past[e.col]
-        smoother = sp.csc_matrix((e.data[hold], (e.row[hold], e.col[hold])), shape=e.shape)
-        del e, hold
+        share = 1.0 - qb[rows[e.row]] * (1.0 - qb[e.col])
+        hold = share > 0.0
+        smoother = sp.csc_matrix((share[hold], (e.row[hold], e.col[hold])), shape=e.shape)
+        del e, hold, share
     del adjacency
     reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
     smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk
