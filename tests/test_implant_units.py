@@ -153,6 +153,71 @@ def test_a_mesh_as_coarse_as_the_capture_averages_the_field_over_one_ring():
                   <= np.linalg.norm((generic - truth)[0, beyond], axis=-1) + 1e-12)
 
 
+def test_the_field_is_measured_just_past_the_capture_border():
+    """Stop 47 (generated artist:111, noisy:111, artist:106's brow seams): on an avatar coarser than the
+    capture, the last avatar vertex inside the capture lies up to one avatar edge inside its border, and the
+    next one just past it is left out of the face (clamped onto the border). A raise that grows towards the
+    border was carried beyond from that last vertex (one-sided), lower than what the capture measured at its
+    border: the error stepped across the rim. The avatar vertices within one capture edge past the border
+    now measure the field from the capture's value there (:func:`border_reach`), averaged with the face's
+    values and shrunk only for the share not measured past the border; the face region's result is
+    unchanged, and a border weight nowhere above the face weight changes nothing."""
+    from usdface.transfer.correspond import border_reach, correspondence_map
+    from usdface.transfer.implant import extend_personalization
+    from usdface.transfer.scoring import border_band_edges, seam_jump
+    from usdface.transfer.surface import mean_edge_length
+
+    def grid(nx, ny, sx, sy):
+        xs, ys = np.meshgrid(np.linspace(0.0, sx, nx), np.linspace(0.0, sy, ny))
+        return np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), grid_triangles(nx, ny)
+
+    cap, ctri = grid(11, 21, 0.05, 0.1)           # 5 mm edges, its border at x = 50 mm
+    av, atri = grid(17, 17, 0.104, 0.104)         # 6.5 mm: the last column inside at 45.5 mm, the next at 52
+    corr = correspondence_map(cap, ctri, av, atri, source_triangles=False)
+    corr.registered = cap
+    reach = border_reach(corr, ctri, av, atri)
+    x = av[:, 0]
+    # the rows along the border (the first lies on the capture's other border, the last 4 mm past it)
+    along = (av[:, 1] > 0.0) & (av[:, 1] < 0.1)
+    inside, past = np.isclose(x, 0.0455) & along, np.isclose(x, 0.052) & along
+    assert np.all(corr.weight[inside] == 1.0) and np.all(corr.weight[past] == 0.0)
+    # 2 mm past the border, t = 2 mm / the capture's mean edge: 1 - t^2 (3 - 2 t); inside the capture and
+    # one edge past it, 0
+    t = 0.002 / mean_edge_length(cap, ctri)
+    np.testing.assert_allclose(reach[past], 1.0 - t * t * (3.0 - 2.0 * t), rtol=1e-6)
+    assert not reach[(x > 0.0) & (x < 0.05) & along].any() and not reach[x > 0.055].any()
+
+    def generic_of(p):                            # fades beyond 40 mm (as a brow raise up the forehead)
+        return (np.clip(1.0 - (p[:, 0] - 0.04) / 0.08, 0.2, 1.0)[:, None] * [0.0, 0.0, 0.004])[None]
+
+    def truth_of(p):                              # the person's raise grows towards the border and past it
+        return generic_of(p) * (1.0 + 15.0 * np.maximum(p[:, 0] - 0.02, 0.0))[None, :, None]
+
+    generic, truth = generic_of(av), truth_of(av)
+    rows = np.flatnonzero(corr.face | (reach > 0))  # the capture's change, read where it is measured
+    person = generic.copy()
+    person[:, rows] += corr.apply(truth_of(cap) - generic_of(cap), ctri, rows=rows)
+    kw = dict(length=0.05, band=0.01, smoothing=0.005)
+    before, _ = extend_personalization(av, atri, generic, person, corr.weight, **kw)
+    after, _ = extend_personalization(av, atri, generic, person, corr.weight, border_weight=reach, **kw)
+    band = border_band_edges(atri, x <= 0.0525, 2)  # covered: within half a capture edge of it
+    seam_before, seam_after = seam_jump(before - truth, band), seam_jump(after - truth, band)
+    assert seam_after < 0.75 * seam_before        # measured 0.49 against 0.77 mm (the generic's 0.21)
+    error_before, error_after = (np.linalg.norm((o - truth)[0, past], axis=-1) for o in (before, after))
+    assert np.all(error_after < 0.75 * error_before)
+    # beyond the face the output stays nearer the person than the generic; the face away from its join (the
+    # band and the one ring the rim's field is averaged over) is the person's, as before, to the bit
+    beyond = x > 0.046
+    assert np.all(np.linalg.norm((after - truth)[0, beyond], axis=-1)
+                  <= np.linalg.norm((generic - truth)[0, beyond], axis=-1))
+    deep = (x < 0.0455 - 0.0165) & (av[:, 1] < 0.1 - 0.0165)
+    np.testing.assert_array_equal(after[:, deep], before[:, deep])
+    np.testing.assert_array_equal(after[:, deep], person[:, deep])
+    below, _ = extend_personalization(av, atri, generic, person, corr.weight,
+                                      border_weight=np.minimum(reach, corr.weight), **kw)
+    np.testing.assert_array_equal(below, before)
+
+
 def test_the_face_carries_the_persons_change_from_the_prior():
     """``M (B_j - P_j)``: through a correspondence of the capture onto itself it is the person's change from
     the prior, to the bit where both shapes move (the support is 1), on any subset of the rows."""

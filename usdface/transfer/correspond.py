@@ -38,7 +38,7 @@ from .surface import (
 )
 
 __all__ = ["Correspondence", "PosedSurface", "nonrigid_register", "correspondence_map", "geometry_digest",
-           "save_correspondence", "load_correspondence", "ramp_down", "ramp_up"]
+           "save_correspondence", "load_correspondence", "ramp_down", "ramp_up", "border_reach"]
 
 CACHE_VERSION = 6
 
@@ -234,29 +234,15 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     # the poses are searched only for vertices the distance test can keep (weight 0 beyond 1.3 x limit)
     tri, bary, _, dist = surface.closest_points(ap, [np.asarray(p[1], dtype=np.float64) for p in poses or ()],
                                                 within=1.3 * limit)
-    an = vertex_normals(ap, avatar_triangles)
-    # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
-    # triangle normal would jump when the closest point moves over a crease)
-    cn = np.einsum("mk,mkc->mc", bary, vertex_normals(reg, ctri)[ctri[tri]])
-    cn /= np.maximum(vector_lengths(cn)[:, None], 1e-300)
-    cosang = np.einsum("ij,ij->i", an, cn)
     # Every test is a ramp rather than a cut, so that the region (and the result) changes continuously with
     # the input: a float32 re-export of the avatar moves vertices by ~1e-7 m and must not flip any of them.
     w_dist = ramp_down(dist, 0.7 * limit, 1.3 * limit)
-    w_normal = ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
+    w_normal = _facing(reg, ctri, tri, bary, vertex_normals(ap, avatar_triangles), max_angle_deg)
     weight = w_dist * w_normal
     if exclude_border:
         # Clamped onto the capture's border (open border, eye and mouth holes): the closest point is on a
         # border edge (opposite barycentric ~0) or a border vertex, and the avatar vertex is off the surface.
-        border = boundary_vertices(ctri, len(reg))
-        corners = ctri[tri]
-        near_border = np.zeros(len(ap))
-        for k in range(3):
-            a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
-            on_border_edge = (border[a] & border[b]) * ramp_down(bary[:, k], 5e-4, 2e-3)
-            near_border = np.maximum(near_border, on_border_edge)
-        vtx = corners[np.arange(len(ap)), np.argmax(bary, axis=1)]
-        near_border = np.maximum(near_border, border[vtx] * ramp_up(bary.max(axis=1), 1 - 2e-3, 1 - 5e-4))
+        near_border = _on_border(ctri, len(reg), tri, bary)
         weight = weight * (1.0 - near_border * ramp_up(dist, 0.02 * edge, 0.08 * edge))
     if candidates is not None:
         weight = weight * np.asarray(candidates, dtype=bool)
@@ -271,6 +257,63 @@ def correspondence_map(registered, capture_triangles, avatar_points, avatar_tria
     info = {"face_vertices": int(face.sum()), "capture_mean_edge_m": edge,
             "face_rms_distance_m": float(np.sqrt(np.mean(dist[face] ** 2))) if face.any() else None}
     return Correspondence(tri, bary, dist, face, src_tri, weight=weight, info=info)
+
+
+def _facing(registered, capture_triangles, tri, bary, an, max_angle_deg: float) -> np.ndarray:
+    """``[m]`` in [0,1]: the normal test of :func:`correspondence_map` - the avatar vertex normals ``an[m,3]``
+    against the capture's at the closest points ``(tri[m], bary[m,3])`` on ``registered``, a smooth ramp 10
+    degrees wide around ``max_angle_deg``."""
+    ctri = np.asarray(capture_triangles)
+    # capture normal at the closest point, interpolated from vertex normals: continuous across edges (a
+    # triangle normal would jump when the closest point moves over a crease)
+    cn = np.einsum("mk,mkc->mc", bary, vertex_normals(registered, ctri)[ctri[tri]])
+    cn /= np.maximum(vector_lengths(cn)[:, None], 1e-300)
+    cosang = np.einsum("ij,ij->i", an, cn)
+    return ramp_up(cosang, np.cos(np.deg2rad(max_angle_deg + 5)), np.cos(np.deg2rad(max_angle_deg - 5)))
+
+
+def _on_border(capture_triangles, n_capture: int, tri, bary) -> np.ndarray:
+    """``[m]`` in [0,1]: the closest point ``(tri[m], bary[m,3])`` lies on a border edge of the capture
+    (opposite barycentric ~0) or at a border vertex (open border, eye and mouth holes): smooth ramps."""
+    ctri = np.asarray(capture_triangles)
+    border = boundary_vertices(ctri, n_capture)
+    corners = ctri[tri]
+    near_border = np.zeros(len(tri))
+    for k in range(3):
+        a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+        on_border_edge = (border[a] & border[b]) * ramp_down(bary[:, k], 5e-4, 2e-3)
+        near_border = np.maximum(near_border, on_border_edge)
+    vtx = corners[np.arange(len(tri)), np.argmax(bary, axis=1)]
+    return np.maximum(near_border, border[vtx] * ramp_up(bary.max(axis=1), 1 - 2e-3, 1 - 5e-4))
+
+
+def border_reach(corr: Correspondence, capture_triangles, avatar_points, avatar_triangles, *,
+                 max_angle_deg: float = 60.0) -> np.ndarray:
+    """``[m]`` in [0,1): how well the capture's value at its border measures each avatar vertex just past
+    it - the vertices :func:`correspondence_map` leaves out of the face because their closest point is
+    clamped onto the capture's border, as far as its border test leaves them out (the same ramp, 0.02-0.08
+    capture edge): ``1 - d / e`` (smooth, :func:`ramp_down`) for a vertex ``d`` metres from its closest
+    point, ``e`` one registered capture edge (the resolution the capture measures at), times the normal
+    test; 0 elsewhere (on the surface, or without ``corr.registered``). A value at the border stands for the
+    skin around it over the capture's resolution: a raise that keeps growing past the border is measured
+    there, not only at the last avatar vertex inside it (up to one avatar edge further in)."""
+    reg = corr.registered
+    ctri = np.asarray(capture_triangles)
+    m = len(corr.triangle)
+    if reg is None or not len(reg) or not m:
+        return np.zeros(m)
+    reg = np.asarray(reg, dtype=np.float64)
+    edge = mean_edge_length(reg, ctri)
+    tri, bary = np.asarray(corr.triangle), np.asarray(corr.barycentric, dtype=np.float64)
+    near = _on_border(ctri, len(reg), tri, bary)
+    dist = np.asarray(corr.distance, dtype=np.float64)
+    # where the face's border test (:func:`correspondence_map`) takes the vertex out, and as far as it does
+    out = near * ramp_up(dist, 0.02 * edge, 0.08 * edge) * ramp_down(dist, 0.0, edge)
+    sel = np.flatnonzero(out > 0)
+    if sel.size:
+        an = vertex_normals(np.asarray(avatar_points, dtype=np.float64), avatar_triangles)[sel]
+        out[sel] *= _facing(reg, ctri, tri[sel], bary[sel], an, max_angle_deg)
+    return np.minimum(out, 1.0 - 1e-6)
 
 
 def ramp_down(x, lo, hi, *, overwrite: bool = False):

@@ -239,7 +239,8 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
 
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
                            band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
-                           out=None, overwrite: bool = False, shrink: bool = True, peak=None):
+                           out=None, overwrite: bool = False, shrink: bool = True, peak=None,
+                           border_weight=None):
     """The person's motion on the whole mesh from the face region's.
 
     ``generic[J,m,3]`` the avatar's shapes, ``person[J,m,3]`` the personalized shapes (meaningful where
@@ -264,6 +265,18 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     to hold the result, which may be ``person`` itself (each chunk of shapes is read before it is written):
     one ``[J,m,3]`` array fewer; ``overwrite``: the result written over ``person`` (the same). ``peak[m]``:
     :func:`usdface.motion.peak_motion` of ``generic`` when the caller has it.
+
+    ``border_weight[m]`` in [0,1) (optional; :func:`usdface.transfer.correspond.border_reach`): the vertices
+    just past the capture's border whose ``person`` offsets hold the capture's value at the border, and how
+    well that value measures them (``r``). Beyond the face (not in the sockets behind its holes, which the
+    lips and lids around them fill) the field is measured there too, with the confidence ``max(w, r)``
+    (``w`` the face weight); the share of it from past the border, ``q = (r - w) / (1 - w)`` where ``r >
+    w``, is averaged with the face's values at ``1 - q`` only (in full they would make the rim's one-sided
+    average again) and shrunk by its reliability for its share ``1 - q`` only (a value the capture measures
+    there is not extrapolated); all continuous in ``w`` and ``r``. The result there stays the field's (the
+    face region and its join are the face weight's). A raise that keeps growing towards the capture's
+    border is then carried beyond from what the capture measured there, not from the last avatar vertex
+    inside it, up to one avatar edge further in.
 
     On a mesh that resolves ``smoothing`` with :data:`PROXY_MIN_RINGS` or more edge rings, the extension is
     solved on a proxy of the mesh decimated to a third of it (:class:`FieldProxy`: the cost of the solve and
@@ -295,6 +308,23 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     known = s >= 1.0 - 1e-9
     w = seam_ramp(points, w0, band)[domain]
     data = None
+    # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
+    adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
+    in_pocket = None
+    # the share of each vertex's measurement that comes from past the capture's border (beyond the face):
+    # qb = (r - w) / (1 - w) where the border's confidence r exceeds the face weight w, so the confidence
+    # max(w, r) = w + qb (1 - w) and everything below is continuous in both
+    qb = np.zeros(domain.size)
+    if border_weight is not None and len(sub_tri) and known.any():
+        r = np.clip(np.asarray(border_weight, dtype=np.float64)[domain], 0.0, 1.0 - 1e-6)
+        if (r > s).any():
+            fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
+            in_pocket = pockets(sub_tri, known, fine_mass, adjacency=adjacency)
+            del fine_mass
+            over = (r > s) & ~known & ~in_pocket
+            qb[over] = (r[over] - s[over]) / (1.0 - s[over])
+            s = np.where(over, r, s)
+    past = qb > 0.0
     if len(sub_tri):
         from ..mesh import mean_edge_length
 
@@ -313,17 +343,18 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         soft = np.zeros(domain.size, dtype=bool)
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
-    # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
-    adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
     if proxy is None:
-        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency)
+        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency,
+                             in_pocket=in_pocket)
         beyond, mass = ext.beyond, ext.mass
     else:
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
         # face's rim and what lies beyond)
-        fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
-        beyond = ~known & ~pockets(sub_tri, known, fine_mass, adjacency=adjacency)
-        del fine_mass
+        if in_pocket is None:
+            fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
+            in_pocket = pockets(sub_tri, known, fine_mass, adjacency=adjacency)
+            del fine_mass
+        beyond = ~known & ~in_pocket
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
                              in_pocket=~(known | beyond)[proxy.fine],
                              data=None if data is None else data[proxy.fine])
@@ -349,6 +380,9 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # how much of the reliability shrink applies: 1 beyond the face, ramping to 0 over the band inside it
     # (and 0 around the sockets: their values are surrounded by the capture and not extrapolated)
     toward = 1.0 - seam_ramp(x, (~beyond).astype(np.float64), band) if shrink else np.zeros(domain.size)
+    # past the border, the share of the value the capture measures there is not extrapolated: shrunk for
+    # the rest
+    toward[past] = np.minimum(toward[past], 1.0 - qb[past])
     # the measured field is used only where the extension reads it (known vertices next to unknown ones),
     # where the result blends it in (the join) and where other meshes follow it: smoothed only there
     if proxy is None:
@@ -369,6 +403,15 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     # the smoothing on the vertices it reads only (the columns of its rows' neighbourhoods), in their order:
     # the same sums as on the whole mesh
     smoother = neighbourhood_matrix(sub_tri, domain.size, rings, rows, adjacency=adjacency).tocsc()
+    if past.any():
+        # a value measured past the border is averaged with the others measured there: with the face's (up to
+        # one avatar edge further in, on one side) it would be the rim's one-sided average again. Row i
+        # takes column j at 1 - q_i (1 - q_j): the face's values by the share not measured past the border
+        e = smoother.tocoo()
+        share = 1.0 - qb[rows[e.row]] * (1.0 - qb[e.col])
+        hold = share > 0.0
+        smoother = sp.csc_matrix((share[hold], (e.row[hold], e.col[hold])), shape=e.shape)
+        del e, hold, share
     del adjacency
     reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
     smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk

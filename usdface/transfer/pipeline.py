@@ -36,7 +36,7 @@ from ..personalize.api import single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
-from .correspond import save_correspondence
+from .correspond import border_reach, save_correspondence
 from .denoise import denoise_personalization
 from .eyelids import find_eyeballs, repair_eyelids
 from .face_map import (
@@ -978,7 +978,12 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
     weight = corr.weight if corr.weight is not None else corr.face.astype(float)
     # where the mapped template and the avatar disagree on what a semantic shape moves (a lid or a
     # lip on the other side), the capture is not trusted: the field from the neighbours fills in
-    weight = weight * ~dilate(disagree, face.triangles, 2)
+    trusted = ~dilate(disagree, face.triangles, 2)
+    weight = weight * trusted
+    # the avatar vertices just past the capture's border (within one capture edge), where its value at the
+    # border still measures the person's motion: the field is measured there too (the result there stays the
+    # field's; the face region and its join are unchanged)
+    border = border_reach(corr, capture.triangles, face.neutral, face.triangles) * trusted
     radius = face_radius(face.neutral[weight >= 1.0 - 1e-9])
     length = extension_length * radius if extension_length else None
     eyeballs_static = set((avatar.metadata.get("static_meshes") or {}).keys())
@@ -999,7 +1004,7 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
             """``A_j + c_j M s_j (B_j - P_j)`` on the face rows (a few shapes at a time), formed by
             the field once its extension is factorized (:func:`extend_personalization`)."""
             out = packed.expand() if packed is not None else _shape_deltas(face, names, view=True).copy()
-            rows = np.flatnonzero(f)
+            rows = np.flatnonzero(f | (border > 0))
             interpolation = corr.matrix(capture.triangles, person_deltas.shape[1], face_only=False, rows=rows)
             for lo in range(0, len(names), 8):
                 js = slice(lo, lo + 8)
@@ -1017,7 +1022,8 @@ def _implant_person(avatar, face, whole_face, generic_full, regions, capture, co
                                                _shape_deltas(face, names, view=True) if packed is None
                                                else packed, person_face, weight, length=length,
                                                band=SEAM_BAND * radius, smoothing=smoothing,
-                                               keep_at=keep_at, overwrite=True, peak=face_peak)
+                                               keep_at=keep_at, overwrite=True, peak=face_peak,
+                                               border_weight=border)
         packed = None                      # (person_face is not called again)
         release_free_memory()              # the field's freed working memory
     generic = _shape_deltas(face, names, view=True)       # the float64 generic offsets again, as read
