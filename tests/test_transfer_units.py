@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from region_cv import parabola_mu, region_errors
-from synthetic_meshes import identity_correspondence
+from synthetic_meshes import grid_triangles, identity_correspondence
 
 from usdface.errors import RegistrationError
 from usdface.transfer.correspond import (
@@ -15,6 +15,7 @@ from usdface.transfer.correspond import (
     save_correspondence,
 )
 from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
+from usdface.transfer.face_map import correspondence_semantics, opening_travel
 from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients, implant_shapes
 from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
 from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
@@ -1059,3 +1060,46 @@ def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch
     reg = register_face(pts, shapes, pts, shapes, avatar_triangles=tris, capture_triangles=tris)
     assert len(reg.target) > 100
     assert reg.target[:, 0].max() <= pts[left, 0].max() + 1e-12
+
+
+def _lids(rise):
+    """An eye's lids on a 6 x 6 grid (5 mm rows, y up; rows 0-2 the lower lid, 3-5 the upper, row 3 the
+    upper margin) mapped onto themselves, and a blink that moves the upper lid down 8 mm at its margin
+    (fading upwards) and the lower lid up by ``rise`` x 8 mm at its margin (row 2, fading downwards):
+    ``(points, triangles, deltas[6 x 6, 3])``."""
+    nx = 6
+    y = np.repeat(np.arange(6), nx) * 0.005
+    pts = np.stack([np.tile(np.arange(nx) * 0.005, 6), y, np.zeros_like(y)], axis=1)
+    row = np.repeat(np.arange(6), nx)
+    down = np.select([row == 3, row == 4, row == 5], [1.0, 0.7, 0.3], 0.0)
+    up = np.select([row == 2, row == 1], [rise, rise / 2], 0.0)
+    deltas = np.zeros_like(pts)
+    deltas[:, 1] = 0.008 * (up - down)
+    return pts, grid_triangles(nx, 6), deltas
+
+
+def test_side_swaps_tell_a_lid_by_its_travel_not_its_length():
+    """A lower lid mapped onto the lower lid of a template whose blink closes in the middle (its lower lid
+    rises 55 % as far as its upper lid falls) is on the right side: no swap (stop 47: artist:121's two lower
+    lid vertices were counted by their motion's length, 0.56 of the peak against the avatar's 0.03). A map
+    onto the wrong lid (every vertex taking the row across the eye's opening, mirrored) still counts, and only
+    there."""
+    pts, tri, avatar = _lids(0.02)                    # the avatar's lower lid barely moves
+    _, _, template = _lids(0.55)
+    corr = identity_correspondence(pts, tri)
+    same = Similarity()
+    figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], template[None], avatar[None],
+                                                 same)
+    assert figures["side_swaps"] == 0 and not disagree.any(), figures
+    # the travel: the upper margin travels the peak, the rising lower margin the other way
+    travel = opening_travel(template).reshape(6, 6)
+    assert np.allclose(travel[3], 0.008) and np.allclose(travel[2], -0.55 * 0.008)
+    # the wrong lid: each row takes the template motion of the row mirrored across the opening (0<->5,
+    # 1<->4, 2<->3): the avatar's upper lid on the template's rising lower lid and the avatar's lower lid on
+    # the template's upper lid; the rows whose travel is above half the peak on one side and below a fifth
+    # on the other (1-4; rows 0 and 5 travel 0 and 0.3) are the swaps
+    mirrored = template.reshape(6, 6, 3)[::-1].reshape(-1, 3)
+    figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], mirrored[None], avatar[None],
+                                                 same)
+    rows = np.flatnonzero(disagree.reshape(6, 6).any(axis=1))
+    assert figures["side_swaps_eyeBlinkLeft"] == 24 and list(rows) == [1, 2, 3, 4], (figures, rows)

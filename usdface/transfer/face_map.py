@@ -25,7 +25,8 @@ from .correspond import (
 from .register import register_face
 
 __all__ = ["SEMANTIC_SHAPES", "REACH", "semantic_poses", "pose_by_length", "cached_correspondence",
-           "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
+           "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics",
+           "opening_travel"]
 
 #: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
 SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
@@ -210,9 +211,17 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
                              *, moving: float = 0.1) -> dict:
     """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
     face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
-    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
-    more than half the peak on one rig and less than a fifth on the other. Returns ``(figures, swapped[m])``,
-    the second the face-mesh vertices of those swaps."""
+    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*.
+
+    A side is told by how far a point moves *the way the shape moves the opening* on its own rig: the
+    component of its motion along that rig's motion-weighted mean direction (:func:`opening_travel`), as a
+    share of the rig's largest (the lower lip and the upper lid travel about 1, the upper lip and the lower
+    lid about 0, or less: a lid that rises to meet the one that falls). A swap is an avatar face vertex that
+    travels more than half the peak on one rig and less than a fifth on the other: an avatar lower lip on the
+    capture's upper lip, an avatar lower lid on the capture's upper lid. Not the motion's length: a template
+    whose lower lid rises half as far as its upper lid falls (an artist's blink that closes in the middle)
+    moves its lower lid by half the peak too, and an avatar lower lid mapped onto it, the right lid, was
+    counted (stop 47). Returns ``(figures, swapped[m])``, the second the face-mesh vertices of those swaps."""
     f = np.flatnonzero(corr.face)
     sig_total, opposing, swaps = 0, 0, {}
     disagree = np.zeros(len(corr.face), dtype=bool)
@@ -220,17 +229,36 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
         if name not in names:
             continue
         j = names.index(name)
-        mt = corr.apply(transform.apply_vectors(template_deltas[j])[None], capture_triangles, rows=f)[0]
+        t = transform.apply_vectors(template_deltas[j])                              # [n,3] avatar frame
+        mt = corr.apply(t[None], capture_triangles, rows=f)[0]
         a = np.asarray(avatar_deltas[j])[f]
         na, nm = np.linalg.norm(a, axis=1), np.linalg.norm(mt, axis=1)
         pa = max(float(na.max()), 1e-300)
-        pm = max(float(np.linalg.norm(transform.apply_vectors(template_deltas[j]), axis=1).max()), 1e-300)
-        ra, rm = na / pa, nm / pm
-        sig = np.maximum(ra, rm) > moving
+        pm = max(float(np.linalg.norm(t, axis=1).max()), 1e-300)
+        sig = np.maximum(na / pa, nm / pm) > moving
         sig_total += int(sig.sum())
         opposing += int((sig & (np.einsum("ij,ij->i", a, mt) < 0)).sum())
+        ta, tt = opening_travel(a), opening_travel(t)
+        ra = ta / max(float(ta.max(initial=0.0)), 1e-300)
+        # the mapped template's travel: M is linear, so M (t . d_t) = (M t) . d_t
+        rm = corr.apply(tt[None, :, None], capture_triangles, rows=f)[0, :, 0] / max(float(tt.max()), 1e-300)
         swapped = ((ra > 0.5) & (rm < 0.2)) | ((ra < 0.2) & (rm > 0.5))
         swaps[name] = int(swapped.sum())
         disagree[f[swapped]] = True
     return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
             **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
+
+
+def opening_travel(deltas) -> np.ndarray:
+    """``[n]`` (the deltas' unit): each vertex's motion ``deltas[n,3]`` along the shape's motion-weighted mean
+    direction ``sum_i |d_i| d_i`` (normalised), the way the shape moves what it opens or shuts (``jawOpen``:
+    down, a blink: the upper lid down). The lower lip under ``jawOpen``, the upper lid under a blink travel
+    about the peak; the other lip or lid about 0, or less when it moves the other way. Zeros when nothing
+    moves."""
+    d = np.asarray(deltas, dtype=np.float64)
+    length = np.linalg.norm(d, axis=1)
+    direction = np.sum(d * length[:, None], axis=0)
+    size = float(np.linalg.norm(direction))
+    if size <= 0:
+        return np.zeros(len(d))
+    return d @ (direction / size)
