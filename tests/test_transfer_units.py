@@ -15,7 +15,7 @@ from usdface.transfer.correspond import (
     save_correspondence,
 )
 from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
-from usdface.transfer.face_map import correspondence_semantics, opening_travel
+from usdface.transfer.face_map import correspondence_semantics, opening_direction, opening_side
 from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients, implant_shapes
 from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
 from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
@@ -1078,28 +1078,35 @@ def _lids(rise):
     return pts, grid_triangles(nx, 6), deltas
 
 
-def test_side_swaps_tell_a_lid_by_its_travel_not_its_length():
+def test_side_swaps_tell_a_lid_by_the_side_it_moves_not_by_how_far():
     """A lower lid mapped onto the lower lid of a template whose blink closes in the middle (its lower lid
     rises 55 % as far as its upper lid falls) is on the right side: no swap (stop 47: artist:121's two lower
-    lid vertices were counted by their motion's length, 0.56 of the peak against the avatar's 0.03). A map
-    onto the wrong lid (every vertex taking the row across the eye's opening, mirrored) still counts, and only
+    lid vertices were counted by their motion's length, 0.56 of the peak against the avatar's 0.03). Nor is
+    an upper lid mapped onto a template upper lid pushed forward instead of down (artist:186). A map onto the
+    wrong lid (every vertex taking the row across the eye's opening, mirrored) still counts, and only
     there."""
     pts, tri, avatar = _lids(0.02)                    # the avatar's lower lid barely moves
     _, _, template = _lids(0.55)
     corr = identity_correspondence(pts, tri)
     same = Similarity()
-    figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], template[None], avatar[None],
-                                                 same)
-    assert figures["side_swaps"] == 0 and not disagree.any(), figures
-    # the travel: the upper margin travels the peak, the rising lower margin the other way
-    travel = opening_travel(template).reshape(6, 6)
-    assert np.allclose(travel[3], 0.008) and np.allclose(travel[2], -0.55 * 0.008)
+
+    def swaps(template_deltas):
+        figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], template_deltas[None],
+                                                     avatar[None], same)
+        return figures["side_swaps_eyeBlinkLeft"], np.flatnonzero(disagree.reshape(6, 6).any(axis=1))
+
+    assert swaps(template)[0] == 0
+    # the sides: the upper margin opens, the rising lower margin and the still rows are shut
+    opening, shut = opening_side(template / 0.008, opening_direction(avatar))
+    assert opening.reshape(6, 6)[3:5].all() and not opening.reshape(6, 6)[[0, 1, 2, 5]].any()
+    assert shut.reshape(6, 6)[:3].all() and not shut.reshape(6, 6)[3:5].any()
+    # the lid's second row pushed forward (z) as far as the avatar's moves it down: neither side, no swap
+    forward = template.copy().reshape(6, 6, 3)
+    forward[4] = [0.0, 0.0, 0.7 * 0.008]
+    assert swaps(forward.reshape(-1, 3))[0] == 0
     # the wrong lid: each row takes the template motion of the row mirrored across the opening (0<->5,
     # 1<->4, 2<->3): the avatar's upper lid on the template's rising lower lid and the avatar's lower lid on
-    # the template's upper lid; the rows whose travel is above half the peak on one side and below a fifth
-    # on the other (1-4; rows 0 and 5 travel 0 and 0.3) are the swaps
-    mirrored = template.reshape(6, 6, 3)[::-1].reshape(-1, 3)
-    figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], mirrored[None], avatar[None],
-                                                 same)
-    rows = np.flatnonzero(disagree.reshape(6, 6).any(axis=1))
-    assert figures["side_swaps_eyeBlinkLeft"] == 24 and list(rows) == [1, 2, 3, 4], (figures, rows)
+    # the template's upper lid; rows 1-4 open on one rig and shut on the other (rows 0 and 5: still, and
+    # 0.3 of the peak down, neither side) are the swaps
+    count, rows = swaps(template.reshape(6, 6, 3)[::-1].reshape(-1, 3))
+    assert count == 24 and list(rows) == [1, 2, 3, 4], (count, rows)
