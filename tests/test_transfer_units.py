@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from region_cv import parabola_mu, region_errors
-from synthetic_meshes import identity_correspondence
+from synthetic_meshes import grid_triangles, identity_correspondence
 
 from usdface.errors import RegistrationError
 from usdface.transfer.correspond import (
@@ -15,6 +15,7 @@ from usdface.transfer.correspond import (
     save_correspondence,
 )
 from usdface.transfer.eyelids import Eyeball, find_eyeballs, fit_sphere, repair_eyelids
+from usdface.transfer.face_map import correspondence_semantics, opening_direction, opening_side
 from usdface.transfer.partial_dt import blend_adjacent, deformation_gradients, implant_shapes
 from usdface.transfer.register import Similarity, register_face, similarity_from_pairs
 from usdface.transfer.retarget import retarget_weights, weight_map_csv, weight_map_json
@@ -1059,3 +1060,53 @@ def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch
     reg = register_face(pts, shapes, pts, shapes, avatar_triangles=tris, capture_triangles=tris)
     assert len(reg.target) > 100
     assert reg.target[:, 0].max() <= pts[left, 0].max() + 1e-12
+
+
+def _lids(rise):
+    """An eye's lids on a 6 x 6 grid (5 mm rows, y up; rows 0-2 the lower lid, 3-5 the upper, row 3 the
+    upper margin) mapped onto themselves, and a blink that moves the upper lid down 8 mm at its margin
+    (fading upwards) and the lower lid up by ``rise`` x 8 mm at its margin (row 2, fading downwards):
+    ``(points, triangles, deltas[6 x 6, 3])``."""
+    nx = 6
+    y = np.repeat(np.arange(6), nx) * 0.005
+    pts = np.stack([np.tile(np.arange(nx) * 0.005, 6), y, np.zeros_like(y)], axis=1)
+    row = np.repeat(np.arange(6), nx)
+    down = np.select([row == 3, row == 4, row == 5], [1.0, 0.7, 0.3], 0.0)
+    up = np.select([row == 2, row == 1], [rise, rise / 2], 0.0)
+    deltas = np.zeros_like(pts)
+    deltas[:, 1] = 0.008 * (up - down)
+    return pts, grid_triangles(nx, 6), deltas
+
+
+def test_side_swaps_tell_a_lid_by_the_side_it_moves_not_by_how_far():
+    """A lower lid mapped onto the lower lid of a template whose blink closes in the middle (its lower lid
+    rises 55 % as far as its upper lid falls) is on the right side: no swap (stop 47: artist:121's two lower
+    lid vertices were counted by their motion's length, 0.56 of the peak against the avatar's 0.03). Nor is
+    an upper lid mapped onto a template upper lid pushed forward instead of down (artist:186). A map onto the
+    wrong lid (every vertex taking the row across the eye's opening, mirrored) still counts, and only
+    there."""
+    pts, tri, avatar = _lids(0.02)                    # the avatar's lower lid barely moves
+    _, _, template = _lids(0.55)
+    corr = identity_correspondence(pts, tri)
+    same = Similarity()
+
+    def swaps(template_deltas):
+        figures, disagree = correspondence_semantics(corr, tri, ["eyeBlinkLeft"], template_deltas[None],
+                                                     avatar[None], same)
+        return figures["side_swaps_eyeBlinkLeft"], np.flatnonzero(disagree.reshape(6, 6).any(axis=1))
+
+    assert swaps(template)[0] == 0
+    # the sides: the upper margin opens, the rising lower margin and the still rows are shut
+    opening, shut = opening_side(template / 0.008, opening_direction(avatar))
+    assert opening.reshape(6, 6)[3:5].all() and not opening.reshape(6, 6)[[0, 1, 2, 5]].any()
+    assert shut.reshape(6, 6)[:3].all() and not shut.reshape(6, 6)[3:5].any()
+    # the lid's second row pushed forward (z) as far as the avatar's moves it down: neither side, no swap
+    forward = template.copy().reshape(6, 6, 3)
+    forward[4] = [0.0, 0.0, 0.7 * 0.008]
+    assert swaps(forward.reshape(-1, 3))[0] == 0
+    # the wrong lid: each row takes the template motion of the row mirrored across the opening (0<->5,
+    # 1<->4, 2<->3): the avatar's upper lid on the template's rising lower lid and the avatar's lower lid on
+    # the template's upper lid; rows 1-4 open on one rig and shut on the other (rows 0 and 5: still, and
+    # 0.3 of the peak down, neither side) are the swaps
+    count, rows = swaps(template.reshape(6, 6, 3)[::-1].reshape(-1, 3))
+    assert count == 24 and list(rows) == [1, 2, 3, 4], (count, rows)

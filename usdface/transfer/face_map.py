@@ -25,7 +25,8 @@ from .correspond import (
 from .register import register_face
 
 __all__ = ["SEMANTIC_SHAPES", "REACH", "semantic_poses", "pose_by_length", "cached_correspondence",
-           "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics"]
+           "choose_source", "reached_parts", "rough_placement", "corr_transform", "correspondence_semantics",
+           "opening_direction", "opening_side"]
 
 #: Shapes whose poses guide the correspondence: they open what the neutral keeps shut (the lips, the lids).
 SEMANTIC_SHAPES = ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight")
@@ -64,11 +65,9 @@ def pose_by_length(template_delta, avatar_delta):
     lt = np.linalg.norm(template_delta, axis=1)
     la = np.linalg.norm(avatar_delta, axis=1)
     pt, pa = float(lt.max(initial=0.0)), float(la.max(initial=0.0))
-    direction = np.sum(avatar_delta * la[:, None], axis=0)
-    size = float(np.linalg.norm(direction))
-    if pt <= 0 or pa <= 0 or size <= 0:
+    direction = opening_direction(avatar_delta)
+    if pt <= 0 or pa <= 0 or not direction.any():
         return None
-    direction /= size
     return (lt * (pa / pt))[:, None] * direction, la[:, None] * direction
 
 
@@ -210,9 +209,18 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
                              *, moving: float = 0.1) -> dict:
     """How well the map keeps the shapes' meaning: for the semantic shapes (jawOpen, the blinks), over the
     face vertices that move (more than ``moving`` of the peak on either rig), the share whose mapped template
-    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*: vertices that move
-    more than half the peak on one rig and less than a fifth on the other. Returns ``(figures, swapped[m])``,
-    the second the face-mesh vertices of those swaps."""
+    motion opposes the avatar's own (negative dot product), and the lip/lid *side swaps*.
+
+    A swap is an avatar face vertex that one rig moves the way the shape opens (more than half the peak along
+    the avatar's opening direction, :func:`opening_direction`: the lower lip, the upper lid) and the other
+    keeps shut (still, or moving only against the opening, less than a fifth of the peak otherwise:
+    :func:`opening_side`): an avatar lower lip on the capture's upper lip, an avatar lower lid on the
+    capture's upper lid. Not the motion's length alone, as until stop 47: a template whose blink closes in
+    the middle (its lower lid rises half as far as the upper lid falls) moves its lower lid by half the peak
+    too, and an avatar lower lid mapped onto it, the right lid, was counted; nor the travel alone: a template
+    lid pushed forward over the upper lid does not travel down there, and the avatar's upper lid mapped onto
+    it, the right lid again, would count (a direction the rigs disagree on is ``opposing_share``'s).
+    Returns ``(figures, swapped[m])``, the second the face-mesh vertices of those swaps."""
     f = np.flatnonzero(corr.face)
     sig_total, opposing, swaps = 0, 0, {}
     disagree = np.zeros(len(corr.face), dtype=bool)
@@ -220,17 +228,45 @@ def correspondence_semantics(corr, capture_triangles, names, template_deltas, av
         if name not in names:
             continue
         j = names.index(name)
-        mt = corr.apply(transform.apply_vectors(template_deltas[j])[None], capture_triangles, rows=f)[0]
+        t = transform.apply_vectors(template_deltas[j])                              # [n,3] avatar frame
+        mt = corr.apply(t[None], capture_triangles, rows=f)[0]
         a = np.asarray(avatar_deltas[j])[f]
         na, nm = np.linalg.norm(a, axis=1), np.linalg.norm(mt, axis=1)
         pa = max(float(na.max()), 1e-300)
-        pm = max(float(np.linalg.norm(transform.apply_vectors(template_deltas[j]), axis=1).max()), 1e-300)
-        ra, rm = na / pa, nm / pm
-        sig = np.maximum(ra, rm) > moving
+        pm = max(float(np.linalg.norm(t, axis=1).max()), 1e-300)
+        sig = np.maximum(na / pa, nm / pm) > moving
         sig_total += int(sig.sum())
         opposing += int((sig & (np.einsum("ij,ij->i", a, mt) < 0)).sum())
-        swapped = ((ra > 0.5) & (rm < 0.2)) | ((ra < 0.2) & (rm > 0.5))
+        # each rig's side, on the avatar's opening direction (the semantic poses' common direction)
+        direction = opening_direction(avatar_deltas[j])
+        open_a, shut_a = opening_side(a / pa, direction)
+        open_m, shut_m = opening_side(mt / pm, direction)
+        swapped = (open_a & shut_m) | (shut_a & open_m)
         swaps[name] = int(swapped.sum())
         disagree[f[swapped]] = True
     return {"opposing_share": opposing / max(sig_total, 1), "side_swaps": int(sum(swaps.values())),
             **{f"side_swaps_{k}": v for k, v in swaps.items()}}, disagree
+
+
+def opening_side(motion, direction, *, opens: float = 0.5, still: float = 0.2):
+    """``(opening[n], shut[n])`` bool: which side of a shape's opening each point is on, from its motion
+    ``motion[n,3]`` in units of the shape's peak motion and the opening ``direction[3]`` (unit,
+    :func:`opening_direction`). *Opening*: it travels more than ``opens`` along the direction (the lower lip
+    under ``jawOpen``, the upper lid under a blink). *Shut*: it travels less than ``still`` along it and moves
+    less than ``still`` across it (the upper lip, the lower lid, the cheek: still, or moving only against the
+    opening, as a lower lid that rises to meet the upper one). A point moved across the direction (an
+    artist's lid pushed forward) is neither."""
+    m = np.asarray(motion, dtype=np.float64)
+    travel = m @ direction
+    across = np.linalg.norm(m - travel[:, None] * direction, axis=1)
+    return travel > opens, (travel < still) & (across < still)
+
+
+def opening_direction(deltas) -> np.ndarray:
+    """``[3]`` unit vector: a shape's motion-weighted mean direction ``sum_i |d_i| d_i`` over ``deltas[n,3]``
+    (normalised), the way it moves what it opens or shuts (``jawOpen``: down, a blink: the upper lid down);
+    zeros when nothing moves. The common direction of the semantic poses (:func:`pose_by_length`)."""
+    d = np.asarray(deltas, dtype=np.float64)
+    direction = np.sum(d * np.linalg.norm(d, axis=1)[:, None], axis=0)
+    size = float(np.linalg.norm(direction))
+    return direction / size if size > 0 else np.zeros(3)
