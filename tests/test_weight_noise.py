@@ -500,7 +500,8 @@ def test_a_personalization_along_the_leaks_pattern_counts_only_where_it_stands_o
     twice its variance (a single draw that large is one capture in six) the part counts for nothing and the
     trust is the rest's James-Stein share (0.1 where the old factor said 0.5); at ten times it counts as
     James-Stein says (the old factor). A large ``r`` (4): a draw along the pattern at the 5 % quantile would
-    not outweigh what the rest gains at the old factor, which stays. Without the pattern: the old factor."""
+    not outweigh what the rest gains at the old factor, which stays. Without the pattern: the old factor.
+    Two shapes at risk: each tested at 2.5 %."""
     from usdface.transfer.trust import weight_error_trust
 
     n = 50
@@ -518,6 +519,15 @@ def test_a_personalization_along_the_leaks_pattern_counts_only_where_it_stands_o
         new = weight_error_trust(d, prior, leak, sens, direction=u, along=np.array([0.2]))
         np.testing.assert_allclose(old, 1.0 - 0.25 / (r + a), rtol=1e-12)
         np.testing.assert_allclose(new, expected, rtol=1e-12)
+    # along it at 4.5 times its variance: above chi-square's 5 % quantile (3.84) for one shape at risk, not
+    # above the quantile for two (5.02: the rule holds for every shape of the capture, Bonferroni)
+    one = np.sqrt(0.1) * off + np.sqrt(0.9) * u
+    pair = np.concatenate([one, np.sqrt(0.1) * off + np.sqrt(0.4) * u])
+    alone = weight_error_trust(one, prior, leak, sens, direction=u, along=np.array([0.2]))
+    np.testing.assert_allclose(alone, (0.05 + 0.9 - 0.2) / 1.0, rtol=1e-12)
+    both = weight_error_trust(pair, np.zeros_like(pair), np.repeat(leak, 2, axis=1), np.zeros_like(pair),
+                              direction=np.concatenate([u, u]), along=np.array([0.2, 0.2]))
+    np.testing.assert_allclose(both, [0.05 / 1.0, 0.05 / 0.5], rtol=1e-12)
 
 
 def test_a_shape_whose_one_frame_misreports_the_jaw_stays_near_generic(tmp_path):

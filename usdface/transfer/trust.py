@@ -79,8 +79,9 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     draw at the ``1 - level`` quantile (chi-square with one degree of freedom: 3.84 ``along`` at 5 %), kept
     at the factor above, would cost more than the rest of the personalization gains (``c q along > (2 - c)
     R``, ``R`` the rest's energy less the rest of the budget: the shape could end worse than the generic),
-    the projection counts (James-Stein, its variance taken off) only if it stands out of that quantile, and
-    the rest against the rest of the budget; elsewhere the factor above stands. Without it a single weight
+    the projection counts (James-Stein, its variance taken off) only if it stands out of that quantile -
+    taken at ``level`` over the shapes so tested (Bonferroni: the rule is for every shape of the capture) -
+    and the rest against the rest of the budget; elsewhere the factor above stands. Without it a single weight
     error three times its expectation (``jawOpen`` in ``tongueOut``'s one frame, generated person 103) passed
     as the person: the expected leak was a fifth of the fitted change, the change was that error."""
     s = np.asarray(sensitivity, dtype=np.float64)
@@ -98,12 +99,14 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     from scipy.special import gammaincinv
 
     quantile = 2.0 * gammaincinv(0.5, 1.0 - level)                                   # chi2_1, 3.84 at 5 %
-    stands_out = proj2 > quantile * lam
     rest = np.maximum(power - proj2 - (budget - lam), 0.0)
-    kept = rest + np.where(stands_out, proj2 - lam, 0.0)
     before = np.clip(1.0 - budget / np.maximum(power, 1e-300), 0.0, 1.0)
     # a draw that large along the pattern, taken at the old factor, outweighs what the rest gains
     risky = before * quantile * lam > (2.0 - before) * rest
+    # one test per shape at risk: together no more than ``level`` of captures has any of them pass a draw
+    quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(risky.sum()), 1))
+    stands_out = proj2 > quantile * lam
+    kept = rest + np.where(stands_out, proj2 - lam, 0.0)
     return np.where(risky, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0), before)
 
 
