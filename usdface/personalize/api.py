@@ -29,6 +29,7 @@ from .fit import (
     regularization_weights,
     take_frame_noise,
     take_white_noise,
+    weight_leak_direction,
     weight_leak_variance,
 )
 from .weights import held_weights, reestimate_weights, reestimate_weights_batched, weight_noise
@@ -687,6 +688,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free)
             info["weight_leak"] = info["weight_noise"] ** 2 * weight_leak_variance(w_cur, D_fit, lam, deltas,
                                                                                    free, system=final_system)
+            # ... and the one pattern it is largest along, over the vertices each shape's personalization
+            # moves (as the implant's trust reads it: transfer.trust.weight_error_trust)
+            change = squared_lengths(deltas - prior_deltas).T                               # [n,K]
+            moving = change > 0.01 * np.maximum(change.max(axis=0), 1e-300)
+            info["weight_leak_direction"], along = weight_leak_direction(w_cur, D_fit, lam, deltas, free,
+                                                                         moving, system=final_system)
+            info["weight_leak_along"] = info["weight_noise"] ** 2 * along
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         elif sensitivity and method == "menzel" and frame_weights is not None and len(w_cur):

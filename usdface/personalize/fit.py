@@ -25,13 +25,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import vector_lengths
+from ..mesh import squared_lengths, vector_lengths
 from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "FitSystem", "loo_residuals", "PositionFit", "blend",
            "project", "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance",
            "james_stein"]
 
+#: How many of the weights' errors (frame, shape) span the leak's largest pattern in a shape
+#: (:func:`weight_leak_direction`): the few that carry it (1.4-5 effective draws on the generated captures).
+LEAK_PARTS = 8
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
 #: Single-``reg`` solves use the rank-r basis while ``r <= REDUCED_MAX_RANK * K`` (its cost grows ~r^2.5; at
@@ -289,6 +292,70 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     D = np.asarray(deltas, dtype=np.float64)
     energy = np.asarray(free, dtype=np.float64) @ np.einsum("knc,knc->kn", D, D)        # [F,n]
     return frame_error_variance(weights, reg_weights, reg, energy, system=system)
+
+
+def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: float, deltas: np.ndarray,
+                          free: np.ndarray, vertex_weights: np.ndarray, *, system: FitSystem | None = None,
+                          parts: int = LEAK_PARTS) -> tuple[np.ndarray, np.ndarray]:
+    """The one pattern along which the weights' leak into each fitted shape is largest, and its variance:
+    ``(direction[K,n,3], energy[K])``, ``direction_j`` of unit length (zero off ``vertex_weights[n,K] > 0``,
+    the vertices the shape's personalization moves) and ``energy_j`` (m^2 per unit of the weights' noise
+    variance) the expected squared projection of the leak on it, every part's. Arrays as in
+    :func:`weight_leak_variance`.
+
+    A weight error ``e_fk`` moves every vertex of shape ``j`` along one pattern, ``u_fk(v) = (A_v^-1
+    W^T)_jf B_k(v)``, so the leak is a Gaussian field whose covariance ``sum_fk free_fk u_fk u_fk^T`` has the
+    per-vertex trace :func:`weight_leak_variance` and a few large eigenvalues: a shape shown in one frame
+    beside ``jawOpen`` at an inside weight takes that weight's error along the jaw's own pattern, one draw
+    (one number) whatever the number of vertices. The ``parts`` largest ``(f, k)`` (by their energy on the
+    vertices) span the direction: the top eigenvector of their Gram matrix."""
+    W = np.asarray(weights, dtype=np.float64)
+    D = np.asarray(deltas, dtype=np.float64)
+    var = np.asarray(free, dtype=np.float64)                                          # [F,K]
+    wv = np.asarray(vertex_weights, dtype=np.float64) > 0                              # [n,K]
+    K = D.shape[0]
+    direction, energy = np.zeros_like(D), np.zeros(K)
+    if system is None or not system.holds(W, reg_weights, reg):
+        system = FitSystem(W, reg_weights, reg)
+    if len(W) == 0 or not var.any():
+        return direction, energy
+    if system.basis is None:
+        inv_a = None if system.G is not None else np.linalg.inv(system.A)
+
+        def gain(j):
+            """``(A_v^-1 W^T)_j`` for every vertex and frame, ``[n,F]``."""
+            return system.G[:, j, :] if inv_a is None else inv_a[:, j, :] @ W.T
+    else:
+        P, _, _ = system.basis
+        if P.shape[1] == 0:
+            return direction, energy
+        inv_m = np.linalg.inv(system.M) if system.inverse is None else system.inverse
+
+        def gain(j):
+            return system.inv_l[:, j, None] * (np.einsum("r,nrs->ns", system.B[j], inv_m) @ P.T)
+    B2 = squared_lengths(D)                                                          # [K,n]
+    for j in range(K):
+        m = wv[:, j]
+        if not m.any():
+            continue
+        G = gain(j)[m]                                                               # [v,F]
+        # each part's energy on the shape's vertices (the gain and the shape's size each averaged there)
+        e = np.sum(G * G, axis=0)[:, None] * var * B2[:, m].mean(axis=1)[None]        # [F,K]
+        top = np.argsort(e, axis=None)[::-1][:parts]
+        top = top[e.ravel()[top] > 0]
+        if not len(top):
+            continue
+        fs, ks = np.unravel_index(top, e.shape)
+        u = np.sqrt(var[fs, ks])[:, None, None] * G.T[fs][:, :, None] * D[ks][:, m]     # [i,v,3]
+        gram = np.einsum("inc,lnc->il", u, u)
+        vals, vecs = np.linalg.eigh(gram)
+        if vals[-1] <= 0:
+            continue
+        e_j = np.einsum("i,inc->nc", vecs[:, -1], u) / np.sqrt(vals[-1])
+        direction[j, m] = e_j
+        # the variance along it of every part, not only of those that span it: sum_fk var_fk <u_fk, e>^2
+        energy[j] = np.sum(var * (G.T @ np.einsum("vc,kvc->vk", e_j, D[:, m])) ** 2)
+    return direction, energy
 
 
 def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float, energy: np.ndarray, *,

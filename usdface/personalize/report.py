@@ -123,7 +123,8 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
 
 
 #: Per-frame and per-vertex arrays of a fit's ``info`` that a report leaves out (the rig holds the shapes).
-_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity", "weight_leak", "frame_variance")
+_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity", "weight_leak", "weight_leak_direction",
+              "weight_leak_along", "frame_variance")
 
 
 def report_info(info: dict) -> dict:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..personalize.api import WEIGHT_NOISE
+from ..personalize.api import SIGNIFICANCE, WEIGHT_NOISE
 from ..personalize.fit import james_stein
 from .implant import shape_confidence
 
@@ -57,7 +57,8 @@ def leak_trust(deltas, prior, leak, *, moving: float = 0.1) -> np.ndarray:
     return _moving_james_stein(deltas, prior, leak, moving)
 
 
-def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1) -> np.ndarray:
+def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1, direction=None,
+                       along=None, level: float = SIGNIFICANCE) -> np.ndarray:
     """``[K]`` in [0, 1]: how far each shape's personalization ``D = deltas - prior`` (``[K,n,3]`` on the
     capture, metres) stands above the weights' error as both measures see it: the positive-part James-Stein
     factor ``max(0, 1 - (l^2 + s^2) / d^2)`` with ``l^2`` the expected leak (``leak[n,K]``, m^2,
@@ -70,10 +71,43 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1)
     times its expectation, and the re-estimation sees only part of it: each factor alone (the smaller of the
     two, before stop 39) left a generated capture's ``mouthShrugLower`` 0.108 mm and another's
     ``jawForward`` 0.086 mm worse than generic (factors 0.81 / 0.41: its fitted personalization was that
-    frame's ``jawOpen`` error, orthogonal to the person's). Their sum is the error budget of the weights."""
+    frame's ``jawOpen`` error, orthogonal to the person's). Their sum is the error budget of the weights.
+
+    With ``direction[K,n,3]`` (unit, capture metres) and ``along[K]`` (m^2), the leak's largest pattern and
+    its variance summed over the vertices (:func:`usdface.personalize.fit.weight_leak_direction`), the
+    personalization's projection on that pattern is one draw, not an average over the vertices. Where a
+    draw at the ``1 - level`` quantile (chi-square with one degree of freedom: 3.84 ``along`` at 5 %), kept
+    at the factor above, would cost more than the rest of the personalization gains (``c q along > (2 - c)
+    R``, ``R`` the rest's energy less the rest of the budget: the shape could end worse than the generic),
+    the projection counts (James-Stein, its variance taken off) only if it stands out of that quantile -
+    taken at ``level`` over the shapes so tested (Bonferroni: the rule is for every shape of the capture) -
+    and the rest against the rest of the budget; elsewhere the factor above stands. Without it a single weight
+    error three times its expectation (``jawOpen`` in ``tongueOut``'s one frame, generated person 103) passed
+    as the person: the expected leak was a fifth of the fitted change, the change was that error."""
     s = np.asarray(sensitivity, dtype=np.float64)
     variance = np.asarray(leak, dtype=np.float64) + np.einsum("knc,knc->nk", s, s)
-    return _moving_james_stein(deltas, prior, variance, moving)
+    if direction is None or along is None:
+        return _moving_james_stein(deltas, prior, variance, moving)
+    d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
+    d2 = np.einsum("knc,knc->kn", d, d)
+    mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)         # [K,n]
+    power = np.sum(d2 * mov, axis=1)                                                  # [K] m^2, summed
+    budget = np.sum(variance.T * mov, axis=1)
+    lam = np.minimum(np.asarray(along, dtype=np.float64), budget)
+    proj2 = np.einsum("knc,knc->k", d, np.asarray(direction, dtype=np.float64) * mov[..., None]) ** 2
+    proj2 = np.minimum(proj2, power)
+    from scipy.special import gammaincinv
+
+    quantile = 2.0 * gammaincinv(0.5, 1.0 - level)                                   # chi2_1, 3.84 at 5 %
+    rest = np.maximum(power - proj2 - (budget - lam), 0.0)
+    before = np.clip(1.0 - budget / np.maximum(power, 1e-300), 0.0, 1.0)
+    # a draw that large along the pattern, taken at the old factor, outweighs what the rest gains
+    risky = before * quantile * lam > (2.0 - before) * rest
+    # one test per shape at risk: together no more than ``level`` of captures has any of them pass a draw
+    quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(risky.sum()), 1))
+    stands_out = proj2 > quantile * lam
+    kept = rest + np.where(stands_out, proj2 - lam, 0.0)
+    return np.where(risky, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0), before)
 
 
 def unshrunk(factor, share) -> np.ndarray:
@@ -144,8 +178,12 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
                 if fit.info.get("data_share") is not None:
                     reliability = unshrunk(reliability, np.asarray(fit.info["data_share"])[cap_idx])
                 leak = np.asarray(leak)[:, cap_idx]
+                direction, along = fit.info.get("weight_leak_direction"), fit.info.get("weight_leak_along")
+                if direction is not None and along is not None:
+                    direction, along = np.asarray(direction)[cap_idx], np.asarray(along)[cap_idx]
                 weights_error = (leak_trust(fitted, prior, leak) if sens is None else
-                                 weight_error_trust(fitted, prior, leak, np.asarray(sens)[cap_idx]))
+                                 weight_error_trust(fitted, prior, leak, np.asarray(sens)[cap_idx],
+                                                    direction=direction, along=along))
                 return np.minimum(reliability, weights_error) * ramp, info, ramp < 0.5
             if sens is not None:
                 # and no more than the personalization stands above what the weights' noise makes of it
