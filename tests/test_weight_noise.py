@@ -528,6 +528,12 @@ def test_a_personalization_along_the_leaks_pattern_counts_only_where_it_stands_o
     both = weight_error_trust(pair, np.zeros_like(pair), np.repeat(leak, 2, axis=1), np.zeros_like(pair),
                               direction=np.concatenate([u, u]), along=np.array([0.2, 0.2]))
     np.testing.assert_allclose(both, [0.05 / 1.0, 0.05 / 0.5], rtol=1e-12)
+    # nearly all of it along the pattern, standing out: the test's own factor (rest 0 + 1.0 - 0.2 over 1.01,
+    # 0.79) would trust it past the budget's (1 - 0.25 / 1.01, 0.75); it only ever lowers the trust (before
+    # that cap two generated captures' shapes went from +0.03 / +0.08 to +0.08 / +0.13 mm over generic)
+    along = np.sqrt(0.01) * off + np.sqrt(1.0) * u
+    capped = weight_error_trust(along, prior, leak, sens, direction=u, along=np.array([0.2]))
+    np.testing.assert_allclose(capped, 1.0 - 0.25 / 1.01, rtol=1e-12)
 
 
 def test_a_shape_whose_one_frame_misreports_the_jaw_stays_near_generic(tmp_path):
