@@ -1359,6 +1359,20 @@ def test_a_batch_rows_unknown_option_lists_only_what_a_row_takes(tmp_path, capsy
     assert not (tmp_path / "a.usda").exists() and not (tmp_path / "m.report.json").exists()
 
 
+def test_a_csv_rows_misspelt_option_column_names_the_option_meant(tmp_path, capsys):
+    """A spreadsheet's ``metod`` column was refused with the whole list of ~40 options and no hint, where the
+    command line's ``--metod`` says ``did you mean --method?`` (stop 47, h52): the row's refusal names it."""
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "people.csv"
+    manifest.write_text("avatar,capture,output,metod,inspect\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},a.usda,dt,true\n")
+    assert main(["batch", str(manifest), "-j", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "item 1: unknown personalize option(s): metod" in err
+    assert "metod: did you mean method?" in err and "use one of: " in err
+    assert not (tmp_path / "a.usda").exists() and not (tmp_path / "people.report.json").exists()
+
+
 def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samples, tmp_path, monkeypatch):
     """Ctrl-C while the rows were checked (every avatar is opened: seconds on a large manifest) left the
     previous run's report standing, which the docs promise never happens."""
