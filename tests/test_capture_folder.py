@@ -201,6 +201,15 @@ def test_a_persons_folder_names_the_capture_inside_it(folder, tmp_path, monkeypa
         assert "(fix: pass the capture folder itself: anna/capture)" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anna"]
 
+    # the same folder given as the avatar names the USD files it holds
+    (person / "avatar.usda").write_text("#usda 1.0\n")
+    for argv in (["personalize", "anna", "anna/capture", "-o", "p.usda"], ["landmarks", "anna"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "anna: avatar is a folder, not a file (it holds avatar.usda)" in err, err
+        assert "(fix: pass the avatar's file itself, e.g. anna/avatar.usda)" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anna"]
+
 
 @pytest.mark.parametrize("blink, expect", [(-0.2, [0.0, 1.0, 0.0]), (0.2, [0.2, 1.0, 0.0])])
 def test_weights_outside_unit_interval_clipped_with_warning(folder, blink, expect):
