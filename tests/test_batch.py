@@ -176,6 +176,22 @@ def test_manifest_as_a_spreadsheet_writes_it(tmp_path):
     assert item.avatar == str(tmp_path / "latest" / "a.usda")
 
 
+def test_a_spreadsheets_capitalised_header_names_the_columns_and_a_column_twice_is_refused(tmp_path):
+    """A user trial (stop 47, h52): a header a spreadsheet capitalised ('Avatar,Capture,Output,Method') was
+    refused ('manifest lacks column(s)'), and a column given twice ('output' and 'Output', or two 'take's)
+    was read silently as its last copy (csv.DictReader): the first reads, the second is refused by name."""
+    path = tmp_path / "m.csv"
+    path.write_text("Avatar, CAPTURE, Output, Method, Inspect\na.usda, c, out/a.usda, dt, TRUE\n")
+    item = read_manifest(path)[0]
+    assert (item.avatar, item.output) == (str(tmp_path / "a.usda"), str(tmp_path / "out" / "a.usda"))
+    assert item.options == {"method": "dt", "inspect": True}
+    for header, row in (("avatar,capture,output,Output", "a.usda,c,out/a.usda,out/b.usda"),
+                        ("avatar,capture,output,take,take", "a.usda,c,out/a.usda,t1.csv,t2.csv")):
+        path.write_text(f"{header}\n{row}\n")
+        with pytest.raises(InputFileError, match=r"manifest has the column\(s\) \['(output|take)'\] twice"):
+            read_manifest(path)
+
+
 def test_local_process_pool(tmp_path):
     items = read_manifest(_manifest(tmp_path, ["a", "bad", "b"]))
     report = run_batch(items, worker=stub_worker, jobs=2, progress=False)
