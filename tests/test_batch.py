@@ -176,6 +176,22 @@ def test_manifest_as_a_spreadsheet_writes_it(tmp_path):
     assert item.avatar == str(tmp_path / "latest" / "a.usda")
 
 
+def test_a_spreadsheets_capitalised_header_names_the_columns_and_a_column_twice_is_refused(tmp_path):
+    """A user trial (stop 47, h52): a header a spreadsheet capitalised ('Avatar,Capture,Output,Method') was
+    refused ('manifest lacks column(s)'), and a column given twice ('output' and 'Output', or two 'take's)
+    was read silently as its last copy (csv.DictReader): the first reads, the second is refused by name."""
+    path = tmp_path / "m.csv"
+    path.write_text("Avatar, CAPTURE, Output, Method, Inspect\na.usda, c, out/a.usda, dt, TRUE\n")
+    item = read_manifest(path)[0]
+    assert (item.avatar, item.output) == (str(tmp_path / "a.usda"), str(tmp_path / "out" / "a.usda"))
+    assert item.options == {"method": "dt", "inspect": True}
+    for header, row in (("avatar,capture,output,Output", "a.usda,c,out/a.usda,out/b.usda"),
+                        ("avatar,capture,output,take,take", "a.usda,c,out/a.usda,t1.csv,t2.csv")):
+        path.write_text(f"{header}\n{row}\n")
+        with pytest.raises(InputFileError, match=r"manifest has the column\(s\) \['(output|take)'\] twice"):
+            read_manifest(path)
+
+
 def test_local_process_pool(tmp_path):
     items = read_manifest(_manifest(tmp_path, ["a", "bad", "b"]))
     report = run_batch(items, worker=stub_worker, jobs=2, progress=False)
@@ -1357,6 +1373,20 @@ def test_a_batch_rows_unknown_option_lists_only_what_a_row_takes(tmp_path, capsy
     taken = err.split("use one of: ")[1]
     assert "method" in taken and "force" in taken and "dry_run" not in taken
     assert not (tmp_path / "a.usda").exists() and not (tmp_path / "m.report.json").exists()
+
+
+def test_a_csv_rows_misspelt_option_column_names_the_option_meant(tmp_path, capsys):
+    """A spreadsheet's ``metod`` column was refused with the whole list of ~40 options and no hint, where the
+    command line's ``--metod`` says ``did you mean --method?`` (stop 47, h52): the row's refusal names it."""
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "people.csv"
+    manifest.write_text("avatar,capture,output,metod,inspect\n"
+                        f"{samples / 'avatar.usda'},{samples / 'capture.usda'},a.usda,dt,true\n")
+    assert main(["batch", str(manifest), "-j", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "item 1: unknown personalize option(s): metod" in err
+    assert "metod: did you mean method?" in err and "use one of: " in err
+    assert not (tmp_path / "a.usda").exists() and not (tmp_path / "people.report.json").exists()
 
 
 def test_a_batch_stopped_while_its_rows_are_checked_writes_this_runs_report(samples, tmp_path, monkeypatch):

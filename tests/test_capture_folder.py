@@ -182,6 +182,35 @@ def test_a_captures_subfolder_is_named_with_its_capture(folder):
         check_capture_path(folder / "train")
 
 
+def test_a_persons_folder_names_the_capture_inside_it(folder, tmp_path, monkeypatch, capsys):
+    """A user trial (stop 47, h52): 'usdface personalize dev1/avatar.usdc dev1 -o x.usda' or 'usdface capture
+    import sample_assets' (the folder holding the avatar and capture/) said only 'missing neutral.obj'. Every
+    command reading a capture names the capture folder inside it, as given (relative stays relative)."""
+    from usdface.cli import main
+
+    person = tmp_path / "anna"
+    person.mkdir()
+    shutil.move(folder, person / "capture")
+    (person / "notes").mkdir()                           # a folder that is no capture is not offered
+    monkeypatch.chdir(tmp_path)
+    for argv in (["capture", "import", "anna", "-o", "c.usda"], ["inspect", "anna"],
+                 ["fit", "anna", "-o", "rig.usda"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "anna: missing neutral.obj: the capture is in its subfolder capture/" in err, err
+        assert "(fix: pass the capture folder itself: anna/capture)" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anna"]
+
+    # the same folder given as the avatar names the USD files it holds
+    (person / "avatar.usda").write_text("#usda 1.0\n")
+    for argv in (["personalize", "anna", "anna/capture", "-o", "p.usda"], ["landmarks", "anna"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "anna: avatar is a folder, not a file (it holds avatar.usda)" in err, err
+        assert "(fix: pass the avatar's file itself, e.g. anna/avatar.usda)" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anna"]
+
+
 @pytest.mark.parametrize("blink, expect", [(-0.2, [0.0, 1.0, 0.0]), (0.2, [0.2, 1.0, 0.0])])
 def test_weights_outside_unit_interval_clipped_with_warning(folder, blink, expect):
     """A weight above 1 is clipped, with a negative one beside it or alone."""

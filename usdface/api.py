@@ -1273,8 +1273,15 @@ def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
     known = transfer | _fit_option_names() | set(_API_OPTIONS)
     unknown = sorted(set(options) - known)
     if unknown:
+        import difflib
+
+        offered = sorted(known - set(unlisted))
+        # a batch row's 'metod' column: name the option meant, as the command line's flags do (stop 47)
+        meant = {u: difflib.get_close_matches(u, offered, n=1, cutoff=0.75) for u in unknown}
+        hints = "; ".join(f"{u}: did you mean {m[0]}?" for u, m in meant.items() if m)
         raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
-                          fix="drop them, or use one of: " + ", ".join(sorted(known - set(unlisted))))
+                          fix=(f"{hints}; " if hints else "")
+                          + "drop them, or use one of: " + ", ".join(offered))
 
 
 def check_personalize_options(**options: Any) -> None:

@@ -18,6 +18,13 @@ import numpy as np
 from .errors import GeometryError
 
 
+def _names_brief(names, shown: int = 3) -> str:
+    """``a, b, c ... (+N)``: the first ``shown`` of ``names`` for a one-line ``repr``."""
+    names = [str(n) for n in names]
+    more = f" ... (+{len(names) - shown})" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more
+
+
 @dataclass
 class Inbetween:
     """One in-between target of a shape: ``offsets[n, 3]`` (dense, metres) reached at ``weight``."""
@@ -89,6 +96,12 @@ class FaceRig:
             raise GeometryError(
                 f"rig {self.name!r}: deltas have {self.deltas.shape[1]} vertices, "
                 f"neutral {self.neutral.shape[0]}")
+
+    def __repr__(self) -> str:
+        # one line: the dataclass repr printed every array (~70 kB for the sample's head in a DCC console)
+        ib = f", {len(self.inbetweens)} with inbetweens" if self.inbetweens else ""
+        return (f"<FaceRig {self.key or '(unnamed)'}: {self.n_vertices} vertices, "
+                f"{len(self.triangles)} triangles, {self.n_shapes} shapes ({_names_brief(self.names)}){ib}>")
 
     def peak_motion(self) -> np.ndarray:
         """``[n]`` the largest offset of each vertex over the shapes (metres;
@@ -181,6 +194,11 @@ class Avatar:
     metadata: dict = field(default_factory=dict)
     name_report: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        meshes = ", ".join(f"{m.key} ({m.n_shapes} shapes)" for m in self.meshes)
+        return (f"<Avatar {self.file or '(no file)'}: {len(self.meshes)} mesh(es) [{meshes}], "
+                f"metersPerUnit {self.meters_per_unit:g}, upAxis {self.up_axis}>")
+
     def mesh(self, name: str) -> FaceRig:
         """The mesh whose prim name or path is ``name`` (e.g. ``Head`` or ``/Avatar/Head``)."""
         for m in self.meshes:
@@ -232,6 +250,12 @@ class Capture:
     def __post_init__(self):
         self.neutral = np.asarray(self.neutral, dtype=np.float64)
         self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+
+    def __repr__(self) -> str:
+        roles = list(self.frames.role)
+        return (f"<Capture {self.source or '(no file)'}: {len(self.neutral)} vertices, "
+                f"{len(self.names)} shapes ({_names_brief(self.names)}), "
+                f"{roles.count('train')} train + {roles.count('test')} test frames>")
 
     @property
     def train(self) -> Frames:

@@ -142,8 +142,26 @@ def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureErro
             and (parent / "template").is_dir()):
         return CaptureError(f"missing {what}: this is the {folder.name}/ folder of the capture {parent}",
                             path=root, fix=f"pass the capture folder itself: {parent}")
+    inner = _captures_inside(folder) if what == "neutral.obj" else []
+    if inner:
+        # a person's folder (avatar.usdc + capture/, or the sample's sample_assets/) given for its capture
+        # said only 'missing neutral.obj' (stop 47, h52): name the capture folder inside it
+        more = f" (+{len(inner) - 3})" if len(inner) > 3 else ""
+        listed = ", ".join(f"{c.name}/" for c in inner[:3]) + more
+        return CaptureError(f"missing {what}: the capture is in its subfolder {listed}", path=root,
+                            fix=f"pass the capture folder itself: {Path(root) / inner[0].name}")
     return CaptureError(f"missing {what}", path=root,
                         fix=fix or "see docs/capture-format.md: neutral.obj, template/, train/, test/")
+
+
+def _captures_inside(folder: Path) -> list[Path]:
+    """The capture folders (``neutral.obj`` + ``template/``) directly inside ``folder``, sorted; [] when it
+    cannot be listed."""
+    try:
+        children = sorted(c for c in folder.iterdir() if not c.name.startswith(".") and c.is_dir())
+    except OSError:
+        return []
+    return [c for c in children if (c / "neutral.obj").is_file() and (c / "template").is_dir()]
 
 
 def refuse_suffix_case(folders, suffixes: tuple[str, ...]) -> None:

@@ -65,6 +65,17 @@ def require_file(path, what: str = "file", fix: str = "check the path") -> Path:
                                  fix="pass the avatar's .usd/.usda/.usdc file here (personalize, retarget: "
                                      "arguments swapped? the avatar's .usd file first, then the capture "
                                      "folder)")
+        if what == "avatar":
+            # a person's folder (avatar.usdc + capture/) given as the avatar: name its USD files (stop 47)
+            try:
+                held = sorted(p.name for p in path.iterdir() if p.suffix.lower() in (".usd", ".usda", ".usdc")
+                              and not p.name.startswith(".") and p.is_file())
+            except OSError:
+                held = []
+            if held:
+                shown = ", ".join(held[:4]) + (f" (+{len(held) - 4})" if len(held) > 4 else "")
+                raise InputFileError(f"{what} is a folder, not a file (it holds {shown})", path=path,
+                                     fix=f"pass the avatar's file itself, e.g. {path / held[0]}")
         raise InputFileError(f"{what} is a folder, not a file", path=path, fix=fix)
     if not stat.S_ISREG(mode):
         kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"

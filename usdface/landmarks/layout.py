@@ -59,6 +59,10 @@ class LandmarkLayout:
     timings: dict = field(default_factory=dict)
     problem: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        return (f"<LandmarkLayout: {self.count} landmarks for {len(self.shape_names)} shapes (epsilon "
+                f"{self.epsilon:g}, alpha {self.alpha:g}, {self.status}); vertices {self.vertices.tolist()}>")
+
     @property
     def count(self) -> int:
         return int(self.vertices.size)

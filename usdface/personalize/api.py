@@ -72,6 +72,12 @@ class FitResult:
     rig: FaceRig
     info: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        # one line (the dataclass repr printed the rig's arrays and the info's per-frame figures)
+        info = self.info if isinstance(self.info, dict) else {}
+        reg = f", reg {info['reg']:g}" if isinstance(info.get("reg"), int | float) else ""
+        return f"<FitResult {info.get('method', '?')}{reg}: {self.rig!r}; info: {', '.join(map(str, info))}>"
+
 
 def check_capture(capture: Capture) -> list[str]:
     """Validate a capture for fitting; raise on unusable input, return warnings for degraded input.

@@ -213,7 +213,13 @@ def read_manifest(path) -> list[BatchItem]:
         # stripped header: "avatar, capture, output" names the columns too
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh, skipinitialspace=True)
-            reader.fieldnames = [f.strip() for f in reader.fieldnames or []]
+            # a spreadsheet's capitalised header ("Avatar,Capture,Output", "Method") names the columns too:
+            # every column usdface reads is a lower-case name (stop 47, h52: it was 'lacks column(s)')
+            reader.fieldnames = [f.strip().lower() for f in reader.fieldnames or []]
+            twice = sorted({f for f in reader.fieldnames if f and reader.fieldnames.count(f) > 1})
+            if twice:          # csv.DictReader keeps the last of two same-named columns without a word
+                raise InputFileError(f"manifest has the column(s) {twice} twice (case aside)", path=path,
+                                     fix="keep one column of each name in the first row")
             missing = [c for c in REQUIRED if c not in (reader.fieldnames or [])]
             if missing:
                 raise InputFileError(f"manifest lacks column(s) {missing} (has {reader.fieldnames})",

@@ -127,6 +127,12 @@ class PersonalizeResult:
     out_path: Path | None = None
     fit: object | None = None
 
+    def __repr__(self) -> str:
+        # one line (the dataclass repr printed every offset array: ~55 kB for a 4k-vertex avatar)
+        meshes = ", ".join(map(str, self.offsets))
+        return (f"<PersonalizeResult {self.out_path or '(not written)'}: {len(self.names)} shapes implanted, "
+                f"{len(self.offsets)} mesh(es) ({meshes}), face mesh {self.face_mesh}>")
+
 
 def _face_mesh(avatar: Avatar, names: list[str]) -> FaceRig:
     """The mesh where the shared ARKit shapes move the most vertices (the face/head mesh); float noise of an
