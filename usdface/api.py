@@ -1327,7 +1327,7 @@ def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) ->
     method, reg = get("method", "menzel"), get("reg", "auto")
     fit = _fit_option_names()
     fit_opts = {k: v for k, v in options.items() if k in fit}
-    check_fit_options(method, reg, **_implant.fit_prior_options(get("prior", "avatar"), method, reg),
+    check_fit_options(method, reg, **_implant.fit_prior_options(get("prior", "avatar"), method),
                       **fit_opts)
 
 

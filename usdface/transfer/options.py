@@ -210,7 +210,7 @@ def pins_input(pins, capture_source) -> list[str]:
     return [str(source)]
 
 
-def fit_prior_options(prior: str, method: str, reg) -> dict:
+def fit_prior_options(prior: str, method: str) -> dict:
     """The fit's prior options for personalize's ``prior``: with ``"avatar"`` (menzel / laplacian) the
     avatar's own shapes on the capture are given and are the prior at every ``reg`` (``"auto"`` chooses the
     regularization's weight for that prior).

@@ -390,7 +390,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
     if rig is None:                                # the fit's options, before any work
         from ..personalize.api import check_fit_options
 
-        check_fit_options(method, reg, **fit_prior_options(prior, method, reg), **fit_options)
+        check_fit_options(method, reg, **fit_prior_options(prior, method), **fit_options)
     own_cache = pending_cache is None             # the correspondence cache, written once the run succeeds
     pending_cache = [] if own_cache else pending_cache
     with steps("retarget" if map_only else "personalize", 5 if map_only else 8) as advance:
@@ -862,7 +862,7 @@ def _fit(capture, names, generic_on_capture, prior, method, reg, fit_options):
     (:func:`fit_prior_options`)."""
     from ..personalize import fit_personalized_shapes
 
-    extra = fit_prior_options(prior, method, reg)
+    extra = fit_prior_options(prior, method)
     if extra.pop("avatar_prior", False):
         full = np.full((len(capture.names), capture.template.n_vertices, 3), np.nan)
         full[[list(capture.names).index(n) for n in names]] = generic_on_capture
