@@ -88,9 +88,7 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     variance = np.asarray(leak, dtype=np.float64) + np.einsum("knc,knc->nk", s, s)
     if direction is None or along is None:
         return _moving_james_stein(deltas, prior, variance, moving)
-    d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
-    d2 = np.einsum("knc,knc->kn", d, d)
-    mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)         # [K,n]
+    d, d2, mov = _moving(deltas, prior, moving)
     power = np.sum(d2 * mov, axis=1)                                                  # [K] m^2, summed
     budget = np.sum(variance.T * mov, axis=1)
     lam = np.minimum(np.asarray(along, dtype=np.float64), budget)
@@ -134,12 +132,18 @@ def unshrunk(factor, share) -> np.ndarray:
     return np.where(h > 0, np.minimum(1.0, f / np.maximum(h, 1e-300)), 0.0)
 
 
-def _moving_james_stein(deltas, prior, variance, moving) -> np.ndarray:
-    """The James-Stein factor of ``deltas - prior`` against ``variance[n,K]`` over the vertices where the
-    personalization moves more than ``moving`` of its peak."""
+def _moving(deltas, prior, moving):
+    """``(d[K,n,3], d2[K,n], mov[K,n])``: the personalization ``deltas - prior``, its squared lengths and the
+    vertices where it moves more than ``moving`` of its peak (where the trust's factors are read)."""
     d = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
     d2 = np.einsum("knc,knc->kn", d, d)
-    mov = d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
+    return d, d2, d2 > moving ** 2 * np.maximum(d2.max(axis=1, keepdims=True), 1e-300)
+
+
+def _moving_james_stein(deltas, prior, variance, moving) -> np.ndarray:
+    """The James-Stein factor of ``deltas - prior`` against ``variance[n,K]`` over the vertices where the
+    personalization moves more than ``moving`` of its peak (:func:`_moving`)."""
+    d, _, mov = _moving(deltas, prior, moving)
     return james_stein(d, np.asarray(variance, dtype=np.float64), mov.T)
 
 
