@@ -20,6 +20,21 @@ SHARED = Path(os.environ.get("USDFACE_SHARED", ROOT.parent / "shared"))
 SAMPLES = ROOT / "sample_assets"
 
 
+@pytest.fixture(autouse=True)
+def _progress_state_per_test():
+    """Each test starts with usdface's process-wide progress state as a fresh process has it: a Dask item run
+    on an in-process cluster turns progress off for good (``run_item_quiet``: process-wide by design, as on
+    a real worker), and a later test of the progress lines in the same pytest worker then saw none
+    (CI, stop 47: ``test_obj_dir_names_the_objs_as_it_writes_them`` after
+    ``test_a_cancelled_dask_item_writes_nothing``)."""
+    from usdface import progress
+
+    saved = progress._ENABLED, progress._LOGGER
+    progress._ENABLED, progress._LOGGER = True, None
+    yield
+    progress._ENABLED, progress._LOGGER = saved
+
+
 @pytest.fixture(scope="session")
 def shared() -> Path:
     """../shared (the product owner's data); skips the test when absent."""
