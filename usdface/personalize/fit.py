@@ -330,9 +330,12 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
         if P.shape[1] == 0:
             return direction, energy
         inv_m = np.linalg.inv(system.M) if system.inverse is None else system.inverse
+        n, r = inv_m.shape[:2]
+        # B_j^T M_v^-1 for every shape and vertex, [K,n,r]: one matrix product (not K unbuffered einsums)
+        b_inv_m = (system.B @ inv_m.transpose(1, 0, 2).reshape(r, n * r)).reshape(-1, n, r)
 
         def gain(j):
-            return system.inv_l[:, j, None] * (np.einsum("r,nrs->ns", system.B[j], inv_m) @ P.T)
+            return system.inv_l[:, j, None] * (b_inv_m[j] @ P.T)
     B2 = squared_lengths(D)                                                          # [K,n]
     for j in range(K):
         m = wv[:, j]
