@@ -421,3 +421,21 @@ def test_two_frames_with_one_role_and_label_are_refused(tmp_path):
     with pytest.raises(CaptureError, match="share a role and label"):
         write_capture_folder(cap, tmp_path / "cap")
     assert not (tmp_path / "cap").exists()
+
+
+def test_frames_with_the_same_weight_names_map_each_its_own_values(tmp_path):
+    """The weight names' mapping is kept from one frame to the next (a capture's frames list the same names):
+    each frame still reads its own values, in whatever spelling and order, and a frame that names one shape
+    twice is still refused after frames that mapped well."""
+    names = ["eyeBlink_L", "jawOpen", "mouthSmile_R"]
+    for i, order in enumerate((names, names, names[::-1])):
+        p = tmp_path / f"{i}.json"
+        p.write_text(json.dumps({"blendShapes": {n: 0.1 * (i + 1) + 0.01 * k for k, n in enumerate(order)}}))
+        got = read_weights_json(p)
+        assert list(got) == [{"eyeBlink_L": "eyeBlinkLeft", "jawOpen": "jawOpen",
+                              "mouthSmile_R": "mouthSmileRight"}[n] for n in order]
+        assert list(got.values()) == pytest.approx([0.1 * (i + 1) + 0.01 * k for k in range(3)])
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"blendShapes": {"eyeBlink_L": 0.1, "eyeBlinkLeft": 0.2}}))
+    with pytest.raises(CaptureError, match="several names"):
+        read_weights_json(bad)

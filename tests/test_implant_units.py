@@ -729,3 +729,25 @@ def test_the_rims_data_term_holds_the_field_over_the_smoothing_not_the_rings_it_
     assert np.abs(outs[0] - outs[1])[soft].max() > 1e-5            # measured 0.19 mm
     assert np.abs(outs[0] - outs[1])[beyond].max() > 1e-5          # 0.23 mm
     np.testing.assert_allclose(outs[0][x < 0.03], outs[1][x < 0.03], atol=1e-12)
+
+
+def test_another_meshs_linear_field_is_each_shapes_weighted_least_squares():
+    """``linear_field`` on a field that is not linear in position: per shape, the weighted least-squares
+    line of the field on (1, x) (``numpy.linalg.lstsq`` of the rows scaled by the square roots of the
+    weights), read at the points; a shape whose weights lie on one point (a single moving piece) gets no
+    slope: its field is the weighted mean."""
+    from usdface.transfer.implant import linear_field
+
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(-0.02, 0.02, size=(90, 3))
+    phi = rng.normal(size=(3, 90, 3, 3)) + np.sin(40.0 * pts[None, :, :1, None])       # [J,k,3,3]
+    w = rng.uniform(0.0, 1.0, size=(3, 90))
+    w[2] = 0.0
+    w[2, 7] = 0.5                                                                      # one point only
+    out = linear_field(pts, phi, w)
+    X = np.column_stack([np.ones(len(pts)), pts])
+    for j in range(2):
+        s = np.sqrt(w[j])[:, None]
+        coef = np.linalg.lstsq(s * X, s * phi[j].reshape(90, 9), rcond=None)[0]
+        np.testing.assert_allclose(out[j], (X @ coef).reshape(90, 3, 3), atol=1e-10)
+    np.testing.assert_allclose(out[2, 7], phi[2, 7], atol=1e-10)

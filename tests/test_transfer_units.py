@@ -1110,3 +1110,18 @@ def test_side_swaps_tell_a_lid_by_the_side_it_moves_not_by_how_far():
     # 0.3 of the peak down, neither side) are the swaps
     count, rows = swaps(template.reshape(6, 6, 3)[::-1].reshape(-1, 3))
     assert count == 24 and list(rows) == [1, 2, 3, 4], (count, rows)
+
+
+def test_surface_samples_are_the_barycentric_grid_of_every_triangle_in_order():
+    """``surface_samples`` with ``s`` steps: per triangle, in the triangles' order, the points ``(1 - i/s -
+    j/s) a + (i/s) b + (j/s) c`` for ``i + j <= s`` (``i`` outer), corners and shared edges included."""
+    from usdface.transfer.surface import surface_samples
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(5, 3))
+    tri = np.array([[0, 1, 2], [2, 3, 4], [4, 1, 0]])
+    s = 3
+    want = [(1 - i / s - j / s) * pts[a] + (i / s) * pts[b] + (j / s) * pts[c]
+            for a, b, c in tri for i in range(s + 1) for j in range(s + 1) if i + j <= s]
+    np.testing.assert_allclose(surface_samples(pts, tri, s), np.array(want), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(surface_samples(pts, tri, 1), pts[[0, 1, 2, 3, 4]])

@@ -547,3 +547,39 @@ def test_a_shape_whose_one_frame_misreports_the_jaw_stays_near_generic(tmp_path)
     assert delta[names.index("tongueOut")] <= 0.05, delta[names.index("tongueOut")]
     assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
     assert fit.info["weight_leak_along"][names.index("tongueOut")] > 0
+
+
+def test_the_leaks_pattern_is_the_same_from_the_weights_basis_and_the_k_by_k_systems(monkeypatch):
+    """:func:`usdface.personalize.fit.weight_leak_direction` reads the gain ``A_v^-1 W^T`` from the fit's
+    rank-r basis (``diag(inv_l) B M^-1 P^T``, every shape's ``B_j^T M_v^-1`` by one product) or from the
+    K x K systems (``A^-1 W^T``): the same directions and energies, only on each shape's moving vertices
+    (a direction is zero elsewhere), with the fit's kept gain or without it. Frames fewer than the shapes
+    (rank 10 of 16: the basis pays)."""
+    from usdface.personalize import fit as fit_module
+    from usdface.personalize.fit import weight_leak_direction
+
+    rng, neutral, deltas, weights = _rig(seed=7, n=80, shapes=16, frames=16)
+    weights = weights[:10]                                   # shapes 10-15 only beside others, at <= 0.3
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
+    reg = 1e-2
+    free = ~held_weights(weights)
+    moving = rng.random((deltas.shape[1], len(deltas))) < 0.6                       # [n,K]
+    kept = FitSystem(weights, reg_weights, reg, gain=True)
+    assert kept.basis is not None and kept.basis[0].shape[1] == 10
+    fitted = fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg, system=kept)
+    reduced = weight_leak_direction(weights, reg_weights, reg, fitted, free, moving, system=kept)
+    fresh = weight_leak_direction(weights, reg_weights, reg, fitted, free, moving)
+    monkeypatch.setattr(fit_module, "REDUCED_MAX_RANK", 0.0)                           # the K x K systems
+    direct_kept = FitSystem(weights, reg_weights, reg, gain=True)
+    assert direct_kept.basis is None
+    fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg, system=direct_kept)
+    for direction, energy in (fresh, weight_leak_direction(weights, reg_weights, reg, fitted, free, moving),
+                              weight_leak_direction(weights, reg_weights, reg, fitted, free, moving,
+                                                    system=direct_kept)):
+        # a unit pattern is defined up to its sign
+        sign = np.sign(np.einsum("knc,knc->k", direction, reduced[0]))
+        np.testing.assert_allclose(direction * sign[:, None, None], reduced[0], atol=1e-9)
+        np.testing.assert_allclose(energy, reduced[1], rtol=1e-9)
+    assert not reduced[0][~moving.T].any()
+    assert np.count_nonzero(reduced[1]) >= 12                # (a shape no frame shows leaks nothing)

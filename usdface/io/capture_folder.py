@@ -18,6 +18,7 @@ shapes, then unknown names (kept, with a warning) sorted. Missing shapes are all
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -70,6 +71,14 @@ def refuse_weights_scale(weights, names, path, *, frame=lambda f: f"frame {f}", 
                        + " before reading them")
 
 
+@functools.lru_cache(maxsize=16)
+def _weight_names(names: tuple[str, ...]):
+    """:func:`usdface.arkit.match_names` of one frame's weight names, kept for the next frames: a capture's
+    frames list the same names (dev1: 81 files, 0.02-0.03 s of mapping the same 52 names again). Read only
+    (its ``names``, ``canonical`` and ``duplicates``)."""
+    return match_names(list(names))
+
+
 def read_weights_json(path) -> dict[str, float]:
     """Read one frame's weights ``{"blendShapes": {name: weight}}`` -> {canonical name: weight}.
 
@@ -92,7 +101,7 @@ def read_weights_json(path) -> dict[str, float]:
     if not isinstance(shapes, dict):
         raise CaptureError("no \"blendShapes\" object in the weights JSON", path=path,
                            fix="write the weights as {\"blendShapes\": {\"jawOpen\": 0.8, ...}}")
-    match = match_names(list(shapes))
+    match = _weight_names(tuple(shapes))
     if match.duplicates:
         spellings = [n for n, c in zip(match.names, match.canonical, strict=True) if c in match.duplicates]
         raise CaptureError(f"the same shape appears under several names: {', '.join(spellings)}", path=path,

@@ -322,23 +322,27 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
     if system.basis is None:
         inv_a = None if system.G is not None else np.linalg.inv(system.A)
 
-        def gain(j):
-            """``(A_v^-1 W^T)_j`` for every vertex and frame, ``[n,F]``."""
-            return system.G[:, j, :] if inv_a is None else inv_a[:, j, :] @ W.T
+        def gain(j, m):
+            """``(A_v^-1 W^T)_j`` for every vertex ``m`` (bool ``[n]``) and frame, ``[v,F]``."""
+            return system.G[m, j, :] if inv_a is None else inv_a[m, j, :] @ W.T
     else:
         P, _, _ = system.basis
         if P.shape[1] == 0:
             return direction, energy
         inv_m = np.linalg.inv(system.M) if system.inverse is None else system.inverse
+        n, r = inv_m.shape[:2]
+        # B_j^T M_v^-1 for every shape and vertex, [K,n,r]: one matrix product (not K unbuffered einsums)
+        b_inv_m = (system.B @ inv_m.transpose(1, 0, 2).reshape(r, n * r)).reshape(-1, n, r)
 
-        def gain(j):
-            return system.inv_l[:, j, None] * (np.einsum("r,nrs->ns", system.B[j], inv_m) @ P.T)
+        def gain(j, m):
+            return system.inv_l[m, j, None] * (b_inv_m[j, m] @ P.T)
     B2 = squared_lengths(D)                                                          # [K,n]
+    D_v = np.ascontiguousarray(D.transpose(1, 0, 2))                                 # [n,K,3]: rows gathered
     for j in range(K):
         m = wv[:, j]
         if not m.any():
             continue
-        G = gain(j)[m]                                                               # [v,F]
+        G = gain(j, m)                                                               # [v,F]
         # each part's energy on the shape's vertices (the gain and the shape's size each averaged there)
         e = np.sum(G * G, axis=0)[:, None] * var * B2[:, m].mean(axis=1)[None]        # [F,K]
         top = np.argsort(e, axis=None)[::-1][:parts]
@@ -354,7 +358,7 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
         e_j = np.einsum("i,inc->nc", vecs[:, -1], u) / np.sqrt(vals[-1])
         direction[j, m] = e_j
         # the variance along it of every part, not only of those that span it: sum_fk var_fk <u_fk, e>^2
-        energy[j] = np.sum(var * (G.T @ np.einsum("vc,kvc->vk", e_j, D[:, m])) ** 2)
+        energy[j] = np.sum(var * (G.T @ np.einsum("vc,vkc->vk", e_j, D_v[m])) ** 2)
     return direction, energy
 
 

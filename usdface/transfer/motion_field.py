@@ -263,9 +263,10 @@ class FieldExtension:
         """``values[m,c]``: read on the known vertices and, as the data, where the data term is set."""
         vals = np.asarray(values, dtype=np.float64)
         out = np.zeros((self.n, vals.shape[1]))
-        out[self.known] = vals[self.known]
+        known = vals[self.kidx]                         # (gathered once, by index: not a mask per call)
+        out[self.kidx] = known
         if self._solve is not None:
-            rhs = -(self._a_fk @ vals[self.kidx])
+            rhs = -(self._a_fk @ known)
             if self.data.any():
                 rhs += self.data[:, None] * vals[self.free]
             out[self.free] = self._solve(rhs)

@@ -89,7 +89,7 @@ def surface_samples(points, triangles, subdivisions: int) -> np.ndarray:
     keep = (i + j) <= s
     b1, b2 = i[keep] / s, j[keep] / s
     bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)  # [g,3]
-    return np.einsum("gk,tkc->tgc", bary, p[t]).reshape(-1, 3)
+    return np.matmul(bary, p[t]).reshape(-1, 3)                  # [t,g,3]: one batched product
 
 
 def decimate(points, triangles, edge: float):
