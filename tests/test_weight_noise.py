@@ -593,7 +593,7 @@ def test_each_weight_errs_by_its_own_side_of_the_phones_clip():
     pooled over both sides reads (the one level that understated the inside entries' leak: generated person
     noisy:143's ``jawLeft``, below); the entries at 0 read the censored expectation, within a factor 2 of
     their true mean squared error and below a tenth of 0.03^2."""
-    from usdface.personalize.api import weight_error_variance
+    from usdface.personalize.weights import weight_error_variance
 
     rng, neutral, deltas, weights = _rig(seed=5, n=200, frames=80)
     points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)

@@ -281,7 +281,7 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     of eqs. (1)+(2) takes at each vertex from independent errors of unit variance in the weights the frames
     report (``weights[F,K]``, the entries ``free[F,K]`` may err; ``reg_weights[K,n]``, ``reg`` as in
     :func:`fit_blendshapes`; ``deltas[K,n,3]`` the fitted shapes, metres). ``free`` may instead hold each
-    entry's error variance (weight units squared, e.g. :func:`.api.weight_error_variance`): the result is
+    entry's error variance (weight units squared, e.g. :func:`.weights.weight_error_variance`): the result is
     then in m^2. To first order a weight error
     ``e_fk`` is the frame error ``-e_fk B_k`` (the frame explained with the wrong weight), so frame ``f``'s
     noise variance at vertex ``v`` is ``E_fv = sum_k free_fk |B_kv|^2`` and each shape's error variance is
