@@ -971,6 +971,48 @@ def test_every_item_gets_its_progress_line(tmp_path, monkeypatch, capsys):
         assert f"batch [{i}/3] {n}.usda done" in err, err
 
 
+def nap_worker(item: dict) -> None:
+    """Takes 3 s, then writes ``output`` as :func:`stub_worker` does."""
+    import time
+
+    time.sleep(3)
+    stub_worker(item)
+
+
+@pytest.mark.parametrize("where", [["-j", "2"], ["--scheduler", "dask"]])
+def test_a_pool_batch_says_what_it_waits_for(tmp_path, where):
+    """User trial (stop 48): ``usdface batch people.csv`` on the local pool or a Dask cluster printed nothing
+    until its first item ended (minutes on a production head), where a log says what runs once a step has
+    run 2 s; the workers print no steps of their own. Now ``batch [1/3] a.usda, b.usda running, 1 queued ...``
+    (Dask: the items on the cluster) once the delay passes with no line, and again after each item."""
+    if where[0] == "--scheduler":
+        distributed = pytest.importorskip("distributed")
+        cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                           protocol="tcp", dashboard_address=None)
+        where = ["--scheduler", cluster.scheduler_address]
+    else:
+        cluster = contextlib.nullcontext()
+    manifest = _manifest(tmp_path, ["a", "b", "c"])
+    tests = Path(__file__).resolve().parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests.parent), str(tests)]),
+           "USDFACE_PROGRESS": "plain", "USDFACE_PROGRESS_DELAY": "1"}
+    code = ("import sys\nfrom usdface.cli import main\n"
+            f"sys.exit(main(['batch', {str(manifest)!r}, *{where!r}, '--worker', "
+            f"'{Path(__file__).stem}:nap_worker']))\n")
+    with cluster:
+        res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
+                             text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.startswith("usdface: batch")]
+    first_done = next(i for i, line in enumerate(lines) if line.endswith(")") and " done (" in line)
+    waiting = [line for line in lines[:first_done] if line.rstrip().endswith(" s)") and " ... (t+" in line]
+    assert waiting, res.stderr
+    if where[0] == "-j":
+        assert "batch [1/3] a.usda, b.usda running, 1 queued ... (t+" in waiting[0], res.stderr
+    else:
+        assert "batch [1/3] 3 item(s) on the Dask cluster: a.usda, b.usda, c.usda ... (t+" in waiting[0]
+
+
 def pid_slow_worker(item: dict) -> None:
     """Writes its process id next to ``output``, then takes 60 s."""
     import time

@@ -1160,3 +1160,25 @@ def test_obj_export_writes_the_texture_coordinates(samples, tmp_path):
             np.testing.assert_array_equal(tris, rig.triangles)
     assert len(vt) < 3 * len(rig.triangles)                 # shared corners share a vt
     assert "vt " not in (out / "EyeLeft" / "neutral.obj").read_text()
+
+
+def test_export_and_review_print_json_as_the_other_commands(layer, tmp_path, capsys):
+    """User trial (stop 48): a publish script that reads every command's ``--json`` document got ``usdface
+    export: error: unrecognized arguments: --json`` from ``export`` and ``review``, the two delivery steps.
+    Now one document on stdout naming every output written (absolute) and the warnings, no progress; an
+    error is the ``{"ok": false, ...}`` document, as for the other commands."""
+    out = tmp_path / "deliver"
+    assert main(["export", str(layer), "--gltf", str(out / "p.glb"), "--flatten", str(out / "p.usdc"),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and doc["variant"] == "personalized"
+    assert doc["outputs"] == {"gltf": str(out / "p.glb"), "flatten": str(out / "p.usdc")}
+    assert (out / "p.glb").is_file() and (out / "p.usdc").is_file()
+    assert main(["review", str(layer), "-o", str(out / "p.html"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and doc["output"] == str(out / "p.html")
+    assert doc["bytes"] == (out / "p.html").stat().st_size
+    assert main(["export", str(layer), "--gltf", str(out / "p.glb"), "--json"]) == 2   # exists, no --force
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert not doc["ok"] and doc["error"]["type"] == "OutputExistsError" and "--force" in doc["error"]["fix"]

@@ -55,3 +55,15 @@ def test_landmark_layout_repr_names_its_vertices():
                             np.ones(2), list(ARKIT_52), 0.5, 0.5, False, 1, "optimal", 0.0, 2.0, "quality",
                             "scip")
     _one_line(layout, "2 landmarks", f"{K} shapes", "optimal", "[3, 7]")
+
+
+def test_a_retarget_map_result_says_it_is_a_map(samples, tmp_path):
+    """User trial (stop 48): ``print(usdface.write_retarget_map(avatar, capture, "map.json"))`` said
+    ``<PersonalizeResult map.json: 52 shapes implanted, 0 mesh(es) (), ...>``: nothing is implanted by
+    ``usdface retarget``, the map is the product. It says what was made now."""
+    from usdface import api
+
+    result = api.write_retarget_map(samples / "avatar.usda", samples / "capture.usda", tmp_path / "m.json",
+                                    method="dt")
+    text = _one_line(result, "m.json", "retarget map of 52 shapes onto 52 avatar shapes of /Avatar/Head")
+    assert "implanted" not in text and "0 mesh(es)" not in text

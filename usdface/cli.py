@@ -27,7 +27,7 @@ COMMAND_MODULES = (
 
 #: Commands whose ``--json`` is a flag (the result as JSON on stdout); ``evaluate``/``landmarks`` take a path.
 JSON_FLAG_COMMANDS = ("personalize", "fit", "capture", "anim", "sample", "inspect", "check", "batch",
-                      "retarget")
+                      "retarget", "export", "review")
 #: Commands whose numerical work all runs with BLAS at one thread (``personalize_avatar`` is
 #: :func:`usdface.personalize.api.single_threaded_blas`): the program starts their BLAS with one thread
 #: (:func:`_one_blas_thread_environment`).

@@ -96,6 +96,8 @@ class _Steps:
         self.printed = False    # any line of this block is printed
         self.t_line = self.t0   # when this block last printed (many short steps: a line every ``delay`` s)
         self.lock = threading.Lock()
+        self.waiting_for = None  # waiting(): what runs elsewhere, a callable giving its label
+        self.wait_timer: threading.Timer | None = None
         outer = [s.title for s in _STACK if s.how == "plain"]
         self.prefix = " > ".join([*outer, title])
 
@@ -134,6 +136,34 @@ class _Steps:
         if self.how == "bar":
             _LIVE.update(self.task, advance=1)
 
+    def _waited(self, since: float) -> None:
+        """The waiting line (timer thread): the steps running elsewhere, unless a line came since."""
+        with self.lock:
+            if self.waiting_for is None or self.t_line > since or self.done >= self.total:
+                return
+            label = self.waiting_for()
+            if label:
+                since_start = time.perf_counter() - self.t0
+                self._line(f"{self._counter(self.done + 1)} {label} ... (t+{since_start:.1f} s)")
+
+    def _arm_wait(self) -> None:
+        if self.wait_timer is not None:
+            self.wait_timer.cancel()
+            self.wait_timer = None
+        if self.how != "plain" or self.waiting_for is None or self.done >= self.total:
+            return
+        self.wait_timer = threading.Timer(self.delay, self._waited, args=(time.perf_counter(),))
+        self.wait_timer.daemon = True
+        self.wait_timer.start()
+
+    def waiting(self, label) -> None:
+        """Steps that run elsewhere (a batch's items on pool workers or a Dask cluster, which print nothing
+        here): once ``delay`` seconds pass with no line of this block, one line ``[i/n] <label()> ...``
+        naming what runs (``label``: a callable, asked then), and again after each step that ends, so a log
+        says what is running as it does for a step run here. Plain mode only (a bar shows its own clock)."""
+        self.waiting_for = label
+        self._arm_wait()
+
     # the two calls ---------------------------------------------------------------------------------------
     def __call__(self, label: str | None = None, outcome: str = "done", seconds: float | None = None) -> None:
         """The step ``label`` (or the one started last) is over; ``outcome`` says how (``done``, or e.g.
@@ -160,6 +190,8 @@ class _Steps:
             text = f"{label} {outcome}" if label and outcome != "done" else label
             _LIVE.update(self.task, advance=1, description=f"{self.title}: {text}" if text else self.title)
         self.t_step = now
+        if self.waiting_for is not None:
+            self._arm_wait()
 
     def start(self, label: str) -> None:
         """The step ``label`` begins (ending the one started before, if any); a safe point to stop, as the
@@ -183,6 +215,9 @@ class _Steps:
     def _close(self, ok: bool) -> None:
         if self.how == "off":
             return
+        self.waiting_for = None
+        if self.wait_timer is not None:
+            self.wait_timer.cancel()
         if self.running is not None:
             if ok:
                 self._end_running()

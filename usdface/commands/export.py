@@ -27,6 +27,8 @@ def register(subparsers) -> None:
                    help="glTF morph targets without NORMAL deltas (POSITION only: about half the file, for "
                         "engines that recompute the normals of a posed mesh)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.add_argument("--json", action="store_true",
+                   help="print what was written as JSON (outputs, variant, warnings)")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -48,9 +50,15 @@ def run(args) -> int:
         raise OptionError("--no-morph-normals applies to the glTF only (OBJ targets and a flattened USD "
                           "carry the shapes as authored)",
                           fix="drop --no-morph-normals, or add --gltf OUT.glb")
-    done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
-                         variant=args.variant, skin=not args.no_skin, morph_normals=not args.no_morph_normals,
-                         force=args.force)
+    import contextlib
+    import warnings
+
+    with warnings.catch_warnings(record=True) if args.json else contextlib.nullcontext() as caught:
+        if args.json:
+            warnings.simplefilter("always")
+        done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
+                             variant=args.variant, skin=not args.no_skin,
+                             morph_normals=not args.no_morph_normals, force=args.force)
     variant = exported_variant(args.layer, args.variant)
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
@@ -62,6 +70,15 @@ def run(args) -> int:
              "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
              f"{variant}, as baked into {Path(args.layer).name} (a flattened export of {baked['source']})"
              if baked else variant)
+    if args.json:
+        import json
+
+        from . import json_path
+
+        print(json.dumps({"ok": True, "output": json_path(next(iter(done.values()), None)),
+                          "outputs": {kind: json_path(path) for kind, path in done.items()},
+                          "variant": variant, "label": label, "warnings": [str(w.message) for w in caught]}))
+        return 0
     for kind, path in done.items():
         size = (f" ({path.stat().st_size / 1e6:.1f} MB)" if path.is_file() else
                 f" ({sum(1 for _ in path.rglob('*.obj'))} OBJ files)")

@@ -30,6 +30,7 @@ def register(subparsers) -> None:
                         "60000: a 225k-vertex head made a 124 MB page that updated a pose in seconds); 0 "
                         "shows every vertex")
     p.add_argument("--force", action="store_true", help="overwrite the HTML file")
+    p.add_argument("--json", action="store_true", help="print what was written as JSON (output, warnings)")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -41,10 +42,25 @@ def default_output(layer) -> Path:
 
 
 def run(args) -> int:
+    import contextlib
+    import warnings
+
     from ..api import write_review
 
     out = args.output or default_output(args.layer)
-    path = write_review(args.layer, out, capture=args.capture, take=args.take,
-                        fit_errors=not args.no_fit_errors, force=args.force, max_vertices=args.max_vertices)
+    with warnings.catch_warnings(record=True) if args.json else contextlib.nullcontext() as caught:
+        if args.json:
+            warnings.simplefilter("always")
+        path = write_review(args.layer, out, capture=args.capture, take=args.take,
+                            fit_errors=not args.no_fit_errors, force=args.force,
+                            max_vertices=args.max_vertices)
+    if args.json:
+        import json
+
+        from . import json_path
+
+        print(json.dumps({"ok": True, "output": json_path(path), "bytes": path.stat().st_size,
+                          "warnings": [str(w.message) for w in caught]}))
+        return 0
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0

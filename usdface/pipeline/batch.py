@@ -869,6 +869,21 @@ def default_jobs() -> int:
     return pool_size(usable_cores(), available_memory_mb(), PERSONALIZE_WORKER_MB)
 
 
+def _waiting_label(todo: list[dict], results: dict, jobs: int | None) -> str:
+    """What a pool's or a cluster's batch waits for, for its progress line: on the local pool the first
+    ``jobs`` unfinished items (its workers take the items in manifest order) are running and the rest
+    queued (``a.usda, b.usda running, 3 queued``); on Dask, which runs them in an order of its own, the
+    unfinished items (``5 item(s) on the Dask cluster: a.usda, b.usda, c.usda (+2)``)."""
+    left = [Path(item["output"]).name for item in todo if item["index"] not in results]
+    if not left:
+        return ""
+    if jobs is not None:
+        queued = len(left) - jobs
+        return f"{', '.join(left[:jobs])} running" + (f", {queued} queued" if queued > 0 else "")
+    more = f" (+{len(left) - 3})" if len(left) > 3 else ""
+    return f"{len(left)} item(s) on the Dask cluster: {', '.join(left[:3])}{more}"
+
+
 def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = personalize_worker,
               jobs: int | None = None, scheduler=None, force: bool = False,
               progress: bool = True) -> BatchReport:
@@ -905,6 +920,10 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
         _progress.set_enabled(enabled and progress)
         try:
             with steps("batch", len(todo), every=True) as advance:
+                if scheduler is not None or (jobs > 1 and len(todo) > 1):
+                    # the workers print no steps of their own: the log says which items it waits for
+                    advance.waiting(lambda: _waiting_label(todo, results, None if scheduler is not None
+                                                           else min(jobs, len(todo))))
                 if scheduler is not None:
                     runner = _run_dask(worker, todo, scheduler, advance)
                 elif jobs == 1 or len(todo) == 1:

@@ -130,6 +130,10 @@ class PersonalizeResult:
     def __repr__(self) -> str:
         # one line (the dataclass repr printed every offset array: ~55 kB for a 4k-vertex avatar)
         meshes = ", ".join(map(str, self.offsets))
+        if not self.offsets and len(self.avatar_names):  # usdface retarget's: the map, no implant
+            return (f"<PersonalizeResult {self.out_path or '(not written)'}: retarget map of "
+                    f"{len(self.names)} shapes onto {len(self.avatar_names)} avatar shapes of "
+                    f"{self.face_mesh} (no implant)>")
         return (f"<PersonalizeResult {self.out_path or '(not written)'}: {len(self.names)} shapes implanted, "
                 f"{len(self.offsets)} mesh(es) ({meshes}), face mesh {self.face_mesh}>")
 
