@@ -302,8 +302,8 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
     """The one pattern along which the weights' leak into each fitted shape is largest, and its variance:
     ``(direction[K,n,3], energy[K])``, ``direction_j`` of unit length (zero off ``vertex_weights[n,K] > 0``,
     the vertices the shape's personalization moves) and ``energy_j`` (m^2 per unit of the weights' noise
-    variance) the expected squared projection of the leak on it, every part's. Arrays as in
-    :func:`weight_leak_variance`.
+    variance; m^2 when ``free`` holds each entry's error variance) the expected squared projection of the leak
+    on it, every part's. Arrays as in :func:`weight_leak_variance`.
 
     A weight error ``e_fk`` moves every vertex of shape ``j`` along one pattern, ``u_fk(v) = (A_v^-1
     W^T)_jf B_k(v)``, so the leak is a Gaussian field whose covariance ``sum_fk free_fk u_fk u_fk^T`` has the
