@@ -625,3 +625,25 @@ def test_a_jaw_weight_misreported_inside_the_clip_leaks_as_the_phones_whole_nois
                                weight_noise=0.03)
     assert delta[names.index("jawLeft")] <= 0.05, delta[names.index("jawLeft")]
     assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
+
+
+def test_a_weight_reported_past_a_bound_errs_by_the_whole_noise():
+    """Only the phone's clip makes a report exact-or-censored: a weight a source reported past 0 or 1 (not
+    clipped: a phone overshoots by a few per cent, and an in-memory :class:`usdface.model.Capture` is not
+    clipped as the readers do) errs by the whole noise, as an inside entry does, not by nothing. Frames made
+    from known shapes, the weights reported with noise 0.03 and not clipped: every free entry not exactly at
+    0 or 1 reads the inside entries' variance."""
+    from usdface.personalize.weights import weight_error_variance
+
+    rng, neutral, deltas, weights = _rig(seed=5, n=200, frames=80)
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    reported = np.round(weights + rng.normal(size=weights.shape) * 0.03, 4)
+    free = ~held_weights(reported)
+    past = free & ((reported < 0.0) | (reported > 1.0))
+    assert past.sum() > 100                                                 # the premise: many past a bound
+    variance = weight_error_variance(neutral, points, reported, deltas, free)
+    unclipped = free & (reported != 0.0) & (reported != 1.0)
+    level = weight_noise(neutral, points, reported, deltas, unclipped) ** 2
+    assert level > 0.5 * 0.03 ** 2
+    np.testing.assert_allclose(variance[past], level, rtol=1e-12)
+    np.testing.assert_allclose(variance[unclipped], level, rtol=1e-12)

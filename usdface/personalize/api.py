@@ -766,7 +766,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     return FitResult(rig, info)
 
 
-
 def weight_sensitivity(neutral, points, weights, deltas, residuals, solve, *, held=None) -> np.ndarray:
     """``[K,n,3]`` (metres): how much each fitted shape changes when the training frames' weights are
     re-estimated from the geometry within the phone's uncertainty (:data:`WEIGHT_NOISE`, the prior width of

@@ -25,7 +25,8 @@ import numpy as np
 from .align import distinct_frames
 from .fit import weight_basis
 
-__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched", "weight_noise"]
+__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched",
+           "weight_error_variance", "weight_noise"]
 
 
 def peak_frames(weights: np.ndarray) -> np.ndarray:
@@ -156,7 +157,9 @@ def weight_error_variance(neutral, points, weights, deltas, free) -> np.ndarray:
     reports, ``deltas[K,n,3]`` the fitted shapes.
 
     The phone reports ``r = clip(w + e, 0, 1)``, ``e ~ N(0, s^2)``. An entry inside ``(0, 1)`` errs by the
-    whole ``e``: ``s`` is :func:`weight_noise` over the inside entries alone. An entry at a bound
+    whole ``e``, and so does one past a bound (a report not clipped: the readers clip, an in-memory
+    :class:`usdface.model.Capture` need not): ``s`` is :func:`weight_noise` over these entries alone (the
+    "inside" ones below). An entry at a bound
     ``b`` errs by ``b - w`` (the clip took ``e``'s part beyond ``b``), ``|b - w| <= |e|``, and its truth is
     one of two kinds: ``w = b`` exactly (at 0 every shape a frame does not perform: no error at all), or a
     value spread near ``b`` with some density ``g`` (the performed ones). Of the latter, a truth at distance
@@ -177,7 +180,7 @@ def weight_error_variance(neutral, points, weights, deltas, free) -> np.ndarray:
     0 scatter with the other entries' errors, not their own, 4x the truth's (docs/history.md, stop 48)."""
     w = np.asarray(weights, dtype=np.float64)
     free = np.asarray(free, dtype=bool)
-    inside = free & (w > 0.0) & (w < 1.0)
+    inside = free & (w != 0.0) & (w != 1.0)                 # not clipped: past a bound errs by all of e too
     variance = np.zeros(w.shape)
     if not inside.any():
         return variance
