@@ -10,11 +10,11 @@ artist's rig without ``../shared``. A generated case's seed may be followed by t
 ``/scanMM`` (the scan noise, mm per coordinate; ``usdface sample --scan-noise``) and ``/wnoiseSTD`` (the
 phone weights' noise, ``--weight-noise``), in either order, before any other ending: ``artist:201/scan0.3``,
 ``generic:202/scan0.05/wnoise0.06/minus3/weights1.1`` (the person, template and truth are the seed's; the
-defaults 0.1 mm and 0.01, noisy's 0.15 and 0.03). ``dev1/minus3`` is a bench case whose capture misses every third
-requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that failed
-to record them), so that the shapes it names are seen only beside others (the capture folder linked into a
-temporary folder, the avatar and truth the case's own; a generated case's, ``artist:3/minus3``, the frames
-dropped from its read capture). Any case ending in ``/weightsS``
+defaults 0.1 mm and 0.01, noisy's 0.15 and 0.03). ``dev1/minus3`` is a bench case whose capture misses every
+third requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that
+failed to record them), so that the shapes it names are seen only beside others (the capture folder linked
+into a temporary folder, the avatar and truth the case's own; a generated case's, ``artist:3/minus3``, the
+frames dropped from its read capture). Any case ending in ``/weightsS``
 (``artist:31/weights0.9``, ``dev1/minus3/weights1.1``) is that case with every training weight the phone
 reported times ``S``, clipped to [0, 1]: a phone that under- or over-reports (docs/personalize.md, known
 gaps). A bench case ending in ``/templateSRC`` or ``/templateSRCxS`` (``dev1/template3``,
