@@ -6,10 +6,15 @@ A case is a bench case (``dev1``), ``sample``, a folder written by ``usdface sam
 ``generic:SEED`` / ``noisy:SEED``: generated here (``usdface sample --template artist --seed SEED``; noisy:
 the same with ``--scan-noise 0.15 --weight-noise 0.03``, dev2's regime) into a temporary folder, removed
 at exit, e.g. ``--cases artist:1,artist:2,artist:3 --no-time`` for captures whose template is another
-artist's rig without ``../shared``. ``dev1/minus3`` is a bench case whose capture misses every third
-requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that failed
-to record them), so that the shapes it names are seen only beside others (the capture folder linked into a
-temporary folder, the avatar and truth the case's own). Any case ending in ``/weightsS``
+artist's rig without ``../shared``. A generated case's seed may be followed by the frames' noise,
+``/scanMM`` (the scan noise, mm per coordinate; ``usdface sample --scan-noise``) and ``/wnoiseSTD`` (the
+phone weights' noise, ``--weight-noise``), in either order, before any other ending: ``artist:201/scan0.3``,
+``generic:202/scan0.05/wnoise0.06/minus3/weights1.1`` (the person, template and truth are the seed's; the
+defaults 0.1 mm and 0.01, noisy's 0.15 and 0.03). ``dev1/minus3`` is a bench case whose capture misses every
+third requested training frame (those numbered 1, 4, 7, ...: a user who deleted bad scans, or an app that
+failed to record them), so that the shapes it names are seen only beside others (the capture folder linked
+into a temporary folder, the avatar and truth the case's own; a generated case's, ``artist:3/minus3``, the
+frames dropped from its read capture). Any case ending in ``/weightsS``
 (``artist:31/weights0.9``, ``dev1/minus3/weights1.1``) is that case with every training weight the phone
 reported times ``S``, clipped to [0, 1]: a phone that under- or over-reports (docs/personalize.md, known
 gaps). A bench case ending in ``/templateSRC`` or ``/templateSRCxS`` (``dev1/template3``,
@@ -69,18 +74,52 @@ def _rmse(a, b):
 _MADE: dict[str, Path] = {}
 
 
+#: The settings a generated case's name may set after its seed (``artist:201/scan0.3/wnoise0.06``):
+#: the modifier, :func:`usdface.sample.generate_samples`' keyword, and the factor from the name's unit to it
+#: (scan noise named in mm, generated in metres; the phone weights' noise a std of the weights).
+SETTINGS = {"scan": ("scan_noise_m", 1e-3), "wnoise": ("weight_noise", 1.0)}
+
+
+def _spec(case: str) -> tuple[str, int, dict] | None:
+    """``("artist", 201, {"scan_noise_m": 3e-4, "weight_noise": 0.06})`` for
+    ``"artist:201/scan0.3/wnoise0.06"``: a generated case's template, seed and the frames' noise for
+    :func:`usdface.sample.generate_samples` (``noisy``: the artist template at 0.15 mm and 0.03, either
+    overridden by a modifier). The modifiers ``/scanMM`` (the scan noise, mm per coordinate) and
+    ``/wnoiseSTD`` (the phone weights' noise) follow the seed in either order, each at most once, a finite
+    number >= 0; None for any other name."""
+    head, *mods = case.split("/")
+    kind, sep, seed = head.partition(":")
+    if not sep or kind not in ("artist", "generic", "noisy") or not seed.isdigit():
+        return None
+    noise = {"scan_noise_m": 1.5e-4, "weight_noise": 0.03} if kind == "noisy" else {}
+    seen = set()
+    for mod in mods:
+        name = next((n for n in SETTINGS if mod.startswith(n)), None)
+        try:
+            value = float(mod[len(name):]) if name else float("nan")
+        except ValueError:
+            return None
+        if name is None or name in seen or not (np.isfinite(value) and value >= 0):
+            return None
+        seen.add(name)
+        key, unit = SETTINGS[name]
+        noise[key] = value * unit
+    return ("artist" if kind == "noisy" else kind), int(seed), noise
+
+
 def _generated(case: str) -> bool:
     """Is ``case`` a folder written by ``usdface sample`` (e.g. ``--template artist --seed 3``), or
-    ``artist:SEED`` / ``generic:SEED`` / ``noisy:SEED`` (generated here, once per run, into a temporary
-    folder)?"""
-    if case.split(":")[0] in ("artist", "generic", "noisy") and case.split(":")[-1].isdigit():
+    ``artist:SEED`` / ``generic:SEED`` / ``noisy:SEED``, optionally with the frames' noise set
+    (:func:`_spec`; generated here, once per run, into a temporary folder)?"""
+    if _spec(case) is not None:
         return True
     return (Path(case) / "truth" / "meta.json").is_file() and (Path(case) / "avatar.usda").is_file()
 
 
 def _folder(case: str) -> Path:
     """The folder of a generated case (see :func:`_generated`)."""
-    if ":" not in case:
+    spec = _spec(case)
+    if spec is None:
         return Path(case)
     if case not in _MADE:
         import atexit
@@ -88,14 +127,10 @@ def _folder(case: str) -> Path:
 
         from usdface.sample import generate_samples
 
-        kind, seed = case.split(":")
-        # noisy: the artist template in dev2's scan regime (scan noise 0.15 mm, phone weights +- 0.03)
-        noise = {"scan_noise_m": 1.5e-4, "weight_noise": 0.03} if kind == "noisy" else {}
-        template = "artist" if kind == "noisy" else kind
+        template, seed, noise = spec
         tmp = tempfile.mkdtemp(prefix="usdface-bench-")
         atexit.register(shutil.rmtree, tmp, ignore_errors=True)
-        _MADE[case] = generate_samples(Path(tmp) / f"{kind}{seed}", seed=int(seed), template=template,
-                                       **noise)
+        _MADE[case] = generate_samples(Path(tmp) / "case", seed=seed, template=template, **noise)
     return _MADE[case]
 
 
@@ -125,6 +160,23 @@ def _capture_minus(base: str, k: int) -> Path:
         if not (number.isdigit() and int(number) % k == 1):
             (dst / "train" / f.name).symlink_to(f.resolve())
     return dst
+
+
+def drop_training_frames(capture, k: int):
+    """``capture`` without the training frames whose number (the label's leading ``NNN``) is 1 modulo ``k``:
+    :func:`_capture_minus` for a capture read from one file (a generated case's ``capture.usda``); the test
+    frames, template and neutral kept (a new Capture)."""
+    import dataclasses
+
+    from usdface.model import Frames
+
+    fr = capture.frames
+    number = [lab.split("_", 1)[0] for lab in fr.label]
+    keep = np.array([r != "train" or not (n.isdigit() and int(n) % k == 1)
+                     for r, n in zip(fr.role, number, strict=True)])
+    idx = np.flatnonzero(keep)
+    frames = Frames(fr.points[idx], fr.weights[idx], [fr.role[i] for i in idx], [fr.label[i] for i in idx])
+    return dataclasses.replace(capture, frames=frames)
 
 
 def _weights(case: str) -> tuple[str, float] | None:
@@ -179,8 +231,9 @@ def _known(case: str) -> bool:
     template = _template(c)
     if template:
         return all((BENCH / name).is_dir() for name in template[:2])
+    minus = _minus(c)
     return (c == "sample" or _generated(c) or (BENCH / c).is_dir()
-            or (_minus(c) is not None and (BENCH / _minus(c)[0]).is_dir()))
+            or (minus is not None and (_generated(minus[0]) or (BENCH / minus[0]).is_dir())))
 
 
 def scale_training_weights(capture, factor: float):
@@ -217,6 +270,10 @@ def _case(case: str):
     from usdface.io import read_capture
     from usdface.io.usd_rig import read_avatar
 
+    minus = _minus(case)
+    if minus and _generated(minus[0]):
+        avatar, capture, face, covered, truth = _case(minus[0])
+        return avatar, drop_training_frames(capture, minus[1]), face, covered, truth
     if case == "sample" or _generated(case):
         from usdface.sample import covered_vertices
 
@@ -227,7 +284,6 @@ def _case(case: str):
         covered = covered_vertices(avatar.mesh("Head").neutral, meta, ct["neutral"], capture.triangles)
         face = covered
     else:
-        minus = _minus(case)
         d = BENCH / (minus[0] if minus else case)
         avatar = read_avatar(d / "avatar.usdc")
         capture = read_capture(_capture_minus(*minus) if minus else d / "capture")

@@ -1,4 +1,5 @@
-"""The benchmark's case names (benchmarks/bench_personalize.py): a bench case whose capture misses frames."""
+"""The benchmark's case names (benchmarks/bench_personalize.py): a bench case whose capture misses frames, a
+generated case's settings."""
 
 from __future__ import annotations
 
@@ -102,3 +103,65 @@ def test_swapped_template_moves_the_template_only_and_matches_names_in_any_spell
                          ["jawOpen", "eyeBlink_L"])
     with pytest.raises(ValueError, match="same mesh"):
         bench_personalize.swap_template(capture, other_mesh, 1.0)
+
+
+def test_a_generated_cases_name_sets_the_frames_noise_after_its_seed():
+    spec = bench_personalize._spec
+    assert spec("artist:201") == ("artist", 201, {})
+    assert spec("generic:7/scan0.3/wnoise0.06") == ("generic", 7, {"scan_noise_m": 0.3e-3,
+                                                                  "weight_noise": 0.06})
+    assert spec("artist:7/wnoise0/scan0.05") == ("artist", 7, {"weight_noise": 0.0,
+                                                              "scan_noise_m": 0.05e-3})
+    # noisy: dev2's regime (0.15 mm, 0.03), either value overridden by a modifier
+    assert spec("noisy:3") == ("artist", 3, {"scan_noise_m": 1.5e-4, "weight_noise": 0.03})
+    assert spec("noisy:3/wnoise0.01") == ("artist", 3, {"scan_noise_m": 1.5e-4, "weight_noise": 0.01})
+    for other in ("dev1", "sample", "artist:x", "other:3", "artist:3/scan", "artist:3/scanx",
+                  "artist:3/scan-1", "artist:3/scannan", "artist:3/scan0.1/scan0.2", "artist:3/minus3",
+                  "artist:3/weights0.9", "artist:3/wnoise0.1/minus3"):
+        assert spec(other) is None, other
+    # combinable with the other modifiers, which follow the settings
+    assert bench_personalize._minus("artist:3/scan0.3/minus3") == ("artist:3/scan0.3", 3)
+    assert (bench_personalize._weights("artist:3/wnoise0.06/minus3/weights1.1")
+            == ("artist:3/wnoise0.06/minus3", 1.1))
+    for case in ("artist:3/scan0.3", "noisy:3/wnoise0.06/scan0.05", "generic:3/scan0.3/minus3",
+                 "artist:3/scan0.3/wnoise0.06/minus3/weights0.9", "artist:3/minus3"):
+        assert bench_personalize._known(case), case
+    assert not bench_personalize._known("artist:3/scan0.3/other")
+
+
+def test_the_settings_reach_the_generator(monkeypatch, tmp_path):
+    import usdface.sample
+
+    calls = []
+
+    def fake(outdir, seed, template, **noise):
+        calls.append((seed, template, noise))
+        return tmp_path
+
+    monkeypatch.setattr(usdface.sample, "generate_samples", fake)
+    monkeypatch.setattr(bench_personalize, "_MADE", {})
+    assert bench_personalize._folder("noisy:5/scan0.3") == tmp_path
+    assert bench_personalize._folder("noisy:5/scan0.3") == tmp_path                 # made once per run
+    bench_personalize._folder("generic:6/wnoise0.06")
+    assert calls == [(5, "artist", {"scan_noise_m": 0.3e-3, "weight_noise": 0.03}),
+                     (6, "generic", {"weight_noise": 0.06})]
+
+
+def test_dropped_frames_of_a_capture_read_from_one_file_are_the_folders_every_kth():
+    import numpy as np
+
+    from usdface.model import Capture, FaceRig, Frames
+
+    tri = np.array([[0, 1, 2]])
+    pts = np.eye(3)
+    labels = ["000_a", "001_b", "002_a", "003_b", "004_a", "000", "001"]
+    roles = ["train"] * 5 + ["test"] * 2
+    weights = np.arange(14, dtype=float).reshape(7, 2)
+    capture = Capture(pts, tri, FaceRig(pts, tri, ["a", "b"], np.zeros((2, 3, 3))),
+                      Frames(np.stack([pts * i for i in range(7)]), weights, roles, labels), ["a", "b"])
+    out = bench_personalize.drop_training_frames(capture, 3)
+    assert out.frames.label == ["000_a", "002_a", "003_b", "000", "001"]      # 1 and 4 gone, the tests kept
+    assert out.frames.role == ["train"] * 3 + ["test"] * 2
+    np.testing.assert_array_equal(out.frames.weights, weights[[0, 2, 3, 5, 6]])
+    np.testing.assert_array_equal(out.frames.points, capture.frames.points[[0, 2, 3, 5, 6]])
+    assert len(capture.frames.label) == 7                                  # the input is not changed
