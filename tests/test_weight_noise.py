@@ -647,3 +647,25 @@ def test_a_weight_reported_past_a_bound_errs_by_the_whole_noise():
     assert level > 0.5 * 0.03 ** 2
     np.testing.assert_allclose(variance[past], level, rtol=1e-12)
     np.testing.assert_allclose(variance[unclipped], level, rtol=1e-12)
+
+
+def test_a_lip_contact_the_weights_errors_agree_with_is_no_part_of_the_trusts_estimate(tmp_path):
+    """Issue 10's per-shape rule on generated person noisy:115 (another artist's template, scan noise 0.15
+    mm, the phone's weights +-0.03): in ``mouthPressRight``'s one frame the phone reports the lip-opening
+    shapes too high (``tongueOut`` 0.052, ``mouthLowerDownRight`` 0.050, ``mouthPressLeft`` +0.049,
+    ``jawOpen`` 0.032 above the truth), the frame's residual then asks for closed lips and the contact
+    step's test agrees (-9.9 mm^2; with the true weights +15.0, rejected): the template's gap moves 50 lip
+    vertices up to 1.04 mm. The fit before it was 0.073 mm (rms on the capture) from the truth, the prior
+    0.076; after it 0.140. The trust read the correction as the frames' estimate (13.0 of the change's 28.9
+    mm^2 where it moves, against a weights' budget of 4.0: trusted 0.86, 0.054 mm worse than generic). The
+    frames' evidence for it, against the scans' and the weights' noise, carries 0.30 of it; the rest is no
+    signal of theirs, and the shape is within 0.05 mm."""
+    fit, delta, names = _score(tmp_path, "n115", seed=115, template="artist", scan_noise_m=1.5e-4,
+                               weight_noise=0.03)
+    entry = fit.info["contact"]["shapes"]["mouthPressRight"]
+    assert entry["applied"] and entry["test"]["agrees"]                          # the premise
+    assert 0.0 <= entry["test"]["share"] < 0.5, entry["test"]
+    j = list(fit.rig.names).index("mouthPressRight")
+    assert np.abs(np.asarray(fit.info["contact_correction"])[j]).max() > 0.5e-3
+    assert delta[names.index("mouthPressRight")] <= 0.05, delta[names.index("mouthPressRight")]
+    assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))

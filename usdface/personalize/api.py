@@ -690,6 +690,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         t1 = time.perf_counter()
         res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         # picked frames (a take has its own noise model); menzel (a Laplacian solve costs seconds)
+        variance = None
         if sensitivity and method == "menzel" and frame_weights is None and len(w_cur):
             # the entries re-estimation holds (the phone's weights: the same as the test's above)
             held_cur = held if reweight and w_cur is weights else held_weights(w_cur, ACTIVATION_MIN)
@@ -747,10 +748,14 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         deltas, info["contact"] = keep_contact(capture.neutral, capture.triangles, tmpl.neutral, tmpl.deltas,
                                                capture.names, deltas, mode=contact, points=points,
                                                weights=w_cur, pinned=mask if pins is not None else None,
-                                               residuals=res, loops=loops)
+                                               residuals=res, loops=loops, weight_variance=variance)
         timings["contact"] = time.perf_counter() - t1
+        unmeasured = info["contact"].pop("unmeasured")
         if any(v["applied"] for v in info["contact"]["shapes"].values()):
             res = points - capture.neutral[None] - blend(w_cur, deltas)
+            # the corrections' part the frames' evidence does not carry (the template's gap, not an
+            # estimate): the trust reads the fit without it (transfer.trust.shape_trust)
+            info["contact_correction"] = unmeasured
         info["train_rmse_mm"] = float(np.sqrt(np.mean(squared_lengths(res))) * 1000)
         if reliable is not None and frame_weights is None:
             # no more than the personalization stands above its estimate's noise (a take has its own model)

@@ -250,7 +250,7 @@ class ContactSolver:
 
 
 def contact_test(weights: np.ndarray, residuals: np.ndarray, correction: np.ndarray, shape: int, dof: int,
-                 *, alpha: float = CONTACT_ALPHA) -> dict:
+                 *, alpha: float = CONTACT_ALPHA, weight_variance=None, deltas=None) -> dict:
     """Do the training frames agree with contact for one shape? A likelihood-ratio test of the fit with the
     correction (``dof`` fewer degrees of freedom: one per pair) against the fit without.
 
@@ -261,6 +261,17 @@ def contact_test(weights: np.ndarray, residuals: np.ndarray, correction: np.ndar
     by at least 1 % of its largest: the noise level that matters there, not the static rest). Returns
     ``{"delta_mm2", "threshold_mm2", "agrees"}``: ``agrees`` when the data cannot reject contact (a shape
     the frames barely show always agrees; one they show with the sides apart does not).
+
+    With ``weight_variance[F,K]`` (each reported weight's error variance,
+    :func:`.weights.weight_error_variance`) and ``deltas[K,n,3]`` (the fitted shapes, metres) also ``"share"``
+    in [0, 1]: how far the frames' evidence for the correction stands above its noise, the positive-part
+    James-Stein factor ``max(0, 1 - var b / b^2)`` of its coefficient ``b = sum_i w_i <r_i, c> / E`` (1: the
+    residual holds the correction whole), ``E = sum_i w_i^2 |c|^2``, ``var b = (sigma^2 E + sum_i w_i^2 sum_k
+    var_ik <B_k, c>^2) / E^2`` from the scans' ``sigma^2`` and the weights' errors (they move frame ``i``'s
+    residual by ``-sum_k e_ik B_k``). A test the frames' weight errors make agree (the residual asks for
+    closed lips because the phone reported the lip-opening shapes too high; generated person noisy:115's
+    ``mouthPressRight``, share 0.30) does not reject contact, but the correction is then the template's, not
+    the frames' estimate (:func:`usdface.transfer.trust.shape_trust`).
     """
     from scipy.special import gammaincinv
 
@@ -274,12 +285,19 @@ def contact_test(weights: np.ndarray, residuals: np.ndarray, correction: np.ndar
     sigma2 = float(np.mean(R[:, support] ** 2))
     dof = max(int(dof), 1)
     thr = float(sigma2 * 2.0 * gammaincinv(dof / 2.0, 1.0 - alpha))          # sigma^2 chi2_{1-alpha}(dof)
-    return {"delta_mm2": dE * 1e6, "threshold_mm2": thr * 1e6, "agrees": bool(dE <= thr)}
+    out = {"delta_mm2": dE * 1e6, "threshold_mm2": thr * 1e6, "agrees": bool(dE <= thr)}
+    energy = float(np.sum(w ** 2) * np.sum(c ** 2))
+    if weight_variance is not None and deltas is not None and energy > 0:
+        proj = np.einsum("knc,nc->k", np.asarray(deltas, dtype=np.float64), c)             # <B_k, c>
+        var_cross = sigma2 * energy + float(np.sum(w[:, None] ** 2 * np.asarray(weight_variance) * proj ** 2))
+        beta = cross / energy
+        out["share"] = float(max(0.0, 1.0 - var_cross / energy ** 2 / beta ** 2)) if beta > 0 else 0.0
+    return out
 
 
 def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], openings: list[Opening], *,
                   mode: str = "auto", weights=None, residuals=None, solver: ContactSolver | None = None,
-                  pinned=None):
+                  pinned=None, weight_variance=None, unmeasured=None):
     """Keep each contact shape's pairs at the template's gap (:class:`ContactSolver`) in fitted ``deltas``.
 
     ``neutral[n,3]`` (the person's B0), ``deltas[K,n,3]`` (fitted, metres), ``pairs`` from
@@ -289,6 +307,10 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
     "auto" acts as "on"); ``"off"`` measures only. ``pinned[K,n]`` (bool, optional): vertices the correction
     must not move (artist pins). Gaps are measured on ``neutral + delta`` (+ companions)
     along the opening direction on ``neutral``.
+
+    ``weight_variance[F,K]``: the reported weights' error variances, for :func:`contact_test`'s ``share``;
+    ``unmeasured[K,n,3]`` (optional, added to in place): each applied correction times ``1 - share`` (the
+    whole correction where there is no share), the part the frames do not carry.
 
     Returns ``(deltas[K,n,3], report)``; ``report[name]`` = ``{"pairs", "applied", "target_mm" (the
     template's gaps), "gap_before_mm"/"gap_after_mm" (max |gap - target| over the pairs, mm),
@@ -316,10 +338,14 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
             c = s[:, None] * n_dir[None]
             apply = True
             if mode == "auto" and weights is not None and residuals is not None:
-                entry["test"] = contact_test(weights, residuals, c, pr.shape, len(pr.upper))
+                entry["test"] = contact_test(weights, residuals, c, pr.shape, len(pr.upper),
+                                             weight_variance=weight_variance, deltas=deltas)
                 apply = entry["test"]["agrees"]
             if apply:
                 out[pr.shape] += c
+                if unmeasured is not None:
+                    # the part of the correction the frames' evidence does not carry (contact_test's share)
+                    unmeasured[pr.shape] += (1.0 - entry.get("test", {}).get("share", 0.0)) * c
                 after = signed_gaps(base + out[pr.shape], pr.upper, pr.lower, n_dir)
                 entry["applied"] = True
                 entry["max_correction_mm"] = float(np.abs(s).max() * 1000)
@@ -340,7 +366,7 @@ def apply_contact(neutral, triangles, deltas, pairs: list[ContactPairs], opening
 
 
 def keep_contact(neutral, triangles, template_neutral, template_deltas, names, deltas, *, mode: str = "auto",
-                 points=None, weights=None, pinned=None, residuals=None, loops=None):
+                 points=None, weights=None, pinned=None, residuals=None, loops=None, weight_variance=None):
     """The fit's contact step: pairs from the template (:func:`find_contact_pairs`), then
     :func:`apply_contact` on the fitted ``deltas[K,n,3]``.
 
@@ -348,7 +374,9 @@ def keep_contact(neutral, triangles, template_neutral, template_deltas, names, d
     rig on the same topology), ``names[K]``; ``points[F,n,3]``, ``weights[F,K]``: the training frames the fit
     used (for ``mode="auto"``'s test); ``residuals[F,n,3]``: the frames minus the fit
     (``points - neutral - weights @ deltas``) if the caller has them; ``loops``: the mesh's
-    :func:`usdface.mesh.boundary_loops`, likewise. Returns ``(deltas, {"mode", "shapes": per-shape report})``.
+    :func:`usdface.mesh.boundary_loops`, likewise; ``weight_variance[F,K]``: the weights' error variances
+    (:func:`contact_test`'s share). Returns ``(deltas, {"mode", "shapes": per-shape report, "unmeasured":
+    [K,n,3] the corrections' part the frames do not carry, :func:`apply_contact`})``.
     """
     openings = find_openings(template_neutral, triangles, loops=loops)
     pairs = find_contact_pairs(template_neutral, template_deltas, triangles, names, openings=openings)
@@ -357,9 +385,11 @@ def keep_contact(neutral, triangles, template_neutral, template_deltas, names, d
         D = np.asarray(deltas, dtype=np.float64)
         residuals = (np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
                      - (W @ D.reshape(len(D), -1)).reshape((len(W),) + D.shape[1:]))
+    unmeasured = np.zeros(np.shape(deltas))
     out, report = apply_contact(neutral, triangles, deltas, pairs, openings, mode=mode, weights=weights,
-                                residuals=residuals, pinned=pinned)
-    return out, {"mode": mode, "shapes": report}
+                                residuals=residuals, pinned=pinned, weight_variance=weight_variance,
+                                unmeasured=unmeasured)
+    return out, {"mode": mode, "shapes": report, "unmeasured": unmeasured}
 
 
 @dataclass
