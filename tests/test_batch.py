@@ -1014,11 +1014,16 @@ def test_a_pool_batch_says_what_it_waits_for(tmp_path, where):
 
 
 def pid_slow_worker(item: dict) -> None:
-    """Writes its process id next to ``output``, then takes 60 s."""
+    """Writes its process id next to ``output``, then takes 60 s, as an item does: in steps of Python code.
+    (One ``time.sleep(60)`` outlived the test's 20 s in about one run of five: the parent's death signal is
+    sent to the process, the kernel may hand it to one of the worker's native threads (USD's, BLAS's), and
+    Python runs its handler in the main thread only once that thread next runs Python code, so a single
+    long sleep never did. An item runs Python between its native calls.)"""
     import time
 
     Path(item["output"] + ".pid").write_text(str(os.getpid()))
-    time.sleep(60)
+    for _ in range(600):
+        time.sleep(0.1)
 
 
 def _alive(pid: int) -> bool:
