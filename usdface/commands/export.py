@@ -50,15 +50,9 @@ def run(args) -> int:
         raise OptionError("--no-morph-normals applies to the glTF only (OBJ targets and a flattened USD "
                           "carry the shapes as authored)",
                           fix="drop --no-morph-normals, or add --gltf OUT.glb")
-    import contextlib
-    import warnings
-
-    with warnings.catch_warnings(record=True) if args.json else contextlib.nullcontext() as caught:
-        if args.json:
-            warnings.simplefilter("always")
-        done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
-                             variant=args.variant, skin=not args.no_skin,
-                             morph_normals=not args.no_morph_normals, force=args.force)
+    done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
+                         variant=args.variant, skin=not args.no_skin, morph_normals=not args.no_morph_normals,
+                         force=args.force)
     variant = exported_variant(args.layer, args.variant)
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
@@ -73,11 +67,11 @@ def run(args) -> int:
     if args.json:
         import json
 
-        from . import json_path
+        from . import all_warnings, json_path
 
         print(json.dumps({"ok": True, "output": json_path(next(iter(done.values()), None)),
                           "outputs": {kind: json_path(path) for kind, path in done.items()},
-                          "variant": variant, "label": label, "warnings": [str(w.message) for w in caught]}))
+                          "variant": variant, "label": label, "warnings": all_warnings([])}))
         return 0
     for kind, path in done.items():
         size = (f" ({path.stat().st_size / 1e6:.1f} MB)" if path.is_file() else

@@ -42,25 +42,18 @@ def default_output(layer) -> Path:
 
 
 def run(args) -> int:
-    import contextlib
-    import warnings
-
     from ..api import write_review
 
     out = args.output or default_output(args.layer)
-    with warnings.catch_warnings(record=True) if args.json else contextlib.nullcontext() as caught:
-        if args.json:
-            warnings.simplefilter("always")
-        path = write_review(args.layer, out, capture=args.capture, take=args.take,
-                            fit_errors=not args.no_fit_errors, force=args.force,
-                            max_vertices=args.max_vertices)
+    path = write_review(args.layer, out, capture=args.capture, take=args.take,
+                        fit_errors=not args.no_fit_errors, force=args.force, max_vertices=args.max_vertices)
     if args.json:
         import json
 
-        from . import json_path
+        from . import all_warnings, json_path
 
         print(json.dumps({"ok": True, "output": json_path(path), "bytes": path.stat().st_size,
-                          "warnings": [str(w.message) for w in caught]}))
+                          "warnings": all_warnings([])}))
         return 0
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0
