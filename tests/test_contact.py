@@ -336,3 +336,32 @@ def test_contact_test_is_the_likelihood_ratio_of_the_fit_with_the_correction():
         sigma2 = np.mean(r[:, :6] ** 2)                                  # where the correction acts
         assert out["threshold_mm2"] == pytest.approx(sigma2 * chi2.ppf(1 - CONTACT_ALPHA, 6) * 1e6, rel=1e-9)
         assert out["agrees"] is agrees
+
+
+def test_lip_report_sets_the_capture_meshs_crossings_beside_the_avatars(patch):
+    """The report's lip rows carry the same figure on the capture mesh, the person's fitted shape beside the
+    template's, so a crossing the output carries can be told from one the person's scans show."""
+    from usdface.transfer.report import lip_report
+
+    pts, tri, jaw, half, nx = two_lips(gap=0.0003)      # lips 0.3 mm apart: within the pairs' radius
+    close = -jaw.copy()
+    middle = half + np.arange(nx)[3:-3]
+    close[middle, 1] += 0.0008                          # the lower lip 0.5 mm past the upper one
+    avatar = np.stack([jaw, close])
+    c_pts, c_tri = patch
+    op = find_openings(c_pts, c_tri)[0]
+    c_jaw = np.zeros_like(c_pts)
+    c_jaw[op.lower, 1] = -0.005
+    template = np.stack([c_jaw, -c_jaw])                # closes back onto the neutral: no crossing
+    person = template.copy()
+    x = c_pts[op.lower, 0]
+    deep = op.lower[np.abs(x) < A / 2]
+    person[1][op.lower, 1] += 2.0 * _half_height(x) - 1e-4
+    person[1][deep, 1] += 1.3e-3                        # 1.2 mm past the upper side
+    rows = lip_report(pts, tri, ["jawOpen", "mouthClose"], avatar, avatar,
+                      capture=(c_pts, c_tri, person, template))
+    row = rows["mouthClose"]
+    assert row["generic"] == row["output"] and row["output"][1] == pytest.approx(0.5, abs=1e-6)
+    assert row["capture"] == [len(deep), pytest.approx(1.2, abs=1e-6)]
+    assert row["template"] == [0, 0.0]
+    assert "capture" not in lip_report(pts, tri, ["jawOpen", "mouthClose"], avatar, avatar)["mouthClose"]

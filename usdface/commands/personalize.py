@@ -244,8 +244,10 @@ def run(args) -> int:
               f"({', '.join(eyes['eyeballs'])})")
     lips = rep.get("lips") or {}
     if lips:
-        deeper = [f"{k} {v['output'][1]:.1f} mm (generic {v['generic'][1]:.1f})" for k, v in lips.items()
-                  if v["output"][1] > v["generic"][1] + 0.5]
+        deeper = [f"{k} {v['output'][1]:.1f} mm (generic {v['generic'][1]:.1f}"
+                  + (f"; on the capture mesh the person's {v['capture'][1]:.1f}, its template's "
+                     f"{v['template'][1]:.1f}" if "capture" in v else "") + ")"
+                  for k, v in lips.items() if v["output"][1] > v["generic"][1] + 0.5]
         print("lips: " + ("lower lip deeper past the upper lip than generic: " + ", ".join(deeper) if deeper
                           else "lower lip past the upper lip no deeper than in the generic shapes (+0.5 mm)"))
     if rep.get("within_noise"):

@@ -590,7 +590,9 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         t = time.perf_counter()
         if eyelids:
             result = _repair_lids(avatar, face, regions, eyes, result, avatar_face_deltas, report)
-        report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result)
+        on_capture = (rig.neutral, capture.triangles, rig.deltas[b_idx], template_deltas)
+        report["lips"] = lip_report(face.neutral, face.triangles, names, avatar_face_deltas, result,
+                                    capture=on_capture)
         f = corr.face
         if beyond is not None:                   # the face mesh in one piece again: reached + beyond
             result = _join(result, reached, other.pop(beyond.key), rest)

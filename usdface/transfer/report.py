@@ -22,12 +22,19 @@ LIP_SHAPES = ("mouthClose", "mouthPressLeft", "mouthPressRight", "mouthRollLower
               "mouthPucker", "mouthFunnel", "mouthShrugLower")
 
 
-def lip_report(points, triangles, names, generic, output) -> dict:
+def lip_report(points, triangles, names, generic, output, capture=None) -> dict:
     """Lower-lip vertices past the upper lip (:func:`usdface.personalize.contact.lip_crossings`, the lips
     found by their motion under the generic ``jawOpen``) per lip shape, generic beside output:
     ``{shape: {"generic": [count, deepest mm], "output": [count, deepest mm]}}``; ``{}`` without jawOpen.
-    ``generic``/``output`` ``[J,m,3]`` in ``names`` order."""
-    from ..personalize.contact import lip_crossings, lip_pairs_from_motion
+    ``generic``/``output`` ``[J,m,3]`` in ``names`` order.
+
+    ``capture``: ``(neutral[n,3], triangles[t,3], person[J,n,3], template[J,n,3])``, the person's fitted
+    shapes and the capture's template shapes on the capture mesh (its own frame, metres; ``names`` order):
+    each row then also holds ``"capture"`` and ``"template"``, the same figure on the capture mesh (the lips
+    across its mouth hole), so a crossing the output carries can be told from one the person's scans show
+    (on dev1 the truth's ``mouthClose`` crosses 12.9 mm deep where the generic crosses 5.1). A capture mesh
+    without a mouth hole gives neither entry."""
+    from ..personalize.contact import find_openings, lip_crossings, lip_pairs_from_motion
 
     if "jawOpen" not in names:
         return {}
@@ -36,6 +43,13 @@ def lip_report(points, triangles, names, generic, output) -> dict:
         pairs = lip_pairs_from_motion(points, generic[jaw])
     except GeometryError:
         return {}
+    openings = None
+    if capture is not None:
+        c_points, c_triangles, c_deltas, c_template = capture
+        openings = find_openings(c_points, c_triangles) or None
+        if openings is not None:  # the mouth: the opening the capture's jawOpen moves most
+            mag = np.linalg.norm(c_deltas[jaw], axis=1)
+            mouth = int(np.argmax([mag[op.loop].mean() for op in openings]))
     out = {}
     for name in LIP_SHAPES:
         if name not in names:
@@ -46,6 +60,11 @@ def lip_report(points, triangles, names, generic, output) -> dict:
             pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
             c = lip_crossings(points, triangles, pose, openings=[], pairs=pairs)
             row[label] = [c.count, round(c.max_depth * 1e3, 3)]
+        if openings is not None:
+            for label, d in (("capture", c_deltas), ("template", c_template)):
+                pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
+                c = lip_crossings(c_points, c_triangles, pose, openings=openings, opening=mouth)
+                row[label] = [c.count, round(c.max_depth * 1e3, 3)]
         out[name] = row
     return out
 
