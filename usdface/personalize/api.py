@@ -703,15 +703,16 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # the frames' weights re-estimated on the final shapes once, for the noise over every free entry
             # and over the phone's inside ones (weight_error_variance)
             residuals = weight_residuals(capture.neutral, points, w_cur, deltas)
-            info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free, residuals=residuals)
+            info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free,
+                                                residuals=residuals)
             # the phone's reports, each entry at its own side of the clip: a weight reported inside (0, 1)
             # errs by the phone's whole noise, one reported at a bound only by the little the clip leaves
             # (weight_error_variance).
             # Re-estimated weights are the geometry's, not the phone's (their error drifts with the shapes,
             # at a bound or not): one level for every entry, as before
             phone = w_cur is weights
-            variance = (weight_error_variance(capture.neutral, points, w_cur, deltas, free, residuals=residuals)
-                        if phone
+            variance = (weight_error_variance(capture.neutral, points, w_cur, deltas, free,
+                                              residuals=residuals) if phone
                         else info["weight_noise"] ** 2 * free)
             info["weight_leak"] = weight_leak_variance(w_cur, D_fit, lam, deltas, variance,
                                                        system=final_system)

@@ -244,7 +244,7 @@ def _border_shares(neighbourhood, q_rows, q_cols) -> sp.csc_matrix:
     keep their ones untouched (``1 - 0 (1 - q_j)`` is 1 exactly), so only the few rows past the border are
     formed: the same matrix, to the bit, as weighting every entry of a 16M-entry neighbourhood."""
     out = sp.csc_matrix(neighbourhood, dtype=np.float64, copy=True)
-    at = np.flatnonzero(np.asarray(q_rows)[out.indices] > 0.0)            # the entries of rows past the border
+    at = np.flatnonzero(np.asarray(q_rows)[out.indices] > 0.0)          # the entries of rows past the border
     if at.size:
         col = np.searchsorted(out.indptr, at, side="right") - 1
         out.data[at] = 1.0 - q_rows[out.indices[at]] * (1.0 - q_cols[col])
