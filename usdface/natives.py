@@ -26,6 +26,14 @@ import types
 #: head.
 DEFERRED = ("open3d.visualization",)
 
+#: numpy's subpackages SciPy's array-API shim (``scipy._lib.array_api_compat.numpy``, imported with
+#: ``scipy.sparse``) imports by cloning every attribute of numpy (``from numpy import *``) and that no step of
+#: usdface uses: ``numpy.f2py`` (its ``crackfortran`` compiles 58 regular expressions) and ``numpy.testing``
+#: (with ``unittest``), 0.08-0.17 s of a cold ``personalize`` (``python -X importtime``). The ``usdface``
+#: program's own process loads them on first use instead (:func:`defer_unused_numpy`). (``numpy.ma``, which
+#: the shim imports too, is used by Open3D's import: deferring it saved nothing.)
+NUMPY_DEFERRED = ("numpy.f2py", "numpy.testing")
+
 
 #: The BLAS thread-count variables (OpenBLAS, MKL, BLIS) :func:`start_blas_single_threaded` sets to 1.
 BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -139,17 +147,31 @@ class _LazyLoader(importlib.util.LazyLoader):
 
 
 class _Deferred(importlib.abc.MetaPathFinder):
-    """Finds the :data:`DEFERRED` modules as the import system would, with a lazy loader
+    """Finds the ``names`` (default :data:`DEFERRED`) as the import system would, with a lazy loader
     (:class:`_LazyLoader`): the module is in ``sys.modules`` at once and runs its code at its first
     attribute access (``open3d.visualization.draw_geometries`` works as before, a moment later)."""
 
+    def __init__(self, names=DEFERRED):
+        self.names = tuple(names)
+
     def find_spec(self, name, path, target=None):
-        if name not in DEFERRED:
+        if name not in self.names:
             return None
         spec = importlib.machinery.PathFinder.find_spec(name, path, target)
         if spec is not None and spec.loader is not None:
             spec.loader = _LazyLoader(spec.loader)
         return spec
+
+
+def defer_unused_numpy() -> bool:
+    """For the ``usdface`` program's own process (:func:`usdface.cli.main` run as the program): the
+    :data:`NUMPY_DEFERRED` subpackages, when not imported yet, load at their first attribute access instead
+    of at their import (the same lazy module as Open3D's :data:`DEFERRED`: ``numpy.testing.assert_allclose``
+    works as before, a moment later). Returns True when the finder was installed (once a process)."""
+    if any(isinstance(f, _Deferred) and f.names == NUMPY_DEFERRED for f in sys.meta_path):
+        return False
+    sys.meta_path.insert(0, _Deferred(NUMPY_DEFERRED))
+    return True
 
 
 def _import_open3d():
