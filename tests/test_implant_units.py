@@ -751,3 +751,26 @@ def test_another_meshs_linear_field_is_each_shapes_weighted_least_squares():
         coef = np.linalg.lstsq(s * X, s * phi[j].reshape(90, 9), rcond=None)[0]
         np.testing.assert_allclose(out[j], (X @ coef).reshape(90, 3, 3), atol=1e-10)
     np.testing.assert_allclose(out[2, 7], phi[2, 7], atol=1e-10)
+
+
+def test_border_shares_weight_each_entry_by_the_share_not_measured_past_the_border():
+    """``_border_shares`` forms ``1 - q_i (1 - q_j)`` at the rows past the border only; the matrix is the
+    one every entry weighted would give, to the bit (rows at q = 0 keep their ones)."""
+    import scipy.sparse as sp
+
+    from usdface.transfer.implant import _border_shares
+
+    rng = np.random.default_rng(3)
+    n, rows = 400, np.sort(rng.choice(400, 150, replace=False))
+    near = (sp.random(150, n, density=0.05, random_state=4, format="csr") > 0).tocsc()
+    q = np.zeros(n)
+    q[rng.choice(n, 40, replace=False)] = rng.uniform(0.0, 0.99, 40)
+    e = near.tocoo()
+    every = 1.0 - q[rows[e.row]] * (1.0 - q[e.col])
+    want = sp.csc_matrix((every, (e.row, e.col)), shape=e.shape)
+    got = _border_shares(near, q[rows], q)
+    assert got.dtype == np.float64 and got.nnz == want.nnz
+    assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+    assert np.array_equal(got.data, want.data)
+    assert (got.data < 1.0).sum() > 0                      # some rows lie past the border
+    assert np.array_equal(near.toarray(), (got.toarray() > 0))   # the input left as it was, same entries

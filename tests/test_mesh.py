@@ -224,3 +224,20 @@ def test_display_subset_is_a_decimated_mesh_of_the_meshs_own_vertices():
     assert np.all((small[:, 0] != small[:, 1]) & (small[:, 1] != small[:, 2]) & (small[:, 0] != small[:, 2]))
     up = triangle_normals(points, tris)[:, 2].mean() > 0
     assert (np.mean(triangle_normals(points[keep], small)[:, 2] > 0) > 0.95) == up
+
+
+def test_vertex_components_are_the_pieces_of_the_vertex_adjacency():
+    """Two separate grids, one triangle alone and a vertex in no triangle: four pieces, labelled as
+    ``connected_components`` labels the deduplicated adjacency."""
+    from scipy.sparse.csgraph import connected_components
+    from synthetic_meshes import grid_triangles
+
+    from usdface.mesh import vertex_adjacency, vertex_components
+
+    a = np.asarray(grid_triangles(5, 6))
+    tri = np.concatenate([a, a + 30, [[61, 62, 60]]])                  # vertex 63 in no triangle
+    count, label = vertex_components(tri, 64)
+    want_count, want = connected_components(vertex_adjacency(tri, 64), directed=False)
+    assert count == want_count == 4
+    assert np.array_equal(label, want)
+    assert len(set(label[:30])) == 1 and label[0] != label[30] and label[60] != label[63]

@@ -38,6 +38,27 @@ def test_the_weights_noise_is_read_back_from_the_frames():
     assert weight_noise(neutral, points, reported, deltas, np.zeros_like(free)) == 0.0     # nothing may err
 
 
+def test_the_frames_re_estimated_once_serve_every_set_of_entries():
+    """``weight_residuals`` read once (as ``personalize`` does for the noise over every free entry and over
+    the phone's inside ones) gives each set's noise and the per-side variance to the bit, and the sets
+    differ: the residuals are not one set's."""
+    from usdface.personalize.weights import weight_error_variance, weight_residuals
+
+    rng, neutral, deltas, weights = _rig(seed=4)
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    reported = np.clip(weights + rng.normal(size=weights.shape) * 0.03, 0.0, 1.0)
+    free = ~held_weights(reported)
+    inside = free & (reported > 0.0) & (reported < 1.0)
+    residuals = weight_residuals(neutral, points, reported, deltas)
+    for mask in (free, inside):
+        assert weight_noise(neutral, points, reported, deltas, mask, residuals=residuals) == \
+            weight_noise(neutral, points, reported, deltas, mask)
+    assert weight_noise(neutral, points, reported, deltas, free) != weight_noise(neutral, points, reported,
+                                                                                  deltas, inside)
+    assert np.array_equal(weight_error_variance(neutral, points, reported, deltas, free, residuals=residuals),
+                          weight_error_variance(neutral, points, reported, deltas, free))
+
+
 def test_scan_noise_is_not_read_as_the_weights_noise():
     """Exact weights, frames with scan noise (1 mm per coordinate, on shapes of ~5 mm): the least-squares
     weights scatter by the scan noise's share (here ~0.008), which the estimate takes out: it reads below

@@ -424,10 +424,17 @@ def _program_environment() -> None:
     The cyclic garbage collector runs a young collection every 50,000 container allocations, not Python's
     700: a cold ``personalize`` imports ~2,000 modules (USD, SciPy, Open3D with Dash and Plotly), and at 700
     the collector ran ~270 times over them, the oldest generation twice (0.1-0.15 s of a 4-5 s run). The
-    arrays are freed by reference counting as before; the peak RSS of a dev1 run is unchanged."""
+    arrays are freed by reference counting as before; the peak RSS of a dev1 run is unchanged.
+
+    numpy's ``f2py`` and ``testing``, which SciPy's array-API shim imports, and ``scipy.spatial.transform``,
+    which ``scipy.spatial`` imports, none used by any step, load at their first use
+    (:func:`usdface.natives.defer_unused_submodules`: 0.1-0.2 s of a cold run)."""
     os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     gc.set_threshold(50_000, *gc.get_threshold()[1:])
     _matplotlib_config_dir()
+    from .natives import defer_unused_submodules
+
+    defer_unused_submodules()
 
 
 def _matplotlib_config_dir() -> None:

@@ -26,6 +26,16 @@ import types
 #: head.
 DEFERRED = ("open3d.visualization",)
 
+#: Subpackages usdface never uses that its libraries import: numpy's ``f2py`` (its ``crackfortran``
+#: compiles 58 regular expressions) and ``testing`` (with ``unittest``), which SciPy's array-API shim
+#: (``scipy._lib.array_api_compat.numpy``, imported with ``scipy.sparse``) imports by cloning every attribute
+#: of numpy (``from numpy import *``), 0.08-0.17 s of a cold ``personalize`` (``python -X importtime``); and
+#: ``scipy.spatial.transform`` (rotations, 0.02-0.05 s), which ``scipy.spatial``'s ``__init__`` imports with
+#: the k-d tree usdface does use. The ``usdface`` program's own process loads them on first use instead
+#: (:func:`defer_unused_submodules`). (``numpy.ma``, which the shim imports too, is used by Open3D's import;
+#: ``scipy.spatial.distance`` by ``scipy.spatial``'s own ``__init__``: deferring either saves nothing.)
+UNUSED_DEFERRED = ("numpy.f2py", "numpy.testing", "scipy.spatial.transform")
+
 
 #: The BLAS thread-count variables (OpenBLAS, MKL, BLIS) :func:`start_blas_single_threaded` sets to 1.
 BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -139,17 +149,32 @@ class _LazyLoader(importlib.util.LazyLoader):
 
 
 class _Deferred(importlib.abc.MetaPathFinder):
-    """Finds the :data:`DEFERRED` modules as the import system would, with a lazy loader
+    """Finds the ``names`` (default :data:`DEFERRED`) as the import system would, with a lazy loader
     (:class:`_LazyLoader`): the module is in ``sys.modules`` at once and runs its code at its first
     attribute access (``open3d.visualization.draw_geometries`` works as before, a moment later)."""
 
+    def __init__(self, names=DEFERRED):
+        self.names = tuple(names)
+
     def find_spec(self, name, path, target=None):
-        if name not in DEFERRED:
+        if name not in self.names:
             return None
         spec = importlib.machinery.PathFinder.find_spec(name, path, target)
         if spec is not None and spec.loader is not None:
             spec.loader = _LazyLoader(spec.loader)
         return spec
+
+
+def defer_unused_submodules() -> bool:
+    """For the ``usdface`` program's own process (:func:`usdface.cli.main` run as the program): the
+    :data:`UNUSED_DEFERRED` subpackages of numpy and SciPy, when not imported yet, load at their first
+    attribute access instead of at their import (the same lazy module as Open3D's :data:`DEFERRED`:
+    ``numpy.testing.assert_allclose`` works as before, a moment later). Returns True when the finder was
+    installed (once a process)."""
+    if any(isinstance(f, _Deferred) and f.names == UNUSED_DEFERRED for f in sys.meta_path):
+        return False
+    sys.meta_path.insert(0, _Deferred(UNUSED_DEFERRED))
+    return True
 
 
 def _import_open3d():

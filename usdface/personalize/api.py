@@ -38,6 +38,7 @@ from .weights import (
     reestimate_weights_batched,
     weight_error_variance,
     weight_noise,
+    weight_residuals,
 )
 
 __all__ = ["METHODS", "FitResult", "fit_personalized_shapes", "check_capture", "check_fit_options"]
@@ -699,14 +700,19 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # the weights' noise as this capture shows it, and what it puts into each shape (the leak), from
             # the final fit's own systems (final_system: its gain kept)
             free = ~held_cur
-            info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free)
+            # the frames' weights re-estimated on the final shapes once, for the noise over every free entry
+            # and over the phone's inside ones (weight_error_variance)
+            residuals = weight_residuals(capture.neutral, points, w_cur, deltas)
+            info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free,
+                                                residuals=residuals)
             # the phone's reports, each entry at its own side of the clip: a weight reported inside (0, 1)
             # errs by the phone's whole noise, one reported at a bound only by the little the clip leaves
             # (weight_error_variance).
             # Re-estimated weights are the geometry's, not the phone's (their error drifts with the shapes,
             # at a bound or not): one level for every entry, as before
             phone = w_cur is weights
-            variance = (weight_error_variance(capture.neutral, points, w_cur, deltas, free) if phone
+            variance = (weight_error_variance(capture.neutral, points, w_cur, deltas, free,
+                                              residuals=residuals) if phone
                         else info["weight_noise"] ** 2 * free)
             info["weight_leak"] = weight_leak_variance(w_cur, D_fit, lam, deltas, variance,
                                                        system=final_system)

@@ -26,7 +26,7 @@ from .align import distinct_frames
 from .fit import weight_basis
 
 __all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched",
-           "weight_error_variance", "weight_noise"]
+           "weight_error_variance", "weight_noise", "weight_residuals"]
 
 
 def peak_frames(weights: np.ndarray) -> np.ndarray:
@@ -112,8 +112,32 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     return x if groups is None else x[:, :, inverse]
 
 
+def weight_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray,
+                     deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What :func:`weight_noise` reads, for any set of entries: ``(difference[F,K], own[K])``, each training
+    frame's weights re-estimated by least squares on the fitted shapes minus the weights the shapes were
+    fitted with (weight units), and each shape's estimate's own variance from the frames' scan noise,
+    ``s^2 [(A A^T)^+]_kk`` (weight units squared; ``s`` the residual's std per coordinate, ``A`` the shapes
+    as rows). ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]``, ``deltas[K,n,3]`` the fitted
+    shapes. Computed once when the noise is read over several sets (:func:`weight_error_variance`)."""
+    W = np.asarray(weights, dtype=np.float64)
+    Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
+    Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
+    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
+    # one thin SVD A^T = U S V^T to its numerical rank for the estimate (pseudo-inverse), the rank and
+    # (A A^T)^+'s diagonal
+    U, sv, V = weight_basis(A.T)
+    Vt = V.T
+    coef = (Y @ U) / sv                                                              # [F, rank]
+    estimate = coef @ Vt                                                             # [F,K]
+    dof = max(A.shape[1] - len(sv), 1)
+    scan = max(float(np.sum(Y * Y) - np.sum(coef * coef * sv * sv)), 0.0) / (len(W) * dof)   # m^2 a coord.
+    own = scan * np.sum((Vt / sv[:, None]) ** 2, axis=0)                              # [K]
+    return estimate - W, own
+
+
 def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, deltas: np.ndarray,
-                 free: np.ndarray) -> float:
+                 free: np.ndarray, *, residuals: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """The weights' noise as the capture itself shows it (a std, in weight units): each training frame's
     weights re-estimated by least squares on the fitted shapes, minus the weights the shapes were fitted
     with, over the entries that may err (``free[F,K]``, e.g. not :func:`held_weights`); the robust variance
@@ -128,29 +152,19 @@ def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, d
     inconsistent with one another, and the shapes fitted to all of them explain no frame with its reported
     weights (generated captures with scan noise 0.1 mm and the phone's weights +-0.01: 0.011-0.016, +-0.03
     at 0.15 mm: 0.036-0.041; the scan noise alone would read 0.011-0.027). The median keeps a few frames of
-    large non-linear motion from setting it."""
+    large non-linear motion from setting it. ``residuals``: :func:`weight_residuals` of these arrays, when
+    the caller reads the noise over several sets of entries."""
     W = np.asarray(weights, dtype=np.float64)
     mask = np.asarray(free, dtype=bool)
     if not mask.any():
         return 0.0
-    Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
-    Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
-    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
-    # one thin SVD A^T = U S V^T to its numerical rank for the estimate (pseudo-inverse), the rank and
-    # (A A^T)^+'s diagonal
-    U, sv, V = weight_basis(A.T)
-    Vt = V.T
-    coef = (Y @ U) / sv                                                              # [F, rank]
-    estimate = coef @ Vt                                                             # [F,K]
-    diff = (estimate - W)[mask]
+    difference, own = weight_residuals(neutral, points, W, deltas) if residuals is None else residuals
+    diff = difference[mask]
     spread = (1.4826 * np.median(np.abs(diff - np.median(diff)))) ** 2
-    dof = max(A.shape[1] - len(sv), 1)
-    scan = max(float(np.sum(Y * Y) - np.sum(coef * coef * sv * sv)), 0.0) / (len(W) * dof)   # m^2 a coord.
-    own = scan * np.sum((Vt / sv[:, None]) ** 2, axis=0)                              # [K]
     return float(np.sqrt(max(0.0, spread - np.median(np.broadcast_to(own, W.shape)[mask]))))
 
 
-def weight_error_variance(neutral, points, weights, deltas, free) -> np.ndarray:
+def weight_error_variance(neutral, points, weights, deltas, free, *, residuals=None) -> np.ndarray:
     """``[F,K]`` (weight units squared): the expected squared error of each weight the phone reported, for
     the leak (:func:`.fit.weight_leak_variance`, :func:`.fit.weight_leak_direction`), 0 where ``free[F,K]``
     is False (the entries the fit holds). ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]`` the
@@ -177,14 +191,15 @@ def weight_error_variance(neutral, points, weights, deltas, free) -> np.ndarray:
     entries, the entries at 0 (about half of a capture's) pulled the one noise below the inside entries' and
     the leak of a frame's reported ``jawOpen`` 0.067 (true 0, an inside entry at 2.2 sigma of dev2's regime)
     was read at 0.025 instead of 0.030 and passed as the person; read apart by re-estimation, the entries at
-    0 scatter with the other entries' errors, not their own, 4x the truth's (docs/history.md, stop 48)."""
+    0 scatter with the other entries' errors, not their own, 4x the truth's (docs/history.md, stop 48).
+    ``residuals``: :func:`weight_residuals` of these arrays when the caller has them."""
     w = np.asarray(weights, dtype=np.float64)
     free = np.asarray(free, dtype=bool)
     inside = free & (w != 0.0) & (w != 1.0)                 # not clipped: past a bound errs by all of e too
     variance = np.zeros(w.shape)
     if not inside.any():
         return variance
-    s = weight_noise(neutral, points, w, deltas, inside)
+    s = weight_noise(neutral, points, w, deltas, inside, residuals=residuals)
     variance[inside] = s * s
     if s <= 0.0:
         return variance

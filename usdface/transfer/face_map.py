@@ -152,12 +152,10 @@ def reached_parts(points, triangles, placed, *, reach: float = REACH):
     connected piece none of whose vertices is within ``reach`` x the capture's
     diagonal of a capture vertex (a body merged into the head's mesh, whose neck the jaw moves) cannot say
     where the capture lies, and its triangles must not take part in the face's closest-point queries."""
-    from scipy.sparse.csgraph import connected_components
-
-    from ..mesh import distances_within, vertex_adjacency
+    from ..mesh import distances_within, vertex_components
 
     p = np.asarray(points, dtype=np.float64)
-    count, label = connected_components(vertex_adjacency(triangles, len(p)), directed=False)
+    count, label = vertex_components(triangles, len(p))
     if count < 2:
         return None
     q = np.asarray(placed() if callable(placed) else placed, dtype=np.float64)

@@ -237,6 +237,21 @@ def seam_ramp(points, face_weight, band: float) -> np.ndarray:
     return w * t * t * (3.0 - 2.0 * t)
 
 
+def _border_shares(neighbourhood, q_rows, q_cols) -> sp.csc_matrix:
+    """``neighbourhood[r,c]`` (a 0/1 CSC matrix, sorted indices) with entry ``(i, j)`` weighted ``1 - q_i (1 -
+    q_j)`` (float64; the entries of weight 0 dropped): row ``i`` takes column ``j`` by the share of its value
+    not measured past the capture's border (``q_rows[r]``, ``q_cols[c]`` in [0, 1]). Rows with ``q_i = 0``
+    keep their ones untouched (``1 - 0 (1 - q_j)`` is 1 exactly), so only the few rows past the border are
+    formed: the same matrix, to the bit, as weighting every entry of a 16M-entry neighbourhood."""
+    out = sp.csc_matrix(neighbourhood, dtype=np.float64, copy=True)
+    at = np.flatnonzero(np.asarray(q_rows)[out.indices] > 0.0)          # the entries of rows past the border
+    if at.size:
+        col = np.searchsorted(out.indptr, at, side="right") - 1
+        out.data[at] = 1.0 - q_rows[out.indices[at]] * (1.0 - q_cols[col])
+        out.eliminate_zeros()
+    return out
+
+
 def extend_personalization(points, triangles, generic, person, face_weight, *, length: float | None,
                            band: float = 0.0, rings: int = 2, smoothing: float | None = None, keep_at=None,
                            out=None, overwrite: bool = False, shrink: bool = True, peak=None,
@@ -407,11 +422,7 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
         # a value measured past the border is averaged with the others measured there: with the face's (up to
         # one avatar edge further in, on one side) it would be the rim's one-sided average again. Row i
         # takes column j at 1 - q_i (1 - q_j): the face's values by the share not measured past the border
-        e = smoother.tocoo()
-        share = 1.0 - qb[rows[e.row]] * (1.0 - qb[e.col])
-        hold = share > 0.0
-        smoother = sp.csc_matrix((share[hold], (e.row[hold], e.col[hold])), shape=e.shape)
-        del e, hold, share
+        smoother = _border_shares(smoother, qb[rows], qb)
     del adjacency
     reach = np.flatnonzero(np.diff(smoother.indptr) > 0)
     smoother = smoother[:, reach]                               # [rows, reach], column slices per chunk
