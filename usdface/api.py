@@ -1349,7 +1349,7 @@ def _unique_mesh_names(keyed):
 
 def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
                       worker: str | None = None, options: dict | None = None, force: bool = False,
-                      report_path: PathLike | None = None) -> BatchReport:
+                      report_path: PathLike | None = None, on_item=None) -> BatchReport:
     """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
     local processes (default: one a CPU this process may use, as many as the memory holds,
     :func:`usdface.pipeline.batch.default_jobs`; 1 = in this process) or a Dask ``scheduler`` address.
@@ -1358,8 +1358,15 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
-    :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written).
+    ``on_item(result)``, if given, is called with each item's :class:`usdface.pipeline.batch.ItemResult` as
+    the item ends (in this process; its ``warnings`` are the item's), e.g. to log them as they come."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
+    if on_item is not None and not callable(on_item):
+        from .errors import OptionError
+
+        raise OptionError(f"personalize_batch's on_item must be a function of one item result, not "
+                          f"{type(on_item).__name__}", fix="pass on_item=lambda result: ..., or leave it out")
     (force,) = _flags("personalize_batch", force=force)
     from .errors import OptionError
     from .io.atomic import check_output_file
@@ -1405,7 +1412,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         exc.report_path = _written(path)  # the command line names it (it printed only 'interrupted')
         raise
     try:
-        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force, on_item=on_item)
     except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
         partial = getattr(exc, "batch_report", None)
         if partial is not None:
