@@ -833,7 +833,7 @@ def test_a_batch_stopped_on_a_callers_dask_client_cancels_its_items_and_leaves_t
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         try:
-            results = _run_dask(worker, todo, client, lambda *a, **k: None)
+            results = _run_dask(worker, todo, client)
             assert next(results)["index"] == 2                  # b done; a runs, gated
             results.close()                                     # the batch stopped (Ctrl-C) at this point
             _wait_until_not_wanted(next(iter(cluster.workers.values())))
