@@ -909,9 +909,10 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
                 mm = distance * UsdGeom.GetStageMetersPerUnit(avatar_stage) * 1000.0
                 first, last = block * NEUTRAL_BLOCK, min((block + 1) * NEUTRAL_BLOCK, len(points)) - 1
                 out.append((path, f"{asset}'s {path} neutral was re-sculpted after {name} was written (the "
-                            f"vertices {first}-{last} moved {mm:.2f} mm on average): the layer's offsets were "
-                            "fitted and checked (lip and eyelid clearance) on the old neutral",
-                            fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as it is"))
+                            f"vertices {first}-{last} moved {mm:.2f} mm on average): the layer's offsets "
+                            "were fitted and checked (lip and eyelid clearance) on the old neutral",
+                            fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
+                                  "it is"))
     # after the meshes' own findings: a shape removed is told as such first, its override's loss second
     for path in _orphan_overs(root, avatar_stage, stage):
         out.append((path, f"{name} overrides {path}, which {asset} no longer has (renamed, moved or deleted "
