@@ -208,7 +208,8 @@ def test_a_moved_neutral_is_delivered_only_when_allowed(published, tmp_path):
     ``--allow-moved-neutral`` delivers it as it is, with the warning."""
     _move_neutral(_project(published, tmp_path))
     for args in (["export", "pub/v001/person.usda", "--gltf", "out.glb"],
-                 ["review", "pub/v001/person.usda", "-o", "r.html"]):
+                 ["review", "pub/v001/person.usda", "-o", "r.html"],
+                 ["render", "pub/v001/person.usda", "-o", "r.png", "--compare", "--shapes", "jawOpen"]):
         proc = run(*args, cwd=tmp_path, ok=False)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert "person.usda" in proc.stderr and "/Avatar/Head" in proc.stderr, proc.stderr
@@ -216,7 +217,7 @@ def test_a_moved_neutral_is_delivered_only_when_allowed(published, tmp_path):
         assert "--allow-moved-neutral" in proc.stderr, proc.stderr
         proc = run(*args, "--allow-moved-neutral", cwd=tmp_path)
         assert "warning: " in proc.stdout + proc.stderr and "changed after" in proc.stdout + proc.stderr, proc
-    assert (tmp_path / "out.glb").is_file() and (tmp_path / "r.html").is_file()
+    assert all((tmp_path / name).is_file() for name in ("out.glb", "r.html", "r.png"))
 
 
 def test_review_render_and_inspect_name_the_revision(published, tmp_path):
