@@ -693,8 +693,9 @@ def _watch_stop_signals(signums: set) -> None:
     goes to any thread that does not block it, and the worker has native threads (2 once
     :func:`init_worker` has imported its modules, one more USD starts inside a personalize item, on this
     machine class). Python runs a signal's handler only in the main thread, once it next runs Python code:
-    an idle worker, its main thread blocked reading the pool's call queue, never ran it and outlived a
-    killed batch (one run of five of ``test_pool_workers_die_with_a_killed_batch``). Python's own C handler
+    a signal one of those threads took was never handled while the main thread stayed blocked - an idle
+    worker reading the pool's call queue, or an item in one long sleep (the killed-batch test's stand-in
+    item outlived the batch in about one run of five until stop 48). Python's own C handler
     writes the signal's number to the wake-up file (:func:`signal.set_wakeup_fd`) on whatever thread it
     runs; this thread reads it and ends an idle worker at once (nothing to clean up), or sends the signal
     to the main thread (``pthread_kill``: a blocking call there is interrupted and the handler raises), and
