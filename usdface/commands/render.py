@@ -55,7 +55,8 @@ def register(subparsers) -> None:
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
     p.add_argument("--allow-moved-neutral", action="store_true",
                    help="--compare/--heatmap of a layer whose avatar's neutral was re-sculpted after it was "
-                        "written (refused by default: its offsets were fitted and checked on the old neutral)")
+                        "written (refused by default: its offsets were fitted and checked on the old "
+                        "neutral)")
     add_quiet(p)
     p.set_defaults(func=run)
 
