@@ -1349,7 +1349,7 @@ def _unique_mesh_names(keyed):
 
 def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
                       worker: str | None = None, options: dict | None = None, force: bool = False,
-                      report_path: PathLike | None = None) -> BatchReport:
+                      report_path: PathLike | None = None, on_item=None) -> BatchReport:
     """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
     local processes (default: one a CPU this process may use, as many as the memory holds,
     :func:`usdface.pipeline.batch.default_jobs`; 1 = in this process) or a Dask ``scheduler`` address.
@@ -1358,8 +1358,15 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``options`` apply to every item (manifest columns win); ``worker`` (``"module:function"``) replaces
     :func:`personalize_avatar` with a studio's own step. The JSON report is written (atomically) to
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
-    :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written)."""
+    :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written).
+    ``on_item(result)``, if given, is called with each item's :class:`usdface.pipeline.batch.ItemResult` as
+    the item ends (in this process; its ``warnings`` are the item's), e.g. to log them as they come."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
+    if on_item is not None and not callable(on_item):
+        from .errors import OptionError
+
+        raise OptionError(f"personalize_batch's on_item must be a function of one item result, not "
+                          f"{type(on_item).__name__}", fix="pass on_item=lambda result: ..., or leave it out")
     (force,) = _flags("personalize_batch", force=force)
     from .errors import OptionError
     from .io.atomic import check_output_file
@@ -1405,7 +1412,7 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         exc.report_path = _written(path)  # the command line names it (it printed only 'interrupted')
         raise
     try:
-        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force)
+        report = run_batch(items, worker=run, jobs=jobs, scheduler=scheduler, force=force, on_item=on_item)
     except BaseException as exc:      # stopped: the report of this run (what finished), not the last run's
         partial = getattr(exc, "batch_report", None)
         if partial is not None:
@@ -1575,7 +1582,7 @@ __all__ += ["write_review", "export_avatar"]
 
 def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike | Capture | None = None,
                  take: PathLike | None = None, fit_errors: bool = True, force: bool = False,
-                 max_vertices: int | None = None) -> Path:
+                 max_vertices: int | None = None, allow_moved_neutral: bool = False) -> Path:
     """Write the review page of a usdface layer (``usdface review``): ONE self-contained HTML file (plotly.js
     and the mesh data inside, no network needed to view it) with generic | personalized side by side, a
     slider per shape, presets, a change heat map (mm), the landmarks when the layer has them, playback of
@@ -1586,7 +1593,9 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     expressions (eq. 5: the layer's recorded figures of its own fit, or a refit for another capture).
     A mesh of more than ``max_vertices`` vertices (default 60,000; 0: no limit) is shown decimated to about
     that many of its own vertices (the page says so; its tables are the full mesh's figures).
-    Returns the path written (atomically; an existing file needs ``force``, checked before any work)."""
+    Returns the path written (atomically; an existing file needs ``force``, checked before any work).
+    A layer its avatar no longer fits is refused (:func:`usdface.io.layers.refuse_avatar_mismatch`), one
+    whose avatar's neutral was re-sculpted too unless ``allow_moved_neutral`` (then warned about)."""
     _paths(layer_path=(layer_path, False), out_path=(out_path, False))
     fit_errors, force = _flags("write_review", fit_errors=fit_errors, force=force)
     if max_vertices is not None and (isinstance(max_vertices, bool) or not isinstance(max_vertices, Integral)
@@ -1617,7 +1626,9 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     from .io.usd_rig import usdface_output_provenance
     from .review.collect import _fitted
 
-    refuse_avatar_mismatch(layer_path, "a review page")    # a sign-off of a layer that no longer fits
+    (allow_moved_neutral,) = _flags("write_review", allow_moved_neutral=allow_moved_neutral)
+    refuse_avatar_mismatch(layer_path, "a review page",    # a sign-off of a layer that no longer fits
+                           allow_moved_neutral=allow_moved_neutral)
 
     record = usdface_output_provenance(layer_path) or {}      # the root layer's header: no stage composed
     # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
@@ -1640,7 +1651,8 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
                   flatten: PathLike | None = None, variant: str = "personalized", skin: bool = True,
-                  morph_normals: bool = True, force: bool = False) -> dict[str, Path]:
+                  morph_normals: bool = True, force: bool = False,
+                  allow_moved_neutral: bool = False) -> dict[str, Path]:
     """Deliver one variant (``personalized`` or ``generic``) of a usdface layer (``usdface export``):
 
     * ``gltf``: glTF 2.0 (``.glb`` or ``.gltf``), one morph target per shape, names in
@@ -1661,7 +1673,9 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
     into it, see :func:`usdface.io.flatten.exported_variant`)."""
     _paths(layer_path=(layer_path, False))
-    skin, morph_normals, force = _flags("export_avatar", skin=skin, morph_normals=morph_normals, force=force)
+    skin, morph_normals, force, allow_moved_neutral = _flags(
+        "export_avatar", skin=skin, morph_normals=morph_normals, force=force,
+        allow_moved_neutral=allow_moved_neutral)
     from .errors import OptionError
     from .io.atomic import check_output_dir, check_output_file, outputs_all_or_nothing
     from .io.flatten import VARIANTS
@@ -1698,8 +1712,9 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     from .io.layers import refuse_avatar_mismatch, stale_inputs
 
     # a layer its revised avatar no longer fits (overrides on nothing, offsets on shifted vertices) is
-    # refused: exported, it was a generic or broken face labelled [personalized]
-    refuse_avatar_mismatch(layer_path, "an export")
+    # refused: exported, it was a generic or broken face labelled [personalized]; over a re-sculpted
+    # neutral, offsets fitted and checked on the old one, unless the caller accepts them (allow_moved_neutral)
+    refuse_avatar_mismatch(layer_path, "an export", allow_moved_neutral=allow_moved_neutral)
     for text in stale_inputs(layer_path):          # a stale layer is exported as it is, but not silently
         warn(text)
     done: dict[str, Path] = {}

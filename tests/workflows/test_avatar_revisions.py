@@ -90,6 +90,20 @@ def _remodel(path):
     stage.Save()
 
 
+def _move_neutral(path):
+    """Forty of /Avatar/Head's neutral points (300-339) moved 3 mm forward (an artist's re-sculpt): same
+    prims, channels, topology and units."""
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
+    points = list(mesh.GetPointsAttr().Get())
+    for i in range(300, 340):
+        points[i] = points[i] + Gf.Vec3f(0, 0, 0.3)                          # cm
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray(points))
+    stage.Save()
+
+
 REVISIONS = {
     "mesh renamed": (_text(['/Avatar/Head', 'Mesh "Head"'], ['/Avatar/Face', 'Mesh "Face"']),
                      "/Avatar/Head", "no longer has"),
@@ -99,6 +113,8 @@ REVISIONS = {
     "shape added": (_channels("add"), "/Avatar/Head", "added jawOpenWide"),
     "shape removed": (_channels("remove"), "/Avatar/Head", "removed cheekPuff"),
     "re-modelled": (_remodel, "/Avatar/Head", "3780 -> 3783 points"),
+    "neutral moved": (_move_neutral, "/Avatar/Head", "neutral was re-sculpted after person.usda was written "
+                                                     "(the vertices 256-511 moved 0.47 mm on average)"),
     "metres": (_text(["metersPerUnit = 0.01"], ["metersPerUnit = 1"]), "/", "metersPerUnit 1"),
     "Z up": (_text(['upAxis = "Y"'], ['upAxis = "Z"']), "/", "upAxis Z"),
 }
@@ -183,6 +199,25 @@ def test_export_refuses_a_layer_its_revised_avatar_no_longer_fits(published, tmp
     assert needle in proc.stderr and "refusing to make an export" in proc.stderr, proc.stderr
     assert "re-run usdface personalize on the revised avatar" in proc.stderr, proc.stderr
     assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_moved_neutral_is_delivered_only_when_allowed(published, tmp_path):
+    """A TD's trial (stop 48): the avatar's neutral re-sculpted 3 mm under a published layer was only the
+    Provenance warning, and export and review wrote with it: offsets fitted and checked on the old neutral,
+    delivered over the new one. Refused now, naming the file, the prim and the fix (re-run personalize);
+    ``--allow-moved-neutral`` delivers it as it is, with the warning."""
+    _move_neutral(_project(published, tmp_path))
+    for args in (["export", "pub/v001/person.usda", "--gltf", "out.glb"],
+                 ["review", "pub/v001/person.usda", "-o", "r.html"],
+                 ["render", "pub/v001/person.usda", "-o", "r.png", "--compare", "--shapes", "jawOpen"]):
+        proc = run(*args, cwd=tmp_path, ok=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "person.usda" in proc.stderr and "/Avatar/Head" in proc.stderr, proc.stderr
+        assert "neutral was re-sculpted" in proc.stderr, proc.stderr
+        assert "--allow-moved-neutral" in proc.stderr, proc.stderr
+        proc = run(*args, "--allow-moved-neutral", cwd=tmp_path)
+        assert "warning: " in proc.stdout + proc.stderr and "changed after" in proc.stdout + proc.stderr, proc
+    assert all((tmp_path / name).is_file() for name in ("out.glb", "r.html", "r.png"))
 
 
 def test_review_render_and_inspect_name_the_revision(published, tmp_path):

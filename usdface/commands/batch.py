@@ -51,12 +51,13 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from .. import api
 
+    def say_warnings(res) -> None:  # each item's warnings as it ends, naming it (stderr, as a command's);
+        for note in res.warnings:   # they came after 'batch done', hours after the item on a long batch
+            print(f"warning: {Path(res.output).name}: {note}", file=sys.stderr, flush=True)
+
     report = api.personalize_batch(args.manifest, jobs=args.jobs, scheduler=args.scheduler,
                                    worker=args.worker, options=dict(args.options), force=args.force,
-                                   report_path=args.report)
-    for res in report.results:                # each item's warnings, naming it (stderr, like a command's)
-        for note in res.warnings:
-            print(f"warning: {Path(res.output).name}: {note}", file=sys.stderr)
+                                   report_path=args.report, on_item=say_warnings)
     if args.json:                             # the report itself: one document on stdout
         import json
 

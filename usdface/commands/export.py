@@ -27,6 +27,9 @@ def register(subparsers) -> None:
                    help="glTF morph targets without NORMAL deltas (POSITION only: about half the file, for "
                         "engines that recompute the normals of a posed mesh)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.add_argument("--allow-moved-neutral", action="store_true",
+                   help="export a layer whose avatar's neutral was re-sculpted after it was written (refused "
+                        "by default: its offsets were fitted and checked on the old neutral)")
     p.add_argument("--json", action="store_true",
                    help="print what was written as JSON (outputs, variant, warnings)")
     add_quiet(p)
@@ -52,7 +55,7 @@ def run(args) -> int:
                           fix="drop --no-morph-normals, or add --gltf OUT.glb")
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
                          variant=args.variant, skin=not args.no_skin, morph_normals=not args.no_morph_normals,
-                         force=args.force)
+                         force=args.force, allow_moved_neutral=args.allow_moved_neutral)
     variant = exported_variant(args.layer, args.variant)
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it

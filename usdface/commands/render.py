@@ -53,6 +53,10 @@ def register(subparsers) -> None:
                         "60000: a panel shows no more; the figures in the titles are the full mesh's); 0 "
                         "draws every triangle")
     p.add_argument("--force", action="store_true", help="overwrite the PNG")
+    p.add_argument("--allow-moved-neutral", action="store_true",
+                   help="--compare/--heatmap of a layer whose avatar's neutral was re-sculpted after it was "
+                        "written (refused by default: its offsets were fitted and checked on the old "
+                        "neutral)")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -272,7 +276,8 @@ def _render_avatar(args, path: Path, shapes, weight: float, p) -> int:
 
         from ..io.layers import refuse_avatar_mismatch, stale_inputs
 
-        refuse_avatar_mismatch(path, "a comparison")        # its 'personalized' is not the layer's answer
+        refuse_avatar_mismatch(path, "a comparison",        # its 'personalized' is not the layer's answer
+                               allow_moved_neutral=args.allow_moved_neutral)
         generic_path = _generic(args, path)
         # as export and review do: a layer whose avatar changed since is compared with the avatar as it is
         # now, and the picture shows the edit as personalization (it said nothing)

@@ -30,6 +30,9 @@ def register(subparsers) -> None:
                         "60000: a 225k-vertex head made a 124 MB page that updated a pose in seconds); 0 "
                         "shows every vertex")
     p.add_argument("--force", action="store_true", help="overwrite the HTML file")
+    p.add_argument("--allow-moved-neutral", action="store_true",
+                   help="review a layer whose avatar's neutral was re-sculpted after it was written (refused "
+                        "by default: its offsets were fitted and checked on the old neutral)")
     p.add_argument("--json", action="store_true", help="print what was written as JSON (output, warnings)")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -46,7 +49,8 @@ def run(args) -> int:
 
     out = args.output or default_output(args.layer)
     path = write_review(args.layer, out, capture=args.capture, take=args.take,
-                        fit_errors=not args.no_fit_errors, force=args.force, max_vertices=args.max_vertices)
+                        fit_errors=not args.no_fit_errors, force=args.force, max_vertices=args.max_vertices,
+                        allow_moved_neutral=args.allow_moved_neutral)
     if args.json:
         import json
 

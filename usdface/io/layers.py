@@ -735,13 +735,45 @@ def stale_inputs(layer_path, given=()) -> list[str]:
     return out
 
 
+#: Vertices per block of :func:`neutral_signature` (in index order).
+NEUTRAL_BLOCK = 256
+
+
+def neutral_signature(points: np.ndarray, block: int = NEUTRAL_BLOCK) -> np.ndarray:
+    """The mean of each run of ``block`` consecutive vertices of a neutral, ``[ceil(n / block), 3]`` in the
+    points' units (``points``: ``[n, 3]``; the last run may be shorter). Small enough to record in a layer
+    (~100 blocks for a 25k-vertex head), and it tells a neutral re-sculpted after the layer was written
+    (and where, by vertex range), where the file's digest tells only that the file changed."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    starts = np.arange(0, len(points), block)
+    counts = np.diff(np.append(starts, len(points)))
+    return np.add.reduceat(points, starts, axis=0) / counts[:, None] if len(points) else np.zeros((0, 3))
+
+
+def neutral_moved(before, points: np.ndarray, block: int = NEUTRAL_BLOCK) -> tuple[int, float] | None:
+    """``(block index, distance)`` of the block of the neutral ``points`` (``[n, 3]``) that moved the most
+    from the signature ``before`` (:func:`neutral_signature`, flat or ``[b, 3]``), in the points' units;
+    None when no block moved more than float32 storage can (16 float32 steps at the mesh's largest
+    coordinate: a DCC re-export of the same points), or the signature does not fit the points."""
+    before = np.asarray(before, dtype=np.float64).reshape(-1, 3)
+    now = neutral_signature(points, block)
+    if before.shape != now.shape or not len(now):
+        return None
+    moved = np.linalg.norm(now - before, axis=1)
+    tolerance = 16 * np.finfo(np.float32).eps * max(float(np.abs(points).max()), 1e-30)
+    worst = int(np.argmax(moved))
+    return (worst, float(moved[worst])) if moved[worst] > tolerance else None
+
+
 def mesh_topology(prim) -> dict | None:
-    """``{"points": n, "topology": sha256}`` of a ``UsdGeom.Mesh`` prim as composed (its point count and the
-    digest of its ``faceVertexCounts`` and ``faceVertexIndices``), None for a prim that is not a mesh with
-    points. A layer records it for every mesh it personalizes (``customLayerData["usdface"]["meshes"]``), so
-    ``usdface check`` tells an avatar whose mesh was re-modelled after the layer was written: the layer's
-    ``pointIndices`` and offsets address the old vertices (an edge loop added shifts every index after it,
-    and nothing else in the composed stage shows it)."""
+    """``{"points": n, "topology": sha256, "neutral": [...]}`` of a ``UsdGeom.Mesh`` prim as composed (its
+    point count, the digest of its ``faceVertexCounts`` and ``faceVertexIndices``, and its
+    :func:`neutral_signature` flattened), None for a prim that is not a mesh with points. A layer records it
+    for every mesh it personalizes (``customLayerData["usdface"]["meshes"]``), so ``usdface check`` tells an
+    avatar whose mesh was re-modelled after the layer was written: the layer's ``pointIndices`` and offsets
+    address the old vertices (an edge loop added shifts every index after it, and nothing else in the
+    composed stage shows it); or whose neutral was re-sculpted (the offsets were fitted and checked on the
+    old one)."""
     from pxr import UsdGeom
 
     if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
@@ -754,7 +786,8 @@ def mesh_topology(prim) -> dict | None:
     for attr in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
         h.update(np.asarray(attr.Get() if attr.Get() is not None else [], dtype=np.int64).tobytes())
         h.update(b"|")
-    return {"points": len(points), "topology": h.hexdigest()}
+    return {"points": len(points), "topology": h.hexdigest(),
+            "neutral": neutral_signature(np.asarray(points)).ravel().tolist()}
 
 
 def prim_specs(layer) -> list:
@@ -792,15 +825,23 @@ def _orphan_overs(layer, avatar_stage, stage) -> list[str]:
     return out
 
 
-def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
+def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]:
     """``[(prim, message, fix)]``: how a usdface personalize layer (the root layer of ``stage``) no longer
     fits the avatar it sublayers, opened alone: a prim it overrides gone (a mesh or the SkelRoot renamed or
     moved, a shape deleted), a personalized mesh whose blend shapes are not those its
     ``skel:blendShapeTargets`` list (a shape added or removed), a mesh whose point count or faces differ
     from those recorded when the layer was written (re-modelled: :func:`mesh_topology`), the avatar's
-    ``metersPerUnit`` / ``upAxis`` not those the layer repeats (re-exported in other units or axis). USD
-    composes all of these without a word. [] for a layer that fits, and for any other file."""
-    from pxr import Sdf, Usd, UsdSkel
+    ``metersPerUnit`` / ``upAxis`` not those the layer repeats (re-exported in other units or axis), and
+    (``neutral``) a personalized mesh's neutral moved (re-sculpted: :func:`neutral_moved`; layers written
+    since stop 49 record it). USD composes all of these without a word. [] for a layer that fits, and for
+    any other file.
+
+    Why a moved neutral is a mismatch and a re-sculpted shape is not: the layer's offsets replace the
+    personalized shapes' own, so over a re-sculpted shape the composed rig is still the one personalize
+    checked (the edit is hidden, which ``Provenance`` warns about); over a moved neutral it is a rig nobody
+    checked - offsets fitted on the old neutral (its correspondence with the capture, its lip and eyelid
+    clearance) added to new positions."""
+    from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
     root = stage.GetRootLayer()
     record = (root.customLayerData or {}).get("usdface")
@@ -860,6 +901,18 @@ def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
                       else f"{after['points']} points, faces changed")
             out.append((path, f"{asset}'s {path} was re-modelled after {name} was written ({points}): the "
                         "layer's pointIndices and offsets address the old vertices", fix))
+        elif neutral and isinstance(before, dict) and before.get("neutral") is not None and after is not None:
+            points = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=np.float64)
+            moved = neutral_moved(before["neutral"], points)
+            if moved is not None:
+                block, distance = moved
+                mm = distance * UsdGeom.GetStageMetersPerUnit(avatar_stage) * 1000.0
+                first, last = block * NEUTRAL_BLOCK, min((block + 1) * NEUTRAL_BLOCK, len(points)) - 1
+                out.append((path, f"{asset}'s {path} neutral was re-sculpted after {name} was written (the "
+                            f"vertices {first}-{last} moved {mm:.2f} mm on average): the layer's offsets "
+                            "were fitted and checked (lip and eyelid clearance) on the old neutral",
+                            fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
+                                  "it is"))
     # after the meshes' own findings: a shape removed is told as such first, its override's loss second
     for path in _orphan_overs(root, avatar_stage, stage):
         out.append((path, f"{name} overrides {path}, which {asset} no longer has (renamed, moved or deleted "
@@ -868,11 +921,13 @@ def avatar_mismatches(stage) -> list[tuple[str, str, str]]:
     return out
 
 
-def refuse_avatar_mismatch(layer_path, what: str) -> None:
+def refuse_avatar_mismatch(layer_path, what: str, allow_moved_neutral: bool = False) -> None:
     """Raise :class:`usdface.errors.RigError` (naming the layer, the prim and the fix) when the usdface layer
     at ``layer_path`` no longer fits its revised avatar (:func:`avatar_mismatches`): ``what`` (an export, a
     review page, a comparison) would deliver overrides that land on nothing or on the wrong vertices, labelled
-    personalized. A layer whose inputs merely changed (a re-sculpted shape) is only warned about."""
+    personalized. A layer whose inputs merely changed (a re-sculpted shape) is only warned about, and so is
+    one whose avatar's neutral moved when ``allow_moved_neutral`` (``--allow-moved-neutral``: the TD
+    accepts the offsets over the new neutral)."""
     from pxr import Usd
 
     if Path(layer_path).suffix.lower() not in (".usda", ".usdc", ".usd") or not Path(layer_path).is_file():
@@ -882,7 +937,7 @@ def refuse_avatar_mismatch(layer_path, what: str) -> None:
     try:
         with quiet_stderr():    # a missing sublayer: the reader names it in one line later
             stage = Usd.Stage.Open(str(layer_path))
-        found = avatar_mismatches(stage) if stage is not None else []
+        found = avatar_mismatches(stage, neutral=not allow_moved_neutral) if stage is not None else []
     except Exception:  # noqa: BLE001  (a file USD cannot open: the reader after this names it)
         return
     if found:

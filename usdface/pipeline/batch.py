@@ -40,6 +40,8 @@ from ..locks import SharedWhileInside
 
 REQUIRED = ("avatar", "capture", "output")
 DONE, SKIPPED, FAILED = "done", "skipped", "failed"
+#: A report's ``where`` when no item ran (every row skipped, or stale): nothing was started or contacted.
+NOTHING_RUN = "nothing to run"
 
 
 @dataclass
@@ -96,8 +98,11 @@ class BatchReport:
 
     def summary(self) -> str:
         text = (f"{self.count(DONE)} done, {self.count(SKIPPED)} skipped, {self.count(FAILED)} failed "
-                f"in {self.seconds:.1f} s ")
-        text += "in this process" if self.where == "in-process" else f"on {self.where}"  # not 'on in-process'
+                f"in {self.seconds:.1f} s")
+        if self.where.startswith(NOTHING_RUN):         # not 'on dask tcp://...' where nothing was sent
+            text += f": {self.where}"
+        else:
+            text += " in this process" if self.where == "in-process" else f" on {self.where}"
         if self.count(DONE):
             text += f" ({self.throughput_per_minute:.2f} avatars/minute)"
         return text
@@ -133,12 +138,24 @@ PATH_OPTIONS = ("take", "name_map", "pins", "correspondence")
 
 
 def _absolute(base: Path, value) -> str:
-    """``value`` relative to ``base`` as an absolute path, symlinks kept (a ``latest -> v003`` link in a
-    manifest stays the link in the layer's sublayer path, as with ``usdface personalize``)."""
+    """``value`` relative to ``base`` as an absolute path with no ``.`` or ``..`` in it, symlinks kept (a
+    ``latest -> v003`` link in a manifest stays the link in the layer's sublayer path, as with ``usdface
+    personalize``).
+
+    ``..`` names the parent of where the path has got to: after a symlinked folder, its target's parent,
+    which dropping ``sub/..`` as text would miss. The path up to its last ``..`` is the folder the OS finds
+    there: written as text without the ``..`` when that names the same folder (the links in it kept), else as
+    the OS's real path; the rest follows as written. The batch report kept ``/shots/x/sub/../avatars/a.usdc``,
+    as the manifest's relative path joined to its folder."""
     joined = os.path.join(base, os.path.expanduser(str(value)))
-    # ".." is left to the OS when present: after a symlinked folder it climbs the link's target, which a
-    # lexical normalisation would not
-    return joined if ".." in Path(str(value)).parts else os.path.normpath(joined)
+    parts = Path(joined).parts
+    if ".." not in parts:
+        return os.path.normpath(joined)
+    last = len(parts) - 1 - parts[::-1].index("..")
+    head = os.path.join(*parts[:last + 1])
+    lexical = os.path.normpath(head)
+    folder = lexical if os.path.realpath(lexical) == os.path.realpath(head) else os.path.realpath(head)
+    return os.path.normpath(os.path.join(folder, *parts[last + 1:]))
 
 
 def _file_keys(p: str) -> list:
@@ -562,11 +579,10 @@ def _crashed(item: dict, exc: BaseException) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------- runners
-def _run_serial(worker, todo, advance):
+def _run_serial(worker, todo):
     for item in todo:
         res = run_item(worker, item)
         yield res
-        advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
 
 
 #: Thread-count variables set in every pool worker before numpy loads: the pool's processes are the
@@ -643,7 +659,9 @@ def _stop_cleanly_on_signals() -> None:
     Only the first signal stops the item: a worker can be signalled more than once (``PR_SET_PDEATHSIG`` fires
     each time the worker's parent *thread* exits, and a killed batch's threads exit one by one, each passing
     the worker on to the next; or a farm sends SIGTERM twice), and a second raise inside the clean-up skipped
-    it, leaving the temporary file. Later signals are ignored while the clean-up runs."""
+    it, leaving the temporary file. Later signals are ignored while the clean-up runs.
+
+    Wherever the kernel delivers the signal, it is seen: :func:`_watch_stop_signals`."""
     import signal
 
     def stop(signum, frame):
@@ -654,15 +672,75 @@ def _stop_cleanly_on_signals() -> None:
             raise _WorkerStopped()
         os._exit(128 + signum)
 
+    taken = set()
     for name in ("SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
         if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:
             signal.signal(signum, stop)
+            taken.add(int(signum))
+    _watch_stop_signals(taken)
+
+
+#: The write end of the pool worker's signal wake-up pipe (:func:`_watch_stop_signals`), or None.
+_WAKEUP_FD: int | None = None
+
+
+def _watch_stop_signals(signums: set) -> None:
+    """Pool worker: a thread that sees every stop signal (``signums``) whichever thread the kernel hands it
+    to, and makes sure it stops the worker.
+
+    A process-wide signal (the batch's ``terminate()``, the parent's death through ``PR_SET_PDEATHSIG``)
+    goes to any thread that does not block it, and the worker has native threads (2 once
+    :func:`init_worker` has imported its modules, one more USD starts inside a personalize item, on this
+    machine class). Python runs a signal's handler only in the main thread, once it next runs Python code:
+    a signal one of those threads took was never handled while the main thread stayed blocked - an idle
+    worker reading the pool's call queue, or an item in one long sleep (the killed-batch test's stand-in
+    item outlived the batch in about one run of five until stop 48). Python's own C handler
+    writes the signal's number to the wake-up file (:func:`signal.set_wakeup_fd`) on whatever thread it
+    runs; this thread reads it and ends an idle worker at once (nothing to clean up), or sends the signal
+    to the main thread (``pthread_kill``: a blocking call there is interrupted and the handler raises), and
+    ends the process should the item finish first. Blocking the signals in the native threads instead
+    (a mask set while the imports start them) misses the threads a library starts later, inside an item.
+    Not where ``pthread_kill`` is missing (Windows: no such signals)."""
+    import signal
+
+    global _WAKEUP_FD
+    if not signums or not hasattr(signal, "pthread_kill"):
+        return
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)            # set_wakeup_fd's rule: a full pipe must not block a handler
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    _WAKEUP_FD = write_fd
+    threading.Thread(target=_forward_stop_signals, args=(read_fd, signums, threading.main_thread().ident),
+                     name="usdface-stop-signals", daemon=True).start()
+
+
+def _forward_stop_signals(read_fd: int, signums: set, main: int) -> None:
+    """The thread of :func:`_watch_stop_signals`: for the first stop signal read from the wake-up pipe, end
+    the idle worker, or send it on to the ``main`` thread and end the process once the item is over (its
+    clean-up ends the process first when the signal stops it)."""
+    import signal
+    import time
+
+    while True:
+        signum = next((b for b in os.read(read_fd, 64) if b in signums), None)
+        if signum is None:
+            continue
+        if not _IN_ITEM.is_set():
+            os._exit(128 + signum)
+        signal.pthread_kill(main, signum)       # reaches the main thread wherever the kernel delivered it
+        while _IN_ITEM.is_set():                # the item's clean-up ends the process; an item that ended
+            time.sleep(0.05)                    # on its own meanwhile ends it here
+        os._exit(128 + signum)
 
 
 def _pool_item(worker: Callable[[dict], object], item: dict) -> dict:
     """:func:`run_item` in a pool worker process; stopped by a signal (:func:`_stop_cleanly_on_signals`),
     the process ends once the item's clean-up has run (the pool is being shut down: no result is wanted)."""
+    if _WAKEUP_FD is not None:                  # an item's event loop may have taken the wake-up file over
+        import signal
+
+        signal.set_wakeup_fd(_WAKEUP_FD, warn_on_full_buffer=False)
     _IN_ITEM.set()
     try:
         return run_item(worker, item)
@@ -674,7 +752,7 @@ def _pool_item(worker: Callable[[dict], object], item: dict) -> dict:
         _IN_ITEM.clear()
 
 
-def _run_pool(worker, todo, jobs, advance):
+def _run_pool(worker, todo, jobs):
     """The items on one shared pool of ``jobs`` processes. A worker process that dies (an out-of-memory
     kill, a crash in native code) breaks the whole pool, and every item not finished by then fails with it
     through no fault of its own: those items are run again, each in a process of its own (``jobs`` at a
@@ -699,12 +777,11 @@ def _run_pool(worker, todo, jobs, advance):
                 except Exception as exc:  # the item's result could not come back (pickling...)
                     res = _crashed(item, exc)
                 yield res
-                advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
         except BaseException:        # Ctrl-C, SIGTERM: stop now, not after every queued item has run
             _stop_pool(pool)
             raise
     if again:
-        yield from _run_isolated(worker, sorted(again, key=lambda it: it["index"]), jobs, advance)
+        yield from _run_isolated(worker, sorted(again, key=lambda it: it["index"]), jobs)
 
 
 def _stop_pool(pool) -> None:
@@ -740,7 +817,7 @@ def _one_process(worker, item, pools: list, stopping) -> dict:
             pools.remove(pool)
 
 
-def _run_isolated(worker, todo, jobs, advance):
+def _run_isolated(worker, todo, jobs):
     """Every item in a process of its own, ``jobs`` at a time (after a worker process died in the shared
     pool: the culprit is not known, so no item may take another down with it)."""
     import threading
@@ -752,10 +829,7 @@ def _run_isolated(worker, todo, jobs, advance):
         futures = {threads.submit(_one_process, worker, item, pools, stopping): item for item in todo}
         try:
             for fut in as_completed(futures):
-                item = futures[fut]
-                res = fut.result()
-                yield res
-                advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
+                yield fut.result()
         except BaseException:        # Ctrl-C, SIGTERM: end the running processes, start no more
             stopping.set()
             threads.shutdown(wait=False, cancel_futures=True)
@@ -795,7 +869,7 @@ SCHEDULER_LOST_ERROR = ("the connection to the Dask scheduler was lost before th
                         "(an output finished meanwhile is then taken as done, one stale or cut off is told)")
 
 
-def _run_dask(worker, todo, scheduler, advance):
+def _run_dask(worker, todo, scheduler):
     try:
         from distributed import Client, as_completed
     except ImportError as exc:
@@ -833,7 +907,6 @@ def _run_dask(worker, todo, scheduler, advance):
                                     "must be importable on every Dask worker (install it there or put it "
                                     "on their PYTHONPATH), as must usdface")
             yield res
-            advance(Path(item["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
     except BaseException:     # stopped (Ctrl-C, SIGTERM): the items not finished are cancelled on the cluster
         with contextlib.suppress(Exception):   # a client closing or broken: its close releases them
             client.cancel([f for f in futures if not f.done()])
@@ -886,13 +959,16 @@ def _waiting_label(todo: list[dict], results: dict, jobs: int | None) -> str:
 
 def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = personalize_worker,
               jobs: int | None = None, scheduler=None, force: bool = False,
-              progress: bool = True) -> BatchReport:
+              progress: bool = True, on_item: Callable[[ItemResult], None] | None = None) -> BatchReport:
     """Run ``worker`` on every item; returns a :class:`BatchReport` (results in manifest order).
 
     ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "force"}`` and must write
     ``output``; it must be importable by name (a module-level function) to run in worker processes. Items
     whose output exists are skipped unless ``force``. ``jobs=1`` runs in-process; ``jobs=None`` uses
     :func:`default_jobs` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
+    ``on_item(result)`` is called in this process with each item's :class:`ItemResult` as the item ends,
+    after its progress line (``usdface batch`` prints the item's warnings there); not for the rows resume
+    skips. ``scheduler`` is contacted only when some item runs.
     """
     from ..progress import steps
 
@@ -913,6 +989,9 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     jobs = max(1, int(jobs or default_jobs()))
     where = (f"dask {scheduler if isinstance(scheduler, str) else 'client'}" if scheduler is not None
              else ("in-process" if jobs == 1 or len(todo) <= 1 else f"local pool, {jobs} processes"))
+    if not todo:       # every row skipped or stale: no pool started, no scheduler contacted (it said 'on dask
+        where = NOTHING_RUN + (f" (the Dask scheduler {scheduler} was not contacted)"     # tcp://...')
+                               if isinstance(scheduler, str) else "")
     if todo:
         from .. import progress as _progress
 
@@ -925,13 +1004,19 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
                     advance.waiting(lambda: _waiting_label(todo, results, None if scheduler is not None
                                                            else min(jobs, len(todo))))
                 if scheduler is not None:
-                    runner = _run_dask(worker, todo, scheduler, advance)
+                    runner = _run_dask(worker, todo, scheduler)
                 elif jobs == 1 or len(todo) == 1:
-                    runner = _run_serial(worker, todo, advance)
+                    runner = _run_serial(worker, todo)
                 else:
-                    runner = _run_pool(worker, todo, min(jobs, len(todo)), advance)
-                for res in runner:
-                    results[res["index"]] = res
+                    runner = _run_pool(worker, todo, min(jobs, len(todo)))
+                # the runners yield each item's result as it ends; its line, then the caller's word on it
+                # (the command line prints its warnings: they came after 'batch done', hours late)
+                with contextlib.closing(runner):      # stopped here: the runner's clean-up ends its pool
+                    for res in runner:
+                        results[res["index"]] = res
+                        advance(Path(res["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
+                        if on_item is not None:
+                            on_item(ItemResult(**res))
         except BaseException as exc:      # stopped (Ctrl-C, SIGTERM): the report says what finished
             for item in items:
                 results.setdefault(item.index, dict(
