@@ -218,6 +218,40 @@ def test_the_field_is_measured_just_past_the_capture_border():
     np.testing.assert_array_equal(below, before)
 
 
+def test_the_socket_margin_just_past_the_capture_border_is_measured_there():
+    """Stop 49 (generated generic:15's ``mouthRollLower`` +0.342 mm, noisy:118's ``mouthPressRight`` +0.083):
+    the avatar's lip margin lies in the socket behind the capture's mouth hole, just past the capture's
+    border, where the generic motion is largest. Filled from the lips around, it took their ratio to the
+    generic times that largest motion (2.4x the truth's there). The capture's value at its border measures it
+    as it measures the skin past the outer border (:func:`border_reach`): the field is measured there too, so
+    the margin and the socket behind it follow the capture, the face is unchanged, and no border weight gives
+    the former result to the bit."""
+    from usdface.transfer.implant import extend_personalization
+
+    pts, tri = _sheet(41)                         # 2.5 mm edges
+    known, inner = _known_ring(pts)
+    r = np.max(np.abs(pts[:, :2] - 0.05), axis=1)
+    margin = np.isclose(r, 0.01)                  # the socket's first ring, next to the face
+    # the generic motion peaks at the margin (a lip's edge) and falls into the socket and over the face; the
+    # person moves 1.5x the generic on the face, 1.1x in the socket
+    generic = (0.004 + 0.008 * np.exp(-(((r - 0.01) / 0.004) ** 2)))[None, :, None] * [0.0, 0.0, 1.0]
+    truth = generic * np.where(r > 0.011, 1.5, 1.1)[None, :, None]
+    person = np.where((known | margin)[None, :, None], truth, generic)   # measured on the face and margin
+    weight = known.astype(float)
+    border = np.where(margin, 0.97, 0.0)          # within a tenth of a capture edge past the border
+    kw = dict(length=0.05, band=0.0, smoothing=0.0025)
+    before, _ = extend_personalization(pts, tri, generic, person, weight, **kw)
+    after, _ = extend_personalization(pts, tri, generic, person, weight, border_weight=border, **kw)
+    err_before, err_after = (np.abs(o - truth)[0, :, 2] for o in (before, after))
+    assert err_before[margin].min() > 3e-3        # the face's ratio times the margin's motion
+    assert np.all(err_after[margin] < 0.1 * err_before[margin])
+    deep = r < 0.004
+    assert np.all(err_after[deep] < 0.5 * err_before[deep])
+    np.testing.assert_array_equal(after[:, known], person[:, known])
+    none, _ = extend_personalization(pts, tri, generic, person, weight, border_weight=0.0 * border, **kw)
+    np.testing.assert_array_equal(none, before)
+
+
 def test_the_face_carries_the_persons_change_from_the_prior():
     """``M (B_j - P_j)``: through a correspondence of the capture onto itself it is the person's change from
     the prior, to the bit where both shapes move (the support is 1), on any subset of the rows."""
