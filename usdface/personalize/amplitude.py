@@ -1,0 +1,78 @@
+"""Beyond the papers: each fitted shape's amplitude read a second time, on the capture's test frames.
+
+A shape's scale is fixed by its weight in its peak frame (:func:`.weights.held_weights`: there the
+weight and the amplitude are not separately identifiable, ``w B = (c w)(B / c)``), so the phone's error
+in that one weight is the shape's amplitude error, ``sigma_w / w_peak`` of the shape: a 1-sigma draw of
+0.03 at a peak of 0.94 is 3 % of a 13 mm ``jawOpen``, 0.4 mm, the size by which a person's jaw differs
+from the avatar's. No other training frame sees it, and the trust's leak and sensitivity hold that
+weight. The capture's test frames (mixed expressions the fit does not use, each with the phone's own
+weights) are independent draws: each shows the shape at its reported weight beside the others, and
+together they measure how far the fitted shape must be scaled to explain them. The two readings of one
+amplitude, each with its own variance, are combined by inverse variance (the Gaussian posterior of the
+scale given both): where the test frames show the shape strongly the peak weight's draw is corrected,
+where they show it weakly the fit stands.
+
+Arrays in, arrays out; shapes ``[K,n,3]`` metres, weights ``[F,K]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["combined_amplitude", "peak_amplitude_variance", "test_amplitude"]
+
+
+def peak_amplitude_variance(weights, variance) -> np.ndarray:
+    """``[K]``: the relative variance of each fitted shape's amplitude from its peak frame's weight,
+    ``var_peak / w_peak^2`` (``weights[F,K]`` the phone's training reports, ``variance[F,K]`` their error
+    variances, :func:`.weights.weight_error_variance` with every entry free; the peak frame
+    :func:`.weights.peak_frames`). The shape is fitted as ``w_peak B``'s motion: a reported ``w_peak (1 + x)``
+    makes it ``B / (1 + x)``, a relative error ``-x`` of sd ``sigma_peak / w_peak``."""
+    w = np.asarray(weights, dtype=np.float64)
+    peak = np.argmax(w, axis=0)
+    cols = np.arange(w.shape[1])
+    return np.asarray(variance, dtype=np.float64)[peak, cols] / np.maximum(w[peak, cols], 1e-3) ** 2
+
+
+def test_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
+    """``(a[K], var[K])``: each fitted shape's amplitude as the test frames read it, relative to the fitted
+    shape (1: the fit's own), and its variance from the test weights' errors. ``neutral[n,3]``,
+    ``points[T,n,3]`` metres, ``weights[T,K]`` the phone's reports, ``deltas[K,n,3]`` the fitted shapes,
+    ``variance[T,K]`` each report's error variance (:func:`.weights.weight_error_variance`).
+
+    Frame ``t``'s residual at the reported weights, ``R_t = P_t - N - sum_m r_tm B_m``, holds
+    ``(a_k - 1) w_tk B_k`` of a shape whose true amplitude is ``a_k`` times the fitted one. Projected on
+    ``B_k`` and weighted by the frame's report: ``a_k - 1 = sum_t r_tk <R_t, B_k> / den_k``, ``den_k =
+    |B_k|^2 sum_t (r_tk^2 - v_tk)``, the least-squares scale of each shape on its own (a joint fit over
+    all shapes reads the other shapes' errors of shape as amplitudes: a generated person's 44 readings
+    scattered 1.8 sd above their truth, these 0.3). The reports err by ``e_tk`` (``E e^2 = v_tk``) in the
+    regressor too, so ``sum r^2`` exceeds ``sum w^2`` by ``sum v``, taken off (errors in variables). The
+    variance: each report's error moves ``R_t`` by ``-e_tm B_m``, so ``var a_k = sum_t r_tk^2 sum_m v_tm
+    <B_k, B_m>^2 / den_k^2``. A shape the test frames do not show (``den <= 0``) reads 1 at infinite
+    variance."""
+    r = np.asarray(weights, dtype=np.float64)
+    v = np.asarray(variance, dtype=np.float64)
+    A = np.asarray(deltas, dtype=np.float64).reshape(r.shape[1], -1)                    # [K, 3n]
+    Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
+    Y = Y.reshape(len(r), -1)                                                          # [T, 3n]
+    gram = A @ A.T                                                                     # [K,K] m^2
+    proj = (Y - r @ A) @ A.T                                                           # [T,K] <R_t, B_k>
+    den = np.sum(r * r - v, axis=0) * np.diag(gram)
+    shown = den > 0
+    den = np.where(shown, den, 1.0)
+    a = np.where(shown, 1.0 + np.sum(r * proj, axis=0) / den, 1.0)
+    var = np.einsum("tk,tm,km->k", r * r, v, gram * gram) / den ** 2
+    return a, np.where(shown, var, np.inf)
+
+
+def combined_amplitude(reading, reading_variance, fit_variance) -> np.ndarray:
+    """``[K]``: the scale of each fitted shape given the fit's amplitude (1, relative variance
+    ``fit_variance[K]``, :func:`peak_amplitude_variance`) and the test frames' ``reading[K]`` (variance
+    ``reading_variance[K]``, :func:`test_amplitude`), by inverse variance: ``1 + f / (f + v) (a - 1)``. 1
+    where the test frames do not show the shape (``v`` infinite) or the fit's amplitude has no error
+    (``f = 0``)."""
+    f = np.asarray(fit_variance, dtype=np.float64)
+    v = np.asarray(reading_variance, dtype=np.float64)
+    total = f + v
+    gain = np.where(np.isfinite(v) & (total > 0), f / np.where(total > 0, total, 1.0), 0.0)
+    return 1.0 + gain * (np.asarray(reading, dtype=np.float64) - 1.0)
