@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["combined_amplitude", "peak_amplitude_variance", "test_amplitude"]
+__all__ = ["combined_amplitude", "peak_amplitude_variance", "held_out_amplitude"]
 
 
 def peak_amplitude_variance(weights, variance) -> np.ndarray:
@@ -34,7 +34,7 @@ def peak_amplitude_variance(weights, variance) -> np.ndarray:
     return np.asarray(variance, dtype=np.float64)[peak, cols] / np.maximum(w[peak, cols], 1e-3) ** 2
 
 
-def test_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
+def held_out_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
     """``(a[K], var[K])``: each fitted shape's amplitude as the test frames read it, relative to the fitted
     shape (1: the fit's own), and its variance from the test weights' errors. ``neutral[n,3]``,
     ``points[T,n,3]`` metres, ``weights[T,K]`` the phone's reports, ``deltas[K,n,3]`` the fitted shapes,
@@ -47,9 +47,14 @@ def test_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarr
     all shapes reads the other shapes' errors of shape as amplitudes: a generated person's 44 readings
     scattered 1.8 sd above their truth, these 0.3). The reports err by ``e_tk`` (``E e^2 = v_tk``) in the
     regressor too, so ``sum r^2`` exceeds ``sum w^2`` by ``sum v``, taken off (errors in variables). The
-    variance: each report's error moves ``R_t`` by ``-e_tm B_m``, so ``var a_k = sum_t r_tk^2 sum_m v_tm
-    <B_k, B_m>^2 / den_k^2``. A shape the test frames do not show (``den <= 0``) reads 1 at infinite
-    variance."""
+    variance: each report's error moves ``R_t`` by ``-e_tm B_m``, so ``sum_t r_tk^2 sum_m v_tm <B_k,
+    B_m>^2 / den_k^2``; and the residual holds what no weight explains (the other fitted shapes' errors of
+    shape, the scans' noise, motion no blend of the shapes makes): its part along ``B_k``, ``c_k``, is read in
+    the frames that do not report the shape (there ``<R_t, B_k>`` holds no amplitude of it): the mean of
+    ``<R_t, B_k>^2 - sum_m v_tm <B_k, B_m>^2`` over them (over every frame if each reports it), at least 0,
+    adds ``sum_t r_tk^2 c_k / den_k^2``. Without it a capture whose weights are the phone mesh's own (the
+    weights' noise 0.0005) reads the fitted shapes' errors at that noise's tiny variance. A shape the test
+    frames do not show (``den <= 0``) reads 1 at infinite variance."""
     r = np.asarray(weights, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
     A = np.asarray(deltas, dtype=np.float64).reshape(r.shape[1], -1)                    # [K, 3n]
@@ -61,14 +66,20 @@ def test_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarr
     shown = den > 0
     den = np.where(shown, den, 1.0)
     a = np.where(shown, 1.0 + np.sum(r * proj, axis=0) / den, 1.0)
-    var = np.einsum("tk,tm,km->k", r * r, v, gram * gram) / den ** 2
+    by_weights = v @ (gram * gram)                                                     # [T,K] m^4
+    excess = proj ** 2 - by_weights
+    off = r == 0.0
+    count = off.sum(axis=0)
+    other = np.where(count > 0, np.sum(np.where(off, excess, 0.0), axis=0) / np.maximum(count, 1),
+                     excess.mean(axis=0))
+    var = np.sum(r * r * (by_weights + np.maximum(other, 0.0)[None]), axis=0) / den ** 2
     return a, np.where(shown, var, np.inf)
 
 
 def combined_amplitude(reading, reading_variance, fit_variance) -> np.ndarray:
     """``[K]``: the scale of each fitted shape given the fit's amplitude (1, relative variance
     ``fit_variance[K]``, :func:`peak_amplitude_variance`) and the test frames' ``reading[K]`` (variance
-    ``reading_variance[K]``, :func:`test_amplitude`), by inverse variance: ``1 + f / (f + v) (a - 1)``. 1
+    ``reading_variance[K]``, :func:`held_out_amplitude`), by inverse variance: ``1 + f / (f + v) (a - 1)``. 1
     where the test frames do not show the shape (``v`` infinite) or the fit's amplitude has no error
     (``f = 0``)."""
     f = np.asarray(fit_variance, dtype=np.float64)

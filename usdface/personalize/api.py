@@ -14,7 +14,7 @@ from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
-from .amplitude import combined_amplitude, peak_amplitude_variance, test_amplitude
+from .amplitude import combined_amplitude, held_out_amplitude, peak_amplitude_variance
 from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
@@ -793,7 +793,7 @@ def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
         return deltas
     test_var = weight_error_variance(capture.neutral, test.points, test.weights, deltas,
                                      np.ones(test.weights.shape, dtype=bool), noise=noise)
-    reading, reading_var = test_amplitude(capture.neutral, test.points, test.weights, deltas, test_var)
+    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var)
     scale = combined_amplitude(reading, reading_var, peak_amplitude_variance(train.weights, fit_var))
     if pinned is not None:
         scale = np.where(np.asarray(pinned).any(axis=1), 1.0, scale)
