@@ -14,9 +14,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "usdface"
 #: orchestrator (it reads the avatar and writes the layer when given paths) and ``personalize/report.py``
 #: and ``landmarks/plots.py`` write files: they are edges inside the packages and are not listed.
 CORE = ["mesh.py", "motion.py", "model.py", "submesh.py", "bounded_lsq.py", "arkit.py", "namelist.py",
-        "take_select.py", *(f"personalize/{n}" for n in ("align.py", "api.py", "contact.py", "crossval.py",
-                                                          "dt.py", "ebfr.py", "evaluate.py", "fit.py",
-                                                          "laplacian.py", "takefit.py", "weights.py")),
+        "take_select.py", *(f"personalize/{n}" for n in ("align.py", "amplitude.py", "api.py", "contact.py",
+                                                          "crossval.py", "dt.py", "ebfr.py", "evaluate.py",
+                                                          "fit.py", "laplacian.py", "takefit.py",
+                                                          "weights.py")),
         *(f"transfer/{n}" for n in ("correspond.py", "denoise.py", "eyelids.py", "face_map.py", "implant.py",
                                     "motion_field.py", "options.py", "partial_dt.py", "register.py",
                                     "report.py", "retarget.py", "scoring.py", "surface.py", "trust.py")),

@@ -14,6 +14,7 @@ from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, rigid_transforms
+from .amplitude import combined_amplitude, held_out_amplitude, peak_amplitude_variance
 from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
@@ -767,6 +768,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # no more than the personalization stands above its estimate's noise (a take has its own model)
             info["shape_reliability"] = reliable(deltas)
             info["shape_confidence"] = np.minimum(info["shape_confidence"], info["shape_reliability"])
+        if info.get("weight_noise") and frame_weights is None and len(capture.test):
+            deltas = _test_frames_amplitude(capture, deltas, info, mask if pins is not None else None)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -775,6 +778,27 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     timings["total"] = time.perf_counter() - t0
     rig = FaceRig(capture.neutral, capture.triangles, list(capture.names), deltas, name="FaceMask")
     return FitResult(rig, info)
+
+
+def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
+    """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
+    capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
+    reading and the scale applied. The phone's weights' noise ``s`` is the training frames' (every report
+    inside the clip); a shape an artist pinned keeps its scale (``pinned[K,n]``)."""
+    train, test = capture.train, capture.test
+    every = np.ones(train.weights.shape, dtype=bool)
+    fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every)
+    noise = float(np.sqrt(fit_var.max()))
+    if noise <= 0.0:
+        return deltas
+    test_var = weight_error_variance(capture.neutral, test.points, test.weights, deltas,
+                                     np.ones(test.weights.shape, dtype=bool), noise=noise)
+    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var)
+    scale = combined_amplitude(reading, reading_var, peak_amplitude_variance(train.weights, fit_var))
+    if pinned is not None:
+        scale = np.where(np.asarray(pinned).any(axis=1), 1.0, scale)
+    info["test_amplitude"] = {"reading": reading, "scale": scale, "weight_noise": noise}
+    return deltas * scale[:, None, None]
 
 
 def weight_sensitivity(neutral, points, weights, deltas, residuals, solve, *, held=None) -> np.ndarray:

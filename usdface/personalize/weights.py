@@ -164,7 +164,8 @@ def weight_noise(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, d
     return float(np.sqrt(max(0.0, spread - np.median(np.broadcast_to(own, W.shape)[mask]))))
 
 
-def weight_error_variance(neutral, points, weights, deltas, free, *, residuals=None) -> np.ndarray:
+def weight_error_variance(neutral, points, weights, deltas, free, *, residuals=None,
+                          noise: float | None = None) -> np.ndarray:
     """``[F,K]`` (weight units squared): the expected squared error of each weight the phone reported, for
     the leak (:func:`.fit.weight_leak_variance`, :func:`.fit.weight_leak_direction`), 0 where ``free[F,K]``
     is False (the entries the fit holds). ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]`` the
@@ -192,14 +193,19 @@ def weight_error_variance(neutral, points, weights, deltas, free, *, residuals=N
     the leak of a frame's reported ``jawOpen`` 0.067 (true 0, an inside entry at 2.2 sigma of dev2's regime)
     was read at 0.025 instead of 0.030 and passed as the person; read apart by re-estimation, the entries at
     0 scatter with the other entries' errors, not their own, 4x the truth's (docs/history.md, stop 48).
-    ``residuals``: :func:`weight_residuals` of these arrays when the caller has them."""
+    ``residuals``: :func:`weight_residuals` of these arrays when the caller has them.
+
+    ``noise``: the inside level ``s`` measured elsewhere (the training frames' for the test frames, whose
+    residual on the fitted shapes also holds those shapes' own errors: 0.060 against a true 0.029 on a
+    generated capture where the training frames read 0.041), instead of measuring it on these frames."""
     w = np.asarray(weights, dtype=np.float64)
     free = np.asarray(free, dtype=bool)
     inside = free & (w != 0.0) & (w != 1.0)                 # not clipped: past a bound errs by all of e too
     variance = np.zeros(w.shape)
     if not inside.any():
         return variance
-    s = weight_noise(neutral, points, w, deltas, inside, residuals=residuals)
+    s = (weight_noise(neutral, points, w, deltas, inside, residuals=residuals) if noise is None
+         else float(noise))
     variance[inside] = s * s
     if s <= 0.0:
         return variance
