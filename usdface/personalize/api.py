@@ -783,7 +783,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
-    reading and the scale applied. The phone's weights' noise ``s`` is the training frames' (every report
+    reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The phone's weights' noise ``s`` is the training frames' (every report
     inside the clip); a shape an artist pinned keeps its scale (``pinned[K,n]``)."""
     train, test = capture.train, capture.test
     every = np.ones(train.weights.shape, dtype=bool)
@@ -797,7 +797,8 @@ def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
     scale = combined_amplitude(reading, reading_var, peak_amplitude_variance(train.weights, fit_var))
     if pinned is not None:
         scale = np.where(np.asarray(pinned).any(axis=1), 1.0, scale)
-    info["test_amplitude"] = {"reading": reading, "scale": scale, "weight_noise": noise}
+    # lists, as the rest of a fit's report (personalize --json prints it; an array would print as its repr)
+    info["test_amplitude"] = {"reading": reading.tolist(), "scale": scale.tolist(), "weight_noise": noise}
     return deltas * scale[:, None, None]
 
 
