@@ -783,8 +783,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
-    reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The phone's weights' noise ``s`` is the training frames' (every report
-    inside the clip); a shape an artist pinned keeps its scale (``pinned[K,n]``)."""
+    reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The
+    phone's weights' noise ``s`` is the training frames' (every report inside the clip); a shape an artist
+    pinned keeps its scale (``pinned[K,n]``)."""
     train, test = capture.train, capture.test
     every = np.ones(train.weights.shape, dtype=bool)
     fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every)
