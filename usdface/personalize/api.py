@@ -457,7 +457,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` of each reported weight's error
         variance by its side of the phone's clip, :func:`weight_error_variance`, from the final fit's own
         factorization, :class:`.fit.FitSystem`; ~0.02 s): what the implant trusts a shape by
-        (``personalize`` asks for it).
+        (``personalize`` asks for it). On a capture with test frames it also scales each fitted shape by
+        its amplitude as they read it (:mod:`.amplitude`, ``info["test_amplitude"]``): the test frames
+        then set K numbers of the fit, and an eq. 5 score on them is no longer wholly held out (``fit`` and
+        ``evaluate`` leave ``sensitivity`` off).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
