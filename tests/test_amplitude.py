@@ -94,3 +94,12 @@ def test_a_jaw_scaled_by_one_misreported_peak_weight_is_read_back_from_the_test_
     assert fit.info["test_amplitude"]["scale"][jaw] > 1.02, fit.info["test_amplitude"]["scale"][jaw]
     assert delta[names.index("jawOpen")] <= 0.05, delta[names.index("jawOpen")]
     assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
+
+
+def test_a_capture_without_test_frames_reads_every_shape_unseen():
+    """``T = 0`` test frames (a take fitted whole, a capture that held none out): every shape reads 1 at
+    infinite variance, so the combination keeps the fit's scale (it failed reshaping an empty array)."""
+    a, var = held_out_amplitude(np.zeros((5, 3)), np.zeros((0, 5, 3)), np.zeros((0, 2)),
+                                np.ones((2, 5, 3)) * 1e-3, np.zeros((0, 2)))
+    assert np.array_equal(a, [1.0, 1.0]) and np.all(np.isinf(var))
+    assert np.array_equal(combined_amplitude(a, var, np.array([1e-3, 1e-3])), [1.0, 1.0])

@@ -475,6 +475,10 @@ def test_review_scores_the_fit_the_layer_carries(samples, tmp_path):
     prov = read_layer_info(layer)["usdface"]
     page = _fit_errors(capture, prov, recorded=True)
     assert "the layer's fit" in page["title"]
+    # the fit scaled shapes by these frames (personalize.amplitude): the recorded score and the title say so
+    scaled = int(np.count_nonzero(np.asarray(result.fit.info["test_amplitude"]["scale"]) != 1.0))
+    assert recorded["amplitudes_read"] == scaled > 0
+    assert f"read {scaled} of its shapes' amplitudes on these frames: not wholly held out" in page["title"]
     assert page["columns"]["personalized RMSE"] == recorded["personalized_rmse_mm"]
     other = _fit_errors(capture, prov, recorded=False)         # --capture: figures for that capture
     assert "menzel refit" in other["title"]

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .weights import peak_frames
+
 __all__ = ["combined_amplitude", "peak_amplitude_variance", "held_out_amplitude"]
 
 
@@ -29,7 +31,7 @@ def peak_amplitude_variance(weights, variance) -> np.ndarray:
     :func:`.weights.peak_frames`). The shape is fitted as ``w_peak B``'s motion: a reported ``w_peak (1 + x)``
     makes it ``B / (1 + x)``, a relative error ``-x`` of sd ``sigma_peak / w_peak``."""
     w = np.asarray(weights, dtype=np.float64)
-    peak = np.argmax(w, axis=0)
+    peak = peak_frames(w)
     cols = np.arange(w.shape[1])
     return np.asarray(variance, dtype=np.float64)[peak, cols] / np.maximum(w[peak, cols], 1e-3) ** 2
 
@@ -60,9 +62,11 @@ def held_out_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.n
     ``<R_t, B_k>^2 - sum_m v_tm <B_k, B_m>^2`` over them (over every frame if each reports it), at least 0,
     adds ``sum_t r_tk^2 c_k / den_k^2``. Without it a capture whose weights are the phone mesh's own (the
     weights' noise 0.0005) reads the fitted shapes' errors at that noise's tiny variance. A shape the test
-    frames do not show (``den <= 0``) reads 1 at infinite variance."""
+    frames do not show (``den <= 0``; every shape when ``T = 0``) reads 1 at infinite variance."""
     r = np.asarray(weights, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
+    if len(r) == 0:                                  # no test frames: every shape unseen
+        return np.ones(r.shape[1]), np.full(r.shape[1], np.inf)
     A = np.asarray(deltas, dtype=np.float64).reshape(r.shape[1], -1)                    # [K, 3n]
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(r), -1)                                                          # [T, 3n]

@@ -457,7 +457,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         ``info["weight_leak"][n,K]`` (m^2, :func:`.fit.weight_leak_variance` of each reported weight's error
         variance by its side of the phone's clip, :func:`weight_error_variance`, from the final fit's own
         factorization, :class:`.fit.FitSystem`; ~0.02 s): what the implant trusts a shape by
-        (``personalize`` asks for it).
+        (``personalize`` asks for it). On a capture with test frames it also scales each fitted shape by
+        its amplitude as they read it (:mod:`.amplitude`, ``info["test_amplitude"]``): the test frames
+        then set K numbers of the fit, and an eq. 5 score on them is no longer wholly held out (``fit`` and
+        ``evaluate`` leave ``sensitivity`` off).
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
@@ -783,8 +786,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
-    reading and the scale applied. The phone's weights' noise ``s`` is the training frames' (every report
-    inside the clip); a shape an artist pinned keeps its scale (``pinned[K,n]``)."""
+    reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The
+    phone's weights' noise ``s`` is the training frames' (every report inside the clip); a shape an artist
+    pinned keeps its scale (``pinned[K,n]``)."""
     train, test = capture.train, capture.test
     every = np.ones(train.weights.shape, dtype=bool)
     fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every)
@@ -797,7 +801,8 @@ def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
     scale = combined_amplitude(reading, reading_var, peak_amplitude_variance(train.weights, fit_var))
     if pinned is not None:
         scale = np.where(np.asarray(pinned).any(axis=1), 1.0, scale)
-    info["test_amplitude"] = {"reading": reading, "scale": scale, "weight_noise": noise}
+    # lists, as the rest of a fit's report (personalize --json prints it; an array would print as its repr)
+    info["test_amplitude"] = {"reading": reading.tolist(), "scale": scale.tolist(), "weight_noise": noise}
     return deltas * scale[:, None, None]
 
 

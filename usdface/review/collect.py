@@ -162,7 +162,8 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
     layer's own figures (``fitTestExpressions``, scored by ``personalize`` on the fit it implanted, prior,
     alignment and options included) when ``recorded`` (the capture is the one the layer records) and they
     cover these expressions; else (an older layer, another capture) a refit with the layer's recorded method
-    and regularisation, said so in the title."""
+    and regularisation, said so in the title. The layer's fit scaled its ``amplitudes_read`` shapes by these
+    very frames (:mod:`usdface.personalize.amplitude`, since stop 49): the title says so."""
     from ..personalize import fit_personalized_shapes
     from ..personalize.evaluate import test_expression_errors
 
@@ -182,6 +183,9 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
             reg = str(reg)
         scored = test_expression_errors(capture, fit_personalized_shapes(capture, method=method, reg=reg).rig)
         source = f"{method} refit"
+    elif scored.get("amplitudes_read"):   # personalize's fit scaled shapes by these frames (stop 49)
+        source += (f", which read {scored['amplitudes_read']} of its shapes' amplitudes on these frames: not "
+                   "wholly held out")
     columns = {"generic RMSE": "generic_rmse_mm", "personalized RMSE": "personalized_rmse_mm",
                "generic max": "generic_max_mm", "personalized max": "personalized_max_mm"}
     return {"title": f"eq. 5 on the capture's test expressions (mm; {source})",

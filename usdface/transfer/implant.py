@@ -326,7 +326,6 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     data = None
     # the mesh's vertex adjacency, made once for the sockets' pockets and the smoothing's neighbourhoods
     adjacency = vertex_adjacency(sub_tri, domain.size) if len(sub_tri) else None
-    in_pocket = None
     # the share of each vertex's measurement that comes from past the capture's border (beyond the face, and
     # in the sockets behind its holes: a lip's margin just past the mouth hole, where the generic motion is
     # largest, took the lips' ratio from around it - generated generic:15's mouthRollLower 2.4x the truth's
@@ -358,16 +357,14 @@ def extend_personalization(points, triangles, generic, person, face_weight, *, l
     proxy = (_field_proxy(x, sub_tri, known, w, smoothing)
              if smoothing and rings >= PROXY_MIN_RINGS and known.any() and not known.all() else None)
     if proxy is None:
-        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency,
-                             in_pocket=in_pocket)
+        ext = FieldExtension(x, sub_tri, known, length=length, data=data, adjacency=adjacency)
         beyond, mass = ext.beyond, ext.mass
     else:
         # the sockets behind the face's holes as the whole fine mesh has them (the proxy covers only the
         # face's rim and what lies beyond)
-        if in_pocket is None:
-            fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
-            in_pocket = pockets(sub_tri, known, fine_mass, adjacency=adjacency)
-            del fine_mass
+        fine_mass = vertex_areas(sub_tri, triangle_areas(x, sub_tri), domain.size)
+        in_pocket = pockets(sub_tri, known, fine_mass, adjacency=adjacency)
+        del fine_mass
         beyond = ~known & ~in_pocket
         ext = FieldExtension(proxy.points, proxy.triangles, proxy.known, length=length,
                              in_pocket=~(known | beyond)[proxy.fine],

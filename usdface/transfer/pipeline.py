@@ -513,6 +513,10 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             report["fit"]["prior"] = prior
             scored = test_expression_errors(capture, rig)    # eq. 5 of the fit the layer carries
             if scored is not None:
+                # the fit read its shapes' amplitudes on these frames too (personalize.amplitude): how many
+                # it scaled, so the score is not taken for a wholly held-out one
+                scale = (fit.info.get("test_amplitude") or {}).get("scale", [])
+                scored["amplitudes_read"] = int(np.count_nonzero(np.asarray(scale) != 1.0))
                 report["fit"]["test_expressions"] = scored
         if capture.whole_take:                     # the inspection plays it: no test expressions
             report["whole_take"] = {"frames": capture.whole_take["frames"], "fps": capture.whole_take["fps"]}
