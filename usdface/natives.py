@@ -153,8 +153,9 @@ class _Deferred(importlib.abc.MetaPathFinder):
     (:class:`_LazyLoader`): the module is in ``sys.modules`` at once and runs its code at its first
     attribute access (``open3d.visualization.draw_geometries`` works as before, a moment later)."""
 
-    def __init__(self, names=DEFERRED):
-        self.names = tuple(names)
+    def __init__(self, names=None):
+        # DEFERRED read when the finder is made, not when this module was (a host or test may set it)
+        self.names = tuple(DEFERRED if names is None else names)
 
     def find_spec(self, name, path, target=None):
         if name not in self.names:
