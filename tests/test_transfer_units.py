@@ -1110,6 +1110,8 @@ def test_register_icp_surface_finds_a_similarity_and_places_alike_on_a_finer_mes
         register_icp_surface(capture, pts, tris, init)[0].scale, abs=0.0)
     points, _, _, _ = register_icp(capture, pts, init, iterations=400)
     assert np.abs(points.apply(capture) - capture_on_avatar).max() > 1e-3
+    rigid, _, fit_rigid, _ = register_icp_surface(capture, pts, tris, init, with_scaling=False)
+    assert rigid.scale == pytest.approx(init.scale, rel=1e-12) and fit_rigid > 0.9     # the given scale kept
 
 
 def _lids(rise):
