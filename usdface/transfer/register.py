@@ -196,9 +196,10 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
     ``source[n,3]`` point (capture neutral, as placed) with its exact closest point on the surface
     ``points[m,3]``/``triangles[t,3]`` (:class:`usdface.transfer.surface.SurfaceQuery`), keeps the pairs
     within the correspondence distance (``scales`` times the diagonal of the initially placed source) and
-    moves the source by their least-squares similarity (:func:`similarity_from_pairs`; a rigid motion
-    without ``with_scaling``), until the fitness and inlier RMS residual change by less than 1e-9 (as
-    Open3D's ``registration_icp``) or ``iterations`` pass. Returns ``(similarity, inlier_rmse_m, fitness,
+    moves the source by their least-squares similarity (Open3D's ``TransformationEstimationPointToPoint``,
+    the step of its ``registration_icp``, on these pairs; a rigid motion without ``with_scaling``), until
+    the fitness and inlier RMS residual change by less than 1e-9 (as Open3D's ``registration_icp``) or
+    ``iterations`` pass. Returns ``(similarity, inlier_rmse_m, fitness,
     final_max_distance_m)``, as :func:`register_icp`.
 
     The target is the surface, not points sampled on it: a sampled target's nearest points sit up to half
@@ -207,6 +208,12 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
     0.13 % apart in scale and 0.08 degrees in rotation, which the avatar prior carries into the fit: issue
     12's same answer 1.3 -> 2.6 % at stop 47). On the surface the two are placed alike to 1e-6."""
     from .surface import SurfaceQuery
+
+    o3d = open3d()
+    est = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=with_scaling)
+
+    def corres(n):
+        return o3d.utility.Vector2iVector(np.repeat(np.arange(n, dtype=np.int32)[:, None], 2, axis=1))
 
     src = np.asarray(source, dtype=np.float64)
     query = SurfaceQuery(points, triangles)
@@ -227,11 +234,17 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
             previous = (fitness, rmse)
             if pairs.sum() < 3:
                 break
-            step = similarity_from_pairs(x[pairs], closest[pairs])
-            if not with_scaling:
-                step = Similarity(1.0, step.rotation, closest[pairs].mean(axis=0)
-                                  - step.rotation @ x[pairs].mean(axis=0))
-            current = Similarity.from_matrix(step.matrix() @ current.matrix())
+            # the step: Open3D's own estimator of registration_icp on the pairs (Umeyama; rigid without
+            # with_scaling), about the pairs' target centroid for conditioning
+            origin = closest[pairs].mean(axis=0)
+            pcs = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(x[pairs] - origin))
+            pct = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(closest[pairs] - origin))
+            m = np.asarray(est.compute_transformation(pcs, pct, corres(int(pairs.sum()))))
+            shift = np.eye(4)
+            shift[:3, 3] = origin
+            step = shift @ m
+            step[:3, 3] -= step[:3, :3] @ origin
+            current = Similarity.from_matrix(step @ current.matrix())
     return current, float(f"{rmse:.12g}"), fitness, dist
 
 
