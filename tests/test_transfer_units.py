@@ -1049,17 +1049,69 @@ def test_outward_turns_to_the_radial_line_where_the_distance_has_no_slope():
 
 
 def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch):
-    """With the avatar's triangles the ICP target is sampled on its face surface: the triangles whose three
-    corners move, none reaching past the moving vertices (here the left half of the patch)."""
+    """With the avatar's triangles the ICP target is its face surface: the triangles with a moving corner
+    (here the left half of the patch and the column of triangles reaching the first still vertices), none
+    past them; the fallback placement's points are their vertices."""
     from usdface.transfer import register
 
     pts, tris = _grid()
     left = pts[:, 0] < 0
     shapes = _local_shapes(pts) * left[None, :, None]
-    monkeypatch.setattr(register, "register_icp", _icp_to(1.0))
+    seen = []
+
+    def icp(source, target, init, surface=None, **kw):
+        seen.append(surface)
+        return _icp_to(1.0)(source, target, init)
+
+    monkeypatch.setattr(register, "register_icp", icp)
     reg = register_face(pts, shapes, pts, shapes, avatar_triangles=tris, capture_triangles=tris)
-    assert len(reg.target) > 100
-    assert reg.target[:, 0].max() <= pts[left, 0].max() + 1e-12
+    moving = np.linalg.norm(shapes, axis=2).max(axis=0) > 0
+    points, face_tri = seen[0]
+    np.testing.assert_array_equal(face_tri, tris[moving[tris].any(axis=1)])
+    assert 0 < len(face_tri) < len(tris)
+    np.testing.assert_array_equal(reg.target, pts[np.unique(face_tri)])
+    # one column of triangles past the moving half at most (the grid's spacing 0.16 / 24)
+    assert pts[left, 0].max() < reg.target[:, 0].max() <= pts[left, 0].max() + 0.16 / 24 + 1e-12
+
+
+def _midpoint_subdivision(points, triangles):
+    """Every triangle into four, a new vertex at each edge's midpoint (the same piecewise-linear surface);
+    the original vertices first."""
+    pairs = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]),
+                    axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    m01, m12, m20 = len(points) + inverse.reshape(3, -1)
+    a, b, c = triangles.T
+    tris = np.concatenate([np.stack([a, m01, m20], 1), np.stack([m01, b, m12], 1), np.stack([m20, m12, c], 1),
+                           np.stack([m01, m12, m20], 1)])
+    return np.concatenate([points, points[edges].mean(axis=1)]), tris, edges
+
+
+def test_register_icp_surface_finds_a_similarity_and_places_alike_on_a_finer_mesh_of_the_surface():
+    """ICP onto the surface's exact closest points: a capture that is a finer sampling of the surface
+    (midpoints of its edges, moved by a known similarity) is placed back near that similarity (point-to-point
+    ICP slides slowly along a gently curved patch: 400 iterations); the same surface subdivided twice (16x
+    the triangles) places it the same; Open3D's ICP onto the vertices as points stops millimetres off."""
+    from usdface.transfer.register import register_icp, register_icp_surface
+
+    pts, tris = _grid(13)
+    fine, fine_tris, _ = _midpoint_subdivision(pts, tris)
+    fine2, fine2_tris, _ = _midpoint_subdivision(fine, fine_tris)
+    capture_on_avatar = fine[len(pts):]                         # points of the surface, none a vertex
+    true = Similarity(1.03, _rotation([0.2, 1, 0.1], 0.05), np.array([0.002, -0.001, 0.003]))
+    capture = true.inverse_vectors(capture_on_avatar - true.translation)       # avatar = true(capture)
+    init = Similarity(1.02, _rotation([0.2, 1, 0.1], 0.04), true.translation + 0.001)
+    sim, rmse, fitness, _ = register_icp_surface(capture, pts, tris, init, iterations=400)
+    np.testing.assert_allclose(sim.apply(capture), capture_on_avatar, atol=1e-4)
+    assert fitness == 1.0 and rmse < 1e-5
+    sim2, _, _, _ = register_icp_surface(capture, fine2, fine2_tris, init, iterations=400)
+    np.testing.assert_allclose(sim2.apply(capture), sim.apply(capture), atol=1e-5)
+    assert register_icp(capture, None, init, surface=(pts, tris))[0].scale == pytest.approx(
+        register_icp_surface(capture, pts, tris, init)[0].scale, abs=0.0)
+    points, _, _, _ = register_icp(capture, pts, init, iterations=400)
+    assert np.abs(points.apply(capture) - capture_on_avatar).max() > 1e-3
+    rigid, _, fit_rigid, _ = register_icp_surface(capture, pts, tris, init, with_scaling=False)
+    assert rigid.scale == pytest.approx(init.scale, rel=1e-12) and fit_rigid > 0.9     # the given scale kept
 
 
 def _lids(rise):
