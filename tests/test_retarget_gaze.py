@@ -121,17 +121,20 @@ def test_the_sample_maps_gaze_channels_are_pure(sample_maps):
 
 
 def test_gaze_free_is_the_map_as_it_was(sample_maps):
-    """``--map-gaze free`` is eq. (4) as before stop 39: the sample's map to the JSON's six decimals (its
-    ``mu``, its count of weights above 0.05 and their sum, the gaze cross-terms the brief found)."""
+    """``--map-gaze free`` is eq. (4) as before stop 39: the gaze channels take whatever capture shapes
+    explain them, so the cross-terms the brief found are back (the sample's blink drives its look down, its
+    look down drives its look out, its look up its eye-wide), where the default map has none. (Pinned to the
+    JSON's six decimals until stop 49: the registration onto the face surface moved the sample's map - its
+    cross-validated ``mu`` 0.0035 -> 0.0139, the blink's look-down 0.297 -> 0.093 - so the test keeps the
+    property, not one fit's figures.)"""
     doc = sample_maps["free"]
     assert doc["meta"]["map_gaze"] == "free"
-    w = np.array(doc["weights"])
-    assert doc["meta"]["mu"] == pytest.approx(0.0035479159133127085, rel=1e-9)
-    assert int((np.abs(w) > 0.05).sum()) == 314 and w.sum() == pytest.approx(99.625696, abs=1e-5)
+    assert 0.0 < doc["meta"]["mu"] < 1.0
     cross = _gaze_cross(doc)
-    assert cross[("eyeBlinkLeft", "eyeLookDownLeft")] == pytest.approx(0.296695, abs=1e-6)
-    assert cross[("eyeLookDownLeft", "eyeLookOutLeft")] == pytest.approx(1.0, abs=1e-6)
-    assert doc["map"]["eyeLookUpLeft"]["eyeWideLeft"] == pytest.approx(0.695353, abs=1e-6)
+    assert cross[("eyeBlinkLeft", "eyeLookDownLeft")] > 0.05
+    assert cross[("eyeLookDownLeft", "eyeLookOutLeft")] > 0.3
+    assert doc["map"]["eyeLookUpLeft"]["eyeWideLeft"] > 0.3
+    assert len(cross) > len(_gaze_cross(sample_maps["map"])) == 0
 
 
 def test_map_gaze_is_checked_before_any_work(samples, tmp_path, capsys, monkeypatch):

@@ -27,13 +27,15 @@ from .errors import expect_kind, warn
 from .namelist import name_list
 
 if TYPE_CHECKING:  # pragma: no cover
+    from collections.abc import Callable
+
     from .io.livelink import LiveLinkTake
     from .io.take import Take
     from .landmarks import LandmarkLayout
     from .landmarks.evaluate import EvaluationReport
     from .model import Avatar, Capture, FaceRig
     from .personalize import FitResult
-    from .pipeline.batch import BatchReport
+    from .pipeline.batch import BatchReport, ItemResult
     from .pipeline.check import Issue
     from .take_select import Selection
     from .transfer import PersonalizeResult
@@ -1349,7 +1351,8 @@ def _unique_mesh_names(keyed):
 
 def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler: str | None = None,
                       worker: str | None = None, options: dict | None = None, force: bool = False,
-                      report_path: PathLike | None = None, on_item=None) -> BatchReport:
+                      report_path: PathLike | None = None,
+                      on_item: Callable[[ItemResult], None] | None = None) -> BatchReport:
     """Personalize every (avatar, capture, output) row of a CSV/JSON manifest (``usdface batch``) on ``jobs``
     local processes (default: one a CPU this process may use, as many as the memory holds,
     :func:`usdface.pipeline.batch.default_jobs`; 1 = in this process) or a Dask ``scheduler`` address.
