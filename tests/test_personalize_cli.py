@@ -244,7 +244,9 @@ def test_retarget_map_is_bounded_by_default_and_the_papers_on_request(samples, t
     assert main([*base, "-o", str(tmp_path / "paper.json"), "--unbounded", "--map-prior", "zero",
                  "--map-gaze", "free"]) == 0
     paper = np.array(json.loads((tmp_path / "paper.json").read_text())["weights"])
-    assert paper.max() > 1.5 and paper.min() < -0.5
+    # eq. (4) unbounded leaves [0, 1] on both sides, well past what the bounded solve's rounding could
+    # (the sample's: -4.2 to 12.0 with the first correspondence; -0.96 to 1.48 since stop 49's registration)
+    assert paper.max() > 1.2 and paper.min() < -0.5 and (paper < -0.05).sum() > 100
     assert main([*base, "-o", str(tmp_path / "bad.json"), "--weight-bounds", "1", "0"]) == 2
     assert "bad weight bounds" in capsys.readouterr().err
 
