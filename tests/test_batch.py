@@ -314,6 +314,22 @@ def test_an_items_warnings_reach_a_hosts_on_item_as_it_ends(tmp_path):
         personalize_batch(manifest, jobs=1, on_item="print")
 
 
+def test_a_hosts_on_item_that_raises_stops_the_batch_with_what_finished(tmp_path):
+    """A host's ``on_item`` error is the host's: it stops the batch as Ctrl-C does (no later item starts)
+    and reaches the caller with the finished items' report attached (``batch_report``)."""
+    from usdface.api import personalize_batch
+
+    manifest = _manifest(tmp_path, ["a", "b"])
+
+    def fails(result):
+        raise RuntimeError(f"host log down at {Path(result.output).name}")
+
+    with pytest.raises(RuntimeError, match="host log down at a.usda") as info:
+        personalize_batch(manifest, jobs=1, worker=f"{__name__}:warning_worker", on_item=fails)
+    assert [r.status for r in info.value.batch_report.results][0] == DONE
+    assert not (tmp_path / "out" / "b.usda").exists()
+
+
 def test_manifest_paths_have_no_dot_dot_and_keep_their_links(tmp_path):
     """A TD's trial (stop 48): the report said ``/tmp/x/sub/../avatars/anna.usdc`` (the row's relative path
     joined to the manifest's folder as written). ``..`` is the parent of the folder the OS has got to: after

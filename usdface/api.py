@@ -1363,7 +1363,8 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     ``report_path``, default ``<manifest stem>.report.json`` next to the manifest; returns the
     :class:`usdface.pipeline.batch.BatchReport` (``.report_path`` = where it was written).
     ``on_item(result)``, if given, is called with each item's :class:`usdface.pipeline.batch.ItemResult` as
-    the item ends (in this process; its ``warnings`` are the item's), e.g. to log them as they come."""
+    the item ends (in this process; its ``warnings`` are the item's), e.g. to log them as they come; an
+    exception it raises stops the batch (no later item starts) and propagates with ``batch_report``."""
     _paths(manifest=(manifest, False), report_path=(report_path, True))
     if on_item is not None and not callable(on_item):
         from .errors import OptionError

@@ -968,7 +968,8 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     :func:`default_jobs` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
     ``on_item(result)`` is called in this process with each item's :class:`ItemResult` as the item ends,
     after its progress line (``usdface batch`` prints the item's warnings there); not for the rows resume
-    skips. ``scheduler`` is contacted only when some item runs.
+    skips; an exception it raises stops the batch as Ctrl-C does and propagates with ``batch_report``.
+    ``scheduler`` is contacted only when some item runs.
     """
     from ..progress import steps
 
