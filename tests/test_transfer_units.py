@@ -1066,7 +1066,8 @@ def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch
     monkeypatch.setattr(register, "register_icp", icp)
     reg = register_face(pts, shapes, pts, shapes, avatar_triangles=tris, capture_triangles=tris)
     moving = np.linalg.norm(shapes, axis=2).max(axis=0) > 0
-    points, face_tri = seen[0]
+    face_tri = seen[0].triangles                       # the face surface's closest-point scene, built once
+    np.testing.assert_array_equal(seen[0].points, pts)
     np.testing.assert_array_equal(face_tri, tris[moving[tris].any(axis=1)])
     assert 0 < len(face_tri) < len(tris)
     np.testing.assert_array_equal(reg.target, pts[np.unique(face_tri)])

@@ -42,8 +42,8 @@ from ..mesh import boundary_loops, spd_lu, uniform_laplacian
 
 __all__ = ["CONTACT_SHAPES", "CONTACT_RADIUS", "CORRECTION_RINGS", "CONTACT_WEIGHT", "Opening",
            "ContactPairs", "find_openings", "signed_gaps", "find_contact_pairs", "ContactSolver",
-           "contact_test", "apply_contact", "keep_contact", "lip_crossings", "LipCrossings", "face_size",
-           "lip_pairs_from_motion", "LipPairs"]
+           "contact_test", "apply_contact", "keep_contact", "lip_crossings", "most_moved_opening",
+           "LipCrossings", "face_size", "lip_pairs_from_motion", "LipPairs"]
 
 #: Shapes whose template pose may bring the two sides of an opening together, with the shapes they are
 #: posed on top of (ARKit: ``mouthClose`` closes the lips *independent of the jaw*: it is authored on top
@@ -463,6 +463,13 @@ def lip_pairs_from_motion(neutral: np.ndarray, opening_delta: np.ndarray, *,
     return LipPairs(up, lo, direction)
 
 
+def most_moved_opening(openings: list[Opening], delta: np.ndarray) -> int:
+    """Index of the opening whose boundary loop ``delta[n,3]`` moves most on average (the mouth under
+    ``jawOpen``; :func:`find_openings`'s order)."""
+    mag = np.linalg.norm(np.asarray(delta, dtype=np.float64), axis=1)
+    return int(np.argmax([mag[op.loop].mean() for op in openings]))
+
+
 def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray, *,
                   opening: int | None = None, tolerance: float = 0.0,
                   openings: list[Opening] | None = None, opening_delta: np.ndarray | None = None,
@@ -502,10 +509,7 @@ def lip_crossings(neutral: np.ndarray, triangles: np.ndarray, delta: np.ndarray,
         g = np.einsum("ij,ij->i", X[pairs.upper] - X[pairs.lower], pairs.direction)
         bad = g < -float(tolerance)
         return LipCrossings(pairs.lower[bad], -g[bad])
-    if opening is None:
-        mag = np.linalg.norm(d, axis=1)
-        opening = int(np.argmax([mag[op.loop].mean() for op in ops]))
-    op = ops[opening]
+    op = ops[most_moved_opening(ops, d) if opening is None else opening]
     a, b, t = _upper_at(p, op)
     upper_pt = (1.0 - t)[:, None] * X[a] + t[:, None] * X[b]
     g = (upper_pt - X[op.lower]) @ op.direction_on(p)

@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import RegistrationError
 from ..motion import moving_vertices, peak_motion
 from ..natives import open3d
+from .surface import SurfaceQuery
 
 __all__ = ["Similarity", "Registration", "motion_landmarks", "similarity_from_pairs", "motion_initialiser",
            "register_icp", "register_icp_surface", "register_face"]
@@ -152,11 +153,14 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
     ``source[n,3]`` (capture neutral), ``target[m,3]`` (avatar face points); correspondence distances are
     ``scales`` times the diagonal of the initially placed source. Returns ``(similarity, inlier_rmse_m,
     fitness, final_max_distance_m)``. ``surface``: ``(points[m,3], triangles[t,3])``, the avatar face's
-    surface: the pairs are its exact closest points instead (:func:`register_icp_surface`; ``target`` unused).
+    surface, or a :class:`usdface.transfer.surface.SurfaceQuery` of it (built once by a caller that registers
+    from several starts): the pairs are its exact closest points instead (:func:`register_icp_surface`;
+    ``target`` unused).
     """
     if surface is not None:
-        return register_icp_surface(source, *surface, init, scales=scales, iterations=iterations,
-                                    with_scaling=with_scaling)
+        query = surface if isinstance(surface, SurfaceQuery) else SurfaceQuery(*surface)
+        return register_icp_surface(source, query.points, query.triangles, init, scales=scales,
+                                    iterations=iterations, with_scaling=with_scaling, query=query)
     o3d = open3d()
 
     reg = o3d.pipelines.registration
@@ -190,7 +194,7 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
 
 
 def register_icp_surface(source, points, triangles, init: Similarity, *, scales=(0.08, 0.03, 0.012),
-                         iterations: int = 40, with_scaling: bool = True
+                         iterations: int = 40, with_scaling: bool = True, query: SurfaceQuery | None = None
                          ) -> tuple[Similarity, float, float, float]:
     """Point-to-point ICP with scaling onto a triangle surface, coarse to fine: each iteration pairs every
     ``source[n,3]`` point (capture neutral, as placed) with its exact closest point on the surface
@@ -206,9 +210,10 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
     its spacing from the surface's closest points, in a pattern that follows the mesh's triangles, and the
     placement followed it (dev1's head and the same head subdivided twice - the same surface - were placed
     0.13 % apart in scale and 0.08 degrees in rotation, which the avatar prior carries into the fit: issue
-    12's same answer 1.3 -> 2.6 % at stop 47). On the surface the two are placed alike to 1e-6."""
-    from .surface import SurfaceQuery
+    12's same answer 1.3 -> 2.6 % at stop 47). On the surface the two are placed alike to 1e-6.
 
+    ``query``: the surface's :class:`SurfaceQuery` when the caller has it (its closest-point scene, built
+    once for every start: the twice-subdivided head's face has 450k triangles)."""
     o3d = open3d()
     est = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=with_scaling)
 
@@ -216,7 +221,7 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
         return o3d.utility.Vector2iVector(np.repeat(np.arange(n, dtype=np.int32)[:, None], 2, axis=1))
 
     src = np.asarray(source, dtype=np.float64)
-    query = SurfaceQuery(points, triangles)
+    query = SurfaceQuery(points, triangles) if query is None else query
     placed = init.apply(src)
     diag = float(np.linalg.norm(placed.max(axis=0) - placed.min(axis=0)))
     current, rmse, fitness, dist = init, 0.0, 0.0, diag
@@ -292,7 +297,7 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
         if len(face_tri):
             # the ICP pairs the capture with the surface's exact closest points; ``target`` (its vertices)
             # gives the fallback placement's extent and centroid
-            surface = (ap, face_tri)
+            surface = SurfaceQuery(ap, face_tri)    # one closest-point scene for every start below
             if not given:
                 from ..mesh import index_set
 

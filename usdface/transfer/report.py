@@ -34,7 +34,7 @@ def lip_report(points, triangles, names, generic, output, capture=None) -> dict:
     across its mouth hole), so a crossing the output carries can be told from one the person's scans show
     (on dev1 the truth's ``mouthClose`` crosses 12.9 mm deep where the generic crosses 5.1). A capture mesh
     without a mouth hole gives neither entry."""
-    from ..personalize.contact import find_openings, lip_crossings, lip_pairs_from_motion
+    from ..personalize.contact import find_openings, lip_crossings, lip_pairs_from_motion, most_moved_opening
 
     if "jawOpen" not in names:
         return {}
@@ -43,28 +43,26 @@ def lip_report(points, triangles, names, generic, output, capture=None) -> dict:
         pairs = lip_pairs_from_motion(points, generic[jaw])
     except GeometryError:
         return {}
-    openings = None
+    # (label, shapes[J,m,3], the mesh's points and triangles, how lip_crossings finds its lips)
+    sides = [(label, d, points, triangles, {"openings": [], "pairs": pairs})
+             for label, d in (("generic", generic), ("output", output))]
     if capture is not None:
         c_points, c_triangles, c_deltas, c_template = capture
-        openings = find_openings(c_points, c_triangles) or None
-        if openings is not None:  # the mouth: the opening the capture's jawOpen moves most
-            mag = np.linalg.norm(c_deltas[jaw], axis=1)
-            mouth = int(np.argmax([mag[op.loop].mean() for op in openings]))
+        openings = find_openings(c_points, c_triangles)
+        if openings:                  # the mouth: the opening the capture's jawOpen moves most
+            where = {"openings": openings, "opening": most_moved_opening(openings, c_deltas[jaw])}
+            sides += [(label, d, c_points, c_triangles, where)
+                      for label, d in (("capture", c_deltas), ("template", c_template))]
     out = {}
     for name in LIP_SHAPES:
         if name not in names:
             continue
         j = names.index(name)
         row = {}
-        for label, d in (("generic", generic), ("output", output)):
+        for label, d, p, t, where in sides:
             pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
-            c = lip_crossings(points, triangles, pose, openings=[], pairs=pairs)
+            c = lip_crossings(p, t, pose, **where)
             row[label] = [c.count, round(c.max_depth * 1e3, 3)]
-        if openings is not None:
-            for label, d in (("capture", c_deltas), ("template", c_template)):
-                pose = d[j] + (d[jaw] if name == "mouthClose" else 0.0)
-                c = lip_crossings(c_points, c_triangles, pose, openings=openings, opening=mouth)
-                row[label] = [c.count, round(c.max_depth * 1e3, 3)]
         out[name] = row
     return out
 
