@@ -690,3 +690,53 @@ def test_a_lip_contact_the_weights_errors_agree_with_is_no_part_of_the_trusts_es
     assert np.abs(np.asarray(fit.info["contact_correction"])[j]).max() > 0.5e-3
     assert delta[names.index("mouthPressRight")] <= 0.05, delta[names.index("mouthPressRight")]
     assert np.max(delta) <= 0.05, (names[int(np.argmax(delta))], np.max(delta))
+
+
+def test_one_decomposition_of_the_shapes_serves_every_set_of_frames_read_on_them():
+    """``weight_residuals`` given the shapes' ``shape_basis`` (as the fit passes it from its sensitivity step
+    to the test frames' amplitude, which reads the training frames as scanned where the fit read them
+    aligned) returns what it computes without it, to the bit, for two different sets of frames on the same
+    shapes; the two sets' readings differ (the basis carries no frame)."""
+    from usdface.personalize.weights import shape_basis, weight_residuals
+
+    rng, neutral, deltas, weights = _rig(seed=6)
+    basis = shape_basis(deltas)
+    U, s, V = basis
+    A = deltas.reshape(len(deltas), -1)
+    assert np.allclose((U * s) @ V.T, A.T)                    # the shapes as columns, A^T = U S V^T
+    readings = []
+    for shift in (0.0, 2e-4):
+        points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas) + shift
+        reported = np.clip(weights + rng.normal(size=weights.shape) * 0.03, 0.0, 1.0)
+        given = weight_residuals(neutral, points, reported, deltas, basis=basis)
+        own = weight_residuals(neutral, points, reported, deltas)
+        assert all(np.array_equal(g, o) for g, o in zip(given, own, strict=True))
+        readings.append(given[0])
+    assert not np.array_equal(readings[0], readings[1])
+
+
+def test_the_fit_decomposes_its_shapes_once_for_the_noise_and_the_test_frames(samples, monkeypatch):
+    """``personalize``'s fit (sensitivity on a capture with test frames, no contact correction applied: the
+    sample's) reads the weights' noise on its training frames twice - in its sensitivity step and for the
+    test frames' amplitude - on one SVD of the fitted shapes (it made two before)."""
+    import usdface.personalize.api as api
+    import usdface.personalize.weights as weights_module
+    from usdface.io import read_capture
+    from usdface.personalize import fit_personalized_shapes
+
+    calls = []
+    real = weights_module.shape_basis
+
+    def counted(deltas):
+        calls.append(np.shape(deltas))
+        return real(deltas)
+
+    monkeypatch.setattr(weights_module, "shape_basis", counted)
+    monkeypatch.setattr(api, "shape_basis", counted)
+    capture = read_capture(samples / "capture.usda")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_personalized_shapes(capture, "menzel", sensitivity=True)
+    assert "test_amplitude" in fit.info
+    assert not any(v["applied"] for v in fit.info["contact"]["shapes"].values())
+    assert len(calls) == 1, calls

@@ -37,6 +37,7 @@ from .weights import (
     held_weights,
     reestimate_weights,
     reestimate_weights_batched,
+    shape_basis,
     weight_error_variance,
     weight_noise,
     weight_residuals,
@@ -695,7 +696,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         t1 = time.perf_counter()
         res = points - capture.neutral[None] - blend(w_cur, deltas)          # the contact test's and E_fit's
         # picked frames (a take has its own noise model); menzel (a Laplacian solve costs seconds)
-        variance = None
+        variance = basis = None
         if sensitivity and method == "menzel" and frame_weights is None and len(w_cur):
             # the entries re-estimation holds (the phone's weights: the same as the test's above)
             held_cur = held if reweight and w_cur is weights else held_weights(w_cur, ACTIVATION_MIN)
@@ -706,7 +707,10 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             free = ~held_cur
             # the frames' weights re-estimated on the final shapes once, for the noise over every free entry
             # and over the phone's inside ones (weight_error_variance)
-            residuals = weight_residuals(capture.neutral, points, w_cur, deltas)
+            # (one SVD of the fitted shapes: the test frames' amplitude reads the training frames as scanned
+            # on the same shapes when the contact step leaves them, _test_frames_amplitude)
+            basis = shape_basis(deltas)
+            residuals = weight_residuals(capture.neutral, points, w_cur, deltas, basis=basis)
             info["weight_noise"] = weight_noise(capture.neutral, points, w_cur, deltas, free,
                                                 residuals=residuals)
             # the phone's reports, each entry at its own side of the clip: a weight reported inside (0, 1)
@@ -762,6 +766,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         timings["contact"] = time.perf_counter() - t1
         unmeasured = info["contact"].pop("unmeasured")
         if any(v["applied"] for v in info["contact"]["shapes"].values()):
+            basis = None                          # the shapes corrected: not those decomposed above
             res = points - capture.neutral[None] - blend(w_cur, deltas)
             # the corrections' part the frames' evidence does not carry (the template's gap, not an
             # estimate): the trust reads the fit without it (transfer.trust.shape_trust)
@@ -772,7 +777,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             info["shape_reliability"] = reliable(deltas)
             info["shape_confidence"] = np.minimum(info["shape_confidence"], info["shape_reliability"])
         if info.get("weight_noise") and frame_weights is None and len(capture.test):
-            deltas = _test_frames_amplitude(capture, deltas, info, mask if pins is not None else None)
+            deltas = _test_frames_amplitude(capture, deltas, info, mask if pins is not None else None,
+                                            basis=basis)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -783,15 +789,18 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     return FitResult(rig, info)
 
 
-def _test_frames_amplitude(capture, deltas, info, pinned=None) -> np.ndarray:
+def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
     reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The
     phone's weights' noise ``s`` is the training frames' (every report inside the clip); a shape an artist
-    pinned keeps its scale (``pinned[K,n]``)."""
+    pinned keeps its scale (``pinned[K,n]``). ``basis``: :func:`.weights.shape_basis` of these ``deltas``
+    when the fit has it (its sensitivity step decomposed them)."""
     train, test = capture.train, capture.test
     every = np.ones(train.weights.shape, dtype=bool)
-    fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every)
+    residuals = weight_residuals(capture.neutral, train.points, train.weights, deltas, basis=basis)
+    fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every,
+                                    residuals=residuals)
     noise = float(np.sqrt(fit_var.max()))
     if noise <= 0.0:
         return deltas

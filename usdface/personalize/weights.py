@@ -25,7 +25,7 @@ import numpy as np
 from .align import distinct_frames
 from .fit import weight_basis
 
-__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched",
+__all__ = ["held_weights", "peak_frames", "reestimate_weights", "reestimate_weights_batched", "shape_basis",
            "weight_error_variance", "weight_noise", "weight_residuals"]
 
 
@@ -112,25 +112,35 @@ def reestimate_weights_batched(problems, phone_weights: np.ndarray, anchors: np.
     return x if groups is None else x[:, :, inverse]
 
 
+def shape_basis(deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The thin SVD of the shapes as columns, ``A^T = U diag(s) V^T`` with ``A[K,3n]`` the rows
+    ``deltas[K,n,3]`` flattened (metres), truncated to its numerical rank (:func:`.fit.weight_basis` of
+    ``A^T``): ``U[3n,r]``, ``s[r]``, ``V[K,r]``. What :func:`weight_residuals` reads the frames' weights on;
+    one decomposition for every set of frames read on the same shapes (the fit's training frames, as
+    aligned and as scanned)."""
+    D = np.asarray(deltas, dtype=np.float64)
+    return weight_basis(D.reshape(len(D), -1).T)
+
+
 def weight_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray,
-                     deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     deltas: np.ndarray, *, basis=None) -> tuple[np.ndarray, np.ndarray]:
     """What :func:`weight_noise` reads, for any set of entries: ``(difference[F,K], own[K])``, each training
     frame's weights re-estimated by least squares on the fitted shapes minus the weights the shapes were
     fitted with (weight units), and each shape's estimate's own variance from the frames' scan noise,
     ``s^2 [(A A^T)^+]_kk`` (weight units squared; ``s`` the residual's std per coordinate, ``A`` the shapes
     as rows). ``neutral[n,3]``, ``points[F,n,3]`` metres, ``weights[F,K]``, ``deltas[K,n,3]`` the fitted
-    shapes. Computed once when the noise is read over several sets (:func:`weight_error_variance`)."""
+    shapes. Computed once when the noise is read over several sets (:func:`weight_error_variance`).
+    ``basis``: :func:`shape_basis` of these ``deltas`` when the caller has it (the same numbers)."""
     W = np.asarray(weights, dtype=np.float64)
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(W), -1)                                                        # [F, 3n]
-    A = np.asarray(deltas, dtype=np.float64).reshape(W.shape[1], -1)                 # [K, 3n]
     # one thin SVD A^T = U S V^T to its numerical rank for the estimate (pseudo-inverse), the rank and
     # (A A^T)^+'s diagonal
-    U, sv, V = weight_basis(A.T)
+    U, sv, V = shape_basis(deltas) if basis is None else basis
     Vt = V.T
     coef = (Y @ U) / sv                                                              # [F, rank]
     estimate = coef @ Vt                                                             # [F,K]
-    dof = max(A.shape[1] - len(sv), 1)
+    dof = max(len(U) - len(sv), 1)
     scan = max(float(np.sum(Y * Y) - np.sum(coef * coef * sv * sv)), 0.0) / (len(W) * dof)   # m^2 a coord.
     own = scan * np.sum((Vt / sv[:, None]) ** 2, axis=0)                              # [K]
     return estimate - W, own
