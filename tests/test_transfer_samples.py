@@ -264,3 +264,30 @@ def test_a_template_near_the_person_does_not_hide_the_person(samples):
         ratios.append(score_mesh(head.names, head.deltas, res.offsets[head.source.prim], truth).whole_ratio)
     assert ratios[0] < 0.35, ratios
     assert ratios[1] < ratios[0] + 0.05, ratios          # before: 0.27 -> 0.6
+
+
+def test_a_run_builds_the_face_surfaces_scene_once_for_both_registrations(samples, sample_fit, monkeypatch):
+    """The person's neutral and the template's are registered onto one closest-point scene of the avatar's
+    face surface (``register.face_surface``, built once per run; the twice-subdivided head's has 450k
+    triangles), not one each."""
+    from usdface.transfer import face_map, personalize_avatar, pipeline, register
+
+    built, used = [], []
+    real_surface, real_register = register.face_surface, register.register_face
+
+    def counted_surface(*args, **kwargs):
+        built.append(real_surface(*args, **kwargs))
+        return built[-1]
+
+    def recorded_register(*args, surface=None, **kwargs):
+        used.append(surface)
+        return real_register(*args, surface=surface, **kwargs)
+
+    for module in (pipeline, register):
+        monkeypatch.setattr(module, "face_surface", counted_surface)
+    for module in (pipeline, face_map):
+        monkeypatch.setattr(module, "register_face", recorded_register)
+    res = personalize_avatar(samples / "avatar.usda", sample_fit[0], None, rig=sample_fit[1], eyelids=False)
+    assert "template_registration" in res.report["correspondence"]          # both registrations ran
+    assert len(used) == 2 and len(built) == 1
+    assert used[0] is built[0] and used[1] is built[0]

@@ -1178,3 +1178,27 @@ def test_surface_samples_are_the_barycentric_grid_of_every_triangle_in_order():
             for a, b, c in tri for i in range(s + 1) for j in range(s + 1) if i + j <= s]
     np.testing.assert_allclose(surface_samples(pts, tri, s), np.array(want), rtol=0, atol=1e-15)
     np.testing.assert_array_equal(surface_samples(pts, tri, 1), pts[[0, 1, 2, 3, 4]])
+
+
+def test_register_face_onto_a_face_surface_built_once_places_as_it_builds_its_own():
+    """``register.face_surface`` (the moving triangles' closest-point scene, as ``personalize`` builds it
+    once for the person's and the template's registration) given to ``register_face`` places the capture
+    exactly as ``register_face`` does with the triangles alone (to the bit), for two capture faces on it."""
+    from usdface.motion import peak_motion
+    from usdface.transfer.register import face_surface
+
+    pts, tris = _grid()
+    shapes = _local_shapes(pts)
+    true = Similarity(1.03, _rotation([0, 1, 0], 0.05), np.array([0.002, -0.001, 0.003]))
+    avatar, avatar_shapes = true.apply(pts), true.apply_vectors(shapes)
+    surface = face_surface(avatar, tris, peak_motion(avatar_shapes))
+    moving = np.linalg.norm(avatar_shapes, axis=2).max(axis=0) > 0
+    np.testing.assert_array_equal(surface.triangles, tris[moving[tris].any(axis=1)])
+    placed = []
+    for source in (pts, pts + 4e-4 * np.sin(7.0 * pts[:, [1, 2, 0]])):
+        own = register_face(source, shapes, avatar, avatar_shapes, avatar_triangles=tris)
+        given = register_face(source, shapes, avatar, avatar_shapes, avatar_triangles=tris, surface=surface)
+        assert given.as_dict() == own.as_dict()
+        np.testing.assert_array_equal(given.target, own.target)
+        placed.append(given.transform.scale)
+    assert placed[0] == pytest.approx(true.scale, rel=1e-6) and placed[1] != placed[0]

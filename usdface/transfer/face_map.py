@@ -81,7 +81,9 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     :func:`register_face`. ``surfaces``: a dict
     that receives the posed avatar face surface the registration built (``"avatar"``, a
     :class:`PosedSurface`), for the avatar's shapes on the capture
-    (:func:`.implant.avatar_shapes_on_capture`).
+    (:func:`.implant.avatar_shapes_on_capture`); it may hold the face surface the person was registered
+    onto (``"face"``, :func:`.register.face_surface`), which the template's registration reuses and which
+    is taken out of it (released) before the non-rigid step builds its own scenes.
     ``pending``: a list that receives ``(cache, npz bytes)`` instead of the cache being written now, for a
     caller that writes it only once its run succeeds (a run that failed after this step left its cache
     behind, with the folder made for it).
@@ -100,6 +102,7 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
                           *[avatar_deltas[names.index(n)] for n in sem],
                           *([person[0]] if person is not None else []))
     stale = False
+    face_query = surfaces.pop("face", None) if surfaces is not None else None
     if cache is not None:
         corr = load_correspondence(cache, key)
         if corr is not None and (corr.source_triangle is not None or not source_triangles):
@@ -111,7 +114,8 @@ def cached_correspondence(face: FaceRig, capture: Capture, template_deltas, avat
     reg_t = register_face(capture.template.neutral, template_deltas, face.neutral, avatar_deltas,
                           avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                           path=capture.source or None, initial=initial, target=target,
-                          avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks)
+                          avatar_peak=avatar_peak, avatar_landmarks=avatar_landmarks, surface=face_query)
+    del face_query                            # its scene (the face's triangles) before the posed surfaces'
     source, reg_s = choose_source(reg_t, person)
     placed = reg_s.transform.apply(person[0] if source == "person" else capture.template.neutral)
     poses, used = semantic_poses(names, template_deltas, avatar_deltas, reg_s.transform)

@@ -65,7 +65,7 @@ from .options import (
     run_options,
 )
 from .partial_dt import implant_shapes
-from .register import motion_landmarks, register_face
+from .register import face_surface, motion_landmarks, register_face
 from .report import changed_vertices, layer_provenance, lip_report, offset_changes, untrusted_map_rows
 from .retarget import approximate, driven_gram, gaze_held, namesake_prior, retarget_weights
 from .surface import mean_edge_length
@@ -453,11 +453,15 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
         face_peak = (face.peak_motion() if len(set(names)) == face.n_shapes
                      else peak_motion(avatar_face_deltas))
         face_landmarks = motion_landmarks(face.neutral, avatar_face_deltas)         # the same for both too
+        # and the face surface's closest-point scene (the twice-subdivided head's: 450k triangles), built
+        # once: the template's registration (cached_correspondence) takes it from ``surfaces``
+        surfaces = {"face": face_surface(face.neutral, face.triangles, face_peak)}
         registration = register_face(person_neutral0, template_deltas, face.neutral, avatar_face_deltas,
                                      avatar_triangles=face.triangles, capture_triangles=capture.triangles,
                                      path=capture.source or None, avatar_peak=face_peak,
                                      avatar_landmarks=face_landmarks,
-                                     avatar_mesh=f"{face_prim} of {Path(avatar.file).name}")
+                                     avatar_mesh=f"{face_prim} of {Path(avatar.file).name}",
+                                     surface=surfaces["face"])
         timings["register"] = time.perf_counter() - t
         report["registration"] = _in_stage(registration.as_dict(), origin)
         sim = registration.transform
@@ -466,7 +470,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
 
         # 3. correspondence (capture template <-> avatar face) and the avatar's shapes on the capture
         t = time.perf_counter()
-        surfaces = {}                              # the posed avatar face, built once for both uses
+        # ``surfaces``: the face surface above, then the posed avatar face, built once for both uses
         corr = cached_correspondence(face, capture, template_deltas, avatar_face_deltas, correspondence,
                                      names, initial=sim, target=registration.target, pending=pending_cache,
                                      # the deformation transfer's

@@ -26,7 +26,7 @@ from ..natives import open3d
 from .surface import SurfaceQuery
 
 __all__ = ["Similarity", "Registration", "motion_landmarks", "similarity_from_pairs", "motion_initialiser",
-           "register_icp", "register_icp_surface", "register_face"]
+           "register_icp", "register_icp_surface", "face_surface", "register_face"]
 
 
 @dataclass
@@ -253,10 +253,26 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
     return current, float(f"{rmse:.12g}"), fitness, dist
 
 
+def face_surface(avatar_points, avatar_triangles, avatar_peak) -> SurfaceQuery | None:
+    """The avatar face *surface* :func:`register_face` registers onto, as a closest-point scene
+    (:class:`usdface.transfer.surface.SurfaceQuery`): the triangles of ``avatar_triangles[t,3]`` with a
+    moving corner (:func:`usdface.motion.moving_vertices` of ``avatar_peak[n]``, the shapes' peak motion, on
+    ``avatar_points[n,3]``; every triangle when fewer than 10 vertices move). As a surface, the union is the
+    same at every resolution of the mesh, where "every corner" grows with each subdivision. None when there
+    is no such triangle. Built once by a caller that registers several capture faces on one avatar face
+    (the person's neutral and the template's: the twice-subdivided head's face has 450k triangles)."""
+    ap = np.asarray(avatar_points, dtype=np.float64)
+    tri = np.asarray(avatar_triangles)
+    moving = moving_vertices(avatar_peak, ap)
+    face_tri = tri[moving[tri].any(axis=1)] if moving.sum() >= 10 else tri
+    return SurfaceQuery(ap, face_tri) if len(face_tri) else None
+
+
 def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas, *, avatar_triangles=None,
                   capture_triangles=None, min_fitness: float = 0.6, max_residual_ratio: float = 0.05,
                   path=None, initial: Similarity | None = None, target=None,
-                  avatar_peak=None, avatar_landmarks=None, avatar_mesh: str | None = None) -> Registration:
+                  avatar_peak=None, avatar_landmarks=None, avatar_mesh: str | None = None,
+                  surface: SurfaceQuery | None = None) -> Registration:
     """Place the capture on the avatar face: motion initialiser, then ICP with scaling onto the avatar's face
     vertices (those that move in any shape). Unless that converges (95 % of the capture within the final
     distance, residual below 2 % of the face size), also tries the identity-rotation centroid initialiser and
@@ -276,6 +292,8 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
     pipeline registers the person and the template on the same face: computed once), ``avatar_landmarks``
     its :func:`motion_landmarks` (the same: a ``[K,n]`` pass over a production face). ``avatar_mesh``: the
     mesh's name for the error (e.g. ``"/Avatar/Head of avatar.usdc"``: a ``--face-mesh`` choice shows).
+    ``surface``: :func:`face_surface` of ``avatar_points``, ``avatar_triangles`` and the peak motion when the
+    caller has it (the same: its closest-point scene built once for both registrations).
     """
     cn = np.asarray(capture_neutral, dtype=np.float64)
     ap = np.asarray(avatar_points, dtype=np.float64)
@@ -288,20 +306,15 @@ def register_face(capture_neutral, capture_deltas, avatar_points, avatar_deltas,
         landmarks, no_landmarks = None, exc
     given = target is not None
     target = np.asarray(target, dtype=np.float64) if given else (ap[moving] if moving.sum() >= 10 else ap)
-    surface = None
-    if avatar_triangles is not None:
-        tri = np.asarray(avatar_triangles)
-        # the face surface: the triangles the shapes move (any corner; as a surface, the union is the same
-        # at every resolution of the mesh, where "every corner" grows with each subdivision)
-        face_tri = tri[moving[tri].any(axis=1)] if moving.sum() >= 10 else tri
-        if len(face_tri):
-            # the ICP pairs the capture with the surface's exact closest points; ``target`` (its vertices)
-            # gives the fallback placement's extent and centroid
-            surface = SurfaceQuery(ap, face_tri)    # one closest-point scene for every start below
-            if not given:
-                from ..mesh import index_set
+    if surface is None and avatar_triangles is not None:
+        # the face surface: the triangles the shapes move; one closest-point scene for every start below
+        surface = face_surface(ap, avatar_triangles, peak)
+    if surface is not None and not given:
+        # the ICP pairs the capture with the surface's exact closest points; ``target`` (its vertices) gives
+        # the fallback placement's extent and centroid
+        from ..mesh import index_set
 
-                target = ap[index_set(face_tri, len(ap))]
+        target = ap[index_set(surface.triangles, len(ap))]
     # ``initial``: a placement known to be close (the person's neutral, in the same capture frame as the
     # template); tried first, refined by the same ICP
     candidates = [("person's registration", initial)] if initial is not None else []
