@@ -606,6 +606,47 @@ def test_the_leaks_pattern_is_the_same_from_the_weights_basis_and_the_k_by_k_sys
     assert np.count_nonzero(reduced[1]) >= 12                # (a shape no frame shows leaks nothing)
 
 
+def test_the_leaks_pattern_from_blocks_of_shapes_is_the_one_product_of_every_shape(monkeypatch):
+    """:func:`usdface.personalize.fit.weight_leak_direction` forms the gain rows ``B_j^T M_v^-1`` a block of
+    shapes at a time within ``fit.BLOCK_BYTES`` (a 50k-vertex capture's ``[n,K,r]`` at once was ~0.8 GB):
+    blocks of one and of three shapes give the directions and energies of the one product over every shape
+    to rounding, and the call's peak allocation (tracemalloc; the fit's own ``M^-1`` made before) is lower
+    than the one product's by more than half that product's size."""
+    import tracemalloc
+
+    from usdface.personalize import fit as fit_module
+    from usdface.personalize.fit import weight_leak_direction
+
+    rng, neutral, deltas, weights = _rig(seed=8, n=6000, shapes=16, frames=16)
+    weights = weights[:10]                                   # rank 10 of 16: the basis pays
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
+    reg = 1e-2
+    free = ~held_weights(weights)
+    moving = rng.random((deltas.shape[1], len(deltas))) < 0.6                       # [n,K]
+    kept = FitSystem(weights, reg_weights, reg, gain=True)
+    fitted = fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg, system=kept)
+    n, K, r = deltas.shape[1], len(deltas), kept.basis[0].shape[1]
+    whole = 8.0 * n * K * r                                  # the one product's bytes
+    assert fit_module.BLOCK_BYTES >= whole                   # the premise: by default, one block
+
+    def traced():
+        tracemalloc.start()
+        out = weight_leak_direction(weights, reg_weights, reg, fitted, free, moving, system=kept)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        return out, peak
+
+    one, peak_one = traced()
+    for shapes in (1, 3):
+        monkeypatch.setattr(fit_module, "BLOCK_BYTES", 8.0 * n * r * shapes)
+        (direction, energy), peak = traced()
+        np.testing.assert_allclose(direction, one[0], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(energy, one[1], rtol=1e-10)
+        assert peak_one - peak > 0.5 * whole, (shapes, peak, peak_one, whole)
+    assert np.count_nonzero(one[1]) >= 12
+
+
 def test_each_weight_errs_by_its_own_side_of_the_phones_clip():
     """The phone reports ``clip(w + e, 0, 1)``: a weight reported inside (0, 1) errs by the whole noise, one
     reported at 0 (most of a capture's: every shape a frame does not perform, its truth 0) by what the clip

@@ -37,6 +37,10 @@ __all__ = ["regularization_weights", "fit_blendshapes", "FitSystem", "loo_residu
 LEAK_PARTS = 8
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
+#: The bytes a per-vertex block of the weights' leak may take at a time (:func:`weight_leak_direction`'s
+#: gain rows ``B_j^T M_v^-1``, :func:`frame_error_variance`'s K x K blocks): a 50k-vertex capture's
+#: ``[n,K,r]`` gain took ~0.8 GB at once.
+BLOCK_BYTES = 64e6
 #: Single-``reg`` solves use the rank-r basis while ``r <= REDUCED_MAX_RANK * K`` (its cost grows ~r^2.5; at
 #: full rank the direct K x K solve is 2x cheaper, at dev1's r = 28 of 51 the reduced one is 1.8x cheaper).
 REDUCED_MAX_RANK = 0.75
@@ -332,12 +336,20 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
         if P.shape[1] == 0:
             return direction, energy
         inv_m = np.linalg.inv(system.M) if system.inverse is None else system.inverse
-        # B_j^T M_v^-1 for every vertex and shape, [n,K,r]: one stacked matrix product (not K unbuffered
-        # einsums; 3x faster than one flat product over a transposed copy of M^-1, and without that copy)
-        b_inv_m = np.matmul(system.B, inv_m)
+        # B_j^T M_v^-1 for every vertex, a block of g shapes at a time ([n,g,r] of at most BLOCK_BYTES; every
+        # shape in one block up to BLOCK_BYTES / (8 K r) vertices, dev1's 1,203 at K = 51, r = 28 included):
+        # one stacked matrix product per block (not K unbuffered einsums; 3x faster than one flat product
+        # over a transposed copy of M^-1, and without that copy)
+        n, r = len(inv_m), P.shape[1]
+        group = int(min(K, max(1, BLOCK_BYTES // (8 * n * r))))
+        block = {"first": -1, "rows": None}
 
         def gain(j, m):
-            return system.inv_l[m, j, None] * (b_inv_m[m, j] @ P.T)
+            first = j - j % group
+            if block["first"] != first:
+                block["rows"] = None                    # the last block's memory before the next one's
+                block["first"], block["rows"] = first, np.matmul(system.B[first:first + group], inv_m)
+            return system.inv_l[m, j, None] * (block["rows"][m, j - first] @ P.T)
     B2 = squared_lengths(D)                                                          # [K,n]
     D_v = np.ascontiguousarray(D.transpose(1, 0, 2))                                 # [n,K,3]: rows gathered
     for j in range(K):
@@ -384,7 +396,7 @@ def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
         # vertex as diag(A_v^-1 (W^T diag(E_v) W) A_v^-1), over blocks of vertices of at most ~64 MB
         n, K = system.L.shape
         out = np.empty((n, K))
-        step = max(1, int(64e6 // (8 * max(len(W), 1) * max(K, 1))))
+        step = max(1, int(BLOCK_BYTES // (8 * max(len(W), 1) * max(K, 1))))
         for lo in range(0, n, step):
             v = slice(lo, min(lo + step, n))
             C = (W.T[None] * energy[:, v].T[:, None, :]) @ W                            # [c,K,K]
