@@ -1030,6 +1030,77 @@ def test_resume_of_a_real_layer_skips_the_same_row_and_redoes_an_edited_one(tmp_
     assert again.status == FAILED and "method=dt, the row asks method=ebfr" in again.error
 
 
+@pytest.mark.parametrize("row, held, stale", [
+    ("inspect=true", (), "inspect=False, the row asks inspect=True"),
+    ("", ("heat",), "inspect=True, the row asks inspect=False"),
+    ("inspect=false", ("heat",), "inspect=True, the row asks inspect=False"),
+    ("inspect=true", ("heat",), ""),
+    ("landmarks=true", ("heat",), "landmarks=False, the row asks landmarks=True"),
+    ("landmarks=true", ("heat", "landmarks"), ""),
+    ("inspect=true", ("heat", "landmarks"), "landmarks=True, the row asks landmarks=False"),
+    ("take=t.csv", ("heat",), "written from another take than"),
+    ("inspect=true", ("heat", "take"), "take=../t.csv, the row asks take=None"),
+])
+def test_resume_redoes_an_item_whose_inspection_changed(tmp_path, row, held, stale):
+    """A row that adds (or drops) ``inspect``, ``landmarks`` or ``take`` was skipped as done over a layer
+    written without (with) them: they are no recorded parameter, so resume reads what the layer holds - its
+    heat map, its landmark layout, the take it records - and names the option that differs."""
+    from pxr import Sdf
+
+    from usdface.io.usd_inspection import HEAT_PRIMVAR
+    from usdface.pipeline.batch import personalize_worker
+
+    (tmp_path / "a.usdc").write_text("avatar a")
+    (tmp_path / "a_capture").mkdir()
+    (tmp_path / "a_capture" / "neutral.obj").write_text("v 0 0 0\n")
+    (tmp_path / "t.csv").write_text("Timecode,JawOpen\n")
+    key, _, value = row.partition("=")
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output" + (f",{key}" if key else "") + "\n"
+                        + "a.usdc,a_capture,out/a.usda" + (f",{value}" if key else "") + "\n")
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "a.usda"
+    _layer_with_parameters(out, tmp_path, {"method": "menzel"})
+    layer = Sdf.Layer.FindOrOpen(str(out))
+    head = Sdf.CreatePrimInLayer(layer, "/Avatar/Head")
+    if "heat" in held:
+        Sdf.AttributeSpec(head, f"primvars:{HEAT_PRIMVAR}", Sdf.ValueTypeNames.FloatArray)
+    if "landmarks" in held:
+        points = Sdf.CreatePrimInLayer(layer, "/Avatar/Head_landmarks")
+        Sdf.AttributeSpec(points, "usdface:landmarks:vertexIndices", Sdf.ValueTypeNames.IntArray)
+    if "take" in held:
+        data = dict(layer.customLayerData)
+        data["usdface"] = {**data["usdface"], "take": "../t.csv"}
+        layer.customLayerData = data
+    layer.Save()
+    report = run_batch(read_manifest(manifest), worker=personalize_worker, jobs=1, progress=False)
+    r = report.results[0]
+    if stale:
+        assert r.status == FAILED and r.error_type == "StaleOutput", (r.status, r.error)
+        assert stale in r.error and "--force" in r.error
+    else:
+        assert r.status == SKIPPED, r.error
+
+
+def test_resume_of_a_real_inspected_layer_skips_the_same_row_and_redoes_one_without_inspect(tmp_path):
+    """A real ``inspect=true`` layer (the sample, dt) is skipped by the same row and stale for the row
+    without ``inspect``; it holds the heat map and the inspection animation, not a landmark layout."""
+    from usdface.io.usd_inspection import layer_inspection
+
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output,method,inspect\n"
+                        f"{root / 'avatar.usda'},{root / 'capture.usda'},out/p.usda,dt,true\n")
+    first = run_batch(read_manifest(manifest), jobs=1, progress=False)
+    assert first.results[0].status == DONE, first.results[0].error
+    assert layer_inspection(tmp_path / "out" / "p.usda") == {"heat": True, "landmarks": False,
+                                                             "animation": True}
+    assert run_batch(read_manifest(manifest), jobs=1, progress=False).results[0].status == SKIPPED
+    manifest.write_text(manifest.read_text().replace(",dt,true", ",dt,false"))
+    again = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert again.status == FAILED and "inspect=True, the row asks inspect=False" in again.error, again.error
+
+
 def test_resume_redoes_an_item_whose_face_mesh_changed(tmp_path):
     """A row edited to name another face mesh (face_mesh=Mouth) was skipped as done: the layer recorded the
     options but not the face mesh it personalized. It now records it (faceMesh, the resolved prim), and a

@@ -201,6 +201,31 @@ def read_landmark_settings(stage_or_path) -> dict[str, dict[str, float]]:
     return found
 
 
+def layer_inspection(layer) -> dict[str, bool]:
+    """What inspection data a layer (an ``Sdf.Layer``, or a path to one) holds as its own opinions:
+    ``{"heat": a heat map's primvars:usdface:heat, "landmarks": a landmark layout's
+    usdface:landmarks:vertexIndices, "animation": the usdfaceInspection SkelAnimation}``, read from the
+    layer's specs alone (not composed: the avatar beneath has none of them). What a batch's resume compares
+    with a row's ``inspect``, ``landmarks`` and ``take`` (:func:`usdface.pipeline.batch.stale_output`): a
+    layer records no such option, but holds what it wrote."""
+    from pxr import Sdf
+
+    if not isinstance(layer, Sdf.Layer):
+        layer = Sdf.Layer.FindOrOpen(str(layer))
+    found = {"heat": False, "landmarks": False, "animation": False}
+
+    def visit(path):
+        if path.IsPropertyPath():
+            name = path.name
+            found["heat"] |= name == f"primvars:{HEAT_PRIMVAR}"
+            found["landmarks"] |= name == "usdface:landmarks:vertexIndices"
+        elif path.IsPrimPath():
+            found["animation"] |= path.name == ANIMATION_NAME
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return found
+
+
 def change_heat(avatar: Avatar, offsets: dict) -> dict[str, np.ndarray]:
     """{mesh prim path -> values[n]}: per-vertex RMS over shapes of |new - generic| offsets, metres.
 

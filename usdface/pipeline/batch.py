@@ -321,10 +321,10 @@ def stale_output(item: BatchItem) -> str:
     from ..io.usd_rig import usdface_output_provenance
 
     try:                                          # a layer cut off (a full disk, a killed copy) is no result
-        readable = Sdf.Layer.FindOrOpen(str(out)) is not None
+        layer = Sdf.Layer.FindOrOpen(str(out))
     except Exception:  # noqa: BLE001  (pxr.Tf.ErrorException: USD's parse error)
-        readable = False
-    if not readable:
+        layer = None
+    if layer is None:
         return (f"{out.name} exists but USD cannot read it (a write cut off?): not a finished result; "
                 "--force redoes it")
     record = usdface_output_provenance(out)       # read once: the inputs and the options it records
@@ -332,7 +332,11 @@ def stale_output(item: BatchItem) -> str:
         return ""
     recorded = recorded_inputs(out, record)
     shown = ", ".join(sorted(recorded))
-    for what, path in (("avatar", item.avatar), ("capture", item.capture)):
+    options = item.options or {}
+    take = options.get("take")
+    for what, path in (("avatar", item.avatar), ("capture", item.capture), ("take", take)):
+        if what == "take" and not (isinstance(take, str | os.PathLike) and str(take)):
+            continue
         real = os.path.realpath(path)
         if real not in recorded:
             return (f"{out.name} exists but was written from another {what} than {path} (it records "
@@ -340,7 +344,8 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
-    changed = _changed_option(item.options or {}, record) or _changed_face_mesh(item.options or {}, record)
+    changed = (_changed_option(options, record) or _changed_face_mesh(options, record)
+               or _changed_inspection(options, record, layer))
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
@@ -379,6 +384,31 @@ def _changed_face_mesh(options: dict, record: dict) -> tuple[str, str, str] | No
     asked = str(asked)
     same = was == asked if asked.startswith("/") else was.rsplit("/", 1)[-1] == asked
     return None if same else ("face_mesh", was, asked)
+
+
+def _changed_inspection(options: dict, record: dict, layer) -> tuple[str, str, str] | None:
+    """``(option, what the layer holds, asked)`` when the row's ``inspect``, ``landmarks`` or ``take`` asks
+    for other inspection data than the layer ``layer`` (an ``Sdf.Layer``) holds
+    (:func:`usdface.io.usd_inspection.layer_inspection`: its heat map, landmark layout), or a take where it
+    records none (``record``, its provenance) or none where it records one; None when they agree. Not among
+    the recorded ``parameters`` (the API's options, not the pipeline's), so read from what the layer holds:
+    the same for layers written before and after this check (a row that added ``inspect`` was skipped as
+    done over a layer without the inspection data). ``take`` and ``landmarks`` imply ``inspect``, as
+    :func:`usdface.api.personalize_avatar` runs them; the take's file itself is compared with the inputs."""
+    from ..io.usd_inspection import layer_inspection
+
+    take = options.get("take")
+    take = str(take) if isinstance(take, str | os.PathLike) and str(take) else None
+    landmarks = options.get("landmarks") is True
+    held = layer_inspection(layer)
+    inspect = options.get("inspect") is True or landmarks or bool(take)
+    for key, has, wanted in (("inspect", held["heat"], inspect), ("landmarks", held["landmarks"], landmarks)):
+        if has != wanted:
+            return key, str(has), str(wanted)
+    was = record.get("take") or None
+    if bool(was) != bool(take):
+        return "take", str(was), str(take)
+    return None
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
