@@ -104,6 +104,20 @@ def _move_neutral(path):
     stage.Save()
 
 
+def _nudge_vertex(path):
+    """One of /Avatar/Head's neutral points (1000) moved 0.1 mm forward (a lip vertex nudged): its block's
+    mean moves 0.1 / 256 mm, below what float32 storage resolves at the head's coordinates; the layer's
+    points digest tells it."""
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Avatar/Head"))
+    points = list(mesh.GetPointsAttr().Get())
+    points[1000] = points[1000] + Gf.Vec3f(0, 0, 0.01)                                 # cm
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray(points))
+    stage.Save()
+
+
 REVISIONS = {
     "mesh renamed": (_text(['/Avatar/Head', 'Mesh "Head"'], ['/Avatar/Face', 'Mesh "Face"']),
                      "/Avatar/Head", "no longer has"),
@@ -115,6 +129,8 @@ REVISIONS = {
     "re-modelled": (_remodel, "/Avatar/Head", "3780 -> 3783 points"),
     "neutral moved": (_move_neutral, "/Avatar/Head", "neutral was re-sculpted after person.usda was written "
                                                      "(the vertices 256-511 moved 0.47 mm on average)"),
+    "vertex nudged": (_nudge_vertex, "/Avatar/Head", "neutral points changed after person.usda was written, "
+                                                     "each 256-vertex block's mean by less than float32"),
     "metres": (_text(["metersPerUnit = 0.01"], ["metersPerUnit = 1"]), "/", "metersPerUnit 1"),
     "Z up": (_text(['upAxis = "Y"'], ['upAxis = "Z"']), "/", "upAxis Z"),
 }
@@ -218,6 +234,29 @@ def test_a_moved_neutral_is_delivered_only_when_allowed(published, tmp_path):
         proc = run(*args, "--allow-moved-neutral", cwd=tmp_path)
         assert "warning: " in proc.stdout + proc.stderr and "changed after" in proc.stdout + proc.stderr, proc
     assert all((tmp_path / name).is_file() for name in ("out.glb", "r.html", "r.png"))
+
+
+def test_a_layer_without_the_points_digest_reads_the_block_means_alone(published, tmp_path):
+    """Layers written before stop 50 record the neutral's block means but no points digest: over them a
+    vertex nudged 0.1 mm is no mismatch (as when they were written) and 40 vertices moved 3 mm still are."""
+    from pxr import Sdf
+
+    avatar = _project(published, tmp_path)
+    layer = Sdf.Layer.FindOrOpen(str(tmp_path / "pub" / "v001" / "person.usda"))
+    data = dict(layer.customLayerData)
+    meshes = dict(data["usdface"]["meshes"])
+    assert all("neutralDigest" in m for m in meshes.values())
+    old = {k: {key: v for key, v in m.items() if key != "neutralDigest"} for k, m in meshes.items()}
+    data["usdface"] = {**data["usdface"], "meshes": old}
+    layer.customLayerData = data
+    layer.Save()
+    _nudge_vertex(avatar)
+    issues = json.loads(run("check", "pub/v001/person.usda", "--json", cwd=tmp_path).stdout)["issues"]
+    assert [i["rule"] for i in issues] == ["Provenance"], issues
+    _move_neutral(avatar)
+    proc = run("check", "pub/v001/person.usda", "--json", cwd=tmp_path, ok=False)
+    assert any(i["rule"] == "AvatarMatch" and "neutral was re-sculpted" in i["message"]
+               for i in json.loads(proc.stdout)["issues"]), proc.stdout
 
 
 def test_review_render_and_inspect_name_the_revision(published, tmp_path):

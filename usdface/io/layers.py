@@ -750,44 +750,74 @@ def neutral_signature(points: np.ndarray, block: int = NEUTRAL_BLOCK) -> np.ndar
     return np.add.reduceat(points, starts, axis=0) / counts[:, None] if len(points) else np.zeros((0, 3))
 
 
-def neutral_moved(before, points: np.ndarray, block: int = NEUTRAL_BLOCK) -> tuple[int, float] | None:
+def neutral_digest(points: np.ndarray) -> str:
+    """sha256 of a neutral's points as USD stores them (``point3f``: float32, ``[n, 3]`` in index order). A
+    layer records it beside :func:`neutral_signature`: equal, the neutral is the one personalized to the
+    bit; different while no block mean moved (:func:`neutral_moved`), some vertices moved by less than the
+    block means resolve (one vertex moved by ``d`` moves its block's mean by ``d / 256``)."""
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+                          .tobytes()).hexdigest()
+
+
+def storage_tolerance(points: np.ndarray) -> float:
+    """What float32 storage can move a neutral's block mean by, in the points' units: 16 float32 steps at
+    the mesh's largest coordinate (a DCC re-export of the same points), :func:`neutral_moved`'s threshold."""
+    return 16 * np.finfo(np.float32).eps * max(float(np.abs(np.asarray(points)).max(initial=0.0)), 1e-30)
+
+
+def neutral_moved(before, points: np.ndarray, block: int = NEUTRAL_BLOCK, *,
+                  now: np.ndarray | None = None) -> tuple[int, float] | None:
     """``(block index, distance)`` of the block of the neutral ``points`` (``[n, 3]``) that moved the most
     from the signature ``before`` (:func:`neutral_signature`, flat or ``[b, 3]``), in the points' units;
     None when no block moved more than float32 storage can (16 float32 steps at the mesh's largest
-    coordinate: a DCC re-export of the same points), or the signature does not fit the points."""
+    coordinate: a DCC re-export of the same points), or the signature does not fit the points. ``now``: the
+    points' own signature when the caller has it."""
     before = np.asarray(before, dtype=np.float64).reshape(-1, 3)
-    now = neutral_signature(points, block)
+    now = neutral_signature(points, block) if now is None else np.asarray(now, dtype=np.float64)
+    now = now.reshape(-1, 3)
     if before.shape != now.shape or not len(now):
         return None
     moved = np.linalg.norm(now - before, axis=1)
-    tolerance = 16 * np.finfo(np.float32).eps * max(float(np.abs(points).max()), 1e-30)
+    tolerance = storage_tolerance(points)
     worst = int(np.argmax(moved))
     return (worst, float(moved[worst])) if moved[worst] > tolerance else None
 
 
 def mesh_topology(prim) -> dict | None:
-    """``{"points": n, "topology": sha256, "neutral": [...]}`` of a ``UsdGeom.Mesh`` prim as composed (its
-    point count, the digest of its ``faceVertexCounts`` and ``faceVertexIndices``, and its
-    :func:`neutral_signature` flattened), None for a prim that is not a mesh with points. A layer records it
-    for every mesh it personalizes (``customLayerData["usdface"]["meshes"]``), so ``usdface check`` tells an
-    avatar whose mesh was re-modelled after the layer was written: the layer's ``pointIndices`` and offsets
-    address the old vertices (an edge loop added shifts every index after it, and nothing else in the
-    composed stage shows it); or whose neutral was re-sculpted (the offsets were fitted and checked on the
-    old one)."""
+    """``{"points": n, "topology": sha256, "neutral": [...], "neutralDigest": sha256}`` of a
+    ``UsdGeom.Mesh`` prim as composed (its point count, the digest of its ``faceVertexCounts`` and
+    ``faceVertexIndices``, its :func:`neutral_signature` flattened and its points' :func:`neutral_digest`),
+    None for a prim that is not a mesh with points. A layer records it for every mesh it personalizes
+    (``customLayerData["usdface"]["meshes"]``), so ``usdface check`` tells an avatar whose mesh was
+    re-modelled after the layer was written: the layer's ``pointIndices`` and offsets address the old
+    vertices (an edge loop added shifts every index after it, and nothing else in the composed stage shows
+    it); or whose neutral was re-sculpted (the offsets were fitted and checked on the old one). Layers
+    written before stop 50 record no ``neutralDigest``, before stop 49 no ``neutral``."""
+    found = _mesh_record(prim)
+    return None if found is None else found[0]
+
+
+def _mesh_record(prim) -> tuple[dict, np.ndarray, np.ndarray] | None:
+    """``(record, points[n,3], signature[b,3])``: :func:`mesh_topology`'s record of a mesh prim with the
+    points (float64, the stage's units) and their :func:`neutral_signature` it was made from, read once
+    (:func:`avatar_mismatches` compares both); None as :func:`mesh_topology`."""
     from pxr import UsdGeom
 
     if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
         return None
     mesh = UsdGeom.Mesh(prim)
-    points = mesh.GetPointsAttr().Get()
-    if points is None:
+    stored = mesh.GetPointsAttr().Get()
+    if stored is None:
         return None
+    stored = np.asarray(stored)
     h = hashlib.sha256()
     for attr in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
         h.update(np.asarray(attr.Get() if attr.Get() is not None else [], dtype=np.int64).tobytes())
         h.update(b"|")
-    return {"points": len(points), "topology": h.hexdigest(),
-            "neutral": neutral_signature(np.asarray(points)).ravel().tolist()}
+    points = np.asarray(stored, dtype=np.float64).reshape(-1, 3)
+    signature = neutral_signature(points)
+    return ({"points": len(points), "topology": h.hexdigest(), "neutral": signature.ravel().tolist(),
+             "neutralDigest": neutral_digest(stored)}, points, signature)
 
 
 def prim_specs(layer) -> list:
@@ -893,7 +923,8 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
             out.append((path, f"{asset}'s {path} now has {len(now)} blend shapes ({change or 'reordered'}), "
                         f"but {name}'s skel:blendShapeTargets list the {len(written)} it was written for: "
                         "the mesh's channels and targets no longer pair up", fix))
-        before, after = recorded.get(path), mesh_topology(mesh)
+        before, found = recorded.get(path), _mesh_record(mesh)          # the points read once
+        after, points, signature = found if found is not None else (None, None, None)
         if isinstance(before, dict) and after is not None and (
                 before.get("points") != after["points"] or before.get("topology") != after["topology"]):
             points = (f"{before.get('points')} -> {after['points']} points"
@@ -901,9 +932,9 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
                       else f"{after['points']} points, faces changed")
             out.append((path, f"{asset}'s {path} was re-modelled after {name} was written ({points}): the "
                         "layer's pointIndices and offsets address the old vertices", fix))
-        elif neutral and isinstance(before, dict) and before.get("neutral") is not None and after is not None:
-            points = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=np.float64)
-            moved = neutral_moved(before["neutral"], points)
+        elif (neutral and isinstance(before, dict) and before.get("neutral") is not None and after is not None
+              and before.get("neutralDigest") != after["neutralDigest"]):   # equal: the points, to the bit
+            moved = neutral_moved(before["neutral"], points, now=signature)
             if moved is not None:
                 block, distance = moved
                 mm = distance * UsdGeom.GetStageMetersPerUnit(avatar_stage) * 1000.0
@@ -911,6 +942,18 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
                 out.append((path, f"{asset}'s {path} neutral was re-sculpted after {name} was written (the "
                             f"vertices {first}-{last} moved {mm:.2f} mm on average): the layer's offsets "
                             "were fitted and checked (lip and eyelid clearance) on the old neutral",
+                            fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
+                                  "it is"))
+            elif before.get("neutralDigest"):
+                # no block mean moved beyond float32 storage, but the points are not those personalized: a few
+                # vertices moved by up to NEUTRAL_BLOCK times that (a lip vertex nudged), or a re-export's
+                # float noise; the layer cannot tell which or where (its record is the block means)
+                mm = UsdGeom.GetStageMetersPerUnit(avatar_stage) * 1000.0
+                limit = storage_tolerance(points) * NEUTRAL_BLOCK * mm
+                out.append((path, f"{asset}'s {path} neutral points changed after {name} was written, each "
+                            f"{NEUTRAL_BLOCK}-vertex block's mean by less than float32 storage resolves (a "
+                            f"vertex moved by less than {limit:.2f} mm, or a re-export's float noise): the "
+                            "layer's offsets were fitted and checked on the old neutral",
                             fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
                                   "it is"))
     # after the meshes' own findings: a shape removed is told as such first, its override's loss second
