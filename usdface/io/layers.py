@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import GeometryError, InputFileError, RigError
+from ..errors import GeometryError, InputFileError, RigError, warn
 from ..model import Avatar, FaceRig
 from .usd_rig import PERSONALIZATION_VARIANT_SET, STAGE_METADATA_KEYS
 
@@ -855,7 +855,7 @@ def _orphan_overs(layer, avatar_stage, stage) -> list[str]:
     return out
 
 
-def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]:
+def avatar_mismatches(stage, neutral: bool = True, nudged: list | None = None) -> list[tuple[str, str, str]]:
     """``[(prim, message, fix)]``: how a usdface personalize layer (the root layer of ``stage``) no longer
     fits the avatar it sublayers, opened alone: a prim it overrides gone (a mesh or the SkelRoot renamed or
     moved, a shape deleted), a personalized mesh whose blend shapes are not those its
@@ -870,7 +870,14 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
     personalized shapes' own, so over a re-sculpted shape the composed rig is still the one personalize
     checked (the edit is hidden, which ``Provenance`` warns about); over a moved neutral it is a rig nobody
     checked - offsets fitted on the old neutral (its correspondence with the capture, its lip and eyelid
-    clearance) added to new positions."""
+    clearance) added to new positions.
+
+    ``nudged``: a list that receives, in the same form, each personalized mesh whose neutral points differ
+    from those the layer recorded (its points digest, layers written since stop 50) while no block mean moved
+    beyond float32 storage: a vertex moved by less than the block means resolve, or a re-export's float
+    noise, which the layer cannot tell apart. That is a warning (``check``; ``export``, ``review`` and
+    ``render --compare`` print it), not a mismatch: refusing every re-export whose float bits changed would
+    stop a pipeline for nothing."""
     from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
     root = stage.GetRootLayer()
@@ -944,18 +951,17 @@ def avatar_mismatches(stage, neutral: bool = True) -> list[tuple[str, str, str]]
                             "were fitted and checked (lip and eyelid clearance) on the old neutral",
                             fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
                                   "it is"))
-            elif before.get("neutralDigest"):
+            elif before.get("neutralDigest") and nudged is not None:
                 # no block mean moved beyond float32 storage, but the points are not those personalized: a few
                 # vertices moved by up to NEUTRAL_BLOCK times that (a lip vertex nudged), or a re-export's
                 # float noise; the layer cannot tell which or where (its record is the block means)
                 mm = UsdGeom.GetStageMetersPerUnit(avatar_stage) * 1000.0
                 limit = storage_tolerance(points) * NEUTRAL_BLOCK * mm
-                out.append((path, f"{asset}'s {path} neutral points changed after {name} was written, each "
-                            f"{NEUTRAL_BLOCK}-vertex block's mean by less than float32 storage resolves (a "
-                            f"vertex moved by less than {limit:.2f} mm, or a re-export's float noise): the "
-                            "layer's offsets were fitted and checked on the old neutral",
-                            fix + "; or pass --allow-moved-neutral to deliver it over the new neutral as "
-                                  "it is"))
+                nudged.append((path, f"{asset}'s {path} neutral points changed after {name} was written, "
+                            f"each {NEUTRAL_BLOCK}-vertex block's mean by less than float32 storage resolves "
+                            f"(a vertex moved by less than {limit:.2f} mm, or a re-export's float noise): "
+                            "the layer's offsets were fitted and checked on the old neutral",
+                            fix + " if a vertex was moved; nothing to do if the avatar was only re-exported"))
     # after the meshes' own findings: a shape removed is told as such first, its override's loss second
     for path in _orphan_overs(root, avatar_stage, stage):
         out.append((path, f"{name} overrides {path}, which {asset} no longer has (renamed, moved or deleted "
@@ -970,7 +976,8 @@ def refuse_avatar_mismatch(layer_path, what: str, allow_moved_neutral: bool = Fa
     review page, a comparison) would deliver overrides that land on nothing or on the wrong vertices, labelled
     personalized. A layer whose inputs merely changed (a re-sculpted shape) is only warned about, and so is
     one whose avatar's neutral moved when ``allow_moved_neutral`` (``--allow-moved-neutral``: the TD
-    accepts the offsets over the new neutral)."""
+    accepts the offsets over the new neutral), or whose neutral's points changed by less than the layer's
+    record resolves (``avatar_mismatches``' ``nudged``: a vertex nudged, or a re-export's float noise)."""
     from pxr import Usd
 
     if Path(layer_path).suffix.lower() not in (".usda", ".usdc", ".usd") or not Path(layer_path).is_file():
@@ -980,9 +987,13 @@ def refuse_avatar_mismatch(layer_path, what: str, allow_moved_neutral: bool = Fa
     try:
         with quiet_stderr():    # a missing sublayer: the reader names it in one line later
             stage = Usd.Stage.Open(str(layer_path))
-        found = avatar_mismatches(stage, neutral=not allow_moved_neutral) if stage is not None else []
+        nudged: list = []
+        found = (avatar_mismatches(stage, neutral=not allow_moved_neutral, nudged=nudged)
+                 if stage is not None else [])
     except Exception:  # noqa: BLE001  (a file USD cannot open: the reader after this names it)
         return
+    for _, message, fix in ([] if found else nudged):     # below what the layer resolves: said, not refused
+        warn(f"{message} (fix: {fix})")
     if found:
         prim, message, fix = found[0]
         more = (f" (and {len(found) - 1} more: usdface check {shlex.quote(str(layer_path))})"

@@ -716,8 +716,11 @@ def _avatar_match(stage) -> Iterable[Issue]:
     :func:`usdface.io.layers.avatar_mismatches`."""
     from ..io.layers import avatar_mismatches
 
-    for prim, message, fix in avatar_mismatches(stage):
+    nudged: list = []
+    for prim, message, fix in avatar_mismatches(stage, nudged=nudged):
         yield Issue(ERROR, "AvatarMatch", prim, message, fix)
+    for prim, message, fix in nudged:       # below what the record resolves (or float noise): a warning
+        yield Issue(WARNING, "AvatarMatch", prim, message, fix)
 
 
 @_rule("Readable", "the avatar reader accepts the rig (runs last; what the readers refuse is an error "
