@@ -184,7 +184,9 @@ def test_reweighting_is_applied_where_the_phone_weights_are_noisy():
     assert res.info["reweight"]["held_out_rmse_mm"]["phone"] > min(
         v for k, v in res.info["reweight"]["held_out_rmse_mm"].items() if k != "phone")
     plain = fit(cap, align=False, reweight=False)
-    assert truth_error(res.rig.deltas, true) < 0.8 * truth_error(plain.rig.deltas, true)
+    # one round (the default since stop 50): 0.245 against 0.294 mm; two rounds, which this capture's mixtures
+    # keep from drifting, 0.225
+    assert truth_error(res.rig.deltas, true) < 0.85 * truth_error(plain.rig.deltas, true)
 
 
 def test_significance_test_refuses_a_gain_within_the_noise():
@@ -253,6 +255,34 @@ def test_reweighting_holds_each_shape_weight_in_its_peak_frame():
     W2 = np.array([[0.9, 0.0, 0.01], [0.2, 0.7, 0.0], [0.3, 0.8, 0.02]])
     assert peak_frames(W2).tolist() == [0, 2, 2]
     assert held_weights(W2, 0.05).tolist() == [[True, False, True], [False, False, True], [False, True, True]]
+
+
+def test_reweighting_runs_the_one_round_its_gate_validates():
+    """The gate tests one re-estimation (from the phone-weight shapes); the default runs that one round and
+    says so. A second round, asked for, re-estimates from the refitted shapes: other weights, other shapes."""
+    cap, true = noisy_capture(weight_noise=0.05)
+    one = fit(cap, align=False)
+    assert one.info["reweight"]["applied"] is True and one.info["reweight"]["rounds"] == 1
+    two = fit(cap, align=False, rounds=2)
+    assert two.info["reweight"]["rounds"] == 2
+    assert np.abs(two.info["train_weights"] - one.info["train_weights"]).max() > 1e-3
+    assert np.abs(two.rig.deltas - one.rig.deltas).max() > 1e-6
+
+
+def test_a_second_reestimation_round_drifts_on_a_scan_regime_capture(bench):
+    """dev2 (scan regime, one picked frame per shape): shapes refitted with the first round's weights take
+    those weights' errors in, and a second re-estimation drifts with them: one round ends nearer the
+    person's true shapes than two (0.3305 against 0.3458 mm; the raw template 0.3992)."""
+    from usdface.io import read_capture
+
+    cap = read_capture(bench / "dev2" / "capture")
+    truth = np.load(bench / "dev2" / "truth" / "capture_truth.npz")
+    true = truth["deltas"][[list(truth["names"]).index(n) for n in cap.names]]
+    one = fit(cap)
+    assert one.info["reweight"]["applied"] is True and one.info["reweight"]["rounds"] == 1
+    two = fit(cap, rounds=2)
+    assert truth_error(one.rig.deltas, true) < truth_error(two.rig.deltas, true) - 0.01
+    assert truth_error(one.rig.deltas, true) < 0.84 * truth_error(cap.template.deltas, true)
 
 
 def test_a_whole_take_keeps_the_avatar_prior_even_where_the_template_scores_better():
