@@ -1728,3 +1728,21 @@ def test_manifest_values_options_and_throughput_by_hand():
     assert _same_value("DT", "dt") and _same_value(True, "true") and not _same_value("dt", "ebfr")
     done = [ItemResult(i, "a", "c", "o", DONE) for i in range(3)]
     assert BatchReport(done + [ItemResult(3, "a", "c", "o", FAILED)], 90.0).throughput_per_minute == 2.0
+
+
+def test_a_review_column_says_how_to_write_the_pages(tmp_path, capsys):
+    """A user trial (stop 50): a manifest with a ``review`` column (as a Pyblish publish's manifest takes it,
+    docs/pipeline.md) given to ``usdface batch`` was refused as 'unknown personalize option(s): review' with
+    the 40 options personalize takes, none of them what was meant. The refusal says how to get the pages."""
+    from usdface.cli import main
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    (tmp_path / "out").mkdir()
+    path = tmp_path / "m.csv"
+    path.write_text(f"avatar,capture,output,review\n{samples / 'avatar.usda'},{samples / 'capture.usda'},"
+                    "out/a.usda,true\n")
+    assert main(["batch", str(path), "-j", "1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "item 1: unknown personalize option(s): review" in err
+    assert "usdface review OUTPUT" in err and "Pyblish" in err and "Traceback" not in err
+    assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()

@@ -113,6 +113,27 @@ def test_json_without_blendshapes(folder):
     _expect(CaptureError, folder, "blendShapes", "001_jawOpen.json")
 
 
+@pytest.mark.parametrize("text, said", [
+    ('{"BlendShapes": {"jawOpen": 1}}', "it has 'BlendShapes': the key is spelt \"blendShapes\""),
+    ('{"blendShapes": [{"name": "jawOpen", "value": 1}]}',
+     "its \"blendShapes\" is a JSON array, not an object of name: weight"),
+    ('{"jawOpen": 1, "eyeBlinkLeft": 0.1}', "its 2 weights are at the top level, not inside \"blendShapes\""),
+    ('[{"jawOpen": 1}]', "it holds a JSON array, not an object"),
+])
+def test_capture_import_says_what_a_weights_json_holds_instead(folder, tmp_path, capsys, text, said):
+    """A user trial (stop 50): a weights JSON keyed ``BlendShapes``, or whose ``blendShapes`` is a list of
+    ``{"name", "value"}`` (as some capture apps write), or with the weights at the top level, was refused by
+    ``usdface capture import`` as 'no "blendShapes" object' alone, the first two beside the very key named
+    missing. The line says what the file holds instead."""
+    from usdface.cli import main
+
+    (folder / "train" / "001_jawOpen.json").write_text(text)
+    assert main(["capture", "import", str(folder), "-o", str(tmp_path / "c.usda"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "001_jawOpen.json: no \"blendShapes\" object" in err and said in err, err
+    assert "(fix: write the weights as" in err and not (tmp_path / "c.usda").exists()
+
+
 def test_invalid_json_and_missing_json(folder):
     (folder / "test" / "000.json").write_text("{not json")
     _expect(InputFileError, folder, "invalid JSON", "000.json")

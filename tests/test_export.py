@@ -1182,3 +1182,20 @@ def test_export_and_review_print_json_as_the_other_commands(layer, tmp_path, cap
     captured = capsys.readouterr()
     doc = json.loads(captured.out)
     assert not doc["ok"] and doc["error"]["type"] == "OutputExistsError" and "--force" in doc["error"]["fix"]
+
+
+def test_exporting_a_fit_rig_says_what_it_is(tmp_path, capsys):
+    """A user trial (stop 50): ``usdface fit capture -o rig.usda`` then ``usdface export rig.usda --gltf
+    rig.glb`` said ``[as authored: a plain avatar, not personalized]`` of the person's own fitted shapes. It
+    names the fit rig; a plain avatar is still said to be one."""
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    rig = tmp_path / "rig.usda"
+    assert main(["fit", str(samples / "capture.usda"), "-o", str(rig), "-q", "--reg", "0.01"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(rig), "--gltf", str(tmp_path / "rig.glb"), "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "'usdface fit' rig" in said and "not personalized" not in said, said
+    assert main(["export", str(rig), "--obj-dir", str(tmp_path / "objs"), "--json", "-q"]) == 0
+    assert "'usdface fit' rig" in json.loads(capsys.readouterr().out)["label"]
+    assert main(["export", str(samples / "avatar.usda"), "--gltf", str(tmp_path / "a.glb"), "-q"]) == 0
+    assert "a plain avatar, not personalized" in capsys.readouterr().out

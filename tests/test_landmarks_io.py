@@ -277,10 +277,14 @@ def test_shapes_that_move_nothing(samples, tmp_path, capsys):
     (["--evaluate", "--takes", "take.csv", "--spacing", "0"], "--spacing"),
     (["--evaluate", "--takes", "take.csv", "--multicover", "2", "--no-adaptive"],
      "--multicover/--no-adaptive"),
+    (["--radius", "0.02"], "--radius"),                    # a user trial (stop 50): the single cover's layout
+    (["--no-adaptive", "--multicover", "1"], "--no-adaptive"),     # as without them
+    (["--symmetric", "--radius", "0.02", "--no-adaptive"], "--radius/--no-adaptive"),
 ])
 def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, capsys, extra, named):
     """--takes/--frames/--noise/--empirical without --evaluate used to be ignored (a layout was computed and
-    written as if they were not there); -o with --evaluate was ignored too. Now refused before any work
+    written as if they were not there); -o with --evaluate was ignored too; --radius and --no-adaptive, which
+    act on the multi-cover's later rounds, with a single cover (stop 50). Now refused before any work
     (the avatar is not even read: the missing take files are not reached), naming the option and the fix."""
     from usdface import api
 
@@ -289,7 +293,9 @@ def test_landmarks_refuses_an_option_of_the_other_mode(tmp_path, monkeypatch, ca
     assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
     err = capsys.readouterr().err
     assert "LandmarkError" not in err and named in err and "(fix: " in err
-    if "--evaluate" not in extra:
+    if named.startswith(("--radius", "--no-adaptive")):
+        assert "--multicover is 1" in err and "add --multicover N" in err
+    elif "--evaluate" not in extra:
         assert "add --evaluate" in err
     else:
         assert f"leave out {named}" in err or "leave out -o" in err

@@ -674,3 +674,29 @@ def test_a_large_text_layer_is_noted_with_the_binary_alternative(tmp_path, capsy
         personalize._text_layer_note(tmp_path / name)
     out = capsys.readouterr().out
     assert out.count("note:") == 1 and "big.usda is 0 MB of text (.usda)" in out and "-o big.usdc" in out
+
+
+def test_the_personalized_count_says_of_how_many_and_on_which_mesh(samples, tmp_path, capsys):
+    """A user trial (stop 50): dev1 printed "51 shapes implanted" and then "47 BlendShapes personalized",
+    read as 4 of the capture's shapes left out; the 47 were of 101 BlendShapes on two meshes (the head's 44
+    of 51, the mouth's 3 of 50). The line says of how many, and per mesh, as the layer's variants show."""
+    import re
+
+    from usdface.io.flatten import read_avatar_variant
+
+    out = tmp_path / "person.usda"
+    assert main(["personalize", str(A), str(C), "-o", str(out), "-q"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "BlendShapes personalized" in ln)
+    said = re.fullmatch(r"(\d+) of (\d+) BlendShapes personalized \((.*)\) -> (.*)", line)
+    assert said and said.group(4) == str(out), line
+    per_mesh = {m: (int(a), int(b)) for m, a, b in re.findall(r"(\S+) (\d+) of (\d+)", said.group(3))}
+    generic, person = read_avatar_variant(out, "generic"), read_avatar_variant(out, "personalized")
+    truth = {}
+    for g, p in zip(generic.meshes, person.meshes, strict=True):
+        moved = np.abs(np.asarray(p.deltas) - np.asarray(g.deltas)).max(axis=(1, 2)) > 1e-9
+        truth[g.source.prim] = (int(moved.sum()), len(g.names))
+    truth = {k: v for k, v in truth.items() if v[1]}                # the meshes with BlendShapes
+    assert per_mesh == truth and len(truth) == 2, (line, truth)
+    assert int(said.group(1)) == sum(a for a, _ in truth.values())
+    assert int(said.group(2)) == sum(b for _, b in truth.values())
+    assert 0 < int(said.group(1)) < int(said.group(2))

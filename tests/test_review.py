@@ -657,7 +657,7 @@ def test_personalized_count_agrees_with_the_review_page(bench, tmp_path):
     out = tmp_path / "p.usda"
     res = _usdface_cli("personalize", case / "avatar.usdc", case / "capture", "-o", out, "-q", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
-    said = int(re.search(r"(\d+) BlendShapes personalized", res.stdout).group(1))
+    said = int(re.search(r"(\d+) of 101 BlendShapes personalized", res.stdout).group(1))
     data = collect_review(out, fit_errors=False)
     rows = dict(next(rows for title, rows in data.tables if title == "what changed"))
     page = sum(int(v.split(" of ")[0]) for k, v in rows.items() if k.endswith("shapes changed"))

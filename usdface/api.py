@@ -1259,6 +1259,15 @@ def _fit_option_names() -> set[str]:
             | {k for ks in METHOD_OPTIONS.values() for k in ks})
 
 
+#: What a name that is no personalize option is instead: a Pyblish manifest's ``review`` column (instance data
+#: there) given to ``usdface batch`` was refused with the 40 options alone (a user trial, stop 50).
+_NOT_AN_OPTION = {
+    "review": "review: the review page is no option of the layer: write it from the layer with 'usdface "
+              "review OUTPUT' (usdface.write_review), or publish with Pyblish, where it is instance data "
+              "(a manifest's review column)",
+}
+
+
 def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
     """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
     a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
@@ -1280,7 +1289,8 @@ def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
         offered = sorted(known - set(unlisted))
         # a batch row's 'metod' column: name the option meant, as the command line's flags do (stop 47)
         meant = {u: difflib.get_close_matches(u, offered, n=1, cutoff=0.75) for u in unknown}
-        hints = "; ".join(f"{u}: did you mean {m[0]}?" for u, m in meant.items() if m)
+        hints = "; ".join([f"{u}: did you mean {m[0]}?" for u, m in meant.items() if m]
+                          + [_NOT_AN_OPTION[u] for u in unknown if u in _NOT_AN_OPTION])
         raise OptionError(f"unknown personalize option(s): {', '.join(unknown)}",
                           fix=(f"{hints}; " if hints else "")
                           + "drop them, or use one of: " + ", ".join(offered))

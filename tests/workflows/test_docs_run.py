@@ -117,7 +117,9 @@ def blocks_in(text: str) -> list[str]:
 
 def test_getting_started_commands_paste_and_run(tmp_path):
     """Run every line of the getting-started block in a fresh folder (``mkdir X && cd X`` followed; usdview,
-    which usd-core does not ship, is only checked to be explained on the page)."""
+    which usd-core does not ship, is only checked to be explained on the page), then, in the same folder, the
+    page's Python snippet ("the same steps"), as a reader pastes it: it wrote the ``person.usda`` the
+    commands had written and stopped with 'output layer exists' (a user trial, stop 50)."""
     cwd = tmp_path
     ran = []
     for line in _getting_started():
@@ -136,6 +138,12 @@ def test_getting_started_commands_paste_and_run(tmp_path):
     assert ran[:2] == ["sample", "check"] and "personalize" in ran
     assert_valid_usd(cwd / "person.usda")
     assert (cwd / "compare.png").read_bytes()[:4] == b"\x89PNG"
+    section = (ROOT / "docs" / "index.md").read_text(encoding="utf-8")
+    code = blocks(ROOT / "docs" / "index.md", "python")[0]
+    assert section.index(code) > section.index("## Getting started")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert_valid_usd(cwd / "person.usda")
 
 
 def test_readme_setup_command_personalizes(tmp_path):

@@ -64,6 +64,9 @@ def run(args) -> int:
     dcc = variant == AS_AUTHORED and dcc_export_marks(args.layer)
     label = ("as authored: a DCC export of a usdface layer, the variant the DCC composed (personalized "
              "unless switched)" if dcc else
+             # a fit rig said "a plain avatar, not personalized": it is the person's own shapes (stop 50)
+             "as authored: a 'usdface fit' rig, the person's fitted shapes on the capture mesh"
+             if variant == AS_AUTHORED and _is_fit_rig(args.layer) else
              "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
              f"{variant}, as baked into {Path(args.layer).name} (a flattened export of {baked['source']})"
              if baked else variant)
@@ -81,3 +84,10 @@ def run(args) -> int:
                 f" ({sum(1 for _ in path.rglob('*.obj'))} OBJ files)")
         print(f"wrote {kind}: {path}{size} [{label}]")
     return 0
+
+
+def _is_fit_rig(path) -> bool:
+    """Whether ``path`` is a ``usdface fit`` result (its provenance's format), not an avatar."""
+    from ..io.usd_rig import read_layer_info
+
+    return (read_layer_info(path).get("usdface") or {}).get("format") == "fit"

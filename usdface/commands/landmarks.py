@@ -114,6 +114,13 @@ def refuse_other_mode(args) -> None:
                             "candidate) and would ignore it",
                             fix=f"leave out {'/'.join(layout_only)} to evaluate, or --evaluate to compute "
                                 "the layout")
+    later = [flag for flag, given in (("--radius", args.radius is not None),
+                                      ("--no-adaptive", args.no_adaptive)) if given]
+    if later and not args.evaluate and (args.multicover or 1) == 1:   # one round: they were ignored
+        raise LandmarkError(f"{'/'.join(later)} act(s) only on the multi-cover's later rounds, and "
+                            "--multicover is 1 (a single cover, one round): the layout would ignore it",
+                            fix=f"add --multicover N (N >= 2: up to N landmarks per shape), or leave out "
+                                f"{'/'.join(later)}")
     if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
         raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
                             "--weighting count does not use (every landmark costs 1)",

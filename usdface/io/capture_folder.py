@@ -79,6 +79,25 @@ def _weight_names(names: tuple[str, ...]):
     return match_names(list(names))
 
 
+def _weights_found(data) -> str:
+    """What a weights JSON without a ``blendShapes`` object holds instead, for its refusal (a user trial, stop
+    50: a key spelt ``BlendShapes``, a list of ``{"name", "value"}`` and the weights at the top level were all
+    told 'no "blendShapes" object', the first two beside the key the message said was missing)."""
+    def kind(value) -> str:
+        return {list: "array", str: "string", bool: "boolean", type(None): "null"}.get(type(value), "number")
+
+    if not isinstance(data, dict):
+        return f" (it holds a JSON {kind(data)}, not an object)"
+    if "blendShapes" in data:
+        return f" (its \"blendShapes\" is a JSON {kind(data['blendShapes'])}, not an object of name: weight)"
+    other = next((k for k in data if isinstance(k, str) and k.lower() == "blendshapes"), None)
+    if other is not None:
+        return f" (it has {other!r}: the key is spelt \"blendShapes\")"
+    if data and all(isinstance(v, int | float) and not isinstance(v, bool) for v in data.values()):
+        return f" (its {len(data)} weights are at the top level, not inside \"blendShapes\")"
+    return ""
+
+
 def read_weights_json(path) -> dict[str, float]:
     """Read one frame's weights ``{"blendShapes": {name: weight}}`` -> {canonical name: weight}.
 
@@ -99,7 +118,7 @@ def read_weights_json(path) -> dict[str, float]:
                              fix="write the weights as {\"blendShapes\": {\"jawOpen\": 0.8, ...}}") from None
     shapes = data.get("blendShapes") if isinstance(data, dict) else None
     if not isinstance(shapes, dict):
-        raise CaptureError("no \"blendShapes\" object in the weights JSON", path=path,
+        raise CaptureError(f"no \"blendShapes\" object in the weights JSON{_weights_found(data)}", path=path,
                            fix="write the weights as {\"blendShapes\": {\"jawOpen\": 0.8, ...}}")
     match = _weight_names(tuple(shapes))
     if match.duplicates:
