@@ -1147,6 +1147,16 @@ def test_resume_skips_an_older_layer_that_records_its_take_among_the_inputs_alon
     assert r.status == FAILED and "written from another take than" in r.error, r.error
 
 
+def test_resume_does_not_take_the_rows_capture_among_the_inputs_for_its_take(tmp_path):
+    """The reading above is of the inputs besides the row's avatar and capture: a layer written without a
+    take (no ``take``, no other input) is stale for a row whose take is its capture's file."""
+    _inspected_layer(tmp_path, take_input=False)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output,take\na.usdc,a_capture,out/a.usda,a_capture\n")
+    r = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert r.status == FAILED and "written with take=None" in r.error, r.error
+
+
 def test_resume_reads_a_numpy_boolean_inspect_as_the_api_takes_it(tmp_path):
     """``personalize_batch(options={"inspect": numpy.True_})`` (the API takes numpy's booleans as booleans,
     ``errors.expect_flag``): resume compared it with ``is True`` and called the row's own inspected layer

@@ -344,8 +344,10 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
+    own = (os.path.realpath(item.avatar), os.path.realpath(item.capture))
+    others = [real for real in recorded if real not in own]          # the inputs besides avatar and capture
     changed = (_changed_option(options, record) or _changed_face_mesh(options, record)
-               or _changed_inspection(options, record, layer, recorded))
+               or _changed_inspection(options, record, layer, others))
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
@@ -386,7 +388,7 @@ def _changed_face_mesh(options: dict, record: dict) -> tuple[str, str, str] | No
     return None if same else ("face_mesh", was, asked)
 
 
-def _changed_inspection(options: dict, record: dict, layer, recorded: dict | None = None
+def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str] = ()
                         ) -> tuple[str, str, str] | None:
     """``(option, what the layer holds, asked)`` when the row's ``inspect``, ``landmarks`` or ``take`` asks
     for other inspection data than the layer ``layer`` (an ``Sdf.Layer``) holds
@@ -396,9 +398,10 @@ def _changed_inspection(options: dict, record: dict, layer, recorded: dict | Non
     the same for layers written before and after this check (a row that added ``inspect`` was skipped as
     done over a layer without the inspection data). ``take`` and ``landmarks`` imply ``inspect``, as
     :func:`usdface.api.personalize_avatar` runs them; the take's file itself is compared with the inputs
-    (:func:`stale_output` did, against ``recorded``, the layer's inputs by real path). A layer written
-    before the record named its take (``take``, 2026-12-05) holds the take among its inputs alone: the row's
-    take found there is the one it records (stop 50 had it 'written with take=None' and redone)."""
+    (:func:`stale_output` did, against the layer's inputs). A layer written before the record named its
+    take (``take``, 2026-12-05) holds the take among its inputs alone: the row's take found among ``others``
+    (the layer's inputs by real path, besides the row's avatar and capture) is the one it records (stop 50
+    had it 'written with take=None' and redone)."""
     from ..io.usd_inspection import layer_inspection
 
     take = options.get("take")
@@ -409,8 +412,8 @@ def _changed_inspection(options: dict, record: dict, layer, recorded: dict | Non
     for key, has, wanted in (("inspect", held["heat"], inspect), ("landmarks", held["landmarks"], landmarks)):
         if has != wanted:
             return key, str(has), str(wanted)
-    was = record.get("take") or (take if take and "take" not in record and recorded is not None
-                                 and os.path.realpath(take) in recorded else None)
+    was = record.get("take") or (take if take and "take" not in record
+                                 and os.path.realpath(take) in set(others) else None)
     if bool(was) != bool(take):
         return "take", str(was), str(take)
     return None
