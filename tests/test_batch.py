@@ -1101,6 +1101,80 @@ def test_resume_of_a_real_inspected_layer_skips_the_same_row_and_redoes_one_with
     assert again.status == FAILED and "inspect=True, the row asks inspect=False" in again.error, again.error
 
 
+def _inspected_layer(tmp_path, *, take_input: bool) -> Path:
+    """A synthetic personalize layer with a heat map (``inspect``), over ``a.usdc`` and ``a_capture``, and
+    with ``take_input`` the take ``t.csv`` among its recorded inputs but no ``take`` key: what personalize
+    --take wrote before the provenance named the take (2026-12-05)."""
+    from pxr import Sdf, Vt
+
+    from usdface.io.layers import file_digest
+    from usdface.io.usd_inspection import HEAT_PRIMVAR
+
+    (tmp_path / "a.usdc").write_text("avatar a")
+    (tmp_path / "a_capture").mkdir()
+    (tmp_path / "a_capture" / "neutral.obj").write_text("v 0 0 0\n")
+    (tmp_path / "t.csv").write_text("Timecode,JawOpen\n")
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "a.usda"
+    _layer_with_parameters(out, tmp_path, {"method": "menzel"})
+    layer = Sdf.Layer.FindOrOpen(str(out))
+    head = Sdf.CreatePrimInLayer(layer, "/Avatar/Head")
+    Sdf.AttributeSpec(head, f"primvars:{HEAT_PRIMVAR}", Sdf.ValueTypeNames.FloatArray)
+    if take_input:
+        data = dict(layer.customLayerData)
+        record = dict(data["usdface"])
+        record["inputs"] = Vt.StringArray([*record["inputs"], "../t.csv"])
+        record["inputDigests"] = Vt.StringArray([*record["inputDigests"], file_digest(tmp_path / "t.csv")])
+        data["usdface"] = record
+        layer.customLayerData = data
+    layer.Save()
+    return out
+
+
+def test_resume_skips_an_older_layer_that_records_its_take_among_the_inputs_alone(tmp_path):
+    """Layers written before the provenance named the take (``take``, 2026-12-05) record the take file among
+    the inputs only. The row that wrote one (``take=t.csv``) was skipped as done before stop 50; stop 50's
+    resume read 'take=None' from the record and redid it. The take among the inputs is the take it records;
+    a row whose take is another file is still stale."""
+    _inspected_layer(tmp_path, take_input=True)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output,take\na.usdc,a_capture,out/a.usda,t.csv\n")
+    r = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert r.status == SKIPPED, r.error
+    (tmp_path / "u.csv").write_text("Timecode,JawOpen\n1,0.5\n")
+    manifest.write_text("avatar,capture,output,take\na.usdc,a_capture,out/a.usda,u.csv\n")
+    r = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert r.status == FAILED and "written from another take than" in r.error, r.error
+
+
+def test_resume_does_not_take_the_rows_capture_among_the_inputs_for_its_take(tmp_path):
+    """The reading above is of the inputs besides the row's avatar and capture: a layer written without a
+    take (no ``take``, no other input) is stale for a row whose take is its capture's file."""
+    _inspected_layer(tmp_path, take_input=False)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output,take\na.usdc,a_capture,out/a.usda,a_capture\n")
+    r = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
+    assert r.status == FAILED and "written with take=None" in r.error, r.error
+
+
+def test_resume_reads_a_numpy_boolean_inspect_as_the_api_takes_it(tmp_path):
+    """``personalize_batch(options={"inspect": numpy.True_})`` (the API takes numpy's booleans as booleans,
+    ``errors.expect_flag``): resume compared it with ``is True`` and called the row's own inspected layer
+    stale ('written with inspect=True, the row asks inspect=False')."""
+    import numpy as np
+
+    from usdface.api import personalize_batch
+
+    _inspected_layer(tmp_path, take_input=False)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\na.usdc,a_capture,out/a.usda\n")
+    for inspect, status in ((np.True_, SKIPPED), (np.False_, FAILED)):
+        r = personalize_batch(manifest, jobs=1, options={"inspect": inspect}).results[0]
+        assert r.status == status, (inspect, r.status, r.error)
+    r = personalize_batch(manifest, jobs=1, options={"landmarks": np.True_}).results[0]
+    assert r.status == FAILED and "landmarks=False, the row asks landmarks=True" in r.error, r.error
+
+
 def test_resume_redoes_an_item_whose_face_mesh_changed(tmp_path):
     """A row edited to name another face mesh (face_mesh=Mouth) was skipped as done: the layer recorded the
     options but not the face mesh it personalized. It now records it (faceMesh, the resolved prim), and a

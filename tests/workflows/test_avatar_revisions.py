@@ -245,9 +245,12 @@ def test_a_nudged_vertex_is_a_warning_not_a_refusal(published, tmp_path):
     assert [(i["severity"], i["prim"]) for i in found] == [("warning", "/Avatar/Head")], found
     assert "neutral points changed after person.usda was written" in found[0]["message"], found
     assert "re-run usdface personalize on the revised avatar" in found[0]["fix"], found
-    proc = run("export", "pub/v001/person.usda", "--gltf", "out.glb", cwd=tmp_path)
-    assert "neutral points changed after person.usda was written" in proc.stdout + proc.stderr, proc
-    assert (tmp_path / "out.glb").is_file()
+    for args in (["export", "pub/v001/person.usda", "--gltf", "out.glb"],     # review and render --compare
+                 ["review", "pub/v001/person.usda", "-o", "r.html"],          # too, as pipeline.md and
+                 ["render", "pub/v001/person.usda", "-o", "r.png", "--compare", "--shapes", "jawOpen"]):
+        proc = run(*args, cwd=tmp_path)                                       # review.md say (stop 50)
+        assert "neutral points changed after person.usda was written" in proc.stdout + proc.stderr, proc
+    assert all((tmp_path / name).is_file() for name in ("out.glb", "r.html", "r.png"))
 
 
 def test_a_layer_without_the_points_digest_reads_the_block_means_alone(published, tmp_path):

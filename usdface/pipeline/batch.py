@@ -344,8 +344,10 @@ def stale_output(item: BatchItem) -> str:
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
                     "--force redoes it")
+    own = (os.path.realpath(item.avatar), os.path.realpath(item.capture))
+    others = [real for real in recorded if real not in own]          # the inputs besides avatar and capture
     changed = (_changed_option(options, record) or _changed_face_mesh(options, record)
-               or _changed_inspection(options, record, layer))
+               or _changed_inspection(options, record, layer, others))
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
@@ -386,7 +388,8 @@ def _changed_face_mesh(options: dict, record: dict) -> tuple[str, str, str] | No
     return None if same else ("face_mesh", was, asked)
 
 
-def _changed_inspection(options: dict, record: dict, layer) -> tuple[str, str, str] | None:
+def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str] = ()
+                        ) -> tuple[str, str, str] | None:
     """``(option, what the layer holds, asked)`` when the row's ``inspect``, ``landmarks`` or ``take`` asks
     for other inspection data than the layer ``layer`` (an ``Sdf.Layer``) holds
     (:func:`usdface.io.usd_inspection.layer_inspection`: its heat map, landmark layout), or a take where it
@@ -394,21 +397,37 @@ def _changed_inspection(options: dict, record: dict, layer) -> tuple[str, str, s
     the recorded ``parameters`` (the API's options, not the pipeline's), so read from what the layer holds:
     the same for layers written before and after this check (a row that added ``inspect`` was skipped as
     done over a layer without the inspection data). ``take`` and ``landmarks`` imply ``inspect``, as
-    :func:`usdface.api.personalize_avatar` runs them; the take's file itself is compared with the inputs."""
+    :func:`usdface.api.personalize_avatar` runs them; the take's file itself is compared with the inputs
+    (:func:`stale_output` did, against the layer's inputs). A layer written before the record named its
+    take (``take``, 2026-12-05) holds the take among its inputs alone: the row's take found among ``others``
+    (the layer's inputs by real path, besides the row's avatar and capture) is the one it records (stop 50
+    had it 'written with take=None' and redone)."""
     from ..io.usd_inspection import layer_inspection
 
     take = options.get("take")
     take = str(take) if isinstance(take, str | os.PathLike) and str(take) else None
-    landmarks = options.get("landmarks") is True
+    landmarks = _flag(options.get("landmarks"))
     held = layer_inspection(layer)
-    inspect = options.get("inspect") is True or landmarks or bool(take)
+    inspect = _flag(options.get("inspect")) or landmarks or bool(take)
     for key, has, wanted in (("inspect", held["heat"], inspect), ("landmarks", held["landmarks"], landmarks)):
         if has != wanted:
             return key, str(has), str(wanted)
-    was = record.get("take") or None
+    was = record.get("take") or (take if take and "take" not in record
+                                 and os.path.realpath(take) in set(others) else None)
     if bool(was) != bool(take):
         return "take", str(was), str(take)
     return None
+
+
+def _flag(value) -> bool:
+    """A row's boolean option as the API reads it (:func:`usdface.errors.expect_flag`: numpy's booleans too;
+    ``is True`` called ``numpy.True_`` false); a value the API refuses when the item runs, as not set."""
+    from ..errors import OptionError, expect_flag
+
+    try:
+        return expect_flag(value, "option", "personalize's", False)
+    except OptionError:
+        return False
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
