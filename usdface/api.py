@@ -934,7 +934,9 @@ def personalize_avatar(avatar_path: PathLike | Avatar, capture_path: PathLike | 
     start = time.perf_counter()
     if take is not None:                 # of the wrong kind (a capture, an avatar, a fit rig): named as such
         check_take_path(take)
-    take_data = read_take(take) if take is not None else None  # a bad take fails before any work
+    # a bad take fails before any work; played, not fitted: a take folder's weights alone (its 1,458 OBJ
+    # frames were parsed to play them: 7.45 s against 0.94 s for the same take as .usdc)
+    take_data = read_take(take, meshes=False) if take is not None else None
     avatar = (avatar_path if not isinstance(avatar_path, _PATH)       # any os.PathLike, as the check takes
               else read_avatar(avatar_path, options.get("name_map")))
     capture = _as_capture(capture_path)

@@ -419,7 +419,7 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
             name = Path(str(capture.source or "take")).name
             sequences.append(Sequence(f"take {name} (every frame fitted)", *played, []))
     if take is not None:
-        data = take if not isinstance(take, str | Path) else read_take(take)
+        data = take if not isinstance(take, str | Path) else read_take(take, meshes=False)  # played only
         if len(data):
             t = np.asarray(data.times, dtype=np.float64)
             name = Path(str(take if isinstance(take, str | Path) else data.source or "take")).name
