@@ -1199,3 +1199,36 @@ def test_exporting_a_fit_rig_says_what_it_is(tmp_path, capsys):
     assert "'usdface fit' rig" in json.loads(capsys.readouterr().out)["label"]
     assert main(["export", str(samples / "avatar.usda"), "--gltf", str(tmp_path / "a.glb"), "-q"]) == 0
     assert "a plain avatar, not personalized" in capsys.readouterr().out
+
+
+def test_an_explicit_personalized_variant_of_a_plain_avatar_is_refused(layer, tmp_path, capsys):
+    """A user trial (stop 50): ``usdface export AVATAR --variant personalized`` of a plain avatar wrote it as
+    authored (said only in the label) while ``--variant generic`` of it was refused: the default and an
+    explicit 'personalized' could not be told apart. An explicit variant the file lacks is refused, naming
+    the file and the fixes, with nothing written; the default still exports the avatar as authored."""
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    avatar = samples / "avatar.usda"
+    for variant in ("personalized", "generic"):
+        out = tmp_path / f"{variant}.glb"
+        assert main(["export", str(avatar), "--gltf", str(out), "--variant", variant, "-q"]) == 2
+        said = capsys.readouterr().err
+        assert str(avatar) in said and "usdfacePersonalization" in said, said
+        assert not out.exists()
+    assert main(["export", str(avatar), "--gltf", str(tmp_path / "personalized.glb"), "--variant",
+                 "personalized", "-q"]) == 2
+    said = " ".join(capsys.readouterr().err.split())
+    assert "personalize it first" in said and "without --variant" in said, said
+    assert main(["export", str(avatar), "--gltf", str(tmp_path / "a.glb"), "-q"]) == 0     # the default
+    assert "[as authored: a plain avatar, not personalized]" in capsys.readouterr().out
+    # a layer's explicit variant, and a flattened generic export asked for its personalized variant
+    assert main(["export", str(layer), "--gltf", str(tmp_path / "p.glb"), "--variant", "personalized",
+                 "-q"]) == 0
+    assert "[personalized]" in capsys.readouterr().out
+    flat = tmp_path / "flat.generic.usdc"
+    assert main(["export", str(layer), "--flatten", str(flat), "--variant", "generic", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(flat), "--gltf", str(tmp_path / "f.glb"), "--variant", "personalized",
+                 "-q"]) == 2
+    said = " ".join(capsys.readouterr().err.split())
+    assert str(flat) in said and "generic variant" in said, said
+    assert not (tmp_path / "f.glb").exists()

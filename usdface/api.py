@@ -1666,7 +1666,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
 
 
 def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir: PathLike | None = None,
-                  flatten: PathLike | None = None, variant: str = "personalized", skin: bool = True,
+                  flatten: PathLike | None = None, variant: str | None = None, skin: bool = True,
                   morph_normals: bool = True, force: bool = False,
                   allow_moved_neutral: bool = False) -> dict[str, Path]:
     """Deliver one variant (``personalized`` or ``generic``) of a usdface layer (``usdface export``):
@@ -1684,10 +1684,13 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     Every output is checked before any work (an existing one needs ``force``) and written atomically, and
     the set is all or nothing for new outputs: when a later one fails (a full disk, Ctrl-C), the ones this
     call created are removed (one it replaced with ``force`` stays replaced). The inputs are never modified.
-    Returns {"gltf"|"obj_dir"|"flatten": path written, absolute}; a plain avatar
-    (not a usdface layer) exports as authored with ``variant="personalized"`` (the glTF's
+    Returns {"gltf"|"obj_dir"|"flatten": path written, absolute}. ``variant`` None (the default): the
+    personalized variant of a layer; a plain avatar (not a usdface layer) exports as authored (the glTF's
     ``extras.usdface.variant`` is then ``"authored"``; for a flattened export of a layer, the variant baked
-    into it, see :func:`usdface.io.flatten.exported_variant`)."""
+    into it, see :func:`usdface.io.flatten.exported_variant`). An explicit ``"personalized"`` (or
+    ``"generic"``) of a file that has no such variant (a plain avatar; the generic variant flattened) is
+    refused, naming the file (:class:`usdface.errors.InputFileError`): a plain avatar exported as asked
+    was labelled 'as authored' in passing, while ``--variant generic`` of it was refused."""
     _paths(layer_path=(layer_path, False))
     skin, morph_normals, force, allow_moved_neutral = _flags(
         "export_avatar", skin=skin, morph_normals=morph_normals, force=force,
@@ -1698,6 +1701,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
     from .io.gltf import GLTF_EXTENSIONS
     from .io.layers import check_output_path
 
+    asked = variant is not None           # an explicit variant must be in the file; the default need not
+    variant = "personalized" if variant is None else variant
     if variant not in VARIANTS:
         raise OptionError(f"unknown variant {variant!r}", fix=f"choose one of {', '.join(VARIANTS)}")
     if not (gltf or obj_dir or flatten):
@@ -1717,6 +1722,8 @@ def export_avatar(layer_path: PathLike, *, gltf: PathLike | None = None, obj_dir
 
         require_file(layer_path, "layer", "check the path (a .usd/.usda/.usdc file)")
     _refuse_export_input(layer_path, gltf=gltf, obj_dir=obj_dir, flatten=flatten, variant=variant)
+    if asked and variant == "personalized":
+        _refuse_absent_personalized(layer_path, gltf=gltf, obj_dir=obj_dir, flatten=flatten)
     if gltf:
         check_output_file(gltf, force, suffixes=GLTF_EXTENSIONS, what="glTF output", inputs=[layer_path],
                           example=f"{Path(layer_path).stem}.glb")            # newdir/: a file inside it
@@ -1782,6 +1789,40 @@ def _refuse_export_input(layer_path, **outputs) -> None:
            f"open it in usdview to look at the errors; export takes a layer written by 'usdface personalize' "
            f"(or an avatar) ({export})")
     raise RigError(f"this is {what}", path=path, prim=prim, fix=fix)
+
+
+def _refuse_absent_personalized(layer_path, **outputs) -> None:
+    """An explicit ``variant="personalized"`` (``export --variant personalized``) of a file with no
+    personalized variant: a plain avatar (no ``usdfacePersonalization`` variant set, not a flattened export,
+    a DCC export or a ``usdface fit`` rig, which hold the person's shapes) or a flattened export of the
+    *generic* variant. Raises :class:`usdface.errors.InputFileError` naming the file and the two fixes
+    (personalize it first; or export it as authored, without ``--variant``). It was written as authored,
+    said only in the label, while ``--variant generic`` of the same file was refused."""
+    import shlex
+
+    from .errors import InputFileError
+    from .io.flatten import AS_AUTHORED, exported_variant
+    from .io.usd_rig import dcc_export_marks, read_layer_info
+
+    given = exported_variant(layer_path, "personalized")
+    if given == "personalized":
+        return
+    if given == AS_AUTHORED and (dcc_export_marks(layer_path) or
+                                 (read_layer_info(layer_path).get("usdface") or {}).get("format") == "fit"):
+        return                     # the person's shapes as authored: the label says which
+    word = shlex.quote(str(layer_path))
+    options = " ".join(f"--{name.replace('_', '-')} {shlex.quote(str(out))}" for name, out in outputs.items()
+                       if out)
+    if given == "generic":
+        raise InputFileError("a flattened export of the generic variant ('usdface export --flatten "
+                             "--variant generic'): the personalized variant is not in it", path=layer_path,
+                             fix="export the personalized variant of the layer it was flattened from, or "
+                                 f"export this file as authored (usdface export {word} {options})")
+    raise InputFileError("no usdfacePersonalization variant set: a plain avatar, not personalized, so "
+                         "'--variant personalized' has nothing to export", path=layer_path,
+                         fix=f"personalize it first (usdface personalize {word} CAPTURE -o person.usda), "
+                             f"then export the layer (usdface export person.usda {options}); or export the "
+                             f"avatar as authored, without --variant (usdface export {word} {options})")
 
 
 def _export_outputs(layer_path, done: dict, gltf, obj_dir, flatten, variant: str, skin: bool,

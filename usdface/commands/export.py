@@ -20,8 +20,10 @@ def register(subparsers) -> None:
                    help="folder to write: <mesh>/neutral.obj + <mesh>/<shape>.obj")
     p.add_argument("--flatten", metavar="OUT",
                    help="flattened USD file to write (.usdc/.usda/.usd, or .usdz: packaged by USD)")
-    p.add_argument("--variant", choices=("personalized", "generic"), default="personalized",
-                   help="which usdfacePersonalization variant to export (default: personalized)")
+    p.add_argument("--variant", choices=("personalized", "generic"), default=None,
+                   help="which usdfacePersonalization variant to export (default: personalized; a plain "
+                        "avatar, which has neither, exports as authored; asked for, a variant the file "
+                        "lacks is refused)")
     p.add_argument("--no-skin", action="store_true", help="glTF without the skeleton and skin")
     p.add_argument("--no-morph-normals", action="store_true",
                    help="glTF morph targets without NORMAL deltas (POSITION only: about half the file, for "
@@ -56,7 +58,7 @@ def run(args) -> int:
     done = export_avatar(args.layer, gltf=args.gltf, obj_dir=args.obj_dir, flatten=args.flatten,
                          variant=args.variant, skin=not args.no_skin, morph_normals=not args.no_morph_normals,
                          force=args.force, allow_moved_neutral=args.allow_moved_neutral)
-    variant = exported_variant(args.layer, args.variant)
+    variant = exported_variant(args.layer, args.variant or "personalized")
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
     from ..io.usd_rig import dcc_export_marks
