@@ -699,3 +699,47 @@ def test_a_long_left_generic_list_is_summarized_with_the_whole_list_a_click_away
                      if title == "what changed"))
     left = [v for k, v in rows.items() if k.endswith("left generic")]
     assert left and all(isinstance(v, Listing) or v.startswith("all ") for v in left), rows
+
+
+def test_review_of_a_layer_whose_capture_moved_plays_the_test_expressions_it_holds(tmp_path, capfd):
+    """A user trial (stop 50): ``review LAYER`` of a layer whose recorded capture had been moved showed no
+    test expressions and no eq. 5 table, although the layer's inspection animation holds the expressions
+    and its provenance the figures. The page plays them as the layer holds them (the same weights and
+    labels as with the capture), scores them by the layer's figures, and says so; a layer written without
+    the inspection animation says why nothing plays and how to pass --capture."""
+    import base64
+
+    def sequence(page, title):
+        seq = next(s for s in _payload(page.read_text())["sequences"] if s["title"].startswith(title))
+        return seq["labels"], np.frombuffer(base64.b64decode(seq["w"]), np.uint8).astype(int)
+
+    cap = tmp_path / "shoot" / "capture.usda"
+    cap.parent.mkdir()
+    shutil.copy(C, cap)
+    out = tmp_path / "person.usda"
+    assert main(["personalize", str(A), str(cap), "-o", str(out), "--inspect", "-q"]) == 0
+    assert main(["review", str(out), "-o", str(tmp_path / "with.html"), "-q"]) == 0
+    cap.rename(tmp_path / "moved.usda")
+    capfd.readouterr()
+    assert main(["review", str(out), "-o", str(tmp_path / "moved.html"), "-q"]) == 0
+    said = " ".join(capfd.readouterr().out.split())
+    assert ("(shoot/capture.usda) was not found: its 20 test expressions play as the layer's inspection "
+            "animation holds them") in said, said
+    labels, w = sequence(tmp_path / "with.html", "test expressions")
+    held_labels, held = sequence(tmp_path / "moved.html", "test expressions")
+    assert held_labels == labels and len(labels) == 20
+    assert np.abs(held - w).max() <= 1 and w.max() > 100      # the same expressions (8-bit page weights)
+    table = re.compile(r"<caption>eq\. 5 on the capture&#x27;s test expressions.*?</table>", re.S)
+    cells = lambda page: re.findall(r"<td>([-0-9.]+)</td>", table.search(page.read_text()).group(0))  # noqa: E731
+    assert cells(tmp_path / "moved.html") == cells(tmp_path / "with.html") != []
+    # no inspection animation in the layer: said why nothing plays, and how to pass the capture
+    shutil.copy(C, cap)
+    plain = tmp_path / "plain.usda"
+    assert main(["personalize", str(A), str(cap), "-o", str(plain), "-q"]) == 0
+    cap.unlink()
+    capfd.readouterr()
+    assert main(["review", str(plain), "-o", str(tmp_path / "plain.html"), "-q"]) == 0
+    said = " ".join(capfd.readouterr().out.split())
+    assert "holds no inspection animation" in said and "pass --capture CAPTURE" in said, said
+    assert not [s for s in _payload((tmp_path / "plain.html").read_text())["sequences"]
+                if s["title"].startswith("test expressions")]

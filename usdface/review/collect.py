@@ -157,6 +157,68 @@ def _fitted(info: dict) -> bool:
     return str(info.get("method") or params.get("method") or "menzel") in METHODS
 
 
+def layer_test_expressions(layer_path, info: dict, avatar) -> tuple | None:
+    """The capture's test expressions as the layer itself holds them, for when the capture it records is
+    gone: ``(names[K], weights[F, K], labels[F])``, the first F frames of its inspection animation
+    (``personalize --inspect`` or ``--take`` plays the capture's test expressions first, one every
+    ``hold`` seconds: :func:`usdface.io.usd_inspection.inspection_animation`), F the test expressions its
+    provenance scored (``fitTestExpressions``), the columns the avatar's channels (``avatar``: the
+    personalized variant, whose channel tokens name them as the page's meshes do). None when the layer has
+    no such animation or scored none."""
+    from pxr import UsdSkel
+
+    from ..io.usd_inspection import ANIMATION_NAME
+    from ..io.usd_open import open_usd_stage
+
+    scored = info.get("fitTestExpressions")
+    labels = [str(x) for x in (scored.get("labels") or [])] if isinstance(scored, dict) else []
+    paths = sorted({str(m.source.animation) for m in avatar.meshes if m.source is not None
+                    and m.source.animation and str(m.source.animation).rsplit("/", 1)[-1] == ANIMATION_NAME})
+    if not labels or not paths:
+        return None
+    canonical = {}            # a channel token -> the name the page's meshes use
+    for rig in avatar.meshes:
+        tokens = (rig.source.channel_tokens if rig.source is not None else None) or rig.names
+        canonical.update(zip(tokens, rig.names, strict=True))
+    stage = open_usd_stage(layer_path, "layer", "check the path")
+    names, columns = [], []
+    for path in paths:        # one animation per Skeleton; a channel of two skeletons read once
+        anim = UsdSkel.Animation(stage.GetPrimAtPath(path))
+        attr = anim.GetBlendShapeWeightsAttr() if anim else None
+        codes = attr.GetTimeSamples() if attr else []
+        if len(codes) < len(labels):
+            return None
+        w = np.array([np.asarray(attr.Get(t), dtype=np.float64) for t in codes[:len(labels)]])
+        tokens = [str(t) for t in anim.GetBlendShapesAttr().Get() or []]
+        if w.ndim != 2 or w.shape[1] != len(tokens):
+            return None
+        for k, token in enumerate(tokens):
+            name = canonical.get(token, token)
+            if name not in names:
+                names.append(name)
+                columns.append(w[:, k])
+    return names, np.stack(columns, axis=1), labels
+
+
+def _layer_fit_errors(info: dict) -> dict | None:
+    """Eq. 5 as the layer's provenance recorded it (``fitTestExpressions``: scored by ``personalize`` on the
+    fit it implanted), without the capture; None when it recorded none."""
+    scored = info.get("fitTestExpressions")
+    if not isinstance(scored, dict) or not scored.get("labels"):
+        return None
+    return _errors_table(scored, "the layer's fit, as recorded in it (the capture itself was not found)")
+
+
+def _errors_table(scored: dict, source: str) -> dict:
+    """The review page's eq. 5 table of ``scored`` (:func:`usdface.personalize.evaluate.
+    test_expression_errors`'s dict), titled with where the figures come from."""
+    columns = {"generic RMSE": "generic_rmse_mm", "personalized RMSE": "personalized_rmse_mm",
+               "generic max": "generic_max_mm", "personalized max": "personalized_max_mm"}
+    return {"title": f"eq. 5 on the capture's test expressions (mm; {source})",
+            "labels": list(scored["labels"]),
+            "columns": {k: [float(v) for v in scored[key]] for k, key in columns.items()}}
+
+
 def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
     """Eq. 5 on the capture's test expressions: the generic template vs the person's fitted shapes. The
     layer's own figures (``fitTestExpressions``, scored by ``personalize`` on the fit it implanted, prior,
@@ -186,11 +248,7 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
     elif scored.get("amplitudes_read"):   # personalize's fit scaled shapes by these frames (stop 49)
         source += (f", which read {scored['amplitudes_read']} of its shapes' amplitudes on these frames: not "
                    "wholly held out")
-    columns = {"generic RMSE": "generic_rmse_mm", "personalized RMSE": "personalized_rmse_mm",
-               "generic max": "generic_max_mm", "personalized max": "personalized_max_mm"}
-    return {"title": f"eq. 5 on the capture's test expressions (mm; {source})",
-            "labels": list(scored["labels"]),
-            "columns": {k: [float(v) for v in scored[key]] for k, key in columns.items()}}
+    return _errors_table(scored, source)
 
 
 def _named(prov: dict, k: int) -> str:
@@ -376,11 +434,26 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     notes = []
     sequences = []
     recorded = capture is None
+    held = None                # the test expressions the layer holds, when its capture is gone
     if capture is None:
         capture = recorded_capture(made_from, prov)
         if capture is None:
-            _gone(notes, f"the capture recorded in the layer's provenance{_named(prov, 1)} was not found: no "
-                         "test expressions (pass --capture)", layer_path)
+            # the capture moved: the layer's own inspection animation plays its test expressions (the page
+            # showed none, and no eq. 5 table, although the layer holds both)
+            held = layer_test_expressions(layer_path, prov, personalized)
+            lost = f"the capture recorded in the layer's provenance{_named(prov, 1)} was not found"
+            if held is not None:
+                _gone(notes, f"{lost}: its {len(held[2])} test expressions play as the layer's inspection "
+                             "animation holds them, scored by the layer's own figures (pass --capture "
+                             "CAPTURE to read them from the capture)", layer_path)
+            elif prov.get("fitTestExpressions"):
+                _gone(notes, f"{lost}, and the layer holds no inspection animation (personalized without "
+                             "--inspect or --take): no test expressions to play, the eq. 5 table "
+                             "is the layer's own figures (pass --capture CAPTURE, the capture it was "
+                             "personalized from)", layer_path)
+            else:
+                _gone(notes, f"{lost}: no test expressions (the layer holds none of its own; pass --capture "
+                             "CAPTURE, the capture it was personalized from)", layer_path)
     if isinstance(capture, str | Path):
         from ..errors import CaptureError
         from ..io.take import WEIGHTS_ONLY_FIX
@@ -394,6 +467,11 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
                                prim=exc.prim, fix=f"play it with --take {capture}, and give --capture "
                                                   "a capture with test frames (or leave it out)") from None
     errors = None
+    if held is not None:
+        sequences.append(Sequence("test expressions (as the layer holds them)", held[0], held[1],
+                                  np.arange(len(held[2])) * TEST_HOLD_S, held[2]))
+    if capture is None and recorded and fit_errors:     # the capture gone: the figures the layer recorded
+        errors = _layer_fit_errors(prov)
     if capture is not None and len(capture.test):
         test = capture.test
         sequences.append(Sequence("test expressions", list(capture.names), test.weights,
