@@ -279,3 +279,30 @@ def test_page_commands_paste_and_run_in_order(page, page_inputs, tmp_path, monke
         ran += 1
     assert ran >= 2, f"{page}: {ran} command(s) run"
     assert digest(*(work / name for name in PAGE_FILES[page])) == before
+
+
+def test_takes_page_capture_select_of_a_take_folder_holds_out_expressions(sample_set, tmp_path):
+    """A user trial (stop 50): takes.md's ``capture select take_dir/ -o capture_dir.usda --test-every 40``,
+    pasted on a generated take (shapes swept for a second between rests, as ``make_take`` records them),
+    held out only rest frames and warned that they show no expression ('usdface evaluate' cannot tell the
+    methods apart on them). The page's line, run as written on such a take folder, holds out test frames that
+    show expressions, without that warning."""
+    import numpy as np
+
+    from usdface.io.take import write_take_folder
+    from usdface.io.usd_capture import read_capture_usd
+    from usdface.model import FaceRig
+    from usdface.sample.take import make_take
+
+    line = next(ln for ln in _page_lines("docs/takes.md")
+                if ln.startswith("usdface capture select take_dir/") and "capture_dir.usda" in ln)
+    truth = np.load(sample_set / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(sample_set / "capture.usda")
+    names = [str(n) for n in truth["names"]]
+    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
+    take, _ = make_take(person, capture.template.subset(names), shapes=names[:12], fps=10, seed=0)
+    write_take_folder(take, tmp_path / "take_dir")
+    proc = run(*shlex.split(line)[1:], cwd=tmp_path)
+    assert "show no expression" not in proc.stdout + proc.stderr, proc.stdout
+    test = read_capture_usd(tmp_path / "capture_dir.usda").test
+    assert len(test) >= 3 and test.weights.max(axis=1).max() > 0.5
