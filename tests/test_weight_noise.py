@@ -570,6 +570,19 @@ def test_a_shape_whose_one_frame_misreports_the_jaw_stays_near_generic(tmp_path)
     assert fit.info["weight_leak_along"][names.index("tongueOut")] > 0
 
 
+
+def _leak_problem(seed: int, n: int):
+    """A 16-shape rig seen in 10 frames (rank 10 of 16: the basis pays; shapes 10-15 only beside others, at
+    <= 0.3): ``(neutral, deltas, weights, points, reg_weights, reg, free, moving[n,K])`` for the leak
+    direction's tests."""
+    rng, neutral, deltas, weights = _rig(seed=seed, n=n, shapes=16, frames=16)
+    weights = weights[:10]
+    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
+    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
+    free = ~held_weights(weights)
+    moving = rng.random((deltas.shape[1], len(deltas))) < 0.6                       # [n,K]
+    return neutral, deltas, weights, points, reg_weights, 1e-2, free, moving
+
 def test_the_leaks_pattern_is_the_same_from_the_weights_basis_and_the_k_by_k_systems(monkeypatch):
     """:func:`usdface.personalize.fit.weight_leak_direction` reads the gain ``A_v^-1 W^T`` from the fit's
     rank-r basis (``diag(inv_l) B M^-1 P^T``, every shape's ``B_j^T M_v^-1`` by one product) or from the
@@ -579,13 +592,7 @@ def test_the_leaks_pattern_is_the_same_from_the_weights_basis_and_the_k_by_k_sys
     from usdface.personalize import fit as fit_module
     from usdface.personalize.fit import weight_leak_direction
 
-    rng, neutral, deltas, weights = _rig(seed=7, n=80, shapes=16, frames=16)
-    weights = weights[:10]                                   # shapes 10-15 only beside others, at <= 0.3
-    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
-    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
-    reg = 1e-2
-    free = ~held_weights(weights)
-    moving = rng.random((deltas.shape[1], len(deltas))) < 0.6                       # [n,K]
+    neutral, deltas, weights, points, reg_weights, reg, free, moving = _leak_problem(seed=7, n=80)
     kept = FitSystem(weights, reg_weights, reg, gain=True)
     assert kept.basis is not None and kept.basis[0].shape[1] == 10
     fitted = fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg, system=kept)
@@ -617,13 +624,7 @@ def test_the_leaks_pattern_from_blocks_of_shapes_is_the_one_product_of_every_sha
     from usdface.personalize import fit as fit_module
     from usdface.personalize.fit import weight_leak_direction
 
-    rng, neutral, deltas, weights = _rig(seed=8, n=6000, shapes=16, frames=16)
-    weights = weights[:10]                                   # rank 10 of 16: the basis pays
-    points = neutral[None] + np.einsum("fk,knc->fnc", weights, deltas)
-    reg_weights = np.abs(rng.normal(size=deltas.shape[:2])) + 0.5
-    reg = 1e-2
-    free = ~held_weights(weights)
-    moving = rng.random((deltas.shape[1], len(deltas))) < 0.6                       # [n,K]
+    neutral, deltas, weights, points, reg_weights, reg, free, moving = _leak_problem(seed=8, n=6000)
     kept = FitSystem(weights, reg_weights, reg, gain=True)
     fitted = fit_blendshapes(neutral, points, weights, np.zeros_like(deltas), reg_weights, reg, system=kept)
     n, K, r = deltas.shape[1], len(deltas), kept.basis[0].shape[1]
