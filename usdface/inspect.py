@@ -140,7 +140,8 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     }
     if layer_info:
         # the avatar revised or an input changed since the layer was written: its meshes are not its result
-        out["notes"] += [*layer_info.get("avatarRevised", []), *layer_info.get("staleInputs", [])]
+        out["notes"] += [*layer_info.get("avatarRevised", []), *layer_info.get("neutralNudged", []),
+                         *layer_info.get("staleInputs", [])]
         out["subLayers"] = layer_info.get("subLayers", [])
         out["provenance"] = layer_info.get("usdface", {})
         out["variants"] = layer_info.get("variants", {})

@@ -251,6 +251,9 @@ def test_a_nudged_vertex_is_a_warning_not_a_refusal(published, tmp_path):
         proc = run(*args, cwd=tmp_path)                                       # review.md say (stop 50)
         assert "neutral points changed after person.usda was written" in proc.stdout + proc.stderr, proc
     assert all((tmp_path / name).is_file() for name in ("out.glb", "r.html", "r.png"))
+    # inspect's notes say it too, as they say check's errors (it listed the layer's meshes without a word)
+    notes = json.loads(run("inspect", "pub/v001/person.usda", "--json", cwd=tmp_path).stdout)["notes"]
+    assert any("neutral points changed after person.usda was written" in n for n in notes), notes
 
 
 def test_a_layer_without_the_points_digest_reads_the_block_means_alone(published, tmp_path):

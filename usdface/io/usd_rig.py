@@ -1186,7 +1186,8 @@ def read_layer_info(path, revisions: bool = False) -> dict:
     schema (with that schema's authored attribute values), the variant selections of usdface variant sets
     and, for a ``usdface export --flatten`` file, what it baked in (``flattened``: ``source``, ``variant``).
     With ``revisions``, for a usdface layer also how its avatar was revised since it was written
-    (``avatarRevised``: :func:`usdface.io.layers.avatar_mismatches`) and which recorded inputs changed
+    (``avatarRevised``: :func:`usdface.io.layers.avatar_mismatches`; ``neutralNudged``: its neutral's points
+    changed by less than the layer's record resolves, a warning as check's) and which recorded inputs changed
     (``staleInputs``: :func:`usdface.io.layers.stale_inputs`), as text.
     """
     from pxr import Usd
@@ -1219,10 +1220,12 @@ def read_layer_info(path, revisions: bool = False) -> dict:
 
     # a published layer whose avatar was revised since: said, as check's AvatarMatch and Provenance say it
     # (inspect listed the layer's meshes and shapes as if they were its result)
-    revised = ([f"{message} (fix: {fix})" for _, message, fix in avatar_mismatches(stage)]
+    nudged: list = []
+    revised = ([f"{message} (fix: {fix})" for _, message, fix in avatar_mismatches(stage, nudged=nudged)]
                if revisions else [])
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": found.usdface, "schemas": schemas_found,
             "variants": variants, "flattened": found.flattened or {},
             "avatarRevised": revised,
+            "neutralNudged": [f"{message} (fix: {fix})" for _, message, fix in nudged],
             "staleInputs": stale_inputs(path) if revisions and found.usdface else []}
