@@ -1801,14 +1801,14 @@ def _refuse_absent_personalized(layer_path, **outputs) -> None:
     import shlex
 
     from .errors import InputFileError
+    from .io.file_kind import Kind, file_kind
     from .io.flatten import AS_AUTHORED, exported_variant
-    from .io.usd_rig import dcc_export_marks, read_layer_info
+    from .io.usd_rig import dcc_export_marks
 
     given = exported_variant(layer_path, "personalized")
     if given == "personalized":
         return
-    if given == AS_AUTHORED and (dcc_export_marks(layer_path) or
-                                 (read_layer_info(layer_path).get("usdface") or {}).get("format") == "fit"):
+    if given == AS_AUTHORED and (dcc_export_marks(layer_path) or file_kind(layer_path).kind is Kind.FIT):
         return                     # the person's shapes as authored: the label says which
     word = shlex.quote(str(layer_path))
     options = " ".join(f"--{name.replace('_', '-')} {shlex.quote(str(out))}" for name, out in outputs.items()

@@ -90,6 +90,6 @@ def run(args) -> int:
 
 def _is_fit_rig(path) -> bool:
     """Whether ``path`` is a ``usdface fit`` result (its provenance's format), not an avatar."""
-    from ..io.usd_rig import read_layer_info
+    from ..io.file_kind import Kind, file_kind
 
-    return (read_layer_info(path).get("usdface") or {}).get("format") == "fit"
+    return file_kind(path).kind is Kind.FIT

@@ -333,9 +333,9 @@ def stale_output(item: BatchItem) -> str:
     recorded = recorded_inputs(out, record)
     shown = ", ".join(sorted(recorded))
     options = item.options or {}
-    take = options.get("take")
+    take = _row_take(options)
     for what, path in (("avatar", item.avatar), ("capture", item.capture), ("take", take)):
-        if what == "take" and not (isinstance(take, str | os.PathLike) and str(take)):
+        if path is None:                                              # no take on the row
             continue
         real = os.path.realpath(path)
         if real not in recorded:
@@ -404,8 +404,7 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
     had it 'written with take=None' and redone)."""
     from ..io.usd_inspection import layer_inspection
 
-    take = options.get("take")
-    take = str(take) if isinstance(take, str | os.PathLike) and str(take) else None
+    take = _row_take(options)
     landmarks = _flag(options.get("landmarks"))
     held = layer_inspection(layer)
     inspect = _flag(options.get("inspect")) or landmarks or bool(take)
@@ -417,6 +416,12 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
     if bool(was) != bool(take):
         return "take", str(was), str(take)
     return None
+
+
+def _row_take(options: dict) -> str | None:
+    """A row's ``take`` option as a path string; None where the row sets none (absent, empty, not a path)."""
+    take = options.get("take")
+    return str(take) if isinstance(take, str | os.PathLike) and str(take) else None
 
 
 def _flag(value) -> bool:
