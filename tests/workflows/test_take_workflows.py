@@ -407,6 +407,34 @@ def _inspection_weights(layer):
             np.array([np.asarray(attr.Get(t)) for t in codes]), np.asarray(codes))
 
 
+def test_a_usd_take_played_reads_no_points(scan_take, tmp_path, monkeypatch):
+    """A played USD take (``personalize --take take.usdc``, ``review --take``) read every frame's points to
+    play its weights, as a take folder parsed every OBJ (stop 50). ``read_take(meshes=False)`` reads the
+    weights at the frames' time samples and no points: the same weights, names and times as the whole
+    read, with a points reader that fails."""
+    import usdface.io.usd_capture as usd_capture
+    from usdface.io.take import read_take
+
+    _, take, _ = scan_take
+    short = type(take)(take.weights[:30], take.names, take.times[:30], take.points[:30], take.triangles,
+                       take.neutral, take.template)
+    write_take_usd(short, tmp_path / "take.usdc")
+    whole = read_take(tmp_path / "take.usdc")
+    assert whole.points is not None and whole.points.shape[0] == 30
+
+    def no_points(*args, **kwargs):
+        raise AssertionError("a played take's points were read")
+
+    monkeypatch.setattr(usd_capture, "_points", no_points)
+    played = read_take(tmp_path / "take.usdc", meshes=False)
+    assert played.points is None and played.neutral is None and played.template is None
+    assert played.names == whole.names
+    np.testing.assert_array_equal(played.weights, whole.weights)
+    np.testing.assert_array_equal(played.times, whole.times)
+    with pytest.raises(AssertionError, match="points were read"):
+        read_take(tmp_path / "take.usdc")
+
+
 def test_personalize_take_folder_plays_its_weights_without_reading_its_meshes(scan_take, sample_set,
                                                                                tmp_path):
     """A user trial: 'personalize AVATAR CAPTURE --take take_dir/' parsed every OBJ frame of the folder to

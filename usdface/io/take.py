@@ -126,7 +126,8 @@ def read_take(path, *, meshes: bool = True) -> Take:
     """Read a take: a folder (OBJ sequence + Live Link CSV), a USD take, or a Live Link CSV (weights only).
     A capture (file or folder) is refused (:class:`CaptureError`): its picked frames read as a take's.
     ``meshes=False`` (what a playback needs: ``personalize --take``, ``review --take``): a take folder's
-    weights alone, its OBJ frames not parsed (:func:`read_take_folder`); a USD take is read whole."""
+    weights alone, its OBJ frames not parsed (:func:`read_take_folder`), nor a USD take's points
+    (:func:`read_take_usd`)."""
     from .file_kind import file_kind
 
     path = Path(path)
@@ -139,7 +140,7 @@ def read_take(path, *, meshes: bool = True) -> Take:
     if path.is_dir():
         return read_take_folder(path, meshes=meshes)
     if usd:
-        return read_take_usd(path)
+        return read_take_usd(path, meshes=meshes)
     if suffix == ".csv":
         from .livelink import read_livelink_take
 
@@ -252,9 +253,10 @@ def read_take_folder(path, *, meshes: bool = True) -> Take:
                 meta)
 
 
-def read_take_usd(path) -> Take:
+def read_take_usd(path, *, meshes: bool = True) -> Take:
     """Read a USD take (see the module doc). Raises InputFileError / CaptureError / GeometryError naming the
-    file and prim."""
+    file and prim. ``meshes=False``: the weights alone (``points`` None, no neutral or template), at the
+    frames' time samples; the points of no frame are read (the weights and their refusals are the same)."""
     from pxr import Usd, UsdGeom, UsdSkel
 
     from .usd_anim import read_skel_animation
@@ -281,9 +283,9 @@ def read_take_usd(path) -> Take:
                            fix="a take needs a Mesh whose points are time-sampled (one sample per frame), or "
                                "the weights as written by 'usdface anim import'")
     codes = np.array(codes, dtype=np.float64)
-    triangles = _triangles(frames, path)
-    points = np.stack([_points(frames, path, c) for c in codes.tolist()])
-    if triangles.max() >= points.shape[1]:
+    triangles = _triangles(frames, path) if meshes else None
+    points = np.stack([_points(frames, path, c) for c in codes.tolist()]) if meshes else None
+    if meshes and triangles.max() >= points.shape[1]:
         raise GeometryError("face index out of range", path=path, prim=frames.GetPath(),
                             fix="repair the take's mesh")
     w_attr = frames.GetAttribute("usdface:frames:weights")
@@ -323,6 +325,9 @@ def read_take_usd(path) -> Take:
     if weights.min() < 0 or weights.max() > 1:
         warn(f"{path}: weights outside [0, 1] clipped")
         weights = np.clip(weights, 0.0, 1.0)
+    times = (codes - codes[0]) / stage.GetTimeCodesPerSecond()
+    if not meshes:
+        return Take(weights, names, times, source=str(path), metadata=meta)
     neutral = template = None
     rp = root.GetPath()
     if stage.GetPrimAtPath(rp.AppendChild("Neutral")):
@@ -344,7 +349,6 @@ def read_take_usd(path) -> Take:
         if template is not None:
             template = FaceRig(template.neutral @ m.T, template.triangles, template.names,
                                template.deltas @ m.T, name="template")
-    times = (codes - codes[0]) / stage.GetTimeCodesPerSecond()
     return Take(weights, names, times, points, triangles, neutral, template, str(path), meta)
 
 
