@@ -229,57 +229,6 @@ def test_the_trust_undoes_the_ridges_own_shrink():
     np.testing.assert_array_equal(unshrunk([0.3, 0.8, 0.2], [0.0, 0.5, 0.4]), [0.0, 1.0, 0.5])
 
 
-def test_the_factors_degrees_of_freedom_are_those_of_the_noise_it_reads():
-    """:func:`usdface.personalize.fit.reliability_dof`: draws of a noise made of ``k`` independent patterns
-    over the vertices have ``k`` degrees of freedom, white noise one per vertex coordinate - also beyond the
-    number of draws (the unbiased estimates of ``tr S^2``), and fewer where a few vertices hold the weight."""
-    from usdface.personalize.fit import reliability_dof
-
-    rng = np.random.default_rng(3)
-    m, G = 60, 40
-    basis = np.linalg.qr(rng.normal(size=(3 * m, 5)))[0]                   # 5 orthonormal patterns
-    smooth = (rng.normal(size=(G, 5)) @ basis.T).reshape(G, m, 3)
-    white = rng.normal(size=(G, m, 3))
-    ones = np.ones((m, 1))
-    assert 3.5 < reliability_dof(smooth, ones, ones)[0] < 7.0
-    assert 130 < reliability_dof(white, ones, ones)[0] < 240                # 180 from 40 draws
-    few = np.where(np.arange(m) < 4, 1.0, 1e-6)[:, None]                    # 4 vertices: 12 coordinates
-    assert 8 < reliability_dof(white, ones, few)[0] < 17
-    assert reliability_dof(white[:1], ones, ones)[0] == np.inf
-
-
-def test_the_unshrinking_goes_no_further_than_the_factors_own_error_permits():
-    """The fitted personalization ``d = h D + e`` at a small data share ``h``, its noise ``e`` of few degrees
-    of freedom (the factor read over a few correlated vertices): the factor's draws scatter by ``(1 - f)
-    sqrt(2 / nu)``, and factor / h (:func:`usdface.transfer.trust.unshrunk` without the degrees of freedom)
-    takes a draw of 0.2 to 1 where the scale nearest the person's is 0.3-0.5: with them, the scale is nearer
-    that on average, and the shape ends further from the person than the prior (``|c d - D| > |D|``, the
-    product rule's break) less often. At a data share of 1 there is nothing to undo (the factor, to the bit);
-    at a large share with many degrees of freedom the factor is precise and factor / h stands."""
-    from usdface.transfer.trust import unshrunk
-
-    rng = np.random.default_rng(11)
-    nu, draws = 6, 4000
-    person = np.zeros(nu)
-    person[0] = 1.0                                                # D, along one of the noise's patterns
-    for h, sigma in ((0.15, 0.24), (0.3, 0.33)):                 # best scale h / (h^2 + nu sigma^2) ~ 0.4
-        d = h * person + rng.normal(size=(draws, nu)) * sigma      # d = h D + e, E|e|^2 = nu sigma^2
-        power = np.sum(d * d, axis=1)
-        factor = np.clip(1.0 - nu * sigma ** 2 / power, 0.0, 1.0)
-        best = d @ person / power                                  # the scale of d nearest D
-        shares = np.full(draws, h)
-        old, new = unshrunk(factor, shares), unshrunk(factor, shares, np.full(draws, float(nu)))
-        assert np.all(new <= old + 1e-12) and np.all(new >= np.minimum(factor, old) - 1e-12)
-        assert np.mean(np.abs(new - best)) < 0.95 * np.mean(np.abs(old - best))       # measured 0.93, 0.86
-        worse = {name: np.mean(np.sum((c[:, None] * d - person) ** 2, axis=1) > 1.0)
-                 for name, c in (("old", old), ("new", new))}
-        assert worse["new"] < 0.7 * worse["old"], worse                                # 0.64, 0.58
-    factor = rng.uniform(0.0, 1.0, 200)
-    np.testing.assert_array_equal(unshrunk(factor, np.ones(200), np.full(200, 3.0)), factor)
-    np.testing.assert_allclose(unshrunk(factor, np.full(200, 0.9), np.full(200, 1e6)),
-                               unshrunk(factor, np.full(200, 0.9)), atol=2e-3)
-
-
 def test_the_loo_trust_reads_the_fits_error_in_the_avatar_frame(monkeypatch):
     """The personalization reaches :func:`usdface.transfer.trust.shape_trust` in the avatar frame (the
     registration's similarity, scale ``s``), the fit's leave-one-frame-out error in capture metres: the trust

@@ -27,9 +27,7 @@ from .fit import (
     fit_blendshapes,
     frame_error_variance,
     james_stein,
-    loo_residuals,
     regularization_weights,
-    reliability_dof,
     take_frame_noise,
     take_white_noise,
     weight_leak_direction,
@@ -1160,19 +1158,6 @@ def _shape_confidence(capture, points, weights, generic, D, prior_deltas, lam, i
     coords = np.shape(prior_deltas)[-1]
     variance = spread(lam) * coords * (float(loo) * 1e-3) ** 2                              # [m,K] m^2
     prior = np.asarray(prior_deltas)[:, cand]
-    # how many degrees of freedom the factor's noise energy has (its sampling error: trust.unshrunk), from
-    # the distinct frames' leave-one-frame-out residuals (the noise's correlation between the vertices)
-    if getattr(capture, "whole_take", False):
-        return share, lambda deltas: james_stein(np.asarray(deltas)[:, cand] - prior, variance, w)
-    if cv is not None and "fit" in cv:
-        res = cv["fit"].loo_residuals(lam)
-        groups = cv["fit"].frame_groups()
-    else:
-        res = loo_residuals(capture.neutral[cand], points[:, cand], weights, prior, D[:, cand], lam)
-        groups = distinct_frames(weights, res)
-    if groups is not None:
-        res = res[groups[0]]
-    info["reliability_dof"] = reliability_dof(res, variance, w)
     return share, lambda deltas: james_stein(np.asarray(deltas)[:, cand] - prior, variance, w)
 
 

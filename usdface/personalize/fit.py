@@ -30,7 +30,7 @@ from .align import distinct_frames
 
 __all__ = ["regularization_weights", "fit_blendshapes", "FitSystem", "loo_residuals", "PositionFit", "blend",
            "project", "weight_basis", "reduced_normal_matrix", "data_share", "estimate_variance",
-           "james_stein", "reliability_dof"]
+           "james_stein"]
 
 #: How many of the weights' errors (frame, shape) span the leak's largest pattern in a shape
 #: (:func:`weight_leak_direction`): the few that carry it (1.4-5 effective draws on the generated captures).
@@ -492,35 +492,6 @@ def james_stein(personalization: np.ndarray, variance: np.ndarray, vertex_weight
     power = np.einsum("mk,kmc,kmc->k", w, D, D) / total
     var = np.sum(w * np.asarray(variance, dtype=np.float64), axis=0) / total
     return np.clip(1.0 - var / np.maximum(power, 1e-300), 0.0, 1.0)
-
-
-def reliability_dof(residuals: np.ndarray, variance: np.ndarray, vertex_weights: np.ndarray) -> np.ndarray:
-    """``[K]``: the degrees of freedom of the noise energy :func:`james_stein` reads for each shape, the
-    Satterthwaite count ``(tr S)^2 / tr(S^2)`` of its covariance ``S`` over the vertices and coordinates
-    (one degree per vertex coordinate if the noise were independent from vertex to vertex, fewer where it is
-    correlated or where a few vertices hold the weight).
-
-    ``residuals[G,m,c]`` (metres): independent draws of the frames' noise, the leave-one-frame-out residuals
-    of the distinct frames, which give its correlation between vertices; ``variance[m,K]`` (m^2) the
-    estimate's variance and ``vertex_weights[m,K]`` (>= 0) the weights the factor averages with (as
-    :func:`james_stein`). The draws normalised per vertex (each vertex's mean squared residual), ``S_k`` is
-    read through their Gram matrix ``Q_gh = sum_v u_vk r_g(v).r_h(v) / s_v`` (``u = w var``) with the
-    unbiased estimates of ``(tr S)^2`` and ``tr S^2`` from distinct pairs of draws (Chen, Zhang & Zhong 2010:
-    not bounded by the number of draws, as the plain ratio of ``Q`` is). At least 1; ``inf`` with fewer than
-    two draws."""
-    R = np.asarray(residuals, dtype=np.float64)
-    u = np.asarray(vertex_weights, dtype=np.float64) * np.asarray(variance, dtype=np.float64)      # [m,K]
-    G = len(R)
-    if G < 2:
-        return np.full(u.shape[1], np.inf)
-    s = np.einsum("gvc,gvc->v", R, R) / G                                                  # [m]
-    u = u / np.maximum(s, 1e-300)[:, None]
-    Q = np.einsum("gvc,hvc,vk->kgh", R, R, u, optimize=True)                               # [K,G,G]
-    diag = np.einsum("kgg->kg", Q)
-    pairs = G * (G - 1)
-    trace2 = (diag.sum(axis=1) ** 2 - np.sum(diag ** 2, axis=1)) / pairs                 # (tr S)^2
-    square = (np.einsum("kgh,kgh->k", Q, Q) - np.sum(diag ** 2, axis=1)) / pairs         # tr S^2
-    return np.maximum(trace2 / np.maximum(square, 1e-300), 1.0)
 
 
 def loo_residuals(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray, generic_deltas: np.ndarray,

@@ -111,7 +111,7 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     return np.where(risky, np.minimum(before, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0)), before)
 
 
-def unshrunk(factor, share, dof=None) -> np.ndarray:
+def unshrunk(factor, share) -> np.ndarray:
     """``[K]`` in [0, 1]: the James-Stein ``factor[K]`` of the fit's personalization against its frames'
     noise (``FitResult.info["shape_reliability"]``) as the scale of the *person's* personalization.
 
@@ -126,29 +126,10 @@ def unshrunk(factor, share, dof=None) -> np.ndarray:
     size, which the factor reads, is what a capture has. The weights' leak (:func:`leak_trust`) and their
     sensitivity (:func:`sensitivity_trust`) are one weight error of one frame each, a single draw whose
     energy has one degree of freedom (one capture in twelve three times its expectation): their budget
-    (:func:`weight_error_trust`), read from the expectation, stays a cap.
-
-    ``dof[K]`` (``FitResult.info["reliability_dof"]``, :func:`usdface.personalize.fit.reliability_dof`): the
-    degrees of freedom ``nu`` of the noise energy the factor reads. The factor is then an estimate that
-    scatters by about ``(1 - f) sqrt(2 / nu)`` (its energy a scaled chi-square), amplified by ``1 / h``: the
-    shape ends further from the person than the prior where the scale passes twice the person's, so the
-    undoing stops at twice the scale the factor's lower bound at ``SIGNIFICANCE`` gives (``1 - (1 - f)
-    q_nu``, ``q_nu`` the chi-square's upper quantile over ``nu``), never below the factor itself; with many
-    degrees of freedom the bound is the factor and factor / h stands, at ``h = 1`` the factor is the scale."""
+    (:func:`weight_error_trust`), read from the expectation, stays a cap."""
     f = np.asarray(factor, dtype=np.float64)
     h = np.asarray(share, dtype=np.float64)
-    full = f / np.maximum(h, 1e-300)
-    if dof is not None:
-        # the factor's sampling error: its energy a scaled chi-square of ``dof`` degrees of freedom; the
-        # factor's lower bound at ``SIGNIFICANCE``, ``1 - (1 - f) q``, and the scale that would end the shape
-        # no further from the person than the prior (twice the person's scale) at that bound
-        from scipy.stats import chi2
-
-        nu = np.clip(np.asarray(dof, dtype=np.float64), 1e-9, 1e12)           # inf: a precise factor
-        q = chi2.ppf(1.0 - SIGNIFICANCE, nu) / nu
-        bound = np.clip(1.0 - (1.0 - f) * q, 0.0, 1.0)
-        full = np.minimum(full, np.maximum(f, 2.0 * bound / np.maximum(h, 1e-300)))
-    return np.where(h > 0, np.minimum(1.0, full), 0.0)
+    return np.where(h > 0, np.minimum(1.0, f / np.maximum(h, 1e-300)), 0.0)
 
 
 def _moving(deltas, prior, moving):
@@ -202,9 +183,7 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
                 # the share stood in for the weights' noise; measured, the errors set the trust themselves
                 reliability = np.clip(np.asarray(fit.info["shape_reliability"])[cap_idx], 0.0, 1.0)
                 if fit.info.get("data_share") is not None:
-                    dof = fit.info.get("reliability_dof")
-                    reliability = unshrunk(reliability, np.asarray(fit.info["data_share"])[cap_idx],
-                                           None if dof is None else np.asarray(dof)[cap_idx])
+                    reliability = unshrunk(reliability, np.asarray(fit.info["data_share"])[cap_idx])
                 leak = np.asarray(leak)[:, cap_idx]
                 if fit.info.get("contact_correction") is not None:
                     # the weights' budget is of the fit before the contact step; the correction's part the
