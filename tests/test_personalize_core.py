@@ -65,6 +65,31 @@ def test_partial_dt_keeps_fixed_vertices(mesh):
         solver.solve(np.tile(np.eye(3), (len(tris), 1, 1)))
 
 
+@pytest.mark.parametrize("fixed", [False, True])
+def test_dt_in_groups_of_shapes_is_the_transfer_of_every_shape_at_once(mesh, monkeypatch, fixed):
+    """:meth:`PoissonSolver.solve_transfer` takes the shapes in groups within ``dt.SHAPE_BLOCK_BYTES`` (a
+    74.5k-vertex capture's 51 shapes took ~1.1 GB at once): groups of one and of two shapes (five shapes,
+    a screened and a pinned solver) give every shape's transfer of one group, to rounding."""
+    from usdface.personalize import dt as dt_module
+
+    pts, tris = mesh
+    rng = np.random.default_rng(3)
+    smooth = np.sin(40 * pts[:, :1]) * np.cos(30 * pts[:, 1:2])
+    deltas = np.stack([0.002 * smooth * rng.normal(size=3) + 1e-4 * rng.normal(size=pts.shape)
+                       for _ in range(5)])
+    target = pts * [1.2, 0.9, 1.1] + 0.01
+    idx = np.arange(0, 12) if fixed else None
+    solver = PoissonSolver(target, tris, fixed=idx)
+    kw = {"fixed_deltas": rng.normal(size=(5, 12, 3)) * 1e-4} if fixed else {}
+    whole = deformation_transfer(pts, deltas, target, tris, solver=solver, eyelids=False, **kw)
+    assert dt_module.SHAPE_BLOCK_BYTES >= 8 * 8 * 3 * len(tris) * len(deltas)    # the premise: one group
+    for shapes in (1, 2):
+        monkeypatch.setattr(dt_module, "SHAPE_BLOCK_BYTES", 8 * 8 * 3 * len(tris) * shapes)
+        grouped = deformation_transfer(pts, deltas, target, tris, solver=solver, eyelids=False, **kw)
+        np.testing.assert_allclose(grouped, whole, rtol=0, atol=1e-15)
+    assert np.abs(whole).max() > 1e-3
+
+
 def test_zip_loop_and_eyelid_detection():
     # a ring of 8 points around an "eye" hole whose upper lid closes in the blink shape
     ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)

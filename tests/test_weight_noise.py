@@ -782,3 +782,48 @@ def test_the_fit_decomposes_its_shapes_once_for_the_noise_and_the_test_frames(sa
     assert "test_amplitude" in fit.info
     assert not any(v["applied"] for v in fit.info["contact"]["shapes"].values())
     assert len(calls) == 1, calls
+
+
+def test_a_fit_and_its_frames_variance_in_blocks_of_vertices_are_the_whole_ones(monkeypatch):
+    """Each vertex's system is its own, so :func:`usdface.personalize.fit.fit_blendshapes` without a
+    caller's system, :func:`frame_error_variance` and the kept gain's ``M^-1`` (``FitSystem(gain=True)``,
+    ``M`` never whole) go a block of vertices at a time within ``fit.BLOCK_BYTES`` (a 74.5k-vertex capture's
+    ``[n,r,r]`` systems, their solve's copy and the sandwich's products took ~1.4 GB at once): blocks of 7
+    vertices give the one block's shapes, variances and inverse to rounding, the fit's peak allocation
+    (tracemalloc) falls by more than the whole ``M``, and a fit with the kept gain is the fresh one."""
+    import tracemalloc
+
+    from usdface.personalize import fit as fit_module
+    from usdface.personalize.fit import _reduced_matrices, fit_block_vertices, frame_error_variance
+
+    neutral, deltas, weights, points, reg_weights, reg, _, _ = _leak_problem(seed=9, n=3000)
+    prior = 0.5 * deltas
+    energy = np.abs(np.random.default_rng(9).normal(size=(len(weights), deltas.shape[1]))) * 1e-6
+    basis = fit_module._reduced_basis(weights)
+    n, r = deltas.shape[1], basis[0].shape[1]
+    assert fit_block_vertices(weights, basis) >= n                # the premise: by default, one block
+
+    def traced():
+        tracemalloc.start()
+        out = fit_blendshapes(neutral, points, weights, prior, reg_weights, reg)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        return out, peak
+
+    whole, peak_whole = traced()
+    var_whole = frame_error_variance(weights, reg_weights, reg, energy)
+    M = _reduced_matrices(basis[1], basis[2], reg_weights, reg)[2]
+    monkeypatch.setattr(fit_module, "BLOCK_BYTES", 7 * 8 * (3 * r * r + 3 * (len(weights) + r) + len(deltas)))
+    assert fit_block_vertices(weights, basis) == 7
+    blocks, peak = traced()
+    np.testing.assert_allclose(blocks, whole, rtol=0, atol=1e-14)
+    assert peak_whole - peak > 8 * n * r * r, (peak, peak_whole)
+    np.testing.assert_allclose(frame_error_variance(weights, reg_weights, reg, energy), var_whole, rtol=1e-12)
+    kept = FitSystem(weights, reg_weights, reg, gain=True)
+    assert kept.M is None
+    np.testing.assert_allclose(kept.inverse, np.linalg.inv(M), rtol=1e-12, atol=1e-15)
+    fitted = fit_blendshapes(neutral, points, weights, prior, reg_weights, reg, system=kept)
+    np.testing.assert_allclose(fitted, whole, rtol=0, atol=1e-14)
+    variance = frame_error_variance(weights, reg_weights, reg, energy, system=kept)
+    np.testing.assert_allclose(variance, var_whole, rtol=1e-12)
+    assert np.abs(whole - prior).max() > 1e-4

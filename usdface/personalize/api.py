@@ -733,6 +733,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             moving = change > 0.01 * np.maximum(change.max(axis=0), 1e-300)
             info["weight_leak_direction"], info["weight_leak_along"] = weight_leak_direction(
                 w_cur, D_fit, lam, deltas, variance, moving, system=final_system)
+            final_system = None                 # its [n,r,r] inverse: not needed past the leak
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()
         elif sensitivity and method == "menzel" and frame_weights is not None and len(w_cur):

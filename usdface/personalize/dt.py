@@ -32,6 +32,18 @@ from ..mesh import (
 __all__ = ["PoissonSolver", "eyelid_triangles", "zip_loop", "deformation_transfer"]
 
 
+#: The bytes :meth:`PoissonSolver.solve_transfer`'s per-triangle arrays of one group of shapes may take.
+SHAPE_BLOCK_BYTES = 64e6
+
+
+def _shapes(values, group: slice):
+    """``values[group]`` of per-shape ``values[m,...,3]`` (3-d), else ``values`` itself (None, or one
+    ``[n,3]`` array or ``[1,n,3]`` for every shape)."""
+    if values is None or np.ndim(values) < 3 or len(values) == 1:
+        return values
+    return np.asarray(values)[group]
+
+
 class PoissonSolver:
     """Sumner & Popović (2004), eq. (5): least-squares reconstruction of points from per-triangle
     deformation gradients on a fixed rest mesh (the linear system shared by DT, EBFR and partial DT).
@@ -113,26 +125,38 @@ class PoissonSolver:
         (Sumner & Popović eq. 3, :func:`usdface.mesh.deformation_gradients`, on this solver's triangles),
         without forming them: ``G^T W Q`` is assembled per triangle as ``V~ (a V^-1 c_k)`` for its three
         vertices k (``c_k`` the gradient coefficients), one sparse scatter for all shapes. Same result as
-        ``solve(deformation_gradients(source, deformed, triangles))`` up to rounding. Returns ``[m,n,3]``."""
+        ``solve(deformation_gradients(source, deformed, triangles))`` up to rounding. Returns ``[m,n,3]``.
+
+        The shapes go through in groups whose per-triangle arrays (``[t,g,3]``, eight of them) stay within
+        :data:`SHAPE_BLOCK_BYTES`: every column is its own (the scatter and the solve act column by column),
+        and a 74.5k-vertex capture's 51 shapes took ~1.1 GB at once; dev1-dev3's are one group."""
         tri = self.triangles
         n, t = len(self.rest), len(tri)
         P = np.asarray(deformed, dtype=np.float64).reshape(-1, n, 3)
         m = P.shape[0]
         # u[f,k] = a_f V_f^-1 c_k[f]: the rest-side factor of triangle f's contribution to its vertex k
         u = self.area[:, None, None] * np.einsum("tij,tkj->tki", inverse_rest_frames(source, tri), self.C)
-        e1, e2, e3 = frame_vectors(np.ascontiguousarray(P.transpose(1, 0, 2)), tri, axis=0)   # [t,m,3]
-        contrib = np.empty((3, t, m, 3))
-        term = np.empty((t, m, 3))
-        for k in range(3):                # e1 u_k0 + e2 u_k1 + e3 u_k2, summed in that order, in place
-            c = contrib[k]
-            np.multiply(e1, u[:, k, 0, None, None], out=c)
-            c += np.multiply(e2, u[:, k, 1, None, None], out=term)
-            c += np.multiply(e3, u[:, k, 2, None, None], out=term)
         if self._scatter is None:      # [n, 3t]: contribution (k, f) goes to vertex tri[f, k]
             self._scatter = sp.csr_matrix((np.ones(3 * t), (tri.T.ravel(), np.arange(3 * t))),
                                           shape=(n, 3 * t))
-        B = (self._scatter @ contrib.reshape(3 * t, 3 * m)).reshape(n, m, 3)
-        return self._solve_rhs(B, reference, fixed_points)
+        group = max(1, int(SHAPE_BLOCK_BYTES // (8 * 8 * 3 * max(t, 1))))
+        out = []
+        for lo in range(0, m, group):
+            g = slice(lo, lo + group)
+            e1, e2, e3 = frame_vectors(np.ascontiguousarray(P[g].transpose(1, 0, 2)), tri, axis=0)  # [t,g,3]
+            mg = e1.shape[1]
+            contrib = np.empty((3, t, mg, 3))
+            term = np.empty((t, mg, 3))
+            for k in range(3):                # e1 u_k0 + e2 u_k1 + e3 u_k2, summed in that order, in place
+                c = contrib[k]
+                np.multiply(e1, u[:, k, 0, None, None], out=c)
+                c += np.multiply(e2, u[:, k, 1, None, None], out=term)
+                c += np.multiply(e3, u[:, k, 2, None, None], out=term)
+            del e1, e2, e3, term
+            B = (self._scatter @ contrib.reshape(3 * t, 3 * mg)).reshape(n, mg, 3)
+            del contrib
+            out.append(self._solve_rhs(B, _shapes(reference, g), _shapes(fixed_points, g)))
+        return out[0] if len(out) == 1 else np.concatenate(out)
 
     def _solve_rhs(self, B, reference, fixed_points):
         """Solve ``A X = B`` (``B[n,m,3]`` = ``G^T W Q``) with the screening / fixed vertices -> ``[m,n,3]``.

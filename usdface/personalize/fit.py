@@ -130,6 +130,23 @@ def _reduced_matrices(s, Q, D, reg):
     return B, inv_l, M
 
 
+def _reduced_inverse_blocks(s, Q, D, reg):
+    """``(B[K,r], inv_l[n,K], M^-1[n,r,r])``: :func:`_reduced_matrices`' ``B`` and ``inv_l`` and the inverse
+    of its ``M``, formed and inverted a block of vertices at a time (:data:`BLOCK_BYTES`), so that ``M``
+    itself is never whole (per vertex the same arithmetic as inverting :func:`_reduced_matrices`' ``M``)."""
+    B = Q * s
+    inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
+    n, r = len(inv_l), len(s)
+    inverse = np.empty((n, r, r))
+    step = max(1, int(BLOCK_BYTES // (8 * 3 * max(r, 1) ** 2)))
+    for lo in range(0, n, step):
+        v = slice(lo, min(lo + step, n))
+        M = reduced_normal_matrix(inv_l[v], B)
+        M.reshape(len(M), -1)[:, ::r + 1] += 1.0                                      # the diagonals
+        inverse[v] = np.linalg.inv(M)
+    return B, inv_l, inverse
+
+
 def _direct_matrices(W, D, reg):
     """``(A[n,K,K], L[n,K])``: the K x K systems ``A_v = W^T W + L_v`` of eqs. (1)+(2), ``L = reg D^2``."""
     L = reg * np.asarray(D, dtype=np.float64).T ** 2                                 # [n,K]
@@ -155,8 +172,7 @@ def _reduced_solve(W, R, T, system, extra_rhs: bool):
     if not r:
         X = rhs
     elif system.gain:
-        system.inverse = np.linalg.inv(M)               # M^-1, kept for the leak (weight_leak_variance)
-        X = np.matmul(system.inverse, rhs)
+        X = np.matmul(system.inverse, rhs)              # M^-1, formed with the system (FitSystem)
     else:
         X = np.linalg.solve(M, rhs)
     return P, B, inv_l, e0, X
@@ -181,6 +197,19 @@ def _reduced_basis(W: np.ndarray):
     return basis if len(basis[1]) <= REDUCED_MAX_RANK * W.shape[1] else None
 
 
+_UNSET = object()
+
+
+def fit_block_vertices(weights: np.ndarray, basis) -> int:
+    """Vertices per block of a fit without a caller's system (:func:`fit_blendshapes`): its per-vertex
+    systems (``M[v,r,r]`` and the solve's copy and the product that forms it, or ``A[v,K,K]``), right-hand
+    sides and residuals within :data:`BLOCK_BYTES` (at least one). A 74.5k-vertex capture's ``[n,r,r]``
+    systems took ~1.4 GB at once; dev1-dev3's 1,203 and the sample's capture are one block."""
+    F, K = np.shape(weights)
+    size = len(basis[1]) if basis is not None else K
+    return max(1, int(BLOCK_BYTES // (8 * (3 * size * size + 3 * (F + size) + K))))
+
+
 class FitSystem:
     """Eqs. (1)+(2)'s per-vertex systems at one ``weights[F,K]``, ``reg_weights[K,n]`` (D of eq. 3) and
     ``reg``, built once for the fit (:func:`fit_blendshapes`) and the extras that need the same matrices
@@ -191,20 +220,28 @@ class FitSystem:
     ``gain=True`` keeps the ridge's gain ``A_v^-1 W^T`` from the fit's own factorization, for the weights'
     leak: ``inverse = M^-1`` ``[n,r,r]`` (the fit applies it, one batched inverse instead of an LU solve
     and then the inverse; the same products up to rounding) or ``G = A^-1 W^T`` ``[n,K,F]`` (extra
-    right-hand sides of the fit's one LU solve). Both None until the fit ran (or without ``gain``)."""
+    right-hand sides of the fit's one LU solve). ``G`` is None until the fit ran (or without ``gain``);
+    with ``gain`` in the basis ``inverse`` is formed here, a block of vertices at a time, and ``M`` is None
+    (at 74.5k capture vertices each is 0.47 GB: ``M`` whole beside its inverse took twice that)."""
 
-    def __init__(self, weights, reg_weights, reg: float, *, gain: bool = False):
+    def __init__(self, weights, reg_weights, reg: float, *, gain: bool = False, basis=_UNSET):
         self.weights = np.asarray(weights, dtype=np.float64)
         self.reg_weights = reg_weights
         self.reg = float(reg)
         self.gain = bool(gain)
         self.inverse = self.G = None
-        self.basis = _reduced_basis(self.weights)
+        # ``basis``: :func:`_reduced_basis` of these weights when the caller has it (a blocked fit's blocks)
+        self.basis = _reduced_basis(self.weights) if basis is _UNSET else basis
         if self.basis is None:
             self.A, self.L = _direct_matrices(self.weights, reg_weights, reg)
         else:
             _, s, Q = self.basis
-            self.B, self.inv_l, self.M = _reduced_matrices(s, Q, reg_weights, reg)
+            if self.gain and len(s):
+                # the gain's M^-1 formed block by block, M never whole (_reduced_solve applies it)
+                self.B, self.inv_l, self.inverse = _reduced_inverse_blocks(s, Q, reg_weights, reg)
+                self.M = None
+            else:
+                self.B, self.inv_l, self.M = _reduced_matrices(s, Q, reg_weights, reg)
 
     def holds(self, weights, reg_weights, reg: float) -> bool:
         """Whether these are this system's ``weights``, ``reg_weights`` and ``reg`` (to the bit)."""
@@ -226,9 +263,25 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
     built it (with ``gain``, it keeps the gain for :func:`weight_leak_variance`).
     """
     W = np.asarray(weights, dtype=np.float64)
+    if system is None:
+        # every vertex's system is its own: solved a block of vertices at a time (fit_block_vertices), each
+        # block's the same arithmetic as one call over every vertex
+        basis = _reduced_basis(W)
+        neutral = np.asarray(neutral, dtype=np.float64)
+        step = fit_block_vertices(W, basis)
+        if step < len(neutral):
+            points, generic_deltas = np.asarray(points), np.asarray(generic_deltas)
+            D = np.asarray(reg_weights)
+            out = np.empty(generic_deltas.shape, dtype=np.float64)
+            for lo in range(0, len(neutral), step):
+                v = slice(lo, lo + step)
+                out[:, v] = fit_blendshapes(neutral[v], points[:, v], W, generic_deltas[:, v], D[:, v], reg,
+                                            system=FitSystem(W, D[:, v], reg, basis=basis))
+            return out
+        system = FitSystem(W, reg_weights, reg, basis=basis)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    sys_ = FitSystem(W, reg_weights, reg) if system is None else system
+    sys_ = system
     if sys_.basis is None:
         # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal);
         # with the gain, A^-1 W^T as extra right-hand sides of the same solve
@@ -412,11 +465,17 @@ def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     # frames is inv_l_vj^2 (B C_v B^T)_jj with C_v = M_v^-1 (P^T diag(E_v) P) M_v^-1: r x r per vertex, no
     # [n,K,F] array
     pp = (P[:, :, None] * P[:, None, :]).reshape(len(P), r * r)                       # [F, r^2]
-    # one batched inverse (the fit's, if it kept it), then two stacked products
-    inv_m = np.linalg.inv(M) if system.inverse is None else system.inverse
-    C = inv_m @ (energy.T @ pp).reshape(n, r, r) @ inv_m
     bb = (B[:, :, None] * B[:, None, :]).reshape(len(B), r * r)                       # [K, r^2]
-    return inv_l ** 2 * (C.reshape(n, r * r) @ bb.T)
+    # one batched inverse (the fit's, if it kept it), then two stacked products, a block of vertices at a
+    # time (three [v,r,r] arrays within BLOCK_BYTES: 1.4 GB at once on a 74.5k-vertex capture)
+    out = np.empty_like(inv_l)
+    step = max(1, int(BLOCK_BYTES // (8 * 3 * r * r)))
+    for lo in range(0, n, step):
+        v = slice(lo, min(lo + step, n))
+        inv_m = np.linalg.inv(M[v]) if system.inverse is None else system.inverse[v]
+        C = inv_m @ (energy[:, v].T @ pp).reshape(-1, r, r) @ inv_m
+        out[v] = inv_l[v] ** 2 * (C.reshape(-1, r * r) @ bb.T)
+    return out
 
 
 def take_frame_noise(offsets: np.ndarray, weights: np.ndarray, omega: np.ndarray) -> float:
