@@ -249,6 +249,45 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     assert "must end in .json" in capsys.readouterr().err and not (tmp_path / "r.txt").exists()
 
 
+def plain_worker(item: dict) -> None:
+    """A studio step as pipeline.md shows one: writes ``output`` with a plain write (no folder made), or, for
+    avatars named ``none*``, returns without writing it (a step that forgot to, or wrote elsewhere)."""
+    if Path(item["avatar"]).name.startswith("none"):
+        return
+    Path(item["output"]).write_text("the studio's layer")
+
+
+def test_a_studio_worker_gets_its_output_folder_and_must_write_its_output(tmp_path, capsys):
+    """A TD's trial (stop 51): ``usdface batch m.csv --worker studio:step`` over rows writing ``out/a.usda``
+    with no ``out/`` yet failed every row ``FileNotFoundError`` (personalize makes its output's folders; a
+    studio worker was given none), and a worker that returned without writing its output was counted
+    ``done`` (resume then ran it again every time, and the report said done). The folders are made before
+    the worker runs (and taken away when the item fails); an item whose output is missing afterwards fails,
+    naming the worker and the fix."""
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\na.usdc,a_cap,out/a.usda\nnone.usdc,n_cap,out/none.usda\n"
+                        "b.usdc,b_cap,out/deeper/b.usda\n")
+    worker = f"{__name__}:plain_worker"
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 1
+    out = capsys.readouterr().out
+    assert "2 done, 0 skipped, 1 failed" in out
+    assert (tmp_path / "out" / "a.usda").read_text() == "the studio's layer"
+    assert (tmp_path / "out" / "deeper" / "b.usda").exists()
+    report = json.loads((tmp_path / "m.report.json").read_text())
+    none = report["items"][1]
+    assert none["status"] == FAILED and none["error_type"] == "NoOutput"
+    assert f"{__name__}:plain_worker returned without writing" in none["error"] and "fix:" in none["error"]
+    assert "none.usda" in none["error"]
+    # resume: the two written are skipped, the one without output is retried (and fails again)
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 1
+    assert "0 done, 2 skipped, 1 failed" in capsys.readouterr().out
+    # a failed item leaves no folder it made behind
+    alone = tmp_path / "alone.csv"
+    alone.write_text("avatar,capture,output\nnone.usdc,n_cap,new/sub/none.usda\n")
+    assert main(["batch", str(alone), "-j", "1", "-q", "--worker", worker]) == 1
+    assert not (tmp_path / "new").exists()
+
+
 def warning_worker(item: dict):
     """Writes ``output`` and warns (a capture with repeated frames), and returns a result whose report
     holds a note of its own (as :func:`usdface.api.personalize_avatar`'s does)."""
