@@ -598,8 +598,20 @@ def test_review_plays_the_take_the_layer_was_written_with(tmp_path):
     # said where the command runs too: the page alone said it, and 'review' printed only 'wrote ...'
     with pytest.warns(UserWarning, match=r"person.usda: the take recorded .*\(../takes/t.csv\) was not"):
         data = collect_review(out, fit_errors=False)
-    assert not [s for s in data.sequences if s.title.startswith("take ")]
     assert any("take recorded" in n and "not found" in n for n in data.notes)
+    # a TD's trial (stop 51): the layer published without the take file played no take, although its
+    # inspection animation holds every frame of it (after the test expressions): it plays from there, the
+    # same weights at the same times on the avatar's channels
+    kept = [s for s in data.sequences if s.title.startswith("take ")]
+    assert [s.title for s in kept] == ["take t.csv (as the layer holds it)"]
+    cols = [kept[0].names.index(n) for n in names]
+    assert np.allclose(kept[0].weights[:, cols], weights, atol=1e-6)
+    assert np.allclose(kept[0].times, np.arange(4) / 30.0, atol=1e-9)
+    assert np.allclose(np.delete(kept[0].weights, cols, axis=1), 0.0)
+    assert main(["review", str(out), "-o", str(tmp_path / "moved.html"), "-q"]) == 0
+    page = _payload((tmp_path / "moved.html").read_text())
+    assert [q["title"] for q in page["sequences"] if q["title"].startswith("take ")] == [
+        "take t.csv (as the layer holds it)"]
 
 
 def test_review_refuses_a_take_as_capture_without_first_warning_about_it(tmp_path):

@@ -157,38 +157,35 @@ def _fitted(info: dict) -> bool:
     return str(info.get("method") or params.get("method") or "menzel") in METHODS
 
 
-def layer_test_expressions(layer_path, info: dict, avatar) -> tuple | None:
-    """The capture's test expressions as the layer itself holds them, for when the capture it records is
-    gone: ``(names[K], weights[F, K], labels[F])``, the first F frames of its inspection animation
-    (``personalize --inspect`` or ``--take`` plays the capture's test expressions first, one every
-    ``hold`` seconds: :func:`usdface.io.usd_inspection.inspection_animation`), F the test expressions its
-    provenance scored (``fitTestExpressions``), the columns the avatar's channels (``avatar``: the
-    personalized variant, whose channel tokens name them as the page's meshes do). None when the layer has
-    no such animation or scored none."""
+def _layer_animation(layer_path, avatar) -> tuple | None:
+    """The layer's inspection animation (``personalize --inspect`` or ``--take``) as the page's meshes name
+    its channels: ``(names[K], weights[F, K], codes[F] time codes, time codes per second)``, the columns the
+    avatar's channels (``avatar``: the personalized variant, whose channel tokens name them as the page's
+    meshes do; a channel of two skeletons' animations read once). None when the layer has none, or its
+    skeletons' animations disagree on their samples."""
     from pxr import UsdSkel
 
     from ..io.usd_inspection import ANIMATION_NAME
     from ..io.usd_open import open_usd_stage
 
-    scored = info.get("fitTestExpressions")
-    labels = [str(x) for x in (scored.get("labels") or [])] if isinstance(scored, dict) else []
     paths = sorted({str(m.source.animation) for m in avatar.meshes if m.source is not None
                     and m.source.animation and str(m.source.animation).rsplit("/", 1)[-1] == ANIMATION_NAME})
-    if not labels or not paths:
+    if not paths:
         return None
     canonical = {}            # a channel token -> the name the page's meshes use
     for rig in avatar.meshes:
         tokens = (rig.source.channel_tokens if rig.source is not None else None) or rig.names
         canonical.update(zip(tokens, rig.names, strict=True))
     stage = open_usd_stage(layer_path, "layer", "check the path")
-    names, columns = [], []
-    for path in paths:        # one animation per Skeleton; a channel of two skeletons read once
+    names, columns, first = [], [], None
+    for path in paths:        # one animation per Skeleton, authored on one timeline
         anim = UsdSkel.Animation(stage.GetPrimAtPath(path))
         attr = anim.GetBlendShapeWeightsAttr() if anim else None
-        codes = attr.GetTimeSamples() if attr else []
-        if len(codes) < len(labels):
+        codes = list(attr.GetTimeSamples()) if attr else []
+        if not codes or (first is not None and codes != first):
             return None
-        w = np.array([np.asarray(attr.Get(t), dtype=np.float64) for t in codes[:len(labels)]])
+        first = codes
+        w = np.array([np.asarray(attr.Get(t), dtype=np.float64) for t in codes])
         tokens = [str(t) for t in anim.GetBlendShapesAttr().Get() or []]
         if w.ndim != 2 or w.shape[1] != len(tokens):
             return None
@@ -197,7 +194,46 @@ def layer_test_expressions(layer_path, info: dict, avatar) -> tuple | None:
             if name not in names:
                 names.append(name)
                 columns.append(w[:, k])
-    return names, np.stack(columns, axis=1), labels
+    rate = stage.GetTimeCodesPerSecond()
+    return names, np.stack(columns, axis=1), np.asarray(first, dtype=np.float64), rate
+
+
+def _scored_labels(info: dict) -> list[str]:
+    """The labels of the test expressions the layer's provenance scored (``fitTestExpressions``)."""
+    scored = info.get("fitTestExpressions")
+    return [str(x) for x in (scored.get("labels") or [])] if isinstance(scored, dict) else []
+
+
+def layer_test_expressions(layer_path, info: dict, avatar) -> tuple | None:
+    """The capture's test expressions as the layer itself holds them, for when the capture it records is
+    gone: ``(names[K], weights[F, K], labels[F])``, the first F frames of its inspection animation
+    (``personalize --inspect`` or ``--take`` plays the capture's test expressions first, one every
+    ``hold`` seconds: :func:`usdface.io.usd_inspection.inspection_animation`), F the test expressions its
+    provenance scored (``fitTestExpressions``), the columns the avatar's channels (``avatar``: the
+    personalized variant, whose channel tokens name them as the page's meshes do). None when the layer has
+    no such animation or scored none."""
+    labels = _scored_labels(info)
+    held = _layer_animation(layer_path, avatar) if labels else None
+    if held is None or len(held[2]) < len(labels):
+        return None
+    return held[0], held[1][:len(labels)], labels
+
+
+def layer_take(layer_path, info: dict, avatar) -> tuple | None:
+    """The take the layer was written with (``personalize --take``) as its inspection animation holds it,
+    for when the take file it records is gone: ``(names[K], weights[F, K], times[F] seconds from the take's
+    first frame)``, the animation's frames after the capture's test expressions (F of them, those its
+    provenance scored: :func:`usdface.io.usd_inspection.inspection_animation` plays them first, then the
+    take), at the layer's time codes per second. None when the layer records no take or holds no
+    animation, or no frame follows the test expressions."""
+    if not info.get("take"):
+        return None
+    held = _layer_animation(layer_path, avatar)
+    first = len(_scored_labels(info))
+    if held is None or len(held[2]) <= first:
+        return None
+    names, weights, codes, rate = held
+    return names, weights[first:], (codes[first:] - codes[first]) / float(rate or 24.0)
 
 
 def _layer_fit_errors(info: dict) -> dict | None:
@@ -486,9 +522,17 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         refuse_capture_as_take(take, TAKE_NOT_CAPTURE_FIX)
     if take is None and prov.get("take"):   # the take the layer's inspection animation plays
         take = recorded_take(made_from, prov)
-        if take is None:
-            _gone(notes, f"the take recorded in the layer's provenance ({prov['take']}) was not found: not "
-                         "played (pass --take)", layer_path)
+        lost = f"the take recorded in the layer's provenance ({prov['take']}) was not found"
+        # the take moved: the layer's own inspection animation plays it (the page played none, although
+        # the layer holds every frame of it, as the test expressions were played from it since stop 50)
+        kept = layer_take(layer_path, prov, personalized) if take is None else None
+        if kept is not None:
+            sequences.append(Sequence(f"take {Path(str(prov['take'])).name} (as the layer holds it)",
+                                      kept[0], kept[1], kept[2], []))
+            _gone(notes, f"{lost}: it plays as the layer's inspection animation holds it, on the avatar's "
+                         "channels (pass --take TAKE to read it from the take)", layer_path)
+        elif take is None:
+            _gone(notes, f"{lost}: not played (pass --take)", layer_path)
     if take is None and capture is not None:  # a take read whole as the capture: play it
         from ..io.take import whole_take_playback
 
