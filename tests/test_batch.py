@@ -249,6 +249,37 @@ def test_cli_batch_exit_status_and_report(tmp_path, capsys):
     assert "must end in .json" in capsys.readouterr().err and not (tmp_path / "r.txt").exists()
 
 
+def test_a_spreadsheets_other_csv_flavours_read_and_a_workbook_is_named(tmp_path, capsys):
+    """A TD's trial (stop 51): a manifest saved by a spreadsheet in a locale with a decimal comma (``;``
+    between the cells), as "Unicode Text" (UTF-16, tabs) or as the workbook itself (``.xlsx``) ended in
+    ``manifest lacks column(s) ... (has ['avatar;capture;output'])`` or in a ``UnicodeDecodeError``
+    traceback (exit 1). The first two read as the comma CSV does; a workbook, or text in another encoding,
+    is refused naming the file and how to save it (exit 2, nothing run)."""
+    worker = f"{__name__}:stub_worker"
+    rows = [["avatar", "capture", "output", "method"], ["a.usdc", "a_cap", "out/a.usda", "dt"],
+            ["b.usdc", "b_cap", "out/b.usda", "ebfr"]]
+    (tmp_path / "out").mkdir()
+    for name, sep, encoding in (("semi.csv", ";", "utf-8"), ("unicode.txt", "\t", "utf-16")):
+        manifest = tmp_path / name
+        manifest.write_text("\r\n".join(sep.join(r) for r in rows) + "\r\n", encoding=encoding)
+        items = read_manifest(manifest)
+        assert [(Path(i.avatar).name, i.options) for i in items] == [("a.usdc", {"method": "dt"}),
+                                                                       ("b.usdc", {"method": "ebfr"})]
+        assert main(["batch", str(manifest), "-j", "1", "-q", "--force", "--worker", worker]) == 0
+        assert "2 done" in capsys.readouterr().out
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "people.xlsx", "w") as book:
+        book.writestr("xl/workbook.xml", "<workbook/>")
+    latin1 = "avatar,capture,output\nRen\u00e9.usdc,c,o.usda\n".encode("latin-1")
+    (tmp_path / "latin1.csv").write_bytes(latin1)
+    for name, needle in (("people.xlsx", "spreadsheet workbook"), ("latin1.csv", "not UTF-8 text")):
+        assert main(["batch", str(tmp_path / name), "-j", "1", "--worker", worker]) == 2
+        err = capsys.readouterr().err
+        assert f"{name}: manifest is {'a ' if 'work' in needle else ''}{needle}" in err, err
+        assert "fix: save" in err and "Traceback" not in err
+
+
 def plain_worker(item: dict) -> None:
     """A studio step as pipeline.md shows one: writes ``output`` with a plain write (no folder made), or, for
     avatars named ``none*``, returns without writing it (a step that forgot to, or wrote elsewhere)."""

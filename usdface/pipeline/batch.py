@@ -204,6 +204,36 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                                      fix="write outputs outside the input folders")
 
 
+def _manifest_text(path: Path) -> str:
+    """A manifest file's text: UTF-8 (a spreadsheet's "CSV UTF-8" byte-order mark dropped) or UTF-16 with
+    its byte-order mark (a spreadsheet's "Unicode Text"). A spreadsheet workbook (``.xlsx``/``.ods``: a zip)
+    or text in another encoding is refused naming the file and how to save it (a traceback before)."""
+    data = path.read_bytes()
+    if data.startswith(b"PK\x03\x04"):
+        raise InputFileError("manifest is a spreadsheet workbook (a zip file such as .xlsx or .ods), not "
+                             "CSV text", path=path,
+                             fix="save the sheet as 'CSV UTF-8' (or CSV) and pass that file")
+    try:
+        if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+            return data.decode("utf-16")
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"manifest is not UTF-8 text (byte {exc.start} cannot be read: another "
+                             "encoding, or not a text file)", path=path,
+                             fix="save the manifest as 'CSV UTF-8' (or JSON) in UTF-8") from None
+
+
+def _separator(text: str) -> str:
+    """The CSV separator, of ``,``, ``;`` and tab, that splits the first line into fields naming every
+    required column (case and spaces aside); ``,`` when none does (its refusal then lists the columns)."""
+    first = text.lstrip("\r\n").splitlines()[0] if text.strip() else ""
+    for sep in (",", ";", "\t"):
+        names = {f.strip().strip('"').lower() for f in first.split(sep)}
+        if all(c in names for c in REQUIRED):
+            return sep
+    return ","
+
+
 def read_manifest(path) -> list[BatchItem]:
     """Read a batch manifest (``.csv`` or ``.json``); paths resolved against the manifest's folder.
 
@@ -215,9 +245,10 @@ def read_manifest(path) -> list[BatchItem]:
         raise InputFileError("batch manifest not found", path=path,
                              fix="pass a CSV (avatar,capture,output) or JSON manifest")
     base = Path(os.path.abspath(path.parent))
+    text = _manifest_text(path)
     if path.suffix.lower() == ".json":
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise InputFileError(f"manifest is not valid JSON ({exc.msg}, line {exc.lineno})", path=path,
                                  fix="fix the JSON syntax") from None
@@ -228,8 +259,12 @@ def read_manifest(path) -> list[BatchItem]:
     else:
         # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark; skipinitialspace and the
         # stripped header: "avatar, capture, output" names the columns too
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.DictReader(fh, skipinitialspace=True)
+        import io
+
+        with io.StringIO(text, newline="") as fh:
+            # a spreadsheet in a locale with a decimal comma saves "CSV" with semicolons, and "Unicode Text"
+            # with tabs: the separator that makes the header name the required columns
+            reader = csv.DictReader(fh, skipinitialspace=True, delimiter=_separator(text))
             # a spreadsheet's capitalised header ("Avatar,Capture,Output", "Method") names the columns too:
             # every column usdface reads is a lower-case name (stop 47, h52: it was 'lacks column(s)')
             reader.fieldnames = [f.strip().lower() for f in reader.fieldnames or []]
