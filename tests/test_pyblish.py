@@ -549,3 +549,32 @@ def test_a_failed_review_page_takes_the_new_layer_with_it(pyblish_registered, sa
     else:
         assert "p.usda this publish wrote was removed" in said, said
         assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("data, plugin", [
+    ({"force": "no"}, "ValidateUsdFaceOutputs"),
+    ({"review": "no"}, "ValidateUsdFaceOutputs"),
+    ({"inspect": "false "}, "ValidateUsdFaceOutputs"),
+])
+def test_an_instances_flag_given_as_a_word_fails_validation(extractions, tmp_path, samples, data, plugin):
+    """A TD's trial (stop 51): instance data ``force="no"`` (a publish tool's setting as text) replaced the
+    existing layer and its review page, and ``review`` "no" (a manifest cell) wrote the page: both counted
+    as true (``bool("no")``), where personalize's own options refuse a string (api.md). They fail
+    validation now, naming the instance, the flag and how to set it; the layer is untouched."""
+    from usdface.errors import OptionError
+
+    layer = tmp_path / "anna.usda"
+    name = next(iter(data))
+    if name == "force":
+        layer.write_text("#usda 1.0\n")                  # an earlier publish's layer (stands for one)
+    context = pyblish_api.Context()
+    context.data["usdfaceItems"] = [dict({"avatar": str(samples / "avatar.usda"),
+                                          "capture": str(samples / "capture.usda"), "output": str(layer)},
+                                         **data)]
+    pyblish.util.publish(context)
+    error = _results(context)[(plugin, "anna")]["error"]
+    assert isinstance(error, OptionError) and f"bad {name}" in str(error) and "instance anna's" in str(error)
+    assert f"{name}=True or {name}=False" in error.fix
+    assert extractions == []
+    assert layer.read_text() == "#usda 1.0\n" if name == "force" else not layer.exists()
+    assert not (tmp_path / "anna.review.html").exists()

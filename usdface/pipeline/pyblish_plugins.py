@@ -87,12 +87,29 @@ def _personalize_options(instance) -> dict:
     page and the outputs' validator go by too."""
     data = instance.data
     options = dict(data.get("usdfaceOptions") or {})
-    options.setdefault("force", bool(data.get("force", False)))
+    # True or False (None: the default), as personalize's own options: instance data force="no" (or a
+    # manifest cell 'no') counted as true and replaced an existing layer
+    options["force"] = _flag(instance, "force", options) if "force" in options else _flag(instance, "force")
     if "inspect" in data:
-        options.setdefault("inspect", bool(data["inspect"]))
+        options.setdefault("inspect", _flag(instance, "inspect"))
     if data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in the layer as
         options["take"] = data["take"]                  # on the review page
     return options
+
+
+def _flag(instance, name: str, options: dict | None = None) -> bool:
+    """The boolean ``name`` of ``instance``'s data (or of ``options``, its ``usdfaceOptions``): ``True`` or
+    ``False`` (``None``: False), anything else refused naming the instance
+    (:func:`usdface.errors.expect_flag`, the one check of a boolean option): ``force``, ``inspect`` and
+    ``review`` given as ``"no"`` counted as true, so a publish replaced an existing layer or wrote a review
+    page it was told not to."""
+    from ..errors import expect_flag
+
+    where = "usdfaceOptions" if options is not None else "data"
+    value = (options if options is not None else instance.data).get(name)
+    return expect_flag(value, name, f"instance {instance}'s", False,
+                       fix=f"set the instance's {where} {name}=True or {name}=False (a manifest's {name} "
+                           "column: true or false)")
 
 
 def _default_personalize() -> bool:
@@ -284,7 +301,7 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
                 check_output_path(output, force, inputs=inputs)
                 # the correspondence cache, an output too: in an input folder, where it cannot be written
                 _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[output])
-            if data.get("review"):
+            if _flag(instance, "review"):
                 check_output_file(default_output(output), force, suffixes=(".html", ".htm"),
                                   what="review page", inputs=[output, data["avatar"], data["capture"], take])
         except OutputExistsError as exc:     # the fix in a publish's terms: its fix named --force
@@ -360,7 +377,7 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
     label = "Extract review page (usdface review)"
 
     def process(self, instance):
-        if not instance.data.get("review") or not instance.data.get("usdfaceLayer"):
+        if not _flag(instance, "review") or not instance.data.get("usdfaceLayer"):
             return
         from ..api import write_review
         from ..commands.review import default_output
