@@ -1081,6 +1081,8 @@ def test_resume_redoes_an_item_whose_options_changed(tmp_path, row, recorded, st
     if stale:
         assert r.status == FAILED and r.error_type == "StaleOutput"
         assert stale in r.error and "--force" in r.error
+        # the fix a TD can follow for this row alone: '--force redoes it' redid every row (stop 51's trial)
+        assert "to redo this row alone, move the output away" in r.error
     else:
         assert r.status == SKIPPED, r.error
 

@@ -341,6 +341,12 @@ def _digest(path) -> str:
     return _DIGESTS[key]
 
 
+#: How a stale output is redone (a ``StaleOutput``'s last words): ``--force`` alone redoes every row of the
+#: batch, hours on a long manifest for the one row a TD meant (until stop 51 the line said only that).
+_REDO = ("to redo this row alone, move the output away (or delete it) and run the batch again; --force "
+         "redoes every row")
+
+
 def stale_output(item: BatchItem) -> str:
     """Why an existing ``item.output`` is not this item's finished result ("" if it is, or if it cannot
     tell): a usdface layer records its inputs and their sha256 (``customLayerData["usdface"]``); one written
@@ -361,7 +367,7 @@ def stale_output(item: BatchItem) -> str:
         layer = None
     if layer is None:
         return (f"{out.name} exists but USD cannot read it (a write cut off?): not a finished result; "
-                "--force redoes it")
+                f"{_REDO}")
     record = usdface_output_provenance(out)       # read once: the inputs and the options it records
     if record is None:
         return ""
@@ -375,10 +381,10 @@ def stale_output(item: BatchItem) -> str:
         real = os.path.realpath(path)
         if real not in recorded:
             return (f"{out.name} exists but was written from another {what} than {path} (it records "
-                    f"{shown}): not this item's result; --force redoes it")
+                    f"{shown}): not this item's result; {_REDO}")
         if input_changed(path, recorded[real], _digest):
             return (f"{out.name} exists but the {what} {path} changed after it was written (sha256 differs): "
-                    "--force redoes it")
+                    f"{_REDO}")
     own = (os.path.realpath(item.avatar), os.path.realpath(item.capture))
     others = [real for real in recorded if real not in own]          # the inputs besides avatar and capture
     changed = (_changed_option(options, record) or _changed_face_mesh(options, record)
@@ -386,7 +392,7 @@ def stale_output(item: BatchItem) -> str:
     if changed:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
-                "item's result; --force redoes it")
+                f"item's result; {_REDO}")
     return ""
 
 
