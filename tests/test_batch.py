@@ -280,6 +280,25 @@ def test_a_spreadsheets_other_csv_flavours_read_and_a_workbook_is_named(tmp_path
         assert "fix: save" in err and "Traceback" not in err
 
 
+@pytest.mark.skipif(os.sep != "/", reason="a backslash separates folders on Windows")
+def test_a_manifest_with_windows_paths_is_refused_naming_the_row_and_column(tmp_path, capsys):
+    """A TD's trial (stop 51): a manifest written on Windows (``out\\a.usda``) run on a Linux farm wrote the
+    output as one file named ``out\\a.usda`` beside the manifest (and an avatar given so was only 'not
+    found'). Refused before any item, naming the row, the column and the fix; nothing is written."""
+    worker = f"{__name__}:stub_worker"
+    manifest = tmp_path / "win.csv"
+    manifest.write_text("avatar,capture,output\na.usdc,a_cap,out/a.usda\nb.usdc,b_cap,out\\b.usda\n")
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 2
+    err = capsys.readouterr().err
+    assert "win.csv: item 2: output 'out\\b.usda' separates its folders with '\\'" in err, err
+    assert "fix: write the manifest's paths with '/'" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["win.csv"]
+    manifest = tmp_path / "win.json"
+    manifest.write_text(json.dumps([{"avatar": "avatars\\a.usdc", "capture": "a_cap", "output": "a.usda"}]))
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 2
+    assert "item 1: avatar 'avatars\\a.usdc'" in capsys.readouterr().err
+
+
 def plain_worker(item: dict) -> None:
     """A studio step as pipeline.md shows one: writes ``output`` with a plain write (no folder made), or, for
     avatars named ``none*``, returns without writing it (a step that forgot to, or wrote elsewhere)."""

@@ -204,6 +204,22 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                                      fix="write outputs outside the input folders")
 
 
+def _refuse_windows_separators(path: Path, i: int, row: dict, resolved: dict) -> None:
+    """A manifest written on Windows (``avatars\\anna.usdc``) read where ``/`` separates folders: its
+    backslashes are characters of one file name there, so the row's avatar was 'not found' and its output
+    ``out\\anna.usda`` would have been written as one file of that name beside the manifest. Refused naming
+    the item and the column, unless such a file exists."""
+    if os.sep != "/":
+        return
+    for column in (*REQUIRED, *PATH_OPTIONS):
+        given = row.get(column)
+        if isinstance(given, str) and "\\" in given and not os.path.lexists(resolved[column]):
+            raise InputFileError(f"item {i + 1}: {column} '{given}' separates its folders with '\\' (a "
+                                 "Windows path?), which is a character of a file name here", path=path,
+                                 fix="write the manifest's paths with '/' (relative to the manifest, or "
+                                     "absolute on this machine)")
+
+
 def _manifest_text(path: Path) -> str:
     """A manifest file's text: UTF-8 (a spreadsheet's "CSV UTF-8" byte-order mark dropped) or UTF-16 with
     its byte-order mark (a spreadsheet's "Unicode Text"). A spreadsheet workbook (``.xlsx``/``.ods``: a zip)
@@ -288,6 +304,7 @@ def read_manifest(path) -> list[BatchItem]:
         resolved = {c: _absolute(base, row[c]) for c in REQUIRED}
         options = {k: (_absolute(base, v) if k in PATH_OPTIONS and isinstance(v, str) and v else v)
                    for k, v in row.items() if k not in REQUIRED}
+        _refuse_windows_separators(path, i, row, {**resolved, **options})
         items.append(BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i))
     if not items:
         raise InputFileError("manifest lists no items", path=path, fix="add one row per avatar")
