@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -1119,6 +1120,38 @@ def test_resume_of_a_real_layer_skips_the_same_row_and_redoes_an_edited_one(tmp_
     manifest.write_text(manifest.read_text().replace(",dt", ",ebfr"))
     again = run_batch(read_manifest(manifest), jobs=1, progress=False).results[0]
     assert again.status == FAILED and "method=dt, the row asks method=ebfr" in again.error
+
+
+def test_a_layer_in_a_symlinked_output_folder_resumes_checks_and_renders(tmp_path, capsys):
+    """A TD's trial (stop 51): a manifest beside ``avatars/`` writing into ``out/``, a link to the farm's
+    disk (``out -> /farm/out``). The layer sublayers ``../avatars/anna.usda``, which USD anchors by name
+    (the link's parent) and composes; but its recorded inputs were looked up through the link (the OS's
+    ``..``: beside the farm folder), so the next run failed the row ``StaleOutput: ... written from another
+    avatar``, ``check`` said the inputs were not reachable (digests unchecked) and ``render --compare``
+    said ``avatar not found``. Resolved by name as USD does, all three agree with the composition."""
+    root = Path(__file__).resolve().parents[1] / "sample_assets"
+    shot = tmp_path / "shot"
+    (shot / "avatars").mkdir(parents=True)
+    shutil.copy(root / "avatar.usda", shot / "avatars" / "anna.usda")
+    farm = tmp_path / "farm" / "disk" / "out"
+    farm.mkdir(parents=True)
+    (shot / "out").symlink_to(farm, target_is_directory=True)
+    manifest = shot / "m.csv"
+    manifest.write_text(f"avatar,capture,output\navatars/anna.usda,{root / 'capture.usda'},out/anna.usda\n")
+    assert main(["batch", str(manifest), "-j", "1", "-q"]) == 0
+    assert (farm / "anna.usda").is_file()
+    capsys.readouterr()
+    assert main(["batch", str(manifest), "-j", "1", "-q"]) == 0          # the row's own layer: skipped
+    assert "0 done, 1 skipped, 0 failed" in capsys.readouterr().out
+    layer = shot / "out" / "anna.usda"
+    assert main(["check", str(layer)]) == 0
+    assert "not reachable" not in capsys.readouterr().out
+    (shot / "avatars" / "anna.usda").write_text((root / "avatar.usda").read_text() + "\n# re-exported\n")
+    assert main(["check", str(layer)]) == 0                             # the changed avatar is told
+    assert "avatars/anna.usda changed after this layer was written" in capsys.readouterr().out
+    assert main(["render", str(layer), "-o", str(tmp_path / "c.png"), "--compare", "--shapes", "jawOpen",
+                 "-q"]) == 0
+    assert (tmp_path / "c.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize("row, held, stale", [

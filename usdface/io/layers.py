@@ -702,8 +702,19 @@ def recorded_inputs(layer_path, record: dict | None = None) -> dict[str, str] | 
     if record is None:
         return None
     folder = Path(layer_path).parent
-    return {os.path.realpath(os.path.join(folder, str(p))): str(d)
+    return {os.path.realpath(recorded_path(folder, p)): str(d)
             for p, d in zip(record.get("inputs") or [], record.get("inputDigests") or [], strict=False)}
+
+
+def recorded_path(folder, recorded) -> Path:
+    """A path a usdface layer in ``folder`` records (relative to it, or absolute), resolved as USD resolves
+    the layer's relative asset paths and as :func:`_layer_path` wrote it: joined to the folder by name, a
+    ``..`` taking off the name before it (after a symlinked folder, the link's parent, not its target's).
+    The OS's reading of ``out/../avatars`` (``out -> /farm/out``: ``/farm/avatars``) looked for the inputs
+    where they are not, so a batch whose output folder is a link took each layer it wrote for another
+    avatar's (``StaleOutput``) and ``check`` left its digests unchecked (stop 51)."""
+    p = Path(str(recorded))
+    return Path(os.path.normpath(p if p.is_absolute() else Path(folder).absolute() / p))
 
 
 def input_changed(real: str, recorded: str, digest: Callable = file_digest) -> bool:

@@ -843,8 +843,10 @@ def generic_input(layer_path) -> Path | None:
         layer = Sdf.Layer.FindOrOpen(str(current))
         if layer is None or not layer.subLayerPaths:
             return None if current == Path(layer_path) else current
-        sub = Path(layer.subLayerPaths[0])
-        sub = sub if sub.is_absolute() else (current.parent / sub).resolve()
+        # anchored as USD composes it (by name: after a symlinked output folder, '..' is the link's parent;
+        # resolving through the link looked for the avatar beside the link's target, and render --compare
+        # of a layer published into a linked folder said 'avatar not found', stop 51)
+        sub = Path(os.path.normpath(layer.ComputeAbsolutePath(layer.subLayerPaths[0])))
         if sub in seen or not sub.is_file() or not _has_personalization(sub):
             return sub
         seen.add(sub)

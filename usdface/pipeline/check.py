@@ -610,6 +610,7 @@ def _provenance_base(prim) -> Path | None:
 def _provenance(stage) -> Iterable[Issue]:
     from pxr import Usd
 
+    from ..io.layers import recorded_path
     from ..io.usd_rig import _from_cwd
 
     prov_prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
@@ -691,7 +692,7 @@ def _provenance(stage) -> Iterable[Issue]:
                             f"digest of input {given!r} is not a sha256 hex string",
                             "re-run usdface personalize to rewrite the layer's provenance")
                 continue
-            file = Path(given) if Path(given).is_absolute() else folder / given
+            file = recorded_path(folder, given)       # by name, as USD anchors the layer's own paths
             if not file.exists():
                 yield Issue(INFO, "Provenance", path,
                             f"input {given!r} not reachable from here; digest unchecked", "")

@@ -46,8 +46,9 @@ def recorded_take(layer_path, info: dict) -> Path | None:
 
 def _recorded_path(layer_path, recorded) -> Path | None:
     """A path a layer's provenance records (relative to the layer, or absolute), resolved, when it exists."""
-    p = Path(str(recorded))
-    p = p if p.is_absolute() else (Path(layer_path).absolute().parent / p)
+    from ..io.layers import recorded_path
+
+    p = recorded_path(Path(layer_path).parent, recorded)       # by name, as USD anchors the layer's paths
     return p.resolve() if p.exists() else None
 
 
