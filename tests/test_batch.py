@@ -1577,8 +1577,14 @@ def test_a_workers_odd_result_or_a_sidecar_refusal_do_not_break_the_batch(tmp_pa
     from usdface.pipeline.batch import run_item
 
     item = {"index": 0, "avatar": "a", "capture": "c", "output": str(tmp_path / "o.abc")}
-    res = run_item(lambda it: types.SimpleNamespace(report={"warnings": [{"a": 1}, "kept"]}), item)
+
+    def odd(it):         # writes its output (one that writes none fails: NoOutput) and returns an odd report
+        Path(it["output"]).write_text("done")
+        return types.SimpleNamespace(report={"warnings": [{"a": 1}, "kept"]})
+
+    res = run_item(odd, item)
     assert res["status"] == DONE and res["warnings"] == ["kept"]
+    Path(item["output"]).unlink()
 
     def sidecar(it):
         Path(it["output"]).write_text("half")
