@@ -268,6 +268,12 @@ def test_a_spreadsheets_other_csv_flavours_read_and_a_workbook_is_named(tmp_path
                                                                        ("b.usdc", {"method": "ebfr"})]
         assert main(["batch", str(manifest), "-j", "1", "-q", "--force", "--worker", worker]) == 0
         assert "2 done" in capsys.readouterr().out
+    # a JSON manifest with a byte-order mark (Windows Notepad's UTF-8) was 'not valid JSON (Unexpected
+    # UTF-8 BOM ...)'
+    manifest = tmp_path / "bom.json"
+    listed = [dict(zip(rows[0], r, strict=True)) for r in rows[1:]]
+    manifest.write_bytes(b"\xef\xbb\xbf" + json.dumps(listed).encode())
+    assert [i.options for i in read_manifest(manifest)] == [{"method": "dt"}, {"method": "ebfr"}]
     import zipfile
 
     with zipfile.ZipFile(tmp_path / "people.xlsx", "w") as book:
@@ -292,12 +298,16 @@ def test_a_manifest_with_windows_paths_is_refused_naming_the_row_and_column(tmp_
     assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 2
     err = capsys.readouterr().err
     assert "win.csv: item 2: output 'out\\b.usda' separates its folders with '\\'" in err, err
-    assert "fix: write the manifest's paths with '/'" in err
+    assert "fix: write the manifest's paths as this machine names them, with '/'" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["win.csv"]
     manifest = tmp_path / "win.json"
     manifest.write_text(json.dumps([{"avatar": "avatars\\a.usdc", "capture": "a_cap", "output": "a.usda"}]))
     assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 2
     assert "item 1: avatar 'avatars\\a.usdc'" in capsys.readouterr().err
+    manifest.write_text(json.dumps([{"avatar": "a.usdc", "capture": "a_cap", "output": "D:/out/a.usda"}]))
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 2
+    assert "item 1: output 'D:/out/a.usda' starts with the Windows drive D:" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["win.csv", "win.json"]
 
 
 def plain_worker(item: dict) -> None:

@@ -211,13 +211,20 @@ def _refuse_windows_separators(path: Path, i: int, row: dict, resolved: dict) ->
     the item and the column, unless such a file exists."""
     if os.sep != "/":
         return
+    import re
+
     for column in (*REQUIRED, *PATH_OPTIONS):
         given = row.get(column)
-        if isinstance(given, str) and "\\" in given and not os.path.lexists(resolved[column]):
-            raise InputFileError(f"item {i + 1}: {column} '{given}' separates its folders with '\\' (a "
-                                 "Windows path?), which is a character of a file name here", path=path,
-                                 fix="write the manifest's paths with '/' (relative to the manifest, or "
-                                     "absolute on this machine)")
+        if not isinstance(given, str) or os.path.lexists(resolved[column]):
+            continue
+        drive = re.match(r"[A-Za-z]:[\\/]", given)        # C:/avatars/a.usdc: a folder 'C:' of the manifest's
+        if "\\" in given or drive:
+            what = (f"starts with the Windows drive {given[:2]}" if drive
+                    else "separates its folders with '\\'")
+            raise InputFileError(f"item {i + 1}: {column} '{given}' {what} (a Windows path?), which names no "
+                                 "file here", path=path,
+                                 fix="write the manifest's paths as this machine names them, with '/' "
+                                     "(relative to the manifest, or absolute here)")
 
 
 def _manifest_text(path: Path) -> str:
