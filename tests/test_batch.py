@@ -1162,6 +1162,11 @@ def test_a_layer_in_a_symlinked_output_folder_resumes_checks_and_renders(tmp_pat
     assert main(["render", str(layer), "-o", str(tmp_path / "c.png"), "--compare", "--shapes", "jawOpen",
                  "-q"]) == 0
     assert (tmp_path / "c.png").stat().st_size > 0
+    # its flattened export beside it compares with the avatar it records ('is not there to compare with')
+    flat = shot / "out" / "flat.usdc"
+    assert main(["export", str(layer), "--flatten", str(flat), "-q"]) == 0
+    assert main(["render", str(flat), "-o", str(tmp_path / "f.png"), "--compare", "--shapes", "jawOpen",
+                 "-q"]) == 0
 
 
 @pytest.mark.parametrize("row, held, stale", [

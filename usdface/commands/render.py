@@ -99,7 +99,9 @@ def _flattened_original(path: Path) -> Path | None:
     inputs = (found.provenance or {}).get("inputs") or []
     if not inputs:
         return None
-    original = Path(path).parent / str(inputs[0])
+    from ..io.layers import recorded_path
+
+    original = recorded_path(Path(path).parent, inputs[0])       # by name, as USD anchors the file's paths
     if not original.is_file():
         raise InputFileError(f"a flattened export of the personalized layer {flat.get('source', '?')}: the "
                              f"avatar it was personalized from, {_from_cwd(original)}, is not there to "

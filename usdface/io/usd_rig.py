@@ -874,6 +874,7 @@ def refuse_usdface_output(path) -> None:
     A ``usdface fit`` result (the person's shapes on the capture mesh, ``format: fit``) is refused too: it
     is no avatar (no eyes, no mouth, the capture's topology), and personalizing it ran to the end."""
     from .file_kind import Kind, file_kind
+    from .layers import recorded_path
 
     if not isinstance(path, str | Path):
         return
@@ -893,7 +894,7 @@ def refuse_usdface_output(path) -> None:
         inputs = data.get("inputs") or []
         # the provenance records the original relative to the flattened file: say it as one can pass it
         # from here
-        original = f" ({_from_cwd(Path(path).parent / str(inputs[0]))})" if inputs else ""
+        original = f" ({_from_cwd(recorded_path(Path(path).parent, inputs[0]))})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
         recorded = Path(str(flat.get("source", "LAYER")))          # relative to the flattened file
         source = shlex.quote(str(recorded if recorded.is_absolute() or "source" not in flat
@@ -907,7 +908,7 @@ def refuse_usdface_output(path) -> None:
     if not _has_personalization(path):
         refuse_dcc_export(path)     # a landmarks layer over a DCC export of a personalized layer
         return          # one that personalizes nothing (a landmarks layer), or a flattened generic one
-    original = generic_input(path) or Path(path).parent / str(data["inputs"][0])
+    original = generic_input(path) or recorded_path(Path(path).parent, data["inputs"][0])
     raise AlreadyPersonalizedError(
         "this is a usdface output layer (already personalized); personalizing it again would stack the "
         "personalization on the personalized shapes", path=path, fix=f"pass the original avatar ({original})")
