@@ -99,6 +99,15 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
     return found[:2]
 
 
+#: Rays whose majority vote tells inside from outside (Open3D's ``nsamples``; its default is one): one ray's
+#: parity is wrong where it passes exactly through an edge or a vertex of the eye mesh, and which point's ray
+#: does depends on the last bit of its float32 position. Dev1's Blender round trip (float32 storage) had a lid
+#: vertex 0.21 mm outside its eyeball measured 0.21 mm *inside* after its step out of the eye, sent 0.42 mm
+#: further out and spread over its lid (0.22 mm in ``eyeLookDownRight``); three rays in fixed directions agree
+#: (the same answer in every run), at ~15 % more CPU a query.
+SIGN_RAYS = 3
+
+
 class _EyeSurface:
     """One Open3D raycasting scene of a closed eye mesh (built once, queried several times)."""
 
@@ -117,12 +126,13 @@ class _EyeSurface:
         return self._o3d.core.Tensor(q.astype(np.float32))
 
     def signed_distance(self, queries) -> np.ndarray:
-        """Signed distance (m, negative inside) from ``queries[q,3]``."""
-        return self.scene.compute_signed_distance(self._tensor(queries)).numpy().astype(np.float64)
+        """Signed distance (m, negative inside) from ``queries[q,3]``; signed by :data:`SIGN_RAYS` rays."""
+        return self.scene.compute_signed_distance(self._tensor(queries),
+                                                  nsamples=SIGN_RAYS).numpy().astype(np.float64)
 
     def inside(self, queries) -> np.ndarray:
         """``[q]`` bool: inside the mesh (the same ray-parity vote that signs :meth:`signed_distance`)."""
-        return self.scene.compute_occupancy(self._tensor(queries)).numpy() > 0.5
+        return self.scene.compute_occupancy(self._tensor(queries), nsamples=SIGN_RAYS).numpy() > 0.5
 
     def closest_points(self, queries) -> np.ndarray:
         """Closest surface points ``[q,3]``."""
