@@ -217,12 +217,12 @@ def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
     return np.where(d_end >= bound, 1.0, t)
 
 
-def _largest_share(surf, generic, moved, bound, steps: int = 12):
-    """``[q,3]``: the point ``generic + t (moved - generic)`` with the largest ``t`` of :func:`_share`: where
+def _largest_share(surf, generic, end, bound, steps: int = 12):
+    """``[q,3]``: the point ``generic + t (end - generic)`` with the largest ``t`` of :func:`_share`: where
     neither step of :func:`_onto_bound` reaches the bound (a grazing corner of a non-star-shaped eye
-    mesh), as much of the repaired personalization ``moved[q,3]`` as keeps the lid off the eye, not all or
-    nothing; ``moved`` itself where it meets the bound (``t = 1``), so the fallback starts continuously."""
-    return generic + _share(surf, generic, moved, bound, steps)[:, None] * (moved - generic)
+    mesh), as much of the way to ``end[q,3]`` (the moved or the personalized position) as keeps the lid off
+    the eye, not all or nothing; ``end`` itself where it meets the bound (``t = 1``)."""
+    return generic + _share(surf, generic, end, bound, steps)[:, None] * (end - generic)
 
 
 #: The correction that moves a lid vertex off the eye is spread over this many eyeball radii around it
@@ -359,12 +359,14 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
     part of a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's
     centre, along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where
     that still falls short of the bound by more than ``tolerance`` (a grazing corner of a non-star-shaped
-    eye mesh, the bench eyes' shell), the largest share of the way from the generic position to the moved
-    one that keeps it less ``tolerance`` (:func:`_largest_share`). Every step is continuous: the share is 1
-    at a moved position on the bound less ``tolerance``, so a vertex on either side of it ends (nearly) at
-    the same place (before, the share was of the way to the personalized position, unmoved, and the vertex
-    jumped there from the moved one: dev1's Blender round trip's float32 points decided one pair otherwise,
-    0.22 mm)."""
+    eye mesh, the bench eyes' shell), the largest share of the way from the generic position that keeps it
+    less ``tolerance`` (:func:`_largest_share`): the way to the moved position where the steps missed that
+    by nothing, to the personalized position (the person's data, not the steps' failed direction) where
+    they missed it by ``tolerance`` or more, between them by ``smoothstep`` of the miss. Every step is
+    continuous: the share is 1 at a moved position on the bound less ``tolerance``, so a vertex on either
+    side of it ends (nearly) at the same place (before, a vertex jumped from its moved position to the
+    share of the way to its personalized position there)."""
+    start = q
     target = d + _amount(required - d, tolerance)
     radial = q - eye.center
     radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
@@ -382,7 +384,12 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
         d[active] = surf.signed_distance(q[active])
         short = np.flatnonzero(d < required - tolerance)
         if short.size:
-            q[short] = _largest_share(surf, generic[short], q[short], required[short] - tolerance)
+            # the way's end: the moved position where the steps barely failed, the personalized one (the
+            # person's own data, not the steps' failed direction) where they failed by a tolerance more
+            missed = required[short] - tolerance - d[short]
+            w = ramp_up(missed, 0.0, tolerance) if tolerance > 0 else np.ones(short.size)
+            end = q[short] + w[:, None] * (start[short] - q[short])
+            q[short] = _largest_share(surf, generic[short], end, required[short] - tolerance)
     return q
 
 
