@@ -100,11 +100,12 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
 
 
 #: Rays whose majority vote tells inside from outside (Open3D's ``nsamples``; its default is one): one ray's
-#: parity is wrong where it passes exactly through an edge or a vertex of the eye mesh, and which point's ray
-#: does depends on the last bit of its float32 position. Dev1's Blender round trip (float32 storage) had a lid
-#: vertex 0.21 mm outside its eyeball measured 0.21 mm *inside* after its step out of the eye, sent 0.42 mm
-#: further out and spread over its lid (0.22 mm in ``eyeLookDownRight``); three rays in fixed directions agree
-#: (the same answer in every run), at ~15 % more CPU a query.
+#: parity is wrong where it passes within ~0.3 um of an edge of the eye mesh (the crossing counted twice or
+#: not at all), and which point's ray does depends on the last bit of its float32 position. Dev1's Blender
+#: round trip (float32 storage) had a lid vertex 0.21 mm outside its eyeball measured 0.21 mm *inside* after
+#: its step out of the eye, sent 0.42 mm further out and spread over its lid (0.22 mm in
+#: ``eyeLookDownRight``); three rays in fixed directions agree (the same answer in every run), at ~15 % more
+#: CPU a query.
 SIGN_RAYS = 3
 
 
@@ -196,7 +197,7 @@ def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
     placed in its bracket by the line through the distances at its ends (one secant step). The secant makes
     ``t`` a continuous function of the points: where a bisection's midpoint lies on the bound, either
     branch ends on that midpoint (the bracket below ends at it with its distance equal to the bound, the one
-    above starts there), where the bracket's end alone moved by ``2^-steps`` of the segment. ``t = 0``, the
+    above starts there), where the bisection alone ended ``2^-steps`` of the segment apart. ``t = 0``, the
     generic shape's position, meets the bound by definition (0 where it does not)."""
     lo, hi = np.zeros(len(generic)), np.ones(len(generic))
     step = personalized - generic
