@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from synthetic_meshes import grid_triangles
 
 from usdface.errors import GeometryError
-from usdface.personalize.align import kabsch, rigid_align, rigid_transforms
+from usdface.personalize.align import expression_weights, kabsch, rigid_align, rigid_transforms
 from usdface.personalize.dt import PoissonSolver, deformation_transfer, eyelid_triangles, zip_loop
 from usdface.personalize.fit import PositionFit, fit_blendshapes, regularization_weights
 from usdface.personalize.weights import reestimate_weights
@@ -258,6 +258,40 @@ def test_rigid_align_recovers_transform_despite_outliers():
     assert np.abs(aligned[0, 20:] - ref[20:]).max() < 1e-6
     R_k, _ = kabsch(frame[None], ref)
     assert np.isclose(np.linalg.det(R_k[0]), 1.0)
+
+
+def test_expression_weights_align_a_frame_on_what_its_expression_leaves_still():
+    """A frame that alone shows a shape whose personal part is a rigid-looking shift of its region (a jaw
+    pushed further forward than the prior's): its residual from the prediction is that shift there and noise
+    elsewhere. Unweighted, the robust alignment moves the frame to absorb it (the region is most of the
+    vertices that move); weighted by the inverse of each vertex's expected residual variance the frame stays
+    put, and a true rigid head motion of a frame is still recovered."""
+    rng = np.random.default_rng(3)
+    n = 300
+    neutral = rng.normal(size=(n, 3)) * 0.03
+    jaw = np.arange(n) < 180                                                 # the shape's region
+    prior = np.zeros((2, n, 3))
+    prior[0, jaw] = [0.0, 0.0, 0.004]                                        # the prior's jaw forward
+    prior[1, ~jaw] = rng.normal(size=((~jaw).sum(), 3)) * 0.002              # another shape elsewhere
+    W = np.array([[1.0, 0.0], [0.0, 1.0]])
+    noise = rng.normal(size=(2, n, 3)) * 1e-4
+    person = prior.copy()
+    person[0, jaw] += [0.0, 0.0, 0.0015]                                     # the person: 1.5 mm further
+    frames = neutral + np.einsum("fk,knc->fnc", W, person) + noise
+    target = neutral + np.einsum("fk,knc->fnc", W, prior)                    # the prediction: the prior's
+    base = expression_weights(W, prior, frames - target)
+    assert base.shape == (2, n) and np.isclose(base.mean(), 1.0)
+    assert base[0, jaw].max() < 0.1 * base[0, ~jaw].min()               # the shape's region: little weight
+    assert np.allclose(base[1, jaw], base[1, 0]) and base[1, 0] >= base[1].max()  # frame 1: the jaw still
+    _, t0 = rigid_transforms(frames, target, np.arange(n))
+    _, t1 = rigid_transforms(frames, target, np.arange(n), weights=base)
+    assert np.linalg.norm(t0[0]) > 3e-4                                      # moved to absorb the jaw
+    assert np.linalg.norm(t1[0]) < 0.1 * np.linalg.norm(t0[0])              # stays (nearly) where scanned
+    R = Rotation.from_euler("xyz", [0.8, -0.4, 0.3], degrees=True).as_matrix()
+    moved = frames.copy()
+    moved[1] = (frames[1] - [0.001, 0.0, 0.0]) @ R                           # head motion in frame 1
+    R1, _ = rigid_transforms(moved, target, np.arange(n), weights=base)
+    assert np.degrees(np.arccos(np.clip((np.trace(R1[1] @ R.T) - 1) / 2, -1, 1))) < 0.05   # of 0.95 deg
 
 
 def test_kabsch_of_a_mirrored_frame_is_the_best_proper_rotation():

@@ -13,7 +13,8 @@ import numpy as np
 
 from ..mesh import vector_lengths
 
-__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "distinct_frames"]
+__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "distinct_frames",
+           "expression_weights"]
 
 
 def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count: int = 12) -> np.ndarray:
@@ -128,38 +129,46 @@ def _distinct_by_bytes(words) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.ndarray, *, robust: bool = True,
-                     iterations: int = 10, groups=None) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = 10, groups=None, weights=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`rigid_align`'s transforms ``(R[F,3,3], t[F,3])`` only (no aligned copy of the points).
 
     Frames that are one frame (the same points on ``vertices``, and the same reference there: a capture app
     that kept one scan for several shapes) are aligned once and the transform copied (every step works frame
     by frame, so the copies are the transforms they would get; :func:`distinct_frames`). ``groups``: such
     frames if the caller knows them (``(first[U], inverse[F])`` of frames equal in both, or False: every
-    frame distinct), else None (found here)."""
+    frame distinct), else None (found here). ``weights[F,m]``: each frame's prior weight of each of
+    ``vertices`` (the inverse of its expected non-rigid residual's variance, :func:`expression_weights`),
+    multiplied into the robust weights; None: all 1 (frames found equal here are equal in them too; a
+    caller's ``groups`` must be)."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     vertices = np.asarray(vertices)
     if vertices.dtype == bool:
         vertices = np.flatnonzero(vertices)
+    base = None if weights is None else np.asarray(weights, dtype=np.float64)
     if groups:                            # the distinct frames known: gather only theirs (the same numbers)
         ref = ref[groups[0]] if ref.ndim == 3 and len(ref) == len(P) else ref
+        base = None if base is None else base[groups[0]]
         P = P[groups[0]]
     src = np.take(P, vertices, axis=1)                              # take: 2x cheaper than fancy indexing
     dst = np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
     if groups is None:
-        groups = distinct_frames(src) if ref.ndim == 2 else distinct_frames(src, dst)
+        extra = () if base is None else (base,)
+        groups = distinct_frames(src, *extra) if ref.ndim == 2 else distinct_frames(src, dst, *extra)
         if groups is not None:
             src, dst = src[groups[0]], dst[groups[0]]
+            base = None if base is None else base[groups[0]]
     groups = groups or None
-    R, t = _robust_kabsch(src, dst, robust, iterations)
+    R, t = _robust_kabsch(src, dst, robust, iterations, base)
     return (R, t) if groups is None else (R[groups[1]], t[groups[1]])
 
 
-def _robust_kabsch(src, dst, robust, iterations):
+def _robust_kabsch(src, dst, robust, iterations, base=None):
     """:func:`rigid_transforms` on the points ``src[F,m,3]`` and ``dst[F,m,3]`` (m), re-weighted
-    ``iterations`` times with ``robust``: ``(R[F,3,3], t[F,3])``."""
+    ``iterations`` times with ``robust``: ``(R[F,3,3], t[F,3])``; ``base[F,m]`` multiplies every weight."""
     srcA, dstA = _homogeneous(src, dst)
-    w = np.ones(src.shape[:2])
+    base = np.ones(src.shape[:2]) if base is None else base
+    w = base
     R, t = _kabsch_prepared(srcA, dstA, w)
     m = src.shape[1]
     srcT, dstT = srcA[:, :3], dstA[:, :3]                            # coordinate planes [F,3,m]
@@ -174,6 +183,32 @@ def _robust_kabsch(src, dst, robust, iterations):
         lower = part[:, m // 2] if m % 2 else part[:, :m // 2].max(axis=1)
         med = (0.5 * (lower + part[:, m // 2]))[:, None]
         s = 1.4826 * med + 1e-12
-        w = 1.0 / (1.0 + (r / (2.0 * s)) ** 2) ** 2
+        w = base / (1.0 + (r / (2.0 * s)) ** 2) ** 2
         R, t = _kabsch_prepared(srcA, dstA, w)
     return R, t
+
+
+def expression_weights(weights, prior, residuals) -> np.ndarray:
+    """Each frame's weight of each vertex in its rigid alignment: the inverse of the variance its non-rigid
+    residual is expected to have, ``1 / (a + b q_fv)`` with ``q_fv = sum_k W_fk^2 |T_k(v)|^2`` (``weights
+    W[F,K]``, ``prior T[K,m,3]`` metres): the person's shapes differ from the prior by a share of their own
+    motion, so a frame's residual from its prediction holds, besides the scan's noise (``a``), that share of
+    the motion the frame shows (``b q``). ``a`` and ``b`` are the least-squares fit of the squared
+    ``residuals[F,m,3]`` on ``[1, q]`` over every frame and vertex (each >= a thousandth of the mean squared
+    residual). Returns ``[F,m]``, mean 1.
+
+    A rigid head motion moves every vertex, an expression only those it shows: weighted so, a frame that is
+    the only one to show a shape (whose personal part the leave-one-out prediction cannot know) is aligned on
+    the vertices its expression leaves still, not moved to absorb that part (generic:143's ``jawForward``
+    frame was moved 1.3 mm towards the prior's ``jawForward``)."""
+    W = np.asarray(weights, dtype=np.float64)
+    T2 = np.einsum("kmc,kmc->km", prior, prior)                                    # [K,m]
+    q = (W ** 2) @ T2                                                              # [F,m]
+    r2 = np.einsum("fmc,fmc->fm", residuals, residuals)                            # [F,m]
+    A = np.stack([np.ones(q.size), q.ravel()], axis=1)
+    a, b = np.linalg.lstsq(A, r2.ravel(), rcond=None)[0]
+    floor = 1e-3 * float(r2.mean()) + 1e-300
+    a = max(float(a), floor)
+    b = max(float(b), 0.0)
+    w = 1.0 / (a + b * q)
+    return w / w.mean()

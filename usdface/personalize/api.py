@@ -13,7 +13,7 @@ from ..errors import warn as _warn
 from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
-from .align import distinct_frames, rigid_transforms
+from .align import distinct_frames, expression_weights, rigid_transforms
 from .amplitude import combined_amplitude, held_out_amplitude, peak_amplitude_variance
 from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
@@ -1327,8 +1327,10 @@ def _alignment_generalises(pf, points, reg, info):
     ``points[F,m,3]`` on ``pf``'s vertices.
     Returns ``(helps, {"aligned", "original"} held-out RMSE in mm)``."""
     pf.set_points(points)
-    target = points - pf.loo_residuals(reg)
+    residuals = pf.loo_residuals(reg)
+    target = points - residuals
     groups = pf.frame_groups() or False                 # frames equal in points and weights: equal targets
+    base = expression_weights(pf.W, pf.T, residuals)    # each frame on what its expression leaves still
     nb = pf.neutral - pf.neutral.mean(axis=0)
     axes = np.linalg.svd(nb, full_matrices=False)[2][:2]
     before, after = np.zeros(len(points)), np.zeros(len(points))
@@ -1340,7 +1342,7 @@ def _alignment_generalises(pf, points, reg, info):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
             if len(est) < 6 or len(out) == 0:
                 continue
-            R, t = rigid_transforms(points, target, est, groups=groups)
+            R, t = rigid_transforms(points, target, est, groups=groups, weights=base[:, est])
             p_out = np.take(points, out, axis=1)
             moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
             before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
@@ -1371,8 +1373,10 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
         pf.set_prior(prior_deltas[:, cand])
     else:
         pf.set_prior_mix(alpha)
-    target = on_cand - pf.loo_residuals(reg)
-    R, tr = rigid_transforms(on_cand, target, np.arange(len(cand)), groups=pf.frame_groups() or False)
+    residuals = pf.loo_residuals(reg)
+    target = on_cand - residuals
+    R, tr = rigid_transforms(on_cand, target, np.arange(len(cand)), groups=pf.frame_groups() or False,
+                             weights=expression_weights(pf.W, pf.T, residuals))
     aligned = np.matmul(points, np.swapaxes(R, 1, 2)) + tr[:, None]
     ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     prev = info.setdefault("align", {"max_rotation_deg": 0.0, "max_translation_mm": 0.0, "passes": 0})

@@ -99,6 +99,16 @@ def find_eyeballs(meshes: dict, *, min_radius: float = 0.007, max_radius: float 
     return found[:2]
 
 
+#: Rays whose majority vote tells inside from outside (Open3D's ``nsamples``; its default is one): one ray's
+#: parity is wrong where it passes within ~0.3 um of an edge of the eye mesh (the crossing counted twice or
+#: not at all), and which point's ray does depends on the last bit of its float32 position. Dev1's Blender
+#: round trip (float32 storage) had a lid vertex 0.21 mm outside its eyeball measured 0.21 mm *inside* after
+#: its step out of the eye, sent 0.42 mm further out and spread over its lid (0.22 mm in
+#: ``eyeLookDownRight``); three rays in fixed directions agree (the same answer in every run), at ~15 % more
+#: CPU a query.
+SIGN_RAYS = 3
+
+
 class _EyeSurface:
     """One Open3D raycasting scene of a closed eye mesh (built once, queried several times)."""
 
@@ -117,12 +127,13 @@ class _EyeSurface:
         return self._o3d.core.Tensor(q.astype(np.float32))
 
     def signed_distance(self, queries) -> np.ndarray:
-        """Signed distance (m, negative inside) from ``queries[q,3]``."""
-        return self.scene.compute_signed_distance(self._tensor(queries)).numpy().astype(np.float64)
+        """Signed distance (m, negative inside) from ``queries[q,3]``; signed by :data:`SIGN_RAYS` rays."""
+        return self.scene.compute_signed_distance(self._tensor(queries),
+                                                  nsamples=SIGN_RAYS).numpy().astype(np.float64)
 
     def inside(self, queries) -> np.ndarray:
         """``[q]`` bool: inside the mesh (the same ray-parity vote that signs :meth:`signed_distance`)."""
-        return self.scene.compute_occupancy(self._tensor(queries)).numpy() > 0.5
+        return self.scene.compute_occupancy(self._tensor(queries), nsamples=SIGN_RAYS).numpy() > 0.5
 
     def closest_points(self, queries) -> np.ndarray:
         """Closest surface points ``[q,3]``."""
@@ -180,23 +191,39 @@ def eye_surfaces(points, triangles) -> list:
 
 
 def _share(surf, generic, personalized, bound, steps: int = 12) -> np.ndarray:
-    """``[q]``: the largest ``t`` in [0, 1] (to ``2^-steps``) for which ``generic + t (personalized -
-    generic)`` (``[q,3]``) lies at least ``bound[q]`` from the eye (:class:`_EyeSurface`; signed distance,
-    bisection; ``t = 0``, the generic shape's position, meets it by definition)."""
+    """``[q]``: the largest ``t`` in [0, 1] for which ``generic + t (personalized - generic)`` (``[q,3]``)
+    lies at least ``bound[q]`` from the eye (:class:`_EyeSurface`; signed distance): 1 where
+    ``personalized`` meets it, else the crossing bracketed by ``steps`` bisections (to ``2^-steps``) and
+    placed in its bracket by the line through the distances at its ends (one secant step). The secant makes
+    ``t`` a continuous function of the points: where a bisection's midpoint lies on the bound, either
+    branch ends on that midpoint (the bracket below ends at it with its distance equal to the bound, the one
+    above starts there), where the bisection alone ended ``2^-steps`` of the segment apart. ``t = 0``, the
+    generic shape's position, meets the bound by definition (0 where it does not)."""
     lo, hi = np.zeros(len(generic)), np.ones(len(generic))
     step = personalized - generic
+    d_lo = surf.signed_distance(generic)
+    d_end = d_hi = surf.signed_distance(personalized)
     for _ in range(steps):
         mid = 0.5 * (lo + hi)
-        ok = surf.signed_distance(generic + mid[:, None] * step) >= bound
+        d_mid = surf.signed_distance(generic + mid[:, None] * step)
+        ok = d_mid >= bound
         lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
-    return lo
+        d_lo, d_hi = np.where(ok, d_mid, d_lo), np.where(ok, d_hi, d_mid)
+    # the bound's crossing on the line through (lo, d_lo) and (hi, d_hi): d_lo >= bound > d_hi, but at
+    # the ends of the segment (hi = 1 met, lo = 0 not)
+    gap = d_lo - d_hi
+    frac = np.clip((d_lo - bound) / np.where(gap > 0, gap, 1.0), 0.0, 1.0)
+    t = lo + (hi - lo) * np.where(gap > 0, frac, 0.0)
+    t = np.where(d_lo >= bound, t, 0.0)
+    return np.where(d_end >= bound, 1.0, t)
 
 
-def _largest_share(surf, generic, personalized, bound, steps: int = 12):
-    """``[q,3]``: the point ``generic + t (personalized - generic)`` with the largest ``t`` of :func:`_share`:
-    where neither step of :func:`repair_eyelids` reaches the bound (a grazing corner of a non-star-shaped
-    eye mesh), as much of the personalization as keeps the lid off the eye, not all or nothing."""
-    return generic + _share(surf, generic, personalized, bound, steps)[:, None] * (personalized - generic)
+def _largest_share(surf, generic, end, bound, steps: int = 12):
+    """``[q,3]``: the point ``generic + t (end - generic)`` with the largest ``t`` of :func:`_share`: where
+    neither step of :func:`_onto_bound` reaches the bound (a grazing corner of a non-star-shaped eye
+    mesh), as much of the way to ``end[q,3]`` (the moved or the personalized position) as keeps the lid off
+    the eye, not all or nothing; ``end`` itself where it meets the bound (``t = 1``)."""
+    return generic + _share(surf, generic, end, bound, steps)[:, None] * (end - generic)
 
 
 #: The correction that moves a lid vertex off the eye is spread over this many eyeball radii around it
@@ -333,8 +360,13 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
     part of a non-convex eye (the cornea's bulge) can come closer to another - radially from the eyeball's
     centre, along which the distance to a star-shaped eye grows; with the ``generic[p,3]`` positions, where
     that still falls short of the bound by more than ``tolerance`` (a grazing corner of a non-star-shaped
-    eye mesh, the bench eyes' shell), the largest share of the personalization that keeps it less
-    ``tolerance`` (:func:`_largest_share`; the one step that is not continuous)."""
+    eye mesh, the bench eyes' shell), the largest share of the way from the generic position that keeps it
+    less ``tolerance`` (:func:`_largest_share`): the way to the moved position where the steps missed that
+    by nothing, to the personalized position (the person's data, not the steps' failed direction) where
+    they missed it by ``tolerance`` or more, between them by ``smoothstep`` of the miss. Every step is
+    continuous: the share is 1 at a moved position on the bound less ``tolerance``, so a vertex on either
+    side of it ends (nearly) at the same place (before, a vertex jumped from its moved position to the
+    share of the way to its personalized position there)."""
     start = q
     target = d + _amount(required - d, tolerance)
     radial = q - eye.center
@@ -353,7 +385,12 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
         d[active] = surf.signed_distance(q[active])
         short = np.flatnonzero(d < required - tolerance)
         if short.size:
-            q[short] = _largest_share(surf, generic[short], start[short], required[short] - tolerance)
+            # the way's end: the moved position where the steps barely failed, the personalized one (the
+            # person's own data, not the steps' failed direction) where they failed by a tolerance more
+            missed = required[short] - tolerance - d[short]
+            w = ramp_up(missed, 0.0, tolerance) if tolerance > 0 else np.ones(short.size)
+            end = q[short] + w[:, None] * (start[short] - q[short])
+            q[short] = _largest_share(surf, generic[short], end, required[short] - tolerance)
     return q
 
 
@@ -478,8 +515,9 @@ def repair_eyelids(neutral, shapes, eyeballs, *, reference=None, tolerance: floa
     (:func:`_spread_corrections`: the margin stays one smooth curve, each correction weighted by its size;
     the share spread rises smoothly from 0 for a vertex ``tolerance`` short to all of it at twice that), for
     up to :data:`SPREAD_ROUNDS` rounds, and only what they leave short of its bound is moved alone. Every
-    step is continuous in the positions (tests/test_eyelids_continuity.py) but the fallback to the largest
-    share, and jumps below :data:`NEGLIGIBLE` / :data:`UNMOVED`.
+    step is continuous in the positions (tests/test_eyelids_continuity.py; the fallback to the largest share
+    too, where the way from the generic position crosses the bound once) but for jumps below
+    :data:`NEGLIGIBLE` / :data:`UNMOVED`.
     Returns ``(repaired shapes[J,n,3], number of vertex-shape pairs that violated their bound by more than
     tolerance)``.
 
