@@ -272,15 +272,17 @@ def test_reweighting_runs_the_one_round_its_gate_validates():
 def test_a_second_reestimation_round_drifts_on_a_scan_regime_capture(bench):
     """dev2 (scan regime, one picked frame per shape): shapes refitted with the first round's weights take
     those weights' errors in, and a second re-estimation drifts with them: one round ends nearer the
-    person's true shapes than two (0.3305 against 0.3458 mm; the raw template 0.3992)."""
+    person's true shapes than two (0.3305 against 0.3458 mm; the raw template 0.3992), the shapes' sizes as
+    the training frames set them (``amplitude=False``: the test frames' second reading narrows the gap,
+    0.2996 against 0.3064)."""
     from usdface.io import read_capture
 
     cap = read_capture(bench / "dev2" / "capture")
     truth = np.load(bench / "dev2" / "truth" / "capture_truth.npz")
     true = truth["deltas"][[list(truth["names"]).index(n) for n in cap.names]]
-    one = fit(cap)
+    one = fit(cap, amplitude=False)
     assert one.info["reweight"]["applied"] is True and one.info["reweight"]["rounds"] == 1
-    two = fit(cap, rounds=2)
+    two = fit(cap, rounds=2, amplitude=False)
     assert truth_error(one.rig.deltas, true) < truth_error(two.rig.deltas, true) - 0.01
     assert truth_error(one.rig.deltas, true) < 0.84 * truth_error(cap.template.deltas, true)
 

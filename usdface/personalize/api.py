@@ -472,8 +472,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
         fit, so eq. 5 on them is scored cross-fitted: ``info["test_scale_left_out"][T,K]``, the scale of
         each shape read without test frame ``t`` relative to the one applied
         (:func:`.amplitude.each_frame_left_out`), which :func:`.evaluate.evaluate_rig` takes as ``scale``
-        (:func:`left_out_scale`). Default: on, except with ``reg="paper"``. Generated captures: the fit's
-        truth error fell on 122 of 144, rose on 21; dev2 0.828 -> 0.750 of the template's.
+        (:func:`left_out_scale`). Default: on, except with ``reg="paper"`` without ``sensitivity`` (the
+        paper's fit). Generated captures: the fit's truth error fell on 122 of 144, rose on 21; dev2 0.828
+        -> 0.750 of the template's.
     clamp : eq. (3) clamp (1e5).
     options : method-specific (ebfr: ``beta`` (0.5, or "auto"), ``kappa``, ``theta``, ``translation_ridge``;
         laplacian: ``laplacian_weight`` ("auto": K-fold CV of the Laplacian fit, or a number),
@@ -500,7 +501,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     align_arg, reweight_arg = bool(align), bool(reweight)
     align = (not paper) if align is None else bool(align)
     reweight = (not paper) if reweight is None else bool(reweight)
-    amplitude = (not paper) if amplitude is None else bool(amplitude)
+    # personalize (sensitivity) reads them at any reg, as it has since stop 49; a plain fit at the paper's
+    # balance is the paper's method
+    amplitude = (sensitivity or not paper) if amplitude is None else bool(amplitude)
     prior = prior or ("auto" if auto else "dt")
     avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
