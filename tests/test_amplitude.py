@@ -8,6 +8,7 @@ import numpy as np
 
 from usdface.personalize.amplitude import (
     combined_amplitude,
+    each_frame_left_out,
     held_out_amplitude,
     peak_amplitude_variance,
 )
@@ -103,3 +104,32 @@ def test_a_capture_without_test_frames_reads_every_shape_unseen():
                                 np.ones((2, 5, 3)) * 1e-3, np.zeros((0, 2)))
     assert np.array_equal(a, [1.0, 1.0]) and np.all(np.isinf(var))
     assert np.array_equal(combined_amplitude(a, var, np.array([1e-3, 1e-3])), [1.0, 1.0])
+
+
+def test_each_test_frame_is_scored_with_the_reading_of_the_other_frames():
+    """Eq. 5 cross-fitted: row ``t`` of :func:`each_frame_left_out` is :func:`held_out_amplitude` of the
+    other frames (to rounding), so it does not move when frame ``t``'s own scan changes, while every other
+    row that reads the changed shape does; with exact weights on shapes scaled 0.9-1.1 every row reads the
+    scales within 0.02 (the cross-talk of the shapes' overlaps; a held-out frame is scored with the
+    truth's sizes, not with its own)."""
+    rng = np.random.default_rng(5)
+    K, n = 6, 80
+    deltas = rng.normal(size=(K, n, 3)) * 5e-3
+    neutral = rng.normal(size=(n, 3)) * 0.05
+    scale = rng.uniform(0.9, 1.1, K)
+    points, reported, variance = _frames(rng, deltas, neutral, frames=12, scale=scale)
+    a, var = each_frame_left_out(neutral, points, reported, deltas, variance)
+    assert a.shape == var.shape == reported.shape
+    for t in range(len(points)):
+        keep = np.arange(len(points)) != t
+        a_t, var_t = held_out_amplitude(neutral, points[keep], reported[keep], deltas, variance[keep])
+        np.testing.assert_allclose(a[t], a_t, rtol=1e-10)
+        np.testing.assert_allclose(var[t], var_t, rtol=1e-8)
+    moved = points.copy()
+    moved[0] += 1e-3 * rng.normal(size=moved[0].shape)
+    a2, _ = each_frame_left_out(neutral, moved, reported, deltas, variance)
+    np.testing.assert_allclose(a2[0], a[0], rtol=1e-12)
+    assert np.all(np.abs(a2[1:] - a[1:]).max(axis=1) > 1e-6)
+    points, exact, _ = _frames(rng, deltas, neutral, frames=12, noise=0.0, scale=scale)
+    a, _ = each_frame_left_out(neutral, points, exact, deltas, np.zeros(exact.shape))
+    assert np.abs(a - scale[None]).max() < 0.02, np.abs(a - scale[None]).max()       # cross-talk

@@ -564,7 +564,8 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     """Paper eq. 5 on the capture's held-out ``test`` (or ``train``) expressions: per-frame RMSE and max
     vertex error in mm of ``rig`` with the frames' weights (``usdface evaluate``); see
     :func:`usdface.personalize.evaluate_rig`. ``rig`` defaults to the generic baseline: the template's deltas
-    on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used). A capture without
+    on the person's neutral. ``rig`` may also be a ``FitResult`` (its ``.rig`` is used; a fit that read its
+    amplitudes on the test frames scores each frame without its own reading, cross-fitted). A capture without
     test frames raises :class:`~usdface.errors.FitError` for ``role="test"``, as :func:`evaluate_methods`."""
     from .personalize.evaluate import score_capture_rig, template_rig
 
@@ -582,9 +583,16 @@ def evaluate_capture(capture: Capture | PathLike, rig: FaceRig | None = None, ro
     capture = _as_capture(capture)
     if role == "test":      # the mean of no frames was NaN, without a word
         _refuse_without_test_frames(capture, source)
+    fit = rig
     rig = template_rig(capture) if rig is None else getattr(rig, "rig", rig)
     _refuse_rig_of_another_capture(rig, capture, source)
-    return score_capture_rig(rig, capture, role)
+    # a fit that read its shapes' amplitudes on the test frames: each scored without its own reading
+    scale = None
+    if role == "test" and isinstance(fit, FitResult) and list(rig.names) == list(capture.names):
+        from .personalize.api import left_out_scale
+
+        scale = left_out_scale(fit, capture.test)
+    return score_capture_rig(rig, capture, role, scale)
 
 
 def _refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, source) -> None:

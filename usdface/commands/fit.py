@@ -23,6 +23,9 @@ def add_fit_options(parser) -> None:
                         help="skip the robust rigid pre-alignment of the training frames")
     parser.add_argument("--no-reweight", dest="reweight", action="store_false", default=None,
                         help="keep the phone's training weights (no anchored re-estimation)")
+    parser.add_argument("--no-amplitude", dest="amplitude", action="store_false", default=None,
+                        help="menzel: keep each shape's size as its peak training frame sets it (no second "
+                             "reading on the capture's test frames; eq. 5 is then wholly held out)")
     parser.add_argument("--no-eyelids", dest="eyelids", action="store_false",
                         help="no virtual eyelid triangles in the deformation transfer")
     add_contact_option(parser)
@@ -52,6 +55,7 @@ def add_every_option(parser) -> None:
 def fit_kwargs(args) -> dict:
     return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
             "eyelids": args.eyelids, "contact": args.contact,
+            **({"amplitude": args.amplitude} if getattr(args, "amplitude", None) is not None else {}),
             **({"every": args.every} if getattr(args, "every", 1) != 1 else {})}
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from .weights import peak_frames
 
-__all__ = ["combined_amplitude", "peak_amplitude_variance", "held_out_amplitude"]
+__all__ = ["combined_amplitude", "each_frame_left_out", "held_out_amplitude", "peak_amplitude_variance"]
 
 
 def peak_amplitude_variance(weights, variance) -> np.ndarray:
@@ -63,26 +63,61 @@ def held_out_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.n
     adds ``sum_t r_tk^2 c_k / den_k^2``. Without it a capture whose weights are the phone mesh's own (the
     weights' noise 0.0005) reads the fitted shapes' errors at that noise's tiny variance. A shape the test
     frames do not show (``den <= 0``; every shape when ``T = 0``) reads 1 at infinite variance."""
+    terms = _amplitude_terms(neutral, points, weights, deltas, variance)
+    if terms is None:                                # no test frames: every shape unseen
+        K = np.asarray(weights).shape[1]
+        return np.ones(K), np.full(K, np.inf)
+    return _reading(terms, None)
+
+
+def each_frame_left_out(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
+    """``(a[T,K], var[T,K])``: :func:`held_out_amplitude` read once per test frame ``t`` on the other
+    ``T - 1`` frames (same arguments): the reading with which frame ``t`` is scored when the fit reads its
+    amplitudes on the test frames (eq. 5 cross-fitted: no frame scores a reading it took part in). Each sum
+    of the reading (numerator, denominator, variance, the unexplained part's mean over the frames that do
+    not report the shape) less frame ``t``'s own term, so row ``t`` equals :func:`held_out_amplitude` of the
+    frames without ``t`` exactly. ``[0,K]`` with no test frames."""
+    terms = _amplitude_terms(neutral, points, weights, deltas, variance)
+    if terms is None:
+        K = np.asarray(weights).shape[1]
+        return np.ones((0, K)), np.full((0, K), np.inf)
+    return _reading(terms, np.eye(len(terms["rr"]), dtype=bool))
+
+
+def _amplitude_terms(neutral, points, weights, deltas, variance) -> dict | None:
+    """Per test frame and shape, the terms :func:`held_out_amplitude` sums over frames (``[T,K]`` each; the
+    shapes' squared norms ``[K]``), or None with no test frames."""
     r = np.asarray(weights, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
-    if len(r) == 0:                                  # no test frames: every shape unseen
-        return np.ones(r.shape[1]), np.full(r.shape[1], np.inf)
+    if len(r) == 0:
+        return None
     A = np.asarray(deltas, dtype=np.float64).reshape(r.shape[1], -1)                    # [K, 3n]
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(r), -1)                                                          # [T, 3n]
     gram = A @ A.T                                                                     # [K,K] m^2
     proj = (Y - r @ A) @ A.T                                                           # [T,K] <R_t, B_k>
-    den = np.sum(r * r - v, axis=0) * np.diag(gram)
+    by_weights = v @ (gram * gram)                                                     # [T,K] m^4
+    return {"num": r * proj, "rr": r * r - v, "norm2": np.diag(gram), "r2": r * r,
+            "r2b": r * r * by_weights, "excess": proj ** 2 - by_weights, "off": r == 0.0}
+
+
+def _reading(terms, left_out) -> tuple[np.ndarray, np.ndarray]:
+    """The reading and its variance from :func:`_amplitude_terms`: over every frame (``left_out`` None:
+    ``[K]``), or once per row of ``left_out[L,T]`` (bool) over the frames it does not mark (``[L,K]``)."""
+    def total(x):
+        """``x[T,K]`` summed over the frames kept: ``[K]``, or ``[L,K]`` per row of ``left_out``."""
+        return x.sum(axis=0) if left_out is None else x.sum(axis=0)[None] - left_out.astype(np.float64) @ x
+
+    off = terms["off"].astype(np.float64)
+    den = total(terms["rr"]) * terms["norm2"]
     shown = den > 0
     den = np.where(shown, den, 1.0)
-    a = np.where(shown, 1.0 + np.sum(r * proj, axis=0) / den, 1.0)
-    by_weights = v @ (gram * gram)                                                     # [T,K] m^4
-    excess = proj ** 2 - by_weights
-    off = r == 0.0
-    count = off.sum(axis=0)
-    other = np.where(count > 0, np.sum(np.where(off, excess, 0.0), axis=0) / np.maximum(count, 1),
-                     excess.mean(axis=0))
-    var = np.sum(r * r * (by_weights + np.maximum(other, 0.0)[None]), axis=0) / den ** 2
+    a = np.where(shown, 1.0 + total(terms["num"]) / den, 1.0)
+    count = total(off)
+    every = total(np.ones_like(off))
+    other = np.where(count > 0, total(off * terms["excess"]) / np.maximum(count, 1),
+                     total(terms["excess"]) / np.maximum(every, 1))
+    var = (total(terms["r2b"]) + total(terms["r2"]) * np.maximum(other, 0.0)) / den ** 2
     return a, np.where(shown, var, np.inf)
 
 

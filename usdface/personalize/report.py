@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import FitError
 from ..model import Capture
 from ..progress import steps
-from .api import FIT_FLAGS, METHODS, fit_personalized_shapes
+from .api import FIT_FLAGS, METHODS, fit_personalized_shapes, left_out_scale
 from .evaluate import error_colors, evaluate_rig, truth_error
 
 __all__ = ["check_method_options", "evaluate_methods", "plot_errors", "write_report_json"]
@@ -30,12 +30,12 @@ VARIANTS = {"dt": (("dt", "dt", {}),),
 
 #: The user options each method takes (the rest would be refused as unused).
 _TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
-          "menzel": ("reg", "prior", "align", "reweight", "eyelids", "contact"),
+          "menzel": ("reg", "prior", "align", "reweight", "eyelids", "contact", "amplitude"),
           "laplacian": ("reg", "prior", "align", "reweight", "eyelids", "contact")}
 
 
 #: The command line's spelling of each fit option, for the refusal of one no chosen method uses.
-_FLAGS = {k: FIT_FLAGS[k] for k in ("reg", "prior", "align", "reweight", "contact", "eyelids")}
+_FLAGS = {k: FIT_FLAGS[k] for k in ("reg", "prior", "align", "reweight", "contact", "eyelids", "amplitude")}
 
 
 def check_method_options(methods, fit_options: dict) -> None:
@@ -103,7 +103,7 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
             t0 = time.perf_counter()
             res = fit_personalized_shapes(capture, method=m, **opts)
             sec = time.perf_counter() - t0
-            ev = evaluate_rig(res.rig, test)
+            ev = evaluate_rig(res.rig, test, left_out_scale(res, test))      # cross-fitted (amplitude)
             row = {"rmse_mm": ev["rmse_mm"].tolist(), "max_mm": ev["max_mm"].tolist(),
                    "mean_rmse_mm": ev["mean_rmse_mm"], "mean_max_mm": ev["mean_max_mm"], "seconds": sec,
                    "truth_rmse_mm": None if order is None else truth_error(res.rig.deltas, true_deltas),
@@ -123,8 +123,8 @@ def evaluate_methods(capture: Capture, methods, *, truth: dict | None = None, va
 
 
 #: Per-frame and per-vertex arrays of a fit's ``info`` that a report leaves out (the rig holds the shapes).
-_BULK_INFO = ("train_weights", "prior_deltas", "weight_sensitivity", "weight_leak", "weight_leak_direction",
-              "weight_leak_along", "frame_variance")
+_BULK_INFO = ("train_weights", "test_scale_left_out", "prior_deltas", "weight_sensitivity", "weight_leak",
+              "weight_leak_direction", "weight_leak_along", "frame_variance")
 
 
 def report_info(info: dict) -> dict:

@@ -262,8 +262,10 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
     alignment and options included) when ``recorded`` (the capture is the one the layer records) and they
     cover these expressions; else (an older layer, another capture) a refit with the layer's recorded method
     and regularisation, said so in the title. The layer's fit scaled its ``amplitudes_read`` shapes by these
-    very frames (:mod:`usdface.personalize.amplitude`, since stop 49): the title says so."""
+    very frames (:mod:`usdface.personalize.amplitude`, since stop 49), each frame scored with the others'
+    readings (cross-fitted, since stop 51): the title says so."""
     from ..personalize import fit_personalized_shapes
+    from ..personalize.api import left_out_scale
     from ..personalize.evaluate import test_expression_errors
 
     if len(capture.test) == 0:
@@ -280,11 +282,13 @@ def _fit_errors(capture, info: dict, *, recorded: bool) -> dict | None:
             reg = float(reg)
         except (TypeError, ValueError):
             reg = str(reg)
-        scored = test_expression_errors(capture, fit_personalized_shapes(capture, method=method, reg=reg).rig)
+        fit = fit_personalized_shapes(capture, method=method, reg=reg)
+        # a fit that read its amplitudes on these frames: each frame scored without its own reading
+        scored = test_expression_errors(capture, fit.rig, left_out_scale(fit, capture.test))
         source = f"{method} refit"
     elif scored.get("amplitudes_read"):   # personalize's fit scaled shapes by these frames (stop 49)
-        source += (f", which read {scored['amplitudes_read']} of its shapes' amplitudes on these frames: not "
-                   "wholly held out")
+        source += (f", which read {scored['amplitudes_read']} of its shapes' amplitudes on these frames "
+                   "(each frame scored with the others' readings)")
     return _errors_table(scored, source)
 
 

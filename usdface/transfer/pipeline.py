@@ -32,7 +32,7 @@ from ..errors import CaptureError, RigError, warn
 from ..memory import release_free_memory
 from ..model import Avatar, Capture, FaceRig
 from ..motion import meshes_by_motion, moving_vertices, peak_motion, refuse_several_characters
-from ..personalize.api import single_threaded_blas
+from ..personalize.api import left_out_scale, single_threaded_blas
 from ..personalize.evaluate import test_expression_errors
 from ..progress import steps
 from ..submesh import SparseOffsets, crop, crop_avatar, crop_rig, rig_on, scatter
@@ -515,10 +515,11 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
             rig = fit.rig
             report["fit"] = {k: v for k, v in fit.info.items() if not isinstance(v, np.ndarray)}
             report["fit"]["prior"] = prior
-            scored = test_expression_errors(capture, rig)    # eq. 5 of the fit the layer carries
+            # eq. 5 of the fit the layer carries; it read its shapes' amplitudes on these frames too
+            # (personalize.amplitude), so each frame is scored with the readings of the others (cross-fitted)
+            scored = test_expression_errors(capture, rig, left_out_scale(fit, capture.test))
             if scored is not None:
-                # the fit read its shapes' amplitudes on these frames too (personalize.amplitude): how many
-                # it scaled, so the score is not taken for a wholly held-out one
+                # how many shapes it scaled
                 scale = (fit.info.get("test_amplitude") or {}).get("scale", [])
                 scored["amplitudes_read"] = int(np.count_nonzero(np.asarray(scale) != 1.0))
                 report["fit"]["test_expressions"] = scored
