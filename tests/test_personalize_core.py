@@ -90,6 +90,17 @@ def test_dt_in_groups_of_shapes_is_the_transfer_of_every_shape_at_once(mesh, mon
     assert np.abs(whole).max() > 1e-3
 
 
+def test_dt_of_no_shapes_is_an_empty_transfer(mesh):
+    """Zero shapes (``source_deltas[0,n,3]``) transfer to ``[0,n,3]``, as before the shapes went through in
+    groups (stop 51: the groups' loop ran no group and ``np.concatenate([])`` raised ``ValueError: need at
+    least one array to concatenate``)."""
+    pts, tris = mesh
+    out = deformation_transfer(pts, np.zeros((0,) + pts.shape), pts * 1.1, tris, eyelids=False)
+    assert out.shape == (0,) + pts.shape
+    solver = PoissonSolver(pts * 1.1, tris)
+    assert solver.solve_transfer(pts, np.zeros((0,) + pts.shape)).shape == (0,) + pts.shape
+
+
 def test_zip_loop_and_eyelid_detection():
     # a ring of 8 points around an "eye" hole whose upper lid closes in the blink shape
     ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)

@@ -141,7 +141,7 @@ class PoissonSolver:
                                           shape=(n, 3 * t))
         group = max(1, int(SHAPE_BLOCK_BYTES // (8 * 8 * 3 * max(t, 1))))
         out = []
-        for lo in range(0, m, group):
+        for lo in range(0, max(m, 1), group):     # one (empty) group when there are no shapes: [0,n,3]
             g = slice(lo, lo + group)
             e1, e2, e3 = frame_vectors(np.ascontiguousarray(P[g].transpose(1, 0, 2)), tri, axis=0)  # [t,g,3]
             mg = e1.shape[1]
