@@ -349,6 +349,51 @@ def test_a_studio_worker_gets_its_output_folder_and_must_write_its_output(tmp_pa
     assert not (tmp_path / "new").exists()
 
 
+def test_a_failed_item_leaves_the_folder_another_item_is_about_to_write_into(tmp_path):
+    """Two items of one batch write into a new ``out/`` side by side (a pool, or Dask): the first to start
+    makes ``out/``, fails while the other still works, and must not take ``out/`` away under it (stop 51's
+    review: a studio step's plain write then failed ``FileNotFoundError``). The batch takes away the empty
+    folders it made when every item has ended."""
+    import threading
+
+    from usdface.pipeline.batch import BatchItem, run_item
+
+    b_working, a_ended = threading.Event(), threading.Event()
+
+    def worker(item):
+        if item["avatar"] == "a":
+            b_working.wait(30)
+            raise RuntimeError("the studio step failed on a")
+        b_working.set()
+        a_ended.wait(30)                            # still working when a's item has ended
+        Path(item["output"]).write_text("b's layer")
+
+    res = {}
+
+    def run(name):
+        res[name] = run_item(worker, {"index": 0, "avatar": name, "capture": "c",
+                                      "output": str(tmp_path / "out" / f"{name}.usda")})
+        if name == "a":
+            a_ended.set()
+
+    first = threading.Thread(target=run, args=("a",))
+    first.start()
+    while not (tmp_path / "out").is_dir() and first.is_alive():    # a's item made out/ and waits in it
+        first.join(0.01)
+    second = threading.Thread(target=run, args=("b",))
+    second.start()
+    first.join(60)
+    second.join(60)
+    assert res["a"]["status"] == FAILED and res["b"]["status"] == DONE, res["b"].get("error")
+    assert (tmp_path / "out" / "b.usda").read_text() == "b's layer"
+    # the batch's own clean-up: a failed item's empty folders go when the batch ends, a written one stays
+    items = [BatchItem("none.usdc", "c", str(tmp_path / "gone" / "sub" / "none.usda"), {}, 0),
+             BatchItem("b.usdc", "c", str(tmp_path / "kept" / "b.usda"), {}, 1)]
+    report = run_batch(items, worker=plain_worker, jobs=1, progress=False)
+    assert [r.status for r in report.results] == [FAILED, DONE]
+    assert not (tmp_path / "gone").exists() and (tmp_path / "kept" / "b.usda").is_file()
+
+
 def warning_worker(item: dict):
     """Writes ``output`` and warns (a capture with repeated frames), and returns a result whose report
     holds a note of its own (as :func:`usdface.api.personalize_avatar`'s does)."""

@@ -142,14 +142,20 @@ def temp_sibling(path, create: bool = True) -> Path:
     return Path(name)
 
 
-def make_parents(path) -> list[Path]:
-    """Create the missing folders above ``path``; returns those made, deepest first, for
-    :func:`remove_made` to take away again when the write fails (a failure leaves nothing behind)."""
+def missing_parents(path) -> list[Path]:
+    """The folders above ``path`` that do not exist, deepest first (what :func:`make_parents` would make)."""
     missing = []
     folder = Path(path).parent
     while not os.path.lexists(folder) and folder != folder.parent:
         missing.append(folder)
         folder = folder.parent
+    return missing
+
+
+def make_parents(path) -> list[Path]:
+    """Create the missing folders above ``path``; returns those made, deepest first, for
+    :func:`remove_made` to take away again when the write fails (a failure leaves nothing behind)."""
+    missing = missing_parents(path)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     return missing
 

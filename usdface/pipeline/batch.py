@@ -582,18 +582,20 @@ def load_worker(spec: str) -> Callable[[dict], object]:
 
 def run_item(worker: Callable[[dict], object], item: dict) -> dict:
     """Run ``worker(item)`` and return an :class:`ItemResult` as a dict; never raises (failure isolation)."""
-    from ..io.atomic import make_parents, remove_made
+    from ..io.atomic import make_parents
 
     start, cpu = time.perf_counter(), time.process_time()
     base = {k: item[k] for k in ("index", "avatar", "capture", "output")}
     out = Path(item["output"])
     existed = out.exists()
     # the output's folders made for every worker, as personalize makes them (a studio's --worker got a
-    # manifest's out/anna.usda with no out/ and failed FileNotFoundError), and taken away when the item fails
+    # manifest's out/anna.usda with no out/ and failed FileNotFoundError). Not taken away here when the item
+    # fails: another item running beside it may be about to write into them (run_batch takes away the empty
+    # ones when every item has ended)
     try:
-        made = make_parents(out)
+        make_parents(out)
     except OSError:
-        made = []                   # the worker's own write names what refuses the place
+        pass                        # the worker's own write names what refuses the place
     # the item's warnings go to its result (the report, and the batch's own lines naming the item), not to
     # the worker's stdout/stderr unattributed: collected per thread (a Dask worker's threads run items side
     # by side), with the host's warning filters as they are
@@ -618,13 +620,11 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
             Path(exc.path).absolute() == out.absolute()
         if not existed and out.exists() and not theirs:
             error += f" (its output was written before the failure: moved to {set_aside(out).name})"
-        remove_made(made)
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
                     traceback="".join(traceback.format_exception(exc)))
     if not os.path.lexists(out):
         # returned without its output: not done (the report said 'done' and resume ran it again each time)
-        remove_made(made)
         name = getattr(worker, "__qualname__", None) or repr(worker)
         error = (f"{out}: the batch worker {getattr(worker, '__module__', '?')}:{name} returned without "
                  "writing the item's output (fix: the worker must write item['output'], the file resume "
@@ -1100,7 +1100,8 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     """Run ``worker`` on every item; returns a :class:`BatchReport` (results in manifest order).
 
     ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "force"}`` and must write
-    ``output`` (its folders are made before it runs; an item that returns without it fails, ``NoOutput``);
+    ``output`` (its folders are made before it runs, and those still empty when the batch ends taken away;
+    an item that returns without it fails, ``NoOutput``);
     it must be importable by name (a module-level function) to run in worker processes. Items
     whose output exists are skipped unless ``force``. ``jobs=1`` runs in-process; ``jobs=None`` uses
     :func:`default_jobs` pool workers; ``scheduler`` (address or ``distributed.Client``) uses Dask.
@@ -1131,6 +1132,11 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     if not todo:       # every row skipped or stale: no pool started, no scheduler contacted (it said 'on dask
         where = NOTHING_RUN + (f" (the Dask scheduler {scheduler} was not contacted)"     # tcp://...')
                                if isinstance(scheduler, str) else "")
+    # the output folders no item has yet (run_item makes them): those still empty when every item has ended
+    # (a failed item's) are taken away then, not by the failed item itself while others write into them
+    from ..io.atomic import missing_parents, remove_made
+
+    missing = sorted({f for it in todo for f in missing_parents(it["output"])}, key=lambda f: -len(f.parts))
     if todo:
         from .. import progress as _progress
 
@@ -1167,5 +1173,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
             raise
         finally:
             _progress.set_enabled(enabled)
+            for folder in missing:              # deepest first; a folder an item wrote into is not empty
+                remove_made([folder])
     ordered = [ItemResult(**results[item.index]) for item in items]
     return BatchReport(ordered, time.perf_counter() - start, where)
