@@ -204,7 +204,9 @@ def fit_block_vertices(weights: np.ndarray, basis) -> int:
     """Vertices per block of a fit without a caller's system (:func:`fit_blendshapes`): its per-vertex
     systems (``M[v,r,r]`` and the solve's copy and the product that forms it, or ``A[v,K,K]``), right-hand
     sides and residuals within :data:`BLOCK_BYTES` (at least one). A 74.5k-vertex capture's ``[n,r,r]``
-    systems took ~1.4 GB at once; dev1-dev3's 1,203 and the sample's capture are one block."""
+    systems took ~1.4 GB at once. dev1's and dev3's captures (rank 28) are one block; the sample's (1,233)
+    and dev2's (1,203), whose weights' rank takes the K x K systems, two (943 and 980 vertices a block at
+    K = 51-52): the same bits as one block, each vertex's solve its own."""
     F, K = np.shape(weights)
     size = len(basis[1]) if basis is not None else K
     return max(1, int(BLOCK_BYTES // (8 * (3 * size * size + 3 * (F + size) + K))))
