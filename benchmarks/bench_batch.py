@@ -10,7 +10,9 @@ Each run personalizes ``--items`` avatars from scratch into separate outputs: wi
 when ../shared is there) dev1, dev2, dev1, ...; with ``--case sample`` the project's own
 ``sample_assets/avatar.usda`` + ``capture.usda`` every time. Prints a table of the median / min wall-clock
 seconds over ``--repeat`` runs and the median throughput (the pool's and the cluster's start-up included: it
-is what a batch costs). The machine is shared, so read the median. The Dask row needs ``distributed``.
+is what a batch costs). The machine is shared, so read the median. The Dask row needs ``distributed``. A rate
+marked ``*`` is of a batch shorter than ``usdface.pipeline.batch.MIN_RATE_SECONDS``, which ``usdface batch``
+states no rate for: give more ``--items`` for issue 12's avatars/minute figure.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 
 from shared_data import BENCH
 
-from usdface.pipeline.batch import read_manifest, run_batch
+from usdface.pipeline.batch import MIN_RATE_SECONDS, read_manifest, run_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,7 +92,11 @@ def main(argv=None) -> int:
     print(f"{'where':<12} {'items':>5} {'median s':>9} {'min s':>8} {'avatars/min':>12} {'CPU s/item':>11}   "
           f"({case}, jobs={args.jobs}, repeat={args.repeat}, load {load:.1f} on {os.cpu_count()} CPUs)")
     for where, done, med, low, rate, cpu in rows:
-        print(f"{where:<12} {done:>5} {med:>9.1f} {low:>8.1f} {rate:>12.2f} {cpu:>11.1f}")
+        short = "*" if med < MIN_RATE_SECONDS else " "     # what usdface batch would state no rate for
+        print(f"{where:<12} {done:>5} {med:>9.1f} {low:>8.1f} {rate:>11.2f}{short} {cpu:>11.1f}")
+    if any(med < MIN_RATE_SECONDS for _, _, med, _, _, _ in rows):
+        print(f"* a batch under {MIN_RATE_SECONDS:g} s: its rate is mostly start-up (usdface batch states "
+              "none); raise --items")
     return 0
 
 

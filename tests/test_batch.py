@@ -349,6 +349,29 @@ def test_a_studio_worker_gets_its_output_folder_and_must_write_its_output(tmp_pa
     assert not (tmp_path / "new").exists()
 
 
+def test_a_batch_of_near_instant_items_states_no_rate(tmp_path, capsys):
+    """A TD's trial (stop 51): five studio-worker items done in 0.06 s were summed up as ``4909.44
+    avatars/minute``, a rate no batch of avatars comes near. A batch shorter than ``MIN_RATE_SECONDS``
+    states its items and seconds alone (the report's ``avatars_per_minute`` null); a long one its rate."""
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("avatar,capture,output\n"
+                        + "".join(f"a{i}.usdc,c{i},out/a{i}.usda\n" for i in range(5)))
+    worker = f"{__name__}:plain_worker"
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker]) == 0
+    out = capsys.readouterr().out
+    assert "5 done, 0 skipped, 0 failed in " in out and "/minute" not in out
+    assert json.loads((tmp_path / "m.report.json").read_text())["avatars_per_minute"] is None
+    assert main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker, "--force", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["done"] == 5 and doc["avatars_per_minute"] is None
+    from usdface.pipeline.batch import MIN_RATE_SECONDS, BatchReport, ItemResult
+
+    done = [ItemResult(i, "a", "c", "o", DONE) for i in range(5)]
+    long = BatchReport(done, 2 * MIN_RATE_SECONDS)
+    assert long.throughput_per_minute == 150.0 / MIN_RATE_SECONDS and "avatars/minute" in long.summary()
+    assert BatchReport(done, 0.99 * MIN_RATE_SECONDS).throughput_per_minute is None
+
+
 def test_a_failed_item_leaves_the_folder_another_item_is_about_to_write_into(tmp_path):
     """Two items of one batch write into a new ``out/`` side by side (a pool, or Dask): the first to start
     makes ``out/``, fails while the other still works, and must not take ``out/`` away under it (stop 51's

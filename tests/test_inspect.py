@@ -304,6 +304,36 @@ def test_inspect_names_a_layers_inspection_animation(tmp_path, capsys):
 
 
 
+def test_inspect_says_a_recorded_take_that_is_gone_is_missing(tmp_path, capsys):
+    """A TD's trial: 'inspect' of a layer whose recorded take had been moved away still said 'then the take
+    ../take.csv' and listed it as an input, as if it were there. A missing recorded input is a note (text
+    and --json, with ``missingInputs``), its input line and the inspection animation's say so; an input that
+    is there is not."""
+    from usdface.io.livelink import write_livelink_csv
+
+    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    w = np.random.default_rng(2).uniform(0, 1, size=(30, 2))
+    write_livelink_csv(tmp_path / "take.csv", ["jawOpen", "eyeBlinkLeft"], w, np.arange(30) / 30.0)
+    layer = tmp_path / "out" / "p.usda"
+    assert main(["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(layer),
+                 "-q", "--take", str(tmp_path / "take.csv")]) == 0
+    capsys.readouterr()
+    assert "missingInputs" not in inspect_file(layer)
+    (tmp_path / "take.csv").rename(tmp_path / "moved.csv")
+    assert main(["inspect", str(layer)]) == 0
+    text = capsys.readouterr().out.splitlines()
+    note = [x for x in text if "note:" in x and "missing" in x]
+    assert len(note) == 1 and "../take.csv" in note[0] and str(tmp_path / "take.csv") in note[0]
+    assert [x for x in text if x.strip().startswith("input ../take.csv")][0].endswith("(missing)")
+    assert not [x for x in text if "capture.usda" in x and "missing" in x]
+    played = next(x for x in text if "inspection animation" in x)
+    assert "then the take ../take.csv (missing now" in played
+    assert main(["inspect", str(layer), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["missingInputs"] == ["../take.csv"]
+    assert any("../take.csv is missing" in n for n in doc["notes"])
+
+
 def test_shape_storage_holds_no_copy_of_the_offsets():
     """``usdface inspect`` of a 225k-vertex head peaked at 1.2 GB: the zero-shape test formed
     ``np.linalg.norm`` of every offset at once (a squared [K, n, 3] copy and a [K, n] of norms, 370 MB beside

@@ -387,6 +387,37 @@ def test_a_dry_run_answers_whether_a_real_run_would_write(samples, tmp_path, cap
     assert main([*base, "--force"]) == 0
 
 
+def test_a_dry_run_says_a_real_run_would_refuse_before_it_computes(samples, tmp_path, capsys, monkeypatch):
+    """``--dry-run`` onto an existing output fitted for seconds (minutes on a large capture) before saying a
+    real run would refuse (a TD's trial): the refusal is one line on stderr, naming the output and the fix,
+    before the work; the changes are still printed and the exit status is 1 (the JSON a single document)."""
+    import usdface.api
+
+    real, said = usdface.api.personalize_avatar, []
+
+    def personalize(*args, **kwargs):     # what stderr held when the work began
+        said.append(capsys.readouterr().err)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(usdface.api, "personalize_avatar", personalize)
+    out = tmp_path / "p.usda"
+    out.write_text("#usda 1.0\n")
+    base = ["personalize", str(samples / "avatar.usda"), str(samples / "capture.usda"), "-o", str(out),
+            "--dry-run", "-q", "--correspondence", str(tmp_path / "c.npz")]
+    assert main(base) == 1
+    first = [line for line in said[-1].splitlines() if "would refuse" in line]
+    assert len(first) == 1 and str(out) in first[0] and "output layer exists" in first[0]
+    assert "fix: pass --force" in first[0]
+    text = capsys.readouterr().out
+    assert "dry run:" in text and "jawOpen: max" in text and "a real run would refuse to write" in text
+    assert main([*base, "--json"]) == 1
+    assert "would refuse" in said[-1]
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] is False and "exists" in doc["output_refused"] and doc["changes"]
+    assert main([*base, "--force"]) == 0
+    assert "would refuse" not in said[-1] + capsys.readouterr().err
+
+
 def _studio_map(samples, tmp_path, channels: str, *options) -> dict:
     """The retarget JSON map of the sample avatar with its ``jawOpen`` channel in the ``skel:blendShapes``
     list that reads ``channels`` renamed ``JawDrop`` (a studio's name, mapped back by ``--name-map``)."""

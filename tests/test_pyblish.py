@@ -551,6 +551,30 @@ def test_a_failed_review_page_takes_the_new_layer_with_it(pyblish_registered, sa
         assert list(tmp_path.iterdir()) == []
 
 
+def test_the_inspect_flag_validated_is_the_one_used(extractions, tmp_path, samples):
+    """``usdfaceOptions``' ``inspect`` is the one personalize gets over the instance data's (stop 51's review:
+    the data's was still validated, so a data ``inspect="no"`` failed a publish whose options set
+    ``inspect=True``). The one used is the one checked: the options' word fails validation, the data's
+    unused one does not."""
+    from usdface.errors import OptionError
+
+    def publish(data: dict, options: dict):
+        context = pyblish_api.Context()
+        context.data["usdfaceItems"] = [{"avatar": str(samples / "avatar.usda"),
+                                         "capture": str(samples / "capture.usda"),
+                                         "output": str(tmp_path / "anna.usda"), **data,
+                                         "usdfaceOptions": options}]
+        pyblish.util.publish(context)
+        return [r["error"] for r in context.data["results"] if r["error"] is not None]
+
+    assert publish({"inspect": "no"}, {"inspect": True}) == []
+    assert len(extractions) == 1 and plugins._personalize_options(extractions[0])["inspect"] is True
+    errors = publish({"inspect": True}, {"inspect": "no"})
+    assert errors and all(isinstance(e, OptionError) and "inspect" in str(e) for e in errors)
+    assert len(extractions) == 1
+    assert publish({"inspect": True}, {}) == [] and plugins._personalize_options(extractions[1])["inspect"]
+
+
 @pytest.mark.parametrize("data, plugin", [
     ({"force": "no"}, "ValidateUsdFaceOutputs"),
     ({"review": "no"}, "ValidateUsdFaceOutputs"),

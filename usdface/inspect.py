@@ -120,6 +120,13 @@ def _mesh_summary(rig: FaceRig, report: dict) -> dict:
     }
 
 
+def _recorded(folder: Path, recorded) -> Path:
+    """Where a layer in ``folder`` looks for an input it records (:func:`usdface.io.layers.recorded_path`)."""
+    from .io.layers import recorded_path
+
+    return recorded_path(folder, recorded)
+
+
 def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     """Report dict for an avatar (see module doc); ``layer_info`` (from
     :func:`usdface.io.usd_rig.read_layer_info`) adds provenance, sublayers and variant selections."""
@@ -142,6 +149,14 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         # the avatar revised or an input changed since the layer was written: its meshes are not its result
         out["notes"] += [*layer_info.get("avatarRevised", []), *layer_info.get("neutralNudged", []),
                          *layer_info.get("staleInputs", [])]
+        # a recorded input gone (a take moved away) was listed as if it were there
+        missing = layer_info.get("missingInputs", [])
+        if missing:
+            out["missingInputs"] = list(missing)
+            folder = Path(str(layer_info.get("file", avatar.file or "."))).parent
+            out["notes"] += [f"the recorded input {p} is missing (not at {_recorded(folder, p)}): moved or "
+                             "deleted since the layer was written; whether it changed cannot be told"
+                             for p in missing]
         out["subLayers"] = layer_info.get("subLayers", [])
         out["provenance"] = layer_info.get("usdface", {})
         out["variants"] = layer_info.get("variants", {})
@@ -497,18 +512,23 @@ def format_report(report: dict) -> str:
         lines.append("  usdface layer: " + ", ".join(parts))
         if prov.get("workingDirectory"):      # where the command ran (its relative paths start there)
             lines.append(f"    command run in {prov['workingDirectory']}")
+        gone = set(report.get("missingInputs", []))      # said as such, not listed as if there
         for src, digest in zip(prov.get("inputs", []), prov.get("inputDigests", []), strict=False):
-            lines.append(f"    input {src} sha256 {str(digest)[:16]}...")
+            lines.append(f"    input {src} sha256 {str(digest)[:16]}..."
+                         + (" (missing)" if src in gone else ""))
         if prov.get("capture"):              # a fit rig: the capture it was fitted on
-            lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}...")
+            lines.append(f"    capture {prov['capture']} sha256 {str(prov.get('captureDigest', ''))[:16]}..."
+                         + (" (missing)" if prov["capture"] in gone else ""))
         if prov.get("pinsDigest"):           # ... and the pins file it kept
             pins = (prov.get("parameters") or {}).get("pins")
             lines.append(f"    pins {pins} sha256 {str(prov['pinsDigest'])[:16]}...")
     if report.get("inspectionAnimation"):
         played = report["inspectionAnimation"]
         prov = report.get("provenance") or {}
+        gone = " (missing now; the layer holds its frames)" if prov.get("take") in report.get(
+            "missingInputs", []) else ""
         parts = (["the capture's test expressions"] if prov.get("fitTestExpressions") else []) + (
-            [f"the take {prov['take']}"] if prov.get("take") else [])
+            [f"the take {prov['take']}{gone}"] if prov.get("take") else [])
         what = ", then ".join(parts) or "recorded frames"
         lines.append(f"  inspection animation {played['prim']}: {played['frames']} frames, "
                      f"{played['seconds']:g} s ({what}; usdview plays it on the personalized avatar)")

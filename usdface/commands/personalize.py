@@ -172,6 +172,10 @@ def run(args) -> int:
                                   inputs=inputs)
         except UsdFaceError as exc:
             refusal = str(exc)
+            # said before the fit (seconds to minutes), not only after it: a preflight's answer first; the
+            # changes are still computed (a dry run prints them), the exit status stays 1
+            print(f"usdface personalize: dry run: a real run would refuse to write: {refusal}; computing "
+                  "what would change anyway", file=sys.stderr, flush=True)
     elif args.review:  # refuse an existing review page (or an input) before the work, like the layer
         check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                           inputs=inputs)

@@ -746,6 +746,23 @@ def stale_inputs(layer_path, given=()) -> list[str]:
     return out
 
 
+def missing_inputs(layer_path, record: dict | None = None) -> list[str]:
+    """The inputs a usdface layer records (its provenance's ``inputs`` and a fit rig's ``capture``, as
+    recorded: relative to the layer or absolute) that are not there now, resolved as
+    :func:`recorded_path` resolves them; [] when none is missing or the file is no usdface layer. ``record``:
+    the layer's provenance when the caller has read it. ``inspect`` named a take moved away as if it were
+    there (a TD's trial, stop 51); :func:`stale_inputs` passes over a missing file."""
+    from .usd_rig import usdface_output_provenance
+
+    record = usdface_output_provenance(layer_path) if record is None else record
+    if not isinstance(record, dict):
+        return []
+    recorded = [*(record.get("inputs") or []), *([record["capture"]] if record.get("capture") else [])]
+    folder = Path(layer_path).parent
+    return [str(p) for p in dict.fromkeys(str(r) for r in recorded)
+            if not os.path.exists(recorded_path(folder, p))]
+
+
 #: Vertices per block of :func:`neutral_signature` (in index order).
 NEUTRAL_BLOCK = 256
 

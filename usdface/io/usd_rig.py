@@ -1191,7 +1191,8 @@ def read_layer_info(path, revisions: bool = False) -> dict:
     With ``revisions``, for a usdface layer also how its avatar was revised since it was written
     (``avatarRevised``: :func:`usdface.io.layers.avatar_mismatches`; ``neutralNudged``: its neutral's points
     changed by less than the layer's record resolves, a warning as check's) and which recorded inputs changed
-    (``staleInputs``: :func:`usdface.io.layers.stale_inputs`), as text.
+    (``staleInputs``: :func:`usdface.io.layers.stale_inputs`), as text, and which are gone (``missingInputs``:
+    :func:`usdface.io.layers.missing_inputs`, as recorded).
     """
     from pxr import Usd
 
@@ -1219,7 +1220,7 @@ def read_layer_info(path, revisions: bool = False) -> dict:
                 variants.setdefault(str(prim.GetPath()), {})[name] = {
                     "selection": prim.GetVariantSets().GetVariantSelection(name),
                     "variants": list(prim.GetVariantSets().GetVariantSet(name).GetVariantNames())}
-    from .layers import avatar_mismatches, stale_inputs
+    from .layers import avatar_mismatches, missing_inputs, stale_inputs
 
     # a published layer whose avatar was revised since: said, as check's AvatarMatch and Provenance say it
     # (inspect listed the layer's meshes and shapes as if they were its result)
@@ -1231,4 +1232,5 @@ def read_layer_info(path, revisions: bool = False) -> dict:
             "variants": variants, "flattened": found.flattened or {},
             "avatarRevised": revised,
             "neutralNudged": [f"{message} (fix: {fix})" for _, message, fix in nudged],
-            "staleInputs": stale_inputs(path) if revisions and found.usdface else []}
+            "staleInputs": stale_inputs(path) if revisions and found.usdface else [],
+            "missingInputs": missing_inputs(path, found.usdface) if revisions and found.usdface else []}

@@ -90,8 +90,12 @@ def _personalize_options(instance) -> dict:
     # True or False (None: the default), as personalize's own options: instance data force="no" (or a
     # manifest cell 'no') counted as true and replaced an existing layer
     options["force"] = _flag(instance, "force", options) if "force" in options else _flag(instance, "force")
-    if "inspect" in data:
-        options.setdefault("inspect", _flag(instance, "inspect"))
+    # the one used is the one checked: usdfaceOptions' over the data's (the data's was checked even when
+    # usdfaceOptions gave its own, and a word there failed a publish that never used it: stop 51's review)
+    if "inspect" in options:
+        options["inspect"] = _flag(instance, "inspect", options)
+    elif "inspect" in data:
+        options["inspect"] = _flag(instance, "inspect")
     if data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in the layer as
         options["take"] = data["take"]                  # on the review page
     return options
