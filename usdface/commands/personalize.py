@@ -161,7 +161,10 @@ def run(args) -> int:
     inputs = personalize_inputs(args.avatar, args.capture, take=args.take, pins=args.pins,
                                 name_map=args.name_map)
     refusal = None
-    if args.review:      # a missing input before the page's problems (the API says it before the layer's)
+    if args.review or args.dry_run:
+        # a missing input before the page's problems or the dry run's early word on the output (the API
+        # says it before the layer's): a dry run of a missing capture into a read-only folder printed the
+        # output's refusal first
         refuse_missing_inputs(args.avatar, args.capture, args.take)
     if args.dry_run:  # nothing is written, but say whether a real run would be allowed to write
         try:
