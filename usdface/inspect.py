@@ -120,13 +120,6 @@ def _mesh_summary(rig: FaceRig, report: dict) -> dict:
     }
 
 
-def _recorded(folder: Path, recorded) -> Path:
-    """Where a layer in ``folder`` looks for an input it records (:func:`usdface.io.layers.recorded_path`)."""
-    from .io.layers import recorded_path
-
-    return recorded_path(folder, recorded)
-
-
 def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
     """Report dict for an avatar (see module doc); ``layer_info`` (from
     :func:`usdface.io.usd_rig.read_layer_info`) adds provenance, sublayers and variant selections."""
@@ -152,10 +145,12 @@ def summarize_avatar(avatar: Avatar, layer_info: dict | None = None) -> dict:
         # a recorded input gone (a take moved away) was listed as if it were there
         missing = layer_info.get("missingInputs", [])
         if missing:
+            from .io.layers import recorded_path
+
             out["missingInputs"] = list(missing)
             folder = Path(str(layer_info.get("file", avatar.file or "."))).parent
-            out["notes"] += [f"the recorded input {p} is missing (not at {_recorded(folder, p)}): moved or "
-                             "deleted since the layer was written; whether it changed cannot be told"
+            out["notes"] += [f"the recorded input {p} is missing (not at {recorded_path(folder, p)}): moved "
+                             "or deleted since the layer was written; whether it changed cannot be told"
                              for p in missing]
         out["subLayers"] = layer_info.get("subLayers", [])
         out["provenance"] = layer_info.get("usdface", {})

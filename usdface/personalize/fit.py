@@ -130,6 +130,12 @@ def _reduced_matrices(s, Q, D, reg):
     return B, inv_l, M
 
 
+def _square_block_vertices(r: int) -> int:
+    """Vertices per block of the steps that hold three ``[v,r,r]`` float64 arrays at a time (the gain's
+    ``M^-1`` formed, :func:`frame_error_variance`'s sandwich): within :data:`BLOCK_BYTES`, at least one."""
+    return max(1, int(BLOCK_BYTES // (8 * 3 * max(r, 1) ** 2)))
+
+
 def _reduced_inverse_blocks(s, Q, D, reg):
     """``(B[K,r], inv_l[n,K], M^-1[n,r,r])``: :func:`_reduced_matrices`' ``B`` and ``inv_l`` and the inverse
     of its ``M``, formed and inverted a block of vertices at a time (:data:`BLOCK_BYTES`), so that ``M``
@@ -138,7 +144,7 @@ def _reduced_inverse_blocks(s, Q, D, reg):
     inv_l = 1.0 / (reg * np.asarray(D, dtype=np.float64).T ** 2)                      # [n,K]
     n, r = len(inv_l), len(s)
     inverse = np.empty((n, r, r))
-    step = max(1, int(BLOCK_BYTES // (8 * 3 * max(r, 1) ** 2)))
+    step = _square_block_vertices(r)
     for lo in range(0, n, step):
         v = slice(lo, min(lo + step, n))
         M = reduced_normal_matrix(inv_l[v], B)
@@ -283,16 +289,15 @@ def fit_blendshapes(neutral: np.ndarray, points: np.ndarray, weights: np.ndarray
         system = FitSystem(W, reg_weights, reg, basis=basis)
     R = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]   # [F,n,3]
     T = np.asarray(generic_deltas, dtype=np.float64)
-    sys_ = system
-    if sys_.basis is None:
+    if system.basis is None:
         # partial-pivoting LU is accurate here without equilibration (the large entries are on the diagonal);
         # with the gain, A^-1 W^T as extra right-hand sides of the same solve
         c = R.shape[2]
-        X = _direct_system(W, R, T, sys_, sys_.gain)
-        if sys_.gain:
-            sys_.G = X[:, :, c:]                                                         # A^-1 W^T
+        X = _direct_system(W, R, T, system, system.gain)
+        if system.gain:
+            system.G = X[:, :, c:]                                                         # A^-1 W^T
         return X[:, :, :c].transpose(1, 0, 2)
-    _, B, inv_l, _, X = _reduced_solve(W, R, T, sys_, False)
+    _, B, inv_l, _, X = _reduced_solve(W, R, T, system, False)
     return T + (inv_l[:, :, None] * _left(B, X)).transpose(1, 0, 2)
 
 
@@ -471,7 +476,7 @@ def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
     # one batched inverse (the fit's, if it kept it), then two stacked products, a block of vertices at a
     # time (three [v,r,r] arrays within BLOCK_BYTES: 1.4 GB at once on a 74.5k-vertex capture)
     out = np.empty_like(inv_l)
-    step = max(1, int(BLOCK_BYTES // (8 * 3 * r * r)))
+    step = _square_block_vertices(r)
     for lo in range(0, n, step):
         v = slice(lo, min(lo + step, n))
         inv_m = np.linalg.inv(M[v]) if system.inverse is None else system.inverse[v]
