@@ -13,6 +13,7 @@ One process per figure (the peak is the process's); compare a change with its ba
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 import time
@@ -44,8 +45,9 @@ def subdivided_capture(case: str, levels: int) -> Capture:
 
 
 def _rss_mb() -> float:
+    """The process's resident set (MB) now: /proc's resident pages times the system's page size."""
     with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * 4096 / 2**20
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 def traced_fit(capture: Capture) -> dict:
