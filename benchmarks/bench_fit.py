@@ -12,6 +12,13 @@ dev3 also runs the fit with an avatar prior: a stand-in for the avatar's generic
 capture (dev1's template - the same avatar's rig on the same capture topology - rotated onto dev3's neutral;
 needs dev1).
 
+A case is any name ``benchmarks/bench_personalize.py`` takes (``artist:201``, ``noisy:103/scan0.3``,
+``dev1/minus3``, ``dev3/template1``, ...; the truth is the base case's ``truth/capture_truth.npz``), and
+``--per-shape`` prints, per shape, the default fit's error against the truth beside its prior's and the
+template's, its share of the squared error, and how the training frames excite it (:func:`per_shape`):
+
+    python benchmarks/bench_fit.py --cases dev3 --per-shape --no-timing
+
 Timings are noisy on a shared machine: run it when the machine is quiet. ``fit_personalized_shapes`` limits
 BLAS to one thread itself (threadpoolctl), which avoids oversubscription for the many tiny (K x K) problems.
 """
@@ -52,10 +59,104 @@ RUNS = {
 
 
 def load(case: str):
-    """(capture, truth npz) of a bench case or of the sample (``case="sample"``)."""
+    """(capture, truth npz) of a bench case, of the sample (``case="sample"``) or of any case name
+    ``bench_personalize.py`` takes (a generated case, a bench case with frames missing, its weights scaled or
+    another template: the truth of the case it derives from, :func:`truth_path`)."""
     if case == "sample":
         return read_capture(SAMPLE / "capture.usda"), np.load(SAMPLE / "truth" / "capture_truth.npz")
-    return read_capture(BENCH / case / "capture"), np.load(BENCH / case / "truth" / "capture_truth.npz")
+    if (BENCH / case).is_dir():
+        return read_capture(BENCH / case / "capture"), np.load(BENCH / case / "truth" / "capture_truth.npz")
+    import bench_personalize
+
+    return bench_personalize._case(case)[1], np.load(truth_path(case))
+
+
+def truth_path(case: str) -> Path:
+    """``truth/capture_truth.npz`` of a ``bench_personalize.py`` case name: a derived case's (``/weightsS``,
+    ``/templateSRCxS``, ``/minusK``: the person and the truth are the base case's) is its base case's."""
+    import bench_personalize as bp
+
+    for derived in (bp._weights, bp._template, bp._minus):
+        base = derived(case)
+        if base is not None:
+            return truth_path(base[0])
+    if case == "sample":
+        return SAMPLE / "truth" / "capture_truth.npz"
+    if bp._generated(case):
+        return bp._folder(case) / "truth" / "capture_truth.npz"
+    return BENCH / case / "truth" / "capture_truth.npz"
+
+
+def known(case: str) -> bool:
+    """Can :func:`load` read ``case``?"""
+    if case == "sample" or (BENCH / case).is_dir():
+        return True
+    import bench_personalize
+
+    return bench_personalize._known(case)
+
+
+def per_shape(capture, true, result) -> list[dict]:
+    """Per shape of ``capture.names``: the fit ``result``'s (a :class:`FitResult`) RMSE against the true
+    ``true[K,n,3]`` (mm, ``fit``), its prior's (``prior``: eq. 2's T_j as the fit used it) and the raw
+    template's (``template``), ``share`` its part of the fit's summed squared error (the RMS over shapes of
+    ``fit`` is :func:`truth_error`), how the training frames excite it - its largest weight (``peak``), the
+    sum of its squared weights (``energy``), its weight in the training frame labelled with its name
+    (``own``, nan without one) and whether that is the frame's largest (``isolated``: the frame recorded for
+    it shows it at least as strongly as any other shape; ties count) - and the fit's own ``data_share`` and
+    ``reliability`` of it (nan where the fit reports none)."""
+    from usdface.arkit import normalize_name
+
+    def rms(d):
+        return np.sqrt(np.mean(np.sum(np.asarray(d, dtype=np.float64) ** 2, axis=-1), axis=-1)) * 1000.0
+
+    info = result.info
+    fit = rms(result.rig.deltas - true)
+    prior = rms(np.asarray(info.get("prior_deltas", capture.template.deltas)) - true)
+    template = rms(capture.template.deltas - true)
+    W = capture.train.weights
+    K = len(capture.names)
+    canonical = [normalize_name(n) or n for n in capture.names]
+    own, isolated = np.full(K, np.nan), np.zeros(K, dtype=bool)
+    for f, label in enumerate(capture.train.label or []):
+        name = normalize_name(str(label).split("_", 1)[-1])
+        if name in canonical:
+            k = canonical.index(name)
+            own[k], isolated[k] = W[f, k], W[f, k] >= W[f].max()
+    share = np.asarray(info.get("data_share", np.full(K, np.nan)), dtype=np.float64)
+    reliable = np.asarray(info.get("shape_reliability", np.full(K, np.nan)), dtype=np.float64)
+    total = max(float(np.sum(fit ** 2)), 1e-300)
+    return [{"shape": name, "fit": float(fit[k]), "prior": float(prior[k]), "template": float(template[k]),
+             "share": float(fit[k] ** 2 / total), "peak": float(W[:, k].max(initial=0.0)),
+             "energy": float(np.sum(W[:, k] ** 2)), "own": float(own[k]), "isolated": bool(isolated[k]),
+             "data_share": float(share[k]),
+             "reliability": float(reliable[k])} for k, name in enumerate(capture.names)]
+
+
+def per_shape_table(case: str, console: Console) -> list[dict]:
+    """:func:`per_shape` of the default fit of ``case``, printed largest error first, with the part of the
+    squared error the shapes their own training frame does not isolate carry."""
+    cap, truth = load(case)
+    true = truth["deltas"][[list(truth["names"]).index(n) for n in cap.names]]
+    res = fit_personalized_shapes(cap)
+    rows = per_shape(cap, true, res)
+    table = Table(title=f"{case}: per shape, the default fit against the truth (mm) and the training frames' "
+                        "excitation")
+    for col in ("shape", "fit", "prior", "template", "% of error", "peak w", "sum w^2", "own frame w",
+                "isolated", "data share", "reliability"):
+        table.add_column(col)
+    for r in sorted(rows, key=lambda r: -r["fit"]):
+        table.add_row(r["shape"], f"{r['fit']:.3f}", f"{r['prior']:.3f}", f"{r['template']:.3f}",
+                      f"{100 * r['share']:.1f}", f"{r['peak']:.2f}", f"{r['energy']:.3f}", f"{r['own']:.2f}",
+                      "yes" if r["isolated"] else "no", f"{r['data_share']:.2f}", f"{r['reliability']:.2f}")
+    console.print(table)
+    behind = [r for r in rows if not r["isolated"]]
+    worse = [r["shape"] for r in rows if r["fit"] > r["prior"]]
+    part = 100 * sum(r["share"] for r in behind)
+    console.print(f"{case}: truth {truth_error(res.rig.deltas, true):.4f} mm; the {len(behind)} shapes their "
+                  f"own frame does not isolate carry {part:.1f} % of the squared error; fitted further from "
+                  f"the truth than their prior: {', '.join(worse) or 'none'}")
+    return rows
 
 
 def avatar_prior_standin(cap):
@@ -165,14 +266,18 @@ def main() -> None:
     ap.add_argument("--no-accuracy", action="store_true")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--no-laplacian", action="store_true", help="skip the (slow) Laplacian timing")
+    ap.add_argument("--per-shape", action="store_true",
+                    help="also print each shape's truth error beside its prior's and its excitation")
     args = ap.parse_args()
     console = Console(width=150)
     for case in args.cases.split(","):
-        if case != "sample" and not (BENCH / case).is_dir():
-            console.print(f"no bench data at {BENCH / case}; skipped")
+        if not known(case):
+            console.print(f"no bench data at {BENCH / case} and not a generated case's name; skipped")
             continue
         if not args.no_accuracy:
             accuracy(case, console)
+        if args.per_shape:
+            per_shape_table(case, console)
         if not args.no_timing:
             timing(case, args.repeat, console, laplacian=not args.no_laplacian)
 
