@@ -53,7 +53,10 @@ RUNS = {
     "menzel + align": {"method": "menzel", "reweight": False, "amplitude": False},
     "menzel + reweight": {"method": "menzel", "align": False, "amplitude": False},
     "menzel + amplitude": {"method": "menzel", "align": False, "reweight": False},
+    "menzel + weak prior": {"method": "menzel", "align": False, "reweight": False, "amplitude": False,
+                            "weak_prior": True},
     "menzel, no amplitude": {"method": "menzel", "amplitude": False},
+    "menzel default + weak prior": {"method": "menzel", "weak_prior": True},
     "laplacian": {"method": "laplacian"},
 }
 

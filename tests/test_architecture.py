@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "usdface"
 CORE = ["mesh.py", "motion.py", "model.py", "submesh.py", "bounded_lsq.py", "arkit.py", "namelist.py",
         "take_select.py", *(f"personalize/{n}" for n in ("align.py", "amplitude.py", "api.py", "contact.py",
                                                           "crossval.py", "dt.py", "ebfr.py", "evaluate.py",
-                                                          "fit.py", "laplacian.py", "takefit.py",
+                                                          "fit.py", "laplacian.py", "takefit.py", "weak.py",
                                                           "weights.py")),
         *(f"transfer/{n}" for n in ("correspond.py", "denoise.py", "eyelids.py", "face_map.py", "implant.py",
                                     "motion_field.py", "options.py", "partial_dt.py", "register.py",

@@ -207,7 +207,8 @@ def test_fit_refuses_an_option_its_method_ignores_as_evaluate_does(samples, tmp_
                                  ("dt", ["--no-reweight"], "reweight=False"),
                                  ("ebfr", ["--no-reweight"], "reweight=False"),
                                  ("dt", ["--contact", "off"], "contact='off'"),
-                                 ("ebfr", ["--contact", "off"], "contact='off'")):
+                                 ("ebfr", ["--contact", "off"], "contact='off'"),
+                                 ("ebfr", ["--weak-prior"], "weak_prior=True")):
         assert main(["fit", str(samples / "capture.usda"), "-o", str(out), "--method", method, *flags]) == 2
         err = capsys.readouterr().err
         assert named in err and f"method {method!r}" in err, (method, flags, err)

@@ -26,6 +26,11 @@ def add_fit_options(parser) -> None:
     parser.add_argument("--no-amplitude", dest="amplitude", action="store_false", default=None,
                         help="menzel: keep each shape's size as its peak training frame sets it (no second "
                              "reading on the capture's test frames; eq. 5 is then wholly held out)")
+    parser.add_argument("--weak-prior", dest="weak_prior", action="store_true", default=None,
+                        help="menzel/laplacian: return a shape the training frames show too weakly to "
+                             "measure (effective weight below 10x the phone's weight noise, 0.04) towards "
+                             "its prior (off by default: it helps the phone-mesh captures and hurts "
+                             "generated ones missing frames, docs/fit.md)")
     parser.add_argument("--no-eyelids", dest="eyelids", action="store_false",
                         help="no virtual eyelid triangles in the deformation transfer")
     add_contact_option(parser)
@@ -56,6 +61,7 @@ def fit_kwargs(args) -> dict:
     return {"reg": args.reg, "prior": args.prior, "align": args.align, "reweight": args.reweight,
             "eyelids": args.eyelids, "contact": args.contact,
             **({"amplitude": args.amplitude} if getattr(args, "amplitude", None) is not None else {}),
+            **({"weak_prior": args.weak_prior} if getattr(args, "weak_prior", None) is not None else {}),
             **({"every": args.every} if getattr(args, "every", 1) != 1 else {})}
 
 
@@ -70,6 +76,14 @@ def take_line(info: dict) -> str | None:
         return f"whole take: {fw['frames']} frames{every}{poses} weighted {fw['mode']}"
     return (f"whole take: {fw['frames']} frames{every}{poses} weighted {fw['mode']} (as many as "
             f"{fw['effective_frames']:.0f} equally weighted frames; weights {fw['min']:.3g}-{fw['max']:.3g})")
+
+
+def weak_line(weak: dict | None) -> str | None:
+    """One line on the shapes the frames show too weakly to measure: each one's factor towards its prior."""
+    if not weak:
+        return None
+    shown = ", ".join(f"{name} {factor:.2f}" for name, factor in weak.items())
+    return f"shown too weakly to measure, kept towards the prior (0: the prior, 1: as fitted): {shown}"
 
 
 def contact_lines(contact: dict | None) -> list[str]:
@@ -120,7 +134,7 @@ def run(args) -> int:
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
                                                          "warnings", "contact", "frame_weights",
-                                                         "take_poses")}}
+                                                         "take_poses", "weak")}}
         doc["warnings"] = all_warnings(info.get("warnings"))
         print(json.dumps(doc, default=json_default))
         return 0
@@ -131,7 +145,7 @@ def run(args) -> int:
     print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
           f"({args.method}{extra}{rmse}; "
           f"{info['timings']['total']:.2f} s)")
-    for line in [take_line(info), *contact_lines(info.get("contact"))]:
+    for line in [take_line(info), weak_line(info.get("weak")), *contact_lines(info.get("contact"))]:
         if line:
             print(line)
     for w in info["warnings"]:

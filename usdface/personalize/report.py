@@ -30,12 +30,13 @@ VARIANTS = {"dt": (("dt", "dt", {}),),
 
 #: The user options each method takes (the rest would be refused as unused).
 _TAKES = {"dt": ("eyelids",), "ebfr": ("eyelids", "align"),
-          "menzel": ("reg", "prior", "align", "reweight", "eyelids", "contact", "amplitude"),
-          "laplacian": ("reg", "prior", "align", "reweight", "eyelids", "contact")}
+          "menzel": ("reg", "prior", "align", "reweight", "eyelids", "contact", "amplitude", "weak_prior"),
+          "laplacian": ("reg", "prior", "align", "reweight", "eyelids", "contact", "weak_prior")}
 
 
 #: The command line's spelling of each fit option, for the refusal of one no chosen method uses.
-_FLAGS = {k: FIT_FLAGS[k] for k in ("reg", "prior", "align", "reweight", "contact", "eyelids", "amplitude")}
+_FLAGS = {k: FIT_FLAGS[k] for k in ("reg", "prior", "align", "reweight", "contact", "eyelids", "amplitude",
+                                    "weak_prior")}
 
 
 def check_method_options(methods, fit_options: dict) -> None:

@@ -16,19 +16,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..personalize.api import SIGNIFICANCE, WEIGHT_NOISE
+from ..personalize.api import SIGNIFICANCE
 from ..personalize.fit import james_stein
+from ..personalize.weak import TAKE_NOISE_MIN, WEAK_SHAPE, weak_ramp
 from .implant import shape_confidence
 
 __all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitivity_trust", "shape_trust",
            "unshrunk", "weak_ramp", "weight_error_trust"]
 
-#: Effective training weight (sqrt of the shape's training energy) below which a shape stays generic, and
-#: above which the capture's version is trusted in full: where the weights' uncertainty is more than a quarter
-#: (4 sigma) resp. less than a tenth (10 sigma) of the weight the shape is seen at.
-WEAK_SHAPE = (4 * WEIGHT_NOISE, 10 * WEIGHT_NOISE)
-#: The least weight noise assumed of a take (its measured jitter can be ~0 for computed weights).
-TAKE_NOISE_MIN = 1e-3
+#: :data:`WEAK_SHAPE`, :data:`TAKE_NOISE_MIN` and :func:`weak_ramp` live in :mod:`usdface.personalize.weak`
+#: (the plain fit returns a weakly shown shape to its own prior by the same ramp); re-exported here.
 #: The per-shape trust (see :func:`shape_trust`): "noise" (the estimate's errors, the weights' noise
 #: measured on the capture), "fit" (capped by the fit's data share, as before stop 37) or "loo" (James-Stein
 #: with the leave-one-frame-out error).
@@ -219,31 +216,3 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
     # frame of the personalization (the avatar's: the registration scales the capture by ``scale``)
     noise = np.sqrt(3.0) * float(loo) * 1e-3 * float(scale)
     return shape_confidence(diff, excitation, noise, moving=moving) * ramp, info, ramp < 0.5
-
-
-def weak_ramp(capture, excitation, cap_idx) -> tuple[np.ndarray, dict]:
-    """``[J]`` smooth ramp from 0 (the shape stays generic) to 1 over the effective weight a shape is shown
-    at, between 4 and 10 times the weights' noise (:data:`WEAK_SHAPE`): a shape seen at a small effective
-    weight is known only to a fraction of its amplitude, whatever the residuals say (the fit can explain
-    other shapes' non-linear motion with it).
-
-    A capture (one frame per requested shape): the effective weight is the root of the shape's training
-    energy ``excitation[J]``, the noise the phone's nominal :data:`WEIGHT_NOISE`. A take read whole
-    (hundreds of frames): that energy grows with every frame of cross-talk and noise (a shape the take never
-    performs reached trust 0.98 and landed 0.1-2 mm worse than generic), so the effective weight is the
-    part of the shape's weights the other shapes' do not explain, above the noise's own share
-    (:func:`usdface.personalize.takefit.unique_excitation`), and the noise is the take's own, measured from
-    its frame-to-frame jitter (:func:`usdface.personalize.takefit.weight_noise`)."""
-    lo, hi = WEAK_SHAPE
-    effective = np.sqrt(excitation)
-    info = {}
-    if capture.whole_take and len(capture.train) >= 3:
-        from ..personalize.takefit import unique_excitation, weight_noise
-
-        reported = np.asarray(capture.train.weights, dtype=np.float64)       # time order, as the phone said
-        noise = max(weight_noise(reported), TAKE_NOISE_MIN)
-        effective = unique_excitation(reported, noise)[cap_idx]
-        lo, hi = noise * lo / WEIGHT_NOISE, noise * hi / WEIGHT_NOISE
-        info = {"statistic": "unique weight above the take's noise", "weight_noise": round(noise, 5)}
-    t = np.clip((effective - lo) / (hi - lo), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t), info
