@@ -614,3 +614,29 @@ def test_shape_support_on_a_region_adds_residue_and_normal_offset_points_in_orde
     np.testing.assert_array_equal(values_old[:4], 1e-3)
     np.testing.assert_array_equal(values_old[5], [2e-3, 0.0, 0.0])
     assert ibs == []
+
+
+def test_read_layer_info_reads_the_provenance_once_for_the_stale_inputs(rig_file, tmp_path, monkeypatch):
+    """``read_layer_info`` holds the layer's provenance (its ``file_kind``), yet ``stale_inputs`` read it
+    again from the file (stop 51's read of the change). It takes the record now, as ``missing_inputs`` does:
+    the stale input is still told, with no second read; a record given is the one used."""
+    import usdface.io.usd_rig as usd_rig
+    from usdface.io.layers import stale_inputs
+    from usdface.io.usd_rig import read_layer_info
+
+    avatar = read_avatar(rig_file)
+    out = write_avatar_layer(avatar, tmp_path / "out" / "p.usda", personalized(avatar),
+                             provenance={"command": "x"})
+    record = usd_rig.usdface_output_provenance(out)
+    assert stale_inputs(out) == [] and stale_inputs(out, record=record) == []
+    changed = dict(record, inputDigests=["0" * 64])                       # as if the avatar had changed
+    told = stale_inputs(out, record=changed)
+    assert len(told) == 1 and "changed after" in told[0]
+    rig_file.write_text(rig_file.read_text() + "\n")                       # the avatar edited since
+
+    def read_again(path):
+        raise AssertionError(f"provenance of {path} read again")
+
+    monkeypatch.setattr(usd_rig, "usdface_output_provenance", read_again)
+    stale = read_layer_info(out, revisions=True)["staleInputs"]
+    assert len(stale) == 1 and "avatar.usda" in stale[0] and "changed after" in stale[0]

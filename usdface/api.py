@@ -1654,7 +1654,8 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
     refuse_avatar_mismatch(layer_path, "a review page",    # a sign-off of a layer that no longer fits
                            allow_moved_neutral=allow_moved_neutral)
 
-    record = usdface_output_provenance(layer_path) or {}      # the root layer's header: no stage composed
+    provenance = usdface_output_provenance(layer_path)       # the root layer's header: no stage composed
+    record = provenance or {}
     # a --capture is compared with the capture a personalize layer records (a landmarks layer records none)
     given = [capture] if isinstance(capture, str | Path) and _fitted(record) else []
     what = [w for w, given in (("fit figures", fit_errors), ("take", take is not None)) if given]
@@ -1664,7 +1665,7 @@ def write_review(layer_path: PathLike, out_path: PathLike, *, capture: PathLike 
                               max_vertices=max_vertices)
         # the page is a sign-off: said before it is built, once its inputs are known to be usable (a take
         # given as --capture was warned about as 'not among the inputs', then refused)
-        for text in stale_inputs(layer_path, given):
+        for text in stale_inputs(layer_path, given, record=provenance) if provenance else []:
             warn(text)
         p.start("build the page")
         page = build_review_html(data)

@@ -729,11 +729,12 @@ def input_changed(real: str, recorded: str, digest: Callable = file_digest) -> b
         return False
 
 
-def stale_inputs(layer_path, given=()) -> list[str]:
+def stale_inputs(layer_path, given=(), record: dict | None = None) -> list[str]:
     """What makes a usdface layer's result stale for the files at hand: a recorded input changed since the
     layer was written (sha256 differs), and each of ``given`` (e.g. the capture a review scores) that is not
-    among the layer's recorded inputs. Messages for a warning; [] when all agree or nothing is recorded."""
-    recorded = recorded_inputs(layer_path)
+    among the layer's recorded inputs. Messages for a warning; [] when all agree or nothing is recorded.
+    ``record``: the layer's provenance when the caller has read it (as :func:`missing_inputs`)."""
+    recorded = recorded_inputs(layer_path, record)
     if recorded is None:
         return []
     out = [f"{Path(layer_path).name} was made from {real}, which changed after it was written (sha256 "

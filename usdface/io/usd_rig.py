@@ -1227,10 +1227,11 @@ def read_layer_info(path, revisions: bool = False) -> dict:
     nudged: list = []
     revised = ([f"{message} (fix: {fix})" for _, message, fix in avatar_mismatches(stage, nudged=nudged)]
                if revisions else [])
+    record = found.provenance if revisions else None        # read once, for the stale inputs
     return {"file": str(path), "stage": meta, "subLayers": list(root.subLayerPaths),
             "documentation": root.documentation or "", "usdface": found.usdface, "schemas": schemas_found,
             "variants": variants, "flattened": found.flattened or {},
             "avatarRevised": revised,
             "neutralNudged": [f"{message} (fix: {fix})" for _, message, fix in nudged],
-            "staleInputs": stale_inputs(path) if revisions and found.usdface else [],
+            "staleInputs": stale_inputs(path, record=record) if record else [],
             "missingInputs": missing_inputs(path, found.usdface) if revisions and found.usdface else []}
