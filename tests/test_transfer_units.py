@@ -1033,17 +1033,18 @@ def test_amount_rises_smoothly_to_the_whole_excess():
 
 def test_outward_turns_to_the_radial_line_where_the_distance_has_no_slope():
     """Midway between two sheets of an eye mesh (a closed slab 2 mm thick) the signed distance's
-    differences cancel: the direction out of the eye is the radial line given, not the noise."""
-    from usdface.transfer.eyelids import GRADIENT_STEP, _EyeSurface, _outward
+    differences cancel: the direction out of the eye is the radial line given, not the noise. (The central
+    differences cancel at the midway point itself; the forward ones, before stop 52, half a step below it.)"""
+    from usdface.transfer.eyelids import _EyeSurface, _outward
 
     w, s = 0.002, 0.02
     corners = np.array([[x, y, z] for z in (0.0, w) for y in (-s, s) for x in (-s, s)])
     quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
     tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
     surf = _EyeSurface(corners, tris)
-    q = np.array([[0.001, -0.002, 0.5 * w - 0.5 * GRADIENT_STEP]])
+    q = np.array([[0.001, -0.002, 0.5 * w]])
     d = surf.signed_distance(q)
-    assert d[0] == pytest.approx(-(0.5 * w - 0.5 * GRADIENT_STEP), abs=1e-8)
+    assert d[0] == pytest.approx(-0.5 * w, abs=1e-8)
     radial = np.array([[0.6, 0.0, 0.8]])
     np.testing.assert_allclose(_outward(surf, q, d, radial), radial, atol=0.02)
 

@@ -327,28 +327,37 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
     return np.concatenate(moved_js), np.concatenate(moved_ks)
 
 
-#: The step (m) of the differences that give the direction out of the eye (:func:`_outward`): the
-#: eye mesh's normal averaged over this much, the repair's tolerance, so the direction turns within 0.05 mm
-#: of a facet's edge instead of jumping there. Over 0.1 mm the lids in the bench eyes' 0.5 mm shell went
-#: back more often by the side the resolution chose (the subdivided heads' same answer 1.99 / 1.76 %
-#: against 1.49 / 1.69); over 0.02 mm the direction turned nearly as fast as it jumped before.
+#: The step (m) of the differences that give the direction out of the eye (:func:`_outward`, central: this
+#: much each way): the eye mesh's normal averaged over this much either side, the repair's tolerance, so
+#: the direction turns within 0.05 mm of a facet's edge instead of jumping there (half of it each way turned
+#: twice as fast: the coarse eye's test 10x its noise, against 5.4x; forward differences over it 4.9-5.8x).
+#: Forward differences over 0.1 mm sent the lids in the bench eyes' 0.5 mm shell back more often by the side
+#: the resolution chose (the subdivided heads' same answer 1.99 / 1.76 % against 1.49 / 1.69); over 0.02 mm
+#: the direction turned nearly as fast as it jumped before.
 GRADIENT_STEP = 5e-5
 
 
 def _outward(surf, q, d, radial) -> np.ndarray:
-    """``[p,3]`` unit directions out of the eye at ``q[p,3]`` (signed distances ``d[p]``): the signed
-    distance's gradient by forward differences (:data:`GRADIENT_STEP`): the shortest way to more distance
+    """``[p,3]`` unit directions out of the eye at ``q[p,3]`` (signed distances ``d[p]``, unused: kept for
+    the callers' one signature): the signed distance's gradient by central differences (``q +-
+    GRADIENT_STEP`` along each axis, :data:`GRADIENT_STEP`): the shortest way to more distance
     from the eye mesh, whatever its shape (the bench avatars' eyes have a shell 0.5 mm thick about 2 mm
     outside the eyeball: a lid vertex inside the shell goes back into the gap, not out through the shell;
     radially it did, and dev3's face ratio went 0.292 -> 0.305). The line to the closest point on the mesh,
     used before, is the same direction but jumps where the closest facet changes inside the mesh: a brow
     vertex 3.3 mm into the sample's eye (its facets 16 degrees apart) went back 0.44 mm elsewhere when its
     float32 position changed by 40 um. Where the differences cancel (midway between two sheets of the mesh,
-    its medial axis) the direction turns smoothly to ``radial[p,3]``, the unit line from the eyeball's
-    centre."""
+    its medial axis, or on a crease of the distance between two parts of the eye) the direction turns
+    smoothly to ``radial[p,3]``, the unit line from the eyeball's centre. Forward differences (``q`` and
+    ``q + GRADIENT_STEP``, three queries fewer; before stop 52) cancel between two parallel sheets but not
+    on a crease: in the wedge between two parts of an eye nearly touching, a vertex up to a step on one side
+    of the crease was sent towards the *other* part, as one on that side (the repair of a mirror-symmetric
+    eye and lid 30-110 um from mirror-symmetric, tests/test_eyelids_continuity.py); centred, the two sides'
+    steps mirror each other and one on the crease goes out along it."""
     h = GRADIENT_STEP
-    grad = (surf.signed_distance((q[:, None, :] + h * np.eye(3)[None]).reshape(-1, 3)).reshape(-1, 3)
-            - d[:, None]) / h
+    steps = np.concatenate([np.eye(3), -np.eye(3)])                     # [6,3]: +x +y +z -x -y -z
+    s = surf.signed_distance((q[:, None, :] + h * steps[None]).reshape(-1, 3)).reshape(-1, 2, 3)
+    grad = (s[:, 0] - s[:, 1]) / (2.0 * h)
     out = grad + 0.7 * ramp_down(vector_lengths(grad), 0.3, 0.7)[:, None] * radial
     return out / np.maximum(vector_lengths(out)[:, None], 1e-300)
 
