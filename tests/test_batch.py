@@ -310,6 +310,47 @@ def test_a_manifest_with_windows_paths_is_refused_naming_the_row_and_column(tmp_
     assert sorted(p.name for p in tmp_path.iterdir()) == ["win.csv", "win.json"]
 
 
+
+@pytest.mark.skipif(os.sep != "/", reason="a backslash separates folders on Windows")
+def test_only_a_real_windows_path_is_refused_and_the_fix_names_the_path_to_write(tmp_path, capsys):
+    """h81's review (stop 51): the refusal above also refused a genuine name of this machine - an output
+    ``takes\\1.usda`` (a backslash is a character of a file name here), or one under a folder named ``D:``
+    - with no escape but renaming. Refused now: a drive (``C:\\``, ``C:/``) or a network share
+    (``\\\\server\\share``) at the start, unless that folder exists here, and a name whose backslashes,
+    read as '/', lead into a folder that exists here or that another of the manifest's paths uses (the TD's
+    ``out\\b.usda`` beside ``out/a.usda``); the fix gives the path to write."""
+    worker = f"{__name__}:stub_worker"
+    manifest = tmp_path / "m.json"
+
+    def run(output, avatar="a.usdc", more=()):
+        rows = [{"avatar": avatar, "capture": "a_cap", "output": output}, *more]
+        manifest.write_text(json.dumps(rows))
+        code = main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker])
+        return code, capsys.readouterr().err
+
+    code, err = run("takes\\1.usda")                        # no folder 'takes' here: a name of this machine
+    assert code == 0, err
+    assert (tmp_path / "takes\\1.usda").is_file()
+    (tmp_path / "D:").mkdir()
+    code, err = run("D:/a.usda")                              # a folder named 'D:' beside the manifest
+    assert code == 0, err
+    assert (tmp_path / "D:" / "a.usda").is_file()
+    code, err = run("E:/out/a.usda")
+    assert code == 2 and "output 'E:/out/a.usda' starts with the Windows drive E:" in err, err
+    assert "fix: write the manifest's paths as this machine names them" in err and "mounted" in err
+    code, err = run("\\\\farm\\share\\a.usda")
+    assert code == 2 and "is a Windows network (UNC) path" in err, err
+    assert "//farm/share" in err and "mounted" in err
+    (tmp_path / "out").mkdir()
+    code, err = run("out\\b.usda")                          # the folder 'out' is here
+    assert code == 2 and "separates its folders with '\\'" in err, err
+    assert "'out/b.usda'" in err
+    other = {"avatar": "c.usdc", "capture": "c_cap", "output": "renders/c.usda"}
+    code, err = run("renders\\b.usda", more=[other])
+    assert code == 2 and "'renders/b.usda'" in err, err         # the folder another item writes into
+    assert not (tmp_path / "renders").exists()
+
+
 def plain_worker(item: dict) -> None:
     """A studio step as pipeline.md shows one: writes ``output`` with a plain write (no folder made), or, for
     avatars named ``none*``, returns without writing it (a step that forgot to, or wrote elsewhere)."""

@@ -213,27 +213,70 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                                      fix="write outputs outside the input folders")
 
 
-def _refuse_windows_separators(path: Path, i: int, row: dict, resolved: dict) -> None:
-    """A manifest written on Windows (``avatars\\anna.usdc``) read where ``/`` separates folders: its
-    backslashes are characters of one file name there, so the row's avatar was 'not found' and its output
-    ``out\\anna.usda`` would have been written as one file of that name beside the manifest. Refused naming
-    the item and the column, unless such a file exists."""
-    if os.sep != "/":
-        return
+#: The manifest's path columns an item writes (the correspondence cache is read and written): a name there
+#: need not exist, so a backslash in it separates folders only where the manifest or this machine says so.
+WRITTEN_COLUMNS = ("output", "correspondence")
+
+
+def _used_folders(cells: list[dict]) -> set[str]:
+    """Every folder (absolute, as :func:`_absolute` writes it) that a path of the manifest's ``cells``
+    (``[{column: resolved path}]``, those without a backslash) lies in."""
+    used = set()
+    for resolved in cells:
+        for value in resolved.values():
+            if isinstance(value, str) and "\\" not in value:
+                used.update(str(parent) for parent in Path(value).parents)
+    return used
+
+
+def _windows_path(given: str, base: Path, written: bool, used: set[str]) -> tuple[str, str] | None:
+    """``(what makes it one, the path to write instead)`` when the manifest cell ``given`` (a path naming
+    nothing here, relative to the manifest's folder ``base``) is a Windows path, else None: a network share
+    (``\\\\server\\share\\...``: UNC) or a drive (``C:\\``, ``C:/``) at the start, unless a folder of that
+    name is beside the manifest; a name with a backslash read as a folder separator where it leads into a
+    folder that exists here or that another of the manifest's paths (``used``: :func:`_used_folders`) lies
+    in, and, in a column the item reads (``written`` False), always: an input of that name is not here
+    either. Otherwise the backslash is a character of the name, as this machine reads it."""
     import re
 
-    for column in (*REQUIRED, *PATH_OPTIONS):
-        given = row.get(column)
-        if not isinstance(given, str) or os.path.lexists(resolved[column]):
-            continue
-        drive = re.match(r"[A-Za-z]:[\\/]", given)        # C:/avatars/a.usdc: a folder 'C:' of the manifest's
-        if "\\" in given or drive:
-            what = (f"starts with the Windows drive {given[:2]}" if drive
-                    else "separates its folders with '\\'")
-            raise InputFileError(f"item {i + 1}: {column} '{given}' {what} (a Windows path?), which names no "
-                                 "file here", path=path,
-                                 fix="write the manifest's paths as this machine names them, with '/' "
-                                     "(relative to the manifest, or absolute here)")
+    unc = re.match(r"[\\/]{2}([^\\/]+)[\\/]+([^\\/]+)", given)
+    if unc and "\\" in given[:2]:
+        return "is a Windows network (UNC) path", f"the path where //{unc[1]}/{unc[2]} is mounted here"
+    drive = re.match(r"([A-Za-z]:)[\\/]", given)
+    if drive and not os.path.isdir(base / drive[1]):
+        return f"starts with the Windows drive {drive[1]}", f"the path where {drive[1]} is mounted here"
+    if "\\" not in given:
+        return None
+    slashed = given.replace("\\", "/")
+    into = _absolute(base, given[:given.index("\\")] or "/")        # the folder the first backslash opens
+    if not written or os.path.isdir(into) or into in used:
+        return "separates its folders with '\\'", f"'{slashed}'"
+    return None
+
+
+def _refuse_windows_paths(path: Path, base: Path, rows: list[tuple[int, dict, dict]]) -> None:
+    """A manifest written on Windows (``avatars\\anna.usdc``) read where ``/`` separates folders: its
+    backslashes are characters of one file name there, so the row's avatar was 'not found' and its output
+    ``out\\anna.usda`` would have been written as one file of that name beside the manifest. ``rows``:
+    ``(index, the row as given, {column: resolved path})``. A cell naming no file here that is a Windows
+    path (:func:`_windows_path`) is refused naming the item, the column and the path to write; a genuine
+    name of this machine with a backslash, or under a folder named ``D:`` beside the manifest, is not (h81's
+    review, stop 51: it was, with no escape but renaming)."""
+    if os.sep != "/":
+        return
+    used = _used_folders([resolved for _, _, resolved in rows])
+    for i, row, resolved in rows:
+        for column in (*REQUIRED, *PATH_OPTIONS):
+            given = row.get(column)
+            if not isinstance(given, str) or os.path.lexists(resolved[column]):
+                continue
+            found = _windows_path(given, base, column in WRITTEN_COLUMNS, used)
+            if found:
+                what, write = found
+                raise InputFileError(f"item {i + 1}: {column} '{given}' {what} (a Windows path?), which "
+                                     "names no file here", path=path,
+                                     fix="write the manifest's paths as this machine names them, with '/' "
+                                         f"(relative to the manifest, or absolute here): {write}")
 
 
 def _manifest_text(path: Path) -> str:
@@ -311,7 +354,7 @@ def read_manifest(path) -> list[BatchItem]:
             rows = [{k: _coerce(v) if k not in REQUIRED else v for k, v in r.items()
                      if k is not None and v not in (None, "")} for r in reader]
             rows = [r for r in rows if r]         # a spreadsheet's trailing ",,," rows are no items
-    items = []
+    items, cells = [], []
     for i, row in enumerate(rows):
         missing = [c for c in REQUIRED if not row.get(c)]
         if missing:
@@ -320,10 +363,11 @@ def read_manifest(path) -> list[BatchItem]:
         resolved = {c: _absolute(base, row[c]) for c in REQUIRED}
         options = {k: (_absolute(base, v) if k in PATH_OPTIONS and isinstance(v, str) and v else v)
                    for k, v in row.items() if k not in REQUIRED}
-        _refuse_windows_separators(path, i, row, {**resolved, **options})
+        cells.append((i, row, {**resolved, **options}))
         items.append(BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i))
     if not items:
         raise InputFileError("manifest lists no items", path=path, fix="add one row per avatar")
+    _refuse_windows_paths(path, base, cells)
     _refuse_outputs_over_inputs(items, path)
     return items
 
