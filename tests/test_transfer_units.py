@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from region_cv import parabola_mu, region_errors
@@ -158,6 +160,23 @@ def test_retarget_weights_recovers_combinations_and_ridge_shrinks():
     text = weight_map_csv(w_true, list("abcd"), list("uvwxyz"))
     assert text.splitlines()[0] == "source,u,v,w,x,y,z" and len(text.splitlines()) == 5
     assert '"format": "usdface.retarget/1"' in weight_map_json(w_true, list("abcd"), list("uvwxyz"))
+
+
+
+def test_the_map_file_lists_every_weight_its_matrix_holds():
+    """The map's ``map`` rows are its ``weights`` "without the zeros" (personalize.md), but they dropped
+    ``|w| <= 1e-6`` after the six-decimal rounding: an entry the matrix holds as 0.000001 was missing from the
+    rows. A weight is the share of an avatar shape per unit of a phone channel (in [0, 1]), so its
+    resolution is absolute, the JSON's six decimals (a millionth of the shape), not relative to its row:
+    the rows keep every entry the rounded matrix holds, and only those."""
+    w = np.array([[1.0, 1e-6, 4e-7, -1e-6, 2.2e-6],
+                  [20.0, -6e-7, 0.0, 0.01, 1.4e-6]])
+    doc = json.loads(weight_map_json(w, ["a", "b"], list("vwxyz")))
+    for j, source in enumerate(doc["source"]):
+        held = {t: x for t, x in zip(doc["target"], doc["weights"][j], strict=True) if x != 0}
+        assert doc["map"][source] == held
+    assert doc["map"]["a"] == {"v": 1.0, "w": 1e-6, "y": -1e-6, "z": 2e-6}
+    assert doc["map"]["b"] == {"v": 20.0, "w": -1e-6, "y": 0.01, "z": 1e-6}
 
 
 def test_retarget_weights_bounded_and_around_a_prior():

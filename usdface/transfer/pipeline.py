@@ -643,8 +643,7 @@ def personalize_avatar(avatar, capture, out_path=None, *, method: str = "menzel"
                       + pins_input(fit_options.get("pins") if fit is not None else None, capture.source))
             prov = layer_provenance(report, timings, command=command, method=method, inputs=inputs,
                                     extra_inputs=extra_inputs, registration=registration,
-                                    retarget_map=weight_map_rows(np.round(weights, 6), names, k_names,
-                                                                 threshold=1e-6),
+                                    retarget_map=weight_map_rows(np.round(weights, 6), names, k_names),
                                     mu=mu_used)
             edit = layer_edit(offsets, face_prim) if layer_edit is not None else None
             written = write_avatar_layer(avatar, out_path, offsets, provenance=prov, force=force, edit=edit,

@@ -356,7 +356,15 @@ def approximate(weights, deltas) -> np.ndarray:
 
 
 def weight_map_rows(weights, target_names, avatar_names, *, threshold: float = 0.0) -> dict:
-    """The map as ``{capture_shape: {avatar_shape: weight}}``, dropping ``|weight| <= threshold``."""
+    """The map as ``{capture_shape: {avatar_shape: weight}}``, dropping ``|weight| <= threshold`` (the zeros).
+
+    The map file and the layer's provenance give the weights rounded to six decimals and these rows of
+    them without the zeros: a weight is the share of an avatar shape per unit of a phone channel (in [0,
+    1]), moving the avatar by at most its size times that shape's peak, so its resolution is absolute - a
+    millionth of the shape, 10 nm of a 1 cm shape, below float32's resolution of a head's positions - not
+    relative to its row (a cut at a share of the row's largest weight would drop a real 0.01 cross term
+    beside an unbounded map's namesake of 20). Before stop 52 the rows also dropped ``|w| = 1e-6`` after
+    the rounding: entries the ``weights`` matrix held."""
     w = np.asarray(weights)
     return {t: {a: float(w[j, i]) for i, a in enumerate(avatar_names) if abs(w[j, i]) > threshold}
             for j, t in enumerate(target_names)}
@@ -374,7 +382,7 @@ def weight_map_json(weights, target_names, avatar_names, *, meta: dict | None = 
            "target_channels": list(avatar_names if channels is None else channels),
            **({"mesh_channels": mesh_channels} if mesh_channels else {}),
            "weights": np.asarray(weights).round(6).tolist(),
-           "map": weight_map_rows(np.asarray(weights).round(6), target_names, avatar_names, threshold=1e-6)}
+           "map": weight_map_rows(np.asarray(weights).round(6), target_names, avatar_names)}
     if meta:
         doc["meta"] = meta
     return json.dumps(doc, indent=1)
