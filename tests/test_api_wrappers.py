@@ -116,12 +116,13 @@ def test_select_capture_frames(tmp_path):
     expected = select_frames(take.weights, names=take.names, min_separation=max(1, round(0.5 * take.fps)))
     assert dry.selection.train.tolist() == expected.train.tolist()
     out = tmp_path / "cap"
-    res = usdface.select_capture_frames(path, out, test_every=4)
+    # (the take's 1 s sweeps: frames 0.5 s from their peaks are rests, never test frames since stop 52)
+    res = usdface.select_capture_frames(path, out, test_every=4, min_separation=0.2)
     assert res.out_path == out and (out / "neutral.obj").exists()
     back = usdface.read_capture(out)
     assert len(back.train) == len(res.selection.train) and len(back.test) == len(res.selection.test) > 0
     with pytest.raises(OutputExistsError):
-        usdface.select_capture_frames(path, out, test_every=4)
+        usdface.select_capture_frames(path, out, test_every=4, min_separation=0.2)
     with pytest.raises((CaptureError, InputFileError)):
         usdface.select_capture_frames(tmp_path / "nope.usda")
 

@@ -236,7 +236,8 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
     """Pick training (and held-out test) frames from a continuous take (Menzel et al. 2022, section 3.1;
     ``usdface capture select``): for each shape up to ``per_shape`` frames where its weight peaks above
     ``threshold``, peaks of one shape at least ``min_separation`` seconds apart; every ``test_every``-th take
-    frame at least ``min_separation`` seconds from every training frame held out as a test frame (0: none).
+    frame that shows an expression (a weight of at least :data:`usdface.take_select.REST_WEIGHT`: never a
+    rest) at least ``min_separation`` seconds from every training frame held out as a test frame (0: none).
     With ``out_path``, a selection without training frames (no peak above ``threshold``) and a capture given
     as the take are refused (:class:`usdface.errors.CaptureError`) before anything is written.
 
@@ -286,16 +287,18 @@ def select_capture_frames(take: PathLike, out_path: PathLike | None = None, *,
             selection = select_frames(data.weights, names=data.names, threshold=threshold,
                                       per_shape=per_shape, test_every=test_every,
                                       min_separation=max(1, round(min_separation * data.fps)))
+        rests = False
         for w in caught:
             message = str(w.message)
             if "show no expression" in message:     # its fix named the take nowhere, and the options given
+                rests = True
                 suggest = (f"--test-every {min(test_every, 5)} "     # (it told '--test-every 5
                            f"--min-separation {min(0.2, min_separation / 2):g}")   # --min-separation 0.2')
                 message = (f"{take}: " + message.split(" (fix: ")[0] + " (fix: hold out frames nearer the "
                            f"expressions than --min-separation {min_separation:g} s (usdface capture select "
                            f"{_select_again(take, out_path, template, threshold, per_shape)} {suggest}))")
             warn(message, w.category)
-        if test_every > 0 and len(selection.test) == 0:
+        if test_every > 0 and len(selection.test) == 0 and not rests:     # (the rests' warning says why)
             warn(f"{take}: --test-every {test_every} held out no test frame: every candidate is "
                  f"within --min-separation {min_separation:g} s of a training frame (evaluate will "
                  "refuse this capture); lower --min-separation or --test-every")

@@ -14,8 +14,11 @@ whole weight vector and the mesh of that frame. :func:`select_frames` applies th
   (bilateral pairs such as eyeBlinkLeft/Right are naturally low);
 * shapes with no peak above the threshold are reported as never triggered, with their maximum weight (a pose
   held from the first frame that then relaxes is a peak; one still rising or held at the last frame is not);
-* with ``test_every = K > 0``, every K-th take frame that is at least ``min_separation`` frames away from any
-  training frame is held out as a test frame (Menzel et al.'s eq. 5 evaluation set).
+* with ``test_every = K > 0``, every K-th take frame that shows an expression (a weight of at least
+  :data:`REST_WEIGHT`) and is at least ``min_separation`` frames away from any training frame is held out as
+  a test frame (Menzel et al.'s eq. 5 evaluation set): a rest held out is predicted as the neutral by every
+  fitting method, so it cannot tell them apart (before stop 52 rests were held out too, and a take of
+  expressions between long rests gave rests only).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from scipy.signal import find_peaks
 
 from .errors import CaptureError, warn
 
-#: Test frames whose weights all stay below this show no expression (a take's rests held out).
+#: A frame whose weights all stay below this shows no expression (a rest): never held out as a test frame.
 REST_WEIGHT = 0.15
 #: How to hold out frames with expressions instead (``capture select`` and ``evaluate`` say the same).
 REST_FIX = ("hold out frames nearer the expressions: 'usdface capture select TAKE -o capture.usda "
@@ -123,7 +126,8 @@ def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_ever
     weights : ``[F, K]`` per-frame weights in [0, 1] (columns follow ``names``).
     threshold : a peak counts only if ``w_ii > threshold``.
     per_shape : number of distinct peaks kept per shape (highest first).
-    test_every : hold out every K-th take frame away from training frames as a test frame (0: none).
+    test_every : hold out every K-th take frame that shows an expression (a weight >= :data:`REST_WEIGHT`)
+        away from training frames as a test frame (0: none).
     names : ``[K]`` shape names (default ``shape0 ..``).
     min_separation : frames between two peaks of one shape, and between test and training frames.
 
@@ -187,12 +191,14 @@ def select_frames(weights, threshold: float = 0.5, per_shape: int = 1, test_ever
         if len(train_arr):
             dist = np.abs(np.arange(n_frames)[:, None] - train_arr[None, :]).min(axis=1)
             far = dist >= min_separation
-        candidates = np.flatnonzero(far)
+        expression = w.max(axis=1) >= REST_WEIGHT if n_shapes else np.zeros(n_frames, dtype=bool)
+        candidates = np.flatnonzero(far & expression)
         test = candidates[test_every // 2::test_every]
-        if len(test) and w[test].max() < REST_WEIGHT:
-            warn(f"the {len(test)} held-out test frames show no expression (largest weight "
-                 f"{w[test].max():.2f}): every fitting method predicts them as the neutral, so "
-                 f"'usdface evaluate' cannot tell the methods apart (fix: {REST_FIX})")
+        if far.any() and not len(candidates):
+            warn(f"the {int(far.sum())} frames away from the training frames show no expression (largest "
+                 f"weight {w[far].max(initial=0.0):.2f}): none is held out as a test frame (every fitting "
+                 "method predicts a rest as the neutral), and 'usdface evaluate' refuses a capture without "
+                 f"test frames (fix: {REST_FIX})")
     return Selection(names, picks, train_arr, train_shape, test, float(threshold), int(per_shape))
 
 

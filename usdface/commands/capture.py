@@ -44,8 +44,9 @@ def register(subparsers) -> None:
     sel.add_argument("--per-shape", type=positive_int, default=1,
                      help="distinct peaks kept per shape (default 1)")
     sel.add_argument("--test-every", type=nonnegative_int, default=0,
-                     help="hold out every K-th take frame at least --min-separation from every training "
-                          "frame as a test frame (default 0: none)")
+                     help="hold out every K-th take frame that shows an expression (a weight >= 0.15; "
+                          "never a rest) at least --min-separation from every training frame as a test "
+                          "frame (default 0: none)")
     sel.add_argument("--min-separation", type=nonnegative_float, default=0.5,
                      help="seconds between two peaks of the same shape, and between a test frame and every "
                           "training frame (default 0.5)")
