@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -416,6 +417,42 @@ def test_a_dry_run_says_a_real_run_would_refuse_before_it_computes(samples, tmp_
     assert doc["ok"] is False and "exists" in doc["output_refused"] and doc["changes"]
     assert main([*base, "--force"]) == 0
     assert "would refuse" not in said[-1] + capsys.readouterr().err
+
+
+
+def test_a_dry_run_says_an_instanced_avatar_is_refused_before_it_computes(samples, tmp_path, capsys,
+                                                                         monkeypatch):
+    """An avatar under an ``instanceable`` prim (USD composes no override there): a real run refuses it
+    before the fit, but a dry run said so only with the changes, after the fit (h82, stop 51: found inside
+    the API). It is said in the dry run's checks before the work, as an existing output is (one line on
+    stderr naming the prim and the fix); the changes are still printed and the exit status is 1. Told from
+    the composed stage alone (its meshes with blend shapes and their targets), as the real run refuses it."""
+    import usdface.api
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import refuse_layer_over
+
+    real, said = usdface.api.personalize_avatar, []
+
+    def personalize(*args, **kwargs):     # what stderr held when the work began
+        said.append(capsys.readouterr().err)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(usdface.api, "personalize_avatar", personalize)
+    shutil.copy(samples / "avatar.usda", tmp_path / "avatar.usda")
+    shot = tmp_path / "shot.usda"
+    shot.write_text('#usda 1.0\n(\n    defaultPrim = "Hero"\n    metersPerUnit = 0.01\n'
+                    '    upAxis = "Y"\n)\n\ndef "Hero" (\n    prepend references = @./avatar.usda@\n'
+                    '    instanceable = true\n)\n{\n}\n')
+    refuse_layer_over(tmp_path / "avatar.usda")                        # the asset itself: fine
+    with pytest.raises(RigError, match="instanceable prim /Hero"):
+        refuse_layer_over(shot)
+    out = tmp_path / "p.usda"
+    base = ["personalize", str(shot), str(samples / "capture.usda"), "-o", str(out), "--dry-run", "-q"]
+    assert main(base) == 1
+    first = [line for line in said[-1].splitlines() if "would refuse" in line]
+    assert len(first) == 1 and "instanceable prim /Hero" in first[0] and "instanceable = false" in first[0]
+    text = capsys.readouterr().out
+    assert "dry run:" in text and "a real run would refuse to write" in text and not out.exists()
 
 
 def _studio_map(samples, tmp_path, channels: str, *options) -> dict:

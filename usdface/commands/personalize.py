@@ -146,6 +146,21 @@ def _default_output(avatar: str) -> Path:
     return Path(personalized_name(avatar))
 
 
+def _refuse_layer_over(avatar) -> None:
+    """:func:`usdface.io.usd_rig.refuse_layer_over` of the ``avatar`` path (its :class:`RigError` raised),
+    for a dry run's checks before the work; any other problem of the file (not a USD file, ...) is left to
+    the API, which names it in its own order."""
+    from ..errors import RigError, UsdFaceError
+    from ..io.usd_rig import refuse_layer_over
+
+    try:
+        refuse_layer_over(avatar)
+    except RigError:
+        raise
+    except UsdFaceError:
+        pass
+
+
 def run(args) -> int:
     from .. import progress
     from ..api import personalize_avatar, personalize_inputs, refuse_missing_inputs
@@ -173,6 +188,9 @@ def run(args) -> int:
             if args.review:
                 check_output_file(default_output(out), args.force, suffixes=(".html",), what="review page",
                                   inputs=inputs)
+            # an avatar under an instance (or shapes a layer cannot override): a real run refuses it once
+            # it has read the avatar, before the fit; a dry run said it only after the fit (stop 52)
+            _refuse_layer_over(args.avatar)
         except UsdFaceError as exc:
             refusal = str(exc)
             # said before the fit (seconds to minutes), not only after it: a preflight's answer first; the

@@ -1038,8 +1038,8 @@ def _read_avatar_stage(stage, path: Path, snap_transforms: bool = True,
                 "static_to_internal": static_to_internal,
                 "documentation": stage.GetRootLayer().documentation or "",
                 "instanced": _instanced([found[k][0] for k in found] + [static[k][0] for k in static]),
-                "instanced_targets": _instanced_targets(stage, meshes),
-                "shared_shapes": _shared_shapes(meshes),
+                "instanced_targets": _instanced_targets(stage, _shape_targets(meshes)),
+                "shared_shapes": _shared_shapes(_shape_targets(meshes)),
                 "name_map": dict(name_map) if name_map else None}
     return Avatar(meshes=meshes, file=os.path.abspath(path), up_axis=meta["upAxis"],
                   meters_per_unit=meta["metersPerUnit"],
@@ -1120,27 +1120,57 @@ def _instanced(prims) -> dict:
     return out
 
 
-def _instanced_targets(stage, meshes) -> dict:
-    """{mesh prim path: (BlendShape path, instanceable prim)} for the meshes one of whose BlendShape targets
-    lies under an instance (the mesh itself may not): a layer's ``over`` of that target changes nothing."""
+def _shape_targets(meshes) -> dict:
+    """{mesh prim path: [its BlendShape target paths]} of a reader's rigs."""
+    return {rig.source.prim: list(rig.source.shape_prims) for rig in meshes if rig.source}
+
+
+def _instanced_targets(stage, targets: dict) -> dict:
+    """{mesh prim path: (BlendShape path, instanceable prim)} for the meshes of ``targets`` ({mesh prim path:
+    [BlendShape paths]}) one of whose BlendShape targets lies under an instance (the mesh itself may not): a
+    layer's ``over`` of that target changes nothing."""
     out = {}
-    for rig in meshes:
-        for target in rig.source.shape_prims if rig.source else []:
+    for mesh, shapes in targets.items():
+        for target in shapes:
             prim = stage.GetPrimAtPath(target)
             holder = _instanced([prim]) if prim and prim.IsInstanceProxy() else {}
             if holder:
-                out[rig.source.prim] = (target, holder[target])
+                out[mesh] = (target, holder[target])
                 break
     return out
 
 
-def _shared_shapes(meshes) -> dict:
-    """{BlendShape path: [mesh prim paths]} for the targets more than one mesh binds."""
+def _shared_shapes(targets: dict) -> dict:
+    """{BlendShape path: [mesh prim paths]} for the targets more than one mesh of ``targets`` ({mesh prim
+    path: [BlendShape paths]}) binds."""
     users: dict[str, list[str]] = {}
-    for rig in meshes:
-        for target in dict.fromkeys(rig.source.shape_prims if rig.source else []):
-            users.setdefault(target, []).append(rig.source.prim)
+    for mesh, shapes in targets.items():
+        for target in dict.fromkeys(shapes):
+            users.setdefault(target, []).append(mesh)
     return {t: ms for t, ms in users.items() if len(ms) > 1}
+
+
+def refuse_layer_over(path, what: str = "the personalized layer") -> None:
+    """What :func:`refuse_instanced` and :func:`refuse_unwritable_shapes` refuse for a layer over every
+    mesh of the avatar at ``path`` (raised as they raise it, :class:`RigError`), told from its composed
+    stage alone: the meshes with blend shapes under its SkelRoots (through instances, as :func:`read_avatar`
+    finds them) and their BlendShape targets, no points or offsets read. For a check before any work: a
+    ``personalize --dry-run`` said an instanced avatar's refusal only after the fit (the avatar is read
+    inside the work); a real run refuses it when it has read the avatar, before the fit."""
+    from pxr import Usd, UsdSkel
+
+    stage = _open_stage(Path(path))
+    through = Usd.TraverseInstanceProxies()
+    prims = [prim for root in _skel_roots(stage) for prim in Usd.PrimRange(root, through)
+             if _has_blend_shapes(prim)]
+    prims = list({str(p.GetPath()): p for p in prims}.values())        # (nested SkelRoots: each mesh once)
+    targets = {str(p.GetPath()): [str(t) for t in UsdSkel.BindingAPI(p).GetBlendShapeTargetsRel()
+                                  .GetForwardedTargets()] for p in prims}
+    light = Avatar(meshes=[], file=os.path.abspath(path), metadata={       # what the refusals read
+        "instanced": _instanced(prims), "instanced_targets": _instanced_targets(stage, targets),
+        "shared_shapes": _shared_shapes(targets)})
+    refuse_instanced(light, list(targets), what)
+    refuse_unwritable_shapes(light, list(targets), what)
 
 
 def refuse_unwritable_shapes(avatar, keys=None, what: str = "the personalized layer") -> None:
