@@ -575,6 +575,35 @@ def test_the_inspect_flag_validated_is_the_one_used(extractions, tmp_path, sampl
     assert publish({"inspect": True}, {}) == [] and plugins._personalize_options(extractions[1])["inspect"]
 
 
+@pytest.mark.parametrize("name", ["force", "inspect"])
+def test_force_and_inspect_follow_one_rule_the_options_over_the_data(name):
+    """``force`` and ``inspect`` were two near copies of one rule in ``_personalize_options`` (stop 51's
+    read): ``usdfaceOptions``' value over the instance data's, the one used the one checked (a word in the
+    unused one does not fail), the data's when the options have none; absent from both, ``force`` is False
+    and ``inspect`` left to personalize's default. One helper now; the same answers for both flags."""
+    from usdface.errors import OptionError
+
+    class Instance:
+        def __init__(self, data):
+            self.data = data
+
+        def __str__(self):
+            return "anna"
+
+    def chosen(data, options):
+        return plugins._personalize_options(Instance({**data, "usdfaceOptions": options}))
+
+    assert chosen({name: "no"}, {name: True})[name] is True      # the data's word: unused, unchecked
+    assert chosen({name: True}, {name: False})[name] is False
+    assert chosen({name: True}, {})[name] is True
+    assert chosen({name: None}, {})[name] is False
+    with pytest.raises(OptionError, match=f"usdfaceOptions {name}=True"):
+        chosen({name: True}, {name: "no"})
+    with pytest.raises(OptionError, match=f"data {name}=True"):
+        chosen({name: "no"}, {})
+    assert chosen({}, {}).get(name, "unset") == (False if name == "force" else "unset")
+
+
 @pytest.mark.parametrize("data, plugin", [
     ({"force": "no"}, "ValidateUsdFaceOutputs"),
     ({"review": "no"}, "ValidateUsdFaceOutputs"),

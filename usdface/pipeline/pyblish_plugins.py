@@ -89,16 +89,26 @@ def _personalize_options(instance) -> dict:
     options = dict(data.get("usdfaceOptions") or {})
     # True or False (None: the default), as personalize's own options: instance data force="no" (or a
     # manifest cell 'no') counted as true and replaced an existing layer
-    options["force"] = _flag(instance, "force", options) if "force" in options else _flag(instance, "force")
-    # the one used is the one checked: usdfaceOptions' over the data's (the data's was checked even when
-    # usdfaceOptions gave its own, and a word there failed a publish that never used it: stop 51's review)
-    if "inspect" in options:
-        options["inspect"] = _flag(instance, "inspect", options)
-    elif "inspect" in data:
-        options["inspect"] = _flag(instance, "inspect")
+    options["force"] = bool(_chosen_flag(instance, "force", options))
+    inspect = _chosen_flag(instance, "inspect", options)
+    if inspect is not None:                             # (absent from both: personalize's default)
+        options["inspect"] = inspect
     if data.get("take") and not options.get("take"):   # as 'personalize --take': it plays in the layer as
         options["take"] = data["take"]                  # on the review page
     return options
+
+
+def _chosen_flag(instance, name: str, options: dict) -> bool | None:
+    """The boolean ``name`` a publish uses, checked where it is taken from (:func:`_flag`): ``options``' (the
+    instance's ``usdfaceOptions``) when they give it, else the instance data's, else None (neither gives
+    it). The one used is the one checked: the data's was checked even when ``usdfaceOptions`` gave its own,
+    and a word there failed a publish that never used it (stop 51's review); ``force`` and ``inspect`` were
+    two near copies of this rule."""
+    if name in options:
+        return _flag(instance, name, options)
+    if name in instance.data:
+        return _flag(instance, name)
+    return None
 
 
 def _flag(instance, name: str, options: dict | None = None) -> bool:
