@@ -314,11 +314,10 @@ def test_a_manifest_with_windows_paths_is_refused_naming_the_row_and_column(tmp_
 @pytest.mark.skipif(os.sep != "/", reason="a backslash separates folders on Windows")
 def test_only_a_real_windows_path_is_refused_and_the_fix_names_the_path_to_write(tmp_path, capsys):
     """h81's review (stop 51): the refusal above also refused a genuine name of this machine - an output
-    ``takes\\1.usda`` (a backslash is a character of a file name here), or one under a folder named ``D:``
-    - with no escape but renaming. Refused now: a drive (``C:\\``, ``C:/``) or a network share
-    (``\\\\server\\share``) at the start, unless that folder exists here, and a name whose backslashes,
-    read as '/', lead into a folder that exists here or that another of the manifest's paths uses (the TD's
-    ``out\\b.usda`` beside ``out/a.usda``); the fix gives the path to write."""
+    under a folder named ``D:`` beside the manifest, with no escape but renaming. Refused now: a drive
+    (``C:\\``, ``C:/``) or a network share (``\\\\server\\share``) at the start, unless that folder exists
+    here, and a name with a backslash that names no file (``takes\\1.usda`` would be written as one file of
+    that name: no pipeline wants it); the fix gives the path to write."""
     worker = f"{__name__}:stub_worker"
     manifest = tmp_path / "m.json"
 
@@ -328,9 +327,9 @@ def test_only_a_real_windows_path_is_refused_and_the_fix_names_the_path_to_write
         code = main(["batch", str(manifest), "-j", "1", "-q", "--worker", worker])
         return code, capsys.readouterr().err
 
-    code, err = run("takes\\1.usda")                        # no folder 'takes' here: a name of this machine
-    assert code == 0, err
-    assert (tmp_path / "takes\\1.usda").is_file()
+    code, err = run("takes\\1.usda")                 # no folder 'takes' here: still a Windows manifest's path
+    assert code == 2 and "'takes/1.usda'" in err, err
+    assert not (tmp_path / "takes\\1.usda").exists()
     (tmp_path / "D:").mkdir()
     code, err = run("D:/a.usda")                              # a folder named 'D:' beside the manifest
     assert code == 0, err

@@ -213,30 +213,13 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
                                      fix="write outputs outside the input folders")
 
 
-#: The manifest's path columns an item writes (the correspondence cache is read and written): a name there
-#: need not exist, so a backslash in it separates folders only where the manifest or this machine says so.
-WRITTEN_COLUMNS = ("output", "correspondence")
-
-
-def _used_folders(cells: list[dict]) -> set[str]:
-    """Every folder (absolute, as :func:`_absolute` writes it) that a path of the manifest's ``cells``
-    (``[{column: resolved path}]``, those without a backslash) lies in."""
-    used = set()
-    for resolved in cells:
-        for value in resolved.values():
-            if isinstance(value, str) and "\\" not in value:
-                used.update(str(parent) for parent in Path(value).parents)
-    return used
-
-
-def _windows_path(given: str, base: Path, written: bool, used: set[str]) -> tuple[str, str] | None:
+def _windows_path(given: str, base: Path) -> tuple[str, str] | None:
     """``(what makes it one, the path to write instead)`` when the manifest cell ``given`` (a path naming
     nothing here, relative to the manifest's folder ``base``) is a Windows path, else None: a network share
     (``\\\\server\\share\\...``: UNC) or a drive (``C:\\``, ``C:/``) at the start, unless a folder of that
-    name is beside the manifest; a name with a backslash read as a folder separator where it leads into a
-    folder that exists here or that another of the manifest's paths (``used``: :func:`_used_folders`) lies
-    in, and, in a column the item reads (``written`` False), always: an input of that name is not here
-    either. Otherwise the backslash is a character of the name, as this machine reads it."""
+    name is beside the manifest, or any name with a backslash (a folder separator on Windows, a character of
+    one file name here: ``out\\b.usda`` would be written as one file beside the manifest; a genuine name with
+    a backslash that exists is read, one to be written is refused: no pipeline wants that name)."""
     import re
 
     unc = re.match(r"[\\/]{2}([^\\/]+)[\\/]+([^\\/]+)", given)
@@ -248,10 +231,7 @@ def _windows_path(given: str, base: Path, written: bool, used: set[str]) -> tupl
     if "\\" not in given:
         return None
     slashed = given.replace("\\", "/")
-    into = _absolute(base, given[:given.index("\\")] or "/")        # the folder the first backslash opens
-    if not written or os.path.isdir(into) or into in used:
-        return "separates its folders with '\\'", f"'{slashed}'"
-    return None
+    return "separates its folders with '\\'", f"'{slashed}'"
 
 
 def _refuse_windows_paths(path: Path, base: Path, rows: list[tuple[int, dict, dict]]) -> None:
@@ -259,18 +239,17 @@ def _refuse_windows_paths(path: Path, base: Path, rows: list[tuple[int, dict, di
     backslashes are characters of one file name there, so the row's avatar was 'not found' and its output
     ``out\\anna.usda`` would have been written as one file of that name beside the manifest. ``rows``:
     ``(index, the row as given, {column: resolved path})``. A cell naming no file here that is a Windows
-    path (:func:`_windows_path`) is refused naming the item, the column and the path to write; a genuine
-    name of this machine with a backslash, or under a folder named ``D:`` beside the manifest, is not (h81's
-    review, stop 51: it was, with no escape but renaming)."""
+    path (:func:`_windows_path`) is refused naming the item, the column and the path to write; a file of
+    this machine whose name holds a backslash, or a path under a folder named ``D:`` beside the manifest, is
+    read or written as named (h81's review, stop 51: a ``D:`` folder was refused)."""
     if os.sep != "/":
         return
-    used = _used_folders([resolved for _, _, resolved in rows])
     for i, row, resolved in rows:
         for column in (*REQUIRED, *PATH_OPTIONS):
             given = row.get(column)
             if not isinstance(given, str) or os.path.lexists(resolved[column]):
                 continue
-            found = _windows_path(given, base, column in WRITTEN_COLUMNS, used)
+            found = _windows_path(given, base)
             if found:
                 what, write = found
                 raise InputFileError(f"item {i + 1}: {column} '{given}' {what} (a Windows path?), which "
