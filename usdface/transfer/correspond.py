@@ -181,7 +181,7 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
     ltl = (lap.T @ lap).tocsc()
     scale = float(np.abs(ltl.diagonal()).mean())
     edge = mean_edge_length(x0, tri)
-    t_normals = triangle_normals(target_points, target_triangles)
+    t_points, t_triangles = np.asarray(target_points, dtype=np.float64), np.asarray(target_triangles)
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
     used = 0.0
@@ -192,9 +192,11 @@ def nonrigid_register(points, triangles, target_points, target_triangles, *,
         for _ in range(iterations_per_level):
             t_id, _, c, d = target.closest_points(x, src_poses)
             nx = vertex_normals(x, tri)
-            # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry
+            # soft rejection (ramps, not cuts) keeps the result continuous in the input geometry; the normals
+            # of the matched triangles only (row by row: the same bits as forming a production head's 450k)
+            tn = triangle_normals(t_points, t_triangles[t_id])
             w = ramp_down(d, 2.0 * edge, 4.0 * edge) * ramp_up(
-                np.einsum("ij,ij->i", nx, t_normals[t_id]), cos_max - 0.1, cos_max + 0.1)
+                np.einsum("ij,ij->i", nx, tn), cos_max - 0.1, cos_max + 0.1)
             used = float((w > 0.5).mean())
             a = (alpha * alpha / scale) * ltl + sp.diags(w + 1e-8)
             rhs = (alpha * alpha / scale) * (ltl @ x0) + w[:, None] * c + 1e-8 * x
