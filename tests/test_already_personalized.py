@@ -107,6 +107,14 @@ def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(t
     fix = err.value.fix
     assert "usdface export p.usda --flatten flat.generic.usdc --variant generic" in fix, fix
     assert ".." not in err.value.message + err.value.fix.split(" or pass")[0]
+    # export's refusal of its generic variant said "a flattened export of the personalized variant of
+    # ../p.usda: ... (fix: export the generic variant of the layer it was flattened from (p.usda) ...)"
+    from usdface.errors import InputFileError
+    from usdface.io.flatten import flatten_variant
+
+    with pytest.raises(InputFileError) as err:
+        flatten_variant(Path("out/flat.usdc"), "generic.usdc", "generic")
+    assert "personalized variant of p.usda:" in err.value.message, err.value.message
 
 
 def test_usdface_output_is_not_personalized_again(tmp_path, capfd):

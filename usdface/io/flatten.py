@@ -88,7 +88,8 @@ def variant_stage(path, variant: str = "personalized"):
         # wrote and that names the layer it came from
         source = Path(str(baked.get("source", "LAYER")))        # relative to the flattened file
         source = source if source.is_absolute() else path.parent / source
-        raise InputFileError(f"a flattened export of the personalized variant of {baked.get('source', '?')}: "
+        said = _from_cwd(source) if baked.get("source") else "?"    # from here, not from the export (stop 52)
+        raise InputFileError(f"a flattened export of the personalized variant of {said}: "
                              "only the person's shapes are baked in, the generic variant is not in it",
                              path=path, fix=f"export the generic variant of the layer it was flattened from "
                                             f"({_from_cwd(source)}) or use the original avatar")
