@@ -149,6 +149,12 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what, re
     if points.shape != ref_points.shape:
         error = GeometryError(f"{len(points)} vertices, but {what} has {len(ref_points)}", path=path,
                               fix="capture meshes must share the neutral's topology (vertices, order)")
+    elif len(triangles) < len(ref_triangles) and np.array_equal(triangles, ref_triangles[:len(triangles)]):
+        # the reference's first faces and no more: cut at a line end, which ends_mid_line cannot see (stop 52:
+        # 'faces differ from neutral.obj's')
+        error = GeometryError(f"only the first {len(triangles)} of {what}'s {len(ref_triangles)} triangles: "
+                              "the file was probably cut off (an interrupted copy or write, a full disk)",
+                              path=path, fix="copy or export the file again")
     elif not np.array_equal(triangles, ref_triangles):
         error = GeometryError(f"faces differ from {what}'s", path=path,
                               fix="every capture mesh must share the neutral's topology (same faces)")
