@@ -91,7 +91,8 @@ def test_refusal_of_a_flattened_export_names_the_avatar_as_one_can_pass_it(tmp_p
     assert Path(named).resolve() == A.resolve()
 
 
-def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(tmp_path, monkeypatch):
+def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(tmp_path, monkeypatch,
+                                                                              capsys):
     """A user trial (stop 52): with the layer in the current folder and its flattened export in out/, the
     refusal said "... of the usdface layer ../p.usda" (the name recorded relative to the export) and its fix
     "usdface export out/../p.usda ..."; both now name the layer as one passes it from here: p.usda."""
@@ -115,6 +116,10 @@ def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(t
     with pytest.raises(InputFileError) as err:
         flatten_variant(Path("out/flat.usdc"), "generic.usdc", "generic")
     assert "personalized variant of p.usda:" in err.value.message, err.value.message
+    # exported again: "[personalized, as baked into flat.usdc (a flattened export of ../p.usda)]"
+    capsys.readouterr()
+    assert main(["export", "out/flat.usdc", "--obj-dir", "objs", "-q"]) == 0
+    assert "as baked into flat.usdc (a flattened export of p.usda)]" in capsys.readouterr().out
 
 
 def test_usdface_output_is_not_personalized_again(tmp_path, capfd):
