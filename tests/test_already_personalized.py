@@ -116,6 +116,7 @@ def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(t
     with pytest.raises(InputFileError) as err:
         flatten_variant(Path("out/flat.usdc"), "generic.usdc", "generic")
     assert "personalized variant of p.usda:" in err.value.message, err.value.message
+    assert err.value.path == "out/flat.usdc"          # as given (it was the absolute path)
     # exported again: "[personalized, as baked into flat.usdc (a flattened export of ../p.usda)]"
     capsys.readouterr()
     assert main(["export", "out/flat.usdc", "--obj-dir", "objs", "-q"]) == 0

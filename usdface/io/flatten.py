@@ -145,7 +145,12 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     _check_variant(variant)
     src = Path(path).absolute()
     out = check_output_path(out_path, force, inputs=[src], what="flattened USD file", usdz=True).absolute()
-    stage = variant_stage(src, variant)
+    try:
+        stage = variant_stage(src, variant)
+    except UsdFaceError as exc:        # the layer named as the caller gave it (stop 52: its absolute path)
+        if exc.path == str(src):
+            exc.path = str(path)
+        raise
     targets = _shape_redirections(stage)
     flat = stage.Flatten()
     _bake_redirections(flat, targets)
