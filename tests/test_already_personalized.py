@@ -91,6 +91,38 @@ def test_refusal_of_a_flattened_export_names_the_avatar_as_one_can_pass_it(tmp_p
     assert Path(named).resolve() == A.resolve()
 
 
+def test_refusal_of_a_flattened_export_names_its_layer_from_the_current_folder(tmp_path, monkeypatch,
+                                                                              capsys):
+    """A user trial (stop 52): with the layer in the current folder and its flattened export in out/, the
+    refusal said "... of the usdface layer ../p.usda" (the name recorded relative to the export) and its fix
+    "usdface export out/../p.usda ..."; both now name the layer as one passes it from here: p.usda."""
+    from usdface.errors import AlreadyPersonalizedError
+    from usdface.io.usd_rig import refuse_usdface_output
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["personalize", str(A), str(C), "-o", "p.usda", "--method", "dt", "-q"]) == 0
+    assert main(["export", "p.usda", "--flatten", "out/flat.usdc", "-q"]) == 0
+    with pytest.raises(AlreadyPersonalizedError) as err:
+        refuse_usdface_output(Path("out/flat.usdc"))
+    assert "of the usdface layer p.usda;" in err.value.message, err.value.message
+    fix = err.value.fix
+    assert "usdface export p.usda --flatten flat.generic.usdc --variant generic" in fix, fix
+    assert ".." not in err.value.message + err.value.fix.split(" or pass")[0]
+    # export's refusal of its generic variant said "a flattened export of the personalized variant of
+    # ../p.usda: ... (fix: export the generic variant of the layer it was flattened from (p.usda) ...)"
+    from usdface.errors import InputFileError
+    from usdface.io.flatten import flatten_variant
+
+    with pytest.raises(InputFileError) as err:
+        flatten_variant(Path("out/flat.usdc"), "generic.usdc", "generic")
+    assert "personalized variant of p.usda:" in err.value.message, err.value.message
+    assert err.value.path == "out/flat.usdc"          # as given (it was the absolute path)
+    # exported again: "[personalized, as baked into flat.usdc (a flattened export of ../p.usda)]"
+    capsys.readouterr()
+    assert main(["export", "out/flat.usdc", "--obj-dir", "objs", "-q"]) == 0
+    assert "as baked into flat.usdc (a flattened export of p.usda)]" in capsys.readouterr().out
+
+
 def test_usdface_output_is_not_personalized_again(tmp_path, capfd):
     """Issue 10 item 5: personalizing a usdface layer would stack the personalization; name the original."""
     from usdface.io.layers import write_avatar_layer

@@ -131,3 +131,18 @@ def test_fit_rig_records_its_pins_file_relative_to_the_rig(samples, tmp_path, mo
     assert data["pinsDigest"] == file_digest(f)
     assert main(["inspect", "sub/rig.usda"]) == 0
     assert f"pins ../pins.json sha256 {file_digest(f)[:16]}" in capsys.readouterr().out
+
+
+def test_misspelt_pin_shape_names_the_shape_meant(tmp_path):
+    """A user trial (stop 52): ``--pins`` with ``jawOpne`` said only "pins name a shape the capture lacks:
+    'jawOpne'" where ``render --shapes``, ``--name-map`` and the capture folder's weights name the shape
+    meant; an ARKit shape the capture does not have (dev3 has no tongueOut) is told as such, with no guess."""
+    f = tmp_path / "pins.json"
+    f.write_text(json.dumps({"pins": {"jawOpne": [1]}}))
+    with pytest.raises(InputFileError, match=r"did you mean 'jawOpen'") as err:
+        read_pins(f, NAMES, 10)
+    assert "pins.json" in str(err.value)
+    f.write_text(json.dumps({"pins": {"tongueOut": [1]}}))
+    with pytest.raises(InputFileError, match="lacks: 'tongueOut'") as err:
+        read_pins(f, NAMES, 10)
+    assert "did you mean" not in str(err.value) and "eyeBlinkLeft, jawOpen, mouthClose" in str(err.value)

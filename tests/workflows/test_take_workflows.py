@@ -460,3 +460,38 @@ def test_personalize_take_folder_plays_its_weights_without_reading_its_meshes(sc
     np.testing.assert_allclose(t_dir, t_usd)
     np.testing.assert_allclose(w_dir, w_usd, atol=1e-6)  # the CSV's 6 decimals
     assert np.ptp(w_dir[-40:]) > 0.1                       # the take's frames play, not a still face
+
+
+def test_sample_take_lets_a_new_user_follow_takes_md(tmp_path):
+    """``usdface sample OUT --take`` writes ``take.usdc``, a continuous take of the sample person with
+    meshes (docs/takes.md's commands need one; before stop 52 a fresh clone had only weights-only Live Link
+    CSVs, and a take with meshes took Python): it is the person's truth on the capture mesh, every ARKit
+    shape swept once, and ``capture select`` takes it as written in docs/takes.md."""
+    from usdface.io.take import read_take
+
+    out = tmp_path / "s"
+    run("sample", out, "--take", "-q", cwd=tmp_path)
+    take = read_take(out / "take.usdc")
+    truth = np.load(out / "truth" / "capture_truth.npz")
+    capture = read_capture_usd(out / "capture.usda")
+    assert take.points.shape[1:] == truth["neutral"].shape and len(take) > 52 * 10
+    assert take.fps == pytest.approx(30.0)
+    # the take's neutral is the person's (the capture's), its template the capture's template
+    assert np.abs(take.neutral - truth["neutral"]).max() < 1e-6
+    order = [capture.template.names.index(n) for n in take.template.names]
+    assert np.abs(take.template.deltas - capture.template.deltas[order]).max() < 1e-6
+    # every swept shape peaks alone once above capture select's threshold (0.5)
+    sel = run("capture", "select", out / "take.usdc", "-o", "c.usda", "--test-every", "10",
+              "--min-separation", "0.2", cwd=tmp_path)
+    assert "52/52 shapes triggered" in sel.stdout
+    # a frame is the person's true rig at the reported weights, up to the scan and weight noise
+    names = [str(n) for n in truth["names"]]
+    w = take.weights[:, [take.names.index(n) for n in names]]
+    model = truth["neutral"] + np.einsum("fk,knc->fnc", w, truth["deltas"])
+    assert np.sqrt(np.mean((take.points - model) ** 2)) < 5e-4
+    # the same seed gives the same bytes; without --take no take is written
+    again = tmp_path / "again"
+    run("sample", again, "--take", "-q", cwd=tmp_path)
+    assert list(digest(out / "take.usdc").values()) == list(digest(again / "take.usdc").values())
+    run("sample", tmp_path / "plain", "-q", cwd=tmp_path)
+    assert not (tmp_path / "plain" / "take.usdc").exists()

@@ -70,7 +70,8 @@ def run(args) -> int:
              "as authored: a 'usdface fit' rig, the person's fitted shapes on the capture mesh"
              if variant == AS_AUTHORED and _is_fit_rig(args.layer) else
              "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
-             f"{variant}, as baked into {Path(args.layer).name} (a flattened export of {baked['source']})"
+             f"{variant}, as baked into {Path(args.layer).name} "
+             f"(a flattened export of {_layer_of(args.layer, baked)})"
              if baked else variant)
     if args.json:
         import json
@@ -93,3 +94,15 @@ def _is_fit_rig(path) -> bool:
     from ..io.file_kind import Kind, file_kind
 
     return file_kind(path).kind is Kind.FIT
+
+
+def _layer_of(flat, baked: dict) -> str:
+    """The layer a flattened export ``flat`` was made from, as one names it from the current folder (it is
+    recorded relative to the export: 'a flattened export of ../p.usda' before stop 52)."""
+    from pathlib import Path
+
+    from ..io.layers import recorded_path
+    from ..io.usd_rig import _from_cwd
+
+    source = baked.get("source")
+    return _from_cwd(recorded_path(Path(flat).parent, source)) if source else "?"

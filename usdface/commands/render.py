@@ -103,7 +103,8 @@ def _flattened_original(path: Path) -> Path | None:
 
     original = recorded_path(Path(path).parent, inputs[0])       # by name, as USD anchors the file's paths
     if not original.is_file():
-        raise InputFileError(f"a flattened export of the personalized layer {flat.get('source', '?')}: the "
+        layer = _from_cwd(recorded_path(Path(path).parent, flat["source"])) if flat.get("source") else "?"
+        raise InputFileError(f"a flattened export of the personalized layer {layer}: the "
                              f"avatar it was personalized from, {_from_cwd(original)}, is not there to "
                              "compare with", path=path,
                              fix="pass the generic avatar explicitly: --compare GENERIC.usdc")

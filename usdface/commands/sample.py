@@ -22,6 +22,10 @@ def register(subparsers) -> None:
     parser.add_argument("--folder", action="store_true",
                         help="also write the capture as a capture folder OUTDIR/capture/ (OBJ + JSON, ~9 MB; "
                              "not part of the committed sample_assets/)")
+    parser.add_argument("--take", action="store_true",
+                        help="also write OUTDIR/take.usdc: a continuous take of the same person with its "
+                             "meshes (every ARKit shape swept once, 30 fps, ~75 s, ~35 MB), to try "
+                             "docs/takes.md ('capture select', 'fit TAKE', 'personalize AVATAR TAKE')")
     parser.add_argument("--template", choices=("generic", "artist"), default="generic",
                         help="the capture's template rig: the avatar's own generic shapes (default, the "
                              "committed sample) or another artist's rig, further from the person than the "
@@ -54,7 +58,7 @@ def run(args) -> int:
     # Ctrl-C) left a new sample folder behind as if the run had finished
     with outputs_all_or_nothing(done, folder=args.outdir, picture=args.picture):
         out = generate_samples(args.outdir, seed=args.seed, force=args.force, folder=args.folder,
-                               template=args.template, **noise)
+                               template=args.template, take=args.take, **noise)
         done["folder"] = Path(out)
         picture = None
         if args.picture:
@@ -70,6 +74,7 @@ def run(args) -> int:
     # what this run wrote (a --force run over an older folder keeps files it does not write: not counted)
     written = [Path(out) / n for n in ("README.txt", "avatar.usda", "capture.usda", "truth")]
     written += [Path(out) / "capture"] if args.folder else []
+    written += [Path(out) / "take.usdc"] if args.take else []
     size = sum(f.stat().st_size for w in written for f in ([w] if w.is_file() else w.rglob("*"))
                if f.is_file())
     if args.json:
@@ -78,7 +83,8 @@ def run(args) -> int:
         return 0
     print(f"wrote {out}: avatar {meta['avatar_vertices']} vertices ({', '.join(meta['avatar_meshes'])}), "
           f"{meta['shapes']} shapes; capture {meta['capture_vertices']} vertices, "
-          f"{meta['train_frames']} train + {meta['test_frames']} test frames; {size / 1e6:.1f} MB")
+          f"{meta['train_frames']} train + {meta['test_frames']} test frames"
+          f"{'; a take (take.usdc)' if args.take else ''}; {size / 1e6:.1f} MB")
     if picture:
         print(f"wrote {picture}")
     return 0

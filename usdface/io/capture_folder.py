@@ -149,6 +149,12 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what, re
     if points.shape != ref_points.shape:
         error = GeometryError(f"{len(points)} vertices, but {what} has {len(ref_points)}", path=path,
                               fix="capture meshes must share the neutral's topology (vertices, order)")
+    elif len(triangles) < len(ref_triangles) and np.array_equal(triangles, ref_triangles[:len(triangles)]):
+        # the reference's first faces and no more: cut at a line end, which ends_mid_line cannot see (stop 52:
+        # 'faces differ from neutral.obj's')
+        error = GeometryError(f"only the first {len(triangles)} of {what}'s {len(ref_triangles)} triangles: "
+                              "the file was probably cut off (an interrupted copy or write, a full disk)",
+                              path=path, fix="copy or export the file again")
     elif not np.array_equal(triangles, ref_triangles):
         error = GeometryError(f"faces differ from {what}'s", path=path,
                               fix="every capture mesh must share the neutral's topology (same faces)")
@@ -158,6 +164,26 @@ def _check_topology(points, triangles, ref_points, ref_triangles, path, what, re
                 Path(ref_path).parent) else Path(path).name
             raise cut_off_error(GeometryError(f"its faces differ from {other}'s", path=ref_path), ref_path)
         raise cut_off_error(error, path) if ends_mid_line(path) else error
+
+
+def _read_mesh(path: Path, faces, ref_points, what: str):
+    """``read_obj(path)`` of a capture mesh compared with ``what`` (``ref_points[n, 3]``): a file with no face
+    line and fewer vertices than the reference is told as cut off (at a line end: :func:`ends_mid_line` cannot
+    see it), not as a mesh exported without faces (stop 52)."""
+    try:
+        return read_obj(path, faces=faces)
+    except GeometryError as exc:
+        if exc.message != "mesh has no faces":
+            raise
+        try:
+            kept = sum(line[:2] in (b"v ", b"v\t") for line in Path(path).read_bytes().splitlines())
+        except OSError:
+            raise exc from None
+        if kept >= len(ref_points):
+            raise
+        raise GeometryError(f"only {kept} of {what}'s {len(ref_points)} vertices and no faces: the file was "
+                            "probably cut off (an interrupted copy or write, a full disk)", path=path,
+                            fix="copy or export the file again") from None
 
 
 def missing_layout(root: Path, what: str, fix: str | None = None) -> CaptureError:
@@ -217,7 +243,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
     if not tneutral_path.is_file():
         raise missing_layout(root, "template/neutral.obj",
                              fix="add the template rig: template/neutral.obj + template/<shape>.obj")
-    tneutral, ttris = read_obj(tneutral_path, faces=faces)
+    tneutral, ttris = _read_mesh(tneutral_path, faces, neutral, "neutral.obj")
     _check_topology(tneutral, ttris, neutral, triangles, tneutral_path, "neutral.obj", root / "neutral.obj")
     files = [p for p in folder_files(tdir, "*.obj") if p.stem != "neutral"]
     if not files:
@@ -236,7 +262,7 @@ def _template(root: Path, neutral, triangles, report: dict, faces: dict | None =
     names = order_names(by_name)
     targets = np.empty((len(names),) + tneutral.shape)
     for k, name in enumerate(names):
-        pts, tris = read_obj(by_name[name], faces=faces)
+        pts, tris = _read_mesh(by_name[name], faces, tneutral, "template/neutral.obj")
         _check_topology(pts, tris, tneutral, ttris, by_name[name], "template/neutral.obj", tneutral_path)
         targets[k] = pts
     return FaceRig(tneutral, ttris, names, targets - tneutral, name="template")
@@ -257,7 +283,7 @@ def _frames(root: Path, neutral, triangles, names: list[str], metadata: dict,
                                f"({len(orphans)} such weight file(s))", path=root,
                                fix="restore the frame's OBJ, or remove its .json too")
         for obj in folder_files(folder, "*.obj"):
-            pts, tris = read_obj(obj, faces=faces)
+            pts, tris = _read_mesh(obj, faces, neutral, "neutral.obj")
             _check_topology(pts, tris, neutral, triangles, obj, "neutral.obj", root / "neutral.obj")
             w = read_weights_json(obj.with_suffix(".json"))
             _refuse_misspelt_weight(root, f"{role}/{obj.with_suffix('.json').name}", w, index)

@@ -88,7 +88,8 @@ def variant_stage(path, variant: str = "personalized"):
         # wrote and that names the layer it came from
         source = Path(str(baked.get("source", "LAYER")))        # relative to the flattened file
         source = source if source.is_absolute() else path.parent / source
-        raise InputFileError(f"a flattened export of the personalized variant of {baked.get('source', '?')}: "
+        said = _from_cwd(source) if baked.get("source") else "?"    # from here, not from the export (stop 52)
+        raise InputFileError(f"a flattened export of the personalized variant of {said}: "
                              "only the person's shapes are baked in, the generic variant is not in it",
                              path=path, fix=f"export the generic variant of the layer it was flattened from "
                                             f"({_from_cwd(source)}) or use the original avatar")
@@ -144,7 +145,12 @@ def flatten_variant(path, out_path, variant: str = "personalized", *, force: boo
     _check_variant(variant)
     src = Path(path).absolute()
     out = check_output_path(out_path, force, inputs=[src], what="flattened USD file", usdz=True).absolute()
-    stage = variant_stage(src, variant)
+    try:
+        stage = variant_stage(src, variant)
+    except UsdFaceError as exc:        # the layer named as the caller gave it (stop 52: its absolute path)
+        if exc.path == str(src):
+            exc.path = str(path)
+        raise
     targets = _shape_redirections(stage)
     flat = stage.Flatten()
     _bake_redirections(flat, targets)

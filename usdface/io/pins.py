@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..arkit import normalize_name
+from ..arkit import MISSPELLING_CUTOFF, lookalike, normalize_name
 from ..errors import InputFileError
 
 __all__ = ["read_pins", "Pins", "PIN_PRIMVAR"]
@@ -53,8 +53,24 @@ def _resolve(name, index, path, prim=None):
         return index[str(name)]
     if key in index:
         return index[key]
-    raise InputFileError(f"pins name a shape the capture lacks: {name!r}", path=path, prim=prim,
-                         fix="use the capture's shape names (any ARKit spelling)")
+    shapes = list(dict.fromkeys(index.values()))
+    listed = ", ".join(map(str, shapes[:8])) + (f" ... (+{len(shapes) - 8})" if len(shapes) > 8 else "")
+    meant = _meant(name, index)
+    fix = (f"did you mean {meant!r}? " if meant else "") + \
+        f"use the capture's shape names (any ARKit spelling): {listed}"
+    raise InputFileError(f"pins name a shape the capture lacks: {name!r}", path=path, prim=prim, fix=fix)
+
+
+def _meant(name, index):
+    """The capture's shape a misspelt pin name (``jawOpne``) was meant as, or None: the ARKit name it looks
+    like (:func:`usdface.arkit.lookalike`), else the closest of the capture's own names (a studio name)."""
+    import difflib
+
+    canon = lookalike(str(name))
+    if canon is not None and canon in index:
+        return str(index[canon])
+    hit = difflib.get_close_matches(str(name), [str(k) for k in index], n=1, cutoff=MISSPELLING_CUTOFF)
+    return str(index[hit[0]]) if hit else None
 
 
 def _read_json(path: Path, names, n: int) -> dict:

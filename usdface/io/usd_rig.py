@@ -896,12 +896,13 @@ def refuse_usdface_output(path) -> None:
         # from here
         original = f" ({_from_cwd(recorded_path(Path(path).parent, inputs[0]))})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
-        recorded = Path(str(flat.get("source", "LAYER")))          # relative to the flattened file
-        source = shlex.quote(str(recorded if recorded.is_absolute() or "source" not in flat
-                                 else Path(path).parent / recorded))  # a command one can paste
+        # the layer is recorded relative to the flattened file: said (and in the command one can paste) as a
+        # path from here, as the original (stop 52: 'of the usdface layer ../p.usda', 'export out/../p.usda')
+        known = bool(flat.get("source"))
+        source = _from_cwd(recorded_path(Path(path).parent, flat["source"])) if known else "LAYER"
         raise AlreadyPersonalizedError(
             f"this is a flattened export of the personalized variant of the usdface layer "
-            f"{flat.get('source', '?')}; personalizing it again would stack the personalization on the "
+            f"{source if known else '?'}; personalizing it again would stack the personalization on the "
             "personalized shapes", path=path,
             fix=f"flatten the generic variant instead (usdface export {source} --flatten "
                 f"{shlex.quote(generic)} --variant generic) or pass the original avatar{original}")

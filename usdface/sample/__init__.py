@@ -37,7 +37,8 @@ from . import fields as F
 from . import head as H
 from . import performance as P
 
-__all__ = ["generate_samples", "SampleParams", "build_samples", "artist_fields", "covered_vertices"]
+__all__ = ["generate_samples", "sample_take", "SampleParams", "build_samples", "artist_fields",
+           "covered_vertices"]
 
 #: Format version of the generated assets (bump when the generator changes the bytes on purpose).
 SAMPLE_VERSION = 1
@@ -243,14 +244,15 @@ def _readme(meta: dict) -> str:
 
 def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = False,
                      template: str = "generic", *, scan_noise_m: float | None = None,
-                     weight_noise: float | None = None) -> Path:
+                     weight_noise: float | None = None, take: bool = False) -> Path:
     """Generate the sample assets into ``outdir`` (see the module docstring); returns ``outdir``.
 
     Always writes ``README.txt``, ``avatar.usda``, ``capture.usda`` and ``truth/``; with ``folder=True`` also
     the raw capture folder ``capture/`` (the committed ``sample_assets/`` leaves it out to stay small). Every
     other file is the same with or without it. Deterministic: the same ``seed`` gives the same bytes.
     ``template="artist"``: the capture's template rig is another artist's (:func:`artist_fields`);
-    ``scan_noise_m``, ``weight_noise``: the frames' noise (:func:`build_samples`).
+    ``scan_noise_m``, ``weight_noise``: the frames' noise (:func:`build_samples`). ``take=True``: also
+    ``take.usdc``, a continuous take of the same person (:func:`sample_take`; every other file unchanged).
     Everything is assembled in a temporary folder next to ``outdir`` and renamed into place
     (:func:`usdface.io.atomic.replace_dir_atomically`); an existing non-empty ``outdir`` is refused unless
     ``force`` (OutputExistsError).
@@ -263,7 +265,7 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
 
     _check_options(template, scan_noise_m, weight_noise, seed)
     dest = check_output_dir(outdir, force)   # before the ~1 s of building
-    with steps("sample", 4 + folder) as p, replace_dir_atomically(dest, force=force) as tmp:
+    with steps("sample", 4 + folder + take) as p, replace_dir_atomically(dest, force=force) as tmp:
         p.start("build avatar and capture")
         data = build_samples(seed, template, scan_noise_m=scan_noise_m, weight_noise=weight_noise)
         (tmp / "README.txt").write_text(_readme(data["meta"]))
@@ -274,9 +276,33 @@ def generate_samples(outdir, seed: int = 0, force: bool = False, folder: bool = 
         if folder:
             p.start("write capture folder")
             write_capture_folder(data["capture"], tmp / "capture")
+        if take:
+            from ..io.take import write_take_usd
+
+            p.start("write take.usdc")
+            write_take_usd(sample_take(data, seed), tmp / "take.usdc", exact=False)
         p.start("write truth")
         (tmp / "truth").mkdir()
         _write_npz(tmp / "truth" / "capture_truth.npz", data["capture_truth"])
         _write_npz(tmp / "truth" / "avatar_truth.npz", data["avatar_truth"])
         (tmp / "truth" / "meta.json").write_text(json.dumps(data["meta"], indent=1, sort_keys=True) + "\n")
     return dest
+
+
+def sample_take(data: dict, seed: int = 0):
+    """A continuous take of the sample person (``usdface sample OUTDIR --take``: ``take.usdc``), what a
+    phone app records before ``capture select`` picks its peaks: every ARKit shape swept once in turn (1 s
+    sweeps, 0.4 s rests, 30 fps, :func:`usdface.sample.take.make_take`'s defaults: ~2,250 frames, 75 s) by
+    the person's TRUE rig on the capture mesh, with the capture's template and neutral, the sample's scan
+    and weight noise (``data["meta"]["noise"]``: metres, weight units). ``data``: :func:`build_samples`.
+    Returns the Take."""
+    from ..model import FaceRig
+    from .take import make_take
+
+    truth, capture = data["capture_truth"], data["capture"]
+    names = [str(n) for n in truth["names"]]
+    person = FaceRig(truth["neutral"], capture.triangles, names, truth["deltas"])
+    noise = data["meta"]["noise"]
+    take, _ = make_take(person, capture.template.subset(names), point_noise=float(noise["scan_m"]),
+                        weight_noise=float(noise["weights"]), seed=seed)
+    return take
