@@ -2175,3 +2175,24 @@ def test_a_failed_review_fails_its_item_only(tmp_path, monkeypatch):
     assert [r.status for r in again.results] == [DONE, FAILED]
     assert again.results[1].error_type == "StaleOutput" and "b.review.html" in again.results[1].error
     assert "usdface review" in again.results[1].error
+
+
+def test_a_force_column_redoes_its_row_as_a_publish_replaces_it(tmp_path, monkeypatch):
+    """The manifest a Pyblish publish reads may set ``force`` per row: the publish replaces that row's layer
+    and review page. ``usdface batch`` took the row as done (resume skips an existing output; a missing page
+    was stale), so the one manifest meant one thing to each tool. A row with force true is redone, its page
+    replaced with it, and the rows without it are still resumed."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,true out/b.usda,true")
+    personalize_batch(path, jobs=1)
+    (tmp_path / "out" / "a.review.html").write_text("an earlier page")
+    path.write_text(path.read_text().replace("output,review", "output,review,force")
+                    .replace("a.usda,true", "a.usda,true,true"))
+    calls["personalize"].clear()
+    report = personalize_batch(path, jobs=1)
+    assert [r.status for r in report.results] == [DONE, SKIPPED]
+    assert [o["force"] for o in calls["personalize"]] == [True]
+    assert (tmp_path / "out" / "a.review.html").read_text() != "an earlier page"
+    assert report.results[0].review == str(tmp_path / "out" / "a.review.html")
