@@ -1480,7 +1480,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
         from .errors import InputFileError, UsdFaceError
         from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
-        from .pipeline.batch import REVIEW, check_item_inputs, check_review_page, review_flag
+        from .pipeline.batch import REVIEW, check_item_inputs, check_review_page, redoes, review_flag
 
         for item in items:
             # the review page beside the layer (the manifest column the Pyblish collector reads too): a
@@ -1493,7 +1493,8 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
             # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
-            written = force or not os.path.lexists(item.output)
+            redo = redoes(item, force)              # the batch's --force, or the row's force column
+            written = redo or not os.path.lexists(item.output)
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
                 check_output_path(item.output, True, inputs=inputs)
@@ -1501,7 +1502,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             if written and review:     # the page as the layer: a place that takes it, not there without force
                 try:
-                    check_review_page(item.output, force, inputs=[item.output, *inputs])
+                    check_review_page(item.output, redo, inputs=[item.output, *inputs])
                 except UsdFaceError as exc:
                     raise _row_error(item, exc, manifest, "fix the manifest's output or review column") \
                         from None
@@ -1516,7 +1517,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                     from None
             # run_batch's own test: resume skips the row (or reports its output stale), reading nothing (a
             # done row's capture since moved away did not stop the resume)
-            if not force and Path(item.output).exists():
+            if not redo and Path(item.output).exists():
                 continue
             try:                       # what the item's readers would refuse, after the rows before it ran
                 check_item_inputs(item)

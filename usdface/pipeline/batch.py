@@ -447,8 +447,8 @@ def _digest(path) -> str:
 
 #: How a stale output is redone (a ``StaleOutput``'s last words): ``--force`` alone redoes every row of the
 #: batch, hours on a long manifest for the one row a TD meant (until stop 51 the line said only that).
-_REDO = ("to redo this row alone, move the output away (or delete it) and run the batch again; --force "
-         "redoes every row")
+_REDO = ("to redo this row alone, move the output away (or delete it), or set the row's force column to "
+         "true, and run the batch again; --force redoes every row")
 
 
 def stale_output(item: BatchItem) -> str:
@@ -572,6 +572,13 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
     if bool(was) != bool(take):
         return "take", str(was), str(take)
     return None
+
+
+def redoes(item: BatchItem, force: bool = False) -> bool:
+    """Whether ``item`` runs even where its output exists: the batch's ``force``, or the row's own ``force``
+    column true (a Pyblish publish of the same manifest replaces that row's layer and review page; the batch
+    resumed it as done)."""
+    return bool(force) or _flag((item.options or {}).get("force"))
 
 
 def _row_take(options: dict) -> str | None:
@@ -1224,7 +1231,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     results: dict[int, dict] = {}
     todo = []
     for item in items:
-        if not force and Path(item.output).exists():
+        if not redoes(item, force) and Path(item.output).exists():
             # a studio worker may prepare its own inputs (a converted capture): its outputs are its business
             stale = stale_output(item) if worker is personalize_worker else ""
             results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
