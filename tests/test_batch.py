@@ -668,7 +668,7 @@ def test_manifest_refuses_an_item_writing_its_own_avatar(tmp_path):
 
 
 @pytest.mark.parametrize("column, value, needle", [
-    ("review", "true", "unknown personalize option(s): review"),
+    ("reveiw", "true", "reveiw: did you mean review?"),
     ("mu", "-1", "bad mu -1"),
     ("beta", "0.5", "menzel takes --reg (reg), --prior (prior)"),
 ])
@@ -2057,19 +2057,142 @@ def test_manifest_values_options_and_throughput_by_hand():
     assert BatchReport(done + [ItemResult(3, "a", "c", "o", FAILED)], 90.0).throughput_per_minute == 2.0
 
 
-def test_a_review_column_says_how_to_write_the_pages(tmp_path, capsys):
-    """A user trial (stop 50): a manifest with a ``review`` column (as a Pyblish publish's manifest takes it,
-    docs/pipeline.md) given to ``usdface batch`` was refused as 'unknown personalize option(s): review' with
-    the 40 options personalize takes, none of them what was meant. The refusal says how to get the pages."""
-    from usdface.cli import main
+def _stub_personalize(monkeypatch, fail_review_for=()):
+    """personalize_avatar and write_review stubbed (the batch's plumbing under test, not the solver): the
+    layer is a one-line file, the page names the layer, capture and take it was given; a review of a layer
+    named in ``fail_review_for`` raises. Returns the calls made."""
+    from types import SimpleNamespace
 
-    samples = Path(__file__).resolve().parents[1] / "sample_assets"
+    from usdface import api
+
+    calls = {"personalize": [], "review": []}
+
+    def personalize_avatar(avatar, capture, output, **options):
+        calls["personalize"].append(options)
+        Path(output).write_text("#usda 1.0\n")
+        return SimpleNamespace(out_path=Path(output), report={"warnings": []})
+
+    def write_review(layer, out, *, capture=None, take=None, force=False):
+        calls["review"].append(dict(layer=str(layer), out=str(out), capture=capture, take=take, force=force))
+        if Path(layer).name in fail_review_for:
+            raise RuntimeError("the page could not be built")
+        Path(out).write_text(f"{layer} {capture} {take}")
+        return Path(out)
+
+    monkeypatch.setattr(api, "personalize_avatar", personalize_avatar)
+    monkeypatch.setattr(api, "write_review", write_review)
+    return calls
+
+
+def _review_manifest(tmp_path: Path, rows: str) -> Path:
+    """A manifest of the samples' avatar and capture with a ``review`` column: ``rows`` one
+    ``output,review`` pair a line."""
+    lines = ["avatar,capture,output,review"]
+    lines += [f"{SAMPLES / 'avatar.usda'},{SAMPLES / 'capture.usda'},{row}" for row in rows.split()]
+    path = tmp_path / "people.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_a_review_column_writes_the_page_beside_each_layer(tmp_path, monkeypatch):
+    """A TD's trial (stop 52): a manifest with a ``review`` column, the one the Pyblish collector reads (the
+    page beside each layer), was refused by ``usdface batch`` as 'unknown personalize option(s): review'.
+    The batch now writes ``<layer>.review.html`` beside each layer whose row asks for it (the name the
+    Pyblish extractor gives it, through the same function), with the item's capture and take, and the
+    report records the page; a row with review false (or empty) gets none, and personalize never sees it."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,true out/b.usda,FALSE out/c.usda,")
+    report = personalize_batch(path, jobs=1)
+    assert [r.status for r in report.results] == [DONE, DONE, DONE]
+    out = tmp_path / "out"
+    assert sorted(p.name for p in out.iterdir()) == ["a.review.html", "a.usda", "b.usda", "c.usda"]
+    assert all("review" not in options for options in calls["personalize"])
+    assert calls["review"] == [dict(layer=str(out / "a.usda"), out=str(out / "a.review.html"),
+                                    capture=str(SAMPLES / "capture.usda"), take=None, force=False)]
+    items = json.loads(report.report_path.read_text())["items"]
+    assert [i["review"] for i in items] == [str(out / "a.review.html"), "", ""]
+    # resumed: the rows are done, their pages still recorded
+    again = personalize_batch(path, jobs=1)
+    assert [r.status for r in again.results] == [SKIPPED] * 3
+    assert again.results[0].review == str(out / "a.review.html")
+
+
+@pytest.mark.parametrize("rows, needle", [
+    ("out/a.usda,true out/b.usda,maybe", "item 2: bad review 'maybe'"),
+    ("out/a.usda,true out/b.usda,out/b.html", "item 2: bad review"),
+])
+def test_a_bad_review_value_is_refused_before_any_work(tmp_path, monkeypatch, rows, needle):
+    """A review cell that is no boolean (a word, a path: the page's name is the layer's, as in a publish)
+    refuses the batch before its first item, naming the row, the column and the fix."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, rows)
+    with pytest.raises(InputFileError, match=needle) as err:
+        personalize_batch(path, jobs=1)
+    assert "people.csv" in str(err.value) and "review column" in err.value.fix
+    assert "true or false" in err.value.fix
+    assert calls == {"personalize": [], "review": []} and not (tmp_path / "out").exists()
+    assert not (tmp_path / "people.report.json").exists()
+
+
+def test_an_existing_review_page_is_refused_before_any_work(tmp_path, monkeypatch):
+    """A row's review page left by an earlier run (its layer moved away to redo the row) is an output that
+    exists: refused before the first item without --force (the layer was written, then the review failed
+    on the page), replaced with it."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
     (tmp_path / "out").mkdir()
-    path = tmp_path / "m.csv"
-    path.write_text(f"avatar,capture,output,review\n{samples / 'avatar.usda'},{samples / 'capture.usda'},"
-                    "out/a.usda,true\n")
-    assert main(["batch", str(path), "-j", "1", "-q"]) == 2
-    err = capsys.readouterr().err
-    assert "item 1: unknown personalize option(s): review" in err
-    assert "usdface review OUTPUT" in err and "Pyblish" in err and "Traceback" not in err
-    assert not list((tmp_path / "out").iterdir()) and not (tmp_path / "m.report.json").exists()
+    (tmp_path / "out" / "b.review.html").write_text("an earlier page")
+    path = _review_manifest(tmp_path, "out/a.usda,true out/b.usda,true")
+    with pytest.raises(InputFileError, match=r"item 2: .*b.review.html.*review page exists"):
+        personalize_batch(path, jobs=1)
+    assert calls["personalize"] == [] and sorted(os.listdir(tmp_path / "out")) == ["b.review.html"]
+    report = personalize_batch(path, jobs=1, force=True)
+    assert [r.status for r in report.results] == [DONE, DONE]
+    assert (tmp_path / "out" / "b.review.html").read_text() != "an earlier page"
+
+
+def test_a_failed_review_fails_its_item_only(tmp_path, monkeypatch):
+    """A review page that cannot be made fails its item (the layer it wrote set aside, as every failed
+    item's output: all or nothing, as a publish withdraws its layer) and the batch goes on; the next run
+    redoes that item alone. A layer there without the page its row asks for is no finished item."""
+    from usdface.api import personalize_batch
+
+    _stub_personalize(monkeypatch, fail_review_for=("a.usda",))
+    path = _review_manifest(tmp_path, "out/a.usda,true out/b.usda,true")
+    report = personalize_batch(path, jobs=1)
+    a, b = report.results
+    assert (a.status, b.status) == (FAILED, DONE)
+    assert "the page could not be built" in a.error and "a.usda.failed" in a.error and a.review == ""
+    assert not (tmp_path / "out" / "a.usda").exists() and (tmp_path / "out" / "b.review.html").exists()
+    (tmp_path / "out" / "b.review.html").unlink()             # a page lost (a batch killed between the two)
+    _stub_personalize(monkeypatch)
+    again = personalize_batch(path, jobs=1)
+    assert [r.status for r in again.results] == [DONE, FAILED]
+    assert again.results[1].error_type == "StaleOutput" and "b.review.html" in again.results[1].error
+    assert "usdface review" in again.results[1].error
+
+
+def test_a_force_column_redoes_its_row_as_a_publish_replaces_it(tmp_path, monkeypatch):
+    """The manifest a Pyblish publish reads may set ``force`` per row: the publish replaces that row's layer
+    and review page. ``usdface batch`` took the row as done (resume skips an existing output; a missing page
+    was stale), so the one manifest meant one thing to each tool. A row with force true is redone, its page
+    replaced with it, and the rows without it are still resumed."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,true out/b.usda,true")
+    personalize_batch(path, jobs=1)
+    (tmp_path / "out" / "a.review.html").write_text("an earlier page")
+    path.write_text(path.read_text().replace("output,review", "output,review,force")
+                    .replace("a.usda,true", "a.usda,true,true"))
+    calls["personalize"].clear()
+    report = personalize_batch(path, jobs=1)
+    assert [r.status for r in report.results] == [DONE, SKIPPED]
+    assert [o["force"] for o in calls["personalize"]] == [True]
+    assert (tmp_path / "out" / "a.review.html").read_text() != "an earlier page"
+    assert report.results[0].review == str(tmp_path / "out" / "a.review.html")

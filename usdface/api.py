@@ -1276,16 +1276,18 @@ def _fit_option_names() -> set[str]:
 #: there) given to ``usdface batch`` was refused with the 40 options alone (a user trial, stop 50).
 _NOT_AN_OPTION = {
     "review": "review: the review page is no option of the layer: write it from the layer with 'usdface "
-              "review OUTPUT' (usdface.write_review), or publish with Pyblish, where it is instance data "
-              "(a manifest's review column)",
+              "review OUTPUT' (usdface.write_review), or give a batch manifest a review column (usdface "
+              "batch, and a Pyblish publish of the manifest, write the page beside each layer)",
 }
 
 
-def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
+def _refuse_unknown_options(options, unlisted: Iterable[str] = (), columns: Iterable[str] = ()) -> None:
     """Refuse (:class:`usdface.errors.OptionError`, as every API function refuses an option it does not take)
     a name among ``options`` that :func:`personalize_avatar` does not take (a typo, a CLI flag such as
     ``review``), listing the ones it takes, less ``unlisted`` (ones the caller refuses with its own message,
-    such as ``dry_run`` for a batch item: a list offering them sent the user from one refusal to the next)."""
+    such as ``dry_run`` for a batch item: a list offering them sent the user from one refusal to the next),
+    plus ``columns`` (names the caller takes itself, a batch row's ``review``: accepted, and offered for a
+    misspelt one)."""
     import inspect as _inspect
 
     from .errors import OptionError
@@ -1294,7 +1296,7 @@ def _refuse_unknown_options(options, unlisted: Iterable[str] = ()) -> None:
     transfer = set(_inspect.signature(_pipeline.personalize_avatar).parameters) - {
         "avatar", "capture", "out_path", "fit_options", "rig", "layer_edit", "command", "map_only",
         "extra_inputs", "pending_cache"}
-    known = transfer | _fit_option_names() | set(_API_OPTIONS)
+    known = transfer | _fit_option_names() | set(_API_OPTIONS) | set(columns)
     unknown = sorted(set(options) - known)
     if unknown:
         import difflib
@@ -1332,13 +1334,15 @@ def _item_flags(options, whose: str, fix) -> None:
         expect_flag(options.get(name), name, whose, False, fix(name))
 
 
-def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",)) -> None:
+def check_item_options(options: dict, unlisted: Iterable[str] = ("dry_run",),
+                       columns: Iterable[str] = ()) -> None:
     """:func:`check_personalize_options` on the dict ``options`` of a batch row or a Pyblish instance; an
     unknown name's refusal lists the options taken less ``unlisted`` (``dry_run``, which both refuse with a
-    message of its own: a list offering it sent the user from one refusal to the next)."""
+    message of its own: a list offering it sent the user from one refusal to the next) plus ``columns``
+    (names the caller takes and checks itself: a batch row's ``review``)."""
     from .transfer import options as _implant
 
-    _refuse_unknown_options(options, unlisted)
+    _refuse_unknown_options(options, unlisted, columns)
     _item_flags(options, "personalize's", lambda name: f"{name}=true or false, or leave it out (the default)")
     get = options.get
     _implant.check_mode_options(get("face_transfer", "person"), options)
@@ -1417,6 +1421,10 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
     # told as the options= given, not as the manifest's first row
     _item_flags(options or {}, "personalize_batch's options'",
                 lambda name: f'pass options={{"{name}": True}} (or False), as --set {name}=true')
+    from .pipeline.batch import review_flag
+
+    review_flag(options or {}, "personalize_batch's options'",
+                'pass options={"review": True} (or False), as --set review=true')
     items = read_manifest(manifest)
     _apply_batch_options(items, dict(options or {}), manifest)
     manifest = Path(manifest)
@@ -1472,19 +1480,34 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
         from .errors import InputFileError, UsdFaceError
         from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
-        from .pipeline.batch import check_item_inputs
+        from .pipeline.batch import REVIEW, check_item_inputs, check_review_page, redoes, review_flag
 
         for item in items:
+            # the review page beside the layer (the manifest column the Pyblish collector reads too): a
+            # boolean, checked on every row as the options are; it was refused as an unknown option
+            try:
+                review = review_flag(item.options)
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                                     fix=exc.fix) from None
+            options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
             # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
-            written = force or not os.path.lexists(item.output)
+            redo = redoes(item, force)              # the batch's --force, or the row's force column
+            written = redo or not os.path.lexists(item.output)
+            inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
-                check_output_path(item.output, True, inputs=personalize_inputs(
-                    item.avatar, item.capture, **item.options) if written else ())
+                check_output_path(item.output, True, inputs=inputs)
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
+            if written and review:     # the page as the layer: a place that takes it, not there without force
+                try:
+                    check_review_page(item.output, redo, inputs=[item.output, *inputs])
+                except UsdFaceError as exc:
+                    raise _row_error(item, exc, manifest, "fix the manifest's output or review column") \
+                        from None
             try:
-                check_item_options(item.options)        # dry_run not offered: refused for an item below
+                check_item_options(item.options, columns=(REVIEW,))   # dry_run not offered: refused below
             except UsdFaceError as exc:
                 raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
@@ -1494,7 +1517,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                     from None
             # run_batch's own test: resume skips the row (or reports its output stale), reading nothing (a
             # done row's capture since moved away did not stop the resume)
-            if not force and Path(item.output).exists():
+            if not redo and Path(item.output).exists():
                 continue
             try:                       # what the item's readers would refuse, after the rows before it ran
                 check_item_inputs(item)

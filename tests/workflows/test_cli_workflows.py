@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 from wfutil import assert_valid_usd, digest, no_temp_left, run
@@ -109,6 +110,28 @@ def test_batch_with_manifest(sample_set, tmp_path):
     assert [i["status"] for i in report["items"]] == ["done"], report
     assert_valid_usd(tmp_path / "out" / "anna.usda")
     assert digest(sample_set / "avatar.usda", tmp_path / "capture.usda") == before
+    no_temp_left(tmp_path)
+
+
+def test_batch_manifest_review_column_writes_the_pages(sample_set, tmp_path):
+    """docs/pipeline.md#batch: the manifest a Pyblish publish reads, with its ``review`` column, given to
+    ``usdface batch`` (a TD's trial, stop 52: refused as 'unknown personalize option(s): review'): each row
+    with review true gets ``<layer>.review.html`` beside its layer, made from that layer, and the report
+    names it; a row with review false gets none."""
+    (tmp_path / "people.csv").write_text(
+        "avatar,capture,output,method,review\n"
+        f"{sample_set / 'avatar.usda'},{sample_set / 'capture.usda'},out/anna.usda,menzel,true\n"
+        f"{sample_set / 'avatar.usda'},{sample_set / 'capture.usda'},out/ben.usda,menzel,false\n")
+    before = digest(sample_set / "avatar.usda", sample_set / "capture.usda")
+    run("batch", "people.csv", "-j", "1", "-q", cwd=tmp_path)
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [(i["status"], Path(i["review"]).name if i["review"] else "") for i in report["items"]] == \
+        [("done", "anna.review.html"), ("done", "")], report
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["anna.review.html", "anna.usda",
+                                                                    "ben.usda"]
+    page = (tmp_path / "out" / "anna.review.html").read_text(encoding="utf-8")
+    assert page.lstrip().lower().startswith("<!doctype html") and "anna.usda" in page
+    assert digest(sample_set / "avatar.usda", sample_set / "capture.usda") == before
     no_temp_left(tmp_path)
 
 

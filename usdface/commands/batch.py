@@ -26,7 +26,9 @@ def register(subparsers) -> None:
         description="Personalize every (avatar, capture, output) row of a CSV/JSON manifest. Items whose "
                     "output exists are skipped (resume); a failing item is reported and the batch goes on. "
                     "Exit status 1 when any item failed.")
-    p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list")
+    p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list (a "
+                                    "review column true: the review page beside each layer, as a Pyblish "
+                                    "publish of the manifest writes it)")
     p.add_argument("-j", "--jobs", type=positive_int, default=None,
                    help="local worker processes (default: one a CPU this process may use, no more than the "
                         "available memory holds at ~1.2 GB each; 1 = in this process)")

@@ -3,7 +3,8 @@ a Dask cluster, with failure isolation, a report and resume.
 
 * **Manifest**: CSV with a header row, or JSON (a list of objects, or ``{"items": [...]}``). Required fields
   ``avatar``, ``capture``, ``output``; any other field is passed to the worker as a personalize option
-  (e.g. ``method``). Relative paths are relative to the manifest's folder.
+  (e.g. ``method``), except ``review`` (true/false: the review page beside the layer, as the Pyblish
+  collector reads the same manifest). Relative paths are relative to the manifest's folder.
 * **Isolation**: every item runs inside :func:`run_item`, which turns any exception into a ``failed`` result;
   a worker process that dies is reported the same way. One bad item never stops the batch.
 * **Resume**: an item whose output already exists is ``skipped`` (outputs are written atomically, so an
@@ -73,6 +74,7 @@ class ItemResult:
     error_type: str = ""
     traceback: str = ""
     warnings: list = field(default_factory=list)   # what the item warned about (:func:`run_item`)
+    review: str = ""                               # the review page beside the layer, when the row asks one
 
 
 #: The shortest batch (wall-clock seconds) whose items per minute :class:`BatchReport` states: a studio
@@ -351,6 +353,52 @@ def read_manifest(path) -> list[BatchItem]:
     return items
 
 
+#: The manifest column (and Pyblish instance data) that asks for the review page beside the layer: no
+#: personalize option, taken by the batch's worker and the Pyblish review extractor alike.
+REVIEW = "review"
+#: How a review cell is given (the fix of a bad one).
+REVIEW_FIX = ("write the manifest's review column as true or false (or leave the cell empty: no page); the "
+              "page is always <layer>.review.html beside the layer")
+
+
+def review_flag(options: dict, whose: str = "the row's", fix: str = REVIEW_FIX) -> bool:
+    """Whether ``options`` (a batch row's) ask for the review page: ``review`` True or False (``None`` or
+    absent: False), anything else refused (:func:`usdface.errors.expect_flag`, as a Pyblish instance's
+    ``review`` is checked): a word counted as true would write a page the row did not ask for."""
+    from ..errors import expect_flag
+
+    return expect_flag(options.get(REVIEW), REVIEW, whose, False, fix)
+
+
+def review_page(layer) -> Path:
+    """Where the review page of ``layer`` goes: ``<layer stem>.review.html`` beside it, the name
+    ``usdface review`` gives it by default (the batch and the Pyblish extractor use this one rule)."""
+    from ..commands.review import default_output
+
+    return default_output(layer)
+
+
+def check_review_page(layer, force: bool, inputs=()) -> Path:
+    """The review page of ``layer`` checked before any work, as :func:`usdface.api.write_review` will check
+    it (an HTML name, not one of ``inputs``, not an existing file without ``force``, a place that takes it:
+    :func:`usdface.io.atomic.check_output_file`); the Pyblish outputs' validator and the batch's preflight
+    both run it. Returns the page's path."""
+    from ..io.atomic import check_output_file
+
+    return check_output_file(review_page(layer), force, suffixes=(".html", ".htm"), what="review page",
+                             inputs=list(inputs))
+
+
+def write_review_page(layer, capture, take=None, force: bool = False) -> Path:
+    """Write the review page of the written ``layer`` beside it (:func:`review_page`) with the item's
+    ``capture`` and ``take`` (the one the layer plays): :func:`usdface.api.write_review`, the page a Pyblish
+    publish attaches (``ExtractUsdFaceReview``) and a batch row with ``review`` true writes. Returns its
+    path."""
+    from ..api import write_review
+
+    return write_review(layer, review_page(layer), capture=capture, take=take, force=force)
+
+
 def check_item_inputs(item: BatchItem) -> None:
     """The files a personalize item reads, refused as its readers would refuse them but before the batch's
     first item (a bad last row failed at its turn, after every row before it had run): the avatar a
@@ -399,8 +447,8 @@ def _digest(path) -> str:
 
 #: How a stale output is redone (a ``StaleOutput``'s last words): ``--force`` alone redoes every row of the
 #: batch, hours on a long manifest for the one row a TD meant (until stop 51 the line said only that).
-_REDO = ("to redo this row alone, move the output away (or delete it) and run the batch again; --force "
-         "redoes every row")
+_REDO = ("to redo this row alone, move the output away (or delete it), or set the row's force column to "
+         "true, and run the batch again; --force redoes every row")
 
 
 def stale_output(item: BatchItem) -> str:
@@ -426,7 +474,7 @@ def stale_output(item: BatchItem) -> str:
                 f"{_REDO}")
     record = usdface_output_provenance(out)       # read once: the inputs and the options it records
     if record is None:
-        return ""
+        return _missing_review(item)
     recorded = recorded_inputs(out, record)
     shown = ", ".join(sorted(recorded))
     options = item.options or {}
@@ -449,7 +497,18 @@ def stale_output(item: BatchItem) -> str:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
                 f"item's result; {_REDO}")
-    return ""
+    return _missing_review(item)
+
+
+def _missing_review(item: BatchItem) -> str:
+    """Why ``item``'s existing output is not its finished result when its row asks for the review page and
+    the page is not beside it (the page is part of the row's result: the review failed after ``--force``
+    replaced the layer, or the run was killed between the two), else ""."""
+    out, page = Path(item.output), review_page(item.output)
+    if not _flag((item.options or {}).get(REVIEW)) or os.path.lexists(page):
+        return ""
+    return (f"{out.name} exists but not the review page {page.name} its row asks for: write the page with "
+            f"'usdface review {out}', or {_REDO}")
 
 
 _MISSING = object()
@@ -513,6 +572,13 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
     if bool(was) != bool(take):
         return "take", str(was), str(take)
     return None
+
+
+def redoes(item: BatchItem, force: bool = False) -> bool:
+    """Whether ``item`` runs even where its output exists: the batch's ``force``, or the row's own ``force``
+    column true (a Pyblish publish of the same manifest replaces that row's layer and review page; the batch
+    resumed it as done)."""
+    return bool(force) or _flag((item.options or {}).get("force"))
 
 
 def _row_take(options: dict) -> str | None:
@@ -584,15 +650,22 @@ def _same_value(a, b) -> bool:
 # ----------------------------------------------------------------------------------------------- workers
 def personalize_worker(item: dict):
     """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's;
-    item options such as ``method`` or ``inspect`` pass through); returns its result (the report's
-    ``warnings`` go to the item's)."""
+    item options such as ``method`` or ``inspect`` pass through), then with ``review`` true the review page
+    beside the layer (:func:`write_review_page`, as the Pyblish extractor writes it); returns personalize's
+    result (the report's ``warnings`` go to the item's)."""
     from ..api import personalize_avatar
 
     options = dict(item.get("options") or {})
+    review = review_flag(options)                    # the page beside the layer: no personalize option
+    options.pop(REVIEW, None)
     options.setdefault("force", bool(item.get("force", False)))
     options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
                                   "(usdface.pipeline.batch.personalize_worker)")
-    return personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
+    result = personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
+    if review:      # a failure fails the item, and run_item sets aside the layer it wrote: all or nothing
+        layer = Path(getattr(result, "out_path", None) or item["output"])
+        write_review_page(layer, item["capture"], take=_row_take(options), force=bool(options["force"]))
+    return result
 
 
 def load_worker(spec: str) -> Callable[[dict], object]:
@@ -663,7 +736,15 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
                  "takes as the item's result; or raise to fail the item)")
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type="NoOutput")
-    return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu)
+    return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu,
+                review=_written_review(item))
+
+
+def _written_review(item: dict) -> str:
+    """The review page of ``item``'s output when its options ask for one and it is there (the report
+    records it), else ""."""
+    page = review_page(item["output"])
+    return str(page) if _flag((item.get("options") or {}).get(REVIEW)) and os.path.lexists(page) else ""
 
 
 _ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
@@ -1150,12 +1231,13 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     results: dict[int, dict] = {}
     todo = []
     for item in items:
-        if not force and Path(item.output).exists():
+        if not redoes(item, force) and Path(item.output).exists():
             # a studio worker may prepare its own inputs (a converted capture): its outputs are its business
             stale = stale_output(item) if worker is personalize_worker else ""
             results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
                                        output=item.output, status=FAILED if stale else SKIPPED,
-                                       error=stale or "", error_type="StaleOutput" if stale else "")
+                                       error=stale or "", error_type="StaleOutput" if stale else "",
+                                       review="" if stale else _written_review(item.to_dict()))
         else:
             todo.append(dict(item.to_dict(), force=force))
     jobs = max(1, int(jobs or default_jobs()))

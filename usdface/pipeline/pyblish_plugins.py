@@ -300,10 +300,9 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
 
     def process(self, instance):
         from ..api import _check_correspondence_cache, personalize_inputs
-        from ..commands.review import default_output
         from ..errors import OutputExistsError
-        from ..io.atomic import check_output_file
         from ..io.layers import check_output_path
+        from .batch import check_review_page
 
         data = instance.data
         output = Path(data["output"])
@@ -316,8 +315,8 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
                 # the correspondence cache, an output too: in an input folder, where it cannot be written
                 _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[output])
             if _flag(instance, "review"):
-                check_output_file(default_output(output), force, suffixes=(".html", ".htm"),
-                                  what="review page", inputs=[output, data["avatar"], data["capture"], take])
+                # as 'usdface batch' checks a row's review page (one function)
+                check_review_page(output, force, inputs=[output, data["avatar"], data["capture"], take])
         except OutputExistsError as exc:     # the fix in a publish's terms: its fix named --force
             raise OutputExistsError(exc.message, path=exc.path, prim=exc.prim,
                                     fix="set the instance's data force=True (or force among its "
@@ -393,15 +392,15 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
     def process(self, instance):
         if not _flag(instance, "review") or not instance.data.get("usdfaceLayer"):
             return
-        from ..api import write_review
-        from ..commands.review import default_output
+        from .batch import write_review_page
 
         layer = Path(instance.data["usdfaceLayer"])
         options = _personalize_options(instance)       # the take the layer plays, the layer's force
         try:
             with _warnings_to_log(self, instance):      # stale inputs, a take's clipped weights, ...
-                page = write_review(layer, default_output(layer), capture=instance.data.get("capture"),
-                                    take=options.get("take"), force=bool(options["force"]))
+                # the page a batch row with review true writes (one function)
+                page = write_review_page(layer, instance.data.get("capture"), take=options.get("take"),
+                                         force=bool(options["force"]))
         except BaseException as exc:
             # the publish failed after the layer was written: the layer stayed on disk (and in the
             # instance's files, for an integrator), and the retry failed on it ('output layer exists')
