@@ -137,17 +137,26 @@ def test_dev3_avatar_prior_beats_the_other_artists_template(bench):
     assert err < 0.8 * truth_error(fit(c3).rig.deltas, truth["deltas"])
 
 
-def noisy_capture(misalign_deg=0.0, seed=3, weight_noise=0.0):
-    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated and
-    whose reported weights optionally carry Gaussian noise (clipped to [0, 1])."""
-    from scipy.spatial.transform import Rotation
-
+def person_and_template(seed):
+    """``(rng, neutral[n,3], triangles, true[K,n,3], template[K,n,3], W[F,K])`` of a generated capture on a
+    14 x 12 grid: the person's shapes (2 mm), a template 0.5 mm off them, one frame per shape at weight 1
+    and ten mixtures; ``rng`` the generator, drawn on further by the caller."""
     rng = np.random.default_rng(seed)
     neutral, tris = grid_mesh(14, 12)
     K, n = len(NAMES), len(neutral)
     true = rng.normal(size=(K, n, 3)) * 0.002
     template = true + rng.normal(size=(K, n, 3)) * 0.0005
     W = np.vstack([np.eye(K), rng.uniform(0, 0.6, size=(10, K))])
+    return rng, neutral, tris, true, template, W
+
+
+def noisy_capture(misalign_deg=0.0, seed=3, weight_noise=0.0):
+    """A larger clean capture (one frame per shape plus mixtures) whose frames are optionally rotated and
+    whose reported weights optionally carry Gaussian noise (clipped to [0, 1])."""
+    from scipy.spatial.transform import Rotation
+
+    rng, neutral, tris, true, template, W = person_and_template(seed)
+    n = len(neutral)
     pts = neutral + np.einsum("fk,knc->fnc", W, true) + rng.normal(size=(len(W), n, 3)) * 2e-5
     if misalign_deg:
         c = neutral.mean(axis=0)

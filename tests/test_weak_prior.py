@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from test_personalize_prior import NAMES, grid_mesh
+from test_personalize_prior import NAMES, person_and_template
 
 from usdface.errors import FitError
 from usdface.model import Capture, FaceRig, Frames
@@ -24,12 +24,8 @@ def weak_capture(seed=5, weak_weight=0.07, unexplained=3e-4):
     and ten mixtures, except shape ``WEAK``, shown only in the ``jawOpen`` frame at ``weak_weight``, and
     ``MID`` only in its own frame at 0.25. The ``jawOpen`` frame also holds motion no shape explains (a
     non-linear bulge of ``unexplained`` m where ``WEAK`` moves, as a real jaw frame has)."""
-    rng = np.random.default_rng(seed)
-    neutral, tris = grid_mesh(14, 12)
-    K, n = len(NAMES), len(neutral)
-    true = rng.normal(size=(K, n, 3)) * 0.002
-    template = true + rng.normal(size=(K, n, 3)) * 0.0005
-    W = np.vstack([np.eye(K), rng.uniform(0, 0.6, size=(10, K))])
+    rng, neutral, tris, true, template, W = person_and_template(seed)
+    n = len(neutral)
     W[:, WEAK] = 0.0
     W[0, WEAK] = weak_weight
     W[:, MID] = 0.0
