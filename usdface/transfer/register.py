@@ -11,8 +11,7 @@ stage's ``metersPerUnit``, ``upAxis`` and every ancestor transform, so stage met
 2. :func:`register_icp` - point-to-point ICP with scaling (Umeyama's similarity of each iteration's pairs)
    from the capture neutral to the avatar's moving face, coarse to fine: onto the exact closest points of
    the face's *surface* when its triangles are given (:func:`register_icp_surface`; the same surface gives
-   the same placement at every resolution of the mesh; then on to that objective's optimum by damped
-   Gauss-Newton, :func:`refine_on_surface`), else Open3D ``registration_icp`` onto its points.
+   the same placement at every resolution of the mesh), else Open3D ``registration_icp`` onto its points.
 """
 
 from __future__ import annotations
@@ -20,16 +19,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..errors import RegistrationError
 from ..motion import moving_vertices, peak_motion
 from ..natives import open3d
-from .surface import SurfaceQuery, vector_lengths
+from .surface import SurfaceQuery
 
 __all__ = ["Similarity", "Registration", "motion_landmarks", "similarity_from_pairs", "motion_initialiser",
-           "register_icp", "register_icp_surface", "surface_residuals", "refine_on_surface", "face_surface",
-           "register_face"]
+           "register_icp", "register_icp_surface", "face_surface", "register_face"]
 
 
 @dataclass
@@ -197,8 +194,8 @@ def register_icp(source, target, init: Similarity, *, scales=(0.08, 0.03, 0.012)
 
 
 def register_icp_surface(source, points, triangles, init: Similarity, *, scales=(0.08, 0.03, 0.012),
-                         iterations: int = 40, with_scaling: bool = True, query: SurfaceQuery | None = None,
-                         refine: bool = True) -> tuple[Similarity, float, float, float]:
+                         iterations: int = 40, with_scaling: bool = True, query: SurfaceQuery | None = None
+                         ) -> tuple[Similarity, float, float, float]:
     """Point-to-point ICP with scaling onto a triangle surface, coarse to fine: each iteration pairs every
     ``source[n,3]`` point (capture neutral, as placed) with its exact closest point on the surface
     ``points[m,3]``/``triangles[t,3]`` (:class:`usdface.transfer.surface.SurfaceQuery`), keeps the pairs
@@ -206,9 +203,8 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
     moves the source by their least-squares similarity (Open3D's ``TransformationEstimationPointToPoint``,
     the step of its ``registration_icp``, on these pairs; a rigid motion without ``with_scaling``), until
     the fitness and inlier RMS residual change by less than 1e-9 (as Open3D's ``registration_icp``) or
-    ``iterations`` pass; then, with ``refine``, on to that objective's optimum at the last distance
-    (:func:`refine_on_surface`: where point-to-point ICP stops depended on where it started). Returns
-    ``(similarity, inlier_rmse_m, fitness, final_max_distance_m)``, as :func:`register_icp`.
+    ``iterations`` pass. Returns ``(similarity, inlier_rmse_m, fitness,
+    final_max_distance_m)``, as :func:`register_icp`.
 
     The target is the surface, not points sampled on it: a sampled target's nearest points sit up to half
     its spacing from the surface's closest points, in a pattern that follows the mesh's triangles, and the
@@ -254,121 +250,7 @@ def register_icp_surface(source, points, triangles, init: Similarity, *, scales=
             step = shift @ m
             step[:3, 3] -= step[:3, :3] @ origin
             current = Similarity.from_matrix(step @ current.matrix())
-    if refine and fitness > 0:
-        current, rmse, fitness = refine_on_surface(src, current, query, dist, with_scaling=with_scaling)
     return current, float(f"{rmse:.12g}"), fitness, dist
-
-
-def surface_residuals(x, query: SurfaceQuery) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets of ``x[q,3]`` from their closest points on the surface of ``query`` and the Hessians of
-    half their squared distances: ``(offset[q,3], metric[q,3,3])`` (m; ``|offset|`` the distance).
-
-    In float64 on the triangle the closest-point scene (float32) found: where ``x``'s projection onto that
-    triangle's plane falls inside it, the offset is along the unit normal ``n`` and the metric ``n n^T`` (the
-    distance to the plane: point-to-plane); elsewhere the closest point is on one of its edges, ``e`` (unit),
-    with metric ``I - e e^T`` (the closest point slides along the edge), or at a corner, metric ``I``."""
-    tri = query.closest_points(x)[0]
-    corners = query.points[query.triangles[tri]]                       # [q,3,3]
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    normal = np.cross(e1, e2)
-    area2 = np.linalg.norm(normal, axis=1)
-    normal = np.divide(normal, area2[:, None], out=np.zeros_like(normal), where=area2[:, None] > 0)
-    rel = x - corners[:, 0]
-    height = np.einsum("qc,qc->q", rel, normal)
-    onplane = rel - height[:, None] * normal
-    # barycentrics of the projection (Cramer on the edge vectors)
-    d11, d12, d22 = (np.einsum("qc,qc->q", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
-    r1, r2 = np.einsum("qc,qc->q", onplane, e1), np.einsum("qc,qc->q", onplane, e2)
-    det = d11 * d22 - d12 * d12
-    ok = det > 0
-    u = np.divide(d22 * r1 - d12 * r2, det, out=np.full_like(det, -1.0), where=ok)
-    v = np.divide(d11 * r2 - d12 * r1, det, out=np.full_like(det, -1.0), where=ok)
-    inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
-    # outside: the nearest of the three edges' closest points (segment projections, clamped)
-    start = corners                                                     # edges 0-1, 1-2, 2-0
-    edge = np.roll(corners, -1, axis=1) - start                         # [q,3,3]
-    length2 = np.einsum("qkc,qkc->qk", edge, edge)
-    t = np.einsum("qkc,qkc->qk", x[:, None, :] - start, edge) / np.maximum(length2, 1e-300)
-    t = np.clip(t, 0.0, 1.0)
-    offsets = x[:, None, :] - (start + t[..., None] * edge)            # [q,3,3]
-    k = np.argmin(np.einsum("qkc,qkc->qk", offsets, offsets), axis=1)
-    rows = np.arange(len(x))
-    offset = offsets[rows, k]
-    along = edge[rows, k] / np.sqrt(np.maximum(length2[rows, k], 1e-300))[:, None]
-    along *= ((t[rows, k] > 0) & (t[rows, k] < 1))[:, None]            # at a corner: no sliding
-    metric = np.eye(3) - along[:, :, None] * along[:, None, :]
-    offset = np.where(inside[:, None], height[:, None] * normal, offset)
-    metric = np.where(inside[:, None, None], normal[:, :, None] * normal[:, None, :], metric)
-    return offset, metric
-
-
-def refine_on_surface(source, init: Similarity, query: SurfaceQuery, max_distance: float, *,
-                      with_scaling: bool = True, iterations: int = 30, tolerance: float = 1e-8
-                      ) -> tuple[Similarity, float, float]:
-    """Damped Gauss-Newton on the point-to-point ICP's own objective, to its optimum: the similarity ``T``
-    (scale, rotation, translation; rigid without ``with_scaling``) with ``sum_i min(dist(T source_i,
-    surface), max_distance)^2`` least (the pairs within ``max_distance``, m, as the ICP keeps them; the
-    others a constant). Each step is the Newton step of the pairs' ``|offset_i|^2 / 2`` with the Hessians of
-    :func:`surface_residuals` (point-to-plane inside a triangle, point-to-edge or -corner beyond it) over the
-    motion ``x -> (1 + sigma) R(omega) (x - o) + o + tau`` about the pairs' centroid ``o``, halved until the
-    objective decreases (up to 8 times; none decreasing: the optimum to rounding, stop). Stops when a step's
-    rotation (rad), relative scale and translation in placed-source diagonals are all below ``tolerance``,
-    or after ``iterations``. Returns ``(similarity, inlier_rmse_m, fitness)`` at the result.
-
-    Point-to-point ICP (:func:`register_icp_surface`) reaches the same optimum only linearly, slowest along
-    the surface: on the sample it stopped after 40 iterations with the rotation still moving 5e-6 rad an
-    iteration, ~1e-4 rad from the optimum (the template's registration 2.2e-3 rad and 0.26 % in scale);
-    these steps take 3-5 for the person there (~15-30 for the template: kinks of the faceted surface's
-    distance)."""
-    src = np.asarray(source, dtype=np.float64)
-    current = init
-    x = current.apply(src)
-    diag = max(float(np.linalg.norm(x.max(axis=0) - x.min(axis=0))), 1e-300)
-
-    def energy(offset):         # the trimmed objective, continuous: a pair beyond the distance counts it
-        return float(np.minimum(np.einsum("qc,qc->q", offset, offset), max_distance ** 2).sum())
-
-    offset, metric = surface_residuals(x, query)
-    e = energy(offset)
-    for _ in range(iterations):
-        pairs = vector_lengths(offset) <= max_distance
-        if pairs.sum() < 7:
-            break
-        q = x[pairs] - x[pairs].mean(axis=0)
-        origin = x[pairs].mean(axis=0)
-        # d(placed point)/d(sigma, omega, tau / diag): sigma q + omega x q + tau
-        motion = np.zeros((len(q), 3, 7))
-        motion[:, :, 0] = q
-        motion[:, 0, 2], motion[:, 0, 3] = q[:, 2], -q[:, 1]
-        motion[:, 1, 1], motion[:, 1, 3] = -q[:, 2], q[:, 0]
-        motion[:, 2, 1], motion[:, 2, 2] = q[:, 1], -q[:, 0]
-        motion[:, :, 4:] = diag * np.eye(3)
-        hessian = np.einsum("qia,qij,qjb->ab", motion, metric[pairs], motion)
-        gradient = np.einsum("qia,qi->a", motion, offset[pairs])     # metric @ offset == offset
-        free = slice(0, 7) if with_scaling else slice(1, 7)
-        step = np.zeros(7)
-        step[free] = -np.linalg.lstsq(hessian[free, free], gradient[free])[0]
-        # damped: the step halved until the objective decreases (none does at its optimum, to rounding)
-        for _halving in range(8):
-            turn = Rotation.from_rotvec(step[1:4]).as_matrix()
-            scale = 1.0 + step[0]
-            trial = Similarity(current.scale * scale, turn @ current.rotation,
-                               scale * turn @ (current.translation - origin) + origin + step[4:] * diag)
-            xt = trial.apply(src)
-            ot, mt = surface_residuals(xt, query)
-            et = energy(ot)
-            if et <= e or np.abs(step).max() < tolerance:
-                break
-            step = step / 2
-        if et > e:
-            break
-        current, x, offset, metric, e = trial, xt, ot, mt, et
-        if np.abs(step).max() < tolerance:
-            break
-    d = vector_lengths(offset)
-    pairs = d <= max_distance
-    rmse = float(np.sqrt(np.mean(np.square(d[pairs])))) if pairs.any() else 0.0
-    return current, rmse, float(pairs.mean())
 
 
 def face_surface(avatar_points, avatar_triangles, avatar_peak) -> SurfaceQuery | None:
