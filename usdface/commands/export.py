@@ -61,7 +61,7 @@ def run(args) -> int:
     variant = exported_variant(args.layer, args.variant or "personalized")
     baked = baked_variant(args.layer)
     # a flattened export of a layer is exported as authored, with the shapes of the variant baked into it
-    from ..io.usd_rig import dcc_export_marks
+    from ..io.usd_rig import dcc_export_marks, flattened_source
 
     dcc = variant == AS_AUTHORED and dcc_export_marks(args.layer)
     label = ("as authored: a DCC export of a usdface layer, the variant the DCC composed (personalized "
@@ -71,7 +71,7 @@ def run(args) -> int:
              if variant == AS_AUTHORED and _is_fit_rig(args.layer) else
              "as authored: a plain avatar, not personalized" if variant == AS_AUTHORED else
              f"{variant}, as baked into {Path(args.layer).name} "
-             f"(a flattened export of {_layer_of(args.layer, baked)})"
+             f"(a flattened export of {flattened_source(args.layer, baked) or '?'})"
              if baked else variant)
     if args.json:
         import json
@@ -95,14 +95,3 @@ def _is_fit_rig(path) -> bool:
 
     return file_kind(path).kind is Kind.FIT
 
-
-def _layer_of(flat, baked: dict) -> str:
-    """The layer a flattened export ``flat`` was made from, as one names it from the current folder (it is
-    recorded relative to the export: 'a flattened export of ../p.usda' before stop 52)."""
-    from pathlib import Path
-
-    from ..io.layers import recorded_path
-    from ..io.usd_rig import _from_cwd
-
-    source = baked.get("source")
-    return _from_cwd(recorded_path(Path(flat).parent, source)) if source else "?"

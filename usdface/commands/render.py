@@ -90,7 +90,7 @@ def _flattened_original(path: Path) -> Path | None:
     flattened export was 'not a usdface layer (no sublayer to compare with)', which it is, flattened)."""
     from ..errors import InputFileError
     from ..io.file_kind import file_kind
-    from ..io.usd_rig import _from_cwd
+    from ..io.usd_rig import _from_cwd, flattened_source
 
     found = file_kind(path)             # the root layer, read once
     flat = found.flattened
@@ -103,7 +103,7 @@ def _flattened_original(path: Path) -> Path | None:
 
     original = recorded_path(Path(path).parent, inputs[0])       # by name, as USD anchors the file's paths
     if not original.is_file():
-        layer = _from_cwd(recorded_path(Path(path).parent, flat["source"])) if flat.get("source") else "?"
+        layer = flattened_source(path, flat) or "?"
         raise InputFileError(f"a flattened export of the personalized layer {layer}: the "
                              f"avatar it was personalized from, {_from_cwd(original)}, is not there to "
                              "compare with", path=path,

@@ -76,7 +76,7 @@ def variant_stage(path, variant: str = "personalized"):
     authored, and either variant of a flattened *generic* export is the generic baked in."""
     from pxr import Usd
 
-    from .usd_rig import _from_cwd, _open_stage
+    from .usd_rig import _open_stage, flattened_source
 
     _check_variant(variant)
     path = Path(path)
@@ -86,13 +86,11 @@ def variant_stage(path, variant: str = "personalized"):
     if baked is not None and baked["variant"] == "personalized":
         # a flattened export of the personalized variant: it was 'not a usdface layer', of a file usdface
         # wrote and that names the layer it came from
-        source = Path(str(baked.get("source", "LAYER")))        # relative to the flattened file
-        source = source if source.is_absolute() else path.parent / source
-        said = _from_cwd(source) if baked.get("source") else "?"    # from here, not from the export (stop 52)
-        raise InputFileError(f"a flattened export of the personalized variant of {said}: "
+        source = flattened_source(path, baked)     # from here, not from the export (stop 52)
+        raise InputFileError(f"a flattened export of the personalized variant of {source or '?'}: "
                              "only the person's shapes are baked in, the generic variant is not in it",
                              path=path, fix=f"export the generic variant of the layer it was flattened from "
-                                            f"({_from_cwd(source)}) or use the original avatar")
+                                            f"({source or 'LAYER'}) or use the original avatar")
     if not prims and variant == "generic" and baked is None:
         from .usd_rig import dcc_export_marks
 

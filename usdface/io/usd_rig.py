@@ -661,6 +661,17 @@ def _from_cwd(path: Path) -> str:
     return shlex.quote(rel if not rel.startswith(".." + os.sep + "..") else str(absolute))
 
 
+def flattened_source(path, flat: dict) -> str | None:
+    """The usdface layer a flattened export ``path`` (``usdface export --flatten``; ``flat`` its
+    ``flattened`` record) was made from, named from the current folder as :func:`_from_cwd` names it; None
+    when none is recorded. It is recorded relative to the export: said as recorded, it was 'a flattened
+    export of ../p.usda' (and 'export out/../p.usda' in a fix), stop 52."""
+    from .layers import recorded_path
+
+    source = flat.get("source")
+    return _from_cwd(recorded_path(Path(path).parent, source)) if source else None
+
+
 def usdface_layer_data(path) -> dict:
     """The root layer's ``customLayerData["usdface"]`` of the file ``path`` (what usdface wrote into it), {}
     for another file or one that cannot be read (the reader that follows says what it is). Reads only the
@@ -896,15 +907,12 @@ def refuse_usdface_output(path) -> None:
         # from here
         original = f" ({_from_cwd(recorded_path(Path(path).parent, inputs[0]))})" if inputs else ""
         generic = Path(path).with_name(f"{Path(path).stem}.generic{Path(path).suffix}").name
-        # the layer is recorded relative to the flattened file: said (and in the command one can paste) as a
-        # path from here, as the original (stop 52: 'of the usdface layer ../p.usda', 'export out/../p.usda')
-        known = bool(flat.get("source"))
-        source = _from_cwd(recorded_path(Path(path).parent, flat["source"])) if known else "LAYER"
+        source = flattened_source(path, flat)       # from here, as the original: a command one can paste
         raise AlreadyPersonalizedError(
             f"this is a flattened export of the personalized variant of the usdface layer "
-            f"{source if known else '?'}; personalizing it again would stack the personalization on the "
+            f"{source or '?'}; personalizing it again would stack the personalization on the "
             "personalized shapes", path=path,
-            fix=f"flatten the generic variant instead (usdface export {source} --flatten "
+            fix=f"flatten the generic variant instead (usdface export {source or 'LAYER'} --flatten "
                 f"{shlex.quote(generic)} --variant generic) or pass the original avatar{original}")
     if not _has_personalization(path):
         refuse_dcc_export(path)     # a landmarks layer over a DCC export of a personalized layer
