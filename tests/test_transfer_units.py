@@ -1065,7 +1065,7 @@ def test_outward_turns_to_the_radial_line_where_the_distance_has_no_slope():
     d = surf.signed_distance(q)
     assert d[0] == pytest.approx(-0.5 * w, abs=1e-8)
     radial = np.array([[0.6, 0.0, 0.8]])
-    np.testing.assert_allclose(_outward(surf, q, d, radial), radial, atol=0.02)
+    np.testing.assert_allclose(_outward(surf, q, radial), radial, atol=0.02)
 
 
 def test_register_face_target_is_the_surface_of_the_moving_triangles(monkeypatch):

@@ -337,23 +337,23 @@ def _spread_corrections(out, x0, near, js, ks, correction, radius: float, tree):
 GRADIENT_STEP = 5e-5
 
 
-def _outward(surf, q, d, radial) -> np.ndarray:
-    """``[p,3]`` unit directions out of the eye at ``q[p,3]`` (signed distances ``d[p]``, unused: kept for
-    the callers' one signature): the signed distance's gradient by central differences (``q +-
-    GRADIENT_STEP`` along each axis, :data:`GRADIENT_STEP`): the shortest way to more distance
-    from the eye mesh, whatever its shape (the bench avatars' eyes have a shell 0.5 mm thick about 2 mm
-    outside the eyeball: a lid vertex inside the shell goes back into the gap, not out through the shell;
-    radially it did, and dev3's face ratio went 0.292 -> 0.305). The line to the closest point on the mesh,
-    used before, is the same direction but jumps where the closest facet changes inside the mesh: a brow
-    vertex 3.3 mm into the sample's eye (its facets 16 degrees apart) went back 0.44 mm elsewhere when its
-    float32 position changed by 40 um. Where the differences cancel (midway between two sheets of the mesh,
-    its medial axis, or on a crease of the distance between two parts of the eye) the direction turns
-    smoothly to ``radial[p,3]``, the unit line from the eyeball's centre. Forward differences (``q`` and
-    ``q + GRADIENT_STEP``, three queries fewer; before stop 52) cancel between two parallel sheets but not
-    on a crease: in the wedge between two parts of an eye nearly touching, a vertex up to a step on one side
-    of the crease was sent towards the *other* part, as one on that side (the repair of a mirror-symmetric
-    eye and lid 30-110 um from mirror-symmetric, tests/test_eyelids_continuity.py); centred, the two sides'
-    steps mirror each other and one on the crease goes out along it."""
+def _outward(surf, q, radial) -> np.ndarray:
+    """``[p,3]`` unit directions out of the eye at ``q[p,3]``: the signed distance's gradient by central
+    differences (``q +- GRADIENT_STEP`` along each axis, :data:`GRADIENT_STEP`): the shortest way to more
+    distance from the eye mesh, whatever its shape (the bench avatars' eyes have a shell 0.5 mm thick
+    about 2 mm outside the eyeball: a lid vertex inside the shell goes back into the gap, not out through
+    the shell; radially it did, and dev3's face ratio went 0.292 -> 0.305). The line to the closest point
+    on the mesh, used before, is the same direction but jumps where the closest facet changes inside the
+    mesh: a brow vertex 3.3 mm into the sample's eye (its facets 16 degrees apart) went back 0.44 mm
+    elsewhere when its float32 position changed by 40 um. Where the differences cancel (midway between two
+    sheets of the mesh, its medial axis, or on a crease of the distance between two parts of the eye) the
+    direction turns smoothly to ``radial[p,3]``, the unit line from the eyeball's centre. Forward
+    differences (``q`` and ``q + GRADIENT_STEP``, three queries fewer; before stop 52) cancel between two
+    parallel sheets but not on a crease: in the wedge between two parts of an eye nearly touching, a
+    vertex up to a step on one side of the crease was sent towards the *other* part, as one on that side
+    (the repair of a mirror-symmetric eye and lid 30-110 um from mirror-symmetric,
+    tests/test_eyelids_continuity.py); centred, the two sides' steps mirror each other and one on the
+    crease goes out along it."""
     h = GRADIENT_STEP
     steps = np.concatenate([np.eye(3), -np.eye(3)])                     # [6,3]: +x +y +z -x -y -z
     s = surf.signed_distance((q[:, None, :] + h * steps[None]).reshape(-1, 3)).reshape(-1, 2, 3)
@@ -380,7 +380,7 @@ def _onto_bound(surf, eye, q, d, required, generic, tolerance: float) -> np.ndar
     target = d + _amount(required - d, tolerance)
     radial = q - eye.center
     radial /= np.maximum(vector_lengths(radial)[:, None], 1e-300)
-    q = q + _outward(surf, q, d, radial) * (target - d)[:, None]
+    q = q + _outward(surf, q, radial) * (target - d)[:, None]
     d, active = np.empty(len(q)), np.arange(len(q))
     for _ in range(8):                              # (only the points still short are measured again)
         d[active] = surf.signed_distance(q[active])
