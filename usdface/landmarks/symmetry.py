@@ -15,6 +15,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import maximum_bipartite_matching
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from ..personalize.align import kabsch
 
 #: The nodes of the asymmetry field are the mesh sampled every ``FIELD_SHARE`` of its bounding-box diagonal
 #: (~9 mm on a head), the field a Gaussian of ``FIELD_SIGMA`` node spacings (~2 cm): a scanned head's
@@ -66,15 +69,6 @@ def symmetry_nodes(neutral: np.ndarray, share: float | None = None) -> np.ndarra
     return order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
 
 
-def _kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation ``R[3, 3]``, translation ``t[3]``: ``a @ R.T + t ~ b`` (``a, b[m, 3]``)."""
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    rot = vt.T @ d @ u.T
-    return rot, cb - ca @ rot.T
-
-
 def _point_to_plane(sx: np.ndarray, x: np.ndarray, normal: np.ndarray, rot: np.ndarray, t: np.ndarray,
                     size: float) -> tuple[np.ndarray, np.ndarray]:
     """Trimmed point-to-plane ICP (Chen & Medioni 1992), linearised per step, of ``sx[m, 3]`` onto the
@@ -89,9 +83,7 @@ def _point_to_plane(sx: np.ndarray, x: np.ndarray, normal: np.ndarray, rot: np.n
         jac = np.hstack([np.cross(yk - mid, nrm), nrm])
         step = np.linalg.lstsq(jac, -np.einsum("mi,mi->m", yk - x[j[keep]], nrm), rcond=None)[0]
         angle = float(np.linalg.norm(step[:3]))
-        k = step[:3] / angle if angle > 0 else np.zeros(3)
-        cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        turn = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross   # Rodrigues
+        turn = Rotation.from_rotvec(step[:3]).as_matrix()
         rot, t = turn @ rot, turn @ (t - mid) + mid + step[3:]
         if angle < 1e-10 and np.linalg.norm(step[3:]) < 1e-10 * max(size, 1.0):
             break
@@ -105,7 +97,7 @@ def _point_to_point(sx: np.ndarray, p: np.ndarray, tree: cKDTree, rot: np.ndarra
     for _ in range(RIGID_ITERATIONS):
         dist, j = tree.query(sx @ rot.T + t)
         keep = dist <= 2.5 * np.median(dist)
-        new_rot, new_t = _kabsch(sx[keep], p[j[keep]])
+        new_rot, new_t = (m[0] for m in kabsch(sx[keep][None], p[j[keep]]))
         done = np.abs(new_rot - rot).max() < 1e-12 and np.abs(new_t - t).max() < 1e-12 * max(size, 1.0)
         rot, t = new_rot, new_t
         if done:
