@@ -2159,7 +2159,7 @@ def test_an_existing_review_page_is_refused_before_any_work(tmp_path, monkeypatc
 def test_a_failed_review_fails_its_item_only(tmp_path, monkeypatch):
     """A review page that cannot be made fails its item (the layer it wrote set aside, as every failed
     item's output: all or nothing, as a publish withdraws its layer) and the batch goes on; the next run
-    redoes that item alone. A layer there without the page its row asks for is no finished item."""
+    redoes that item alone. A layer there without the page its row asks for gets the page alone."""
     from usdface.api import personalize_batch
 
     _stub_personalize(monkeypatch, fail_review_for=("a.usda",))
@@ -2170,11 +2170,10 @@ def test_a_failed_review_fails_its_item_only(tmp_path, monkeypatch):
     assert "the page could not be built" in a.error and "a.usda.failed" in a.error and a.review == ""
     assert not (tmp_path / "out" / "a.usda").exists() and (tmp_path / "out" / "b.review.html").exists()
     (tmp_path / "out" / "b.review.html").unlink()             # a page lost (a batch killed between the two)
-    _stub_personalize(monkeypatch)
+    calls = _stub_personalize(monkeypatch)
     again = personalize_batch(path, jobs=1)
-    assert [r.status for r in again.results] == [DONE, FAILED]
-    assert again.results[1].error_type == "StaleOutput" and "b.review.html" in again.results[1].error
-    assert "usdface review" in again.results[1].error
+    assert [r.status for r in again.results] == [DONE, DONE]       # b: its page alone (stop 53)
+    assert len(calls["personalize"]) == 1 and (tmp_path / "out" / "b.review.html").exists()
 
 
 def test_a_force_column_redoes_its_row_as_a_publish_replaces_it(tmp_path, monkeypatch):
@@ -2196,3 +2195,113 @@ def test_a_force_column_redoes_its_row_as_a_publish_replaces_it(tmp_path, monkey
     assert [o["force"] for o in calls["personalize"]] == [True]
     assert (tmp_path / "out" / "a.review.html").read_text() != "an earlier page"
     assert report.results[0].review == str(tmp_path / "out" / "a.review.html")
+
+
+def test_a_review_column_added_later_writes_only_the_missing_pages(tmp_path, monkeypatch):
+    """Stop 53: a manifest that gained a ``review`` column after its rows were done made every done row a
+    ``StaleOutput`` ('exists but not the review page ...'), the batch refusing its own finished layers. Resume
+    now writes only the missing pages (the layer is the row's result; personalize is not run again), names
+    them in the report, and the next run skips the rows."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda, out/b.usda,")
+    personalize_batch(path, jobs=1)
+    layers = {n: (tmp_path / "out" / n).stat().st_mtime_ns for n in ("a.usda", "b.usda")}
+    path.write_text(path.read_text().replace(".usda,\n", ".usda,true\n", 1))       # row a now asks a page
+    calls["personalize"].clear()
+    report = personalize_batch(path, jobs=1)
+    assert [r.status for r in report.results] == [DONE, SKIPPED], [r.error for r in report.results]
+    assert calls["personalize"] == []
+    assert [c["out"] for c in calls["review"][-1:]] == [str(tmp_path / "out" / "a.review.html")]
+    assert {n: (tmp_path / "out" / n).stat().st_mtime_ns for n in layers} == layers
+    assert report.results[0].review == str(tmp_path / "out" / "a.review.html")
+    assert not (tmp_path / "out" / "b.review.html").exists()
+    again = personalize_batch(path, jobs=1)
+    assert [r.status for r in again.results] == [SKIPPED, SKIPPED]
+
+
+def test_a_review_only_item_that_fails_leaves_the_layer(tmp_path, monkeypatch):
+    """The missing page that cannot be made fails its item, and the finished layer stays where it is (not
+    set aside as a failed item's output: it is the row's result); the next run tries the page again."""
+    from usdface.api import personalize_batch
+
+    _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,")
+    personalize_batch(path, jobs=1)
+    path.write_text(path.read_text().replace(".usda,\n", ".usda,true\n"))
+    calls = _stub_personalize(monkeypatch, fail_review_for=("a.usda",))
+    report = personalize_batch(path, jobs=1)
+    assert report.results[0].status == FAILED and "the page could not be built" in report.results[0].error
+    assert (tmp_path / "out" / "a.usda").exists() and not (tmp_path / "out" / "a.usda.failed").exists()
+    assert calls["personalize"] == []
+
+
+@pytest.mark.parametrize("column", ["false", ""])
+def test_the_batchs_force_redoes_a_row_whose_force_column_is_false(tmp_path, monkeypatch, column):
+    """Stop 53: ``--force`` redoes every row (docs/pipeline.md, Resume); a row's ``force`` column true redoes
+    that row. A row's force false passed personalize force=False under ``--force``, which refused the
+    existing layer (``OutputExistsError``, the item failed). A row's false (or empty) cell now adds nothing:
+    the batch's force is the row's too."""
+    from usdface.api import personalize_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,true")
+    path.write_text(path.read_text().replace("output,review", "output,review,force")
+                    .replace("a.usda,true", f"a.usda,true,{column}"))
+    personalize_batch(path, jobs=1)
+    (tmp_path / "out" / "a.review.html").write_text("an earlier page")
+    report = personalize_batch(path, jobs=1, force=True)
+    assert [r.status for r in report.results] == [DONE], report.results[0].error
+    assert calls["personalize"][-1]["force"] is True and calls["review"][-1]["force"] is True
+    assert (tmp_path / "out" / "a.review.html").read_text() != "an earlier page"
+
+
+def test_a_failed_review_after_force_leaves_no_stale_page(tmp_path, monkeypatch):
+    """Stop 53: ``--force`` replaced the layer, its review then failed, and the page of the layer replaced
+    stayed beside the new one: the next run skipped the row as done, the old page claiming to be the new
+    layer's review. A failure now removes it (the error says so); the next run writes the page alone."""
+    from usdface.api import personalize_batch
+
+    _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,true")
+    personalize_batch(path, jobs=1)
+    page = tmp_path / "out" / "a.review.html"
+    page.write_text("the page of the layer --force replaces")
+    calls = _stub_personalize(monkeypatch, fail_review_for=("a.usda",))
+    report = personalize_batch(path, jobs=1, force=True)
+    a = report.results[0]
+    assert a.status == FAILED and "the page could not be built" in a.error
+    assert "a.review.html" in a.error and "removed" in a.error, a.error
+    assert not page.exists() and (tmp_path / "out" / "a.usda").exists() and a.review == ""
+    calls = _stub_personalize(monkeypatch)
+    again = personalize_batch(path, jobs=1)
+    assert [r.status for r in again.results] == [DONE] and calls["personalize"] == [] and page.exists()
+
+
+def test_a_refused_review_page_is_not_removed(tmp_path, monkeypatch):
+    """The page removed on a failure is only one the run would have replaced: a page refused before the
+    write (here: one of the item's inputs) is left as it is, even with force."""
+    from usdface.errors import UsdFaceError
+    from usdface.pipeline.batch import write_review_page
+
+    _stub_personalize(monkeypatch)
+    layer = tmp_path / "a.usda"
+    layer.write_text("#usda 1.0\n")
+    page = tmp_path / "a.review.html"
+    page.write_text("an input")
+    with pytest.raises(UsdFaceError):
+        write_review_page(layer, str(page), force=True)
+    assert page.read_text() == "an input"
+
+
+def test_the_separator_is_the_one_the_header_is_split_by_even_with_a_misspelt_column(tmp_path):
+    """Stop 53: ``_separator`` was hand-written (the one of ``,``/``;``/tab whose split names the three
+    required columns, else ``,``); ``csv.Sniffer`` now reads it from the header row. A semicolon header with
+    a misspelt column was split on ``,`` and refused as one column, listing no column it has."""
+    path = tmp_path / "people.csv"
+    path.write_text("avatar;capure;output\na.usdc;c;o.usda\n")
+    with pytest.raises(InputFileError) as err:
+        read_manifest(path)
+    assert "lacks column(s) ['capture']" in str(err.value), str(err.value)
+    assert "'capure'" in str(err.value)

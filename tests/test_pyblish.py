@@ -535,6 +535,7 @@ def test_a_failed_review_page_takes_the_new_layer_with_it(pyblish_registered, sa
     monkeypatch.setattr(api, "write_review", no_space)
     if force:
         (tmp_path / "p.usda").write_text("#usda 1.0\n# the earlier layer\n")
+        (tmp_path / "p.review.html").write_text("the earlier layer's page")
     context, results = _publish(pyblish_registered, [
         {"avatar": str(samples / "avatar.usda"), "capture": str(samples / "capture.usda"),
          "output": str(tmp_path / "p.usda"), "review": True, "force": force}])
@@ -543,9 +544,11 @@ def test_a_failed_review_page_takes_the_new_layer_with_it(pyblish_registered, sa
     instance = next(iter(context))
     assert not instance.data.get("files") and not instance.data.get("representations")
     assert "usdfaceLayer" not in instance.data
-    if force:
+    if force:      # the earlier page reviewed the layer replaced: removed (stop 53)
         assert "replaced the earlier one (force) and is left there" in said, said
+        assert "the earlier review page p.review.html was removed" in said, said
         assert (tmp_path / "p.usda").read_text() == "#usda 1.0\n"
+        assert not (tmp_path / "p.review.html").exists()
     else:
         assert "p.usda this publish wrote was removed" in said, said
         assert list(tmp_path.iterdir()) == []
@@ -575,33 +578,52 @@ def test_the_inspect_flag_validated_is_the_one_used(extractions, tmp_path, sampl
     assert publish({"inspect": True}, {}) == [] and plugins._personalize_options(extractions[1])["inspect"]
 
 
-@pytest.mark.parametrize("name", ["force", "inspect"])
-def test_force_and_inspect_follow_one_rule_the_options_over_the_data(name):
-    """``force`` and ``inspect`` were two near copies of one rule in ``_personalize_options`` (stop 51's
-    read): ``usdfaceOptions``' value over the instance data's, the one used the one checked (a word in the
-    unused one does not fail), the data's when the options have none; absent from both, ``force`` is False
-    and ``inspect`` left to personalize's default. One helper now; the same answers for both flags."""
+class _Instance:
+    def __init__(self, data):
+        self.data = data
+
+    def __str__(self):
+        return "anna"
+
+
+def test_inspect_follows_the_options_over_the_data():
+    """``inspect``: ``usdfaceOptions``' value over the instance data's, the one used the one checked (a word
+    in the unused one does not fail), the data's when the options have none; absent from both, left to
+    personalize's default."""
     from usdface.errors import OptionError
 
-    class Instance:
-        def __init__(self, data):
-            self.data = data
-
-        def __str__(self):
-            return "anna"
-
     def chosen(data, options):
-        return plugins._personalize_options(Instance({**data, "usdfaceOptions": options}))
+        return plugins._personalize_options(_Instance({**data, "usdfaceOptions": options}))
 
-    assert chosen({name: "no"}, {name: True})[name] is True      # the data's word: unused, unchecked
-    assert chosen({name: True}, {name: False})[name] is False
-    assert chosen({name: True}, {})[name] is True
-    assert chosen({name: None}, {})[name] is False
-    with pytest.raises(OptionError, match=f"usdfaceOptions {name}=True"):
-        chosen({name: True}, {name: "no"})
-    with pytest.raises(OptionError, match=f"data {name}=True"):
-        chosen({name: "no"}, {})
-    assert chosen({}, {}).get(name, "unset") == (False if name == "force" else "unset")
+    assert chosen({"inspect": "no"}, {"inspect": True})["inspect"] is True   # the data's word: unused
+    assert chosen({"inspect": True}, {"inspect": False})["inspect"] is False
+    assert chosen({"inspect": True}, {})["inspect"] is True
+    assert chosen({"inspect": None}, {})["inspect"] is False
+    with pytest.raises(OptionError, match="usdfaceOptions inspect=True"):
+        chosen({"inspect": True}, {"inspect": "no"})
+    with pytest.raises(OptionError, match="data inspect=True"):
+        chosen({"inspect": "no"}, {})
+    assert "inspect" not in chosen({}, {})
+
+
+def test_force_is_true_when_the_data_or_the_options_say_so():
+    """Stop 53: ``force`` as ``usdface batch`` takes it (docs/pipeline.md): the batch's ``--force`` redoes
+    every row and a row's ``force`` column true its own, a row's false adding nothing. A publish's options'
+    ``force`` False (a manifest's column) beat the instance data's True, which a publish then refused as an
+    existing layer. Either one true now replaces; each one given is checked."""
+    from usdface.errors import OptionError
+
+    def force(data, options):
+        return plugins._personalize_options(_Instance({**data, "usdfaceOptions": options}))["force"]
+
+    assert force({"force": True}, {"force": False}) is True
+    assert force({"force": False}, {"force": True}) is True
+    assert force({"force": False}, {"force": False}) is False
+    assert force({"force": None}, {}) is False and force({}, {}) is False
+    with pytest.raises(OptionError, match="usdfaceOptions force=True"):
+        force({"force": True}, {"force": "no"})
+    with pytest.raises(OptionError, match="data force=True"):
+        force({"force": "no"}, {"force": True})
 
 
 @pytest.mark.parametrize("data, plugin", [

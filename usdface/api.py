@@ -1481,6 +1481,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
         from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
         from .pipeline.batch import REVIEW, check_item_inputs, check_review_page, redoes, review_flag
+        from .pipeline.batch import review_page as page_of
 
         for item in items:
             # the review page beside the layer (the manifest column the Pyblish collector reads too): a
@@ -1500,7 +1501,9 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                 check_output_path(item.output, True, inputs=inputs)
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
-            if written and review:     # the page as the layer: a place that takes it, not there without force
+            # the page as the layer: a place that takes it, not there without force; a finished layer's
+            # missing page (resume writes it alone) too
+            if review and (written or not os.path.lexists(page_of(item.output))):
                 try:
                     check_review_page(item.output, redo, inputs=[item.output, *inputs])
                 except UsdFaceError as exc:

@@ -42,6 +42,18 @@ class UsdFaceError(Exception):
         return text
 
 
+def add_to_message(exc: BaseException, note: str) -> None:
+    """Add ``note`` (what a failed step removed or left on disk, and why) to ``exc``'s message: a
+    :class:`UsdFaceError`'s text before its fix, any other exception's as a note (``__notes__``, which
+    ``usdface batch``'s report joins to the error). The Pyblish extractors and the batch's review page say
+    what they left with it."""
+    if isinstance(exc, UsdFaceError):
+        exc.message = f"{exc.message} ({note})"
+        exc.args = (str(exc),)
+    else:
+        exc.add_note(note)
+
+
 class InputFileError(UsdFaceError):
     """A file is missing, unreadable or not of the expected format."""
 

@@ -34,7 +34,9 @@ def register(subparsers) -> None:
                         "available memory holds at ~1.2 GB each; 1 = in this process)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786): run the items on that cluster")
-    p.add_argument("--force", action="store_true", help="redo items whose output already exists")
+    p.add_argument("--force", action="store_true",
+                   help="redo items whose output already exists (every row, whatever its force column; a "
+                        "force column true redoes its own row)")
     p.add_argument("--report", type=Path,
                    help="where to write the JSON report (default: <manifest stem>.report.json next to the "
                         "manifest: people.csv -> people.report.json)")

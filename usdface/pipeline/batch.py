@@ -8,7 +8,9 @@ a Dask cluster, with failure isolation, a report and resume.
 * **Isolation**: every item runs inside :func:`run_item`, which turns any exception into a ``failed`` result;
   a worker process that dies is reported the same way. One bad item never stops the batch.
 * **Resume**: an item whose output already exists is ``skipped`` (outputs are written atomically, so an
-  existing output is a finished one); ``force=True`` redoes everything.
+  existing output is a finished one); ``force=True`` redoes everything, and a row's ``force`` true its own
+  row (a row's false adds nothing). A finished layer whose row asks for a review page that is not there
+  gets the page alone.
 * **Where**: ``jobs=1`` runs in this process; otherwise a local ``ProcessPoolExecutor`` (spawned workers,
   ``jobs`` defaults to :func:`default_jobs`: the cores this process may use, as many as the memory
   holds); ``scheduler="tcp://host:8786"`` (or a ``distributed.Client``) sends the
@@ -280,14 +282,16 @@ def _manifest_text(path: Path) -> str:
 
 
 def _separator(text: str) -> str:
-    """The CSV separator, of ``,``, ``;`` and tab, that splits the first line into fields naming every
-    required column (case and spaces aside); ``,`` when none does (its refusal then lists the columns)."""
+    """The CSV separator of a manifest's header row, of ``,``, ``;`` and tab: :class:`csv.Sniffer` on that row
+    alone (the cells below may hold a decimal comma or a ``;`` in a path), ``,`` when it finds none of them
+    (its refusal then lists the columns). It was a hand-written rule (the one whose split names the three
+    required columns): a ``;`` header with a misspelt column was split on ``,`` and refused as one column
+    (stop 53)."""
     first = text.lstrip("\r\n").splitlines()[0] if text.strip() else ""
-    for sep in (",", ";", "\t"):
-        names = {f.strip().strip('"').lower() for f in first.split(sep)}
-        if all(c in names for c in REQUIRED):
-            return sep
-    return ","
+    try:
+        return csv.Sniffer().sniff(first, delimiters=",;\t").delimiter
+    except csv.Error:
+        return ","
 
 
 def read_manifest(path) -> list[BatchItem]:
@@ -356,6 +360,10 @@ def read_manifest(path) -> list[BatchItem]:
 #: The manifest column (and Pyblish instance data) that asks for the review page beside the layer: no
 #: personalize option, taken by the batch's worker and the Pyblish review extractor alike.
 REVIEW = "review"
+#: The key of a batch item (the dict a worker gets) whose layer is finished and whose row asks for a review
+#: page that is not there (a ``review`` column added after the row was done; a page removed): resume writes
+#: the page alone (:func:`personalize_worker`), where it was a ``StaleOutput`` (stop 53).
+REVIEW_ONLY = "review_only"
 #: How a review cell is given (the fix of a bad one).
 REVIEW_FIX = ("write the manifest's review column as true or false (or leave the cell empty: no page); the "
               "page is always <layer>.review.html beside the layer")
@@ -393,10 +401,28 @@ def write_review_page(layer, capture, take=None, force: bool = False) -> Path:
     """Write the review page of the written ``layer`` beside it (:func:`review_page`) with the item's
     ``capture`` and ``take`` (the one the layer plays): :func:`usdface.api.write_review`, the page a Pyblish
     publish attaches (``ExtractUsdFaceReview``) and a batch row with ``review`` true writes. Returns its
-    path."""
-    from ..api import write_review
+    path.
 
-    return write_review(layer, review_page(layer), capture=capture, take=take, force=force)
+    The page is checked first (:func:`check_review_page`: a refusal leaves every file as it is). With
+    ``force``, a page already there is the review of the layer ``force`` has just replaced: when the new one
+    then fails, that page is removed (the error says so), so no page claims to be the new layer's review;
+    it stayed, and the next batch run skipped the row as done with it (stop 53)."""
+    from ..api import write_review
+    from ..errors import add_to_message
+
+    page = check_review_page(layer, force, inputs=[layer, capture, take])
+    try:
+        return write_review(layer, page, capture=capture, take=take, force=force)
+    except BaseException as exc:
+        if force and os.path.lexists(page) and not os.path.isdir(page):
+            try:
+                os.unlink(page)
+                add_to_message(exc, f"the earlier review page {page.name} was removed: it reviewed the layer "
+                                    "this run replaced")
+            except OSError as err:
+                add_to_message(exc, f"the earlier review page {page.name} reviews the layer this run "
+                                    f"replaced and could not be removed ({err}): delete it")
+        raise
 
 
 def check_item_inputs(item: BatchItem) -> None:
@@ -474,7 +500,7 @@ def stale_output(item: BatchItem) -> str:
                 f"{_REDO}")
     record = usdface_output_provenance(out)       # read once: the inputs and the options it records
     if record is None:
-        return _missing_review(item)
+        return ""
     recorded = recorded_inputs(out, record)
     shown = ", ".join(sorted(recorded))
     options = item.options or {}
@@ -497,18 +523,18 @@ def stale_output(item: BatchItem) -> str:
         key, was, wanted = changed
         return (f"{out.name} exists but was written with {key}={was}, the row asks {key}={wanted}: not this "
                 f"item's result; {_REDO}")
-    return _missing_review(item)
+    return ""
 
 
-def _missing_review(item: BatchItem) -> str:
-    """Why ``item``'s existing output is not its finished result when its row asks for the review page and
-    the page is not beside it (the page is part of the row's result: the review failed after ``--force``
-    replaced the layer, or the run was killed between the two), else ""."""
-    out, page = Path(item.output), review_page(item.output)
-    if not _flag((item.options or {}).get(REVIEW)) or os.path.lexists(page):
-        return ""
-    return (f"{out.name} exists but not the review page {page.name} its row asks for: write the page with "
-            f"'usdface review {out}', or {_REDO}")
+def row_review(item: BatchItem | dict) -> tuple[Path | None, bool]:
+    """The review page ``item``'s row asks for (its ``review`` option true; ``item`` a :class:`BatchItem` or
+    its dict) and whether it is there; ``(None, False)`` when the row asks none. The one rule behind the
+    report's ``review`` and resume's missing page (two near copies until stop 53)."""
+    options = (item.options if isinstance(item, BatchItem) else item.get("options")) or {}
+    if not _flag(options.get(REVIEW)):
+        return None, False
+    page = review_page(item.output if isinstance(item, BatchItem) else item["output"])
+    return page, os.path.lexists(page)
 
 
 _MISSING = object()
@@ -649,16 +675,22 @@ def _same_value(a, b) -> bool:
 
 # ----------------------------------------------------------------------------------------------- workers
 def personalize_worker(item: dict):
-    """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` as the batch's;
-    item options such as ``method`` or ``inspect`` pass through), then with ``review`` true the review page
-    beside the layer (:func:`write_review_page`, as the Pyblish extractor writes it); returns personalize's
-    result (the report's ``warnings`` go to the item's)."""
+    """The default worker: :func:`usdface.api.personalize_avatar` on one item (``force`` the batch's or the
+    row's; item options such as ``method`` or ``inspect`` pass through), then with ``review`` true the review
+    page beside the layer (:func:`write_review_page`, as the Pyblish extractor writes it); returns
+    personalize's result (the report's ``warnings`` go to the item's). An item marked :data:`REVIEW_ONLY`
+    (resume: its layer finished, its page missing) gets the page alone."""
     from ..api import personalize_avatar
 
     options = dict(item.get("options") or {})
     review = review_flag(options)                    # the page beside the layer: no personalize option
     options.pop(REVIEW, None)
-    options.setdefault("force", bool(item.get("force", False)))
+    if item.get(REVIEW_ONLY):          # a finished layer whose row now asks its page: the page alone
+        return write_review_page(item["output"], item["capture"], take=_row_take(options))
+    # the batch's --force redoes every row, a row's force true its own (docs/pipeline.md): a row's false (or
+    # empty) cell adds nothing; it was passed on as force=False, and personalize refused the layer --force
+    # was redoing (stop 53)
+    options["force"] = bool(item.get("force", False)) or _flag(options.get("force"))
     options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
                                   "(usdface.pipeline.batch.personalize_worker)")
     result = personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
@@ -718,7 +750,7 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
         exc = value
         if isinstance(exc, KeyboardInterrupt):
             raise exc
-        error = str(exc)
+        error = "; ".join([str(exc), *(n for n in getattr(exc, "__notes__", ()) if isinstance(n, str))])
         # a worker that wrote its output, then failed: not a result. The output refused as existing was
         # written by someone else meanwhile (the same manifest run twice at once): theirs, left in place
         theirs = isinstance(exc, OutputExistsError) and exc.path is not None and \
@@ -736,15 +768,9 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
                  "takes as the item's result; or raise to fail the item)")
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type="NoOutput")
+    page, there = row_review(item)
     return dict(base, status=DONE, seconds=time.perf_counter() - start, cpu_seconds=time.process_time() - cpu,
-                review=_written_review(item))
-
-
-def _written_review(item: dict) -> str:
-    """The review page of ``item``'s output when its options ask for one and it is there (the report
-    records it), else ""."""
-    page = review_page(item["output"])
-    return str(page) if _flag((item.get("options") or {}).get(REVIEW)) and os.path.lexists(page) else ""
+                review=str(page) if there else "")
 
 
 _ITEM = threading.local()           # .notes: the running item's warnings on this thread (run_item), or None
@@ -1233,11 +1259,16 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     for item in items:
         if not redoes(item, force) and Path(item.output).exists():
             # a studio worker may prepare its own inputs (a converted capture): its outputs are its business
-            stale = stale_output(item) if worker is personalize_worker else ""
+            ours = worker is personalize_worker
+            stale = stale_output(item) if ours else ""
+            page, there = row_review(item)
+            if ours and not stale and page is not None and not there:     # the finished layer's page alone
+                todo.append(dict(item.to_dict(), force=False, **{REVIEW_ONLY: True}))
+                continue
             results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
                                        output=item.output, status=FAILED if stale else SKIPPED,
                                        error=stale or "", error_type="StaleOutput" if stale else "",
-                                       review="" if stale else _written_review(item.to_dict()))
+                                       review=str(page) if there and not stale else "")
         else:
             todo.append(dict(item.to_dict(), force=force))
     jobs = max(1, int(jobs or default_jobs()))

@@ -41,6 +41,8 @@ import os
 import warnings
 from pathlib import Path
 
+from ..errors import add_to_message
+
 try:
     import pyblish.api as _pyblish
 except ImportError as exc:  # pragma: no cover - exercised only without the optional extra
@@ -69,27 +71,19 @@ def _warnings_to_log(plugin, instance, report_warnings=None):
                     plugin.log.warning(text)
 
 
-def _say_what_was_left(exc: BaseException, note: str) -> None:
-    """Add ``note`` (what a failed extractor removed or left on disk, and why) to ``exc``'s message: a
-    :class:`usdface.errors.UsdFaceError`'s text before its fix, any other exception's as a note."""
-    from ..errors import UsdFaceError
-
-    if isinstance(exc, UsdFaceError):
-        exc.message = f"{exc.message} ({note})"
-        exc.args = (str(exc),)
-    else:
-        exc.add_note(note)
-
-
 def _personalize_options(instance) -> dict:
     """The options the layer's extractor gives ``personalize``: ``usdfaceOptions`` (a manifest's columns)
-    first, then the instance data's ``force``, ``inspect`` and ``take`` - the ``force`` and take the review
-    page and the outputs' validator go by too."""
+    first, then the instance data's ``inspect`` and ``take``, and ``force`` true when either gives it true -
+    the ``force`` and take the review page and the outputs' validator go by too."""
     data = instance.data
     options = dict(data.get("usdfaceOptions") or {})
     # True or False (None: the default), as personalize's own options: instance data force="no" (or a
-    # manifest cell 'no') counted as true and replaced an existing layer
-    options["force"] = bool(_chosen_flag(instance, "force", options))
+    # manifest cell 'no') counted as true and replaced an existing layer. Either one true replaces (as
+    # 'usdface batch --force' redoes a row whose force column is false: docs/pipeline.md); each given is
+    # checked. The options' false beat the data's true until stop 53
+    given = [_flag(instance, "force", options) if "force" in options else False,
+             _flag(instance, "force") if "force" in data else False]
+    options["force"] = any(given)
     inspect = _chosen_flag(instance, "inspect", options)
     if inspect is not None:                             # (absent from both: personalize's default)
         options["inspect"] = inspect
@@ -102,8 +96,8 @@ def _chosen_flag(instance, name: str, options: dict) -> bool | None:
     """The boolean ``name`` a publish uses, checked where it is taken from (:func:`_flag`): ``options``' (the
     instance's ``usdfaceOptions``) when they give it, else the instance data's, else None (neither gives
     it). The one used is the one checked: the data's was checked even when ``usdfaceOptions`` gave its own,
-    and a word there failed a publish that never used it (stop 51's review); ``force`` and ``inspect`` were
-    two near copies of this rule."""
+    and a word there failed a publish that never used it (stop 51's review). ``inspect``'s rule; ``force``
+    is true when either gives it true (stop 53)."""
     if name in options:
         return _flag(instance, name, options)
     if name in instance.data:
@@ -369,7 +363,7 @@ class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
                 from .batch import set_aside
 
                 aside = set_aside(written)
-                _say_what_was_left(exc, f"the layer was set aside as {aside.name}, not published")
+                add_to_message(exc, f"the layer was set aside as {aside.name}, not published")
             raise
         instance.data["usdfaceLayer"] = str(written)
         # whether this publish made the file (a later extractor's failure removes it) or replaced one (force)
@@ -404,7 +398,7 @@ class ExtractUsdFaceReview(_pyblish.InstancePlugin):
         except BaseException as exc:
             # the publish failed after the layer was written: the layer stayed on disk (and in the
             # instance's files, for an integrator), and the retry failed on it ('output layer exists')
-            _say_what_was_left(exc, _withdraw_layer(instance, layer))
+            add_to_message(exc, _withdraw_layer(instance, layer))
             raise
         instance.data["usdfaceReview"] = str(page)
         instance.data.setdefault("files", []).append(str(page))
