@@ -2197,7 +2197,7 @@ def test_a_force_column_redoes_its_row_as_a_publish_replaces_it(tmp_path, monkey
     assert report.results[0].review == str(tmp_path / "out" / "a.review.html")
 
 
-def test_a_review_column_added_later_writes_only_the_missing_pages(tmp_path, monkeypatch):
+def test_a_review_column_added_later_writes_only_the_missing_pages(tmp_path, monkeypatch, capfd):
     """Stop 53: a manifest that gained a ``review`` column after its rows were done made every done row a
     ``StaleOutput`` ('exists but not the review page ...'), the batch refusing its own finished layers. Resume
     now writes only the missing pages (the layer is the row's result; personalize is not run again), names
@@ -2210,7 +2210,9 @@ def test_a_review_column_added_later_writes_only_the_missing_pages(tmp_path, mon
     layers = {n: (tmp_path / "out" / n).stat().st_mtime_ns for n in ("a.usda", "b.usda")}
     path.write_text(path.read_text().replace(".usda,\n", ".usda,true\n", 1))       # row a now asks a page
     calls["personalize"].clear()
+    capfd.readouterr()
     report = personalize_batch(path, jobs=1)
+    assert "a.review.html (the review page of a.usda alone) done" in capfd.readouterr().err
     assert [r.status for r in report.results] == [DONE, SKIPPED], [r.error for r in report.results]
     assert calls["personalize"] == []
     assert [c["out"] for c in calls["review"][-1:]] == [str(tmp_path / "out" / "a.review.html")]

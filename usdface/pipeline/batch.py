@@ -1271,6 +1271,7 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
                                        review=str(page) if there and not stale else "")
         else:
             todo.append(dict(item.to_dict(), force=force))
+    page_only = {it["index"] for it in todo if it.get(REVIEW_ONLY)}
     jobs = max(1, int(jobs or default_jobs()))
     where = (f"dask {scheduler if isinstance(scheduler, str) else 'client'}" if scheduler is not None
              else ("in-process" if jobs == 1 or len(todo) <= 1 else f"local pool, {jobs} processes"))
@@ -1304,7 +1305,10 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
                 with contextlib.closing(runner):      # stopped here: the runner's clean-up ends its pool
                     for res in runner:
                         results[res["index"]] = res
-                        advance(Path(res["output"]).name, res.get("status", DONE), seconds=res.get("seconds"))
+                        label = Path(res["output"]).name
+                        if res["index"] in page_only:        # its layer was done: says what was written
+                            label = f"{review_page(res['output']).name} (the review page of {label} alone)"
+                        advance(label, res.get("status", DONE), seconds=res.get("seconds"))
                         if on_item is not None:
                             on_item(ItemResult(**res))
         except BaseException as exc:      # stopped (Ctrl-C, SIGTERM): the report says what finished
