@@ -135,6 +135,33 @@ def test_batch_manifest_review_column_writes_the_pages(sample_set, tmp_path):
     no_temp_left(tmp_path)
 
 
+def test_batch_resumed_with_a_review_column_added_writes_the_pages_alone(sample_set, tmp_path):
+    """docs/pipeline.md#batch, Resume (a TD's trial, stop 53): a manifest run, then given the ``review``
+    column its Pyblish publish reads: the next ``usdface batch`` refused every finished row as a
+    ``StaleOutput``; it writes the missing page beside each layer and leaves the layers as they were.
+    ``--force`` then redoes every row, also the one whose ``force`` column is false (it failed
+    'output layer exists')."""
+    rows = [f"{sample_set / 'avatar.usda'},{sample_set / 'capture.usda'},out/{name}.usda"
+            for name in ("anna", "ben")]
+    (tmp_path / "people.csv").write_text("avatar,capture,output\n" + "\n".join(rows) + "\n")
+    run("batch", "people.csv", "-j", "1", "-q", cwd=tmp_path)
+    layers = {n: (tmp_path / "out" / f"{n}.usda").read_bytes() for n in ("anna", "ben")}
+    (tmp_path / "people.csv").write_text("avatar,capture,output,review,force\n"
+                                         f"{rows[0]},true,false\n{rows[1]},false,\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path)
+    assert "anna.review.html (the review page of anna.usda alone) done" in proc.stderr, proc.stderr
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [(i["status"], Path(i["review"]).name if i["review"] else "") for i in report["items"]] == \
+        [("done", "anna.review.html"), ("skipped", "")], report
+    assert {n: (tmp_path / "out" / f"{n}.usda").read_bytes() for n in layers} == layers
+    page = (tmp_path / "out" / "anna.review.html").read_text(encoding="utf-8")
+    assert page.lstrip().lower().startswith("<!doctype html") and "anna.usda" in page
+    run("batch", "people.csv", "-j", "1", "-q", "--force", cwd=tmp_path)
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [i["status"] for i in report["items"]] == ["done", "done"], report
+    no_temp_left(tmp_path)
+
+
 @pytest.mark.shared
 @pytest.mark.parametrize("case", ["dev1", "dev2", "dev3"])
 def test_bench_capture_import_then_personalize(bench_case, tmp_path, case):
