@@ -653,3 +653,19 @@ def test_an_instances_flag_given_as_a_word_fails_validation(extractions, tmp_pat
     assert extractions == []
     assert layer.read_text() == "#usda 1.0\n" if name == "force" else not layer.exists()
     assert not (tmp_path / "anna.review.html").exists()
+
+
+def test_an_existing_layer_of_a_manifest_row_names_the_force_column(extractions, tmp_path, samples):
+    """A TD's trial (stop 53): publishing a batch manifest whose layers exist failed 'output layer exists
+    (fix: set the instance's data force=True (or force among its usdfaceOptions) ...)', Python terms for a
+    user whose handle is the manifest; the fix names the row's force column too."""
+    (tmp_path / "anna.usda").write_text("#usda 1.0\n")
+    manifest = tmp_path / "people.csv"
+    manifest.write_text(f"avatar,capture,output\n{samples / 'avatar.usda'},{samples / 'capture.usda'},"
+                        "anna.usda\n")
+    context = pyblish_api.Context()
+    context.data["usdfaceManifest"] = str(manifest)
+    pyblish.util.publish(context)
+    error = _results(context)[("ValidateUsdFaceOutputs", "anna")]["error"]
+    assert "output layer exists" in str(error) and "the row's force column true" in error.fix, error
+    assert extractions == []

@@ -314,8 +314,8 @@ class ValidateUsdFaceOutputs(_pyblish.InstancePlugin):
         except OutputExistsError as exc:     # the fix in a publish's terms: its fix named --force
             raise OutputExistsError(exc.message, path=exc.path, prim=exc.prim,
                                     fix="set the instance's data force=True (or force among its "
-                                        "usdfaceOptions) to replace it, or publish to another "
-                                        "output") from None
+                                        "usdfaceOptions: in a batch manifest, the row's force column "
+                                        "true) to replace it, or publish to another output") from None
 
 
 class ExtractUsdFacePersonalized(_pyblish.InstancePlugin):
