@@ -377,3 +377,22 @@ def test_a_file_without_blend_shapes_is_described_not_refused(shared, capsys):
     assert [m["prim"] for m in doc["meshes"]] == ["/root/Armature/Grid/Grid"]
     assert main(["personalize", str(path), str(C), "-o", "never.usda", "--dry-run"]) == 2   # still no avatar
     assert "no mesh with blend shapes" in capsys.readouterr().err
+
+
+def test_a_mesh_missing_shapes_another_mesh_carries_does_not_list_them_as_missing():
+    """A TD's trial (stop 53): ``inspect`` of the sample avatar listed ``missing (47): eyeBlinkLeft, ...`` for
+    its teeth mesh (5 jaw shapes, as a mouth mesh has) beside the Head's 52/52, as if the rig lacked them.
+    A mesh's missing shapes that another mesh of the file carries are named as carried there; those no mesh
+    carries stay listed as missing."""
+    root = Path(__file__).resolve().parents[1]
+    text = format_report(inspect_file(root / "sample_assets" / "avatar.usda"))
+    mouth = text[text.index("mesh /Avatar/Mouth"):]
+    assert "ARKit: 5/52 present (the other 47 on /Avatar/Head)" in mouth, mouth
+    assert "missing" not in mouth and "eyeBlinkLeft" not in mouth
+    report = inspect_file(root / "sample_assets" / "avatar.usda")
+    for mesh in report["meshes"]:                  # a shape no mesh carries: missing on each mesh
+        mesh["arkit"]["missing"] = sorted(set(mesh["arkit"]["missing"]) | {"tongueOut"})
+    text = format_report(report)
+    mouth = text[text.index("mesh /Avatar/Mouth"):]
+    assert "missing (1): tongueOut" in mouth and "on /Avatar/Head (47): " in mouth, mouth
+    assert "missing (1): tongueOut" in text[:text.index("mesh /Avatar/Mouth")]

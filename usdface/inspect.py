@@ -496,7 +496,9 @@ def format_report(report: dict) -> str:
                 f"{k} @ " + "/".join(f"{b['weight']:g}" for b in v) for k, v in st["inbetweens"].items()))
         if st["zeroShapes"]:
             lines.append(_names_line("zero shapes", st["zeroShapes"]))
-        lines += _arkit_lines(mesh["arkit"], renamed=not mesh.get("channels"))
+        elsewhere = {n: other["prim"] for other in reversed(report["meshes"]) if other is not mesh
+                     for n in set(arkit.ARKIT_NAMES) - set(other["arkit"]["missing"])}
+        lines += _arkit_lines(mesh["arkit"], renamed=not mesh.get("channels"), elsewhere=elsewhere)
         lines += _channel_lines(mesh.get("channels", []))
     if report.get("provenance"):
         prov = report["provenance"]
@@ -542,10 +544,21 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _arkit_lines(a: dict, renamed: bool = True) -> list[str]:
-    lines = [f"    ARKit: {a['present']}/52 present"]
-    if a["missing"]:
-        lines.append(_names_line("missing", a["missing"]))
+def _arkit_lines(a: dict, renamed: bool = True, elsewhere: dict | None = None) -> list[str]:
+    """The ARKit lines of one mesh (or rig). ``elsewhere``: ``{shape: the first other mesh of the file that
+    carries it}``; this mesh's missing shapes found there are named as carried by it, not listed as missing
+    (a teeth mesh's 5 jaw shapes read 'missing (47): eyeBlinkLeft, ...' beside the Head's 52/52: a TD's
+    trial, stop 53)."""
+    elsewhere = elsewhere or {}
+    carried = [n for n in a["missing"] if n in elsewhere]
+    missing = [n for n in a["missing"] if n not in elsewhere]
+    owners = list(dict.fromkeys(elsewhere[n] for n in carried))
+    lines = [f"    ARKit: {a['present']}/52 present" + (
+        f" (the other {len(carried)} on {', '.join(owners)})" if carried and not missing else "")]
+    if missing:
+        lines.append(_names_line("missing", missing))
+        if carried:
+            lines.append(_names_line(f"on {', '.join(owners)}", carried))
     if a["extra"]:
         lines.append(_names_line("extra (not ARKit)", a["extra"]))
     if a["misspelt"]:
