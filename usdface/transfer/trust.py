@@ -21,8 +21,8 @@ from ..personalize.fit import james_stein
 from ..personalize.weak import TAKE_NOISE_MIN, WEAK_SHAPE, weak_ramp
 from .implant import shape_confidence
 
-__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "selected_draw_estimate",
-           "sensitivity_trust", "shape_trust", "unshrunk", "weak_ramp", "weight_error_trust"]
+__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitivity_trust", "shape_trust",
+           "unshrunk", "weak_ramp", "weight_error_trust"]
 
 #: :data:`WEAK_SHAPE`, :data:`TAKE_NOISE_MIN` and :func:`weak_ramp` live in :mod:`usdface.personalize.weak`
 #: (the plain fit returns a weakly shown shape to its own prior by the same ramp); re-exported here.
@@ -101,37 +101,11 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     # one test per shape at risk: together no more than ``level`` of captures has any of them pass a draw
     quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(risky.sum()), 1))
     stands_out = proj2 > quantile * lam
-    # the projection is read as the person only because it passed the test: given that it passed, it is
-    # the person's part plus a draw selected large (the winner's curse). The person's part is read by the
-    # conditional likelihood (selected_draw_estimate, sds), its square less its unit variance as
-    # ``proj2 - lam`` is ``x^2`` less it: the same far past the quantile, 0 at it (no jump there)
-    z = np.sqrt(proj2 / np.maximum(lam, 1e-300))
-    person = np.maximum(selected_draw_estimate(z, np.sqrt(quantile)) ** 2 - 1.0, 0.0) * lam
-    kept = rest + np.where(stands_out, person, 0.0)
+    kept = rest + np.where(stands_out, proj2 - lam, 0.0)
     # the test only lowers the factor: a projection that stands out is the person, not a reason to trust the
     # shape past its error budget (taken up to the test's own factor, a generated capture's `mouthShrugLower`
     # went +0.031 -> +0.077 mm and another's `mouthPressRight` +0.081 -> +0.133 over generic, stop 47)
     return np.where(risky, np.minimum(before, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0)), before)
-
-
-def selected_draw_estimate(z, threshold, *, grid: int = 512) -> np.ndarray:
-    """``[K]`` >= 0: the size ``mu`` of a draw's mean, in units of its sd, from one draw ``z[K] >= 0`` (its
-    absolute value, sds) read only because it passed a two-sided test ``|x| > threshold`` - the maximum of
-    the conditional likelihood ``phi(z - mu) / P(|X| > threshold | mu)``, ``X ~ N(mu, 1)``, over ``mu`` in
-    ``[0, z]`` (a grid of ``grid`` points; Zhong & Prentice 2008, the bias of an estimate reported because
-    it was significant). A draw just past the threshold is what noise alone gives when it is selected so
-    (``mu`` near 0); one far past it is its own mean (``mu -> z - ~1/z``). Where ``z <= threshold`` the
-    draw was not selected: ``z`` itself. The density of the test's selection, not a prior: no tuning."""
-    from scipy.special import log_ndtr
-
-    z = np.asarray(z, dtype=np.float64)
-    t = np.broadcast_to(np.asarray(threshold, dtype=np.float64), z.shape)
-    mu = z[..., None] * np.linspace(0.0, 1.0, grid)                                 # [K,G]
-    # log P(|X| > t | mu) = log(Phi(-t - mu) + Phi(mu - t)), summed in the log domain
-    log_pass = np.logaddexp(log_ndtr(-t[..., None] - mu), log_ndtr(mu - t[..., None]))
-    loglik = -0.5 * (z[..., None] - mu) ** 2 - log_pass
-    best = np.take_along_axis(mu, np.argmax(loglik, axis=-1)[..., None], axis=-1)[..., 0]
-    return np.where(z > t, best, z)
 
 
 def unshrunk(factor, share) -> np.ndarray:
