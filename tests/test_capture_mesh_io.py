@@ -232,3 +232,33 @@ def test_obj_writer_writes_write_objs_bytes_formatting_each_topology_once(tmp_pa
     assert write_obj(tmp_path / "one.obj", neutral, tris).read_text() == reference(neutral)
     with pytest.raises(GeometryError, match=r"points must be \[40,3\] like the neutral"):
         writer.write(tmp_path / "bad.obj", neutral[:-1])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 12), st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=3, max_size=60),
+       st.sampled_from([b"\n", b"\r\n"]), st.sampled_from([b" ", b"\t", b"  "]))
+def test_fixed_point_vertices_are_the_decimal_parse_to_the_bit(decimals, values, newline, space):
+    """A capture's ``%.7f`` numbers read as integers over ``10^d`` are the doubles ``strtod`` gives (the same
+    correctly rounded quotient), ``-0.0`` included."""
+    from usdface.io.mesh_io import _fixed_point_vertices
+
+    values = values[:len(values) // 3 * 3] + [-0.0, 0.0, -1e-30]      # zeros that print as -0.000 / 0.000
+    tokens = [f"{v:.{decimals}f}".encode() for v in values]
+    block = b"".join(b"v" + space + space.join(tokens[i:i + 3]) + newline for i in range(0, len(tokens), 3))
+    got = _fixed_point_vertices(block, len(tokens) // 3)
+    want = np.fromstring(block.replace(b"v", b"nan").decode(), dtype=np.float64, sep=" ")
+    want = want.reshape(-1, 4)[:, 1:]
+    if max(len(t.lstrip(b"-").replace(b".", b"")) for t in tokens) > 15:
+        assert got is None or got.tobytes() == want.tobytes()             # past 2^53: declined
+    else:
+        assert got is not None and got.tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("block", [
+    b"v - 1.5 2.5\n", b"v 1.5 2.5 3.5 4.5\n", b"v 1.5 2.5 3.55\n", b"v 1.5 2.5 3\n", b"v 1-2.5 2.5 3.5\n",
+    b"v 1.5 2.5 --1.5\n", b"v 1.5 2.5 1.5.5\n", b"v 1.5 2.5 3.5 v 1.5 2.5 3.5\n", b"v 1. 2. 3.\n",
+    b"v 1.5e2 2.5 3.5\n", b"v 1.5 2.5 -99999999999999999999.5\n", b"v 1.5 2.5 99999999999999999.5\n"])
+def test_fixed_point_vertices_decline_what_is_not_three_fixed_point_numbers_a_record(block):
+    from usdface.io.mesh_io import _fixed_point_vertices
+
+    assert _fixed_point_vertices(block, block.count(b"v")) is None
