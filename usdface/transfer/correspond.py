@@ -139,7 +139,7 @@ class PosedSurface:
 
         def cost(t, b):
             corners = self.triangles[t]
-            return sum(np.sum((qq - np.einsum("qk,qkc->qc", b, s[corners])) ** 2, axis=1)
+            return sum(np.sum((qq - np.einsum("qk,qkc->qc", b, s.take(corners, axis=0))) ** 2, axis=1)
                        for qq, s in zip(qp, sp_, strict=True))
 
         best = cost(tri, bary)
@@ -150,7 +150,8 @@ class PosedSurface:
             tri, bary, best = np.where(better, t2, tri), np.where(better[:, None], b2, bary), \
                 np.minimum(c2, best)
         out_tri[sel], out_bary[sel] = tri, bary
-        out_closest[sel] = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
+        corners = self.points.take(self.triangles.take(tri, axis=0), axis=0)      # (take: see SurfaceQuery)
+        out_closest[sel] = np.einsum("qk,qkc->qc", bary, corners)
         out_dist[sel] = vector_lengths(out_closest[sel] - q)
         return out_tri, out_bary, out_closest, out_dist
 

@@ -66,7 +66,9 @@ class SurfaceQuery:
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
         bary = np.clip(bary, 0.0, 1.0)
         bary /= bary.sum(axis=1, keepdims=True)
-        closest = np.einsum("qk,qkc->qc", bary, self.points[self.triangles[tri]])
+        # ``take``: the same gather as ``points[triangles[tri]]``, without fancy indexing's general
+        # (multi-dimensional index) path, 2.5x slower on these sizes; 153 calls in a dev1 run
+        closest = np.einsum("qk,qkc->qc", bary, self.points.take(self.triangles.take(tri, axis=0), axis=0))
         return tri, bary, closest, vector_lengths(closest - (q + self.origin))
 
 
