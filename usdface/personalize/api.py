@@ -241,7 +241,8 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     hid a swap (a review). ``||x - w T||^2 = ||x||^2 - 2 w.(T x) + w^T (T T^T) w``: frames in chunks of
     ``chunk``, no ``[F,n,3]`` temporary. ``groups``: :func:`.align.distinct_frames` of ``points`` and
     ``weights`` if the caller has them (a repeated frame - the same scan and weights - is placed and scored
-    once and counted by its copies; None: found here)."""
+    once and counted by its copies; None: not known, no ``[F,n,3]`` copy is made to find them - a whole
+    take's thousands of frames)."""
     from ..arkit import mirror_name
     from .align import rigid_transforms, static_vertices
 
@@ -251,13 +252,14 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     w = np.asarray(weights, dtype=np.float64)
     if (perm == np.arange(len(names))).all() or len(w) == 0:
         return None
-    if groups is None and len(w) > 1:
-        groups = distinct_frames(np.asarray(points, dtype=np.float64), w)
+    static = static_vertices(template_deltas)
     inverse = None
-    if groups is not None:                   # each distinct frame once: every step works frame by frame
+    if groups:                               # each distinct frame once: every step works frame by frame
         first, inverse = groups
         points, w = np.take(np.asarray(points), first, axis=0), w[first]
-    rot, shift = rigid_transforms(points, neutral, static_vertices(template_deltas), groups=False)
+        rot, shift = rigid_transforms(points, neutral, static, groups=False)
+    else:                                    # the rigid fit finds frames repeated on the static vertices
+        rot, shift = rigid_transforms(points, neutral, static)
     t = np.asarray(template_deltas, dtype=np.float64).reshape(len(names), -1)      # [K,3n]
     b = np.asarray(neutral, dtype=np.float64).reshape(-1)
     gram = t @ t.T
