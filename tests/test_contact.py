@@ -144,6 +144,29 @@ def test_woodbury_correction_is_the_minimiser_of_the_stated_energy(patch):
     assert np.abs(s - direct).max() < 1e-12
 
 
+def test_the_factorization_is_kept_for_the_same_topology_only(patch):
+    """The bi-Laplacian depends on the triangles, not the positions: a second solver on the same topology
+    (another capture of the same phone mesh, moved) reuses the factorization and gives the correction a
+    fresh factorization gives, to the bit; another topology or decay length gets its own."""
+    from usdface.personalize import contact
+
+    pts, tri = patch
+    upper, lower = np.array([3, 10, 20]), np.array([7, 15, 40])
+    r = np.array([1e-3, -2e-3, 5e-4])
+    contact._BILAPLACIAN[0] = None
+    first = ContactSolver(pts, tri, rings=2.0, weight=1e4)
+    fresh = first.correction(upper, lower, r)
+    moved = ContactSolver(pts * 1.3 + 0.01, tri.copy(), rings=2.0, weight=1e4)
+    assert moved.lu is first.lu
+    assert np.array_equal(moved.correction(upper, lower, r), fresh)
+    assert ContactSolver(pts, tri, rings=3.0, weight=1e4).lu is not first.lu
+    flipped = tri[:, ::-1].copy()
+    other = ContactSolver(pts, flipped, rings=2.0, weight=1e4)
+    assert other.lu is not first.lu
+    # the same operator (the umbrella Laplacian ignores the orientation): the same correction
+    assert np.abs(other.correction(upper, lower, r) - fresh).max() < 1e-15
+
+
 def synthetic_capture(pts, tri, *, blink_weight=0.0, person_open=False):
     """The person's neutral is 30 % taller than the template's, so the template's blink, as a prior, stops
     short of the person's lower lid. Frames show jawOpen and browInnerUp; the blink at ``blink_weight`` with

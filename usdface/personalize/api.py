@@ -120,7 +120,10 @@ def check_capture(capture: Capture) -> list[str]:
                        path=src, fix="the frames' blendshape weights are missing or zero: export them with "
                        "the scans (weights.json / the take's weight channels)")
     warn = []
-    swapped = refuse_swapped_sides(capture, train=train)
+    # frames that are one frame (points and weights to the bit): found once, for the swapped-sides test and
+    # the repeated-frames warning
+    groups = None if capture.whole_take else distinct_frames(train.points, train.weights)
+    swapped = refuse_swapped_sides(capture, train=train, groups=groups)
     if swapped is not None:
         warn.append(_swapped_message(swapped, capture) + " (fix: turn the app's mirroring off and export "
                     "again, or exchange the Left/Right weight names)")
@@ -135,7 +138,7 @@ def check_capture(capture: Capture) -> list[str]:
                     "prior only as far as the regularization does (personalize keeps them generic)")
     # a take read whole holds near-repeats by nature (a held pose, a doubled frame rate): its frame weights
     # count a pose once (takefit); the message is about a capture app's picked frames
-    groups = [] if capture.whole_take else duplicate_frames(train.points, train.weights)
+    groups = [] if capture.whole_take else duplicate_frames(train.points, train.weights, groups=groups)
     if groups:
         repeats = sum(len(g) - 1 for g in groups)
         shown = "; ".join(" = ".join(train.label[i] for i in g[:4]) + (f" (+{len(g) - 4})" if len(g) > 4
@@ -194,17 +197,18 @@ def refuse_rig_of_another_capture(rig: FaceRig, capture: Capture, *, fix: str, w
                            "furthest vertex: a rig fitted on another capture", path=where, fix=fix)
 
 
-def refuse_swapped_sides(capture: Capture, *, train=None) -> dict | None:
+def refuse_swapped_sides(capture: Capture, *, train=None, groups=None) -> dict | None:
     """:func:`swapped_sides` on the capture's training frames: refused (:class:`FitError`) when the
     exchanged labels are proven (:data:`SIDES_PROVEN_FRAMES`, :data:`SIDES_PROVEN_RATIO`: a user trial's
     mirrored take was personalized 2.85x further from the person than generic, jawLeft 5.7 mm worse, after a
     warning); the weaker finding is returned for a warning, None when the sides look right. ``train``: the
-    capture's training frames if the caller has them (``capture.train`` copies them)."""
+    capture's training frames if the caller has them (``capture.train`` copies them); ``groups``: their
+    :func:`.align.distinct_frames` (in points and weights) if the caller has them."""
     train = capture.train if train is None else train
     if len(train) == 0:
         return None
     found = swapped_sides(train.points, capture.neutral, capture.template.deltas, train.weights,
-                          capture.names)
+                          capture.names, groups=groups)
     if found is None:
         return None
     if (found["frames_swapped"] >= SIDES_PROVEN_FRAMES * max(found["frames_reported"], 1)
@@ -222,7 +226,8 @@ def refuse_swapped_sides(capture: Capture, *, train=None) -> dict | None:
 SIDE_MARGIN = 0.9
 
 
-def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: int = 64) -> dict | None:
+def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: int = 64,
+                  groups=None) -> dict | None:
     """Whether the capture's Left/Right weights are exchanged (a mirrored capture app): the residual of
     the scans ``points[F,n,3]`` (m) from ``neutral[n,3]`` plus the template's motion
     ``template_deltas[K,n,3]`` under the reported ``weights[F,K]``, against the same with every
@@ -234,7 +239,10 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     1.4-2.6x better. Each frame is first placed rigidly on the neutral by the vertices no template shape
     moves (:func:`usdface.personalize.align.rigid_transforms`): 1-5 degrees of head motion between scans
     hid a swap (a review). ``||x - w T||^2 = ||x||^2 - 2 w.(T x) + w^T (T T^T) w``: frames in chunks of
-    ``chunk``, no ``[F,n,3]`` temporary."""
+    ``chunk``, no ``[F,n,3]`` temporary. ``groups``: :func:`.align.distinct_frames` of ``points`` and
+    ``weights`` if the caller has them (a repeated frame - the same scan and weights - is placed and scored
+    once and counted by its copies; None: not known, no ``[F,n,3]`` copy is made to find them - a whole
+    take's thousands of frames)."""
     from ..arkit import mirror_name
     from .align import rigid_transforms, static_vertices
 
@@ -244,7 +252,14 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     w = np.asarray(weights, dtype=np.float64)
     if (perm == np.arange(len(names))).all() or len(w) == 0:
         return None
-    rot, shift = rigid_transforms(points, neutral, static_vertices(template_deltas))
+    static = static_vertices(template_deltas)
+    inverse = None
+    if groups:                               # each distinct frame once: every step works frame by frame
+        first, inverse = groups
+        points, w = np.take(np.asarray(points), first, axis=0), w[first]
+        rot, shift = rigid_transforms(points, neutral, static, groups=False)
+    else:                                    # the rigid fit finds frames repeated on the static vertices
+        rot, shift = rigid_transforms(points, neutral, static)
     t = np.asarray(template_deltas, dtype=np.float64).reshape(len(names), -1)      # [K,3n]
     b = np.asarray(neutral, dtype=np.float64).reshape(-1)
     gram = t @ t.T
@@ -259,6 +274,8 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
         for out, ww in ((r_rep, w[lo:lo + chunk]), (r_sw, w[lo:lo + chunk][:, perm])):
             out[lo:lo + len(x)] = np.maximum(xx - 2.0 * np.einsum("fk,fk->f", ww, cx)
                                              + np.einsum("fk,kl,fl->f", ww, gram, ww), 0.0)
+    if inverse is not None:
+        r_rep, r_sw = r_rep[inverse], r_sw[inverse]
     better_sw = int(np.sum(r_sw < SIDE_MARGIN ** 2 * r_rep))
     better_rep = int(np.sum(r_rep < SIDE_MARGIN ** 2 * r_sw))
     n = max(len(b) // 3, 1)
@@ -269,13 +286,14 @@ def swapped_sides(points, neutral, template_deltas, weights, names, *, chunk: in
     return None
 
 
-def duplicate_frames(points: np.ndarray, weights: np.ndarray) -> list[list[int]]:
+def duplicate_frames(points: np.ndarray, weights: np.ndarray, *, groups=False) -> list[list[int]]:
     """Groups of training frames that are exactly the same frame: ``points[F,n,3]`` and ``weights[F,K]``
     equal to the last bit (a capture app that keeps one frame for several requested shapes writes it once per
     shape). Returns the groups of two or more frame indices, ascending, in order of their first frame; [] if
     every frame is distinct. :func:`.align.distinct_frames` (one vectorised pass, each repeat confirmed bit
-    for bit; no copy of the frames), which the fit's alignment and leave-one-out use too."""
-    groups = distinct_frames(points, weights)
+    for bit; no copy of the frames), which the fit's alignment and leave-one-out use too; ``groups``: its
+    result if the caller has it (False: found here)."""
+    groups = distinct_frames(points, weights) if groups is False else groups
     if groups is None:
         return []
     inverse = groups[1]

@@ -31,6 +31,7 @@ Pure numpy/scipy (arrays in, arrays out; metres). The pieces:
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -211,6 +212,33 @@ def find_contact_pairs(neutral: np.ndarray, deltas: np.ndarray, triangles: np.nd
     return out
 
 
+#: What :func:`_bilaplacian_lu` keeps for the next fit: ``(key, A, lu)`` of the last mesh topology.
+_BILAPLACIAN: list = [None]
+#: A factorization is kept only while its ``L`` and ``U`` hold at most this many entries (~12 bytes each:
+#: 3M ~ 36 MB); a phone's face mesh (dev1's 1,203 vertices) needs ~0.1M.
+BILAPLACIAN_KEEP_MAX_NNZ = 3_000_000
+
+
+def _bilaplacian_lu(triangles, n: int, eps: float):
+    """``(A, lu)``: ``A = L^T L + eps I`` (``L`` the umbrella Laplacian of ``triangles`` on ``n`` vertices,
+    CSC) and its sparse LU (:func:`usdface.mesh.spd_lu`). Both depend on the topology only, not on the
+    positions: the last one is kept (one entry, while small: :data:`BILAPLACIAN_KEEP_MAX_NNZ`) and returned
+    again for the same ``triangles``, ``n`` and ``eps`` - every capture of a phone's face mesh has one
+    topology, so a batch worker or a session fitting several captures factorizes it once (the same
+    factorization, the same corrections to the bit)."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    key = (int(n), float(eps), tri.shape, hashlib.blake2b(tri.tobytes(), digest_size=16).digest())
+    kept = _BILAPLACIAN[0]                           # one read: another thread may replace it
+    if kept is not None and kept[0] == key:
+        return kept[1], kept[2]
+    L = uniform_laplacian(tri, n)
+    A = (L.T @ L + eps * sp.identity(n)).tocsc()
+    lu = spd_lu(A)
+    if lu.nnz <= BILAPLACIAN_KEEP_MAX_NNZ:
+        _BILAPLACIAN[0] = (key, A, lu)
+    return A, lu
+
+
 class ContactSolver:
     """The smooth contact correction on one mesh: ``neutral[n,3]``, ``triangles[t,3]``; ``rings`` the
     decay length in edges (``eps = rings^-4``), ``weight`` the pair rows' weight ``w``.
@@ -222,11 +250,9 @@ class ContactSolver:
     def __init__(self, neutral, triangles, *, rings: float = CORRECTION_RINGS,
                  weight: float = CONTACT_WEIGHT):
         n = len(neutral)
-        L = uniform_laplacian(triangles, n)
         self.eps = float(rings) ** -4
         self.weight = float(weight)
-        self.A = (L.T @ L + self.eps * sp.identity(n)).tocsc()
-        self.lu = spd_lu(self.A)
+        self.A, self.lu = _bilaplacian_lu(triangles, n, self.eps)
         self.n = n
 
     def correction(self, upper, lower, residual, fixed=None) -> np.ndarray:
