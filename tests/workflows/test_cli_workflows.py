@@ -57,6 +57,34 @@ def test_retarget_and_fit_from_imported_capture(sample_set, tmp_path):
     no_temp_left(tmp_path)
 
 
+def test_fit_summary_says_which_optional_steps_ran(sample_set, tmp_path):
+    """A TD's trial: ``fit --no-amplitude`` printed the default's summary line word for word (method, reg,
+    train RMSE): nothing told what the option changed. The summary names each optional step and what it did
+    (switched off, applied, or on and not applied with the reason), and --json carries the same record."""
+    def steps(*options):
+        text = run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q", *options,
+                   cwd=tmp_path).stdout
+        line = next((x for x in text.splitlines() if x.startswith("steps: ")), None)
+        assert line, text
+        return line
+
+    default, no_amplitude = steps(), steps("--no-amplitude")
+    assert default != no_amplitude
+    assert "amplitude applied" in default and "amplitude off" in no_amplitude, (default, no_amplitude)
+    assert default.replace("amplitude applied", "amplitude off") == no_amplitude
+    other = steps("--no-align", "--no-reweight", "--contact", "off", "--weak-prior")
+    for said in ("alignment off", "weight re-estimation off", "contact off", "weak prior applied"):
+        assert said in other, other
+    for said in ("alignment ", "weight re-estimation ", "contact ", "weak prior off"):
+        assert said in default, default
+    doc = json.loads(run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q", "--json",
+                         "--no-amplitude", cwd=tmp_path).stdout)
+    assert doc["steps"]["amplitude"] == "off" and set(doc["steps"]) == {
+        "align", "reweight", "contact", "amplitude", "weak_prior"}
+    assert "steps: alignment" in run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q",
+                                     "--method", "ebfr", cwd=tmp_path).stdout
+
+
 def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
