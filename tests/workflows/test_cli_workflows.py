@@ -191,6 +191,28 @@ def test_batch_resumed_with_a_review_column_added_writes_the_pages_alone(sample_
 
 
 @pytest.mark.shared
+def test_batch_resume_writing_a_page_alone_does_not_warn_again(bench_case, tmp_path):
+    """A TD's trial (stop 53): dev3 batched, then the manifest given its ``review`` column: the resume wrote
+    the page alone and printed the capture's repeated-frames warning again, as if the capture had been fitted
+    anew. It had been: the page refitted the capture the layer records because the row named it (a given
+    capture counted as another one). The page now scores the layer's own figures, as ``usdface review``
+    does, and the resume prints no warning of the earlier run's."""
+    run("capture", "import", bench_case / "dev3" / "capture", "-o", "capture.usda", "-q", cwd=tmp_path)
+    row = f"{bench_case / 'dev3' / 'avatar.usdc'},capture.usda,out/d3.usda"
+    (tmp_path / "m.csv").write_text(f"avatar,capture,output\n{row}\n")
+    first = run("batch", "m.csv", "-j", "1", "-q", cwd=tmp_path)
+    assert "repeat another frame exactly" in first.stderr + first.stdout    # the capture's, said once
+    (tmp_path / "m.csv").write_text(f"avatar,capture,output,review\n{row},true\n")
+    proc = run("batch", "m.csv", "-j", "1", cwd=tmp_path)
+    assert "d3.review.html (the review page of d3.usda alone) done" in proc.stderr, proc.stderr
+    assert "warning" not in (proc.stderr + proc.stdout).lower(), proc.stderr
+    report = json.loads((tmp_path / "m.report.json").read_text())
+    assert report["items"][0]["warnings"] == [], report
+    page = (tmp_path / "out" / "d3.review.html").read_text(encoding="utf-8")
+    assert "(mm; the layer&#x27;s fit" in page and " refit)" not in page
+
+
+@pytest.mark.shared
 @pytest.mark.parametrize("case", ["dev1", "dev2", "dev3"])
 def test_bench_capture_import_then_personalize(bench_case, tmp_path, case):
     d = bench_case / case
