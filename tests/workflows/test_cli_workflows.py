@@ -85,6 +85,28 @@ def test_fit_summary_says_which_optional_steps_ran(sample_set, tmp_path):
                                      "--method", "ebfr", cwd=tmp_path).stdout
 
 
+def test_imports_name_their_output_after_the_input_without_o(sample_set, take_files, tmp_path):
+    """A TD's trial (stop 53): ``capture import`` and ``anim import`` required ``-o`` where ``personalize``
+    and ``review`` name their output after the input. The two imports now do, as personalize does: in the
+    current folder, never beside the source (``capture/`` -> ``capture.usda``, ``take.csv`` ->
+    ``take.usda``); an existing one is refused without --force, and a default that is the input itself
+    (a capture file rewritten in its own folder) is refused, not overwritten."""
+    before = digest(sample_set / "capture", take_files / "take.csv")
+    proc = run("capture", "import", sample_set / "capture", "-q", cwd=tmp_path)
+    assert (tmp_path / "capture.usda").is_file() and "capture.usda:" in proc.stdout, proc.stdout
+    assert_valid_usd(tmp_path / "capture.usda", checked=False)
+    run("personalize", sample_set / "avatar.usda", "capture.usda", "-q", cwd=tmp_path)   # its default, too
+    assert (tmp_path / "avatar.personalized.usda").is_file()
+    refused = run("capture", "import", sample_set / "capture", "-q", cwd=tmp_path, ok=False)
+    assert refused.returncode == 2 and "--force" in refused.stderr, refused.stderr
+    same = run("capture", "import", "capture.usda", "-q", "--force", cwd=tmp_path, ok=False)
+    assert same.returncode == 2 and "input" in same.stderr, same.stderr
+    proc = run("anim", "import", take_files / "take.csv", "-q", cwd=tmp_path)
+    assert (tmp_path / "take.usda").is_file() and "take.usda:" in proc.stdout, proc.stdout
+    assert digest(sample_set / "capture", take_files / "take.csv") == before
+    no_temp_left(tmp_path)
+
+
 def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
