@@ -383,7 +383,8 @@ def _table_rows(text: str) -> dict:
             for cells in (line.split("│") for line in text.splitlines() if line.startswith("│"))}
 
 
-def test_evaluate_names_the_laplacian_weight_its_cross_validation_chose(samples, tmp_path, capsys, monkeypatch):
+def test_evaluate_names_the_laplacian_weight_its_cross_validation_chose(samples, tmp_path, capsys,
+                                                                       monkeypatch):
     """A TD's trial: on dev3 ``evaluate --methods ...,laplacian`` printed the laplacian row equal to menzel's
     (its cross-validation chose mu = 0) after 60x the fit time, and nothing said why. The table is followed
     by the weight chosen, the weights tried with their CV error, and at 0 that it is menzel's fit; the --json

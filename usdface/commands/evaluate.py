@@ -84,7 +84,8 @@ def method_notes(report: dict) -> list[str]:
             continue
         cv = info.get("laplacian_cv") or {}
         if cv.get("cv_rmse_mm"):
-            tried = ", ".join(f"{g:g} ({e:.3f} mm)" for g, e in zip(cv["grid"], cv["cv_rmse_mm"], strict=True))
+            tried = ", ".join(f"{g:g} ({e:.3f} mm)"
+                              for g, e in zip(cv["grid"], cv["cv_rmse_mm"], strict=True))
             how = f"chosen by cross-validation of {tried}"
         else:
             how = cv.get("note") or "as given"

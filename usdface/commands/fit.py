@@ -86,7 +86,8 @@ def weak_line(weak: dict | None) -> str | None:
     return f"shown too weakly to measure, kept towards the prior (0: the prior, 1: as fitted): {shown}"
 
 
-#: How the summary names each optional step of the fit (``info["steps"]``, :func:`usdface.personalize.api.fit_steps`).
+#: How the summary names each optional step of the fit (``info["steps"]``,
+#: :func:`usdface.personalize.api.fit_steps`).
 STEP_NAMES = {"align": "alignment", "reweight": "weight re-estimation", "contact": "contact",
               "amplitude": "amplitude", "weak_prior": "weak prior"}
 

@@ -824,7 +824,8 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
 
 
 #: The optional steps of each method, in the order :func:`fit_personalized_shapes` runs them.
-FIT_STEPS = {"dt": (), "ebfr": ("align",), "menzel": ("align", "reweight", "contact", "amplitude", "weak_prior"),
+FIT_STEPS = {"dt": (), "ebfr": ("align",),
+             "menzel": ("align", "reweight", "contact", "amplitude", "weak_prior"),
              "laplacian": ("align", "reweight", "contact", "weak_prior")}
 
 
@@ -840,7 +841,8 @@ def fit_steps(info: dict, method: str, *, align: bool, reweight: bool, amplitude
     def gated(key, on):
         if not on:
             return "off (whole take)" if take else "off"
-        return "applied" if (info.get(key) or {}).get("applied") else "not applied (no gain in cross-validation)"
+        applied = (info.get(key) or {}).get("applied")
+        return "applied" if applied else "not applied (no gain in cross-validation)"
 
     out = {}
     for step in FIT_STEPS.get(method, ()):
