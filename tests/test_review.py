@@ -568,7 +568,13 @@ def test_review_of_a_landmarks_layer(tmp_path, capsys):
                  "-q"]) == 0
     out = capsys.readouterr()
     assert "not among the inputs" not in out.out + out.err
-    assert "menzel refit" in (tmp_path / "b.html").read_text()
+    # the capture the personalization below records, named: its own figures, as without --capture (stop 53)
+    assert "the layer&#x27;s fit" in (tmp_path / "b.html").read_text()
+    copy = tmp_path / "copy.usda"                  # another capture file (the same person): refitted
+    copy.write_bytes(C.read_bytes())
+    assert main(["review", str(tmp_path / "lm.usda"), "-o", str(tmp_path / "c.html"), "--capture", str(copy),
+                 "-q"]) == 0
+    assert "menzel refit" in (tmp_path / "c.html").read_text()
 
 
 def test_review_plays_the_take_the_layer_was_written_with(tmp_path):

@@ -57,6 +57,56 @@ def test_retarget_and_fit_from_imported_capture(sample_set, tmp_path):
     no_temp_left(tmp_path)
 
 
+def test_fit_summary_says_which_optional_steps_ran(sample_set, tmp_path):
+    """A TD's trial: ``fit --no-amplitude`` printed the default's summary line word for word (method, reg,
+    train RMSE): nothing told what the option changed. The summary names each optional step and what it did
+    (switched off, applied, or on and not applied with the reason), and --json carries the same record."""
+    def steps(*options):
+        text = run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q", *options,
+                   cwd=tmp_path).stdout
+        line = next((x for x in text.splitlines() if x.startswith("steps: ")), None)
+        assert line, text
+        return line
+
+    default, no_amplitude = steps(), steps("--no-amplitude")
+    assert default != no_amplitude
+    assert "amplitude applied" in default and "amplitude off" in no_amplitude, (default, no_amplitude)
+    assert default.replace("amplitude applied", "amplitude off") == no_amplitude
+    other = steps("--no-align", "--no-reweight", "--contact", "off", "--weak-prior")
+    for said in ("alignment off", "weight re-estimation off", "contact off", "weak prior applied"):
+        assert said in other, other
+    for said in ("alignment ", "weight re-estimation ", "contact ", "weak prior off"):
+        assert said in default, default
+    doc = json.loads(run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q", "--json",
+                         "--no-amplitude", cwd=tmp_path).stdout)
+    assert doc["steps"]["amplitude"] == "off" and set(doc["steps"]) == {
+        "align", "reweight", "contact", "amplitude", "weak_prior"}
+    assert "steps: alignment" in run("fit", sample_set / "capture.usda", "-o", "rig.usda", "--force", "-q",
+                                     "--method", "ebfr", cwd=tmp_path).stdout
+
+
+def test_imports_name_their_output_after_the_input_without_o(sample_set, take_files, tmp_path):
+    """A TD's trial (stop 53): ``capture import`` and ``anim import`` required ``-o`` where ``personalize``
+    and ``review`` name their output after the input. The two imports now do, as personalize does: in the
+    current folder, never beside the source (``capture/`` -> ``capture.usda``, ``take.csv`` ->
+    ``take.usda``); an existing one is refused without --force, and a default that is the input itself
+    (a capture file rewritten in its own folder) is refused, not overwritten."""
+    before = digest(sample_set / "capture", take_files / "take.csv")
+    proc = run("capture", "import", sample_set / "capture", "-q", cwd=tmp_path)
+    assert (tmp_path / "capture.usda").is_file() and "capture.usda:" in proc.stdout, proc.stdout
+    assert_valid_usd(tmp_path / "capture.usda", checked=False)
+    run("personalize", sample_set / "avatar.usda", "capture.usda", "-q", cwd=tmp_path)   # its default, too
+    assert (tmp_path / "avatar.personalized.usda").is_file()
+    refused = run("capture", "import", sample_set / "capture", "-q", cwd=tmp_path, ok=False)
+    assert refused.returncode == 2 and "--force" in refused.stderr, refused.stderr
+    same = run("capture", "import", "capture.usda", "-q", "--force", cwd=tmp_path, ok=False)
+    assert same.returncode == 2 and "input" in same.stderr, same.stderr
+    proc = run("anim", "import", take_files / "take.csv", "-q", cwd=tmp_path)
+    assert (tmp_path / "take.usda").is_file() and "take.usda:" in proc.stdout, proc.stdout
+    assert digest(sample_set / "capture", take_files / "take.csv") == before
+    no_temp_left(tmp_path)
+
+
 def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
@@ -160,6 +210,28 @@ def test_batch_resumed_with_a_review_column_added_writes_the_pages_alone(sample_
     report = json.loads((tmp_path / "people.report.json").read_text())
     assert [i["status"] for i in report["items"]] == ["done", "done"], report
     no_temp_left(tmp_path)
+
+
+@pytest.mark.shared
+def test_batch_resume_writing_a_page_alone_does_not_warn_again(bench_case, tmp_path):
+    """A TD's trial (stop 53): dev3 batched, then the manifest given its ``review`` column: the resume wrote
+    the page alone and printed the capture's repeated-frames warning again, as if the capture had been fitted
+    anew. It had been: the page refitted the capture the layer records because the row named it (a given
+    capture counted as another one). The page now scores the layer's own figures, as ``usdface review``
+    does, and the resume prints no warning of the earlier run's."""
+    run("capture", "import", bench_case / "dev3" / "capture", "-o", "capture.usda", "-q", cwd=tmp_path)
+    row = f"{bench_case / 'dev3' / 'avatar.usdc'},capture.usda,out/d3.usda"
+    (tmp_path / "m.csv").write_text(f"avatar,capture,output\n{row}\n")
+    first = run("batch", "m.csv", "-j", "1", "-q", cwd=tmp_path)
+    assert "repeat another frame exactly" in first.stderr + first.stdout    # the capture's, said once
+    (tmp_path / "m.csv").write_text(f"avatar,capture,output,review\n{row},true\n")
+    proc = run("batch", "m.csv", "-j", "1", cwd=tmp_path)
+    assert "d3.review.html (the review page of d3.usda alone) done" in proc.stderr, proc.stderr
+    assert "warning" not in (proc.stderr + proc.stdout).lower(), proc.stderr
+    report = json.loads((tmp_path / "m.report.json").read_text())
+    assert report["items"][0]["warnings"] == [], report
+    page = (tmp_path / "out" / "d3.review.html").read_text(encoding="utf-8")
+    assert "(mm; the layer&#x27;s fit" in page and " refit)" not in page
 
 
 @pytest.mark.shared

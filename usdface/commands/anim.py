@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 from . import json_path, say_warning
 from .options import add_quiet, positive_float
@@ -18,7 +19,8 @@ def register(subparsers) -> None:
                     "with the ARKit weights as time samples (head/eye angles as usdface:curves:* "
                     "attributes). Bind it to an avatar's Skeleton with skel:animationSource.")
     imp.add_argument("csv", help="Live Link Face .csv")
-    imp.add_argument("-o", "--output", required=True, help="output .usda/.usdc")
+    imp.add_argument("-o", "--output", help="output .usda/.usdc (default: <CSV name>.usda in the current "
+                                             "folder)")
     imp.add_argument("--timecode-rate", type=positive_float, default=None,
                      help="frames per second of the CSV's timecode FF field; also the stage's "
                           "timeCodesPerSecond (default 60, Live Link Face's, or the rate larger frame "
@@ -30,9 +32,17 @@ def register(subparsers) -> None:
     imp.set_defaults(func=run_import)
 
 
+def default_import_output(csv) -> Path:
+    """``anim import``'s output without ``-o``: ``<CSV stem>.usda`` in the current folder (``take.csv`` ->
+    ``take.usda``), as ``personalize`` names its layer after the avatar, never beside the recording."""
+    return Path(f"{Path(csv).stem}.usda")
+
+
 def run_import(args) -> int:
     from .. import api
 
+    if not args.output:
+        args.output = str(default_import_output(args.csv))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out, take = api.import_livelink_take(args.csv, args.output, timecode_rate=args.timecode_rate,

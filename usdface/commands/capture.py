@@ -21,8 +21,9 @@ def register(subparsers) -> None:
         description="Read a capture folder (neutral.obj, template/, train/, test/) and write it as a USD "
                     "capture one can open and scrub (see docs/capture-format.md).")
     imp.add_argument("source", help="capture folder (or a capture .usda to rewrite)")
-    imp.add_argument("-o", "--output", required=True,
-                     help="output .usda/.usdc/.usd, or a name without extension: a capture folder")
+    imp.add_argument("-o", "--output",
+                     help="output .usda/.usdc/.usd, or a name without extension: a capture folder (default: "
+                          "<folder name>.usda in the current folder)")
     imp.add_argument("--force", action="store_true", help="overwrite an existing output")
     imp.add_argument("--no-exact", dest="exact", action="store_false",
                      help="store geometry as float32 only (half the size; not bit-exact)")
@@ -56,11 +57,24 @@ def register(subparsers) -> None:
     sel.set_defaults(func=run_select)
 
 
+def default_import_output(source) -> Path:
+    """``capture import``'s output without ``-o``: ``<folder name>.usda`` (a capture file given: its stem) in
+    the current folder, never beside the source (a capture app's export, often read-only), as
+    ``personalize`` names its layer after the avatar (``capture/`` -> ``capture.usda``)."""
+    src = Path(source)
+    if src.name in ("", ".", ".."):
+        src = src.resolve()
+    usd = src.suffix.lower() in (".usda", ".usdc", ".usd", ".usdz")
+    return Path(f"{src.stem if usd else src.name}.usda")
+
+
 def run_import(args) -> int:
     from .. import api
     from ..io.capture_folder import refuse_whole_take
     from ..progress import steps
 
+    if not args.output:
+        args.output = str(default_import_output(args.source))
     api.refuse_missing_inputs(capture_path=args.source)     # a missing source before the output's problems
     api.check_capture_output(args.output, args.force, inputs=[args.source])
     with steps("capture import", 2) as p:

@@ -64,6 +64,36 @@ def run(args) -> int:
         cells.append(f"{r['seconds']:.2f}" if r.get("seconds") is not None else "-")
         table.add_row(*cells)
     Console().print(table)
+    for line in method_notes(report):
+        print(line)
     for out in report["_outputs"].values():
         print(f"wrote {out}")
     return 0
+
+
+def method_notes(report: dict) -> list[str]:
+    """Lines under the table on what a method's own cross-validation chose, which its figures do not show:
+    the Laplacian weight mu (``info["laplacian_weight"]``, ``info["laplacian_cv"]``). At mu = 0 the laplacian
+    row is menzel's energy without the Laplacian term, and on dev3 its figures equalled menzel's to every
+    printed digit after 60x the fit time, with nothing saying why."""
+    lines = []
+    for name, r in report["methods"].items():
+        info = r.get("info") or {}
+        mu = info.get("laplacian_weight")
+        if mu is None:
+            continue
+        cv = info.get("laplacian_cv") or {}
+        if cv.get("cv_rmse_mm"):
+            tried = ", ".join(f"{g:g} ({e:.3f} mm)"
+                              for g, e in zip(cv["grid"], cv["cv_rmse_mm"], strict=True))
+            how = f"chosen by cross-validation of {tried}"
+        else:
+            how = cv.get("note") or "as given"
+        line = f"{name}: Laplacian weight mu = {mu:g}, {how}"
+        if mu == 0:
+            menzel = (report["methods"].get("menzel") or {}).get("info") or {}
+            amplitude = (menzel.get("steps") or {}).get("amplitude") == "applied"
+            line += (": no Laplacian term, the same fit as menzel" +
+                     (" before menzel's amplitude step" if amplitude else ""))
+        lines.append(line)
+    return lines

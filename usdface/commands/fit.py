@@ -86,6 +86,20 @@ def weak_line(weak: dict | None) -> str | None:
     return f"shown too weakly to measure, kept towards the prior (0: the prior, 1: as fitted): {shown}"
 
 
+#: How the summary names each optional step of the fit (``info["steps"]``,
+#: :func:`usdface.personalize.api.fit_steps`).
+STEP_NAMES = {"align": "alignment", "reweight": "weight re-estimation", "contact": "contact",
+              "amplitude": "amplitude", "weak_prior": "weak prior"}
+
+
+def steps_line(steps: dict | None) -> str | None:
+    """One line on what each optional step of the fit did (``--no-amplitude`` and the default printed the
+    same summary): ``steps: alignment applied, weight re-estimation not applied (...), ...``."""
+    if not steps:
+        return None
+    return "steps: " + ", ".join(f"{STEP_NAMES.get(k, k)} {v}" for k, v in steps.items())
+
+
 def contact_lines(contact: dict | None) -> list[str]:
     """One line per contact shape: pairs, the largest gap vs the template's before -> after (mm)."""
     if not contact or not contact.get("shapes"):
@@ -134,7 +148,7 @@ def run(args) -> int:
                "shapes": list(result.rig.names), "vertices": int(result.rig.n_vertices),
                **{k: v for k, v in info.items() if k in ("reg", "prior_alpha", "train_rmse_mm", "timings",
                                                          "warnings", "contact", "frame_weights",
-                                                         "take_poses", "weak")}}
+                                                         "take_poses", "weak", "steps")}}
         doc["warnings"] = all_warnings(info.get("warnings"))
         print(json.dumps(doc, default=json_default))
         return 0
@@ -145,7 +159,8 @@ def run(args) -> int:
     print(f"wrote {info['out_path']}: {len(result.rig.names)} shapes on {result.rig.n_vertices} vertices "
           f"({args.method}{extra}{rmse}; "
           f"{info['timings']['total']:.2f} s)")
-    for line in [take_line(info), weak_line(info.get("weak")), *contact_lines(info.get("contact"))]:
+    for line in [steps_line(info.get("steps")), take_line(info), weak_line(info.get("weak")),
+                 *contact_lines(info.get("contact"))]:
         if line:
             print(line)
     for w in info["warnings"]:

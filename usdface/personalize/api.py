@@ -828,6 +828,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             ramp, _ = weak_ramp(capture, excitation, list(range(K)))
             deltas = toward_prior(deltas, prior_fit, ramp)
             info["weak"] = {capture.names[k]: round(float(ramp[k]), 3) for k in np.flatnonzero(ramp < 1.0)}
+    info["steps"] = fit_steps(info, method, align=align, reweight=reweight, amplitude=amplitude,
+                              weak_prior=bool(weak_prior), take=frame_weights is not None,
+                              test_frames=len(capture.test))
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -836,6 +839,50 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     timings["total"] = time.perf_counter() - t0
     rig = FaceRig(capture.neutral, capture.triangles, list(capture.names), deltas, name="FaceMask")
     return FitResult(rig, info)
+
+
+#: The optional steps of each method, in the order :func:`fit_personalized_shapes` runs them.
+FIT_STEPS = {"dt": (), "ebfr": ("align",),
+             "menzel": ("align", "reweight", "contact", "amplitude", "weak_prior"),
+             "laplacian": ("align", "reweight", "contact", "weak_prior")}
+
+
+def fit_steps(info: dict, method: str, *, align: bool, reweight: bool, amplitude: bool, weak_prior: bool,
+              take: bool, test_frames: int) -> dict:
+    """What each optional step of ``method`` (:data:`FIT_STEPS`) did in the fit whose ``info`` this is:
+    ``{step: "applied" | "applied (...)" | "not applied (why)" | "off" | "off (why)"}``. ``align``,
+    ``reweight``, ``amplitude``, ``weak_prior`` as the fit resolved them (on or off), ``take``: the frames
+    were weighted (a whole take), ``test_frames``: the capture's count. A step switched on can still not
+    apply: alignment and re-estimation are kept only where cross-validation shows them generalising, the
+    amplitude reading needs test frames and a measurable weight noise. The options alone did not say it:
+    ``fit --no-amplitude`` printed the default's summary."""
+    def gated(key, on):
+        if not on:
+            return "off (whole take)" if take else "off"
+        applied = (info.get(key) or {}).get("applied")
+        return "applied" if applied else "not applied (no gain in cross-validation)"
+
+    out = {}
+    for step in FIT_STEPS.get(method, ()):
+        if step in ("align", "reweight"):
+            out[step] = gated(step, align if step == "align" else reweight)
+        elif step == "amplitude":
+            out[step] = ("off (whole take)" if take else "off" if not amplitude
+                         else "not applied (no test frames)" if not test_frames
+                         else "applied" if "test_amplitude" in info
+                         else "not applied (no weight noise measurable in the training frames)")
+        elif step == "contact":
+            contact = info.get("contact") or {}
+            shapes = contact.get("shapes") or {}
+            fixed = sum(bool(r.get("applied")) for r in shapes.values())
+            out[step] = ("off (gaps measured only)" if contact.get("mode") == "off"
+                         else f"{contact.get('mode', 'auto')}: {fixed} of {len(shapes)} shape(s) corrected")
+        elif step == "weak_prior":
+            weak = info.get("weak") or {}
+            out[step] = ("off" if not weak_prior else
+                         f"applied ({len(weak)} shape(s) towards the prior)" if weak
+                         else "applied (no shape too weak)")
+    return out
 
 
 def left_out_scale(result, frames) -> np.ndarray | None:

@@ -67,14 +67,16 @@ class LaplacianFit:
         Y = self.LtL @ X.transpose(1, 0, 2).reshape(n, 3 * K)
         return Y.reshape(n, K, 3).transpose(1, 0, 2)
 
-    def choose_weight(self, points, weights, reg: float, grid=LAPLACIAN_GRID, folds: int = 3,
+    def choose_weight(self, points, weights, reg: float, grid=None, folds: int = 3,
                       progress=None) -> dict:
         """Choose ``mu`` (sets it) by ``folds``-fold cross-validation over the training frames of this energy
         itself: for every ``mu`` in ``grid`` the fit on the other folds (warm-started from the fit on all
         frames) predicts each held-out frame with its weights; the mean squared residual over every vertex is
         minimised. Frames are dealt to folds in turn (frame i to fold i mod folds). Returns ``{"mu", "grid",
         "cv_rmse_mm"}``. ``progress``: called with a label as each ``mu``'s fits begin (1 + ``folds``
-        solves each, nearly all of the method's time: ~10 CPU-s a value on the bench captures)."""
+        solves each, nearly all of the method's time: ~10 CPU-s a value on the bench captures). ``grid``
+        None: :data:`LAPLACIAN_GRID` as it is at the call."""
+        grid = LAPLACIAN_GRID if grid is None else grid
         P = np.asarray(points, dtype=np.float64)
         W = np.asarray(weights, dtype=np.float64)
         folds = min(int(folds), len(W))

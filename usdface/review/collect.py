@@ -8,6 +8,7 @@ numpy arrays and text.
 
 from __future__ import annotations
 
+import os
 import shlex
 from pathlib import Path
 
@@ -36,6 +37,17 @@ def recorded_capture(layer_path, info: dict) -> Path | None:
     if len(inputs) < 2 or not _fitted(info):
         return None       # a landmarks layer records the avatar (and its layers) only: no capture
     return _recorded_path(layer_path, inputs[1])
+
+
+def _same_file(given, recorded: Path | None) -> bool:
+    """Whether ``given`` (a path, or an object read already) is the file ``recorded`` (by identity: a link
+    or another spelling of the same file counts); False when either is not a path to an existing file."""
+    if recorded is None or not isinstance(given, str | Path):
+        return False
+    try:
+        return os.path.samefile(given, recorded)
+    except (OSError, ValueError):
+        return False
 
 
 def recorded_take(layer_path, info: dict) -> Path | None:
@@ -474,7 +486,10 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
         made_from, prov = _personalize_layer_below(layer_path) or (layer_path, prov)
     notes = []
     sequences = []
-    recorded = capture is None
+    # the capture the layer records, given by its path (a batch row's, a Pyblish instance's, --capture with
+    # the same file): the layer's own figures, as without it; it was refitted as 'another' capture, seconds
+    # a page and the capture's warnings again on a resume that wrote only the page (stop 53)
+    recorded = capture is None or _same_file(capture, recorded_capture(made_from, prov))
     held = None                # the test expressions the layer holds, when its capture is gone
     if capture is None:
         capture = recorded_capture(made_from, prov)
