@@ -133,6 +133,45 @@ def test_pairs_the_lipschitz_bound_clears_are_not_measured_and_the_result_is_the
     assert with_bound < every - 5 * len(lid)              # the six small shapes' pairs: not measured
 
 
+def test_pairs_left_within_a_negligible_step_of_the_generic_are_not_measured(monkeypatch):
+    """A pair's bound is at most the generic position's signed distance, which is 1-Lipschitz: a vertex the
+    personalization moves ``delta`` from its generic position is short of its bound by at most ``delta``,
+    and below ~2 um that calls for no correction (``_amount`` under ``NEGLIGIBLE``), so the pair is not
+    measured. Shapes whose generic pushes a lid patch 1.6 mm into the eye, personalized within 1.5 um of it
+    (a production head's shapes that barely change the lids), and one personalized deeper: the same repair
+    to the bit as with every pair measured, with the near-generic shapes' pairs not measured."""
+    from usdface.transfer import eyelids
+
+    lid, dirs, rho, eyes = _lid_and_eye()
+    patch = ramp_down(rho, 0.2, 0.45)
+    generic = np.stack([-(0.0016 * patch)[:, None] * dirs] * 5)
+    rng = np.random.default_rng(11)
+    wobble = rng.normal(size=generic.shape)
+    wobble *= 1.5e-6 * rng.uniform(size=generic.shape[:2] + (1,)) / np.linalg.norm(wobble, axis=-1,
+                                                                                    keepdims=True)
+    shapes = generic + wobble
+    shapes[4] = -(0.0021 * patch)[:, None] * dirs                   # personalized 0.5 mm deeper
+    counted = []
+    measure = eyelids._EyeSurface.signed_distance
+
+    def counting(self, queries):
+        counted.append(len(np.asarray(queries).reshape(-1, 3)))
+        return measure(self, queries)
+
+    monkeypatch.setattr(eyelids._EyeSurface, "signed_distance", counting)
+    got, count = repair_eyelids(lid, shapes, eyes, reference=generic)
+    skipped = sum(counted)
+    counted.clear()
+    monkeypatch.setattr(eyelids, "LIPSCHITZ_SLACK", np.inf)                 # every pair measured
+    want, want_count = repair_eyelids(lid, shapes, eyes, reference=generic)
+    every = sum(counted)
+    assert count == want_count > 50 and np.array_equal(got, want)
+    assert np.array_equal(got[:4], shapes[:4])                     # the near-generic shapes as given
+    print(f"signed-distance queries {every} -> {skipped}")
+    inside = np.count_nonzero(patch > 0.5)
+    assert skipped < every - 2 * 4 * inside           # their pairs' two queries each (own and generic)
+
+
 def _sphere_surface(resolution: int = 20):
     """An Open3D UV sphere of 12 mm as an eye surface, its centre and its local float32 vertices."""
     import open3d as o3d
