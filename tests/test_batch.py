@@ -2307,3 +2307,17 @@ def test_the_separator_is_the_one_the_header_is_split_by_even_with_a_misspelt_co
         read_manifest(path)
     assert "lacks column(s) ['capture']" in str(err.value), str(err.value)
     assert "'capure'" in str(err.value)
+
+
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_a_header_split_by_semicolons_or_tabs_with_a_comma_in_a_column_name_keeps_its_separator(tmp_path, sep):
+    """Stop 53's review (h100): ``csv.Sniffer`` prefers ``,`` to ``;`` and tab whenever the header row holds
+    both, so a ``;`` (or tab) header naming every required column, with a comma inside one column's name
+    (``notes, misc``), was split on ``,`` and refused as lacking its columns; the rule before stop 53 (the
+    separator whose split names the required columns) read it."""
+    path = tmp_path / "people.csv"
+    path.write_text(sep.join(["avatar", "capture", "output", "notes, misc"]) + "\n"
+                    + sep.join(["a.usdc", "c", "o.usda", "x"]) + "\n")
+    items = read_manifest(path)
+    assert [Path(i.output).name for i in items] == ["o.usda"]
+    assert items[0].options.get("notes, misc") == "x"

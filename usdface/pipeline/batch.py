@@ -282,12 +282,18 @@ def _manifest_text(path: Path) -> str:
 
 
 def _separator(text: str) -> str:
-    """The CSV separator of a manifest's header row, of ``,``, ``;`` and tab: :class:`csv.Sniffer` on that row
+    """The CSV separator of a manifest's header row, of ``,``, ``;`` and tab: the one whose split names every
+    required column, else :class:`csv.Sniffer` on that row
     alone (the cells below may hold a decimal comma or a ``;`` in a path), ``,`` when it finds none of them
-    (its refusal then lists the columns). It was a hand-written rule (the one whose split names the three
-    required columns): a ``;`` header with a misspelt column was split on ``,`` and refused as one column
-    (stop 53)."""
+    (its refusal then lists the columns). The first rule alone split a ``;`` header with a misspelt column
+    on ``,`` and refused it as one column; the Sniffer alone split a ``;`` header with a comma in a column's
+    name on ``,`` (stop 53)."""
     first = text.lstrip("\r\n").splitlines()[0] if text.strip() else ""
+    # a split naming every required column first: the Sniffer prefers "," whenever the row holds one, and a
+    # ";" or tab header with a comma inside a column's name ("notes, misc") was refused (stop 53's review)
+    for sep in (",", ";", "\t"):
+        if set(REQUIRED) <= {f.strip().strip('"').lower() for f in first.split(sep)}:
+            return sep
     try:
         return csv.Sniffer().sniff(first, delimiters=",;\t").delimiter
     except csv.Error:
