@@ -2310,7 +2310,7 @@ def test_the_separator_is_the_one_the_header_is_split_by_even_with_a_misspelt_co
 
 
 @pytest.mark.parametrize("sep", [";", "\t"])
-def test_a_header_split_by_semicolons_or_tabs_with_a_comma_in_a_column_name_keeps_its_separator(tmp_path, sep):
+def test_a_semicolon_or_tab_header_with_a_comma_in_a_column_name_keeps_its_separator(tmp_path, sep):
     """Stop 53's review (h100): ``csv.Sniffer`` prefers ``,`` to ``;`` and tab whenever the header row holds
     both, so a ``;`` (or tab) header naming every required column, with a comma inside one column's name
     (``notes, misc``), was split on ``,`` and refused as lacking its columns; the rule before stop 53 (the
