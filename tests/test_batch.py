@@ -2321,3 +2321,18 @@ def test_a_semicolon_or_tab_header_with_a_comma_in_a_column_name_keeps_its_separ
     items = read_manifest(path)
     assert [Path(i.output).name for i in items] == ["o.usda"]
     assert items[0].options.get("notes, misc") == "x"
+
+
+@pytest.mark.parametrize("batch_force", [False, True])
+def test_the_default_worker_refuses_a_row_force_cell_that_is_no_boolean(tmp_path, batch_force):
+    """Stop 53's review (h100): the worker took a row's ``force`` through the batch's lenient ``_flag`` (a
+    value it cannot read counts as not set), so through ``run_batch`` (no preflight) a cell ``sure`` was
+    ignored silently (with ``--force``: taken as true); personalize refused it before, as the preflight
+    does."""
+    from usdface.errors import OptionError
+    from usdface.pipeline.batch import personalize_worker
+
+    item = {"index": 0, "avatar": str(tmp_path / "missing.usda"), "capture": str(tmp_path / "missing"),
+            "output": str(tmp_path / "o.usda"), "force": batch_force, "options": {"force": "sure"}}
+    with pytest.raises(OptionError, match="bad force 'sure'"):
+        personalize_worker(item)

@@ -687,6 +687,7 @@ def personalize_worker(item: dict):
     personalize's result (the report's ``warnings`` go to the item's). An item marked :data:`REVIEW_ONLY`
     (resume: its layer finished, its page missing) gets the page alone."""
     from ..api import personalize_avatar
+    from ..errors import expect_flag
 
     options = dict(item.get("options") or {})
     review = review_flag(options)                    # the page beside the layer: no personalize option
@@ -696,7 +697,9 @@ def personalize_worker(item: dict):
     # the batch's --force redoes every row, a row's force true its own (docs/pipeline.md): a row's false (or
     # empty) cell adds nothing; it was passed on as force=False, and personalize refused the layer --force
     # was redoing (stop 53)
-    options["force"] = bool(item.get("force", False)) or _flag(options.get("force"))
+    # (the cell read as personalize reads it: a word it cannot read is refused, not taken as unset)
+    options["force"] = expect_flag(options.get("force"), "force", "personalize's", False) \
+        or bool(item.get("force", False))
     options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
                                   "(usdface.pipeline.batch.personalize_worker)")
     result = personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
