@@ -2307,3 +2307,32 @@ def test_the_separator_is_the_one_the_header_is_split_by_even_with_a_misspelt_co
         read_manifest(path)
     assert "lacks column(s) ['capture']" in str(err.value), str(err.value)
     assert "'capure'" in str(err.value)
+
+
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_a_semicolon_or_tab_header_with_a_comma_in_a_column_name_keeps_its_separator(tmp_path, sep):
+    """Stop 53's review (h100): ``csv.Sniffer`` prefers ``,`` to ``;`` and tab whenever the header row holds
+    both, so a ``;`` (or tab) header naming every required column, with a comma inside one column's name
+    (``notes, misc``), was split on ``,`` and refused as lacking its columns; the rule before stop 53 (the
+    separator whose split names the required columns) read it."""
+    path = tmp_path / "people.csv"
+    path.write_text(sep.join(["avatar", "capture", "output", "notes, misc"]) + "\n"
+                    + sep.join(["a.usdc", "c", "o.usda", "x"]) + "\n")
+    items = read_manifest(path)
+    assert [Path(i.output).name for i in items] == ["o.usda"]
+    assert items[0].options.get("notes, misc") == "x"
+
+
+@pytest.mark.parametrize("batch_force", [False, True])
+def test_the_default_worker_refuses_a_row_force_cell_that_is_no_boolean(tmp_path, batch_force):
+    """Stop 53's review (h100): the worker took a row's ``force`` through the batch's lenient ``_flag`` (a
+    value it cannot read counts as not set), so through ``run_batch`` (no preflight) a cell ``sure`` was
+    ignored silently (with ``--force``: taken as true); personalize refused it before, as the preflight
+    does."""
+    from usdface.errors import OptionError
+    from usdface.pipeline.batch import personalize_worker
+
+    item = {"index": 0, "avatar": str(tmp_path / "missing.usda"), "capture": str(tmp_path / "missing"),
+            "output": str(tmp_path / "o.usda"), "force": batch_force, "options": {"force": "sure"}}
+    with pytest.raises(OptionError, match="bad force 'sure'"):
+        personalize_worker(item)

@@ -765,3 +765,24 @@ def test_review_of_a_layer_whose_capture_moved_plays_the_test_expressions_it_hol
     assert "holds no inspection animation" in said and "pass --capture CAPTURE" in said, said
     assert not [s for s in _payload((tmp_path / "plain.html").read_text())["sequences"]
                 if s["title"].startswith("test expressions")]
+
+
+def test_a_capture_changed_since_the_layer_was_written_is_refitted_not_scored_by_the_layers_figures(tmp_path):
+    """Stop 53's review (h100): the capture the layer records, given by its path, counts as recorded (the
+    layer's own figures, no refit); but a capture file changed since the layer was written (sha256 differs)
+    is not the one the layer's figures were scored on, and its page showed those figures as 'the layer's
+    fit' beside the changed file's test expressions (before stop 53 it was refitted). With or without
+    --capture, a changed capture is refitted, and the page says why."""
+    capture = tmp_path / "capture.usda"
+    capture.write_bytes(C.read_bytes())
+    layer = tmp_path / "p.usda"
+    api.personalize_avatar(A, capture, layer)
+    api.write_review(layer, tmp_path / "same.html", capture=capture)
+    assert "the layer&#x27;s fit" in (tmp_path / "same.html").read_text()
+    capture.write_bytes(C.read_bytes() + b"\n")          # re-exported since (the same frames' labels)
+    for name, given in (("given.html", capture), ("recorded.html", None)):
+        with pytest.warns(UserWarning, match="changed after it was written"):
+            api.write_review(layer, tmp_path / name, capture=given)
+        page = (tmp_path / name).read_text()
+        assert "menzel refit" in page and "the layer&#x27;s fit" not in page, name
+        assert "changed after the layer was written" in page, name

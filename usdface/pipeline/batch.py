@@ -282,12 +282,18 @@ def _manifest_text(path: Path) -> str:
 
 
 def _separator(text: str) -> str:
-    """The CSV separator of a manifest's header row, of ``,``, ``;`` and tab: :class:`csv.Sniffer` on that row
+    """The CSV separator of a manifest's header row, of ``,``, ``;`` and tab: the one whose split names every
+    required column, else :class:`csv.Sniffer` on that row
     alone (the cells below may hold a decimal comma or a ``;`` in a path), ``,`` when it finds none of them
-    (its refusal then lists the columns). It was a hand-written rule (the one whose split names the three
-    required columns): a ``;`` header with a misspelt column was split on ``,`` and refused as one column
-    (stop 53)."""
+    (its refusal then lists the columns). The first rule alone split a ``;`` header with a misspelt column
+    on ``,`` and refused it as one column; the Sniffer alone split a ``;`` header with a comma in a column's
+    name on ``,`` (stop 53)."""
     first = text.lstrip("\r\n").splitlines()[0] if text.strip() else ""
+    # a split naming every required column first: the Sniffer prefers "," whenever the row holds one, and a
+    # ";" or tab header with a comma inside a column's name ("notes, misc") was refused (stop 53's review)
+    for sep in (",", ";", "\t"):
+        if set(REQUIRED) <= {f.strip().strip('"').lower() for f in first.split(sep)}:
+            return sep
     try:
         return csv.Sniffer().sniff(first, delimiters=",;\t").delimiter
     except csv.Error:
@@ -681,6 +687,7 @@ def personalize_worker(item: dict):
     personalize's result (the report's ``warnings`` go to the item's). An item marked :data:`REVIEW_ONLY`
     (resume: its layer finished, its page missing) gets the page alone."""
     from ..api import personalize_avatar
+    from ..errors import expect_flag
 
     options = dict(item.get("options") or {})
     review = review_flag(options)                    # the page beside the layer: no personalize option
@@ -690,7 +697,9 @@ def personalize_worker(item: dict):
     # the batch's --force redoes every row, a row's force true its own (docs/pipeline.md): a row's false (or
     # empty) cell adds nothing; it was passed on as force=False, and personalize refused the layer --force
     # was redoing (stop 53)
-    options["force"] = bool(item.get("force", False)) or _flag(options.get("force"))
+    # (the cell read as personalize reads it: a word it cannot read is refused, not taken as unset)
+    options["force"] = expect_flag(options.get("force"), "force", "personalize's", False) \
+        or bool(item.get("force", False))
     options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
                                   "(usdface.pipeline.batch.personalize_worker)")
     result = personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
