@@ -101,8 +101,6 @@ def test_pairs_the_lipschitz_bound_clears_are_not_measured_and_the_result_is_the
     is not measured (one query a vertex for ``d0`` instead of one a vertex and shape). Shapes that barely
     move the lid (most of a production head's 51 near an eye) and one that pushes a patch into the eye: the
     same repair to the bit as with every pair measured, with fewer queries."""
-    from usdface.transfer import eyelids
-
     lid, dirs, rho, eyes = _lid_and_eye()
     # the eye stretched to 14 mm along x (a cornea's bulge): the lid, 1 mm off its side, is inside the
     # eye's bounding sphere, where every pair was measured
@@ -114,21 +112,7 @@ def test_pairs_the_lipschitz_bound_clears_are_not_measured_and_the_result_is_the
     small = [rng.normal(scale=1e-4, size=lid.shape) for _ in range(6)]        # 0.1 mm wobbles, 1 mm off
     shapes = np.stack(small + [-(0.0016 * patch)[:, None] * dirs])
     generic = np.zeros_like(shapes)
-    counted = []
-    measure = eyelids._EyeSurface.signed_distance
-
-    def counting(self, queries):
-        counted.append(len(np.asarray(queries).reshape(-1, 3)))
-        return measure(self, queries)
-
-    monkeypatch.setattr(eyelids._EyeSurface, "signed_distance", counting)
-    got, count = repair_eyelids(lid, shapes, eyes, reference=generic)
-    with_bound = sum(counted)
-    counted.clear()
-    monkeypatch.setattr(eyelids, "LIPSCHITZ_SLACK", np.inf)                 # every pair measured
-    want, want_count = repair_eyelids(lid, shapes, eyes, reference=generic)
-    every = sum(counted)
-    assert count == want_count > 50 and np.array_equal(got, want)
+    got, with_bound, every = _repair_against_every_pair_measured(monkeypatch, lid, shapes, eyes, generic)
     print(f"signed-distance queries {every} -> {with_bound}")
     assert with_bound < every - 5 * len(lid)              # the six small shapes' pairs: not measured
 
@@ -140,8 +124,6 @@ def test_pairs_left_within_a_negligible_step_of_the_generic_are_not_measured(mon
     measured. Shapes whose generic pushes a lid patch 1.6 mm into the eye, personalized within 1.5 um of it
     (a production head's shapes that barely change the lids), and one personalized deeper: the same repair
     to the bit as with every pair measured, with the near-generic shapes' pairs not measured."""
-    from usdface.transfer import eyelids
-
     lid, dirs, rho, eyes = _lid_and_eye()
     patch = ramp_down(rho, 0.2, 0.45)
     generic = np.stack([-(0.0016 * patch)[:, None] * dirs] * 5)
@@ -151,6 +133,20 @@ def test_pairs_left_within_a_negligible_step_of_the_generic_are_not_measured(mon
                                                                                     keepdims=True)
     shapes = generic + wobble
     shapes[4] = -(0.0021 * patch)[:, None] * dirs                   # personalized 0.5 mm deeper
+    got, skipped, every = _repair_against_every_pair_measured(monkeypatch, lid, shapes, eyes, generic)
+    assert np.array_equal(got[:4], shapes[:4])                     # the near-generic shapes as given
+    print(f"signed-distance queries {every} -> {skipped}")
+    inside = np.count_nonzero(patch > 0.5)
+    assert skipped < every - 2 * 4 * inside           # their pairs' two queries each (own and generic)
+
+
+def _repair_against_every_pair_measured(monkeypatch, lid, shapes, eyes, generic):
+    """``repair_eyelids`` as it runs (its bounds skip pairs) and with every pair measured
+    (``LIPSCHITZ_SLACK`` infinite): asserts the same repair to the bit (more than 50 vertex-shape pairs
+    repaired) and returns ``(repaired, queries as run, queries with every pair measured)``, the queries
+    being the points the eyes' signed distances answered."""
+    from usdface.transfer import eyelids
+
     counted = []
     measure = eyelids._EyeSurface.signed_distance
 
@@ -160,16 +156,12 @@ def test_pairs_left_within_a_negligible_step_of_the_generic_are_not_measured(mon
 
     monkeypatch.setattr(eyelids._EyeSurface, "signed_distance", counting)
     got, count = repair_eyelids(lid, shapes, eyes, reference=generic)
-    skipped = sum(counted)
+    as_run = sum(counted)
     counted.clear()
-    monkeypatch.setattr(eyelids, "LIPSCHITZ_SLACK", np.inf)                 # every pair measured
+    monkeypatch.setattr(eyelids, "LIPSCHITZ_SLACK", np.inf)
     want, want_count = repair_eyelids(lid, shapes, eyes, reference=generic)
-    every = sum(counted)
     assert count == want_count > 50 and np.array_equal(got, want)
-    assert np.array_equal(got[:4], shapes[:4])                     # the near-generic shapes as given
-    print(f"signed-distance queries {every} -> {skipped}")
-    inside = np.count_nonzero(patch > 0.5)
-    assert skipped < every - 2 * 4 * inside           # their pairs' two queries each (own and generic)
+    return got, as_run, sum(counted)
 
 
 def _sphere_surface(resolution: int = 20):
