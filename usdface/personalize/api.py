@@ -19,7 +19,6 @@ from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
     D_CLAMP,
-    LEAK_PATTERNS,
     FitSystem,
     PositionFit,
     blend,
@@ -772,7 +771,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             change = squared_lengths(deltas - prior_deltas).T                               # [n,K]
             moving = change > 0.01 * np.maximum(change.max(axis=0), 1e-300)
             info["weight_leak_direction"], info["weight_leak_along"] = weight_leak_direction(
-                w_cur, D_fit, lam, deltas, variance, moving, system=final_system, patterns=LEAK_PATTERNS)
+                w_cur, D_fit, lam, deltas, variance, moving, system=final_system)
             final_system = None                 # its [n,r,r] inverse: not needed past the leak
             timings["sensitivity"] = time.perf_counter() - t1
             t1 = time.perf_counter()

@@ -35,11 +35,6 @@ __all__ = ["regularization_weights", "fit_blendshapes", "FitSystem", "loo_residu
 #: How many of the weights' errors (frame, shape) span the leak's largest pattern in a shape
 #: (:func:`weight_leak_direction`): the few that carry it (1.4-5 effective draws on the generated captures).
 LEAK_PARTS = 8
-#: How many of the leak's largest patterns the implant's one-draw test reads in each shape
-#: (:func:`weight_leak_direction`, :func:`usdface.transfer.trust.weight_error_trust`): the largest and the
-#: next, a second weight error of the frame off the first's pattern (noisy:140's ``jawForward`` beside its
-#: ``jawOpen``, stop 53).
-LEAK_PATTERNS = 2
 #: Eq. (3)'s clamp for vertices the template shape does not move.
 D_CLAMP = 1e5
 #: The bytes a per-vertex block of the weights' leak may take at a time (:func:`weight_leak_direction`'s
@@ -367,13 +362,12 @@ def weight_leak_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: floa
 
 def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: float, deltas: np.ndarray,
                           free: np.ndarray, vertex_weights: np.ndarray, *, system: FitSystem | None = None,
-                          parts: int = LEAK_PARTS, patterns: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                          parts: int = LEAK_PARTS) -> tuple[np.ndarray, np.ndarray]:
     """The one pattern along which the weights' leak into each fitted shape is largest, and its variance:
     ``(direction[K,n,3], energy[K])``, ``direction_j`` of unit length (zero off ``vertex_weights[n,K] > 0``,
     the vertices the shape's personalization moves) and ``energy_j`` (m^2 per unit of the weights' noise
     variance; m^2 when ``free`` holds each entry's error variance) the expected squared projection of the leak
-    on it, every part's. Arrays as in :func:`weight_leak_variance`. With ``patterns`` P > 1 the P largest,
-    orthonormal, largest first: ``(direction[K,P,n,3], energy[K,P])`` (zero where the parts span fewer).
+    on it, every part's. Arrays as in :func:`weight_leak_variance`.
 
     A weight error ``e_fk`` moves every vertex of shape ``j`` along one pattern, ``u_fk(v) = (A_v^-1
     W^T)_jf B_k(v)``, so the leak is a Gaussian field whose covariance ``sum_fk free_fk u_fk u_fk^T`` has the
@@ -386,12 +380,11 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
     var = np.asarray(free, dtype=np.float64)                                          # [F,K]
     wv = np.asarray(vertex_weights, dtype=np.float64) > 0                              # [n,K]
     K = D.shape[0]
-    P_out = max(int(patterns), 1)
-    direction, energy = np.zeros((K, P_out) + D.shape[1:]), np.zeros((K, P_out))
+    direction, energy = np.zeros_like(D), np.zeros(K)
     if system is None or not system.holds(W, reg_weights, reg):
         system = FitSystem(W, reg_weights, reg)
     if len(W) == 0 or not var.any():
-        return _patterns_out(direction, energy, patterns)
+        return direction, energy
     if system.basis is None:
         inv_a = None if system.G is not None else np.linalg.inv(system.A)
 
@@ -401,7 +394,7 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
     else:
         P, _, _ = system.basis
         if P.shape[1] == 0:
-            return _patterns_out(direction, energy, patterns)
+            return direction, energy
         inv_m = np.linalg.inv(system.M) if system.inverse is None else system.inverse
         # B_j^T M_v^-1 for every vertex, a block of g shapes at a time ([n,g,r] of at most BLOCK_BYTES; every
         # shape in one block up to BLOCK_BYTES / (8 K r) vertices, dev1's 1,203 at K = 51, r = 28 included):
@@ -434,22 +427,13 @@ def weight_leak_direction(weights: np.ndarray, reg_weights: np.ndarray, reg: flo
         u = np.sqrt(var[fs, ks])[:, None, None] * G.T[fs][:, :, None] * D[ks][:, m]     # [i,v,3]
         gram = np.einsum("inc,lnc->il", u, u)
         vals, vecs = np.linalg.eigh(gram)
-        D_m = D_v[m]
-        for p in range(min(P_out, len(vals))):
-            val, vec = vals[-1 - p], vecs[:, -1 - p]
-            if val <= 1e-12 * max(vals[-1], 1e-300):
-                break
-            e_j = np.einsum("i,inc->nc", vec, u) / np.sqrt(val)
-            direction[j, p, m] = e_j
-            # the variance along it of every part, not only of those that span it: sum_fk var_fk <u_fk, e>^2
-            energy[j, p] = np.sum(var * (G.T @ np.einsum("vc,vkc->vk", e_j, D_m)) ** 2)
-    return _patterns_out(direction, energy, patterns)
-
-
-def _patterns_out(direction, energy, patterns):
-    """:func:`weight_leak_direction`'s return: the one pattern's ``[K,n,3]``, ``[K]`` when ``patterns`` is
-    1, else the ``[K,P,n,3]``, ``[K,P]`` stacks."""
-    return (direction[:, 0], energy[:, 0]) if int(patterns) <= 1 else (direction, energy)
+        if vals[-1] <= 0:
+            continue
+        e_j = np.einsum("i,inc->nc", vecs[:, -1], u) / np.sqrt(vals[-1])
+        direction[j, m] = e_j
+        # the variance along it of every part, not only of those that span it: sum_fk var_fk <u_fk, e>^2
+        energy[j] = np.sum(var * (G.T @ np.einsum("vc,vkc->vk", e_j, D_v[m])) ** 2)
+    return direction, energy
 
 
 def frame_error_variance(weights: np.ndarray, reg_weights: np.ndarray, reg: float, energy: np.ndarray, *,

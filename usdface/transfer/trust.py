@@ -88,35 +88,24 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     d, d2, mov = _moving(deltas, prior, moving)
     power = np.sum(d2 * mov, axis=1)                                                  # [K] m^2, summed
     budget = np.sum(variance.T * mov, axis=1)
-    u = np.asarray(direction, dtype=np.float64)
-    a = np.asarray(along, dtype=np.float64)
-    if u.ndim == d.ndim:                                                              # the one pattern
-        u, a = u[:, None], a[:, None]
-    # each pattern's variance, no more than the budget the larger ones leave: [K,P]
-    lam = np.maximum(np.minimum(np.cumsum(a, axis=1), budget[:, None]), 0.0)
-    lam = np.diff(lam, axis=1, prepend=0.0)
-    proj2 = np.einsum("knc,kpnc->kp", d, u * mov[:, None, :, None]) ** 2
-    proj2 = np.minimum(proj2, power[:, None])
+    lam = np.minimum(np.asarray(along, dtype=np.float64), budget)
+    proj2 = np.einsum("knc,knc->k", d, np.asarray(direction, dtype=np.float64) * mov[..., None]) ** 2
+    proj2 = np.minimum(proj2, power)
     from scipy.special import gammaincinv
 
     quantile = 2.0 * gammaincinv(0.5, 1.0 - level)                                   # chi2_1, 3.84 at 5 %
-    # each pattern against the rest of the personalization, as if it were the only one read
-    rest = np.maximum(power[:, None] - proj2 - (budget[:, None] - lam), 0.0)
+    rest = np.maximum(power - proj2 - (budget - lam), 0.0)
     before = np.clip(1.0 - budget / np.maximum(power, 1e-300), 0.0, 1.0)
     # a draw that large along the pattern, taken at the old factor, outweighs what the rest gains
-    risky = before[:, None] * quantile * lam > (2.0 - before[:, None]) * rest
-    # one test per (shape, pattern) at risk: together no more than ``level`` of captures has any pass a draw
+    risky = before * quantile * lam > (2.0 - before) * rest
+    # one test per shape at risk: together no more than ``level`` of captures has any of them pass a draw
     quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(risky.sum()), 1))
     stands_out = proj2 > quantile * lam
-    # a risky pattern's draw that does not stand out is the weights' error: its excess over its variance is
-    # taken off what the personalization keeps (one pattern: the rest against the rest of the budget)
-    drawn = np.sum(np.where(risky & ~stands_out, proj2 - lam, 0.0), axis=1)
-    kept = np.maximum(power - budget - drawn, 0.0)
+    kept = rest + np.where(stands_out, proj2 - lam, 0.0)
     # the test only lowers the factor: a projection that stands out is the person, not a reason to trust the
     # shape past its error budget (taken up to the test's own factor, a generated capture's `mouthShrugLower`
     # went +0.031 -> +0.077 mm and another's `mouthPressRight` +0.081 -> +0.133 over generic, stop 47)
-    kept = np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0)
-    return np.where(risky.any(axis=1), np.minimum(before, kept), before)
+    return np.where(risky, np.minimum(before, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0)), before)
 
 
 def unshrunk(factor, share) -> np.ndarray:
