@@ -107,6 +107,34 @@ def test_imports_name_their_output_after_the_input_without_o(sample_set, take_fi
     no_temp_left(tmp_path)
 
 
+def test_imports_default_names_for_a_folder_given_as_dot(sample_set, take_files, tmp_path):
+    """Stop 53 (h102): ``capture import .`` run inside the capture folder named its default after the
+    folder's real name but in the current folder, inside the input: refused with 'write it outside .', the
+    user left to guess ``-o``. The rule kept (docs/capture-format.md): the default stays in the current
+    folder; the refusal's fix names the exact ``-o`` beside the input folder, and that command works.
+    ``anim import .`` (any folder) defaulted to ``.usda`` and was told it was a hidden file's name (a
+    folder whose ``<name>.usda`` existed: that it exists): now refused as no CSV, before the output."""
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = digest(cap, take_files / "take.csv")
+    refused = run("capture", "import", ".", "-q", cwd=cap, ok=False)
+    assert refused.returncode == 2 and "-o ../cap.usda" in refused.stderr, refused.stderr
+    assert "input folder . (cap)" in refused.stderr, refused.stderr
+    run("capture", "import", ".", "-q", "-o", "../cap.usda", cwd=cap)          # the fix, pasted
+    assert_valid_usd(tmp_path / "cap.usda", checked=False)
+    for where, arg in ((cap, "."), (tmp_path, "cap")):          # cap.usda exists beside 'cap': not named
+        proc = run("anim", "import", arg, "-q", cwd=where, ok=False)
+        assert proc.returncode == 2 and "Live Link CSV is a folder" in proc.stderr, proc.stderr
+        assert "pass the .csv" in proc.stderr, proc.stderr
+    proc = run("anim", "import", take_files, "-q", cwd=tmp_path, ok=False)      # a take folder: its CSV named
+    assert proc.returncode == 2 and str(take_files / "take.csv") in proc.stderr, proc.stderr
+    assert not list(cap.glob(".usda")) and not (tmp_path / ".usda").exists()
+    assert digest(cap, take_files / "take.csv") == before
+    no_temp_left(tmp_path)
+
+
 def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
