@@ -191,6 +191,38 @@ def test_batch_with_manifest(sample_set, tmp_path):
     no_temp_left(tmp_path)
 
 
+def test_the_same_batch_run_twice_at_once_keeps_both_runs_work(sample_set, tmp_path):
+    """Stop 53 (h102): one manifest given to two ``usdface batch`` at once (two shells, a farm's retry):
+    the end-of-batch clean-up (the output folders a run made, taken away when empty; a failed item's output
+    set aside; the report) must not delete or clobber the other run's work in progress. Every output ends
+    finished, valid and in place (none moved to ``.failed``), no temporary file is left, the shared
+    report is one run's whole JSON, and a third run skips every row."""
+    import subprocess
+
+    from wfutil import usdface_cmd
+
+    run("capture", "import", sample_set / "capture", "-o", "capture.usda", cwd=tmp_path)
+    rows = "".join(f"{sample_set / 'avatar.usda'},capture.usda,out/{n}.usda,true\n" for n in ("anna", "ben"))
+    (tmp_path / "people.csv").write_text("avatar,capture,output,review\n" + rows)
+    env = dict(os.environ, COLUMNS="100")
+    procs = [subprocess.Popen(usdface_cmd() + ["batch", "people.csv", "-j", "1", "-q"], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    said = [p.communicate(timeout=600) for p in procs]
+    for p, (_, err) in zip(procs, said, strict=True):
+        assert p.returncode in (0, 1) and "Traceback" not in err, err
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    for item in report["items"]:       # the run that lost a row's race says so; the row is the other's
+        assert item["status"] == "done" or "exists" in item["error"], item
+    for name in ("anna", "ben"):
+        assert_valid_usd(tmp_path / "out" / f"{name}.usda")
+        assert (tmp_path / "out" / f"{name}.review.html").is_file()
+    assert not list((tmp_path / "out").glob("*.failed")), sorted(os.listdir(tmp_path / "out"))
+    no_temp_left(tmp_path)
+    again = run("batch", "people.csv", "-j", "1", "-q", cwd=tmp_path)
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [i["status"] for i in report["items"]] == ["skipped", "skipped"], (report, again.stdout)
+
+
 def test_batch_manifest_review_column_writes_the_pages(sample_set, tmp_path):
     """docs/pipeline.md#batch: the manifest a Pyblish publish reads, with its ``review`` column, given to
     ``usdface batch`` (a TD's trial, stop 52: refused as 'unknown personalize option(s): review'): each row
