@@ -107,6 +107,8 @@ def test_an_output_another_run_wrote_meanwhile_is_left_in_place(tmp_path):
     assert [r.status for r in report.results] == [FAILED]
     assert out.read_text() == "the other run's layer"
     assert not out.with_name(out.name + ".failed").exists() and "moved to" not in report.results[0].error
+    # its fix said only 'pass --force', as if to redo what the other run had just finished (h102)
+    assert "written meanwhile by another run" in report.results[0].error, report.results[0].error
 
 
 def test_failure_isolation_report_and_resume(tmp_path):

@@ -455,6 +455,69 @@ def test_a_dry_run_says_an_instanced_avatar_is_refused_before_it_computes(sample
     assert "dry run:" in text and "a real run would refuse to write" in text and not out.exists()
 
 
+_TRIANGLE = """
+    def Mesh "{name}" (prepend apiSchemas = ["SkelBindingAPI"])
+    {{
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        rel skel:skeleton = <{skel}>
+        uniform token[] skel:blendShapes = ["jawOpen"]
+        rel skel:blendShapeTargets = [<{at}/{name}/jawOpen>]
+        def BlendShape "jawOpen"
+        {{
+            uniform vector3f[] offsets = [(0, -1, 0), (0, -1, 0), (0, -1, 0)]
+        }}
+    }}
+"""
+_STAGE = '#usda 1.0\n(\n    defaultPrim = "Root"\n    metersPerUnit = 0.01\n    upAxis = "Y"\n)\n'
+_ROOT = 'def SkelRoot "Root"\n{\n    def Skeleton "Skel" {}\n'
+_PROTO = 'def Xform "Proto"\n{' + _TRIANGLE.format(name="Head", skel="/Root/Skel", at="/Proto") + "}\n"
+_FACE = _TRIANGLE.format(name="Face", skel="/Root/Skel", at="/Root")
+#: (case, the avatar's text, the refusal's words or None): meshes reached through instances as the reader
+#: reaches them (instance proxies), an inactive instance (skipped by both), one loaded as a payload, a mesh
+#: that is itself the instance (its BlendShape child a proxy), a SkelRoot inside an instance
+_LAYER_OVER_CASES = [
+    ("instanced child", _STAGE + _ROOT + _FACE + '    def Xform "Lib" (instanceable = true\n'
+     '        references = </Proto>)\n    {\n    }\n}\n' + _PROTO, "/Root/Lib/Head is inside"),
+    ("inactive instance", _STAGE + _ROOT + _FACE + '    def Xform "Lib" (instanceable = true\n'
+     '        active = false\n        references = </Proto>)\n    {\n    }\n}\n' + _PROTO, None),
+    ("payload", _STAGE + _ROOT + _FACE + '    def Xform "Lib" (instanceable = true\n        payload = '
+     '@./proto.usda@\n    )\n    {\n    }\n}\n', "/Root/Lib/Head is inside"),
+    ("mesh is the instance", _STAGE + _ROOT + '    def "Head" (instanceable = true\n        references = '
+     '</Proto/Head>)\n    {\n    }\n}\n' + _PROTO, "BlendShape /Root/Head/jawOpen is inside"),
+    ("SkelRoot in an instance", _STAGE + 'def Xform "Root"\n{\n    def "Char" (instanceable = true\n'
+     '        references = </Char>)\n    {\n    }\n}\ndef SkelRoot "Char"\n{\n    def Skeleton "Skel" {}\n'
+     + _TRIANGLE.format(name="Head", skel="/Char/Skel", at="/Char") + "}\n", "/Root/Char/Head is inside"),
+]
+
+
+@pytest.mark.parametrize("case, text, refused", _LAYER_OVER_CASES, ids=[c[0] for c in _LAYER_OVER_CASES])
+def test_the_dry_runs_early_refusal_agrees_with_the_readers(tmp_path, case, text, refused):
+    """Stop 53 (h102): ``refuse_layer_over`` (a dry run's word before the fit, from the composed stage alone)
+    and the real run's refusal after :func:`read_avatar` walk the same prims (SkelRoots through instance
+    proxies, the default predicate: inactive and abstract prims skipped, payloads loaded, each mesh's
+    forwarded BlendShape targets): they accept and refuse the same avatars with the same words."""
+    from usdface.errors import RigError
+    from usdface.io.usd_rig import read_avatar, refuse_instanced, refuse_layer_over, refuse_unwritable_shapes
+
+    (tmp_path / "proto.usda").write_text(_STAGE.replace('"Root"', '"Proto"') + _PROTO)
+    path = tmp_path / "avatar.usda"
+    path.write_text(text)
+    verdicts = []
+    for check in (lambda: refuse_layer_over(path), lambda: (
+            avatar := read_avatar(path, moving_only=True),         # as personalize reads and refuses it
+            refuse_instanced(avatar, [m.key for m in avatar.meshes], "the personalized layer"),
+            refuse_unwritable_shapes(avatar, None, "the personalized layer"))):
+        try:
+            check()
+            verdicts.append(None)
+        except RigError as exc:
+            verdicts.append(exc.message)
+    assert verdicts[0] == verdicts[1], verdicts
+    assert (verdicts[0] is None) if refused is None else (refused in verdicts[0]), verdicts
+
+
 def _studio_map(samples, tmp_path, channels: str, *options) -> dict:
     """The retarget JSON map of the sample avatar with its ``jawOpen`` channel in the ``skel:blendShapes``
     list that reads ``channels`` renamed ``JawDrop`` (a studio's name, mapped back by ``--name-map``)."""

@@ -399,10 +399,13 @@ def import_livelink_take(csv: PathLike, out_path: PathLike, *, timecode_rate: fl
     (force,) = _flags("import_livelink_take", force=force)
     from . import __version__
     from .io.layers import check_output_path
-    from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take
+    from .io.livelink import DEFAULT_TIMECODE_RATE, read_livelink_take, require_livelink_file
     from .io.usd_anim import write_animation_usd
     from .progress import steps
 
+    # the CSV's own problems (missing, a folder) before the output's: 'anim import .' was told that '.usda'
+    # is a hidden file's name, 'anim import takes/' that 'takes.usda' exists
+    require_livelink_file(csv)
     check_output_path(out_path, force, inputs=[csv], what="take file")
     with steps("anim import", 2) as p:
         p.start(f"read {Path(csv).name}")

@@ -107,6 +107,34 @@ def test_imports_name_their_output_after_the_input_without_o(sample_set, take_fi
     no_temp_left(tmp_path)
 
 
+def test_imports_default_names_for_a_folder_given_as_dot(sample_set, take_files, tmp_path):
+    """Stop 53 (h102): ``capture import .`` run inside the capture folder named its default after the
+    folder's real name but in the current folder, inside the input: refused with 'write it outside .', the
+    user left to guess ``-o``. The rule kept (docs/capture-format.md): the default stays in the current
+    folder; the refusal's fix names the exact ``-o`` beside the input folder, and that command works.
+    ``anim import .`` (any folder) defaulted to ``.usda`` and was told it was a hidden file's name (a
+    folder whose ``<name>.usda`` existed: that it exists): now refused as no CSV, before the output."""
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = digest(cap, take_files / "take.csv")
+    refused = run("capture", "import", ".", "-q", cwd=cap, ok=False)
+    assert refused.returncode == 2 and "-o ../cap.usda" in refused.stderr, refused.stderr
+    assert "input folder . (cap)" in refused.stderr, refused.stderr
+    run("capture", "import", ".", "-q", "-o", "../cap.usda", cwd=cap)          # the fix, pasted
+    assert_valid_usd(tmp_path / "cap.usda", checked=False)
+    for where, arg in ((cap, "."), (tmp_path, "cap")):          # cap.usda exists beside 'cap': not named
+        proc = run("anim", "import", arg, "-q", cwd=where, ok=False)
+        assert proc.returncode == 2 and "Live Link CSV is a folder" in proc.stderr, proc.stderr
+        assert "pass the .csv" in proc.stderr, proc.stderr
+    proc = run("anim", "import", take_files, "-q", cwd=tmp_path, ok=False)      # a take folder: its CSV named
+    assert proc.returncode == 2 and str(take_files / "take.csv") in proc.stderr, proc.stderr
+    assert not list(cap.glob(".usda")) and not (tmp_path / ".usda").exists()
+    assert digest(cap, take_files / "take.csv") == before
+    no_temp_left(tmp_path)
+
+
 def test_capture_select_then_personalize(sample_set, take_files, tmp_path):
     """docs/takes.md: ``usdface capture select take.usda -o capture.usda`` then personalize."""
     before = digest(take_files, sample_set / "avatar.usda")
@@ -161,6 +189,38 @@ def test_batch_with_manifest(sample_set, tmp_path):
     assert_valid_usd(tmp_path / "out" / "anna.usda")
     assert digest(sample_set / "avatar.usda", tmp_path / "capture.usda") == before
     no_temp_left(tmp_path)
+
+
+def test_the_same_batch_run_twice_at_once_keeps_both_runs_work(sample_set, tmp_path):
+    """Stop 53 (h102): one manifest given to two ``usdface batch`` at once (two shells, a farm's retry):
+    the end-of-batch clean-up (the output folders a run made, taken away when empty; a failed item's output
+    set aside; the report) must not delete or clobber the other run's work in progress. Every output ends
+    finished, valid and in place (none moved to ``.failed``), no temporary file is left, the shared
+    report is one run's whole JSON, and a third run skips every row."""
+    import subprocess
+
+    from wfutil import usdface_cmd
+
+    run("capture", "import", sample_set / "capture", "-o", "capture.usda", cwd=tmp_path)
+    rows = "".join(f"{sample_set / 'avatar.usda'},capture.usda,out/{n}.usda,true\n" for n in ("anna", "ben"))
+    (tmp_path / "people.csv").write_text("avatar,capture,output,review\n" + rows)
+    env = dict(os.environ, COLUMNS="100")
+    procs = [subprocess.Popen(usdface_cmd() + ["batch", "people.csv", "-j", "1", "-q"], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    said = [p.communicate(timeout=600) for p in procs]
+    for p, (_, err) in zip(procs, said, strict=True):
+        assert p.returncode in (0, 1) and "Traceback" not in err, err
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    for item in report["items"]:       # the run that lost a row's race says so; the row is the other's
+        assert item["status"] == "done" or "written meanwhile by another run" in item["error"], item
+    for name in ("anna", "ben"):
+        assert_valid_usd(tmp_path / "out" / f"{name}.usda")
+        assert (tmp_path / "out" / f"{name}.review.html").is_file()
+    assert not list((tmp_path / "out").glob("*.failed")), sorted(os.listdir(tmp_path / "out"))
+    no_temp_left(tmp_path)
+    again = run("batch", "people.csv", "-j", "1", "-q", cwd=tmp_path)
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert [i["status"] for i in report["items"]] == ["skipped", "skipped"], (report, again.stdout)
 
 
 def test_batch_manifest_review_column_writes_the_pages(sample_set, tmp_path):

@@ -34,8 +34,9 @@ def register(subparsers) -> None:
 
 def default_import_output(csv) -> Path:
     """``anim import``'s output without ``-o``: ``<CSV stem>.usda`` in the current folder (``take.csv`` ->
-    ``take.usda``), as ``personalize`` names its layer after the avatar, never beside the recording."""
-    return Path(f"{Path(csv).stem}.usda")
+    ``take.usda``), as ``personalize`` names its layer after the avatar, never beside the recording; a stem
+    that would make a hidden file (``.csv``) gives ``take.usda``. (A folder given is refused as no CSV.)"""
+    return Path(f"{Path(csv).stem.lstrip('.') or 'take'}.usda")
 
 
 def run_import(args) -> int:

@@ -244,7 +244,9 @@ def _given_inputs(inputs, composed: bool = True) -> list[tuple[Path, str]]:
         if not isinstance(given, str | os.PathLike) or not os.path.exists(given):  # its reader says so
             continue
         given = Path(given)
-        found.append((given, f"{'input folder' if given.is_dir() else 'input'} {given}"))
+        # '.' or '..' named by its own name too: 'inside the input folder .' left the user to guess which
+        alias = f" ({given.resolve().name})" if given.name in ("", ".", "..") and given.resolve().name else ""
+        found.append((given, f"{'input folder' if given.is_dir() else 'input'} {given}{alias}"))
         if composed:
             real = given.resolve()
             found.extend((d, f"input {_shown(d)} (a layer the input {given} composes)")
@@ -294,16 +296,39 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
                                  fix=f"choose a different {what}; inputs are never modified, even with "
                                      "--force")
         if inp.is_dir() and target.is_relative_to(real):
+            beside = _beside_inputs(path, [g for g, _ in given])
+            where = f" (-o {beside}, beside it)" if beside else ""
             raise InputFileError(f"{what} is inside the {named} (writing it would change that input)",
-                                 path=path,
-                                 fix=f"write the {what} outside {inp}; inputs are never modified, even with "
-                                     "--force")
+                                 path=path, fix=f"write the {what} outside {inp}{where}; inputs are never "
+                                                "modified, even with --force")
         if folder and (real.is_relative_to(target) or (st.st_dev, st.st_ino) in tree[0]
                        or any(real == link or real.is_relative_to(link) for link in tree[1])):
             raise InputFileError(f"{what} holds the {named} (writing into it could overwrite or delete "
                                  "that input)", path=path,
                                  fix="choose a new or empty folder that holds none of the inputs; inputs are "
                                      "never modified, even with --force")
+
+
+def _beside_inputs(path: Path, inputs: list[Path]) -> str | None:
+    """Where an output found inside an input folder can go instead: the same name beside the outermost
+    input folder holding it (``capture import .`` run inside ``capture/`` -> ``../capture.usda``), shown
+    relative to the current folder (absolute when that is shorter); None when that place is itself an input
+    or inside one (the output named as the input folder, ``-o capture`` for ``capture/``)."""
+    target, folders = path.resolve(), [p.resolve() for p in inputs if p.is_dir()]
+    holders = [f for f in folders if target.is_relative_to(f)]
+    if not holders:
+        return None
+    outer = min(holders, key=lambda f: len(f.parts))
+    if outer.parent == outer:                                 # the file system's root holds it
+        return None
+    candidate = outer.parent / path.name
+    if any(candidate.is_relative_to(f) for f in folders) or any(candidate == p.resolve() for p in inputs):
+        return None
+    try:
+        shown = os.path.relpath(candidate)
+    except ValueError:                                        # another drive (Windows)
+        shown = str(candidate)
+    return min(shown, str(candidate), key=len)
 
 
 def existing_ancestor(path) -> Path:

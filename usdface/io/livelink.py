@@ -191,6 +191,18 @@ def parse_timecodes(codes, timecode_rate: float | None = None, path=None) -> np.
     return frames / rate
 
 
+def require_livelink_file(path) -> Path:
+    """``path`` as a Path if it is an existing regular file, else InputFileError: missing, a folder (a take
+    folder holding one CSV: that CSV named in the fix), a pipe. What the file holds, the reader judges."""
+    from .file_kind import folder_files
+    from .usd_open import require_file
+
+    inside = folder_files(path, "*.csv") if Path(path).is_dir() else []
+    # a take folder (OBJ frames + its CSV) given to 'anim import': name the CSV in it (a user trial)
+    return require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face"
+                        + (f": {inside[0]}" if len(inside) == 1 else ""))
+
+
 def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake:
     """Read a Live Link Face CSV into a :class:`LiveLinkTake` (see the module doc for the format).
 
@@ -202,13 +214,7 @@ def read_livelink_take(path, timecode_rate: float | None = None) -> LiveLinkTake
     under two spellings), naming the file and the line. Weights outside [0, 1] are clipped with a warning
     (real takes have ``EyeLookIn*`` up to ~1.06).
     """
-    from .file_kind import folder_files
-    from .usd_open import require_file
-
-    inside = folder_files(path, "*.csv") if Path(path).is_dir() else []
-    # a take folder (OBJ frames + its CSV) given to 'anim import': name the CSV in it (a user trial)
-    path = require_file(path, "Live Link CSV", "pass the .csv exported by Live Link Face"
-                        + (f": {inside[0]}" if len(inside) == 1 else ""))
+    path = require_livelink_file(path)
     if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):  # the UTF-8 decoder's words said only that
         raise InputFileError("a USD file where a Live Link Face CSV is expected", path=path,
                              fix="pass the .csv exported by Live Link Face; a USD take is read as it is "

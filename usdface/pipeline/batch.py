@@ -766,6 +766,9 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
             Path(exc.path).absolute() == out.absolute()
         if not existed and out.exists() and not theirs:
             error += f" (its output was written before the failure: moved to {set_aside(out).name})"
+        elif theirs and not existed:    # its fix said 'pass --force', as if to redo the other run's work
+            error += (" (written meanwhile by another run of this output, the same manifest run twice at "
+                      "once: left in place, and the next run skips it; --force is needed only to redo it)")
         return dict(base, status=FAILED, seconds=time.perf_counter() - start,
                     cpu_seconds=time.process_time() - cpu, error=error, error_type=type(exc).__name__,
                     traceback="".join(traceback.format_exception(exc)))
