@@ -59,6 +59,8 @@ class LaplacianFit:
         self.mu = float(laplacian_weight)
         self.tol, self.max_iter = tol, max_iter
         self.LtLT = self._lap(self.T)                                        # L^T L T_j  [K,n,3]
+        self._TV = np.ascontiguousarray(self.T.transpose(1, 2, 0))          # T_j vertex-major [n,3,K]
+        self._LtLTV = np.ascontiguousarray(self.LtLT.transpose(1, 2, 0))
         self.info: dict = {}
         self.warm = None                                                     # start of the next solve
 
@@ -119,26 +121,39 @@ class LaplacianFit:
         R = np.asarray(points, dtype=np.float64) - self.neutral[None]
         WtW = W.T @ W
         lam = reg * self.D2                                                  # [K,n]
-        diag_lap = self.mu * self.LtL.diagonal()                             # [n]
-
-        def apply(X):                                                        # normal-equation operator
-            return blend(WtW, X) + lam[:, :, None] * X + self.mu * self._lap(X)
-
-        b = project(W, R).transpose(1, 0, 2) + lam[:, :, None] * self.T + self.mu * self.LtLT
-        # block-Jacobi preconditioner: per-vertex K x K blocks (fit + source + Laplacian diagonal)
         n, K = lam.shape[1], lam.shape[0]
+        lamv = np.ascontiguousarray(lam.T)[:, None, :]                       # [n,1,K]
+        mu, LtL = self.mu, self.LtL
+        # every array vertex-major [n,3,K]: the fit term is one [3n,K] x [K,K] product, the Laplacian one
+        # sparse product on [n,3K], the preconditioner one batched [3,K] x [K,K] product per vertex
+
+        def apply(V):                                                        # normal-equation operator
+            out = (V.reshape(3 * n, K) @ WtW).reshape(n, 3, K)
+            out += lamv * V
+            if mu != 0.0:
+                out += mu * (LtL @ V.reshape(n, 3 * K)).reshape(n, 3, K)
+            return out
+
+        b = project(W, R).transpose(0, 2, 1) + lamv * self._TV
+        if mu != 0.0:
+            b += mu * self._LtLTV
+        # block-Jacobi preconditioner: per-vertex K x K blocks (fit + source + Laplacian diagonal)
         blocks = np.broadcast_to(WtW, (n, K, K)).copy()
         idx = np.arange(K)
-        blocks[:, idx, idx] += lam.T + diag_lap[:, None]
+        blocks[:, idx, idx] += lam.T + mu * self.LtL.diagonal()[:, None]
         s = 1.0 / np.sqrt(blocks[:, idx, idx])
         inv = np.linalg.inv(blocks * s[:, :, None] * s[:, None, :]) * s[:, :, None] * s[:, None, :]
+        invT = np.ascontiguousarray(inv.transpose(0, 2, 1))                  # precond(V)[v] = V[v] inv[v]^T
 
-        def precond(X):
-            return np.matmul(inv, X.transpose(1, 0, 2)).transpose(1, 0, 2)
+        def precond(V):
+            return np.matmul(V, invT)
 
-        if x0 is None and self.warm is not None and self.warm.shape == b.shape:
+        if x0 is None and self.warm is not None and self.warm.shape == (K, n, 3):
             x0 = self.warm
-        X = precond(b) if x0 is None else np.array(x0, dtype=np.float64)     # warm start: block solve
+        if x0 is None:
+            X = precond(b)
+        else:                                                                # a copy: the caller's start kept
+            X = np.array(np.asarray(x0, dtype=np.float64).transpose(1, 2, 0), order="C")
         r = b - apply(X)
         z = precond(r)
         p = z.copy()
@@ -152,15 +167,16 @@ class LaplacianFit:
             it += 1
             Ap = apply(p)
             alpha = rz / np.sum(p * Ap)
-            X += alpha * p
+            step = alpha * p
+            X += step
             r -= alpha * Ap
             z = precond(r)
             rz_new = np.sum(r * z)
-            if rz_new <= self.tol ** 2 * rz0 and np.abs(alpha * p).max() <= self.tol * scale:
+            if rz_new <= self.tol ** 2 * rz0 and np.abs(step).max() <= self.tol * scale:
                 rz = rz_new
                 break
             p = z + (rz_new / rz) * p
             rz = rz_new
         self.info = {"cg_iterations": it,
                      "relative_preconditioned_residual": float(np.sqrt(max(rz, 0) / rz0))}
-        return X
+        return np.ascontiguousarray(X.transpose(2, 0, 1))
