@@ -13,9 +13,9 @@ outside it (off by default: on realistic captures the true shapes move vertices 
 moves - a 0.1 % mask already costs accuracy - and eq. (3)'s weights are a soft mask anyway).
 Solved by conjugate gradients on the normal equations, preconditioned by the exact per-vertex
 K x K blocks (i.e. by the Menzel solve itself), warm-started from the Menzel solution: one sparse Laplacian
-product per iteration, every right-hand side (x, y, z) at once - to the minimiser (tested against a direct
-sparse solve of the same energy), not to a residual relative to a right-hand side that the 1e10-weighted
-clamped rows dominate.
+product per iteration (none at mu = 0), every right-hand side (x, y, z) at once, vertex-major [n,3,K]
+(no transposes) - to the minimiser (tested against a direct sparse solve of the same energy), not to a
+residual relative to a right-hand side that the 1e10-weighted clamped rows dominate.
 """
 
 from __future__ import annotations
