@@ -311,9 +311,12 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
 
 def _beside_inputs(path: Path, inputs: list[Path]) -> str | None:
     """Where an output found inside an input folder can go instead: the same name beside the outermost
-    input folder holding it (``capture import .`` run inside ``capture/`` -> ``../capture.usda``), shown
-    relative to the current folder (absolute when that is shorter); None when that place is itself an input
-    or inside one (the output named as the input folder, ``-o capture`` for ``capture/``)."""
+    input folder holding it (``capture import .`` run inside ``capture/`` -> ``../capture.usda``), named from
+    the current folder as every fix names a path (:func:`usdface.io.usd_rig._from_cwd`: shell-quoted, to
+    paste); None when that place is itself an input or inside one (the output named as the input folder,
+    ``-o capture`` for ``capture/``)."""
+    from .usd_rig import _from_cwd
+
     target, folders = path.resolve(), [p.resolve() for p in inputs if p.is_dir()]
     holders = [f for f in folders if target.is_relative_to(f)]
     if not holders:
@@ -324,11 +327,7 @@ def _beside_inputs(path: Path, inputs: list[Path]) -> str | None:
     candidate = outer.parent / path.name
     if any(candidate.is_relative_to(f) for f in folders) or any(candidate == p.resolve() for p in inputs):
         return None
-    try:
-        shown = os.path.relpath(candidate)
-    except ValueError:                                        # another drive (Windows)
-        shown = str(candidate)
-    return min(shown, str(candidate), key=len)
+    return _from_cwd(candidate)
 
 
 def existing_ancestor(path) -> Path:
