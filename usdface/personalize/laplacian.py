@@ -58,16 +58,10 @@ class LaplacianFit:
         self.LtL = (L.T @ L).tocsr()
         self.mu = float(laplacian_weight)
         self.tol, self.max_iter = tol, max_iter
-        self.LtLT = self._lap(self.T)                                        # L^T L T_j  [K,n,3]
         self._TV = np.ascontiguousarray(self.T.transpose(1, 2, 0))          # T_j vertex-major [n,3,K]
-        self._LtLTV = np.ascontiguousarray(self.LtLT.transpose(1, 2, 0))
+        self._LtLTV = (self.LtL @ self._TV.reshape(n, -1)).reshape(self._TV.shape)   # L^T L T_j [n,3,K]
         self.info: dict = {}
         self.warm = None                                                     # start of the next solve
-
-    def _lap(self, X):
-        K, n, _ = X.shape
-        Y = self.LtL @ X.transpose(1, 0, 2).reshape(n, 3 * K)
-        return Y.reshape(n, K, 3).transpose(1, 0, 2)
 
     def choose_weight(self, points, weights, reg: float, grid=None, folds: int = 3,
                       progress=None) -> dict:
