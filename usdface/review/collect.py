@@ -50,13 +50,12 @@ def _same_file(given, recorded: Path | None) -> bool:
         return False
 
 
-def _capture_changed(layer_path, info: dict) -> bool:
-    """Whether the capture a personalize layer records (:func:`recorded_capture`) is there but no longer has
-    the sha256 the layer's provenance records for it (``inputDigests``); False when it is gone or no digest
-    was recorded."""
+def _capture_changed(layer_path, info: dict, path: Path | None) -> bool:
+    """Whether ``path``, the capture a personalize layer records (:func:`recorded_capture`), is there but no
+    longer has the sha256 the layer's provenance records for it (``inputDigests``); False when it is gone or
+    no digest was recorded."""
     from ..io.layers import input_changed, recorded_inputs
 
-    path = recorded_capture(layer_path, info)
     if path is None:
         return False
     real = os.path.realpath(path)
@@ -502,18 +501,19 @@ def collect_review(layer_path, *, capture=None, take=None, fit_errors: bool = Tr
     # the capture the layer records, given by its path (a batch row's, a Pyblish instance's, --capture with
     # the same file): the layer's own figures, as without it; it was refitted as 'another' capture, seconds
     # a page and the capture's warnings again on a resume that wrote only the page (stop 53)
-    recorded = capture is None or _same_file(capture, recorded_capture(made_from, prov))
+    recorded_file = recorded_capture(made_from, prov)
+    recorded = capture is None or _same_file(capture, recorded_file)
     # ... unless the file changed since the layer was written (sha256 differs): the layer's figures were
     # scored on frames the page no longer plays; refitted, as before stop 53 for a given path (stop 53's
     # review)
-    if recorded and _capture_changed(made_from, prov):
+    if recorded and _capture_changed(made_from, prov, recorded_file):
         recorded = False
         notes.append("the capture changed after the layer was written (sha256 differs): its test expressions "
                      "are scored by a refit, not by the layer's own figures (re-run usdface personalize on "
                      "the current capture)")
     held = None                # the test expressions the layer holds, when its capture is gone
     if capture is None:
-        capture = recorded_capture(made_from, prov)
+        capture = recorded_file
         if capture is None:
             # the capture moved: the layer's own inspection animation plays its test expressions (the page
             # showed none, and no eq. 5 table, although the layer holds both)
