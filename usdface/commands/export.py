@@ -94,4 +94,3 @@ def _is_fit_rig(path) -> bool:
     from ..io.file_kind import Kind, file_kind
 
     return file_kind(path).kind is Kind.FIT
-
