@@ -480,22 +480,29 @@ def test_mirror_axis_is_detected_from_the_mesh():
 
 
 def test_multicover_radius_scales_with_the_face():
-    """The default exclusion radius is relative to the face: the same layout in metres and centimetres."""
-    from usdface.landmarks.cover import solve_set_cover
-    from usdface.landmarks.multicover import adaptive_multicover, face_size
+    """The default exclusion radius (issue 13: "relative to the face size") is the same share of the face
+    whatever the rig's size, epsilon or symmetric mode: a rig twice as large gets the same multi-cover layout,
+    and the radius the layout used scales with it (it was an absolute 0.01 m in ``compute_landmarks`` and
+    the CLI, and 5 % of the box around the epsilon's candidates in ``adaptive_multicover``)."""
+    rig = random_rig(30, seed=5)
+    big = FaceRig(rig.neutral * 2.0, rig.triangles, rig.names, rig.deltas * 2.0, name="Sheet")
+    kw = dict(multicover=3, adaptive=False, weighting="count")
+    a, b = compute_landmarks(rig, 0.5, **kw), compute_landmarks(big, 0.5, **kw)
+    assert a.rounds.max() > 1 and a.vertices.tolist() == b.vertices.tolist()
+    from usdface.landmarks.multicover import RADIUS_SHARE
+    from usdface.landmarks.visibility import face_size
 
-    rng = np.random.default_rng(1)
-    neutral = rng.uniform(0, 0.2, size=(80, 3))
-    c = rng.uniform(size=(6, 80)) < 0.3
-    cost = np.ones(80)
-
-    def solve(sub, cst):
-        return solve_set_cover(sub, cst)
-
-    a = adaptive_multicover(c, cost, neutral, 3, solve, share=None)[0]
-    b = adaptive_multicover(c, cost, neutral * 100.0, 3, solve, share=None)[0]
-    assert a.tolist() == b.tolist()
-    assert np.isclose(face_size(neutral * 100, c), 100 * face_size(neutral, c))
+    assert np.isclose(b.problem["radius"], 2.0 * a.problem["radius"])
+    moving = np.linalg.norm(rig.deltas, axis=2)
+    share = (moving / moving.max(axis=1, keepdims=True)).max(axis=0)
+    assert np.isclose(a.problem["radius"], RADIUS_SHARE * face_size(rig.neutral, share))
+    # the face, not the candidates: the same radius at every epsilon and in symmetric mode
+    sym = symmetric_rig()
+    radii = {compute_landmarks(sym, eps, symmetric=s, multicover=2, rays=4).problem["radius"]
+             for eps in (0.5, 0.9) for s in (False, True)}
+    assert len(radii) == 1
+    # an explicit radius is used as given (metres)
+    assert compute_landmarks(rig, 0.5, radius=0.004, **kw).problem["radius"] == 0.004
 
 
 def test_one_shot_multicover_is_the_optimal_n_fold_cover():

@@ -45,12 +45,15 @@ def test_cli_writes_layer_json_and_plot(layer_run):
 
 def test_layer_provenance_records_the_radius_and_spacing_used(layer_run):
     """The layer's provenance recorded the options as typed: radius and spacing left out were '' (not
-    given), so the layer did not say which exclusion radius and skin sampling its layout was computed with."""
+    given), so the layer did not say which exclusion radius and skin sampling its layout was computed with.
+    The default radius is relative to the face (2.4 % of its size; the sample's face is 0.26 m): the
+    provenance holds the metres used, as the JSON's ``problem.radius`` does."""
     from usdface.io.usd_rig import usdface_layer_data
 
     _, _, out, data, _, _ = layer_run
     params = usdface_layer_data(out)["parameters"]
-    assert params["radius"] == 0.01 and params["spacing"] == data["problem"]["spacing"] > 0
+    assert params["radius"] == data["problem"]["radius"] and 0.003 < params["radius"] < 0.01
+    assert params["spacing"] == data["problem"]["spacing"] > 0
 
 
 def test_layer_content_round_trips(layer_run):

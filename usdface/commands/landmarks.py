@@ -34,7 +34,8 @@ def register(subparsers) -> None:
     p.add_argument("--multicover", type=positive_int, default=None, metavar="N",
                    help="adaptive multi-cover: up to N landmarks per shape (1)")
     p.add_argument("--radius", type=nonnegative_float, default=None,
-                   help="metres; multi-cover excludes vertices this close to chosen landmarks (0.01)")
+                   help="metres; multi-cover excludes vertices this close to chosen landmarks (default: 2.4%% "
+                        "of the face size, 1 cm on a human head)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
     p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
@@ -165,7 +166,7 @@ def run(args) -> int:
         report = api.evaluate_landmarks(rig, args.takes, empirical=args.empirical, frames=asked,
                                         noise_mm=0.5 if args.noise is None else args.noise, rays=args.rays,
                                         symmetric=args.symmetric, backend=args.backend,
-                                        radius=0.01 if args.radius is None else args.radius)
+                                        radius=args.radius)
         done: dict = {}
         # all or nothing, as export and evaluate: a plot written, then the JSON failing (a full disk,
         # Ctrl-C), left the plot as if the sweep had finished
@@ -199,7 +200,7 @@ def run(args) -> int:
             p.start(f"layout of {rig.name}")
             layout = api.compute_landmarks(rig, args.epsilon, args.alpha, symmetric=args.symmetric,
                                            multicover=args.multicover,
-                                           radius=0.01 if args.radius is None else args.radius,
+                                           radius=args.radius,
                                            camera=args.camera, rays=args.rays, backend=args.backend,
                                            weighting=args.weighting, adaptive=not args.no_adaptive,
                                            ignore_static=args.skip_static,
@@ -209,8 +210,9 @@ def run(args) -> int:
                 p.start(f"write {Path(args.output).name}")
                 params = {k: v for k, v in vars(args).items() if k not in ("func",)}
                 # the values the layout was computed with, not 'not given' (recorded as ''): the default
-                # radius and the skin sampling's spacing (2 % of the face, rounded; 0 = every vertex)
-                params["radius"] = 0.01 if args.radius is None else args.radius
+                # radius (2.4 % of the face size) and the skin sampling's spacing (2 % of the face, rounded;
+                # 0 = every vertex)
+                params["radius"] = float(layout.problem["radius"])
                 params["spacing"] = float(layout.problem.get("spacing") or 0.0)
                 api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
                                     provenance={"command": command_line(),

@@ -109,7 +109,7 @@ BASELINE_COUNTS = (8, 10, 12, 15, 20, 25, 30, 35, 40, 45, 50, 60, 68)
 
 
 def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray | None = None,
-                       epsilons=(0.5, 0.6, 0.75, 0.9), rounds=(1, 2, 3, 4, 5, 6), radius: float | None = 0.01,
+                       epsilons=(0.5, 0.6, 0.75, 0.9), rounds=(1, 2, 3, 4, 5, 6), radius: float | None = None,
                        shares=(0.1, 0.05, None), noise: float = 0.5e-3, tikhonov: float = 0.0,
                        alpha: float = 0.0, rays: int = 16, symmetric: bool = False, random_seeds: int = 3,
                        seed: int = 0, backend: str = "scip", counts=BASELINE_COUNTS) -> EvaluationReport:
@@ -118,7 +118,8 @@ def evaluate_landmarks(rig: FaceRig, weights: np.ndarray, empirical: np.ndarray 
     This method: every epsilon x multi-cover rounds x share (the adaptive heuristic's share; None =
     non-adaptive). ``alpha = 0`` (default; eq. 1 is ``q = (1 - alpha) r + alpha l``) follows the paper's
     evaluation protocol: layouts from displacement only (no ray casting); the synthetic tracking has no
-    occlusion. ``radius``: the multi-cover radius (metres; None: relative to the face size).
+    occlusion. ``radius``: the multi-cover radius (metres; None, the default: 2.4 % of the face size,
+    :func:`.multicover.exclusion_radius`).
     ``empirical[m]``: vertex indices of an empirical layout (e.g. the 68 ICT points on ``Head``). Baselines at
     ``counts`` plus the empirical count. ``noise`` metres of tracking noise (std per coordinate), the same
     noise seed for every layout. RMSE over the vertices that move (:func:`baselines.moving_vertices`).

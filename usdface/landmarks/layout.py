@@ -21,7 +21,7 @@ from ..model import FaceRig
 from . import candidates as cand
 from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
-from .multicover import adaptive_multicover
+from .multicover import adaptive_multicover, exclusion_radius
 from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
 from .visibility import FACE_SHARE, PoseVisibility, face_size
 
@@ -234,7 +234,7 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
 
 
 def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, symmetric: bool = False,
-                      multicover: int = 1, radius: float | None = 0.01, camera=None, rays: int = 16,
+                      multicover: int = 1, radius: float | None = None, camera=None, rays: int = 16,
                       backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
                       share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
                       visibility: np.ndarray | None = None, spacing: float | str | None = "auto",
@@ -249,8 +249,9 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         ``q = (1 - alpha) r + alpha l``, in [0, 1].
     symmetric : mirror-symmetric layout (falls back to asymmetric, with a warning, when infeasible).
     multicover : maximum landmarks per shape of the adaptive multi-cover (Algorithm 1); 1 = single cover.
-    radius : metres; vertices this close to a chosen landmark leave the candidates of later rounds (None: 5 %
-        of the face size; default 0.01, the layouts the benchmarks were measured with).
+    radius : metres; vertices this close to a chosen landmark leave the candidates of later rounds. None
+        (default): :func:`.multicover.exclusion_radius`, 2.4 % of the face size (1 cm on a human head), the
+        same at every epsilon and in symmetric mode; the value used is ``layout.problem["radius"]``.
     camera : optional [3] camera position (metres, internal Y-up frame) for the known-camera visibility;
         vertices the camera cannot see in some pose are then not candidates.
     rays : hemisphere rays per vertex for the ambient-occlusion visibility.
@@ -294,8 +295,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             ok = False
         if not ok:
             raise LandmarkError(f"multi-cover radius {radius!r:.60} is not a length >= 0 in metres",
-                                fix="pass metres >= 0 (radius=0.01, the default; --radius) or None (5 % of "
-                                    "the face size)")
+                                fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the face "
+                                    "size, 1 cm on a human head)")
     if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
             or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
         raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
@@ -315,6 +316,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     t0 = time.perf_counter()
     r = cand.relative_displacement(mag)
     c = cand.candidate_sets(r, eps)
+    radius = exclusion_radius(rig.neutral, r) if radius is None else float(radius)
     partner = primary = None
     if symmetric:
         partner = mirror_pairs(rig.neutral)
@@ -461,7 +463,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                  "visibility_evaluated": int(np.count_nonzero(~np.isnan(  # ray-cast vertices (samples)
                      lookup_plain() if pose_vis is None else pose_vis.values))),
                  "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
-                 "spacing": sample_spacing,
+                 "spacing": sample_spacing, "radius": radius,
                  "samples": (int(allowed.sum()) if allowed is not None
                              else None if origins is None else int(origins.size)),
                  "occluder_triangles": int(len(occluder)),

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .cover import CoverSolution
+from .visibility import face_size
 
 
 def shapes_needing_landmarks(c: np.ndarray, chosen: np.ndarray, max_per_shape: int, share: float | None = 0.1
@@ -35,22 +36,26 @@ def shapes_needing_landmarks(c: np.ndarray, chosen: np.ndarray, max_per_shape: i
     return need & (count < np.ceil(served.sum(axis=1) / limit))
 
 
-#: Default exclusion radius of :func:`adaptive_multicover`, as a fraction of the face size
-#: (:func:`face_size`): 5 % - about 1 cm on a human face, whatever the rig's units.
-RADIUS_FRACTION = 0.05
+#: Default exclusion radius of the multi-cover's later rounds, as a share of the face size
+#: (:func:`usdface.landmarks.visibility.face_size`: the diagonal of the box around the vertices some shape moves
+#: by at least 5 % of its peak, the face size that also sets the rays' offset and the skin samples' spacing):
+#: 1 cm on the dev avatars' human head (0.417 m), the radius the layouts and the evaluation sweep were measured
+#: with at an absolute 0.01 m; relative, so a rig of another size (or read in other units) gets the same layout,
+#: and the same at every epsilon and in symmetric mode (it was 5 % of the box around the epsilon's candidates:
+#: 12.8 mm on dev1 at epsilon 0.5, 10.0 at 0.9, 11.2 symmetric - and nothing but the API took it).
+RADIUS_SHARE = 0.024
 
 
-def face_size(neutral: np.ndarray, c: np.ndarray) -> float:
-    """Size of the face a layout covers: the bounding-box diagonal of the vertices that are candidates for
-    some shape (``c[K, n]``), in ``neutral``'s units; the whole mesh's if there are none."""
-    p = np.asarray(neutral, dtype=np.float64)
-    used = np.asarray(c, dtype=bool).any(axis=0)
-    q = p[used] if used.any() else p
-    return float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
+def exclusion_radius(neutral: np.ndarray, r: np.ndarray) -> float:
+    """The default multi-cover exclusion radius (Algorithm 1, line 10: "vertices close to F"), in
+    ``neutral``'s units: :data:`RADIUS_SHARE` x the face size of ``neutral[n, 3]``, the face being the vertices
+    whose relative displacement ``r[K, n]`` (eq. 2) reaches 5 % for some shape. Independent of epsilon and of
+    the symmetric preprocessing (both change the candidates, not the face)."""
+    return RADIUS_SHARE * face_size(neutral, np.asarray(r).max(axis=0, initial=0.0))
 
 
 def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape: int,
-                        solve: Callable[[np.ndarray, np.ndarray], CoverSolution], radius: float | None = None,
+                        solve: Callable[[np.ndarray, np.ndarray], CoverSolution], radius: float,
                         share: float | None = 0.1, partner: np.ndarray | None = None,
                         coverage: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray, list[CoverSolution]]:
@@ -59,13 +64,11 @@ def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape:
 
     ``solve(c, cost)`` solves one cover (eq. 5). ``partner[n]`` (symmetric mode) adds mirror partners to the
     excluded neighbourhood; ``coverage[K, n]`` is the candidate matrix used to count landmarks per shape
-    (default ``c``). ``radius`` (``neutral``'s units) default: :data:`RADIUS_FRACTION` x :func:`face_size`,
-    so the exclusion scales with the face (an absolute 1 cm is 1 % of a face in centimetres).
+    (default ``c``). ``radius`` in ``neutral``'s units (:func:`exclusion_radius` gives the default of
+    :func:`usdface.landmarks.compute_landmarks`, relative to the face).
     Returns (selected vertex indices [m], round of each [m], the per-round solutions).
     """
     c = np.asarray(c, dtype=bool)
-    if radius is None:
-        radius = RADIUS_FRACTION * face_size(neutral, c)
     coverage = c if coverage is None else np.asarray(coverage, dtype=bool)
     tree = cKDTree(neutral)
     chosen: list[int] = []
