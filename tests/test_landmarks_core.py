@@ -222,6 +222,17 @@ def test_symmetric_layout_is_exactly_symmetric():
         assert layout.coverage.any(axis=0).all()
 
 
+def test_a_camera_warning_leaves_a_symmetric_layout_symmetric():
+    """``layout.symmetric`` said False (and the layer's ``usdface:landmarks:symmetric`` too) for an exactly
+    symmetric layout whenever any warning was given, such as the far camera's, not only the fallback's."""
+    rig = symmetric_rig()
+    partner = mirror_pairs(rig.neutral)
+    layout = compute_landmarks(rig, 0.6, symmetric=True, camera=[0.0, 0.04, 30.0])
+    assert any("from afar" in w for w in layout.warnings)
+    assert set(partner[layout.vertices].tolist()) == set(layout.vertices.tolist())
+    assert layout.symmetric
+
+
 def test_infeasible_symmetric_problem_falls_back_and_says_so():
     rig = symmetric_rig()
     # a shape that moves only the top right corner, whose mirror image is cut off the mesh

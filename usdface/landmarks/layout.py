@@ -395,7 +395,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
 
     t0 = time.perf_counter()
     vis_before = timings.get("visibility", 0.0)
-    result = None
+    result, fell_back = None, False
     if symmetric:
         # relative to each shape's own peak (a peak on an unpaired vertex must not be renormalised away)
         peak = np.maximum(mag.max(axis=1, keepdims=True), 1e-300)
@@ -419,6 +419,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         if camera is not None:
             sym_c &= np.nan_to_num(lookup_sym(), nan=0.0)[None, :] > 0.0
         lost = [rig.names[k] for k in np.flatnonzero(c.any(axis=1) & ~sym_c.any(axis=1))]
+        fell_back = bool(lost)
         if lost:
             warnings.append("symmetric layout infeasible (no mirrored candidate for "
                             f"{', '.join(lost)}); fell back to an asymmetric layout")
@@ -453,7 +454,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     return LandmarkLayout(
         vertices=vertices, positions=rig.neutral[vertices], coverage=coverage, rounds=rounds,
         visibility=vis[vertices], shape_names=list(rig.names), epsilon=eps, alpha=a,
-        symmetric=bool(symmetric and not warnings), multicover=int(multicover),
+        symmetric=bool(symmetric and not fell_back), multicover=int(multicover),
         status=worst.status if worst else "optimal", gap=max((s.gap for s in sols), default=0.0),
         objective=float(sum(s.objective for s in sols)), weighting=weighting, backend=backend,
         camera=None if camera is None else [float(x) for x in camera], uncoverable=uncoverable,
