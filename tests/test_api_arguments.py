@@ -521,3 +521,26 @@ def test_personalize_refuses_a_rig_of_another_capture_naming_the_capture(samples
     assert "fit_capture(capture).rig" in err.value.fix
     assert not list(tmp_path.iterdir())
     assert api.personalize_avatar(samples / "avatar.usda", capture, out, rig=rig).out_path == out
+
+
+@pytest.mark.parametrize("rays", [0, -3, 2.5, "16", True])
+def test_landmarks_refuse_a_ray_count_before_any_work(samples, monkeypatch, rays):
+    """``compute_landmarks(rays=2.5)`` was taken as 2, ``rays="16"`` died in a ``TypeError`` and ``rays=0`` in
+    a GeometryError without file or prim (saying "default 64"), each after the candidates and the skin
+    samples were computed; ``landmark_diagnostics`` the same. Now a LandmarkError naming the file, the prim
+    and the fix, before any work (``--rays`` is refused the same way)."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+    from usdface.landmarks import candidates
+
+    rig = api.pick_mesh(api.read_avatar(samples / "avatar.usda"))
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("work started before the options were checked")
+
+    monkeypatch.setattr(candidates, "relative_displacement", no_work)
+    for call in (api.compute_landmarks, api.landmark_diagnostics):
+        with pytest.raises(LandmarkError, match=r"rays .* is not a whole number >= 1") as err:
+            call(rig, rays=rays)
+        assert "avatar.usda" in str(err.value) and "/Avatar/Head" in str(err.value)
+        assert "rays=16" in err.value.fix

@@ -35,6 +35,17 @@ def check_alpha(alpha: float) -> float:
     return a
 
 
+def check_rays(rays, path=None, prim=None) -> int:
+    """``rays`` (hemisphere rays per vertex and pose, eq. 4) as an int, or :class:`LandmarkError` naming
+    ``path`` and ``prim`` when it is no whole number >= 1 (2.5 was taken as 2, "16" died in a TypeError and 0
+    in the ray casting, after the candidates and skin samples were computed)."""
+    if isinstance(rays, bool) or not isinstance(rays, int | np.integer) or rays < 1:
+        raise LandmarkError(f"rays {rays!r:.40} is not a whole number >= 1", path=path, prim=prim,
+                            fix="pass the hemisphere rays per vertex and pose, e.g. rays=16 (the default; "
+                                "--rays)")
+    return int(rays)
+
+
 def displacement_magnitudes(deltas: np.ndarray) -> np.ndarray:
     """|dv_n^k|: ``deltas[K, n, 3]`` metres -> ``[K, n]`` metres (the same sums as ``np.linalg.norm``, in the
     same order, without its ``[K, n, 3]`` temporary)."""

@@ -70,6 +70,7 @@ def landmark_diagnostics(neutral: np.ndarray, triangles: np.ndarray, deltas: np.
     """
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
+    rays = cand.check_rays(rays)
     share = cand.check_epsilon(region_share)
     mag = cand.displacement_magnitudes(deltas)
     r = cand.relative_displacement(mag)

@@ -85,8 +85,13 @@ class LandmarkLayout:
 _STATUS_RANK = {"optimal": 0, "feasible": 1, "timeLimit": 2, "notSolved": 3, "infeasible": 4}
 
 
+def _where(rig: FaceRig) -> dict:
+    """The file and prim of ``rig`` for an error's message (None when it was not read from a file)."""
+    return {"path": rig.source.file if rig.source else None, "prim": rig.source.prim if rig.source else None}
+
+
 def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]:
-    where = {"path": rig.source.file if rig.source else None, "prim": rig.source.prim if rig.source else None}
+    where = _where(rig)
     if rig.n_shapes == 0:
         raise LandmarkError(f"mesh {rig.name or '?'} has no blend shapes", **where,
                             fix="pick a mesh with blend shapes (--mesh) or add shapes to this one")
@@ -281,6 +286,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                 "which also takes an avatar or its file")
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
+    rays = cand.check_rays(rays, **_where(rig))
     if weighting not in WEIGHTINGS:
         raise LandmarkError(f"unknown weighting {weighting!r}", fix=f"use one of {', '.join(WEIGHTINGS)}")
     if backend not in BACKENDS:

@@ -23,7 +23,7 @@ def hemisphere_directions(count: int) -> np.ndarray:
     """``count`` deterministic, evenly spread unit directions on the +Z hemisphere (Fibonacci lattice) ->
     ``[count, 3]``; uniform in solid angle, so the unoccluded fraction is the ambient-occlusion visibility."""
     if count < 1:
-        raise GeometryError(f"ray count must be >= 1, got {count}", fix="pass rays >= 1 (default 64)")
+        raise GeometryError(f"ray count must be >= 1, got {count}", fix="pass rays >= 1 (default 16)")
     i = np.arange(count) + 0.5
     z = 1.0 - i / count  # uniform in z on (0, 1] <=> uniform in solid angle on the hemisphere
     phi = i * np.pi * (3.0 - np.sqrt(5.0))
