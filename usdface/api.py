@@ -1072,7 +1072,8 @@ def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5,
         return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
     except LandmarkError as exc:     # the options are checked before any work: name the rig's file and prim
         if exc.path is None and rig.source is not None:
-            raise LandmarkError(exc.message, path=rig.source.file, prim=rig.source.prim, fix=exc.fix) from None
+            raise LandmarkError(exc.message, path=rig.source.file, prim=rig.source.prim,
+                                fix=exc.fix) from None
         raise
 
 

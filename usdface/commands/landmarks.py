@@ -34,8 +34,8 @@ def register(subparsers) -> None:
     p.add_argument("--multicover", type=positive_int, default=None, metavar="N",
                    help="adaptive multi-cover: up to N landmarks per shape (1)")
     p.add_argument("--radius", type=nonnegative_float, default=None,
-                   help="metres; multi-cover excludes vertices this close to chosen landmarks (default: 2.4%% "
-                        "of the face size, 1 cm on a human head)")
+                   help="metres; multi-cover excludes vertices this close to chosen landmarks (default: "
+                        "2.4%% of the face size, 1 cm on a human head)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
     p.add_argument("--camera", type=vector3, metavar="X,Y,Z",

@@ -37,20 +37,21 @@ def shapes_needing_landmarks(c: np.ndarray, chosen: np.ndarray, max_per_shape: i
 
 
 #: Default exclusion radius of the multi-cover's later rounds, as a share of the face size
-#: (:func:`usdface.landmarks.visibility.face_size`: the diagonal of the box around the vertices some shape moves
-#: by at least 5 % of its peak, the face size that also sets the rays' offset and the skin samples' spacing):
-#: 1 cm on the dev avatars' human head (0.417 m), the radius the layouts and the evaluation sweep were measured
-#: with at an absolute 0.01 m; relative, so a rig of another size (or read in other units) gets the same layout,
-#: and the same at every epsilon and in symmetric mode (it was 5 % of the box around the epsilon's candidates:
-#: 12.8 mm on dev1 at epsilon 0.5, 10.0 at 0.9, 11.2 symmetric - and nothing but the API took it).
+#: (:func:`usdface.landmarks.visibility.face_size`: the diagonal of the box around the vertices some shape
+#: moves by at least 5 % of its peak, the face size that also sets the rays' offset and the skin samples'
+#: spacing): 1 cm on the dev avatars' human head (0.417 m), the radius the layouts and the evaluation sweep
+#: were measured with at an absolute 0.01 m; relative, so a rig of another size (or read in other units)
+#: gets the same layout, and the same at every epsilon and in symmetric mode (it was 5 % of the box around
+#: the epsilon's candidates: 12.8 mm on dev1 at epsilon 0.5, 10.0 at 0.9, 11.2 symmetric - and nothing but
+#: the API took it).
 RADIUS_SHARE = 0.024
 
 
 def exclusion_radius(neutral: np.ndarray, r: np.ndarray) -> float:
     """The default multi-cover exclusion radius (Algorithm 1, line 10: "vertices close to F"), in
-    ``neutral``'s units: :data:`RADIUS_SHARE` x the face size of ``neutral[n, 3]``, the face being the vertices
-    whose relative displacement ``r[K, n]`` (eq. 2) reaches 5 % for some shape. Independent of epsilon and of
-    the symmetric preprocessing (both change the candidates, not the face)."""
+    ``neutral``'s units: :data:`RADIUS_SHARE` x the face size of ``neutral[n, 3]``, the face being the
+    vertices whose relative displacement ``r[K, n]`` (eq. 2) reaches 5 % for some shape. Independent of
+    epsilon and of the symmetric preprocessing (both change the candidates, not the face)."""
     return RADIUS_SHARE * face_size(neutral, np.asarray(r).max(axis=0, initial=0.0))
 
 
