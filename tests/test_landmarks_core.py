@@ -533,6 +533,34 @@ def test_one_shot_multicover_is_the_optimal_n_fold_cover():
     assert np.isclose(cost[sol.selected].sum(), best)
 
 
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_one_shot_layout_covers_every_shape_n_times_with_the_fewest_landmarks(symmetric):
+    """Issue 13's one-shot ILP multi-cover, reachable from ``compute_landmarks(one_shot=True)`` (the CLI's
+    ``--one-shot``), not only as a function of the candidate matrix: every shape represented by
+    ``min(N, |C_k|)`` landmarks, in one round, by as few landmarks as the N-fold cover of the same
+    candidates needs (the quality weighting's count still dominates at N = 3: its delta is 1 / (2 N K + 1));
+    symmetric layouts stay exactly mirrored."""
+    rig = symmetric_rig() if symmetric else random_rig(30, seed=5)
+    n = 3
+    lay = compute_landmarks(rig, 0.5, multicover=n, one_shot=True, symmetric=symmetric, rays=4)
+    assert lay.status == "optimal" and (lay.rounds == 1).all() and lay.problem["one_shot"]
+    assert lay.problem["radius"] is None and lay.symmetric == symmetric
+    counted = compute_landmarks(rig, 0.5, multicover=n, one_shot=True, symmetric=symmetric,
+                                weighting="count")
+    assert lay.count == counted.count
+    if symmetric:
+        partner = mirror_pairs(rig.neutral)
+        assert set(partner[lay.vertices].tolist()) == set(lay.vertices.tolist())
+        assert lay.coverage.any(axis=0).all()
+        return
+    c = candidate_sets(relative_displacement(np.linalg.norm(rig.deltas, axis=2)), 0.5)
+    assert (lay.coverage.sum(axis=0) >= np.minimum(n, c.sum(axis=1))).all()
+    best = solve_set_cover(c, np.ones(c.shape[1]), cover_times=n, reduce=False)
+    assert lay.count == best.selected.size
+    with pytest.raises(LandmarkError, match="one_shot takes no radius"):
+        compute_landmarks(rig, 0.5, multicover=n, one_shot=True, radius=0.01)
+
+
 def test_batched_box_least_squares_matches_bvls():
     from scipy.optimize import lsq_linear
 

@@ -567,3 +567,40 @@ def test_layout_plot_of_a_mask_draws_every_point_that_faces_the_viewer(tmp_path,
     assert main(["landmarks", str(avatar), "--rays", "4", "--plot", str(tmp_path / "m.png"), "-q"]) == 0
     (fig,) = figures
     assert len(fig.axes[0].collections[0].get_offsets()) == n * n
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--one-shot"], "--multicover is 1"),
+    (["--one-shot", "--multicover", "2", "--radius", "0.01"], "--one-shot replaces by one ILP"),
+    (["--one-shot", "--multicover", "2", "--no-adaptive"], "--one-shot replaces by one ILP"),
+    (["--one-shot", "--evaluate", "--takes", "take.csv"], "--one-shot applies only to the layout"),
+])
+def test_one_shot_refuses_what_it_would_ignore(tmp_path, monkeypatch, capsys, extra, said):
+    """``--one-shot`` (the paper's one-ILP multi-cover) without ``--multicover N``, with the adaptive
+    rounds' ``--radius``/``--no-adaptive``, or with ``--evaluate``: refused before any work."""
+    from usdface import api
+
+    monkeypatch.setattr(api, "read_avatar", lambda *_a, **_k: pytest.fail("work started"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "(fix: " in err
+
+
+def test_one_shot_cli_covers_every_shape_n_times(samples, tmp_path, capsys):
+    """``landmarks --multicover 2 --one-shot``: one round, every shape with at least min(2, its candidates)
+    landmarks, and the layer's provenance says one-shot (no radius)."""
+    from usdface.io.usd_rig import read_avatar, usdface_layer_data
+    from usdface.landmarks.candidates import candidate_sets, relative_displacement
+
+    out, js = tmp_path / "lm.usda", tmp_path / "lm.json"
+    assert main(["landmarks", str(samples / "avatar.usda"), "--multicover", "2", "--one-shot", "--rays", "4",
+                 "-o", str(out), "--json", str(js), "-q"]) == 0
+    data = json.loads(js.read_text())
+    assert data["problem"]["one_shot"] and data["problem"]["rounds"] == 1 and set(data["rounds"]) == {1}
+    rig = read_avatar(samples / "avatar.usda").mesh("Head")
+    c = candidate_sets(relative_displacement(np.linalg.norm(rig.deltas, axis=2)), 0.5)
+    need = dict(zip(rig.names, np.minimum(2, c.sum(axis=1)).tolist(), strict=True))
+    assert all(data["landmarks_per_shape"][k] >= need[k] for k in rig.names)
+    params = usdface_layer_data(out)["parameters"]
+    assert params["one_shot"] is True and params["radius"] == ""

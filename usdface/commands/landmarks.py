@@ -36,6 +36,9 @@ def register(subparsers) -> None:
     p.add_argument("--radius", type=nonnegative_float, default=None,
                    help="metres; multi-cover excludes vertices this close to chosen landmarks (default: "
                         "2.4%% of the face size, 1 cm on a human head)")
+    p.add_argument("--one-shot", action="store_true",
+                   help="with --multicover N: one ILP covering every shape N times (the paper's other "
+                        "multi-cover), instead of the adaptive rounds; no --radius, no 10%% heuristic")
     p.add_argument("--no-adaptive", action="store_true",
                    help="multi-cover every shape N times (drop the paper's 10%%-of-shapes heuristic)")
     p.add_argument("--camera", type=vector3, metavar="X,Y,Z",
@@ -83,7 +86,8 @@ LAYOUT_ONLY = (("epsilon", "--epsilon", 0.5), ("alpha", "--alpha", 0.5), ("multi
                ("weighting", "--weighting", "quality"), ("no_adaptive", "--no-adaptive", False),
                ("skip_static", "--skip-static", False), ("camera", "--camera", None),
                ("spacing", "--spacing", None), ("sampled_candidates", "--sampled-candidates", False),
-               ("rays", "--rays", None))     # the sweep casts no rays (alpha 0): it was ignored
+               ("rays", "--rays", None),     # the sweep casts no rays (alpha 0): it was ignored
+               ("one_shot", "--one-shot", False))
 
 #: Options only ``--evaluate`` reads (attribute, spelling): given without it they would be ignored.
 EVALUATE_ONLY = (("takes", "--takes"), ("empirical", "--empirical"), ("frames", "--frames"),
@@ -122,6 +126,15 @@ def refuse_other_mode(args) -> None:
                             "--multicover is 1 (a single cover, one round): the layout would ignore it",
                             fix=f"add --multicover N (N >= 2: up to N landmarks per shape), or leave out "
                                 f"{'/'.join(later)}")
+    if args.one_shot and not args.evaluate:
+        if (args.multicover or 1) == 1:
+            raise LandmarkError("--one-shot is a multi-cover (every shape covered N times in one ILP), and "
+                                "--multicover is 1: the layout would be the single cover",
+                                fix="add --multicover N (N >= 2), or leave out --one-shot")
+        if later:                            # the one ILP has neither: they would be ignored
+            raise LandmarkError(f"{'/'.join(later)} act(s) on the adaptive multi-cover's rounds, which "
+                                "--one-shot replaces by one ILP (no exclusion radius, no 10% heuristic)",
+                                fix=f"leave out {'/'.join(later)}, or --one-shot for the adaptive rounds")
     if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
         raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
                             "--weighting count does not use (every landmark costs 1)",
@@ -205,14 +218,15 @@ def run(args) -> int:
                                            weighting=args.weighting, adaptive=not args.no_adaptive,
                                            ignore_static=args.skip_static,
                                            spacing="auto" if args.spacing is None else (args.spacing or None),
-                                           thin_candidates=args.sampled_candidates)
+                                           thin_candidates=args.sampled_candidates,
+                                           one_shot=args.one_shot)
             if args.output:
                 p.start(f"write {Path(args.output).name}")
                 params = {k: v for k, v in vars(args).items() if k not in ("func",)}
                 # the values the layout was computed with, not 'not given' (recorded as ''): the default
                 # radius (2.4 % of the face size) and the skin sampling's spacing (2 % of the face, rounded;
                 # 0 = every vertex)
-                params["radius"] = float(layout.problem["radius"])
+                params["radius"] = "" if layout.problem["radius"] is None else float(layout.problem["radius"])
                 params["spacing"] = float(layout.problem.get("spacing") or 0.0)
                 api.write_landmarks(avatar, rig, layout, args.output, force=args.force,
                                     provenance={"command": command_line(),

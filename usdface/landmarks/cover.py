@@ -13,9 +13,10 @@ optimum and gap are those of the full problem.
 Cost forms (``weighting``), with q_n^k from :func:`usdface.landmarks.candidates.landmark_quality`:
 
 * ``"quality"`` (default): ``cost_n = m_n (1 + delta (1 - mean_k q_n^k))`` over the shapes vertex n is a
-  candidate for, with ``delta = 1 / (2 K + 1)``. Any layout with fewer landmarks is strictly cheaper than any
-  layout with more (the whole quality term of a minimal cover stays below one landmark), so the count is
-  minimised first and quality breaks the ties: the issue's "count still dominates".
+  candidate for, with ``delta = 1 / (2 K + 1)`` (``1 / (2 N K + 1)`` for an N-fold cover). Any layout with
+  fewer landmarks is strictly cheaper than any layout with more (the whole quality term of a minimal cover
+  stays below one landmark), so the count is minimised first and quality breaks the ties: the issue's
+  "count still dominates".
 * ``"count"``: ``cost_n = m_n`` (fewest landmarks, ties broken by the solver).
 * ``"paper"``: the literal reading of the paper's eqs. 1 + 5a, ``cost_n = m_n sum_k c_n^k (2 - q_n^k)``; it
   charges a vertex per shape it covers, so merging shapes onto one landmark earns nothing and the count grows
@@ -60,12 +61,15 @@ class CoverSolution:
 
 
 def set_cover_costs(c: np.ndarray, q: np.ndarray, weighting: str = "quality",
-                    multiplicity: np.ndarray | None = None) -> np.ndarray:
+                    multiplicity: np.ndarray | None = None, cover_times: int = 1) -> np.ndarray:
     """Objective coefficients cost_n of Zell & McDonnell 2022, eq. 5a: ``c[K, n]`` bool, ``q[K, n]`` quality
     in [0, 1] -> ``cost[n]``.
 
     See the module docstring for the three forms. ``multiplicity[n]`` (default 1) is the number of landmarks
-    column n stands for.
+    column n stands for. ``cover_times = N``: the costs of an N-fold cover (the one-shot multi-cover), whose
+    minimal layouts have up to N K columns, so the quality form's ``delta`` is ``1 / (2 N K + 1)`` and the
+    count still dominates (with ``1 / (2 K + 1)`` an N-fold cover's quality term could outweigh a landmark
+    from N = 3 on).
     """
     c = np.asarray(c, dtype=bool)
     q = np.asarray(q, dtype=np.float64)
@@ -78,7 +82,7 @@ def set_cover_costs(c: np.ndarray, q: np.ndarray, weighting: str = "quality",
     if weighting != "quality":
         raise LandmarkError(f"unknown weighting {weighting!r}", fix=f"use one of {', '.join(WEIGHTINGS)}")
     mean_q = np.where(c, q, 0.0).sum(axis=0) / np.maximum(count, 1)
-    delta = 1.0 / (2.0 * c.shape[0] + 1.0)
+    delta = 1.0 / (2.0 * max(int(cover_times), 1) * c.shape[0] + 1.0)
     return m * (1.0 + delta * (1.0 - mean_q))
 
 

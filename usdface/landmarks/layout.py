@@ -21,7 +21,7 @@ from ..model import FaceRig
 from . import candidates as cand
 from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
-from .multicover import adaptive_multicover, exclusion_radius
+from .multicover import adaptive_multicover, exclusion_radius, one_shot_multicover
 from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
 from .visibility import FACE_SHARE, PoseVisibility, face_size
 
@@ -181,7 +181,7 @@ def _occluder(rig: FaceRig, origins: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, multiplicity, lookup, evaluate,
-               batch: int = 16, upper=None, min_batch: int = 0) -> np.ndarray:
+               batch: int = 16, upper=None, min_batch: int = 0, cover_times: int = 1) -> np.ndarray:
     """Costs of eq. 5a for the cover sub-problem ``sub[K, n]``, evaluating visibility only where it matters.
 
     Every cost form is a non-increasing linear function of the vertex's visibility l_n, and
@@ -194,13 +194,15 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     poses): the optimistic cost is taken at it instead of l = 1, so far fewer vertices need evaluating.
     ``min_batch``: evaluate at least this many vertices per call (the best-ranked of every group first), for
     evaluators whose calls have a fixed cost (scenes rebuilt per call); it changes the work, not the result.
+    ``cover_times``: the costs of an N-fold cover (:func:`set_cover_costs`); its callers evaluate every
+    candidate first (a multi-cover may take several vertices of one candidate set).
     """
     if weighting == "count":
         return set_cover_costs(sub, r, "count", multiplicity)
     n = sub.shape[1]
 
     def cost_at_zero():
-        return set_cover_costs(sub, np.zeros((1, n)), weighting, multiplicity)
+        return set_cover_costs(sub, np.zeros((1, n)), weighting, multiplicity, cover_times)
 
     cols = np.flatnonzero(sub.any(axis=0))
     if cols.size == 0:
@@ -210,7 +212,8 @@ def lazy_costs(sub: np.ndarray, r: np.ndarray, alpha: float, weighting: str, mul
     mult_c = None if multiplicity is None else np.asarray(multiplicity)[cols]
 
     def cost_cols(vis_c):
-        return set_cover_costs(sub_c, cand.landmark_quality(r_c, vis_c, alpha), weighting, mult_c)
+        q = cand.landmark_quality(r_c, vis_c, alpha)
+        return set_cover_costs(sub_c, q, weighting, mult_c, cover_times)
 
     bound = np.ones(cols.size)
     if upper is not None:
@@ -243,7 +246,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                       backend: str = "scip", weighting: str = "quality", adaptive: bool = True,
                       share: float = 0.1, time_limit: float = 60.0, ignore_static: bool = False,
                       visibility: np.ndarray | None = None, spacing: float | str | None = "auto",
-                      samples: np.ndarray | None = None, thin_candidates: bool = False) -> LandmarkLayout:
+                      samples: np.ndarray | None = None, thin_candidates: bool = False,
+                      one_shot: bool = False) -> LandmarkLayout:
     """Compute a compact landmark layout for ``rig`` (Zell & McDonnell 2022, secs. 3.1-3.3).
 
     Parameters
@@ -264,6 +268,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     weighting : cost form of eq. 5a: quality (count first, quality breaks ties), count, paper.
     adaptive, share : the paper's 10%-of-shapes heuristic in the multi-cover (off: cover every shape
         ``multicover`` times where candidates remain).
+    one_shot : the paper's other multi-cover (sec. 3.3.2): one ILP covering every shape ``min(multicover,
+        |C_k|)`` times (:func:`.multicover.one_shot_multicover`), the cheapest such layout, instead of the
+        rounds of Algorithm 1; no exclusion radius (refused with a ``radius``) and no 10 % heuristic, so, as
+        the paper warns, it may take neighbouring vertices ("Distance Off", Fig. 4). Visibility is then
+        ray cast at every candidate (a multi-cover may take several of one candidate set).
     ignore_static : leave shapes that move no vertex out (reported in ``uncoverable``) instead of raising.
     visibility : precomputed l_n ``[n]`` (skips the ray casting; used by the evaluation sweep).
     spacing : metres between points on the skin sampled for the visibility (:mod:`.sampling`): every
@@ -293,6 +302,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
     if int(multicover) < 1:
         raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    if one_shot and radius is not None:   # the one ILP has no exclusion: the radius would be ignored
+        raise LandmarkError(f"one_shot takes no radius ({radius!r:.30}): the one-shot multi-cover is one "
+                            "ILP without an exclusion radius", **_where(rig),
+                            fix="leave out radius (--radius), or one_shot (--one-shot) for the adaptive "
+                                "rounds")
     if radius is not None:                 # -1 and 'x' were taken without a word (the CLI refuses -1)
         try:
             ok = (not isinstance(radius, str | bool) and bool(np.isfinite(float(radius)))
@@ -322,7 +336,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     t0 = time.perf_counter()
     r = cand.relative_displacement(mag)
     c = cand.candidate_sets(r, eps)
-    radius = exclusion_radius(rig.neutral, r) if radius is None else float(radius)
+    if not one_shot:
+        radius = exclusion_radius(rig.neutral, r) if radius is None else float(radius)
     partner = primary = None
     if symmetric:
         partner = mirror_pairs(rig.neutral)
@@ -399,6 +414,19 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
     def solve(cc, cost):
         return solve_set_cover(cc, cost, backend=backend, time_limit=time_limit)
 
+    times = int(multicover) if one_shot else 1   # the costs' cover count (eq. 5a's quality term's scale)
+    if one_shot and weighting != "count":
+        # the lazy evaluation relies on the single cover keeping one vertex per candidate set: cast them all
+        evaluate_plain(need)
+
+    def cover(cc, costs, part=None, coverage=None):
+        """Algorithm 1's rounds, or the one-shot ILP: (selected [m], round of each [m], solutions)."""
+        if one_shot:
+            sol = one_shot_multicover(cc, costs(cc), multicover, backend=backend, time_limit=time_limit)
+            return sol.selected, np.ones(sol.selected.size, dtype=np.int64), [sol]
+        return adaptive_multicover(cc, costs, rig.neutral, multicover, solve, radius,
+                                   share if adaptive else None, part, coverage=coverage)
+
     t0 = time.perf_counter()
     vis_before = timings.get("visibility", 0.0)
     result, fell_back = None, False
@@ -434,20 +462,18 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
 
             def sym_costs(sub):
                 return lazy_costs(sub, sym_r, a, weighting, mult, lookup_sym, evaluate_sym, upper=upper_sym,
-                                  min_batch=min_batch // 2)
+                                  min_batch=min_batch // 2, cover_times=times)
 
-            sel, rounds, sols = adaptive_multicover(sym_c, sym_costs, rig.neutral, multicover, solve, radius,
-                                                    share if adaptive else None, partner, coverage=c)
+            sel, rounds, sols = cover(sym_c, sym_costs, partner, coverage=c)
             vertices = np.concatenate([sel, partner[sel]])  # mirror, keeping each pair's round
             vertices, first = np.unique(vertices, return_index=True)
             result = (vertices, np.concatenate([rounds, rounds])[first], sols)
     if result is None:
         def plain_costs(sub):
             return lazy_costs(sub, r, a, weighting, None, lookup_plain, evaluate_plain, upper=upper_plain,
-                              min_batch=min_batch)
+                              min_batch=min_batch, cover_times=times)
 
-        result = adaptive_multicover(c, plain_costs, rig.neutral, multicover, solve, radius,
-                                     share if adaptive else None)
+        result = cover(c, plain_costs)
     vertices, rounds, sols = result
     evaluate_plain(vertices)
     vis = np.nan_to_num(lookup_plain(), nan=0.0)
@@ -470,7 +496,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                  "visibility_evaluated": int(np.count_nonzero(~np.isnan(  # ray-cast vertices (samples)
                      lookup_plain() if pose_vis is None else pose_vis.values))),
                  "reduced": list(head.reduced) if head else [0, 0], "rounds": len(sols),
-                 "spacing": sample_spacing, "radius": radius,
+                 "spacing": sample_spacing, "radius": radius, "one_shot": bool(one_shot),
                  "samples": (int(allowed.sum()) if allowed is not None
                              else None if origins is None else int(origins.size)),
                  "occluder_triangles": int(len(occluder)),
