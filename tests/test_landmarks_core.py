@@ -451,9 +451,12 @@ def test_mirror_pairs_of_a_scanned_asymmetric_head():
     assert np.median(np.linalg.norm(image - warped[truth], axis=1)) < 0.1 * np.median(spacing)
 
 
-def test_symmetric_layout_on_a_scanned_asymmetric_head():
+@pytest.mark.parametrize("perm", [[0, 1, 2], [1, 2, 0], [2, 0, 1]])
+def test_symmetric_layout_on_a_scanned_asymmetric_head(perm):
     """--symmetric on the warped head gives a symmetric layout (no fallback) whose left and right landmarks
-    are mirror pairs: each landmark's partner in the layout within a vertex spacing of its true mirror."""
+    are mirror pairs: each landmark's partner in the layout within a vertex spacing of its true mirror.
+    Whatever axis the head's left-right is along (issue 13: the mirror axis detected from the rig, not fixed
+    to X): the coordinates turned so that it lies along X, Z or Y."""
     points, warped, tri, truth = asymmetric_head()
     names, deltas = [], []
     for i, centre in enumerate(((0.03, -0.05), (0.035, 0.045), (0.02, -0.085))):
@@ -464,7 +467,8 @@ def test_symmetric_layout_on_a_scanned_asymmetric_head():
         deltas += [right, right[truth] * [-1, 1, 1]]
     names.append("mid")
     deltas.append(bump(points, (0.0, -0.09)) * (points[:, 2] > 0)[:, None])
-    rig = FaceRig(warped, tri, names, np.array(deltas), name="Head")
+    warped = warped[:, perm]                      # an even permutation: a rotation, the same orientation
+    rig = FaceRig(warped, tri, names, np.array(deltas)[:, :, perm], name="Head")
     layout = compute_landmarks(rig, 0.6, symmetric=True, rays=4)
     assert layout.symmetric and not layout.warnings and layout.coverage.any(axis=0).all()
     partner = mirror_pairs(warped)
