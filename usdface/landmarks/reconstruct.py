@@ -5,7 +5,10 @@ Tikhonov-regularised least squares
 
     min_w  sum_i |neutral_i + sum_k w_k dv_i^k - target_i|^2 + lambda |w|^2,   0 <= w_k <= 1,
 
-(scipy ``lsq_linear``), the mesh is rebuilt as ``neutral + w @ deltas`` and compared with the truth.
+(all frames at once: one ``lstsq``, then for the frames outside the bounds an ADMM start and a batched
+active-set method, :mod:`usdface.bounded_lsq`, with scipy's BVLS ``lsq_linear`` as a per-frame safety net;
+the minimum-norm optimum when the landmarks leave several), the mesh is rebuilt as ``neutral + w @ deltas``
+and compared with the truth.
 """
 
 from __future__ import annotations
