@@ -544,3 +544,26 @@ def test_landmarks_refuse_a_ray_count_before_any_work(samples, monkeypatch, rays
             call(rig, rays=rays)
         assert "avatar.usda" in str(err.value) and "/Avatar/Head" in str(err.value)
         assert "rays=16" in err.value.fix
+
+
+@pytest.mark.parametrize("options, said", [
+    ({"multicover": 2.5}, "multicover 2.5 is not a whole number >= 1"),      # was taken as 2
+    ({"multicover": "x"}, "multicover 'x' is not a whole number >= 1"),      # a ValueError of int()
+    ({"multicover": True}, "multicover True is not a whole number >= 1"),    # was taken as 1
+    ({"multicover": 2, "share": -1}, "share -1 is not in (0, 1]"),           # was taken
+    ({"multicover": 2, "share": "x"}, "share 'x' is not in (0, 1]"),         # a TypeError after the rays
+    ({"time_limit": -5}, "time_limit -5 is not a number of seconds > 0"),    # SCIP's errors, no landmark
+])
+def test_compute_landmarks_refuses_bad_cover_options_before_any_work(samples, monkeypatch, options, said):
+    """``compute_landmarks``' multi-cover and solver options checked with the others, before any work, in a
+    LandmarkError naming the file, the prim and the fix."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+    from usdface.landmarks import candidates
+
+    rig = api.pick_mesh(api.read_avatar(samples / "avatar.usda"))
+    monkeypatch.setattr(candidates, "relative_displacement",
+                        lambda *a, **k: pytest.fail("work started before the options were checked"))
+    with pytest.raises(LandmarkError) as err:
+        api.compute_landmarks(rig, **options)
+    assert said in str(err.value) and "/Avatar/Head" in str(err.value) and err.value.fix

@@ -90,6 +90,13 @@ def _where(rig: FaceRig) -> dict:
     return {"path": rig.source.file if rig.source else None, "prim": rig.source.prim if rig.source else None}
 
 
+def _number_in(value, low: float, high: float) -> bool:
+    """Whether ``value`` is a real number (not a bool or a string) with ``low < value <= high``."""
+    if isinstance(value, bool | str) or not isinstance(value, int | float | np.integer | np.floating):
+        return False
+    return bool(low < float(value) <= high) and not np.isnan(float(value))
+
+
 def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]:
     where = _where(rig)
     if rig.n_shapes == 0:
@@ -295,13 +302,24 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                 "which also takes an avatar or its file")
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
-    rays = cand.check_rays(rays, **_where(rig))
+    rays = cand.check_rays(rays, **_where(rig))   # the rest below, all before any work
     if weighting not in WEIGHTINGS:
         raise LandmarkError(f"unknown weighting {weighting!r}", fix=f"use one of {', '.join(WEIGHTINGS)}")
     if backend not in BACKENDS:
         raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
-    if int(multicover) < 1:
-        raise LandmarkError(f"multicover {multicover} < 1", fix="pass the maximum landmarks per shape, >= 1")
+    where = _where(rig)
+    if isinstance(multicover, bool) or not isinstance(multicover, int | np.integer) or multicover < 1:
+        # 2.5 was taken as 2 and True as 1; "x" died in int()
+        raise LandmarkError(f"multicover {multicover!r:.30} is not a whole number >= 1", **where,
+                            fix="pass the maximum landmarks per shape, e.g. multicover=3 (--multicover; "
+                                "1 = a single cover)")
+    if not _number_in(share, 0.0, 1.0):       # -1 and 0 were taken, "x" died after the ray casting
+        raise LandmarkError(f"share {share!r:.30} is not in (0, 1]", **where,
+                            fix="pass the adaptive multi-cover's share of the shapes one landmark may serve, "
+                                "e.g. share=0.1 (the paper's 10 %)")
+    if not _number_in(time_limit, 0.0, np.inf):   # a negative one made SCIP print errors and return no layout
+        raise LandmarkError(f"time_limit {time_limit!r:.30} is not a number of seconds > 0", **where,
+                            fix="pass the solver's time limit in seconds, e.g. time_limit=60 (the default)")
     if one_shot and radius is not None:   # the one ILP has no exclusion: the radius would be ignored
         raise LandmarkError(f"one_shot takes no radius ({radius!r:.30}): the one-shot multi-cover is one "
                             "ILP without an exclusion radius", **_where(rig),
