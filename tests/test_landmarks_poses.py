@@ -40,7 +40,8 @@ def mouth_rig(names=("jawOpen", "mouthClose", "mouthShrugUpper")) -> tuple[FaceR
     jaw[is_lower, 1] = -SHIFT
     close = np.zeros_like(points)
     close[is_lower] = [0.0, SHIFT, 0.003]
-    covered = np.flatnonzero(~is_lower & (points[:, 1] < -GAP / 2 + SHIFT - 0.004) & (np.abs(points[:, 0]) < 0.02))
+    under = points[:, 1] < -GAP / 2 + SHIFT - 0.004          # what the lifted lower lip lies over
+    covered = np.flatnonzero(~is_lower & under & (np.abs(points[:, 0]) < 0.02))
     shrug = np.zeros_like(points)
     shrug[~is_lower, 2] = 0.001 * np.exp(-(points[~is_lower, 0] ** 2 + (points[~is_lower, 1] - 0.007) ** 2)
                                          / 2.5e-5)
