@@ -110,7 +110,7 @@ def camera_visibility(points: np.ndarray, triangles: np.ndarray, camera: np.ndar
 #: defines ``mouthClose`` as "closure of the lips independent of jaw position", whose values "can produce
 #: unrealistic facial expressions unless other coefficients are also set" (its figure: neutral, ``jawOpen``,
 #: ``jawOpen`` + ``mouthClose``). Alone it closes lips that are already closed: they pass through each other
-#: and the rays from the upper lip start inside the lower one. The phone never reports it alone (the four Live
+#: and the rays from the upper lip start under the lower one. The phone never reports it alone (the four Live
 #: Link Face takes, 11,780 frames: ``mouthClose`` exceeds ``jawOpen`` by at most 0.058). Only a shape whose
 #: definition ties it to another belongs here, not shapes that merely move together.
 POSE_BASES: dict[str, tuple[str, ...]] = {"mouthClose": ("jawOpen",)}
