@@ -72,13 +72,14 @@ def bench_backends(rig, repeat: int):
         relative_displacement,
     )
     from usdface.landmarks.cover import set_cover_costs, solve_set_cover
-    from usdface.landmarks.visibility import global_visibility
+    from usdface.landmarks.visibility import global_visibility, pose_bases
 
     r = relative_displacement(displacement_magnitudes(rig.deltas))
     c = candidate_sets(r, 0.5)
     need = np.flatnonzero(c.any(axis=0))
     vis = np.zeros(rig.n_vertices)
-    vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, 16)
+    vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, 16,
+                                  bases=pose_bases(rig.names))
     rows = []
     for weighting in ("quality", "count"):
         cost = set_cover_costs(c, landmark_quality(r, vis, 0.5), weighting)

@@ -1066,10 +1066,11 @@ def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5,
     from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
 
     _refuse_unknown_keywords(_diagnostics, options, "landmark_diagnostics",
-                             given=("neutral", "triangles", "deltas", "epsilon", "alpha"))
+                             given=("neutral", "triangles", "deltas", "epsilon", "alpha", "names"))
     rig = _as_rig(rig)
     try:
-        return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha, **options)
+        return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha,
+                            names=rig.names, **options)
     except LandmarkError as exc:     # the options are checked before any work: name the rig's file and prim
         if exc.path is None and rig.source is not None:
             raise LandmarkError(exc.message, path=rig.source.file, prim=rig.source.prim,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import candidates as cand
-from .visibility import FACE_SHARE, PoseVisibility
+from .visibility import FACE_SHARE, PoseVisibility, pose_bases
 
 #: Default share of a shape's peak displacement above which a vertex belongs to the diagnosed region: the
 #: face, as the ray offset's face size defines it.
@@ -59,14 +59,16 @@ class LandmarkDiagnostics:
 
 def landmark_diagnostics(neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, epsilon: float = 0.5,
                          alpha: float = 0.5, rays: int = 16, camera=None, region_share: float = REGION_SHARE,
-                         on_pose=None) -> LandmarkDiagnostics:
+                         on_pose=None, names=None) -> LandmarkDiagnostics:
     """Diagnostics of Zell & McDonnell 2022 (Figs. 3, 5) on the moving region of a rig.
 
     ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres; ``epsilon`` (eq. 3), ``alpha``
     (eq. 1), ``rays`` hemisphere rays per vertex or ``camera[3]`` (metres) as in
     :func:`usdface.landmarks.compute_landmarks`; ``region_share`` in (0, 1]: the region evaluated is the
     vertices some shape moves by at least this share of its own peak (relative, so the same surface region at
-    every resolution). ``on_pose(done, total)`` is called after each pose's rays (progress).
+    every resolution). ``on_pose(done, total)`` is called after each pose's rays (progress). ``names[K]``:
+    the shapes' names, so a shape authored over another is seen over it as the layout sees it
+    (:func:`usdface.landmarks.visibility.pose_bases`; without names every shape is posed alone).
     """
     eps = cand.check_epsilon(epsilon)
     a = cand.check_alpha(alpha)
@@ -78,7 +80,8 @@ def landmark_diagnostics(neutral: np.ndarray, triangles: np.ndarray, deltas: np.
     peak_r = r.max(axis=0, initial=0.0)
     region = np.flatnonzero(peak_r >= share)
     n = len(neutral)
-    vis_all = PoseVisibility(neutral, triangles, deltas, rays, camera, magnitudes=mag)
+    vis_all = PoseVisibility(neutral, triangles, deltas, rays, camera, magnitudes=mag,
+                             bases=None if names is None else pose_bases(names))
     neutral_vis = np.full(n, np.nan)
     vis = np.full(n, np.nan)
     neutral_vis[region] = vis_all.upper_bound(region)

@@ -17,7 +17,7 @@ from . import baselines
 from .candidates import candidate_sets, displacement_magnitudes, relative_displacement
 from .layout import compute_landmarks
 from .reconstruct import layout_error
-from .visibility import global_visibility
+from .visibility import global_visibility, pose_bases
 
 
 @dataclass
@@ -149,7 +149,8 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
         r = relative_displacement(displacement_magnitudes(rig.deltas))
         need = np.flatnonzero(candidate_sets(r, min(epsilons)).any(axis=0))
         vis = np.zeros(rig.n_vertices)
-        vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, rays)
+        vis[need] = global_visibility(rig.neutral, rig.triangles, rig.deltas, need, rays,
+                                      bases=pose_bases(rig.names))
     else:
         vis = np.ones(rig.n_vertices)
 

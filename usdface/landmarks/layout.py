@@ -23,7 +23,7 @@ from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
 from .multicover import adaptive_multicover, exclusion_radius, one_shot_multicover
 from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
-from .visibility import FACE_SHARE, PoseVisibility, face_size
+from .visibility import FACE_SHARE, PoseVisibility, face_size, pose_bases
 
 
 @dataclass
@@ -395,7 +395,8 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         def upper_plain(vertices):
             return np.nan_to_num(known[vertices], nan=1.0)
     else:
-        pose_vis = PoseVisibility(rig.neutral, occluder, rig.deltas, rays, camera, magnitudes=mag)
+        pose_vis = PoseVisibility(rig.neutral, occluder, rig.deltas, rays, camera, magnitudes=mag,
+                                  bases=pose_bases(rig.names))
         at = np.arange(rig.n_vertices) if owner is None else owner  # a vertex sees what its sample sees
 
         def lookup_plain():

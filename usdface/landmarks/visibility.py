@@ -2,6 +2,8 @@
 
 l_n = min over the neutral and every blendshape pose of the fraction of unoccluded rays on vertex n's
 normal hemisphere (per-vertex ambient occlusion), so a vertex that is hidden in any expression scores low.
+Each shape is posed at weight 1 on its own, except a shape authored to be used over another one
+(:data:`POSE_BASES`: ARKit's ``mouthClose`` over ``jawOpen``), which is posed over it (:func:`pose_bases`).
 With a known camera (head-mounted rig) one ray per vertex towards the camera replaces the hemisphere: l_n is 1
 when the vertex faces the camera and nothing is in between, in every pose, else 0.
 
@@ -102,6 +104,30 @@ def camera_visibility(points: np.ndarray, triangles: np.ndarray, camera: np.ndar
     return PoseVisibility(points, triangles, np.zeros((0,) + np.shape(points)), camera=camera)(vertices)
 
 
+#: ARKit shapes authored to be used over others, by canonical name: eq. 4's pose of such a shape is the shape
+#: at weight 1 over these at weight 1. The blendshape poses stand for the face's range of motion (Zell &
+#: McDonnell 2022, sec. 3.1.2: "given the blendshape model, we have a proxy for the range of motion"); Apple
+#: defines ``mouthClose`` as "closure of the lips independent of jaw position", whose values "can produce
+#: unrealistic facial expressions unless other coefficients are also set" (its figure: neutral, ``jawOpen``,
+#: ``jawOpen`` + ``mouthClose``). Alone it closes lips that are already closed: they pass through each other
+#: and the rays from the upper lip start under the lower one. The phone never reports it alone (the four Live
+#: Link Face takes, 11,780 frames: ``mouthClose`` exceeds ``jawOpen`` by at most 0.058). Only a shape whose
+#: definition ties it to another belongs here, not shapes that merely move together.
+POSE_BASES: dict[str, tuple[str, ...]] = {"mouthClose": ("jawOpen",)}
+
+
+def pose_bases(names) -> list[tuple[int, ...]]:
+    """Per shape of ``names[K]`` (any ARKit spelling, :func:`usdface.arkit.normalize_name`) the indices of the
+    shapes its eq. 4 pose adds at weight 1 (:data:`POSE_BASES`); ``()`` for every other shape, and for one
+    whose base the rig lacks (it is then posed alone, as the paper does)."""
+    from ..arkit import normalize_name
+
+    canon = [normalize_name(n) for n in names]
+    where = {c: i for i, c in enumerate(canon) if c is not None}
+    return [tuple(where[b] for b in POSE_BASES.get(c, ()) if b in where) if c is not None else ()
+            for c in canon]
+
+
 #: Offsets below this (metres) count as "not moving" when deciding which rays a pose can change.
 STATIC_OFFSET = 1e-7
 
@@ -116,11 +142,12 @@ class PoseVisibility:
 
     ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres (``magnitudes[K, n]``: their
     norms, when the caller has them, :func:`usdface.landmarks.candidates.displacement_magnitudes`). The poses
-    are the neutral and
-    each shape at weight 1. ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with
-    ``camera[3]`` metres in the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are
-    cached per vertex. :meth:`upper_bound` is the neutral pose's visibility alone: an upper bound of l_n at
-    1/(K+1) of the cost, which callers use to skip vertices that cannot matter.
+    are the neutral and each shape at weight 1, over the shapes ``bases[k]`` (indices, each at weight 1) for
+    a shape authored on top of others (:func:`pose_bases` of the shape names; default: every shape alone).
+    ``self(vertices)`` casts ``rays`` hemisphere rays per vertex and pose (or, with ``camera[3]`` metres in
+    the same frame, one ray to the camera) and returns ``l[v]`` in [0, 1]; results are cached per vertex.
+    :meth:`upper_bound` is the neutral pose's visibility alone: an upper bound of l_n at 1/(K+1) of the cost,
+    which callers use to skip vertices that cannot matter.
 
     Exact shortcut: a shape moves only part of the mesh. A ray from a vertex none of whose triangles move is
     the neutral's ray; if a triangle the shape leaves in place blocked it first in the neutral, it is still
@@ -135,7 +162,7 @@ class PoseVisibility:
     """
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, rays: int = 16,
-                 camera=None, magnitudes: np.ndarray | None = None):
+                 camera=None, magnitudes: np.ndarray | None = None, bases=None):
         neutral = np.asarray(neutral, dtype=np.float64)
         deltas = np.asarray(deltas, dtype=np.float64)
         if not np.isfinite(neutral).all() or not np.isfinite(deltas).all():
@@ -156,6 +183,15 @@ class PoseVisibility:
             peak = mag.max(initial=0.0)
             if peak > 0.0:
                 np.maximum(share, mag / peak, out=share)
+        self.bases = [()] * len(deltas) if bases is None else [tuple(int(j) for j in b) for b in bases]
+        if len(self.bases) != len(deltas) or any(not 0 <= j < len(deltas) or j == k
+                                                 for k, b in enumerate(self.bases) for j in b):
+            raise GeometryError(f"pose bases {bases!r} do not index the {len(deltas)} shapes",
+                                fix="pass per shape a tuple of other shapes' indices (visibility.pose_bases)")
+        moving_own = self._moving_v.copy()
+        for k, b in enumerate(self.bases):  # a pose over its bases moves what they move too
+            for j in b:
+                self._moving_v[k] |= moving_own[j]
         self.offset = max(RAY_OFFSET * face_size(neutral, share), 1e-9)
         self._neutral_scene = None
         self._neutral_normals = None
@@ -309,6 +345,14 @@ class PoseVisibility:
         union = (0 if ("union scene", k) in self._cache else build * ever_count) + 2 * cast * rays
         return union < full
 
+    def pose(self, k: int) -> np.ndarray:
+        """Eq. 4's pose of shape ``k`` ``[n, 3]`` metres: the neutral + shape k + its :attr:`bases`, each at
+        weight 1."""
+        pose = self.neutral + self.deltas[k]
+        for j in self.bases[k]:
+            pose += self.deltas[j]
+        return pose
+
     @property
     def order(self) -> np.ndarray:
         """Shape poses in evaluation order ``[K]``, most moving triangles first: big motions occlude most, so
@@ -339,7 +383,7 @@ class PoseVisibility:
             recast = same & ~blocked
             normals, facing = n0, facing0
             if recast.any() or affected.any():
-                pose = self.neutral + self.deltas[k]
+                pose = self.pose(int(k))
                 if self._use_union(k, int(recast.sum()) + int(affected.sum()) * per):
                     ever, static_scene = self._union()
                     scene = self._union_scene(k, pose, ever)
@@ -389,12 +433,13 @@ class PoseVisibility:
 
 def global_visibility(neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
                       vertices: np.ndarray | None = None, rays: int = 16,
-                      camera: np.ndarray | None = None) -> np.ndarray:
+                      camera: np.ndarray | None = None, bases=None) -> np.ndarray:
     """Global visibility l_n (Zell & McDonnell 2022, eq. 4): minimum over the neutral and every shape pose.
 
     ``neutral[n, 3]`` metres, ``triangles[t, 3]``, ``deltas[K, n, 3]`` metres; ``vertices[v]`` restricts the
     work to the vertices that matter (e.g. landmark candidates; default all) -> ``l[v]`` in [0, 1].
     Hemisphere ambient occlusion with ``rays`` rays, or with ``camera[3]`` (metres, internal frame) the
-    single-ray known-camera test. See :class:`PoseVisibility`.
+    single-ray known-camera test; ``bases``: per shape the shapes its pose is over (:func:`pose_bases`).
+    See :class:`PoseVisibility`.
     """
-    return PoseVisibility(neutral, triangles, deltas, rays, camera)(vertices)
+    return PoseVisibility(neutral, triangles, deltas, rays, camera, bases=bases)(vertices)
