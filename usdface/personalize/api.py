@@ -21,6 +21,7 @@ from .fit import (
     D_CLAMP,
     FitSystem,
     PositionFit,
+    _take1,
     blend,
     data_share,
     estimate_variance,
@@ -625,13 +626,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             cv = info.get("crossval")
             if cv is None or "fit" not in cv:
                 cand = cv_vertices(D, clamp)
-                pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
-                                 D[:, cand])
+                pf = PositionFit(capture.neutral[cand], _take1(points, cand), weights,
+                                 _take1(prior_deltas, cand), D[:, cand])
                 info["crossval"] = {"fit": pf, "vertices": cand}
             else:
                 pf, cand = cv["fit"], cv["vertices"]
-                pf.set_prior(prior_deltas[:, cand])
-            helps, test = _alignment_generalises(pf, points[:, cand], lam, info)
+                pf.set_prior(_take1(prior_deltas, cand))
+            helps, test = _alignment_generalises(pf, _take1(points, cand), lam, info)
             info["align"] = {"applied": helps, "held_out_rmse_mm": test, "passes": 0,
                              "max_rotation_deg": 0.0, "max_translation_mm": 0.0}
             for _ in range(ALIGN_PASSES if helps else 0):
@@ -640,7 +641,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                        alt=tmpl.deltas, alpha=alpha, clamp=clamp)
                 if auto:
                     cv = info["crossval"]
-                    cv["fit"].set_points(points[:, cv["vertices"]])
+                    cv["fit"].set_points(_take1(points, cv["vertices"]))
                     # re-tune around the previous choice only (same prior, +-1 decade)
                     lam, a2 = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info,
                                        timings, fit=cv["fit"], vertices=cv["vertices"],
@@ -1387,11 +1388,12 @@ def _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp=D_CLAMP
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         pf, cand = cv["fit"], cv["vertices"]
-        pf.set_points(points[:, cand])
-        pf.set_prior(prior_deltas[:, cand])
+        pf.set_points(_take1(points, cand))
+        pf.set_prior(_take1(prior_deltas, cand))
         return pf, cand
     cand = cv_vertices(D, clamp)
-    pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
+    pf = PositionFit(capture.neutral[cand], _take1(points, cand), weights, _take1(prior_deltas, cand),
+                     D[:, cand])
     info["crossval"] = {"fit": pf, "vertices": cand}
     return pf, cand
 
@@ -1492,7 +1494,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     on_cand = np.take(points, cand, axis=1)                       # points[:, cand], gathered once
     pf.set_points(on_cand)
     if prior_deltas is not None:
-        pf.set_prior(prior_deltas[:, cand])
+        pf.set_prior(_take1(prior_deltas, cand))
     else:
         pf.set_prior_mix(alpha)
     residuals = pf.loo_residuals(reg)
