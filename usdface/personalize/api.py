@@ -14,7 +14,13 @@ from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
 from .align import distinct_frames, expression_weights, rigid_transforms
-from .amplitude import combined_amplitude, each_frame_left_out, held_out_amplitude, peak_amplitude_variance
+from .amplitude import (
+    amplitude_terms,
+    combined_amplitude,
+    each_frame_left_out,
+    held_out_amplitude,
+    peak_amplitude_variance,
+)
 from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
@@ -914,12 +920,16 @@ def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None) ->
         return deltas
     test_var = weight_error_variance(capture.neutral, test.points, test.weights, deltas,
                                      np.ones(test.weights.shape, dtype=bool), noise=noise)
-    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var)
+    # the test frames' terms (the shapes' Gram matrix, every frame's projection on them) formed once for the
+    # reading and its leave-one-frame-out copies
+    terms = amplitude_terms(capture.neutral, test.points, test.weights, deltas, test_var)
+    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var,
+                                              terms=terms)
     peak_var = peak_amplitude_variance(train.weights, fit_var)
     scale = combined_amplitude(reading, reading_var, peak_var)
     # each test frame's own reading left out: the scale eq. 5 scores that frame with (cross-fitted)
     left_out = combined_amplitude(*each_frame_left_out(capture.neutral, test.points, test.weights, deltas,
-                                                       test_var), peak_var)
+                                                       test_var, terms=terms), peak_var)
     if pinned is not None:
         held = np.asarray(pinned).any(axis=1)
         scale = np.where(held, 1.0, scale)
