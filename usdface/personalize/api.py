@@ -13,7 +13,7 @@ from ..errors import warn as _warn
 from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
-from .align import distinct_frames, expression_weights, rigid_transforms
+from .align import distinct_frames, expression_weights, rigid_transforms, rigid_transforms_sets
 from .amplitude import (
     amplitude_terms,
     combined_amplitude,
@@ -1470,18 +1470,22 @@ def _alignment_generalises(pf, points, reg, info):
     before, after = np.zeros(len(points)), np.zeros(len(points))
     unaligned = (points - target) ** 2                       # [F,m,3] squared residuals as the frames are
     count = 0
+    halves = []
     for ax in axes:
         side = nb @ ax > 0
         for half in (side, ~side):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
-            if len(est) < 6 or len(out) == 0:
-                continue
-            R, t = rigid_transforms(points, target, est, groups=groups, weights=base[:, est])
-            p_out = np.take(points, out, axis=1)
-            moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
-            before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
-            after += np.sum((moved - np.take(target, out, axis=1)) ** 2, axis=(1, 2))
-            count += p_out.size
+            if len(est) >= 6 and len(out):
+                halves.append((est, out))
+    # the halves' robust fits side by side (one batched 3x3 SVD an iteration), each as it is alone
+    fits = (rigid_transforms_sets(points, target, [est for est, _ in halves], groups=groups, weights=base)
+            if halves else [])
+    for (_, out), (R, t) in zip(halves, fits, strict=True):
+        p_out = np.take(points, out, axis=1)
+        moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
+        before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
+        after += np.sum((moved - np.take(target, out, axis=1)) ** 2, axis=(1, 2))
+        count += p_out.size
     count = max(count, 1)
     return bool(after.sum() < before.sum()), {"aligned": float(np.sqrt(after.sum() / count) * 1000),
                                                  "original": float(np.sqrt(before.sum() / count) * 1000)}
