@@ -92,13 +92,14 @@ class FitResult:
         return f"<FitResult {info.get('method', '?')}{reg}: {self.rig!r}; info: {', '.join(map(str, info))}>"
 
 
-def check_capture(capture: Capture) -> list[str]:
+def check_capture(capture: Capture, *, train=None) -> list[str]:
     """Validate a capture for fitting; raise on unusable input, return warnings for degraded input.
 
     Raises :class:`GeometryError` (vertex-count mismatch, degenerate template triangles, non-finite points)
     or :class:`FitError` (no training frames, no shapes). Warns (returned strings) about fewer training
     frames than shapes, shapes never activated in training (by name) and training frames that repeat another
-    exactly (:func:`duplicate_frames`, by label).
+    exactly (:func:`duplicate_frames`, by label). ``train``: the capture's training frames if the caller
+    has them (``capture.train`` copies them).
     """
     src = capture.source or None
     n = len(capture.neutral)
@@ -116,7 +117,7 @@ def check_capture(capture: Capture) -> list[str]:
                             fix="every frame must be on the capture topology, in the same vertex order")
     check_triangles(tmpl.neutral, capture.triangles, what="template neutral", path=src)
     check_triangles(capture.neutral, capture.triangles, what="neutral scan", path=src)
-    train = capture.train
+    train = capture.train if train is None else train
     if len(train) == 0:
         raise FitError("no training frames", path=src, fix="add frames with role 'train' (train/ folder)")
     if not np.all(np.isfinite(train.points)) or not np.all(np.isfinite(train.weights)):
@@ -541,7 +542,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
     t0 = time.perf_counter()
-    warn = check_capture(capture)
+    train = capture.train                  # one copy of the training frames for the checks and the fit
+    n_test = capture.frames.role.count("test")
+    warn = check_capture(capture, train=train)
     for w in warn:
         _warn(w)                                # at the caller's line
     info: dict = {"method": method, "warnings": warn, "timings": timings}
@@ -551,7 +554,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
              if eyelids or method in ("menzel", "laplacian") else None)
     generic = _generic_shapes(capture, eyelids, loops)
     timings["dt"] = time.perf_counter() - t1
-    train = capture.train
     points, weights = train.points, train.weights
     if every > 1:
         points, weights = points[::every], weights[::every]
@@ -826,9 +828,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # no more than the personalization stands above its estimate's noise (a take has its own model)
             info["shape_reliability"] = reliable(deltas)
             info["shape_confidence"] = np.minimum(info["shape_confidence"], info["shape_reliability"])
-        if amplitude and method == "menzel" and frame_weights is None and len(capture.test) and len(w_cur):
+        if amplitude and method == "menzel" and frame_weights is None and n_test and len(w_cur):
             deltas = _test_frames_amplitude(capture, deltas, info, mask if pins is not None else None,
-                                            basis=basis)
+                                            basis=basis, train=train)
         if weak_prior and len(w_cur):
             # a shape no frame measures returns to its prior (a pinned vertex, at the template in both, stays)
             excitation = np.sum(np.asarray(info.get("train_weights", w_cur), dtype=np.float64) ** 2, axis=0)
@@ -837,7 +839,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             info["weak"] = {capture.names[k]: round(float(ramp[k]), 3) for k in np.flatnonzero(ramp < 1.0)}
     info["steps"] = fit_steps(info, method, align=align, reweight=reweight, amplitude=amplitude,
                               weak_prior=bool(weak_prior), take=frame_weights is not None,
-                              test_frames=len(capture.test))
+                              test_frames=n_test)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -903,14 +905,15 @@ def left_out_scale(result, frames) -> np.ndarray | None:
     return np.asarray(scale, dtype=np.float64)
 
 
-def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None) -> np.ndarray:
+def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None, train=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
     reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The
     phone's weights' noise ``s`` is the training frames' (every report inside the clip); a shape an artist
     pinned keeps its scale (``pinned[K,n]``). ``basis``: :func:`.weights.shape_basis` of these ``deltas``
-    when the fit has it (its sensitivity step decomposed them)."""
-    train, test = capture.train, capture.test
+    when the fit has it (its sensitivity step decomposed them); ``train``: the capture's training frames if
+    the caller has them (``capture.train`` copies them)."""
+    train, test = (capture.train if train is None else train), capture.test
     every = np.ones(train.weights.shape, dtype=bool)
     residuals = weight_residuals(capture.neutral, train.points, train.weights, deltas, basis=basis)
     fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every,
