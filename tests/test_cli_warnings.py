@@ -23,7 +23,7 @@ def test_json_documents_stay_parseable_when_something_warns(tmp_path, capsys, mo
     from usdface.cli import main
 
     real = fit_api.check_capture
-    monkeypatch.setattr(fit_api, "check_capture", lambda c: real(c) + ["a library warning"])
+    monkeypatch.setattr(fit_api, "check_capture", lambda c, **kw: real(c, **kw) + ["a library warning"])
     assert main(["fit", str(C), "-o", str(tmp_path / "r.usda"), "--reg", "0.01", "--json"]) == 0
     out, err = capsys.readouterr()
     doc = json.loads(out)

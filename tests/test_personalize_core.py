@@ -10,7 +10,13 @@ from scipy.spatial.transform import Rotation
 from synthetic_meshes import grid_triangles
 
 from usdface.errors import GeometryError
-from usdface.personalize.align import expression_weights, kabsch, rigid_align, rigid_transforms
+from usdface.personalize.align import (
+    expression_weights,
+    kabsch,
+    rigid_align,
+    rigid_transforms,
+    rigid_transforms_sets,
+)
 from usdface.personalize.dt import PoissonSolver, deformation_transfer, eyelid_triangles, zip_loop
 from usdface.personalize.fit import PositionFit, fit_blendshapes, regularization_weights
 from usdface.personalize.weights import reestimate_weights
@@ -539,3 +545,30 @@ def test_a_fit_on_any_thread_runs_with_one_blas_thread(first_on):
             seen, name = call()
             assert max(seen) == 1, f"BLAS ran {seen} threads inside a fit on {name}"
             assert counts() == before
+
+
+def test_rigid_transforms_of_several_vertex_sets_side_by_side_are_each_sets_own_to_the_bit():
+    """The alignment test's half-face fits run side by side (one batched 3x3 SVD an iteration): each vertex
+    set gets the transforms :func:`rigid_transforms` gives it alone, with and without repeated frames and
+    prior weights, sets of different sizes (odd and even, for the median)."""
+    rng = np.random.default_rng(5)
+    F, n = 7, 40
+    ref = rng.normal(size=(n, 3))
+    rot = Rotation.from_rotvec(rng.normal(scale=0.05, size=(F, 3))).as_matrix()
+    pts = np.einsum("fij,nj->fni", rot, ref) + rng.normal(scale=0.01, size=(F, 1, 3))
+    pts += rng.normal(scale=1e-3, size=pts.shape)
+    pts[3] = pts[1]                                             # a repeated frame
+    target = pts + rng.normal(scale=1e-3, size=pts.shape)
+    target[3] = target[1]
+    base = rng.uniform(0.5, 1.5, size=(F, n))
+    base[3] = base[1]
+    sets = [np.arange(0, 17), np.arange(10, 40), np.flatnonzero(np.arange(n) % 3 == 0), np.arange(n) < 25]
+    for groups in (False, ((np.array([0, 1, 2, 4, 5, 6])), np.array([0, 1, 2, 1, 3, 4, 5]))):
+        for weights in (None, base):
+            together = rigid_transforms_sets(pts, target, sets, groups=groups, weights=weights)
+            for vertices, (R, t) in zip(sets, together, strict=True):
+                alone = rigid_transforms(pts, target, vertices, groups=groups,
+                                         weights=None if weights is None
+                                         else weights[:, np.flatnonzero(vertices) if vertices.dtype == bool
+                                                      else vertices])
+                assert np.array_equal(R, alone[0]) and np.array_equal(t, alone[1])

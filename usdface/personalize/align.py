@@ -13,8 +13,8 @@ import numpy as np
 
 from ..mesh import vector_lengths
 
-__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "distinct_frames",
-           "expression_weights"]
+__all__ = ["static_vertices", "kabsch", "rigid_align", "rigid_transforms", "rigid_transforms_sets",
+           "distinct_frames", "expression_weights"]
 
 
 def static_vertices(generic_deltas: np.ndarray, *, rel: float = 0.05, min_count: int = 12) -> np.ndarray:
@@ -40,7 +40,18 @@ def _kabsch_prepared(srcA, dstA, w):
     of ones; :func:`_homogeneous`), made once per point set: one batched product gives the weighted moments
     ``[[sum w s d^T, sum w s], [sum w d^T, sum w]]``, hence ``H = src^T diag(w~) dst - c_s c_d^T`` (``w~`` the
     normalised weights) without centred copies."""
-    M = np.matmul(srcA * w[:, None, :], np.swapaxes(dstA, 1, 2))                    # [F,4,4]
+    return _kabsch_moments(_moments(srcA, dstA, w))
+
+
+def _moments(srcA, dstA, w):
+    """The weighted moments ``[F,4,4]`` of :func:`_kabsch_prepared` (one batched product)."""
+    return np.matmul(srcA * w[:, None, :], np.swapaxes(dstA, 1, 2))
+
+
+def _kabsch_moments(M):
+    """``(R[F,3,3], t[F,3])`` of :func:`_kabsch_prepared` from its moments ``M[F,4,4]`` (:func:`_moments`),
+    frame by frame: the moments of several point sets stacked go through one batched SVD, each frame's
+    transform the one it gets alone."""
     sw = np.maximum(M[:, 3, 3], 1e-300)[:, None]
     cs, cd = M[:, :3, 3] / sw, M[:, 3, :3] / sw                                      # [F,3]
     H = M[:, :3, :3] / sw[:, :, None] - cs[:, :, None] * cd[:, None, :]              # [F,3,3]
@@ -163,29 +174,77 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
     return (R, t) if groups is None else (R[groups[1]], t[groups[1]])
 
 
+def rigid_transforms_sets(points: np.ndarray, reference: np.ndarray, vertex_sets, *, groups,
+                          iterations: int = 10, weights=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`rigid_transforms` (robust) of the same frames on each of several vertex sets: ``[(R[F,3,3],
+    t[F,3]), ...]``, one per set of ``vertex_sets``, each the transforms that set gets alone (to the bit).
+    The sets' re-weighting loops run side by side and their 3x3 Kabsch SVDs go through LAPACK in one batched
+    call an iteration (the alignment test's four half-faces: four calls of 28 small SVDs became one of 112).
+    ``groups``: the frames' :func:`distinct_frames` (``(first, inverse)``, or False: every frame distinct),
+    as :func:`rigid_transforms` takes it from a caller; ``weights[F,n_ref]``: per-frame prior weights of every
+    vertex the sets index (each set takes its own columns)."""
+    P = np.asarray(points, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    base = None if weights is None else np.asarray(weights, dtype=np.float64)
+    if groups is None:
+        raise ValueError("rigid_transforms_sets needs the frames' groups (or False)")
+    if groups:                            # the distinct frames' rows only (the same numbers)
+        ref = ref[groups[0]] if ref.ndim == 3 and len(ref) == len(P) else ref
+        base = None if base is None else base[groups[0]]
+        P = P[groups[0]]
+    sets = []
+    for vertices in vertex_sets:
+        vertices = np.asarray(vertices)
+        if vertices.dtype == bool:
+            vertices = np.flatnonzero(vertices)
+        src = np.take(P, vertices, axis=1)
+        dst = np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
+        sets.append((src, dst, None if base is None else base[:, vertices]))
+    out = _robust_kabsch_sets(sets, True, iterations)
+    return out if not groups else [(R[groups[1]], t[groups[1]]) for R, t in out]
+
+
 def _robust_kabsch(src, dst, robust, iterations, base=None):
     """:func:`rigid_transforms` on the points ``src[F,m,3]`` and ``dst[F,m,3]`` (m), re-weighted
     ``iterations`` times with ``robust``: ``(R[F,3,3], t[F,3])``; ``base[F,m]`` multiplies every weight."""
-    srcA, dstA = _homogeneous(src, dst)
-    base = np.ones(src.shape[:2]) if base is None else base
-    w = base
-    R, t = _kabsch_prepared(srcA, dstA, w)
-    m = src.shape[1]
-    srcT, dstT = srcA[:, :3], dstA[:, :3]                            # coordinate planes [F,3,m]
+    return _robust_kabsch_sets([(src, dst, base)], robust, iterations)[0]
+
+
+def _robust_kabsch_sets(sets, robust, iterations):
+    """:func:`_robust_kabsch` of every ``(src[F,m_s,3], dst[F,m_s,3], base[F,m_s] or None)`` of ``sets`` (the
+    same frames ``F``, each set its own points), the loops side by side: each set's residuals, median and
+    weights on its own points, the moments of every set through one :func:`_kabsch_moments` (stacked).
+    ``[(R, t), ...]``, each set's transforms as it gets them alone."""
+    prepared = []
+    for src, dst, base in sets:
+        srcA, dstA = _homogeneous(src, dst)
+        prepared.append((srcA, dstA, np.ones(src.shape[:2]) if base is None else base))
+    F = len(prepared[0][0])
+
+    def transforms(ws):
+        M = [_moments(srcA, dstA, w) for (srcA, dstA, _), w in zip(prepared, ws, strict=True)]
+        R, t = _kabsch_moments(M[0] if len(M) == 1 else np.concatenate(M))
+        return [(R[i * F:(i + 1) * F], t[i * F:(i + 1) * F]) for i in range(len(M))]
+
+    Rt = transforms([base for _, _, base in prepared])
     for _ in range(iterations if robust else 0):
-        d = np.matmul(R, srcT)                                       # residual R src + t - dst  [F,3,m]
-        d += t[:, :, None]
-        d -= dstT
-        r = np.sqrt(np.einsum("fcm,fcm->fm", d, d))
-        # the median (np.median's value): one partition at m // 2; for even m the lower middle is the
-        # largest value below it
-        part = np.partition(r, m // 2, axis=1)
-        lower = part[:, m // 2] if m % 2 else part[:, :m // 2].max(axis=1)
-        med = (0.5 * (lower + part[:, m // 2]))[:, None]
-        s = 1.4826 * med + 1e-12
-        w = base / (1.0 + (r / (2.0 * s)) ** 2) ** 2
-        R, t = _kabsch_prepared(srcA, dstA, w)
-    return R, t
+        ws = []
+        for (srcA, dstA, base), (R, t) in zip(prepared, Rt, strict=True):
+            m = srcA.shape[2]
+            srcT, dstT = srcA[:, :3], dstA[:, :3]                        # coordinate planes [F,3,m]
+            d = np.matmul(R, srcT)                                       # residual R src + t - dst  [F,3,m]
+            d += t[:, :, None]
+            d -= dstT
+            r = np.sqrt(np.einsum("fcm,fcm->fm", d, d))
+            # the median (np.median's value): one partition at m // 2; for even m the lower middle is the
+            # largest value below it
+            part = np.partition(r, m // 2, axis=1)
+            lower = part[:, m // 2] if m % 2 else part[:, :m // 2].max(axis=1)
+            med = (0.5 * (lower + part[:, m // 2]))[:, None]
+            s = 1.4826 * med + 1e-12
+            ws.append(base / (1.0 + (r / (2.0 * s)) ** 2) ** 2)
+        Rt = transforms(ws)
+    return Rt
 
 
 def expression_weights(weights, prior, residuals) -> np.ndarray:

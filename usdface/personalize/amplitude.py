@@ -21,7 +21,8 @@ import numpy as np
 
 from .weights import peak_frames
 
-__all__ = ["combined_amplitude", "each_frame_left_out", "held_out_amplitude", "peak_amplitude_variance"]
+__all__ = ["amplitude_terms", "combined_amplitude", "each_frame_left_out", "held_out_amplitude",
+           "peak_amplitude_variance"]
 
 
 def peak_amplitude_variance(weights, variance) -> np.ndarray:
@@ -36,7 +37,8 @@ def peak_amplitude_variance(weights, variance) -> np.ndarray:
     return np.asarray(variance, dtype=np.float64)[peak, cols] / np.maximum(w[peak, cols], 1e-3) ** 2
 
 
-def held_out_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
+def held_out_amplitude(neutral, points, weights, deltas, variance, *,
+                       terms=None) -> tuple[np.ndarray, np.ndarray]:
     """``(a[K], var[K])``: each fitted shape's amplitude as the test frames read it, relative to the fitted
     shape (1: the fit's own), and its variance from the test weights' errors. ``neutral[n,3]``,
     ``points[T,n,3]`` metres, ``weights[T,K]`` the phone's reports, ``deltas[K,n,3]`` the fitted shapes,
@@ -62,31 +64,36 @@ def held_out_amplitude(neutral, points, weights, deltas, variance) -> tuple[np.n
     ``<R_t, B_k>^2 - sum_m v_tm <B_k, B_m>^2`` over them (over every frame if each reports it), at least 0,
     adds ``sum_t r_tk^2 c_k / den_k^2``. Without it a capture whose weights are the phone mesh's own (the
     weights' noise 0.0005) reads the fitted shapes' errors at that noise's tiny variance. A shape the test
-    frames do not show (``den <= 0``; every shape when ``T = 0``) reads 1 at infinite variance."""
-    terms = _amplitude_terms(neutral, points, weights, deltas, variance)
+    frames do not show (``den <= 0``; every shape when ``T = 0``) reads 1 at infinite variance. ``terms``:
+    :func:`amplitude_terms` of these arrays if the caller has them (:func:`each_frame_left_out` sums the
+    same)."""
+    terms = amplitude_terms(neutral, points, weights, deltas, variance) if terms is None else terms
     if terms is None:                                # no test frames: every shape unseen
         K = np.asarray(weights).shape[1]
         return np.ones(K), np.full(K, np.inf)
     return _reading(terms, None)
 
 
-def each_frame_left_out(neutral, points, weights, deltas, variance) -> tuple[np.ndarray, np.ndarray]:
+def each_frame_left_out(neutral, points, weights, deltas, variance, *,
+                        terms=None) -> tuple[np.ndarray, np.ndarray]:
     """``(a[T,K], var[T,K])``: :func:`held_out_amplitude` read once per test frame ``t`` on the other
     ``T - 1`` frames (same arguments): the reading with which frame ``t`` is scored when the fit reads its
     amplitudes on the test frames (eq. 5 cross-fitted: no frame scores a reading it took part in). Each sum
     of the reading (numerator, denominator, variance, the unexplained part's mean over the frames that do
     not report the shape) less frame ``t``'s own term, so row ``t`` equals :func:`held_out_amplitude` of the
-    frames without ``t`` exactly. ``[0,K]`` with no test frames."""
-    terms = _amplitude_terms(neutral, points, weights, deltas, variance)
+    frames without ``t`` exactly. ``[0,K]`` with no test frames. ``terms``: :func:`amplitude_terms` of these
+    arrays if the caller has them."""
+    terms = amplitude_terms(neutral, points, weights, deltas, variance) if terms is None else terms
     if terms is None:
         K = np.asarray(weights).shape[1]
         return np.ones((0, K)), np.full((0, K), np.inf)
     return _reading(terms, np.eye(len(terms["rr"]), dtype=bool))
 
 
-def _amplitude_terms(neutral, points, weights, deltas, variance) -> dict | None:
-    """Per test frame and shape, the terms :func:`held_out_amplitude` sums over frames (``[T,K]`` each; the
-    shapes' squared norms ``[K]``), or None with no test frames."""
+def amplitude_terms(neutral, points, weights, deltas, variance) -> dict | None:
+    """Per test frame and shape, the terms :func:`held_out_amplitude` and :func:`each_frame_left_out` sum
+    over frames (``[T,K]`` each; the shapes' squared norms ``[K]``), or None with no test frames: formed once
+    when a caller reads both (the shapes' Gram matrix and every frame's projection on them)."""
     r = np.asarray(weights, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
     if len(r) == 0:

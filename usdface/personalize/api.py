@@ -13,14 +13,21 @@ from ..errors import warn as _warn
 from ..locks import SharedWhileInside
 from ..mesh import boundary_loops, check_triangles, mesh_scale, squared_lengths
 from ..model import Capture, FaceRig
-from .align import distinct_frames, expression_weights, rigid_transforms
-from .amplitude import combined_amplitude, each_frame_left_out, held_out_amplitude, peak_amplitude_variance
+from .align import distinct_frames, expression_weights, rigid_transforms, rigid_transforms_sets
+from .amplitude import (
+    amplitude_terms,
+    combined_amplitude,
+    each_frame_left_out,
+    held_out_amplitude,
+    peak_amplitude_variance,
+)
 from .crossval import choose_regularization, cv_vertices
 from .dt import deformation_transfer
 from .fit import (
     D_CLAMP,
     FitSystem,
     PositionFit,
+    _take1,
     blend,
     data_share,
     estimate_variance,
@@ -85,13 +92,14 @@ class FitResult:
         return f"<FitResult {info.get('method', '?')}{reg}: {self.rig!r}; info: {', '.join(map(str, info))}>"
 
 
-def check_capture(capture: Capture) -> list[str]:
+def check_capture(capture: Capture, *, train=None) -> list[str]:
     """Validate a capture for fitting; raise on unusable input, return warnings for degraded input.
 
     Raises :class:`GeometryError` (vertex-count mismatch, degenerate template triangles, non-finite points)
     or :class:`FitError` (no training frames, no shapes). Warns (returned strings) about fewer training
     frames than shapes, shapes never activated in training (by name) and training frames that repeat another
-    exactly (:func:`duplicate_frames`, by label).
+    exactly (:func:`duplicate_frames`, by label). ``train``: the capture's training frames if the caller
+    has them (``capture.train`` copies them).
     """
     src = capture.source or None
     n = len(capture.neutral)
@@ -109,7 +117,7 @@ def check_capture(capture: Capture) -> list[str]:
                             fix="every frame must be on the capture topology, in the same vertex order")
     check_triangles(tmpl.neutral, capture.triangles, what="template neutral", path=src)
     check_triangles(capture.neutral, capture.triangles, what="neutral scan", path=src)
-    train = capture.train
+    train = capture.train if train is None else train
     if len(train) == 0:
         raise FitError("no training frames", path=src, fix="add frames with role 'train' (train/ folder)")
     if not np.all(np.isfinite(train.points)) or not np.all(np.isfinite(train.weights)):
@@ -534,7 +542,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
     avatar, avatar_ok = _check_avatar_prior(avatar_prior, capture, method, prior)
     timings = {}
     t0 = time.perf_counter()
-    warn = check_capture(capture)
+    train = capture.train                  # one copy of the training frames for the checks and the fit
+    n_test = capture.frames.role.count("test")
+    warn = check_capture(capture, train=train)
     for w in warn:
         _warn(w)                                # at the caller's line
     info: dict = {"method": method, "warnings": warn, "timings": timings}
@@ -544,7 +554,6 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
              if eyelids or method in ("menzel", "laplacian") else None)
     generic = _generic_shapes(capture, eyelids, loops)
     timings["dt"] = time.perf_counter() - t1
-    train = capture.train
     points, weights = train.points, train.weights
     if every > 1:
         points, weights = points[::every], weights[::every]
@@ -625,13 +634,13 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             cv = info.get("crossval")
             if cv is None or "fit" not in cv:
                 cand = cv_vertices(D, clamp)
-                pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand],
-                                 D[:, cand])
+                pf = PositionFit(capture.neutral[cand], _take1(points, cand), weights,
+                                 _take1(prior_deltas, cand), D[:, cand])
                 info["crossval"] = {"fit": pf, "vertices": cand}
             else:
                 pf, cand = cv["fit"], cv["vertices"]
-                pf.set_prior(prior_deltas[:, cand])
-            helps, test = _alignment_generalises(pf, points[:, cand], lam, info)
+                pf.set_prior(_take1(prior_deltas, cand))
+            helps, test = _alignment_generalises(pf, _take1(points, cand), lam, info)
             info["align"] = {"applied": helps, "held_out_rmse_mm": test, "passes": 0,
                              "max_rotation_deg": 0.0, "max_translation_mm": 0.0}
             for _ in range(ALIGN_PASSES if helps else 0):
@@ -640,7 +649,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                        alt=tmpl.deltas, alpha=alpha, clamp=clamp)
                 if auto:
                     cv = info["crossval"]
-                    cv["fit"].set_points(points[:, cv["vertices"]])
+                    cv["fit"].set_points(_take1(points, cv["vertices"]))
                     # re-tune around the previous choice only (same prior, +-1 decade)
                     lam, a2 = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info,
                                        timings, fit=cv["fit"], vertices=cv["vertices"],
@@ -819,9 +828,9 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             # no more than the personalization stands above its estimate's noise (a take has its own model)
             info["shape_reliability"] = reliable(deltas)
             info["shape_confidence"] = np.minimum(info["shape_confidence"], info["shape_reliability"])
-        if amplitude and method == "menzel" and frame_weights is None and len(capture.test) and len(w_cur):
+        if amplitude and method == "menzel" and frame_weights is None and n_test and len(w_cur):
             deltas = _test_frames_amplitude(capture, deltas, info, mask if pins is not None else None,
-                                            basis=basis)
+                                            basis=basis, train=train)
         if weak_prior and len(w_cur):
             # a shape no frame measures returns to its prior (a pinned vertex, at the template in both, stays)
             excitation = np.sum(np.asarray(info.get("train_weights", w_cur), dtype=np.float64) ** 2, axis=0)
@@ -830,7 +839,7 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
             info["weak"] = {capture.names[k]: round(float(ramp[k]), 3) for k in np.flatnonzero(ramp < 1.0)}
     info["steps"] = fit_steps(info, method, align=align, reweight=reweight, amplitude=amplitude,
                               weak_prior=bool(weak_prior), take=frame_weights is not None,
-                              test_frames=len(capture.test))
+                              test_frames=n_test)
     info.pop("crossval_fit", None)
     if "crossval" in info:
         info["crossval"] = {k: v for k, v in info["crossval"].items() if k not in ("fit", "vertices")}
@@ -896,14 +905,15 @@ def left_out_scale(result, frames) -> np.ndarray | None:
     return np.asarray(scale, dtype=np.float64)
 
 
-def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None) -> np.ndarray:
+def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None, train=None) -> np.ndarray:
     """The fitted ``deltas[K,n,3]`` each scaled by its amplitude as the fit's peak-frame weight and the
     capture's test frames read it together (:mod:`.amplitude`); ``info["test_amplitude"]`` the test frames'
     reading and the scale applied (``{"reading": [K], "scale": [K], "weight_noise": s}``, lists). The
     phone's weights' noise ``s`` is the training frames' (every report inside the clip); a shape an artist
     pinned keeps its scale (``pinned[K,n]``). ``basis``: :func:`.weights.shape_basis` of these ``deltas``
-    when the fit has it (its sensitivity step decomposed them)."""
-    train, test = capture.train, capture.test
+    when the fit has it (its sensitivity step decomposed them); ``train``: the capture's training frames if
+    the caller has them (``capture.train`` copies them)."""
+    train, test = (capture.train if train is None else train), capture.test
     every = np.ones(train.weights.shape, dtype=bool)
     residuals = weight_residuals(capture.neutral, train.points, train.weights, deltas, basis=basis)
     fit_var = weight_error_variance(capture.neutral, train.points, train.weights, deltas, every,
@@ -913,12 +923,16 @@ def _test_frames_amplitude(capture, deltas, info, pinned=None, *, basis=None) ->
         return deltas
     test_var = weight_error_variance(capture.neutral, test.points, test.weights, deltas,
                                      np.ones(test.weights.shape, dtype=bool), noise=noise)
-    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var)
+    # the test frames' terms (the shapes' Gram matrix, every frame's projection on them) formed once for the
+    # reading and its leave-one-frame-out copies
+    terms = amplitude_terms(capture.neutral, test.points, test.weights, deltas, test_var)
+    reading, reading_var = held_out_amplitude(capture.neutral, test.points, test.weights, deltas, test_var,
+                                              terms=terms)
     peak_var = peak_amplitude_variance(train.weights, fit_var)
     scale = combined_amplitude(reading, reading_var, peak_var)
     # each test frame's own reading left out: the scale eq. 5 scores that frame with (cross-fitted)
     left_out = combined_amplitude(*each_frame_left_out(capture.neutral, test.points, test.weights, deltas,
-                                                       test_var), peak_var)
+                                                       test_var, terms=terms), peak_var)
     if pinned is not None:
         held = np.asarray(pinned).any(axis=1)
         scale = np.where(held, 1.0, scale)
@@ -1387,11 +1401,12 @@ def _prepared_fit(capture, points, weights, D, prior_deltas, info, clamp=D_CLAMP
     cv = info.get("crossval")
     if cv is not None and "fit" in cv:
         pf, cand = cv["fit"], cv["vertices"]
-        pf.set_points(points[:, cand])
-        pf.set_prior(prior_deltas[:, cand])
+        pf.set_points(_take1(points, cand))
+        pf.set_prior(_take1(prior_deltas, cand))
         return pf, cand
     cand = cv_vertices(D, clamp)
-    pf = PositionFit(capture.neutral[cand], points[:, cand], weights, prior_deltas[:, cand], D[:, cand])
+    pf = PositionFit(capture.neutral[cand], _take1(points, cand), weights, _take1(prior_deltas, cand),
+                     D[:, cand])
     info["crossval"] = {"fit": pf, "vertices": cand}
     return pf, cand
 
@@ -1458,18 +1473,22 @@ def _alignment_generalises(pf, points, reg, info):
     before, after = np.zeros(len(points)), np.zeros(len(points))
     unaligned = (points - target) ** 2                       # [F,m,3] squared residuals as the frames are
     count = 0
+    halves = []
     for ax in axes:
         side = nb @ ax > 0
         for half in (side, ~side):
             est, out = np.flatnonzero(half), np.flatnonzero(~half)
-            if len(est) < 6 or len(out) == 0:
-                continue
-            R, t = rigid_transforms(points, target, est, groups=groups, weights=base[:, est])
-            p_out = np.take(points, out, axis=1)
-            moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
-            before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
-            after += np.sum((moved - np.take(target, out, axis=1)) ** 2, axis=(1, 2))
-            count += p_out.size
+            if len(est) >= 6 and len(out):
+                halves.append((est, out))
+    # the halves' robust fits side by side (one batched 3x3 SVD an iteration), each as it is alone
+    fits = (rigid_transforms_sets(points, target, [est for est, _ in halves], groups=groups, weights=base)
+            if halves else [])
+    for (_, out), (R, t) in zip(halves, fits, strict=True):
+        p_out = np.take(points, out, axis=1)
+        moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]
+        before += np.sum(np.take(unaligned, out, axis=1), axis=(1, 2))
+        after += np.sum((moved - np.take(target, out, axis=1)) ** 2, axis=(1, 2))
+        count += p_out.size
     count = max(count, 1)
     return bool(after.sum() < before.sum()), {"aligned": float(np.sqrt(after.sum() / count) * 1000),
                                                  "original": float(np.sqrt(before.sum() / count) * 1000)}
@@ -1492,7 +1511,7 @@ def _align_frames(neutral, points, weights, generic, info, timings, *, cv=None, 
     on_cand = np.take(points, cand, axis=1)                       # points[:, cand], gathered once
     pf.set_points(on_cand)
     if prior_deltas is not None:
-        pf.set_prior(prior_deltas[:, cand])
+        pf.set_prior(_take1(prior_deltas, cand))
     else:
         pf.set_prior_mix(alpha)
     residuals = pf.loo_residuals(reg)

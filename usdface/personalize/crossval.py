@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fit import D_CLAMP, PositionFit
+from .fit import D_CLAMP, PositionFit, _take1
 
 __all__ = ["choose_regularization", "REG_GRID", "PRIOR_MIX"]
 
@@ -121,7 +121,9 @@ def choose_regularization(neutral, points, weights, generic_deltas, reg_weights,
     neutral = np.asarray(neutral, dtype=np.float64)
     if fit is None:
         cand = cv_vertices(reg_weights, clamp, max_vertices, seed)
-        fit = PositionFit(neutral[cand], np.asarray(points)[:, cand], weights,
+        # the frames gathered contiguous (np.take; a fancy index on the middle axis returns a
+        # vertex-major copy that every later reshape and take copies again): the same numbers
+        fit = PositionFit(neutral[cand], _take1(np.asarray(points), cand), weights,
                           np.asarray(generic_deltas)[:, cand], np.asarray(reg_weights)[:, cand],
                           None if alt_deltas is None else np.asarray(alt_deltas)[:, cand], block=block)
         vertices = cand

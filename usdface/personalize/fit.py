@@ -626,10 +626,14 @@ class PositionFit:
         else:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
-        self.Z = _left(self.P, self.V)                                      # P V  [n,F,r]
+        # P V [n,F,r] and B V [n,K,r] (:func:`_left`): V's vertex-major copy made once for both products
+        n, r = self.V.shape[:2]
+        Vr = self.V.transpose(1, 0, 2).reshape(r, n * r)
+        self.Z = (self.P @ Vr).reshape(len(self.P), n, r).transpose(1, 0, 2)         # P V  [n,F,r]
         # Z^2 (the hat diagonals' weights), once for every reg and step; per vertex block for a long take
         self._Z2 = self.Z ** 2 if self.Z.nbytes <= (64 << 20) else None
-        self.BV = _left(self.B, self.V)                                     # B V  [n,K,r]
+        self.BV = (self.B @ Vr).reshape(len(self.B), n, r).transpose(1, 0, 2)        # B V  [n,K,r]
+        del Vr
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
         self.has_alt = self.T_alt is not None
@@ -683,7 +687,9 @@ class PositionFit:
         first = self._first
         if previous is not None and np.array_equal(previous, first):
             return                                                      # Z's rows of the same frames
-        self._Zu = _take1(self.Z, first)                                   # [n,U,r]
+        # [n,U,r] C-ordered, gathered frame-major from Z's own [F,n,r] layout (np.take on the [n,F,r] view
+        # first copied all of Z)
+        self._Zu = np.ascontiguousarray(np.take(self.Z.transpose(1, 0, 2), first, axis=0).transpose(1, 0, 2))
         self._Z2u = None if self._Z2 is None else self._Zu ** 2          # = Z^2's rows, squared once
 
     def frame_groups(self):
