@@ -212,7 +212,9 @@ def fit_block_vertices(weights: np.ndarray, basis) -> int:
     sides and residuals within :data:`BLOCK_BYTES` (at least one). A 74.5k-vertex capture's ``[n,r,r]``
     systems took ~1.4 GB at once. dev1's and dev3's captures (rank 28) are one block; the sample's (1,233)
     and dev2's (1,203), whose weights' rank takes the K x K systems, two (943 and 980 vertices a block at
-    K = 51-52): the same bits as one block, each vertex's solve its own."""
+    K = 51-52). Each vertex's solve is its own, but the batched LAPACK/BLAS calls' last bits can depend on
+    the block's size (h106 measured 245-, 61- and 15-vertex blocks differing from 980-vertex ones in the last
+    digits), so the fit's bits are those of this split; the answer is the same to rounding."""
     F, K = np.shape(weights)
     size = len(basis[1]) if basis is not None else K
     return max(1, int(BLOCK_BYTES // (8 * (3 * size * size + 3 * (F + size) + K))))
