@@ -565,6 +565,31 @@ def test_one_shot_layout_covers_every_shape_n_times_with_the_fewest_landmarks(sy
         compute_landmarks(rig, 0.5, multicover=n, one_shot=True, radius=0.01)
 
 
+def test_symmetric_one_shot_counts_landmarks_not_mirror_pairs():
+    """The symmetric one-shot multi-cover asks every shape for ``min(N, |C_k|)`` landmarks, as the adaptive
+    rounds count them (``coverage``), not for N mirrored pairs: a pair whose two vertices both serve a shape
+    is two of its landmarks. A shape moving both cheeks (no mid-line candidate) took two pairs, four landmarks,
+    at N = 2 (the sample head: 38 landmarks at N = 3 where 35 cover every shape three times). So no pair (or
+    mid-line vertex) of the layout can be left out without some shape falling below its count."""
+    base = symmetric_rig()
+    cheeks = bump(base.neutral, (-0.035, 0.075), 0.006) + bump(base.neutral, (0.035, 0.075), 0.006)
+    rig = FaceRig(base.neutral, base.triangles, [*base.names, "cheeks"], np.concatenate([base.deltas,
+                                                                                      cheeks[None]]),
+                  name="Sheet")
+    partner = mirror_pairs(rig.neutral)
+    n = 2
+    c = candidate_sets(relative_displacement(np.linalg.norm(rig.deltas, axis=2)), 0.5)
+    need = np.minimum(n, c.sum(axis=1))
+    for weighting in ("count", "quality"):
+        lay = compute_landmarks(rig, 0.5, multicover=n, one_shot=True, symmetric=True, rays=4,
+                                weighting=weighting)
+        assert lay.symmetric and set(partner[lay.vertices].tolist()) == set(lay.vertices.tolist())
+        assert (c[:, lay.vertices].sum(axis=1) >= need).all()
+        for v in lay.vertices:                # irredundant: every pair is needed by some shape
+            kept = np.setdiff1d(lay.vertices, [v, partner[v]])
+            assert (c[:, kept].sum(axis=1) < need).any(), (weighting, v)
+
+
 def test_batched_box_least_squares_matches_bvls():
     from scipy.optimize import lsq_linear
 
