@@ -22,7 +22,7 @@ from . import candidates as cand
 from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
 from .multicover import adaptive_multicover, exclusion_radius, one_shot_multicover
-from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
+from .symmetry import mirror_pairs, pair_candidate_counts, primary_side, symmetric_magnitudes
 from .visibility import FACE_SHARE, PoseVisibility, face_size
 
 
@@ -438,9 +438,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         evaluate_plain(need)
 
     def cover(cc, costs, part=None, coverage=None):
-        """Algorithm 1's rounds, or the one-shot ILP: (selected [m], round of each [m], solutions)."""
+        """Algorithm 1's rounds, or the one-shot ILP: (selected [m], round of each [m], solutions); both
+        count a shape's landmarks on ``coverage`` (the mesh's candidates; a mirrored pair may be two)."""
         if one_shot:
-            sol = one_shot_multicover(cc, costs(cc), multicover, backend=backend, time_limit=time_limit)
+            counts = cc if part is None else pair_candidate_counts(coverage, part, cc)
+            sol = one_shot_multicover(counts, costs(cc), multicover, backend=backend, time_limit=time_limit)
             return sol.selected, np.ones(sol.selected.size, dtype=np.int64), [sol]
         return adaptive_multicover(cc, costs, rig.neutral, multicover, solve, radius,
                                    share if adaptive else None, part, coverage=coverage)
