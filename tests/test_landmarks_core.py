@@ -567,10 +567,10 @@ def test_one_shot_layout_covers_every_shape_n_times_with_the_fewest_landmarks(sy
 
 def test_symmetric_one_shot_counts_landmarks_not_mirror_pairs():
     """The symmetric one-shot multi-cover asks every shape for ``min(N, |C_k|)`` landmarks, as the adaptive
-    rounds count them (``coverage``), not for N mirrored pairs: a pair whose two vertices both serve a shape
-    is two of its landmarks. A shape moving both cheeks (no mid-line candidate) took two pairs, four landmarks,
-    at N = 2 (the sample head: 38 landmarks at N = 3 where 35 cover every shape three times). So no pair (or
-    mid-line vertex) of the layout can be left out without some shape falling below its count."""
+    rounds count them (``coverage``), not for N mirrored pairs: a pair whose two vertices both serve a
+    shape is two of its landmarks. A shape moving both cheeks (no mid-line candidate) took two pairs, four
+    landmarks, at N = 2 (the sample head: 38 landmarks at N = 3 where 35 cover every shape three times). So
+    no pair (or mid-line vertex) of the layout can be left out without some shape falling below its count."""
     base = symmetric_rig()
     cheeks = bump(base.neutral, (-0.035, 0.075), 0.006) + bump(base.neutral, (0.035, 0.075), 0.006)
     rig = FaceRig(base.neutral, base.triangles, [*base.names, "cheeks"], np.concatenate([base.deltas,
@@ -774,6 +774,23 @@ def test_cost_forms_exact_on_a_small_case():
     np.testing.assert_allclose(set_cover_costs(c, q, "paper", m), [3.25, 2.2, 1.0], rtol=0, atol=1e-15)
     np.testing.assert_allclose(set_cover_costs(c, q, "quality", m), [1.125, 2.04, 1.0], rtol=0, atol=1e-15)
     np.testing.assert_array_equal(set_cover_costs(c, q, "count", m), m)
+
+
+@pytest.mark.parametrize("shapes", [1, 4, 52])
+@pytest.mark.parametrize("times", [1, 2, 3, 6])
+def test_the_quality_term_of_an_n_fold_cover_stays_below_one_landmark(shapes, times):
+    """The quality costs keep the count first for the one-shot N-fold cover too: a minimal N-fold layout has
+    at most N K columns, each standing for at most two landmarks (a mirrored pair), and their whole quality
+    term at the worst quality (0) stays below one landmark, so a layout with one landmark fewer is always
+    the cheaper. With the single cover's delta 1 / (2 K + 1) it reached a landmark from N = 3 on (N = 2 for
+    mirrored pairs): reverted, 9 of these 12 fail."""
+    from usdface.landmarks.cover import set_cover_costs
+
+    cols = times * shapes
+    c = np.ones((shapes, cols), dtype=bool)
+    for m in (1.0, 2.0):
+        cost = set_cover_costs(c, np.zeros((shapes, cols)), "quality", np.full(cols, m), cover_times=times)
+        assert cost.sum() < m * cols + 1.0
 
 
 def test_multicover_asks_a_shape_with_few_candidates_for_what_it_has():
