@@ -565,6 +565,21 @@ def test_one_shot_layout_covers_every_shape_n_times_with_the_fewest_landmarks(sy
         compute_landmarks(rig, 0.5, multicover=n, one_shot=True, radius=0.01)
 
 
+def test_one_shot_layout_is_the_one_with_every_visibility_known():
+    """The lazy visibility keeps one vertex per candidate set (the single cover's reduction); the one-shot
+    multi-cover may take several, so every candidate is ray cast first: the layout is the one computed from
+    the visibility known at every vertex (with the skin samples off, ``spacing=None``, where nothing else
+    casts them all)."""
+    rig = random_rig(30, seed=5)
+    kw = dict(multicover=3, one_shot=True, spacing=None)
+    lay = compute_landmarks(rig, 0.5, rays=4, **kw)
+    assert lay.problem["visibility_evaluated"] >= lay.problem["candidates"]
+    known = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, 4)()
+    full = compute_landmarks(rig, 0.5, visibility=known, **kw)
+    assert lay.vertices.tolist() == full.vertices.tolist()
+    np.testing.assert_allclose(lay.objective, full.objective, rtol=1e-9)
+
+
 def test_symmetric_one_shot_counts_landmarks_not_mirror_pairs():
     """The symmetric one-shot multi-cover asks every shape for ``min(N, |C_k|)`` landmarks, as the adaptive
     rounds count them (``coverage``), not for N mirrored pairs: a pair whose two vertices both serve a
