@@ -585,6 +585,8 @@ def test_one_shot_refuses_what_it_would_ignore(tmp_path, monkeypatch, capsys, ex
     assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
     err = capsys.readouterr().err
     assert said in err and "(fix: " in err
+    if "replaces" in said:       # the fix said "or --one-shot for the adaptive rounds": leave it out
+        assert "or leave out --one-shot" in err
 
 
 def test_one_shot_cli_covers_every_shape_n_times(samples, tmp_path, capsys):
