@@ -134,7 +134,8 @@ def refuse_other_mode(args) -> None:
         if later:                            # the one ILP has neither: they would be ignored
             raise LandmarkError(f"{'/'.join(later)} act(s) on the adaptive multi-cover's rounds, which "
                                 "--one-shot replaces by one ILP (no exclusion radius, no 10% heuristic)",
-                                fix=f"leave out {'/'.join(later)}, or --one-shot for the adaptive rounds")
+                                fix=f"leave out {'/'.join(later)}, or leave out --one-shot for the adaptive "
+                                    "rounds")
     if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
         raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
                             "--weighting count does not use (every landmark costs 1)",
