@@ -69,7 +69,7 @@ def set_cover_costs(c: np.ndarray, q: np.ndarray, weighting: str = "quality",
     column n stands for. ``cover_times = N``: the costs of an N-fold cover (the one-shot multi-cover), whose
     minimal layouts have up to N K columns, so the quality form's ``delta`` is ``1 / (2 N K + 1)`` and the
     count still dominates (with ``1 / (2 K + 1)`` an N-fold cover's quality term could outweigh a landmark
-    from N = 3 on).
+    from N = 3 on, N = 2 with mirrored pairs).
     """
     c = np.asarray(c, dtype=bool)
     q = np.asarray(q, dtype=np.float64)
