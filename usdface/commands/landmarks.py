@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                    help="displacement vs visibility weight, [0,1] (0.5)")
     p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
     p.add_argument("--multicover", type=positive_int, default=None, metavar="N",
-                   help="adaptive multi-cover: up to N landmarks per shape (1)")
+                   help="multi-cover: up to N landmarks per shape in adaptive rounds (with --one-shot: "
+                        "N each, one ILP) (1)")
     p.add_argument("--radius", type=nonnegative_float, default=None,
                    help="metres; multi-cover excludes vertices this close to chosen landmarks (default: "
                         "2.4%% of the face size, 1 cm on a human head)")
