@@ -859,3 +859,18 @@ def test_evaluation_sweep_and_summary_by_hand():
     assert (s["match_count"], s["match_rmse"], s["ours_at_empirical_count"]) == (12, 1e-3, 20)
     points.append(EvaluationPoint("ours", "d", 12, 3e-3))             # a worse layout of the same count
     assert EvaluationReport(points, 10, 0.5e-3).best_per_count() == {8: 2e-3, 12: 1e-3, 20: 0.5e-3}
+
+
+def test_the_evaluation_records_the_radius_its_layouts_used():
+    """``landmarks --evaluate --json`` said the frames and the noise but not the multi-cover's exclusion
+    radius, which since stop 54 is relative to the face by default (no longer the 0.01 m the command
+    passed): the report holds the radius its layouts used, in metres (``units``), given or the default."""
+    from usdface.landmarks.evaluate import evaluate_landmarks
+
+    rig = random_rig(12, seed=3)
+    weights = np.random.default_rng(0).uniform(0.0, 1.0, size=(20, rig.n_shapes))
+    kw = dict(epsilons=(0.5,), rounds=(2,), shares=(None,), counts=(8,), random_seeds=1)
+    default = evaluate_landmarks(rig, weights, **kw).to_dict()
+    assert default["units"]["radius"] == "m"
+    assert default["radius"] == compute_landmarks(rig, 0.5, multicover=2, alpha=0.0).problem["radius"]
+    assert evaluate_landmarks(rig, weights, radius=0.004, **kw).to_dict()["radius"] == 0.004
