@@ -374,7 +374,7 @@ def test_landmark_evaluation_json_names_its_units():
     report = EvaluationReport(pts, frames=10, noise=5e-4)
     report.summary = _summary(report, None)
     data = json.loads(json.dumps(report.to_dict()))
-    assert data["units"] == {"rmse": "m", "noise": "m"}
+    assert data["units"] == {"rmse": "m", "noise": "m", "radius": "m"}
     assert data["noise"] == 5e-4 and data["points"][0]["rmse"] == 2e-3            # the keys of before
     lengths = [k for k in data["summary"] if "rmse" in k] + [k for p in data["points"] for k in p
                                                             if k == "rmse"]
