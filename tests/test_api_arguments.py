@@ -571,7 +571,8 @@ def test_compute_landmarks_refuses_bad_cover_options_before_any_work(samples, mo
 
 @pytest.mark.parametrize("options", [
     {"radius": -1}, {"epsilon": 2}, {"alpha": 3}, {"alpha": "x"}, {"weighting": "x"}, {"backend": "x"},
-    {"spacing": -1}, {"spacing": [0.01]}, {"camera": "a"},
+    {"spacing": -1}, {"spacing": [0.01]}, {"spacing": float("inf")}, {"camera": "a"},
+    {"time_limit": float("inf")},                             # an OverflowError in the solver set-up
     {"multicover": 2, "one_shot": True, "adaptive": False},   # the one ILP has no 10 % heuristic: ignored
 ])
 def test_compute_landmarks_names_file_and_prim_in_every_refusal(samples, monkeypatch, options):
