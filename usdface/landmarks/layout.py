@@ -104,10 +104,11 @@ def naming(rig: FaceRig):
 
 
 def _number_in(value, low: float, high: float) -> bool:
-    """Whether ``value`` is a real number (not a bool or a string) with ``low < value <= high``."""
+    """Whether ``value`` is a finite real number (not a bool or a string) with ``low < value <= high``
+    (an infinite time limit died in the solver's set-up, ``int(inf)``)."""
     if isinstance(value, bool | str) or not isinstance(value, int | float | np.integer | np.floating):
         return False
-    return bool(low < float(value) <= high) and not np.isnan(float(value))
+    return bool(low < float(value) <= high) and bool(np.isfinite(float(value)))
 
 
 def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]:
@@ -357,7 +358,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                                         fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the "
                                         "face size, 1 cm on a human head)")
         if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
-                or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
+                or _number_in(spacing, 0.0, np.inf)):     # a list died in float()
             raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
                                 fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
         if camera is not None:                 # a string ('0,1.6,0.35', the CLI's form) died in float()
