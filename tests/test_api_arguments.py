@@ -567,3 +567,26 @@ def test_compute_landmarks_refuses_bad_cover_options_before_any_work(samples, mo
     with pytest.raises(LandmarkError) as err:
         api.compute_landmarks(rig, **options)
     assert said in str(err.value) and "/Avatar/Head" in str(err.value) and err.value.fix
+
+
+@pytest.mark.parametrize("options", [
+    {"radius": -1}, {"epsilon": 2}, {"alpha": 3}, {"alpha": "x"}, {"weighting": "x"}, {"backend": "x"},
+    {"spacing": -1}, {"spacing": [0.01]}, {"spacing": float("inf")}, {"camera": "a"},
+    {"time_limit": float("inf")},                             # an OverflowError in the solver set-up
+    {"multicover": 2, "one_shot": True, "adaptive": False},   # the one ILP has no 10 % heuristic: ignored
+])
+def test_compute_landmarks_names_file_and_prim_in_every_refusal(samples, monkeypatch, options):
+    """Every option ``compute_landmarks`` refuses names the rig's file and prim, not only the ones checked
+    since stop 54 (a radius, epsilon, alpha, weighting, backend, spacing or camera said neither; ``alpha="x"``
+    died in a ValueError), and ``adaptive=False`` with ``one_shot`` is refused as ``--no-adaptive`` with
+    ``--one-shot`` is (it was ignored) - all before any work."""
+    from usdface import api
+    from usdface.errors import LandmarkError
+    from usdface.landmarks import candidates
+
+    rig = api.pick_mesh(api.read_avatar(samples / "avatar.usda"))
+    monkeypatch.setattr(candidates, "relative_displacement",
+                        lambda *a, **k: pytest.fail("work started before the options were checked"))
+    with pytest.raises(LandmarkError) as err:
+        api.compute_landmarks(rig, **options)
+    assert "avatar.usda" in str(err.value) and "/Avatar/Head" in str(err.value) and err.value.fix

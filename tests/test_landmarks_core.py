@@ -565,6 +565,46 @@ def test_one_shot_layout_covers_every_shape_n_times_with_the_fewest_landmarks(sy
         compute_landmarks(rig, 0.5, multicover=n, one_shot=True, radius=0.01)
 
 
+def test_one_shot_layout_is_the_one_with_every_visibility_known():
+    """The lazy visibility keeps one vertex per candidate set (the single cover's reduction); the one-shot
+    multi-cover may take several, so every candidate is ray cast first: the layout is the one computed from
+    the visibility known at every vertex (with the skin samples off, ``spacing=None``, where nothing else
+    casts them all)."""
+    rig = random_rig(30, seed=5)
+    kw = dict(multicover=3, one_shot=True, spacing=None)
+    lay = compute_landmarks(rig, 0.5, rays=4, **kw)
+    assert lay.problem["visibility_evaluated"] >= lay.problem["candidates"]
+    known = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, 4)()
+    full = compute_landmarks(rig, 0.5, visibility=known, **kw)
+    assert lay.vertices.tolist() == full.vertices.tolist()
+    np.testing.assert_allclose(lay.objective, full.objective, rtol=1e-9)
+
+
+def test_symmetric_one_shot_counts_landmarks_not_mirror_pairs():
+    """The symmetric one-shot multi-cover asks every shape for ``min(N, |C_k|)`` landmarks, as the adaptive
+    rounds count them (``coverage``), not for N mirrored pairs: a pair whose two vertices both serve a
+    shape is two of its landmarks. A shape moving both cheeks (no mid-line candidate) took two pairs, four
+    landmarks, at N = 2 (the sample head: 38 landmarks at N = 3 where 35 cover every shape three times). So
+    no pair (or mid-line vertex) of the layout can be left out without some shape falling below its count."""
+    base = symmetric_rig()
+    cheeks = bump(base.neutral, (-0.035, 0.075), 0.006) + bump(base.neutral, (0.035, 0.075), 0.006)
+    rig = FaceRig(base.neutral, base.triangles, [*base.names, "cheeks"], np.concatenate([base.deltas,
+                                                                                      cheeks[None]]),
+                  name="Sheet")
+    partner = mirror_pairs(rig.neutral)
+    n = 2
+    c = candidate_sets(relative_displacement(np.linalg.norm(rig.deltas, axis=2)), 0.5)
+    need = np.minimum(n, c.sum(axis=1))
+    for weighting in ("count", "quality"):
+        lay = compute_landmarks(rig, 0.5, multicover=n, one_shot=True, symmetric=True, rays=4,
+                                weighting=weighting)
+        assert lay.symmetric and set(partner[lay.vertices].tolist()) == set(lay.vertices.tolist())
+        assert (c[:, lay.vertices].sum(axis=1) >= need).all()
+        for v in lay.vertices:                # irredundant: every pair is needed by some shape
+            kept = np.setdiff1d(lay.vertices, [v, partner[v]])
+            assert (c[:, kept].sum(axis=1) < need).any(), (weighting, v)
+
+
 def test_batched_box_least_squares_matches_bvls():
     from scipy.optimize import lsq_linear
 
@@ -751,6 +791,23 @@ def test_cost_forms_exact_on_a_small_case():
     np.testing.assert_array_equal(set_cover_costs(c, q, "count", m), m)
 
 
+@pytest.mark.parametrize("shapes", [1, 4, 52])
+@pytest.mark.parametrize("times", [1, 2, 3, 6])
+def test_the_quality_term_of_an_n_fold_cover_stays_below_one_landmark(shapes, times):
+    """The quality costs keep the count first for the one-shot N-fold cover too: a minimal N-fold layout has
+    at most N K columns, each standing for at most two landmarks (a mirrored pair), and their whole quality
+    term at the worst quality (0) stays below one landmark, so a layout with one landmark fewer is always
+    the cheaper. With the single cover's delta 1 / (2 K + 1) it reached a landmark from N = 3 on (N = 2 for
+    mirrored pairs): reverted, 9 of these 12 fail."""
+    from usdface.landmarks.cover import set_cover_costs
+
+    cols = times * shapes
+    c = np.ones((shapes, cols), dtype=bool)
+    for m in (1.0, 2.0):
+        cost = set_cover_costs(c, np.zeros((shapes, cols)), "quality", np.full(cols, m), cover_times=times)
+        assert cost.sum() < m * cols + 1.0
+
+
 def test_multicover_asks_a_shape_with_few_candidates_for_what_it_has():
     """``cover_times = 3``: a shape with one candidate is covered once (min(N, |C_k|)), not made infeasible;
     the shape with four candidates three times."""
@@ -802,3 +859,18 @@ def test_evaluation_sweep_and_summary_by_hand():
     assert (s["match_count"], s["match_rmse"], s["ours_at_empirical_count"]) == (12, 1e-3, 20)
     points.append(EvaluationPoint("ours", "d", 12, 3e-3))             # a worse layout of the same count
     assert EvaluationReport(points, 10, 0.5e-3).best_per_count() == {8: 2e-3, 12: 1e-3, 20: 0.5e-3}
+
+
+def test_the_evaluation_records_the_radius_its_layouts_used():
+    """``landmarks --evaluate --json`` said the frames and the noise but not the multi-cover's exclusion
+    radius, which since stop 54 is relative to the face by default (no longer the 0.01 m the command
+    passed): the report holds the radius its layouts used, in metres (``units``), given or the default."""
+    from usdface.landmarks.evaluate import evaluate_landmarks
+
+    rig = random_rig(12, seed=3)
+    weights = np.random.default_rng(0).uniform(0.0, 1.0, size=(20, rig.n_shapes))
+    kw = dict(epsilons=(0.5,), rounds=(2,), shares=(None,), counts=(8,), random_seeds=1)
+    default = evaluate_landmarks(rig, weights, **kw).to_dict()
+    assert default["units"]["radius"] == "m"
+    assert default["radius"] == compute_landmarks(rig, 0.5, multicover=2, alpha=0.0).problem["radius"]
+    assert evaluate_landmarks(rig, weights, radius=0.004, **kw).to_dict()["radius"] == 0.004

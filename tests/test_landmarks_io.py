@@ -374,7 +374,7 @@ def test_landmark_evaluation_json_names_its_units():
     report = EvaluationReport(pts, frames=10, noise=5e-4)
     report.summary = _summary(report, None)
     data = json.loads(json.dumps(report.to_dict()))
-    assert data["units"] == {"rmse": "m", "noise": "m"}
+    assert data["units"] == {"rmse": "m", "noise": "m", "radius": "m"}
     assert data["noise"] == 5e-4 and data["points"][0]["rmse"] == 2e-3            # the keys of before
     lengths = [k for k in data["summary"] if "rmse" in k] + [k for p in data["points"] for k in p
                                                             if k == "rmse"]
@@ -585,6 +585,8 @@ def test_one_shot_refuses_what_it_would_ignore(tmp_path, monkeypatch, capsys, ex
     assert main(["landmarks", str(SAMPLES / "avatar.usda"), *extra]) == 2
     err = capsys.readouterr().err
     assert said in err and "(fix: " in err
+    if "replaces" in said:       # the fix said "or --one-shot for the adaptive rounds": leave it out
+        assert "or leave out --one-shot" in err
 
 
 def test_one_shot_cli_covers_every_shape_n_times(samples, tmp_path, capsys):

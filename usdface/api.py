@@ -1062,20 +1062,15 @@ def landmark_diagnostics(rig: FaceRig | Avatar | PathLike, epsilon: float = 0.5,
     """The paper's per-vertex diagnostics of ``rig`` (as :func:`compute_landmarks` takes it: visibility,
     relative displacement, importance weights; ``usdface render --landmarks --diagnostics``); see
     :func:`usdface.landmarks.diagnostics.landmark_diagnostics`."""
-    from .errors import LandmarkError
     from .landmarks.diagnostics import landmark_diagnostics as _diagnostics
+    from .landmarks.layout import naming
 
     _refuse_unknown_keywords(_diagnostics, options, "landmark_diagnostics",
                              given=("neutral", "triangles", "deltas", "epsilon", "alpha", "names"))
     rig = _as_rig(rig)
-    try:
+    with naming(rig):                # the options are checked before any work: name the rig's file and prim
         return _diagnostics(rig.neutral, rig.triangles, rig.deltas, epsilon=epsilon, alpha=alpha,
                             names=rig.names, **options)
-    except LandmarkError as exc:     # the options are checked before any work: name the rig's file and prim
-        if exc.path is None and rig.source is not None:
-            raise LandmarkError(exc.message, path=rig.source.file, prim=rig.source.prim,
-                                fix=exc.fix) from None
-        raise
 
 
 def write_landmarks(avatar: Avatar, rig: FaceRig, layout: LandmarkLayout, out_path: PathLike, *,

@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                    help="displacement vs visibility weight, [0,1] (0.5)")
     p.add_argument("--symmetric", action="store_true", help="left/right symmetric layout")
     p.add_argument("--multicover", type=positive_int, default=None, metavar="N",
-                   help="adaptive multi-cover: up to N landmarks per shape (1)")
+                   help="multi-cover: up to N landmarks per shape in adaptive rounds (with --one-shot: "
+                        "N each, one ILP) (1)")
     p.add_argument("--radius", type=nonnegative_float, default=None,
                    help="metres; multi-cover excludes vertices this close to chosen landmarks (default: "
                         "2.4%% of the face size, 1 cm on a human head)")
@@ -134,7 +135,8 @@ def refuse_other_mode(args) -> None:
         if later:                            # the one ILP has neither: they would be ignored
             raise LandmarkError(f"{'/'.join(later)} act(s) on the adaptive multi-cover's rounds, which "
                                 "--one-shot replaces by one ILP (no exclusion radius, no 10% heuristic)",
-                                fix=f"leave out {'/'.join(later)}, or --one-shot for the adaptive rounds")
+                                fix=f"leave out {'/'.join(later)}, or leave out --one-shot for the adaptive "
+                                    "rounds")
     if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
         raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
                             "--weighting count does not use (every landmark costs 1)",

@@ -28,19 +28,22 @@ def check_epsilon(epsilon: float) -> float:
 
 def check_alpha(alpha: float) -> float:
     """``alpha`` as a float, or :class:`LandmarkError` when it is outside [0, 1]."""
-    a = float(alpha)
+    try:                                   # "x" died in a ValueError
+        a = float(alpha)
+    except (TypeError, ValueError):
+        a = float("nan")
     if not (0.0 <= a <= 1.0):
         raise LandmarkError(f"alpha {alpha!r} is outside [0, 1]",
                             fix="pass the weight of relative displacement vs visibility, in [0, 1]")
     return a
 
 
-def check_rays(rays, path=None, prim=None) -> int:
-    """``rays`` (hemisphere rays per vertex and pose, eq. 4) as an int, or :class:`LandmarkError` naming
-    ``path`` and ``prim`` when it is no whole number >= 1 (2.5 was taken as 2, "16" died in a TypeError and 0
-    in the ray casting, after the candidates and skin samples were computed)."""
+def check_rays(rays) -> int:
+    """``rays`` (hemisphere rays per vertex and pose, eq. 4) as an int, or :class:`LandmarkError` when it is
+    no whole number >= 1 (2.5 was taken as 2, "16" died in a TypeError and 0 in the ray casting, after the
+    candidates and skin samples were computed; the callers name the rig, :func:`.layout.naming`)."""
     if isinstance(rays, bool) or not isinstance(rays, int | np.integer) or rays < 1:
-        raise LandmarkError(f"rays {rays!r:.40} is not a whole number >= 1", path=path, prim=prim,
+        raise LandmarkError(f"rays {rays!r:.40} is not a whole number >= 1",
                             fix="pass the hemisphere rays per vertex and pose, e.g. rays=16 (the default; "
                                 "--rays)")
     return int(rays)

@@ -69,7 +69,7 @@ def set_cover_costs(c: np.ndarray, q: np.ndarray, weighting: str = "quality",
     column n stands for. ``cover_times = N``: the costs of an N-fold cover (the one-shot multi-cover), whose
     minimal layouts have up to N K columns, so the quality form's ``delta`` is ``1 / (2 N K + 1)`` and the
     count still dominates (with ``1 / (2 K + 1)`` an N-fold cover's quality term could outweigh a landmark
-    from N = 3 on).
+    from N = 3 on, N = 2 with mirrored pairs).
     """
     c = np.asarray(c, dtype=bool)
     q = np.asarray(q, dtype=np.float64)
@@ -159,7 +159,8 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
 
     ``cover_times = N > 1`` asks each shape to be covered ``min(N, |C_k|)`` times (the one-shot multi-cover,
     :func:`usdface.landmarks.multicover.one_shot_multicover`); the dominance reduction, exact for a single
-    cover only, is then skipped.
+    cover only, is then skipped. ``c`` may then hold counts (ints >= 0) instead of bools: column n covers
+    shape k ``c[k, n]`` times (a mirrored pair, two landmarks), and ``|C_k|`` is the row's sum.
 
     ``c[K, n]`` bool candidate sets (eq. 3), ``cost[n]`` > 0 (eq. 5a, :func:`set_cover_costs`). Shapes
     without any candidate are skipped and returned in ``uncovered``. ``backend`` is an OR-tools ``pywraplp``
@@ -168,7 +169,11 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
     """
     from ortools.linear_solver import pywraplp
 
-    c = np.asarray(c, dtype=bool)
+    times = np.asarray(c)
+    if times.dtype != bool and not (np.issubdtype(times.dtype, np.integer) and (times >= 0).all()):
+        raise LandmarkError(f"set cover needs c[K, n] bool or counts >= 0; got {times.dtype}",
+                            fix="pass the candidate sets (eq. 3), or how often each column covers each shape")
+    c = times.astype(bool)
     cost = np.asarray(cost, dtype=np.float64)
     if c.ndim != 2 or cost.shape != (c.shape[1],):
         raise LandmarkError(f"set cover needs c[K, n] and cost[n]; got {c.shape} and {cost.shape}")
@@ -192,10 +197,13 @@ def solve_set_cover(c: np.ndarray, cost: np.ndarray, backend: str = "scip", time
     solver.SetNumThreads(1)
     solver.SetTimeLimit(int(time_limit * 1000))
     f = [solver.BoolVar(f"f{n}") for n in cols]
-    sub = c[np.ix_(rows, cols)]
+    sub = times[np.ix_(rows, cols)].astype(np.int64)
     for k in range(rows.size):
         members = np.flatnonzero(sub[k])
-        solver.Add(solver.Sum([f[j] for j in members]) >= min(int(cover_times), len(members)))
+        w = sub[k, members]
+        terms = [f[j] for j in members] if (w == 1).all() else [int(x) * f[j] for x, j in zip(w, members,
+                                                                                                strict=True)]
+        solver.Add(solver.Sum(terms) >= min(int(cover_times), int(w.sum())))
     objective = solver.Objective()
     for j, n in enumerate(cols):
         objective.SetCoefficient(f[j], float(cost[n]))

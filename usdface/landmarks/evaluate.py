@@ -38,6 +38,9 @@ class EvaluationReport:
     frames: int
     noise: float
     summary: dict = field(default_factory=dict)
+    #: the multi-cover's exclusion radius the layouts used (metres: ``radius`` given, or the default relative
+    #: to the face, ``layout.problem["radius"]``); None when no layout had one
+    radius: float | None = None
 
     def best(self, method: str, max_count: int) -> EvaluationPoint | None:
         """Lowest-error layout of ``method`` with at most ``max_count`` landmarks."""
@@ -55,15 +58,16 @@ class EvaluationReport:
     def to_dict(self) -> dict:
         """The report as ``landmarks --evaluate --json`` writes it, with :data:`JSON_UNITS` as ``"units"``
         (the keys stay those of before: the unit is said in the JSON, not added to every key)."""
-        return {"units": dict(JSON_UNITS), "frames": self.frames, "noise": self.noise,
+        return {"units": dict(JSON_UNITS), "frames": self.frames, "noise": self.noise, "radius": self.radius,
                 "summary": self.summary, "points": [asdict(p) for p in self.points]}
 
 
 #: The units of the evaluation JSON's lengths (``"units"`` in it): ``"rmse"`` covers every key with ``rmse``
 #: in its name (``points[].rmse``, the summary's ``ours_best_rmse``, ``random_rmse_at_40``, ...), ``"noise"``
-#: the tracking noise (std per coordinate). Metres, as every array of the core; the printed summary is in mm.
+#: the tracking noise (std per coordinate), ``"radius"`` the multi-cover's exclusion radius. Metres, as every
+#: array of the core; the printed summary is in mm.
 #: It wrote metres under keys without a unit, beside a printed summary in mm (stop 43).
-JSON_UNITS = {"rmse": "m", "noise": "m"}
+JSON_UNITS = {"rmse": "m", "noise": "m", "radius": "m"}
 
 
 def _summary(report: EvaluationReport, empirical_count: int | None) -> dict:
@@ -159,6 +163,7 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
 
     points: list[EvaluationPoint] = []
     seen: dict[tuple, float] = {}
+    used = None
     sweep = _sweep(epsilons, rounds, shares)
     emp = None if empirical is None else baselines.empirical_layout(empirical, rig.n_vertices)
     counts = sorted({int(c) for c in counts} | ({int(emp.size)} if emp is not None else set()))
@@ -167,6 +172,7 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
             layout = compute_landmarks(rig, eps, alpha, symmetric=symmetric, multicover=n, radius=radius,
                                        visibility=vis, backend=backend, ignore_static=True,
                                        adaptive=share is not None, share=share or 0.1)
+            used = layout.problem["radius"]     # the same for every layout of the sweep
             key = tuple(layout.vertices.tolist())
             if key not in seen:
                 seen[key] = err(layout.vertices)
@@ -187,6 +193,6 @@ def _evaluate(rig, weights, empirical, epsilons, rounds, radius, shares, noise, 
                  for s in range(random_seeds)]
             points.append(EvaluationPoint("random", f"m={m} mean of {random_seeds}", m, float(np.mean(e))))
             advance(f"baselines at {m}")
-    report = EvaluationReport(points, int(w.shape[0]), float(noise))
+    report = EvaluationReport(points, int(w.shape[0]), float(noise), radius=used)
     report.summary = _summary(report, None if empirical is None else len(empirical))
     return report

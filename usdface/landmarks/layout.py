@@ -12,6 +12,7 @@ optional symmetry (:mod:`.symmetry`) and adaptive multi-cover (Algorithm 1, :mod
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -22,7 +23,7 @@ from . import candidates as cand
 from . import sampling
 from .cover import BACKENDS, WEIGHTINGS, CoverSolution, set_cover_costs, solve_set_cover
 from .multicover import adaptive_multicover, exclusion_radius, one_shot_multicover
-from .symmetry import mirror_pairs, primary_side, symmetric_magnitudes
+from .symmetry import mirror_pairs, pair_candidate_counts, primary_side, symmetric_magnitudes
 from .visibility import FACE_SHARE, PoseVisibility, face_size, pose_bases
 
 
@@ -90,11 +91,24 @@ def _where(rig: FaceRig) -> dict:
     return {"path": rig.source.file if rig.source else None, "prim": rig.source.prim if rig.source else None}
 
 
+@contextmanager
+def naming(rig: FaceRig):
+    """Re-raise a :class:`LandmarkError` raised inside the block without a file as one naming ``rig``'s file
+    and prim (the options' checks of :func:`compute_landmarks` and of ``usdface.landmark_diagnostics``)."""
+    try:
+        yield
+    except LandmarkError as exc:
+        if exc.path is None and rig.source is not None:
+            raise LandmarkError(exc.message, **_where(rig), fix=exc.fix) from None
+        raise
+
+
 def _number_in(value, low: float, high: float) -> bool:
-    """Whether ``value`` is a real number (not a bool or a string) with ``low < value <= high``."""
+    """Whether ``value`` is a finite real number (not a bool or a string) with ``low < value <= high``
+    (an infinite time limit died in the solver's set-up, ``int(inf)``)."""
     if isinstance(value, bool | str) or not isinstance(value, int | float | np.integer | np.floating):
         return False
-    return bool(low < float(value) <= high) and not np.isnan(float(value))
+    return bool(low < float(value) <= high) and bool(np.isfinite(float(value)))
 
 
 def _validate(rig: FaceRig, ignore_static: bool) -> tuple[np.ndarray, list[str]]:
@@ -300,54 +314,62 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             f"usdface.landmarks.compute_landmarks takes a FaceRig, not {type(rig).__name__} ({rig!r:.60})",
             fix="pass read_avatar(PATH).mesh('Head') (docs/landmarks.md), or call usdface.compute_landmarks, "
                 "which also takes an avatar or its file")
-    eps = cand.check_epsilon(epsilon)
-    a = cand.check_alpha(alpha)
-    rays = cand.check_rays(rays, **_where(rig))   # the rest below, all before any work
-    if weighting not in WEIGHTINGS:
-        raise LandmarkError(f"unknown weighting {weighting!r}", fix=f"use one of {', '.join(WEIGHTINGS)}")
-    if backend not in BACKENDS:
-        raise LandmarkError(f"unknown solver backend {backend!r}", fix=f"use one of {', '.join(BACKENDS)}")
-    where = _where(rig)
-    if isinstance(multicover, bool) or not isinstance(multicover, int | np.integer) or multicover < 1:
-        # 2.5 was taken as 2 and True as 1; "x" died in int()
-        raise LandmarkError(f"multicover {multicover!r:.30} is not a whole number >= 1", **where,
-                            fix="pass the maximum landmarks per shape, e.g. multicover=3 (--multicover; "
-                                "1 = a single cover)")
-    if not _number_in(share, 0.0, 1.0):       # -1 and 0 were taken, "x" died after the ray casting
-        raise LandmarkError(f"share {share!r:.30} is not in (0, 1]", **where,
-                            fix="pass the adaptive multi-cover's share of the shapes one landmark may serve, "
-                                "e.g. share=0.1 (the paper's 10 %)")
-    if not _number_in(time_limit, 0.0, np.inf):   # a negative one made SCIP print errors and return no layout
-        raise LandmarkError(f"time_limit {time_limit!r:.30} is not a number of seconds > 0", **where,
-                            fix="pass the solver's time limit in seconds, e.g. time_limit=60 (the default)")
-    if one_shot and radius is not None:   # the one ILP has no exclusion: the radius would be ignored
-        raise LandmarkError(f"one_shot takes no radius ({radius!r:.30}): the one-shot multi-cover is one "
-                            "ILP without an exclusion radius", **_where(rig),
-                            fix="leave out radius (--radius), or one_shot (--one-shot) for the adaptive "
-                                "rounds")
-    if radius is not None:                 # -1 and 'x' were taken without a word (the CLI refuses -1)
-        try:
-            ok = (not isinstance(radius, str | bool) and bool(np.isfinite(float(radius)))
-                  and float(radius) >= 0.0)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise LandmarkError(f"multi-cover radius {radius!r:.60} is not a length >= 0 in metres",
-                                fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the face "
-                                    "size, 1 cm on a human head)")
-    if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
-            or (not isinstance(spacing, str) and np.isfinite(float(spacing)) and float(spacing) > 0.0)):
-        raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
-                            fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
-    if camera is not None:                 # a string ('0,1.6,0.35', the CLI's form) died in float()
-        try:
-            camera = np.asarray(camera, dtype=np.float64).reshape(3)
-            ok = bool(np.isfinite(camera).all())
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise LandmarkError(f"camera {camera!r} is not a position", fix="pass three finite numbers "
-                                "(x, y, z) in metres, usdface's Y-up frame, e.g. camera=(0, 1.6, 0.35)")
+    with naming(rig):   # every refusal names the rig's file and prim, before any work
+        eps = cand.check_epsilon(epsilon)
+        a = cand.check_alpha(alpha)
+        rays = cand.check_rays(rays)
+        if weighting not in WEIGHTINGS:
+            raise LandmarkError(f"unknown weighting {weighting!r}",
+                                fix=f"use one of {', '.join(WEIGHTINGS)}")
+        if backend not in BACKENDS:
+            raise LandmarkError(f"unknown solver backend {backend!r}",
+                                fix=f"use one of {', '.join(BACKENDS)}")
+        if isinstance(multicover, bool) or not isinstance(multicover, int | np.integer) or multicover < 1:
+            # 2.5 was taken as 2 and True as 1; "x" died in int()
+            raise LandmarkError(f"multicover {multicover!r:.30} is not a whole number >= 1",
+                                fix="pass the maximum landmarks per shape, e.g. multicover=3 (--multicover; "
+                                    "1 = a single cover)")
+        if not _number_in(share, 0.0, 1.0):       # -1 and 0 were taken, "x" died after the ray casting
+            raise LandmarkError(f"share {share!r:.30} is not in (0, 1]",
+                                fix="pass the adaptive multi-cover's share of the shapes one landmark may "
+                                    "serve, e.g. share=0.1 (the paper's 10 %)")
+        if not _number_in(time_limit, 0.0, np.inf):   # a negative one: SCIP printed errors, no layout
+            raise LandmarkError(f"time_limit {time_limit!r:.30} is not a number of seconds > 0",
+                                fix="pass the solver's time limit in seconds, e.g. time_limit=60 (the "
+                                    "default)")
+        if one_shot and not adaptive:     # the one ILP has no 10 % heuristic to drop: it would be ignored
+            raise LandmarkError("one_shot takes no adaptive=False: the one-shot multi-cover is one ILP "
+                                "without the adaptive rounds' 10 % heuristic",
+                                fix="leave out adaptive=False (--no-adaptive), or one_shot (--one-shot) for "
+                                    "the adaptive rounds")
+        if one_shot and radius is not None:   # the one ILP has no exclusion: the radius would be ignored
+            raise LandmarkError(f"one_shot takes no radius ({radius!r:.30}): the one-shot multi-cover is one "
+                                "ILP without an exclusion radius",
+                                fix="leave out radius (--radius), or one_shot (--one-shot) for the adaptive "
+                                    "rounds")
+        if radius is not None:                 # -1 and 'x' were taken without a word (the CLI refuses -1)
+            try:
+                ok = (not isinstance(radius, str | bool) and bool(np.isfinite(float(radius)))
+                      and float(radius) >= 0.0)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise LandmarkError(f"multi-cover radius {radius!r:.60} is not a length >= 0 in metres",
+                                        fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the "
+                                        "face size, 1 cm on a human head)")
+        if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
+                or _number_in(spacing, 0.0, np.inf)):     # a list died in float()
+            raise LandmarkError(f"candidate spacing {spacing!r} is not a positive length in metres",
+                                fix="pass metres > 0, 'auto' (2 % of the face size) or None (every vertex)")
+        if camera is not None:                 # a string ('0,1.6,0.35', the CLI's form) died in float()
+            try:
+                camera = np.asarray(camera, dtype=np.float64).reshape(3)
+                ok = bool(np.isfinite(camera).all())
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise LandmarkError(f"camera {camera!r} is not a position", fix="pass three finite numbers "
+                                    "(x, y, z) in metres, usdface's Y-up frame, e.g. camera=(0, 1.6, 0.35)")
     mag, static = _validate(rig, ignore_static)
     timings: dict[str, float] = {}
     warnings: list[str] = []
@@ -439,9 +461,11 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         evaluate_plain(need)
 
     def cover(cc, costs, part=None, coverage=None):
-        """Algorithm 1's rounds, or the one-shot ILP: (selected [m], round of each [m], solutions)."""
+        """Algorithm 1's rounds, or the one-shot ILP: (selected [m], round of each [m], solutions); both
+        count a shape's landmarks on ``coverage`` (the mesh's candidates; a mirrored pair may be two)."""
         if one_shot:
-            sol = one_shot_multicover(cc, costs(cc), multicover, backend=backend, time_limit=time_limit)
+            counts = cc if part is None else pair_candidate_counts(coverage, part, cc)
+            sol = one_shot_multicover(counts, costs(cc), multicover, backend=backend, time_limit=time_limit)
             return sol.selected, np.ones(sol.selected.size, dtype=np.int64), [sol]
         return adaptive_multicover(cc, costs, rig.neutral, multicover, solve, radius,
                                    share if adaptive else None, part, coverage=coverage)

@@ -106,18 +106,19 @@ def _expand(selected: np.ndarray, partner: np.ndarray | None) -> np.ndarray:
 
 def one_shot_multicover(c: np.ndarray, cost: np.ndarray, n_per_shape: int, *, backend: str = "scip",
                         time_limit: float = 60.0) -> CoverSolution:
-    """Zell & McDonnell 2022, sec. 3.3.2, the one-shot multi-cover beside :func:`adaptive_multicover`: one
-    ILP that covers every shape ``N = n_per_shape`` times, ``min sum_n cost_n f_n`` s.t.
-    ``sum_n c_kn f_n >= min(N, |C_k|)`` for every shape k, ``f_n`` binary (eq. 5 with the right-hand side
-    N). ``c[K, n]`` bool candidates (eq. 3), ``cost[n] > 0`` (eq. 5a). Unlike the adaptive rounds it sees all
-    the landmarks at once (a proven optimum of the whole layout) but has no spatial exclusion radius and no
-    10 % heuristic. Shapes without a candidate are returned in ``uncovered``. Solved to a proven optimum with
-    OR-tools (relative gap 0) like :func:`usdface.landmarks.cover.solve_set_cover`.
+    """Zell & McDonnell 2022, sec. 3.3.2, the one-shot multi-cover beside :func:`adaptive_multicover`: one ILP
+    that covers every shape ``N = n_per_shape`` times, ``min sum_n cost_n f_n`` s.t. ``sum_n c_kn f_n >=
+    min(N, |C_k|)`` for every shape k, ``f_n`` binary (eq. 5 with the right-hand side N). ``c[K, n]`` bool
+    candidates (eq. 3), or counts: how many of the landmarks column n stands for serve shape k (symmetric
+    mode, :func:`.symmetry.pair_candidate_counts`); ``cost[n] > 0`` (eq. 5a). Unlike the adaptive rounds it
+    sees all the landmarks at once (a proven optimum of the whole layout) but has no spatial exclusion radius
+    and no 10 % heuristic. Shapes without a candidate are returned in ``uncovered``. Solved to a proven
+    optimum with OR-tools (relative gap 0) like :func:`usdface.landmarks.cover.solve_set_cover`.
     """
     from ..errors import LandmarkError
     from .cover import solve_set_cover
 
-    c = np.asarray(c, dtype=bool)
+    c = np.asarray(c)
     cost = np.asarray(cost, dtype=np.float64)
     if c.ndim != 2 or cost.shape != (c.shape[1],):
         raise LandmarkError(f"multi-cover needs c[K, n] and cost[n]; got {c.shape} and {cost.shape}")

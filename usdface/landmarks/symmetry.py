@@ -238,6 +238,19 @@ def symmetric_magnitudes(magnitudes: np.ndarray, partner: np.ndarray, primary: n
     return np.where(primary[None, :], np.maximum(m, m[:, safe]), 0.0)
 
 
+def pair_candidate_counts(c: np.ndarray, partner: np.ndarray, sym_c: np.ndarray) -> np.ndarray:
+    """``[K, n]`` int: how many of the landmarks a column of the symmetric problem stands for are candidates
+    of shape k - ``c[K, n]`` (eq. 3 on the mesh) at the vertex and at its mirror partner (``partner[n]``, -1
+    or itself: the vertex alone), on the columns ``sym_c[K, n]`` allows, 0 elsewhere. The one-shot
+    multi-cover's coefficients in symmetric mode: a mirrored pair both of whose vertices serve a shape is two
+    of its landmarks (counted, as the adaptive rounds count them, on the mesh's candidates)."""
+    c = np.asarray(c, dtype=bool)
+    partner = np.asarray(partner)
+    other = (partner >= 0) & (partner != np.arange(partner.size))
+    mirror = c[:, np.where(other, partner, 0)] & other[None, :]
+    return np.where(np.asarray(sym_c, dtype=bool), c.astype(np.int64) + mirror, 0)
+
+
 def mirror_selection(selected: np.ndarray, partner: np.ndarray) -> np.ndarray:
     """Selected primary vertices plus their mirror partners, sorted and unique -> ``[m]`` (Zell & McDonnell
     2022, sec. 3.3.1: symmetric layouts)."""
