@@ -1505,7 +1505,11 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
             # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
-            redo = redoes(item, force)              # the batch's --force, or the row's force column
+            try:                                    # the batch's --force, or the row's force column
+                redo = redoes(item, force)
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                                     fix=exc.fix) from None
             written = redo or not os.path.lexists(item.output)
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
