@@ -320,3 +320,30 @@ def test_check_not_input_sees_hard_links_inside_an_output_folder(tmp_path):
         check_output_dir(tmp_path / "out", force=True, inputs=[src])
     check_not_input(tmp_path / "new", [src], folder=True)          # a new folder elsewhere is fine
     check_not_input(tmp_path / "other.usda", [src, None, 3])       # None / non-paths are skipped
+
+
+def test_the_place_beside_an_input_folder_is_named_by_the_option_that_gives_it(sample_set, tmp_path,
+                                                                               monkeypatch):
+    """A TD's trial (stop 54): an output inside an input folder is told the place beside it as ``-o PATH``,
+    whatever gave the output: ``personalize --correspondence cap/corr.npz`` was told ``-o corr.npz`` (pasted,
+    that replaces the layer's path, not the cache's), and the API and a Pyblish publish, which have no
+    ``-o``, were told a command-line option. The command line names ``-o`` only for the output ``-o`` gives
+    (its default too: ``capture import .`` inside the folder); every other caller gets the path alone."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    cache = run("personalize", sample_set / "avatar.usda", "cap", "-o", "p.usda", "--correspondence",
+                "cap/corr.npz", "--dry-run", cwd=tmp_path, ok=False)
+    refused(cache, "cap/corr.npz", "corr.npz, beside it")
+    assert "-o corr.npz" not in cache.stderr, cache.stderr
+    layer = run("personalize", sample_set / "avatar.usda", "cap", "-o", "cap/p.usda", cwd=tmp_path, ok=False)
+    refused(layer, "(-o p.usda, beside it)")
+    # the API: the same refusal, the path alone
+    import usdface
+    from usdface.errors import InputFileError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputFileError) as err:
+        usdface.personalize_avatar(sample_set / "avatar.usda", "cap", "cap/p.usda")
+    assert "(p.usda, beside it)" in err.value.fix and "-o" not in err.value.fix, err.value.fix
+    assert tree(cap) == before

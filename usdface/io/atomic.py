@@ -297,10 +297,14 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
                                      "--force")
         if inp.is_dir() and target.is_relative_to(real):
             beside = _beside_inputs(path, [g for g, _ in given])
-            where = f" (-o {beside}, beside it)" if beside else ""
-            raise InputFileError(f"{what} is inside the {named} (writing it would change that input)",
-                                 path=path, fix=f"write the {what} outside {inp}{where}; inputs are never "
-                                                "modified, even with --force")
+            # the path alone (the API, a Pyblish instance's output): the command line names the option
+            # that gives this output, where one does (usdface.cli.name_output_option)
+            where = f" ({beside}, beside it)" if beside else ""
+            error = InputFileError(f"{what} is inside the {named} (writing it would change that input)",
+                                   path=path, fix=f"write the {what} outside {inp}{where}; inputs are never "
+                                                  "modified, even with --force")
+            error.beside = beside
+            raise error
         if folder and (real.is_relative_to(target) or (st.st_dev, st.st_ino) in tree[0]
                        or any(real == link or real.is_relative_to(link) for link in tree[1])):
             raise InputFileError(f"{what} holds the {named} (writing into it could overwrite or delete "
