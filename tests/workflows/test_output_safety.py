@@ -347,3 +347,22 @@ def test_the_place_beside_an_input_folder_is_named_by_the_option_that_gives_it(s
         usdface.personalize_avatar(sample_set / "avatar.usda", "cap", "cap/p.usda")
     assert "(p.usda, beside it)" in err.value.fix and "-o" not in err.value.fix, err.value.fix
     assert tree(cap) == before
+
+
+def test_a_dangling_link_as_the_output_is_refused_before_any_work(project):
+    """A TD's trial (stop 54): ``-o p.usda`` where ``p.usda`` is a symbolic link to a file that does not exist
+    (a publish area's link whose target was cleaned away) passed the check before the work (``exists()``
+    follows the link), ran the whole personalize, and then failed 'output exists (written by another
+    process meanwhile)': wrong, and after the work. The link is an existing output: refused at once without
+    ``--force`` (the dry run says so too), replaced by the file with it (its target left as it was)."""
+    (project / "p.usda").symlink_to("gone/p.usda")
+    argv = ("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "p.usda")
+    proc = run(*argv, cwd=project, ok=False)
+    refused(proc, "p.usda", "symbolic link", "gone/p.usda", "--force")
+    assert "meanwhile" not in proc.stderr and "registration" not in proc.stdout + proc.stderr, proc.stderr
+    dry = run(*argv, "--dry-run", cwd=project, ok=False)
+    assert "symbolic link" in dry.stdout + dry.stderr and "would write" not in dry.stdout, dry.stdout
+    run(*argv, "--force", "-q", cwd=project)
+    assert (project / "p.usda").is_file() and not (project / "p.usda").is_symlink()
+    assert not (project / "gone").exists()
+    no_temp_left(project)

@@ -386,7 +386,12 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     _refuse_unexpanded_home(path, what)
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
-    if path.exists() and not force:
+    if os.path.lexists(path) and not force:
+        if not path.exists():   # a link to nothing: an existing name, which the write refuses at its end
+            raise OutputExistsError(             # ('written by another process meanwhile', after the work)
+                f"{what} exists as a symbolic link to {os.readlink(path)}, which does not exist", path=path,
+                fix="pass --force (force=True) to replace the link with the file (its target is left as "
+                    "it is), or choose another output")
         raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
     return check_writable(path, what=what, fix=fix)
 
