@@ -262,6 +262,10 @@ def test_a_dash_for_standard_output_is_named(project, argv):
     (["export", "out/person.usda", "--flatten", "newdir/"], "flattened USD file", "newdir/person.usdc"),
     (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/"], "output layer",
      "out/avatar.personalized.usda"),
+    # stop 54 (a TD's trial): a folder with a space was named bare, 'e.g. new dir/avatar.personalized.usda',
+    # which does not paste; shell-quoted as every path in a fix (usd_rig._from_cwd)
+    (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "new dir/"], "output layer",
+     "'new dir/avatar.personalized.usda'"),
 ])
 def test_an_output_given_as_a_folder_is_told_to_name_a_file_inside_it(project, argv, what, inside):
     """``-o newdir/`` (a folder, by its trailing slash) was told 'name it e.g. newdir.usda', a sibling of the

@@ -367,7 +367,10 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     # named like it ('name it e.g. newdir.usda' answered a user who meant the folder)
     slash = raw.endswith(("/", os.sep)) and not path.is_dir()
     if path.is_dir() or slash:
-        inside = path / (example or f"out{suffixes[0] if suffixes else ''}")
+        import shlex
+
+        # as given, shell-quoted as every path in a fix: 'new dir/...' pastes
+        inside = shlex.quote(str(path / (example or f"out{suffixes[0] if suffixes else ''}")))
         raise InputFileError(f"{what} path {'names' if slash else 'is'} a folder"
                              + (f" (it ends in '{raw[-1]}'), not a file" if slash else ""), path=raw,
                              fix=f"give a file name inside it, e.g. {inside}"
