@@ -1516,6 +1516,14 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                 check_output_path(item.output, True, inputs=inputs)
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
+            # the correspondence cache, an output too (in an input folder, where it cannot be written), as
+            # a Pyblish publish validates it: it failed only at its row's turn, after the rows before it
+            if written:
+                try:
+                    _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[item.output])
+                except UsdFaceError as exc:
+                    raise _row_error(item, exc, manifest, "fix the manifest's correspondence column") \
+                        from None
             # the page as the layer: a place that takes it, not there without force; a finished layer's
             # missing page (resume writes it alone) too
             if review and (written or not os.path.lexists(page_of(item.output))):

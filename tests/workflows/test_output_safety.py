@@ -370,3 +370,20 @@ def test_a_dangling_link_as_the_output_is_refused_before_any_work(project):
     assert (project / "p.usda").is_file() and not (project / "p.usda").is_symlink()
     assert not (project / "gone").exists()
     no_temp_left(project)
+
+
+def test_a_batch_rows_correspondence_cache_is_checked_before_the_first_item(sample_set, tmp_path):
+    """A TD's trial (stop 54): a manifest's last row whose ``correspondence`` cache lies inside its capture
+    folder failed only at its turn, after the rows before it had run (README: every row's paths, an output
+    never inside an input, checked before the first item); a Pyblish publish validates the same cache before
+    any extraction. Now the batch refuses it before any work, naming the row, as Pyblish does."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    avatar = sample_set / "avatar.usda"
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output,correspondence\n{avatar},cap,out/a.usda,\n"
+                                         f"{avatar},cap,out/b.usda,cap/b.npz\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
+    refused(proc, "people.csv", "item 2", "cap/b.npz", "inside the input folder")
+    assert not (tmp_path / "out").exists(), sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert tree(cap) == before
