@@ -2338,3 +2338,31 @@ def test_the_default_worker_refuses_a_row_force_cell_that_is_no_boolean(tmp_path
             "output": str(tmp_path / "o.usda"), "force": batch_force, "options": {"force": "sure"}}
     with pytest.raises(OptionError, match="bad force 'sure'"):
         personalize_worker(item)
+
+
+@pytest.mark.parametrize("column,cell", [("force", "sure"), ("review", "sure"), ("force", 2)])
+def test_run_batch_reads_a_row_boolean_cell_as_its_worker_does(tmp_path, monkeypatch, column, cell):
+    """Stop 54 (a TD's trial, h107): resume read a row's ``force`` (and ``review``) cell leniently (a word it
+    cannot read counted as not set), the worker strictly (refused). Through ``run_batch`` (no preflight) a
+    done row with force ``sure`` was skipped as done, while the same row with no output yet failed on the
+    cell: one manifest, two readings. Now one rule: a cell neither true nor false fails its row, naming the
+    column and the fix, whether or not its output exists; the other rows run."""
+    from usdface.pipeline.batch import read_manifest, run_batch
+
+    calls = _stub_personalize(monkeypatch)
+    path = _review_manifest(tmp_path, "out/a.usda,false out/b.usda,false")
+    run_batch(read_manifest(path), jobs=1, progress=False)
+    cells = {"review": "false", "force": "false", column: str(cell)}        # row a: the odd cell
+    path.write_text(path.read_text().replace("output,review", "output,review,force")
+                    .replace("a.usda,false", f"a.usda,{cells['review']},{cells['force']}")
+                    .replace("b.usda,false", "b.usda,false,false"))
+    calls["personalize"].clear()
+    for first in (True, False):                  # the output there (resume), then not there (a first run)
+        if not first:
+            (tmp_path / "out" / "a.usda").unlink()
+        report = run_batch(read_manifest(path), jobs=1, progress=False)
+        a, b = report.results
+        assert a.status == FAILED, (first, a.status)
+        assert f"bad {column} {cell!r}" in a.error and f"manifest's {column} column" in a.error, a.error
+        assert b.status == SKIPPED
+    assert calls["personalize"] == []

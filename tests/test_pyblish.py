@@ -669,3 +669,54 @@ def test_an_existing_layer_of_a_manifest_row_names_the_force_column(extractions,
     error = _results(context)[("ValidateUsdFaceOutputs", "anna")]["error"]
     assert "output layer exists" in str(error) and "the row's force column true" in error.fix, error
     assert extractions == []
+
+
+def test_a_refused_publish_logs_one_line_and_a_bug_its_traceback(tmp_path, samples):
+    """A TD's trial (stop 54): the publish of docs/pipeline.md run again over its layer printed Pyblish's
+    logging of the validator's refusal as two tracebacks (Pyblish logs a failed plugin with
+    ``log.exception``) around the one-line error, on every refusal: a plain refusal read as a crash. A
+    refusal (a :class:`usdface.errors.UsdFaceError`) is now logged as its one line, naming file and fix; an
+    unexpected error in a plugin keeps its traceback."""
+    import subprocess
+    import sys
+
+    from cli_helpers import _env
+
+    script = tmp_path / "publish.py"
+    script.write_text(f"""import pyblish.api, pyblish.util
+from usdface.pipeline import pyblish_plugins
+
+pyblish_plugins.register()
+context = pyblish.api.Context()
+context.data["usdfaceItems"] = [
+    {{"avatar": {str(samples / 'avatar.usda')!r}, "capture": {str(samples / 'capture.usda')!r},
+     "output": "hero_anna.usda", "usdfaceOptions": {{"method": "menzel"}}}},
+]
+pyblish.util.publish(context)
+for result in context.data["results"]:
+    if not result["success"]:
+        print(result["plugin"].__name__, result["instance"], result["error"])
+
+class Broken(pyblish.api.ContextPlugin):           # a studio plugin with a bug: its traceback stays
+    order = pyblish.api.CollectorOrder
+    def process(self, context):
+        raise ZeroDivisionError("a bug")
+
+import sys
+print("--- a studio plugin", file=sys.stderr, flush=True)
+pyblish.api.deregister_all_plugins()
+pyblish.api.register_plugin(Broken)
+pyblish.util.publish(pyblish.api.Context())
+""")
+    (tmp_path / "hero_anna.usda").write_text("#usda 1.0\n")       # an earlier publish's layer
+    res = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
+                         env=_env(), timeout=300)
+    assert res.returncode == 0, res.stderr
+    refusal, _, bug = res.stderr.partition("--- a studio plugin")
+    assert "Traceback" not in refusal and "OutputExistsError" not in refusal, res.stderr
+    assert [line for line in refusal.splitlines() if "output layer exists" in line] == [
+        "hero_anna.usda: output layer exists (fix: set the instance's data force=True (or force among its "
+        "usdfaceOptions: in a batch manifest, the row's force column true) to replace it, or publish to "
+        "another output)"], res.stderr
+    assert "ValidateUsdFaceOutputs hero_anna hero_anna.usda: output layer exists" in res.stdout
+    assert "Traceback" in bug and "ZeroDivisionError: a bug" in bug, res.stderr

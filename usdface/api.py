@@ -1500,13 +1500,25 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
             # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
-            redo = redoes(item, force)              # the batch's --force, or the row's force column
+            try:                                    # the batch's --force, or the row's force column
+                redo = redoes(item, force)
+            except UsdFaceError as exc:
+                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                                     fix=exc.fix) from None
             written = redo or not os.path.lexists(item.output)
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
                 check_output_path(item.output, True, inputs=inputs)
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
+            # the correspondence cache, an output too (in an input folder, where it cannot be written), as
+            # a Pyblish publish validates it: it failed only at its row's turn, after the rows before it
+            if written:
+                try:
+                    _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[item.output])
+                except UsdFaceError as exc:
+                    raise _row_error(item, exc, manifest, "fix the manifest's correspondence column") \
+                        from None
             # the page as the layer: a place that takes it, not there without force; a finished layer's
             # missing page (resume writes it alone) too
             if review and (written or not os.path.lexists(page_of(item.output))):

@@ -574,6 +574,7 @@ def _run(args, program: bool) -> int:
     except UsdFaceError as exc:
         if args.debug:
             raise
+        name_output_option(exc, args)
         if getattr(args, "json", None) is True:
             _json_error(args, str(exc), type(exc).__name__, exc.path, exc.prim, exc.fix)
         else:
@@ -712,6 +713,23 @@ def _command_name(args) -> str:
     select``: their errors said ``usdface anim: error``)."""
     action = getattr(args, f"{args.command}_command", None)
     return f"{args.command} {action}" if isinstance(action, str) else str(args.command)
+
+
+def name_output_option(exc: UsdFaceError, args) -> None:
+    """An output refused inside an input folder is told the place beside it as the path alone
+    (``exc.beside``, :func:`usdface.io.atomic.check_not_input`: the API and a Pyblish instance have no
+    ``-o``); on the command line the fix names ``-o`` with it where the refused output is the one ``-o``
+    gives (given, or its default: ``capture import .`` inside the folder), not another option's
+    (``personalize --correspondence cap/corr.npz`` was told ``-o corr.npz``, the layer's; stop 54)."""
+    beside = getattr(exc, "beside", None)
+    if not beside or not exc.fix or exc.path is None or not hasattr(args, "output"):
+        return
+    refused = os.path.abspath(exc.path)
+    for name, value in vars(args).items():
+        if name != "output" and isinstance(value, str | os.PathLike) and str(value) \
+                and os.path.abspath(value) == refused:
+            return                                                 # another option's output
+    exc.fix = exc.fix.replace(f"({beside}, beside it)", f"(-o {beside}, beside it)")
 
 
 def os_error_fix(exc: OSError, output_option: bool = True) -> str:

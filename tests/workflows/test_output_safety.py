@@ -262,6 +262,10 @@ def test_a_dash_for_standard_output_is_named(project, argv):
     (["export", "out/person.usda", "--flatten", "newdir/"], "flattened USD file", "newdir/person.usdc"),
     (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "out/"], "output layer",
      "out/avatar.personalized.usda"),
+    # stop 54 (a TD's trial): a folder with a space was named bare, 'e.g. new dir/avatar.personalized.usda',
+    # which does not paste; shell-quoted as every path in a fix (usd_rig._from_cwd)
+    (["personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "new dir/"], "output layer",
+     "'new dir/avatar.personalized.usda'"),
 ])
 def test_an_output_given_as_a_folder_is_told_to_name_a_file_inside_it(project, argv, what, inside):
     """``-o newdir/`` (a folder, by its trailing slash) was told 'name it e.g. newdir.usda', a sibling of the
@@ -320,3 +324,66 @@ def test_check_not_input_sees_hard_links_inside_an_output_folder(tmp_path):
         check_output_dir(tmp_path / "out", force=True, inputs=[src])
     check_not_input(tmp_path / "new", [src], folder=True)          # a new folder elsewhere is fine
     check_not_input(tmp_path / "other.usda", [src, None, 3])       # None / non-paths are skipped
+
+
+def test_the_place_beside_an_input_folder_is_named_by_the_option_that_gives_it(sample_set, tmp_path,
+                                                                               monkeypatch):
+    """A TD's trial (stop 54): an output inside an input folder is told the place beside it as ``-o PATH``,
+    whatever gave the output: ``personalize --correspondence cap/corr.npz`` was told ``-o corr.npz`` (pasted,
+    that replaces the layer's path, not the cache's), and the API and a Pyblish publish, which have no
+    ``-o``, were told a command-line option. The command line names ``-o`` only for the output ``-o`` gives
+    (its default too: ``capture import .`` inside the folder); every other caller gets the path alone."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    cache = run("personalize", sample_set / "avatar.usda", "cap", "-o", "p.usda", "--correspondence",
+                "cap/corr.npz", "--dry-run", cwd=tmp_path, ok=False)
+    refused(cache, "cap/corr.npz", "corr.npz, beside it")
+    assert "-o corr.npz" not in cache.stderr, cache.stderr
+    layer = run("personalize", sample_set / "avatar.usda", "cap", "-o", "cap/p.usda", cwd=tmp_path, ok=False)
+    refused(layer, "(-o p.usda, beside it)")
+    # the API: the same refusal, the path alone
+    import usdface
+    from usdface.errors import InputFileError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputFileError) as err:
+        usdface.personalize_avatar(sample_set / "avatar.usda", "cap", "cap/p.usda")
+    assert "(p.usda, beside it)" in err.value.fix and "-o" not in err.value.fix, err.value.fix
+    assert tree(cap) == before
+
+
+def test_a_dangling_link_as_the_output_is_refused_before_any_work(project):
+    """A TD's trial (stop 54): ``-o p.usda`` where ``p.usda`` is a symbolic link to a file that does not exist
+    (a publish area's link whose target was cleaned away) passed the check before the work (``exists()``
+    follows the link), ran the whole personalize, and then failed 'output exists (written by another
+    process meanwhile)': wrong, and after the work. The link is an existing output: refused at once without
+    ``--force`` (the dry run says so too), replaced by the file with it (its target left as it was)."""
+    (project / "p.usda").symlink_to("gone/p.usda")
+    argv = ("personalize", "sa/avatar.usda", "sa/capture.usda", "-o", "p.usda")
+    proc = run(*argv, cwd=project, ok=False)
+    refused(proc, "p.usda", "symbolic link", "gone/p.usda", "--force")
+    assert "meanwhile" not in proc.stderr and "registration" not in proc.stdout + proc.stderr, proc.stderr
+    dry = run(*argv, "--dry-run", cwd=project, ok=False)
+    assert "symbolic link" in dry.stdout + dry.stderr and "would write" not in dry.stdout, dry.stdout
+    run(*argv, "--force", "-q", cwd=project)
+    assert (project / "p.usda").is_file() and not (project / "p.usda").is_symlink()
+    assert not (project / "gone").exists()
+    no_temp_left(project)
+
+
+def test_a_batch_rows_correspondence_cache_is_checked_before_the_first_item(sample_set, tmp_path):
+    """A TD's trial (stop 54): a manifest's last row whose ``correspondence`` cache lies inside its capture
+    folder failed only at its turn, after the rows before it had run (README: every row's paths, an output
+    never inside an input, checked before the first item); a Pyblish publish validates the same cache before
+    any extraction. Now the batch refuses it before any work, naming the row, as Pyblish does."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    avatar = sample_set / "avatar.usda"
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output,correspondence\n{avatar},cap,out/a.usda,\n"
+                                         f"{avatar},cap,out/b.usda,cap/b.npz\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
+    refused(proc, "people.csv", "item 2", "cap/b.npz", "inside the input folder")
+    assert not (tmp_path / "out").exists(), sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert tree(cap) == before

@@ -297,10 +297,14 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
                                      "--force")
         if inp.is_dir() and target.is_relative_to(real):
             beside = _beside_inputs(path, [g for g, _ in given])
-            where = f" (-o {beside}, beside it)" if beside else ""
-            raise InputFileError(f"{what} is inside the {named} (writing it would change that input)",
-                                 path=path, fix=f"write the {what} outside {inp}{where}; inputs are never "
-                                                "modified, even with --force")
+            # the path alone (the API, a Pyblish instance's output): the command line names the option
+            # that gives this output, where one does (usdface.cli.name_output_option)
+            where = f" ({beside}, beside it)" if beside else ""
+            error = InputFileError(f"{what} is inside the {named} (writing it would change that input)",
+                                   path=path, fix=f"write the {what} outside {inp}{where}; inputs are never "
+                                                  "modified, even with --force")
+            error.beside = beside
+            raise error
         if folder and (real.is_relative_to(target) or (st.st_dev, st.st_ino) in tree[0]
                        or any(real == link or real.is_relative_to(link) for link in tree[1])):
             raise InputFileError(f"{what} holds the {named} (writing into it could overwrite or delete "
@@ -363,7 +367,10 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     # named like it ('name it e.g. newdir.usda' answered a user who meant the folder)
     slash = raw.endswith(("/", os.sep)) and not path.is_dir()
     if path.is_dir() or slash:
-        inside = path / (example or f"out{suffixes[0] if suffixes else ''}")
+        import shlex
+
+        # as given, shell-quoted as every path in a fix: 'new dir/...' pastes
+        inside = shlex.quote(str(path / (example or f"out{suffixes[0] if suffixes else ''}")))
         raise InputFileError(f"{what} path {'names' if slash else 'is'} a folder"
                              + (f" (it ends in '{raw[-1]}'), not a file" if slash else ""), path=raw,
                              fix=f"give a file name inside it, e.g. {inside}"
@@ -382,7 +389,12 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     _refuse_unexpanded_home(path, what)
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
-    if path.exists() and not force:
+    if os.path.lexists(path) and not force:
+        if not path.exists():   # a link to nothing: an existing name, which the write refuses at its end
+            raise OutputExistsError(             # ('written by another process meanwhile', after the work)
+                f"{what} exists as a symbolic link to {os.readlink(path)}, which does not exist", path=path,
+                fix="pass --force (force=True) to replace the link with the file (its target is left as "
+                    "it is), or choose another output")
         raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
     return check_writable(path, what=what, fix=fix)
 

@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..errors import InputFileError, OutputExistsError
+from ..errors import InputFileError, OutputExistsError, UsdFaceError
 from ..locks import SharedWhileInside
 
 REQUIRED = ("avatar", "capture", "output")
@@ -537,7 +537,7 @@ def row_review(item: BatchItem | dict) -> tuple[Path | None, bool]:
     its dict) and whether it is there; ``(None, False)`` when the row asks none. The one rule behind the
     report's ``review`` and resume's missing page (two near copies until stop 53)."""
     options = (item.options if isinstance(item, BatchItem) else item.get("options")) or {}
-    if not _flag(options.get(REVIEW)):
+    if not review_flag(options):
         return None, False
     page = review_page(item.output if isinstance(item, BatchItem) else item["output"])
     return page, os.path.lexists(page)
@@ -593,9 +593,9 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
     from ..io.usd_inspection import layer_inspection
 
     take = _row_take(options)
-    landmarks = _flag(options.get("landmarks"))
+    landmarks = _flag(options.get("landmarks"), "landmarks")
     held = layer_inspection(layer)
-    inspect = _flag(options.get("inspect")) or landmarks or bool(take)
+    inspect = _flag(options.get("inspect"), "inspect") or landmarks or bool(take)
     for key, has, wanted in (("inspect", held["heat"], inspect), ("landmarks", held["landmarks"], landmarks)):
         if has != wanted:
             return key, str(has), str(wanted)
@@ -609,8 +609,10 @@ def _changed_inspection(options: dict, record: dict, layer, others: Iterable[str
 def redoes(item: BatchItem, force: bool = False) -> bool:
     """Whether ``item`` runs even where its output exists: the batch's ``force``, or the row's own ``force``
     column true (a Pyblish publish of the same manifest replaces that row's layer and review page; the batch
-    resumed it as done)."""
-    return bool(force) or _flag((item.options or {}).get("force"))
+    resumed it as done). The cell is read as the worker reads it (:func:`_flag`): one neither true nor false
+    is an :class:`usdface.errors.OptionError`, whatever the batch's ``force``."""
+    row = _flag((item.options or {}).get("force"), "force")
+    return bool(force) or row
 
 
 def _row_take(options: dict) -> str | None:
@@ -619,15 +621,16 @@ def _row_take(options: dict) -> str | None:
     return str(take) if isinstance(take, str | os.PathLike) and str(take) else None
 
 
-def _flag(value) -> bool:
-    """A row's boolean option as the API reads it (:func:`usdface.errors.expect_flag`: numpy's booleans too;
-    ``is True`` called ``numpy.True_`` false); a value the API refuses when the item runs, as not set."""
-    from ..errors import OptionError, expect_flag
+def _flag(value, name: str) -> bool:
+    """A row's boolean cell ``name`` as the API reads it (:func:`usdface.errors.expect_flag`: numpy's booleans
+    too; ``is True`` called ``numpy.True_`` false; empty: false); any other value an
+    :class:`usdface.errors.OptionError` naming the column. The one reading of a row's cell by resume and by
+    the worker (stop 54: resume took a ``force`` cell ``sure`` as not set and skipped the done row, while the
+    worker refused the same cell on a row not yet done)."""
+    from ..errors import expect_flag
 
-    try:
-        return expect_flag(value, "option", "personalize's", False)
-    except OptionError:
-        return False
+    fix = f"write the manifest's {name} column as true or false (or leave the cell empty: false)"
+    return expect_flag(value, name, "the row's", False, fix)
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
@@ -687,7 +690,6 @@ def personalize_worker(item: dict):
     personalize's result (the report's ``warnings`` go to the item's). An item marked :data:`REVIEW_ONLY`
     (resume: its layer finished, its page missing) gets the page alone."""
     from ..api import personalize_avatar
-    from ..errors import expect_flag
 
     options = dict(item.get("options") or {})
     review = review_flag(options)                    # the page beside the layer: no personalize option
@@ -697,9 +699,8 @@ def personalize_worker(item: dict):
     # the batch's --force redoes every row, a row's force true its own (docs/pipeline.md): a row's false (or
     # empty) cell adds nothing; it was passed on as force=False, and personalize refused the layer --force
     # was redoing (stop 53)
-    # (the cell read as personalize reads it: a word it cannot read is refused, not taken as unset)
-    options["force"] = expect_flag(options.get("force"), "force", "personalize's", False) \
-        or bool(item.get("force", False))
+    # (the cell read as resume reads it, _flag: a word it cannot read is refused, not taken as unset)
+    options["force"] = _flag(options.get("force"), "force") or bool(item.get("force", False))
     options.setdefault("command", f"usdface batch, item {int(item.get('index', 0)) + 1} "
                                   "(usdface.pipeline.batch.personalize_worker)")
     result = personalize_avatar(item["avatar"], item["capture"], item["output"], **options)
@@ -1269,11 +1270,19 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
     results: dict[int, dict] = {}
     todo = []
     for item in items:
-        if not redoes(item, force) and Path(item.output).exists():
+        try:            # the row's force and review cells read as the worker reads them (stop 54): a cell
+            redo = redoes(item, force)          # neither true nor false fails the row, done or not
+            page, there = row_review(item)
+            resumed = not redo and Path(item.output).exists()
             # a studio worker may prepare its own inputs (a converted capture): its outputs are its business
             ours = worker is personalize_worker
-            stale = stale_output(item) if ours else ""
-            page, there = row_review(item)
+            stale = stale_output(item) if ours and resumed else ""
+        except UsdFaceError as exc:
+            results[item.index] = dict(index=item.index, avatar=item.avatar, capture=item.capture,
+                                       output=item.output, status=FAILED, error=str(exc),
+                                       error_type=type(exc).__name__)
+            continue
+        if resumed:
             if ours and not stale and page is not None and not there:     # the finished layer's page alone
                 todo.append(dict(item.to_dict(), force=False, **{REVIEW_ONLY: True}))
                 continue

@@ -37,6 +37,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import warnings
 from pathlib import Path
@@ -434,15 +435,41 @@ PLUGINS = (CollectUsdFaceItems, ValidateUsdFaceRig, ValidateUsdFaceCapture, Vali
            ValidateUsdFaceOutputs, ExtractUsdFacePersonalized, ExtractUsdFaceReview)
 
 
+class _RefusalsAsOneLine(logging.Filter):
+    """Pyblish logs a failed plugin with ``log.exception`` on its ``pyblish.plugin`` logger: the traceback
+    as the message and again as the record's exception, so a plain refusal (an output that exists, a bad
+    option) printed two tracebacks around its one line (stop 54, a TD's trial). A record whose exception is
+    a :class:`usdface.errors.UsdFaceError` is logged as that error's one line (file, prim, fix), as the
+    command line prints it; any other exception (a bug, usdface's or a studio plugin's) keeps its
+    traceback. The error itself, traceback included, stays in ``context.data["results"]``."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from ..errors import UsdFaceError
+
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, UsdFaceError):
+            record.msg, record.args = str(error), ()
+            record.exc_info = record.exc_text = None
+        return True
+
+
+_REFUSALS = _RefusalsAsOneLine()
+#: The logger Pyblish logs a failed plugin's exception on (``pyblish.plugin.__explicit_process``).
+_PLUGIN_LOG = "pyblish.plugin"
+
+
 def register() -> None:
-    """Register usdface's plugins with Pyblish (idempotent)."""
+    """Register usdface's plugins with Pyblish (idempotent), and log their refusals as one line each
+    (:class:`_RefusalsAsOneLine`)."""
     for plugin in PLUGINS:
         if plugin not in _pyblish.registered_plugins():
             _pyblish.register_plugin(plugin)
+    logging.getLogger(_PLUGIN_LOG).addFilter(_REFUSALS)          # once: a filter is added only once
 
 
 def deregister() -> None:
-    """Remove usdface's plugins from Pyblish."""
+    """Remove usdface's plugins from Pyblish (and the one-line logging of their refusals)."""
     for plugin in PLUGINS:
         if plugin in _pyblish.registered_plugins():
             _pyblish.deregister_plugin(plugin)
+    logging.getLogger(_PLUGIN_LOG).removeFilter(_REFUSALS)
