@@ -796,13 +796,15 @@ def _read_truth(path) -> dict:
     return truth
 
 
-def _check_correspondence_cache(path, inputs=(), outputs=()) -> None:
+def _check_correspondence_cache(path, inputs=(), outputs=(), *, option: str = "--correspondence",
+                                output_option: str = "-o") -> None:
     """Refuse, before any work, a ``--correspondence`` file the run could not use or write: one of the run's
     ``outputs`` (``-o``: the layer would overwrite the cache, or the cache the layer), a place an output may
     not be written (a read-only or immutable folder, inside an input folder: :func:`check_output_file`, the
     cache is written when missing or stale), an existing file that cannot be a cache (not a file, empty, not
     an npz zip). One of the run's ``inputs`` (the avatar, the capture, ...: a swapped or mistyped option) is
-    named as such, never suggested for deletion."""
+    named as such, never suggested for deletion. ``option`` and ``output_option`` are how the caller's user
+    names the cache and the layer (``usdface batch``: the manifest's columns, which its user edits)."""
     if path is None:
         return
     import zipfile
@@ -813,11 +815,11 @@ def _check_correspondence_cache(path, inputs=(), outputs=()) -> None:
 
     for out in outputs:
         if out is not None and Path(os.path.abspath(out)) == Path(os.path.abspath(path)):
-            raise InputFileError("--correspondence and -o name the same file: the layer and the cache would "
-                                 "overwrite each other", path=path,
+            raise InputFileError(f"{option} and {output_option} name the same file: the layer and the cache "
+                                 "would overwrite each other", path=path,
                                  fix="give the cache its own name (e.g. avatar.corr.npz)")
     if not Path(path).exists():
-        check_output_file(path, True, what="correspondence cache (--correspondence)",
+        check_output_file(path, True, what=f"correspondence cache ({option})",
                           inputs=[p for p in inputs if isinstance(p, str | Path)])
         return
 
@@ -829,13 +831,13 @@ def _check_correspondence_cache(path, inputs=(), outputs=()) -> None:
         except OSError:
             same = False
         if same:
-            raise InputFileError("--correspondence names one of this run's inputs, not a cache", path=path,
+            raise InputFileError(f"{option} names one of this run's inputs, not a cache", path=path,
                                  fix="pass a new file name for the cache (e.g. avatar.corr.npz); the input "
                                      "is never written")
     require_file(path, "correspondence cache", "pass a .npz cache written by usdface, or a new file name")
     if not zipfile.is_zipfile(path):
         raise InputFileError("not a usdface correspondence cache (empty or not an .npz archive)", path=path,
-                             fix="pass another --correspondence file (a new name is written), or remove "
+                             fix=f"give {option} another file (a new name is written), or remove "
                                  "this one if it is a stale cache of yours")
 
 
@@ -1515,7 +1517,9 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             # a Pyblish publish validates it: it failed only at its row's turn, after the rows before it
             if written:
                 try:
-                    _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[item.output])
+                    _check_correspondence_cache(options.get("correspondence"), inputs, outputs=[item.output],
+                                                option="the manifest's correspondence column",
+                                                output_option="its output column")
                 except UsdFaceError as exc:
                     raise _row_error(item, exc, manifest, "fix the manifest's correspondence column") \
                         from None

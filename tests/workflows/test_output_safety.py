@@ -387,3 +387,10 @@ def test_a_batch_rows_correspondence_cache_is_checked_before_the_first_item(samp
     refused(proc, "people.csv", "item 2", "cap/b.npz", "inside the input folder")
     assert not (tmp_path / "out").exists(), sorted(p.name for p in (tmp_path / "out").iterdir())
     assert tree(cap) == before
+    # named by the manifest's column the user edits, not personalize's option (h107's loose end)
+    assert "correspondence column" in proc.stderr and "--correspondence" not in proc.stderr, proc.stderr
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output,correspondence\n{avatar},cap,out/b.usda,"
+                                         "out/b.usda\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
+    refused(proc, "people.csv", "item 1", "correspondence column and its output column name the same file")
+    assert "--correspondence" not in proc.stderr, proc.stderr
