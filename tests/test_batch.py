@@ -67,6 +67,29 @@ def test_bad_manifests(tmp_path, text, needle):
         read_manifest(tmp_path / "absent.csv")
 
 
+def test_manifest_comment_and_blank_lines_are_no_items_and_messages_name_the_files_line(tmp_path):
+    """A TD's trial (stop 54): a ``# comment`` line was a row, refused as 'item 2 lacks [...]'. Comment lines
+    (above the header too) and blank lines are skipped; a line inside a quoted cell is the cell's; a message
+    names the item and, where comments or blank lines put it elsewhere, the file's line."""
+    path = tmp_path / "m.csv"
+    path.write_text("# shot 12's people\navatar,capture,output,note\na.usdc,a_cap,out/a.usda,\n"
+                    "  # anna's re-capture, \"v2\"\n\nb.usdc,b_cap,out/b.usda,\"two\n# lines\"\n"
+                    "c.usdc,c_cap,out/c.usda,\n")
+    items = read_manifest(path)
+    assert [Path(i.avatar).name for i in items] == ["a.usdc", "b.usdc", "c.usdc"]
+    assert [i.index for i in items] == [0, 1, 2] and [i.line for i in items] == [3, 6, 8]
+    assert items[1].options == {"note": "two\n# lines"}
+    assert [i.label for i in items] == ["item 1 (line 3)", "item 2 (line 6)", "item 3 (line 8)"]
+    path.write_text("avatar,capture,output\n# a.usdc,a_cap,out/a.usda\nb.usdc,,out/b.usda\n")
+    with pytest.raises(InputFileError, match=r"item 1 \(line 3\) lacks \['capture'\]"):
+        read_manifest(path)
+    path.write_text("avatar,capture,output\na.usdc,a_cap,out/a.usda\n\n# b\nb.usdc,b_cap,out/a.usda\n")
+    with pytest.raises(InputFileError, match=r"items 1 and 2 \(line 5\) both write"):
+        read_manifest(path)
+    path.write_text("avatar,capture,output\na.usdc,a_cap,out/a.usda\nb.usdc,b_cap,out/b.usda\n")
+    assert [i.label for i in read_manifest(path)] == ["item 1", "item 2"]     # no line where it is N + 1
+
+
 def half_worker(item: dict) -> None:
     """Writes ``output``, then fails for avatars named ``bad*`` (a studio step that exports, then fails its
     own validation)."""

@@ -1472,7 +1472,7 @@ def _row_error(item, exc, manifest, fix: str):
 
     where = [w for w in (exc.path, exc.prim and f"prim {exc.prim}") if w]     # as UsdFaceError names them
     named = f"{', '.join(where)}: " if where else ""
-    return InputFileError(f"item {item.index + 1}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
+    return InputFileError(f"{item.label}: {named}{exc.message}", path=manifest, fix=exc.fix or fix)
 
 
 def _batch_preflight(items, worker, manifest, force: bool = False):
@@ -1497,7 +1497,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             try:
                 review = review_flag(item.options)
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                raise InputFileError(f"{item.label}: {exc.message}", path=manifest,
                                      fix=exc.fix) from None
             options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
@@ -1505,7 +1505,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             try:                                    # the batch's --force, or the row's force column
                 redo = redoes(item, force)
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                raise InputFileError(f"{item.label}: {exc.message}", path=manifest,
                                      fix=exc.fix) from None
             written = redo or not os.path.lexists(item.output)
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
@@ -1534,10 +1534,10 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             try:
                 check_item_options(item.options, columns=(REVIEW,))   # dry_run not offered: refused below
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {exc.message}", path=manifest,
+                raise InputFileError(f"{item.label}: {exc.message}", path=manifest,
                                      fix=exc.fix or "fix the manifest's option columns") from None
             except (TypeError, ValueError) as exc:      # a value of the wrong shape for its option
-                raise InputFileError(f"item {item.index + 1}: bad option value ({exc})", path=manifest,
+                raise InputFileError(f"{item.label}: bad option value ({exc})", path=manifest,
                                      fix="fix the manifest's option columns (docs/personalize.md, Options)") \
                     from None
             # run_batch's own test: resume skips the row (or reports its output stale), reading nothing (a
@@ -1551,11 +1551,11 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             try:              # a row whose avatar is already personalized (a usdface layer, its export)
                 refuse_usdface_output(item.avatar)
             except UsdFaceError as exc:
-                raise InputFileError(f"item {item.index + 1}: {item.avatar}: {exc.message}", path=manifest,
+                raise InputFileError(f"{item.label}: {item.avatar}: {exc.message}", path=manifest,
                                      fix=f"{exc.fix} in the manifest's avatar column" if exc.fix
                                      else "fix the manifest's avatar column") from None
             if item.options.get("dry_run"):              # nothing written, yet the item counted as done
-                raise InputFileError(f"item {item.index + 1}: dry_run writes no output, and the batch would "
+                raise InputFileError(f"{item.label}: dry_run writes no output, and the batch would "
                                      "count the item done without it", path=manifest,
                                      fix="drop dry_run; preview one item with 'usdface personalize AVATAR "
                                          "CAPTURE -o OUT --dry-run'")
@@ -1565,7 +1565,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
                 from .io.take import is_take
 
                 if not is_take(item.capture):    # as the item itself would refuse it, but before any work
-                    raise InputFileError(f"item {item.index + 1}: every={every} thins a take read whole; "
+                    raise InputFileError(f"{item.label}: every={every} thins a take read whole; "
                                          f"{item.capture} holds frames picked one per shape", path=manifest,
                                          fix="leave 'every' out for that row, or give the take itself as its "
                                              "capture")

@@ -28,7 +28,8 @@ def register(subparsers) -> None:
                     "Exit status 1 when any item failed.")
     p.add_argument("manifest", help="CSV with columns avatar,capture,output[,option...] or a JSON list (a "
                                     "review column true: the review page beside each layer, as a Pyblish "
-                                    "publish of the manifest writes it)")
+                                    "publish of the manifest writes it; lines starting with # are "
+                                    "comments)")
     p.add_argument("-j", "--jobs", type=positive_int, default=None,
                    help="local worker processes (default: one a CPU this process may use, no more than the "
                         "available memory holds at ~1.2 GB each; 1 = in this process)")

@@ -56,9 +56,23 @@ class BatchItem:
     output: str
     options: dict = field(default_factory=dict)
     index: int = 0
+    #: the manifest file's line the row starts on (a CSV manifest; 0: not known, a JSON item)
+    line: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @property
+    def line_note(self) -> str:
+        """`` (line L)`` when the row is not on the line ``item N`` suggests (N + 1, under the header):
+        comment or blank lines above it, a cell over several lines; else ``""``."""
+        return f" (line {self.line})" if self.line and self.line != self.index + 2 else ""
+
+    @property
+    def label(self) -> str:
+        """How a message names the item: ``item N`` (its place among the manifest's items), with the file's
+        line when that differs (:attr:`line_note`), so a user finds the row in an editor or a sheet."""
+        return f"item {self.index + 1}{self.line_note}"
 
 
 @dataclass
@@ -191,7 +205,9 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
     for it in items:
         for key in _file_keys(it.output):
             if key in outputs:
-                raise InputFileError(f"items {outputs[key] + 1} and {it.index + 1} both write {it.output}",
+                first = items[outputs[key]]
+                raise InputFileError(f"items {first.index + 1}{first.line_note} and {it.index + 1}"
+                                     f"{it.line_note} both write {it.output}",
                                      path=path, fix="give every item its own output file")
             outputs[key] = it.index
     folders: dict[str, tuple[str, int]] = {}        # real path of an input folder -> (what, item)
@@ -202,8 +218,8 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
         for what, src in reads:
             hit = next((outputs[k] for k in _file_keys(src) if k in outputs), None)
             if hit is not None:
-                raise InputFileError(f"item {hit + 1} writes {items[hit].output}, the {what} item "
-                                     f"{it.index + 1} reads", path=path,
+                raise InputFileError(f"{items[hit].label} writes {items[hit].output}, the {what} "
+                                     f"{it.label} reads", path=path,
                                      fix="write outputs to their own files (an input is never overwritten, "
                                          "even with --force)")
             if os.path.isdir(src):
@@ -212,8 +228,8 @@ def _refuse_outputs_over_inputs(items: list[BatchItem], path: Path) -> None:
         for parent in Path(os.path.realpath(it.output)).parents:
             if str(parent) in folders:
                 what, reader = folders[str(parent)]
-                raise InputFileError(f"item {it.index + 1} writes {it.output} inside {parent}, the {what} "
-                                     f"folder item {reader + 1} reads", path=path,
+                raise InputFileError(f"{it.label} writes {it.output} inside {parent}, the {what} "
+                                     f"folder {items[reader].label} reads", path=path,
                                      fix="write outputs outside the input folders")
 
 
@@ -242,13 +258,13 @@ def _refuse_windows_paths(path: Path, base: Path, rows: list[tuple[int, dict, di
     """A manifest written on Windows (``avatars\\anna.usdc``) read where ``/`` separates folders: its
     backslashes are characters of one file name there, so the row's avatar was 'not found' and its output
     ``out\\anna.usda`` would have been written as one file of that name beside the manifest. ``rows``:
-    ``(index, the row as given, {column: resolved path})``. A cell naming no file here that is a Windows
+    ``(item, the row as given, {column: resolved path})``. A cell naming no file here that is a Windows
     path (:func:`_windows_path`) is refused naming the item, the column and the path to write; a file of
     this machine whose name holds a backslash, or a path under a folder named ``D:`` beside the manifest, is
     read or written as named (h81's review, stop 51: a ``D:`` folder was refused)."""
     if os.sep != "/":
         return
-    for i, row, resolved in rows:
+    for item, row, resolved in rows:
         for column in (*REQUIRED, *PATH_OPTIONS):
             given = row.get(column)
             if not isinstance(given, str) or os.path.lexists(resolved[column]):
@@ -256,7 +272,7 @@ def _refuse_windows_paths(path: Path, base: Path, rows: list[tuple[int, dict, di
             found = _windows_path(given, base)
             if found:
                 what, write = found
-                raise InputFileError(f"item {i + 1}: {column} '{given}' {what} (a Windows path?), which "
+                raise InputFileError(f"{item.label}: {column} '{given}' {what} (a Windows path?), which "
                                      "names no file here", path=path,
                                      fix="write the manifest's paths as this machine names them, with '/' "
                                          f"(relative to the manifest, or absolute here): {write}")
@@ -288,7 +304,7 @@ def _separator(text: str) -> str:
     (its refusal then lists the columns). The first rule alone split a ``;`` header with a misspelt column
     on ``,`` and refused it as one column; the Sniffer alone split a ``;`` header with a comma in a column's
     name on ``,`` (stop 53)."""
-    first = text.lstrip("\r\n").splitlines()[0] if text.strip() else ""
+    first = next((line for line in text.splitlines() if line.strip() and not _comment(line)), "")
     # a split naming every required column first: the Sniffer prefers "," whenever the row holds one, and a
     # ";" or tab header with a comma inside a column's name ("notes, misc") was refused (stop 53's review)
     for sep in (",", ";", "\t"):
@@ -300,8 +316,47 @@ def _separator(text: str) -> str:
         return ","
 
 
+def _comment(line: str) -> bool:
+    """Whether a manifest's text line is a comment: its first character other than a space or a tab is
+    ``#``, as in a shell script (a quoted ``"#1/anna.usdc"`` first cell
+    too: a row whose first path starts with ``#`` puts another column first)."""
+    return line.lstrip(" \t").startswith("#")
+
+
+def _csv_rows(text: str, delimiter: str):
+    """Yield ``(line, cells)`` for each row of a CSV manifest's ``text``, ``line`` the file's line (from 1)
+    the row starts on. A comment line (:func:`_comment`) and a blank line between rows are no rows (a
+    comment row was refused as 'item N lacks ...'); a line inside a quoted cell over several lines is the
+    cell's, whatever it starts with."""
+    import io
+
+    state = {"line": 0, "start": 0}
+
+    def lines():
+        for line in io.StringIO(text, newline=""):
+            state["line"] += 1
+            if not state["start"]:                        # between rows: the next row's first line
+                if not line.strip() or _comment(line):
+                    continue
+                state["start"] = state["line"]
+            yield line
+
+    reader = csv.reader(lines(), skipinitialspace=True, delimiter=delimiter)
+    while True:
+        state["start"] = 0
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return
+        yield state["start"], cells
+
+
 def read_manifest(path) -> list[BatchItem]:
     """Read a batch manifest (``.csv`` or ``.json``); paths resolved against the manifest's folder.
+
+    A CSV manifest's comment lines (first character ``#``) and blank lines are skipped; an item's
+    :attr:`BatchItem.line` is the file's line its row starts on (a message names it when it is not the
+    line ``item N`` suggests).
 
     Raises :class:`usdface.errors.InputFileError` for a missing file, a missing column/field, an empty
     manifest, or two items writing the same output.
@@ -322,40 +377,43 @@ def read_manifest(path) -> list[BatchItem]:
         if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
             raise InputFileError("JSON manifest must be a list of objects (or {\"items\": [...]})", path=path,
                                  fix='write [{"avatar": ..., "capture": ..., "output": ...}, ...]')
+        rows = [(0, r) for r in rows]                     # no line: a JSON item is named by its place
     else:
         # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark; skipinitialspace and the
         # stripped header: "avatar, capture, output" names the columns too
-        import io
-
-        with io.StringIO(text, newline="") as fh:
-            # a spreadsheet in a locale with a decimal comma saves "CSV" with semicolons, and "Unicode Text"
-            # with tabs: the separator that makes the header name the required columns
-            reader = csv.DictReader(fh, skipinitialspace=True, delimiter=_separator(text))
-            # a spreadsheet's capitalised header ("Avatar,Capture,Output", "Method") names the columns too:
-            # every column usdface reads is a lower-case name (stop 47, h52: it was 'lacks column(s)')
-            reader.fieldnames = [f.strip().lower() for f in reader.fieldnames or []]
-            twice = sorted({f for f in reader.fieldnames if f and reader.fieldnames.count(f) > 1})
-            if twice:          # csv.DictReader keeps the last of two same-named columns without a word
-                raise InputFileError(f"manifest has the column(s) {twice} twice (case aside)", path=path,
-                                     fix="keep one column of each name in the first row")
-            missing = [c for c in REQUIRED if c not in (reader.fieldnames or [])]
-            if missing:
-                raise InputFileError(f"manifest lacks column(s) {missing} (has {reader.fieldnames})",
-                                     path=path, fix="first row: avatar,capture,output[,options]")
-            rows = [{k: _coerce(v) if k not in REQUIRED else v for k, v in r.items()
-                     if k is not None and v not in (None, "")} for r in reader]
-            rows = [r for r in rows if r]         # a spreadsheet's trailing ",,," rows are no items
+        # a spreadsheet in a locale with a decimal comma saves "CSV" with semicolons, and "Unicode Text"
+        # with tabs: the separator that makes the header name the required columns. Comment and blank
+        # lines skipped (_csv_rows), before the header too
+        found = _csv_rows(text, _separator(text))
+        # a spreadsheet's capitalised header ("Avatar,Capture,Output", "Method") names the columns too:
+        # every column usdface reads is a lower-case name (stop 47, h52: it was 'lacks column(s)')
+        fieldnames = [f.strip().lower() for f in next(found, (0, []))[1]]
+        twice = sorted({f for f in fieldnames if f and fieldnames.count(f) > 1})
+        if twice:              # a row's dict would keep the last of two same-named columns without a word
+            raise InputFileError(f"manifest has the column(s) {twice} twice (case aside)", path=path,
+                                 fix="keep one column of each name in the first row")
+        missing = [c for c in REQUIRED if c not in fieldnames]
+        if missing:
+            raise InputFileError(f"manifest lacks column(s) {missing} (has {fieldnames})",
+                                 path=path, fix="first row: avatar,capture,output[,options]")
+        # cells past the header's columns are dropped, a short row's missing cells are empty
+        rows = [(line, {k: _coerce(v) if k not in REQUIRED else v
+                        for k, v in zip(fieldnames, row, strict=False) if v not in (None, "")})
+                for line, row in found]
+        rows = [(line, r) for line, r in rows if r]      # a spreadsheet's trailing ",,," rows are no items
     items, cells = [], []
-    for i, row in enumerate(rows):
+    for i, (line, row) in enumerate(rows):
+        item = BatchItem("", "", "", {}, i, line)
         missing = [c for c in REQUIRED if not row.get(c)]
         if missing:
-            raise InputFileError(f"item {i + 1} lacks {missing}", path=path,
+            raise InputFileError(f"{item.label} lacks {missing}", path=path,
                                  fix="give every item an avatar, a capture and an output")
         resolved = {c: _absolute(base, row[c]) for c in REQUIRED}
         options = {k: (_absolute(base, v) if k in PATH_OPTIONS and isinstance(v, str) and v else v)
                    for k, v in row.items() if k not in REQUIRED}
-        cells.append((i, row, {**resolved, **options}))
-        items.append(BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i))
+        item = BatchItem(resolved["avatar"], resolved["capture"], resolved["output"], options, i, line)
+        cells.append((item, row, {**resolved, **options}))
+        items.append(item)
     if not items:
         raise InputFileError("manifest lists no items", path=path, fix="add one row per avatar")
     _refuse_windows_paths(path, base, cells)
