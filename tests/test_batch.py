@@ -563,6 +563,29 @@ def test_a_hosts_on_item_that_raises_stops_the_batch_with_what_finished(tmp_path
     assert not (tmp_path / "out" / "b.usda").exists()
 
 
+def interrupting_worker(item: dict) -> None:
+    """:func:`stub_worker`, but Ctrl-C (a KeyboardInterrupt) at the avatar named ``stop*``."""
+    if Path(item["avatar"]).name.startswith("stop"):
+        raise KeyboardInterrupt
+    stub_worker(item)
+
+
+def test_json_of_a_stopped_batch_lists_the_items_as_its_report_does(tmp_path, capsys):
+    """A TD's trial (stop 54): ``batch --json`` stopped by Ctrl-C printed ``{"ok": false, "error": {...}}``
+    without the items (only the report file had them), where a finished batch's document is the report. Now
+    the stopped one carries the report too: its path, the counts and each item as the report lists it."""
+    manifest = _manifest(tmp_path, ["a", "stop", "c"])
+    assert main(["batch", str(manifest), "-j", "1", "--json", "--worker",
+                 f"{__name__}:interrupting_worker"]) == 130
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] is False and doc["error"]["type"] == "Interrupted"
+    report = json.loads((tmp_path / "people.report.json").read_text())
+    assert doc["report_path"] == str(tmp_path / "people.report.json")
+    assert doc["items"] == report["items"] and doc["done"] == report["done"] == 1
+    assert [(i["status"], i["error_type"]) for i in doc["items"]][0] == (DONE, "")
+    assert {i["error_type"] for i in doc["items"][1:]} == {"Interrupted"}
+
+
 def test_manifest_paths_have_no_dot_dot_and_keep_their_links(tmp_path):
     """A TD's trial (stop 48): the report said ``/tmp/x/sub/../avatars/anna.usdc`` (the row's relative path
     joined to the manifest's folder as written). ``..`` is the parent of the folder the OS has got to: after

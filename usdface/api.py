@@ -1449,9 +1449,11 @@ def personalize_batch(manifest: PathLike, *, jobs: int | None = None, scheduler:
         from .pipeline.batch import FAILED, BatchReport, ItemResult
 
         why = "the batch was stopped before it started (while its rows were checked); run it again"
-        BatchReport([ItemResult(index=i.index, avatar=str(i.avatar), capture=str(i.capture),
-                                output=str(i.output), status=FAILED, error=why, error_type="Interrupted")
-                     for i in items], 0.0, "not started").write(path)
+        exc.batch_report = BatchReport([ItemResult(index=i.index, avatar=str(i.avatar),
+                                                   capture=str(i.capture), output=str(i.output),
+                                                   status=FAILED, error=why, error_type="Interrupted")
+                                        for i in items], 0.0, "not started")
+        exc.batch_report.write(path)
         exc.report_path = _written(path)  # the command line names it (it printed only 'interrupted')
         raise
     try:

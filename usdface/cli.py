@@ -621,7 +621,8 @@ def _stopped(args, exc: KeyboardInterrupt) -> int:
     terminated = isinstance(exc, Terminated)
     report = getattr(exc, "report_path", None)    # a stopped batch's report of what finished
     if getattr(args, "json", None) is True:   # stdout still holds one document: the run did not finish
-        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT", report)
+        _json_stopped(args, terminated, exc.signame if terminated else "SIGINT", report,
+                      getattr(exc, "batch_report", None))
     if report is not None:
         print(f"report: {report}", file=sys.stderr)
     if terminated:
@@ -687,9 +688,11 @@ def _json_error(args, text, kind, path, prim, fix) -> None:
     print(f"usdface {_command_name(args)}: error: {text}", file=sys.stderr)
 
 
-def _json_stopped(args, terminated: bool, signame: str = "SIGTERM", report=None) -> None:
+def _json_stopped(args, terminated: bool, signame: str = "SIGTERM", report=None, batch_report=None) -> None:
     """The ``--json`` document of a run stopped by Ctrl-C or SIGTERM (the line on stderr follows): a
-    pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document."""
+    pipeline that reads stdout gets ``{"ok": false, ...}``, not an empty document. A stopped batch's
+    document is its report too (``batch_report``, written to ``report``: ``report_path``, the counts, each
+    item), as a finished batch's is; it had the report file's path alone (stop 54)."""
     import json
 
     kind, signame = ("Terminated", signame) if terminated else ("Interrupted", "SIGINT")
@@ -702,6 +705,8 @@ def _json_stopped(args, terminated: bool, signame: str = "SIGTERM", report=None)
         "file": None if report is None else str(report), "prim": None,
         "fix": "run the same command again (finished items are skipped)" if batch
         else "run the command again"}}
+    if batch_report is not None and report is not None:      # what finished, as the report file lists it
+        doc.update(report_path=os.path.abspath(report), **batch_report.to_dict())
     try:
         print(json.dumps(doc), flush=True)
     except OSError:
