@@ -299,3 +299,19 @@ def test_option_value_types_at_their_boundaries():
             refused(fn, bad)
     assert o.mu_value("auto") == "auto" and o.reg_value("paper") == "paper" and o.mu_value("2") == 2.0
     refused(o.mu_value, "0")
+
+
+def test_help_lists_the_commands_in_the_readmes_order():
+    """A TD's trial (stop 54): ``usdface --help`` listed the commands in another order than README's command
+    table. One order, a new user's: personalize and what follows it (review, export, batch), the inputs
+    (capture, anim), looking at files (inspect, check), the stages alone (fit, evaluate, retarget,
+    landmarks), pictures and the sample."""
+    import re
+
+    from usdface.cli import build_parser
+
+    table = re.findall(r"^\| `usdface ([a-z]+)", (ROOT / "README.md").read_text(), re.MULTILINE)
+    readme = list(dict.fromkeys(table))
+    actions = [a for a in build_parser()._actions if a.dest == "command"]
+    listed = [choice.dest for choice in actions[0]._choices_actions]
+    assert listed == readme

@@ -19,9 +19,11 @@ from .errors import UsdFaceError
 from .locks import SharedWhileInside
 
 #: Sub-command modules, in the order ``usdface --help`` lists them.
+#: The commands in the order ``usdface --help`` lists them, README's command table's (a new user's: the
+#: personalization and what follows it, the inputs, looking at files, the stages alone, pictures, the sample).
 COMMAND_MODULES = (
-    "personalize", "fit", "evaluate", "retarget", "landmarks", "inspect", "check", "capture", "anim",
-    "sample", "render", "batch", "review", "export",
+    "personalize", "review", "export", "batch", "capture", "anim", "inspect", "check", "fit", "evaluate",
+    "retarget", "landmarks", "render", "sample",
 )
 
 
