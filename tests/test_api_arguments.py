@@ -574,6 +574,8 @@ def test_compute_landmarks_refuses_bad_cover_options_before_any_work(samples, mo
     {"spacing": -1}, {"spacing": [0.01]}, {"spacing": float("inf")}, {"camera": "a"},
     {"time_limit": float("inf")},                             # an OverflowError in the solver set-up
     {"multicover": 2, "one_shot": True, "adaptive": False},   # the one ILP has no 10 % heuristic: ignored
+    {"one_shot": True},                 # multicover 1: the single cover (the CLI refused it; stop 54, h112)
+    {"multicover": 1, "one_shot": True},
 ])
 def test_compute_landmarks_names_file_and_prim_in_every_refusal(samples, monkeypatch, options):
     """Every option ``compute_landmarks`` refuses names the rig's file and prim, not only the ones checked

@@ -570,9 +570,9 @@ def test_layout_plot_of_a_mask_draws_every_point_that_faces_the_viewer(tmp_path,
 
 
 @pytest.mark.parametrize("extra, said", [
-    (["--one-shot"], "--multicover is 1"),
-    (["--one-shot", "--multicover", "2", "--radius", "0.01"], "--one-shot replaces by one ILP"),
-    (["--one-shot", "--multicover", "2", "--no-adaptive"], "--one-shot replaces by one ILP"),
+    (["--one-shot"], "multicover is 1 (--multicover 1)"),
+    (["--one-shot", "--multicover", "2", "--radius", "0.01"], "(--one-shot) replaces the adaptive rounds"),
+    (["--one-shot", "--multicover", "2", "--no-adaptive"], "(--one-shot) replaces the adaptive rounds"),
     (["--one-shot", "--evaluate", "--takes", "take.csv"], "--one-shot applies only to the layout"),
 ])
 def test_one_shot_refuses_what_it_would_ignore(tmp_path, monkeypatch, capsys, extra, said):
@@ -586,7 +586,7 @@ def test_one_shot_refuses_what_it_would_ignore(tmp_path, monkeypatch, capsys, ex
     err = capsys.readouterr().err
     assert said in err and "(fix: " in err
     if "replaces" in said:       # the fix said "or --one-shot for the adaptive rounds": leave it out
-        assert "or leave out --one-shot" in err
+        assert "or leave out one_shot (--one-shot)" in err
 
 
 def test_one_shot_cli_covers_every_shape_n_times(samples, tmp_path, capsys):

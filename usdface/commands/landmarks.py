@@ -127,16 +127,10 @@ def refuse_other_mode(args) -> None:
                             "--multicover is 1 (a single cover, one round): the layout would ignore it",
                             fix=f"add --multicover N (N >= 2: up to N landmarks per shape), or leave out "
                                 f"{'/'.join(later)}")
-    if args.one_shot and not args.evaluate:
-        if (args.multicover or 1) == 1:
-            raise LandmarkError("--one-shot is a multi-cover (every shape covered N times in one ILP), and "
-                                "--multicover is 1: the layout would be the single cover",
-                                fix="add --multicover N (N >= 2), or leave out --one-shot")
-        if later:                            # the one ILP has neither: they would be ignored
-            raise LandmarkError(f"{'/'.join(later)} act(s) on the adaptive multi-cover's rounds, which "
-                                "--one-shot replaces by one ILP (no exclusion radius, no 10% heuristic)",
-                                fix=f"leave out {'/'.join(later)}, or leave out --one-shot for the adaptive "
-                                    "rounds")
+    if not args.evaluate:          # what --one-shot would ignore: the library's one rule, before any work
+        from ..landmarks.layout import check_one_shot
+
+        check_one_shot(args.one_shot, args.multicover or 1, not args.no_adaptive, args.radius)
     if args.weighting == "count" and args.alpha is not None:   # the cost is the count alone: it was ignored
         raise LandmarkError("--alpha weighs visibility against displacement in the quality of eq. 1, which "
                             "--weighting count does not use (every landmark costs 1)",

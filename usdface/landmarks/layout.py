@@ -103,6 +103,33 @@ def naming(rig: FaceRig):
         raise
 
 
+def check_one_shot(one_shot: bool, multicover: int, adaptive: bool = True, radius=None) -> None:
+    """Refuse what the one-shot multi-cover (``one_shot``, the CLI's ``--one-shot``: one ILP covering every
+    shape ``multicover`` times, Zell & McDonnell 2022 sec. 3.3.2) would ignore: ``multicover`` 1 (the layout
+    would be the single cover; the Python API took it), and the adaptive rounds' ``radius`` or
+    ``adaptive=False`` (no exclusion radius, no 10 % heuristic in the one ILP). One rule for
+    :func:`compute_landmarks` and ``usdface landmarks``, in both spellings; :class:`LandmarkError` without a
+    file (:func:`naming` adds the rig's)."""
+    if not one_shot:
+        return
+    if multicover == 1:
+        raise LandmarkError("one_shot (--one-shot) is a multi-cover (every shape covered N times in one "
+                            "ILP), and multicover is 1 (--multicover 1): the layout would be the single "
+                            "cover",
+                            fix="pass multicover=N with N >= 2 (--multicover N), or leave out one_shot "
+                                "(--one-shot)")
+    ignored = [(said, name, flag) for said, name, flag, given in (
+        (f"radius {radius!r:.30}", "radius", "--radius", radius is not None),
+        ("adaptive=False", "adaptive=False", "--no-adaptive", not adaptive)) if given]
+    if ignored:
+        said, names, flags = (list(t) for t in zip(*ignored, strict=True))
+        raise LandmarkError(f"one_shot takes no {' or '.join(said)} ({'/'.join(flags)}): the one-shot "
+                            "multi-cover (--one-shot) replaces the adaptive rounds by one ILP (no exclusion "
+                            "radius, no 10 % heuristic), which would ignore it",
+                            fix=f"leave out {' and '.join(names)} ({'/'.join(flags)}), or leave out one_shot "
+                                "(--one-shot) for the adaptive rounds")
+
+
 def _number_in(value, low: float, high: float) -> bool:
     """Whether ``value`` is a finite real number (not a bool or a string) with ``low < value <= high``
     (an infinite time limit died in the solver's set-up, ``int(inf)``)."""
@@ -337,16 +364,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
             raise LandmarkError(f"time_limit {time_limit!r:.30} is not a number of seconds > 0",
                                 fix="pass the solver's time limit in seconds, e.g. time_limit=60 (the "
                                     "default)")
-        if one_shot and not adaptive:     # the one ILP has no 10 % heuristic to drop: it would be ignored
-            raise LandmarkError("one_shot takes no adaptive=False: the one-shot multi-cover is one ILP "
-                                "without the adaptive rounds' 10 % heuristic",
-                                fix="leave out adaptive=False (--no-adaptive), or one_shot (--one-shot) for "
-                                    "the adaptive rounds")
-        if one_shot and radius is not None:   # the one ILP has no exclusion: the radius would be ignored
-            raise LandmarkError(f"one_shot takes no radius ({radius!r:.30}): the one-shot multi-cover is one "
-                                "ILP without an exclusion radius",
-                                fix="leave out radius (--radius), or one_shot (--one-shot) for the adaptive "
-                                    "rounds")
+        check_one_shot(one_shot, multicover, adaptive, radius)
         if radius is not None:                 # -1 and 'x' were taken without a word (the CLI refuses -1)
             try:
                 ok = (not isinstance(radius, str | bool) and bool(np.isfinite(float(radius)))
