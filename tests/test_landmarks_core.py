@@ -874,3 +874,33 @@ def test_the_evaluation_records_the_radius_its_layouts_used():
     assert default["units"]["radius"] == "m"
     assert default["radius"] == compute_landmarks(rig, 0.5, multicover=2, alpha=0.0).problem["radius"]
     assert evaluate_landmarks(rig, weights, radius=0.004, **kw).to_dict()["radius"] == 0.004
+
+
+def test_the_face_is_one_moving_share_for_its_size_samples_radius_and_rays():
+    """Stop 54's review (h111): the per-vertex moving share behind the face size (max over shapes of eq. 2's
+    r) was computed in four places (``face_samples``, ``compute_landmarks``, ``exclusion_radius``,
+    ``PoseVisibility``'s loop over the shapes). One function now (``candidates.moving_share``); each of the
+    four gives the face size of that share, with or without the caller's magnitudes, and the share is the
+    definition's (|dv| / the shape's peak, maxed over the shapes)."""
+    from usdface.landmarks import sampling
+    from usdface.landmarks.candidates import displacement_magnitudes, moving_share
+    from usdface.landmarks.layout import face_samples
+    from usdface.landmarks.multicover import RADIUS_SHARE, exclusion_radius
+    from usdface.landmarks.visibility import FACE_SHARE, RAY_OFFSET, face_size
+
+    rig = random_rig(4, seed=5)                  # bumps over two thirds of the sheet
+    norms = np.linalg.norm(rig.deltas, axis=2)
+    share = moving_share(relative_displacement(displacement_magnitudes(rig.deltas)))
+    np.testing.assert_array_equal(share, (norms / norms.max(axis=1, keepdims=True)).max(axis=0))
+    assert 0 < (share >= FACE_SHARE).sum() < rig.n_vertices       # the face is a part of the mesh
+    size = face_size(rig.neutral, share)
+    r = relative_displacement(displacement_magnitudes(rig.deltas))
+    assert exclusion_radius(rig.neutral, r) == RADIUS_SHARE * size
+    assert face_samples(rig)[0] == face_samples(rig, "auto", r)[0] == sampling.sample_spacing(size)
+    for mags in (None, displacement_magnitudes(rig.deltas)):
+        vis = PoseVisibility(rig.neutral, rig.triangles, rig.deltas, 4, magnitudes=mags)
+        assert vis.offset == max(RAY_OFFSET * size, 1e-9)
+    lay = compute_landmarks(rig, 0.5, multicover=2, rays=4)
+    assert lay.problem["radius"] == RADIUS_SHARE * size
+    assert lay.problem["spacing"] == sampling.sample_spacing(size)
+    assert moving_share(np.zeros((0, 4))).tolist() == [0.0] * 4          # no shapes: nothing moves

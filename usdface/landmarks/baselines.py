@@ -19,7 +19,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 
 from ..errors import LandmarkError
-from .candidates import displacement_magnitudes, relative_displacement
+from .candidates import displacement_magnitudes, moving_share, relative_displacement
 
 #: Vertices whose largest relative displacement is below this are not considered (paper, sec. 4.1).
 MOVING = 0.01
@@ -27,7 +27,7 @@ MOVING = 0.01
 
 def moving_vertices(deltas: np.ndarray, threshold: float = MOVING) -> np.ndarray:
     """Vertices with max_k r_n^k >= ``threshold``: ``deltas[K, n, 3]`` -> indices ``[v]``."""
-    return np.flatnonzero(relative_displacement(displacement_magnitudes(deltas)).max(axis=0) >= threshold)
+    return np.flatnonzero(moving_share(relative_displacement(displacement_magnitudes(deltas))) >= threshold)
 
 
 def empirical_layout(indices, n_vertices: int) -> np.ndarray:

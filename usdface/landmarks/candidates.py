@@ -74,6 +74,14 @@ def relative_displacement(magnitudes: np.ndarray) -> np.ndarray:
     return r
 
 
+def moving_share(r: np.ndarray) -> np.ndarray:
+    """Each vertex's moving share max_k r_n^k: the most any shape moves it, as a share of that shape's peak
+    (eq. 2's relative displacement ``r[K, n]`` in [0, 1] -> ``[n]`` in [0, 1]; 0 everywhere without shapes).
+    The one rule behind the face (:data:`.visibility.FACE_SHARE`: its size, the skin samples, the exclusion
+    radius, the rays' offset) and the baselines' moving vertices."""
+    return np.asarray(r, dtype=np.float64).max(axis=0, initial=0.0)
+
+
 def candidate_sets(r: np.ndarray, epsilon: float) -> np.ndarray:
     """Candidates c_n^k = 1 if r_n^k >= epsilon else 0 (Zell & McDonnell 2022, eq. 3).
 

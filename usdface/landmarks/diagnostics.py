@@ -77,7 +77,7 @@ def landmark_diagnostics(neutral: np.ndarray, triangles: np.ndarray, deltas: np.
     mag = cand.displacement_magnitudes(deltas)
     r = cand.relative_displacement(mag)
     c = cand.candidate_sets(r, eps)
-    peak_r = r.max(axis=0, initial=0.0)
+    peak_r = cand.moving_share(r)
     region = np.flatnonzero(peak_r >= share)
     n = len(neutral)
     vis_all = PoseVisibility(neutral, triangles, deltas, rays, camera, magnitudes=mag,

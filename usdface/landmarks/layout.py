@@ -168,7 +168,7 @@ def face_samples(rig: FaceRig, spacing: float | str = "auto", r: np.ndarray | No
     computes them once (``compute_landmarks(samples=)``)."""
     if r is None:
         r = cand.relative_displacement(cand.displacement_magnitudes(rig.deltas))
-    share = r.max(axis=0, initial=0.0)
+    share = cand.moving_share(r)
     if isinstance(spacing, str):
         if spacing != "auto":
             raise LandmarkError(f"unknown spacing {spacing!r}", fix="pass metres, 'auto' or None")
@@ -405,7 +405,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
         if samples is None:
             sample_spacing, samples = face_samples(rig, spacing, r)
         elif isinstance(spacing, str):
-            sample_spacing = sampling.sample_spacing(face_size(rig.neutral, r.max(axis=0, initial=0.0)))
+            sample_spacing = sampling.sample_spacing(face_size(rig.neutral, cand.moving_share(r)))
         else:
             sample_spacing = float(spacing)
         if thin_candidates:

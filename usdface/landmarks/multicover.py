@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .candidates import moving_share
 from .cover import CoverSolution
 from .visibility import face_size
 
@@ -52,7 +53,7 @@ def exclusion_radius(neutral: np.ndarray, r: np.ndarray) -> float:
     ``neutral``'s units: :data:`RADIUS_SHARE` x the face size of ``neutral[n, 3]``, the face being the
     vertices whose relative displacement ``r[K, n]`` (eq. 2) reaches 5 % for some shape. Independent of
     epsilon and of the symmetric preprocessing (both change the candidates, not the face)."""
-    return RADIUS_SHARE * face_size(neutral, np.asarray(r).max(axis=0, initial=0.0))
+    return RADIUS_SHARE * face_size(neutral, moving_share(r))
 
 
 def adaptive_multicover(c: np.ndarray, cost, neutral: np.ndarray, max_per_shape: int,

@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import GeometryError
 from ..mesh import vertex_normals
 from ..natives import open3d
+from .candidates import displacement_magnitudes, moving_share, relative_displacement
 
 
 def hemisphere_directions(count: int) -> np.ndarray:
@@ -174,15 +175,11 @@ class PoseVisibility:
         self.neutral, self.deltas = neutral, deltas
         self.rays = int(rays)
         self.camera = None if camera is None else np.asarray(camera, dtype=np.float64).reshape(3)
-        # one pass over the shapes: which vertices each moves (for the exact shortcut) and the face's extent
-        self._moving_v = np.zeros((len(deltas), len(neutral)), dtype=bool)
-        share = np.zeros(len(neutral))
-        for k in range(len(deltas)):
-            mag = np.linalg.norm(deltas[k], axis=1) if magnitudes is None else magnitudes[k]
-            self._moving_v[k] = mag > STATIC_OFFSET
-            peak = mag.max(initial=0.0)
-            if peak > 0.0:
-                np.maximum(share, mag / peak, out=share)
+        # which vertices each shape moves (for the exact shortcut) and the face's extent (the moving share,
+        # as the layout's face size, samples and exclusion radius take it: one rule)
+        mag = displacement_magnitudes(deltas) if magnitudes is None else np.asarray(magnitudes)
+        self._moving_v = mag > STATIC_OFFSET
+        share = moving_share(relative_displacement(mag))
         self.bases = [()] * len(deltas) if bases is None else [tuple(int(j) for j in b) for b in bases]
         if len(self.bases) != len(deltas) or any(not 0 <= j < len(deltas) or j == k
                                                  for k, b in enumerate(self.bases) for j in b):
