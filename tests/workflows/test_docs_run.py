@@ -306,3 +306,29 @@ def test_takes_page_capture_select_of_a_take_folder_holds_out_expressions(sample
     assert "show no expression" not in proc.stdout + proc.stderr, proc.stdout
     test = read_capture_usd(tmp_path / "capture_dir.usda").test
     assert len(test) >= 3 and test.weights.max(axis=1).max() > 0.5
+
+
+def test_takes_page_select_frames_snippet_holds_out_test_frames(tmp_path):
+    """A TD's trial (stop 54): takes.md's Python block (``select_frames(..., test_every=40,
+    min_separation=0.5 s)``), run on ``usdface sample --take``'s take, held out 0 test frames, where its
+    comment and the page's CLI example promise a test set. Run as written (the take's file name aside), it
+    holds out test frames, each showing an expression."""
+    import json
+
+    import numpy as np
+
+    from usdface.io.take import read_take
+    from usdface.take_select import REST_WEIGHT
+
+    run("sample", tmp_path / "s", "--take", cwd=tmp_path)
+    code = next(b for b in blocks(ROOT / "docs/takes.md", "python") if "select_frames(" in b)
+    assert 'read_take("take.usda")' in code
+    code = code.replace('"take.usda"', '"take.usdc"')
+    code += "\nimport json\nprint(json.dumps([int(f) for f in sel.test]))\n"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path / "s", capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    test = np.array(json.loads(proc.stdout.strip().splitlines()[-1]), dtype=int)
+    assert len(test) >= 10, proc.stdout
+    weights = read_take(tmp_path / "s" / "take.usdc").weights
+    assert (weights[test].max(axis=1) >= REST_WEIGHT).all()
