@@ -1309,7 +1309,8 @@ def run_batch(items: Iterable[BatchItem], *, worker: Callable[[dict], object] = 
               progress: bool = True, on_item: Callable[[ItemResult], None] | None = None) -> BatchReport:
     """Run ``worker`` on every item; returns a :class:`BatchReport` (results in manifest order).
 
-    ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "force"}`` and must write
+    ``worker(item_dict)`` gets ``{"avatar", "capture", "output", "options", "index", "line", "force"}``
+    (``line``: the manifest's line of the row, 0 for a JSON item or one built in Python) and must write
     ``output`` (its folders are made before it runs, and those still empty when the batch ends taken away;
     an item that returns without it fails, ``NoOutput``);
     it must be importable by name (a module-level function) to run in worker processes. Items
