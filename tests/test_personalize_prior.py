@@ -96,7 +96,7 @@ def test_with_the_avatar_prior_the_template_does_not_set_the_fitted_shapes():
 
     cap, true, avatar = prior_capture()
     other = cap.template.deltas + np.random.default_rng(7).normal(size=cap.template.deltas.shape) * 0.0015
-    other[1, :30] = 0.0                                         # this artist's mouthSmileLeft leaves them still
+    other[1, :30] = 0.0                                     # this artist's mouthSmileLeft leaves them still
     cap2 = dataclasses.replace(cap, template=dataclasses.replace(cap.template, deltas=other))
     a, b = fit(cap, avatar_prior=avatar, prior="avatar"), fit(cap2, avatar_prior=avatar, prior="avatar")
     assert np.abs(a.rig.deltas - b.rig.deltas).max() < 1e-12
