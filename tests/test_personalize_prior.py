@@ -88,6 +88,21 @@ def test_shape_the_avatar_lacks_falls_back_to_the_generic_prior():
     assert np.all(np.isfinite(res.rig.deltas))
 
 
+def test_with_the_avatar_prior_the_template_does_not_set_the_fitted_shapes():
+    """Eq. (3)'s ``D_j`` is the prior's: with the avatar's shapes as the prior, a template by another artist
+    (other shapes, one that leaves part of a shape still) gives the same fit; with the template's ``D`` the
+    person's motion where that template is still was clamped to the prior."""
+    import dataclasses
+
+    cap, true, avatar = prior_capture()
+    other = cap.template.deltas + np.random.default_rng(7).normal(size=cap.template.deltas.shape) * 0.0015
+    other[1, :30] = 0.0                                     # this artist's mouthSmileLeft leaves them still
+    cap2 = dataclasses.replace(cap, template=dataclasses.replace(cap.template, deltas=other))
+    a, b = fit(cap, avatar_prior=avatar, prior="avatar"), fit(cap2, avatar_prior=avatar, prior="avatar")
+    assert np.abs(a.rig.deltas - b.rig.deltas).max() < 1e-12
+    assert truth_error(b.rig.deltas, true) < 1e-5
+
+
 def test_shape_confidence_is_zero_without_data_and_one_when_isolated():
     cap, true, avatar = prior_capture()
     for kw in ({}, {"avatar_prior": avatar}, {"reg": 1e-4}, {"reg": 1e-4, "align": False, "reweight": False}):

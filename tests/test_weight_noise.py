@@ -557,6 +557,37 @@ def test_a_personalization_along_the_leaks_pattern_counts_only_where_it_stands_o
     np.testing.assert_allclose(capped, 1.0 - 0.25 / 1.01, rtol=1e-12)
 
 
+def test_the_one_draw_tests_family_is_every_shape_with_a_leak_pattern_not_the_draws_own_choice():
+    """:func:`usdface.transfer.trust.weight_error_trust`'s Bonferroni family is every shape whose leak has a
+    pattern (``along > 0``), whether its own draw put it at risk or not: a large draw along a shape's pattern
+    leaves its rest small and so puts the shape at risk, and a family of the shapes at risk was chosen by the
+    draws it tests (stop 54: generated people's one-frame shapes passed a 2.5-2.9 sigma `jawOpen` error as
+    the person, tested alone at 5 %). So one shape's trust does not depend on the other shapes' draws: the
+    same whether a second shape's personalization lies along its pattern (at risk) or off it (not), and a
+    draw at 4.5 variances stands out alone (one shape, 3.84) but not among two shapes with patterns (5.02)."""
+    from usdface.transfer.trust import weight_error_trust
+
+    n = 50
+    u = np.zeros((1, n, 3))
+    u[0, :, 0] = 1.0 / np.sqrt(n)                                        # unit pattern
+    off = np.zeros((1, n, 3))
+    off[0, :, 1] = 1.0 / np.sqrt(n)                                      # unit, orthogonal to it
+    leak = np.full((n, 2), 0.25 / n)
+    zero = np.zeros((2, n, 3))
+    first = np.sqrt(0.1) * off + np.sqrt(0.9) * u                        # 4.5 variances along, at risk
+    trusts = []
+    for second in (np.sqrt(0.1) * off + np.sqrt(0.9) * u, np.sqrt(4.0) * off + np.sqrt(0.01) * u):
+        d = np.concatenate([first, second])
+        t = weight_error_trust(d, zero, leak, zero, direction=np.concatenate([u, u]),
+                               along=np.array([0.2, 0.2]))
+        trusts.append(t[0])
+    # along the second shape's pattern (at risk) or off it (not): the first shape's trust is the same, its
+    # draw not standing out of the two shapes' quantile (5.02): the rest's share 0.05 / 1.0
+    np.testing.assert_allclose(trusts, [0.05, 0.05], rtol=1e-12)
+    alone = weight_error_trust(first, zero[:1], leak[:, :1], zero[:1], direction=u, along=np.array([0.2]))
+    np.testing.assert_allclose(alone, (0.05 + 0.9 - 0.2) / 1.0, rtol=1e-12)
+
+
 def test_a_shape_whose_one_frame_misreports_the_jaw_stays_near_generic(tmp_path):
     """Issue 10's per-shape rule on generated person 103 (generic template, the default phone noise): the
     phone reports ``jawOpen`` 0.243 in ``tongueOut``'s one frame, truth 0.214 (three times its noise), and the

@@ -615,12 +615,15 @@ def fit_personalized_shapes(capture: Capture, method: str = "menzel", reg="auto"
                                   info=info, **options)
         timings["ebfr"] = time.perf_counter() - t1
     else:
-        D = regularization_weights(generic, clamp=clamp)
         alt = tmpl.deltas if prior == "auto" else None
         K = len(capture.names)
         main = {"template": tmpl.deltas, "avatar": None}.get(prior, generic)
         if prior == "avatar":
             main = np.where(avatar_ok[:, None, None], avatar, generic)
+        # eq. (3)'s D_j from the prior T_j that eq. (2) pulls towards: with the avatar prior, the avatar's
+        # shapes (a template by another artist that leaves part of a shape still would clamp the person's
+        # motion there to the prior; with the prior's own D the fit does not depend on the template's shapes)
+        D = regularization_weights(main if prior == "avatar" else generic, clamp=clamp)
         lam, alpha = _balance(reg, capture.neutral, points, weights, main, D, alt, prior, info, timings,
                               clamp=clamp)
         prior_deltas = alpha * generic + (1.0 - alpha) * tmpl.deltas if alpha < 1.0 else main

@@ -77,10 +77,14 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     factor above, would cost more than the rest of the personalization gains (``c q along > (2 - c) R``, ``R``
     the rest's energy less the rest of the budget: the shape could end worse than the generic), the projection
     counts (James-Stein, its variance taken off) only if it stands out of that quantile - taken at ``level``
-    over the shapes so tested (Bonferroni: the rule is for every shape of the capture) - and the rest against
-    the rest of the budget, never above the factor above; elsewhere that factor stands. Without it a single
-    weight error three times its expectation (``jawOpen`` in ``tongueOut``'s one frame, generated person 103)
-    passed as the person: the expected leak was a fifth of the fitted change, the change was that error."""
+    over every shape whose leak has a pattern (``along > 0``; Bonferroni: the rule is for every shape of the
+    capture) - and the rest against the rest of the budget, never above the factor above; elsewhere that
+    factor stands. Without it a single weight error three times its expectation (``jawOpen`` in
+    ``tongueOut``'s one frame, generated person 103) passed as the person: the expected leak was a fifth of
+    the fitted change, the change was that error. The family is not the shapes at risk alone: a large draw
+    leaves its shape's rest small and so puts it at risk, a family chosen by the draws it tests (with eq.
+    3's ``D`` from the avatar prior, one-frame shapes of generated people passed a 2.5-2.9 sigma ``jawOpen``
+    error as the person, each the one shape at risk and tested at 5 %: stop 54)."""
     s = np.asarray(sensitivity, dtype=np.float64)
     variance = np.asarray(leak, dtype=np.float64) + np.einsum("knc,knc->nk", s, s)
     if direction is None or along is None:
@@ -98,8 +102,10 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     before = np.clip(1.0 - budget / np.maximum(power, 1e-300), 0.0, 1.0)
     # a draw that large along the pattern, taken at the old factor, outweighs what the rest gains
     risky = before * quantile * lam > (2.0 - before) * rest
-    # one test per shape at risk: together no more than ``level`` of captures has any of them pass a draw
-    quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(risky.sum()), 1))
+    # one test per shape whose leak has a pattern, at risk or not: together no more than ``level`` of captures
+    # has any of them pass a draw. Not the shapes at risk alone: a large draw puts its own shape at risk (it
+    # leaves the rest small), so that family was chosen by the draw it tests, often one shape tested at 5 %
+    quantile = 2.0 * gammaincinv(0.5, 1.0 - level / max(int(np.count_nonzero(lam > 0)), 1))
     stands_out = proj2 > quantile * lam
     kept = rest + np.where(stands_out, proj2 - lam, 0.0)
     # the test only lowers the factor: a projection that stands out is the person, not a reason to trust the
