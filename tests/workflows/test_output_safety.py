@@ -387,3 +387,24 @@ def test_a_batch_rows_correspondence_cache_is_checked_before_the_first_item(samp
     refused(proc, "people.csv", "item 2", "cap/b.npz", "inside the input folder")
     assert not (tmp_path / "out").exists(), sorted(p.name for p in (tmp_path / "out").iterdir())
     assert tree(cap) == before
+
+
+def test_a_dry_run_names_the_place_beside_an_input_folder_as_the_real_run_does(sample_set, tmp_path):
+    """Review of stop 54 (h113): the real run's refusal of a layer inside an input folder names ``-o`` with
+    the place beside it (``cli.name_output_option``), but ``personalize --dry-run`` printed its early word on
+    the output (and ``--json``'s ``output_refused``) without it: ``(p.usda, beside it)``, the API's wording,
+    on the command line. One wording for both runs."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    argv = ("personalize", sample_set / "avatar.usda", "cap", "-o", "cap/p.usda", "--dry-run")
+    dry = run(*argv, cwd=tmp_path, ok=False)
+    assert dry.returncode == 1, dry.stdout + dry.stderr
+    assert "(-o p.usda, beside it)" in dry.stderr, dry.stderr
+    doc = json.loads(run(*argv, "--json", cwd=tmp_path, ok=False).stdout)
+    assert "(-o p.usda, beside it)" in doc["output_refused"], doc["output_refused"]
+    # a refused cache is not -o's output: the path alone, as the real run says it
+    cache = run("personalize", sample_set / "avatar.usda", "cap", "-o", "p.usda", "--correspondence",
+                "cap/corr.npz", "--dry-run", cwd=tmp_path, ok=False)
+    assert "-o corr.npz" not in cache.stderr, cache.stderr
+    assert tree(cap) == before
