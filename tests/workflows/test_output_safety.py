@@ -408,3 +408,29 @@ def test_a_dry_run_names_the_place_beside_an_input_folder_as_the_real_run_does(s
                 "cap/corr.npz", "--dry-run", cwd=tmp_path, ok=False)
     assert "-o corr.npz" not in cache.stderr, cache.stderr
     assert tree(cap) == before
+
+
+def test_the_librarys_picture_and_gltf_writers_refuse_a_dangling_link_as_every_output_check_does(tmp_path):
+    """Review of stop 54 (h113): the dangling-link rule (``check_output_file``) was not the one rule of an
+    existing output: ``usdface.render``'s pictures (``save_figure``) and ``usdface.io.gltf.write_gltf``
+    kept ``exists()``, which follows the link: ``render_shapes(rig, out="p.png")`` over ``p.png -> gone/p.png``
+    drew the picture and then failed 'output exists (written by another process meanwhile)', wrong. Each
+    refuses it as an existing output now (replaced with ``force``, the link's target left as it is)."""
+    import numpy as np
+
+    from usdface.errors import OutputExistsError
+    from usdface.io.gltf import write_gltf
+    from usdface.model import FaceRig
+    from usdface.render import render_shapes
+
+    pts = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0.01, 0.01, 0.002]], dtype=float)
+    rig = FaceRig(pts, np.array([[0, 1, 2], [1, 3, 2]]), ["up"], np.full((1, 4, 3), 0.001), name="Face")
+    for name, write in (("p.png", lambda out, **kw: render_shapes(rig, ["up"], out=out, **kw)),
+                        ("p.glb", lambda out, **kw: write_gltf(out, [rig], **kw))):
+        link = tmp_path / name
+        link.symlink_to(f"gone/{name}")
+        with pytest.raises(OutputExistsError, match="symbolic link") as err:
+            write(link)
+        assert "meanwhile" not in str(err.value), err.value
+        write(link, force=True)
+        assert link.is_file() and not link.is_symlink() and not (tmp_path / "gone").exists()
