@@ -413,9 +413,10 @@ def test_a_dry_run_names_the_place_beside_an_input_folder_as_the_real_run_does(s
 def test_the_librarys_picture_and_gltf_writers_refuse_a_dangling_link_as_every_output_check_does(tmp_path):
     """Review of stop 54 (h113): the dangling-link rule (``check_output_file``) was not the one rule of an
     existing output: ``usdface.render``'s pictures (``save_figure``) and ``usdface.io.gltf.write_gltf``
-    kept ``exists()``, which follows the link: ``render_shapes(rig, out="p.png")`` over ``p.png -> gone/p.png``
-    drew the picture and then failed 'output exists (written by another process meanwhile)', wrong. Each
-    refuses it as an existing output now (replaced with ``force``, the link's target left as it is)."""
+    kept ``exists()``, which follows the link: ``render_shapes(rig, out="p.png")`` over
+    ``p.png -> gone/p.png`` drew the picture and then failed 'output exists (written by another process
+    meanwhile)', wrong. Each refuses it as an existing output now (replaced with ``force``, the link's
+    target left as it is)."""
     import numpy as np
 
     from usdface.errors import OutputExistsError
