@@ -435,3 +435,42 @@ def test_the_librarys_picture_and_gltf_writers_refuse_a_dangling_link_as_every_o
         assert "meanwhile" not in str(err.value), err.value
         write(link, force=True)
         assert link.is_file() and not link.is_symlink() and not (tmp_path / "gone").exists()
+
+
+def test_a_batch_row_whose_output_is_a_dangling_link_is_refused_before_the_first_item(sample_set, tmp_path):
+    """Review of stop 54 (h113): a manifest row whose output is a symbolic link to nothing passed the
+    preflight as a finished row (``lexists``) while resume ran it as not done (``exists``): the rows before it
+    ran, then it failed at its turn, told 'written meanwhile by another run of this output ... the next run
+    skips it' (wrong twice: no other run, and the next run failed again). Refused before any work, as
+    ``personalize -o`` refuses the link, naming the row; ``--force`` replaces the link with the layer."""
+    avatar, capture = sample_set / "avatar.usda", sample_set / "capture"
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "b.usda").symlink_to("gone/b.usda")
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output\n{avatar},{capture},out/a.usda\n"
+                                         f"{avatar},{capture},out/b.usda\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
+    refused(proc, "people.csv", "item 2", "symbolic link", "gone/b.usda", "--force")
+    assert "meanwhile" not in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["b.usda"]
+    run("batch", "people.csv", "-j", "1", "--force", "-q", cwd=tmp_path)
+    assert (tmp_path / "out" / "b.usda").is_file() and not (tmp_path / "out" / "b.usda").is_symlink()
+    assert not (tmp_path / "out" / "gone").exists()
+
+
+def test_run_batch_does_not_call_a_refused_dangling_link_another_runs_output(tmp_path, monkeypatch):
+    """Without the preflight (``run_batch``), a row whose output is a link to nothing fails at its turn with
+    the worker's refusal alone: not 'written meanwhile by another run ... the next run skips it' (the note
+    for a layer another run of the manifest wrote, which exists)."""
+    from usdface.errors import OutputExistsError
+    from usdface.pipeline import batch
+
+    link = tmp_path / "b.usda"
+    link.symlink_to("gone/b.usda")
+
+    def refuse(item):
+        raise OutputExistsError("output layer exists as a symbolic link to gone/b.usda, which does not exist",
+                                path=item["output"], fix="pass --force")
+
+    result = batch.run_item(refuse, {"index": 0, "avatar": "a", "capture": "c", "output": str(link)})
+    assert result["status"] == batch.FAILED and "meanwhile" not in result["error"], result["error"]
+    assert link.is_symlink()
