@@ -277,7 +277,10 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
     it composes: sublayers, references, payloads):
 
     * ``path`` is an input: the same file, also through a symlink or a hard link;
-    * ``path`` is an input folder or lies inside one (a new file there changes the input folder);
+    * ``path`` is an input folder or lies inside one (a new file there changes the input folder); the fix
+      names the same name beside the folder as the path alone, also held as the error's ``beside`` (the
+      command line names ``-o`` with it where ``-o`` gives the output,
+      :func:`usdface.cli.name_output_option`);
     * ``folder=True`` (``path`` is an output folder): ``path`` contains an input, or an entry under ``path``
       is a hard link of an input or a symlink to an input (or to a folder holding one).
     """
