@@ -572,3 +572,5 @@ def test_rigid_transforms_of_several_vertex_sets_side_by_side_are_each_sets_own_
                                          else weights[:, np.flatnonzero(vertices) if vertices.dtype == bool
                                                       else vertices])
                 assert np.array_equal(R, alone[0]) and np.array_equal(t, alone[1])
+    # no set (every half-face too small): no transforms, as a loop over no sets (an IndexError before)
+    assert rigid_transforms_sets(pts, target, [], groups=False) == []

@@ -720,3 +720,51 @@ pyblish.util.publish(pyblish.api.Context())
         "another output)"], res.stderr
     assert "ValidateUsdFaceOutputs hero_anna hero_anna.usda: output layer exists" in res.stdout
     assert "Traceback" in bug and "ZeroDivisionError: a bug" in bug, res.stderr
+
+
+def test_the_refusal_filter_is_added_once_to_pyblishs_logger_alone_and_deregister_removes_it():
+    """Review of stop 54 (h113): ``register()`` twice adds the one-line filter once, only to the logger
+    Pyblish logs a failed plugin on (a studio's own logger keeps a usdface error's traceback);
+    ``deregister()`` removes it (twice, or without a register, is a no-op), and the refusals are Pyblish's
+    tracebacks again."""
+    import logging
+
+    from usdface.errors import OutputExistsError
+
+    plugin_log, studio_log = logging.getLogger("pyblish.plugin"), logging.getLogger("studio.publish")
+    seen = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            seen.append((record.name, record.getMessage(), record.exc_info is not None))
+
+    handler = Keep()
+    for log in (plugin_log, studio_log):
+        log.addHandler(handler)
+    try:
+        plugins.deregister()
+        plugins.deregister()                                  # without a register: nothing to remove
+        plugins.register()
+        plugins.register()
+        assert [f for f in plugin_log.filters if isinstance(f, plugins._RefusalsAsOneLine)] == [
+            plugins._REFUSALS]
+        error = OutputExistsError("output layer exists", path="p.usda", fix="pass --force")
+        for log in (plugin_log, studio_log):
+            try:
+                raise error
+            except OutputExistsError:
+                log.exception("Traceback (most recent call last): ...")
+        assert seen == [("pyblish.plugin", str(error), False),
+                        ("studio.publish", "Traceback (most recent call last): ...", True)], seen
+        plugins.deregister()
+        assert not any(isinstance(f, plugins._RefusalsAsOneLine) for f in plugin_log.filters)
+        seen.clear()
+        try:
+            raise error
+        except OutputExistsError:
+            plugin_log.exception("Traceback (most recent call last): ...")
+        assert seen == [("pyblish.plugin", "Traceback (most recent call last): ...", True)], seen
+    finally:
+        for log in (plugin_log, studio_log):
+            log.removeHandler(handler)
+        pyblish_api.deregister_all_plugins()

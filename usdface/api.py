@@ -1488,6 +1488,7 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
     run = load_worker(worker) if worker else personalize_worker
     if worker is None:                 # every row's options and output's place checked before any item runs
         from .errors import InputFileError, UsdFaceError
+        from .io.atomic import refuse_existing
         from .io.layers import check_output_path
         from .io.usd_rig import refuse_usdface_output
         from .pipeline.batch import REVIEW, check_item_inputs, check_review_page, redoes, review_flag
@@ -1513,6 +1514,10 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
                 check_output_path(item.output, True, inputs=inputs)
+                # a link to nothing is not a finished row (resume runs it: run_batch) but an existing name
+                # the worker refuses without force: refused here, as personalize -o refuses it (stop 54)
+                if not redo and not os.path.exists(item.output):
+                    refuse_existing(item.output, False, "output layer")
             except UsdFaceError as exc:
                 raise _row_error(item, exc, manifest, "fix the manifest's output column") from None
             # the correspondence cache, an output too (in an input folder, where it cannot be written), as

@@ -727,7 +727,8 @@ def name_output_option(exc: UsdFaceError, args) -> None:
     (``exc.beside``, :func:`usdface.io.atomic.check_not_input`: the API and a Pyblish instance have no
     ``-o``); on the command line the fix names ``-o`` with it where the refused output is the one ``-o``
     gives (given, or its default: ``capture import .`` inside the folder), not another option's
-    (``personalize --correspondence cap/corr.npz`` was told ``-o corr.npz``, the layer's; stop 54)."""
+    (``personalize --correspondence cap/corr.npz`` was told ``-o corr.npz``, the layer's; stop 54). The error
+    :func:`_run` prints, and ``personalize --dry-run``'s early word on the output (it said the path alone)."""
     beside = getattr(exc, "beside", None)
     if not beside or not exc.fix or exc.path is None or not hasattr(args, "output"):
         return

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import OutputExistsError, UsdFaceError, warn
+from .errors import UsdFaceError, warn
 
 #: View name -> rotation applied to points before dropping z (camera looks down -z of the rotated frame).
 VIEWS = {
@@ -189,11 +189,12 @@ def shared_frame(poses, triangles, view: str = "front", crop=None, pad: float = 
 
 
 def save_figure(fig, out, force: bool = False) -> Path:
-    """Save a figure as PNG atomically (temp file + rename); refuses to overwrite unless ``force``."""
+    """Save a figure as PNG atomically (temp file + rename); refuses an existing file (or a link to nothing)
+    unless ``force`` (:func:`usdface.io.atomic.refuse_existing`)."""
+    from .io.atomic import atomic_file, refuse_existing
+
     out = Path(out)
-    if out.exists() and not force:
-        raise OutputExistsError("picture exists", path=out, fix="pass --force (force=True) to replace it")
-    from .io.atomic import atomic_file
+    refuse_existing(out, force, "picture")
 
     with atomic_file(out, force=force) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")

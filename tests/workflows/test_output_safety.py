@@ -394,3 +394,90 @@ def test_a_batch_rows_correspondence_cache_is_checked_before_the_first_item(samp
     proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
     refused(proc, "people.csv", "item 1", "correspondence column and its output column name the same file")
     assert "--correspondence" not in proc.stderr, proc.stderr
+
+
+def test_a_dry_run_names_the_place_beside_an_input_folder_as_the_real_run_does(sample_set, tmp_path):
+    """Review of stop 54 (h113): the real run's refusal of a layer inside an input folder names ``-o`` with
+    the place beside it (``cli.name_output_option``), but ``personalize --dry-run`` printed its early word on
+    the output (and ``--json``'s ``output_refused``) without it: ``(p.usda, beside it)``, the API's wording,
+    on the command line. One wording for both runs."""
+    cap = tmp_path / "cap"
+    shutil.copytree(sample_set / "capture", cap)
+    before = tree(cap)
+    argv = ("personalize", sample_set / "avatar.usda", "cap", "-o", "cap/p.usda", "--dry-run")
+    dry = run(*argv, cwd=tmp_path, ok=False)
+    assert dry.returncode == 1, dry.stdout + dry.stderr
+    assert "(-o p.usda, beside it)" in dry.stderr, dry.stderr
+    doc = json.loads(run(*argv, "--json", cwd=tmp_path, ok=False).stdout)
+    assert "(-o p.usda, beside it)" in doc["output_refused"], doc["output_refused"]
+    # a refused cache is not -o's output: the path alone, as the real run says it
+    cache = run("personalize", sample_set / "avatar.usda", "cap", "-o", "p.usda", "--correspondence",
+                "cap/corr.npz", "--dry-run", cwd=tmp_path, ok=False)
+    assert "-o corr.npz" not in cache.stderr, cache.stderr
+    assert tree(cap) == before
+
+
+def test_the_librarys_picture_and_gltf_writers_refuse_a_dangling_link_as_every_output_check_does(tmp_path):
+    """Review of stop 54 (h113): the dangling-link rule (``check_output_file``) was not the one rule of an
+    existing output: ``usdface.render``'s pictures (``save_figure``) and ``usdface.io.gltf.write_gltf``
+    kept ``exists()``, which follows the link: ``render_shapes(rig, out="p.png")`` over
+    ``p.png -> gone/p.png`` drew the picture and then failed 'output exists (written by another process
+    meanwhile)', wrong. Each refuses it as an existing output now (replaced with ``force``, the link's
+    target left as it is)."""
+    import numpy as np
+
+    from usdface.errors import OutputExistsError
+    from usdface.io.gltf import write_gltf
+    from usdface.model import FaceRig
+    from usdface.render import render_shapes
+
+    pts = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0.01, 0.01, 0.002]], dtype=float)
+    rig = FaceRig(pts, np.array([[0, 1, 2], [1, 3, 2]]), ["up"], np.full((1, 4, 3), 0.001), name="Face")
+    for name, write in (("p.png", lambda out, **kw: render_shapes(rig, ["up"], out=out, **kw)),
+                        ("p.glb", lambda out, **kw: write_gltf(out, [rig], **kw))):
+        link = tmp_path / name
+        link.symlink_to(f"gone/{name}")
+        with pytest.raises(OutputExistsError, match="symbolic link") as err:
+            write(link)
+        assert "meanwhile" not in str(err.value), err.value
+        write(link, force=True)
+        assert link.is_file() and not link.is_symlink() and not (tmp_path / "gone").exists()
+
+
+def test_a_batch_row_whose_output_is_a_dangling_link_is_refused_before_the_first_item(sample_set, tmp_path):
+    """Review of stop 54 (h113): a manifest row whose output is a symbolic link to nothing passed the
+    preflight as a finished row (``lexists``) while resume ran it as not done (``exists``): the rows before it
+    ran, then it failed at its turn, told 'written meanwhile by another run of this output ... the next run
+    skips it' (wrong twice: no other run, and the next run failed again). Refused before any work, as
+    ``personalize -o`` refuses the link, naming the row; ``--force`` replaces the link with the layer."""
+    avatar, capture = sample_set / "avatar.usda", sample_set / "capture"
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "b.usda").symlink_to("gone/b.usda")
+    (tmp_path / "people.csv").write_text(f"avatar,capture,output\n{avatar},{capture},out/a.usda\n"
+                                         f"{avatar},{capture},out/b.usda\n")
+    proc = run("batch", "people.csv", "-j", "1", cwd=tmp_path, ok=False)
+    refused(proc, "people.csv", "item 2", "symbolic link", "gone/b.usda", "--force")
+    assert "meanwhile" not in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["b.usda"]
+    run("batch", "people.csv", "-j", "1", "--force", "-q", cwd=tmp_path)
+    assert (tmp_path / "out" / "b.usda").is_file() and not (tmp_path / "out" / "b.usda").is_symlink()
+    assert not (tmp_path / "out" / "gone").exists()
+
+
+def test_run_batch_does_not_call_a_refused_dangling_link_another_runs_output(tmp_path, monkeypatch):
+    """Without the preflight (``run_batch``), a row whose output is a link to nothing fails at its turn with
+    the worker's refusal alone: not 'written meanwhile by another run ... the next run skips it' (the note
+    for a layer another run of the manifest wrote, which exists)."""
+    from usdface.errors import OutputExistsError
+    from usdface.pipeline import batch
+
+    link = tmp_path / "b.usda"
+    link.symlink_to("gone/b.usda")
+
+    def refuse(item):
+        raise OutputExistsError("output layer exists as a symbolic link to gone/b.usda, which does not exist",
+                                path=item["output"], fix="pass --force")
+
+    result = batch.run_item(refuse, {"index": 0, "avatar": "a", "capture": "c", "output": str(link)})
+    assert result["status"] == batch.FAILED and "meanwhile" not in result["error"], result["error"]
+    assert link.is_symlink()

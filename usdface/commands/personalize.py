@@ -192,6 +192,9 @@ def run(args) -> int:
             # it has read the avatar, before the fit; a dry run said it only after the fit (stop 52)
             _refuse_layer_over(args.avatar)
         except UsdFaceError as exc:
+            from ..cli import name_output_option
+
+            name_output_option(exc, args)        # the real run's wording: -o where -o gives the output
             refusal = str(exc)
             # said before the fit (seconds to minutes), not only after it: a preflight's answer first; the
             # changes are still computed (a dry run prints them), the exit status stays 1

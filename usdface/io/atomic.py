@@ -277,7 +277,10 @@ def check_not_input(path, inputs, *, what: str = "output", folder: bool = False)
     it composes: sublayers, references, payloads):
 
     * ``path`` is an input: the same file, also through a symlink or a hard link;
-    * ``path`` is an input folder or lies inside one (a new file there changes the input folder);
+    * ``path`` is an input folder or lies inside one (a new file there changes the input folder); the fix
+      names the same name beside the folder as the path alone, also held as the error's ``beside`` (the
+      command line names ``-o`` with it where ``-o`` gives the output,
+      :func:`usdface.cli.name_output_option`);
     * ``folder=True`` (``path`` is an output folder): ``path`` contains an input, or an entry under ``path``
       is a hard link of an input or a symlink to an input (or to a folder holding one).
     """
@@ -389,14 +392,24 @@ def check_output_file(path, force: bool = False, *, suffixes=None, what: str = "
     _refuse_unexpanded_home(path, what)
     _check_parent(path, what, fix)
     check_not_input(path, inputs, what=what)
-    if os.path.lexists(path) and not force:
-        if not path.exists():   # a link to nothing: an existing name, which the write refuses at its end
-            raise OutputExistsError(             # ('written by another process meanwhile', after the work)
-                f"{what} exists as a symbolic link to {os.readlink(path)}, which does not exist", path=path,
-                fix="pass --force (force=True) to replace the link with the file (its target is left as "
-                    "it is), or choose another output")
-        raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
+    refuse_existing(path, force, what)
     return check_writable(path, what=what, fix=fix)
+
+
+def refuse_existing(path, force: bool = False, what: str = "output") -> None:
+    """An existing output file ``path`` without ``force``: OutputExistsError, the one rule of
+    :func:`check_output_file` and the writers that check alone (``usdface.render``'s pictures,
+    :func:`usdface.io.gltf.write_gltf`). A symbolic link to nothing is an existing name (``exists()``
+    follows the link and said no; the exclusive write then refused it at its end, 'written by another
+    process meanwhile', after the work: stop 54); with ``force`` the file replaces the link, its target is
+    left as it is."""
+    if not os.path.lexists(path) or force:
+        return
+    if not os.path.exists(path):     # a link to nothing
+        raise OutputExistsError(f"{what} exists as a symbolic link to {os.readlink(path)}, which does not "
+                                "exist", path=path, fix="pass --force (force=True) to replace the link with "
+                                "the file (its target is left as it is), or choose another output")
+    raise OutputExistsError(f"{what} exists", path=path, fix="pass --force (force=True) to replace it")
 
 
 def _refuse_unexpanded_home(path: Path, what: str, folder: bool = False) -> None:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GeometryError, InputFileError, OutputExistsError
+from ..errors import GeometryError, InputFileError
 
 __all__ = ["GltfSkin", "write_gltf", "read_gltf", "GLTF_EXTENSIONS"]
 
@@ -234,14 +234,13 @@ def write_gltf(path, rigs, *, skin: GltfSkin | list[GltfSkin] | None = None, roo
     import pygltflib
 
     from .. import __version__
-    from .atomic import atomic_file
+    from .atomic import atomic_file, refuse_existing
 
     path = Path(path)
     if path.suffix.lower() not in GLTF_EXTENSIONS:
         raise InputFileError("a glTF output must end in .glb or .gltf", path=path,
                              fix="name it e.g. avatar.glb")
-    if path.exists() and not force:
-        raise OutputExistsError("output exists", path=path, fix="pass --force (force=True) to replace it")
+    refuse_existing(path, force)
     rigs = list(rigs)
     _check(rigs)
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator=f"usdface {__version__}"))

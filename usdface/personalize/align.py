@@ -151,18 +151,8 @@ def rigid_transforms(points: np.ndarray, reference: np.ndarray, vertices: np.nda
     ``vertices`` (the inverse of its expected non-rigid residual's variance, :func:`expression_weights`),
     multiplied into the robust weights; None: all 1 (frames found equal here are equal in them too; a
     caller's ``groups`` must be)."""
-    P = np.asarray(points, dtype=np.float64)
-    ref = np.asarray(reference, dtype=np.float64)
-    vertices = np.asarray(vertices)
-    if vertices.dtype == bool:
-        vertices = np.flatnonzero(vertices)
-    base = None if weights is None else np.asarray(weights, dtype=np.float64)
-    if groups:                            # the distinct frames known: gather only theirs (the same numbers)
-        ref = ref[groups[0]] if ref.ndim == 3 and len(ref) == len(P) else ref
-        base = None if base is None else base[groups[0]]
-        P = P[groups[0]]
-    src = np.take(P, vertices, axis=1)                              # take: 2x cheaper than fancy indexing
-    dst = np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
+    P, ref, base = _frames(points, reference, weights, groups)
+    _, src, dst = _on_vertices(P, ref, vertices)
     if groups is None:
         extra = () if base is None else (base,)
         groups = distinct_frames(src, *extra) if ref.ndim == 2 else distinct_frames(src, dst, *extra)
@@ -182,26 +172,40 @@ def rigid_transforms_sets(points: np.ndarray, reference: np.ndarray, vertex_sets
     call an iteration (the alignment test's four half-faces: four calls of 28 small SVDs became one of 112).
     ``groups``: the frames' :func:`distinct_frames` (``(first, inverse)``, or False: every frame distinct),
     as :func:`rigid_transforms` takes it from a caller; ``weights[F,n_ref]``: per-frame prior weights of every
-    vertex the sets index (each set takes its own columns)."""
+    vertex the sets index (each set takes its own columns). No sets: ``[]``."""
+    if groups is None:
+        raise ValueError("rigid_transforms_sets needs the frames' groups (or False)")
+    P, ref, base = _frames(points, reference, weights, groups)
+    sets = []
+    for vertices in vertex_sets:
+        vertices, src, dst = _on_vertices(P, ref, vertices)
+        sets.append((src, dst, None if base is None else base[:, vertices]))
+    out = _robust_kabsch_sets(sets, True, iterations) if sets else []
+    return out if not groups else [(R[groups[1]], t[groups[1]]) for R, t in out]
+
+
+def _frames(points, reference, weights, groups):
+    """``(P[U,N,3], ref, base)`` of :func:`rigid_transforms`' arguments as float arrays, gathered to the
+    distinct frames ``groups[0]`` when ``groups`` is given (the same numbers): the one front of it and of
+    :func:`rigid_transforms_sets`."""
     P = np.asarray(points, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     base = None if weights is None else np.asarray(weights, dtype=np.float64)
-    if groups is None:
-        raise ValueError("rigid_transforms_sets needs the frames' groups (or False)")
-    if groups:                            # the distinct frames' rows only (the same numbers)
+    if groups:                            # the distinct frames known: gather only theirs (the same numbers)
         ref = ref[groups[0]] if ref.ndim == 3 and len(ref) == len(P) else ref
         base = None if base is None else base[groups[0]]
         P = P[groups[0]]
-    sets = []
-    for vertices in vertex_sets:
-        vertices = np.asarray(vertices)
-        if vertices.dtype == bool:
-            vertices = np.flatnonzero(vertices)
-        src = np.take(P, vertices, axis=1)
-        dst = np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
-        sets.append((src, dst, None if base is None else base[:, vertices]))
-    out = _robust_kabsch_sets(sets, True, iterations)
-    return out if not groups else [(R[groups[1]], t[groups[1]]) for R, t in out]
+    return P, ref, base
+
+
+def _on_vertices(P, ref, vertices):
+    """``(indices, src[F,m,3], dst[F,m,3])``: the frames ``P`` and the reference ``ref`` (``[N,3]`` or
+    ``[F,N,3]``) on ``vertices`` (indices or a mask)."""
+    vertices = np.asarray(vertices)
+    if vertices.dtype == bool:
+        vertices = np.flatnonzero(vertices)
+    src = np.take(P, vertices, axis=1)                              # take: 2x cheaper than fancy indexing
+    return vertices, src, np.broadcast_to(np.take(ref, vertices, axis=-2), src.shape)
 
 
 def _robust_kabsch(src, dst, robust, iterations, base=None):

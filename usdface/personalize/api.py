@@ -1484,8 +1484,7 @@ def _alignment_generalises(pf, points, reg, info):
             if len(est) >= 6 and len(out):
                 halves.append((est, out))
     # the halves' robust fits side by side (one batched 3x3 SVD an iteration), each as it is alone
-    fits = (rigid_transforms_sets(points, target, [est for est, _ in halves], groups=groups, weights=base)
-            if halves else [])
+    fits = rigid_transforms_sets(points, target, [est for est, _ in halves], groups=groups, weights=base)
     for (_, out), (R, t) in zip(halves, fits, strict=True):
         p_out = np.take(points, out, axis=1)
         moved = np.matmul(p_out, np.swapaxes(R, 1, 2)) + t[:, None]

@@ -49,8 +49,15 @@ REDUCED_MAX_RANK = 0.75
 def _left(A: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``A @ X_v`` for every ``v``: ``A[a,b]``, ``X[n,b,c]`` -> ``[n,a,c]`` as one matrix product (not ``n``
     small ones)."""
+    return _lefts(X, A)[0]
+
+
+def _lefts(X: np.ndarray, *matrices: np.ndarray) -> list[np.ndarray]:
+    """:func:`_left` of ``X[n,b,c]`` by each of ``matrices`` (``A[a,b]`` each), ``X``'s vertex-major copy
+    ``[b,n*c]`` made once for all of them (the same numbers as one :func:`_left` each)."""
     n, b, c = X.shape
-    return (A @ X.transpose(1, 0, 2).reshape(b, n * c)).reshape(A.shape[0], n, c).transpose(1, 0, 2)
+    Xr = X.transpose(1, 0, 2).reshape(b, n * c)
+    return [(A @ Xr).reshape(A.shape[0], n, c).transpose(1, 0, 2) for A in matrices]
 
 
 def _take1(x: np.ndarray, idx) -> np.ndarray:
@@ -628,14 +635,10 @@ class PositionFit:
         else:
             self.mu, self.V = np.zeros(H.shape[:2]), H
         self.mu = np.maximum(self.mu, 0.0)
-        # P V [n,F,r] and B V [n,K,r] (:func:`_left`): V's vertex-major copy made once for both products
-        n, r = self.V.shape[:2]
-        Vr = self.V.transpose(1, 0, 2).reshape(r, n * r)
-        self.Z = (self.P @ Vr).reshape(len(self.P), n, r).transpose(1, 0, 2)         # P V  [n,F,r]
+        # P V [n,F,r] and B V [n,K,r]: V's vertex-major copy made once for both products
+        self.Z, self.BV = _lefts(self.V, self.P, self.B)
         # Z^2 (the hat diagonals' weights), once for every reg and step; per vertex block for a long take
         self._Z2 = self.Z ** 2 if self.Z.nbytes <= (64 << 20) else None
-        self.BV = (self.B @ Vr).reshape(len(self.B), n, r).transpose(1, 0, 2)        # B V  [n,K,r]
-        del Vr
         self.T_main = np.asarray(generic_deltas, dtype=np.float64)
         self.T_alt = None if alt_deltas is None else np.asarray(alt_deltas, dtype=np.float64)
         self.has_alt = self.T_alt is not None

@@ -821,8 +821,9 @@ def run_item(worker: Callable[[dict], object], item: dict) -> dict:
         error = "; ".join([str(exc), *(n for n in getattr(exc, "__notes__", ()) if isinstance(n, str))])
         # a worker that wrote its output, then failed: not a result. The output refused as existing was
         # written by someone else meanwhile (the same manifest run twice at once): theirs, left in place
+        # (a file there: a link to nothing the worker refused is no other run's, stop 54)
         theirs = isinstance(exc, OutputExistsError) and exc.path is not None and \
-            Path(exc.path).absolute() == out.absolute()
+            Path(exc.path).absolute() == out.absolute() and out.exists()
         if not existed and out.exists() and not theirs:
             error += f" (its output was written before the failure: moved to {set_aside(out).name})"
         elif theirs and not existed:    # its fix said 'pass --force', as if to redo the other run's work
