@@ -21,9 +21,9 @@ from ..personalize.fit import james_stein
 from ..personalize.weak import TAKE_NOISE_MIN, WEAK_SHAPE, weak_ramp
 from .implant import shape_confidence
 
-__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "TEST_READING", "leak_trust", "raised_by_reading",
-           "sensitivity_trust", "shape_trust", "test_frames_reading", "unshrunk", "weak_ramp",
-           "weight_error_trust"]
+__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "TEST_READING", "WITHHELD", "leak_trust",
+           "raised_by_reading", "sensitivity_trust", "shape_trust", "test_frames_reading", "unshrunk",
+           "weak_ramp", "weight_error_trust"]
 
 #: :data:`WEAK_SHAPE`, :data:`TAKE_NOISE_MIN` and :func:`weak_ramp` live in :mod:`usdface.personalize.weak`
 #: (the plain fit returns a weakly shown shape to its own prior by the same ramp); re-exported here.
@@ -34,6 +34,10 @@ CONFIDENCE = "noise"
 #: Raise a trust to the lower confidence bound of the capture's test frames' reading of the shape's
 #: personalization scale where that bound is above it (:func:`raised_by_reading`; "noise" only).
 TEST_READING = True
+#: A shape is withheld where its trust keeps it closer to the avatar's generic shape than to the person's
+#: (below one half, as the report's untrusted shapes): only there does the test frames' reading raise it
+#: (:func:`raised_by_reading`).
+WITHHELD = 0.5
 
 
 def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.ndarray:
@@ -113,17 +117,17 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
 
 
 def raised_by_reading(trust, reading, variance, *, level: float = SIGNIFICANCE) -> np.ndarray:
-    """``[K]``: each ``trust[K]`` raised to the lower confidence bound of the test frames' reading of the
-    shape's personalization scale (``reading[K]``, ``variance[K]``, :func:`test_frames_reading`), where that
-    bound is above it; elsewhere the trust as it is.
+    """``[K]``: each ``trust[K]`` below :data:`WITHHELD` raised to the lower confidence bound of the test
+    frames' reading of the shape's personalization scale (``reading[K]``, ``variance[K]``,
+    :func:`test_frames_reading`), where that bound is above it; elsewhere the trust as it is.
 
     The trust is read on the training frames; the capture's test frames are an independent reading of the
     same scale ``c`` (the fitted personalization's scale nearest the person's). Where the reading says with
     confidence that ``c >= L > trust``, the trust ``L`` is nearer ``c`` than the trust was: the shape's error
     on the capture, ``(trust - c)^2 |d|^2`` plus what no scale reaches, falls. ``L = a - z sd``, one-sided,
     ``z`` the normal ``1 - level / m`` quantile over the ``m`` shapes tested (those the test frames show whose
-    trust is below 1; Bonferroni: together no more than ``level`` of captures has any shape raised past its
-    scale), capped at 1 (never past the fitted shape).
+    trust withholds them, below :data:`WITHHELD`; Bonferroni: together no more than ``level`` of captures
+    has any shape raised past its scale), capped at 1 (never past the fitted shape).
 
     Only where the reading is informative: where ``z sd < 1``, the bound a full personalization (``c = 1``)
     would read is above 0. A shape the test frames show weakly has a reading of large spread whose variance
@@ -136,7 +140,7 @@ def raised_by_reading(trust, reading, variance, *, level: float = SIGNIFICANCE) 
     t = np.asarray(trust, dtype=np.float64)
     a = np.asarray(reading, dtype=np.float64)
     sd = np.sqrt(np.asarray(variance, dtype=np.float64))
-    tested = np.isfinite(sd) & (t < 1.0)
+    tested = np.isfinite(sd) & (t < WITHHELD)
     z = float(ndtri(1.0 - level / max(int(tested.sum()), 1)))
     informative = tested & (z * sd < 1.0)
     bound = np.where(informative, np.clip(a - z * np.where(informative, sd, 0.0), 0.0, 1.0), 0.0)
