@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from usdface.transfer.trust import raised_by_reading
+from usdface.transfer.trust import WITHHELD, raised_by_reading
 
 
 def test_the_trust_is_only_raised_and_never_past_the_fitted_shape():
@@ -51,3 +51,12 @@ def test_no_more_than_the_level_of_captures_has_any_shape_raised_past_its_scale(
     trust[0] = 0.0
     out = raised_by_reading(trust, np.full(K, 0.9), np.full(K, 0.1 ** 2))
     np.testing.assert_allclose(out[0], 0.9 - 1.6448536 * 0.1, atol=1e-6)
+
+
+def test_a_shape_the_trust_keeps_nearer_the_person_is_not_raised():
+    """A trust at or above :data:`WITHHELD` (the shape kept nearer the person's than the generic) stays as
+    it is under a sure reading of 1; the one below it is raised, and only it counts in the Bonferroni."""
+    trust = np.array([WITHHELD, 0.8, 0.1])
+    out = raised_by_reading(trust, np.ones(3), np.full(3, 0.01 ** 2))
+    np.testing.assert_array_equal(out[:2], trust[:2])
+    np.testing.assert_allclose(out[2], 1.0 - 1.6448536 * 0.01, atol=1e-6)
