@@ -22,7 +22,7 @@ import numpy as np
 from .weights import peak_frames
 
 __all__ = ["amplitude_terms", "combined_amplitude", "each_frame_left_out", "held_out_amplitude",
-           "peak_amplitude_variance"]
+           "peak_amplitude_variance", "personalization_reading"]
 
 
 def peak_amplitude_variance(weights, variance) -> np.ndarray:
@@ -74,6 +74,28 @@ def held_out_amplitude(neutral, points, weights, deltas, variance, *,
     return _reading(terms, None)
 
 
+def personalization_reading(neutral, points, weights, deltas, prior,
+                            variance) -> tuple[np.ndarray, np.ndarray]:
+    """``(a[K], var[K])``: the scale of each fitted shape's personalization ``d_k = B_k - P_k`` (``deltas``,
+    ``prior`` ``[K,n,3]`` metres, the fitted shapes and the prior the fit shrank them towards) as the test
+    frames read it, and its variance; same ``neutral``, ``points``, ``weights``, ``variance`` as
+    :func:`held_out_amplitude`, whose reading this is with the residual projected on ``d_k`` instead of
+    ``B_k``: ``a_k = 1 + sum_t r_tk <R_t, d_k> / (|d_k|^2 sum_t (r_tk^2 - v_tk))``.
+
+    If the person's shape is ``T_k = P_k + c_k d_k + o_k`` (``o_k`` orthogonal to ``d_k``: ``c_k`` the scale
+    of the fitted personalization nearest the person's, the trust's target), frame ``t``'s residual holds
+    ``(c_k - 1) w_tk d_k`` along ``d_k``, so ``a_k`` reads ``c_k``, with the variance model of
+    :func:`held_out_amplitude` (the reports' errors and what no weight explains, read in the frames that do
+    not report the shape). A shape the test frames do not show, or whose fit is its prior (``d_k = 0``),
+    reads 1 at infinite variance."""
+    along = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
+    terms = amplitude_terms(neutral, points, weights, deltas, variance, along=along)
+    if terms is None:
+        K = np.asarray(weights).shape[1]
+        return np.ones(K), np.full(K, np.inf)
+    return _reading(terms, None)
+
+
 def each_frame_left_out(neutral, points, weights, deltas, variance, *,
                         terms=None) -> tuple[np.ndarray, np.ndarray]:
     """``(a[T,K], var[T,K])``: :func:`held_out_amplitude` read once per test frame ``t`` on the other
@@ -90,21 +112,25 @@ def each_frame_left_out(neutral, points, weights, deltas, variance, *,
     return _reading(terms, np.eye(len(terms["rr"]), dtype=bool))
 
 
-def amplitude_terms(neutral, points, weights, deltas, variance) -> dict | None:
+def amplitude_terms(neutral, points, weights, deltas, variance, *, along=None) -> dict | None:
     """Per test frame and shape, the terms :func:`held_out_amplitude` and :func:`each_frame_left_out` sum
     over frames (``[T,K]`` each; the shapes' squared norms ``[K]``), or None with no test frames: formed once
-    when a caller reads both (the shapes' Gram matrix and every frame's projection on them)."""
+    when a caller reads both (the shapes' Gram matrix and every frame's projection on them). ``along[K,n,3]``
+    (metres): read each shape's residual along this pattern instead of the shape itself (the scale of a part
+    of the shape, :func:`personalization_reading`); the shapes ``deltas`` still explain the frames."""
     r = np.asarray(weights, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
     if len(r) == 0:
         return None
     A = np.asarray(deltas, dtype=np.float64).reshape(r.shape[1], -1)                    # [K, 3n]
+    D = A if along is None else np.asarray(along, dtype=np.float64).reshape(r.shape[1], -1)
     Y = np.asarray(points, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
     Y = Y.reshape(len(r), -1)                                                          # [T, 3n]
-    gram = A @ A.T                                                                     # [K,K] m^2
-    proj = (Y - r @ A) @ A.T                                                           # [T,K] <R_t, B_k>
-    by_weights = v @ (gram * gram)                                                     # [T,K] m^4
-    return {"num": r * proj, "rr": r * r - v, "norm2": np.diag(gram), "r2": r * r,
+    cross = D @ A.T                                                                    # [K,K] <D_k, B_m> m^2
+    proj = (Y - r @ A) @ D.T                                                           # [T,K] <R_t, D_k>
+    by_weights = v @ (cross * cross).T                                                 # [T,K] m^4
+    norm2 = np.einsum("ki,ki->k", D, D)
+    return {"num": r * proj, "rr": r * r - v, "norm2": norm2, "r2": r * r,
             "r2b": r * r * by_weights, "excess": proj ** 2 - by_weights, "off": r == 0.0}
 
 

@@ -21,8 +21,9 @@ from ..personalize.fit import james_stein
 from ..personalize.weak import TAKE_NOISE_MIN, WEAK_SHAPE, weak_ramp
 from .implant import shape_confidence
 
-__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitivity_trust", "shape_trust",
-           "unshrunk", "weak_ramp", "weight_error_trust"]
+__all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "TEST_READING", "WITHHELD", "leak_trust",
+           "raised_by_reading", "sensitivity_trust", "shape_trust", "test_frames_reading", "unshrunk",
+           "weak_ramp", "weight_error_trust"]
 
 #: :data:`WEAK_SHAPE`, :data:`TAKE_NOISE_MIN` and :func:`weak_ramp` live in :mod:`usdface.personalize.weak`
 #: (the plain fit returns a weakly shown shape to its own prior by the same ramp); re-exported here.
@@ -30,6 +31,13 @@ __all__ = ["WEAK_SHAPE", "TAKE_NOISE_MIN", "CONFIDENCE", "leak_trust", "sensitiv
 #: measured on the capture), "fit" (capped by the fit's data share, as before stop 37) or "loo" (James-Stein
 #: with the leave-one-frame-out error).
 CONFIDENCE = "noise"
+#: Raise a trust to the lower confidence bound of the capture's test frames' reading of the shape's
+#: personalization scale where that bound is above it (:func:`raised_by_reading`; "noise" only).
+TEST_READING = True
+#: A shape is withheld where its trust keeps it closer to the avatar's generic shape than to the person's
+#: (below one half, as the report's untrusted shapes): only there does the test frames' reading raise it
+#: (:func:`raised_by_reading`).
+WITHHELD = 0.5
 
 
 def sensitivity_trust(deltas, prior, sensitivity, *, moving: float = 0.1) -> np.ndarray:
@@ -112,6 +120,63 @@ def weight_error_trust(deltas, prior, leak, sensitivity, *, moving: float = 0.1,
     # shape past its error budget (taken up to the test's own factor, a generated capture's `mouthShrugLower`
     # went +0.031 -> +0.077 mm and another's `mouthPressRight` +0.081 -> +0.133 over generic, stop 47)
     return np.where(risky, np.minimum(before, np.clip(kept / np.maximum(power, 1e-300), 0.0, 1.0)), before)
+
+
+def raised_by_reading(trust, reading, variance, *, level: float = SIGNIFICANCE) -> np.ndarray:
+    """``[K]``: each ``trust[K]`` below :data:`WITHHELD` raised to the lower confidence bound of the test
+    frames' reading of the shape's personalization scale (``reading[K]``, ``variance[K]``,
+    :func:`test_frames_reading`), where that bound is above it; elsewhere the trust as it is.
+
+    The trust is read on the training frames; the capture's test frames are an independent reading of the
+    same scale ``c`` (the fitted personalization's scale nearest the person's). Where the reading says with
+    confidence that ``c >= L > trust``, the trust ``L`` is nearer ``c`` than the trust was: the shape's error
+    on the capture, ``(trust - c)^2 |d|^2`` plus what no scale reaches, falls. ``L = a - z sd``, one-sided,
+    ``z`` the normal ``1 - level / m`` quantile over the ``m`` shapes tested (those the test frames show whose
+    trust withholds them, below :data:`WITHHELD`; Bonferroni: together no more than ``level`` of captures
+    has any shape raised past its scale), capped at 1 (never past the fitted shape).
+
+    Only where the reading is informative: where ``z sd < 1``, the bound a full personalization (``c = 1``)
+    would read is above 0. A shape the test frames show weakly has a reading of large spread whose variance
+    model is least sure (a generated capture's ``eyeLookOutRight`` read -43 +- 21); its bound is not used
+    however far its reading lies. Trust is only raised: a reading below the trust says nothing the training
+    frames' budget has not (the test frames show the shapes in the same mixtures, so they do not see the
+    cross-talk that lowers a trust). Only withheld shapes: raised wherever the bound was above the trust,
+    a generated capture's ``jawOpen`` went 0.821 -> 0.871 (its scale on the capture 1.008: right) and over
+    the avatar's line, +0.043 -> +0.068 mm, a transfer floor no capture-side reading sees; and on strongly
+    shown shapes the reading sits above the truth by more than its spread says (stop 54, h115)."""
+    from scipy.special import ndtri
+
+    t = np.asarray(trust, dtype=np.float64)
+    a = np.asarray(reading, dtype=np.float64)
+    sd = np.sqrt(np.asarray(variance, dtype=np.float64))
+    tested = np.isfinite(sd) & (t < WITHHELD)
+    z = float(ndtri(1.0 - level / max(int(tested.sum()), 1)))
+    informative = tested & (z * sd < 1.0)
+    bound = np.where(informative, np.clip(a - z * np.where(informative, sd, 0.0), 0.0, 1.0), 0.0)
+    return np.maximum(t, bound)
+
+
+def test_frames_reading(fit, capture, cap_idx) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(a[J], var[J])``: the capture's test frames' reading of the scale of the fitted personalization
+    ``B - P`` of the shapes ``cap_idx`` (:func:`usdface.personalize.amplitude.personalization_reading`), with
+    the reports' error variances at the phone's noise the fit's amplitude step measured
+    (``FitResult.info["test_amplitude"]["weight_noise"]``), or None where the fit read no amplitude on test
+    frames (no test frames, the step off, another method) or has no prior."""
+    info = fit.info
+    amplitude, prior = info.get("test_amplitude"), info.get("prior_deltas")
+    test = getattr(capture, "test", None)             # a stand-in capture may carry no test frames
+    if amplitude is None or prior is None or test is None or len(test) == 0:
+        return None
+    from ..personalize.amplitude import personalization_reading
+    from ..personalize.weights import weight_error_variance
+
+    deltas = np.asarray(fit.rig.deltas, dtype=np.float64)
+    variance = weight_error_variance(capture.neutral, test.points, test.weights, deltas,
+                                     np.ones(test.weights.shape, dtype=bool),
+                                     noise=float(amplitude["weight_noise"]))
+    a, var = personalization_reading(capture.neutral, test.points, test.weights, deltas, np.asarray(prior),
+                                     variance)
+    return a[cap_idx], var[cap_idx]
 
 
 def unshrunk(factor, share) -> np.ndarray:
@@ -199,7 +264,12 @@ def shape_trust(fit, capture, rig, b_idx, person_deltas, prior_av, *,
                 weights_error = (leak_trust(fitted, prior, leak) if sens is None else
                                  weight_error_trust(fitted, prior, leak, np.asarray(sens)[cap_idx],
                                                     direction=direction, along=along))
-                return np.minimum(reliability, weights_error) * ramp, info, ramp < 0.5
+                trust = np.minimum(reliability, weights_error) * ramp
+                # the test frames' own reading of the personalization's scale, where it is sure of more
+                read = test_frames_reading(fit, capture, cap_idx) if TEST_READING else None
+                if read is not None:
+                    trust = raised_by_reading(trust, *read)
+                return trust, info, ramp < 0.5
             if sens is not None:
                 # and no more than the personalization stands above what the weights' noise makes of it
                 trust = np.minimum(trust, sensitivity_trust(fitted, prior, np.asarray(sens)[cap_idx]))
