@@ -223,6 +223,16 @@ def test_the_leak_without_the_fits_gain_is_the_same_sum_per_vertex():
                                weight_leak_variance(W, D, 1e-3, B, free, system=kept), rtol=1e-10)
 
 
+def _unit_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, off)``, each ``[1,n,3]`` of unit norm: a shape's leak pattern along x and a part orthogonal to it
+    along y (the one-draw test's tests)."""
+    u = np.zeros((1, n, 3))
+    u[0, :, 0] = 1.0 / np.sqrt(n)
+    off = np.zeros((1, n, 3))
+    off[0, :, 1] = 1.0 / np.sqrt(n)
+    return u, off
+
+
 def _sheet(nx=9, ny=8):
     """A wavy 0.1 x 0.08 m sheet of ``nx x ny`` vertices: ``(neutral[n,3], triangles, x[n], y[n])``."""
     from synthetic_meshes import grid_triangles
@@ -526,10 +536,7 @@ def test_a_personalization_along_the_leaks_pattern_counts_only_where_it_stands_o
     from usdface.transfer.trust import weight_error_trust
 
     n = 50
-    u = np.zeros((1, n, 3))
-    u[0, :, 0] = 1.0 / np.sqrt(n)                                        # unit pattern
-    off = np.zeros((1, n, 3))
-    off[0, :, 1] = 1.0 / np.sqrt(n)                                      # unit, orthogonal to it
+    u, off = _unit_pattern(n)
     leak = np.full((n, 1), 0.25 / n)
     sens = np.zeros((1, n, 3))
     prior = np.zeros((1, n, 3))
@@ -568,10 +575,7 @@ def test_the_one_draw_tests_family_is_every_shape_with_a_leak_pattern_not_the_dr
     from usdface.transfer.trust import weight_error_trust
 
     n = 50
-    u = np.zeros((1, n, 3))
-    u[0, :, 0] = 1.0 / np.sqrt(n)                                        # unit pattern
-    off = np.zeros((1, n, 3))
-    off[0, :, 1] = 1.0 / np.sqrt(n)                                      # unit, orthogonal to it
+    u, off = _unit_pattern(n)
     leak = np.full((n, 2), 0.25 / n)
     zero = np.zeros((2, n, 3))
     first = np.sqrt(0.1) * off + np.sqrt(0.9) * u                        # 4.5 variances along, at risk
