@@ -66,7 +66,7 @@ def held_out_amplitude(neutral, points, weights, deltas, variance, *,
     weights' noise 0.0005) reads the fitted shapes' errors at that noise's tiny variance. A shape the test
     frames do not show (``den <= 0``; every shape when ``T = 0``) reads 1 at infinite variance. ``terms``:
     :func:`amplitude_terms` of these arrays if the caller has them (:func:`each_frame_left_out` sums the
-    same)."""
+    same; :func:`personalization_reading` passes them read along another pattern)."""
     terms = amplitude_terms(neutral, points, weights, deltas, variance) if terms is None else terms
     if terms is None:                                # no test frames: every shape unseen
         K = np.asarray(weights).shape[1]
@@ -89,11 +89,8 @@ def personalization_reading(neutral, points, weights, deltas, prior,
     not report the shape). A shape the test frames do not show, or whose fit is its prior (``d_k = 0``),
     reads 1 at infinite variance."""
     along = np.asarray(deltas, dtype=np.float64) - np.asarray(prior, dtype=np.float64)
-    terms = amplitude_terms(neutral, points, weights, deltas, variance, along=along)
-    if terms is None:
-        K = np.asarray(weights).shape[1]
-        return np.ones(K), np.full(K, np.inf)
-    return _reading(terms, None)
+    return held_out_amplitude(neutral, points, weights, deltas, variance,
+                              terms=amplitude_terms(neutral, points, weights, deltas, variance, along=along))
 
 
 def each_frame_left_out(neutral, points, weights, deltas, variance, *,
