@@ -437,9 +437,7 @@ def review_flag(options: dict, whose: str = "the row's", fix: str = REVIEW_FIX) 
     """Whether ``options`` (a batch row's) ask for the review page: ``review`` True or False (``None`` or
     absent: False), anything else refused (:func:`usdface.errors.expect_flag`, as a Pyblish instance's
     ``review`` is checked): a word counted as true would write a page the row did not ask for."""
-    from ..errors import expect_flag
-
-    return expect_flag(options.get(REVIEW), REVIEW, whose, False, fix)
+    return _flag(options.get(REVIEW), REVIEW, whose, fix)
 
 
 def review_page(layer) -> Path:
@@ -679,16 +677,18 @@ def _row_take(options: dict) -> str | None:
     return str(take) if isinstance(take, str | os.PathLike) and str(take) else None
 
 
-def _flag(value, name: str) -> bool:
+def _flag(value, name: str, whose: str = "the row's", fix: str | None = None) -> bool:
     """A row's boolean cell ``name`` as the API reads it (:func:`usdface.errors.expect_flag`: numpy's booleans
     too; ``is True`` called ``numpy.True_`` false; empty: false); any other value an
-    :class:`usdface.errors.OptionError` naming the column. The one reading of a row's cell by resume and by
-    the worker (stop 54: resume took a ``force`` cell ``sure`` as not set and skipped the done row, while the
-    worker refused the same cell on a row not yet done)."""
+    :class:`usdface.errors.OptionError` naming the column (``whose``, ``fix``: default the manifest's). The
+    one reading of a row's cell by resume, by the worker and by :func:`review_flag` (stop 54: resume took a
+    ``force`` cell ``sure`` as not set and skipped the done row, while the worker refused the same cell on a
+    row not yet done)."""
     from ..errors import expect_flag
 
-    fix = f"write the manifest's {name} column as true or false (or leave the cell empty: false)"
-    return expect_flag(value, name, "the row's", False, fix)
+    if fix is None:
+        fix = f"write the manifest's {name} column as true or false (or leave the cell empty: false)"
+    return expect_flag(value, name, whose, False, fix)
 
 
 def _changed_option(options: dict, record: dict) -> tuple[str, str, str] | None:
