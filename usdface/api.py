@@ -1495,21 +1495,18 @@ def _batch_preflight(items, worker, manifest, force: bool = False):
         from .pipeline.batch import review_page as page_of
 
         for item in items:
-            # the review page beside the layer (the manifest column the Pyblish collector reads too): a
-            # boolean, checked on every row as the options are; it was refused as an unknown option
+            # the row's boolean cells, checked on every row as the options are: the review page beside the
+            # layer (the manifest column the Pyblish collector reads too; it was refused as an unknown
+            # option), then whether the row is redone (the batch's --force, or the row's force column)
             try:
                 review = review_flag(item.options)
+                redo = redoes(item, force)
             except UsdFaceError as exc:
                 raise InputFileError(f"{item.label}: {exc.message}", path=manifest,
                                      fix=exc.fix) from None
             options = {k: v for k, v in item.options.items() if k != REVIEW}
             # an existing output is resume's (skipped, or redone with force); one skipped is not written, so
             # it cannot overwrite an input (listing the layers a USD input composes: ~16 ms a row)
-            try:                                    # the batch's --force, or the row's force column
-                redo = redoes(item, force)
-            except UsdFaceError as exc:
-                raise InputFileError(f"{item.label}: {exc.message}", path=manifest,
-                                     fix=exc.fix) from None
             written = redo or not os.path.lexists(item.output)
             inputs = personalize_inputs(item.avatar, item.capture, **options) if written else ()
             try:
