@@ -373,7 +373,7 @@ def compute_landmarks(rig: FaceRig, epsilon: float = 0.5, alpha: float = 0.5, sy
                 ok = False
             if not ok:
                 raise LandmarkError(f"multi-cover radius {radius!r:.60} is not a length >= 0 in metres",
-                                        fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the "
+                                    fix="pass metres >= 0 (--radius), or None (the default: 2.4 % of the "
                                         "face size, 1 cm on a human head)")
         if not (spacing is None or (isinstance(spacing, str) and spacing == "auto")
                 or _number_in(spacing, 0.0, np.inf)):     # a list died in float()
